@@ -1,0 +1,112 @@
+"""Test-run hygiene for every test in the workspace (see DEVELOPERS.md).
+
+* Each test run gets its own DDS domain (``ROS_DOMAIN_ID``) and discovery stays on this
+  host (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``), so concurrent runs and other
+  programs on the machine cannot cross-talk.
+* ROS finds the venv's ament index and a writable log directory.
+* Child processes are started through the ``procs`` fixture and ended by PID
+  (SIGINT, a grace period, then SIGKILL), never by name.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable
+
+import pytest
+
+REPO = Path(__file__).resolve().parent
+VENV = Path(sys.prefix)
+
+# A domain per run: derived from the PID, within Fast DDS's usable range 0..232.
+os.environ['ROS_DOMAIN_ID'] = os.environ.get('IM_TEST_DOMAIN_ID', str(20 + os.getpid() % 200))
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+os.environ.setdefault('AMENT_PREFIX_PATH', str(VENV))
+if str(VENV) not in os.environ['AMENT_PREFIX_PATH'].split(os.pathsep):
+    os.environ['AMENT_PREFIX_PATH'] = os.pathsep.join([str(VENV), os.environ['AMENT_PREFIX_PATH']])
+os.environ.setdefault('ROS_LOG_DIR', tempfile.mkdtemp(prefix='im_tuner_test_roslog_'))
+if not os.environ.get('HOME'):
+    os.environ['HOME'] = tempfile.gettempdir()
+
+
+def wait_for(predicate: Callable[[], object], timeout: float, interval: float = 0.01,
+             message: str = 'condition') -> object:
+    """Poll ``predicate`` on a steady clock until truthy or ``timeout`` s pass (then fail)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() >= deadline:
+            raise AssertionError(f'timed out after {timeout} s waiting for {message}')
+        time.sleep(interval)
+
+
+def stop_process(proc: subprocess.Popen, grace: float = 5.0) -> int:
+    """End a child we started, by PID: SIGINT, wait ``grace`` s, then SIGKILL."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=grace)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=grace)
+    return proc.returncode
+
+
+class Processes:
+    """Starts child processes for a test and always ends them at teardown."""
+
+    def __init__(self) -> None:
+        self.children: list[subprocess.Popen] = []
+
+    def start(self, argv: list[str], **kwargs) -> subprocess.Popen:
+        kwargs.setdefault('stdout', subprocess.PIPE)
+        kwargs.setdefault('stderr', subprocess.PIPE)
+        kwargs.setdefault('text', True)
+        proc = subprocess.Popen(argv, **kwargs)
+        self.children.append(proc)
+        return proc
+
+    def stop_all(self) -> None:
+        for proc in reversed(self.children):
+            stop_process(proc)
+
+
+@pytest.fixture
+def procs():
+    p = Processes()
+    try:
+        yield p
+    finally:
+        p.stop_all()
+
+
+@pytest.fixture
+def ros_context():
+    """A private rclpy Context for one test, shut down afterwards."""
+    import rclpy
+    from rclpy.context import Context
+    ctx = Context()
+    rclpy.init(context=ctx)
+    try:
+        yield ctx
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture
+def ros2_exe() -> Path:
+    """The workspace's ``ros2`` command (installed by ``make setup``)."""
+    return VENV / 'bin' / 'ros2'
+
+
+@pytest.fixture
+def wait_until() -> Callable[..., object]:
+    """The :func:`wait_for` helper, as a fixture (tests cannot import conftest)."""
+    return wait_for

@@ -1,0 +1,25 @@
+"""Induction-motor drive simulator core (pure Python + numba, no ROS imports).
+
+Model, control, measurement and API are documented in docs/drive-model.md.
+Heavy modules (numba kernels) are imported lazily on first attribute access.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+__version__ = "0.1.0"
+
+__all__ = ["__version__", "ConfigError", "DriveConfig", "load_config", "default_config_path",
+           "DriveSim", "STATE_FIELDS"]
+
+
+def __getattr__(name: str) -> Any:
+    # Lazy re-exports keep `import im_drive_sim` cheap (no numba import) for tools.
+    if name in ("ConfigError", "DriveConfig", "load_config", "default_config_path"):
+        from . import params
+        return getattr(params, name)
+    if name in ("DriveSim", "STATE_FIELDS"):
+        from . import sim
+        return getattr(sim, name)
+    raise AttributeError(f"module 'im_drive_sim' has no attribute {name!r}")

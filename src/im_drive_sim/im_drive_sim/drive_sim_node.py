@@ -1,0 +1,471 @@
+"""ROS 2 node of the drive simulator: ``ros2 run im_drive_sim drive_sim``.
+
+A thin node around :class:`im_drive_sim.sim.DriveSim`: it translates the drive interface
+of ``docs/interfaces.md`` into core calls and back.
+
+Lock-step (default): the node publishes drive state k, waits for the command that answers
+it, steps the model one 200 us period and publishes state k+1 -- as fast as commands come,
+bit-for-bit deterministic. Real-time: the model is stepped every 200 us by the wall
+clock (no rclpy timer: a hand-paced loop), the last command is held when no fresh one
+came, and overruns and late commands are counted and reported.
+
+The hot path never goes through an executor: the command subscription lives on a hidden
+helper node (``_<name>_io``) taken with a hand-rolled WaitSet; the visible node (parameters,
+diagnostics) is spun by an executor between steps, every ``service_period_steps`` steps
+and whenever the loop is idle.
+"""
+from __future__ import annotations
+
+import argparse
+import array
+import math
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.utilities import remove_ros_args
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from .params import ConfigError, load_config
+from .sim import STATE_FIELDS, DriveSim
+
+#: Topic names (relative: they follow the node's namespace).
+STATE_TOPIC = 'drive/state'
+COMMAND_TOPIC = 'drive/command'
+JOINT_STATE_TOPIC = 'drive/joint_states'
+STATUS_TOPIC = 'drive/status'
+
+#: Layout of ``drive/command`` (Float64MultiArray.data).
+COMMAND_FIELDS: tuple[str, ...] = ('answers_step', 'isq_ref', 'load_torque')
+CMD_STEP, CMD_ISQ, CMD_LOAD = 0, 1, 2
+
+#: QoS of the 5 kHz lock-step topics: reliable, so no step is ever lost in transit.
+#: KEEP_LAST with a generous depth: lock-step never has more than one sample in flight;
+#: in real time a depth of 64 periods (12.8 ms) bridges scheduling hiccups.
+LOCKSTEP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=64,
+                          reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.VOLATILE)
+
+NS_PER_S = 1_000_000_000
+MODES = ('lockstep', 'realtime')
+
+
+@dataclass
+class Counters:
+    """What the loop counts; published on ``drive/status`` and logged at shutdown."""
+
+    steps: int = 0              #: model steps taken since start
+    commands: int = 0           #: commands received
+    fresh: int = 0              #: real time: steps driven by a command answering the latest state
+    held: int = 0               #: real time: steps that held the previous command
+    late: int = 0               #: commands answering an older state than the latest one
+    stale_ignored: int = 0      #: lock-step: commands for another step, ignored
+    overruns: int = 0           #: real time: periods that started later than one period
+    republished: int = 0        #: lock-step: state re-sent while waiting for a command
+    max_lateness_us: float = 0.0  #: real time: worst start-of-period lateness
+
+
+def _descriptor(description: str, *, read_only: bool = True,
+                int_range: tuple[int, int] | None = None,
+                float_range: tuple[float, float] | None = None,
+                additional: str = '') -> ParameterDescriptor:
+    d = ParameterDescriptor(description=description, read_only=read_only,
+                            additional_constraints=additional)
+    if int_range is not None:
+        d.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1], step=1)]
+    if float_range is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=float_range[0],
+                                                     to_value=float_range[1], step=0.0)]
+    return d
+
+
+class DriveSimNode(Node):
+    """The drive simulator node (see module docstring and docs/interfaces.md).
+
+    All parameters are read-only: they fix the structure of the simulation (model, mode,
+    seed, machine file) and are set at start with ``--ros-args -p name:=value``.
+    """
+
+    def __init__(self, *, node_name: str = 'drive_sim', context=None,
+                 parameter_overrides: list | None = None) -> None:
+        super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
+        p = self._declare_parameters()
+        self.mode: str = p['mode']
+        try:
+            overrides = {'model': p['model']} if p['model'] else {}
+            self.config = load_config(p['config_file'] or None, overrides=overrides)
+        except ConfigError as exc:
+            raise ConfigError(f'drive_sim: {exc}') from exc
+        self.sim = DriveSim(self.config, seed=p['seed'] if p['seed'] >= 0 else None)
+        self.sim.reset(theta=p['initial_position'], omega=0.0, fluxed=True)
+        self.ts_ns: int = int(round(self.config.Ts * NS_PER_S))
+        self.clock_decimation: int = p['clock_decimation']
+        self.joint_state_decimation: int = p['joint_state_decimation']
+        self.max_steps: int = p['max_steps']
+        self.service_period_steps: int = p['service_period_steps']
+        self.republish_period: float = p['republish_period']
+        self.spin_margin: float = p['realtime_spin_margin']
+        self.counters = Counters()
+
+        # Publishers (all on the visible node).
+        self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, LOCKSTEP_QOS)
+        self.clock_pub = self.create_publisher(Clock, '/clock', 10)
+        self.joint_pub = self.create_publisher(JointState, JOINT_STATE_TOPIC, 10)
+        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, 10)
+        # The 5 kHz command path: its own hidden node, never touched by the executor.
+        self.io_node = Node(f'_{node_name}_io', context=context,
+                            namespace=self.get_namespace())
+        self.cmd_sub = self.io_node.create_subscription(
+            Float64MultiArray, COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS)
+        self._waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
+
+        # Preallocated messages and buffers: nothing is built per step.
+        # The message owns an array.array; the model writes into it through a numpy view,
+        # so publishing needs no conversion (assigning a list/ndarray costs microseconds).
+        self._state_msg = Float64MultiArray()
+        self._state_msg.data = array.array('d', bytes(8 * len(STATE_FIELDS)))
+        self._state = np.frombuffer(self._state_msg.data, dtype=np.float64)
+        self._clock_msg = Clock()
+        self._joint_msg = JointState()
+        self._joint_msg.name = ['motor']
+        self._joint_msg.position = [0.0]
+        self._joint_msg.velocity = [0.0]
+        self._joint_msg.effort = [0.0]
+        self._isq_ref = 0.0
+        self._load = 0.0
+        self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
+
+        self.get_logger().info(
+            f"mode={self.mode} model={self.config.model} Ts={self.config.Ts * 1e6:.0f} us "
+            f"config={p['config_file'] or '(packaged default)'} seed={p['seed']}")
+
+    # -- parameters ------------------------------------------------------------------
+    def _declare_parameters(self) -> dict:
+        specs = [
+            ('mode', 'lockstep', _descriptor(
+                "'lockstep': one 200 us step per command received; 'realtime': paced at "
+                '5 kHz by the wall clock, holding the last command.',
+                additional="one of: lockstep, realtime")),
+            ('config_file', '', _descriptor(
+                'Drive parameter file (YAML, see share/im_drive_sim/config/paper_750w.yaml); '
+                "'' = the packaged 750 W default.")),
+            ('model', '', _descriptor(
+                "'full' (voltage-fed IM + vector control) or 'reduced' (ideal field "
+                "orientation); '' = as in the parameter file.",
+                additional="one of: '', full, reduced")),
+            ('seed', -1, _descriptor(
+                'Seed of the disturbance sources; -1 = the parameter file\'s seed.',
+                int_range=(-1, 2**31 - 1))),
+            ('initial_position', 0.0, _descriptor(
+                'Rotor position at start [rad].', float_range=(-1e6, 1e6))),
+            ('clock_decimation', 25, _descriptor(
+                'Publish /clock every N steps (N = 25: every 5 ms of sim time).',
+                int_range=(1, 100000))),
+            ('joint_state_decimation', 10, _descriptor(
+                'Publish drive/joint_states every N steps.', int_range=(1, 100000))),
+            ('max_steps', 0, _descriptor(
+                'Stop after this many steps (0 = run until shut down).',
+                int_range=(0, 2**62))),
+            ('service_period_steps', 250, _descriptor(
+                'Serve parameter requests every N steps (and whenever idle).',
+                int_range=(1, 1000000))),
+            ('republish_period', 0.1, _descriptor(
+                'Lock-step: re-send the current state after this long without a command '
+                '[s], so a controller that starts later still gets it.',
+                float_range=(0.001, 60.0))),
+            ('realtime_spin_margin', 150e-6, _descriptor(
+                'Real time: busy-wait this long before each period start instead of '
+                'sleeping, for low jitter [s].', float_range=(0.0, 200e-6))),
+            ('state_fields', list(STATE_FIELDS), _descriptor(
+                'Layout of drive/state data (read-only): field names in order.')),
+            ('command_fields', list(COMMAND_FIELDS), _descriptor(
+                'Layout of drive/command data (read-only): field names in order.')),
+        ]
+        values = {}
+        for name, default, desc in specs:
+            values[name] = self.declare_parameter(name, default, desc).value
+        if values['mode'] not in MODES:
+            raise ConfigError(f"drive_sim: parameter 'mode' must be one of {MODES}, "
+                              f"got {values['mode']!r}")
+        if values['model'] not in ('', 'full', 'reduced'):
+            raise ConfigError("drive_sim: parameter 'model' must be '', 'full' or 'reduced', "
+                              f"got {values['model']!r}")
+        return values
+
+    # -- publishing --------------------------------------------------------------------
+    def publish_state(self) -> None:
+        """Publish the current state (and the decimated /clock, joint_states)."""
+        s = self._state
+        k = int(s[0])
+        self.state_pub.publish(self._state_msg)
+        if k % self.clock_decimation == 0 or k % self.joint_state_decimation == 0:
+            t_ns = k * self.ts_ns
+            sec, nsec = divmod(t_ns, NS_PER_S)
+            if k % self.clock_decimation == 0:
+                self._clock_msg.clock.sec = sec
+                self._clock_msg.clock.nanosec = nsec
+                self.clock_pub.publish(self._clock_msg)
+            if k % self.joint_state_decimation == 0:
+                j = self._joint_msg
+                j.header.stamp.sec = sec
+                j.header.stamp.nanosec = nsec
+                j.position[0] = float(s[self._idx['theta_meas']])
+                j.velocity[0] = float(s[self._idx['omega_meas']])
+                j.effort[0] = float(s[self._idx['torque']])
+                self.joint_pub.publish(j)
+
+    def publish_status(self, wall_elapsed: float) -> None:
+        c = self.counters
+        sim_s = self.sim.step_index * self.config.Ts
+        st = DiagnosticStatus(name=f'{self.get_name()}: drive simulator',
+                              hardware_id=f'im_drive_sim/{self.config.model}')
+        problems = c.overruns + c.late + c.held if self.mode == 'realtime' else c.stale_ignored
+        st.level = DiagnosticStatus.OK if problems == 0 else DiagnosticStatus.WARN
+        st.message = 'ok' if problems == 0 else 'late commands / overruns counted'
+        values = {
+            'mode': self.mode, 'model': self.config.model,
+            'step_index': str(self.sim.step_index), 'sim_time_s': f'{sim_s:.6f}',
+            'real_time_factor': f'{sim_s / wall_elapsed:.3f}' if wall_elapsed > 0 else 'nan',
+            **{k: (f'{v:.1f}' if isinstance(v, float) else str(v))
+               for k, v in vars(c).items()},
+        }
+        st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        msg = DiagnosticArray(status=[st])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.status_pub.publish(msg)
+
+    # -- the command path ------------------------------------------------------------------
+    def _wait_command(self, timeout_ns: int) -> bool:
+        """Wait up to timeout_ns for the command subscription to be ready."""
+        ws = self._waitset
+        ws.clear_entities()  # rcl_wait nulls entries that were not ready: re-add every time
+        ws.add_subscription(self.cmd_sub.handle)
+        ws.wait(timeout_ns)
+        return ws.is_ready('subscription', 0)
+
+    def _take_command(self):
+        r = self.cmd_sub.handle.take_message(Float64MultiArray, False)
+        if r is None:
+            return None
+        data = r[0].data
+        if len(data) != len(COMMAND_FIELDS):
+            self.get_logger().error(
+                f'{COMMAND_TOPIC}: expected {len(COMMAND_FIELDS)} values '
+                f'{COMMAND_FIELDS}, got {len(data)}; ignored', throttle_duration_sec=1.0)
+            return None
+        isq, load = float(data[CMD_ISQ]), float(data[CMD_LOAD])
+        if not (math.isfinite(isq) and math.isfinite(load)):
+            self.get_logger().error(f'{COMMAND_TOPIC}: non-finite command ignored',
+                                    throttle_duration_sec=1.0)
+            return None
+        self.counters.commands += 1
+        return int(data[CMD_STEP]), isq, load
+
+    def step_once(self, isq_ref: float, load_torque: float) -> None:
+        """Advance the model one period with this command and publish the new state."""
+        self.sim.step_into(isq_ref, load_torque, self._state)
+        self.counters.steps += 1
+        self.publish_state()
+
+    # -- loops -----------------------------------------------------------------------
+    def start(self) -> None:
+        """Publish the initial state (step 0, or wherever the model was reset to)."""
+        self.sim.read_into(self._state)
+        self.publish_state()
+
+    def lockstep_poll(self, timeout_ns: int) -> bool:
+        """Wait up to ``timeout_ns`` for the command answering the current state.
+
+        Steps once and publishes the new state when it comes; returns whether it stepped.
+        Commands answering another step are dropped and counted (``stale_ignored``).
+        Usable by an in-process bench that interleaves the drive with its peers.
+        """
+        if not self._wait_command(timeout_ns):
+            return False
+        while True:
+            cmd = self._take_command()
+            if cmd is None:
+                return False
+            answers, isq, load = cmd
+            if 0 <= answers != self.sim.step_index:
+                self.counters.stale_ignored += 1  # a duplicate answer to a re-sent state
+                continue
+            self.step_once(isq, load)
+            return True
+
+    def run_lockstep(self, executor) -> None:
+        """One step per command answering the current state; see docs/interfaces.md."""
+        c = self.counters
+        self.start()
+        since_service = 0
+        t_wall0 = last_step = time.perf_counter()
+        next_status = t_wall0 + 1.0
+        while rclpy.ok(context=self.context):
+            if self.max_steps and c.steps >= self.max_steps:
+                break
+            wait_s = max(0.0, last_step + self.republish_period - time.perf_counter())
+            if self.lockstep_poll(int(wait_s * NS_PER_S)):
+                last_step = time.perf_counter()
+            elif time.perf_counter() - last_step >= self.republish_period:
+                # Idle: serve parameters, then re-send the state for a late-starting peer.
+                executor.spin_once(timeout_sec=0.0)
+                self.publish_state()
+                c.republished += 1
+                last_step = time.perf_counter()
+                continue
+            else:
+                continue
+            since_service += 1
+            if since_service >= self.service_period_steps:
+                since_service = 0
+                executor.spin_once(timeout_sec=0.0)
+                now = time.perf_counter()
+                if now >= next_status:
+                    next_status = now + 1.0
+                    self.publish_status(now - t_wall0)
+        self.publish_status(time.perf_counter() - t_wall0)
+
+    def run_realtime(self, executor) -> None:
+        """Step every Ts by the wall clock, holding the last command when none is fresh.
+
+        Each period: wait (sleeping in rcl_wait, then busy-waiting the last
+        ``realtime_spin_margin``) until its start, take every command that came, step
+        with the newest one, publish. A period that starts more than one period late
+        counts as an overrun and the schedule is re-anchored (the simulation never skips
+        steps; sim time stays k * Ts).
+        """
+        c = self.counters
+        ts = self.config.Ts
+        self.start()
+        t0 = t_start = time.perf_counter()
+        n = 0  # periods since t0
+        next_status = t0 + 1.0
+        since_service = 0
+        while rclpy.ok(context=self.context):
+            if self.max_steps and c.steps >= self.max_steps:
+                break
+            deadline = t0 + (n + 1) * ts
+            # Sleep in rcl_wait (woken by commands, which we take as they come) ...
+            while True:
+                remaining = deadline - time.perf_counter() - self.spin_margin
+                if remaining <= 0:
+                    break
+                if self._wait_command(int(remaining * NS_PER_S)):
+                    self._absorb_commands()
+            # ... then busy-wait the last stretch for a precise period start.
+            while time.perf_counter() < deadline:
+                pass
+            lateness = time.perf_counter() - deadline
+            c.max_lateness_us = max(c.max_lateness_us, lateness * 1e6)
+            if lateness > ts:
+                c.overruns += 1
+                t0 = time.perf_counter() - (n + 1) * ts  # re-anchor: no burst catch-up
+            n += 1
+            fresh = self._absorb_commands()
+            if fresh:
+                c.fresh += 1
+            else:
+                c.held += 1
+            self.step_once(self._isq_ref, self._load)
+            since_service += 1
+            if since_service >= self.service_period_steps:
+                since_service = 0
+                executor.spin_once(timeout_sec=0.0)
+                now = time.perf_counter()
+                if now >= next_status:
+                    next_status = now + 1.0
+                    self.publish_status(now - t_start)
+        self.publish_status(time.perf_counter() - t_start)
+
+    def _absorb_commands(self) -> bool:
+        """Take all pending commands; keep the newest. True if it answers the latest state."""
+        fresh = False
+        k = self.sim.step_index
+        while True:
+            cmd = self._take_command()
+            if cmd is None:
+                return fresh
+            answers, self._isq_ref, self._load = cmd
+            if 0 <= answers < k:
+                self.counters.late += 1
+                fresh = False
+            else:
+                fresh = True
+
+    def run(self, executor) -> None:
+        if self.mode == 'lockstep':
+            self.run_lockstep(executor)
+        else:
+            self.run_realtime(executor)
+
+    def log_summary(self) -> None:
+        c = self.counters
+        self.get_logger().info(
+            f'stopped at step {self.sim.step_index} (sim time {self.sim.step_index * self.config.Ts:.4f} s): '
+            + ', '.join(f'{k}={v:.1f}' if isinstance(v, float) else f'{k}={v}'
+                        for k, v in vars(c).items()))
+
+    def destroy_node(self) -> None:
+        self.io_node.destroy_node()
+        super().destroy_node()
+
+
+def _parse_cli(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog='ros2 run im_drive_sim drive_sim',
+        description='Induction-motor drive simulator (5 kHz). Topics: drive/state (out), '
+                    'drive/command (in), drive/joint_states, drive/status, /clock. '
+                    'Parameters are set with --ros-args -p name:=value; the options below '
+                    'are shortcuts for them. See docs/interfaces.md.')
+    parser.add_argument('--mode', choices=MODES, help='lockstep (default) or realtime')
+    parser.add_argument('--config', metavar='FILE', help='drive parameter file (YAML)')
+    parser.add_argument('--model', choices=('full', 'reduced'), help='model fidelity')
+    parser.add_argument('--seed', type=int, help='disturbance seed')
+    parser.add_argument('--max-steps', type=int, help='stop after N steps')
+    return parser.parse_args(argv)
+
+
+def main(args: list[str] | None = None) -> int:
+    argv = sys.argv if args is None else args
+    cli = _parse_cli(remove_ros_args(argv)[1:])
+    overrides = []
+    from rclpy.parameter import Parameter
+    for name, value in (('mode', cli.mode), ('config_file', cli.config), ('model', cli.model),
+                        ('seed', cli.seed), ('max_steps', cli.max_steps)):
+        if value is not None:
+            overrides.append(Parameter(name, value=value))
+    rclpy.init(args=argv)
+    node = None
+    executor = None
+    try:
+        node = DriveSimNode(parameter_overrides=overrides or None)
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
+        node.run(executor)
+    except ConfigError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.log_summary()
+            if executor is not None:
+                executor.shutdown()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

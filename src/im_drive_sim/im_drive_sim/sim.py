@@ -1,0 +1,361 @@
+"""Programmatic API of the IM drive simulator: ``DriveSim``.
+
+Model, control, measurement and step semantics are documented in docs/drive-model.md.
+Units SI; angles mechanical unless stated; dq quantities are amplitude-invariant peaks.
+
+Example::
+
+    from im_drive_sim.sim import DriveSim
+    sim = DriveSim()                      # packaged paper_750w.yaml, full model
+    sim.reset(theta=0.0, omega=0.0, fluxed=True)
+    sim.step(isq_ref=1.0, load_torque=0.0)
+    print(sim.time_ns, sim.theta_meas, sim.omega_meas, sim.torque)
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from . import kernels as K
+from .params import DriveConfig, load_config
+
+__all__ = ["DriveSim", "STATE_FIELDS", "RUN_FIELDS", "make_param_array", "NOISE_BLOCK"]
+
+STATE_FIELDS: tuple[str, ...] = K.STATE_FIELDS
+"""Fields written by ``step_into``/``read_into``, in order (units in docs/drive-model.md)."""
+RUN_FIELDS: tuple[str, ...] = K.RUN_FIELDS
+"""Fields returned by ``run``: STATE_FIELDS + encoder_count, u_alpha, u_beta, psi_r,
+voltage_saturated, isq_ref."""
+
+NOISE_BLOCK = 4096
+"""Rows of pre-generated noise per block (one row per step)."""
+
+
+def _lag(Ts: float, tau: float) -> float:
+    """Exact discretisation pole exp(-Ts/tau) of 1/(1 + s tau); tau = 0 -> 0 (no lag)."""
+    return math.exp(-Ts / tau) if tau > 0.0 else 0.0
+
+
+def make_param_array(cfg: DriveConfig) -> np.ndarray:
+    """Precompute the kernel constant vector ``P`` (indices ``kernels.P_*``) from a config."""
+    m, c, s, d = cfg.machine, cfg.control, cfg.sensors, cfg.disturbance
+    Ts = cfg.Ts
+    P = np.zeros(K.N_PARAMS)
+    sigls = m.sigma * m.Ls
+    P[K.P_TS] = Ts
+    P[K.P_TS_NS] = float(cfg.Ts_ns)
+    P[K.P_NP] = float(m.pole_pairs)
+    P[K.P_LM] = m.Lm
+    P[K.P_LS] = m.Ls
+    P[K.P_LR] = m.Lr
+    P[K.P_KR] = m.kr
+    P[K.P_RSIG] = m.R_sigma
+    P[K.P_INV_SIGLS] = 1.0 / sigls
+    P[K.P_KR_TAUR] = m.kr / m.tau_r
+    P[K.P_INV_TAUR] = 1.0 / m.tau_r
+    P[K.P_KTE] = 1.5 * m.pole_pairs * m.kr
+    P[K.P_INV_J] = 1.0 / m.J
+    P[K.P_B] = m.B
+    P[K.P_TC] = m.coulomb_torque
+    P[K.P_INV_WC] = 1.0 / m.coulomb_speed
+    P[K.P_UMAX] = m.u_max
+    P[K.P_ISD_REF] = m.rated_flux_current
+    P[K.P_ISQ_MAX] = m.isq_max
+    P[K.P_KP] = sigls * c.current_bandwidth
+    P[K.P_KI_TS] = m.R_sigma * c.current_bandwidth * Ts
+    P[K.P_SIGLS] = sigls
+    P[K.P_PSI_MIN] = c.flux_floor
+    P[K.P_EST_A] = math.exp(-Ts / m.tau_r)
+    P[K.P_ENC_K] = s.encoder_counts / (2.0 * math.pi)
+    P[K.P_ENC_RES] = 2.0 * math.pi / s.encoder_counts
+    P[K.P_ENC_RES_TS] = (2.0 * math.pi / s.encoder_counts) / Ts
+    P[K.P_SPD_A] = _lag(Ts, s.speed_filter_tau)
+    P[K.P_DELAY] = float(c.computation_delay_steps)
+    P[K.P_MODEL] = 0.0 if cfg.model == "full" else 1.0
+    P[K.P_KT] = m.Kt
+    P[K.P_PSI_RATED] = m.rated_flux
+    tau_i = c.reduced_current_lag
+    P[K.P_ISQ_A] = _lag(Ts, tau_i)
+    P[K.P_ISQ_AH] = _lag(0.5 * Ts, tau_i)
+    P[K.P_ISQ_INT] = tau_i * (1.0 - P[K.P_ISQ_A])
+    P[K.P_ISQ_A0] = 1.0 if tau_i > 0.0 else 0.0
+    P[K.P_SLIP_K] = m.Lm / (m.tau_r * m.rated_flux)
+    P[K.P_LOAD_A] = _lag(Ts, d.load_lag_tau)
+    P[K.P_RIP_AMP] = d.ripple_amplitude
+    P[K.P_RIP_HARM] = d.ripple_harmonic
+    P[K.P_RIP_PHASE] = d.ripple_phase
+    P[K.P_LN_A] = _lag(Ts, d.load_noise_tau)
+    P[K.P_RS] = m.Rs
+    P[K.P_RR] = m.Rr
+    P[K.P_J] = m.J
+    return P
+
+
+class DriveSim:
+    """Induction-motor drive: full (or reduced) model, vector control, encoder measurement.
+
+    One ``step`` = one control period Ts (default 200 us).  State k is at time k*Ts; after
+    ``step`` the object describes time (k+1)*Ts.  Deterministic: the same config, seed,
+    ``reset`` arguments and inputs give bit-identical outputs (noise is pre-generated in
+    blocks of ``NOISE_BLOCK`` rows from ``numpy.random.Generator(PCG64(seed))``).
+
+    Parameters
+    ----------
+    config: validated ``DriveConfig``; ``None`` loads the packaged ``paper_750w.yaml``.
+    seed: overrides ``config.seed`` for the noise streams (integer >= 0).
+    """
+
+    def __init__(self, config: DriveConfig | None = None, seed: int | None = None) -> None:
+        self.config: DriveConfig = load_config() if config is None else config
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
+                                 or seed < 0):
+            raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+        self.seed: int = int(self.config.seed if seed is None else seed)
+        self.P: np.ndarray = make_param_array(self.config)
+        self.S: np.ndarray = np.zeros(K.N_STATE)
+        self._noise: np.ndarray = np.zeros((NOISE_BLOCK, K.NOISE_COLS))
+        s, d = self.config.sensors, self.config.disturbance
+        ln_a = self.P[K.P_LN_A]
+        self._noise_scale = np.array([s.current_noise_std, s.current_noise_std,
+                                      s.speed_noise_std,
+                                      d.load_noise_std * math.sqrt(1.0 - ln_a * ln_a)])
+        self._noise_on: bool = bool(np.any(self._noise_scale > 0.0))
+        self._rng: np.random.Generator | None = None
+        self._left: int = NOISE_BLOCK
+        self._scratch = np.zeros(K.N_RUN_FIELDS)
+        self.reset()
+
+    # ------------------------------------------------------------------ noise
+    def _refill(self) -> None:
+        """Fill the noise block in place (no allocation) and rewind the kernel cursor."""
+        if self._noise_on:
+            assert self._rng is not None
+            self._rng.standard_normal(out=self._noise)
+            self._noise *= self._noise_scale
+        self.S[K.S_NPOS] = 0.0
+        self._left = NOISE_BLOCK
+
+    # ------------------------------------------------------------------ control
+    def reset(self, theta: float = 0.0, omega: float = 0.0, fluxed: bool = True,
+              step_index: int = 0) -> None:
+        """Set the state at time ``step_index * Ts``.
+
+        theta [rad, mechanical, multi-turn], omega [rad/s, mechanical].
+        fluxed=True (full model): rotor flux at rated (steady state at isd = rated, isq = 0)
+        with the estimator exactly oriented; False: de-energised (all currents, fluxes,
+        integrators zero).  The reduced model is always fluxed.  Also resets PI integrators,
+        filters (speed filter starts at ``omega``), encoder, load lag and the noise streams.
+        """
+        for name, v in (("theta", theta), ("omega", omega)):
+            if not math.isfinite(v):
+                raise ValueError(f"{name} must be finite, got {v!r}")
+        if isinstance(step_index, bool) or int(step_index) != step_index or step_index < 0:
+            raise ValueError(f"step_index must be an integer >= 0, got {step_index!r}")
+        self._rng = np.random.Generator(np.random.PCG64(self.seed))
+        self._refill()
+        K.reset_kernel(self.S, self.P, float(theta), float(omega), bool(fluxed),
+                       float(step_index))
+
+    def _consume(self) -> None:
+        self._left -= 1
+        if self._left == 0:
+            # The kernel already wrapped its cursor to 0; give it fresh samples.
+            self._refill()
+
+    def step(self, isq_ref: float, load_torque: float) -> None:
+        """One Ts step with vector control (full) or the isq lag (reduced).
+
+        isq_ref: torque-current command [A], clamped to +-isq_max.
+        load_torque: load-machine torque command [N m] (opposes positive speed).
+        """
+        if not (math.isfinite(isq_ref) and math.isfinite(load_torque)):
+            raise ValueError(f"non-finite input: isq_ref={isq_ref!r}, load_torque={load_torque!r}")
+        K.step_model(self.S, self.P, self._noise, float(isq_ref), float(load_torque))
+        self._consume()
+
+    def step_into(self, isq_ref: float, load_torque: float, out: np.ndarray) -> None:
+        """Fast path: one step, then write ``STATE_FIELDS`` at the new time into ``out``.
+
+        ``out``: preallocated float64 array of length >= len(STATE_FIELDS) (>= len(RUN_FIELDS)
+        also fills the extra fields).  ``out`` describes time (k+1)*Ts after the step.
+        """
+        if not (math.isfinite(isq_ref) and math.isfinite(load_torque)):
+            raise ValueError(f"non-finite input: isq_ref={isq_ref!r}, load_torque={load_torque!r}")
+        K.step_into_kernel(self.S, self.P, self._noise, float(isq_ref), float(load_torque), out)
+        self._consume()
+
+    def read_into(self, out: np.ndarray) -> None:
+        """Write ``STATE_FIELDS`` for the current time (no stepping) into ``out``."""
+        K.write_out(self.S, self.P, out)
+
+    def step_voltage(self, u_alpha: float, u_beta: float, load_torque: float) -> None:
+        """One Ts step of the bare full model with given stationary voltages (no control).
+
+        u_alpha, u_beta: [V] peak amplitude-invariant, held over the step (ZOH).
+        Measurements and the flux estimator still run.  Full model only.
+        """
+        if self.config.model != "full":
+            raise RuntimeError("step_voltage needs model: full")
+        if not (math.isfinite(u_alpha) and math.isfinite(u_beta) and math.isfinite(load_torque)):
+            raise ValueError("non-finite input to step_voltage")
+        K.step_voltage_kernel(self.S, self.P, self._noise, float(u_alpha), float(u_beta),
+                              float(load_torque))
+        self._consume()
+
+    def _batch(self, n: int, call: Any) -> None:
+        """Run ``call(start, count)`` in chunks that end on noise-block boundaries."""
+        start = 0
+        while start < n:
+            cnt = min(n - start, self._left)
+            call(start, cnt)
+            start += cnt
+            self._left -= cnt
+            if self._left == 0:
+                self._refill()
+
+    def run(self, isq_ref: np.ndarray, load_torque: np.ndarray) -> dict[str, np.ndarray]:
+        """Step len(isq_ref) times inside numba; returns ``{field: array}`` for RUN_FIELDS.
+
+        Row k is the state after step k (time (k+1) Ts), as ``step_into`` would write it.
+        isq_ref [A], load_torque [N m]: 1-D arrays of equal length (scalars broadcast).
+        """
+        isq = np.ascontiguousarray(np.asarray(isq_ref, dtype=np.float64).ravel())
+        tl = np.asarray(load_torque, dtype=np.float64)
+        tl = np.ascontiguousarray(np.broadcast_to(tl, isq.shape) if tl.ndim == 0 else tl.ravel())
+        if isq.shape != tl.shape:
+            raise ValueError(f"isq_ref and load_torque lengths differ: {isq.shape} vs {tl.shape}")
+        if not (np.all(np.isfinite(isq)) and np.all(np.isfinite(tl))):
+            raise ValueError("non-finite values in run inputs")
+        out = np.empty((isq.shape[0], K.N_RUN_FIELDS))
+        self._batch(isq.shape[0], lambda s0, c: K.run_batch(
+            self.S, self.P, self._noise, isq, tl, out, s0, c, True))
+        return {name: out[:, j] for j, name in enumerate(RUN_FIELDS)}
+
+    def run_voltage(self, u_alpha: np.ndarray, u_beta: np.ndarray,
+                    load_torque: np.ndarray) -> dict[str, np.ndarray]:
+        """Batch version of ``step_voltage`` (bare full model); same output as ``run``."""
+        if self.config.model != "full":
+            raise RuntimeError("run_voltage needs model: full")
+        ua = np.ascontiguousarray(np.asarray(u_alpha, dtype=np.float64).ravel())
+        ub = np.ascontiguousarray(np.asarray(u_beta, dtype=np.float64).ravel())
+        tl = np.ascontiguousarray(np.broadcast_to(np.asarray(load_torque, dtype=np.float64),
+                                                  ua.shape))
+        if ub.shape != ua.shape:
+            raise ValueError("u_alpha and u_beta lengths differ")
+        out = np.empty((ua.shape[0], K.N_RUN_FIELDS))
+        self._batch(ua.shape[0], lambda s0, c: K.run_voltage_batch(
+            self.S, self.P, self._noise, ua, ub, tl, out, s0, c))
+        return {name: out[:, j] for j, name in enumerate(RUN_FIELDS)}
+
+    # ------------------------------------------------------------------ state
+    def state_vector(self) -> np.ndarray:
+        """Copy of the complete internal state (indices ``kernels.S_*``; S[0:6] is the plant
+        state [i_sa A, i_sb A, psi_ra Wb, psi_rb Wb, omega rad/s, theta rad])."""
+        return self.S.copy()
+
+    def _read(self) -> np.ndarray:
+        K.write_out(self.S, self.P, self._scratch)
+        return self._scratch
+
+    @property
+    def step_index(self) -> int:
+        """Step k (the object describes time k*Ts)."""
+        return int(self.S[K.S_STEP])
+
+    @property
+    def time_ns(self) -> int:
+        """Exact simulated time k*Ts [ns]."""
+        return int(self.S[K.S_STEP]) * self.config.Ts_ns
+
+    @property
+    def time(self) -> float:
+        """Simulated time k*Ts [s]."""
+        return self.time_ns * 1e-9
+
+    @property
+    def theta_meas(self) -> float:
+        """Encoder angle count*2pi/counts [rad, mechanical]."""
+        return float(self.S[K.S_THETA_MEAS])
+
+    @property
+    def omega_meas(self) -> float:
+        """Speed estimate (filtered backward difference + noise) [rad/s]."""
+        return float(self.S[K.S_OMEGA_MEAS])
+
+    @property
+    def encoder_count(self) -> int:
+        """Multi-turn encoder count floor(theta * counts/(2 pi))."""
+        return int(self.S[K.S_COUNT])
+
+    @property
+    def theta(self) -> float:
+        """True mechanical angle [rad]."""
+        return float(self.S[K.S_THETA])
+
+    @property
+    def omega(self) -> float:
+        """True mechanical speed [rad/s]."""
+        return float(self.S[K.S_OMEGA])
+
+    @property
+    def torque(self) -> float:
+        """Electromagnetic torque [N m]."""
+        return float(self._read()[K.F_TORQUE])
+
+    @property
+    def i_alpha(self) -> float:
+        """True stator current alpha [A, peak amplitude-invariant]."""
+        return float(self._read()[K.F_I_ALPHA])
+
+    @property
+    def i_beta(self) -> float:
+        """True stator current beta [A]."""
+        return float(self._read()[K.F_I_BETA])
+
+    @property
+    def isd(self) -> float:
+        """Sampled d current in the estimated flux frame (as the controller sees it) [A]."""
+        return float(self.S[K.S_ISD])
+
+    @property
+    def isq(self) -> float:
+        """Sampled q current in the estimated flux frame [A]."""
+        return float(self.S[K.S_ISQ])
+
+    @property
+    def psi_r(self) -> float:
+        """True rotor flux magnitude [Wb] (reduced: rated flux)."""
+        return float(self._read()[K.F_PSI_R])
+
+    @property
+    def psi_hat(self) -> float:
+        """Estimated rotor flux (current model) [Wb]."""
+        return float(self.S[K.S_PSI_HAT])
+
+    @property
+    def u_alpha(self) -> float:
+        """Stator voltage alpha applied during the last step [V] (0 in the reduced model)."""
+        return float(self.S[K.S_UA])
+
+    @property
+    def u_beta(self) -> float:
+        """Stator voltage beta applied during the last step [V]."""
+        return float(self.S[K.S_UB])
+
+    @property
+    def load_torque(self) -> float:
+        """Total load torque applied during the last step [N m] (lag + ripple + random)."""
+        return float(self.S[K.S_TLOAD])
+
+    @property
+    def isq_ref(self) -> float:
+        """Clamped isq* of the last step [A]."""
+        return float(self.S[K.S_ISQ_REF])
+
+    @property
+    def voltage_saturated(self) -> bool:
+        """True if the circular voltage limit was active in the last step."""
+        return bool(self.S[K.S_VSAT] != 0.0)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import stat
 import subprocess
 from pathlib import Path
 
@@ -21,8 +20,8 @@ REPO = Path(__file__).resolve().parents[1]
 VENV = REPO / '.venv'
 ROS2 = VENV / 'bin' / 'ros2'
 TIMEOUT = 60  # seconds, for every subprocess (they normally take well under one)
-# A DDS domain of our own for anything that may start a node (see the notes' test hygiene).
-ROS_DOMAIN_ID = str(1 + os.getpid() % 100)
+# The run's own DDS domain (set by conftest.py) for anything that may start a node.
+ROS_DOMAIN_ID = os.environ.get('ROS_DOMAIN_ID') or str(20 + os.getpid() % 200)
 
 
 pytestmark = pytest.mark.skipif(not ROS2.is_file(), reason='run `make setup` first')

@@ -6,7 +6,6 @@ it lives on must not be spun by an executor (an executor would take the states).
 """
 from __future__ import annotations
 
-import array
 import time
 
 import numpy as np
@@ -14,6 +13,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
 
+from .cdr import Float64ArrayWire
 from .drive_sim_node import COMMAND_FIELDS, COMMAND_TOPIC, LOCKSTEP_QOS, STATE_TOPIC
 from .sim import STATE_FIELDS
 
@@ -35,9 +35,7 @@ class DriveClient:
             Float64MultiArray, STATE_TOPIC, lambda _m: None, LOCKSTEP_QOS)
         self.command_pub = node.create_publisher(Float64MultiArray, COMMAND_TOPIC, LOCKSTEP_QOS)
         self._waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)
-        self._cmd = Float64MultiArray()
-        self._cmd.data = array.array('d', bytes(8 * len(COMMAND_FIELDS)))
-        self._cmd_view = np.frombuffer(self._cmd.data, dtype=np.float64)
+        self._cmd = Float64ArrayWire(len(COMMAND_FIELDS))
         self.state = np.zeros(len(STATE_FIELDS))
         self.answered: int = -1
         #: Publisher-side time stamp [ns, wall] of the newest state taken.
@@ -79,11 +77,11 @@ class DriveClient:
 
     def command(self, answers_step: int, isq_ref: float, load_torque: float = 0.0) -> None:
         """Publish the command answering state ``answers_step``."""
-        v = self._cmd_view
+        v = self._cmd.values
         v[0] = answers_step
         v[1] = isq_ref
         v[2] = load_torque
-        self.command_pub.publish(self._cmd)
+        self.command_pub.publish(self._cmd.payload())
         if answers_step > self.answered:
             self.answered = answers_step
 

@@ -17,7 +17,6 @@ and whenever the loop is idle.
 from __future__ import annotations
 
 import argparse
-import array
 import math
 import sys
 import time
@@ -36,6 +35,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
+from .cdr import Float64ArrayWire
 from .params import ConfigError, load_config
 from .sim import STATE_FIELDS, DriveSim
 
@@ -130,11 +130,10 @@ class DriveSimNode(Node):
         self._waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
 
         # Preallocated messages and buffers: nothing is built per step.
-        # The message owns an array.array; the model writes into it through a numpy view,
-        # so publishing needs no conversion (assigning a list/ndarray costs microseconds).
-        self._state_msg = Float64MultiArray()
-        self._state_msg.data = array.array('d', bytes(8 * len(STATE_FIELDS)))
-        self._state = np.frombuffer(self._state_msg.data, dtype=np.float64)
+        # The state is published pre-serialised: the model writes straight into the CDR
+        # buffer through a numpy view (see cdr.py), nothing is converted per step.
+        self._state_wire = Float64ArrayWire(len(STATE_FIELDS))
+        self._state = self._state_wire.values
         self._clock_msg = Clock()
         self._joint_msg = JointState()
         self._joint_msg.name = ['motor']
@@ -207,7 +206,7 @@ class DriveSimNode(Node):
         """Publish the current state (and the decimated /clock, joint_states)."""
         s = self._state
         k = int(s[0])
-        self.state_pub.publish(self._state_msg)
+        self.state_pub.publish(self._state_wire.payload())
         if k % self.clock_decimation == 0 or k % self.joint_state_decimation == 0:
             t_ns = k * self.ts_ns
             sec, nsec = divmod(t_ns, NS_PER_S)
@@ -290,18 +289,20 @@ class DriveSimNode(Node):
         Commands answering another step are dropped and counted (``stale_ignored``).
         Usable by an in-process bench that interleaves the drive with its peers.
         """
-        if not self._wait_command(timeout_ns):
-            return False
-        while True:
-            cmd = self._take_command()
-            if cmd is None:
+        cmd = self._take_command()  # in one process the answer is usually there already
+        if cmd is None:
+            if not self._wait_command(timeout_ns):
                 return False
+            cmd = self._take_command()
+        while cmd is not None:
             answers, isq, load = cmd
             if 0 <= answers != self.sim.step_index:
                 self.counters.stale_ignored += 1  # a duplicate answer to a re-sent state
+                cmd = self._take_command()
                 continue
             self.step_once(isq, load)
             return True
+        return False
 
     def run_lockstep(self, executor) -> None:
         """One step per command answering the current state; see docs/interfaces.md."""

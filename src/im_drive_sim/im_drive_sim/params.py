@@ -320,9 +320,6 @@ def _check_consistency(src: str, cfg: DriveConfig) -> None:
             f"{src}: machine.Udc too low: voltage limit Udc/sqrt(3) = {m.u_max:.4g} V cannot "
             f"hold rated flux at standstill (Rs*rated_flux_current = "
             f"{m.Rs * m.rated_flux_current:.4g} V)")
-    if m.rated_flux_current > m.isq_max * 10.0:
-        raise ConfigError(f"{src}: machine.rated_flux_current {m.rated_flux_current:g} A is "
-                          f"implausible against isq_max {m.isq_max:g} A")
     # RK4 with one sub-step: keep |lambda| Ts well inside the stability region (notes: 0.06).
     lam = m.R_sigma / (m.sigma * m.Ls)
     if lam * cfg.Ts > 1.0:

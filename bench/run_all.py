@@ -1,0 +1,42 @@
+"""All benchmarks of the workspace, with the issue targets beside each figure.
+
+Run: ``make bench`` (or ``.venv/bin/python bench/run_all.py``). Figures are medians over
+repeated batches on a shared, noisy machine; compare medians and ratios, not single runs.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import bench_lockstep  # noqa: E402
+import bench_model  # noqa: E402
+
+#: (figure, unit, target or None): what the issues ask of each figure (upper bounds).
+TARGETS = {
+    'full_ns_per_step': ('ns/step', 400.0),
+    'reduced_ns_per_step': ('ns/step', 150.0),
+    'lockstep_1proc_us': ('us/step', 40.0),
+    'lockstep_2proc_us': ('us/step', None),
+}
+
+
+def main() -> int:
+    figures: dict[str, float] = {}
+    print('== model step (numba kernels, batch) ==', flush=True)
+    model = bench_model.main()
+    figures.update({f'{m}_ns_per_step': r['median_ns'] for m, r in model.items()})
+    print('\n== lock-step round trip over DDS (drive_sim + minimal responder) ==', flush=True)
+    figures.update(bench_lockstep.main())
+    print('\n== summary (medians) ==')
+    for name, value in figures.items():
+        unit, target = TARGETS.get(name, ('', None))
+        verdict = '' if target is None else ('  ok' if value <= target else '  ABOVE TARGET')
+        bound = f'(target <= {target:g})' if target is not None else ''
+        print(f'{name:<22} {value:9.1f} {unit:<8} {bound}{verdict}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

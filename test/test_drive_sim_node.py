@@ -120,11 +120,11 @@ def test_realtime_mode_paces_at_5khz(procs, ros_context):
     ks_a, ts_a = np.array(ks), np.array(ts)
     assert ks_a[-1] == steps and len(ks_a) > steps // 2
     # Stated tolerance, on the drive's own publication times (a shared 2-core machine,
-    # the responder competing for the CPU): the typical period within 1 %, the whole
+    # the responder competing for the CPU): the typical period within 2 %, the whole
     # run's average (overruns re-anchor the schedule) within 10 %.
     typical = float(np.median(np.diff(ts_a) / np.diff(ks_a)))
     average = (ts_a[-1] - ts_a[0]) / (ks_a[-1] - ks_a[0])
-    assert typical == pytest.approx(200e-6, rel=0.01), \
+    assert typical == pytest.approx(200e-6, rel=0.02), \
         f'typical period {typical * 1e6:.1f} us; drive says: {err[-600:]}'
     assert average == pytest.approx(200e-6, rel=0.10), f'average period {average * 1e6:.1f} us'
     # The drive counted what it did: every step was fresh or held.

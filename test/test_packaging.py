@@ -27,8 +27,13 @@ TIMEOUT = 30
 WRAPPERS = sorted((REPO / 'src').glob('*/scripts/*'))
 WRAPPER_IDS = [f'{w.parents[1].name}/{w.name}' for w in WRAPPERS]
 
-needs_install = pytest.mark.skipif(not (VENV / '.installed').exists(),
-                                   reason='run `make setup` first')
+@pytest.fixture
+def _installed():
+    # make test always runs make setup first: a missing install is a failure, not a skip.
+    assert (VENV / '.installed').exists(), 'run `make setup` first'
+
+
+needs_install = pytest.mark.usefixtures('_installed')
 
 
 # ------------------------------------------------------------------------- sources

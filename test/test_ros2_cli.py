@@ -24,7 +24,10 @@ TIMEOUT = 60  # seconds, for every subprocess (they normally take well under one
 ROS_DOMAIN_ID = os.environ.get('ROS_DOMAIN_ID') or str(20 + os.getpid() % 200)
 
 
-pytestmark = pytest.mark.skipif(not ROS2.is_file(), reason='run `make setup` first')
+@pytest.fixture(autouse=True)
+def _ros2_installed():
+    # make test always runs make setup first: a missing command is a failure, not a skip.
+    assert ROS2.is_file(), f'{ROS2} missing: run `make setup` first'
 
 
 # ---------------------------------------------------------------------------- helpers

@@ -6,6 +6,7 @@ and talks to it from this process with :class:`im_drive_sim.client.DriveClient`.
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -227,3 +228,20 @@ def test_clock_and_joint_states_carry_exact_sim_time(procs, ros_context):
         if k in states:
             assert j.position[0] == states[k][F['theta_meas']]
             assert j.effort[0] == states[k][F['torque']]
+
+
+@pytest.mark.parametrize('mode', ['lockstep', 'realtime'])
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_sigint_and_sigterm_stop_cleanly(procs, ros_context, mode, sig):
+    p = drive_proc(procs, '--mode', mode)
+    node = Node('test_signal_watcher', context=ros_context)
+    try:
+        client = DriveClient(node)
+        assert client.wait_for_drive(20.0), 'drive_sim did not come up'
+        assert client.wait_state(5.0) is not None
+    finally:
+        node.destroy_node()
+    p.send_signal(sig)
+    out, err = p.communicate(timeout=20)
+    assert p.returncode == 0, err
+    assert 'stopped at step' in err and 'Traceback' not in err

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
 import sys
 import time
 from dataclasses import dataclass
@@ -29,6 +30,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
@@ -116,6 +118,9 @@ class DriveSimNode(Node):
         self.republish_period: float = p['republish_period']
         self.spin_margin: float = p['realtime_spin_margin']
         self.counters = Counters()
+        #: Set by SIGINT/SIGTERM (see main): the loops stop at the next step boundary, so
+        #: the context is never shut down under a publish.
+        self.stop_requested = False
 
         # Publishers (all on the visible node).
         self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, LOCKSTEP_QOS)
@@ -311,7 +316,7 @@ class DriveSimNode(Node):
         since_service = 0
         t_wall0 = last_step = time.perf_counter()
         next_status = t_wall0 + 1.0
-        while rclpy.ok(context=self.context):
+        while not self.stop_requested and rclpy.ok(context=self.context):
             if self.max_steps and c.steps >= self.max_steps:
                 break
             wait_s = max(0.0, last_step + self.republish_period - time.perf_counter())
@@ -352,7 +357,7 @@ class DriveSimNode(Node):
         n = 0  # periods since t0
         next_status = t0 + 1.0
         since_service = 0
-        while rclpy.ok(context=self.context):
+        while not self.stop_requested and rclpy.ok(context=self.context):
             if self.max_steps and c.steps >= self.max_steps:
                 break
             deadline = t0 + (n + 1) * ts
@@ -445,11 +450,24 @@ def main(args: list[str] | None = None) -> int:
                         ('seed', cli.seed), ('max_steps', cli.max_steps)):
         if value is not None:
             overrides.append(Parameter(name, value=value))
-    rclpy.init(args=argv)
+    # Our own signal handling: rclpy's would shut the context down under the hand-stepped
+    # loop; ours asks the loop to stop at the next step boundary and exit cleanly.
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     executor = None
+    stop = {'requested': False}
+
+    def _on_signal(signum, _frame) -> None:
+        stop['requested'] = True
+        if node is not None:
+            node.stop_requested = True
+        else:
+            raise KeyboardInterrupt
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
     try:
         node = DriveSimNode(parameter_overrides=overrides or None)
+        node.stop_requested = stop['requested']
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
         node.run(executor)

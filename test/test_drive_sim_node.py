@@ -245,3 +245,34 @@ def test_sigint_and_sigterm_stop_cleanly(procs, ros_context, mode, sig):
     out, err = p.communicate(timeout=20)
     assert p.returncode == 0, err
     assert 'stopped at step' in err and 'Traceback' not in err
+
+
+def test_realtime_counts_late_commands_and_holds_them(procs, ros_context):
+    """Commands answering an older state are late: counted, never fresh, still held."""
+    steps = 1500
+    p = drive_proc(procs, '--mode', 'realtime', '--max-steps', str(steps))
+    node = Node('test_late_controller', context=ros_context)
+    try:
+        client = DriveClient(node)
+        assert client.wait_for_drive(20.0)
+        last = None
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline and p.poll() is None:
+            s = client.wait_new_state(0.5)
+            if s is None:
+                continue
+            last = s.copy()
+            k = int(s[F['step_index']])
+            if k >= 3:  # (answers_step < 0 would mean 'untagged', i.e. always fresh)
+                client.command(k - 3, 2.0, 0.0)  # always answers a state 3 periods old
+    finally:
+        node.destroy_node()
+    out, err = p.communicate(timeout=30)
+    assert p.returncode == 0, err
+    summary = err[err.rindex('stopped at step'):].splitlines()[0]
+    counts = dict(kv.split('=') for kv in summary.split(': ', 1)[1].split(', '))
+    assert int(counts['fresh']) == 0
+    assert int(counts['late']) > 0 and int(counts['late']) == int(counts['commands'])
+    assert int(counts['held']) == steps
+    # The late commands were applied (held): isq follows the 2 A reference.
+    assert last is not None and abs(last[F['isq']] - 2.0) < 0.2

@@ -147,6 +147,7 @@ class DriveSimNode(Node):
         self._joint_msg.effort = [0.0]
         self._isq_ref = 0.0
         self._load = 0.0
+        self._cmd_fresh = False
         self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
 
         self.get_logger().info(
@@ -309,6 +310,18 @@ class DriveSimNode(Node):
             return True
         return False
 
+    def _serve(self, executor, t_start: float, next_status: float) -> float:
+        """Between steps: serve pending parameter requests; publish the status once a second.
+
+        Returns the wall time of the next status publication.
+        """
+        executor.spin_once(timeout_sec=0.0)
+        now = time.perf_counter()
+        if now >= next_status:
+            self.publish_status(now - t_start)
+            return now + 1.0
+        return next_status
+
     def run_lockstep(self, executor) -> None:
         """One step per command answering the current state; see docs/interfaces.md."""
         c = self.counters
@@ -334,11 +347,7 @@ class DriveSimNode(Node):
             since_service += 1
             if since_service >= self.service_period_steps:
                 since_service = 0
-                executor.spin_once(timeout_sec=0.0)
-                now = time.perf_counter()
-                if now >= next_status:
-                    next_status = now + 1.0
-                    self.publish_status(now - t_wall0)
+                next_status = self._serve(executor, t_wall0, next_status)
         self.publish_status(time.perf_counter() - t_wall0)
 
     def run_realtime(self, executor) -> None:
@@ -377,36 +386,37 @@ class DriveSimNode(Node):
                 c.overruns += 1
                 t0 = time.perf_counter() - (n + 1) * ts  # re-anchor: no burst catch-up
             n += 1
-            fresh = self._absorb_commands()
-            if fresh:
+            self._absorb_commands()
+            if self._cmd_fresh:
                 c.fresh += 1
             else:
                 c.held += 1
             self.step_once(self._isq_ref, self._load)
+            self._cmd_fresh = False  # it answered the state before this step
             since_service += 1
             if since_service >= self.service_period_steps:
                 since_service = 0
-                executor.spin_once(timeout_sec=0.0)
-                now = time.perf_counter()
-                if now >= next_status:
-                    next_status = now + 1.0
-                    self.publish_status(now - t_start)
+                next_status = self._serve(executor, t_start, next_status)
         self.publish_status(time.perf_counter() - t_start)
 
-    def _absorb_commands(self) -> bool:
-        """Take all pending commands; keep the newest. True if it answers the latest state."""
-        fresh = False
+    def _absorb_commands(self) -> None:
+        """Take all pending commands; the newest becomes the held command.
+
+        ``_cmd_fresh`` tells whether the held command answers the latest published state
+        (or is untagged, -1) and came since the last step; a command answering an older
+        state counts as late (it is still the newest value, so it is held).
+        """
         k = self.sim.step_index
         while True:
             cmd = self._take_command()
             if cmd is None:
-                return fresh
+                return
             answers, self._isq_ref, self._load = cmd
             if 0 <= answers < k:
                 self.counters.late += 1
-                fresh = False
+                self._cmd_fresh = False
             else:
-                fresh = True
+                self._cmd_fresh = True
 
     def run(self, executor) -> None:
         if self.mode == 'lockstep':

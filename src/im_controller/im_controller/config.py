@@ -1,0 +1,316 @@
+"""Configuration of the cascaded position controller and of the loss experiment.
+
+Frozen dataclasses with defaults, and ONE place that validates them (``validate_*``).
+Every check raises :class:`ControllerConfigError` (a ``ValueError``) whose message names
+the parameter and says why, e.g.::
+
+    gains.k_pw must be a finite number in [0, 5] A s/rad, got 7.0
+
+Policy: float parameters accept ``int`` and ``float`` (and numpy floating/integer
+scalars) but never ``bool`` or ``str``; NaN and +-inf are rejected everywhere.
+Units SI (rad, rad/s, A, N m, s).  See docs/controller.md for the meaning of each value.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+__all__ = [
+    "ControllerConfigError",
+    "Gains",
+    "GAIN_NAMES",
+    "GAIN_RANGES",
+    "GAIN_UNITS",
+    "SEARCH_BOX",
+    "ControlConfig",
+    "LossConfig",
+    "TrajectoryConfig",
+    "SafetyConfig",
+    "ExperimentConfig",
+    "validate_gains",
+    "validate_control_config",
+    "validate_loss_config",
+    "validate_trajectory_config",
+    "validate_safety_config",
+    "validate_experiment_config",
+]
+
+
+class ControllerConfigError(ValueError):
+    """An invalid controller / experiment parameter; the message names it and says why."""
+
+
+GAIN_NAMES: tuple[str, ...] = ("k_pw", "k_iw", "k_pos", "tau_sm", "tau_eq")
+"""Order of the tuned vector G = [k_pw, k_iw, k_pos, tau_sm, tau_eq] (paper eq. 8)."""
+
+GAIN_UNITS: dict[str, str] = {"k_pw": "A s/rad", "k_iw": "A/rad", "k_pos": "1/s",
+                              "tau_sm": "s", "tau_eq": "s"}
+
+GAIN_RANGES: dict[str, tuple[float, float]] = {
+    # Safe ranges accepted anywhere (node parameters, tuner candidates).  They contain the
+    # notes' search box with margin; values outside are refused, never clipped silently.
+    "k_pw": (0.0, 5.0),
+    "k_iw": (0.0, 500.0),
+    "k_pos": (0.0, 300.0),
+    "tau_sm": (0.0, 0.1),
+    "tau_eq": (0.0, 0.1),
+}
+
+SEARCH_BOX: dict[str, tuple[float, float]] = {
+    # The exploration box of the shared notes (for the tuner; informational here).
+    "k_pw": (0.05, 3.0),
+    "k_iw": (0.0, 200.0),
+    "k_pos": (1.0, 150.0),
+    "tau_sm": (0.0, 0.05),
+    "tau_eq": (0.0, 0.05),
+}
+
+
+def _is_number(v: Any) -> bool:
+    """True for int/float (and numpy scalars), False for bool, str and everything else."""
+    if isinstance(v, (bool, np.bool_)):
+        return False
+    return isinstance(v, (int, float, np.integer, np.floating))
+
+
+def _num(name: str, v: Any, lo: float | None = None, hi: float | None = None,
+         lo_strict: bool = False, unit: str = "") -> float:
+    """Validate one float parameter; returns it as ``float``."""
+    u = f" {unit}" if unit else ""
+    lo_txt = "" if lo is None else (f"> {lo:g}" if lo_strict else f">= {lo:g}")
+    if lo is not None and hi is not None and not lo_strict:
+        want = f"a finite number in [{lo:g}, {hi:g}]{u}"
+    elif lo is not None and hi is not None:
+        want = f"a finite number in ({lo:g}, {hi:g}]{u}"
+    elif lo is not None:
+        want = f"a finite number {lo_txt}{u}"
+    else:
+        want = f"a finite number{u}"
+    if not _is_number(v):
+        raise ControllerConfigError(f"{name} must be {want}, got {v!r} (type {type(v).__name__})")
+    x = float(v)
+    if not math.isfinite(x):
+        raise ControllerConfigError(f"{name} must be {want}, got {v!r}")
+    if lo is not None and (x <= lo if lo_strict else x < lo):
+        raise ControllerConfigError(f"{name} must be {want}, got {v!r}")
+    if hi is not None and x > hi:
+        raise ControllerConfigError(f"{name} must be {want}, got {v!r}")
+    return x
+
+
+# ------------------------------------------------------------------------------ gains
+@dataclass(frozen=True)
+class Gains:
+    """Tuned parameter vector G (paper eq. 8); defaults = the notes' hand-tuned start.
+
+    k_pw [A s/rad]: proportional gain of the PI speed controller.
+    k_iw [A/rad]: integral gain of the PI speed controller (isq* per rad of speed error integral).
+    k_pos [1/s]: proportional position gain (omega* per rad of position error).
+    tau_sm [s]: reference smoothing filter 1/(1 + s tau_sm).
+    tau_eq [s]: equivalent time constant of the closed position loop (reference model).
+    """
+
+    k_pw: float = 0.53
+    k_iw: float = 20.0
+    k_pos: float = 30.0
+    tau_sm: float = 0.005
+    tau_eq: float = 0.007
+
+    def as_array(self) -> np.ndarray:
+        """[k_pw, k_iw, k_pos, tau_sm, tau_eq] as a float64 array."""
+        return np.array([self.k_pw, self.k_iw, self.k_pos, self.tau_sm, self.tau_eq],
+                        dtype=np.float64)
+
+    def as_tuple(self) -> tuple[float, ...]:
+        return (self.k_pw, self.k_iw, self.k_pos, self.tau_sm, self.tau_eq)
+
+    @classmethod
+    def from_sequence(cls, values: Sequence[float]) -> "Gains":
+        """Build (and validate) from [k_pw, k_iw, k_pos, tau_sm, tau_eq]."""
+        vals = list(values)
+        if len(vals) != len(GAIN_NAMES):
+            raise ControllerConfigError(
+                f"gains must have {len(GAIN_NAMES)} values {list(GAIN_NAMES)}, got {len(vals)}")
+        g = cls(*vals)
+        return validate_gains(g)
+
+
+def validate_gains(g: Any, prefix: str = "gains") -> Gains:
+    """Check every gain is a finite number inside ``GAIN_RANGES``; returns float-typed Gains."""
+    if not isinstance(g, Gains):
+        raise ControllerConfigError(f"{prefix} must be a Gains instance, got {type(g).__name__}")
+    vals = {}
+    for name in GAIN_NAMES:
+        lo, hi = GAIN_RANGES[name]
+        vals[name] = _num(f"{prefix}.{name}", getattr(g, name), lo, hi, unit=GAIN_UNITS[name])
+    return Gains(**vals)
+
+
+# ---------------------------------------------------------------------------- control
+@dataclass(frozen=True)
+class ControlConfig:
+    """Structure of the control law (not tuned).
+
+    feedforward: 'model' (default): omega_ff = d theta_m/dt (the reference model's speed);
+        'undelayed': omega_ff = d theta_sm/dt.  The position error uses theta_m in both.
+    Ts [s]: control period (take it from the drive config; default 200 us).
+    isq_max [A]: clamp of isq* (take it from the drive config; default 7 A).
+    """
+
+    feedforward: str = "model"
+    Ts: float = 2e-4
+    isq_max: float = 7.0
+
+
+def validate_control_config(c: Any, prefix: str = "control") -> ControlConfig:
+    if not isinstance(c, ControlConfig):
+        raise ControllerConfigError(f"{prefix} must be a ControlConfig, got {type(c).__name__}")
+    if not isinstance(c.feedforward, str) or c.feedforward not in ("model", "undelayed"):
+        raise ControllerConfigError(
+            f"{prefix}.feedforward must be 'model' or 'undelayed', got {c.feedforward!r}")
+    Ts = _num(f"{prefix}.Ts", c.Ts, 0.0, 0.01, lo_strict=True, unit="s")
+    isq_max = _num(f"{prefix}.isq_max", c.isq_max, 0.0, 1e3, lo_strict=True, unit="A")
+    return ControlConfig(c.feedforward, Ts, isq_max)
+
+
+# ------------------------------------------------------------------------------- loss
+@dataclass(frozen=True)
+class LossConfig:
+    """Loss eq. 4-7 and the supervisor.
+
+    a1 [1/(rad s)], a2 [1/rad], a3 [1/(A s)]: weights of the three terms; defaults make
+        each term about 1/3 for the hand-tuned start on the default drive (docs/controller.md).
+    threshold1..3 [-]: supervisor limits on the running weighted terms a_j int f_j dt.
+    penalty [-]: factor applied to the loss of a stopped experiment (>= 1).
+    isqf_tau [s]: time constant of the isq* filter in f3 (paper: 0.02 s).
+    sat_ratio [-]: terms count only while |isq*|/isq_max < sat_ratio (paper: 0.99).
+    """
+
+    a1: float = 8.0
+    a2: float = 0.5
+    a3: float = 1.1
+    threshold1: float = 3.0
+    threshold2: float = 0.8
+    threshold3: float = 1.5
+    penalty: float = 10.0
+    isqf_tau: float = 0.02
+    sat_ratio: float = 0.99
+
+
+def validate_loss_config(c: Any, prefix: str = "loss") -> LossConfig:
+    if not isinstance(c, LossConfig):
+        raise ControllerConfigError(f"{prefix} must be a LossConfig, got {type(c).__name__}")
+    v = {}
+    for n in ("a1", "a2", "a3"):
+        v[n] = _num(f"{prefix}.{n}", getattr(c, n), 0.0, 1e6)
+    for n in ("threshold1", "threshold2", "threshold3"):
+        v[n] = _num(f"{prefix}.{n}", getattr(c, n), 0.0, 1e12, lo_strict=True)
+    v["penalty"] = _num(f"{prefix}.penalty", c.penalty, 1.0, 1e6)
+    v["isqf_tau"] = _num(f"{prefix}.isqf_tau", c.isqf_tau, 0.0, 10.0, lo_strict=True, unit="s")
+    v["sat_ratio"] = _num(f"{prefix}.sat_ratio", c.sat_ratio, 0.0, 1.0, lo_strict=True)
+    return LossConfig(**v)
+
+
+# ------------------------------------------------------------------------- trajectory
+@dataclass(frozen=True)
+class TrajectoryConfig:
+    """The experiment (paper, "The loss function", Fig. 5).
+
+    distance [rad]: rotation per experiment (pi); direction alternates with the id parity.
+    a_max [rad/s^2], v_max [rad/s]: limits of the minimum-time trajectory.
+    duration [s]: experiment length (1.125 s = 5625 steps at 200 us).
+    load_delay [s]: load step this long after the reference change (0.7 s).
+    load_torque [N m]: load step magnitude (70 % of the 2.5 N m rated torque).
+    load_sign: 'oppose_move' (default): the load torque opposes the move direction, so
+        the two directions are mirror images; 'fixed': +load_torque in every experiment
+        (positive opposes positive rotation, drive convention).
+    """
+
+    distance: float = math.pi
+    a_max: float = 600.0
+    v_max: float = 40.0
+    duration: float = 1.125
+    load_delay: float = 0.7
+    load_torque: float = 1.75
+    load_sign: str = "oppose_move"
+
+
+def validate_trajectory_config(c: Any, prefix: str = "trajectory") -> TrajectoryConfig:
+    if not isinstance(c, TrajectoryConfig):
+        raise ControllerConfigError(
+            f"{prefix} must be a TrajectoryConfig, got {type(c).__name__}")
+    v = {
+        "distance": _num(f"{prefix}.distance", c.distance, 0.0, 1e3, lo_strict=True, unit="rad"),
+        "a_max": _num(f"{prefix}.a_max", c.a_max, 0.0, 1e6, lo_strict=True, unit="rad/s^2"),
+        "v_max": _num(f"{prefix}.v_max", c.v_max, 0.0, 1e4, lo_strict=True, unit="rad/s"),
+        "duration": _num(f"{prefix}.duration", c.duration, 0.0, 100.0, lo_strict=True, unit="s"),
+        "load_delay": _num(f"{prefix}.load_delay", c.load_delay, 0.0, 100.0, unit="s"),
+        "load_torque": _num(f"{prefix}.load_torque", c.load_torque, 0.0, 1e3, unit="N m"),
+    }
+    if not isinstance(c.load_sign, str) or c.load_sign not in ("oppose_move", "fixed"):
+        raise ControllerConfigError(
+            f"{prefix}.load_sign must be 'oppose_move' or 'fixed', got {c.load_sign!r}")
+    v["load_sign"] = c.load_sign
+    if v["load_delay"] > v["duration"]:
+        raise ControllerConfigError(
+            f"{prefix}.load_delay must be <= duration ({v['duration']:g} s), "
+            f"got {v['load_delay']!r}")
+    return TrajectoryConfig(**v)
+
+
+# ----------------------------------------------------------------------------- safety
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Hard limits, always active (in and between experiments); a violation -> FAULT.
+
+    max_position_error [rad]: |theta_m - theta_meas| (the position controller's error).
+    max_speed [rad/s]: |omega_meas|.
+    """
+
+    max_position_error: float = 1.0
+    max_speed: float = 100.0
+
+
+def validate_safety_config(c: Any, prefix: str = "safety") -> SafetyConfig:
+    if not isinstance(c, SafetyConfig):
+        raise ControllerConfigError(f"{prefix} must be a SafetyConfig, got {type(c).__name__}")
+    return SafetyConfig(
+        _num(f"{prefix}.max_position_error", c.max_position_error, 0.0, 1e3, lo_strict=True,
+             unit="rad"),
+        _num(f"{prefix}.max_speed", c.max_speed, 0.0, 1e4, lo_strict=True, unit="rad/s"))
+
+
+# ------------------------------------------------------------------------- experiment
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """Everything the experiment runner needs besides the gains under test.
+
+    fallback_gains: gains used for the position hold after a supervisor stop
+    (default: the hand-tuned start), so a destabilising candidate never keeps running.
+    """
+
+    control: ControlConfig = field(default_factory=ControlConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    fallback_gains: Gains = field(default_factory=Gains)
+
+
+def validate_experiment_config(c: Any) -> ExperimentConfig:
+    """Validate all sections; returns a normalised (float-typed) copy."""
+    if not isinstance(c, ExperimentConfig):
+        raise ControllerConfigError(f"config must be an ExperimentConfig, got {type(c).__name__}")
+    ctl = validate_control_config(c.control)
+    traj = validate_trajectory_config(c.trajectory)
+    steps = traj.duration / ctl.Ts
+    if abs(steps - round(steps)) > 1e-9 * max(1.0, steps):
+        raise ControllerConfigError(
+            f"trajectory.duration must be an integer number of control periods "
+            f"(Ts = {ctl.Ts:g} s), got {traj.duration!r}")
+    return ExperimentConfig(ctl, validate_loss_config(c.loss), traj,
+                            validate_safety_config(c.safety),
+                            validate_gains(c.fallback_gains, "fallback_gains"))

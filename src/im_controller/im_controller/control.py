@@ -1,0 +1,233 @@
+"""Cascaded position controller of the IM drive: numba kernels + a thin Python class.
+
+Per control period Ts (k = step index), with theta* the raw trajectory reference
+(docs/controller.md has the block diagram and the reasoning)::
+
+    theta_sm[k] = a_sm theta_sm[k-1] + (1 - a_sm) theta*[k]          a_sm = exp(-Ts/tau_sm)
+    theta_m[k]  = a_eq theta_m[k-1]  + (1 - a_eq) theta_sm[k]         a_eq = exp(-Ts/tau_eq)
+    omega_ff[k] = (theta_m[k] - theta_m[k-1]) / Ts       ('model' reading, default)
+                = (theta_sm[k] - theta_sm[k-1]) / Ts     ('undelayed' reading)
+    e_theta[k]  = theta_m[k] - theta_meas[k]
+    omega*[k]   = k_pos e_theta[k] + omega_ff[k]
+    e_w[k]      = omega*[k] - omega_meas[k]
+    P[k] = k_pw e_w[k];   I[k] = I[k-1] + k_iw Ts e_w[k]   (unless frozen, see below)
+    isq*[k] = clamp(P[k] + I[k], -isq_max, +isq_max)
+
+* The filters are the exact discretisation (a = exp(-Ts/tau)) of 1/(1 + s tau) for an input
+  that takes its new value at the start of the interval (no extra step of delay);
+  tau = 0 gives a = 0, i.e. an exact pass-through.
+* omega_ff (model reading) = (1 - a_eq)/Ts (theta_sm[k] - theta_m[k-1]) is the exact mean of
+  d theta_m/dt = (theta_sm - theta_m)/tau_eq over the last period.  It tends to
+  (theta_sm - theta_m)/tau_eq for tau_eq >> Ts and, unlike the sampled value, stays
+  finite and continuous for tau_eq -> 0, where it becomes the backward difference of
+  theta_sm (the tau_eq = 0 case needs no special code).
+* Anti-windup: conditional integration.  The integrator is frozen in a step where the
+  unclamped output P + I + k_iw Ts e_w is beyond +-isq_max and e_w drives it further out;
+  it is also kept within +-isq_max (useful after a gain change).  ``saturated`` = 1 when
+  the output was clamped.
+
+Arrays (float64, allocated once): parameters ``C`` (``C_*``), state ``X`` (``X_*``),
+internals ``out`` (``O_*``, names in ``CONTROL_FIELDS``).  The kernel allocates nothing.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .config import ControlConfig, Gains, validate_control_config, validate_gains
+
+__all__ = [
+    "CascadeController", "CONTROL_FIELDS", "control_step", "control_reset",
+    "make_control_params", "fill_control_params", "FF_MODEL", "FF_UNDELAYED",
+]
+
+# ------------------------------------------------------------------ parameter indices
+C_KPW = 0       # k_pw [A s/rad]
+C_KIW = 1       # k_iw [A/rad]
+C_KPOS = 2      # k_pos [1/s]
+C_TAU_SM = 3    # [s]
+C_TAU_EQ = 4    # [s]
+C_A_SM = 5      # exp(-Ts/tau_sm) (0 for tau_sm = 0)
+C_G_SM = 6      # 1 - a_sm
+C_A_EQ = 7
+C_G_EQ = 8
+C_KI_TS = 9     # k_iw Ts [A/(rad/s)]
+C_INV_TS = 10   # 1/Ts [1/s]
+C_ISQ_MAX = 11  # [A]
+C_FF = 12       # FF_MODEL or FF_UNDELAYED
+C_TS = 13       # [s]
+N_CPARAMS = 14
+
+FF_MODEL = 0.0
+FF_UNDELAYED = 1.0
+
+# ---------------------------------------------------------------------- state indices
+X_SM = 0        # theta_sm [rad]
+X_M = 1         # theta_m [rad]
+X_I = 2         # integrator [A]
+N_CSTATE = 3
+
+# -------------------------------------------------------------------- internals
+CONTROL_FIELDS: tuple[str, ...] = (
+    "theta_ref", "theta_sm", "theta_m", "omega_ff", "omega_ref", "e_theta", "e_omega",
+    "p_term", "i_term", "isq_ref", "saturated")
+"""Internals written per step (units: rad, rad, rad, rad/s, rad/s, rad, rad/s, A, A, A, 0/1)."""
+(O_THETA_REF, O_THETA_SM, O_THETA_M, O_OMEGA_FF, O_OMEGA_REF, O_E_THETA, O_E_OMEGA,
+ O_P, O_I, O_ISQ, O_SAT) = range(len(CONTROL_FIELDS))
+N_CONTROL_FIELDS = len(CONTROL_FIELDS)
+
+
+def _lag(Ts: float, tau: float) -> float:
+    """Exact pole exp(-Ts/tau) of 1/(1 + s tau); tau = 0 -> 0 (pass-through)."""
+    return math.exp(-Ts / tau) if tau > 0.0 else 0.0
+
+
+def fill_control_params(C: np.ndarray, gains: Gains, Ts: float, isq_max: float,
+                        feedforward: str) -> None:
+    """Write the kernel parameter vector in place (inputs already validated)."""
+    C[C_KPW] = gains.k_pw
+    C[C_KIW] = gains.k_iw
+    C[C_KPOS] = gains.k_pos
+    C[C_TAU_SM] = gains.tau_sm
+    C[C_TAU_EQ] = gains.tau_eq
+    a = _lag(Ts, gains.tau_sm)
+    C[C_A_SM] = a
+    C[C_G_SM] = 1.0 - a
+    a = _lag(Ts, gains.tau_eq)
+    C[C_A_EQ] = a
+    C[C_G_EQ] = 1.0 - a
+    C[C_KI_TS] = gains.k_iw * Ts
+    C[C_INV_TS] = 1.0 / Ts
+    C[C_ISQ_MAX] = isq_max
+    C[C_FF] = FF_MODEL if feedforward == "model" else FF_UNDELAYED
+    C[C_TS] = Ts
+
+
+def make_control_params(gains: Gains, control: ControlConfig) -> np.ndarray:
+    """New parameter vector ``C`` for validated gains and control config."""
+    C = np.zeros(N_CPARAMS)
+    fill_control_params(C, gains, control.Ts, control.isq_max, control.feedforward)
+    return C
+
+
+@njit(cache=True)
+def control_reset(X: np.ndarray, theta_meas: float) -> None:
+    """Start holding the current position: theta_sm = theta_m = theta_meas, integrator 0."""
+    X[X_SM] = theta_meas
+    X[X_M] = theta_meas
+    X[X_I] = 0.0
+
+
+@njit(cache=True)
+def control_step(X: np.ndarray, C: np.ndarray, theta_ref: float, theta_meas: float,
+                 omega_meas: float, out: np.ndarray) -> float:
+    """One control period; returns isq* [A] and writes the internals into ``out``.
+
+    theta_ref [rad]: raw reference theta*; theta_meas [rad], omega_meas [rad/s]: measurements
+    sampled at this step.  Equations in the module docstring.  No allocation.
+    """
+    sm_old = X[X_SM]
+    m_old = X[X_M]
+    sm = C[C_A_SM] * sm_old + C[C_G_SM] * theta_ref
+    m = C[C_A_EQ] * m_old + C[C_G_EQ] * sm
+    if C[C_FF] == FF_MODEL:
+        w_ff = (m - m_old) * C[C_INV_TS]
+    else:
+        w_ff = (sm - sm_old) * C[C_INV_TS]
+    e_th = m - theta_meas
+    w_ref = C[C_KPOS] * e_th + w_ff
+    e_w = w_ref - omega_meas
+    p = C[C_KPW] * e_w
+    lim = C[C_ISQ_MAX]
+    i_old = X[X_I]
+    di = C[C_KI_TS] * e_w
+    u_try = p + i_old + di
+    # Conditional integration: freeze while the output is clamped and the error pushes
+    # further into the clamp; otherwise integrate (so it unwinds at once when e_w reverses).
+    if (u_try > lim and e_w > 0.0) or (u_try < -lim and e_w < 0.0):
+        i_new = i_old
+    else:
+        i_new = i_old + di
+    # The integrator alone never needs to exceed the clamp; bounding it keeps recovery
+    # fast even after a gain change moved it.
+    if i_new > lim:
+        i_new = lim
+    elif i_new < -lim:
+        i_new = -lim
+    u = p + i_new
+    sat = 0.0
+    if u > lim:
+        isq = lim
+        sat = 1.0
+    elif u < -lim:
+        isq = -lim
+        sat = 1.0
+    else:
+        isq = u
+    X[X_SM] = sm
+    X[X_M] = m
+    X[X_I] = i_new
+    out[O_THETA_REF] = theta_ref
+    out[O_THETA_SM] = sm
+    out[O_THETA_M] = m
+    out[O_OMEGA_FF] = w_ff
+    out[O_OMEGA_REF] = w_ref
+    out[O_E_THETA] = e_th
+    out[O_E_OMEGA] = e_w
+    out[O_P] = p
+    out[O_I] = i_new
+    out[O_ISQ] = isq
+    out[O_SAT] = sat
+    return isq
+
+
+class CascadeController:
+    """Position P + speed PI cascade with reference smoothing and model feed-forward.
+
+    Parameters
+    ----------
+    gains: tuned vector (validated; default the hand-tuned start).
+    control: structure (feed-forward reading, Ts [s], isq_max [A]); take Ts and isq_max
+        from the drive config.
+
+    ``step`` takes the samples of step k and returns isq*[k]; ``internals`` holds the
+    ``CONTROL_FIELDS`` of the last step (a view, overwritten every step).
+    """
+
+    def __init__(self, gains: Gains | None = None, control: ControlConfig | None = None) -> None:
+        self.control: ControlConfig = validate_control_config(
+            ControlConfig() if control is None else control)
+        self.gains: Gains = validate_gains(Gains() if gains is None else gains)
+        self.C: np.ndarray = make_control_params(self.gains, self.control)
+        self.X: np.ndarray = np.zeros(N_CSTATE)
+        self.internals: np.ndarray = np.zeros(N_CONTROL_FIELDS)
+
+    def reset(self, theta_meas: float) -> None:
+        """Start holding ``theta_meas`` [rad]: references = theta_meas, integrator 0."""
+        if not math.isfinite(theta_meas):
+            raise ValueError(f"theta_meas must be finite, got {theta_meas!r}")
+        control_reset(self.X, float(theta_meas))
+
+    def set_gains(self, gains: Gains) -> None:
+        """Validate, then apply atomically (filter states and integrator are kept)."""
+        g = validate_gains(gains)
+        fill_control_params(self.C, g, self.control.Ts, self.control.isq_max,
+                            self.control.feedforward)
+        self.gains = g
+
+    def step(self, theta_ref: float, theta_meas: float, omega_meas: float) -> float:
+        """One period: raw reference theta* [rad], samples [rad, rad/s] -> isq* [A]."""
+        return float(control_step(self.X, self.C, float(theta_ref), float(theta_meas),
+                                  float(omega_meas), self.internals))
+
+    @property
+    def saturated(self) -> bool:
+        """True if the last output was clamped to +-isq_max."""
+        return bool(self.internals[O_SAT] != 0.0)
+
+    def internals_dict(self) -> dict[str, float]:
+        """The last step's internals by name (a copy)."""
+        return {n: float(self.internals[i]) for i, n in enumerate(CONTROL_FIELDS)}

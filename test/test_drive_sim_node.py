@@ -193,12 +193,11 @@ def test_clock_and_joint_states_carry_exact_sim_time(procs, ros_context):
     node = Node('test_controller2', context=ros_context)
     client = DriveClient(node)
     states = {}
-    # Step only once both side subscriptions are matched (the drive re-sends state 0 while
-    # it waits), so every /clock and joint_states sample must arrive: reliable QoS.
+    # Step only once both side subscriptions get samples (the drive re-sends state 0 while
+    # it waits), so every later /clock and joint_states sample must arrive: reliable QoS.
     deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and not (
-            clock_sub.get_publisher_count() and joint_sub.get_publisher_count()):
-        ex.spin_once(timeout_sec=0.05)
+    while time.monotonic() < deadline and not (clocks and joints):
+        ex.spin_once(timeout_sec=0.05)  # state 0 (with its clock) is re-sent every 0.1 s
     while time.monotonic() < deadline:
         s = client.wait_new_state(0.05)
         ex.spin_once(timeout_sec=0.0)

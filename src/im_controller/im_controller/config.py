@@ -14,7 +14,7 @@ Units SI (rad, rad/s, A, N m, s).  See docs/controller.md for the meaning of eac
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Sequence
 
 import numpy as np
@@ -26,6 +26,8 @@ __all__ = [
     "GAIN_RANGES",
     "GAIN_UNITS",
     "SEARCH_BOX",
+    "NUMERIC_SPECS",
+    "NumSpec",
     "ControlConfig",
     "LossConfig",
     "TrajectoryConfig",
@@ -68,6 +70,49 @@ SEARCH_BOX: dict[str, tuple[float, float]] = {
     "tau_sm": (0.0, 0.05),
     "tau_eq": (0.0, 0.05),
 }
+
+
+@dataclass(frozen=True)
+class NumSpec:
+    """Accepted values of one numeric parameter: [lo, hi] (or (lo, hi] if lo_strict)."""
+
+    lo: float
+    hi: float
+    lo_strict: bool = False
+    unit: str = ""
+
+
+#: Every numeric parameter of the controller and the experiment, by ``section.field``:
+#: the single source of truth for validation (``validate_*``) and for the ROS parameter
+#: descriptors of the controller node.
+NUMERIC_SPECS: dict[str, NumSpec] = {
+    **{f"gains.{n}": NumSpec(lo, hi, False, GAIN_UNITS[n]) for n, (lo, hi) in GAIN_RANGES.items()},
+    "control.Ts": NumSpec(0.0, 0.01, True, "s"),
+    "control.isq_max": NumSpec(0.0, 1e3, True, "A"),
+    "loss.a1": NumSpec(0.0, 1e6, False, "1/(rad s)"),
+    "loss.a2": NumSpec(0.0, 1e6, False, "1/rad"),
+    "loss.a3": NumSpec(0.0, 1e6, False, "1/(A s)"),
+    "loss.threshold1": NumSpec(0.0, 1e12, True),
+    "loss.threshold2": NumSpec(0.0, 1e12, True),
+    "loss.threshold3": NumSpec(0.0, 1e12, True),
+    "loss.penalty": NumSpec(1.0, 1e6),
+    "loss.isqf_tau": NumSpec(0.0, 10.0, True, "s"),
+    "loss.sat_ratio": NumSpec(0.0, 1.0, True),
+    "trajectory.distance": NumSpec(0.0, 1e3, True, "rad"),
+    "trajectory.a_max": NumSpec(0.0, 1e6, True, "rad/s^2"),
+    "trajectory.v_max": NumSpec(0.0, 1e4, True, "rad/s"),
+    "trajectory.duration": NumSpec(0.0, 100.0, True, "s"),
+    "trajectory.load_delay": NumSpec(0.0, 100.0, False, "s"),
+    "trajectory.load_torque": NumSpec(0.0, 1e3, False, "N m"),
+    "safety.max_position_error": NumSpec(0.0, 1e3, True, "rad"),
+    "safety.max_speed": NumSpec(0.0, 1e4, True, "rad/s"),
+}
+
+
+def _spec(key: str, name: str, v: Any) -> float:
+    """Validate ``v`` against ``NUMERIC_SPECS[key]``; ``name`` is used in the message."""
+    sp = NUMERIC_SPECS[key]
+    return _num(name, v, sp.lo, sp.hi, lo_strict=sp.lo_strict, unit=sp.unit)
 
 
 def _is_number(v: Any) -> bool:
@@ -145,8 +190,7 @@ def validate_gains(g: Any, prefix: str = "gains") -> Gains:
         raise ControllerConfigError(f"{prefix} must be a Gains instance, got {type(g).__name__}")
     vals = {}
     for name in GAIN_NAMES:
-        lo, hi = GAIN_RANGES[name]
-        vals[name] = _num(f"{prefix}.{name}", getattr(g, name), lo, hi, unit=GAIN_UNITS[name])
+        vals[name] = _spec(f"gains.{name}", f"{prefix}.{name}", getattr(g, name))
     return Gains(**vals)
 
 
@@ -172,8 +216,8 @@ def validate_control_config(c: Any, prefix: str = "control") -> ControlConfig:
     if not isinstance(c.feedforward, str) or c.feedforward not in ("model", "undelayed"):
         raise ControllerConfigError(
             f"{prefix}.feedforward must be 'model' or 'undelayed', got {c.feedforward!r}")
-    Ts = _num(f"{prefix}.Ts", c.Ts, 0.0, 0.01, lo_strict=True, unit="s")
-    isq_max = _num(f"{prefix}.isq_max", c.isq_max, 0.0, 1e3, lo_strict=True, unit="A")
+    Ts = _spec("control.Ts", f"{prefix}.Ts", c.Ts)
+    isq_max = _spec("control.isq_max", f"{prefix}.isq_max", c.isq_max)
     return ControlConfig(c.feedforward, Ts, isq_max)
 
 
@@ -204,14 +248,7 @@ class LossConfig:
 def validate_loss_config(c: Any, prefix: str = "loss") -> LossConfig:
     if not isinstance(c, LossConfig):
         raise ControllerConfigError(f"{prefix} must be a LossConfig, got {type(c).__name__}")
-    v = {}
-    for n in ("a1", "a2", "a3"):
-        v[n] = _num(f"{prefix}.{n}", getattr(c, n), 0.0, 1e6)
-    for n in ("threshold1", "threshold2", "threshold3"):
-        v[n] = _num(f"{prefix}.{n}", getattr(c, n), 0.0, 1e12, lo_strict=True)
-    v["penalty"] = _num(f"{prefix}.penalty", c.penalty, 1.0, 1e6)
-    v["isqf_tau"] = _num(f"{prefix}.isqf_tau", c.isqf_tau, 0.0, 10.0, lo_strict=True, unit="s")
-    v["sat_ratio"] = _num(f"{prefix}.sat_ratio", c.sat_ratio, 0.0, 1.0, lo_strict=True)
+    v = {n: _spec(f"loss.{n}", f"{prefix}.{n}", getattr(c, n)) for n in _field_names(LossConfig)}
     return LossConfig(**v)
 
 
@@ -243,14 +280,8 @@ def validate_trajectory_config(c: Any, prefix: str = "trajectory") -> Trajectory
     if not isinstance(c, TrajectoryConfig):
         raise ControllerConfigError(
             f"{prefix} must be a TrajectoryConfig, got {type(c).__name__}")
-    v = {
-        "distance": _num(f"{prefix}.distance", c.distance, 0.0, 1e3, lo_strict=True, unit="rad"),
-        "a_max": _num(f"{prefix}.a_max", c.a_max, 0.0, 1e6, lo_strict=True, unit="rad/s^2"),
-        "v_max": _num(f"{prefix}.v_max", c.v_max, 0.0, 1e4, lo_strict=True, unit="rad/s"),
-        "duration": _num(f"{prefix}.duration", c.duration, 0.0, 100.0, lo_strict=True, unit="s"),
-        "load_delay": _num(f"{prefix}.load_delay", c.load_delay, 0.0, 100.0, unit="s"),
-        "load_torque": _num(f"{prefix}.load_torque", c.load_torque, 0.0, 1e3, unit="N m"),
-    }
+    v = {n: _spec(f"trajectory.{n}", f"{prefix}.{n}", getattr(c, n))
+         for n in _field_names(TrajectoryConfig) if n != "load_sign"}
     if not isinstance(c.load_sign, str) or c.load_sign not in ("oppose_move", "fixed"):
         raise ControllerConfigError(
             f"{prefix}.load_sign must be 'oppose_move' or 'fixed', got {c.load_sign!r}")
@@ -278,10 +309,8 @@ class SafetyConfig:
 def validate_safety_config(c: Any, prefix: str = "safety") -> SafetyConfig:
     if not isinstance(c, SafetyConfig):
         raise ControllerConfigError(f"{prefix} must be a SafetyConfig, got {type(c).__name__}")
-    return SafetyConfig(
-        _num(f"{prefix}.max_position_error", c.max_position_error, 0.0, 1e3, lo_strict=True,
-             unit="rad"),
-        _num(f"{prefix}.max_speed", c.max_speed, 0.0, 1e4, lo_strict=True, unit="rad/s"))
+    return SafetyConfig(**{n: _spec(f"safety.{n}", f"{prefix}.{n}", getattr(c, n))
+                            for n in _field_names(SafetyConfig)})
 
 
 # ------------------------------------------------------------------------- experiment
@@ -314,3 +343,7 @@ def validate_experiment_config(c: Any) -> ExperimentConfig:
     return ExperimentConfig(ctl, validate_loss_config(c.loss), traj,
                             validate_safety_config(c.safety),
                             validate_gains(c.fallback_gains, "fallback_gains"))
+
+
+def _field_names(cls: type) -> list[str]:
+    return [f.name for f in fields(cls)]

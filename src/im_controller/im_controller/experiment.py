@@ -66,8 +66,9 @@ REASON_TERM3 = 3
 REASON_POSITION = 4
 REASON_SPEED = 5
 REASON_NONFINITE = 6
+REASON_DRIVE_TIMEOUT = 7   # set by the node's watchdog (ExperimentRunner.abort_external)
 REASONS: tuple[str, ...] = ("", "term1", "term2", "term3", "max_position_error",
-                            "max_speed", "non_finite_measurement")
+                            "max_speed", "non_finite_measurement", "drive_state_timeout")
 """Reason strings by reason code (LossResult.reason, ExperimentRunner.fault_reason)."""
 
 MODE_HOLD = 0.0
@@ -547,6 +548,32 @@ class ExperimentRunner:
         c = self.config.control
         fill_control_params(self.C, g, c.Ts, c.isq_max, c.feedforward)
         self.gains = g
+
+    def set_config(self, config: ExperimentConfig) -> None:
+        """Apply a new experiment configuration (loss, trajectory, ...), validated and
+        atomic.  Refused while an experiment runs.  Ts, isq_max and the safety limits
+        are structural: a config that changes them is refused too."""
+        cfg = validate_experiment_config(config)
+        if self.running:
+            raise RuntimeError("cannot change the experiment configuration while an "
+                               "experiment is running")
+        if cfg.control != self.config.control or cfg.safety != self.config.safety:
+            raise RuntimeError("control structure (Ts, isq_max, feedforward) and safety "
+                               "limits cannot change at run time")
+        self.Q[:] = make_experiment_params(cfg)
+        fill_control_params(self.CF, cfg.fallback_gains, cfg.control.Ts, cfg.control.isq_max,
+                            cfg.control.feedforward)
+        self.config = cfg
+
+    def abort_external(self, reason: int, time_ns: int) -> None:
+        """Torque off from outside (e.g. the drive-state watchdog): FAULT with ``reason``
+        (a ``REASON_*`` code); a running experiment ends aborted (penalised) at sim time
+        ``time_ns`` [ns] of the last state seen.  ``reset()`` clears the fault."""
+        R = self.R
+        if self.running:
+            _finish(R, self.Q, float(STATUS_ABORTED), float(reason), float(time_ns))
+        R[R_MODE] = MODE_FAULT
+        R[R_FAULT_REASON] = float(reason)
 
     def start(self, experiment_id: int, gains: Gains | None = None) -> None:
         """Arm experiment ``experiment_id`` (int >= 0) with ``gains`` (None: current);

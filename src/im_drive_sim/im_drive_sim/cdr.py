@@ -37,3 +37,15 @@ class Float64ArrayWire:
     def payload(self) -> bytes:
         """The message as CDR bytes (a copy: rclpy requires ``bytes``)."""
         return bytes(self._buf)
+
+
+def parse_float64_array(raw: bytes, n: int) -> np.ndarray | None:
+    """The n values of a serialised Float64MultiArray in our layout, as a read-only view.
+
+    Returns None when ``raw`` is not exactly that layout (big-endian, a non-empty
+    ``layout.dim``, another length): the caller then deserialises it the slow, general way.
+    """
+    if len(raw) != _DATA_OFFSET + 8 * n or raw[0:4] != _HEADER or \
+            raw[4:12] != bytes(8) or int.from_bytes(raw[12:16], 'little') != n:
+        return None
+    return np.frombuffer(raw, dtype='<f8', count=n, offset=_DATA_OFFSET)

@@ -13,7 +13,9 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
 
-from .cdr import Float64ArrayWire
+from rclpy.serialization import deserialize_message
+
+from .cdr import Float64ArrayWire, parse_float64_array
 from .drive_sim_node import COMMAND_FIELDS, COMMAND_TOPIC, LOCKSTEP_QOS, STATE_TOPIC
 from .sim import STATE_FIELDS
 
@@ -44,12 +46,16 @@ class DriveClient:
     def take_state(self) -> np.ndarray | None:
         """Take every pending state without waiting; return the newest (or None)."""
         got = None
+        n = len(STATE_FIELDS)
         while True:
-            r = self.state_sub.handle.take_message(Float64MultiArray, False)
+            # Raw CDR: our own layout is read straight into numpy (no message object).
+            r = self.state_sub.handle.take_message(Float64MultiArray, True)
             if r is None:
                 return got
-            data = r[0].data
-            if len(data) == len(STATE_FIELDS):
+            data = parse_float64_array(r[0], n)
+            if data is None:  # another publisher's layout: the general path
+                data = deserialize_message(r[0], Float64MultiArray).data
+            if len(data) == n:
                 self.state[:] = data
                 self.source_timestamp_ns = r[1]['source_timestamp']
                 got = self.state

@@ -32,12 +32,13 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from .cdr import Float64ArrayWire
+from .cdr import Float64ArrayWire, parse_float64_array
 from .params import ConfigError, load_config
 from .sim import STATE_FIELDS, DriveSim
 
@@ -259,10 +260,12 @@ class DriveSimNode(Node):
         return ws.is_ready('subscription', 0)
 
     def _take_command(self):
-        r = self.cmd_sub.handle.take_message(Float64MultiArray, False)
+        r = self.cmd_sub.handle.take_message(Float64MultiArray, True)  # raw CDR bytes
         if r is None:
             return None
-        data = r[0].data
+        data = parse_float64_array(r[0], len(COMMAND_FIELDS))
+        if data is None:  # not our compact layout: deserialise the general way
+            data = deserialize_message(r[0], Float64MultiArray).data
         if len(data) != len(COMMAND_FIELDS):
             self.get_logger().error(
                 f'{COMMAND_TOPIC}: expected {len(COMMAND_FIELDS)} values '

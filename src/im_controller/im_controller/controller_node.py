@@ -1,0 +1,487 @@
+"""ROS 2 node of the cascaded controller: ``ros2 run im_controller controller``.
+
+A thin node around :class:`im_controller.experiment.ExperimentRunner` (docs/controller.md):
+
+* closes the loop with any drive that honours docs/interfaces.md, answering every state
+  with ``drive/command`` (isq*, load torque), through a hand-rolled WaitSet on a hidden io
+  node (no executor in the 5 kHz path);
+* the five gains, the loss weights, thresholds, penalty and trajectory limits are ROS
+  parameters with descriptors and ranges (``config.NUMERIC_SPECS``); the hard safety limits
+  and the control structure are read-only. Every change is validated in one place
+  (``config.validate_*``) and applied whole or not at all; a change while an experiment
+  runs is **refused** with a reason (not deferred);
+* ``~/start_experiment`` (std_srvs/Trigger) starts the paper's experiment; the result is
+  published on ``controller/loss`` (diagnostic_msgs/DiagnosticArray, see messages.py);
+  ``~/reset_fault`` (std_srvs/Trigger) clears a safety fault; ``controller/internals``
+  carries references, errors, PI terms, saturation and the running loss every step;
+* between experiments it holds the position (in lock-step simulation, by default, the
+  loop pauses instead: sim time does not advance while nothing runs, which keeps runs
+  reproducible whatever the wall-clock gaps between experiments);
+* a watchdog: no drive state for ``state_timeout`` s while the loop expects one -> zero
+  current commanded, a running experiment aborted (``drive_state_timeout``), FAULT.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import signal
+import sys
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType, SetParametersResult)
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_services_default
+from rclpy.service_introspection import ServiceIntrospectionState
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from im_drive_sim.cdr import Float64ArrayWire
+from im_drive_sim.client import DriveClient
+from im_drive_sim.params import ConfigError, load_config
+
+from .config import (GAIN_NAMES, NUMERIC_SPECS, ControlConfig, ControllerConfigError,
+                     ExperimentConfig, Gains, LossConfig, SafetyConfig, TrajectoryConfig,
+                     validate_experiment_config, validate_gains)
+from .control import CONTROL_FIELDS
+from .experiment import (EXP_FIELDS, REASON_DRIVE_TIMEOUT, STATUS_ABORTED, STATUS_DONE,
+                         STATUS_FAULT, ExperimentRunner)
+from .messages import result_to_msg
+
+LOSS_TOPIC = 'controller/loss'
+INTERNALS_TOPIC = 'controller/internals'
+#: Layout of ``controller/internals`` (Float64MultiArray.data).
+INTERNALS_FIELDS: tuple[str, ...] = ('step_index', *CONTROL_FIELDS, *EXP_FIELDS)
+NS_PER_S = 1_000_000_000
+MODES = ('lockstep', 'realtime')
+
+#: Tunable sections: parameter prefix -> dataclass. Gains are top-level (k_pw, ...).
+TUNABLE_SECTIONS = {'loss': LossConfig, 'trajectory': TrajectoryConfig}
+#: Read-only sections (structure and hard safety limits).
+READ_ONLY_SECTIONS = {'control': ControlConfig, 'safety': SafetyConfig}
+#: Fields taken from the drive's parameter file, not declared as parameters.
+FROM_DRIVE = {'control.Ts', 'control.isq_max'}
+
+DESCRIPTIONS = {
+    'k_pw': 'PI speed controller, proportional gain',
+    'k_iw': 'PI speed controller, integral gain',
+    'k_pos': 'proportional position gain',
+    'tau_sm': 'reference smoothing time constant',
+    'tau_eq': 'equivalent time constant of the position loop (reference model)',
+    'loss.a1': 'weight of the position-error term f1 = |theta* - theta|',
+    'loss.a2': 'weight of the speed-error term f2 = |omega* - omega|',
+    'loss.a3': 'weight of the smoothness term f3 = |isqF* - isq*|',
+    'loss.threshold1': 'supervisor: stop when the running weighted term 1 exceeds this',
+    'loss.threshold2': 'supervisor: stop when the running weighted term 2 exceeds this',
+    'loss.threshold3': 'supervisor: stop when the running weighted term 3 exceeds this',
+    'loss.penalty': 'loss multiplier of a stopped experiment',
+    'loss.isqf_tau': 'time constant of the isq* filter in f3 (paper: 0.02 s)',
+    'loss.sat_ratio': 'terms count only while |isq*|/isq_max < sat_ratio (paper: 0.99)',
+    'trajectory.distance': 'rotation per experiment (direction alternates)',
+    'trajectory.a_max': 'acceleration limit of the minimum-time trajectory',
+    'trajectory.v_max': 'speed limit of the minimum-time trajectory',
+    'trajectory.duration': 'experiment length (1.125 s = 5625 steps)',
+    'trajectory.load_delay': 'load step this long after the reference change',
+    'trajectory.load_torque': 'load step magnitude (70 % of rated torque)',
+    'trajectory.load_sign': "'oppose_move' or 'fixed'",
+    'control.feedforward': "speed feed-forward reading: 'model' (d theta_m/dt) or 'undelayed'",
+    'safety.max_position_error': 'hard limit on |theta_m - theta| (read-only)',
+    'safety.max_speed': 'hard limit on |omega| (read-only)',
+}
+
+
+class ControllerError(Exception):
+    """A start-up configuration error: one line, exit code 2."""
+
+
+def _float_descriptor(key: str, description: str, read_only: bool) -> ParameterDescriptor:
+    sp = NUMERIC_SPECS[key]
+    unit = f' [{sp.unit}]' if sp.unit else ''
+    bounds = f"{'(' if sp.lo_strict else '['}{sp.lo:g}, {sp.hi:g}]"
+    return ParameterDescriptor(
+        type=ParameterType.PARAMETER_DOUBLE, description=description + unit,
+        read_only=read_only, additional_constraints=f'finite, in {bounds}',
+        floating_point_range=[FloatingPointRange(from_value=sp.lo, to_value=sp.hi, step=0.0)])
+
+
+class ControllerNode(Node):
+    """The cascaded controller node (see module docstring)."""
+
+    def __init__(self, *, node_name: str = 'controller', context=None,
+                 parameter_overrides: list | None = None) -> None:
+        super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
+        self._declare_structure()
+        self._declare_tunables()
+        cfg, gains = self._candidate({})
+        self.runner = ExperimentRunner(cfg, gains)
+        self.add_pre_set_parameters_callback(self._pre_set)
+        self.add_on_set_parameters_callback(self._on_set)
+        self.add_post_set_parameters_callback(self._post_set)
+
+        self.io_node = Node(f'_{node_name}_io', context=context, namespace=self.get_namespace())
+        self.client = DriveClient(self.io_node)
+        self.loss_pub = self.create_publisher(DiagnosticArray, LOSS_TOPIC, 100)
+        self.internals_pub = self.create_publisher(Float64MultiArray, INTERNALS_TOPIC, 64)
+        self._internals = Float64ArrayWire(len(INTERNALS_FIELDS))
+        self.start_srv = self.create_service(Trigger, '~/start_experiment', self._on_start)
+        self.reset_srv = self.create_service(Trigger, '~/reset_fault', self._on_reset_fault)
+        for srv in (self.start_srv, self.reset_srv):
+            srv.configure_introspection(self.get_clock(), qos_profile_services_default,
+                                        ServiceIntrospectionState.CONTENTS)
+
+        self.next_experiment_id = 0
+        self.results = []                 #: every LossResult published, in order
+        self.stop_requested = False
+        self._state: np.ndarray | None = None   # newest state taken
+        self._pending = False             # ... and not answered yet
+        self._last_state_wall = time.monotonic()
+        self._initialised = False         # the hold reference is set from the first state
+        self._fault_logged = False
+        self._n_answered = 0
+        self.get_logger().info(
+            f'mode={self.mode} Ts={self.Ts * 1e6:.0f} us isq_max={self.isq_max:g} A '
+            f'gains={dict(zip(GAIN_NAMES, gains.as_tuple()))}')
+
+    # -- parameters --------------------------------------------------------------------
+    def _declare_structure(self) -> None:
+        ro = dict(read_only=True)
+        self.mode = self.declare_parameter('mode', 'lockstep', ParameterDescriptor(
+            description="'lockstep' (simulation) or 'realtime' (a real or real-time drive)",
+            additional_constraints='one of: lockstep, realtime', **ro)).value
+        if self.mode not in MODES:
+            raise ControllerError(f"parameter 'mode' must be one of {MODES}, got {self.mode!r}")
+        self.lockstep_idle = self.declare_parameter('lockstep_idle', 'pause', ParameterDescriptor(
+            description="lock-step, between experiments: 'pause' (sim time stops; "
+                        "reproducible) or 'hold' (keep stepping the position hold)",
+            additional_constraints='one of: pause, hold', **ro)).value
+        if self.lockstep_idle not in ('pause', 'hold'):
+            raise ControllerError("parameter 'lockstep_idle' must be 'pause' or 'hold', "
+                                  f'got {self.lockstep_idle!r}')
+        drive_file = self.declare_parameter('drive_config_file', '', ParameterDescriptor(
+            description="the drive's parameter file, for Ts and isq_max ('' = the packaged "
+                        '750 W default)', **ro)).value
+        try:
+            drive_cfg = load_config(drive_file or None)
+        except ConfigError as exc:
+            raise ControllerError(str(exc)) from exc
+        self.Ts = float(drive_cfg.Ts)
+        self.isq_max = float(drive_cfg.machine.isq_max)
+        self.state_timeout = self.declare_parameter('state_timeout', 0.25, ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE, read_only=True,
+            description='watchdog: no drive state for this long while one is expected -> '
+                        'zero current, running experiment aborted, FAULT [s]',
+            floating_point_range=[FloatingPointRange(from_value=0.001, to_value=60.0)])).value
+        self.internals_decimation = self.declare_parameter(
+            'internals_decimation', 1, ParameterDescriptor(
+                read_only=True, description='publish controller/internals every N answered '
+                                            'states (1 = every step)',
+                integer_range=[IntegerRange(from_value=1, to_value=100000, step=1)])).value
+        self.service_period_steps = self.declare_parameter(
+            'service_period_steps', 250, ParameterDescriptor(
+                read_only=True, description='serve services and parameters every N steps '
+                                            '(and whenever idle)',
+                integer_range=[IntegerRange(from_value=1, to_value=1000000, step=1)])).value
+        self.declare_parameter('internals_fields', list(INTERNALS_FIELDS), ParameterDescriptor(
+            read_only=True, description='layout of controller/internals data'))
+        defaults = ExperimentConfig()
+        for section, cls in READ_ONLY_SECTIONS.items():
+            for f in dataclasses.fields(cls):
+                key = f'{section}.{f.name}'
+                if key in FROM_DRIVE:
+                    continue
+                value = getattr(getattr(defaults, section), f.name)
+                if isinstance(value, str):
+                    self.declare_parameter(key, value, ParameterDescriptor(
+                        description=DESCRIPTIONS.get(key, key), read_only=True))
+                else:
+                    self.declare_parameter(key, float(value), _float_descriptor(
+                        key, DESCRIPTIONS.get(key, key), read_only=True))
+        # The drive's clamp, shown (read-only) beside the other hard limits.
+        self.declare_parameter('safety.isq_max', self.isq_max, ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE, read_only=True,
+            description="isq* clamp [A], from the drive's parameter file"))
+
+    def _declare_tunables(self) -> None:
+        g = Gains()
+        for name in GAIN_NAMES:
+            self.declare_parameter(name, float(getattr(g, name)), _float_descriptor(
+                f'gains.{name}', DESCRIPTIONS[name], read_only=False))
+        defaults = ExperimentConfig()
+        for section, cls in TUNABLE_SECTIONS.items():
+            for f in dataclasses.fields(cls):
+                key = f'{section}.{f.name}'
+                value = getattr(getattr(defaults, section), f.name)
+                if isinstance(value, str):
+                    self.declare_parameter(key, value, ParameterDescriptor(
+                        description=DESCRIPTIONS.get(key, key)))
+                else:
+                    self.declare_parameter(key, float(value), _float_descriptor(
+                        key, DESCRIPTIONS.get(key, key), read_only=False))
+
+    def _candidate(self, changes: dict[str, object]) -> tuple[ExperimentConfig, Gains]:
+        """The configuration the node would have with ``changes`` applied: validated.
+
+        The one place where parameters become core configuration; raises
+        ControllerConfigError naming the bad parameter.
+        """
+        def value(name: str):
+            return changes[name] if name in changes else self.get_parameter(name).value
+
+        sections = {}
+        for section, cls in {**TUNABLE_SECTIONS, **READ_ONLY_SECTIONS}.items():
+            kw = {}
+            for f in dataclasses.fields(cls):
+                key = f'{section}.{f.name}'
+                if key == 'control.Ts':
+                    kw[f.name] = self.Ts
+                elif key == 'control.isq_max':
+                    kw[f.name] = self.isq_max
+                else:
+                    kw[f.name] = value(key)
+            sections[section] = cls(**kw)
+        cfg = validate_experiment_config(ExperimentConfig(**sections))
+        gains = validate_gains(Gains(*(value(n) for n in GAIN_NAMES)))
+        return cfg, gains
+
+    def _pre_set(self, params: list[Parameter]) -> list[Parameter]:
+        # Accept integers for double parameters (`k_iw:=20` means 20.0): a classic trap.
+        out = []
+        for p in params:
+            if p.type_ == Parameter.Type.INTEGER and self.has_parameter(p.name) and \
+                    self.get_parameter(p.name).type_ == Parameter.Type.DOUBLE:
+                p = Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
+            out.append(p)
+        return out
+
+    def _on_set(self, params: list[Parameter]) -> SetParametersResult:
+        """Validate a whole change (one parameter or an atomic set): all or nothing."""
+        tunable = [p for p in params if p.name in GAIN_NAMES or
+                   p.name.split('.', 1)[0] in TUNABLE_SECTIONS]
+        if tunable and self.runner.running:
+            return SetParametersResult(
+                successful=False,
+                reason=f'experiment {self.runner.experiment_id} is running: gains and '
+                       'experiment parameters change only between experiments (refused, '
+                       'not deferred; set them again after the result arrives)')
+        for p in params:
+            if isinstance(p.value, float) and not math.isfinite(p.value):
+                return SetParametersResult(successful=False,
+                                           reason=f'{p.name} must be finite, got {p.value!r}')
+        try:
+            self._candidate({p.name: p.value for p in params})
+        except ControllerConfigError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _post_set(self, params: list[Parameter]) -> None:
+        cfg, gains = self._candidate({})
+        self.runner.set_config(cfg)
+        self.runner.set_gains(gains)
+
+    @property
+    def gains(self) -> Gains:
+        return Gains(*(self.get_parameter(n).value for n in GAIN_NAMES))
+
+    # -- services ----------------------------------------------------------------------
+    def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        r = self.runner
+        if r.running:
+            response.success = False
+            response.message = f'refused: experiment {r.experiment_id} is running'
+        elif r.faulted:
+            response.success = False
+            response.message = (f'refused: safety fault ({r.fault_reason}); call '
+                                f'{self.reset_srv.srv_name} after checking the drive')
+        elif self._state is None:
+            response.success = False
+            response.message = 'refused: no drive state received yet (is the drive running?)'
+        elif not r.ready:
+            response.success = False
+            response.message = 'refused: still finishing the stopped move; retry shortly'
+        else:
+            eid = self.next_experiment_id
+            r.start(eid, self.gains)
+            self.next_experiment_id += 1
+            response.success = True
+            response.message = f'experiment {eid} started'
+            self.get_logger().info(f'experiment {eid} started with {self.gains}')
+        return response
+
+    def _on_reset_fault(self, request: Trigger.Request,
+                        response: Trigger.Response) -> Trigger.Response:
+        if not self.runner.faulted:
+            response.success, response.message = True, 'no fault'
+        elif self._state is None:
+            response.success, response.message = False, 'refused: no drive state yet'
+        else:
+            reason = self.runner.fault_reason
+            self.runner.reset(float(self._state[2]))
+            self._fault_logged = False
+            response.success = True
+            response.message = f'fault {reason} cleared; holding {self._state[2]:.4f} rad'
+            self.get_logger().warn(response.message)
+        return response
+
+    # -- the 5 kHz path ----------------------------------------------------------------
+    def _wants_to_step(self) -> bool:
+        """Answer states now? In lock-step 'pause', only while something runs."""
+        if self.mode == 'realtime' or self.lockstep_idle == 'hold':
+            return True
+        return self.runner.running or not self.runner.ready
+
+    def take(self, timeout: float = 0.0) -> None:
+        """Take the newest state, waiting up to ``timeout`` s if none is there."""
+        s = self.client.wait_state(timeout) if timeout > 0.0 else self.client.take_state()
+        if s is not None and int(s[0]) > self.client.answered:
+            self._state = s
+            self._pending = True
+            self._last_state_wall = time.monotonic()
+            if not self._initialised:
+                self.runner.reset(float(s[2]))  # hold where the drive is
+                self._initialised = True
+
+    def answer(self) -> bool:
+        """Answer the pending state if the loop should step; True if a command went out."""
+        if not (self._pending and self._wants_to_step()):
+            return False
+        s = self._state
+        k = int(s[0])
+        isq, load, status = self.runner.step(s)
+        self.client.command(k, isq, load)
+        self._pending = False
+        self._n_answered += 1
+        if self._n_answered % self.internals_decimation == 0:
+            v = self._internals.values
+            v[0] = k
+            v[1:1 + len(CONTROL_FIELDS)] = self.runner.cout
+            v[1 + len(CONTROL_FIELDS):] = self.runner.eout
+            self.internals_pub.publish(self._internals.payload())
+        if status >= STATUS_DONE:
+            self._on_status(status)
+        return True
+
+    def _on_status(self, status: int) -> None:
+        if status in (STATUS_DONE, STATUS_ABORTED):
+            self._publish_result()
+        if status == STATUS_FAULT and not self._fault_logged:
+            self._fault_logged = True
+            self.get_logger().error(f'safety fault: {self.runner.fault_reason}; zero current '
+                                    f'until {self.reset_srv.srv_name}')
+
+    def _publish_result(self) -> None:
+        res = self.runner.result()
+        if res is None or (self.results and self.results[-1].experiment_id == res.experiment_id):
+            return
+        self.results.append(res)
+        self.loss_pub.publish(result_to_msg(res, self.get_name()))
+        log = self.get_logger().info if not res.aborted else self.get_logger().warn
+        log(f'experiment {res.experiment_id}: loss {res.loss:.6g} terms '
+            f'({res.terms[0]:.4g}, {res.terms[1]:.4g}, {res.terms[2]:.4g})'
+            + (f' ABORTED {res.reason} at step {res.trip_step}' if res.aborted else ''))
+
+    def watchdog(self) -> None:
+        """No state for ``state_timeout`` while one is expected: torque off, abort, FAULT."""
+        if self._state is None or not self._wants_to_step() or self.runner.faulted:
+            return
+        if time.monotonic() - self._last_state_wall <= self.state_timeout:
+            return
+        running = self.runner.running
+        t_ns = int(self._state[1])
+        self.runner.abort_external(REASON_DRIVE_TIMEOUT, t_ns)
+        self.client.command(-1, 0.0, 0.0)  # zero current for whatever step comes next
+        self.get_logger().error(
+            f'no drive state for {self.state_timeout:g} s: zero current commanded'
+            + (f', experiment {self.runner.experiment_id} aborted' if running else '')
+            + f'; FAULT until {self.reset_srv.srv_name}')
+        self._fault_logged = True
+        if running:
+            self._publish_result()
+
+    def run(self, executor) -> None:
+        """The standalone loop: wait for states, answer them, serve services between."""
+        since_service = 0
+        while not self.stop_requested and rclpy.ok(context=self.context):
+            stepping = self._wants_to_step()
+            # Expecting states: wait on them; idle (paused): wait on services instead.
+            if stepping:
+                if not self._pending:
+                    self.take(min(self.state_timeout, 0.05))
+                if self.answer():
+                    since_service += 1
+                    if since_service < self.service_period_steps:
+                        continue
+                else:
+                    self.watchdog()
+            else:
+                executor.spin_once(timeout_sec=0.01)
+                self.take()
+                continue
+            since_service = 0
+            executor.spin_once(timeout_sec=0.0)
+
+    def destroy_node(self) -> None:
+        self.io_node.destroy_node()
+        super().destroy_node()
+
+
+def _parse_cli(argv: list[str]) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(
+        prog='ros2 run im_controller controller',
+        description='Cascaded position/speed controller with the paper\'s loss experiment. '
+                    'Start an experiment with the ~/start_experiment service (std_srvs/'
+                    'Trigger); results on controller/loss. Parameters: --ros-args -p '
+                    'name:=value (see docs/controller.md).')
+    ap.add_argument('--mode', choices=MODES, help='lockstep (default) or realtime')
+    ap.add_argument('--config', metavar='FILE', help="the drive's parameter file (Ts, isq_max)")
+    return ap.parse_args(argv)
+
+
+def main(args: list[str] | None = None) -> int:
+    argv = sys.argv if args is None else args
+    cli = _parse_cli(remove_ros_args(argv)[1:])
+    overrides = [Parameter(n, value=v) for n, v in (('mode', cli.mode),
+                                                    ('drive_config_file', cli.config))
+                 if v is not None]
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    node = None
+    executor = None
+    stop = {'requested': False}
+
+    def _on_signal(signum, _frame) -> None:
+        stop['requested'] = True
+        if node is None:
+            raise KeyboardInterrupt
+        node.stop_requested = True
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
+    try:
+        node = ControllerNode(parameter_overrides=overrides or None)
+        node.stop_requested = stop['requested']
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
+        node.run(executor)
+    except (ControllerError, ControllerConfigError) as exc:
+        print(f'error: controller: {exc}', file=sys.stderr)
+        return 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.get_logger().info(f'stopped after {len(node.results)} experiments')
+            if executor is not None:
+                executor.shutdown()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

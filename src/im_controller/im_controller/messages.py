@@ -1,0 +1,69 @@
+"""The loss topic's message: a :class:`LossResult` as ``diagnostic_msgs/DiagnosticArray``.
+
+One ``DiagnosticStatus`` per experiment (see docs/controller.md, "Loss topic"):
+
+* ``header.stamp``: the sim time at the end of the experiment (exact, from ``t_end``);
+* ``level``: OK (completed), WARN (stopped by the supervisor), ERROR (safety or watchdog);
+* ``name``: ``"<node>: experiment <id>"``, ``message``: ``"done"`` or the abort reason;
+* ``values``: the fields below as key/value strings; floats are written with ``repr``,
+  so they read back bit for bit.
+"""
+from __future__ import annotations
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+from .config import GAIN_NAMES, Gains
+from .experiment import LossResult
+
+NS_PER_S = 1_000_000_000
+#: Keys of ``DiagnosticStatus.values``, in order.
+LOSS_KEYS: tuple[str, ...] = (
+    'experiment_id', 'loss', 'term1', 'term2', 'term3', 'aborted', 'reason', 'trip_step',
+    'trip_time', *GAIN_NAMES, 't_start_ns', 't_end_ns', 'steps', 'direction')
+SAFETY_REASONS = ('max_position_error', 'max_speed', 'non_finite_measurement',
+                  'drive_state_timeout')
+
+
+def result_to_msg(result: LossResult, node_name: str) -> DiagnosticArray:
+    """Pack a result (see module docstring)."""
+    r = result
+    values = {
+        'experiment_id': str(r.experiment_id), 'loss': repr(r.loss),
+        'term1': repr(r.terms[0]), 'term2': repr(r.terms[1]), 'term3': repr(r.terms[2]),
+        'aborted': 'true' if r.aborted else 'false', 'reason': r.reason,
+        'trip_step': str(r.trip_step), 'trip_time': repr(r.trip_time),
+        **{n: repr(v) for n, v in zip(GAIN_NAMES, r.gains.as_tuple())},
+        't_start_ns': str(r.t_start), 't_end_ns': str(r.t_end), 'steps': str(r.steps),
+        'direction': str(r.direction),
+    }
+    st = DiagnosticStatus(name=f'{node_name}: experiment {r.experiment_id}',
+                          hardware_id=node_name,
+                          message=r.reason if r.aborted else 'done')
+    if not r.aborted:
+        st.level = DiagnosticStatus.OK
+    elif r.reason in SAFETY_REASONS:
+        st.level = DiagnosticStatus.ERROR
+    else:
+        st.level = DiagnosticStatus.WARN
+    st.values = [KeyValue(key=k, value=values[k]) for k in LOSS_KEYS]
+    msg = DiagnosticArray(status=[st])
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(r.t_end), NS_PER_S)
+    return msg
+
+
+def msg_to_result(msg: DiagnosticArray) -> LossResult:
+    """Unpack a loss message; raises ValueError if it is not one."""
+    if len(msg.status) != 1:
+        raise ValueError(f'a loss message has one status, got {len(msg.status)}')
+    kv = {v.key: v.value for v in msg.status[0].values}
+    missing = [k for k in LOSS_KEYS if k not in kv]
+    if missing:
+        raise ValueError(f'loss message lacks {missing}')
+    return LossResult(
+        experiment_id=int(kv['experiment_id']), loss=float(kv['loss']),
+        terms=(float(kv['term1']), float(kv['term2']), float(kv['term3'])),
+        aborted=kv['aborted'] == 'true', reason=kv['reason'], trip_step=int(kv['trip_step']),
+        trip_time=float(kv['trip_time']),
+        gains=Gains(*(float(kv[n]) for n in GAIN_NAMES)),
+        t_start=int(kv['t_start_ns']), t_end=int(kv['t_end_ns']), steps=int(kv['steps']),
+        direction=int(kv['direction']))

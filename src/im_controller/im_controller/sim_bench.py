@@ -1,0 +1,197 @@
+"""The simulated bench: ``ros2 run im_controller sim_bench [--processes]``.
+
+Brings up the drive simulator and the controller together, lock-step:
+
+* one process (default, the fast path): both nodes in one thread; each step the
+  controller takes state k and answers, the drive takes the command, steps and publishes
+  state k+1 -- real DDS traffic, but no executor in the per-step path (parameters and
+  services are served every ``service_period_steps`` steps and whenever idle);
+* ``--processes``: ``ros2 run im_drive_sim drive_sim`` and ``ros2 run im_controller
+  controller`` as two child processes (ended by PID: SIGINT, grace, SIGKILL).
+
+Either way the graph is the same (``drive_sim``, ``controller``, their topics and
+services), and so is what it computes: the same seed gives bit-identical losses.
+The tuner brings this bench up itself when no controller is on the graph.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+
+from im_drive_sim.drive_sim_node import DriveSimNode
+from im_drive_sim.params import ConfigError
+
+from .config import ControllerConfigError
+from .controller_node import ControllerError, ControllerNode
+
+NS_PER_S = 1_000_000_000
+
+
+class InProcessBench:
+    """Drive simulator + controller in one process, stepped lock-step by hand.
+
+    ``spin_until(predicate, timeout)`` advances the bench (steps when the controller
+    answers, serves services when idle) until ``predicate()`` is true -- usable by tests
+    and by the tuner running in the same process.
+    """
+
+    def __init__(self, *, context=None, drive_overrides: list | None = None,
+                 controller_overrides: list | None = None) -> None:
+        self.drive = DriveSimNode(context=context, parameter_overrides=drive_overrides)
+        try:
+            self.controller = ControllerNode(context=context,
+                                             parameter_overrides=controller_overrides)
+        except Exception:
+            self.drive.destroy_node()
+            raise
+        self.executor = SingleThreadedExecutor(context=self.drive.context)
+        self.executor.add_node(self.drive)
+        self.executor.add_node(self.controller)
+        self.stop_requested = False
+        self._since_service = 0
+        self.drive.start()
+
+    def step(self, idle_timeout: float = 0.01) -> bool:
+        """One bench iteration: a lock-step round trip if the controller steps, otherwise
+        serve services for up to ``idle_timeout`` s. True if the drive stepped."""
+        ctl = self.controller
+        ctl.take()
+        if ctl.answer():
+            if not self.drive.lockstep_poll(NS_PER_S):
+                raise RuntimeError('drive did not receive the command within 1 s')
+            self._since_service += 1
+            if self._since_service >= ctl.service_period_steps:
+                self._since_service = 0
+                self.executor.spin_once(timeout_sec=0.0)
+            return True
+        self.executor.spin_once(timeout_sec=idle_timeout)
+        return False
+
+    def spin_until(self, predicate, timeout: float | None = None) -> bool:
+        """Run the bench until ``predicate()`` (checked between iterations) or timeout [s]."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self.stop_requested and rclpy.ok(context=self.drive.context):
+            if predicate():
+                return True
+            if deadline is not None and time.monotonic() > deadline:
+                return False
+            self.step()
+        return predicate()
+
+    def run(self) -> None:
+        self.spin_until(lambda: False)
+
+    def destroy(self) -> None:
+        self.executor.shutdown()
+        self.controller.destroy_node()
+        self.drive.destroy_node()
+
+
+def _parse_cli(argv: list[str]) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(
+        prog='ros2 run im_controller sim_bench',
+        description='The simulated bench: drive_sim + controller, lock-step. Start '
+                    'experiments with /controller/start_experiment (std_srvs/Trigger); '
+                    'results on /controller/loss.')
+    ap.add_argument('--processes', action='store_true',
+                    help='run drive_sim and controller as two processes (default: one)')
+    ap.add_argument('--config', metavar='FILE', help='drive parameter file (YAML)')
+    ap.add_argument('--model', choices=('full', 'reduced'), help='drive model fidelity')
+    ap.add_argument('--seed', type=int, help='disturbance seed')
+    return ap.parse_args(argv)
+
+
+def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
+    ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
+    drive = [ros2, 'run', 'im_drive_sim', 'drive_sim']
+    ctl = [ros2, 'run', 'im_controller', 'controller']
+    if cli.config:
+        drive += ['--config', cli.config]
+        ctl += ['--config', cli.config]
+    if cli.model:
+        drive += ['--model', cli.model]
+    if cli.seed is not None:
+        drive += ['--seed', str(cli.seed)]
+    if ros_args:
+        drive += ros_args
+        ctl += ros_args
+    procs = [subprocess.Popen(drive), subprocess.Popen(ctl)]
+    stop = {'sig': None}
+
+    def _on_signal(signum, _frame) -> None:
+        stop['sig'] = signum
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
+    code = 0
+    try:
+        while stop['sig'] is None and all(p.poll() is None for p in procs):
+            try:
+                procs[0].wait(timeout=0.2)  # wakes at once if the drive exits
+            except subprocess.TimeoutExpired:
+                pass
+        for p in procs:
+            if p.poll() is not None and p.returncode not in (0, None):
+                code = p.returncode
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+    return code
+
+
+def main(args: list[str] | None = None) -> int:
+    argv = sys.argv if args is None else args
+    cli = _parse_cli(remove_ros_args(argv)[1:])
+    ros_args = argv[argv.index('--ros-args'):] if '--ros-args' in argv else []
+    if cli.processes:
+        return _children(cli, ros_args)
+    drive_over = [Parameter(n, value=v) for n, v in (('config_file', cli.config),
+                                                     ('model', cli.model), ('seed', cli.seed))
+                  if v is not None]
+    ctl_over = [Parameter('drive_config_file', value=cli.config)] if cli.config else []
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    bench = None
+
+    def _on_signal(signum, _frame) -> None:
+        if bench is None:
+            raise KeyboardInterrupt
+        bench.stop_requested = True
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
+    try:
+        bench = InProcessBench(drive_overrides=drive_over or None,
+                               controller_overrides=ctl_over or None)
+        bench.run()
+    except (ConfigError, ControllerError, ControllerConfigError) as exc:
+        print(f'error: sim_bench: {exc}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if bench is not None:
+            bench.drive.log_summary()
+            bench.destroy()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
+    sys.exit(main())

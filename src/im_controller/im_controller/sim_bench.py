@@ -60,6 +60,10 @@ class InProcessBench:
         self.executor.add_node(self.controller)
         self.stop_requested = False
         self._since_service = 0
+        # State 0 must not be published before the controller's subscription matches.
+        if not self.controller.client.wait_for_drive(10.0):
+            self.destroy()
+            raise RuntimeError('controller and drive_sim did not match within 10 s')
         self.drive.start()
 
     def step(self, idle_timeout: float = 0.01) -> bool:

@@ -1,0 +1,243 @@
+"""The controller node through real DDS traffic (docs/controller.md, docs/interfaces.md).
+
+The in-process bench (drive_sim + controller in this process, lock-step) is driven by a
+probe node that does what the tuner will: set parameters through the parameter services,
+start experiments with the Trigger service and read results from the loss topic.
+"""
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from rclpy.parameter import Parameter, parameter_value_to_python
+from rclpy.parameter_client import AsyncParameterClient
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from im_controller.config import Gains
+from im_controller.controller_node import INTERNALS_FIELDS
+from im_controller.experiment import ExperimentRunner, config_for_drive, run_experiment_offline
+from im_controller.messages import msg_to_result, result_to_msg
+from im_controller.sim_bench import InProcessBench
+from im_drive_sim.params import load_config
+from im_drive_sim.sim import DriveSim
+
+ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
+SEED = 3
+UNSTABLE = {'k_pw': 0.05, 'k_pos': 300.0}  # trips the supervisor (docs/controller.md)
+
+
+class Probe:
+    """What the tuner does, over DDS: parameters, start service, loss topic."""
+
+    def __init__(self, context, spin_until) -> None:
+        self.node = Node('test_probe', context=context)
+        # Drain the 5 kHz internals between bench iterations (an executor serving one
+        # callback per spin could not keep up, and Fast DDS caps a reader at 5000 samples).
+        self.spin_until = lambda pred, timeout: spin_until(
+            lambda: self._drain() or pred(), timeout)
+        self.start_client = self.node.create_client(Trigger, '/controller/start_experiment')
+        self.params = AsyncParameterClient(self.node, '/controller')
+        self.results = []
+        self.internals = []
+        self.node.create_subscription(DiagnosticArray, '/controller/loss',
+                                      lambda m: self.results.append(msg_to_result(m)), 100)
+        self.internals_sub = self.node.create_subscription(
+            Float64MultiArray, '/controller/internals',
+            lambda m: self.internals.append(np.array(m.data)), 1000)  # when the executor takes one
+
+    def _drain(self) -> None:
+        while (r := self.internals_sub.handle.take_message(Float64MultiArray, False)) is not None:
+            self.internals.append(np.array(r[0].data))
+
+    def ready(self, timeout: float = 20.0) -> None:
+        assert self.spin_until(lambda: self.start_client.service_is_ready()
+                               and self.params.services_are_ready(), timeout)
+        # Also wait for the loss topic to be matched, so no result can be missed.
+        assert self.spin_until(lambda: self.node.count_publishers('/controller/loss') > 0,
+                               timeout)
+
+    def call(self, future, timeout: float = 20.0):
+        assert self.spin_until(future.done, timeout), 'service call timed out'
+        return future.result()
+
+    def start(self) -> Trigger.Response:
+        return self.call(self.start_client.call_async(Trigger.Request()))
+
+    def experiment(self, timeout: float = 60.0):
+        n = len(self.results)
+        resp = self.start()
+        for _ in range(100):  # up to ~10 s
+            if resp.success or 'no drive state' not in resp.message:
+                break
+            # a controller that just came up: the drive re-sends its state every 0.1 s
+            assert self.spin_until(lambda: False, 0.1) is False
+            resp = self.start()
+        assert resp.success, resp.message
+        assert self.spin_until(lambda: len(self.results) > n, timeout), 'no result'
+        return self.results[-1]
+
+    def set(self, **values) -> list:
+        res = self.call(self.params.set_parameters(
+            [Parameter(k, value=v) for k, v in values.items()]))
+        return list(res.results)
+
+    def set_atomically(self, **values):
+        return self.call(self.params.set_parameters_atomically(
+            [Parameter(k, value=v) for k, v in values.items()])).result
+
+    def get(self, *names) -> list:
+        res = self.call(self.params.get_parameters(list(names)))
+        return [parameter_value_to_python(v) for v in res.values]
+
+
+@pytest.fixture
+def bench(ros_context):
+    b = InProcessBench(context=ros_context,
+                       drive_overrides=[Parameter('seed', value=SEED)])
+    probe = Probe(ros_context, b.spin_until)
+    b.executor.add_node(probe.node)
+    probe.ready()
+    try:
+        yield b, probe
+    finally:
+        probe.node.destroy_node()
+        b.destroy()
+
+
+def offline_losses(gains_seq: list[Gains], seed: int = SEED) -> list:
+    """The pure core (no ROS): consecutive experiments on one drive, state carried over."""
+    sim = DriveSim(load_config(None), seed=seed)
+    sim.reset(theta=0.0, omega=0.0, fluxed=True)
+    runner = ExperimentRunner(config_for_drive(None, sim), gains_seq[0])
+    runner.reset(sim.theta_meas)
+    return [run_experiment_offline(sim, g, runner.config, i, runner, record=False)[0]
+            for i, g in enumerate(gains_seq)]
+
+
+def test_experiments_through_dds_equal_the_pure_core(bench):
+    b, probe = bench
+    r0 = probe.experiment()
+    r1 = probe.experiment()
+    # The hand-tuned start reaches pi, rejects the load step and gives a finite loss.
+    assert not r0.aborted and math.isfinite(r0.loss) and r0.loss > 0
+    assert (r0.experiment_id, r0.direction, r1.experiment_id, r1.direction) == (0, 1, 1, -1)
+    assert (r0.t_start, r0.t_end, r1.t_start) == (0, 5625 * 200_000, 5625 * 200_000)
+    theta = b.drive._state[b.drive._idx['theta']]
+    assert abs(theta - 0.0) < 0.01  # back at 0 after 0 -> pi -> 0
+    ref = offline_losses([Gains(), Gains()])
+    for got, want in zip((r0, r1), ref):
+        assert got.loss == pytest.approx(want.loss, rel=1e-9, abs=0)
+        assert got.terms == pytest.approx(want.terms, rel=1e-9, abs=0)
+        assert got.loss == want.loss, 'lock-step through DDS is bit-identical to the core'
+    # Internals were published every step of the experiments, with their layout.
+    probe.spin_until(lambda: len(probe.internals) >= 2 * 5625, 10)
+    assert probe.spin_until(lambda: len(probe.internals) >= 2 * 5625, 10)
+    data = np.array(probe.internals)
+    assert data.shape[1] == len(INTERNALS_FIELDS)
+    steps = data[:, 0]
+    assert np.array_equal(np.unique(steps), np.arange(2 * 5625))
+
+
+def test_gain_changes_apply_between_experiments_and_are_refused_during_one(bench):
+    b, probe = bench
+    results = probe.set(k_pw=0.6, k_iw=25)  # an integer for a double is accepted
+    assert all(r.successful for r in results), [r.reason for r in results]
+    assert probe.get('k_pw', 'k_iw') == [0.6, 25.0]
+    assert probe.start().success
+    # Mid-experiment (the bench has not stepped it to the end yet): refused, not changed.
+    res = probe.set(k_pw=1.0)
+    assert not res[0].successful and 'running' in res[0].reason
+    resp = probe.start()
+    assert not resp.success and 'running' in resp.message
+    n = len(probe.results)
+    assert b.spin_until(lambda: len(probe.results) > n, 60)
+    r = probe.results[-1]
+    assert r.gains == Gains(0.6, 25.0, 30.0, 0.005, 0.007)
+    assert probe.get('k_pw') == [0.6]
+
+
+@pytest.mark.parametrize('name, value, why', [
+    ('k_pw', 7.0, 'range'),               # above the safe range
+    ('k_pw', -0.1, 'range'),
+    ('k_iw', float('nan'), ''),
+    ('k_pos', float('inf'), ''),
+    ('tau_eq', 'fast', 'type'),
+    ('k_pw', True, 'type'),
+    ('loss.penalty', 0.5, 'range'),
+    ('trajectory.load_sign', 'sideways', 'load_sign'),
+    ('safety.max_speed', 500.0, 'read-only'),
+    ('safety.max_position_error', 5.0, 'read-only'),
+    ('safety.isq_max', 20.0, 'read-only'),
+])
+def test_bad_parameter_values_are_rejected_with_a_reason(bench, name, value, why):
+    b, probe = bench
+    before = probe.get(name)
+    res = probe.set(**{name: value})
+    assert not res[0].successful
+    assert res[0].reason
+    if why:
+        assert why.lower() in res[0].reason.lower() or 'read' in res[0].reason.lower() \
+            or 'type' in res[0].reason.lower(), res[0].reason
+    assert probe.get(name) == before
+
+
+def test_set_parameters_atomically_is_all_or_nothing(bench):
+    b, probe = bench
+    before = probe.get('k_pw', 'k_iw', 'k_pos', 'tau_sm', 'tau_eq')
+    bad = probe.set_atomically(k_pw=0.7, k_iw=30.0, k_pos=40.0, tau_sm=0.01, tau_eq=0.5)
+    assert not bad.successful and 'tau_eq' in bad.reason
+    assert probe.get('k_pw', 'k_iw', 'k_pos', 'tau_sm', 'tau_eq') == before
+    good = probe.set_atomically(k_pw=0.7, k_iw=30.0, k_pos=40.0, tau_sm=0.01, tau_eq=0.02)
+    assert good.successful, good.reason
+    r = probe.experiment()
+    assert r.gains == Gains(0.7, 30.0, 40.0, 0.01, 0.02)
+
+
+def test_supervisor_stops_a_destabilising_gain_set_with_the_penalty(bench):
+    b, probe = bench
+    assert all(r.successful for r in probe.set(**UNSTABLE))
+    r = probe.experiment()
+    assert r.aborted and r.reason in ('term1', 'term2', 'term3')
+    assert 0 < r.trip_step < 5625 // 2  # stopped early
+    assert r.loss == pytest.approx(10.0 * sum(r.terms), rel=1e-12)
+    ref = offline_losses([Gains(k_pw=0.05, k_pos=300.0)])[0]
+    assert (r.loss, r.reason, r.trip_step) == (ref.loss, ref.reason, ref.trip_step)
+
+
+def test_loss_message_round_trip_is_exact():
+    r = offline_losses([Gains()])[0]
+    assert msg_to_result(result_to_msg(r, 'controller')) == r
+
+
+def test_separate_processes_give_the_same_losses_as_one_process(procs, ros_context):
+    """drive_sim and controller as two processes: the same losses, bit for bit."""
+    drive = procs.start([ROS2, 'run', 'im_drive_sim', 'drive_sim', '--seed', str(SEED)])
+    ctl = procs.start([ROS2, 'run', 'im_controller', 'controller'])
+    from rclpy.executors import SingleThreadedExecutor
+    ex = SingleThreadedExecutor(context=ros_context)
+
+    def spin_until(pred, timeout):
+        import time
+        deadline = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > deadline or drive.poll() is not None or ctl.poll() is not None:
+                return pred()
+            ex.spin_once(timeout_sec=0.01)
+        return True
+    probe = Probe(ros_context, spin_until)
+    ex.add_node(probe.node)
+    try:
+        probe.ready(30.0)
+        got = [probe.experiment(120.0), probe.experiment(120.0)]
+    finally:
+        ex.shutdown()
+        probe.node.destroy_node()
+    ref = offline_losses([Gains(), Gains()])
+    assert [g.loss for g in got] == [r.loss for r in ref]
+    assert [g.terms for g in got] == [r.terms for r in ref]

@@ -1,0 +1,137 @@
+"""Experiment real-time factor: simulated seconds per wall second for the paper's
+experiment (1.125 s, 5625 steps) run through the ROS nodes, lock-step.
+
+* one process: ``InProcessBench`` (drive_sim + controller in one thread) with a client
+  node doing what the tuner does (Trigger service, loss topic);
+* separate processes: ``ros2 run im_drive_sim drive_sim`` and ``ros2 run im_controller
+  controller`` as children, the client here.
+
+Wall time per experiment = from the start call to the loss message. Prints medians.
+Run: ``.venv/bin/python bench/bench_experiment.py`` (or ``make bench``).
+"""
+from __future__ import annotations
+
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault('ROS_DOMAIN_ID', str(100 + os.getpid() % 50))
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
+
+import rclpy  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from im_controller.messages import msg_to_result  # noqa: E402
+from im_controller.sim_bench import InProcessBench  # noqa: E402
+
+EXPERIMENTS = 7
+SIM_SECONDS = 1.125
+
+
+class _Client:
+    def __init__(self, ctx, spin_until) -> None:
+        self.node = Node('bench_tuner', context=ctx)
+        self.start = self.node.create_client(Trigger, '/controller/start_experiment')
+        self.results = []
+        self.node.create_subscription(DiagnosticArray, '/controller/loss',
+                                      lambda m: self.results.append(msg_to_result(m)), 100)
+        self.spin_until = spin_until
+
+    def run(self, n: int) -> list[float]:
+        if not self.spin_until(lambda: self.start.service_is_ready() and
+                               self.node.count_publishers('/controller/loss') > 0, 30.0):
+            raise RuntimeError('controller not reachable')
+        walls = []
+        for _ in range(n + 1):  # the first one warms up (numba caches, DDS)
+            t0 = time.perf_counter()
+            k = len(self.results)
+            while True:
+                fut = self.start.call_async(Trigger.Request())
+                if not self.spin_until(fut.done, 30.0):
+                    raise RuntimeError('start_experiment timed out')
+                if fut.result().success:
+                    break
+                if 'no drive state' not in fut.result().message:
+                    raise RuntimeError(fut.result().message)
+                self.spin_until(lambda: False, 0.05)
+            if not self.spin_until(lambda: len(self.results) > k, 120.0):
+                raise RuntimeError('no loss result')
+            walls.append(time.perf_counter() - t0)
+        return walls[1:]
+
+
+def one_process(n: int = EXPERIMENTS) -> list[float]:
+    ctx = Context()
+    rclpy.init(context=ctx)
+    try:
+        bench = InProcessBench(context=ctx)
+        client = _Client(ctx, bench.spin_until)
+        bench.executor.add_node(client.node)
+        walls = client.run(n)
+        client.node.destroy_node()
+        bench.destroy()
+        return [SIM_SECONDS / w for w in walls]
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+def separate_processes(n: int = EXPERIMENTS) -> list[float]:
+    ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
+    procs = [subprocess.Popen([ros2, 'run', 'im_drive_sim', 'drive_sim'],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL),
+             subprocess.Popen([ros2, 'run', 'im_controller', 'controller'],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    ctx = Context()
+    rclpy.init(context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+
+    def spin_until(pred, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > deadline:
+                return False
+            ex.spin_once(timeout_sec=0.01)
+        return True
+    try:
+        client = _Client(ctx, spin_until)
+        ex.add_node(client.node)
+        walls = client.run(n)
+        return [SIM_SECONDS / w for w in walls]
+    finally:
+        ex.shutdown()
+        rclpy.try_shutdown(context=ctx)
+        for p in procs:
+            p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+def _fmt(name: str, xs: list[float]) -> str:
+    return (f'{name:<38} median RTF {statistics.median(xs):5.2f}   '
+            f'min {min(xs):5.2f}   max {max(xs):5.2f}   ({len(xs)} experiments)')
+
+
+def main() -> dict[str, float]:
+    one = one_process()
+    print(_fmt('experiment, nodes in one process', one), flush=True)
+    two = separate_processes()
+    print(_fmt('experiment, separate processes', two), flush=True)
+    return {'experiment_rtf_1proc': statistics.median(one),
+            'experiment_rtf_2proc': statistics.median(two)}
+
+
+if __name__ == '__main__':
+    main()

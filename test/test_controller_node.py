@@ -241,3 +241,102 @@ def test_separate_processes_give_the_same_losses_as_one_process(procs, ros_conte
     ref = offline_losses([Gains(), Gains()])
     assert [g.loss for g in got] == [r.loss for r in ref]
     assert [g.terms for g in got] == [r.terms for r in ref]
+
+
+def test_watchdog_zero_current_and_abort_when_the_drive_goes_silent(ros_context):
+    """A drive that stops publishing mid-experiment: zero current, aborted with a reason."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    from im_controller.controller_node import ControllerNode
+    from im_drive_sim.cdr import Float64ArrayWire
+    from im_drive_sim.drive_sim_node import COMMAND_TOPIC, LOCKSTEP_QOS, STATE_TOPIC
+    from im_drive_sim.sim import STATE_FIELDS
+
+    ctl = ControllerNode(context=ros_context,
+                         parameter_overrides=[Parameter('state_timeout', value=0.05)])
+    fake = Node('fake_drive', context=ros_context)
+    state_pub = fake.create_publisher(Float64MultiArray, STATE_TOPIC, LOCKSTEP_QOS)
+    commands = []
+    fake.create_subscription(Float64MultiArray, COMMAND_TOPIC,
+                             lambda m: commands.append(tuple(m.data)), LOCKSTEP_QOS)
+    probe = Probe(ros_context, None)
+    ex = SingleThreadedExecutor(context=ros_context)
+    for n in (ctl, fake, probe.node):
+        ex.add_node(n)
+    wire = Float64ArrayWire(len(STATE_FIELDS))
+    import time
+
+    def spin_until(pred, timeout):
+        deadline = time.monotonic() + timeout
+        while not pred() and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.005)
+            ctl.take()
+            ctl.answer()
+            ctl.watchdog()
+        return pred()
+    probe.spin_until = spin_until
+    try:
+        assert ctl.client.wait_for_drive(10.0) or state_pub.get_subscription_count() > 0
+        assert spin_until(lambda: state_pub.get_subscription_count() > 0, 10)
+        assert spin_until(lambda: probe.start_client.service_is_ready(), 10)
+
+        def send(k):  # a still motor at 0 rad, state k
+            wire.values[:] = 0.0
+            wire.values[0], wire.values[1] = k, k * 200_000
+            state_pub.publish(wire.payload())
+        send(0)
+        assert spin_until(lambda: ctl._state is not None, 5)
+        assert probe.start().success
+        for k in range(1, 50):  # a few steps of the experiment, answered one by one
+            n = len(commands)
+            send(k)
+            assert spin_until(lambda: len(commands) > n, 5)
+        # The drive goes silent: within the timeout (plus polling) the watchdog fires.
+        t0 = time.monotonic()
+        assert spin_until(lambda: ctl.runner.faulted, 5)
+        assert time.monotonic() - t0 < 1.0
+        assert spin_until(lambda: len(probe.results) == 1, 5)
+        r = probe.results[0]
+        assert r.aborted and r.reason == 'drive_state_timeout' and r.steps == 50
+        assert spin_until(lambda: commands[-1][1:] == (0.0, 0.0), 5)  # zero current, no load
+        assert commands[-1][0] == -1.0
+        # A start is refused until the fault is reset.
+        resp = probe.start()
+        assert not resp.success and 'drive_state_timeout' in resp.message
+    finally:
+        ex.shutdown()
+        for n in (probe.node, fake, ctl):
+            n.destroy_node()
+
+
+def test_real_time_mode_runs_an_experiment(procs, ros_context):
+    """drive_sim and controller both in real time (5 kHz wall clock), two processes."""
+    from rclpy.executors import SingleThreadedExecutor
+    import time
+    drive = procs.start([ROS2, 'run', 'im_drive_sim', 'drive_sim', '--mode', 'realtime'])
+    ctl = procs.start([ROS2, 'run', 'im_controller', 'controller', '--mode', 'realtime'])
+    ex = SingleThreadedExecutor(context=ros_context)
+
+    def spin_until(pred, timeout):
+        deadline = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > deadline or drive.poll() is not None or ctl.poll() is not None:
+                return pred()
+            ex.spin_once(timeout_sec=0.01)
+        return True
+    probe = Probe(ros_context, spin_until)
+    ex.add_node(probe.node)
+    try:
+        probe.ready(30.0)
+        t0 = time.monotonic()
+        r = probe.experiment(30.0)
+        wall = time.monotonic() - t0
+    finally:
+        ex.shutdown()
+        probe.node.destroy_node()
+    # Paced by the wall clock: 1.125 s of experiment takes about that long.
+    assert 1.0 < wall < 3.0
+    assert not r.aborted and r.steps == 5625 and math.isfinite(r.loss)
+    # Commands may arrive a period late in real time: the loss is close to lock-step's.
+    ref = offline_losses([Gains()])[0]
+    assert r.loss == pytest.approx(ref.loss, rel=0.5)

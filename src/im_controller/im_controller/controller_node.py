@@ -34,6 +34,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
+from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -427,6 +428,11 @@ class ControllerNode(Node):
             since_service = 0
             executor.spin_once(timeout_sec=0.0)
 
+    def flush(self, timeout: float = 1.0) -> None:
+        """Wait (bounded) until subscribers acknowledged every result and command."""
+        for pub in (self.loss_pub, self.internals_pub, self.client.command_pub):
+            pub.wait_for_all_acked(Duration(seconds=timeout))
+
     def destroy_node(self) -> None:
         self.io_node.destroy_node()
         super().destroy_node()
@@ -476,6 +482,7 @@ def main(args: list[str] | None = None) -> int:
     finally:
         if node is not None:
             node.get_logger().info(f'stopped after {len(node.results)} experiments')
+            node.flush()
             if executor is not None:
                 executor.shutdown()
             node.destroy_node()

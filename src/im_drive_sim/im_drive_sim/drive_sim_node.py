@@ -27,6 +27,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
@@ -434,6 +435,13 @@ class DriveSimNode(Node):
             + ', '.join(f'{k}={v:.1f}' if isinstance(v, float) else f'{k}={v}'
                         for k, v in vars(c).items()))
 
+    def flush(self, timeout: float = 1.0) -> None:
+        """Wait (bounded) until subscribers acknowledged everything published: the last
+        samples before an exit are not lost (reliable QoS only promises this while the
+        writer lives)."""
+        for pub in (self.state_pub, self.clock_pub, self.joint_pub, self.status_pub):
+            pub.wait_for_all_acked(Duration(seconds=timeout))
+
     def destroy_node(self) -> None:
         self.io_node.destroy_node()
         super().destroy_node()
@@ -492,6 +500,7 @@ def main(args: list[str] | None = None) -> int:
     finally:
         if node is not None:
             node.log_summary()
+            node.flush()
             if executor is not None:
                 executor.shutdown()
             node.destroy_node()

@@ -10,7 +10,6 @@
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -47,18 +46,6 @@ def wait_for(predicate: Callable[[], object], timeout: float, interval: float = 
         time.sleep(interval)
 
 
-def stop_process(proc: subprocess.Popen, grace: float = 5.0) -> int:
-    """End a child we started, by PID: SIGINT, wait ``grace`` s, then SIGKILL."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=grace)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=grace)
-    return proc.returncode
-
-
 class Processes:
     """Starts child processes for a test and always ends them at teardown."""
 
@@ -74,8 +61,9 @@ class Processes:
         return proc
 
     def stop_all(self) -> None:
+        from im_drive_sim.runtime import stop_child  # SIGINT, grace, SIGKILL, by PID
         for proc in reversed(self.children):
-            stop_process(proc)
+            stop_child(proc)
 
 
 @pytest.fixture

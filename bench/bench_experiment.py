@@ -12,7 +12,6 @@ Run: ``.venv/bin/python bench/bench_experiment.py`` (or ``make bench``).
 from __future__ import annotations
 
 import os
-import signal
 import statistics
 import subprocess
 import sys
@@ -32,6 +31,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from im_controller.messages import msg_to_result  # noqa: E402
 from im_controller.sim_bench import InProcessBench  # noqa: E402
+from im_drive_sim.runtime import stop_child  # noqa: E402
 
 EXPERIMENTS = 7
 SIM_SECONDS = 1.125
@@ -110,13 +110,7 @@ def separate_processes(n: int = EXPERIMENTS) -> list[float]:
         ex.shutdown()
         rclpy.try_shutdown(context=ctx)
         for p in procs:
-            p.send_signal(signal.SIGINT)
-        for p in procs:
-            try:
-                p.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+            stop_child(p)
 
 
 def _fmt(name: str, xs: list[float]) -> str:

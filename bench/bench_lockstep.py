@@ -13,7 +13,6 @@ over repeated batches; the machines are shared and noisy.
 from __future__ import annotations
 
 import os
-import signal
 import statistics
 import subprocess
 import sys
@@ -31,6 +30,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 
 from im_drive_sim.client import DriveClient  # noqa: E402
 from im_drive_sim.drive_sim_node import DriveSimNode  # noqa: E402
+from im_drive_sim.runtime import stop_child  # noqa: E402
 
 BATCH = 5000
 REPEATS = 7
@@ -98,13 +98,7 @@ def two_processes(batch: int = BATCH, repeats: int = REPEATS) -> list[float]:
         return per_step
     finally:
         rclpy.try_shutdown(context=ctx)
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop_child(proc)
 
 
 def _fmt(name: str, xs: list[float]) -> str:

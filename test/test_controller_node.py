@@ -6,8 +6,10 @@ start experiments with the Trigger service and read results from the loss topic.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -94,6 +96,29 @@ class Probe:
     def get(self, *names) -> list:
         res = self.call(self.params.get_parameters(list(names)))
         return [parameter_value_to_python(v) for v in res.values]
+
+
+@contextlib.contextmanager
+def probe_of_children(ros_context, *children):
+    """A Probe spun by its own executor, against nodes running in child processes."""
+    from rclpy.executors import SingleThreadedExecutor
+    ex = SingleThreadedExecutor(context=ros_context)
+
+    def spin_until(pred, timeout):
+        deadline = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > deadline or any(c.poll() is not None for c in children):
+                return pred()
+            ex.spin_once(timeout_sec=0.01)
+        return True
+    probe = Probe(ros_context, spin_until)
+    ex.add_node(probe.node)
+    try:
+        probe.ready(30.0)
+        yield probe
+    finally:
+        ex.shutdown()
+        probe.node.destroy_node()
 
 
 @pytest.fixture
@@ -219,25 +244,8 @@ def test_separate_processes_give_the_same_losses_as_one_process(procs, ros_conte
     """drive_sim and controller as two processes: the same losses, bit for bit."""
     drive = procs.start([ROS2, 'run', 'im_drive_sim', 'drive_sim', '--seed', str(SEED)])
     ctl = procs.start([ROS2, 'run', 'im_controller', 'controller'])
-    from rclpy.executors import SingleThreadedExecutor
-    ex = SingleThreadedExecutor(context=ros_context)
-
-    def spin_until(pred, timeout):
-        import time
-        deadline = time.monotonic() + timeout
-        while not pred():
-            if time.monotonic() > deadline or drive.poll() is not None or ctl.poll() is not None:
-                return pred()
-            ex.spin_once(timeout_sec=0.01)
-        return True
-    probe = Probe(ros_context, spin_until)
-    ex.add_node(probe.node)
-    try:
-        probe.ready(30.0)
+    with probe_of_children(ros_context, drive, ctl) as probe:
         got = [probe.experiment(120.0), probe.experiment(120.0)]
-    finally:
-        ex.shutdown()
-        probe.node.destroy_node()
     ref = offline_losses([Gains(), Gains()])
     assert [g.loss for g in got] == [r.loss for r in ref]
     assert [g.terms for g in got] == [r.terms for r in ref]
@@ -264,7 +272,6 @@ def test_watchdog_zero_current_and_abort_when_the_drive_goes_silent(ros_context)
     for n in (ctl, fake, probe.node):
         ex.add_node(n)
     wire = Float64ArrayWire(len(STATE_FIELDS))
-    import time
 
     def spin_until(pred, timeout):
         deadline = time.monotonic() + timeout
@@ -311,29 +318,12 @@ def test_watchdog_zero_current_and_abort_when_the_drive_goes_silent(ros_context)
 
 def test_real_time_mode_runs_an_experiment(procs, ros_context):
     """drive_sim and controller both in real time (5 kHz wall clock), two processes."""
-    from rclpy.executors import SingleThreadedExecutor
-    import time
     drive = procs.start([ROS2, 'run', 'im_drive_sim', 'drive_sim', '--mode', 'realtime'])
     ctl = procs.start([ROS2, 'run', 'im_controller', 'controller', '--mode', 'realtime'])
-    ex = SingleThreadedExecutor(context=ros_context)
-
-    def spin_until(pred, timeout):
-        deadline = time.monotonic() + timeout
-        while not pred():
-            if time.monotonic() > deadline or drive.poll() is not None or ctl.poll() is not None:
-                return pred()
-            ex.spin_once(timeout_sec=0.01)
-        return True
-    probe = Probe(ros_context, spin_until)
-    ex.add_node(probe.node)
-    try:
-        probe.ready(30.0)
+    with probe_of_children(ros_context, drive, ctl) as probe:
         t0 = time.monotonic()
         r = probe.experiment(30.0)
         wall = time.monotonic() - t0
-    finally:
-        ex.shutdown()
-        probe.node.destroy_node()
     # Paced by the wall clock: 1.125 s of experiment takes about that long.
     assert 1.0 < wall < 3.0
     assert not r.aborted and r.steps == 5625 and math.isfinite(r.loss)

@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -24,6 +23,7 @@ import rclpy  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
 from im_drive_sim.client import DriveClient  # noqa: E402
+from im_drive_sim.runtime import stop_child  # noqa: E402
 from im_drive_sim.sim import STATE_FIELDS  # noqa: E402
 
 F = {name: i for i, name in enumerate(STATE_FIELDS)}
@@ -100,12 +100,10 @@ def main() -> int:
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
-        if drive.poll() is None:
-            try:
-                drive.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                drive.send_signal(signal.SIGINT)
-                drive.wait(timeout=5)
+        try:
+            drive.wait(timeout=5)  # it stops by itself after --max-steps
+        except subprocess.TimeoutExpired:
+            stop_child(drive)
     wall = time.perf_counter() - t_wall
     e = log[:, -2] - log[:, F['theta']]
     print(f'\nexperiment: {STEPS} steps ({STEPS * TS:.3f} s sim) in {wall:.2f} s wall '

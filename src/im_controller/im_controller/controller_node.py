@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-import signal
 import sys
 import time
 
@@ -35,12 +34,10 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_services_default
 from rclpy.service_introspection import ServiceIntrospectionState
-from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
@@ -48,6 +45,7 @@ from std_srvs.srv import Trigger
 from im_drive_sim.cdr import Float64ArrayWire
 from im_drive_sim.client import DriveClient
 from im_drive_sim.params import ConfigError, load_config
+from im_drive_sim.runtime import run_stepped_node
 
 from .config import (GAIN_NAMES, NUMERIC_SPECS, ControlConfig, ControllerConfigError,
                      ExperimentConfig, Gains, LossConfig, SafetyConfig, TrajectoryConfig,
@@ -456,38 +454,11 @@ def main(args: list[str] | None = None) -> int:
     overrides = [Parameter(n, value=v) for n, v in (('mode', cli.mode),
                                                     ('drive_config_file', cli.config))
                  if v is not None]
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    node = None
-    executor = None
-    stop = {'requested': False}
-
-    def _on_signal(signum, _frame) -> None:
-        stop['requested'] = True
-        if node is None:
-            raise KeyboardInterrupt
-        node.stop_requested = True
-    signal.signal(signal.SIGINT, _on_signal)
-    signal.signal(signal.SIGTERM, _on_signal)
-    try:
-        node = ControllerNode(parameter_overrides=overrides or None)
-        node.stop_requested = stop['requested']
-        executor = SingleThreadedExecutor(context=node.context)
-        executor.add_node(node)
-        node.run(executor)
-    except (ControllerError, ControllerConfigError) as exc:
-        print(f'error: controller: {exc}', file=sys.stderr)
-        return 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.get_logger().info(f'stopped after {len(node.results)} experiments')
-            node.flush()
-            if executor is not None:
-                executor.shutdown()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_stepped_node(
+        argv, lambda: ControllerNode(parameter_overrides=overrides or None),
+        (ControllerError, ControllerConfigError), 'controller',
+        on_exit=lambda node: node.get_logger().info(
+            f'stopped after {len(node.results)} experiments'))
 
 
 if __name__ == '__main__':

@@ -31,6 +31,7 @@ from rclpy.utilities import remove_ros_args
 
 from im_drive_sim.drive_sim_node import DriveSimNode
 from im_drive_sim.params import ConfigError
+from im_drive_sim.runtime import stop_child
 
 from .config import ControllerConfigError
 from .controller_node import ControllerError, ControllerNode
@@ -149,14 +150,7 @@ def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
                 code = p.returncode
     finally:
         for p in procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        for p in procs:
-            try:
-                p.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+            stop_child(p)
     return code
 
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import signal
 import sys
 import time
 from dataclasses import dataclass
@@ -28,10 +27,9 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from rclpy.utilities import remove_ros_args
@@ -41,6 +39,7 @@ from std_msgs.msg import Float64MultiArray
 
 from .cdr import Float64ArrayWire, parse_float64_array
 from .params import ConfigError, load_config
+from .runtime import run_stepped_node
 from .sim import STATE_FIELDS, DriveSim
 
 #: Topic names (relative: they follow the node's namespace).
@@ -466,46 +465,13 @@ def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
     cli = _parse_cli(remove_ros_args(argv)[1:])
     overrides = []
-    from rclpy.parameter import Parameter
     for name, value in (('mode', cli.mode), ('config_file', cli.config), ('model', cli.model),
                         ('seed', cli.seed), ('max_steps', cli.max_steps)):
         if value is not None:
             overrides.append(Parameter(name, value=value))
-    # Our own signal handling: rclpy's would shut the context down under the hand-stepped
-    # loop; ours asks the loop to stop at the next step boundary and exit cleanly.
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    node = None
-    executor = None
-    stop = {'requested': False}
-
-    def _on_signal(signum, _frame) -> None:
-        stop['requested'] = True
-        if node is not None:
-            node.stop_requested = True
-        else:
-            raise KeyboardInterrupt
-    signal.signal(signal.SIGINT, _on_signal)
-    signal.signal(signal.SIGTERM, _on_signal)
-    try:
-        node = DriveSimNode(parameter_overrides=overrides or None)
-        node.stop_requested = stop['requested']
-        executor = SingleThreadedExecutor(context=node.context)
-        executor.add_node(node)
-        node.run(executor)
-    except ConfigError as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.log_summary()
-            node.flush()
-            if executor is not None:
-                executor.shutdown()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_stepped_node(
+        argv, lambda: DriveSimNode(parameter_overrides=overrides or None), (ConfigError,),
+        'drive_sim', on_exit=lambda node: node.log_summary())
 
 
 if __name__ == '__main__':

@@ -330,3 +330,18 @@ def test_real_time_mode_runs_an_experiment(procs, ros_context):
     # Commands may arrive a period late in real time: the loss is close to lock-step's.
     ref = offline_losses([Gains()])[0]
     assert r.loss == pytest.approx(ref.loss, rel=0.5)
+
+
+@pytest.mark.parametrize('args, expect', [
+    (['--ros-args', '-p', 'k_pw:=9.0'], 'k_pw'),
+    (['--ros-args', '-p', 'k_pw:=abc'], 'k_pw'),
+    (['--ros-args', '-p', 'mode:=fast'], "'mode'"),
+    (['--ros-args', '-p', 'safety.max_speed:=-1.0'], 'safety.max_speed'),
+    (['--config', '/nonexistent/motor.yaml'], 'motor.yaml'),
+])
+def test_bad_start_up_input_is_one_line_and_exit_2(procs, args, expect):
+    p = procs.start([ROS2, 'run', 'im_controller', 'controller', *args])
+    _, err = p.communicate(timeout=30)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert p.returncode == 2 and len(lines) == 1, err
+    assert lines[0].startswith('error: controller:') and expect in lines[0]

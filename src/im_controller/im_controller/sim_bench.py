@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import rclpy
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
@@ -177,7 +178,8 @@ def main(args: list[str] | None = None) -> int:
         bench = InProcessBench(drive_overrides=drive_over or None,
                                controller_overrides=ctl_over or None)
         bench.run()
-    except (ConfigError, ControllerError, ControllerConfigError) as exc:
+    except (ConfigError, ControllerError, ControllerConfigError,
+            InvalidParameterValueException, InvalidParameterTypeException) as exc:
         print(f'error: sim_bench: {exc}', file=sys.stderr)
         return 2
     except KeyboardInterrupt:

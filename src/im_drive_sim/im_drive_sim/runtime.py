@@ -14,6 +14,7 @@ import sys
 from typing import Callable
 
 import rclpy
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
@@ -45,7 +46,9 @@ def run_stepped_node(argv: list[str], make_node: Callable[[], object],
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
         node.run(executor)
-    except config_errors as exc:
+    except (*config_errors, InvalidParameterValueException,
+            InvalidParameterTypeException) as exc:
+        # A bad file or a bad --ros-args -p value at start: one line, nothing started.
         print(f'error: {prog}: {exc}', file=sys.stderr)
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):

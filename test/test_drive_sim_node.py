@@ -183,9 +183,8 @@ def test_clock_and_joint_states_carry_exact_sim_time(procs, ros_context):
     steps = 300
     side = Node('test_side', context=ros_context)
     clocks, joints = [], []
-    clock_sub = side.create_subscription(Clock, '/clock', lambda m: clocks.append(m), 1000)
-    joint_sub = side.create_subscription(JointState, 'drive/joint_states',
-                                         lambda m: joints.append(m), 1000)
+    side.create_subscription(Clock, '/clock', lambda m: clocks.append(m), 1000)
+    side.create_subscription(JointState, 'drive/joint_states', lambda m: joints.append(m), 1000)
     ex = SingleThreadedExecutor(context=ros_context)
     ex.add_node(side)
     # The drive outlives the last answered step (it then re-sends state `steps` every

@@ -126,6 +126,15 @@ NOISE_COLS = 4    # i_alpha, i_beta, speed, random-load increment
 
 
 # ------------------------------------------------------------------------- plant
+@njit(cache=True, inline='always')
+def friction_torque(w: float, P: np.ndarray) -> float:
+    """Friction [N m] at speed w [rad/s]: B w + Tc tanh(w/omega_c) (Coulomb term if Tc != 0)."""
+    tf = P[P_B] * w
+    if P[P_TC] != 0.0:
+        tf += P[P_TC] * math.tanh(w * P[P_INV_WC])
+    return tf
+
+
 @njit(cache=True)
 def plant_deriv(isa: float, isb: float, pa: float, pb: float, w: float,
                 ua: float, ub: float, tl: float, P: np.ndarray):
@@ -147,9 +156,7 @@ def plant_deriv(isa: float, isb: float, pa: float, pb: float, w: float,
     disb = (-rsig * isb + krt * pb - kr * we * pa + ub) * isl
     dpa = (lm * isa - pa) * itr - we * pb
     dpb = (lm * isb - pb) * itr + we * pa
-    tf = P[P_B] * w
-    if P[P_TC] != 0.0:
-        tf += P[P_TC] * math.tanh(w * P[P_INV_WC])
+    tf = friction_torque(w, P)
     dw = (P[P_KTE] * (pa * isb - pb * isa) - tf - tl) * P[P_INV_J]
     return disa, disb, dpa, dpb, dw
 
@@ -194,9 +201,7 @@ def plant_powers(isa: float, isb: float, pa: float, pb: float, w: float,
     """
     ira = (pa - P[P_LM] * isa) / P[P_LR]
     irb = (pb - P[P_LM] * isb) / P[P_LR]
-    tf = P[P_B] * w
-    if P[P_TC] != 0.0:
-        tf += P[P_TC] * math.tanh(w * P[P_INV_WC])
+    tf = friction_torque(w, P)
     return (1.5 * (ua * isa + ub * isb), 1.5 * P[P_RS] * (isa * isa + isb * isb),
             1.5 * P[P_RR] * (ira * ira + irb * irb), tf * w, tl * w)
 
@@ -449,30 +454,19 @@ def step_reduced(S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float
     i_1 = isq_ref + di * P[P_ISQ_A]
     kt = P[P_KT]
     ij = P[P_INV_J]
-    b = P[P_B]
-    tc = P[P_TC]
-    iwc = P[P_INV_WC]
     h = P[P_TS]
     h2 = 0.5 * h
     w0 = S[S_OMEGA]
-    f = b * w0
-    if tc != 0.0:
-        f += tc * math.tanh(w0 * iwc)
+    f = friction_torque(w0, P)
     k1 = (kt * i_0 - f - tl) * ij
     w2 = w0 + h2 * k1
-    f = b * w2
-    if tc != 0.0:
-        f += tc * math.tanh(w2 * iwc)
+    f = friction_torque(w2, P)
     k2 = (kt * i_h - f - tl) * ij
     w3 = w0 + h2 * k2
-    f = b * w3
-    if tc != 0.0:
-        f += tc * math.tanh(w3 * iwc)
+    f = friction_torque(w3, P)
     k3 = (kt * i_h - f - tl) * ij
     w4 = w0 + h * k3
-    f = b * w4
-    if tc != 0.0:
-        f += tc * math.tanh(w4 * iwc)
+    f = friction_torque(w4, P)
     k4 = (kt * i_1 - f - tl) * ij
     h6 = h / 6.0
     S[S_OMEGA] = w0 + h6 * (k1 + 2.0 * (k2 + k3) + k4)

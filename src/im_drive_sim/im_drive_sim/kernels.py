@@ -126,12 +126,16 @@ NOISE_COLS = 4    # i_alpha, i_beta, speed, random-load increment
 
 
 # ------------------------------------------------------------------------- plant
-@njit(cache=True, inline='always')
-def friction_torque(w: float, P: np.ndarray) -> float:
-    """Friction [N m] at speed w [rad/s]: B w + Tc tanh(w/omega_c) (Coulomb term if Tc != 0)."""
-    tf = P[P_B] * w
-    if P[P_TC] != 0.0:
-        tf += P[P_TC] * math.tanh(w * P[P_INV_WC])
+@njit(cache=True)
+def friction_torque(w: float, b: float, tc: float, iwc: float) -> float:
+    """Friction [N m] at speed w [rad/s]: b w + tc tanh(w iwc) (Coulomb term if tc != 0).
+
+    b = B, tc = Tc, iwc = 1/omega_c as scalars: callers load them from P once, outside
+    their RK4 stages (loads from P inside would be repeated after every store to S).
+    """
+    tf = b * w
+    if tc != 0.0:
+        tf += tc * math.tanh(w * iwc)
     return tf
 
 
@@ -156,7 +160,7 @@ def plant_deriv(isa: float, isb: float, pa: float, pb: float, w: float,
     disb = (-rsig * isb + krt * pb - kr * we * pa + ub) * isl
     dpa = (lm * isa - pa) * itr - we * pb
     dpb = (lm * isb - pb) * itr + we * pa
-    tf = friction_torque(w, P)
+    tf = friction_torque(w, P[P_B], P[P_TC], P[P_INV_WC])
     dw = (P[P_KTE] * (pa * isb - pb * isa) - tf - tl) * P[P_INV_J]
     return disa, disb, dpa, dpb, dw
 
@@ -201,7 +205,7 @@ def plant_powers(isa: float, isb: float, pa: float, pb: float, w: float,
     """
     ira = (pa - P[P_LM] * isa) / P[P_LR]
     irb = (pb - P[P_LM] * isb) / P[P_LR]
-    tf = friction_torque(w, P)
+    tf = friction_torque(w, P[P_B], P[P_TC], P[P_INV_WC])
     return (1.5 * (ua * isa + ub * isb), 1.5 * P[P_RS] * (isa * isa + isb * isb),
             1.5 * P[P_RR] * (ira * ira + irb * irb), tf * w, tl * w)
 
@@ -454,19 +458,22 @@ def step_reduced(S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float
     i_1 = isq_ref + di * P[P_ISQ_A]
     kt = P[P_KT]
     ij = P[P_INV_J]
+    b = P[P_B]
+    tc = P[P_TC]
+    iwc = P[P_INV_WC]
     h = P[P_TS]
     h2 = 0.5 * h
     w0 = S[S_OMEGA]
-    f = friction_torque(w0, P)
+    f = friction_torque(w0, b, tc, iwc)
     k1 = (kt * i_0 - f - tl) * ij
     w2 = w0 + h2 * k1
-    f = friction_torque(w2, P)
+    f = friction_torque(w2, b, tc, iwc)
     k2 = (kt * i_h - f - tl) * ij
     w3 = w0 + h2 * k2
-    f = friction_torque(w3, P)
+    f = friction_torque(w3, b, tc, iwc)
     k3 = (kt * i_h - f - tl) * ij
     w4 = w0 + h * k3
-    f = friction_torque(w4, P)
+    f = friction_torque(w4, b, tc, iwc)
     k4 = (kt * i_1 - f - tl) * ij
     h6 = h / 6.0
     S[S_OMEGA] = w0 + h6 * (k1 + 2.0 * (k2 + k3) + k4)

@@ -4,7 +4,11 @@ experiment (1.125 s, 5625 steps) run through the ROS nodes, lock-step.
 * one process: ``InProcessBench`` (drive_sim + controller in one thread) with a client
   node doing what the tuner does (Trigger service, loss topic);
 * separate processes: ``ros2 run im_drive_sim drive_sim`` and ``ros2 run im_controller
-  controller`` as children, the client here.
+  controller`` as children, the client here;
+* one process with the recorder (``im_tuner.recorder_node.Recorder``) in it, polled
+  between steps as the simulated bench and the tuner run it, for each chunk compression;
+  runs with and without the recorder alternate (A/B) so that machine noise hits both,
+  and the ratio is taken per pair.
 
 Wall time per experiment = from the start call to the loss message. Prints medians.
 Run: ``.venv/bin/python bench/bench_experiment.py`` (or ``make bench``).
@@ -12,9 +16,11 @@ Run: ``.venv/bin/python bench/bench_experiment.py`` (or ``make bench``).
 from __future__ import annotations
 
 import os
+import shutil
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -69,19 +75,48 @@ class _Client:
         return walls[1:]
 
 
-def one_process(n: int = EXPERIMENTS) -> list[float]:
+def one_process(n: int = EXPERIMENTS, record: str | None = None) -> list[float]:
+    """RTF per experiment with both nodes in this process; ``record``: a chunk
+    compression to run the recorder in the same process too (None: no recorder)."""
     ctx = Context()
     rclpy.init(context=ctx)
+    tmp = tempfile.mkdtemp(prefix='bench_rec_')
     try:
         bench = InProcessBench(context=ctx)
+        rec = None
+        if record is not None:
+            from im_tuner.recorder_node import RECORD_POLL_STEPS, Recorder
+            rec = Recorder(Node('recorder', context=ctx, start_parameter_services=False),
+                           Path(tmp) / 'bag', compression=record)
+            bench.add_poller(rec.poll, RECORD_POLL_STEPS)
         client = _Client(ctx, bench.spin_until)
         bench.executor.add_node(client.node)
         walls = client.run(n)
+        if rec is not None:
+            counts = rec.close()
+            lost = sum(c['lost'] for c in counts.values())
+            short = [t for t, c in counts.items() if c['recorded'] != c['published']]
+            if lost or short:
+                raise RuntimeError(f'recorder lost messages: {lost} lost, short on {short}')
+            rec.node.destroy_node()
         client.node.destroy_node()
         bench.destroy()
         return [SIM_SECONDS / w for w in walls]
     finally:
         rclpy.try_shutdown(context=ctx)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def recording_ab(compression: str, pairs: int = 3, n: int = 5) -> tuple[list[float],
+                                                                          list[float]]:
+    """Alternate runs without / with the recorder; returns (RTFs with, per-pair ratios)."""
+    with_rec, ratios = [], []
+    for _ in range(pairs):
+        base = statistics.median(one_process(n))
+        rec = one_process(n, record=compression)
+        with_rec += rec
+        ratios.append(statistics.median(rec) / base)
+    return with_rec, ratios
 
 
 def separate_processes(n: int = EXPERIMENTS) -> list[float]:
@@ -118,14 +153,22 @@ def _fmt(name: str, xs: list[float]) -> str:
             f'min {min(xs):5.2f}   max {max(xs):5.2f}   ({len(xs)} experiments)')
 
 
-def main() -> dict[str, float]:
+def main(compressions: tuple[str, ...] = ('zstd', 'lz4', 'none')) -> dict[str, float]:
     one = one_process()
     print(_fmt('experiment, nodes in one process', one), flush=True)
+    figures = {'experiment_rtf_1proc': statistics.median(one)}
+    for comp in compressions:
+        rec, ratios = recording_ab(comp)
+        print(_fmt(f'  + recorder in process ({comp})', rec) +
+              f'   speed kept {statistics.median(ratios):.0%} '
+              f'(pairs: {", ".join(f"{r:.2f}" for r in ratios)})', flush=True)
+        figures[f'experiment_rtf_rec_{comp}'] = statistics.median(rec)
+        figures[f'recording_kept_{comp}'] = statistics.median(ratios)
     two = separate_processes()
     print(_fmt('experiment, separate processes', two), flush=True)
-    return {'experiment_rtf_1proc': statistics.median(one),
-            'experiment_rtf_2proc': statistics.median(two)}
+    figures['experiment_rtf_2proc'] = statistics.median(two)
+    return figures
 
 
 if __name__ == '__main__':
-    main()
+    main(tuple(sys.argv[1:]) or ('zstd', 'lz4', 'none'))

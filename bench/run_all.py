@@ -24,6 +24,13 @@ TARGETS = {
     # lower bounds: real-time factors (simulated s per wall s)
     'experiment_rtf_1proc': ('x', -5.0),
     'experiment_rtf_2proc': ('x', -1.5),
+    'experiment_rtf_rec_zstd': ('x', None),
+    'experiment_rtf_rec_lz4': ('x', None),
+    'experiment_rtf_rec_none': ('x', None),
+    # issue 4: with the recorder in the process, at least 80 % of the speed without
+    'recording_kept_zstd': ('ratio', -0.8),
+    'recording_kept_lz4': ('ratio', -0.8),
+    'recording_kept_none': ('ratio', -0.8),
 }
 
 
@@ -47,7 +54,7 @@ def main() -> int:
         else:
             verdict = '  ok' if value <= target else '  ABOVE TARGET'
             bound = f'(target <= {target:g})'
-        print(f'{name:<22} {value:9.1f} {unit:<8} {bound}{verdict}')
+        print(f'{name:<26} {value:9.2f} {unit:<8} {bound}{verdict}')
     return 0
 
 

@@ -45,7 +45,8 @@ from std_srvs.srv import Trigger
 from im_drive_sim.cdr import Float64ArrayWire
 from im_drive_sim.client import DriveClient
 from im_drive_sim.params import ConfigError, load_config
-from im_drive_sim.runtime import run_stepped_node
+from im_drive_sim.drive_sim_node import RECORDED_QOS
+from im_drive_sim.runtime import RCLError, publish_retry, run_stepped_node
 
 from .config import (GAIN_NAMES, NUMERIC_SPECS, ControlConfig, ControllerConfigError,
                      ExperimentConfig, Gains, LossConfig, SafetyConfig, TrajectoryConfig,
@@ -127,8 +128,10 @@ class ControllerNode(Node):
 
         self.io_node = Node(f'_{node_name}_io', context=context, namespace=self.get_namespace())
         self.client = DriveClient(self.io_node)
-        self.loss_pub = self.create_publisher(DiagnosticArray, LOSS_TOPIC, 100)
-        self.internals_pub = self.create_publisher(Float64MultiArray, INTERNALS_TOPIC, 64)
+        # Reliable KEEP_ALL: every loss and every internals sample reaches the recorder.
+        self.loss_pub = self.create_publisher(DiagnosticArray, LOSS_TOPIC, RECORDED_QOS)
+        self.internals_pub = self.create_publisher(Float64MultiArray, INTERNALS_TOPIC,
+                                                   RECORDED_QOS)
         self._internals = Float64ArrayWire(len(INTERNALS_FIELDS))
         self.start_srv = self.create_service(Trigger, '~/start_experiment', self._on_start)
         self.reset_srv = self.create_service(Trigger, '~/reset_fault', self._on_reset_fault)
@@ -362,7 +365,12 @@ class ControllerNode(Node):
             v[0] = k
             v[1:1 + len(CONTROL_FIELDS)] = self.runner.cout
             v[1 + len(CONTROL_FIELDS):] = self.runner.eout
-            self.internals_pub.publish(self._internals.payload())
+            payload = self._internals.payload()
+            try:
+                self.internals_pub.publish(payload)
+            except RCLError:
+                self.client.backpressure += publish_retry(self.internals_pub, payload,
+                                                          self.context)
         if status >= STATUS_DONE:
             self._on_status(status)
         return True
@@ -380,7 +388,11 @@ class ControllerNode(Node):
         if res is None or (self.results and self.results[-1].experiment_id == res.experiment_id):
             return
         self.results.append(res)
-        self.loss_pub.publish(result_to_msg(res, self.get_name()))
+        msg = result_to_msg(res, self.get_name())
+        try:
+            self.loss_pub.publish(msg)
+        except RCLError:
+            self.client.backpressure += publish_retry(self.loss_pub, msg, self.context)
         log = self.get_logger().info if not res.aborted else self.get_logger().warn
         log(f'experiment {res.experiment_id}: loss {res.loss:.6g} terms '
             f'({res.terms[0]:.4g}, {res.terms[1]:.4g}, {res.terms[2]:.4g})'

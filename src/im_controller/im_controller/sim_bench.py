@@ -62,11 +62,25 @@ class InProcessBench:
         self.executor.add_node(self.controller)
         self.stop_requested = False
         self._since_service = 0
+        #: (callable, period in steps): run every ``period`` lock-step round trips and at
+        #: every idle iteration -- the recorder's poll goes here (see add_poller).
+        self._pollers: list[tuple[object, int]] = []
+        self._steps = 0
         # State 0 must not be published before the controller's subscription matches.
         if not self.controller.client.wait_for_drive(10.0):
             self.destroy()
             raise RuntimeError('controller and drive_sim did not match within 10 s')
         self.drive.start()
+
+    def add_poller(self, poll, period_steps: int = 16) -> None:
+        """Call ``poll()`` every ``period_steps`` lock-step steps and whenever idle.
+
+        For a recorder in this process: it must take its messages between steps (an
+        executor callback would serve one message per spin). Fast DDS holds at most 5000
+        samples per reader, so ``period_steps`` must stay far below that."""
+        if not 1 <= period_steps <= 1000:
+            raise ValueError(f'period_steps must be in [1, 1000], got {period_steps}')
+        self._pollers.append((poll, int(period_steps)))
 
     def step(self, idle_timeout: float = 0.01) -> bool:
         """One bench iteration: a lock-step round trip if the controller steps, otherwise
@@ -76,12 +90,19 @@ class InProcessBench:
         if ctl.answer():
             if not self.drive.lockstep_poll(NS_PER_S):
                 raise RuntimeError('drive did not receive the command within 1 s')
+            self._steps += 1
+            for poll, period in self._pollers:
+                if self._steps % period == 0:
+                    poll()
             self._since_service += 1
             if self._since_service >= ctl.service_period_steps:
                 self._since_service = 0
                 self.executor.spin_once(timeout_sec=0.0)
             return True
-        self.executor.spin_once(timeout_sec=idle_timeout)
+        for poll, _period in self._pollers:
+            poll()
+        self.executor.spin_once(timeout_sec=idle_timeout if not self._pollers
+                                else min(idle_timeout, 0.002))
         return False
 
     def spin_until(self, predicate, timeout: float | None = None) -> bool:

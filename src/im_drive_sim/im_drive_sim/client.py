@@ -16,7 +16,8 @@ from std_msgs.msg import Float64MultiArray
 from rclpy.serialization import deserialize_message
 
 from .cdr import Float64ArrayWire, parse_float64_array
-from .drive_sim_node import COMMAND_FIELDS, COMMAND_TOPIC, LOCKSTEP_QOS, STATE_TOPIC
+from .drive_sim_node import COMMAND_FIELDS, COMMAND_TOPIC, LOCKSTEP_QOS, RECORDED_QOS, STATE_TOPIC
+from .runtime import RCLError, publish_retry
 from .sim import STATE_FIELDS
 
 NS_PER_S = 1_000_000_000
@@ -35,11 +36,13 @@ class DriveClient:
         self.node = node
         self.state_sub = node.create_subscription(
             Float64MultiArray, STATE_TOPIC, lambda _m: None, LOCKSTEP_QOS)
-        self.command_pub = node.create_publisher(Float64MultiArray, COMMAND_TOPIC, LOCKSTEP_QOS)
+        self.command_pub = node.create_publisher(Float64MultiArray, COMMAND_TOPIC, RECORDED_QOS)
         self._waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)
         self._cmd = Float64ArrayWire(len(COMMAND_FIELDS))
         self.state = np.zeros(len(STATE_FIELDS))
         self.answered: int = -1
+        #: publish retries while a reliable reader (the recorder) was full
+        self.backpressure: int = 0
         #: Publisher-side time stamp [ns, wall] of the newest state taken.
         self.source_timestamp_ns: int = 0
 
@@ -87,7 +90,11 @@ class DriveClient:
         v[0] = answers_step
         v[1] = isq_ref
         v[2] = load_torque
-        self.command_pub.publish(self._cmd.payload())
+        payload = self._cmd.payload()
+        try:
+            self.command_pub.publish(payload)
+        except RCLError:
+            self.backpressure += publish_retry(self.command_pub, payload, self.node.context)
         if answers_step > self.answered:
             self.answered = answers_step
 

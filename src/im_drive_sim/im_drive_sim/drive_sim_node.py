@@ -39,7 +39,7 @@ from std_msgs.msg import Float64MultiArray
 
 from .cdr import Float64ArrayWire, parse_float64_array
 from .params import ConfigError, load_config
-from .runtime import run_stepped_node
+from .runtime import RCLError, publish_retry, run_stepped_node
 from .sim import STATE_FIELDS, DriveSim
 
 #: Topic names (relative: they follow the node's namespace).
@@ -56,6 +56,15 @@ CMD_STEP, CMD_ISQ, CMD_LOAD = 0, 1, 2
 #: KEEP_LAST with a generous depth: lock-step never has more than one sample in flight;
 #: in real time a depth of 64 periods (12.8 ms) bridges scheduling hiccups.
 LOCKSTEP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=64,
+                          reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.VOLATILE)
+
+#: QoS of the publishers whose every message must reach the recorder (state; the
+#: controller's command, internals and losses): reliable KEEP_ALL. A reader that falls
+#: behind back-pressures the publisher (see runtime.publish_retry) instead of losing
+#: samples, which KEEP_LAST would overwrite. Readers in the lock-step path stay
+#: LOCKSTEP_QOS: they take every step, so they never hold the writer back.
+RECORDED_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=0,
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.VOLATILE)
 
@@ -76,6 +85,7 @@ class Counters:
     overruns: int = 0           #: real time: periods that started later than one period
     republished: int = 0        #: lock-step: state re-sent while waiting for a command
     max_lateness_us: float = 0.0  #: real time: worst start-of-period lateness
+    backpressure: int = 0       #: publish retries while a reliable reader (recorder) was full
 
 
 def _descriptor(description: str, *, read_only: bool = True,
@@ -124,7 +134,7 @@ class DriveSimNode(Node):
         self.stop_requested = False
 
         # Publishers (all on the visible node).
-        self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, LOCKSTEP_QOS)
+        self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
         self.clock_pub = self.create_publisher(Clock, '/clock', 10)
         self.joint_pub = self.create_publisher(JointState, JOINT_STATE_TOPIC, 10)
         self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, 10)
@@ -213,7 +223,11 @@ class DriveSimNode(Node):
         """Publish the current state (and the decimated /clock, joint_states)."""
         s = self._state
         k = int(s[0])
-        self.state_pub.publish(self._state_wire.payload())
+        payload = self._state_wire.payload()
+        try:
+            self.state_pub.publish(payload)
+        except RCLError:
+            self.counters.backpressure += publish_retry(self.state_pub, payload, self.context)
         if k % self.clock_decimation == 0 or k % self.joint_state_decimation == 0:
             t_ns = k * self.ts_ns
             sec, nsec = divmod(t_ns, NS_PER_S)

@@ -5,18 +5,54 @@
   loop), SIGINT/SIGTERM asking the loop to stop at the next step boundary, a clean
   summary/flush/destroy, configuration errors as one line and exit code 2.
 * :func:`stop_child`: end a child process we started, by PID (SIGINT, grace, SIGKILL).
+* :func:`publish_retry`: back-pressure instead of a crash when a reliable KEEP_ALL reader
+  (the recorder) is full.
 """
 from __future__ import annotations
 
 import signal
 import subprocess
 import sys
+import time
 from typing import Callable
 
 import rclpy
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.signals import SignalHandlerOptions
+
+RCLError = _rclpy.RCLError
+
+
+class PublishStalled(RuntimeError):
+    """A reliable reader took nothing for longer than the back-pressure timeout."""
+
+
+def publish_retry(pub, msg, context, timeout: float = 30.0) -> int:
+    """Publish ``msg`` after a publish raised: wait for the readers to make room.
+
+    With a reliable KEEP_ALL publisher, a reader that does not take (a stalled recorder)
+    fills up; Fast DDS then blocks ``publish`` for its max blocking time (100 ms) and rmw
+    raises -- the sample is not queued and no sequence number is used. Retrying until
+    the reader drains turns that into back-pressure: the publisher slows down, nothing is
+    dropped. Returns the number of retries; raises :class:`PublishStalled` after
+    ``timeout`` s, or re-raises at once when the context is shut down.
+    """
+    deadline = time.monotonic() + timeout
+    retries = 0
+    while True:
+        if not rclpy.ok(context=context):
+            raise RCLError(f'{pub.topic_name}: cannot publish, context shut down')
+        retries += 1
+        try:
+            pub.publish(msg)
+            return retries
+        except RCLError:
+            if time.monotonic() > deadline:
+                raise PublishStalled(
+                    f'{pub.topic_name}: a reliable reader took no message for {timeout:.0f} s '
+                    '(recorder stalled?); refusing to drop data') from None
 
 
 def run_stepped_node(argv: list[str], make_node: Callable[[], object],

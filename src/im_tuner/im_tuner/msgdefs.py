@@ -1,0 +1,216 @@
+"""Complete ROS 2 message definitions ("ros2msg" schema text) from installed .msg/.srv files.
+
+:func:`schema_text` returns the text an MCAP ``ros2msg`` schema (or a rosbag2 bag) carries
+for a type, so that readers without the ROS type support (``rosbags``, ``mcap_ros2``,
+Foxglove) can decode its CDR messages::
+
+    <the type's own .msg text, verbatim>
+    ================================================================================
+    MSG: pkg/Dependency
+    <that type's .msg text>
+    ...
+
+i.e. the top-level definition first and without a header, then every type it uses
+(transitively, each once, depth-first in order of first use), each introduced by a line of
+exactly 80 ``=`` and a line ``MSG: pkg/Type`` (the two-part name), all joined with ``\\n``.
+A definition that ends in a newline (every installed file) is thus followed by an empty
+line before the next separator, exactly as rosbag2 writes it.  (rosbag2 orders each type's
+dependencies by name rather than by first use; readers do not depend on the order.)
+
+Service types have no .msg file; their parts are cut from ``share/<pkg>/srv/<Name>.srv``:
+``pkg/srv/Name_Request`` is the text before the line ``---`` (without its final newline)
+and ``pkg/srv/Name_Response`` the text after it.  A service *event* type
+``pkg/srv/Name_Event`` (what service introspection publishes on ``<service>/_service_event``)
+is written as the message rosidl generates for it::
+
+    service_msgs/ServiceEventInfo info
+    pkg/Name_Request[<=1] request
+    pkg/Name_Response[<=1] response
+
+followed by ``MSG: service_msgs/ServiceEventInfo``, ``MSG: pkg/Name_Request``,
+``MSG: pkg/Name_Response`` and their dependencies.  (rosbag2 itself records service events
+with a single ``SRV: pkg/srv/Name`` section holding the whole .srv file; generic readers do
+not understand that form, they do understand this one.)  An empty part (``std_srvs`` Trigger's
+request) is an empty section: its ``MSG:`` line is followed by an empty line and the next
+separator, or ends the text.  Both ``rosbags`` and ``mcap_ros2`` read it as the one-``uint8``
+placeholder struct (``structure_needs_at_least_one_member``) that ROS 2 serialises for an
+empty message, which is what rclpy writes.  Reader caveats (names, not this text):
+mcap_ros2 0.6.0 refuses the schema *name* ``Name_Event``, and rosbags registers
+``pkg/srv/X`` as ``pkg/srv/msg/X`` (see the tests).
+
+Files are looked up as ``<prefix>/share/<pkg>/msg/<Name>.msg`` (``srv/<Name>.srv``) for each
+prefix in turn; the first prefix that has the file wins.  Prefixes default to the
+colon-separated ``AMENT_PREFIX_PATH``.  Pure standard library: no rclpy needed.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+__all__ = ["MsgDefError", "SEPARATOR", "schema_text"]
+
+SEPARATOR = "=" * 80
+"""The line that introduces every dependency's definition."""
+
+PRIMITIVE_TYPES = frozenset({
+    "bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16",
+    "int32", "uint32", "int64", "uint64", "string", "wstring",
+})
+
+_PART_SUFFIXES = ("_Request", "_Response")
+_EVENT_SUFFIX = "_Event"
+_PKG_RE = re.compile(r"[a-z][a-z0-9_]*")
+_NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+_ARRAY_RE = re.compile(r"\[(?:<=)?[0-9]*\]$")
+_BOUNDED_STRING_RE = re.compile(r"^(w?string)<=[0-9]+$")
+
+
+class MsgDefError(Exception):
+    """A type name is malformed, or its definition (or a dependency's) is missing or unparsable."""
+
+
+# A definition to emit: (package, "msg" or "srv", name),
+# e.g. ("std_srvs", "srv", "Trigger_Request").
+_Key = tuple[str, str, str]
+
+
+def schema_text(type_name: str, prefixes: list[str] | None = None) -> str:
+    """Return the complete ``ros2msg`` definition of ``type_name`` (format: see module doc).
+
+    ``type_name`` is ``pkg/msg/Name`` (or ``pkg/Name``), ``pkg/srv/Name_Request``,
+    ``pkg/srv/Name_Response`` or ``pkg/srv/Name_Event``.  ``prefixes`` are install prefixes
+    searched in order (default: ``AMENT_PREFIX_PATH``).  Raises :class:`MsgDefError`, naming
+    the type and the files searched, if a definition cannot be found or parsed.
+    """
+    root = _parse_type_name(type_name)
+    if prefixes is None:
+        prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+        if not prefixes:
+            raise MsgDefError(f"cannot look up {type_name}: AMENT_PREFIX_PATH is not set")
+    loader = _Loader(list(prefixes))
+
+    pkg, kind, name = root
+    if kind == "srv" and name.endswith(_EVENT_SUFFIX):
+        service = name[: -len(_EVENT_SUFFIX)]
+        loader.srv_parts(pkg, service, type_name)  # fail early, naming the requested type
+        top_text = (
+            "service_msgs/ServiceEventInfo info\n"
+            f"{pkg}/{service}_Request[<=1] request\n"
+            f"{pkg}/{service}_Response[<=1] response\n"
+        )
+        top_deps = [("service_msgs", "msg", "ServiceEventInfo"),
+                    (pkg, "srv", service + "_Request"), (pkg, "srv", service + "_Response")]
+    else:
+        top_text = loader.text(root, type_name)
+        top_deps = _dependencies(top_text, pkg, type_name)
+
+    sections = [top_text]
+    seen = {f"{pkg}/{name}"}
+
+    def visit(deps: list[_Key], parent: str) -> None:
+        for dep in deps:
+            short = f"{dep[0]}/{dep[2]}"
+            if short in seen:
+                continue
+            seen.add(short)
+            text = loader.text(dep, short, referenced_by=parent)
+            sections.extend((SEPARATOR, f"MSG: {short}", text))
+            visit(_dependencies(text, dep[0], short), short)
+
+    visit(top_deps, f"{pkg}/{name}")
+    return "\n".join(sections)
+
+
+def _parse_type_name(type_name: str) -> _Key:
+    """Split ``pkg/msg/Name``, ``pkg/Name`` or ``pkg/srv/Name_{Request,Response,Event}``."""
+    parts = type_name.split("/") if isinstance(type_name, str) else []
+    if len(parts) == 2:
+        parts.insert(1, "msg")
+    if (len(parts) != 3 or parts[1] not in ("msg", "srv")
+            or not _PKG_RE.fullmatch(parts[0]) or not _NAME_RE.fullmatch(parts[2])):
+        raise MsgDefError(
+            f"malformed type name {type_name!r}: expected pkg/msg/Name, pkg/Name or "
+            "pkg/srv/Name_Request|_Response|_Event")
+    if parts[1] == "srv" and not parts[2].endswith((*_PART_SUFFIXES, _EVENT_SUFFIX)):
+        raise MsgDefError(
+            f"{type_name} is a service, not a message: name its _Request, _Response or _Event")
+    return parts[0], parts[1], parts[2]
+
+
+def _dependencies(text: str, package: str, owner: str) -> list[_Key]:
+    """Non-primitive field types of a .msg text, as ``(pkg, "msg", Name)``, in order of use."""
+    deps: list[_Key] = []
+    for lineno, raw in enumerate(text.splitlines(), 1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        typ, *more = line.split(None, 1)
+        rest = more[0] if more else ""
+        if not rest:
+            raise MsgDefError(f"cannot parse the definition of {owner}, line {lineno}: {raw!r}")
+        if "=" in rest and _NAME_RE.fullmatch(rest.partition("=")[0].strip()):
+            continue  # constant: TYPE NAME=VALUE (constants are always primitive)
+        typ = _ARRAY_RE.sub("", typ)
+        typ = _BOUNDED_STRING_RE.sub(r"\1", typ)
+        if typ in PRIMITIVE_TYPES:
+            continue
+        if typ == "Header":
+            typ = "std_msgs/Header"
+        dep_pkg, _, dep_name = typ.rpartition("/") if "/" in typ else (package, "/", typ)
+        if not _PKG_RE.fullmatch(dep_pkg) or not _NAME_RE.fullmatch(dep_name):
+            raise MsgDefError(
+                f"cannot parse the definition of {owner}, line {lineno}: bad type {typ!r}")
+        deps.append((dep_pkg, "msg", dep_name))
+    return deps
+
+
+class _Loader:
+    """Reads definition files from the first prefix that has them (cached per call)."""
+
+    def __init__(self, prefixes: list[str]) -> None:
+        self.prefixes = prefixes
+        self._cache: dict[Path, str] = {}
+
+    def _read(self, pkg: str, folder: str, filename: str, what: str, referenced_by: str) -> str:
+        candidates = [Path(p) / "share" / pkg / folder / filename for p in self.prefixes]
+        for path in candidates:
+            if path in self._cache:
+                return self._cache[path]
+            if path.is_file():
+                try:
+                    text = path.read_text(encoding="utf-8")
+                except (OSError, UnicodeDecodeError) as exc:
+                    raise MsgDefError(
+                        f"cannot read the definition of {what} from {path}: {exc}") from exc
+                self._cache[path] = text
+                return text
+        needed = f" (used by {referenced_by})" if referenced_by else ""
+        raise MsgDefError(
+            f"no definition of {what}{needed}: searched "
+            + ", ".join(str(c) for c in candidates))
+
+    def srv_parts(self, pkg: str, service: str, what: str,
+                  referenced_by: str = "") -> tuple[str, str]:
+        """(request, response) texts of ``share/<pkg>/srv/<service>.srv``."""
+        text = self._read(pkg, "srv", service + ".srv", what, referenced_by)
+        lines = text.splitlines(keepends=True)
+        cuts = [i for i, line in enumerate(lines) if line.strip() == "---"]
+        if len(cuts) != 1:
+            raise MsgDefError(
+                f"cannot parse the definition of {what}: {pkg}/srv/{service}.srv needs exactly "
+                f"one '---' line, found {len(cuts)}")
+        request = "".join(lines[: cuts[0]])
+        request = request[:-1] if request.endswith("\n") else request
+        return request, "".join(lines[cuts[0] + 1:])
+
+    def text(self, key: _Key, what: str, referenced_by: str = "") -> str:
+        """The definition text of a message or of one part of a service."""
+        pkg, kind, name = key
+        if kind == "msg":
+            return self._read(pkg, "msg", name + ".msg", what, referenced_by)
+        is_request = name.endswith(_PART_SUFFIXES[0])
+        service = name[: -len(_PART_SUFFIXES[0 if is_request else 1])]
+        request, response = self.srv_parts(pkg, service, what, referenced_by)
+        return request if is_request else response

@@ -135,9 +135,13 @@ class ControllerNode(Node):
         self._internals = Float64ArrayWire(len(INTERNALS_FIELDS))
         self.start_srv = self.create_service(Trigger, '~/start_experiment', self._on_start)
         self.reset_srv = self.create_service(Trigger, '~/reset_fault', self._on_reset_fault)
-        for srv in (self.start_srv, self.reset_srv):
-            srv.configure_introspection(self.get_clock(), qos_profile_services_default,
-                                        ServiceIntrospectionState.CONTENTS)
+        # Service introspection (request + response contents on <service>/_service_event)
+        # on the experiment services and the parameter services, so that the recorder
+        # keeps who changed which gain when. get_type_description does not support it.
+        for srv in list(self.services):
+            if not srv.srv_name.endswith('get_type_description'):
+                srv.configure_introspection(self.get_clock(), qos_profile_services_default,
+                                            ServiceIntrospectionState.CONTENTS)
 
         self.next_experiment_id = 0
         self.results = []                 #: every LossResult published, in order

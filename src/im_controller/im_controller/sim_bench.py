@@ -12,10 +12,16 @@ Brings up the drive simulator and the controller together, lock-step:
 Either way the graph is the same (``drive_sim``, ``controller``, their topics and
 services), and so is what it computes: the same seed gives bit-identical losses.
 The tuner brings this bench up itself when no controller is on the graph.
+
+All traffic is recorded (``im_tuner``'s recorder) unless ``--no-record``: in one process
+the recorder runs in the bench's loop and is polled between steps, so not a message is
+lost; with ``--processes`` it is a third child, ``ros2 run im_tuner recorder``.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 import os
 import signal
 import subprocess
@@ -49,7 +55,9 @@ class InProcessBench:
     """
 
     def __init__(self, *, context=None, drive_overrides: list | None = None,
-                 controller_overrides: list | None = None) -> None:
+                 controller_overrides: list | None = None, before_start=None) -> None:
+        """``before_start(bench)`` runs once both nodes exist and match, before state 0 is
+        published: the place to start a recorder that must not miss the first message."""
         self.drive = DriveSimNode(context=context, parameter_overrides=drive_overrides)
         try:
             self.controller = ControllerNode(context=context,
@@ -70,6 +78,12 @@ class InProcessBench:
         if not self.controller.client.wait_for_drive(10.0):
             self.destroy()
             raise RuntimeError('controller and drive_sim did not match within 10 s')
+        if before_start is not None:
+            try:
+                before_start(self)
+            except Exception:
+                self.destroy()
+                raise
         self.drive.start()
 
     def add_poller(self, poll, period_steps: int = 16) -> None:
@@ -136,7 +150,37 @@ def _parse_cli(argv: list[str]) -> argparse.Namespace:
     ap.add_argument('--config', metavar='FILE', help='drive parameter file (YAML)')
     ap.add_argument('--model', choices=('full', 'reduced'), help='drive model fidelity')
     ap.add_argument('--seed', type=int, help='disturbance seed')
+    ap.add_argument('--no-record', action='store_true',
+                    help='do not record (default: all traffic to a bag, see --out)')
+    ap.add_argument('--out', metavar='DIR', type=Path,
+                    help='bag directory to create (default: bags/sim_bench_<UTC time>)')
+    ap.add_argument('--compression', choices=('none', 'zstd', 'lz4'), default='zstd',
+                    help='MCAP chunk compression of the bag (default: zstd)')
     return ap.parse_args(argv)
+
+
+def _recorder_module():
+    """im_tuner's recorder, imported late: im_tuner depends on this package, not the
+    reverse, and the bench runs without it when asked not to record."""
+    try:
+        from im_tuner import recorder_node
+    except ImportError as exc:
+        raise ControllerError(f'recording needs the im_tuner package ({exc}); install it '
+                              'or pass --no-record') from None
+    return recorder_node
+
+
+def bench_metadata(bench: InProcessBench) -> dict[str, dict]:
+    """What the bag should say about this bench: the drive's configuration and seed, and
+    the controller's parameters at start."""
+    d = bench.drive
+    drive = {'config_file': d.get_parameter('config_file').value or '(packaged default)',
+             'model': d.config.model, 'seed': d.get_parameter('seed').value,
+             'config': json.dumps(dataclasses.asdict(d.config), sort_keys=True)}
+    ctl = {name: p.value for name, p in sorted(bench.controller._parameters.items())}
+    return {'im_tuner.drive': drive,
+            'im_tuner.controller': {'parameters': json.dumps(ctl, sort_keys=True,
+                                                             default=str)}}
 
 
 def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
@@ -153,7 +197,13 @@ def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
     if ros_args:
         drive += ros_args
         ctl += ros_args
-    procs = [subprocess.Popen(drive), subprocess.Popen(ctl)]
+    procs = []
+    if not cli.no_record:
+        _recorder_module()  # fail early, with the reason, if it is not installed
+        rec = [ros2, 'run', 'im_tuner', 'recorder', '--compression', cli.compression,
+               '--out', str(cli.out or _default_out())]
+        procs.append(subprocess.Popen(rec))
+    procs += [subprocess.Popen(drive), subprocess.Popen(ctl)]
     stop = {'sig': None}
 
     def _on_signal(signum, _frame) -> None:
@@ -164,16 +214,22 @@ def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
     try:
         while stop['sig'] is None and all(p.poll() is None for p in procs):
             try:
-                procs[0].wait(timeout=0.2)  # wakes at once if the drive exits
+                procs[-2].wait(timeout=0.2)  # wakes at once if the drive exits
             except subprocess.TimeoutExpired:
                 pass
         for p in procs:
             if p.poll() is not None and p.returncode not in (0, None):
                 code = p.returncode
     finally:
-        for p in procs:
+        for p in reversed(procs):  # the recorder last: it takes what the others sent
             stop_child(p)
     return code
+
+
+def _default_out() -> Path:
+    import datetime as _dt
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime('%Y_%m_%d-%H_%M_%S')
+    return Path('bags') / f'sim_bench_{stamp}'
 
 
 def main(args: list[str] | None = None) -> int:
@@ -188,6 +244,7 @@ def main(args: list[str] | None = None) -> int:
     ctl_over = [Parameter('drive_config_file', value=cli.config)] if cli.config else []
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     bench = None
+    rec = None
 
     def _on_signal(signum, _frame) -> None:
         if bench is None:
@@ -195,9 +252,24 @@ def main(args: list[str] | None = None) -> int:
         bench.stop_requested = True
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
+
+    def _start_recorder(b: InProcessBench) -> None:
+        nonlocal rec
+        rn = _recorder_module()
+        from rclpy.node import Node
+        try:
+            rec = rn.Recorder(Node('recorder', start_parameter_services=False),
+                              cli.out or _default_out(), compression=cli.compression,
+                              extra_metadata=bench_metadata(b), command=argv)
+        except (rn.BagError, rn.RecorderError) as exc:
+            raise ControllerError(str(exc)) from None
+        rec.wait_matched(10.0)
+        b.add_poller(rec.poll, rn.RECORD_POLL_STEPS)
+        b.drive.get_logger().info(f'recording all topics to {rec.out}')
     try:
         bench = InProcessBench(drive_overrides=drive_over or None,
-                               controller_overrides=ctl_over or None)
+                               controller_overrides=ctl_over or None,
+                               before_start=None if cli.no_record else _start_recorder)
         bench.run()
     except (ConfigError, ControllerError, ControllerConfigError,
             InvalidParameterValueException, InvalidParameterTypeException) as exc:
@@ -208,6 +280,10 @@ def main(args: list[str] | None = None) -> int:
     finally:
         if bench is not None:
             bench.drive.log_summary()
+        if rec is not None:
+            rec.close()
+            rec.node.destroy_node()
+        if bench is not None:
             bench.destroy()
         rclpy.try_shutdown()
     return 0

@@ -258,6 +258,21 @@ class Recorder:
                              '(losses there are counted, not prevented)')
         return True
 
+    def wait_matched(self, timeout: float) -> bool:
+        """Wait until every publisher on the recorded topics is matched (bounded).
+
+        Call before the publishers start when the first message matters. Returns whether
+        all matched; the ones that did not are reported at close."""
+        deadline = time.monotonic() + timeout
+        while True:
+            self.discover()
+            if all(self.node.count_publishers(t.name) <= t.sub.get_publisher_count()
+                   for t in self.topics.values()):
+                return True
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.005)
+
     def _check_matches(self) -> None:
         for t in self.topics.values():
             missing = self.node.count_publishers(t.name) - t.sub.get_publisher_count()

@@ -154,8 +154,8 @@ def _parse_cli(argv: list[str]) -> argparse.Namespace:
                     help='do not record (default: all traffic to a bag, see --out)')
     ap.add_argument('--out', metavar='DIR', type=Path,
                     help='bag directory to create (default: bags/sim_bench_<UTC time>)')
-    ap.add_argument('--compression', choices=('none', 'zstd', 'lz4'), default='zstd',
-                    help='MCAP chunk compression of the bag (default: zstd)')
+    ap.add_argument('--compression', choices=('none', 'zstd', 'lz4'), default='lz4',
+                    help='MCAP chunk compression of the bag (default: lz4; zstd: smaller files)')
     return ap.parse_args(argv)
 
 

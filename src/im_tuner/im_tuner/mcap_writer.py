@@ -19,6 +19,12 @@ File layout (MCAP v0, https://mcap.dev/spec), as rosbag2's MCAP storage writes i
 * DataEnd, summary (Schemas, Channels, Statistics, Metadata Index, Chunk Indexes),
   Summary Offsets, Footer (with the summary CRC-32), magic.
 
+With ``background=True`` every file operation (compressing and writing chunks, and the
+records written between them) runs in order on one worker thread: zstd/lz4 and file
+writes release the GIL, so a recorder sharing a process with the lock-step loop does not
+pay for compression on the loop's core. The chunk bytes are copied out first, so the
+numba kernel refills the buffer at once.
+
 No rclpy here: the writer serves the recorder node, the repair tool and the tests.
 """
 from __future__ import annotations
@@ -26,6 +32,7 @@ from __future__ import annotations
 import os
 import struct
 import zlib
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
@@ -188,7 +195,8 @@ class McapWriter:
     """
 
     def __init__(self, path: Path, *, compression: str = 'zstd', chunk_size: int = 1 << 20,
-                 library: str = 'im_tuner', profile: str = 'ros2') -> None:
+                 library: str = 'im_tuner', profile: str = 'ros2',
+                 background: bool = False) -> None:
         if compression not in COMPRESSIONS:
             raise McapWriteError(f'compression must be one of {", ".join(COMPRESSIONS)}, '
                                  f'got {compression!r}')
@@ -211,6 +219,8 @@ class McapWriter:
         self.message_count = 0
         self.t_start: int | None = None
         self.t_end: int | None = None
+        self._pool = ThreadPoolExecutor(1, 'mcap_writer') if background else None
+        self._pending: list[Future] = []
         self._write(MAGIC)
         self._write(_record(OP_HEADER, _string(profile) + _string(library)))
         self.flush()
@@ -229,6 +239,27 @@ class McapWriter:
         if self._f is not None:
             self._f.flush()
 
+    def _submit(self, job) -> None:
+        """Run a file operation now, or in order on the worker thread (background)."""
+        if self._pool is None:
+            job()
+            return
+        self._pending = [f for f in self._pending if not f.done() or f.exception()]
+        for f in self._pending:
+            if f.done():
+                raise McapWriteError(f'{self.path}: background write failed: '
+                                     f'{f.exception()!r}')
+        self._pending.append(self._pool.submit(job))
+
+    def _drain_pool(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+            errors = [f.exception() for f in self._pending if f.exception()]
+            self._pending = []
+            if errors:
+                raise McapWriteError(f'{self.path}: background write failed: {errors[0]!r}')
+
     @property
     def closed(self) -> bool:
         return self._f is None
@@ -237,8 +268,9 @@ class McapWriter:
     def add_schema(self, name: str, encoding: str, data: bytes) -> int:
         sid = len(self.schemas) + 1
         self.schemas[sid] = (name, encoding, data)
-        self._write(_record(OP_SCHEMA, struct.pack('<H', sid) + _string(name) +
-                            _string(encoding) + _bytes(data)))
+        rec = _record(OP_SCHEMA, struct.pack('<H', sid) + _string(name) + _string(encoding) +
+                      _bytes(data))
+        self._submit(lambda: self._write(rec))
         return sid
 
     def add_channel(self, topic: str, schema_id: int, message_encoding: str,
@@ -249,15 +281,18 @@ class McapWriter:
         meta = dict(metadata or {})
         self.channels[cid] = (topic, schema_id, message_encoding, meta)
         self.channel_counts[cid] = 0
-        self._write(_record(OP_CHANNEL, struct.pack('<HH', cid, schema_id) + _string(topic) +
-                            _string(message_encoding) + _map_ss(meta)))
+        rec = _record(OP_CHANNEL, struct.pack('<HH', cid, schema_id) + _string(topic) +
+                      _string(message_encoding) + _map_ss(meta))
+        self._submit(lambda: self._write(rec))
         return cid
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """A Metadata record (name + string map), written at once, indexed in the summary."""
         rec = _record(OP_METADATA, _string(name) + _map_ss(data))
-        at = self._write(rec)
-        self.metadata_index.append((at, len(rec), name))
+
+        def job() -> None:
+            self.metadata_index.append((self._write(rec), len(rec), name))
+        self._submit(job)
 
     def add_message(self, channel_id: int, sequence: int, log_time: int, publish_time: int,
                     data: bytes) -> None:
@@ -276,14 +311,27 @@ class McapWriter:
     def flush_chunk(self) -> int:
         """Close the open chunk: compress, write it and its message indexes, flush.
 
-        Returns the number of messages written."""
+        Returns the number of messages in it. With ``background``, the bytes are copied
+        out and written by the worker thread; the chunk buffer is free again at once."""
         ch = self.chunk
         n = ch.count
         if n == 0:
             return 0
+        if self._f is None:
+            raise McapWriteError(f'{self.path}: writer is closed')
         raw = ch.buf[:ch.used].tobytes()
-        idx = ch.idx[:n]
+        idx = ch.idx[:n].copy()
         t0, t1 = int(ch.st[ST_TMIN]), int(ch.st[ST_TMAX])
+        ch.st[:] = 0
+        for cid, k in zip(*np.unique(idx[:, 0], return_counts=True)):
+            self.channel_counts[int(cid)] = self.channel_counts.get(int(cid), 0) + int(k)
+        self.message_count += n
+        self.t_start = t0 if self.t_start is None else min(self.t_start, t0)
+        self.t_end = t1 if self.t_end is None else max(self.t_end, t1)
+        self._submit(lambda: self._write_chunk(raw, idx, t0, t1))
+        return n
+
+    def _write_chunk(self, raw: bytes, idx: np.ndarray, t0: int, t1: int) -> None:
         payload = self._compress(raw)
         comp = '' if self.compression == 'none' else self.compression
         body = (struct.pack('<QQQI', t0, t1, len(raw), zlib.crc32(raw)) + _string(comp) +
@@ -293,25 +341,18 @@ class McapWriter:
         self._write(payload)
         chunk_len = self._pos - chunk_at
         # Message indexes, one per channel, entries sorted by (log_time, offset).
-        order = np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))
-        sidx = idx[order]
+        sidx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
         cids, starts = np.unique(sidx[:, 0], return_index=True)
-        ends = starts[1:].tolist() + [n]
+        ends = starts[1:].tolist() + [len(sidx)]
         index_offsets: dict[int, int] = {}
         index_at = self._pos
         for cid, a, b in zip(cids.tolist(), starts.tolist(), ends):
             entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
             index_offsets[cid] = self._write(_record(
                 OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries))
-            self.channel_counts[cid] = self.channel_counts.get(cid, 0) + int(b - a)
         self.chunks.append(ChunkInfo(t0, t1, chunk_at, chunk_len, index_offsets,
                                      self._pos - index_at, comp, len(payload), len(raw)))
-        self.message_count += n
-        self.t_start = t0 if self.t_start is None else min(self.t_start, t0)
-        self.t_end = t1 if self.t_end is None else max(self.t_end, t1)
-        ch.st[:] = 0
         self.flush()
-        return n
 
     # -- finishing ---------------------------------------------------------------------
     def close(self) -> None:
@@ -319,6 +360,7 @@ class McapWriter:
         if self._f is None:
             return
         self.flush_chunk()
+        self._drain_pool()
         self._write(_record(OP_DATA_END, struct.pack('<I', 0)))
         summary_start = self._pos
         groups: list[tuple[int, int, int]] = []
@@ -359,6 +401,9 @@ class McapWriter:
 
     def abandon(self) -> None:
         """Close the file as it is (no summary): what a crash leaves, for tests."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
         if self._f is not None:
             self._f.close()
             self._f = None

@@ -162,10 +162,10 @@ class Recorder:
     ``max_chunk_age`` s. :meth:`close` finishes the bag and returns the counts.
     """
 
-    def __init__(self, node: Node, out: Path | str, *, compression: str = 'zstd',
+    def __init__(self, node: Node, out: Path | str, *, compression: str = 'lz4',
                  chunk_size: int = 1 << 20, max_chunk_age: float = 0.5,
                  discovery_period: float = 0.2, extra_metadata: dict[str, dict] | None = None,
-                 command: list[str] | None = None) -> None:
+                 command: list[str] | None = None, background_writes: bool = True) -> None:
         self.node = node
         self.log = node.get_logger()
         self.out = prepare_bag_dir(Path(out))
@@ -173,7 +173,8 @@ class Recorder:
         try:
             self.writer = McapWriter(self.out / self.file_name, compression=compression,
                                      chunk_size=chunk_size,
-                                     library=f'im_tuner recorder {_version()}')
+                                     library=f'im_tuner recorder {_version()}',
+                                     background=background_writes)
         except McapWriteError as exc:
             raise RecorderError(str(exc)) from None
         self.compression = compression
@@ -437,8 +438,8 @@ def _parse_cli(argv: list[str]) -> argparse.Namespace:
                     '(reliable KEEP_ALL, per-topic published/recorded/lost counts).')
     ap.add_argument('--out', metavar='DIR', type=Path,
                     help='bag directory to create (default: bags/recording_<UTC time>)')
-    ap.add_argument('--compression', choices=('none', 'zstd', 'lz4'), default='zstd',
-                    help='MCAP chunk compression (default: zstd)')
+    ap.add_argument('--compression', choices=('none', 'zstd', 'lz4'), default='lz4',
+                    help='MCAP chunk compression (default: lz4, the cheapest; zstd: smaller files)')
     ap.add_argument('--chunk-size', type=int, default=1 << 20, metavar='BYTES',
                     help='close chunks at this size (default 1 MiB)')
     ap.add_argument('--max-chunk-age', type=float, default=0.5, metavar='S',

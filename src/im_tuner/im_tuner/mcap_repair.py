@@ -1,0 +1,469 @@
+"""Repair a bag whose recorder died: rebuild the MCAP summary, index, footer and metadata.yaml.
+
+A SIGKILL (or a power cut) leaves the ``.mcap`` without its DataEnd, summary, chunk
+indexes and footer, and ``metadata.yaml`` in its provisional ``recording`` state. The
+data is still there: :class:`~im_tuner.mcap_writer.McapWriter` writes Schema and Channel
+records as soon as a topic appears and hands every chunk to the OS when it is closed,
+which the recorder does at least every ``max_chunk_age`` seconds, so at most that much
+(the open chunk) is lost.
+
+:func:`repair_bag` scans the file record by record up to the first incomplete or invalid
+one (a truncated record, a chunk that does not decompress or fails its CRC), then writes
+a new file beside it (``<file>.repairing``): magic, the original Header, every Schema,
+Channel, Metadata and Attachment record found, every complete chunk copied verbatim with
+freshly built Message Index records (messages found outside chunks are packed into new
+uncompressed chunks), DataEnd, the summary and footer exactly as ``McapWriter.close``
+writes them. Only when that file is complete and synced does it replace the original
+(``os.replace``), so a failure at any point leaves the original as it was. A file that
+already ends in a valid footer is left untouched. Either way ``metadata.yaml`` is
+rewritten from what the scan found. No rclpy here.
+"""
+from __future__ import annotations
+
+import os
+import struct
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+import yaml
+
+from .bag import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
+from .mcap_writer import (MAGIC, OP_CHANNEL, OP_CHUNK, OP_CHUNK_INDEX, OP_DATA_END, OP_FOOTER,
+                          OP_HEADER, OP_MESSAGE, OP_MESSAGE_INDEX, OP_METADATA,
+                          OP_METADATA_INDEX, OP_SCHEMA, OP_STATISTICS, OP_SUMMARY_OFFSET,
+                          ChunkInfo, _chunk_index, _record, _string)
+
+OP_ATTACHMENT = 0x09
+OP_ATTACHMENT_INDEX = 0x0A
+#: Messages found outside chunks are packed into new chunks of at most this many bytes.
+LOOSE_CHUNK_BYTES = 1 << 20
+_FOOTER_BYTES = 29  # opcode, length, summary_start, summary_offset_start, summary_crc
+
+
+class RepairError(Exception):
+    """The bag cannot be repaired (not a directory, no .mcap file, not MCAP, no header)."""
+
+
+@dataclass
+class ScannedChunk:
+    """A complete chunk of the scanned file (or a run of loose messages to chunk)."""
+
+    offset: int                 # of the Chunk record in the scanned file
+    length: int                 # record bytes (opcode + length + body)
+    start: int
+    end: int
+    compression: str
+    compressed_size: int
+    uncompressed_size: int
+    index: np.ndarray           # int64 rows (channel_id, log_time, offset in the records)
+    #: Message records found outside chunks: (offset, length, channel_id, log_time) each.
+    loose: list[tuple[int, int, int, int]] | None = None
+
+
+@dataclass
+class McapScan:
+    """What :func:`scan_mcap` found in the data section, in file order."""
+
+    path: Path
+    size: int
+    header: bytes                                            # the Header record
+    schemas: dict[int, tuple[str, bytes]] = field(default_factory=dict)  # id: name, record
+    # id: topic, schema id, metadata, record
+    channels: dict[int, tuple[str, int, dict[str, str], bytes]] = field(default_factory=dict)
+    metadata: list[tuple[int, int, str]] = field(default_factory=list)   # offset, length, name
+    # offset, length, log_time, create_time, data size, name, media type
+    attachments: list[tuple[int, int, int, int, int, str, str]] = field(default_factory=list)
+    chunks: list[ScannedChunk] = field(default_factory=list)
+    data_end: int = 0            # end of the last complete record of the data section
+    ended: bool = False          # the scan reached DataEnd (or the Footer)
+    complete: bool = False       # the file ends in a valid footer and magic
+
+    @property
+    def messages(self) -> int:
+        return sum(len(c.index) for c in self.chunks)
+
+    def channel_counts(self) -> dict[int, int]:
+        counts = dict.fromkeys(self.channels, 0)
+        for c in self.chunks:
+            for cid, n in zip(*np.unique(c.index[:, 0], return_counts=True)):
+                counts[int(cid)] = counts.get(int(cid), 0) + int(n)
+        return counts
+
+    def time_range(self) -> tuple[int, int]:
+        times = [c.index[:, 1] for c in self.chunks if len(c.index)]
+        return (int(min(t.min() for t in times)), int(max(t.max() for t in times))) \
+            if times else (0, 0)
+
+
+@dataclass
+class RepairReport:
+    """What :func:`repair_bag` found and did."""
+
+    bag: Path
+    file: str
+    was_complete: bool
+    messages: int
+    chunks: int
+    dropped_bytes: int
+    topics: dict[str, int]
+
+    def summary(self) -> str:
+        if self.was_complete:
+            head = [f'bag {self.bag}: {self.file} is complete (valid footer); left untouched, '
+                    'metadata.yaml rewritten', f'  {self.messages} messages in {self.chunks} '
+                    f'chunks on {len(self.topics)} topics']
+        else:
+            head = [f'bag {self.bag}: {self.file} had no valid summary/footer; rewrote it and '
+                    'metadata.yaml', f'  {_repair_line(self.messages, self.chunks, self.dropped_bytes)}']
+        return '\n'.join(head + [f'  {t}: {n}' for t, n in sorted(self.topics.items())])
+
+
+def _repair_line(messages: int, chunks: int, dropped: int) -> str:
+    return (f'recovered {messages} messages in {chunks} chunks; discarded {dropped} bytes '
+            'after the last complete chunk')
+
+
+class _Cur:
+    """Reads little-endian fields from a record body; raises ValueError past its end."""
+
+    def __init__(self, b: bytes, p: int = 0) -> None:
+        self.b, self.p = b, p
+
+    def u(self, fmt: str) -> tuple:
+        v = struct.unpack_from('<' + fmt, self.b, self.p)
+        self.p += struct.calcsize('<' + fmt)
+        return v
+
+    def raw(self, n: int) -> bytes:
+        if self.p + n > len(self.b):
+            raise ValueError('field past the end of its record')
+        self.p += n
+        return self.b[self.p - n:self.p]
+
+    def s(self) -> str:
+        return self.raw(self.u('I')[0]).decode('utf-8')
+
+    def map(self) -> dict[str, str]:
+        (n,) = self.u('I')
+        end = self.p + n
+        out = {}
+        while self.p < end:
+            k = self.s()
+            out[k] = self.s()
+        if self.p != end:
+            raise ValueError('bad map length')
+        return out
+
+
+def _decompress(comp: str, data: bytes, size: int) -> bytes:
+    if comp == '':
+        return data
+    if comp == 'zstd':
+        import zstandard
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+    if comp == 'lz4':
+        import lz4.frame
+        return lz4.frame.decompress(data)
+    raise ValueError(f'unknown compression {comp!r}')
+
+
+def _parse_chunk(body: bytes, scan: McapScan, at: int) -> ScannedChunk:
+    """Validate a Chunk record body and index its messages (registers its schemas/channels)."""
+    c = _Cur(body)
+    start, end, usize, crc = c.u('QQQI')
+    comp = c.s()
+    (clen,) = c.u('Q')
+    if c.p + clen != len(body):
+        raise ValueError('chunk records length mismatch')
+    try:
+        raw = _decompress(comp, body[c.p:], usize)
+    except Exception as exc:  # zstd/lz4 raise their own types on corrupt data
+        raise ValueError(f'chunk does not decompress: {exc}') from None
+    if len(raw) != usize or (crc and zlib.crc32(raw) != crc):
+        raise ValueError('chunk size or CRC mismatch')
+    schemas, channels, rows, p = {}, {}, [], 0
+    while p < len(raw):
+        op, n = struct.unpack_from('<BQ', raw, p)
+        if p + 9 + n > len(raw):
+            raise ValueError('record past the end of its chunk')
+        rec = raw[p:p + 9 + n]
+        if op == OP_MESSAGE:
+            cid, _seq, log_time, _pub = struct.unpack_from('<HIQQ', rec, 9)
+            if n < 22 or (cid not in scan.channels and cid not in channels):
+                raise ValueError('bad message record')
+            rows.append((cid, log_time, p))
+        elif op in (OP_SCHEMA, OP_CHANNEL):
+            _parse_def(op, rec, schemas, channels)
+        p += 9 + n
+    for sid, v in schemas.items():
+        scan.schemas.setdefault(sid, v)
+    for cid, v in channels.items():
+        scan.channels.setdefault(cid, v)
+    return ScannedChunk(at, 9 + len(body), start, end, comp, clen, usize,
+                        np.array(rows, np.int64).reshape(-1, 3))
+
+
+def _parse_def(op: int, rec: bytes, schemas: dict, channels: dict) -> None:
+    """A Schema or Channel record into ``schemas``/``channels`` (the first one of an id wins)."""
+    c = _Cur(rec, 9)
+    if op == OP_SCHEMA:
+        (sid,) = c.u('H')
+        name, _enc = c.s(), c.s()
+        c.raw(c.u('I')[0])
+        schemas.setdefault(sid, (name, rec))
+    else:
+        cid, sid = c.u('HH')
+        topic, _enc = c.s(), c.s()
+        channels.setdefault(cid, (topic, sid, c.map(), rec))
+
+
+def _has_footer(f: BinaryIO, size: int) -> bool:
+    """The file ends in Footer + magic, and the summary CRC (if any) matches."""
+    if size < 8 + 9 + _FOOTER_BYTES + 8:
+        return False
+    f.seek(size - 8 - _FOOTER_BYTES)
+    tail = f.read(_FOOTER_BYTES + 8)
+    if tail[-8:] != MAGIC or tail[:9] != struct.pack('<BQ', OP_FOOTER, 20):
+        return False
+    summary_start, _offsets, crc = struct.unpack_from('<QQI', tail, 9)
+    if not crc:
+        return True
+    begin = summary_start or size - 8 - _FOOTER_BYTES
+    if not 8 < begin <= size - 8 - _FOOTER_BYTES:
+        return False
+    f.seek(begin)
+    return zlib.crc32(f.read(size - 8 - 4 - begin)) == crc
+
+
+def scan_mcap(path: Path) -> McapScan:
+    """Read the data section of ``path`` up to DataEnd or the first incomplete/invalid record."""
+    path = Path(path)
+    try:
+        f = open(path, 'rb')  # noqa: SIM115
+    except OSError as exc:
+        raise RepairError(f'{path}: cannot read it ({exc.strerror})') from None
+    with f:
+        size = os.fstat(f.fileno()).st_size
+        if f.read(8) != MAGIC:
+            raise RepairError(f'{path}: not an MCAP file (bad magic)')
+        head = f.read(9)
+        op, n = struct.unpack('<BQ', head) if len(head) == 9 else (0, 0)
+        if op != OP_HEADER or 17 + n > size:
+            raise RepairError(f'{path}: no complete MCAP header')
+        scan = McapScan(path, size, head + f.read(n))
+        pos = scan.data_end = 17 + n
+        while True:
+            f.seek(pos)
+            head = f.read(9)
+            if len(head) < 9:
+                break
+            op, n = struct.unpack('<BQ', head)
+            if op == 0 or pos + 9 + n > size:  # 0 is no opcode (a zero-filled tail)
+                break
+            rec = head + f.read(n)
+            try:
+                if op == OP_CHUNK:
+                    scan.chunks.append(_parse_chunk(rec[9:], scan, pos))
+                elif op in (OP_SCHEMA, OP_CHANNEL):
+                    _parse_def(op, rec, scan.schemas, scan.channels)
+                elif op == OP_METADATA:
+                    c = _Cur(rec, 9)
+                    scan.metadata.append((pos, len(rec), c.s()))
+                    c.map()
+                elif op == OP_ATTACHMENT:
+                    c = _Cur(rec, 9)
+                    t_log, t_create = c.u('QQ')
+                    name, media = c.s(), c.s()
+                    (dlen,) = c.u('Q')
+                    c.raw(dlen + 4)
+                    scan.attachments.append((pos, len(rec), t_log, t_create, dlen, name, media))
+                elif op == OP_MESSAGE:
+                    _add_loose(scan, rec, pos)
+            except (struct.error, ValueError):
+                break
+            if op in (OP_DATA_END, OP_FOOTER):
+                scan.ended = True
+                break
+            pos = scan.data_end = pos + len(rec)
+        scan.complete = _has_footer(f, size)
+    for c in scan.chunks:  # index the runs of loose messages as the chunks they will become
+        if c.loose:
+            offsets = np.cumsum([0] + [n for _a, n, _c, _t in c.loose[:-1]])
+            c.index = np.array([(cid, t, o) for (_a, _n, cid, t), o in zip(c.loose, offsets)],
+                               np.int64)
+    return scan
+
+
+def _add_loose(scan: McapScan, rec: bytes, at: int) -> None:
+    """A Message record outside chunks: append it to a run that will become a new chunk."""
+    cid, _seq, log_time, _pub = struct.unpack_from('<HIQQ', rec, 9)
+    if len(rec) < 31 or cid not in scan.channels:
+        raise ValueError('bad message record')
+    last = scan.chunks[-1] if scan.chunks else None
+    if last is None or last.loose is None or last.uncompressed_size >= LOOSE_CHUNK_BYTES:
+        last = ScannedChunk(at, 0, log_time, log_time, '', 0, 0, np.zeros((0, 3), np.int64), [])
+        scan.chunks.append(last)
+    last.loose.append((at, len(rec), cid, log_time))
+    last.start, last.end = min(last.start, log_time), max(last.end, log_time)
+    last.uncompressed_size += len(rec)
+    last.compressed_size = last.uncompressed_size
+
+
+def _message_indexes(idx: np.ndarray) -> list[tuple[int, bytes, int]]:
+    """Message Index records of a chunk: (channel id, record, entries), entries sorted by
+    (log_time, offset) — as McapWriter.flush_chunk builds them."""
+    sidx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
+    cids, starts = np.unique(sidx[:, 0], return_index=True)
+    ends = starts[1:].tolist() + [len(sidx)]
+    out = []
+    for cid, a, b in zip(cids.tolist(), starts.tolist(), ends):
+        entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
+        out.append((cid, _record(OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) +
+                                 entries), b - a))
+    return out
+
+
+def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
+    """Write the repaired file (see the module doc) to ``dst``."""
+    pos = 0
+
+    def put(b: bytes) -> int:
+        nonlocal pos
+        dst.write(b)
+        pos += len(b)
+        return pos - len(b)
+
+    put(MAGIC + scan.header)
+    for _name, rec in scan.schemas.values():
+        put(rec)
+    for *_x, rec in scan.channels.values():
+        put(rec)
+    with open(scan.path, 'rb') as src:
+        def read(at: int, n: int) -> bytes:
+            src.seek(at)
+            return src.read(n)
+
+        def copy(at: int, n: int) -> int:
+            return put(read(at, n))
+        meta_index = [(copy(at, n), n, name) for at, n, name in scan.metadata]
+        att_index = [(copy(a[0], a[1]), *a[1:]) for a in scan.attachments]
+        infos: list[ChunkInfo] = []
+        for ch in scan.chunks:
+            if ch.loose is None:
+                at, length = copy(ch.offset, ch.length), ch.length
+            else:
+                recs = b''.join(read(o, n) for o, n, _c, _t in ch.loose)
+                body = struct.pack('<QQQI', ch.start, ch.end, len(recs), zlib.crc32(recs)) + \
+                    _string('') + struct.pack('<Q', len(recs)) + recs
+                at = put(_record(OP_CHUNK, body))
+                length = 9 + len(body)
+            index_at, offsets = pos, {}
+            for cid, rec, _n in _message_indexes(ch.index):
+                offsets[cid] = put(rec)
+            infos.append(ChunkInfo(ch.start, ch.end, at, length, offsets, pos - index_at,
+                                   ch.compression, ch.compressed_size, ch.uncompressed_size))
+    put(_record(OP_DATA_END, struct.pack('<I', 0)))
+    summary_start, out, groups = pos, bytearray(), []
+    for op, records in (
+            (OP_SCHEMA, [rec for _n, rec in scan.schemas.values()]),
+            (OP_CHANNEL, [c[3] for c in scan.channels.values()]),
+            (OP_STATISTICS, [_statistics(scan, len(meta_index), len(infos))]),
+            (OP_METADATA_INDEX, [_record(OP_METADATA_INDEX, struct.pack('<QQ', at, n) +
+                                         _string(name)) for at, n, name in meta_index]),
+            (OP_ATTACHMENT_INDEX, [_record(OP_ATTACHMENT_INDEX, struct.pack('<QQQQQ', *a[:5]) +
+                                           _string(a[5]) + _string(a[6])) for a in att_index]),
+            (OP_CHUNK_INDEX, [_chunk_index(c) for c in infos])):
+        if records:
+            at = summary_start + len(out)
+            out.extend(b''.join(records))
+            groups.append((op, at, summary_start + len(out) - at))
+    offsets_start = summary_start + len(out)
+    for op, at, n in groups:
+        out.extend(_record(OP_SUMMARY_OFFSET, struct.pack('<BQQ', op, at, n)))
+    footer_head = struct.pack('<BQQQ', OP_FOOTER, 20, summary_start, offsets_start)
+    put(bytes(out) + footer_head + struct.pack('<I', zlib.crc32(bytes(out) + footer_head)) +
+        MAGIC)
+
+
+def _statistics(scan: McapScan, n_metadata: int, n_chunks: int) -> bytes:
+    counts = b''.join(struct.pack('<HQ', c, k) for c, k in sorted(scan.channel_counts().items()))
+    t0, t1 = scan.time_range()
+    return _record(OP_STATISTICS, struct.pack(
+        '<QHIIIIQQ', scan.messages, len(scan.schemas), len(scan.channels),
+        len(scan.attachments), n_metadata, n_chunks, t0, t1) +
+        struct.pack('<I', len(counts)) + counts)
+
+
+def _find_mcap(bag_dir: Path) -> Path:
+    if not bag_dir.is_dir():
+        raise RepairError(f'{bag_dir}: not a directory')
+    preferred = bag_dir / f'{bag_dir.resolve().name}_0.mcap'
+    if preferred.is_file():
+        return preferred
+    found = sorted(p for p in bag_dir.glob('*.mcap') if p.is_file())
+    if len(found) != 1:
+        raise RepairError(f'{bag_dir}: ' + ('no .mcap file' if not found else
+                          f'several .mcap files ({", ".join(p.name for p in found)})'))
+    return found[0]
+
+
+def repair_bag(bag_dir: Path) -> RepairReport:
+    """Repair the bag directory ``bag_dir`` (see the module doc); returns what was done."""
+    bag_dir = Path(bag_dir)
+    path = _find_mcap(bag_dir)
+    scan = scan_mcap(path)
+    if scan.complete and not scan.ended:
+        raise RepairError(f'{path}: has a valid footer but its data section is damaged at '
+                          f'byte {scan.data_end}; left untouched')
+    dropped = 0 if scan.complete else scan.size - scan.data_end
+    if not scan.complete:
+        tmp = path.with_name(path.name + '.repairing')
+        try:
+            with open(tmp, 'wb') as f:
+                _write_repaired(scan, f)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException as exc:
+            tmp.unlink(missing_ok=True)
+            if isinstance(exc, OSError):
+                raise RepairError(f'{path}: cannot write the repaired file ({exc}); '
+                                  'the original is unchanged') from exc
+            raise
+        dfd = os.open(bag_dir, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    counts = scan.channel_counts()
+    topics: dict[str, TopicRecord] = {}
+    for cid, (topic, sid, meta, _rec) in scan.channels.items():
+        t = topics.setdefault(topic, TopicRecord(
+            topic, scan.schemas.get(sid, ('', b''))[0], 0,
+            _qos(meta.get('offered_qos_profiles', '')), meta.get('topic_type_hash', '')))
+        t.message_count += counts.get(cid, 0)
+    try:
+        custom = dict(read_metadata_yaml(bag_dir).get('custom_data') or {})
+    except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError):
+        custom = {}
+    custom['im_tuner.state'] = 'closed' if scan.complete else 'repaired'
+    custom['im_tuner.repair'] = ('complete file (valid footer), left untouched; '
+                                 f'{scan.messages} messages in {len(scan.chunks)} chunks'
+                                 if scan.complete else
+                                 _repair_line(scan.messages, len(scan.chunks), dropped))
+    t0, t1 = scan.time_range()
+    write_metadata_yaml(bag_dir, bag_metadata([(path.name, t0, t1, scan.messages)],
+                                              list(topics.values()), custom))
+    return RepairReport(bag_dir, path.name, scan.complete, scan.messages, len(scan.chunks),
+                        dropped, {t.name: t.message_count for t in topics.values()})
+
+
+def _qos(text: str) -> list[dict]:
+    try:
+        profiles = yaml.safe_load(text) if text else []
+    except yaml.YAMLError:
+        return []
+    return profiles if isinstance(profiles, list) else []

@@ -21,6 +21,7 @@ rewritten from what the scan found. No rclpy here.
 from __future__ import annotations
 
 import os
+import shutil
 import struct
 import zlib
 from dataclasses import dataclass, field
@@ -117,7 +118,8 @@ class RepairReport:
                     f'chunks on {len(self.topics)} topics']
         else:
             head = [f'bag {self.bag}: {self.file} had no valid summary/footer; rewrote it and '
-                    'metadata.yaml', f'  {_repair_line(self.messages, self.chunks, self.dropped_bytes)}']
+                    'metadata.yaml',
+                    '  ' + _repair_line(self.messages, self.chunks, self.dropped_bytes)]
         return '\n'.join(head + [f'  {t}: {n}' for t, n in sorted(self.topics.items())])
 
 
@@ -426,6 +428,7 @@ def repair_bag(bag_dir: Path) -> RepairReport:
                 _write_repaired(scan, f)
                 f.flush()
                 os.fsync(f.fileno())
+            shutil.copymode(path, tmp)
             os.replace(tmp, path)
         except BaseException as exc:
             tmp.unlink(missing_ok=True)
@@ -455,8 +458,12 @@ def repair_bag(bag_dir: Path) -> RepairReport:
                                  if scan.complete else
                                  _repair_line(scan.messages, len(scan.chunks), dropped))
     t0, t1 = scan.time_range()
-    write_metadata_yaml(bag_dir, bag_metadata([(path.name, t0, t1, scan.messages)],
-                                              list(topics.values()), custom))
+    try:
+        write_metadata_yaml(bag_dir, bag_metadata([(path.name, t0, t1, scan.messages)],
+                                                  list(topics.values()), custom))
+    except OSError as exc:
+        raise RepairError(f'{bag_dir}: cannot write metadata.yaml ({exc}); '
+                          f'{path.name} is {"intact" if scan.complete else "repaired"}') from exc
     return RepairReport(bag_dir, path.name, scan.complete, scan.messages, len(scan.chunks),
                         dropped, {t.name: t.message_count for t in topics.values()})
 

@@ -19,11 +19,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import EndOfFile, McapError
 from mcap.reader import make_reader
-from mcap.stream_reader import StreamReader
+from mcap.records import Chunk as McapChunk
 from mcap.records import Message as McapMessage
+from mcap.records import MessageIndex as McapMessageIndex
+from mcap.stream_reader import StreamReader, get_chunk_data_stream
 from rclpy.serialization import serialize_message
 from rosbags.rosbag2 import Reader as RosbagsReader
+from rosbags.rosbag2 import ReaderError as RosbagsReaderError
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from std_msgs.msg import String
 
@@ -70,10 +75,12 @@ def snapshot(d: Path) -> dict[str, bytes]:
 class Recording:
     """A bag being written as the recorder writes it; remembers what went in, in order."""
 
-    def __init__(self, out: Path, compression: str = 'zstd', chunk_size: int = 4096) -> None:
+    def __init__(self, out: Path, compression: str = 'zstd', chunk_size: int = 4096,
+                 background: bool = False) -> None:
         self.out = prepare_bag_dir(out)
         self.file = self.out / storage_file_name(self.out)
-        self.w = McapWriter(self.file, compression=compression, chunk_size=chunk_size)
+        self.w = McapWriter(self.file, compression=compression, chunk_size=chunk_size,
+                            background=background)
         self.w.add_metadata('im_tuner.run', {'command': 'test'})
         write_metadata_yaml(self.out, bag_metadata(
             [(self.file.name, 0, 0, 0)], [],
@@ -145,7 +152,7 @@ def stream_messages(path: Path) -> list[int]:
             for r in StreamReader(f).records:
                 if isinstance(r, McapMessage):
                     out.append(r.log_time)
-        except Exception:  # noqa: BLE001 - a cut file ends in an error, which one varies
+        except EndOfFile:  # a cut file (or one without a footer) ends here
             pass
     return out
 
@@ -168,6 +175,56 @@ def read_with_mcap(path: Path, sent: list[tuple[str, int, object]]) -> None:
     assert {t: n for t, n in by_topic.items() if n} == topic_counts(sent)
     assert {s.name for s in summary.schemas.values()} == {ARRAY, STRING}
     assert scan_mcap(path).complete  # ends in a footer whose summary CRC matches
+    check_message_indexes(path, summary)
+
+
+def check_message_indexes(path: Path, summary) -> None:
+    """Every chunk's Message Index records (read by the mcap library) list each of its
+    messages once, sorted by (log_time, offset), each pointing at a Message of that channel
+    and log_time; the summary's Chunk Indexes point at those records."""
+    with open(path, 'rb') as f:
+        records = list(StreamReader(f, emit_chunks=True, validate_crcs=True).records)
+    chunk_data, msgs, seen, n_chunks = b'', {}, [], 0
+
+    def check_chunk() -> None:
+        assert sorted(seen) == sorted(msgs)
+    for r in records:
+        if isinstance(r, McapChunk):
+            if n_chunks:
+                check_chunk()
+            n_chunks += 1
+            stream, _n = get_chunk_data_stream(r, validate_crc=True)
+            chunk_data, msgs, seen = stream.read(r.uncompressed_size), {}, []
+            for m_off in _message_offsets(chunk_data):
+                m = McapMessage.read(ReadDataStream(io.BytesIO(chunk_data[m_off + 9:])),
+                                     struct.unpack_from('<Q', chunk_data, m_off + 1)[0])
+                msgs[m_off] = (m.channel_id, m.log_time)
+        elif isinstance(r, McapMessageIndex):
+            assert r.records == sorted(r.records)
+            for t, off in r.records:
+                assert msgs[off] == (r.channel_id, t)
+                seen.append(off)
+    if n_chunks:
+        check_chunk()
+    assert n_chunks == len(summary.chunk_indexes)
+    with open(path, 'rb') as f:
+        for ci in summary.chunk_indexes:
+            f.seek(ci.chunk_start_offset)
+            assert f.read(1) == b'\x06'
+            for cid, off in ci.message_index_offsets.items():
+                f.seek(off)
+                head = f.read(11)
+                assert head[0] == 0x07 and struct.unpack_from('<H', head, 9)[0] == cid
+
+
+def _message_offsets(data: bytes) -> list[int]:
+    out, p = [], 0
+    while p < len(data):
+        op, n = struct.unpack_from('<BQ', data, p)
+        if op == 0x05:
+            out.append(p)
+        p += 9 + n
+    return out
 
 
 def read_with_rosbags(bag: Path, sent: list[tuple[str, int, object]]) -> None:
@@ -232,17 +289,23 @@ def test_complete_bag_reads_back(tmp_path: Path, compression: str) -> None:
 
 # --- 2. a crash: readable up to the last complete chunk, repaired ------------------------
 
-@pytest.mark.parametrize('compression', ['none', 'zstd', 'lz4'])
-def test_crash_then_repair(tmp_path: Path, compression: str) -> None:
-    rec = Recording(tmp_path / 'bag', compression)
+@pytest.mark.parametrize('compression,background',
+                         [('none', False), ('zstd', False), ('lz4', False), ('lz4', True)])
+def test_crash_then_repair(tmp_path: Path, compression: str, background: bool) -> None:
+    rec = Recording(tmp_path / 'bag', compression, background=background)
     rec.write(900, flush_every=61)
     rec.write(3)  # in the open chunk: lost
     complete = crash(rec)
     assert len(rec.w.chunks) > 5 and 0 < len(complete) < len(rec.sent)
 
-    # Before repair: a streaming reader gets every message of the complete chunks, then fails.
+    # Before repair: the indexed readers refuse the file (no footer)...
+    with open(rec.file, 'rb') as f, pytest.raises(McapError):
+        make_reader(f).get_summary()
+    with pytest.raises(RosbagsReaderError, match='end magic'):
+        RosbagsReader(rec.file).open()
+    # ...a streaming reader gets every message of the complete chunks, then hits the cut.
     streamed = []
-    with open(rec.file, 'rb') as f, pytest.raises(Exception):  # noqa: B017,PT011
+    with open(rec.file, 'rb') as f, pytest.raises(EndOfFile):
         for r in StreamReader(f).records:
             if isinstance(r, McapMessage):
                 streamed.append(r.log_time)
@@ -250,7 +313,7 @@ def test_crash_then_repair(tmp_path: Path, compression: str) -> None:
     # ...and so does the mcap reader on a non-seekable stream, in file order (its default,
     # log_time_order=True, sorts everything first and so yields nothing before the error).
     nonseek = []
-    with open(rec.file, 'rb') as f, pytest.raises(Exception):  # noqa: B017,PT011
+    with open(rec.file, 'rb') as f, pytest.raises(EndOfFile):
         reader = make_reader(io.BufferedReader(_NonSeekable(f)))
         for _s, _c, m in reader.iter_messages(log_time_order=False):
             nonseek.append(m.log_time)
@@ -413,7 +476,8 @@ def test_repair_file_of_the_mcap_library(tmp_path: Path, chunked: bool) -> None:
     with RosbagsReader(out) as reader:
         for conn in reader.connections:
             store.register(get_types_from_msg(conn.msgdef.data, conn.msgtype))
-        values = [store.deserialize_cdr(raw, c.msgtype).data[0] for c, _t, raw in reader.messages()]
+        values = [store.deserialize_cdr(raw, c.msgtype).data[0]
+                  for c, _t, raw in reader.messages()]
     assert values == [v[0] for _tp, _t, v in recovered]
 
 
@@ -439,7 +503,8 @@ def test_errors_name_the_path_and_change_nothing(tmp_path: Path) -> None:
 
     for name, content, msg in [('bad', b'not an mcap file at all' * 10, 'bad magic'),
                                ('short', b'\x89MC', 'bad magic'),
-                               ('nohead', b'\x89MCAP0\r\n\x01\x30\x00', 'no complete MCAP header')]:
+                               ('nohead', b'\x89MCAP0\r\n\x01\x30\x00', 'no complete MCAP header'),
+                               ('zero', b'', 'bad magic')]:
         d = tmp_path / name
         d.mkdir()
         (d / f'{name}_0.mcap').write_bytes(content)
@@ -449,6 +514,46 @@ def test_errors_name_the_path_and_change_nothing(tmp_path: Path) -> None:
             repair_bag(d)
         assert str(d / f'{name}_0.mcap') in str(e.value)
         assert snapshot(d) == before
+
+
+def test_several_mcap_files_are_refused(tmp_path: Path) -> None:
+    d = tmp_path / 'multi'
+    d.mkdir()
+    for name in ('a.mcap', 'b.mcap'):
+        (d / name).write_bytes(b'\x89MCAP0\r\n')
+    with pytest.raises(RepairError, match=r'several \.mcap files \(a\.mcap, b\.mcap\)'):
+        repair_bag(d)
+
+
+def test_damaged_complete_file_is_refused(tmp_path: Path) -> None:
+    """A valid footer but a chunk that fails its CRC: not ours to rewrite; nothing changes."""
+    rec = Recording(tmp_path / 'bag', 'none')
+    rec.write(300, flush_every=100)
+    rec.w.close()
+    second = rec.w.chunks[1]
+    with open(rec.file, 'r+b') as f:
+        f.seek(second.offset + second.length - 3)
+        f.write(b'\xff\xfe\xfd')
+    before = snapshot(rec.out)
+    with pytest.raises(RepairError, match='data section is damaged') as e:
+        repair_bag(rec.out)
+    assert str(rec.file) in str(e.value) and snapshot(rec.out) == before
+
+
+def test_killed_while_writing_the_summary(tmp_path: Path) -> None:
+    """DataEnd is there but the summary is cut: rewritten, nothing of the data lost."""
+    rec = Recording(tmp_path / 'bag', 'zstd')
+    rec.write(500, flush_every=120)
+    rec.w.close()
+    last = rec.w.chunks[-1]
+    data_end = last.offset + last.length + last.index_length  # the DataEnd record is here
+    size = rec.file.stat().st_size
+    os.truncate(rec.file, size - 40)
+    report = repair_bag(rec.out)
+    assert not report.was_complete and report.messages == 500
+    assert report.dropped_bytes == size - 40 - data_end
+    read_with_mcap(rec.file, rec.sent)
+    read_with_rosbags(rec.out, rec.sent)
 
 
 # --- 6. failure atomicity -----------------------------------------------------------------

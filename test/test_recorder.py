@@ -394,3 +394,52 @@ def test_bad_out_is_refused_and_changes_nothing(tmp_path):
                         '--compression', 'brotli'], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and 'invalid choice' in r.stderr
     assert _tree_hash(tmp_path) == before
+
+
+def test_sim_bench_executable_records_by_default(ros_context, procs, tmp_path, wait_until):
+    """`ros2 run im_controller sim_bench --out DIR`: an experiment, SIGINT, a closed bag."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    bag = tmp_path / 'bench_bag'
+    child = procs.start([ROS2, 'run', 'im_controller', 'sim_bench', '--seed', '2',
+                         '--out', str(bag)])
+    node = Node('bench_client', context=ros_context)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(node)
+    losses = []
+    node.create_subscription(DiagnosticArray, '/controller/loss', losses.append, RELIABLE_ALL)
+    start = node.create_client(Trigger, '/controller/start_experiment')
+
+    def spin_until(pred, timeout):
+        deadline = time.monotonic() + timeout
+        while not pred() and time.monotonic() < deadline and child.poll() is None:
+            ex.spin_once(timeout_sec=0.01)
+        return pred()
+    assert spin_until(lambda: start.service_is_ready() and
+                      node.count_publishers('/controller/loss') > 0, 60.0)
+    for _ in range(100):
+        fut = start.call_async(Trigger.Request())
+        assert spin_until(fut.done, 20.0)
+        if fut.result().success:
+            break
+        spin_until(lambda: False, 0.05)
+    assert fut.result().success, fut.result().message
+    assert spin_until(lambda: losses, 60.0)
+    ex.shutdown()
+    node.destroy_node()
+    child.send_signal(signal.SIGINT)
+    _out, err = child.communicate(timeout=60)
+    assert child.returncode == 0, err
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    counts = json.loads(meta['custom_data']['im_tuner.counts'])
+    assert meta['custom_data']['im_tuner.state'] == 'closed'
+    for topic in ('/drive/state', '/drive/command', '/controller/internals'):
+        assert counts[topic]['recorded'] == counts[topic]['published'] >= 5625, topic
+        assert counts[topic]['lost'] == 0 and counts[topic]['published_before_recording'] == 0
+    msgs = read_with_rosbags(bag)
+    assert len(msgs['/controller/loss']) == 1
+    from mcap.reader import make_reader
+    with open(bag / 'bench_bag_0.mcap', 'rb') as f:
+        records = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert records['im_tuner.drive']['seed'] == '2'
+    assert '--seed 2' in records['im_tuner.run']['command']

@@ -10,11 +10,9 @@ drive simulator publishes, ``std_msgs/String`` from rclpy's serialiser.
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import io
 import os
 import struct
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -37,15 +35,7 @@ from im_tuner.bag import (TopicRecord, bag_metadata, prepare_bag_dir, qos_to_dic
 from im_tuner.mcap_writer import McapWriter
 from im_tuner.msgdefs import schema_text
 
-try:
-    from im_tuner import mcap_repair
-except ImportError:  # the installed im_tuner predates this module (`make setup` refreshes it)
-    _SRC = Path(__file__).resolve().parents[1] / 'im_tuner' / 'mcap_repair.py'
-    _spec = importlib.util.spec_from_file_location('im_tuner.mcap_repair', _SRC)
-    assert _spec is not None and _spec.loader is not None
-    mcap_repair = importlib.util.module_from_spec(_spec)
-    sys.modules[_spec.name] = mcap_repair  # dataclasses look their module up there
-    _spec.loader.exec_module(mcap_repair)
+from im_tuner import mcap_repair
 
 RepairError = mcap_repair.RepairError
 repair_bag = mcap_repair.repair_bag

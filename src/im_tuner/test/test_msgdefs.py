@@ -8,7 +8,6 @@ that misdescribes a type shows up as wrong or failing decodes.
 from __future__ import annotations
 
 import array
-import importlib.util
 import os
 import sys
 from pathlib import Path
@@ -23,14 +22,7 @@ from rosbags.typesys.msg import normalize_msgtype
 
 os.environ.setdefault("AMENT_PREFIX_PATH", sys.prefix)
 
-try:
-    from im_tuner import msgdefs
-except ImportError:  # the installed im_tuner predates this module (`make setup` refreshes it)
-    _SRC = Path(__file__).resolve().parents[1] / "im_tuner" / "msgdefs.py"
-    _spec = importlib.util.spec_from_file_location("im_tuner.msgdefs", _SRC)
-    assert _spec is not None and _spec.loader is not None
-    msgdefs = importlib.util.module_from_spec(_spec)
-    _spec.loader.exec_module(msgdefs)
+from im_tuner import msgdefs  # noqa: E402
 
 MsgDefError = msgdefs.MsgDefError
 schema_text = msgdefs.schema_text

@@ -13,7 +13,8 @@ publisher sent that this reader never got.
 This module loads rclpy's C extension (so that ``librcl`` is in the process) but does
 not use rclpy's Python API; the subscriptions stay owned by the rclpy node.
 
-Struct layouts (ROS 2 Jazzy, checked by :func:`self_check` at start-up):
+Struct layouts (ROS 2 Jazzy headers; test/test_recorder.py checks the kernel's bytes and
+sequence numbers against rclpy's own take):
 ``rcl_serialized_message_t`` = ``rcutils_uint8_array_t`` {uint8* buffer; size_t length;
 size_t capacity; rcutils_allocator_t allocator (5 pointers)} = 8 x 64-bit words;
 ``rmw_message_info_t`` {int64 source_timestamp; int64 received_timestamp; uint64

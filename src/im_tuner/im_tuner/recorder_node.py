@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
+import yaml
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
@@ -379,7 +380,6 @@ class Recorder:
         if self.unrecordable:
             custom['im_tuner.unrecordable'] = json.dumps(self.unrecordable, sort_keys=True)
         meta = self._metadata(custom)
-        import yaml
         self.writer.add_metadata('rosbag2', {'serialized_metadata': yaml.safe_dump(
             meta, sort_keys=False), 'ros_distro': 'jazzy'})
         self.writer.add_metadata('im_tuner.counts', {k: json.dumps(v, sort_keys=True)
@@ -417,11 +417,6 @@ class Recorder:
             except Exception:  # noqa: BLE001 - context may already be shut down
                 pass
         self._take.close()
-
-    def abandon(self) -> None:
-        """Stop without finishing the bag (as a crash would); for tests."""
-        self._subs = np.zeros(0, np.uint64)
-        self.writer.abandon()
 
 
 def _version() -> str:

@@ -119,7 +119,9 @@ def test_realtime_mode_paces_at_5khz(procs, ros_context):
     out, err = p.communicate(timeout=30)
     assert p.returncode == 0, err
     ks_a, ts_a = np.array(ks), np.array(ts)
-    assert ks_a[-1] == steps and len(ks_a) > steps // 2
+    # The drive paces from its own start; on a cold machine discovery can match this
+    # client a few hundred ms later, so count from the first state received.
+    assert ks_a[-1] == steps and len(ks_a) >= 500 and len(ks_a) > (steps - ks_a[0]) // 2
     # Stated tolerance, on the drive's own publication times (a shared 2-core machine,
     # the responder competing for the CPU): the typical period within 2 %, the whole
     # run's average (overruns re-anchor the schedule) within 10 %.

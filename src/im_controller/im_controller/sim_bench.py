@@ -199,9 +199,9 @@ def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
         ctl += ros_args
     procs = []
     if not cli.no_record:
-        _recorder_module()  # fail early, with the reason, if it is not installed
+        rn = _recorder_module()  # fail early, with the reason, if it is not installed
         rec = [ros2, 'run', 'im_tuner', 'recorder', '--compression', cli.compression,
-               '--out', str(cli.out or _default_out())]
+               '--out', str(cli.out or rn.default_out_dir(prefix='sim_bench'))]
         procs.append(subprocess.Popen(rec))
     procs += [subprocess.Popen(drive), subprocess.Popen(ctl)]
     stop = {'sig': None}
@@ -224,12 +224,6 @@ def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
         for p in reversed(procs):  # the recorder last: it takes what the others sent
             stop_child(p)
     return code
-
-
-def _default_out() -> Path:
-    import datetime as _dt
-    stamp = _dt.datetime.now(_dt.timezone.utc).strftime('%Y_%m_%d-%H_%M_%S')
-    return Path('bags') / f'sim_bench_{stamp}'
 
 
 def main(args: list[str] | None = None) -> int:
@@ -259,7 +253,8 @@ def main(args: list[str] | None = None) -> int:
         from rclpy.node import Node
         try:
             rec = rn.Recorder(Node('recorder', start_parameter_services=False),
-                              cli.out or _default_out(), compression=cli.compression,
+                              cli.out or rn.default_out_dir(prefix='sim_bench'),
+                              compression=cli.compression,
                               extra_metadata=bench_metadata(b), command=argv)
         except (rn.BagError, rn.RecorderError) as exc:
             raise ControllerError(str(exc)) from None

@@ -292,7 +292,9 @@ def test_standalone_recorder_burst_sigint(ros_context, procs, tmp_path, wait_unt
             publish_retry(pub, msg, ros_context)
         if i % 1000 == 0:
             text.publish(String(data=f'note {i}'))
-    assert pub.wait_for_all_acked(timeout=__import__('rclpy').duration.Duration(seconds=30))
+    from rclpy.duration import Duration
+    for p in (pub, text):  # everything delivered before the recorder is asked to stop
+        assert p.wait_for_all_acked(timeout=Duration(seconds=30))
     rec.send_signal(signal.SIGINT)
     out, err = rec.communicate(timeout=60)
     assert rec.returncode == 0, err

@@ -139,7 +139,8 @@ def test_realtime_mode_paces_at_5khz(procs, ros_context):
 
 
 def test_realtime_holds_the_last_command_when_none_comes(procs):
-    p = drive_proc(procs, '--mode', 'realtime', '--max-steps', '500')
+    p = drive_proc(procs, '--mode', 'realtime', '--max-steps', '500', '--ros-args', '-p',
+                   'realtime_wait_for_controller:=false')
     out, err = p.communicate(timeout=30)
     assert p.returncode == 0, err
     summary = err[err.rindex('stopped at step'):].splitlines()[0]

@@ -127,6 +127,7 @@ class DriveSimNode(Node):
         self.max_steps: int = p['max_steps']
         self.service_period_steps: int = p['service_period_steps']
         self.republish_period: float = p['republish_period']
+        self.realtime_wait_for_controller: bool = p['realtime_wait_for_controller']
         self.spin_margin: float = p['realtime_spin_margin']
         self.counters = Counters()
         #: Set by SIGINT/SIGTERM (see main): the loops stop at the next step boundary, so
@@ -199,6 +200,9 @@ class DriveSimNode(Node):
                 'Lock-step: re-send the current state after this long without a command '
                 '[s], so a controller that starts later still gets it.',
                 float_range=(0.001, 60.0))),
+            ('realtime_wait_for_controller', True, _descriptor(
+                'Real time: start the clock only once a controller publishes on '
+                'drive/command (false: start at once and hold zero current).')),
             ('realtime_spin_margin', 150e-6, _descriptor(
                 'Real time: busy-wait this long before each period start instead of '
                 'sleeping, for low jitter [s].', float_range=(0.0, 200e-6))),
@@ -378,6 +382,13 @@ class DriveSimNode(Node):
         """
         c = self.counters
         ts = self.config.Ts
+        if self.realtime_wait_for_controller:
+            # A drive with no controller would only hold zero current: the clock starts
+            # when one is matched, so it never misses the first periods.
+            self.get_logger().info('real time: waiting for a controller on drive/command')
+            while not self.stop_requested and rclpy.ok(context=self.context) and \
+                    self.cmd_sub.get_publisher_count() == 0:
+                executor.spin_once(timeout_sec=0.01)
         self.start()
         t0 = t_start = time.perf_counter()
         n = 0  # periods since t0

@@ -277,6 +277,13 @@ class ControllerNode(Node):
                 reason=f'experiment {self.runner.experiment_id} is running: gains and '
                        'experiment parameters change only between experiments (refused, '
                        'not deferred; set them again after the result arrives)')
+        if tunable and not (self.runner.ready or self.runner.faulted):
+            # After a supervisor stop the fallback gains finish the move: new gains now
+            # would replace them mid-move (and at a wall-clock-dependent step).
+            return SetParametersResult(
+                successful=False,
+                reason='still finishing the stopped move with the fallback gains: gains and '
+                       'experiment parameters change once it ends (refused; retry shortly)')
         for p in params:
             if isinstance(p.value, float) and not math.isfinite(p.value):
                 return SetParametersResult(successful=False,
@@ -341,7 +348,10 @@ class ControllerNode(Node):
         """Answer states now? In lock-step 'pause', only while something runs."""
         if self.mode == 'realtime' or self.lockstep_idle == 'hold':
             return True
-        return self.runner.running or not self.runner.ready
+        # Paused in hold and in FAULT (zero current was commanded): sim time stands still
+        # until the next start or reset, whatever the wall-clock gap.
+        r = self.runner
+        return r.running or not (r.ready or r.faulted)
 
     def take(self, timeout: float = 0.0) -> None:
         """Take the newest state, waiting up to ``timeout`` s if none is there."""
@@ -397,10 +407,13 @@ class ControllerNode(Node):
             self.loss_pub.publish(msg)
         except RCLError:
             self.client.backpressure += publish_retry(self.loss_pub, msg, self.context)
-        log = self.get_logger().info if not res.aborted else self.get_logger().warn
-        log(f'experiment {res.experiment_id}: loss {res.loss:.6g} terms '
-            f'({res.terms[0]:.4g}, {res.terms[1]:.4g}, {res.terms[2]:.4g})'
-            + (f' ABORTED {res.reason} at step {res.trip_step}' if res.aborted else ''))
+        text = (f'experiment {res.experiment_id}: loss {res.loss:.6g} terms '
+                f'({res.terms[0]:.4g}, {res.terms[1]:.4g}, {res.terms[2]:.4g})')
+        # Two call sites: rclpy refuses one call site logging at two severities.
+        if res.aborted:
+            self.get_logger().warn(f'{text} ABORTED {res.reason} at step {res.trip_step}')
+        else:
+            self.get_logger().info(text)
 
     def watchdog(self) -> None:
         """No state for ``state_timeout`` while one is expected: torque off, abort, FAULT."""

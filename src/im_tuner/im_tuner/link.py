@@ -1,0 +1,197 @@
+"""The tuner's link to a controller node: a :class:`im_tuner.tuning.Measurer` over ROS.
+
+Standard interfaces only (docs/interfaces.md, docs/controller.md):
+
+* gains: ``<controller>/set_parameters_atomically`` (rcl_interfaces) -- all five or none;
+* experiment: ``<controller>/start_experiment`` (std_srvs/Trigger), whose answer names
+  the experiment id (``"experiment 12 started"``);
+* result: ``<namespace>/controller/loss`` (diagnostic_msgs/DiagnosticArray, one status,
+  ``im_controller.messages``), matched by experiment id; the gains it echoes must equal
+  the gains set (else someone else changed them: the run stops);
+* safety faults: ``<controller>/reset_fault`` (std_srvs/Trigger), called only with
+  ``fault_policy='reset'`` (the default on the simulated bench).
+
+Every wait spins through the given ``spin_until(predicate, timeout)`` -- the in-process
+bench's (which steps the simulation) or a plain executor's -- and gives up on a deadline.
+"""
+from __future__ import annotations
+
+import posixpath
+import re
+import time
+from typing import Any, Callable
+
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from rclpy.parameter import Parameter, parameter_value_to_python
+from rclpy.parameter_client import AsyncParameterClient
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_srvs.srv import Trigger
+
+from im_controller.config import GAIN_NAMES, Gains
+from im_controller.messages import SAFETY_REASONS, msg_to_result
+
+from .tuning import BenchFailure, LostEvaluation, Measurement, StopRequested
+
+__all__ = ['ControllerLink', 'FAULT_POLICIES', 'controller_topics']
+
+FAULT_POLICIES = ('reset', 'stop')
+_STARTED = re.compile(r'experiment (\d+) started')
+#: start refusals that clear by themselves (retry): running, no state yet, finishing a move
+_TRANSIENT = ('is running', 'no drive state', 'retry shortly')
+RETRY_PERIOD = 0.02  # [s] between retries of a refused call
+
+
+def controller_topics(controller: str) -> dict[str, str]:
+    """Fully qualified names of the controller's services and loss topic."""
+    if not controller.startswith('/'):
+        controller = '/' + controller
+    ns = posixpath.dirname(controller)
+    return {'start': f'{controller}/start_experiment', 'reset': f'{controller}/reset_fault',
+            'set_atomic': f'{controller}/set_parameters_atomically',
+            'loss': posixpath.join(ns, 'controller/loss'), 'node': controller}
+
+
+class ControllerLink:
+    """Set gains, run experiments and collect their losses on one controller node."""
+
+    def __init__(self, node: Node, spin_until: Callable[[Callable[[], bool], float], bool], *,
+                 controller: str = '/controller', eval_timeout: float = 60.0,
+                 call_timeout: float = 10.0, fault_policy: str = 'reset',
+                 should_stop: Callable[[], bool] = lambda: False) -> None:
+        if fault_policy not in FAULT_POLICIES:
+            raise ValueError(f'fault_policy must be one of {FAULT_POLICIES}, got {fault_policy!r}')
+        self.node = node
+        self.names = controller_topics(controller)
+        self._spin = spin_until
+        self.eval_timeout = float(eval_timeout)
+        self.call_timeout = float(call_timeout)
+        self.fault_policy = fault_policy
+        self.should_stop = should_stop
+        self.params = AsyncParameterClient(node, self.names['node'])
+        self.start_cli = node.create_client(Trigger, self.names['start'])
+        self.reset_cli = node.create_client(Trigger, self.names['reset'])
+        self.results: dict[int, Any] = {}
+        self.bad_messages = 0
+        self.faults_reset = 0
+        qos = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
+                         reliability=ReliabilityPolicy.RELIABLE)
+        self.loss_sub = node.create_subscription(DiagnosticArray, self.names['loss'],
+                                                 self._on_loss, qos)
+
+    # -- plumbing ----------------------------------------------------------------------------
+    def _on_loss(self, msg: DiagnosticArray) -> None:
+        try:
+            r = msg_to_result(msg)
+        except ValueError as exc:
+            self.bad_messages += 1
+            self.node.get_logger().warn(f'ignored a malformed loss message: {exc}')
+            return
+        self.results[r.experiment_id] = r
+
+    def _wait(self, pred: Callable[[], bool], timeout: float) -> bool:
+        ok = self._spin(lambda: pred() or self.should_stop(), timeout)
+        if self.should_stop():
+            raise StopRequested()
+        return ok and pred()
+
+    def _call(self, fut, what: str):
+        if not self._wait(fut.done, self.call_timeout):
+            raise LostEvaluation(f'{what}: no answer within {self.call_timeout:g} s')
+        return fut.result()
+
+    def reachable(self) -> bool:
+        """Services ready and the loss topic published (no waiting)."""
+        return (self.start_cli.service_is_ready() and self.reset_cli.service_is_ready()
+                and self.params.services_are_ready()
+                and self.node.count_publishers(self.names['loss']) > 0)
+
+    def wait_ready(self, timeout: float) -> bool:
+        return self._wait(self.reachable, timeout)
+
+    # -- parameters --------------------------------------------------------------------------
+    def get_parameters(self, names: list[str]) -> dict[str, Any]:
+        resp = self._call(self.params.get_parameters(names), 'get_parameters')
+        return {n: parameter_value_to_python(v) for n, v in zip(names, resp.values)}
+
+    def list_parameters(self) -> dict[str, Any]:
+        """Every parameter of the controller with its value (for the run file)."""
+        names = list(self._call(self.params.list_parameters(), 'list_parameters').result.names)
+        if not names:
+            return {}
+        return self.get_parameters(sorted(names))
+
+    def set_gains(self, gains: Gains, deadline: float) -> None:
+        """All five gains in one atomic call; transient refusals are retried until
+        ``deadline`` (monotonic s), anything else stops the run."""
+        params = [Parameter(n, Parameter.Type.DOUBLE, float(v))
+                  for n, v in zip(GAIN_NAMES, gains.as_tuple())]
+        while True:
+            res = self._call(self.params.set_parameters_atomically(params),
+                             'set_parameters_atomically').result
+            if res.successful:
+                return
+            if not any(t in res.reason for t in ('is running', 'retry shortly')):
+                raise BenchFailure(f'the controller refused the gains {gains}: {res.reason}')
+            if time.monotonic() > deadline:
+                raise LostEvaluation(f'gains refused until the timeout: {res.reason}')
+            self._wait(lambda: False, RETRY_PERIOD)
+
+    # -- experiments -------------------------------------------------------------------------
+    def reset_fault(self) -> str:
+        resp = self._call(self.reset_cli.call_async(Trigger.Request()), 'reset_fault')
+        if not resp.success:
+            raise BenchFailure(f'reset_fault refused: {resp.message}')
+        self.faults_reset += 1
+        return resp.message
+
+    def _start(self, deadline: float) -> int:
+        while True:
+            resp = self._call(self.start_cli.call_async(Trigger.Request()), 'start_experiment')
+            if resp.success:
+                m = _STARTED.search(resp.message)
+                if m is None:
+                    raise BenchFailure(f'start_experiment answered {resp.message!r}: no '
+                                       'experiment id in it')
+                return int(m.group(1))
+            msg = resp.message
+            if 'safety fault' in msg:
+                if self.fault_policy != 'reset':
+                    raise BenchFailure(f'the controller is in a safety fault ({msg}); check '
+                                       f'the drive, call {self.names["reset"]} and resume')
+                self.node.get_logger().warn(f'{msg}; resetting it (fault policy: reset)')
+                self.reset_fault()
+                continue
+            if not any(t in msg for t in _TRANSIENT):
+                raise BenchFailure(f'start_experiment refused: {msg}')
+            if time.monotonic() > deadline:
+                raise LostEvaluation(f'start_experiment refused until the timeout: {msg}')
+            self._wait(lambda: False, RETRY_PERIOD)
+
+    def measure(self, gains: Gains) -> Measurement:
+        """Set ``gains``, run one experiment, return its result (see module doc)."""
+        t0 = time.perf_counter()
+        deadline = time.monotonic() + self.eval_timeout
+        self.set_gains(gains, deadline)
+        eid = self._start(deadline)
+        if not self._wait(lambda: eid in self.results, max(deadline - time.monotonic(), 0.0)):
+            raise LostEvaluation(f'no loss for experiment {eid} within {self.eval_timeout:g} s',
+                                 experiment_id=eid)
+        r = self.results.pop(eid)
+        ran = r.gains.as_tuple()
+        if ran != gains.as_tuple():
+            raise BenchFailure(f'experiment {eid} ran with gains {ran}, not the ones set '
+                               f'{gains.as_tuple()}: something else changed them')
+        fault = r.reason in SAFETY_REASONS
+        if fault and self.fault_policy == 'reset':
+            self.node.get_logger().warn(f'experiment {eid}: safety fault {r.reason}; resetting '
+                                        'it (fault policy: reset)')
+            self.reset_fault()
+        return Measurement(loss=r.loss, terms=r.terms, aborted=r.aborted, reason=r.reason,
+                           fault=fault, experiment_id=r.experiment_id, direction=r.direction,
+                           steps=r.steps, trip_step=r.trip_step, t_start_ns=r.t_start,
+                           t_end_ns=r.t_end, wall_s=time.perf_counter() - t0, gains=ran)
+
+    def apply(self, gains: Gains) -> None:
+        """Leave ``gains`` applied on the controller (the run's final controller)."""
+        self.set_gains(gains, time.monotonic() + self.eval_timeout)

@@ -1,0 +1,617 @@
+"""The tuner: ``ros2 run im_tuner tuner --algo {spsa,necga,cga,pecga,rcga}``.
+
+Tunes the five gains of the cascaded position controller (paper eq. 8) online: for each
+evaluation it sets the gains on the controller through its parameter services
+(atomically), starts the paper's experiment, waits for the loss, and tells the optimiser
+(:mod:`im_tuner.tuning`, :mod:`im_tuner.link`, :mod:`im_tuner.optim`).
+
+Benches (``--bench``):
+
+* ``auto`` (default): a controller already on the graph (a real bench, or a simulated
+  one started by hand) is used as it is; otherwise the simulated bench is brought up in
+  this process (``inproc``);
+* ``inproc``: drive simulator + controller in this process, lock-step (the fast path),
+  with the recorder polled between steps;
+* ``processes``: ``drive_sim`` and ``controller`` as child processes (lock-step);
+* ``none``: use the controller on the graph; fail with a clear message if none answers.
+
+Everything is recorded (``bag_<session>/`` in the run directory) unless ``--no-record``:
+in-process by the bench's loop, otherwise by a ``ros2 run im_tuner recorder`` child.
+The run directory (``--out``, default ``bags/tuner_<algo>_<UTC time>``) holds
+``run.yaml``, ``results.jsonl``, ``checkpoint.json``, ``summary.json`` and the bags;
+``--resume RUN_DIR`` continues a killed run exactly (docs/tuner.md).
+
+Exit codes: 0 done, 1 the bench failed (best gains applied, bag closed), 2 bad input,
+130 interrupted (SIGINT/SIGTERM; resumable).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import rclpy
+import yaml
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+
+from im_controller.config import GAIN_NAMES, GAIN_UNITS, Gains
+
+from . import optim
+from .link import FAULT_POLICIES, ControllerLink, controller_topics
+from .optim.base import OptimizerError
+from .rundir import RunDir, RunDirError
+from .space import SearchSpace, TunerParams, TunerParamsError, load_params, parse_params
+from .tuning import BenchFailure, ResumeError, StopRequested, TuningRun, replay, replay_plan
+
+BENCHES = ('auto', 'inproc', 'processes', 'none')
+SIM_BENCHES = ('inproc', 'processes')
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+#: settings a resumed run takes from run.yaml (giving them with --resume is an error)
+RUN_SETTINGS = ('algo', 'budget', 'seed', 'params', 'remeasure', 'no_reference', 'model',
+                'drive_config', 'retries')
+
+
+class UsageError(Exception):
+    """Bad command-line input: one line, exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2 (argparse prints usage too)
+        raise UsageError(message)
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    ap = _Parser(prog='ros2 run im_tuner tuner',
+                 description='Tune the cascaded position/speed controller online by SPSA or '
+                             'a compact GA on measured experiment losses (docs/tuner.md).')
+    ap.add_argument('--algo', choices=optim.ALGOS, help='optimiser (default: necga)')
+    ap.add_argument('--budget', type=int, metavar='N',
+                    help='loss evaluations (default 200, as in the paper)')
+    ap.add_argument('--seed', type=int, metavar='S',
+                    help='seed of the optimiser and of the simulated drive\'s noise '
+                         '(default: a fresh one, printed and stored in run.yaml)')
+    ap.add_argument('--out', type=Path, metavar='DIR',
+                    help='run directory to create (default: bags/tuner_<algo>_<UTC time>)')
+    ap.add_argument('--resume', type=Path, metavar='RUN_DIR',
+                    help='continue the killed or interrupted run in RUN_DIR')
+    ap.add_argument('--bench', choices=BENCHES, help='where the controller comes from '
+                    '(default: auto = use one on the graph, else simulate in-process)')
+    ap.add_argument('--quiet', action='store_true', help='no progress bar (for scripts)')
+    ap.add_argument('--params', type=Path, metavar='FILE',
+                    help='tuner parameter file: search box, start point, satisfactory loss '
+                         '(default: the packaged config/tuner.yaml, the paper\'s motor)')
+    ap.add_argument('--remeasure', type=int, metavar='K',
+                    help='re-measure the K best distinct evaluations once at the end '
+                         '(default 3; 0 = off); the best re-measured is left applied')
+    ap.add_argument('--no-reference', action='store_true',
+                    help='do not measure the start gains first (the reference)')
+    ap.add_argument('--retries', type=int, metavar='R',
+                    help='re-runs of an evaluation whose result is lost (default 3)')
+    ap.add_argument('--eval-timeout', type=float, default=60.0, metavar='S',
+                    help='wall time allowed per experiment [s] (default 60)')
+    ap.add_argument('--fault-policy', choices=FAULT_POLICIES,
+                    help='after a safety fault: reset it and go on, or stop the run '
+                         '(default: reset on the simulated bench, stop on an external one)')
+    ap.add_argument('--controller', default='/controller', metavar='NODE',
+                    help='controller node name (default /controller)')
+    ap.add_argument('--no-record', action='store_true', help='do not record a bag')
+    ap.add_argument('--compression', choices=('none', 'zstd', 'lz4'), default='lz4',
+                    help='MCAP chunk compression (default lz4)')
+    ap.add_argument('--model', choices=('full', 'reduced'),
+                    help='simulated bench: drive model fidelity (default: the drive file\'s)')
+    ap.add_argument('--drive-config', type=Path, metavar='FILE',
+                    help='simulated bench: drive parameter file (default: the paper\'s motor)')
+    ap.add_argument('--discovery-timeout', type=float, default=2.0, metavar='S',
+                    help='--bench auto/none: how long to look for a controller [s] (default 2)')
+    g = ap.add_argument_group('algorithm options (docs/optimisers.md)')
+    seen: dict[str, Any] = {}
+    for algo, specs in optim.OPTIONS.items():
+        for name, spec in specs.items():
+            if name in seen:
+                continue
+            seen[name] = spec
+            kw: dict[str, Any] = {'dest': f'opt_{name}', 'default': None,
+                                  'help': f'{spec.help} (default {spec.default!r}; '
+                                          f'for {", ".join(a for a, s in optim.OPTIONS.items() if name in s)})'}
+            choices = getattr(spec, 'choices', None)
+            if choices:
+                kw['choices'] = list(choices)
+            elif spec.type in (int, float):
+                kw['type'] = spec.type
+            g.add_argument(f'--{name.replace("_", "-")}', **kw)
+    return ap
+
+
+def _algo_options(cli: argparse.Namespace, algo: str) -> dict[str, Any]:
+    """The algorithm options given on the command line; an option of another algorithm
+    is an error (it would be silently ignored otherwise)."""
+    given = {k[4:]: v for k, v in vars(cli).items() if k.startswith('opt_') and v is not None}
+    mine = optim.OPTIONS[algo]
+    wrong = [n for n in given if n not in mine]
+    if wrong:
+        flags = ', '.join('--' + n.replace('_', '-') for n in wrong)
+        valid = ', '.join('--' + n.replace('_', '-') for n in mine) or 'none'
+        raise UsageError(f'{flags} does not apply to --algo {algo} (its options: {valid})')
+    return given
+
+
+# -- the run configuration -------------------------------------------------------------------
+def _seeds(seed: int) -> tuple[np.random.SeedSequence, int]:
+    """Independent streams from the run seed: the optimiser's and the drive's noise."""
+    opt_ss, drive_ss = np.random.SeedSequence(seed).spawn(2)
+    return opt_ss, int(drive_ss.generate_state(1)[0])
+
+
+def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str, Any], TunerParams]:
+    algo = cli.algo or 'necga'
+    budget = 200 if cli.budget is None else cli.budget
+    if budget < 1:
+        raise UsageError(f'--budget must be >= 1 loss evaluations, got {budget}')
+    if cli.seed is not None and cli.seed < 0:
+        raise UsageError(f'--seed must be >= 0, got {cli.seed}')
+    seed = cli.seed if cli.seed is not None else int(np.random.SeedSequence().entropy % 2**31)
+    remeasure = 3 if cli.remeasure is None else cli.remeasure
+    if remeasure < 0:
+        raise UsageError(f'--remeasure must be >= 0, got {remeasure}')
+    retries = 3 if cli.retries is None else cli.retries
+    if retries < 0:
+        raise UsageError(f'--retries must be >= 0, got {retries}')
+    if not cli.eval_timeout > 0 or not math.isfinite(cli.eval_timeout):
+        raise UsageError(f'--eval-timeout must be > 0 s, got {cli.eval_timeout}')
+    try:
+        params = load_params(cli.params)
+    except TunerParamsError as exc:
+        raise UsageError(str(exc)) from None
+    if cli.drive_config is not None:
+        from im_drive_sim.params import ConfigError, load_config
+        try:
+            load_config(cli.drive_config)
+        except ConfigError as exc:
+            raise UsageError(str(exc)) from None
+    options = _algo_options(cli, algo)
+    opt_ss, drive_seed = _seeds(seed)
+    try:  # validate the options now: nothing is created on bad input
+        optim.make_optimizer(algo, params.space.dim, opt_ss, _start(algo, params), **options)
+    except OptimizerError as exc:
+        raise UsageError(str(exc)) from None
+    run = {
+        'algo': algo, 'options': options, 'budget': budget, 'seed': seed,
+        'drive_seed': drive_seed, 'remeasure': remeasure, 'reference': not cli.no_reference,
+        'retries': retries, 'satisfactory_loss': params.satisfactory_loss,
+        'params_file': params.source, 'search_box': params.space.as_dict(),
+        'command': ' '.join(shlex.quote(a) for a in argv),
+    }
+    return run, params
+
+
+def _start(algo: str, params: TunerParams) -> np.ndarray | None:
+    """SPSA starts from the file's start point; the compact GAs from their distribution."""
+    return params.space.start_u if algo in optim.TAKES_START else None
+
+
+def _params_of_run(run: dict[str, Any]) -> TunerParams:
+    box = {n: {k: v[k] for k in ('lo', 'hi', 'start')} for n, v in run['search_box'].items()}
+    return parse_params({'search_box': box, 'satisfactory_loss': run['satisfactory_loss']},
+                        f'run.yaml ({run.get("params_file")})')
+
+
+def _make_tuning(rundir: RunDir, run: dict[str, Any], params: TunerParams,
+                 progress) -> TuningRun:
+    opt_ss, _ = _seeds(run['seed'])
+    opt = optim.make_optimizer(run['algo'], params.space.dim, opt_ss,
+                               _start(run['algo'], params), **run['options'])
+    return TuningRun(rundir, params.space, opt, budget=run['budget'],
+                     satisfactory_loss=params.satisfactory_loss, remeasure=run['remeasure'],
+                     retries=run['retries'], reference=run['reference'], progress=progress)
+
+
+# -- progress and summary ----------------------------------------------------------------------
+class Progress:
+    """Evaluation i/N, best and last loss, ETA: one updating line on a terminal, a line
+    every 5 % otherwise; nothing with --quiet."""
+
+    def __init__(self, algo: str, budget: int, quiet: bool, stream=sys.stderr) -> None:
+        self.algo, self.budget, self.quiet, self.stream = algo, budget, quiet, stream
+        self.tty = stream.isatty()
+        self.t0 = time.monotonic()
+        self.n0: int | None = None
+        self.every = max(1, budget // 20)
+        self._open = False
+
+    def __call__(self, kind: str, rec: dict[str, Any], run: TuningRun) -> None:
+        if self.quiet:
+            return
+        st = run.state
+        if kind == 'reference':
+            self._line(f'{self.algo}: start controller (reference) loss '
+                       f'{self._fmt(rec)}', force=True)
+            return
+        if kind == 'remeasure':
+            self._line(f'{self.algo}: re-measured evaluation {rec["eval"]}: {self._fmt(rec)}',
+                       force=True)
+            return
+        if self.n0 is None:
+            self.n0, self.t0 = st.evals - 1, time.monotonic()
+        i, n = st.evals, self.budget
+        rate = (time.monotonic() - self.t0) / max(i - self.n0, 1)
+        eta = int(rate * (n - i))
+        width = 24
+        fill = int(width * i / n)
+        best = f'{st.best["loss"]:.4f}' if st.best else '-'
+        text = (f'{self.algo} [{"#" * fill}{"." * (width - fill)}] eval {i}/{n}  best {best}  '
+                f'last {self._fmt(rec)}  ETA {eta // 60}:{eta % 60:02d}')
+        self._line(text, force=i == n or i % self.every == 0)
+
+    @staticmethod
+    def _fmt(rec: dict[str, Any]) -> str:
+        if rec['status'] == 'lost':
+            return 'lost (re-run)'
+        return f'{rec["loss"]:.4f}' + (f' (aborted: {rec["reason"]})' if rec['aborted'] else '')
+
+    def _line(self, text: str, force: bool) -> None:
+        if self.tty:
+            self.stream.write('\r\x1b[2K' + text)
+            self._open = True
+            if force and not text.startswith(self.algo + ' ['):
+                self.stream.write('\n')
+                self._open = False
+            self.stream.flush()
+        elif force:
+            print(text, file=self.stream, flush=True)
+
+    def note(self, text: str) -> None:
+        if self.quiet:
+            return
+        if self._open:
+            self.stream.write('\n')
+            self._open = False
+        print(text, file=self.stream, flush=True)
+
+    def close(self) -> None:
+        if self._open:
+            self.stream.write('\n')
+            self.stream.flush()
+            self._open = False
+
+
+def _gains_text(g: dict[str, float]) -> str:
+    return ', '.join(f'{n} {g[n]:.6g} {GAIN_UNITS[n]}' for n in GAIN_NAMES)
+
+
+def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
+    L = [f'im_tuner: {run["algo"]}, {s["evaluations"]}/{s["budget"]} evaluations, seed '
+         f'{run["seed"]}: {s["outcome"]}']
+    ref = s['reference']
+    if s['best'] is not None:
+        b = s['best']
+        rm = f'; re-measured {b["remeasured_loss"]:.4f}' if b['remeasured_loss'] is not None else ''
+        L.append(f'  best loss:   {b["loss"]:.4f} (evaluation {b["eval"]}{rm})')
+        L.append(f'  best gains:  {_gains_text(b["gains"])}')
+    else:
+        L.append('  best loss:   none (no evaluation completed without abort)')
+    if ref is not None:
+        L.append(f'  start (hand-tuned) loss: {ref["loss"]:.4f}'
+                 + (' (aborted)' if ref['aborted'] else ''))
+    a = s['applied']
+    if a is not None:
+        if a['source'] == 'reference':
+            L.append('  applied: the start gains (no evaluation beat them)')
+        else:
+            rm = f', re-measured {a["remeasured_loss"]:.4f}' if a['remeasured_loss'] is not None else ''
+            L.append(f'  applied on the controller: evaluation {a["eval"]} (loss {a["loss"]:.4f}'
+                     f'{rm})' + ('' if s['best'] and a['eval'] == s['best']['eval']
+                                 else f': {_gains_text(a["gains"])}'))
+    sat = s['evaluations_to_satisfactory']
+    L.append(f'  satisfactory (loss <= {s["satisfactory_loss"]:g}): '
+             + (f'after {sat} evaluations' if sat else 'not reached'))
+    L.append(f'  aborted experiments: {s["aborted"]} of {s["evaluations"]} (safety faults '
+             f'{s["safety_faults"]}); lost results re-run: {s["lost"]}')
+    rtf = s['real_time_factor']
+    L.append(f'  wall time {s["wall_s"]:.1f} s (tuning loop {s["loop_wall_s"]:.1f} s); '
+             f'simulated experiment time {s["sim_s"]:.1f} s; real-time factor '
+             + (f'{rtf:.2f}' if rtf else '-'))
+    if s['optimizer_us_per_eval'] is not None:
+        L.append(f'  optimiser ask+tell: {s["optimizer_us_per_eval"]:.1f} us per evaluation')
+    L.append(f'  run directory: {rundir}  (results.jsonl, summary.json, '
+             + ', '.join(p['bag'] for p in s['sessions'] if p.get('bag')) + ')')
+    return '\n'.join(L)
+
+
+# -- benches -----------------------------------------------------------------------------------
+class _Executor:
+    """spin_until over a plain executor (external controller / child processes)."""
+
+    def __init__(self, context: Context) -> None:
+        self.executor = SingleThreadedExecutor(context=context)
+
+    def spin_until(self, pred: Callable[[], bool], timeout: float | None = None) -> bool:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not pred():
+            if deadline is not None and time.monotonic() > deadline:
+                return False
+            self.executor.spin_once(timeout_sec=0.005)
+        return True
+
+
+def _controller_on_graph(node: Node, spin_until, controller: str, timeout: float) -> bool:
+    start = controller_topics(controller)['start']
+
+    def seen() -> bool:
+        return any(n == start for n, _t in node.get_service_names_and_types())
+    return spin_until(seen, timeout)
+
+
+def _recorder_subscribed(node: Node, topics: list[str]) -> bool:
+    for t in topics:
+        if not any(i.node_name == 'recorder' for i in node.get_subscriptions_info_by_topic(t)):
+            return False
+    return True
+
+
+def _repair_old_bags(rundir: RunDir, note) -> None:
+    """Bags of killed sessions still say state 'recording': repair them (index, summary,
+    metadata.yaml) so that the whole run opens in any reader."""
+    from .mcap_repair import RepairError, repair_bag
+    for bag in rundir.bag_dirs():
+        try:
+            meta = yaml.safe_load((bag / 'metadata.yaml').read_text())
+            state = meta['rosbag2_bagfile_information']['custom_data'].get('im_tuner.state')
+        except (OSError, KeyError, TypeError, yaml.YAMLError):
+            state = 'recording'
+        if state == 'recording':
+            try:
+                rep = repair_bag(bag)
+                note(f'repaired the bag of the killed session: {rep.summary().splitlines()[0]}')
+            except RepairError as exc:
+                note(f'warning: could not repair {bag}: {exc}')
+
+
+def main(args: list[str] | None = None) -> int:
+    argv = list(sys.argv if args is None else args)
+    try:
+        cli = _build_parser().parse_args(remove_ros_args(argv)[1:])
+    except UsageError as exc:
+        print(f'error: tuner: {exc}', file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        return _main(cli, argv)
+    except UsageError as exc:
+        print(f'error: tuner: {exc}', file=sys.stderr)
+        return EXIT_USAGE
+
+
+def _main(cli: argparse.Namespace, argv: list[str]) -> int:
+    t_wall0 = time.monotonic()
+    # ---- validate everything before creating anything --------------------------------------
+    if cli.resume is not None:
+        given = [k for k in RUN_SETTINGS if getattr(cli, k) not in (None, False)]
+        given += [k[4:] for k, v in vars(cli).items() if k.startswith('opt_') and v is not None]
+        if cli.out is not None:
+            given.append('out')
+        if given:
+            raise UsageError('--resume takes the run\'s settings from RUN_DIR/run.yaml; do not '
+                             'also give ' + ', '.join('--' + g.replace('_', '-') for g in given))
+        try:
+            rundir = RunDir.open(cli.resume)
+            run = rundir.read_run()
+            params = _params_of_run(run)
+        except (RunDirError, TunerParamsError) as exc:
+            raise UsageError(f'--resume: {exc}') from None
+        bench_mode = cli.bench or run.get('bench_requested', 'auto')
+    else:
+        run, params = _new_run_config(cli, argv)
+        out = cli.out
+        if out is None:
+            from .recorder_node import default_out_dir
+            out = default_out_dir(prefix=f'tuner_{run["algo"]}')
+        if out.exists() and (not out.is_dir() or any(out.iterdir())):
+            raise UsageError(f'--out {out}: already exists; choose a new directory'
+                             + (' (or continue that run with --resume)'
+                                if (out / 'run.yaml').exists() else ''))
+        rundir = None
+        bench_mode = cli.bench or 'auto'
+        run['bench_requested'] = bench_mode
+    progress = Progress(run['algo'], run['budget'], cli.quiet)
+
+    # ---- ROS ---------------------------------------------------------------------------------
+    ros_args = ['--ros-args', '--disable-stdout-logs']  # the tuner prints its own progress
+    if '--ros-args' in argv:
+        ros_args = argv[argv.index('--ros-args'):] + ['--disable-stdout-logs']
+    ctx = Context()
+    rclpy.init(args=[argv[0], *ros_args], context=ctx,
+               signal_handler_options=SignalHandlerOptions.NO)
+    stop = {'sig': None}
+
+    def _on_signal(signum, _frame) -> None:
+        stop['sig'] = signum
+    old_handlers = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    should_stop = lambda: stop['sig'] is not None  # noqa: E731
+    bench = None
+    rec = None
+    children: list[subprocess.Popen] = []
+    node = None
+    exe = None
+    code = EXIT_OK
+    try:
+        node = Node('tuner', context=ctx, start_parameter_services=False)
+        exe = _Executor(ctx)
+        exe.executor.add_node(node)
+        spin_until = exe.spin_until
+        if bench_mode in ('auto', 'none'):
+            found = _controller_on_graph(node, spin_until, cli.controller,
+                                         cli.discovery_timeout)
+            if bench_mode == 'none' and not found:
+                raise BenchFailure(
+                    f'no controller reachable ({controller_topics(cli.controller)["start"]} '
+                    f'not on the graph of ROS_DOMAIN_ID {os.environ.get("ROS_DOMAIN_ID", "0")} '
+                    f'after {cli.discovery_timeout:g} s): start the bench first, e.g. '
+                    '`ros2 run im_controller sim_bench` or your drive + `ros2 run '
+                    'im_controller controller`, or use --bench auto')
+            bench_mode = 'external' if found else 'inproc'
+        elif bench_mode == 'inproc' and _controller_on_graph(node, spin_until, cli.controller,
+                                                             0.5):
+            raise BenchFailure(f'a controller ({cli.controller}) is already on the graph: '
+                               'tune it with --bench none, or use another ROS_DOMAIN_ID')
+        simulated = bench_mode in SIM_BENCHES
+        if cli.resume is not None and simulated != (run.get('bench') in SIM_BENCHES):
+            raise UsageError(f'--resume: the run used bench {run.get("bench")!r}, now '
+                             f'{bench_mode!r}: the plant history cannot be restored')
+        fault_policy = cli.fault_policy or ('reset' if simulated else 'stop')
+
+        # ---- the run directory ----------------------------------------------------------------
+        if rundir is None:
+            try:
+                rundir = RunDir.create(out)
+            except RunDirError as exc:
+                raise UsageError(str(exc)) from None
+            run['bench'] = bench_mode
+        tuning = _make_tuning(rundir, run, params, progress)
+        if cli.resume is not None:
+            n = tuning.restore()
+            _repair_old_bags(rundir, progress.note)
+            progress.note(f'resuming {rundir.path}: {n} records, {tuning.state.evals}/'
+                          f'{run["budget"]} evaluations done')
+        bag_dir = None if cli.no_record else rundir.next_bag_dir()
+
+        # ---- the bench ------------------------------------------------------------------------
+        drive_over = [Parameter('seed', value=run['drive_seed'])]
+        ctl_over = []
+        if run.get('model'):
+            drive_over.append(Parameter('model', value=run['model']))
+        if run.get('drive_config'):
+            drive_over.append(Parameter('config_file', value=run['drive_config']))
+            ctl_over.append(Parameter('drive_config_file', value=run['drive_config']))
+        if cli.resume is None:
+            run['model'] = cli.model
+            run['drive_config'] = str(cli.drive_config) if cli.drive_config else None
+            if cli.model:
+                drive_over.append(Parameter('model', value=cli.model))
+            if cli.drive_config:
+                drive_over.append(Parameter('config_file', value=str(cli.drive_config)))
+                ctl_over.append(Parameter('drive_config_file', value=str(cli.drive_config)))
+        if bench_mode == 'inproc':
+            from im_controller.sim_bench import InProcessBench, bench_metadata
+
+            def _start_recorder(b) -> None:
+                nonlocal rec
+                if bag_dir is None:
+                    return
+                from .recorder_node import RECORD_POLL_STEPS, Recorder
+                meta = bench_metadata(b) | {'im_tuner.tuner': {
+                    k: v for k, v in run.items() if k != 'search_box'}}
+                rec = Recorder(Node('recorder', context=ctx, start_parameter_services=False),
+                               bag_dir, compression=cli.compression, extra_metadata=meta,
+                               command=argv)
+                rec.wait_matched(10.0)
+                b.add_poller(rec.poll, RECORD_POLL_STEPS)
+            exe.executor.remove_node(node)
+            bench = InProcessBench(context=ctx, drive_overrides=drive_over,
+                                   controller_overrides=ctl_over or None,
+                                   before_start=_start_recorder)
+            bench.executor.add_node(node)
+            spin_until = bench.spin_until
+        else:
+            ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
+            if bag_dir is not None:
+                children.append(subprocess.Popen(
+                    [ros2, 'run', 'im_tuner', 'recorder', '--out', str(bag_dir),
+                     '--compression', cli.compression], stdout=subprocess.DEVNULL))
+            if bench_mode == 'processes':
+                d = [ros2, 'run', 'im_drive_sim', 'drive_sim', '--ros-args']
+                c = [ros2, 'run', 'im_controller', 'controller', '--ros-args']
+                d += [a for p in drive_over for a in ('-p', f'{p.name}:={p.value}')]
+                c += [a for p in ctl_over for a in ('-p', f'{p.name}:={p.value}')]
+                children += [subprocess.Popen(d, stdout=subprocess.DEVNULL),
+                             subprocess.Popen(c, stdout=subprocess.DEVNULL)]
+        link = ControllerLink(node, spin_until, controller=cli.controller,
+                              eval_timeout=cli.eval_timeout, fault_policy=fault_policy,
+                              should_stop=should_stop)
+        if not link.wait_ready(30.0):
+            raise BenchFailure(f'the controller {cli.controller} did not become reachable '
+                               'within 30 s (services and loss topic)')
+        if children and bag_dir is not None:
+            topics = [link.names['loss'], '/drive/state'] if bench_mode == 'processes' \
+                else [link.names['loss']]
+            if not spin_until(lambda: _recorder_subscribed(node, topics), 30.0):
+                raise BenchFailure('the recorder child did not subscribe within 30 s')
+        if cli.resume is None:
+            run['controller_parameters'] = link.list_parameters()
+            run['fault_policy'] = fault_policy
+            rundir.write_run(run)
+            progress.note(f'im_tuner: {run["algo"]} on the {bench_mode} bench, budget '
+                          f'{run["budget"]}, seed {run["seed"]}; run directory {rundir.path}')
+        session = {'bag': bag_dir.name if bag_dir else None, 'bench': bench_mode,
+                   'started': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
+                   'replayed': 0, 'first_record': len(tuning.records)}
+        if cli.resume is not None and tuning.records:
+            if simulated:
+                progress.note(f'restoring the simulated plant: replaying '
+                              f'{len(replay_plan(tuning.records))} experiments (checked bit '
+                              'for bit)')
+                session['replayed'] = replay(link, tuning.records)
+            else:
+                progress.note('external bench: the plant is where it is; the search goes on '
+                              'from the checkpoint (no replay)')
+        tuning.state.sessions.append(session)
+        outcome = tuning.run(link, should_stop)
+        if outcome == 'interrupted':
+            code = EXIT_INTERRUPTED
+        elif outcome != 'done':
+            code = EXIT_FAILED
+        progress.close()
+        summary = tuning.summary(outcome=outcome, wall_s=time.monotonic() - t_wall0)
+        summary['report_command'] = f'ros2 run im_tuner report {rundir.path}'
+        tuning._checkpoint()
+        rundir.write_summary(summary)
+        print(format_summary(summary, run, rundir.path), flush=True)
+        if code == EXIT_INTERRUPTED:
+            print(f'  interrupted: continue with `ros2 run im_tuner tuner --resume '
+                  f'{rundir.path}`', flush=True)
+    except (BenchFailure, ResumeError) as exc:
+        progress.close()
+        print(f'error: tuner: {exc}', file=sys.stderr)
+        code = EXIT_USAGE if isinstance(exc, ResumeError) else EXIT_FAILED
+    except StopRequested:
+        progress.close()
+        print('tuner: interrupted before the search started', file=sys.stderr)
+        code = EXIT_INTERRUPTED
+    finally:
+        if rec is not None:
+            counts = rec.close()
+            lost = sum(c['lost'] for c in counts.values())
+            if lost:
+                print(f'warning: the recorder counted {lost} lost messages (see '
+                      f'{rec.out}/metadata.yaml)', file=sys.stderr)
+            rec.node.destroy_node()
+        if bench is not None:
+            bench.destroy()
+        for p in reversed(children):
+            from im_drive_sim.runtime import stop_child
+            stop_child(p)
+        if node is not None:
+            node.destroy_node()
+        if exe is not None:
+            exe.executor.shutdown()
+        rclpy.try_shutdown(context=ctx)
+        for s, h in old_handlers.items():
+            signal.signal(s, h)
+    return code
+
+
+if __name__ == '__main__':
+    os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
+    sys.exit(main())

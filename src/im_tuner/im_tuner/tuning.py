@@ -1,0 +1,418 @@
+"""The tuning loop: ask, measure, tell -- with a budget, best tracking, checkpoints and resume.
+
+Pure (no rclpy): the loop talks to the bench through a :class:`Measurer` (the tuner node
+implements it over the controller's parameter services, experiment service and loss
+topic; tests and offline studies can implement it directly on the pure core).
+
+One evaluation (``kind='eval'``):
+
+1. ``u = optimizer.ask()``; the gains are ``space.to_gains(u)``;
+2. ``measurer.measure(gains)`` sets them (atomically), runs the experiment, returns its
+   loss; a lost result (:class:`LostEvaluation`) is re-run with the SAME gains, at most
+   ``retries`` times, never resampled;
+3. the record goes to ``results.jsonl`` (fsync'ed), then ``optimizer.tell(u, loss)``,
+   then ``checkpoint.json`` (atomic).  A penalised (aborted) experiment is told its
+   penalised loss, costs one evaluation and can never become the best.
+
+Around the search: one ``reference`` experiment of the start gains first (not counted in
+the budget, not told to the optimiser: the comparison the summary makes), and at the end
+``remeasure`` extra experiments re-measuring the top few distinct evaluations once each.
+The smallest measured loss is biased low (it is a minimum over noisy measurements), so
+the controller left applied is the one with the smallest re-measured loss, and both
+numbers are reported; with ``remeasure=0`` it is the smallest measured loss (the
+paper's final controller).  If no evaluation beats the reference, the start gains stay.
+
+Resume: ``results.jsonl`` is the truth.  The checkpoint holds the optimiser (RNG included)
+and the counters after its ``records`` first lines; later lines (a kill between the two
+writes) are applied on top, checking that the optimiser asks exactly the recorded
+candidates.  Since ``ask`` is deterministic, the next candidate is the one the killed
+run was measuring: it is re-run, never resampled.  On a simulated bench the plant state
+is restored first by :func:`replay` (same gains, same order; losses checked bit for bit).
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Protocol
+
+import numpy as np
+
+from im_controller.config import GAIN_NAMES, Gains
+
+from .optim.base import Optimizer
+from .rundir import RunDir
+from .space import SearchSpace
+
+__all__ = ['Measurement', 'Measurer', 'LostEvaluation', 'BenchFailure', 'StopRequested',
+           'ResumeError', 'TuningRun', 'replay', 'replay_plan', 'gains_dict']
+
+CHECKPOINT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One experiment's outcome as the tuner sees it (SI units, sim time in ns)."""
+
+    loss: float
+    terms: tuple[float, float, float]
+    aborted: bool
+    reason: str
+    fault: bool                  #: a safety fault (the controller went to FAULT)
+    experiment_id: int
+    direction: int
+    steps: int
+    trip_step: int
+    t_start_ns: int
+    t_end_ns: int
+    wall_s: float                #: set gains -> loss received [s]
+    gains: tuple[float, ...]     #: the gains the controller reports it ran
+
+
+class LostEvaluation(Exception):
+    """No result within the timeout.  ``experiment_id``: set if the experiment started."""
+
+    def __init__(self, message: str, experiment_id: int | None = None) -> None:
+        super().__init__(message)
+        self.experiment_id = experiment_id
+
+
+class BenchFailure(Exception):
+    """The bench cannot go on (unreachable controller, fault with policy 'stop', ...)."""
+
+
+class StopRequested(Exception):
+    """The user asked to stop (SIGINT/SIGTERM) while waiting on the bench."""
+
+
+class ResumeError(Exception):
+    """The run directory cannot be resumed as it is (the message says why)."""
+
+
+class Measurer(Protocol):
+    def measure(self, gains: Gains) -> Measurement: ...
+    def apply(self, gains: Gains) -> None: ...
+
+
+def gains_dict(g: Gains | tuple[float, ...]) -> dict[str, float]:
+    t = g.as_tuple() if isinstance(g, Gains) else tuple(g)
+    return {n: float(v) for n, v in zip(GAIN_NAMES, t)}
+
+
+def _gains_of(record: dict[str, Any]) -> Gains:
+    return Gains(*(float(record['gains'][n]) for n in GAIN_NAMES))
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec='milliseconds')
+
+
+@dataclass
+class TunerState:
+    """Counters and bests (JSON-serialisable via ``vars``)."""
+
+    evals: int = 0
+    experiments: int = 0
+    aborted: int = 0
+    faults: int = 0
+    lost: int = 0
+    sim_s: float = 0.0
+    loop_wall_s: float = 0.0
+    opt_s: float = 0.0            #: time in ask + tell [s], live evaluations only
+    opt_calls: int = 0
+    reference: dict[str, Any] | None = None
+    best: dict[str, Any] | None = None
+    first_satisfactory: int | None = None  #: evaluations it took (1-based count)
+    remeasured: list[dict[str, Any]] = field(default_factory=list)
+    remeasure_plan: list[int] | None = None
+    sessions: list[dict[str, Any]] = field(default_factory=list)
+
+
+def _brief(rec: dict[str, Any]) -> dict[str, Any]:
+    return {'eval': rec['eval'], 'u': rec.get('u'), 'gains': rec['gains'], 'loss': rec['loss'],
+            'terms': rec['terms'], 'experiment_id': rec['experiment_id']}
+
+
+class TuningRun:
+    """One tuning run in ``rundir`` (see the module docstring)."""
+
+    def __init__(self, rundir: RunDir, space: SearchSpace, optimizer: Optimizer, *,
+                 budget: int, satisfactory_loss: float, remeasure: int = 3, retries: int = 3,
+                 reference: bool = True,
+                 progress: Callable[[str, dict[str, Any], 'TuningRun'], None] | None = None
+                 ) -> None:
+        if budget < 1:
+            raise ValueError(f'budget must be >= 1, got {budget}')
+        self.rundir = rundir
+        self.space = space
+        self.opt = optimizer
+        self.budget = int(budget)
+        self.satisfactory = float(satisfactory_loss)
+        self.remeasure = int(remeasure)
+        self.retries = int(retries)
+        self.with_reference = bool(reference)
+        self.progress = progress
+        self.state = TunerState()
+        self.records: list[dict[str, Any]] = []
+        self._t_mark = time.perf_counter()
+
+    # -- resume --------------------------------------------------------------------------
+    def restore(self) -> int:
+        """Load the run's results and checkpoint (see module doc); returns the number of
+        records.  Raises ResumeError when they disagree."""
+        records = self.rundir.read_results(repair=True)
+        ck = self.rundir.read_checkpoint()
+        done = 0
+        if ck is not None:
+            if ck.get('version') != CHECKPOINT_VERSION:
+                raise ResumeError(f'{self.rundir.path}: checkpoint version '
+                                  f'{ck.get("version")!r}, expected {CHECKPOINT_VERSION}')
+            done = int(ck['records'])
+            if done > len(records):
+                raise ResumeError(f'{self.rundir.path}: the checkpoint counts {done} records '
+                                  f'but results.jsonl has {len(records)}')
+            self.opt = Optimizer.from_state(ck['optimizer'])
+            st = ck['tuner']
+            self.state = TunerState(**st)
+        self.records = records[:done]
+        for rec in records[done:]:
+            self._apply(rec, live=False)
+            self.records.append(rec)
+        return len(self.records)
+
+    # -- state updates -------------------------------------------------------------------
+    def _apply(self, rec: dict[str, Any], live: bool) -> None:
+        """Update the counters (and, for an evaluation, the optimiser) from one record."""
+        st = self.state
+        if rec.get('experiment_id') is not None and rec['status'] != 'lost':
+            st.experiments += 1
+            st.sim_s += rec['sim_s']
+        if rec['status'] == 'lost':
+            st.lost += 1
+            if rec.get('experiment_id') is not None:
+                st.experiments += 1
+            return
+        st.faults += bool(rec['fault'])
+        kind = rec['kind']
+        if kind == 'reference':
+            st.reference = _brief(rec) | {'aborted': rec['aborted']}
+        elif kind == 'remeasure':
+            st.remeasured.append({'eval': rec['eval'], 'loss': rec['loss'],
+                                  'aborted': rec['aborted']})
+        elif kind == 'eval':
+            u = np.asarray(rec['u'], dtype=float)
+            if not live:
+                asked = self.opt.ask()
+                if not np.array_equal(asked, u):
+                    raise ResumeError(
+                        f'{self.rundir.path}: evaluation {rec["eval"]} in results.jsonl is not '
+                        'what the checkpointed optimiser asks; the files do not belong together')
+            t0 = time.perf_counter()
+            self.opt.tell(u, rec['loss'])
+            if live:
+                st.opt_s += time.perf_counter() - t0
+            st.evals += 1
+            st.aborted += bool(rec['aborted'])
+            if not rec['aborted'] and (st.best is None or rec['loss'] < st.best['loss']):
+                st.best = _brief(rec)
+            if (st.first_satisfactory is None and not rec['aborted']
+                    and rec['loss'] <= self.satisfactory):
+                st.first_satisfactory = st.evals
+        else:
+            raise ResumeError(f'unknown record kind {kind!r}')
+
+    def _checkpoint(self) -> None:
+        self.rundir.write_checkpoint({'version': CHECKPOINT_VERSION,
+                                      'records': len(self.records),
+                                      'optimizer': self.opt.state_dict(),
+                                      'tuner': vars(self.state)})
+
+    def _record(self, kind: str, index: int, attempt: int, u: np.ndarray | None,
+                gains: Gains, m: Measurement | None, lost: LostEvaluation | None,
+                wall_s: float) -> dict[str, Any]:
+        rec: dict[str, Any] = {'kind': kind, 'eval': index, 'attempt': attempt,
+                               'u': None if u is None else [float(x) for x in u],
+                               'gains': gains_dict(gains), 'time': _now()}
+        if m is None:
+            rec.update(status='lost', loss=None, terms=None, aborted=None, reason=str(lost),
+                       fault=False, experiment_id=lost.experiment_id if lost else None,
+                       direction=None, steps=None, trip_step=None, t_start_ns=None,
+                       t_end_ns=None, sim_s=0.0, wall_s=wall_s)
+        else:
+            rec.update(status='aborted' if m.aborted else 'ok', loss=m.loss,
+                       terms=list(m.terms), aborted=m.aborted, reason=m.reason, fault=m.fault,
+                       experiment_id=m.experiment_id, direction=m.direction, steps=m.steps,
+                       trip_step=m.trip_step, t_start_ns=m.t_start_ns, t_end_ns=m.t_end_ns,
+                       sim_s=(m.t_end_ns - m.t_start_ns) * 1e-9, wall_s=m.wall_s)
+        return rec
+
+    def _measure(self, measurer: Measurer, kind: str, index: int, u: np.ndarray | None,
+                 gains: Gains) -> dict[str, Any]:
+        """Measure ``gains`` (re-running lost results); records every attempt."""
+        for attempt in range(1, self.retries + 2):
+            t0 = time.perf_counter()
+            try:
+                m = measurer.measure(gains)
+                rec = self._record(kind, index, attempt, u, gains, m, None,
+                                   time.perf_counter() - t0)
+            except LostEvaluation as exc:
+                rec = self._record(kind, index, attempt, u, gains, None, exc,
+                                   time.perf_counter() - t0)
+            # loop wall time: everything since the previous record (optimiser, files,
+            # parameter calls, experiment), so the real-time factor is honest
+            now = time.perf_counter()
+            self.state.loop_wall_s += now - self._t_mark
+            self._t_mark = now
+            if rec['status'] != 'lost' and kind == 'eval':
+                # best-so-far after this evaluation, for the results table
+                b = self.state.best
+                rec['best_loss'] = (rec['loss'] if not rec['aborted'] and
+                                    (b is None or rec['loss'] < b['loss']) else
+                                    (b['loss'] if b else None))
+            self.rundir.append_result(rec)
+            self._apply(rec, live=True)
+            self.records.append(rec)
+            self._checkpoint()
+            if self.progress is not None:
+                self.progress(kind, rec, self)
+            if rec['status'] != 'lost':
+                return rec
+        raise BenchFailure(f'{kind} {index}: no result after {self.retries + 1} attempts '
+                           f'with the same gains ({rec["reason"]})')
+
+    # -- the run ---------------------------------------------------------------------------
+    def run(self, measurer: Measurer, should_stop: Callable[[], bool] = lambda: False
+            ) -> str:
+        """Run (or continue) until the budget is spent; returns 'done', 'interrupted' or
+        'failed: <reason>'.  The best gains are applied at the end in every case."""
+        st = self.state
+        outcome = 'done'
+        self._t_mark = time.perf_counter()
+        try:
+            if self.with_reference and st.reference is None and st.evals == 0:
+                self._measure(measurer, 'reference', -1, None, Gains(*self.space.start))
+            while st.evals < self.budget:
+                if should_stop():
+                    raise StopRequested()
+                t0 = time.perf_counter()
+                u = self.opt.ask()
+                st.opt_s += time.perf_counter() - t0
+                st.opt_calls += 1
+                self._measure(measurer, 'eval', st.evals, u, self.space.to_gains(u))
+            if self.remeasure > 0:
+                if st.remeasure_plan is None:
+                    st.remeasure_plan = self._top_evals(self.remeasure)
+                    self._checkpoint()
+                done = {r['eval'] for r in st.remeasured}
+                for i in st.remeasure_plan:
+                    if i in done:
+                        continue
+                    if should_stop():
+                        raise StopRequested()
+                    rec = next(r for r in self.records
+                               if r['kind'] == 'eval' and r['eval'] == i and r['status'] == 'ok')
+                    self._measure(measurer, 'remeasure', i, None, _gains_of(rec))
+        except StopRequested:
+            outcome = 'interrupted'
+        except BenchFailure as exc:
+            outcome = f'failed: {exc}'
+        final = self.final_choice()
+        if final is not None:
+            try:
+                measurer.apply(_gains_of(final))
+            except (BenchFailure, StopRequested) as exc:
+                if outcome == 'done':
+                    outcome = f'failed: could not apply the best gains ({exc})'
+        return outcome
+
+    def _top_evals(self, k: int) -> list[int]:
+        """Indices of the k best distinct (by gains) non-aborted evaluations."""
+        seen, out = set(), []
+        evals = sorted((r for r in self.records if r['kind'] == 'eval' and r['status'] == 'ok'),
+                       key=lambda r: (r['loss'], r['eval']))
+        for r in evals:
+            key = tuple(r['gains'][n] for n in GAIN_NAMES)
+            if key in seen:
+                continue
+            seen.add(key)
+            out.append(r['eval'])
+            if len(out) == k:
+                break
+        return out
+
+    def final_choice(self) -> dict[str, Any] | None:
+        """The record of the controller to leave applied (see the module docstring):
+        the smallest re-measured loss if re-measured, else the smallest measured; the
+        reference if nothing beat it; None before any successful measurement."""
+        st = self.state
+        cand = st.best
+        if st.remeasured:
+            ok = [r for r in st.remeasured if not r['aborted']]
+            if ok:
+                pick = min(ok, key=lambda r: (r['loss'], r['eval']))
+                cand = next(_brief(r) for r in self.records
+                            if r['kind'] == 'eval' and r['eval'] == pick['eval']
+                            and r['status'] == 'ok')
+        ref = st.reference
+        if ref is not None and not ref['aborted'] and (cand is None or
+                                                       ref['loss'] <= cand['loss']):
+            return ref
+        return cand
+
+    # -- summary ---------------------------------------------------------------------------
+    def summary(self, *, outcome: str, wall_s: float) -> dict[str, Any]:
+        st = self.state
+        final = self.final_choice()
+        rem = {r['eval']: r['loss'] for r in st.remeasured}
+        n_opt = max(st.opt_calls, 1)
+        return {
+            'outcome': outcome,
+            'evaluations': st.evals, 'budget': self.budget,
+            'experiments': st.experiments, 'aborted': st.aborted, 'safety_faults': st.faults,
+            'lost': st.lost,
+            'reference': None if st.reference is None else
+            {'gains': st.reference['gains'], 'loss': st.reference['loss'],
+             'aborted': st.reference['aborted']},
+            'best': None if st.best is None else
+            {**{k: st.best[k] for k in ('eval', 'gains', 'loss', 'terms')},
+             'remeasured_loss': rem.get(st.best['eval'])},
+            'applied': None if final is None else
+            {'eval': final['eval'], 'gains': final['gains'], 'loss': final['loss'],
+             'remeasured_loss': rem.get(final['eval']) if final['eval'] >= 0 else None,
+             'source': 'reference' if final['eval'] < 0 else 'evaluation'},
+            'remeasured': st.remeasured,
+            'satisfactory_loss': self.satisfactory,
+            'evaluations_to_satisfactory': st.first_satisfactory,
+            'wall_s': wall_s, 'loop_wall_s': st.loop_wall_s, 'sim_s': st.sim_s,
+            'real_time_factor': st.sim_s / st.loop_wall_s if st.loop_wall_s > 0 else None,
+            'optimizer_us_per_eval': 1e6 * st.opt_s / n_opt if st.opt_calls else None,
+            'sessions': st.sessions,
+        }
+
+
+def replay_plan(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Records of the experiments that ran on the bench, in order (the plant history)."""
+    return [r for r in records if r.get('experiment_id') is not None]
+
+
+def replay(measurer: Measurer, records: list[dict[str, Any]],
+           progress: Callable[[int, int], None] | None = None) -> int:
+    """Re-run the experiments of ``records`` with their gains, in order, to bring a fresh
+    deterministic (simulated, lock-step) bench to the state the killed run left it in.
+    Each replayed loss must equal the recorded one bit for bit.  Returns the count."""
+    plan = replay_plan(records)
+    for k, rec in enumerate(plan):
+        try:
+            m = measurer.measure(_gains_of(rec))
+        except LostEvaluation as exc:
+            raise ResumeError(f'replay: experiment {k} lost ({exc})') from None
+        if rec['status'] != 'lost' and not (m.loss == rec['loss']
+                                            and m.experiment_id == rec['experiment_id']):
+            raise ResumeError(
+                f'replay: experiment {rec["experiment_id"]} gave loss {m.loss!r} '
+                f'(id {m.experiment_id}), the run recorded {rec["loss"]!r}: this bench is not '
+                'the one of the run (drive file, model or seed changed?)')
+        if progress is not None:
+            progress(k + 1, len(plan))
+    return len(plan)

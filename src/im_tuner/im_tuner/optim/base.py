@@ -1,0 +1,268 @@
+"""The optimiser interface shared by SPSA and the compact-GA family.
+
+Pure numpy (no rclpy): the tuner node, the offline study and the tests drive the same
+objects.  One evaluation at a time (ask/tell), on parameters normalised to the search
+box, u = (theta - lo)/(hi - lo) in [0, 1]^dim; the tuner maps u to gains and back.
+
+Contract (every optimiser):
+
+* ``ask() -> u``: the next candidate to measure (a fresh float64 array in [0, 1]^dim).
+  Asking again before ``tell`` returns the SAME candidate: a lost evaluation is re-run
+  with the same parameters, never resampled.
+* ``tell(u, loss)``: the measured loss of the candidate just asked (``u`` must equal it
+  bit for bit, else ValueError and nothing changes).  ``loss`` must be a finite float
+  (a penalised/aborted experiment is just a large loss); NaN/inf -> ValueError.
+* ``evaluations``: number of ``tell`` calls so far (loss evaluations, never iterations).
+* ``state_dict()`` -> a JSON-serialisable dict holding everything, RNG state included;
+  ``Optimizer.from_state(d)`` (any subclass, dispatched on ``d['algo']``) rebuilds an
+  optimiser that continues exactly as the original would (bit-identical asks).
+* ``converged()``: True when the algorithm has nothing left to do (a compact GA whose
+  probability vector is all 0/1); the tuner stops on its budget regardless.
+* ``config()``: the configuration as a JSON-serialisable dict (for the run files).
+
+Randomness: each optimiser owns one ``numpy.random.Generator(PCG64)`` built from its
+seed (an int or a SeedSequence); no global RNG.
+"""
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+__all__ = ['Optimizer', 'OptimizerError', 'OptionSpec', 'make_rng', 'rng_state',
+           'set_rng_state', 'check_loss', 'check_dim', 'check_seed', 'check_start',
+           'seed_json', 'check_options', 'check_told', 'PendingCheck']
+
+
+class OptimizerError(ValueError):
+    """Bad optimiser configuration or misuse (the message says which and why)."""
+
+
+def check_seed(seed: Any) -> int | np.random.SeedSequence:
+    """An int seed (>= 0, bool refused) or a SeedSequence; returns it (ints as ``int``)."""
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(
+            seed, (int, np.integer, np.random.SeedSequence)):
+        raise OptimizerError(f'seed must be an integer >= 0 or a SeedSequence, got {seed!r}')
+    if not isinstance(seed, np.random.SeedSequence):
+        if int(seed) < 0:
+            raise OptimizerError(f'seed must be an integer >= 0, got {seed}')
+        return int(seed)
+    return seed
+
+
+def make_rng(seed: int | np.random.SeedSequence) -> np.random.Generator:
+    """A PCG64 generator from an int seed (>= 0) or a SeedSequence."""
+    return np.random.Generator(np.random.PCG64(check_seed(seed)))
+
+
+def seed_json(seed: int | np.random.SeedSequence) -> Any:
+    """The seed as JSON (an int, or a SeedSequence's entropy and spawn key), for config()."""
+    if isinstance(seed, np.random.SeedSequence):
+        ent = seed.entropy
+        return {'entropy': [int(e) for e in ent] if isinstance(ent, (list, tuple, np.ndarray))
+                else (None if ent is None else int(ent)),
+                'spawn_key': [int(k) for k in seed.spawn_key]}
+    return int(seed)
+
+
+def rng_state(rng: np.random.Generator) -> dict[str, Any]:
+    """JSON-serialisable state of a PCG64 generator (ints stay exact in JSON)."""
+    return rng.bit_generator.state
+
+
+def set_rng_state(rng: np.random.Generator, state: dict[str, Any]) -> None:
+    rng.bit_generator.state = state
+
+
+def check_loss(loss: Any) -> float:
+    """A told loss: a finite real number (bool and str refused)."""
+    if isinstance(loss, (bool, np.bool_)) or not isinstance(
+            loss, (int, float, np.integer, np.floating)):
+        raise OptimizerError(f'loss must be a finite number, got {loss!r}')
+    x = float(loss)
+    if not math.isfinite(x):
+        raise OptimizerError(f'loss must be finite, got {x!r}')
+    return x
+
+
+def check_dim(dim: Any) -> int:
+    """Number of parameters: an integer >= 1 (bool refused)."""
+    if isinstance(dim, (bool, np.bool_)) or not isinstance(dim, (int, np.integer)) or dim < 1:
+        raise OptimizerError(f'dim must be an integer >= 1, got {dim!r}')
+    return int(dim)
+
+
+def check_start(start: Any, dim: int) -> np.ndarray | None:
+    """A start point: None, or ``dim`` finite numbers in [0, 1] (as a new float64 array)."""
+    if start is None:
+        return None
+    try:
+        x = np.array(start, dtype=np.float64)
+        ok = (x.shape == (dim,) and not np.asarray(start).dtype == np.bool_
+              and bool(np.all(np.isfinite(x))) and bool(np.all((x >= 0.0) & (x <= 1.0))))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise OptimizerError(f'start must be None or {dim} finite numbers in [0, 1] '
+                             f'(normalised parameters), got {start!r}')
+    return x
+
+
+@dataclass(frozen=True)
+class OptionSpec:
+    """One option of an optimiser: type, default, meaning, accepted values.
+
+    ``type`` is ``float``, ``int`` or ``str``.  Numbers must lie in [low, high] (a bound
+    is exclusive if ``low_strict``/``high_strict``; ``None`` = unbounded); ``+inf`` is
+    accepted only where ``high`` is ``inf`` and not strict.  Strings must be one of
+    ``choices``.  ``default`` None means "derived from other options" (``help`` says how).
+    Floats accept int/float (numpy scalars too) but never bool; ints refuse floats.
+    """
+
+    type: type
+    default: Any
+    help: str
+    low: float | None = None
+    high: float | None = None
+    low_strict: bool = False
+    high_strict: bool = False
+    choices: tuple[str, ...] | None = None
+
+    def allowed(self) -> str:
+        """The accepted values in words, e.g. 'a number in (0, 0.5)', "one of 'a', 'b'"."""
+        if self.choices is not None:
+            return 'one of ' + ', '.join(repr(c) for c in self.choices)
+        kind = 'an integer' if self.type is int else 'a number'
+        fmt = (lambda v: str(int(v))) if self.type is int else (lambda v: f'{v:g}')
+        lo, hi = self.low, self.high
+        if lo is not None and hi is not None:
+            return (f"{kind} in {'(' if self.low_strict else '['}{fmt(lo)}, "
+                    f"{fmt(hi)}{')' if self.high_strict else ']'}")
+        if lo is not None:
+            return f"{kind} {'>' if self.low_strict else '>='} {fmt(lo)}"
+        if hi is not None:
+            return f"{kind} {'<' if self.high_strict else '<='} {fmt(hi)}"
+        return kind
+
+    def check(self, where: str, value: Any) -> Any:
+        """``value`` converted to the option's type, or OptimizerError naming ``where``."""
+        bad = OptimizerError(f'{where} must be {self.allowed()}, got {value!r}')
+        if self.choices is not None:
+            if not isinstance(value, str) or value not in self.choices:
+                raise bad
+            return str(value)
+        if isinstance(value, (bool, np.bool_)):
+            raise bad
+        if self.type is int:
+            if not isinstance(value, (int, np.integer)):
+                raise bad
+            x: Any = int(value)
+        else:
+            if not isinstance(value, (int, float, np.integer, np.floating)):
+                raise bad
+            x = float(value)
+            if math.isnan(x) or (math.isinf(x) and not (
+                    x > 0 and self.high == math.inf and not self.high_strict)):
+                raise bad
+        if self.low is not None and (x <= self.low if self.low_strict else x < self.low):
+            raise bad
+        if self.high is not None and (x >= self.high if self.high_strict else x > self.high):
+            raise bad
+        return x
+
+
+def check_options(algo: str, specs: dict[str, OptionSpec], options: dict[str, Any]
+                  ) -> dict[str, Any]:
+    """Every option known and valid; returns them all, defaults filled in (None stays None)."""
+    for name in options:
+        if name not in specs:
+            raise OptimizerError(f'unknown option {name!r} for {algo} '
+                                 f"(allowed: {', '.join(specs) or 'none'})")
+    out = {}
+    for name, spec in specs.items():
+        if name in options and not (spec.default is None and options[name] is None):
+            out[name] = spec.check(f'{algo} option {name}', options[name])
+        else:
+            out[name] = spec.default
+    return out
+
+
+class PendingCheck:
+    """The candidate handed out by ``ask`` and the bit-for-bit check of ``tell``'s ``u``.
+
+    Kept as an array plus its bytes: comparing bytes is exact (no -0.0 == 0.0, no NaN
+    subtleties) and cheaper than ``np.array_equal`` on the per-evaluation path.
+    """
+
+    __slots__ = ('u', '_bytes')
+
+    def __init__(self, u: np.ndarray) -> None:
+        self.u = u
+        self._bytes = u.tobytes()
+
+    def matches(self, u: Any) -> bool:
+        if type(u) is not np.ndarray or u.dtype != np.float64:
+            try:
+                u = np.asarray(u, dtype=np.float64)
+            except (TypeError, ValueError):
+                return False
+        return u.shape == self.u.shape and u.tobytes() == self._bytes
+
+
+def check_told(pending: PendingCheck | None, u: Any, loss: Any) -> float:
+    """Validate a ``tell``: a pending candidate, ``u`` equal to it bit for bit, a finite loss."""
+    if pending is None:
+        raise OptimizerError('tell without a pending candidate: call ask() first')
+    if not pending.matches(u):
+        raise OptimizerError('tell: u is not the pending candidate returned by ask() '
+                             '(it must be equal bit for bit)')
+    return check_loss(loss)
+
+
+class Optimizer(ABC):
+    """Base class: see the module docstring for the contract."""
+
+    #: registry name ('spsa', 'cga', 'pecga', 'necga', 'rcga'); set by subclasses
+    algo: ClassVar[str] = ''
+    _registry: ClassVar[dict[str, type['Optimizer']]] = {}
+
+    def __init_subclass__(cls, **kw: Any) -> None:
+        super().__init_subclass__(**kw)
+        if cls.algo:
+            Optimizer._registry[cls.algo] = cls
+
+    dim: int
+    evaluations: int
+
+    @abstractmethod
+    def ask(self) -> np.ndarray: ...
+
+    @abstractmethod
+    def tell(self, u: np.ndarray, loss: float) -> None: ...
+
+    @abstractmethod
+    def state_dict(self) -> dict[str, Any]: ...
+
+    @classmethod
+    @abstractmethod
+    def _from_state(cls, state: dict[str, Any]) -> 'Optimizer': ...
+
+    @abstractmethod
+    def config(self) -> dict[str, Any]: ...
+
+    def converged(self) -> bool:
+        return False
+
+    @staticmethod
+    def from_state(state: dict[str, Any]) -> 'Optimizer':
+        """Rebuild any optimiser from ``state_dict()`` output (dispatch on 'algo')."""
+        try:
+            cls = Optimizer._registry[state['algo']]
+        except (KeyError, TypeError):
+            raise OptimizerError(f"not an optimiser state (algo {state.get('algo')!r})"
+                                 if isinstance(state, dict) else
+                                 'not an optimiser state') from None
+        return cls._from_state(state)

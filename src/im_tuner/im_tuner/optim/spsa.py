@@ -1,0 +1,230 @@
+"""Simultaneous perturbation stochastic approximation (SPSA), Spall 1998, as in the paper.
+
+On normalised parameters u in [0, 1]^dim (the paper's c = 0.03 only makes sense on such
+a scale), iteration k = 0, 1, ... costs two loss evaluations::
+
+    a_k = a / (k + 1 + A)^alpha          c_k = c / (k + 1)^gamma
+    Delta_k: dim i.i.d. +-1 entries, P(+1) = P(-1) = 1/2 (own generator)
+    y+ = L(u_k + c_k Delta_k)            (first ask/tell of the iteration)
+    y- = L(u_k - c_k Delta_k)            (second ask/tell)
+    g_k,i = (y+ - y-) / (2 c_k Delta_k,i)
+    s_k = a_k g_k, scaled down to max|s_k,i| = max_step if it is larger (step cap)
+    u_{k+1} = clip(u_k - s_k, c_{k+1}, 1 - c_{k+1})      (bounded, the default)
+
+Index convention: k counts iterations from 0 (Spall's).  The paper writes
+a_k = a/(k + A)^alpha with its first iteration k = 1, which is the same sequence; its
+c_k = c/(k + 1)^gamma is taken with the same 0-based k (c_0 = c).
+
+The step cap keeps a penalised (aborted, huge-loss) experiment from throwing the iterate
+across the box; the projection onto [c_{k+1}, 1 - c_{k+1}] keeps both perturbed points of
+the next iteration inside [0, 1] (the start point is projected onto [c_0, 1 - c_0]).
+``bounded=False`` (constructor only, for analytic oracles) disables the projection.
+
+Gain presets: ``gains='paper'`` (alpha = gamma = 0.3, the paper's values, which violate
+Spall's convergence condition alpha - gamma > 1/2: over 100 iterations a_k/c_k only grows
+from 0.24 to 0.58, i.e. SPSA with an almost constant gain; reproduced as given) or
+``gains='spall'`` (alpha = 0.602, gamma = 0.101).  Explicit ``alpha``/``gamma`` override
+either preset.  See docs/optimisers.md.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar
+
+import numpy as np
+
+from .base import (OptimizerError, Optimizer, OptionSpec, PendingCheck, check_dim,
+                   check_options, check_seed, check_start, check_told, make_rng, rng_state,
+                   seed_json, set_rng_state)
+
+__all__ = ['SPSA', 'GAIN_PRESETS']
+
+#: (alpha, gamma) of each ``gains`` preset.
+GAIN_PRESETS: dict[str, tuple[float, float]] = {'paper': (0.3, 0.3), 'spall': (0.602, 0.101)}
+
+_STATE_VERSION = 1
+
+
+class SPSA(Optimizer):
+    """SPSA with two evaluations per iteration (see the module docstring for the equations).
+
+    ``SPSA(dim, seed, start=None, *, a, c, A, alpha, gamma, gains, max_step, bounded=True)``;
+    ``start`` None draws a uniform start in [c, 1 - c]^dim from the optimiser's generator.
+    """
+
+    algo: ClassVar[str] = 'spsa'
+    OPTIONS: ClassVar[dict[str, OptionSpec]] = {
+        'a': OptionSpec(float, 0.0183, 'step gain a of a_k = a/(k+1+A)^alpha '
+                        '(normalised units per unit of loss gradient)',
+                        low=0.0, high=math.inf, low_strict=True, high_strict=True),
+        'c': OptionSpec(float, 0.03, 'perturbation size c of c_k = c/(k+1)^gamma '
+                        '(normalised units, fraction of each parameter range)',
+                        low=0.0, high=0.5, low_strict=True, high_strict=True),
+        'A': OptionSpec(float, 20.0, 'stability constant A of a_k (iterations; ~10% of '
+                        'the expected iterations)', low=0.0, high=math.inf, high_strict=True),
+        'alpha': OptionSpec(float, None, 'decay exponent of a_k (default: 0.3 with '
+                            "gains='paper', 0.602 with gains='spall')",
+                            low=0.0, high=1.0, low_strict=True),
+        'gamma': OptionSpec(float, None, 'decay exponent of c_k (default: 0.3 with '
+                            "gains='paper', 0.101 with gains='spall')", low=0.0, high=1.0),
+        'gains': OptionSpec(str, 'paper', "alpha/gamma preset: 'paper' (0.3/0.3) or "
+                            "'spall' (0.602/0.101)", choices=tuple(GAIN_PRESETS)),
+        'max_step': OptionSpec(float, 0.1, 'largest change of any normalised parameter in '
+                               'one iteration (the step vector is scaled down to it); '
+                               'inf disables the cap',
+                               low=0.0, high=math.inf, low_strict=True),
+    }
+
+    def __init__(self, dim: int, seed: int | np.random.SeedSequence,
+                 start: np.ndarray | None = None, *, bounded: bool = True,
+                 **options: Any) -> None:
+        self.dim = check_dim(dim)
+        self._seed_json = seed_json(check_seed(seed))
+        start_u = check_start(start, self.dim)
+        if not isinstance(bounded, bool):
+            raise OptimizerError(f'bounded must be True or False, got {bounded!r}')
+        opts = check_options(self.algo, self.OPTIONS, options)
+        preset_alpha, preset_gamma = GAIN_PRESETS[opts['gains']]
+        if opts['alpha'] is None:
+            opts['alpha'] = preset_alpha
+        if opts['gamma'] is None:
+            opts['gamma'] = preset_gamma
+        self._opts = opts
+        self.bounded = bounded
+        self.a: float = opts['a']
+        self.c: float = opts['c']
+        self.A: float = opts['A']
+        self.alpha: float = opts['alpha']
+        self.gamma: float = opts['gamma']
+        self.max_step: float = opts['max_step']
+        self._rng = make_rng(seed)
+        if start_u is None:
+            lo, hi = (self.c, 1.0 - self.c) if bounded else (0.0, 1.0)
+            start_u = lo + (hi - lo) * self._rng.random(self.dim)
+        self._u = self._project(start_u, self.c)
+        self.k = 0                       # iteration index of u_k
+        self.evaluations = 0
+        self._phase = 0                  # 0: y+ next, 1: y- next
+        self._delta = np.zeros(self.dim)  # Delta_k (+-1.0), drawn at the iteration's 1st ask
+        self._ck = 0.0                   # c_k of the current iteration
+        self._y_plus = 0.0
+        self._pending: PendingCheck | None = None
+        self._last_gradient: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ gain sequences
+    def gains(self, k: int) -> tuple[float, float]:
+        """(a_k, c_k) of iteration k (0-based): a/(k+1+A)^alpha, c/(k+1)^gamma."""
+        return self.a / (k + 1 + self.A) ** self.alpha, self.c / (k + 1) ** self.gamma
+
+    def _project(self, u: np.ndarray, ck: float) -> np.ndarray:
+        """u clipped to [c_k, 1 - c_k] (a new array), or a copy when unbounded."""
+        if not self.bounded:
+            return np.array(u, dtype=np.float64)
+        return np.clip(u, ck, 1.0 - ck)
+
+    # ------------------------------------------------------------------------ ask/tell
+    def ask(self) -> np.ndarray:
+        """u_k + c_k Delta_k (first evaluation of an iteration) or u_k - c_k Delta_k."""
+        if self._pending is None:
+            if self._phase == 0:
+                self._ck = self.c / (self.k + 1) ** self.gamma
+                # +-1 with probability exactly 1/2 each: r in [0, 1) is a multiple of 2^-53,
+                # r - 1/2 < 0 on exactly half of them (0.0 counts as +).  (rng.integers
+                # would do too but costs 5 us per call.)
+                self._delta = np.copysign(1.0, self._rng.random(self.dim) - 0.5)
+                u = self._u + self._ck * self._delta
+            else:
+                u = self._u - self._ck * self._delta
+            self._pending = PendingCheck(u)
+        return self._pending.u.copy()
+
+    def tell(self, u: np.ndarray, loss: float) -> None:
+        """Record y+ (first call of an iteration) or y- and take the SPSA step."""
+        y = check_told(self._pending, u, loss)
+        self._pending = None
+        self.evaluations += 1
+        if self._phase == 0:
+            self._y_plus = y
+            self._phase = 1
+            return
+        # 1/Delta_i = Delta_i for +-1 entries: g = (y+ - y-)/(2 c_k) Delta.
+        g = ((self._y_plus - y) / (2.0 * self._ck)) * self._delta
+        ak = self.a / (self.k + 1 + self.A) ** self.alpha
+        step = ak * g
+        biggest = float(np.abs(step).max())
+        if biggest > self.max_step:
+            # Scale the whole vector (keeps its direction): one penalised loss cannot throw
+            # the iterate across the box.
+            step *= self.max_step / biggest
+        self.k += 1
+        u_next = self._u - step
+        if self.bounded:
+            ck1 = self.c / (self.k + 1) ** self.gamma
+            np.maximum(u_next, ck1, out=u_next)        # (np.clip is 2x slower here)
+            np.minimum(u_next, 1.0 - ck1, out=u_next)
+        self._u = u_next
+        self._last_gradient = g
+        self._phase = 0
+
+    # ---------------------------------------------------------------------- reporting
+    @property
+    def iterate(self) -> np.ndarray:
+        """The current point u_k (a copy): SPSA's estimate of the optimum."""
+        return self._u.copy()
+
+    @property
+    def last_gradient(self) -> np.ndarray | None:
+        """The gradient estimate g_k of the last completed iteration (a copy), or None."""
+        return None if self._last_gradient is None else self._last_gradient.copy()
+
+    @property
+    def iteration(self) -> int:
+        """Completed iterations (= k of the current iterate u_k)."""
+        return self.k
+
+    def config(self) -> dict[str, Any]:
+        return {'algo': self.algo, 'dim': self.dim, 'seed': self._seed_json,
+                'bounded': self.bounded, **self._opts}
+
+    # ---------------------------------------------------------------------- state I/O
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            'algo': self.algo, 'version': _STATE_VERSION, 'config': self.config(),
+            'rng': rng_state(self._rng), 'k': self.k, 'evaluations': self.evaluations,
+            'u': self._u.tolist(), 'phase': self._phase, 'delta': self._delta.tolist(),
+            'ck': self._ck, 'y_plus': self._y_plus,
+            'pending': None if self._pending is None else self._pending.u.tolist(),
+            'last_gradient': (None if self._last_gradient is None
+                              else self._last_gradient.tolist()),
+        }
+
+    @classmethod
+    def _from_state(cls, state: dict[str, Any]) -> 'SPSA':
+        try:
+            if state.get('version') != _STATE_VERSION:
+                raise OptimizerError(f"spsa state version {state.get('version')!r} "
+                                     f'not supported (expected {_STATE_VERSION})')
+            cfg = dict(state['config'])
+            dim, bounded = cfg.pop('dim'), cfg.pop('bounded')
+            cfg.pop('algo'), cfg.pop('seed')
+            opt = cls(dim, 0, None, bounded=bounded, **cfg)
+            set_rng_state(opt._rng, state['rng'])
+            opt.k = int(state['k'])
+            opt.evaluations = int(state['evaluations'])
+            opt._u = np.array(state['u'], dtype=np.float64)
+            opt._phase = int(state['phase'])
+            opt._delta = np.array(state['delta'], dtype=np.float64)
+            opt._ck = float(state['ck'])
+            opt._y_plus = float(state['y_plus'])
+            p = state['pending']
+            opt._pending = None if p is None else PendingCheck(np.array(p, dtype=np.float64))
+            g = state['last_gradient']
+            opt._last_gradient = None if g is None else np.array(g, dtype=np.float64)
+            opt._seed_json = state['config']['seed']
+        except (KeyError, TypeError, ValueError) as e:
+            if isinstance(e, OptimizerError):
+                raise
+            raise OptimizerError(f'bad spsa state: {e!r}') from None
+        if opt._u.shape != (opt.dim,) or opt._delta.shape != (opt.dim,):
+            raise OptimizerError('bad spsa state: vectors do not match dim')
+        return opt

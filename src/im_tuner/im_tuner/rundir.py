@@ -150,8 +150,9 @@ class RunDir:
 
     # -- checkpoint / summary ------------------------------------------------------------
     def write_checkpoint(self, state: dict[str, Any]) -> None:
+        # allow_nan: an option may be +inf (SPSA max_step=inf: no cap); Python reads it back
         atomic_write_text(self.path / CHECKPOINT_FILE,
-                          json.dumps(state, allow_nan=False, separators=(',', ':')))
+                          json.dumps(state, separators=(',', ':')))
 
     def read_checkpoint(self) -> dict[str, Any] | None:
         path = self.path / CHECKPOINT_FILE

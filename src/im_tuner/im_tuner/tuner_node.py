@@ -153,7 +153,7 @@ def _algo_options(cli: argparse.Namespace, algo: str) -> dict[str, Any]:
 def _seeds(seed: int) -> tuple[np.random.SeedSequence, int]:
     """Independent streams from the run seed: the optimiser's and the drive's noise."""
     opt_ss, drive_ss = np.random.SeedSequence(seed).spawn(2)
-    return opt_ss, int(drive_ss.generate_state(1)[0])
+    return opt_ss, int(drive_ss.generate_state(1)[0]) >> 1  # the drive takes int32 >= 0
 
 
 def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str, Any], TunerParams]:

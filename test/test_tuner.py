@@ -1,0 +1,285 @@
+"""The tuner end to end, through real DDS: ``ros2 run im_tuner tuner``.
+
+Short runs (about 20 evaluations) of SPSA and neCGA on the in-process simulated bench,
+checked against what the bag recorded; resume after SIGKILL equals an uninterrupted run
+bit for bit; bad input and a missing controller give one clear line.  The full default
+run (200 evaluations) is ``make bench``'s, not the tests'.
+"""
+from __future__ import annotations
+
+import collections
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
+GAINS = ('k_pw', 'k_iw', 'k_pos', 'tau_sm', 'tau_eq')
+START = {'k_pw': 0.53, 'k_iw': 20.0, 'k_pos': 30.0, 'tau_sm': 0.005, 'tau_eq': 0.007}
+START_LOSS = 0.978352755613354  # experiment 0 of the hand-tuned start (test_controller_node)
+
+
+def tuner(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([ROS2, 'run', 'im_tuner', 'tuner', *args], capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def results(run: Path) -> list[dict]:
+    return [json.loads(line) for line in (run / 'results.jsonl').read_text().splitlines()]
+
+
+def bag_messages(bag: Path, topics: set[str]) -> dict[str, list]:
+    """Messages of ``topics`` deserialised by rosbags (an independent reader) from the
+    bag's own schemas (rosbags files pkg/srv/T_Event under pkg/srv/msg/T_Event)."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    store = get_typestore(Stores.EMPTY)
+    out: dict[str, list] = collections.defaultdict(list)
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic in topics]
+        names = {}
+        for conn in conns:
+            types = get_types_from_msg(conn.msgdef.data, conn.msgtype)
+            store.register(types)
+            names[conn.id] = next(k for k in types
+                                  if k.split('/')[-1] == conn.msgtype.split('/')[-1])
+        for conn, _t, raw in reader.messages(connections=conns):
+            out[conn.topic].append(store.deserialize_cdr(raw, names[conn.id]))
+    return out
+
+
+def loss_values(msg) -> dict[str, str]:
+    (st,) = msg.status
+    return {kv.key: kv.value for kv in st.values}
+
+
+def check_run(run: Path, algo: str, budget: int, proc: subprocess.CompletedProcess) -> list[dict]:
+    """What every finished run must show: files, records, summary, bag contents."""
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    recs = results(run)
+    kinds = collections.Counter(r['kind'] for r in recs)
+    assert kinds['reference'] == 1 and kinds['eval'] == budget and kinds['remeasure'] == 3
+    assert [r['eval'] for r in recs if r['kind'] == 'eval'] == list(range(budget))
+    assert all(r['status'] in ('ok', 'aborted') for r in recs)
+    assert [r['experiment_id'] for r in recs] == list(range(len(recs)))
+    ref = recs[0]
+    assert ref['kind'] == 'reference' and ref['gains'] == START and ref['loss'] == START_LOSS
+    run_yaml = yaml.safe_load((run / 'run.yaml').read_text())
+    assert run_yaml['algo'] == algo and run_yaml['budget'] == budget
+    assert run_yaml['bench'] == 'inproc'
+    assert run_yaml['controller_parameters']['k_pw'] == 0.53
+    evals = [r for r in recs if r['kind'] == 'eval']
+    box = run_yaml['search_box']
+    for r in evals:  # candidates inside the box, the gains are the box map of u
+        for n, u in zip(GAINS, r['u']):
+            lo, hi = box[n]['lo'], box[n]['hi']
+            assert 0.0 <= u <= 1.0
+            assert r['gains'][n] == lo + (hi - lo) * u
+        assert r['sim_s'] == pytest.approx(1.125) if not r['aborted'] else r['sim_s'] < 1.125
+    ok = [r for r in evals if not r['aborted']]
+    best = min(ok, key=lambda r: r['loss'])
+    # best-so-far column is the running minimum over non-aborted evaluations
+    running = np.minimum.accumulate([r['loss'] if not r['aborted'] else np.inf for r in evals])
+    assert [r['best_loss'] for r in evals] == [None if not np.isfinite(x) else x
+                                               for x in running]
+    summary = json.loads((run / 'summary.json').read_text())
+    assert summary['outcome'] == 'done' and summary['evaluations'] == budget
+    assert summary['best']['loss'] == best['loss'] and summary['best']['eval'] == best['eval']
+    assert summary['aborted'] == sum(r['aborted'] for r in evals)
+    sat = next((i + 1 for i, r in enumerate(evals)
+                if not r['aborted'] and r['loss'] <= run_yaml['satisfactory_loss']), None)
+    assert summary['evaluations_to_satisfactory'] == sat
+    rem = [r for r in recs if r['kind'] == 'remeasure']
+    top = sorted(ok, key=lambda r: r['loss'])
+    assert [r['eval'] for r in rem] == [r['eval'] for r in top[:3]]
+    assert all(r['gains'] == evals[r['eval']]['gains'] for r in rem)
+    chosen = min((r for r in rem if not r['aborted']), key=lambda r: r['loss'])
+    applied = summary['applied']
+    expect = chosen if chosen['loss'] < ref['loss'] else ref
+    assert applied['gains'] == expect['gains']
+    assert summary['sim_s'] == pytest.approx(sum(r['sim_s'] for r in recs))
+    assert summary['real_time_factor'] > 0 and summary['optimizer_us_per_eval'] > 0
+    assert 'best loss' in proc.stdout and 'real-time factor' in proc.stdout
+    # The bag: every loss the tuner used is the controller's message, bit for bit; the
+    # gains were set by set_parameters_atomically (service events recorded), the last
+    # call leaves the applied gains.
+    bag = run / 'bag_0'
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    assert meta['custom_data']['im_tuner.state'] == 'closed'
+    counts = json.loads(meta['custom_data']['im_tuner.counts'])
+    for topic, c in counts.items():
+        assert c['recorded'] == c['published'] and c['lost'] == 0, topic
+    ev = '/controller/set_parameters_atomically/_service_event'
+    msgs = bag_messages(bag, {'/controller/loss', ev})
+    losses = [loss_values(m) for m in msgs['/controller/loss']]
+    assert [float(v['loss']) for v in losses] == [r['loss'] for r in recs]
+    assert [int(v['experiment_id']) for v in losses] == [r['experiment_id'] for r in recs]
+    for v, r in zip(losses, recs):
+        assert {n: float(v[n]) for n in GAINS} == r['gains']
+    requests = [m.request[0] for m in msgs[ev] if len(m.request)]
+    last = {p.name: p.value.double_value for p in requests[-1].parameters}
+    assert last == applied['gains']
+    return recs
+
+
+def test_spsa_short_run(tmp_path):
+    run = tmp_path / 'spsa_run'
+    proc = tuner('--algo', 'spsa', '--budget', '20', '--seed', '3', '--out', str(run), '--quiet')
+    recs = check_run(run, 'spsa', 20, proc)
+    evals = [r for r in recs if r['kind'] == 'eval']
+    # SPSA: evaluations come in pairs u_k +- c_k Delta_k around the iterate, c_k per the
+    # paper's c = 0.03, gamma = 0.3 (normalised box), Delta_k = +-1 per gain.
+    start_u = np.array([(START[n] - yaml.safe_load((run / 'run.yaml').read_text())
+                         ['search_box'][n]['lo']) /
+                        (lambda b: b['hi'] - b['lo'])(yaml.safe_load(
+                            (run / 'run.yaml').read_text())['search_box'][n]) for n in GAINS])
+    for k in range(10):
+        up, um = np.array(evals[2 * k]['u']), np.array(evals[2 * k + 1]['u'])
+        ck = 0.03 / (k + 1) ** 0.3
+        np.testing.assert_allclose(np.abs(up - um), 2 * ck, rtol=1e-9)
+        if k == 0:  # the first pair is centred on the hand-tuned start
+            np.testing.assert_allclose((up + um) / 2, start_u, rtol=1e-12)
+
+
+def test_necga_short_run(tmp_path):
+    run = tmp_path / 'necga_run'
+    proc = tuner('--algo', 'necga', '--budget', '20', '--seed', '4', '--out', str(run),
+                 '--quiet')
+    recs = check_run(run, 'necga', 20, proc)
+    # 16-bit genes: every gain is lo + (hi - lo) v/65535 with integer v
+    for r in recs:
+        if r['kind'] == 'eval':
+            v = np.array(r['u']) * 65535
+            np.testing.assert_allclose(v, np.round(v), atol=1e-6)
+
+
+def _same_evaluations(a: list[dict], b: list[dict]) -> None:
+    key = ('kind', 'eval', 'u', 'gains', 'loss', 'terms', 'aborted', 'experiment_id',
+           't_start_ns', 't_end_ns', 'best_loss')
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        assert {k: x.get(k) for k in key} == {k: y.get(k) for k in key}
+
+
+def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until):
+    args = ['--algo', 'necga', '--budget', '12', '--seed', '11', '--quiet']
+    whole = tmp_path / 'whole'
+    assert tuner(*args, '--out', str(whole)).returncode == 0
+    killed = tmp_path / 'killed'
+    child = procs.start([ROS2, 'run', 'im_tuner', 'tuner', *args, '--out', str(killed)])
+    res = killed / 'results.jsonl'
+    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 6, 120,
+               message='6 records')
+    child.send_signal(signal.SIGKILL)
+    child.wait(timeout=30)
+    n_killed = res.read_text().count('\n')
+    assert 6 <= n_killed < 16
+    # The killed session's bag is still marked as being recorded ...
+    meta0 = yaml.safe_load((killed / 'bag_0' / 'metadata.yaml').read_text())
+    assert meta0['rosbag2_bagfile_information']['custom_data']['im_tuner.state'] == 'recording'
+    proc = tuner('--resume', str(killed))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert 'replaying' in proc.stderr
+    _same_evaluations(results(whole), results(killed))
+    sw = json.loads((whole / 'summary.json').read_text())
+    sk = json.loads((killed / 'summary.json').read_text())
+    for k in ('best', 'applied', 'evaluations', 'aborted', 'evaluations_to_satisfactory',
+              'remeasured'):
+        assert sw[k] == sk[k], k
+    assert [s['bag'] for s in sk['sessions']] == ['bag_0', 'bag_1']
+    assert sk['sessions'][1]['replayed'] == n_killed
+    # ... and repaired by the resume; the new session has its own bag.
+    meta0 = yaml.safe_load((killed / 'bag_0' / 'metadata.yaml').read_text())
+    assert meta0['rosbag2_bagfile_information']['custom_data']['im_tuner.state'] == 'repaired'
+    meta1 = yaml.safe_load((killed / 'bag_1' / 'metadata.yaml').read_text())
+    assert meta1['rosbag2_bagfile_information']['custom_data']['im_tuner.state'] == 'closed'
+    # A finished run resumed again has nothing left to do and changes no result.
+    again = tuner('--resume', str(killed))
+    assert again.returncode == 0
+    _same_evaluations(results(whole), results(killed))
+
+
+@pytest.mark.parametrize('args, expect', [
+    (['--budget', '0'], '--budget must be >= 1'),
+    (['--algo', 'pso'], "invalid choice: 'pso'"),
+    (['--algo', 'necga', '--eta', '30'], 'eta'),
+    (['--algo', 'spsa', '--eta', '5'], '--eta does not apply to --algo spsa'),
+    (['--seed', '-1'], '--seed must be >= 0'),
+    (['--budget', 'ten'], "invalid int value: 'ten'"),
+    (['--fault-policy', 'ignore'], 'invalid choice'),
+])
+def test_bad_command_line_one_line_exit_2(tmp_path, args, expect):
+    out = tmp_path / 'run'
+    proc = tuner(*args, '--out', str(out), timeout=60)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('error: tuner:') and expect in lines[0], \
+        proc.stderr
+    assert not out.exists()
+
+
+def test_bad_files_one_line_exit_2(tmp_path):
+    bad = tmp_path / 'tuner.yaml'
+    bad.write_text('satisfactory_loss: 0.8\nsearch_box:\n  k_pw: {lo: 1.0, hi: 0.5, start: 0.7}\n')
+    for args, expect in (
+            (['--params', str(bad)], 'search_box must have exactly'),
+            (['--params', str(tmp_path / 'missing.yaml')], 'cannot read'),
+            (['--resume', str(tmp_path)], 'not a tuning run'),
+            (['--resume', str(tmp_path), '--seed', '3'], 'do not also give --seed')):
+        proc = tuner(*args, timeout=60)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1 and expect in lines[0], proc.stderr
+    full = yaml.safe_load(bad.read_text())
+    full['search_box'] = {n: {'lo': 0.0, 'hi': 1.0, 'start': 0.5} for n in GAINS}
+    full['search_box']['k_iw'] = {'lo': 0.0, 'hi': 900.0, 'start': 20.0}
+    bad.write_text(yaml.safe_dump(full))
+    proc = tuner('--params', str(bad), timeout=60)
+    assert proc.returncode == 2 and "leaves the controller's accepted range" in proc.stderr
+    existing = tmp_path / 'existing'
+    existing.mkdir()
+    (existing / 'keep.txt').write_text('x')
+    proc = tuner('--out', str(existing), timeout=60)
+    assert proc.returncode == 2 and 'already exists' in proc.stderr
+    assert sorted(p.name for p in existing.iterdir()) == ['keep.txt']
+
+
+def test_bench_none_without_controller_says_what_to_start(tmp_path):
+    t0 = time.monotonic()
+    proc = tuner('--bench', 'none', '--discovery-timeout', '0.5', '--out',
+                 str(tmp_path / 'run'), timeout=60)
+    assert proc.returncode == 1
+    assert 'no controller reachable' in proc.stderr and 'sim_bench' in proc.stderr
+    assert time.monotonic() - t0 < 30
+
+
+def test_auto_uses_a_controller_already_on_the_graph(tmp_path, procs, ros_context,
+                                                     wait_until):
+    """A bench already running (here the simulated one, started by hand): the tuner uses it
+    and starts no simulator of its own; the external default fault policy is 'stop'."""
+    from rclpy.node import Node
+    bench = procs.start([ROS2, 'run', 'im_controller', 'sim_bench', '--no-record',
+                         '--seed', '5'])
+    probe = Node('probe', context=ros_context)
+    try:
+        wait_until(lambda: '/controller/start_experiment' in
+                   [n for n, _ in probe.get_service_names_and_types()], 60,
+                   message='the bench controller')
+    finally:
+        probe.destroy_node()
+    run = tmp_path / 'ext'
+    proc = tuner('--budget', '3', '--remeasure', '0', '--seed', '1', '--out', str(run),
+                 '--discovery-timeout', '10')
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    run_yaml = yaml.safe_load((run / 'run.yaml').read_text())
+    assert run_yaml['bench'] == 'external' and run_yaml['fault_policy'] == 'stop'
+    recs = results(run)
+    assert [r['kind'] for r in recs] == ['reference', 'eval', 'eval', 'eval']
+    assert recs[0]['loss'] == START_LOSS  # the bench's experiment 0: nothing else ran first
+    assert 'on the external bench' in proc.stderr
+    assert bench.poll() is None  # the bench is left running

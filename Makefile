@@ -1,7 +1,7 @@
 # im_tuner workspace: one-command set-up, tests, demo and benchmarks.
 #   make setup   create .venv from pinned requirements and install the three packages
 #   make test    the whole test suite
-#   make demo    the main job (the drive simulator until the tuner exists)
+#   make demo    the main job: ros2 run im_tuner tuner --algo necga (ALGO=spsa ...)
 #   make bench   the benchmarks, printing their figures
 # Every target does the set-up it needs first; a re-run with nothing changed is quick.
 
@@ -19,7 +19,7 @@ export HOME ?= $(CURDIR)
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: setup test demo bench lock clean
+.PHONY: setup test demo demo-drive bench lock clean
 
 setup: $(VENV)/.installed
 
@@ -44,8 +44,13 @@ $(VENV)/.installed: $(VENV)/.deps $(PKG_FILES) tools/ros2 Makefile
 test: setup
 	$(PY) -m pytest
 
+# The product: tune the simulated bench (ALGO=spsa|necga|cga|pecga|rcga, ARGS=more options).
+ALGO ?= necga
 demo: setup
-	@# Until the tuner lands: the simulated drive closed over DDS by a hand-tuned cascade.
+	$(VENV)/bin/ros2 run im_tuner tuner --algo $(ALGO) $(ARGS)
+
+# The simulated drive closed over DDS by the hand-tuned cascade (one experiment, a plot).
+demo-drive: setup
 	$(PY) tools/demo_drive.py
 
 bench: setup

@@ -13,6 +13,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_experiment  # noqa: E402
 import bench_lockstep  # noqa: E402
 import bench_model  # noqa: E402
+import bench_optim  # noqa: E402
+import bench_tuner  # noqa: E402
 
 #: figure -> (unit, target): what the issues ask of each figure; a positive target is an
 #: upper bound, a negative one a lower bound (stored negated), None: informational.
@@ -31,7 +33,27 @@ TARGETS = {
     'recording_kept_zstd': ('ratio', -0.8),
     'recording_kept_lz4': ('ratio', -0.8),
     'recording_kept_none': ('ratio', -0.8),
+    # issue 5: the default tuning run, recording included, and the optimiser's cost
+    'tuner_necga_rtf': ('x', -5.0),
+    'tuner_spsa_rtf': ('x', -5.0),
+    'tuner_necga_ask_tell_us': ('us/eval', 50.0),
+    'tuner_spsa_ask_tell_us': ('us/eval', 50.0),
+    'tuner_necga_wall_s': ('s', None),
+    'tuner_spsa_wall_s': ('s', None),
+    'tuner_necga_sim_s': ('s', None),
+    'tuner_spsa_sim_s': ('s', None),
 }
+
+
+def optim_figures(res: dict, prefix: str = 'optim') -> dict[str, float]:
+    """bench_optim's figures (us per evaluation), flattened: optim_<algo>[_<variant>]_us."""
+    out = {}
+    for k, v in res.items():
+        if isinstance(v, dict):
+            out.update(optim_figures(v, f'{prefix}_{k}'))
+        else:
+            out[f'{prefix}_{k}_us'] = float(v)
+    return out
 
 
 def main() -> int:
@@ -43,6 +65,11 @@ def main() -> int:
     figures.update(bench_lockstep.main())
     print('\n== the paper\'s experiment through the nodes (lock-step) ==', flush=True)
     figures.update(bench_experiment.main())
+    print('\n== optimisers: ask+tell per evaluation, dim 5 ==', flush=True)
+    figures.update(optim_figures(bench_optim.main()))
+    print('\n== the default tuning run: ros2 run im_tuner tuner (200 evaluations, recorded) ==',
+          flush=True)
+    figures.update(bench_tuner.main())
     print('\n== summary (medians) ==')
     for name, value in figures.items():
         unit, target = TARGETS.get(name, ('', None))

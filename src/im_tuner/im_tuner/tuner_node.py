@@ -326,8 +326,14 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
              + (f'{rtf:.2f}' if rtf else '-'))
     if s['optimizer_us_per_eval'] is not None:
         L.append(f'  optimiser ask+tell: {s["optimizer_us_per_eval"]:.1f} us per evaluation')
-    L.append(f'  run directory: {rundir}  (results.jsonl, summary.json, '
-             + ', '.join(p['bag'] for p in s['sessions'] if p.get('bag')) + ')')
+    bags = [p['bag'] for p in s['sessions'] if p.get('bag')]
+    L.append(f'  run directory: {rundir}  (run.yaml, results.jsonl, summary.json'
+             + ''.join(f', {b}/' for b in bags) + ')')
+    if len(s['sessions']) > 1:
+        rep = sum(p.get('replayed', 0) for p in s['sessions'])
+        L.append(f'  sessions: {len(s["sessions"])} (resumed; {rep} experiments replayed to '
+                 'restore the simulated plant)' if rep else
+                 f'  sessions: {len(s["sessions"])} (resumed)')
     return '\n'.join(L)
 
 
@@ -526,13 +532,15 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             spin_until = bench.spin_until
         else:
             ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
+            # the children log to /rosout (recorded) and their log files, not the console
+            quiet_logs = ['--ros-args', '--disable-stdout-logs']
             if bag_dir is not None:
                 children.append(subprocess.Popen(
                     [ros2, 'run', 'im_tuner', 'recorder', '--out', str(bag_dir),
-                     '--compression', cli.compression], stdout=subprocess.DEVNULL))
+                     '--compression', cli.compression, *quiet_logs], stdout=subprocess.DEVNULL))
             if bench_mode == 'processes':
-                d = [ros2, 'run', 'im_drive_sim', 'drive_sim', '--ros-args']
-                c = [ros2, 'run', 'im_controller', 'controller', '--ros-args']
+                d = [ros2, 'run', 'im_drive_sim', 'drive_sim', *quiet_logs]
+                c = [ros2, 'run', 'im_controller', 'controller', *quiet_logs]
                 d += [a for p in drive_over for a in ('-p', f'{p.name}:={p.value}')]
                 c += [a for p in ctl_over for a in ('-p', f'{p.name}:={p.value}')]
                 children += [subprocess.Popen(d, stdout=subprocess.DEVNULL),

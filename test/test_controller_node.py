@@ -235,6 +235,36 @@ def test_supervisor_stops_a_destabilising_gain_set_with_the_penalty(bench):
     assert (r.loss, r.reason, r.trip_step) == (ref.loss, ref.reason, ref.trip_step)
 
 
+def test_gains_refused_while_the_fallback_finishes_a_stopped_move(bench):
+    """After a supervisor stop the fallback gains finish the move: new gains are refused
+    until it ends (they would replace the fallback mid-move, at a wall-clock-dependent
+    step), then accepted; a completed experiment followed by an aborted one logs both
+    (one call site at two severities used to raise in rclpy)."""
+    b, probe = bench
+    assert not probe.experiment().aborted
+    assert all(r.successful for r in probe.set(**UNSTABLE))
+    ctl = b.controller
+    n = len(ctl.results)
+    assert probe.start().success
+    # stop as soon as the controller has published the result (the probe would only see
+    # it once the bench is idle, i.e. after the move has been finished)
+    assert b.spin_until(lambda: len(ctl.results) > n, 60)
+    assert ctl.results[-1].aborted
+    assert not ctl.runner.ready and not ctl.runner.running  # finishing the stopped move
+    step = b.drive.sim.step_index
+    fut = probe.params.set_parameters_atomically([Parameter('k_pw', value=0.6)])
+    # serve the call without stepping the bench: the move is still being finished
+    deadline = time.monotonic() + 20
+    while not fut.done() and time.monotonic() < deadline:
+        b.executor.spin_once(timeout_sec=0.01)
+    res = fut.result().result
+    assert not res.successful and 'finishing the stopped move' in res.reason
+    assert b.drive.sim.step_index == step and probe.get('k_pw') == [UNSTABLE['k_pw']]
+    assert b.spin_until(lambda: ctl.runner.ready, 30)
+    assert probe.set_atomically(k_pw=0.6).successful
+    assert probe.get('k_pw') == [0.6]
+
+
 def test_loss_message_round_trip_is_exact():
     r = offline_losses([Gains()])[0]
     assert msg_to_result(result_to_msg(r, 'controller')) == r

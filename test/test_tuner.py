@@ -283,3 +283,41 @@ def test_auto_uses_a_controller_already_on_the_graph(tmp_path, procs, ros_contex
     assert recs[0]['loss'] == START_LOSS  # the bench's experiment 0: nothing else ran first
     assert 'on the external bench' in proc.stderr
     assert bench.poll() is None  # the bench is left running
+
+
+def test_sigint_ends_the_session_cleanly_and_resumably(tmp_path, procs, wait_until):
+    run = tmp_path / 'int'
+    child = procs.start([ROS2, 'run', 'im_tuner', 'tuner', '--budget', '40', '--seed', '2',
+                         '--out', str(run)])
+    res = run / 'results.jsonl'
+    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 4, 120,
+               message='4 records')
+    child.send_signal(signal.SIGINT)
+    out, err = child.communicate(timeout=60)
+    assert child.returncode == 130, err[-2000:]
+    assert '--resume' in out
+    summary = json.loads((run / 'summary.json').read_text())
+    assert summary['outcome'] == 'interrupted' and 3 <= summary['evaluations'] < 40
+    meta = yaml.safe_load((run / 'bag_0' / 'metadata.yaml').read_text())
+    custom = meta['rosbag2_bagfile_information']['custom_data']
+    assert custom['im_tuner.state'] == 'closed'
+    counts = json.loads(custom['im_tuner.counts'])
+    assert all(c['recorded'] == c['published'] for c in counts.values())
+    # the checkpoint matches the records: a resume would continue from here
+    ck = json.loads((run / 'checkpoint.json').read_text())
+    assert ck['records'] == len(results(run))
+
+
+def test_processes_bench(tmp_path):
+    """drive_sim and controller as child processes, the recorder as a third."""
+    run = tmp_path / 'procs'
+    proc = tuner('--bench', 'processes', '--budget', '2', '--remeasure', '0', '--seed', '9',
+                 '--out', str(run), '--quiet')
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    recs = results(run)
+    assert [r['kind'] for r in recs] == ['reference', 'eval', 'eval']
+    assert recs[0]['loss'] == START_LOSS  # same physics as in one process
+    assert yaml.safe_load((run / 'run.yaml').read_text())['bench'] == 'processes'
+    msgs = bag_messages(run / 'bag_0', {'/controller/loss'})
+    assert [float(loss_values(m)['loss']) for m in msgs['/controller/loss']] == \
+        [r['loss'] for r in recs]

@@ -262,3 +262,56 @@ def test_evaluations_per_generation():
     assert runs['cga'].generation == 100
     assert runs['pecga'].generation == 199 and runs['rcga'].generation == 199
     assert runs['necga'].generation == 199
+
+
+@pytest.mark.parametrize('algo, opts', VARIANTS)
+def test_random_blocks_are_invisible(algo, opts):
+    """The uniforms are drawn in blocks (one rng call per many asks, for speed): the asks
+    and every state_dict, RNG state included, are those of drawing one candidate's numbers
+    at a time (block of 1)."""
+    blocked = make_optimizer(algo, 5, 31, **opts)
+    single = make_optimizer(algo, 5, 31, **opts)
+    single._BLOCK = 1
+    for i in range(150):
+        u, v = blocked.ask(), single.ask()
+        assert u.tobytes() == v.tobytes()
+        if i % 7 == 0:
+            assert json.dumps(blocked.state_dict()) == json.dumps(single.state_dict())
+        blocked.tell(u, _quad(u))
+        single.tell(v, _quad(v))
+        if i % 11 == 0:
+            assert json.dumps(blocked.state_dict()) == json.dumps(single.state_dict())
+
+
+@pytest.mark.parametrize('algo', ALGOS)
+def test_tell_takes_the_same_numbers_in_any_form(algo):
+    """u is compared as float64 bytes: a list or another dtype holding the same values is
+    the candidate (a numpy loss too); a reshaped or reordered array, or values one float32
+    rounding away, are not."""
+    for form in (np.copy, list, lambda u: np.asarray(u, dtype=np.longdouble),
+                 lambda u: np.asarray(u, dtype=object)):
+        opt = make_optimizer(algo, 5, 3)
+        u = opt.ask()
+        opt.tell(form(u), np.float64(1.5))
+        assert opt.evaluations == 1
+    opt = make_optimizer(algo, 5, 3)
+    u = opt.ask()
+    for bad in (u.reshape(1, 5), u.reshape(5, 1), u[::-1].copy(), u.astype(np.float32)):
+        with pytest.raises(OptimizerError, match='pending'):
+            opt.tell(bad, 1.0)
+    with pytest.raises(OptimizerError, match='finite'):
+        opt.tell(u, np.float64('nan'))
+    assert opt.evaluations == 0
+
+
+def test_the_sign_of_a_pending_zero_counts():
+    opt = make_optimizer('cga', 2, 0, n=10, bits=3)
+    st = opt.state_dict()
+    st['k'] = [-5] * 6                         # p = 0: every sample is 000000, u = (0, 0)
+    opt = Optimizer.from_state(st)
+    u = opt.ask()
+    assert u.tolist() == [0.0, 0.0] and not np.signbit(u).any()
+    with pytest.raises(OptimizerError, match='bit for bit'):
+        opt.tell(np.array([0.0, -0.0]), 1.0)
+    opt.tell(np.array([0, 0]), 1.0)            # integers convert to +0.0
+    assert opt.evaluations == 1

@@ -17,7 +17,7 @@ import math
 import numpy as np
 import pytest
 
-from im_tuner.optim import CGA, NECGA, PECGA, Optimizer, make_optimizer
+from im_tuner.optim import CGA, NECGA, PECGA, Optimizer, OptimizerError, make_optimizer
 
 
 def _set_offsets(opt, k):
@@ -281,3 +281,97 @@ def test_elitism_on_deceptive_trap():
     # ... and the cGA gets worse as n grows (it learns the deceptive slope more surely).
     assert mean['cga', 20] > mean['cga', 100] + 0.5
     assert mean['cga', 100] <= 1.4
+
+
+# ------------------------------------------------- the packed PV against a plain model
+class _PlainCGA:
+    """The binary compact GAs written plainly (numpy arrays of offsets and bits, one
+    rng.random(m) per sample): the model the packed implementation must reproduce."""
+
+    def __init__(self, algo, dim, seed, n, bits, coding, eta=12, rep='sample'):
+        self.algo, self.n, self.bits, self.gray = algo, n, bits, coding == 'gray'
+        self.dim, self.m, self.K = dim, dim * bits, (n + 1) // 2
+        self.eta, self.rep = eta, rep
+        self.rng = np.random.Generator(np.random.PCG64(seed))
+        self.k = np.zeros(self.m, dtype=np.int64)
+        self.held, self.held_loss, self.theta, self.pending = None, 0.0, 0, None
+
+    def p(self):
+        return np.clip((self.n + 2 * self.k) / (2.0 * self.n), 0.0, 1.0)
+
+    def decode(self, b):
+        g = b.reshape(self.dim, self.bits)
+        if self.gray:
+            g = np.logical_xor.accumulate(g, axis=1)
+        return g.dot(2.0 ** np.arange(self.bits - 1, -1, -1)) / (2 ** self.bits - 1)
+
+    def ask(self):
+        if self.pending is None:
+            self.pending = self.rng.random(self.m) < self.p()
+        return self.decode(self.pending)
+
+    def tell(self, y):
+        b, self.pending = self.pending, None
+        if self.held is None:
+            self.held, self.held_loss = b, y
+            return
+        if self.algo == 'cga':
+            w, l = (self.held, b) if self.held_loss <= y else (b, self.held)
+        else:
+            new = y < self.held_loss
+            w, l = (b, self.held) if new else (self.held, b)
+        self.k = np.clip(self.k + w.astype(int) - l.astype(int), -self.K, self.K)
+        if self.algo == 'cga':
+            self.held = None
+        elif new:
+            self.held, self.held_loss, self.theta = b, y, 0
+        elif self.algo == 'necga':
+            self.theta += 1
+            if self.theta >= self.eta:
+                self.theta = 0
+                if self.rep == 'newcomer':
+                    self.held, self.held_loss = b, y
+                else:
+                    self.held = None
+
+
+@pytest.mark.parametrize('algo, n, bits, coding, extra', [
+    ('cga', 4, 3, 'binary', {}), ('pecga', 5, 2, 'gray', {}),          # 1-byte fields
+    ('necga', 3, 1, 'binary', {'eta': 2}),
+    ('necga', 6, 5, 'gray', {'eta': 2, 'elite_replacement': 'newcomer'}),
+    ('pecga', 300, 1, 'binary', {}),                                    # 2-byte fields
+    ('necga', 70_001, 2, 'binary', {'eta': 3}),                         # 4-byte fields
+    ('cga', 25, 16, 'binary', {})])
+def test_packed_pv_equals_the_plain_model(algo, n, bits, coding, extra):
+    """Sampling (r < p), the clamped +-1 competitions with every tie rule, the elite
+    replacements and the decoding, evaluation by evaluation, until the PV converges (small
+    n) or for 600 evaluations; losses with many ties."""
+    for seed in range(4):
+        opt = make_optimizer(algo, 3, seed, n=n, bits=bits, coding=coding, **extra)
+        ref = _PlainCGA(algo, 3, seed, n, bits, coding, extra.get('eta', 12),
+                        extra.get('elite_replacement', 'sample'))
+        loss_rng = np.random.Generator(np.random.PCG64(seed + 77))
+        for _ in range(600):
+            u = opt.ask()
+            assert u.tobytes() == ref.ask().tobytes()
+            y = float(loss_rng.integers(0, 3))          # 0, 1, 2: ties are frequent
+            opt.tell(u, y)
+            ref.tell(y)
+            np.testing.assert_array_equal(opt.offsets, ref.k)
+        np.testing.assert_array_equal(opt.p, ref.p())
+        assert opt.converged() == bool(np.all(np.abs(ref.k) == ref.K))
+
+
+def test_state_with_an_impossible_sample_is_refused():
+    opt = CGA(2, 0, n=10, bits=3)
+    opt.ask()
+    st = opt.state_dict()
+    st['k'] = [5] * 6                          # p = 1 everywhere: the sample must be 111111
+    st['pending'] = '011111'
+    with pytest.raises(OptimizerError, match='cannot produce'):
+        Optimizer.from_state(st)
+    st['pending'] = '111111'
+    np.testing.assert_array_equal(Optimizer.from_state(st).ask(), [1.0, 1.0])
+    st['phase'] = 'second'                     # nothing is held: the phase is 'first'
+    with pytest.raises(OptimizerError, match='phase'):
+        Optimizer.from_state(st)

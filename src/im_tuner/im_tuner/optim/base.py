@@ -34,7 +34,10 @@ import numpy as np
 
 __all__ = ['Optimizer', 'OptimizerError', 'OptionSpec', 'make_rng', 'rng_state',
            'set_rng_state', 'check_loss', 'check_dim', 'check_seed', 'check_start',
-           'seed_json', 'check_options', 'check_told', 'PendingCheck']
+           'seed_json', 'check_options', 'check_told', 'zero_signs_match', 'NDARRAY']
+
+#: The array type, bound once (tell's fast path tests ``type(u) is NDARRAY``).
+NDARRAY = np.ndarray
 
 
 class OptimizerError(ValueError):
@@ -68,9 +71,27 @@ def seed_json(seed: int | np.random.SeedSequence) -> Any:
     return int(seed)
 
 
-def rng_state(rng: np.random.Generator) -> dict[str, Any]:
-    """JSON-serialisable state of a PCG64 generator (ints stay exact in JSON)."""
-    return rng.bit_generator.state
+#: PCG64's underlying LCG has period 2^128: advancing by 2^128 - d steps goes back d draws.
+_PCG64_PERIOD = 1 << 128
+
+
+def rng_state(rng: np.random.Generator, unread: int = 0) -> dict[str, Any]:
+    """JSON-serialisable state of a PCG64 generator (ints stay exact in JSON).
+
+    ``unread``: how many of the doubles last drawn (one 64-bit output each) are still
+    unused in the optimiser's random block; the state returned is the generator's as if
+    they had never been drawn, i.e. exactly the state of a generator that drew one
+    candidate's numbers at a time.  The optimisers draw their uniforms in blocks (one
+    numpy call per many asks); with this the saved state does not depend on the block
+    size, and ``set_rng_state`` + a fresh block continues the same stream.
+    """
+    st = rng.bit_generator.state
+    if unread:
+        bg = np.random.PCG64(0)
+        bg.state = st
+        bg.advance(_PCG64_PERIOD - unread)
+        st = bg.state
+    return st
 
 
 def set_rng_state(rng: np.random.Generator, state: dict[str, Any]) -> None:
@@ -190,36 +211,44 @@ def check_options(algo: str, specs: dict[str, OptionSpec], options: dict[str, An
     return out
 
 
-class PendingCheck:
-    """The candidate handed out by ``ask`` and the bit-for-bit check of ``tell``'s ``u``.
+def check_told(pending: list[float] | None, u: Any, loss: Any) -> float:
+    """Validate a ``tell`` (the exact check, with the error messages): a pending candidate
+    (``ask``'s values as a list of floats, None when nothing is pending), ``u`` equal to
+    it bit for bit once converted to float64 (a list, or an int array of 0/1, is fine), a
+    finite loss.
 
-    Kept as an array plus its bytes: comparing bytes is exact (no -0.0 == 0.0, no NaN
-    subtleties) and cheaper than ``np.array_equal`` on the per-evaluation path.
+    The optimisers' ``tell`` first tries a fast path, written out in each (it runs once per
+    evaluation, with cold caches; docs/optimisers.md "Speed") and accepting only::
+
+        type(u) is ndarray and u.tolist() == pending   (Python's exact number comparison)
+        and (no zero pending, or zero_signs_match(u.tolist(), pending))
+        and type(loss) is float and loss - loss == 0.0   (finite)
+
+    ``tolist`` gives a nested list for a 2-d array and a scalar for a 0-d one, so equality
+    also checks the shape; numbers that compare equal convert to the same float64, whose
+    bytes differ only in the sign of zero, hence the zero test.  Everything else (lists,
+    numpy scalars as loss, mismatches, errors) comes here.
     """
-
-    __slots__ = ('u', '_bytes')
-
-    def __init__(self, u: np.ndarray) -> None:
-        self.u = u
-        self._bytes = u.tobytes()
-
-    def matches(self, u: Any) -> bool:
-        if type(u) is not np.ndarray or u.dtype != np.float64:
-            try:
-                u = np.asarray(u, dtype=np.float64)
-            except (TypeError, ValueError):
-                return False
-        return u.shape == self.u.shape and u.tobytes() == self._bytes
-
-
-def check_told(pending: PendingCheck | None, u: Any, loss: Any) -> float:
-    """Validate a ``tell``: a pending candidate, ``u`` equal to it bit for bit, a finite loss."""
     if pending is None:
         raise OptimizerError('tell without a pending candidate: call ask() first')
-    if not pending.matches(u):
+    try:
+        a = np.asarray(u, dtype=np.float64)
+        same = a.shape == (len(pending),) and a.tobytes() == np.array(pending).tobytes()
+    except (TypeError, ValueError):
+        same = False
+    if not same:
         raise OptimizerError('tell: u is not the pending candidate returned by ask() '
                              '(it must be equal bit for bit)')
     return check_loss(loss)
+
+
+def zero_signs_match(values: list[Any], pending: list[float]) -> bool:
+    """Equal lists (``==``) are equal float64 bytes unless a zero differs in sign."""
+    try:
+        return all(math.copysign(1.0, a) == math.copysign(1.0, b)
+                   for a, b in zip(values, pending))
+    except TypeError:          # not real numbers (a complex zero...): the exact check
+        return False
 
 
 class Optimizer(ABC):

@@ -34,32 +34,26 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .base import (OptimizerError, Optimizer, OptionSpec, PendingCheck, check_dim,
-                   check_options, check_seed, check_start, check_told, make_rng, rng_state,
-                   seed_json, set_rng_state)
+from .base import (NDARRAY, OptimizerError, Optimizer, OptionSpec, check_dim, check_options,
+                   check_seed, check_start, check_told, make_rng, rng_state, seed_json,
+                   set_rng_state, zero_signs_match)
 
 __all__ = ['CGA', 'PECGA', 'NECGA', 'BinaryCGA']
 
 _STATE_VERSION = 1
 
-# Phases: what the next ask samples.
-_FIRST = 'first'        # cGA: individual a of a generation
-_SECOND = 'second'      # cGA: individual b
-_ELITE = 'elite'        # pe/neCGA: an elite sampled from the PV (first generation, resample)
-_NEWCOMER = 'newcomer'  # pe/neCGA: the newcomer that competes with the elite
+# Phases (in the state): what the next ask samples.  They follow from whether an
+# individual is held: cGA 'first' (a of a generation) when not, 'second' (b) when it is;
+# pe/neCGA 'elite' (an elite sampled from the PV: first generation, or a replacement)
+# when not, 'newcomer' when it is.
+_FIRST = 'first'
+_SECOND = 'second'
+_ELITE = 'elite'
+_NEWCOMER = 'newcomer'
 
-
-def _bits_str(b: np.ndarray | None) -> str | None:
-    return None if b is None else ''.join('1' if x else '0' for x in b.tolist())
-
-
-def _bits_arr(s: str | None, m: int) -> np.ndarray | None:
-    if s is None:
-        return None
-    if not isinstance(s, str) or len(s) != m or set(s) - {'0', '1'}:
-        raise OptimizerError(f'bad cga state: a bit string of length {m} expected')
-    return np.frombuffer(s.encode(), dtype=np.uint8) == ord('1')
-
+# A genome's guard bytes (0x80 = bit 1, 0x00 = bit 0) <-> its '0'/'1' string.
+_TO_CHARS = bytes.maketrans(b'\x00\x80', b'01')
+_FROM_CHARS = bytes.maketrans(b'01', b'\x00\x80')
 
 _COMMON_OPTIONS: dict[str, OptionSpec] = {
     'n': OptionSpec(int, 25, 'virtual population size n: each competition moves a '
@@ -73,10 +67,34 @@ _COMMON_OPTIONS: dict[str, OptionSpec] = {
 
 
 class BinaryCGA(Optimizer):
-    """Shared machinery of the binary compact GAs (PV, sampling, decoding, state I/O)."""
+    """The binary compact GAs (PV, sampling, decoding, competitions, state I/O).
+
+    ``CGA``, ``PECGA`` and ``NECGA`` differ only in the class flags ``_ELITIST`` and
+    ``_NE`` (and neCGA's options); ``tell`` holds the three competitions inline.
+
+    Representation (SWAR in python ints: a few big-int operations per ask and per tell
+    instead of numpy calls, whose cost dominates with the cold caches of a tuning run;
+    docs/optimisers.md "Speed").  Every genome bit j has a field of W bytes (W = 1 up to
+    n = 126, else 2 or 4) in one python int, genome bit 0 in the most significant field:
+
+    * the PV is ``_Y``: field j = 2^(8W-1) + P_j, P_j = k_j + K in [0, 2K] (a guard bit
+      above the offset);
+    * a uniform r_j is stored as its level L_j = searchsorted(table, r_j, 'right') in
+      [1, 2K] (the first PV table entry > r_j), so r_j < p_j = table[P_j] <=> P_j >= L_j;
+    * a sample is ``(_Y - L) & _H`` (``_H`` = the guard bits): field j keeps its guard bit
+      exactly when P_j - L_j >= 0 (no borrow crosses a field).  Genomes (the pending
+      sample, the held individual) stay in this guard-bit form;
+    * a competition adds the winner-minus-loser units field-wise to ``_Y`` (one add, one
+      subtract); the clamp to [0, 2K] only matters where the PV already is 0 or 1, and
+      a sample from the current PV always agrees with it there, so it is applied only
+      when the loser was sampled from an older PV (an elite beaten by a newcomer).
+    """
 
     OPTIONS: ClassVar[dict[str, OptionSpec]] = _COMMON_OPTIONS
-    _ELITIST: ClassVar[bool] = False
+    _ELITIST: ClassVar[bool] = False      # pe/neCGA: an elite and one newcomer
+    _NE: ClassVar[bool] = False           # neCGA: theta and the elite replacement
+    #: samples per random block (one rng call and one vectorised pass per block)
+    _BLOCK: ClassVar[int] = 64
 
     def __init__(self, dim: int, seed: int | np.random.SeedSequence,
                  start: np.ndarray | None = None, **options: Any) -> None:
@@ -93,106 +111,234 @@ class BinaryCGA(Optimizer):
         self.n: int = opts['n']
         self.bits: int = opts['bits']
         self.gray: bool = opts['coding'] == 'gray'
-        self.m = self.dim * self.bits
-        self._K = (self.n + 1) // 2            # |k_j| = K <=> p_j in {0, 1}
+        self.m = m = self.dim * self.bits
+        self._K = K = (self.n + 1) // 2        # |k_j| = K <=> p_j in {0, 1}
         self._rng = make_rng(seed)
-        self._k = np.zeros(self.m, dtype=np.int64)
-        offsets = np.arange(-self._K, self._K + 1)
+        offsets = np.arange(-K, K + 1)
+        # p_j = table[k_j + K]: one correctly rounded division per offset, exactly 0.0 and
+        # 1.0 at the ends.
         self._ptable = np.clip((self.n + 2 * offsets) / (2.0 * self.n), 0.0, 1.0)
-        self._p = np.full(self.m, 0.5)
-        # Decoding: v = genes @ weights, weights 2^(bits-1) ... 1 (exact in float64 up to
-        # 32 bits); u = v / (2^bits - 1).
-        self._weights = 2.0 ** np.arange(self.bits - 1, -1, -1)
+        # Fields: W bytes per genome bit, the guard bit 2^(8W-1) above values up to 2K.
+        self._W = W = next(w for w in (1, 2, 4) if 2 * K < 1 << (8 * w - 1))
+        self._fdtype = np.dtype(f'>u{W}')
+        self._guard = 1 << (8 * W - 1)
+        self._shift = 8 * W - 1                # guard bit -> field unit
+        self._nbytes = m * W
+        self._H = int.from_bytes((bytes([0x80]) + bytes(W - 1)) * m, 'big')
+        self._T = self._pack(np.full(m, 2 * K))          # every field at P_j = 2K
+        self._Y = self._pack(np.full(m, K))               # p = 1/2
+        # Decoding: gene i = (genome >> shift_i) & mask, u_i = v_i / (2^bits - 1).
+        self._shifts = [self.bits * (self.dim - 1 - i) for i in range(self.dim)]
+        self._mask = (1 << self.bits) - 1
         self._vmax = float(2 ** self.bits - 1)
+        self._gray_shifts = [s for s in (1, 2, 4, 8, 16) if s < self.bits]
         self.evaluations = 0
         self.generation = 0               # completed competitions (PV updates)
-        self._phase = _ELITE if self._ELITIST else _FIRST
-        self._pending: PendingCheck | None = None
-        self._pending_bits: np.ndarray | None = None
-        # cGA: the first individual of the generation; pe/neCGA: the elite.
-        self._held: np.ndarray | None = None
+        self._pu: list[float] | None = None    # the pending candidate (u)
+        self._pg: int | None = None            # and its genome (guard-bit form)
+        # cGA: the first individual of the generation; pe/neCGA: the elite (None while a
+        # sampled replacement is pending).
+        self._held: int | None = None
         self._held_loss = 0.0
         self.theta = 0                    # neCGA: consecutive wins of the current elite
+        # The random block: one packed level int per sample; _bi the next unused.
+        self._blk: list[int] = []
+        self._bi = 0
 
     def _check_more(self, opts: dict[str, Any]) -> None:
         """Cross-option checks of subclasses."""
 
-    # ----------------------------------------------------------------- PV and decoding
-    def _refresh_p(self) -> None:
-        # p_j = table[k_j + K]; the table holds one correctly rounded division per offset,
-        # exactly 0.0 and 1.0 at the ends (a lookup is 3x cheaper than recomputing).
-        np.take(self._ptable, self._k + self._K, out=self._p)
+    # ------------------------------------------------------------- packing and genomes
+    def _pack(self, values: np.ndarray) -> int:
+        """Field values (m,) -> an int with the guard bit set in every field."""
+        return self._H | int.from_bytes(np.asarray(values).astype(self._fdtype).tobytes(),
+                                        'big')
 
-    def _sample(self) -> np.ndarray:
-        return self._rng.random(self.m) < self._p
+    def _fields(self, y: int) -> np.ndarray:
+        """An int of m fields -> the field values below the guard bit (m,) int64."""
+        v = np.frombuffer(y.to_bytes(self._nbytes, 'big'), dtype=self._fdtype)
+        return v.astype(np.int64) & (self._guard - 1)
+
+    def _chars(self, s: int) -> bytes:
+        """A genome (guard-bit form) -> its bits as b'0'/b'1', genome order."""
+        b = s.to_bytes(self._nbytes, 'big')
+        return (b[::self._W] if self._W > 1 else b).translate(_TO_CHARS)
+
+    def _decode_g(self, s: int) -> list[float]:
+        """A genome (guard-bit form) -> u as python floats (same code as in ask)."""
+        g = int(self._chars(s), 2)
+        mask, vmax, pu = self._mask, self._vmax, []
+        for sh in self._shifts:
+            v = (g >> sh) & mask
+            for t in self._gray_shifts if self.gray else ():
+                v ^= v >> t
+            pu.append(v / vmax)
+        return pu
+
+    def _to_str(self, s: int | None) -> str | None:
+        return None if s is None else self._chars(s).decode()
+
+    def _from_str(self, text: Any) -> int | None:
+        if text is None:
+            return None
+        if not isinstance(text, str) or len(text) != self.m or set(text) - {'0', '1'}:
+            raise OptimizerError(f'bad {self.algo} state: a bit string of length '
+                                 f'{self.m} expected')
+        b = text.encode().translate(_FROM_CHARS)
+        if self._W > 1:
+            b = b''.join(c + bytes(self._W - 1) for c in (b[i:i + 1] for i in range(self.m)))
+        return int.from_bytes(b, 'big')
+
+    def _extremes(self) -> tuple[int, int]:
+        """(fields with p_j = 1, fields with p_j = 0), as guard-bit masks."""
+        Y, H = self._Y, self._H
+        return (H - (Y ^ self._T)) & H, (H - (Y ^ H)) & H
+
+    def _agrees(self, s: int) -> bool:
+        """The genome has 1 where p_j = 1 and 0 where p_j = 0 (any sample of the PV does)."""
+        top, zero = self._extremes()
+        return s & top == top and s & zero == 0
+
+    # ----------------------------------------------------------------- PV and decoding
+    def _refill(self) -> None:
+        """Draw the next block: per sample, m uniforms r_j (rng.random(m), as one call),
+        kept as the packed levels L_j (the same sample bits as r_j < p_j)."""
+        B, nb = self._BLOCK, self._nbytes
+        lev = np.searchsorted(self._ptable, self._rng.random(B * self.m), side='right')
+        buf = lev.astype(self._fdtype).tobytes()
+        self._blk = [int.from_bytes(buf[o:o + nb], 'big') for o in range(0, B * nb, nb)]
+        self._bi = 0
 
     def decode(self, bits: np.ndarray) -> np.ndarray:
         """Normalised parameters u (dim,) of a genome (m bools or 0/1 ints), see module doc."""
         g = np.asarray(bits, dtype=bool).reshape(self.dim, self.bits)
         if self.gray:
             g = np.logical_xor.accumulate(g, axis=1)
-        return g.dot(self._weights) / self._vmax
-
-    def _update(self, winner: np.ndarray, loser: np.ndarray) -> None:
-        """k_j += +1/-1 toward the winner's bit where winner and loser differ; clamp."""
-        self._k += winner
-        self._k -= loser
-        np.minimum(self._k, self._K, out=self._k)
-        np.maximum(self._k, -self._K, out=self._k)
-        self._refresh_p()
-        self.generation += 1
+        return g.dot(2.0 ** np.arange(self.bits - 1, -1, -1)) / self._vmax
 
     @property
     def p(self) -> np.ndarray:
         """The probability vector (m,) (a copy)."""
-        return self._p.copy()
+        return self._ptable[self._fields(self._Y)]
 
     @property
     def offsets(self) -> np.ndarray:
         """The integer offsets k (m,), p = clip((n + 2k)/(2n), 0, 1) (a copy)."""
-        return self._k.copy()
+        return self._fields(self._Y) - self._K
 
     def converged(self) -> bool:
         """Every p_j is 0 or 1 (the PV is a single genome)."""
-        return bool(np.all(np.abs(self._k) == self._K))
+        top, zero = self._extremes()
+        return top | zero == self._H
 
     def solution(self) -> np.ndarray:
         """The PV rounded to a genome (p_j >= 1/2 -> 1), decoded to u."""
-        return self.decode(self._k >= 0)
+        return self.decode(self.offsets >= 0)
 
     # ------------------------------------------------------------------------ ask/tell
     def ask(self) -> np.ndarray:
         """The next candidate: a fresh sample from the PV (kept until told)."""
-        if self._pending is None:
-            b = self._sample()
-            self._pending_bits = b
-            self._pending = PendingCheck(self.decode(b))
-        return self._pending.u.copy()
+        pu = self._pu
+        if pu is None:
+            i = self._bi
+            if i == len(self._blk):
+                self._refill()
+                i = 0
+            self._bi = i + 1
+            # Field j keeps its guard bit <=> P_j >= L_j <=> r_j < p_j.
+            self._pg = s = (self._Y - self._blk[i]) & self._H
+            # Decode (as _decode_g, inline: this is the per-evaluation path).
+            b = s.to_bytes(self._nbytes, 'big')
+            g = int((b[::self._W] if self._W > 1 else b).translate(_TO_CHARS), 2)
+            mask, vmax, pu = self._mask, self._vmax, []
+            if self.gray:
+                for sh in self._shifts:
+                    v = (g >> sh) & mask
+                    for t in self._gray_shifts:      # prefix xor from the MSB
+                        v ^= v >> t
+                    pu.append(v / vmax)
+            else:
+                for sh in self._shifts:
+                    pu.append(((g >> sh) & mask) / vmax)
+            self._pu = pu
+        return np.array(pu)
 
     def tell(self, u: np.ndarray, loss: float) -> None:
-        y = check_told(self._pending, u, loss)
-        bits = self._pending_bits
-        self._pending = None
-        self._pending_bits = None
+        pu = self._pu
+        # Fast path: an ndarray with the same numbers and a finite float (base.check_told).
+        if (pu is None or type(u) is not NDARRAY or type(loss) is not float
+                or loss - loss != 0.0 or (tl := u.tolist()) != pu
+                or (0.0 in pu and not zero_signs_match(tl, pu))):
+            loss = check_told(pu, u, loss)      # the exact check and the error messages
+        s = self._pg
+        self._pu = self._pg = None
         self.evaluations += 1
-        self._told(bits, y)
-
-    def _told(self, bits: np.ndarray, y: float) -> None:
-        raise NotImplementedError
+        held = self._held
+        if held is None:                  # cGA: a; pe/neCGA: the first or a new elite
+            self._held, self._held_loss = s, loss
+            return
+        # The competition: winner w, loser l; k_j += 1 where w_j = 1 != l_j, -= 1 where
+        # w_j = 0 != l_j (in guard-bit form, moved down to the fields' units).
+        if self._ELITIST:
+            newcomer_wins = loss < self._held_loss      # ties -> the elite
+            if newcomer_wins:
+                x = s ^ held
+                up = x & s
+                down = x ^ up
+                # The beaten elite came from an older PV: clamp k_j to [-K, K], i.e. no
+                # +1 where P_j = 2K and no -1 where P_j = 0.  (In every other case the
+                # loser is a sample of the current PV, which agrees with it there.)
+                Y, H = self._Y, self._H
+                up ^= up & (H - (Y ^ self._T))
+                down ^= down & (H - (Y ^ H))
+            else:
+                x = held ^ s
+                up = x & held
+                down = x ^ up
+        else:
+            if self._held_loss <= loss:                 # ties -> a, the first sampled
+                x = held ^ s
+                up = x & held
+            else:
+                x = s ^ held
+                up = x & s
+            down = x ^ up
+        sh = self._shift
+        self._Y = self._Y + (up >> sh) - (down >> sh)
+        self.generation += 1
+        if not self._ELITIST:
+            self._held = None
+        elif newcomer_wins:
+            self._held, self._held_loss = s, loss
+            self.theta = 0
+        elif self._NE:
+            self.theta += 1
+            if self.theta >= self.eta:
+                self.theta = 0
+                if self.elite_replacement == 'newcomer':
+                    self._held, self._held_loss = s, loss
+                else:
+                    self._held = None     # the next ask samples the new elite
 
     # ---------------------------------------------------------------------- reporting
     def config(self) -> dict[str, Any]:
         return {'algo': self.algo, 'dim': self.dim, 'seed': self._seed_json, **self._opts}
 
     # ---------------------------------------------------------------------- state I/O
+    def _phase(self) -> str:
+        if self._ELITIST:
+            return _ELITE if self._held is None else _NEWCOMER
+        return _FIRST if self._held is None else _SECOND
+
     def state_dict(self) -> dict[str, Any]:
         return {
             'algo': self.algo, 'version': _STATE_VERSION, 'config': self.config(),
-            'rng': rng_state(self._rng), 'k': self._k.tolist(),
+            'rng': rng_state(self._rng, (len(self._blk) - self._bi) * self.m),
+            'k': self.offsets.tolist(),
             'evaluations': self.evaluations, 'generation': self.generation,
-            'phase': self._phase, 'theta': self.theta,
-            'held': _bits_str(self._held), 'held_loss': self._held_loss,
-            'pending': _bits_str(self._pending_bits),
+            'phase': self._phase(), 'theta': self.theta,
+            'held': self._to_str(self._held), 'held_loss': self._held_loss,
+            'pending': self._to_str(self._pg),
         }
 
     @classmethod
@@ -210,20 +356,23 @@ class BinaryCGA(Optimizer):
             if k.shape != (opt.m,) or np.any(np.abs(k) > opt._K):
                 raise OptimizerError(f'bad {cls.algo} state: k must be {opt.m} integers '
                                      f'in [-{opt._K}, {opt._K}]')
-            opt._k = k
-            opt._refresh_p()
+            opt._Y = opt._pack(k + opt._K)
             opt.evaluations = int(state['evaluations'])
             opt.generation = int(state['generation'])
-            if state['phase'] not in ((_ELITE, _NEWCOMER) if cls._ELITIST
-                                      else (_FIRST, _SECOND)):
-                raise OptimizerError(f"bad {cls.algo} state: phase {state['phase']!r}")
-            opt._phase = state['phase']
             opt.theta = int(state['theta'])
-            opt._held = _bits_arr(state['held'], opt.m)
+            opt._held = opt._from_str(state['held'])
             opt._held_loss = float(state['held_loss'])
-            opt._pending_bits = _bits_arr(state['pending'], opt.m)
-            opt._pending = (None if opt._pending_bits is None
-                            else PendingCheck(opt.decode(opt._pending_bits)))
+            if state['phase'] != opt._phase():
+                raise OptimizerError(f"bad {cls.algo} state: phase {state['phase']!r} with "
+                                     f"held {'None' if opt._held is None else 'a genome'}")
+            opt._pg = opt._from_str(state['pending'])
+            # What the state_dict of a real run always satisfies (and tell relies on): the
+            # pending sample, and the cGA's a, were drawn from this PV.
+            for s in (opt._pg, None if cls._ELITIST else opt._held):
+                if s is not None and not opt._agrees(s):
+                    raise OptimizerError(f'bad {cls.algo} state: a sample that this PV '
+                                         'cannot produce (1 where p = 0 or 0 where p = 1)')
+            opt._pu = None if opt._pg is None else opt._decode_g(opt._pg)
             opt._seed_json = state['config']['seed']
         except (KeyError, TypeError, ValueError) as e:
             if isinstance(e, OptimizerError):
@@ -240,18 +389,6 @@ class CGA(BinaryCGA):
 
     algo: ClassVar[str] = 'cga'
 
-    def _told(self, bits: np.ndarray, y: float) -> None:
-        if self._phase == _FIRST:
-            self._held, self._held_loss = bits, y
-            self._phase = _SECOND
-            return
-        if self._held_loss <= y:      # ties -> a, the first sampled
-            self._update(self._held, bits)
-        else:
-            self._update(bits, self._held)
-        self._held = None
-        self._phase = _FIRST
-
 
 class PECGA(BinaryCGA):
     """Persistent elitist compact GA, Fig. 2: elite vs one newcomer, ties -> the elite.
@@ -265,28 +402,12 @@ class PECGA(BinaryCGA):
     @property
     def elite(self) -> np.ndarray | None:
         """The elite's normalised parameters (None before its evaluation)."""
-        return None if self._held is None else self.decode(self._held)
+        return None if self._held is None else np.array(self._decode_g(self._held))
 
     @property
     def elite_loss(self) -> float | None:
         """The elite's stored loss (measured once, when it was evaluated)."""
         return None if self._held is None else self._held_loss
-
-    def _told(self, bits: np.ndarray, y: float) -> None:
-        if self._phase == _ELITE:
-            self._held, self._held_loss = bits, y
-            self._phase = _NEWCOMER
-            return
-        newcomer_wins = y < self._held_loss        # ties -> the elite
-        if newcomer_wins:
-            self._update(bits, self._held)
-        else:
-            self._update(self._held, bits)
-        self._after_competition(bits, y, newcomer_wins)
-
-    def _after_competition(self, bits: np.ndarray, y: float, newcomer_wins: bool) -> None:
-        if newcomer_wins:
-            self._held, self._held_loss = bits, y
 
 
 class NECGA(PECGA):
@@ -297,6 +418,7 @@ class NECGA(PECGA):
     """
 
     algo: ClassVar[str] = 'necga'
+    _NE: ClassVar[bool] = True
     OPTIONS: ClassVar[dict[str, OptionSpec]] = {
         **_COMMON_OPTIONS,
         'eta': OptionSpec(int, 12, 'allowed length of inheritance eta: after eta '
@@ -315,17 +437,3 @@ class NECGA(PECGA):
                                  f"[1, {opts['n'] - 1}] (eta < n), got {opts['eta']!r}")
         self.eta: int = opts['eta']
         self.elite_replacement: str = opts['elite_replacement']
-
-    def _after_competition(self, bits: np.ndarray, y: float, newcomer_wins: bool) -> None:
-        if newcomer_wins:
-            self._held, self._held_loss = bits, y
-            self.theta = 0
-            return
-        self.theta += 1
-        if self.theta >= self.eta:
-            self.theta = 0
-            if self.elite_replacement == 'newcomer':
-                self._held, self._held_loss = bits, y
-            else:
-                self._held = None
-                self._phase = _ELITE

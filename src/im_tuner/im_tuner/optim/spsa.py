@@ -33,9 +33,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .base import (OptimizerError, Optimizer, OptionSpec, PendingCheck, check_dim,
+from .base import (NDARRAY, OptimizerError, Optimizer, OptionSpec, check_dim,
                    check_options, check_seed, check_start, check_told, make_rng, rng_state,
-                   seed_json, set_rng_state)
+                   seed_json, set_rng_state, zero_signs_match)
 
 __all__ = ['SPSA', 'GAIN_PRESETS']
 
@@ -74,6 +74,8 @@ class SPSA(Optimizer):
                                'inf disables the cap',
                                low=0.0, high=math.inf, low_strict=True),
     }
+    #: iterations per random block (one rng call per block)
+    _BLOCK: ClassVar[int] = 32
 
     def __init__(self, dim: int, seed: int | np.random.SeedSequence,
                  start: np.ndarray | None = None, *, bounded: bool = True,
@@ -101,15 +103,32 @@ class SPSA(Optimizer):
         if start_u is None:
             lo, hi = (self.c, 1.0 - self.c) if bounded else (0.0, 1.0)
             start_u = lo + (hi - lo) * self._rng.random(self.dim)
-        self._u = self._project(start_u, self.c)
+        # The per-evaluation state is held in python floats and lists: at dim 5, scalar
+        # arithmetic beats numpy calls, above all with the cold caches of a tuning run
+        # (docs/optimisers.md, "Speed").  The arithmetic is the same IEEE operations in
+        # the same order as the vector form, so the results are bit-identical.
+        self._u: list[float] = self._project(start_u, self.c).tolist()
         self.k = 0                       # iteration index of u_k
         self.evaluations = 0
         self._phase = 0                  # 0: y+ next, 1: y- next
-        self._delta = np.zeros(self.dim)  # Delta_k (+-1.0), drawn at the iteration's 1st ask
-        self._ck = 0.0                   # c_k of the current iteration
+        self._delta = [0.0] * self.dim   # Delta_k (+-1.0), drawn at the iteration's 1st ask
+        self._ck = self.c / (self.k + 1) ** self.gamma   # c_k of the current iteration
         self._y_plus = 0.0
-        self._pending: PendingCheck | None = None
-        self._last_gradient: np.ndarray | None = None
+        self._pu: list[float] | None = None   # the pending candidate
+        self._last_gradient: list[float] | None = None
+        # Delta is drawn in blocks of _BLOCK iterations (one rng call per block; the
+        # stream is the same as one rng.random(dim) per iteration).  _blk holds the block's
+        # +-1.0 values, _bi the next unused one.
+        self._blk: list[float] = []
+        self._bi = 0
+
+    def _refill(self) -> None:
+        # +-1 with probability exactly 1/2 each: r in [0, 1) is a multiple of 2^-53,
+        # r - 1/2 < 0 on exactly half of them (0.0 counts as +).  (rng.integers would do
+        # too but costs more per call.)
+        r = self._rng.random(self._BLOCK * self.dim)
+        self._blk = np.copysign(1.0, r - 0.5).tolist()
+        self._bi = 0
 
     # ------------------------------------------------------------------ gain sequences
     def gains(self, k: int) -> tuple[float, float]:
@@ -125,43 +144,64 @@ class SPSA(Optimizer):
     # ------------------------------------------------------------------------ ask/tell
     def ask(self) -> np.ndarray:
         """u_k + c_k Delta_k (first evaluation of an iteration) or u_k - c_k Delta_k."""
-        if self._pending is None:
+        pu = self._pu
+        if pu is None:
+            ck, pu = self._ck, []
             if self._phase == 0:
-                self._ck = self.c / (self.k + 1) ** self.gamma
-                # +-1 with probability exactly 1/2 each: r in [0, 1) is a multiple of 2^-53,
-                # r - 1/2 < 0 on exactly half of them (0.0 counts as +).  (rng.integers
-                # would do too but costs 5 us per call.)
-                self._delta = np.copysign(1.0, self._rng.random(self.dim) - 0.5)
-                u = self._u + self._ck * self._delta
+                i = self._bi
+                if i == len(self._blk):
+                    self._refill()
+                    i = 0
+                j = i + self.dim
+                self._bi = j
+                self._delta = d = self._blk[i:j]
+                for x, di in zip(self._u, d):
+                    pu.append(x + ck * di)
             else:
-                u = self._u - self._ck * self._delta
-            self._pending = PendingCheck(u)
-        return self._pending.u.copy()
+                for x, di in zip(self._u, self._delta):
+                    pu.append(x - ck * di)
+            self._pu = pu
+        return np.array(pu)
 
     def tell(self, u: np.ndarray, loss: float) -> None:
         """Record y+ (first call of an iteration) or y- and take the SPSA step."""
-        y = check_told(self._pending, u, loss)
-        self._pending = None
+        pu = self._pu
+        # Fast path: an ndarray with the same numbers and a finite float (base.check_told).
+        if (pu is None or type(u) is not NDARRAY or type(loss) is not float
+                or loss - loss != 0.0 or (tl := u.tolist()) != pu
+                or (0.0 in pu and not zero_signs_match(tl, pu))):
+            loss = check_told(pu, u, loss)      # the exact check and the error messages
+        self._pu = None
         self.evaluations += 1
         if self._phase == 0:
-            self._y_plus = y
+            self._y_plus = loss
             self._phase = 1
             return
-        # 1/Delta_i = Delta_i for +-1 entries: g = (y+ - y-)/(2 c_k) Delta.
-        g = ((self._y_plus - y) / (2.0 * self._ck)) * self._delta
-        ak = self.a / (self.k + 1 + self.A) ** self.alpha
-        step = ak * g
-        biggest = float(np.abs(step).max())
+        # 1/Delta_i = Delta_i for +-1 entries: g = (y+ - y-)/(2 c_k) Delta, step a_k g.
+        # With Delta_i = +-1 every |step_i| is the same |a_k s| (a sign flip is exact), so
+        # the cap scales that one number: step_i = Delta_i c, bit-identical to the vector
+        # form ak * g, step *= max_step / max|step|.
+        s = (self._y_plus - loss) / (2.0 * self._ck)
+        c = self.a / (self.k + 1 + self.A) ** self.alpha * s
+        biggest = abs(c)
         if biggest > self.max_step:
             # Scale the whole vector (keeps its direction): one penalised loss cannot throw
             # the iterate across the box.
-            step *= self.max_step / biggest
-        self.k += 1
-        u_next = self._u - step
+            c *= self.max_step / biggest
+        self.k = k = self.k + 1
+        self._ck = ck = self.c / (k + 1) ** self.gamma       # c_{k+1}, the next iteration's
+        g: list[float] = []
+        u_next: list[float] = []
         if self.bounded:
-            ck1 = self.c / (self.k + 1) ** self.gamma
-            np.maximum(u_next, ck1, out=u_next)        # (np.clip is 2x slower here)
-            np.minimum(u_next, 1.0 - ck1, out=u_next)
+            hi = 1.0 - ck
+            for x, d in zip(self._u, self._delta):
+                g.append(s * d)
+                x -= d * c
+                u_next.append(ck if x < ck else (hi if x > hi else x))
+        else:
+            for x, d in zip(self._u, self._delta):
+                g.append(s * d)
+                u_next.append(x - d * c)
         self._u = u_next
         self._last_gradient = g
         self._phase = 0
@@ -170,12 +210,12 @@ class SPSA(Optimizer):
     @property
     def iterate(self) -> np.ndarray:
         """The current point u_k (a copy): SPSA's estimate of the optimum."""
-        return self._u.copy()
+        return np.array(self._u)
 
     @property
     def last_gradient(self) -> np.ndarray | None:
         """The gradient estimate g_k of the last completed iteration (a copy), or None."""
-        return None if self._last_gradient is None else self._last_gradient.copy()
+        return None if self._last_gradient is None else np.array(self._last_gradient)
 
     @property
     def iteration(self) -> int:
@@ -190,12 +230,12 @@ class SPSA(Optimizer):
     def state_dict(self) -> dict[str, Any]:
         return {
             'algo': self.algo, 'version': _STATE_VERSION, 'config': self.config(),
-            'rng': rng_state(self._rng), 'k': self.k, 'evaluations': self.evaluations,
-            'u': self._u.tolist(), 'phase': self._phase, 'delta': self._delta.tolist(),
-            'ck': self._ck, 'y_plus': self._y_plus,
-            'pending': None if self._pending is None else self._pending.u.tolist(),
+            'rng': rng_state(self._rng, len(self._blk) - self._bi), 'k': self.k,
+            'evaluations': self.evaluations, 'u': list(self._u), 'phase': self._phase,
+            'delta': list(self._delta), 'ck': self._ck, 'y_plus': self._y_plus,
+            'pending': None if self._pu is None else list(self._pu),
             'last_gradient': (None if self._last_gradient is None
-                              else self._last_gradient.tolist()),
+                              else list(self._last_gradient)),
         }
 
     @classmethod
@@ -211,20 +251,25 @@ class SPSA(Optimizer):
             set_rng_state(opt._rng, state['rng'])
             opt.k = int(state['k'])
             opt.evaluations = int(state['evaluations'])
-            opt._u = np.array(state['u'], dtype=np.float64)
+            opt._u = [float(x) for x in state['u']]
             opt._phase = int(state['phase'])
-            opt._delta = np.array(state['delta'], dtype=np.float64)
-            opt._ck = float(state['ck'])
+            opt._delta = [float(x) for x in state['delta']]
             opt._y_plus = float(state['y_plus'])
             p = state['pending']
-            opt._pending = None if p is None else PendingCheck(np.array(p, dtype=np.float64))
+            opt._pu = None if p is None else [float(x) for x in p]
+            # ck is c_k of the current iteration once its first candidate is asked; before
+            # that it is a function of k (a state may hold the previous iteration's).
+            opt._ck = (opt.c / (opt.k + 1) ** opt.gamma if opt._phase == 0 and p is None
+                       else float(state['ck']))
             g = state['last_gradient']
-            opt._last_gradient = None if g is None else np.array(g, dtype=np.float64)
+            opt._last_gradient = None if g is None else [float(x) for x in g]
             opt._seed_json = state['config']['seed']
         except (KeyError, TypeError, ValueError) as e:
             if isinstance(e, OptimizerError):
                 raise
             raise OptimizerError(f'bad spsa state: {e!r}') from None
-        if opt._u.shape != (opt.dim,) or opt._delta.shape != (opt.dim,):
+        if (len(opt._u) != opt.dim or len(opt._delta) != opt.dim
+                or (opt._pu is not None and len(opt._pu) != opt.dim)
+                or (opt._last_gradient is not None and len(opt._last_gradient) != opt.dim)):
             raise OptimizerError('bad spsa state: vectors do not match dim')
         return opt

@@ -321,3 +321,21 @@ def test_processes_bench(tmp_path):
     msgs = bag_messages(run / 'bag_0', {'/controller/loss'})
     assert [float(loss_values(m)['loss']) for m in msgs['/controller/loss']] == \
         [r['loss'] for r in recs]
+
+
+def test_auto_refuses_to_add_a_second_drive(tmp_path, procs, ros_context, wait_until):
+    """A drive on the graph without a controller: the tuner must not start a simulated
+    drive beside it (two drives on /drive/state); it says what to start instead."""
+    from rclpy.node import Node
+    procs.start([ROS2, 'run', 'im_drive_sim', 'drive_sim'])
+    probe = Node('probe2', context=ros_context)
+    try:
+        wait_until(lambda: probe.count_publishers('/drive/state') > 0, 60,
+                   message='the drive')
+    finally:
+        probe.destroy_node()
+    run = tmp_path / 'run'
+    proc = tuner('--budget', '2', '--out', str(run), '--discovery-timeout', '3', timeout=120)
+    assert proc.returncode == 1
+    assert 'a drive is publishing /drive/state but no controller' in proc.stderr
+    assert 'ros2 run im_controller controller' in proc.stderr

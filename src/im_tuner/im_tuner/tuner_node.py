@@ -473,6 +473,11 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             raise BenchFailure(f'a controller ({cli.controller}) is already on the graph: '
                                'tune it with --bench none, or use another ROS_DOMAIN_ID')
         simulated = bench_mode in SIM_BENCHES
+        if simulated and node.count_publishers('/drive/state') > 0:
+            # a drive without a controller: a second (simulated) drive would fight it
+            raise BenchFailure('a drive is publishing /drive/state but no controller answers '
+                               f'({cli.controller}): start `ros2 run im_controller controller` '
+                               'for it and use --bench auto, or stop that drive')
         if cli.resume is not None and simulated != (run.get('bench') in SIM_BENCHES):
             raise UsageError(f'--resume: the run used bench {run.get("bench")!r}, now '
                              f'{bench_mode!r}: the plant history cannot be restored')

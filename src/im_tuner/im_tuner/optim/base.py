@@ -34,7 +34,7 @@ import numpy as np
 
 __all__ = ['Optimizer', 'OptimizerError', 'OptionSpec', 'make_rng', 'rng_state',
            'set_rng_state', 'check_loss', 'check_dim', 'check_seed', 'check_start',
-           'seed_json', 'check_options', 'check_told', 'zero_signs_match', 'NDARRAY']
+           'seed_json', 'check_options', 'check_told', 'told_loss', 'zero_signs_match', 'NDARRAY']
 
 #: The array type, bound once (tell's fast path tests ``type(u) is NDARRAY``).
 NDARRAY = np.ndarray
@@ -295,3 +295,16 @@ class Optimizer(ABC):
                                  if isinstance(state, dict) else
                                  'not an optimiser state') from None
         return cls._from_state(state)
+
+
+def told_loss(pending: list[float] | None, u: Any, loss: Any) -> float:
+    """The loss of a ``tell``, after checking ``u`` is the pending candidate.
+
+    Fast path (the tuner's case): an ndarray holding exactly the pending numbers (signs
+    of zeros included) and a finite float.  Anything else goes through
+    :func:`check_told`, the exact check with its error messages."""
+    if (pending is None or type(u) is not NDARRAY or type(loss) is not float
+            or loss - loss != 0.0 or (tl := u.tolist()) != pending
+            or (0.0 in pending and not zero_signs_match(tl, pending))):
+        return check_told(pending, u, loss)
+    return loss

@@ -36,9 +36,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .base import (NDARRAY, OptimizerError, Optimizer, OptionSpec, check_dim,
-                   check_options, check_seed, check_start, check_told, make_rng, rng_state,
-                   seed_json, set_rng_state, zero_signs_match)
+from .base import (Optimizer, OptimizerError, OptionSpec, check_dim, check_options, check_seed,
+                   check_start, make_rng, rng_state, seed_json, set_rng_state, told_loss)
 
 __all__ = ['RCGA', 'ndtri', 'erfinv', 'norm_cdf', 'truncnorm_ppf', 'SIGMA_TOL']
 
@@ -245,11 +244,7 @@ class RCGA(Optimizer):
 
     def tell(self, u: np.ndarray, loss: float) -> None:
         pu = self._pu
-        # Fast path: an ndarray with the same numbers and a finite float (base.check_told).
-        if (pu is None or type(u) is not NDARRAY or type(loss) is not float
-                or loss - loss != 0.0 or (tl := u.tolist()) != pu
-                or (0.0 in pu and not zero_signs_match(tl, pu))):
-            loss = check_told(pu, u, loss)      # the exact check and the error messages
+        loss = told_loss(pu, u, loss)
         y = loss
         x = self._px
         self._pu = self._px = None

@@ -185,13 +185,11 @@ class TuningRun:
     def _apply(self, rec: dict[str, Any], live: bool) -> None:
         """Update the counters (and, for an evaluation, the optimiser) from one record."""
         st = self.state
-        if rec.get('experiment_id') is not None and rec['status'] != 'lost':
+        if rec.get('experiment_id') is not None:  # it ran on the bench (a lost one too)
             st.experiments += 1
-            st.sim_s += rec['sim_s']
+            st.sim_s += rec['sim_s']               # 0 for a lost one: its length is unknown
         if rec['status'] == 'lost':
             st.lost += 1
-            if rec.get('experiment_id') is not None:
-                st.experiments += 1
             return
         st.faults += bool(rec['fault'])
         kind = rec['kind']

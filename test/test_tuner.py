@@ -335,7 +335,7 @@ def test_auto_refuses_to_add_a_second_drive(tmp_path, procs, ros_context, wait_u
     finally:
         probe.destroy_node()
     run = tmp_path / 'run'
-    proc = tuner('--budget', '2', '--out', str(run), '--discovery-timeout', '3', timeout=120)
+    proc = tuner('--budget', '2', '--out', str(run), '--discovery-timeout', '5', timeout=120)
     assert proc.returncode == 1
     assert 'a drive is publishing /drive/state but no controller' in proc.stderr
     assert 'ros2 run im_controller controller' in proc.stderr

@@ -180,11 +180,17 @@ class ControllerNode(Node):
             raise ControllerError(str(exc)) from exc
         self.Ts = float(drive_cfg.Ts)
         self.isq_max = float(drive_cfg.machine.isq_max)
-        self.state_timeout = self.declare_parameter('state_timeout', 0.25, ParameterDescriptor(
-            type=ParameterType.PARAMETER_DOUBLE, read_only=True,
-            description='watchdog: no drive state for this long while one is expected -> '
-                        'zero current, running experiment aborted, FAULT [s]',
-            floating_point_range=[FloatingPointRange(from_value=0.001, to_value=60.0)])).value
+        # Real time: a drive silent for 0.25 s (1250 periods) is gone.  Lock-step: the drive
+        # only moves when answered, so a stall is not a hazard, and a loaded machine can
+        # stall a process for a few hundred ms (seen on CI): allow 2 s there.
+        default_timeout = 0.25 if self.mode == 'realtime' else 2.0
+        self.state_timeout = self.declare_parameter(
+            'state_timeout', default_timeout, ParameterDescriptor(
+                type=ParameterType.PARAMETER_DOUBLE, read_only=True,
+                description='watchdog: no drive state for this long while one is expected -> '
+                            'zero current, running experiment aborted, FAULT [s]',
+                floating_point_range=[FloatingPointRange(from_value=0.001, to_value=60.0)])
+        ).value
         self.internals_decimation = self.declare_parameter(
             'internals_decimation', 1, ParameterDescriptor(
                 read_only=True, description='publish controller/internals every N answered '

@@ -535,6 +535,13 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                                    before_start=_start_recorder)
             bench.executor.add_node(node)
             spin_until = bench.spin_until
+            # Discovery can be slow on a loaded machine: look again now that ours exist.
+            if node.count_publishers('/drive/state') > 1 or sum(
+                    n == 'controller' for n in node.get_node_names()) > 1:
+                raise BenchFailure(
+                    'another drive or controller appeared on the graph (ROS_DOMAIN_ID '
+                    f'{os.environ.get("ROS_DOMAIN_ID", "0")}): not adding a simulated one '
+                    'beside it; use --bench none, or another domain')
         else:
             ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
             # the children log to /rosout (recorded) and their log files, not the console

@@ -34,7 +34,7 @@ import numpy as np
 
 __all__ = ['Optimizer', 'OptimizerError', 'OptionSpec', 'make_rng', 'rng_state',
            'set_rng_state', 'check_loss', 'check_dim', 'check_seed', 'check_start',
-           'seed_json', 'check_options', 'check_told', 'told_loss', 'zero_signs_match', 'NDARRAY']
+           'seed_json', 'check_options', 'check_told', 'told_loss', 'rebuild', 'zero_signs_match', 'NDARRAY']
 
 #: The array type, bound once (tell's fast path tests ``type(u) is NDARRAY``).
 NDARRAY = np.ndarray
@@ -308,3 +308,18 @@ def told_loss(pending: list[float] | None, u: Any, loss: Any) -> float:
             or (0.0 in pending and not zero_signs_match(tl, pending))):
         return check_told(pending, u, loss)
     return loss
+
+
+def rebuild(cls: type, state: dict[str, Any], version: int) -> Any:
+    """The first half of every ``_from_state``: check the state's version, build ``cls``
+    from the saved configuration (seed 0, no start) and put the saved RNG state in it.
+    The caller then restores its own fields."""
+    if state.get('version') != version:
+        raise OptimizerError(f"{cls.algo} state version {state.get('version')!r} "
+                             f'not supported (expected {version})')
+    cfg = dict(state['config'])
+    dim = cfg.pop('dim')
+    cfg.pop('algo'), cfg.pop('seed')
+    opt = cls(dim, 0, None, **cfg)
+    set_rng_state(opt._rng, state['rng'])
+    return opt

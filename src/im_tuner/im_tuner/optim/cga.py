@@ -35,7 +35,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from .base import (Optimizer, OptimizerError, OptionSpec, check_dim, check_options, check_seed,
-                   check_start, make_rng, rng_state, seed_json, set_rng_state, told_loss)
+                   check_start, make_rng, rng_state, rebuild, seed_json, told_loss)
 
 __all__ = ['CGA', 'PECGA', 'NECGA', 'BinaryCGA']
 
@@ -339,14 +339,7 @@ class BinaryCGA(Optimizer):
     @classmethod
     def _from_state(cls, state: dict[str, Any]) -> 'BinaryCGA':
         try:
-            if state.get('version') != _STATE_VERSION:
-                raise OptimizerError(f"{cls.algo} state version {state.get('version')!r} "
-                                     f'not supported (expected {_STATE_VERSION})')
-            cfg = dict(state['config'])
-            dim = cfg.pop('dim')
-            cfg.pop('algo'), cfg.pop('seed')
-            opt = cls(dim, 0, None, **cfg)
-            set_rng_state(opt._rng, state['rng'])
+            opt = rebuild(cls, state, _STATE_VERSION)
             k = np.array(state['k'], dtype=np.int64)
             if k.shape != (opt.m,) or np.any(np.abs(k) > opt._K):
                 raise OptimizerError(f'bad {cls.algo} state: k must be {opt.m} integers '

@@ -37,7 +37,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from .base import (Optimizer, OptimizerError, OptionSpec, check_dim, check_options, check_seed,
-                   check_start, make_rng, rng_state, seed_json, set_rng_state, told_loss)
+                   check_start, make_rng, rng_state, rebuild, seed_json, told_loss)
 
 __all__ = ['RCGA', 'ndtri', 'erfinv', 'norm_cdf', 'truncnorm_ppf', 'SIGMA_TOL']
 
@@ -322,14 +322,7 @@ class RCGA(Optimizer):
     @classmethod
     def _from_state(cls, state: dict[str, Any]) -> 'RCGA':
         try:
-            if state.get('version') != _STATE_VERSION:
-                raise OptimizerError(f"rcga state version {state.get('version')!r} "
-                                     f'not supported (expected {_STATE_VERSION})')
-            cfg = dict(state['config'])
-            dim = cfg.pop('dim')
-            cfg.pop('algo'), cfg.pop('seed')
-            opt = cls(dim, 0, None, **cfg)
-            set_rng_state(opt._rng, state['rng'])
+            opt = rebuild(cls, state, _STATE_VERSION)
 
             def vec(v: Any) -> list[float]:
                 out = [float(t) for t in v]

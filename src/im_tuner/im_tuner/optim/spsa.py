@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from .base import (Optimizer, OptimizerError, OptionSpec, check_dim, check_options, check_seed,
-                   check_start, make_rng, rng_state, seed_json, set_rng_state, told_loss)
+                   check_start, make_rng, rng_state, rebuild, seed_json, told_loss)
 
 __all__ = ['SPSA', 'GAIN_PRESETS']
 
@@ -236,14 +236,7 @@ class SPSA(Optimizer):
     @classmethod
     def _from_state(cls, state: dict[str, Any]) -> 'SPSA':
         try:
-            if state.get('version') != _STATE_VERSION:
-                raise OptimizerError(f"spsa state version {state.get('version')!r} "
-                                     f'not supported (expected {_STATE_VERSION})')
-            cfg = dict(state['config'])
-            dim, bounded = cfg.pop('dim'), cfg.pop('bounded')
-            cfg.pop('algo'), cfg.pop('seed')
-            opt = cls(dim, 0, None, bounded=bounded, **cfg)
-            set_rng_state(opt._rng, state['rng'])
+            opt = rebuild(cls, state, _STATE_VERSION)
             opt.k = int(state['k'])
             opt.evaluations = int(state['evaluations'])
             opt._u = [float(x) for x in state['u']]

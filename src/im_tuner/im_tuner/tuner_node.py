@@ -27,7 +27,6 @@ Exit codes: 0 done, 1 the bench failed (best gains applied, bag closed), 2 bad i
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import os
 import shlex
@@ -48,13 +47,13 @@ from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from im_controller.config import GAIN_NAMES, GAIN_UNITS, Gains
+from im_controller.config import GAIN_NAMES, GAIN_UNITS
 
 from . import optim
 from .link import FAULT_POLICIES, ControllerLink, controller_topics
 from .optim.base import OptimizerError
 from .rundir import RunDir, RunDirError
-from .space import SearchSpace, TunerParams, TunerParamsError, load_params, parse_params
+from .space import TunerParams, TunerParamsError, load_params, parse_params
 from .tuning import BenchFailure, ResumeError, StopRequested, TuningRun, replay, replay_plan
 
 BENCHES = ('auto', 'inproc', 'processes', 'none')

@@ -32,7 +32,6 @@ is restored first by :func:`replay` (same gains, same order; losses checked bit 
 from __future__ import annotations
 
 import datetime as _dt
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol

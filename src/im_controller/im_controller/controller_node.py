@@ -52,14 +52,12 @@ from .config import (GAIN_NAMES, NUMERIC_SPECS, ControlConfig, ControllerConfigE
                      ExperimentConfig, Gains, LossConfig, SafetyConfig, TrajectoryConfig,
                      validate_experiment_config, validate_gains)
 from .control import CONTROL_FIELDS
-from .experiment import (EXP_FIELDS, REASON_DRIVE_TIMEOUT, STATUS_ABORTED, STATUS_DONE,
+from .experiment import (INTERNALS_FIELDS, REASON_DRIVE_TIMEOUT, STATUS_ABORTED, STATUS_DONE,
                          STATUS_FAULT, ExperimentRunner)
 from .messages import result_to_msg
 
 LOSS_TOPIC = 'controller/loss'
 INTERNALS_TOPIC = 'controller/internals'
-#: Layout of ``controller/internals`` (Float64MultiArray.data).
-INTERNALS_FIELDS: tuple[str, ...] = ('step_index', *CONTROL_FIELDS, *EXP_FIELDS)
 NS_PER_S = 1_000_000_000
 MODES = ('lockstep', 'realtime')
 

@@ -47,7 +47,8 @@ from .control import (CONTROL_FIELDS, N_CONTROL_FIELDS, N_CSTATE, O_E_THETA, O_I
 
 __all__ = [
     "LossResult", "Experiment", "ExperimentRunner", "run_experiment_offline",
-    "trajectory_times", "trajectory", "experiment_step", "EXP_FIELDS", "REASONS",
+    "trajectory_times", "trajectory", "experiment_step", "EXP_FIELDS", "INTERNALS_FIELDS",
+    "REASONS",
     "STATUS_HOLD", "STATUS_RUNNING", "STATUS_DONE", "STATUS_ABORTED", "STATUS_FAULT",
 ]
 
@@ -139,6 +140,9 @@ EXP_FIELDS: tuple[str, ...] = (
 (E_ISQ, E_LOAD, E_STATUS, E_REASON, E_N, E_F1, E_F2, E_F3, E_ISQF, E_COUNTED, E_T1, E_T2,
  E_T3) = range(len(EXP_FIELDS))
 N_EXP_FIELDS = len(EXP_FIELDS)
+#: Layout of the controller node's ``controller/internals`` (Float64MultiArray.data): the
+#: drive step index k, then the controller's and the experiment's per-step outputs.
+INTERNALS_FIELDS: tuple[str, ...] = ('step_index', *CONTROL_FIELDS, *EXP_FIELDS)
 
 
 # ------------------------------------------------------------------------ trajectory

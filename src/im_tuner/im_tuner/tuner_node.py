@@ -333,6 +333,8 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
         L.append(f'  sessions: {len(s["sessions"])} (resumed; {rep} experiments replayed to '
                  'restore the simulated plant)' if rep else
                  f'  sessions: {len(s["sessions"])} (resumed)')
+    if s.get('report_command'):
+        L.append(f'  report (summary, plots, CSV): {s["report_command"]}')
     return '\n'.join(L)
 
 
@@ -593,7 +595,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             code = EXIT_FAILED
         progress.close()
         summary = tuning.summary(outcome=outcome, wall_s=time.monotonic() - t_wall0)
-        summary['report_command'] = f'ros2 run im_tuner report {rundir.path}'
+        summary['report_command'] = f'ros2 run im_tuner report {shlex.quote(str(rundir.path))}'
         tuning._checkpoint()
         rundir.write_summary(summary)
         print(format_summary(summary, run, rundir.path), flush=True)

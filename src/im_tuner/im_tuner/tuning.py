@@ -45,7 +45,8 @@ from .rundir import RunDir
 from .space import SearchSpace
 
 __all__ = ['Measurement', 'Measurer', 'LostEvaluation', 'BenchFailure', 'StopRequested',
-           'ResumeError', 'TuningRun', 'replay', 'replay_plan', 'gains_dict']
+           'ResumeError', 'TuningRun', 'TunerState', 'replay', 'replay_plan', 'gains_dict',
+           'tally', 'tally_all', 'final_choice', 'summarize']
 
 CHECKPOINT_VERSION = 1
 
@@ -183,21 +184,7 @@ class TuningRun:
     # -- state updates -------------------------------------------------------------------
     def _apply(self, rec: dict[str, Any], live: bool) -> None:
         """Update the counters (and, for an evaluation, the optimiser) from one record."""
-        st = self.state
-        if rec.get('experiment_id') is not None:  # it ran on the bench (a lost one too)
-            st.experiments += 1
-            st.sim_s += rec['sim_s']               # 0 for a lost one: its length is unknown
-        if rec['status'] == 'lost':
-            st.lost += 1
-            return
-        st.faults += bool(rec['fault'])
-        kind = rec['kind']
-        if kind == 'reference':
-            st.reference = _brief(rec) | {'aborted': rec['aborted']}
-        elif kind == 'remeasure':
-            st.remeasured.append({'eval': rec['eval'], 'loss': rec['loss'],
-                                  'aborted': rec['aborted']})
-        elif kind == 'eval':
+        if rec['status'] != 'lost' and rec['kind'] == 'eval':
             u = np.asarray(rec['u'], dtype=float)
             if not live:
                 asked = self.opt.ask()
@@ -208,16 +195,8 @@ class TuningRun:
             t0 = time.perf_counter()
             self.opt.tell(u, rec['loss'])
             if live:
-                st.opt_us.append(self._ask_us + 1e6 * (time.perf_counter() - t0))
-            st.evals += 1
-            st.aborted += bool(rec['aborted'])
-            if not rec['aborted'] and (st.best is None or rec['loss'] < st.best['loss']):
-                st.best = _brief(rec)
-            if (st.first_satisfactory is None and not rec['aborted']
-                    and rec['loss'] <= self.satisfactory):
-                st.first_satisfactory = st.evals
-        else:
-            raise ResumeError(f'unknown record kind {kind!r}')
+                self.state.opt_us.append(self._ask_us + 1e6 * (time.perf_counter() - t0))
+        tally(self.state, rec, self.satisfactory)
 
     def _checkpoint(self) -> None:
         self.rundir.write_checkpoint({'version': CHECKPOINT_VERSION,
@@ -338,53 +317,99 @@ class TuningRun:
         return out
 
     def final_choice(self) -> dict[str, Any] | None:
-        """The record of the controller to leave applied (see the module docstring):
-        the smallest re-measured loss if re-measured, else the smallest measured; the
-        reference if nothing beat it; None before any successful measurement."""
-        st = self.state
-        cand = st.best
-        if st.remeasured:
-            ok = [r for r in st.remeasured if not r['aborted']]
-            if ok:
-                pick = min(ok, key=lambda r: (r['loss'], r['eval']))
-                cand = next(_brief(r) for r in self.records
-                            if r['kind'] == 'eval' and r['eval'] == pick['eval']
-                            and r['status'] == 'ok')
-        ref = st.reference
-        if ref is not None and not ref['aborted'] and (cand is None or
-                                                       ref['loss'] <= cand['loss']):
-            return ref
-        return cand
+        """See :func:`final_choice`."""
+        return final_choice(self.state, self.records)
 
     # -- summary ---------------------------------------------------------------------------
     def summary(self, *, outcome: str, wall_s: float) -> dict[str, Any]:
-        st = self.state
-        final = self.final_choice()
-        rem = {r['eval']: r['loss'] for r in st.remeasured}
-        return {
-            'outcome': outcome,
-            'evaluations': st.evals, 'budget': self.budget,
-            'experiments': st.experiments, 'aborted': st.aborted, 'safety_faults': st.faults,
-            'lost': st.lost,
-            'reference': None if st.reference is None else
-            {'gains': st.reference['gains'], 'loss': st.reference['loss'],
-             'aborted': st.reference['aborted']},
-            'best': None if st.best is None else
-            {**{k: st.best[k] for k in ('eval', 'gains', 'loss', 'terms')},
-             'remeasured_loss': rem.get(st.best['eval'])},
-            'applied': None if final is None else
-            {'eval': final['eval'], 'gains': final['gains'], 'loss': final['loss'],
-             'remeasured_loss': rem.get(final['eval']) if final['eval'] >= 0 else None,
-             'source': 'reference' if final['eval'] < 0 else 'evaluation'},
-            'remeasured': st.remeasured,
-            'satisfactory_loss': self.satisfactory,
-            'evaluations_to_satisfactory': st.first_satisfactory,
-            'wall_s': wall_s, 'loop_wall_s': st.loop_wall_s, 'sim_s': st.sim_s,
-            'real_time_factor': st.sim_s / st.loop_wall_s if st.loop_wall_s > 0 else None,
-            # median: the first calls pay for cold caches and imports
-            'optimizer_us_per_eval': float(np.median(st.opt_us)) if st.opt_us else None,
-            'sessions': st.sessions,
-        }
+        return summarize(self.state, self.records, budget=self.budget,
+                         satisfactory_loss=self.satisfactory, outcome=outcome, wall_s=wall_s)
+
+
+# -- bookkeeping shared by the loop and the report (pure functions of the records) ------------
+def tally(st: TunerState, rec: dict[str, Any], satisfactory_loss: float) -> None:
+    """Update counters and bests of ``st`` from one results.jsonl record (no optimiser)."""
+    if rec.get('experiment_id') is not None:  # it ran on the bench (a lost one too)
+        st.experiments += 1
+        st.sim_s += rec['sim_s']               # 0 for a lost one: its length is unknown
+    if rec['status'] == 'lost':
+        st.lost += 1
+        return
+    st.faults += bool(rec['fault'])
+    kind = rec['kind']
+    if kind == 'reference':
+        st.reference = _brief(rec) | {'aborted': rec['aborted']}
+    elif kind == 'remeasure':
+        st.remeasured.append({'eval': rec['eval'], 'loss': rec['loss'],
+                              'aborted': rec['aborted']})
+    elif kind == 'eval':
+        st.evals += 1
+        st.aborted += bool(rec['aborted'])
+        if not rec['aborted'] and (st.best is None or rec['loss'] < st.best['loss']):
+            st.best = _brief(rec)
+        if (st.first_satisfactory is None and not rec['aborted']
+                and rec['loss'] <= satisfactory_loss):
+            st.first_satisfactory = st.evals
+    else:
+        raise ResumeError(f'unknown record kind {kind!r}')
+
+
+def tally_all(records: list[dict[str, Any]], satisfactory_loss: float) -> TunerState:
+    """The counters and bests of a run rebuilt from its records alone (the report)."""
+    st = TunerState()
+    for rec in records:
+        tally(st, rec, satisfactory_loss)
+    return st
+
+
+def final_choice(st: TunerState, records: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The record of the controller to leave applied (see the module docstring):
+    the smallest re-measured loss if re-measured, else the smallest measured; the
+    reference if nothing beat it; None before any successful measurement."""
+    cand = st.best
+    if st.remeasured:
+        ok = [r for r in st.remeasured if not r['aborted']]
+        if ok:
+            pick = min(ok, key=lambda r: (r['loss'], r['eval']))
+            cand = next(_brief(r) for r in records
+                        if r['kind'] == 'eval' and r['eval'] == pick['eval']
+                        and r['status'] == 'ok')
+    ref = st.reference
+    if ref is not None and not ref['aborted'] and (cand is None or
+                                                   ref['loss'] <= cand['loss']):
+        return ref
+    return cand
+
+
+def summarize(st: TunerState, records: list[dict[str, Any]], *, budget: int,
+              satisfactory_loss: float, outcome: str, wall_s: float | None) -> dict[str, Any]:
+    """The run summary (summary.json's content) from the counters and the records."""
+    final = final_choice(st, records)
+    rem = {r['eval']: r['loss'] for r in st.remeasured}
+    return {
+        'outcome': outcome,
+        'evaluations': st.evals, 'budget': budget,
+        'experiments': st.experiments, 'aborted': st.aborted, 'safety_faults': st.faults,
+        'lost': st.lost,
+        'reference': None if st.reference is None else
+        {'gains': st.reference['gains'], 'loss': st.reference['loss'],
+         'aborted': st.reference['aborted']},
+        'best': None if st.best is None else
+        {**{k: st.best[k] for k in ('eval', 'gains', 'loss', 'terms')},
+         'remeasured_loss': rem.get(st.best['eval'])},
+        'applied': None if final is None else
+        {'eval': final['eval'], 'gains': final['gains'], 'loss': final['loss'],
+         'remeasured_loss': rem.get(final['eval']) if final['eval'] >= 0 else None,
+         'source': 'reference' if final['eval'] < 0 else 'evaluation'},
+        'remeasured': st.remeasured,
+        'satisfactory_loss': satisfactory_loss,
+        'evaluations_to_satisfactory': st.first_satisfactory,
+        'wall_s': wall_s, 'loop_wall_s': st.loop_wall_s, 'sim_s': st.sim_s,
+        'real_time_factor': st.sim_s / st.loop_wall_s if st.loop_wall_s > 0 else None,
+        # median: the first calls pay for cold caches and imports
+        'optimizer_us_per_eval': float(np.median(st.opt_us)) if st.opt_us else None,
+        'sessions': st.sessions,
+    }
 
 
 def replay_plan(records: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -1,0 +1,373 @@
+"""Read a tuning run's bag fast, also one whose recorder was killed: counts and signals.
+
+One pass over the ``.mcap`` file (memory-mapped, read only: the report changes nothing):
+the top-level records are walked up to DataEnd or the first incomplete record (a killed
+recorder leaves no footer; everything in complete chunks is still read), each chunk is
+decompressed once and its records walked by a numba kernel. Per topic it counts messages
+and notes the first and last log time (the rates); for the ``Float64MultiArray`` topics
+asked for it keeps the rows whose first value (the step index ``k``) lies in the given
+windows; the loss messages (``diagnostic_msgs/DiagnosticArray``) are decoded. About 0.5 s
+for a 200-evaluation run's 345 MB, 3.5 million message bag.
+
+No rclpy and no ROS message packages: the two CDR layouts needed are parsed here
+(``std_msgs/Float64MultiArray`` in the project's layout, with a general fallback, and
+``diagnostic_msgs/DiagnosticArray``).
+"""
+from __future__ import annotations
+
+import json
+import mmap
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+from .bag import read_metadata_yaml
+from .mcap_repair import _decompress, _parse_def
+from .mcap_writer import MAGIC, OP_CHANNEL, OP_CHUNK, OP_DATA_END, OP_FOOTER, OP_MESSAGE, \
+    OP_SCHEMA
+
+__all__ = ['BagReadError', 'TopicStats', 'BagData', 'read_bag', 'parse_diagnostic_array',
+           'parse_float64_multiarray']
+
+_MSG_HEAD = 22          # channel id u16, sequence u32, log time u64, publish time u64
+_F64_HEAD = b'\x00\x01\x00\x00'   # CDR little-endian encapsulation
+_F64_DATA = 20          # first double of a Float64MultiArray with an empty layout
+
+
+class BagReadError(Exception):
+    """The bag cannot be read at all (no .mcap file, not MCAP)."""
+
+
+@dataclass
+class TopicStats:
+    """One topic as found in the file."""
+
+    name: str
+    type: str
+    count: int = 0
+    first_ns: int = 0           #: log time of the first message [ns since the epoch]
+    last_ns: int = 0
+
+    @property
+    def rate_hz(self) -> float | None:
+        """Messages per second of log time between the first and the last message."""
+        if self.count < 2 or self.last_ns <= self.first_ns:
+            return None
+        return (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
+
+
+@dataclass
+class BagData:
+    """What :func:`read_bag` found."""
+
+    path: Path                                   #: the bag directory
+    file: Path                                   #: its .mcap file
+    complete: bool = False                       #: data section read to DataEnd
+    state: str = 'unknown'                       #: metadata.yaml im_tuner.state
+    unread_bytes: int = 0                        #: after the last complete record
+    chunks: int = 0
+    topics: dict[str, TopicStats] = field(default_factory=dict)
+    #: the recorder's own count per topic (recorded, published, lost, ...) when it closed
+    recorder_counts: dict[str, dict[str, int]] | None = None
+    arrays: dict[str, np.ndarray] = field(default_factory=dict)
+    #: decoded loss messages: the key/value pairs plus 'log_time_ns', 'level', 'name'
+    losses: list[dict[str, str]] = field(default_factory=list)
+
+    @property
+    def messages(self) -> int:
+        return sum(t.count for t in self.topics.values())
+
+    @property
+    def t_range_ns(self) -> tuple[int, int]:
+        ts = [t for t in self.topics.values() if t.count]
+        if not ts:
+            return (0, 0)
+        return min(t.first_ns for t in ts), max(t.last_ns for t in ts)
+
+
+# ----------------------------------------------------------------------- record walk
+@njit(cache=True)
+def _walk(buf: np.ndarray, start: int, stop_op: int, ops: np.ndarray, offs: np.ndarray,
+          lens: np.ndarray, cids: np.ndarray, times: np.ndarray) -> tuple[int, int]:
+    """Walk MCAP records in ``buf[start:]``; fills the arrays (op, body offset, body length,
+    channel id and log time of Message records).  Stops after a record with opcode
+    ``stop_op``, at the end, or before an incomplete record.  Returns (records, end)."""
+    p = start
+    n = 0
+    size = buf.size
+    cap = ops.size
+    while p + 9 <= size and n < cap:
+        op = buf[p]
+        ln = 0
+        for j in range(8):
+            ln |= np.int64(buf[p + 1 + j]) << (8 * j)
+        if op == 0 or ln < 0 or p + 9 + ln > size:
+            break
+        ops[n] = op
+        offs[n] = p + 9
+        lens[n] = ln
+        if op == 5 and ln >= 22:
+            cids[n] = np.int64(buf[p + 9]) | (np.int64(buf[p + 10]) << 8)
+            t = np.int64(0)
+            for j in range(8):
+                t |= np.int64(buf[p + 15 + j]) << (8 * j)
+            times[n] = t
+        else:
+            cids[n] = -1
+            times[n] = 0
+        n += 1
+        p += 9 + ln
+        if op == stop_op:
+            break
+    return n, p
+
+
+def _walk_all(buf: np.ndarray, start: int, stop_op: int) -> tuple[np.ndarray, ...]:
+    cap = max(0, buf.size - start) // 31 + 64   # a message record is >= 31 bytes
+    while True:
+        ops = np.empty(cap, np.uint8)
+        offs = np.empty(cap, np.int64)
+        lens = np.empty(cap, np.int64)
+        cids = np.empty(cap, np.int64)
+        times = np.empty(cap, np.int64)
+        n, end = _walk(buf, start, stop_op, ops, offs, lens, cids, times)
+        if n < cap or end >= buf.size:
+            return ops[:n], offs[:n], lens[:n], cids[:n], times[:n], end
+        cap *= 4   # many tiny records: walk again with room for them
+
+
+# ------------------------------------------------------------------------ CDR parsing
+class _Cdr:
+    """Little-endian CDR reader (alignment relative to the byte after the 4-byte header)."""
+
+    def __init__(self, b: bytes) -> None:
+        if len(b) < 4 or b[0:2] != b'\x00\x01':
+            raise ValueError('not little-endian CDR')
+        self.b, self.p = b, 4
+
+    def _align(self, n: int) -> None:
+        self.p += (-(self.p - 4)) % n
+
+    def u32(self) -> int:
+        self._align(4)
+        (v,) = struct.unpack_from('<I', self.b, self.p)
+        self.p += 4
+        return v
+
+    def i32(self) -> int:
+        self._align(4)
+        (v,) = struct.unpack_from('<i', self.b, self.p)
+        self.p += 4
+        return v
+
+    def u8(self) -> int:
+        v = self.b[self.p]
+        self.p += 1
+        return v
+
+    def string(self) -> str:
+        n = self.u32()
+        if n == 0 or self.p + n > len(self.b):
+            raise ValueError('bad CDR string')
+        s = self.b[self.p:self.p + n - 1].decode('utf-8')
+        self.p += n
+        return s
+
+    def f64s(self) -> np.ndarray:
+        n = self.u32()
+        self._align(8)
+        if self.p + 8 * n > len(self.b):
+            raise ValueError('CDR sequence past the end')
+        v = np.frombuffer(self.b, '<f8', n, self.p)
+        self.p += 8 * n
+        return v
+
+
+def parse_float64_multiarray(data: bytes) -> np.ndarray:
+    """``std_msgs/Float64MultiArray`` CDR -> its data (any layout)."""
+    c = _Cdr(data)
+    for _ in range(c.u32()):          # layout.dim: label, size, stride
+        c.string()
+        c.u32()
+        c.u32()
+    c.u32()                           # layout.data_offset
+    return c.f64s()
+
+
+def parse_diagnostic_array(data: bytes) -> list[dict[str, str]]:
+    """``diagnostic_msgs/DiagnosticArray`` CDR -> one dict per status: its key/value pairs
+    plus 'level', 'name', 'message', 'hardware_id' and 'stamp_ns' (of the array header)."""
+    c = _Cdr(data)
+    sec, nsec = c.i32(), c.u32()
+    c.string()                        # frame_id
+    out = []
+    for _ in range(c.u32()):
+        st = {'level': str(c.u8())}
+        st['name'], st['message'], st['hardware_id'] = c.string(), c.string(), c.string()
+        for _ in range(c.u32()):
+            k = c.string()
+            st[k] = c.string()
+        st['stamp_ns'] = str(sec * 1_000_000_000 + nsec)
+        out.append(st)
+    return out
+
+
+def _f64_rows(buf: np.ndarray, offs: np.ndarray, lens: np.ndarray) -> np.ndarray:
+    """The data of Float64MultiArray message bodies (at ``offs``) as rows; all of one
+    length.  Fast path for the project's layout (empty dims), a general parse otherwise."""
+    if not len(offs):
+        return np.zeros((0, 0))
+    d0 = offs + _MSG_HEAD
+    width = (int(lens[0]) - _MSG_HEAD - _F64_DATA) // 8
+    fast = width >= 0 and bool(np.all(lens == lens[0]))
+    if fast:
+        head = buf[d0[:, None] + np.arange(16)]
+        fast = bool(np.all(head[:, :12] == np.frombuffer(_F64_HEAD + bytes(8), np.uint8))
+                    and np.all(head[:, 12:16].view('<u4')[:, 0] == width))
+    if fast:
+        raw = buf[(d0 + _F64_DATA)[:, None] + np.arange(8 * width)]
+        return np.ascontiguousarray(raw).view('<f8').reshape(len(offs), width)
+    rows = [parse_float64_multiarray(bytes(buf[a:a + n - _MSG_HEAD]))
+            for a, n in zip(d0, lens)]
+    if len({len(r) for r in rows}) != 1:
+        raise ValueError('messages of different lengths')
+    return np.array(rows)
+
+
+def _in_windows(k: np.ndarray, windows: list[tuple[int, int]] | None) -> np.ndarray:
+    if windows is None:
+        return np.ones(len(k), bool)
+    keep = np.zeros(len(k), bool)
+    for a, b in windows:
+        keep |= (k >= a) & (k < b)
+    return keep
+
+
+# ----------------------------------------------------------------------------- reader
+def find_mcap(bag_dir: Path) -> Path:
+    files = sorted(Path(bag_dir).glob('*.mcap'))
+    if not files:
+        raise BagReadError(f'{bag_dir}: no .mcap file')
+    return files[0]
+
+
+def read_bag(bag_dir: Path | str, arrays: dict[str, list[tuple[int, int]] | None] | None = None,
+             loss_topic: str = '/controller/loss') -> BagData:
+    """Read ``bag_dir`` (see the module docstring).
+
+    ``arrays``: topic -> windows ``[(k0, k1), ...]`` of the first value to keep (None: all
+    rows) for ``Float64MultiArray`` topics.  Messages of ``loss_topic`` are decoded.
+    """
+    bag_dir = Path(bag_dir)
+    path = find_mcap(bag_dir)
+    out = BagData(bag_dir, path)
+    try:
+        meta = read_metadata_yaml(bag_dir)
+        custom = meta.get('custom_data') or {}
+        out.state = custom.get('im_tuner.state', 'unknown')
+        if 'im_tuner.counts' in custom:
+            out.recorder_counts = json.loads(custom['im_tuner.counts'])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        out.state = 'no metadata.yaml'
+    arrays = arrays or {}
+    schemas: dict[int, tuple[str, bytes]] = {}
+    channels: dict[int, tuple[str, int, dict, bytes]] = {}
+    per_chan: dict[int, list] = {}          # cid -> [count, first, last]
+    rows: dict[str, list[np.ndarray]] = {t: [] for t in arrays}
+    losses: list[tuple[int, bytes]] = []
+    with open(path, 'rb') as f:
+        size = f.seek(0, 2)
+        if size < 8 or (f.seek(0) or f.read(8)) != MAGIC:
+            raise BagReadError(f'{path}: not an MCAP file')
+        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+            top = np.frombuffer(mm, np.uint8)
+            ops, offs, lens, _c, _t, end = _walk_all(top, 8, OP_DATA_END)
+            out.complete = bool(len(ops)) and int(ops[-1]) in (OP_DATA_END, OP_FOOTER)
+            out.unread_bytes = 0 if out.complete else size - end
+            # definitions first: a Channel record may follow a chunk holding its messages
+            for op, a, n in zip(ops.tolist(), offs.tolist(), lens.tolist()):
+                if op in (OP_SCHEMA, OP_CHANNEL):
+                    _parse_def(op, bytes(mm[a - 9:a + n]), schemas, channels)
+            for op, a, n in zip(ops.tolist(), offs.tolist(), lens.tolist()):
+                if op == OP_CHUNK:
+                    try:
+                        chunk = _read_chunk(mm, a, n)
+                    except ValueError:
+                        out.complete = False
+                        out.unread_bytes = size - (a - 9)
+                        break
+                    out.chunks += 1
+                    _take_chunk(chunk, schemas, channels, per_chan, arrays, rows, losses,
+                                loss_topic)
+            del top
+    for cid, (topic, sid, _meta, _rec) in channels.items():
+        c = per_chan.get(cid, [0, 0, 0])
+        ty = schemas.get(sid, ('?', b''))[0]
+        prev = out.topics.get(topic)
+        if prev is None:
+            out.topics[topic] = TopicStats(topic, ty, c[0], c[1], c[2])
+        elif c[0]:  # the same topic on a second channel (a second type): merge the counts
+            prev.first_ns = min(prev.first_ns, c[1]) if prev.count else c[1]
+            prev.last_ns = max(prev.last_ns, c[2])
+            prev.count += c[0]
+    for t, parts in rows.items():
+        parts = [p for p in parts if p.size]
+        out.arrays[t] = np.concatenate(parts) if parts else np.zeros((0, 0))
+    for log_time, data in losses:
+        for st in parse_diagnostic_array(data):
+            out.losses.append(st | {'log_time_ns': str(log_time)})
+    return out
+
+
+def _read_chunk(mm: mmap.mmap, a: int, n: int) -> np.ndarray:
+    """A Chunk record body at ``a`` -> its decompressed records."""
+    start, end, usize, crc = struct.unpack_from('<QQQI', mm, a)
+    p = a + 28
+    (clen,) = struct.unpack_from('<I', mm, p)
+    comp = mm[p + 4:p + 4 + clen].decode()
+    p += 4 + clen
+    (rlen,) = struct.unpack_from('<Q', mm, p)
+    p += 8
+    if p + rlen > a + n:
+        raise ValueError('chunk records past the chunk')
+    try:
+        raw = _decompress(comp, mm[p:p + rlen], usize)
+    except Exception as exc:  # lz4/zstd raise their own types on corrupt data
+        raise ValueError(f'chunk does not decompress: {exc}') from None
+    if len(raw) != usize:
+        raise ValueError('chunk size mismatch')
+    return np.frombuffer(raw, np.uint8)
+
+
+def _take_chunk(buf: np.ndarray, schemas: dict, channels: dict, per_chan: dict,
+                arrays: dict, rows: dict, losses: list, loss_topic: str) -> None:
+    ops, offs, lens, cids, times, _end = _walk_all(buf, 0, -1)
+    for i in np.flatnonzero(ops != OP_MESSAGE):
+        op = int(ops[i])
+        if op in (OP_SCHEMA, OP_CHANNEL):
+            a, n = int(offs[i]), int(lens[i])
+            _parse_def(op, bytes(buf[a - 9:a + n]), schemas, channels)
+    is_msg = ops == OP_MESSAGE
+    cids, times, offs, lens = cids[is_msg], times[is_msg], offs[is_msg], lens[is_msg]
+    if not len(cids):
+        return
+    ids, first_idx, counts = np.unique(cids, return_index=True, return_counts=True)
+    for cid, n in zip(ids.tolist(), counts.tolist()):
+        sel = cids == cid
+        t = times[sel]
+        c = per_chan.setdefault(cid, [0, 0, 0])
+        c[1] = int(t.min()) if not c[0] else min(c[1], int(t.min()))
+        c[2] = max(c[2], int(t.max()))
+        c[0] += n
+        topic = channels.get(cid, ('',))[0]
+        if topic in arrays:
+            r = _f64_rows(buf, offs[sel], lens[sel])
+            if r.size:
+                r = r[_in_windows(r[:, 0], arrays[topic])]
+            rows[topic].append(r)
+        elif topic == loss_topic:
+            for a, n_, lt in zip(offs[sel].tolist(), lens[sel].tolist(), t.tolist()):
+                losses.append((lt, bytes(buf[a + _MSG_HEAD:a + n_])))

@@ -106,6 +106,7 @@ def check_run(run: Path, algo: str, budget: int, proc: subprocess.CompletedProce
     assert summary['sim_s'] == pytest.approx(sum(r['sim_s'] for r in recs))
     assert summary['real_time_factor'] > 0 and summary['optimizer_us_per_eval'] > 0
     assert 'best loss' in proc.stdout and 'real-time factor' in proc.stdout
+    assert f'report (summary, plots, CSV): ros2 run im_tuner report {run}' in proc.stdout
     # The bag: every loss the tuner used is the controller's message, bit for bit; the
     # gains were set by set_parameters_atomically (service events recorded), the last
     # call leaves the applied gains.
@@ -183,6 +184,14 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
     # The killed session's bag is still marked as being recorded ...
     meta0 = yaml.safe_load((killed / 'bag_0' / 'metadata.yaml').read_text())
     assert meta0['rosbag2_bagfile_information']['custom_data']['im_tuner.state'] == 'recording'
+    # The report reads what the killed run left (partial results, a bag without footer).
+    rep = subprocess.run([ROS2, 'run', 'im_tuner', 'report', str(killed), '--out',
+                          str(tmp_path / 'rep_killed')], capture_output=True, text=True,
+                         timeout=300)
+    assert rep.returncode == 0, rep.stderr[-3000:]
+    assert 'outcome: interrupted' in rep.stdout and 'bag_0: NOT CLOSED' in rep.stdout
+    assert (tmp_path / 'rep_killed' / 'evaluations.csv').read_text().count('\n') == \
+        1 + res.read_text().count('\n')
     proc = tuner('--resume', str(killed))
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert 'replaying' in proc.stderr
@@ -199,6 +208,14 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
     assert meta0['rosbag2_bagfile_information']['custom_data']['im_tuner.state'] == 'repaired'
     meta1 = yaml.safe_load((killed / 'bag_1' / 'metadata.yaml').read_text())
     assert meta1['rosbag2_bagfile_information']['custom_data']['im_tuner.state'] == 'closed'
+    # The report of the resumed run finds every loss in its session's bag.
+    rep = subprocess.run([ROS2, 'run', 'im_tuner', 'report', str(killed), '--out',
+                          str(tmp_path / 'rep_resumed')], capture_output=True, text=True,
+                         timeout=300)
+    assert rep.returncode == 0, rep.stderr[-3000:]
+    assert f'losses in the bags vs results.jsonl: {len(results(killed))} equal' in rep.stdout
+    assert 'DIFFER' not in rep.stdout and 'not in a bag' not in rep.stdout
+    assert 'bag_0: complete (repaired)' in rep.stdout and 'bag_1: closed' in rep.stdout
     # A finished run resumed again has nothing left to do and changes no result.
     again = tuner('--resume', str(killed))
     assert again.returncode == 0

@@ -252,18 +252,23 @@ def _experiment(rr: RunReport, i: int, fields: tuple[str, ...]) -> Experiment | 
 
 
 def _check_losses(rr: RunReport) -> dict[str, int]:
-    """Each record's loss against the controller's loss message in its session's bag."""
+    """Each record's loss against the controller's loss message in its session's bag, else
+    in another session's bag (a resumed simulated run replays the killed session's
+    experiments, bit for bit, so a message the kill cut off is found in the replay)."""
     by_bag: dict[str, dict[tuple[str, str], str]] = {}
     for bag in rr.bags:
         by_bag[bag.path.name] = {(m.get('experiment_id', ''), m.get('t_start_ns', '')):
                                  m.get('loss', '') for m in bag.losses}
-    out = {'matched': 0, 'differ': 0, 'missing': 0}
+    out = {'matched': 0, 'differ': 0, 'missing': 0, 'elsewhere': 0}
     for rec, bag in zip(rr.records, rr.record_bag):
         if rec['status'] == 'lost' or rec.get('experiment_id') is None:
             continue
         key = (str(rec['experiment_id']), str(rec['t_start_ns']))
-        cands = [by_bag[bag]] if bag in by_bag else list(by_bag.values())
-        got = next((c[key] for c in cands if key in c), None)
+        got = by_bag.get(bag, {}).get(key)
+        if got is None:
+            got = next((c[key] for name, c in by_bag.items() if key in c and name != bag),
+                       None)
+            out['elsewhere'] += got is not None and bag is not None
         if got is None:
             out['missing'] += 1
         elif float(got) == rec['loss']:
@@ -326,6 +331,8 @@ def summary_text(rr: RunReport) -> str:
     if rr.loss_check:
         c = rr.loss_check
         L.append(f'  losses in the bags vs results.jsonl: {c["matched"]} equal'
+                 + (f' ({c["elsewhere"]} found only in a later session\'s replay)'
+                    if c.get('elsewhere') else '')
                  + (f', {c["differ"]} DIFFER' if c['differ'] else '')
                  + (f', {c["missing"]} not in a bag' if c['missing'] else ''))
     for m in rr.missing:

@@ -10,7 +10,9 @@ budget 200, 3 re-measurements, the reference), in a fresh run directory. From it
 * their ratio, the real-time factor (target >= 5, recording included), on the whole
   command's wall time -- the stricter figure -- and on the loop;
 * the optimiser's ask+tell time per evaluation: the median over the run's evaluations,
-  measured around the real calls between experiments (target < 50 us).
+  measured around the real calls between experiments (target < 50 us);
+* the report of that run, ``ros2 run im_tuner report RUN --out DIR`` (reads the ~345 MB
+  bag, writes the four figures and the CSV): whole-command wall time, median of 3.
 
 Run: ``.venv/bin/python bench/bench_tuner.py [--algos necga spsa] [--budget 200]``
 (part of ``make bench``).  ``main() -> dict`` returns the figures for run_all.py.
@@ -21,6 +23,7 @@ import argparse
 import json
 import os
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -46,11 +49,20 @@ def run_once(algo: str, budget: int, seed: int) -> dict:
             raise RuntimeError(f'tuner failed ({proc.returncode}): {proc.stderr[-2000:]}')
         s = json.loads((tmp / 'run' / 'summary.json').read_text())
         bag = sum(f.stat().st_size for f in (tmp / 'run').glob('bag_*/*.mcap'))
+        report = []
+        for i in range(3):
+            t0 = time.perf_counter()
+            rep = subprocess.run([ROS2, 'run', 'im_tuner', 'report', str(tmp / 'run'), '--out',
+                                  str(tmp / f'report{i}')], capture_output=True, text=True,
+                                 env=env)
+            report.append(time.perf_counter() - t0)
+            if rep.returncode != 0:
+                raise RuntimeError(f'report failed ({rep.returncode}): {rep.stderr[-2000:]}')
         return {'wall_s': wall, 'loop_wall_s': s['loop_wall_s'], 'sim_s': s['sim_s'],
                 'rtf': s['sim_s'] / wall, 'rtf_loop': s['real_time_factor'],
                 'opt_us': s['optimizer_us_per_eval'], 'best': s['best']['loss'],
                 'start': s['reference']['loss'], 'experiments': s['experiments'],
-                'bag_mb': bag / 1e6}
+                'bag_mb': bag / 1e6, 'report_s': statistics.median(report)}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -63,11 +75,13 @@ def main(algos: tuple[str, ...] = ('necga', 'spsa'), budget: int = 200, seed: in
               f'{r["loop_wall_s"]:.1f} s), simulated experiments {r["sim_s"]:.1f} s '
               f'({r["experiments"]}), real-time factor {r["rtf"]:.2f} (loop {r["rtf_loop"]:.2f}), '
               f'ask+tell {r["opt_us"]:.1f} us/eval, best loss {r["best"]:.4f} (start '
-              f'{r["start"]:.4f}), bag {r["bag_mb"]:.0f} MB', flush=True)
+              f'{r["start"]:.4f}), bag {r["bag_mb"]:.0f} MB; report of the run '
+              f'{r["report_s"]:.2f} s', flush=True)
         figures[f'tuner_{algo}_rtf'] = r['rtf']
         figures[f'tuner_{algo}_ask_tell_us'] = r['opt_us']
         figures[f'tuner_{algo}_wall_s'] = r['wall_s']
         figures[f'tuner_{algo}_sim_s'] = r['sim_s']
+        figures[f'report_{algo}_s'] = r['report_s']
     return figures
 
 

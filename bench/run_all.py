@@ -44,6 +44,9 @@ TARGETS = {
     'tuner_spsa_wall_s': ('s', None),
     'tuner_necga_sim_s': ('s', None),
     'tuner_spsa_sim_s': ('s', None),
+    # issue 6: the report of a default run (whole command: bag read, 4 figures, CSV)
+    'report_necga_s': ('s', 10.0),
+    'report_spsa_s': ('s', 10.0),
 }
 
 

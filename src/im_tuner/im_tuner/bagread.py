@@ -280,11 +280,12 @@ def read_bag(bag_dir: Path | str, arrays: dict[str, list[tuple[int, int]] | None
     losses: list[tuple[int, bytes]] = []
     with open(path, 'rb') as f:
         size = f.seek(0, 2)
-        if size < 8 or (f.seek(0) or f.read(8)) != MAGIC:
+        f.seek(0)
+        if size < 8 or f.read(8) != MAGIC:
             raise BagReadError(f'{path}: not an MCAP file')
         with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
             top = np.frombuffer(mm, np.uint8)
-            ops, offs, lens, _c, _t, end = _walk_all(top, 8, OP_DATA_END)
+            ops, offs, lens, _cids, _times, end = _walk_all(top, 8, OP_DATA_END)
             out.complete = bool(len(ops)) and int(ops[-1]) in (OP_DATA_END, OP_FOOTER)
             out.unread_bytes = 0 if out.complete else size - end
             # definitions first: a Channel record may follow a chunk holding its messages
@@ -354,7 +355,7 @@ def _take_chunk(buf: np.ndarray, schemas: dict, channels: dict, per_chan: dict,
     cids, times, offs, lens = cids[is_msg], times[is_msg], offs[is_msg], lens[is_msg]
     if not len(cids):
         return
-    ids, first_idx, counts = np.unique(cids, return_index=True, return_counts=True)
+    ids, counts = np.unique(cids, return_counts=True)
     for cid, n in zip(ids.tolist(), counts.tolist()):
         sel = cids == cid
         t = times[sel]

@@ -328,7 +328,7 @@ def summary_text(rr: RunReport) -> str:
         L.append(f'  bag {e}')
     if not rr.bags and not rr.bag_errors:
         L.append('  no bag (run with --no-record?)')
-    if rr.loss_check:
+    if rr.loss_check and rr.bags:
         c = rr.loss_check
         L.append(f'  losses in the bags vs results.jsonl: {c["matched"]} equal'
                  + (f' ({c["elsewhere"]} found only in a later session\'s replay)'
@@ -512,7 +512,8 @@ def fig8(runs: list[RunReport]):
             key = tuple(e.record['gains'][n] for n in GAIN_NAMES)
             if key not in seen_starts:
                 seen_starts.add(key)
-                curves.append((f'start:{rr.label}', f'start gains (loss {e.record["loss"]:.3f})'
+                curves.append((f'start:{rr.label}', f'start gains (loss {e.record["loss"]:.3f}'
+                               + (', aborted)' if e.record['aborted'] else ')')
                                + ('' if len(runs) == 1 else f', {rr.label}'), e,
                                _START_COLOR, 1.0))
     for rr, c in zip(runs, _colors(len(runs))):

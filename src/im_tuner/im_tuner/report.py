@@ -504,26 +504,25 @@ def fig8(runs: list[RunReport]):
     axes = fig.subplots(3, 1, sharex=True)
     panels = (('e_theta', 'position error [rad]'), ('e_omega', 'speed error [rad/s]'),
               ('isq_ref', 'current reference i*sq [A]'))
-    curves: list[tuple[str, str, Experiment, Any, float]] = []
-    seen_starts = set()
-    for rr in runs:
+    curves: list[tuple[str, str, Experiment, Any, float, str]] = []
+    starts: dict[tuple[float, ...], tuple[RunReport, Experiment]] = {}
+    for rr in runs:   # runs from the same start gains share one start curve
         e = rr.reference
         if e is not None:
-            key = tuple(e.record['gains'][n] for n in GAIN_NAMES)
-            if key not in seen_starts:
-                seen_starts.add(key)
-                curves.append((f'start:{rr.label}', f'start gains (loss {e.record["loss"]:.3f}'
-                               + (', aborted)' if e.record['aborted'] else ')')
-                               + ('' if len(runs) == 1 else f', {rr.label}'), e,
-                               _START_COLOR, 1.0))
+            starts.setdefault(tuple(e.record['gains'][n] for n in GAIN_NAMES), (rr, e))
+    for j, (rr, e) in enumerate(starts.values()):   # several different starts: dashes
+        curves.append((f'start:{rr.label}', f'start gains (loss {e.record["loss"]:.3f}'
+                       + (', aborted)' if e.record['aborted'] else ')')
+                       + ('' if len(starts) == 1 else f', {rr.label}'), e, _START_COLOR, 1.0,
+                       ('-', '--', ':', '-.')[j % 4]))
     for rr, c in zip(runs, _colors(len(runs))):
         e = rr.best
         if e is not None:
             curves.append((f'best:{rr.label}', f'{rr.label} best: evaluation '
-                           f'{e.record["eval"]} (loss {e.record["loss"]:.3f})', e, c, 1.4))
-    for gid, label, e, color, lw in curves:
+                           f'{e.record["eval"]} (loss {e.record["loss"]:.3f})', e, c, 1.4, '-'))
+    for gid, label, e, color, lw, ls in curves:
         for ax, (name, _yl) in zip(axes, panels):
-            ax.plot(e.t, e.direction * e.signals[name], color=color, lw=lw, label=label,
+            ax.plot(e.t, e.direction * e.signals[name], color=color, lw=lw, ls=ls, label=label,
                     gid=f'{name}:{gid}')
     step = _load_step(runs[0]) if runs else None
     for ax, (_n, yl) in zip(axes, panels):
@@ -540,7 +539,7 @@ def fig8(runs: list[RunReport]):
     else:
         axes[0].text(0.5, 0.5, 'no experiment signals in the bags', ha='center',
                      va='center', transform=axes[0].transAxes)
-    flipped = any(e.direction < 0 for _g, _lab, e, _c, _w in curves)
+    flipped = any(c[2].direction < 0 for c in curves)
     fig.suptitle('best controller vs start controller under the load torque step'
                  + ('\n(negative moves plotted with their sign reversed)' if flipped else ''),
                  fontsize=10)

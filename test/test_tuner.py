@@ -30,6 +30,11 @@ def tuner(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
                           text=True, timeout=timeout)
 
 
+def report(run: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([ROS2, 'run', 'im_tuner', 'report', str(run), *args],
+                          capture_output=True, text=True, timeout=300)
+
+
 def results(run: Path) -> list[dict]:
     return [json.loads(line) for line in (run / 'results.jsonl').read_text().splitlines()]
 
@@ -185,9 +190,7 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
     meta0 = yaml.safe_load((killed / 'bag_0' / 'metadata.yaml').read_text())
     assert meta0['rosbag2_bagfile_information']['custom_data']['im_tuner.state'] == 'recording'
     # The report reads what the killed run left (partial results, a bag without footer).
-    rep = subprocess.run([ROS2, 'run', 'im_tuner', 'report', str(killed), '--out',
-                          str(tmp_path / 'rep_killed')], capture_output=True, text=True,
-                         timeout=300)
+    rep = report(killed, '--out', str(tmp_path / 'rep_killed'))
     assert rep.returncode == 0, rep.stderr[-3000:]
     assert 'outcome: interrupted' in rep.stdout and 'bag_0: NOT CLOSED' in rep.stdout
     assert (tmp_path / 'rep_killed' / 'evaluations.csv').read_text().count('\n') == \
@@ -209,9 +212,7 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
     meta1 = yaml.safe_load((killed / 'bag_1' / 'metadata.yaml').read_text())
     assert meta1['rosbag2_bagfile_information']['custom_data']['im_tuner.state'] == 'closed'
     # The report of the resumed run finds every loss in its session's bag.
-    rep = subprocess.run([ROS2, 'run', 'im_tuner', 'report', str(killed), '--out',
-                          str(tmp_path / 'rep_resumed')], capture_output=True, text=True,
-                         timeout=300)
+    rep = report(killed, '--out', str(tmp_path / 'rep_resumed'))
     assert rep.returncode == 0, rep.stderr[-3000:]
     assert f'losses in the bags vs results.jsonl: {len(results(killed))} equal' in rep.stdout
     assert 'DIFFER' not in rep.stdout and 'not in a bag' not in rep.stdout

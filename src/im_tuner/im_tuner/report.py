@@ -36,7 +36,7 @@ import json
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -123,7 +123,7 @@ def _session_bags(sessions: list[dict[str, Any]], n_records: int) -> list[str | 
 
 
 def load_run(path: Path | str, label: str | None = None, signals: bool = True,
-             progress=None) -> RunReport:
+             progress: Callable[[str], None] | None = None) -> RunReport:
     """Read one run directory (and, with ``signals``, its bags).
 
     Raises :class:`ReportError` when ``path`` is not a tuning run."""
@@ -203,7 +203,7 @@ def _wanted(rr: RunReport) -> dict[str, int]:
     return want
 
 
-def _load_signals(rr: RunReport, progress=None) -> None:
+def _load_signals(rr: RunReport, progress: Callable[[str], None] | None = None) -> None:
     want = _wanted(rr)
     windows = [w for i in set(want.values()) if (w := _window(rr.records[i])) is not None]
     for bag_dir in RunDir(rr.path).bag_dirs():
@@ -558,7 +558,7 @@ def fig9_loss(runs: list[RunReport]):
         x = np.array([r['eval'] + 1 for r in ev], float)
         y = np.array([r['loss'] for r in ev], float)
         ab = np.array([bool(r['aborted']) for r in ev])
-        best = np.array([b for b in _best_so_far(ev)], dtype=float)   # None -> nan
+        best = np.array(_best_so_far(ev), dtype=float)   # None -> nan
         ax.plot(x[~ab], y[~ab], '.', ms=4, color=c, alpha=0.6, label=f'{rr.label}: loss',
                 gid=f'loss:{rr.label}')
         if ab.any():

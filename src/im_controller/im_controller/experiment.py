@@ -47,8 +47,9 @@ from .control import (CONTROL_FIELDS, N_CONTROL_FIELDS, N_CSTATE, O_E_THETA, O_I
 
 __all__ = [
     "LossResult", "Experiment", "ExperimentRunner", "run_experiment_offline",
+    "finish_stopped_move", "hold_offline",
     "trajectory_times", "trajectory", "experiment_step", "EXP_FIELDS", "INTERNALS_FIELDS",
-    "REASONS",
+    "REASONS", "SAFETY_REASONS",
     "STATUS_HOLD", "STATUS_RUNNING", "STATUS_DONE", "STATUS_ABORTED", "STATUS_FAULT",
 ]
 
@@ -71,6 +72,8 @@ REASON_DRIVE_TIMEOUT = 7   # set by the node's watchdog (ExperimentRunner.abort_
 REASONS: tuple[str, ...] = ("", "term1", "term2", "term3", "max_position_error",
                             "max_speed", "non_finite_measurement", "drive_state_timeout")
 """Reason strings by reason code (LossResult.reason, ExperimentRunner.fault_reason)."""
+SAFETY_REASONS: tuple[str, ...] = REASONS[REASON_POSITION:]
+"""Reasons that put the runner in FAULT (the rest are supervisor stops)."""
 
 MODE_HOLD = 0.0
 MODE_RUN = 1.0
@@ -737,9 +740,7 @@ def run_experiment_offline(sim: DriveSim, gains: Gains, config: ExperimentConfig
     if runner is None:
         runner = ExperimentRunner(config_for_drive(config, sim), gains)
         runner.reset(sim.theta_meas)
-    while runner.R[R_MODE] == MODE_RETURN:
-        # a stopped move is still being finished by the fallback gains: hold until it ends
-        _run(sim, runner, 1, False, False, False)
+    finish_stopped_move(sim, runner, python_loop)
     runner.start(experiment_id, gains)
     n = int(runner.Q[Q_N])
     k0 = float(sim.step_index)
@@ -748,6 +749,26 @@ def run_experiment_offline(sim: DriveSim, gains: Gains, config: ExperimentConfig
     assert res is not None, "experiment did not finish"
     sig = _signals(rec, runner.config.control.Ts, k0) if record else {}
     return res, sig
+
+
+def finish_stopped_move(sim: DriveSim, runner: ExperimentRunner,
+                        python_loop: bool = False) -> int:
+    """After a supervisor stop the fallback gains finish the move (``ready`` is False):
+    run exactly the steps until it ends, or until a safety fault stops it -- what the
+    lock-step node does (it steps while not ready and pauses once ready or faulted).
+    Returns the steps run (0 if no stopped move is being finished)."""
+    R, Q = runner.R, runner.Q
+    if R[R_MODE] != MODE_RETURN:
+        return 0
+    # the steps left: the kernel ends the move on the step whose local index nn has
+    # nn Ts >= t_end (same float expression, so the same step)
+    nn, steps = R[R_N], 1
+    while not nn * Q[Q_TS] >= Q[Q_TEND]:
+        nn += 1.0
+        steps += 1
+    done, _ = _run(sim, runner, steps, False, True, python_loop)
+    assert R[R_MODE] in (MODE_HOLD, MODE_FAULT), "the stopped move did not end"
+    return done
 
 
 def hold_offline(sim: DriveSim, runner: ExperimentRunner, steps: int, record: bool = False,

@@ -13,15 +13,13 @@ from __future__ import annotations
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from .config import GAIN_NAMES, Gains
-from .experiment import LossResult
+from .experiment import SAFETY_REASONS, LossResult
 
 NS_PER_S = 1_000_000_000
 #: Keys of ``DiagnosticStatus.values``, in order.
 LOSS_KEYS: tuple[str, ...] = (
     'experiment_id', 'loss', 'term1', 'term2', 'term3', 'aborted', 'reason', 'trip_step',
     'trip_time', *GAIN_NAMES, 't_start_ns', 't_end_ns', 'steps', 'direction')
-SAFETY_REASONS = ('max_position_error', 'max_speed', 'non_finite_measurement',
-                  'drive_state_timeout')
 
 
 def result_to_msg(result: LossResult, node_name: str) -> DiagnosticArray:

@@ -54,7 +54,8 @@ from .link import FAULT_POLICIES, ControllerLink, controller_topics
 from .optim.base import OptimizerError
 from .rundir import RunDir, RunDirError
 from .space import TunerParams, TunerParamsError, load_params, parse_params
-from .tuning import BenchFailure, ResumeError, StopRequested, TuningRun, replay, replay_plan
+from .tuning import (BenchFailure, ResumeError, StopRequested, TuningRun, replay, replay_plan,
+                     run_seeds)
 
 BENCHES = ('auto', 'inproc', 'processes', 'none')
 SIM_BENCHES = ('inproc', 'processes')
@@ -149,12 +150,6 @@ def _algo_options(cli: argparse.Namespace, algo: str) -> dict[str, Any]:
 
 
 # -- the run configuration -------------------------------------------------------------------
-def _seeds(seed: int) -> tuple[np.random.SeedSequence, int]:
-    """Independent streams from the run seed: the optimiser's and the drive's noise."""
-    opt_ss, drive_ss = np.random.SeedSequence(seed).spawn(2)
-    return opt_ss, int(drive_ss.generate_state(1)[0]) >> 1  # the drive takes int32 >= 0
-
-
 def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str, Any], TunerParams]:
     algo = cli.algo or 'necga'
     budget = 200 if cli.budget is None else cli.budget
@@ -182,7 +177,7 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str,
         except ConfigError as exc:
             raise UsageError(str(exc)) from None
     options = _algo_options(cli, algo)
-    opt_ss, drive_seed = _seeds(seed)
+    opt_ss, drive_seed = run_seeds(seed)
     try:  # validate the options now: nothing is created on bad input
         optim.make_optimizer(algo, params.space.dim, opt_ss, _start(algo, params), **options)
     except OptimizerError as exc:
@@ -210,7 +205,7 @@ def _params_of_run(run: dict[str, Any]) -> TunerParams:
 
 def _make_tuning(rundir: RunDir, run: dict[str, Any], params: TunerParams,
                  progress) -> TuningRun:
-    opt_ss, _ = _seeds(run['seed'])
+    opt_ss, _ = run_seeds(run['seed'])
     opt = optim.make_optimizer(run['algo'], params.space.dim, opt_ss,
                                _start(run['algo'], params), **run['options'])
     return TuningRun(rundir, params.space, opt, budget=run['budget'],

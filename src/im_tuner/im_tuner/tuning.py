@@ -46,7 +46,7 @@ from .space import SearchSpace
 
 __all__ = ['Measurement', 'Measurer', 'LostEvaluation', 'BenchFailure', 'StopRequested',
            'ResumeError', 'TuningRun', 'TunerState', 'replay', 'replay_plan', 'gains_dict',
-           'tally', 'tally_all', 'final_choice', 'summarize']
+           'tally', 'tally_all', 'final_choice', 'summarize', 'run_seeds']
 
 CHECKPOINT_VERSION = 1
 
@@ -93,6 +93,14 @@ class ResumeError(Exception):
 class Measurer(Protocol):
     def measure(self, gains: Gains) -> Measurement: ...
     def apply(self, gains: Gains) -> None: ...
+
+
+def run_seeds(seed: int) -> tuple[np.random.SeedSequence, int]:
+    """Independent streams from a run seed (int >= 0): the optimiser's SeedSequence and the
+    simulated drive's noise seed (int32 >= 0).  The tuner and the offline study both use
+    it, so a study run is reproduced by a tuner run with the same ``--seed``."""
+    opt_ss, drive_ss = np.random.SeedSequence(seed).spawn(2)
+    return opt_ss, int(drive_ss.generate_state(1)[0]) >> 1
 
 
 def gains_dict(g: Gains | tuple[float, ...]) -> dict[str, float]:

@@ -1,0 +1,482 @@
+"""The offline configuration study of the paper (Tables I-III), in simulation, no ROS.
+
+    ros2 run im_tuner study [--runs 100] [--budget 200] [--algos spsa,necga]
+                            [--model full|reduced] [--jobs N] [--seed S] [--out DIR]
+
+The grid (paper, "Summary of experimental results"): SPSA over a in {a0/5, a0, 5 a0} x
+c in {c0/5, c0, 5 c0} (a0 = 0.0183, c0 = 0.03; A = 20, alpha = gamma = 0.3), neCGA over
+n in {5, 25, 125} with eta = floor(n/2); ``runs`` runs of ``budget`` loss evaluations per
+configuration.  Everything runs in-process on the same numba kernels as the nodes
+(``im_controller.experiment.run_experiment_offline``), in a process pool.
+
+**A study run is a tuner run.**  Run r of every configuration uses the run seed
+``run_seed(seed, r)`` and does exactly what ``ros2 run im_tuner tuner --seed <run seed>
+--remeasure 1`` does on the simulated lock-step bench (``tuning.run_seeds`` splits the
+run seed into the optimiser's and the drive's streams): a fresh drive at rest, one
+reference experiment of the start gains (not counted), ``budget`` evaluations, then one
+re-measurement of the best.  SPSA starts from a random point of the box (paper: "different
+starting points in the search space"), drawn from the run seed's third stream and given to
+the tuner as the start of a parameter file; the compact GAs start from their
+distribution, the reference being the hand-tuned start.  The seeds are shared by all
+configurations (common random numbers: run r of every cell sees the same start and the
+same drive noise), so differences between cells are not noise differences.  Runs are
+independent, so the results are identical for any number of workers.
+
+**Normalised loss** (the paper's tables are in these units): L_n = L / L_ref, with
+L_ref the mean loss of the hand-tuned start controller over ``REF_EXPERIMENTS``
+consecutive experiments of the steady experiment sequence (after the first experiment
+from rest, whose loss lacks the load-removal transient of every later one) on the same
+drive file and model, with the drive file's own noise seed.  The hand-tuned controller
+is then 1.0, as the paper's values (0.70 to 0.99) suggest.  A run is **satisfactory**
+when its final loss (the smallest measured non-aborted loss: the paper's final
+controller) is at most ``satisfactory`` (default 0.9: 10 % better than the hand-tuned
+start).  docs/reproduction.md says why.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import multiprocessing
+import os
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from im_controller.config import GAIN_NAMES, Gains
+from im_controller.experiment import (SAFETY_REASONS, ExperimentRunner, config_for_drive,
+                                      finish_stopped_move, run_experiment_offline)
+from im_drive_sim.params import DriveConfig, load_config
+from im_drive_sim.sim import DriveSim
+
+from . import optim
+from .space import SearchSpace, TunerParams, load_params
+from .tuning import run_seeds
+
+__all__ = ['STUDY_ALGOS', 'Cell', 'grid', 'StudySpec', 'RunResult', 'StudyResult',
+           'run_seed', 'start_point', 'run_one', 'reference_loss', 'run_study',
+           'REF_EXPERIMENTS', 'DEFAULT_SATISFACTORY', 'DEFAULT_SEED', 'FACTORS']
+
+#: Algorithms the study has a grid for (the paper's two).
+STUDY_ALGOS: tuple[str, ...] = ('spsa', 'necga')
+#: The grid factors around the paper's configuration (x/5, x, 5x).
+FACTORS: tuple[tuple[str, float], ...] = (('/5', 0.2), ('', 1.0), ('*5', 5.0))
+#: Experiments of the hand-tuned start that define L_ref.
+REF_EXPERIMENTS = 100
+DEFAULT_SATISFACTORY = 0.9
+DEFAULT_SEED = 2005   # the paper's year: a fixed, documented default
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One configuration of the grid: a cell of the paper's tables.
+
+    ``label`` is the paper's notation ('a=0.0183/5 c=0.03', 'n=25*5 eta=62');
+    ``row``/``col`` the cell's place in the paper's table; ``options`` the optimiser
+    options (exact floats: a0/5 is what the tuner gets from ``--a`` with repr).
+    """
+
+    algo: str
+    label: str
+    row: int
+    col: int
+    options: tuple[tuple[str, Any], ...]
+
+    @property
+    def opts(self) -> dict[str, Any]:
+        return dict(self.options)
+
+
+def grid(algos: tuple[str, ...] = STUDY_ALGOS) -> list[Cell]:
+    """The paper's grid, SPSA cells row-major (a down, c across), then neCGA (n across)."""
+    cells: list[Cell] = []
+    for algo in algos:
+        if algo == 'spsa':
+            a0 = optim.OPTIONS['spsa']['a'].default
+            c0 = optim.OPTIONS['spsa']['c'].default
+            for i, (sa, fa) in enumerate(FACTORS):
+                for j, (sc, fc) in enumerate(FACTORS):
+                    cells.append(Cell('spsa', f'a={a0:g}{sa} c={c0:g}{sc}', i, j,
+                                      (('a', a0 * fa), ('c', c0 * fc))))
+        elif algo == 'necga':
+            n0 = optim.OPTIONS['necga']['n'].default
+            for j, (sn, fn) in enumerate(FACTORS):
+                n = int(round(n0 * fn))
+                cells.append(Cell('necga', f'n={n0}{sn} eta={n // 2}', 0, j,
+                                  (('n', n), ('eta', n // 2))))
+        else:
+            raise ValueError(f'no study grid for algo {algo!r} (allowed: '
+                             f'{", ".join(STUDY_ALGOS)})')
+    return cells
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """What a study computes; equal specs give bit-identical results."""
+
+    runs: int = 100
+    budget: int = 200
+    algos: tuple[str, ...] = STUDY_ALGOS
+    model: str = 'full'
+    seed: int = DEFAULT_SEED
+    satisfactory: float = DEFAULT_SATISFACTORY
+    remeasure: bool = True
+    drive_config: str | None = None     #: drive parameter file (None: packaged)
+    params_file: str | None = None      #: tuner parameter file (None: packaged)
+
+    def __post_init__(self) -> None:
+        for name, lo in (('runs', 1), ('budget', 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise ValueError(f'{name} must be an integer >= {lo}, got {v!r}')
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f'seed must be an integer >= 0, got {self.seed!r}')
+        if self.model not in ('full', 'reduced'):
+            raise ValueError(f"model must be 'full' or 'reduced', got {self.model!r}")
+        if not (isinstance(self.satisfactory, float) and 0.0 < self.satisfactory
+                and math.isfinite(self.satisfactory)):
+            raise ValueError(f'satisfactory must be a normalised loss > 0, '
+                             f'got {self.satisfactory!r}')
+        if not self.algos or len(set(self.algos)) != len(self.algos):
+            raise ValueError(f'algos must be distinct names, got {self.algos!r}')
+        grid(self.algos)  # raises on an unknown algo
+
+    @property
+    def cells(self) -> list[Cell]:
+        return grid(self.algos)
+
+    def drive(self) -> DriveConfig:
+        return load_config(self.drive_config, overrides={'model': self.model})
+
+    def params(self) -> TunerParams:
+        return load_params(self.params_file)
+
+
+def run_seed(seed: int, r: int) -> int:
+    """The tuner ``--seed`` of run ``r`` (0-based) of a study with seed ``seed``."""
+    ss = np.random.SeedSequence(seed, spawn_key=(r,))
+    return int(ss.generate_state(1)[0]) >> 1
+
+
+def start_point(algo: str, rseed: int, space: SearchSpace) -> tuple[float, ...]:
+    """Start gains of a run: SPSA a uniform random point of the box (third stream of the
+    run seed), the others the parameter file's (hand-tuned) start.  In gains, so that a
+    tuner parameter file with these starts reproduces the run exactly."""
+    if algo not in optim.TAKES_START:
+        return tuple(space.start)
+    u = np.random.default_rng(np.random.SeedSequence(rseed, spawn_key=(2,))).random(space.dim)
+    return space.to_gains(u).as_tuple()
+
+
+@dataclass
+class RunResult:
+    """One run (``budget`` evaluations) of one cell.  Losses are raw (not normalised)."""
+
+    cell: int
+    run: int
+    run_seed: int
+    drive_seed: int
+    start: tuple[float, ...]          #: start gains (the reference experiment's)
+    ref_loss: float                   #: the reference experiment's loss (penalised if aborted)
+    ref_aborted: bool
+    losses: np.ndarray                #: float64[budget], penalised when aborted
+    aborted: np.ndarray               #: bool[budget]
+    faults: np.ndarray                #: bool[budget] (safety faults, reset as the tuner does)
+    iteration: np.ndarray             #: int32[budget]: SPSA iteration / GA generation (1-based)
+    best_eval: int                    #: smallest non-aborted loss (-1: none)
+    best_gains: tuple[float, ...]
+    remeasured: float                 #: the best's re-measured loss (nan: not re-measured)
+    opt_s: float                      #: wall time in ask + tell [s] (timing, not results)
+    exp_s: float                      #: wall time in experiments [s]
+
+
+class _Bench:
+    """The simulated lock-step bench as the tuner drives it, on the pure core: a drive
+    at rest, a controller holding it, experiment ids 0, 1, ... and the fault policy
+    'reset' (the controller is reset where the drive is, as ``reset_fault`` does)."""
+
+    def __init__(self, drive: DriveConfig, drive_seed: int) -> None:
+        self.sim = DriveSim(drive, seed=drive_seed)
+        self.sim.reset(theta=0.0, omega=0.0, fluxed=True)
+        self.runner = ExperimentRunner(config_for_drive(None, self.sim), Gains())
+        self.runner.reset(self.sim.theta_meas)
+        self.next_id = 0
+
+    def measure(self, gains: Gains) -> tuple[float, bool, bool]:
+        """(loss, aborted, safety fault) of one experiment with ``gains``."""
+        # a stopped move is finished first; a safety fault during it is reset, as the
+        # link does when the start is refused with a safety fault
+        finish_stopped_move(self.sim, self.runner)
+        if self.runner.faulted:
+            self.runner.reset(self.sim.theta_meas)
+        res, _ = run_experiment_offline(self.sim, gains, self.runner.config, self.next_id,
+                                        self.runner, record=False)
+        self.next_id += 1
+        fault = res.reason in SAFETY_REASONS
+        if fault:
+            self.runner.reset(self.sim.theta_meas)
+        return res.loss, res.aborted, fault
+
+
+def _iteration(opt: optim.Optimizer) -> int:
+    """The optimiser's iteration the next evaluation belongs to (1-based): SPSA iteration,
+    GA generation (the paper's 'iterations' of Table III)."""
+    return int(opt.iteration if isinstance(opt, optim.SPSA) else opt.generation) + 1
+
+
+def run_one(spec: StudySpec, cell_index: int, r: int, drive: DriveConfig | None = None,
+            params: TunerParams | None = None) -> RunResult:
+    """Run ``r`` of cell ``cell_index`` (see the module docstring: a tuner run offline)."""
+    cell = spec.cells[cell_index]
+    drive = spec.drive() if drive is None else drive
+    params = spec.params() if params is None else params
+    rseed = run_seed(spec.seed, r)
+    opt_ss, drive_seed = run_seeds(rseed)
+    start = start_point(cell.algo, rseed, params.space)
+    space = dataclasses.replace(params.space, start=start)
+    opt = optim.make_optimizer(cell.algo, space.dim, opt_ss,
+                               space.start_u if cell.algo in optim.TAKES_START else None,
+                               **cell.opts)
+    bench = _Bench(drive, drive_seed)
+    t_exp = time.perf_counter()
+    ref_loss, ref_aborted, _ = bench.measure(Gains(*start))
+    exp_s = time.perf_counter() - t_exp
+    B = spec.budget
+    losses = np.empty(B)
+    aborted = np.zeros(B, dtype=bool)
+    faults = np.zeros(B, dtype=bool)
+    iteration = np.empty(B, dtype=np.int32)
+    best_eval, best_loss = -1, math.inf
+    opt_s = 0.0
+    for e in range(B):
+        t0 = time.perf_counter()
+        iteration[e] = _iteration(opt)
+        u = opt.ask()
+        gains = space.to_gains(u)
+        t1 = time.perf_counter()
+        loss, ab, fault = bench.measure(gains)
+        t2 = time.perf_counter()
+        opt.tell(u, loss)
+        opt_s += (t1 - t0) + (time.perf_counter() - t2)
+        exp_s += t2 - t1
+        losses[e], aborted[e], faults[e] = loss, ab, fault
+        if not ab and loss < best_loss:   # ties: the earlier evaluation (tuner's order)
+            best_eval, best_loss = e, loss
+            best_gains = gains.as_tuple()
+    remeasured = math.nan
+    if best_eval < 0:
+        best_gains = tuple(math.nan for _ in GAIN_NAMES)
+    elif spec.remeasure:
+        t0 = time.perf_counter()
+        remeasured = bench.measure(Gains(*best_gains))[0]
+        exp_s += time.perf_counter() - t0
+    return RunResult(cell=cell_index, run=r, run_seed=rseed, drive_seed=drive_seed,
+                     start=start, ref_loss=ref_loss, ref_aborted=ref_aborted, losses=losses,
+                     aborted=aborted, faults=faults, iteration=iteration, best_eval=best_eval,
+                     best_gains=best_gains, remeasured=remeasured, opt_s=opt_s, exp_s=exp_s)
+
+
+def reference_loss(drive: DriveConfig, experiments: int = REF_EXPERIMENTS
+                   ) -> tuple[float, float, float]:
+    """L_ref: (mean, standard error of the mean) of the hand-tuned start's loss over
+    ``experiments`` consecutive experiments after the first from rest (drive file seed),
+    and that first one's loss.  Deterministic for a drive file and model."""
+    bench = _Bench(drive, drive.seed)
+    g = Gains()
+    first = bench.measure(g)[0]
+    x = np.array([bench.measure(g)[0] for _ in range(experiments)])
+    return float(x.mean()), float(x.std(ddof=1) / math.sqrt(len(x))), float(first)
+
+
+# -- the pool ---------------------------------------------------------------------------------
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(spec: StudySpec) -> None:
+    _WORKER['spec'] = spec
+    _WORKER['drive'] = spec.drive()
+    _WORKER['params'] = spec.params()
+
+
+def _work(task: tuple[int, int]) -> RunResult:
+    return run_one(_WORKER['spec'], task[0], task[1], _WORKER['drive'], _WORKER['params'])
+
+
+@dataclass
+class StudyResult:
+    """All runs of a study, as arrays indexed [cell, run, (evaluation)]; raw losses."""
+
+    spec: StudySpec
+    cells: list[Cell]
+    l_ref: float
+    l_ref_sem: float
+    l_first: float
+    run_seed: np.ndarray      #: int64[runs]
+    drive_seed: np.ndarray    #: int64[runs]
+    start: np.ndarray         #: float64[cells, runs, 5]
+    ref_loss: np.ndarray      #: float64[cells, runs]
+    ref_aborted: np.ndarray   #: bool[cells, runs]
+    losses: np.ndarray        #: float64[cells, runs, budget]
+    aborted: np.ndarray       #: bool[cells, runs, budget]
+    faults: np.ndarray        #: bool[cells, runs, budget]
+    iteration: np.ndarray     #: int32[cells, runs, budget]
+    best_eval: np.ndarray     #: int32[cells, runs]
+    best_gains: np.ndarray    #: float64[cells, runs, 5]
+    remeasured: np.ndarray    #: float64[cells, runs]
+    opt_s: np.ndarray         #: float64[cells, runs] (timing)
+    exp_s: np.ndarray         #: float64[cells, runs] (timing)
+    wall_s: float = 0.0
+    jobs: int = 1
+
+    @property
+    def experiments(self) -> int:
+        """Experiments run (reference + evaluations + re-measurements)."""
+        return int(self.losses.size + self.ref_loss.size
+                   + np.count_nonzero(np.isfinite(self.remeasured)))
+
+    # arrays saved by save()/load() (the rest goes into study.json)
+    ARRAYS = ('run_seed', 'drive_seed', 'start', 'ref_loss', 'ref_aborted', 'losses',
+              'aborted', 'faults', 'iteration', 'best_eval', 'best_gains', 'remeasured',
+              'opt_s', 'exp_s')
+
+
+def _allocate(spec: StudySpec, cells: list[Cell]) -> dict[str, np.ndarray]:
+    C, R, B, D = len(cells), spec.runs, spec.budget, len(GAIN_NAMES)
+    return {'run_seed': np.array([run_seed(spec.seed, r) for r in range(R)], dtype=np.int64),
+            'drive_seed': np.array([run_seeds(run_seed(spec.seed, r))[1] for r in range(R)],
+                                   dtype=np.int64),
+            'start': np.full((C, R, D), np.nan), 'ref_loss': np.full((C, R), np.nan),
+            'ref_aborted': np.zeros((C, R), bool), 'losses': np.full((C, R, B), np.nan),
+            'aborted': np.zeros((C, R, B), bool), 'faults': np.zeros((C, R, B), bool),
+            'iteration': np.zeros((C, R, B), np.int32),
+            'best_eval': np.full((C, R), -1, np.int32), 'best_gains': np.full((C, R, D), np.nan),
+            'remeasured': np.full((C, R), np.nan), 'opt_s': np.zeros((C, R)),
+            'exp_s': np.zeros((C, R))}
+
+
+def _store(a: dict[str, np.ndarray], res: RunResult) -> None:
+    c, r = res.cell, res.run
+    a['start'][c, r] = res.start
+    a['ref_loss'][c, r] = res.ref_loss
+    a['ref_aborted'][c, r] = res.ref_aborted
+    a['losses'][c, r] = res.losses
+    a['aborted'][c, r] = res.aborted
+    a['faults'][c, r] = res.faults
+    a['iteration'][c, r] = res.iteration
+    a['best_eval'][c, r] = res.best_eval
+    a['best_gains'][c, r] = res.best_gains
+    a['remeasured'][c, r] = res.remeasured
+    a['opt_s'][c, r] = res.opt_s
+    a['exp_s'][c, r] = res.exp_s
+
+
+def default_jobs() -> int:
+    """Every core this process may use."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def run_study(spec: StudySpec, jobs: int | None = None,
+              progress: Callable[[int, int, float], None] | None = None) -> StudyResult:
+    """Run the whole grid on ``jobs`` processes (None: every core; 1: in this process).
+
+    ``progress(done_runs, total_runs, elapsed_s)`` is called after every run.  The result
+    does not depend on ``jobs`` (runs are independent and seeded by their index).
+    """
+    jobs = default_jobs() if jobs is None else int(jobs)
+    if jobs < 1:
+        raise ValueError(f'jobs must be >= 1, got {jobs}')
+    cells = spec.cells
+    drive, params = spec.drive(), spec.params()
+    t0 = time.perf_counter()
+    # L_ref first: it also loads (or compiles and caches) the kernels before workers start,
+    # so they do not all compile at once.
+    l_ref, l_sem, l_first = reference_loss(drive)
+    arrays = _allocate(spec, cells)
+    # run-major order: early progress covers every cell
+    tasks = [(c, r) for r in range(spec.runs) for c in range(len(cells))]
+    total, done = len(tasks), 0
+    if jobs == 1:
+        for c, r in tasks:
+            _store(arrays, run_one(spec, c, r, drive, params))
+            done += 1
+            if progress is not None:
+                progress(done, total, time.perf_counter() - t0)
+    else:
+        # forkserver: workers start from a clean interpreter (no inherited threads or ROS)
+        ctx = multiprocessing.get_context('forkserver')
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_init_worker,
+                                 initargs=(spec,)) as pool:
+            # a bounded window of pending tasks keeps memory flat and progress honest
+            it = iter(tasks)
+            pending = {pool.submit(_work, t) for t in _take(it, 4 * jobs)}
+            while pending:
+                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in finished:
+                    _store(arrays, f.result())
+                    done += 1
+                    if progress is not None:
+                        progress(done, total, time.perf_counter() - t0)
+                pending |= {pool.submit(_work, t) for t in _take(it, len(finished))}
+    return StudyResult(spec=spec, cells=cells, l_ref=l_ref, l_ref_sem=l_sem, l_first=l_first,
+                       wall_s=time.perf_counter() - t0, jobs=jobs, **arrays)
+
+
+def _take(it, k: int) -> list:
+    out = []
+    for _ in range(k):
+        try:
+            out.append(next(it))
+        except StopIteration:
+            break
+    return out
+
+
+# -- files ------------------------------------------------------------------------------------
+ARRAYS_FILE = 'study.npz'
+META_FILE = 'study.json'
+
+
+def save(res: StudyResult, out: 'os.PathLike[str] | str') -> None:
+    """Write ``study.npz`` (every array: nothing is lost) and ``study.json`` (the spec,
+    L_ref, timing) into ``out`` (created)."""
+    import json
+    from pathlib import Path
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out / ARRAYS_FILE, **{k: getattr(res, k) for k in StudyResult.ARRAYS})
+    meta = {'spec': dataclasses.asdict(res.spec), 'cells': [dataclasses.asdict(c) for c in res.cells],
+            'l_ref': res.l_ref, 'l_ref_sem': res.l_ref_sem, 'l_first': res.l_first,
+            'ref_experiments': REF_EXPERIMENTS, 'experiments': res.experiments,
+            'wall_s': res.wall_s, 'jobs': res.jobs}
+    tmp = out / (META_FILE + '.tmp')
+    tmp.write_text(json.dumps(meta, indent=1) + '\n')
+    os.replace(tmp, out / META_FILE)
+
+
+def load(out: 'os.PathLike[str] | str') -> StudyResult:
+    """Read a study written by :func:`save` (ValueError with the reason if it is not one)."""
+    import json
+    from pathlib import Path
+    out = Path(out)
+    try:
+        meta = json.loads((out / META_FILE).read_text())
+        with np.load(out / ARRAYS_FILE) as z:
+            arrays = {k: z[k] for k in StudyResult.ARRAYS}
+    except FileNotFoundError as exc:
+        raise ValueError(f'{out}: not a study directory ({Path(exc.filename).name} missing)') \
+            from None
+    except (OSError, KeyError, json.JSONDecodeError) as exc:
+        raise ValueError(f'{out}: unreadable study ({exc})') from None
+    sp = dict(meta['spec'])
+    sp['algos'] = tuple(sp['algos'])
+    spec = StudySpec(**sp)
+    cells = [Cell(c['algo'], c['label'], c['row'], c['col'],
+                  tuple(tuple(o) for o in c['options'])) for c in meta['cells']]
+    return StudyResult(spec=spec, cells=cells, l_ref=meta['l_ref'], l_ref_sem=meta['l_ref_sem'],
+                       l_first=meta['l_first'], wall_s=meta['wall_s'], jobs=meta['jobs'],
+                       **arrays)

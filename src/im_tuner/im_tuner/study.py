@@ -57,7 +57,8 @@ from .tuning import run_seeds
 
 __all__ = ['STUDY_ALGOS', 'Cell', 'grid', 'StudySpec', 'RunResult', 'StudyResult',
            'run_seed', 'start_point', 'run_one', 'reference_loss', 'run_study',
-           'REF_EXPERIMENTS', 'DEFAULT_SATISFACTORY', 'DEFAULT_SEED', 'FACTORS']
+           'REF_EXPERIMENTS', 'DEFAULT_SATISFACTORY', 'DEFAULT_SEED', 'FACTORS', 'save', 'load',
+           'default_jobs', 'ARRAYS_FILE', 'META_FILE']
 
 #: Algorithms the study has a grid for (the paper's two).
 STUDY_ALGOS: tuple[str, ...] = ('spsa', 'necga')

@@ -1,0 +1,353 @@
+"""Tables I-III of the paper from a study, with 95 % intervals, and the paper's conclusions
+checked against them.  Pure numpy (no rclpy, no plotting).
+
+Definitions (docs/reproduction.md says why):
+
+* normalised loss L_n = L / L_ref (hand-tuned start = 1);
+* final loss of a run: its smallest non-aborted measured loss (the paper's final
+  controller: "the one generating the smallest loss"); a run in which every experiment
+  was aborted has none: it is left out of Table I's mean (the count is shown) and is
+  not satisfactory;
+* satisfactory run (Table II): final L_n <= the threshold;
+* evaluations to a satisfactory loss (Table III): 1-based count of the first non-aborted
+  evaluation with L_n <= threshold, averaged over the satisfactory runs (as the paper's
+  "average iterations needed to reach a satisfactory loss"); iterations: the optimiser's
+  iteration (SPSA, 2 evaluations each) or generation (neCGA) of that evaluation.
+
+Intervals: Table I and III means and every difference use a percentile bootstrap over
+runs (``BOOT`` resamples, fixed seed: the intervals are reproducible); the run indices are
+resampled together for every cell, because run r of every cell shares its seeds (common
+random numbers).  Table II uses Wilson's score interval.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .study import Cell, StudyResult
+
+__all__ = ['PAPER', 'CellStats', 'Conclusion', 'StudyStats', 'compute', 'wilson']
+
+#: The paper's Tables I-III: statistic -> (algo, row, col) -> value.
+PAPER: dict[str, dict[tuple[str, int, int], float]] = {
+    'final': {('spsa', 0, 0): 0.91, ('spsa', 0, 1): 0.99, ('spsa', 0, 2): 0.99,
+              ('spsa', 1, 0): 0.83, ('spsa', 1, 1): 0.81, ('spsa', 1, 2): 0.88,
+              ('spsa', 2, 0): 0.97, ('spsa', 2, 1): 0.84, ('spsa', 2, 2): 0.83,
+              ('necga', 0, 0): 0.85, ('necga', 0, 1): 0.70, ('necga', 0, 2): 0.72},
+    'satisfactory_pct': {('spsa', 0, 0): 92, ('spsa', 0, 1): 64, ('spsa', 0, 2): 54,
+                         ('spsa', 1, 0): 86, ('spsa', 1, 1): 90, ('spsa', 1, 2): 84,
+                         ('spsa', 2, 0): 44, ('spsa', 2, 1): 90, ('spsa', 2, 2): 78,
+                         ('necga', 0, 0): 90, ('necga', 0, 1): 92, ('necga', 0, 2): 85},
+    'iterations': {('spsa', 0, 0): 92, ('spsa', 0, 1): 82, ('spsa', 0, 2): 93,
+                   ('spsa', 1, 0): 46, ('spsa', 1, 1): 47, ('spsa', 1, 2): 64,
+                   ('spsa', 2, 0): 46, ('spsa', 2, 1): 23, ('spsa', 2, 2): 25,
+                   ('necga', 0, 0): 36, ('necga', 0, 1): 25, ('necga', 0, 2): 28},
+}
+#: The paper's own configuration of each algorithm (the centre of its grid).
+PAPER_CELL: dict[str, tuple[int, int]] = {'spsa': (1, 1), 'necga': (0, 1)}
+#: The paper's optimiser time per iteration [us] (dSPACE 1104, 5 parameters x 16 bits).
+PAPER_US_PER_ITERATION: dict[str, float] = {'spsa': 180.0, 'necga': 600.0}
+EXPERIMENT_S = 1.125   # one experiment on the bench [s]
+BOOT = 4000
+BOOT_SEED = 20051
+Z95 = 1.959963984540054
+
+
+def wilson(k: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval of a proportion k/n (as fractions)."""
+    if n == 0:
+        return (math.nan, math.nan)
+    p = k / n
+    d = 1.0 + z * z / n
+    mid = (p + z * z / (2 * n)) / d
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return (max(0.0, mid - half), min(1.0, mid + half))
+
+
+@dataclass
+class Interval:
+    value: float
+    lo: float
+    hi: float
+    n: int
+
+    def excludes_zero(self) -> int:
+        """+1 if the interval is above 0, -1 if below, 0 if it contains 0 (or is nan)."""
+        if self.lo > 0:
+            return 1
+        if self.hi < 0:
+            return -1
+        return 0
+
+
+@dataclass
+class CellStats:
+    cell: Cell
+    runs: int
+    final: Interval                 #: mean final L_n over runs with one
+    final_median: float
+    no_final: int                   #: runs in which every experiment was aborted
+    remeasured: Interval            #: mean re-measured L_n of the final controllers
+    satisfactory: Interval          #: % of runs (Wilson)
+    evals: Interval                 #: mean evaluations to satisfactory (satisfactory runs)
+    iterations: Interval            #: the same in the optimiser's iterations
+    start: float                    #: mean L_n of the reference (start) experiments
+    aborted_pct: float              #: % of evaluations aborted
+    faults: int                     #: safety faults
+
+    def paper(self, stat: str) -> float | None:
+        return PAPER[stat].get((self.cell.algo, self.cell.row, self.cell.col))
+
+
+@dataclass
+class Conclusion:
+    claim: str                      #: the paper's claim
+    paper: str                      #: the paper's evidence
+    ours: str                       #: our numbers with intervals
+    verdict: str                    #: 'holds', 'does not hold', 'reversed', 'not significant'
+
+
+@dataclass
+class StudyStats:
+    res: StudyResult
+    threshold: float
+    cells: list[CellStats]
+    conclusions: list[Conclusion] = field(default_factory=list)
+    us_per_eval: dict[str, float] = field(default_factory=dict)
+    us_per_iteration: dict[str, float] = field(default_factory=dict)
+
+    def cell(self, algo: str, row: int, col: int) -> CellStats | None:
+        for c in self.cells:
+            if (c.cell.algo, c.cell.row, c.cell.col) == (algo, row, col):
+                return c
+        return None
+
+
+# -- per-run quantities ------------------------------------------------------------------------
+def per_run(res: StudyResult, threshold: float) -> dict[str, np.ndarray]:
+    """[cells, runs] arrays: final L_n (nan: none), satisfactory, evaluations and
+    iterations to satisfactory (nan: not reached), re-measured L_n, start L_n."""
+    Ln = res.losses / res.l_ref
+    ok = ~res.aborted
+    masked = np.where(ok, Ln, np.inf)
+    final = masked.min(axis=2)
+    final[~np.isfinite(final)] = np.nan
+    hit = ok & (Ln <= threshold)
+    reached = hit.any(axis=2)
+    first = np.argmax(hit, axis=2)                       # 0-based index of the first hit
+    evals = np.where(reached, first + 1.0, np.nan)
+    iters = np.take_along_axis(res.iteration, first[..., None], axis=2)[..., 0]
+    iters = np.where(reached, iters.astype(float), np.nan)
+    return {'final': final, 'satisfactory': reached, 'evals': evals, 'iterations': iters,
+            'remeasured': res.remeasured / res.l_ref, 'start': res.ref_loss / res.l_ref}
+
+
+class _Boot:
+    """Paired percentile bootstrap over run indices (shared by every cell)."""
+
+    def __init__(self, runs: int) -> None:
+        rng = np.random.default_rng(BOOT_SEED)
+        self.idx = rng.integers(0, runs, size=(BOOT, runs))
+
+    def mean(self, x: np.ndarray) -> np.ndarray:
+        """Bootstrap distribution of nanmean(x) for x[runs] (nan where undefined)."""
+        v = x[self.idx]
+        cnt = np.sum(~np.isnan(v), axis=1)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            return np.where(cnt > 0, np.nansum(v, axis=1) / np.maximum(cnt, 1), np.nan)
+
+    @staticmethod
+    def interval(point: float, dist: np.ndarray, n: int) -> Interval:
+        d = dist[np.isfinite(dist)]
+        if not math.isfinite(point) or d.size < BOOT // 2:
+            return Interval(point, math.nan, math.nan, n)
+        lo, hi = np.quantile(d, [0.025, 0.975])
+        return Interval(point, float(lo), float(hi), n)
+
+
+def _nanmean(x: np.ndarray) -> float:
+    x = x[~np.isnan(x)]
+    return float(x.mean()) if x.size else math.nan
+
+
+def compute(res: StudyResult, threshold: float | None = None) -> StudyStats:
+    """Tables and conclusions of ``res`` at the satisfactory ``threshold`` (normalised;
+    None: the study's)."""
+    thr = res.spec.satisfactory if threshold is None else float(threshold)
+    if not (thr > 0 and math.isfinite(thr)):
+        raise ValueError(f'the satisfactory threshold must be a normalised loss > 0, got {thr!r}')
+    pr = per_run(res, thr)
+    boot = _Boot(res.spec.runs)
+    cells = []
+    for c, cell in enumerate(res.cells):
+        fin, sat = pr['final'][c], pr['satisfactory'][c]
+        nf = int(np.sum(~np.isnan(fin)))
+        k = int(sat.sum())
+        lo, hi = wilson(k, res.spec.runs)
+        cells.append(CellStats(
+            cell=cell, runs=res.spec.runs,
+            final=boot.interval(_nanmean(fin), boot.mean(fin), nf),
+            final_median=float(np.nanmedian(fin)) if nf else math.nan,
+            no_final=res.spec.runs - nf,
+            remeasured=boot.interval(_nanmean(pr['remeasured'][c]),
+                                     boot.mean(pr['remeasured'][c]),
+                                     int(np.sum(~np.isnan(pr['remeasured'][c])))),
+            satisfactory=Interval(100.0 * k / res.spec.runs, 100 * lo, 100 * hi, res.spec.runs),
+            evals=boot.interval(_nanmean(pr['evals'][c]), boot.mean(pr['evals'][c]), k),
+            iterations=boot.interval(_nanmean(pr['iterations'][c]),
+                                     boot.mean(pr['iterations'][c]), k),
+            start=_nanmean(pr['start'][c]),
+            aborted_pct=100.0 * float(res.aborted[c].mean()),
+            faults=int(res.faults[c].sum())))
+    st = StudyStats(res=res, threshold=thr, cells=cells)
+    _timing(st)
+    st.conclusions = _conclusions(st, pr, boot)
+    return st
+
+
+def _timing(st: StudyStats) -> None:
+    """Median optimiser time per evaluation and per iteration [us] by algorithm (timing:
+    machine-dependent, not part of the reproducible results)."""
+    res = st.res
+    for algo in res.spec.algos:
+        idx = [c for c, cell in enumerate(res.cells) if cell.algo == algo]
+        per_eval = res.opt_s[idx] / res.spec.budget * 1e6
+        iters = res.iteration[idx][..., -1].astype(float)   # iterations of the whole run
+        per_iter = res.opt_s[idx] / np.maximum(iters, 1.0) * 1e6
+        st.us_per_eval[algo] = float(np.median(per_eval))
+        st.us_per_iteration[algo] = float(np.median(per_iter))
+
+
+# -- the paper's conclusions --------------------------------------------------------------------
+def _fmt_iv(iv: Interval, digits: int = 3) -> str:
+    if not math.isfinite(iv.value):
+        return 'n/a'
+    if not math.isfinite(iv.lo):
+        return f'{iv.value:.{digits}f}'
+    return f'{iv.value:.{digits}f} [{iv.lo:.{digits}f}, {iv.hi:.{digits}f}]'
+
+
+def _verdict(iv: Interval, expected_sign: int) -> str:
+    s = iv.excludes_zero()
+    if s == 0:
+        return 'not significant'
+    return 'holds' if s == expected_sign else 'reversed'
+
+
+def _diff(boot: _Boot, a: np.ndarray, b: np.ndarray) -> Interval:
+    """mean(a) - mean(b) (nan-aware), paired bootstrap interval."""
+    point = _nanmean(a) - _nanmean(b)
+    return boot.interval(point, boot.mean(a) - boot.mean(b), int(np.sum(~np.isnan(a))))
+
+
+def _range_dist(boot: _Boot, rows: list[np.ndarray], pct: bool) -> tuple[float, np.ndarray]:
+    """max - min over cells of the per-cell mean (or % true), with its bootstrap
+    distribution (runs resampled together)."""
+    if pct:
+        pts = [100.0 * float(r.mean()) for r in rows]
+        dists = [100.0 * r[boot.idx].mean(axis=1) for r in rows]
+    else:
+        pts = [_nanmean(r) for r in rows]
+        dists = [boot.mean(r) for r in rows]
+    return max(pts) - min(pts), np.max(dists, axis=0) - np.min(dists, axis=0)
+
+
+def _conclusions(st: StudyStats, pr: dict[str, np.ndarray], boot: _Boot) -> list[Conclusion]:
+    res = st.res
+    algos = set(res.spec.algos)
+    if not {'spsa', 'necga'} <= algos:
+        return []
+    ci = {(c.algo, c.row, c.col): i for i, c in enumerate(res.cells)}
+    sp, ne = ci[('spsa', *PAPER_CELL['spsa'])], ci[('necga', *PAPER_CELL['necga'])]
+    sp_all = [i for i, c in enumerate(res.cells) if c.algo == 'spsa']
+    ne_all = [i for i, c in enumerate(res.cells) if c.algo == 'necga']
+    S, N = st.cells[sp], st.cells[ne]
+    out: list[Conclusion] = []
+    thr = st.threshold
+
+    # 1. lower average final loss
+    d1 = _diff(boot, pr['final'][sp], pr['final'][ne])
+    grand_s = np.nanmean(pr['final'][sp_all], axis=0)
+    grand_n = np.nanmean(pr['final'][ne_all], axis=0)
+    d1g = _diff(boot, grand_s, grand_n)
+    v1 = _verdict(d1, +1)
+    out.append(Conclusion(
+        claim='neCGA reaches a lower average final loss than SPSA',
+        paper='Table I: 0.70 (n=25) vs 0.81 (a=0.0183, c=0.03); over the grid 0.76 vs 0.89',
+        ours=(f'{_fmt_iv(N.final)} vs {_fmt_iv(S.final)}; difference SPSA - neCGA '
+              f'{_fmt_iv(d1)}; over the grid (mean of the cells) difference {_fmt_iv(d1g)}'),
+        verdict=v1))
+
+    # 2. less influenced by the configuration
+    rs, dist_s = _range_dist(boot, [pr['satisfactory'][i] for i in sp_all], pct=True)
+    rn, dist_n = _range_dist(boot, [pr['satisfactory'][i] for i in ne_all], pct=True)
+    d2 = boot.interval(rs - rn, dist_s - dist_n, res.spec.runs)
+    fs, fdist_s = _range_dist(boot, [pr['final'][i] for i in sp_all], pct=False)
+    fn, fdist_n = _range_dist(boot, [pr['final'][i] for i in ne_all], pct=False)
+    d2f = boot.interval(fs - fn, fdist_s - fdist_n, res.spec.runs)
+    v2 = _verdict(d2, +1)
+    out.append(Conclusion(
+        claim='neCGA is less sensitive to its configuration (n) than SPSA to (a, c)',
+        paper=('Table II: satisfactory runs range over 85-92 % for neCGA (7 points) and '
+               '44-92 % for SPSA (48 points); Table I: 0.70-0.85 vs 0.81-0.99'),
+        ours=(f'range of % satisfactory: SPSA {rs:.0f} points, neCGA {rn:.0f} points, '
+              f'difference {_fmt_iv(d2, 0)}; range of the average final loss: SPSA {fs:.3f}, '
+              f'neCGA {fn:.3f}, difference {_fmt_iv(d2f)}'),
+        verdict=v2))
+
+    # 3. faster to a satisfactory loss
+    d3 = _diff(boot, pr['evals'][sp], pr['evals'][ne])
+    d3i = _diff(boot, pr['iterations'][sp], pr['iterations'][ne])
+    v3 = _verdict(d3, +1) if math.isfinite(d3.value) else 'not significant'
+    out.append(Conclusion(
+        claim='neCGA reaches a satisfactory loss faster than SPSA',
+        paper='Table III: 25 iterations (n=25) vs 47 (a=0.0183, c=0.03)',
+        ours=(f'evaluations: {_fmt_iv(N.evals, 1)} vs {_fmt_iv(S.evals, 1)}, difference '
+              f'{_fmt_iv(d3, 1)}; iterations: {_fmt_iv(N.iterations, 1)} vs '
+              f'{_fmt_iv(S.iterations, 1)}, difference {_fmt_iv(d3i, 1)} (threshold {thr:g})'),
+        verdict=v3))
+
+    # 4. the paper's configurations are the best of their grids
+    for algo, centre, idxs in (('spsa', sp, sp_all), ('necga', ne, ne_all)):
+        best = min(idxs, key=lambda i: (st.cells[i].final.value, i))
+        if best == centre:
+            v, txt = 'holds', f'{res.cells[centre].label} has the lowest average final loss'
+        else:
+            d = _diff(boot, pr['final'][centre], pr['final'][best])
+            v = 'does not hold' if d.excludes_zero() == 1 else 'not significant'
+            txt = (f'best is {res.cells[best].label} ({_fmt_iv(st.cells[best].final)}); the '
+                   f"paper's {res.cells[centre].label} is {_fmt_iv(st.cells[centre].final)}, "
+                   f'difference {_fmt_iv(d)}')
+        name = 'SPSA (a=0.0183, c=0.03)' if algo == 'spsa' else 'neCGA (n=25, eta=12)'
+        out.append(Conclusion(
+            claim=f"the paper's configuration of {name} is the best of its grid",
+            paper=('chosen after a preliminary configuration study; Table I agrees (0.81 and '
+                   '0.70 are the lowest)'),
+            ours=txt, verdict=v))
+
+    # 5. an effective controller within three minutes of bench time
+    t_s = (1 + S.evals.value) * EXPERIMENT_S
+    t_n = (1 + N.evals.value) * EXPERIMENT_S
+    v5 = 'holds' if max(t_s, t_n) < 180.0 else 'does not hold'
+    out.append(Conclusion(
+        claim='both reach a very effective controller in less than three minutes on the bench',
+        paper='"less than three minutes" (160 experiments of 1.125 s)',
+        ours=(f'mean time to a satisfactory loss (reference + evaluations, 1.125 s each): '
+              f'SPSA {t_s:.0f} s, neCGA {t_n:.0f} s'),
+        verdict=v5))
+
+    # 6. computation per iteration
+    us_s, us_n = st.us_per_iteration.get('spsa'), st.us_per_iteration.get('necga')
+    ratio = us_s / us_n if us_s and us_n else math.nan
+    v6 = 'holds' if ratio < 0.5 else 'does not hold'
+    out.append(Conclusion(
+        claim='SPSA needs about a third of the computation of neCGA per iteration',
+        paper='180 us vs 600 us per iteration on the dSPACE board (ratio 0.30)',
+        ours=(f'median ask + tell per iteration on this machine: SPSA {us_s:.1f} us, neCGA '
+              f'{us_n:.1f} us (ratio {ratio:.2f}); per evaluation {st.us_per_eval["spsa"]:.1f} '
+              f'vs {st.us_per_eval["necga"]:.1f} us (timing: machine-dependent)'),
+        verdict=v6))
+    return out

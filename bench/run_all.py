@@ -14,6 +14,7 @@ import bench_experiment  # noqa: E402
 import bench_lockstep  # noqa: E402
 import bench_model  # noqa: E402
 import bench_optim  # noqa: E402
+import bench_study  # noqa: E402
 import bench_tuner  # noqa: E402
 
 #: figure -> (unit, target): what the issues ask of each figure; a positive target is an
@@ -47,6 +48,13 @@ TARGETS = {
     # issue 6: the report of a default run (whole command: bag read, 4 figures, CSV)
     'report_necga_s': ('s', 10.0),
     'report_spsa_s': ('s', 10.0),
+    # issue 7: the offline study, the paper's whole grid (240k experiments), whole command
+    'study_full_grid_s': ('s', 300.0),
+    'study_reduced_grid_s': ('s', 120.0),
+    'study_full_exp_per_s': ('exp/s', None),
+    'study_reduced_exp_per_s': ('exp/s', None),
+    'study_full_1job_exp_per_s': ('exp/s', None),
+    'study_scaling': ('x', None),
 }
 
 
@@ -75,6 +83,9 @@ def main() -> int:
     print('\n== the default tuning run: ros2 run im_tuner tuner (200 evaluations, recorded) ==',
           flush=True)
     figures.update(bench_tuner.main())
+    print('\n== the offline study: ros2 run im_tuner study (the paper\'s grid, every core) ==',
+          flush=True)
+    figures.update(bench_study.main())
     print('\n== summary (medians) ==')
     for name, value in figures.items():
         unit, target = TARGETS.get(name, ('', None))

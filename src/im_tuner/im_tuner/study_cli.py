@@ -250,7 +250,7 @@ def fig_tables(st: StudyStats):
         ax.set_title(title)
         ax.set_ylabel(ylab)
         ax.set_xticks(x, labels, fontsize=7)
-        ax.legend(fontsize=7, loc='upper right')
+        ax.legend(fontsize=7, loc='best', framealpha=0.9)
         ax.grid(axis='y', alpha=0.3)
     return fig
 
@@ -277,7 +277,9 @@ def fig_convergence(st: StudyStats):
                     lw=2.5 if centre else 1.2, gid=f'median:{res.cells[c].label}',
                     label=res.cells[c].label + (" (paper's)" if centre else ''))
             if centre:
-                q1, q3 = np.quantile(np.where(np.isfinite(b), b, np.nan), [0.25, 0.75], axis=0)
+                with np.errstate(invalid='ignore'):
+                    q1, q3 = np.nanquantile(np.where(np.isfinite(b), b, np.nan), [0.25, 0.75],
+                                            axis=0)
                 ax.fill_between(evals, q1, q3, color=cmap(k % 10), alpha=0.2)
         ax.axhline(st.threshold, color='tab:green', ls='--', lw=1, label='satisfactory')
         ax.axhline(1.0, color='0.4', ls=':', lw=1, label='hand-tuned start')

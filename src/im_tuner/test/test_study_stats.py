@@ -1,0 +1,115 @@
+"""Tables I-III and the conclusions of the study, against hand computations on
+constructed results (no experiments)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from im_tuner import study as S
+from im_tuner.study_stats import PAPER, compute, per_run, wilson
+
+L_REF = 2.0
+
+
+def make_result(runs: int, budget: int, finals: dict[tuple[str, int, int], float] | None = None,
+                seed: int = 0) -> S.StudyResult:
+    """A StudyResult whose run losses decay from 1.2 to the cell's final level (normalised),
+    with a little noise; nothing aborted."""
+    spec = S.StudySpec(runs=runs, budget=budget)
+    cells = spec.cells
+    rng = np.random.default_rng(seed)
+    C = len(cells)
+    arrays = S._allocate(spec, cells)
+    for c, cell in enumerate(cells):
+        level = (finals or {}).get((cell.algo, cell.row, cell.col), 0.8)
+        for r in range(runs):
+            target = level + 0.02 * rng.standard_normal()
+            curve = target + (1.2 - target) * np.exp(-np.arange(budget) / (budget / 5))
+            arrays['losses'][c, r] = L_REF * curve
+            arrays['iteration'][c, r] = (np.arange(budget) // 2 + 1 if cell.algo == 'spsa'
+                                         else np.arange(budget) + 1)
+            arrays['ref_loss'][c, r] = L_REF
+    arrays['remeasured'][:] = L_REF * 0.9
+    return S.StudyResult(spec=spec, cells=cells, l_ref=L_REF, l_ref_sem=0.001, l_first=1.8,
+                         wall_s=1.0, jobs=1, **arrays)
+
+
+def test_wilson_interval_known_values():
+    # 90/100: the notes' "a 95 % interval around 90 % is about [83, 95]"
+    lo, hi = wilson(90, 100)
+    assert lo == pytest.approx(0.82564, abs=2e-5) and hi == pytest.approx(0.94477, abs=2e-5)
+    assert wilson(0, 10)[0] == 0.0 and wilson(10, 10)[1] == pytest.approx(1.0, abs=1e-15)
+    assert all(math.isnan(x) for x in wilson(0, 0))
+
+
+def test_final_loss_satisfactory_and_evaluations_by_hand():
+    res = make_result(runs=3, budget=4)
+    c = 0
+    # run 0: normalised 1.0, 0.8, 0.95, 0.6 -> final 0.6, satisfactory at evaluation 2
+    res.losses[c, 0] = L_REF * np.array([1.0, 0.8, 0.95, 0.6])
+    res.iteration[c, 0] = [1, 1, 2, 2]
+    # run 1: everything aborted -> no final controller, not satisfactory
+    res.losses[c, 1] = L_REF * np.array([0.1, 0.2, 0.3, 0.4])
+    res.aborted[c, 1] = True
+    # run 2: a tiny aborted (penalised) loss first must not count; final 0.91 > 0.9
+    res.losses[c, 2] = L_REF * np.array([0.05, 0.95, 0.925, 0.91])
+    res.aborted[c, 2, 0] = True
+    pr = per_run(res, 0.9)
+    np.testing.assert_array_equal(pr['final'][c], [0.6, np.nan, 0.91])
+    np.testing.assert_array_equal(pr['satisfactory'][c], [True, False, False])
+    np.testing.assert_array_equal(pr['evals'][c], [2.0, np.nan, np.nan])
+    np.testing.assert_array_equal(pr['iterations'][c], [1.0, np.nan, np.nan])
+    st = compute(res, 0.9)
+    cs = st.cells[c]
+    assert cs.final.value == pytest.approx((0.6 + 0.91) / 2, abs=1e-15)
+    assert cs.final.n == 2 and cs.no_final == 1
+    assert cs.satisfactory.value == pytest.approx(100 / 3)
+    lo, hi = wilson(1, 3)
+    assert (cs.satisfactory.lo, cs.satisfactory.hi) == pytest.approx((100 * lo, 100 * hi))
+    assert cs.evals.value == 2.0 and cs.evals.n == 1
+    assert cs.remeasured.value == pytest.approx(0.9)
+    assert cs.aborted_pct == pytest.approx(100 * 5 / 12)
+    # a looser threshold: run 2 becomes satisfactory at its 4th evaluation
+    st2 = compute(res, 0.92)
+    assert st2.cells[c].satisfactory.value == pytest.approx(200 / 3)
+    assert st2.cells[c].evals.value == pytest.approx((2 + 4) / 2)
+
+
+def test_intervals_are_reproducible_and_cover_the_mean():
+    res = make_result(runs=100, budget=20)
+    a, b = compute(res), compute(res)
+    for ca, cb in zip(a.cells, b.cells):
+        assert (ca.final.lo, ca.final.hi) == (cb.final.lo, cb.final.hi)
+        assert ca.final.lo < ca.final.value < ca.final.hi
+        # 100 runs with sd about 0.02: the 95 % half-width is about 1.96 * 0.002
+        assert 0.002 < ca.final.hi - ca.final.lo < 0.012
+
+
+def test_paper_tables_are_the_papers():
+    # spot checks against the paper's Tables I-III
+    assert PAPER['final'][('necga', 0, 1)] == 0.70
+    assert PAPER['satisfactory_pct'][('spsa', 2, 0)] == 44
+    assert PAPER['iterations'][('spsa', 2, 1)] == 23
+    assert all(len(t) == 12 for t in PAPER.values())
+
+
+@pytest.mark.parametrize('necga_better', [True, False])
+def test_conclusions_follow_the_data(necga_better):
+    spsa, necga = (0.8, 0.6) if necga_better else (0.6, 0.8)
+    finals = {('spsa', i, j): spsa for i in range(3) for j in range(3)}
+    finals.update({('necga', 0, j): necga for j in range(3)})
+    st = compute(make_result(runs=60, budget=40, finals=finals))
+    lower = st.conclusions[0]
+    assert lower.claim.startswith('neCGA reaches a lower average final loss')
+    assert lower.verdict == ('holds' if necga_better else 'reversed')
+    # every cell of a grid has the same level: the configuration makes no difference
+    assert st.conclusions[1].verdict == 'not significant'
+
+
+def test_threshold_must_be_positive():
+    res = make_result(runs=2, budget=2)
+    for bad in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match='threshold'):
+            compute(res, bad)

@@ -3,6 +3,7 @@
 #   make test    the whole test suite
 #   make demo    the main job: ros2 run im_tuner tuner --algo necga (ALGO=spsa ...)
 #   make bench   the benchmarks, printing their figures
+#   make reproduction  the paper's configuration study (full grid) -> docs/reproduction.md
 # Every target does the set-up it needs first; a re-run with nothing changed is quick.
 
 PYTHON ?= python3
@@ -19,7 +20,7 @@ export HOME ?= $(CURDIR)
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: setup test demo demo-drive bench lock clean
+.PHONY: setup test demo demo-drive bench reproduction lock clean
 
 setup: $(VENV)/.installed
 
@@ -55,6 +56,17 @@ demo-drive: setup
 
 bench: setup
 	$(PY) bench/run_all.py
+
+# The paper's Tables I-III offline (issue 7): the full grid, then its write-up into docs/.
+STUDY_OUT := bags/study_reproduction
+reproduction: setup
+	rm -rf $(STUDY_OUT)
+	$(VENV)/bin/ros2 run im_tuner study --out $(STUDY_OUT) $(ARGS)
+	mkdir -p docs/reproduction
+	cp $(STUDY_OUT)/tables.png $(STUDY_OUT)/convergence.png docs/reproduction/
+	sed -e 's#](tables.png)#](reproduction/tables.png)#' \
+	    -e 's#](convergence.png)#](reproduction/convergence.png)#' \
+	    $(STUDY_OUT)/reproduction.md > docs/reproduction.md
 
 # Re-resolve the pinned set after editing requirements.txt.
 lock: | $(PY)

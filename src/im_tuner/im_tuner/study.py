@@ -330,6 +330,7 @@ class StudyResult:
     exp_s: np.ndarray         #: float64[cells, runs] (timing)
     wall_s: float = 0.0
     jobs: int = 1
+    command: str = ''         #: the command that ran the study (for the write-up)
 
     @property
     def experiments(self) -> int:
@@ -453,7 +454,7 @@ def save(res: StudyResult, out: 'os.PathLike[str] | str') -> None:
     meta = {'spec': dataclasses.asdict(res.spec), 'cells': [dataclasses.asdict(c) for c in res.cells],
             'l_ref': res.l_ref, 'l_ref_sem': res.l_ref_sem, 'l_first': res.l_first,
             'ref_experiments': REF_EXPERIMENTS, 'experiments': res.experiments,
-            'wall_s': res.wall_s, 'jobs': res.jobs}
+            'wall_s': res.wall_s, 'jobs': res.jobs, 'command': res.command}
     tmp = out / (META_FILE + '.tmp')
     tmp.write_text(json.dumps(meta, indent=1) + '\n')
     os.replace(tmp, out / META_FILE)
@@ -480,4 +481,4 @@ def load(out: 'os.PathLike[str] | str') -> StudyResult:
                   tuple(tuple(o) for o in c['options'])) for c in meta['cells']]
     return StudyResult(spec=spec, cells=cells, l_ref=meta['l_ref'], l_ref_sem=meta['l_ref_sem'],
                        l_first=meta['l_first'], wall_s=meta['wall_s'], jobs=meta['jobs'],
-                       **arrays)
+                       command=meta.get('command', ''), **arrays)

@@ -135,6 +135,18 @@ def test_results_do_not_depend_on_the_number_of_workers(small):
     assert one.l_ref == via_cli.l_ref
 
 
+def test_tables_are_identical_for_any_number_of_workers(tmp_path):
+    files = {}
+    for jobs in ('1', '2'):
+        out = tmp_path / f'jobs{jobs}'
+        proc = study('--runs', '2', '--budget', '4', '--jobs', jobs, '--out', str(out),
+                     '--quiet')
+        assert proc.returncode == 0, proc.stderr
+        files[jobs] = {n: (out / n).read_text().replace(str(out), 'OUT')
+                       for n in ('tables.csv', 'runs.csv')}
+    assert files['1'] == files['2']
+
+
 def test_seeds_starts_and_the_normalisation(small):
     res = S.load(small[0])
     spsa = [i for i, c in enumerate(res.cells) if c.algo == 'spsa']

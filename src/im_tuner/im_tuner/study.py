@@ -250,6 +250,7 @@ def run_one(spec: StudySpec, cell_index: int, r: int, drive: DriveConfig | None 
     faults = np.zeros(B, dtype=bool)
     iteration = np.empty(B, dtype=np.int32)
     best_eval, best_loss = -1, math.inf
+    best_gains: tuple[float, ...] = tuple(math.nan for _ in GAIN_NAMES)
     opt_s = 0.0
     for e in range(B):
         t0 = time.perf_counter()
@@ -267,9 +268,7 @@ def run_one(spec: StudySpec, cell_index: int, r: int, drive: DriveConfig | None 
             best_eval, best_loss = e, loss
             best_gains = gains.as_tuple()
     remeasured = math.nan
-    if best_eval < 0:
-        best_gains = tuple(math.nan for _ in GAIN_NAMES)
-    elif spec.remeasure:
+    if best_eval >= 0 and spec.remeasure:
         t0 = time.perf_counter()
         remeasured = bench.measure(Gains(*best_gains))[0]
         exp_s += time.perf_counter() - t0

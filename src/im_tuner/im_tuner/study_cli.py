@@ -28,9 +28,7 @@ import datetime as _dt
 import math
 import shlex
 import sys
-import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import yaml
@@ -39,8 +37,8 @@ from im_controller.config import GAIN_NAMES
 
 from . import study as S
 from .space import TunerParamsError
-from .study_stats import (EXPERIMENT_S, PAPER, PAPER_US_PER_ITERATION, CellStats, Interval,
-                          StudyStats, compute)
+from .study_stats import (EXPERIMENT_S, PAPER_US_PER_ITERATION, CellStats, Interval, StudyStats,
+                          compute, per_run)
 
 __all__ = ['main', 'write_outputs', 'tables_text', 'tuner_command', 'reproduction_md']
 
@@ -179,7 +177,6 @@ RUN_COLUMNS = ('algo', 'config', 'run', 'run_seed', 'drive_seed',
 
 
 def write_runs_csv(st: StudyStats, out: Path) -> Path:
-    from .study_stats import per_run
     res = st.res
     pr = per_run(res, st.threshold)
     path = out / 'runs.csv'

@@ -357,20 +357,14 @@ def _allocate(spec: StudySpec, cells: list[Cell]) -> dict[str, np.ndarray]:
             'exp_s': np.zeros((C, R))}
 
 
+#: RunResult fields stored at [cell, run] of the StudyResult arrays.
+_PER_RUN = ('start', 'ref_loss', 'ref_aborted', 'losses', 'aborted', 'faults', 'iteration',
+            'best_eval', 'best_gains', 'remeasured', 'opt_s', 'exp_s')
+
+
 def _store(a: dict[str, np.ndarray], res: RunResult) -> None:
-    c, r = res.cell, res.run
-    a['start'][c, r] = res.start
-    a['ref_loss'][c, r] = res.ref_loss
-    a['ref_aborted'][c, r] = res.ref_aborted
-    a['losses'][c, r] = res.losses
-    a['aborted'][c, r] = res.aborted
-    a['faults'][c, r] = res.faults
-    a['iteration'][c, r] = res.iteration
-    a['best_eval'][c, r] = res.best_eval
-    a['best_gains'][c, r] = res.best_gains
-    a['remeasured'][c, r] = res.remeasured
-    a['opt_s'][c, r] = res.opt_s
-    a['exp_s'][c, r] = res.exp_s
+    for name in _PER_RUN:
+        a[name][res.cell, res.run] = getattr(res, name)
 
 
 def default_jobs() -> int:

@@ -285,3 +285,60 @@ def test_realtime_counts_late_commands_and_holds_them(procs, ros_context):
     assert int(counts['held']) == steps
     # The late commands were applied (held): isq follows the 2 A reference.
     assert last is not None and abs(last[F['isq']] - 2.0) < 0.2
+
+
+def test_realtime_watchdog_zero_current_when_commands_stop_and_resume(procs, ros_context):
+    """Commands of 2 A, then silence: after command_timeout the drive commands zero current
+    (the measured isq falls to about 0), counts one trip, and resumes on the next command."""
+    timeout = 0.05
+    p = drive_proc(procs, '--mode', 'realtime', '--max-steps', '4000', '--ros-args', '-p',
+                   f'command_timeout:={timeout}')
+    node = Node('test_wd_controller', context=ros_context)
+    states: list[np.ndarray] = []
+    phase_end: dict[str, int] = {}
+    try:
+        client = DriveClient(node)
+        assert client.wait_for_drive(20.0)
+        phase = 'command'
+        silent_since = None
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and p.poll() is None:
+            s = client.wait_new_state(0.5)
+            if s is None:
+                continue
+            states.append(s.copy())
+            k = int(s[F['step_index']])
+            if phase == 'command':
+                client.command(k, 2.0, 0.0)
+                if k >= 800:
+                    phase, phase_end['command'] = 'silent', k
+                    silent_since = time.monotonic()
+            elif phase == 'silent':
+                # stay silent for 4 timeouts of wall time (whatever the machine's pace)
+                if time.monotonic() - silent_since > 4 * timeout:
+                    phase, phase_end['silent'] = 'resumed', k
+            else:
+                client.command(k, 2.0, 0.0)
+                if k >= phase_end['silent'] + 600:
+                    break
+    finally:
+        node.destroy_node()
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=30)
+    S = np.array(states)
+    k = S[:, F['step_index']].astype(int)
+    isq = S[:, F['isq']]
+    stop, back = phase_end['command'], phase_end['silent']
+    # commanding: isq follows 2 A
+    assert np.all(np.abs(isq[(k > stop - 300) & (k <= stop)] - 2.0) < 0.2)
+    # silent: the last stretch before the commands resume is at zero current
+    assert np.all(np.abs(isq[(k > back - 50) & (k <= back)]) < 0.1), \
+        f'isq while silent: {isq[(k > back - 50) & (k <= back)]}'
+    # resumed: 2 A again
+    assert np.all(np.abs(isq[(k > back + 300) & (k <= back + 600)] - 2.0) < 0.2)
+    summary = err[err.rindex('stopped at step'):].splitlines()[0]
+    counts = dict(kv.split('=') for kv in summary.split(': ', 1)[1].split(', '))
+    assert int(counts['watchdog_trips']) == 1
+    assert 0 < int(counts['watchdog_steps']) < back - stop
+    assert 'watchdog: no command on drive/command for 0.05 s' in err
+    assert 'watchdog: commands resumed' in err

@@ -7,7 +7,9 @@ Lock-step (default): the node publishes drive state k, waits for the command tha
 it, steps the model one 200 us period and publishes state k+1 -- as fast as commands come,
 bit-for-bit deterministic. Real-time: the model is stepped every 200 us by the wall
 clock (no rclpy timer: a hand-paced loop), the last command is held when no fresh one
-came, and overruns and late commands are counted and reported.
+came, and overruns and late commands are counted and reported; a watchdog commands zero
+current and no load once no command has come for ``command_timeout`` (a new command
+resumes).
 
 The hot path never goes through an executor: the command subscription lives on a hidden
 helper node (``_<name>_io``) taken with a hand-rolled WaitSet; the visible node (parameters,
@@ -86,6 +88,8 @@ class Counters:
     republished: int = 0        #: lock-step: state re-sent while waiting for a command
     max_lateness_us: float = 0.0  #: real time: worst start-of-period lateness
     backpressure: int = 0       #: publish retries while a reliable reader (recorder) was full
+    watchdog_trips: int = 0     #: real time: times commands stopped for > command_timeout
+    watchdog_steps: int = 0     #: real time: steps run at zero current by the watchdog
 
 
 def _descriptor(description: str, *, read_only: bool = True,
@@ -129,6 +133,7 @@ class DriveSimNode(Node):
         self.republish_period: float = p['republish_period']
         self.realtime_wait_for_controller: bool = p['realtime_wait_for_controller']
         self.spin_margin: float = p['realtime_spin_margin']
+        self.command_timeout: float = p['command_timeout']
         self.counters = Counters()
         #: Set by SIGINT/SIGTERM (see main): the loops stop at the next step boundary, so
         #: the context is never shut down under a publish.
@@ -160,6 +165,8 @@ class DriveSimNode(Node):
         self._isq_ref = 0.0
         self._load = 0.0
         self._cmd_fresh = False
+        self._last_cmd_wall: float | None = None  # perf_counter of the last valid command
+        self._watchdog_tripped = False
         self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
 
         self.get_logger().info(
@@ -206,6 +213,10 @@ class DriveSimNode(Node):
             ('realtime_spin_margin', 150e-6, _descriptor(
                 'Real time: busy-wait this long before each period start instead of '
                 'sleeping, for low jitter [s].', float_range=(0.0, 200e-6))),
+            ('command_timeout', 0.05, _descriptor(
+                'Real time: watchdog -- no command for this long [s] -> zero current and no '
+                'load until the next command (the safe state of a drive whose controller '
+                'stopped).', float_range=(0.0002, 10.0))),
             ('state_fields', list(STATE_FIELDS), _descriptor(
                 'Layout of drive/state data (read-only): field names in order.')),
             ('command_fields', list(COMMAND_FIELDS), _descriptor(
@@ -256,6 +267,10 @@ class DriveSimNode(Node):
         problems = c.overruns + c.late + c.held if self.mode == 'realtime' else c.stale_ignored
         st.level = DiagnosticStatus.OK if problems == 0 else DiagnosticStatus.WARN
         st.message = 'ok' if problems == 0 else 'late commands / overruns counted'
+        if self._watchdog_tripped:
+            st.level = DiagnosticStatus.ERROR
+            st.message = (f'command watchdog: no command for more than '
+                          f'{self.command_timeout:g} s, zero current')
         values = {
             'mode': self.mode, 'model': self.config.model,
             'step_index': str(self.sim.step_index), 'sim_time_s': f'{sim_s:.6f}',
@@ -415,6 +430,7 @@ class DriveSimNode(Node):
                 t0 = time.perf_counter() - (n + 1) * ts  # re-anchor: no burst catch-up
             n += 1
             self._absorb_commands()
+            self._watchdog()
             if self._cmd_fresh:
                 c.fresh += 1
             else:
@@ -426,6 +442,24 @@ class DriveSimNode(Node):
                 since_service = 0
                 next_status = self._serve(executor, t_start, next_status)
         self.publish_status(time.perf_counter() - t_start)
+
+    def _watchdog(self) -> None:
+        """Real time: no command for ``command_timeout`` -> zero current and no load, held
+        until a command comes (then it resumes).  Before the first command the held
+        command is already zero."""
+        if self._last_cmd_wall is None:
+            return
+        if time.perf_counter() - self._last_cmd_wall <= self.command_timeout:
+            return
+        if not self._watchdog_tripped:
+            self._watchdog_tripped = True
+            self.counters.watchdog_trips += 1
+            self.get_logger().warn(
+                f'watchdog: no command on {COMMAND_TOPIC} for {self.command_timeout:g} s at step '
+                f'{self.sim.step_index}: zero current and no load until the next command')
+        self._isq_ref = 0.0
+        self._load = 0.0
+        self.counters.watchdog_steps += 1
 
     def _absorb_commands(self) -> None:
         """Take all pending commands; the newest becomes the held command.
@@ -440,6 +474,10 @@ class DriveSimNode(Node):
             if cmd is None:
                 return
             answers, self._isq_ref, self._load = cmd
+            self._last_cmd_wall = time.perf_counter()
+            if self._watchdog_tripped:
+                self._watchdog_tripped = False
+                self.get_logger().info(f'watchdog: commands resumed at step {k}')
             if 0 <= answers < k:
                 self.counters.late += 1
                 self._cmd_fresh = False

@@ -281,8 +281,43 @@ def test_separate_processes_give_the_same_losses_as_one_process(procs, ros_conte
     assert [g.terms for g in got] == [r.terms for r in ref]
 
 
-def test_watchdog_zero_current_and_abort_when_the_drive_goes_silent(ros_context):
-    """A drive that stops publishing mid-experiment: zero current, aborted with a reason."""
+class FakeDrive:
+    """The controller node in this process against a hand-driven drive: ``send(k, **f)``
+    publishes state k (a still motor at 0 rad unless fields ``f`` say otherwise)."""
+
+    def __init__(self, ex, ctl, state_pub, commands, probe, wire) -> None:
+        self.ex, self.ctl, self.state_pub, self.commands = ex, ctl, state_pub, commands
+        self.probe, self.wire = probe, wire
+        from im_drive_sim.sim import STATE_FIELDS
+        self.idx = {n: i for i, n in enumerate(STATE_FIELDS)}
+
+    def spin_until(self, pred, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while not pred() and time.monotonic() < deadline:
+            self.ex.spin_once(timeout_sec=0.005)
+            self.ctl.take()
+            self.ctl.answer()
+            self.ctl.watchdog()
+        return pred()
+
+    def send(self, k: int, **fields: float) -> None:
+        w = self.wire.values
+        w[:] = 0.0
+        w[0], w[1] = k, k * 200_000
+        for name, v in fields.items():
+            w[self.idx[name]] = v
+        self.state_pub.publish(self.wire.payload())
+
+    def answered(self, k: int, **fields: float) -> tuple:
+        """Send state k and return the command that answers it."""
+        self.send(k, **fields)
+        assert self.spin_until(lambda: any(c[0] == k for c in self.commands[-3:]), 5), \
+            f'no answer to state {k}'
+        return next(c for c in reversed(self.commands) if c[0] == k)
+
+
+@contextlib.contextmanager
+def fake_drive(ros_context, **params):
     from rclpy.executors import SingleThreadedExecutor
 
     from im_controller.controller_node import ControllerNode
@@ -290,60 +325,88 @@ def test_watchdog_zero_current_and_abort_when_the_drive_goes_silent(ros_context)
     from im_drive_sim.drive_sim_node import COMMAND_TOPIC, LOCKSTEP_QOS, STATE_TOPIC
     from im_drive_sim.sim import STATE_FIELDS
 
-    ctl = ControllerNode(context=ros_context,
-                         parameter_overrides=[Parameter('state_timeout', value=0.05)])
+    ctl = ControllerNode(context=ros_context, parameter_overrides=[
+        Parameter(k, value=v) for k, v in params.items()])
     fake = Node('fake_drive', context=ros_context)
     state_pub = fake.create_publisher(Float64MultiArray, STATE_TOPIC, LOCKSTEP_QOS)
-    commands = []
+    commands: list[tuple] = []
     fake.create_subscription(Float64MultiArray, COMMAND_TOPIC,
                              lambda m: commands.append(tuple(m.data)), LOCKSTEP_QOS)
     probe = Probe(ros_context, None)
     ex = SingleThreadedExecutor(context=ros_context)
     for n in (ctl, fake, probe.node):
         ex.add_node(n)
-    wire = Float64ArrayWire(len(STATE_FIELDS))
-
-    def spin_until(pred, timeout):
-        deadline = time.monotonic() + timeout
-        while not pred() and time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.005)
-            ctl.take()
-            ctl.answer()
-            ctl.watchdog()
-        return pred()
-    probe.spin_until = spin_until
+    fd = FakeDrive(ex, ctl, state_pub, commands, probe, Float64ArrayWire(len(STATE_FIELDS)))
+    probe.spin_until = fd.spin_until
     try:
-        assert ctl.client.wait_for_drive(10.0) or state_pub.get_subscription_count() > 0
-        assert spin_until(lambda: state_pub.get_subscription_count() > 0, 10)
-        assert spin_until(lambda: probe.start_client.service_is_ready(), 10)
-
-        def send(k):  # a still motor at 0 rad, state k
-            wire.values[:] = 0.0
-            wire.values[0], wire.values[1] = k, k * 200_000
-            state_pub.publish(wire.payload())
-        send(0)
-        assert spin_until(lambda: ctl._state is not None, 5)
-        assert probe.start().success
-        for k in range(1, 50):  # a few steps of the experiment, answered one by one
-            n = len(commands)
-            send(k)
-            assert spin_until(lambda: len(commands) > n, 5)
-        # The drive goes silent: within the timeout (plus polling) the watchdog fires.
-        t0 = time.monotonic()
-        assert spin_until(lambda: ctl.runner.faulted, 5)
-        assert time.monotonic() - t0 < 1.0
-        assert spin_until(lambda: len(probe.results) == 1, 5)
-        r = probe.results[0]
-        assert r.aborted and r.reason == 'drive_state_timeout' and r.steps == 50
-        assert spin_until(lambda: commands[-1][1:] == (0.0, 0.0), 5)  # zero current, no load
-        assert commands[-1][0] == -1.0
-        # A start is refused until the fault is reset.
-        resp = probe.start()
-        assert not resp.success and 'drive_state_timeout' in resp.message
+        assert fd.spin_until(lambda: state_pub.get_subscription_count() > 0, 10)
+        assert fd.spin_until(lambda: probe.start_client.service_is_ready(), 10)
+        fd.send(0)
+        assert fd.spin_until(lambda: ctl._state is not None, 5)
+        yield fd
     finally:
         ex.shutdown()
         for n in (probe.node, fake, ctl):
             n.destroy_node()
+
+
+def test_watchdog_zero_current_and_abort_when_the_drive_goes_silent(ros_context):
+    """A drive that stops publishing mid-experiment: zero current, aborted with a reason."""
+    with fake_drive(ros_context, state_timeout=0.05) as fd:
+        ctl, probe, commands = fd.ctl, fd.probe, fd.commands
+        assert probe.start().success
+        for k in range(1, 50):  # a few steps of the experiment, answered one by one
+            fd.answered(k)
+        # The drive goes silent: within the timeout (plus polling) the watchdog fires.
+        t0 = time.monotonic()
+        assert fd.spin_until(lambda: ctl.runner.faulted, 5)
+        assert time.monotonic() - t0 < 1.0
+        assert fd.spin_until(lambda: len(probe.results) == 1, 5)
+        r = probe.results[0]
+        assert r.aborted and r.reason == 'drive_state_timeout' and r.steps == 50
+        assert fd.spin_until(lambda: commands[-1][1:] == (0.0, 0.0), 5)  # zero current, no load
+        assert commands[-1][0] == -1.0
+        # A start is refused until the fault is reset.
+        resp = probe.start()
+        assert not resp.success and 'drive_state_timeout' in resp.message
+
+
+@pytest.mark.parametrize('field, value', [('theta_meas', math.nan), ('omega_meas', math.inf),
+                                          ('theta_meas', -math.inf)])
+def test_non_finite_drive_state_zero_current_abort_and_reset(ros_context, field, value):
+    """A NaN or inf in the drive state mid-experiment: that very state is answered with
+    zero current and no load, the experiment ends aborted ('non_finite_measurement', not
+    a loss to trust), the controller stays in FAULT (zero current) and keeps running;
+    after reset_fault with a sane state it runs experiments again."""
+    with fake_drive(ros_context, state_timeout=5.0) as fd:
+        ctl, probe = fd.ctl, fd.probe
+        assert probe.start().success
+        for k in range(1, 40):
+            fd.answered(k)
+        cmd = fd.answered(40, **{field: value})
+        assert cmd == (40.0, 0.0, 0.0)
+        assert ctl.runner.faulted and ctl.runner.fault_reason == 'non_finite_measurement'
+        assert fd.spin_until(lambda: len(probe.results) == 1, 5)
+        r = probe.results[0]
+        assert r.aborted and r.reason == 'non_finite_measurement' and r.steps == 41
+        assert math.isfinite(r.loss)
+        # still alive, still safe: no start, and no reset while the state is not finite
+        assert not probe.start().success
+        reset_cli = probe.node.create_client(Trigger, '/controller/reset_fault')
+        refused = probe.call(reset_cli.call_async(Trigger.Request()))
+        assert not refused.success and 'not finite' in refused.message
+        assert ctl.runner.faulted
+        # a sane state: taken but not answered (lock-step pauses in FAULT; zero current
+        # was the last command), and now the reset is accepted
+        fd.send(41)
+        assert fd.spin_until(lambda: int(ctl._state[0]) == 41, 5)
+        assert fd.commands[-1] == (40.0, 0.0, 0.0)
+        reset = probe.call(reset_cli.call_async(Trigger.Request()))
+        assert reset.success and 'non_finite_measurement' in reset.message
+        assert not ctl.runner.faulted
+        assert probe.start().success
+        isq = [fd.answered(k)[1] for k in range(42, 60)]
+        assert all(math.isfinite(x) for x in isq)
 
 
 def test_real_time_mode_runs_an_experiment(procs, ros_context):

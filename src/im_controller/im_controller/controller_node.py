@@ -338,6 +338,12 @@ class ControllerNode(Node):
             response.success, response.message = True, 'no fault'
         elif self._state is None:
             response.success, response.message = False, 'refused: no drive state yet'
+        elif not (math.isfinite(self._state[2]) and math.isfinite(self._state[3])):
+            # holding a position needs a sane measurement: the drive is still broken
+            response.success = False
+            response.message = (f'refused: the last drive state is not finite (theta_meas='
+                                f'{self._state[2]!r}, omega_meas={self._state[3]!r}); check '
+                                'the drive')
         else:
             reason = self.runner.fault_reason
             self.runner.reset(float(self._state[2]))
@@ -364,7 +370,7 @@ class ControllerNode(Node):
             self._state = s
             self._pending = True
             self._last_state_wall = time.monotonic()
-            if not self._initialised:
+            if not self._initialised and math.isfinite(s[2]):
                 self.runner.reset(float(s[2]))  # hold where the drive is
                 self._initialised = True
 

@@ -35,12 +35,14 @@ start).  docs/reproduction.md says why.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import multiprocessing
 import os
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -358,8 +360,7 @@ def _allocate(spec: StudySpec, cells: list[Cell]) -> dict[str, np.ndarray]:
 
 
 #: RunResult fields stored at [cell, run] of the StudyResult arrays.
-_PER_RUN = ('start', 'ref_loss', 'ref_aborted', 'losses', 'aborted', 'faults', 'iteration',
-            'best_eval', 'best_gains', 'remeasured', 'opt_s', 'exp_s')
+_PER_RUN = tuple(a for a in StudyResult.ARRAYS if a not in ('run_seed', 'drive_seed'))
 
 
 def _store(a: dict[str, np.ndarray], res: RunResult) -> None:
@@ -436,11 +437,9 @@ ARRAYS_FILE = 'study.npz'
 META_FILE = 'study.json'
 
 
-def save(res: StudyResult, out: 'os.PathLike[str] | str') -> None:
+def save(res: StudyResult, out: Path | str) -> None:
     """Write ``study.npz`` (every array: nothing is lost) and ``study.json`` (the spec,
     L_ref, timing) into ``out`` (created)."""
-    import json
-    from pathlib import Path
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out / ARRAYS_FILE, **{k: getattr(res, k) for k in StudyResult.ARRAYS})
@@ -453,10 +452,8 @@ def save(res: StudyResult, out: 'os.PathLike[str] | str') -> None:
     os.replace(tmp, out / META_FILE)
 
 
-def load(out: 'os.PathLike[str] | str') -> StudyResult:
+def load(out: Path | str) -> StudyResult:
     """Read a study written by :func:`save` (ValueError with the reason if it is not one)."""
-    import json
-    from pathlib import Path
     out = Path(out)
     try:
         meta = json.loads((out / META_FILE).read_text())

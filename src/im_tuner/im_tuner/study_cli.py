@@ -37,8 +37,8 @@ from im_controller.config import GAIN_NAMES
 
 from . import study as S
 from .space import TunerParamsError
-from .study_stats import (EXPERIMENT_S, PAPER_US_PER_ITERATION, CellStats, Interval, StudyStats,
-                          compute, per_run)
+from .study_stats import (EXPERIMENT_S, PAPER_CELL, PAPER_US_PER_ITERATION, CellStats, Interval,
+                          StudyStats, compute, per_run)
 
 __all__ = ['main', 'write_outputs', 'tables_text', 'tuner_command', 'reproduction_md']
 
@@ -269,7 +269,7 @@ def fig_convergence(st: StudyStats):
             b = best[c]
             with np.errstate(invalid='ignore'):
                 med = np.median(b, axis=0)
-            centre = (res.cells[c].row, res.cells[c].col) == {'spsa': (1, 1), 'necga': (0, 1)}[algo]
+            centre = (res.cells[c].row, res.cells[c].col) == PAPER_CELL[algo]
             ax.plot(evals, np.where(np.isfinite(med), med, np.nan), color=cmap(k % 10),
                     lw=2.5 if centre else 1.2, gid=f'median:{res.cells[c].label}',
                     label=res.cells[c].label + (" (paper's)" if centre else ''))
@@ -525,7 +525,7 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
                            remeasure=not cli.no_remeasure, drive_config=cli.drive_config,
                            params_file=cli.params)
     except ValueError as exc:
-        raise StudyError(f'--{str(exc).split()[0]} {" ".join(str(exc).split()[1:])}') from None
+        raise StudyError(f'--{exc}') from None  # the messages start with the option's name
     try:
         spec.params()
         spec.drive()

@@ -366,9 +366,21 @@ def test_watchdog_zero_current_and_abort_when_the_drive_goes_silent(ros_context)
         assert r.aborted and r.reason == 'drive_state_timeout' and r.steps == 50
         assert fd.spin_until(lambda: commands[-1][1:] == (0.0, 0.0), 5)  # zero current, no load
         assert commands[-1][0] == -1.0
-        # A start is refused until the fault is reset.
+        # A start is refused until the fault is reset ...
         resp = probe.start()
         assert not resp.success and 'drive_state_timeout' in resp.message
+        # ... and the reset is refused while the drive stays silent (a dead drive must not
+        # be reset into experiment after experiment) ...
+        reset_cli = probe.node.create_client(Trigger, '/controller/reset_fault')
+        refused = probe.call(reset_cli.call_async(Trigger.Request()))
+        assert not refused.success and 'no drive state since the watchdog' in refused.message
+        assert ctl.runner.faulted
+        # ... until the drive speaks again (here: the last state re-sent, as lock-step does)
+        fd.send(50)
+        assert fd.spin_until(lambda: ctl._last_msg_wall > ctl._timeout_wall, 5)
+        reset = probe.call(reset_cli.call_async(Trigger.Request()))
+        assert reset.success and 'drive_state_timeout' in reset.message
+        assert probe.start().success
 
 
 @pytest.mark.parametrize('field, value', [('theta_meas', math.nan), ('omega_meas', math.inf),

@@ -14,11 +14,12 @@ setup(
     name=package_name,
     version='0.1.0',
     packages=find_packages(exclude=['test']),
-    package_data={package_name: ['config/*.yaml']},
+    package_data={package_name: ['config/*.yaml', 'config/*.xml']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
-        ('share/' + package_name + '/config', glob(package_name + '/config/*.yaml')),
+        ('share/' + package_name + '/config', glob(package_name + '/config/*.yaml')
+         + glob(package_name + '/config/*.xml')),
         ('lib/' + package_name, glob('scripts/*')),
     ],
     install_requires=['setuptools'],

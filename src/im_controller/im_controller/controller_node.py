@@ -147,6 +147,8 @@ class ControllerNode(Node):
         self._state: np.ndarray | None = None   # newest state taken
         self._pending = False             # ... and not answered yet
         self._last_state_wall = time.monotonic()
+        self._last_msg_wall = time.monotonic()  # any state message, re-sent ones too
+        self._timeout_wall: float | None = None  # when the drive-state watchdog tripped
         self._initialised = False         # the hold reference is set from the first state
         self._fault_logged = False
         self._n_answered = 0
@@ -344,8 +346,15 @@ class ControllerNode(Node):
             response.message = (f'refused: the last drive state is not finite (theta_meas='
                                 f'{self._state[2]!r}, omega_meas={self._state[3]!r}); check '
                                 'the drive')
+        elif self._timeout_wall is not None and self._last_msg_wall <= self._timeout_wall:
+            # Holding needs a drive that answers: after the state watchdog, wait for one.
+            response.success = False
+            response.message = (f'refused: no drive state since the watchdog tripped '
+                                f'{time.monotonic() - self._timeout_wall:.1f} s ago (is the '
+                                'drive running?)')
         else:
             reason = self.runner.fault_reason
+            self._timeout_wall = None
             self.runner.reset(float(self._state[2]))
             self._fault_logged = False
             response.success = True
@@ -366,6 +375,8 @@ class ControllerNode(Node):
     def take(self, timeout: float = 0.0) -> None:
         """Take the newest state, waiting up to ``timeout`` s if none is there."""
         s = self.client.wait_state(timeout) if timeout > 0.0 else self.client.take_state()
+        if s is not None:
+            self._last_msg_wall = time.monotonic()
         if s is not None and int(s[0]) > self.client.answered:
             self._state = s
             self._pending = True
@@ -434,6 +445,7 @@ class ControllerNode(Node):
         running = self.runner.running
         t_ns = int(self._state[1])
         self.runner.abort_external(REASON_DRIVE_TIMEOUT, t_ns)
+        self._timeout_wall = time.monotonic()
         self.client.command(-1, 0.0, 0.0)  # zero current for whatever step comes next
         self.get_logger().error(
             f'no drive state for {self.state_timeout:g} s: zero current commanded'

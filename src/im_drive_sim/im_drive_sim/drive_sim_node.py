@@ -83,7 +83,9 @@ class Counters:
     fresh: int = 0              #: real time: steps driven by a command answering the latest state
     held: int = 0               #: real time: steps that held the previous command
     late: int = 0               #: commands answering an older state than the latest one
-    stale_ignored: int = 0      #: lock-step: commands for another step, ignored
+    #: commands ignored: lock-step, answering another step; real time, a duplicate or
+    #: out of order (answering the same or an older state than the held command)
+    stale_ignored: int = 0
     overruns: int = 0           #: real time: periods that started later than one period
     republished: int = 0        #: lock-step: state re-sent while waiting for a command
     max_lateness_us: float = 0.0  #: real time: worst start-of-period lateness
@@ -165,6 +167,7 @@ class DriveSimNode(Node):
         self._isq_ref = 0.0
         self._load = 0.0
         self._cmd_fresh = False
+        self._held_answers = -1  # answers_step of the held command (real time)
         self._last_cmd_wall: float | None = None  # perf_counter of the last valid command
         self._watchdog_tripped = False
         self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
@@ -466,18 +469,28 @@ class DriveSimNode(Node):
 
         ``_cmd_fresh`` tells whether the held command answers the latest published state
         (or is untagged, -1) and came since the last step; a command answering an older
-        state counts as late (it is still the newest value, so it is held).
+        state counts as late (it is still the newest value, so it is held). A command
+        answering the same or an older state than the held one (a duplicate, or out of
+        order) is ignored and counted as ``stale_ignored``.
         """
         k = self.sim.step_index
         while True:
             cmd = self._take_command()
             if cmd is None:
                 return
-            answers, self._isq_ref, self._load = cmd
-            self._last_cmd_wall = time.perf_counter()
+            answers, isq, load = cmd
+            self._last_cmd_wall = time.perf_counter()  # the controller is alive either way
             if self._watchdog_tripped:
                 self._watchdog_tripped = False
                 self.get_logger().info(f'watchdog: commands resumed at step {k}')
+            if 0 <= answers <= self._held_answers:
+                # A duplicate, or out of order (an older answer overtaken by a newer one):
+                # holding it would step back in time.
+                self.counters.stale_ignored += 1
+                continue
+            self._isq_ref, self._load = isq, load
+            if answers >= 0:
+                self._held_answers = answers
             if 0 <= answers < k:
                 self.counters.late += 1
                 self._cmd_fresh = False

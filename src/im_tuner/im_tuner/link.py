@@ -33,13 +33,15 @@ from im_controller.messages import SAFETY_REASONS, msg_to_result
 
 from .tuning import BenchFailure, LostEvaluation, Measurement, StopRequested
 
-__all__ = ['ControllerLink', 'FAULT_POLICIES', 'controller_topics']
+__all__ = ['ControllerLink', 'DriveMonitor', 'FAULT_POLICIES', 'controller_topics',
+           'drive_report']
 
 FAULT_POLICIES = ('reset', 'stop')
 _STARTED = re.compile(r'experiment (\d+) started')
 #: start refusals that clear by themselves (retry): running, no state yet, finishing a move
 _TRANSIENT = ('is running', 'no drive state', 'retry shortly')
 RETRY_PERIOD = 0.02  # [s] between retries of a refused call
+SUPERVISE_PERIOD = 0.2  # [s] between checks of the bench processes
 
 
 def controller_topics(controller: str) -> dict[str, str]:
@@ -49,7 +51,57 @@ def controller_topics(controller: str) -> dict[str, str]:
     ns = posixpath.dirname(controller)
     return {'start': f'{controller}/start_experiment', 'reset': f'{controller}/reset_fault',
             'set_atomic': f'{controller}/set_parameters_atomically',
-            'loss': posixpath.join(ns, 'controller/loss'), 'node': controller}
+            'loss': posixpath.join(ns, 'controller/loss'), 'node': controller,
+            'drive_status': posixpath.join(ns, 'drive/status')}
+
+
+#: drive/status counters (docs/interfaces.md) the run summary reports
+DRIVE_COUNTERS = ('steps', 'commands', 'fresh', 'held', 'late', 'stale_ignored', 'overruns',
+                  'republished', 'max_lateness_us', 'watchdog_trips', 'watchdog_steps',
+                  'backpressure')
+
+
+def drive_report(values: dict[str, str], level: int | None = None, message: str = ''
+                 ) -> dict[str, Any]:
+    """The summary's view of a drive's status key/values: the mode, the counters as
+    numbers (unknown or unparsable ones left out: a real drive may report fewer)."""
+    out: dict[str, Any] = {'mode': values.get('mode', 'unknown'),
+                           'model': values.get('model')}
+    for k in (*DRIVE_COUNTERS, 'real_time_factor', 'sim_time_s'):
+        try:
+            v = float(values[k])
+        except (KeyError, ValueError):
+            continue
+        out[k] = int(v) if v.is_integer() and k not in ('real_time_factor', 'sim_time_s') \
+            else v
+    if level is not None:
+        out['level'], out['message'] = int(level), message
+    return out
+
+
+class DriveMonitor:
+    """The drive's own counters (overruns, late and held commands, watchdog trips...),
+    from the newest ``drive/status`` it publishes (about 1 Hz)."""
+
+    def __init__(self, node: Node, topic: str) -> None:
+        self.topic = topic
+        self.received = 0
+        self.errors = 0                 #: statuses at level ERROR (e.g. its watchdog)
+        self.last: dict[str, Any] | None = None
+        qos = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
+                         reliability=ReliabilityPolicy.RELIABLE)
+        self.sub = node.create_subscription(DiagnosticArray, topic, self._on_status, qos)
+
+    def _on_status(self, msg: DiagnosticArray) -> None:
+        for st in msg.status:
+            values = {kv.key: kv.value for kv in st.values}
+            if 'mode' not in values:
+                continue  # some other diagnostic on the topic
+            lvl = int.from_bytes(st.level, 'little') if isinstance(st.level, bytes) \
+                else int(st.level)
+            self.last = drive_report(values, lvl, st.message)
+            self.received += 1
+            self.errors += lvl >= 2
 
 
 class ControllerLink:
@@ -58,7 +110,8 @@ class ControllerLink:
     def __init__(self, node: Node, spin_until: Callable[[Callable[[], bool], float], bool], *,
                  controller: str = '/controller', eval_timeout: float = 60.0,
                  call_timeout: float = 10.0, fault_policy: str = 'reset',
-                 should_stop: Callable[[], bool] = lambda: False) -> None:
+                 should_stop: Callable[[], bool] = lambda: False,
+                 supervise: Callable[[], None] | None = None) -> None:
         if fault_policy not in FAULT_POLICIES:
             raise ValueError(f'fault_policy must be one of {FAULT_POLICIES}, got {fault_policy!r}')
         self.node = node
@@ -68,6 +121,10 @@ class ControllerLink:
         self.call_timeout = float(call_timeout)
         self.fault_policy = fault_policy
         self.should_stop = should_stop
+        #: called between spins (at most every SUPERVISE_PERIOD s): may raise BenchFailure
+        #: (a bench process died) -- so a dead bench ends a wait at once
+        self.supervise = supervise
+        self._next_supervise = 0.0
         self.params = AsyncParameterClient(node, self.names['node'])
         self.start_cli = node.create_client(Trigger, self.names['start'])
         self.reset_cli = node.create_client(Trigger, self.names['reset'])
@@ -89,8 +146,14 @@ class ControllerLink:
             return
         self.results[r.experiment_id] = r
 
+    def _check(self) -> bool:
+        if self.supervise is not None and time.monotonic() >= self._next_supervise:
+            self._next_supervise = time.monotonic() + SUPERVISE_PERIOD
+            self.supervise()
+        return self.should_stop()
+
     def _wait(self, pred: Callable[[], bool], timeout: float) -> bool:
-        ok = self._spin(lambda: pred() or self.should_stop(), timeout)
+        ok = self._spin(lambda: pred() or self._check(), timeout)
         if self.should_stop():
             raise StopRequested()
         return ok and pred()
@@ -172,6 +235,11 @@ class ControllerLink:
         """Set ``gains``, run one experiment, return its result (see module doc)."""
         t0 = time.perf_counter()
         deadline = time.monotonic() + self.eval_timeout
+        if not self.reachable() and not self.wait_ready(min(self.call_timeout,
+                                                            self.eval_timeout)):
+            # a call to a vanished server would only time out: say what is wrong
+            raise LostEvaluation(f'the controller {self.names["node"]} is not reachable (its '
+                                 'services or loss topic are gone: did it stop?)')
         self.set_gains(gains, deadline)
         eid = self._start(deadline)
         if not self._wait(lambda: eid in self.results, max(deadline - time.monotonic(), 0.0)):
@@ -186,7 +254,11 @@ class ControllerLink:
         if fault and self.fault_policy == 'reset':
             self.node.get_logger().warn(f'experiment {eid}: safety fault {r.reason}; resetting '
                                         'it (fault policy: reset)')
-            self.reset_fault()
+            try:
+                self.reset_fault()
+            except (BenchFailure, LostEvaluation) as exc:
+                # keep this result; the next start meets the fault and tries once more
+                self.node.get_logger().error(f'experiment {eid}: {exc}')
         return Measurement(loss=r.loss, terms=r.terms, aborted=r.aborted, reason=r.reason,
                            fault=fault, experiment_id=r.experiment_id, direction=r.direction,
                            steps=r.steps, trip_step=r.trip_step, t_start_ns=r.t_start,
@@ -194,4 +266,7 @@ class ControllerLink:
 
     def apply(self, gains: Gains) -> None:
         """Leave ``gains`` applied on the controller (the run's final controller)."""
+        if not self.reachable() and not self.wait_ready(min(self.call_timeout,
+                                                            self.eval_timeout)):
+            raise LostEvaluation(f'the controller {self.names["node"]} is not reachable')
         self.set_gains(gains, time.monotonic() + self.eval_timeout)

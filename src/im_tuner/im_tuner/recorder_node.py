@@ -463,6 +463,10 @@ def main(args: list[str] | None = None) -> int:
         print(report.summary())
         return 0
     out = cli.out if cli.out is not None else default_out_dir()
+    # A short DDS lease, so that writers forget a killed recorder within about a second
+    # instead of blocking on it (config/recorder_fastdds.xml says why).
+    os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE',
+                          str(Path(__file__).with_name('config') / 'recorder_fastdds.xml'))
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     stop = {'sig': None}
 

@@ -115,7 +115,10 @@ class RunReport:
 def _session_bags(sessions: list[dict[str, Any]], n_records: int) -> list[str | None]:
     """The bag name of each record's session (None when the run did not say)."""
     out: list[str | None] = [None] * n_records
-    starts = sorted((int(s.get('first_record', 0)), s.get('bag')) for s in sessions)
+    starts = sorted([(int(s.get('first_record', 0)), s.get('bag')) for s in sessions]
+                    # a recorder that died mid-session was replaced by one in a new bag
+                    + [(int(b['first_record']), b['bag']) for s in sessions
+                       for b in s.get('more_bags', [])])
     for first, bag in starts:
         for i in range(first, n_records):
             out[i] = bag

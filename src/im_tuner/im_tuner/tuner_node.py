@@ -13,7 +13,14 @@ Benches (``--bench``):
 * ``inproc``: drive simulator + controller in this process, lock-step (the fast path),
   with the recorder polled between steps;
 * ``processes``: ``drive_sim`` and ``controller`` as child processes (lock-step);
+* ``realtime``: ``drive_sim`` and ``controller`` as child processes in real time (5 kHz
+  on the wall clock, as on a real bench); the drive's overruns and late commands are
+  reported in the summary;
 * ``none``: use the controller on the graph; fail with a clear message if none answers.
+
+Bench processes started here end with the tuner (even a SIGKILLed one: they get SIGTERM
+from the kernel and stop cleanly). A recorder child that dies is replaced (its bag is
+repaired, the gap logged); a drive or controller child that dies ends the run.
 
 Everything is recorded (``bag_<session>/`` in the run directory) unless ``--no-record``:
 in-process by the bench's loop, otherwise by a ``ros2 run im_tuner recorder`` child.
@@ -50,15 +57,18 @@ from rclpy.utilities import remove_ros_args
 from im_controller.config import GAIN_NAMES, GAIN_UNITS
 
 from . import optim
-from .link import FAULT_POLICIES, ControllerLink, controller_topics
+from .link import FAULT_POLICIES, ControllerLink, DriveMonitor, controller_topics, drive_report
 from .optim.base import OptimizerError
 from .rundir import RunDir, RunDirError
 from .space import TunerParams, TunerParamsError, load_params, parse_params
 from .tuning import (BenchFailure, ResumeError, StopRequested, TuningRun, replay, replay_plan,
                      run_seeds)
 
-BENCHES = ('auto', 'inproc', 'processes', 'none')
-SIM_BENCHES = ('inproc', 'processes')
+BENCHES = ('auto', 'inproc', 'processes', 'realtime', 'none')
+SIM_BENCHES = ('inproc', 'processes', 'realtime')
+#: simulated benches that repeat a plant history bit for bit (a resumed run replays it)
+LOCKSTEP_BENCHES = ('inproc', 'processes')
+RECORDER_RESTARTS = 3  # replacements of a recorder child that died, per session
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 #: settings a resumed run takes from run.yaml (giving them with --resume is an error)
 RUN_SETTINGS = ('algo', 'budget', 'seed', 'params', 'remeasure', 'no_reference', 'model',
@@ -89,7 +99,8 @@ def _build_parser() -> argparse.ArgumentParser:
     ap.add_argument('--resume', type=Path, metavar='RUN_DIR',
                     help='continue the killed or interrupted run in RUN_DIR')
     ap.add_argument('--bench', choices=BENCHES, help='where the controller comes from '
-                    '(default: auto = use one on the graph, else simulate in-process)')
+                    '(default: auto = use one on the graph, else simulate in-process; '
+                    'realtime = the simulated bench as processes at 5 kHz wall clock)')
     ap.add_argument('--quiet', action='store_true', help='no progress bar (for scripts)')
     ap.add_argument('--params', type=Path, metavar='FILE',
                     help='tuner parameter file: search box, start point, satisfactory loss '
@@ -301,7 +312,10 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
         L.append(f'  start (hand-tuned) loss: {ref["loss"]:.4f}'
                  + (' (aborted)' if ref['aborted'] else ''))
     a = s['applied']
-    if a is not None:
+    if a is not None and a.get('on_controller') is False:
+        L.append('  NOT applied: the controller could not be reached at the end; its gains are '
+                 'whatever it had (best gains above)')
+    elif a is not None:
         if a['source'] == 'reference':
             L.append('  applied: the start gains (no evaluation beat them)')
         else:
@@ -320,7 +334,11 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
              + (f'{rtf:.2f}' if rtf else '-'))
     if s['optimizer_us_per_eval'] is not None:
         L.append(f'  optimiser ask+tell: {s["optimizer_us_per_eval"]:.1f} us per evaluation')
-    bags = [p['bag'] for p in s['sessions'] if p.get('bag')]
+    for p in s['sessions']:
+        if 'drive' in p:
+            L.append(_drive_text(p['drive'], len(s['sessions']) > 1))
+    bags = [b for p in s['sessions'] for b in
+            [p.get('bag'), *(m['bag'] for m in p.get('more_bags', []))] if b]
     L.append(f'  run directory: {rundir}  (run.yaml, results.jsonl, summary.json'
              + ''.join(f', {b}/' for b in bags) + ')')
     if len(s['sessions']) > 1:
@@ -331,6 +349,28 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
     if s.get('report_command'):
         L.append(f'  report (summary, plots, CSV): {s["report_command"]}')
     return '\n'.join(L)
+
+
+def _drive_text(d: dict[str, Any] | None, several: bool) -> str:
+    """One summary line of the drive's own counters (drive/status)."""
+    head = '  drive' + (' (this session)' if several else '')
+    if d is None:
+        return f'{head}: no drive/status received (its counters are unknown)'
+
+    def n(k: str) -> str:
+        v = d.get(k)
+        return '-' if v is None else (f'{v:.0f}' if isinstance(v, float) else str(v))
+    if d.get('mode') == 'realtime':
+        text = (f'{head} (real time): {n("steps")} periods, overruns {n("overruns")} (worst '
+                f'period-start lateness {n("max_lateness_us")} us), late commands {n("late")}, '
+                f'held {n("held")}, ignored {n("stale_ignored")}, watchdog trips '
+                f'{n("watchdog_trips")}')
+    else:
+        text = (f'{head} ({d.get("mode")}): {n("steps")} steps, commands ignored '
+                f'{n("stale_ignored")}, states re-sent {n("republished")}')
+    if d.get('level', 0) >= 2:
+        text += f'; last status ERROR: {d.get("message")}'
+    return text
 
 
 # -- benches -----------------------------------------------------------------------------------
@@ -362,6 +402,17 @@ def _recorder_subscribed(node: Node, topics: list[str]) -> bool:
         if not any(i.node_name == 'recorder' for i in node.get_subscriptions_info_by_topic(t)):
             return False
     return True
+
+
+def _die_with_parent() -> None:
+    """preexec_fn of the bench children: SIGTERM when the tuner dies, however it dies
+    (Linux prctl PR_SET_PDEATHSIG; it survives the exec chain of `ros2 run`), so a
+    SIGKILLed tuner leaves no orphan drive, controller or recorder behind."""
+    try:
+        import ctypes
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass  # not Linux: the children outlive a killed tuner (SIGINT still ends them)
 
 
 def _repair_old_bags(rundir: RunDir, note) -> None:
@@ -444,7 +495,8 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
     should_stop = lambda: stop['sig'] is not None  # noqa: E731
     bench = None
     rec = None
-    children: list[subprocess.Popen] = []
+    children: dict[str, subprocess.Popen] = {}   # the live bench processes, by role
+    ended: list[subprocess.Popen] = []           # ... and those already gone
     node = None
     exe = None
     code = EXIT_OK
@@ -477,6 +529,10 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         if cli.resume is not None and simulated != (run.get('bench') in SIM_BENCHES):
             raise UsageError(f'--resume: the run used bench {run.get("bench")!r}, now '
                              f'{bench_mode!r}: the plant history cannot be restored')
+        if cli.resume is not None and simulated and \
+                (bench_mode in LOCKSTEP_BENCHES) != (run.get('bench') in LOCKSTEP_BENCHES):
+            raise UsageError(f'--resume: the run used bench {run.get("bench")!r}, now '
+                             f'{bench_mode!r}: lock-step and real time do not mix in a run')
         fault_policy = cli.fault_policy or ('reset' if simulated else 'stop')
 
         # ---- the run directory ----------------------------------------------------------------
@@ -542,27 +598,84 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
             # the children log to /rosout (recorded) and their log files, not the console
             quiet_logs = ['--ros-args', '--disable-stdout-logs']
+
+            def spawn(role: str, argv_: list[str]) -> None:
+                children[role] = subprocess.Popen(argv_, stdout=subprocess.DEVNULL,
+                                                  preexec_fn=_die_with_parent)
+
+            def start_recorder(out_dir: Path) -> None:
+                spawn('recorder', [ros2, 'run', 'im_tuner', 'recorder', '--out', str(out_dir),
+                                   '--compression', cli.compression, *quiet_logs])
             if bag_dir is not None:
-                children.append(subprocess.Popen(
-                    [ros2, 'run', 'im_tuner', 'recorder', '--out', str(bag_dir),
-                     '--compression', cli.compression, *quiet_logs], stdout=subprocess.DEVNULL))
-            if bench_mode == 'processes':
-                d = [ros2, 'run', 'im_drive_sim', 'drive_sim', *quiet_logs]
-                c = [ros2, 'run', 'im_controller', 'controller', *quiet_logs]
+                start_recorder(bag_dir)
+            if bench_mode in ('processes', 'realtime'):
+                mode = ['--mode', 'realtime'] if bench_mode == 'realtime' else []
+                d = [ros2, 'run', 'im_drive_sim', 'drive_sim', *mode, *quiet_logs]
+                c = [ros2, 'run', 'im_controller', 'controller', *mode, *quiet_logs]
                 d += [a for p in drive_over for a in ('-p', f'{p.name}:={p.value}')]
                 c += [a for p in ctl_over for a in ('-p', f'{p.name}:={p.value}')]
-                children += [subprocess.Popen(d, stdout=subprocess.DEVNULL),
-                             subprocess.Popen(c, stdout=subprocess.DEVNULL)]
+                spawn('drive_sim', d)
+                spawn('controller', c)
+        monitor = None if bench_mode == 'inproc' else \
+            DriveMonitor(node, controller_topics(cli.controller)['drive_status'])
+        session: dict[str, Any] = {}
+        recorder_restarts = [0]
+
+        def recorder_died(why: str) -> None:
+            """Keep what the dead recorder wrote; go on recording into a new bag."""
+            from .mcap_repair import RepairError, repair_bag
+            dead = rundir.bag_dirs()[-1]
+            progress.note(f'warning: the recorder died ({why}); {dead.name} keeps what it '
+                          'wrote up to its last complete chunk')
+            node.get_logger().error(f'recorder child died ({why}); bag {dead} repaired')
+            try:
+                progress.note('  ' + repair_bag(dead).summary().splitlines()[0])
+            except RepairError as exc:
+                progress.note(f'  could not repair {dead}: {exc}')
+            if recorder_restarts[0] >= RECORDER_RESTARTS:
+                progress.note(f'  not recording any more (already replaced '
+                              f'{RECORDER_RESTARTS} times)')
+                return
+            recorder_restarts[0] += 1
+            new = rundir.next_bag_dir()
+            start_recorder(new)
+            session.setdefault('more_bags', []).append(
+                {'bag': new.name, 'first_record': len(tuning.records)})
+            tuning._checkpoint()
+            deadline = time.monotonic() + 20.0
+            while not _recorder_subscribed(node, rec_topics) and \
+                    time.monotonic() < deadline and children['recorder'].poll() is None:
+                time.sleep(0.05)  # graph queries need no spinning
+            progress.note(f'  recording again into {new.name} (messages in between are in '
+                          'no bag)')
+
+        def supervise() -> None:
+            """Between spins: a dead bench process is noticed at once (see module doc)."""
+            for role, p in list(children.items()):
+                rc = p.poll()
+                if rc is None:
+                    continue
+                ended.append(children.pop(role))
+                why = f'killed by signal {-rc}' if rc < 0 else f'exit code {rc}'
+                if role == 'recorder':
+                    recorder_died(why)
+                else:
+                    node.get_logger().error(f'bench process {role} died ({why})')
+                    raise BenchFailure(f'the bench process {role} died ({why}); the run '
+                                       'stops here (the simulated plant cannot be restored '
+                                       'under a running search)')
+        names = controller_topics(cli.controller)
+        rec_topics = [names['loss'], '/drive/state'] if bench_mode in ('processes', 'realtime') \
+            else [names['loss']]
         link = ControllerLink(node, spin_until, controller=cli.controller,
                               eval_timeout=cli.eval_timeout, fault_policy=fault_policy,
-                              should_stop=should_stop)
+                              should_stop=should_stop, supervise=supervise,
+                              call_timeout=min(10.0, cli.eval_timeout))
         if not link.wait_ready(30.0):
             raise BenchFailure(f'the controller {cli.controller} did not become reachable '
                                'within 30 s (services and loss topic)')
         if children and bag_dir is not None:
-            topics = [link.names['loss'], '/drive/state'] if bench_mode == 'processes' \
-                else [link.names['loss']]
-            if not spin_until(lambda: _recorder_subscribed(node, topics), 30.0):
+            if not spin_until(lambda: _recorder_subscribed(node, rec_topics), 30.0):
                 raise BenchFailure('the recorder child did not subscribe within 30 s')
         if cli.resume is None:
             run['controller_parameters'] = link.list_parameters()
@@ -570,11 +683,14 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             rundir.write_run(run)
             progress.note(f'im_tuner: {run["algo"]} on the {bench_mode} bench, budget '
                           f'{run["budget"]}, seed {run["seed"]}; run directory {rundir.path}')
-        session = {'bag': bag_dir.name if bag_dir else None, 'bench': bench_mode,
-                   'started': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
-                   'replayed': 0, 'first_record': len(tuning.records)}
+        session.update({'bag': bag_dir.name if bag_dir else None, 'bench': bench_mode,
+                        'started': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
+                        'replayed': 0, 'first_record': len(tuning.records)})
         if cli.resume is not None and tuning.records:
-            if simulated:
+            if bench_mode == 'realtime':
+                progress.note('real-time simulated bench: the plant starts again at rest '
+                              '(no replay); the search goes on from the checkpoint')
+            elif simulated:
                 progress.note(f'restoring the simulated plant: replaying '
                               f'{len(replay_plan(tuning.records))} experiments (checked bit '
                               'for bit)')
@@ -584,6 +700,15 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                               'from the checkpoint (no replay)')
         tuning.state.sessions.append(session)
         outcome = tuning.run(link, should_stop)
+        if monitor is not None:
+            # the drive's counters after the last experiment (it reports about once a second)
+            n0 = monitor.received
+            spin_until(lambda: monitor.received > n0, 1.5)
+            session['drive'] = monitor.last
+        else:
+            session['drive'] = drive_report(
+                {'mode': bench.drive.mode, 'model': bench.drive.config.model,
+                 **{k: str(v) for k, v in vars(bench.drive.counters).items()}})
         if outcome == 'interrupted':
             code = EXIT_INTERRUPTED
         elif outcome != 'done':
@@ -615,8 +740,8 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             rec.node.destroy_node()
         if bench is not None:
             bench.destroy()
-        for p in reversed(children):
-            from im_drive_sim.runtime import stop_child
+        from im_drive_sim.runtime import stop_child
+        for p in [*reversed(list(children.values())), *ended]:
             stop_child(p)
         if node is not None:
             node.destroy_node()

@@ -164,6 +164,8 @@ class TuningRun:
         self.records: list[dict[str, Any]] = []
         self._t_mark = time.perf_counter()
         self._ask_us = 0.0
+        #: whether the final gains reached the controller (None: not tried yet)
+        self.applied: bool | None = None
 
     # -- resume --------------------------------------------------------------------------
     def restore(self) -> int:
@@ -304,9 +306,11 @@ class TuningRun:
         if final is not None:
             try:
                 measurer.apply(_gains_of(final))
-            except (BenchFailure, StopRequested) as exc:
-                if outcome == 'done':
-                    outcome = f'failed: could not apply the best gains ({exc})'
+                self.applied = True
+            except (BenchFailure, LostEvaluation, StopRequested) as exc:
+                self.applied = False
+                what = f'could not apply the best gains ({exc or type(exc).__name__})'
+                outcome = f'failed: {what}' if outcome == 'done' else f'{outcome}; {what}'
         return outcome
 
     def _top_evals(self, k: int) -> list[int]:
@@ -330,8 +334,11 @@ class TuningRun:
 
     # -- summary ---------------------------------------------------------------------------
     def summary(self, *, outcome: str, wall_s: float) -> dict[str, Any]:
-        return summarize(self.state, self.records, budget=self.budget,
-                         satisfactory_loss=self.satisfactory, outcome=outcome, wall_s=wall_s)
+        s = summarize(self.state, self.records, budget=self.budget,
+                      satisfactory_loss=self.satisfactory, outcome=outcome, wall_s=wall_s)
+        if s['applied'] is not None:
+            s['applied']['on_controller'] = self.applied
+        return s
 
 
 # -- bookkeeping shared by the loop and the report (pure functions of the records) ------------

@@ -120,6 +120,8 @@ class ControllerNode(Node):
         self._declare_tunables()
         cfg, gains = self._candidate({})
         self.runner = ExperimentRunner(cfg, gains)
+        #: refused requests, by kind (logged, throttled; and at exit)
+        self.refused = {'start_experiment': 0, 'parameters': 0}
         self.add_pre_set_parameters_callback(self._pre_set)
         self.add_on_set_parameters_callback(self._on_set)
         self.add_post_set_parameters_callback(self._post_set)
@@ -275,6 +277,15 @@ class ControllerNode(Node):
 
     def _on_set(self, params: list[Parameter]) -> SetParametersResult:
         """Validate a whole change (one parameter or an atomic set): all or nothing."""
+        result = self._check_set(params)
+        if not result.successful:
+            self.refused['parameters'] += 1
+            self.get_logger().warn(f'parameter change refused: {result.reason} ('
+                                   f'{self.refused["parameters"]} refused so far)',
+                                   throttle_duration_sec=1.0)
+        return result
+
+    def _check_set(self, params: list[Parameter]) -> SetParametersResult:
         tunable = [p for p in params if p.name in GAIN_NAMES or
                    p.name.split('.', 1)[0] in TUNABLE_SECTIONS]
         if tunable and self.runner.running:
@@ -332,6 +343,12 @@ class ControllerNode(Node):
             response.success = True
             response.message = f'experiment {eid} started'
             self.get_logger().info(f'experiment {eid} started with {self.gains}')
+        if not response.success:
+            self.refused['start_experiment'] += 1
+            # throttled: a flood of requests must not flood the log (or a piped stderr)
+            self.get_logger().warn(f'start_experiment {response.message} ('
+                                   f'{self.refused["start_experiment"]} refused so far)',
+                                   throttle_duration_sec=1.0)
         return response
 
     def _on_reset_fault(self, request: Trigger.Request,
@@ -509,7 +526,8 @@ def main(args: list[str] | None = None) -> int:
         argv, lambda: ControllerNode(parameter_overrides=overrides or None),
         (ControllerError, ControllerConfigError), 'controller',
         on_exit=lambda node: node.get_logger().info(
-            f'stopped after {len(node.results)} experiments'))
+            f'stopped after {len(node.results)} experiments; refused requests: '
+            + ', '.join(f'{k} {v}' for k, v in node.refused.items())))
 
 
 if __name__ == '__main__':

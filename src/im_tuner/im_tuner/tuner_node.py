@@ -278,6 +278,14 @@ class Progress:
         elif force:
             print(text, file=self.stream, flush=True)
 
+    def warn(self, text: str) -> None:
+        """Printed even with --quiet: something went wrong that the user must know."""
+        self.quiet, quiet = False, self.quiet
+        try:
+            self.note(text)
+        finally:
+            self.quiet = quiet
+
     def note(self, text: str) -> None:
         if self.quiet:
             return
@@ -625,15 +633,15 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             """Keep what the dead recorder wrote; go on recording into a new bag."""
             from .mcap_repair import RepairError, repair_bag
             dead = rundir.bag_dirs()[-1]
-            progress.note(f'warning: the recorder died ({why}); {dead.name} keeps what it '
+            progress.warn(f'warning: the recorder died ({why}); {dead.name} keeps what it '
                           'wrote up to its last complete chunk')
             node.get_logger().error(f'recorder child died ({why}); bag {dead} repaired')
             try:
-                progress.note('  ' + repair_bag(dead).summary().splitlines()[0])
+                progress.warn('  ' + repair_bag(dead).summary().splitlines()[0])
             except RepairError as exc:
-                progress.note(f'  could not repair {dead}: {exc}')
+                progress.warn(f'  could not repair {dead}: {exc}')
             if recorder_restarts[0] >= RECORDER_RESTARTS:
-                progress.note(f'  not recording any more (already replaced '
+                progress.warn(f'  not recording any more (already replaced '
                               f'{RECORDER_RESTARTS} times)')
                 return
             recorder_restarts[0] += 1
@@ -646,7 +654,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             while not _recorder_subscribed(node, rec_topics) and \
                     time.monotonic() < deadline and children['recorder'].poll() is None:
                 time.sleep(0.05)  # graph queries need no spinning
-            progress.note(f'  recording again into {new.name} (messages in between are in '
+            progress.warn(f'  recording again into {new.name} (messages in between are in '
                           'no bag)')
 
         def supervise() -> None:

@@ -1,0 +1,500 @@
+"""Fault injection on the whole bench (issue 8): what happens when things go wrong.
+
+Each test breaks one link of drive -- controller -- tuner -- recorder, through real
+processes and DDS, and checks that the nodes left keep running and stay safe (zero
+current), that the log says what happened, and that the data up to the fault is kept.
+
+| fault | test |
+|---|---|
+| the drive dies mid-experiment | ``test_drive_killed_mid_experiment`` |
+| the controller dies mid-experiment (real time) | ``test_controller_killed_mid_experiment`` |
+| the tuner dies; resumed on the same bench | ``test_tuner_killed_then_resumed_on_the_same_bench`` |
+| the recorder is SIGKILLed | ``test_recorder_killed_the_run_goes_on_bit_for_bit`` (and test_recorder.py's repair) |
+| NaN / inf in the drive state | test_controller_node.py ``test_non_finite_drive_state_...`` |
+| the drive state stops | test_controller_node.py ``test_watchdog_zero_current_...`` |
+| the commands stop | test_drive_sim_node.py ``test_realtime_watchdog_...`` |
+| duplicated, late and out-of-order commands | ``test_duplicated_late_out_of_order_commands_*`` |
+| a flood of parameter calls and experiment triggers | ``test_flood_of_parameter_calls_and_triggers`` |
+
+The real-time tuning run with separate processes (issue 8's acceptance) is
+``test_realtime_tuning_run_reports_overruns``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Float64MultiArray
+
+from im_controller.config import GAIN_NAMES, Gains
+from im_drive_sim.client import DriveClient
+from im_drive_sim.params import load_config
+from im_drive_sim.sim import STATE_FIELDS, DriveSim
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_controller_node import offline_losses, probe_of_children  # noqa: E402
+from test_drive_sim_node import policy  # noqa: E402
+
+ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
+F = {name: i for i, name in enumerate(STATE_FIELDS)}
+STEPS = 5625  # one experiment (1.125 s at 200 us)
+TAP_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
+                     reliability=ReliabilityPolicy.BEST_EFFORT)  # never back-pressures
+
+
+def ros2(*args: str) -> list[str]:
+    return [ROS2, 'run', *args]
+
+
+def results(run: Path) -> list[dict]:
+    p = run / 'results.jsonl'
+    return [json.loads(x) for x in p.read_text().splitlines()] if p.exists() else []
+
+
+def bag_state(bag: Path) -> str:
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())
+    return meta['rosbag2_bagfile_information']['custom_data']['im_tuner.state']
+
+
+def bag_counts(bag: Path) -> dict[str, int]:
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())
+    return {t['topic_metadata']['name']: t['message_count']
+            for t in meta['rosbag2_bagfile_information']['topics_with_message_count']}
+
+
+def pids_with(arg: str) -> list[int]:
+    """PIDs whose command line contains ``arg`` (to find the tuner's recorder child: a
+    path unique to this test; the processes are then signalled by PID)."""
+    out = []
+    for d in Path('/proc').iterdir():
+        if d.name.isdigit():
+            try:
+                cmd = (d / 'cmdline').read_bytes().split(b'\0')
+            except OSError:
+                continue
+            if arg.encode() in cmd and d.name != str(os.getpid()):
+                out.append(int(d.name))
+    return out
+
+
+class Tap:
+    """Best-effort taps on drive/state and drive/status: the test sees the bench without
+    slowing it (a reliable reader that falls behind would back-pressure the drive)."""
+
+    def __init__(self, ctx) -> None:
+        self.node = Node('fault_tap', context=ctx)
+        self.state_sub = self.node.create_subscription(Float64MultiArray, '/drive/state',
+                                                       lambda _m: None, TAP_QOS)
+        self.status_sub = self.node.create_subscription(DiagnosticArray, '/drive/status',
+                                                        lambda _m: None, 10)
+        self.state: np.ndarray | None = None
+        self.status: list[dict[str, str]] = []
+
+    def poll(self) -> None:
+        while (r := self.state_sub.handle.take_message(Float64MultiArray, False)) is not None:
+            self.state = np.array(r[0].data)
+        while (r := self.status_sub.handle.take_message(DiagnosticArray, False)) is not None:
+            for st in r[0].status:
+                self.status.append({'level': int.from_bytes(st.level, 'little')
+                                    if isinstance(st.level, bytes) else int(st.level),
+                                    'message': st.message,
+                                    **{kv.key: kv.value for kv in st.values}})
+
+    def step(self) -> int:
+        self.poll()
+        return -1 if self.state is None else int(self.state[F['step_index']])
+
+    def close(self) -> None:
+        self.node.destroy_node()
+
+
+@pytest.fixture
+def tap(ros_context):
+    t = Tap(ros_context)
+    try:
+        yield t
+    finally:
+        t.close()
+
+
+def wait_mid_experiment(run: Path, n_records: int, tap: Tap, wait_until,
+                        into: int = 1500) -> dict:
+    """Wait until ``n_records`` results exist and the next experiment is ``into`` steps
+    in (read from the drive's own state); return the last record."""
+    wait_until(lambda: len(results(run)) >= n_records, 120, message=f'{n_records} records')
+    last = results(run)[n_records - 1]
+    end = last['t_end_ns'] // 200_000
+    wait_until(lambda: tap.step() >= end + into, 60, message='the next experiment under way')
+    return last
+
+
+# -- the drive dies ------------------------------------------------------------------------
+def test_drive_killed_mid_experiment(procs, ros_context, tmp_path, tap, wait_until):
+    """SIGKILL the drive 0.3 s into an experiment. The controller's watchdog commands
+    zero current and aborts the experiment (drive_state_timeout, FAULT); the tuner records
+    that result, cannot reset a fault of a silent drive, ends 'failed' with the best gains
+    applied and the bag closed. The controller keeps running, in FAULT."""
+    drive = procs.start(ros2('im_drive_sim', 'drive_sim', '--seed', '3'))
+    ctl = procs.start(ros2('im_controller', 'controller', '--ros-args', '-p',
+                           'state_timeout:=0.5'))
+    run = tmp_path / 'run'
+    tuner = procs.start(ros2('im_tuner', 'tuner', '--bench', 'none', '--budget', '6',
+                             '--seed', '3', '--remeasure', '0', '--fault-policy', 'reset',
+                             '--quiet', '--out', str(run)))
+    wait_mid_experiment(run, 2, tap, wait_until)
+    killed_at = tap.step()
+    drive.send_signal(signal.SIGKILL)
+    out, err = tuner.communicate(timeout=120)
+    assert tuner.returncode == 1, err[-3000:]
+    recs = results(run)
+    # data up to the fault: the reference, one evaluation, the aborted one
+    assert [r['status'] for r in recs] == ['ok', 'ok', 'aborted']
+    assert recs[2]['reason'] == 'drive_state_timeout' and recs[2]['fault']
+    assert recs[2]['steps'] < STEPS
+    # the tuner says what happened and left the best gains applied
+    assert 'failed: reset_fault refused: refused: no drive state since the watchdog' in out
+    summary = json.loads((run / 'summary.json').read_text())
+    assert summary['outcome'].startswith('failed') and summary['applied']['on_controller']
+    # the controller is alive, in FAULT, and says so; the applied gains are on it
+    assert ctl.poll() is None
+    with probe_of_children(ros_context, ctl) as probe:
+        got = probe.get(*GAIN_NAMES)
+        assert got == [summary['applied']['gains'][n] for n in GAIN_NAMES]
+        resp = probe.start()
+        assert not resp.success and 'drive_state_timeout' in resp.message
+    ctl.send_signal(signal.SIGINT)
+    _, ctl_err = ctl.communicate(timeout=30)
+    assert 'no drive state for 0.5 s: zero current commanded, experiment 2 aborted' in ctl_err
+    # the bag is closed and holds the drive's states up to its death, and the controller's
+    # last word to the drive: zero current, no load
+    bag = run / 'bag_0'
+    assert bag_state(bag) == 'closed'
+    assert bag_counts(bag)['/drive/state'] >= killed_at
+    last_cmd = last_message(bag, '/drive/command')
+    assert list(last_cmd.data) == [-1.0, 0.0, 0.0]
+
+
+def last_message(bag: Path, topic: str):
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+    store = get_typestore(Stores.ROS2_JAZZY)
+    last = None
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        for conn, _t, raw in reader.messages(connections=conns):
+            last = store.deserialize_cdr(raw, conn.msgtype)
+    return last
+
+
+# -- the controller dies -------------------------------------------------------------------
+def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
+    """Real time. SIGKILL the controller 0.3 s into an experiment: the drive keeps running,
+    its watchdog commands zero current (ERROR on drive/status, a log line); the tuner
+    re-runs the lost evaluation a bounded number of times, then ends 'failed' (exit 1) with
+    the bag closed, saying the best gains could not be applied."""
+    drive = procs.start(ros2('im_drive_sim', 'drive_sim', '--mode', 'realtime', '--seed', '3'))
+    ctl = procs.start(ros2('im_controller', 'controller', '--mode', 'realtime'))
+    run = tmp_path / 'run'
+    tuner = procs.start(ros2('im_tuner', 'tuner', '--bench', 'none', '--budget', '6',
+                             '--seed', '3', '--remeasure', '0', '--retries', '1',
+                             '--eval-timeout', '4', '--quiet', '--out', str(run)))
+    wait_mid_experiment(run, 2, tap, wait_until)
+    ctl.send_signal(signal.SIGKILL)
+    out, err = tuner.communicate(timeout=120)
+    assert tuner.returncode == 1, err[-3000:]
+    recs = results(run)
+    assert [r['status'] for r in recs] == ['ok', 'ok', 'lost', 'lost']  # 1 + 1 retry
+    assert 'no loss for experiment 2' in recs[2]['reason']
+    assert 'failed: eval 1: no result after 2 attempts' in out
+    assert 'NOT applied' in out
+    summary = json.loads((run / 'summary.json').read_text())
+    assert summary['applied']['on_controller'] is False
+    # the drive is alive and safe: its watchdog tripped, zero current since
+    assert drive.poll() is None
+    wait_until(lambda: tap.poll() or any(s['level'] == 2 and 'watchdog' in s['message']
+                                         for s in tap.status), 10, message='drive ERROR')
+    wait_until(lambda: tap.step() > 0 and abs(tap.state[F['isq']]) < 0.05
+               and tap.state[F['load_torque']] == 0.0, 10, message='zero current')
+    drive.send_signal(signal.SIGINT)
+    _, drive_err = drive.communicate(timeout=30)
+    assert 'watchdog: no command on drive/command for 0.05 s' in drive_err
+    bag = run / 'bag_0'
+    assert bag_state(bag) == 'closed'
+    assert bag_counts(bag)['/controller/loss'] == 2  # the two results before the fault
+
+
+# -- the tuner dies ------------------------------------------------------------------------
+def test_tuner_killed_then_resumed_on_the_same_bench(procs, ros_context, tmp_path, tap,
+                                                     wait_until):
+    """SIGKILL the tuner mid-experiment on an external (lock-step) bench: its recorder
+    child closes its bag by itself (it gets SIGTERM from the kernel); the controller
+    finishes the experiment and stays ready, the drive keeps running; `--resume` goes on
+    on the same bench and completes the budget."""
+    drive = procs.start(ros2('im_drive_sim', 'drive_sim', '--seed', '5'))
+    ctl = procs.start(ros2('im_controller', 'controller'))
+    run = tmp_path / 'run'
+    args = ['--bench', 'none', '--budget', '5', '--seed', '5', '--remeasure', '1', '--quiet']
+    tuner = procs.start(ros2('im_tuner', 'tuner', *args, '--out', str(run)))
+    wait_mid_experiment(run, 3, tap, wait_until)
+    recorder = pids_with(str(run / 'bag_0'))
+    assert len(recorder) == 1
+    tuner.send_signal(signal.SIGKILL)
+    tuner.wait(timeout=30)
+    # no orphan: the recorder ends cleanly, its bag closed
+    wait_until(lambda: not Path(f'/proc/{recorder[0]}').exists()
+               or b'Z' in Path(f'/proc/{recorder[0]}/stat').read_bytes().split(b') ')[1][:1],
+               30, message='the orphaned recorder to end')
+    assert bag_state(run / 'bag_0') == 'closed'
+    n_killed = len(results(run))
+    assert n_killed == 3
+    # the bench: alive, not faulted, and it finished the experiment in flight
+    assert drive.poll() is None and ctl.poll() is None
+    with probe_of_children(ros_context, drive, ctl) as probe:
+        r = probe.experiment(60.0)  # accepted at once: the one in flight (id 3) has ended
+        assert r.experiment_id == 4 and not r.aborted
+    resumed = subprocess.run(ros2('im_tuner', 'tuner', '--resume', str(run)),
+                             capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert 'external bench: the plant is where it is' in resumed.stderr
+    recs = results(run)
+    assert [r['eval'] for r in recs if r['kind'] == 'eval'] == list(range(5))
+    assert recs[:n_killed] == results(run)[:n_killed]
+    assert sum(r['kind'] == 'remeasure' for r in recs) == 1
+    summary = json.loads((run / 'summary.json').read_text())
+    assert [s['bag'] for s in summary['sessions']] == ['bag_0', 'bag_1']
+    assert summary['outcome'] == 'done' and summary['applied']['on_controller']
+    assert bag_state(run / 'bag_1') == 'closed'
+
+
+# -- the recorder dies ---------------------------------------------------------------------
+def test_recorder_killed_the_run_goes_on_bit_for_bit(procs, tmp_path, wait_until):
+    """SIGKILL the tuner's recorder child (processes bench) during the run: the tuner
+    notices, repairs the dead bag (kept up to its last chunk), records on into a new one,
+    and the run is bit for bit the run nothing happened to (the drive did not stall on
+    the dead reader: the recorder's short DDS lease)."""
+    args = ['--budget', '4', '--seed', '1', '--remeasure', '0', '--quiet']
+    whole = tmp_path / 'whole'
+    ref = subprocess.run(ros2('im_tuner', 'tuner', *args, '--out', str(whole)),
+                         capture_output=True, text=True, timeout=300)
+    assert ref.returncode == 0, ref.stderr[-3000:]
+    run = tmp_path / 'run'
+    tuner = procs.start(ros2('im_tuner', 'tuner', '--bench', 'processes', *args,
+                             '--out', str(run)))
+    wait_until(lambda: len(results(run)) >= 2, 120, message='2 records')
+    (recorder,) = pids_with(str(run / 'bag_0'))
+    os.kill(recorder, signal.SIGKILL)
+    out, err = tuner.communicate(timeout=300)
+    assert tuner.returncode == 0, err[-3000:]
+    assert 'warning: the recorder died (killed by signal 9); bag_0 keeps what it wrote' in err
+    assert 'recording again into bag_1' in err
+    got, want = results(run), results(whole)
+    assert [(r['kind'], r['loss'], r['experiment_id']) for r in got] == \
+        [(r['kind'], r['loss'], r['experiment_id']) for r in want]
+    summary = json.loads((run / 'summary.json').read_text())
+    (more,) = summary['sessions'][0]['more_bags']
+    assert more['bag'] == 'bag_1' and more['first_record'] >= 2
+    assert 'bag_0/, bag_1/' in out
+    assert bag_state(run / 'bag_0') == 'repaired' and bag_state(run / 'bag_1') == 'closed'
+    # data up to the kill, but for the chunk still open then (at most --max-chunk-age)
+    assert bag_counts(run / 'bag_0')['/drive/state'] > STEPS
+    assert bag_counts(run / 'bag_1')['/controller/loss'] >= 1
+
+
+# -- bad commands --------------------------------------------------------------------------
+def test_duplicated_late_out_of_order_commands_lockstep(procs, ros_context):
+    """Lock-step: every state answered by the right command, then by a duplicate of it
+    and by a late, out-of-order one with a wild value. The drive steps once per state
+    with the right command: the states equal the pure core's bit for bit."""
+    steps = 1000
+    p = procs.start(ros2('im_drive_sim', 'drive_sim', '--seed', '7', '--max-steps',
+                         str(steps)))
+    node = Node('bad_commands', context=ros_context)
+    states = np.full((steps + 1, len(STATE_FIELDS)), np.nan)
+    try:
+        client = DriveClient(node)
+        deadline = time.monotonic() + 60
+        while True:
+            s = client.wait_new_state(max(0.0, deadline - time.monotonic()))
+            assert s is not None, f'no new state after step {client.answered}'
+            k = int(s[F['step_index']])
+            states[k] = s
+            if k == steps:
+                break
+            isq, load = policy(s)
+            client.command(k, isq, load)
+            client.command(k, isq, load)        # duplicated
+            if k >= 1:
+                client.command(k - 1, -7.0, 3.0)  # late and out of order
+    finally:
+        node.destroy_node()
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == 0, err
+    sim = DriveSim(load_config(None), seed=7)
+    sim.reset(theta=0.0, omega=0.0, fluxed=True)
+    ref = np.zeros_like(states)
+    sim.read_into(ref[0])
+    for k in range(steps):
+        sim.step_into(*policy(ref[k]), ref[k + 1])
+    assert np.array_equal(states, ref)
+    counts = dict(kv.split('=') for kv in
+                  err[err.rindex('stopped at step'):].splitlines()[0].split(': ', 1)[1]
+                  .split(', '))
+    assert int(counts['steps']) == steps
+    assert int(counts['stale_ignored']) >= 2 * steps - 10  # both bad ones, nearly every step
+
+
+def test_duplicated_late_out_of_order_commands_realtime(procs, ros_context):
+    """Real time: each state answered with 2 A, then a duplicate answer with -5 A and an
+    out-of-order one (an older step) with -5 A. The drive ignores both (it would step
+    back in time): isq stays at 2 A, the ignored ones are counted."""
+    p = procs.start(ros2('im_drive_sim', 'drive_sim', '--mode', 'realtime', '--max-steps',
+                         '2500'))
+    node = Node('bad_commands_rt', context=ros_context)
+    isq = []
+    try:
+        client = DriveClient(node)
+        assert client.wait_for_drive(20.0)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and p.poll() is None:
+            s = client.wait_new_state(0.5)
+            if s is None:
+                continue
+            k = int(s[F['step_index']])
+            isq.append((k, s[F['isq']]))
+            client.command(k, 2.0, 0.0)
+            client.command(k, -5.0, 0.0)          # duplicate, another value
+            if k >= 2:
+                client.command(k - 2, -5.0, 0.0)  # out of order
+    finally:
+        node.destroy_node()
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == 0, err
+    k, i = np.array(isq).T
+    settled = i[k > 500]
+    assert settled.size > 100 and np.all(np.abs(settled - 2.0) < 0.2), settled.min()
+    counts = dict(kv.split('=') for kv in
+                  err[err.rindex('stopped at step'):].splitlines()[0].split(': ', 1)[1]
+                  .split(', '))
+    assert int(counts['stale_ignored']) >= int(counts['commands']) // 2
+
+
+# -- a flood of requests -------------------------------------------------------------------
+def test_flood_of_parameter_calls_and_triggers(procs, ros_context):
+    """While an experiment runs, 3 clients fire 150 requests at the controller at once:
+    experiment triggers, valid gain sets and invalid ones (out of range, NaN, unknown,
+    wrong type). The running experiment is untouched (its loss equals the pure core's
+    bit for bit); no invalid value is ever applied; every experiment a trigger started
+    ran to its result with one consistent gain set; the refusals are logged (throttled);
+    the controller still works afterwards."""
+    from rclpy.parameter_client import AsyncParameterClient
+    from std_srvs.srv import Trigger
+    drive = procs.start(ros2('im_drive_sim', 'drive_sim', '--seed', '3'))
+    ctl = procs.start(ros2('im_controller', 'controller'))
+    valid = {'k_pw': 0.6, 'k_iw': 20.0, 'k_pos': 30.0, 'tau_sm': 0.005, 'tau_eq': 0.007}
+    invalid = [[Parameter('k_pw', value=-1.0)], [Parameter('k_pos', value=math.nan)],
+               [Parameter('no_such_gain', value=1.0)], [Parameter('k_iw', value='high')],
+               [Parameter('tau_sm', value=1e9)]]
+    with probe_of_children(ros_context, drive, ctl) as probe:
+        n0 = len(probe.results)
+        first = probe.start()
+        deadline = time.monotonic() + 20
+        while not first.success and 'no drive state' in first.message and \
+                time.monotonic() < deadline:  # the drive re-sends its state every 0.1 s
+            probe.spin_until(lambda: False, 0.05)
+            first = probe.start()
+        assert first.success, first.message
+        futures = {'start': [], 'valid': [], 'invalid': []}
+        clients = [(probe.node.create_client(Trigger, '/controller/start_experiment'),
+                    AsyncParameterClient(probe.node, '/controller')) for _ in range(3)]
+        assert probe.spin_until(lambda: all(t.service_is_ready() and p.services_are_ready()
+                                            for t, p in clients), 10)
+        for i in range(50):
+            trig, par = clients[i % 3]
+            futures['start'].append(trig.call_async(Trigger.Request()))
+            futures['valid'].append(par.set_parameters_atomically(
+                [Parameter(n, value=v) for n, v in valid.items()]))
+            bad = invalid[i % len(invalid)]
+            futures['invalid'].append(par.set_parameters(bad) if i % 2 else
+                                      par.set_parameters_atomically(bad))
+        every = [f for fs in futures.values() for f in fs]
+        # Requests past a service reader's depth (10) may be dropped by DDS and never
+        # answered: wait until all are answered or none more came for 3 s.
+        seen = {'n': -1, 't': time.monotonic()}
+
+        def settled() -> bool:
+            n = sum(f.done() for f in every)
+            if n != seen['n']:
+                seen.update(n=n, t=time.monotonic())
+            return n == len(every) or time.monotonic() - seen['t'] > 3.0
+        assert probe.spin_until(settled, 120)
+        answered = {k: sum(f.done() for f in fs) for k, fs in futures.items()}
+        assert sum(answered.values()) >= len(every) // 2, answered
+        assert drive.poll() is None and ctl.poll() is None
+        # no invalid value ever applied
+        for f in futures['invalid']:
+            if f.done():
+                res = f.result()
+                rs = res.results if hasattr(res, 'results') else [res.result]
+                assert not any(r.successful for r in rs)
+        started = sum(f.done() and f.result().success for f in futures['start'])
+        # every started experiment ends with a result (ids consecutive after the first)
+        assert probe.spin_until(lambda: len(probe.results) == n0 + 1 + started, 120)
+        res = probe.results[n0:]
+        assert [r.experiment_id for r in res] == list(range(res[0].experiment_id,
+                                                            res[0].experiment_id + 1 + started))
+        # the first ran with the start gains, untouched: the pure core's loss
+        assert res[0].gains == Gains() and res[0].loss == offline_losses([Gains()])[0].loss
+        for r in res[1:]:
+            assert r.gains in (Gains(), Gains(**valid))
+        assert probe.get(*GAIN_NAMES) in ([getattr(Gains(), n) for n in GAIN_NAMES],
+                                          [valid[n] for n in GAIN_NAMES])
+        r = probe.experiment(60.0)  # and it still works
+        assert math.isfinite(r.loss)
+    ctl.send_signal(signal.SIGINT)
+    _, ctl_err = ctl.communicate(timeout=30)
+    assert 'parameter change refused' in ctl_err
+    assert 'refused requests: start_experiment' in ctl_err
+
+
+# -- real time, separate processes ---------------------------------------------------------
+def test_realtime_tuning_run_reports_overruns(tmp_path):
+    """`tuner --bench realtime`: drive_sim and controller as processes at 5 kHz wall
+    clock, recorder too; the tuner unchanged. The run completes and its summary reports
+    the drive's overruns, late and held commands (whatever this machine's load made them)."""
+    run = tmp_path / 'run'
+    p = subprocess.run(ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '3',
+                            '--seed', '2', '--remeasure', '1', '--quiet', '--out', str(run)),
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-3000:]
+    recs = results(run)
+    assert [r['kind'] for r in recs] == ['reference', 'eval', 'eval', 'eval', 'remeasure']
+    assert all(r['status'] in ('ok', 'aborted') for r in recs)
+    summary = json.loads((run / 'summary.json').read_text())
+    d = summary['sessions'][0]['drive']
+    assert d['mode'] == 'realtime'
+    assert d['steps'] >= 5 * STEPS  # five experiments at least, in real time
+    for k in ('overruns', 'late', 'held', 'fresh', 'max_lateness_us', 'watchdog_trips'):
+        assert isinstance(d[k], (int, float)) and d[k] >= 0, k
+    assert d['fresh'] + d['held'] == d['steps']
+    line = next(x for x in p.stdout.splitlines() if x.startswith('  drive (real time):'))
+    assert f'overruns {d["overruns"]}' in line and f'late commands {d["late"]}' in line
+    run_yaml = yaml.safe_load((run / 'run.yaml').read_text())
+    assert run_yaml['bench'] == 'realtime'
+    # everything the drive published while recorded is in the bag, nothing lost
+    meta = yaml.safe_load((run / 'bag_0' / 'metadata.yaml').read_text())
+    assert bag_state(run / 'bag_0') == 'closed'
+    assert meta['rosbag2_bagfile_information']['custom_data']['im_tuner.lost_total'] == '0'
+    assert bag_counts(run / 'bag_0')['/drive/state'] >= 5 * STEPS

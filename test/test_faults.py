@@ -154,8 +154,7 @@ def test_drive_killed_mid_experiment(procs, ros_context, tmp_path, tap, wait_unt
     tuner = procs.start(ros2('im_tuner', 'tuner', '--bench', 'none', '--budget', '6',
                              '--seed', '3', '--remeasure', '0', '--fault-policy', 'reset',
                              '--quiet', '--out', str(run)))
-    wait_mid_experiment(run, 2, tap, wait_until)
-    killed_at = tap.step()
+    last = wait_mid_experiment(run, 2, tap, wait_until)
     drive.send_signal(signal.SIGKILL)
     out, err = tuner.communicate(timeout=120)
     assert tuner.returncode == 1, err[-3000:]
@@ -182,7 +181,8 @@ def test_drive_killed_mid_experiment(procs, ros_context, tmp_path, tap, wait_unt
     # last word to the drive: zero current, no load
     bag = run / 'bag_0'
     assert bag_state(bag) == 'closed'
-    assert bag_counts(bag)['/drive/state'] >= killed_at
+    # (the states the dead drive had not delivered yet died with it)
+    assert bag_counts(bag)['/drive/state'] > last['t_end_ns'] // 200_000
     last_cmd = last_message(bag, '/drive/command')
     assert list(last_cmd.data) == [-1.0, 0.0, 0.0]
 
@@ -480,15 +480,16 @@ def test_realtime_tuning_run_reports_overruns(tmp_path):
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr[-3000:]
     recs = results(run)
-    assert [r['kind'] for r in recs] == ['reference', 'eval', 'eval', 'eval', 'remeasure']
+    assert [r['kind'] for r in recs] == ['reference', 'eval', 'eval', 'eval', 'remeasure'], \
+        p.stdout
     assert all(r['status'] in ('ok', 'aborted') for r in recs)
     summary = json.loads((run / 'summary.json').read_text())
     d = summary['sessions'][0]['drive']
-    assert d['mode'] == 'realtime'
-    assert d['steps'] >= 5 * STEPS  # five experiments at least, in real time
+    assert d['mode'] == 'realtime', d
+    assert d['steps'] >= 5 * STEPS, d  # five experiments at least, in real time
     for k in ('overruns', 'late', 'held', 'fresh', 'max_lateness_us', 'watchdog_trips'):
         assert isinstance(d[k], (int, float)) and d[k] >= 0, k
-    assert d['fresh'] + d['held'] == d['steps']
+    assert d['fresh'] + d['held'] == d['steps'], d
     line = next(x for x in p.stdout.splitlines() if x.startswith('  drive (real time):'))
     assert f'overruns {d["overruns"]}' in line and f'late commands {d["late"]}' in line
     run_yaml = yaml.safe_load((run / 'run.yaml').read_text())
@@ -496,5 +497,6 @@ def test_realtime_tuning_run_reports_overruns(tmp_path):
     # everything the drive published while recorded is in the bag, nothing lost
     meta = yaml.safe_load((run / 'bag_0' / 'metadata.yaml').read_text())
     assert bag_state(run / 'bag_0') == 'closed'
-    assert meta['rosbag2_bagfile_information']['custom_data']['im_tuner.lost_total'] == '0'
+    custom = meta['rosbag2_bagfile_information']['custom_data']
+    assert custom['im_tuner.lost_total'] == '0', custom['im_tuner.counts']
     assert bag_counts(run / 'bag_0')['/drive/state'] >= 5 * STEPS

@@ -265,8 +265,13 @@ class ControllerLink:
                            t_end_ns=r.t_end, wall_s=time.perf_counter() - t0, gains=ran)
 
     def apply(self, gains: Gains) -> None:
-        """Leave ``gains`` applied on the controller (the run's final controller)."""
-        if not self.reachable() and not self.wait_ready(min(self.call_timeout,
-                                                            self.eval_timeout)):
-            raise LostEvaluation(f'the controller {self.names["node"]} is not reachable')
-        self.set_gains(gains, time.monotonic() + self.eval_timeout)
+        """Leave ``gains`` applied on the controller (the run's final controller); also
+        after a stop request (SIGINT): each wait is bounded by the call timeout anyway."""
+        should_stop, self.should_stop = self.should_stop, lambda: False
+        try:
+            if not self.reachable() and not self.wait_ready(min(self.call_timeout,
+                                                                self.eval_timeout)):
+                raise LostEvaluation(f'the controller {self.names["node"]} is not reachable')
+            self.set_gains(gains, time.monotonic() + self.eval_timeout)
+        finally:
+            self.should_stop = should_stop

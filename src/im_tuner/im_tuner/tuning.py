@@ -310,7 +310,10 @@ class TuningRun:
             except (BenchFailure, LostEvaluation, StopRequested) as exc:
                 self.applied = False
                 what = f'could not apply the best gains ({exc or type(exc).__name__})'
-                outcome = f'failed: {what}' if outcome == 'done' else f'{outcome}; {what}'
+                if outcome == 'done':
+                    outcome = f'failed: {what}'
+                elif outcome.startswith('failed'):
+                    outcome = f'{outcome}; {what}'
         return outcome
 
     def _top_evals(self, k: int) -> list[int]:

@@ -63,7 +63,7 @@ LATENCY_P99_MAX = 20e-3
 EFFECT_DELAY_LOCKSTEP = 1
 EFFECT_DELAY_REALTIME = 2
 #: latency/step: a response starts where isq leaves its extrapolated course by this fraction
-#: of the commanded change (or 8 noise levels, whichever is larger).
+#: of the commanded change (or 8 noise levels, whichever is larger): 10 mA for 0.5 A.
 ONSET_FRACTION = 0.02
 #: step_response: 10-90 % rise time of isq [s] (the paper's current loop: about 1.5 ms).
 RISE_TIME_MAX = 5e-3
@@ -75,8 +75,10 @@ ACCEL_MIN_COUNTS = 3
 WATCHDOG_MARGIN_S, WATCHDOG_MARGIN_REL = 0.03, 0.25
 #: ... and not before half of it (the contract holds the last command until the timeout).
 WATCHDOG_EARLIEST = 0.5
-#: watchdog: |isq| below this fraction of the test current counts as zero current.
+#: watchdog: |isq| below this fraction of the test current counts as zero current ...
 ZERO_CURRENT_FRACTION = 0.2
+#: ... and the fall to it starts where isq leaves this fraction of the test current.
+WATCHDOG_ACT_FRACTION = 0.9
 #: watchdog (lock-step): silence during which the drive must not step [s].
 LOCKSTEP_SILENCE_S = 0.35
 
@@ -296,21 +298,22 @@ def judge_rate_lockstep(n_steps: int, unanswered: int, skipped: int, idle_advanc
 
 def onset_delay(x: np.ndarray, i0: int, delta_ref: float, max_delay: int = 20) -> int | None:
     """Steps after sample ``i0`` (the state answered by a command changing the reference by
-    ``delta_ref``) until ``x`` first leaves its linear extrapolation from samples i0-1, i0 by
-    more than max(ONSET_FRACTION |delta_ref|, 8 x the noise of its second differences over
-    the 16 samples before i0). None when it never does (or samples are missing)."""
-    if i0 < 17 or i0 + 1 >= len(x):
+    ``delta_ref``) until ``x`` first leaves its course -- the straight line fitted to samples
+    i0-4..i0 -- by more than max(ONSET_FRACTION |delta_ref|, 8 x the median |second
+    difference| over the 16 samples before i0, a noise level). None when it never does
+    within ``max_delay`` steps (or samples are missing)."""
+    if i0 < 16 or i0 + 1 >= len(x):
         return None
     pre = x[i0 - 16:i0 + 1]
     if not np.isfinite(pre).all():
         return None
     noise = float(np.median(np.abs(np.diff(pre, 2))))
     thr = max(ONSET_FRACTION * abs(delta_ref), 8.0 * noise)
-    slope = x[i0] - x[i0 - 1]
+    slope, level = np.polyfit(np.arange(-4, 1), x[i0 - 4:i0 + 1], 1)
     for d in range(1, min(max_delay, len(x) - 1 - i0) + 1):
         if not math.isfinite(x[i0 + d]):
             return None
-        if abs(x[i0 + d] - (x[i0] + d * slope)) > thr:
+        if abs(x[i0 + d] - (level + d * slope)) > thr:
             return d
     return None
 
@@ -428,22 +431,28 @@ def watchdog_limits(timeout: float) -> tuple[float, float]:
                                                       WATCHDOG_MARGIN_REL * timeout)
 
 
-def judge_watchdog_realtime(t_zero: float | None, timeout: float, resumed_s: float | None,
-                            timeout_source: str, aborted: str = '') -> Item:
-    """``t_zero``: last command published -> first state at zero current [s] (None: never);
-    ``resumed_s``: new command -> current back [s] (None: it did not resume)."""
+def judge_watchdog_realtime(t_act: float | None, t_zero: float | None, timeout: float,
+                            resumed_s: float | None, timeout_source: str,
+                            aborted: str = '') -> Item:
+    """Times after the last command was published [s]: ``t_act`` when isq started its fall to
+    zero (left WATCHDOG_ACT_FRACTION of the test current), ``t_zero`` when it got there
+    (None: never); ``resumed_s``: new command -> current back [s] (None: did not resume).
+    The watchdog's own timing is judged on ``t_act``: the fall itself is the current
+    loop's business (step_response)."""
     lo, hi = watchdog_limits(timeout)
-    ok = t_zero is not None and lo <= t_zero <= hi and resumed_s is not None and not aborted
-    zero = f'zero current {t_zero * 1e3:.1f} ms after the last command' if t_zero is not None \
+    ok = t_act is not None and t_zero is not None and lo <= t_act <= hi and \
+        resumed_s is not None and not aborted
+    zero = f'current falls {t_act * 1e3:.1f} ms after the last command, zero at ' \
+        f'{t_zero * 1e3:.1f} ms' if t_act is not None and t_zero is not None \
         else 'current never went to zero'
     back = f'resumed {resumed_s * 1e3:.1f} ms after a new command' if resumed_s is not None \
         else 'did not resume on a new command'
     figures = f'{zero}; {back}' + (f'; {aborted}' if aborted else '')
     return Item('watchdog', ok, figures,
-                f'zero current within {lo * 1e3:.0f}..{hi * 1e3:.0f} ms (command_timeout '
+                f'falls to zero {lo * 1e3:.0f}..{hi * 1e3:.0f} ms after (command_timeout '
                 f'{timeout:g} s, {timeout_source}), then resume',
-                {'t_zero_s': t_zero, 'resumed_s': resumed_s, 'command_timeout_s': timeout,
-                 'limits_s': [lo, hi]})
+                {'t_act_s': t_act, 't_zero_s': t_zero, 'resumed_s': resumed_s,
+                 'command_timeout_s': timeout, 'limits_s': [lo, hi]})
 
 
 def judge_watchdog_lockstep(silence_s: float, advanced: int, resumed_s: float | None) -> Item:
@@ -669,9 +678,8 @@ def run_check(opts: Options, node, log: Callable[[str], None], stop: Callable[[]
             drive_name, drive_ns = known[0].node_name, known[0].node_namespace
         if time.monotonic() > settle + 2.0:
             break
-        others = node.get_publishers_info_by_topic(cmd_topic)
-        if others:
-            raise CheckRefused(_commander_message(cmd_topic, others))
+        if node.get_publishers_info_by_topic(cmd_topic):
+            _refuse_commander(node, cmd_topic, p)
         p.poll(0.05)
     drive_full = (drive_ns.rstrip('/') + '/' + drive_name) if drive_name else '(unknown node)'
 
@@ -697,10 +705,8 @@ def _probe_and_judge(p: Probe, opts: Options, node, cfg, drive_full: str, timeou
             'command_timeout_source': timeout_src}
 
     def check_alone() -> None:
-        pubs = node.get_publishers_info_by_topic(cmd_topic)
-        if len(pubs) > 1:
-            raise CheckRefused(_commander_message(
-                cmd_topic, [e for e in pubs if e.node_name != node.get_name()]))
+        if len(node.get_publishers_info_by_topic(cmd_topic)) > 1:
+            _refuse_commander(node, cmd_topic, p)
 
     # -- mode: does step_index advance without commands? ---------------------------------
     if not p.run(lambda k, s: None, lambda: p.newest() is not None, opts.timeout):
@@ -875,8 +881,8 @@ def _probe_and_judge(p: Probe, opts: Options, node, cfg, drive_full: str, timeou
                                                      aborted['why'] or 'step test incomplete')
 
     if realtime:
-        items['watchdog'] = judge_watchdog_realtime(wd['t_zero'], timeout, wd['resumed_s'],
-                                                    timeout_src, wd['aborted'])
+        items['watchdog'] = judge_watchdog_realtime(wd['t_act'], wd['t_zero'], timeout,
+                                                    wd['resumed_s'], timeout_src, wd['aborted'])
     else:
         items['watchdog'] = judge_watchdog_lockstep(wd['silence_s'], wd['advanced'],
                                                     wd['resumed_s'])
@@ -911,8 +917,13 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
         st['i'] = p.n
         return st['zero_run'] >= 10 or bool(st['why']) or time.monotonic() > end
     p.run(silent, done, 2 * hi + 1.0)
-    t_zero = (p.source_ns[st['zero_at']] - t_last) * 1e-9 if st['zero_at'] is not None \
-        else None
+    t_zero = t_act = None
+    if st['zero_at'] is not None:
+        t_zero = (p.source_ns[st['zero_at']] - t_last) * 1e-9
+        i = st['zero_at']  # back along the fall to where it began
+        while i > i_silent and p.states[i - 1, F['isq']] < WATCHDOG_ACT_FRACTION * w:
+            i -= 1
+        t_act = (p.source_ns[i] - t_last) * 1e-9
     if st['why']:
         p.command(max(p.answered, int(p.newest()[0])), 0.0)
     # Steps at +w: as many at -w bring the shaft back near rest.
@@ -927,7 +938,7 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
             break
     if t_res is not None and t_res > 0.05:
         t_res = None
-    return {'t_zero': t_zero, 'resumed_s': t_res, 'aborted': st['why']}
+    return {'t_act': t_act, 't_zero': t_zero, 'resumed_s': t_res, 'aborted': st['why']}
 
 
 def _watchdog_lockstep(p: Probe) -> dict:
@@ -968,10 +979,21 @@ def _clean(obj):
     return obj
 
 
-def _commander_message(topic: str, endpoints) -> str:
-    names = sorted({(e.node_namespace.rstrip('/') + '/' + e.node_name) for e in endpoints})
-    return (f'{", ".join(names)} already publishes {topic}: a controller is connected and '
-            'two commanders would fight; stop it first')
+def _refuse_commander(node, topic: str, p: Probe) -> None:
+    """Raise CheckRefused naming the other publishers of ``topic`` (their node names are
+    discovered a moment after the endpoints: wait up to 1 s for them)."""
+    deadline = time.monotonic() + 1.0
+    while True:
+        others = [e for e in node.get_publishers_info_by_topic(topic)
+                  if not (e.node_name == node.get_name()
+                          and e.node_namespace == node.get_namespace())]
+        if time.monotonic() > deadline or not any(
+                e.node_name.startswith('_NODE_NAME_UNKNOWN') for e in others):
+            break
+        p.poll(0.05)
+    names = sorted({(e.node_namespace.rstrip('/') + '/' + e.node_name) for e in others})
+    raise CheckRefused(f'{", ".join(names) or "another node"} already publishes {topic}: a '
+                       'controller is connected and two commanders would fight; stop it first')
 
 
 def _command_timeout(opts: Options, node, drive_name: str | None, drive_ns: str | None

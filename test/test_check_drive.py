@@ -320,6 +320,8 @@ def test_latency_and_watchdog_verdicts():
     assert cd.judge_latency([1] * 11, wall, realtime=False).passed
     assert not cd.judge_latency([1] * 10 + [2], wall, realtime=False).passed
     assert cd.judge_latency([1, 2, 2, 3, 1], wall, realtime=True).passed
+    assert cd.judge_latency([2, 2, 3, 3, 3, 3, 4, 5], wall, realtime=True).passed  # late answers
+    assert not cd.judge_latency([1, 3, 3, 3, 3, 3, 3], wall, realtime=True).passed
     item = cd.judge_latency([4, 5, 4, 4], wall, realtime=True)
     assert not item.passed and 'k+4: 3, k+5: 1' in item.figures
     assert not cd.judge_latency([1] * 11, np.full(100, 3e-3), realtime=False).passed

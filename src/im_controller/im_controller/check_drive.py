@@ -59,7 +59,9 @@ RATE_MAX_LONG_FRACTION = 0.20
 LATENCY_MEDIAN_MAX = 2e-3
 LATENCY_P99_MAX = 20e-3
 #: latency: the state in which a command first shows (k+1 answers k). Real time allows one
-#: period of transport (k+2) for the median.
+#: period of transport (k+2), judged on the fastest quarter of the changes: a change this
+#: check answers late (its own process descheduled on a loaded machine) shows later
+#: through no fault of the drive, but a drive that applies commands late never shows early.
 EFFECT_DELAY_LOCKSTEP = 1
 EFFECT_DELAY_REALTIME = 2
 #: latency/step: a response starts where isq leaves its extrapolated course by this fraction
@@ -327,15 +329,16 @@ def judge_latency(delays: Sequence[int | None], wall_s: np.ndarray, realtime: bo
     p99 = float(np.percentile(wall_s, 99)) if len(wall_s) else math.nan
     limit = EFFECT_DELAY_REALTIME if realtime else EFFECT_DELAY_LOCKSTEP
     if realtime:
-        effect_ok = len(d) >= 3 and float(np.median(d)) <= limit
+        effect_ok = len(d) >= 3 and float(np.percentile(d, 25, method='lower')) <= limit
     else:
         effect_ok = len(d) >= 3 and bool(np.all(d == limit)) and missing == 0
     ok = effect_ok and med <= LATENCY_MEDIAN_MAX and p99 <= LATENCY_P99_MAX
     hist = ', '.join(f'k+{int(v)}: {int(np.sum(d == v))}' for v in np.unique(d))
     figures = (f'command -> next state median {med * 1e6:.0f} us, p99 {p99 * 1e6:.0f} us; '
                f'takes effect in {hist or "-"}' + (f', never: {missing}' if missing else ''))
-    expected = (f'effect in k+1{" (median <= k+2)" if realtime else " always"}, median <= '
-                f'{LATENCY_MEDIAN_MAX * 1e3:g} ms, p99 <= {LATENCY_P99_MAX * 1e3:g} ms')
+    when = ' (fastest quarter by k+2)' if realtime else ' always'
+    expected = (f'effect in k+1{when}, median <= {LATENCY_MEDIAN_MAX * 1e3:g} ms, '
+                f'p99 <= {LATENCY_P99_MAX * 1e3:g} ms')
     return Item('latency', ok, figures, expected,
                 {'median_s': _finite_or_none(med), 'p99_s': _finite_or_none(p99),
                  'effect_delays': [None if x is None else int(x) for x in delays]})
@@ -506,6 +509,7 @@ class Probe:
         self.joint_sub = node.create_subscription(JointState, 'drive/joint_states', noop, 1000)
         self.status_sub = node.create_subscription(DiagnosticArray, 'drive/status', noop, 10)
         self.cmd_pub = None
+        self.stopped = False
         self.waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)
         n = capacity
         self.states = np.full((n, len(STATE_FIELDS)), np.nan)
@@ -609,9 +613,10 @@ class Probe:
         return True
 
     def safe_stop(self) -> None:
-        """Leave the drive commanding zero current (and no load)."""
-        if self.cmd_pub is None:
+        """Leave the drive commanding zero current (and no load); once."""
+        if self.cmd_pub is None or self.stopped:
             return
+        self.stopped = True
         from rclpy.duration import Duration
         s = self.newest()
         k = int(s[F['step_index']]) if s is not None else -1
@@ -802,6 +807,7 @@ def _probe_and_judge(p: Probe, opts: Options, node, cfg, drive_full: str, timeou
         if status_mode is not None and status_mode != mode:
             mode_note = f'drive/status says mode={status_mode}'
     info['status_mode'] = status_mode
+    p.safe_stop()  # before judging: the drive is not left waiting for commands meanwhile
 
     # ================================ judging ========================================
     items: dict[str, Item] = {}

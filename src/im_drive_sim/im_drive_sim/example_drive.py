@@ -179,8 +179,8 @@ class ExampleDrive(Node):
         self.waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
         self.wire = Float64ArrayWire(len(STATE_FIELDS))  # preallocated: nothing built per step
         self.joint = JointState(name=['motor'], position=[0.0], velocity=[0.0], effort=[0.0])
-        self.get_logger().info(f'real time, Ts={self.config.Ts * 1e6:.0f} us, '
-                               f'isq_max={self.isq_max:g} A, command_timeout={self.command_timeout:g} s')
+        self.get_logger().info(f'real time, Ts={self.config.Ts * 1e6:.0f} us, isq_max='
+                               f'{self.isq_max:g} A, command_timeout={self.command_timeout:g} s')
 
     # -- hooks ----------------------------------------------------------------------------
     def make_hardware(self) -> Hardware:

@@ -468,12 +468,14 @@ def judge_watchdog_lockstep(silence_s: float, advanced: int, resumed_s: float | 
                 {'silence_s': silence_s, 'advanced': advanced, 'resumed_s': resumed_s})
 
 
-def summary_line(items: Sequence[Item]) -> str:
+def summary_line(items: Sequence[Item], mode: str = '', status_mode: str | None = None) -> str:
+    """The last line: verdict, failing items, the mode (and what drive/status said)."""
     failed = [i.name for i in items if not i.passed]
     n = len(items)
-    if not failed:
-        return f'check_drive: all {n} items PASS'
-    return f'check_drive: {n - len(failed)}/{n} items pass; FAIL: {", ".join(failed)}'
+    verdict = f'all {n} items PASS' if not failed else \
+        f'{n - len(failed)}/{n} items pass; FAIL: {", ".join(failed)}'
+    how = f' ({mode}; drive/status mode={status_mode or "not seen"})' if mode else ''
+    return f'check_drive: {verdict}{how}'
 
 
 # ======================================= the probe ==========================================
@@ -1107,7 +1109,7 @@ def main(args: list[str] | None = None) -> int:
                                 lambda: stop['signal'] is not None)
         for item in items:
             print(item.line())
-        print(summary_line(items))
+        print(summary_line(items, info.get('mode', ''), info.get('status_mode')))
         code = 0 if all(i.passed for i in items) else 1
         if opts.json:
             Path(opts.json).write_text(json.dumps(_clean(

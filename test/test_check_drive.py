@@ -371,3 +371,50 @@ def test_judge_topics():
 def test_check_drive_layout_is_the_simulators():
     from im_drive_sim.sim import STATE_FIELDS
     assert cd.STATE_FIELDS == STATE_FIELDS and len(cd.STATE_FIELDS) == 12
+
+
+# ------------------------------------------------------------------ the example drive itself
+
+def test_example_drive_clamps_and_ignores_stale_duplicate_and_bad_commands(procs, ros_context):
+    """isq* beyond the read-only isq_max is clamped; a command answering an older step than
+    the held one, or the same step again, is ignored and counted; a non-finite or
+    wrong-length command is ignored with an error."""
+    import signal
+    import time
+    from rclpy.node import Node
+    from std_msgs.msg import Float64MultiArray
+    from im_drive_sim.client import DriveClient
+    p = procs.start([ROS2, 'run', 'im_drive_sim', 'example_drive', '--ros-args',
+                     '-p', 'isq_max:=1.0'])
+    node = Node('test_example_client', context=ros_context)
+    try:
+        client = DriveClient(node)
+        assert client.wait_for_drive(20.0)
+        raw = node.create_publisher(Float64MultiArray, 'drive/command', 10)
+        s = client.wait_state(5.0)
+        k = int(s[0])
+        client.command(k, 5.0)        # clamped to 1 A
+        client.command(k - 5, -5.0)   # out of order: ignored
+        client.command(k, -5.0)       # duplicate: ignored
+        raw.publish(Float64MultiArray(data=[float(k + 1), math.nan, 0.0]))  # ignored
+        raw.publish(Float64MultiArray(data=[float(k + 1), -5.0]))           # ignored
+        isq = []
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and len(isq) < 100:
+            s = client.wait_new_state(1.0)
+            if s is not None and s[0] > k + 20:
+                isq.append(s[6])
+                client.command(int(s[0]), 5.0)
+        assert len(isq) == 100 and max(isq) == pytest.approx(1.0, abs=1e-6)
+    finally:
+        node.destroy_node()
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=20)
+    assert p.returncode == 0, err
+    summary = err[err.rindex('stopped at step'):].splitlines()[0]
+    counts = dict(kv.split('=') for kv in summary.split(': ', 1)[1].split(', '))
+    assert counts['stale_ignored'] == '2'
+    # 3 valid before the states collected + 100 (the last may still be in flight at SIGINT);
+    # the non-finite and the short command are not counted
+    assert int(counts['commands']) in (102, 103)
+    assert 'expected 3 finite values' in err

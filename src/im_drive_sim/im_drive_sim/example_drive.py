@@ -43,7 +43,6 @@ from .runtime import RCLError, publish_retry, run_stepped_node
 from .sim import STATE_FIELDS
 
 NS_PER_S = 1_000_000_000
-F = {name: i for i, name in enumerate(STATE_FIELDS)}
 
 
 @dataclass

@@ -1,0 +1,343 @@
+"""A minimal real-time drive node to start from: ``ros2 run im_drive_sim example_drive``.
+
+Copy this file for a real drive. It has two parts:
+
+(a) :class:`Hardware` -- the only code that touches the power stage. Replace its two
+    methods: ``write(isq_ref, load_torque)`` applies the current reference (and the load
+    machine's torque) for the coming period, ``read()`` samples the sensors and returns a
+    :class:`Measurement`. Here they are backed by a small simulated stand-in plant
+    (first-order current loop, torque = kt isq, inertia + viscous friction, a
+    4096-count encoder, speed = low-pass filtered backward difference of the measured
+    position), with constants from the drive parameter file.
+(b) :class:`ExampleDrive` -- the ROS side, honouring docs/interfaces.md in real-time mode:
+    ``drive/state`` every 200 us, ``drive/command`` taken at each period start (newest
+    wins; out-of-order and duplicate commands are ignored and counted), ``drive/joint_states``
+    every 10 steps, ``drive/status`` about once a second, the isq clamp and the command
+    watchdog. Loop: hand-paced on the wall clock (sleep in rcl_wait, busy-wait the last
+    ``realtime_spin_margin``), as drive_sim's real-time mode.
+
+Check a drive built from it with ``ros2 run im_controller check_drive`` (docs/check-drive.md).
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass, fields
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.duration import Duration
+from rclpy.node import Node
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from .cdr import Float64ArrayWire, parse_float64_array
+from .drive_sim_node import (CMD_ISQ, CMD_LOAD, CMD_STEP, COMMAND_FIELDS, COMMAND_TOPIC,
+                             JOINT_STATE_TOPIC, LOCKSTEP_QOS, RECORDED_QOS, STATE_TOPIC,
+                             STATUS_TOPIC, _descriptor)
+from .params import ConfigError, DriveConfig, load_config
+from .runtime import RCLError, publish_retry, run_stepped_node
+from .sim import STATE_FIELDS
+
+NS_PER_S = 1_000_000_000
+
+
+@dataclass
+class Measurement:
+    """What the drive samples each period (SI units; updated in place, never re-created)."""
+
+    theta_meas: float = 0.0   #: [rad] encoder position, multi-turn
+    omega_meas: float = 0.0   #: [rad/s] speed estimate
+    torque: float = 0.0       #: [N m] electromagnetic torque (estimated on a real drive)
+    isd: float = 0.0          #: [A] d-axis current
+    isq: float = 0.0          #: [A] q-axis current
+    i_alpha: float = 0.0      #: [A] stator current, alpha axis
+    i_beta: float = 0.0       #: [A] stator current, beta axis
+    load_torque: float = 0.0  #: [N m] load machine torque
+
+
+class Hardware:
+    """Simulated stand-in for the power stage and sensors. Replace ``read``/``write``.
+
+    ``write`` applies a command for the coming period; ``read`` samples the sensors at the
+    period start. The stand-in advances its model by one period Ts inside ``read`` (time
+    that passes by itself on real hardware).
+    """
+
+    def __init__(self, config: DriveConfig) -> None:
+        m, s = config.machine, config.sensors
+        self.ts = config.Ts                                    # [s]
+        self.kt = m.Kt                                         # [N m/A]
+        self.inv_j, self.b = 1.0 / m.J, m.B                    # [1/(kg m^2)], [N m s/rad]
+        self.isd_ref = m.rated_flux_current                    # [A]
+        self.pole_pairs = m.pole_pairs
+        self.a_i = math.exp(-self.ts * config.control.current_bandwidth)  # current-loop pole
+        self.a_w = math.exp(-self.ts / s.speed_filter_tau) if s.speed_filter_tau > 0 else 0.0
+        self.counts_per_rad = s.encoder_counts / (2.0 * math.pi)
+        self.isq_ref = self.load_ref = 0.0
+        self.isq = self.theta = self.omega = 0.0               # true plant state
+        self.count = 0                                         # encoder count
+        self.m = Measurement(isd=self.isd_ref)
+
+    def write(self, isq_ref: float, load_torque: float) -> None:
+        """Apply isq* [A] (already clamped) and the load torque [N m] for the next period."""
+        self.isq_ref, self.load_ref = isq_ref, load_torque
+
+    def read(self) -> Measurement:
+        """Sample the sensors (the stand-in first integrates the plant over one period)."""
+        ts, m = self.ts, self.m
+        self.isq = self.a_i * self.isq + (1.0 - self.a_i) * self.isq_ref
+        torque = self.torque_of(self.isq)
+        # Load: positive opposes positive rotation (docs/interfaces.md).
+        self.omega += (torque - self.load_ref - self.b * self.omega) * self.inv_j * ts
+        self.theta += self.omega * ts
+        count = math.floor(self.theta * self.counts_per_rad)
+        raw = (count - self.count) / (self.counts_per_rad * ts)  # backward difference
+        self.count = count
+        m.theta_meas = count / self.counts_per_rad
+        m.omega_meas = self.a_w * m.omega_meas + (1.0 - self.a_w) * raw
+        m.torque, m.isq, m.load_torque = torque, self.isq, self.load_ref
+        rho = self.pole_pairs * m.theta_meas  # field angle of the stand-in (slip neglected)
+        c, s = math.cos(rho), math.sin(rho)
+        m.i_alpha = c * m.isd - s * m.isq
+        m.i_beta = s * m.isd + c * m.isq
+        return m
+
+    def torque_of(self, isq: float) -> float:
+        """Electromagnetic torque [N m] of a q current [A]."""
+        return self.kt * isq
+
+
+@dataclass
+class Counters:
+    """Published on drive/status and logged at exit (names as in docs/interfaces.md)."""
+
+    steps: int = 0              #: periods run
+    commands: int = 0           #: valid commands received
+    fresh: int = 0              #: steps driven by a command answering the latest state
+    held: int = 0               #: steps that held an older command
+    late: int = 0               #: commands answering an older state than the latest
+    stale_ignored: int = 0      #: out-of-order or duplicate commands, ignored
+    overruns: int = 0           #: periods that started more than one period late
+    max_lateness_us: float = 0.0  #: worst period-start lateness [us]
+    watchdog_trips: int = 0     #: times commands stopped for more than command_timeout
+    watchdog_steps: int = 0     #: steps run at zero current by the watchdog
+    backpressure: int = 0       #: publish retries while a reliable reader was full
+
+
+class ExampleDrive(Node):
+    """The ROS side (real time only). Hooks for subclasses: ``make_hardware``,
+    ``apply_command``, ``fill_state``, ``make_joint_publisher``/``publish_joint_state``,
+    ``watchdog`` and the attribute ``period_s``."""
+
+    def __init__(self, node_name: str = 'example_drive', **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        d = self.declare_parameter
+        cfg_file = d('config_file', '', _descriptor(
+            "Drive parameter file (YAML); '' = the packaged 750 W motor.")).value
+        self.config = load_config(cfg_file or None)
+        self.ts_ns: int = self.config.Ts_ns
+        #: wall-clock period of the loop [s] (= Ts; a subclass may change it)
+        self.period_s: float = self.config.Ts
+        file_max = self.config.machine.isq_max
+        self.isq_max: float = d('isq_max', file_max, _descriptor(
+            'Clamp of isq* [A] (read-only: a limit no parameter call can change); at most the '
+            "parameter file's isq_max.", float_range=(0.0, file_max))).value
+        self.command_timeout: float = d('command_timeout', 0.05, _descriptor(
+            'Watchdog: no command for this long [s] -> zero current and no load until the next '
+            'command.', float_range=(0.0002, 10.0))).value
+        self.spin_margin: float = d('realtime_spin_margin', 150e-6, _descriptor(
+            'Busy-wait this long before each period start [s], for low jitter.',
+            float_range=(0.0, 200e-6))).value
+        self.joint_decimation: int = d('joint_state_decimation', 10, _descriptor(
+            'Publish drive/joint_states every N steps.', int_range=(1, 100000))).value
+        d('state_fields', list(STATE_FIELDS), _descriptor('Layout of drive/state data.'))
+        d('command_fields', list(COMMAND_FIELDS), _descriptor('Layout of drive/command data.'))
+
+        self.hw = self.make_hardware()
+        self.counters = Counters()
+        self.stop_requested = False
+        self.k = 0                           # step index of the latest published state
+        self.isq_ref = self.load_ref = 0.0   # the held command (zero before the first one)
+        self.held_answers = -2               # answers_step of the held command (-2: none yet)
+        self.fresh = False
+        self.last_cmd_wall: float | None = None
+        self.tripped = False
+
+        self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
+        self.joint_pub = self.make_joint_publisher()
+        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, 10)
+        # The 5 kHz command path lives on a hidden node that no executor ever spins.
+        self.io_node = Node(f'_{node_name}_io', context=self.context,
+                            namespace=self.get_namespace())
+        self.cmd_sub = self.io_node.create_subscription(
+            Float64MultiArray, COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS)
+        self.waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
+        self.wire = Float64ArrayWire(len(STATE_FIELDS))  # preallocated: nothing built per step
+        self.joint = JointState(name=['motor'], position=[0.0], velocity=[0.0], effort=[0.0])
+        self.get_logger().info(f'real time, Ts={self.config.Ts * 1e6:.0f} us, isq_max='
+                               f'{self.isq_max:g} A, command_timeout={self.command_timeout:g} s')
+
+    # -- hooks ----------------------------------------------------------------------------
+    def make_hardware(self) -> Hardware:
+        return Hardware(self.config)
+
+    def make_joint_publisher(self):
+        return self.create_publisher(JointState, JOINT_STATE_TOPIC, 10)
+
+    def apply_command(self, isq_ref: float, load_torque: float) -> None:
+        """Clamp and hand the command to the hardware for the coming period."""
+        self.hw.write(max(-self.isq_max, min(self.isq_max, isq_ref)), load_torque)
+
+    def fill_state(self, m: Measurement) -> None:
+        """Copy a measurement into the drive/state buffer (a real drive repeats the measured
+        position and speed in the 'true' fields 10 and 11)."""
+        v = self.wire.values
+        v[0] = self.k
+        v[1] = self.k * self.ts_ns
+        v[2], v[3], v[4] = m.theta_meas, m.omega_meas, m.torque
+        v[5], v[6], v[7], v[8] = m.isd, m.isq, m.i_alpha, m.i_beta
+        v[9], v[10], v[11] = m.load_torque, m.theta_meas, m.omega_meas
+
+    def watchdog(self, now: float) -> None:
+        """No command for ``command_timeout`` -> zero current and no load until the next."""
+        if self.last_cmd_wall is None or now - self.last_cmd_wall <= self.command_timeout:
+            return
+        if not self.tripped:
+            self.tripped = True
+            self.counters.watchdog_trips += 1
+            self.get_logger().warn(f'watchdog: no command on {COMMAND_TOPIC} for '
+                                   f'{self.command_timeout:g} s at step {self.k}: zero current')
+        self.isq_ref = self.load_ref = 0.0
+        self.counters.watchdog_steps += 1
+
+    # -- commands ---------------------------------------------------------------------------
+    def take_commands(self) -> None:
+        """Take every pending command; the newest valid one becomes the held command."""
+        n = len(COMMAND_FIELDS)
+        while (r := self.cmd_sub.handle.take_message(Float64MultiArray, True)) is not None:
+            data = parse_float64_array(r[0], n)  # our compact layout, read in place
+            if data is None:  # another layout: the general (slower) way
+                data = deserialize_message(r[0], Float64MultiArray).data
+            if len(data) != n or not (math.isfinite(data[0]) and math.isfinite(data[1])
+                                      and math.isfinite(data[2])):
+                self.get_logger().error(f'{COMMAND_TOPIC}: expected {n} finite values '
+                                        f'{COMMAND_FIELDS}; ignored', throttle_duration_sec=1.0)
+                continue
+            answers = int(data[CMD_STEP])
+            self.counters.commands += 1
+            if 0 <= answers <= self.held_answers:  # out of order, or a duplicate
+                self.counters.stale_ignored += 1
+                continue
+            self.held_answers = answers
+            self.isq_ref, self.load_ref = float(data[CMD_ISQ]), float(data[CMD_LOAD])
+            self.last_cmd_wall = time.perf_counter()
+            self.fresh = answers < 0 or answers == self.k
+            self.counters.late += 0 <= answers < self.k
+            if self.tripped:
+                self.tripped = False
+                self.get_logger().info(f'watchdog: commands resumed at step {self.k}')
+
+    def wait_command(self, timeout_s: float) -> bool:
+        """Sleep up to ``timeout_s`` [s]; True when a command is pending."""
+        ws = self.waitset
+        ws.clear_entities()  # rcl_wait nulls entries that were not ready: re-add every time
+        ws.add_subscription(self.cmd_sub.handle)
+        ws.wait(int(timeout_s * NS_PER_S))
+        return ws.is_ready('subscription', 0)
+
+    # -- publishing ------------------------------------------------------------------------
+    def publish_state(self) -> None:
+        payload = self.wire.payload()
+        try:
+            self.state_pub.publish(payload)
+        except RCLError:  # a full reliable reader (recorder): back-pressure, never drop
+            self.counters.backpressure += publish_retry(self.state_pub, payload, self.context)
+        if self.k % self.joint_decimation == 0:
+            self.publish_joint_state()
+
+    def publish_joint_state(self) -> None:
+        """drive/joint_states: the state's theta_meas, omega_meas, torque, stamped k Ts."""
+        j, v = self.joint, self.wire.values
+        j.header.stamp.sec, j.header.stamp.nanosec = divmod(self.k * self.ts_ns, NS_PER_S)
+        j.position[0], j.velocity[0], j.effort[0] = float(v[2]), float(v[3]), float(v[4])
+        self.joint_pub.publish(j)
+
+    def publish_status(self) -> None:
+        c = self.counters
+        st = DiagnosticStatus(name=f'{self.get_name()}: example drive', hardware_id='example')
+        st.level, st.message = DiagnosticStatus.OK, 'ok'
+        if c.overruns or c.late or c.stale_ignored:
+            st.level, st.message = DiagnosticStatus.WARN, 'late commands / overruns counted'
+        if self.tripped:
+            st.level, st.message = DiagnosticStatus.ERROR, 'command watchdog: zero current'
+        values = {'mode': 'realtime', 'step_index': str(self.k),
+                  **{f.name: f'{getattr(c, f.name):g}' for f in fields(c)}}
+        st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        msg = DiagnosticArray(status=[st])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.status_pub.publish(msg)
+
+    # -- the loop ------------------------------------------------------------------------------
+    def run(self, executor) -> None:
+        """Period n starts at t0 + n period_s: take commands, apply, sample, publish."""
+        c = self.counters
+        self.fill_state(self.hw.read())
+        self.publish_state()
+        t0 = time.perf_counter()
+        next_status, n = t0 + 1.0, 0
+        while not self.stop_requested and rclpy.ok(context=self.context):
+            deadline = t0 + (n + 1) * self.period_s
+            while (remaining := deadline - time.perf_counter() - self.spin_margin) > 0:
+                if self.wait_command(remaining):  # sleeps; a command wakes it early
+                    self.take_commands()          # (held until the period start)
+            while time.perf_counter() < deadline:
+                pass  # busy-wait the last stretch: a precise period start
+            now = time.perf_counter()
+            lateness = now - deadline
+            c.max_lateness_us = max(c.max_lateness_us, lateness * 1e6)
+            if lateness > self.period_s:  # overrun: re-anchor, no burst of catch-up steps
+                c.overruns += 1
+                t0 = now - (n + 1) * self.period_s
+            n += 1
+            self.take_commands()
+            self.watchdog(now)
+            c.fresh += self.fresh
+            c.held += not self.fresh
+            self.fresh = False
+            self.apply_command(self.isq_ref, self.load_ref)
+            self.k += 1
+            self.fill_state(self.hw.read())
+            self.publish_state()
+            c.steps += 1
+            if n % 250 == 0:  # serve parameter requests between periods, every 50 ms
+                executor.spin_once(timeout_sec=0.0)
+                if now >= next_status:
+                    self.publish_status()
+                    next_status = now + 1.0
+        self.publish_status()
+
+    def log_summary(self) -> None:
+        self.get_logger().info(f'stopped at step {self.k}: ' + ', '.join(
+            f'{f.name}={getattr(self.counters, f.name):g}' for f in fields(self.counters)))
+
+    def flush(self, timeout: float = 1.0) -> None:
+        for pub in (self.state_pub, self.joint_pub, self.status_pub):
+            pub.wait_for_all_acked(Duration(seconds=timeout))
+
+    def destroy_node(self) -> None:
+        self.io_node.destroy_node()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:
+    argv = sys.argv if args is None else args
+    return run_stepped_node(argv, node_class, (ConfigError,), 'example_drive',
+                            on_exit=lambda node: node.log_summary())
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -94,7 +94,7 @@ class Counters:
     watchdog_steps: int = 0     #: real time: steps run at zero current by the watchdog
 
 
-def _descriptor(description: str, *, read_only: bool = True,
+def param_descriptor(description: str, *, read_only: bool = True,
                 int_range: tuple[int, int] | None = None,
                 float_range: tuple[float, float] | None = None,
                 additional: str = '') -> ParameterDescriptor:
@@ -179,50 +179,50 @@ class DriveSimNode(Node):
     # -- parameters ------------------------------------------------------------------
     def _declare_parameters(self) -> dict:
         specs = [
-            ('mode', 'lockstep', _descriptor(
+            ('mode', 'lockstep', param_descriptor(
                 "'lockstep': one 200 us step per command received; 'realtime': paced at "
                 '5 kHz by the wall clock, holding the last command.',
                 additional="one of: lockstep, realtime")),
-            ('config_file', '', _descriptor(
+            ('config_file', '', param_descriptor(
                 'Drive parameter file (YAML, see share/im_drive_sim/config/paper_750w.yaml); '
                 "'' = the packaged 750 W default.")),
-            ('model', '', _descriptor(
+            ('model', '', param_descriptor(
                 "'full' (voltage-fed IM + vector control) or 'reduced' (ideal field "
                 "orientation); '' = as in the parameter file.",
                 additional="one of: '', full, reduced")),
-            ('seed', -1, _descriptor(
+            ('seed', -1, param_descriptor(
                 'Seed of the disturbance sources; -1 = the parameter file\'s seed.',
                 int_range=(-1, 2**31 - 1))),
-            ('initial_position', 0.0, _descriptor(
+            ('initial_position', 0.0, param_descriptor(
                 'Rotor position at start [rad].', float_range=(-1e6, 1e6))),
-            ('clock_decimation', 25, _descriptor(
+            ('clock_decimation', 25, param_descriptor(
                 'Publish /clock every N steps (N = 25: every 5 ms of sim time).',
                 int_range=(1, 100000))),
-            ('joint_state_decimation', 10, _descriptor(
+            ('joint_state_decimation', 10, param_descriptor(
                 'Publish drive/joint_states every N steps.', int_range=(1, 100000))),
-            ('max_steps', 0, _descriptor(
+            ('max_steps', 0, param_descriptor(
                 'Stop after this many steps (0 = run until shut down).',
                 int_range=(0, 2**62))),
-            ('service_period_steps', 250, _descriptor(
+            ('service_period_steps', 250, param_descriptor(
                 'Serve parameter requests every N steps (and whenever idle).',
                 int_range=(1, 1000000))),
-            ('republish_period', 0.1, _descriptor(
+            ('republish_period', 0.1, param_descriptor(
                 'Lock-step: re-send the current state after this long without a command '
                 '[s], so a controller that starts later still gets it.',
                 float_range=(0.001, 60.0))),
-            ('realtime_wait_for_controller', True, _descriptor(
+            ('realtime_wait_for_controller', True, param_descriptor(
                 'Real time: start the clock only once a controller publishes on '
                 'drive/command (false: start at once and hold zero current).')),
-            ('realtime_spin_margin', 150e-6, _descriptor(
+            ('realtime_spin_margin', 150e-6, param_descriptor(
                 'Real time: busy-wait this long before each period start instead of '
                 'sleeping, for low jitter [s].', float_range=(0.0, 200e-6))),
-            ('command_timeout', 0.05, _descriptor(
+            ('command_timeout', 0.05, param_descriptor(
                 'Real time: watchdog -- no command for this long [s] -> zero current and no '
                 'load until the next command (the safe state of a drive whose controller '
                 'stopped).', float_range=(0.0002, 10.0))),
-            ('state_fields', list(STATE_FIELDS), _descriptor(
+            ('state_fields', list(STATE_FIELDS), param_descriptor(
                 'Layout of drive/state data (read-only): field names in order.')),
-            ('command_fields', list(COMMAND_FIELDS), _descriptor(
+            ('command_fields', list(COMMAND_FIELDS), param_descriptor(
                 'Layout of drive/command data (read-only): field names in order.')),
         ]
         values = {}
@@ -375,8 +375,9 @@ class DriveSimNode(Node):
             if self.lockstep_poll(int(wait_s * NS_PER_S)):
                 last_step = time.perf_counter()
             elif time.perf_counter() - last_step >= self.republish_period:
-                # Idle: serve parameters, then re-send the state for a late-starting peer.
-                executor.spin_once(timeout_sec=0.0)
+                # Idle: serve parameters (and the status: an idle drive still reports),
+                # then re-send the state for a late-starting peer.
+                next_status = self._serve(executor, t_wall0, next_status)
                 self.publish_state()
                 c.republished += 1
                 last_step = time.perf_counter()

@@ -37,7 +37,7 @@ from std_msgs.msg import Float64MultiArray
 from .cdr import Float64ArrayWire, parse_float64_array
 from .drive_sim_node import (CMD_ISQ, CMD_LOAD, CMD_STEP, COMMAND_FIELDS, COMMAND_TOPIC,
                              JOINT_STATE_TOPIC, LOCKSTEP_QOS, RECORDED_QOS, STATE_TOPIC,
-                             STATUS_TOPIC, _descriptor)
+                             STATUS_TOPIC, param_descriptor)
 from .params import ConfigError, DriveConfig, load_config
 from .runtime import RCLError, publish_retry, run_stepped_node
 from .sim import STATE_FIELDS
@@ -136,26 +136,26 @@ class ExampleDrive(Node):
     def __init__(self, node_name: str = 'example_drive', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         d = self.declare_parameter
-        cfg_file = d('config_file', '', _descriptor(
+        cfg_file = d('config_file', '', param_descriptor(
             "Drive parameter file (YAML); '' = the packaged 750 W motor.")).value
         self.config = load_config(cfg_file or None)
         self.ts_ns: int = self.config.Ts_ns
         #: wall-clock period of the loop [s] (= Ts; a subclass may change it)
         self.period_s: float = self.config.Ts
         file_max = self.config.machine.isq_max
-        self.isq_max: float = d('isq_max', file_max, _descriptor(
+        self.isq_max: float = d('isq_max', file_max, param_descriptor(
             'Clamp of isq* [A] (read-only: a limit no parameter call can change); at most the '
             "parameter file's isq_max.", float_range=(0.0, file_max))).value
-        self.command_timeout: float = d('command_timeout', 0.05, _descriptor(
+        self.command_timeout: float = d('command_timeout', 0.05, param_descriptor(
             'Watchdog: no command for this long [s] -> zero current and no load until the next '
             'command.', float_range=(0.0002, 10.0))).value
-        self.spin_margin: float = d('realtime_spin_margin', 150e-6, _descriptor(
+        self.spin_margin: float = d('realtime_spin_margin', 150e-6, param_descriptor(
             'Busy-wait this long before each period start [s], for low jitter.',
             float_range=(0.0, 200e-6))).value
-        self.joint_decimation: int = d('joint_state_decimation', 10, _descriptor(
+        self.joint_decimation: int = d('joint_state_decimation', 10, param_descriptor(
             'Publish drive/joint_states every N steps.', int_range=(1, 100000))).value
-        d('state_fields', list(STATE_FIELDS), _descriptor('Layout of drive/state data.'))
-        d('command_fields', list(COMMAND_FIELDS), _descriptor('Layout of drive/command data.'))
+        d('state_fields', list(STATE_FIELDS), param_descriptor('Layout of drive/state data.'))
+        d('command_fields', list(COMMAND_FIELDS), param_descriptor('Layout of drive/command data.'))
 
         self.hw = self.make_hardware()
         self.counters = Counters()

@@ -36,8 +36,21 @@ def drive_proc(procs, *args: str, env: dict | None = None) -> subprocess.Popen:
     return procs.start([ROS2, 'run', 'im_drive_sim', 'drive_sim', *args], env=env)
 
 
-def run_closed_loop(ctx, steps: int, timeout: float = 60.0) -> np.ndarray:
-    """Answer states 0..steps-1 with ``policy``; return the states 0..steps."""
+def core_states(steps: int, seed: int) -> np.ndarray:
+    """States 0..steps of the pure core closed by ``policy`` (no ROS)."""
+    sim = DriveSim(load_config(None), seed=seed)
+    sim.reset(theta=0.0, omega=0.0, fluxed=True)
+    ref = np.zeros((steps + 1, len(STATE_FIELDS)))
+    sim.read_into(ref[0])
+    for k in range(steps):
+        sim.step_into(*policy(ref[k]), ref[k + 1])
+    return ref
+
+
+def run_closed_loop(ctx, steps: int, timeout: float = 60.0, after_command=None
+                    ) -> np.ndarray:
+    """Answer states 0..steps-1 with ``policy``; return the states 0..steps.
+    ``after_command(client, k)`` runs after each answer (to send extra commands)."""
     node = Node('test_controller', context=ctx)
     try:
         client = DriveClient(node)
@@ -51,6 +64,8 @@ def run_closed_loop(ctx, steps: int, timeout: float = 60.0) -> np.ndarray:
             if k == steps:
                 return states
             client.command(k, *policy(s))
+            if after_command is not None:
+                after_command(client, k)
     finally:
         node.destroy_node()
 
@@ -70,12 +85,7 @@ def test_lockstep_is_deterministic_and_equals_the_core(procs, ros_context):
     np.testing.assert_array_equal(a[:, F['step_index']], np.arange(steps + 1))
     np.testing.assert_array_equal(a[:, F['time_ns']], np.arange(steps + 1) * 200_000)
     # The node adds nothing: the pure core with the same commands gives the same states.
-    sim = DriveSim(load_config(None), seed=7)
-    sim.reset(theta=0.0, omega=0.0, fluxed=True)
-    ref = np.zeros((steps + 1, len(STATE_FIELDS)))
-    sim.read_into(ref[0])
-    for k in range(steps):
-        sim.step_into(*policy(ref[k]), ref[k + 1])
+    ref = core_states(steps, seed=7)
     assert np.array_equal(a, ref)
     # The loop really moved the motor towards 1 rad and fought the load.
     assert abs(a[699, F['theta']] - 1.0) < 0.05

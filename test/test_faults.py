@@ -41,12 +41,11 @@ from std_msgs.msg import Float64MultiArray
 
 from im_controller.config import GAIN_NAMES, Gains
 from im_drive_sim.client import DriveClient
-from im_drive_sim.params import load_config
-from im_drive_sim.sim import STATE_FIELDS, DriveSim
+from im_drive_sim.sim import STATE_FIELDS
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_controller_node import offline_losses, probe_of_children  # noqa: E402
-from test_drive_sim_node import policy  # noqa: E402
+from test_drive_sim_node import core_states, policy, run_closed_loop  # noqa: E402
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 F = {name: i for i, name in enumerate(STATE_FIELDS)}
@@ -57,6 +56,12 @@ TAP_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
 
 def ros2(*args: str) -> list[str]:
     return [ROS2, 'run', *args]
+
+
+def stop_counts(err: str) -> dict[str, str]:
+    """The counters drive_sim logs when it stops ('stopped at step ...: k=v, ...')."""
+    line = err[err.rindex('stopped at step'):].splitlines()[0]
+    return dict(kv.split('=') for kv in line.split(': ', 1)[1].split(', '))
 
 
 def results(run: Path) -> list[dict]:
@@ -88,6 +93,18 @@ def pids_with(arg: str) -> list[int]:
             if arg.encode() in cmd and d.name != str(os.getpid()):
                 out.append(int(d.name))
     return out
+
+
+_DOMAINS = iter(range(1, 1000))
+
+
+@pytest.fixture(autouse=True)
+def own_domain(monkeypatch):
+    """Each fault test in a DDS domain of its own: a SIGKILLed process stays on the graph
+    until its lease expires (20 s), and the next test's tuner would find its dead
+    controller there. (Autouse: set before ros_context and the children start.)"""
+    base = int(os.environ['ROS_DOMAIN_ID'])
+    monkeypatch.setenv('ROS_DOMAIN_ID', str((base + next(_DOMAINS)) % 233))
 
 
 class Tap:
@@ -151,7 +168,8 @@ def test_drive_killed_mid_experiment(procs, ros_context, tmp_path, tap, wait_unt
     ctl = procs.start(ros2('im_controller', 'controller', '--ros-args', '-p',
                            'state_timeout:=0.5'))
     run = tmp_path / 'run'
-    tuner = procs.start(ros2('im_tuner', 'tuner', '--bench', 'none', '--budget', '6',
+    tuner = procs.start(ros2('im_tuner', 'tuner', '--bench', 'none', '--discovery-timeout', '20',
+                             '--budget', '6',
                              '--seed', '3', '--remeasure', '0', '--fault-policy', 'reset',
                              '--quiet', '--out', str(run)))
     last = wait_mid_experiment(run, 2, tap, wait_until)
@@ -208,7 +226,8 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
     drive = procs.start(ros2('im_drive_sim', 'drive_sim', '--mode', 'realtime', '--seed', '3'))
     ctl = procs.start(ros2('im_controller', 'controller', '--mode', 'realtime'))
     run = tmp_path / 'run'
-    tuner = procs.start(ros2('im_tuner', 'tuner', '--bench', 'none', '--budget', '6',
+    tuner = procs.start(ros2('im_tuner', 'tuner', '--bench', 'none', '--discovery-timeout', '20',
+                             '--budget', '6',
                              '--seed', '3', '--remeasure', '0', '--retries', '1',
                              '--eval-timeout', '4', '--quiet', '--out', str(run)))
     wait_mid_experiment(run, 2, tap, wait_until)
@@ -246,7 +265,8 @@ def test_tuner_killed_then_resumed_on_the_same_bench(procs, ros_context, tmp_pat
     drive = procs.start(ros2('im_drive_sim', 'drive_sim', '--seed', '5'))
     ctl = procs.start(ros2('im_controller', 'controller'))
     run = tmp_path / 'run'
-    args = ['--bench', 'none', '--budget', '5', '--seed', '5', '--remeasure', '1', '--quiet']
+    args = ['--bench', 'none', '--discovery-timeout', '20', '--budget', '5', '--seed', '5',
+            '--remeasure', '1', '--quiet']
     tuner = procs.start(ros2('im_tuner', 'tuner', *args, '--out', str(run)))
     wait_mid_experiment(run, 3, tap, wait_until)
     recorder = pids_with(str(run / 'bag_0'))
@@ -265,7 +285,8 @@ def test_tuner_killed_then_resumed_on_the_same_bench(procs, ros_context, tmp_pat
     with probe_of_children(ros_context, drive, ctl) as probe:
         r = probe.experiment(60.0)  # accepted at once: the one in flight (id 3) has ended
         assert r.experiment_id == 4 and not r.aborted
-    resumed = subprocess.run(ros2('im_tuner', 'tuner', '--resume', str(run)),
+    resumed = subprocess.run(ros2('im_tuner', 'tuner', '--resume', str(run),
+                                  '--discovery-timeout', '20'),
                              capture_output=True, text=True, timeout=300)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert 'external bench: the plant is where it is' in resumed.stderr
@@ -321,37 +342,16 @@ def test_duplicated_late_out_of_order_commands_lockstep(procs, ros_context):
     steps = 1000
     p = procs.start(ros2('im_drive_sim', 'drive_sim', '--seed', '7', '--max-steps',
                          str(steps)))
-    node = Node('bad_commands', context=ros_context)
-    states = np.full((steps + 1, len(STATE_FIELDS)), np.nan)
-    try:
-        client = DriveClient(node)
-        deadline = time.monotonic() + 60
-        while True:
-            s = client.wait_new_state(max(0.0, deadline - time.monotonic()))
-            assert s is not None, f'no new state after step {client.answered}'
-            k = int(s[F['step_index']])
-            states[k] = s
-            if k == steps:
-                break
-            isq, load = policy(s)
-            client.command(k, isq, load)
-            client.command(k, isq, load)        # duplicated
-            if k >= 1:
-                client.command(k - 1, -7.0, 3.0)  # late and out of order
-    finally:
-        node.destroy_node()
+
+    def bad_commands(client: DriveClient, k: int) -> None:
+        client.command(k, *policy(client.state))  # duplicated
+        if k >= 1:
+            client.command(k - 1, -7.0, 3.0)        # late and out of order
+    states = run_closed_loop(ros_context, steps, after_command=bad_commands)
     _, err = p.communicate(timeout=30)
     assert p.returncode == 0, err
-    sim = DriveSim(load_config(None), seed=7)
-    sim.reset(theta=0.0, omega=0.0, fluxed=True)
-    ref = np.zeros_like(states)
-    sim.read_into(ref[0])
-    for k in range(steps):
-        sim.step_into(*policy(ref[k]), ref[k + 1])
-    assert np.array_equal(states, ref)
-    counts = dict(kv.split('=') for kv in
-                  err[err.rindex('stopped at step'):].splitlines()[0].split(': ', 1)[1]
-                  .split(', '))
+    assert np.array_equal(states, core_states(steps, seed=7))
+    counts = stop_counts(err)
     assert int(counts['steps']) == steps
     assert int(counts['stale_ignored']) >= 2 * steps - 10  # both bad ones, nearly every step
 
@@ -385,9 +385,7 @@ def test_duplicated_late_out_of_order_commands_realtime(procs, ros_context):
     k, i = np.array(isq).T
     settled = i[k > 500]
     assert settled.size > 100 and np.all(np.abs(settled - 2.0) < 0.2), settled.min()
-    counts = dict(kv.split('=') for kv in
-                  err[err.rindex('stopped at step'):].splitlines()[0].split(': ', 1)[1]
-                  .split(', '))
+    counts = stop_counts(err)
     assert int(counts['stale_ignored']) >= int(counts['commands']) // 2
 
 

@@ -279,11 +279,15 @@ class ControllerNode(Node):
         """Validate a whole change (one parameter or an atomic set): all or nothing."""
         result = self._check_set(params)
         if not result.successful:
-            self.refused['parameters'] += 1
-            self.get_logger().warn(f'parameter change refused: {result.reason} ('
-                                   f'{self.refused["parameters"]} refused so far)',
-                                   throttle_duration_sec=1.0)
+            self._refusal('parameters', f'parameter change refused: {result.reason}')
         return result
+
+    def _refusal(self, kind: str, text: str) -> None:
+        """Count a refused request and log it -- throttled: a flood of requests must not
+        flood the log (or a piped stderr)."""
+        self.refused[kind] += 1
+        self.get_logger().warn(f'{text} ({self.refused[kind]} {kind} requests refused so '
+                               'far)', throttle_duration_sec=1.0)
 
     def _check_set(self, params: list[Parameter]) -> SetParametersResult:
         tunable = [p for p in params if p.name in GAIN_NAMES or
@@ -344,11 +348,7 @@ class ControllerNode(Node):
             response.message = f'experiment {eid} started'
             self.get_logger().info(f'experiment {eid} started with {self.gains}')
         if not response.success:
-            self.refused['start_experiment'] += 1
-            # throttled: a flood of requests must not flood the log (or a piped stderr)
-            self.get_logger().warn(f'start_experiment {response.message} ('
-                                   f'{self.refused["start_experiment"]} refused so far)',
-                                   throttle_duration_sec=1.0)
+            self._refusal('start_experiment', f'start_experiment {response.message}')
         return response
 
     def _on_reset_fault(self, request: Trigger.Request,

@@ -86,7 +86,6 @@ class DriveMonitor:
     def __init__(self, node: Node, topic: str) -> None:
         self.topic = topic
         self.received = 0
-        self.errors = 0                 #: statuses at level ERROR (e.g. its watchdog)
         self.last: dict[str, Any] | None = None
         qos = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
                          reliability=ReliabilityPolicy.RELIABLE)
@@ -101,7 +100,6 @@ class DriveMonitor:
                 else int(st.level)
             self.last = drive_report(values, lvl, st.message)
             self.received += 1
-            self.errors += lvl >= 2
 
 
 class ControllerLink:

@@ -32,6 +32,7 @@ from __future__ import annotations
 import os
 import struct
 import zlib
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -220,7 +221,7 @@ class McapWriter:
         self.t_start: int | None = None
         self.t_end: int | None = None
         self._pool = ThreadPoolExecutor(1, 'mcap_writer') if background else None
-        self._pending: list[Future] = []
+        self._pending: deque[Future] = deque()
         self._write(MAGIC)
         self._write(_record(OP_HEADER, _string(profile) + _string(library)))
         self.flush()
@@ -244,11 +245,14 @@ class McapWriter:
         if self._pool is None:
             job()
             return
-        self._pending = [f for f in self._pending if not f.done() or f.exception()]
-        for f in self._pending:
-            if f.done():
-                raise McapWriteError(f'{self.path}: background write failed: '
-                                     f'{f.exception()!r}')
+        # The worker runs the jobs in order, so finished futures are at the front. "done"
+        # is read once per look and only a done future is asked for its exception: a write
+        # may finish at any instant on the worker thread (a future seen running stays and
+        # is looked at again at the next submit or at close).
+        while self._pending and self._pending[0].done():
+            exc = self._pending.popleft().exception()
+            if exc is not None:
+                raise McapWriteError(f'{self.path}: background write failed: {exc!r}')
         self._pending.append(self._pool.submit(job))
 
     def _drain_pool(self) -> None:
@@ -256,7 +260,7 @@ class McapWriter:
             self._pool.shutdown(wait=True)
             self._pool = None
             errors = [f.exception() for f in self._pending if f.exception()]
-            self._pending = []
+            self._pending.clear()
             if errors:
                 raise McapWriteError(f'{self.path}: background write failed: {errors[0]!r}')
 

@@ -25,6 +25,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 from im_drive_sim.sim import STATE_FIELDS  # layout of drive/state (docs/interfaces.md)
+from im_drive_sim.cli import Parser, UsageError, check_ros_args, input_file, output_file
 
 #: Items, in the order they are printed.
 ITEMS: tuple[str, ...] = ('topics', 'fields', 'rate', 'latency', 'step_response', 'watchdog')
@@ -1052,7 +1053,7 @@ def _command_timeout(opts: Options, node, drive_name: str | None, drive_ns: str 
 
 # ========================================== CLI ============================================
 
-class _Parser(argparse.ArgumentParser):
+class _Parser(Parser):
     def error(self, message: str) -> None:  # one line, exit 2
         print(f'error: check_drive: {message}', file=sys.stderr)
         sys.exit(2)
@@ -1065,8 +1066,9 @@ def parse_args(argv: list[str]) -> Options:
                              '2: refused (bad option, no drive, another commander).')
     ap.add_argument('--namespace', help='namespace of the drive (also: --ros-args -r '
                                         '__ns:=/bench1)')
-    ap.add_argument('--config', metavar='FILE', help='drive parameter file (Ts, isq_max, '
-                                                     'encoder); default: the packaged motor')
+    ap.add_argument('--config', metavar='FILE', type=input_file,
+                    help='drive parameter file (Ts, isq_max, encoder); default: the packaged '
+                         'motor')
     ap.add_argument('--amplitude', type=float, default=0.5,
                     help='current step [A] (default 0.5; at most 50 %% of isq_max)')
     ap.add_argument('--step-duration', type=float, default=0.02,
@@ -1078,7 +1080,8 @@ def parse_args(argv: list[str]) -> Options:
                     help='abort to zero current above this |omega_meas| [rad/s] (default 30)')
     ap.add_argument('--timeout', type=float, default=10.0,
                     help='discovery timeout [s] (default 10)')
-    ap.add_argument('--json', metavar='FILE', help='write the results as JSON')
+    ap.add_argument('--json', metavar='FILE', type=output_file,
+                    help='write the results as JSON (checked before probing)')
     ns = ap.parse_args(argv)
     for name in ('amplitude', 'step_duration', 'max_speed', 'timeout', 'command_timeout'):
         v = getattr(ns, name)
@@ -1086,8 +1089,15 @@ def parse_args(argv: list[str]) -> Options:
             ap.error(f'--{name.replace("_", "-")} must be a positive number, got {v:g}')
     if not 0.005 <= ns.step_duration <= 0.5:
         ap.error(f'--step-duration {ns.step_duration:g} s: must be in [0.005, 0.5] s')
-    if ns.json and not Path(ns.json).resolve().parent.is_dir():
-        ap.error(f'--json {ns.json}: directory does not exist')
+    if ns.config is not None:  # the file is read after the probe starts: check it now
+        from im_drive_sim.params import ConfigError, load_config
+        try:
+            load_config(ns.config)
+        except ConfigError as exc:
+            ap.error(str(exc))
+        ns.config = str(ns.config)
+    if ns.json is not None:
+        ns.json = str(ns.json)
     if ns.namespace is not None:
         from rclpy.validate_namespace import validate_namespace
         try:
@@ -1099,9 +1109,13 @@ def parse_args(argv: list[str]) -> Options:
 
 
 def main(args: list[str] | None = None) -> int:
-    from rclpy.utilities import remove_ros_args
     argv = sys.argv if args is None else args
-    opts = parse_args(remove_ros_args(argv)[1:])
+    try:
+        rest = check_ros_args(argv)
+    except UsageError as exc:
+        print(f'error: check_drive: {exc}', file=sys.stderr)
+        return 2
+    opts = parse_args(rest[1:])
     import rclpy
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions

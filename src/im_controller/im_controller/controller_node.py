@@ -38,7 +38,6 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_services_default
 from rclpy.service_introspection import ServiceIntrospectionState
-from rclpy.utilities import remove_ros_args
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
@@ -46,7 +45,9 @@ from im_drive_sim.cdr import Float64ArrayWire
 from im_drive_sim.client import DriveClient
 from im_drive_sim.params import ConfigError, load_config
 from im_drive_sim.drive_sim_node import RECORDED_QOS
-from im_drive_sim.runtime import RCLError, publish_retry, run_stepped_node
+from im_drive_sim.cli import Parser, input_file, parse_cli, run_cli
+from im_drive_sim.runtime import (LenientDoubles, RCLError, parameter_hygiene, publish_retry,
+                                  run_stepped_node)
 
 from .config import (GAIN_NAMES, NUMERIC_SPECS, ControlConfig, ControllerConfigError,
                      ExperimentConfig, Gains, LossConfig, SafetyConfig, TrajectoryConfig,
@@ -110,11 +111,11 @@ def _float_descriptor(key: str, description: str, read_only: bool) -> ParameterD
         floating_point_range=[FloatingPointRange(from_value=sp.lo, to_value=sp.hi, step=0.0)])
 
 
-class ControllerNode(Node):
+class ControllerNode(LenientDoubles, Node):
     """The cascaded controller node (see module docstring)."""
 
     def __init__(self, *, node_name: str = 'controller', context=None,
-                 parameter_overrides: list | None = None) -> None:
+                 parameter_overrides: list | None = None, warn_unknown: bool = True) -> None:
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
         self._declare_structure()
         self._declare_tunables()
@@ -125,6 +126,9 @@ class ControllerNode(Node):
         self.add_pre_set_parameters_callback(self._pre_set)
         self.add_on_set_parameters_callback(self._on_set)
         self.add_post_set_parameters_callback(self._post_set)
+
+        parameter_hygiene(self, {'internals_fields': list(INTERNALS_FIELDS)},
+                          warn_unknown=warn_unknown)
 
         self.io_node = Node(f'_{node_name}_io', context=context, namespace=self.get_namespace())
         self.client = DriveClient(self.io_node)
@@ -218,10 +222,21 @@ class ControllerNode(Node):
                 else:
                     self.declare_parameter(key, float(value), _float_descriptor(
                         key, DESCRIPTIONS.get(key, key), read_only=True))
-        # The drive's clamp, shown (read-only) beside the other hard limits.
-        self.declare_parameter('safety.isq_max', self.isq_max, ParameterDescriptor(
+        # The isq* clamp, read-only beside the other hard limits: the drive file's
+        # machine.isq_max, or a tighter one set at start (a bench may want less current
+        # than the drive can give); a looser one would be a lie the drive cannot keep.
+        drive_isq_max = self.isq_max
+        isq_max = self.declare_parameter('safety.isq_max', drive_isq_max, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE, read_only=True,
-            description="isq* clamp [A], from the drive's parameter file"))
+            description="isq* clamp [A]: the drive file's machine.isq_max, or lower if set "
+                        'at start (a higher value is refused)',
+            additional_constraints=f'finite, in (0, {drive_isq_max:g}] (the drive file)')).value
+        if not (isinstance(isq_max, float) and math.isfinite(isq_max)
+                and 0.0 < isq_max <= drive_isq_max):
+            raise ControllerError(
+                f'parameter safety.isq_max must be in (0, {drive_isq_max:g}] A (the drive '
+                f"file's machine.isq_max; only a tighter clamp can be set), got {isq_max!r}")
+        self.isq_max = isq_max
 
     def _declare_tunables(self) -> None:
         g = Gains()
@@ -504,30 +519,34 @@ class ControllerNode(Node):
         super().destroy_node()
 
 
-def _parse_cli(argv: list[str]) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(
+def _parser() -> argparse.ArgumentParser:
+    ap = Parser(
         prog='ros2 run im_controller controller',
         description='Cascaded position/speed controller with the paper\'s loss experiment. '
                     'Start an experiment with the ~/start_experiment service (std_srvs/'
                     'Trigger); results on controller/loss. Parameters: --ros-args -p '
                     'name:=value (see docs/controller.md).')
     ap.add_argument('--mode', choices=MODES, help='lockstep (default) or realtime')
-    ap.add_argument('--config', metavar='FILE', help="the drive's parameter file (Ts, isq_max)")
-    return ap.parse_args(argv)
+    ap.add_argument('--config', metavar='FILE', type=input_file,
+                    help="the drive's parameter file (Ts, isq_max)")
+    return ap
 
 
 def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
-    cli = _parse_cli(remove_ros_args(argv)[1:])
-    overrides = [Parameter(n, value=v) for n, v in (('mode', cli.mode),
-                                                    ('drive_config_file', cli.config))
-                 if v is not None]
-    return run_stepped_node(
-        argv, lambda: ControllerNode(parameter_overrides=overrides or None),
-        (ControllerError, ControllerConfigError), 'controller',
-        on_exit=lambda node: node.get_logger().info(
-            f'stopped after {len(node.results)} experiments; refused requests: '
-            + ', '.join(f'{k} {v}' for k, v in node.refused.items())))
+
+    def body() -> int:
+        cli = parse_cli(_parser(), argv)
+        overrides = [Parameter(n, value=v) for n, v in (
+            ('mode', cli.mode), ('drive_config_file', cli.config and str(cli.config)))
+            if v is not None]
+        return run_stepped_node(
+            argv, lambda: ControllerNode(parameter_overrides=overrides or None),
+            (ControllerError, ControllerConfigError), 'controller',
+            on_exit=lambda node: node.get_logger().info(
+                f'stopped after {len(node.results)} experiments; refused requests: '
+                + ', '.join(f'{k} {v}' for k, v in node.refused.items())))
+    return run_cli('controller', body)
 
 
 if __name__ == '__main__':

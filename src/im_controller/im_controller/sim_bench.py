@@ -23,6 +23,7 @@ import argparse
 import dataclasses
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -34,11 +35,12 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
-from rclpy.utilities import remove_ros_args
 
 from im_drive_sim.drive_sim_node import DriveSimNode
-from im_drive_sim.params import ConfigError
-from im_drive_sim.runtime import stop_child
+from im_drive_sim.cli import Parser, UsageError, input_file, int_in, parse_cli
+from im_drive_sim.params import ConfigError, load_config
+from im_drive_sim.runtime import (ParameterOverrideError, stop_child, unknown_overrides,
+                                  warn_unknown_overrides)
 
 from .config import ControllerConfigError
 from .controller_node import ControllerError, ControllerNode
@@ -58,13 +60,18 @@ class InProcessBench:
                  controller_overrides: list | None = None, before_start=None) -> None:
         """``before_start(bench)`` runs once both nodes exist and match, before state 0 is
         published: the place to start a recorder that must not miss the first message."""
-        self.drive = DriveSimNode(context=context, parameter_overrides=drive_overrides)
+        self.drive = DriveSimNode(context=context, parameter_overrides=drive_overrides,
+                                  warn_unknown=False)
         try:
             self.controller = ControllerNode(context=context,
-                                             parameter_overrides=controller_overrides)
+                                             parameter_overrides=controller_overrides,
+                                             warn_unknown=False)
         except Exception:
             self.drive.destroy_node()
             raise
+        # `-p` overrides reach both nodes of this process: warn about those neither has.
+        warn_unknown_overrides(self.controller, sorted(
+            set(unknown_overrides(self.drive)) & set(unknown_overrides(self.controller))))
         self.executor = SingleThreadedExecutor(context=self.drive.context)
         self.executor.add_node(self.drive)
         self.executor.add_node(self.controller)
@@ -139,24 +146,36 @@ class InProcessBench:
         self.drive.destroy_node()
 
 
-def _parse_cli(argv: list[str]) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(
+def _parser() -> argparse.ArgumentParser:
+    ap = Parser(
         prog='ros2 run im_controller sim_bench',
         description='The simulated bench: drive_sim + controller, lock-step. Start '
                     'experiments with /controller/start_experiment (std_srvs/Trigger); '
                     'results on /controller/loss.')
     ap.add_argument('--processes', action='store_true',
                     help='run drive_sim and controller as two processes (default: one)')
-    ap.add_argument('--config', metavar='FILE', help='drive parameter file (YAML)')
+    ap.add_argument('--config', metavar='FILE', type=input_file,
+                    help='drive parameter file (YAML)')
     ap.add_argument('--model', choices=('full', 'reduced'), help='drive model fidelity')
-    ap.add_argument('--seed', type=int, help='disturbance seed')
+    ap.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
     ap.add_argument('--no-record', action='store_true',
                     help='do not record (default: all traffic to a bag, see --out)')
     ap.add_argument('--out', metavar='DIR', type=Path,
                     help='bag directory to create (default: bags/sim_bench_<UTC time>)')
     ap.add_argument('--compression', choices=('none', 'zstd', 'lz4'), default='lz4',
                     help='MCAP chunk compression of the bag (default: lz4; zstd: smaller files)')
-    return ap.parse_args(argv)
+    return ap
+
+
+def _check_cli(cli: argparse.Namespace) -> None:
+    """What the children would refuse, refused here before anything is started."""
+    if cli.config is not None:
+        try:
+            load_config(cli.config)
+        except ConfigError as exc:
+            raise UsageError(str(exc)) from None
+    if cli.out is not None and not cli.no_record and cli.out.exists():
+        raise UsageError(f'--out {cli.out}: already exists; choose a new directory')
 
 
 def _recorder_module():
@@ -188,8 +207,8 @@ def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
     drive = [ros2, 'run', 'im_drive_sim', 'drive_sim']
     ctl = [ros2, 'run', 'im_controller', 'controller']
     if cli.config:
-        drive += ['--config', cli.config]
-        ctl += ['--config', cli.config]
+        drive += ['--config', str(cli.config)]
+        ctl += ['--config', str(cli.config)]
     if cli.model:
         drive += ['--model', cli.model]
     if cli.seed is not None:
@@ -198,10 +217,17 @@ def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
         drive += ros_args
         ctl += ros_args
     procs = []
+    out = made = None
     if not cli.no_record:
         rn = _recorder_module()  # fail early, with the reason, if it is not installed
+        out = Path(cli.out or rn.default_out_dir(prefix='sim_bench'))
+        # what this run creates (the bag and any missing parents): removed again if a
+        # child refuses its configuration at start (exit 2), so a refusal leaves nothing
+        made = out
+        while not made.parent.exists() and made.parent != made.parent.parent:
+            made = made.parent
         rec = [ros2, 'run', 'im_tuner', 'recorder', '--compression', cli.compression,
-               '--out', str(cli.out or rn.default_out_dir(prefix='sim_bench'))]
+               '--out', str(out)]
         procs.append(subprocess.Popen(rec))
     procs += [subprocess.Popen(drive), subprocess.Popen(ctl)]
     stop = {'sig': None}
@@ -223,19 +249,27 @@ def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
     finally:
         for p in reversed(procs):  # the recorder last: it takes what the others sent
             stop_child(p)
+    if code == 2 and made is not None and made.exists():
+        shutil.rmtree(made, ignore_errors=True)  # refused at start: the bag holds nothing
     return code
 
 
 def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
-    cli = _parse_cli(remove_ros_args(argv)[1:])
+    try:
+        cli = parse_cli(_parser(), argv)
+        _check_cli(cli)
+    except UsageError as exc:
+        print(f'error: sim_bench: {exc}', file=sys.stderr)
+        return 2
     ros_args = argv[argv.index('--ros-args'):] if '--ros-args' in argv else []
     if cli.processes:
         return _children(cli, ros_args)
-    drive_over = [Parameter(n, value=v) for n, v in (('config_file', cli.config),
+    config = str(cli.config) if cli.config else None
+    drive_over = [Parameter(n, value=v) for n, v in (('config_file', config),
                                                      ('model', cli.model), ('seed', cli.seed))
                   if v is not None]
-    ctl_over = [Parameter('drive_config_file', value=cli.config)] if cli.config else []
+    ctl_over = [Parameter('drive_config_file', value=config)] if config else []
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     bench = None
     rec = None
@@ -266,7 +300,7 @@ def main(args: list[str] | None = None) -> int:
                                controller_overrides=ctl_over or None,
                                before_start=None if cli.no_record else _start_recorder)
         bench.run()
-    except (ConfigError, ControllerError, ControllerConfigError,
+    except (ConfigError, ControllerError, ControllerConfigError, ParameterOverrideError,
             InvalidParameterValueException, InvalidParameterTypeException) as exc:
         print(f'error: sim_bench: {exc}', file=sys.stderr)
         return 2

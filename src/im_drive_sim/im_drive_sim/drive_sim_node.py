@@ -34,14 +34,15 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
-from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from .cdr import Float64ArrayWire, parse_float64_array
+from .cli import Parser, input_file, int_in, parse_cli, run_cli
 from .params import ConfigError, load_config
-from .runtime import RCLError, publish_retry, run_stepped_node
+from .runtime import (LenientDoubles, RCLError, parameter_hygiene, publish_retry,
+                      run_stepped_node)
 from .sim import STATE_FIELDS, DriveSim
 
 #: Topic names (relative: they follow the node's namespace).
@@ -108,7 +109,7 @@ def param_descriptor(description: str, *, read_only: bool = True,
     return d
 
 
-class DriveSimNode(Node):
+class DriveSimNode(LenientDoubles, Node):
     """The drive simulator node (see module docstring and docs/interfaces.md).
 
     All parameters are read-only: they fix the structure of the simulation (model, mode,
@@ -116,7 +117,7 @@ class DriveSimNode(Node):
     """
 
     def __init__(self, *, node_name: str = 'drive_sim', context=None,
-                 parameter_overrides: list | None = None) -> None:
+                 parameter_overrides: list | None = None, warn_unknown: bool = True) -> None:
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
         p = self._declare_parameters()
         self.mode: str = p['mode']
@@ -124,7 +125,7 @@ class DriveSimNode(Node):
             overrides = {'model': p['model']} if p['model'] else {}
             self.config = load_config(p['config_file'] or None, overrides=overrides)
         except ConfigError as exc:
-            raise ConfigError(f'drive_sim: {exc}') from exc
+            raise ConfigError(str(exc)) from exc
         self.sim = DriveSim(self.config, seed=p['seed'] if p['seed'] >= 0 else None)
         self.sim.reset(theta=p['initial_position'], omega=0.0, fluxed=True)
         self.ts_ns: int = int(round(self.config.Ts * NS_PER_S))
@@ -172,9 +173,14 @@ class DriveSimNode(Node):
         self._watchdog_tripped = False
         self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
 
-        self.get_logger().info(
-            f"mode={self.mode} model={self.config.model} Ts={self.config.Ts * 1e6:.0f} us "
-            f"config={p['config_file'] or '(packaged default)'} seed={p['seed']}")
+        # The layouts are facts of this node: an override may not advertise another one.
+        parameter_hygiene(self, {'state_fields': list(STATE_FIELDS),
+                                 'command_fields': list(COMMAND_FIELDS)},
+                          warn_unknown=warn_unknown)
+        # logged at start(): a process composing more nodes may still refuse to start
+        self._start_text = (f"mode={self.mode} model={self.config.model} "
+                            f"Ts={self.config.Ts * 1e6:.0f} us "
+                            f"config={p['config_file'] or '(packaged default)'} seed={p['seed']}")
 
     # -- parameters ------------------------------------------------------------------
     def _declare_parameters(self) -> dict:
@@ -229,10 +235,10 @@ class DriveSimNode(Node):
         for name, default, desc in specs:
             values[name] = self.declare_parameter(name, default, desc).value
         if values['mode'] not in MODES:
-            raise ConfigError(f"drive_sim: parameter 'mode' must be one of {MODES}, "
+            raise ConfigError(f"parameter 'mode' must be one of {MODES}, "
                               f"got {values['mode']!r}")
         if values['model'] not in ('', 'full', 'reduced'):
-            raise ConfigError("drive_sim: parameter 'model' must be '', 'full' or 'reduced', "
+            raise ConfigError("parameter 'model' must be '', 'full' or 'reduced', "
                               f"got {values['model']!r}")
         return values
 
@@ -324,6 +330,9 @@ class DriveSimNode(Node):
     # -- loops -----------------------------------------------------------------------
     def start(self) -> None:
         """Publish the initial state (step 0, or wherever the model was reset to)."""
+        if self._start_text:
+            self.get_logger().info(self._start_text)
+            self._start_text = ''
         self.sim.read_into(self._state)
         self.publish_state()
 
@@ -523,32 +532,38 @@ class DriveSimNode(Node):
         super().destroy_node()
 
 
-def _parse_cli(argv: list[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
+def _parser() -> argparse.ArgumentParser:
+    parser = Parser(
         prog='ros2 run im_drive_sim drive_sim',
         description='Induction-motor drive simulator (5 kHz). Topics: drive/state (out), '
                     'drive/command (in), drive/joint_states, drive/status, /clock. '
                     'Parameters are set with --ros-args -p name:=value; the options below '
                     'are shortcuts for them. See docs/interfaces.md.')
     parser.add_argument('--mode', choices=MODES, help='lockstep (default) or realtime')
-    parser.add_argument('--config', metavar='FILE', help='drive parameter file (YAML)')
+    parser.add_argument('--config', metavar='FILE', type=input_file,
+                        help='drive parameter file (YAML)')
     parser.add_argument('--model', choices=('full', 'reduced'), help='model fidelity')
-    parser.add_argument('--seed', type=int, help='disturbance seed')
-    parser.add_argument('--max-steps', type=int, help='stop after N steps')
-    return parser.parse_args(argv)
+    parser.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
+    parser.add_argument('--max-steps', type=int_in(0, 2**62),
+                        help='stop after N steps (0: run until shut down)')
+    return parser
 
 
 def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
-    cli = _parse_cli(remove_ros_args(argv)[1:])
-    overrides = []
-    for name, value in (('mode', cli.mode), ('config_file', cli.config), ('model', cli.model),
-                        ('seed', cli.seed), ('max_steps', cli.max_steps)):
-        if value is not None:
-            overrides.append(Parameter(name, value=value))
-    return run_stepped_node(
-        argv, lambda: DriveSimNode(parameter_overrides=overrides or None), (ConfigError,),
-        'drive_sim', on_exit=lambda node: node.log_summary())
+
+    def body() -> int:
+        cli = parse_cli(_parser(), argv)
+        overrides = []
+        for name, value in (('mode', cli.mode), ('config_file', cli.config and str(cli.config)),
+                            ('model', cli.model), ('seed', cli.seed),
+                            ('max_steps', cli.max_steps)):
+            if value is not None:
+                overrides.append(Parameter(name, value=value))
+        return run_stepped_node(
+            argv, lambda: DriveSimNode(parameter_overrides=overrides or None), (ConfigError,),
+            'drive_sim', on_exit=lambda node: node.log_summary())
+    return run_cli('drive_sim', body)
 
 
 if __name__ == '__main__':

@@ -39,7 +39,9 @@ from .drive_sim_node import (CMD_ISQ, CMD_LOAD, CMD_STEP, COMMAND_FIELDS, COMMAN
                              JOINT_STATE_TOPIC, LOCKSTEP_QOS, RECORDED_QOS, STATE_TOPIC,
                              STATUS_TOPIC, param_descriptor)
 from .params import ConfigError, DriveConfig, load_config
-from .runtime import RCLError, publish_retry, run_stepped_node
+from .cli import Parser, parse_cli, run_cli
+from .runtime import (LenientDoubles, RCLError, parameter_hygiene, publish_retry,
+                      run_stepped_node)
 from .sim import STATE_FIELDS
 
 NS_PER_S = 1_000_000_000
@@ -128,7 +130,7 @@ class Counters:
     backpressure: int = 0       #: publish retries while a reliable reader was full
 
 
-class ExampleDrive(Node):
+class ExampleDrive(LenientDoubles, Node):
     """The ROS side (real time only). Hooks for subclasses: ``make_hardware``,
     ``apply_command``, ``fill_state``, ``make_joint_publisher``/``publish_joint_state``,
     ``watchdog`` and the attribute ``period_s``."""
@@ -156,6 +158,9 @@ class ExampleDrive(Node):
             'Publish drive/joint_states every N steps.', int_range=(1, 100000))).value
         d('state_fields', list(STATE_FIELDS), param_descriptor('Layout of drive/state data.'))
         d('command_fields', list(COMMAND_FIELDS), param_descriptor('Layout of drive/command data.'))
+        # the layouts report what this node publishes and reads: not settable
+        parameter_hygiene(self, {'state_fields': list(STATE_FIELDS),
+                                 'command_fields': list(COMMAND_FIELDS)})
 
         self.hw = self.make_hardware()
         self.counters = Counters()
@@ -335,8 +340,18 @@ class ExampleDrive(Node):
 
 def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:
     argv = sys.argv if args is None else args
-    return run_stepped_node(argv, node_class, (ConfigError,), 'example_drive',
-                            on_exit=lambda node: node.log_summary())
+
+    def body() -> int:
+        parse_cli(Parser(prog='ros2 run im_drive_sim example_drive',
+                         description='A minimal real-time drive node (the template for a '
+                                     'real drive): drive/state every 200 us, drive/command, '
+                                     'isq clamp, command watchdog. Parameters (all '
+                                     'read-only): --ros-args -p isq_max:=7.0 -p '
+                                     'command_timeout:=0.05 -p config_file:=FILE ... '
+                                     '(docs/real-drive.md).'), argv)
+        return run_stepped_node(argv, node_class, (ConfigError,), 'example_drive',
+                                on_exit=lambda node: node.log_summary())
+    return run_cli('example_drive', body)
 
 
 if __name__ == '__main__':

@@ -311,6 +311,11 @@ def config_from_dict(data: Any, source: str = "<dict>",
     return cfg
 
 
+#: machine.isq_max above this multiple of the rated torque current is refused as a typo
+#: (drives clamp at 1.5-3x rated; the paper's file clamps at 2x).
+ISQ_MAX_PER_RATED = 4.0
+
+
 def _check_consistency(src: str, cfg: DriveConfig) -> None:
     """Cross-field checks: physically consistent and numerically safe combinations."""
     m, c = cfg.machine, cfg.control
@@ -328,6 +333,14 @@ def _check_consistency(src: str, cfg: DriveConfig) -> None:
     if c.current_bandwidth * cfg.Ts > 1.0:
         raise ConfigError(f"{src}: control.current_bandwidth too high for Ts: wc*Ts = "
                           f"{c.current_bandwidth * cfg.Ts:.3g} > 1")
+    # The clamp is the drive's hard current limit: a typo (700 A for this 3.1 A motor)
+    # would let the controller ask for 100x rated torque. Rated torque current Tn/Kt.
+    isq_rated = m.rated_torque / m.Kt
+    if m.isq_max > ISQ_MAX_PER_RATED * isq_rated:
+        raise ConfigError(
+            f"{src}: machine.isq_max {m.isq_max:g} A is implausible: {m.isq_max / isq_rated:.3g}"
+            f"x the rated torque current {isq_rated:.3g} A (rated_torque/Kt); at most "
+            f"{ISQ_MAX_PER_RATED:g}x ({ISQ_MAX_PER_RATED * isq_rated:.3g} A) is accepted")
     if c.flux_floor >= m.rated_flux:
         raise ConfigError(f"{src}: control.flux_floor {c.flux_floor:g} Wb must be below the "
                           f"rated flux {m.rated_flux:.4g} Wb")
@@ -348,6 +361,8 @@ def load_config(path: str | Path | None = None,
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{name}: cannot read {p}: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError:
+        raise ConfigError(f"{name}: not a text (UTF-8) file") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:

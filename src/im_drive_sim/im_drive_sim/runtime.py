@@ -7,6 +7,12 @@
 * :func:`stop_child`: end a child process we started, by PID (SIGINT, grace, SIGKILL).
 * :func:`publish_retry`: back-pressure instead of a crash when a reliable KEEP_ALL reader
   (the recorder) is full.
+* :func:`parameter_hygiene`: what every node of ours does once its parameters are
+  declared -- a ``-p`` override naming no parameter is warned about by name (a typo would
+  otherwise be silently ignored), a request to set an undeclared parameter is refused
+  naming it (rclpy 7.1.6 names none: ``Invalid access to undeclared parameter(s): []``),
+  and an override of a parameter that only *reports* a fact (a message layout, a limit
+  read from a file) is refused at start unless it equals that fact.
 """
 from __future__ import annotations
 
@@ -17,8 +23,10 @@ import time
 from typing import Callable
 
 import rclpy
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
+                              ParameterNotDeclaredException)
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.parameter import Parameter
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.signals import SignalHandlerOptions
 
@@ -55,6 +63,76 @@ def publish_retry(pub, msg, context, timeout: float = 30.0) -> int:
                     '(recorder stalled?); refusing to drop data') from None
 
 
+class LenientDoubles:
+    """Mixin for an rclpy ``Node``: an integer given at start for a double parameter
+    (``-p k_iw:=20``, or ``k_iw: 20`` in a params file) is taken as that double, as a
+    ``set_parameters`` call is (pre-set callback). rclpy would refuse it at declaration
+    ('expecting type DOUBLE'), a classic trap of the command line."""
+
+    def declare_parameter(self, name, value=None, descriptor=None, ignore_override=False):
+        over = getattr(self, '_parameter_overrides', {})
+        p = over.get(name)
+        if isinstance(value, float) and not ignore_override and p is not None and \
+                p.type_ == Parameter.Type.INTEGER:
+            over[name] = Parameter(name, Parameter.Type.DOUBLE, float(p.value))
+        return super().declare_parameter(name, value, descriptor, ignore_override)
+
+
+class ParameterOverrideError(ValueError):
+    """A start-up override the node cannot honour: one line, exit code 2."""
+
+
+def parameter_hygiene(node, facts: dict[str, object] | None = None, *,
+                      warn_unknown: bool = True) -> list[str]:
+    """Call at the end of a node's ``__init__``, once every parameter is declared.
+
+    ``facts``: read-only parameters that report what the node enforces or publishes
+    (name -> the true value); an override that differs raises
+    :class:`ParameterOverrideError` (the node would otherwise advertise a value it does
+    not use). Returns the override names that match no parameter of this node, logged
+    as a warning unless ``warn_unknown`` is false (nodes composed in one process share
+    their ``-p`` overrides: see :func:`warn_unknown_overrides`).
+    """
+    for name, true in (facts or {}).items():
+        given = node.get_parameter(name).value
+        if _as_plain(given) != _as_plain(true):
+            raise ParameterOverrideError(
+                f'parameter {name!r} is read-only and reports what the node uses '
+                f'({_as_plain(true)!r}); it cannot be set (got {_as_plain(given)!r})')
+    unknown = unknown_overrides(node)
+    if warn_unknown:
+        warn_unknown_overrides(node, unknown)
+
+    def name_undeclared(params: list) -> list:
+        missing = [p.name for p in params if p.name not in node._parameters]
+        if missing and not node._allow_undeclared_parameters:
+            raise ParameterNotDeclaredException(missing)
+        return params
+    node.add_pre_set_parameters_callback(name_undeclared)
+    return unknown
+
+
+def unknown_overrides(node) -> list[str]:
+    """The ``-p``/params-file overrides that name no declared parameter of ``node``."""
+    declared = set(node._parameters)  # rclpy keeps no public list of declared names
+    return sorted(n for n in node._parameter_overrides if n not in declared)
+
+
+def warn_unknown_overrides(node, names: list[str]) -> None:
+    """Log once, naming them, that these overrides were ignored (a typo, most likely)."""
+    if names:
+        node.get_logger().warn(
+            f'ignored override(s) of undeclared parameter(s) {", ".join(names)}: no such '
+            f'parameter on {node.get_fully_qualified_name()} (typo?)')
+
+
+def _as_plain(v: object) -> object:
+    """Parameter values compared as plain Python (arrays arrive as lists or arrays)."""
+    if isinstance(v, (list, tuple)) or hasattr(v, 'tolist'):
+        return [x for x in (v.tolist() if hasattr(v, 'tolist') else v)]
+    return v
+
+
 def run_stepped_node(argv: list[str], make_node: Callable[[], object],
                      config_errors: tuple[type[BaseException], ...], prog: str,
                      on_exit: Callable[[object], None] | None = None) -> int:
@@ -82,7 +160,7 @@ def run_stepped_node(argv: list[str], make_node: Callable[[], object],
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
         node.run(executor)
-    except (*config_errors, InvalidParameterValueException,
+    except (*config_errors, ParameterOverrideError, InvalidParameterValueException,
             InvalidParameterTypeException) as exc:
         # A bad file or a bad --ros-args -p value at start: one line, nothing started.
         print(f'error: {prog}: {exc}', file=sys.stderr)

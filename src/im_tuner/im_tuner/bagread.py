@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import yaml
 from numba import njit
 
 from .bag import read_metadata_yaml
@@ -270,7 +271,7 @@ def read_bag(bag_dir: Path | str, arrays: dict[str, list[tuple[int, int]] | None
         out.state = custom.get('im_tuner.state', 'unknown')
         if 'im_tuner.counts' in custom:
             out.recorder_counts = json.loads(custom['im_tuner.counts'])
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, yaml.YAMLError):
         out.state = 'no metadata.yaml'
     arrays = arrays or {}
     schemas: dict[int, tuple[str, bytes]] = {}

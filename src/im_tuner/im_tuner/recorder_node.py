@@ -50,7 +50,8 @@ import yaml
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
-from rclpy.utilities import remove_ros_args
+from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, parse_cli
+from im_drive_sim.runtime import unknown_overrides, warn_unknown_overrides
 
 from . import rcl_take
 from .bag import (BagError, TopicRecord, bag_metadata, prepare_bag_dir, qos_to_dict, qos_yaml,
@@ -426,8 +427,12 @@ def _version() -> str:
         return 'dev'
 
 
-def _parse_cli(argv: list[str]) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(
+#: bounds of --chunk-size [bytes]: the open chunk is a buffer of this size in memory
+CHUNK_SIZE_RANGE = (4096, 1 << 28)
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = Parser(
         prog='ros2 run im_tuner recorder',
         description='Record every topic on the ROS graph to a rosbag2 MCAP bag, losslessly '
                     '(reliable KEEP_ALL, per-topic published/recorded/lost counts).')
@@ -435,23 +440,28 @@ def _parse_cli(argv: list[str]) -> argparse.Namespace:
                     help='bag directory to create (default: bags/recording_<UTC time>)')
     ap.add_argument('--compression', choices=('none', 'zstd', 'lz4'), default='lz4',
                     help='MCAP chunk compression (default: lz4, the cheapest; zstd: smaller files)')
-    ap.add_argument('--chunk-size', type=int, default=1 << 20, metavar='BYTES',
-                    help='close chunks at this size (default 1 MiB)')
-    ap.add_argument('--max-chunk-age', type=float, default=0.5, metavar='S',
+    ap.add_argument('--chunk-size', type=int_in(*CHUNK_SIZE_RANGE), default=1 << 20,
+                    metavar='BYTES', help='close chunks at this size (default 1 MiB; '
+                    f'{CHUNK_SIZE_RANGE[0]} to {CHUNK_SIZE_RANGE[1]})')
+    ap.add_argument('--max-chunk-age', type=finite_float(0.0, 3600.0, lo_open=True, unit='s'),
+                    default=0.5, metavar='S',
                     help='close a chunk after this many seconds at most: bounds what a '
                          'SIGKILL loses (default 0.5)')
     ap.add_argument('--repair', metavar='DIR', type=Path,
                     help='repair a bag left by a crash (rewrite summary, index and '
                          'metadata.yaml), then exit')
-    return ap.parse_args(argv)
+    return ap
 
 
 def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
-    cli = _parse_cli(remove_ros_args(argv)[1:])
-    if cli.chunk_size < 4096 or cli.max_chunk_age <= 0:
-        print('error: recorder: --chunk-size must be >= 4096 and --max-chunk-age > 0',
-              file=sys.stderr)
+    try:
+        cli = parse_cli(_parser(), argv)
+        if cli.repair is None and cli.out is not None and cli.out.exists() and \
+                (not cli.out.is_dir() or any(cli.out.iterdir())):
+            raise UsageError(f'--out {cli.out}: already exists; choose a new directory')
+    except UsageError as exc:
+        print(f'error: recorder: {exc}', file=sys.stderr)
         return 2
     if cli.repair is not None:
         from .mcap_repair import RepairError, repair_bag
@@ -484,6 +494,7 @@ def main(args: list[str] | None = None) -> int:
         except (BagError, RecorderError) as exc:
             print(f'error: recorder: {exc}', file=sys.stderr)
             return 2
+        warn_unknown_overrides(node, unknown_overrides(node))  # it has no parameters
         node.get_logger().info(f'recording to {rec.out} (compression {cli.compression})')
         while stop['sig'] is None:
             if rec.poll() == 0:

@@ -105,6 +105,7 @@ class RunReport:
     consecutive: list[Experiment] = field(default_factory=list)  #: two, for Fig. 5
     missing: list[str] = field(default_factory=list)   #: experiments not found in a bag
     loss_check: dict[str, int] = field(default_factory=dict)
+    live: str | None = None               #: the tuner working on the run now, if any
 
     @property
     def evals(self) -> list[dict[str, Any]]:
@@ -134,9 +135,13 @@ def load_run(path: Path | str, label: str | None = None, signals: bool = True,
         rd = RunDir.open(path)
         run = rd.read_run()
         records = rd.read_results(repair=False)   # a torn last line is left alone
-        ck = rd.read_checkpoint()
     except RunDirError as exc:
         raise ReportError(str(exc)) from None
+    try:
+        ck = rd.read_checkpoint()
+    except RunDirError:
+        ck = None  # only its session list is read; the records are the truth
+    live = rd.holder()  # a tuner is working on it now (its lock)
     sat = float(run.get('satisfactory_loss', 0.0))
     st = tally_all(records, sat)
     saved = None
@@ -152,14 +157,16 @@ def load_run(path: Path | str, label: str | None = None, signals: bool = True,
         sessions = (ck or {}).get('tuner', {}).get('sessions') or \
             (saved or {}).get('sessions') or []
         st.sessions = sessions
+        outcome = (f'running (a tuner has it: {live}); a snapshot of the records so far'
+                   if live else 'interrupted (killed: no final summary)')
         summary = summarize(st, records, budget=int(run.get('budget', 0)),
-                            satisfactory_loss=sat, outcome='interrupted (killed: no final '
-                            'summary)', wall_s=None)
+                            satisfactory_loss=sat, outcome=outcome, wall_s=None)
         summary['loop_wall_s'] = sum(float(r.get('wall_s') or 0.0) for r in records)
         summary['real_time_factor'] = (summary['sim_s'] / summary['loop_wall_s']
                                        if summary['loop_wall_s'] > 0 else None)
         source = 'results.jsonl'
-    rr = RunReport(rd.path, label or rd.path.name, run, records, summary, source)
+    rr = RunReport(rd.path, label or rd.path.name, run, records, summary, source,
+                   live=live)
     rr.record_bag = _session_bags(summary.get('sessions') or [], len(records))
     if signals:
         _load_signals(rr, progress)
@@ -224,7 +231,9 @@ def _load_signals(rr: RunReport, progress: Callable[[str], None] | None = None) 
         exp = _experiment(rr, i, fields)
         if exp is None:
             r = rr.records[i]
-            rr.missing.append(f'{r["kind"]} {r["eval"]} (experiment {r["experiment_id"]})')
+            what = f'{r["kind"]} {r["eval"]} (experiment {r["experiment_id"]})'
+            if what not in rr.missing:  # one record may be wanted for two figures
+                rr.missing.append(what)
         else:
             found[name] = exp
     rr.reference = found.get('reference')
@@ -326,7 +335,7 @@ def summary_text(rr: RunReport) -> str:
     L.append(f'  {wall}simulated experiment time {s["sim_s"]:.1f} s'
              + (f', real-time factor {rtf:.2f}' if rtf else ''))
     for bag in rr.bags:
-        L.extend(_bag_lines(bag))
+        L.extend(_bag_lines(bag, live=rr.live is not None))
     for e in rr.bag_errors:
         L.append(f'  bag {e}')
     if not rr.bags and not rr.bag_errors:
@@ -343,12 +352,15 @@ def summary_text(rr: RunReport) -> str:
     return '\n'.join(L)
 
 
-def _bag_lines(bag: BagData) -> list[str]:
+def _bag_lines(bag: BagData, live: bool = False) -> list[str]:
     t0, t1 = bag.t_range_ns
     when = _dt.datetime.fromtimestamp(t0 * 1e-9, _dt.timezone.utc).strftime(
         '%Y-%m-%d %H:%M:%S UTC') if t0 else '-'
     if bag.complete:
         state = 'closed' if bag.state == 'closed' else f'complete ({bag.state})'
+    elif live and bag.state == 'recording':
+        state = (f'being recorded (the run is live; {bag.unread_bytes} bytes after the last '
+                 'complete chunk not read yet)')
     else:
         state = (f'NOT CLOSED (recorder killed; {bag.unread_bytes} bytes after the last '
                  'complete chunk not read; --resume repairs it)')
@@ -672,6 +684,7 @@ def main(args: list[str] | None = None) -> int:
         for p in cli.runs:
             try:
                 RunDir.open(p).read_run()
+                RunDir(p).read_results()  # every record checked: no traceback later
             except RunDirError as exc:
                 raise ReportError(str(exc)) from None
         if cli.out is not None and cli.out.exists() and not cli.out.is_dir():

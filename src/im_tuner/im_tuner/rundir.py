@@ -13,9 +13,16 @@ Pure (no rclpy).  Layout (docs/tuner.md)::
       bag_0/, bag_1/ .. the MCAP log (rosbag2 directory) of each session (resumes add one)
 
 Atomic writes: temp file in the same directory, fsync, rename, fsync the directory.
+
+One tuner per run directory: :meth:`RunDir.lock` takes an exclusive ``flock`` on the
+directory itself (no lock file to create or leave behind; the kernel drops it when the
+process ends, however it ends). A second tuner is refused naming the holder's PID and
+command line (from ``/proc/locks``); :meth:`RunDir.holder` tells a reader (``report``)
+that the run is live.
 """
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 from pathlib import Path
@@ -56,11 +63,112 @@ def atomic_write_text(path: Path, text: str) -> None:
     _fsync_dir(path.parent)
 
 
+def _lock_holder(path: Path) -> str | None:
+    """'pid N (command line)' of the process holding a flock on ``path`` (Linux)."""
+    try:
+        ino = os.stat(path).st_ino
+        lines = Path('/proc/locks').read_text().splitlines()
+    except OSError:
+        return None
+    for line in lines:
+        f = line.split()
+        # "1: FLOCK  ADVISORY  WRITE 12345 08:01:1234567 0 EOF" (may carry a "->" marker)
+        if '->' in f:
+            continue
+        if len(f) >= 6 and f[1] == 'FLOCK' and f[5].rsplit(':', 1)[-1] == str(ino):
+            pid = f[4]
+            try:
+                cmd = Path(f'/proc/{pid}/cmdline').read_bytes().replace(b'\0', b' ')
+                cmd_text = ' '.join(cmd.decode(errors='replace').split())
+            except OSError:
+                cmd_text = ''
+            return f'pid {pid}' + (f' ({cmd_text[:160]})' if cmd_text else '')
+    return None
+
+
+KINDS = ('reference', 'eval', 'remeasure')
+STATUSES = ('ok', 'aborted', 'lost')
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def check_record(rec: dict[str, Any]) -> str | None:
+    """What is wrong with one results.jsonl record (None: nothing) -- the fields that the
+    tuner's resume, the summary and the report read."""
+    kind, status = rec.get('kind'), rec.get('status')
+    if kind not in KINDS:
+        return f'record kind {kind!r} is not one of {", ".join(KINDS)}'
+    if status not in STATUSES:
+        return f'record status {status!r} is not one of {", ".join(STATUSES)}'
+    if not isinstance(rec.get('eval'), int) or isinstance(rec.get('eval'), bool):
+        return "record without an integer 'eval'"
+    if not isinstance(rec.get('gains'), dict) or \
+            not all(_number(v) for v in rec['gains'].values()):
+        return "record without 'gains' (name: value)"
+    if kind == 'eval' and status != 'lost' and not (
+            isinstance(rec.get('u'), list) and all(_number(x) for x in rec['u'])):
+        return "evaluation record without 'u' (a list of numbers)"
+    if status == 'lost':
+        return None
+    if not _number(rec.get('loss')):
+        return "record without 'loss' (a number)"
+    if not (isinstance(rec.get('terms'), list) and all(_number(x) for x in rec['terms'])):
+        return "record without 'terms' (a list of numbers)"
+    if not isinstance(rec.get('aborted'), bool):
+        return "record without 'aborted' (true/false)"
+    for key in ('sim_s', 'wall_s'):
+        if key in rec and not _number(rec[key]):
+            return f'record with a non-numeric {key!r}'
+    for key in ('experiment_id', 'steps', 't_start_ns', 't_end_ns'):
+        if rec.get(key) is not None and not isinstance(rec[key], int):
+            return f'record with a non-integer {key!r}'
+    return None
+
+
 class RunDir:
     """A run directory (see the module docstring)."""
 
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
+        self._lock_fd: int | None = None
+
+    # -- one writer at a time --------------------------------------------------------------
+    def lock(self) -> None:
+        """Take the run for this process; :class:`RunDirError` naming the other process
+        if one has it (a live tuner)."""
+        if self._lock_fd is not None:
+            return
+        fd = os.open(self.path, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise RunDirError(f'{self.path}: in use by {self.holder() or "another process"}; '
+                              'wait for it to end (or stop it with Ctrl-C) first') from None
+        self._lock_fd = fd
+
+    def unlock(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)  # closing the descriptor drops the flock
+            self._lock_fd = None
+
+    def holder(self) -> str | None:
+        """Who holds the run ('pid N (command line)'), or None if nobody does."""
+        if self._lock_fd is not None:
+            return f'pid {os.getpid()} (this process)'
+        try:
+            fd = os.open(self.path, os.O_RDONLY | os.O_DIRECTORY)
+        except OSError:
+            return None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return _lock_holder(self.path) or 'another process'
+        finally:
+            os.close(fd)  # also drops the shared lock taken to test
+        return None
 
     # -- creation / opening ------------------------------------------------------------
     @classmethod
@@ -107,8 +215,8 @@ class RunDir:
 
     def read_run(self) -> dict[str, Any]:
         try:
-            data = yaml.safe_load((self.path / RUN_FILE).read_text())
-        except (OSError, yaml.YAMLError) as exc:
+            data = yaml.safe_load((self.path / RUN_FILE).read_text(encoding='utf-8'))
+        except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
             raise RunDirError(f'{self.path / RUN_FILE}: unreadable ({exc})') from None
         if not isinstance(data, dict) or 'algo' not in data:
             raise RunDirError(f'{self.path / RUN_FILE}: not a tuner run file')
@@ -124,12 +232,17 @@ class RunDir:
             os.fsync(f.fileno())
 
     def read_results(self, repair: bool = False) -> list[dict[str, Any]]:
-        """Every complete record.  A torn last line (a kill while writing) is ignored, and
-        cut off when ``repair``; a bad line elsewhere is an error."""
+        """Every complete record, each checked (:func:`check_record`).  A torn last line
+        (a kill while writing) is ignored, and cut off when ``repair`` -- only once every
+        record is accepted, so a refusal changes nothing; a bad line elsewhere is an
+        error (:class:`RunDirError` naming the line)."""
         path = self.path / RESULTS_FILE
         if not path.exists():
             return []
-        raw = path.read_bytes()
+        try:
+            raw = path.read_bytes()
+        except OSError as exc:
+            raise RunDirError(f'{path}: unreadable ({exc.strerror or exc})') from None
         # Each record is written as one line ending in a newline: bytes after the last
         # newline are a record written only in part (the process died mid-write).
         end = raw.rfind(b'\n') + 1
@@ -141,12 +254,30 @@ class RunDir:
                 rec = None
             if not isinstance(rec, dict):
                 raise RunDirError(f'{path}: line {i + 1} is not a JSON record')
+            problem = check_record(rec)
+            if problem:
+                raise RunDirError(f'{path}: line {i + 1}: {problem}')
             out.append(rec)
         if repair and end < len(raw):
             with open(path, 'r+b') as f:
                 f.truncate(end)
                 os.fsync(f.fileno())
         return out
+
+    def cut_torn_tail(self) -> int:
+        """Cut a torn last line off results.jsonl (bytes after the last newline, left by a
+        kill mid-write) before anything is appended; returns the bytes cut."""
+        path = self.path / RESULTS_FILE
+        if not path.exists():
+            return 0
+        raw = path.read_bytes()
+        end = raw.rfind(b'\n') + 1
+        if end == len(raw):
+            return 0
+        with open(path, 'r+b') as f:
+            f.truncate(end)
+            os.fsync(f.fileno())
+        return len(raw) - end
 
     # -- checkpoint / summary ------------------------------------------------------------
     def write_checkpoint(self, state: dict[str, Any]) -> None:
@@ -155,13 +286,22 @@ class RunDir:
                           json.dumps(state, separators=(',', ':')))
 
     def read_checkpoint(self) -> dict[str, Any] | None:
+        """The checkpoint, or None if there is none; :class:`RunDirError` if it cannot be
+        read or is not a checkpoint (the caller may rebuild it from results.jsonl)."""
         path = self.path / CHECKPOINT_FILE
         if not path.exists():
             return None
         try:
-            return json.loads(path.read_text())
-        except (OSError, ValueError) as exc:
-            raise RunDirError(f'{path}: unreadable ({exc})') from None
+            data = json.loads(path.read_bytes())
+        except OSError as exc:
+            raise RunDirError(f'{path}: unreadable ({exc.strerror or exc})') from None
+        except ValueError:
+            raise RunDirError(f'{path}: not JSON (empty, truncated or corrupt)') from None
+        if not isinstance(data, dict) or not isinstance(data.get('records'), int) or \
+                not isinstance(data.get('optimizer'), dict) or \
+                not isinstance(data.get('tuner'), dict):
+            raise RunDirError(f'{path}: not a tuner checkpoint')
+        return data
 
     def write_summary(self, summary: dict[str, Any]) -> None:
         atomic_write_text(self.path / SUMMARY_FILE, json.dumps(summary, indent=2,

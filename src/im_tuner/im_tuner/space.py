@@ -137,9 +137,11 @@ def load_params(path: str | Path | None = None) -> TunerParams:
     p = default_params_path() if path is None else Path(path)
     src = str(p)
     try:
-        text = p.read_text()
+        text = p.read_text(encoding='utf-8')
     except OSError as exc:
         raise TunerParamsError(f'{src}: cannot read ({exc.strerror or exc})') from None
+    except UnicodeDecodeError:
+        raise TunerParamsError(f'{src}: not a text (UTF-8) file') from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:

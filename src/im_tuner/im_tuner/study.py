@@ -462,13 +462,18 @@ def load(out: Path | str) -> StudyResult:
     except FileNotFoundError as exc:
         raise ValueError(f'{out}: not a study directory ({Path(exc.filename).name} missing)') \
             from None
-    except (OSError, KeyError, json.JSONDecodeError) as exc:
+    except (OSError, KeyError, ValueError) as exc:  # ValueError: bad JSON, a bad npz
         raise ValueError(f'{out}: unreadable study ({exc})') from None
-    sp = dict(meta['spec'])
-    sp['algos'] = tuple(sp['algos'])
-    spec = StudySpec(**sp)
-    cells = [Cell(c['algo'], c['label'], c['row'], c['col'],
-                  tuple(tuple(o) for o in c['options'])) for c in meta['cells']]
-    return StudyResult(spec=spec, cells=cells, l_ref=meta['l_ref'], l_ref_sem=meta['l_ref_sem'],
-                       l_first=meta['l_first'], wall_s=meta['wall_s'], jobs=meta['jobs'],
-                       command=meta.get('command', ''), **arrays)
+    try:
+        sp = dict(meta['spec'])
+        sp['algos'] = tuple(sp['algos'])
+        spec = StudySpec(**sp)
+        cells = [Cell(c['algo'], c['label'], c['row'], c['col'],
+                      tuple(tuple(o) for o in c['options'])) for c in meta['cells']]
+        return StudyResult(spec=spec, cells=cells, l_ref=meta['l_ref'],
+                           l_ref_sem=meta['l_ref_sem'], l_first=meta['l_first'],
+                           wall_s=meta['wall_s'], jobs=meta['jobs'],
+                           command=meta.get('command', ''), **arrays)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f'{out}: not a study written by `ros2 run im_tuner study` '
+                         f'({exc!r:.100})') from None

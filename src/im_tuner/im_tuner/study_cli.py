@@ -26,6 +26,7 @@ import argparse
 import csv
 import datetime as _dt
 import math
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -34,9 +35,11 @@ import numpy as np
 import yaml
 
 from im_controller.config import GAIN_NAMES
+from im_drive_sim.cli import Parser, UsageError, int_in
 
 from . import study as S
 from .space import TunerParamsError
+
 from .study_stats import (EXPERIMENT_S, PAPER_CELL, PAPER_US_PER_ITERATION, CellStats, Interval,
                           StudyStats, compute, per_run)
 
@@ -442,13 +445,8 @@ def write_outputs(st: StudyStats, out: Path, command: str) -> dict[str, Path]:
     return paths
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:
-        raise StudyError(message)
-
-
 def _build_parser() -> argparse.ArgumentParser:
-    ap = _Parser(prog='ros2 run im_tuner study',
+    ap = Parser(prog='ros2 run im_tuner study',
                  description="The paper's configuration study (Tables I-III) offline, on the "
                              'numba kernels of the nodes, in a process pool '
                              '(docs/reproduction.md).')
@@ -459,8 +457,9 @@ def _build_parser() -> argparse.ArgumentParser:
                     help='comma-separated: spsa, necga (default both)')
     ap.add_argument('--model', choices=('full', 'reduced'), default='full',
                     help='drive model (default full: voltage-fed with the encoder)')
-    ap.add_argument('--jobs', type=int, default=None,
-                    help='worker processes (default: every core); results do not depend on it')
+    ap.add_argument('--jobs', type=int_in(1, max_jobs()), default=None,
+                    help='worker processes (default: every core; at most '
+                         f'{max_jobs()}, 4 per core); results do not depend on it')
     ap.add_argument('--seed', type=int, default=S.DEFAULT_SEED,
                     help=f'study seed (default {S.DEFAULT_SEED})')
     ap.add_argument('--satisfactory', type=float, default=None,
@@ -507,6 +506,11 @@ class Progress:
         else:
             self.stream.write(text + '\n')
         self.stream.flush()
+
+
+def max_jobs() -> int:
+    """Most worker processes accepted: 4 per core (each is a whole Python process)."""
+    return 4 * (os.cpu_count() or 1)
 
 
 def _spec(cli: argparse.Namespace) -> S.StudySpec:
@@ -558,7 +562,14 @@ def main(args: list[str] | None = None) -> int:
         if cli.source is None and out.is_dir() and (out / S.META_FILE).exists():
             raise StudyError(f'--out {out}: already holds a study (use --from to re-tabulate '
                              'it, or another --out)')
-    except StudyError as exc:
+        if cli.source is None and out.is_dir() and any(out.iterdir()):
+            raise StudyError(f'--out {out}: already exists and is not empty; choose a new '
+                             'directory')
+        if cli.source is not None and cli.out is not None and cli.out.is_dir() and \
+                any(cli.out.iterdir()) and cli.out.resolve() != cli.source.resolve():
+            raise StudyError(f'--out {out}: already exists and is not empty; choose a new '
+                             'directory')
+    except (StudyError, UsageError) as exc:
         print(f'error: study: {exc}', file=sys.stderr)
         return EXIT_USAGE
     if cli.source is None:

@@ -37,6 +37,7 @@ import argparse
 import math
 import os
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -52,9 +53,9 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
-from rclpy.utilities import remove_ros_args
 
 from im_controller.config import GAIN_NAMES, GAIN_UNITS
+from im_drive_sim.cli import Parser, UsageError, check_ros_args, finite_float
 
 from . import optim
 from .link import FAULT_POLICIES, ControllerLink, DriveMonitor, controller_topics, drive_report
@@ -75,17 +76,8 @@ RUN_SETTINGS = ('algo', 'budget', 'seed', 'params', 'remeasure', 'no_reference',
                 'drive_config', 'retries')
 
 
-class UsageError(Exception):
-    """Bad command-line input: one line, exit code 2."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, exit 2 (argparse prints usage too)
-        raise UsageError(message)
-
-
 def _build_parser() -> argparse.ArgumentParser:
-    ap = _Parser(prog='ros2 run im_tuner tuner',
+    ap = Parser(prog='ros2 run im_tuner tuner',
                  description='Tune the cascaded position/speed controller online by SPSA or '
                              'a compact GA on measured experiment losses (docs/tuner.md).')
     ap.add_argument('--algo', choices=optim.ALGOS, help='optimiser (default: necga)')
@@ -112,7 +104,8 @@ def _build_parser() -> argparse.ArgumentParser:
                     help='do not measure the start gains first (the reference)')
     ap.add_argument('--retries', type=int, metavar='R',
                     help='re-runs of an evaluation whose result is lost (default 3)')
-    ap.add_argument('--eval-timeout', type=float, default=60.0, metavar='S',
+    ap.add_argument('--eval-timeout', type=finite_float(0.0, lo_open=True, unit='s'),
+                    default=60.0, metavar='S',
                     help='wall time allowed per experiment [s] (default 60)')
     ap.add_argument('--fault-policy', choices=FAULT_POLICIES,
                     help='after a safety fault: reset it and go on, or stop the run '
@@ -126,7 +119,8 @@ def _build_parser() -> argparse.ArgumentParser:
                     help='simulated bench: drive model fidelity (default: the drive file\'s)')
     ap.add_argument('--drive-config', type=Path, metavar='FILE',
                     help='simulated bench: drive parameter file (default: the paper\'s motor)')
-    ap.add_argument('--discovery-timeout', type=float, default=2.0, metavar='S',
+    ap.add_argument('--discovery-timeout', type=finite_float(0.0, 3600.0, unit='s'),
+                    default=2.0, metavar='S',
                     help='--bench auto/none: how long to look for a controller [s] (default 2)')
     g = ap.add_argument_group('algorithm options (docs/optimisers.md)')
     seen: dict[str, Any] = {}
@@ -135,9 +129,11 @@ def _build_parser() -> argparse.ArgumentParser:
             if name in seen:
                 continue
             seen[name] = spec
+            algos = ', '.join(a for a, s in optim.OPTIONS.items() if name in s)
+            text = f'{spec.help} (default {spec.default!r}; for {algos})'
+            # argparse %-formats help texts: a literal % (e.g. "~10% of") must be doubled
             kw: dict[str, Any] = {'dest': f'opt_{name}', 'default': None,
-                                  'help': f'{spec.help} (default {spec.default!r}; '
-                                          f'for {", ".join(a for a, s in optim.OPTIONS.items() if name in s)})'}
+                                  'help': text.replace('%', '%%')}
             choices = getattr(spec, 'choices', None)
             if choices:
                 kw['choices'] = list(choices)
@@ -206,6 +202,40 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str,
 def _start(algo: str, params: TunerParams) -> np.ndarray | None:
     """SPSA starts from the file's start point; the compact GAs from their distribution."""
     return params.space.start_u if algo in optim.TAKES_START else None
+
+
+def _check_controller_name(name: str) -> None:
+    """The controller's node name must make valid ROS names for its services and topics."""
+    from rclpy.exceptions import InvalidServiceNameException, InvalidTopicNameException
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+    try:
+        for topic in controller_topics(name).values():
+            validate_full_topic_name(topic)
+    except (InvalidTopicNameException, InvalidServiceNameException) as exc:
+        raise UsageError(f'--controller {name!r}: not a valid node name '
+                         f'({str(exc).splitlines()[0]})') from None
+
+
+def _check_run(run: dict[str, Any], where: str) -> None:
+    """run.yaml of a run to resume: the settings the tuner reads, with their types."""
+    def bad(key: str, what: str) -> UsageError:
+        return UsageError(f'{where}: {key} must be {what}, got {run.get(key)!r}')
+
+    def is_int(v: Any) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool)
+    if run.get('algo') not in optim.ALGOS:
+        raise bad('algo', 'one of ' + ', '.join(optim.ALGOS))
+    if not is_int(run.get('budget')) or run['budget'] < 1:
+        raise bad('budget', 'an integer >= 1')
+    for key in ('seed', 'drive_seed', 'remeasure', 'retries'):
+        if not is_int(run.get(key)) or run[key] < 0:
+            raise bad(key, 'an integer >= 0')
+    if not isinstance(run.get('options'), dict):
+        raise bad('options', 'a mapping of algorithm options')
+    if not isinstance(run.get('reference'), bool):
+        raise bad('reference', 'true or false')
+    if not isinstance(run.get('search_box'), dict):
+        raise bad('search_box', 'a mapping (the search box)')
 
 
 def _params_of_run(run: dict[str, Any]) -> TunerParams:
@@ -444,7 +474,8 @@ def _repair_old_bags(rundir: RunDir, note) -> None:
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv if args is None else args)
     try:
-        cli = _build_parser().parse_args(remove_ros_args(argv)[1:])
+        cli = _build_parser().parse_args(check_ros_args(argv)[1:])
+        _check_controller_name(cli.controller)
     except UsageError as exc:
         print(f'error: tuner: {exc}', file=sys.stderr)
         return EXIT_USAGE
@@ -468,9 +499,21 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                              'also give ' + ', '.join('--' + g.replace('_', '-') for g in given))
         try:
             rundir = RunDir.open(cli.resume)
+            rundir.lock()  # one tuner per run, from here to the end of the process
             run = rundir.read_run()
+            _check_run(run, str(rundir.path / 'run.yaml'))
             params = _params_of_run(run)
         except (RunDirError, TunerParamsError) as exc:
+            raise UsageError(f'--resume: {exc}') from None
+        # everything of the run is checked before anything starts (a refusal changes
+        # nothing; the torn tail of results.jsonl is cut only once the run goes on)
+        progress = Progress(run['algo'], run['budget'], cli.quiet)
+        try:
+            tuning = _make_tuning(rundir, run, params, progress)
+            n_restored = tuning.restore()
+        except (OptimizerError, ValueError, TypeError) as exc:
+            raise UsageError(f'--resume: {rundir.path}/run.yaml: {exc}') from None
+        except ResumeError as exc:
             raise UsageError(f'--resume: {exc}') from None
         bench_mode = cli.bench or run.get('bench_requested', 'auto')
     else:
@@ -486,7 +529,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         rundir = None
         bench_mode = cli.bench or 'auto'
         run['bench_requested'] = bench_mode
-    progress = Progress(run['algo'], run['budget'], cli.quiet)
+        progress = Progress(run['algo'], run['budget'], cli.quiet)
 
     # ---- ROS ---------------------------------------------------------------------------------
     ros_args = ['--ros-args', '--disable-stdout-logs']  # the tuner prints its own progress
@@ -507,6 +550,8 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
     ended: list[subprocess.Popen] = []           # ... and those already gone
     node = None
     exe = None
+    bag_dir: Path | None = None
+    discard_bag = False
     code = EXIT_OK
     try:
         node = Node('tuner', context=ctx, start_parameter_services=False)
@@ -547,15 +592,19 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         if rundir is None:
             try:
                 rundir = RunDir.create(out)
+                rundir.lock()
             except RunDirError as exc:
                 raise UsageError(str(exc)) from None
             run['bench'] = bench_mode
-        tuning = _make_tuning(rundir, run, params, progress)
-        if cli.resume is not None:
-            n = tuning.restore()
+            tuning = _make_tuning(rundir, run, params, progress)
+        else:
+            # accepted: from here on the run directory changes
+            rundir.cut_torn_tail()
+            if tuning.rebuilt:
+                progress.warn(f'warning: {tuning.rebuilt}; rebuilt from results.jsonl')
             _repair_old_bags(rundir, progress.note)
-            progress.note(f'resuming {rundir.path}: {n} records, {tuning.state.evals}/'
-                          f'{run["budget"]} evaluations done')
+            progress.note(f'resuming {rundir.path}: {n_restored} records, '
+                          f'{tuning.state.evals}/{run["budget"]} evaluations done')
         bag_dir = None if cli.no_record else rundir.next_bag_dir()
 
         # ---- the bench ------------------------------------------------------------------------
@@ -734,6 +783,8 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         progress.close()
         print(f'error: tuner: {exc}', file=sys.stderr)
         code = EXIT_USAGE if isinstance(exc, ResumeError) else EXIT_FAILED
+        # a replay that does not match refuses the resume: its bag holds only the replay
+        discard_bag = isinstance(exc, ResumeError)
     except StopRequested:
         progress.close()
         print('tuner: interrupted before the search started', file=sys.stderr)
@@ -751,6 +802,8 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         from im_drive_sim.runtime import stop_child
         for p in [*reversed(list(children.values())), *ended]:
             stop_child(p)
+        if discard_bag and bag_dir is not None and bag_dir.exists():
+            shutil.rmtree(bag_dir, ignore_errors=True)
         if node is not None:
             node.destroy_node()
         if exe is not None:

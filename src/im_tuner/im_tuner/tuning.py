@@ -41,7 +41,7 @@ import numpy as np
 from im_controller.config import GAIN_NAMES, Gains
 
 from .optim.base import Optimizer
-from .rundir import RunDir
+from .rundir import RunDir, RunDirError
 from .space import SearchSpace
 
 __all__ = ['Measurement', 'Measurer', 'LostEvaluation', 'BenchFailure', 'StopRequested',
@@ -170,9 +170,23 @@ class TuningRun:
     # -- resume --------------------------------------------------------------------------
     def restore(self) -> int:
         """Load the run's results and checkpoint (see module doc); returns the number of
-        records.  Raises ResumeError when they disagree."""
-        records = self.rundir.read_results(repair=True)
-        ck = self.rundir.read_checkpoint()
+        records.  Raises ResumeError when they disagree, or when a record is malformed.
+
+        Nothing is written: a torn last line of results.jsonl is left for the caller to
+        cut (``RunDir.cut_torn_tail``) once it has accepted the whole resume. A checkpoint
+        that cannot be read (empty, truncated, corrupt, not a checkpoint) is rebuilt from
+        results.jsonl -- the truth -- by replaying every record through a fresh optimiser
+        (the candidates are checked as on any resume); ``self.rebuilt`` says why."""
+        try:
+            records = self.rundir.read_results()
+        except RunDirError as exc:
+            raise ResumeError(str(exc)) from None
+        fresh = self.opt
+        self.rebuilt: str | None = None
+        try:
+            ck = self.rundir.read_checkpoint()
+        except RunDirError as exc:
+            ck, self.rebuilt = None, str(exc)
         done = 0
         if ck is not None:
             if ck.get('version') != CHECKPOINT_VERSION:
@@ -182,9 +196,12 @@ class TuningRun:
             if done > len(records):
                 raise ResumeError(f'{self.rundir.path}: the checkpoint counts {done} records '
                                   f'but results.jsonl has {len(records)}')
-            self.opt = Optimizer.from_state(ck['optimizer'])
-            st = ck['tuner']
-            self.state = TunerState(**st)
+            try:
+                self.opt = Optimizer.from_state(ck['optimizer'])
+                self.state = TunerState(**ck['tuner'])
+            except Exception as exc:  # any malformed field: the checkpoint is unusable
+                self.opt, self.state, done = fresh, TunerState(), 0
+                self.rebuilt = f'checkpoint.json: not a usable checkpoint ({exc!r:.120})'
         self.records = records[:done]
         for rec in records[done:]:
             self._apply(rec, live=False)

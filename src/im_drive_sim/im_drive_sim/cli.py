@@ -1,0 +1,156 @@
+"""Command-line plumbing shared by every executable of the workspace.
+
+One convention for bad input, everywhere: **one line on stderr, exit code 2, nothing
+created or changed** (no traceback, no usage block). This module gives the pieces:
+
+* :class:`Parser`: an ``argparse.ArgumentParser`` whose errors raise :class:`UsageError`
+  instead of printing the usage and exiting;
+* :func:`parse_cli`: strips the ``--ros-args ...`` part (``rclpy.utilities.remove_ros_args``)
+  and parses the rest; a bad ``--ros-args`` part (a missing, unreadable or non-ROS
+  ``--params-file``, a malformed ``-p``) becomes a :class:`UsageError` with rcl's reason,
+  without rcl's source locations;
+* argparse ``type=`` helpers for numbers with ranges (:func:`finite_float`,
+  :func:`int_in`) and an output file (:func:`output_file`);
+* :func:`run_cli`: calls a ``main`` body and turns :class:`UsageError` into the one line.
+
+The ROS parts (rcl's argument parser) are imported lazily: the module is importable in
+the pure tools and tests without rclpy.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import re
+import sys
+from pathlib import Path
+from typing import Callable, Sequence
+
+EXIT_USAGE = 2
+
+
+class UsageError(Exception):
+    """Bad input on the command line or in a file it names: one line, exit code 2."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (raised as :class:`UsageError`)."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(message)
+
+
+def _ros_args_reason(text: str) -> str:
+    """rcl's message without its C source locations (``, at /project/src/...:271``)."""
+    text = re.sub(r',? at /\S+:\d+', '', str(text))
+    return re.sub(r'^Failed to parse ROS arguments: ', '', text).strip()
+
+
+def _params_files(argv: Sequence[str]) -> list[str]:
+    """The ``--params-file F`` operands inside ``--ros-args`` sections."""
+    out, in_ros = [], False
+    for i, a in enumerate(argv):
+        if a == '--ros-args':
+            in_ros = True
+        elif a == '--':
+            in_ros = False
+        elif in_ros and a == '--params-file' and i + 1 < len(argv):
+            out.append(argv[i + 1])
+    return out
+
+
+def check_ros_args(argv: Sequence[str]) -> list[str]:
+    """``argv`` without its ROS arguments; :class:`UsageError` if they do not parse.
+
+    A ``--params-file`` that is missing or a directory is named plainly (rcl says 'Error
+    parsing a event near line 0' for a directory)."""
+    for f in _params_files(argv):
+        p = Path(f)
+        if not p.exists():
+            raise UsageError(f'--params-file {f}: no such file')
+        if not p.is_file():
+            raise UsageError(f'--params-file {f}: not a file')
+        if not os.access(p, os.R_OK):
+            raise UsageError(f'--params-file {f}: not readable')
+    from rclpy.utilities import remove_ros_args
+    try:
+        return remove_ros_args(list(argv))
+    except Exception as exc:  # RCLInvalidROSArgsError and friends (pybind11 types)
+        raise UsageError(f'bad --ros-args: {_ros_args_reason(str(exc))}') from None
+
+
+def parse_cli(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.Namespace:
+    """Check the ROS arguments of the full ``argv`` (program name first), then parse the
+    others with ``parser``."""
+    return parser.parse_args(check_ros_args(argv)[1:])
+
+
+def run_cli(prog: str, body: Callable[[], int]) -> int:
+    """``body()``, with a :class:`UsageError` printed as ``error: <prog>: <reason>`` (exit 2)."""
+    try:
+        return body()
+    except UsageError as exc:
+        print(f'error: {prog}: {exc}', file=sys.stderr, flush=True)
+        return EXIT_USAGE
+
+
+# -- argparse types ----------------------------------------------------------------------
+def finite_float(lo: float | None = None, hi: float | None = None, *,
+                 lo_open: bool = False, unit: str = '') -> Callable[[str], float]:
+    """A float that must be finite and within [lo, hi] (``lo_open``: lo excluded)."""
+    def conv(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'not a number: {text!r}') from None
+        u = f' {unit}' if unit else ''
+        if not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f'must be finite, got {text}')
+        if lo is not None and (v < lo or (lo_open and v == lo)):
+            raise argparse.ArgumentTypeError(f'must be {">" if lo_open else ">="} {lo:g}{u}, '
+                                             f'got {text}')
+        if hi is not None and v > hi:
+            raise argparse.ArgumentTypeError(f'must be <= {hi:g}{u}, got {text}')
+        return v
+    conv.__name__ = 'number'  # argparse names the type in its messages
+    return conv
+
+
+def int_in(lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
+    """An integer within [lo, hi]."""
+    def conv(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'not an integer: {text!r}') from None
+        if lo is not None and v < lo:
+            raise argparse.ArgumentTypeError(f'must be >= {lo}, got {text}')
+        if hi is not None and v > hi:
+            raise argparse.ArgumentTypeError(f'must be <= {hi}, got {text}')
+        return v
+    conv.__name__ = 'integer'
+    return conv
+
+
+def output_file(text: str) -> Path:
+    """A file to be written later: not a directory, in an existing writable directory
+    (checked now, so that a long job does not fail at its end)."""
+    p = Path(text)
+    if p.is_dir():
+        raise argparse.ArgumentTypeError(f'{text} is a directory, not a file')
+    parent = p.parent if str(p.parent) else Path('.')
+    if not parent.is_dir():
+        raise argparse.ArgumentTypeError(f'{text}: directory {parent} does not exist')
+    if not os.access(parent, os.W_OK | os.X_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise argparse.ArgumentTypeError(f'{text}: not writable')
+    return p
+
+
+def input_file(text: str) -> Path:
+    """A file to be read: it exists and is a regular file."""
+    p = Path(text)
+    if not p.exists():
+        raise argparse.ArgumentTypeError(f'{text}: no such file')
+    if not p.is_file():
+        raise argparse.ArgumentTypeError(f'{text}: not a file')
+    return p

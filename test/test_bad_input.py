@@ -1,0 +1,304 @@
+"""Every executable x every kind of bad input: one line on stderr, exit 2, nothing changed.
+
+The matrix (issue 16): for each of the nine executables, a wrong flag, an out-of-range
+value, NaN/inf, a wrong type, a missing file, a directory instead of a file and a corrupt
+file, plus the cases found broken by hand (corrupt run directories for ``--resume`` and
+``report``, bad ``--ros-args --params-file``, a bad controller name...). Each case runs in
+its own copy of a work directory (cwd) holding the inputs; afterwards the directory must
+be exactly as before (no run directory, bag or JSON left behind, no input modified).
+
+The cases run a few at a time in a module fixture (each is a separate process, most of it
+Python and rclpy start-up); each case is then its own test, named after the case.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
+PAPER = Path(sys.prefix) / 'share' / 'im_drive_sim' / 'config' / 'paper_750w.yaml'
+TUNER_YAML = Path(sys.prefix) / 'share' / 'im_tuner' / 'config' / 'tuner.yaml'
+CASE_TIMEOUT = 60.0
+
+EXES = {
+    'drive_sim': ('im_drive_sim', 'drive_sim'),
+    'example_drive': ('im_drive_sim', 'example_drive'),
+    'controller': ('im_controller', 'controller'),
+    'sim_bench': ('im_controller', 'sim_bench'),
+    'check_drive': ('im_controller', 'check_drive'),
+    'recorder': ('im_tuner', 'recorder'),
+    'report': ('im_tuner', 'report'),
+    'study': ('im_tuner', 'study'),
+    'tuner': ('im_tuner', 'tuner'),
+}
+NODES = ('drive_sim', 'example_drive', 'controller', 'sim_bench', 'recorder')
+
+
+def _params_file_cases(exe: str) -> list[tuple[str, str, list[str]]]:
+    """--ros-args --params-file: missing, a directory, not YAML, YAML that is not ROS's."""
+    return [(exe, f'params-file-{kind}', ['--ros-args', '--params-file', f])
+            for kind, f in (('missing', 'missing.yaml'), ('directory', 'adir'),
+                            ('corrupt', 'corrupt.yaml'), ('not-ros', 'notros.yaml'))]
+
+
+def _file_cases(exe: str, flag: str, extra: tuple[str, ...] = ()) -> list[tuple[str, str, list[str]]]:
+    return [(exe, f'{flag[2:]}-{kind}', [flag, f, *extra])
+            for kind, f in (('missing', 'missing.yaml'), ('directory', 'adir'),
+                            ('corrupt', 'corrupt.yaml'), ('wrong-yaml', 'notros.yaml'))]
+
+
+CASES: list[tuple[str, str, list[str]]] = [
+    # -- wrong flag, every executable
+    *[(exe, 'wrong-flag', ['--no-such-flag']) for exe in EXES],
+    # -- drive_sim
+    ('drive_sim', 'mode-bad', ['--mode', 'fast']),
+    ('drive_sim', 'seed-negative', ['--seed', '-1']),
+    ('drive_sim', 'seed-type', ['--seed', 'abc']),
+    ('drive_sim', 'max-steps-negative', ['--max-steps', '-5']),
+    ('drive_sim', 'p-seed-type', ['--ros-args', '-p', 'seed:=abc']),
+    ('drive_sim', 'p-read-only-state-fields', ['--ros-args', '-p', 'state_fields:=[a,b]']),
+    *_file_cases('drive_sim', '--config'),
+    *_params_file_cases('drive_sim'),
+    # -- example_drive
+    ('example_drive', 'p-timeout-negative', ['--ros-args', '-p', 'command_timeout:=-1.0']),
+    ('example_drive', 'p-timeout-nan', ['--ros-args', '-p', 'command_timeout:=.nan']),
+    ('example_drive', 'p-isq-max-type', ['--ros-args', '-p', 'isq_max:=abc']),
+    ('example_drive', 'p-isq-max-inf', ['--ros-args', '-p', 'isq_max:=.inf']),
+    *_params_file_cases('example_drive'),
+    # -- controller
+    ('controller', 'mode-bad', ['--mode', 'fast']),
+    ('controller', 'p-gain-negative', ['--ros-args', '-p', 'k_pw:=-1.0']),
+    ('controller', 'p-gain-nan', ['--ros-args', '-p', 'k_pw:=.nan']),
+    ('controller', 'p-gain-inf', ['--ros-args', '-p', 'k_pos:=.inf']),
+    ('controller', 'p-gain-type', ['--ros-args', '-p', 'k_pw:=abc']),
+    ('controller', 'p-isq-max-above-drive', ['--ros-args', '-p', 'safety.isq_max:=20.0']),
+    *_file_cases('controller', '--config'),
+    *_params_file_cases('controller'),
+    # -- sim_bench
+    ('sim_bench', 'seed-negative', ['--seed', '-1']),
+    ('sim_bench', 'seed-type', ['--seed', '1.5']),
+    ('sim_bench', 'compression-bad', ['--compression', 'gzip']),
+    ('sim_bench', 'out-is-a-file', ['--out', 'corrupt.yaml']),
+    ('sim_bench', 'processes-seed-negative', ['--processes', '--seed', '-1']),
+    ('sim_bench', 'p-isq-max-above-drive', ['--ros-args', '-p', 'safety.isq_max:=20.0']),
+    *_file_cases('sim_bench', '--config'),
+    *[('sim_bench', 'processes-' + n, a)
+      for _e, n, a in _file_cases('sim_bench', '--config', ('--processes',))],
+    *_params_file_cases('sim_bench'),
+    # -- check_drive (all of these before any probing)
+    ('check_drive', 'amplitude-negative', ['--amplitude', '-0.5']),
+    ('check_drive', 'amplitude-nan', ['--amplitude', 'nan']),
+    ('check_drive', 'amplitude-type', ['--amplitude', 'half']),
+    ('check_drive', 'timeout-inf', ['--timeout', 'inf']),
+    ('check_drive', 'json-directory', ['--json', 'adir']),
+    ('check_drive', 'json-in-missing-directory', ['--json', 'nowhere/x.json']),
+    *_file_cases('check_drive', '--config'),
+    # -- recorder
+    ('recorder', 'chunk-size-huge', ['--chunk-size', str(1 << 50)]),
+    ('recorder', 'chunk-size-zero', ['--chunk-size', '0']),
+    ('recorder', 'chunk-size-type', ['--chunk-size', '1MB']),
+    ('recorder', 'max-chunk-age-nan', ['--max-chunk-age', 'nan']),
+    ('recorder', 'max-chunk-age-inf', ['--max-chunk-age', 'inf']),
+    ('recorder', 'max-chunk-age-negative', ['--max-chunk-age', '-1']),
+    ('recorder', 'compression-bad', ['--compression', 'gzip']),
+    ('recorder', 'out-is-a-file', ['--out', 'corrupt.yaml']),
+    ('recorder', 'out-not-empty', ['--out', 'run']),
+    ('recorder', 'repair-missing', ['--repair', 'missing_bag']),
+    ('recorder', 'repair-not-a-bag', ['--repair', 'adir']),
+    ('recorder', 'repair-a-file', ['--repair', 'corrupt.yaml']),
+    *_params_file_cases('recorder'),
+    # -- report
+    ('report', 'no-run', []),
+    ('report', 'missing', ['missing_run']),
+    ('report', 'a-file', ['corrupt.yaml']),
+    ('report', 'not-a-run', ['adir']),
+    ('report', 'record-without-loss', ['run_noloss']),
+    ('report', 'garbage-results-line', ['run_garbage_line']),
+    ('report', 'out-is-a-file', ['run', '--out', 'corrupt.yaml']),
+    # -- study
+    ('study', 'runs-zero', ['--runs', '0']),
+    ('study', 'runs-type', ['--runs', 'many']),
+    ('study', 'budget-negative', ['--budget', '-1']),
+    ('study', 'jobs-zero', ['--jobs', '0']),
+    ('study', 'jobs-huge', ['--jobs', '100000']),
+    ('study', 'satisfactory-nan', ['--satisfactory', 'nan']),
+    ('study', 'algos-bad', ['--algos', 'spsa,simplex']),
+    ('study', 'out-not-empty', ['--out', 'run']),
+    ('study', 'out-is-a-file', ['--out', 'corrupt.yaml']),
+    ('study', 'from-missing', ['--from', 'missing_study']),
+    ('study', 'from-not-a-study', ['--from', 'adir']),
+    *_file_cases('study', '--params'),
+    *_file_cases('study', '--drive-config'),
+    # -- tuner: options
+    ('tuner', 'budget-zero', ['--budget', '0']),
+    ('tuner', 'budget-type', ['--budget', 'ten']),
+    ('tuner', 'seed-negative', ['--seed', '-3']),
+    ('tuner', 'eval-timeout-nan', ['--eval-timeout', 'nan']),
+    ('tuner', 'discovery-timeout-negative', ['--discovery-timeout', '-1']),
+    ('tuner', 'discovery-timeout-inf', ['--discovery-timeout', 'inf']),
+    ('tuner', 'controller-bad-name', ['--controller', '///bad name']),
+    ('tuner', 'out-is-a-file', ['--out', 'corrupt.yaml']),
+    ('tuner', 'out-not-empty', ['--out', 'adir_full']),
+    ('tuner', 'algo-bad', ['--algo', 'simplex']),
+    ('tuner', 'option-of-other-algo', ['--algo', 'spsa', '--n', '25']),
+    *_file_cases('tuner', '--params'),
+    *_file_cases('tuner', '--drive-config'),
+    # -- tuner --resume: every way a run directory can be broken
+    ('tuner', 'resume-missing', ['--resume', 'missing_run']),
+    ('tuner', 'resume-not-a-run', ['--resume', 'adir']),
+    ('tuner', 'resume-results-garbage-line', ['--resume', 'run_garbage_line']),
+    ('tuner', 'resume-record-without-loss', ['--resume', 'run_noloss']),
+    ('tuner', 'resume-torn-line-then-refused', ['--resume', 'run_torn_and_bad']),
+    ('tuner', 'resume-run-yaml-bad-algo', ['--resume', 'run_bad_algo']),
+    ('tuner', 'resume-run-yaml-bad-budget', ['--resume', 'run_bad_budget']),
+    ('tuner', 'resume-with-settings', ['--resume', 'run', '--budget', '9']),
+]
+
+
+# -- the work directory every case starts from ---------------------------------------------
+def _corrupt_copy(src: Path, dst: Path, edit) -> None:
+    shutil.copytree(src, dst)
+    edit(dst)
+
+
+@pytest.fixture(scope='module')
+def template(tmp_path_factory) -> Path:
+    """Inputs: files (missing, a directory, garbage, YAML of the wrong shape) and a real
+    interrupted tuner run with broken copies of it."""
+    root = tmp_path_factory.mktemp('bad_input_template')
+    (root / 'adir').mkdir()
+    (root / 'adir_full').mkdir()
+    (root / 'adir_full' / 'x.txt').write_text('x\n')
+    (root / 'corrupt.yaml').write_bytes(b'{{{ : [\x00\xff not yaml\n')
+    (root / 'notros.yaml').write_text('- just\n- a list\n')
+    # a real run, cut after its budget of 3 (done) and then made resumable by dropping
+    # the last records, as a killed run leaves it
+    run = root / 'run'
+    proc = subprocess.run([ROS2, 'run', 'im_tuner', 'tuner', '--budget', '4', '--seed', '5',
+                           '--remeasure', '0', '--no-record', '--bench', 'inproc', '--quiet',
+                           '--out', str(run)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = (run / 'results.jsonl').read_text().splitlines(keepends=True)
+    (run / 'results.jsonl').write_text(''.join(lines[:3]))
+    (run / 'summary.json').unlink()
+
+    def write(name: str, text: str | bytes) -> None:
+        def edit(d: Path) -> None:
+            (d / name).write_bytes(text if isinstance(text, bytes) else text.encode())
+        return edit
+    variants = {
+        'run_garbage_line': write('results.jsonl', ''.join(lines[:1]) + 'not json at all\n'
+                                  + ''.join(lines[1:3])),
+        'run_noloss': write('results.jsonl', ''.join(lines[:1]) + json.dumps(
+            {k: v for k, v in json.loads(lines[1]).items() if k != 'loss'}) + '\n'
+            + ''.join(lines[2:3])),
+        # a torn last line (cut on resume) and a bad record before it (refused)
+        'run_torn_and_bad': write('results.jsonl', ''.join(lines[:1]) + json.dumps(
+            {k: v for k, v in json.loads(lines[1]).items() if k != 'loss'}) + '\n'
+            + ''.join(lines[2:3]) + '{"kind": "ev'),
+    }
+    for name, edit in variants.items():
+        _corrupt_copy(run, root / name, edit)
+
+    def run_yaml(name: str, old: str, new: str) -> None:
+        def edit(d: Path) -> None:
+            p = d / 'run.yaml'
+            text = p.read_text()
+            assert old in text
+            p.write_text(text.replace(old, new, 1))
+        _corrupt_copy(run, root / name, edit)
+    run_yaml('run_bad_algo', 'algo: necga', 'algo: simplex')
+    run_yaml('run_bad_budget', 'budget: 4', 'budget: lots')
+    # a run with a bag whose metadata.yaml is garbage (for report)
+    bag_run = root / 'run_bad_metadata'
+    shutil.copytree(run, bag_run)
+    (bag_run / 'bag_0').mkdir()
+    (bag_run / 'bag_0' / 'metadata.yaml').write_bytes(b'{{{ : [\x00\xff')
+    (bag_run / 'bag_0' / 'bag_0_0.mcap').write_bytes(b'\x89MCAP0\r\n')
+    return root
+
+
+def _tree(root: Path) -> dict[str, str]:
+    """Every path under ``root`` with a digest of its bytes (directories as 'dir')."""
+    out: dict[str, str] = {}
+    for p in sorted(root.rglob('*')):
+        rel = str(p.relative_to(root))
+        out[rel] = 'dir' if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
+
+
+def _run_case(template: Path, base: Path, i: int, exe: str, argv: list[str]) -> dict:
+    cwd = base / f'case_{i}'
+    shutil.copytree(template, cwd, symlinks=True)
+    before = _tree(cwd)
+    env = dict(os.environ)
+    # each case its own DDS domain: a node that wrongly starts must not meet another case
+    env['ROS_DOMAIN_ID'] = str(100 + (int(env.get('ROS_DOMAIN_ID', '20')) + i) % 100)
+    env['ROS_LOG_DIR'] = str(base / f'log_{i}')
+    pkg, name = EXES[exe]
+    # its own session: a case that wrongly starts a pool or children is ended whole
+    proc = subprocess.Popen([ROS2, 'run', pkg, name, *argv], cwd=cwd, env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=CASE_TIMEOUT)
+        rc = proc.returncode
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        rc = None
+    after = _tree(cwd)
+    return {'rc': rc, 'stdout': out, 'stderr': err,
+            'created': sorted(set(after) - set(before)),
+            'removed': sorted(set(before) - set(after)),
+            'changed': sorted(k for k in set(before) & set(after) if before[k] != after[k])}
+
+
+@pytest.fixture(scope='module')
+def outcomes(template: Path, tmp_path_factory, request) -> dict[int, dict]:
+    """Runs the selected cases (all, or those picked with -k), three at a time."""
+    base = tmp_path_factory.mktemp('bad_input_cases')
+    chosen = sorted({it.callspec.params['i'] for it in request.session.items
+                     if getattr(it, 'originalname', '') == 'test_bad_input_one_line_exit_2_nothing_changed'})
+    with ThreadPoolExecutor(3) as pool:
+        futs = {i: pool.submit(_run_case, template, base, i, CASES[i][0], CASES[i][2])
+                for i in chosen}
+        return {i: f.result() for i, f in futs.items()}
+
+
+@pytest.mark.parametrize('i', range(len(CASES)),
+                         ids=[f'{exe}-{name}' for exe, name, _a in CASES])
+def test_bad_input_one_line_exit_2_nothing_changed(i: int, outcomes: dict[int, dict]) -> None:
+    exe, name, argv = CASES[i]
+    o = outcomes[i]
+    what = f'{exe} {" ".join(argv)}: rc={o["rc"]}\nstderr:\n{o["stderr"][-1500:]}\nstdout:\n' \
+           f'{o["stdout"][-500:]}'
+    assert o['rc'] == 2, what
+    assert 'Traceback' not in o['stderr'] + o['stdout'], what
+    lines = o['stderr'].strip().splitlines()
+    assert len(lines) == 1, what
+    assert lines[0].startswith('error: ') and len(lines[0]) < 400, what
+    if exe == 'check_drive':  # refused before looking for a drive, not for want of one
+        assert 'no drive' not in lines[0], what
+    assert o['stdout'].strip() == '', what
+    assert o['created'] == [] and o['removed'] == [] and o['changed'] == [], \
+        f'{what}\ncreated {o["created"]}, removed {o["removed"]}, changed {o["changed"]}'
+
+
+def test_the_matrix_covers_every_executable() -> None:
+    """Each executable meets at least: wrong flag, and (where it has one) each file kind."""
+    per_exe = {exe: {name for e, name, _a in CASES if e == exe} for exe in EXES}
+    assert all('wrong-flag' in names for names in per_exe.values())
+    for exe in NODES:
+        assert {f'params-file-{k}' for k in ('missing', 'directory', 'corrupt', 'not-ros')} \
+            <= per_exe[exe], exe
+    assert len(CASES) == len({(e, n) for e, n, _a in CASES})  # unique ids

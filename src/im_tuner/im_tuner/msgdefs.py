@@ -49,7 +49,7 @@ import os
 import re
 from pathlib import Path
 
-__all__ = ["MsgDefError", "SEPARATOR", "schema_text"]
+__all__ = ["MsgDefError", "SEPARATOR", "schema_text", "schema_idl", "schema_for"]
 
 SEPARATOR = "=" * 80
 """The line that introduces every dependency's definition."""
@@ -121,6 +121,70 @@ def schema_text(type_name: str, prefixes: list[str] | None = None) -> str:
 
     visit(top_deps, f"{pkg}/{name}")
     return "\n".join(sections)
+
+
+def schema_for(type_name: str, prefixes: list[str] | None = None) -> tuple[str, str]:
+    """``(encoding, text)`` of the MCAP schema to record ``type_name`` with.
+
+    Messages: ``ros2msg`` (:func:`schema_text`). Service events (``pkg/srv/Name_Event``):
+    ``ros2idl`` (:func:`schema_idl`) -- in the ``ros2msg`` form rosbags 0.11.9 can only
+    register them as ``pkg/srv/msg/Name_Event``, so its standard ``AnyReader`` cannot
+    open a bag that carries their type hash; from IDL it registers ``pkg/srv/Name_Event``
+    and recomputes exactly the RIHS01 hash ROS gives the type."""
+    pkg, kind, name = _parse_type_name(type_name)
+    if kind == "srv" and name.endswith(_EVENT_SUFFIX):
+        return "ros2idl", schema_idl(type_name, prefixes)
+    return "ros2msg", schema_text(type_name, prefixes)
+
+
+_INCLUDE_RE = re.compile(r'^#include "([a-z][a-z0-9_]*/(?:msg|srv)/[A-Za-z][A-Za-z0-9_]*)\.idl"\s*$',
+                         re.M)
+# @verbatim(language="comment", text="..." "...") -- a comment; its strings may hold ')'
+_VERBATIM_RE = re.compile(r'@verbatim\s*\((?:[^()"]|"(?:[^"\\]|\\.)*")*\)\s*')
+
+
+def schema_idl(type_name: str, prefixes: list[str] | None = None) -> str:
+    """The ``ros2idl`` schema of a service event type ``pkg/srv/Name_Event``, in rosbag2's
+    form: sections ``<80 '='>`` / ``IDL: pkg/kind/Name`` / IDL text, the event struct first::
+
+        module pkg { module srv { struct Name_Event {
+          service_msgs::msg::ServiceEventInfo info;
+          sequence<pkg::srv::Name_Request, 1> request;
+          sequence<pkg::srv::Name_Response, 1> response; }; }; };
+
+    (what rosidl generates for service introspection), then the installed
+    ``share/pkg/srv/Name.idl`` and every ``.idl`` it includes, transitively, each once.
+    ``#include`` lines are dropped (every included file is a section of its own) and so are
+    ``@verbatim`` annotations (comments, which rosbags' IDL parser refuses before a struct).
+    """
+    pkg, kind, name = _parse_type_name(type_name)
+    if kind != "srv" or not name.endswith(_EVENT_SUFFIX):
+        raise MsgDefError(f"{type_name}: only service event types are written as IDL")
+    if prefixes is None:
+        prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+        if not prefixes:
+            raise MsgDefError(f"cannot look up {type_name}: AMENT_PREFIX_PATH is not set")
+    loader = _Loader(list(prefixes))
+    service = name[: -len(_EVENT_SUFFIX)]
+    sections = [(type_name,
+                 f"module {pkg} {{\n  module srv {{\n    struct {name} {{\n"
+                 "      service_msgs::msg::ServiceEventInfo info;\n"
+                 f"      sequence<{pkg}::srv::{service}_Request, 1> request;\n"
+                 f"      sequence<{pkg}::srv::{service}_Response, 1> response;\n"
+                 "    };\n  };\n};\n")]
+    seen = {type_name}
+    todo = [(f"{pkg}/srv/{service}", type_name), ("service_msgs/msg/ServiceEventInfo", type_name)]
+    while todo:
+        file_type, parent = todo.pop(0)
+        if file_type in seen:
+            continue
+        seen.add(file_type)
+        fpkg, folder, fname = file_type.split("/")
+        text = loader._read(fpkg, folder, fname + ".idl", file_type, parent)
+        todo.extend((inc, file_type) for inc in _INCLUDE_RE.findall(text))
+        text = _VERBATIM_RE.sub("", _INCLUDE_RE.sub("", text))
+        sections.append((file_type, text))
+    return "".join(f"{SEPARATOR}\nIDL: {n}\n{t}" for n, t in sections)
 
 
 def _parse_type_name(type_name: str) -> _Key:

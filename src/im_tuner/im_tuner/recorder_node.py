@@ -5,7 +5,8 @@
 and command, controller internals and losses, ``/parameter_events``, ``/rosout``,
 ``/clock``, service-introspection ``.../_service_event`` topics) and writes a bag
 directory (``metadata.yaml`` + ``<name>_0.mcap``, profile ros2, ``ros2msg`` schemas with
-their full dependency text, CDR messages, QoS in the channel metadata).
+their full dependency text -- ``ros2idl`` for service events, see
+:func:`im_tuner.msgdefs.schema_for` -- CDR messages, QoS in the channel metadata).
 
 Nothing lost, and proof of it:
 
@@ -57,7 +58,7 @@ from . import rcl_take
 from .bag import (BagError, TopicRecord, bag_metadata, prepare_bag_dir, qos_to_dict, qos_yaml,
                   storage_file_name, write_metadata_yaml)
 from .mcap_writer import MESSAGE_HEADER_BYTES, McapWriteError, McapWriter
-from .msgdefs import MsgDefError, schema_text
+from .msgdefs import MsgDefError, schema_for
 
 #: Lock-step steps between two polls of a recorder sharing the bench's process: about
 #: 200 samples per 5 kHz topic, far below Fast DDS's 5000 per reader, and rare enough
@@ -241,12 +242,12 @@ class Recorder:
                          else DurabilityPolicy.VOLATILE)
         if type_name not in self._schemas:
             try:
-                text = schema_text(type_name)
+                encoding, text = schema_for(type_name)
             except MsgDefError as exc:
                 self.log.warning(f'{name}: no message definition ({exc}); recorded without '
                                  'schema text')
-                text = ''
-            self._schemas[type_name] = self.writer.add_schema(type_name, 'ros2msg',
+                encoding, text = 'ros2msg', ''
+            self._schemas[type_name] = self.writer.add_schema(type_name, encoding,
                                                               text.encode('utf-8'))
         profiles = [_endpoint_qos(i) for i in infos]
         type_hash = _type_hash(infos[0])

@@ -36,24 +36,17 @@ RELIABLE_ALL = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=0,
 
 # -- independent readers ------------------------------------------------------------------
 def read_with_rosbags(bag: Path) -> dict[str, list]:
-    """Every message of the bag, deserialised by rosbags: {topic: [message, ...]}.
+    """Every message of the bag, deserialised by rosbags' standard API: {topic: [msg, ...]}.
 
-    Types come from the bag's own schemas. rosbags 0.11.9 files a service event type
-    ``pkg/srv/T_Event`` under ``pkg/srv/msg/T_Event`` when it parses the definition, so
-    the registered name is looked up rather than assumed."""
-    from rosbags.rosbag2 import Reader
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-    store = get_typestore(Stores.EMPTY)
+    ``AnyReader`` with an empty default typestore, so every type comes from the bag's own
+    schemas (service events from their ros2idl schemas), checked against the bag's type
+    hashes on open, and ``reader.deserialize(raw, conn.msgtype)`` -- what a user writes."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
     out: dict[str, list] = collections.defaultdict(list)
-    with Reader(bag) as reader:
-        names = {}
-        for conn in reader.connections:
-            types = get_types_from_msg(conn.msgdef.data, conn.msgtype)
-            store.register(types)
-            names[conn.id] = next(k for k in types
-                                  if k.split('/')[-1] == conn.msgtype.split('/')[-1])
+    with AnyReader([bag], default_typestore=get_typestore(Stores.EMPTY)) as reader:
         for conn, _t, raw in reader.messages():
-            out[conn.topic].append(store.deserialize_cdr(raw, names[conn.id]))
+            out[conn.topic].append(reader.deserialize(raw, conn.msgtype))
     return out
 
 
@@ -70,9 +63,10 @@ def read_with_mcap(bag: Path) -> dict[str, int]:
         decoders = {}
         for schema, channel, message in reader.iter_messages():
             counts[channel.topic] += 1
-            # mcap_ros2 0.6.0 refuses schema names ending in _Event (its name check
-            # predates service introspection): those are decoded by rosbags above.
-            if not schema.name.endswith('_Event'):
+            # service events have ros2idl schemas, which mcap_ros2 0.6.0 does not decode
+            # (nor would it take their names: its name check predates service
+            # introspection); rosbags above decodes them.
+            if schema.encoding == 'ros2msg':
                 if channel.id not in decoders:
                     decoders[channel.id] = decoder.decoder_for('cdr', schema)
                 decoders[channel.id](message.data)

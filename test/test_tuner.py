@@ -40,22 +40,15 @@ def results(run: Path) -> list[dict]:
 
 
 def bag_messages(bag: Path, topics: set[str]) -> dict[str, list]:
-    """Messages of ``topics`` deserialised by rosbags (an independent reader) from the
-    bag's own schemas (rosbags files pkg/srv/T_Event under pkg/srv/msg/T_Event)."""
-    from rosbags.rosbag2 import Reader
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-    store = get_typestore(Stores.EMPTY)
+    """Messages of ``topics`` deserialised by rosbags' standard API (``AnyReader``, types
+    from the bag's own schemas)."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
     out: dict[str, list] = collections.defaultdict(list)
-    with Reader(bag) as reader:
+    with AnyReader([bag], default_typestore=get_typestore(Stores.EMPTY)) as reader:
         conns = [c for c in reader.connections if c.topic in topics]
-        names = {}
-        for conn in conns:
-            types = get_types_from_msg(conn.msgdef.data, conn.msgtype)
-            store.register(types)
-            names[conn.id] = next(k for k in types
-                                  if k.split('/')[-1] == conn.msgtype.split('/')[-1])
         for conn, _t, raw in reader.messages(connections=conns):
-            out[conn.topic].append(store.deserialize_cdr(raw, names[conn.id]))
+            out[conn.topic].append(reader.deserialize(raw, conn.msgtype))
     return out
 
 
@@ -357,3 +350,95 @@ def test_auto_refuses_to_add_a_second_drive(tmp_path, procs, ros_context, wait_u
     assert proc.returncode == 1
     assert 'a drive is publishing /drive/state but no controller' in proc.stderr
     assert 'ros2 run im_controller controller' in proc.stderr
+
+
+# -- issue 16: rosbags' standard API, a rebuilt checkpoint, one tuner per run -----------------
+@pytest.fixture(scope='module')
+def run6(tmp_path_factory) -> Path:
+    """`ros2 run im_tuner tuner --budget 6`: the acceptance run of issue 16."""
+    run = tmp_path_factory.mktemp('run6') / 'run'
+    proc = tuner('--budget', '6', '--seed', '21', '--out', str(run), '--quiet')
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return run
+
+
+def test_budget_6_bag_opens_in_rosbags_anyreader_every_message_decodes(run6):
+    """AnyReader (types from the bag only, hashes checked on open) decodes every message of
+    every connection with ``reader.deserialize(raw, conn.msgtype)``, service events
+    included; the mcap library (CRCs checked) reads the same count, and mcap_ros2 decodes
+    every ros2msg channel."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+    bag = run6 / 'bag_0'
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    expected = {t['topic_metadata']['name']: t['message_count'] for t in meta['topics_with_message_count']}
+    decoded: collections.Counter = collections.Counter()
+    with AnyReader([bag], default_typestore=get_typestore(Stores.EMPTY)) as reader:
+        conns = {c.topic: c for c in reader.connections}
+        assert set(conns) == set(expected)
+        for conn, _t, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            decoded[conn.topic] += 1
+            if conn.msgtype == 'std_srvs/srv/Trigger_Event':
+                assert msg.info.event_type in (0, 1, 2, 3)
+    assert dict(decoded) == {t: n for t, n in expected.items() if n}
+    events = [t for t in conns if t.endswith('/_service_event')]
+    assert '/controller/start_experiment/_service_event' in events
+    assert decoded['/controller/start_experiment/_service_event'] >= 2 * (1 + 6 + 3)
+    assert decoded['/controller/set_parameters_atomically/_service_event'] >= 2 * 6
+    (mcap_file,) = bag.glob('*.mcap')
+    counts: collections.Counter = collections.Counter()
+    factory, decoders = DecoderFactory(), {}
+    with open(mcap_file, 'rb') as f:
+        for schema, channel, message in make_reader(f, validate_crcs=True).iter_messages():
+            counts[channel.topic] += 1
+            if schema.encoding == 'ros2msg':
+                if channel.id not in decoders:
+                    decoders[channel.id] = factory.decoder_for('cdr', schema)
+                decoders[channel.id](message.data)
+            else:  # service events: IDL with rosbag2's section headers
+                assert schema.encoding == 'ros2idl' and channel.topic in events
+                assert schema.data.decode().startswith('=' * 80 + '\nIDL: ')
+    assert counts == decoded
+
+
+def test_a_corrupt_checkpoint_is_rebuilt_from_the_results(run6, tmp_path):
+    """A run killed after 4 records whose checkpoint is garbage resumes from results.jsonl
+    (the optimiser replayed, the plant replayed) and ends exactly as the whole run."""
+    import shutil
+    cut = tmp_path / 'cut'
+    shutil.copytree(run6, cut, ignore=shutil.ignore_patterns('bag_*', 'report'))
+    lines = (cut / 'results.jsonl').read_text().splitlines(keepends=True)
+    (cut / 'results.jsonl').write_text(''.join(lines[:4]) + '{"kind": "ev')  # + a torn line
+    (cut / 'summary.json').unlink()
+    (cut / 'checkpoint.json').write_bytes(b'\x00garbage{')
+    proc = tuner('--resume', str(cut))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert 'checkpoint.json: not JSON' in proc.stderr and 'rebuilt from results.jsonl' in \
+        proc.stderr
+    _same_evaluations(results(run6), results(cut))
+
+
+def test_one_tuner_per_run_directory_and_report_says_running(tmp_path, procs, wait_until):
+    run = tmp_path / 'live'
+    child = procs.start([ROS2, 'run', 'im_tuner', 'tuner', '--budget', '200', '--seed', '2',
+                         '--no-record', '--quiet', '--out', str(run)])
+    res = run / 'results.jsonl'
+    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 2, 120,
+               message='2 records')
+    before = res.read_bytes()
+    second = tuner('--resume', str(run), timeout=60)
+    assert second.returncode == 2
+    (line,) = second.stderr.strip().splitlines()
+    assert line.startswith(f'error: tuner: --resume: {run}: in use by pid ') and \
+        'im_tuner' in line and 'tuner' in line, line
+    assert res.read_bytes()[:len(before)] == before  # nothing written by the refused one
+    rep = report(run, '--out', str(tmp_path / 'rep_live'))
+    assert rep.returncode == 0, rep.stderr[-2000:]
+    assert 'outcome: running (a tuner has it: pid ' in rep.stdout
+    child.send_signal(signal.SIGINT)
+    assert child.wait(timeout=60) == 130
+    rep = report(run, '--out', str(tmp_path / 'rep_after'))
+    assert rep.returncode == 0 and 'outcome: interrupted' in rep.stdout

@@ -399,6 +399,79 @@ def test_mcap_ros2_refuses_event_schema_names() -> None:
     assert "std_srvs/Trigger_Response" in generate_dynamic("std_srvs/srv/TriggerEvent", text)
 
 
+# --- service events as IDL: what rosbags' AnyReader needs (issue 16) ----------------------------
+
+EVENT_CASES = [c for c in CASES if c[0].endswith("_Event")]
+
+
+def _idl_store(text: str):
+    """A rosbags typestore from a ros2idl schema in rosbag2's sectioned form, parsed as
+    rosbags' AnyReader parses it."""
+    from rosbags.typesys import get_types_from_idl
+    sep = SEP + "\n"
+    assert text.startswith(sep + "IDL: ")
+    types: dict = {}
+    for section in text.split(sep)[1:]:
+        header, idl = section.split("\n", 1)
+        assert header.startswith("IDL: ")
+        types.update(get_types_from_idl(idl))
+    store = get_typestore(Stores.EMPTY)
+    store.register(types)
+    return store
+
+
+@pytest.mark.parametrize("type_name,make,spot", EVENT_CASES, ids=[c[0] for c in EVENT_CASES])
+def test_service_event_idl_registers_under_its_own_name_and_decodes(
+        type_name: str, make: Callable[[], Any], spot: Callable[[Any], None]) -> None:
+    from rclpy.serialization import serialize_message
+    encoding, text = msgdefs.schema_for(type_name)
+    assert encoding == "ros2idl" and text == msgdefs.schema_idl(type_name)
+    store = _idl_store(text)
+    assert type_name in store.fielddefs  # pkg/srv/Name_Event, not pkg/srv/msg/Name_Event
+    original = make()
+    data = serialize_message(original)
+    msgdef = store.get_msgdef(type_name)
+    decoded, end = msgdef.deserialize_cdr_le(data[4:], 0, msgdef.cls, store)
+    assert 4 + end <= len(data)
+    assert_same(original, decoded)
+    spot(decoded)
+
+
+# RIHS01 type hashes of ROS 2 Jazzy (what `ros2 topic info -v` and rosbag2 report; read off
+# the endpoints of live services by the recorder, see test_tuner's bag test)
+JAZZY_HASHES = {
+    "std_srvs/srv/Trigger_Event":
+        "RIHS01_ec4a1d26b0575e61906890342aba9523a2360e9845857c5590fa6e23bc39e1c2",
+    "rcl_interfaces/srv/DescribeParameters_Event":
+        "RIHS01_3deba64c035093033c690184834441551a53128ea2539f71f2596fbc4ed9de43",
+}
+
+
+@pytest.mark.parametrize("type_name", sorted(JAZZY_HASHES))
+def test_service_event_idl_gives_the_ros_type_hash(type_name: str) -> None:
+    """AnyReader checks each connection's type_description_hash against the hash it
+    recomputes from the schema: the IDL must describe exactly ROS's type."""
+    store = _idl_store(msgdefs.schema_idl(type_name))
+    assert store.hash_rihs01(type_name) == JAZZY_HASHES[type_name]
+
+
+def test_service_event_idl_layout() -> None:
+    text = msgdefs.schema_idl("rcl_interfaces/srv/DescribeParameters_Event")
+    headers = [line[5:] for line in text.splitlines() if line.startswith("IDL: ")]
+    assert headers == ["rcl_interfaces/srv/DescribeParameters_Event",
+                       "rcl_interfaces/srv/DescribeParameters",
+                       "service_msgs/msg/ServiceEventInfo",
+                       "rcl_interfaces/msg/ParameterDescriptor",
+                       "builtin_interfaces/msg/Time",
+                       "rcl_interfaces/msg/FloatingPointRange",
+                       "rcl_interfaces/msg/IntegerRange"]
+    assert "#include" not in text and "@verbatim" not in text
+    assert "sequence<rcl_interfaces::srv::DescribeParameters_Request, 1> request;" in text
+    assert msgdefs.schema_for("std_msgs/msg/String")[0] == "ros2msg"
+    with pytest.raises(MsgDefError, match="only service event types"):
+        msgdefs.schema_idl("std_msgs/msg/String")
+
+
 # --- errors -----------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("type_name,searched", [

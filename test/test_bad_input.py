@@ -302,3 +302,15 @@ def test_the_matrix_covers_every_executable() -> None:
         assert {f'params-file-{k}' for k in ('missing', 'directory', 'corrupt', 'not-ros')} \
             <= per_exe[exe], exe
     assert len(CASES) == len({(e, n) for e, n, _a in CASES})  # unique ids
+
+
+@pytest.mark.parametrize('exe', sorted(EXES))
+def test_help_of_every_executable_exits_0(exe: str, tmp_path: Path) -> None:
+    """`--help` is the first command a user types: usage on stdout, exit 0, nothing made
+    (the tuner's ended in a traceback: an unescaped % in an option's help)."""
+    pkg, name = EXES[exe]
+    proc = subprocess.run([ROS2, 'run', pkg, name, '--help'], cwd=tmp_path, text=True,
+                          capture_output=True, timeout=CASE_TIMEOUT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.startswith('usage: ros2 run ') and 'Traceback' not in proc.stderr
+    assert proc.stderr == '' and list(tmp_path.iterdir()) == []

@@ -450,3 +450,33 @@ def test_bad_start_up_input_is_one_line_and_exit_2(procs, args, expect):
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert p.returncode == 2 and len(lines) == 1, err
     assert lines[0].startswith('error: controller:') and expect in lines[0]
+
+
+def test_start_overrides_say_what_the_node_enforces(ros_context, capfd):
+    """Issue 16: `-p safety.isq_max:=2.0` at start is applied (a tighter clamp; the drive
+    file's 7 A is the ceiling): get_parameters says 2.0 and the controller commands at most
+    2 A, where the 7 A controller commands 5.55 A. An integer for a double (`k_iw:=25`) is
+    taken at start as through set_parameters. A typo'd override is warned about by name, a
+    request to set an undeclared parameter is refused naming it."""
+    b = InProcessBench(context=ros_context, drive_overrides=[Parameter('seed', value=SEED)],
+                       controller_overrides=[Parameter('safety.isq_max', value=2.0),
+                                             Parameter('k_iw', value=25),
+                                             Parameter('k_pww', value=1.0)])
+    probe = Probe(ros_context, b.spin_until)
+    b.executor.add_node(probe.node)
+    try:
+        probe.ready()
+        assert probe.get('safety.isq_max', 'k_iw') == [2.0, 25.0]
+        r = probe.experiment()
+        assert r.gains == Gains(k_iw=25.0)
+        col = INTERNALS_FIELDS.index('isq_cmd')
+        exp = [x for x in probe.internals if int(x[INTERNALS_FIELDS.index('exp_step')]) >= 0]
+        isq = np.array([x[col] for x in exp])
+        assert np.max(np.abs(isq)) == 2.0  # clamped there, and the clamp is reached
+        res = probe.set(k_pww=3.0)
+        assert not res[0].successful and 'k_pww' in res[0].reason
+    finally:
+        probe.node.destroy_node()
+        b.destroy()
+    err = capfd.readouterr().err
+    assert 'ignored override(s) of undeclared parameter(s) k_pww' in err

@@ -70,8 +70,10 @@ class InProcessBench:
             self.drive.destroy_node()
             raise
         # `-p` overrides reach both nodes of this process: warn about those neither has.
+        declared = set(self.drive._parameters) | set(self.controller._parameters)
         warn_unknown_overrides(self.controller, sorted(
-            set(unknown_overrides(self.drive)) & set(unknown_overrides(self.controller))))
+            (set(unknown_overrides(self.drive)) | set(unknown_overrides(self.controller)))
+            - declared))
         self.executor = SingleThreadedExecutor(context=self.drive.context)
         self.executor.add_node(self.drive)
         self.executor.add_node(self.controller)

@@ -458,9 +458,6 @@ def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
     try:
         cli = parse_cli(_parser(), argv)
-        if cli.repair is None and cli.out is not None and cli.out.exists() and \
-                (not cli.out.is_dir() or any(cli.out.iterdir())):
-            raise UsageError(f'--out {cli.out}: already exists; choose a new directory')
     except UsageError as exc:
         print(f'error: recorder: {exc}', file=sys.stderr)
         return 2

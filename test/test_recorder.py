@@ -207,6 +207,39 @@ def test_bench_at_full_speed_every_message_recorded(ros_context, tmp_path, monke
     assert 'serialized_metadata' in records['rosbag2']
 
 
+def test_a_backlog_taken_late_still_makes_chunks_of_at_most_max_chunk_age(ros_context,
+                                                                           tmp_path):
+    """Issue 16: while a bench starts (numba loading, before its loop polls the recorder)
+    messages pile up unread; taken late, they used to fill one chunk spanning seconds of
+    log time, against the promised --max-chunk-age. Now every chunk spans at most that."""
+    from mcap.reader import make_reader
+    node = Node('backlog_pub', context=ros_context)
+    pub = node.create_publisher(String, '/backlog', RELIABLE_ALL)
+    rec = Recorder(Node('recorder', context=ros_context, start_parameter_services=False),
+                   tmp_path / 'bag', compression='none', max_chunk_age=0.25,
+                   command=['pytest'])
+    try:
+        assert rec.wait_matched(10.0) and '/backlog' in rec.topics
+        t0 = time.monotonic()
+        n = 0
+        while time.monotonic() - t0 < 1.5:  # 1.5 s of messages, not polled meanwhile
+            pub.publish(String(data=f'm{n}'))
+            n += 1
+            time.sleep(0.002)
+        wait_for_taken = time.monotonic() + 10.0
+        while rec.counts().get('/backlog', {}).get('recorded', 0) < n and \
+                time.monotonic() < wait_for_taken:
+            rec.poll()
+        counts = rec.close()
+    finally:
+        node.destroy_node()
+    assert counts['/backlog']['recorded'] == n and counts['/backlog']['lost'] == 0
+    with open(tmp_path / 'bag' / 'bag_0.mcap', 'rb') as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    spans = [(c.message_end_time - c.message_start_time) * 1e-9 for c in chunks]
+    assert len(chunks) >= 6 and max(spans) <= 0.25, spans
+
+
 # -- the kernel against rclpy, and gap detection on a real reader overflow ----------------
 def test_take_kernel_matches_rclpy_and_counts_gaps(ros_context):
     from im_tuner.mcap_writer import ChunkState

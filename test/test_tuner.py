@@ -114,6 +114,8 @@ def check_run(run: Path, algo: str, budget: int, proc: subprocess.CompletedProce
     counts = json.loads(meta['custom_data']['im_tuner.counts'])
     for topic, c in counts.items():
         assert c['recorded'] == c['published'] and c['lost'] == 0, topic
+    # the in-process bench publishes drive/status too (about 1 Hz, and at exit)
+    assert counts['/drive/status']['recorded'] >= 1
     ev = '/controller/set_parameters_atomically/_service_event'
     msgs = bag_messages(bag, {'/controller/loss', ev})
     losses = [loss_values(m) for m in msgs['/controller/loss']]
@@ -191,6 +193,10 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
     proc = tuner('--resume', str(killed))
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert 'replaying' in proc.stderr
+    # one drive line per session that reported its drive, each named: the killed one
+    # never did (a SIGINTed one would say 'drive (session 1, bag_0)')
+    assert proc.stdout.count('  drive (') == 1 and '  drive (this session)' in proc.stdout
+    assert 'simulated experiment time' in proc.stdout
     _same_evaluations(results(whole), results(killed))
     sw = json.loads((whole / 'summary.json').read_text())
     sk = json.loads((killed / 'summary.json').read_text())
@@ -442,3 +448,19 @@ def test_one_tuner_per_run_directory_and_report_says_running(tmp_path, procs, wa
     assert child.wait(timeout=60) == 130
     rep = report(run, '--out', str(tmp_path / 'rep_after'))
     assert rep.returncode == 0 and 'outcome: interrupted' in rep.stdout
+
+
+def test_summary_names_each_sessions_drive_line_and_the_clock(run6):
+    """A resumed run's summary said 'drive (this session)' for every session, and called a
+    real drive's experiment time 'simulated'."""
+    from im_tuner.tuner_node import format_summary
+    s = json.loads((run6 / 'summary.json').read_text())
+    run = yaml.safe_load((run6 / 'run.yaml').read_text())
+    assert 'simulated experiment time' in format_summary(s, run, run6)
+    s['sessions'] = [s['sessions'][0], dict(s['sessions'][0], bag='bag_1')]
+    text = format_summary(s, run, run6)
+    assert text.count('  drive (') == 2
+    assert '  drive (session 1, bag_0)' in text and '  drive (this session)' in text
+    run['bench'] = 'external'
+    text = format_summary(s, run, run6)
+    assert "experiment time (the drive's clock)" in text and 'simulated' not in text

@@ -94,6 +94,19 @@ class InProcessBench:
                 self.destroy()
                 raise
         self.drive.start()
+        # drive/status about once a second, as the drive's own loop publishes it
+        self._t0 = time.perf_counter()
+        self._next_status = self._t0 + 1.0
+
+    def _status(self) -> None:
+        now = time.perf_counter()
+        if now >= self._next_status:
+            self.drive.publish_status(now - self._t0)
+            self._next_status = now + 1.0
+
+    def final_status(self) -> None:
+        """The drive's counters at exit (before a recorder in this process is closed)."""
+        self.drive.publish_status(time.perf_counter() - self._t0)
 
     def add_poller(self, poll, period_steps: int = 16) -> None:
         """Call ``poll()`` every ``period_steps`` lock-step steps and whenever idle.
@@ -121,7 +134,9 @@ class InProcessBench:
             if self._since_service >= ctl.service_period_steps:
                 self._since_service = 0
                 self.executor.spin_once(timeout_sec=0.0)
+                self._status()
             return True
+        self._status()
         for poll, _period in self._pollers:
             poll()
         self.executor.spin_once(timeout_sec=idle_timeout if not self._pollers
@@ -311,8 +326,9 @@ def main(args: list[str] | None = None) -> int:
     finally:
         if bench is not None:
             bench.drive.log_summary()
+            bench.final_status()
         if rec is not None:
-            rec.close()
+            rec.close(settle=0.05)
             rec.node.destroy_node()
         if bench is not None:
             bench.destroy()

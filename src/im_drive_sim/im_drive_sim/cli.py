@@ -140,7 +140,7 @@ def output_file(text: str) -> Path:
         raise argparse.ArgumentTypeError(f'{text} is a directory, not a file')
     parent = p.parent if str(p.parent) else Path('.')
     if not parent.is_dir():
-        raise argparse.ArgumentTypeError(f'{text}: directory {parent} does not exist')
+        raise argparse.ArgumentTypeError(f'{text}: directory does not exist ({parent})')
     if not os.access(parent, os.W_OK | os.X_OK) or (p.exists() and not os.access(p, os.W_OK)):
         raise argparse.ArgumentTypeError(f'{text}: not writable')
     return p

@@ -39,7 +39,7 @@ from .drive_sim_node import (CMD_ISQ, CMD_LOAD, CMD_STEP, COMMAND_FIELDS, COMMAN
                              JOINT_STATE_TOPIC, LOCKSTEP_QOS, RECORDED_QOS, STATE_TOPIC,
                              STATUS_TOPIC, param_descriptor)
 from .params import ConfigError, DriveConfig, load_config
-from .cli import Parser, parse_cli, run_cli
+from .cli import Parser, check_ros_args, parse_cli, run_cli
 from .runtime import (LenientDoubles, RCLError, parameter_hygiene, publish_retry,
                       run_stepped_node)
 from .sim import STATE_FIELDS
@@ -342,6 +342,12 @@ def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:
     argv = sys.argv if args is None else args
 
     def body() -> int:
+        if node_class is not ExampleDrive:
+            # a drive built on this one (its own main parses its own options): only the
+            # ROS arguments are checked here
+            check_ros_args(argv)
+            return run_stepped_node(argv, node_class, (ConfigError,), 'example_drive',
+                                    on_exit=lambda node: node.log_summary())
         parse_cli(Parser(prog='ros2 run im_drive_sim example_drive',
                          description='A minimal real-time drive node (the template for a '
                                      'real drive): drive/state every 200 us, drive/command, '

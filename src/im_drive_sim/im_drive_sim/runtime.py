@@ -9,10 +9,9 @@
   (the recorder) is full.
 * :func:`parameter_hygiene`: what every node of ours does once its parameters are
   declared -- a ``-p`` override naming no parameter is warned about by name (a typo would
-  otherwise be silently ignored), a request to set an undeclared parameter is refused
-  naming it (rclpy 7.1.6 names none: ``Invalid access to undeclared parameter(s): []``),
-  and an override of a parameter that only *reports* a fact (a message layout, a limit
-  read from a file) is refused at start unless it equals that fact.
+  otherwise be silently ignored), and an override of a parameter that only *reports* a
+  fact (a message layout, a limit read from a file) is refused at start unless it equals
+  that fact; :class:`LenientDoubles` (int for double at start, undeclared names named).
 """
 from __future__ import annotations
 
@@ -64,10 +63,29 @@ def publish_retry(pub, msg, context, timeout: float = 30.0) -> int:
 
 
 class LenientDoubles:
-    """Mixin for an rclpy ``Node``: an integer given at start for a double parameter
-    (``-p k_iw:=20``, or ``k_iw: 20`` in a params file) is taken as that double, as a
-    ``set_parameters`` call is (pre-set callback). rclpy would refuse it at declaration
-    ('expecting type DOUBLE'), a classic trap of the command line."""
+    """Mixin for an rclpy ``Node`` with the workspace's parameter conventions:
+
+    * an integer given at start for a double parameter (``-p k_iw:=20``, or ``k_iw: 20``
+      in a params file) is taken as that double, as a ``set_parameters`` call is (the
+      controller's pre-set callback); rclpy would refuse it at declaration ('expecting
+      type DOUBLE'), a classic trap of the command line;
+    * a request to set an undeclared parameter is refused naming it (rclpy 7.1.6 builds
+      its exception from a spent generator: ``Invalid access to undeclared
+      parameter(s): []``). Done here rather than in a pre-set callback: rclpy hands every
+      pre-set callback the original list and concatenates what they return.
+    """
+
+    def set_parameters_atomically(self, parameter_list):
+        missing = [p.name for p in parameter_list if p.name not in self._parameters]
+        if missing and not self._allow_undeclared_parameters:
+            raise ParameterNotDeclaredException(missing)
+        return super().set_parameters_atomically(parameter_list)
+
+    def set_parameters(self, parameter_list):
+        missing = [p.name for p in parameter_list if p.name not in self._parameters]
+        if missing and not self._allow_undeclared_parameters:
+            raise ParameterNotDeclaredException(missing)
+        return super().set_parameters(parameter_list)
 
     def declare_parameter(self, name, value=None, descriptor=None, ignore_override=False):
         over = getattr(self, '_parameter_overrides', {})
@@ -103,12 +121,6 @@ def parameter_hygiene(node, facts: dict[str, object] | None = None, *,
     if warn_unknown:
         warn_unknown_overrides(node, unknown)
 
-    def name_undeclared(params: list) -> list:
-        missing = [p.name for p in params if p.name not in node._parameters]
-        if missing and not node._allow_undeclared_parameters:
-            raise ParameterNotDeclaredException(missing)
-        return params
-    node.add_pre_set_parameters_callback(name_undeclared)
     return unknown
 
 

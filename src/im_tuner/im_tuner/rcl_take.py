@@ -32,7 +32,8 @@ from numba import types
 
 import rclpy.impl.implementation_singleton  # noqa: F401  (loads librcl into the process)
 
-from .mcap_writer import MESSAGE_HEADER_BYTES, note_message, write_message_header
+from .mcap_writer import (MESSAGE_HEADER_BYTES, ST_TMAX, ST_TMIN, note_message,
+                          write_message_header)
 
 
 def _loaded_library(name: str) -> str:
@@ -71,7 +72,11 @@ C_PENDING = 0      #: 1: a taken message waits in ser/info to be written
 C_PENDING_SUB = 1  #: subscription row of the pending message
 C_NPUBS = 2        #: rows used in the publisher table
 C_ERROR = 3        #: last rcl error code
-C_SIZE = 4
+#: most log time [ns] one chunk may span (0: no limit): a message that would stretch the
+#: open chunk beyond it closes the chunk first (FULL), so that a backlog taken late (a
+#: recorder polled after seconds of start-up) still makes chunks of at most this span
+C_MAX_SPAN_NS = 4
+C_SIZE = 5
 
 # publisher table columns
 P_CHANNEL = 0
@@ -122,12 +127,16 @@ def _track(pubs: np.ndarray, ctrl: np.ndarray, channel: int, gid0: int, gid1: in
 
 @numba.njit(cache=True)
 def _place(ser: np.ndarray, info: np.ndarray, channel: int, buf: np.ndarray, idx: np.ndarray,
-           st: np.ndarray) -> bool:
+           st: np.ndarray, ctrl: np.ndarray) -> bool:
     n = np.int64(ser[1])
     pos = st[0]
     if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or st[1] >= idx.shape[0]:
         return False
     log_time = np.int64(info[I_RECEIVED_TS])
+    span = ctrl[C_MAX_SPAN_NS]
+    if span > 0 and st[1] > 0 and (log_time - st[ST_TMIN] > span or
+                                   st[ST_TMAX] - log_time > span):
+        return False  # the chunk would span more than max_chunk_age of log time
     write_message_header(buf, pos, channel, np.int64(info[I_PUB_SEQ] & 0xFFFFFFFF), log_time,
                          np.int64(info[I_SOURCE_TS]), n)
     _memcpy(np.uint64(buf.ctypes.data + pos + MESSAGE_HEADER_BYTES), ser[0], np.uint64(n))
@@ -150,7 +159,7 @@ def drain(subs: np.ndarray, chans: np.ndarray, ser: np.ndarray, info: np.ndarray
     ser_p = np.uint64(ser.ctypes.data)
     info_p = np.uint64(info.ctypes.data)
     if ctrl[C_PENDING]:
-        if not _place(ser, info, chans[ctrl[C_PENDING_SUB]], buf, idx, st):
+        if not _place(ser, info, chans[ctrl[C_PENDING_SUB]], buf, idx, st, ctrl):
             return FULL, 0
         ctrl[C_PENDING] = 0
     for i in range(subs.shape[0]):
@@ -168,7 +177,7 @@ def drain(subs: np.ndarray, chans: np.ndarray, ser: np.ndarray, info: np.ndarray
             taken += 1
             ok = _track(pubs, ctrl, chans[i], np.int64(info[I_GID0]), np.int64(info[I_GID1]),
                         np.int64(info[I_PUB_SEQ]))
-            if not _place(ser, info, chans[i], buf, idx, st):
+            if not _place(ser, info, chans[i], buf, idx, st, ctrl):
                 ctrl[C_PENDING] = 1
                 ctrl[C_PENDING_SUB] = i
                 return FULL, taken

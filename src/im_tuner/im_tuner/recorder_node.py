@@ -190,6 +190,7 @@ class Recorder:
         self._take = rcl_take.TakeBuffers()
         self._pubs = rcl_take.new_publisher_table()
         self._ctrl = rcl_take.new_ctrl()
+        self._ctrl[rcl_take.C_MAX_SPAN_NS] = int(max_chunk_age * 1e9)
         self._subs = np.zeros(0, np.uint64)
         self._chans = np.zeros(0, np.int64)
         self._next_discovery = 0.0

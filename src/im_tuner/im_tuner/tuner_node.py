@@ -367,14 +367,20 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
     L.append(f'  aborted experiments: {s["aborted"]} of {s["evaluations"]} (safety faults '
              f'{s["safety_faults"]}); lost results re-run: {s["lost"]}')
     rtf = s['real_time_factor']
+    # a real drive's experiments take drive time, not simulated time
+    clock = 'simulated experiment time' if run.get('bench') in SIM_BENCHES else \
+        "experiment time (the drive's clock)"
     L.append(f'  wall time {s["wall_s"]:.1f} s (tuning loop {s["loop_wall_s"]:.1f} s); '
-             f'simulated experiment time {s["sim_s"]:.1f} s; real-time factor '
+             f'{clock} {s["sim_s"]:.1f} s; real-time factor '
              + (f'{rtf:.2f}' if rtf else '-'))
     if s['optimizer_us_per_eval'] is not None:
         L.append(f'  optimiser ask+tell: {s["optimizer_us_per_eval"]:.1f} us per evaluation')
-    for p in s['sessions']:
+    sessions = s['sessions']
+    for i, p in enumerate(sessions):
         if 'drive' in p:
-            L.append(_drive_text(p['drive'], len(s['sessions']) > 1))
+            L.append(_drive_text(p['drive'], None if len(sessions) == 1 else
+                                 'this session' if i == len(sessions) - 1 else
+                                 f'session {i + 1}' + (f', {p["bag"]}' if p.get('bag') else '')))
     bags = [b for p in s['sessions'] for b in
             [p.get('bag'), *(m['bag'] for m in p.get('more_bags', []))] if b]
     L.append(f'  run directory: {rundir}  (run.yaml, results.jsonl, summary.json'
@@ -389,9 +395,10 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
     return '\n'.join(L)
 
 
-def _drive_text(d: dict[str, Any] | None, several: bool) -> str:
-    """One summary line of the drive's own counters (drive/status)."""
-    head = '  drive' + (' (this session)' if several else '')
+def _drive_text(d: dict[str, Any] | None, which: str | None) -> str:
+    """One summary line of the drive's own counters (drive/status) in session ``which``
+    (None: the run has one session)."""
+    head = '  drive' + (f' ({which})' if which else '')
     if d is None:
         return f'{head}: no drive/status received (its counters are unknown)'
 
@@ -791,7 +798,9 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         code = EXIT_INTERRUPTED
     finally:
         if rec is not None:
-            counts = rec.close()
+            if bench is not None:
+                bench.final_status()  # the drive's counters at exit, into the bag
+            counts = rec.close(settle=0.05 if bench is not None else 0.0)
             lost = sum(c['lost'] for c in counts.values())
             if lost:
                 print(f'warning: the recorder counted {lost} lost messages (see '

@@ -167,6 +167,9 @@ def test_resume_catches_up_records_written_after_the_checkpoint(tmp_path):
         f.write('{"kind": "eval", "ev')  # torn line of a kill mid-write
     resumed = make_run_from(RunDir(tmp_path / 'part'), budget=12, remeasure=0)
     assert resumed.restore() == 9
+    # restoring writes nothing: the caller cuts the torn line once it goes on
+    assert (tmp_path / 'part' / 'results.jsonl').read_text().endswith('"ev')
+    RunDir(tmp_path / 'part').cut_torn_tail()
     assert not (tmp_path / 'part' / 'results.jsonl').read_text().endswith('"ev')
     bench2 = FakeBench()
     replay(bench2, resumed.records)
@@ -287,16 +290,29 @@ def test_run_directory_rules(tmp_path):
     # results: floats round-trip exactly; a torn last line is ignored (and cut on repair);
     # a bad line in the middle is an error
     x = 0.1 + 0.2
-    rd.append_result({'loss': x})
-    rd.append_result({'loss': 1e-300})
+
+    def rec(loss: float) -> dict:
+        return {'kind': 'eval', 'eval': 0, 'status': 'ok', 'u': [0.5], 'gains': {'k_pw': 1.0},
+                'loss': loss, 'terms': [loss, 0.0, 0.0], 'aborted': False}
+    rd.append_result(rec(x))
+    rd.append_result(rec(1e-300))
     with open(rd.path / 'results.jsonl', 'a') as f:
         f.write('{"loss": 0.')
-    assert rd.read_results() == [{'loss': x}, {'loss': 1e-300}]
+    assert rd.read_results() == [rec(x), rec(1e-300)]
+    assert (rd.path / 'results.jsonl').read_text().endswith('0.')  # reading changes nothing
     rd.read_results(repair=True)
     assert (rd.path / 'results.jsonl').read_text().endswith('}\n')
     with open(rd.path / 'results.jsonl', 'a') as f:
+        f.write('{"loss": 0.')
+    assert rd.cut_torn_tail() == len('{"loss": 0.') and rd.cut_torn_tail() == 0
+    with open(rd.path / 'results.jsonl', 'a') as f:
         f.write('garbage\n{"loss": 1}\n')
     with pytest.raises(RunDirError, match='line 3 is not a JSON record'):
+        rd.read_results()
+    # a record without what the tuner and the report read is named, with its line
+    (rd.path / 'results.jsonl').write_text(json.dumps(rec(x)) + '\n' + json.dumps(
+        {k: v for k, v in rec(x).items() if k != 'loss'}) + '\n')
+    with pytest.raises(RunDirError, match="line 2: record without 'loss'"):
         rd.read_results()
     assert rd.next_bag_dir().name == 'bag_0'
     (rd.path / 'bag_0').mkdir()

@@ -20,7 +20,7 @@ export HOME ?= $(CURDIR)
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: setup test demo demo-drive bench reproduction lock clean
+.PHONY: setup test demo demo-drive bench reproduction foxglove-check lock clean
 
 setup: $(VENV)/.installed
 
@@ -67,6 +67,13 @@ reproduction: setup
 	sed -e 's#](tables.png)#](reproduction/tables.png)#' \
 	    -e 's#](convergence.png)#](reproduction/convergence.png)#' \
 	    $(STUDY_OUT)/reproduction.md > docs/reproduction.md
+
+# Decode every message of a bag with Foxglove's own libraries (Node.js + npm; pinned in
+# tools/foxglove-check/package-lock.json): make foxglove-check BAG=bags/<run>/bag_0
+foxglove-check:
+	@test -n "$(BAG)" || { echo 'usage: make foxglove-check BAG=<bag directory>'; exit 2; }
+	cd tools/foxglove-check && npm ci --silent --no-audit --no-fund
+	node tools/foxglove-check/check.mjs $(BAG)/*.mcap
 
 # Re-resolve the pinned set after editing requirements.txt.
 lock: | $(PY)

@@ -43,7 +43,7 @@ from .cli import Parser, input_file, int_in, parse_cli, run_cli
 from .params import ConfigError, load_config
 from .runtime import (LenientDoubles, RCLError, parameter_hygiene, publish_retry,
                       run_stepped_node)
-from .sim import STATE_FIELDS, DriveSim
+from .sim import STATE_FIELDS, DriveSim, start_position
 
 #: Topic names (relative: they follow the node's namespace).
 STATE_TOPIC = 'drive/state'
@@ -126,6 +126,12 @@ class DriveSimNode(LenientDoubles, Node):
             self.config = load_config(p['config_file'] or None, overrides=overrides)
         except ConfigError as exc:
             raise ConfigError(str(exc)) from exc
+        # declared once the encoder is known: its default is half a count (sim.start_position)
+        p['initial_position'] = self.declare_parameter(
+            'initial_position', start_position(self.config), param_descriptor(
+                'Rotor position at start [rad]; default half an encoder count (inside a '
+                'count: no figure hinges on a round-off at a count edge).',
+                float_range=(-1e6, 1e6))).value
         self.sim = DriveSim(self.config, seed=p['seed'] if p['seed'] >= 0 else None)
         self.sim.reset(theta=p['initial_position'], omega=0.0, fluxed=True)
         self.ts_ns: int = int(round(self.config.Ts * NS_PER_S))
@@ -199,8 +205,6 @@ class DriveSimNode(LenientDoubles, Node):
             ('seed', -1, param_descriptor(
                 'Seed of the disturbance sources; -1 = the parameter file\'s seed.',
                 int_range=(-1, 2**31 - 1))),
-            ('initial_position', 0.0, param_descriptor(
-                'Rotor position at start [rad].', float_range=(-1e6, 1e6))),
             ('clock_decimation', 25, param_descriptor(
                 'Publish /clock every N steps (N = 25: every 5 ms of sim time).',
                 int_range=(1, 100000))),

@@ -7,7 +7,7 @@ Example::
 
     from im_drive_sim.sim import DriveSim
     sim = DriveSim()                      # packaged paper_750w.yaml, full model
-    sim.reset(theta=0.0, omega=0.0, fluxed=True)
+    sim.reset(omega=0.0, fluxed=True)    # at rest, half an encoder count in
     sim.step(isq_ref=1.0, load_torque=0.0)
     print(sim.time_ns, sim.theta_meas, sim.omega_meas, sim.torque)
 """
@@ -22,7 +22,8 @@ import numpy as np
 from . import kernels as K
 from .params import DriveConfig, load_config
 
-__all__ = ["DriveSim", "STATE_FIELDS", "RUN_FIELDS", "make_param_array", "NOISE_BLOCK"]
+__all__ = ["DriveSim", "STATE_FIELDS", "RUN_FIELDS", "make_param_array", "NOISE_BLOCK",
+           "start_position"]
 
 STATE_FIELDS: tuple[str, ...] = K.STATE_FIELDS
 """Fields written by ``step_into``/``read_into``, in order (units in docs/drive-model.md)."""
@@ -94,6 +95,16 @@ def make_param_array(cfg: DriveConfig) -> np.ndarray:
     return P
 
 
+def start_position(config: DriveConfig) -> float:
+    """Where a drive at rest starts [rad]: half an encoder count, 0.5 * 2 pi / counts.
+
+    theta = 0 is the edge between counts -1 and 0: a plant that applies -1e-16 V instead of
+    0.0 at step 0 reads the other count, and the loss moves by 0.2 %. Inside a count no
+    figure hinges on a round-off; the encoder still reads 0.0 rad.
+    """
+    return math.pi / config.sensors.encoder_counts
+
+
 class DriveSim:
     """Induction-motor drive: full (or reduced) model, vector control, encoder measurement.
 
@@ -139,16 +150,19 @@ class DriveSim:
         self._left = NOISE_BLOCK
 
     # ------------------------------------------------------------------ control
-    def reset(self, theta: float = 0.0, omega: float = 0.0, fluxed: bool = True,
+    def reset(self, theta: float | None = None, omega: float = 0.0, fluxed: bool = True,
               step_index: int = 0) -> None:
         """Set the state at time ``step_index * Ts``.
 
-        theta [rad, mechanical, multi-turn], omega [rad/s, mechanical].
+        theta [rad, mechanical, multi-turn]; None: :func:`start_position` (half an encoder
+        count), omega [rad/s, mechanical].
         fluxed=True (full model): rotor flux at rated (steady state at isd = rated, isq = 0)
         with the estimator exactly oriented; False: de-energised (all currents, fluxes,
         integrators zero).  The reduced model is always fluxed.  Also resets PI integrators,
         filters (speed filter starts at ``omega``), encoder, load lag and the noise streams.
         """
+        if theta is None:
+            theta = start_position(self.config)
         for name, v in (("theta", theta), ("omega", omega)):
             if not math.isfinite(v):
                 raise ValueError(f"{name} must be finite, got {v!r}")

@@ -202,7 +202,7 @@ class _Bench:
 
     def __init__(self, drive: DriveConfig, drive_seed: int) -> None:
         self.sim = DriveSim(drive, seed=drive_seed)
-        self.sim.reset(theta=0.0, omega=0.0, fluxed=True)
+        self.sim.reset(omega=0.0, fluxed=True)  # at rest, half a count in (start_position)
         self.runner = ExperimentRunner(config_for_drive(None, self.sim), Gains())
         self.runner.reset(self.sim.theta_meas)
         self.next_id = 0

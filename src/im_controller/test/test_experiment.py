@@ -81,8 +81,9 @@ def test_hand_tuned_start_reaches_pi_rejects_load_no_trip(hand_tuned):
     assert res.steps == 5625 and res.t_start == 0 and res.t_end == 1_125_000_000
     assert res.direction == 1 and res.gains == Gains()
     assert math.isfinite(res.loss)
-    assert res.loss == pytest.approx(0.978352755613354, rel=1e-9)
-    assert res.terms == pytest.approx((0.3308067785029312, 0.3199291341331, 0.32761684297732274), rel=1e-9)
+    assert res.loss == pytest.approx(0.9803040260343194, rel=1e-9)
+    assert res.terms == pytest.approx((0.33079696102588896, 0.32082929209729344,
+                                       0.3286777729111369), rel=1e-9)
     # reaches pi: the move ends well before the load step
     n_load = 3500
     assert abs(sig["theta"][n_load - 1] - math.pi) < 2e-3
@@ -136,13 +137,13 @@ def test_supervisor_stops_destabilising_gains_early_with_penalty():
     _, s_free = run_experiment_offline(DriveSim(), UNSTABLE, free)
     assert np.max(np.abs(s_free["e_theta"])) > 2.5
     first_over_limit = int(np.argmax(np.abs(s_free["e_theta"]) > cfg.safety.max_position_error))
-    assert first_over_limit == 691
+    assert first_over_limit == 692
 
     res, sig = run_experiment_offline(DriveSim(), UNSTABLE, cfg)
     assert res.aborted and res.reason == "term2"
-    assert res.trip_step == 524 and res.trip_time == pytest.approx(0.1048)
+    assert res.trip_step == 522 and res.trip_time == pytest.approx(0.1044)
     assert res.trip_step < first_over_limit and res.trip_time < 0.11
-    assert res.steps == 525 and res.t_end == 525 * 200_000
+    assert res.steps == 523 and res.t_end == 523 * 200_000
     assert res.terms[1] > cfg.loss.threshold2
     assert res.loss == pytest.approx(10.0 * sum(res.terms), rel=1e-15)
     assert np.max(np.abs(sig["e_theta"][:-1])) < 0.5                # stopped well before 1 rad
@@ -162,8 +163,8 @@ def test_after_a_stop_the_runner_holds_with_fallback_gains():
     assert np.all(hold["status"] == STATUS_HOLD) and runner.ready
     # the fallback gains finish the move along the same trajectory (no reference jump)
     ref = Experiment(0, 0.0, ExperimentConfig()).reference()["theta_ref"]
-    assert np.array_equal(hold["theta_ref"][:200], ref[525:725])
-    assert np.max(np.abs(hold["e_theta"])) < 0.6                  # measured 0.564 < 1 rad
+    assert np.array_equal(hold["theta_ref"][:200], ref[523:723])
+    assert np.max(np.abs(hold["e_theta"])) < 0.6                  # measured 0.495 < 1 rad
     assert hold["theta_meas"][-1] == math.pi                       # back on the 0/pi grid
     assert np.max(np.abs(hold["omega_meas"][-500:])) < 1.0
     res2, _ = run_experiment_offline(sim, Gains(), experiment_id=1, runner=runner)
@@ -232,8 +233,8 @@ def test_alternating_direction_with_state_carried_over():
     assert all(a.t_end == b.t_start for a, b in zip(results, results[1:]))
     assert abs(sim.theta - 0.0) < 0.01 and sim.step_index == 4 * 5625
     # experiment 0 starts from rest; the later ones start with the load just removed
-    assert results[0].loss == pytest.approx(0.978352755613354, rel=1e-9)
-    assert results[1].loss == pytest.approx(1.1209889805617925, rel=1e-9)
+    assert results[0].loss == pytest.approx(0.9803040260343194, rel=1e-9)
+    assert results[1].loss == pytest.approx(1.1216316257479648, rel=1e-9)
     assert not any(r.aborted for r in results)
     # mirror symmetry of the 'oppose_move' load: directions give nearly the same loss
     assert results[3].loss == pytest.approx(results[2].loss, rel=1e-3)
@@ -271,7 +272,7 @@ def test_same_seed_same_loss_bits_other_seed_differs():
 def test_reduced_model_runs_the_same_experiment():
     sim = DriveSim(load_config(overrides={"model": "reduced"}))
     res, _ = run_experiment_offline(sim, Gains())
-    assert not res.aborted and res.loss == pytest.approx(0.978352755613354, rel=0.02)
+    assert not res.aborted and res.loss == pytest.approx(0.9803040260343194, rel=0.02)
 
 
 # ---------------------------------------------------------------------------- config

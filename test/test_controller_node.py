@@ -138,7 +138,7 @@ def bench(ros_context):
 def offline_losses(gains_seq: list[Gains], seed: int = SEED) -> list:
     """The pure core (no ROS): consecutive experiments on one drive, state carried over."""
     sim = DriveSim(load_config(None), seed=seed)
-    sim.reset(theta=0.0, omega=0.0, fluxed=True)
+    sim.reset(omega=0.0, fluxed=True)  # at rest, half an encoder count in, as the node
     runner = ExperimentRunner(config_for_drive(None, sim), gains_seq[0])
     runner.reset(sim.theta_meas)
     return [run_experiment_offline(sim, g, runner.config, i, runner, record=False)[0]

@@ -39,7 +39,7 @@ def drive_proc(procs, *args: str, env: dict | None = None) -> subprocess.Popen:
 def core_states(steps: int, seed: int) -> np.ndarray:
     """States 0..steps of the pure core closed by ``policy`` (no ROS)."""
     sim = DriveSim(load_config(None), seed=seed)
-    sim.reset(theta=0.0, omega=0.0, fluxed=True)
+    sim.reset(omega=0.0, fluxed=True)  # at rest, half an encoder count in, as the node
     ref = np.zeros((steps + 1, len(STATE_FIELDS)))
     sim.read_into(ref[0])
     for k in range(steps):

@@ -97,12 +97,12 @@ def test_study_runs_through_the_ros_nodes_give_the_same_losses(small, tmp_path):
 
 
 def test_a_run_with_a_safety_fault_through_the_ros_nodes(tmp_path):
-    """Run 22 of SPSA a=5 a0, c=c0 (default seed) trips a safety limit at evaluation 26:
+    """Run 53 of SPSA a=a0, c=c0/5 (default seed) trips a safety limit at evaluation 7:
     the controller faults, the tuner resets it (fault policy 'reset' on the simulated
     bench) and goes on -- the study does the same, bit for bit."""
-    spec = S.StudySpec(runs=23, budget=28, algos=('spsa',))
-    c = next(i for i, cell in enumerate(spec.cells) if cell.label == 'a=0.0183*5 c=0.03')
-    run = S.run_one(spec, c, 22)
+    spec = S.StudySpec(runs=54, budget=10, algos=('spsa',))
+    c = next(i for i, cell in enumerate(spec.cells) if cell.label == 'a=0.0183 c=0.03/5')
+    run = S.run_one(spec, c, 53)
     assert run.faults.any(), 'this sample no longer has a safety fault: pick another'
     params = spec.params()
     box = {n: {'lo': lo, 'hi': hi, 'start': s} for n, lo, hi, s in

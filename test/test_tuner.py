@@ -464,3 +464,28 @@ def test_summary_names_each_sessions_drive_line_and_the_clock(run6):
     run['bench'] = 'external'
     text = format_summary(s, run, run6)
     assert "experiment time (the drive's clock)" in text and 'simulated' not in text
+
+
+def _tree(root: Path) -> dict[str, bytes | None]:
+    return {str(p.relative_to(root)): None if p.is_dir() else p.read_bytes()
+            for p in sorted(root.rglob('*'))}
+
+
+def test_a_resume_whose_replay_does_not_match_changes_nothing(run6, tmp_path):
+    """The replay of the plant history checks every loss bit for bit; when one differs
+    the resume is refused (exit 2) and leaves no new bag behind (it left bag_N/)."""
+    import shutil
+    run = tmp_path / 'tampered'
+    shutil.copytree(run6, run, ignore=shutil.ignore_patterns('bag_*', 'report'))
+    lines = (run / 'results.jsonl').read_text().splitlines(keepends=True)[:4]
+    last = json.loads(lines[3])
+    last['loss'] *= 1.5  # the last record: told to the optimiser after its last ask
+    (run / 'results.jsonl').write_text(''.join(lines[:3]) + json.dumps(last) + '\n')
+    (run / 'summary.json').unlink()
+    (run / 'checkpoint.json').unlink()  # rebuilt from the records
+    before = _tree(run)
+    proc = tuner('--resume', str(run))
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    err = proc.stderr.strip().splitlines()
+    assert err[-1].startswith('error: tuner: replay: ') and 'Traceback' not in proc.stderr
+    assert _tree(run) == before

@@ -102,6 +102,10 @@ BAD_VALUES = [
     ("control.flux_floor", 1.0, "control.flux_floor"),
     ("control.current_bandwidth", 10000.0, "control.current_bandwidth too high"),
     ("Ts", 5e-3, "Ts = 0.005 s too large"),
+    # the clamp against the rated torque current Tn/Kt = 3.52 A: 700 A is a typo (issue 16)
+    ("machine.isq_max", 700.0, "machine.isq_max 700 A is implausible: 199x the rated torque "
+                               "current 3.52 A"),
+    ("machine.isq_max", 14.5, "at most 4x (14.1 A) is accepted"),
 ]
 
 
@@ -161,6 +165,12 @@ def test_yaml_syntax_error_and_empty_and_missing_file(tmp_path: Path) -> None:
         load_config(p)
     with pytest.raises(ConfigError, match=r"^nope\.yaml: cannot read"):
         load_config(tmp_path / "nope.yaml")
+    p = tmp_path / "binary.yaml"
+    p.write_bytes(b"model: \xff\xfe\x00\n")
+    with pytest.raises(ConfigError, match=r"^binary\.yaml: not a text \(UTF-8\) file"):
+        load_config(p)
+    # a clamp up to 4x the rated torque current is a drive's business
+    assert load_config(overrides={"machine.isq_max": 14.0}).machine.isq_max == 14.0
 
 
 def test_frozen() -> None:

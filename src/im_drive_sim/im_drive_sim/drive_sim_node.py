@@ -512,6 +512,10 @@ class DriveSimNode(LenientDoubles, Node):
                 self._cmd_fresh = True
 
     def run(self, executor) -> None:
+        # the first log call of a node costs 33-70 ms: never inside the real-time loop
+        if self._start_text:
+            self.get_logger().info(self._start_text)
+            self._start_text = ''
         if self.mode == 'lockstep':
             self.run_lockstep(executor)
         else:

@@ -75,16 +75,17 @@ class LenientDoubles:
       pre-set callback the original list and concatenates what they return.
     """
 
-    def set_parameters_atomically(self, parameter_list):
+    def _refuse_undeclared(self, parameter_list) -> None:
         missing = [p.name for p in parameter_list if p.name not in self._parameters]
         if missing and not self._allow_undeclared_parameters:
             raise ParameterNotDeclaredException(missing)
+
+    def set_parameters_atomically(self, parameter_list):
+        self._refuse_undeclared(parameter_list)
         return super().set_parameters_atomically(parameter_list)
 
     def set_parameters(self, parameter_list):
-        missing = [p.name for p in parameter_list if p.name not in self._parameters]
-        if missing and not self._allow_undeclared_parameters:
-            raise ParameterNotDeclaredException(missing)
+        self._refuse_undeclared(parameter_list)
         return super().set_parameters(parameter_list)
 
     def declare_parameter(self, name, value=None, descriptor=None, ignore_override=False):

@@ -243,7 +243,9 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
     # the reference, evaluation 0 (real-time jitter may abort it), then 1 + 1 retry lost
     assert statuses[0] == 'ok' and statuses[1] in ('ok', 'aborted'), statuses
     assert statuses[2:] == ['lost', 'lost'], statuses
-    assert 'no loss for experiment 2' in recs[2]['reason']
+    # lost mid-experiment, or (killed as it started) the start call unanswered
+    assert 'no loss for experiment 2' in recs[2]['reason'] or \
+        'start_experiment: no answer within 4 s' in recs[2]['reason'], recs[2]['reason']
     assert 'failed: eval 1: no result after 2 attempts' in out
     assert 'NOT applied' in out
     summary = json.loads((run / 'summary.json').read_text())

@@ -429,8 +429,12 @@ def test_real_time_mode_runs_an_experiment(procs, ros_context):
         t0 = time.monotonic()
         r = probe.experiment(30.0)
         wall = time.monotonic() - t0
-    # Paced by the wall clock: 1.125 s of experiment takes about that long.
-    assert 1.0 < wall < 3.0
+    # Paced by the wall clock: 1.125 s of experiment takes at least that long (lock-step
+    # on an idle bench would take ~0.1 s). Across two processes on a loaded 2-core machine
+    # the controller skips states it could not answer in time, so the experiment stretches
+    # (1.4-2.8x measured; CI saw 3.09 s of wall time): the upper bound only catches a hang.
+    # Experiments on the drive's timeline, exactly 5625 periods, are issue 18.
+    assert 1.0 < wall < 8.0
     assert not r.aborted and r.steps == 5625 and math.isfinite(r.loss)
     # Commands may arrive a period late in real time: the loss is close to lock-step's.
     ref = offline_losses([Gains()])[0]

@@ -1,6 +1,8 @@
 # im_tuner workspace: one-command set-up, tests, demo and benchmarks.
 #   make setup   create .venv from pinned requirements and install the three packages
-#   make test    the whole test suite
+#   make test    the whole test suite (unit + integration)
+#   make test-unit  the pure tier only: no DDS graph, no child processes (under a minute)
+#   make lint    ruff (lint + format check) over the tree, mypy over the pure modules
 #   make demo    the main job: ros2 run im_tuner tuner --algo necga (ALGO=spsa ...)
 #   make bench   the benchmarks, printing their figures
 #   make reproduction  the paper's configuration study (full grid) -> docs/reproduction.md
@@ -20,7 +22,7 @@ export HOME ?= $(CURDIR)
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: setup test demo demo-drive bench reproduction foxglove-check lock clean
+.PHONY: setup test test-unit lint format demo demo-drive bench reproduction foxglove-check lock clean
 
 setup: $(VENV)/.installed
 
@@ -44,6 +46,20 @@ $(VENV)/.installed: $(VENV)/.deps $(PKG_FILES) tools/ros2 Makefile
 
 test: setup
 	$(PY) -m pytest
+
+test-unit: setup
+	$(PY) -m pytest -m unit
+
+# Lint and types: ruff.toml and mypy.ini say what is checked and why.
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
+
+# Apply the formatter and the safe lint fixes.
+format: setup
+	$(VENV)/bin/ruff check --fix .
+	$(VENV)/bin/ruff format .
 
 # The product: tune the simulated bench (ALGO=spsa|necga|cga|pecga|rcga, ARGS=more options).
 ALGO ?= necga

@@ -7,6 +7,7 @@
 * Child processes are started through the ``procs`` fixture and ended by PID
   (SIGINT, a grace period, then SIGKILL), never by name.
 """
+
 from __future__ import annotations
 
 import os
@@ -14,8 +15,8 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import pytest
 
@@ -33,8 +34,20 @@ if not os.environ.get('HOME'):
     os.environ['HOME'] = tempfile.gettempdir()
 
 
-def wait_for(predicate: Callable[[], object], timeout: float, interval: float = 0.01,
-             message: str = 'condition') -> object:
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The tiers: a package's own tests (src/<package>/test) are the pure unit tier; the
+    workspace tests (test/) start nodes and processes."""
+    for item in items:
+        rel = Path(str(item.path)).resolve().relative_to(REPO)
+        item.add_marker(pytest.mark.unit if rel.parts[0] == 'src' else pytest.mark.integration)
+
+
+def wait_for(
+    predicate: Callable[[], object],
+    timeout: float,
+    interval: float = 0.01,
+    message: str = 'condition',
+) -> object:
     """Poll ``predicate`` on a steady clock until truthy or ``timeout`` s pass (then fail)."""
     deadline = time.monotonic() + timeout
     while True:
@@ -62,6 +75,7 @@ class Processes:
 
     def stop_all(self) -> None:
         from im_drive_sim.runtime import stop_child  # SIGINT, grace, SIGKILL, by PID
+
         for proc in reversed(self.children):
             stop_child(proc)
 
@@ -80,6 +94,7 @@ def ros_context():
     """A private rclpy Context for one test, shut down afterwards."""
     import rclpy
     from rclpy.context import Context
+
     ctx = Context()
     rclpy.init(context=ctx)
     try:

@@ -13,6 +13,7 @@ experiment (1.125 s, 5625 steps) run through the ROS nodes, lock-step.
 Wall time per experiment = from the start call to the loss message. Prints medians.
 Run: ``.venv/bin/python bench/bench_experiment.py`` (or ``make bench``).
 """
+
 from __future__ import annotations
 
 import os
@@ -28,16 +29,16 @@ os.environ.setdefault('ROS_DOMAIN_ID', str(100 + os.getpid() % 50))
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
 
-import rclpy  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from std_srvs.srv import Trigger
 
-from im_controller.messages import msg_to_result  # noqa: E402
-from im_controller.sim_bench import InProcessBench  # noqa: E402
-from im_drive_sim.runtime import stop_child  # noqa: E402
+from im_controller.messages import msg_to_result
+from im_controller.sim_bench import InProcessBench
+from im_drive_sim.runtime import stop_child
 
 EXPERIMENTS = 7
 SIM_SECONDS = 1.125
@@ -48,13 +49,21 @@ class _Client:
         self.node = Node('bench_tuner', context=ctx)
         self.start = self.node.create_client(Trigger, '/controller/start_experiment')
         self.results = []
-        self.node.create_subscription(DiagnosticArray, '/controller/loss',
-                                      lambda m: self.results.append(msg_to_result(m)), 100)
+        self.node.create_subscription(
+            DiagnosticArray,
+            '/controller/loss',
+            lambda m: self.results.append(msg_to_result(m)),
+            100,
+        )
         self.spin_until = spin_until
 
     def run(self, n: int) -> list[float]:
-        if not self.spin_until(lambda: self.start.service_is_ready() and
-                               self.node.count_publishers('/controller/loss') > 0, 30.0):
+        if not self.spin_until(
+            lambda: (
+                self.start.service_is_ready() and self.node.count_publishers('/controller/loss') > 0
+            ),
+            30.0,
+        ):
             raise RuntimeError('controller not reachable')
         walls = []
         for _ in range(n + 1):  # the first one warms up (numba caches, DDS)
@@ -69,7 +78,7 @@ class _Client:
                 if 'no drive state' not in fut.result().message:
                     raise RuntimeError(fut.result().message)
                 self.spin_until(lambda: False, 0.05)
-            if not self.spin_until(lambda: len(self.results) > k, 120.0):
+            if not self.spin_until(lambda k=k: len(self.results) > k, 120.0):
                 raise RuntimeError('no loss result')
             walls.append(time.perf_counter() - t0)
         return walls[1:]
@@ -86,8 +95,12 @@ def one_process(n: int = EXPERIMENTS, record: str | None = None) -> list[float]:
         rec = None
         if record is not None:
             from im_tuner.recorder_node import RECORD_POLL_STEPS, Recorder
-            rec = Recorder(Node('recorder', context=ctx, start_parameter_services=False),
-                           Path(tmp) / 'bag', compression=record)
+
+            rec = Recorder(
+                Node('recorder', context=ctx, start_parameter_services=False),
+                Path(tmp) / 'bag',
+                compression=record,
+            )
             bench.add_poller(rec.poll, RECORD_POLL_STEPS)
         client = _Client(ctx, bench.spin_until)
         bench.executor.add_node(client.node)
@@ -107,8 +120,7 @@ def one_process(n: int = EXPERIMENTS, record: str | None = None) -> list[float]:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def recording_ab(compression: str, pairs: int = 3, n: int = 5) -> tuple[list[float],
-                                                                          list[float]]:
+def recording_ab(compression: str, pairs: int = 3, n: int = 5) -> tuple[list[float], list[float]]:
     """Alternate runs without / with the recorder; returns (RTFs with, per-pair ratios)."""
     with_rec, ratios = [], []
     for _ in range(pairs):
@@ -121,10 +133,18 @@ def recording_ab(compression: str, pairs: int = 3, n: int = 5) -> tuple[list[flo
 
 def separate_processes(n: int = EXPERIMENTS) -> list[float]:
     ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
-    procs = [subprocess.Popen([ros2, 'run', 'im_drive_sim', 'drive_sim'],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL),
-             subprocess.Popen([ros2, 'run', 'im_controller', 'controller'],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    procs = [
+        subprocess.Popen(
+            [ros2, 'run', 'im_drive_sim', 'drive_sim'],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        ),
+        subprocess.Popen(
+            [ros2, 'run', 'im_controller', 'controller'],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        ),
+    ]
     ctx = Context()
     rclpy.init(context=ctx)
     ex = SingleThreadedExecutor(context=ctx)
@@ -136,6 +156,7 @@ def separate_processes(n: int = EXPERIMENTS) -> list[float]:
                 return False
             ex.spin_once(timeout_sec=0.01)
         return True
+
     try:
         client = _Client(ctx, spin_until)
         ex.add_node(client.node)
@@ -149,8 +170,10 @@ def separate_processes(n: int = EXPERIMENTS) -> list[float]:
 
 
 def _fmt(name: str, xs: list[float]) -> str:
-    return (f'{name:<38} median RTF {statistics.median(xs):5.2f}   '
-            f'min {min(xs):5.2f}   max {max(xs):5.2f}   ({len(xs)} experiments)')
+    return (
+        f'{name:<38} median RTF {statistics.median(xs):5.2f}   '
+        f'min {min(xs):5.2f}   max {max(xs):5.2f}   ({len(xs)} experiments)'
+    )
 
 
 def main(compressions: tuple[str, ...] = ('zstd', 'lz4', 'none')) -> dict[str, float]:
@@ -159,9 +182,12 @@ def main(compressions: tuple[str, ...] = ('zstd', 'lz4', 'none')) -> dict[str, f
     figures = {'experiment_rtf_1proc': statistics.median(one)}
     for comp in compressions:
         rec, ratios = recording_ab(comp)
-        print(_fmt(f'  + recorder in process ({comp})', rec) +
-              f'   speed kept {statistics.median(ratios):.0%} '
-              f'(pairs: {", ".join(f"{r:.2f}" for r in ratios)})', flush=True)
+        print(
+            _fmt(f'  + recorder in process ({comp})', rec)
+            + f'   speed kept {statistics.median(ratios):.0%} '
+            f'(pairs: {", ".join(f"{r:.2f}" for r in ratios)})',
+            flush=True,
+        )
         figures[f'experiment_rtf_rec_{comp}'] = statistics.median(rec)
         figures[f'recording_kept_{comp}'] = statistics.median(ratios)
     two = separate_processes()

@@ -10,6 +10,7 @@ with a command, the drive takes the command, steps the model and publishes state
 Run: ``.venv/bin/python bench/bench_lockstep.py`` (or ``make bench``). Prints medians
 over repeated batches; the machines are shared and noisy.
 """
+
 from __future__ import annotations
 
 import os
@@ -23,14 +24,14 @@ os.environ.setdefault('ROS_DOMAIN_ID', str(150 + os.getpid() % 50))
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
 
-import rclpy  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
+import rclpy
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.parameter import Parameter
 
-from im_drive_sim.client import DriveClient  # noqa: E402
-from im_drive_sim.drive_sim_node import DriveSimNode  # noqa: E402
-from im_drive_sim.runtime import stop_child  # noqa: E402
+from im_drive_sim.client import DriveClient
+from im_drive_sim.drive_sim_node import DriveSimNode
+from im_drive_sim.runtime import stop_child
 
 BATCH = 5000
 REPEATS = 7
@@ -73,8 +74,12 @@ def one_process(batch: int = BATCH, repeats: int = REPEATS) -> list[float]:
 def two_processes(batch: int = BATCH, repeats: int = REPEATS) -> list[float]:
     ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
     total = batch * (repeats + 1) + 10
-    proc = subprocess.Popen([ros2, 'run', 'im_drive_sim', 'drive_sim', '--max-steps', str(total)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [ros2, 'run', 'im_drive_sim', 'drive_sim', '--max-steps', str(total)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     ctx = Context()
     rclpy.init(context=ctx)
     try:
@@ -102,8 +107,10 @@ def two_processes(batch: int = BATCH, repeats: int = REPEATS) -> list[float]:
 
 
 def _fmt(name: str, xs: list[float]) -> str:
-    return (f'{name:<34} median {statistics.median(xs):7.1f} us/step   '
-            f'min {min(xs):7.1f}   max {max(xs):7.1f}   (rtf {200.0 / statistics.median(xs):.1f})')
+    return (
+        f'{name:<34} median {statistics.median(xs):7.1f} us/step   '
+        f'min {min(xs):7.1f}   max {max(xs):7.1f}   (rtf {200.0 / statistics.median(xs):.1f})'
+    )
 
 
 def main() -> dict[str, float]:
@@ -111,8 +118,10 @@ def main() -> dict[str, float]:
     print(_fmt('lock-step round trip, 1 process', one), flush=True)
     two = two_processes()
     print(_fmt('lock-step round trip, 2 processes', two), flush=True)
-    return {'lockstep_1proc_us': statistics.median(one),
-            'lockstep_2proc_us': statistics.median(two)}
+    return {
+        'lockstep_1proc_us': statistics.median(one),
+        'lockstep_2proc_us': statistics.median(two),
+    }
 
 
 if __name__ == '__main__':

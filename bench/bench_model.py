@@ -24,7 +24,7 @@ try:
     from im_drive_sim.params import load_config
     from im_drive_sim.sim import DriveSim
 except ImportError:  # running from a source checkout without installing the package
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / "im_drive_sim"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / 'im_drive_sim'))
     from im_drive_sim import kernels as K
     from im_drive_sim.params import load_config
     from im_drive_sim.sim import DriveSim
@@ -40,7 +40,7 @@ def _inputs(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 def bench_model(model: str, steps: int = 100_000, repeats: int = 7) -> dict[str, float]:
     """Median/min/max ns per step of ``run_batch`` for ``model`` ('full' | 'reduced')."""
-    sim = DriveSim(load_config(overrides={"model": model}))
+    sim = DriveSim(load_config(overrides={'model': model}))
     isq, tl = _inputs(steps)
     dummy = np.empty((1, K.N_RUN_FIELDS))
     noise = np.zeros((steps + 1, K.NOISE_COLS))  # noise-free: one block covers the batch
@@ -55,25 +55,32 @@ def bench_model(model: str, steps: int = 100_000, repeats: int = 7) -> dict[str,
         K.run_batch(sim.S, sim.P, noise, isq, tl, dummy, 0, steps, False)
         per_step.append((time.perf_counter_ns() - t0) / steps)
     if not np.all(np.isfinite(sim.S)):
-        raise RuntimeError(f"{model} model state became non-finite in the benchmark")
-    return {"median_ns": statistics.median(per_step), "min_ns": min(per_step),
-            "max_ns": max(per_step), "steps": float(steps), "repeats": float(repeats)}
+        raise RuntimeError(f'{model} model state became non-finite in the benchmark')
+    return {
+        'median_ns': statistics.median(per_step),
+        'min_ns': min(per_step),
+        'max_ns': max(per_step),
+        'steps': float(steps),
+        'repeats': float(repeats),
+    }
 
 
 def main(steps: int = 100_000, repeats: int = 7, verbose: bool = True) -> dict:
     """Run both benchmarks; returns ``{'full': {...}, 'reduced': {...}}`` (ns per step)."""
-    res = {m: bench_model(m, steps, repeats) for m in ("full", "reduced")}
+    res = {m: bench_model(m, steps, repeats) for m in ('full', 'reduced')}
     if verbose:
-        print(f"model step benchmark: {steps} steps x {repeats} repeats (run_batch, numba)")
+        print(f'model step benchmark: {steps} steps x {repeats} repeats (run_batch, numba)')
         for m, r in res.items():
-            print(f"  {m:8s} median {r['median_ns']:7.1f} ns/step   "
-                  f"min {r['min_ns']:7.1f}   max {r['max_ns']:7.1f}")
+            print(
+                f'  {m:8s} median {r["median_ns"]:7.1f} ns/step   '
+                f'min {r["min_ns"]:7.1f}   max {r["max_ns"]:7.1f}'
+            )
     return res
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--steps", type=int, default=100_000)
-    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument('--steps', type=int, default=100_000)
+    ap.add_argument('--repeats', type=int, default=7)
     a = ap.parse_args()
     main(a.steps, a.repeats)

@@ -31,6 +31,7 @@ evaluation: ``{algo: hot_us, f'{algo}_cold': cold_us}`` for every algo of ``ALGO
 (without the ``_cold`` keys when called with ``cold_evals=0``).  See docs/optimisers.md
 ("Speed").
 """
+
 from __future__ import annotations
 
 import argparse
@@ -39,15 +40,15 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 try:
     from im_tuner.optim import ALGOS, make_optimizer
 except ImportError:  # running from a source checkout without installing the package
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / "im_tuner"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / 'im_tuner'))
     from im_tuner.optim import ALGOS, make_optimizer
 
 DIM = 5
@@ -70,24 +71,26 @@ def bench_algo(algo: str, evals: int = 2000, repeats: int = 7) -> float:
     return statistics.median(batch() for _ in range(repeats))
 
 
-def make_disturbance(kind: str = 'experiment', sleep_s: float = 0.0
-                     ) -> tuple[Callable[[], None], Callable[[], None]]:
+def make_disturbance(
+    kind: str = 'experiment', sleep_s: float = 0.0
+) -> tuple[Callable[[], None], Callable[[], None]]:
     """(disturb, close): ``disturb()`` evicts the caches as the tuner's loop does between
     optimiser calls (see the module docstring), then sleeps ``sleep_s`` (0: none);
     ``close()`` removes its scratch file."""
     fd, path = tempfile.mkstemp(prefix='bench_optim_', suffix='.log')
-    line = b'x' * 600 + b'\n'          # about one results.jsonl record
+    line = b'x' * 600 + b'\n'  # about one results.jsonl record
     if kind == 'experiment':
         from im_controller.config import Gains
         from im_controller.experiment import run_experiment_offline
         from im_drive_sim.sim import DriveSim
+
         sim = DriveSim()
-        run_experiment_offline(sim, Gains())          # compiles/loads the kernels
+        run_experiment_offline(sim, Gains())  # compiles/loads the kernels
 
         def work() -> None:
             run_experiment_offline(sim, Gains(), record=True)
     elif kind == 'stream':
-        big = np.ones(4 * 1024 * 1024)                  # 32 MB
+        big = np.ones(4 * 1024 * 1024)  # 32 MB
 
         def work() -> None:
             big.sum()
@@ -108,8 +111,9 @@ def make_disturbance(kind: str = 'experiment', sleep_s: float = 0.0
     return disturb, close
 
 
-def bench_cold(algo: str, disturb: Callable[[], None], evals: int = 40
-               ) -> tuple[float, float, float]:
+def bench_cold(
+    algo: str, disturb: Callable[[], None], evals: int = 40
+) -> tuple[float, float, float]:
     """Cold: medians over ``evals`` evaluations of (ask + tell, ask, tell) [us], each call
     timed alone after ``disturb()``."""
     opt = make_optimizer(algo, DIM, seed=1)
@@ -119,7 +123,7 @@ def bench_cold(algo: str, disturb: Callable[[], None], evals: int = 40
         t0 = time.perf_counter()
         u = opt.ask()
         t1 = time.perf_counter()
-        record = [float(x) for x in u]      # the tuner records u and tells it back
+        record = [float(x) for x in u]  # the tuner records u and tells it back
         d = u - TARGET
         loss = float(d @ d)
         disturb()
@@ -130,12 +134,16 @@ def bench_cold(algo: str, disturb: Callable[[], None], evals: int = 40
         ask_us.append(1e6 * (t1 - t0))
         tell_us.append(1e6 * (t3 - t2))
         total.append(ask_us[-1] + tell_us[-1])
-    return (statistics.median(total), statistics.median(ask_us),
-            statistics.median(tell_us))
+    return (statistics.median(total), statistics.median(ask_us), statistics.median(tell_us))
 
 
-def main(evals: int = 2000, repeats: int = 7, verbose: bool = True, cold_evals: int = 40,
-         disturb: str = 'experiment') -> dict[str, float]:
+def main(
+    evals: int = 2000,
+    repeats: int = 7,
+    verbose: bool = True,
+    cold_evals: int = 40,
+    disturb: str = 'experiment',
+) -> dict[str, float]:
     """Run every algorithm hot, then cold; returns ``{algo: hot_us, f'{algo}_cold':
     cold_us}`` (medians, us per evaluation; no ``_cold`` keys if ``cold_evals`` is 0)."""
     hot = {algo: bench_algo(algo, evals, repeats) for algo in ALGOS}
@@ -153,17 +161,21 @@ def main(evals: int = 2000, repeats: int = 7, verbose: bool = True, cold_evals: 
         finally:
             close()
     if verbose:
-        print(f"optimiser ask+tell, dim={DIM}, default options, us per evaluation (target: "
-              f"well below 50 cold)\n  hot: median of {repeats} batch means x {evals} "
-              f"evaluations back to back")
+        print(
+            f'optimiser ask+tell, dim={DIM}, default options, us per evaluation (target: '
+            f'well below 50 cold)\n  hot: median of {repeats} batch means x {evals} '
+            f'evaluations back to back'
+        )
         if cold:
-            print(f"  cold: median of {cold_evals} evaluations, caches evicted before every "
-                  f"call ({disturb} + fsync), as in the tuning run")
+            print(
+                f'  cold: median of {cold_evals} evaluations, caches evicted before every '
+                f'call ({disturb} + fsync), as in the tuning run'
+            )
         for algo, us in hot.items():
-            line = f"  {algo:6s} hot {us:6.2f}"
+            line = f'  {algo:6s} hot {us:6.2f}'
             if algo in cold:
                 c, a, t = cold[algo]
-                line += f"   cold {c:6.1f}  (ask {a:5.1f}, tell {t:5.1f})"
+                line += f'   cold {c:6.1f}  (ask {a:5.1f}, tell {t:5.1f})'
             print(line)
     res: dict[str, float] = {}
     for algo in ALGOS:
@@ -173,13 +185,18 @@ def main(evals: int = 2000, repeats: int = 7, verbose: bool = True, cold_evals: 
     return res
 
 
-if __name__ == "__main__":
+if __name__ == '__main__':
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--evals", type=int, default=2000, help="hot: evaluations per batch")
-    ap.add_argument("--repeats", type=int, default=7, help="hot: batches")
-    ap.add_argument("--cold-evals", type=int, default=40,
-                    help="cold: evaluations (0: skip the cold figures)")
-    ap.add_argument("--disturb", choices=("experiment", "stream"), default="experiment",
-                    help="cold: what evicts the caches between calls")
+    ap.add_argument('--evals', type=int, default=2000, help='hot: evaluations per batch')
+    ap.add_argument('--repeats', type=int, default=7, help='hot: batches')
+    ap.add_argument(
+        '--cold-evals', type=int, default=40, help='cold: evaluations (0: skip the cold figures)'
+    )
+    ap.add_argument(
+        '--disturb',
+        choices=('experiment', 'stream'),
+        default='experiment',
+        help='cold: what evicts the caches between calls',
+    )
     a = ap.parse_args()
     main(a.evals, a.repeats, cold_evals=a.cold_evals, disturb=a.disturb)

@@ -10,6 +10,7 @@
 Run: ``.venv/bin/python bench/bench_study.py [--runs N]`` (or ``make bench``).  Targets
 (issue 7): full grid <= 300 s on a 2-core machine, reduced <= 120 s.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,8 +28,11 @@ ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 def run(out: Path, *args: str) -> tuple[float, int]:
     """Wall time [s] of the whole command and the experiments it ran."""
     t0 = time.perf_counter()
-    proc = subprocess.run([ROS2, 'run', 'im_tuner', 'study', '--quiet', '--out', str(out),
-                           *args], capture_output=True, text=True)
+    proc = subprocess.run(
+        [ROS2, 'run', 'im_tuner', 'study', '--quiet', '--out', str(out), *args],
+        capture_output=True,
+        text=True,
+    )
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise SystemExit(f'study failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}')
@@ -45,13 +49,19 @@ def main(runs: int = 100) -> dict[str, float]:
             # scale to the paper's 100 runs when a shorter grid was asked for
             figures[f'study_{model}_grid_s'] = wall * 100 / runs
             figures[f'study_{model}_exp_per_s'] = n / wall
-            print(f'{model:8s} grid ({runs} runs/config, {cores} workers): {n} experiments in '
-                  f'{wall:.1f} s = {n / wall:.0f} experiments/s', flush=True)
+            print(
+                f'{model:8s} grid ({runs} runs/config, {cores} workers): {n} experiments in '
+                f'{wall:.1f} s = {n / wall:.0f} experiments/s',
+                flush=True,
+            )
         wall1, n1 = run(Path(tmp) / 'one', '--model', 'full', '--runs', '10', '--jobs', '1')
         figures['study_full_1job_exp_per_s'] = n1 / wall1
         figures['study_scaling'] = figures['study_full_exp_per_s'] / (n1 / wall1)
-        print(f'full     one worker (10 runs/config): {n1 / wall1:.0f} experiments/s; '
-              f'{cores} workers give {figures["study_scaling"]:.2f} x', flush=True)
+        print(
+            f'full     one worker (10 runs/config): {n1 / wall1:.0f} experiments/s; '
+            f'{cores} workers give {figures["study_scaling"]:.2f} x',
+            flush=True,
+        )
     return figures
 
 

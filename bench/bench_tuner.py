@@ -17,6 +17,7 @@ budget 200, 3 re-measurements, the reference), in a fresh run directory. From it
 Run: ``.venv/bin/python bench/bench_tuner.py [--algos necga spsa] [--budget 200]``
 (part of ``make bench``).  ``main() -> dict`` returns the figures for run_all.py.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -41,9 +42,26 @@ def run_once(algo: str, budget: int, seed: int) -> dict:
     env.setdefault('AMENT_PREFIX_PATH', sys.prefix)
     try:
         t0 = time.perf_counter()
-        proc = subprocess.run([ROS2, 'run', 'im_tuner', 'tuner', '--algo', algo, '--budget',
-                               str(budget), '--seed', str(seed), '--out', str(tmp / 'run'),
-                               '--quiet'], capture_output=True, text=True, env=env)
+        proc = subprocess.run(
+            [
+                ROS2,
+                'run',
+                'im_tuner',
+                'tuner',
+                '--algo',
+                algo,
+                '--budget',
+                str(budget),
+                '--seed',
+                str(seed),
+                '--out',
+                str(tmp / 'run'),
+                '--quiet',
+            ],
+            capture_output=True,
+            text=True,
+            env=env,
+        )
         wall = time.perf_counter() - t0
         if proc.returncode != 0:
             raise RuntimeError(f'tuner failed ({proc.returncode}): {proc.stderr[-2000:]}')
@@ -52,17 +70,36 @@ def run_once(algo: str, budget: int, seed: int) -> dict:
         report = []
         for i in range(3):
             t0 = time.perf_counter()
-            rep = subprocess.run([ROS2, 'run', 'im_tuner', 'report', str(tmp / 'run'), '--out',
-                                  str(tmp / f'report{i}')], capture_output=True, text=True,
-                                 env=env)
+            rep = subprocess.run(
+                [
+                    ROS2,
+                    'run',
+                    'im_tuner',
+                    'report',
+                    str(tmp / 'run'),
+                    '--out',
+                    str(tmp / f'report{i}'),
+                ],
+                capture_output=True,
+                text=True,
+                env=env,
+            )
             report.append(time.perf_counter() - t0)
             if rep.returncode != 0:
                 raise RuntimeError(f'report failed ({rep.returncode}): {rep.stderr[-2000:]}')
-        return {'wall_s': wall, 'loop_wall_s': s['loop_wall_s'], 'sim_s': s['sim_s'],
-                'rtf': s['sim_s'] / wall, 'rtf_loop': s['real_time_factor'],
-                'opt_us': s['optimizer_us_per_eval'], 'best': s['best']['loss'],
-                'start': s['reference']['loss'], 'experiments': s['experiments'],
-                'bag_mb': bag / 1e6, 'report_s': statistics.median(report)}
+        return {
+            'wall_s': wall,
+            'loop_wall_s': s['loop_wall_s'],
+            'sim_s': s['sim_s'],
+            'rtf': s['sim_s'] / wall,
+            'rtf_loop': s['real_time_factor'],
+            'opt_us': s['optimizer_us_per_eval'],
+            'best': s['best']['loss'],
+            'start': s['reference']['loss'],
+            'experiments': s['experiments'],
+            'bag_mb': bag / 1e6,
+            'report_s': statistics.median(report),
+        }
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -71,12 +108,15 @@ def main(algos: tuple[str, ...] = ('necga', 'spsa'), budget: int = 200, seed: in
     figures = {}
     for algo in algos:
         r = run_once(algo, budget, seed)
-        print(f'{algo:>6} budget {budget}: wall {r["wall_s"]:.1f} s (tuning loop '
-              f'{r["loop_wall_s"]:.1f} s), simulated experiments {r["sim_s"]:.1f} s '
-              f'({r["experiments"]}), real-time factor {r["rtf"]:.2f} (loop {r["rtf_loop"]:.2f}), '
-              f'ask+tell {r["opt_us"]:.1f} us/eval, best loss {r["best"]:.4f} (start '
-              f'{r["start"]:.4f}), bag {r["bag_mb"]:.0f} MB; report of the run '
-              f'{r["report_s"]:.2f} s', flush=True)
+        print(
+            f'{algo:>6} budget {budget}: wall {r["wall_s"]:.1f} s (tuning loop '
+            f'{r["loop_wall_s"]:.1f} s), simulated experiments {r["sim_s"]:.1f} s '
+            f'({r["experiments"]}), real-time factor {r["rtf"]:.2f} (loop {r["rtf_loop"]:.2f}), '
+            f'ask+tell {r["opt_us"]:.1f} us/eval, best loss {r["best"]:.4f} (start '
+            f'{r["start"]:.4f}), bag {r["bag_mb"]:.0f} MB; report of the run '
+            f'{r["report_s"]:.2f} s',
+            flush=True,
+        )
         figures[f'tuner_{algo}_rtf'] = r['rtf']
         figures[f'tuner_{algo}_ask_tell_us'] = r['opt_us']
         figures[f'tuner_{algo}_wall_s'] = r['wall_s']

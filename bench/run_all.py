@@ -3,6 +3,7 @@
 Run: ``make bench`` (or ``.venv/bin/python bench/run_all.py``). Figures are medians over
 repeated batches on a shared, noisy machine; compare medians and ratios, not single runs.
 """
+
 from __future__ import annotations
 
 import sys
@@ -10,12 +11,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import bench_experiment  # noqa: E402
-import bench_lockstep  # noqa: E402
-import bench_model  # noqa: E402
-import bench_optim  # noqa: E402
-import bench_study  # noqa: E402
-import bench_tuner  # noqa: E402
+import bench_experiment
+import bench_lockstep
+import bench_model
+import bench_optim
+import bench_study
+import bench_tuner
 
 #: figure -> (unit, target): what the issues ask of each figure; a positive target is an
 #: upper bound, a negative one a lower bound (stored negated), None: informational.
@@ -76,15 +77,19 @@ def main() -> int:
     figures.update({f'{m}_ns_per_step': r['median_ns'] for m, r in model.items()})
     print('\n== lock-step round trip over DDS (drive_sim + minimal responder) ==', flush=True)
     figures.update(bench_lockstep.main())
-    print('\n== the paper\'s experiment through the nodes (lock-step) ==', flush=True)
+    print("\n== the paper's experiment through the nodes (lock-step) ==", flush=True)
     figures.update(bench_experiment.main())
     print('\n== optimisers: ask+tell per evaluation, dim 5 ==', flush=True)
     figures.update(optim_figures(bench_optim.main()))
-    print('\n== the default tuning run: ros2 run im_tuner tuner (200 evaluations, recorded) ==',
-          flush=True)
+    print(
+        '\n== the default tuning run: ros2 run im_tuner tuner (200 evaluations, recorded) ==',
+        flush=True,
+    )
     figures.update(bench_tuner.main())
-    print('\n== the offline study: ros2 run im_tuner study (the paper\'s grid, every core) ==',
-          flush=True)
+    print(
+        "\n== the offline study: ros2 run im_tuner study (the paper's grid, every core) ==",
+        flush=True,
+    )
     figures.update(bench_study.main())
     print('\n== summary (medians) ==')
     for name, value in figures.items():

@@ -17,6 +17,7 @@ slow_current   current loop 10 times too slow                          step_resp
 joint_type     Float64MultiArray on drive/joint_states                 topics
 =============  ======================================================  =============
 """
+
 from __future__ import annotations
 
 import argparse
@@ -96,8 +97,9 @@ def broken_class(breaks: set[str]) -> type:
 
 if __name__ == '__main__':
     ap = argparse.ArgumentParser()
-    ap.add_argument('--break', dest='breaks', required=True,
-                    help='comma-separated: ' + ','.join(BREAKAGES))
+    ap.add_argument(
+        '--break', dest='breaks', required=True, help='comma-separated: ' + ','.join(BREAKAGES)
+    )
     ns = ap.parse_args(remove_ros_args(sys.argv)[1:])
     chosen = set(ns.breaks.split(','))
     if not chosen <= set(BREAKAGES):

@@ -10,6 +10,7 @@ be exactly as before (no run directory, bag or JSON left behind, no input modifi
 The cases run a few at a time in a module fixture (each is a separate process, most of it
 Python and rclpy start-up); each case is then its own test, named after the case.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -45,15 +46,29 @@ NODES = ('drive_sim', 'example_drive', 'controller', 'sim_bench', 'recorder')
 
 def _params_file_cases(exe: str) -> list[tuple[str, str, list[str]]]:
     """--ros-args --params-file: missing, a directory, not YAML, YAML that is not ROS's."""
-    return [(exe, f'params-file-{kind}', ['--ros-args', '--params-file', f])
-            for kind, f in (('missing', 'missing.yaml'), ('directory', 'adir'),
-                            ('corrupt', 'corrupt.yaml'), ('not-ros', 'notros.yaml'))]
+    return [
+        (exe, f'params-file-{kind}', ['--ros-args', '--params-file', f])
+        for kind, f in (
+            ('missing', 'missing.yaml'),
+            ('directory', 'adir'),
+            ('corrupt', 'corrupt.yaml'),
+            ('not-ros', 'notros.yaml'),
+        )
+    ]
 
 
-def _file_cases(exe: str, flag: str, extra: tuple[str, ...] = ()) -> list[tuple[str, str, list[str]]]:
-    return [(exe, f'{flag[2:]}-{kind}', [flag, f, *extra])
-            for kind, f in (('missing', 'missing.yaml'), ('directory', 'adir'),
-                            ('corrupt', 'corrupt.yaml'), ('wrong-yaml', 'notros.yaml'))]
+def _file_cases(
+    exe: str, flag: str, extra: tuple[str, ...] = ()
+) -> list[tuple[str, str, list[str]]]:
+    return [
+        (exe, f'{flag[2:]}-{kind}', [flag, f, *extra])
+        for kind, f in (
+            ('missing', 'missing.yaml'),
+            ('directory', 'adir'),
+            ('corrupt', 'corrupt.yaml'),
+            ('wrong-yaml', 'notros.yaml'),
+        )
+    ]
 
 
 CASES: list[tuple[str, str, list[str]]] = [
@@ -91,8 +106,10 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('sim_bench', 'processes-seed-negative', ['--processes', '--seed', '-1']),
     ('sim_bench', 'p-isq-max-above-drive', ['--ros-args', '-p', 'safety.isq_max:=20.0']),
     *_file_cases('sim_bench', '--config'),
-    *[('sim_bench', 'processes-' + n, a)
-      for _e, n, a in _file_cases('sim_bench', '--config', ('--processes',))],
+    *[
+        ('sim_bench', 'processes-' + n, a)
+        for _e, n, a in _file_cases('sim_bench', '--config', ('--processes',))
+    ],
     *_params_file_cases('sim_bench'),
     # -- check_drive (all of these before any probing)
     ('check_drive', 'amplitude-negative', ['--amplitude', '-0.5']),
@@ -183,9 +200,29 @@ def template(tmp_path_factory) -> Path:
     # a real run, cut after its budget of 3 (done) and then made resumable by dropping
     # the last records, as a killed run leaves it
     run = root / 'run'
-    proc = subprocess.run([ROS2, 'run', 'im_tuner', 'tuner', '--budget', '4', '--seed', '5',
-                           '--remeasure', '0', '--no-record', '--bench', 'inproc', '--quiet',
-                           '--out', str(run)], capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [
+            ROS2,
+            'run',
+            'im_tuner',
+            'tuner',
+            '--budget',
+            '4',
+            '--seed',
+            '5',
+            '--remeasure',
+            '0',
+            '--no-record',
+            '--bench',
+            'inproc',
+            '--quiet',
+            '--out',
+            str(run),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     lines = (run / 'results.jsonl').read_text().splitlines(keepends=True)
     (run / 'results.jsonl').write_text(''.join(lines[:3]))
@@ -194,17 +231,29 @@ def template(tmp_path_factory) -> Path:
     def write(name: str, text: str | bytes) -> None:
         def edit(d: Path) -> None:
             (d / name).write_bytes(text if isinstance(text, bytes) else text.encode())
+
         return edit
+
     variants = {
-        'run_garbage_line': write('results.jsonl', ''.join(lines[:1]) + 'not json at all\n'
-                                  + ''.join(lines[1:3])),
-        'run_noloss': write('results.jsonl', ''.join(lines[:1]) + json.dumps(
-            {k: v for k, v in json.loads(lines[1]).items() if k != 'loss'}) + '\n'
-            + ''.join(lines[2:3])),
+        'run_garbage_line': write(
+            'results.jsonl', ''.join(lines[:1]) + 'not json at all\n' + ''.join(lines[1:3])
+        ),
+        'run_noloss': write(
+            'results.jsonl',
+            ''.join(lines[:1])
+            + json.dumps({k: v for k, v in json.loads(lines[1]).items() if k != 'loss'})
+            + '\n'
+            + ''.join(lines[2:3]),
+        ),
         # a torn last line (cut on resume) and a bad record before it (refused)
-        'run_torn_and_bad': write('results.jsonl', ''.join(lines[:1]) + json.dumps(
-            {k: v for k, v in json.loads(lines[1]).items() if k != 'loss'}) + '\n'
-            + ''.join(lines[2:3]) + '{"kind": "ev'),
+        'run_torn_and_bad': write(
+            'results.jsonl',
+            ''.join(lines[:1])
+            + json.dumps({k: v for k, v in json.loads(lines[1]).items() if k != 'loss'})
+            + '\n'
+            + ''.join(lines[2:3])
+            + '{"kind": "ev',
+        ),
     }
     for name, edit in variants.items():
         _corrupt_copy(run, root / name, edit)
@@ -215,7 +264,9 @@ def template(tmp_path_factory) -> Path:
             text = p.read_text()
             assert old in text
             p.write_text(text.replace(old, new, 1))
+
         _corrupt_copy(run, root / name, edit)
+
     run_yaml('run_bad_algo', 'algo: necga', 'algo: simplex')
     run_yaml('run_bad_budget', 'budget: 4', 'budget: lots')
     # a run with a bag whose metadata.yaml is garbage (for report)
@@ -246,9 +297,15 @@ def _run_case(template: Path, base: Path, i: int, exe: str, argv: list[str]) -> 
     env['ROS_LOG_DIR'] = str(base / f'log_{i}')
     pkg, name = EXES[exe]
     # its own session: a case that wrongly starts a pool or children is ended whole
-    proc = subprocess.Popen([ROS2, 'run', pkg, name, *argv], cwd=cwd, env=env, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        [ROS2, 'run', pkg, name, *argv],
+        cwd=cwd,
+        env=env,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
     try:
         out, err = proc.communicate(timeout=CASE_TIMEOUT)
         rc = proc.returncode
@@ -257,31 +314,42 @@ def _run_case(template: Path, base: Path, i: int, exe: str, argv: list[str]) -> 
         out, err = proc.communicate()
         rc = None
     after = _tree(cwd)
-    return {'rc': rc, 'stdout': out, 'stderr': err,
-            'created': sorted(set(after) - set(before)),
-            'removed': sorted(set(before) - set(after)),
-            'changed': sorted(k for k in set(before) & set(after) if before[k] != after[k])}
+    return {
+        'rc': rc,
+        'stdout': out,
+        'stderr': err,
+        'created': sorted(set(after) - set(before)),
+        'removed': sorted(set(before) - set(after)),
+        'changed': sorted(k for k in set(before) & set(after) if before[k] != after[k]),
+    }
 
 
 @pytest.fixture(scope='module')
 def outcomes(template: Path, tmp_path_factory, request) -> dict[int, dict]:
     """Runs the selected cases (all, or those picked with -k), three at a time."""
     base = tmp_path_factory.mktemp('bad_input_cases')
-    chosen = sorted({it.callspec.params['i'] for it in request.session.items
-                     if getattr(it, 'originalname', '') == 'test_bad_input_one_line_exit_2_nothing_changed'})
+    chosen = sorted(
+        {
+            it.callspec.params['i']
+            for it in request.session.items
+            if getattr(it, 'originalname', '') == 'test_bad_input_one_line_exit_2_nothing_changed'
+        }
+    )
     with ThreadPoolExecutor(3) as pool:
-        futs = {i: pool.submit(_run_case, template, base, i, CASES[i][0], CASES[i][2])
-                for i in chosen}
+        futs = {
+            i: pool.submit(_run_case, template, base, i, CASES[i][0], CASES[i][2]) for i in chosen
+        }
         return {i: f.result() for i, f in futs.items()}
 
 
-@pytest.mark.parametrize('i', range(len(CASES)),
-                         ids=[f'{exe}-{name}' for exe, name, _a in CASES])
+@pytest.mark.parametrize('i', range(len(CASES)), ids=[f'{exe}-{name}' for exe, name, _a in CASES])
 def test_bad_input_one_line_exit_2_nothing_changed(i: int, outcomes: dict[int, dict]) -> None:
-    exe, name, argv = CASES[i]
+    exe, _name, argv = CASES[i]
     o = outcomes[i]
-    what = f'{exe} {" ".join(argv)}: rc={o["rc"]}\nstderr:\n{o["stderr"][-1500:]}\nstdout:\n' \
-           f'{o["stdout"][-500:]}'
+    what = (
+        f'{exe} {" ".join(argv)}: rc={o["rc"]}\nstderr:\n{o["stderr"][-1500:]}\nstdout:\n'
+        f'{o["stdout"][-500:]}'
+    )
     assert o['rc'] == 2, what
     assert 'Traceback' not in o['stderr'] + o['stdout'], what
     lines = o['stderr'].strip().splitlines()
@@ -290,8 +358,9 @@ def test_bad_input_one_line_exit_2_nothing_changed(i: int, outcomes: dict[int, d
     if exe == 'check_drive':  # refused before looking for a drive, not for want of one
         assert 'no drive' not in lines[0], what
     assert o['stdout'].strip() == '', what
-    assert o['created'] == [] and o['removed'] == [] and o['changed'] == [], \
+    assert o['created'] == [] and o['removed'] == [] and o['changed'] == [], (
         f'{what}\ncreated {o["created"]}, removed {o["removed"]}, changed {o["changed"]}'
+    )
 
 
 def test_the_matrix_covers_every_executable() -> None:
@@ -299,8 +368,9 @@ def test_the_matrix_covers_every_executable() -> None:
     per_exe = {exe: {name for e, name, _a in CASES if e == exe} for exe in EXES}
     assert all('wrong-flag' in names for names in per_exe.values())
     for exe in NODES:
-        assert {f'params-file-{k}' for k in ('missing', 'directory', 'corrupt', 'not-ros')} \
-            <= per_exe[exe], exe
+        assert {
+            f'params-file-{k}' for k in ('missing', 'directory', 'corrupt', 'not-ros')
+        } <= per_exe[exe], exe
     assert len(CASES) == len({(e, n) for e, n, _a in CASES})  # unique ids
 
 
@@ -309,8 +379,13 @@ def test_help_of_every_executable_exits_0(exe: str, tmp_path: Path) -> None:
     """`--help` is the first command a user types: usage on stdout, exit 0, nothing made
     (the tuner's ended in a traceback: an unescaped % in an option's help)."""
     pkg, name = EXES[exe]
-    proc = subprocess.run([ROS2, 'run', pkg, name, '--help'], cwd=tmp_path, text=True,
-                          capture_output=True, timeout=CASE_TIMEOUT)
+    proc = subprocess.run(
+        [ROS2, 'run', pkg, name, '--help'],
+        cwd=tmp_path,
+        text=True,
+        capture_output=True,
+        timeout=CASE_TIMEOUT,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.startswith('usage: ros2 run ') and 'Traceback' not in proc.stderr
     assert proc.stderr == '' and list(tmp_path.iterdir()) == []

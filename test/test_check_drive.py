@@ -5,11 +5,11 @@ every item; the deliberately broken drive (test/broken_drive.py) fails exactly t
 it breaks; the check refuses (exit 2) with another commander on the graph or no drive.
 The judging functions are also tested on synthetic arrays with hand-computed figures.
 """
+
 from __future__ import annotations
 
 import json
 import math
-import subprocess
 import sys
 from pathlib import Path
 
@@ -25,12 +25,12 @@ BROKEN = str(Path(__file__).with_name('broken_drive.py'))
 TIMING_ITEMS = {'rate', 'latency', 'watchdog'}
 
 
-def run_check(procs, tmp_path: Path, *args: str, timeout: float = 60.0
-              ) -> tuple[int, str, str, dict | None]:
+def run_check(
+    procs, tmp_path: Path, *args: str, timeout: float = 60.0
+) -> tuple[int, str, str, dict | None]:
     """Run check_drive to its end; returns (exit code, stdout, stderr, JSON results)."""
     out_json = tmp_path / f'check_{len(list(tmp_path.glob("check_*.json")))}.json'
-    p = procs.start([ROS2, 'run', 'im_controller', 'check_drive', '--json', str(out_json),
-                     *args])
+    p = procs.start([ROS2, 'run', 'im_controller', 'check_drive', '--json', str(out_json), *args])
     out, err = p.communicate(timeout=timeout)
     data = json.loads(out_json.read_text()) if out_json.exists() else None
     return p.returncode, out, err, data
@@ -40,8 +40,13 @@ def failed(data: dict) -> set[str]:
     return {i['name'] for i in data['items'] if not i['passed']}
 
 
-def run_expect(procs, tmp_path: Path, drive_argv: list[str], expected_fail: set[str],
-               check_args: tuple[str, ...] = ()) -> tuple[str, dict]:
+def run_expect(
+    procs,
+    tmp_path: Path,
+    drive_argv: list[str],
+    expected_fail: set[str],
+    check_args: tuple[str, ...] = (),
+) -> tuple[str, dict]:
     """Start a drive, check it, stop it; assert the set of failing items. A run that differs
     only in timing items is repeated once with a fresh drive (a loaded shared machine)."""
     for attempt in range(2):
@@ -53,8 +58,10 @@ def run_expect(procs, tmp_path: Path, drive_argv: list[str], expected_fail: set[
         got = failed(data)
         if got == expected_fail or attempt == 1 or not (got ^ expected_fail) <= TIMING_ITEMS:
             break
-        print(f'timing item differs ({sorted(got ^ expected_fail)}), load '
-              f'{Path("/proc/loadavg").read_text().split()[:3]}; repeating once:\n{out}')
+        print(
+            f'timing item differs ({sorted(got ^ expected_fail)}), load '
+            f'{Path("/proc/loadavg").read_text().split()[:3]}; repeating once:\n{out}'
+        )
     assert got == expected_fail, f'{out}\n{err}'
     assert code == (0 if not expected_fail else 1), out
     assert drive.returncode == 0, 'the drive did not stop cleanly'
@@ -62,11 +69,13 @@ def run_expect(procs, tmp_path: Path, drive_argv: list[str], expected_fail: set[
 
 
 def item_lines(out: str) -> dict[str, str]:
-    return {line.split()[1]: line for line in out.splitlines()
-            if line.startswith(('PASS ', 'FAIL '))}
+    return {
+        line.split()[1]: line for line in out.splitlines() if line.startswith(('PASS ', 'FAIL '))
+    }
 
 
 # ------------------------------------------------------------------ passing drives
+
 
 def test_drive_sim_lockstep_passes(procs, tmp_path):
     out, data = run_expect(procs, tmp_path, [ROS2, 'run', 'im_drive_sim', 'drive_sim'], set())
@@ -80,9 +89,22 @@ def test_drive_sim_lockstep_passes(procs, tmp_path):
 
 def test_drive_sim_realtime_passes_in_a_namespace(procs, tmp_path):
     out, data = run_expect(
-        procs, tmp_path, [ROS2, 'run', 'im_drive_sim', 'drive_sim', '--mode', 'realtime',
-                          '--ros-args', '-r', '__ns:=/bench2'],
-        set(), ('--ros-args', '-r', '__ns:=/bench2'))
+        procs,
+        tmp_path,
+        [
+            ROS2,
+            'run',
+            'im_drive_sim',
+            'drive_sim',
+            '--mode',
+            'realtime',
+            '--ros-args',
+            '-r',
+            '__ns:=/bench2',
+        ],
+        set(),
+        ('--ros-args', '-r', '__ns:=/bench2'),
+    )
     assert data['mode'] == 'realtime' and data['drive'] == '/bench2/drive_sim'
     wd = next(i for i in data['items'] if i['name'] == 'watchdog')['values']
     assert 0.05 <= wd['t_act_s'] <= wd['t_zero_s']  # never before the timeout itself
@@ -90,10 +112,23 @@ def test_drive_sim_realtime_passes_in_a_namespace(procs, tmp_path):
 
 
 def test_example_drive_passes(procs, tmp_path):
-    out, data = run_expect(procs, tmp_path,
-                           [ROS2, 'run', 'im_drive_sim', 'example_drive', '--ros-args', '-r',
-                            '__ns:=/bench1', '-p', 'command_timeout:=0.08'],
-                           set(), ('--namespace', '/bench1'))
+    out, data = run_expect(
+        procs,
+        tmp_path,
+        [
+            ROS2,
+            'run',
+            'im_drive_sim',
+            'example_drive',
+            '--ros-args',
+            '-r',
+            '__ns:=/bench1',
+            '-p',
+            'command_timeout:=0.08',
+        ],
+        set(),
+        ('--namespace', '/bench1'),
+    )
     assert data['mode'] == 'realtime' and data['status_mode'] == 'realtime'
     assert data['command_timeout_s'] == 0.08  # read from the drive's parameter
     print(out)
@@ -101,16 +136,20 @@ def test_example_drive_passes(procs, tmp_path):
 
 # ------------------------------------------------------------------ broken drives
 
-@pytest.mark.parametrize('breaks, expected', [
-    ('rate,joint_type,slow_current', {'rate', 'topics', 'step_response'}),
-    ('watchdog,degrees', {'watchdog', 'fields'}),
-    ('late,sign', {'latency', 'step_response'}),
-], ids=['rate+joint_type+slow_current', 'watchdog+degrees', 'late+sign'])
+
+@pytest.mark.parametrize(
+    'breaks, expected',
+    [
+        ('rate,joint_type,slow_current', {'rate', 'topics', 'step_response'}),
+        ('watchdog,degrees', {'watchdog', 'fields'}),
+        ('late,sign', {'latency', 'step_response'}),
+    ],
+    ids=['rate+joint_type+slow_current', 'watchdog+degrees', 'late+sign'],
+)
 def test_broken_drive_fails_exactly_what_it_breaks(procs, tmp_path, breaks, expected):
     """Breakages grouped so that each group's items are disjoint (each alone fails exactly
     its own item too: see the table in broken_drive.py)."""
-    out, data = run_expect(procs, tmp_path, [sys.executable, BROKEN, '--break', breaks],
-                           expected)
+    out, data = run_expect(procs, tmp_path, [sys.executable, BROKEN, '--break', breaks], expected)
     lines = item_lines(out)
     if 'rate' in expected:
         assert 'median period 2' in lines['rate']
@@ -128,52 +167,60 @@ def test_broken_drive_fails_exactly_what_it_breaks(procs, tmp_path, breaks, expe
     if 'slow_current' in breaks:
         assert 'rise time' in lines['step_response']
     if 'topics' in expected:
-        assert 'drive/joint_states publisher type std_msgs/msg/Float64MultiArray' in \
-            lines['topics']
+        assert 'drive/joint_states publisher type std_msgs/msg/Float64MultiArray' in lines['topics']
     assert f'FAIL: {", ".join(n for n in cd.ITEMS if n in expected)}' in out
     print(out)
 
 
 # ------------------------------------------------------------------ refusals
 
+
 def test_refuses_when_another_node_commands_the_drive(procs, tmp_path, ros_context):
     from rclpy.node import Node
     from std_msgs.msg import Float64MultiArray
+
     node = Node('some_controller', context=ros_context)
     try:
         node.create_publisher(Float64MultiArray, 'drive/command', 10)
         procs.start([ROS2, 'run', 'im_drive_sim', 'drive_sim'])
-        code, out, err, data = run_check(procs, tmp_path)
+        code, _out, err, data = run_check(procs, tmp_path)
     finally:
         node.destroy_node()
     assert code == 2 and data is None
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1, err
-    assert lines[0].startswith('error: check_drive: /some_controller already publishes '
-                               '/drive/command'), lines[0]
+    assert lines[0].startswith(
+        'error: check_drive: /some_controller already publishes /drive/command'
+    ), lines[0]
     assert 'two commanders would fight' in lines[0]
 
 
 def test_refuses_without_a_drive_within_the_timeout(procs, tmp_path):
     import time
+
     t0 = time.monotonic()
-    code, out, err, data = run_check(procs, tmp_path, '--timeout', '1.5')
+    code, _out, err, data = run_check(procs, tmp_path, '--timeout', '1.5')
     assert code == 2 and data is None
     assert time.monotonic() - t0 < 15
-    assert err.strip() == ('error: check_drive: no publisher of /drive/state within 1.5 s '
-                           '(is the drive running, in this namespace and ROS_DOMAIN_ID?)')
+    assert err.strip() == (
+        'error: check_drive: no publisher of /drive/state within 1.5 s '
+        '(is the drive running, in this namespace and ROS_DOMAIN_ID?)'
+    )
 
 
-@pytest.mark.parametrize('args, message', [
-    (['--amplitude', '4'], '--amplitude 4 A: must be in (0, 3.5] A'),
-    (['--amplitude', 'x'], "argument --amplitude: invalid float value: 'x'"),
-    (['--timeout', '-1'], '--timeout must be a positive number'),
-    (['--namespace', 'a b'], "--namespace 'a b'"),
-    (['--json', '/nonexistent/dir/x.json'], 'directory does not exist'),
-])
+@pytest.mark.parametrize(
+    'args, message',
+    [
+        (['--amplitude', '4'], '--amplitude 4 A: must be in (0, 3.5] A'),
+        (['--amplitude', 'x'], "argument --amplitude: invalid float value: 'x'"),
+        (['--timeout', '-1'], '--timeout must be a positive number'),
+        (['--namespace', 'a b'], "--namespace 'a b'"),
+        (['--json', '/nonexistent/dir/x.json'], 'directory does not exist'),
+    ],
+)
 def test_bad_options_one_line_exit_2(procs, args, message):
     p = procs.start([ROS2, 'run', 'im_controller', 'check_drive', *args])
-    out, err = p.communicate(timeout=30)
+    _out, err = p.communicate(timeout=30)
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert p.returncode == 2 and len(lines) == 1, err
     assert lines[0].startswith('error: check_drive: ') and message in lines[0], lines[0]
@@ -198,7 +245,7 @@ def test_rise_time_of_a_sampled_first_order_response():
 
 def test_onset_delay_against_the_extrapolated_course():
     x = np.zeros(60)
-    x[20 + 3:] = 0.5 * (1 - np.exp(-np.arange(1, 38) * TS / 0.667e-3))
+    x[20 + 3 :] = 0.5 * (1 - np.exp(-np.arange(1, 38) * TS / 0.667e-3))
     assert cd.onset_delay(x, 20, 0.5) == 3
     # A ramp already under way is extrapolated, not mistaken for the response.
     ramp = 0.01 * np.arange(60)
@@ -207,11 +254,11 @@ def test_onset_delay_against_the_extrapolated_course():
     # Threshold: 2 % of the commanded change; noise raises it.
     small = np.zeros(60)
     small[21:] = 0.009
-    assert cd.onset_delay(small, 20, 0.5) is None       # 9 mA < 10 mA
+    assert cd.onset_delay(small, 20, 0.5) is None  # 9 mA < 10 mA
     small[21:] = 0.011
     assert cd.onset_delay(small, 20, 0.5) == 1
-    noisy = small + np.tile([0.0, 0.004], 30)            # second differences 8 mA
-    assert cd.onset_delay(noisy, 20, 0.5) is None        # threshold 8 x 8 mA
+    noisy = small + np.tile([0.0, 0.004], 30)  # second differences 8 mA
+    assert cd.onset_delay(noisy, 20, 0.5) is None  # threshold 8 x 8 mA
 
 
 def test_units_ratio_catches_degrees_and_rpm():
@@ -226,7 +273,7 @@ def test_units_ratio_catches_degrees_and_rpm():
 
 def test_fit_acceleration_of_a_parabola():
     t = np.arange(100) * TS
-    assert cd.fit_acceleration(0.3 + 2.0 * t + 0.5 * 142.0 * t ** 2, TS) == pytest.approx(142.0)
+    assert cd.fit_acceleration(0.3 + 2.0 * t + 0.5 * 142.0 * t**2, TS) == pytest.approx(142.0)
 
 
 def test_period_stats_and_rate_verdict():
@@ -261,32 +308,39 @@ def test_state_field_problems():
     # lost in transit (sequence numbers jump too): not the drive's fault
     assert cd.state_field_problems(gap, ok[:49], np.delete(seq, 10), 200_000, True, 11.0) == []
     # the drive skipped a step (sequence numbers consecutive)
-    assert cd.state_field_problems(gap, ok[:49], seq[:49], 200_000, True, 11.0) == \
-        ['step_index not consecutive 1 times']
+    assert cd.state_field_problems(gap, ok[:49], seq[:49], 200_000, True, 11.0) == [
+        'step_index not consecutive 1 times'
+    ]
     bad = s.copy()
     bad[3, 1] += 1
-    assert cd.state_field_problems(bad, ok, seq, 200_000, True, 11.0) == \
-        ['time_ns != step_index*200000 in 1 states']
+    assert cd.state_field_problems(bad, ok, seq, 200_000, True, 11.0) == [
+        'time_ns != step_index*200000 in 1 states'
+    ]
     bad = s.copy()
     bad[3, 6] = np.nan
-    assert cd.state_field_problems(bad, ok, seq, 200_000, True, 11.0) == \
-        ['non-finite values in isq']
+    assert cd.state_field_problems(bad, ok, seq, 200_000, True, 11.0) == [
+        'non-finite values in isq'
+    ]
     bad = s.copy()
     bad[3, 7] = 30.0
-    assert cd.state_field_problems(bad, ok, seq, 200_000, True, 11.0) == \
-        ['current 30 A beyond 11 A']
+    assert cd.state_field_problems(bad, ok, seq, 200_000, True, 11.0) == [
+        'current 30 A beyond 11 A'
+    ]
     short = ok.copy()
     short[5] = 11
-    assert cd.state_field_problems(s, short, seq, 200_000, True, 11.0) == \
-        ['1 states without 12 values']
+    assert cd.state_field_problems(s, short, seq, 200_000, True, 11.0) == [
+        '1 states without 12 values'
+    ]
     # lock-step re-sends: an identical repeat is fine, a changed one is not
     rep = np.insert(s, 5, s[4], axis=0)
-    assert cd.state_field_problems(rep, np.full(51, 12), np.arange(51), 200_000, False, 11.) == []
-    assert cd.state_field_problems(rep, np.full(51, 12), np.arange(51), 200_000, True, 11.) == \
-        ['step_index not consecutive 1 times']
+    assert cd.state_field_problems(rep, np.full(51, 12), np.arange(51), 200_000, False, 11.0) == []
+    assert cd.state_field_problems(rep, np.full(51, 12), np.arange(51), 200_000, True, 11.0) == [
+        'step_index not consecutive 1 times'
+    ]
     rep[5, 2] = 1.0
-    assert cd.state_field_problems(rep, np.full(51, 12), np.arange(51), 200_000, False, 11.) == \
-        ['a re-sent state differs from the original']
+    assert cd.state_field_problems(rep, np.full(51, 12), np.arange(51), 200_000, False, 11.0) == [
+        'a re-sent state differs from the original'
+    ]
 
 
 def test_joint_state_problems():
@@ -297,22 +351,27 @@ def test_joint_state_problems():
     off = joints.copy()
     off[2, 1] += 1e-9
     assert cd.joint_state_problems(off, s, 200_000) == ['1/10 joint_states differ from the state']
-    assert cd.joint_state_problems(joints[::2], s, 200_000) == \
-        ['joint_states every 20 steps, not 10']
-    assert cd.joint_state_problems(np.zeros((0, 4)), s, 200_000) == \
-        ['no drive/joint_states received']
+    assert cd.joint_state_problems(joints[::2], s, 200_000) == [
+        'joint_states every 20 steps, not 10'
+    ]
+    assert cd.joint_state_problems(np.zeros((0, 4)), s, 200_000) == [
+        'no drive/joint_states received'
+    ]
 
 
 def test_lockstep_step_problems():
-    steps = np.array([0, 0, 1, 2, 2, 3, 5], dtype=float)      # a re-send, then a skip
+    steps = np.array([0, 0, 1, 2, 2, 3, 5], dtype=float)  # a re-send, then a skip
     take = np.array([10, 20, 30, 40, 50, 60, 70])
     answers = np.array([0, 1, 2, 3])
     pub = np.array([25, 35, 55, 65])
     # step 3 arrived at 60 after the command answering 2 (55); 2 -> 3 fine; 3 -> 5 skips
     assert cd.lockstep_step_problems(steps, take, answers, pub) == (4, 0, 1)
     # a step before its command was published: "without a command"
-    assert cd.lockstep_step_problems(steps[:6], take[:6], answers[:3],
-                                     np.array([25, 35, 65])) == (3, 1, 0)
+    assert cd.lockstep_step_problems(steps[:6], take[:6], answers[:3], np.array([25, 35, 65])) == (
+        3,
+        1,
+        0,
+    )
 
 
 def test_latency_and_watchdog_verdicts():
@@ -342,7 +401,7 @@ def test_step_response_verdict():
     t = np.arange(100) * TS
     isq = 0.5 * (1 - np.exp(-np.arange(1, 101) * TS / 0.667e-3))
     isq = np.concatenate(([0.0], isq[:-1]))  # onset at sample 1
-    theta = 0.5 * 142.0 * t ** 2
+    theta = 0.5 * 142.0 * t**2
     seg = cd.StepSegment(0.5, 0.0, isq, 0.71 * isq, theta)
     m = cd.step_metrics(seg, TS, 1)
     assert m['rise_s'] == pytest.approx(0.667e-3 * math.log(9), rel=0.01)
@@ -370,10 +429,12 @@ def test_judge_topics():
 
 def test_check_drive_layout_is_the_simulators():
     from im_drive_sim.sim import STATE_FIELDS
+
     assert cd.STATE_FIELDS == STATE_FIELDS and len(cd.STATE_FIELDS) == 12
 
 
 # ------------------------------------------------------------------ the example drive itself
+
 
 def test_example_drive_clamps_and_ignores_stale_duplicate_and_bad_commands(procs, ros_context):
     """isq* beyond the read-only isq_max is clamped; a command answering an older step than
@@ -381,11 +442,15 @@ def test_example_drive_clamps_and_ignores_stale_duplicate_and_bad_commands(procs
     wrong-length command is ignored with an error."""
     import signal
     import time
+
     from rclpy.node import Node
     from std_msgs.msg import Float64MultiArray
+
     from im_drive_sim.client import DriveClient
-    p = procs.start([ROS2, 'run', 'im_drive_sim', 'example_drive', '--ros-args',
-                     '-p', 'isq_max:=1.0'])
+
+    p = procs.start(
+        [ROS2, 'run', 'im_drive_sim', 'example_drive', '--ros-args', '-p', 'isq_max:=1.0']
+    )
     node = Node('test_example_client', context=ros_context)
     try:
         client = DriveClient(node)
@@ -402,23 +467,24 @@ def test_example_drive_clamps_and_ignores_stale_duplicate_and_bad_commands(procs
                     got.append(float(s[6]))
                     client.command(int(s[0]), isq_ref)
             return got
+
         # 5 A asked, clamped to 1 A (answering until the drive's reader has matched ours).
         deadline = time.monotonic() + 10.0
         while not any(abs(x - 1.0) < 1e-6 for x in answer(50, 5.0)):
             assert time.monotonic() < deadline, 'isq never reached the 1 A clamp'
         k = client.answered
-        client.command(k - 5, -5.0)   # out of order: ignored
-        client.command(k, -5.0)       # duplicate: ignored
+        client.command(k - 5, -5.0)  # out of order: ignored
+        client.command(k, -5.0)  # duplicate: ignored
         raw.publish(Float64MultiArray(data=[float(k + 1), math.nan, 0.0]))  # ignored
-        raw.publish(Float64MultiArray(data=[float(k + 1), -5.0]))           # ignored
+        raw.publish(Float64MultiArray(data=[float(k + 1), -5.0]))  # ignored
         isq = answer(100, 5.0)
         assert len(isq) == 100 and min(isq) == pytest.approx(1.0, abs=1e-6)
     finally:
         node.destroy_node()
     p.send_signal(signal.SIGINT)
-    out, err = p.communicate(timeout=20)
+    _out, err = p.communicate(timeout=20)
     assert p.returncode == 0, err
-    summary = err[err.rindex('stopped at step'):].splitlines()[0]
+    summary = err[err.rindex('stopped at step') :].splitlines()[0]
     counts = dict(kv.split('=') for kv in summary.split(': ', 1)[1].split(', '))
     assert counts['stale_ignored'] == '2'
     assert 'expected 3 finite values' in err

@@ -4,6 +4,7 @@ The in-process bench (drive_sim + controller in this process, lock-step) is driv
 probe node that does what the tuner will: set parameters through the parameter services,
 start experiments with the Trigger service and read results from the loss topic.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -41,28 +42,35 @@ class Probe:
         self.node = Node('test_probe', context=context)
         # Drain the 5 kHz internals between bench iterations (an executor serving one
         # callback per spin could not keep up, and Fast DDS caps a reader at 5000 samples).
-        self.spin_until = lambda pred, timeout: spin_until(
-            lambda: self._drain() or pred(), timeout)
+        self.spin_until = lambda pred, timeout: spin_until(lambda: self._drain() or pred(), timeout)
         self.start_client = self.node.create_client(Trigger, '/controller/start_experiment')
         self.params = AsyncParameterClient(self.node, '/controller')
         self.results = []
         self.internals = []
-        self.node.create_subscription(DiagnosticArray, '/controller/loss',
-                                      lambda m: self.results.append(msg_to_result(m)), 100)
+        self.node.create_subscription(
+            DiagnosticArray,
+            '/controller/loss',
+            lambda m: self.results.append(msg_to_result(m)),
+            100,
+        )
         self.internals_sub = self.node.create_subscription(
-            Float64MultiArray, '/controller/internals',
-            lambda m: self.internals.append(np.array(m.data)), 1000)  # when the executor takes one
+            Float64MultiArray,
+            '/controller/internals',
+            lambda m: self.internals.append(np.array(m.data)),
+            1000,
+        )  # when the executor takes one
 
     def _drain(self) -> None:
         while (r := self.internals_sub.handle.take_message(Float64MultiArray, False)) is not None:
             self.internals.append(np.array(r[0].data))
 
     def ready(self, timeout: float = 20.0) -> None:
-        assert self.spin_until(lambda: self.start_client.service_is_ready()
-                               and self.params.services_are_ready(), timeout)
+        assert self.spin_until(
+            lambda: self.start_client.service_is_ready() and self.params.services_are_ready(),
+            timeout,
+        )
         # Also wait for the loss topic to be matched, so no result can be missed.
-        assert self.spin_until(lambda: self.node.count_publishers('/controller/loss') > 0,
-                               timeout)
+        assert self.spin_until(lambda: self.node.count_publishers('/controller/loss') > 0, timeout)
 
     def call(self, future, timeout: float = 20.0):
         assert self.spin_until(future.done, timeout), 'service call timed out'
@@ -85,13 +93,17 @@ class Probe:
         return self.results[-1]
 
     def set(self, **values) -> list:
-        res = self.call(self.params.set_parameters(
-            [Parameter(k, value=v) for k, v in values.items()]))
+        res = self.call(
+            self.params.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+        )
         return list(res.results)
 
     def set_atomically(self, **values):
-        return self.call(self.params.set_parameters_atomically(
-            [Parameter(k, value=v) for k, v in values.items()])).result
+        return self.call(
+            self.params.set_parameters_atomically(
+                [Parameter(k, value=v) for k, v in values.items()]
+            )
+        ).result
 
     def get(self, *names) -> list:
         res = self.call(self.params.get_parameters(list(names)))
@@ -102,6 +114,7 @@ class Probe:
 def probe_of_children(ros_context, *children):
     """A Probe spun by its own executor, against nodes running in child processes."""
     from rclpy.executors import SingleThreadedExecutor
+
     ex = SingleThreadedExecutor(context=ros_context)
 
     def spin_until(pred, timeout):
@@ -111,6 +124,7 @@ def probe_of_children(ros_context, *children):
                 return pred()
             ex.spin_once(timeout_sec=0.01)
         return True
+
     probe = Probe(ros_context, spin_until)
     ex.add_node(probe.node)
     try:
@@ -123,8 +137,7 @@ def probe_of_children(ros_context, *children):
 
 @pytest.fixture
 def bench(ros_context):
-    b = InProcessBench(context=ros_context,
-                       drive_overrides=[Parameter('seed', value=SEED)])
+    b = InProcessBench(context=ros_context, drive_overrides=[Parameter('seed', value=SEED)])
     probe = Probe(ros_context, b.spin_until)
     b.executor.add_node(probe.node)
     probe.ready()
@@ -141,8 +154,10 @@ def offline_losses(gains_seq: list[Gains], seed: int = SEED) -> list:
     sim.reset(omega=0.0, fluxed=True)  # at rest, half an encoder count in, as the node
     runner = ExperimentRunner(config_for_drive(None, sim), gains_seq[0])
     runner.reset(sim.theta_meas)
-    return [run_experiment_offline(sim, g, runner.config, i, runner, record=False)[0]
-            for i, g in enumerate(gains_seq)]
+    return [
+        run_experiment_offline(sim, g, runner.config, i, runner, record=False)[0]
+        for i, g in enumerate(gains_seq)
+    ]
 
 
 def test_experiments_through_dds_equal_the_pure_core(bench):
@@ -156,7 +171,7 @@ def test_experiments_through_dds_equal_the_pure_core(bench):
     theta = b.drive._state[b.drive._idx['theta']]
     assert abs(theta - 0.0) < 0.01  # back at 0 after 0 -> pi -> 0
     ref = offline_losses([Gains(), Gains()])
-    for got, want in zip((r0, r1), ref):
+    for got, want in zip((r0, r1), ref, strict=True):
         assert got.loss == pytest.approx(want.loss, rel=1e-9, abs=0)
         assert got.terms == pytest.approx(want.terms, rel=1e-9, abs=0)
         assert got.loss == want.loss, 'lock-step through DDS is bit-identical to the core'
@@ -187,33 +202,39 @@ def test_gain_changes_apply_between_experiments_and_are_refused_during_one(bench
     assert probe.get('k_pw') == [0.6]
 
 
-@pytest.mark.parametrize('name, value, why', [
-    ('k_pw', 7.0, 'range'),               # above the safe range
-    ('k_pw', -0.1, 'range'),
-    ('k_iw', float('nan'), ''),
-    ('k_pos', float('inf'), ''),
-    ('tau_eq', 'fast', 'type'),
-    ('k_pw', True, 'type'),
-    ('loss.penalty', 0.5, 'range'),
-    ('trajectory.load_sign', 'sideways', 'load_sign'),
-    ('safety.max_speed', 500.0, 'read-only'),
-    ('safety.max_position_error', 5.0, 'read-only'),
-    ('safety.isq_max', 20.0, 'read-only'),
-])
+@pytest.mark.parametrize(
+    'name, value, why',
+    [
+        ('k_pw', 7.0, 'range'),  # above the safe range
+        ('k_pw', -0.1, 'range'),
+        ('k_iw', float('nan'), ''),
+        ('k_pos', float('inf'), ''),
+        ('tau_eq', 'fast', 'type'),
+        ('k_pw', True, 'type'),
+        ('loss.penalty', 0.5, 'range'),
+        ('trajectory.load_sign', 'sideways', 'load_sign'),
+        ('safety.max_speed', 500.0, 'read-only'),
+        ('safety.max_position_error', 5.0, 'read-only'),
+        ('safety.isq_max', 20.0, 'read-only'),
+    ],
+)
 def test_bad_parameter_values_are_rejected_with_a_reason(bench, name, value, why):
-    b, probe = bench
+    _b, probe = bench
     before = probe.get(name)
     res = probe.set(**{name: value})
     assert not res[0].successful
     assert res[0].reason
     if why:
-        assert why.lower() in res[0].reason.lower() or 'read' in res[0].reason.lower() \
-            or 'type' in res[0].reason.lower(), res[0].reason
+        assert (
+            why.lower() in res[0].reason.lower()
+            or 'read' in res[0].reason.lower()
+            or 'type' in res[0].reason.lower()
+        ), res[0].reason
     assert probe.get(name) == before
 
 
 def test_set_parameters_atomically_is_all_or_nothing(bench):
-    b, probe = bench
+    _b, probe = bench
     before = probe.get('k_pw', 'k_iw', 'k_pos', 'tau_sm', 'tau_eq')
     bad = probe.set_atomically(k_pw=0.7, k_iw=30.0, k_pos=40.0, tau_sm=0.01, tau_eq=0.5)
     assert not bad.successful and 'tau_eq' in bad.reason
@@ -225,7 +246,7 @@ def test_set_parameters_atomically_is_all_or_nothing(bench):
 
 
 def test_supervisor_stops_a_destabilising_gain_set_with_the_penalty(bench):
-    b, probe = bench
+    _b, probe = bench
     assert all(r.successful for r in probe.set(**UNSTABLE))
     r = probe.experiment()
     assert r.aborted and r.reason in ('term1', 'term2', 'term3')
@@ -289,6 +310,7 @@ class FakeDrive:
         self.ex, self.ctl, self.state_pub, self.commands = ex, ctl, state_pub, commands
         self.probe, self.wire = probe, wire
         from im_drive_sim.sim import STATE_FIELDS
+
         self.idx = {n: i for i, n in enumerate(STATE_FIELDS)}
 
     def spin_until(self, pred, timeout: float) -> bool:
@@ -311,8 +333,9 @@ class FakeDrive:
     def answered(self, k: int, **fields: float) -> tuple:
         """Send state k and return the command that answers it."""
         self.send(k, **fields)
-        assert self.spin_until(lambda: any(c[0] == k for c in self.commands[-3:]), 5), \
+        assert self.spin_until(lambda: any(c[0] == k for c in self.commands[-3:]), 5), (
             f'no answer to state {k}'
+        )
         return next(c for c in reversed(self.commands) if c[0] == k)
 
 
@@ -325,13 +348,15 @@ def fake_drive(ros_context, **params):
     from im_drive_sim.drive_sim_node import COMMAND_TOPIC, LOCKSTEP_QOS, STATE_TOPIC
     from im_drive_sim.sim import STATE_FIELDS
 
-    ctl = ControllerNode(context=ros_context, parameter_overrides=[
-        Parameter(k, value=v) for k, v in params.items()])
+    ctl = ControllerNode(
+        context=ros_context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]
+    )
     fake = Node('fake_drive', context=ros_context)
     state_pub = fake.create_publisher(Float64MultiArray, STATE_TOPIC, LOCKSTEP_QOS)
     commands: list[tuple] = []
-    fake.create_subscription(Float64MultiArray, COMMAND_TOPIC,
-                             lambda m: commands.append(tuple(m.data)), LOCKSTEP_QOS)
+    fake.create_subscription(
+        Float64MultiArray, COMMAND_TOPIC, lambda m: commands.append(tuple(m.data)), LOCKSTEP_QOS
+    )
     probe = Probe(ros_context, None)
     ex = SingleThreadedExecutor(context=ros_context)
     for n in (ctl, fake, probe.node):
@@ -340,7 +365,7 @@ def fake_drive(ros_context, **params):
     probe.spin_until = fd.spin_until
     try:
         assert fd.spin_until(lambda: state_pub.get_subscription_count() > 0, 10)
-        assert fd.spin_until(lambda: probe.start_client.service_is_ready(), 10)
+        assert fd.spin_until(probe.start_client.service_is_ready, 10)
         fd.send(0)
         assert fd.spin_until(lambda: ctl._state is not None, 5)
         yield fd
@@ -383,8 +408,9 @@ def test_watchdog_zero_current_and_abort_when_the_drive_goes_silent(ros_context)
         assert probe.start().success
 
 
-@pytest.mark.parametrize('field, value', [('theta_meas', math.nan), ('omega_meas', math.inf),
-                                          ('theta_meas', -math.inf)])
+@pytest.mark.parametrize(
+    'field, value', [('theta_meas', math.nan), ('omega_meas', math.inf), ('theta_meas', -math.inf)]
+)
 def test_non_finite_drive_state_zero_current_abort_and_reset(ros_context, field, value):
     """A NaN or inf in the drive state mid-experiment: that very state is answered with
     zero current and no load, the experiment ends aborted ('non_finite_measurement', not
@@ -441,13 +467,16 @@ def test_real_time_mode_runs_an_experiment(procs, ros_context):
     assert r.loss == pytest.approx(ref.loss, rel=0.5)
 
 
-@pytest.mark.parametrize('args, expect', [
-    (['--ros-args', '-p', 'k_pw:=9.0'], 'k_pw'),
-    (['--ros-args', '-p', 'k_pw:=abc'], 'k_pw'),
-    (['--ros-args', '-p', 'mode:=fast'], "'mode'"),
-    (['--ros-args', '-p', 'safety.max_speed:=-1.0'], 'safety.max_speed'),
-    (['--config', '/nonexistent/motor.yaml'], 'motor.yaml'),
-])
+@pytest.mark.parametrize(
+    'args, expect',
+    [
+        (['--ros-args', '-p', 'k_pw:=9.0'], 'k_pw'),
+        (['--ros-args', '-p', 'k_pw:=abc'], 'k_pw'),
+        (['--ros-args', '-p', 'mode:=fast'], "'mode'"),
+        (['--ros-args', '-p', 'safety.max_speed:=-1.0'], 'safety.max_speed'),
+        (['--config', '/nonexistent/motor.yaml'], 'motor.yaml'),
+    ],
+)
 def test_bad_start_up_input_is_one_line_and_exit_2(procs, args, expect):
     p = procs.start([ROS2, 'run', 'im_controller', 'controller', *args])
     _, err = p.communicate(timeout=30)
@@ -462,10 +491,15 @@ def test_start_overrides_say_what_the_node_enforces(ros_context, capfd):
     2 A, where the 7 A controller commands 5.55 A. An integer for a double (`k_iw:=25`) is
     taken at start as through set_parameters. A typo'd override is warned about by name, a
     request to set an undeclared parameter is refused naming it."""
-    b = InProcessBench(context=ros_context, drive_overrides=[Parameter('seed', value=SEED)],
-                       controller_overrides=[Parameter('safety.isq_max', value=2.0),
-                                             Parameter('k_iw', value=25),
-                                             Parameter('k_pww', value=1.0)])
+    b = InProcessBench(
+        context=ros_context,
+        drive_overrides=[Parameter('seed', value=SEED)],
+        controller_overrides=[
+            Parameter('safety.isq_max', value=2.0),
+            Parameter('k_iw', value=25),
+            Parameter('k_pww', value=1.0),
+        ],
+    )
     probe = Probe(ros_context, b.spin_until)
     b.executor.add_node(probe.node)
     try:

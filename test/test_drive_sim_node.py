@@ -3,6 +3,7 @@
 Each test starts ``ros2 run im_drive_sim drive_sim`` as a child process (ended by PID)
 and talks to it from this process with :class:`im_drive_sim.client.DriveClient`.
 """
+
 from __future__ import annotations
 
 import os
@@ -27,8 +28,9 @@ ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 def policy(state: np.ndarray) -> tuple[float, float]:
     """A deterministic closed loop: PD position control to 1 rad, load step at step 700."""
     k = int(state[F['step_index']])
-    isq = float(np.clip(20.0 * (1.0 - state[F['theta_meas']]) - 0.4 * state[F['omega_meas']],
-                        -7.0, 7.0))
+    isq = float(
+        np.clip(20.0 * (1.0 - state[F['theta_meas']]) - 0.4 * state[F['omega_meas']], -7.0, 7.0)
+    )
     return isq, (1.75 if k >= 700 else 0.0)
 
 
@@ -47,8 +49,7 @@ def core_states(steps: int, seed: int) -> np.ndarray:
     return ref
 
 
-def run_closed_loop(ctx, steps: int, timeout: float = 60.0, after_command=None
-                    ) -> np.ndarray:
+def run_closed_loop(ctx, steps: int, timeout: float = 60.0, after_command=None) -> np.ndarray:
     """Answer states 0..steps-1 with ``policy``; return the states 0..steps.
     ``after_command(client, k)`` runs after each answer (to send extra commands)."""
     node = Node('test_controller', context=ctx)
@@ -76,7 +77,7 @@ def test_lockstep_is_deterministic_and_equals_the_core(procs, ros_context):
     for _ in range(2):
         p = drive_proc(procs, '--seed', '7', '--max-steps', str(steps))
         runs.append(run_closed_loop(ros_context, steps))
-        out, err = p.communicate(timeout=30)
+        _out, err = p.communicate(timeout=30)
         assert p.returncode == 0, err
     a, b = runs
     assert not np.isnan(a).any()
@@ -93,12 +94,15 @@ def test_lockstep_is_deterministic_and_equals_the_core(procs, ros_context):
 
 
 def test_ros2_run_from_a_plain_shell_and_exit_after_max_steps(procs, ros_context):
-    env = {k: v for k, v in os.environ.items()
-           if k not in ('AMENT_PREFIX_PATH', 'VIRTUAL_ENV', 'PYTHONPATH')}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ('AMENT_PREFIX_PATH', 'VIRTUAL_ENV', 'PYTHONPATH')
+    }
     env['PATH'] = '/usr/bin:/bin'
     p = drive_proc(procs, '--max-steps', '200', env=env)
     states = run_closed_loop(ros_context, 200)
-    out, err = p.communicate(timeout=30)
+    _out, err = p.communicate(timeout=30)
     assert p.returncode == 0, err
     assert 'stopped at step 200' in err
     assert states[-1, F['step_index']] == 200
@@ -126,7 +130,7 @@ def test_realtime_mode_paces_at_5khz(procs, ros_context):
         if k >= steps:
             break
     node.destroy_node()
-    out, err = p.communicate(timeout=30)
+    _out, err = p.communicate(timeout=30)
     assert p.returncode == 0, err
     ks_a, ts_a = np.array(ks), np.array(ts)
     # The drive paces from its own start; on a cold machine discovery can match this
@@ -137,11 +141,12 @@ def test_realtime_mode_paces_at_5khz(procs, ros_context):
     # run's average (overruns re-anchor the schedule) within 10 %.
     typical = float(np.median(np.diff(ts_a) / np.diff(ks_a)))
     average = (ts_a[-1] - ts_a[0]) / (ks_a[-1] - ks_a[0])
-    assert typical == pytest.approx(200e-6, rel=0.02), \
+    assert typical == pytest.approx(200e-6, rel=0.02), (
         f'typical period {typical * 1e6:.1f} us; drive says: {err[-600:]}'
+    )
     assert average == pytest.approx(200e-6, rel=0.10), f'average period {average * 1e6:.1f} us'
     # The drive counted what it did: every step was fresh or held.
-    summary = err[err.rindex('stopped at step'):].splitlines()[0]
+    summary = err[err.rindex('stopped at step') :].splitlines()[0]
     counts = dict(kv.split('=') for kv in summary.split(': ', 1)[1].split(', '))
     assert int(counts['steps']) == steps
     assert int(counts['fresh']) + int(counts['held']) == steps
@@ -149,29 +154,41 @@ def test_realtime_mode_paces_at_5khz(procs, ros_context):
 
 
 def test_realtime_holds_the_last_command_when_none_comes(procs):
-    p = drive_proc(procs, '--mode', 'realtime', '--max-steps', '500', '--ros-args', '-p',
-                   'realtime_wait_for_controller:=false')
-    out, err = p.communicate(timeout=30)
+    p = drive_proc(
+        procs,
+        '--mode',
+        'realtime',
+        '--max-steps',
+        '500',
+        '--ros-args',
+        '-p',
+        'realtime_wait_for_controller:=false',
+    )
+    _out, err = p.communicate(timeout=30)
     assert p.returncode == 0, err
-    summary = err[err.rindex('stopped at step'):].splitlines()[0]
+    summary = err[err.rindex('stopped at step') :].splitlines()[0]
     counts = dict(kv.split('=') for kv in summary.split(': ', 1)[1].split(', '))
     assert counts['steps'] == '500' and counts['held'] == '500' and counts['fresh'] == '0'
 
 
-@pytest.mark.parametrize('old, new, key', [
-    ('Rs: 3.7 ', 'Rs: -3.7 ', 'machine.Rs'),
-    ('Lm: 0.205 ', 'Lm: .nan ', 'machine.Lm'),
-    ('encoder_counts: 4096 ', 'encoder_counts: 40.96 ', 'sensors.encoder_counts'),
-    ('Rs: 3.7 ', 'Rs: [3.7 ', 'yaml'),
-])
+@pytest.mark.parametrize(
+    'old, new, key',
+    [
+        ('Rs: 3.7 ', 'Rs: -3.7 ', 'machine.Rs'),
+        ('Lm: 0.205 ', 'Lm: .nan ', 'machine.Lm'),
+        ('encoder_counts: 4096 ', 'encoder_counts: 40.96 ', 'sensors.encoder_counts'),
+        ('Rs: 3.7 ', 'Rs: [3.7 ', 'yaml'),
+    ],
+)
 def test_bad_parameter_file_is_rejected_with_a_clear_message(procs, tmp_path, old, new, key):
     from im_drive_sim.params import default_config_path
+
     text = default_config_path().read_text()
     assert old in text
     bad = tmp_path / 'bad_motor.yaml'
     bad.write_text(text.replace(old, new))
     p = drive_proc(procs, '--config', str(bad))
-    out, err = p.communicate(timeout=30)
+    _out, err = p.communicate(timeout=30)
     assert p.returncode == 2
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1, err
@@ -196,13 +213,13 @@ def test_clock_and_joint_states_carry_exact_sim_time(procs, ros_context):
     steps = 300
     side = Node('test_side', context=ros_context)
     clocks, joints = [], []
-    side.create_subscription(Clock, '/clock', lambda m: clocks.append(m), 1000)
-    side.create_subscription(JointState, 'drive/joint_states', lambda m: joints.append(m), 1000)
+    side.create_subscription(Clock, '/clock', clocks.append, 1000)
+    side.create_subscription(JointState, 'drive/joint_states', joints.append, 1000)
     ex = SingleThreadedExecutor(context=ros_context)
     ex.add_node(side)
     # The drive outlives the last answered step (it then re-sends state `steps` every
     # 0.1 s), so its last samples are delivered before it is stopped.
-    p = drive_proc(procs, '--max-steps', str(steps + 100))
+    drive_proc(procs, '--max-steps', str(steps + 100))
     # Answer states from this thread; spin the side node between steps.
     node = Node('test_controller2', context=ros_context)
     client = DriveClient(node)
@@ -227,9 +244,11 @@ def test_clock_and_joint_states_carry_exact_sim_time(procs, ros_context):
 
     def stamp(t) -> int:
         return t.sec * 10**9 + t.nanosec
+
     while time.monotonic() < end and not (
-            any(stamp(m.clock) == last_ns for m in clocks)
-            and any(stamp(j.header.stamp) == last_ns for j in joints)):
+        any(stamp(m.clock) == last_ns for m in clocks)
+        and any(stamp(j.header.stamp) == last_ns for j in joints)
+    ):
         ex.spin_once(timeout_sec=0.05)
     ex.shutdown()
     side.destroy_node()
@@ -261,7 +280,7 @@ def test_sigint_and_sigterm_stop_cleanly(procs, ros_context, mode, sig):
     finally:
         node.destroy_node()
     p.send_signal(sig)
-    out, err = p.communicate(timeout=20)
+    _out, err = p.communicate(timeout=20)
     assert p.returncode == 0, err
     assert 'stopped at step' in err and 'Traceback' not in err
 
@@ -286,9 +305,9 @@ def test_realtime_counts_late_commands_and_holds_them(procs, ros_context):
                 client.command(k - 3, 2.0, 0.0)  # always answers a state 3 periods old
     finally:
         node.destroy_node()
-    out, err = p.communicate(timeout=30)
+    _out, err = p.communicate(timeout=30)
     assert p.returncode == 0, err
-    summary = err[err.rindex('stopped at step'):].splitlines()[0]
+    summary = err[err.rindex('stopped at step') :].splitlines()[0]
     counts = dict(kv.split('=') for kv in summary.split(': ', 1)[1].split(', '))
     assert int(counts['fresh']) == 0
     assert int(counts['late']) > 0 and int(counts['late']) == int(counts['commands'])
@@ -301,8 +320,16 @@ def test_realtime_watchdog_zero_current_when_commands_stop_and_resume(procs, ros
     """Commands of 2 A, then silence: after command_timeout the drive commands zero current
     (the measured isq falls to about 0), counts one trip, and resumes on the next command."""
     timeout = 0.05
-    p = drive_proc(procs, '--mode', 'realtime', '--max-steps', '4000', '--ros-args', '-p',
-                   f'command_timeout:={timeout}')
+    p = drive_proc(
+        procs,
+        '--mode',
+        'realtime',
+        '--max-steps',
+        '4000',
+        '--ros-args',
+        '-p',
+        f'command_timeout:={timeout}',
+    )
     node = Node('test_wd_controller', context=ros_context)
     states: list[np.ndarray] = []
     phase_end: dict[str, int] = {}
@@ -334,7 +361,7 @@ def test_realtime_watchdog_zero_current_when_commands_stop_and_resume(procs, ros
     finally:
         node.destroy_node()
     p.send_signal(signal.SIGINT)
-    out, err = p.communicate(timeout=30)
+    _out, err = p.communicate(timeout=30)
     S = np.array(states)
     k = S[:, F['step_index']].astype(int)
     isq = S[:, F['isq']]
@@ -342,11 +369,12 @@ def test_realtime_watchdog_zero_current_when_commands_stop_and_resume(procs, ros
     # commanding: isq follows 2 A
     assert np.all(np.abs(isq[(k > stop - 300) & (k <= stop)] - 2.0) < 0.2)
     # silent: the last stretch before the commands resume is at zero current
-    assert np.all(np.abs(isq[(k > back - 50) & (k <= back)]) < 0.1), \
+    assert np.all(np.abs(isq[(k > back - 50) & (k <= back)]) < 0.1), (
         f'isq while silent: {isq[(k > back - 50) & (k <= back)]}'
+    )
     # resumed: 2 A again
     assert np.all(np.abs(isq[(k > back + 300) & (k <= back + 600)] - 2.0) < 0.2)
-    summary = err[err.rindex('stopped at step'):].splitlines()[0]
+    summary = err[err.rindex('stopped at step') :].splitlines()[0]
     counts = dict(kv.split('=') for kv in summary.split(': ', 1)[1].split(', '))
     assert int(counts['watchdog_trips']) == 1
     assert 0 < int(counts['watchdog_steps']) < back - stop

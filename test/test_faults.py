@@ -9,16 +9,17 @@ current), that the log says what happened, and that the data up to the fault is 
 | the drive dies mid-experiment | ``test_drive_killed_mid_experiment`` |
 | the controller dies mid-experiment (real time) | ``test_controller_killed_mid_experiment`` |
 | the tuner dies; resumed on the same bench | ``test_tuner_killed_then_resumed_on_the_same_bench`` |
-| the recorder is SIGKILLed | ``test_recorder_killed_the_run_goes_on_bit_for_bit`` (and test_recorder.py's repair) |
+| the recorder is SIGKILLed | ``test_recorder_killed_the_run_goes_on_bit_for_bit`` (+ repair) |
 | NaN / inf in the drive state | test_controller_node.py ``test_non_finite_drive_state_...`` |
 | the drive state stops | test_controller_node.py ``test_watchdog_zero_current_...`` |
 | the commands stop | test_drive_sim_node.py ``test_realtime_watchdog_...`` |
 | duplicated, late and out-of-order commands | ``test_duplicated_late_out_of_order_commands_*`` |
-| a flood of parameter calls and experiment triggers | ``test_flood_of_parameter_calls_and_triggers`` |
+| a flood of parameter calls and triggers | ``test_flood_of_parameter_calls_and_triggers`` |
 
 The real-time tuning run with separate processes (issue 8's acceptance) is
 ``test_realtime_tuning_run_reports_overruns``.
 """
+
 from __future__ import annotations
 
 import json
@@ -44,14 +45,15 @@ from im_drive_sim.client import DriveClient
 from im_drive_sim.sim import STATE_FIELDS
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_controller_node import offline_losses, probe_of_children  # noqa: E402
-from test_drive_sim_node import core_states, policy, run_closed_loop  # noqa: E402
+from test_controller_node import offline_losses, probe_of_children
+from test_drive_sim_node import core_states, policy, run_closed_loop
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 F = {name: i for i, name in enumerate(STATE_FIELDS)}
 STEPS = 5625  # one experiment (1.125 s at 200 us)
-TAP_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
-                     reliability=ReliabilityPolicy.BEST_EFFORT)  # never back-pressures
+TAP_QOS = QoSProfile(
+    depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT
+)  # never back-pressures
 
 
 def ros2(*args: str) -> list[str]:
@@ -60,7 +62,7 @@ def ros2(*args: str) -> list[str]:
 
 def stop_counts(err: str) -> dict[str, str]:
     """The counters drive_sim logs when it stops ('stopped at step ...: k=v, ...')."""
-    line = err[err.rindex('stopped at step'):].splitlines()[0]
+    line = err[err.rindex('stopped at step') :].splitlines()[0]
     return dict(kv.split('=') for kv in line.split(': ', 1)[1].split(', '))
 
 
@@ -76,8 +78,10 @@ def bag_state(bag: Path) -> str:
 
 def bag_counts(bag: Path) -> dict[str, int]:
     meta = yaml.safe_load((bag / 'metadata.yaml').read_text())
-    return {t['topic_metadata']['name']: t['message_count']
-            for t in meta['rosbag2_bagfile_information']['topics_with_message_count']}
+    return {
+        t['topic_metadata']['name']: t['message_count']
+        for t in meta['rosbag2_bagfile_information']['topics_with_message_count']
+    }
 
 
 def pids_with(arg: str) -> list[int]:
@@ -113,10 +117,12 @@ class Tap:
 
     def __init__(self, ctx) -> None:
         self.node = Node('fault_tap', context=ctx)
-        self.state_sub = self.node.create_subscription(Float64MultiArray, '/drive/state',
-                                                       lambda _m: None, TAP_QOS)
-        self.status_sub = self.node.create_subscription(DiagnosticArray, '/drive/status',
-                                                        lambda _m: None, 10)
+        self.state_sub = self.node.create_subscription(
+            Float64MultiArray, '/drive/state', lambda _m: None, TAP_QOS
+        )
+        self.status_sub = self.node.create_subscription(
+            DiagnosticArray, '/drive/status', lambda _m: None, 10
+        )
         self.state: np.ndarray | None = None
         self.status: list[dict[str, str]] = []
 
@@ -125,10 +131,15 @@ class Tap:
             self.state = np.array(r[0].data)
         while (r := self.status_sub.handle.take_message(DiagnosticArray, False)) is not None:
             for st in r[0].status:
-                self.status.append({'level': int.from_bytes(st.level, 'little')
-                                    if isinstance(st.level, bytes) else int(st.level),
-                                    'message': st.message,
-                                    **{kv.key: kv.value for kv in st.values}})
+                self.status.append(
+                    {
+                        'level': int.from_bytes(st.level, 'little')
+                        if isinstance(st.level, bytes)
+                        else int(st.level),
+                        'message': st.message,
+                        **{kv.key: kv.value for kv in st.values},
+                    }
+                )
 
     def step(self) -> int:
         self.poll()
@@ -147,8 +158,7 @@ def tap(ros_context):
         t.close()
 
 
-def wait_mid_experiment(run: Path, n_records: int, tap: Tap, wait_until,
-                        into: int = 1500) -> dict:
+def wait_mid_experiment(run: Path, n_records: int, tap: Tap, wait_until, into: int = 1500) -> dict:
     """Wait until ``n_records`` results exist and the next experiment is ``into`` steps
     in (read from the drive's own state); return the last record."""
     wait_until(lambda: len(results(run)) >= n_records, 120, message=f'{n_records} records')
@@ -165,13 +175,29 @@ def test_drive_killed_mid_experiment(procs, ros_context, tmp_path, tap, wait_unt
     that result, cannot reset a fault of a silent drive, ends 'failed' with the best gains
     applied and the bag closed. The controller keeps running, in FAULT."""
     drive = procs.start(ros2('im_drive_sim', 'drive_sim', '--seed', '3'))
-    ctl = procs.start(ros2('im_controller', 'controller', '--ros-args', '-p',
-                           'state_timeout:=0.5'))
+    ctl = procs.start(ros2('im_controller', 'controller', '--ros-args', '-p', 'state_timeout:=0.5'))
     run = tmp_path / 'run'
-    tuner = procs.start(ros2('im_tuner', 'tuner', '--bench', 'none', '--discovery-timeout', '20',
-                             '--budget', '6',
-                             '--seed', '3', '--remeasure', '0', '--fault-policy', 'reset',
-                             '--quiet', '--out', str(run)))
+    tuner = procs.start(
+        ros2(
+            'im_tuner',
+            'tuner',
+            '--bench',
+            'none',
+            '--discovery-timeout',
+            '20',
+            '--budget',
+            '6',
+            '--seed',
+            '3',
+            '--remeasure',
+            '0',
+            '--fault-policy',
+            'reset',
+            '--quiet',
+            '--out',
+            str(run),
+        )
+    )
     last = wait_mid_experiment(run, 2, tap, wait_until)
     drive.send_signal(signal.SIGKILL)
     out, err = tuner.communicate(timeout=120)
@@ -208,6 +234,7 @@ def test_drive_killed_mid_experiment(procs, ros_context, tmp_path, tap, wait_unt
 def last_message(bag: Path, topic: str):
     from rosbags.rosbag2 import Reader
     from rosbags.typesys import Stores, get_typestore
+
     store = get_typestore(Stores.ROS2_JAZZY)
     last = None
     with Reader(bag) as reader:
@@ -230,10 +257,33 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
     # experiment stretched by a loaded machine (issue 18) may trip a safety limit before
     # the kill (a neCGA sample from the whole box did, and 'stop' ended the run first):
     # 'reset' goes on to the evaluation the kill hits.
-    tuner = procs.start(ros2('im_tuner', 'tuner', '--bench', 'none', '--discovery-timeout', '20',
-                             '--budget', '6', '--algo', 'spsa', '--fault-policy', 'reset',
-                             '--seed', '3', '--remeasure', '0', '--retries', '1',
-                             '--eval-timeout', '4', '--quiet', '--out', str(run)))
+    tuner = procs.start(
+        ros2(
+            'im_tuner',
+            'tuner',
+            '--bench',
+            'none',
+            '--discovery-timeout',
+            '20',
+            '--budget',
+            '6',
+            '--algo',
+            'spsa',
+            '--fault-policy',
+            'reset',
+            '--seed',
+            '3',
+            '--remeasure',
+            '0',
+            '--retries',
+            '1',
+            '--eval-timeout',
+            '4',
+            '--quiet',
+            '--out',
+            str(run),
+        )
+    )
     wait_mid_experiment(run, 2, tap, wait_until)
     ctl.send_signal(signal.SIGKILL)
     out, err = tuner.communicate(timeout=120)
@@ -244,18 +294,32 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
     assert statuses[0] == 'ok' and statuses[1] in ('ok', 'aborted'), statuses
     assert statuses[2:] == ['lost', 'lost'], statuses
     # lost mid-experiment, or (killed as it started) the start call unanswered
-    assert 'no loss for experiment 2' in recs[2]['reason'] or \
-        'start_experiment: no answer within 4 s' in recs[2]['reason'], recs[2]['reason']
+    assert (
+        'no loss for experiment 2' in recs[2]['reason']
+        or 'start_experiment: no answer within 4 s' in recs[2]['reason']
+    ), recs[2]['reason']
     assert 'failed: eval 1: no result after 2 attempts' in out
     assert 'NOT applied' in out
     summary = json.loads((run / 'summary.json').read_text())
     assert summary['applied']['on_controller'] is False
     # the drive is alive and safe: its watchdog tripped, zero current since
     assert drive.poll() is None
-    wait_until(lambda: tap.poll() or any(s['level'] == 2 and 'watchdog' in s['message']
-                                         for s in tap.status), 10, message='drive ERROR')
-    wait_until(lambda: tap.step() > 0 and abs(tap.state[F['isq']]) < 0.05
-               and tap.state[F['load_torque']] == 0.0, 10, message='zero current')
+    wait_until(
+        lambda: (
+            tap.poll() or any(s['level'] == 2 and 'watchdog' in s['message'] for s in tap.status)
+        ),
+        10,
+        message='drive ERROR',
+    )
+    wait_until(
+        lambda: (
+            tap.step() > 0
+            and abs(tap.state[F['isq']]) < 0.05
+            and tap.state[F['load_torque']] == 0.0
+        ),
+        10,
+        message='zero current',
+    )
     drive.send_signal(signal.SIGINT)
     _, drive_err = drive.communicate(timeout=30)
     assert 'watchdog: no command on drive/command for 0.05 s' in drive_err
@@ -265,8 +329,7 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
 
 
 # -- the tuner dies ------------------------------------------------------------------------
-def test_tuner_killed_then_resumed_on_the_same_bench(procs, ros_context, tmp_path, tap,
-                                                     wait_until):
+def test_tuner_killed_then_resumed_on_the_same_bench(procs, ros_context, tmp_path, tap, wait_until):
     """SIGKILL the tuner mid-experiment on an external (lock-step) bench: its recorder
     child closes its bag by itself (it gets SIGTERM from the kernel); the controller
     finishes the experiment and stays ready, the drive keeps running; `--resume` goes on
@@ -274,8 +337,19 @@ def test_tuner_killed_then_resumed_on_the_same_bench(procs, ros_context, tmp_pat
     drive = procs.start(ros2('im_drive_sim', 'drive_sim', '--seed', '5'))
     ctl = procs.start(ros2('im_controller', 'controller'))
     run = tmp_path / 'run'
-    args = ['--bench', 'none', '--discovery-timeout', '20', '--budget', '5', '--seed', '5',
-            '--remeasure', '1', '--quiet']
+    args = [
+        '--bench',
+        'none',
+        '--discovery-timeout',
+        '20',
+        '--budget',
+        '5',
+        '--seed',
+        '5',
+        '--remeasure',
+        '1',
+        '--quiet',
+    ]
     tuner = procs.start(ros2('im_tuner', 'tuner', *args, '--out', str(run)))
     wait_mid_experiment(run, 3, tap, wait_until)
     recorder = pids_with(str(run / 'bag_0'))
@@ -283,9 +357,14 @@ def test_tuner_killed_then_resumed_on_the_same_bench(procs, ros_context, tmp_pat
     tuner.send_signal(signal.SIGKILL)
     tuner.wait(timeout=30)
     # no orphan: the recorder ends cleanly, its bag closed
-    wait_until(lambda: not Path(f'/proc/{recorder[0]}').exists()
-               or b'Z' in Path(f'/proc/{recorder[0]}/stat').read_bytes().split(b') ')[1][:1],
-               30, message='the orphaned recorder to end')
+    wait_until(
+        lambda: (
+            not Path(f'/proc/{recorder[0]}').exists()
+            or b'Z' in Path(f'/proc/{recorder[0]}/stat').read_bytes().split(b') ')[1][:1]
+        ),
+        30,
+        message='the orphaned recorder to end',
+    )
     assert bag_state(run / 'bag_0') == 'closed'
     n_killed = len(results(run))
     assert n_killed == 3
@@ -294,9 +373,12 @@ def test_tuner_killed_then_resumed_on_the_same_bench(procs, ros_context, tmp_pat
     with probe_of_children(ros_context, drive, ctl) as probe:
         r = probe.experiment(60.0)  # accepted at once: the one in flight (id 3) has ended
         assert r.experiment_id == 4 and not r.aborted
-    resumed = subprocess.run(ros2('im_tuner', 'tuner', '--resume', str(run),
-                                  '--discovery-timeout', '20'),
-                             capture_output=True, text=True, timeout=300)
+    resumed = subprocess.run(
+        ros2('im_tuner', 'tuner', '--resume', str(run), '--discovery-timeout', '20'),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert 'external bench: the plant is where it is' in resumed.stderr
     recs = results(run)
@@ -317,12 +399,15 @@ def test_recorder_killed_the_run_goes_on_bit_for_bit(procs, tmp_path, wait_until
     the dead reader: the recorder's short DDS lease)."""
     args = ['--budget', '4', '--seed', '1', '--remeasure', '0', '--quiet']
     whole = tmp_path / 'whole'
-    ref = subprocess.run(ros2('im_tuner', 'tuner', *args, '--out', str(whole)),
-                         capture_output=True, text=True, timeout=300)
+    ref = subprocess.run(
+        ros2('im_tuner', 'tuner', *args, '--out', str(whole)),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert ref.returncode == 0, ref.stderr[-3000:]
     run = tmp_path / 'run'
-    tuner = procs.start(ros2('im_tuner', 'tuner', '--bench', 'processes', *args,
-                             '--out', str(run)))
+    tuner = procs.start(ros2('im_tuner', 'tuner', '--bench', 'processes', *args, '--out', str(run)))
     wait_until(lambda: len(results(run)) >= 2, 120, message='2 records')
     (recorder,) = pids_with(str(run / 'bag_0'))
     os.kill(recorder, signal.SIGKILL)
@@ -331,8 +416,9 @@ def test_recorder_killed_the_run_goes_on_bit_for_bit(procs, tmp_path, wait_until
     assert 'warning: the recorder died (killed by signal 9); bag_0 keeps what it wrote' in err
     assert 'recording again into bag_1' in err
     got, want = results(run), results(whole)
-    assert [(r['kind'], r['loss'], r['experiment_id']) for r in got] == \
-        [(r['kind'], r['loss'], r['experiment_id']) for r in want]
+    assert [(r['kind'], r['loss'], r['experiment_id']) for r in got] == [
+        (r['kind'], r['loss'], r['experiment_id']) for r in want
+    ]
     summary = json.loads((run / 'summary.json').read_text())
     (more,) = summary['sessions'][0]['more_bags']
     assert more['bag'] == 'bag_1' and more['first_record'] >= 2
@@ -349,13 +435,13 @@ def test_duplicated_late_out_of_order_commands_lockstep(procs, ros_context):
     and by a late, out-of-order one with a wild value. The drive steps once per state
     with the right command: the states equal the pure core's bit for bit."""
     steps = 1000
-    p = procs.start(ros2('im_drive_sim', 'drive_sim', '--seed', '7', '--max-steps',
-                         str(steps)))
+    p = procs.start(ros2('im_drive_sim', 'drive_sim', '--seed', '7', '--max-steps', str(steps)))
 
     def bad_commands(client: DriveClient, k: int) -> None:
         client.command(k, *policy(client.state))  # duplicated
         if k >= 1:
-            client.command(k - 1, -7.0, 3.0)        # late and out of order
+            client.command(k - 1, -7.0, 3.0)  # late and out of order
+
     states = run_closed_loop(ros_context, steps, after_command=bad_commands)
     _, err = p.communicate(timeout=30)
     assert p.returncode == 0, err
@@ -369,8 +455,7 @@ def test_duplicated_late_out_of_order_commands_realtime(procs, ros_context):
     """Real time: each state answered with 2 A, then a duplicate answer with -5 A and an
     out-of-order one (an older step) with -5 A. The drive ignores both (it would step
     back in time): isq stays at 2 A, the ignored ones are counted."""
-    p = procs.start(ros2('im_drive_sim', 'drive_sim', '--mode', 'realtime', '--max-steps',
-                         '2500'))
+    p = procs.start(ros2('im_drive_sim', 'drive_sim', '--mode', 'realtime', '--max-steps', '2500'))
     node = Node('bad_commands_rt', context=ros_context)
     isq = []
     try:
@@ -384,7 +469,7 @@ def test_duplicated_late_out_of_order_commands_realtime(procs, ros_context):
             k = int(s[F['step_index']])
             isq.append((k, s[F['isq']]))
             client.command(k, 2.0, 0.0)
-            client.command(k, -5.0, 0.0)          # duplicate, another value
+            client.command(k, -5.0, 0.0)  # duplicate, another value
             if k >= 2:
                 client.command(k - 2, -5.0, 0.0)  # out of order
     finally:
@@ -408,34 +493,48 @@ def test_flood_of_parameter_calls_and_triggers(procs, ros_context):
     the controller still works afterwards."""
     from rclpy.parameter_client import AsyncParameterClient
     from std_srvs.srv import Trigger
+
     drive = procs.start(ros2('im_drive_sim', 'drive_sim', '--seed', '3'))
     ctl = procs.start(ros2('im_controller', 'controller'))
     valid = {'k_pw': 0.6, 'k_iw': 20.0, 'k_pos': 30.0, 'tau_sm': 0.005, 'tau_eq': 0.007}
-    invalid = [[Parameter('k_pw', value=-1.0)], [Parameter('k_pos', value=math.nan)],
-               [Parameter('no_such_gain', value=1.0)], [Parameter('k_iw', value='high')],
-               [Parameter('tau_sm', value=1e9)]]
+    invalid = [
+        [Parameter('k_pw', value=-1.0)],
+        [Parameter('k_pos', value=math.nan)],
+        [Parameter('no_such_gain', value=1.0)],
+        [Parameter('k_iw', value='high')],
+        [Parameter('tau_sm', value=1e9)],
+    ]
     with probe_of_children(ros_context, drive, ctl) as probe:
         n0 = len(probe.results)
         first = probe.start()
         deadline = time.monotonic() + 20
-        while not first.success and 'no drive state' in first.message and \
-                time.monotonic() < deadline:  # the drive re-sends its state every 0.1 s
+        while (
+            not first.success and 'no drive state' in first.message and time.monotonic() < deadline
+        ):  # the drive re-sends its state every 0.1 s
             probe.spin_until(lambda: False, 0.05)
             first = probe.start()
         assert first.success, first.message
         futures = {'start': [], 'valid': [], 'invalid': []}
-        clients = [(probe.node.create_client(Trigger, '/controller/start_experiment'),
-                    AsyncParameterClient(probe.node, '/controller')) for _ in range(3)]
-        assert probe.spin_until(lambda: all(t.service_is_ready() and p.services_are_ready()
-                                            for t, p in clients), 10)
+        clients = [
+            (
+                probe.node.create_client(Trigger, '/controller/start_experiment'),
+                AsyncParameterClient(probe.node, '/controller'),
+            )
+            for _ in range(3)
+        ]
+        assert probe.spin_until(
+            lambda: all(t.service_is_ready() and p.services_are_ready() for t, p in clients), 10
+        )
         for i in range(50):
             trig, par = clients[i % 3]
             futures['start'].append(trig.call_async(Trigger.Request()))
-            futures['valid'].append(par.set_parameters_atomically(
-                [Parameter(n, value=v) for n, v in valid.items()]))
+            futures['valid'].append(
+                par.set_parameters_atomically([Parameter(n, value=v) for n, v in valid.items()])
+            )
             bad = invalid[i % len(invalid)]
-            futures['invalid'].append(par.set_parameters(bad) if i % 2 else
-                                      par.set_parameters_atomically(bad))
+            futures['invalid'].append(
+                par.set_parameters(bad) if i % 2 else par.set_parameters_atomically(bad)
+            )
         every = [f for fs in futures.values() for f in fs]
         # Requests past a service reader's depth (10) may be dropped by DDS and never
         # answered: wait until all are answered or none more came for 3 s.
@@ -446,6 +545,7 @@ def test_flood_of_parameter_calls_and_triggers(procs, ros_context):
             if n != seen['n']:
                 seen.update(n=n, t=time.monotonic())
             return n == len(every) or time.monotonic() - seen['t'] > 3.0
+
         assert probe.spin_until(settled, 120)
         answered = {k: sum(f.done() for f in fs) for k, fs in futures.items()}
         assert sum(answered.values()) >= len(every) // 2, answered
@@ -460,14 +560,17 @@ def test_flood_of_parameter_calls_and_triggers(procs, ros_context):
         # every started experiment ends with a result (ids consecutive after the first)
         assert probe.spin_until(lambda: len(probe.results) == n0 + 1 + started, 120)
         res = probe.results[n0:]
-        assert [r.experiment_id for r in res] == list(range(res[0].experiment_id,
-                                                            res[0].experiment_id + 1 + started))
+        assert [r.experiment_id for r in res] == list(
+            range(res[0].experiment_id, res[0].experiment_id + 1 + started)
+        )
         # the first ran with the start gains, untouched: the pure core's loss
         assert res[0].gains == Gains() and res[0].loss == offline_losses([Gains()])[0].loss
         for r in res[1:]:
             assert r.gains in (Gains(), Gains(**valid))
-        assert probe.get(*GAIN_NAMES) in ([getattr(Gains(), n) for n in GAIN_NAMES],
-                                          [valid[n] for n in GAIN_NAMES])
+        assert probe.get(*GAIN_NAMES) in (
+            [getattr(Gains(), n) for n in GAIN_NAMES],
+            [valid[n] for n in GAIN_NAMES],
+        )
         r = probe.experiment(60.0)  # and it still works
         assert math.isfinite(r.loss)
     ctl.send_signal(signal.SIGINT)
@@ -482,13 +585,29 @@ def test_realtime_tuning_run_reports_overruns(tmp_path):
     clock, recorder too; the tuner unchanged. The run completes and its summary reports
     the drive's overruns, late and held commands (whatever this machine's load made them)."""
     run = tmp_path / 'run'
-    p = subprocess.run(ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '3',
-                            '--seed', '2', '--remeasure', '1', '--quiet', '--out', str(run)),
-                       capture_output=True, text=True, timeout=300)
+    p = subprocess.run(
+        ros2(
+            'im_tuner',
+            'tuner',
+            '--bench',
+            'realtime',
+            '--budget',
+            '3',
+            '--seed',
+            '2',
+            '--remeasure',
+            '1',
+            '--quiet',
+            '--out',
+            str(run),
+        ),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert p.returncode == 0, p.stderr[-3000:]
     recs = results(run)
-    assert [r['kind'] for r in recs] == ['reference', 'eval', 'eval', 'eval', 'remeasure'], \
-        p.stdout
+    assert [r['kind'] for r in recs] == ['reference', 'eval', 'eval', 'eval', 'remeasure'], p.stdout
     assert all(r['status'] in ('ok', 'aborted') for r in recs)
     summary = json.loads((run / 'summary.json').read_text())
     d = summary['sessions'][0]['drive']

@@ -6,6 +6,7 @@ The executable wrappers (``src/<pkg>/scripts/*``) are run from fake prefix trees
 ``tmp_path`` with a fake interpreter that records its arguments, to check that they exec
 the prefix's own ``bin/python`` when there is one and ``python3`` from PATH otherwise.
 """
+
 from __future__ import annotations
 
 import configparser
@@ -27,6 +28,7 @@ TIMEOUT = 30
 WRAPPERS = sorted((REPO / 'src').glob('*/scripts/*'))
 WRAPPER_IDS = [f'{w.parents[1].name}/{w.name}' for w in WRAPPERS]
 
+
 @pytest.fixture
 def _installed():
     # make test always runs make setup first: a missing install is a failure, not a skip.
@@ -37,6 +39,7 @@ needs_install = pytest.mark.usefixtures('_installed')
 
 
 # ------------------------------------------------------------------------- sources
+
 
 @pytest.mark.parametrize('pkg', PACKAGES)
 def test_package_xml_format_3_and_name(pkg):
@@ -78,11 +81,13 @@ def test_wrapper_module_exists(wrapper):
     module = wrapper_module(wrapper)
     assert module.split('.')[0] == pkg
     path = REPO / 'src' / pkg / Path(*module.split('.'))
-    assert path.with_suffix('.py').is_file() or (path / '__main__.py').is_file(), \
+    assert path.with_suffix('.py').is_file() or (path / '__main__.py').is_file(), (
         f'{wrapper.name} runs {module}, which is not in src/{pkg}'
+    )
 
 
 # ------------------------------------------------------------------ installed tree
+
 
 @needs_install
 @pytest.mark.parametrize('pkg', PACKAGES)
@@ -136,20 +141,20 @@ def make_prefix(tmp_path: Path, wrapper: Path, with_python: bool, via_symlink: b
 
 
 def run_wrapper(exe: Path, env: dict[str, str], cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([str(exe), *ARGS], env=env, cwd=cwd, capture_output=True,
-                          text=True, timeout=TIMEOUT)
+    return subprocess.run(
+        [str(exe), *ARGS], env=env, cwd=cwd, capture_output=True, text=True, timeout=TIMEOUT
+    )
 
 
 def recorded(log: Path) -> tuple[str, list[str]]:
     lines = log.read_text().splitlines()
-    return lines[0][len('SELF:'):], [line[len('ARG:'):] for line in lines[1:]]
+    return lines[0][len('SELF:') :], [line[len('ARG:') :] for line in lines[1:]]
 
 
 @pytest.mark.parametrize('via_symlink', [False, True], ids=['copy', 'symlink'])
 @pytest.mark.parametrize('wrapper', WRAPPERS, ids=WRAPPER_IDS)
 def test_wrapper_uses_prefix_python(tmp_path, wrapper, via_symlink):
-    prefix, exe, log = make_prefix(tmp_path, wrapper, with_python=True,
-                                   via_symlink=via_symlink)
+    prefix, exe, log = make_prefix(tmp_path, wrapper, with_python=True, via_symlink=via_symlink)
     # A python3 on PATH that must NOT be used.
     decoy = tmp_path / 'decoy'
     decoy.mkdir()
@@ -165,7 +170,7 @@ def test_wrapper_uses_prefix_python(tmp_path, wrapper, via_symlink):
 
 @pytest.mark.parametrize('wrapper', WRAPPERS, ids=WRAPPER_IDS)
 def test_wrapper_falls_back_to_python3_on_path(tmp_path, wrapper):
-    prefix, exe, log = make_prefix(tmp_path, wrapper, with_python=False)
+    _prefix, exe, log = make_prefix(tmp_path, wrapper, with_python=False)
     fakebin = tmp_path / 'fakebin'
     fakebin.mkdir()
     (fakebin / 'python3').write_text(RECORDER.format(log=log))
@@ -173,8 +178,9 @@ def test_wrapper_falls_back_to_python3_on_path(tmp_path, wrapper):
     env = {'PATH': f'{fakebin}:/usr/bin:/bin', 'HOME': str(tmp_path)}
     # Started by a relative path from another directory, as `ros2 run` would not do but
     # a user might.
-    res = run_wrapper(Path(os.path.relpath(exe, tmp_path / 'fakebin')), env,
-                      cwd=tmp_path / 'fakebin')
+    res = run_wrapper(
+        Path(os.path.relpath(exe, tmp_path / 'fakebin')), env, cwd=tmp_path / 'fakebin'
+    )
     assert res.returncode == 5, res.stdout + res.stderr
     self_path, argv = recorded(log)
     assert Path(self_path).name == 'python3' and Path(self_path).parent == fakebin

@@ -4,6 +4,7 @@ Readers used here are not our writer's code: the ``rosbags`` library (its own MC
 rosbag2 reader, its own CDR deserialiser) and the ``mcap`` library with
 ``mcap_ros2``'s decoder.
 """
+
 from __future__ import annotations
 
 import collections
@@ -30,8 +31,9 @@ from im_tuner import rcl_take
 from im_tuner.recorder_node import RECORD_POLL_STEPS, Recorder
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
-RELIABLE_ALL = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=0,
-                          reliability=ReliabilityPolicy.RELIABLE)
+RELIABLE_ALL = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL, depth=0, reliability=ReliabilityPolicy.RELIABLE
+)
 
 
 # -- independent readers ------------------------------------------------------------------
@@ -43,6 +45,7 @@ def read_with_rosbags(bag: Path) -> dict[str, list]:
     hashes on open, and ``reader.deserialize(raw, conn.msgtype)`` -- what a user writes."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
+
     out: dict[str, list] = collections.defaultdict(list)
     with AnyReader([bag], default_typestore=get_typestore(Stores.EMPTY)) as reader:
         for conn, _t, raw in reader.messages():
@@ -55,6 +58,7 @@ def read_with_mcap(bag: Path) -> dict[str, int]:
     ordinary message channels are also decoded by mcap_ros2."""
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
+
     counts: collections.Counter = collections.Counter()
     (mcap_file,) = bag.glob('*.mcap')
     with open(mcap_file, 'rb') as f:
@@ -88,6 +92,7 @@ class PublishCounter:
         def publish(pub, msg):
             orig(pub, msg)
             self.counts[pub.topic_name] += 1
+
         monkeypatch.setattr(Publisher, 'publish', publish)
 
 
@@ -100,8 +105,9 @@ class Client:
         bench.executor.add_node(self.node)
         self.start = self.node.create_client(Trigger, '/controller/start_experiment')
         self.params = AsyncParameterClient(self.node, '/controller')
-        assert bench.spin_until(lambda: self.start.service_is_ready() and
-                                self.params.services_are_ready(), 20.0)
+        assert bench.spin_until(
+            lambda: self.start.service_is_ready() and self.params.services_are_ready(), 20.0
+        )
 
     def call(self, fut, timeout: float = 20.0):
         assert self.bench.spin_until(fut.done, timeout)
@@ -124,15 +130,24 @@ def test_bench_at_full_speed_every_message_recorded(ros_context, tmp_path, monke
     holder = {}
 
     def start_recorder(b: InProcessBench) -> None:
-        rec = Recorder(Node('recorder', context=ros_context, start_parameter_services=False),
-                       tmp_path / 'bag', compression='zstd', chunk_size=256 << 10,
-                       extra_metadata=bench_metadata(b), command=['pytest', 'recorder'])
+        rec = Recorder(
+            Node('recorder', context=ros_context, start_parameter_services=False),
+            tmp_path / 'bag',
+            compression='zstd',
+            chunk_size=256 << 10,
+            extra_metadata=bench_metadata(b),
+            command=['pytest', 'recorder'],
+        )
         assert rec.wait_matched(10.0)
         b.add_poller(rec.poll, RECORD_POLL_STEPS)
         holder['rec'] = rec
         published.counts.clear()  # the recording starts here
-    bench = InProcessBench(context=ros_context, drive_overrides=[Parameter('seed', value=5)],
-                           before_start=start_recorder)
+
+    bench = InProcessBench(
+        context=ros_context,
+        drive_overrides=[Parameter('seed', value=5)],
+        before_start=start_recorder,
+    )
     rec = holder['rec']
     try:
         client = Client(bench)
@@ -148,8 +163,14 @@ def test_bench_at_full_speed_every_message_recorded(ros_context, tmp_path, monke
     for topic, c in counts.items():
         assert c['lost'] == 0 and c['unmatched_publishers'] == 0, (topic, c)
         assert c['recorded'] == c['published'], (topic, c)
-    for topic in ('/drive/state', '/drive/command', '/controller/internals', '/clock',
-                  '/drive/joint_states', '/controller/loss'):
+    for topic in (
+        '/drive/state',
+        '/drive/command',
+        '/controller/internals',
+        '/clock',
+        '/drive/joint_states',
+        '/controller/loss',
+    ):
         assert counts[topic]['published_before_recording'] == 0, topic
     # 2. against the truth: what this process's publishers actually published
     steps = bench.drive.sim.step_index
@@ -164,8 +185,9 @@ def test_bench_at_full_speed_every_message_recorded(ros_context, tmp_path, monke
     # 3. read back by independent readers, every message deserialised
     bag = tmp_path / 'bag'
     msgs = read_with_rosbags(bag)
-    assert {t: len(v) for t, v in msgs.items() if v} == \
-        {t: c['recorded'] for t, c in counts.items() if c['recorded']}
+    assert {t: len(v) for t, v in msgs.items() if v} == {
+        t: c['recorded'] for t, c in counts.items() if c['recorded']
+    }
     assert read_with_mcap(bag) == {t: c['recorded'] for t, c in counts.items() if c['recorded']}
     # the state stream is complete and in order: step_index 0..steps
     k = np.array([m.data[0] for m in msgs['/drive/state']])
@@ -173,8 +195,10 @@ def test_bench_at_full_speed_every_message_recorded(ros_context, tmp_path, monke
     cmd = np.array([m.data[0] for m in msgs['/drive/command']])
     np.testing.assert_array_equal(cmd, np.arange(steps))
     # losses in the bag are the ones the controller computed, to the last bit
-    losses = [float(next(kv.value for kv in m.status[0].values if kv.key == 'loss'))
-              for m in msgs['/controller/loss']]
+    losses = [
+        float(next(kv.value for kv in m.status[0].values if kv.key == 'loss'))
+        for m in msgs['/controller/loss']
+    ]
     assert losses == [r.loss for r in bench.controller.results]
 
     # 4. service events: the experiment starts and the parameter change, with contents
@@ -182,8 +206,12 @@ def test_bench_at_full_speed_every_message_recorded(ros_context, tmp_path, monke
     assert len(starts) >= 4  # request received + response sent, per call
     assert sum(1 for e in starts for r in e.response if r.success) == 2
     sets = msgs['/controller/set_parameters/_service_event']
-    assert any(p.name == 'k_pw' and p.value.double_value == 0.6
-               for e in sets for r in e.request for p in r.parameters)
+    assert any(
+        p.name == 'k_pw' and p.value.double_value == 0.6
+        for e in sets
+        for r in e.request
+        for p in r.parameters
+    )
     changed = [p for e in msgs['/parameter_events'] for p in e.changed_parameters]
     assert any(p.name == 'k_pw' and p.value.double_value == 0.6 for p in changed)
 
@@ -197,6 +225,7 @@ def test_bench_at_full_speed_every_message_recorded(ros_context, tmp_path, monke
     # DDS discovery does not carry the history kind: 'unknown', as in rosbag2's own bags
     assert qos['reliability'] == 'reliable' and qos['durability'] == 'volatile'
     from mcap.reader import make_reader
+
     with open(bag / 'bag_0.mcap', 'rb') as f:
         records = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
     assert records['im_tuner.run']['command'] == 'pytest recorder'
@@ -207,17 +236,21 @@ def test_bench_at_full_speed_every_message_recorded(ros_context, tmp_path, monke
     assert 'serialized_metadata' in records['rosbag2']
 
 
-def test_a_backlog_taken_late_still_makes_chunks_of_at_most_max_chunk_age(ros_context,
-                                                                           tmp_path):
+def test_a_backlog_taken_late_still_makes_chunks_of_at_most_max_chunk_age(ros_context, tmp_path):
     """Issue 16: while a bench starts (numba loading, before its loop polls the recorder)
     messages pile up unread; taken late, they used to fill one chunk spanning seconds of
     log time, against the promised --max-chunk-age. Now every chunk spans at most that."""
     from mcap.reader import make_reader
+
     node = Node('backlog_pub', context=ros_context)
     pub = node.create_publisher(String, '/backlog', RELIABLE_ALL)
-    rec = Recorder(Node('recorder', context=ros_context, start_parameter_services=False),
-                   tmp_path / 'bag', compression='none', max_chunk_age=0.25,
-                   command=['pytest'])
+    rec = Recorder(
+        Node('recorder', context=ros_context, start_parameter_services=False),
+        tmp_path / 'bag',
+        compression='none',
+        max_chunk_age=0.25,
+        command=['pytest'],
+    )
     try:
         assert rec.wait_matched(10.0) and '/backlog' in rec.topics
         t0 = time.monotonic()
@@ -227,8 +260,10 @@ def test_a_backlog_taken_late_still_makes_chunks_of_at_most_max_chunk_age(ros_co
             n += 1
             time.sleep(0.002)
         wait_for_taken = time.monotonic() + 10.0
-        while rec.counts().get('/backlog', {}).get('recorded', 0) < n and \
-                time.monotonic() < wait_for_taken:
+        while (
+            rec.counts().get('/backlog', {}).get('recorded', 0) < n
+            and time.monotonic() < wait_for_taken
+        ):
             rec.poll()
         counts = rec.close()
     finally:
@@ -243,14 +278,18 @@ def test_a_backlog_taken_late_still_makes_chunks_of_at_most_max_chunk_age(ros_co
 # -- the kernel against rclpy, and gap detection on a real reader overflow ----------------
 def test_take_kernel_matches_rclpy_and_counts_gaps(ros_context):
     from im_tuner.mcap_writer import ChunkState
+
     node = Node('gap_test', context=ros_context)
-    best_effort = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=0,
-                             reliability=ReliabilityPolicy.BEST_EFFORT)
+    best_effort = QoSProfile(
+        history=HistoryPolicy.KEEP_ALL, depth=0, reliability=ReliabilityPolicy.BEST_EFFORT
+    )
     pub = node.create_publisher(Float64MultiArray, 'gaps', best_effort)
-    ours = node.create_subscription(Float64MultiArray, 'gaps', lambda _m: None, best_effort,
-                                    raw=True)
-    theirs = node.create_subscription(Float64MultiArray, 'gaps', lambda _m: None,
-                                      best_effort, raw=True)
+    ours = node.create_subscription(
+        Float64MultiArray, 'gaps', lambda _m: None, best_effort, raw=True
+    )
+    theirs = node.create_subscription(
+        Float64MultiArray, 'gaps', lambda _m: None, best_effort, raw=True
+    )
     deadline = time.monotonic() + 10
     while pub.get_subscription_count() < 2 and time.monotonic() < deadline:
         time.sleep(0.01)
@@ -260,28 +299,33 @@ def test_take_kernel_matches_rclpy_and_counts_gaps(ros_context):
     subs, chans = np.array([ours.handle.pointer], np.uint64), np.array([7], np.int64)
 
     def drain() -> int:
-        code, n = rcl_take.drain(subs, chans, tb.ser, tb.info, ch.buf, ch.idx, ch.st, pubs,
-                                 ctrl, 1 << 40)
+        code, n = rcl_take.drain(
+            subs, chans, tb.ser, tb.info, ch.buf, ch.idx, ch.st, pubs, ctrl, 1 << 40
+        )
         assert code == rcl_take.DONE
         return n
+
     msg = Float64MultiArray(data=[0.0, 1.5])
     for i in range(10):
         msg.data[0] = float(i)
         pub.publish(msg)
     assert drain() == 10
-    mine = ch.buf[:ch.used].tobytes()
-    for i in range(10):   # same bytes and sequence numbers as rclpy's own take
+    mine = ch.buf[: ch.used].tobytes()
+    for i in range(10):  # same bytes and sequence numbers as rclpy's own take
         raw, info = theirs.handle.take_message(Float64MultiArray, True)
         off = int(ch.idx[i, 2])
-        assert mine[off + 31:off + 31 + len(raw)] == raw
-        assert int.from_bytes(mine[off + 11:off + 15], 'little') == \
-            info['publication_sequence_number'] == i + 1
+        assert mine[off + 31 : off + 31 + len(raw)] == raw
+        assert (
+            int.from_bytes(mine[off + 11 : off + 15], 'little')
+            == info['publication_sequence_number']
+            == i + 1
+        )
     # A best-effort reader holds at most 5000 samples (Fast DDS resource limit): what
     # overflows is lost, and the recorder counts exactly that many as lost.
-    for i in range(6000):
+    for _ in range(6000):
         pub.publish(msg)
     taken = drain()
-    for i in range(10):
+    for _ in range(10):
         pub.publish(msg)
     taken += drain()
     row = pubs[0]
@@ -309,6 +353,7 @@ def test_standalone_recorder_burst_sigint(ros_context, procs, tmp_path, wait_unt
     _matched(pub, wait_until)
     wait_until(lambda: text.get_subscription_count() >= 1, 30.0, message='note matched')
     from im_drive_sim.runtime import RCLError, publish_retry
+
     msg = Float64MultiArray(data=[0.0] * 8)
     n = 20000
     for i in range(n):  # as fast as rclpy publishes; back-pressure if the recorder lags
@@ -320,10 +365,11 @@ def test_standalone_recorder_burst_sigint(ros_context, procs, tmp_path, wait_unt
         if i % 1000 == 0:
             text.publish(String(data=f'note {i}'))
     from rclpy.duration import Duration
+
     for p in (pub, text):  # everything delivered before the recorder is asked to stop
         assert p.wait_for_all_acked(timeout=Duration(seconds=30))
     rec.send_signal(signal.SIGINT)
-    out, err = rec.communicate(timeout=60)
+    _out, err = rec.communicate(timeout=60)
     assert rec.returncode == 0, err
     assert '/burst: recorded 20000 / published 20000, lost 0' in err
     msgs = read_with_rosbags(tmp_path / 'bag')
@@ -351,6 +397,7 @@ def test_sigkill_then_repair(ros_context, procs, tmp_path, wait_until):
     def settled() -> bool:
         sizes.append(mcap_file.stat().st_size)
         return len(sizes) > 5 and len(set(sizes[-5:])) == 1 and sizes[-1] > 8192
+
     wait_until(settled, 20.0, interval=0.05, message='chunks on disk')
     for i in range(3000, 3050):  # some more that may sit in the open chunk when killed
         msg.data[0] = float(i)
@@ -363,6 +410,7 @@ def test_sigkill_then_repair(ros_context, procs, tmp_path, wait_until):
     from mcap.exceptions import McapError
     from mcap.records import Channel, Message
     from mcap.stream_reader import StreamReader
+
     streamed, channels = [], {}
     with open(mcap_file, 'rb') as f:
         try:
@@ -378,8 +426,12 @@ def test_sigkill_then_repair(ros_context, procs, tmp_path, wait_until):
     before = (bag / 'metadata.yaml').read_text()
     assert 'recording' in before
 
-    fix = subprocess.run([ROS2, 'run', 'im_tuner', 'recorder', '--repair', str(bag)],
-                         capture_output=True, text=True, timeout=120)
+    fix = subprocess.run(
+        [ROS2, 'run', 'im_tuner', 'recorder', '--repair', str(bag)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert fix.returncode == 0, fix.stderr
     msgs = read_with_rosbags(bag)
     values = [m.data[0] for m in msgs['/killed']]
@@ -408,19 +460,40 @@ def test_bad_out_is_refused_and_changes_nothing(tmp_path):
     (bag / 'metadata.yaml').write_text('rosbag2_bagfile_information: {}\n')
     (bag / 'existing_0.mcap').write_bytes(b'\x89MCAP0\r\n')
     before = _tree_hash(tmp_path)
-    r = subprocess.run([ROS2, 'run', 'im_tuner', 'recorder', '--out', str(bag)],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [ROS2, 'run', 'im_tuner', 'recorder', '--out', str(bag)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 2
     assert 'already exists (a bag)' in r.stderr and str(bag) in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     afile = tmp_path / 'a_file'
     afile.write_text('x')
     before = _tree_hash(tmp_path)
-    r = subprocess.run([ROS2, 'run', 'im_tuner', 'recorder', '--out', str(afile / 'bag')],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [ROS2, 'run', 'im_tuner', 'recorder', '--out', str(afile / 'bag')],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 2 and 'cannot create it' in r.stderr
-    r = subprocess.run([ROS2, 'run', 'im_tuner', 'recorder', '--out', str(tmp_path / 'x'),
-                        '--compression', 'brotli'], capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [
+            ROS2,
+            'run',
+            'im_tuner',
+            'recorder',
+            '--out',
+            str(tmp_path / 'x'),
+            '--compression',
+            'brotli',
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 2 and 'invalid choice' in r.stderr
     assert _tree_hash(tmp_path) == before
 
@@ -429,9 +502,11 @@ def test_sim_bench_executable_records_by_default(ros_context, procs, tmp_path, w
     """`ros2 run im_controller sim_bench --out DIR`: an experiment, SIGINT, a closed bag."""
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
+
     bag = tmp_path / 'bench_bag'
-    child = procs.start([ROS2, 'run', 'im_controller', 'sim_bench', '--seed', '2',
-                         '--out', str(bag)])
+    child = procs.start(
+        [ROS2, 'run', 'im_controller', 'sim_bench', '--seed', '2', '--out', str(bag)]
+    )
     node = Node('bench_client', context=ros_context)
     ex = SingleThreadedExecutor(context=ros_context)
     ex.add_node(node)
@@ -444,8 +519,10 @@ def test_sim_bench_executable_records_by_default(ros_context, procs, tmp_path, w
         while not pred() and time.monotonic() < deadline and child.poll() is None:
             ex.spin_once(timeout_sec=0.01)
         return pred()
-    assert spin_until(lambda: start.service_is_ready() and
-                      node.count_publishers('/controller/loss') > 0, 60.0)
+
+    assert spin_until(
+        lambda: start.service_is_ready() and node.count_publishers('/controller/loss') > 0, 60.0
+    )
     for _ in range(100):
         fut = start.call_async(Trigger.Request())
         assert spin_until(fut.done, 20.0)
@@ -468,6 +545,7 @@ def test_sim_bench_executable_records_by_default(ros_context, procs, tmp_path, w
     msgs = read_with_rosbags(bag)
     assert len(msgs['/controller/loss']) == 1
     from mcap.reader import make_reader
+
     with open(bag / 'bench_bag_0.mcap', 'rb') as f:
         records = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
     assert records['im_tuner.drive']['seed'] == '2'

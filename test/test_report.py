@@ -8,6 +8,7 @@ physics of the experiment (a pi rad move, the load step at 0.7 s). The CSV round
 exactly. An interrupted run (results cut mid-line, bag without footer, no summary) and
 directories that are not runs are covered too.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -23,8 +24,7 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 
-from im_tuner.report import (CSV_COLUMNS, FIGURES, load_run, make_figures, read_csv,
-                             write_csv)
+from im_tuner.report import CSV_COLUMNS, FIGURES, load_run, make_figures, read_csv, write_csv
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 GAINS = ('k_pw', 'k_iw', 'k_pos', 'tau_sm', 'tau_eq')
@@ -32,8 +32,9 @@ BUDGET = 10
 
 
 def run_cmd(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([ROS2, 'run', 'im_tuner', *args], capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [ROS2, 'run', 'im_tuner', *args], capture_output=True, text=True, timeout=timeout
+    )
 
 
 def results(run: Path) -> list[dict]:
@@ -52,8 +53,11 @@ def internals_from_mcap(bag: Path) -> np.ndarray:
 
 
 def tree_hashes(d: Path) -> dict[str, str]:
-    return {str(p.relative_to(d)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(d.rglob('*')) if p.is_file()}
+    return {
+        str(p.relative_to(d)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(d.rglob('*'))
+        if p.is_file()
+    }
 
 
 @pytest.fixture(scope='module')
@@ -62,8 +66,18 @@ def runs(tmp_path_factory) -> dict[str, tuple[Path, subprocess.CompletedProcess]
     out = {}
     for algo, seed in (('spsa', 3), ('necga', 5)):
         run = base / f'{algo}_run'
-        proc = run_cmd('tuner', '--algo', algo, '--budget', str(BUDGET), '--seed', str(seed),
-                       '--out', str(run), '--quiet')
+        proc = run_cmd(
+            'tuner',
+            '--algo',
+            algo,
+            '--budget',
+            str(BUDGET),
+            '--seed',
+            str(seed),
+            '--out',
+            str(run),
+            '--quiet',
+        )
         assert proc.returncode == 0, proc.stderr[-3000:]
         out[algo] = (run, proc)
     return out
@@ -72,7 +86,7 @@ def runs(tmp_path_factory) -> dict[str, tuple[Path, subprocess.CompletedProcess]
 def test_the_printed_report_command_writes_summary_plots_and_csv(runs):
     run, proc = runs['necga']
     line = next(x for x in proc.stdout.splitlines() if 'ros2 run im_tuner report' in x)
-    cmd = shlex.split(line[line.index('ros2 run'):])
+    cmd = shlex.split(line[line.index('ros2 run') :])
     assert cmd[:4] == ['ros2', 'run', 'im_tuner', 'report'] and Path(cmd[4]) == run
     before = tree_hashes(run)
     rep = subprocess.run([ROS2, *cmd[1:]], capture_output=True, text=True, timeout=300)
@@ -82,6 +96,7 @@ def test_the_printed_report_command_writes_summary_plots_and_csv(runs):
         png = out / f'{name}.png'
         assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and png.stat().st_size > 20_000
     import matplotlib.image
+
     assert matplotlib.image.imread(out / 'fig8_best_vs_start.png').shape[0] > 600
     recs = results(run)
     assert len(read_csv(out / 'evaluations.csv')) == len(recs)
@@ -89,12 +104,11 @@ def test_the_printed_report_command_writes_summary_plots_and_csv(runs):
     text = (out / 'summary.txt').read_text()
     assert text in rep.stdout
     summary = json.loads((run / 'summary.json').read_text())
-    assert f'best loss: {summary["best"]["loss"]:.4f} (evaluation {summary["best"]["eval"]}' \
-        in text
+    assert f'best loss: {summary["best"]["loss"]:.4f} (evaluation {summary["best"]["eval"]}' in text
     assert f'{summary["evaluations"]}/{BUDGET} evaluations' in text
     assert f'aborted experiments: {summary["aborted"]} of {BUDGET}' in text
     sat = summary['evaluations_to_satisfactory']
-    assert ('after %d evaluations' % sat if sat else 'not reached') in text
+    assert (f'after {sat} evaluations' if sat else 'not reached') in text
     assert f'losses in the bags vs results.jsonl: {len(recs)} equal' in text
     meta = yaml.safe_load((run / 'bag_0' / 'metadata.yaml').read_text())
     counts = json.loads(meta['rosbag2_bagfile_information']['custom_data']['im_tuner.counts'])
@@ -136,7 +150,12 @@ def test_figures_show_what_their_captions_say(runs):
     # Fig. 9 (c, d): each gain's path, in its unit, inside the search box
     g9 = figs['fig9_gains']
     assert [ax.get_ylabel() for ax in g9.axes] == [
-        'k_pw [A s/rad]', 'k_iw [A/rad]', 'k_pos [1/s]', 'tau_sm [s]', 'tau_eq [s]']
+        'k_pw [A s/rad]',
+        'k_iw [A/rad]',
+        'k_pos [1/s]',
+        'tau_sm [s]',
+        'tau_eq [s]',
+    ]
     for n in GAINS:
         gx, gy = line(g9, f'{n}:necga').get_data()
         assert list(gx) == [r['eval'] + 1 for r in evals]
@@ -145,7 +164,10 @@ def test_figures_show_what_their_captions_say(runs):
     # Fig. 8: the best evaluation's and the start controller's experiments, from the bag
     f8 = figs['fig8_best_vs_start']
     assert [ax.get_ylabel() for ax in f8.axes] == [
-        'position error [rad]', 'speed error [rad/s]', 'current reference i*sq [A]']
+        'position error [rad]',
+        'speed error [rad/s]',
+        'current reference i*sq [A]',
+    ]
     best = min(ok, key=lambda r: r['loss'])
     for rec, who in ((best, 'best:necga'), (recs[0], 'start:necga')):
         k0 = rec['t_start_ns'] // 200_000
@@ -161,8 +183,8 @@ def test_figures_show_what_their_captions_say(runs):
         # has settled at the end
         _t, isq = line(f8, f'isq_ref:{who}').get_data()
         k_step = int(params['trajectory.load_delay'] / 200e-6)
-        assert abs(np.median(isq[k_step - 500:k_step])) < 0.2      # at rest, no load
-        assert np.median(isq[k_step + 1000:]) > 1.0                 # holding the load
+        assert abs(np.median(isq[k_step - 500 : k_step])) < 0.2  # at rest, no load
+        assert np.median(isq[k_step + 1000 :]) > 1.0  # holding the load
         _t, e = line(f8, f'e_theta:{who}').get_data()
         assert abs(e[-1]) < 0.01
     # Fig. 5: two consecutive experiments: a pi rad move there and back, the load step
@@ -176,7 +198,7 @@ def test_figures_show_what_their_captions_say(runs):
         assert t[0] == pytest.approx(j * dur) and len(t) == 5625
         assert th[0] == pytest.approx(0 if j == 0 else dist, abs=1e-9)
         assert th[-1] == pytest.approx(dist if j == 0 else 0, abs=1e-9)
-        assert np.all(np.diff(th) * sign >= -1e-12)          # monotonic move
+        assert np.all(np.diff(th) * sign >= -1e-12)  # monotonic move
         _t, load = line(f5, f'load:{j}').get_data()
         before = (t - j * dur) < t_load - 1e-6
         assert np.all(load[before] == 0)
@@ -193,11 +215,27 @@ def test_csv_round_trip(runs, tmp_path):
     back = read_csv(path)
     with open(path) as f:
         assert f.readline().strip().split(',') == list(CSV_COLUMNS)
-    for rec, row in zip(results(run), back):
+    for rec, row in zip(results(run), back, strict=True):
         assert row['run'] == 'spsa' and row['bag'] == 'bag_0'
-        for k in ('kind', 'eval', 'attempt', 'status', 'loss', 'aborted', 'reason', 'fault',
-                  'experiment_id', 'direction', 'steps', 'trip_step', 't_start_ns',
-                  't_end_ns', 'sim_s', 'wall_s', 'time'):
+        for k in (
+            'kind',
+            'eval',
+            'attempt',
+            'status',
+            'loss',
+            'aborted',
+            'reason',
+            'fault',
+            'experiment_id',
+            'direction',
+            'steps',
+            'trip_step',
+            't_start_ns',
+            't_end_ns',
+            'sim_s',
+            'wall_s',
+            'time',
+        ):
             want = rec[k] if rec[k] != '' else None
             assert row[k] == want, k
         assert [row['term1'], row['term2'], row['term3']] == rec['terms']
@@ -215,11 +253,15 @@ def test_several_runs_overlaid(runs, tmp_path):
     assert proc.stdout.count('\nrun ') + proc.stdout.startswith('run ') == 2
     rrs = [load_run(runs['spsa'][0], 'spsa'), load_run(runs['necga'][0], 'necga')]
     figs = make_figures(rrs)
-    gids = {ln.get_gid() for f in figs.values() for ax in f.axes for ln in ax.get_lines()
-            if ln.get_gid()}
+    gids = {
+        ln.get_gid()
+        for f in figs.values()
+        for ax in f.axes
+        for ln in ax.get_lines()
+        if ln.get_gid()
+    }
     for label in ('spsa', 'necga'):
-        assert {f'best:{label}', f'loss:{label}', f'k_pw:{label}',
-                f'e_theta:best:{label}'} <= gids
+        assert {f'best:{label}', f'loss:{label}', f'k_pw:{label}', f'e_theta:best:{label}'} <= gids
     # both runs start from the same hand-tuned gains: one start curve, not two
     assert sum(g.startswith('e_theta:start:') for g in gids) == 1
 
@@ -236,7 +278,7 @@ def test_interrupted_run_is_reported_from_what_it_left(runs, tmp_path):
     keep = 7
     (run / 'results.jsonl').write_text(''.join(lines[:keep]) + lines[keep][:40])
     (mcap,) = (run / 'bag_0').glob('*.mcap')
-    mcap.write_bytes(mcap.read_bytes()[:mcap.stat().st_size // 2])
+    mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size // 2])
     meta_path = run / 'bag_0' / 'metadata.yaml'
     meta = yaml.safe_load(meta_path.read_text())
     meta['rosbag2_bagfile_information']['custom_data'] = {'im_tuner.state': 'recording'}
@@ -245,7 +287,7 @@ def test_interrupted_run_is_reported_from_what_it_left(runs, tmp_path):
     proc = run_cmd('report', str(run))
     assert proc.returncode == 0, proc.stderr[-3000:]
     after = {k: v for k, v in tree_hashes(run).items() if not k.startswith('report/')}
-    assert after == before     # the torn line and the cut bag are left as they were
+    assert after == before  # the torn line and the cut bag are left as they were
     out = proc.stdout
     assert 'outcome: interrupted' in out and f'{keep - 1}/{BUDGET} evaluations' in out
     assert 'NOT CLOSED' in out and 'not known (bag not closed by the recorder)' in out
@@ -259,11 +301,14 @@ def test_interrupted_run_is_reported_from_what_it_left(runs, tmp_path):
     assert c['differ'] == 0 and c['matched'] >= 1 and c['matched'] + c['missing'] == keep
 
 
-@pytest.mark.parametrize('make, expect', [
-    (lambda d: d / 'nothing_here', 'not a directory'),
-    (lambda d: (d / 'empty').mkdir() or d / 'empty', 'not a tuning run (no run.yaml)'),
-    (lambda d: (d / 'file.txt').write_text('x') and d / 'file.txt', 'not a directory'),
-])
+@pytest.mark.parametrize(
+    'make, expect',
+    [
+        (lambda d: d / 'nothing_here', 'not a directory'),
+        (lambda d: (d / 'empty').mkdir() or d / 'empty', 'not a tuning run (no run.yaml)'),
+        (lambda d: (d / 'file.txt').write_text('x') and d / 'file.txt', 'not a directory'),
+    ],
+)
 def test_not_a_run_one_line_exit_2(tmp_path, make, expect):
     target = make(tmp_path)
     before = sorted(p.name for p in tmp_path.rglob('*'))
@@ -276,10 +321,12 @@ def test_not_a_run_one_line_exit_2(tmp_path, make, expect):
 
 def test_a_bag_directory_is_not_a_run_and_bad_options_are_refused(runs, tmp_path):
     run, _ = runs['necga']
-    for args, expect in (([str(run / 'bag_0')], 'not a tuning run'),
-                         ([], 'the following arguments are required: RUN_DIR'),
-                         ([str(run), '--plots'], 'unrecognized arguments: --plots'),
-                         ([str(run), '--out', str(run / 'run.yaml')], 'is not a directory')):
+    for args, expect in (
+        ([str(run / 'bag_0')], 'not a tuning run'),
+        ([], 'the following arguments are required: RUN_DIR'),
+        ([str(run), '--plots'], 'unrecognized arguments: --plots'),
+        ([str(run), '--out', str(run / 'run.yaml')], 'is not a directory'),
+    ):
         proc = run_cmd('report', *args)
         assert proc.returncode == 2 and proc.stderr.count('\n') == 1, proc.stderr
         assert expect in proc.stderr, proc.stderr

@@ -7,6 +7,7 @@ except one that goes through ``source .venv/bin/activate``. Behaviour of ``ros2 
 throwaway ament prefixes built in ``tmp_path``; the hand-over to a real ``ros2cli`` is
 checked with a fake ``ros2cli`` module on ``PYTHONPATH``.
 """
+
 from __future__ import annotations
 
 import os
@@ -32,6 +33,7 @@ def _ros2_installed():
 
 # ---------------------------------------------------------------------------- helpers
 
+
 def plain_env(tmp_path: Path, **extra: str) -> dict[str, str]:
     """A plain shell's environment: nothing of the venv or of ROS, HOME in tmp."""
     home = tmp_path / 'home'
@@ -42,8 +44,9 @@ def plain_env(tmp_path: Path, **extra: str) -> dict[str, str]:
 
 
 def ros2(args: list[str], env: dict[str, str], cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([str(ROS2), *args], env=env, cwd=cwd, capture_output=True,
-                          text=True, timeout=TIMEOUT)
+    return subprocess.run(
+        [str(ROS2), *args], env=env, cwd=cwd, capture_output=True, text=True, timeout=TIMEOUT
+    )
 
 
 def lines(text: str) -> list[str]:
@@ -79,16 +82,20 @@ def fake_prefix(root: Path, pkg: str = 'fakepkg', who: str = 'A') -> Path:
 
 
 def field(out: str, key: str) -> list[str]:
-    return [line[len(key) + 1:] for line in out.splitlines() if line.startswith(key + ':')]
+    return [line[len(key) + 1 :] for line in out.splitlines() if line.startswith(key + ':')]
 
 
 def source_executables(pkg: str) -> list[str]:
     scripts = REPO / 'src' / pkg / 'scripts'
-    return sorted(p.name for p in scripts.iterdir()
-                  if p.is_file() and not p.name.startswith('.')) if scripts.is_dir() else []
+    return (
+        sorted(p.name for p in scripts.iterdir() if p.is_file() and not p.name.startswith('.'))
+        if scripts.is_dir()
+        else []
+    )
 
 
 # ------------------------------------------------------------------ ros2 pkg executables
+
 
 def test_pkg_executables_lists_drive_sim(tmp_path):
     res = ros2(['pkg', 'executables'], plain_env(tmp_path), tmp_path)
@@ -106,8 +113,7 @@ def test_pkg_executables_of_one_package(tmp_path, pkg):
 
 
 def test_pkg_executables_full_path(tmp_path):
-    res = ros2(['pkg', 'executables', 'im_drive_sim', '--full-path'], plain_env(tmp_path),
-               tmp_path)
+    res = ros2(['pkg', 'executables', 'im_drive_sim', '--full-path'], plain_env(tmp_path), tmp_path)
     assert res.returncode == 0, res.stderr
     paths = [Path(line) for line in lines(res.stdout)]
     assert paths, res.stdout
@@ -118,8 +124,9 @@ def test_pkg_executables_full_path(tmp_path):
     assert 'drive_sim' in [p.name for p in paths]
 
 
-@pytest.mark.parametrize('args', [['pkg', 'executables', 'x'], ['pkg', 'prefix', 'x'],
-                                  ['run', 'x', 'drive_sim']])
+@pytest.mark.parametrize(
+    'args', [['pkg', 'executables', 'x'], ['pkg', 'prefix', 'x'], ['run', 'x', 'drive_sim']]
+)
 def test_unknown_package(tmp_path, args):
     res = ros2(args, plain_env(tmp_path), tmp_path)
     assert res.returncode != 0
@@ -143,12 +150,16 @@ def test_pkg_prefix_is_the_venv(tmp_path):
 
 # ----------------------------------------------------------------- verbs and usage errors
 
-@pytest.mark.parametrize('args,provider', [
-    (['topic', 'list'], 'ros2topic'),
-    (['bag', 'record', '-a'], 'ros2bag'),
-    (['launch', 'im_tuner', 'x.launch.py'], 'ros2launch'),
-    (['param', 'list'], 'ros2param'),
-])
+
+@pytest.mark.parametrize(
+    'args,provider',
+    [
+        (['topic', 'list'], 'ros2topic'),
+        (['bag', 'record', '-a'], 'ros2bag'),
+        (['launch', 'im_tuner', 'x.launch.py'], 'ros2launch'),
+        (['param', 'list'], 'ros2param'),
+    ],
+)
 def test_missing_verb_names_its_package(tmp_path, args, provider):
     res = ros2(args, plain_env(tmp_path), tmp_path)
     assert res.returncode != 0
@@ -180,29 +191,57 @@ def test_no_arguments_prints_usage(tmp_path):
 
 # ------------------------------------------------------------------------- activation
 
+
 def test_works_after_activation(tmp_path):
     bash = shutil.which('bash')
     assert bash, 'bash is needed for this test'
-    script = ('source .venv/bin/activate && command -v ros2 && '
-              'printf "AMENT:%s\\n" "$AMENT_PREFIX_PATH" && ros2 pkg executables im_drive_sim')
-    res = subprocess.run([bash, '-c', script], env=plain_env(tmp_path), cwd=REPO,
-                         capture_output=True, text=True, timeout=TIMEOUT)
+    script = (
+        'source .venv/bin/activate && command -v ros2 && '
+        'printf "AMENT:%s\\n" "$AMENT_PREFIX_PATH" && ros2 pkg executables im_drive_sim'
+    )
+    res = subprocess.run(
+        [bash, '-c', script],
+        env=plain_env(tmp_path),
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT,
+    )
     assert res.returncode == 0, res.stderr
     out = res.stdout.splitlines()
     assert Path(out[0]).resolve() == ROS2.resolve()
     assert Path(field(res.stdout, 'AMENT')[0].split(':')[0]).resolve() == VENV.resolve()
-    assert lines('\n'.join(out[2:])) == [f'im_drive_sim {e}'
-                                         for e in source_executables('im_drive_sim')]
+    assert lines('\n'.join(out[2:])) == [
+        f'im_drive_sim {e}' for e in source_executables('im_drive_sim')
+    ]
 
 
 # ----------------------------------------------- ros2 run against a fake ament prefix
 
+
 def test_run_passes_arguments_and_ros_args_through(tmp_path):
     prefix = fake_prefix(tmp_path / 'pfx A')  # a space in the path on purpose
-    args = ['a', 'b c', '', '--flag', '-x=1', '--ros-args', '-p', 'gain:=0.5',
-            '-r', '__node:=n1', '--params-file', 'p.yaml', '--', 'tail']
-    res = ros2(['run', 'fakepkg', 'echo_args', *args],
-               plain_env(tmp_path, AMENT_PREFIX_PATH=str(prefix)), tmp_path)
+    args = [
+        'a',
+        'b c',
+        '',
+        '--flag',
+        '-x=1',
+        '--ros-args',
+        '-p',
+        'gain:=0.5',
+        '-r',
+        '__node:=n1',
+        '--params-file',
+        'p.yaml',
+        '--',
+        'tail',
+    ]
+    res = ros2(
+        ['run', 'fakepkg', 'echo_args', *args],
+        plain_env(tmp_path, AMENT_PREFIX_PATH=str(prefix)),
+        tmp_path,
+    )
     assert res.returncode == 0, res.stderr
     assert field(res.stdout, 'ARG') == args
     assert field(res.stdout, 'FOO') == ['unset']
@@ -214,8 +253,9 @@ def test_run_passes_arguments_and_ros_args_through(tmp_path):
 
 def test_run_propagates_exit_code(tmp_path):
     prefix = fake_prefix(tmp_path / 'pfx')
-    res = ros2(['run', 'fakepkg', 'exit3'],
-               plain_env(tmp_path, AMENT_PREFIX_PATH=str(prefix)), tmp_path)
+    res = ros2(
+        ['run', 'fakepkg', 'exit3'], plain_env(tmp_path, AMENT_PREFIX_PATH=str(prefix)), tmp_path
+    )
     assert res.returncode == 3
 
 
@@ -230,15 +270,21 @@ def test_run_ignores_non_executable_files(tmp_path):
     assert lines(res.stdout) == ['fakepkg echo_args', 'fakepkg exit3']
 
 
-@pytest.mark.parametrize('prefix_args,expected', [
-    (['--prefix', 'env FOO=1'], '1'),
-    (['--prefix=env FOO=2'], '2'),
-    (['--prefix', "env 'FOO=with space'"], 'with space'),
-])
+@pytest.mark.parametrize(
+    'prefix_args,expected',
+    [
+        (['--prefix', 'env FOO=1'], '1'),
+        (['--prefix=env FOO=2'], '2'),
+        (['--prefix', "env 'FOO=with space'"], 'with space'),
+    ],
+)
 def test_run_prefix_command(tmp_path, prefix_args, expected):
     prefix = fake_prefix(tmp_path / 'pfx')
-    res = ros2(['run', *prefix_args, 'fakepkg', 'echo_args', 'x', '--ros-args', '-p', 'a:=1'],
-               plain_env(tmp_path, AMENT_PREFIX_PATH=str(prefix)), tmp_path)
+    res = ros2(
+        ['run', *prefix_args, 'fakepkg', 'echo_args', 'x', '--ros-args', '-p', 'a:=1'],
+        plain_env(tmp_path, AMENT_PREFIX_PATH=str(prefix)),
+        tmp_path,
+    )
     assert res.returncode == 0, res.stderr
     assert field(res.stdout, 'FOO') == [expected]
     assert field(res.stdout, 'ARG') == ['x', '--ros-args', '-p', 'a:=1']
@@ -273,30 +319,35 @@ def test_overlay_prefix_shadows_the_venv(tmp_path):
 
 # ---------------------------------------------------------- hand-over to the real ros2cli
 
+
 def test_hands_over_to_ros2cli_when_importable(tmp_path):
     fake = tmp_path / 'fake_site' / 'ros2cli'
     fake.mkdir(parents=True)
     (fake / '__init__.py').write_text('')
     (fake / 'cli.py').write_text(
-        'import sys\n\n\ndef main():\n'
-        '    print("FAKE-ROS2CLI", repr(sys.argv))\n'
-        '    return 7\n')
+        'import sys\n\n\ndef main():\n    print("FAKE-ROS2CLI", repr(sys.argv))\n    return 7\n'
+    )
     env = plain_env(tmp_path, PYTHONPATH=str(tmp_path / 'fake_site'))
-    for args in (['topic', 'list'],
-                 ['run', 'im_drive_sim', 'drive_sim', 'a b', '--ros-args', '-p', 'x:=1'],
-                 []):
+    for args in (
+        ['topic', 'list'],
+        ['run', 'im_drive_sim', 'drive_sim', 'a b', '--ros-args', '-p', 'x:=1'],
+        [],
+    ):
         res = ros2(args, env, tmp_path)
         assert res.returncode == 7, res.stderr
-        assert res.stdout.strip() == f"FAKE-ROS2CLI {['ros2', *args]!r}"
+        assert res.stdout.strip() == f'FAKE-ROS2CLI {["ros2", *args]!r}'
 
 
 # --------------------------------------------------------------------- the real node
 
+
 def test_drive_sim_help_starts_and_exits_0(tmp_path):
     node = REPO / 'src' / 'im_drive_sim' / 'im_drive_sim' / 'drive_sim_node.py'
-    env = plain_env(tmp_path, ROS_DOMAIN_ID=ROS_DOMAIN_ID,
-                    ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    env = plain_env(
+        tmp_path, ROS_DOMAIN_ID=ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST'
+    )
     res = ros2(['run', 'im_drive_sim', 'drive_sim', '--help'], env, tmp_path)
     assert res.returncode == 0, (
-        f'{node} missing (the node has not landed yet)' if not node.is_file() else res.stderr)
+        f'{node} missing (the node has not landed yet)' if not node.is_file() else res.stderr
+    )
     assert 'usage' in res.stdout.lower()

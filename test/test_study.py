@@ -8,6 +8,7 @@
 * The command writes its tables (paper values beside), CSV, figures, markdown; ``--from``
   re-tabulates without new experiments; bad input: one line, exit 2, nothing written.
 """
+
 from __future__ import annotations
 
 import csv
@@ -29,8 +30,9 @@ START_LOSS = 0.9803040260343194  # experiment 0 of the hand-tuned start (test_co
 
 
 def study(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([ROS2, 'run', 'im_tuner', 'study', *args], capture_output=True,
-                          text=True, timeout=timeout)
+    return subprocess.run(
+        [ROS2, 'run', 'im_tuner', 'study', *args], capture_output=True, text=True, timeout=timeout
+    )
 
 
 def results(run: Path) -> list[dict]:
@@ -50,14 +52,25 @@ def run_tuner(command: str, run: Path) -> list[dict]:
     """Run a study's tuner command (through the ROS nodes) into ``run``; its records."""
     cmd = shlex.split(command)
     assert cmd[:4] == ['ros2', 'run', 'im_tuner', 'tuner']
-    proc = subprocess.run([ROS2, *cmd[1:], '--out', str(run), '--quiet'],
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [ROS2, *cmd[1:], '--out', str(run), '--quiet'], capture_output=True, text=True, timeout=300
+    )
     assert proc.returncode == 0, proc.stderr
     return [x for x in results(run) if x['status'] != 'lost']
 
 
-def assert_same_run(recs: list[dict], *, budget: int, ref_loss: float, start, losses,
-                    aborted, faults, best_eval: int, remeasured: float) -> None:
+def assert_same_run(
+    recs: list[dict],
+    *,
+    budget: int,
+    ref_loss: float,
+    start,
+    losses,
+    aborted,
+    faults,
+    best_eval: int,
+    remeasured: float,
+) -> None:
     """The tuner's records equal the study's run bit for bit."""
     ref = [x for x in recs if x['kind'] == 'reference']
     evals = [x for x in recs if x['kind'] == 'eval']
@@ -68,7 +81,7 @@ def assert_same_run(recs: list[dict], *, budget: int, ref_loss: float, start, lo
     assert [x['loss'] for x in evals] == list(losses)
     assert [x['aborted'] for x in evals] == list(aborted)
     assert [x['fault'] for x in evals] == list(faults)
-    if best_eval >= 0:   # (a run in which everything was aborted has nothing to re-measure)
+    if best_eval >= 0:  # (a run in which everything was aborted has nothing to re-measure)
         assert rem[0]['eval'] == best_eval and rem[0]['loss'] == remeasured
 
 
@@ -87,10 +100,17 @@ def test_study_runs_through_the_ros_nodes_give_the_same_losses(small, tmp_path):
     for row in pick:
         c, r = cells[row['config']], int(row['run'])
         recs = run_tuner(row['tuner_command'], tmp_path / f'{row["algo"]}_{r}')
-        assert_same_run(recs, budget=res.spec.budget, ref_loss=res.ref_loss[c, r],
-                        start=res.start[c, r], losses=res.losses[c, r].tolist(),
-                        aborted=res.aborted[c, r].tolist(), faults=res.faults[c, r].tolist(),
-                        best_eval=res.best_eval[c, r], remeasured=res.remeasured[c, r])
+        assert_same_run(
+            recs,
+            budget=res.spec.budget,
+            ref_loss=res.ref_loss[c, r],
+            start=res.start[c, r],
+            losses=res.losses[c, r].tolist(),
+            aborted=res.aborted[c, r].tolist(),
+            faults=res.faults[c, r].tolist(),
+            best_eval=res.best_eval[c, r],
+            remeasured=res.remeasured[c, r],
+        )
         sampled_aborts += int(res.aborted[c, r].sum())
     # the sample exercises the supervisor's stop and the fallback's finishing move
     assert sampled_aborts >= 1
@@ -105,25 +125,41 @@ def test_a_run_with_a_safety_fault_through_the_ros_nodes(tmp_path):
     run = S.run_one(spec, c, 53)
     assert run.faults.any(), 'this sample no longer has a safety fault: pick another'
     params = spec.params()
-    box = {n: {'lo': lo, 'hi': hi, 'start': s} for n, lo, hi, s in
-           zip(('k_pw', 'k_iw', 'k_pos', 'tau_sm', 'tau_eq'), params.space.lo, params.space.hi,
-               run.start)}
+    box = {
+        n: {'lo': lo, 'hi': hi, 'start': s}
+        for n, lo, hi, s in zip(
+            ('k_pw', 'k_iw', 'k_pos', 'tau_sm', 'tau_eq'),
+            params.space.lo,
+            params.space.hi,
+            run.start,
+            strict=True,
+        )
+    }
     pfile = tmp_path / 'start.yaml'
     pfile.write_text(json.dumps({'search_box': box, 'satisfactory_loss': 1.0}))  # JSON is YAML
     opts = spec.cells[c].opts
-    cmd = (f'ros2 run im_tuner tuner --algo spsa --a {opts["a"]!r} --c {opts["c"]!r} '
-           f'--seed {run.run_seed} --budget {spec.budget} --model full --remeasure 1 '
-           f'--params {pfile}')
+    cmd = (
+        f'ros2 run im_tuner tuner --algo spsa --a {opts["a"]!r} --c {opts["c"]!r} '
+        f'--seed {run.run_seed} --budget {spec.budget} --model full --remeasure 1 '
+        f'--params {pfile}'
+    )
     recs = run_tuner(cmd, tmp_path / 'run')
-    assert_same_run(recs, budget=spec.budget, ref_loss=run.ref_loss, start=run.start,
-                    losses=run.losses.tolist(), aborted=run.aborted.tolist(),
-                    faults=run.faults.tolist(), best_eval=run.best_eval,
-                    remeasured=run.remeasured)
+    assert_same_run(
+        recs,
+        budget=spec.budget,
+        ref_loss=run.ref_loss,
+        start=run.start,
+        losses=run.losses.tolist(),
+        aborted=run.aborted.tolist(),
+        faults=run.faults.tolist(),
+        best_eval=run.best_eval,
+        remeasured=run.remeasured,
+    )
 
 
 def test_results_do_not_depend_on_the_number_of_workers(small):
     out, _ = small
-    via_cli = S.load(out)                      # 2 workers
+    via_cli = S.load(out)  # 2 workers
     spec = S.StudySpec(runs=2, budget=8)
     one = S.run_study(spec, jobs=1)
     for name in S.StudyResult.ARRAYS:
@@ -139,11 +175,11 @@ def test_tables_are_identical_for_any_number_of_workers(tmp_path):
     files = {}
     for jobs in ('1', '2'):
         out = tmp_path / f'jobs{jobs}'
-        proc = study('--runs', '2', '--budget', '4', '--jobs', jobs, '--out', str(out),
-                     '--quiet')
+        proc = study('--runs', '2', '--budget', '4', '--jobs', jobs, '--out', str(out), '--quiet')
         assert proc.returncode == 0, proc.stderr
-        files[jobs] = {n: (out / n).read_text().replace(str(out), 'OUT')
-                       for n in ('tables.csv', 'runs.csv')}
+        files[jobs] = {
+            n: (out / n).read_text().replace(str(out), 'OUT') for n in ('tables.csv', 'runs.csv')
+        }
     assert files['1'] == files['2']
 
 
@@ -167,34 +203,48 @@ def test_seeds_starts_and_the_normalisation(small):
 
 def test_outputs_tables_figures_and_paper_values(small):
     out, proc = small
-    for name in ('tables.txt', 'tables.csv', 'runs.csv', 'tables.png', 'convergence.png',
-                 'reproduction.md', 'study.npz', 'study.json', 'starts/run_000.yaml'):
+    for name in (
+        'tables.txt',
+        'tables.csv',
+        'runs.csv',
+        'tables.png',
+        'convergence.png',
+        'reproduction.md',
+        'study.npz',
+        'study.json',
+        'starts/run_000.yaml',
+    ):
         assert (out / name).is_file(), name
     text = proc.stdout
     assert text.startswith((out / 'tables.txt').read_text())
     for title in ('Table I', 'Table II', 'Table III'):
         assert title in text
-    assert '| 0.70' in text and '| 92' in text      # the paper's n=25 values beside ours
+    assert '| 0.70' in text and '| 92' in text  # the paper's n=25 values beside ours
     assert "The paper's conclusions in simulation" in text
     # tables.csv carries the paper's value of every cell
     rows = list(csv.DictReader((out / 'tables.csv').open()))
-    final = {(r['algo'], int(r['row']), int(r['col'])): float(r['paper'])
-             for r in rows if r['statistic'] == 'final'}
+    final = {
+        (r['algo'], int(r['row']), int(r['col'])): float(r['paper'])
+        for r in rows
+        if r['statistic'] == 'final'
+    }
     assert final == PAPER['final']
     # the figure shows the paper's values and ours
     from im_tuner.study_cli import fig_tables
     from im_tuner.study_stats import compute
+
     st = compute(S.load(out))
     fig = fig_tables(st)
     ax = fig.axes[0]
     paper = next(ln for ln in ax.lines if ln.get_gid() == 'paper:final')
-    np.testing.assert_array_equal(paper.get_ydata(),
-                                  [PAPER['final'][(c.algo, c.row, c.col)] for c in st.res.cells])
+    np.testing.assert_array_equal(
+        paper.get_ydata(), [PAPER['final'][(c.algo, c.row, c.col)] for c in st.res.cells]
+    )
     ours = [c.final.value for c in st.cells]
     heights = [b.get_height() for b in ax.containers[0]]
     np.testing.assert_allclose(heights, np.nan_to_num(ours))
     md = (out / 'reproduction.md').read_text()
-    assert '## Which of the paper\'s conclusions hold in simulation' in md
+    assert "## Which of the paper's conclusions hold in simulation" in md
 
 
 def test_from_retabulates_without_new_experiments(small, tmp_path):
@@ -206,30 +256,37 @@ def test_from_retabulates_without_new_experiments(small, tmp_path):
     assert hashlib.sha256((out / 'study.npz').read_bytes()).hexdigest() == h
     strict = list(csv.DictReader((out / 'tables.csv').open()))
     loose = list(csv.DictReader((dst / 'tables.csv').open()))
-    pct = lambda rows: [float(r['value']) for r in rows if r['statistic'] == 'satisfactory']
-    assert all(b >= a for a, b in zip(pct(strict), pct(loose)))
+
+    def pct(rows):
+        return [float(r['value']) for r in rows if r['statistic'] == 'satisfactory']
+
+    assert all(b >= a for a, b in zip(pct(strict), pct(loose), strict=True))
     assert sum(pct(loose)) > sum(pct(strict))
     assert {r['threshold'] for r in loose} == {'1.5'}
 
 
-@pytest.mark.parametrize('args, expect', [
-    (['--runs', '0'], '--runs must be an integer >= 1'),
-    (['--budget', '-3'], '--budget must be an integer >= 1'),
-    (['--algos', 'spsa,foo'], "no study grid for 'foo'"),
-    (['--jobs', '0'], 'argument --jobs: must be >= 1, got 0'),
-    (['--model', 'exact'], "invalid choice: 'exact'"),
-    (['--satisfactory', '-1'], '--satisfactory must be a normalised loss > 0'),
-    (['--seed', '-2'], '--seed must be an integer >= 0'),
-    (['--from', '/nonexistent/study'], 'not a study directory'),
-    (['--params', '/nonexistent.yaml'], 'cannot read'),
-])
+@pytest.mark.parametrize(
+    'args, expect',
+    [
+        (['--runs', '0'], '--runs must be an integer >= 1'),
+        (['--budget', '-3'], '--budget must be an integer >= 1'),
+        (['--algos', 'spsa,foo'], "no study grid for 'foo'"),
+        (['--jobs', '0'], 'argument --jobs: must be >= 1, got 0'),
+        (['--model', 'exact'], "invalid choice: 'exact'"),
+        (['--satisfactory', '-1'], '--satisfactory must be a normalised loss > 0'),
+        (['--seed', '-2'], '--seed must be an integer >= 0'),
+        (['--from', '/nonexistent/study'], 'not a study directory'),
+        (['--params', '/nonexistent.yaml'], 'cannot read'),
+    ],
+)
 def test_bad_input_one_line_exit_2_nothing_written(tmp_path, args, expect):
     out = tmp_path / 'never'
     proc = study(*args, '--out', str(out), timeout=60)
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith('error: study: ') and expect in lines[0], \
+    assert len(lines) == 1 and lines[0].startswith('error: study: ') and expect in lines[0], (
         proc.stderr
+    )
     assert not out.exists()
 
 

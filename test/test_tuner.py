@@ -5,6 +5,7 @@ checked against what the bag recorded; resume after SIGKILL equals an uninterrup
 bit for bit; bad input and a missing controller give one clear line.  The full default
 run (200 evaluations) is ``make bench``'s, not the tests'.
 """
+
 from __future__ import annotations
 
 import collections
@@ -26,13 +27,18 @@ START_LOSS = 0.9803040260343194  # experiment 0 of the hand-tuned start (test_co
 
 
 def tuner(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([ROS2, 'run', 'im_tuner', 'tuner', *args], capture_output=True,
-                          text=True, timeout=timeout)
+    return subprocess.run(
+        [ROS2, 'run', 'im_tuner', 'tuner', *args], capture_output=True, text=True, timeout=timeout
+    )
 
 
 def report(run: Path, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([ROS2, 'run', 'im_tuner', 'report', str(run), *args],
-                          capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [ROS2, 'run', 'im_tuner', 'report', str(run), *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def results(run: Path) -> list[dict]:
@@ -44,6 +50,7 @@ def bag_messages(bag: Path, topics: set[str]) -> dict[str, list]:
     from the bag's own schemas)."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
+
     out: dict[str, list] = collections.defaultdict(list)
     with AnyReader([bag], default_typestore=get_typestore(Stores.EMPTY)) as reader:
         conns = [c for c in reader.connections if c.topic in topics]
@@ -75,7 +82,7 @@ def check_run(run: Path, algo: str, budget: int, proc: subprocess.CompletedProce
     evals = [r for r in recs if r['kind'] == 'eval']
     box = run_yaml['search_box']
     for r in evals:  # candidates inside the box, the gains are the box map of u
-        for n, u in zip(GAINS, r['u']):
+        for n, u in zip(GAINS, r['u'], strict=True):
             lo, hi = box[n]['lo'], box[n]['hi']
             assert 0.0 <= u <= 1.0
             assert r['gains'][n] == lo + (hi - lo) * u
@@ -84,14 +91,19 @@ def check_run(run: Path, algo: str, budget: int, proc: subprocess.CompletedProce
     best = min(ok, key=lambda r: r['loss'])
     # best-so-far column is the running minimum over non-aborted evaluations
     running = np.minimum.accumulate([r['loss'] if not r['aborted'] else np.inf for r in evals])
-    assert [r['best_loss'] for r in evals] == [None if not np.isfinite(x) else x
-                                               for x in running]
+    assert [r['best_loss'] for r in evals] == [None if not np.isfinite(x) else x for x in running]
     summary = json.loads((run / 'summary.json').read_text())
     assert summary['outcome'] == 'done' and summary['evaluations'] == budget
     assert summary['best']['loss'] == best['loss'] and summary['best']['eval'] == best['eval']
     assert summary['aborted'] == sum(r['aborted'] for r in evals)
-    sat = next((i + 1 for i, r in enumerate(evals)
-                if not r['aborted'] and r['loss'] <= run_yaml['satisfactory_loss']), None)
+    sat = next(
+        (
+            i + 1
+            for i, r in enumerate(evals)
+            if not r['aborted'] and r['loss'] <= run_yaml['satisfactory_loss']
+        ),
+        None,
+    )
     assert summary['evaluations_to_satisfactory'] == sat
     rem = [r for r in recs if r['kind'] == 'remeasure']
     top = sorted(ok, key=lambda r: r['loss'])
@@ -121,7 +133,7 @@ def check_run(run: Path, algo: str, budget: int, proc: subprocess.CompletedProce
     losses = [loss_values(m) for m in msgs['/controller/loss']]
     assert [float(v['loss']) for v in losses] == [r['loss'] for r in recs]
     assert [int(v['experiment_id']) for v in losses] == [r['experiment_id'] for r in recs]
-    for v, r in zip(losses, recs):
+    for v, r in zip(losses, recs, strict=True):
         assert {n: float(v[n]) for n in GAINS} == r['gains']
     requests = [m.request[0] for m in msgs[ev] if len(m.request)]
     last = {p.name: p.value.double_value for p in requests[-1].parameters}
@@ -136,10 +148,15 @@ def test_spsa_short_run(tmp_path):
     evals = [r for r in recs if r['kind'] == 'eval']
     # SPSA: evaluations come in pairs u_k +- c_k Delta_k around the iterate, c_k per the
     # paper's c = 0.03, gamma = 0.3 (normalised box), Delta_k = +-1 per gain.
-    start_u = np.array([(START[n] - yaml.safe_load((run / 'run.yaml').read_text())
-                         ['search_box'][n]['lo']) /
-                        (lambda b: b['hi'] - b['lo'])(yaml.safe_load(
-                            (run / 'run.yaml').read_text())['search_box'][n]) for n in GAINS])
+    start_u = np.array(
+        [
+            (START[n] - yaml.safe_load((run / 'run.yaml').read_text())['search_box'][n]['lo'])
+            / (lambda b: b['hi'] - b['lo'])(
+                yaml.safe_load((run / 'run.yaml').read_text())['search_box'][n]
+            )
+            for n in GAINS
+        ]
+    )
     for k in range(10):
         up, um = np.array(evals[2 * k]['u']), np.array(evals[2 * k + 1]['u'])
         ck = 0.03 / (k + 1) ** 0.3
@@ -150,8 +167,7 @@ def test_spsa_short_run(tmp_path):
 
 def test_necga_short_run(tmp_path):
     run = tmp_path / 'necga_run'
-    proc = tuner('--algo', 'necga', '--budget', '20', '--seed', '4', '--out', str(run),
-                 '--quiet')
+    proc = tuner('--algo', 'necga', '--budget', '20', '--seed', '4', '--out', str(run), '--quiet')
     recs = check_run(run, 'necga', 20, proc)
     # 16-bit genes: every gain is lo + (hi - lo) v/65535 with integer v
     for r in recs:
@@ -161,10 +177,21 @@ def test_necga_short_run(tmp_path):
 
 
 def _same_evaluations(a: list[dict], b: list[dict]) -> None:
-    key = ('kind', 'eval', 'u', 'gains', 'loss', 'terms', 'aborted', 'experiment_id',
-           't_start_ns', 't_end_ns', 'best_loss')
+    key = (
+        'kind',
+        'eval',
+        'u',
+        'gains',
+        'loss',
+        'terms',
+        'aborted',
+        'experiment_id',
+        't_start_ns',
+        't_end_ns',
+        'best_loss',
+    )
     assert len(a) == len(b)
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         assert {k: x.get(k) for k in key} == {k: y.get(k) for k in key}
 
 
@@ -175,8 +202,7 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
     killed = tmp_path / 'killed'
     child = procs.start([ROS2, 'run', 'im_tuner', 'tuner', *args, '--out', str(killed)])
     res = killed / 'results.jsonl'
-    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 6, 120,
-               message='6 records')
+    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 6, 120, message='6 records')
     child.send_signal(signal.SIGKILL)
     child.wait(timeout=30)
     n_killed = res.read_text().count('\n')
@@ -188,8 +214,9 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
     rep = report(killed, '--out', str(tmp_path / 'rep_killed'))
     assert rep.returncode == 0, rep.stderr[-3000:]
     assert 'outcome: interrupted' in rep.stdout and 'bag_0: NOT CLOSED' in rep.stdout
-    assert (tmp_path / 'rep_killed' / 'evaluations.csv').read_text().count('\n') == \
-        1 + res.read_text().count('\n')
+    assert (tmp_path / 'rep_killed' / 'evaluations.csv').read_text().count(
+        '\n'
+    ) == 1 + res.read_text().count('\n')
     proc = tuner('--resume', str(killed))
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert 'replaying' in proc.stderr
@@ -200,8 +227,14 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
     _same_evaluations(results(whole), results(killed))
     sw = json.loads((whole / 'summary.json').read_text())
     sk = json.loads((killed / 'summary.json').read_text())
-    for k in ('best', 'applied', 'evaluations', 'aborted', 'evaluations_to_satisfactory',
-              'remeasured'):
+    for k in (
+        'best',
+        'applied',
+        'evaluations',
+        'aborted',
+        'evaluations_to_satisfactory',
+        'remeasured',
+    ):
         assert sw[k] == sk[k], k
     assert [s['bag'] for s in sk['sessions']] == ['bag_0', 'bag_1']
     assert sk['sessions'][1]['replayed'] == n_killed
@@ -222,22 +255,26 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
     _same_evaluations(results(whole), results(killed))
 
 
-@pytest.mark.parametrize('args, expect', [
-    (['--budget', '0'], '--budget must be >= 1'),
-    (['--algo', 'pso'], "invalid choice: 'pso'"),
-    (['--algo', 'necga', '--eta', '30'], 'eta'),
-    (['--algo', 'spsa', '--eta', '5'], '--eta does not apply to --algo spsa'),
-    (['--seed', '-1'], '--seed must be >= 0'),
-    (['--budget', 'ten'], "invalid int value: 'ten'"),
-    (['--fault-policy', 'ignore'], 'invalid choice'),
-])
+@pytest.mark.parametrize(
+    'args, expect',
+    [
+        (['--budget', '0'], '--budget must be >= 1'),
+        (['--algo', 'pso'], "invalid choice: 'pso'"),
+        (['--algo', 'necga', '--eta', '30'], 'eta'),
+        (['--algo', 'spsa', '--eta', '5'], '--eta does not apply to --algo spsa'),
+        (['--seed', '-1'], '--seed must be >= 0'),
+        (['--budget', 'ten'], "invalid int value: 'ten'"),
+        (['--fault-policy', 'ignore'], 'invalid choice'),
+    ],
+)
 def test_bad_command_line_one_line_exit_2(tmp_path, args, expect):
     out = tmp_path / 'run'
     proc = tuner(*args, '--out', str(out), timeout=60)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith('error: tuner:') and expect in lines[0], \
+    assert len(lines) == 1 and lines[0].startswith('error: tuner:') and expect in lines[0], (
         proc.stderr
+    )
     assert not out.exists()
 
 
@@ -245,10 +282,11 @@ def test_bad_files_one_line_exit_2(tmp_path):
     bad = tmp_path / 'tuner.yaml'
     bad.write_text('satisfactory_loss: 0.8\nsearch_box:\n  k_pw: {lo: 1.0, hi: 0.5, start: 0.7}\n')
     for args, expect in (
-            (['--params', str(bad)], 'search_box must have exactly'),
-            (['--params', str(tmp_path / 'missing.yaml')], 'cannot read'),
-            (['--resume', str(tmp_path)], 'not a tuning run'),
-            (['--resume', str(tmp_path), '--seed', '3'], 'do not also give --seed')):
+        (['--params', str(bad)], 'search_box must have exactly'),
+        (['--params', str(tmp_path / 'missing.yaml')], 'cannot read'),
+        (['--resume', str(tmp_path)], 'not a tuning run'),
+        (['--resume', str(tmp_path), '--seed', '3'], 'do not also give --seed'),
+    ):
         proc = tuner(*args, timeout=60)
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2 and len(lines) == 1 and expect in lines[0], proc.stderr
@@ -268,30 +306,45 @@ def test_bad_files_one_line_exit_2(tmp_path):
 
 def test_bench_none_without_controller_says_what_to_start(tmp_path):
     t0 = time.monotonic()
-    proc = tuner('--bench', 'none', '--discovery-timeout', '0.5', '--out',
-                 str(tmp_path / 'run'), timeout=60)
+    proc = tuner(
+        '--bench', 'none', '--discovery-timeout', '0.5', '--out', str(tmp_path / 'run'), timeout=60
+    )
     assert proc.returncode == 1
     assert 'no controller reachable' in proc.stderr and 'sim_bench' in proc.stderr
     assert time.monotonic() - t0 < 30
 
 
-def test_auto_uses_a_controller_already_on_the_graph(tmp_path, procs, ros_context,
-                                                     wait_until):
+def test_auto_uses_a_controller_already_on_the_graph(tmp_path, procs, ros_context, wait_until):
     """A bench already running (here the simulated one, started by hand): the tuner uses it
     and starts no simulator of its own; the external default fault policy is 'stop'."""
     from rclpy.node import Node
-    bench = procs.start([ROS2, 'run', 'im_controller', 'sim_bench', '--no-record',
-                         '--seed', '5'])
+
+    bench = procs.start([ROS2, 'run', 'im_controller', 'sim_bench', '--no-record', '--seed', '5'])
     probe = Node('probe', context=ros_context)
     try:
-        wait_until(lambda: '/controller/start_experiment' in
-                   [n for n, _ in probe.get_service_names_and_types()], 60,
-                   message='the bench controller')
+        wait_until(
+            lambda: (
+                '/controller/start_experiment'
+                in [n for n, _ in probe.get_service_names_and_types()]
+            ),
+            60,
+            message='the bench controller',
+        )
     finally:
         probe.destroy_node()
     run = tmp_path / 'ext'
-    proc = tuner('--budget', '3', '--remeasure', '0', '--seed', '1', '--out', str(run),
-                 '--discovery-timeout', '10')
+    proc = tuner(
+        '--budget',
+        '3',
+        '--remeasure',
+        '0',
+        '--seed',
+        '1',
+        '--out',
+        str(run),
+        '--discovery-timeout',
+        '10',
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     run_yaml = yaml.safe_load((run / 'run.yaml').read_text())
     assert run_yaml['bench'] == 'external' and run_yaml['fault_policy'] == 'stop'
@@ -304,11 +357,11 @@ def test_auto_uses_a_controller_already_on_the_graph(tmp_path, procs, ros_contex
 
 def test_sigint_ends_the_session_cleanly_and_resumably(tmp_path, procs, wait_until):
     run = tmp_path / 'int'
-    child = procs.start([ROS2, 'run', 'im_tuner', 'tuner', '--budget', '40', '--seed', '2',
-                         '--out', str(run)])
+    child = procs.start(
+        [ROS2, 'run', 'im_tuner', 'tuner', '--budget', '40', '--seed', '2', '--out', str(run)]
+    )
     res = run / 'results.jsonl'
-    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 4, 120,
-               message='4 records')
+    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 4, 120, message='4 records')
     child.send_signal(signal.SIGINT)
     out, err = child.communicate(timeout=60)
     assert child.returncode == 130, err[-2000:]
@@ -328,27 +381,39 @@ def test_sigint_ends_the_session_cleanly_and_resumably(tmp_path, procs, wait_unt
 def test_processes_bench(tmp_path):
     """drive_sim and controller as child processes, the recorder as a third."""
     run = tmp_path / 'procs'
-    proc = tuner('--bench', 'processes', '--budget', '2', '--remeasure', '0', '--seed', '9',
-                 '--out', str(run), '--quiet')
+    proc = tuner(
+        '--bench',
+        'processes',
+        '--budget',
+        '2',
+        '--remeasure',
+        '0',
+        '--seed',
+        '9',
+        '--out',
+        str(run),
+        '--quiet',
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     recs = results(run)
     assert [r['kind'] for r in recs] == ['reference', 'eval', 'eval']
     assert recs[0]['loss'] == START_LOSS  # same physics as in one process
     assert yaml.safe_load((run / 'run.yaml').read_text())['bench'] == 'processes'
     msgs = bag_messages(run / 'bag_0', {'/controller/loss'})
-    assert [float(loss_values(m)['loss']) for m in msgs['/controller/loss']] == \
-        [r['loss'] for r in recs]
+    assert [float(loss_values(m)['loss']) for m in msgs['/controller/loss']] == [
+        r['loss'] for r in recs
+    ]
 
 
 def test_auto_refuses_to_add_a_second_drive(tmp_path, procs, ros_context, wait_until):
     """A drive on the graph without a controller: the tuner must not start a simulated
     drive beside it (two drives on /drive/state); it says what to start instead."""
     from rclpy.node import Node
+
     procs.start([ROS2, 'run', 'im_drive_sim', 'drive_sim'])
     probe = Node('probe2', context=ros_context)
     try:
-        wait_until(lambda: probe.count_publishers('/drive/state') > 0, 60,
-                   message='the drive')
+        wait_until(lambda: probe.count_publishers('/drive/state') > 0, 60, message='the drive')
     finally:
         probe.destroy_node()
     run = tmp_path / 'run'
@@ -377,9 +442,12 @@ def test_budget_6_bag_opens_in_rosbags_anyreader_every_message_decodes(run6):
     from mcap_ros2.decoder import DecoderFactory
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
+
     bag = run6 / 'bag_0'
     meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
-    expected = {t['topic_metadata']['name']: t['message_count'] for t in meta['topics_with_message_count']}
+    expected = {
+        t['topic_metadata']['name']: t['message_count'] for t in meta['topics_with_message_count']
+    }
     decoded: collections.Counter = collections.Counter()
     with AnyReader([bag], default_typestore=get_typestore(Stores.EMPTY)) as reader:
         conns = {c.topic: c for c in reader.connections}
@@ -414,6 +482,7 @@ def test_a_corrupt_checkpoint_is_rebuilt_from_the_results(run6, tmp_path):
     """A run killed after 4 records whose checkpoint is garbage resumes from results.jsonl
     (the optimiser replayed, the plant replayed) and ends exactly as the whole run."""
     import shutil
+
     cut = tmp_path / 'cut'
     shutil.copytree(run6, cut, ignore=shutil.ignore_patterns('bag_*', 'report'))
     lines = (cut / 'results.jsonl').read_text().splitlines(keepends=True)
@@ -422,25 +491,42 @@ def test_a_corrupt_checkpoint_is_rebuilt_from_the_results(run6, tmp_path):
     (cut / 'checkpoint.json').write_bytes(b'\x00garbage{')
     proc = tuner('--resume', str(cut))
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert 'checkpoint.json: not JSON' in proc.stderr and 'rebuilt from results.jsonl' in \
-        proc.stderr
+    assert (
+        'checkpoint.json: not JSON' in proc.stderr and 'rebuilt from results.jsonl' in proc.stderr
+    )
     _same_evaluations(results(run6), results(cut))
 
 
 def test_one_tuner_per_run_directory_and_report_says_running(tmp_path, procs, wait_until):
     run = tmp_path / 'live'
-    child = procs.start([ROS2, 'run', 'im_tuner', 'tuner', '--budget', '200', '--seed', '2',
-                         '--no-record', '--quiet', '--out', str(run)])
+    child = procs.start(
+        [
+            ROS2,
+            'run',
+            'im_tuner',
+            'tuner',
+            '--budget',
+            '200',
+            '--seed',
+            '2',
+            '--no-record',
+            '--quiet',
+            '--out',
+            str(run),
+        ]
+    )
     res = run / 'results.jsonl'
-    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 2, 120,
-               message='2 records')
+    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 2, 120, message='2 records')
     before = res.read_bytes()
     second = tuner('--resume', str(run), timeout=60)
     assert second.returncode == 2
     (line,) = second.stderr.strip().splitlines()
-    assert line.startswith(f'error: tuner: --resume: {run}: in use by pid ') and \
-        'im_tuner' in line and 'tuner' in line, line
-    assert res.read_bytes()[:len(before)] == before  # nothing written by the refused one
+    assert (
+        line.startswith(f'error: tuner: --resume: {run}: in use by pid ')
+        and 'im_tuner' in line
+        and 'tuner' in line
+    ), line
+    assert res.read_bytes()[: len(before)] == before  # nothing written by the refused one
     rep = report(run, '--out', str(tmp_path / 'rep_live'))
     assert rep.returncode == 0, rep.stderr[-2000:]
     assert 'outcome: running (a tuner has it: pid ' in rep.stdout
@@ -454,6 +540,7 @@ def test_summary_names_each_sessions_drive_line_and_the_clock(run6):
     """A resumed run's summary said 'drive (this session)' for every session, and called a
     real drive's experiment time 'simulated'."""
     from im_tuner.tuner_node import format_summary
+
     s = json.loads((run6 / 'summary.json').read_text())
     run = yaml.safe_load((run6 / 'run.yaml').read_text())
     assert 'simulated experiment time' in format_summary(s, run, run6)
@@ -467,14 +554,17 @@ def test_summary_names_each_sessions_drive_line_and_the_clock(run6):
 
 
 def _tree(root: Path) -> dict[str, bytes | None]:
-    return {str(p.relative_to(root)): None if p.is_dir() else p.read_bytes()
-            for p in sorted(root.rglob('*'))}
+    return {
+        str(p.relative_to(root)): None if p.is_dir() else p.read_bytes()
+        for p in sorted(root.rglob('*'))
+    }
 
 
 def test_a_resume_whose_replay_does_not_match_changes_nothing(run6, tmp_path):
     """The replay of the plant history checks every loss bit for bit; when one differs
     the resume is refused (exit 2) and leaves no new bag behind (it left bag_N/)."""
     import shutil
+
     run = tmp_path / 'tampered'
     shutil.copytree(run6, run, ignore=shutil.ignore_patterns('bag_*', 'report'))
     lines = (run / 'results.jsonl').read_text().splitlines(keepends=True)[:4]

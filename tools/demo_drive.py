@@ -5,6 +5,7 @@ loop over DDS with a plain hand-tuned cascade (P position, PI speed) doing the p
 experiment once: a pi-rad move, a 1.75 N m load step 0.7 s after it, 1.125 s in all
 (5625 steps). Prints a summary and writes a plot and the samples to ``bags/demo_drive/``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -19,12 +20,12 @@ import numpy as np
 
 os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
 
-import rclpy  # noqa: E402
-from rclpy.node import Node  # noqa: E402
+import rclpy
+from rclpy.node import Node
 
-from im_drive_sim.client import DriveClient  # noqa: E402
-from im_drive_sim.runtime import stop_child  # noqa: E402
-from im_drive_sim.sim import STATE_FIELDS  # noqa: E402
+from im_drive_sim.client import DriveClient
+from im_drive_sim.runtime import stop_child
+from im_drive_sim.sim import STATE_FIELDS
 
 F = {name: i for i, name in enumerate(STATE_FIELDS)}
 TS = 200e-6
@@ -32,20 +33,19 @@ STEPS = 5625
 ISQ_MAX = 7.0
 
 
-def reference(t: float, a_max: float = 600.0, w_max: float = 40.0,
-              dist: float = math.pi) -> float:
+def reference(t: float, a_max: float = 600.0, w_max: float = 40.0, dist: float = math.pi) -> float:
     """Minimum-time (trapezoidal-speed) position reference for a move of ``dist`` rad."""
     t_acc = w_max / a_max
-    if a_max * t_acc ** 2 > dist:  # triangular profile
+    if a_max * t_acc**2 > dist:  # triangular profile
         t_acc = math.sqrt(dist / a_max)
         w_max = a_max * t_acc
-    t_flat = (dist - a_max * t_acc ** 2) / w_max
+    t_flat = (dist - a_max * t_acc**2) / w_max
     if t <= 0:
         return 0.0
     if t < t_acc:
         return 0.5 * a_max * t * t
     if t < t_acc + t_flat:
-        return 0.5 * a_max * t_acc ** 2 + w_max * (t - t_acc)
+        return 0.5 * a_max * t_acc**2 + w_max * (t - t_acc)
     if t < 2 * t_acc + t_flat:
         td = 2 * t_acc + t_flat - t
         return dist - 0.5 * a_max * td * td
@@ -61,8 +61,9 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
 
     ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
-    drive = subprocess.Popen([ros2, 'run', 'im_drive_sim', 'drive_sim', '--model', args.model,
-                              '--max-steps', str(STEPS)])
+    drive = subprocess.Popen(
+        [ros2, 'run', 'im_drive_sim', 'drive_sim', '--model', args.model, '--max-steps', str(STEPS)]
+    )
     rclpy.init()
     node = Node('demo_controller')
     client = DriveClient(node)
@@ -89,14 +90,17 @@ def main() -> int:
                 integ += ki_w * TS * err
             isq = max(-ISQ_MAX, min(ISQ_MAX, isq))
             load = 1.75 if t >= 0.7 else 0.0
-            log[k, :len(STATE_FIELDS)] = s
+            log[k, : len(STATE_FIELDS)] = s
             log[k, -2:] = theta_ref, isq
             if k >= STEPS:
                 break
             client.command(k, isq, load)
             if k % 1125 == 0:
-                print(f'  t = {t:5.3f} s  theta = {s[F["theta_meas"]]:+.4f} rad  '
-                      f'ref = {theta_ref:+.4f} rad  isq* = {isq:+.2f} A', flush=True)
+                print(
+                    f'  t = {t:5.3f} s  theta = {s[F["theta_meas"]]:+.4f} rad  '
+                    f'ref = {theta_ref:+.4f} rad  isq* = {isq:+.2f} A',
+                    flush=True,
+                )
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
@@ -106,17 +110,28 @@ def main() -> int:
             stop_child(drive)
     wall = time.perf_counter() - t_wall
     e = log[:, -2] - log[:, F['theta']]
-    print(f'\nexperiment: {STEPS} steps ({STEPS * TS:.3f} s sim) in {wall:.2f} s wall '
-          f'(real-time factor {STEPS * TS / wall:.2f})')
-    print(f'final position {log[-1, F["theta"]]:.4f} rad (ref {math.pi:.4f}), '
-          f'max |error| {np.abs(e).max():.4f} rad, '
-          f'integral |error| {np.abs(e).sum() * TS:.5f} rad s')
-    np.savetxt(out / 'samples.csv', log, delimiter=',',
-               header=','.join([*STATE_FIELDS, 'theta_ref', 'isq_ref']), comments='')
+    print(
+        f'\nexperiment: {STEPS} steps ({STEPS * TS:.3f} s sim) in {wall:.2f} s wall '
+        f'(real-time factor {STEPS * TS / wall:.2f})'
+    )
+    print(
+        f'final position {log[-1, F["theta"]]:.4f} rad (ref {math.pi:.4f}), '
+        f'max |error| {np.abs(e).max():.4f} rad, '
+        f'integral |error| {np.abs(e).sum() * TS:.5f} rad s'
+    )
+    np.savetxt(
+        out / 'samples.csv',
+        log,
+        delimiter=',',
+        header=','.join([*STATE_FIELDS, 'theta_ref', 'isq_ref']),
+        comments='',
+    )
     try:
         import matplotlib
+
         matplotlib.use('Agg')
         import matplotlib.pyplot as plt
+
         t = log[:, F['time_ns']] * 1e-9
         fig, ax = plt.subplots(3, 1, sharex=True, figsize=(8, 7))
         ax[0].plot(t, log[:, -2], label='theta* [rad]')

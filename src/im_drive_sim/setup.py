@@ -4,6 +4,7 @@ Executables are small shell wrappers installed as data files to
 ``<prefix>/lib/im_drive_sim/`` -- the place ``ros2 run`` looks -- both under plain
 ``pip install`` (which ignores setup.cfg's install_scripts) and under colcon.
 """
+
 from glob import glob
 
 from setuptools import find_packages, setup

@@ -4,6 +4,7 @@ Executables are small shell wrappers installed as data files to
 ``<prefix>/lib/im_tuner/`` -- the place ``ros2 run`` looks -- both under plain
 ``pip install`` (which ignores setup.cfg's install_scripts) and under colcon.
 """
+
 from glob import glob
 
 from setuptools import find_packages, setup
@@ -18,8 +19,10 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
-        ('share/' + package_name + '/config', glob(package_name + '/config/*.yaml')
-         + glob(package_name + '/config/*.xml')),
+        (
+            'share/' + package_name + '/config',
+            glob(package_name + '/config/*.yaml') + glob(package_name + '/config/*.xml'),
+        ),
         ('lib/' + package_name, glob('scripts/*')),
     ],
     install_requires=['setuptools'],

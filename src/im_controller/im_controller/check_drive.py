@@ -11,21 +11,23 @@ Two parts: pure judging functions (numpy only, no ROS; the tests call them on sy
 arrays) and a thin probe (:class:`Probe`, :func:`run_check`) that drives the experiment
 through DDS and records every state, joint state and command it saw.
 """
+
 from __future__ import annotations
 
-import argparse
+import itertools
 import json
 import math
 import signal
 import sys
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
-from im_drive_sim.sim import STATE_FIELDS  # layout of drive/state (docs/interfaces.md)
+
 from im_drive_sim.cli import Parser, UsageError, check_ros_args, input_file, output_file
+from im_drive_sim.sim import STATE_FIELDS  # layout of drive/state (docs/interfaces.md)
 
 #: Items, in the order they are printed.
 ITEMS: tuple[str, ...] = ('topics', 'fields', 'rate', 'latency', 'step_response', 'watchdog')
@@ -104,16 +106,19 @@ class Item:
 
     name: str
     passed: bool
-    figures: str            #: what was measured, human-readable
-    expected: str           #: what the contract asks
+    figures: str  #: what was measured, human-readable
+    expected: str  #: what the contract asks
     values: dict = field(default_factory=dict)  #: the figures, machine-readable (SI)
 
     def line(self) -> str:
-        return f"{'PASS' if self.passed else 'FAIL'}  {self.name:<13s} {self.figures} " \
-               f"(expected: {self.expected})"
+        return (
+            f'{"PASS" if self.passed else "FAIL"}  {self.name:<13s} {self.figures} '
+            f'(expected: {self.expected})'
+        )
 
 
 # ================================ pure judging functions ===================================
+
 
 def _finite_or_none(x: float) -> float | None:
     return float(x) if x is not None and math.isfinite(x) else None
@@ -133,14 +138,24 @@ def judge_topics(endpoints: dict[str, list[str]]) -> Item:
         else:
             seen.append(topic)
     figures = '; '.join(problems) if problems else f'{len(seen)}/4 topics with the right types'
-    return Item('topics', not problems, figures,
-                'drive/state + drive/joint_states + drive/status published, drive/command '
-                'subscribed, types ' + ', '.join(f'{t.split("/")[-1]}' for t in TYPES.values()),
-                {'endpoints': endpoints, 'problems': problems})
+    return Item(
+        'topics',
+        not problems,
+        figures,
+        'drive/state + drive/joint_states + drive/status published, drive/command '
+        'subscribed, types ' + ', '.join(f'{t.split("/")[-1]}' for t in TYPES.values()),
+        {'endpoints': endpoints, 'problems': problems},
+    )
 
 
-def state_field_problems(states: np.ndarray, lengths: np.ndarray, seq: np.ndarray,
-                         ts_ns: int, realtime: bool, current_bound: float) -> list[str]:
+def state_field_problems(
+    states: np.ndarray,
+    lengths: np.ndarray,
+    seq: np.ndarray,
+    ts_ns: int,
+    realtime: bool,
+    current_bound: float,
+) -> list[str]:
     """Problems with the raw states: count, integer and consecutive step_index (where the
     publication sequence numbers are consecutive, i.e. nothing was lost in transit),
     time_ns == step_index * Ts exactly, all finite, currents within ``current_bound`` [A];
@@ -152,7 +167,7 @@ def state_field_problems(states: np.ndarray, lengths: np.ndarray, seq: np.ndarra
     ok = lengths == len(STATE_FIELDS)
     s, q = states[ok], seq[ok]
     if len(s) == 0:
-        return problems + ['no state received']
+        return [*problems, 'no state received']
     if not np.isfinite(s).all():
         bad = [STATE_FIELDS[i] for i in np.flatnonzero(~np.isfinite(s).all(axis=0))]
         problems.append(f'non-finite values in {",".join(bad)}')
@@ -219,8 +234,9 @@ def joint_state_problems(joints: np.ndarray, states: np.ndarray, ts_ns: int) -> 
     return problems
 
 
-def judge_fields(state_problems: list[str], ratio: float, motion_counts: float,
-                 joint_problems: list[str] | None) -> Item:
+def judge_fields(
+    state_problems: list[str], ratio: float, motion_counts: float, joint_problems: list[str] | None
+) -> Item:
     """Combine the field checks; ``joint_problems`` None = not judged (wrong topic type,
     reported by 'topics')."""
     problems = list(state_problems)
@@ -236,15 +252,25 @@ def judge_fields(state_problems: list[str], ratio: float, motion_counts: float,
         joints = 'joint_states match' if not joint_problems else ''
     else:
         joints = 'joint_states not judged (type)'
-    figures = '; '.join(problems) if problems else \
-        f'12 finite values, step_index consecutive, time_ns = k Ts; {units}; {joints}'
+    figures = (
+        '; '.join(problems)
+        if problems
+        else f'12 finite values, step_index consecutive, time_ns = k Ts; {units}; {joints}'
+    )
     if problems and joint_problems is None:
         figures += f'; {joints}'
-    return Item('fields', not problems, figures,
-                f'12 finite values, time_ns = k Ts exactly, currents plausible, ratio in '
-                f'[{UNITS_RATIO_BAND[0]}, {UNITS_RATIO_BAND[1]}], joint_states = state',
-                {'problems': problems, 'units_ratio': _finite_or_none(ratio),
-                 'motion_counts': float(motion_counts)})
+    return Item(
+        'fields',
+        not problems,
+        figures,
+        f'12 finite values, time_ns = k Ts exactly, currents plausible, ratio in '
+        f'[{UNITS_RATIO_BAND[0]}, {UNITS_RATIO_BAND[1]}], joint_states = state',
+        {
+            'problems': problems,
+            'units_ratio': _finite_or_none(ratio),
+            'motion_counts': float(motion_counts),
+        },
+    )
 
 
 def period_stats(steps: np.ndarray, source_ts_ns: np.ndarray, ts: float) -> dict[str, float]:
@@ -254,30 +280,49 @@ def period_stats(steps: np.ndarray, source_ts_ns: np.ndarray, ts: float) -> dict
     keep = dk > 0
     per_step = np.diff(source_ts_ns.astype(np.float64))[keep] / dk[keep] * 1e-9
     if len(per_step) == 0:
-        return {'n': 0, 'median': math.nan, 'p99': math.nan, 'mean': math.nan,
-                'long_fraction': math.nan}
-    return {'n': int(len(per_step)), 'median': float(np.median(per_step)),
-            'p99': float(np.percentile(per_step, 99)), 'mean': float(np.mean(per_step)),
-            'long_fraction': float(np.mean(per_step > 2 * ts))}
+        return {
+            'n': 0,
+            'median': math.nan,
+            'p99': math.nan,
+            'mean': math.nan,
+            'long_fraction': math.nan,
+        }
+    return {
+        'n': len(per_step),
+        'median': float(np.median(per_step)),
+        'p99': float(np.percentile(per_step, 99)),
+        'mean': float(np.mean(per_step)),
+        'long_fraction': float(np.mean(per_step > 2 * ts)),
+    }
 
 
 def judge_rate_realtime(stats: dict[str, float], ts: float, mode_note: str = '') -> Item:
-    ok = stats['n'] >= 100 and abs(stats['median'] - ts) <= RATE_TOLERANCE * ts and \
-        stats['long_fraction'] <= RATE_MAX_LONG_FRACTION
-    figures = (f"median period {stats['median'] * 1e6:.1f} us, p99 {stats['p99'] * 1e6:.0f} us, "
-               f"mean {stats['mean'] * 1e6:.1f} us, {stats['long_fraction'] * 100:.2f} % "
-               f"> 2 Ts over {stats['n']} steps")
+    ok = (
+        stats['n'] >= 100
+        and abs(stats['median'] - ts) <= RATE_TOLERANCE * ts
+        and stats['long_fraction'] <= RATE_MAX_LONG_FRACTION
+    )
+    figures = (
+        f'median period {stats["median"] * 1e6:.1f} us, p99 {stats["p99"] * 1e6:.0f} us, '
+        f'mean {stats["mean"] * 1e6:.1f} us, {stats["long_fraction"] * 100:.2f} % '
+        f'> 2 Ts over {stats["n"]} steps'
+    )
     if mode_note:
         ok = False
         figures += f'; {mode_note}'
-    return Item('rate', ok, figures,
-                f'median {ts * 1e6:.0f} us +-{RATE_TOLERANCE * 100:.0f} %, <= '
-                f'{RATE_MAX_LONG_FRACTION * 100:.0f} % of periods > 2 Ts',
-                {k: _finite_or_none(v) for k, v in stats.items()})
+    return Item(
+        'rate',
+        ok,
+        figures,
+        f'median {ts * 1e6:.0f} us +-{RATE_TOLERANCE * 100:.0f} %, <= '
+        f'{RATE_MAX_LONG_FRACTION * 100:.0f} % of periods > 2 Ts',
+        {k: _finite_or_none(v) for k, v in stats.items()},
+    )
 
 
-def lockstep_step_problems(steps: np.ndarray, take_ns: np.ndarray, cmd_answers: np.ndarray,
-                           cmd_pub_ns: np.ndarray) -> tuple[int, int, int]:
+def lockstep_step_problems(
+    steps: np.ndarray, take_ns: np.ndarray, cmd_answers: np.ndarray, cmd_pub_ns: np.ndarray
+) -> tuple[int, int, int]:
     """Lock-step: (new steps seen, steps without a command answering the previous state
     published before they arrived, steps advancing by more than one)."""
     new = np.flatnonzero(np.diff(steps) > 0) + 1
@@ -292,16 +337,34 @@ def lockstep_step_problems(steps: np.ndarray, take_ns: np.ndarray, cmd_answers: 
     return len(new), unanswered, skipped
 
 
-def judge_rate_lockstep(n_steps: int, unanswered: int, skipped: int, idle_advance: int,
-                        steps_per_s: float, mode_note: str = '') -> Item:
+def judge_rate_lockstep(
+    n_steps: int,
+    unanswered: int,
+    skipped: int,
+    idle_advance: int,
+    steps_per_s: float,
+    mode_note: str = '',
+) -> Item:
     ok = n_steps > 0 and unanswered == 0 and skipped == 0 and idle_advance == 0 and not mode_note
-    figures = (f'{n_steps} steps, {unanswered} without a command, {skipped} skipping, '
-               f'{idle_advance} while idle; {steps_per_s:.0f} steps/s')
+    figures = (
+        f'{n_steps} steps, {unanswered} without a command, {skipped} skipping, '
+        f'{idle_advance} while idle; {steps_per_s:.0f} steps/s'
+    )
     if mode_note:
         figures += f'; {mode_note}'
-    return Item('rate', ok, figures, 'lock-step: one step per command, none without one',
-                {'steps': n_steps, 'unanswered': unanswered, 'skipped': skipped,
-                 'idle_advance': idle_advance, 'steps_per_s': _finite_or_none(steps_per_s)})
+    return Item(
+        'rate',
+        ok,
+        figures,
+        'lock-step: one step per command, none without one',
+        {
+            'steps': n_steps,
+            'unanswered': unanswered,
+            'skipped': skipped,
+            'idle_advance': idle_advance,
+            'steps_per_s': _finite_or_none(steps_per_s),
+        },
+    )
 
 
 def onset_delay(x: np.ndarray, i0: int, delta_ref: float, max_delay: int = 20) -> int | None:
@@ -312,12 +375,12 @@ def onset_delay(x: np.ndarray, i0: int, delta_ref: float, max_delay: int = 20) -
     within ``max_delay`` steps (or samples are missing)."""
     if i0 < 16 or i0 + 1 >= len(x):
         return None
-    pre = x[i0 - 16:i0 + 1]
+    pre = x[i0 - 16 : i0 + 1]
     if not np.isfinite(pre).all():
         return None
     noise = float(np.median(np.abs(np.diff(pre, 2))))
     thr = max(ONSET_FRACTION * abs(delta_ref), 8.0 * noise)
-    slope, level = np.polyfit(np.arange(-4, 1), x[i0 - 4:i0 + 1], 1)
+    slope, level = np.polyfit(np.arange(-4, 1), x[i0 - 4 : i0 + 1], 1)
     for d in range(1, min(max_delay, len(x) - 1 - i0) + 1):
         if not math.isfinite(x[i0 + d]):
             return None
@@ -340,14 +403,26 @@ def judge_latency(delays: Sequence[int | None], wall_s: np.ndarray, realtime: bo
         effect_ok = len(d) >= 3 and bool(np.all(d == limit)) and missing == 0
     ok = effect_ok and med <= LATENCY_MEDIAN_MAX and p99 <= LATENCY_P99_MAX
     hist = ', '.join(f'k+{int(v)}: {int(np.sum(d == v))}' for v in np.unique(d))
-    figures = (f'command -> next state median {med * 1e6:.0f} us, p99 {p99 * 1e6:.0f} us; '
-               f'takes effect in {hist or "-"}' + (f', never: {missing}' if missing else ''))
+    figures = (
+        f'command -> next state median {med * 1e6:.0f} us, p99 {p99 * 1e6:.0f} us; '
+        f'takes effect in {hist or "-"}' + (f', never: {missing}' if missing else '')
+    )
     when = ' (fastest quarter by k+2)' if realtime else ' always'
-    expected = (f'effect in k+1{when}, median <= {LATENCY_MEDIAN_MAX * 1e3:g} ms, '
-                f'p99 <= {LATENCY_P99_MAX * 1e3:g} ms')
-    return Item('latency', ok, figures, expected,
-                {'median_s': _finite_or_none(med), 'p99_s': _finite_or_none(p99),
-                 'effect_delays': [None if x is None else int(x) for x in delays]})
+    expected = (
+        f'effect in k+1{when}, median <= {LATENCY_MEDIAN_MAX * 1e3:g} ms, '
+        f'p99 <= {LATENCY_P99_MAX * 1e3:g} ms'
+    )
+    return Item(
+        'latency',
+        ok,
+        figures,
+        expected,
+        {
+            'median_s': _finite_or_none(med),
+            'p99_s': _finite_or_none(p99),
+            'effect_delays': [None if x is None else int(x) for x in delays],
+        },
+    )
 
 
 def rise_time(x: np.ndarray, ts: float, x0: float, x1: float) -> float:
@@ -363,6 +438,7 @@ def rise_time(x: np.ndarray, ts: float, x0: float, x1: float) -> float:
         if i == 0:
             return 0.0
         return (i - 1 + (level - y[i - 1]) / (y[i] - y[i - 1])) * ts
+
     return crossing(0.9) - crossing(0.1)
 
 
@@ -376,11 +452,11 @@ def fit_acceleration(theta: np.ndarray, ts: float) -> float:
 class StepSegment:
     """One commanded level of the step test, as recorded."""
 
-    level: float          #: commanded isq* [A]
-    previous: float       #: the level before [A]
-    isq: np.ndarray       #: isq from the state answered by the first command of the level
-    torque: np.ndarray    #: torque, same samples [N m]
-    theta: np.ndarray     #: theta_meas, same samples [rad]
+    level: float  #: commanded isq* [A]
+    previous: float  #: the level before [A]
+    isq: np.ndarray  #: isq from the state answered by the first command of the level
+    torque: np.ndarray  #: torque, same samples [N m]
+    theta: np.ndarray  #: theta_meas, same samples [rad]
 
 
 def step_metrics(seg: StepSegment, ts: float, delay: int | None) -> dict[str, float]:
@@ -388,20 +464,33 @@ def step_metrics(seg: StepSegment, ts: float, delay: int | None) -> dict[str, fl
     one level of the step test."""
     n = len(seg.isq)
     start = delay if delay is not None else 1
-    rise = rise_time(seg.isq[start - 1:], ts, seg.isq[start - 1], seg.level) \
-        if seg.level != seg.previous else math.nan
-    tail = seg.isq[n - n // 4:]
+    rise = (
+        rise_time(seg.isq[start - 1 :], ts, seg.isq[start - 1], seg.level)
+        if seg.level != seg.previous
+        else math.nan
+    )
+    tail = seg.isq[n - n // 4 :]
     sse = abs(float(np.mean(tail)) - seg.level) / abs(seg.level) if seg.level else math.nan
     half = slice(n // 2, n)
     i_mean = float(np.mean(seg.isq[half]))
     kt = float(np.mean(seg.torque[half])) / i_mean if i_mean else math.nan
     acc = fit_acceleration(seg.theta[start:], ts) if n - start >= 10 else math.nan
-    return {'rise_s': rise, 'steady_error': sse, 'torque_per_amp': kt, 'accel': acc,
-            'duration_s': (n - start) * ts}
+    return {
+        'rise_s': rise,
+        'steady_error': sse,
+        'torque_per_amp': kt,
+        'accel': acc,
+        'duration_s': (n - start) * ts,
+    }
 
 
-def judge_step_response(plus: dict[str, float], minus: dict[str, float], amplitude: float,
-                        counts_per_rad: float, aborted: str = '') -> Item:
+def judge_step_response(
+    plus: dict[str, float],
+    minus: dict[str, float],
+    amplitude: float,
+    counts_per_rad: float,
+    aborted: str = '',
+) -> Item:
     """``plus``/``minus``: step_metrics of the +isq and the -isq step."""
     problems = []
     if aborted:
@@ -420,71 +509,115 @@ def judge_step_response(plus: dict[str, float], minus: dict[str, float], amplitu
             problems.append(f'no acceleration in the {name} step')
         elif m['accel'] * sign <= 0:
             problems.append(f'acceleration {m["accel"]:+.3g} rad/s^2 in the {name}isq step')
-    figures = (f'isq rise {rise * 1e3:.2f} ms, steady-state error {sse * 100:.1f} %, '
-               f'torque/isq {plus["torque_per_amp"]:+.3f}/{minus["torque_per_amp"]:+.3f} N m/A, '
-               f'accel {plus["accel"]:+.0f}/{minus["accel"]:+.0f} rad/s^2 for '
-               f'+-{amplitude:g} A')
+    figures = (
+        f'isq rise {rise * 1e3:.2f} ms, steady-state error {sse * 100:.1f} %, '
+        f'torque/isq {plus["torque_per_amp"]:+.3f}/{minus["torque_per_amp"]:+.3f} N m/A, '
+        f'accel {plus["accel"]:+.0f}/{minus["accel"]:+.0f} rad/s^2 for '
+        f'+-{amplitude:g} A'
+    )
     if problems:
         figures = '; '.join(problems) + ' -- ' + figures
-    return Item('step_response', not problems, figures,
-                f'rise <= {RISE_TIME_MAX * 1e3:g} ms, error <= {STEADY_STATE_ERROR_MAX * 100:g} %, '
-                'torque and acceleration with the sign of isq',
-                {'plus': {k: _finite_or_none(v) for k, v in plus.items()},
-                 'minus': {k: _finite_or_none(v) for k, v in minus.items()},
-                 'aborted': aborted or None})
+    return Item(
+        'step_response',
+        not problems,
+        figures,
+        f'rise <= {RISE_TIME_MAX * 1e3:g} ms, error <= {STEADY_STATE_ERROR_MAX * 100:g} %, '
+        'torque and acceleration with the sign of isq',
+        {
+            'plus': {k: _finite_or_none(v) for k, v in plus.items()},
+            'minus': {k: _finite_or_none(v) for k, v in minus.items()},
+            'aborted': aborted or None,
+        },
+    )
 
 
 def watchdog_limits(timeout: float) -> tuple[float, float]:
     """(earliest, latest) time [s] after the last command at which zero current is due."""
-    return WATCHDOG_EARLIEST * timeout, timeout + max(WATCHDOG_MARGIN_S,
-                                                      WATCHDOG_MARGIN_REL * timeout)
+    return WATCHDOG_EARLIEST * timeout, timeout + max(
+        WATCHDOG_MARGIN_S, WATCHDOG_MARGIN_REL * timeout
+    )
 
 
-def judge_watchdog_realtime(t_act: float | None, t_zero: float | None, timeout: float,
-                            resumed_s: float | None, timeout_source: str,
-                            aborted: str = '') -> Item:
+def judge_watchdog_realtime(
+    t_act: float | None,
+    t_zero: float | None,
+    timeout: float,
+    resumed_s: float | None,
+    timeout_source: str,
+    aborted: str = '',
+) -> Item:
     """Times after the last command was published [s]: ``t_act`` when isq started its fall to
     zero (left WATCHDOG_ACT_FRACTION of the test current), ``t_zero`` when it got there
     (None: never); ``resumed_s``: new command -> current back [s] (None: did not resume).
     The watchdog's own timing is judged on ``t_act``: the fall itself is the current
     loop's business (step_response)."""
     lo, hi = watchdog_limits(timeout)
-    ok = t_act is not None and t_zero is not None and lo <= t_act <= hi and \
-        resumed_s is not None and not aborted
-    zero = f'current falls {t_act * 1e3:.1f} ms after the last command, zero at ' \
-        f'{t_zero * 1e3:.1f} ms' if t_act is not None and t_zero is not None \
+    ok = (
+        t_act is not None
+        and t_zero is not None
+        and lo <= t_act <= hi
+        and resumed_s is not None
+        and not aborted
+    )
+    zero = (
+        f'current falls {t_act * 1e3:.1f} ms after the last command, zero at {t_zero * 1e3:.1f} ms'
+        if t_act is not None and t_zero is not None
         else 'current never went to zero'
-    back = f'resumed {resumed_s * 1e3:.1f} ms after a new command' if resumed_s is not None \
+    )
+    back = (
+        f'resumed {resumed_s * 1e3:.1f} ms after a new command'
+        if resumed_s is not None
         else 'did not resume on a new command'
+    )
     figures = f'{zero}; {back}' + (f'; {aborted}' if aborted else '')
-    return Item('watchdog', ok, figures,
-                f'falls to zero {lo * 1e3:.0f}..{hi * 1e3:.0f} ms after (command_timeout '
-                f'{timeout:g} s, {timeout_source}), then resume',
-                {'t_act_s': t_act, 't_zero_s': t_zero, 'resumed_s': resumed_s,
-                 'command_timeout_s': timeout, 'limits_s': [lo, hi]})
+    return Item(
+        'watchdog',
+        ok,
+        figures,
+        f'falls to zero {lo * 1e3:.0f}..{hi * 1e3:.0f} ms after (command_timeout '
+        f'{timeout:g} s, {timeout_source}), then resume',
+        {
+            't_act_s': t_act,
+            't_zero_s': t_zero,
+            'resumed_s': resumed_s,
+            'command_timeout_s': timeout,
+            'limits_s': [lo, hi],
+        },
+    )
 
 
 def judge_watchdog_lockstep(silence_s: float, advanced: int, resumed_s: float | None) -> Item:
     ok = advanced == 0 and resumed_s is not None and silence_s >= LOCKSTEP_SILENCE_S * 0.99
-    back = f'stepped {resumed_s * 1e3:.1f} ms after a new command' if resumed_s is not None \
+    back = (
+        f'stepped {resumed_s * 1e3:.1f} ms after a new command'
+        if resumed_s is not None
         else 'did not step on a new command'
-    return Item('watchdog', ok, f'{advanced} steps during {silence_s:.2f} s without commands; '
-                f'{back}', f'lock-step: no step during >= {LOCKSTEP_SILENCE_S} s of silence, '
-                'then one on the next command',
-                {'silence_s': silence_s, 'advanced': advanced, 'resumed_s': resumed_s})
+    )
+    return Item(
+        'watchdog',
+        ok,
+        f'{advanced} steps during {silence_s:.2f} s without commands; {back}',
+        f'lock-step: no step during >= {LOCKSTEP_SILENCE_S} s of silence, '
+        'then one on the next command',
+        {'silence_s': silence_s, 'advanced': advanced, 'resumed_s': resumed_s},
+    )
 
 
 def summary_line(items: Sequence[Item], mode: str = '', status_mode: str | None = None) -> str:
     """The last line: verdict, failing items, the mode (and what drive/status said)."""
     failed = [i.name for i in items if not i.passed]
     n = len(items)
-    verdict = f'all {n} items PASS' if not failed else \
-        f'{n - len(failed)}/{n} items pass; FAIL: {", ".join(failed)}'
+    verdict = (
+        f'all {n} items PASS'
+        if not failed
+        else f'{n - len(failed)}/{n} items pass; FAIL: {", ".join(failed)}'
+    )
     how = f' ({mode}; drive/status mode={status_mode or "not seen"})' if mode else ''
     return f'check_drive: {verdict}{how}'
 
 
 # ======================================= the probe ==========================================
+
 
 class Interrupted(Exception):
     """SIGINT/SIGTERM during the check."""
@@ -500,12 +633,13 @@ class Probe:
     def __init__(self, node, capacity: int = 60000) -> None:
         # ROS imports here, not at module level: the judging functions need none.
         from diagnostic_msgs.msg import DiagnosticArray
-        from im_drive_sim.cdr import parse_float64_array
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
         from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray
+
+        from im_drive_sim.cdr import parse_float64_array
 
         self.node = node
         self._parse, self._deserialize = parse_float64_array, deserialize_message
@@ -513,9 +647,12 @@ class Probe:
         self._DiagnosticArray = DiagnosticArray
         # A deep keep-last reader: a stall of this process up to 1 s loses nothing, and
         # the drive's reliable writer is never held back by it.
-        deep = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000,
-                          reliability=ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.VOLATILE)
+        deep = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=5000,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.VOLATILE,
+        )
         noop = lambda _m: None  # noqa: E731 (taken by hand, never by an executor)
         self.state_sub = node.create_subscription(Float64MultiArray, 'drive/state', noop, deep)
         self.joint_sub = node.create_subscription(JointState, 'drive/joint_states', noop, 1000)
@@ -526,24 +663,26 @@ class Probe:
         n = capacity
         self.states = np.full((n, len(STATE_FIELDS)), np.nan)
         self.lengths = np.zeros(n, dtype=np.int64)
-        self.source_ns = np.zeros(n, dtype=np.int64)   # drive's publication time [ns, wall]
-        self.recv_ns = np.zeros(n, dtype=np.int64)     # DDS reception time [ns, wall]
-        self.take_ns = np.zeros(n, dtype=np.int64)     # when this process took it [ns, wall]
+        self.source_ns = np.zeros(n, dtype=np.int64)  # drive's publication time [ns, wall]
+        self.recv_ns = np.zeros(n, dtype=np.int64)  # DDS reception time [ns, wall]
+        self.take_ns = np.zeros(n, dtype=np.int64)  # when this process took it [ns, wall]
         self.seq = np.zeros(n, dtype=np.int64)
         self.n = 0
-        self.cmd = np.zeros((n, 3))                    # answers_step, isq*, load
-        self.cmd_ns = np.zeros(n, dtype=np.int64)      # published at [ns, wall]
+        self.cmd = np.zeros((n, 3))  # answers_step, isq*, load
+        self.cmd_ns = np.zeros(n, dtype=np.int64)  # published at [ns, wall]
         self.m = 0
         self.joints: list[tuple[float, float, float, float]] = []
         self.status: dict[str, str] = {}
-        self.answered = -1                             # newest step index we answered
-        self.created = time.monotonic()                # when this participant joined
+        self.answered = -1  # newest step index we answered
+        self.created = time.monotonic()  # when this participant joined
         self.stop: Callable[[], bool] = lambda: False
 
     def open_command(self) -> None:
         from im_drive_sim.drive_sim_node import RECORDED_QOS
-        self.cmd_pub = self.node.create_publisher(self._Float64MultiArray, 'drive/command',
-                                                  RECORDED_QOS)
+
+        self.cmd_pub = self.node.create_publisher(
+            self._Float64MultiArray, 'drive/command', RECORDED_QOS
+        )
         self._cmd_msg = self._Float64MultiArray(data=[0.0, 0.0, 0.0])
 
     def poll(self, timeout_s: float) -> int:
@@ -578,8 +717,14 @@ class Probe:
         while (r := self.joint_sub.handle.take_message(self._JointState, False)) is not None:
             j = r[0]
             if len(j.position) and len(j.velocity) and len(j.effort):
-                self.joints.append((j.header.stamp.sec * NS_PER_S + j.header.stamp.nanosec,
-                                    j.position[0], j.velocity[0], j.effort[0]))
+                self.joints.append(
+                    (
+                        j.header.stamp.sec * NS_PER_S + j.header.stamp.nanosec,
+                        j.position[0],
+                        j.velocity[0],
+                        j.effort[0],
+                    )
+                )
         while (r := self.status_sub.handle.take_message(self._DiagnosticArray, False)) is not None:
             for st in r[0].status:
                 self.status = {kv.key: kv.value for kv in st.values}
@@ -602,8 +747,12 @@ class Probe:
             self.m += 1
         self.answered = max(self.answered, answers)
 
-    def run(self, policy: Callable[[int, np.ndarray], float | None], done: Callable[[], bool],
-            max_wall: float) -> bool:
+    def run(
+        self,
+        policy: Callable[[int, np.ndarray], float | None],
+        done: Callable[[], bool],
+        max_wall: float,
+    ) -> bool:
         """Answer each new state k with isq* = policy(k, state) (None: stay silent) until
         ``done()``; False when ``max_wall`` s passed first."""
         deadline = time.monotonic() + max_wall
@@ -629,6 +778,7 @@ class Probe:
             return
         self.stopped = True
         from rclpy.duration import Duration
+
         s = self.newest()
         k = int(s[F['step_index']]) if s is not None else -1
         self.command(k if k > self.answered else -1, 0.0)
@@ -653,25 +803,28 @@ def _rows_by_step(p: Probe, first: int, last: int) -> tuple[np.ndarray, int]:
     """States of steps first..last as a dense array indexed by step - first (NaN where a step
     was not received; the first copy of a re-sent state)."""
     out = np.full((last - first + 1, len(STATE_FIELDS)), np.nan)
-    ok = p.lengths[:p.n] == len(STATE_FIELDS)
-    s = p.states[:p.n][ok]
+    ok = p.lengths[: p.n] == len(STATE_FIELDS)
+    s = p.states[: p.n][ok]
     k = s[:, F['step_index']].astype(np.int64)
     sel = (k >= first) & (k <= last)
-    for row, kk in zip(s[sel][::-1], k[sel][::-1]):
+    for row, kk in zip(s[sel][::-1], k[sel][::-1], strict=True):
         out[kk - first] = row
     return out, first
 
 
-def run_check(opts: Options, node, log: Callable[[str], None], stop: Callable[[], bool]
-              ) -> tuple[list[Item], dict]:
+def run_check(
+    opts: Options, node, log: Callable[[str], None], stop: Callable[[], bool]
+) -> tuple[list[Item], dict]:
     """Probe the drive in ``node``'s namespace; return the items and run information."""
     from im_drive_sim.params import load_config
 
     cfg = load_config(opts.config)
     isq_max = cfg.machine.isq_max
     if not 0 < opts.amplitude <= 0.5 * isq_max:
-        raise CheckRefused(f'--amplitude {opts.amplitude:g} A: must be in (0, '
-                           f'{0.5 * isq_max:g}] A (50 % of isq_max {isq_max:g} A)')
+        raise CheckRefused(
+            f'--amplitude {opts.amplitude:g} A: must be in (0, '
+            f'{0.5 * isq_max:g}] A (50 % of isq_max {isq_max:g} A)'
+        )
     p = Probe(node)
     p.stop = stop
     state_topic = p.state_sub.topic_name
@@ -681,8 +834,10 @@ def run_check(opts: Options, node, log: Callable[[str], None], stop: Callable[[]
     deadline = time.monotonic() + opts.timeout
     while not node.get_publishers_info_by_topic(state_topic):
         if time.monotonic() > deadline:
-            raise CheckRefused(f'no publisher of {state_topic} within {opts.timeout:g} s '
-                               '(is the drive running, in this namespace and ROS_DOMAIN_ID?)')
+            raise CheckRefused(
+                f'no publisher of {state_topic} within {opts.timeout:g} s '
+                '(is the drive running, in this namespace and ROS_DOMAIN_ID?)'
+            )
         p.poll(0.05)
     # Node names arrive a moment after the endpoints; other commanders with them.
     settle = time.monotonic() + 0.5
@@ -702,23 +857,39 @@ def run_check(opts: Options, node, log: Callable[[str], None], stop: Callable[[]
     timeout, timeout_src = _command_timeout(opts, node, drive_name, drive_ns)
     p.open_command()
     try:
-        return _probe_and_judge(p, opts, node, cfg, drive_full, timeout, timeout_src,
-                                state_topic, cmd_topic, log)
+        return _probe_and_judge(
+            p, opts, node, cfg, drive_full, timeout, timeout_src, state_topic, cmd_topic, log
+        )
     finally:
         p.safe_stop()  # zero current, whatever happened (also on SIGINT and errors)
 
 
-def _probe_and_judge(p: Probe, opts: Options, node, cfg, drive_full: str, timeout: float,
-                     timeout_src: str, state_topic: str, cmd_topic: str,
-                     log: Callable[[str], None]) -> tuple[list[Item], dict]:
+def _probe_and_judge(
+    p: Probe,
+    opts: Options,
+    node,
+    cfg,
+    drive_full: str,
+    timeout: float,
+    timeout_src: str,
+    state_topic: str,
+    cmd_topic: str,
+    log: Callable[[str], None],
+) -> tuple[list[Item], dict]:
     ts, ts_ns = cfg.Ts, cfg.Ts_ns
     isq_max = cfg.machine.isq_max
     a = opts.amplitude
     counts_per_rad = cfg.sensors.encoder_counts / (2.0 * math.pi)
 
-    info = {'drive': drive_full, 'namespace': node.get_namespace(), 'Ts_s': ts,
-            'isq_max_A': isq_max, 'amplitude_A': a, 'command_timeout_s': timeout,
-            'command_timeout_source': timeout_src}
+    info = {
+        'drive': drive_full,
+        'namespace': node.get_namespace(),
+        'Ts_s': ts,
+        'isq_max_A': isq_max,
+        'amplitude_A': a,
+        'command_timeout_s': timeout,
+        'command_timeout_source': timeout_src,
+    }
 
     def check_alone() -> None:
         if len(node.get_publishers_info_by_topic(cmd_topic)) > 1:
@@ -726,8 +897,9 @@ def _probe_and_judge(p: Probe, opts: Options, node, cfg, drive_full: str, timeou
 
     # -- mode: does step_index advance without commands? ---------------------------------
     if not p.run(lambda k, s: None, lambda: p.newest() is not None, opts.timeout):
-        raise CheckRefused(f'{state_topic} has a publisher but no state came within '
-                           f'{opts.timeout:g} s')
+        raise CheckRefused(
+            f'{state_topic} has a publisher but no state came within {opts.timeout:g} s'
+        )
     k_idle0 = int(p.newest()[F['step_index']])
     t_end = time.monotonic() + 0.3
     p.run(lambda k, s: None, lambda: time.monotonic() > t_end, 1.0)
@@ -739,13 +911,18 @@ def _probe_and_judge(p: Probe, opts: Options, node, cfg, drive_full: str, timeou
     if status_mode is not None and status_mode != mode:
         mode_note = f'drive/status says mode={status_mode}'
     info['mode'] = mode
-    log(f'check_drive: drive {drive_full}, mode {mode} (by behaviour; drive/status: '
+    log(
+        f'check_drive: drive {drive_full}, mode {mode} (by behaviour; drive/status: '
         f'{status_mode or "not seen yet"}), Ts {ts * 1e6:g} us, isq_max {isq_max:g} A, '
-        f'step +-{a:g} A, command_timeout {timeout:g} s ({timeout_src})')
+        f'step +-{a:g} A, command_timeout {timeout:g} s ({timeout_src})'
+    )
     check_alone()
 
-    def schedule(segments: list[tuple[int, float]], record: list | None = None,
-                 guard: Callable[[np.ndarray], bool] | None = None) -> int:
+    def schedule(
+        segments: list[tuple[int, float]],
+        record: list | None = None,
+        guard: Callable[[np.ndarray], bool] | None = None,
+    ) -> int:
         """Answer states with piecewise-constant isq*: ``segments`` of (steps, isq*),
         counted in step indices from the first state answered. ``record`` collects
         (k, level, previous level) at every change; ``guard(state)`` True aborts to zero.
@@ -769,9 +946,12 @@ def _probe_and_judge(p: Probe, opts: Options, node, cfg, drive_full: str, timeou
                 record.append((k, level, 0.0 if st['last'] is None else st['last']))
             st['last'] = level
             return level
+
         if not p.run(policy, lambda: st['done'], 5.0 + total * ts * 20):
-            raise DriveLost(f'the drive stopped stepping (last state '
-                            f'{int(p.newest()[0])}, {p.n} states received)')
+            raise DriveLost(
+                f'the drive stopped stepping (last state '
+                f'{int(p.newest()[0])}, {p.n} states received)'
+            )
         return st['k0']
 
     # -- rate: zero current, answer every state; and no current before the whole graph is
@@ -792,16 +972,18 @@ def _probe_and_judge(p: Probe, opts: Options, node, cfg, drive_full: str, timeou
     schedule([(25, lv) for lv in levels], trans)
 
     # -- step response ----------------------------------------------------------------
-    n_step = max(10, int(round(opts.step_duration / ts)))
+    n_step = max(10, round(opts.step_duration / ts))
     step_trans: list[tuple[int, float, float]] = []
     aborted = {'why': ''}
 
     def overspeed(s: np.ndarray) -> bool:
         if abs(s[F['omega_meas']]) > opts.max_speed:
-            aborted['why'] = f'aborted: |omega_meas| {abs(s[F["omega_meas"]]):.1f} > ' \
-                             f'{opts.max_speed:g} rad/s'
+            aborted['why'] = (
+                f'aborted: |omega_meas| {abs(s[F["omega_meas"]]):.1f} > {opts.max_speed:g} rad/s'
+            )
             return True
         return False
+
     schedule([(25, 0.0), (n_step, a), (n_step, -a), (n_step // 2, 0.0)], step_trans, overspeed)
     k_step_end = p.answered
     check_alone()
@@ -829,10 +1011,16 @@ def _probe_and_judge(p: Probe, opts: Options, node, cfg, drive_full: str, timeou
     endpoints = {
         'drive/state': [e.topic_type for e in node.get_publishers_info_by_topic(state_topic)],
         'drive/command': [e.topic_type for e in node.get_subscriptions_info_by_topic(cmd_topic)],
-        'drive/joint_states': [e.topic_type for e in node.get_publishers_info_by_topic(
-            node.resolve_topic_name('drive/joint_states'))],
-        'drive/status': [e.topic_type for e in node.get_publishers_info_by_topic(
-            node.resolve_topic_name('drive/status'))],
+        'drive/joint_states': [
+            e.topic_type
+            for e in node.get_publishers_info_by_topic(
+                node.resolve_topic_name('drive/joint_states')
+            )
+        ],
+        'drive/status': [
+            e.topic_type
+            for e in node.get_publishers_info_by_topic(node.resolve_topic_name('drive/status'))
+        ],
     }
     items['topics'] = judge_topics(endpoints)
 
@@ -849,23 +1037,32 @@ def _probe_and_judge(p: Probe, opts: Options, node, cfg, drive_full: str, timeou
     else:
         ratio, motion_counts = math.nan, 0.0
     joints_ok_type = endpoints['drive/joint_states'] and all(
-        t == TYPES['drive/joint_states'] for t in endpoints['drive/joint_states'])
+        t == TYPES['drive/joint_states'] for t in endpoints['drive/joint_states']
+    )
     ok_rows = p.lengths[:n] == len(STATE_FIELDS)
-    jp = joint_state_problems(np.array(p.joints, dtype=float).reshape(-1, 4),
-                              p.states[:n][ok_rows], ts_ns) if joints_ok_type else None
+    jp = (
+        joint_state_problems(
+            np.array(p.joints, dtype=float).reshape(-1, 4), p.states[:n][ok_rows], ts_ns
+        )
+        if joints_ok_type
+        else None
+    )
     items['fields'] = judge_fields(sp, ratio, motion_counts, jp)
 
     steps = p.states[:n, F['step_index']]
     if realtime:
         sl = slice(i_rate0, i_rate1)
-        items['rate'] = judge_rate_realtime(period_stats(steps[sl], p.source_ns[sl], ts), ts,
-                                            mode_note)
+        items['rate'] = judge_rate_realtime(
+            period_stats(steps[sl], p.source_ns[sl], ts), ts, mode_note
+        )
     else:
         new, unanswered, skipped = lockstep_step_problems(
-            steps[:n], p.take_ns[:n], p.cmd[:p.m, 0], p.cmd_ns[:p.m])
+            steps[:n], p.take_ns[:n], p.cmd[: p.m, 0], p.cmd_ns[: p.m]
+        )
         rate_steps = np.count_nonzero(np.diff(steps[i_rate0:i_rate1]) > 0)
-        items['rate'] = judge_rate_lockstep(new, unanswered, skipped, idle_advance,
-                                            rate_steps / rate_wall, mode_note)
+        items['rate'] = judge_rate_lockstep(
+            new, unanswered, skipped, idle_advance, rate_steps / rate_wall, mode_note
+        )
 
     # latency: wall time command(k) -> state k+1 received, and the onset of each change
     by_step = {}
@@ -887,34 +1084,47 @@ def _probe_and_judge(p: Probe, opts: Options, node, cfg, drive_full: str, timeou
     # step response
     if len(step_trans) >= 4 and not aborted['why']:
         metrics = []
-        for (k0, level, prev), (k1, _, _) in zip(step_trans[1:3], step_trans[2:4]):
+        for (k0, level, prev), (k1, _, _) in itertools.pairwise(step_trans[1:4]):
             d, _ = _rows_by_step(p, k0 - 20, k1)
             delay = onset_delay(d[:, F['isq']], 20, level - prev)
-            seg = d[20:k1 - k0 + 20]
-            metrics.append(step_metrics(StepSegment(level, prev, seg[:, F['isq']],
-                                                    seg[:, F['torque']],
-                                                    seg[:, F['theta_meas']]), ts, delay))
+            seg = d[20 : k1 - k0 + 20]
+            metrics.append(
+                step_metrics(
+                    StepSegment(
+                        level, prev, seg[:, F['isq']], seg[:, F['torque']], seg[:, F['theta_meas']]
+                    ),
+                    ts,
+                    delay,
+                )
+            )
         items['step_response'] = judge_step_response(metrics[0], metrics[1], a, counts_per_rad)
     else:
-        nan = {'rise_s': math.nan, 'steady_error': math.nan, 'torque_per_amp': math.nan,
-               'accel': math.nan, 'duration_s': 0.0}
-        items['step_response'] = judge_step_response(nan, nan, a, counts_per_rad,
-                                                     aborted['why'] or 'step test incomplete')
+        nan = {
+            'rise_s': math.nan,
+            'steady_error': math.nan,
+            'torque_per_amp': math.nan,
+            'accel': math.nan,
+            'duration_s': 0.0,
+        }
+        items['step_response'] = judge_step_response(
+            nan, nan, a, counts_per_rad, aborted['why'] or 'step test incomplete'
+        )
 
     if realtime:
-        items['watchdog'] = judge_watchdog_realtime(wd['t_act'], wd['t_zero'], timeout,
-                                                    wd['resumed_s'], timeout_src, wd['aborted'])
+        items['watchdog'] = judge_watchdog_realtime(
+            wd['t_act'], wd['t_zero'], timeout, wd['resumed_s'], timeout_src, wd['aborted']
+        )
     else:
-        items['watchdog'] = judge_watchdog_lockstep(wd['silence_s'], wd['advanced'],
-                                                    wd['resumed_s'])
+        items['watchdog'] = judge_watchdog_lockstep(
+            wd['silence_s'], wd['advanced'], wd['resumed_s']
+        )
     return [items[name] for name in ITEMS], info
 
 
-def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, ts: float
-                       ) -> dict:
+def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, ts: float) -> dict:
     """Command w, go silent until zero current (or too long), then command -w for as long
     as w was on (so the shaft ends near rest) and check that the current follows."""
-    lo, hi = watchdog_limits(timeout)
+    _lo, hi = watchdog_limits(timeout)
     i_on = p.n
     schedule([(25, w)])
     i_silent, t_last = p.n, p.cmd_ns[p.m - 1]
@@ -937,6 +1147,7 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
                 st['why'] = 'aborted silence: overspeed'
         st['i'] = p.n
         return st['zero_run'] >= 10 or bool(st['why']) or time.monotonic() > end
+
     p.run(silent, done, 2 * hi + 1.0)
     t_zero = t_act = None
     if st['zero_at'] is not None:
@@ -948,7 +1159,7 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
     if st['why']:
         p.command(max(p.answered, int(p.newest()[0])), 0.0)
     # Steps at +w: as many at -w bring the shaft back near rest.
-    on = int(np.count_nonzero(p.states[i_on:p.n, F['isq']] > w / 2))
+    on = int(np.count_nonzero(p.states[i_on : p.n, F['isq']] > w / 2))
     # resume with -w; it must reach -w within 50 ms
     i_res, j_res, t_res = p.n, p.m, None
     k_res = schedule([(max(on, 50), -w)])
@@ -970,7 +1181,7 @@ def _watchdog_lockstep(p: Probe) -> dict:
     i0 = p.n
     p.run(lambda k, s: None, lambda: time.monotonic() - t0 >= LOCKSTEP_SILENCE_S, 2.0)
     silence = time.monotonic() - t0
-    ks = p.states[i0:p.n, F['step_index']]
+    ks = p.states[i0 : p.n, F['step_index']]
     advanced = int(np.count_nonzero(ks > k_last + 1))
     s = p.newest()
     k = int(s[F['step_index']])
@@ -1005,20 +1216,26 @@ def _refuse_commander(node, topic: str, p: Probe) -> None:
     discovered a moment after the endpoints: wait up to 1 s for them)."""
     deadline = time.monotonic() + 1.0
     while True:
-        others = [e for e in node.get_publishers_info_by_topic(topic)
-                  if not (e.node_name == node.get_name()
-                          and e.node_namespace == node.get_namespace())]
+        others = [
+            e
+            for e in node.get_publishers_info_by_topic(topic)
+            if not (e.node_name == node.get_name() and e.node_namespace == node.get_namespace())
+        ]
         if time.monotonic() > deadline or not any(
-                e.node_name.startswith('_NODE_NAME_UNKNOWN') for e in others):
+            e.node_name.startswith('_NODE_NAME_UNKNOWN') for e in others
+        ):
             break
         p.poll(0.05)
     names = sorted({(e.node_namespace.rstrip('/') + '/' + e.node_name) for e in others})
-    raise CheckRefused(f'{", ".join(names) or "another node"} already publishes {topic}: a '
-                       'controller is connected and two commanders would fight; stop it first')
+    raise CheckRefused(
+        f'{", ".join(names) or "another node"} already publishes {topic}: a '
+        'controller is connected and two commanders would fight; stop it first'
+    )
 
 
-def _command_timeout(opts: Options, node, drive_name: str | None, drive_ns: str | None
-                     ) -> tuple[float, str]:
+def _command_timeout(
+    opts: Options, node, drive_name: str | None, drive_ns: str | None
+) -> tuple[float, str]:
     """The expected watchdog time: --command-timeout, else the drive node's
     ``command_timeout`` parameter, else 0.05 s."""
     if opts.command_timeout is not None:
@@ -1029,6 +1246,7 @@ def _command_timeout(opts: Options, node, drive_name: str | None, drive_ns: str 
     from rcl_interfaces.srv import GetParameters
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
+
     helper = Node('check_drive_params', context=node.context)
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(helper)
@@ -1053,6 +1271,7 @@ def _command_timeout(opts: Options, node, drive_name: str | None, drive_ns: str 
 
 # ========================================== CLI ============================================
 
+
 class _Parser(Parser):
     def error(self, message: str) -> None:  # one line, exit 2
         print(f'error: check_drive: {message}', file=sys.stderr)
@@ -1060,28 +1279,54 @@ class _Parser(Parser):
 
 
 def parse_args(argv: list[str]) -> Options:
-    ap = _Parser(prog='ros2 run im_controller check_drive',
-                 description='Check a drive node against docs/interfaces.md (see '
-                             'docs/check-drive.md). Exit 0: all items pass; 1: some fail; '
-                             '2: refused (bad option, no drive, another commander).')
-    ap.add_argument('--namespace', help='namespace of the drive (also: --ros-args -r '
-                                        '__ns:=/bench1)')
-    ap.add_argument('--config', metavar='FILE', type=input_file,
-                    help='drive parameter file (Ts, isq_max, encoder); default: the packaged '
-                         'motor')
-    ap.add_argument('--amplitude', type=float, default=0.5,
-                    help='current step [A] (default 0.5; at most 50 %% of isq_max)')
-    ap.add_argument('--step-duration', type=float, default=0.02,
-                    help='duration of each of the +isq and -isq steps [s] (default 0.02)')
-    ap.add_argument('--command-timeout', type=float,
-                    help="expected watchdog time [s] (default: the drive's command_timeout "
-                         'parameter, else 0.05)')
-    ap.add_argument('--max-speed', type=float, default=30.0,
-                    help='abort to zero current above this |omega_meas| [rad/s] (default 30)')
-    ap.add_argument('--timeout', type=float, default=10.0,
-                    help='discovery timeout [s] (default 10)')
-    ap.add_argument('--json', metavar='FILE', type=output_file,
-                    help='write the results as JSON (checked before probing)')
+    ap = _Parser(
+        prog='ros2 run im_controller check_drive',
+        description='Check a drive node against docs/interfaces.md (see '
+        'docs/check-drive.md). Exit 0: all items pass; 1: some fail; '
+        '2: refused (bad option, no drive, another commander).',
+    )
+    ap.add_argument(
+        '--namespace', help='namespace of the drive (also: --ros-args -r __ns:=/bench1)'
+    )
+    ap.add_argument(
+        '--config',
+        metavar='FILE',
+        type=input_file,
+        help='drive parameter file (Ts, isq_max, encoder); default: the packaged motor',
+    )
+    ap.add_argument(
+        '--amplitude',
+        type=float,
+        default=0.5,
+        help='current step [A] (default 0.5; at most 50 %% of isq_max)',
+    )
+    ap.add_argument(
+        '--step-duration',
+        type=float,
+        default=0.02,
+        help='duration of each of the +isq and -isq steps [s] (default 0.02)',
+    )
+    ap.add_argument(
+        '--command-timeout',
+        type=float,
+        help="expected watchdog time [s] (default: the drive's command_timeout "
+        'parameter, else 0.05)',
+    )
+    ap.add_argument(
+        '--max-speed',
+        type=float,
+        default=30.0,
+        help='abort to zero current above this |omega_meas| [rad/s] (default 30)',
+    )
+    ap.add_argument(
+        '--timeout', type=float, default=10.0, help='discovery timeout [s] (default 10)'
+    )
+    ap.add_argument(
+        '--json',
+        metavar='FILE',
+        type=output_file,
+        help='write the results as JSON (checked before probing)',
+    )
     ns = ap.parse_args(argv)
     for name in ('amplitude', 'step_duration', 'max_speed', 'timeout', 'command_timeout'):
         v = getattr(ns, name)
@@ -1091,6 +1336,7 @@ def parse_args(argv: list[str]) -> Options:
         ap.error(f'--step-duration {ns.step_duration:g} s: must be in [0.005, 0.5] s')
     if ns.config is not None:  # the file is read after the probe starts: check it now
         from im_drive_sim.params import ConfigError, load_config
+
         try:
             load_config(ns.config)
         except ConfigError as exc:
@@ -1100,9 +1346,9 @@ def parse_args(argv: list[str]) -> Options:
         ns.json = str(ns.json)
     if ns.namespace is not None:
         from rclpy.validate_namespace import validate_namespace
+
         try:
-            validate_namespace(ns.namespace if ns.namespace.startswith('/')
-                               else '/' + ns.namespace)
+            validate_namespace(ns.namespace if ns.namespace.startswith('/') else '/' + ns.namespace)
         except Exception as exc:  # rclpy raises InvalidNamespaceException
             ap.error(f'--namespace {ns.namespace!r}: {str(exc).splitlines()[0]}')
     return Options(**vars(ns))
@@ -1119,28 +1365,36 @@ def main(args: list[str] | None = None) -> int:
     import rclpy
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
+
     from im_drive_sim.params import ConfigError
 
     stop = {'signal': None}
 
     def on_signal(signum, _frame) -> None:
         stop['signal'] = signum
+
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     node = Node('check_drive', **({'namespace': opts.namespace} if opts.namespace else {}))
     code = 0
     try:
-        items, info = run_check(opts, node, lambda s: print(s, flush=True),
-                                lambda: stop['signal'] is not None)
+        items, info = run_check(
+            opts, node, lambda s: print(s, flush=True), lambda: stop['signal'] is not None
+        )
         for item in items:
             print(item.line())
         print(summary_line(items, info.get('mode', ''), info.get('status_mode')))
         code = 0 if all(i.passed for i in items) else 1
         if opts.json:
-            Path(opts.json).write_text(json.dumps(_clean(
-                {'passed': code == 0, **info, 'items': [asdict(i) for i in items]}),
-                indent=1, allow_nan=False) + '\n')
+            Path(opts.json).write_text(
+                json.dumps(
+                    _clean({'passed': code == 0, **info, 'items': [asdict(i) for i in items]}),
+                    indent=1,
+                    allow_nan=False,
+                )
+                + '\n'
+            )
     except (CheckRefused, ConfigError) as exc:
         print(f'error: check_drive: {exc}', file=sys.stderr)
         code = 2

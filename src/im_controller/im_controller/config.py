@@ -14,31 +14,32 @@ Units SI (rad, rad/s, A, N m, s).  See docs/controller.md for the meaning of eac
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
 __all__ = [
-    "ControllerConfigError",
-    "Gains",
-    "GAIN_NAMES",
-    "GAIN_RANGES",
-    "GAIN_UNITS",
-    "SEARCH_BOX",
-    "NUMERIC_SPECS",
-    "NumSpec",
-    "ControlConfig",
-    "LossConfig",
-    "TrajectoryConfig",
-    "SafetyConfig",
-    "ExperimentConfig",
-    "validate_gains",
-    "validate_control_config",
-    "validate_loss_config",
-    "validate_trajectory_config",
-    "validate_safety_config",
-    "validate_experiment_config",
+    'GAIN_NAMES',
+    'GAIN_RANGES',
+    'GAIN_UNITS',
+    'NUMERIC_SPECS',
+    'SEARCH_BOX',
+    'ControlConfig',
+    'ControllerConfigError',
+    'ExperimentConfig',
+    'Gains',
+    'LossConfig',
+    'NumSpec',
+    'SafetyConfig',
+    'TrajectoryConfig',
+    'validate_control_config',
+    'validate_experiment_config',
+    'validate_gains',
+    'validate_loss_config',
+    'validate_safety_config',
+    'validate_trajectory_config',
 ]
 
 
@@ -46,29 +47,34 @@ class ControllerConfigError(ValueError):
     """An invalid controller / experiment parameter; the message names it and says why."""
 
 
-GAIN_NAMES: tuple[str, ...] = ("k_pw", "k_iw", "k_pos", "tau_sm", "tau_eq")
+GAIN_NAMES: tuple[str, ...] = ('k_pw', 'k_iw', 'k_pos', 'tau_sm', 'tau_eq')
 """Order of the tuned vector G = [k_pw, k_iw, k_pos, tau_sm, tau_eq] (paper eq. 8)."""
 
-GAIN_UNITS: dict[str, str] = {"k_pw": "A s/rad", "k_iw": "A/rad", "k_pos": "1/s",
-                              "tau_sm": "s", "tau_eq": "s"}
+GAIN_UNITS: dict[str, str] = {
+    'k_pw': 'A s/rad',
+    'k_iw': 'A/rad',
+    'k_pos': '1/s',
+    'tau_sm': 's',
+    'tau_eq': 's',
+}
 
 GAIN_RANGES: dict[str, tuple[float, float]] = {
     # Safe ranges accepted anywhere (node parameters, tuner candidates).  They contain the
     # notes' search box with margin; values outside are refused, never clipped silently.
-    "k_pw": (0.0, 5.0),
-    "k_iw": (0.0, 500.0),
-    "k_pos": (0.0, 300.0),
-    "tau_sm": (0.0, 0.1),
-    "tau_eq": (0.0, 0.1),
+    'k_pw': (0.0, 5.0),
+    'k_iw': (0.0, 500.0),
+    'k_pos': (0.0, 300.0),
+    'tau_sm': (0.0, 0.1),
+    'tau_eq': (0.0, 0.1),
 }
 
 SEARCH_BOX: dict[str, tuple[float, float]] = {
     # The exploration box of the shared notes (for the tuner; informational here).
-    "k_pw": (0.05, 3.0),
-    "k_iw": (0.0, 200.0),
-    "k_pos": (1.0, 150.0),
-    "tau_sm": (0.0, 0.05),
-    "tau_eq": (0.0, 0.05),
+    'k_pw': (0.05, 3.0),
+    'k_iw': (0.0, 200.0),
+    'k_pos': (1.0, 150.0),
+    'tau_sm': (0.0, 0.05),
+    'tau_eq': (0.0, 0.05),
 }
 
 
@@ -79,33 +85,33 @@ class NumSpec:
     lo: float
     hi: float
     lo_strict: bool = False
-    unit: str = ""
+    unit: str = ''
 
 
 #: Every numeric parameter of the controller and the experiment, by ``section.field``:
 #: the single source of truth for validation (``validate_*``) and for the ROS parameter
 #: descriptors of the controller node.
 NUMERIC_SPECS: dict[str, NumSpec] = {
-    **{f"gains.{n}": NumSpec(lo, hi, False, GAIN_UNITS[n]) for n, (lo, hi) in GAIN_RANGES.items()},
-    "control.Ts": NumSpec(0.0, 0.01, True, "s"),
-    "control.isq_max": NumSpec(0.0, 1e3, True, "A"),
-    "loss.a1": NumSpec(0.0, 1e6, False, "1/(rad s)"),
-    "loss.a2": NumSpec(0.0, 1e6, False, "1/rad"),
-    "loss.a3": NumSpec(0.0, 1e6, False, "1/(A s)"),
-    "loss.threshold1": NumSpec(0.0, 1e12, True),
-    "loss.threshold2": NumSpec(0.0, 1e12, True),
-    "loss.threshold3": NumSpec(0.0, 1e12, True),
-    "loss.penalty": NumSpec(1.0, 1e6),
-    "loss.isqf_tau": NumSpec(0.0, 10.0, True, "s"),
-    "loss.sat_ratio": NumSpec(0.0, 1.0, True),
-    "trajectory.distance": NumSpec(0.0, 1e3, True, "rad"),
-    "trajectory.a_max": NumSpec(0.0, 1e6, True, "rad/s^2"),
-    "trajectory.v_max": NumSpec(0.0, 1e4, True, "rad/s"),
-    "trajectory.duration": NumSpec(0.0, 100.0, True, "s"),
-    "trajectory.load_delay": NumSpec(0.0, 100.0, False, "s"),
-    "trajectory.load_torque": NumSpec(0.0, 1e3, False, "N m"),
-    "safety.max_position_error": NumSpec(0.0, 1e3, True, "rad"),
-    "safety.max_speed": NumSpec(0.0, 1e4, True, "rad/s"),
+    **{f'gains.{n}': NumSpec(lo, hi, False, GAIN_UNITS[n]) for n, (lo, hi) in GAIN_RANGES.items()},
+    'control.Ts': NumSpec(0.0, 0.01, True, 's'),
+    'control.isq_max': NumSpec(0.0, 1e3, True, 'A'),
+    'loss.a1': NumSpec(0.0, 1e6, False, '1/(rad s)'),
+    'loss.a2': NumSpec(0.0, 1e6, False, '1/rad'),
+    'loss.a3': NumSpec(0.0, 1e6, False, '1/(A s)'),
+    'loss.threshold1': NumSpec(0.0, 1e12, True),
+    'loss.threshold2': NumSpec(0.0, 1e12, True),
+    'loss.threshold3': NumSpec(0.0, 1e12, True),
+    'loss.penalty': NumSpec(1.0, 1e6),
+    'loss.isqf_tau': NumSpec(0.0, 10.0, True, 's'),
+    'loss.sat_ratio': NumSpec(0.0, 1.0, True),
+    'trajectory.distance': NumSpec(0.0, 1e3, True, 'rad'),
+    'trajectory.a_max': NumSpec(0.0, 1e6, True, 'rad/s^2'),
+    'trajectory.v_max': NumSpec(0.0, 1e4, True, 'rad/s'),
+    'trajectory.duration': NumSpec(0.0, 100.0, True, 's'),
+    'trajectory.load_delay': NumSpec(0.0, 100.0, False, 's'),
+    'trajectory.load_torque': NumSpec(0.0, 1e3, False, 'N m'),
+    'safety.max_position_error': NumSpec(0.0, 1e3, True, 'rad'),
+    'safety.max_speed': NumSpec(0.0, 1e4, True, 'rad/s'),
 }
 
 
@@ -122,28 +128,34 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating))
 
 
-def _num(name: str, v: Any, lo: float | None = None, hi: float | None = None,
-         lo_strict: bool = False, unit: str = "") -> float:
+def _num(
+    name: str,
+    v: Any,
+    lo: float | None = None,
+    hi: float | None = None,
+    lo_strict: bool = False,
+    unit: str = '',
+) -> float:
     """Validate one float parameter; returns it as ``float``."""
-    u = f" {unit}" if unit else ""
-    lo_txt = "" if lo is None else (f"> {lo:g}" if lo_strict else f">= {lo:g}")
+    u = f' {unit}' if unit else ''
+    lo_txt = '' if lo is None else (f'> {lo:g}' if lo_strict else f'>= {lo:g}')
     if lo is not None and hi is not None and not lo_strict:
-        want = f"a finite number in [{lo:g}, {hi:g}]{u}"
+        want = f'a finite number in [{lo:g}, {hi:g}]{u}'
     elif lo is not None and hi is not None:
-        want = f"a finite number in ({lo:g}, {hi:g}]{u}"
+        want = f'a finite number in ({lo:g}, {hi:g}]{u}'
     elif lo is not None:
-        want = f"a finite number {lo_txt}{u}"
+        want = f'a finite number {lo_txt}{u}'
     else:
-        want = f"a finite number{u}"
+        want = f'a finite number{u}'
     if not _is_number(v):
-        raise ControllerConfigError(f"{name} must be {want}, got {v!r} (type {type(v).__name__})")
+        raise ControllerConfigError(f'{name} must be {want}, got {v!r} (type {type(v).__name__})')
     x = float(v)
     if not math.isfinite(x):
-        raise ControllerConfigError(f"{name} must be {want}, got {v!r}")
+        raise ControllerConfigError(f'{name} must be {want}, got {v!r}')
     if lo is not None and (x <= lo if lo_strict else x < lo):
-        raise ControllerConfigError(f"{name} must be {want}, got {v!r}")
+        raise ControllerConfigError(f'{name} must be {want}, got {v!r}')
     if hi is not None and x > hi:
-        raise ControllerConfigError(f"{name} must be {want}, got {v!r}")
+        raise ControllerConfigError(f'{name} must be {want}, got {v!r}')
     return x
 
 
@@ -167,30 +179,32 @@ class Gains:
 
     def as_array(self) -> np.ndarray:
         """[k_pw, k_iw, k_pos, tau_sm, tau_eq] as a float64 array."""
-        return np.array([self.k_pw, self.k_iw, self.k_pos, self.tau_sm, self.tau_eq],
-                        dtype=np.float64)
+        return np.array(
+            [self.k_pw, self.k_iw, self.k_pos, self.tau_sm, self.tau_eq], dtype=np.float64
+        )
 
     def as_tuple(self) -> tuple[float, ...]:
         return (self.k_pw, self.k_iw, self.k_pos, self.tau_sm, self.tau_eq)
 
     @classmethod
-    def from_sequence(cls, values: Sequence[float]) -> "Gains":
+    def from_sequence(cls, values: Sequence[float]) -> Gains:
         """Build (and validate) from [k_pw, k_iw, k_pos, tau_sm, tau_eq]."""
         vals = list(values)
         if len(vals) != len(GAIN_NAMES):
             raise ControllerConfigError(
-                f"gains must have {len(GAIN_NAMES)} values {list(GAIN_NAMES)}, got {len(vals)}")
+                f'gains must have {len(GAIN_NAMES)} values {list(GAIN_NAMES)}, got {len(vals)}'
+            )
         g = cls(*vals)
         return validate_gains(g)
 
 
-def validate_gains(g: Any, prefix: str = "gains") -> Gains:
+def validate_gains(g: Any, prefix: str = 'gains') -> Gains:
     """Check every gain is a finite number inside ``GAIN_RANGES``; returns float-typed Gains."""
     if not isinstance(g, Gains):
-        raise ControllerConfigError(f"{prefix} must be a Gains instance, got {type(g).__name__}")
+        raise ControllerConfigError(f'{prefix} must be a Gains instance, got {type(g).__name__}')
     vals = {}
     for name in GAIN_NAMES:
-        vals[name] = _spec(f"gains.{name}", f"{prefix}.{name}", getattr(g, name))
+        vals[name] = _spec(f'gains.{name}', f'{prefix}.{name}', getattr(g, name))
     return Gains(**vals)
 
 
@@ -205,19 +219,20 @@ class ControlConfig:
     isq_max [A]: clamp of isq* (take it from the drive config; default 7 A).
     """
 
-    feedforward: str = "model"
+    feedforward: str = 'model'
     Ts: float = 2e-4
     isq_max: float = 7.0
 
 
-def validate_control_config(c: Any, prefix: str = "control") -> ControlConfig:
+def validate_control_config(c: Any, prefix: str = 'control') -> ControlConfig:
     if not isinstance(c, ControlConfig):
-        raise ControllerConfigError(f"{prefix} must be a ControlConfig, got {type(c).__name__}")
-    if not isinstance(c.feedforward, str) or c.feedforward not in ("model", "undelayed"):
+        raise ControllerConfigError(f'{prefix} must be a ControlConfig, got {type(c).__name__}')
+    if not isinstance(c.feedforward, str) or c.feedforward not in ('model', 'undelayed'):
         raise ControllerConfigError(
-            f"{prefix}.feedforward must be 'model' or 'undelayed', got {c.feedforward!r}")
-    Ts = _spec("control.Ts", f"{prefix}.Ts", c.Ts)
-    isq_max = _spec("control.isq_max", f"{prefix}.isq_max", c.isq_max)
+            f"{prefix}.feedforward must be 'model' or 'undelayed', got {c.feedforward!r}"
+        )
+    Ts = _spec('control.Ts', f'{prefix}.Ts', c.Ts)
+    isq_max = _spec('control.isq_max', f'{prefix}.isq_max', c.isq_max)
     return ControlConfig(c.feedforward, Ts, isq_max)
 
 
@@ -245,10 +260,10 @@ class LossConfig:
     sat_ratio: float = 0.99
 
 
-def validate_loss_config(c: Any, prefix: str = "loss") -> LossConfig:
+def validate_loss_config(c: Any, prefix: str = 'loss') -> LossConfig:
     if not isinstance(c, LossConfig):
-        raise ControllerConfigError(f"{prefix} must be a LossConfig, got {type(c).__name__}")
-    v = {n: _spec(f"loss.{n}", f"{prefix}.{n}", getattr(c, n)) for n in _field_names(LossConfig)}
+        raise ControllerConfigError(f'{prefix} must be a LossConfig, got {type(c).__name__}')
+    v = {n: _spec(f'loss.{n}', f'{prefix}.{n}', getattr(c, n)) for n in _field_names(LossConfig)}
     return LossConfig(**v)
 
 
@@ -273,23 +288,27 @@ class TrajectoryConfig:
     duration: float = 1.125
     load_delay: float = 0.7
     load_torque: float = 1.75
-    load_sign: str = "oppose_move"
+    load_sign: str = 'oppose_move'
 
 
-def validate_trajectory_config(c: Any, prefix: str = "trajectory") -> TrajectoryConfig:
+def validate_trajectory_config(c: Any, prefix: str = 'trajectory') -> TrajectoryConfig:
     if not isinstance(c, TrajectoryConfig):
+        raise ControllerConfigError(f'{prefix} must be a TrajectoryConfig, got {type(c).__name__}')
+    v: dict[str, Any] = {
+        n: _spec(f'trajectory.{n}', f'{prefix}.{n}', getattr(c, n))
+        for n in _field_names(TrajectoryConfig)
+        if n != 'load_sign'
+    }
+    if not isinstance(c.load_sign, str) or c.load_sign not in ('oppose_move', 'fixed'):
         raise ControllerConfigError(
-            f"{prefix} must be a TrajectoryConfig, got {type(c).__name__}")
-    v = {n: _spec(f"trajectory.{n}", f"{prefix}.{n}", getattr(c, n))
-         for n in _field_names(TrajectoryConfig) if n != "load_sign"}
-    if not isinstance(c.load_sign, str) or c.load_sign not in ("oppose_move", "fixed"):
+            f"{prefix}.load_sign must be 'oppose_move' or 'fixed', got {c.load_sign!r}"
+        )
+    v['load_sign'] = c.load_sign
+    if v['load_delay'] > v['duration']:
         raise ControllerConfigError(
-            f"{prefix}.load_sign must be 'oppose_move' or 'fixed', got {c.load_sign!r}")
-    v["load_sign"] = c.load_sign
-    if v["load_delay"] > v["duration"]:
-        raise ControllerConfigError(
-            f"{prefix}.load_delay must be <= duration ({v['duration']:g} s), "
-            f"got {v['load_delay']!r}")
+            f'{prefix}.load_delay must be <= duration ({v["duration"]:g} s), '
+            f'got {v["load_delay"]!r}'
+        )
     return TrajectoryConfig(**v)
 
 
@@ -306,11 +325,15 @@ class SafetyConfig:
     max_speed: float = 100.0
 
 
-def validate_safety_config(c: Any, prefix: str = "safety") -> SafetyConfig:
+def validate_safety_config(c: Any, prefix: str = 'safety') -> SafetyConfig:
     if not isinstance(c, SafetyConfig):
-        raise ControllerConfigError(f"{prefix} must be a SafetyConfig, got {type(c).__name__}")
-    return SafetyConfig(**{n: _spec(f"safety.{n}", f"{prefix}.{n}", getattr(c, n))
-                            for n in _field_names(SafetyConfig)})
+        raise ControllerConfigError(f'{prefix} must be a SafetyConfig, got {type(c).__name__}')
+    return SafetyConfig(
+        **{
+            n: _spec(f'safety.{n}', f'{prefix}.{n}', getattr(c, n))
+            for n in _field_names(SafetyConfig)
+        }
+    )
 
 
 # ------------------------------------------------------------------------- experiment
@@ -332,17 +355,22 @@ class ExperimentConfig:
 def validate_experiment_config(c: Any) -> ExperimentConfig:
     """Validate all sections; returns a normalised (float-typed) copy."""
     if not isinstance(c, ExperimentConfig):
-        raise ControllerConfigError(f"config must be an ExperimentConfig, got {type(c).__name__}")
+        raise ControllerConfigError(f'config must be an ExperimentConfig, got {type(c).__name__}')
     ctl = validate_control_config(c.control)
     traj = validate_trajectory_config(c.trajectory)
     steps = traj.duration / ctl.Ts
     if abs(steps - round(steps)) > 1e-9 * max(1.0, steps):
         raise ControllerConfigError(
-            f"trajectory.duration must be an integer number of control periods "
-            f"(Ts = {ctl.Ts:g} s), got {traj.duration!r}")
-    return ExperimentConfig(ctl, validate_loss_config(c.loss), traj,
-                            validate_safety_config(c.safety),
-                            validate_gains(c.fallback_gains, "fallback_gains"))
+            f'trajectory.duration must be an integer number of control periods '
+            f'(Ts = {ctl.Ts:g} s), got {traj.duration!r}'
+        )
+    return ExperimentConfig(
+        ctl,
+        validate_loss_config(c.loss),
+        traj,
+        validate_safety_config(c.safety),
+        validate_gains(c.fallback_gains, 'fallback_gains'),
+    )
 
 
 def _field_names(cls: type) -> list[str]:

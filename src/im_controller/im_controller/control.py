@@ -40,43 +40,70 @@ from numba import njit
 from .config import ControlConfig, Gains, validate_control_config, validate_gains
 
 __all__ = [
-    "CascadeController", "CONTROL_FIELDS", "control_step", "control_reset",
-    "make_control_params", "fill_control_params", "FF_MODEL", "FF_UNDELAYED",
+    'CONTROL_FIELDS',
+    'FF_MODEL',
+    'FF_UNDELAYED',
+    'CascadeController',
+    'control_reset',
+    'control_step',
+    'fill_control_params',
+    'make_control_params',
 ]
 
 # ------------------------------------------------------------------ parameter indices
-C_KPW = 0       # k_pw [A s/rad]
-C_KIW = 1       # k_iw [A/rad]
-C_KPOS = 2      # k_pos [1/s]
-C_TAU_SM = 3    # [s]
-C_TAU_EQ = 4    # [s]
-C_A_SM = 5      # exp(-Ts/tau_sm) (0 for tau_sm = 0)
-C_G_SM = 6      # 1 - a_sm
+C_KPW = 0  # k_pw [A s/rad]
+C_KIW = 1  # k_iw [A/rad]
+C_KPOS = 2  # k_pos [1/s]
+C_TAU_SM = 3  # [s]
+C_TAU_EQ = 4  # [s]
+C_A_SM = 5  # exp(-Ts/tau_sm) (0 for tau_sm = 0)
+C_G_SM = 6  # 1 - a_sm
 C_A_EQ = 7
 C_G_EQ = 8
-C_KI_TS = 9     # k_iw Ts [A/(rad/s)]
-C_INV_TS = 10   # 1/Ts [1/s]
+C_KI_TS = 9  # k_iw Ts [A/(rad/s)]
+C_INV_TS = 10  # 1/Ts [1/s]
 C_ISQ_MAX = 11  # [A]
-C_FF = 12       # FF_MODEL or FF_UNDELAYED
-C_TS = 13       # [s]
+C_FF = 12  # FF_MODEL or FF_UNDELAYED
+C_TS = 13  # [s]
 N_CPARAMS = 14
 
 FF_MODEL = 0.0
 FF_UNDELAYED = 1.0
 
 # ---------------------------------------------------------------------- state indices
-X_SM = 0        # theta_sm [rad]
-X_M = 1         # theta_m [rad]
-X_I = 2         # integrator [A]
+X_SM = 0  # theta_sm [rad]
+X_M = 1  # theta_m [rad]
+X_I = 2  # integrator [A]
 N_CSTATE = 3
 
 # -------------------------------------------------------------------- internals
 CONTROL_FIELDS: tuple[str, ...] = (
-    "theta_ref", "theta_sm", "theta_m", "omega_ff", "omega_ref", "e_theta", "e_omega",
-    "p_term", "i_term", "isq_ref", "saturated")
+    'theta_ref',
+    'theta_sm',
+    'theta_m',
+    'omega_ff',
+    'omega_ref',
+    'e_theta',
+    'e_omega',
+    'p_term',
+    'i_term',
+    'isq_ref',
+    'saturated',
+)
 """Internals written per step (units: rad, rad, rad, rad/s, rad/s, rad, rad/s, A, A, A, 0/1)."""
-(O_THETA_REF, O_THETA_SM, O_THETA_M, O_OMEGA_FF, O_OMEGA_REF, O_E_THETA, O_E_OMEGA,
- O_P, O_I, O_ISQ, O_SAT) = range(len(CONTROL_FIELDS))
+(
+    O_THETA_REF,
+    O_THETA_SM,
+    O_THETA_M,
+    O_OMEGA_FF,
+    O_OMEGA_REF,
+    O_E_THETA,
+    O_E_OMEGA,
+    O_P,
+    O_I,
+    O_ISQ,
+    O_SAT,
+) = range(len(CONTROL_FIELDS))
 N_CONTROL_FIELDS = len(CONTROL_FIELDS)
 
 
@@ -85,8 +112,9 @@ def _lag(Ts: float, tau: float) -> float:
     return math.exp(-Ts / tau) if tau > 0.0 else 0.0
 
 
-def fill_control_params(C: np.ndarray, gains: Gains, Ts: float, isq_max: float,
-                        feedforward: str) -> None:
+def fill_control_params(
+    C: np.ndarray, gains: Gains, Ts: float, isq_max: float, feedforward: str
+) -> None:
     """Write the kernel parameter vector in place (inputs already validated)."""
     C[C_KPW] = gains.k_pw
     C[C_KIW] = gains.k_iw
@@ -102,7 +130,7 @@ def fill_control_params(C: np.ndarray, gains: Gains, Ts: float, isq_max: float,
     C[C_KI_TS] = gains.k_iw * Ts
     C[C_INV_TS] = 1.0 / Ts
     C[C_ISQ_MAX] = isq_max
-    C[C_FF] = FF_MODEL if feedforward == "model" else FF_UNDELAYED
+    C[C_FF] = FF_MODEL if feedforward == 'model' else FF_UNDELAYED
     C[C_TS] = Ts
 
 
@@ -122,8 +150,14 @@ def control_reset(X: np.ndarray, theta_meas: float) -> None:
 
 
 @njit(cache=True)
-def control_step(X: np.ndarray, C: np.ndarray, theta_ref: float, theta_meas: float,
-                 omega_meas: float, out: np.ndarray) -> float:
+def control_step(
+    X: np.ndarray,
+    C: np.ndarray,
+    theta_ref: float,
+    theta_meas: float,
+    omega_meas: float,
+    out: np.ndarray,
+) -> float:
     """One control period; returns isq* [A] and writes the internals into ``out``.
 
     theta_ref [rad]: raw reference theta*; theta_meas [rad], omega_meas [rad/s]: measurements
@@ -199,7 +233,8 @@ class CascadeController:
 
     def __init__(self, gains: Gains | None = None, control: ControlConfig | None = None) -> None:
         self.control: ControlConfig = validate_control_config(
-            ControlConfig() if control is None else control)
+            ControlConfig() if control is None else control
+        )
         self.gains: Gains = validate_gains(Gains() if gains is None else gains)
         self.C: np.ndarray = make_control_params(self.gains, self.control)
         self.X: np.ndarray = np.zeros(N_CSTATE)
@@ -208,20 +243,29 @@ class CascadeController:
     def reset(self, theta_meas: float) -> None:
         """Start holding ``theta_meas`` [rad]: references = theta_meas, integrator 0."""
         if not math.isfinite(theta_meas):
-            raise ValueError(f"theta_meas must be finite, got {theta_meas!r}")
+            raise ValueError(f'theta_meas must be finite, got {theta_meas!r}')
         control_reset(self.X, float(theta_meas))
 
     def set_gains(self, gains: Gains) -> None:
         """Validate, then apply atomically (filter states and integrator are kept)."""
         g = validate_gains(gains)
-        fill_control_params(self.C, g, self.control.Ts, self.control.isq_max,
-                            self.control.feedforward)
+        fill_control_params(
+            self.C, g, self.control.Ts, self.control.isq_max, self.control.feedforward
+        )
         self.gains = g
 
     def step(self, theta_ref: float, theta_meas: float, omega_meas: float) -> float:
         """One period: raw reference theta* [rad], samples [rad, rad/s] -> isq* [A]."""
-        return float(control_step(self.X, self.C, float(theta_ref), float(theta_meas),
-                                  float(omega_meas), self.internals))
+        return float(
+            control_step(
+                self.X,
+                self.C,
+                float(theta_ref),
+                float(theta_meas),
+                float(omega_meas),
+                self.internals,
+            )
+        )
 
     @property
     def saturated(self) -> bool:

@@ -20,6 +20,7 @@ A thin node around :class:`im_controller.experiment.ExperimentRunner` (docs/cont
 * a watchdog: no drive state for ``state_timeout`` s while the loop expects one -> zero
   current commanded, a running experiment aborted (``drive_state_timeout``), FAULT.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,8 +32,13 @@ import time
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                ParameterType, SetParametersResult)
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -42,19 +48,40 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from im_drive_sim.cdr import Float64ArrayWire
-from im_drive_sim.client import DriveClient
-from im_drive_sim.params import ConfigError, load_config
-from im_drive_sim.drive_sim_node import RECORDED_QOS
 from im_drive_sim.cli import Parser, input_file, parse_cli, run_cli
-from im_drive_sim.runtime import (LenientDoubles, RCLError, parameter_hygiene, publish_retry,
-                                  run_stepped_node)
+from im_drive_sim.client import DriveClient
+from im_drive_sim.drive_sim_node import RECORDED_QOS
+from im_drive_sim.params import ConfigError, load_config
+from im_drive_sim.runtime import (
+    LenientDoubles,
+    RCLError,
+    parameter_hygiene,
+    publish_retry,
+    run_stepped_node,
+)
 
-from .config import (GAIN_NAMES, NUMERIC_SPECS, ControlConfig, ControllerConfigError,
-                     ExperimentConfig, Gains, LossConfig, SafetyConfig, TrajectoryConfig,
-                     validate_experiment_config, validate_gains)
+from .config import (
+    GAIN_NAMES,
+    NUMERIC_SPECS,
+    ControlConfig,
+    ControllerConfigError,
+    ExperimentConfig,
+    Gains,
+    LossConfig,
+    SafetyConfig,
+    TrajectoryConfig,
+    validate_experiment_config,
+    validate_gains,
+)
 from .control import CONTROL_FIELDS
-from .experiment import (INTERNALS_FIELDS, REASON_DRIVE_TIMEOUT, STATUS_ABORTED, STATUS_DONE,
-                         STATUS_FAULT, ExperimentRunner)
+from .experiment import (
+    INTERNALS_FIELDS,
+    REASON_DRIVE_TIMEOUT,
+    STATUS_ABORTED,
+    STATUS_DONE,
+    STATUS_FAULT,
+    ExperimentRunner,
+)
 from .messages import result_to_msg
 
 LOSS_TOPIC = 'controller/loss'
@@ -104,18 +131,27 @@ class ControllerError(Exception):
 def _float_descriptor(key: str, description: str, read_only: bool) -> ParameterDescriptor:
     sp = NUMERIC_SPECS[key]
     unit = f' [{sp.unit}]' if sp.unit else ''
-    bounds = f"{'(' if sp.lo_strict else '['}{sp.lo:g}, {sp.hi:g}]"
+    bounds = f'{"(" if sp.lo_strict else "["}{sp.lo:g}, {sp.hi:g}]'
     return ParameterDescriptor(
-        type=ParameterType.PARAMETER_DOUBLE, description=description + unit,
-        read_only=read_only, additional_constraints=f'finite, in {bounds}',
-        floating_point_range=[FloatingPointRange(from_value=sp.lo, to_value=sp.hi, step=0.0)])
+        type=ParameterType.PARAMETER_DOUBLE,
+        description=description + unit,
+        read_only=read_only,
+        additional_constraints=f'finite, in {bounds}',
+        floating_point_range=[FloatingPointRange(from_value=sp.lo, to_value=sp.hi, step=0.0)],
+    )
 
 
 class ControllerNode(LenientDoubles, Node):
     """The cascaded controller node (see module docstring)."""
 
-    def __init__(self, *, node_name: str = 'controller', context=None,
-                 parameter_overrides: list | None = None, warn_unknown: bool = True) -> None:
+    def __init__(
+        self,
+        *,
+        node_name: str = 'controller',
+        context=None,
+        parameter_overrides: list | None = None,
+        warn_unknown: bool = True,
+    ) -> None:
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
         self._declare_structure()
         self._declare_tunables()
@@ -127,15 +163,15 @@ class ControllerNode(LenientDoubles, Node):
         self.add_on_set_parameters_callback(self._on_set)
         self.add_post_set_parameters_callback(self._post_set)
 
-        parameter_hygiene(self, {'internals_fields': list(INTERNALS_FIELDS)},
-                          warn_unknown=warn_unknown)
+        parameter_hygiene(
+            self, {'internals_fields': list(INTERNALS_FIELDS)}, warn_unknown=warn_unknown
+        )
 
         self.io_node = Node(f'_{node_name}_io', context=context, namespace=self.get_namespace())
         self.client = DriveClient(self.io_node)
         # Reliable KEEP_ALL: every loss and every internals sample reaches the recorder.
         self.loss_pub = self.create_publisher(DiagnosticArray, LOSS_TOPIC, RECORDED_QOS)
-        self.internals_pub = self.create_publisher(Float64MultiArray, INTERNALS_TOPIC,
-                                                   RECORDED_QOS)
+        self.internals_pub = self.create_publisher(Float64MultiArray, INTERNALS_TOPIC, RECORDED_QOS)
         self._internals = Float64ArrayWire(len(INTERNALS_FIELDS))
         self.start_srv = self.create_service(Trigger, '~/start_experiment', self._on_start)
         self.reset_srv = self.create_service(Trigger, '~/reset_fault', self._on_reset_fault)
@@ -144,42 +180,65 @@ class ControllerNode(LenientDoubles, Node):
         # keeps who changed which gain when. get_type_description does not support it.
         for srv in list(self.services):
             if not srv.srv_name.endswith('get_type_description'):
-                srv.configure_introspection(self.get_clock(), qos_profile_services_default,
-                                            ServiceIntrospectionState.CONTENTS)
+                srv.configure_introspection(
+                    self.get_clock(),
+                    qos_profile_services_default,
+                    ServiceIntrospectionState.CONTENTS,
+                )
 
         self.next_experiment_id = 0
-        self.results = []                 #: every LossResult published, in order
+        self.results = []  #: every LossResult published, in order
         self.stop_requested = False
-        self._state: np.ndarray | None = None   # newest state taken
-        self._pending = False             # ... and not answered yet
+        self._state: np.ndarray | None = None  # newest state taken
+        self._pending = False  # ... and not answered yet
         self._last_state_wall = time.monotonic()
         self._last_msg_wall = time.monotonic()  # any state message, re-sent ones too
         self._timeout_wall: float | None = None  # when the drive-state watchdog tripped
-        self._initialised = False         # the hold reference is set from the first state
+        self._initialised = False  # the hold reference is set from the first state
         self._fault_logged = False
         self._n_answered = 0
         self.get_logger().info(
             f'mode={self.mode} Ts={self.Ts * 1e6:.0f} us isq_max={self.isq_max:g} A '
-            f'gains={dict(zip(GAIN_NAMES, gains.as_tuple()))}')
+            f'gains={dict(zip(GAIN_NAMES, gains.as_tuple(), strict=True))}'
+        )
 
     # -- parameters --------------------------------------------------------------------
     def _declare_structure(self) -> None:
-        ro = dict(read_only=True)
-        self.mode = self.declare_parameter('mode', 'lockstep', ParameterDescriptor(
-            description="'lockstep' (simulation) or 'realtime' (a real or real-time drive)",
-            additional_constraints='one of: lockstep, realtime', **ro)).value
+        ro = {'read_only': True}
+        self.mode = self.declare_parameter(
+            'mode',
+            'lockstep',
+            ParameterDescriptor(
+                description="'lockstep' (simulation) or 'realtime' (a real or real-time drive)",
+                additional_constraints='one of: lockstep, realtime',
+                **ro,
+            ),
+        ).value
         if self.mode not in MODES:
             raise ControllerError(f"parameter 'mode' must be one of {MODES}, got {self.mode!r}")
-        self.lockstep_idle = self.declare_parameter('lockstep_idle', 'pause', ParameterDescriptor(
-            description="lock-step, between experiments: 'pause' (sim time stops; "
-                        "reproducible) or 'hold' (keep stepping the position hold)",
-            additional_constraints='one of: pause, hold', **ro)).value
+        self.lockstep_idle = self.declare_parameter(
+            'lockstep_idle',
+            'pause',
+            ParameterDescriptor(
+                description="lock-step, between experiments: 'pause' (sim time stops; "
+                "reproducible) or 'hold' (keep stepping the position hold)",
+                additional_constraints='one of: pause, hold',
+                **ro,
+            ),
+        ).value
         if self.lockstep_idle not in ('pause', 'hold'):
-            raise ControllerError("parameter 'lockstep_idle' must be 'pause' or 'hold', "
-                                  f'got {self.lockstep_idle!r}')
-        drive_file = self.declare_parameter('drive_config_file', '', ParameterDescriptor(
-            description="the drive's parameter file, for Ts and isq_max ('' = the packaged "
-                        '750 W default)', **ro)).value
+            raise ControllerError(
+                f"parameter 'lockstep_idle' must be 'pause' or 'hold', got {self.lockstep_idle!r}"
+            )
+        drive_file = self.declare_parameter(
+            'drive_config_file',
+            '',
+            ParameterDescriptor(
+                description="the drive's parameter file, for Ts and isq_max ('' = the packaged "
+                '750 W default)',
+                **ro,
+            ),
+        ).value
         try:
             drive_cfg = load_config(drive_file or None)
         except ConfigError as exc:
@@ -191,24 +250,39 @@ class ControllerNode(LenientDoubles, Node):
         # stall a process for a few hundred ms (seen on CI): allow 2 s there.
         default_timeout = 0.25 if self.mode == 'realtime' else 2.0
         self.state_timeout = self.declare_parameter(
-            'state_timeout', default_timeout, ParameterDescriptor(
-                type=ParameterType.PARAMETER_DOUBLE, read_only=True,
+            'state_timeout',
+            default_timeout,
+            ParameterDescriptor(
+                type=ParameterType.PARAMETER_DOUBLE,
+                read_only=True,
                 description='watchdog: no drive state for this long while one is expected -> '
-                            'zero current, running experiment aborted, FAULT [s]',
-                floating_point_range=[FloatingPointRange(from_value=0.001, to_value=60.0)])
+                'zero current, running experiment aborted, FAULT [s]',
+                floating_point_range=[FloatingPointRange(from_value=0.001, to_value=60.0)],
+            ),
         ).value
         self.internals_decimation = self.declare_parameter(
-            'internals_decimation', 1, ParameterDescriptor(
-                read_only=True, description='publish controller/internals every N answered '
-                                            'states (1 = every step)',
-                integer_range=[IntegerRange(from_value=1, to_value=100000, step=1)])).value
+            'internals_decimation',
+            1,
+            ParameterDescriptor(
+                read_only=True,
+                description='publish controller/internals every N answered states (1 = every step)',
+                integer_range=[IntegerRange(from_value=1, to_value=100000, step=1)],
+            ),
+        ).value
         self.service_period_steps = self.declare_parameter(
-            'service_period_steps', 250, ParameterDescriptor(
-                read_only=True, description='serve services and parameters every N steps '
-                                            '(and whenever idle)',
-                integer_range=[IntegerRange(from_value=1, to_value=1000000, step=1)])).value
-        self.declare_parameter('internals_fields', list(INTERNALS_FIELDS), ParameterDescriptor(
-            read_only=True, description='layout of controller/internals data'))
+            'service_period_steps',
+            250,
+            ParameterDescriptor(
+                read_only=True,
+                description='serve services and parameters every N steps (and whenever idle)',
+                integer_range=[IntegerRange(from_value=1, to_value=1000000, step=1)],
+            ),
+        ).value
+        self.declare_parameter(
+            'internals_fields',
+            list(INTERNALS_FIELDS),
+            ParameterDescriptor(read_only=True, description='layout of controller/internals data'),
+        )
         defaults = ExperimentConfig()
         for section, cls in READ_ONLY_SECTIONS.items():
             for f in dataclasses.fields(cls):
@@ -217,43 +291,64 @@ class ControllerNode(LenientDoubles, Node):
                     continue
                 value = getattr(getattr(defaults, section), f.name)
                 if isinstance(value, str):
-                    self.declare_parameter(key, value, ParameterDescriptor(
-                        description=DESCRIPTIONS.get(key, key), read_only=True))
+                    self.declare_parameter(
+                        key,
+                        value,
+                        ParameterDescriptor(description=DESCRIPTIONS.get(key, key), read_only=True),
+                    )
                 else:
-                    self.declare_parameter(key, float(value), _float_descriptor(
-                        key, DESCRIPTIONS.get(key, key), read_only=True))
+                    self.declare_parameter(
+                        key,
+                        float(value),
+                        _float_descriptor(key, DESCRIPTIONS.get(key, key), read_only=True),
+                    )
         # The isq* clamp, read-only beside the other hard limits: the drive file's
         # machine.isq_max, or a tighter one set at start (a bench may want less current
         # than the drive can give); a looser one would be a lie the drive cannot keep.
         drive_isq_max = self.isq_max
-        isq_max = self.declare_parameter('safety.isq_max', drive_isq_max, ParameterDescriptor(
-            type=ParameterType.PARAMETER_DOUBLE, read_only=True,
-            description="isq* clamp [A]: the drive file's machine.isq_max, or lower if set "
-                        'at start (a higher value is refused)',
-            additional_constraints=f'finite, in (0, {drive_isq_max:g}] (the drive file)')).value
-        if not (isinstance(isq_max, float) and math.isfinite(isq_max)
-                and 0.0 < isq_max <= drive_isq_max):
+        isq_max = self.declare_parameter(
+            'safety.isq_max',
+            drive_isq_max,
+            ParameterDescriptor(
+                type=ParameterType.PARAMETER_DOUBLE,
+                read_only=True,
+                description="isq* clamp [A]: the drive file's machine.isq_max, or lower if set "
+                'at start (a higher value is refused)',
+                additional_constraints=f'finite, in (0, {drive_isq_max:g}] (the drive file)',
+            ),
+        ).value
+        if not (
+            isinstance(isq_max, float) and math.isfinite(isq_max) and 0.0 < isq_max <= drive_isq_max
+        ):
             raise ControllerError(
                 f'parameter safety.isq_max must be in (0, {drive_isq_max:g}] A (the drive '
-                f"file's machine.isq_max; only a tighter clamp can be set), got {isq_max!r}")
+                f"file's machine.isq_max; only a tighter clamp can be set), got {isq_max!r}"
+            )
         self.isq_max = isq_max
 
     def _declare_tunables(self) -> None:
         g = Gains()
         for name in GAIN_NAMES:
-            self.declare_parameter(name, float(getattr(g, name)), _float_descriptor(
-                f'gains.{name}', DESCRIPTIONS[name], read_only=False))
+            self.declare_parameter(
+                name,
+                float(getattr(g, name)),
+                _float_descriptor(f'gains.{name}', DESCRIPTIONS[name], read_only=False),
+            )
         defaults = ExperimentConfig()
         for section, cls in TUNABLE_SECTIONS.items():
             for f in dataclasses.fields(cls):
                 key = f'{section}.{f.name}'
                 value = getattr(getattr(defaults, section), f.name)
                 if isinstance(value, str):
-                    self.declare_parameter(key, value, ParameterDescriptor(
-                        description=DESCRIPTIONS.get(key, key)))
+                    self.declare_parameter(
+                        key, value, ParameterDescriptor(description=DESCRIPTIONS.get(key, key))
+                    )
                 else:
-                    self.declare_parameter(key, float(value), _float_descriptor(
-                        key, DESCRIPTIONS.get(key, key), read_only=False))
+                    self.declare_parameter(
+                        key,
+                        float(value),
+                        _float_descriptor(key, DESCRIPTIONS.get(key, key), read_only=False),
+                    )
 
     def _candidate(self, changes: dict[str, object]) -> tuple[ExperimentConfig, Gains]:
         """The configuration the node would have with ``changes`` applied: validated.
@@ -261,6 +356,7 @@ class ControllerNode(LenientDoubles, Node):
         The one place where parameters become core configuration; raises
         ControllerConfigError naming the bad parameter.
         """
+
         def value(name: str):
             return changes[name] if name in changes else self.get_parameter(name).value
 
@@ -284,8 +380,11 @@ class ControllerNode(LenientDoubles, Node):
         # Accept integers for double parameters (`k_iw:=20` means 20.0): a classic trap.
         out = []
         for p in params:
-            if p.type_ == Parameter.Type.INTEGER and self.has_parameter(p.name) and \
-                    self.get_parameter(p.name).type_ == Parameter.Type.DOUBLE:
+            if (
+                p.type_ == Parameter.Type.INTEGER
+                and self.has_parameter(p.name)
+                and self.get_parameter(p.name).type_ == Parameter.Type.DOUBLE
+            ):
                 p = Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
             out.append(p)
         return out
@@ -301,29 +400,35 @@ class ControllerNode(LenientDoubles, Node):
         """Count a refused request and log it -- throttled: a flood of requests must not
         flood the log (or a piped stderr)."""
         self.refused[kind] += 1
-        self.get_logger().warn(f'{text} ({self.refused[kind]} {kind} requests refused so '
-                               'far)', throttle_duration_sec=1.0)
+        self.get_logger().warn(
+            f'{text} ({self.refused[kind]} {kind} requests refused so far)',
+            throttle_duration_sec=1.0,
+        )
 
     def _check_set(self, params: list[Parameter]) -> SetParametersResult:
-        tunable = [p for p in params if p.name in GAIN_NAMES or
-                   p.name.split('.', 1)[0] in TUNABLE_SECTIONS]
+        tunable = [
+            p for p in params if p.name in GAIN_NAMES or p.name.split('.', 1)[0] in TUNABLE_SECTIONS
+        ]
         if tunable and self.runner.running:
             return SetParametersResult(
                 successful=False,
                 reason=f'experiment {self.runner.experiment_id} is running: gains and '
-                       'experiment parameters change only between experiments (refused, '
-                       'not deferred; set them again after the result arrives)')
+                'experiment parameters change only between experiments (refused, '
+                'not deferred; set them again after the result arrives)',
+            )
         if tunable and not (self.runner.ready or self.runner.faulted):
             # After a supervisor stop the fallback gains finish the move: new gains now
             # would replace them mid-move (and at a wall-clock-dependent step).
             return SetParametersResult(
                 successful=False,
                 reason='still finishing the stopped move with the fallback gains: gains and '
-                       'experiment parameters change once it ends (refused; retry shortly)')
+                'experiment parameters change once it ends (refused; retry shortly)',
+            )
         for p in params:
             if isinstance(p.value, float) and not math.isfinite(p.value):
-                return SetParametersResult(successful=False,
-                                           reason=f'{p.name} must be finite, got {p.value!r}')
+                return SetParametersResult(
+                    successful=False, reason=f'{p.name} must be finite, got {p.value!r}'
+                )
         try:
             self._candidate({p.name: p.value for p in params})
         except ControllerConfigError as exc:
@@ -347,8 +452,10 @@ class ControllerNode(LenientDoubles, Node):
             response.message = f'refused: experiment {r.experiment_id} is running'
         elif r.faulted:
             response.success = False
-            response.message = (f'refused: safety fault ({r.fault_reason}); call '
-                                f'{self.reset_srv.srv_name} after checking the drive')
+            response.message = (
+                f'refused: safety fault ({r.fault_reason}); call '
+                f'{self.reset_srv.srv_name} after checking the drive'
+            )
         elif self._state is None:
             response.success = False
             response.message = 'refused: no drive state received yet (is the drive running?)'
@@ -366,8 +473,9 @@ class ControllerNode(LenientDoubles, Node):
             self._refusal('start_experiment', f'start_experiment {response.message}')
         return response
 
-    def _on_reset_fault(self, request: Trigger.Request,
-                        response: Trigger.Response) -> Trigger.Response:
+    def _on_reset_fault(
+        self, request: Trigger.Request, response: Trigger.Response
+    ) -> Trigger.Response:
         if not self.runner.faulted:
             response.success, response.message = True, 'no fault'
         elif self._state is None:
@@ -375,15 +483,19 @@ class ControllerNode(LenientDoubles, Node):
         elif not (math.isfinite(self._state[2]) and math.isfinite(self._state[3])):
             # holding a position needs a sane measurement: the drive is still broken
             response.success = False
-            response.message = (f'refused: the last drive state is not finite (theta_meas='
-                                f'{self._state[2]!r}, omega_meas={self._state[3]!r}); check '
-                                'the drive')
+            response.message = (
+                f'refused: the last drive state is not finite (theta_meas='
+                f'{self._state[2]!r}, omega_meas={self._state[3]!r}); check '
+                'the drive'
+            )
         elif self._timeout_wall is not None and self._last_msg_wall <= self._timeout_wall:
             # Holding needs a drive that answers: after the state watchdog, wait for one.
             response.success = False
-            response.message = (f'refused: no drive state since the watchdog tripped '
-                                f'{time.monotonic() - self._timeout_wall:.1f} s ago (is the '
-                                'drive running?)')
+            response.message = (
+                f'refused: no drive state since the watchdog tripped '
+                f'{time.monotonic() - self._timeout_wall:.1f} s ago (is the '
+                'drive running?)'
+            )
         else:
             reason = self.runner.fault_reason
             self._timeout_wall = None
@@ -430,14 +542,13 @@ class ControllerNode(LenientDoubles, Node):
         if self._n_answered % self.internals_decimation == 0:
             v = self._internals.values
             v[0] = k
-            v[1:1 + len(CONTROL_FIELDS)] = self.runner.cout
-            v[1 + len(CONTROL_FIELDS):] = self.runner.eout
+            v[1 : 1 + len(CONTROL_FIELDS)] = self.runner.cout
+            v[1 + len(CONTROL_FIELDS) :] = self.runner.eout
             payload = self._internals.payload()
             try:
                 self.internals_pub.publish(payload)
             except RCLError:
-                self.client.backpressure += publish_retry(self.internals_pub, payload,
-                                                          self.context)
+                self.client.backpressure += publish_retry(self.internals_pub, payload, self.context)
         if status >= STATUS_DONE:
             self._on_status(status)
         return True
@@ -447,8 +558,10 @@ class ControllerNode(LenientDoubles, Node):
             self._publish_result()
         if status == STATUS_FAULT and not self._fault_logged:
             self._fault_logged = True
-            self.get_logger().error(f'safety fault: {self.runner.fault_reason}; zero current '
-                                    f'until {self.reset_srv.srv_name}')
+            self.get_logger().error(
+                f'safety fault: {self.runner.fault_reason}; zero current '
+                f'until {self.reset_srv.srv_name}'
+            )
 
     def _publish_result(self) -> None:
         res = self.runner.result()
@@ -460,8 +573,10 @@ class ControllerNode(LenientDoubles, Node):
             self.loss_pub.publish(msg)
         except RCLError:
             self.client.backpressure += publish_retry(self.loss_pub, msg, self.context)
-        text = (f'experiment {res.experiment_id}: loss {res.loss:.6g} terms '
-                f'({res.terms[0]:.4g}, {res.terms[1]:.4g}, {res.terms[2]:.4g})')
+        text = (
+            f'experiment {res.experiment_id}: loss {res.loss:.6g} terms '
+            f'({res.terms[0]:.4g}, {res.terms[1]:.4g}, {res.terms[2]:.4g})'
+        )
         # Two call sites: rclpy refuses one call site logging at two severities.
         if res.aborted:
             self.get_logger().warn(f'{text} ABORTED {res.reason} at step {res.trip_step}')
@@ -482,7 +597,8 @@ class ControllerNode(LenientDoubles, Node):
         self.get_logger().error(
             f'no drive state for {self.state_timeout:g} s: zero current commanded'
             + (f', experiment {self.runner.experiment_id} aborted' if running else '')
-            + f'; FAULT until {self.reset_srv.srv_name}')
+            + f'; FAULT until {self.reset_srv.srv_name}'
+        )
         self._fault_logged = True
         if running:
             self._publish_result()
@@ -522,13 +638,15 @@ class ControllerNode(LenientDoubles, Node):
 def _parser() -> argparse.ArgumentParser:
     ap = Parser(
         prog='ros2 run im_controller controller',
-        description='Cascaded position/speed controller with the paper\'s loss experiment. '
-                    'Start an experiment with the ~/start_experiment service (std_srvs/'
-                    'Trigger); results on controller/loss. Parameters: --ros-args -p '
-                    'name:=value (see docs/controller.md).')
+        description="Cascaded position/speed controller with the paper's loss experiment. "
+        'Start an experiment with the ~/start_experiment service (std_srvs/'
+        'Trigger); results on controller/loss. Parameters: --ros-args -p '
+        'name:=value (see docs/controller.md).',
+    )
     ap.add_argument('--mode', choices=MODES, help='lockstep (default) or realtime')
-    ap.add_argument('--config', metavar='FILE', type=input_file,
-                    help="the drive's parameter file (Ts, isq_max)")
+    ap.add_argument(
+        '--config', metavar='FILE', type=input_file, help="the drive's parameter file (Ts, isq_max)"
+    )
     return ap
 
 
@@ -537,15 +655,22 @@ def main(args: list[str] | None = None) -> int:
 
     def body() -> int:
         cli = parse_cli(_parser(), argv)
-        overrides = [Parameter(n, value=v) for n, v in (
-            ('mode', cli.mode), ('drive_config_file', cli.config and str(cli.config)))
-            if v is not None]
+        overrides = [
+            Parameter(n, value=v)
+            for n, v in (('mode', cli.mode), ('drive_config_file', cli.config and str(cli.config)))
+            if v is not None
+        ]
         return run_stepped_node(
-            argv, lambda: ControllerNode(parameter_overrides=overrides or None),
-            (ControllerError, ControllerConfigError), 'controller',
+            argv,
+            lambda: ControllerNode(parameter_overrides=overrides or None),
+            (ControllerError, ControllerConfigError),
+            'controller',
             on_exit=lambda node: node.get_logger().info(
                 f'stopped after {len(node.results)} experiments; refused requests: '
-                + ', '.join(f'{k} {v}' for k, v in node.refused.items())))
+                + ', '.join(f'{k} {v}' for k, v in node.refused.items())
+            ),
+        )
+
     return run_cli('controller', body)
 
 

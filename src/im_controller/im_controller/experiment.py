@@ -40,26 +40,49 @@ from numba import njit
 from im_drive_sim import kernels as DK
 from im_drive_sim.sim import DriveSim
 
-from .config import (ExperimentConfig, Gains, validate_experiment_config, validate_gains)
-from .control import (CONTROL_FIELDS, N_CONTROL_FIELDS, N_CSTATE, O_E_THETA, O_ISQ,
-                      O_OMEGA_REF, O_SAT, control_reset, control_step, fill_control_params,
-                      make_control_params)
+from .config import ExperimentConfig, Gains, validate_experiment_config, validate_gains
+from .control import (
+    CONTROL_FIELDS,
+    N_CONTROL_FIELDS,
+    N_CSTATE,
+    O_E_THETA,
+    O_ISQ,
+    O_OMEGA_REF,
+    O_SAT,
+    control_reset,
+    control_step,
+    fill_control_params,
+    make_control_params,
+)
 
 __all__ = [
-    "LossResult", "Experiment", "ExperimentRunner", "run_experiment_offline",
-    "finish_stopped_move", "hold_offline",
-    "trajectory_times", "trajectory", "experiment_step", "EXP_FIELDS", "INTERNALS_FIELDS",
-    "REASONS", "SAFETY_REASONS",
-    "STATUS_HOLD", "STATUS_RUNNING", "STATUS_DONE", "STATUS_ABORTED", "STATUS_FAULT",
+    'EXP_FIELDS',
+    'INTERNALS_FIELDS',
+    'REASONS',
+    'SAFETY_REASONS',
+    'STATUS_ABORTED',
+    'STATUS_DONE',
+    'STATUS_FAULT',
+    'STATUS_HOLD',
+    'STATUS_RUNNING',
+    'Experiment',
+    'ExperimentRunner',
+    'LossResult',
+    'experiment_step',
+    'finish_stopped_move',
+    'hold_offline',
+    'run_experiment_offline',
+    'trajectory',
+    'trajectory_times',
 ]
 
 # ----------------------------------------------------------------- status and reasons
-STATUS_HOLD = 0      # holding position between experiments
-STATUS_RUNNING = 1   # experiment step processed, experiment continues
-STATUS_DONE = 2      # this step completed the experiment; result() is ready
-STATUS_ABORTED = 3   # this step stopped the experiment (supervisor or safety); result ready
-STATUS_FAULT = 4     # safety fault: isq* = 0 and load 0 until reset()
-STATUS_NAMES = ("hold", "running", "done", "aborted", "fault")
+STATUS_HOLD = 0  # holding position between experiments
+STATUS_RUNNING = 1  # experiment step processed, experiment continues
+STATUS_DONE = 2  # this step completed the experiment; result() is ready
+STATUS_ABORTED = 3  # this step stopped the experiment (supervisor or safety); result ready
+STATUS_FAULT = 4  # safety fault: isq* = 0 and load 0 until reset()
+STATUS_NAMES = ('hold', 'running', 'done', 'aborted', 'fault')
 
 REASON_NONE = 0
 REASON_TERM1 = 1
@@ -68,9 +91,17 @@ REASON_TERM3 = 3
 REASON_POSITION = 4
 REASON_SPEED = 5
 REASON_NONFINITE = 6
-REASON_DRIVE_TIMEOUT = 7   # set by the node's watchdog (ExperimentRunner.abort_external)
-REASONS: tuple[str, ...] = ("", "term1", "term2", "term3", "max_position_error",
-                            "max_speed", "non_finite_measurement", "drive_state_timeout")
+REASON_DRIVE_TIMEOUT = 7  # set by the node's watchdog (ExperimentRunner.abort_external)
+REASONS: tuple[str, ...] = (
+    '',
+    'term1',
+    'term2',
+    'term3',
+    'max_position_error',
+    'max_speed',
+    'non_finite_measurement',
+    'drive_state_timeout',
+)
 """Reason strings by reason code (LossResult.reason, ExperimentRunner.fault_reason)."""
 SAFETY_REASONS: tuple[str, ...] = REASONS[REASON_POSITION:]
 """Reasons that put the runner in FAULT (the rest are supervisor stops)."""
@@ -83,10 +114,10 @@ MODE_RETURN = 3.0  # hold after a supervisor stop, still following the trajector
 # ------------------------------------------------------------ experiment parameters Q
 Q_TS = 0
 Q_TS_NS = 1
-Q_N = 2            # steps per experiment
-Q_LOAD_N = 3       # first local step with the load on
-Q_LOAD = 4         # load magnitude [N m]
-Q_LOAD_FIXED = 5   # 1: fixed sign, 0: opposes the move
+Q_N = 2  # steps per experiment
+Q_LOAD_N = 3  # first local step with the load on
+Q_LOAD = 4  # load magnitude [N m]
+Q_LOAD_FIXED = 5  # 1: fixed sign, 0: opposes the move
 Q_A1 = 6
 Q_A2 = 7
 Q_A3 = 8
@@ -99,27 +130,27 @@ Q_ISQF_A = 14
 Q_DIST = 15
 Q_AMAX = 16
 Q_VPEAK = 17
-Q_TACC = 18        # end of acceleration [s]
-Q_TDEC = 19        # start of deceleration [s]
-Q_TEND = 20        # end of the move [s]
+Q_TACC = 18  # end of acceleration [s]
+Q_TDEC = 19  # start of deceleration [s]
+Q_TEND = 20  # end of the move [s]
 Q_MAX_ERR = 21
 Q_MAX_SPEED = 22
 N_QPARAMS = 23
 
 # -------------------------------------------------------------------- runner state R
 R_MODE = 0
-R_N = 1            # next local step
+R_N = 1  # next local step
 R_DIR = 2
 R_THETA0 = 3
 R_TARGET = 4
 R_HOLD_REF = 5
-R_S1 = 6           # sum of counted f1 (unweighted)
+R_S1 = 6  # sum of counted f1 (unweighted)
 R_S2 = 7
 R_S3 = 8
 R_ISQF = 9
 R_TRIP_STEP = 10
-R_REASON = 11      # reason of the last finished experiment
-R_RESULT = 12      # 0 none, STATUS_DONE or STATUS_ABORTED
+R_REASON = 11  # reason of the last finished experiment
+R_RESULT = 12  # 0 none, STATUS_DONE or STATUS_ABORTED
 R_START_STEP = 13
 R_START_NS = 14
 R_END_NS = 15
@@ -129,19 +160,32 @@ R_LAST_STATUS = 18
 R_LAST_ISQ = 19
 R_LAST_LOAD = 20
 R_FAULT_REASON = 21
-R_TERM1 = 22       # weighted terms a_j Ts S_j (kept for the result)
+R_TERM1 = 22  # weighted terms a_j Ts S_j (kept for the result)
 R_TERM2 = 23
 R_TERM3 = 24
 N_RSTATE = 25
 
 # ----------------------------------------------------------------- per-step outputs E
 EXP_FIELDS: tuple[str, ...] = (
-    "isq_cmd", "load_cmd", "status", "reason", "exp_step", "f1", "f2", "f3", "isq_f",
-    "counted", "term1", "term2", "term3")
+    'isq_cmd',
+    'load_cmd',
+    'status',
+    'reason',
+    'exp_step',
+    'f1',
+    'f2',
+    'f3',
+    'isq_f',
+    'counted',
+    'term1',
+    'term2',
+    'term3',
+)
 """Per-step experiment outputs: command [A], load [N m], status, reason code, local step
 (-1 in hold), f1 [rad], f2 [rad/s], f3 [A], isqF [A], counted (0/1), running terms."""
-(E_ISQ, E_LOAD, E_STATUS, E_REASON, E_N, E_F1, E_F2, E_F3, E_ISQF, E_COUNTED, E_T1, E_T2,
- E_T3) = range(len(EXP_FIELDS))
+(E_ISQ, E_LOAD, E_STATUS, E_REASON, E_N, E_F1, E_F2, E_F3, E_ISQF, E_COUNTED, E_T1, E_T2, E_T3) = (
+    range(len(EXP_FIELDS))
+)
 N_EXP_FIELDS = len(EXP_FIELDS)
 #: Layout of the controller node's ``controller/internals`` (Float64MultiArray.data): the
 #: drive step index k, then the controller's and the experiment's per-step outputs.
@@ -149,7 +193,9 @@ INTERNALS_FIELDS: tuple[str, ...] = ('step_index', *CONTROL_FIELDS, *EXP_FIELDS)
 
 
 # ------------------------------------------------------------------------ trajectory
-def trajectory_times(distance: float, a_max: float, v_max: float) -> tuple[float, float, float, float]:
+def trajectory_times(
+    distance: float, a_max: float, v_max: float
+) -> tuple[float, float, float, float]:
     """Minimum-time rest-to-rest move under |a| <= a_max, |v| <= v_max.
 
     Returns (t_acc, t_dec, t_end, v_peak) [s, s, s, rad/s]: acceleration until t_acc,
@@ -187,8 +233,9 @@ def traj_pos(t: float, Q: np.ndarray) -> float:
 
 
 @njit(cache=True)
-def _traj_arrays(t: np.ndarray, Q: np.ndarray, pos: np.ndarray, vel: np.ndarray,
-                 acc: np.ndarray) -> None:
+def _traj_arrays(
+    t: np.ndarray, Q: np.ndarray, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray
+) -> None:
     a = Q[Q_AMAX]
     for i in range(t.shape[0]):
         ti = t[i]
@@ -217,7 +264,7 @@ def make_experiment_params(cfg: ExperimentConfig) -> np.ndarray:
     # ceil: the load is on from the first sample at or after load_delay (0.7 s -> n = 3500)
     Q[Q_LOAD_N] = float(math.ceil(tr.load_delay / c.Ts - 1e-9))
     Q[Q_LOAD] = tr.load_torque
-    Q[Q_LOAD_FIXED] = 1.0 if tr.load_sign == "fixed" else 0.0
+    Q[Q_LOAD_FIXED] = 1.0 if tr.load_sign == 'fixed' else 0.0
     Q[Q_A1], Q[Q_A2], Q[Q_A3] = lo.a1, lo.a2, lo.a3
     Q[Q_THR1], Q[Q_THR2], Q[Q_THR3] = lo.threshold1, lo.threshold2, lo.threshold3
     Q[Q_ISQ_MAX] = c.isq_max
@@ -233,7 +280,9 @@ def make_experiment_params(cfg: ExperimentConfig) -> np.ndarray:
     return Q
 
 
-def trajectory(t: np.ndarray, cfg: ExperimentConfig | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def trajectory(
+    t: np.ndarray, cfg: ExperimentConfig | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Move profile at times ``t`` [s] after the reference change: (s [rad], ds/dt [rad/s],
     d2s/dt2 [rad/s^2]) for a positive move of ``trajectory.distance``."""
     cfg = validate_experiment_config(ExperimentConfig() if cfg is None else cfg)
@@ -255,9 +304,16 @@ def _finish(R: np.ndarray, Q: np.ndarray, status: float, reason: float, time_ns:
 
 
 @njit(cache=True)
-def experiment_step(R: np.ndarray, Q: np.ndarray, X: np.ndarray, C: np.ndarray,
-                    CF: np.ndarray, state: np.ndarray, cout: np.ndarray,
-                    eout: np.ndarray) -> int:
+def experiment_step(
+    R: np.ndarray,
+    Q: np.ndarray,
+    X: np.ndarray,
+    C: np.ndarray,
+    CF: np.ndarray,
+    state: np.ndarray,
+    cout: np.ndarray,
+    eout: np.ndarray,
+) -> int:
     """Process drive state k (``state``: step_index, time_ns, theta_meas, omega_meas, ...)
     and return the status; the command is ``eout[E_ISQ]`` [A], ``eout[E_LOAD]`` [N m].
 
@@ -408,10 +464,24 @@ REC_FIELDS: tuple[str, ...] = DK.STATE_FIELDS + CONTROL_FIELDS + EXP_FIELDS
 
 
 @njit(cache=True)
-def run_fused(S: np.ndarray, P: np.ndarray, noise: np.ndarray, R: np.ndarray, Q: np.ndarray,
-              X: np.ndarray, C: np.ndarray, CF: np.ndarray, state: np.ndarray,
-              cout: np.ndarray, eout: np.ndarray, rec: np.ndarray, row0: int, n_max: int,
-              record: bool, stop_at_end: bool) -> int:
+def run_fused(
+    S: np.ndarray,
+    P: np.ndarray,
+    noise: np.ndarray,
+    R: np.ndarray,
+    Q: np.ndarray,
+    X: np.ndarray,
+    C: np.ndarray,
+    CF: np.ndarray,
+    state: np.ndarray,
+    cout: np.ndarray,
+    eout: np.ndarray,
+    rec: np.ndarray,
+    row0: int,
+    n_max: int,
+    record: bool,
+    stop_at_end: bool,
+) -> int:
     """Controller/experiment kernel and drive kernel in one loop, at most ``n_max`` steps.
 
     Per step: ``experiment_step`` on ``state`` (the drive state k), the drive steps with
@@ -485,7 +555,7 @@ class Experiment:
 
     @property
     def steps(self) -> int:
-        return int(round(self.config.trajectory.duration / self.config.control.Ts))
+        return round(self.config.trajectory.duration / self.config.control.Ts)
 
     def reference(self) -> dict[str, np.ndarray]:
         """theta* [rad], its speed [rad/s] and the load command [N m] for n = 0..steps-1."""
@@ -494,10 +564,14 @@ class Experiment:
         n = np.arange(self.steps)
         t = n * cfg.control.Ts
         pos, vel, _ = trajectory(t, cfg)
-        sign = 1.0 if cfg.trajectory.load_sign == "fixed" else float(self.direction)
+        sign = 1.0 if cfg.trajectory.load_sign == 'fixed' else float(self.direction)
         load = np.where(n >= Q[Q_LOAD_N], sign * cfg.trajectory.load_torque, 0.0)
-        return {"t": t, "theta_ref": self.theta0 + self.direction * pos,
-                "omega_traj": self.direction * vel, "load": load}
+        return {
+            't': t,
+            'theta_ref': self.theta0 + self.direction * pos,
+            'omega_traj': self.direction * vel,
+            'load': load,
+        }
 
 
 # -------------------------------------------------------------------------- runner
@@ -520,7 +594,8 @@ class ExperimentRunner:
 
     def __init__(self, config: ExperimentConfig | None = None, gains: Gains | None = None) -> None:
         self.config: ExperimentConfig = validate_experiment_config(
-            ExperimentConfig() if config is None else config)
+            ExperimentConfig() if config is None else config
+        )
         self.gains: Gains = validate_gains(Gains() if gains is None else gains)
         self.Q: np.ndarray = make_experiment_params(self.config)
         self.C: np.ndarray = make_control_params(self.gains, self.config.control)
@@ -538,7 +613,7 @@ class ExperimentRunner:
         """Hold ``theta_meas`` [rad] (references = theta_meas, integrator 0); clears FAULT
         and any running experiment (without a result)."""
         if not math.isfinite(theta_meas):
-            raise ValueError(f"theta_meas must be finite, got {theta_meas!r}")
+            raise ValueError(f'theta_meas must be finite, got {theta_meas!r}')
         control_reset(self.X, float(theta_meas))
         self.R[:] = 0.0
         self.R[R_MODE] = MODE_HOLD
@@ -551,7 +626,7 @@ class ExperimentRunner:
         """Apply new gains now (validated, atomic).  Refused while an experiment runs."""
         g = validate_gains(gains)
         if self.running:
-            raise RuntimeError("cannot change gains while an experiment is running")
+            raise RuntimeError('cannot change gains while an experiment is running')
         c = self.config.control
         fill_control_params(self.C, g, c.Ts, c.isq_max, c.feedforward)
         self.gains = g
@@ -562,14 +637,22 @@ class ExperimentRunner:
         are structural: a config that changes them is refused too."""
         cfg = validate_experiment_config(config)
         if self.running:
-            raise RuntimeError("cannot change the experiment configuration while an "
-                               "experiment is running")
+            raise RuntimeError(
+                'cannot change the experiment configuration while an experiment is running'
+            )
         if cfg.control != self.config.control or cfg.safety != self.config.safety:
-            raise RuntimeError("control structure (Ts, isq_max, feedforward) and safety "
-                               "limits cannot change at run time")
+            raise RuntimeError(
+                'control structure (Ts, isq_max, feedforward) and safety '
+                'limits cannot change at run time'
+            )
         self.Q[:] = make_experiment_params(cfg)
-        fill_control_params(self.CF, cfg.fallback_gains, cfg.control.Ts, cfg.control.isq_max,
-                            cfg.control.feedforward)
+        fill_control_params(
+            self.CF,
+            cfg.fallback_gains,
+            cfg.control.Ts,
+            cfg.control.isq_max,
+            cfg.control.feedforward,
+        )
         self.config = cfg
 
     def abort_external(self, reason: int, time_ns: int) -> None:
@@ -586,15 +669,18 @@ class ExperimentRunner:
         """Arm experiment ``experiment_id`` (int >= 0) with ``gains`` (None: current);
         the next ``step`` is its step 0.  It starts at the current hold reference and moves
         by +distance (even id) or -distance (odd id)."""
-        if isinstance(experiment_id, bool) or not isinstance(experiment_id, (int, np.integer)) \
-                or experiment_id < 0:
-            raise ValueError(f"experiment_id must be an integer >= 0, got {experiment_id!r}")
+        if (
+            isinstance(experiment_id, bool)
+            or not isinstance(experiment_id, (int, np.integer))
+            or experiment_id < 0
+        ):
+            raise ValueError(f'experiment_id must be an integer >= 0, got {experiment_id!r}')
         if self.R[R_MODE] == MODE_FAULT:
-            raise RuntimeError(f"runner in FAULT ({self.fault_reason}); call reset() first")
+            raise RuntimeError(f'runner in FAULT ({self.fault_reason}); call reset() first')
         if self.running:
-            raise RuntimeError("an experiment is already running")
+            raise RuntimeError('an experiment is already running')
         if not self.ready:
-            raise RuntimeError("still finishing the stopped move; wait until ready")
+            raise RuntimeError('still finishing the stopped move; wait until ready')
         if gains is not None:
             self.set_gains(gains)
         R = self.R
@@ -603,8 +689,7 @@ class ExperimentRunner:
         R[R_THETA0] = R[R_HOLD_REF]
         R[R_TARGET] = R[R_THETA0] + d * self.Q[Q_DIST]
         R[R_N] = 0.0
-        for j in (R_S1, R_S2, R_S3, R_TERM1, R_TERM2, R_TERM3, R_ISQF, R_RESULT, R_REASON,
-                  R_STEPS):
+        for j in (R_S1, R_S2, R_S3, R_TERM1, R_TERM2, R_TERM3, R_ISQF, R_RESULT, R_REASON, R_STEPS):
             R[j] = 0.0
         R[R_TRIP_STEP] = -1.0
         R[R_MODE] = MODE_RUN
@@ -614,8 +699,7 @@ class ExperimentRunner:
     def step(self, state: np.ndarray) -> tuple[float, float, int]:
         """One drive state (float64 array, ``STATE_FIELDS`` order; fields 0-3 used) ->
         (isq* [A], load torque command [N m], status)."""
-        st = experiment_step(self.R, self.Q, self.X, self.C, self.CF, state, self.cout,
-                             self.eout)
+        st = experiment_step(self.R, self.Q, self.X, self.C, self.CF, state, self.cout, self.eout)
         if st == STATUS_ABORTED and self.R[R_REASON] < REASON_POSITION:
             self.gains = self.config.fallback_gains  # the kernel switched to them
         return float(self.eout[E_ISQ]), float(self.eout[E_LOAD]), int(st)
@@ -636,7 +720,7 @@ class ExperimentRunner:
 
     @property
     def fault_reason(self) -> str:
-        return REASONS[int(self.R[R_FAULT_REASON])] if self.faulted else ""
+        return REASONS[int(self.R[R_FAULT_REASON])] if self.faulted else ''
 
     @property
     def hold_reference(self) -> float:
@@ -660,24 +744,39 @@ class ExperimentRunner:
             loss *= self.config.loss.penalty
         trip = int(R[R_TRIP_STEP])
         return LossResult(
-            experiment_id=self.experiment_id, loss=float(loss), terms=terms,
-            aborted=bool(aborted), reason=REASONS[int(R[R_REASON])], trip_step=trip,
+            experiment_id=self.experiment_id,
+            loss=float(loss),
+            terms=terms,
+            aborted=bool(aborted),
+            reason=REASONS[int(R[R_REASON])],
+            trip_step=trip,
             trip_time=trip * self.config.control.Ts if trip >= 0 else -1.0,
-            gains=self._exp_gains, t_start=int(R[R_START_NS]), t_end=int(R[R_END_NS]),
-            steps=int(R[R_STEPS]), direction=int(R[R_DIR]))
+            gains=self._exp_gains,
+            t_start=int(R[R_START_NS]),
+            t_end=int(R[R_END_NS]),
+            steps=int(R[R_STEPS]),
+            direction=int(R[R_DIR]),
+        )
 
 
 # ------------------------------------------------------------------------- offline
 def config_for_drive(cfg: ExperimentConfig | None, sim: DriveSim) -> ExperimentConfig:
     """``cfg`` with Ts and isq_max taken from the drive (they are drive properties)."""
     cfg = ExperimentConfig() if cfg is None else cfg
-    ctl = dataclasses.replace(cfg.control, Ts=float(sim.config.Ts),
-                              isq_max=float(sim.config.machine.isq_max))
+    ctl = dataclasses.replace(
+        cfg.control, Ts=float(sim.config.Ts), isq_max=float(sim.config.machine.isq_max)
+    )
     return validate_experiment_config(dataclasses.replace(cfg, control=ctl))
 
 
-def _run(sim: DriveSim, runner: ExperimentRunner, n: int, record: bool,
-         stop_at_end: bool, python_loop: bool) -> tuple[int, np.ndarray]:
+def _run(
+    sim: DriveSim,
+    runner: ExperimentRunner,
+    n: int,
+    record: bool,
+    stop_at_end: bool,
+    python_loop: bool,
+) -> tuple[int, np.ndarray]:
     state = np.zeros(DK.N_STATE_FIELDS)
     sim.read_into(state)
     rec = np.zeros((n if record else 1, N_REC))
@@ -689,8 +788,8 @@ def _run(sim: DriveSim, runner: ExperimentRunner, n: int, record: bool,
             isq, load, st = runner.step(state)
             if record:
                 rec[i, :ns] = state
-                rec[i, ns:ns + nc] = runner.cout
-                rec[i, ns + nc:] = runner.eout
+                rec[i, ns : ns + nc] = runner.cout
+                rec[i, ns + nc :] = runner.eout
             sim.step_into(isq, load, state)
             done += 1
             if stop_at_end and st >= STATUS_DONE:
@@ -699,9 +798,24 @@ def _run(sim: DriveSim, runner: ExperimentRunner, n: int, record: bool,
     while done < n:
         # Chunks end on the drive's noise-block boundaries, exactly as DriveSim.run does.
         cnt = min(n - done, sim._left)
-        k = run_fused(sim.S, sim.P, sim._noise, runner.R, runner.Q, runner.X, runner.C,
-                      runner.CF, state, runner.cout, runner.eout, rec, done if record else 0,
-                      cnt, record, stop_at_end)
+        k = run_fused(
+            sim.S,
+            sim.P,
+            sim._noise,
+            runner.R,
+            runner.Q,
+            runner.X,
+            runner.C,
+            runner.CF,
+            state,
+            runner.cout,
+            runner.eout,
+            rec,
+            done if record else 0,
+            cnt,
+            record,
+            stop_at_end,
+        )
         sim._left -= k
         if sim._left == 0:
             sim._refill()
@@ -715,14 +829,19 @@ def _run(sim: DriveSim, runner: ExperimentRunner, n: int, record: bool,
 
 def _signals(rec: np.ndarray, Ts: float, t0_step: float) -> dict[str, np.ndarray]:
     sig = {name: rec[:, j].copy() for j, name in enumerate(REC_FIELDS)}
-    sig["t"] = (sig["step_index"] - t0_step) * Ts
+    sig['t'] = (sig['step_index'] - t0_step) * Ts
     return sig
 
 
-def run_experiment_offline(sim: DriveSim, gains: Gains, config: ExperimentConfig | None = None,
-                           experiment_id: int = 0, runner: ExperimentRunner | None = None,
-                           record: bool = True, python_loop: bool = False
-                           ) -> tuple[LossResult, dict[str, np.ndarray]]:
+def run_experiment_offline(
+    sim: DriveSim,
+    gains: Gains,
+    config: ExperimentConfig | None = None,
+    experiment_id: int = 0,
+    runner: ExperimentRunner | None = None,
+    record: bool = True,
+    python_loop: bool = False,
+) -> tuple[LossResult, dict[str, np.ndarray]]:
     """Run one whole experiment against the pure drive core (no ROS).
 
     sim: the drive, in whatever state it is (nothing is reset: state carries over).
@@ -744,15 +863,14 @@ def run_experiment_offline(sim: DriveSim, gains: Gains, config: ExperimentConfig
     runner.start(experiment_id, gains)
     n = int(runner.Q[Q_N])
     k0 = float(sim.step_index)
-    done, rec = _run(sim, runner, n, record, True, python_loop)
+    _done, rec = _run(sim, runner, n, record, True, python_loop)
     res = runner.result()
-    assert res is not None, "experiment did not finish"
+    assert res is not None, 'experiment did not finish'
     sig = _signals(rec, runner.config.control.Ts, k0) if record else {}
     return res, sig
 
 
-def finish_stopped_move(sim: DriveSim, runner: ExperimentRunner,
-                        python_loop: bool = False) -> int:
+def finish_stopped_move(sim: DriveSim, runner: ExperimentRunner, python_loop: bool = False) -> int:
     """After a supervisor stop the fallback gains finish the move (``ready`` is False):
     run exactly the steps until it ends, or until a safety fault stops it -- what the
     lock-step node does (it steps while not ready and pauses once ready or faulted).
@@ -767,13 +885,18 @@ def finish_stopped_move(sim: DriveSim, runner: ExperimentRunner,
         nn += 1.0
         steps += 1
     done, _ = _run(sim, runner, steps, False, True, python_loop)
-    assert R[R_MODE] in (MODE_HOLD, MODE_FAULT), "the stopped move did not end"
+    assert R[R_MODE] in (MODE_HOLD, MODE_FAULT), 'the stopped move did not end'
     return done
 
 
-def hold_offline(sim: DriveSim, runner: ExperimentRunner, steps: int, record: bool = False,
-                 python_loop: bool = False) -> dict[str, np.ndarray]:
+def hold_offline(
+    sim: DriveSim,
+    runner: ExperimentRunner,
+    steps: int,
+    record: bool = False,
+    python_loop: bool = False,
+) -> dict[str, np.ndarray]:
     """Run ``steps`` steps of whatever the runner is doing (normally the hold)."""
     k0 = float(sim.step_index)
-    done, rec = _run(sim, runner, int(steps), record, False, python_loop)
+    _done, rec = _run(sim, runner, int(steps), record, False, python_loop)
     return _signals(rec, runner.config.control.Ts, k0) if record else {}

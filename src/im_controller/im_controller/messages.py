@@ -8,6 +8,7 @@ One ``DiagnosticStatus`` per experiment (see docs/controller.md, "Loss topic"):
 * ``values``: the fields below as key/value strings; floats are written with ``repr``,
   so they read back bit for bit.
 """
+
 from __future__ import annotations
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -18,25 +19,47 @@ from .experiment import SAFETY_REASONS, LossResult
 NS_PER_S = 1_000_000_000
 #: Keys of ``DiagnosticStatus.values``, in order.
 LOSS_KEYS: tuple[str, ...] = (
-    'experiment_id', 'loss', 'term1', 'term2', 'term3', 'aborted', 'reason', 'trip_step',
-    'trip_time', *GAIN_NAMES, 't_start_ns', 't_end_ns', 'steps', 'direction')
+    'experiment_id',
+    'loss',
+    'term1',
+    'term2',
+    'term3',
+    'aborted',
+    'reason',
+    'trip_step',
+    'trip_time',
+    *GAIN_NAMES,
+    't_start_ns',
+    't_end_ns',
+    'steps',
+    'direction',
+)
 
 
 def result_to_msg(result: LossResult, node_name: str) -> DiagnosticArray:
     """Pack a result (see module docstring)."""
     r = result
     values = {
-        'experiment_id': str(r.experiment_id), 'loss': repr(r.loss),
-        'term1': repr(r.terms[0]), 'term2': repr(r.terms[1]), 'term3': repr(r.terms[2]),
-        'aborted': 'true' if r.aborted else 'false', 'reason': r.reason,
-        'trip_step': str(r.trip_step), 'trip_time': repr(r.trip_time),
-        **{n: repr(v) for n, v in zip(GAIN_NAMES, r.gains.as_tuple())},
-        't_start_ns': str(r.t_start), 't_end_ns': str(r.t_end), 'steps': str(r.steps),
+        'experiment_id': str(r.experiment_id),
+        'loss': repr(r.loss),
+        'term1': repr(r.terms[0]),
+        'term2': repr(r.terms[1]),
+        'term3': repr(r.terms[2]),
+        'aborted': 'true' if r.aborted else 'false',
+        'reason': r.reason,
+        'trip_step': str(r.trip_step),
+        'trip_time': repr(r.trip_time),
+        **{n: repr(v) for n, v in zip(GAIN_NAMES, r.gains.as_tuple(), strict=True)},
+        't_start_ns': str(r.t_start),
+        't_end_ns': str(r.t_end),
+        'steps': str(r.steps),
         'direction': str(r.direction),
     }
-    st = DiagnosticStatus(name=f'{node_name}: experiment {r.experiment_id}',
-                          hardware_id=node_name,
-                          message=r.reason if r.aborted else 'done')
+    st = DiagnosticStatus(
+        name=f'{node_name}: experiment {r.experiment_id}',
+        hardware_id=node_name,
+        message=r.reason if r.aborted else 'done',
+    )
     if not r.aborted:
         st.level = DiagnosticStatus.OK
     elif r.reason in SAFETY_REASONS:
@@ -58,10 +81,16 @@ def msg_to_result(msg: DiagnosticArray) -> LossResult:
     if missing:
         raise ValueError(f'loss message lacks {missing}')
     return LossResult(
-        experiment_id=int(kv['experiment_id']), loss=float(kv['loss']),
+        experiment_id=int(kv['experiment_id']),
+        loss=float(kv['loss']),
         terms=(float(kv['term1']), float(kv['term2']), float(kv['term3'])),
-        aborted=kv['aborted'] == 'true', reason=kv['reason'], trip_step=int(kv['trip_step']),
+        aborted=kv['aborted'] == 'true',
+        reason=kv['reason'],
+        trip_step=int(kv['trip_step']),
         trip_time=float(kv['trip_time']),
         gains=Gains(*(float(kv[n]) for n in GAIN_NAMES)),
-        t_start=int(kv['t_start_ns']), t_end=int(kv['t_end_ns']), steps=int(kv['steps']),
-        direction=int(kv['direction']))
+        t_start=int(kv['t_start_ns']),
+        t_end=int(kv['t_end_ns']),
+        steps=int(kv['steps']),
+        direction=int(kv['direction']),
+    )

@@ -17,9 +17,11 @@ All traffic is recorded (``im_tuner``'s recorder) unless ``--no-record``: in one
 the recorder runs in the bench's loop and is polled between steps, so not a message is
 lost; with ``--processes`` it is a third child, ``ros2 run im_tuner recorder``.
 """
+
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
@@ -36,11 +38,15 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
-from im_drive_sim.drive_sim_node import DriveSimNode
 from im_drive_sim.cli import Parser, UsageError, input_file, int_in, parse_cli
+from im_drive_sim.drive_sim_node import DriveSimNode
 from im_drive_sim.params import ConfigError, load_config
-from im_drive_sim.runtime import (ParameterOverrideError, stop_child, unknown_overrides,
-                                  warn_unknown_overrides)
+from im_drive_sim.runtime import (
+    ParameterOverrideError,
+    stop_child,
+    unknown_overrides,
+    warn_unknown_overrides,
+)
 
 from .config import ControllerConfigError
 from .controller_node import ControllerError, ControllerNode
@@ -56,24 +62,35 @@ class InProcessBench:
     and by the tuner running in the same process.
     """
 
-    def __init__(self, *, context=None, drive_overrides: list | None = None,
-                 controller_overrides: list | None = None, before_start=None) -> None:
+    def __init__(
+        self,
+        *,
+        context=None,
+        drive_overrides: list | None = None,
+        controller_overrides: list | None = None,
+        before_start=None,
+    ) -> None:
         """``before_start(bench)`` runs once both nodes exist and match, before state 0 is
         published: the place to start a recorder that must not miss the first message."""
-        self.drive = DriveSimNode(context=context, parameter_overrides=drive_overrides,
-                                  warn_unknown=False)
+        self.drive = DriveSimNode(
+            context=context, parameter_overrides=drive_overrides, warn_unknown=False
+        )
         try:
-            self.controller = ControllerNode(context=context,
-                                             parameter_overrides=controller_overrides,
-                                             warn_unknown=False)
+            self.controller = ControllerNode(
+                context=context, parameter_overrides=controller_overrides, warn_unknown=False
+            )
         except Exception:
             self.drive.destroy_node()
             raise
         # `-p` overrides reach both nodes of this process: warn about those neither has.
         declared = set(self.drive._parameters) | set(self.controller._parameters)
-        warn_unknown_overrides(self.controller, sorted(
-            (set(unknown_overrides(self.drive)) | set(unknown_overrides(self.controller)))
-            - declared))
+        warn_unknown_overrides(
+            self.controller,
+            sorted(
+                (set(unknown_overrides(self.drive)) | set(unknown_overrides(self.controller)))
+                - declared
+            ),
+        )
         self.executor = SingleThreadedExecutor(context=self.drive.context)
         self.executor.add_node(self.drive)
         self.executor.add_node(self.controller)
@@ -139,8 +156,9 @@ class InProcessBench:
         self._status()
         for poll, _period in self._pollers:
             poll()
-        self.executor.spin_once(timeout_sec=idle_timeout if not self._pollers
-                                else min(idle_timeout, 0.002))
+        self.executor.spin_once(
+            timeout_sec=idle_timeout if not self._pollers else min(idle_timeout, 0.002)
+        )
         return False
 
     def spin_until(self, predicate, timeout: float | None = None) -> bool:
@@ -167,20 +185,34 @@ def _parser() -> argparse.ArgumentParser:
     ap = Parser(
         prog='ros2 run im_controller sim_bench',
         description='The simulated bench: drive_sim + controller, lock-step. Start '
-                    'experiments with /controller/start_experiment (std_srvs/Trigger); '
-                    'results on /controller/loss.')
-    ap.add_argument('--processes', action='store_true',
-                    help='run drive_sim and controller as two processes (default: one)')
-    ap.add_argument('--config', metavar='FILE', type=input_file,
-                    help='drive parameter file (YAML)')
+        'experiments with /controller/start_experiment (std_srvs/Trigger); '
+        'results on /controller/loss.',
+    )
+    ap.add_argument(
+        '--processes',
+        action='store_true',
+        help='run drive_sim and controller as two processes (default: one)',
+    )
+    ap.add_argument('--config', metavar='FILE', type=input_file, help='drive parameter file (YAML)')
     ap.add_argument('--model', choices=('full', 'reduced'), help='drive model fidelity')
     ap.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
-    ap.add_argument('--no-record', action='store_true',
-                    help='do not record (default: all traffic to a bag, see --out)')
-    ap.add_argument('--out', metavar='DIR', type=Path,
-                    help='bag directory to create (default: bags/sim_bench_<UTC time>)')
-    ap.add_argument('--compression', choices=('none', 'zstd', 'lz4'), default='lz4',
-                    help='MCAP chunk compression of the bag (default: lz4; zstd: smaller files)')
+    ap.add_argument(
+        '--no-record',
+        action='store_true',
+        help='do not record (default: all traffic to a bag, see --out)',
+    )
+    ap.add_argument(
+        '--out',
+        metavar='DIR',
+        type=Path,
+        help='bag directory to create (default: bags/sim_bench_<UTC time>)',
+    )
+    ap.add_argument(
+        '--compression',
+        choices=('none', 'zstd', 'lz4'),
+        default='lz4',
+        help='MCAP chunk compression of the bag (default: lz4; zstd: smaller files)',
+    )
     return ap
 
 
@@ -201,8 +233,9 @@ def _recorder_module():
     try:
         from im_tuner import recorder_node
     except ImportError as exc:
-        raise ControllerError(f'recording needs the im_tuner package ({exc}); install it '
-                              'or pass --no-record') from None
+        raise ControllerError(
+            f'recording needs the im_tuner package ({exc}); install it or pass --no-record'
+        ) from None
     return recorder_node
 
 
@@ -210,13 +243,17 @@ def bench_metadata(bench: InProcessBench) -> dict[str, dict]:
     """What the bag should say about this bench: the drive's configuration and seed, and
     the controller's parameters at start."""
     d = bench.drive
-    drive = {'config_file': d.get_parameter('config_file').value or '(packaged default)',
-             'model': d.config.model, 'seed': d.get_parameter('seed').value,
-             'config': json.dumps(dataclasses.asdict(d.config), sort_keys=True)}
+    drive = {
+        'config_file': d.get_parameter('config_file').value or '(packaged default)',
+        'model': d.config.model,
+        'seed': d.get_parameter('seed').value,
+        'config': json.dumps(dataclasses.asdict(d.config), sort_keys=True),
+    }
     ctl = {name: p.value for name, p in sorted(bench.controller._parameters.items())}
-    return {'im_tuner.drive': drive,
-            'im_tuner.controller': {'parameters': json.dumps(ctl, sort_keys=True,
-                                                             default=str)}}
+    return {
+        'im_tuner.drive': drive,
+        'im_tuner.controller': {'parameters': json.dumps(ctl, sort_keys=True, default=str)},
+    }
 
 
 def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
@@ -243,23 +280,30 @@ def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
         made = out
         while not made.parent.exists() and made.parent != made.parent.parent:
             made = made.parent
-        rec = [ros2, 'run', 'im_tuner', 'recorder', '--compression', cli.compression,
-               '--out', str(out)]
+        rec = [
+            ros2,
+            'run',
+            'im_tuner',
+            'recorder',
+            '--compression',
+            cli.compression,
+            '--out',
+            str(out),
+        ]
         procs.append(subprocess.Popen(rec))
     procs += [subprocess.Popen(drive), subprocess.Popen(ctl)]
     stop = {'sig': None}
 
     def _on_signal(signum, _frame) -> None:
         stop['sig'] = signum
+
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
     code = 0
     try:
         while stop['sig'] is None and all(p.poll() is None for p in procs):
-            try:
+            with contextlib.suppress(subprocess.TimeoutExpired):
                 procs[-2].wait(timeout=0.2)  # wakes at once if the drive exits
-            except subprocess.TimeoutExpired:
-                pass
         for p in procs:
             if p.poll() is not None and p.returncode not in (0, None):
                 code = p.returncode
@@ -279,13 +323,15 @@ def main(args: list[str] | None = None) -> int:
     except UsageError as exc:
         print(f'error: sim_bench: {exc}', file=sys.stderr)
         return 2
-    ros_args = argv[argv.index('--ros-args'):] if '--ros-args' in argv else []
+    ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
     if cli.processes:
         return _children(cli, ros_args)
     config = str(cli.config) if cli.config else None
-    drive_over = [Parameter(n, value=v) for n, v in (('config_file', config),
-                                                     ('model', cli.model), ('seed', cli.seed))
-                  if v is not None]
+    drive_over = [
+        Parameter(n, value=v)
+        for n, v in (('config_file', config), ('model', cli.model), ('seed', cli.seed))
+        if v is not None
+    ]
     ctl_over = [Parameter('drive_config_file', value=config)] if config else []
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     bench = None
@@ -295,6 +341,7 @@ def main(args: list[str] | None = None) -> int:
         if bench is None:
             raise KeyboardInterrupt
         bench.stop_requested = True
+
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
 
@@ -302,23 +349,36 @@ def main(args: list[str] | None = None) -> int:
         nonlocal rec
         rn = _recorder_module()
         from rclpy.node import Node
+
         try:
-            rec = rn.Recorder(Node('recorder', start_parameter_services=False),
-                              cli.out or rn.default_out_dir(prefix='sim_bench'),
-                              compression=cli.compression,
-                              extra_metadata=bench_metadata(b), command=argv)
+            rec = rn.Recorder(
+                Node('recorder', start_parameter_services=False),
+                cli.out or rn.default_out_dir(prefix='sim_bench'),
+                compression=cli.compression,
+                extra_metadata=bench_metadata(b),
+                command=argv,
+            )
         except (rn.BagError, rn.RecorderError) as exc:
             raise ControllerError(str(exc)) from None
         rec.wait_matched(10.0)
         b.add_poller(rec.poll, rn.RECORD_POLL_STEPS)
         b.drive.get_logger().info(f'recording all topics to {rec.out}')
+
     try:
-        bench = InProcessBench(drive_overrides=drive_over or None,
-                               controller_overrides=ctl_over or None,
-                               before_start=None if cli.no_record else _start_recorder)
+        bench = InProcessBench(
+            drive_overrides=drive_over or None,
+            controller_overrides=ctl_over or None,
+            before_start=None if cli.no_record else _start_recorder,
+        )
         bench.run()
-    except (ConfigError, ControllerError, ControllerConfigError, ParameterOverrideError,
-            InvalidParameterValueException, InvalidParameterTypeException) as exc:
+    except (
+        ConfigError,
+        ControllerError,
+        ControllerConfigError,
+        ParameterOverrideError,
+        InvalidParameterValueException,
+        InvalidParameterTypeException,
+    ) as exc:
         print(f'error: sim_bench: {exc}', file=sys.stderr)
         return 2
     except KeyboardInterrupt:

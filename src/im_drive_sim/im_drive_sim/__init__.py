@@ -8,18 +8,27 @@ from __future__ import annotations
 
 from typing import Any
 
-__version__ = "0.1.0"
+__version__ = '0.1.0'
 
-__all__ = ["__version__", "ConfigError", "DriveConfig", "load_config", "default_config_path",
-           "DriveSim", "STATE_FIELDS"]
+__all__ = [
+    'STATE_FIELDS',
+    'ConfigError',
+    'DriveConfig',
+    'DriveSim',
+    '__version__',
+    'default_config_path',
+    'load_config',
+]
 
 
 def __getattr__(name: str) -> Any:
     # Lazy re-exports keep `import im_drive_sim` cheap (no numba import) for tools.
-    if name in ("ConfigError", "DriveConfig", "load_config", "default_config_path"):
+    if name in ('ConfigError', 'DriveConfig', 'load_config', 'default_config_path'):
         from . import params
+
         return getattr(params, name)
-    if name in ("DriveSim", "STATE_FIELDS"):
+    if name in ('DriveSim', 'STATE_FIELDS'):
         from . import sim
+
         return getattr(sim, name)
     raise AttributeError(f"module 'im_drive_sim' has no attribute {name!r}")

@@ -21,27 +21,34 @@ from dataclasses import dataclass
 
 from .params import MachineParams
 
-__all__ = ["SteadyState", "steady_state", "slip_for_torque", "rotor_time_constant",
-           "flux_buildup", "foc_steady_state", "phase_peak_from_line_rms"]
+__all__ = [
+    'SteadyState',
+    'flux_buildup',
+    'foc_steady_state',
+    'phase_peak_from_line_rms',
+    'rotor_time_constant',
+    'slip_for_torque',
+    'steady_state',
+]
 
 
 @dataclass(frozen=True)
 class SteadyState:
     """Equivalent-circuit operating point (peak amplitude-invariant phasors, SI)."""
 
-    slip: float                # [-]
-    omega_supply: float        # [rad/s] electrical supply frequency
-    omega_mech: float          # [rad/s] rotor speed (1 - s) w/p
-    u_peak: float              # [V] phase voltage amplitude
-    i_s: complex               # [A] stator current phasor (peak), voltage phasor real
-    i_r: complex               # [A] rotor current phasor referred to the stator (peak)
-    psi_r: complex             # [Wb] rotor flux phasor (peak)
-    torque: float              # [N m] electromagnetic torque
-    p_in: float                # [W] electrical input power
-    q_in: float                # [var] reactive input power
-    p_cu_s: float              # [W] stator copper loss
-    p_cu_r: float              # [W] rotor copper loss
-    p_mech: float              # [W] mechanical power T_e omega_mech
+    slip: float  # [-]
+    omega_supply: float  # [rad/s] electrical supply frequency
+    omega_mech: float  # [rad/s] rotor speed (1 - s) w/p
+    u_peak: float  # [V] phase voltage amplitude
+    i_s: complex  # [A] stator current phasor (peak), voltage phasor real
+    i_r: complex  # [A] rotor current phasor referred to the stator (peak)
+    psi_r: complex  # [Wb] rotor flux phasor (peak)
+    torque: float  # [N m] electromagnetic torque
+    p_in: float  # [W] electrical input power
+    q_in: float  # [var] reactive input power
+    p_cu_s: float  # [W] stator copper loss
+    p_cu_r: float  # [W] rotor copper loss
+    p_mech: float  # [W] mechanical power T_e omega_mech
 
     @property
     def i_s_peak(self) -> float:
@@ -78,7 +85,7 @@ def steady_state(m: MachineParams, u_peak: float, f_supply: float, slip: float) 
     """Steady state at phase voltage amplitude ``u_peak`` [V], supply ``f_supply`` [Hz],
     slip ``slip`` (!= 0) from the T-equivalent circuit (see module docstring)."""
     if slip == 0.0:
-        raise ValueError("slip must be non-zero (use a tiny slip for no-load)")
+        raise ValueError('slip must be non-zero (use a tiny slip for no-load)')
     w = 2.0 * math.pi * f_supply
     zr = m.Rr / slip + 1j * w * m.Llr
     zm = 1j * w * m.Lm
@@ -90,27 +97,42 @@ def steady_state(m: MachineParams, u_peak: float, f_supply: float, slip: float) 
     s_in = 1.5 * u * i_s.conjugate()
     torque = 1.5 * m.pole_pairs * abs(i_r) ** 2 * m.Rr / (slip * w)
     omega_mech = (1.0 - slip) * w / m.pole_pairs
-    return SteadyState(slip=slip, omega_supply=w, omega_mech=omega_mech, u_peak=u_peak,
-                       i_s=i_s, i_r=i_r, psi_r=psi_r, torque=torque, p_in=s_in.real,
-                       q_in=s_in.imag, p_cu_s=1.5 * m.Rs * abs(i_s) ** 2,
-                       p_cu_r=1.5 * m.Rr * abs(i_r) ** 2, p_mech=torque * omega_mech)
+    return SteadyState(
+        slip=slip,
+        omega_supply=w,
+        omega_mech=omega_mech,
+        u_peak=u_peak,
+        i_s=i_s,
+        i_r=i_r,
+        psi_r=psi_r,
+        torque=torque,
+        p_in=s_in.real,
+        q_in=s_in.imag,
+        p_cu_s=1.5 * m.Rs * abs(i_s) ** 2,
+        p_cu_r=1.5 * m.Rr * abs(i_r) ** 2,
+        p_mech=torque * omega_mech,
+    )
 
 
-def slip_for_torque(m: MachineParams, u_peak: float, f_supply: float, torque: float,
-                    tol: float = 1e-13) -> float:
+def slip_for_torque(
+    m: MachineParams, u_peak: float, f_supply: float, torque: float, tol: float = 1e-13
+) -> float:
     """Slip in (0, s_breakdown) at which the circuit gives ``torque`` [N m] (bisection)."""
     # Torque rises monotonically from s = 0 to the breakdown slip; find it first.
     lo, hi = 1e-9, 1.0
     for _ in range(200):
         a = lo + (hi - lo) / 3.0
         b = hi - (hi - lo) / 3.0
-        if steady_state(m, u_peak, f_supply, a).torque < steady_state(m, u_peak, f_supply, b).torque:
+        if (
+            steady_state(m, u_peak, f_supply, a).torque
+            < steady_state(m, u_peak, f_supply, b).torque
+        ):
             lo = a
         else:
             hi = b
     s_bd = 0.5 * (lo + hi)
     if steady_state(m, u_peak, f_supply, s_bd).torque < torque:
-        raise ValueError(f"torque {torque} N m exceeds the breakdown torque")
+        raise ValueError(f'torque {torque} N m exceeds the breakdown torque')
     lo, hi = 1e-12, s_bd
     while hi - lo > tol:
         mid = 0.5 * (lo + hi)
@@ -135,6 +157,11 @@ def foc_steady_state(m: MachineParams, isd: float, isq: float, omega_mech: float
     w_sl = m.Lm * isq / (m.tau_r * psi)
     w_s = m.pole_pairs * omega_mech + w_sl
     sls = m.sigma * m.Ls
-    return {"psi_r": psi, "omega_sl": w_sl, "omega_s": w_s,
-            "torque": 1.5 * m.pole_pairs * m.kr * psi * isq,
-            "u_d": m.Rs * isd - w_s * sls * isq, "u_q": m.Rs * isq + w_s * m.Ls * isd}
+    return {
+        'psi_r': psi,
+        'omega_sl': w_sl,
+        'omega_s': w_s,
+        'torque': 1.5 * m.pole_pairs * m.kr * psi * isq,
+        'u_d': m.Rs * isd - w_s * sls * isq,
+        'u_q': m.Rs * isq + w_s * m.Ls * isd,
+    }

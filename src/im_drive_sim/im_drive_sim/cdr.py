@@ -12,6 +12,7 @@ empty ``layout.dim``, ``data_offset = 0`` and n values::
     [16:20] padding (float64 aligned to 8 within the body)
     [20:]   n little-endian float64 values
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -45,7 +46,11 @@ def parse_float64_array(raw: bytes, n: int) -> np.ndarray | None:
     Returns None when ``raw`` is not exactly that layout (big-endian, a non-empty
     ``layout.dim``, another length): the caller then deserialises it the slow, general way.
     """
-    if len(raw) != _DATA_OFFSET + 8 * n or raw[0:4] != _HEADER or \
-            raw[4:12] != bytes(8) or int.from_bytes(raw[12:16], 'little') != n:
+    if (
+        len(raw) != _DATA_OFFSET + 8 * n
+        or raw[0:4] != _HEADER
+        or raw[4:12] != bytes(8)
+        or int.from_bytes(raw[12:16], 'little') != n
+    ):
         return None
     return np.frombuffer(raw, dtype='<f8', count=n, offset=_DATA_OFFSET)

@@ -16,6 +16,7 @@ created or changed** (no traceback, no usage block). This module gives the piece
 The ROS parts (rcl's argument parser) are imported lazily: the module is importable in
 the pure tools and tests without rclpy.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -23,8 +24,8 @@ import math
 import os
 import re
 import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 EXIT_USAGE = 2
 
@@ -73,6 +74,7 @@ def check_ros_args(argv: Sequence[str]) -> list[str]:
         if not os.access(p, os.R_OK):
             raise UsageError(f'--params-file {f}: not readable')
     from rclpy.utilities import remove_ros_args
+
     try:
         return remove_ros_args(list(argv))
     except Exception as exc:  # RCLInvalidROSArgsError and friends (pybind11 types)
@@ -95,9 +97,11 @@ def run_cli(prog: str, body: Callable[[], int]) -> int:
 
 
 # -- argparse types ----------------------------------------------------------------------
-def finite_float(lo: float | None = None, hi: float | None = None, *,
-                 lo_open: bool = False, unit: str = '') -> Callable[[str], float]:
+def finite_float(
+    lo: float | None = None, hi: float | None = None, *, lo_open: bool = False, unit: str = ''
+) -> Callable[[str], float]:
     """A float that must be finite and within [lo, hi] (``lo_open``: lo excluded)."""
+
     def conv(text: str) -> float:
         try:
             v = float(text)
@@ -107,17 +111,20 @@ def finite_float(lo: float | None = None, hi: float | None = None, *,
         if not math.isfinite(v):
             raise argparse.ArgumentTypeError(f'must be finite, got {text}')
         if lo is not None and (v < lo or (lo_open and v == lo)):
-            raise argparse.ArgumentTypeError(f'must be {">" if lo_open else ">="} {lo:g}{u}, '
-                                             f'got {text}')
+            raise argparse.ArgumentTypeError(
+                f'must be {">" if lo_open else ">="} {lo:g}{u}, got {text}'
+            )
         if hi is not None and v > hi:
             raise argparse.ArgumentTypeError(f'must be <= {hi:g}{u}, got {text}')
         return v
+
     conv.__name__ = 'number'  # argparse names the type in its messages
     return conv
 
 
 def int_in(lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
     """An integer within [lo, hi]."""
+
     def conv(text: str) -> int:
         try:
             v = int(text)
@@ -128,6 +135,7 @@ def int_in(lo: int | None = None, hi: int | None = None) -> Callable[[str], int]
         if hi is not None and v > hi:
             raise argparse.ArgumentTypeError(f'must be <= {hi}, got {text}')
         return v
+
     conv.__name__ = 'integer'
     return conv
 

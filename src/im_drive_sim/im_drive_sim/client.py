@@ -4,6 +4,7 @@
 hand-rolled WaitSet -- no executor in the 5 kHz path -- reusing its messages. The node
 it lives on must not be spun by an executor (an executor would take the states).
 """
+
 from __future__ import annotations
 
 import time
@@ -11,9 +12,8 @@ import time
 import numpy as np
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
-from std_msgs.msg import Float64MultiArray
-
 from rclpy.serialization import deserialize_message
+from std_msgs.msg import Float64MultiArray
 
 from .cdr import Float64ArrayWire, parse_float64_array
 from .drive_sim_node import COMMAND_FIELDS, COMMAND_TOPIC, LOCKSTEP_QOS, RECORDED_QOS, STATE_TOPIC
@@ -35,7 +35,8 @@ class DriveClient:
     def __init__(self, node: Node) -> None:
         self.node = node
         self.state_sub = node.create_subscription(
-            Float64MultiArray, STATE_TOPIC, lambda _m: None, LOCKSTEP_QOS)
+            Float64MultiArray, STATE_TOPIC, lambda _m: None, LOCKSTEP_QOS
+        )
         self.command_pub = node.create_publisher(Float64MultiArray, COMMAND_TOPIC, RECORDED_QOS)
         self._waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)
         self._cmd = Float64ArrayWire(len(COMMAND_FIELDS))
@@ -102,8 +103,10 @@ class DriveClient:
         """True once a drive's state publisher is matched to our subscription."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            if self.state_sub.get_publisher_count() > 0 and \
-                    self.command_pub.get_subscription_count() > 0:
+            if (
+                self.state_sub.get_publisher_count() > 0
+                and self.command_pub.get_subscription_count() > 0
+            ):
                 return True
             ws = self._waitset
             ws.clear_entities()

@@ -16,6 +16,7 @@ helper node (``_<name>_io``) taken with a hand-rolled WaitSet; the visible node 
 diagnostics) is spun by an executor between steps, every ``service_period_steps`` steps
 and whenever the loop is idle.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -24,7 +25,6 @@ import sys
 import time
 from dataclasses import dataclass
 
-import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -41,8 +41,7 @@ from std_msgs.msg import Float64MultiArray
 from .cdr import Float64ArrayWire, parse_float64_array
 from .cli import Parser, input_file, int_in, parse_cli, run_cli
 from .params import ConfigError, load_config
-from .runtime import (LenientDoubles, RCLError, parameter_hygiene, publish_retry,
-                      run_stepped_node)
+from .runtime import LenientDoubles, RCLError, parameter_hygiene, publish_retry, run_stepped_node
 from .sim import STATE_FIELDS, DriveSim, start_position
 
 #: Topic names (relative: they follow the node's namespace).
@@ -58,18 +57,24 @@ CMD_STEP, CMD_ISQ, CMD_LOAD = 0, 1, 2
 #: QoS of the 5 kHz lock-step topics: reliable, so no step is ever lost in transit.
 #: KEEP_LAST with a generous depth: lock-step never has more than one sample in flight;
 #: in real time a depth of 64 periods (12.8 ms) bridges scheduling hiccups.
-LOCKSTEP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=64,
-                          reliability=ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.VOLATILE)
+LOCKSTEP_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=64,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
 
 #: QoS of the publishers whose every message must reach the recorder (state; the
 #: controller's command, internals and losses): reliable KEEP_ALL. A reader that falls
 #: behind back-pressures the publisher (see runtime.publish_retry) instead of losing
 #: samples, which KEEP_LAST would overwrite. Readers in the lock-step path stay
 #: LOCKSTEP_QOS: they take every step, so they never hold the writer back.
-RECORDED_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=0,
-                          reliability=ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.VOLATILE)
+RECORDED_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL,
+    depth=0,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
 
 NS_PER_S = 1_000_000_000
 MODES = ('lockstep', 'realtime')
@@ -79,33 +84,39 @@ MODES = ('lockstep', 'realtime')
 class Counters:
     """What the loop counts; published on ``drive/status`` and logged at shutdown."""
 
-    steps: int = 0              #: model steps taken since start
-    commands: int = 0           #: commands received
-    fresh: int = 0              #: real time: steps driven by a command answering the latest state
-    held: int = 0               #: real time: steps that held the previous command
-    late: int = 0               #: commands answering an older state than the latest one
+    steps: int = 0  #: model steps taken since start
+    commands: int = 0  #: commands received
+    fresh: int = 0  #: real time: steps driven by a command answering the latest state
+    held: int = 0  #: real time: steps that held the previous command
+    late: int = 0  #: commands answering an older state than the latest one
     #: commands ignored: lock-step, answering another step; real time, a duplicate or
     #: out of order (answering the same or an older state than the held command)
     stale_ignored: int = 0
-    overruns: int = 0           #: real time: periods that started later than one period
-    republished: int = 0        #: lock-step: state re-sent while waiting for a command
+    overruns: int = 0  #: real time: periods that started later than one period
+    republished: int = 0  #: lock-step: state re-sent while waiting for a command
     max_lateness_us: float = 0.0  #: real time: worst start-of-period lateness
-    backpressure: int = 0       #: publish retries while a reliable reader (recorder) was full
-    watchdog_trips: int = 0     #: real time: times commands stopped for > command_timeout
-    watchdog_steps: int = 0     #: real time: steps run at zero current by the watchdog
+    backpressure: int = 0  #: publish retries while a reliable reader (recorder) was full
+    watchdog_trips: int = 0  #: real time: times commands stopped for > command_timeout
+    watchdog_steps: int = 0  #: real time: steps run at zero current by the watchdog
 
 
-def param_descriptor(description: str, *, read_only: bool = True,
-                int_range: tuple[int, int] | None = None,
-                float_range: tuple[float, float] | None = None,
-                additional: str = '') -> ParameterDescriptor:
-    d = ParameterDescriptor(description=description, read_only=read_only,
-                            additional_constraints=additional)
+def param_descriptor(
+    description: str,
+    *,
+    read_only: bool = True,
+    int_range: tuple[int, int] | None = None,
+    float_range: tuple[float, float] | None = None,
+    additional: str = '',
+) -> ParameterDescriptor:
+    d = ParameterDescriptor(
+        description=description, read_only=read_only, additional_constraints=additional
+    )
     if int_range is not None:
         d.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1], step=1)]
     if float_range is not None:
-        d.floating_point_range = [FloatingPointRange(from_value=float_range[0],
-                                                     to_value=float_range[1], step=0.0)]
+        d.floating_point_range = [
+            FloatingPointRange(from_value=float_range[0], to_value=float_range[1], step=0.0)
+        ]
     return d
 
 
@@ -116,8 +127,14 @@ class DriveSimNode(LenientDoubles, Node):
     seed, machine file) and are set at start with ``--ros-args -p name:=value``.
     """
 
-    def __init__(self, *, node_name: str = 'drive_sim', context=None,
-                 parameter_overrides: list | None = None, warn_unknown: bool = True) -> None:
+    def __init__(
+        self,
+        *,
+        node_name: str = 'drive_sim',
+        context=None,
+        parameter_overrides: list | None = None,
+        warn_unknown: bool = True,
+    ) -> None:
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
         p = self._declare_parameters()
         self.mode: str = p['mode']
@@ -128,13 +145,17 @@ class DriveSimNode(LenientDoubles, Node):
             raise ConfigError(str(exc)) from exc
         # declared once the encoder is known: its default is half a count (sim.start_position)
         p['initial_position'] = self.declare_parameter(
-            'initial_position', start_position(self.config), param_descriptor(
+            'initial_position',
+            start_position(self.config),
+            param_descriptor(
                 'Rotor position at start [rad]; default half an encoder count (inside a '
                 'count: no figure hinges on a round-off at a count edge).',
-                float_range=(-1e6, 1e6))).value
+                float_range=(-1e6, 1e6),
+            ),
+        ).value
         self.sim = DriveSim(self.config, seed=p['seed'] if p['seed'] >= 0 else None)
         self.sim.reset(theta=p['initial_position'], omega=0.0, fluxed=True)
-        self.ts_ns: int = int(round(self.config.Ts * NS_PER_S))
+        self.ts_ns: int = round(self.config.Ts * NS_PER_S)
         self.clock_decimation: int = p['clock_decimation']
         self.joint_state_decimation: int = p['joint_state_decimation']
         self.max_steps: int = p['max_steps']
@@ -154,10 +175,10 @@ class DriveSimNode(LenientDoubles, Node):
         self.joint_pub = self.create_publisher(JointState, JOINT_STATE_TOPIC, 10)
         self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, 10)
         # The 5 kHz command path: its own hidden node, never touched by the executor.
-        self.io_node = Node(f'_{node_name}_io', context=context,
-                            namespace=self.get_namespace())
+        self.io_node = Node(f'_{node_name}_io', context=context, namespace=self.get_namespace())
         self.cmd_sub = self.io_node.create_subscription(
-            Float64MultiArray, COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS)
+            Float64MultiArray, COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS
+        )
         self._waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
 
         # Preallocated messages and buffers: nothing is built per step.
@@ -180,70 +201,141 @@ class DriveSimNode(LenientDoubles, Node):
         self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
 
         # The layouts are facts of this node: an override may not advertise another one.
-        parameter_hygiene(self, {'state_fields': list(STATE_FIELDS),
-                                 'command_fields': list(COMMAND_FIELDS)},
-                          warn_unknown=warn_unknown)
+        parameter_hygiene(
+            self,
+            {'state_fields': list(STATE_FIELDS), 'command_fields': list(COMMAND_FIELDS)},
+            warn_unknown=warn_unknown,
+        )
         # logged at start(): a process composing more nodes may still refuse to start
-        self._start_text = (f"mode={self.mode} model={self.config.model} "
-                            f"Ts={self.config.Ts * 1e6:.0f} us "
-                            f"config={p['config_file'] or '(packaged default)'} seed={p['seed']}")
+        self._start_text = (
+            f'mode={self.mode} model={self.config.model} '
+            f'Ts={self.config.Ts * 1e6:.0f} us '
+            f'config={p["config_file"] or "(packaged default)"} seed={p["seed"]}'
+        )
 
     # -- parameters ------------------------------------------------------------------
     def _declare_parameters(self) -> dict:
         specs = [
-            ('mode', 'lockstep', param_descriptor(
-                "'lockstep': one 200 us step per command received; 'realtime': paced at "
-                '5 kHz by the wall clock, holding the last command.',
-                additional="one of: lockstep, realtime")),
-            ('config_file', '', param_descriptor(
-                'Drive parameter file (YAML, see share/im_drive_sim/config/paper_750w.yaml); '
-                "'' = the packaged 750 W default.")),
-            ('model', '', param_descriptor(
-                "'full' (voltage-fed IM + vector control) or 'reduced' (ideal field "
-                "orientation); '' = as in the parameter file.",
-                additional="one of: '', full, reduced")),
-            ('seed', -1, param_descriptor(
-                'Seed of the disturbance sources; -1 = the parameter file\'s seed.',
-                int_range=(-1, 2**31 - 1))),
-            ('clock_decimation', 25, param_descriptor(
-                'Publish /clock every N steps (N = 25: every 5 ms of sim time).',
-                int_range=(1, 100000))),
-            ('joint_state_decimation', 10, param_descriptor(
-                'Publish drive/joint_states every N steps.', int_range=(1, 100000))),
-            ('max_steps', 0, param_descriptor(
-                'Stop after this many steps (0 = run until shut down).',
-                int_range=(0, 2**62))),
-            ('service_period_steps', 250, param_descriptor(
-                'Serve parameter requests every N steps (and whenever idle).',
-                int_range=(1, 1000000))),
-            ('republish_period', 0.1, param_descriptor(
-                'Lock-step: re-send the current state after this long without a command '
-                '[s], so a controller that starts later still gets it.',
-                float_range=(0.001, 60.0))),
-            ('realtime_wait_for_controller', True, param_descriptor(
-                'Real time: start the clock only once a controller publishes on '
-                'drive/command (false: start at once and hold zero current).')),
-            ('realtime_spin_margin', 150e-6, param_descriptor(
-                'Real time: busy-wait this long before each period start instead of '
-                'sleeping, for low jitter [s].', float_range=(0.0, 200e-6))),
-            ('command_timeout', 0.05, param_descriptor(
-                'Real time: watchdog -- no command for this long [s] -> zero current and no '
-                'load until the next command (the safe state of a drive whose controller '
-                'stopped).', float_range=(0.0002, 10.0))),
-            ('state_fields', list(STATE_FIELDS), param_descriptor(
-                'Layout of drive/state data (read-only): field names in order.')),
-            ('command_fields', list(COMMAND_FIELDS), param_descriptor(
-                'Layout of drive/command data (read-only): field names in order.')),
+            (
+                'mode',
+                'lockstep',
+                param_descriptor(
+                    "'lockstep': one 200 us step per command received; 'realtime': paced at "
+                    '5 kHz by the wall clock, holding the last command.',
+                    additional='one of: lockstep, realtime',
+                ),
+            ),
+            (
+                'config_file',
+                '',
+                param_descriptor(
+                    'Drive parameter file (YAML, see share/im_drive_sim/config/paper_750w.yaml); '
+                    "'' = the packaged 750 W default."
+                ),
+            ),
+            (
+                'model',
+                '',
+                param_descriptor(
+                    "'full' (voltage-fed IM + vector control) or 'reduced' (ideal field "
+                    "orientation); '' = as in the parameter file.",
+                    additional="one of: '', full, reduced",
+                ),
+            ),
+            (
+                'seed',
+                -1,
+                param_descriptor(
+                    "Seed of the disturbance sources; -1 = the parameter file's seed.",
+                    int_range=(-1, 2**31 - 1),
+                ),
+            ),
+            (
+                'clock_decimation',
+                25,
+                param_descriptor(
+                    'Publish /clock every N steps (N = 25: every 5 ms of sim time).',
+                    int_range=(1, 100000),
+                ),
+            ),
+            (
+                'joint_state_decimation',
+                10,
+                param_descriptor(
+                    'Publish drive/joint_states every N steps.', int_range=(1, 100000)
+                ),
+            ),
+            (
+                'max_steps',
+                0,
+                param_descriptor(
+                    'Stop after this many steps (0 = run until shut down).', int_range=(0, 2**62)
+                ),
+            ),
+            (
+                'service_period_steps',
+                250,
+                param_descriptor(
+                    'Serve parameter requests every N steps (and whenever idle).',
+                    int_range=(1, 1000000),
+                ),
+            ),
+            (
+                'republish_period',
+                0.1,
+                param_descriptor(
+                    'Lock-step: re-send the current state after this long without a command '
+                    '[s], so a controller that starts later still gets it.',
+                    float_range=(0.001, 60.0),
+                ),
+            ),
+            (
+                'realtime_wait_for_controller',
+                True,
+                param_descriptor(
+                    'Real time: start the clock only once a controller publishes on '
+                    'drive/command (false: start at once and hold zero current).'
+                ),
+            ),
+            (
+                'realtime_spin_margin',
+                150e-6,
+                param_descriptor(
+                    'Real time: busy-wait this long before each period start instead of '
+                    'sleeping, for low jitter [s].',
+                    float_range=(0.0, 200e-6),
+                ),
+            ),
+            (
+                'command_timeout',
+                0.05,
+                param_descriptor(
+                    'Real time: watchdog -- no command for this long [s] -> zero current and no '
+                    'load until the next command (the safe state of a drive whose controller '
+                    'stopped).',
+                    float_range=(0.0002, 10.0),
+                ),
+            ),
+            (
+                'state_fields',
+                list(STATE_FIELDS),
+                param_descriptor('Layout of drive/state data (read-only): field names in order.'),
+            ),
+            (
+                'command_fields',
+                list(COMMAND_FIELDS),
+                param_descriptor('Layout of drive/command data (read-only): field names in order.'),
+            ),
         ]
         values = {}
         for name, default, desc in specs:
             values[name] = self.declare_parameter(name, default, desc).value
         if values['mode'] not in MODES:
-            raise ConfigError(f"parameter 'mode' must be one of {MODES}, "
-                              f"got {values['mode']!r}")
+            raise ConfigError(f"parameter 'mode' must be one of {MODES}, got {values['mode']!r}")
         if values['model'] not in ('', 'full', 'reduced'):
-            raise ConfigError("parameter 'model' must be '', 'full' or 'reduced', "
-                              f"got {values['model']!r}")
+            raise ConfigError(
+                f"parameter 'model' must be '', 'full' or 'reduced', got {values['model']!r}"
+            )
         return values
 
     # -- publishing --------------------------------------------------------------------
@@ -275,21 +367,26 @@ class DriveSimNode(LenientDoubles, Node):
     def publish_status(self, wall_elapsed: float) -> None:
         c = self.counters
         sim_s = self.sim.step_index * self.config.Ts
-        st = DiagnosticStatus(name=f'{self.get_name()}: drive simulator',
-                              hardware_id=f'im_drive_sim/{self.config.model}')
+        st = DiagnosticStatus(
+            name=f'{self.get_name()}: drive simulator',
+            hardware_id=f'im_drive_sim/{self.config.model}',
+        )
         problems = c.overruns + c.late + c.held if self.mode == 'realtime' else c.stale_ignored
         st.level = DiagnosticStatus.OK if problems == 0 else DiagnosticStatus.WARN
         st.message = 'ok' if problems == 0 else 'late commands / overruns counted'
         if self._watchdog_tripped:
             st.level = DiagnosticStatus.ERROR
-            st.message = (f'command watchdog: no command for more than '
-                          f'{self.command_timeout:g} s, zero current')
+            st.message = (
+                f'command watchdog: no command for more than '
+                f'{self.command_timeout:g} s, zero current'
+            )
         values = {
-            'mode': self.mode, 'model': self.config.model,
-            'step_index': str(self.sim.step_index), 'sim_time_s': f'{sim_s:.6f}',
+            'mode': self.mode,
+            'model': self.config.model,
+            'step_index': str(self.sim.step_index),
+            'sim_time_s': f'{sim_s:.6f}',
             'real_time_factor': f'{sim_s / wall_elapsed:.3f}' if wall_elapsed > 0 else 'nan',
-            **{k: (f'{v:.1f}' if isinstance(v, float) else str(v))
-               for k, v in vars(c).items()},
+            **{k: (f'{v:.1f}' if isinstance(v, float) else str(v)) for k, v in vars(c).items()},
         }
         st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         msg = DiagnosticArray(status=[st])
@@ -315,12 +412,15 @@ class DriveSimNode(LenientDoubles, Node):
         if len(data) != len(COMMAND_FIELDS):
             self.get_logger().error(
                 f'{COMMAND_TOPIC}: expected {len(COMMAND_FIELDS)} values '
-                f'{COMMAND_FIELDS}, got {len(data)}; ignored', throttle_duration_sec=1.0)
+                f'{COMMAND_FIELDS}, got {len(data)}; ignored',
+                throttle_duration_sec=1.0,
+            )
             return None
         isq, load = float(data[CMD_ISQ]), float(data[CMD_LOAD])
         if not (math.isfinite(isq) and math.isfinite(load)):
-            self.get_logger().error(f'{COMMAND_TOPIC}: non-finite command ignored',
-                                    throttle_duration_sec=1.0)
+            self.get_logger().error(
+                f'{COMMAND_TOPIC}: non-finite command ignored', throttle_duration_sec=1.0
+            )
             return None
         self.counters.commands += 1
         return int(data[CMD_STEP]), isq, load
@@ -418,8 +518,11 @@ class DriveSimNode(LenientDoubles, Node):
             # A drive with no controller would only hold zero current: the clock starts
             # when one is matched, so it never misses the first periods.
             self.get_logger().info('real time: waiting for a controller on drive/command')
-            while not self.stop_requested and rclpy.ok(context=self.context) and \
-                    self.cmd_sub.get_publisher_count() == 0:
+            while (
+                not self.stop_requested
+                and rclpy.ok(context=self.context)
+                and self.cmd_sub.get_publisher_count() == 0
+            ):
                 executor.spin_once(timeout_sec=0.01)
         self.start()
         t0 = t_start = time.perf_counter()
@@ -473,7 +576,8 @@ class DriveSimNode(LenientDoubles, Node):
             self.counters.watchdog_trips += 1
             self.get_logger().warn(
                 f'watchdog: no command on {COMMAND_TOPIC} for {self.command_timeout:g} s at step '
-                f'{self.sim.step_index}: zero current and no load until the next command')
+                f'{self.sim.step_index}: zero current and no load until the next command'
+            )
         self._isq_ref = 0.0
         self._load = 0.0
         self.counters.watchdog_steps += 1
@@ -524,9 +628,12 @@ class DriveSimNode(LenientDoubles, Node):
     def log_summary(self) -> None:
         c = self.counters
         self.get_logger().info(
-            f'stopped at step {self.sim.step_index} (sim time {self.sim.step_index * self.config.Ts:.4f} s): '
-            + ', '.join(f'{k}={v:.1f}' if isinstance(v, float) else f'{k}={v}'
-                        for k, v in vars(c).items()))
+            f'stopped at step {self.sim.step_index} '
+            f'(sim time {self.sim.step_index * self.config.Ts:.4f} s): '
+            + ', '.join(
+                f'{k}={v:.1f}' if isinstance(v, float) else f'{k}={v}' for k, v in vars(c).items()
+            )
+        )
 
     def flush(self, timeout: float = 1.0) -> None:
         """Wait (bounded) until subscribers acknowledged everything published: the last
@@ -544,16 +651,19 @@ def _parser() -> argparse.ArgumentParser:
     parser = Parser(
         prog='ros2 run im_drive_sim drive_sim',
         description='Induction-motor drive simulator (5 kHz). Topics: drive/state (out), '
-                    'drive/command (in), drive/joint_states, drive/status, /clock. '
-                    'Parameters are set with --ros-args -p name:=value; the options below '
-                    'are shortcuts for them. See docs/interfaces.md.')
+        'drive/command (in), drive/joint_states, drive/status, /clock. '
+        'Parameters are set with --ros-args -p name:=value; the options below '
+        'are shortcuts for them. See docs/interfaces.md.',
+    )
     parser.add_argument('--mode', choices=MODES, help='lockstep (default) or realtime')
-    parser.add_argument('--config', metavar='FILE', type=input_file,
-                        help='drive parameter file (YAML)')
+    parser.add_argument(
+        '--config', metavar='FILE', type=input_file, help='drive parameter file (YAML)'
+    )
     parser.add_argument('--model', choices=('full', 'reduced'), help='model fidelity')
     parser.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
-    parser.add_argument('--max-steps', type=int_in(0, 2**62),
-                        help='stop after N steps (0: run until shut down)')
+    parser.add_argument(
+        '--max-steps', type=int_in(0, 2**62), help='stop after N steps (0: run until shut down)'
+    )
     return parser
 
 
@@ -563,14 +673,23 @@ def main(args: list[str] | None = None) -> int:
     def body() -> int:
         cli = parse_cli(_parser(), argv)
         overrides = []
-        for name, value in (('mode', cli.mode), ('config_file', cli.config and str(cli.config)),
-                            ('model', cli.model), ('seed', cli.seed),
-                            ('max_steps', cli.max_steps)):
+        for name, value in (
+            ('mode', cli.mode),
+            ('config_file', cli.config and str(cli.config)),
+            ('model', cli.model),
+            ('seed', cli.seed),
+            ('max_steps', cli.max_steps),
+        ):
             if value is not None:
                 overrides.append(Parameter(name, value=value))
         return run_stepped_node(
-            argv, lambda: DriveSimNode(parameter_overrides=overrides or None), (ConfigError,),
-            'drive_sim', on_exit=lambda node: node.log_summary())
+            argv,
+            lambda: DriveSimNode(parameter_overrides=overrides or None),
+            (ConfigError,),
+            'drive_sim',
+            on_exit=lambda node: node.log_summary(),
+        )
+
     return run_cli('drive_sim', body)
 
 

@@ -18,6 +18,7 @@ Copy this file for a real drive. It has two parts:
 
 Check a drive built from it with ``ros2 run im_controller check_drive`` (docs/check-drive.md).
 """
+
 from __future__ import annotations
 
 import math
@@ -28,20 +29,29 @@ from dataclasses import dataclass, fields
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.duration import Duration
-from rclpy.node import Node
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from .cdr import Float64ArrayWire, parse_float64_array
-from .drive_sim_node import (CMD_ISQ, CMD_LOAD, CMD_STEP, COMMAND_FIELDS, COMMAND_TOPIC,
-                             JOINT_STATE_TOPIC, LOCKSTEP_QOS, RECORDED_QOS, STATE_TOPIC,
-                             STATUS_TOPIC, param_descriptor)
-from .params import ConfigError, DriveConfig, load_config
 from .cli import Parser, check_ros_args, parse_cli, run_cli
-from .runtime import (LenientDoubles, RCLError, parameter_hygiene, publish_retry,
-                      run_stepped_node)
+from .drive_sim_node import (
+    CMD_ISQ,
+    CMD_LOAD,
+    CMD_STEP,
+    COMMAND_FIELDS,
+    COMMAND_TOPIC,
+    JOINT_STATE_TOPIC,
+    LOCKSTEP_QOS,
+    RECORDED_QOS,
+    STATE_TOPIC,
+    STATUS_TOPIC,
+    param_descriptor,
+)
+from .params import ConfigError, DriveConfig, load_config
+from .runtime import LenientDoubles, RCLError, parameter_hygiene, publish_retry, run_stepped_node
 from .sim import STATE_FIELDS
 
 NS_PER_S = 1_000_000_000
@@ -51,13 +61,13 @@ NS_PER_S = 1_000_000_000
 class Measurement:
     """What the drive samples each period (SI units; updated in place, never re-created)."""
 
-    theta_meas: float = 0.0   #: [rad] encoder position, multi-turn
-    omega_meas: float = 0.0   #: [rad/s] speed estimate
-    torque: float = 0.0       #: [N m] electromagnetic torque (estimated on a real drive)
-    isd: float = 0.0          #: [A] d-axis current
-    isq: float = 0.0          #: [A] q-axis current
-    i_alpha: float = 0.0      #: [A] stator current, alpha axis
-    i_beta: float = 0.0       #: [A] stator current, beta axis
+    theta_meas: float = 0.0  #: [rad] encoder position, multi-turn
+    omega_meas: float = 0.0  #: [rad/s] speed estimate
+    torque: float = 0.0  #: [N m] electromagnetic torque (estimated on a real drive)
+    isd: float = 0.0  #: [A] d-axis current
+    isq: float = 0.0  #: [A] q-axis current
+    i_alpha: float = 0.0  #: [A] stator current, alpha axis
+    i_beta: float = 0.0  #: [A] stator current, beta axis
     load_torque: float = 0.0  #: [N m] load machine torque
 
 
@@ -71,17 +81,17 @@ class Hardware:
 
     def __init__(self, config: DriveConfig) -> None:
         m, s = config.machine, config.sensors
-        self.ts = config.Ts                                    # [s]
-        self.kt = m.Kt                                         # [N m/A]
-        self.inv_j, self.b = 1.0 / m.J, m.B                    # [1/(kg m^2)], [N m s/rad]
-        self.isd_ref = m.rated_flux_current                    # [A]
+        self.ts = config.Ts  # [s]
+        self.kt = m.Kt  # [N m/A]
+        self.inv_j, self.b = 1.0 / m.J, m.B  # [1/(kg m^2)], [N m s/rad]
+        self.isd_ref = m.rated_flux_current  # [A]
         self.pole_pairs = m.pole_pairs
         self.a_i = math.exp(-self.ts * config.control.current_bandwidth)  # current-loop pole
         self.a_w = math.exp(-self.ts / s.speed_filter_tau) if s.speed_filter_tau > 0 else 0.0
         self.counts_per_rad = s.encoder_counts / (2.0 * math.pi)
         self.isq_ref = self.load_ref = 0.0
-        self.isq = self.theta = self.omega = 0.0               # true plant state
-        self.count = 0                                         # encoder count
+        self.isq = self.theta = self.omega = 0.0  # true plant state
+        self.count = 0  # encoder count
         self.m = Measurement(isd=self.isd_ref)
 
     def write(self, isq_ref: float, load_torque: float) -> None:
@@ -117,17 +127,17 @@ class Hardware:
 class Counters:
     """Published on drive/status and logged at exit (names as in docs/interfaces.md)."""
 
-    steps: int = 0              #: periods run
-    commands: int = 0           #: valid commands received
-    fresh: int = 0              #: steps driven by a command answering the latest state
-    held: int = 0               #: steps that held an older command
-    late: int = 0               #: commands answering an older state than the latest
-    stale_ignored: int = 0      #: out-of-order or duplicate commands, ignored
-    overruns: int = 0           #: periods that started more than one period late
+    steps: int = 0  #: periods run
+    commands: int = 0  #: valid commands received
+    fresh: int = 0  #: steps driven by a command answering the latest state
+    held: int = 0  #: steps that held an older command
+    late: int = 0  #: commands answering an older state than the latest
+    stale_ignored: int = 0  #: out-of-order or duplicate commands, ignored
+    overruns: int = 0  #: periods that started more than one period late
     max_lateness_us: float = 0.0  #: worst period-start lateness [us]
-    watchdog_trips: int = 0     #: times commands stopped for more than command_timeout
-    watchdog_steps: int = 0     #: steps run at zero current by the watchdog
-    backpressure: int = 0       #: publish retries while a reliable reader was full
+    watchdog_trips: int = 0  #: times commands stopped for more than command_timeout
+    watchdog_steps: int = 0  #: steps run at zero current by the watchdog
+    backpressure: int = 0  #: publish retries while a reliable reader was full
 
 
 class ExampleDrive(LenientDoubles, Node):
@@ -138,36 +148,60 @@ class ExampleDrive(LenientDoubles, Node):
     def __init__(self, node_name: str = 'example_drive', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         d = self.declare_parameter
-        cfg_file = d('config_file', '', param_descriptor(
-            "Drive parameter file (YAML); '' = the packaged 750 W motor.")).value
+        cfg_file = d(
+            'config_file',
+            '',
+            param_descriptor("Drive parameter file (YAML); '' = the packaged 750 W motor."),
+        ).value
         self.config = load_config(cfg_file or None)
         self.ts_ns: int = self.config.Ts_ns
         #: wall-clock period of the loop [s] (= Ts; a subclass may change it)
         self.period_s: float = self.config.Ts
         file_max = self.config.machine.isq_max
-        self.isq_max: float = d('isq_max', file_max, param_descriptor(
-            'Clamp of isq* [A] (read-only: a limit no parameter call can change); at most the '
-            "parameter file's isq_max.", float_range=(0.0, file_max))).value
-        self.command_timeout: float = d('command_timeout', 0.05, param_descriptor(
-            'Watchdog: no command for this long [s] -> zero current and no load until the next '
-            'command.', float_range=(0.0002, 10.0))).value
-        self.spin_margin: float = d('realtime_spin_margin', 150e-6, param_descriptor(
-            'Busy-wait this long before each period start [s], for low jitter.',
-            float_range=(0.0, 200e-6))).value
-        self.joint_decimation: int = d('joint_state_decimation', 10, param_descriptor(
-            'Publish drive/joint_states every N steps.', int_range=(1, 100000))).value
+        self.isq_max: float = d(
+            'isq_max',
+            file_max,
+            param_descriptor(
+                'Clamp of isq* [A] (read-only: a limit no parameter call can change); at most the '
+                "parameter file's isq_max.",
+                float_range=(0.0, file_max),
+            ),
+        ).value
+        self.command_timeout: float = d(
+            'command_timeout',
+            0.05,
+            param_descriptor(
+                'Watchdog: no command for this long [s] -> zero current and no load until the next '
+                'command.',
+                float_range=(0.0002, 10.0),
+            ),
+        ).value
+        self.spin_margin: float = d(
+            'realtime_spin_margin',
+            150e-6,
+            param_descriptor(
+                'Busy-wait this long before each period start [s], for low jitter.',
+                float_range=(0.0, 200e-6),
+            ),
+        ).value
+        self.joint_decimation: int = d(
+            'joint_state_decimation',
+            10,
+            param_descriptor('Publish drive/joint_states every N steps.', int_range=(1, 100000)),
+        ).value
         d('state_fields', list(STATE_FIELDS), param_descriptor('Layout of drive/state data.'))
         d('command_fields', list(COMMAND_FIELDS), param_descriptor('Layout of drive/command data.'))
         # the layouts report what this node publishes and reads: not settable
-        parameter_hygiene(self, {'state_fields': list(STATE_FIELDS),
-                                 'command_fields': list(COMMAND_FIELDS)})
+        parameter_hygiene(
+            self, {'state_fields': list(STATE_FIELDS), 'command_fields': list(COMMAND_FIELDS)}
+        )
 
         self.hw = self.make_hardware()
         self.counters = Counters()
         self.stop_requested = False
-        self.k = 0                           # step index of the latest published state
-        self.isq_ref = self.load_ref = 0.0   # the held command (zero before the first one)
-        self.held_answers = -2               # answers_step of the held command (-2: none yet)
+        self.k = 0  # step index of the latest published state
+        self.isq_ref = self.load_ref = 0.0  # the held command (zero before the first one)
+        self.held_answers = -2  # answers_step of the held command (-2: none yet)
         self.fresh = False
         self.last_cmd_wall: float | None = None
         self.tripped = False
@@ -176,15 +210,19 @@ class ExampleDrive(LenientDoubles, Node):
         self.joint_pub = self.make_joint_publisher()
         self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, 10)
         # The 5 kHz command path lives on a hidden node that no executor ever spins.
-        self.io_node = Node(f'_{node_name}_io', context=self.context,
-                            namespace=self.get_namespace())
+        self.io_node = Node(
+            f'_{node_name}_io', context=self.context, namespace=self.get_namespace()
+        )
         self.cmd_sub = self.io_node.create_subscription(
-            Float64MultiArray, COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS)
+            Float64MultiArray, COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS
+        )
         self.waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
         self.wire = Float64ArrayWire(len(STATE_FIELDS))  # preallocated: nothing built per step
         self.joint = JointState(name=['motor'], position=[0.0], velocity=[0.0], effort=[0.0])
-        self.get_logger().info(f'real time, Ts={self.config.Ts * 1e6:.0f} us, isq_max='
-                               f'{self.isq_max:g} A, command_timeout={self.command_timeout:g} s')
+        self.get_logger().info(
+            f'real time, Ts={self.config.Ts * 1e6:.0f} us, isq_max='
+            f'{self.isq_max:g} A, command_timeout={self.command_timeout:g} s'
+        )
 
     # -- hooks ----------------------------------------------------------------------------
     def make_hardware(self) -> Hardware:
@@ -214,8 +252,10 @@ class ExampleDrive(LenientDoubles, Node):
         if not self.tripped:
             self.tripped = True
             self.counters.watchdog_trips += 1
-            self.get_logger().warn(f'watchdog: no command on {COMMAND_TOPIC} for '
-                                   f'{self.command_timeout:g} s at step {self.k}: zero current')
+            self.get_logger().warn(
+                f'watchdog: no command on {COMMAND_TOPIC} for '
+                f'{self.command_timeout:g} s at step {self.k}: zero current'
+            )
         self.isq_ref = self.load_ref = 0.0
         self.counters.watchdog_steps += 1
 
@@ -227,10 +267,13 @@ class ExampleDrive(LenientDoubles, Node):
             data = parse_float64_array(r[0], n)  # our compact layout, read in place
             if data is None:  # another layout: the general (slower) way
                 data = deserialize_message(r[0], Float64MultiArray).data
-            if len(data) != n or not (math.isfinite(data[0]) and math.isfinite(data[1])
-                                      and math.isfinite(data[2])):
-                self.get_logger().error(f'{COMMAND_TOPIC}: expected {n} finite values '
-                                        f'{COMMAND_FIELDS}; ignored', throttle_duration_sec=1.0)
+            if len(data) != n or not (
+                math.isfinite(data[0]) and math.isfinite(data[1]) and math.isfinite(data[2])
+            ):
+                self.get_logger().error(
+                    f'{COMMAND_TOPIC}: expected {n} finite values {COMMAND_FIELDS}; ignored',
+                    throttle_duration_sec=1.0,
+                )
                 continue
             answers = int(data[CMD_STEP])
             self.counters.commands += 1
@@ -279,8 +322,11 @@ class ExampleDrive(LenientDoubles, Node):
             st.level, st.message = DiagnosticStatus.WARN, 'late commands / overruns counted'
         if self.tripped:
             st.level, st.message = DiagnosticStatus.ERROR, 'command watchdog: zero current'
-        values = {'mode': 'realtime', 'step_index': str(self.k),
-                  **{f.name: f'{getattr(c, f.name):g}' for f in fields(c)}}
+        values = {
+            'mode': 'realtime',
+            'step_index': str(self.k),
+            **{f.name: f'{getattr(c, f.name):g}' for f in fields(c)},
+        }
         st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         msg = DiagnosticArray(status=[st])
         msg.header.stamp = self.get_clock().now().to_msg()
@@ -298,7 +344,7 @@ class ExampleDrive(LenientDoubles, Node):
             deadline = t0 + (n + 1) * self.period_s
             while (remaining := deadline - time.perf_counter() - self.spin_margin) > 0:
                 if self.wait_command(remaining):  # sleeps; a command wakes it early
-                    self.take_commands()          # (held until the period start)
+                    self.take_commands()  # (held until the period start)
             while time.perf_counter() < deadline:
                 pass  # busy-wait the last stretch: a precise period start
             now = time.perf_counter()
@@ -326,8 +372,12 @@ class ExampleDrive(LenientDoubles, Node):
         self.publish_status()
 
     def log_summary(self) -> None:
-        self.get_logger().info(f'stopped at step {self.k}: ' + ', '.join(
-            f'{f.name}={getattr(self.counters, f.name):g}' for f in fields(self.counters)))
+        self.get_logger().info(
+            f'stopped at step {self.k}: '
+            + ', '.join(
+                f'{f.name}={getattr(self.counters, f.name):g}' for f in fields(self.counters)
+            )
+        )
 
     def flush(self, timeout: float = 1.0) -> None:
         for pub in (self.state_pub, self.joint_pub, self.status_pub):
@@ -346,17 +396,33 @@ def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:
             # a drive built on this one (its own main parses its own options): only the
             # ROS arguments are checked here
             check_ros_args(argv)
-            return run_stepped_node(argv, node_class, (ConfigError,), 'example_drive',
-                                    on_exit=lambda node: node.log_summary())
-        parse_cli(Parser(prog='ros2 run im_drive_sim example_drive',
-                         description='A minimal real-time drive node (the template for a '
-                                     'real drive): drive/state every 200 us, drive/command, '
-                                     'isq clamp, command watchdog. Parameters (all '
-                                     'read-only): --ros-args -p isq_max:=7.0 -p '
-                                     'command_timeout:=0.05 -p config_file:=FILE ... '
-                                     '(docs/real-drive.md).'), argv)
-        return run_stepped_node(argv, node_class, (ConfigError,), 'example_drive',
-                                on_exit=lambda node: node.log_summary())
+            return run_stepped_node(
+                argv,
+                node_class,
+                (ConfigError,),
+                'example_drive',
+                on_exit=lambda node: node.log_summary(),
+            )
+        parse_cli(
+            Parser(
+                prog='ros2 run im_drive_sim example_drive',
+                description='A minimal real-time drive node (the template for a '
+                'real drive): drive/state every 200 us, drive/command, '
+                'isq clamp, command watchdog. Parameters (all '
+                'read-only): --ros-args -p isq_max:=7.0 -p '
+                'command_timeout:=0.05 -p config_file:=FILE ... '
+                '(docs/real-drive.md).',
+            ),
+            argv,
+        )
+        return run_stepped_node(
+            argv,
+            node_class,
+            (ConfigError,),
+            'example_drive',
+            on_exit=lambda node: node.log_summary(),
+        )
+
     return run_cli('example_drive', body)
 
 

@@ -28,101 +28,129 @@ from numba import njit
 TWO_PI = 2.0 * math.pi
 
 # ---------------------------------------------------------------- parameter indices
-P_TS = 0          # step [s]
-P_TS_NS = 1       # step [ns] (integer valued)
-P_NP = 2          # pole pairs
-P_LM = 3          # magnetising inductance [H]
-P_LS = 4          # stator inductance [H]
-P_LR = 5          # rotor inductance [H]
-P_KR = 6          # Lm/Lr
-P_RSIG = 7        # R_sigma = Rs + kr^2 Rr [ohm]
-P_INV_SIGLS = 8   # 1/(sigma Ls) [1/H]
-P_KR_TAUR = 9     # kr/tau_r [1/s]
-P_INV_TAUR = 10   # 1/tau_r [1/s]
-P_KTE = 11        # 1.5 p kr (torque = KTE (psi_ra i_sb - psi_rb i_sa))
-P_INV_J = 12      # 1/J
-P_B = 13          # viscous friction
-P_TC = 14         # Coulomb torque (0 = off)
-P_INV_WC = 15     # 1/omega_c (Coulomb smoothing)
-P_UMAX = 16       # voltage limit Udc/sqrt(3)
-P_ISD_REF = 17    # rated flux current
+P_TS = 0  # step [s]
+P_TS_NS = 1  # step [ns] (integer valued)
+P_NP = 2  # pole pairs
+P_LM = 3  # magnetising inductance [H]
+P_LS = 4  # stator inductance [H]
+P_LR = 5  # rotor inductance [H]
+P_KR = 6  # Lm/Lr
+P_RSIG = 7  # R_sigma = Rs + kr^2 Rr [ohm]
+P_INV_SIGLS = 8  # 1/(sigma Ls) [1/H]
+P_KR_TAUR = 9  # kr/tau_r [1/s]
+P_INV_TAUR = 10  # 1/tau_r [1/s]
+P_KTE = 11  # 1.5 p kr (torque = KTE (psi_ra i_sb - psi_rb i_sa))
+P_INV_J = 12  # 1/J
+P_B = 13  # viscous friction
+P_TC = 14  # Coulomb torque (0 = off)
+P_INV_WC = 15  # 1/omega_c (Coulomb smoothing)
+P_UMAX = 16  # voltage limit Udc/sqrt(3)
+P_ISD_REF = 17  # rated flux current
 P_ISQ_MAX = 18
-P_KP = 19         # sigma Ls wc
-P_KI_TS = 20      # R_sigma wc Ts
-P_SIGLS = 21      # sigma Ls (controller nominal)
-P_PSI_MIN = 22    # flux floor
-P_EST_A = 23      # exp(-Ts/tau_r) (estimator)
-P_ENC_K = 24      # counts/(2 pi)
-P_ENC_RES = 25    # 2 pi/counts
-P_ENC_RES_TS = 26 # (2 pi/counts)/Ts
-P_SPD_A = 27      # exp(-Ts/tau_speed) (0 when disabled)
-P_DELAY = 28      # computation delay steps (0 or 1)
-P_MODEL = 29      # 0 full, 1 reduced
-P_KT = 30         # reduced: torque constant at rated flux
+P_KP = 19  # sigma Ls wc
+P_KI_TS = 20  # R_sigma wc Ts
+P_SIGLS = 21  # sigma Ls (controller nominal)
+P_PSI_MIN = 22  # flux floor
+P_EST_A = 23  # exp(-Ts/tau_r) (estimator)
+P_ENC_K = 24  # counts/(2 pi)
+P_ENC_RES = 25  # 2 pi/counts
+P_ENC_RES_TS = 26  # (2 pi/counts)/Ts
+P_SPD_A = 27  # exp(-Ts/tau_speed) (0 when disabled)
+P_DELAY = 28  # computation delay steps (0 or 1)
+P_MODEL = 29  # 0 full, 1 reduced
+P_KT = 30  # reduced: torque constant at rated flux
 P_PSI_RATED = 31  # Lm isd_rated
-P_ISQ_A = 32      # reduced: exp(-Ts/tau_i)
-P_ISQ_AH = 33     # reduced: exp(-Ts/(2 tau_i))
-P_ISQ_INT = 34    # reduced: tau_i (1 - exp(-Ts/tau_i)) (exact integral weight)
-P_SLIP_K = 35     # reduced: Lm/(tau_r psi_rated) (slip per A of isq)
-P_LOAD_A = 36     # exp(-Ts/tau_load) (0 = ideal)
+P_ISQ_A = 32  # reduced: exp(-Ts/tau_i)
+P_ISQ_AH = 33  # reduced: exp(-Ts/(2 tau_i))
+P_ISQ_INT = 34  # reduced: tau_i (1 - exp(-Ts/tau_i)) (exact integral weight)
+P_SLIP_K = 35  # reduced: Lm/(tau_r psi_rated) (slip per A of isq)
+P_LOAD_A = 36  # exp(-Ts/tau_load) (0 = ideal)
 P_RIP_AMP = 37
 P_RIP_HARM = 38
 P_RIP_PHASE = 39
-P_LN_A = 40       # exp(-Ts/tau_loadnoise)
+P_LN_A = 40  # exp(-Ts/tau_loadnoise)
 P_RS = 41
 P_RR = 42
 P_J = 43
-P_ISQ_A0 = 44     # reduced: isq(0+) weight, 1 for tau_i > 0, 0 for an ideal (tau_i = 0) loop
+P_ISQ_A0 = 44  # reduced: isq(0+) weight, 1 for tau_i > 0, 0 for an ideal (tau_i = 0) loop
 N_PARAMS = 45
 
 # -------------------------------------------------------------------- state indices
-S_ISA = 0         # true stator current alpha [A]
+S_ISA = 0  # true stator current alpha [A]
 S_ISB = 1
-S_PSIA = 2        # true rotor flux alpha [Wb]
+S_PSIA = 2  # true rotor flux alpha [Wb]
 S_PSIB = 3
-S_OMEGA = 4       # true mechanical speed [rad/s]
-S_THETA = 5       # true mechanical angle [rad] (multi-turn)
-S_STEP = 6        # step index k (integer valued)
-S_COUNT = 7       # encoder count (integer valued, multi-turn)
+S_OMEGA = 4  # true mechanical speed [rad/s]
+S_THETA = 5  # true mechanical angle [rad] (multi-turn)
+S_STEP = 6  # step index k (integer valued)
+S_COUNT = 7  # encoder count (integer valued, multi-turn)
 S_COUNT_PREV = 8
 S_THETA_MEAS = 9  # count * 2 pi/counts [rad]
 S_OMEGA_RAW = 10  # backward difference [rad/s]
-S_OMEGA_F = 11    # filtered speed (noise free)
-S_OMEGA_MEAS = 12 # filtered speed + noise (what the controller sees)
-S_ISD = 13        # sampled current in the estimated flux frame [A]
+S_OMEGA_F = 11  # filtered speed (noise free)
+S_OMEGA_MEAS = 12  # filtered speed + noise (what the controller sees)
+S_ISD = 13  # sampled current in the estimated flux frame [A]
 S_ISQ = 14
-S_RHO = 15        # estimated flux angle at the sample [rad, electrical]
-S_SLIP_INT = 16   # integral of omega_sl [rad] (wrapped to +-pi)
-S_PSI_HAT = 17    # estimated rotor flux [Wb]
-S_OMEGA_SL = 18   # slip frequency [rad/s]
-S_INT_D = 19      # PI integrators [V]
+S_RHO = 15  # estimated flux angle at the sample [rad, electrical]
+S_SLIP_INT = 16  # integral of omega_sl [rad] (wrapped to +-pi)
+S_PSI_HAT = 17  # estimated rotor flux [Wb]
+S_OMEGA_SL = 18  # slip frequency [rad/s]
+S_INT_D = 19  # PI integrators [V]
 S_INT_Q = 20
-S_UA = 21         # voltage applied during the last step [V]
+S_UA = 21  # voltage applied during the last step [V]
 S_UB = 22
-S_UA_NEXT = 23    # voltage computed, waiting (computation delay 1)
+S_UA_NEXT = 23  # voltage computed, waiting (computation delay 1)
 S_UB_NEXT = 24
-S_VSAT = 25       # 1 if the voltage limit was active in the last step
-S_ISQ_REF = 26    # clamped isq* of the last step [A]
-S_TLOAD = 27      # total load torque applied during the last step [N m]
-S_TLOAD_F = 28    # lagged load command
-S_LOAD_NOISE = 29 # random-load state
-S_NPOS = 30       # noise row cursor
-S_RED_ISQ = 31    # reduced: true isq [A]
-S_RED_SLIP = 32   # reduced: true flux angle minus p theta [rad]
+S_VSAT = 25  # 1 if the voltage limit was active in the last step
+S_ISQ_REF = 26  # clamped isq* of the last step [A]
+S_TLOAD = 27  # total load torque applied during the last step [N m]
+S_TLOAD_F = 28  # lagged load command
+S_LOAD_NOISE = 29  # random-load state
+S_NPOS = 30  # noise row cursor
+S_RED_ISQ = 31  # reduced: true isq [A]
+S_RED_SLIP = 32  # reduced: true flux angle minus p theta [rad]
 N_STATE = 33
 
-STATE_FIELDS = ("step_index", "time_ns", "theta_meas", "omega_meas", "torque", "isd", "isq",
-                "i_alpha", "i_beta", "load_torque", "theta", "omega")
-EXTRA_FIELDS = ("encoder_count", "u_alpha", "u_beta", "psi_r", "voltage_saturated",
-                "isq_ref")
+STATE_FIELDS = (
+    'step_index',
+    'time_ns',
+    'theta_meas',
+    'omega_meas',
+    'torque',
+    'isd',
+    'isq',
+    'i_alpha',
+    'i_beta',
+    'load_torque',
+    'theta',
+    'omega',
+)
+EXTRA_FIELDS = ('encoder_count', 'u_alpha', 'u_beta', 'psi_r', 'voltage_saturated', 'isq_ref')
 RUN_FIELDS = STATE_FIELDS + EXTRA_FIELDS
-(F_STEP, F_TIME_NS, F_THETA_MEAS, F_OMEGA_MEAS, F_TORQUE, F_ISD, F_ISQ, F_I_ALPHA,
- F_I_BETA, F_LOAD, F_THETA, F_OMEGA, F_COUNT, F_U_ALPHA, F_U_BETA, F_PSI_R, F_VSAT,
- F_ISQ_REF) = range(len(RUN_FIELDS))
+(
+    F_STEP,
+    F_TIME_NS,
+    F_THETA_MEAS,
+    F_OMEGA_MEAS,
+    F_TORQUE,
+    F_ISD,
+    F_ISQ,
+    F_I_ALPHA,
+    F_I_BETA,
+    F_LOAD,
+    F_THETA,
+    F_OMEGA,
+    F_COUNT,
+    F_U_ALPHA,
+    F_U_BETA,
+    F_PSI_R,
+    F_VSAT,
+    F_ISQ_REF,
+) = range(len(RUN_FIELDS))
 N_STATE_FIELDS = len(STATE_FIELDS)
 N_RUN_FIELDS = len(RUN_FIELDS)
 
-NOISE_COLS = 4    # i_alpha, i_beta, speed, random-load increment
+NOISE_COLS = 4  # i_alpha, i_beta, speed, random-load increment
 
 
 # ------------------------------------------------------------------------- plant
@@ -140,8 +168,17 @@ def friction_torque(w: float, b: float, tc: float, iwc: float) -> float:
 
 
 @njit(cache=True)
-def plant_deriv(isa: float, isb: float, pa: float, pb: float, w: float,
-                ua: float, ub: float, tl: float, P: np.ndarray):
+def plant_deriv(
+    isa: float,
+    isb: float,
+    pa: float,
+    pb: float,
+    w: float,
+    ua: float,
+    ub: float,
+    tl: float,
+    P: np.ndarray,
+):
     """Right-hand side of the voltage-fed IM in the stationary frame (notes' equations).
 
     sigma Ls di_s/dt = -R_sigma i_s + (kr/tau_r) psi_r - j kr omega_e psi_r + u_s
@@ -177,14 +214,17 @@ def plant_rk4(S: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray) -> 
     x4 = S[S_OMEGA]
     a0, a1, a2, a3, a4 = plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P)
     w2 = x4 + h2 * a4
-    b0, b1, b2, b3, b4 = plant_deriv(x0 + h2 * a0, x1 + h2 * a1, x2 + h2 * a2, x3 + h2 * a3,
-                                     w2, ua, ub, tl, P)
+    b0, b1, b2, b3, b4 = plant_deriv(
+        x0 + h2 * a0, x1 + h2 * a1, x2 + h2 * a2, x3 + h2 * a3, w2, ua, ub, tl, P
+    )
     w3 = x4 + h2 * b4
-    c0, c1, c2, c3, c4 = plant_deriv(x0 + h2 * b0, x1 + h2 * b1, x2 + h2 * b2, x3 + h2 * b3,
-                                     w3, ua, ub, tl, P)
+    c0, c1, c2, c3, c4 = plant_deriv(
+        x0 + h2 * b0, x1 + h2 * b1, x2 + h2 * b2, x3 + h2 * b3, w3, ua, ub, tl, P
+    )
     w4 = x4 + h * c4
-    d0, d1, d2, d3, d4 = plant_deriv(x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3,
-                                     w4, ua, ub, tl, P)
+    d0, d1, d2, d3, d4 = plant_deriv(
+        x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3, w4, ua, ub, tl, P
+    )
     h6 = h / 6.0
     S[S_ISA] = x0 + h6 * (a0 + 2.0 * (b0 + c0) + d0)
     S[S_ISB] = x1 + h6 * (a1 + 2.0 * (b1 + c1) + d1)
@@ -195,8 +235,17 @@ def plant_rk4(S: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray) -> 
 
 
 @njit(cache=True)
-def plant_powers(isa: float, isb: float, pa: float, pb: float, w: float,
-                 ua: float, ub: float, tl: float, P: np.ndarray):
+def plant_powers(
+    isa: float,
+    isb: float,
+    pa: float,
+    pb: float,
+    w: float,
+    ua: float,
+    ub: float,
+    tl: float,
+    P: np.ndarray,
+):
     """Power terms [W] for the energy balance (amplitude-invariant: factor 1.5).
 
     Returns (p_in = 1.5 u.i_s, p_cu_s = 1.5 Rs |i_s|^2, p_cu_r = 1.5 Rr |i_r|^2,
@@ -206,8 +255,13 @@ def plant_powers(isa: float, isb: float, pa: float, pb: float, w: float,
     ira = (pa - P[P_LM] * isa) / P[P_LR]
     irb = (pb - P[P_LM] * isb) / P[P_LR]
     tf = friction_torque(w, P[P_B], P[P_TC], P[P_INV_WC])
-    return (1.5 * (ua * isa + ub * isb), 1.5 * P[P_RS] * (isa * isa + isb * isb),
-            1.5 * P[P_RR] * (ira * ira + irb * irb), tf * w, tl * w)
+    return (
+        1.5 * (ua * isa + ub * isb),
+        1.5 * P[P_RS] * (isa * isa + isb * isb),
+        1.5 * P[P_RR] * (ira * ira + irb * irb),
+        tf * w,
+        tl * w,
+    )
 
 
 @njit(cache=True)
@@ -219,14 +273,18 @@ def stored_energy(x: np.ndarray, P: np.ndarray):
     lm = P[P_LM]
     ira = (x[2] - lm * x[0]) / P[P_LR]
     irb = (x[3] - lm * x[1]) / P[P_LR]
-    wm = 0.75 * (P[P_LS] * (x[0] * x[0] + x[1] * x[1]) + 2.0 * lm * (x[0] * ira + x[1] * irb)
-                 + P[P_LR] * (ira * ira + irb * irb))
+    wm = 0.75 * (
+        P[P_LS] * (x[0] * x[0] + x[1] * x[1])
+        + 2.0 * lm * (x[0] * ira + x[1] * irb)
+        + P[P_LR] * (ira * ira + irb * irb)
+    )
     return wm, 0.5 * P[P_J] * x[4] * x[4]
 
 
 @njit(cache=True)
-def plant_rk4_energy(x: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray,
-                     e: np.ndarray) -> None:
+def plant_rk4_energy(
+    x: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray, e: np.ndarray
+) -> None:
     """RK4 step of the plant augmented with the energy integrals (diagnostics, tests).
 
     x[0:6] is advanced exactly as ``plant_rk4`` does (the augmented components do not feed
@@ -270,8 +328,9 @@ def _wrap(a: float) -> float:
 
 
 @njit(cache=True)
-def sample(S: np.ndarray, P: np.ndarray, n_ia: float, n_ib: float, n_w: float,
-           advance: bool) -> None:
+def sample(
+    S: np.ndarray, P: np.ndarray, n_ia: float, n_ib: float, n_w: float, advance: bool
+) -> None:
     """Sample the measurements at the current time and run the flux estimator.
 
     Encoder: count = floor(theta * (counts/(2 pi))), theta_meas = count * (2 pi/counts).
@@ -399,8 +458,9 @@ def current_control(S: np.ndarray, P: np.ndarray, isq_ref: float):
 
 
 @njit(cache=True)
-def step_full(S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float,
-              tl_cmd: float) -> None:
+def step_full(
+    S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float, tl_cmd: float
+) -> None:
     """One Ts step of the full model with vector control (k -> k+1)."""
     r = _next_noise_row(S, noise)
     ua, ub = current_control(S, P, isq_ref)
@@ -420,8 +480,9 @@ def step_full(S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float,
 
 
 @njit(cache=True)
-def step_voltage_kernel(S: np.ndarray, P: np.ndarray, noise: np.ndarray, ua: float, ub: float,
-                        tl_cmd: float) -> None:
+def step_voltage_kernel(
+    S: np.ndarray, P: np.ndarray, noise: np.ndarray, ua: float, ub: float, tl_cmd: float
+) -> None:
     """One Ts step of the bare full model with given stationary-frame voltages (no control)."""
     r = _next_noise_row(S, noise)
     S[S_UA] = ua
@@ -436,8 +497,9 @@ def step_voltage_kernel(S: np.ndarray, P: np.ndarray, noise: np.ndarray, ua: flo
 
 
 @njit(cache=True)
-def step_reduced(S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float,
-                 tl_cmd: float) -> None:
+def step_reduced(
+    S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float, tl_cmd: float
+) -> None:
     """One Ts step of the reduced model (ideal field orientation, k -> k+1).
 
     isq(t) = isq* + (isq_k - isq*) exp(-t/tau_i) exactly; the mechanics
@@ -486,8 +548,9 @@ def step_reduced(S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float
 
 
 @njit(cache=True)
-def step_model(S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float,
-               tl_cmd: float) -> None:
+def step_model(
+    S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float, tl_cmd: float
+) -> None:
     """One step of the configured model (P[P_MODEL]: 0 full, 1 reduced)."""
     if P[P_MODEL] == 0.0:
         step_full(S, P, noise, isq_ref, tl_cmd)
@@ -534,16 +597,26 @@ def write_out(S: np.ndarray, P: np.ndarray, out: np.ndarray) -> None:
 
 
 @njit(cache=True)
-def step_into_kernel(S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float,
-                     tl_cmd: float, out: np.ndarray) -> None:
+def step_into_kernel(
+    S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float, tl_cmd: float, out: np.ndarray
+) -> None:
     """Fast path: one step, then the published fields at the new time into ``out``."""
     step_model(S, P, noise, isq_ref, tl_cmd)
     write_out(S, P, out)
 
 
 @njit(cache=True)
-def run_batch(S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: np.ndarray,
-              tl: np.ndarray, out: np.ndarray, start: int, n: int, record: bool) -> None:
+def run_batch(
+    S: np.ndarray,
+    P: np.ndarray,
+    noise: np.ndarray,
+    isq_ref: np.ndarray,
+    tl: np.ndarray,
+    out: np.ndarray,
+    start: int,
+    n: int,
+    record: bool,
+) -> None:
     """Steps k = start .. start+n-1 with isq_ref[k], tl[k]; row k of ``out`` = state after step k.
 
     ``record=False`` skips the output (benchmarks); ``out`` may then be any 2-D array.
@@ -555,9 +628,17 @@ def run_batch(S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: np.ndarr
 
 
 @njit(cache=True)
-def run_voltage_batch(S: np.ndarray, P: np.ndarray, noise: np.ndarray, ua: np.ndarray,
-                      ub: np.ndarray, tl: np.ndarray, out: np.ndarray, start: int,
-                      n: int) -> None:
+def run_voltage_batch(
+    S: np.ndarray,
+    P: np.ndarray,
+    noise: np.ndarray,
+    ua: np.ndarray,
+    ub: np.ndarray,
+    tl: np.ndarray,
+    out: np.ndarray,
+    start: int,
+    n: int,
+) -> None:
     """Bare full model over given stationary voltages; row k of ``out`` = state after step k."""
     for k in range(start, start + n):
         step_voltage_kernel(S, P, noise, ua[k], ub[k], tl[k])
@@ -565,8 +646,9 @@ def run_voltage_batch(S: np.ndarray, P: np.ndarray, noise: np.ndarray, ua: np.nd
 
 
 @njit(cache=True)
-def reset_kernel(S: np.ndarray, P: np.ndarray, theta: float, omega: float, fluxed: bool,
-                 step_index: float) -> None:
+def reset_kernel(
+    S: np.ndarray, P: np.ndarray, theta: float, omega: float, fluxed: bool, step_index: float
+) -> None:
     """Set the initial state at time step_index*Ts (see ``DriveSim.reset``).
 
     fluxed (full model): rotor flux Lm isd_rated and stator current isd_rated aligned with

@@ -22,23 +22,24 @@ Units are SI throughout; dq quantities are amplitude-invariant peak values.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from importlib import resources
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import yaml
 
 __all__ = [
-    "ConfigError",
-    "MachineParams",
-    "ControlParams",
-    "SensorParams",
-    "DisturbanceParams",
-    "DriveConfig",
-    "default_config_path",
-    "load_config",
-    "config_from_dict",
+    'ConfigError',
+    'ControlParams',
+    'DisturbanceParams',
+    'DriveConfig',
+    'MachineParams',
+    'SensorParams',
+    'config_from_dict',
+    'default_config_path',
+    'load_config',
 ]
 
 
@@ -46,37 +47,39 @@ class ConfigError(ValueError):
     """Invalid drive configuration; the message names the source and the key path."""
 
 
-def _f(unit: str, lo: float | None = 0.0, strict: bool = True, hi: float | None = None,
-       doc: str = "") -> Any:
+def _f(
+    unit: str, lo: float | None = 0.0, strict: bool = True, hi: float | None = None, doc: str = ''
+) -> Any:
     """Float field metadata: bounds ``lo < x`` (strict) or ``lo <= x``, optional ``x <= hi``."""
-    return field(metadata={"kind": "float", "unit": unit, "lo": lo, "strict": strict,
-                           "hi": hi, "doc": doc})
+    return field(
+        metadata={'kind': 'float', 'unit': unit, 'lo': lo, 'strict': strict, 'hi': hi, 'doc': doc}
+    )
 
 
-def _i(unit: str, lo: int = 0, hi: int | None = None, doc: str = "") -> Any:
+def _i(unit: str, lo: int = 0, hi: int | None = None, doc: str = '') -> Any:
     """Integer field metadata: ``lo <= x <= hi``."""
-    return field(metadata={"kind": "int", "unit": unit, "lo": lo, "hi": hi, "doc": doc})
+    return field(metadata={'kind': 'int', 'unit': unit, 'lo': lo, 'hi': hi, 'doc': doc})
 
 
 @dataclass(frozen=True)
 class MachineParams:
     """Induction machine, shaft and inverter constants (SI, peak amplitude-invariant dq)."""
 
-    Rs: float = _f("ohm", doc="stator resistance")
-    Rr: float = _f("ohm", doc="rotor resistance referred to the stator")
-    Lls: float = _f("H", doc="stator leakage inductance")
-    Llr: float = _f("H", doc="rotor leakage inductance")
-    Lm: float = _f("H", doc="magnetising inductance")
-    pole_pairs: int = _i("-", lo=1, doc="pole pairs p")
-    J: float = _f("kg m^2", doc="total inertia, motor + load machine")
-    B: float = _f("N m s/rad", strict=False, doc="viscous friction")
-    coulomb_torque: float = _f("N m", strict=False, doc="Coulomb friction Tc (0 = off)")
-    coulomb_speed: float = _f("rad/s", doc="smoothing speed: Tc tanh(omega/omega_c)")
-    rated_torque: float = _f("N m")
-    rated_speed: float = _f("rad/s", doc="mechanical")
-    rated_flux_current: float = _f("A", doc="isd* (peak, amplitude-invariant)")
-    isq_max: float = _f("A", doc="clamp of the torque-current command")
-    Udc: float = _f("V", doc="DC-link voltage; voltage limit Udc/sqrt(3)")
+    Rs: float = _f('ohm', doc='stator resistance')
+    Rr: float = _f('ohm', doc='rotor resistance referred to the stator')
+    Lls: float = _f('H', doc='stator leakage inductance')
+    Llr: float = _f('H', doc='rotor leakage inductance')
+    Lm: float = _f('H', doc='magnetising inductance')
+    pole_pairs: int = _i('-', lo=1, doc='pole pairs p')
+    J: float = _f('kg m^2', doc='total inertia, motor + load machine')
+    B: float = _f('N m s/rad', strict=False, doc='viscous friction')
+    coulomb_torque: float = _f('N m', strict=False, doc='Coulomb friction Tc (0 = off)')
+    coulomb_speed: float = _f('rad/s', doc='smoothing speed: Tc tanh(omega/omega_c)')
+    rated_torque: float = _f('N m')
+    rated_speed: float = _f('rad/s', doc='mechanical')
+    rated_flux_current: float = _f('A', doc='isd* (peak, amplitude-invariant)')
+    isq_max: float = _f('A', doc='clamp of the torque-current command')
+    Udc: float = _f('V', doc='DC-link voltage; voltage limit Udc/sqrt(3)')
 
     # Derived constants (equations in docs/drive-model.md)
     @property
@@ -107,7 +110,7 @@ class MachineParams:
     @property
     def R_sigma(self) -> float:
         """Equivalent resistance R_sigma = Rs + kr^2 Rr [ohm]."""
-        return self.Rs + self.kr ** 2 * self.Rr
+        return self.Rs + self.kr**2 * self.Rr
 
     @property
     def rated_flux(self) -> float:
@@ -129,43 +132,44 @@ class MachineParams:
 class ControlParams:
     """Inner (vector) control and reduced-model constants."""
 
-    current_bandwidth: float = _f("rad/s", doc="PI current loop bandwidth wc")
-    reduced_current_lag: float = _f("s", strict=False, doc="reduced model: isq lag tau_i")
-    computation_delay_steps: int = _i("steps", lo=0, hi=1,
-                                      doc="0: voltage applied in the same step, 1: next step")
-    flux_floor: float = _f("Wb", doc="floor of psi_hat in the slip calculation")
+    current_bandwidth: float = _f('rad/s', doc='PI current loop bandwidth wc')
+    reduced_current_lag: float = _f('s', strict=False, doc='reduced model: isq lag tau_i')
+    computation_delay_steps: int = _i(
+        'steps', lo=0, hi=1, doc='0: voltage applied in the same step, 1: next step'
+    )
+    flux_floor: float = _f('Wb', doc='floor of psi_hat in the slip calculation')
 
 
 @dataclass(frozen=True)
 class SensorParams:
     """Measurement as the controller sees it."""
 
-    encoder_counts: int = _i("counts/rev", lo=1)
-    speed_filter_tau: float = _f("s", strict=False, doc="0 disables the filter")
-    current_noise_std: float = _f("A", strict=False)
-    speed_noise_std: float = _f("rad/s", strict=False)
+    encoder_counts: int = _i('counts/rev', lo=1)
+    speed_filter_tau: float = _f('s', strict=False, doc='0 disables the filter')
+    current_noise_std: float = _f('A', strict=False)
+    speed_noise_std: float = _f('rad/s', strict=False)
 
 
 @dataclass(frozen=True)
 class DisturbanceParams:
     """Load-side dynamics and disturbances."""
 
-    load_lag_tau: float = _f("s", strict=False, doc="load machine torque lag, 0 = ideal")
-    ripple_amplitude: float = _f("N m", strict=False)
-    ripple_harmonic: float = _f("per rev", strict=False)
-    ripple_phase: float = _f("rad", lo=None)
-    load_noise_std: float = _f("N m", strict=False, doc="stationary std of random load")
-    load_noise_tau: float = _f("s", strict=False, doc="correlation time, 0 = white")
+    load_lag_tau: float = _f('s', strict=False, doc='load machine torque lag, 0 = ideal')
+    ripple_amplitude: float = _f('N m', strict=False)
+    ripple_harmonic: float = _f('per rev', strict=False)
+    ripple_phase: float = _f('rad', lo=None)
+    load_noise_std: float = _f('N m', strict=False, doc='stationary std of random load')
+    load_noise_tau: float = _f('s', strict=False, doc='correlation time, 0 = white')
 
 
 _SECTIONS: dict[str, type] = {
-    "machine": MachineParams,
-    "control": ControlParams,
-    "sensors": SensorParams,
-    "disturbance": DisturbanceParams,
+    'machine': MachineParams,
+    'control': ControlParams,
+    'sensors': SensorParams,
+    'disturbance': DisturbanceParams,
 }
-_TOP_SCALARS = ("model", "Ts", "seed")
-_MODELS = ("full", "reduced")
+_TOP_SCALARS = ('model', 'Ts', 'seed')
+_MODELS = ('full', 'reduced')
 
 
 @dataclass(frozen=True)
@@ -184,16 +188,16 @@ class DriveConfig:
     control: ControlParams
     sensors: SensorParams
     disturbance: DisturbanceParams
-    source: str = field(default="<dict>", compare=False)
+    source: str = field(default='<dict>', compare=False)
 
     @property
     def Ts_ns(self) -> int:
         """Step length in integer nanoseconds."""
-        return int(round(self.Ts * 1e9))
+        return round(self.Ts * 1e9)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict in the YAML layout (round-trips through ``config_from_dict``)."""
-        out: dict[str, Any] = {"model": self.model, "Ts": self.Ts, "seed": self.seed}
+        out: dict[str, Any] = {'model': self.model, 'Ts': self.Ts, 'seed': self.seed}
         for name in _SECTIONS:
             sec = getattr(self, name)
             out[name] = {f.name: getattr(sec, f.name) for f in fields(sec)}
@@ -202,7 +206,7 @@ class DriveConfig:
 
 def default_config_path() -> Path:
     """Path of the packaged default machine file ``im_drive_sim/config/paper_750w.yaml``."""
-    return Path(str(resources.files("im_drive_sim").joinpath("config", "paper_750w.yaml")))
+    return Path(str(resources.files('im_drive_sim').joinpath('config', 'paper_750w.yaml')))
 
 
 def _is_number(v: Any) -> bool:
@@ -210,99 +214,108 @@ def _is_number(v: Any) -> bool:
 
 
 def _check_float(src: str, key: str, v: Any, meta: Mapping[str, Any]) -> float:
-    lo, strict, hi = meta["lo"], meta["strict"], meta["hi"]
+    lo, strict, hi = meta['lo'], meta['strict'], meta['hi']
     if lo is None:
-        req = "a finite number"
+        req = 'a finite number'
     else:
-        req = f"a finite number {'>' if strict else '>='} {lo:g}"
+        req = f'a finite number {">" if strict else ">="} {lo:g}'
     if hi is not None:
-        req += f" and <= {hi:g}"
+        req += f' and <= {hi:g}'
     ok = _is_number(v) and math.isfinite(float(v))
     if ok and lo is not None:
         ok = float(v) > lo if strict else float(v) >= lo
     if ok and hi is not None:
         ok = float(v) <= hi
     if not ok:
-        raise ConfigError(f"{src}: {key} must be {req}, got {v!r}")
+        raise ConfigError(f'{src}: {key} must be {req}, got {v!r}')
     return float(v)
 
 
 def _check_int(src: str, key: str, v: Any, meta: Mapping[str, Any]) -> int:
-    lo, hi = meta["lo"], meta["hi"]
-    req = f"an integer >= {lo}" + (f" and <= {hi}" if hi is not None else "")
-    if not (isinstance(v, int) and not isinstance(v, bool)) or v < lo or (hi is not None and v > hi):
-        raise ConfigError(f"{src}: {key} must be {req}, got {v!r}")
+    lo, hi = meta['lo'], meta['hi']
+    req = f'an integer >= {lo}' + (f' and <= {hi}' if hi is not None else '')
+    if (
+        not (isinstance(v, int) and not isinstance(v, bool))
+        or v < lo
+        or (hi is not None and v > hi)
+    ):
+        raise ConfigError(f'{src}: {key} must be {req}, got {v!r}')
     return int(v)
 
 
 def _apply_overrides(src: str, data: dict[str, Any], overrides: Mapping[str, Any]) -> None:
     """Merge nested or dotted overrides into ``data`` in place (keys must exist)."""
     if not isinstance(overrides, Mapping):
-        raise ConfigError(f"{src}: overrides must be a mapping, got {type(overrides).__name__}")
+        raise ConfigError(f'{src}: overrides must be a mapping, got {type(overrides).__name__}')
     for k, v in overrides.items():
         if not isinstance(k, str):
-            raise ConfigError(f"{src}: override key {k!r} is not a string")
-        parts = k.split(".")
+            raise ConfigError(f'{src}: override key {k!r} is not a string')
+        parts = k.split('.')
         if len(parts) == 1 and k in _SECTIONS and isinstance(v, Mapping):
             for sk, sv in v.items():
-                _apply_overrides(src, data, {f"{k}.{sk}": sv})
+                _apply_overrides(src, data, {f'{k}.{sk}': sv})
             continue
         if len(parts) == 1 and k in _TOP_SCALARS:
             data[k] = v
-        elif len(parts) == 2 and parts[0] in _SECTIONS and parts[1] in {
-                f.name for f in fields(_SECTIONS[parts[0]])}:
+        elif (
+            len(parts) == 2
+            and parts[0] in _SECTIONS
+            and parts[1] in {f.name for f in fields(_SECTIONS[parts[0]])}
+        ):
             sec = data.setdefault(parts[0], {})
             if not isinstance(sec, dict):
-                raise ConfigError(f"{src}: {parts[0]} must be a mapping")
+                raise ConfigError(f'{src}: {parts[0]} must be a mapping')
             sec[parts[1]] = v
         else:
-            raise ConfigError(f"{src}: unknown override key {k}")
+            raise ConfigError(f'{src}: unknown override key {k}')
 
 
-def config_from_dict(data: Any, source: str = "<dict>",
-                     overrides: Mapping[str, Any] | None = None) -> DriveConfig:
+def config_from_dict(
+    data: Any, source: str = '<dict>', overrides: Mapping[str, Any] | None = None
+) -> DriveConfig:
     """Validate a complete nested mapping (YAML layout) and build a ``DriveConfig``.
 
     Raises ``ConfigError("<source>: <key path> ...")`` on the first problem.
     """
     src = source
     if not isinstance(data, Mapping):
-        raise ConfigError(f"{src}: top level must be a mapping of sections, got "
-                          f"{type(data).__name__}")
+        raise ConfigError(
+            f'{src}: top level must be a mapping of sections, got {type(data).__name__}'
+        )
     data = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in data.items()}
     if overrides:
         _apply_overrides(src, data, overrides)
     allowed = set(_TOP_SCALARS) | set(_SECTIONS)
     for k in data:
         if k not in allowed:
-            raise ConfigError(f"{src}: unknown key {k} (allowed: {', '.join(sorted(allowed))})")
+            raise ConfigError(f'{src}: unknown key {k} (allowed: {", ".join(sorted(allowed))})')
     for k in list(_TOP_SCALARS) + list(_SECTIONS):
         if k not in data:
-            raise ConfigError(f"{src}: missing key {k}")
+            raise ConfigError(f'{src}: missing key {k}')
 
-    model = data["model"]
+    model = data['model']
     if model not in _MODELS:
-        raise ConfigError(f"{src}: model must be one of {', '.join(_MODELS)}, got {model!r}")
-    Ts = _check_float(src, "Ts", data["Ts"], {"lo": 0.0, "strict": True, "hi": 1e-2})
+        raise ConfigError(f'{src}: model must be one of {", ".join(_MODELS)}, got {model!r}')
+    Ts = _check_float(src, 'Ts', data['Ts'], {'lo': 0.0, 'strict': True, 'hi': 1e-2})
     if abs(Ts * 1e9 - round(Ts * 1e9)) > 1e-6 * max(1.0, Ts * 1e9):
-        raise ConfigError(f"{src}: Ts must be an integer number of nanoseconds, got {Ts!r}")
-    seed = _check_int(src, "seed", data["seed"], {"lo": 0, "hi": None})
+        raise ConfigError(f'{src}: Ts must be an integer number of nanoseconds, got {Ts!r}')
+    seed = _check_int(src, 'seed', data['seed'], {'lo': 0, 'hi': None})
 
     built: dict[str, Any] = {}
     for sname, cls in _SECTIONS.items():
         sec = data[sname]
         if not isinstance(sec, Mapping):
-            raise ConfigError(f"{src}: {sname} must be a mapping, got {sec!r}")
+            raise ConfigError(f'{src}: {sname} must be a mapping, got {sec!r}')
         names = [f.name for f in fields(cls)]
         for k in sec:
             if k not in names:
-                raise ConfigError(f"{src}: unknown key {sname}.{k}")
+                raise ConfigError(f'{src}: unknown key {sname}.{k}')
         kwargs: dict[str, Any] = {}
         for f in fields(cls):
-            key = f"{sname}.{f.name}"
+            key = f'{sname}.{f.name}'
             if f.name not in sec:
-                raise ConfigError(f"{src}: missing key {key}")
-            check = _check_float if f.metadata["kind"] == "float" else _check_int
+                raise ConfigError(f'{src}: missing key {key}')
+            check = _check_float if f.metadata['kind'] == 'float' else _check_int
             kwargs[f.name] = check(src, key, sec[f.name], f.metadata)
         built[sname] = cls(**kwargs)
 
@@ -322,32 +335,41 @@ def _check_consistency(src: str, cfg: DriveConfig) -> None:
     # Holding rated flux at standstill needs u = Rs isd_rated inside the voltage limit.
     if m.Rs * m.rated_flux_current >= m.u_max:
         raise ConfigError(
-            f"{src}: machine.Udc too low: voltage limit Udc/sqrt(3) = {m.u_max:.4g} V cannot "
-            f"hold rated flux at standstill (Rs*rated_flux_current = "
-            f"{m.Rs * m.rated_flux_current:.4g} V)")
+            f'{src}: machine.Udc too low: voltage limit Udc/sqrt(3) = {m.u_max:.4g} V cannot '
+            f'hold rated flux at standstill (Rs*rated_flux_current = '
+            f'{m.Rs * m.rated_flux_current:.4g} V)'
+        )
     # RK4 with one sub-step: keep |lambda| Ts well inside the stability region (notes: 0.06).
     lam = m.R_sigma / (m.sigma * m.Ls)
     if lam * cfg.Ts > 1.0:
-        raise ConfigError(f"{src}: Ts = {cfg.Ts:g} s too large for the electrical dynamics "
-                          f"(R_sigma/(sigma Ls) * Ts = {lam * cfg.Ts:.3g} > 1)")
+        raise ConfigError(
+            f'{src}: Ts = {cfg.Ts:g} s too large for the electrical dynamics '
+            f'(R_sigma/(sigma Ls) * Ts = {lam * cfg.Ts:.3g} > 1)'
+        )
     if c.current_bandwidth * cfg.Ts > 1.0:
-        raise ConfigError(f"{src}: control.current_bandwidth too high for Ts: wc*Ts = "
-                          f"{c.current_bandwidth * cfg.Ts:.3g} > 1")
+        raise ConfigError(
+            f'{src}: control.current_bandwidth too high for Ts: wc*Ts = '
+            f'{c.current_bandwidth * cfg.Ts:.3g} > 1'
+        )
     # The clamp is the drive's hard current limit: a typo (700 A for this 3.1 A motor)
     # would let the controller ask for 100x rated torque. Rated torque current Tn/Kt.
     isq_rated = m.rated_torque / m.Kt
     if m.isq_max > ISQ_MAX_PER_RATED * isq_rated:
         raise ConfigError(
-            f"{src}: machine.isq_max {m.isq_max:g} A is implausible: {m.isq_max / isq_rated:.3g}"
-            f"x the rated torque current {isq_rated:.3g} A (rated_torque/Kt); at most "
-            f"{ISQ_MAX_PER_RATED:g}x ({ISQ_MAX_PER_RATED * isq_rated:.3g} A) is accepted")
+            f'{src}: machine.isq_max {m.isq_max:g} A is implausible: {m.isq_max / isq_rated:.3g}'
+            f'x the rated torque current {isq_rated:.3g} A (rated_torque/Kt); at most '
+            f'{ISQ_MAX_PER_RATED:g}x ({ISQ_MAX_PER_RATED * isq_rated:.3g} A) is accepted'
+        )
     if c.flux_floor >= m.rated_flux:
-        raise ConfigError(f"{src}: control.flux_floor {c.flux_floor:g} Wb must be below the "
-                          f"rated flux {m.rated_flux:.4g} Wb")
+        raise ConfigError(
+            f'{src}: control.flux_floor {c.flux_floor:g} Wb must be below the '
+            f'rated flux {m.rated_flux:.4g} Wb'
+        )
 
 
-def load_config(path: str | Path | None = None,
-                overrides: Mapping[str, Any] | None = None) -> DriveConfig:
+def load_config(
+    path: str | Path | None = None, overrides: Mapping[str, Any] | None = None
+) -> DriveConfig:
     """Load and validate a drive configuration.
 
     path: YAML file; ``None`` loads the packaged default (``default_config_path()``).
@@ -358,21 +380,21 @@ def load_config(path: str | Path | None = None,
     p = default_config_path() if path is None else Path(path)
     name = p.name
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding='utf-8')
     except OSError as exc:
-        raise ConfigError(f"{name}: cannot read {p}: {exc.strerror or exc}") from exc
+        raise ConfigError(f'{name}: cannot read {p}: {exc.strerror or exc}') from exc
     except UnicodeDecodeError:
-        raise ConfigError(f"{name}: not a text (UTF-8) file") from None
+        raise ConfigError(f'{name}: not a text (UTF-8) file') from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        where = ""
-        mark = getattr(exc, "problem_mark", None)
+        where = ''
+        mark = getattr(exc, 'problem_mark', None)
         if mark is not None:
-            where = f" at line {mark.line + 1}, column {mark.column + 1}"
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError(f"{name}: YAML syntax error{where}: {problem}") from exc
+            where = f' at line {mark.line + 1}, column {mark.column + 1}'
+        problem = getattr(exc, 'problem', None) or str(exc)
+        raise ConfigError(f'{name}: YAML syntax error{where}: {problem}') from exc
     if data is None:
-        raise ConfigError(f"{name}: file is empty")
-    src = name if not overrides else f"{name} (with overrides)"
+        raise ConfigError(f'{name}: file is empty')
+    src = name if not overrides else f'{name} (with overrides)'
     return config_from_dict(data, source=src, overrides=overrides)

@@ -13,20 +13,24 @@
   fact (a message layout, a limit read from a file) is refused at start unless it equals
   that fact; :class:`LenientDoubles` (int for double at start, undeclared names named).
 """
+
 from __future__ import annotations
 
 import signal
 import subprocess
 import sys
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import rclpy
-from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
-                              ParameterNotDeclaredException)
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterNotDeclaredException,
+)
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.parameter import Parameter
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
 RCLError = _rclpy.RCLError
@@ -59,7 +63,8 @@ def publish_retry(pub, msg, context, timeout: float = 30.0) -> int:
             if time.monotonic() > deadline:
                 raise PublishStalled(
                     f'{pub.topic_name}: a reliable reader took no message for {timeout:.0f} s '
-                    '(recorder stalled?); refusing to drop data') from None
+                    '(recorder stalled?); refusing to drop data'
+                ) from None
 
 
 class LenientDoubles:
@@ -91,8 +96,12 @@ class LenientDoubles:
     def declare_parameter(self, name, value=None, descriptor=None, ignore_override=False):
         over = getattr(self, '_parameter_overrides', {})
         p = over.get(name)
-        if isinstance(value, float) and not ignore_override and p is not None and \
-                p.type_ == Parameter.Type.INTEGER:
+        if (
+            isinstance(value, float)
+            and not ignore_override
+            and p is not None
+            and p.type_ == Parameter.Type.INTEGER
+        ):
             over[name] = Parameter(name, Parameter.Type.DOUBLE, float(p.value))
         return super().declare_parameter(name, value, descriptor, ignore_override)
 
@@ -101,8 +110,9 @@ class ParameterOverrideError(ValueError):
     """A start-up override the node cannot honour: one line, exit code 2."""
 
 
-def parameter_hygiene(node, facts: dict[str, object] | None = None, *,
-                      warn_unknown: bool = True) -> list[str]:
+def parameter_hygiene(
+    node, facts: dict[str, object] | None = None, *, warn_unknown: bool = True
+) -> list[str]:
     """Call at the end of a node's ``__init__``, once every parameter is declared.
 
     ``facts``: read-only parameters that report what the node enforces or publishes
@@ -117,7 +127,8 @@ def parameter_hygiene(node, facts: dict[str, object] | None = None, *,
         if _as_plain(given) != _as_plain(true):
             raise ParameterOverrideError(
                 f'parameter {name!r} is read-only and reports what the node uses '
-                f'({_as_plain(true)!r}); it cannot be set (got {_as_plain(given)!r})')
+                f'({_as_plain(true)!r}); it cannot be set (got {_as_plain(given)!r})'
+            )
     unknown = unknown_overrides(node)
     if warn_unknown:
         warn_unknown_overrides(node, unknown)
@@ -136,19 +147,24 @@ def warn_unknown_overrides(node, names: list[str]) -> None:
     if names:
         node.get_logger().warn(
             f'ignored override(s) of undeclared parameter(s) {", ".join(names)}: no such '
-            f'parameter on {node.get_fully_qualified_name()} (typo?)')
+            f'parameter on {node.get_fully_qualified_name()} (typo?)'
+        )
 
 
 def _as_plain(v: object) -> object:
     """Parameter values compared as plain Python (arrays arrive as lists or arrays)."""
     if isinstance(v, (list, tuple)) or hasattr(v, 'tolist'):
-        return [x for x in (v.tolist() if hasattr(v, 'tolist') else v)]
+        return list(v.tolist() if hasattr(v, 'tolist') else v)
     return v
 
 
-def run_stepped_node(argv: list[str], make_node: Callable[[], object],
-                     config_errors: tuple[type[BaseException], ...], prog: str,
-                     on_exit: Callable[[object], None] | None = None) -> int:
+def run_stepped_node(
+    argv: list[str],
+    make_node: Callable[[], object],
+    config_errors: tuple[type[BaseException], ...],
+    prog: str,
+    on_exit: Callable[[object], None] | None = None,
+) -> int:
     """Create the node with ``make_node()``, run ``node.run(executor)`` until it returns
     or a signal sets ``node.stop_requested``; returns the process exit code.
 
@@ -165,6 +181,7 @@ def run_stepped_node(argv: list[str], make_node: Callable[[], object],
         if node is None:
             raise KeyboardInterrupt  # still starting: nothing to stop cleanly yet
         node.stop_requested = True
+
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
     try:
@@ -173,8 +190,12 @@ def run_stepped_node(argv: list[str], make_node: Callable[[], object],
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
         node.run(executor)
-    except (*config_errors, ParameterOverrideError, InvalidParameterValueException,
-            InvalidParameterTypeException) as exc:
+    except (
+        *config_errors,
+        ParameterOverrideError,
+        InvalidParameterValueException,
+        InvalidParameterTypeException,
+    ) as exc:
         # A bad file or a bad --ros-args -p value at start: one line, nothing started.
         print(f'error: {prog}: {exc}', file=sys.stderr)
         return 2

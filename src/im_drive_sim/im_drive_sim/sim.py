@@ -22,8 +22,14 @@ import numpy as np
 from . import kernels as K
 from .params import DriveConfig, load_config
 
-__all__ = ["DriveSim", "STATE_FIELDS", "RUN_FIELDS", "make_param_array", "NOISE_BLOCK",
-           "start_position"]
+__all__ = [
+    'NOISE_BLOCK',
+    'RUN_FIELDS',
+    'STATE_FIELDS',
+    'DriveSim',
+    'make_param_array',
+    'start_position',
+]
 
 STATE_FIELDS: tuple[str, ...] = K.STATE_FIELDS
 """Fields written by ``step_into``/``read_into``, in order (units in docs/drive-model.md)."""
@@ -75,7 +81,7 @@ def make_param_array(cfg: DriveConfig) -> np.ndarray:
     P[K.P_ENC_RES_TS] = (2.0 * math.pi / s.encoder_counts) / Ts
     P[K.P_SPD_A] = _lag(Ts, s.speed_filter_tau)
     P[K.P_DELAY] = float(c.computation_delay_steps)
-    P[K.P_MODEL] = 0.0 if cfg.model == "full" else 1.0
+    P[K.P_MODEL] = 0.0 if cfg.model == 'full' else 1.0
     P[K.P_KT] = m.Kt
     P[K.P_PSI_RATED] = m.rated_flux
     tau_i = c.reduced_current_lag
@@ -121,18 +127,24 @@ class DriveSim:
 
     def __init__(self, config: DriveConfig | None = None, seed: int | None = None) -> None:
         self.config: DriveConfig = load_config() if config is None else config
-        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
-                                 or seed < 0):
-            raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+        if seed is not None and (
+            isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0
+        ):
+            raise ValueError(f'seed must be an integer >= 0, got {seed!r}')
         self.seed: int = int(self.config.seed if seed is None else seed)
         self.P: np.ndarray = make_param_array(self.config)
         self.S: np.ndarray = np.zeros(K.N_STATE)
         self._noise: np.ndarray = np.zeros((NOISE_BLOCK, K.NOISE_COLS))
         s, d = self.config.sensors, self.config.disturbance
         ln_a = self.P[K.P_LN_A]
-        self._noise_scale = np.array([s.current_noise_std, s.current_noise_std,
-                                      s.speed_noise_std,
-                                      d.load_noise_std * math.sqrt(1.0 - ln_a * ln_a)])
+        self._noise_scale = np.array(
+            [
+                s.current_noise_std,
+                s.current_noise_std,
+                s.speed_noise_std,
+                d.load_noise_std * math.sqrt(1.0 - ln_a * ln_a),
+            ]
+        )
         self._noise_on: bool = bool(np.any(self._noise_scale > 0.0))
         self._rng: np.random.Generator | None = None
         self._left: int = NOISE_BLOCK
@@ -150,8 +162,13 @@ class DriveSim:
         self._left = NOISE_BLOCK
 
     # ------------------------------------------------------------------ control
-    def reset(self, theta: float | None = None, omega: float = 0.0, fluxed: bool = True,
-              step_index: int = 0) -> None:
+    def reset(
+        self,
+        theta: float | None = None,
+        omega: float = 0.0,
+        fluxed: bool = True,
+        step_index: int = 0,
+    ) -> None:
         """Set the state at time ``step_index * Ts``.
 
         theta [rad, mechanical, multi-turn]; None: :func:`start_position` (half an encoder
@@ -163,15 +180,14 @@ class DriveSim:
         """
         if theta is None:
             theta = start_position(self.config)
-        for name, v in (("theta", theta), ("omega", omega)):
+        for name, v in (('theta', theta), ('omega', omega)):
             if not math.isfinite(v):
-                raise ValueError(f"{name} must be finite, got {v!r}")
+                raise ValueError(f'{name} must be finite, got {v!r}')
         if isinstance(step_index, bool) or int(step_index) != step_index or step_index < 0:
-            raise ValueError(f"step_index must be an integer >= 0, got {step_index!r}")
+            raise ValueError(f'step_index must be an integer >= 0, got {step_index!r}')
         self._rng = np.random.Generator(np.random.PCG64(self.seed))
         self._refill()
-        K.reset_kernel(self.S, self.P, float(theta), float(omega), bool(fluxed),
-                       float(step_index))
+        K.reset_kernel(self.S, self.P, float(theta), float(omega), bool(fluxed), float(step_index))
 
     def _consume(self) -> None:
         self._left -= 1
@@ -186,7 +202,7 @@ class DriveSim:
         load_torque: load-machine torque command [N m] (opposes positive speed).
         """
         if not (math.isfinite(isq_ref) and math.isfinite(load_torque)):
-            raise ValueError(f"non-finite input: isq_ref={isq_ref!r}, load_torque={load_torque!r}")
+            raise ValueError(f'non-finite input: isq_ref={isq_ref!r}, load_torque={load_torque!r}')
         K.step_model(self.S, self.P, self._noise, float(isq_ref), float(load_torque))
         self._consume()
 
@@ -197,7 +213,7 @@ class DriveSim:
         also fills the extra fields).  ``out`` describes time (k+1)*Ts after the step.
         """
         if not (math.isfinite(isq_ref) and math.isfinite(load_torque)):
-            raise ValueError(f"non-finite input: isq_ref={isq_ref!r}, load_torque={load_torque!r}")
+            raise ValueError(f'non-finite input: isq_ref={isq_ref!r}, load_torque={load_torque!r}')
         K.step_into_kernel(self.S, self.P, self._noise, float(isq_ref), float(load_torque), out)
         self._consume()
 
@@ -211,12 +227,13 @@ class DriveSim:
         u_alpha, u_beta: [V] peak amplitude-invariant, held over the step (ZOH).
         Measurements and the flux estimator still run.  Full model only.
         """
-        if self.config.model != "full":
-            raise RuntimeError("step_voltage needs model: full")
+        if self.config.model != 'full':
+            raise RuntimeError('step_voltage needs model: full')
         if not (math.isfinite(u_alpha) and math.isfinite(u_beta) and math.isfinite(load_torque)):
-            raise ValueError("non-finite input to step_voltage")
-        K.step_voltage_kernel(self.S, self.P, self._noise, float(u_alpha), float(u_beta),
-                              float(load_torque))
+            raise ValueError('non-finite input to step_voltage')
+        K.step_voltage_kernel(
+            self.S, self.P, self._noise, float(u_alpha), float(u_beta), float(load_torque)
+        )
         self._consume()
 
     def _batch(self, n: int, call: Any) -> None:
@@ -240,28 +257,34 @@ class DriveSim:
         tl = np.asarray(load_torque, dtype=np.float64)
         tl = np.ascontiguousarray(np.broadcast_to(tl, isq.shape) if tl.ndim == 0 else tl.ravel())
         if isq.shape != tl.shape:
-            raise ValueError(f"isq_ref and load_torque lengths differ: {isq.shape} vs {tl.shape}")
+            raise ValueError(f'isq_ref and load_torque lengths differ: {isq.shape} vs {tl.shape}')
         if not (np.all(np.isfinite(isq)) and np.all(np.isfinite(tl))):
-            raise ValueError("non-finite values in run inputs")
+            raise ValueError('non-finite values in run inputs')
         out = np.empty((isq.shape[0], K.N_RUN_FIELDS))
-        self._batch(isq.shape[0], lambda s0, c: K.run_batch(
-            self.S, self.P, self._noise, isq, tl, out, s0, c, True))
+        self._batch(
+            isq.shape[0],
+            lambda s0, c: K.run_batch(self.S, self.P, self._noise, isq, tl, out, s0, c, True),
+        )
         return {name: out[:, j] for j, name in enumerate(RUN_FIELDS)}
 
-    def run_voltage(self, u_alpha: np.ndarray, u_beta: np.ndarray,
-                    load_torque: np.ndarray) -> dict[str, np.ndarray]:
+    def run_voltage(
+        self, u_alpha: np.ndarray, u_beta: np.ndarray, load_torque: np.ndarray
+    ) -> dict[str, np.ndarray]:
         """Batch version of ``step_voltage`` (bare full model); same output as ``run``."""
-        if self.config.model != "full":
-            raise RuntimeError("run_voltage needs model: full")
+        if self.config.model != 'full':
+            raise RuntimeError('run_voltage needs model: full')
         ua = np.ascontiguousarray(np.asarray(u_alpha, dtype=np.float64).ravel())
         ub = np.ascontiguousarray(np.asarray(u_beta, dtype=np.float64).ravel())
-        tl = np.ascontiguousarray(np.broadcast_to(np.asarray(load_torque, dtype=np.float64),
-                                                  ua.shape))
+        tl = np.ascontiguousarray(
+            np.broadcast_to(np.asarray(load_torque, dtype=np.float64), ua.shape)
+        )
         if ub.shape != ua.shape:
-            raise ValueError("u_alpha and u_beta lengths differ")
+            raise ValueError('u_alpha and u_beta lengths differ')
         out = np.empty((ua.shape[0], K.N_RUN_FIELDS))
-        self._batch(ua.shape[0], lambda s0, c: K.run_voltage_batch(
-            self.S, self.P, self._noise, ua, ub, tl, out, s0, c))
+        self._batch(
+            ua.shape[0],
+            lambda s0, c: K.run_voltage_batch(self.S, self.P, self._noise, ua, ub, tl, out, s0, c),
+        )
         return {name: out[:, j] for j, name in enumerate(RUN_FIELDS)}
 
     # ------------------------------------------------------------------ state

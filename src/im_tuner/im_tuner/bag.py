@@ -5,6 +5,7 @@ A rosbag2 bag is a directory holding ``metadata.yaml`` and the storage files (he
 the MCAP tools need only the ``.mcap``; the ``rosbags`` library and ``ros2 bag`` read the
 directory. No rclpy here.
 """
+
 from __future__ import annotations
 
 import os
@@ -33,8 +34,11 @@ def prepare_bag_dir(out: Path) -> Path:
         if not out.is_dir():
             raise BagError(f'--out {out}: exists and is not a directory')
         if any(out.iterdir()):
-            what = 'a bag' if (out / 'metadata.yaml').exists() or any(out.glob('*.mcap')) \
+            what = (
+                'a bag'
+                if (out / 'metadata.yaml').exists() or any(out.glob('*.mcap'))
                 else 'not empty'
+            )
             raise BagError(f'--out {out}: already exists ({what}); choose a new directory')
         if not os.access(out, os.W_OK | os.X_OK):
             raise BagError(f'--out {out}: directory is not writable')
@@ -55,18 +59,34 @@ def storage_file_name(out: Path) -> str:
     return f'{Path(out).name}_0.mcap'
 
 
-def qos_to_dict(history: str, depth: int, reliability: str, durability: str,
-                deadline_ns: int = 0, lifespan_ns: int = 0, liveliness: str = 'automatic',
-                lease_ns: int = 0) -> dict:
+def qos_to_dict(
+    history: str,
+    depth: int,
+    reliability: str,
+    durability: str,
+    deadline_ns: int = 0,
+    lifespan_ns: int = 0,
+    liveliness: str = 'automatic',
+    lease_ns: int = 0,
+) -> dict:
     """One offered QoS profile in rosbag2's version-9 form (lower-case enum names)."""
+
     def dur(ns: int) -> dict:
         if ns <= 0 or ns >= 9223372036854775807:
             return dict(_INFINITE)
         return {'sec': ns // 1_000_000_000, 'nsec': ns % 1_000_000_000}
-    return {'history': history, 'depth': int(depth), 'reliability': reliability,
-            'durability': durability, 'deadline': dur(deadline_ns), 'lifespan': dur(lifespan_ns),
-            'liveliness': liveliness, 'liveliness_lease_duration': dur(lease_ns),
-            'avoid_ros_namespace_conventions': False}
+
+    return {
+        'history': history,
+        'depth': int(depth),
+        'reliability': reliability,
+        'durability': durability,
+        'deadline': dur(deadline_ns),
+        'lifespan': dur(lifespan_ns),
+        'liveliness': liveliness,
+        'liveliness_lease_duration': dur(lease_ns),
+        'avoid_ros_namespace_conventions': False,
+    }
 
 
 def qos_yaml(profiles: list[dict]) -> str:
@@ -85,34 +105,53 @@ class TopicRecord:
     type_description_hash: str = ''
 
 
-def bag_metadata(files: list[tuple[str, int, int, int]], topics: list[TopicRecord],
-                 custom_data: dict[str, str] | None = None) -> dict:
+def bag_metadata(
+    files: list[tuple[str, int, int, int]],
+    topics: list[TopicRecord],
+    custom_data: dict[str, str] | None = None,
+) -> dict:
     """The ``metadata.yaml`` content. ``files``: (relative path, start ns, end ns, count)."""
     starts = [s for _, s, _, n in files if n]
     ends = [e for _, _, e, n in files if n]
     t0 = min(starts) if starts else 0
     t1 = max(ends) if ends else 0
     total = sum(n for *_, n in files)
-    return {'rosbag2_bagfile_information': {
-        'version': ROSBAG2_VERSION,
-        'storage_identifier': 'mcap',
-        'duration': {'nanoseconds': t1 - t0},
-        'starting_time': {'nanoseconds_since_epoch': t0},
-        'message_count': total,
-        'topics_with_message_count': [
-            {'topic_metadata': {'name': t.name, 'type': t.type, 'serialization_format': 'cdr',
-                                'offered_qos_profiles': t.offered_qos_profiles,
-                                'type_description_hash': t.type_description_hash},
-             'message_count': t.message_count} for t in topics],
-        'compression_format': '',
-        'compression_mode': '',
-        'relative_file_paths': [p for p, *_ in files],
-        'files': [{'path': p, 'starting_time': {'nanoseconds_since_epoch': s},
-                   'duration': {'nanoseconds': max(0, e - s)}, 'message_count': n}
-                  for p, s, e, n in files],
-        'custom_data': {str(k): str(v) for k, v in (custom_data or {}).items()},
-        'ros_distro': ROS_DISTRO,
-    }}
+    return {
+        'rosbag2_bagfile_information': {
+            'version': ROSBAG2_VERSION,
+            'storage_identifier': 'mcap',
+            'duration': {'nanoseconds': t1 - t0},
+            'starting_time': {'nanoseconds_since_epoch': t0},
+            'message_count': total,
+            'topics_with_message_count': [
+                {
+                    'topic_metadata': {
+                        'name': t.name,
+                        'type': t.type,
+                        'serialization_format': 'cdr',
+                        'offered_qos_profiles': t.offered_qos_profiles,
+                        'type_description_hash': t.type_description_hash,
+                    },
+                    'message_count': t.message_count,
+                }
+                for t in topics
+            ],
+            'compression_format': '',
+            'compression_mode': '',
+            'relative_file_paths': [p for p, *_ in files],
+            'files': [
+                {
+                    'path': p,
+                    'starting_time': {'nanoseconds_since_epoch': s},
+                    'duration': {'nanoseconds': max(0, e - s)},
+                    'message_count': n,
+                }
+                for p, s, e, n in files
+            ],
+            'custom_data': {str(k): str(v) for k, v in (custom_data or {}).items()},
+            'ros_distro': ROS_DISTRO,
+        }
+    }
 
 
 def write_metadata_yaml(out: Path, metadata: dict) -> None:

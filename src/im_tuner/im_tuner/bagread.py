@@ -13,6 +13,7 @@ No rclpy and no ROS message packages: the two CDR layouts needed are parsed here
 (``std_msgs/Float64MultiArray`` in the project's layout, with a general fallback, and
 ``diagnostic_msgs/DiagnosticArray``).
 """
+
 from __future__ import annotations
 
 import json
@@ -27,15 +28,20 @@ from numba import njit
 
 from .bag import read_metadata_yaml
 from .mcap_repair import _decompress, _parse_def
-from .mcap_writer import MAGIC, OP_CHANNEL, OP_CHUNK, OP_DATA_END, OP_FOOTER, OP_MESSAGE, \
-    OP_SCHEMA
+from .mcap_writer import MAGIC, OP_CHANNEL, OP_CHUNK, OP_DATA_END, OP_FOOTER, OP_MESSAGE, OP_SCHEMA
 
-__all__ = ['BagReadError', 'TopicStats', 'BagData', 'read_bag', 'parse_diagnostic_array',
-           'parse_float64_multiarray']
+__all__ = [
+    'BagData',
+    'BagReadError',
+    'TopicStats',
+    'parse_diagnostic_array',
+    'parse_float64_multiarray',
+    'read_bag',
+]
 
-_MSG_HEAD = 22          # channel id u16, sequence u32, log time u64, publish time u64
-_F64_HEAD = b'\x00\x01\x00\x00'   # CDR little-endian encapsulation
-_F64_DATA = 20          # first double of a Float64MultiArray with an empty layout
+_MSG_HEAD = 22  # channel id u16, sequence u32, log time u64, publish time u64
+_F64_HEAD = b'\x00\x01\x00\x00'  # CDR little-endian encapsulation
+_F64_DATA = 20  # first double of a Float64MultiArray with an empty layout
 
 
 class BagReadError(Exception):
@@ -49,7 +55,7 @@ class TopicStats:
     name: str
     type: str
     count: int = 0
-    first_ns: int = 0           #: log time of the first message [ns since the epoch]
+    first_ns: int = 0  #: log time of the first message [ns since the epoch]
     last_ns: int = 0
 
     @property
@@ -64,11 +70,11 @@ class TopicStats:
 class BagData:
     """What :func:`read_bag` found."""
 
-    path: Path                                   #: the bag directory
-    file: Path                                   #: its .mcap file
-    complete: bool = False                       #: data section read to DataEnd
-    state: str = 'unknown'                       #: metadata.yaml im_tuner.state
-    unread_bytes: int = 0                        #: after the last complete record
+    path: Path  #: the bag directory
+    file: Path  #: its .mcap file
+    complete: bool = False  #: data section read to DataEnd
+    state: str = 'unknown'  #: metadata.yaml im_tuner.state
+    unread_bytes: int = 0  #: after the last complete record
     chunks: int = 0
     topics: dict[str, TopicStats] = field(default_factory=dict)
     #: the recorder's own count per topic (recorded, published, lost, ...) when it closed
@@ -91,8 +97,16 @@ class BagData:
 
 # ----------------------------------------------------------------------- record walk
 @njit(cache=True)
-def _walk(buf: np.ndarray, start: int, stop_op: int, ops: np.ndarray, offs: np.ndarray,
-          lens: np.ndarray, cids: np.ndarray, times: np.ndarray) -> tuple[int, int]:
+def _walk(
+    buf: np.ndarray,
+    start: int,
+    stop_op: int,
+    ops: np.ndarray,
+    offs: np.ndarray,
+    lens: np.ndarray,
+    cids: np.ndarray,
+    times: np.ndarray,
+) -> tuple[int, int]:
     """Walk MCAP records in ``buf[start:]``; fills the arrays (op, body offset, body length,
     channel id and log time of Message records).  Stops after a record with opcode
     ``stop_op``, at the end, or before an incomplete record.  Returns (records, end)."""
@@ -102,7 +116,7 @@ def _walk(buf: np.ndarray, start: int, stop_op: int, ops: np.ndarray, offs: np.n
     cap = ops.size
     while p + 9 <= size and n < cap:
         op = buf[p]
-        ln = 0
+        ln = np.int64(0)
         for j in range(8):
             ln |= np.int64(buf[p + 1 + j]) << (8 * j)
         if op == 0 or ln < 0 or p + 9 + ln > size:
@@ -120,14 +134,16 @@ def _walk(buf: np.ndarray, start: int, stop_op: int, ops: np.ndarray, offs: np.n
             cids[n] = -1
             times[n] = 0
         n += 1
-        p += 9 + ln
+        p += 9 + int(ln)
         if op == stop_op:
             break
     return n, p
 
 
-def _walk_all(buf: np.ndarray, start: int, stop_op: int) -> tuple[np.ndarray, ...]:
-    cap = max(0, buf.size - start) // 31 + 64   # a message record is >= 31 bytes
+def _walk_all(
+    buf: np.ndarray, start: int, stop_op: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    cap = max(0, buf.size - start) // 31 + 64  # a message record is >= 31 bytes
     while True:
         ops = np.empty(cap, np.uint8)
         offs = np.empty(cap, np.int64)
@@ -137,7 +153,7 @@ def _walk_all(buf: np.ndarray, start: int, stop_op: int) -> tuple[np.ndarray, ..
         n, end = _walk(buf, start, stop_op, ops, offs, lens, cids, times)
         if n < cap or end >= buf.size:
             return ops[:n], offs[:n], lens[:n], cids[:n], times[:n], end
-        cap *= 4   # many tiny records: walk again with room for them
+        cap *= 4  # many tiny records: walk again with room for them
 
 
 # ------------------------------------------------------------------------ CDR parsing
@@ -173,7 +189,7 @@ class _Cdr:
         n = self.u32()
         if n == 0 or self.p + n > len(self.b):
             raise ValueError('bad CDR string')
-        s = self.b[self.p:self.p + n - 1].decode('utf-8')
+        s = self.b[self.p : self.p + n - 1].decode('utf-8')
         self.p += n
         return s
 
@@ -190,11 +206,11 @@ class _Cdr:
 def parse_float64_multiarray(data: bytes) -> np.ndarray:
     """``std_msgs/Float64MultiArray`` CDR -> its data (any layout)."""
     c = _Cdr(data)
-    for _ in range(c.u32()):          # layout.dim: label, size, stride
+    for _ in range(c.u32()):  # layout.dim: label, size, stride
         c.string()
         c.u32()
         c.u32()
-    c.u32()                           # layout.data_offset
+    c.u32()  # layout.data_offset
     return c.f64s()
 
 
@@ -203,7 +219,7 @@ def parse_diagnostic_array(data: bytes) -> list[dict[str, str]]:
     plus 'level', 'name', 'message', 'hardware_id' and 'stamp_ns' (of the array header)."""
     c = _Cdr(data)
     sec, nsec = c.i32(), c.u32()
-    c.string()                        # frame_id
+    c.string()  # frame_id
     out = []
     for _ in range(c.u32()):
         st = {'level': str(c.u8())}
@@ -226,13 +242,17 @@ def _f64_rows(buf: np.ndarray, offs: np.ndarray, lens: np.ndarray) -> np.ndarray
     fast = width >= 0 and bool(np.all(lens == lens[0]))
     if fast:
         head = buf[d0[:, None] + np.arange(16)]
-        fast = bool(np.all(head[:, :12] == np.frombuffer(_F64_HEAD + bytes(8), np.uint8))
-                    and np.all(head[:, 12:16].view('<u4')[:, 0] == width))
+        fast = bool(
+            np.all(head[:, :12] == np.frombuffer(_F64_HEAD + bytes(8), np.uint8))
+            and np.all(head[:, 12:16].view('<u4')[:, 0] == width)
+        )
     if fast:
         raw = buf[(d0 + _F64_DATA)[:, None] + np.arange(8 * width)]
         return np.ascontiguousarray(raw).view('<f8').reshape(len(offs), width)
-    rows = [parse_float64_multiarray(bytes(buf[a:a + n - _MSG_HEAD]))
-            for a, n in zip(d0, lens)]
+    rows = [
+        parse_float64_multiarray(bytes(buf[a : a + n - _MSG_HEAD]))
+        for a, n in zip(d0, lens, strict=True)
+    ]
     if len({len(r) for r in rows}) != 1:
         raise ValueError('messages of different lengths')
     return np.array(rows)
@@ -255,8 +275,11 @@ def find_mcap(bag_dir: Path) -> Path:
     return files[0]
 
 
-def read_bag(bag_dir: Path | str, arrays: dict[str, list[tuple[int, int]] | None] | None = None,
-             loss_topic: str = '/controller/loss') -> BagData:
+def read_bag(
+    bag_dir: Path | str,
+    arrays: dict[str, list[tuple[int, int]] | None] | None = None,
+    loss_topic: str = '/controller/loss',
+) -> BagData:
     """Read ``bag_dir`` (see the module docstring).
 
     ``arrays``: topic -> windows ``[(k0, k1), ...]`` of the first value to keep (None: all
@@ -276,7 +299,7 @@ def read_bag(bag_dir: Path | str, arrays: dict[str, list[tuple[int, int]] | None
     arrays = arrays or {}
     schemas: dict[int, tuple[str, bytes]] = {}
     channels: dict[int, tuple[str, int, dict, bytes]] = {}
-    per_chan: dict[int, list] = {}          # cid -> [count, first, last]
+    per_chan: dict[int, list] = {}  # cid -> [count, first, last]
     rows: dict[str, list[np.ndarray]] = {t: [] for t in arrays}
     losses: list[tuple[int, bytes]] = []
     with open(path, 'rb') as f:
@@ -290,10 +313,10 @@ def read_bag(bag_dir: Path | str, arrays: dict[str, list[tuple[int, int]] | None
             out.complete = bool(len(ops)) and int(ops[-1]) in (OP_DATA_END, OP_FOOTER)
             out.unread_bytes = 0 if out.complete else size - end
             # definitions first: a Channel record may follow a chunk holding its messages
-            for op, a, n in zip(ops.tolist(), offs.tolist(), lens.tolist()):
+            for op, a, n in zip(ops.tolist(), offs.tolist(), lens.tolist(), strict=True):
                 if op in (OP_SCHEMA, OP_CHANNEL):
-                    _parse_def(op, bytes(mm[a - 9:a + n]), schemas, channels)
-            for op, a, n in zip(ops.tolist(), offs.tolist(), lens.tolist()):
+                    _parse_def(op, bytes(mm[a - 9 : a + n]), schemas, channels)
+            for op, a, n in zip(ops.tolist(), offs.tolist(), lens.tolist(), strict=True):
                 if op == OP_CHUNK:
                     try:
                         chunk = _read_chunk(mm, a, n)
@@ -302,8 +325,9 @@ def read_bag(bag_dir: Path | str, arrays: dict[str, list[tuple[int, int]] | None
                         out.unread_bytes = size - (a - 9)
                         break
                     out.chunks += 1
-                    _take_chunk(chunk, schemas, channels, per_chan, arrays, rows, losses,
-                                loss_topic)
+                    _take_chunk(
+                        chunk, schemas, channels, per_chan, arrays, rows, losses, loss_topic
+                    )
             del top
     for cid, (topic, sid, _meta, _rec) in channels.items():
         c = per_chan.get(cid, [0, 0, 0])
@@ -326,17 +350,17 @@ def read_bag(bag_dir: Path | str, arrays: dict[str, list[tuple[int, int]] | None
 
 def _read_chunk(mm: mmap.mmap, a: int, n: int) -> np.ndarray:
     """A Chunk record body at ``a`` -> its decompressed records."""
-    start, end, usize, crc = struct.unpack_from('<QQQI', mm, a)
+    _start, _end, usize, _crc = struct.unpack_from('<QQQI', mm, a)
     p = a + 28
     (clen,) = struct.unpack_from('<I', mm, p)
-    comp = mm[p + 4:p + 4 + clen].decode()
+    comp = mm[p + 4 : p + 4 + clen].decode()
     p += 4 + clen
     (rlen,) = struct.unpack_from('<Q', mm, p)
     p += 8
     if p + rlen > a + n:
         raise ValueError('chunk records past the chunk')
     try:
-        raw = _decompress(comp, mm[p:p + rlen], usize)
+        raw = _decompress(comp, mm[p : p + rlen], usize)
     except Exception as exc:  # lz4/zstd raise their own types on corrupt data
         raise ValueError(f'chunk does not decompress: {exc}') from None
     if len(raw) != usize:
@@ -344,20 +368,28 @@ def _read_chunk(mm: mmap.mmap, a: int, n: int) -> np.ndarray:
     return np.frombuffer(raw, np.uint8)
 
 
-def _take_chunk(buf: np.ndarray, schemas: dict, channels: dict, per_chan: dict,
-                arrays: dict, rows: dict, losses: list, loss_topic: str) -> None:
+def _take_chunk(
+    buf: np.ndarray,
+    schemas: dict,
+    channels: dict,
+    per_chan: dict,
+    arrays: dict,
+    rows: dict,
+    losses: list,
+    loss_topic: str,
+) -> None:
     ops, offs, lens, cids, times, _end = _walk_all(buf, 0, -1)
     for i in np.flatnonzero(ops != OP_MESSAGE):
         op = int(ops[i])
         if op in (OP_SCHEMA, OP_CHANNEL):
             a, n = int(offs[i]), int(lens[i])
-            _parse_def(op, bytes(buf[a - 9:a + n]), schemas, channels)
+            _parse_def(op, bytes(buf[a - 9 : a + n]), schemas, channels)
     is_msg = ops == OP_MESSAGE
     cids, times, offs, lens = cids[is_msg], times[is_msg], offs[is_msg], lens[is_msg]
     if not len(cids):
         return
     ids, counts = np.unique(cids, return_counts=True)
-    for cid, n in zip(ids.tolist(), counts.tolist()):
+    for cid, n in zip(ids.tolist(), counts.tolist(), strict=True):
         sel = cids == cid
         t = times[sel]
         c = per_chan.setdefault(cid, [0, 0, 0])
@@ -371,5 +403,5 @@ def _take_chunk(buf: np.ndarray, schemas: dict, channels: dict, per_chan: dict,
                 r = r[_in_windows(r[:, 0], arrays[topic])]
             rows[topic].append(r)
         elif topic == loss_topic:
-            for a, n_, lt in zip(offs[sel].tolist(), lens[sel].tolist(), t.tolist()):
-                losses.append((lt, bytes(buf[a + _MSG_HEAD:a + n_])))
+            for a, n_, lt in zip(offs[sel].tolist(), lens[sel].tolist(), t.tolist(), strict=True):
+                losses.append((lt, bytes(buf[a + _MSG_HEAD : a + n_])))

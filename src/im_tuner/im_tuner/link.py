@@ -14,12 +14,14 @@ Standard interfaces only (docs/interfaces.md, docs/controller.md):
 Every wait spins through the given ``spin_until(predicate, timeout)`` -- the in-process
 bench's (which steps the simulation) or a plain executor's -- and gives up on a deadline.
 """
+
 from __future__ import annotations
 
 import posixpath
 import re
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
@@ -33,8 +35,13 @@ from im_controller.messages import SAFETY_REASONS, msg_to_result
 
 from .tuning import BenchFailure, LostEvaluation, Measurement, StopRequested
 
-__all__ = ['ControllerLink', 'DriveMonitor', 'FAULT_POLICIES', 'controller_topics',
-           'drive_report']
+__all__ = [
+    'FAULT_POLICIES',
+    'ControllerLink',
+    'DriveMonitor',
+    'controller_topics',
+    'drive_report',
+]
 
 FAULT_POLICIES = ('reset', 'stop')
 _STARTED = re.compile(r'experiment (\d+) started')
@@ -49,31 +56,45 @@ def controller_topics(controller: str) -> dict[str, str]:
     if not controller.startswith('/'):
         controller = '/' + controller
     ns = posixpath.dirname(controller)
-    return {'start': f'{controller}/start_experiment', 'reset': f'{controller}/reset_fault',
-            'set_atomic': f'{controller}/set_parameters_atomically',
-            'loss': posixpath.join(ns, 'controller/loss'), 'node': controller,
-            'drive_status': posixpath.join(ns, 'drive/status')}
+    return {
+        'start': f'{controller}/start_experiment',
+        'reset': f'{controller}/reset_fault',
+        'set_atomic': f'{controller}/set_parameters_atomically',
+        'loss': posixpath.join(ns, 'controller/loss'),
+        'node': controller,
+        'drive_status': posixpath.join(ns, 'drive/status'),
+    }
 
 
 #: drive/status counters (docs/interfaces.md) the run summary reports
-DRIVE_COUNTERS = ('steps', 'commands', 'fresh', 'held', 'late', 'stale_ignored', 'overruns',
-                  'republished', 'max_lateness_us', 'watchdog_trips', 'watchdog_steps',
-                  'backpressure')
+DRIVE_COUNTERS = (
+    'steps',
+    'commands',
+    'fresh',
+    'held',
+    'late',
+    'stale_ignored',
+    'overruns',
+    'republished',
+    'max_lateness_us',
+    'watchdog_trips',
+    'watchdog_steps',
+    'backpressure',
+)
 
 
-def drive_report(values: dict[str, str], level: int | None = None, message: str = ''
-                 ) -> dict[str, Any]:
+def drive_report(
+    values: dict[str, str], level: int | None = None, message: str = ''
+) -> dict[str, Any]:
     """The summary's view of a drive's status key/values: the mode, the counters as
     numbers (unknown or unparsable ones left out: a real drive may report fewer)."""
-    out: dict[str, Any] = {'mode': values.get('mode', 'unknown'),
-                           'model': values.get('model')}
+    out: dict[str, Any] = {'mode': values.get('mode', 'unknown'), 'model': values.get('model')}
     for k in (*DRIVE_COUNTERS, 'real_time_factor', 'sim_time_s'):
         try:
             v = float(values[k])
         except (KeyError, ValueError):
             continue
-        out[k] = int(v) if v.is_integer() and k not in ('real_time_factor', 'sim_time_s') \
-            else v
+        out[k] = int(v) if v.is_integer() and k not in ('real_time_factor', 'sim_time_s') else v
     if level is not None:
         out['level'], out['message'] = int(level), message
     return out
@@ -87,8 +108,9 @@ class DriveMonitor:
         self.topic = topic
         self.received = 0
         self.last: dict[str, Any] | None = None
-        qos = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
-                         reliability=ReliabilityPolicy.RELIABLE)
+        qos = QoSProfile(
+            depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE
+        )
         self.sub = node.create_subscription(DiagnosticArray, topic, self._on_status, qos)
 
     def _on_status(self, msg: DiagnosticArray) -> None:
@@ -96,8 +118,9 @@ class DriveMonitor:
             values = {kv.key: kv.value for kv in st.values}
             if 'mode' not in values:
                 continue  # some other diagnostic on the topic
-            lvl = int.from_bytes(st.level, 'little') if isinstance(st.level, bytes) \
-                else int(st.level)
+            lvl = (
+                int.from_bytes(st.level, 'little') if isinstance(st.level, bytes) else int(st.level)
+            )
             self.last = drive_report(values, lvl, st.message)
             self.received += 1
 
@@ -105,11 +128,18 @@ class DriveMonitor:
 class ControllerLink:
     """Set gains, run experiments and collect their losses on one controller node."""
 
-    def __init__(self, node: Node, spin_until: Callable[[Callable[[], bool], float], bool], *,
-                 controller: str = '/controller', eval_timeout: float = 60.0,
-                 call_timeout: float = 10.0, fault_policy: str = 'reset',
-                 should_stop: Callable[[], bool] = lambda: False,
-                 supervise: Callable[[], None] | None = None) -> None:
+    def __init__(
+        self,
+        node: Node,
+        spin_until: Callable[[Callable[[], bool], float], bool],
+        *,
+        controller: str = '/controller',
+        eval_timeout: float = 60.0,
+        call_timeout: float = 10.0,
+        fault_policy: str = 'reset',
+        should_stop: Callable[[], bool] = lambda: False,
+        supervise: Callable[[], None] | None = None,
+    ) -> None:
         if fault_policy not in FAULT_POLICIES:
             raise ValueError(f'fault_policy must be one of {FAULT_POLICIES}, got {fault_policy!r}')
         self.node = node
@@ -129,10 +159,12 @@ class ControllerLink:
         self.results: dict[int, Any] = {}
         self.bad_messages = 0
         self.faults_reset = 0
-        qos = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
-                         reliability=ReliabilityPolicy.RELIABLE)
-        self.loss_sub = node.create_subscription(DiagnosticArray, self.names['loss'],
-                                                 self._on_loss, qos)
+        qos = QoSProfile(
+            depth=1000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE
+        )
+        self.loss_sub = node.create_subscription(
+            DiagnosticArray, self.names['loss'], self._on_loss, qos
+        )
 
     # -- plumbing ----------------------------------------------------------------------------
     def _on_loss(self, msg: DiagnosticArray) -> None:
@@ -163,9 +195,12 @@ class ControllerLink:
 
     def reachable(self) -> bool:
         """Services ready and the loss topic published (no waiting)."""
-        return (self.start_cli.service_is_ready() and self.reset_cli.service_is_ready()
-                and self.params.services_are_ready()
-                and self.node.count_publishers(self.names['loss']) > 0)
+        return (
+            self.start_cli.service_is_ready()
+            and self.reset_cli.service_is_ready()
+            and self.params.services_are_ready()
+            and self.node.count_publishers(self.names['loss']) > 0
+        )
 
     def wait_ready(self, timeout: float) -> bool:
         return self._wait(self.reachable, timeout)
@@ -173,7 +208,7 @@ class ControllerLink:
     # -- parameters --------------------------------------------------------------------------
     def get_parameters(self, names: list[str]) -> dict[str, Any]:
         resp = self._call(self.params.get_parameters(names), 'get_parameters')
-        return {n: parameter_value_to_python(v) for n, v in zip(names, resp.values)}
+        return {n: parameter_value_to_python(v) for n, v in zip(names, resp.values, strict=True)}
 
     def list_parameters(self) -> dict[str, Any]:
         """Every parameter of the controller with its value (for the run file)."""
@@ -185,11 +220,14 @@ class ControllerLink:
     def set_gains(self, gains: Gains, deadline: float) -> None:
         """All five gains in one atomic call; transient refusals are retried until
         ``deadline`` (monotonic s), anything else stops the run."""
-        params = [Parameter(n, Parameter.Type.DOUBLE, float(v))
-                  for n, v in zip(GAIN_NAMES, gains.as_tuple())]
+        params = [
+            Parameter(n, Parameter.Type.DOUBLE, float(v))
+            for n, v in zip(GAIN_NAMES, gains.as_tuple(), strict=True)
+        ]
         while True:
-            res = self._call(self.params.set_parameters_atomically(params),
-                             'set_parameters_atomically').result
+            res = self._call(
+                self.params.set_parameters_atomically(params), 'set_parameters_atomically'
+            ).result
             if res.successful:
                 return
             if not any(t in res.reason for t in ('is running', 'retry shortly')):
@@ -212,14 +250,17 @@ class ControllerLink:
             if resp.success:
                 m = _STARTED.search(resp.message)
                 if m is None:
-                    raise BenchFailure(f'start_experiment answered {resp.message!r}: no '
-                                       'experiment id in it')
+                    raise BenchFailure(
+                        f'start_experiment answered {resp.message!r}: no experiment id in it'
+                    )
                 return int(m.group(1))
             msg = resp.message
             if 'safety fault' in msg:
                 if self.fault_policy != 'reset':
-                    raise BenchFailure(f'the controller is in a safety fault ({msg}); check '
-                                       f'the drive, call {self.names["reset"]} and resume')
+                    raise BenchFailure(
+                        f'the controller is in a safety fault ({msg}); check '
+                        f'the drive, call {self.names["reset"]} and resume'
+                    )
                 self.node.get_logger().warn(f'{msg}; resetting it (fault policy: reset)')
                 self.reset_fault()
                 continue
@@ -233,42 +274,59 @@ class ControllerLink:
         """Set ``gains``, run one experiment, return its result (see module doc)."""
         t0 = time.perf_counter()
         deadline = time.monotonic() + self.eval_timeout
-        if not self.reachable() and not self.wait_ready(min(self.call_timeout,
-                                                            self.eval_timeout)):
+        if not self.reachable() and not self.wait_ready(min(self.call_timeout, self.eval_timeout)):
             # a call to a vanished server would only time out: say what is wrong
-            raise LostEvaluation(f'the controller {self.names["node"]} is not reachable (its '
-                                 'services or loss topic are gone: did it stop?)')
+            raise LostEvaluation(
+                f'the controller {self.names["node"]} is not reachable (its '
+                'services or loss topic are gone: did it stop?)'
+            )
         self.set_gains(gains, deadline)
         eid = self._start(deadline)
         if not self._wait(lambda: eid in self.results, max(deadline - time.monotonic(), 0.0)):
-            raise LostEvaluation(f'no loss for experiment {eid} within {self.eval_timeout:g} s',
-                                 experiment_id=eid)
+            raise LostEvaluation(
+                f'no loss for experiment {eid} within {self.eval_timeout:g} s', experiment_id=eid
+            )
         r = self.results.pop(eid)
         ran = r.gains.as_tuple()
         if ran != gains.as_tuple():
-            raise BenchFailure(f'experiment {eid} ran with gains {ran}, not the ones set '
-                               f'{gains.as_tuple()}: something else changed them')
+            raise BenchFailure(
+                f'experiment {eid} ran with gains {ran}, not the ones set '
+                f'{gains.as_tuple()}: something else changed them'
+            )
         fault = r.reason in SAFETY_REASONS
         if fault and self.fault_policy == 'reset':
-            self.node.get_logger().warn(f'experiment {eid}: safety fault {r.reason}; resetting '
-                                        'it (fault policy: reset)')
+            self.node.get_logger().warn(
+                f'experiment {eid}: safety fault {r.reason}; resetting it (fault policy: reset)'
+            )
             try:
                 self.reset_fault()
             except (BenchFailure, LostEvaluation) as exc:
                 # keep this result; the next start meets the fault and tries once more
                 self.node.get_logger().error(f'experiment {eid}: {exc}')
-        return Measurement(loss=r.loss, terms=r.terms, aborted=r.aborted, reason=r.reason,
-                           fault=fault, experiment_id=r.experiment_id, direction=r.direction,
-                           steps=r.steps, trip_step=r.trip_step, t_start_ns=r.t_start,
-                           t_end_ns=r.t_end, wall_s=time.perf_counter() - t0, gains=ran)
+        return Measurement(
+            loss=r.loss,
+            terms=r.terms,
+            aborted=r.aborted,
+            reason=r.reason,
+            fault=fault,
+            experiment_id=r.experiment_id,
+            direction=r.direction,
+            steps=r.steps,
+            trip_step=r.trip_step,
+            t_start_ns=r.t_start,
+            t_end_ns=r.t_end,
+            wall_s=time.perf_counter() - t0,
+            gains=ran,
+        )
 
     def apply(self, gains: Gains) -> None:
         """Leave ``gains`` applied on the controller (the run's final controller); also
         after a stop request (SIGINT): each wait is bounded by the call timeout anyway."""
         should_stop, self.should_stop = self.should_stop, lambda: False
         try:
-            if not self.reachable() and not self.wait_ready(min(self.call_timeout,
-                                                                self.eval_timeout)):
+            if not self.reachable() and not self.wait_ready(
+                min(self.call_timeout, self.eval_timeout)
+            ):
                 raise LostEvaluation(f'the controller {self.names["node"]} is not reachable')
             self.set_gains(gains, time.monotonic() + self.eval_timeout)
         finally:

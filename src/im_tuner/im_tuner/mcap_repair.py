@@ -18,6 +18,7 @@ writes them. Only when that file is complete and synced does it replace the orig
 already ends in a valid footer is left untouched. Either way ``metadata.yaml`` is
 rewritten from what the scan found. No rclpy here.
 """
+
 from __future__ import annotations
 
 import os
@@ -32,10 +33,26 @@ import numpy as np
 import yaml
 
 from .bag import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
-from .mcap_writer import (MAGIC, OP_CHANNEL, OP_CHUNK, OP_CHUNK_INDEX, OP_DATA_END, OP_FOOTER,
-                          OP_HEADER, OP_MESSAGE, OP_MESSAGE_INDEX, OP_METADATA,
-                          OP_METADATA_INDEX, OP_SCHEMA, OP_STATISTICS, OP_SUMMARY_OFFSET,
-                          ChunkInfo, _chunk_index, _record, _string)
+from .mcap_writer import (
+    MAGIC,
+    OP_CHANNEL,
+    OP_CHUNK,
+    OP_CHUNK_INDEX,
+    OP_DATA_END,
+    OP_FOOTER,
+    OP_HEADER,
+    OP_MESSAGE,
+    OP_MESSAGE_INDEX,
+    OP_METADATA,
+    OP_METADATA_INDEX,
+    OP_SCHEMA,
+    OP_STATISTICS,
+    OP_SUMMARY_OFFSET,
+    ChunkInfo,
+    _chunk_index,
+    _record,
+    _string,
+)
 
 OP_ATTACHMENT = 0x09
 OP_ATTACHMENT_INDEX = 0x0A
@@ -52,14 +69,14 @@ class RepairError(Exception):
 class ScannedChunk:
     """A complete chunk of the scanned file (or a run of loose messages to chunk)."""
 
-    offset: int                 # of the Chunk record in the scanned file
-    length: int                 # record bytes (opcode + length + body)
+    offset: int  # of the Chunk record in the scanned file
+    length: int  # record bytes (opcode + length + body)
     start: int
     end: int
     compression: str
     compressed_size: int
     uncompressed_size: int
-    index: np.ndarray           # int64 rows (channel_id, log_time, offset in the records)
+    index: np.ndarray  # int64 rows (channel_id, log_time, offset in the records)
     #: Message records found outside chunks: (offset, length, channel_id, log_time) each.
     loose: list[tuple[int, int, int, int]] | None = None
 
@@ -70,17 +87,17 @@ class McapScan:
 
     path: Path
     size: int
-    header: bytes                                            # the Header record
+    header: bytes  # the Header record
     schemas: dict[int, tuple[str, bytes]] = field(default_factory=dict)  # id: name, record
     # id: topic, schema id, metadata, record
     channels: dict[int, tuple[str, int, dict[str, str], bytes]] = field(default_factory=dict)
-    metadata: list[tuple[int, int, str]] = field(default_factory=list)   # offset, length, name
+    metadata: list[tuple[int, int, str]] = field(default_factory=list)  # offset, length, name
     # offset, length, log_time, create_time, data size, name, media type
     attachments: list[tuple[int, int, int, int, int, str, str]] = field(default_factory=list)
     chunks: list[ScannedChunk] = field(default_factory=list)
-    data_end: int = 0            # end of the last complete record of the data section
-    ended: bool = False          # the scan reached DataEnd (or the Footer)
-    complete: bool = False       # the file ends in a valid footer and magic
+    data_end: int = 0  # end of the last complete record of the data section
+    ended: bool = False  # the scan reached DataEnd (or the Footer)
+    complete: bool = False  # the file ends in a valid footer and magic
 
     @property
     def messages(self) -> int:
@@ -89,14 +106,17 @@ class McapScan:
     def channel_counts(self) -> dict[int, int]:
         counts = dict.fromkeys(self.channels, 0)
         for c in self.chunks:
-            for cid, n in zip(*np.unique(c.index[:, 0], return_counts=True)):
+            for cid, n in zip(*np.unique(c.index[:, 0], return_counts=True), strict=True):
                 counts[int(cid)] = counts.get(int(cid), 0) + int(n)
         return counts
 
     def time_range(self) -> tuple[int, int]:
         times = [c.index[:, 1] for c in self.chunks if len(c.index)]
-        return (int(min(t.min() for t in times)), int(max(t.max() for t in times))) \
-            if times else (0, 0)
+        return (
+            (int(min(t.min() for t in times)), int(max(t.max() for t in times)))
+            if times
+            else (0, 0)
+        )
 
 
 @dataclass
@@ -113,19 +133,25 @@ class RepairReport:
 
     def summary(self) -> str:
         if self.was_complete:
-            head = [f'bag {self.bag}: {self.file} is complete (valid footer); left untouched, '
-                    'metadata.yaml rewritten', f'  {self.messages} messages in {self.chunks} '
-                    f'chunks on {len(self.topics)} topics']
+            head = [
+                f'bag {self.bag}: {self.file} is complete (valid footer); left untouched, '
+                'metadata.yaml rewritten',
+                f'  {self.messages} messages in {self.chunks} chunks on {len(self.topics)} topics',
+            ]
         else:
-            head = [f'bag {self.bag}: {self.file} had no valid summary/footer; rewrote it and '
-                    'metadata.yaml',
-                    '  ' + _repair_line(self.messages, self.chunks, self.dropped_bytes)]
+            head = [
+                f'bag {self.bag}: {self.file} had no valid summary/footer; rewrote it and '
+                'metadata.yaml',
+                '  ' + _repair_line(self.messages, self.chunks, self.dropped_bytes),
+            ]
         return '\n'.join(head + [f'  {t}: {n}' for t, n in sorted(self.topics.items())])
 
 
 def _repair_line(messages: int, chunks: int, dropped: int) -> str:
-    return (f'recovered {messages} messages in {chunks} chunks; discarded {dropped} bytes '
-            'after the last complete chunk')
+    return (
+        f'recovered {messages} messages in {chunks} chunks; discarded {dropped} bytes '
+        'after the last complete chunk'
+    )
 
 
 class _Cur:
@@ -143,7 +169,7 @@ class _Cur:
         if self.p + n > len(self.b):
             raise ValueError('field past the end of its record')
         self.p += n
-        return self.b[self.p - n:self.p]
+        return self.b[self.p - n : self.p]
 
     def s(self) -> str:
         return self.raw(self.u('I')[0]).decode('utf-8')
@@ -165,9 +191,11 @@ def _decompress(comp: str, data: bytes, size: int) -> bytes:
         return data
     if comp == 'zstd':
         import zstandard
+
         return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
     if comp == 'lz4':
         import lz4.frame
+
         return lz4.frame.decompress(data)
     raise ValueError(f'unknown compression {comp!r}')
 
@@ -181,17 +209,20 @@ def _parse_chunk(body: bytes, scan: McapScan, at: int) -> ScannedChunk:
     if c.p + clen != len(body):
         raise ValueError('chunk records length mismatch')
     try:
-        raw = _decompress(comp, body[c.p:], usize)
+        raw = _decompress(comp, body[c.p :], usize)
     except Exception as exc:  # zstd/lz4 raise their own types on corrupt data
         raise ValueError(f'chunk does not decompress: {exc}') from None
     if len(raw) != usize or (crc and zlib.crc32(raw) != crc):
         raise ValueError('chunk size or CRC mismatch')
-    schemas, channels, rows, p = {}, {}, [], 0
+    schemas: dict[int, tuple[str, bytes]] = {}
+    channels: dict[int, tuple[str, int, dict[str, str], bytes]] = {}
+    rows: list[tuple[int, int, int]] = []
+    p = 0
     while p < len(raw):
         op, n = struct.unpack_from('<BQ', raw, p)
         if p + 9 + n > len(raw):
             raise ValueError('record past the end of its chunk')
-        rec = raw[p:p + 9 + n]
+        rec = raw[p : p + 9 + n]
         if op == OP_MESSAGE:
             cid, _seq, log_time, _pub = struct.unpack_from('<HIQQ', rec, 9)
             if n < 22 or (cid not in scan.channels and cid not in channels):
@@ -200,12 +231,13 @@ def _parse_chunk(body: bytes, scan: McapScan, at: int) -> ScannedChunk:
         elif op in (OP_SCHEMA, OP_CHANNEL):
             _parse_def(op, rec, schemas, channels)
         p += 9 + n
-    for sid, v in schemas.items():
-        scan.schemas.setdefault(sid, v)
-    for cid, v in channels.items():
-        scan.channels.setdefault(cid, v)
-    return ScannedChunk(at, 9 + len(body), start, end, comp, clen, usize,
-                        np.array(rows, np.int64).reshape(-1, 3))
+    for sid, schema in schemas.items():
+        scan.schemas.setdefault(sid, schema)
+    for cid, channel in channels.items():
+        scan.channels.setdefault(cid, channel)
+    return ScannedChunk(
+        at, 9 + len(body), start, end, comp, clen, usize, np.array(rows, np.int64).reshape(-1, 3)
+    )
 
 
 def _parse_def(op: int, rec: bytes, schemas: dict, channels: dict) -> None:
@@ -291,11 +323,13 @@ def scan_mcap(path: Path) -> McapScan:
                 break
             pos = scan.data_end = pos + len(rec)
         scan.complete = _has_footer(f, size)
-    for c in scan.chunks:  # index the runs of loose messages as the chunks they will become
-        if c.loose:
-            offsets = np.cumsum([0] + [n for _a, n, _c, _t in c.loose[:-1]])
-            c.index = np.array([(cid, t, o) for (_a, _n, cid, t), o in zip(c.loose, offsets)],
-                               np.int64)
+    for ch in scan.chunks:  # index the runs of loose messages as the chunks they will become
+        if ch.loose:
+            offsets = np.cumsum(np.array([0] + [n for _a, n, _c, _t in ch.loose[:-1]], np.int64))
+            ch.index = np.array(
+                [(cid, t, o) for (_a, _n, cid, t), o in zip(ch.loose, offsets, strict=True)],
+                np.int64,
+            )
     return scan
 
 
@@ -308,6 +342,7 @@ def _add_loose(scan: McapScan, rec: bytes, at: int) -> None:
     if last is None or last.loose is None or last.uncompressed_size >= LOOSE_CHUNK_BYTES:
         last = ScannedChunk(at, 0, log_time, log_time, '', 0, 0, np.zeros((0, 3), np.int64), [])
         scan.chunks.append(last)
+    assert last.loose is not None
     last.loose.append((at, len(rec), cid, log_time))
     last.start, last.end = min(last.start, log_time), max(last.end, log_time)
     last.uncompressed_size += len(rec)
@@ -319,12 +354,13 @@ def _message_indexes(idx: np.ndarray) -> list[tuple[int, bytes, int]]:
     (log_time, offset) — as McapWriter.flush_chunk builds them."""
     sidx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
     cids, starts = np.unique(sidx[:, 0], return_index=True)
-    ends = starts[1:].tolist() + [len(sidx)]
+    ends = [*starts[1:].tolist(), len(sidx)]
     out = []
-    for cid, a, b in zip(cids.tolist(), starts.tolist(), ends):
+    for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
         entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
-        out.append((cid, _record(OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) +
-                                 entries), b - a))
+        out.append(
+            (cid, _record(OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries), b - a)
+        )
     return out
 
 
@@ -344,12 +380,14 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
     for *_x, rec in scan.channels.values():
         put(rec)
     with open(scan.path, 'rb') as src:
+
         def read(at: int, n: int) -> bytes:
             src.seek(at)
             return src.read(n)
 
         def copy(at: int, n: int) -> int:
             return put(read(at, n))
+
         meta_index = [(copy(at, n), n, name) for at, n, name in scan.metadata]
         att_index = [(copy(a[0], a[1]), *a[1:]) for a in scan.attachments]
         infos: list[ChunkInfo] = []
@@ -358,26 +396,55 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
                 at, length = copy(ch.offset, ch.length), ch.length
             else:
                 recs = b''.join(read(o, n) for o, n, _c, _t in ch.loose)
-                body = struct.pack('<QQQI', ch.start, ch.end, len(recs), zlib.crc32(recs)) + \
-                    _string('') + struct.pack('<Q', len(recs)) + recs
+                body = (
+                    struct.pack('<QQQI', ch.start, ch.end, len(recs), zlib.crc32(recs))
+                    + _string('')
+                    + struct.pack('<Q', len(recs))
+                    + recs
+                )
                 at = put(_record(OP_CHUNK, body))
                 length = 9 + len(body)
             index_at, offsets = pos, {}
             for cid, rec, _n in _message_indexes(ch.index):
                 offsets[cid] = put(rec)
-            infos.append(ChunkInfo(ch.start, ch.end, at, length, offsets, pos - index_at,
-                                   ch.compression, ch.compressed_size, ch.uncompressed_size))
+            infos.append(
+                ChunkInfo(
+                    ch.start,
+                    ch.end,
+                    at,
+                    length,
+                    offsets,
+                    pos - index_at,
+                    ch.compression,
+                    ch.compressed_size,
+                    ch.uncompressed_size,
+                )
+            )
     put(_record(OP_DATA_END, struct.pack('<I', 0)))
     summary_start, out, groups = pos, bytearray(), []
     for op, records in (
-            (OP_SCHEMA, [rec for _n, rec in scan.schemas.values()]),
-            (OP_CHANNEL, [c[3] for c in scan.channels.values()]),
-            (OP_STATISTICS, [_statistics(scan, len(meta_index), len(infos))]),
-            (OP_METADATA_INDEX, [_record(OP_METADATA_INDEX, struct.pack('<QQ', at, n) +
-                                         _string(name)) for at, n, name in meta_index]),
-            (OP_ATTACHMENT_INDEX, [_record(OP_ATTACHMENT_INDEX, struct.pack('<QQQQQ', *a[:5]) +
-                                           _string(a[5]) + _string(a[6])) for a in att_index]),
-            (OP_CHUNK_INDEX, [_chunk_index(c) for c in infos])):
+        (OP_SCHEMA, [rec for _n, rec in scan.schemas.values()]),
+        (OP_CHANNEL, [c[3] for c in scan.channels.values()]),
+        (OP_STATISTICS, [_statistics(scan, len(meta_index), len(infos))]),
+        (
+            OP_METADATA_INDEX,
+            [
+                _record(OP_METADATA_INDEX, struct.pack('<QQ', at, n) + _string(name))
+                for at, n, name in meta_index
+            ],
+        ),
+        (
+            OP_ATTACHMENT_INDEX,
+            [
+                _record(
+                    OP_ATTACHMENT_INDEX,
+                    struct.pack('<QQQQQ', *a[:5]) + _string(a[5]) + _string(a[6]),
+                )
+                for a in att_index
+            ],
+        ),
+        (OP_CHUNK_INDEX, [_chunk_index(c) for c in infos]),
+    ):
         if records:
             at = summary_start + len(out)
             out.extend(b''.join(records))
@@ -386,17 +453,28 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
     for op, at, n in groups:
         out.extend(_record(OP_SUMMARY_OFFSET, struct.pack('<BQQ', op, at, n)))
     footer_head = struct.pack('<BQQQ', OP_FOOTER, 20, summary_start, offsets_start)
-    put(bytes(out) + footer_head + struct.pack('<I', zlib.crc32(bytes(out) + footer_head)) +
-        MAGIC)
+    put(bytes(out) + footer_head + struct.pack('<I', zlib.crc32(bytes(out) + footer_head)) + MAGIC)
 
 
 def _statistics(scan: McapScan, n_metadata: int, n_chunks: int) -> bytes:
     counts = b''.join(struct.pack('<HQ', c, k) for c, k in sorted(scan.channel_counts().items()))
     t0, t1 = scan.time_range()
-    return _record(OP_STATISTICS, struct.pack(
-        '<QHIIIIQQ', scan.messages, len(scan.schemas), len(scan.channels),
-        len(scan.attachments), n_metadata, n_chunks, t0, t1) +
-        struct.pack('<I', len(counts)) + counts)
+    return _record(
+        OP_STATISTICS,
+        struct.pack(
+            '<QHIIIIQQ',
+            scan.messages,
+            len(scan.schemas),
+            len(scan.channels),
+            len(scan.attachments),
+            n_metadata,
+            n_chunks,
+            t0,
+            t1,
+        )
+        + struct.pack('<I', len(counts))
+        + counts,
+    )
 
 
 def _find_mcap(bag_dir: Path) -> Path:
@@ -407,8 +485,14 @@ def _find_mcap(bag_dir: Path) -> Path:
         return preferred
     found = sorted(p for p in bag_dir.glob('*.mcap') if p.is_file())
     if len(found) != 1:
-        raise RepairError(f'{bag_dir}: ' + ('no .mcap file' if not found else
-                          f'several .mcap files ({", ".join(p.name for p in found)})'))
+        raise RepairError(
+            f'{bag_dir}: '
+            + (
+                'no .mcap file'
+                if not found
+                else f'several .mcap files ({", ".join(p.name for p in found)})'
+            )
+        )
     return found[0]
 
 
@@ -418,8 +502,10 @@ def repair_bag(bag_dir: Path) -> RepairReport:
     path = _find_mcap(bag_dir)
     scan = scan_mcap(path)
     if scan.complete and not scan.ended:
-        raise RepairError(f'{path}: has a valid footer but its data section is damaged at '
-                          f'byte {scan.data_end}; left untouched')
+        raise RepairError(
+            f'{path}: has a valid footer but its data section is damaged at '
+            f'byte {scan.data_end}; left untouched'
+        )
     dropped = 0 if scan.complete else scan.size - scan.data_end
     if not scan.complete:
         tmp = path.with_name(path.name + '.repairing')
@@ -433,8 +519,9 @@ def repair_bag(bag_dir: Path) -> RepairReport:
         except BaseException as exc:
             tmp.unlink(missing_ok=True)
             if isinstance(exc, OSError):
-                raise RepairError(f'{path}: cannot write the repaired file ({exc}); '
-                                  'the original is unchanged') from exc
+                raise RepairError(
+                    f'{path}: cannot write the repaired file ({exc}); the original is unchanged'
+                ) from exc
             raise
         dfd = os.open(bag_dir, os.O_RDONLY)
         try:
@@ -444,28 +531,48 @@ def repair_bag(bag_dir: Path) -> RepairReport:
     counts = scan.channel_counts()
     topics: dict[str, TopicRecord] = {}
     for cid, (topic, sid, meta, _rec) in scan.channels.items():
-        t = topics.setdefault(topic, TopicRecord(
-            topic, scan.schemas.get(sid, ('', b''))[0], 0,
-            _qos(meta.get('offered_qos_profiles', '')), meta.get('topic_type_hash', '')))
+        t = topics.setdefault(
+            topic,
+            TopicRecord(
+                topic,
+                scan.schemas.get(sid, ('', b''))[0],
+                0,
+                _qos(meta.get('offered_qos_profiles', '')),
+                meta.get('topic_type_hash', ''),
+            ),
+        )
         t.message_count += counts.get(cid, 0)
     try:
         custom = dict(read_metadata_yaml(bag_dir).get('custom_data') or {})
     except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError):
         custom = {}
     custom['im_tuner.state'] = 'closed' if scan.complete else 'repaired'
-    custom['im_tuner.repair'] = ('complete file (valid footer), left untouched; '
-                                 f'{scan.messages} messages in {len(scan.chunks)} chunks'
-                                 if scan.complete else
-                                 _repair_line(scan.messages, len(scan.chunks), dropped))
+    custom['im_tuner.repair'] = (
+        'complete file (valid footer), left untouched; '
+        f'{scan.messages} messages in {len(scan.chunks)} chunks'
+        if scan.complete
+        else _repair_line(scan.messages, len(scan.chunks), dropped)
+    )
     t0, t1 = scan.time_range()
     try:
-        write_metadata_yaml(bag_dir, bag_metadata([(path.name, t0, t1, scan.messages)],
-                                                  list(topics.values()), custom))
+        write_metadata_yaml(
+            bag_dir,
+            bag_metadata([(path.name, t0, t1, scan.messages)], list(topics.values()), custom),
+        )
     except OSError as exc:
-        raise RepairError(f'{bag_dir}: cannot write metadata.yaml ({exc}); '
-                          f'{path.name} is {"intact" if scan.complete else "repaired"}') from exc
-    return RepairReport(bag_dir, path.name, scan.complete, scan.messages, len(scan.chunks),
-                        dropped, {t.name: t.message_count for t in topics.values()})
+        raise RepairError(
+            f'{bag_dir}: cannot write metadata.yaml ({exc}); '
+            f'{path.name} is {"intact" if scan.complete else "repaired"}'
+        ) from exc
+    return RepairReport(
+        bag_dir,
+        path.name,
+        scan.complete,
+        scan.messages,
+        len(scan.chunks),
+        dropped,
+        {t.name: t.message_count for t in topics.values()},
+    )
 
 
 def _qos(text: str) -> list[dict]:

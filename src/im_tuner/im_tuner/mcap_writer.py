@@ -27,6 +27,7 @@ numba kernel refills the buffer at once.
 
 No rclpy here: the writer serves the recorder node, the repair tool and the tests.
 """
+
 from __future__ import annotations
 
 import os
@@ -62,10 +63,10 @@ MESSAGE_HEADER_BYTES = 31
 COMPRESSIONS = ('none', 'zstd', 'lz4')
 
 # Columns of the chunk state vector shared with the numba kernels.
-ST_POS = 0       #: bytes used in the chunk buffer
-ST_COUNT = 1     #: Message records in the chunk (rows used in the index)
-ST_TMIN = 2      #: smallest log_time in the chunk [ns]
-ST_TMAX = 3      #: largest log_time in the chunk [ns]
+ST_POS = 0  #: bytes used in the chunk buffer
+ST_COUNT = 1  #: Message records in the chunk (rows used in the index)
+ST_TMIN = 2  #: smallest log_time in the chunk [ns]
+ST_TMAX = 3  #: largest log_time in the chunk [ns]
 ST_SIZE = 4
 
 _U64 = struct.Struct('<Q')
@@ -94,8 +95,16 @@ def _record(op: int, body: bytes) -> bytes:
 
 
 @numba.njit(cache=True)
-def append_message(buf: np.ndarray, idx: np.ndarray, st: np.ndarray, channel_id: int,
-                   sequence: int, log_time: int, publish_time: int, data: np.ndarray) -> bool:
+def append_message(
+    buf: np.ndarray,
+    idx: np.ndarray,
+    st: np.ndarray,
+    channel_id: int,
+    sequence: int,
+    log_time: int,
+    publish_time: int,
+    data: np.ndarray,
+) -> bool:
     """Append one Message record to the open chunk; False (nothing written) if it is full.
 
     ``buf`` is the uint8 chunk buffer, ``idx`` the int64 index rows (channel_id, log_time
@@ -107,14 +116,21 @@ def append_message(buf: np.ndarray, idx: np.ndarray, st: np.ndarray, channel_id:
     if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or k >= idx.shape[0]:
         return False
     write_message_header(buf, pos, channel_id, sequence, log_time, publish_time, n)
-    buf[pos + MESSAGE_HEADER_BYTES:pos + MESSAGE_HEADER_BYTES + n] = data
+    buf[pos + MESSAGE_HEADER_BYTES : pos + MESSAGE_HEADER_BYTES + n] = data
     note_message(idx, st, channel_id, log_time, pos, MESSAGE_HEADER_BYTES + n)
     return True
 
 
 @numba.njit(cache=True, inline='always')
-def write_message_header(buf: np.ndarray, pos: int, channel_id: int, sequence: int,
-                         log_time: int, publish_time: int, n: int) -> None:
+def write_message_header(
+    buf: np.ndarray,
+    pos: int,
+    channel_id: int,
+    sequence: int,
+    log_time: int,
+    publish_time: int,
+    n: int,
+) -> None:
     """Write the 31-byte Message record header at ``buf[pos]`` (little endian)."""
     buf[pos] = OP_MESSAGE
     length = 22 + n
@@ -130,8 +146,9 @@ def write_message_header(buf: np.ndarray, pos: int, channel_id: int, sequence: i
 
 
 @numba.njit(cache=True, inline='always')
-def note_message(idx: np.ndarray, st: np.ndarray, channel_id: int, log_time: int,
-                 pos: int, nbytes: int) -> None:
+def note_message(
+    idx: np.ndarray, st: np.ndarray, channel_id: int, log_time: int, pos: int, nbytes: int
+) -> None:
     """Index a record just written at ``pos`` and advance the chunk state."""
     k = st[ST_COUNT]
     idx[k, 0] = channel_id
@@ -156,8 +173,10 @@ class ChunkState:
     @classmethod
     def create(cls, chunk_size: int) -> ChunkState:
         # Headroom so that a chunk is closed by size, not by a message that does not fit.
-        return cls(np.zeros(chunk_size + (64 << 10), np.uint8),
-                   np.zeros((max(1024, chunk_size // 32), 3), np.int64))
+        return cls(
+            np.zeros(chunk_size + (64 << 10), np.uint8),
+            np.zeros((max(1024, chunk_size // 32), 3), np.int64),
+        )
 
     @property
     def used(self) -> int:
@@ -195,12 +214,20 @@ class McapWriter:
     ``compression`` is ``'none'``, ``'zstd'`` or ``'lz4'`` (per chunk).
     """
 
-    def __init__(self, path: Path, *, compression: str = 'zstd', chunk_size: int = 1 << 20,
-                 library: str = 'im_tuner', profile: str = 'ros2',
-                 background: bool = False) -> None:
+    def __init__(
+        self,
+        path: Path,
+        *,
+        compression: str = 'zstd',
+        chunk_size: int = 1 << 20,
+        library: str = 'im_tuner',
+        profile: str = 'ros2',
+        background: bool = False,
+    ) -> None:
         if compression not in COMPRESSIONS:
-            raise McapWriteError(f'compression must be one of {", ".join(COMPRESSIONS)}, '
-                                 f'got {compression!r}')
+            raise McapWriteError(
+                f'compression must be one of {", ".join(COMPRESSIONS)}, got {compression!r}'
+            )
         self.path = Path(path)
         self.compression = compression
         self.chunk_size = int(chunk_size)
@@ -272,21 +299,32 @@ class McapWriter:
     def add_schema(self, name: str, encoding: str, data: bytes) -> int:
         sid = len(self.schemas) + 1
         self.schemas[sid] = (name, encoding, data)
-        rec = _record(OP_SCHEMA, struct.pack('<H', sid) + _string(name) + _string(encoding) +
-                      _bytes(data))
+        rec = _record(
+            OP_SCHEMA, struct.pack('<H', sid) + _string(name) + _string(encoding) + _bytes(data)
+        )
         self._submit(lambda: self._write(rec))
         return sid
 
-    def add_channel(self, topic: str, schema_id: int, message_encoding: str,
-                    metadata: dict[str, str] | None = None) -> int:
+    def add_channel(
+        self,
+        topic: str,
+        schema_id: int,
+        message_encoding: str,
+        metadata: dict[str, str] | None = None,
+    ) -> int:
         cid = len(self.channels) + 1
         if cid > 0xFFFF:
             raise McapWriteError('more than 65535 channels')
         meta = dict(metadata or {})
         self.channels[cid] = (topic, schema_id, message_encoding, meta)
         self.channel_counts[cid] = 0
-        rec = _record(OP_CHANNEL, struct.pack('<HH', cid, schema_id) + _string(topic) +
-                      _string(message_encoding) + _map_ss(meta))
+        rec = _record(
+            OP_CHANNEL,
+            struct.pack('<HH', cid, schema_id)
+            + _string(topic)
+            + _string(message_encoding)
+            + _map_ss(meta),
+        )
         self._submit(lambda: self._write(rec))
         return cid
 
@@ -296,18 +334,36 @@ class McapWriter:
 
         def job() -> None:
             self.metadata_index.append((self._write(rec), len(rec), name))
+
         self._submit(job)
 
-    def add_message(self, channel_id: int, sequence: int, log_time: int, publish_time: int,
-                    data: bytes) -> None:
+    def add_message(
+        self, channel_id: int, sequence: int, log_time: int, publish_time: int, data: bytes
+    ) -> None:
         """Slow path (one Python call per message) for low-rate messages and tests."""
         arr = np.frombuffer(data, np.uint8)
-        if not append_message(self.chunk.buf, self.chunk.idx, self.chunk.st, channel_id,
-                              sequence & 0xFFFFFFFF, log_time, publish_time, arr):
+        if not append_message(
+            self.chunk.buf,
+            self.chunk.idx,
+            self.chunk.st,
+            channel_id,
+            sequence & 0xFFFFFFFF,
+            log_time,
+            publish_time,
+            arr,
+        ):
             self.flush_chunk()
             self.chunk.grow(MESSAGE_HEADER_BYTES + len(data))
-            ok = append_message(self.chunk.buf, self.chunk.idx, self.chunk.st, channel_id,
-                                sequence & 0xFFFFFFFF, log_time, publish_time, arr)
+            ok = append_message(
+                self.chunk.buf,
+                self.chunk.idx,
+                self.chunk.st,
+                channel_id,
+                sequence & 0xFFFFFFFF,
+                log_time,
+                publish_time,
+                arr,
+            )
             assert ok
         if self.chunk.used >= self.chunk_size:
             self.flush_chunk()
@@ -323,11 +379,11 @@ class McapWriter:
             return 0
         if self._f is None:
             raise McapWriteError(f'{self.path}: writer is closed')
-        raw = ch.buf[:ch.used].tobytes()
+        raw = ch.buf[: ch.used].tobytes()
         idx = ch.idx[:n].copy()
         t0, t1 = int(ch.st[ST_TMIN]), int(ch.st[ST_TMAX])
         ch.st[:] = 0
-        for cid, k in zip(*np.unique(idx[:, 0], return_counts=True)):
+        for cid, k in zip(*np.unique(idx[:, 0], return_counts=True), strict=True):
             self.channel_counts[int(cid)] = self.channel_counts.get(int(cid), 0) + int(k)
         self.message_count += n
         self.t_start = t0 if self.t_start is None else min(self.t_start, t0)
@@ -338,8 +394,11 @@ class McapWriter:
     def _write_chunk(self, raw: bytes, idx: np.ndarray, t0: int, t1: int) -> None:
         payload = self._compress(raw)
         comp = '' if self.compression == 'none' else self.compression
-        body = (struct.pack('<QQQI', t0, t1, len(raw), zlib.crc32(raw)) + _string(comp) +
-                _U64.pack(len(payload)))
+        body = (
+            struct.pack('<QQQI', t0, t1, len(raw), zlib.crc32(raw))
+            + _string(comp)
+            + _U64.pack(len(payload))
+        )
         head = struct.pack('<BQ', OP_CHUNK, len(body) + len(payload))
         chunk_at = self._write(head + body)
         self._write(payload)
@@ -347,15 +406,27 @@ class McapWriter:
         # Message indexes, one per channel, entries sorted by (log_time, offset).
         sidx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
         cids, starts = np.unique(sidx[:, 0], return_index=True)
-        ends = starts[1:].tolist() + [len(sidx)]
+        ends = [*starts[1:].tolist(), len(sidx)]
         index_offsets: dict[int, int] = {}
         index_at = self._pos
-        for cid, a, b in zip(cids.tolist(), starts.tolist(), ends):
+        for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
             entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
-            index_offsets[cid] = self._write(_record(
-                OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries))
-        self.chunks.append(ChunkInfo(t0, t1, chunk_at, chunk_len, index_offsets,
-                                     self._pos - index_at, comp, len(payload), len(raw)))
+            index_offsets[cid] = self._write(
+                _record(OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries)
+            )
+        self.chunks.append(
+            ChunkInfo(
+                t0,
+                t1,
+                chunk_at,
+                chunk_len,
+                index_offsets,
+                self._pos - index_at,
+                comp,
+                len(payload),
+                len(raw),
+            )
+        )
         self.flush()
 
     # -- finishing ---------------------------------------------------------------------
@@ -377,24 +448,59 @@ class McapWriter:
                     out.extend(r)
                 groups.append((op, at, summary_start + len(out) - at))
 
-        group(OP_SCHEMA, [_record(OP_SCHEMA, struct.pack('<H', sid) + _string(n) + _string(e)
-                                  + _bytes(d)) for sid, (n, e, d) in self.schemas.items()])
-        group(OP_CHANNEL, [_record(OP_CHANNEL, struct.pack('<HH', cid, sid) + _string(t) +
-                                   _string(enc) + _map_ss(m))
-                           for cid, (t, sid, enc, m) in self.channels.items()])
+        group(
+            OP_SCHEMA,
+            [
+                _record(OP_SCHEMA, struct.pack('<H', sid) + _string(n) + _string(e) + _bytes(d))
+                for sid, (n, e, d) in self.schemas.items()
+            ],
+        )
+        group(
+            OP_CHANNEL,
+            [
+                _record(
+                    OP_CHANNEL,
+                    struct.pack('<HH', cid, sid) + _string(t) + _string(enc) + _map_ss(m),
+                )
+                for cid, (t, sid, enc, m) in self.channels.items()
+            ],
+        )
         counts = b''.join(struct.pack('<HQ', c, k) for c, k in sorted(self.channel_counts.items()))
-        group(OP_STATISTICS, [_record(OP_STATISTICS, struct.pack(
-            '<QHIIIIQQ', self.message_count, len(self.schemas), len(self.channels), 0,
-            len(self.metadata_index), len(self.chunks), self.t_start or 0, self.t_end or 0) +
-            struct.pack('<I', len(counts)) + counts)])
-        group(OP_METADATA_INDEX, [_record(OP_METADATA_INDEX, struct.pack('<QQ', at, ln) +
-                                          _string(name)) for at, ln, name in self.metadata_index])
+        group(
+            OP_STATISTICS,
+            [
+                _record(
+                    OP_STATISTICS,
+                    struct.pack(
+                        '<QHIIIIQQ',
+                        self.message_count,
+                        len(self.schemas),
+                        len(self.channels),
+                        0,
+                        len(self.metadata_index),
+                        len(self.chunks),
+                        self.t_start or 0,
+                        self.t_end or 0,
+                    )
+                    + struct.pack('<I', len(counts))
+                    + counts,
+                )
+            ],
+        )
+        group(
+            OP_METADATA_INDEX,
+            [
+                _record(OP_METADATA_INDEX, struct.pack('<QQ', at, ln) + _string(name))
+                for at, ln, name in self.metadata_index
+            ],
+        )
         group(OP_CHUNK_INDEX, [_chunk_index(c) for c in self.chunks])
         offsets_start = summary_start + len(out)
         for op, at, ln in groups:
             out.extend(_record(OP_SUMMARY_OFFSET, struct.pack('<BQQ', op, at, ln)))
-        footer_head = struct.pack('<BQQQ', OP_FOOTER, 20, summary_start if groups else 0,
-                                  offsets_start if groups else 0)
+        footer_head = struct.pack(
+            '<BQQQ', OP_FOOTER, 20, summary_start if groups else 0, offsets_start if groups else 0
+        )
         crc = zlib.crc32(bytes(out) + footer_head)
         self._write(bytes(out))
         self._write(footer_head + struct.pack('<I', crc) + MAGIC)
@@ -415,18 +521,25 @@ class McapWriter:
 
 def _chunk_index(c: ChunkInfo) -> bytes:
     offs = b''.join(struct.pack('<HQ', k, v) for k, v in sorted(c.index_offsets.items()))
-    return _record(OP_CHUNK_INDEX, struct.pack('<QQQQ', c.start, c.end, c.offset, c.length) +
-                   struct.pack('<I', len(offs)) + offs + _U64.pack(c.index_length) +
-                   _string(c.compression) + struct.pack('<QQ', c.compressed_size,
-                                                        c.uncompressed_size))
+    return _record(
+        OP_CHUNK_INDEX,
+        struct.pack('<QQQQ', c.start, c.end, c.offset, c.length)
+        + struct.pack('<I', len(offs))
+        + offs
+        + _U64.pack(c.index_length)
+        + _string(c.compression)
+        + struct.pack('<QQ', c.compressed_size, c.uncompressed_size),
+    )
 
 
 def _compressor(name: str):
     if name == 'zstd':
         import zstandard
+
         z = zstandard.ZstdCompressor(level=1)
         return z.compress
     if name == 'lz4':
         import lz4.frame
+
         return lambda b: lz4.frame.compress(b, compression_level=0)
     return lambda b: b

@@ -21,6 +21,7 @@ size_t capacity; rcutils_allocator_t allocator (5 pointers)} = 8 x 64-bit words;
 publication_sequence_number; uint64 reception_sequence_number; rmw_gid_t {const char*
 implementation_identifier; uint8 data[16]}; bool from_intra_process} = 8 words.
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -28,12 +29,10 @@ import ctypes
 import llvmlite.binding as llb
 import numba
 import numpy as np
+import rclpy.impl.implementation_singleton  # noqa: F401  (loads librcl into the process)
 from numba import types
 
-import rclpy.impl.implementation_singleton  # noqa: F401  (loads librcl into the process)
-
-from .mcap_writer import (MESSAGE_HEADER_BYTES, ST_TMAX, ST_TMIN, note_message,
-                          write_message_header)
+from .mcap_writer import MESSAGE_HEADER_BYTES, ST_TMAX, ST_TMIN, note_message, write_message_header
 
 
 def _loaded_library(name: str) -> str:
@@ -51,27 +50,27 @@ _RCUTILS = _loaded_library('librcutils.so')
 llb.load_library_permanently(_RCL)
 
 # Pointers are passed as 64-bit integers: same registers in the x86-64 and AArch64 ABIs.
-_take = types.ExternalFunction('rcl_take_serialized_message',
-                               types.int32(types.uint64, types.uint64, types.uint64,
-                                           types.uint64))
-_memcpy = types.ExternalFunction('memcpy', types.uint64(types.uint64, types.uint64,
-                                                        types.uint64))
+_take = types.ExternalFunction(
+    'rcl_take_serialized_message',
+    types.int32(types.uint64, types.uint64, types.uint64, types.uint64),
+)
+_memcpy = types.ExternalFunction('memcpy', types.uint64(types.uint64, types.uint64, types.uint64))
 
 RCL_RET_OK = 0
 RCL_RET_SUBSCRIPTION_TAKE_FAILED = 401
 
 # drain() results
-DONE = 0        #: every subscription is empty
-FULL = 1        #: the chunk is full; the message taken last is pending in ``ser``/``info``
-PUBS_FULL = 2   #: the publisher table is full (grow it and call again)
-LIMIT = 3       #: took ``limit`` messages; more may be waiting
-ERROR = 4       #: rcl returned an error (code in ``ctrl[C_ERROR]``)
+DONE = 0  #: every subscription is empty
+FULL = 1  #: the chunk is full; the message taken last is pending in ``ser``/``info``
+PUBS_FULL = 2  #: the publisher table is full (grow it and call again)
+LIMIT = 3  #: took ``limit`` messages; more may be waiting
+ERROR = 4  #: rcl returned an error (code in ``ctrl[C_ERROR]``)
 
 # ctrl vector
-C_PENDING = 0      #: 1: a taken message waits in ser/info to be written
+C_PENDING = 0  #: 1: a taken message waits in ser/info to be written
 C_PENDING_SUB = 1  #: subscription row of the pending message
-C_NPUBS = 2        #: rows used in the publisher table
-C_ERROR = 3        #: last rcl error code
+C_NPUBS = 2  #: rows used in the publisher table
+C_ERROR = 3  #: last rcl error code
 #: most log time [ns] one chunk may span (0: no limit): a message that would stretch the
 #: open chunk beyond it closes the chunk first (FULL), so that a backlog taken late (a
 #: recorder polled after seconds of start-up) still makes chunks of at most this span
@@ -82,10 +81,10 @@ C_SIZE = 5
 P_CHANNEL = 0
 P_GID0 = 1
 P_GID1 = 2
-P_FIRST = 3    #: first publication sequence number seen
-P_LAST = 4     #: highest publication sequence number seen
-P_COUNT = 5    #: messages recorded
-P_GAPS = 6     #: sequence numbers skipped (messages lost between publisher and recorder)
+P_FIRST = 3  #: first publication sequence number seen
+P_LAST = 4  #: highest publication sequence number seen
+P_COUNT = 5  #: messages recorded
+P_GAPS = 6  #: sequence numbers skipped (messages lost between publisher and recorder)
 P_REORDERED = 7  #: messages that came with a number not above the last one
 P_SIZE = 8
 
@@ -98,8 +97,9 @@ I_GID1 = 6
 
 
 @numba.njit(cache=True)
-def _track(pubs: np.ndarray, ctrl: np.ndarray, channel: int, gid0: int, gid1: int,
-           seq: int) -> bool:
+def _track(
+    pubs: np.ndarray, ctrl: np.ndarray, channel: int, gid0: int, gid1: int, seq: int
+) -> bool:
     n = ctrl[C_NPUBS]
     for r in range(n):
         if pubs[r, P_GID0] == gid0 and pubs[r, P_GID1] == gid1 and pubs[r, P_CHANNEL] == channel:
@@ -126,28 +126,50 @@ def _track(pubs: np.ndarray, ctrl: np.ndarray, channel: int, gid0: int, gid1: in
 
 
 @numba.njit(cache=True)
-def _place(ser: np.ndarray, info: np.ndarray, channel: int, buf: np.ndarray, idx: np.ndarray,
-           st: np.ndarray, ctrl: np.ndarray) -> bool:
+def _place(
+    ser: np.ndarray,
+    info: np.ndarray,
+    channel: int,
+    buf: np.ndarray,
+    idx: np.ndarray,
+    st: np.ndarray,
+    ctrl: np.ndarray,
+) -> bool:
     n = np.int64(ser[1])
     pos = st[0]
     if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or st[1] >= idx.shape[0]:
         return False
     log_time = np.int64(info[I_RECEIVED_TS])
     span = ctrl[C_MAX_SPAN_NS]
-    if span > 0 and st[1] > 0 and (log_time - st[ST_TMIN] > span or
-                                   st[ST_TMAX] - log_time > span):
+    if span > 0 and st[1] > 0 and (log_time - st[ST_TMIN] > span or st[ST_TMAX] - log_time > span):
         return False  # the chunk would span more than max_chunk_age of log time
-    write_message_header(buf, pos, channel, np.int64(info[I_PUB_SEQ] & 0xFFFFFFFF), log_time,
-                         np.int64(info[I_SOURCE_TS]), n)
+    write_message_header(
+        buf,
+        pos,
+        channel,
+        np.int64(info[I_PUB_SEQ] & 0xFFFFFFFF),
+        log_time,
+        np.int64(info[I_SOURCE_TS]),
+        n,
+    )
     _memcpy(np.uint64(buf.ctypes.data + pos + MESSAGE_HEADER_BYTES), ser[0], np.uint64(n))
     note_message(idx, st, channel, log_time, pos, MESSAGE_HEADER_BYTES + n)
     return True
 
 
 @numba.njit(cache=True)
-def drain(subs: np.ndarray, chans: np.ndarray, ser: np.ndarray, info: np.ndarray,
-          buf: np.ndarray, idx: np.ndarray, st: np.ndarray, pubs: np.ndarray,
-          ctrl: np.ndarray, limit: int) -> tuple[int, int]:
+def drain(
+    subs: np.ndarray,
+    chans: np.ndarray,
+    ser: np.ndarray,
+    info: np.ndarray,
+    buf: np.ndarray,
+    idx: np.ndarray,
+    st: np.ndarray,
+    pubs: np.ndarray,
+    ctrl: np.ndarray,
+    limit: int,
+) -> tuple[int, int]:
     """Take every available message of every subscription into the chunk.
 
     ``subs`` rcl_subscription_t addresses (uint64), ``chans`` their MCAP channel ids.
@@ -175,8 +197,14 @@ def drain(subs: np.ndarray, chans: np.ndarray, ser: np.ndarray, info: np.ndarray
                 ctrl[C_ERROR] = r
                 return ERROR, taken
             taken += 1
-            ok = _track(pubs, ctrl, chans[i], np.int64(info[I_GID0]), np.int64(info[I_GID1]),
-                        np.int64(info[I_PUB_SEQ]))
+            ok = _track(
+                pubs,
+                ctrl,
+                chans[i],
+                np.int64(info[I_GID0]),
+                np.int64(info[I_GID1]),
+                np.int64(info[I_PUB_SEQ]),
+            )
             if not _place(ser, info, chans[i], buf, idx, st, ctrl):
                 ctrl[C_PENDING] = 1
                 ctrl[C_PENDING_SUB] = i
@@ -187,9 +215,13 @@ def drain(subs: np.ndarray, chans: np.ndarray, ser: np.ndarray, info: np.ndarray
 
 
 class _Allocator(ctypes.Structure):
-    _fields_ = [('allocate', ctypes.c_void_p), ('deallocate', ctypes.c_void_p),
-                ('reallocate', ctypes.c_void_p), ('zero_allocate', ctypes.c_void_p),
-                ('state', ctypes.c_void_p)]
+    _fields_ = [
+        ('allocate', ctypes.c_void_p),
+        ('deallocate', ctypes.c_void_p),
+        ('reallocate', ctypes.c_void_p),
+        ('zero_allocate', ctypes.c_void_p),
+        ('state', ctypes.c_void_p),
+    ]
 
 
 class TakeBuffers:
@@ -202,15 +234,19 @@ class TakeBuffers:
     def __init__(self, capacity: int = 64 << 10) -> None:
         self._rcutils = ctypes.CDLL(_RCUTILS)
         self._rcutils.rcutils_get_default_allocator.restype = _Allocator
-        self._rcutils.rcutils_uint8_array_init.argtypes = [ctypes.c_void_p, ctypes.c_size_t,
-                                                           ctypes.c_void_p]
+        self._rcutils.rcutils_uint8_array_init.argtypes = [
+            ctypes.c_void_p,
+            ctypes.c_size_t,
+            ctypes.c_void_p,
+        ]
         self._rcutils.rcutils_uint8_array_fini.argtypes = [ctypes.c_void_p]
         self._alloc = self._rcutils.rcutils_get_default_allocator()
         self.ser = np.zeros(8, np.uint64)
         self.info = np.zeros(8, np.uint64)
         self._ser_addr = int(self.ser.ctypes.data)
-        ret = self._rcutils.rcutils_uint8_array_init(self._ser_addr, capacity,
-                                                     ctypes.addressof(self._alloc))
+        ret = self._rcutils.rcutils_uint8_array_init(
+            self._ser_addr, capacity, ctypes.addressof(self._alloc)
+        )
         if ret != 0:
             raise RuntimeError(f'rcutils_uint8_array_init failed ({ret})')
         self._open = True

@@ -28,9 +28,11 @@ recorder --repair DIR`` rewrites the summary, index and ``metadata.yaml``.
 The simulated bench (``ros2 run im_controller sim_bench``) and the tuner run a
 :class:`Recorder` in their own process and call :meth:`Recorder.poll` between steps.
 """
+
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as _dt
 import importlib
 import importlib.metadata
@@ -51,12 +53,21 @@ import yaml
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
+
 from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, parse_cli
 from im_drive_sim.runtime import unknown_overrides, warn_unknown_overrides
 
 from . import rcl_take
-from .bag import (BagError, TopicRecord, bag_metadata, prepare_bag_dir, qos_to_dict, qos_yaml,
-                  storage_file_name, write_metadata_yaml)
+from .bag import (
+    BagError,
+    TopicRecord,
+    bag_metadata,
+    prepare_bag_dir,
+    qos_to_dict,
+    qos_yaml,
+    storage_file_name,
+    write_metadata_yaml,
+)
 from .mcap_writer import MESSAGE_HEADER_BYTES, McapWriteError, McapWriter
 from .msgdefs import MsgDefError, schema_for
 
@@ -66,8 +77,16 @@ from .msgdefs import MsgDefError, schema_for
 RECORD_POLL_STEPS = 64
 
 #: Packages whose versions go into the run metadata.
-VERSIONED = ('im_drive_sim', 'im_controller', 'im_tuner', 'ros-jazzy-rclpy',
-             'ros-jazzy-rmw-fastrtps-cpp', 'numpy', 'numba', 'mcap')
+VERSIONED = (
+    'im_drive_sim',
+    'im_controller',
+    'im_tuner',
+    'ros-jazzy-rclpy',
+    'ros-jazzy-rmw-fastrtps-cpp',
+    'numpy',
+    'numba',
+    'mcap',
+)
 
 
 class RecorderError(Exception):
@@ -79,14 +98,14 @@ class _Topic:
     name: str
     type: str
     channel: int
-    sub: object          # rclpy Subscription
+    sub: object  # rclpy Subscription
     reliable: bool
     qos_profiles: list[dict]
     type_hash: str
 
 
 def default_out_dir(base: Path | str = 'bags', prefix: str = 'recording') -> Path:
-    stamp = _dt.datetime.now(_dt.timezone.utc).strftime('%Y_%m_%d-%H_%M_%S')
+    stamp = _dt.datetime.now(_dt.UTC).strftime('%Y_%m_%d-%H_%M_%S')
     return Path(base) / f'{prefix}_{stamp}'
 
 
@@ -101,13 +120,16 @@ def message_class(type_name: str):
         return getattr(mod, name)
     for suffix, attr in (('_Event', 'Event'), ('_Request', 'Request'), ('_Response', 'Response')):
         if kind == 'srv' and name.endswith(suffix):
-            return getattr(getattr(mod, name[:-len(suffix)]), attr)
+            return getattr(getattr(mod, name[: -len(suffix)]), attr)
     if kind == 'action':
-        for suffix, path in (('_FeedbackMessage', ('Impl', 'FeedbackMessage')),
-                             ('_Feedback', ('Feedback',)), ('_Goal', ('Goal',)),
-                             ('_Result', ('Result',))):
+        for suffix, path in (
+            ('_FeedbackMessage', ('Impl', 'FeedbackMessage')),
+            ('_Feedback', ('Feedback',)),
+            ('_Goal', ('Goal',)),
+            ('_Result', ('Result',)),
+        ):
             if name.endswith(suffix):
-                obj = getattr(mod, name[:-len(suffix)])
+                obj = getattr(mod, name[: -len(suffix)])
                 for a in path:
                     obj = getattr(obj, a)
                 return obj
@@ -120,10 +142,16 @@ def _enum_name(value) -> str:
 
 def _endpoint_qos(info) -> dict:
     q = info.qos_profile
-    return qos_to_dict(_enum_name(q.history), q.depth, _enum_name(q.reliability),
-                       _enum_name(q.durability), q.deadline.nanoseconds,
-                       q.lifespan.nanoseconds, _enum_name(q.liveliness),
-                       q.liveliness_lease_duration.nanoseconds)
+    return qos_to_dict(
+        _enum_name(q.history),
+        q.depth,
+        _enum_name(q.reliability),
+        _enum_name(q.durability),
+        q.deadline.nanoseconds,
+        q.lifespan.nanoseconds,
+        _enum_name(q.liveliness),
+        q.liveliness_lease_duration.nanoseconds,
+    )
 
 
 def _type_hash(info) -> str:
@@ -146,7 +174,7 @@ def run_metadata(command: list[str] | None = None) -> dict[str, str]:
             versions[pkg] = 'not installed'
     return {
         'command': shlex.join(command if command is not None else sys.argv),
-        'started_utc': _dt.datetime.now(_dt.timezone.utc).isoformat(timespec='seconds'),
+        'started_utc': _dt.datetime.now(_dt.UTC).isoformat(timespec='seconds'),
         'host': socket.gethostname(),
         'python': platform.python_version(),
         'ros_distro': os.environ.get('ROS_DISTRO', 'jazzy'),
@@ -165,19 +193,31 @@ class Recorder:
     ``max_chunk_age`` s. :meth:`close` finishes the bag and returns the counts.
     """
 
-    def __init__(self, node: Node, out: Path | str, *, compression: str = 'lz4',
-                 chunk_size: int = 1 << 20, max_chunk_age: float = 0.5,
-                 discovery_period: float = 0.2, extra_metadata: dict[str, dict] | None = None,
-                 command: list[str] | None = None, background_writes: bool = True) -> None:
+    def __init__(
+        self,
+        node: Node,
+        out: Path | str,
+        *,
+        compression: str = 'lz4',
+        chunk_size: int = 1 << 20,
+        max_chunk_age: float = 0.5,
+        discovery_period: float = 0.2,
+        extra_metadata: dict[str, dict] | None = None,
+        command: list[str] | None = None,
+        background_writes: bool = True,
+    ) -> None:
         self.node = node
         self.log = node.get_logger()
         self.out = prepare_bag_dir(Path(out))
         self.file_name = storage_file_name(self.out)
         try:
-            self.writer = McapWriter(self.out / self.file_name, compression=compression,
-                                     chunk_size=chunk_size,
-                                     library=f'im_tuner recorder {_version()}',
-                                     background=background_writes)
+            self.writer = McapWriter(
+                self.out / self.file_name,
+                compression=compression,
+                chunk_size=chunk_size,
+                library=f'im_tuner recorder {_version()}',
+                background=background_writes,
+            )
         except McapWriteError as exc:
             raise RecorderError(str(exc)) from None
         self.compression = compression
@@ -200,15 +240,17 @@ class Recorder:
         for name, data in (extra_metadata or {}).items():
             self.add_metadata(name, data)
         # A provisional metadata.yaml marks the directory as a bag being recorded.
-        write_metadata_yaml(self.out, bag_metadata(
-            [(self.file_name, 0, 0, 0)], [], {'im_tuner.state': 'recording'}))
+        write_metadata_yaml(
+            self.out, bag_metadata([(self.file_name, 0, 0, 0)], [], {'im_tuner.state': 'recording'})
+        )
         self.discover()
 
     # -- topics ------------------------------------------------------------------------
     def add_metadata(self, name: str, data: dict) -> None:
         """An MCAP metadata record (values turned into strings)."""
-        self.writer.add_metadata(name, {str(k): v if isinstance(v, str) else json.dumps(v)
-                                        for k, v in data.items()})
+        self.writer.add_metadata(
+            name, {str(k): v if isinstance(v, str) else json.dumps(v) for k, v in data.items()}
+        )
 
     def discover(self) -> int:
         """Subscribe to topics that appeared; returns how many were added."""
@@ -234,33 +276,41 @@ class Recorder:
             self.log.error(f'cannot record {name}: {self.unrecordable[name]}')
             return False
         reliable = all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
-        transient = all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
-                        for i in infos)
-        qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=0,
-                         reliability=ReliabilityPolicy.RELIABLE if reliable
-                         else ReliabilityPolicy.BEST_EFFORT,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL if transient
-                         else DurabilityPolicy.VOLATILE)
+        transient = all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_ALL,
+            depth=0,
+            reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
+        )
         if type_name not in self._schemas:
             try:
                 encoding, text = schema_for(type_name)
             except MsgDefError as exc:
-                self.log.warning(f'{name}: no message definition ({exc}); recorded without '
-                                 'schema text')
+                self.log.warning(
+                    f'{name}: no message definition ({exc}); recorded without schema text'
+                )
                 encoding, text = 'ros2msg', ''
-            self._schemas[type_name] = self.writer.add_schema(type_name, encoding,
-                                                              text.encode('utf-8'))
+            self._schemas[type_name] = self.writer.add_schema(
+                type_name, encoding, text.encode('utf-8')
+            )
         profiles = [_endpoint_qos(i) for i in infos]
         type_hash = _type_hash(infos[0])
-        channel = self.writer.add_channel(name, self._schemas[type_name], 'cdr', {
-            'offered_qos_profiles': qos_yaml(profiles), 'topic_type_hash': type_hash})
+        channel = self.writer.add_channel(
+            name,
+            self._schemas[type_name],
+            'cdr',
+            {'offered_qos_profiles': qos_yaml(profiles), 'topic_type_hash': type_hash},
+        )
         sub = self.node.create_subscription(cls, name, lambda _m: None, qos, raw=True)
         self.topics[name] = _Topic(name, type_name, channel, sub, reliable, profiles, type_hash)
         self._subs = np.append(self._subs, np.uint64(sub.handle.pointer))
         self._chans = np.append(self._chans, np.int64(channel))
         if not reliable:
-            self.log.warning(f'{name}: a publisher is best-effort; recording best-effort '
-                             '(losses there are counted, not prevented)')
+            self.log.warning(
+                f'{name}: a publisher is best-effort; recording best-effort '
+                '(losses there are counted, not prevented)'
+            )
         return True
 
     def wait_matched(self, timeout: float) -> bool:
@@ -271,8 +321,10 @@ class Recorder:
         deadline = time.monotonic() + timeout
         while True:
             self.discover()
-            if all(self.node.count_publishers(t.name) <= t.sub.get_publisher_count()
-                   for t in self.topics.values()):
+            if all(
+                self.node.count_publishers(t.name) <= t.sub.get_publisher_count()
+                for t in self.topics.values()
+            ):
                 return True
             if time.monotonic() > deadline:
                 return False
@@ -282,9 +334,11 @@ class Recorder:
         for t in self.topics.values():
             missing = self.node.count_publishers(t.name) - t.sub.get_publisher_count()
             if missing > 0 and self.unmatched.get(t.name, 0) < missing:
-                self.log.warning(f'{t.name}: {missing} publisher(s) not matched by the '
-                                 'recorder (incompatible QoS?); their messages are not '
-                                 'recorded')
+                self.log.warning(
+                    f'{t.name}: {missing} publisher(s) not matched by the '
+                    'recorder (incompatible QoS?); their messages are not '
+                    'recorded'
+                )
             if missing > 0:
                 self.unmatched[t.name] = max(self.unmatched.get(t.name, 0), missing)
 
@@ -316,8 +370,18 @@ class Recorder:
         tb = self._take
         while True:
             ch = self.writer.chunk
-            code, n = rcl_take.drain(self._subs, self._chans, tb.ser, tb.info, ch.buf, ch.idx,
-                                     ch.st, self._pubs, self._ctrl, 1 << 40)
+            code, n = rcl_take.drain(
+                self._subs,
+                self._chans,
+                tb.ser,
+                tb.info,
+                ch.buf,
+                ch.idx,
+                ch.st,
+                self._pubs,
+                self._ctrl,
+                1 << 40,
+            )
             total += n
             if code == rcl_take.DONE:
                 break
@@ -327,11 +391,13 @@ class Recorder:
                 self.writer.chunk.grow(MESSAGE_HEADER_BYTES + tb.pending_size)
             elif code == rcl_take.PUBS_FULL:
                 grown = rcl_take.new_publisher_table(2 * self._pubs.shape[0])
-                grown[:self._pubs.shape[0]] = self._pubs
+                grown[: self._pubs.shape[0]] = self._pubs
                 self._pubs = grown
             elif code == rcl_take.ERROR:
-                raise RecorderError(f'rcl_take_serialized_message failed with code '
-                                    f'{int(self._ctrl[rcl_take.C_ERROR])}')
+                raise RecorderError(
+                    f'rcl_take_serialized_message failed with code '
+                    f'{int(self._ctrl[rcl_take.C_ERROR])}'
+                )
         if self.writer.chunk.used >= self.writer.chunk_size:
             self.writer.flush_chunk()
             self._chunk_opened = None
@@ -351,7 +417,7 @@ class Recorder:
                 'recorded': int(np.sum(r[:, rcl_take.P_COUNT])),
                 'published': published if len(r) else 0,
                 'lost': int(np.sum(r[:, rcl_take.P_GAPS])),
-                'publishers': int(len(r)),
+                'publishers': len(r),
                 'published_before_recording': int(np.sum(r[:, rcl_take.P_FIRST] - 1)),
                 'unmatched_publishers': int(self.unmatched.get(t.name, 0)),
             }
@@ -377,16 +443,21 @@ class Recorder:
         self.writer.flush_chunk()
         counts = self.counts()
         lost = sum(c['lost'] for c in counts.values())
-        custom = {'im_tuner.counts': json.dumps(counts, sort_keys=True),
-                  'im_tuner.lost_total': str(lost),
-                  'im_tuner.state': 'closed'}
+        custom = {
+            'im_tuner.counts': json.dumps(counts, sort_keys=True),
+            'im_tuner.lost_total': str(lost),
+            'im_tuner.state': 'closed',
+        }
         if self.unrecordable:
             custom['im_tuner.unrecordable'] = json.dumps(self.unrecordable, sort_keys=True)
         meta = self._metadata(custom)
-        self.writer.add_metadata('rosbag2', {'serialized_metadata': yaml.safe_dump(
-            meta, sort_keys=False), 'ros_distro': 'jazzy'})
-        self.writer.add_metadata('im_tuner.counts', {k: json.dumps(v, sort_keys=True)
-                                                     for k, v in counts.items()})
+        self.writer.add_metadata(
+            'rosbag2',
+            {'serialized_metadata': yaml.safe_dump(meta, sort_keys=False), 'ros_distro': 'jazzy'},
+        )
+        self.writer.add_metadata(
+            'im_tuner.counts', {k: json.dumps(v, sort_keys=True) for k, v in counts.items()}
+        )
         self.writer.close()
         write_metadata_yaml(self.out, meta)
         self._destroy_subscriptions()
@@ -395,18 +466,24 @@ class Recorder:
 
     def _metadata(self, custom: dict[str, str]) -> dict:
         w = self.writer
-        topics = [TopicRecord(t.name, t.type, w.channel_counts.get(t.channel, 0),
-                              t.qos_profiles, t.type_hash) for t in self.topics.values()]
-        return bag_metadata([(self.file_name, w.t_start or 0, w.t_end or 0, w.message_count)],
-                            topics, custom)
+        topics = [
+            TopicRecord(
+                t.name, t.type, w.channel_counts.get(t.channel, 0), t.qos_profiles, t.type_hash
+            )
+            for t in self.topics.values()
+        ]
+        return bag_metadata(
+            [(self.file_name, w.t_start or 0, w.t_end or 0, w.message_count)], topics, custom
+        )
 
     def _log_counts(self, counts: dict) -> None:
-        lines = [f'bag {self.out}: {self.writer.message_count} messages on '
-                 f'{len(counts)} topics']
+        lines = [f'bag {self.out}: {self.writer.message_count} messages on {len(counts)} topics']
         for name, c in sorted(counts.items()):
             flag = '' if c['lost'] == 0 and c['unmatched_publishers'] == 0 else '   <-- LOST'
-            lines.append(f'  {name}: recorded {c["recorded"]} / published {c["published"]}, '
-                         f'lost {c["lost"]}{flag}')
+            lines.append(
+                f'  {name}: recorded {c["recorded"]} / published {c["published"]}, '
+                f'lost {c["lost"]}{flag}'
+            )
         for name, why in self.unrecordable.items():
             lines.append(f'  {name}: NOT RECORDED ({why})')
         self.log.info('\n'.join(lines))
@@ -415,10 +492,8 @@ class Recorder:
         self._subs = np.zeros(0, np.uint64)
         self._chans = np.zeros(0, np.int64)
         for t in self.topics.values():
-            try:
+            with contextlib.suppress(Exception):
                 self.node.destroy_subscription(t.sub)
-            except Exception:  # noqa: BLE001 - context may already be shut down
-                pass
         self._take.close()
 
 
@@ -437,21 +512,42 @@ def _parser() -> argparse.ArgumentParser:
     ap = Parser(
         prog='ros2 run im_tuner recorder',
         description='Record every topic on the ROS graph to a rosbag2 MCAP bag, losslessly '
-                    '(reliable KEEP_ALL, per-topic published/recorded/lost counts).')
-    ap.add_argument('--out', metavar='DIR', type=Path,
-                    help='bag directory to create (default: bags/recording_<UTC time>)')
-    ap.add_argument('--compression', choices=('none', 'zstd', 'lz4'), default='lz4',
-                    help='MCAP chunk compression (default: lz4, the cheapest; zstd: smaller files)')
-    ap.add_argument('--chunk-size', type=int_in(*CHUNK_SIZE_RANGE), default=1 << 20,
-                    metavar='BYTES', help='close chunks at this size (default 1 MiB; '
-                    f'{CHUNK_SIZE_RANGE[0]} to {CHUNK_SIZE_RANGE[1]})')
-    ap.add_argument('--max-chunk-age', type=finite_float(0.0, 3600.0, lo_open=True, unit='s'),
-                    default=0.5, metavar='S',
-                    help='close a chunk after this many seconds at most: bounds what a '
-                         'SIGKILL loses (default 0.5)')
-    ap.add_argument('--repair', metavar='DIR', type=Path,
-                    help='repair a bag left by a crash (rewrite summary, index and '
-                         'metadata.yaml), then exit')
+        '(reliable KEEP_ALL, per-topic published/recorded/lost counts).',
+    )
+    ap.add_argument(
+        '--out',
+        metavar='DIR',
+        type=Path,
+        help='bag directory to create (default: bags/recording_<UTC time>)',
+    )
+    ap.add_argument(
+        '--compression',
+        choices=('none', 'zstd', 'lz4'),
+        default='lz4',
+        help='MCAP chunk compression (default: lz4, the cheapest; zstd: smaller files)',
+    )
+    ap.add_argument(
+        '--chunk-size',
+        type=int_in(*CHUNK_SIZE_RANGE),
+        default=1 << 20,
+        metavar='BYTES',
+        help='close chunks at this size (default 1 MiB; '
+        f'{CHUNK_SIZE_RANGE[0]} to {CHUNK_SIZE_RANGE[1]})',
+    )
+    ap.add_argument(
+        '--max-chunk-age',
+        type=finite_float(0.0, 3600.0, lo_open=True, unit='s'),
+        default=0.5,
+        metavar='S',
+        help='close a chunk after this many seconds at most: bounds what a '
+        'SIGKILL loses (default 0.5)',
+    )
+    ap.add_argument(
+        '--repair',
+        metavar='DIR',
+        type=Path,
+        help='repair a bag left by a crash (rewrite summary, index and metadata.yaml), then exit',
+    )
     return ap
 
 
@@ -464,6 +560,7 @@ def main(args: list[str] | None = None) -> int:
         return 2
     if cli.repair is not None:
         from .mcap_repair import RepairError, repair_bag
+
         try:
             report = repair_bag(cli.repair)
         except RepairError as exc:
@@ -474,13 +571,16 @@ def main(args: list[str] | None = None) -> int:
     out = cli.out if cli.out is not None else default_out_dir()
     # A short DDS lease, so that writers forget a killed recorder within about a second
     # instead of blocking on it (config/recorder_fastdds.xml says why).
-    os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE',
-                          str(Path(__file__).with_name('config') / 'recorder_fastdds.xml'))
+    os.environ.setdefault(
+        'FASTRTPS_DEFAULT_PROFILES_FILE',
+        str(Path(__file__).with_name('config') / 'recorder_fastdds.xml'),
+    )
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     stop = {'sig': None}
 
     def _on_signal(signum, _frame) -> None:
         stop['sig'] = signum
+
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
     node = None
@@ -488,8 +588,14 @@ def main(args: list[str] | None = None) -> int:
     try:
         node = Node('recorder', start_parameter_services=False)
         try:
-            rec = Recorder(node, out, compression=cli.compression, chunk_size=cli.chunk_size,
-                           max_chunk_age=cli.max_chunk_age, command=argv)
+            rec = Recorder(
+                node,
+                out,
+                compression=cli.compression,
+                chunk_size=cli.chunk_size,
+                max_chunk_age=cli.max_chunk_age,
+                command=argv,
+            )
         except (BagError, RecorderError) as exc:
             print(f'error: recorder: {exc}', file=sys.stderr)
             return 2

@@ -27,16 +27,20 @@ results record (docs/interfaces.md: state k is at sim time k Ts).
 
 No rclpy here: the report runs without a ROS graph.
 """
+
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import datetime as _dt
+import itertools
 import json
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -47,22 +51,72 @@ from .bagread import BagData, BagReadError, read_bag
 from .rundir import RunDir, RunDirError
 from .tuning import summarize, tally_all
 
-__all__ = ['ReportError', 'Experiment', 'RunReport', 'load_run', 'summary_text', 'write_csv',
-           'read_csv', 'CSV_COLUMNS', 'make_figures', 'write_report', 'main']
+__all__ = [
+    'CSV_COLUMNS',
+    'Experiment',
+    'ReportError',
+    'RunReport',
+    'load_run',
+    'main',
+    'make_figures',
+    'read_csv',
+    'summary_text',
+    'write_csv',
+    'write_report',
+]
 
 EXIT_USAGE = 2
 INTERNALS_TOPIC = '/controller/internals'
 LOSS_TOPIC = '/controller/loss'
 #: Columns of evaluations.csv, in order (units in docs/tuner.md).
 CSV_COLUMNS: tuple[str, ...] = (
-    'run', 'kind', 'eval', 'attempt', 'status', 'loss', 'best_loss', 'term1', 'term2',
-    'term3', *GAIN_NAMES, *(f'u{i}' for i in range(len(GAIN_NAMES))), 'aborted', 'reason',
-    'fault', 'experiment_id', 'direction', 'steps', 'trip_step', 't_start_ns', 't_end_ns',
-    'sim_s', 'wall_s', 'time', 'bag')
-_INT_COLS = ('eval', 'attempt', 'experiment_id', 'direction', 'steps', 'trip_step',
-             't_start_ns', 't_end_ns')
-_FLOAT_COLS = ('loss', 'best_loss', 'term1', 'term2', 'term3', *GAIN_NAMES,
-               *(f'u{i}' for i in range(len(GAIN_NAMES))), 'sim_s', 'wall_s')
+    'run',
+    'kind',
+    'eval',
+    'attempt',
+    'status',
+    'loss',
+    'best_loss',
+    'term1',
+    'term2',
+    'term3',
+    *GAIN_NAMES,
+    *(f'u{i}' for i in range(len(GAIN_NAMES))),
+    'aborted',
+    'reason',
+    'fault',
+    'experiment_id',
+    'direction',
+    'steps',
+    'trip_step',
+    't_start_ns',
+    't_end_ns',
+    'sim_s',
+    'wall_s',
+    'time',
+    'bag',
+)
+_INT_COLS = (
+    'eval',
+    'attempt',
+    'experiment_id',
+    'direction',
+    'steps',
+    'trip_step',
+    't_start_ns',
+    't_end_ns',
+)
+_FLOAT_COLS = (
+    'loss',
+    'best_loss',
+    'term1',
+    'term2',
+    'term3',
+    *GAIN_NAMES,
+    *(f'u{i}' for i in range(len(GAIN_NAMES))),
+    'sim_s',
+    'wall_s',
+)
 _BOOL_COLS = ('aborted', 'fault')
 FIGURES = ('fig5_trajectory', 'fig8_best_vs_start', 'fig9_loss', 'fig9_gains')
 
@@ -76,10 +130,10 @@ class ReportError(Exception):
 class Experiment:
     """The per-step signals of one experiment, from ``controller/internals``."""
 
-    record: dict[str, Any]          #: its results.jsonl record
-    bag: str                        #: the bag it was read from
-    t: np.ndarray                   #: time since the experiment's first step [s]
-    k: np.ndarray                   #: drive step index
+    record: dict[str, Any]  #: its results.jsonl record
+    bag: str  #: the bag it was read from
+    t: np.ndarray  #: time since the experiment's first step [s]
+    k: np.ndarray  #: drive step index
     signals: dict[str, np.ndarray]  #: INTERNALS_FIELDS name -> values
 
     @property
@@ -96,16 +150,16 @@ class RunReport:
     run: dict[str, Any]
     records: list[dict[str, Any]]
     summary: dict[str, Any]
-    summary_source: str                   #: 'summary.json' or 'results.jsonl'
+    summary_source: str  #: 'summary.json' or 'results.jsonl'
     bags: list[BagData] = field(default_factory=list)
     bag_errors: list[str] = field(default_factory=list)
     record_bag: list[str | None] = field(default_factory=list)  #: session bag per record
-    reference: Experiment | None = None   #: the start controller's experiment
-    best: Experiment | None = None        #: the best evaluation's experiment
+    reference: Experiment | None = None  #: the start controller's experiment
+    best: Experiment | None = None  #: the best evaluation's experiment
     consecutive: list[Experiment] = field(default_factory=list)  #: two, for Fig. 5
-    missing: list[str] = field(default_factory=list)   #: experiments not found in a bag
+    missing: list[str] = field(default_factory=list)  #: experiments not found in a bag
     loss_check: dict[str, int] = field(default_factory=dict)
-    live: str | None = None               #: the tuner working on the run now, if any
+    live: str | None = None  #: the tuner working on the run now, if any
 
     @property
     def evals(self) -> list[dict[str, Any]]:
@@ -116,25 +170,30 @@ class RunReport:
 def _session_bags(sessions: list[dict[str, Any]], n_records: int) -> list[str | None]:
     """The bag name of each record's session (None when the run did not say)."""
     out: list[str | None] = [None] * n_records
-    starts = sorted([(int(s.get('first_record', 0)), s.get('bag')) for s in sessions]
-                    # a recorder that died mid-session was replaced by one in a new bag
-                    + [(int(b['first_record']), b['bag']) for s in sessions
-                       for b in s.get('more_bags', [])])
+    starts = sorted(
+        [(int(s.get('first_record', 0)), s.get('bag')) for s in sessions]
+        # a recorder that died mid-session was replaced by one in a new bag
+        + [(int(b['first_record']), b['bag']) for s in sessions for b in s.get('more_bags', [])]
+    )
     for first, bag in starts:
         for i in range(first, n_records):
             out[i] = bag
     return out
 
 
-def load_run(path: Path | str, label: str | None = None, signals: bool = True,
-             progress: Callable[[str], None] | None = None) -> RunReport:
+def load_run(
+    path: Path | str,
+    label: str | None = None,
+    signals: bool = True,
+    progress: Callable[[str], None] | None = None,
+) -> RunReport:
     """Read one run directory (and, with ``signals``, its bags).
 
     Raises :class:`ReportError` when ``path`` is not a tuning run."""
     try:
         rd = RunDir.open(path)
         run = rd.read_run()
-        records = rd.read_results(repair=False)   # a torn last line is left alone
+        records = rd.read_results(repair=False)  # a torn last line is left alone
     except RunDirError as exc:
         raise ReportError(str(exc)) from None
     try:
@@ -145,28 +204,39 @@ def load_run(path: Path | str, label: str | None = None, signals: bool = True,
     sat = float(run.get('satisfactory_loss', 0.0))
     st = tally_all(records, sat)
     saved = None
-    try:
+    with contextlib.suppress(OSError, ValueError):
         saved = json.loads((rd.path / 'summary.json').read_text())
-    except (OSError, ValueError):
-        pass
-    if saved is not None and saved.get('evaluations') == st.evals \
-            and saved.get('experiments') == st.experiments:
+    if (
+        saved is not None
+        and saved.get('evaluations') == st.evals
+        and saved.get('experiments') == st.experiments
+    ):
         summary, source = saved, 'summary.json'
     else:
         # killed (no summary, or the one of an earlier session): rebuild from the records
-        sessions = (ck or {}).get('tuner', {}).get('sessions') or \
-            (saved or {}).get('sessions') or []
+        sessions = (
+            (ck or {}).get('tuner', {}).get('sessions') or (saved or {}).get('sessions') or []
+        )
         st.sessions = sessions
-        outcome = (f'running (a tuner has it: {live}); a snapshot of the records so far'
-                   if live else 'interrupted (killed: no final summary)')
-        summary = summarize(st, records, budget=int(run.get('budget', 0)),
-                            satisfactory_loss=sat, outcome=outcome, wall_s=None)
+        outcome = (
+            f'running (a tuner has it: {live}); a snapshot of the records so far'
+            if live
+            else 'interrupted (killed: no final summary)'
+        )
+        summary = summarize(
+            st,
+            records,
+            budget=int(run.get('budget', 0)),
+            satisfactory_loss=sat,
+            outcome=outcome,
+            wall_s=None,
+        )
         summary['loop_wall_s'] = sum(float(r.get('wall_s') or 0.0) for r in records)
-        summary['real_time_factor'] = (summary['sim_s'] / summary['loop_wall_s']
-                                       if summary['loop_wall_s'] > 0 else None)
+        summary['real_time_factor'] = (
+            summary['sim_s'] / summary['loop_wall_s'] if summary['loop_wall_s'] > 0 else None
+        )
         source = 'results.jsonl'
-    rr = RunReport(rd.path, label or rd.path.name, run, records, summary, source,
-                   live=live)
+    rr = RunReport(rd.path, label or rd.path.name, run, records, summary, source, live=live)
     rr.record_bag = _session_bags(summary.get('sessions') or [], len(records))
     if signals:
         _load_signals(rr, progress)
@@ -191,8 +261,7 @@ def _window(rec: dict[str, Any]) -> tuple[int, int] | None:
 def _wanted(rr: RunReport) -> dict[str, int]:
     """Which records' signals the figures need: name -> record index."""
     want: dict[str, int] = {}
-    ran = [i for i, r in enumerate(rr.records)
-           if r['status'] != 'lost' and _window(r) is not None]
+    ran = [i for i, r in enumerate(rr.records) if r['status'] != 'lost' and _window(r) is not None]
     for i in ran:
         if rr.records[i]['kind'] == 'reference':
             want['reference'] = i
@@ -205,7 +274,7 @@ def _wanted(rr: RunReport) -> dict[str, int]:
                 want['best'] = i
                 break
     # Fig. 5: the first two experiments that ran back to back in one session
-    for a, b in zip(ran, ran[1:]):
+    for a, b in itertools.pairwise(ran):
         ra, rb = rr.records[a], rr.records[b]
         if rr.record_bag[a] == rr.record_bag[b] and ra['t_end_ns'] == rb['t_start_ns']:
             want['consecutive0'], want['consecutive1'] = a, b
@@ -224,8 +293,9 @@ def _load_signals(rr: RunReport, progress: Callable[[str], None] | None = None) 
             rr.bags.append(read_bag(bag_dir, {INTERNALS_TOPIC: windows}, LOSS_TOPIC))
         except (BagReadError, OSError) as exc:
             rr.bag_errors.append(f'{bag_dir.name}: {exc}')
-    fields = tuple((rr.run.get('controller_parameters') or {}).get('internals_fields')
-                   or INTERNALS_FIELDS)
+    fields = tuple(
+        (rr.run.get('controller_parameters') or {}).get('internals_fields') or INTERNALS_FIELDS
+    )
     found: dict[str, Experiment] = {}
     for name, i in want.items():
         exp = _experiment(rr, i, fields)
@@ -245,8 +315,11 @@ def _load_signals(rr: RunReport, progress: Callable[[str], None] | None = None) 
 def _experiment(rr: RunReport, i: int, fields: tuple[str, ...]) -> Experiment | None:
     """Record ``i``'s signals from its session's bag (else any bag that has them all)."""
     rec = rr.records[i]
-    k0, k1 = _window(rec)
-    ts = _ts_ns(rec) * 1e-9
+    win, ts_ns = _window(rec), _ts_ns(rec)
+    if win is None or ts_ns is None:  # no drive timeline in the record
+        return None
+    k0, k1 = win
+    ts = ts_ns * 1e-9
     own = rr.record_bag[i]
     for bag in sorted(rr.bags, key=lambda b: b.path.name != own):
         a = bag.arrays.get(INTERNALS_TOPIC)
@@ -258,7 +331,7 @@ def _experiment(rr: RunReport, i: int, fields: tuple[str, ...]) -> Experiment | 
         rows = rows[np.argsort(rows[:, 0], kind='stable')]
         sig = {n: rows[:, j] for j, n in enumerate(fields)}
         if 'exp_step' in sig and np.any(sig['exp_step'] < 0):
-            continue    # hold rows: not this experiment
+            continue  # hold rows: not this experiment
         return Experiment(rec, bag.path.name, (rows[:, 0] - k0) * ts, rows[:, 0], sig)
     return None
 
@@ -269,18 +342,21 @@ def _check_losses(rr: RunReport) -> dict[str, int]:
     experiments, bit for bit, so a message the kill cut off is found in the replay)."""
     by_bag: dict[str, dict[tuple[str, str], str]] = {}
     for bag in rr.bags:
-        by_bag[bag.path.name] = {(m.get('experiment_id', ''), m.get('t_start_ns', '')):
-                                 m.get('loss', '') for m in bag.losses}
+        by_bag[bag.path.name] = {
+            (m.get('experiment_id', ''), m.get('t_start_ns', '')): m.get('loss', '')
+            for m in bag.losses
+        }
     out = {'matched': 0, 'differ': 0, 'missing': 0, 'elsewhere': 0}
-    for rec, bag in zip(rr.records, rr.record_bag):
+    for rec, bag_name in zip(rr.records, rr.record_bag, strict=True):
         if rec['status'] == 'lost' or rec.get('experiment_id') is None:
             continue
         key = (str(rec['experiment_id']), str(rec['t_start_ns']))
-        got = by_bag.get(bag, {}).get(key)
+        got = by_bag.get(bag_name, {}).get(key) if bag_name is not None else None
         if got is None:
-            got = next((c[key] for name, c in by_bag.items() if key in c and name != bag),
-                       None)
-            out['elsewhere'] += got is not None and bag is not None
+            got = next(
+                (c[key] for name, c in by_bag.items() if key in c and name != bag_name), None
+            )
+            out['elsewhere'] += got is not None and bag_name is not None
         if got is None:
             out['missing'] += 1
         elif float(got) == rec['loss']:
@@ -303,74 +379,109 @@ def _options_text(run: dict[str, Any]) -> str:
 def summary_text(rr: RunReport) -> str:
     """The printed summary of one run (see the module docstring)."""
     s, run = rr.summary, rr.run
-    L = [f'run {rr.path}: {run.get("algo")} ({_options_text(run)}), seed {run.get("seed")}, '
-         f'budget {run.get("budget")}, bench {run.get("bench")}']
-    L.append(f'  outcome: {s["outcome"]}; {s["evaluations"]}/{s["budget"]} evaluations, '
-             f'{s["experiments"]} experiments' + ('' if rr.summary_source == 'summary.json'
-                                                  else ' (from results.jsonl)'))
+    L = [
+        f'run {rr.path}: {run.get("algo")} ({_options_text(run)}), seed {run.get("seed")}, '
+        f'budget {run.get("budget")}, bench {run.get("bench")}'
+    ]
+    L.append(
+        f'  outcome: {s["outcome"]}; {s["evaluations"]}/{s["budget"]} evaluations, '
+        f'{s["experiments"]} experiments'
+        + ('' if rr.summary_source == 'summary.json' else ' (from results.jsonl)')
+    )
     ref = s.get('reference')
     if ref is not None:
-        L.append(f'  start (hand-tuned) loss: {ref["loss"]:.4f}'
-                 + (' (aborted)' if ref['aborted'] else '') + f': {_gains_text(ref["gains"])}')
+        L.append(
+            f'  start (hand-tuned) loss: {ref["loss"]:.4f}'
+            + (' (aborted)' if ref['aborted'] else '')
+            + f': {_gains_text(ref["gains"])}'
+        )
     b = s.get('best')
     if b is not None:
-        rm = f', re-measured {b["remeasured_loss"]:.4f}' \
-            if b.get('remeasured_loss') is not None else ''
+        rm = (
+            f', re-measured {b["remeasured_loss"]:.4f}'
+            if b.get('remeasured_loss') is not None
+            else ''
+        )
         L.append(f'  best loss: {b["loss"]:.4f} (evaluation {b["eval"]}{rm})')
         L.append(f'  best gains: {_gains_text(b["gains"])}')
     else:
         L.append('  best loss: none (no evaluation completed without abort)')
     a = s.get('applied')
     if a is not None and (b is None or a['eval'] != b['eval']):
-        L.append('  applied at the end: ' + ('the start gains' if a['source'] == 'reference'
-                                              else f'evaluation {a["eval"]} (loss '
-                                              f'{a["loss"]:.4f})'))
+        L.append(
+            '  applied at the end: '
+            + (
+                'the start gains'
+                if a['source'] == 'reference'
+                else f'evaluation {a["eval"]} (loss {a["loss"]:.4f})'
+            )
+        )
     sat = s.get('evaluations_to_satisfactory')
-    L.append(f'  satisfactory (loss <= {s["satisfactory_loss"]:g}): '
-             + (f'after {sat} evaluations' if sat else 'not reached'))
-    L.append(f'  aborted experiments: {s["aborted"]} of {s["evaluations"]} evaluations '
-             f'(safety faults {s["safety_faults"]}); lost results re-run: {s["lost"]}')
+    L.append(
+        f'  satisfactory (loss <= {s["satisfactory_loss"]:g}): '
+        + (f'after {sat} evaluations' if sat else 'not reached')
+    )
+    L.append(
+        f'  aborted experiments: {s["aborted"]} of {s["evaluations"]} evaluations '
+        f'(safety faults {s["safety_faults"]}); lost results re-run: {s["lost"]}'
+    )
     rtf = s.get('real_time_factor')
     wall = f'wall time {s["wall_s"]:.1f} s, ' if s.get('wall_s') is not None else ''
-    L.append(f'  {wall}simulated experiment time {s["sim_s"]:.1f} s'
-             + (f', real-time factor {rtf:.2f}' if rtf else ''))
+    L.append(
+        f'  {wall}simulated experiment time {s["sim_s"]:.1f} s'
+        + (f', real-time factor {rtf:.2f}' if rtf else '')
+    )
     for bag in rr.bags:
         L.extend(_bag_lines(bag, live=rr.live is not None))
-    for e in rr.bag_errors:
-        L.append(f'  bag {e}')
+    L.extend(f'  bag {e}' for e in rr.bag_errors)
     if not rr.bags and not rr.bag_errors:
         L.append('  no bag (run with --no-record?)')
     if rr.loss_check and rr.bags:
         c = rr.loss_check
-        L.append(f'  losses in the bags vs results.jsonl: {c["matched"]} equal'
-                 + (f' ({c["elsewhere"]} found only in a later session\'s replay)'
-                    if c.get('elsewhere') else '')
-                 + (f', {c["differ"]} DIFFER' if c['differ'] else '')
-                 + (f', {c["missing"]} not in a bag' if c['missing'] else ''))
-    for m in rr.missing:
-        L.append(f'  no signals in the bags for {m}: its plot is left out')
+        L.append(
+            f'  losses in the bags vs results.jsonl: {c["matched"]} equal'
+            + (
+                f" ({c['elsewhere']} found only in a later session's replay)"
+                if c.get('elsewhere')
+                else ''
+            )
+            + (f', {c["differ"]} DIFFER' if c['differ'] else '')
+            + (f', {c["missing"]} not in a bag' if c['missing'] else '')
+        )
+    L.extend(f'  no signals in the bags for {m}: its plot is left out' for m in rr.missing)
     return '\n'.join(L)
 
 
 def _bag_lines(bag: BagData, live: bool = False) -> list[str]:
     t0, t1 = bag.t_range_ns
-    when = _dt.datetime.fromtimestamp(t0 * 1e-9, _dt.timezone.utc).strftime(
-        '%Y-%m-%d %H:%M:%S UTC') if t0 else '-'
+    when = (
+        _dt.datetime.fromtimestamp(t0 * 1e-9, _dt.UTC).strftime('%Y-%m-%d %H:%M:%S UTC')
+        if t0
+        else '-'
+    )
     if bag.complete:
         state = 'closed' if bag.state == 'closed' else f'complete ({bag.state})'
     elif live and bag.state == 'recording':
-        state = (f'being recorded (the run is live; {bag.unread_bytes} bytes after the last '
-                 'complete chunk not read yet)')
+        state = (
+            f'being recorded (the run is live; {bag.unread_bytes} bytes after the last '
+            'complete chunk not read yet)'
+        )
     else:
-        state = (f'NOT CLOSED (recorder killed; {bag.unread_bytes} bytes after the last '
-                 'complete chunk not read; --resume repairs it)')
-    L = [f'  {bag.path.name}: {state}; {bag.messages} messages in {bag.chunks} chunks, '
-         f'{(t1 - t0) * 1e-9:.1f} s from {when}']
+        state = (
+            f'NOT CLOSED (recorder killed; {bag.unread_bytes} bytes after the last '
+            'complete chunk not read; --resume repairs it)'
+        )
+    L = [
+        f'  {bag.path.name}: {state}; {bag.messages} messages in {bag.chunks} chunks, '
+        f'{(t1 - t0) * 1e-9:.1f} s from {when}'
+    ]
     rc = bag.recorder_counts
     w = max([len(n) for n in bag.topics] + [5])
     wt = max([len(t.type) for t in bag.topics.values()] + [4])
-    L.append(f'    {"topic":<{w}}  {"type":<{wt}} {"messages":>9} {"wall rate":>10}  '
-             'recorded / published')
+    L.append(
+        f'    {"topic":<{w}}  {"type":<{wt}} {"messages":>9} {"wall rate":>10}  '
+        'recorded / published'
+    )
     empty = []
     for name in sorted(bag.topics):
         t = bag.topics[name]
@@ -384,8 +495,7 @@ def _bag_lines(bag: BagData, live: bool = False) -> list[str]:
             c = rc[name]
             check = f'{c["recorded"]} / {c["published"]}'
             if c['lost'] or c['recorded'] != t.count:
-                check += f'  <-- LOST {c["lost"]}' if c['lost'] else \
-                    f'  <-- file has {t.count}'
+                check += f'  <-- LOST {c["lost"]}' if c['lost'] else f'  <-- file has {t.count}'
             elif c.get('published_before_recording'):
                 check += f' (+{c["published_before_recording"]} before recording began)'
             else:
@@ -400,15 +510,18 @@ def _bag_lines(bag: BagData, live: bool = False) -> list[str]:
 def _best_so_far(records: list[dict[str, Any]]) -> list[float | None]:
     best, out = None, []
     for r in records:
-        if r['kind'] == 'eval' and r['status'] == 'ok' and not r['aborted'] and \
-                (best is None or r['loss'] < best):
+        if (
+            r['kind'] == 'eval'
+            and r['status'] == 'ok'
+            and not r['aborted']
+            and (best is None or r['loss'] < best)
+        ):
             best = r['loss']
         out.append(best if r['kind'] == 'eval' else None)
     return out
 
 
-def _csv_row(rr: RunReport, rec: dict[str, Any], best: float | None, bag: str | None
-             ) -> list[str]:
+def _csv_row(rr: RunReport, rec: dict[str, Any], best: float | None, bag: str | None) -> list[str]:
     def f(v: Any) -> str:
         if v is None:
             return ''
@@ -417,11 +530,19 @@ def _csv_row(rr: RunReport, rec: dict[str, Any], best: float | None, bag: str | 
         if isinstance(v, float):
             return repr(v)
         return str(v)
+
     terms = rec.get('terms') or [None] * 3
     u = rec.get('u') or [None] * len(GAIN_NAMES)
-    vals = {'run': rr.label, 'best_loss': best, 'term1': terms[0], 'term2': terms[1],
-            'term3': terms[2], **(rec.get('gains') or {}),
-            **{f'u{i}': x for i, x in enumerate(u)}, 'bag': bag}
+    vals = {
+        'run': rr.label,
+        'best_loss': best,
+        'term1': terms[0],
+        'term2': terms[1],
+        'term3': terms[2],
+        **(rec.get('gains') or {}),
+        **{f'u{i}': x for i, x in enumerate(u)},
+        'bag': bag,
+    }
     return [f(vals[c]) if c in vals else f(rec.get(c)) for c in CSV_COLUMNS]
 
 
@@ -432,7 +553,9 @@ def write_csv(runs: list[RunReport], path: Path) -> int:
         w = csv.writer(f)
         w.writerow(CSV_COLUMNS)
         for rr in runs:
-            for rec, best, bag in zip(rr.records, _best_so_far(rr.records), rr.record_bag):
+            for rec, best, bag in zip(
+                rr.records, _best_so_far(rr.records), rr.record_bag, strict=True
+            ):
                 w.writerow(_csv_row(rr, rec, best, bag))
                 n += 1
     return n
@@ -465,6 +588,7 @@ _START_COLOR = 'black'
 
 def _colors(n: int) -> list:
     import matplotlib
+
     cmap = matplotlib.colormaps['tab10']
     return [cmap(i % 10) for i in range(n)]
 
@@ -478,33 +602,62 @@ def _load_step(rr: RunReport) -> float | None:
 def fig5(runs: list[RunReport]):
     """Position reference and load torque of two consecutive experiments (paper Fig. 5)."""
     from matplotlib.figure import Figure
+
     fig = Figure(figsize=(8, 5.5), layout='constrained')
     ax_p, ax_l = fig.subplots(2, 1, sharex=True)
     rr = next((r for r in runs if r.consecutive), None)
     if rr is None:
-        ax_p.text(0.5, 0.5, 'no two consecutive experiments in the bags', ha='center',
-                  va='center', transform=ax_p.transAxes)
+        ax_p.text(
+            0.5,
+            0.5,
+            'no two consecutive experiments in the bags',
+            ha='center',
+            va='center',
+            transform=ax_p.transAxes,
+        )
     else:
         e0 = rr.consecutive[0]
         t_ref = e0.record['t_start_ns'] * 1e-9
         th0 = e0.signals['theta_ref'][0]
         for j, e in enumerate(rr.consecutive):
             t = e.t + (e.record['t_start_ns'] * 1e-9 - t_ref)
-            what = 'start gains' if e.record['kind'] == 'reference' else \
-                f'evaluation {e.record["eval"]}'
-            ax_p.plot(t, e.signals['theta_ref'] - th0, color='C0', lw=1.5,
-                      label='position reference' if j == 0 else None, gid=f'theta_ref:{j}')
-            ax_l.plot(t, e.signals['load_cmd'], color='C3', lw=1.5,
-                      label='load torque' if j == 0 else None, gid=f'load:{j}')
+            what = (
+                'start gains'
+                if e.record['kind'] == 'reference'
+                else f'evaluation {e.record["eval"]}'
+            )
+            ax_p.plot(
+                t,
+                e.signals['theta_ref'] - th0,
+                color='C0',
+                lw=1.5,
+                label='position reference' if j == 0 else None,
+                gid=f'theta_ref:{j}',
+            )
+            ax_l.plot(
+                t,
+                e.signals['load_cmd'],
+                color='C3',
+                lw=1.5,
+                label='load torque' if j == 0 else None,
+                gid=f'load:{j}',
+            )
             for ax in (ax_p, ax_l):
                 ax.axvline(t[0], color='grey', lw=0.8, ls=':')
-            ax_p.annotate(f'experiment {e.record["experiment_id"]}\n({what})', (t[0], 0),
-                          xytext=(4, -4), textcoords='offset points', va='top', fontsize=8)
-        ax_p.set_title(f'{rr.label}: position reference and load torque of two consecutive '
-                       'experiments')
+            ax_p.annotate(
+                f'experiment {e.record["experiment_id"]}\n({what})',
+                (t[0], 0),
+                xytext=(4, -4),
+                textcoords='offset points',
+                va='top',
+                fontsize=8,
+            )
+        ax_p.set_title(
+            f'{rr.label}: position reference and load torque of two consecutive experiments'
+        )
     ax_p.set_ylabel('position reference θ* − θ*(0) [rad]')
     ax_l.set_ylabel('load torque [N m]')
-    ax_l.set_xlabel('sim time from the first experiment\'s start [s]')
+    ax_l.set_xlabel("sim time from the first experiment's start [s]")
     for ax in (ax_p, ax_l):
         ax.grid(True, alpha=0.3)
     return fig
@@ -515,84 +668,169 @@ def fig8(runs: list[RunReport]):
 
     Signals of a negative move are multiplied by -1 so that every move reads as positive."""
     from matplotlib.figure import Figure
+
     fig = Figure(figsize=(8, 8), layout='constrained')
     axes = fig.subplots(3, 1, sharex=True)
-    panels = (('e_theta', 'position error [rad]'), ('e_omega', 'speed error [rad/s]'),
-              ('isq_ref', 'current reference i*sq [A]'))
+    panels = (
+        ('e_theta', 'position error [rad]'),
+        ('e_omega', 'speed error [rad/s]'),
+        ('isq_ref', 'current reference i*sq [A]'),
+    )
     curves: list[tuple[str, str, Experiment, Any, float, str]] = []
     starts: dict[tuple[float, ...], tuple[RunReport, Experiment]] = {}
-    for rr in runs:   # runs from the same start gains share one start curve
+    for rr in runs:  # runs from the same start gains share one start curve
         e = rr.reference
         if e is not None:
             starts.setdefault(tuple(e.record['gains'][n] for n in GAIN_NAMES), (rr, e))
-    for j, (rr, e) in enumerate(starts.values()):   # several different starts: dashes
-        curves.append((f'start:{rr.label}', f'start gains (loss {e.record["loss"]:.3f}'
-                       + (', aborted)' if e.record['aborted'] else ')')
-                       + ('' if len(starts) == 1 else f', {rr.label}'), e, _START_COLOR, 1.0,
-                       ('-', '--', ':', '-.')[j % 4]))
-    for rr, c in zip(runs, _colors(len(runs))):
+    for j, (rr, e) in enumerate(starts.values()):  # several different starts: dashes
+        curves.append(
+            (
+                f'start:{rr.label}',
+                f'start gains (loss {e.record["loss"]:.3f}'
+                + (', aborted)' if e.record['aborted'] else ')')
+                + ('' if len(starts) == 1 else f', {rr.label}'),
+                e,
+                _START_COLOR,
+                1.0,
+                ('-', '--', ':', '-.')[j % 4],
+            )
+        )
+    for rr, c in zip(runs, _colors(len(runs)), strict=True):
         e = rr.best
         if e is not None:
-            curves.append((f'best:{rr.label}', f'{rr.label} best: evaluation '
-                           f'{e.record["eval"]} (loss {e.record["loss"]:.3f})', e, c, 1.4, '-'))
+            curves.append(
+                (
+                    f'best:{rr.label}',
+                    f'{rr.label} best: evaluation {e.record["eval"]} (loss {e.record["loss"]:.3f})',
+                    e,
+                    c,
+                    1.4,
+                    '-',
+                )
+            )
     for gid, label, e, color, lw, ls in curves:
-        for ax, (name, _yl) in zip(axes, panels):
-            ax.plot(e.t, e.direction * e.signals[name], color=color, lw=lw, ls=ls, label=label,
-                    gid=f'{name}:{gid}')
+        for ax, (name, _yl) in zip(axes, panels, strict=True):
+            ax.plot(
+                e.t,
+                e.direction * e.signals[name],
+                color=color,
+                lw=lw,
+                ls=ls,
+                label=label,
+                gid=f'{name}:{gid}',
+            )
     step = _load_step(runs[0]) if runs else None
-    for ax, (_n, yl) in zip(axes, panels):
+    for ax, (_n, yl) in zip(axes, panels, strict=True):
         ax.set_ylabel(yl)
         ax.grid(True, alpha=0.3)
         if step is not None:
             ax.axvline(step, color='grey', lw=0.8, ls=':')
     if step is not None:
-        axes[0].annotate('load torque step', (step, 1), xycoords=('data', 'axes fraction'),
-                         xytext=(3, -3), textcoords='offset points', va='top', fontsize=8)
-    axes[-1].set_xlabel('time from the experiment\'s start [s]')
+        axes[0].annotate(
+            'load torque step',
+            (step, 1),
+            xycoords=('data', 'axes fraction'),
+            xytext=(3, -3),
+            textcoords='offset points',
+            va='top',
+            fontsize=8,
+        )
+    axes[-1].set_xlabel("time from the experiment's start [s]")
     if curves:
         axes[0].legend(fontsize=8, loc='lower right')
     else:
-        axes[0].text(0.5, 0.5, 'no experiment signals in the bags', ha='center',
-                     va='center', transform=axes[0].transAxes)
+        axes[0].text(
+            0.5,
+            0.5,
+            'no experiment signals in the bags',
+            ha='center',
+            va='center',
+            transform=axes[0].transAxes,
+        )
     flipped = any(c[2].direction < 0 for c in curves)
-    fig.suptitle('best controller vs start controller under the load torque step'
-                 + ('\n(negative moves plotted with their sign reversed)' if flipped else ''),
-                 fontsize=10)
+    fig.suptitle(
+        'best controller vs start controller under the load torque step'
+        + ('\n(negative moves plotted with their sign reversed)' if flipped else ''),
+        fontsize=10,
+    )
     return fig
 
 
 def fig9_loss(runs: list[RunReport]):
     """Loss per evaluation and the best so far, each run (paper Fig. 9 a, b)."""
     from matplotlib.figure import Figure
+
     fig = Figure(figsize=(8, 5), layout='constrained')
     ax = fig.subplots()
-    for rr, c in zip(runs, _colors(len(runs))):
+    for rr, c in zip(runs, _colors(len(runs)), strict=True):
         ev = rr.evals
         if not ev:
             continue
         x = np.array([r['eval'] + 1 for r in ev], float)
         y = np.array([r['loss'] for r in ev], float)
         ab = np.array([bool(r['aborted']) for r in ev])
-        best = np.array(_best_so_far(ev), dtype=float)   # None -> nan
-        ax.plot(x[~ab], y[~ab], '.', ms=4, color=c, alpha=0.6, label=f'{rr.label}: loss',
-                gid=f'loss:{rr.label}')
+        best = np.array(_best_so_far(ev), dtype=float)  # None -> nan
+        ax.plot(
+            x[~ab],
+            y[~ab],
+            '.',
+            ms=4,
+            color=c,
+            alpha=0.6,
+            label=f'{rr.label}: loss',
+            gid=f'loss:{rr.label}',
+        )
         if ab.any():
-            ax.plot(x[ab], y[ab], 'x', ms=5, color=c, alpha=0.8,
-                    label=f'{rr.label}: aborted (penalised)', gid=f'aborted:{rr.label}')
-        ax.step(x, best, where='post', color=c, lw=2, label=f'{rr.label}: best so far',
-                gid=f'best:{rr.label}')
+            ax.plot(
+                x[ab],
+                y[ab],
+                'x',
+                ms=5,
+                color=c,
+                alpha=0.8,
+                label=f'{rr.label}: aborted (penalised)',
+                gid=f'aborted:{rr.label}',
+            )
+        ax.step(
+            x,
+            best,
+            where='post',
+            color=c,
+            lw=2,
+            label=f'{rr.label}: best so far',
+            gid=f'best:{rr.label}',
+        )
         sat = rr.summary.get('evaluations_to_satisfactory')
         if sat:
-            ax.plot([sat], [best[sat - 1]], 'v', color=c, ms=9, mec='black',
-                    gid=f'satisfactory:{rr.label}')
+            ax.plot(
+                [sat],
+                [best[sat - 1]],
+                'v',
+                color=c,
+                ms=9,
+                mec='black',
+                gid=f'satisfactory:{rr.label}',
+            )
     if runs:
         s0 = runs[0].summary
-        ax.axhline(s0['satisfactory_loss'], color='grey', ls='--', lw=1,
-                   label=f'satisfactory loss {s0["satisfactory_loss"]:g}', gid='satisfactory')
+        ax.axhline(
+            s0['satisfactory_loss'],
+            color='grey',
+            ls='--',
+            lw=1,
+            label=f'satisfactory loss {s0["satisfactory_loss"]:g}',
+            gid='satisfactory',
+        )
         ref = s0.get('reference')
         if ref is not None and not ref['aborted']:
-            ax.axhline(ref['loss'], color=_START_COLOR, ls=':', lw=1,
-                       label=f'start gains {ref["loss"]:.3f}', gid='start')
+            ax.axhline(
+                ref['loss'],
+                color=_START_COLOR,
+                ls=':',
+                lw=1,
+                label=f'start gains {ref["loss"]:.3f}',
+                gid='start',
+            )
     ax.set_yscale('log')
     ax.set_xlabel('evaluation')
     ax.set_ylabel('loss')
@@ -605,16 +843,25 @@ def fig9_loss(runs: list[RunReport]):
 def fig9_gains(runs: list[RunReport]):
     """Each gain over the evaluations, each run, inside its search box (Fig. 9 c, d)."""
     from matplotlib.figure import Figure
+
     fig = Figure(figsize=(8, 10), layout='constrained')
     axes = fig.subplots(len(GAIN_NAMES), 1, sharex=True)
-    for rr, c in zip(runs, _colors(len(runs))):
+    for rr, c in zip(runs, _colors(len(runs)), strict=True):
         ev = rr.evals
         x = np.array([r['eval'] + 1 for r in ev], float)
-        for ax, n in zip(axes, GAIN_NAMES):
-            ax.plot(x, [r['gains'][n] for r in ev], '.-', ms=3, lw=0.7, color=c,
-                    label=rr.label, gid=f'{n}:{rr.label}')
+        for ax, n in zip(axes, GAIN_NAMES, strict=True):
+            ax.plot(
+                x,
+                [r['gains'][n] for r in ev],
+                '.-',
+                ms=3,
+                lw=0.7,
+                color=c,
+                label=rr.label,
+                gid=f'{n}:{rr.label}',
+            )
     box = (runs[0].run.get('search_box') or {}) if runs else {}
-    for ax, n in zip(axes, GAIN_NAMES):
+    for ax, n in zip(axes, GAIN_NAMES, strict=True):
         b = box.get(n)
         if b:
             for v in (b['lo'], b['hi']):
@@ -630,8 +877,12 @@ def fig9_gains(runs: list[RunReport]):
 
 def make_figures(runs: list[RunReport]) -> dict[str, Any]:
     """name -> matplotlib Figure (not drawn on any screen)."""
-    return {'fig5_trajectory': fig5(runs), 'fig8_best_vs_start': fig8(runs),
-            'fig9_loss': fig9_loss(runs), 'fig9_gains': fig9_gains(runs)}
+    return {
+        'fig5_trajectory': fig5(runs),
+        'fig8_best_vs_start': fig8(runs),
+        'fig9_loss': fig9_loss(runs),
+        'fig9_gains': fig9_gains(runs),
+    }
 
 
 # ------------------------------------------------------------------------- the command
@@ -655,24 +906,38 @@ def _labels(paths: list[Path], runs: list[dict[str, Any]]) -> list[str]:
     short = [f'{r.get("algo")} seed {r.get("seed")}' for r in runs]
     if len(set(short)) == len(short):
         return short
-    return [p.name for p in paths] if len({p.name for p in paths}) == len(paths) \
+    return (
+        [p.name for p in paths]
+        if len({p.name for p in paths}) == len(paths)
         else [str(p) for p in paths]
+    )
 
 
 class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:
+    def error(self, message: str) -> NoReturn:
         raise ReportError(message)
 
 
 def _build_parser() -> argparse.ArgumentParser:
-    ap = _Parser(prog='ros2 run im_tuner report',
-                 description='Summary, plots (paper Figs. 5, 8, 9) and per-evaluation CSV of '
-                             'one or more tuning runs (docs/tuner.md, "The report").')
-    ap.add_argument('runs', nargs='+', type=Path, metavar='RUN_DIR',
-                    help='run directories made by `ros2 run im_tuner tuner` (several: overlaid)')
-    ap.add_argument('--out', type=Path, metavar='DIR',
-                    help='where to write (default: RUN_DIR/report, or for several runs '
-                         '<parent of the first>/compare_<UTC time>)')
+    ap = _Parser(
+        prog='ros2 run im_tuner report',
+        description='Summary, plots (paper Figs. 5, 8, 9) and per-evaluation CSV of '
+        'one or more tuning runs (docs/tuner.md, "The report").',
+    )
+    ap.add_argument(
+        'runs',
+        nargs='+',
+        type=Path,
+        metavar='RUN_DIR',
+        help='run directories made by `ros2 run im_tuner tuner` (several: overlaid)',
+    )
+    ap.add_argument(
+        '--out',
+        type=Path,
+        metavar='DIR',
+        help='where to write (default: RUN_DIR/report, or for several runs '
+        '<parent of the first>/compare_<UTC time>)',
+    )
     return ap
 
 
@@ -699,7 +964,9 @@ def main(args: list[str] | None = None) -> int:
         print(f'report: {msg}', file=sys.stderr, flush=True)
 
     try:
-        runs = [load_run(p, lab, progress=progress) for p, lab in zip(cli.runs, labels)]
+        runs = [
+            load_run(p, lab, progress=progress) for p, lab in zip(cli.runs, labels, strict=True)
+        ]
     except ReportError as exc:
         print(f'error: report: {exc}', file=sys.stderr)
         return EXIT_USAGE
@@ -708,7 +975,7 @@ def main(args: list[str] | None = None) -> int:
     elif len(runs) == 1:
         out = runs[0].path / 'report'
     else:
-        stamp = _dt.datetime.now(_dt.timezone.utc).strftime('%Y%m%dT%H%M%SZ')
+        stamp = _dt.datetime.now(_dt.UTC).strftime('%Y%m%dT%H%M%SZ')
         out = runs[0].path.parent / f'compare_{stamp}'
     progress('plotting')
     try:

@@ -20,6 +20,7 @@ process ends, however it ends). A second tuner is refused naming the holder's PI
 command line (from ``/proc/locks``); :meth:`RunDir.holder` tells a reader (``report``)
 that the run is live.
 """
+
 from __future__ import annotations
 
 import fcntl
@@ -30,8 +31,15 @@ from typing import Any
 
 import yaml
 
-__all__ = ['RunDirError', 'RunDir', 'atomic_write_text', 'RUN_FILE', 'RESULTS_FILE',
-           'CHECKPOINT_FILE', 'SUMMARY_FILE']
+__all__ = [
+    'CHECKPOINT_FILE',
+    'RESULTS_FILE',
+    'RUN_FILE',
+    'SUMMARY_FILE',
+    'RunDir',
+    'RunDirError',
+    'atomic_write_text',
+]
 
 RUN_FILE = 'run.yaml'
 RESULTS_FILE = 'results.jsonl'
@@ -104,11 +112,13 @@ def check_record(rec: dict[str, Any]) -> str | None:
         return f'record status {status!r} is not one of {", ".join(STATUSES)}'
     if not isinstance(rec.get('eval'), int) or isinstance(rec.get('eval'), bool):
         return "record without an integer 'eval'"
-    if not isinstance(rec.get('gains'), dict) or \
-            not all(_number(v) for v in rec['gains'].values()):
+    if not isinstance(rec.get('gains'), dict) or not all(_number(v) for v in rec['gains'].values()):
         return "record without 'gains' (name: value)"
-    if kind == 'eval' and status != 'lost' and not (
-            isinstance(rec.get('u'), list) and all(_number(x) for x in rec['u'])):
+    if (
+        kind == 'eval'
+        and status != 'lost'
+        and not (isinstance(rec.get('u'), list) and all(_number(x) for x in rec['u']))
+    ):
         return "evaluation record without 'u' (a list of numbers)"
     if status == 'lost':
         return None
@@ -145,8 +155,10 @@ class RunDir:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             os.close(fd)
-            raise RunDirError(f'{self.path}: in use by {self.holder() or "another process"}; '
-                              'wait for it to end (or stop it with Ctrl-C) first') from None
+            raise RunDirError(
+                f'{self.path}: in use by {self.holder() or "another process"}; '
+                'wait for it to end (or stop it with Ctrl-C) first'
+            ) from None
         self._lock_fd = fd
 
     def unlock(self) -> None:
@@ -172,22 +184,24 @@ class RunDir:
 
     # -- creation / opening ------------------------------------------------------------
     @classmethod
-    def create(cls, path: Path | str) -> 'RunDir':
+    def create(cls, path: Path | str) -> RunDir:
         """Create a new run directory; refuses anything that already holds files."""
         p = Path(path)
         if p.exists():
             if not p.is_dir():
                 raise RunDirError(f'--out {p}: exists and is not a directory')
             if any(p.iterdir()):
-                what = 'a tuning run; continue it with --resume' if (p / RUN_FILE).exists() \
+                what = (
+                    'a tuning run; continue it with --resume'
+                    if (p / RUN_FILE).exists()
                     else 'not empty'
+                )
                 raise RunDirError(f'--out {p}: already exists ({what}); choose a new directory')
         parent = p.parent
         while not parent.exists() and parent != parent.parent:
             parent = parent.parent
         if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-            raise RunDirError(f'--out {p}: cannot create it ({parent} is not a writable '
-                              'directory)')
+            raise RunDirError(f'--out {p}: cannot create it ({parent} is not a writable directory)')
         try:
             p.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -197,7 +211,7 @@ class RunDir:
         return cls(p)
 
     @classmethod
-    def open(cls, path: Path | str) -> 'RunDir':
+    def open(cls, path: Path | str) -> RunDir:
         """An existing run directory (for --resume and the report)."""
         p = Path(path)
         if not p.is_dir():
@@ -208,10 +222,11 @@ class RunDir:
 
     # -- run.yaml ------------------------------------------------------------------------
     def write_run(self, run: dict[str, Any]) -> None:
-        atomic_write_text(self.path / RUN_FILE,
-                          '# im_tuner run: what ran (see docs/tuner.md)\n'
-                          + yaml.safe_dump(run, sort_keys=False, default_flow_style=None,
-                                           width=100))
+        atomic_write_text(
+            self.path / RUN_FILE,
+            '# im_tuner run: what ran (see docs/tuner.md)\n'
+            + yaml.safe_dump(run, sort_keys=False, default_flow_style=None, width=100),
+        )
 
     def read_run(self) -> dict[str, Any]:
         try:
@@ -282,8 +297,7 @@ class RunDir:
     # -- checkpoint / summary ------------------------------------------------------------
     def write_checkpoint(self, state: dict[str, Any]) -> None:
         # allow_nan: an option may be +inf (SPSA max_step=inf: no cap); Python reads it back
-        atomic_write_text(self.path / CHECKPOINT_FILE,
-                          json.dumps(state, separators=(',', ':')))
+        atomic_write_text(self.path / CHECKPOINT_FILE, json.dumps(state, separators=(',', ':')))
 
     def read_checkpoint(self) -> dict[str, Any] | None:
         """The checkpoint, or None if there is none; :class:`RunDirError` if it cannot be
@@ -297,15 +311,19 @@ class RunDir:
             raise RunDirError(f'{path}: unreadable ({exc.strerror or exc})') from None
         except ValueError:
             raise RunDirError(f'{path}: not JSON (empty, truncated or corrupt)') from None
-        if not isinstance(data, dict) or not isinstance(data.get('records'), int) or \
-                not isinstance(data.get('optimizer'), dict) or \
-                not isinstance(data.get('tuner'), dict):
+        if (
+            not isinstance(data, dict)
+            or not isinstance(data.get('records'), int)
+            or not isinstance(data.get('optimizer'), dict)
+            or not isinstance(data.get('tuner'), dict)
+        ):
             raise RunDirError(f'{path}: not a tuner checkpoint')
         return data
 
     def write_summary(self, summary: dict[str, Any]) -> None:
-        atomic_write_text(self.path / SUMMARY_FILE, json.dumps(summary, indent=2,
-                                                                allow_nan=False) + '\n')
+        atomic_write_text(
+            self.path / SUMMARY_FILE, json.dumps(summary, indent=2, allow_nan=False) + '\n'
+        )
 
     def bag_dirs(self) -> list[Path]:
         """The session bags, in order (bag_0, bag_1, ...)."""

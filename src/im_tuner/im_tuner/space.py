@@ -8,6 +8,7 @@ Pure (no rclpy).  The optimisers work on u in [0, 1]^5; the controller takes gai
 point come from a YAML parameter file (``config/tuner.yaml`` is the paper's motor),
 validated key by key: errors name the file and the key.
 """
+
 from __future__ import annotations
 
 import math
@@ -21,8 +22,13 @@ import yaml
 
 from im_controller.config import GAIN_NAMES, GAIN_RANGES, GAIN_UNITS, Gains
 
-__all__ = ['TunerParamsError', 'SearchSpace', 'TunerParams', 'default_params_path',
-           'load_params']
+__all__ = [
+    'SearchSpace',
+    'TunerParams',
+    'TunerParamsError',
+    'default_params_path',
+    'load_params',
+]
 
 
 class TunerParamsError(ValueError):
@@ -51,21 +57,29 @@ class SearchSpace:
         u = np.asarray(u, dtype=float)
         if u.shape != (self.dim,) or not np.all(np.isfinite(u)):
             raise ValueError(f'u must be {self.dim} finite numbers, got {u!r}')
-        return Gains(*(lo + (hi - lo) * min(max(float(x), 0.0), 1.0)
-                       for lo, hi, x in zip(self.lo, self.hi, u)))
+        return Gains(
+            *(
+                lo + (hi - lo) * min(max(float(x), 0.0), 1.0)
+                for lo, hi, x in zip(self.lo, self.hi, u, strict=True)
+            )
+        )
 
     def to_u(self, gains: Gains | tuple[float, ...]) -> np.ndarray:
         """Normalised coordinates of ``gains`` (not clipped)."""
         g = gains.as_tuple() if isinstance(gains, Gains) else tuple(gains)
-        return np.array([(x - lo) / (hi - lo) for x, lo, hi in zip(g, self.lo, self.hi)])
+        return np.array(
+            [(x - lo) / (hi - lo) for x, lo, hi in zip(g, self.lo, self.hi, strict=True)]
+        )
 
     @property
     def start_u(self) -> np.ndarray:
         return self.to_u(self.start)
 
-    def as_dict(self) -> dict[str, dict[str, float]]:
-        return {n: {'lo': lo, 'hi': hi, 'start': s, 'unit': GAIN_UNITS[n]}
-                for n, lo, hi, s in zip(GAIN_NAMES, self.lo, self.hi, self.start)}
+    def as_dict(self) -> dict[str, dict[str, float | str]]:
+        return {
+            n: {'lo': lo, 'hi': hi, 'start': s, 'unit': GAIN_UNITS[n]}
+            for n, lo, hi, s in zip(GAIN_NAMES, self.lo, self.hi, self.start, strict=True)
+        }
 
 
 @dataclass(frozen=True)
@@ -86,43 +100,53 @@ def _num(src: str, key: str, v: Any) -> float:
 def parse_params(data: Any, src: str = '<dict>') -> TunerParams:
     """Validate the parsed YAML ``data`` (see config/tuner.yaml); ``src`` names it."""
     if not isinstance(data, dict):
-        raise TunerParamsError(f'{src}: expected a mapping with search_box and '
-                               f'satisfactory_loss, got {type(data).__name__}')
+        raise TunerParamsError(
+            f'{src}: expected a mapping with search_box and '
+            f'satisfactory_loss, got {type(data).__name__}'
+        )
     extra = sorted(set(data) - {'search_box', 'satisfactory_loss'})
     if extra:
-        raise TunerParamsError(f'{src}: unknown key(s) {extra}; expected search_box, '
-                               'satisfactory_loss')
+        raise TunerParamsError(
+            f'{src}: unknown key(s) {extra}; expected search_box, satisfactory_loss'
+        )
     for k in ('search_box', 'satisfactory_loss'):
         if k not in data:
             raise TunerParamsError(f'{src}: missing key {k}')
     box = data['search_box']
     if not isinstance(box, dict):
-        raise TunerParamsError(f'{src}: search_box must be a mapping of the gains '
-                               f'{list(GAIN_NAMES)}')
+        raise TunerParamsError(
+            f'{src}: search_box must be a mapping of the gains {list(GAIN_NAMES)}'
+        )
     unknown = sorted(set(box) - set(GAIN_NAMES))
     missing = [n for n in GAIN_NAMES if n not in box]
     if unknown or missing:
-        raise TunerParamsError(f'{src}: search_box must have exactly {list(GAIN_NAMES)}'
-                               + (f'; unknown {unknown}' if unknown else '')
-                               + (f'; missing {missing}' if missing else ''))
+        raise TunerParamsError(
+            f'{src}: search_box must have exactly {list(GAIN_NAMES)}'
+            + (f'; unknown {unknown}' if unknown else '')
+            + (f'; missing {missing}' if missing else '')
+        )
     lo, hi, start = [], [], []
     for n in GAIN_NAMES:
         entry = box[n]
         key = f'search_box.{n}'
         if not isinstance(entry, dict) or set(entry) != {'lo', 'hi', 'start'}:
-            raise TunerParamsError(f'{src}: {key} must be {{lo: ..., hi: ..., start: ...}}, '
-                                   f'got {entry!r}')
+            raise TunerParamsError(
+                f'{src}: {key} must be {{lo: ..., hi: ..., start: ...}}, got {entry!r}'
+            )
         a, b, s = (_num(src, f'{key}.{f}', entry[f]) for f in ('lo', 'hi', 'start'))
         rlo, rhi = GAIN_RANGES[n]
         unit = GAIN_UNITS[n]
         if not a < b:
             raise TunerParamsError(f'{src}: {key}: lo must be below hi, got [{a:g}, {b:g}]')
         if a < rlo or b > rhi:
-            raise TunerParamsError(f'{src}: {key}: [{a:g}, {b:g}] {unit} leaves the '
-                                   f"controller's accepted range [{rlo:g}, {rhi:g}] {unit}")
+            raise TunerParamsError(
+                f'{src}: {key}: [{a:g}, {b:g}] {unit} leaves the '
+                f"controller's accepted range [{rlo:g}, {rhi:g}] {unit}"
+            )
         if not a <= s <= b:
-            raise TunerParamsError(f'{src}: {key}.start {s:g} {unit} is outside the box '
-                                   f'[{a:g}, {b:g}]')
+            raise TunerParamsError(
+                f'{src}: {key}.start {s:g} {unit} is outside the box [{a:g}, {b:g}]'
+            )
         lo.append(a)
         hi.append(b)
         start.append(s)

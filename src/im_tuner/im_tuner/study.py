@@ -32,6 +32,7 @@ when its final loss (the smallest measured non-aborted loss: the paper's final
 controller) is at most ``satisfactory`` (default 0.9: 10 % better than the hand-tuned
 start).  docs/reproduction.md says why.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -40,16 +41,22 @@ import math
 import multiprocessing
 import os
 import time
+from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from im_controller.config import GAIN_NAMES, Gains
-from im_controller.experiment import (SAFETY_REASONS, ExperimentRunner, config_for_drive,
-                                      finish_stopped_move, run_experiment_offline)
+from im_controller.experiment import (
+    SAFETY_REASONS,
+    ExperimentRunner,
+    config_for_drive,
+    finish_stopped_move,
+    run_experiment_offline,
+)
 from im_drive_sim.params import DriveConfig, load_config
 from im_drive_sim.sim import DriveSim
 
@@ -57,10 +64,28 @@ from . import optim
 from .space import SearchSpace, TunerParams, load_params
 from .tuning import run_seeds
 
-__all__ = ['STUDY_ALGOS', 'Cell', 'grid', 'StudySpec', 'RunResult', 'StudyResult',
-           'run_seed', 'start_point', 'run_one', 'reference_loss', 'run_study',
-           'REF_EXPERIMENTS', 'DEFAULT_SATISFACTORY', 'DEFAULT_SEED', 'FACTORS', 'save', 'load',
-           'default_jobs', 'ARRAYS_FILE', 'META_FILE']
+__all__ = [
+    'ARRAYS_FILE',
+    'DEFAULT_SATISFACTORY',
+    'DEFAULT_SEED',
+    'FACTORS',
+    'META_FILE',
+    'REF_EXPERIMENTS',
+    'STUDY_ALGOS',
+    'Cell',
+    'RunResult',
+    'StudyResult',
+    'StudySpec',
+    'default_jobs',
+    'grid',
+    'load',
+    'reference_loss',
+    'run_one',
+    'run_seed',
+    'run_study',
+    'save',
+    'start_point',
+]
 
 #: Algorithms the study has a grid for (the paper's two).
 STUDY_ALGOS: tuple[str, ...] = ('spsa', 'necga')
@@ -69,7 +94,7 @@ FACTORS: tuple[tuple[str, float], ...] = (('/5', 0.2), ('', 1.0), ('*5', 5.0))
 #: Experiments of the hand-tuned start that define L_ref.
 REF_EXPERIMENTS = 100
 DEFAULT_SATISFACTORY = 0.9
-DEFAULT_SEED = 2005   # the paper's year: a fixed, documented default
+DEFAULT_SEED = 2005  # the paper's year: a fixed, documented default
 
 
 @dataclass(frozen=True)
@@ -101,17 +126,24 @@ def grid(algos: tuple[str, ...] = STUDY_ALGOS) -> list[Cell]:
             c0 = optim.OPTIONS['spsa']['c'].default
             for i, (sa, fa) in enumerate(FACTORS):
                 for j, (sc, fc) in enumerate(FACTORS):
-                    cells.append(Cell('spsa', f'a={a0:g}{sa} c={c0:g}{sc}', i, j,
-                                      (('a', a0 * fa), ('c', c0 * fc))))
+                    cells.append(
+                        Cell(
+                            'spsa',
+                            f'a={a0:g}{sa} c={c0:g}{sc}',
+                            i,
+                            j,
+                            (('a', a0 * fa), ('c', c0 * fc)),
+                        )
+                    )
         elif algo == 'necga':
             n0 = optim.OPTIONS['necga']['n'].default
             for j, (sn, fn) in enumerate(FACTORS):
-                n = int(round(n0 * fn))
-                cells.append(Cell('necga', f'n={n0}{sn} eta={n // 2}', 0, j,
-                                  (('n', n), ('eta', n // 2))))
+                n = round(n0 * fn)
+                cells.append(
+                    Cell('necga', f'n={n0}{sn} eta={n // 2}', 0, j, (('n', n), ('eta', n // 2)))
+                )
         else:
-            raise ValueError(f'no study grid for algo {algo!r} (allowed: '
-                             f'{", ".join(STUDY_ALGOS)})')
+            raise ValueError(f'no study grid for algo {algo!r} (allowed: {", ".join(STUDY_ALGOS)})')
     return cells
 
 
@@ -126,8 +158,8 @@ class StudySpec:
     seed: int = DEFAULT_SEED
     satisfactory: float = DEFAULT_SATISFACTORY
     remeasure: bool = True
-    drive_config: str | None = None     #: drive parameter file (None: packaged)
-    params_file: str | None = None      #: tuner parameter file (None: packaged)
+    drive_config: str | None = None  #: drive parameter file (None: packaged)
+    params_file: str | None = None  #: tuner parameter file (None: packaged)
 
     def __post_init__(self) -> None:
         for name, lo in (('runs', 1), ('budget', 1)):
@@ -138,10 +170,14 @@ class StudySpec:
             raise ValueError(f'seed must be an integer >= 0, got {self.seed!r}')
         if self.model not in ('full', 'reduced'):
             raise ValueError(f"model must be 'full' or 'reduced', got {self.model!r}")
-        if not (isinstance(self.satisfactory, float) and 0.0 < self.satisfactory
-                and math.isfinite(self.satisfactory)):
-            raise ValueError(f'satisfactory must be a normalised loss > 0, '
-                             f'got {self.satisfactory!r}')
+        if not (
+            isinstance(self.satisfactory, float)
+            and self.satisfactory > 0.0
+            and math.isfinite(self.satisfactory)
+        ):
+            raise ValueError(
+                f'satisfactory must be a normalised loss > 0, got {self.satisfactory!r}'
+            )
         if not self.algos or len(set(self.algos)) != len(self.algos):
             raise ValueError(f'algos must be distinct names, got {self.algos!r}')
         grid(self.algos)  # raises on an unknown algo
@@ -181,18 +217,18 @@ class RunResult:
     run: int
     run_seed: int
     drive_seed: int
-    start: tuple[float, ...]          #: start gains (the reference experiment's)
-    ref_loss: float                   #: the reference experiment's loss (penalised if aborted)
+    start: tuple[float, ...]  #: start gains (the reference experiment's)
+    ref_loss: float  #: the reference experiment's loss (penalised if aborted)
     ref_aborted: bool
-    losses: np.ndarray                #: float64[budget], penalised when aborted
-    aborted: np.ndarray               #: bool[budget]
-    faults: np.ndarray                #: bool[budget] (safety faults, reset as the tuner does)
-    iteration: np.ndarray             #: int32[budget]: SPSA iteration / GA generation (1-based)
-    best_eval: int                    #: smallest non-aborted loss (-1: none)
+    losses: np.ndarray  #: float64[budget], penalised when aborted
+    aborted: np.ndarray  #: bool[budget]
+    faults: np.ndarray  #: bool[budget] (safety faults, reset as the tuner does)
+    iteration: np.ndarray  #: int32[budget]: SPSA iteration / GA generation (1-based)
+    best_eval: int  #: smallest non-aborted loss (-1: none)
     best_gains: tuple[float, ...]
-    remeasured: float                 #: the best's re-measured loss (nan: not re-measured)
-    opt_s: float                      #: wall time in ask + tell [s] (timing, not results)
-    exp_s: float                      #: wall time in experiments [s]
+    remeasured: float  #: the best's re-measured loss (nan: not re-measured)
+    opt_s: float  #: wall time in ask + tell [s] (timing, not results)
+    exp_s: float  #: wall time in experiments [s]
 
 
 class _Bench:
@@ -214,8 +250,9 @@ class _Bench:
         finish_stopped_move(self.sim, self.runner)
         if self.runner.faulted:
             self.runner.reset(self.sim.theta_meas)
-        res, _ = run_experiment_offline(self.sim, gains, self.runner.config, self.next_id,
-                                        self.runner, record=False)
+        res, _ = run_experiment_offline(
+            self.sim, gains, self.runner.config, self.next_id, self.runner, record=False
+        )
         self.next_id += 1
         fault = res.reason in SAFETY_REASONS
         if fault:
@@ -226,11 +263,16 @@ class _Bench:
 def _iteration(opt: optim.Optimizer) -> int:
     """The optimiser's iteration the next evaluation belongs to (1-based): SPSA iteration,
     GA generation (the paper's 'iterations' of Table III)."""
-    return int(opt.iteration if isinstance(opt, optim.SPSA) else opt.generation) + 1
+    return opt.iterations + 1
 
 
-def run_one(spec: StudySpec, cell_index: int, r: int, drive: DriveConfig | None = None,
-            params: TunerParams | None = None) -> RunResult:
+def run_one(
+    spec: StudySpec,
+    cell_index: int,
+    r: int,
+    drive: DriveConfig | None = None,
+    params: TunerParams | None = None,
+) -> RunResult:
     """Run ``r`` of cell ``cell_index`` (see the module docstring: a tuner run offline)."""
     cell = spec.cells[cell_index]
     drive = spec.drive() if drive is None else drive
@@ -239,9 +281,13 @@ def run_one(spec: StudySpec, cell_index: int, r: int, drive: DriveConfig | None 
     opt_ss, drive_seed = run_seeds(rseed)
     start = start_point(cell.algo, rseed, params.space)
     space = dataclasses.replace(params.space, start=start)
-    opt = optim.make_optimizer(cell.algo, space.dim, opt_ss,
-                               space.start_u if cell.algo in optim.TAKES_START else None,
-                               **cell.opts)
+    opt = optim.make_optimizer(
+        cell.algo,
+        space.dim,
+        opt_ss,
+        space.start_u if cell.algo in optim.TAKES_START else None,
+        **cell.opts,
+    )
     bench = _Bench(drive, drive_seed)
     t_exp = time.perf_counter()
     ref_loss, ref_aborted, _ = bench.measure(Gains(*start))
@@ -266,7 +312,7 @@ def run_one(spec: StudySpec, cell_index: int, r: int, drive: DriveConfig | None 
         opt_s += (t1 - t0) + (time.perf_counter() - t2)
         exp_s += t2 - t1
         losses[e], aborted[e], faults[e] = loss, ab, fault
-        if not ab and loss < best_loss:   # ties: the earlier evaluation (tuner's order)
+        if not ab and loss < best_loss:  # ties: the earlier evaluation (tuner's order)
             best_eval, best_loss = e, loss
             best_gains = gains.as_tuple()
     remeasured = math.nan
@@ -274,14 +320,29 @@ def run_one(spec: StudySpec, cell_index: int, r: int, drive: DriveConfig | None 
         t0 = time.perf_counter()
         remeasured = bench.measure(Gains(*best_gains))[0]
         exp_s += time.perf_counter() - t0
-    return RunResult(cell=cell_index, run=r, run_seed=rseed, drive_seed=drive_seed,
-                     start=start, ref_loss=ref_loss, ref_aborted=ref_aborted, losses=losses,
-                     aborted=aborted, faults=faults, iteration=iteration, best_eval=best_eval,
-                     best_gains=best_gains, remeasured=remeasured, opt_s=opt_s, exp_s=exp_s)
+    return RunResult(
+        cell=cell_index,
+        run=r,
+        run_seed=rseed,
+        drive_seed=drive_seed,
+        start=start,
+        ref_loss=ref_loss,
+        ref_aborted=ref_aborted,
+        losses=losses,
+        aborted=aborted,
+        faults=faults,
+        iteration=iteration,
+        best_eval=best_eval,
+        best_gains=best_gains,
+        remeasured=remeasured,
+        opt_s=opt_s,
+        exp_s=exp_s,
+    )
 
 
-def reference_loss(drive: DriveConfig, experiments: int = REF_EXPERIMENTS
-                   ) -> tuple[float, float, float]:
+def reference_loss(
+    drive: DriveConfig, experiments: int = REF_EXPERIMENTS
+) -> tuple[float, float, float]:
     """L_ref: (mean, standard error of the mean) of the hand-tuned start's loss over
     ``experiments`` consecutive experiments after the first from rest (drive file seed),
     and that first one's loss.  Deterministic for a drive file and model."""
@@ -315,48 +376,70 @@ class StudyResult:
     l_ref: float
     l_ref_sem: float
     l_first: float
-    run_seed: np.ndarray      #: int64[runs]
-    drive_seed: np.ndarray    #: int64[runs]
-    start: np.ndarray         #: float64[cells, runs, 5]
-    ref_loss: np.ndarray      #: float64[cells, runs]
-    ref_aborted: np.ndarray   #: bool[cells, runs]
-    losses: np.ndarray        #: float64[cells, runs, budget]
-    aborted: np.ndarray       #: bool[cells, runs, budget]
-    faults: np.ndarray        #: bool[cells, runs, budget]
-    iteration: np.ndarray     #: int32[cells, runs, budget]
-    best_eval: np.ndarray     #: int32[cells, runs]
-    best_gains: np.ndarray    #: float64[cells, runs, 5]
-    remeasured: np.ndarray    #: float64[cells, runs]
-    opt_s: np.ndarray         #: float64[cells, runs] (timing)
-    exp_s: np.ndarray         #: float64[cells, runs] (timing)
+    run_seed: np.ndarray  #: int64[runs]
+    drive_seed: np.ndarray  #: int64[runs]
+    start: np.ndarray  #: float64[cells, runs, 5]
+    ref_loss: np.ndarray  #: float64[cells, runs]
+    ref_aborted: np.ndarray  #: bool[cells, runs]
+    losses: np.ndarray  #: float64[cells, runs, budget]
+    aborted: np.ndarray  #: bool[cells, runs, budget]
+    faults: np.ndarray  #: bool[cells, runs, budget]
+    iteration: np.ndarray  #: int32[cells, runs, budget]
+    best_eval: np.ndarray  #: int32[cells, runs]
+    best_gains: np.ndarray  #: float64[cells, runs, 5]
+    remeasured: np.ndarray  #: float64[cells, runs]
+    opt_s: np.ndarray  #: float64[cells, runs] (timing)
+    exp_s: np.ndarray  #: float64[cells, runs] (timing)
     wall_s: float = 0.0
     jobs: int = 1
-    command: str = ''         #: the command that ran the study (for the write-up)
+    command: str = ''  #: the command that ran the study (for the write-up)
 
     @property
     def experiments(self) -> int:
         """Experiments run (reference + evaluations + re-measurements)."""
-        return int(self.losses.size + self.ref_loss.size
-                   + np.count_nonzero(np.isfinite(self.remeasured)))
+        return int(
+            self.losses.size + self.ref_loss.size + np.count_nonzero(np.isfinite(self.remeasured))
+        )
 
     # arrays saved by save()/load() (the rest goes into study.json)
-    ARRAYS = ('run_seed', 'drive_seed', 'start', 'ref_loss', 'ref_aborted', 'losses',
-              'aborted', 'faults', 'iteration', 'best_eval', 'best_gains', 'remeasured',
-              'opt_s', 'exp_s')
+    ARRAYS = (
+        'run_seed',
+        'drive_seed',
+        'start',
+        'ref_loss',
+        'ref_aborted',
+        'losses',
+        'aborted',
+        'faults',
+        'iteration',
+        'best_eval',
+        'best_gains',
+        'remeasured',
+        'opt_s',
+        'exp_s',
+    )
 
 
-def _allocate(spec: StudySpec, cells: list[Cell]) -> dict[str, np.ndarray]:
+def _allocate(spec: StudySpec, cells: list[Cell]) -> dict[str, Any]:
     C, R, B, D = len(cells), spec.runs, spec.budget, len(GAIN_NAMES)
-    return {'run_seed': np.array([run_seed(spec.seed, r) for r in range(R)], dtype=np.int64),
-            'drive_seed': np.array([run_seeds(run_seed(spec.seed, r))[1] for r in range(R)],
-                                   dtype=np.int64),
-            'start': np.full((C, R, D), np.nan), 'ref_loss': np.full((C, R), np.nan),
-            'ref_aborted': np.zeros((C, R), bool), 'losses': np.full((C, R, B), np.nan),
-            'aborted': np.zeros((C, R, B), bool), 'faults': np.zeros((C, R, B), bool),
-            'iteration': np.zeros((C, R, B), np.int32),
-            'best_eval': np.full((C, R), -1, np.int32), 'best_gains': np.full((C, R, D), np.nan),
-            'remeasured': np.full((C, R), np.nan), 'opt_s': np.zeros((C, R)),
-            'exp_s': np.zeros((C, R))}
+    return {
+        'run_seed': np.array([run_seed(spec.seed, r) for r in range(R)], dtype=np.int64),
+        'drive_seed': np.array(
+            [run_seeds(run_seed(spec.seed, r))[1] for r in range(R)], dtype=np.int64
+        ),
+        'start': np.full((C, R, D), np.nan),
+        'ref_loss': np.full((C, R), np.nan),
+        'ref_aborted': np.zeros((C, R), bool),
+        'losses': np.full((C, R, B), np.nan),
+        'aborted': np.zeros((C, R, B), bool),
+        'faults': np.zeros((C, R, B), bool),
+        'iteration': np.zeros((C, R, B), np.int32),
+        'best_eval': np.full((C, R), -1, np.int32),
+        'best_gains': np.full((C, R, D), np.nan),
+        'remeasured': np.full((C, R), np.nan),
+        'opt_s': np.zeros((C, R)),
+        'exp_s': np.zeros((C, R)),
+    }
 
 
 #: RunResult fields stored at [cell, run] of the StudyResult arrays.
@@ -376,8 +459,11 @@ def default_jobs() -> int:
         return os.cpu_count() or 1
 
 
-def run_study(spec: StudySpec, jobs: int | None = None,
-              progress: Callable[[int, int, float], None] | None = None) -> StudyResult:
+def run_study(
+    spec: StudySpec,
+    jobs: int | None = None,
+    progress: Callable[[int, int, float], None] | None = None,
+) -> StudyResult:
     """Run the whole grid on ``jobs`` processes (None: every core; 1: in this process).
 
     ``progress(done_runs, total_runs, elapsed_s)`` is called after every run.  The result
@@ -405,8 +491,9 @@ def run_study(spec: StudySpec, jobs: int | None = None,
     else:
         # forkserver: workers start from a clean interpreter (no inherited threads or ROS)
         ctx = multiprocessing.get_context('forkserver')
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_init_worker,
-                                 initargs=(spec,)) as pool:
+        with ProcessPoolExecutor(
+            max_workers=jobs, mp_context=ctx, initializer=_init_worker, initargs=(spec,)
+        ) as pool:
             # a bounded window of pending tasks keeps memory flat and progress honest
             it = iter(tasks)
             pending = {pool.submit(_work, t) for t in _take(it, 4 * jobs)}
@@ -418,8 +505,16 @@ def run_study(spec: StudySpec, jobs: int | None = None,
                     if progress is not None:
                         progress(done, total, time.perf_counter() - t0)
                 pending |= {pool.submit(_work, t) for t in _take(it, len(finished))}
-    return StudyResult(spec=spec, cells=cells, l_ref=l_ref, l_ref_sem=l_sem, l_first=l_first,
-                       wall_s=time.perf_counter() - t0, jobs=jobs, **arrays)
+    return StudyResult(
+        spec=spec,
+        cells=cells,
+        l_ref=l_ref,
+        l_ref_sem=l_sem,
+        l_first=l_first,
+        wall_s=time.perf_counter() - t0,
+        jobs=jobs,
+        **arrays,
+    )
 
 
 def _take(it, k: int) -> list:
@@ -443,10 +538,18 @@ def save(res: StudyResult, out: Path | str) -> None:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out / ARRAYS_FILE, **{k: getattr(res, k) for k in StudyResult.ARRAYS})
-    meta = {'spec': dataclasses.asdict(res.spec), 'cells': [dataclasses.asdict(c) for c in res.cells],
-            'l_ref': res.l_ref, 'l_ref_sem': res.l_ref_sem, 'l_first': res.l_first,
-            'ref_experiments': REF_EXPERIMENTS, 'experiments': res.experiments,
-            'wall_s': res.wall_s, 'jobs': res.jobs, 'command': res.command}
+    meta = {
+        'spec': dataclasses.asdict(res.spec),
+        'cells': [dataclasses.asdict(c) for c in res.cells],
+        'l_ref': res.l_ref,
+        'l_ref_sem': res.l_ref_sem,
+        'l_first': res.l_first,
+        'ref_experiments': REF_EXPERIMENTS,
+        'experiments': res.experiments,
+        'wall_s': res.wall_s,
+        'jobs': res.jobs,
+        'command': res.command,
+    }
     tmp = out / (META_FILE + '.tmp')
     tmp.write_text(json.dumps(meta, indent=1) + '\n')
     os.replace(tmp, out / META_FILE)
@@ -460,20 +563,31 @@ def load(out: Path | str) -> StudyResult:
         with np.load(out / ARRAYS_FILE) as z:
             arrays = {k: z[k] for k in StudyResult.ARRAYS}
     except FileNotFoundError as exc:
-        raise ValueError(f'{out}: not a study directory ({Path(exc.filename).name} missing)') \
-            from None
+        raise ValueError(
+            f'{out}: not a study directory ({Path(exc.filename).name} missing)'
+        ) from None
     except (OSError, KeyError, ValueError) as exc:  # ValueError: bad JSON, a bad npz
         raise ValueError(f'{out}: unreadable study ({exc})') from None
     try:
         sp = dict(meta['spec'])
         sp['algos'] = tuple(sp['algos'])
         spec = StudySpec(**sp)
-        cells = [Cell(c['algo'], c['label'], c['row'], c['col'],
-                      tuple(tuple(o) for o in c['options'])) for c in meta['cells']]
-        return StudyResult(spec=spec, cells=cells, l_ref=meta['l_ref'],
-                           l_ref_sem=meta['l_ref_sem'], l_first=meta['l_first'],
-                           wall_s=meta['wall_s'], jobs=meta['jobs'],
-                           command=meta.get('command', ''), **arrays)
+        cells = [
+            Cell(c['algo'], c['label'], c['row'], c['col'], tuple(tuple(o) for o in c['options']))
+            for c in meta['cells']
+        ]
+        return StudyResult(
+            spec=spec,
+            cells=cells,
+            l_ref=meta['l_ref'],
+            l_ref_sem=meta['l_ref_sem'],
+            l_first=meta['l_first'],
+            wall_s=meta['wall_s'],
+            jobs=meta['jobs'],
+            command=meta.get('command', ''),
+            **arrays,
+        )
     except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f'{out}: not a study written by `ros2 run im_tuner study` '
-                         f'({exc!r:.100})') from None
+        raise ValueError(
+            f'{out}: not a study written by `ros2 run im_tuner study` ({exc!r:.100})'
+        ) from None

@@ -29,12 +29,14 @@ candidates.  Since ``ask`` is deterministic, the next candidate is the one the k
 run was measuring: it is re-run, never resampled.  On a simulated bench the plant state
 is restored first by :func:`replay` (same gains, same order; losses checked bit for bit).
 """
+
 from __future__ import annotations
 
 import datetime as _dt
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -44,9 +46,24 @@ from .optim.base import Optimizer
 from .rundir import RunDir, RunDirError
 from .space import SearchSpace
 
-__all__ = ['Measurement', 'Measurer', 'LostEvaluation', 'BenchFailure', 'StopRequested',
-           'ResumeError', 'TuningRun', 'TunerState', 'replay', 'replay_plan', 'gains_dict',
-           'tally', 'tally_all', 'final_choice', 'summarize', 'run_seeds']
+__all__ = [
+    'BenchFailure',
+    'LostEvaluation',
+    'Measurement',
+    'Measurer',
+    'ResumeError',
+    'StopRequested',
+    'TunerState',
+    'TuningRun',
+    'final_choice',
+    'gains_dict',
+    'replay',
+    'replay_plan',
+    'run_seeds',
+    'summarize',
+    'tally',
+    'tally_all',
+]
 
 CHECKPOINT_VERSION = 1
 
@@ -59,15 +76,15 @@ class Measurement:
     terms: tuple[float, float, float]
     aborted: bool
     reason: str
-    fault: bool                  #: a safety fault (the controller went to FAULT)
+    fault: bool  #: a safety fault (the controller went to FAULT)
     experiment_id: int
     direction: int
     steps: int
     trip_step: int
     t_start_ns: int
     t_end_ns: int
-    wall_s: float                #: set gains -> loss received [s]
-    gains: tuple[float, ...]     #: the gains the controller reports it ran
+    wall_s: float  #: set gains -> loss received [s]
+    gains: tuple[float, ...]  #: the gains the controller reports it ran
 
 
 class LostEvaluation(Exception):
@@ -105,7 +122,7 @@ def run_seeds(seed: int) -> tuple[np.random.SeedSequence, int]:
 
 def gains_dict(g: Gains | tuple[float, ...]) -> dict[str, float]:
     t = g.as_tuple() if isinstance(g, Gains) else tuple(g)
-    return {n: float(v) for n, v in zip(GAIN_NAMES, t)}
+    return {n: float(v) for n, v in zip(GAIN_NAMES, t, strict=True)}
 
 
 def _gains_of(record: dict[str, Any]) -> Gains:
@@ -113,7 +130,7 @@ def _gains_of(record: dict[str, Any]) -> Gains:
 
 
 def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec='milliseconds')
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec='milliseconds')
 
 
 @dataclass
@@ -137,18 +154,32 @@ class TunerState:
 
 
 def _brief(rec: dict[str, Any]) -> dict[str, Any]:
-    return {'eval': rec['eval'], 'u': rec.get('u'), 'gains': rec['gains'], 'loss': rec['loss'],
-            'terms': rec['terms'], 'experiment_id': rec['experiment_id']}
+    return {
+        'eval': rec['eval'],
+        'u': rec.get('u'),
+        'gains': rec['gains'],
+        'loss': rec['loss'],
+        'terms': rec['terms'],
+        'experiment_id': rec['experiment_id'],
+    }
 
 
 class TuningRun:
     """One tuning run in ``rundir`` (see the module docstring)."""
 
-    def __init__(self, rundir: RunDir, space: SearchSpace, optimizer: Optimizer, *,
-                 budget: int, satisfactory_loss: float, remeasure: int = 3, retries: int = 3,
-                 reference: bool = True,
-                 progress: Callable[[str, dict[str, Any], 'TuningRun'], None] | None = None
-                 ) -> None:
+    def __init__(
+        self,
+        rundir: RunDir,
+        space: SearchSpace,
+        optimizer: Optimizer,
+        *,
+        budget: int,
+        satisfactory_loss: float,
+        remeasure: int = 3,
+        retries: int = 3,
+        reference: bool = True,
+        progress: Callable[[str, dict[str, Any], TuningRun], None] | None = None,
+    ) -> None:
         if budget < 1:
             raise ValueError(f'budget must be >= 1, got {budget}')
         self.rundir = rundir
@@ -190,12 +221,16 @@ class TuningRun:
         done = 0
         if ck is not None:
             if ck.get('version') != CHECKPOINT_VERSION:
-                raise ResumeError(f'{self.rundir.path}: checkpoint version '
-                                  f'{ck.get("version")!r}, expected {CHECKPOINT_VERSION}')
+                raise ResumeError(
+                    f'{self.rundir.path}: checkpoint version '
+                    f'{ck.get("version")!r}, expected {CHECKPOINT_VERSION}'
+                )
             done = int(ck['records'])
             if done > len(records):
-                raise ResumeError(f'{self.rundir.path}: the checkpoint counts {done} records '
-                                  f'but results.jsonl has {len(records)}')
+                raise ResumeError(
+                    f'{self.rundir.path}: the checkpoint counts {done} records '
+                    f'but results.jsonl has {len(records)}'
+                )
             try:
                 self.opt = Optimizer.from_state(ck['optimizer'])
                 self.state = TunerState(**ck['tuner'])
@@ -218,7 +253,8 @@ class TuningRun:
                 if not np.array_equal(asked, u):
                     raise ResumeError(
                         f'{self.rundir.path}: evaluation {rec["eval"]} in results.jsonl is not '
-                        'what the checkpointed optimiser asks; the files do not belong together')
+                        'what the checkpointed optimiser asks; the files do not belong together'
+                    )
             t0 = time.perf_counter()
             self.opt.tell(u, rec['loss'])
             if live:
@@ -226,42 +262,85 @@ class TuningRun:
         tally(self.state, rec, self.satisfactory)
 
     def _checkpoint(self) -> None:
-        self.rundir.write_checkpoint({'version': CHECKPOINT_VERSION,
-                                      'records': len(self.records),
-                                      'optimizer': self.opt.state_dict(),
-                                      'tuner': vars(self.state)})
+        self.rundir.write_checkpoint(
+            {
+                'version': CHECKPOINT_VERSION,
+                'records': len(self.records),
+                'optimizer': self.opt.state_dict(),
+                'tuner': vars(self.state),
+            }
+        )
 
-    def _record(self, kind: str, index: int, attempt: int, u: np.ndarray | None,
-                gains: Gains, m: Measurement | None, lost: LostEvaluation | None,
-                wall_s: float) -> dict[str, Any]:
-        rec: dict[str, Any] = {'kind': kind, 'eval': index, 'attempt': attempt,
-                               'u': None if u is None else [float(x) for x in u],
-                               'gains': gains_dict(gains), 'time': _now()}
+    def _record(
+        self,
+        kind: str,
+        index: int,
+        attempt: int,
+        u: np.ndarray | None,
+        gains: Gains,
+        m: Measurement | None,
+        lost: LostEvaluation | None,
+        wall_s: float,
+    ) -> dict[str, Any]:
+        rec: dict[str, Any] = {
+            'kind': kind,
+            'eval': index,
+            'attempt': attempt,
+            'u': None if u is None else [float(x) for x in u],
+            'gains': gains_dict(gains),
+            'time': _now(),
+        }
         if m is None:
-            rec.update(status='lost', loss=None, terms=None, aborted=None, reason=str(lost),
-                       fault=False, experiment_id=lost.experiment_id if lost else None,
-                       direction=None, steps=None, trip_step=None, t_start_ns=None,
-                       t_end_ns=None, sim_s=0.0, wall_s=wall_s)
+            rec.update(
+                status='lost',
+                loss=None,
+                terms=None,
+                aborted=None,
+                reason=str(lost),
+                fault=False,
+                experiment_id=lost.experiment_id if lost else None,
+                direction=None,
+                steps=None,
+                trip_step=None,
+                t_start_ns=None,
+                t_end_ns=None,
+                sim_s=0.0,
+                wall_s=wall_s,
+            )
         else:
-            rec.update(status='aborted' if m.aborted else 'ok', loss=m.loss,
-                       terms=list(m.terms), aborted=m.aborted, reason=m.reason, fault=m.fault,
-                       experiment_id=m.experiment_id, direction=m.direction, steps=m.steps,
-                       trip_step=m.trip_step, t_start_ns=m.t_start_ns, t_end_ns=m.t_end_ns,
-                       sim_s=(m.t_end_ns - m.t_start_ns) * 1e-9, wall_s=m.wall_s)
+            rec.update(
+                status='aborted' if m.aborted else 'ok',
+                loss=m.loss,
+                terms=list(m.terms),
+                aborted=m.aborted,
+                reason=m.reason,
+                fault=m.fault,
+                experiment_id=m.experiment_id,
+                direction=m.direction,
+                steps=m.steps,
+                trip_step=m.trip_step,
+                t_start_ns=m.t_start_ns,
+                t_end_ns=m.t_end_ns,
+                sim_s=(m.t_end_ns - m.t_start_ns) * 1e-9,
+                wall_s=m.wall_s,
+            )
         return rec
 
-    def _measure(self, measurer: Measurer, kind: str, index: int, u: np.ndarray | None,
-                 gains: Gains) -> dict[str, Any]:
+    def _measure(
+        self, measurer: Measurer, kind: str, index: int, u: np.ndarray | None, gains: Gains
+    ) -> dict[str, Any]:
         """Measure ``gains`` (re-running lost results); records every attempt."""
         for attempt in range(1, self.retries + 2):
             t0 = time.perf_counter()
             try:
                 m = measurer.measure(gains)
-                rec = self._record(kind, index, attempt, u, gains, m, None,
-                                   time.perf_counter() - t0)
+                rec = self._record(
+                    kind, index, attempt, u, gains, m, None, time.perf_counter() - t0
+                )
             except LostEvaluation as exc:
-                rec = self._record(kind, index, attempt, u, gains, None, exc,
-                                   time.perf_counter() - t0)
+                rec = self._record(
+                    kind, index, attempt, u, gains, None, exc, time.perf_counter() - t0
+                )
             # loop wall time: everything since the previous record (optimiser, files,
             # parameter calls, experiment), so the real-time factor is honest
             now = time.perf_counter()
@@ -270,9 +349,11 @@ class TuningRun:
             if rec['status'] != 'lost' and kind == 'eval':
                 # best-so-far after this evaluation, for the results table
                 b = self.state.best
-                rec['best_loss'] = (rec['loss'] if not rec['aborted'] and
-                                    (b is None or rec['loss'] < b['loss']) else
-                                    (b['loss'] if b else None))
+                rec['best_loss'] = (
+                    rec['loss']
+                    if not rec['aborted'] and (b is None or rec['loss'] < b['loss'])
+                    else (b['loss'] if b else None)
+                )
             self.rundir.append_result(rec)
             self._apply(rec, live=True)
             self.records.append(rec)
@@ -281,12 +362,13 @@ class TuningRun:
                 self.progress(kind, rec, self)
             if rec['status'] != 'lost':
                 return rec
-        raise BenchFailure(f'{kind} {index}: no result after {self.retries + 1} attempts '
-                           f'with the same gains ({rec["reason"]})')
+        raise BenchFailure(
+            f'{kind} {index}: no result after {self.retries + 1} attempts '
+            f'with the same gains ({rec["reason"]})'
+        )
 
     # -- the run ---------------------------------------------------------------------------
-    def run(self, measurer: Measurer, should_stop: Callable[[], bool] = lambda: False
-            ) -> str:
+    def run(self, measurer: Measurer, should_stop: Callable[[], bool] = lambda: False) -> str:
         """Run (or continue) until the budget is spent; returns 'done', 'interrupted' or
         'failed: <reason>'.  The best gains are applied at the end in every case."""
         st = self.state
@@ -312,8 +394,11 @@ class TuningRun:
                         continue
                     if should_stop():
                         raise StopRequested()
-                    rec = next(r for r in self.records
-                               if r['kind'] == 'eval' and r['eval'] == i and r['status'] == 'ok')
+                    rec = next(
+                        r
+                        for r in self.records
+                        if r['kind'] == 'eval' and r['eval'] == i and r['status'] == 'ok'
+                    )
                     self._measure(measurer, 'remeasure', i, None, _gains_of(rec))
         except StopRequested:
             outcome = 'interrupted'
@@ -336,8 +421,10 @@ class TuningRun:
     def _top_evals(self, k: int) -> list[int]:
         """Indices of the k best distinct (by gains) non-aborted evaluations."""
         seen, out = set(), []
-        evals = sorted((r for r in self.records if r['kind'] == 'eval' and r['status'] == 'ok'),
-                       key=lambda r: (r['loss'], r['eval']))
+        evals = sorted(
+            (r for r in self.records if r['kind'] == 'eval' and r['status'] == 'ok'),
+            key=lambda r: (r['loss'], r['eval']),
+        )
         for r in evals:
             key = tuple(r['gains'][n] for n in GAIN_NAMES)
             if key in seen:
@@ -354,8 +441,14 @@ class TuningRun:
 
     # -- summary ---------------------------------------------------------------------------
     def summary(self, *, outcome: str, wall_s: float) -> dict[str, Any]:
-        s = summarize(self.state, self.records, budget=self.budget,
-                      satisfactory_loss=self.satisfactory, outcome=outcome, wall_s=wall_s)
+        s = summarize(
+            self.state,
+            self.records,
+            budget=self.budget,
+            satisfactory_loss=self.satisfactory,
+            outcome=outcome,
+            wall_s=wall_s,
+        )
         if s['applied'] is not None:
             s['applied']['on_controller'] = self.applied
         return s
@@ -366,7 +459,7 @@ def tally(st: TunerState, rec: dict[str, Any], satisfactory_loss: float) -> None
     """Update counters and bests of ``st`` from one results.jsonl record (no optimiser)."""
     if rec.get('experiment_id') is not None:  # it ran on the bench (a lost one too)
         st.experiments += 1
-        st.sim_s += rec['sim_s']               # 0 for a lost one: its length is unknown
+        st.sim_s += rec['sim_s']  # 0 for a lost one: its length is unknown
     if rec['status'] == 'lost':
         st.lost += 1
         return
@@ -375,15 +468,17 @@ def tally(st: TunerState, rec: dict[str, Any], satisfactory_loss: float) -> None
     if kind == 'reference':
         st.reference = _brief(rec) | {'aborted': rec['aborted']}
     elif kind == 'remeasure':
-        st.remeasured.append({'eval': rec['eval'], 'loss': rec['loss'],
-                              'aborted': rec['aborted']})
+        st.remeasured.append({'eval': rec['eval'], 'loss': rec['loss'], 'aborted': rec['aborted']})
     elif kind == 'eval':
         st.evals += 1
         st.aborted += bool(rec['aborted'])
         if not rec['aborted'] and (st.best is None or rec['loss'] < st.best['loss']):
             st.best = _brief(rec)
-        if (st.first_satisfactory is None and not rec['aborted']
-                and rec['loss'] <= satisfactory_loss):
+        if (
+            st.first_satisfactory is None
+            and not rec['aborted']
+            and rec['loss'] <= satisfactory_loss
+        ):
             st.first_satisfactory = st.evals
     else:
         raise ResumeError(f'unknown record kind {kind!r}')
@@ -406,40 +501,65 @@ def final_choice(st: TunerState, records: list[dict[str, Any]]) -> dict[str, Any
         ok = [r for r in st.remeasured if not r['aborted']]
         if ok:
             pick = min(ok, key=lambda r: (r['loss'], r['eval']))
-            cand = next(_brief(r) for r in records
-                        if r['kind'] == 'eval' and r['eval'] == pick['eval']
-                        and r['status'] == 'ok')
+            cand = next(
+                _brief(r)
+                for r in records
+                if r['kind'] == 'eval' and r['eval'] == pick['eval'] and r['status'] == 'ok'
+            )
     ref = st.reference
-    if ref is not None and not ref['aborted'] and (cand is None or
-                                                   ref['loss'] <= cand['loss']):
+    if ref is not None and not ref['aborted'] and (cand is None or ref['loss'] <= cand['loss']):
         return ref
     return cand
 
 
-def summarize(st: TunerState, records: list[dict[str, Any]], *, budget: int,
-              satisfactory_loss: float, outcome: str, wall_s: float | None) -> dict[str, Any]:
+def summarize(
+    st: TunerState,
+    records: list[dict[str, Any]],
+    *,
+    budget: int,
+    satisfactory_loss: float,
+    outcome: str,
+    wall_s: float | None,
+) -> dict[str, Any]:
     """The run summary (summary.json's content) from the counters and the records."""
     final = final_choice(st, records)
     rem = {r['eval']: r['loss'] for r in st.remeasured}
     return {
         'outcome': outcome,
-        'evaluations': st.evals, 'budget': budget,
-        'experiments': st.experiments, 'aborted': st.aborted, 'safety_faults': st.faults,
+        'evaluations': st.evals,
+        'budget': budget,
+        'experiments': st.experiments,
+        'aborted': st.aborted,
+        'safety_faults': st.faults,
         'lost': st.lost,
-        'reference': None if st.reference is None else
-        {'gains': st.reference['gains'], 'loss': st.reference['loss'],
-         'aborted': st.reference['aborted']},
-        'best': None if st.best is None else
-        {**{k: st.best[k] for k in ('eval', 'gains', 'loss', 'terms')},
-         'remeasured_loss': rem.get(st.best['eval'])},
-        'applied': None if final is None else
-        {'eval': final['eval'], 'gains': final['gains'], 'loss': final['loss'],
-         'remeasured_loss': rem.get(final['eval']) if final['eval'] >= 0 else None,
-         'source': 'reference' if final['eval'] < 0 else 'evaluation'},
+        'reference': None
+        if st.reference is None
+        else {
+            'gains': st.reference['gains'],
+            'loss': st.reference['loss'],
+            'aborted': st.reference['aborted'],
+        },
+        'best': None
+        if st.best is None
+        else {
+            **{k: st.best[k] for k in ('eval', 'gains', 'loss', 'terms')},
+            'remeasured_loss': rem.get(st.best['eval']),
+        },
+        'applied': None
+        if final is None
+        else {
+            'eval': final['eval'],
+            'gains': final['gains'],
+            'loss': final['loss'],
+            'remeasured_loss': rem.get(final['eval']) if final['eval'] >= 0 else None,
+            'source': 'reference' if final['eval'] < 0 else 'evaluation',
+        },
         'remeasured': st.remeasured,
         'satisfactory_loss': satisfactory_loss,
         'evaluations_to_satisfactory': st.first_satisfactory,
-        'wall_s': wall_s, 'loop_wall_s': st.loop_wall_s, 'sim_s': st.sim_s,
+        'wall_s': wall_s,
+        'loop_wall_s': st.loop_wall_s,
+        'sim_s': st.sim_s,
         'real_time_factor': st.sim_s / st.loop_wall_s if st.loop_wall_s > 0 else None,
         # median: the first calls pay for cold caches and imports
         'optimizer_us_per_eval': float(np.median(st.opt_us)) if st.opt_us else None,
@@ -452,8 +572,11 @@ def replay_plan(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [r for r in records if r.get('experiment_id') is not None]
 
 
-def replay(measurer: Measurer, records: list[dict[str, Any]],
-           progress: Callable[[int, int], None] | None = None) -> int:
+def replay(
+    measurer: Measurer,
+    records: list[dict[str, Any]],
+    progress: Callable[[int, int], None] | None = None,
+) -> int:
     """Re-run the experiments of ``records`` with their gains, in order, to bring a fresh
     deterministic (simulated, lock-step) bench to the state the killed run left it in.
     Each replayed loss must equal the recorded one bit for bit.  Returns the count."""
@@ -463,12 +586,14 @@ def replay(measurer: Measurer, records: list[dict[str, Any]],
             m = measurer.measure(_gains_of(rec))
         except LostEvaluation as exc:
             raise ResumeError(f'replay: experiment {k} lost ({exc})') from None
-        if rec['status'] != 'lost' and not (m.loss == rec['loss']
-                                            and m.experiment_id == rec['experiment_id']):
+        if rec['status'] != 'lost' and not (
+            m.loss == rec['loss'] and m.experiment_id == rec['experiment_id']
+        ):
             raise ResumeError(
                 f'replay: experiment {rec["experiment_id"]} gave loss {m.loss!r} '
                 f'(id {m.experiment_id}), the run recorded {rec["loss"]!r}: this bench is not '
-                'the one of the run (drive file, model or seed changed?)')
+                'the one of the run (drive file, model or seed changed?)'
+            )
         if progress is not None:
             progress(k + 1, len(plan))
     return len(plan)

@@ -6,6 +6,7 @@ compressions); what :func:`read_bag` finds is compared with the ``mcap`` library
 with a non-empty layout). A file cut short (a killed recorder) is read up to its last
 complete chunk and says so.
 """
+
 from __future__ import annotations
 
 import struct
@@ -23,8 +24,12 @@ from rclpy.serialization import serialize_message
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 
 from im_tuner.bag import bag_metadata, prepare_bag_dir, storage_file_name, write_metadata_yaml
-from im_tuner.bagread import (BagReadError, parse_diagnostic_array, parse_float64_multiarray,
-                              read_bag)
+from im_tuner.bagread import (
+    BagReadError,
+    parse_diagnostic_array,
+    parse_float64_multiarray,
+    read_bag,
+)
 from im_tuner.mcap_writer import McapWriter
 from im_tuner.msgdefs import schema_text
 
@@ -37,36 +42,53 @@ WIDTH = 6
 
 def f64_array_cdr(values: np.ndarray) -> bytes:
     """The drive's fast layout: header, no dims, data_offset 0, n, pad, data."""
-    return (b'\x00\x01\x00\x00' + struct.pack('<III', 0, 0, len(values)) + bytes(4) +
-            np.asarray(values, '<f8').tobytes())
+    return (
+        b'\x00\x01\x00\x00'
+        + struct.pack('<III', 0, 0, len(values))
+        + bytes(4)
+        + np.asarray(values, '<f8').tobytes()
+    )
 
 
 def loss_msg(i: int) -> DiagnosticArray:
-    st = DiagnosticStatus(level=DiagnosticStatus.WARN if i % 3 == 0 else DiagnosticStatus.OK,
-                          name=f'controller: experiment {i}', message='done' if i % 3 else
-                          'max_speed', hardware_id='controller')
-    st.values = [KeyValue(key='experiment_id', value=str(i)),
-                 KeyValue(key='loss', value=repr(0.1 * i + 1 / 3)),
-                 KeyValue(key='t_start_ns', value=str(i * 1_125_000_000)),
-                 KeyValue(key='note', value='é' * (i % 4))]   # odd lengths: alignment
+    st = DiagnosticStatus(
+        level=DiagnosticStatus.WARN if i % 3 == 0 else DiagnosticStatus.OK,
+        name=f'controller: experiment {i}',
+        message='done' if i % 3 else 'max_speed',
+        hardware_id='controller',
+    )
+    st.values = [
+        KeyValue(key='experiment_id', value=str(i)),
+        KeyValue(key='loss', value=repr(0.1 * i + 1 / 3)),
+        KeyValue(key='t_start_ns', value=str(i * 1_125_000_000)),
+        KeyValue(key='note', value='é' * (i % 4)),
+    ]  # odd lengths: alignment
     msg = DiagnosticArray(status=[st])
     msg.header.stamp.sec, msg.header.stamp.nanosec = i, 7 * i
     msg.header.frame_id = 'x' * (i % 5)
     return msg
 
 
-def write_bag(out: Path, n: int = 3000, compression: str = 'lz4', chunk_size: int = 8192,
-              close: bool = True) -> dict:
+def write_bag(
+    out: Path, n: int = 3000, compression: str = 'lz4', chunk_size: int = 8192, close: bool = True
+) -> dict:
     """A bag like a tuning run's: internals rows [k, ...] at 5 kHz, a loss message every
     500 steps, a string every 7, arrays with a labelled layout every 11."""
     out = prepare_bag_dir(out)
     path = out / storage_file_name(out)
     w = McapWriter(path, compression=compression, chunk_size=chunk_size)
-    write_metadata_yaml(out, bag_metadata([(path.name, 0, 0, 0)], [],
-                                          {'im_tuner.state': 'recording'}))
-    ch = {t: w.add_channel(t, w.add_schema(ty, 'ros2msg', schema_text(ty).encode()), 'cdr')
-          for t, ty in (('/controller/internals', ARRAY), ('/controller/loss', DIAG),
-                        ('/chatter', STRING), ('/labelled', ARRAY))}
+    write_metadata_yaml(
+        out, bag_metadata([(path.name, 0, 0, 0)], [], {'im_tuner.state': 'recording'})
+    )
+    ch = {
+        t: w.add_channel(t, w.add_schema(ty, 'ros2msg', schema_text(ty).encode()), 'cdr')
+        for t, ty in (
+            ('/controller/internals', ARRAY),
+            ('/controller/loss', DIAG),
+            ('/chatter', STRING),
+            ('/labelled', ARRAY),
+        )
+    }
     want = {'rows': [], 'losses': [], 'labelled': [], 'times': {t: [] for t in ch}}
     seq = 0
     for k in range(n):
@@ -125,14 +147,19 @@ def test_counts_times_rows_and_losses_match_independent_readers(tmp_path, compre
     # the general CDR path (a labelled layout) gives the same numbers as rclpy wrote
     np.testing.assert_array_equal(got.arrays['/labelled'], np.array(want['labelled']))
     assert len(got.losses) == len(want['losses'])
-    for g, m in zip(got.losses, want['losses']):
+    for g, m in zip(got.losses, want['losses'], strict=True):
         st = m.status[0]
         assert {k: g[k] for k in ('level', 'name', 'message', 'hardware_id')} == {
-            'level': str(int.from_bytes(st.level, 'little')), 'name': st.name,
-            'message': st.message, 'hardware_id': st.hardware_id}
+            'level': str(int.from_bytes(st.level, 'little')),
+            'name': st.name,
+            'message': st.message,
+            'hardware_id': st.hardware_id,
+        }
         assert {kv.key: kv.value for kv in st.values} == {
-            k: v for k, v in g.items() if k not in ('level', 'name', 'message', 'hardware_id',
-                                                    'stamp_ns', 'log_time_ns')}
+            k: v
+            for k, v in g.items()
+            if k not in ('level', 'name', 'message', 'hardware_id', 'stamp_ns', 'log_time_ns')
+        }
         assert int(g['stamp_ns']) == m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
     assert [int(g['log_time_ns']) for g in got.losses] == want['times']['/controller/loss']
 
@@ -147,20 +174,24 @@ def test_windows_keep_only_the_rows_asked_for(tmp_path):
     np.testing.assert_array_equal(got.arrays['/controller/internals'], rows[k.astype(int)])
     # a topic not asked for is counted, not kept; an empty window list keeps nothing
     assert '/labelled' not in got.arrays and got.topics['/labelled'].count == 273
-    assert read_bag(tmp_path / 'b', {'/controller/internals': []}).arrays[
-        '/controller/internals'].shape[0] == 0
+    assert (
+        read_bag(tmp_path / 'b', {'/controller/internals': []})
+        .arrays['/controller/internals']
+        .shape[0]
+        == 0
+    )
 
 
 def test_a_bag_cut_short_is_read_to_its_last_complete_chunk(tmp_path):
     want = write_bag(tmp_path / 'b', close=False)
     path = want['file']
     full = read_bag(tmp_path / 'b', {'/controller/internals': None})
-    assert not full.complete          # no DataEnd: the recorder never closed it
+    assert not full.complete  # no DataEnd: the recorder never closed it
     assert full.messages == sum(len(v) for v in want['times'].values())
     # cut in the middle of a chunk: what is before it is read, the rest is reported
     size = path.stat().st_size
     data = path.read_bytes()
-    path.write_bytes(data[:size * 3 // 5])
+    path.write_bytes(data[: size * 3 // 5])
     got = read_bag(tmp_path / 'b', {'/controller/internals': None})
     assert not got.complete and 0 < got.unread_bytes < size * 3 // 5
     assert got.state == 'recording' and got.recorder_counts is None
@@ -170,8 +201,9 @@ def test_a_bag_cut_short_is_read_to_its_last_complete_chunk(tmp_path):
     np.testing.assert_array_equal(rows, np.array(want['rows'][:n]))
     assert got.topics['/controller/internals'].count == n
     lib = mcap_library_counts_until_error(path)
-    assert {t: s.count for t, s in got.topics.items() if s.count} == \
-        {t: len(v) for t, v in lib.items()}
+    assert {t: s.count for t, s in got.topics.items() if s.count} == {
+        t: len(v) for t, v in lib.items()
+    }
 
 
 def mcap_library_counts_until_error(path: Path) -> dict[str, list[int]]:
@@ -192,7 +224,7 @@ def mcap_library_counts_until_error(path: Path) -> dict[str, list[int]]:
 
 def test_not_a_bag(tmp_path):
     (tmp_path / 'empty').mkdir()
-    with pytest.raises(BagReadError, match='no .mcap file'):
+    with pytest.raises(BagReadError, match=r'no \.mcap file'):
         read_bag(tmp_path / 'empty')
     (tmp_path / 'bad').mkdir()
     (tmp_path / 'bad' / 'x.mcap').write_bytes(b'not an mcap file at all')
@@ -204,11 +236,12 @@ def test_cdr_parsers_on_rclpy_bytes():
     m = Float64MultiArray(data=[1.5, -2.0, np.pi])
     m.layout.dim = [MultiArrayDimension(label='a', size=3, stride=3)]
     m.layout.data_offset = 0
-    np.testing.assert_array_equal(parse_float64_multiarray(serialize_message(m)),
-                                  [1.5, -2.0, np.pi])
+    np.testing.assert_array_equal(
+        parse_float64_multiarray(serialize_message(m)), [1.5, -2.0, np.pi]
+    )
     assert parse_float64_multiarray(serialize_message(Float64MultiArray())).size == 0
     two = DiagnosticArray(status=[loss_msg(1).status[0], loss_msg(2).status[0]])
     got = parse_diagnostic_array(serialize_message(two))
     assert [g['experiment_id'] for g in got] == ['1', '2']
     with pytest.raises(ValueError):
-        parse_diagnostic_array(b'\x01\x00\x00\x00' + bytes(8))   # big-endian: refused
+        parse_diagnostic_array(b'\x01\x00\x00\x00' + bytes(8))  # big-endian: refused

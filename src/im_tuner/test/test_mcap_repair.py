@@ -7,6 +7,7 @@ deserialiser), so an index or summary that misdescribes the data shows up as mis
 wrong messages. Payloads are real CDR: ``Float64MultiArray`` built by hand in the layout the
 drive simulator publishes, ``std_msgs/String`` from rclpy's serialiser.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -30,12 +31,19 @@ from rosbags.rosbag2 import ReaderError as RosbagsReaderError
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from std_msgs.msg import String
 
-from im_tuner.bag import (TopicRecord, bag_metadata, prepare_bag_dir, qos_to_dict, qos_yaml,
-                          read_metadata_yaml, storage_file_name, write_metadata_yaml)
+from im_tuner import mcap_repair
+from im_tuner.bag import (
+    TopicRecord,
+    bag_metadata,
+    prepare_bag_dir,
+    qos_to_dict,
+    qos_yaml,
+    read_metadata_yaml,
+    storage_file_name,
+    write_metadata_yaml,
+)
 from im_tuner.mcap_writer import McapWriter
 from im_tuner.msgdefs import schema_text
-
-from im_tuner import mcap_repair
 
 RepairError = mcap_repair.RepairError
 repair_bag = mcap_repair.repair_bag
@@ -50,8 +58,12 @@ TYPE_HASH = 'RIHS01_' + 'ab' * 32
 
 def f64_array_cdr(values: np.ndarray) -> bytes:
     """A Float64MultiArray with empty layout: header, dim len 0, data_offset 0, n, pad, data."""
-    return (b'\x00\x01\x00\x00' + struct.pack('<III', 0, 0, len(values)) + bytes(4) +
-            np.asarray(values, '<f8').tobytes())
+    return (
+        b'\x00\x01\x00\x00'
+        + struct.pack('<III', 0, 0, len(values))
+        + bytes(4)
+        + np.asarray(values, '<f8').tobytes()
+    )
 
 
 def sha(path: Path) -> str:
@@ -65,22 +77,37 @@ def snapshot(d: Path) -> dict[str, bytes]:
 class Recording:
     """A bag being written as the recorder writes it; remembers what went in, in order."""
 
-    def __init__(self, out: Path, compression: str = 'zstd', chunk_size: int = 4096,
-                 background: bool = False) -> None:
+    def __init__(
+        self, out: Path, compression: str = 'zstd', chunk_size: int = 4096, background: bool = False
+    ) -> None:
         self.out = prepare_bag_dir(out)
         self.file = self.out / storage_file_name(self.out)
-        self.w = McapWriter(self.file, compression=compression, chunk_size=chunk_size,
-                            background=background)
+        self.w = McapWriter(
+            self.file, compression=compression, chunk_size=chunk_size, background=background
+        )
         self.w.add_metadata('im_tuner.run', {'command': 'test'})
-        write_metadata_yaml(self.out, bag_metadata(
-            [(self.file.name, 0, 0, 0)], [],
-            {'im_tuner.state': 'recording', 'im_tuner.run_id': 'test-42'}))
+        write_metadata_yaml(
+            self.out,
+            bag_metadata(
+                [(self.file.name, 0, 0, 0)],
+                [],
+                {'im_tuner.state': 'recording', 'im_tuner.run_id': 'test-42'},
+            ),
+        )
         meta = {'offered_qos_profiles': qos_yaml(QOS), 'topic_type_hash': TYPE_HASH}
         self.ch = {
-            '/drive/state': self.w.add_channel('/drive/state', self.w.add_schema(
-                ARRAY, 'ros2msg', schema_text(ARRAY).encode()), 'cdr', meta),
-            '/chatter': self.w.add_channel('/chatter', self.w.add_schema(
-                STRING, 'ros2msg', schema_text(STRING).encode()), 'cdr', meta),
+            '/drive/state': self.w.add_channel(
+                '/drive/state',
+                self.w.add_schema(ARRAY, 'ros2msg', schema_text(ARRAY).encode()),
+                'cdr',
+                meta,
+            ),
+            '/chatter': self.w.add_channel(
+                '/chatter',
+                self.w.add_schema(STRING, 'ros2msg', schema_text(STRING).encode()),
+                'cdr',
+                meta,
+            ),
         }
         #: (topic, log_time, value) in write order; value: float64 array or str.
         self.sent: list[tuple[str, int, object]] = []
@@ -128,7 +155,7 @@ def decode_cdr(topic: str, data: bytes) -> object:
     """Our own reading of the two payload layouts (used for the mcap library's output)."""
     if topic == '/chatter':
         n = struct.unpack_from('<I', data, 4)[0]
-        return data[8:8 + n - 1].decode()
+        return data[8 : 8 + n - 1].decode()
     assert data[:4] == b'\x00\x01\x00\x00' and data[4:12] == bytes(8)
     n = struct.unpack_from('<I', data, 12)[0]
     return np.frombuffer(data, '<f8', n, 20)
@@ -151,11 +178,13 @@ def read_with_mcap(path: Path, sent: list[tuple[str, int, object]]) -> None:
     """The mcap library's indexed reader returns exactly ``sent``, CRCs and summary valid."""
     with open(path, 'rb') as f:
         reader = make_reader(f, validate_crcs=True)
-        got = [(ch.topic, m.log_time, m.publish_time, m.sequence, decode_cdr(ch.topic, m.data))
-               for _s, ch, m in reader.iter_messages()]
+        got = [
+            (ch.topic, m.log_time, m.publish_time, m.sequence, decode_cdr(ch.topic, m.data))
+            for _s, ch, m in reader.iter_messages()
+        ]
         summary = reader.get_summary()
     assert [(t, lt) for t, lt, *_ in got] == [(t, lt) for t, lt, _ in sent]
-    for (topic, t, want), (_tp, lt, pt, seq, value) in zip(sent, got):
+    for (topic, t, want), (_tp, _lt, pt, seq, value) in zip(sent, got, strict=True):
         check_value(topic, value, want)
         assert pt == t - 1000 and seq == (t - T0) // 200_000
     stats = summary.statistics
@@ -178,6 +207,7 @@ def check_message_indexes(path: Path, summary) -> None:
 
     def check_chunk() -> None:
         assert sorted(seen) == sorted(msgs)
+
     for r in records:
         if isinstance(r, McapChunk):
             if n_chunks:
@@ -186,8 +216,10 @@ def check_message_indexes(path: Path, summary) -> None:
             stream, _n = get_chunk_data_stream(r, validate_crc=True)
             chunk_data, msgs, seen = stream.read(r.uncompressed_size), {}, []
             for m_off in _message_offsets(chunk_data):
-                m = McapMessage.read(ReadDataStream(io.BytesIO(chunk_data[m_off + 9:])),
-                                     struct.unpack_from('<Q', chunk_data, m_off + 1)[0])
+                m = McapMessage.read(
+                    ReadDataStream(io.BytesIO(chunk_data[m_off + 9 :])),
+                    struct.unpack_from('<Q', chunk_data, m_off + 1)[0],
+                )
                 msgs[m_off] = (m.channel_id, m.log_time)
         elif isinstance(r, McapMessageIndex):
             assert r.records == sorted(r.records)
@@ -230,15 +262,16 @@ def read_with_rosbags(bag: Path, sent: list[tuple[str, int, object]]) -> None:
             msg = store.deserialize_cdr(raw, conn.msgtype)
             got.append((conn.topic, t, msg.data))
     assert [(t, lt) for t, lt, _ in got] == [(t, lt) for t, lt, _ in sent]
-    for (topic, _t, want), (_tp, _lt, value) in zip(sent, got):
+    for (topic, _t, want), (_tp, _lt, value) in zip(sent, got, strict=True):
         check_value(topic, value, want)
 
 
 def check_metadata_yaml(bag: Path, sent: list[tuple[str, int, object]], state: str) -> dict:
     info = read_metadata_yaml(bag)
     assert info['message_count'] == len(sent)
-    counts = {t['topic_metadata']['name']: t['message_count']
-              for t in info['topics_with_message_count']}
+    counts = {
+        t['topic_metadata']['name']: t['message_count'] for t in info['topics_with_message_count']
+    }
     assert {t: n for t, n in counts.items() if n} == topic_counts(sent)
     for t in info['topics_with_message_count']:
         assert t['topic_metadata']['offered_qos_profiles'] == QOS
@@ -262,25 +295,40 @@ def crash(rec: Recording, cut_last_chunk: bool = True) -> list[tuple[str, int, o
 
 # --- 1. complete bags are readable by independent readers ---------------------------------
 
+
 @pytest.mark.parametrize('compression', ['none', 'zstd', 'lz4'])
 def test_complete_bag_reads_back(tmp_path: Path, compression: str) -> None:
     rec = Recording(tmp_path / 'bag', compression)
     rec.write(700, flush_every=97)
     rec.w.close()
     assert len(rec.w.chunks) > 5
-    write_metadata_yaml(rec.out, bag_metadata(
-        [(rec.file.name, rec.w.t_start, rec.w.t_end, rec.w.message_count)],
-        [TopicRecord(t, ARRAY if t == '/drive/state' else STRING,
-                     rec.w.channel_counts[c], QOS, TYPE_HASH) for t, c in rec.ch.items()],
-        {'im_tuner.state': 'closed', 'im_tuner.run_id': 'test-42'}))
+    write_metadata_yaml(
+        rec.out,
+        bag_metadata(
+            [(rec.file.name, rec.w.t_start, rec.w.t_end, rec.w.message_count)],
+            [
+                TopicRecord(
+                    t,
+                    ARRAY if t == '/drive/state' else STRING,
+                    rec.w.channel_counts[c],
+                    QOS,
+                    TYPE_HASH,
+                )
+                for t, c in rec.ch.items()
+            ],
+            {'im_tuner.state': 'closed', 'im_tuner.run_id': 'test-42'},
+        ),
+    )
     read_with_mcap(rec.file, rec.sent)
     read_with_rosbags(rec.out, rec.sent)
 
 
 # --- 2. a crash: readable up to the last complete chunk, repaired ------------------------
 
-@pytest.mark.parametrize('compression,background',
-                         [('none', False), ('zstd', False), ('lz4', False), ('lz4', True)])
+
+@pytest.mark.parametrize(
+    'compression,background', [('none', False), ('zstd', False), ('lz4', False), ('lz4', True)]
+)
 def test_crash_then_repair(tmp_path: Path, compression: str, background: bool) -> None:
     rec = Recording(tmp_path / 'bag', compression, background=background)
     rec.write(900, flush_every=61)
@@ -323,7 +371,8 @@ def test_crash_then_repair(tmp_path: Path, compression: str, background: bool) -
     info = check_metadata_yaml(rec.out, complete, 'repaired')
     assert info['custom_data']['im_tuner.repair'] == (
         f'recovered {len(complete)} messages in {report.chunks} chunks; discarded '
-        f'{report.dropped_bytes} bytes after the last complete chunk')
+        f'{report.dropped_bytes} bytes after the last complete chunk'
+    )
     # The metadata record written at the start survives.
     with open(rec.file, 'rb') as f:
         assert [m.name for m in make_reader(f).iter_metadata()] == ['im_tuner.run']
@@ -343,7 +392,7 @@ class _NonSeekable(io.RawIOBase):
 
     def readinto(self, b) -> int:
         data = self.f.read(len(b))
-        b[:len(data)] = data
+        b[: len(data)] = data
         return len(data)
 
 
@@ -377,6 +426,7 @@ def test_crash_before_any_chunk(tmp_path: Path) -> None:
 
 # --- 3. a complete bag is left untouched ------------------------------------------------
 
+
 def test_repair_complete_bag_leaves_mcap_untouched(tmp_path: Path) -> None:
     rec = Recording(tmp_path / 'bag', 'lz4')
     rec.write(400, flush_every=77)
@@ -393,14 +443,18 @@ def test_repair_complete_bag_leaves_mcap_untouched(tmp_path: Path) -> None:
 
 # --- 4. garbage after the last chunk ---------------------------------------------------
 
+
 @pytest.mark.parametrize('tail', ['random', 'zeros', 'partial-dataend'])
 def test_garbage_tail_is_dropped(tmp_path: Path, tail: str) -> None:
     rec = Recording(tmp_path / 'bag')
     rec.write(500, flush_every=100)
     complete = crash(rec, cut_last_chunk=False)
     size = rec.file.stat().st_size
-    junk = {'random': np.random.default_rng(7).bytes(3000), 'zeros': bytes(4096),
-            'partial-dataend': b'\x0f\x04\x00\x00\x00\x00\x00\x00\x00\x00'}[tail]
+    junk = {
+        'random': np.random.default_rng(7).bytes(3000),
+        'zeros': bytes(4096),
+        'partial-dataend': b'\x0f\x04\x00\x00\x00\x00\x00\x00\x00\x00',
+    }[tail]
     with open(rec.file, 'ab') as f:
         f.write(junk)
     report = repair_bag(rec.out)
@@ -431,9 +485,11 @@ def test_corrupt_chunk_stops_the_scan(tmp_path: Path) -> None:
 
 # --- files from another writer: channels inside chunks, messages outside chunks ------------
 
+
 @pytest.mark.parametrize('chunked', [True, False])
 def test_repair_file_of_the_mcap_library(tmp_path: Path, chunked: bool) -> None:
     from mcap.writer import Writer
+
     out = prepare_bag_dir(tmp_path / 'bag')
     path = out / 'bag_0.mcap'
     sent = []
@@ -450,7 +506,7 @@ def test_repair_file_of_the_mcap_library(tmp_path: Path, chunked: bool) -> None:
             sent.append(('/drive/state', t, value))
         f.flush()
         size = f.tell()  # crash: no finish()
-    recovered = sent[:len(stream_messages(path))]
+    recovered = sent[: len(stream_messages(path))]
     assert len(recovered) == 600 if not chunked else 400 < len(recovered) < 600
     report = repair_bag(out)
     assert report.messages == len(recovered) and report.dropped_bytes == 0
@@ -460,18 +516,18 @@ def test_repair_file_of_the_mcap_library(tmp_path: Path, chunked: bool) -> None:
         got = [(m.log_time, decode_cdr(c.topic, m.data)) for _s, c, m in reader.iter_messages()]
         assert reader.get_summary().statistics.message_count == len(recovered)
     assert [t for t, _ in got] == [t for _, t, _ in recovered]
-    for (_tp, _t, want), (_lt, value) in zip(recovered, got):
+    for (_tp, _t, want), (_lt, value) in zip(recovered, got, strict=True):
         np.testing.assert_array_equal(value, want)
     store = get_typestore(Stores.EMPTY)
     with RosbagsReader(out) as reader:
         for conn in reader.connections:
             store.register(get_types_from_msg(conn.msgdef.data, conn.msgtype))
-        values = [store.deserialize_cdr(raw, c.msgtype).data[0]
-                  for c, _t, raw in reader.messages()]
+        values = [store.deserialize_cdr(raw, c.msgtype).data[0] for c, _t, raw in reader.messages()]
     assert values == [v[0] for _tp, _t, v in recovered]
 
 
 # --- 5. errors ---------------------------------------------------------------------------
+
 
 def test_errors_name_the_path_and_change_nothing(tmp_path: Path) -> None:
     not_dir = tmp_path / 'file.txt'
@@ -487,14 +543,16 @@ def test_errors_name_the_path_and_change_nothing(tmp_path: Path) -> None:
     empty.mkdir()
     (empty / 'metadata.yaml').write_text('rosbag2_bagfile_information: {}\n')
     before = snapshot(empty)
-    with pytest.raises(RepairError, match='no .mcap file') as e:
+    with pytest.raises(RepairError, match=r'no \.mcap file') as e:
         repair_bag(empty)
     assert str(empty) in str(e.value) and snapshot(empty) == before
 
-    for name, content, msg in [('bad', b'not an mcap file at all' * 10, 'bad magic'),
-                               ('short', b'\x89MC', 'bad magic'),
-                               ('nohead', b'\x89MCAP0\r\n\x01\x30\x00', 'no complete MCAP header'),
-                               ('zero', b'', 'bad magic')]:
+    for name, content, msg in [
+        ('bad', b'not an mcap file at all' * 10, 'bad magic'),
+        ('short', b'\x89MC', 'bad magic'),
+        ('nohead', b'\x89MCAP0\r\n\x01\x30\x00', 'no complete MCAP header'),
+        ('zero', b'', 'bad magic'),
+    ]:
         d = tmp_path / name
         d.mkdir()
         (d / f'{name}_0.mcap').write_bytes(content)
@@ -548,6 +606,7 @@ def test_killed_while_writing_the_summary(tmp_path: Path) -> None:
 
 # --- 6. failure atomicity -----------------------------------------------------------------
 
+
 def test_failure_leaves_the_original(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     rec = Recording(tmp_path / 'bag')
     rec.write(300, flush_every=40)
@@ -556,6 +615,7 @@ def test_failure_leaves_the_original(tmp_path: Path, monkeypatch: pytest.MonkeyP
 
     def boom(*_a, **_k):
         raise OSError(28, 'No space left on device')
+
     monkeypatch.setattr(mcap_repair.os, 'replace', boom)
     with pytest.raises(RepairError, match='original is unchanged') as e:
         repair_bag(rec.out)
@@ -565,6 +625,7 @@ def test_failure_leaves_the_original(tmp_path: Path, monkeypatch: pytest.MonkeyP
 
     def interrupted(*_a, **_k):
         raise KeyboardInterrupt
+
     monkeypatch.setattr(mcap_repair, '_statistics', interrupted)  # mid-way through the summary
     with pytest.raises(KeyboardInterrupt):
         repair_bag(rec.out)

@@ -6,6 +6,7 @@ reported as ``background write failed: None``. These tests pin the mechanism (a 
 finishes between two looks) deterministically, then race thousands of tiny writes against
 their completion and check the file with the ``mcap`` library (CRCs on).
 """
+
 from __future__ import annotations
 
 from concurrent.futures import Future
@@ -51,8 +52,9 @@ def test_a_failed_background_write_is_reported(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize('compression', ['none', 'lz4'])
-def test_many_tiny_background_writes_race_their_completion(tmp_path: Path,
-                                                           compression: str) -> None:
+def test_many_tiny_background_writes_race_their_completion(
+    tmp_path: Path, compression: str
+) -> None:
     """5000 messages in 1-record chunks plus metadata, every one a background job that
     may finish at any instant of the next submit: no error, and every record is there."""
     path = tmp_path / f'c_{compression}.mcap'

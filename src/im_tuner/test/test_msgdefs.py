@@ -10,8 +10,9 @@ from __future__ import annotations
 import array
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -20,96 +21,113 @@ from mcap_ros2._vendor.rosidl_adapter.parser import InvalidResourceName
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.msg import normalize_msgtype
 
-os.environ.setdefault("AMENT_PREFIX_PATH", sys.prefix)
+os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
 
-from im_tuner import msgdefs  # noqa: E402
+from im_tuner import msgdefs
 
 MsgDefError = msgdefs.MsgDefError
 schema_text = msgdefs.schema_text
 
-SEP = "=" * 80
+SEP = '=' * 80
 VENV = Path(sys.prefix)
 
 
 def share(rel: str) -> str:
     """Verbatim text of an installed interface file, e.g. ``std_msgs/msg/Header.msg``."""
-    return (VENV / "share" / rel).read_text(encoding="utf-8")
+    return (VENV / 'share' / rel).read_text(encoding='utf-8')
 
 
 def msg_names(text: str) -> list[str]:
     """The ``MSG:`` names in order, asserting each directly follows a separator line."""
-    lines = text.split("\n")
+    lines = text.split('\n')
     names = []
     for i, line in enumerate(lines):
-        if line.startswith("MSG:"):
-            assert i > 0 and lines[i - 1] == SEP, f"{line!r} is not preceded by the separator"
-            names.append(line[len("MSG: "):])
+        if line.startswith('MSG:'):
+            assert i > 0 and lines[i - 1] == SEP, f'{line!r} is not preceded by the separator'
+            names.append(line[len('MSG: ') :])
     assert sum(line == SEP for line in lines) == len(names)
     return names
 
 
 # --- layout ----------------------------------------------------------------------------------
 
+
 def test_float64multiarray_layout_is_exact() -> None:
-    text = schema_text("std_msgs/msg/Float64MultiArray")
-    top = share("std_msgs/msg/Float64MultiArray.msg")
+    text = schema_text('std_msgs/msg/Float64MultiArray')
+    top = share('std_msgs/msg/Float64MultiArray.msg')
     assert text.startswith(top)
-    assert text.count("MSG: std_msgs/MultiArrayLayout\n") == 1
-    assert text.count("MSG: std_msgs/MultiArrayDimension\n") == 1
-    assert msg_names(text) == ["std_msgs/MultiArrayLayout", "std_msgs/MultiArrayDimension"]
+    assert text.count('MSG: std_msgs/MultiArrayLayout\n') == 1
+    assert text.count('MSG: std_msgs/MultiArrayDimension\n') == 1
+    assert msg_names(text) == ['std_msgs/MultiArrayLayout', 'std_msgs/MultiArrayDimension']
     # rosbag2's exact form: definitions joined by "\n" (so a blank line before each separator).
-    assert text == "\n".join([
-        top,
-        SEP, "MSG: std_msgs/MultiArrayLayout", share("std_msgs/msg/MultiArrayLayout.msg"),
-        SEP, "MSG: std_msgs/MultiArrayDimension", share("std_msgs/msg/MultiArrayDimension.msg"),
-    ])
+    assert text == '\n'.join(
+        [
+            top,
+            SEP,
+            'MSG: std_msgs/MultiArrayLayout',
+            share('std_msgs/msg/MultiArrayLayout.msg'),
+            SEP,
+            'MSG: std_msgs/MultiArrayDimension',
+            share('std_msgs/msg/MultiArrayDimension.msg'),
+        ]
+    )
 
 
 def test_jointstate_has_header_and_time_once_depth_first() -> None:
-    text = schema_text("sensor_msgs/msg/JointState")
-    assert text.startswith(share("sensor_msgs/msg/JointState.msg"))
-    assert text.count("MSG: std_msgs/Header\n") == 1
-    assert text.count("MSG: builtin_interfaces/Time\n") == 1
-    assert msg_names(text) == ["std_msgs/Header", "builtin_interfaces/Time"]
+    text = schema_text('sensor_msgs/msg/JointState')
+    assert text.startswith(share('sensor_msgs/msg/JointState.msg'))
+    assert text.count('MSG: std_msgs/Header\n') == 1
+    assert text.count('MSG: builtin_interfaces/Time\n') == 1
+    assert msg_names(text) == ['std_msgs/Header', 'builtin_interfaces/Time']
 
 
 def test_two_part_message_name_is_the_same_type() -> None:
-    assert schema_text("std_msgs/Float64MultiArray") == schema_text(
-        "std_msgs/msg/Float64MultiArray")
+    assert schema_text('std_msgs/Float64MultiArray') == schema_text(
+        'std_msgs/msg/Float64MultiArray'
+    )
 
 
 def test_service_event_form() -> None:
-    text = schema_text("rcl_interfaces/srv/SetParameters_Event")
+    text = schema_text('rcl_interfaces/srv/SetParameters_Event')
     assert text.startswith(
-        "service_msgs/ServiceEventInfo info\n"
-        "rcl_interfaces/SetParameters_Request[<=1] request\n"
-        "rcl_interfaces/SetParameters_Response[<=1] response\n"
-        "\n" + SEP + "\nMSG: service_msgs/ServiceEventInfo\n"
-        + share("service_msgs/msg/ServiceEventInfo.msg"))
+        'service_msgs/ServiceEventInfo info\n'
+        'rcl_interfaces/SetParameters_Request[<=1] request\n'
+        'rcl_interfaces/SetParameters_Response[<=1] response\n'
+        '\n'
+        + SEP
+        + '\nMSG: service_msgs/ServiceEventInfo\n'
+        + share('service_msgs/msg/ServiceEventInfo.msg')
+    )
     assert msg_names(text) == [
-        "service_msgs/ServiceEventInfo", "builtin_interfaces/Time",
-        "rcl_interfaces/SetParameters_Request", "rcl_interfaces/Parameter",
-        "rcl_interfaces/ParameterValue",
-        "rcl_interfaces/SetParameters_Response", "rcl_interfaces/SetParametersResult",
+        'service_msgs/ServiceEventInfo',
+        'builtin_interfaces/Time',
+        'rcl_interfaces/SetParameters_Request',
+        'rcl_interfaces/Parameter',
+        'rcl_interfaces/ParameterValue',
+        'rcl_interfaces/SetParameters_Response',
+        'rcl_interfaces/SetParametersResult',
     ]
-    srv = share("rcl_interfaces/srv/SetParameters.srv")
-    request, response = srv.split("\n---\n")
-    assert ("MSG: rcl_interfaces/SetParameters_Request\n" + request + "\n" + SEP) in text
-    assert ("MSG: rcl_interfaces/SetParameters_Response\n" + response + "\n" + SEP) in text
+    srv = share('rcl_interfaces/srv/SetParameters.srv')
+    request, response = srv.split('\n---\n')
+    assert ('MSG: rcl_interfaces/SetParameters_Request\n' + request + '\n' + SEP) in text
+    assert ('MSG: rcl_interfaces/SetParameters_Response\n' + response + '\n' + SEP) in text
 
 
 def test_empty_parts_are_empty_sections() -> None:
-    text = schema_text("std_srvs/srv/Trigger_Event")
-    response = share("std_srvs/srv/Trigger.srv")[len("---\n"):]
-    assert text.endswith("MSG: std_srvs/Trigger_Request\n\n"
-                         + SEP + "\nMSG: std_srvs/Trigger_Response\n" + response)
-    assert schema_text("std_srvs/srv/Empty_Event").endswith(
-        "MSG: std_srvs/Empty_Request\n\n" + SEP + "\nMSG: std_srvs/Empty_Response\n")
-    assert schema_text("std_srvs/srv/Trigger_Request") == ""
-    assert schema_text("std_srvs/srv/Trigger_Response") == response
+    text = schema_text('std_srvs/srv/Trigger_Event')
+    response = share('std_srvs/srv/Trigger.srv')[len('---\n') :]
+    assert text.endswith(
+        'MSG: std_srvs/Trigger_Request\n\n' + SEP + '\nMSG: std_srvs/Trigger_Response\n' + response
+    )
+    assert schema_text('std_srvs/srv/Empty_Event').endswith(
+        'MSG: std_srvs/Empty_Request\n\n' + SEP + '\nMSG: std_srvs/Empty_Response\n'
+    )
+    assert schema_text('std_srvs/srv/Trigger_Request') == ''
+    assert schema_text('std_srvs/srv/Trigger_Response') == response
 
 
 # --- round trip through rclpy's serialiser and two independent readers -------------------------
+
 
 def _mcap_decoder(type_name: str, text: str) -> Callable[[bytes], Any]:
     """mcap_ros2's decoder for ``text``.
@@ -120,8 +138,8 @@ def _mcap_decoder(type_name: str, text: str) -> Callable[[bytes], Any]:
     fine, so event types are decoded under the alias ``pkg/srv/NameEvent``.
     """
     name = type_name
-    if type_name.endswith("_Event"):
-        name = type_name[: -len("_Event")] + "Event"
+    if type_name.endswith('_Event'):
+        name = type_name[: -len('_Event')] + 'Event'
     return generate_dynamic(name, text)[name]
 
 
@@ -142,13 +160,13 @@ def _rosbags_decode(type_name: str, text: str, data: bytes) -> Any:
     (an empty JointState: 36 bytes of CDR in a 44-byte buffer).  So the same deserialiser is
     called one level down, and it must end inside the buffer.
     """
-    if type_name.endswith(("_Request", "_Response")):
-        pkg, _, name = type_name.split("/")
-        type_name = f"{pkg}/{name}"
+    if type_name.endswith(('_Request', '_Response')):
+        pkg, _, name = type_name.split('/')
+        type_name = f'{pkg}/{name}'
     types = get_types_from_msg(text, type_name)
     store = get_typestore(Stores.EMPTY)
     store.register(types)
-    assert data[:4] == b"\x00\x01\x00\x00"  # CDR, little endian
+    assert data[:4] == b'\x00\x01\x00\x00'  # CDR, little endian
     msgdef = store.get_msgdef(normalize_msgtype(type_name))
     message, end = msgdef.deserialize_cdr_le(data[4:], 0, msgdef.cls, store)
     assert 4 + end <= len(data)
@@ -166,31 +184,38 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def assert_same(expected: Any, decoded: Any, where: str = "msg") -> None:
+def assert_same(expected: Any, decoded: Any, where: str = 'msg') -> None:
     """Every field of the rclpy message ``expected`` equals the decoded one, recursively."""
-    if hasattr(expected, "get_fields_and_field_types"):
+    if hasattr(expected, 'get_fields_and_field_types'):
         for field in expected.get_fields_and_field_types():
-            assert_same(getattr(expected, field), getattr(decoded, field), f"{where}.{field}")
+            assert_same(getattr(expected, field), getattr(decoded, field), f'{where}.{field}')
     elif isinstance(expected, (list, tuple)) or (
-            isinstance(expected, (np.ndarray, array.array)) and not isinstance(decoded, bytes)):
+        isinstance(expected, (np.ndarray, array.array)) and not isinstance(decoded, bytes)
+    ):
         got = list(decoded)
-        assert len(got) == len(expected), f"{where}: length {len(got)} != {len(expected)}"
-        for i, (e, d) in enumerate(zip(expected, got)):
-            assert_same(e, d, f"{where}[{i}]")
+        assert len(got) == len(expected), f'{where}: length {len(got)} != {len(expected)}'
+        for i, (e, d) in enumerate(zip(expected, got, strict=True)):
+            assert_same(e, d, f'{where}[{i}]')
     else:
-        assert _plain(decoded) == _plain(expected), f"{where}: {decoded!r} != {expected!r}"
+        assert _plain(decoded) == _plain(expected), f'{where}: {decoded!r} != {expected!r}'
 
 
 def _stamp(sec: int, nanosec: int) -> Any:
     from builtin_interfaces.msg import Time
+
     return Time(sec=sec, nanosec=nanosec)
 
 
 def _event(srv: Any, request: Any, response: Any) -> Any:
     from service_msgs.msg import ServiceEventInfo
+
     ev = srv.Event()
-    ev.info = ServiceEventInfo(event_type=ServiceEventInfo.RESPONSE_SENT, stamp=_stamp(7, 8),
-                               client_gid=list(range(1, 17)), sequence_number=42)
+    ev.info = ServiceEventInfo(
+        event_type=ServiceEventInfo.RESPONSE_SENT,
+        stamp=_stamp(7, 8),
+        client_gid=list(range(1, 17)),
+        sequence_number=42,
+    )
     ev.request = [request]
     ev.response = [response]
     return ev
@@ -198,112 +223,177 @@ def _event(srv: Any, request: Any, response: Any) -> Any:
 
 def make_float64multiarray() -> Any:
     from std_msgs.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayout
+
     return Float64MultiArray(
-        layout=MultiArrayLayout(dim=[MultiArrayDimension(label="x", size=3, stride=3)],
-                                data_offset=1),
-        data=[1.5, -2.25, 3.0e10])
+        layout=MultiArrayLayout(
+            dim=[MultiArrayDimension(label='x', size=3, stride=3)], data_offset=1
+        ),
+        data=[1.5, -2.25, 3.0e10],
+    )
 
 
 def make_jointstate() -> Any:
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Header
-    return JointState(header=Header(stamp=_stamp(12, 345), frame_id="base"),
-                      name=["shaft", "load"], position=[0.125, -1.5], velocity=[2.0, 3.0],
-                      effort=[0.5, -4.0])
+
+    return JointState(
+        header=Header(stamp=_stamp(12, 345), frame_id='base'),
+        name=['shaft', 'load'],
+        position=[0.125, -1.5],
+        velocity=[2.0, 3.0],
+        effort=[0.5, -4.0],
+    )
 
 
 def make_diagnosticarray() -> Any:
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from std_msgs.msg import Header
-    return DiagnosticArray(header=Header(stamp=_stamp(1, 2), frame_id="d"), status=[
-        DiagnosticStatus(level=DiagnosticStatus.WARN, name="motor", message="hot",
-                         hardware_id="im0", values=[KeyValue(key="temp", value="81")])])
+
+    return DiagnosticArray(
+        header=Header(stamp=_stamp(1, 2), frame_id='d'),
+        status=[
+            DiagnosticStatus(
+                level=DiagnosticStatus.WARN,
+                name='motor',
+                message='hot',
+                hardware_id='im0',
+                values=[KeyValue(key='temp', value='81')],
+            )
+        ],
+    )
 
 
 def make_clock() -> Any:
     from rosgraph_msgs.msg import Clock
+
     return Clock(clock=_stamp(5, 600))
 
 
 def make_parameterevent() -> Any:
     from rcl_interfaces.msg import Parameter, ParameterEvent, ParameterType, ParameterValue
+
     return ParameterEvent(
-        stamp=_stamp(3, 4), node="/tuner",
-        new_parameters=[Parameter(name="k_pos", value=ParameterValue(
-            type=ParameterType.PARAMETER_DOUBLE, double_value=0.75))],
-        changed_parameters=[Parameter(name="tags", value=ParameterValue(
-            type=ParameterType.PARAMETER_STRING_ARRAY, string_array_value=["a", "b"]))],
-        deleted_parameters=[Parameter(name="old")])
+        stamp=_stamp(3, 4),
+        node='/tuner',
+        new_parameters=[
+            Parameter(
+                name='k_pos',
+                value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=0.75),
+            )
+        ],
+        changed_parameters=[
+            Parameter(
+                name='tags',
+                value=ParameterValue(
+                    type=ParameterType.PARAMETER_STRING_ARRAY, string_array_value=['a', 'b']
+                ),
+            )
+        ],
+        deleted_parameters=[Parameter(name='old')],
+    )
 
 
 def make_log() -> Any:
     from rcl_interfaces.msg import Log
-    return Log(stamp=_stamp(9, 10), level=Log.WARN, name="tuner", msg="hello",
-               file="t.py", function="f", line=77)
+
+    return Log(
+        stamp=_stamp(9, 10),
+        level=Log.WARN,
+        name='tuner',
+        msg='hello',
+        file='t.py',
+        function='f',
+        line=77,
+    )
 
 
 def make_trigger_event() -> Any:
     from std_srvs.srv import Trigger
-    return _event(Trigger, Trigger.Request(),
-                  Trigger.Response(success=True, message="triggered ok"))
+
+    return _event(
+        Trigger, Trigger.Request(), Trigger.Response(success=True, message='triggered ok')
+    )
 
 
 def make_empty_event() -> Any:
     from std_srvs.srv import Empty
+
     return _event(Empty, Empty.Request(), Empty.Response())
 
 
 def make_setparameters_event() -> Any:
-    from rcl_interfaces.msg import (Parameter, ParameterType, ParameterValue,
-                                    SetParametersResult)
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue, SetParametersResult
     from rcl_interfaces.srv import SetParameters
+
     return _event(
         SetParameters,
-        SetParameters.Request(parameters=[Parameter(name="gains.k_pw", value=ParameterValue(
-            type=ParameterType.PARAMETER_DOUBLE, double_value=1.25))]),
-        SetParameters.Response(results=[SetParametersResult(successful=False, reason="range")]))
+        SetParameters.Request(
+            parameters=[
+                Parameter(
+                    name='gains.k_pw',
+                    value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=1.25),
+                )
+            ]
+        ),
+        SetParameters.Response(results=[SetParametersResult(successful=False, reason='range')]),
+    )
 
 
 def make_getparameters_event() -> Any:
     from rcl_interfaces.msg import ParameterType, ParameterValue
     from rcl_interfaces.srv import GetParameters
+
     return _event(
-        GetParameters, GetParameters.Request(names=["k_pos", "tau_sm"]),
-        GetParameters.Response(values=[
-            ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=-3),
-            ParameterValue(type=ParameterType.PARAMETER_BOOL_ARRAY, bool_array_value=[True])]))
+        GetParameters,
+        GetParameters.Request(names=['k_pos', 'tau_sm']),
+        GetParameters.Response(
+            values=[
+                ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=-3),
+                ParameterValue(type=ParameterType.PARAMETER_BOOL_ARRAY, bool_array_value=[True]),
+            ]
+        ),
+    )
 
 
 def make_setparameters_request() -> Any:
     from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
     from rcl_interfaces.srv import SetParameters
-    return SetParameters.Request(parameters=[Parameter(name="ff", value=ParameterValue(
-        type=ParameterType.PARAMETER_STRING, string_value="model"))])
+
+    return SetParameters.Request(
+        parameters=[
+            Parameter(
+                name='ff',
+                value=ParameterValue(type=ParameterType.PARAMETER_STRING, string_value='model'),
+            )
+        ]
+    )
 
 
 def make_trigger_request() -> Any:
     from std_srvs.srv import Trigger
+
     return Trigger.Request()
 
 
 def make_empty() -> Any:
     from std_msgs.msg import Empty
+
     return Empty()
 
 
 def check_float64multiarray(m: Any) -> None:
     assert _plain(m.data) == [1.5, -2.25, 3.0e10]
-    assert m.layout.dim[0].label == "x" and m.layout.data_offset == 1
+    assert m.layout.dim[0].label == 'x' and m.layout.data_offset == 1
 
 
 def check_jointstate(m: Any) -> None:
-    assert list(m.name) == ["shaft", "load"]
+    assert list(m.name) == ['shaft', 'load']
     assert _plain(m.position) == [0.125, -1.5] and _plain(m.effort) == [0.5, -4.0]
-    assert m.header.stamp.nanosec == 345 and m.header.frame_id == "base"
+    assert m.header.stamp.nanosec == 345 and m.header.frame_id == 'base'
 
 
 def check_diagnosticarray(m: Any) -> None:
-    assert m.status[0].name == "motor" and m.status[0].values[0].value == "81"
+    assert m.status[0].name == 'motor' and m.status[0].values[0].value == '81'
 
 
 def check_clock(m: Any) -> None:
@@ -311,20 +401,20 @@ def check_clock(m: Any) -> None:
 
 
 def check_parameterevent(m: Any) -> None:
-    assert m.new_parameters[0].name == "k_pos"
+    assert m.new_parameters[0].name == 'k_pos'
     assert m.new_parameters[0].value.double_value == 0.75
-    assert list(m.changed_parameters[0].value.string_array_value) == ["a", "b"]
-    assert m.deleted_parameters[0].name == "old"
+    assert list(m.changed_parameters[0].value.string_array_value) == ['a', 'b']
+    assert m.deleted_parameters[0].name == 'old'
 
 
 def check_log(m: Any) -> None:
-    assert (m.msg, m.line, m.level) == ("hello", 77, 30)
+    assert (m.msg, m.line, m.level) == ('hello', 77, 30)
 
 
 def check_trigger_event(m: Any) -> None:
     assert m.info.event_type == 2 and m.info.sequence_number == 42
     assert len(m.request) == 1
-    assert m.response[0].success is True and m.response[0].message == "triggered ok"
+    assert m.response[0].success is True and m.response[0].message == 'triggered ok'
 
 
 def check_empty_event(m: Any) -> None:
@@ -332,19 +422,19 @@ def check_empty_event(m: Any) -> None:
 
 
 def check_setparameters_event(m: Any) -> None:
-    assert m.request[0].parameters[0].name == "gains.k_pw"
+    assert m.request[0].parameters[0].name == 'gains.k_pw'
     assert m.request[0].parameters[0].value.double_value == 1.25
-    assert m.response[0].results[0].reason == "range"
+    assert m.response[0].results[0].reason == 'range'
 
 
 def check_getparameters_event(m: Any) -> None:
-    assert list(m.request[0].names) == ["k_pos", "tau_sm"]
+    assert list(m.request[0].names) == ['k_pos', 'tau_sm']
     assert m.response[0].values[0].integer_value == -3
     assert list(m.response[0].values[1].bool_array_value) == [True]
 
 
 def check_setparameters_request(m: Any) -> None:
-    assert m.parameters[0].name == "ff" and m.parameters[0].value.string_value == "model"
+    assert m.parameters[0].name == 'ff' and m.parameters[0].value.string_value == 'model'
 
 
 def check_nothing(m: Any) -> None:
@@ -353,28 +443,30 @@ def check_nothing(m: Any) -> None:
 
 # (type name, rclpy message factory, spot check of a decoded message)
 CASES: list[tuple[str, Callable[[], Any], Callable[[Any], None]]] = [
-    ("std_msgs/msg/Float64MultiArray", make_float64multiarray, check_float64multiarray),
-    ("sensor_msgs/msg/JointState", make_jointstate, check_jointstate),
-    ("diagnostic_msgs/msg/DiagnosticArray", make_diagnosticarray, check_diagnosticarray),
-    ("rosgraph_msgs/msg/Clock", make_clock, check_clock),
-    ("rcl_interfaces/msg/ParameterEvent", make_parameterevent, check_parameterevent),
-    ("rcl_interfaces/msg/Log", make_log, check_log),
-    ("std_srvs/srv/Trigger_Event", make_trigger_event, check_trigger_event),
-    ("std_srvs/srv/Empty_Event", make_empty_event, check_empty_event),
-    ("rcl_interfaces/srv/SetParameters_Event", make_setparameters_event,
-     check_setparameters_event),
-    ("rcl_interfaces/srv/GetParameters_Event", make_getparameters_event,
-     check_getparameters_event),
-    ("rcl_interfaces/srv/SetParameters_Request", make_setparameters_request,
-     check_setparameters_request),
-    ("std_srvs/srv/Trigger_Request", make_trigger_request, check_nothing),
-    ("std_msgs/msg/Empty", make_empty, check_nothing),
+    ('std_msgs/msg/Float64MultiArray', make_float64multiarray, check_float64multiarray),
+    ('sensor_msgs/msg/JointState', make_jointstate, check_jointstate),
+    ('diagnostic_msgs/msg/DiagnosticArray', make_diagnosticarray, check_diagnosticarray),
+    ('rosgraph_msgs/msg/Clock', make_clock, check_clock),
+    ('rcl_interfaces/msg/ParameterEvent', make_parameterevent, check_parameterevent),
+    ('rcl_interfaces/msg/Log', make_log, check_log),
+    ('std_srvs/srv/Trigger_Event', make_trigger_event, check_trigger_event),
+    ('std_srvs/srv/Empty_Event', make_empty_event, check_empty_event),
+    ('rcl_interfaces/srv/SetParameters_Event', make_setparameters_event, check_setparameters_event),
+    ('rcl_interfaces/srv/GetParameters_Event', make_getparameters_event, check_getparameters_event),
+    (
+        'rcl_interfaces/srv/SetParameters_Request',
+        make_setparameters_request,
+        check_setparameters_request,
+    ),
+    ('std_srvs/srv/Trigger_Request', make_trigger_request, check_nothing),
+    ('std_msgs/msg/Empty', make_empty, check_nothing),
 ]
 
 
-@pytest.mark.parametrize("type_name,make,spot", CASES, ids=[c[0] for c in CASES])
+@pytest.mark.parametrize('type_name,make,spot', CASES, ids=[c[0] for c in CASES])
 def test_round_trip_rclpy_to_rosbags_and_mcap_ros2(
-        type_name: str, make: Callable[[], Any], spot: Callable[[Any], None]) -> None:
+    type_name: str, make: Callable[[], Any], spot: Callable[[Any], None]
+) -> None:
     from rclpy.serialization import serialize_message
 
     text = schema_text(type_name)
@@ -392,40 +484,43 @@ def test_round_trip_rclpy_to_rosbags_and_mcap_ros2(
 
 def test_mcap_ros2_refuses_event_schema_names() -> None:
     """Pins the mcap_ros2 0.6.0 limitation that _mcap_decoder works around (name, not text)."""
-    text = schema_text("std_srvs/srv/Trigger_Event")
-    with pytest.raises(InvalidResourceName, match="Trigger_Event"):
-        generate_dynamic("std_srvs/srv/Trigger_Event", text)
+    text = schema_text('std_srvs/srv/Trigger_Event')
+    with pytest.raises(InvalidResourceName, match='Trigger_Event'):
+        generate_dynamic('std_srvs/srv/Trigger_Event', text)
     # Request/response names carry suffixes it does accept.
-    assert "std_srvs/Trigger_Response" in generate_dynamic("std_srvs/srv/TriggerEvent", text)
+    assert 'std_srvs/Trigger_Response' in generate_dynamic('std_srvs/srv/TriggerEvent', text)
 
 
 # --- service events as IDL: what rosbags' AnyReader needs (issue 16) ----------------------------
 
-EVENT_CASES = [c for c in CASES if c[0].endswith("_Event")]
+EVENT_CASES = [c for c in CASES if c[0].endswith('_Event')]
 
 
 def _idl_store(text: str):
     """A rosbags typestore from a ros2idl schema in rosbag2's sectioned form, parsed as
     rosbags' AnyReader parses it."""
     from rosbags.typesys import get_types_from_idl
-    sep = SEP + "\n"
-    assert text.startswith(sep + "IDL: ")
+
+    sep = SEP + '\n'
+    assert text.startswith(sep + 'IDL: ')
     types: dict = {}
     for section in text.split(sep)[1:]:
-        header, idl = section.split("\n", 1)
-        assert header.startswith("IDL: ")
+        header, idl = section.split('\n', 1)
+        assert header.startswith('IDL: ')
         types.update(get_types_from_idl(idl))
     store = get_typestore(Stores.EMPTY)
     store.register(types)
     return store
 
 
-@pytest.mark.parametrize("type_name,make,spot", EVENT_CASES, ids=[c[0] for c in EVENT_CASES])
+@pytest.mark.parametrize('type_name,make,spot', EVENT_CASES, ids=[c[0] for c in EVENT_CASES])
 def test_service_event_idl_registers_under_its_own_name_and_decodes(
-        type_name: str, make: Callable[[], Any], spot: Callable[[Any], None]) -> None:
+    type_name: str, make: Callable[[], Any], spot: Callable[[Any], None]
+) -> None:
     from rclpy.serialization import serialize_message
+
     encoding, text = msgdefs.schema_for(type_name)
-    assert encoding == "ros2idl" and text == msgdefs.schema_idl(type_name)
+    assert encoding == 'ros2idl' and text == msgdefs.schema_idl(type_name)
     store = _idl_store(text)
     assert type_name in store.fielddefs  # pkg/srv/Name_Event, not pkg/srv/msg/Name_Event
     original = make()
@@ -440,14 +535,16 @@ def test_service_event_idl_registers_under_its_own_name_and_decodes(
 # RIHS01 type hashes of ROS 2 Jazzy (what `ros2 topic info -v` and rosbag2 report; read off
 # the endpoints of live services by the recorder, see test_tuner's bag test)
 JAZZY_HASHES = {
-    "std_srvs/srv/Trigger_Event":
-        "RIHS01_ec4a1d26b0575e61906890342aba9523a2360e9845857c5590fa6e23bc39e1c2",
-    "rcl_interfaces/srv/DescribeParameters_Event":
-        "RIHS01_3deba64c035093033c690184834441551a53128ea2539f71f2596fbc4ed9de43",
+    'std_srvs/srv/Trigger_Event': (
+        'RIHS01_ec4a1d26b0575e61906890342aba9523a2360e9845857c5590fa6e23bc39e1c2'
+    ),
+    'rcl_interfaces/srv/DescribeParameters_Event': (
+        'RIHS01_3deba64c035093033c690184834441551a53128ea2539f71f2596fbc4ed9de43'
+    ),
 }
 
 
-@pytest.mark.parametrize("type_name", sorted(JAZZY_HASHES))
+@pytest.mark.parametrize('type_name', sorted(JAZZY_HASHES))
 def test_service_event_idl_gives_the_ros_type_hash(type_name: str) -> None:
     """AnyReader checks each connection's type_description_hash against the hash it
     recomputes from the schema: the IDL must describe exactly ROS's type."""
@@ -456,30 +553,36 @@ def test_service_event_idl_gives_the_ros_type_hash(type_name: str) -> None:
 
 
 def test_service_event_idl_layout() -> None:
-    text = msgdefs.schema_idl("rcl_interfaces/srv/DescribeParameters_Event")
-    headers = [line[5:] for line in text.splitlines() if line.startswith("IDL: ")]
-    assert headers == ["rcl_interfaces/srv/DescribeParameters_Event",
-                       "rcl_interfaces/srv/DescribeParameters",
-                       "service_msgs/msg/ServiceEventInfo",
-                       "rcl_interfaces/msg/ParameterDescriptor",
-                       "builtin_interfaces/msg/Time",
-                       "rcl_interfaces/msg/FloatingPointRange",
-                       "rcl_interfaces/msg/IntegerRange"]
-    assert "#include" not in text and "@verbatim" not in text
-    assert "sequence<rcl_interfaces::srv::DescribeParameters_Request, 1> request;" in text
-    assert msgdefs.schema_for("std_msgs/msg/String")[0] == "ros2msg"
-    with pytest.raises(MsgDefError, match="only service event types"):
-        msgdefs.schema_idl("std_msgs/msg/String")
+    text = msgdefs.schema_idl('rcl_interfaces/srv/DescribeParameters_Event')
+    headers = [line[5:] for line in text.splitlines() if line.startswith('IDL: ')]
+    assert headers == [
+        'rcl_interfaces/srv/DescribeParameters_Event',
+        'rcl_interfaces/srv/DescribeParameters',
+        'service_msgs/msg/ServiceEventInfo',
+        'rcl_interfaces/msg/ParameterDescriptor',
+        'builtin_interfaces/msg/Time',
+        'rcl_interfaces/msg/FloatingPointRange',
+        'rcl_interfaces/msg/IntegerRange',
+    ]
+    assert '#include' not in text and '@verbatim' not in text
+    assert 'sequence<rcl_interfaces::srv::DescribeParameters_Request, 1> request;' in text
+    assert msgdefs.schema_for('std_msgs/msg/String')[0] == 'ros2msg'
+    with pytest.raises(MsgDefError, match='only service event types'):
+        msgdefs.schema_idl('std_msgs/msg/String')
 
 
 # --- errors -----------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("type_name,searched", [
-    ("no_such_pkg/msg/Thing", "share/no_such_pkg/msg/Thing.msg"),
-    ("std_msgs/msg/NoSuchType", "share/std_msgs/msg/NoSuchType.msg"),
-    ("std_srvs/srv/NoSuchSrv_Event", "share/std_srvs/srv/NoSuchSrv.srv"),
-    ("std_srvs/srv/NoSuchSrv_Request", "share/std_srvs/srv/NoSuchSrv.srv"),
-])
+
+@pytest.mark.parametrize(
+    'type_name,searched',
+    [
+        ('no_such_pkg/msg/Thing', 'share/no_such_pkg/msg/Thing.msg'),
+        ('std_msgs/msg/NoSuchType', 'share/std_msgs/msg/NoSuchType.msg'),
+        ('std_srvs/srv/NoSuchSrv_Event', 'share/std_srvs/srv/NoSuchSrv.srv'),
+        ('std_srvs/srv/NoSuchSrv_Request', 'share/std_srvs/srv/NoSuchSrv.srv'),
+    ],
+)
 def test_unknown_type_names_type_and_file(type_name: str, searched: str) -> None:
     with pytest.raises(MsgDefError) as err:
         schema_text(type_name)
@@ -487,28 +590,38 @@ def test_unknown_type_names_type_and_file(type_name: str, searched: str) -> None
     assert str(VENV / searched) in str(err.value)
 
 
-@pytest.mark.parametrize("type_name", [
-    "Float64", "std_msgs/Float64/x/y", "", "std_msgs/msg/", "/msg/Float64",
-    "std_msgs/idl/Float64", "std_msgs/msg/Float64.msg", "std_srvs/srv/Trigger",
-])
+@pytest.mark.parametrize(
+    'type_name',
+    [
+        'Float64',
+        'std_msgs/Float64/x/y',
+        '',
+        'std_msgs/msg/',
+        '/msg/Float64',
+        'std_msgs/idl/Float64',
+        'std_msgs/msg/Float64.msg',
+        'std_srvs/srv/Trigger',
+    ],
+)
 def test_malformed_type_name(type_name: str) -> None:
-    with pytest.raises(MsgDefError, match="type name|is a service") as err:
+    with pytest.raises(MsgDefError, match=r'type name|is a service') as err:
         schema_text(type_name)
     assert repr(type_name) in str(err.value) or type_name in str(err.value)
 
 
 def test_no_prefixes_at_all(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv("AMENT_PREFIX_PATH", raising=False)
-    with pytest.raises(MsgDefError, match="AMENT_PREFIX_PATH"):
-        schema_text("std_msgs/msg/Float64")
+    monkeypatch.delenv('AMENT_PREFIX_PATH', raising=False)
+    with pytest.raises(MsgDefError, match='AMENT_PREFIX_PATH'):
+        schema_text('std_msgs/msg/Float64')
 
 
 # --- custom prefixes ----------------------------------------------------------------------------
 
+
 def write(root: Path, rel: str, text: str) -> None:
-    path = root / "share" / rel
+    path = root / 'share' / rel
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text, encoding="utf-8")
+    path.write_text(text, encoding='utf-8')
 
 
 A_MSG = """\
@@ -522,78 +635,102 @@ C[<=3] cs
 string<=8 tag
 int32[4] fixed
 """
-B_MSG = "builtin_interfaces/Time t\nC c\n"
-C_MSG = "int32 x\n"
+B_MSG = 'builtin_interfaces/Time t\nC c\n'
+C_MSG = 'int32 x\n'
 
 
 def test_custom_prefix_resolves_locally_depth_first(tmp_path: Path) -> None:
-    write(tmp_path, "mypkg/msg/A.msg", A_MSG)
-    write(tmp_path, "mypkg/msg/B.msg", B_MSG)
-    write(tmp_path, "mypkg/msg/C.msg", C_MSG)
-    text = schema_text("mypkg/msg/A", prefixes=[str(tmp_path), str(VENV)])
+    write(tmp_path, 'mypkg/msg/A.msg', A_MSG)
+    write(tmp_path, 'mypkg/msg/B.msg', B_MSG)
+    write(tmp_path, 'mypkg/msg/C.msg', C_MSG)
+    text = schema_text('mypkg/msg/A', prefixes=[str(tmp_path), str(VENV)])
     # Depth first, in order of first use: B, then B's own Time and C, then Header (C already out).
-    assert msg_names(text) == [
-        "mypkg/B", "builtin_interfaces/Time", "mypkg/C", "std_msgs/Header"]
-    assert text == "\n".join([
-        A_MSG,
-        SEP, "MSG: mypkg/B", B_MSG,
-        SEP, "MSG: builtin_interfaces/Time", share("builtin_interfaces/msg/Time.msg"),
-        SEP, "MSG: mypkg/C", C_MSG,
-        SEP, "MSG: std_msgs/Header", share("std_msgs/msg/Header.msg"),
-    ])
+    assert msg_names(text) == ['mypkg/B', 'builtin_interfaces/Time', 'mypkg/C', 'std_msgs/Header']
+    assert text == '\n'.join(
+        [
+            A_MSG,
+            SEP,
+            'MSG: mypkg/B',
+            B_MSG,
+            SEP,
+            'MSG: builtin_interfaces/Time',
+            share('builtin_interfaces/msg/Time.msg'),
+            SEP,
+            'MSG: mypkg/C',
+            C_MSG,
+            SEP,
+            'MSG: std_msgs/Header',
+            share('std_msgs/msg/Header.msg'),
+        ]
+    )
     # Both readers take it (rosbags parses all of it; mcap_ros2 builds every decoder).
-    assert set(get_types_from_msg(text, "mypkg/msg/A")) == {
-        "mypkg/msg/A", "mypkg/msg/B", "mypkg/msg/C", "builtin_interfaces/msg/Time",
-        "std_msgs/msg/Header"}
-    assert {"mypkg/msg/A", "mypkg/B", "mypkg/C", "std_msgs/Header"} <= set(
-        generate_dynamic("mypkg/msg/A", text))
+    assert set(get_types_from_msg(text, 'mypkg/msg/A')) == {
+        'mypkg/msg/A',
+        'mypkg/msg/B',
+        'mypkg/msg/C',
+        'builtin_interfaces/msg/Time',
+        'std_msgs/msg/Header',
+    }
+    assert {'mypkg/msg/A', 'mypkg/B', 'mypkg/C', 'std_msgs/Header'} <= set(
+        generate_dynamic('mypkg/msg/A', text)
+    )
 
 
 def test_header_alone_means_std_msgs_header(tmp_path: Path) -> None:
-    write(tmp_path, "mypkg/msg/H.msg", "Header header\n")
-    text = schema_text("mypkg/msg/H", prefixes=[str(tmp_path), str(VENV)])
-    assert msg_names(text) == ["std_msgs/Header", "builtin_interfaces/Time"]
+    write(tmp_path, 'mypkg/msg/H.msg', 'Header header\n')
+    text = schema_text('mypkg/msg/H', prefixes=[str(tmp_path), str(VENV)])
+    assert msg_names(text) == ['std_msgs/Header', 'builtin_interfaces/Time']
 
 
 def test_first_prefix_with_the_file_wins(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    first, second = tmp_path / "first", tmp_path / "second"
-    write(first, "mypkg/msg/A.msg", "B b\n")          # A only in the first prefix
-    write(first, "mypkg/msg/B.msg", "int8 from_first\n")
-    write(second, "mypkg/msg/B.msg", "int8 from_second\n")
-    write(second, "mypkg/msg/A.msg", "int8 shadowed\n")
-    write(second, "otherpkg/msg/O.msg", "mypkg/B b\n")  # O only in the second
-    assert schema_text("mypkg/msg/A", [str(first), str(second)]) == (
-        "B b\n\n" + SEP + "\nMSG: mypkg/B\nint8 from_first\n")
-    monkeypatch.setenv("AMENT_PREFIX_PATH", os.pathsep.join([str(first), str(second)]))
-    assert schema_text("otherpkg/msg/O").endswith("MSG: mypkg/B\nint8 from_first\n")
+    first, second = tmp_path / 'first', tmp_path / 'second'
+    write(first, 'mypkg/msg/A.msg', 'B b\n')  # A only in the first prefix
+    write(first, 'mypkg/msg/B.msg', 'int8 from_first\n')
+    write(second, 'mypkg/msg/B.msg', 'int8 from_second\n')
+    write(second, 'mypkg/msg/A.msg', 'int8 shadowed\n')
+    write(second, 'otherpkg/msg/O.msg', 'mypkg/B b\n')  # O only in the second
+    assert schema_text('mypkg/msg/A', [str(first), str(second)]) == (
+        'B b\n\n' + SEP + '\nMSG: mypkg/B\nint8 from_first\n'
+    )
+    monkeypatch.setenv('AMENT_PREFIX_PATH', os.pathsep.join([str(first), str(second)]))
+    assert schema_text('otherpkg/msg/O').endswith('MSG: mypkg/B\nint8 from_first\n')
 
 
 def test_custom_service_event(tmp_path: Path) -> None:
-    write(tmp_path, "mypkg/srv/Do.srv", "Item[] items  # local type\n---\nHeader h\n")
-    write(tmp_path, "mypkg/msg/Item.msg", "float64 v\n")
-    text = schema_text("mypkg/srv/Do_Event", [str(tmp_path), str(VENV)])
+    write(tmp_path, 'mypkg/srv/Do.srv', 'Item[] items  # local type\n---\nHeader h\n')
+    write(tmp_path, 'mypkg/msg/Item.msg', 'float64 v\n')
+    text = schema_text('mypkg/srv/Do_Event', [str(tmp_path), str(VENV)])
     assert msg_names(text) == [
-        "service_msgs/ServiceEventInfo", "builtin_interfaces/Time", "mypkg/Do_Request",
-        "mypkg/Item", "mypkg/Do_Response", "std_msgs/Header"]
-    assert "MSG: mypkg/Do_Request\nItem[] items  # local type\n" + SEP in text
+        'service_msgs/ServiceEventInfo',
+        'builtin_interfaces/Time',
+        'mypkg/Do_Request',
+        'mypkg/Item',
+        'mypkg/Do_Response',
+        'std_msgs/Header',
+    ]
+    assert 'MSG: mypkg/Do_Request\nItem[] items  # local type\n' + SEP in text
 
 
 def test_missing_dependency_names_user(tmp_path: Path) -> None:
-    write(tmp_path, "mypkg/msg/A.msg", "Missing m\n")
+    write(tmp_path, 'mypkg/msg/A.msg', 'Missing m\n')
     with pytest.raises(MsgDefError) as err:
-        schema_text("mypkg/msg/A", [str(tmp_path)])
-    assert "mypkg/Missing" in str(err.value) and "used by mypkg/A" in str(err.value)
-    assert str(tmp_path / "share/mypkg/msg/Missing.msg") in str(err.value)
+        schema_text('mypkg/msg/A', [str(tmp_path)])
+    assert 'mypkg/Missing' in str(err.value) and 'used by mypkg/A' in str(err.value)
+    assert str(tmp_path / 'share/mypkg/msg/Missing.msg') in str(err.value)
 
 
-@pytest.mark.parametrize("rel,text,type_name,match", [
-    ("mypkg/msg/A.msg", "int32\n", "mypkg/msg/A", "line 1"),
-    ("mypkg/msg/A.msg", "# ok\nfoo/bar/Baz x\n", "mypkg/msg/A", "line 2.*foo/bar/Baz"),
-    ("mypkg/srv/S.srv", "int32 a\n", "mypkg/srv/S_Event", "exactly one '---'"),
-    ("mypkg/srv/S.srv", "---\n---\n", "mypkg/srv/S_Response", "exactly one '---'"),
-])
-def test_unparsable_definitions(tmp_path: Path, rel: str, text: str, type_name: str,
-                                match: str) -> None:
+@pytest.mark.parametrize(
+    'rel,text,type_name,match',
+    [
+        ('mypkg/msg/A.msg', 'int32\n', 'mypkg/msg/A', 'line 1'),
+        ('mypkg/msg/A.msg', '# ok\nfoo/bar/Baz x\n', 'mypkg/msg/A', 'line 2.*foo/bar/Baz'),
+        ('mypkg/srv/S.srv', 'int32 a\n', 'mypkg/srv/S_Event', "exactly one '---'"),
+        ('mypkg/srv/S.srv', '---\n---\n', 'mypkg/srv/S_Response', "exactly one '---'"),
+    ],
+)
+def test_unparsable_definitions(
+    tmp_path: Path, rel: str, text: str, type_name: str, match: str
+) -> None:
     write(tmp_path, rel, text)
     with pytest.raises(MsgDefError, match=match) as err:
         schema_text(type_name, [str(tmp_path)])

@@ -1,6 +1,7 @@
 """The optimiser API (im_tuner.optim): options and their validation, the ask/tell
 contract, JSON state round trips that continue bit-identically, no rclpy.
 """
+
 from __future__ import annotations
 
 import json
@@ -14,8 +15,7 @@ import numpy as np
 import pytest
 
 import im_tuner.optim as optim
-from im_tuner.optim import (ALGOS, OPTIONS, Optimizer, OptimizerError, OptionSpec,
-                            make_optimizer)
+from im_tuner.optim import ALGOS, OPTIONS, Optimizer, OptimizerError, OptionSpec, make_optimizer
 
 EXPECTED_OPTIONS = {
     'spsa': {'a', 'c', 'A', 'alpha', 'gamma', 'gains', 'max_step'},
@@ -43,30 +43,66 @@ def test_algos_and_option_table():
 
 def test_paper_defaults():
     s = OPTIONS['spsa']
-    assert (s['a'].default, s['c'].default, s['A'].default, s['gains'].default,
-            s['max_step'].default) == (0.0183, 0.03, 20.0, 'paper', 0.1)
-    assert s['alpha'].default is None and s['gamma'].default is None   # from the preset
+    assert (
+        s['a'].default,
+        s['c'].default,
+        s['A'].default,
+        s['gains'].default,
+        s['max_step'].default,
+    ) == (0.0183, 0.03, 20.0, 'paper', 0.1)
+    assert s['alpha'].default is None and s['gamma'].default is None  # from the preset
     n = OPTIONS['necga']
-    assert (n['n'].default, n['eta'].default, n['bits'].default, n['coding'].default,
-            n['elite_replacement'].default) == (25, 12, 16, 'binary', 'sample')
+    assert (
+        n['n'].default,
+        n['eta'].default,
+        n['bits'].default,
+        n['coding'].default,
+        n['elite_replacement'].default,
+    ) == (25, 12, 16, 'binary', 'sample')
     r = OPTIONS['rcga']
     assert (r['elitism'].default, r['sigma0'].default) == ('ne', 10.0)
 
 
 BAD = [
-    ('spsa', {'a': 0}), ('spsa', {'a': -1.0}), ('spsa', {'a': 'x'}), ('spsa', {'a': True}),
-    ('spsa', {'a': math.nan}), ('spsa', {'a': math.inf}), ('spsa', {'c': 0.5}),
-    ('spsa', {'c': 0.0}), ('spsa', {'A': -1}), ('spsa', {'alpha': 0.0}),
-    ('spsa', {'alpha': 1.5}), ('spsa', {'gamma': -0.1}), ('spsa', {'gains': 'fast'}),
-    ('spsa', {'gains': 1}), ('spsa', {'max_step': 0.0}), ('spsa', {'max_step': -math.inf}),
-    ('spsa', {'max_step': math.nan}), ('spsa', {'bounded': False}), ('spsa', {'n': 25}),
-    ('necga', {'n': 1}), ('necga', {'n': 25.0}), ('necga', {'n': True}),
-    ('necga', {'bits': 0}), ('necga', {'bits': 33}), ('necga', {'coding': 'ascii'}),
-    ('necga', {'eta': 25}), ('necga', {'eta': 0}), ('necga', {'eta': 12.0}),
-    ('necga', {'elite_replacement': 'random'}), ('necga', {'sigma0': 1.0}),
-    ('cga', {'eta': 3}), ('cga', {'n': np.float64(10)}), ('pecga', {'elite_replacement': 'sample'}),
-    ('rcga', {'elitism': 'xx'}), ('rcga', {'sigma0': 0.0}), ('rcga', {'eta': 25}),
-    ('rcga', {'n': 1}), ('rcga', {'bits': 16}), ('rcga', {'sigma0': 'wide'}),
+    ('spsa', {'a': 0}),
+    ('spsa', {'a': -1.0}),
+    ('spsa', {'a': 'x'}),
+    ('spsa', {'a': True}),
+    ('spsa', {'a': math.nan}),
+    ('spsa', {'a': math.inf}),
+    ('spsa', {'c': 0.5}),
+    ('spsa', {'c': 0.0}),
+    ('spsa', {'A': -1}),
+    ('spsa', {'alpha': 0.0}),
+    ('spsa', {'alpha': 1.5}),
+    ('spsa', {'gamma': -0.1}),
+    ('spsa', {'gains': 'fast'}),
+    ('spsa', {'gains': 1}),
+    ('spsa', {'max_step': 0.0}),
+    ('spsa', {'max_step': -math.inf}),
+    ('spsa', {'max_step': math.nan}),
+    ('spsa', {'bounded': False}),
+    ('spsa', {'n': 25}),
+    ('necga', {'n': 1}),
+    ('necga', {'n': 25.0}),
+    ('necga', {'n': True}),
+    ('necga', {'bits': 0}),
+    ('necga', {'bits': 33}),
+    ('necga', {'coding': 'ascii'}),
+    ('necga', {'eta': 25}),
+    ('necga', {'eta': 0}),
+    ('necga', {'eta': 12.0}),
+    ('necga', {'elite_replacement': 'random'}),
+    ('necga', {'sigma0': 1.0}),
+    ('cga', {'eta': 3}),
+    ('cga', {'n': np.float64(10)}),
+    ('pecga', {'elite_replacement': 'sample'}),
+    ('rcga', {'elitism': 'xx'}),
+    ('rcga', {'sigma0': 0.0}),
+    ('rcga', {'eta': 25}),
+    ('rcga', {'n': 1}),
+    ('rcga', {'bits': 16}),
+    ('rcga', {'sigma0': 'wide'}),
 ]
 
 
@@ -78,7 +114,7 @@ def test_bad_option_names_it(algo, opts, monkeypatch):
     with pytest.raises(OptimizerError) as ei:
         make_optimizer(algo, 5, 0, **opts)
     msg = str(ei.value)
-    (name, value), = opts.items()
+    ((name, _value),) = opts.items()
     assert name in msg and '\n' not in msg
     spec = OPTIONS[algo].get(name)
     if spec is None:
@@ -87,15 +123,23 @@ def test_bad_option_names_it(algo, opts, monkeypatch):
         assert all(repr(c) in msg for c in spec.choices)
     else:
         assert ' in ' in msg or '>' in msg
-    assert created == []                   # nothing built before the check
+    assert created == []  # nothing built before the check
 
 
-@pytest.mark.parametrize('args, word', [
-    (('genetic', 5, 0), 'algo'), ((None, 5, 0), 'algo'),
-    (('spsa', 0, 0), 'dim'), (('spsa', True, 0), 'dim'), (('spsa', 2.0, 0), 'dim'),
-    (('cga', 5, -1), 'seed'), (('cga', 5, 1.5), 'seed'), (('cga', 5, True), 'seed'),
-    (('cga', 5, 'x'), 'seed'),
-])
+@pytest.mark.parametrize(
+    'args, word',
+    [
+        (('genetic', 5, 0), 'algo'),
+        ((None, 5, 0), 'algo'),
+        (('spsa', 0, 0), 'dim'),
+        (('spsa', True, 0), 'dim'),
+        (('spsa', 2.0, 0), 'dim'),
+        (('cga', 5, -1), 'seed'),
+        (('cga', 5, 1.5), 'seed'),
+        (('cga', 5, True), 'seed'),
+        (('cga', 5, 'x'), 'seed'),
+    ],
+)
 def test_bad_arguments(args, word):
     with pytest.raises(OptimizerError, match=word):
         make_optimizer(*args)
@@ -107,8 +151,17 @@ def test_unknown_algo_lists_the_allowed():
     assert all(a in str(ei.value) for a in ALGOS)
 
 
-@pytest.mark.parametrize('start', [[0.5] * 4, [0.5] * 5 + [0.1], [0.5, 0.5, 0.5, 0.5, 1.5],
-                                   [0.5, 0.5, math.nan, 0.5, 0.5], 'abc', [[0.5] * 5]])
+@pytest.mark.parametrize(
+    'start',
+    [
+        [0.5] * 4,
+        [0.5] * 5 + [0.1],
+        [0.5, 0.5, 0.5, 0.5, 1.5],
+        [0.5, 0.5, math.nan, 0.5, 0.5],
+        'abc',
+        [[0.5] * 5],
+    ],
+)
 def test_bad_start(start):
     with pytest.raises(OptimizerError, match='start'):
         make_optimizer('spsa', 5, 0, start=start)
@@ -137,11 +190,17 @@ def _quad(u: np.ndarray) -> float:
     return float(np.sum((u - np.linspace(0.1, 0.9, u.size)) ** 2))
 
 
-VARIANTS = [('spsa', {}), ('spsa', {'gains': 'spall', 'max_step': math.inf}),
-            ('necga', {}), ('necga', {'elite_replacement': 'newcomer', 'n': 6, 'eta': 2}),
-            ('necga', {'n': 6, 'eta': 2, 'coding': 'gray', 'bits': 7}),
-            ('cga', {}), ('pecga', {'n': 5}), ('rcga', {}),
-            ('rcga', {'elitism': 'pe', 'sigma0': 0.5, 'n': 8})]
+VARIANTS = [
+    ('spsa', {}),
+    ('spsa', {'gains': 'spall', 'max_step': math.inf}),
+    ('necga', {}),
+    ('necga', {'elite_replacement': 'newcomer', 'n': 6, 'eta': 2}),
+    ('necga', {'n': 6, 'eta': 2, 'coding': 'gray', 'bits': 7}),
+    ('cga', {}),
+    ('pecga', {'n': 5}),
+    ('rcga', {}),
+    ('rcga', {'elitism': 'pe', 'sigma0': 0.5, 'n': 8}),
+]
 
 
 @pytest.mark.parametrize('algo, opts', VARIANTS)
@@ -150,7 +209,7 @@ def test_state_round_trip_continues_bit_identically(algo, opts):
     for trial in range(3):
         opt = make_optimizer(algo, 5, 10 + trial, **opts)
         cut = int(pick.integers(0, 50))
-        mid_ask = bool(pick.integers(0, 2))    # snapshot with a candidate pending, or not
+        mid_ask = bool(pick.integers(0, 2))  # snapshot with a candidate pending, or not
         for _ in range(cut):
             u = opt.ask()
             opt.tell(u, _quad(u))
@@ -176,7 +235,7 @@ def test_ask_is_idempotent_and_returns_fresh_arrays(algo):
         u = opt.ask()
         assert u.dtype == np.float64 and u.shape == (5,)
         assert np.all((u >= 0) & (u <= 1))
-        u[:] = -7.0                               # the caller's copy only
+        u[:] = -7.0  # the caller's copy only
         v = opt.ask()
         w = opt.ask()
         assert v.tobytes() == w.tobytes() and v is not w
@@ -189,24 +248,33 @@ def test_ask_is_idempotent_and_returns_fresh_arrays(algo):
 def test_bad_tell_changes_nothing(algo):
     opt = make_optimizer(algo, 5, 2)
     with pytest.raises(OptimizerError, match='ask'):
-        opt.tell(np.full(5, 0.5), 1.0)           # nothing asked yet
+        opt.tell(np.full(5, 0.5), 1.0)  # nothing asked yet
     for _ in range(7):
         u = opt.ask()
         opt.tell(u, _quad(u))
     u = opt.ask()
     before = json.dumps(opt.state_dict())
     other = u.copy()
-    other[2] = np.nextafter(other[2], 2.0)       # one ulp away
-    for bad_u, loss in [(other, 1.0), (u[:4], 1.0), (u, math.nan), (u, math.inf),
-                        (u, -math.inf), (u, True), (u, '1.0'), (u, None), ('x', 1.0)]:
+    other[2] = np.nextafter(other[2], 2.0)  # one ulp away
+    for bad_u, loss in [
+        (other, 1.0),
+        (u[:4], 1.0),
+        (u, math.nan),
+        (u, math.inf),
+        (u, -math.inf),
+        (u, True),
+        (u, '1.0'),
+        (u, None),
+        ('x', 1.0),
+    ]:
         with pytest.raises(ValueError):
             opt.tell(bad_u, loss)
         assert json.dumps(opt.state_dict()) == before
     assert opt.ask().tobytes() == u.tobytes()
-    opt.tell(list(u), 1)                         # the same values as a list, an int loss
+    opt.tell(list(u), 1)  # the same values as a list, an int loss
     assert opt.evaluations == 8
     with pytest.raises(OptimizerError):
-        opt.tell(u, 1.0)                         # told already: nothing pending
+        opt.tell(u, 1.0)  # told already: nothing pending
 
 
 def test_from_state_rejects_garbage():
@@ -239,11 +307,14 @@ def test_floats_survive_json_exactly():
 def test_no_rclpy_anywhere():
     src = Path(optim.__file__).parent
     for f in src.glob('*.py'):
-        assert not re.search(r'^\s*(import|from)\s+(rclpy|rosidl|scipy)', f.read_text(),
-                             re.MULTILINE), f
-    code = ('import sys, im_tuner.optim as o; o.make_optimizer("necga", 5, 0).ask(); '
-            'sys.exit(any(m.split(".")[0] in ("rclpy", "rosidl_runtime_py", "scipy") '
-            'for m in sys.modules))')
+        assert not re.search(
+            r'^\s*(import|from)\s+(rclpy|rosidl|scipy)', f.read_text(), re.MULTILINE
+        ), f
+    code = (
+        'import sys, im_tuner.optim as o; o.make_optimizer("necga", 5, 0).ask(); '
+        'sys.exit(any(m.split(".")[0] in ("rclpy", "rosidl_runtime_py", "scipy") '
+        'for m in sys.modules))'
+    )
     assert subprocess.run([sys.executable, '-c', code], timeout=60).returncode == 0
 
 
@@ -251,8 +322,13 @@ def test_evaluations_per_generation():
     """Evaluations, not iterations: spsa 2 per iteration, cga 2 per generation, the
     elitist ones 1 (+ the first elite; + 1 per sampled replacement for neCGA)."""
     runs = {}
-    for algo, opts in [('spsa', {}), ('cga', {}), ('pecga', {}), ('rcga', {}),
-                       ('necga', {'elite_replacement': 'newcomer'})]:
+    for algo, opts in [
+        ('spsa', {}),
+        ('cga', {}),
+        ('pecga', {}),
+        ('rcga', {}),
+        ('necga', {'elite_replacement': 'newcomer'}),
+    ]:
         opt = make_optimizer(algo, 5, 4, **opts)
         for _ in range(200):
             u = opt.ask()
@@ -288,8 +364,12 @@ def test_tell_takes_the_same_numbers_in_any_form(algo):
     """u is compared as float64 bytes: a list or another dtype holding the same values is
     the candidate (a numpy loss too); a reshaped or reordered array, or values one float32
     rounding away, are not."""
-    for form in (np.copy, list, lambda u: np.asarray(u, dtype=np.longdouble),
-                 lambda u: np.asarray(u, dtype=object)):
+    for form in (
+        np.copy,
+        list,
+        lambda u: np.asarray(u, dtype=np.longdouble),
+        lambda u: np.asarray(u, dtype=object),
+    ):
         opt = make_optimizer(algo, 5, 3)
         u = opt.ask()
         opt.tell(form(u), np.float64(1.5))
@@ -307,11 +387,11 @@ def test_tell_takes_the_same_numbers_in_any_form(algo):
 def test_the_sign_of_a_pending_zero_counts():
     opt = make_optimizer('cga', 2, 0, n=10, bits=3)
     st = opt.state_dict()
-    st['k'] = [-5] * 6                         # p = 0: every sample is 000000, u = (0, 0)
+    st['k'] = [-5] * 6  # p = 0: every sample is 000000, u = (0, 0)
     opt = Optimizer.from_state(st)
     u = opt.ask()
     assert u.tolist() == [0.0, 0.0] and not np.signbit(u).any()
     with pytest.raises(OptimizerError, match='bit for bit'):
         opt.tell(np.array([0.0, -0.0]), 1.0)
-    opt.tell(np.array([0, 0]), 1.0)            # integers convert to +0.0
+    opt.tell(np.array([0, 0]), 1.0)  # integers convert to +0.0
     assert opt.evaluations == 1

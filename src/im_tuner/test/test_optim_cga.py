@@ -10,6 +10,7 @@ neCGA replacement, and the Monte Carlo oracles of the shared notes (seeded, |z| 
 Flat fitness leaves the bits independent, so one run of 100 one-bit genes gives 100
 samples of the per-bit process; standard errors are taken over runs.
 """
+
 from __future__ import annotations
 
 import math
@@ -59,14 +60,15 @@ def test_decoding_range(bits):
     np.testing.assert_array_equal(opt.decode(ones), [1.0, 1.0, 1.0])
     np.testing.assert_array_equal(opt.decode(~ones), [0.0, 0.0, 0.0])
     one = np.zeros(3 * bits, dtype=bool)
-    one[bits - 1] = True                   # least significant bit of gene 0
-    assert opt.decode(one)[0] == 1 / (2 ** bits - 1)
+    one[bits - 1] = True  # least significant bit of gene 0
+    assert opt.decode(one)[0] == 1 / (2**bits - 1)
     assert opt.m == 3 * bits and opt.p.shape == (3 * bits,)
 
 
 # -------------------------------------------------------------------- PV arithmetic
-@pytest.mark.parametrize('n, path', [(10, [0.5, 0.6, 0.7, 0.8, 0.9, 1.0]),
-                                    (5, [0.5, 0.7, 0.9, 1.0])])
+@pytest.mark.parametrize(
+    'n, path', [(10, [0.5, 0.6, 0.7, 0.8, 0.9, 1.0]), (5, [0.5, 0.7, 0.9, 1.0])]
+)
 def test_pv_steps_land_exactly_on_one(n, path):
     # One bit, loss -bit: every differing pair moves p up by 1/n; the last step of odd n
     # is clamped (0.9 -> 1.0).  Float accumulation would give 0.9999999999999999.
@@ -86,9 +88,9 @@ def test_cga_tie_goes_to_the_first_sampled():
     a = opt.ask()
     opt.tell(a, 1.0)
     b = opt.ask()
-    opt.tell(b, 1.0)                        # tie
+    opt.tell(b, 1.0)  # tie
     k = opt.offsets
-    np.testing.assert_array_equal(k, (a - b).astype(int))   # +1 toward a's 1, -1 toward a's 0
+    np.testing.assert_array_equal(k, (a - b).astype(int))  # +1 toward a's 1, -1 toward a's 0
     assert np.any(a != b) and opt.generation == 1 and opt.evaluations == 2
 
 
@@ -97,7 +99,7 @@ def test_cga_lower_loss_wins():
     a = opt.ask()
     opt.tell(a, 2.0)
     b = opt.ask()
-    opt.tell(b, 1.0)                        # b wins
+    opt.tell(b, 1.0)  # b wins
     np.testing.assert_array_equal(opt.offsets, (b - a).astype(int))
 
 
@@ -105,14 +107,14 @@ def test_pecga_tie_goes_to_the_elite():
     opt = PECGA(40, 13, n=10, bits=1)
     e = opt.ask()
     opt.tell(e, 1.0)
-    assert opt.generation == 0 and opt.evaluations == 1     # the elite costs an evaluation
+    assert opt.generation == 0 and opt.evaluations == 1  # the elite costs an evaluation
     x = opt.ask()
-    opt.tell(x, 1.0)                        # tie -> elite stays
+    opt.tell(x, 1.0)  # tie -> elite stays
     np.testing.assert_array_equal(opt.elite, e)
     assert opt.elite_loss == 1.0
     np.testing.assert_array_equal(opt.offsets, (e - x).astype(int))
     y = opt.ask()
-    opt.tell(y, 0.5)                        # strictly better -> newcomer is the elite
+    opt.tell(y, 0.5)  # strictly better -> newcomer is the elite
     np.testing.assert_array_equal(opt.elite, y)
     assert opt.elite_loss == 0.5 and opt.generation == 2 and opt.evaluations == 3
 
@@ -123,21 +125,21 @@ def test_necga_sample_replacement_costs_one_extra_evaluation():
     opt = NECGA(30, 21, n=10, bits=1, eta=eta, elite_replacement='sample')
     e = opt.ask()
     opt.tell(e, 0.0)
-    for i in range(eta):                    # eta consecutive elite wins (ties)
+    for i in range(eta):  # eta consecutive elite wins (ties)
         assert opt.theta == i
         x = opt.ask()
         opt.tell(x, 0.0)
     assert opt.theta == 0 and opt.generation == eta and opt.evaluations == eta + 1
-    assert opt.elite is None                # replaced: the next ask is the new elite
+    assert opt.elite is None  # replaced: the next ask is the new elite
     k_before = opt.offsets
     r = opt.ask()
-    opt.tell(r, 5.0)                        # the replacement's loss is the stored one
-    np.testing.assert_array_equal(opt.offsets, k_before)    # no competition, no PV move
+    opt.tell(r, 5.0)  # the replacement's loss is the stored one
+    np.testing.assert_array_equal(opt.offsets, k_before)  # no competition, no PV move
     assert opt.generation == eta and opt.evaluations == eta + 2
     np.testing.assert_array_equal(opt.elite, r)
     assert opt.elite_loss == 5.0
     x = opt.ask()
-    opt.tell(x, 4.0)                        # beats 5.0 (it would not beat the old 0.0)
+    opt.tell(x, 4.0)  # beats 5.0 (it would not beat the old 0.0)
     np.testing.assert_array_equal(opt.elite, x)
     assert opt.theta == 0
 
@@ -149,11 +151,11 @@ def test_necga_newcomer_replacement_is_one_evaluation_per_generation():
     opt.tell(e, 0.0)
     for i in range(eta - 1):
         x = opt.ask()
-        opt.tell(x, 1.0)                    # elite wins
+        opt.tell(x, 1.0)  # elite wins
         assert opt.theta == i + 1
         np.testing.assert_array_equal(opt.elite, e)
     x = opt.ask()
-    opt.tell(x, 7.0)                        # eta-th consecutive win: the newcomer takes over
+    opt.tell(x, 7.0)  # eta-th consecutive win: the newcomer takes over
     assert opt.theta == 0 and opt.elite_loss == 7.0
     np.testing.assert_array_equal(opt.elite, x)
     assert opt.evaluations == eta + 1 and opt.generation == eta
@@ -202,9 +204,9 @@ def test_cga_neutral_drift():
             if t in got:
                 p = opt.p
                 got[t].append(float(np.mean(p * (1 - p))))
-    for t, exact in zip(ts, (0.20427, 0.09104, 0.03315)):
-        assert round(0.25 * (1 - 2 / n ** 2) ** t, 5) == exact
-        z = _z(np.array(got[t]), 0.25 * (1 - 2 / n ** 2) ** t)
+    for t, exact in zip(ts, (0.20427, 0.09104, 0.03315), strict=True):
+        assert round(0.25 * (1 - 2 / n**2) ** t, 5) == exact
+        z = _z(np.array(got[t]), 0.25 * (1 - 2 / n**2) ** t)
         assert abs(z) < 4, (t, z)
 
 
@@ -225,7 +227,7 @@ def test_pecga_flat_fitness_elite_wins_ties():
     n = 20
     ts = (5, 20, 60)
     got = _pecga_flat(False, n, ts, runs=100)
-    for t, exact in zip(ts, (0.1131, 0.3208, 0.4770)):
+    for t, exact in zip(ts, (0.1131, 0.3208, 0.4770), strict=True):
         assert round(0.5 * (1 - (1 - 1 / n) ** t), 4) == exact
         z = _z(got[t], 0.5 * (1 - (1 - 1 / n) ** t))
         assert abs(z) < 4, (t, z)
@@ -246,7 +248,7 @@ def test_cga_onemax_gamblers_ruin():
             opt = CGA(100, 3000 + r, n=n, bits=1)
             while not opt.converged():
                 u = opt.ask()
-                opt.tell(u, -float(u.sum()))    # minimise -(number of ones)
+                opt.tell(u, -float(u.sum()))  # minimise -(number of ones)
             f.append(float(opt.solution().mean()))
             e.append(opt.evaluations / n)
         frac[n], per_n[n] = np.array(f), np.array(e)
@@ -258,7 +260,7 @@ def test_cga_onemax_gamblers_ruin():
 
 def _trap_loss(u: np.ndarray) -> float:
     ones = u.reshape(10, 4).sum(axis=1)
-    return -float(np.where(ones == 4, 4.0, 3.0 - ones).sum())   # deceptive trap-4
+    return -float(np.where(ones == 4, 4.0, 3.0 - ones).sum())  # deceptive trap-4
 
 
 def _trap_blocks(algo: str, n: int, seed: int, budget: int = 20_000) -> int:
@@ -272,8 +274,11 @@ def _trap_blocks(algo: str, n: int, seed: int, budget: int = 20_000) -> int:
 
 def test_elitism_on_deceptive_trap():
     runs = 16
-    mean = {(a, n): np.mean([_trap_blocks(a, n, 4000 + r) for r in range(runs)])
-            for a in ('cga', 'pecga', 'necga') for n in (20, 100)}
+    mean = {
+        (a, n): np.mean([_trap_blocks(a, n, 4000 + r) for r in range(runs)])
+        for a in ('cga', 'pecga', 'necga')
+        for n in (20, 100)
+    }
     # Elitism solves clearly more blocks at n = 100 ...
     assert mean['pecga', 100] > mean['cga', 100] + 2.0
     assert mean['necga', 100] > mean['cga', 100] + 2.0
@@ -303,7 +308,7 @@ class _PlainCGA:
         g = b.reshape(self.dim, self.bits)
         if self.gray:
             g = np.logical_xor.accumulate(g, axis=1)
-        return g.dot(2.0 ** np.arange(self.bits - 1, -1, -1)) / (2 ** self.bits - 1)
+        return g.dot(2.0 ** np.arange(self.bits - 1, -1, -1)) / (2**self.bits - 1)
 
     def ask(self):
         if self.pending is None:
@@ -335,26 +340,39 @@ class _PlainCGA:
                     self.held = None
 
 
-@pytest.mark.parametrize('algo, n, bits, coding, extra', [
-    ('cga', 4, 3, 'binary', {}), ('pecga', 5, 2, 'gray', {}),          # 1-byte fields
-    ('necga', 3, 1, 'binary', {'eta': 2}),
-    ('necga', 6, 5, 'gray', {'eta': 2, 'elite_replacement': 'newcomer'}),
-    ('pecga', 300, 1, 'binary', {}),                                    # 2-byte fields
-    ('necga', 70_001, 2, 'binary', {'eta': 3}),                         # 4-byte fields
-    ('cga', 25, 16, 'binary', {})])
+@pytest.mark.parametrize(
+    'algo, n, bits, coding, extra',
+    [
+        ('cga', 4, 3, 'binary', {}),
+        ('pecga', 5, 2, 'gray', {}),  # 1-byte fields
+        ('necga', 3, 1, 'binary', {'eta': 2}),
+        ('necga', 6, 5, 'gray', {'eta': 2, 'elite_replacement': 'newcomer'}),
+        ('pecga', 300, 1, 'binary', {}),  # 2-byte fields
+        ('necga', 70_001, 2, 'binary', {'eta': 3}),  # 4-byte fields
+        ('cga', 25, 16, 'binary', {}),
+    ],
+)
 def test_packed_pv_equals_the_plain_model(algo, n, bits, coding, extra):
     """Sampling (r < p), the clamped +-1 competitions with every tie rule, the elite
     replacements and the decoding, evaluation by evaluation, until the PV converges (small
     n) or for 600 evaluations; losses with many ties."""
     for seed in range(4):
         opt = make_optimizer(algo, 3, seed, n=n, bits=bits, coding=coding, **extra)
-        ref = _PlainCGA(algo, 3, seed, n, bits, coding, extra.get('eta', 12),
-                        extra.get('elite_replacement', 'sample'))
+        ref = _PlainCGA(
+            algo,
+            3,
+            seed,
+            n,
+            bits,
+            coding,
+            extra.get('eta', 12),
+            extra.get('elite_replacement', 'sample'),
+        )
         loss_rng = np.random.Generator(np.random.PCG64(seed + 77))
         for _ in range(600):
             u = opt.ask()
             assert u.tobytes() == ref.ask().tobytes()
-            y = float(loss_rng.integers(0, 3))          # 0, 1, 2: ties are frequent
+            y = float(loss_rng.integers(0, 3))  # 0, 1, 2: ties are frequent
             opt.tell(u, y)
             ref.tell(y)
             np.testing.assert_array_equal(opt.offsets, ref.k)
@@ -366,12 +384,12 @@ def test_state_with_an_impossible_sample_is_refused():
     opt = CGA(2, 0, n=10, bits=3)
     opt.ask()
     st = opt.state_dict()
-    st['k'] = [5] * 6                          # p = 1 everywhere: the sample must be 111111
+    st['k'] = [5] * 6  # p = 1 everywhere: the sample must be 111111
     st['pending'] = '011111'
     with pytest.raises(OptimizerError, match='cannot produce'):
         Optimizer.from_state(st)
     st['pending'] = '111111'
     np.testing.assert_array_equal(Optimizer.from_state(st).ask(), [1.0, 1.0])
-    st['phase'] = 'second'                     # nothing is held: the phase is 'first'
+    st['phase'] = 'second'  # nothing is held: the phase is 'first'
     with pytest.raises(OptimizerError, match='phase'):
         Optimizer.from_state(st)

@@ -3,6 +3,7 @@ truncated-normal sampler (Kolmogorov-Smirnov against the exact CDF built from ma
 statistic and p-value computed here), the update as a population swap, tie rule and
 elitism.
 """
+
 from __future__ import annotations
 
 import math
@@ -16,21 +17,29 @@ from im_tuner.optim.rcga import erfinv, ndtri, norm_cdf, truncnorm_ppf
 
 
 # ------------------------------------------------------------------ ndtri and erfinv
-@pytest.mark.parametrize('p, x', [
-    # Reference values from 40-digit arithmetic (mpmath).
-    (0.975, 1.9599639845400542355), (0.9, 1.281551565544600467),
-    (0.3, -0.52440051270804078404), (1e-10, -6.3613409024040562047),
-    (1e-20, -9.2623400897984075737), (1e-50, -14.933337534788488981),
-    (1e-300, -37.047096299361199237), (0.5, 0.0)])
+@pytest.mark.parametrize(
+    'p, x',
+    [
+        # Reference values from 40-digit arithmetic (mpmath).
+        (0.975, 1.9599639845400542355),
+        (0.9, 1.281551565544600467),
+        (0.3, -0.52440051270804078404),
+        (1e-10, -6.3613409024040562047),
+        (1e-20, -9.2623400897984075737),
+        (1e-50, -14.933337534788488981),
+        (1e-300, -37.047096299361199237),
+        (0.5, 0.0),
+    ],
+)
 def test_ndtri_reference_values(p, x):
     assert ndtri(p) == pytest.approx(x, rel=1e-13, abs=1e-15)
-    if 1e-9 < p < 0.5:   # (1 - p rounds to 1 for tinier p)
+    if 1e-9 < p < 0.5:  # (1 - p rounds to 1 for tinier p)
         assert ndtri(1 - p) == pytest.approx(-x, rel=1e-12)
 
 
 def test_ndtri_round_trip_and_edges():
     # Lower tail through erfc (relative accuracy): ndtri(Phi(x)) = x to ~1e-13.
-    for x in np.linspace(-37.5, 0.0, 751):   # Phi(-37.5) ~ 5e-308: normal floats
+    for x in np.linspace(-37.5, 0.0, 751):  # Phi(-37.5) ~ 5e-308: normal floats
         p = norm_cdf(float(x))
         assert ndtri(p) == pytest.approx(x, rel=2e-13, abs=1e-14)
     for p in np.linspace(1e-6, 1 - 1e-6, 1001):
@@ -47,16 +56,27 @@ def test_ndtri_is_as241_like_the_standard_library():
     # bit, over the whole range (a check of every transcribed coefficient).
     inv = statistics.NormalDist().inv_cdf
     r = np.random.Generator(np.random.PCG64(3))
-    ps = np.concatenate([r.random(20_000), 10.0 ** -r.uniform(0.0, 320.0, 20_000),
-                         [0.075, 0.925, math.exp(-25.0), 0.5, 5e-324, 1e-300]])
+    ps = np.concatenate(
+        [
+            r.random(20_000),
+            10.0 ** -r.uniform(0.0, 320.0, 20_000),
+            [0.075, 0.925, math.exp(-25.0), 0.5, 5e-324, 1e-300],
+        ]
+    )
     for p in ps.tolist():
         if 0.0 < p < 1.0:
             assert ndtri(p) == inv(p), p
 
 
-@pytest.mark.parametrize('y, x', [(0.5, 0.47693627620446987338), (0.999, 2.3267537655135246706),
-                                  (-0.3, -0.27246271472675435562),
-                                  (0.999999999999, 5.0420297456390593742)])
+@pytest.mark.parametrize(
+    'y, x',
+    [
+        (0.5, 0.47693627620446987338),
+        (0.999, 2.3267537655135246706),
+        (-0.3, -0.27246271472675435562),
+        (0.999999999999, 5.0420297456390593742),
+    ],
+)
 def test_erfinv_reference_values(y, x):
     # 0.999999999999 is not exact in binary: its own rounding limits the agreement.
     assert erfinv(y) == pytest.approx(x, rel=1e-12 if abs(y) < 0.9999 else 1e-6)
@@ -73,7 +93,7 @@ def test_erfinv_round_trip():
 # --------------------------------------------------------------- the sampler, KS test
 def _truncnorm_cdf(x: float, mu: float, sigma: float) -> float:
     """Exact CDF of N(mu, sigma^2) truncated to [-1, 1], from math.erf."""
-    phi = lambda z: 0.5 * (1.0 + math.erf(z / math.sqrt(2.0)))   # noqa: E731
+    phi = lambda z: 0.5 * (1.0 + math.erf(z / math.sqrt(2.0)))  # noqa: E731
     fa, fb = phi((-1.0 - mu) / sigma), phi((1.0 - mu) / sigma)
     return (phi((x - mu) / sigma) - fa) / (fb - fa)
 
@@ -92,17 +112,29 @@ def _ks(sample: np.ndarray, cdf) -> tuple[float, float]:
 
 def test_ks_helper_by_hand():
     # Three points against U(0, 1): D = max(1/3 - 0.1, 0.5 - 1/3, 1 - 0.9, ...) = 0.2333.
-    d, p = _ks(np.array([0.1, 0.5, 0.9]), lambda v: v)
-    assert d == pytest.approx(max(1 / 3 - 0.1, 0.1 - 0, 2 / 3 - 0.5, 0.5 - 1 / 3, 1 - 0.9,
-                                  0.9 - 2 / 3))
+    d, _p = _ks(np.array([0.1, 0.5, 0.9]), lambda v: v)
+    assert d == pytest.approx(
+        max(1 / 3 - 0.1, 0.1 - 0, 2 / 3 - 0.5, 0.5 - 1 / 3, 1 - 0.9, 0.9 - 2 / 3)
+    )
     # Kolmogorov's distribution: P(K > 1.3581) = 0.05.
     lam = 1.3581
     p05 = 2 * sum((-1) ** (k - 1) * math.exp(-2 * k * k * lam * lam) for k in range(1, 101))
     assert p05 == pytest.approx(0.05, abs=1e-4)
 
 
-@pytest.mark.parametrize('mu, sigma', [(0.0, 10.0), (0.3, 0.4), (-0.8, 0.15), (0.95, 0.02),
-                                       (0.99, 0.5), (1.3, 0.2), (-1.2, 0.05), (0.0, 1e-3)])
+@pytest.mark.parametrize(
+    'mu, sigma',
+    [
+        (0.0, 10.0),
+        (0.3, 0.4),
+        (-0.8, 0.15),
+        (0.95, 0.02),
+        (0.99, 0.5),
+        (1.3, 0.2),
+        (-1.2, 0.05),
+        (0.0, 1e-3),
+    ],
+)
 def test_truncnorm_sampler_ks(mu, sigma):
     n = 4000
     r = np.random.Generator(np.random.PCG64(7)).random(n)
@@ -118,7 +150,7 @@ def test_truncnorm_sampler_ks(mu, sigma):
 
 def test_truncnorm_degenerate_spread():
     assert truncnorm_ppf(0.3, 0.25, 0.0) == 0.25
-    assert truncnorm_ppf(0.3, 3.0, 1e-3) == 1.0       # all mass underflows: nearest bound
+    assert truncnorm_ppf(0.3, 3.0, 1e-3) == 1.0  # all mass underflows: nearest bound
     assert truncnorm_ppf(0.3, -3.0, 1e-3) == -1.0
 
 
@@ -139,19 +171,19 @@ def test_update_equals_population_swap(newcomer_wins):
     mu, sigma = opt.mu, opt.sigma
     x = opt.ask()
     opt.tell(x, 0.0 if newcomer_wins else 2.0)
-    xe, xn = 2 * e - 1, 2 * x - 1                 # back to [-1, 1]
+    xe, xn = 2 * e - 1, 2 * x - 1  # back to [-1, 1]
     w, l = (xn, xe) if newcomer_wins else (xe, xn)
     rng = np.random.Generator(np.random.PCG64(1))
     for i in range(4):
         # A population of n points with mean mu_i, population variance sigma_i^2, holding l_i.
         m_q = (n * mu[i] - l[i]) / (n - 1)
-        s2_q = (n * (sigma[i] ** 2 + mu[i] ** 2) - l[i] ** 2) / (n - 1) - m_q ** 2
+        s2_q = (n * (sigma[i] ** 2 + mu[i] ** 2) - l[i] ** 2) / (n - 1) - m_q**2
         z = rng.normal(size=n - 1)
         z = (z - z.mean()) / z.std()
         pop = np.concatenate([[l[i]], m_q + math.sqrt(s2_q) * z])
         assert pop.mean() == pytest.approx(mu[i], abs=1e-13)
         assert pop.var() == pytest.approx(sigma[i] ** 2, abs=1e-13)
-        pop[0] = w[i]                              # the winner replaces the loser
+        pop[0] = w[i]  # the winner replaces the loser
         assert opt.mu[i] == pytest.approx(pop.mean(), abs=1e-12)
         assert opt.sigma[i] ** 2 == pytest.approx(pop.var(), abs=1e-12)
 
@@ -161,12 +193,12 @@ def test_rcga_tie_goes_to_the_elite_and_ne_replacement():
     e = opt.ask()
     opt.tell(e, 1.0)
     x = opt.ask()
-    opt.tell(x, 1.0)                               # tie -> elite
+    opt.tell(x, 1.0)  # tie -> elite
     np.testing.assert_array_equal(opt.elite, e)
     assert opt.theta == 1
     y = opt.ask()
-    opt.tell(y, 3.0)                               # second consecutive win = eta: replaced
-    np.testing.assert_array_equal(opt.elite, y)    # by the newcomer just evaluated
+    opt.tell(y, 3.0)  # second consecutive win = eta: replaced
+    np.testing.assert_array_equal(opt.elite, y)  # by the newcomer just evaluated
     assert opt.elite_loss == 3.0 and opt.theta == 0
     assert opt.evaluations == 3 and opt.generation == 2
 

@@ -6,6 +6,7 @@
 * the first step by hand (g = (4, 4) for Delta = (1, 1), g = 0 for Delta = (1, -1));
 * the gain index convention, Delta's distribution, the step cap and feasibility.
 """
+
 from __future__ import annotations
 
 import math
@@ -34,7 +35,7 @@ def moments(kmax: int, index_offset: int = 1) -> list[float]:
     for k in range(kmax):
         ak = A_GAIN / (k + index_offset + A_STAB) ** ALPHA
         ck = C_GAIN / (k + 1) ** GAMMA
-        m.append((1 - 4 * ak + 4 * P * ak * ak) * m[-1] + P * ak * ak * NOISE ** 2 / (2 * ck * ck))
+        m.append((1 - 4 * ak + 4 * P * ak * ak) * m[-1] + P * ak * ak * NOISE**2 / (2 * ck * ck))
     return m
 
 
@@ -52,8 +53,17 @@ def test_moment_oracle_monte_carlo():
     # Measurement noise from its own stream (never the optimiser's).
     noise = np.random.Generator(np.random.PCG64(20240611)).normal(0.0, NOISE, (runs, 2 * iters))
     for r in range(runs):
-        opt = SPSA(P, seed=r, start=np.ones(P), a=A_GAIN, c=C_GAIN, A=A_STAB, gains='spall',
-                   max_step=math.inf, bounded=False)
+        opt = SPSA(
+            P,
+            seed=r,
+            start=np.ones(P),
+            a=A_GAIN,
+            c=C_GAIN,
+            A=A_STAB,
+            gains='spall',
+            max_step=math.inf,
+            bounded=False,
+        )
         e = noise[r]
         j = 0
         for k in range(1, iters + 1):
@@ -87,15 +97,23 @@ def _seed_with_delta(want: tuple[float, float], c: float) -> int:
     raise AssertionError('no seed found')
 
 
-@pytest.mark.parametrize('delta, g_expected', [((1.0, 1.0), (4.0, 4.0)),
-                                              ((1.0, -1.0), (0.0, 0.0))])
+@pytest.mark.parametrize('delta, g_expected', [((1.0, 1.0), (4.0, 4.0)), ((1.0, -1.0), (0.0, 0.0))])
 def test_first_step_by_hand(delta, g_expected):
     c = 1e-3
     seed = _seed_with_delta(delta, c)
-    opt = SPSA(2, seed, start=np.ones(2), a=0.05, c=c, A=10, gains='spall',
-               max_step=math.inf, bounded=False)
+    opt = SPSA(
+        2,
+        seed,
+        start=np.ones(2),
+        a=0.05,
+        c=c,
+        A=10,
+        gains='spall',
+        max_step=math.inf,
+        bounded=False,
+    )
     up = opt.ask()
-    np.testing.assert_array_equal(up, 1.0 + c * np.array(delta))   # c_0 = c
+    np.testing.assert_array_equal(up, 1.0 + c * np.array(delta))  # c_0 = c
     opt.tell(up, float(up @ up))
     um = opt.ask()
     np.testing.assert_array_equal(um, 1.0 - c * np.array(delta))
@@ -104,23 +122,29 @@ def test_first_step_by_hand(delta, g_expected):
     g = opt.last_gradient
     # y+ - y- = 4 c Delta'u_0: g = 2 Delta (Delta'u_0) = (4, 4) or 0.
     np.testing.assert_allclose(g, g_expected, rtol=0, atol=1e-9)
-    a0 = 0.05 / (0 + 1 + 10) ** ALPHA          # k = 0: a/(k + 1 + A)^alpha
+    a0 = 0.05 / (0 + 1 + 10) ** ALPHA  # k = 0: a/(k + 1 + A)^alpha
     np.testing.assert_allclose(opt.iterate, 1.0 - a0 * g, rtol=0, atol=1e-15)
 
 
 def test_gain_index_convention_and_presets():
-    opt = SPSA(3, 0)                      # paper defaults
-    assert (opt.a, opt.c, opt.A, opt.alpha, opt.gamma, opt.max_step) == \
-        (0.0183, 0.03, 20.0, 0.3, 0.3, 0.1)
+    opt = SPSA(3, 0)  # paper defaults
+    assert (opt.a, opt.c, opt.A, opt.alpha, opt.gamma, opt.max_step) == (
+        0.0183,
+        0.03,
+        20.0,
+        0.3,
+        0.3,
+        0.1,
+    )
     a0, c0 = opt.gains(0)
-    assert a0 == 0.0183 / 21 ** 0.3 and c0 == 0.03
+    assert a0 == 0.0183 / 21**0.3 and c0 == 0.03
     a99, c99 = opt.gains(99)
-    assert a99 == 0.0183 / 120 ** 0.3 and c99 == 0.03 / 100 ** 0.3
+    assert a99 == 0.0183 / 120**0.3 and c99 == 0.03 / 100**0.3
     # The paper's alpha = gamma = 0.3 keeps a_k/c_k nearly constant (0.24 -> 0.58).
     assert round(a0 / c0, 2) == 0.24 and round(a99 / c99, 2) == 0.58
     s = SPSA(3, 0, gains='spall')
     assert (s.alpha, s.gamma) == (0.602, 0.101)
-    o = SPSA(3, 0, gains='spall', alpha=0.7)           # explicit overrides the preset
+    o = SPSA(3, 0, gains='spall', alpha=0.7)  # explicit overrides the preset
     assert (o.alpha, o.gamma) == (0.7, 0.101)
     o = SPSA(3, 0, gamma=0.2)
     assert (o.alpha, o.gamma) == (0.3, 0.2)
@@ -137,14 +161,14 @@ def test_delta_is_fair_plus_minus_one():
         plus += int(np.sum(d > 0))
         total += d.size
         opt.tell(u, 0.0)
-        opt.tell(opt.ask(), 0.0)      # flat loss: g = 0, the iterate stays
+        opt.tell(opt.ask(), 0.0)  # flat loss: g = 0, the iterate stays
     z = (plus - total / 2) / math.sqrt(total / 4)
     assert abs(z) < 4
 
 
 def test_start_projection_and_random_start():
     opt = SPSA(3, 0, start=np.array([0.0, 0.5, 1.0]))
-    np.testing.assert_array_equal(opt.iterate, [0.03, 0.5, 0.97])   # [c_0, 1 - c_0]
+    np.testing.assert_array_equal(opt.iterate, [0.03, 0.5, 0.97])  # [c_0, 1 - c_0]
     free = SPSA(3, 0, start=np.array([0.0, 0.5, 1.0]), bounded=False)
     np.testing.assert_array_equal(free.iterate, [0.0, 0.5, 1.0])
     starts = np.array([SPSA(2, s).iterate for s in range(500)])
@@ -158,13 +182,13 @@ def test_step_cap_against_a_penalised_loss():
     opt = make_optimizer('spsa', 5, 1, start=np.full(5, 0.5))
     before = opt.iterate
     u = opt.ask()
-    opt.tell(u, 1e6)                  # an aborted experiment: loss x penalty
+    opt.tell(u, 1e6)  # an aborted experiment: loss x penalty
     u = opt.ask()
     opt.tell(u, 1.0)
     moved = np.abs(opt.iterate - before)
     # |a_0 g_0| would be ~1e6 per coordinate: the whole step is scaled to max_step.
     assert moved.max() == pytest.approx(0.1, abs=1e-15)
-    np.testing.assert_allclose(moved, 0.1, atol=1e-15)    # |g_i| all equal: every entry
+    np.testing.assert_allclose(moved, 0.1, atol=1e-15)  # |g_i| all equal: every entry
     uncapped = SPSA(5, 1, start=np.full(5, 0.5), max_step=math.inf)
     u = uncapped.ask()
     uncapped.tell(u, 1e6)
@@ -175,7 +199,7 @@ def test_step_cap_against_a_penalised_loss():
 def test_every_asked_point_is_feasible():
     rng = np.random.Generator(np.random.PCG64(5))
     for seed in range(20):
-        opt = SPSA(5, seed, max_step=0.5, a=1.0)     # big steps: the projection must work
+        opt = SPSA(5, seed, max_step=0.5, a=1.0)  # big steps: the projection must work
         for _ in range(200):
             u = opt.ask()
             assert np.all((u >= 0.0) & (u <= 1.0))

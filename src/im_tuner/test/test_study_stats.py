@@ -1,5 +1,6 @@
 """Tables I-III and the conclusions of the study, against hand computations on
 constructed results (no experiments)."""
+
 from __future__ import annotations
 
 import math
@@ -13,14 +14,15 @@ from im_tuner.study_stats import PAPER, compute, per_run, wilson
 L_REF = 2.0
 
 
-def make_result(runs: int, budget: int, finals: dict[tuple[str, int, int], float] | None = None,
-                seed: int = 0) -> S.StudyResult:
+def make_result(
+    runs: int, budget: int, finals: dict[tuple[str, int, int], float] | None = None, seed: int = 0
+) -> S.StudyResult:
     """A StudyResult whose run losses decay from 1.2 to the cell's final level (normalised),
     with a little noise; nothing aborted."""
     spec = S.StudySpec(runs=runs, budget=budget)
     cells = spec.cells
     rng = np.random.default_rng(seed)
-    C = len(cells)
+    len(cells)
     arrays = S._allocate(spec, cells)
     for c, cell in enumerate(cells):
         level = (finals or {}).get((cell.algo, cell.row, cell.col), 0.8)
@@ -28,12 +30,21 @@ def make_result(runs: int, budget: int, finals: dict[tuple[str, int, int], float
             target = level + 0.02 * rng.standard_normal()
             curve = target + (1.2 - target) * np.exp(-np.arange(budget) / (budget / 5))
             arrays['losses'][c, r] = L_REF * curve
-            arrays['iteration'][c, r] = (np.arange(budget) // 2 + 1 if cell.algo == 'spsa'
-                                         else np.arange(budget) + 1)
+            arrays['iteration'][c, r] = (
+                np.arange(budget) // 2 + 1 if cell.algo == 'spsa' else np.arange(budget) + 1
+            )
             arrays['ref_loss'][c, r] = L_REF
     arrays['remeasured'][:] = L_REF * 0.9
-    return S.StudyResult(spec=spec, cells=cells, l_ref=L_REF, l_ref_sem=0.001, l_first=1.8,
-                         wall_s=1.0, jobs=1, **arrays)
+    return S.StudyResult(
+        spec=spec,
+        cells=cells,
+        l_ref=L_REF,
+        l_ref_sem=0.001,
+        l_first=1.8,
+        wall_s=1.0,
+        jobs=1,
+        **arrays,
+    )
 
 
 def test_wilson_interval_known_values():
@@ -80,7 +91,7 @@ def test_final_loss_satisfactory_and_evaluations_by_hand():
 def test_intervals_are_reproducible_and_cover_the_mean():
     res = make_result(runs=100, budget=20)
     a, b = compute(res), compute(res)
-    for ca, cb in zip(a.cells, b.cells):
+    for ca, cb in zip(a.cells, b.cells, strict=True):
         assert (ca.final.lo, ca.final.hi) == (cb.final.lo, cb.final.hi)
         assert ca.final.lo < ca.final.value < ca.final.hi
         # 100 runs with sd about 0.02: the 95 % half-width is about 1.96 * 0.002

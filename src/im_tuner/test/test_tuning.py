@@ -4,10 +4,10 @@ The fake bench is deterministic (loss = a quadratic of the gains plus an experim
 counter term, so the plant history matters like on the real bench), can lose results
 and abort experiments on demand, and records every call.
 """
+
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +17,15 @@ from im_controller.config import GAIN_NAMES, Gains
 from im_tuner import optim
 from im_tuner.rundir import RunDir, RunDirError
 from im_tuner.space import TunerParamsError, load_params, parse_params
-from im_tuner.tuning import (BenchFailure, LostEvaluation, Measurement, ResumeError,
-                             StopRequested, TuningRun, replay)
+from im_tuner.tuning import (
+    BenchFailure,
+    LostEvaluation,
+    Measurement,
+    ResumeError,
+    StopRequested,
+    TuningRun,
+    replay,
+)
 
 PARAMS = load_params()
 SPACE = PARAMS.space
@@ -27,10 +34,11 @@ SPACE = PARAMS.space
 class FakeBench:
     """Loss = |u - u*|^2 + 1e-3 * (experiments so far mod 3): history-dependent."""
 
-    def __init__(self, lose: set[int] = frozenset(), abort_above: float = 0.9,
-                 stop_at: int | None = None) -> None:
+    def __init__(
+        self, lose: set[int] = frozenset(), abort_above: float = 0.9, stop_at: int | None = None
+    ) -> None:
         self.calls: list[tuple[float, ...]] = []
-        self.lose = set(lose)          # call indices whose result is lost
+        self.lose = set(lose)  # call indices whose result is lost
         self.abort_above = abort_above
         self.stop_at = stop_at
         self.applied: Gains | None = None
@@ -48,11 +56,21 @@ class FakeBench:
         u = SPACE.to_u(gains)
         loss = float(np.sum((u - 0.3) ** 2)) + 1e-3 * (eid % 3)
         aborted = loss > self.abort_above
-        return Measurement(loss=loss * (10.0 if aborted else 1.0), terms=(loss, 0.0, 0.0),
-                           aborted=aborted, reason='term1' if aborted else '', fault=False,
-                           experiment_id=eid, direction=1 - 2 * (eid % 2), steps=5625,
-                           trip_step=-1, t_start_ns=eid * 10**9, t_end_ns=eid * 10**9 + 1125 *
-                           10**6, wall_s=0.001, gains=gains.as_tuple())
+        return Measurement(
+            loss=loss * (10.0 if aborted else 1.0),
+            terms=(loss, 0.0, 0.0),
+            aborted=aborted,
+            reason='term1' if aborted else '',
+            fault=False,
+            experiment_id=eid,
+            direction=1 - 2 * (eid % 2),
+            steps=5625,
+            trip_step=-1,
+            t_start_ns=eid * 10**9,
+            t_end_ns=eid * 10**9 + 1125 * 10**6,
+            wall_s=0.001,
+            gains=gains.as_tuple(),
+        )
 
     def apply(self, gains: Gains) -> None:
         self.applied = gains
@@ -78,7 +96,8 @@ def test_run_counts_evaluations_and_tracks_the_best(tmp_path, algo):
     evals = [r for r in recs if r['kind'] == 'eval']
     assert len(evals) == 30 == run.state.evals == run.opt.evaluations
     assert recs[0]['kind'] == 'reference' and recs[0]['gains'] == dict(
-        zip(GAIN_NAMES, SPACE.start))
+        zip(GAIN_NAMES, SPACE.start, strict=True)
+    )
     ok = [r for r in evals if not r['aborted']]
     assert any(r['aborted'] for r in evals) or algo == 'spsa'
     best = min(ok, key=lambda r: r['loss'])
@@ -99,14 +118,17 @@ def test_run_counts_evaluations_and_tracks_the_best(tmp_path, algo):
 
 
 def test_lost_result_is_rerun_with_the_same_gains(tmp_path):
-    bench = FakeBench(lose={3, 4})       # calls 3 and 4 = evaluation 2, attempts 1 and 2
+    bench = FakeBench(lose={3, 4})  # calls 3 and 4 = evaluation 2, attempts 1 and 2
     run = make_run(tmp_path / 'r', budget=5, remeasure=0)
     assert run.run(bench) == 'done'
     # calls: 0 the reference, 1 evaluation 0, 2 evaluation 1, 3-5 evaluation 2
     assert bench.calls[3] == bench.calls[4] == bench.calls[5] != bench.calls[6]
     recs = records(tmp_path / 'r')
     assert [(r['kind'], r['eval'], r['attempt'], r['status']) for r in recs[2:5]] == [
-        ('eval', 1, 1, recs[2]['status']), ('eval', 2, 1, 'lost'), ('eval', 2, 2, 'lost')]
+        ('eval', 1, 1, recs[2]['status']),
+        ('eval', 2, 1, 'lost'),
+        ('eval', 2, 2, 'lost'),
+    ]
     assert recs[5]['attempt'] == 3 and recs[5]['status'] in ('ok', 'aborted')
     assert run.state.lost == 2 and run.state.evals == 5 and run.opt.evaluations == 5
     assert run.state.experiments == len(recs)  # lost ones ran on the bench too
@@ -147,7 +169,9 @@ def test_interrupted_then_resumed_equals_uninterrupted(tmp_path, algo):
     assert replay(bench2, resumed.records) == 9
     assert resumed.run(bench2) == 'done'
     key = lambda r: {k: r[k] for k in ('kind', 'eval', 'u', 'gains', 'loss', 'experiment_id')}  # noqa: E731
-    assert [key(r) for r in records(tmp_path / 'whole')] == [key(r) for r in records(tmp_path / 'part')]
+    assert [key(r) for r in records(tmp_path / 'whole')] == [
+        key(r) for r in records(tmp_path / 'part')
+    ]
     assert resumed.state.best == whole.state.best
 
 
@@ -174,8 +198,9 @@ def test_resume_catches_up_records_written_after_the_checkpoint(tmp_path):
     bench2 = FakeBench()
     replay(bench2, resumed.records)
     resumed.run(bench2)
-    assert [r['loss'] for r in records(tmp_path / 'whole')] == \
-        [r['loss'] for r in records(tmp_path / 'part')]
+    assert [r['loss'] for r in records(tmp_path / 'whole')] == [
+        r['loss'] for r in records(tmp_path / 'part')
+    ]
 
 
 def test_resume_refuses_results_that_do_not_match_the_checkpoint(tmp_path):
@@ -206,8 +231,8 @@ def test_reference_stays_applied_when_nothing_beats_it(tmp_path):
         def measure(self, gains):
             m = super().measure(gains)
             start = gains.as_tuple() == SPACE.start
-            return Measurement(**{**m.__dict__, 'loss': 0.01 if start else 5.0,
-                                  'aborted': False})
+            return Measurement(**{**m.__dict__, 'loss': 0.01 if start else 5.0, 'aborted': False})
+
     bench = StartIsBest()
     run = make_run(tmp_path / 'r', budget=6)
     run.run(bench)
@@ -221,6 +246,7 @@ def test_bench_failure_ends_the_run_cleanly(tmp_path):
             if len(self.calls) == 4:
                 raise BenchFailure('controller refused the gains')
             return super().measure(gains)
+
     bench = Breaks()
     run = make_run(tmp_path / 'r', budget=10)
     assert run.run(bench) == 'failed: controller refused the gains'
@@ -238,25 +264,30 @@ def test_default_params_are_the_papers_motor():
 
 
 def _box(**over):
-    box = {n: {'lo': lo, 'hi': hi, 'start': s}
-           for n, lo, hi, s in zip(GAIN_NAMES, SPACE.lo, SPACE.hi, SPACE.start)}
+    box = {
+        n: {'lo': lo, 'hi': hi, 'start': s}
+        for n, lo, hi, s in zip(GAIN_NAMES, SPACE.lo, SPACE.hi, SPACE.start, strict=True)
+    }
     for k, v in over.items():
         box[k] = v
     return {'search_box': box, 'satisfactory_loss': 0.85}
 
 
-@pytest.mark.parametrize('data, msg', [
-    ([], 'expected a mapping'),
-    ({'search_box': {}}, 'missing key satisfactory_loss'),
-    ({**_box(), 'extra': 1}, "unknown key(s) ['extra']"),
-    (_box(k_pw={'lo': 1.0, 'hi': 0.5, 'start': 0.7}), 'search_box.k_pw: lo must be below hi'),
-    (_box(k_pw={'lo': 0.1, 'hi': 9.0, 'start': 0.7}), "leaves the controller's accepted range"),
-    (_box(k_iw={'lo': 0.0, 'hi': 100.0, 'start': 150.0}), 'search_box.k_iw.start 150'),
-    (_box(tau_eq={'lo': 0.0, 'hi': float('nan'), 'start': 0.0}), 'search_box.tau_eq.hi'),
-    (_box(k_pos={'lo': True, 'hi': 10.0, 'start': 5.0}), 'search_box.k_pos.lo'),
-    (_box(k_pos={'lo': 1.0, 'hi': 10.0}), 'search_box.k_pos must be'),
-    ({**_box(), 'satisfactory_loss': -1}, 'satisfactory_loss must be > 0'),
-])
+@pytest.mark.parametrize(
+    'data, msg',
+    [
+        ([], 'expected a mapping'),
+        ({'search_box': {}}, 'missing key satisfactory_loss'),
+        ({**_box(), 'extra': 1}, "unknown key(s) ['extra']"),
+        (_box(k_pw={'lo': 1.0, 'hi': 0.5, 'start': 0.7}), 'search_box.k_pw: lo must be below hi'),
+        (_box(k_pw={'lo': 0.1, 'hi': 9.0, 'start': 0.7}), "leaves the controller's accepted range"),
+        (_box(k_iw={'lo': 0.0, 'hi': 100.0, 'start': 150.0}), 'search_box.k_iw.start 150'),
+        (_box(tau_eq={'lo': 0.0, 'hi': float('nan'), 'start': 0.0}), 'search_box.tau_eq.hi'),
+        (_box(k_pos={'lo': True, 'hi': 10.0, 'start': 5.0}), 'search_box.k_pos.lo'),
+        (_box(k_pos={'lo': 1.0, 'hi': 10.0}), 'search_box.k_pos must be'),
+        ({**_box(), 'satisfactory_loss': -1}, 'satisfactory_loss must be > 0'),
+    ],
+)
 def test_bad_parameter_files_name_the_key(data, msg):
     with pytest.raises(TunerParamsError, match=None) as ei:
         parse_params(data, 'f.yaml')
@@ -292,8 +323,17 @@ def test_run_directory_rules(tmp_path):
     x = 0.1 + 0.2
 
     def rec(loss: float) -> dict:
-        return {'kind': 'eval', 'eval': 0, 'status': 'ok', 'u': [0.5], 'gains': {'k_pw': 1.0},
-                'loss': loss, 'terms': [loss, 0.0, 0.0], 'aborted': False}
+        return {
+            'kind': 'eval',
+            'eval': 0,
+            'status': 'ok',
+            'u': [0.5],
+            'gains': {'k_pw': 1.0},
+            'loss': loss,
+            'terms': [loss, 0.0, 0.0],
+            'aborted': False,
+        }
+
     rd.append_result(rec(x))
     rd.append_result(rec(1e-300))
     with open(rd.path / 'results.jsonl', 'a') as f:
@@ -310,8 +350,12 @@ def test_run_directory_rules(tmp_path):
     with pytest.raises(RunDirError, match='line 3 is not a JSON record'):
         rd.read_results()
     # a record without what the tuner and the report read is named, with its line
-    (rd.path / 'results.jsonl').write_text(json.dumps(rec(x)) + '\n' + json.dumps(
-        {k: v for k, v in rec(x).items() if k != 'loss'}) + '\n')
+    (rd.path / 'results.jsonl').write_text(
+        json.dumps(rec(x))
+        + '\n'
+        + json.dumps({k: v for k, v in rec(x).items() if k != 'loss'})
+        + '\n'
+    )
     with pytest.raises(RunDirError, match="line 2: record without 'loss'"):
         rd.read_results()
     assert rd.next_bag_dir().name == 'bag_0'

@@ -11,26 +11,53 @@ choices), the single source for command-line flags.  The contract of every optim
 (ask/tell, state_dict/from_state, evaluations, converged, config) is in ``base.py``;
 the algorithms, the options and the decisions taken are in docs/optimisers.md.
 """
+
 from __future__ import annotations
 
 from typing import Any
 
 import numpy as np
 
-from .base import (Optimizer, OptimizerError, OptionSpec, check_dim, check_options,
-                   check_seed, check_start)
+from .base import (
+    Optimizer,
+    OptimizerError,
+    OptionSpec,
+    check_dim,
+    check_options,
+    check_seed,
+    check_start,
+)
 from .cga import CGA, NECGA, PECGA, BinaryCGA
 from .rcga import RCGA
 from .spsa import SPSA
 
-__all__ = ['ALGOS', 'OPTIONS', 'make_optimizer', 'Optimizer', 'OptimizerError', 'OptionSpec',
-           'SPSA', 'CGA', 'PECGA', 'NECGA', 'BinaryCGA', 'RCGA', 'CLASSES', 'TAKES_START']
+__all__ = [
+    'ALGOS',
+    'CGA',
+    'CLASSES',
+    'NECGA',
+    'OPTIONS',
+    'PECGA',
+    'RCGA',
+    'SPSA',
+    'TAKES_START',
+    'BinaryCGA',
+    'Optimizer',
+    'OptimizerError',
+    'OptionSpec',
+    'make_optimizer',
+]
 
 #: Every algorithm name accepted by make_optimizer (and ``--algo``).
 ALGOS: tuple[str, ...] = ('spsa', 'necga', 'cga', 'pecga', 'rcga')
 
 CLASSES: dict[str, type[Optimizer]] = {
-    'spsa': SPSA, 'necga': NECGA, 'cga': CGA, 'pecga': PECGA, 'rcga': RCGA}
+    'spsa': SPSA,
+    'necga': NECGA,
+    'cga': CGA,
+    'pecga': PECGA,
+    'rcga': RCGA,
+}
 
 #: algo -> option name -> OptionSpec (names are python identifiers, usable as flags).
 OPTIONS: dict[str, dict[str, OptionSpec]] = {a: dict(CLASSES[a].OPTIONS) for a in ALGOS}
@@ -39,8 +66,13 @@ OPTIONS: dict[str, dict[str, OptionSpec]] = {a: dict(CLASSES[a].OPTIONS) for a i
 TAKES_START: frozenset[str] = frozenset({'spsa'})
 
 
-def make_optimizer(algo: str, dim: int, seed: int | np.random.SeedSequence,
-                   start: np.ndarray | None = None, **options: Any) -> Optimizer:
+def make_optimizer(
+    algo: str,
+    dim: int,
+    seed: int | np.random.SeedSequence,
+    start: np.ndarray | None = None,
+    **options: Any,
+) -> Optimizer:
     """Validate everything, then build the optimiser ``algo`` on ``dim`` parameters.
 
     ``seed``: int >= 0 or SeedSequence (the optimiser's own PCG64 stream).  ``start``:
@@ -51,13 +83,15 @@ def make_optimizer(algo: str, dim: int, seed: int | np.random.SeedSequence,
     and the accepted values, before anything is created.
     """
     if not isinstance(algo, str) or algo not in CLASSES:
-        raise OptimizerError(f"unknown algo {algo!r} (allowed: {', '.join(ALGOS)})")
+        raise OptimizerError(f'unknown algo {algo!r} (allowed: {", ".join(ALGOS)})')
     dim = check_dim(dim)
     check_seed(seed)
     check_start(start, dim)
     if start is not None and algo not in TAKES_START:
-        raise OptimizerError(f'{algo} does not take a start point (only '
-                             f"{', '.join(sorted(TAKES_START))} does); pass start=None")
+        raise OptimizerError(
+            f'{algo} does not take a start point (only '
+            f'{", ".join(sorted(TAKES_START))} does); pass start=None'
+        )
     check_options(algo, OPTIONS[algo], options)
     # The constructors repeat these checks and add the cross-option ones (eta < n) before
     # they create anything.

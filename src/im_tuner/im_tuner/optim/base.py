@@ -23,18 +23,36 @@ Contract (every optimiser):
 Randomness: each optimiser owns one ``numpy.random.Generator(PCG64)`` built from its
 seed (an int or a SeedSequence); no global RNG.
 """
+
 from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-__all__ = ['Optimizer', 'OptimizerError', 'OptionSpec', 'make_rng', 'rng_state',
-           'set_rng_state', 'check_loss', 'check_dim', 'check_seed', 'check_start',
-           'seed_json', 'check_options', 'check_told', 'told_loss', 'rebuild', 'zero_signs_match', 'NDARRAY']
+__all__ = [
+    'NDARRAY',
+    'Optimizer',
+    'OptimizerError',
+    'OptionSpec',
+    'check_dim',
+    'check_loss',
+    'check_options',
+    'check_seed',
+    'check_start',
+    'check_told',
+    'make_rng',
+    'rebuild',
+    'rng_state',
+    'seed_json',
+    'set_rng_state',
+    'told_loss',
+    'zero_signs_match',
+]
 
 #: The array type, bound once (tell's fast path tests ``type(u) is NDARRAY``).
 NDARRAY = np.ndarray
@@ -47,7 +65,8 @@ class OptimizerError(ValueError):
 def check_seed(seed: Any) -> int | np.random.SeedSequence:
     """An int seed (>= 0, bool refused) or a SeedSequence; returns it (ints as ``int``)."""
     if isinstance(seed, (bool, np.bool_)) or not isinstance(
-            seed, (int, np.integer, np.random.SeedSequence)):
+        seed, (int, np.integer, np.random.SeedSequence)
+    ):
         raise OptimizerError(f'seed must be an integer >= 0 or a SeedSequence, got {seed!r}')
     if not isinstance(seed, np.random.SeedSequence):
         if int(seed) < 0:
@@ -65,9 +84,16 @@ def seed_json(seed: int | np.random.SeedSequence) -> Any:
     """The seed as JSON (an int, or a SeedSequence's entropy and spawn key), for config()."""
     if isinstance(seed, np.random.SeedSequence):
         ent = seed.entropy
-        return {'entropy': [int(e) for e in ent] if isinstance(ent, (list, tuple, np.ndarray))
-                else (None if ent is None else int(ent)),
-                'spawn_key': [int(k) for k in seed.spawn_key]}
+        return {
+            'entropy': (
+                None
+                if ent is None
+                else int(ent)
+                if isinstance(ent, (int, np.integer))
+                else [int(e) for e in ent]
+            ),
+            'spawn_key': [int(k) for k in seed.spawn_key],
+        }
     return int(seed)
 
 
@@ -85,12 +111,12 @@ def rng_state(rng: np.random.Generator, unread: int = 0) -> dict[str, Any]:
     numpy call per many asks); with this the saved state does not depend on the block
     size, and ``set_rng_state`` + a fresh block continues the same stream.
     """
-    st = rng.bit_generator.state
+    st: dict[str, Any] = dict(rng.bit_generator.state)
     if unread:
         bg = np.random.PCG64(0)
-        bg.state = st
+        bg.state = st  # type: ignore[assignment]  # numpy's stub wants its TypedDict
         bg.advance(_PCG64_PERIOD - unread)
-        st = bg.state
+        st = dict(bg.state)
     return st
 
 
@@ -101,7 +127,8 @@ def set_rng_state(rng: np.random.Generator, state: dict[str, Any]) -> None:
 def check_loss(loss: Any) -> float:
     """A told loss: a finite real number (bool and str refused)."""
     if isinstance(loss, (bool, np.bool_)) or not isinstance(
-            loss, (int, float, np.integer, np.floating)):
+        loss, (int, float, np.integer, np.floating)
+    ):
         raise OptimizerError(f'loss must be a finite number, got {loss!r}')
     x = float(loss)
     if not math.isfinite(x):
@@ -122,13 +149,19 @@ def check_start(start: Any, dim: int) -> np.ndarray | None:
         return None
     try:
         x = np.array(start, dtype=np.float64)
-        ok = (x.shape == (dim,) and not np.asarray(start).dtype == np.bool_
-              and bool(np.all(np.isfinite(x))) and bool(np.all((x >= 0.0) & (x <= 1.0))))
+        ok = (
+            x.shape == (dim,)
+            and np.asarray(start).dtype != np.bool_
+            and bool(np.all(np.isfinite(x)))
+            and bool(np.all((x >= 0.0) & (x <= 1.0)))
+        )
     except (TypeError, ValueError):
         ok = False
     if not ok:
-        raise OptimizerError(f'start must be None or {dim} finite numbers in [0, 1] '
-                             f'(normalised parameters), got {start!r}')
+        raise OptimizerError(
+            f'start must be None or {dim} finite numbers in [0, 1] '
+            f'(normalised parameters), got {start!r}'
+        )
     return x
 
 
@@ -160,12 +193,14 @@ class OptionSpec:
         fmt = (lambda v: str(int(v))) if self.type is int else (lambda v: f'{v:g}')
         lo, hi = self.low, self.high
         if lo is not None and hi is not None:
-            return (f"{kind} in {'(' if self.low_strict else '['}{fmt(lo)}, "
-                    f"{fmt(hi)}{')' if self.high_strict else ']'}")
+            return (
+                f'{kind} in {"(" if self.low_strict else "["}{fmt(lo)}, '
+                f'{fmt(hi)}{")" if self.high_strict else "]"}'
+            )
         if lo is not None:
-            return f"{kind} {'>' if self.low_strict else '>='} {fmt(lo)}"
+            return f'{kind} {">" if self.low_strict else ">="} {fmt(lo)}'
         if hi is not None:
-            return f"{kind} {'<' if self.high_strict else '<='} {fmt(hi)}"
+            return f'{kind} {"<" if self.high_strict else "<="} {fmt(hi)}'
         return kind
 
     def check(self, where: str, value: Any) -> Any:
@@ -185,8 +220,9 @@ class OptionSpec:
             if not isinstance(value, (int, float, np.integer, np.floating)):
                 raise bad
             x = float(value)
-            if math.isnan(x) or (math.isinf(x) and not (
-                    x > 0 and self.high == math.inf and not self.high_strict)):
+            if math.isnan(x) or (
+                math.isinf(x) and not (x > 0 and self.high == math.inf and not self.high_strict)
+            ):
                 raise bad
         if self.low is not None and (x <= self.low if self.low_strict else x < self.low):
             raise bad
@@ -195,13 +231,15 @@ class OptionSpec:
         return x
 
 
-def check_options(algo: str, specs: dict[str, OptionSpec], options: dict[str, Any]
-                  ) -> dict[str, Any]:
+def check_options(
+    algo: str, specs: dict[str, OptionSpec], options: dict[str, Any]
+) -> dict[str, Any]:
     """Every option known and valid; returns them all, defaults filled in (None stays None)."""
     for name in options:
         if name not in specs:
-            raise OptimizerError(f'unknown option {name!r} for {algo} '
-                                 f"(allowed: {', '.join(specs) or 'none'})")
+            raise OptimizerError(
+                f'unknown option {name!r} for {algo} (allowed: {", ".join(specs) or "none"})'
+            )
     out = {}
     for name, spec in specs.items():
         if name in options and not (spec.default is None and options[name] is None):
@@ -237,17 +275,20 @@ def check_told(pending: list[float] | None, u: Any, loss: Any) -> float:
     except (TypeError, ValueError):
         same = False
     if not same:
-        raise OptimizerError('tell: u is not the pending candidate returned by ask() '
-                             '(it must be equal bit for bit)')
+        raise OptimizerError(
+            'tell: u is not the pending candidate returned by ask() (it must be equal bit for bit)'
+        )
     return check_loss(loss)
 
 
 def zero_signs_match(values: list[Any], pending: list[float]) -> bool:
     """Equal lists (``==``) are equal float64 bytes unless a zero differs in sign."""
     try:
-        return all(math.copysign(1.0, a) == math.copysign(1.0, b)
-                   for a, b in zip(values, pending))
-    except TypeError:          # not real numbers (a complex zero...): the exact check
+        return all(
+            math.copysign(1.0, a) == math.copysign(1.0, b)
+            for a, b in zip(values, pending, strict=True)
+        )
+    except TypeError:  # not real numbers (a complex zero...): the exact check
         return False
 
 
@@ -256,15 +297,33 @@ class Optimizer(ABC):
 
     #: registry name ('spsa', 'cga', 'pecga', 'necga', 'rcga'); set by subclasses
     algo: ClassVar[str] = ''
-    _registry: ClassVar[dict[str, type['Optimizer']]] = {}
+    _registry: ClassVar[dict[str, type[Optimizer]]] = {}
 
     def __init_subclass__(cls, **kw: Any) -> None:
         super().__init_subclass__(**kw)
         if cls.algo:
             Optimizer._registry[cls.algo] = cls
 
+    #: the options the constructor takes (name -> spec); set by subclasses
+    OPTIONS: ClassVar[Mapping[str, OptionSpec]] = {}
+
     dim: int
     evaluations: int
+
+    if TYPE_CHECKING:
+        # The constructor every subclass has (make_optimizer calls it through the registry).
+        def __init__(
+            self,
+            dim: int,
+            seed: int | np.random.SeedSequence,
+            start: np.ndarray | None = None,
+            **options: Any,
+        ) -> None: ...
+
+    @property
+    @abstractmethod
+    def iterations(self) -> int:
+        """The paper's iterations completed so far: SPSA iterations, GA generations."""
 
     @abstractmethod
     def ask(self) -> np.ndarray: ...
@@ -277,7 +336,7 @@ class Optimizer(ABC):
 
     @classmethod
     @abstractmethod
-    def _from_state(cls, state: dict[str, Any]) -> 'Optimizer': ...
+    def _from_state(cls, state: dict[str, Any]) -> Optimizer: ...
 
     @abstractmethod
     def config(self) -> dict[str, Any]: ...
@@ -286,14 +345,16 @@ class Optimizer(ABC):
         return False
 
     @staticmethod
-    def from_state(state: dict[str, Any]) -> 'Optimizer':
+    def from_state(state: dict[str, Any]) -> Optimizer:
         """Rebuild any optimiser from ``state_dict()`` output (dispatch on 'algo')."""
         try:
             cls = Optimizer._registry[state['algo']]
         except (KeyError, TypeError):
-            raise OptimizerError(f"not an optimiser state (algo {state.get('algo')!r})"
-                                 if isinstance(state, dict) else
-                                 'not an optimiser state') from None
+            raise OptimizerError(
+                f'not an optimiser state (algo {state.get("algo")!r})'
+                if isinstance(state, dict)
+                else 'not an optimiser state'
+            ) from None
         return cls._from_state(state)
 
 
@@ -303,20 +364,26 @@ def told_loss(pending: list[float] | None, u: Any, loss: Any) -> float:
     Fast path (the tuner's case): an ndarray holding exactly the pending numbers (signs
     of zeros included) and a finite float.  Anything else goes through
     :func:`check_told`, the exact check with its error messages."""
-    if (pending is None or type(u) is not NDARRAY or type(loss) is not float
-            or loss - loss != 0.0 or (tl := u.tolist()) != pending
-            or (0.0 in pending and not zero_signs_match(tl, pending))):
+    if (
+        pending is None
+        or type(u) is not NDARRAY
+        or type(loss) is not float
+        or loss - loss != 0.0
+        or (tl := u.tolist()) != pending
+        or (0.0 in pending and not zero_signs_match(tl, pending))
+    ):
         return check_told(pending, u, loss)
     return loss
 
 
-def rebuild(cls: type, state: dict[str, Any], version: int) -> Any:
+def rebuild(cls: Any, state: dict[str, Any], version: int) -> Any:
     """The first half of every ``_from_state``: check the state's version, build ``cls``
     from the saved configuration (seed 0, no start) and put the saved RNG state in it.
     The caller then restores its own fields."""
     if state.get('version') != version:
-        raise OptimizerError(f"{cls.algo} state version {state.get('version')!r} "
-                             f'not supported (expected {version})')
+        raise OptimizerError(
+            f'{cls.algo} state version {state.get("version")!r} not supported (expected {version})'
+        )
     cfg = dict(state['config'])
     dim = cfg.pop('dim')
     cfg.pop('algo'), cfg.pop('seed')

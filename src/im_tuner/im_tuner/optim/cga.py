@@ -28,16 +28,29 @@ loser differ.  ``converged()`` when every p_j is 0 or 1.
 
 Minimisation: "wins" means the lower loss.  See docs/optimisers.md.
 """
+
 from __future__ import annotations
 
 from typing import Any, ClassVar
 
 import numpy as np
 
-from .base import (Optimizer, OptimizerError, OptionSpec, check_dim, check_options, check_seed,
-                   check_start, make_rng, rng_state, rebuild, seed_json, told_loss)
+from .base import (
+    Optimizer,
+    OptimizerError,
+    OptionSpec,
+    check_dim,
+    check_options,
+    check_seed,
+    check_start,
+    make_rng,
+    rebuild,
+    rng_state,
+    seed_json,
+    told_loss,
+)
 
-__all__ = ['CGA', 'PECGA', 'NECGA', 'BinaryCGA']
+__all__ = ['CGA', 'NECGA', 'PECGA', 'BinaryCGA']
 
 _STATE_VERSION = 1
 
@@ -55,13 +68,26 @@ _TO_CHARS = bytes.maketrans(b'\x00\x80', b'01')
 _FROM_CHARS = bytes.maketrans(b'01', b'\x00\x80')
 
 _COMMON_OPTIONS: dict[str, OptionSpec] = {
-    'n': OptionSpec(int, 25, 'virtual population size n: each competition moves a '
-                    'probability by 1/n', low=2, high=1_000_000),
-    'bits': OptionSpec(int, 16, 'bits per parameter (resolution 1/(2^bits - 1) of the '
-                       'normalised range)', low=1, high=32),
-    'coding': OptionSpec(str, 'binary', "gene coding: 'binary' (plain, most significant "
-                         "bit first) or 'gray' (reflected Gray code)",
-                         choices=('binary', 'gray')),
+    'n': OptionSpec(
+        int,
+        25,
+        'virtual population size n: each competition moves a probability by 1/n',
+        low=2,
+        high=1_000_000,
+    ),
+    'bits': OptionSpec(
+        int,
+        16,
+        'bits per parameter (resolution 1/(2^bits - 1) of the normalised range)',
+        low=1,
+        high=32,
+    ),
+    'coding': OptionSpec(
+        str,
+        'binary',
+        "gene coding: 'binary' (plain, most significant bit first) or 'gray' (reflected Gray code)",
+        choices=('binary', 'gray'),
+    ),
 }
 
 
@@ -90,19 +116,28 @@ class BinaryCGA(Optimizer):
     """
 
     OPTIONS: ClassVar[dict[str, OptionSpec]] = _COMMON_OPTIONS
-    _ELITIST: ClassVar[bool] = False      # pe/neCGA: an elite and one newcomer
-    _NE: ClassVar[bool] = False           # neCGA: theta and the elite replacement
+    _ELITIST: ClassVar[bool] = False  # pe/neCGA: an elite and one newcomer
+    _NE: ClassVar[bool] = False  # neCGA: theta and the elite replacement
+    eta: int  # neCGA only (set by NECGA.__init__)
+    elite_replacement: str  # neCGA only
     #: samples per random block (one rng call and one vectorised pass per block)
     _BLOCK: ClassVar[int] = 64
 
-    def __init__(self, dim: int, seed: int | np.random.SeedSequence,
-                 start: np.ndarray | None = None, **options: Any) -> None:
+    def __init__(
+        self,
+        dim: int,
+        seed: int | np.random.SeedSequence,
+        start: np.ndarray | None = None,
+        **options: Any,
+    ) -> None:
         self.dim = check_dim(dim)
         seed = check_seed(seed)
         if start is not None:
             check_start(start, self.dim)
-            raise OptimizerError(f'{self.algo} does not take a start point (a compact GA '
-                                 'starts from p = 0.5); pass start=None')
+            raise OptimizerError(
+                f'{self.algo} does not take a start point (a compact GA '
+                'starts from p = 0.5); pass start=None'
+            )
         opts = check_options(self.algo, self.OPTIONS, options)
         self._check_more(opts)
         self._opts = opts
@@ -111,35 +146,35 @@ class BinaryCGA(Optimizer):
         self.bits: int = opts['bits']
         self.gray: bool = opts['coding'] == 'gray'
         self.m = m = self.dim * self.bits
-        self._K = K = (self.n + 1) // 2        # |k_j| = K <=> p_j in {0, 1}
+        self._K = K = (self.n + 1) // 2  # |k_j| = K <=> p_j in {0, 1}
         self._rng = make_rng(seed)
         offsets = np.arange(-K, K + 1)
         # p_j = table[k_j + K]: one correctly rounded division per offset, exactly 0.0 and
         # 1.0 at the ends.
         self._ptable = np.clip((self.n + 2 * offsets) / (2.0 * self.n), 0.0, 1.0)
         # Fields: W bytes per genome bit, the guard bit 2^(8W-1) above values up to 2K.
-        self._W = W = next(w for w in (1, 2, 4) if 2 * K < 1 << (8 * w - 1))
+        self._W = W = next(w for w in (1, 2, 4) if 1 << (8 * w - 1) > 2 * K)
         self._fdtype = np.dtype(f'>u{W}')
         self._guard = 1 << (8 * W - 1)
-        self._shift = 8 * W - 1                # guard bit -> field unit
+        self._shift = 8 * W - 1  # guard bit -> field unit
         self._nbytes = m * W
         self._H = int.from_bytes((bytes([0x80]) + bytes(W - 1)) * m, 'big')
-        self._T = self._pack(np.full(m, 2 * K))          # every field at P_j = 2K
-        self._Y = self._pack(np.full(m, K))               # p = 1/2
+        self._T = self._pack(np.full(m, 2 * K))  # every field at P_j = 2K
+        self._Y = self._pack(np.full(m, K))  # p = 1/2
         # Decoding: gene i = (genome >> shift_i) & mask, u_i = v_i / (2^bits - 1).
         self._shifts = [self.bits * (self.dim - 1 - i) for i in range(self.dim)]
         self._mask = (1 << self.bits) - 1
-        self._vmax = float(2 ** self.bits - 1)
+        self._vmax = float(2**self.bits - 1)
         self._gray_shifts = [s for s in (1, 2, 4, 8, 16) if s < self.bits]
         self.evaluations = 0
-        self.generation = 0               # completed competitions (PV updates)
-        self._pu: list[float] | None = None    # the pending candidate (u)
-        self._pg: int | None = None            # and its genome (guard-bit form)
+        self.generation = 0  # completed competitions (PV updates)
+        self._pu: list[float] | None = None  # the pending candidate (u)
+        self._pg: int | None = None  # and its genome (guard-bit form)
         # cGA: the first individual of the generation; pe/neCGA: the elite (None while a
         # sampled replacement is pending).
         self._held: int | None = None
         self._held_loss = 0.0
-        self.theta = 0                    # neCGA: consecutive wins of the current elite
+        self.theta = 0  # neCGA: consecutive wins of the current elite
         # The random block: one packed level int per sample; _bi the next unused.
         self._blk: list[int] = []
         self._bi = 0
@@ -150,8 +185,7 @@ class BinaryCGA(Optimizer):
     # ------------------------------------------------------------- packing and genomes
     def _pack(self, values: np.ndarray) -> int:
         """Field values (m,) -> an int with the guard bit set in every field."""
-        return self._H | int.from_bytes(np.asarray(values).astype(self._fdtype).tobytes(),
-                                        'big')
+        return self._H | int.from_bytes(np.asarray(values).astype(self._fdtype).tobytes(), 'big')
 
     def _fields(self, y: int) -> np.ndarray:
         """An int of m fields -> the field values below the guard bit (m,) int64."""
@@ -161,7 +195,7 @@ class BinaryCGA(Optimizer):
     def _chars(self, s: int) -> bytes:
         """A genome (guard-bit form) -> its bits as b'0'/b'1', genome order."""
         b = s.to_bytes(self._nbytes, 'big')
-        return (b[::self._W] if self._W > 1 else b).translate(_TO_CHARS)
+        return (b[:: self._W] if self._W > 1 else b).translate(_TO_CHARS)
 
     def _decode_g(self, s: int) -> list[float]:
         """A genome (guard-bit form) -> u as python floats (same code as in ask)."""
@@ -181,11 +215,10 @@ class BinaryCGA(Optimizer):
         if text is None:
             return None
         if not isinstance(text, str) or len(text) != self.m or set(text) - {'0', '1'}:
-            raise OptimizerError(f'bad {self.algo} state: a bit string of length '
-                                 f'{self.m} expected')
+            raise OptimizerError(f'bad {self.algo} state: a bit string of length {self.m} expected')
         b = text.encode().translate(_FROM_CHARS)
         if self._W > 1:
-            b = b''.join(c + bytes(self._W - 1) for c in (b[i:i + 1] for i in range(self.m)))
+            b = b''.join(c + bytes(self._W - 1) for c in (b[i : i + 1] for i in range(self.m)))
         return int.from_bytes(b, 'big')
 
     def _extremes(self) -> tuple[int, int]:
@@ -205,7 +238,7 @@ class BinaryCGA(Optimizer):
         B, nb = self._BLOCK, self._nbytes
         lev = np.searchsorted(self._ptable, self._rng.random(B * self.m), side='right')
         buf = lev.astype(self._fdtype).tobytes()
-        self._blk = [int.from_bytes(buf[o:o + nb], 'big') for o in range(0, B * nb, nb)]
+        self._blk = [int.from_bytes(buf[o : o + nb], 'big') for o in range(0, B * nb, nb)]
         self._bi = 0
 
     def decode(self, bits: np.ndarray) -> np.ndarray:
@@ -235,6 +268,10 @@ class BinaryCGA(Optimizer):
         return self.decode(self.offsets >= 0)
 
     # ------------------------------------------------------------------------ ask/tell
+    @property
+    def iterations(self) -> int:
+        return self.generation
+
     def ask(self) -> np.ndarray:
         """The next candidate: a fresh sample from the PV (kept until told)."""
         pu = self._pu
@@ -248,12 +285,12 @@ class BinaryCGA(Optimizer):
             self._pg = s = (self._Y - self._blk[i]) & self._H
             # Decode (as _decode_g, inline: this is the per-evaluation path).
             b = s.to_bytes(self._nbytes, 'big')
-            g = int((b[::self._W] if self._W > 1 else b).translate(_TO_CHARS), 2)
+            g = int((b[:: self._W] if self._W > 1 else b).translate(_TO_CHARS), 2)
             mask, vmax, pu = self._mask, self._vmax, []
             if self.gray:
                 for sh in self._shifts:
                     v = (g >> sh) & mask
-                    for t in self._gray_shifts:      # prefix xor from the MSB
+                    for t in self._gray_shifts:  # prefix xor from the MSB
                         v ^= v >> t
                     pu.append(v / vmax)
             else:
@@ -266,16 +303,17 @@ class BinaryCGA(Optimizer):
         pu = self._pu
         loss = told_loss(pu, u, loss)
         s = self._pg
+        assert s is not None  # told_loss refused a tell without an ask
         self._pu = self._pg = None
         self.evaluations += 1
         held = self._held
-        if held is None:                  # cGA: a; pe/neCGA: the first or a new elite
+        if held is None:  # cGA: a; pe/neCGA: the first or a new elite
             self._held, self._held_loss = s, loss
             return
         # The competition: winner w, loser l; k_j += 1 where w_j = 1 != l_j, -= 1 where
         # w_j = 0 != l_j (in guard-bit form, moved down to the fields' units).
         if self._ELITIST:
-            newcomer_wins = loss < self._held_loss      # ties -> the elite
+            newcomer_wins = loss < self._held_loss  # ties -> the elite
             if newcomer_wins:
                 x = s ^ held
                 up = x & s
@@ -291,7 +329,7 @@ class BinaryCGA(Optimizer):
                 up = x & held
                 down = x ^ up
         else:
-            if self._held_loss <= loss:                 # ties -> a, the first sampled
+            if self._held_loss <= loss:  # ties -> a, the first sampled
                 x = held ^ s
                 up = x & held
             else:
@@ -313,7 +351,7 @@ class BinaryCGA(Optimizer):
                 if self.elite_replacement == 'newcomer':
                     self._held, self._held_loss = s, loss
                 else:
-                    self._held = None     # the next ask samples the new elite
+                    self._held = None  # the next ask samples the new elite
 
     # ---------------------------------------------------------------------- reporting
     def config(self) -> dict[str, Any]:
@@ -327,23 +365,29 @@ class BinaryCGA(Optimizer):
 
     def state_dict(self) -> dict[str, Any]:
         return {
-            'algo': self.algo, 'version': _STATE_VERSION, 'config': self.config(),
+            'algo': self.algo,
+            'version': _STATE_VERSION,
+            'config': self.config(),
             'rng': rng_state(self._rng, (len(self._blk) - self._bi) * self.m),
             'k': self.offsets.tolist(),
-            'evaluations': self.evaluations, 'generation': self.generation,
-            'phase': self._phase(), 'theta': self.theta,
-            'held': self._to_str(self._held), 'held_loss': self._held_loss,
+            'evaluations': self.evaluations,
+            'generation': self.generation,
+            'phase': self._phase(),
+            'theta': self.theta,
+            'held': self._to_str(self._held),
+            'held_loss': self._held_loss,
             'pending': self._to_str(self._pg),
         }
 
     @classmethod
-    def _from_state(cls, state: dict[str, Any]) -> 'BinaryCGA':
+    def _from_state(cls, state: dict[str, Any]) -> BinaryCGA:
         try:
             opt = rebuild(cls, state, _STATE_VERSION)
             k = np.array(state['k'], dtype=np.int64)
             if k.shape != (opt.m,) or np.any(np.abs(k) > opt._K):
-                raise OptimizerError(f'bad {cls.algo} state: k must be {opt.m} integers '
-                                     f'in [-{opt._K}, {opt._K}]')
+                raise OptimizerError(
+                    f'bad {cls.algo} state: k must be {opt.m} integers in [-{opt._K}, {opt._K}]'
+                )
             opt._Y = opt._pack(k + opt._K)
             opt.evaluations = int(state['evaluations'])
             opt.generation = int(state['generation'])
@@ -351,15 +395,19 @@ class BinaryCGA(Optimizer):
             opt._held = opt._from_str(state['held'])
             opt._held_loss = float(state['held_loss'])
             if state['phase'] != opt._phase():
-                raise OptimizerError(f"bad {cls.algo} state: phase {state['phase']!r} with "
-                                     f"held {'None' if opt._held is None else 'a genome'}")
+                raise OptimizerError(
+                    f'bad {cls.algo} state: phase {state["phase"]!r} with '
+                    f'held {"None" if opt._held is None else "a genome"}'
+                )
             opt._pg = opt._from_str(state['pending'])
             # What the state_dict of a real run always satisfies (and tell relies on): the
             # pending sample, and the cGA's a, were drawn from this PV.
             for s in (opt._pg, None if cls._ELITIST else opt._held):
                 if s is not None and not opt._agrees(s):
-                    raise OptimizerError(f'bad {cls.algo} state: a sample that this PV '
-                                         'cannot produce (1 where p = 0 or 0 where p = 1)')
+                    raise OptimizerError(
+                        f'bad {cls.algo} state: a sample that this PV '
+                        'cannot produce (1 where p = 0 or 0 where p = 1)'
+                    )
             opt._pu = None if opt._pg is None else opt._decode_g(opt._pg)
             opt._seed_json = state['config']['seed']
         except (KeyError, TypeError, ValueError) as e:
@@ -409,19 +457,29 @@ class NECGA(PECGA):
     _NE: ClassVar[bool] = True
     OPTIONS: ClassVar[dict[str, OptionSpec]] = {
         **_COMMON_OPTIONS,
-        'eta': OptionSpec(int, 12, 'allowed length of inheritance eta: after eta '
-                          'consecutive wins the elite is replaced (must be < n)',
-                          low=1, high=1_000_000),
+        'eta': OptionSpec(
+            int,
+            12,
+            'allowed length of inheritance eta: after eta '
+            'consecutive wins the elite is replaced (must be < n)',
+            low=1,
+            high=1_000_000,
+        ),
         'elite_replacement': OptionSpec(
-            str, 'sample', "what replaces an elite that won eta times in a row: 'sample' "
+            str,
+            'sample',
+            "what replaces an elite that won eta times in a row: 'sample' "
             "(a fresh PV sample, one extra evaluation; the paper's Fig. 3) or 'newcomer' "
             "(the newcomer just evaluated; the authors' Java code)",
-            choices=('sample', 'newcomer')),
+            choices=('sample', 'newcomer'),
+        ),
     }
 
     def _check_more(self, opts: dict[str, Any]) -> None:
         if opts['eta'] >= opts['n']:
-            raise OptimizerError(f"necga option eta must be an integer in [1, n - 1] = "
-                                 f"[1, {opts['n'] - 1}] (eta < n), got {opts['eta']!r}")
+            raise OptimizerError(
+                f'necga option eta must be an integer in [1, n - 1] = '
+                f'[1, {opts["n"] - 1}] (eta < n), got {opts["eta"]!r}'
+            )
         self.eta: int = opts['eta']
         self.elite_replacement: str = opts['elite_replacement']

@@ -26,6 +26,7 @@ from 0.24 to 0.58, i.e. SPSA with an almost constant gain; reproduced as given) 
 ``gains='spall'`` (alpha = 0.602, gamma = 0.101).  Explicit ``alpha``/``gamma`` override
 either preset.  See docs/optimisers.md.
 """
+
 from __future__ import annotations
 
 import math
@@ -33,10 +34,22 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .base import (Optimizer, OptimizerError, OptionSpec, check_dim, check_options, check_seed,
-                   check_start, make_rng, rng_state, rebuild, seed_json, told_loss)
+from .base import (
+    Optimizer,
+    OptimizerError,
+    OptionSpec,
+    check_dim,
+    check_options,
+    check_seed,
+    check_start,
+    make_rng,
+    rebuild,
+    rng_state,
+    seed_json,
+    told_loss,
+)
 
-__all__ = ['SPSA', 'GAIN_PRESETS']
+__all__ = ['GAIN_PRESETS', 'SPSA']
 
 #: (alpha, gamma) of each ``gains`` preset.
 GAIN_PRESETS: dict[str, tuple[float, float]] = {'paper': (0.3, 0.3), 'spall': (0.602, 0.101)}
@@ -53,32 +66,77 @@ class SPSA(Optimizer):
 
     algo: ClassVar[str] = 'spsa'
     OPTIONS: ClassVar[dict[str, OptionSpec]] = {
-        'a': OptionSpec(float, 0.0183, 'step gain a of a_k = a/(k+1+A)^alpha '
-                        '(normalised units per unit of loss gradient)',
-                        low=0.0, high=math.inf, low_strict=True, high_strict=True),
-        'c': OptionSpec(float, 0.03, 'perturbation size c of c_k = c/(k+1)^gamma '
-                        '(normalised units, fraction of each parameter range)',
-                        low=0.0, high=0.5, low_strict=True, high_strict=True),
-        'A': OptionSpec(float, 20.0, 'stability constant A of a_k (iterations; ~10% of '
-                        'the expected iterations)', low=0.0, high=math.inf, high_strict=True),
-        'alpha': OptionSpec(float, None, 'decay exponent of a_k (default: 0.3 with '
-                            "gains='paper', 0.602 with gains='spall')",
-                            low=0.0, high=1.0, low_strict=True),
-        'gamma': OptionSpec(float, None, 'decay exponent of c_k (default: 0.3 with '
-                            "gains='paper', 0.101 with gains='spall')", low=0.0, high=1.0),
-        'gains': OptionSpec(str, 'paper', "alpha/gamma preset: 'paper' (0.3/0.3) or "
-                            "'spall' (0.602/0.101)", choices=tuple(GAIN_PRESETS)),
-        'max_step': OptionSpec(float, 0.1, 'largest change of any normalised parameter in '
-                               'one iteration (the step vector is scaled down to it); '
-                               'inf disables the cap',
-                               low=0.0, high=math.inf, low_strict=True),
+        'a': OptionSpec(
+            float,
+            0.0183,
+            'step gain a of a_k = a/(k+1+A)^alpha (normalised units per unit of loss gradient)',
+            low=0.0,
+            high=math.inf,
+            low_strict=True,
+            high_strict=True,
+        ),
+        'c': OptionSpec(
+            float,
+            0.03,
+            'perturbation size c of c_k = c/(k+1)^gamma '
+            '(normalised units, fraction of each parameter range)',
+            low=0.0,
+            high=0.5,
+            low_strict=True,
+            high_strict=True,
+        ),
+        'A': OptionSpec(
+            float,
+            20.0,
+            'stability constant A of a_k (iterations; ~10% of the expected iterations)',
+            low=0.0,
+            high=math.inf,
+            high_strict=True,
+        ),
+        'alpha': OptionSpec(
+            float,
+            None,
+            "decay exponent of a_k (default: 0.3 with gains='paper', 0.602 with gains='spall')",
+            low=0.0,
+            high=1.0,
+            low_strict=True,
+        ),
+        'gamma': OptionSpec(
+            float,
+            None,
+            "decay exponent of c_k (default: 0.3 with gains='paper', 0.101 with gains='spall')",
+            low=0.0,
+            high=1.0,
+        ),
+        'gains': OptionSpec(
+            str,
+            'paper',
+            "alpha/gamma preset: 'paper' (0.3/0.3) or 'spall' (0.602/0.101)",
+            choices=tuple(GAIN_PRESETS),
+        ),
+        'max_step': OptionSpec(
+            float,
+            0.1,
+            'largest change of any normalised parameter in '
+            'one iteration (the step vector is scaled down to it); '
+            'inf disables the cap',
+            low=0.0,
+            high=math.inf,
+            low_strict=True,
+        ),
     }
     #: iterations per random block (one rng call per block)
     _BLOCK: ClassVar[int] = 32
 
-    def __init__(self, dim: int, seed: int | np.random.SeedSequence,
-                 start: np.ndarray | None = None, *, bounded: bool = True,
-                 **options: Any) -> None:
+    def __init__(
+        self,
+        dim: int,
+        seed: int | np.random.SeedSequence,
+        start: np.ndarray | None = None,
+        *,
+        bounded: bool = True,
+        **options: Any,
+    ) -> None:
         self.dim = check_dim(dim)
         self._seed_json = seed_json(check_seed(seed))
         start_u = check_start(start, self.dim)
@@ -107,13 +165,13 @@ class SPSA(Optimizer):
         # (docs/optimisers.md, "Speed").  The arithmetic is the same IEEE operations in
         # the same order as the vector form, so the results are bit-identical.
         self._u: list[float] = self._project(start_u, self.c).tolist()
-        self.k = 0                       # iteration index of u_k
+        self.k = 0  # iteration index of u_k
         self.evaluations = 0
-        self._phase = 0                  # 0: y+ next, 1: y- next
-        self._delta = [0.0] * self.dim   # Delta_k (+-1.0), drawn at the iteration's 1st ask
-        self._ck = self.c / (self.k + 1) ** self.gamma   # c_k of the current iteration
+        self._phase = 0  # 0: y+ next, 1: y- next
+        self._delta = [0.0] * self.dim  # Delta_k (+-1.0), drawn at the iteration's 1st ask
+        self._ck = self.c / (self.k + 1) ** self.gamma  # c_k of the current iteration
         self._y_plus = 0.0
-        self._pu: list[float] | None = None   # the pending candidate
+        self._pu: list[float] | None = None  # the pending candidate
         self._last_gradient: list[float] | None = None
         # Delta is drawn in blocks of _BLOCK iterations (one rng call per block; the
         # stream is the same as one rng.random(dim) per iteration).  _blk holds the block's
@@ -141,6 +199,10 @@ class SPSA(Optimizer):
         return np.clip(u, ck, 1.0 - ck)
 
     # ------------------------------------------------------------------------ ask/tell
+    @property
+    def iterations(self) -> int:
+        return self.iteration
+
     def ask(self) -> np.ndarray:
         """u_k + c_k Delta_k (first evaluation of an iteration) or u_k - c_k Delta_k."""
         pu = self._pu
@@ -154,10 +216,10 @@ class SPSA(Optimizer):
                 j = i + self.dim
                 self._bi = j
                 self._delta = d = self._blk[i:j]
-                for x, di in zip(self._u, d):
+                for x, di in zip(self._u, d, strict=True):
                     pu.append(x + ck * di)
             else:
-                for x, di in zip(self._u, self._delta):
+                for x, di in zip(self._u, self._delta, strict=True):
                     pu.append(x - ck * di)
             self._pu = pu
         return np.array(pu)
@@ -184,17 +246,17 @@ class SPSA(Optimizer):
             # the iterate across the box.
             c *= self.max_step / biggest
         self.k = k = self.k + 1
-        self._ck = ck = self.c / (k + 1) ** self.gamma       # c_{k+1}, the next iteration's
+        self._ck = ck = self.c / (k + 1) ** self.gamma  # c_{k+1}, the next iteration's
         g: list[float] = []
         u_next: list[float] = []
         if self.bounded:
             hi = 1.0 - ck
-            for x, d in zip(self._u, self._delta):
+            for x, d in zip(self._u, self._delta, strict=True):
                 g.append(s * d)
                 x -= d * c
                 u_next.append(ck if x < ck else (hi if x > hi else x))
         else:
-            for x, d in zip(self._u, self._delta):
+            for x, d in zip(self._u, self._delta, strict=True):
                 g.append(s * d)
                 u_next.append(x - d * c)
         self._u = u_next
@@ -218,23 +280,34 @@ class SPSA(Optimizer):
         return self.k
 
     def config(self) -> dict[str, Any]:
-        return {'algo': self.algo, 'dim': self.dim, 'seed': self._seed_json,
-                'bounded': self.bounded, **self._opts}
+        return {
+            'algo': self.algo,
+            'dim': self.dim,
+            'seed': self._seed_json,
+            'bounded': self.bounded,
+            **self._opts,
+        }
 
     # ---------------------------------------------------------------------- state I/O
     def state_dict(self) -> dict[str, Any]:
         return {
-            'algo': self.algo, 'version': _STATE_VERSION, 'config': self.config(),
-            'rng': rng_state(self._rng, len(self._blk) - self._bi), 'k': self.k,
-            'evaluations': self.evaluations, 'u': list(self._u), 'phase': self._phase,
-            'delta': list(self._delta), 'ck': self._ck, 'y_plus': self._y_plus,
+            'algo': self.algo,
+            'version': _STATE_VERSION,
+            'config': self.config(),
+            'rng': rng_state(self._rng, len(self._blk) - self._bi),
+            'k': self.k,
+            'evaluations': self.evaluations,
+            'u': list(self._u),
+            'phase': self._phase,
+            'delta': list(self._delta),
+            'ck': self._ck,
+            'y_plus': self._y_plus,
             'pending': None if self._pu is None else list(self._pu),
-            'last_gradient': (None if self._last_gradient is None
-                              else list(self._last_gradient)),
+            'last_gradient': (None if self._last_gradient is None else list(self._last_gradient)),
         }
 
     @classmethod
-    def _from_state(cls, state: dict[str, Any]) -> 'SPSA':
+    def _from_state(cls, state: dict[str, Any]) -> SPSA:
         try:
             opt = rebuild(cls, state, _STATE_VERSION)
             opt.k = int(state['k'])
@@ -247,8 +320,11 @@ class SPSA(Optimizer):
             opt._pu = None if p is None else [float(x) for x in p]
             # ck is c_k of the current iteration once its first candidate is asked; before
             # that it is a function of k (a state may hold the previous iteration's).
-            opt._ck = (opt.c / (opt.k + 1) ** opt.gamma if opt._phase == 0 and p is None
-                       else float(state['ck']))
+            opt._ck = (
+                opt.c / (opt.k + 1) ** opt.gamma
+                if opt._phase == 0 and p is None
+                else float(state['ck'])
+            )
             g = state['last_gradient']
             opt._last_gradient = None if g is None else [float(x) for x in g]
             opt._seed_json = state['config']['seed']
@@ -256,8 +332,11 @@ class SPSA(Optimizer):
             if isinstance(e, OptimizerError):
                 raise
             raise OptimizerError(f'bad spsa state: {e!r}') from None
-        if (len(opt._u) != opt.dim or len(opt._delta) != opt.dim
-                or (opt._pu is not None and len(opt._pu) != opt.dim)
-                or (opt._last_gradient is not None and len(opt._last_gradient) != opt.dim)):
+        if (
+            len(opt._u) != opt.dim
+            or len(opt._delta) != opt.dim
+            or (opt._pu is not None and len(opt._pu) != opt.dim)
+            or (opt._last_gradient is not None and len(opt._last_gradient) != opt.dim)
+        ):
             raise OptimizerError('bad spsa state: vectors do not match dim')
         return opt

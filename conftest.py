@@ -36,10 +36,13 @@ if not os.environ.get('HOME'):
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """The tiers: a package's own tests (src/<package>/test) are the pure unit tier; the
-    workspace tests (test/) start nodes and processes."""
+    workspace tests (test/) start nodes and processes, unless marked unit."""
     for item in items:
         rel = Path(str(item.path)).resolve().relative_to(REPO)
-        item.add_marker(pytest.mark.unit if rel.parts[0] == 'src' else pytest.mark.integration)
+        if rel.parts[0] == 'src' or item.get_closest_marker('unit') is not None:
+            item.add_marker(pytest.mark.unit)  # (a static test in test/ says so itself)
+        else:
+            item.add_marker(pytest.mark.integration)
 
 
 def wait_for(

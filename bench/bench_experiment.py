@@ -36,9 +36,10 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
+from im_controller.contract import NO_DRIVE_STATE, refusal_code
 from im_controller.messages import msg_to_result
-from im_controller.sim_bench import InProcessBench
 from im_drive_sim.runtime import stop_child
+from im_tuner.bench import InProcessBench
 
 EXPERIMENTS = 7
 SIM_SECONDS = 1.125
@@ -75,7 +76,7 @@ class _Client:
                     raise RuntimeError('start_experiment timed out')
                 if fut.result().success:
                     break
-                if 'no drive state' not in fut.result().message:
+                if refusal_code(fut.result().message) != NO_DRIVE_STATE:
                     raise RuntimeError(fut.result().message)
                 self.spin_until(lambda: False, 0.05)
             if not self.spin_until(lambda k=k: len(self.results) > k, 120.0):

@@ -28,7 +28,7 @@ from collections import deque
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import Float64MultiArray
 
-from im_drive_sim.drive_sim_node import JOINT_STATE_TOPIC
+from im_drive_sim.contract import JOINT_STATE_TOPIC
 from im_drive_sim.example_drive import ExampleDrive, Hardware, main
 
 BREAKAGES = ('rate', 'watchdog', 'degrees', 'late', 'sign', 'slow_current', 'joint_type')

@@ -34,8 +34,8 @@ EXES = {
     'drive_sim': ('im_drive_sim', 'drive_sim'),
     'example_drive': ('im_drive_sim', 'example_drive'),
     'controller': ('im_controller', 'controller'),
-    'sim_bench': ('im_controller', 'sim_bench'),
-    'check_drive': ('im_controller', 'check_drive'),
+    'sim_bench': ('im_tuner', 'sim_bench'),
+    'check_drive': ('im_drive_sim', 'check_drive'),
     'recorder': ('im_tuner', 'recorder'),
     'report': ('im_tuner', 'report'),
     'study': ('im_tuner', 'study'),
@@ -389,3 +389,21 @@ def test_help_of_every_executable_exits_0(exe: str, tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.startswith('usage: ros2 run ') and 'Traceback' not in proc.stderr
     assert proc.stderr == '' and list(tmp_path.iterdir()) == []
+
+
+def test_check_drive_old_name_still_works(tmp_path: Path) -> None:
+    """Issue 17 moved check_drive to im_drive_sim; `ros2 run im_controller check_drive`
+    keeps working for one release: the same tool, the same usage."""
+    out = {}
+    for pkg in ('im_drive_sim', 'im_controller'):
+        proc = subprocess.run(
+            [ROS2, 'run', pkg, 'check_drive', '--help'],
+            cwd=tmp_path,
+            text=True,
+            capture_output=True,
+            timeout=CASE_TIMEOUT,
+        )
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        out[pkg] = proc.stdout
+    assert out['im_controller'] == out['im_drive_sim']
+    assert out['im_drive_sim'].startswith('usage: ros2 run im_drive_sim check_drive')

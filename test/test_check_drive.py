@@ -1,4 +1,4 @@
-"""The drive conformance check (``ros2 run im_controller check_drive``, docs/check-drive.md).
+"""The drive conformance check (``ros2 run im_drive_sim check_drive``, docs/check-drive.md).
 
 Through real processes and DDS: the simulator in both modes and the example drive pass
 every item; the deliberately broken drive (test/broken_drive.py) fails exactly the items
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from im_controller import check_drive as cd
+from im_drive_sim import check_drive as cd
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 BROKEN = str(Path(__file__).with_name('broken_drive.py'))
@@ -30,7 +30,7 @@ def run_check(
 ) -> tuple[int, str, str, dict | None]:
     """Run check_drive to its end; returns (exit code, stdout, stderr, JSON results)."""
     out_json = tmp_path / f'check_{len(list(tmp_path.glob("check_*.json")))}.json'
-    p = procs.start([ROS2, 'run', 'im_controller', 'check_drive', '--json', str(out_json), *args])
+    p = procs.start([ROS2, 'run', 'im_drive_sim', 'check_drive', '--json', str(out_json), *args])
     out, err = p.communicate(timeout=timeout)
     data = json.loads(out_json.read_text()) if out_json.exists() else None
     return p.returncode, out, err, data
@@ -219,7 +219,7 @@ def test_refuses_without_a_drive_within_the_timeout(procs, tmp_path):
     ],
 )
 def test_bad_options_one_line_exit_2(procs, args, message):
-    p = procs.start([ROS2, 'run', 'im_controller', 'check_drive', *args])
+    p = procs.start([ROS2, 'run', 'im_drive_sim', 'check_drive', *args])
     _out, err = p.communicate(timeout=30)
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert p.returncode == 2 and len(lines) == 1, err

@@ -26,9 +26,9 @@ from im_controller.config import Gains
 from im_controller.controller_node import INTERNALS_FIELDS
 from im_controller.experiment import ExperimentRunner, config_for_drive, run_experiment_offline
 from im_controller.messages import msg_to_result, result_to_msg
-from im_controller.sim_bench import InProcessBench
 from im_drive_sim.params import load_config
 from im_drive_sim.sim import DriveSim
+from im_tuner.bench import InProcessBench
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 SEED = 3
@@ -345,7 +345,8 @@ def fake_drive(ros_context, **params):
 
     from im_controller.controller_node import ControllerNode
     from im_drive_sim.cdr import Float64ArrayWire
-    from im_drive_sim.drive_sim_node import COMMAND_TOPIC, LOCKSTEP_QOS, STATE_TOPIC
+    from im_drive_sim.contract import COMMAND_TOPIC, STATE_TOPIC
+    from im_drive_sim.drive_sim_node import LOCKSTEP_QOS
     from im_drive_sim.sim import STATE_FIELDS
 
     ctl = ControllerNode(

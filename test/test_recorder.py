@@ -26,8 +26,8 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
-from im_controller.sim_bench import InProcessBench, bench_metadata
 from im_tuner import rcl_take
+from im_tuner.bench import InProcessBench, bench_metadata
 from im_tuner.recorder_node import RECORD_POLL_STEPS, Recorder
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
@@ -499,14 +499,12 @@ def test_bad_out_is_refused_and_changes_nothing(tmp_path):
 
 
 def test_sim_bench_executable_records_by_default(ros_context, procs, tmp_path, wait_until):
-    """`ros2 run im_controller sim_bench --out DIR`: an experiment, SIGINT, a closed bag."""
+    """`ros2 run im_tuner sim_bench --out DIR`: an experiment, SIGINT, a closed bag."""
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
 
     bag = tmp_path / 'bench_bag'
-    child = procs.start(
-        [ROS2, 'run', 'im_controller', 'sim_bench', '--seed', '2', '--out', str(bag)]
-    )
+    child = procs.start([ROS2, 'run', 'im_tuner', 'sim_bench', '--seed', '2', '--out', str(bag)])
     node = Node('bench_client', context=ros_context)
     ex = SingleThreadedExecutor(context=ros_context)
     ex.add_node(node)

@@ -319,7 +319,7 @@ def test_auto_uses_a_controller_already_on_the_graph(tmp_path, procs, ros_contex
     and starts no simulator of its own; the external default fault policy is 'stop'."""
     from rclpy.node import Node
 
-    bench = procs.start([ROS2, 'run', 'im_controller', 'sim_bench', '--no-record', '--seed', '5'])
+    bench = procs.start([ROS2, 'run', 'im_tuner', 'sim_bench', '--no-record', '--seed', '5'])
     probe = Node('probe', context=ros_context)
     try:
         wait_until(

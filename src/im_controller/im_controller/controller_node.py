@@ -33,8 +33,6 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
     ParameterDescriptor,
     ParameterType,
     SetParametersResult,
@@ -50,16 +48,19 @@ from std_srvs.srv import Trigger
 from im_drive_sim.cdr import Float64ArrayWire
 from im_drive_sim.cli import Parser, input_file, parse_cli, run_cli
 from im_drive_sim.client import DriveClient
+from im_drive_sim.contract import MODES
 from im_drive_sim.drive_sim_node import RECORDED_QOS
 from im_drive_sim.params import ConfigError, load_config
 from im_drive_sim.runtime import (
     LenientDoubles,
     RCLError,
+    param_descriptor,
     parameter_hygiene,
     publish_retry,
     run_stepped_node,
 )
 
+from . import contract as C
 from .config import (
     GAIN_NAMES,
     NUMERIC_SPECS,
@@ -73,6 +74,7 @@ from .config import (
     validate_experiment_config,
     validate_gains,
 )
+from .contract import INTERNALS_TOPIC, LOSS_TOPIC
 from .control import CONTROL_FIELDS
 from .experiment import (
     INTERNALS_FIELDS,
@@ -84,10 +86,7 @@ from .experiment import (
 )
 from .messages import result_to_msg
 
-LOSS_TOPIC = 'controller/loss'
-INTERNALS_TOPIC = 'controller/internals'
 NS_PER_S = 1_000_000_000
-MODES = ('lockstep', 'realtime')
 
 #: Tunable sections: parameter prefix -> dataclass. Gains are top-level (k_pw, ...).
 TUNABLE_SECTIONS = {'loss': LossConfig, 'trajectory': TrajectoryConfig}
@@ -132,12 +131,12 @@ def _float_descriptor(key: str, description: str, read_only: bool) -> ParameterD
     sp = NUMERIC_SPECS[key]
     unit = f' [{sp.unit}]' if sp.unit else ''
     bounds = f'{"(" if sp.lo_strict else "["}{sp.lo:g}, {sp.hi:g}]'
-    return ParameterDescriptor(
-        type=ParameterType.PARAMETER_DOUBLE,
-        description=description + unit,
+    return param_descriptor(
+        description + unit,
+        param_type=ParameterType.PARAMETER_DOUBLE,
         read_only=read_only,
-        additional_constraints=f'finite, in {bounds}',
-        floating_point_range=[FloatingPointRange(from_value=sp.lo, to_value=sp.hi, step=0.0)],
+        additional=f'finite, in {bounds}',
+        float_range=(sp.lo, sp.hi),
     )
 
 
@@ -173,8 +172,8 @@ class ControllerNode(LenientDoubles, Node):
         self.loss_pub = self.create_publisher(DiagnosticArray, LOSS_TOPIC, RECORDED_QOS)
         self.internals_pub = self.create_publisher(Float64MultiArray, INTERNALS_TOPIC, RECORDED_QOS)
         self._internals = Float64ArrayWire(len(INTERNALS_FIELDS))
-        self.start_srv = self.create_service(Trigger, '~/start_experiment', self._on_start)
-        self.reset_srv = self.create_service(Trigger, '~/reset_fault', self._on_reset_fault)
+        self.start_srv = self.create_service(Trigger, f'~/{C.START_SERVICE}', self._on_start)
+        self.reset_srv = self.create_service(Trigger, f'~/{C.RESET_SERVICE}', self._on_reset_fault)
         # Service introspection (request + response contents on <service>/_service_event)
         # on the experiment services and the parameter services, so that the recorder
         # keeps who changed which gain when. get_type_description does not support it.
@@ -204,14 +203,12 @@ class ControllerNode(LenientDoubles, Node):
 
     # -- parameters --------------------------------------------------------------------
     def _declare_structure(self) -> None:
-        ro = {'read_only': True}
         self.mode = self.declare_parameter(
             'mode',
             'lockstep',
-            ParameterDescriptor(
-                description="'lockstep' (simulation) or 'realtime' (a real or real-time drive)",
-                additional_constraints='one of: lockstep, realtime',
-                **ro,
+            param_descriptor(
+                "'lockstep' (simulation) or 'realtime' (a real or real-time drive)",
+                additional='one of: lockstep, realtime',
             ),
         ).value
         if self.mode not in MODES:
@@ -219,11 +216,10 @@ class ControllerNode(LenientDoubles, Node):
         self.lockstep_idle = self.declare_parameter(
             'lockstep_idle',
             'pause',
-            ParameterDescriptor(
-                description="lock-step, between experiments: 'pause' (sim time stops; "
+            param_descriptor(
+                "lock-step, between experiments: 'pause' (sim time stops; "
                 "reproducible) or 'hold' (keep stepping the position hold)",
-                additional_constraints='one of: pause, hold',
-                **ro,
+                additional='one of: pause, hold',
             ),
         ).value
         if self.lockstep_idle not in ('pause', 'hold'):
@@ -233,10 +229,8 @@ class ControllerNode(LenientDoubles, Node):
         drive_file = self.declare_parameter(
             'drive_config_file',
             '',
-            ParameterDescriptor(
-                description="the drive's parameter file, for Ts and isq_max ('' = the packaged "
-                '750 W default)',
-                **ro,
+            param_descriptor(
+                "the drive's parameter file, for Ts and isq_max ('' = the packaged 750 W default)"
             ),
         ).value
         try:
@@ -252,36 +246,33 @@ class ControllerNode(LenientDoubles, Node):
         self.state_timeout = self.declare_parameter(
             'state_timeout',
             default_timeout,
-            ParameterDescriptor(
-                type=ParameterType.PARAMETER_DOUBLE,
-                read_only=True,
-                description='watchdog: no drive state for this long while one is expected -> '
+            param_descriptor(
+                'watchdog: no drive state for this long while one is expected -> '
                 'zero current, running experiment aborted, FAULT [s]',
-                floating_point_range=[FloatingPointRange(from_value=0.001, to_value=60.0)],
+                param_type=ParameterType.PARAMETER_DOUBLE,
+                float_range=(0.001, 60.0),
             ),
         ).value
         self.internals_decimation = self.declare_parameter(
             'internals_decimation',
             1,
-            ParameterDescriptor(
-                read_only=True,
-                description='publish controller/internals every N answered states (1 = every step)',
-                integer_range=[IntegerRange(from_value=1, to_value=100000, step=1)],
+            param_descriptor(
+                'publish controller/internals every N answered states (1 = every step)',
+                int_range=(1, 100000),
             ),
         ).value
         self.service_period_steps = self.declare_parameter(
             'service_period_steps',
             250,
-            ParameterDescriptor(
-                read_only=True,
-                description='serve services and parameters every N steps (and whenever idle)',
-                integer_range=[IntegerRange(from_value=1, to_value=1000000, step=1)],
+            param_descriptor(
+                'serve services and parameters every N steps (and whenever idle)',
+                int_range=(1, 1000000),
             ),
         ).value
         self.declare_parameter(
             'internals_fields',
             list(INTERNALS_FIELDS),
-            ParameterDescriptor(read_only=True, description='layout of controller/internals data'),
+            param_descriptor('layout of controller/internals data'),
         )
         defaults = ExperimentConfig()
         for section, cls in READ_ONLY_SECTIONS.items():
@@ -294,7 +285,7 @@ class ControllerNode(LenientDoubles, Node):
                     self.declare_parameter(
                         key,
                         value,
-                        ParameterDescriptor(description=DESCRIPTIONS.get(key, key), read_only=True),
+                        param_descriptor(DESCRIPTIONS.get(key, key)),
                     )
                 else:
                     self.declare_parameter(
@@ -309,12 +300,11 @@ class ControllerNode(LenientDoubles, Node):
         isq_max = self.declare_parameter(
             'safety.isq_max',
             drive_isq_max,
-            ParameterDescriptor(
-                type=ParameterType.PARAMETER_DOUBLE,
-                read_only=True,
-                description="isq* clamp [A]: the drive file's machine.isq_max, or lower if set "
+            param_descriptor(
+                "isq* clamp [A]: the drive file's machine.isq_max, or lower if set "
                 'at start (a higher value is refused)',
-                additional_constraints=f'finite, in (0, {drive_isq_max:g}] (the drive file)',
+                param_type=ParameterType.PARAMETER_DOUBLE,
+                additional=f'finite, in (0, {drive_isq_max:g}] (the drive file)',
             ),
         ).value
         if not (
@@ -341,7 +331,7 @@ class ControllerNode(LenientDoubles, Node):
                 value = getattr(getattr(defaults, section), f.name)
                 if isinstance(value, str):
                     self.declare_parameter(
-                        key, value, ParameterDescriptor(description=DESCRIPTIONS.get(key, key))
+                        key, value, param_descriptor(DESCRIPTIONS.get(key, key), read_only=False)
                     )
                 else:
                     self.declare_parameter(
@@ -412,27 +402,34 @@ class ControllerNode(LenientDoubles, Node):
         if tunable and self.runner.running:
             return SetParametersResult(
                 successful=False,
-                reason=f'experiment {self.runner.experiment_id} is running: gains and '
-                'experiment parameters change only between experiments (refused, '
-                'not deferred; set them again after the result arrives)',
+                reason=C.refusal(
+                    C.BUSY,
+                    f'experiment {self.runner.experiment_id} is running: gains and '
+                    'experiment parameters change only between experiments (refused, '
+                    'not deferred; set them again after the result arrives)',
+                ),
             )
         if tunable and not (self.runner.ready or self.runner.faulted):
             # After a supervisor stop the fallback gains finish the move: new gains now
             # would replace them mid-move (and at a wall-clock-dependent step).
             return SetParametersResult(
                 successful=False,
-                reason='still finishing the stopped move with the fallback gains: gains and '
-                'experiment parameters change once it ends (refused; retry shortly)',
+                reason=C.refusal(
+                    C.FINISHING_MOVE,
+                    'still finishing the stopped move with the fallback gains: gains and '
+                    'experiment parameters change once it ends (refused; retry shortly)',
+                ),
             )
         for p in params:
             if isinstance(p.value, float) and not math.isfinite(p.value):
                 return SetParametersResult(
-                    successful=False, reason=f'{p.name} must be finite, got {p.value!r}'
+                    successful=False,
+                    reason=C.refusal(C.INVALID, f'{p.name} must be finite, got {p.value!r}'),
                 )
         try:
             self._candidate({p.name: p.value for p in params})
         except ControllerConfigError as exc:
-            return SetParametersResult(successful=False, reason=str(exc))
+            return SetParametersResult(successful=False, reason=C.refusal(C.INVALID, str(exc)))
         return SetParametersResult(successful=True)
 
     def _post_set(self, params: list[Parameter]) -> None:
@@ -449,25 +446,32 @@ class ControllerNode(LenientDoubles, Node):
         r = self.runner
         if r.running:
             response.success = False
-            response.message = f'refused: experiment {r.experiment_id} is running'
+            response.message = C.refusal(
+                C.BUSY, f'refused: experiment {r.experiment_id} is running'
+            )
         elif r.faulted:
             response.success = False
-            response.message = (
+            response.message = C.refusal(
+                C.SAFETY_FAULT,
                 f'refused: safety fault ({r.fault_reason}); call '
-                f'{self.reset_srv.srv_name} after checking the drive'
+                f'{self.reset_srv.srv_name} after checking the drive',
             )
         elif self._state is None:
             response.success = False
-            response.message = 'refused: no drive state received yet (is the drive running?)'
+            response.message = C.refusal(
+                C.NO_DRIVE_STATE, 'refused: no drive state received yet (is the drive running?)'
+            )
         elif not r.ready:
             response.success = False
-            response.message = 'refused: still finishing the stopped move; retry shortly'
+            response.message = C.refusal(
+                C.FINISHING_MOVE, 'refused: still finishing the stopped move; retry shortly'
+            )
         else:
             eid = self.next_experiment_id
             r.start(eid, self.gains)
             self.next_experiment_id += 1
             response.success = True
-            response.message = f'experiment {eid} started'
+            response.message = C.started(eid)
             self.get_logger().info(f'experiment {eid} started with {self.gains}')
         if not response.success:
             self._refusal('start_experiment', f'start_experiment {response.message}')
@@ -479,22 +483,25 @@ class ControllerNode(LenientDoubles, Node):
         if not self.runner.faulted:
             response.success, response.message = True, 'no fault'
         elif self._state is None:
-            response.success, response.message = False, 'refused: no drive state yet'
+            response.success = False
+            response.message = C.refusal(C.NO_DRIVE_STATE, 'refused: no drive state yet')
         elif not (math.isfinite(self._state[2]) and math.isfinite(self._state[3])):
             # holding a position needs a sane measurement: the drive is still broken
             response.success = False
-            response.message = (
+            response.message = C.refusal(
+                C.STATE_NOT_FINITE,
                 f'refused: the last drive state is not finite (theta_meas='
                 f'{self._state[2]!r}, omega_meas={self._state[3]!r}); check '
-                'the drive'
+                'the drive',
             )
         elif self._timeout_wall is not None and self._last_msg_wall <= self._timeout_wall:
             # Holding needs a drive that answers: after the state watchdog, wait for one.
             response.success = False
-            response.message = (
+            response.message = C.refusal(
+                C.NO_DRIVE_STATE,
                 f'refused: no drive state since the watchdog tripped '
                 f'{time.monotonic() - self._timeout_wall:.1f} s ago (is the '
-                'drive running?)'
+                'drive running?)',
             )
         else:
             reason = self.runner.fault_reason

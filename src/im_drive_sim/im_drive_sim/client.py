@@ -16,7 +16,8 @@ from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float64MultiArray
 
 from .cdr import Float64ArrayWire, parse_float64_array
-from .drive_sim_node import COMMAND_FIELDS, COMMAND_TOPIC, LOCKSTEP_QOS, RECORDED_QOS, STATE_TOPIC
+from .contract import COMMAND_FIELDS, COMMAND_TOPIC, STATE_TOPIC
+from .drive_sim_node import LOCKSTEP_QOS, RECORDED_QOS
 from .runtime import RCLError, publish_retry
 from .sim import STATE_FIELDS
 

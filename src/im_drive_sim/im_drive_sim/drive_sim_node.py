@@ -27,57 +27,46 @@ from dataclasses import dataclass
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.duration import Duration
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
+from . import contract
 from .cdr import Float64ArrayWire, parse_float64_array
 from .cli import Parser, input_file, int_in, parse_cli, run_cli
+from .contract import (
+    CMD_ISQ,
+    CMD_LOAD,
+    CMD_STEP,
+    COMMAND_FIELDS,
+    COMMAND_TOPIC,
+    JOINT_STATE_TOPIC,
+    MODES,
+    NS_PER_S,
+    STATE_TOPIC,
+    STATUS_TOPIC,
+)
 from .params import ConfigError, load_config
-from .runtime import LenientDoubles, RCLError, parameter_hygiene, publish_retry, run_stepped_node
+from .runtime import (
+    LenientDoubles,
+    RCLError,
+    param_descriptor,
+    parameter_hygiene,
+    publish_retry,
+    qos_profile,
+    run_stepped_node,
+)
 from .sim import STATE_FIELDS, DriveSim, start_position
 
-#: Topic names (relative: they follow the node's namespace).
-STATE_TOPIC = 'drive/state'
-COMMAND_TOPIC = 'drive/command'
-JOINT_STATE_TOPIC = 'drive/joint_states'
-STATUS_TOPIC = 'drive/status'
-
-#: Layout of ``drive/command`` (Float64MultiArray.data).
-COMMAND_FIELDS: tuple[str, ...] = ('answers_step', 'isq_ref', 'load_torque')
-CMD_STEP, CMD_ISQ, CMD_LOAD = 0, 1, 2
-
-#: QoS of the 5 kHz lock-step topics: reliable, so no step is ever lost in transit.
-#: KEEP_LAST with a generous depth: lock-step never has more than one sample in flight;
-#: in real time a depth of 64 periods (12.8 ms) bridges scheduling hiccups.
-LOCKSTEP_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=64,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
-)
-
-#: QoS of the publishers whose every message must reach the recorder (state; the
-#: controller's command, internals and losses): reliable KEEP_ALL. A reader that falls
-#: behind back-pressures the publisher (see runtime.publish_retry) instead of losing
-#: samples, which KEEP_LAST would overwrite. Readers in the lock-step path stay
-#: LOCKSTEP_QOS: they take every step, so they never hold the writer back.
-RECORDED_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_ALL,
-    depth=0,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
-)
-
-NS_PER_S = 1_000_000_000
-MODES = ('lockstep', 'realtime')
+# The contract (names, layouts, QoS) lives in contract.py; re-exported here for callers
+# that import it from the node module.
+LOCKSTEP_QOS = qos_profile(contract.LOCKSTEP)
+RECORDED_QOS = qos_profile(contract.RECORDED)
 
 
 @dataclass
@@ -98,26 +87,6 @@ class Counters:
     backpressure: int = 0  #: publish retries while a reliable reader (recorder) was full
     watchdog_trips: int = 0  #: real time: times commands stopped for > command_timeout
     watchdog_steps: int = 0  #: real time: steps run at zero current by the watchdog
-
-
-def param_descriptor(
-    description: str,
-    *,
-    read_only: bool = True,
-    int_range: tuple[int, int] | None = None,
-    float_range: tuple[float, float] | None = None,
-    additional: str = '',
-) -> ParameterDescriptor:
-    d = ParameterDescriptor(
-        description=description, read_only=read_only, additional_constraints=additional
-    )
-    if int_range is not None:
-        d.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1], step=1)]
-    if float_range is not None:
-        d.floating_point_range = [
-            FloatingPointRange(from_value=float_range[0], to_value=float_range[1], step=0.0)
-        ]
-    return d
 
 
 class DriveSimNode(LenientDoubles, Node):

@@ -16,7 +16,7 @@ Copy this file for a real drive. It has two parts:
     watchdog. Loop: hand-paced on the wall clock (sleep in rcl_wait, busy-wait the last
     ``realtime_spin_margin``), as drive_sim's real-time mode.
 
-Check a drive built from it with ``ros2 run im_controller check_drive`` (docs/check-drive.md).
+Check a drive built from it with ``ros2 run im_drive_sim check_drive`` (docs/check-drive.md).
 """
 
 from __future__ import annotations
@@ -35,26 +35,34 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
+from . import contract
 from .cdr import Float64ArrayWire, parse_float64_array
 from .cli import Parser, check_ros_args, parse_cli, run_cli
-from .drive_sim_node import (
+from .contract import (
     CMD_ISQ,
     CMD_LOAD,
     CMD_STEP,
     COMMAND_FIELDS,
     COMMAND_TOPIC,
     JOINT_STATE_TOPIC,
-    LOCKSTEP_QOS,
-    RECORDED_QOS,
     STATE_TOPIC,
     STATUS_TOPIC,
-    param_descriptor,
 )
 from .params import ConfigError, DriveConfig, load_config
-from .runtime import LenientDoubles, RCLError, parameter_hygiene, publish_retry, run_stepped_node
+from .runtime import (
+    LenientDoubles,
+    RCLError,
+    param_descriptor,
+    parameter_hygiene,
+    publish_retry,
+    qos_profile,
+    run_stepped_node,
+)
 from .sim import STATE_FIELDS
 
 NS_PER_S = 1_000_000_000
+LOCKSTEP_QOS = qos_profile(contract.LOCKSTEP)
+RECORDED_QOS = qos_profile(contract.RECORDED)
 
 
 @dataclass

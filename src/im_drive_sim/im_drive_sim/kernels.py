@@ -25,6 +25,8 @@ import math
 import numpy as np
 from numba import njit
 
+from . import contract
+
 TWO_PI = 2.0 * math.pi
 
 # ---------------------------------------------------------------- parameter indices
@@ -111,20 +113,7 @@ S_RED_ISQ = 31  # reduced: true isq [A]
 S_RED_SLIP = 32  # reduced: true flux angle minus p theta [rad]
 N_STATE = 33
 
-STATE_FIELDS = (
-    'step_index',
-    'time_ns',
-    'theta_meas',
-    'omega_meas',
-    'torque',
-    'isd',
-    'isq',
-    'i_alpha',
-    'i_beta',
-    'load_torque',
-    'theta',
-    'omega',
-)
+STATE_FIELDS = contract.STATE_FIELDS  # the published layout (contract.py)
 EXTRA_FIELDS = ('encoder_count', 'u_alpha', 'u_beta', 'psi_r', 'voltage_saturated', 'isq_ref')
 RUN_FIELDS = STATE_FIELDS + EXTRA_FIELDS
 (

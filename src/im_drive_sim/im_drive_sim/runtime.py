@@ -23,6 +23,12 @@ import time
 from collections.abc import Callable
 
 import rclpy
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+)
 from rclpy.exceptions import (
     InvalidParameterTypeException,
     InvalidParameterValueException,
@@ -31,7 +37,10 @@ from rclpy.exceptions import (
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
+
+from .contract import QosSpec
 
 RCLError = _rclpy.RCLError
 
@@ -223,3 +232,41 @@ def stop_child(proc: subprocess.Popen, grace: float = 5.0) -> int:
             proc.kill()
             proc.wait(timeout=grace)
     return proc.returncode
+
+
+def qos_profile(spec: QosSpec) -> QoSProfile:
+    """The rclpy ``QoSProfile`` of a contract ``QosSpec`` (contract.LOCKSTEP, RECORDED)."""
+    return QoSProfile(
+        history=HistoryPolicy[spec.history.upper()],
+        depth=spec.depth,
+        reliability=ReliabilityPolicy[spec.reliability.upper()],
+        durability=DurabilityPolicy[spec.durability.upper()],
+    )
+
+
+def param_descriptor(
+    description: str,
+    *,
+    read_only: bool = True,
+    int_range: tuple[int, int] | None = None,
+    float_range: tuple[float, float] | None = None,
+    additional: str = '',
+    param_type: int = ParameterType.PARAMETER_NOT_SET,
+) -> ParameterDescriptor:
+    """The one ParameterDescriptor idiom of the nodes: a description (with its unit), read
+    only unless said otherwise, the range the node enforces as an rcl range, and any other
+    constraint in words (``additional``). ``param_type`` pins the type (e.g. a double that
+    an integer override must not change)."""
+    d = ParameterDescriptor(
+        type=param_type,
+        description=description,
+        read_only=read_only,
+        additional_constraints=additional,
+    )
+    if int_range is not None:
+        d.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1], step=1)]
+    if float_range is not None:
+        d.floating_point_range = [
+            FloatingPointRange(from_value=float_range[0], to_value=float_range[1], step=0.0)
+        ]
+    return d

@@ -18,7 +18,6 @@ bench's (which steps the simulation) or a plain executor's -- and gives up on a 
 from __future__ import annotations
 
 import posixpath
-import re
 import time
 from collections.abc import Callable
 from typing import Any
@@ -30,8 +29,10 @@ from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 
+from im_controller import contract as C
 from im_controller.config import GAIN_NAMES, Gains
 from im_controller.messages import SAFETY_REASONS, msg_to_result
+from im_drive_sim.contract import STATUS_COUNTERS, STATUS_TOPIC
 
 from .tuning import BenchFailure, LostEvaluation, Measurement, StopRequested
 
@@ -44,9 +45,6 @@ __all__ = [
 ]
 
 FAULT_POLICIES = ('reset', 'stop')
-_STARTED = re.compile(r'experiment (\d+) started')
-#: start refusals that clear by themselves (retry): running, no state yet, finishing a move
-_TRANSIENT = ('is running', 'no drive state', 'retry shortly')
 RETRY_PERIOD = 0.02  # [s] between retries of a refused call
 SUPERVISE_PERIOD = 0.2  # [s] between checks of the bench processes
 
@@ -57,30 +55,17 @@ def controller_topics(controller: str) -> dict[str, str]:
         controller = '/' + controller
     ns = posixpath.dirname(controller)
     return {
-        'start': f'{controller}/start_experiment',
-        'reset': f'{controller}/reset_fault',
+        'start': f'{controller}/{C.START_SERVICE}',
+        'reset': f'{controller}/{C.RESET_SERVICE}',
         'set_atomic': f'{controller}/set_parameters_atomically',
-        'loss': posixpath.join(ns, 'controller/loss'),
+        'loss': posixpath.join(ns, C.LOSS_TOPIC),
         'node': controller,
-        'drive_status': posixpath.join(ns, 'drive/status'),
+        'drive_status': posixpath.join(ns, STATUS_TOPIC),
     }
 
 
 #: drive/status counters (docs/interfaces.md) the run summary reports
-DRIVE_COUNTERS = (
-    'steps',
-    'commands',
-    'fresh',
-    'held',
-    'late',
-    'stale_ignored',
-    'overruns',
-    'republished',
-    'max_lateness_us',
-    'watchdog_trips',
-    'watchdog_steps',
-    'backpressure',
-)
+DRIVE_COUNTERS = STATUS_COUNTERS
 
 
 def drive_report(
@@ -230,7 +215,7 @@ class ControllerLink:
             ).result
             if res.successful:
                 return
-            if not any(t in res.reason for t in ('is running', 'retry shortly')):
+            if C.refusal_code(res.reason) not in (C.BUSY, C.FINISHING_MOVE):
                 raise BenchFailure(f'the controller refused the gains {gains}: {res.reason}')
             if time.monotonic() > deadline:
                 raise LostEvaluation(f'gains refused until the timeout: {res.reason}')
@@ -248,14 +233,15 @@ class ControllerLink:
         while True:
             resp = self._call(self.start_cli.call_async(Trigger.Request()), 'start_experiment')
             if resp.success:
-                m = _STARTED.search(resp.message)
-                if m is None:
+                eid = C.started_id(resp.message)
+                if eid is None:
                     raise BenchFailure(
                         f'start_experiment answered {resp.message!r}: no experiment id in it'
                     )
-                return int(m.group(1))
+                return eid
             msg = resp.message
-            if 'safety fault' in msg:
+            code = C.refusal_code(msg)
+            if code == C.SAFETY_FAULT:
                 if self.fault_policy != 'reset':
                     raise BenchFailure(
                         f'the controller is in a safety fault ({msg}); check '
@@ -264,7 +250,7 @@ class ControllerLink:
                 self.node.get_logger().warn(f'{msg}; resetting it (fault policy: reset)')
                 self.reset_fault()
                 continue
-            if not any(t in msg for t in _TRANSIENT):
+            if code not in C.TRANSIENT:
                 raise BenchFailure(f'start_experiment refused: {msg}')
             if time.monotonic() > deadline:
                 raise LostEvaluation(f'start_experiment refused until the timeout: {msg}')

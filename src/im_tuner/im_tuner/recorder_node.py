@@ -25,7 +25,7 @@ Crash safety: chunks are closed at least every ``max_chunk_age`` seconds and han
 the OS; SIGINT/SIGTERM close the bag properly; after SIGKILL, ``ros2 run im_tuner
 recorder --repair DIR`` rewrites the summary, index and ``metadata.yaml``.
 
-The simulated bench (``ros2 run im_controller sim_bench``) and the tuner run a
+The simulated bench (``ros2 run im_tuner sim_bench``) and the tuner run a
 :class:`Recorder` in their own process and call :meth:`Recorder.poll` between steps.
 """
 

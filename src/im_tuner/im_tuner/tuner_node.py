@@ -734,7 +734,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                     f'no controller reachable ({controller_topics(cli.controller)["start"]} '
                     f'not on the graph of ROS_DOMAIN_ID {os.environ.get("ROS_DOMAIN_ID", "0")} '
                     f'after {cli.discovery_timeout:g} s): start the bench first, e.g. '
-                    '`ros2 run im_controller sim_bench` or your drive + `ros2 run '
+                    '`ros2 run im_tuner sim_bench` or your drive + `ros2 run '
                     'im_controller controller`, or use --bench auto'
                 )
             bench_mode = 'external' if found else 'inproc'
@@ -805,7 +805,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                 drive_over.append(Parameter('config_file', value=str(cli.drive_config)))
                 ctl_over.append(Parameter('drive_config_file', value=str(cli.drive_config)))
         if bench_mode == 'inproc':
-            from im_controller.sim_bench import InProcessBench, bench_metadata
+            from .bench import InProcessBench, bench_metadata
 
             def _start_recorder(b) -> None:
                 nonlocal rec

@@ -1,0 +1,85 @@
+"""The controller's contract with its clients (the tuner, tools, a user's own script).
+
+Topics and services (relative to the controller node), and the machine-readable refusal
+codes: every refusal of ``~/start_experiment``, ``~/reset_fault`` or a parameter set ends
+with ``[code]``, and clients match the code, never the prose before it (which may be
+reworded). Pure: no rclpy, no numba.
+
+Codes (``REFUSALS``):
+  busy            an experiment is running (gains and experiment parameters change only
+                  between experiments); transient
+  finishing_move  the supervisor stopped a move and the fallback gains finish it; transient
+  no_drive_state  no drive state received yet (or none since the state watchdog); transient
+  safety_fault    the controller is in FAULT: check the drive, then ``~/reset_fault``
+  state_not_finite the last drive state is not finite: the drive is broken, no reset
+  invalid         a parameter value the controller does not accept (the text says why)
+"""
+
+from __future__ import annotations
+
+import re
+
+__all__ = [
+    'BUSY',
+    'FINISHING_MOVE',
+    'INTERNALS_TOPIC',
+    'INVALID',
+    'LOSS_TOPIC',
+    'NO_DRIVE_STATE',
+    'REFUSALS',
+    'RESET_SERVICE',
+    'SAFETY_FAULT',
+    'START_SERVICE',
+    'STATE_NOT_FINITE',
+    'TRANSIENT',
+    'refusal',
+    'refusal_code',
+    'started',
+    'started_id',
+]
+
+#: Topics (relative: they follow the controller's namespace).
+LOSS_TOPIC = 'controller/loss'
+INTERNALS_TOPIC = 'controller/internals'
+#: Services (private: ``<controller node>/<name>``), both std_srvs/srv/Trigger.
+START_SERVICE = 'start_experiment'
+RESET_SERVICE = 'reset_fault'
+
+BUSY = 'busy'
+FINISHING_MOVE = 'finishing_move'
+NO_DRIVE_STATE = 'no_drive_state'
+SAFETY_FAULT = 'safety_fault'
+STATE_NOT_FINITE = 'state_not_finite'
+INVALID = 'invalid'
+REFUSALS: frozenset[str] = frozenset(
+    {BUSY, FINISHING_MOVE, NO_DRIVE_STATE, SAFETY_FAULT, STATE_NOT_FINITE, INVALID}
+)
+#: Refusals that clear by themselves: a client retries them (within its own deadline).
+TRANSIENT: frozenset[str] = frozenset({BUSY, FINISHING_MOVE, NO_DRIVE_STATE})
+
+_CODE = re.compile(r' \[([a-z_]+)\]$')
+_STARTED = re.compile(r'^experiment (\d+) started$')
+
+
+def refusal(code: str, text: str) -> str:
+    """A refusal message: ``text`` for people, then `` [code]`` for programs."""
+    if code not in REFUSALS:
+        raise ValueError(f'unknown refusal code {code!r}')
+    return f'{text} [{code}]'
+
+
+def refusal_code(message: str) -> str | None:
+    """The code at the end of a refusal message, or None if it carries none."""
+    m = _CODE.search(message)
+    return m.group(1) if m and m.group(1) in REFUSALS else None
+
+
+def started(experiment_id: int) -> str:
+    """The success message of ``~/start_experiment``."""
+    return f'experiment {experiment_id} started'
+
+
+def started_id(message: str) -> int | None:
+    """The experiment id of a ``started()`` message, or None."""
+    m = _STARTED.match(message)
+    return int(m.group(1)) if m else None

@@ -1,0 +1,169 @@
+"""check_drive's command line: ``ros2 run im_drive_sim check_drive``."""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+from ..cli import Parser, UsageError, check_ros_args, input_file, output_file
+from .judges import (
+    summary_line,
+)
+from .probe import (
+    DriveLost,
+    Interrupted,
+    Options,
+    _clean,
+    run_check,
+)
+from .thresholds import (
+    CheckRefused,
+)
+
+# ========================================== CLI ============================================
+
+
+class _Parser(Parser):
+    def error(self, message: str) -> None:  # one line, exit 2
+        print(f'error: check_drive: {message}', file=sys.stderr)
+        sys.exit(2)
+
+
+def parse_args(argv: list[str]) -> Options:
+    ap = _Parser(
+        prog='ros2 run im_drive_sim check_drive',
+        description='Check a drive node against docs/interfaces.md (see '
+        'docs/check-drive.md). Exit 0: all items pass; 1: some fail; '
+        '2: refused (bad option, no drive, another commander).',
+    )
+    ap.add_argument(
+        '--namespace', help='namespace of the drive (also: --ros-args -r __ns:=/bench1)'
+    )
+    ap.add_argument(
+        '--config',
+        metavar='FILE',
+        type=input_file,
+        help='drive parameter file (Ts, isq_max, encoder); default: the packaged motor',
+    )
+    ap.add_argument(
+        '--amplitude',
+        type=float,
+        default=0.5,
+        help='current step [A] (default 0.5; at most 50 %% of isq_max)',
+    )
+    ap.add_argument(
+        '--step-duration',
+        type=float,
+        default=0.02,
+        help='duration of each of the +isq and -isq steps [s] (default 0.02)',
+    )
+    ap.add_argument(
+        '--command-timeout',
+        type=float,
+        help="expected watchdog time [s] (default: the drive's command_timeout "
+        'parameter, else 0.05)',
+    )
+    ap.add_argument(
+        '--max-speed',
+        type=float,
+        default=30.0,
+        help='abort to zero current above this |omega_meas| [rad/s] (default 30)',
+    )
+    ap.add_argument(
+        '--timeout', type=float, default=10.0, help='discovery timeout [s] (default 10)'
+    )
+    ap.add_argument(
+        '--json',
+        metavar='FILE',
+        type=output_file,
+        help='write the results as JSON (checked before probing)',
+    )
+    ns = ap.parse_args(argv)
+    for name in ('amplitude', 'step_duration', 'max_speed', 'timeout', 'command_timeout'):
+        v = getattr(ns, name)
+        if v is not None and not (math.isfinite(v) and v > 0):
+            ap.error(f'--{name.replace("_", "-")} must be a positive number, got {v:g}')
+    if not 0.005 <= ns.step_duration <= 0.5:
+        ap.error(f'--step-duration {ns.step_duration:g} s: must be in [0.005, 0.5] s')
+    if ns.config is not None:  # the file is read after the probe starts: check it now
+        from im_drive_sim.params import ConfigError, load_config
+
+        try:
+            load_config(ns.config)
+        except ConfigError as exc:
+            ap.error(str(exc))
+        ns.config = str(ns.config)
+    if ns.json is not None:
+        ns.json = str(ns.json)
+    if ns.namespace is not None:
+        from rclpy.validate_namespace import validate_namespace
+
+        try:
+            validate_namespace(ns.namespace if ns.namespace.startswith('/') else '/' + ns.namespace)
+        except Exception as exc:  # rclpy raises InvalidNamespaceException
+            ap.error(f'--namespace {ns.namespace!r}: {str(exc).splitlines()[0]}')
+    return Options(**vars(ns))
+
+
+def main(args: list[str] | None = None) -> int:
+    argv = sys.argv if args is None else args
+    try:
+        rest = check_ros_args(argv)
+    except UsageError as exc:
+        print(f'error: check_drive: {exc}', file=sys.stderr)
+        return 2
+    opts = parse_args(rest[1:])
+    import rclpy
+    from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
+
+    from im_drive_sim.params import ConfigError
+
+    stop = {'signal': None}
+
+    def on_signal(signum, _frame) -> None:
+        stop['signal'] = signum
+
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    node = Node('check_drive', **({'namespace': opts.namespace} if opts.namespace else {}))
+    code = 0
+    try:
+        items, info = run_check(
+            opts, node, lambda s: print(s, flush=True), lambda: stop['signal'] is not None
+        )
+        for item in items:
+            print(item.line())
+        print(summary_line(items, info.get('mode', ''), info.get('status_mode')))
+        code = 0 if all(i.passed for i in items) else 1
+        if opts.json:
+            Path(opts.json).write_text(
+                json.dumps(
+                    _clean({'passed': code == 0, **info, 'items': [asdict(i) for i in items]}),
+                    indent=1,
+                    allow_nan=False,
+                )
+                + '\n'
+            )
+    except (CheckRefused, ConfigError) as exc:
+        print(f'error: check_drive: {exc}', file=sys.stderr)
+        code = 2
+    except DriveLost as exc:
+        print(f'error: check_drive: {exc}', file=sys.stderr)
+        code = 1
+    except Interrupted:
+        print('check_drive: interrupted; zero current commanded', file=sys.stderr)
+        code = 130
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == '__main__':
+    sys.exit(main())

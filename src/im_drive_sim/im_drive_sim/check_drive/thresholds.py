@@ -1,0 +1,92 @@
+"""check_drive's items, thresholds and result type (why each threshold: docs/check-drive.md).
+
+Pure: no ROS, no numba. The drive's field layout and topic types come from the contract.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ..contract import STATE_FIELDS, TOPIC_TYPES
+
+#: Items, in the order they are printed.
+ITEMS: tuple[str, ...] = ('topics', 'fields', 'rate', 'latency', 'step_response', 'watchdog')
+
+F = {name: i for i, name in enumerate(STATE_FIELDS)}
+CURRENT_FIELDS = ('isd', 'isq', 'i_alpha', 'i_beta')
+
+#: Expected topic types (docs/interfaces.md).
+TYPES = TOPIC_TYPES  # the type each drive topic must have
+
+# --- thresholds (why: docs/check-drive.md) -----------------------------------------------
+#: fields: currents must stay within this factor of the largest current the drive may carry
+#: (hypot(isq_max, rated flux current)): beyond it, a value is not a current in A.
+CURRENT_BOUND_FACTOR = 1.5
+#: fields: integral of omega_meas over the motion / change of theta_meas (1 when both are SI;
+#: 57.3 for degrees, 9.55 for rpm). The band absorbs encoder quantisation and filter lag.
+UNITS_RATIO_BAND = (0.8, 1.25)
+#: fields: motion needed to judge the units [encoder counts of the configured encoder].
+UNITS_MIN_COUNTS = 10
+#: rate (real time): median period within this fraction of Ts (a drive and this check
+#: competing for 2 loaded cores measured 200-211 us) ...
+RATE_TOLERANCE = 0.10
+#: ... and at most this fraction of periods longer than 2 Ts (measured 0.4-4 %, 9 % while
+#: another real-time test ran beside it).
+RATE_MAX_LONG_FRACTION = 0.20
+#: latency: command published -> next state received, wall time [s].
+LATENCY_MEDIAN_MAX = 2e-3
+LATENCY_P99_MAX = 20e-3
+#: latency: the state in which a command first shows (k+1 answers k). Real time allows one
+#: period of transport (k+2), judged on the fastest quarter of the changes: a change this
+#: check answers late (its own process descheduled on a loaded machine) shows later
+#: through no fault of the drive, but a drive that applies commands late never shows early.
+EFFECT_DELAY_LOCKSTEP = 1
+EFFECT_DELAY_REALTIME = 2
+#: latency/step: a response starts where isq leaves its extrapolated course by this fraction
+#: of the commanded change (or 8 noise levels, whichever is larger): 10 mA for 0.5 A.
+ONSET_FRACTION = 0.02
+#: step_response: 10-90 % rise time of isq [s] (the paper's current loop: about 1.5 ms).
+RISE_TIME_MAX = 5e-3
+#: step_response: |mean isq over the last quarter of a step - isq*| / |isq*|.
+STEADY_STATE_ERROR_MAX = 0.10
+#: step_response: fitted displacement from the acceleration that counts as motion [counts].
+ACCEL_MIN_COUNTS = 3
+#: watchdog (real time): zero current within command_timeout + max(30 ms, 25 %) ...
+WATCHDOG_MARGIN_S, WATCHDOG_MARGIN_REL = 0.03, 0.25
+#: ... and not before half of it (the contract holds the last command until the timeout).
+WATCHDOG_EARLIEST = 0.5
+#: watchdog: |isq| below this fraction of the test current counts as zero current ...
+ZERO_CURRENT_FRACTION = 0.2
+#: ... and the fall to it starts where isq leaves this fraction of the test current.
+WATCHDOG_ACT_FRACTION = 0.9
+#: watchdog (lock-step): silence during which the drive must not step [s].
+LOCKSTEP_SILENCE_S = 0.35
+
+#: No current is commanded before this long after the check joined the graph [s]: a node
+#: that was there before is discovered at the latest by its periodic announcement (Fast
+#: DDS: every 3 s); a second commander found by then refuses the check. (Measured: most
+#: are found within 0.1 s, one in six took 2.6 s.)
+DISCOVERY_SETTLE_S = 3.2
+DEFAULT_TIMEOUT = 0.05  # [s] command_timeout when the drive has no such parameter
+NS_PER_S = 1_000_000_000
+
+
+class CheckRefused(Exception):
+    """The check cannot run (bad option, no drive, another commander): exit code 2."""
+
+
+@dataclass
+class Item:
+    """The verdict on one item: one printed line, one JSON object."""
+
+    name: str
+    passed: bool
+    figures: str  #: what was measured, human-readable
+    expected: str  #: what the contract asks
+    values: dict = field(default_factory=dict)  #: the figures, machine-readable (SI)
+
+    def line(self) -> str:
+        return (
+            f'{"PASS" if self.passed else "FAIL"}  {self.name:<13s} {self.figures} '
+            f'(expected: {self.expected})'
+        )

@@ -1,0 +1,129 @@
+"""The drive contract (docs/interfaces.md) as data: topics, QoS, field layouts, counters.
+
+Every side of the drive interface reads these names from here: the simulator node, the
+example drive, check_drive, the controller's drive client, the tuner, the recorder and the
+report. The module is pure (neither numba nor rclpy), so a tool or a user's drive can read
+the contract without compiling kernels or starting ROS; ``runtime.qos_profile`` turns a
+:class:`QosSpec` into an rclpy ``QoSProfile``.
+
+Units: times in ns (int), angles in rad, speeds in rad/s, currents in A, torques in N m.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = [
+    'CMD_ISQ',
+    'CMD_LOAD',
+    'CMD_STEP',
+    'COMMAND_FIELDS',
+    'COMMAND_TOPIC',
+    'JOINT_STATE_TOPIC',
+    'LOCKSTEP',
+    'MODES',
+    'NS_PER_S',
+    'RECORDED',
+    'STATE_FIELDS',
+    'STATE_INDEX',
+    'STATE_TOPIC',
+    'STATUS_COUNTERS',
+    'STATUS_TOPIC',
+    'TOPIC_TYPES',
+    'QosSpec',
+]
+
+NS_PER_S = 1_000_000_000
+
+#: Timing modes of a drive: paced by the controller's answers, or by the wall clock.
+MODES: tuple[str, ...] = ('lockstep', 'realtime')
+
+# ------------------------------------------------------------------------------ topics
+#: Topic names, relative: they follow the drive node's namespace.
+STATE_TOPIC = 'drive/state'
+COMMAND_TOPIC = 'drive/command'
+JOINT_STATE_TOPIC = 'drive/joint_states'
+STATUS_TOPIC = 'drive/status'
+
+#: The message type of each drive topic.
+TOPIC_TYPES: dict[str, str] = {
+    STATE_TOPIC: 'std_msgs/msg/Float64MultiArray',
+    COMMAND_TOPIC: 'std_msgs/msg/Float64MultiArray',
+    JOINT_STATE_TOPIC: 'sensor_msgs/msg/JointState',
+    STATUS_TOPIC: 'diagnostic_msgs/msg/DiagnosticArray',
+}
+
+# ------------------------------------------------------------------------------ layouts
+#: Layout of ``drive/state`` (Float64MultiArray.data), one sample per period k:
+#: step_index k, time_ns = k Ts [ns], the measured position [rad] and speed [rad/s] the
+#: controller uses, electromagnetic torque [N m], d/q and alpha/beta stator currents [A],
+#: the load torque [N m] and the true position [rad] and speed [rad/s].
+STATE_FIELDS: tuple[str, ...] = (
+    'step_index',
+    'time_ns',
+    'theta_meas',
+    'omega_meas',
+    'torque',
+    'isd',
+    'isq',
+    'i_alpha',
+    'i_beta',
+    'load_torque',
+    'theta',
+    'omega',
+)
+STATE_INDEX: dict[str, int] = {n: i for i, n in enumerate(STATE_FIELDS)}
+
+#: Layout of ``drive/command``: the state step it answers, the q-axis current reference
+#: [A] and the load torque [N m] the bench applies (the simulator's load machine).
+COMMAND_FIELDS: tuple[str, ...] = ('answers_step', 'isq_ref', 'load_torque')
+CMD_STEP, CMD_ISQ, CMD_LOAD = 0, 1, 2
+
+#: ``drive/status`` counters (a DiagnosticStatus's key/values), in this order:
+#: steps (periods run), commands (valid commands received), fresh/held (periods driven by
+#: a command answering the latest state / holding an older one), late (commands answering
+#: an older state than the latest), stale_ignored (duplicates, out-of-order or, in
+#: lock-step, answering another step), overruns (periods started more than a period
+#: late), republished (lock-step: state re-sent while waiting), max_lateness_us (worst
+#: period-start lateness [us]), watchdog_trips/watchdog_steps (commands stopped for more
+#: than command_timeout / periods run at zero current by the watchdog), backpressure
+#: (publish retries while a reliable reader was full).
+STATUS_COUNTERS: tuple[str, ...] = (
+    'steps',
+    'commands',
+    'fresh',
+    'held',
+    'late',
+    'stale_ignored',
+    'overruns',
+    'republished',
+    'max_lateness_us',
+    'watchdog_trips',
+    'watchdog_steps',
+    'backpressure',
+)
+
+
+# --------------------------------------------------------------------------------- QoS
+@dataclass(frozen=True)
+class QosSpec:
+    """A QoS profile as data (rclpy names, lower case): history 'keep_last'/'keep_all',
+    depth (samples; 0 with keep_all), reliability 'reliable'/'best_effort', durability
+    'volatile'/'transient_local'."""
+
+    history: str
+    depth: int
+    reliability: str
+    durability: str = 'volatile'
+
+
+#: The 5 kHz lock-step topics: reliable, so no step is lost in transit. Lock-step never
+#: has more than one sample in flight; in real time a depth of 64 periods (12.8 ms)
+#: bridges scheduling hiccups.
+LOCKSTEP = QosSpec('keep_last', 64, 'reliable')
+
+#: Publishers whose every message must reach the recorder (state; the controller's
+#: command, internals and losses): reliable KEEP_ALL. A reader that falls behind
+#: back-pressures the publisher instead of losing samples, which KEEP_LAST would
+#: overwrite. Readers in the lock-step path stay LOCKSTEP: they take every step.
+RECORDED = QosSpec('keep_all', 0, 'reliable')

@@ -11,7 +11,7 @@ numpy expression, about 1 us, included in the hot figure only).  Issue target: w
 * **cold**: what the tuner sees.  There every ask and every tell comes right after a
   150 ms experiment (numba kernels, DDS) and fsync'ed file writes, so code and data have
   left the caches and each numpy call costs 5-10 us.  Here, before every ask and before
-  every tell: one offline experiment (``im_controller.experiment.run_experiment_offline``
+  every tell: one offline experiment (``im_tuner.bench.offline.run_experiment_offline``
   on an ``im_drive_sim.sim.DriveSim``, signals recorded) and a line appended to a file and
   fsync'ed (``--disturb stream`` streams a 32 MB array instead of the experiment, for a
   checkout without the drive packages).  ask and tell are timed alone, as tuning.py does,
@@ -81,8 +81,8 @@ def make_disturbance(
     line = b'x' * 600 + b'\n'  # about one results.jsonl record
     if kind == 'experiment':
         from im_controller.config import Gains
-        from im_controller.experiment import run_experiment_offline
         from im_drive_sim.sim import DriveSim
+        from im_tuner.bench.offline import run_experiment_offline
 
         sim = DriveSim()
         run_experiment_offline(sim, Gains())  # compiles/loads the kernels

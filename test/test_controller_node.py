@@ -24,11 +24,12 @@ from std_srvs.srv import Trigger
 
 from im_controller.config import Gains
 from im_controller.controller_node import INTERNALS_FIELDS
-from im_controller.experiment import ExperimentRunner, config_for_drive, run_experiment_offline
+from im_controller.experiment import ExperimentRunner, config_for_drive
 from im_controller.messages import msg_to_result, result_to_msg
 from im_drive_sim.params import load_config
 from im_drive_sim.sim import DriveSim
 from im_tuner.bench import InProcessBench
+from im_tuner.bench.offline import run_experiment_offline
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 SEED = 3

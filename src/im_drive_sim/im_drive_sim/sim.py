@@ -15,6 +15,7 @@ Example::
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -246,6 +247,34 @@ class DriveSim:
             self._left -= cnt
             if self._left == 0:
                 self._refill()
+
+    def run_kernel(
+        self,
+        n: int,
+        kernel: Callable[[np.ndarray, np.ndarray, np.ndarray, int, int], int],
+        stop: Callable[[], bool] | None = None,
+    ) -> int:
+        """Let a caller's numba loop step this model for at most ``n`` steps.
+
+        ``kernel(S, P, noise, offset, count)`` must step the model with
+        ``kernels.step_model(S, P, noise, ...)`` at most ``count`` times (``offset`` = the
+        steps done before this call) and return how many it took: fewer than ``count``
+        stops the run. It is called on chunks that end on the noise-block boundaries, as
+        :meth:`run` does, so the model sees the same noise as step by step. ``stop()``,
+        checked after each chunk, ends the run early too. Returns the steps taken.
+        (This is how a controller kernel is fused with the drive, e.g. the offline bench.)
+        """
+        done = 0
+        while done < n:
+            cnt = min(n - done, self._left)
+            k = int(kernel(self.S, self.P, self._noise, done, cnt))
+            self._left -= k
+            if self._left == 0:
+                self._refill()
+            done += k
+            if k < cnt or (stop is not None and stop()):
+                break
+        return done
 
     def run(self, isq_ref: np.ndarray, load_torque: np.ndarray) -> dict[str, np.ndarray]:
         """Step len(isq_ref) times inside numba; returns ``{field: array}`` for RUN_FIELDS.

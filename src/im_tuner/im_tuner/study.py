@@ -7,7 +7,7 @@ The grid (paper, "Summary of experimental results"): SPSA over a in {a0/5, a0, 5
 c in {c0/5, c0, 5 c0} (a0 = 0.0183, c0 = 0.03; A = 20, alpha = gamma = 0.3), neCGA over
 n in {5, 25, 125} with eta = floor(n/2); ``runs`` runs of ``budget`` loss evaluations per
 configuration.  Everything runs in-process on the same numba kernels as the nodes
-(``im_controller.experiment.run_experiment_offline``), in a process pool.
+(``im_tuner.bench.offline.run_experiment_offline``), in a process pool.
 
 **A study run is a tuner run.**  Run r of every configuration uses the run seed
 ``run_seed(seed, r)`` and does exactly what ``ros2 run im_tuner tuner --seed <run seed>
@@ -50,17 +50,12 @@ from typing import Any
 import numpy as np
 
 from im_controller.config import GAIN_NAMES, Gains
-from im_controller.experiment import (
-    SAFETY_REASONS,
-    ExperimentRunner,
-    config_for_drive,
-    finish_stopped_move,
-    run_experiment_offline,
-)
+from im_controller.experiment import SAFETY_REASONS, ExperimentRunner, config_for_drive
 from im_drive_sim.params import DriveConfig, load_config
 from im_drive_sim.sim import DriveSim
 
 from . import optim
+from .bench.offline import finish_stopped_move, run_experiment_offline
 from .space import SearchSpace, TunerParams, load_params
 from .tuning import run_seeds
 

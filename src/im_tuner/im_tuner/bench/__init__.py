@@ -1,6 +1,25 @@
-"""The benches the tuner runs on: in-process lock-step (``InProcessBench``), the same
-nodes as child processes, or an external bench on the graph (``sim_bench`` is the CLI)."""
+"""The benches the tuner runs on.
 
-from .inprocess import InProcessBench, bench_metadata
+* ``offline``: the controller's kernel fused with the drive's in one numba loop (no ROS);
+  the study's engine and the oracle of the ROS tests;
+* ``inprocess``: the drive simulator and controller nodes in one process, lock-step, with
+  the recorder polled between steps (the tuner's default);
+* ``sim_bench``: the command line (``ros2 run im_tuner sim_bench [--processes]``).
+
+``InProcessBench`` and ``bench_metadata`` are imported on first use, so the offline bench
+(study workers) does not load rclpy.
+"""
+
+from __future__ import annotations
+
+from typing import Any
 
 __all__ = ['InProcessBench', 'bench_metadata']
+
+
+def __getattr__(name: str) -> Any:
+    if name in __all__:
+        from . import inprocess
+
+        return getattr(inprocess, name)
+    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')

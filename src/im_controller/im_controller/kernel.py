@@ -1,0 +1,253 @@
+"""The per-step experiment kernel (numba): cascade, trajectory, load, online loss,
+supervisor and safety limits for one drive state. What the node calls once per state and
+what the offline bench fuses with the drive kernels."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .control import O_E_THETA, O_ISQ, O_OMEGA_REF, O_SAT, control_step
+from .layout import (
+    E_COUNTED,
+    E_F1,
+    E_F2,
+    E_F3,
+    E_ISQ,
+    E_ISQF,
+    E_LOAD,
+    E_N,
+    E_REASON,
+    E_STATUS,
+    E_T1,
+    E_T2,
+    E_T3,
+    MODE_FAULT,
+    MODE_HOLD,
+    MODE_RETURN,
+    MODE_RUN,
+    Q_A1,
+    Q_A2,
+    Q_A3,
+    Q_ISQ_MAX,
+    Q_ISQF_A,
+    Q_LOAD,
+    Q_LOAD_FIXED,
+    Q_LOAD_N,
+    Q_MAX_ERR,
+    Q_MAX_SPEED,
+    Q_N,
+    Q_SAT_RATIO,
+    Q_TEND,
+    Q_THR1,
+    Q_THR2,
+    Q_THR3,
+    Q_TS,
+    Q_TS_NS,
+    R_DIR,
+    R_END_NS,
+    R_FAULT_REASON,
+    R_HOLD_REF,
+    R_ISQF,
+    R_LAST_ISQ,
+    R_LAST_LOAD,
+    R_LAST_STATUS,
+    R_LAST_STEP,
+    R_MODE,
+    R_N,
+    R_REASON,
+    R_RESULT,
+    R_S1,
+    R_S2,
+    R_S3,
+    R_START_NS,
+    R_START_STEP,
+    R_STEPS,
+    R_TARGET,
+    R_TERM1,
+    R_TERM2,
+    R_TERM3,
+    R_THETA0,
+    R_TRIP_STEP,
+    REASON_NONE,
+    REASON_NONFINITE,
+    REASON_POSITION,
+    REASON_SPEED,
+    REASON_TERM1,
+    REASON_TERM2,
+    REASON_TERM3,
+    STATUS_ABORTED,
+    STATUS_DONE,
+    STATUS_FAULT,
+    STATUS_HOLD,
+    STATUS_RUNNING,
+)
+from .trajectory import traj_pos
+
+
+# ---------------------------------------------------------------------- the kernel
+@njit(cache=True)
+def _finish(R: np.ndarray, Q: np.ndarray, status: float, reason: float, time_ns: float) -> None:
+    R[R_RESULT] = status
+    R[R_REASON] = reason
+    R[R_STEPS] = R[R_N]
+    R[R_END_NS] = time_ns + Q[Q_TS_NS]
+    R[R_TRIP_STEP] = R[R_N] - 1.0 if status == STATUS_ABORTED else -1.0
+
+
+@njit(cache=True)
+def experiment_step(
+    R: np.ndarray,
+    Q: np.ndarray,
+    X: np.ndarray,
+    C: np.ndarray,
+    CF: np.ndarray,
+    state: np.ndarray,
+    cout: np.ndarray,
+    eout: np.ndarray,
+) -> int:
+    """Process drive state k (``state``: step_index, time_ns, theta_meas, omega_meas, ...)
+    and return the status; the command is ``eout[E_ISQ]`` [A], ``eout[E_LOAD]`` [N m].
+
+    A repeated step_index returns the previous answer unchanged (lock-step re-sends).
+    R: runner state, Q: experiment parameters, X/C: controller state/parameters,
+    CF: fallback controller parameters (copied into C after a supervisor stop),
+    cout: controller internals (``CONTROL_FIELDS``), eout: ``EXP_FIELDS``.  No allocation.
+    """
+    k = state[0]
+    if k == R[R_LAST_STEP]:
+        eout[E_ISQ] = R[R_LAST_ISQ]
+        eout[E_LOAD] = R[R_LAST_LOAD]
+        eout[E_STATUS] = R[R_LAST_STATUS]
+        return int(R[R_LAST_STATUS])
+    th = state[2]
+    w = state[3]
+    running = R[R_MODE] == MODE_RUN
+    status = STATUS_HOLD
+    reason = REASON_NONE
+    isq = 0.0
+    load = 0.0
+    n = -1.0
+    f1 = 0.0
+    f2 = 0.0
+    f3 = 0.0
+    counted = 0.0
+    isqf = 0.0
+    ref = 0.0
+    if R[R_MODE] == MODE_FAULT:
+        status = STATUS_FAULT
+        reason = R[R_FAULT_REASON]
+        cout[O_ISQ] = 0.0
+        cout[O_SAT] = 0.0
+    else:
+        safety = REASON_NONE
+        if not (math.isfinite(th) and math.isfinite(w)):
+            safety = REASON_NONFINITE
+        else:
+            if running:
+                n = R[R_N]
+                if n == 0.0:
+                    R[R_START_STEP] = k
+                    R[R_START_NS] = state[1]
+                ref = R[R_THETA0] + R[R_DIR] * traj_pos(n * Q[Q_TS], Q)
+                if n >= Q[Q_LOAD_N]:
+                    load = Q[Q_LOAD] if Q[Q_LOAD_FIXED] != 0.0 else R[R_DIR] * Q[Q_LOAD]
+            elif R[R_MODE] == MODE_RETURN:
+                # after a supervisor stop: the fallback gains finish the move along the
+                # unchanged trajectory (no reference jump), then hold the target
+                nn = R[R_N]
+                ref = R[R_THETA0] + R[R_DIR] * traj_pos(nn * Q[Q_TS], Q)
+                R[R_N] = nn + 1.0
+                if nn * Q[Q_TS] >= Q[Q_TEND]:
+                    R[R_MODE] = MODE_HOLD
+                    R[R_HOLD_REF] = R[R_TARGET]
+            else:
+                ref = R[R_HOLD_REF]
+            isq = control_step(X, C, ref, th, w, cout)
+            if abs(cout[O_E_THETA]) > Q[Q_MAX_ERR]:
+                safety = REASON_POSITION
+            elif abs(w) > Q[Q_MAX_SPEED]:
+                safety = REASON_SPEED
+        if safety != REASON_NONE:
+            # Hard limit: torque off (drive-level safe state) until an explicit reset.
+            R[R_MODE] = MODE_FAULT
+            R[R_FAULT_REASON] = safety
+            isq = 0.0
+            load = 0.0
+            cout[O_ISQ] = 0.0
+            cout[O_SAT] = 0.0
+            reason = safety
+            if running:
+                if n < 0.0:
+                    n = R[R_N]
+                R[R_N] = n + 1.0
+                _finish(R, Q, STATUS_ABORTED, safety, state[1])
+                status = STATUS_ABORTED
+            else:
+                status = STATUS_FAULT
+        elif running:
+            isq_max = Q[Q_ISQ_MAX]
+            if n == 0.0:
+                R[R_ISQF] = isq
+            isqf = R[R_ISQF]
+            f1 = abs(ref - th)
+            f2 = abs(cout[O_OMEGA_REF] - w)
+            f3 = abs(isqf - isq)
+            if abs(isq) / isq_max < Q[Q_SAT_RATIO]:
+                counted = 1.0
+                R[R_S1] += f1
+                R[R_S2] += f2
+                R[R_S3] += f3
+            a = Q[Q_ISQF_A]
+            R[R_ISQF] = a * isqf + (1.0 - a) * isq
+            ts = Q[Q_TS]
+            R[R_TERM1] = Q[Q_A1] * ts * R[R_S1]
+            R[R_TERM2] = Q[Q_A2] * ts * R[R_S2]
+            R[R_TERM3] = Q[Q_A3] * ts * R[R_S3]
+            trip = REASON_NONE
+            if R[R_TERM1] > Q[Q_THR1]:
+                trip = REASON_TERM1
+            elif R[R_TERM2] > Q[Q_THR2]:
+                trip = REASON_TERM2
+            elif R[R_TERM3] > Q[Q_THR3]:
+                trip = REASON_TERM3
+            R[R_N] = n + 1.0
+            if trip != REASON_NONE:
+                _finish(R, Q, STATUS_ABORTED, trip, state[1])
+                # Stop at once: this step's command already comes from the position hold
+                # at the measured position with the fallback gains (bumpless: references
+                # = theta_meas, integrator 0); the load is removed.
+                for j in range(C.shape[0]):
+                    C[j] = CF[j]
+                R[R_MODE] = MODE_RETURN
+                isq = control_step(X, C, ref, th, w, cout)
+                load = 0.0
+                status = STATUS_ABORTED
+                reason = trip
+            elif R[R_N] >= Q[Q_N]:
+                _finish(R, Q, STATUS_DONE, REASON_NONE, state[1])
+                R[R_HOLD_REF] = R[R_TARGET]
+                R[R_MODE] = MODE_HOLD
+                status = STATUS_DONE
+            else:
+                status = STATUS_RUNNING
+    eout[E_ISQ] = isq
+    eout[E_LOAD] = load
+    eout[E_STATUS] = status
+    eout[E_REASON] = reason
+    eout[E_N] = n
+    eout[E_F1] = f1
+    eout[E_F2] = f2
+    eout[E_F3] = f3
+    eout[E_ISQF] = isqf
+    eout[E_COUNTED] = counted
+    eout[E_T1] = R[R_TERM1]
+    eout[E_T2] = R[R_TERM2]
+    eout[E_T3] = R[R_TERM3]
+    R[R_LAST_STEP] = k
+    R[R_LAST_STATUS] = status
+    R[R_LAST_ISQ] = isq
+    R[R_LAST_LOAD] = load
+    return status

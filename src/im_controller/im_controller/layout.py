@@ -1,0 +1,122 @@
+"""Array layouts of the experiment kernel: status and reason codes, runner modes, the
+experiment parameters Q, the runner state R and the per-step outputs E (numba kernels
+index plain float64 arrays by these constants). Pure: no rclpy, no numba."""
+
+from __future__ import annotations
+
+from .control import CONTROL_FIELDS
+
+# ----------------------------------------------------------------- status and reasons
+STATUS_HOLD = 0  # holding position between experiments
+STATUS_RUNNING = 1  # experiment step processed, experiment continues
+STATUS_DONE = 2  # this step completed the experiment; result() is ready
+STATUS_ABORTED = 3  # this step stopped the experiment (supervisor or safety); result ready
+STATUS_FAULT = 4  # safety fault: isq* = 0 and load 0 until reset()
+STATUS_NAMES = ('hold', 'running', 'done', 'aborted', 'fault')
+
+REASON_NONE = 0
+REASON_TERM1 = 1
+REASON_TERM2 = 2
+REASON_TERM3 = 3
+REASON_POSITION = 4
+REASON_SPEED = 5
+REASON_NONFINITE = 6
+REASON_DRIVE_TIMEOUT = 7  # set by the node's watchdog (ExperimentRunner.abort_external)
+REASONS: tuple[str, ...] = (
+    '',
+    'term1',
+    'term2',
+    'term3',
+    'max_position_error',
+    'max_speed',
+    'non_finite_measurement',
+    'drive_state_timeout',
+)
+"""Reason strings by reason code (LossResult.reason, ExperimentRunner.fault_reason)."""
+SAFETY_REASONS: tuple[str, ...] = REASONS[REASON_POSITION:]
+"""Reasons that put the runner in FAULT (the rest are supervisor stops)."""
+
+MODE_HOLD = 0.0
+MODE_RUN = 1.0
+MODE_FAULT = 2.0
+MODE_RETURN = 3.0  # hold after a supervisor stop, still following the trajectory
+
+# ------------------------------------------------------------ experiment parameters Q
+Q_TS = 0
+Q_TS_NS = 1
+Q_N = 2  # steps per experiment
+Q_LOAD_N = 3  # first local step with the load on
+Q_LOAD = 4  # load magnitude [N m]
+Q_LOAD_FIXED = 5  # 1: fixed sign, 0: opposes the move
+Q_A1 = 6
+Q_A2 = 7
+Q_A3 = 8
+Q_THR1 = 9
+Q_THR2 = 10
+Q_THR3 = 11
+Q_ISQ_MAX = 12
+Q_SAT_RATIO = 13
+Q_ISQF_A = 14
+Q_DIST = 15
+Q_AMAX = 16
+Q_VPEAK = 17
+Q_TACC = 18  # end of acceleration [s]
+Q_TDEC = 19  # start of deceleration [s]
+Q_TEND = 20  # end of the move [s]
+Q_MAX_ERR = 21
+Q_MAX_SPEED = 22
+N_QPARAMS = 23
+
+# -------------------------------------------------------------------- runner state R
+R_MODE = 0
+R_N = 1  # next local step
+R_DIR = 2
+R_THETA0 = 3
+R_TARGET = 4
+R_HOLD_REF = 5
+R_S1 = 6  # sum of counted f1 (unweighted)
+R_S2 = 7
+R_S3 = 8
+R_ISQF = 9
+R_TRIP_STEP = 10
+R_REASON = 11  # reason of the last finished experiment
+R_RESULT = 12  # 0 none, STATUS_DONE or STATUS_ABORTED
+R_START_STEP = 13
+R_START_NS = 14
+R_END_NS = 15
+R_STEPS = 16
+R_LAST_STEP = 17
+R_LAST_STATUS = 18
+R_LAST_ISQ = 19
+R_LAST_LOAD = 20
+R_FAULT_REASON = 21
+R_TERM1 = 22  # weighted terms a_j Ts S_j (kept for the result)
+R_TERM2 = 23
+R_TERM3 = 24
+N_RSTATE = 25
+
+# ----------------------------------------------------------------- per-step outputs E
+EXP_FIELDS: tuple[str, ...] = (
+    'isq_cmd',
+    'load_cmd',
+    'status',
+    'reason',
+    'exp_step',
+    'f1',
+    'f2',
+    'f3',
+    'isq_f',
+    'counted',
+    'term1',
+    'term2',
+    'term3',
+)
+"""Per-step experiment outputs: command [A], load [N m], status, reason code, local step
+(-1 in hold), f1 [rad], f2 [rad/s], f3 [A], isqF [A], counted (0/1), running terms."""
+(E_ISQ, E_LOAD, E_STATUS, E_REASON, E_N, E_F1, E_F2, E_F3, E_ISQF, E_COUNTED, E_T1, E_T2, E_T3) = (
+    range(len(EXP_FIELDS))
+)
+N_EXP_FIELDS = len(EXP_FIELDS)
+#: Layout of the controller node's ``controller/internals`` (Float64MultiArray.data): the
+#: drive step index k, then the controller's and the experiment's per-step outputs.
+INTERNALS_FIELDS: tuple[str, ...] = ('step_index', *CONTROL_FIELDS, *EXP_FIELDS)

@@ -1,0 +1,253 @@
+"""The experiment runner: position hold and experiments, one kernel call per drive state
+(the controller node's core), and :func:`config_for_drive`."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from im_drive_sim.sim import DriveSim
+
+from .config import ExperimentConfig, Gains, validate_experiment_config, validate_gains
+from .control import (
+    N_CONTROL_FIELDS,
+    N_CSTATE,
+    control_reset,
+    fill_control_params,
+    make_control_params,
+)
+from .kernel import _finish, experiment_step
+from .layout import (
+    E_ISQ,
+    E_LOAD,
+    MODE_FAULT,
+    MODE_HOLD,
+    MODE_RETURN,
+    MODE_RUN,
+    N_EXP_FIELDS,
+    N_RSTATE,
+    Q_DIST,
+    R_DIR,
+    R_END_NS,
+    R_FAULT_REASON,
+    R_HOLD_REF,
+    R_ISQF,
+    R_LAST_STEP,
+    R_MODE,
+    R_N,
+    R_REASON,
+    R_RESULT,
+    R_S1,
+    R_S2,
+    R_S3,
+    R_START_NS,
+    R_STEPS,
+    R_TARGET,
+    R_TERM1,
+    R_TERM2,
+    R_TERM3,
+    R_THETA0,
+    R_TRIP_STEP,
+    REASON_POSITION,
+    REASONS,
+    STATUS_ABORTED,
+)
+from .result import LossResult
+from .trajectory import make_experiment_params
+
+
+# -------------------------------------------------------------------------- runner
+class ExperimentRunner:
+    """Position hold + experiments, one kernel call per drive state (the node's core).
+
+    Usage (ROS node or offline)::
+
+        runner = ExperimentRunner(cfg, gains)
+        runner.reset(theta_meas)                  # hold here (also clears a FAULT)
+        runner.start(experiment_id, gains)        # the next step() is experiment step 0
+        isq, load, status = runner.step(state)    # state: STATE_FIELDS (uses fields 0-3)
+        if status in (STATUS_DONE, STATUS_ABORTED): res = runner.result()
+
+    Between experiments (and after DONE) it holds the last target with the current gains;
+    after a supervisor stop ``fallback_gains`` finish the move along the trajectory and
+    hold the target (``ready`` is False until the move's end time has passed).
+    Safety limits are active in every mode.
+    """
+
+    def __init__(self, config: ExperimentConfig | None = None, gains: Gains | None = None) -> None:
+        self.config: ExperimentConfig = validate_experiment_config(
+            ExperimentConfig() if config is None else config
+        )
+        self.gains: Gains = validate_gains(Gains() if gains is None else gains)
+        self.Q: np.ndarray = make_experiment_params(self.config)
+        self.C: np.ndarray = make_control_params(self.gains, self.config.control)
+        self.CF: np.ndarray = make_control_params(self.config.fallback_gains, self.config.control)
+        self.X: np.ndarray = np.zeros(N_CSTATE)
+        self.R: np.ndarray = np.zeros(N_RSTATE)
+        self.cout: np.ndarray = np.zeros(N_CONTROL_FIELDS)
+        self.eout: np.ndarray = np.zeros(N_EXP_FIELDS)
+        self.experiment_id: int = -1
+        self._exp_gains: Gains = self.gains
+        self.reset(0.0)
+
+    # -- modes
+    def reset(self, theta_meas: float) -> None:
+        """Hold ``theta_meas`` [rad] (references = theta_meas, integrator 0); clears FAULT
+        and any running experiment (without a result)."""
+        if not math.isfinite(theta_meas):
+            raise ValueError(f'theta_meas must be finite, got {theta_meas!r}')
+        control_reset(self.X, float(theta_meas))
+        self.R[:] = 0.0
+        self.R[R_MODE] = MODE_HOLD
+        self.R[R_HOLD_REF] = float(theta_meas)
+        self.R[R_TARGET] = float(theta_meas)
+        self.R[R_LAST_STEP] = -1.0
+        self.R[R_TRIP_STEP] = -1.0
+
+    def set_gains(self, gains: Gains) -> None:
+        """Apply new gains now (validated, atomic).  Refused while an experiment runs."""
+        g = validate_gains(gains)
+        if self.running:
+            raise RuntimeError('cannot change gains while an experiment is running')
+        c = self.config.control
+        fill_control_params(self.C, g, c.Ts, c.isq_max, c.feedforward)
+        self.gains = g
+
+    def set_config(self, config: ExperimentConfig) -> None:
+        """Apply a new experiment configuration (loss, trajectory, ...), validated and
+        atomic.  Refused while an experiment runs.  Ts, isq_max and the safety limits
+        are structural: a config that changes them is refused too."""
+        cfg = validate_experiment_config(config)
+        if self.running:
+            raise RuntimeError(
+                'cannot change the experiment configuration while an experiment is running'
+            )
+        if cfg.control != self.config.control or cfg.safety != self.config.safety:
+            raise RuntimeError(
+                'control structure (Ts, isq_max, feedforward) and safety '
+                'limits cannot change at run time'
+            )
+        self.Q[:] = make_experiment_params(cfg)
+        fill_control_params(
+            self.CF,
+            cfg.fallback_gains,
+            cfg.control.Ts,
+            cfg.control.isq_max,
+            cfg.control.feedforward,
+        )
+        self.config = cfg
+
+    def abort_external(self, reason: int, time_ns: int) -> None:
+        """Torque off from outside (e.g. the drive-state watchdog): FAULT with ``reason``
+        (a ``REASON_*`` code); a running experiment ends aborted (penalised) at sim time
+        ``time_ns`` [ns] of the last state seen.  ``reset()`` clears the fault."""
+        R = self.R
+        if self.running:
+            _finish(R, self.Q, float(STATUS_ABORTED), float(reason), float(time_ns))
+        R[R_MODE] = MODE_FAULT
+        R[R_FAULT_REASON] = float(reason)
+
+    def start(self, experiment_id: int, gains: Gains | None = None) -> None:
+        """Arm experiment ``experiment_id`` (int >= 0) with ``gains`` (None: current);
+        the next ``step`` is its step 0.  It starts at the current hold reference and moves
+        by +distance (even id) or -distance (odd id)."""
+        if (
+            isinstance(experiment_id, bool)
+            or not isinstance(experiment_id, (int, np.integer))
+            or experiment_id < 0
+        ):
+            raise ValueError(f'experiment_id must be an integer >= 0, got {experiment_id!r}')
+        if self.R[R_MODE] == MODE_FAULT:
+            raise RuntimeError(f'runner in FAULT ({self.fault_reason}); call reset() first')
+        if self.running:
+            raise RuntimeError('an experiment is already running')
+        if not self.ready:
+            raise RuntimeError('still finishing the stopped move; wait until ready')
+        if gains is not None:
+            self.set_gains(gains)
+        R = self.R
+        d = 1.0 if experiment_id % 2 == 0 else -1.0
+        R[R_DIR] = d
+        R[R_THETA0] = R[R_HOLD_REF]
+        R[R_TARGET] = R[R_THETA0] + d * self.Q[Q_DIST]
+        R[R_N] = 0.0
+        for j in (R_S1, R_S2, R_S3, R_TERM1, R_TERM2, R_TERM3, R_ISQF, R_RESULT, R_REASON, R_STEPS):
+            R[j] = 0.0
+        R[R_TRIP_STEP] = -1.0
+        R[R_MODE] = MODE_RUN
+        self.experiment_id = int(experiment_id)
+        self._exp_gains = self.gains
+
+    def step(self, state: np.ndarray) -> tuple[float, float, int]:
+        """One drive state (float64 array, ``STATE_FIELDS`` order; fields 0-3 used) ->
+        (isq* [A], load torque command [N m], status)."""
+        st = experiment_step(self.R, self.Q, self.X, self.C, self.CF, state, self.cout, self.eout)
+        if st == STATUS_ABORTED and self.R[R_REASON] < REASON_POSITION:
+            self.gains = self.config.fallback_gains  # the kernel switched to them
+        return float(self.eout[E_ISQ]), float(self.eout[E_LOAD]), int(st)
+
+    # -- queries
+    @property
+    def running(self) -> bool:
+        return bool(self.R[R_MODE] == MODE_RUN)
+
+    @property
+    def ready(self) -> bool:
+        """True in plain position hold: ``start`` may be called."""
+        return bool(self.R[R_MODE] == MODE_HOLD)
+
+    @property
+    def faulted(self) -> bool:
+        return bool(self.R[R_MODE] == MODE_FAULT)
+
+    @property
+    def fault_reason(self) -> str:
+        return REASONS[int(self.R[R_FAULT_REASON])] if self.faulted else ''
+
+    @property
+    def hold_reference(self) -> float:
+        """Position [rad] held between experiments (the next experiment starts here)."""
+        return float(self.R[R_TARGET] if self.R[R_MODE] == MODE_RETURN else self.R[R_HOLD_REF])
+
+    @property
+    def target(self) -> float:
+        """End position [rad] of the current / last experiment."""
+        return float(self.R[R_TARGET])
+
+    def result(self) -> LossResult | None:
+        """The result of the last experiment, or None while running / before any."""
+        R = self.R
+        if R[R_RESULT] == 0.0 or self.running:
+            return None
+        aborted = R[R_RESULT] == STATUS_ABORTED
+        terms = (float(R[R_TERM1]), float(R[R_TERM2]), float(R[R_TERM3]))
+        loss = terms[0] + terms[1] + terms[2]
+        if aborted:
+            loss *= self.config.loss.penalty
+        trip = int(R[R_TRIP_STEP])
+        return LossResult(
+            experiment_id=self.experiment_id,
+            loss=float(loss),
+            terms=terms,
+            aborted=bool(aborted),
+            reason=REASONS[int(R[R_REASON])],
+            trip_step=trip,
+            trip_time=trip * self.config.control.Ts if trip >= 0 else -1.0,
+            gains=self._exp_gains,
+            t_start=int(R[R_START_NS]),
+            t_end=int(R[R_END_NS]),
+            steps=int(R[R_STEPS]),
+            direction=int(R[R_DIR]),
+        )
+
+
+# ------------------------------------------------------------------------- offline
+def config_for_drive(cfg: ExperimentConfig | None, sim: DriveSim) -> ExperimentConfig:
+    """``cfg`` with Ts and isq_max taken from the drive (they are drive properties)."""
+    cfg = ExperimentConfig() if cfg is None else cfg
+    ctl = dataclasses.replace(
+        cfg.control, Ts=float(sim.config.Ts), isq_max=float(sim.config.machine.isq_max)
+    )
+    return validate_experiment_config(dataclasses.replace(cfg, control=ctl))

@@ -1,0 +1,226 @@
+"""The offline bench: the controller's experiment kernel fused with the drive kernels in
+one numba loop, no ROS -- the oracle of the ROS tests and the engine of offline studies.
+
+Per step: ``experiment_step`` on drive state k, the drive steps with the command (exactly
+``DriveSim.step_into``), state <- k+1. The drive is driven through its public API
+(``DriveSim.run_kernel``: chunks that end on its noise-block boundaries), so a fused run
+and a step-by-step run (the node's path, ``python_loop=True``) give bit-identical results.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from im_controller.config import ExperimentConfig, Gains
+from im_controller.control import CONTROL_FIELDS, N_CONTROL_FIELDS
+from im_controller.kernel import experiment_step
+from im_controller.layout import (
+    E_ISQ,
+    E_LOAD,
+    E_STATUS,
+    EXP_FIELDS,
+    MODE_FAULT,
+    MODE_HOLD,
+    MODE_RETURN,
+    N_EXP_FIELDS,
+    Q_N,
+    Q_TEND,
+    Q_TS,
+    R_MODE,
+    R_N,
+    R_REASON,
+    REASON_POSITION,
+    STATUS_ABORTED,
+    STATUS_DONE,
+)
+from im_controller.result import LossResult
+from im_controller.runner import ExperimentRunner, config_for_drive
+from im_drive_sim import kernels as DK
+from im_drive_sim.sim import DriveSim
+
+__all__ = [
+    'N_REC',
+    'REC_FIELDS',
+    'config_for_drive',
+    'finish_stopped_move',
+    'hold_offline',
+    'run_experiment_offline',
+    'run_fused',
+]
+
+N_REC = DK.N_STATE_FIELDS + N_CONTROL_FIELDS + N_EXP_FIELDS
+REC_FIELDS: tuple[str, ...] = DK.STATE_FIELDS + CONTROL_FIELDS + EXP_FIELDS
+
+
+@njit(cache=True)
+def run_fused(
+    S: np.ndarray,
+    P: np.ndarray,
+    noise: np.ndarray,
+    R: np.ndarray,
+    Q: np.ndarray,
+    X: np.ndarray,
+    C: np.ndarray,
+    CF: np.ndarray,
+    state: np.ndarray,
+    cout: np.ndarray,
+    eout: np.ndarray,
+    rec: np.ndarray,
+    row0: int,
+    n_max: int,
+    record: bool,
+    stop_at_end: bool,
+) -> int:
+    """Controller/experiment kernel and drive kernel in one loop, at most ``n_max`` steps.
+
+    Per step: ``experiment_step`` on ``state`` (the drive state k), the drive steps with
+    the command (exactly ``DriveSim.step_into``), ``state`` <- state k+1.  Row
+    ``row0 + i`` of ``rec`` gets [state k, controller internals, experiment outputs].
+    Stops after a DONE/ABORTED/FAULT step if ``stop_at_end``.  Returns the steps done.
+    """
+    ns = DK.N_STATE_FIELDS
+    nc = N_CONTROL_FIELDS
+    for i in range(n_max):
+        st = experiment_step(R, Q, X, C, CF, state, cout, eout)
+        if record:
+            row = rec[row0 + i]
+            for j in range(ns):
+                row[j] = state[j]
+            for j in range(nc):
+                row[ns + j] = cout[j]
+            for j in range(N_EXP_FIELDS):
+                row[ns + nc + j] = eout[j]
+        DK.step_model(S, P, noise, eout[E_ISQ], eout[E_LOAD])
+        DK.write_out(S, P, state)
+        if stop_at_end and st >= STATUS_DONE:
+            return i + 1
+    return n_max
+
+
+def _run(
+    sim: DriveSim,
+    runner: ExperimentRunner,
+    n: int,
+    record: bool,
+    stop_at_end: bool,
+    python_loop: bool,
+) -> tuple[int, np.ndarray]:
+    state = np.zeros(DK.N_STATE_FIELDS)
+    sim.read_into(state)
+    rec = np.zeros((n if record else 1, N_REC))
+    done = 0
+    if python_loop:
+        # The ROS node's path, step by step through the public APIs (for equivalence tests).
+        ns, nc = DK.N_STATE_FIELDS, N_CONTROL_FIELDS
+        for i in range(n):
+            isq, load, st = runner.step(state)
+            if record:
+                rec[i, :ns] = state
+                rec[i, ns : ns + nc] = runner.cout
+                rec[i, ns + nc :] = runner.eout
+            sim.step_into(isq, load, state)
+            done += 1
+            if stop_at_end and st >= STATUS_DONE:
+                break
+        return done, rec[:done]
+    done = sim.run_kernel(
+        n,
+        lambda S, P, noise, offset, cnt: run_fused(
+            S,
+            P,
+            noise,
+            runner.R,
+            runner.Q,
+            runner.X,
+            runner.C,
+            runner.CF,
+            state,
+            runner.cout,
+            runner.eout,
+            rec,
+            offset if record else 0,
+            cnt,
+            record,
+            stop_at_end,
+        ),
+        (lambda: runner.eout[E_STATUS] >= STATUS_DONE) if stop_at_end else None,
+    )
+    if runner.eout[E_STATUS] == STATUS_ABORTED and runner.R[R_REASON] < REASON_POSITION:
+        runner.gains = runner.config.fallback_gains
+    return done, rec[:done]
+
+
+def _signals(rec: np.ndarray, Ts: float, t0_step: float) -> dict[str, np.ndarray]:
+    sig = {name: rec[:, j].copy() for j, name in enumerate(REC_FIELDS)}
+    sig['t'] = (sig['step_index'] - t0_step) * Ts
+    return sig
+
+
+def run_experiment_offline(
+    sim: DriveSim,
+    gains: Gains,
+    config: ExperimentConfig | None = None,
+    experiment_id: int = 0,
+    runner: ExperimentRunner | None = None,
+    record: bool = True,
+    python_loop: bool = False,
+) -> tuple[LossResult, dict[str, np.ndarray]]:
+    """Run one whole experiment against the pure drive core (no ROS).
+
+    sim: the drive, in whatever state it is (nothing is reset: state carries over).
+    gains: the candidate; config: experiment config (Ts, isq_max are taken from ``sim``).
+    runner: pass the same runner for consecutive experiments (it carries the controller
+        state and the hold reference); None creates one holding ``sim.theta_meas``.
+    record: return per-step signals (``REC_FIELDS`` + 't' [s from the start]); row n is
+        drive state n (before its command) with the controller internals and the
+        experiment outputs computed from it.
+    python_loop: step through ``ExperimentRunner.step``/``DriveSim.step_into`` in Python
+        (the node's path) instead of the fused numba loop; results are bit-identical.
+
+    Returns (LossResult, signals).  Same inputs -> bit-identical results.
+    """
+    if runner is None:
+        runner = ExperimentRunner(config_for_drive(config, sim), gains)
+        runner.reset(sim.theta_meas)
+    finish_stopped_move(sim, runner, python_loop)
+    runner.start(experiment_id, gains)
+    n = int(runner.Q[Q_N])
+    k0 = float(sim.step_index)
+    _done, rec = _run(sim, runner, n, record, True, python_loop)
+    res = runner.result()
+    assert res is not None, 'experiment did not finish'
+    sig = _signals(rec, runner.config.control.Ts, k0) if record else {}
+    return res, sig
+
+
+def finish_stopped_move(sim: DriveSim, runner: ExperimentRunner, python_loop: bool = False) -> int:
+    """After a supervisor stop the fallback gains finish the move (``ready`` is False):
+    run exactly the steps until it ends, or until a safety fault stops it -- what the
+    lock-step node does (it steps while not ready and pauses once ready or faulted).
+    Returns the steps run (0 if no stopped move is being finished)."""
+    R, Q = runner.R, runner.Q
+    if R[R_MODE] != MODE_RETURN:
+        return 0
+    # the steps left: the kernel ends the move on the step whose local index nn has
+    # nn Ts >= t_end (same float expression, so the same step)
+    nn, steps = R[R_N], 1
+    while not nn * Q[Q_TS] >= Q[Q_TEND]:
+        nn += 1.0
+        steps += 1
+    done, _ = _run(sim, runner, steps, False, True, python_loop)
+    assert R[R_MODE] in (MODE_HOLD, MODE_FAULT), 'the stopped move did not end'
+    return done
+
+
+def hold_offline(
+    sim: DriveSim,
+    runner: ExperimentRunner,
+    steps: int,
+    record: bool = False,
+    python_loop: bool = False,
+) -> dict[str, np.ndarray]:
+    """Run ``steps`` steps of whatever the runner is doing (normally the hold)."""
+    k0 = float(sim.step_index)
+    _done, rec = _run(sim, runner, int(steps), record, False, python_loop)
+    return _signals(rec, runner.config.control.Ts, k0) if record else {}

@@ -23,6 +23,7 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from im_controller.config import Gains
+from im_controller.contract import NO_DRIVE_STATE, SAFETY_FAULT, refusal_code
 from im_controller.controller_node import INTERNALS_FIELDS
 from im_controller.experiment import ExperimentRunner, config_for_drive
 from im_controller.messages import msg_to_result, result_to_msg
@@ -45,6 +46,7 @@ class Probe:
         # callback per spin could not keep up, and Fast DDS caps a reader at 5000 samples).
         self.spin_until = lambda pred, timeout: spin_until(lambda: self._drain() or pred(), timeout)
         self.start_client = self.node.create_client(Trigger, '/controller/start_experiment')
+        self.reset_client = self.node.create_client(Trigger, '/controller/reset_fault')
         self.params = AsyncParameterClient(self.node, '/controller')
         self.results = []
         self.internals = []
@@ -84,7 +86,14 @@ class Probe:
         n = len(self.results)
         resp = self.start()
         for _ in range(100):  # up to ~10 s
-            if resp.success or 'no drive state' not in resp.message:
+            code = refusal_code(resp.message)
+            if code == SAFETY_FAULT and 'drive_state_timeout' in resp.message:
+                # Real time on a loaded machine: the drive's states paused for longer than
+                # state_timeout before any experiment (issue 18). Reset it, as the tuner
+                # does (fault policy 'reset'), and start again.
+                reset = self.call(self.reset_client.call_async(Trigger.Request()))
+                assert reset.success or refusal_code(reset.message) == NO_DRIVE_STATE
+            elif resp.success or code != NO_DRIVE_STATE:
                 break
             # a controller that just came up: the drive re-sends its state every 0.1 s
             assert self.spin_until(lambda: False, 0.1) is False

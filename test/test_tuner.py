@@ -539,7 +539,7 @@ def test_one_tuner_per_run_directory_and_report_says_running(tmp_path, procs, wa
 def test_summary_names_each_sessions_drive_line_and_the_clock(run6):
     """A resumed run's summary said 'drive (this session)' for every session, and called a
     real drive's experiment time 'simulated'."""
-    from im_tuner.tuner_node import format_summary
+    from im_tuner.progress import format_summary
 
     s = json.loads((run6 / 'summary.json').read_text())
     run = yaml.safe_load((run6 / 'run.yaml').read_text())

@@ -1,0 +1,228 @@
+"""What the tuner prints: progress lines while it runs, and the run summary at the end."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from im_controller.config import GAIN_NAMES, GAIN_UNITS
+
+from .tuner_cli import SIM_BENCHES
+from .tuning import (
+    TuningRun,
+)
+
+
+class Progress:
+    """Evaluation i/N, best and last loss, ETA: one updating line on a terminal, a line
+    every 5 % otherwise; nothing with --quiet."""
+
+    def __init__(self, algo: str, budget: int, quiet: bool, stream=sys.stderr) -> None:
+        self.algo, self.budget, self.quiet, self.stream = algo, budget, quiet, stream
+        self.tty = stream.isatty()
+        self.t0 = time.monotonic()
+        self.n0: int | None = None
+        self.every = max(1, budget // 20)
+        self._open = False
+
+    def __call__(self, kind: str, rec: dict[str, Any], run: TuningRun) -> None:
+        if self.quiet:
+            return
+        st = run.state
+        if kind == 'reference':
+            self._line(
+                f'{self.algo}: start controller (reference) loss {self._fmt(rec)}', force=True
+            )
+            return
+        if kind == 'remeasure':
+            self._line(
+                f'{self.algo}: re-measured evaluation {rec["eval"]}: {self._fmt(rec)}', force=True
+            )
+            return
+        if self.n0 is None:
+            self.n0, self.t0 = st.evals - 1, time.monotonic()
+        i, n = st.evals, self.budget
+        rate = (time.monotonic() - self.t0) / max(i - self.n0, 1)
+        eta = int(rate * (n - i))
+        width = 24
+        fill = int(width * i / n)
+        best = f'{st.best["loss"]:.4f}' if st.best else '-'
+        text = (
+            f'{self.algo} [{"#" * fill}{"." * (width - fill)}] eval {i}/{n}  best {best}  '
+            f'last {self._fmt(rec)}  ETA {eta // 60}:{eta % 60:02d}'
+        )
+        self._line(text, force=i == n or i % self.every == 0)
+
+    @staticmethod
+    def _fmt(rec: dict[str, Any]) -> str:
+        if rec['status'] == 'lost':
+            return 'lost (re-run)'
+        return f'{rec["loss"]:.4f}' + (f' (aborted: {rec["reason"]})' if rec['aborted'] else '')
+
+    def _line(self, text: str, force: bool) -> None:
+        if self.tty:
+            self.stream.write('\r\x1b[2K' + text)
+            self._open = True
+            if force and not text.startswith(self.algo + ' ['):
+                self.stream.write('\n')
+                self._open = False
+            self.stream.flush()
+        elif force:
+            print(text, file=self.stream, flush=True)
+
+    def warn(self, text: str) -> None:
+        """Printed even with --quiet: something went wrong that the user must know."""
+        self.quiet, quiet = False, self.quiet
+        try:
+            self.note(text)
+        finally:
+            self.quiet = quiet
+
+    def note(self, text: str) -> None:
+        if self.quiet:
+            return
+        if self._open:
+            self.stream.write('\n')
+            self._open = False
+        print(text, file=self.stream, flush=True)
+
+    def close(self) -> None:
+        if self._open:
+            self.stream.write('\n')
+            self.stream.flush()
+            self._open = False
+
+
+def _gains_text(g: dict[str, float]) -> str:
+    return ', '.join(f'{n} {g[n]:.6g} {GAIN_UNITS[n]}' for n in GAIN_NAMES)
+
+
+def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
+    L = [
+        f'im_tuner: {run["algo"]}, {s["evaluations"]}/{s["budget"]} evaluations, seed '
+        f'{run["seed"]}: {s["outcome"]}'
+    ]
+    ref = s['reference']
+    if s['best'] is not None:
+        b = s['best']
+        rm = f'; re-measured {b["remeasured_loss"]:.4f}' if b['remeasured_loss'] is not None else ''
+        L.append(f'  best loss:   {b["loss"]:.4f} (evaluation {b["eval"]}{rm})')
+        L.append(f'  best gains:  {_gains_text(b["gains"])}')
+    else:
+        L.append('  best loss:   none (no evaluation completed without abort)')
+    if ref is not None:
+        L.append(
+            f'  start (hand-tuned) loss: {ref["loss"]:.4f}'
+            + (' (aborted)' if ref['aborted'] else '')
+        )
+    a = s['applied']
+    if a is not None and a.get('on_controller') is False:
+        L.append(
+            '  NOT applied: the controller could not be reached at the end; its gains are '
+            'whatever it had (best gains above)'
+        )
+    elif a is not None:
+        if a['source'] == 'reference':
+            L.append('  applied: the start gains (no evaluation beat them)')
+        else:
+            rm = (
+                f', re-measured {a["remeasured_loss"]:.4f}'
+                if a['remeasured_loss'] is not None
+                else ''
+            )
+            L.append(
+                f'  applied on the controller: evaluation {a["eval"]} (loss {a["loss"]:.4f}'
+                f'{rm})'
+                + (
+                    ''
+                    if s['best'] and a['eval'] == s['best']['eval']
+                    else f': {_gains_text(a["gains"])}'
+                )
+            )
+    sat = s['evaluations_to_satisfactory']
+    L.append(
+        f'  satisfactory (loss <= {s["satisfactory_loss"]:g}): '
+        + (f'after {sat} evaluations' if sat else 'not reached')
+    )
+    L.append(
+        f'  aborted experiments: {s["aborted"]} of {s["evaluations"]} (safety faults '
+        f'{s["safety_faults"]}); lost results re-run: {s["lost"]}'
+    )
+    rtf = s['real_time_factor']
+    # a real drive's experiments take drive time, not simulated time
+    clock = (
+        'simulated experiment time'
+        if run.get('bench') in SIM_BENCHES
+        else "experiment time (the drive's clock)"
+    )
+    L.append(
+        f'  wall time {s["wall_s"]:.1f} s (tuning loop {s["loop_wall_s"]:.1f} s); '
+        f'{clock} {s["sim_s"]:.1f} s; real-time factor ' + (f'{rtf:.2f}' if rtf else '-')
+    )
+    if s['optimizer_us_per_eval'] is not None:
+        L.append(f'  optimiser ask+tell: {s["optimizer_us_per_eval"]:.1f} us per evaluation')
+    sessions = s['sessions']
+    for i, p in enumerate(sessions):
+        if 'drive' in p:
+            L.append(
+                _drive_text(
+                    p['drive'],
+                    None
+                    if len(sessions) == 1
+                    else 'this session'
+                    if i == len(sessions) - 1
+                    else f'session {i + 1}' + (f', {p["bag"]}' if p.get('bag') else ''),
+                )
+            )
+    bags = [
+        b
+        for p in s['sessions']
+        for b in [p.get('bag'), *(m['bag'] for m in p.get('more_bags', []))]
+        if b
+    ]
+    L.append(
+        f'  run directory: {rundir}  (run.yaml, results.jsonl, summary.json'
+        + ''.join(f', {b}/' for b in bags)
+        + ')'
+    )
+    if len(s['sessions']) > 1:
+        rep = sum(p.get('replayed', 0) for p in s['sessions'])
+        L.append(
+            f'  sessions: {len(s["sessions"])} (resumed; {rep} experiments replayed to '
+            'restore the simulated plant)'
+            if rep
+            else f'  sessions: {len(s["sessions"])} (resumed)'
+        )
+    if s.get('report_command'):
+        L.append(f'  report (summary, plots, CSV): {s["report_command"]}')
+    return '\n'.join(L)
+
+
+def _drive_text(d: dict[str, Any] | None, which: str | None) -> str:
+    """One summary line of the drive's own counters (drive/status) in session ``which``
+    (None: the run has one session)."""
+    head = '  drive' + (f' ({which})' if which else '')
+    if d is None:
+        return f'{head}: no drive/status received (its counters are unknown)'
+
+    def n(k: str) -> str:
+        v = d.get(k)
+        return '-' if v is None else (f'{v:.0f}' if isinstance(v, float) else str(v))
+
+    if d.get('mode') == 'realtime':
+        text = (
+            f'{head} (real time): {n("steps")} periods, overruns {n("overruns")} (worst '
+            f'period-start lateness {n("max_lateness_us")} us), late commands {n("late")}, '
+            f'held {n("held")}, ignored {n("stale_ignored")}, watchdog trips '
+            f'{n("watchdog_trips")}'
+        )
+    else:
+        text = (
+            f'{head} ({d.get("mode")}): {n("steps")} steps, commands ignored '
+            f'{n("stale_ignored")}, states re-sent {n("republished")}'
+        )
+    if d.get('level', 0) >= 2:
+        text += f'; last status ERROR: {d.get("message")}'
+    return text

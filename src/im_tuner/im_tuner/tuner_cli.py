@@ -1,0 +1,309 @@
+"""The tuner's command line and run configuration: options, checks of a new run and of
+``run.yaml`` on ``--resume``, and the TuningRun built from them (no ROS)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import shlex
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from im_drive_sim.cli import Parser, UsageError, finite_float
+
+from . import optim
+from .link import FAULT_POLICIES, controller_topics
+from .optim.base import OptimizerError
+from .rundir import RunDir
+from .space import TunerParams, TunerParamsError, load_params, parse_params
+from .tuning import (
+    TuningRun,
+    run_seeds,
+)
+
+BENCHES = ('auto', 'inproc', 'processes', 'realtime', 'none')
+SIM_BENCHES = ('inproc', 'processes', 'realtime')
+#: simulated benches that repeat a plant history bit for bit (a resumed run replays it)
+LOCKSTEP_BENCHES = ('inproc', 'processes')
+RECORDER_RESTARTS = 3  # replacements of a recorder child that died, per session
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+#: settings a resumed run takes from run.yaml (giving them with --resume is an error)
+RUN_SETTINGS = (
+    'algo',
+    'budget',
+    'seed',
+    'params',
+    'remeasure',
+    'no_reference',
+    'model',
+    'drive_config',
+    'retries',
+)
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    ap = Parser(
+        prog='ros2 run im_tuner tuner',
+        description='Tune the cascaded position/speed controller online by SPSA or '
+        'a compact GA on measured experiment losses (docs/tuner.md).',
+    )
+    ap.add_argument('--algo', choices=optim.ALGOS, help='optimiser (default: necga)')
+    ap.add_argument(
+        '--budget', type=int, metavar='N', help='loss evaluations (default 200, as in the paper)'
+    )
+    ap.add_argument(
+        '--seed',
+        type=int,
+        metavar='S',
+        help="seed of the optimiser and of the simulated drive's noise "
+        '(default: a fresh one, printed and stored in run.yaml)',
+    )
+    ap.add_argument(
+        '--out',
+        type=Path,
+        metavar='DIR',
+        help='run directory to create (default: bags/tuner_<algo>_<UTC time>)',
+    )
+    ap.add_argument(
+        '--resume',
+        type=Path,
+        metavar='RUN_DIR',
+        help='continue the killed or interrupted run in RUN_DIR',
+    )
+    ap.add_argument(
+        '--bench',
+        choices=BENCHES,
+        help='where the controller comes from '
+        '(default: auto = use one on the graph, else simulate in-process; '
+        'realtime = the simulated bench as processes at 5 kHz wall clock)',
+    )
+    ap.add_argument('--quiet', action='store_true', help='no progress bar (for scripts)')
+    ap.add_argument(
+        '--params',
+        type=Path,
+        metavar='FILE',
+        help='tuner parameter file: search box, start point, satisfactory loss '
+        "(default: the packaged config/tuner.yaml, the paper's motor)",
+    )
+    ap.add_argument(
+        '--remeasure',
+        type=int,
+        metavar='K',
+        help='re-measure the K best distinct evaluations once at the end '
+        '(default 3; 0 = off); the best re-measured is left applied',
+    )
+    ap.add_argument(
+        '--no-reference',
+        action='store_true',
+        help='do not measure the start gains first (the reference)',
+    )
+    ap.add_argument(
+        '--retries',
+        type=int,
+        metavar='R',
+        help='re-runs of an evaluation whose result is lost (default 3)',
+    )
+    ap.add_argument(
+        '--eval-timeout',
+        type=finite_float(0.0, lo_open=True, unit='s'),
+        default=60.0,
+        metavar='S',
+        help='wall time allowed per experiment [s] (default 60)',
+    )
+    ap.add_argument(
+        '--fault-policy',
+        choices=FAULT_POLICIES,
+        help='after a safety fault: reset it and go on, or stop the run '
+        '(default: reset on the simulated bench, stop on an external one)',
+    )
+    ap.add_argument(
+        '--controller',
+        default='/controller',
+        metavar='NODE',
+        help='controller node name (default /controller)',
+    )
+    ap.add_argument('--no-record', action='store_true', help='do not record a bag')
+    ap.add_argument(
+        '--compression',
+        choices=('none', 'zstd', 'lz4'),
+        default='lz4',
+        help='MCAP chunk compression (default lz4)',
+    )
+    ap.add_argument(
+        '--model',
+        choices=('full', 'reduced'),
+        help="simulated bench: drive model fidelity (default: the drive file's)",
+    )
+    ap.add_argument(
+        '--drive-config',
+        type=Path,
+        metavar='FILE',
+        help="simulated bench: drive parameter file (default: the paper's motor)",
+    )
+    ap.add_argument(
+        '--discovery-timeout',
+        type=finite_float(0.0, 3600.0, unit='s'),
+        default=2.0,
+        metavar='S',
+        help='--bench auto/none: how long to look for a controller [s] (default 2)',
+    )
+    g = ap.add_argument_group('algorithm options (docs/optimisers.md)')
+    seen: dict[str, Any] = {}
+    for specs in optim.OPTIONS.values():
+        for name, spec in specs.items():
+            if name in seen:
+                continue
+            seen[name] = spec
+            algos = ', '.join(a for a, s in optim.OPTIONS.items() if name in s)
+            text = f'{spec.help} (default {spec.default!r}; for {algos})'
+            # argparse %-formats help texts: a literal % (e.g. "~10% of") must be doubled
+            kw: dict[str, Any] = {
+                'dest': f'opt_{name}',
+                'default': None,
+                'help': text.replace('%', '%%'),
+            }
+            choices = getattr(spec, 'choices', None)
+            if choices:
+                kw['choices'] = list(choices)
+            elif spec.type in (int, float):
+                kw['type'] = spec.type
+            g.add_argument(f'--{name.replace("_", "-")}', **kw)
+    return ap
+
+
+def _algo_options(cli: argparse.Namespace, algo: str) -> dict[str, Any]:
+    """The algorithm options given on the command line; an option of another algorithm
+    is an error (it would be silently ignored otherwise)."""
+    given = {k[4:]: v for k, v in vars(cli).items() if k.startswith('opt_') and v is not None}
+    mine = optim.OPTIONS[algo]
+    wrong = [n for n in given if n not in mine]
+    if wrong:
+        flags = ', '.join('--' + n.replace('_', '-') for n in wrong)
+        valid = ', '.join('--' + n.replace('_', '-') for n in mine) or 'none'
+        raise UsageError(f'{flags} does not apply to --algo {algo} (its options: {valid})')
+    return given
+
+
+# -- the run configuration -------------------------------------------------------------------
+def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str, Any], TunerParams]:
+    algo = cli.algo or 'necga'
+    budget = 200 if cli.budget is None else cli.budget
+    if budget < 1:
+        raise UsageError(f'--budget must be >= 1 loss evaluations, got {budget}')
+    if cli.seed is not None and cli.seed < 0:
+        raise UsageError(f'--seed must be >= 0, got {cli.seed}')
+    seed = cli.seed if cli.seed is not None else int(np.random.SeedSequence().entropy % 2**31)
+    remeasure = 3 if cli.remeasure is None else cli.remeasure
+    if remeasure < 0:
+        raise UsageError(f'--remeasure must be >= 0, got {remeasure}')
+    retries = 3 if cli.retries is None else cli.retries
+    if retries < 0:
+        raise UsageError(f'--retries must be >= 0, got {retries}')
+    if not cli.eval_timeout > 0 or not math.isfinite(cli.eval_timeout):
+        raise UsageError(f'--eval-timeout must be > 0 s, got {cli.eval_timeout}')
+    try:
+        params = load_params(cli.params)
+    except TunerParamsError as exc:
+        raise UsageError(str(exc)) from None
+    if cli.drive_config is not None:
+        from im_drive_sim.params import ConfigError, load_config
+
+        try:
+            load_config(cli.drive_config)
+        except ConfigError as exc:
+            raise UsageError(str(exc)) from None
+    options = _algo_options(cli, algo)
+    opt_ss, drive_seed = run_seeds(seed)
+    try:  # validate the options now: nothing is created on bad input
+        optim.make_optimizer(algo, params.space.dim, opt_ss, _start(algo, params), **options)
+    except OptimizerError as exc:
+        raise UsageError(str(exc)) from None
+    run = {
+        'algo': algo,
+        'options': options,
+        'budget': budget,
+        'seed': seed,
+        'drive_seed': drive_seed,
+        'remeasure': remeasure,
+        'reference': not cli.no_reference,
+        'retries': retries,
+        'satisfactory_loss': params.satisfactory_loss,
+        'params_file': params.source,
+        'search_box': params.space.as_dict(),
+        'command': ' '.join(shlex.quote(a) for a in argv),
+    }
+    return run, params
+
+
+def _start(algo: str, params: TunerParams) -> np.ndarray | None:
+    """SPSA starts from the file's start point; the compact GAs from their distribution."""
+    return params.space.start_u if algo in optim.TAKES_START else None
+
+
+def _check_controller_name(name: str) -> None:
+    """The controller's node name must make valid ROS names for its services and topics."""
+    from rclpy.exceptions import InvalidServiceNameException, InvalidTopicNameException
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+
+    try:
+        for topic in controller_topics(name).values():
+            validate_full_topic_name(topic)
+    except (InvalidTopicNameException, InvalidServiceNameException) as exc:
+        raise UsageError(
+            f'--controller {name!r}: not a valid node name ({str(exc).splitlines()[0]})'
+        ) from None
+
+
+def _check_run(run: dict[str, Any], where: str) -> None:
+    """run.yaml of a run to resume: the settings the tuner reads, with their types."""
+
+    def bad(key: str, what: str) -> UsageError:
+        return UsageError(f'{where}: {key} must be {what}, got {run.get(key)!r}')
+
+    def is_int(v: Any) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool)
+
+    if run.get('algo') not in optim.ALGOS:
+        raise bad('algo', 'one of ' + ', '.join(optim.ALGOS))
+    if not is_int(run.get('budget')) or run['budget'] < 1:
+        raise bad('budget', 'an integer >= 1')
+    for key in ('seed', 'drive_seed', 'remeasure', 'retries'):
+        if not is_int(run.get(key)) or run[key] < 0:
+            raise bad(key, 'an integer >= 0')
+    if not isinstance(run.get('options'), dict):
+        raise bad('options', 'a mapping of algorithm options')
+    if not isinstance(run.get('reference'), bool):
+        raise bad('reference', 'true or false')
+    if not isinstance(run.get('search_box'), dict):
+        raise bad('search_box', 'a mapping (the search box)')
+
+
+def _params_of_run(run: dict[str, Any]) -> TunerParams:
+    box = {n: {k: v[k] for k in ('lo', 'hi', 'start')} for n, v in run['search_box'].items()}
+    return parse_params(
+        {'search_box': box, 'satisfactory_loss': run['satisfactory_loss']},
+        f'run.yaml ({run.get("params_file")})',
+    )
+
+
+def _make_tuning(rundir: RunDir, run: dict[str, Any], params: TunerParams, progress) -> TuningRun:
+    opt_ss, _ = run_seeds(run['seed'])
+    opt = optim.make_optimizer(
+        run['algo'], params.space.dim, opt_ss, _start(run['algo'], params), **run['options']
+    )
+    return TuningRun(
+        rundir,
+        params.space,
+        opt,
+        budget=run['budget'],
+        satisfactory_loss=params.satisfactory_loss,
+        remeasure=run['remeasure'],
+        retries=run['retries'],
+        reference=run['reference'],
+        progress=progress,
+    )
+
+
+# -- progress and summary ----------------------------------------------------------------------

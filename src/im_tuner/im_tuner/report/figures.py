@@ -1,0 +1,319 @@
+"""The report's figures after the paper's Figs. 5, 8 and 9 (matplotlib, Agg)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from im_controller.config import GAIN_NAMES, GAIN_UNITS
+
+from .load import (
+    Experiment,
+    RunReport,
+)
+from .table import (
+    _best_so_far,
+)
+
+# --------------------------------------------------------------------------- figures
+_START_COLOR = 'black'
+
+
+def _colors(n: int) -> list:
+    import matplotlib
+
+    cmap = matplotlib.colormaps['tab10']
+    return [cmap(i % 10) for i in range(n)]
+
+
+def _load_step(rr: RunReport) -> float | None:
+    p = rr.run.get('controller_parameters') or {}
+    v = p.get('trajectory.load_delay')
+    return float(v) if v is not None else None
+
+
+def fig5(runs: list[RunReport]):
+    """Position reference and load torque of two consecutive experiments (paper Fig. 5)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, 5.5), layout='constrained')
+    ax_p, ax_l = fig.subplots(2, 1, sharex=True)
+    rr = next((r for r in runs if r.consecutive), None)
+    if rr is None:
+        ax_p.text(
+            0.5,
+            0.5,
+            'no two consecutive experiments in the bags',
+            ha='center',
+            va='center',
+            transform=ax_p.transAxes,
+        )
+    else:
+        e0 = rr.consecutive[0]
+        t_ref = e0.record['t_start_ns'] * 1e-9
+        th0 = e0.signals['theta_ref'][0]
+        for j, e in enumerate(rr.consecutive):
+            t = e.t + (e.record['t_start_ns'] * 1e-9 - t_ref)
+            what = (
+                'start gains'
+                if e.record['kind'] == 'reference'
+                else f'evaluation {e.record["eval"]}'
+            )
+            ax_p.plot(
+                t,
+                e.signals['theta_ref'] - th0,
+                color='C0',
+                lw=1.5,
+                label='position reference' if j == 0 else None,
+                gid=f'theta_ref:{j}',
+            )
+            ax_l.plot(
+                t,
+                e.signals['load_cmd'],
+                color='C3',
+                lw=1.5,
+                label='load torque' if j == 0 else None,
+                gid=f'load:{j}',
+            )
+            for ax in (ax_p, ax_l):
+                ax.axvline(t[0], color='grey', lw=0.8, ls=':')
+            ax_p.annotate(
+                f'experiment {e.record["experiment_id"]}\n({what})',
+                (t[0], 0),
+                xytext=(4, -4),
+                textcoords='offset points',
+                va='top',
+                fontsize=8,
+            )
+        ax_p.set_title(
+            f'{rr.label}: position reference and load torque of two consecutive experiments'
+        )
+    ax_p.set_ylabel('position reference θ* − θ*(0) [rad]')
+    ax_l.set_ylabel('load torque [N m]')
+    ax_l.set_xlabel("sim time from the first experiment's start [s]")
+    for ax in (ax_p, ax_l):
+        ax.grid(True, alpha=0.3)
+    return fig
+
+
+def fig8(runs: list[RunReport]):
+    """Position error, speed error, current reference: best vs start controller (Fig. 8).
+
+    Signals of a negative move are multiplied by -1 so that every move reads as positive."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, 8), layout='constrained')
+    axes = fig.subplots(3, 1, sharex=True)
+    panels = (
+        ('e_theta', 'position error [rad]'),
+        ('e_omega', 'speed error [rad/s]'),
+        ('isq_ref', 'current reference i*sq [A]'),
+    )
+    curves: list[tuple[str, str, Experiment, Any, float, str]] = []
+    starts: dict[tuple[float, ...], tuple[RunReport, Experiment]] = {}
+    for rr in runs:  # runs from the same start gains share one start curve
+        e = rr.reference
+        if e is not None:
+            starts.setdefault(tuple(e.record['gains'][n] for n in GAIN_NAMES), (rr, e))
+    for j, (rr, e) in enumerate(starts.values()):  # several different starts: dashes
+        curves.append(
+            (
+                f'start:{rr.label}',
+                f'start gains (loss {e.record["loss"]:.3f}'
+                + (', aborted)' if e.record['aborted'] else ')')
+                + ('' if len(starts) == 1 else f', {rr.label}'),
+                e,
+                _START_COLOR,
+                1.0,
+                ('-', '--', ':', '-.')[j % 4],
+            )
+        )
+    for rr, c in zip(runs, _colors(len(runs)), strict=True):
+        e = rr.best
+        if e is not None:
+            curves.append(
+                (
+                    f'best:{rr.label}',
+                    f'{rr.label} best: evaluation {e.record["eval"]} (loss {e.record["loss"]:.3f})',
+                    e,
+                    c,
+                    1.4,
+                    '-',
+                )
+            )
+    for gid, label, e, color, lw, ls in curves:
+        for ax, (name, _yl) in zip(axes, panels, strict=True):
+            ax.plot(
+                e.t,
+                e.direction * e.signals[name],
+                color=color,
+                lw=lw,
+                ls=ls,
+                label=label,
+                gid=f'{name}:{gid}',
+            )
+    step = _load_step(runs[0]) if runs else None
+    for ax, (_n, yl) in zip(axes, panels, strict=True):
+        ax.set_ylabel(yl)
+        ax.grid(True, alpha=0.3)
+        if step is not None:
+            ax.axvline(step, color='grey', lw=0.8, ls=':')
+    if step is not None:
+        axes[0].annotate(
+            'load torque step',
+            (step, 1),
+            xycoords=('data', 'axes fraction'),
+            xytext=(3, -3),
+            textcoords='offset points',
+            va='top',
+            fontsize=8,
+        )
+    axes[-1].set_xlabel("time from the experiment's start [s]")
+    if curves:
+        axes[0].legend(fontsize=8, loc='lower right')
+    else:
+        axes[0].text(
+            0.5,
+            0.5,
+            'no experiment signals in the bags',
+            ha='center',
+            va='center',
+            transform=axes[0].transAxes,
+        )
+    flipped = any(c[2].direction < 0 for c in curves)
+    fig.suptitle(
+        'best controller vs start controller under the load torque step'
+        + ('\n(negative moves plotted with their sign reversed)' if flipped else ''),
+        fontsize=10,
+    )
+    return fig
+
+
+def fig9_loss(runs: list[RunReport]):
+    """Loss per evaluation and the best so far, each run (paper Fig. 9 a, b)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, 5), layout='constrained')
+    ax = fig.subplots()
+    for rr, c in zip(runs, _colors(len(runs)), strict=True):
+        ev = rr.evals
+        if not ev:
+            continue
+        x = np.array([r['eval'] + 1 for r in ev], float)
+        y = np.array([r['loss'] for r in ev], float)
+        ab = np.array([bool(r['aborted']) for r in ev])
+        best = np.array(_best_so_far(ev), dtype=float)  # None -> nan
+        ax.plot(
+            x[~ab],
+            y[~ab],
+            '.',
+            ms=4,
+            color=c,
+            alpha=0.6,
+            label=f'{rr.label}: loss',
+            gid=f'loss:{rr.label}',
+        )
+        if ab.any():
+            ax.plot(
+                x[ab],
+                y[ab],
+                'x',
+                ms=5,
+                color=c,
+                alpha=0.8,
+                label=f'{rr.label}: aborted (penalised)',
+                gid=f'aborted:{rr.label}',
+            )
+        ax.step(
+            x,
+            best,
+            where='post',
+            color=c,
+            lw=2,
+            label=f'{rr.label}: best so far',
+            gid=f'best:{rr.label}',
+        )
+        sat = rr.summary.get('evaluations_to_satisfactory')
+        if sat:
+            ax.plot(
+                [sat],
+                [best[sat - 1]],
+                'v',
+                color=c,
+                ms=9,
+                mec='black',
+                gid=f'satisfactory:{rr.label}',
+            )
+    if runs:
+        s0 = runs[0].summary
+        ax.axhline(
+            s0['satisfactory_loss'],
+            color='grey',
+            ls='--',
+            lw=1,
+            label=f'satisfactory loss {s0["satisfactory_loss"]:g}',
+            gid='satisfactory',
+        )
+        ref = s0.get('reference')
+        if ref is not None and not ref['aborted']:
+            ax.axhline(
+                ref['loss'],
+                color=_START_COLOR,
+                ls=':',
+                lw=1,
+                label=f'start gains {ref["loss"]:.3f}',
+                gid='start',
+            )
+    ax.set_yscale('log')
+    ax.set_xlabel('evaluation')
+    ax.set_ylabel('loss')
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend(fontsize=8, ncols=2, loc='upper right')
+    ax.set_title('loss per evaluation and best so far (▼: first satisfactory)')
+    return fig
+
+
+def fig9_gains(runs: list[RunReport]):
+    """Each gain over the evaluations, each run, inside its search box (Fig. 9 c, d)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, 10), layout='constrained')
+    axes = fig.subplots(len(GAIN_NAMES), 1, sharex=True)
+    for rr, c in zip(runs, _colors(len(runs)), strict=True):
+        ev = rr.evals
+        x = np.array([r['eval'] + 1 for r in ev], float)
+        for ax, n in zip(axes, GAIN_NAMES, strict=True):
+            ax.plot(
+                x,
+                [r['gains'][n] for r in ev],
+                '.-',
+                ms=3,
+                lw=0.7,
+                color=c,
+                label=rr.label,
+                gid=f'{n}:{rr.label}',
+            )
+    box = (runs[0].run.get('search_box') or {}) if runs else {}
+    for ax, n in zip(axes, GAIN_NAMES, strict=True):
+        b = box.get(n)
+        if b:
+            for v in (b['lo'], b['hi']):
+                ax.axhline(v, color='grey', ls='--', lw=0.8)
+            ax.axhline(b['start'], color=_START_COLOR, ls=':', lw=1, gid=f'start:{n}')
+        ax.set_ylabel(f'{n} [{GAIN_UNITS[n]}]')
+        ax.grid(True, alpha=0.3)
+    axes[-1].set_xlabel('evaluation')
+    axes[0].legend(fontsize=8)
+    axes[0].set_title('gains over the evaluations (dashed: search box; dotted: start)')
+    return fig
+
+
+def make_figures(runs: list[RunReport]) -> dict[str, Any]:
+    """name -> matplotlib Figure (not drawn on any screen)."""
+    return {
+        'fig5_trajectory': fig5(runs),
+        'fig8_best_vs_start': fig8(runs),
+        'fig9_loss': fig9_loss(runs),
+        'fig9_gains': fig9_gains(runs),
+    }

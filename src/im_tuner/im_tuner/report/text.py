@@ -1,0 +1,153 @@
+"""The report's summary text (summary.txt, also printed)."""
+
+from __future__ import annotations
+
+import datetime as _dt
+from typing import Any
+
+from im_controller.config import GAIN_NAMES, GAIN_UNITS
+
+from ..bagread import BagData
+from .load import (
+    RunReport,
+)
+
+
+# --------------------------------------------------------------------------- summary
+def _gains_text(g: dict[str, float]) -> str:
+    return ', '.join(f'{n} {g[n]:.6g} {GAIN_UNITS[n]}' for n in GAIN_NAMES)
+
+
+def _options_text(run: dict[str, Any]) -> str:
+    opts = run.get('options') or {}
+    return ', '.join(f'{k}={v}' for k, v in opts.items()) or 'defaults'
+
+
+def summary_text(rr: RunReport) -> str:
+    """The printed summary of one run (see the module docstring)."""
+    s, run = rr.summary, rr.run
+    L = [
+        f'run {rr.path}: {run.get("algo")} ({_options_text(run)}), seed {run.get("seed")}, '
+        f'budget {run.get("budget")}, bench {run.get("bench")}'
+    ]
+    L.append(
+        f'  outcome: {s["outcome"]}; {s["evaluations"]}/{s["budget"]} evaluations, '
+        f'{s["experiments"]} experiments'
+        + ('' if rr.summary_source == 'summary.json' else ' (from results.jsonl)')
+    )
+    ref = s.get('reference')
+    if ref is not None:
+        L.append(
+            f'  start (hand-tuned) loss: {ref["loss"]:.4f}'
+            + (' (aborted)' if ref['aborted'] else '')
+            + f': {_gains_text(ref["gains"])}'
+        )
+    b = s.get('best')
+    if b is not None:
+        rm = (
+            f', re-measured {b["remeasured_loss"]:.4f}'
+            if b.get('remeasured_loss') is not None
+            else ''
+        )
+        L.append(f'  best loss: {b["loss"]:.4f} (evaluation {b["eval"]}{rm})')
+        L.append(f'  best gains: {_gains_text(b["gains"])}')
+    else:
+        L.append('  best loss: none (no evaluation completed without abort)')
+    a = s.get('applied')
+    if a is not None and (b is None or a['eval'] != b['eval']):
+        L.append(
+            '  applied at the end: '
+            + (
+                'the start gains'
+                if a['source'] == 'reference'
+                else f'evaluation {a["eval"]} (loss {a["loss"]:.4f})'
+            )
+        )
+    sat = s.get('evaluations_to_satisfactory')
+    L.append(
+        f'  satisfactory (loss <= {s["satisfactory_loss"]:g}): '
+        + (f'after {sat} evaluations' if sat else 'not reached')
+    )
+    L.append(
+        f'  aborted experiments: {s["aborted"]} of {s["evaluations"]} evaluations '
+        f'(safety faults {s["safety_faults"]}); lost results re-run: {s["lost"]}'
+    )
+    rtf = s.get('real_time_factor')
+    wall = f'wall time {s["wall_s"]:.1f} s, ' if s.get('wall_s') is not None else ''
+    L.append(
+        f'  {wall}simulated experiment time {s["sim_s"]:.1f} s'
+        + (f', real-time factor {rtf:.2f}' if rtf else '')
+    )
+    for bag in rr.bags:
+        L.extend(_bag_lines(bag, live=rr.live is not None))
+    L.extend(f'  bag {e}' for e in rr.bag_errors)
+    if not rr.bags and not rr.bag_errors:
+        L.append('  no bag (run with --no-record?)')
+    if rr.loss_check and rr.bags:
+        c = rr.loss_check
+        L.append(
+            f'  losses in the bags vs results.jsonl: {c["matched"]} equal'
+            + (
+                f" ({c['elsewhere']} found only in a later session's replay)"
+                if c.get('elsewhere')
+                else ''
+            )
+            + (f', {c["differ"]} DIFFER' if c['differ'] else '')
+            + (f', {c["missing"]} not in a bag' if c['missing'] else '')
+        )
+    L.extend(f'  no signals in the bags for {m}: its plot is left out' for m in rr.missing)
+    return '\n'.join(L)
+
+
+def _bag_lines(bag: BagData, live: bool = False) -> list[str]:
+    t0, t1 = bag.t_range_ns
+    when = (
+        _dt.datetime.fromtimestamp(t0 * 1e-9, _dt.UTC).strftime('%Y-%m-%d %H:%M:%S UTC')
+        if t0
+        else '-'
+    )
+    if bag.complete:
+        state = 'closed' if bag.state == 'closed' else f'complete ({bag.state})'
+    elif live and bag.state == 'recording':
+        state = (
+            f'being recorded (the run is live; {bag.unread_bytes} bytes after the last '
+            'complete chunk not read yet)'
+        )
+    else:
+        state = (
+            f'NOT CLOSED (recorder killed; {bag.unread_bytes} bytes after the last '
+            'complete chunk not read; --resume repairs it)'
+        )
+    L = [
+        f'  {bag.path.name}: {state}; {bag.messages} messages in {bag.chunks} chunks, '
+        f'{(t1 - t0) * 1e-9:.1f} s from {when}'
+    ]
+    rc = bag.recorder_counts
+    w = max([len(n) for n in bag.topics] + [5])
+    wt = max([len(t.type) for t in bag.topics.values()] + [4])
+    L.append(
+        f'    {"topic":<{w}}  {"type":<{wt}} {"messages":>9} {"wall rate":>10}  '
+        'recorded / published'
+    )
+    empty = []
+    for name in sorted(bag.topics):
+        t = bag.topics[name]
+        if t.count == 0:
+            empty.append(name)
+            continue
+        rate = f'{t.rate_hz:7.1f} Hz' if t.rate_hz else f'{"-":>10}'
+        if rc is None or name not in rc:
+            check = 'not known (bag not closed by the recorder)'
+        else:
+            c = rc[name]
+            check = f'{c["recorded"]} / {c["published"]}'
+            if c['lost'] or c['recorded'] != t.count:
+                check += f'  <-- LOST {c["lost"]}' if c['lost'] else f'  <-- file has {t.count}'
+            elif c.get('published_before_recording'):
+                check += f' (+{c["published_before_recording"]} before recording began)'
+            else:
+                check += ' ok'
+        L.append(f'    {name:<{w}}  {t.type:<{wt}} {t.count:>9} {rate}  {check}')
+    if empty:
+        L.append(f'    no messages: {", ".join(empty)}')
+    return L

@@ -468,7 +468,11 @@ class ControllerNode(LenientDoubles, Node):
             )
         else:
             eid = self.next_experiment_id
-            r.start(eid, self.gains)
+            # The gains were applied when they were set (post-set callback); only after a
+            # supervisor stop, whose fallback gains finished the move, do the parameters'
+            # gains go back in here. Applied once per evaluation either way.
+            gains = self.gains
+            r.start(eid, None if r.gains == gains else gains)
             self.next_experiment_id += 1
             response.success = True
             response.message = C.started(eid)

@@ -140,6 +140,8 @@ def check_record(rec: dict[str, Any]) -> str | None:
 class RunDir:
     """A run directory (see the module docstring)."""
 
+    durable = True  #: records fsync'ed and checkpoints written (a run can be resumed)
+
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
         self._lock_fd: int | None = None

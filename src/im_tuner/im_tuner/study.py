@@ -7,9 +7,11 @@ The grid (paper, "Summary of experimental results"): SPSA over a in {a0/5, a0, 5
 c in {c0/5, c0, 5 c0} (a0 = 0.0183, c0 = 0.03; A = 20, alpha = gamma = 0.3), neCGA over
 n in {5, 25, 125} with eta = floor(n/2); ``runs`` runs of ``budget`` loss evaluations per
 configuration.  Everything runs in-process on the same numba kernels as the nodes
-(``im_tuner.bench.offline.run_experiment_offline``), in a process pool.
+(``im_tuner.bench.offline``), in a process pool.
 
-**A study run is a tuner run.**  Run r of every configuration uses the run seed
+**A study run is a tuner run**, by construction: it is the tuner's own ``TuningRun`` on
+the offline bench (``bench.offline.OfflineBench``), its records kept in memory
+(``tuning.MemoryRecord``: no files, no checkpoints).  Run r of every configuration uses the run seed
 ``run_seed(seed, r)`` and does exactly what ``ros2 run im_tuner tuner --seed <run seed>
 --remeasure 1`` does on the simulated lock-step bench (``tuning.run_seeds`` splits the
 run seed into the optimiser's and the drive's streams): a fresh drive at rest, one
@@ -50,14 +52,12 @@ from typing import Any
 import numpy as np
 
 from im_controller.config import GAIN_NAMES, Gains
-from im_controller.experiment import SAFETY_REASONS, ExperimentRunner, config_for_drive
 from im_drive_sim.params import DriveConfig, load_config
-from im_drive_sim.sim import DriveSim
 
 from . import optim
-from .bench.offline import finish_stopped_move, run_experiment_offline
+from .bench.offline import OfflineBench
 from .space import SearchSpace, TunerParams, load_params
-from .tuning import run_seeds
+from .tuning import MemoryRecord, TuningRun, run_seeds
 
 __all__ = [
     'ARRAYS_FILE',
@@ -226,41 +226,6 @@ class RunResult:
     exp_s: float  #: wall time in experiments [s]
 
 
-class _Bench:
-    """The simulated lock-step bench as the tuner drives it, on the pure core: a drive
-    at rest, a controller holding it, experiment ids 0, 1, ... and the fault policy
-    'reset' (the controller is reset where the drive is, as ``reset_fault`` does)."""
-
-    def __init__(self, drive: DriveConfig, drive_seed: int) -> None:
-        self.sim = DriveSim(drive, seed=drive_seed)
-        self.sim.reset(omega=0.0, fluxed=True)  # at rest, half a count in (start_position)
-        self.runner = ExperimentRunner(config_for_drive(None, self.sim), Gains())
-        self.runner.reset(self.sim.theta_meas)
-        self.next_id = 0
-
-    def measure(self, gains: Gains) -> tuple[float, bool, bool]:
-        """(loss, aborted, safety fault) of one experiment with ``gains``."""
-        # a stopped move is finished first; a safety fault during it is reset, as the
-        # link does when the start is refused with a safety fault
-        finish_stopped_move(self.sim, self.runner)
-        if self.runner.faulted:
-            self.runner.reset(self.sim.theta_meas)
-        res, _ = run_experiment_offline(
-            self.sim, gains, self.runner.config, self.next_id, self.runner, record=False
-        )
-        self.next_id += 1
-        fault = res.reason in SAFETY_REASONS
-        if fault:
-            self.runner.reset(self.sim.theta_meas)
-        return res.loss, res.aborted, fault
-
-
-def _iteration(opt: optim.Optimizer) -> int:
-    """The optimiser's iteration the next evaluation belongs to (1-based): SPSA iteration,
-    GA generation (the paper's 'iterations' of Table III)."""
-    return opt.iterations + 1
-
-
 def run_one(
     spec: StudySpec,
     cell_index: int,
@@ -268,7 +233,8 @@ def run_one(
     drive: DriveConfig | None = None,
     params: TunerParams | None = None,
 ) -> RunResult:
-    """Run ``r`` of cell ``cell_index`` (see the module docstring: a tuner run offline)."""
+    """Run ``r`` of cell ``cell_index``: the tuner's own :class:`TuningRun` (reference,
+    budget, best, re-measurement) on the offline bench, its records kept in memory."""
     cell = spec.cells[cell_index]
     drive = spec.drive() if drive is None else drive
     params = spec.params() if params is None else params
@@ -283,54 +249,59 @@ def run_one(
         space.start_u if cell.algo in optim.TAKES_START else None,
         **cell.opts,
     )
-    bench = _Bench(drive, drive_seed)
-    t_exp = time.perf_counter()
-    ref_loss, ref_aborted, _ = bench.measure(Gains(*start))
-    exp_s = time.perf_counter() - t_exp
     B = spec.budget
-    losses = np.empty(B)
-    aborted = np.zeros(B, dtype=bool)
-    faults = np.zeros(B, dtype=bool)
     iteration = np.empty(B, dtype=np.int32)
-    best_eval, best_loss = -1, math.inf
-    best_gains: tuple[float, ...] = tuple(math.nan for _ in GAIN_NAMES)
-    opt_s = 0.0
-    for e in range(B):
-        t0 = time.perf_counter()
-        iteration[e] = _iteration(opt)
-        u = opt.ask()
-        gains = space.to_gains(u)
-        t1 = time.perf_counter()
-        loss, ab, fault = bench.measure(gains)
-        t2 = time.perf_counter()
-        opt.tell(u, loss)
-        opt_s += (t1 - t0) + (time.perf_counter() - t2)
-        exp_s += t2 - t1
-        losses[e], aborted[e], faults[e] = loss, ab, fault
-        if not ab and loss < best_loss:  # ties: the earlier evaluation (tuner's order)
-            best_eval, best_loss = e, loss
-            best_gains = gains.as_tuple()
-    remeasured = math.nan
-    if best_eval >= 0 and spec.remeasure:
-        t0 = time.perf_counter()
-        remeasured = bench.measure(Gains(*best_gains))[0]
-        exp_s += time.perf_counter() - t0
+    # The paper's iteration each evaluation belongs to (Table III): the optimiser's,
+    # 1-based, as it stood when the evaluation was asked (after the previous tell).
+    nxt = [opt.iterations + 1]
+
+    def progress(kind: str, rec: dict[str, Any], _run: TuningRun) -> None:
+        if kind == 'eval':
+            iteration[rec['eval']] = nxt[0]
+            nxt[0] = opt.iterations + 1
+
+    t0 = time.perf_counter()
+    tuning = TuningRun(
+        MemoryRecord(),
+        space,
+        opt,
+        budget=B,
+        satisfactory_loss=params.satisfactory_loss,
+        remeasure=1 if spec.remeasure else 0,
+        retries=0,
+        reference=True,
+        progress=progress,
+    )
+    outcome = tuning.run(OfflineBench(drive, drive_seed))
+    wall = time.perf_counter() - t0
+    if outcome != 'done':
+        raise RuntimeError(f'study run {cell.label} #{r}: {outcome}')
+    recs = tuning.records
+    ref = next(x for x in recs if x['kind'] == 'reference')
+    evals = [x for x in recs if x['kind'] == 'eval']
+    rem = [x for x in recs if x['kind'] == 'remeasure']
+    best = tuning.state.best
+    exp_s = sum(x['wall_s'] for x in recs)
     return RunResult(
         cell=cell_index,
         run=r,
         run_seed=rseed,
         drive_seed=drive_seed,
         start=start,
-        ref_loss=ref_loss,
-        ref_aborted=ref_aborted,
-        losses=losses,
-        aborted=aborted,
-        faults=faults,
+        ref_loss=ref['loss'],
+        ref_aborted=ref['aborted'],
+        losses=np.array([x['loss'] for x in evals]),
+        aborted=np.array([x['aborted'] for x in evals], dtype=bool),
+        faults=np.array([x['fault'] for x in evals], dtype=bool),
         iteration=iteration,
-        best_eval=best_eval,
-        best_gains=best_gains,
-        remeasured=remeasured,
-        opt_s=opt_s,
+        best_eval=-1 if best is None else int(best['eval']),
+        best_gains=(
+            tuple(math.nan for _ in GAIN_NAMES)
+            if best is None
+            else tuple(float(best['gains'][n]) for n in GAIN_NAMES)
+        ),
+        remeasured=rem[0]['loss'] if rem else math.nan,
+        opt_s=wall - exp_s,
         exp_s=exp_s,
     )
 
@@ -341,10 +312,10 @@ def reference_loss(
     """L_ref: (mean, standard error of the mean) of the hand-tuned start's loss over
     ``experiments`` consecutive experiments after the first from rest (drive file seed),
     and that first one's loss.  Deterministic for a drive file and model."""
-    bench = _Bench(drive, drive.seed)
+    bench = OfflineBench(drive, drive.seed)
     g = Gains()
-    first = bench.measure(g)[0]
-    x = np.array([bench.measure(g)[0] for _ in range(experiments)])
+    first = bench.measure(g).loss
+    x = np.array([bench.measure(g).loss for _ in range(experiments)])
     return float(x.mean()), float(x.std(ddof=1) / math.sqrt(len(x))), float(first)
 
 

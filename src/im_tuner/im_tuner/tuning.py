@@ -36,6 +36,7 @@ import datetime as _dt
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -51,7 +52,9 @@ __all__ = [
     'LostEvaluation',
     'Measurement',
     'Measurer',
+    'MemoryRecord',
     'ResumeError',
+    'RunRecord',
     'StopRequested',
     'TunerState',
     'TuningRun',
@@ -112,6 +115,42 @@ class Measurer(Protocol):
     def apply(self, gains: Gains) -> None: ...
 
 
+class RunRecord(Protocol):
+    """Where a run's records go: a run directory (:class:`RunDir`, durable: results.jsonl
+    fsync'ed, checkpoints, resume) or memory (:class:`MemoryRecord`: the study's runs)."""
+
+    path: Path
+    durable: bool  #: False: no checkpoints are written (nothing could resume from them)
+
+    def append_result(self, record: dict[str, Any]) -> None: ...
+    def read_results(self) -> list[dict[str, Any]]: ...
+    def write_checkpoint(self, state: dict[str, Any]) -> None: ...
+    def read_checkpoint(self) -> dict[str, Any] | None: ...
+
+
+class MemoryRecord:
+    """A run record in memory: the records in a list, no files, no checkpoints (an offline
+    run is repeated from its seed, not resumed)."""
+
+    durable = False
+
+    def __init__(self) -> None:
+        self.path = Path('<memory>')
+        self.results: list[dict[str, Any]] = []
+
+    def append_result(self, record: dict[str, Any]) -> None:
+        self.results.append(record)
+
+    def read_results(self) -> list[dict[str, Any]]:
+        return list(self.results)
+
+    def write_checkpoint(self, state: dict[str, Any]) -> None:
+        pass
+
+    def read_checkpoint(self) -> dict[str, Any] | None:
+        return None
+
+
 def run_seeds(seed: int) -> tuple[np.random.SeedSequence, int]:
     """Independent streams from a run seed (int >= 0): the optimiser's SeedSequence and the
     simulated drive's noise seed (int32 >= 0).  The tuner and the offline study both use
@@ -169,7 +208,7 @@ class TuningRun:
 
     def __init__(
         self,
-        rundir: RunDir,
+        rundir: RunDir | RunRecord,
         space: SearchSpace,
         optimizer: Optimizer,
         *,
@@ -262,6 +301,8 @@ class TuningRun:
         tally(self.state, rec, self.satisfactory)
 
     def _checkpoint(self) -> None:
+        if not self.rundir.durable:
+            return  # (an optimiser state per evaluation costs the study ~5 % for nothing)
         self.rundir.write_checkpoint(
             {
                 'version': CHECKPOINT_VERSION,

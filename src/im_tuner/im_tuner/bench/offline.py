@@ -9,6 +9,8 @@ and a step-by-step run (the node's path, ``python_loop=True``) give bit-identica
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from numba import njit
 
@@ -31,17 +33,22 @@ from im_controller.layout import (
     R_N,
     R_REASON,
     REASON_POSITION,
+    SAFETY_REASONS,
     STATUS_ABORTED,
     STATUS_DONE,
 )
 from im_controller.result import LossResult
 from im_controller.runner import ExperimentRunner, config_for_drive
 from im_drive_sim import kernels as DK
+from im_drive_sim.params import DriveConfig
 from im_drive_sim.sim import DriveSim
+
+from ..tuning import Measurement
 
 __all__ = [
     'N_REC',
     'REC_FIELDS',
+    'OfflineBench',
     'config_for_drive',
     'finish_stopped_move',
     'hold_offline',
@@ -224,3 +231,52 @@ def hold_offline(
     k0 = float(sim.step_index)
     _done, rec = _run(sim, runner, int(steps), record, False, python_loop)
     return _signals(rec, runner.config.control.Ts, k0) if record else {}
+
+
+class OfflineBench:
+    """The simulated lock-step bench as the tuner drives it, on the pure core: a drive at
+    rest, a controller holding it, experiment ids 0, 1, ... and the fault policy 'reset'
+    (the controller is reset where the drive is, as ``reset_fault`` does). A
+    :class:`~im_tuner.tuning.Measurer`: the study runs the tuner's own ``TuningRun`` on it.
+    """
+
+    def __init__(self, drive: DriveConfig, drive_seed: int) -> None:
+        self.sim = DriveSim(drive, seed=drive_seed)
+        self.sim.reset(omega=0.0, fluxed=True)  # at rest, half a count in (start_position)
+        self.runner = ExperimentRunner(config_for_drive(None, self.sim), Gains())
+        self.runner.reset(self.sim.theta_meas)
+        self.next_id = 0
+
+    def measure(self, gains: Gains) -> Measurement:
+        """One experiment with ``gains``."""
+        t0 = time.perf_counter()
+        # a stopped move is finished first; a safety fault during it is reset, as the
+        # link does when the start is refused with a safety fault
+        finish_stopped_move(self.sim, self.runner)
+        if self.runner.faulted:
+            self.runner.reset(self.sim.theta_meas)
+        res, _ = run_experiment_offline(
+            self.sim, gains, self.runner.config, self.next_id, self.runner, record=False
+        )
+        self.next_id += 1
+        fault = res.reason in SAFETY_REASONS
+        if fault:
+            self.runner.reset(self.sim.theta_meas)
+        return Measurement(
+            loss=res.loss,
+            terms=res.terms,
+            aborted=res.aborted,
+            reason=res.reason,
+            fault=fault,
+            experiment_id=res.experiment_id,
+            direction=res.direction,
+            steps=res.steps,
+            trip_step=res.trip_step,
+            t_start_ns=res.t_start,
+            t_end_ns=res.t_end,
+            wall_s=time.perf_counter() - t0,
+            gains=res.gains.as_tuple(),
+        )
+
+    def apply(self, gains: Gains) -> None:
+        """Offline there is no controller to leave the final gains on."""

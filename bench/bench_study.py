@@ -5,7 +5,11 @@
   per run), on every core -- wall time of the whole command (start-up, L_ref, pool,
   tables, figures) and experiments per second;
 * the same per-worker rate on one worker (``--jobs 1``, a 10-run grid), for the scaling
-  ratio: how much of every core the pool uses.
+  ratio: how much of every core the pool uses;
+* the run loop's cost (issue 17: a study run is the tuner's ``TuningRun`` on the offline
+  bench): ``study.run_one`` against a bare ask/measure/tell loop on the same bench (the
+  yardstick, below), in this process, alternating, median ratio of 5 pairs. Target:
+  within 10 %.
 
 Run: ``.venv/bin/python bench/bench_study.py [--runs N]`` (or ``make bench``).  Targets
 (issue 7): full grid <= 300 s on a 2-core machine, reduced <= 120 s.
@@ -40,6 +44,72 @@ def run(out: Path, *args: str) -> tuple[float, int]:
     return wall, int(meta['experiments'])
 
 
+def _bare_run(spec, cell_index: int, r: int) -> float:
+    """The yardstick: what a study run computes, as a bare loop (reference, budget
+    evaluations, one re-measurement of the best) on the same offline bench; wall [s]."""
+    import dataclasses
+    import math
+
+    from im_controller.config import Gains
+    from im_tuner import optim
+    from im_tuner.bench.offline import OfflineBench
+    from im_tuner.study import run_seed, start_point
+    from im_tuner.tuning import run_seeds
+
+    t0 = time.perf_counter()
+    cell, params = spec.cells[cell_index], spec.params()
+    rseed = run_seed(spec.seed, r)
+    opt_ss, drive_seed = run_seeds(rseed)
+    start = start_point(cell.algo, rseed, params.space)
+    space = dataclasses.replace(params.space, start=start)
+    opt = optim.make_optimizer(
+        cell.algo,
+        space.dim,
+        opt_ss,
+        space.start_u if cell.algo in optim.TAKES_START else None,
+        **cell.opts,
+    )
+    bench = OfflineBench(spec.drive(), drive_seed)
+    bench.measure(Gains(*start))
+    best, best_loss = None, math.inf
+    for _ in range(spec.budget):
+        u = opt.ask()
+        g = space.to_gains(u)
+        m = bench.measure(g)
+        opt.tell(u, m.loss)
+        if not m.aborted and m.loss < best_loss:
+            best, best_loss = g, m.loss
+    if best is not None:
+        bench.measure(best)
+    return time.perf_counter() - t0
+
+
+def loop_overhead(pairs: int = 5) -> float:
+    """Median wall ratio study.run_one / bare loop over ``pairs`` alternating pairs (one
+    neCGA and one SPSA run of 200 evaluations each)."""
+    import statistics
+
+    from im_tuner.study import StudySpec, run_one
+
+    spec = StudySpec(runs=1, budget=200)
+    # the paper's defaults: SPSA (a0, c0) and neCGA n = 25, the middle cell of each grid
+    cells = [
+        i
+        for i, c in enumerate(spec.cells)
+        if (c.row == 1 and c.col == 1) or c.label.startswith('n=25 ')
+    ]
+    run_one(spec, cells[0], 0)  # kernels loaded, caches warm
+    ratios = []
+    for k in range(pairs):
+        t0 = time.perf_counter()
+        for c in cells:
+            run_one(spec, c, k)
+        a = time.perf_counter() - t0
+        b = sum(_bare_run(spec, c, k) for c in cells)
+        ratios.append(a / b)
+    return statistics.median(ratios)
+
+
 def main(runs: int = 100) -> dict[str, float]:
     figures: dict[str, float] = {}
     cores = len(os.sched_getaffinity(0))
@@ -62,6 +132,12 @@ def main(runs: int = 100) -> dict[str, float]:
             f'{cores} workers give {figures["study_scaling"]:.2f} x',
             flush=True,
         )
+    figures['study_loop_overhead_ratio'] = loop_overhead()
+    print(
+        'run loop: TuningRun on the offline bench / bare ask-measure-tell loop = '
+        f'{figures["study_loop_overhead_ratio"]:.3f} (median of 5 pairs; target <= 1.10)',
+        flush=True,
+    )
     return figures
 
 

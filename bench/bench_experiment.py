@@ -5,7 +5,7 @@ experiment (1.125 s, 5625 steps) run through the ROS nodes, lock-step.
   node doing what the tuner does (Trigger service, loss topic);
 * separate processes: ``ros2 run im_drive_sim drive_sim`` and ``ros2 run im_controller
   controller`` as children, the client here;
-* one process with the recorder (``im_tuner.recorder_node.Recorder``) in it, polled
+* one process with the recorder (``im_tuner.record.node.Recorder``) in it, polled
   between steps as the simulated bench and the tuner run it, for each chunk compression;
   runs with and without the recorder alternate (A/B) so that machine noise hits both,
   and the ratio is taken per pair.
@@ -95,7 +95,7 @@ def one_process(n: int = EXPERIMENTS, record: str | None = None) -> list[float]:
         bench = InProcessBench(context=ctx)
         rec = None
         if record is not None:
-            from im_tuner.recorder_node import RECORD_POLL_STEPS, Recorder
+            from im_tuner.record.node import RECORD_POLL_STEPS, Recorder
 
             rec = Recorder(
                 Node('recorder', context=ctx, start_parameter_services=False),

@@ -26,9 +26,9 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
-from im_tuner import rcl_take
 from im_tuner.bench import InProcessBench, bench_metadata
-from im_tuner.recorder_node import RECORD_POLL_STEPS, Recorder
+from im_tuner.record import take as rcl_take
+from im_tuner.record.node import RECORD_POLL_STEPS, Recorder
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 RELIABLE_ALL = QoSProfile(
@@ -277,7 +277,7 @@ def test_a_backlog_taken_late_still_makes_chunks_of_at_most_max_chunk_age(ros_co
 
 # -- the kernel against rclpy, and gap detection on a real reader overflow ----------------
 def test_take_kernel_matches_rclpy_and_counts_gaps(ros_context):
-    from im_tuner.mcap_writer import ChunkState
+    from im_tuner.record.writer import ChunkState
 
     node = Node('gap_test', context=ros_context)
     best_effort = QoSProfile(

@@ -85,7 +85,7 @@ from .tuning import BenchFailure, ResumeError, StopRequested, replay, replay_pla
 def _repair_old_bags(rundir: RunDir, note) -> None:
     """Bags of killed sessions still say state 'recording': repair them (index, summary,
     metadata.yaml) so that the whole run opens in any reader."""
-    from .mcap_repair import RepairError, repair_bag
+    from .record.repair import RepairError, repair_bag
 
     for bag in rundir.bag_dirs():
         try:
@@ -152,7 +152,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         run, params = _new_run_config(cli, argv)
         out = cli.out
         if out is None:
-            from .recorder_node import default_out_dir
+            from .record.node import default_out_dir
 
             out = default_out_dir(prefix=f'tuner_{run["algo"]}')
         if out.exists() and (not out.is_dir() or any(out.iterdir())):

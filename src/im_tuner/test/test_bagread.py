@@ -1,6 +1,6 @@
-"""im_tuner.bagread: the report's bag reader, checked against independent readers.
+"""im_tuner.record.reader: the report's bag reader, checked against independent readers.
 
-Bags are written with :class:`~im_tuner.mcap_writer.McapWriter` (small chunks, both
+Bags are written with :class:`~im_tuner.record.writer.McapWriter` (small chunks, both
 compressions); what :func:`read_bag` finds is compared with the ``mcap`` library's reader
 (counts, log times, payloads) and with rclpy's CDR deserialiser (loss messages, arrays
 with a non-empty layout). A file cut short (a killed recorder) is read up to its last
@@ -23,15 +23,20 @@ from mcap.stream_reader import StreamReader
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 
-from im_tuner.bag import bag_metadata, prepare_bag_dir, storage_file_name, write_metadata_yaml
-from im_tuner.bagread import (
+from im_tuner.record.metadata import (
+    bag_metadata,
+    prepare_bag_dir,
+    storage_file_name,
+    write_metadata_yaml,
+)
+from im_tuner.record.reader import (
     BagReadError,
     parse_diagnostic_array,
     parse_float64_multiarray,
     read_bag,
 )
-from im_tuner.mcap_writer import McapWriter
-from im_tuner.msgdefs import schema_text
+from im_tuner.record.schemas import schema_text
+from im_tuner.record.writer import McapWriter
 
 T0 = 1_700_000_000_000_000_000
 ARRAY = 'std_msgs/msg/Float64MultiArray'

@@ -1,6 +1,6 @@
-"""im_tuner.mcap_repair: bags cut short by a crash are repaired, checked by independent readers.
+"""im_tuner.record.repair: bags cut short by a crash are repaired, checked by independent readers.
 
-Bags are written with :class:`~im_tuner.mcap_writer.McapWriter` (and, for files shaped
+Bags are written with :class:`~im_tuner.record.writer.McapWriter` (and, for files shaped
 differently, with the ``mcap`` library's own writer); what comes out is read back by the
 ``mcap`` library (indexed and streaming) and by ``rosbags`` (its own MCAP reader and CDR
 deserialiser), so an index or summary that misdescribes the data shows up as missing or
@@ -31,8 +31,8 @@ from rosbags.rosbag2 import ReaderError as RosbagsReaderError
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from std_msgs.msg import String
 
-from im_tuner import mcap_repair
-from im_tuner.bag import (
+from im_tuner.record import repair as mcap_repair
+from im_tuner.record.metadata import (
     TopicRecord,
     bag_metadata,
     prepare_bag_dir,
@@ -42,8 +42,8 @@ from im_tuner.bag import (
     storage_file_name,
     write_metadata_yaml,
 )
-from im_tuner.mcap_writer import McapWriter
-from im_tuner.msgdefs import schema_text
+from im_tuner.record.schemas import schema_text
+from im_tuner.record.writer import McapWriter
 
 RepairError = mcap_repair.RepairError
 repair_bag = mcap_repair.repair_bag

@@ -1,4 +1,4 @@
-"""im_tuner.mcap_writer: background writes never fail on the writer's own bookkeeping.
+"""im_tuner.record.writer: background writes never fail on the writer's own bookkeeping.
 
 The bug (issue 16, item 1): ``_submit`` filtered finished futures out of its pending list
 and then asked each remaining one ``done()`` again; a write that finished in between was
@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from im_tuner.mcap_writer import McapWriteError, McapWriter
+from im_tuner.record.writer import McapWriteError, McapWriter
 
 
 class _FinishesWhileLookedAt(Future):

@@ -1,4 +1,5 @@
-"""im_tuner.msgdefs: ros2msg schema text, checked by exact layout and by two independent readers.
+"""im_tuner.record.schemas: ros2msg schema text, checked by exact layout and by two
+independent readers.
 
 The readers are ``rosbags`` (its own .msg parser and CDR deserialiser) and ``mcap_ros2`` (the
 MCAP project's dynamic decoder); the CDR bytes come from rclpy's own serialiser, so a schema
@@ -23,7 +24,7 @@ from rosbags.typesys.msg import normalize_msgtype
 
 os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
 
-from im_tuner import msgdefs
+from im_tuner.record import schemas as msgdefs
 
 MsgDefError = msgdefs.MsgDefError
 schema_text = msgdefs.schema_text

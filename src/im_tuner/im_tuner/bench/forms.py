@@ -138,7 +138,7 @@ class InProcess:
         def start_recorder(b: Any) -> None:
             if bag_dir is None:
                 return
-            from ..recorder_node import RECORD_POLL_STEPS, Recorder
+            from ..record.node import RECORD_POLL_STEPS, Recorder
 
             meta = bench_metadata(b) | {'im_tuner.tuner': tuner_metadata}
             self.rec = Recorder(
@@ -293,7 +293,7 @@ class Children:
 
     def _recorder_died(self, why: str) -> None:
         """Keep what the dead recorder wrote; go on recording into a new bag."""
-        from ..mcap_repair import RepairError, repair_bag
+        from ..record.repair import RepairError, repair_bag
 
         progress = self.progress
         dead = self.rundir.bag_dirs()[-1]

@@ -13,7 +13,7 @@ Either way the graph is the same (``drive_sim``, ``controller``, their topics an
 services), and so is what it computes: the same seed gives bit-identical losses.
 The tuner brings this bench up itself when no controller is on the graph.
 
-All traffic is recorded (``im_tuner.recorder_node``) unless ``--no-record``: in one
+All traffic is recorded (``im_tuner.record.node``) unless ``--no-record``: in one
 process the recorder runs in the bench's loop and is polled between steps, so not a
 message is lost; with ``--processes`` it is a third child, ``ros2 run im_tuner recorder``.
 """
@@ -43,7 +43,7 @@ from im_drive_sim.runtime import (
     stop_child,
 )
 
-from .. import recorder_node
+from ..record import node as recorder_node
 from .inprocess import InProcessBench, bench_metadata
 
 NS_PER_S = 1_000_000_000

@@ -16,7 +16,7 @@ import numpy as np
 from im_controller.config import GAIN_NAMES
 from im_controller.experiment import INTERNALS_FIELDS
 
-from ..bagread import BagData, BagReadError, read_bag
+from ..record.reader import BagData, BagReadError, read_bag
 from ..rundir import RunDir, RunDirError
 from ..tuning import summarize, tally_all
 

@@ -7,7 +7,7 @@ from typing import Any
 
 from im_controller.config import GAIN_NAMES, GAIN_UNITS
 
-from ..bagread import BagData
+from ..record.reader import BagData
 from .load import (
     RunReport,
 )

@@ -2,7 +2,7 @@
 
 A SIGKILL (or a power cut) leaves the ``.mcap`` without its DataEnd, summary, chunk
 indexes and footer, and ``metadata.yaml`` in its provisional ``recording`` state. The
-data is still there: :class:`~im_tuner.mcap_writer.McapWriter` writes Schema and Channel
+data is still there: :class:`~im_tuner.record.writer.McapWriter` writes Schema and Channel
 records as soon as a topic appears and hands every chunk to the OS when it is closed,
 which the recorder does at least every ``max_chunk_age`` seconds, so at most that much
 (the open chunk) is lost.
@@ -32,8 +32,9 @@ from typing import BinaryIO
 import numpy as np
 import yaml
 
-from .bag import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
-from .mcap_writer import (
+from .metadata import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
+from .records import Cursor, decompress, parse_definition
+from .writer import (
     MAGIC,
     OP_CHANNEL,
     OP_CHUNK,
@@ -154,62 +155,16 @@ def _repair_line(messages: int, chunks: int, dropped: int) -> str:
     )
 
 
-class _Cur:
-    """Reads little-endian fields from a record body; raises ValueError past its end."""
-
-    def __init__(self, b: bytes, p: int = 0) -> None:
-        self.b, self.p = b, p
-
-    def u(self, fmt: str) -> tuple:
-        v = struct.unpack_from('<' + fmt, self.b, self.p)
-        self.p += struct.calcsize('<' + fmt)
-        return v
-
-    def raw(self, n: int) -> bytes:
-        if self.p + n > len(self.b):
-            raise ValueError('field past the end of its record')
-        self.p += n
-        return self.b[self.p - n : self.p]
-
-    def s(self) -> str:
-        return self.raw(self.u('I')[0]).decode('utf-8')
-
-    def map(self) -> dict[str, str]:
-        (n,) = self.u('I')
-        end = self.p + n
-        out = {}
-        while self.p < end:
-            k = self.s()
-            out[k] = self.s()
-        if self.p != end:
-            raise ValueError('bad map length')
-        return out
-
-
-def _decompress(comp: str, data: bytes, size: int) -> bytes:
-    if comp == '':
-        return data
-    if comp == 'zstd':
-        import zstandard
-
-        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
-    if comp == 'lz4':
-        import lz4.frame
-
-        return lz4.frame.decompress(data)
-    raise ValueError(f'unknown compression {comp!r}')
-
-
 def _parse_chunk(body: bytes, scan: McapScan, at: int) -> ScannedChunk:
     """Validate a Chunk record body and index its messages (registers its schemas/channels)."""
-    c = _Cur(body)
+    c = Cursor(body)
     start, end, usize, crc = c.u('QQQI')
     comp = c.s()
     (clen,) = c.u('Q')
     if c.p + clen != len(body):
         raise ValueError('chunk records length mismatch')
     try:
-        raw = _decompress(comp, body[c.p :], usize)
+        raw = decompress(comp, body[c.p :], usize)
     except Exception as exc:  # zstd/lz4 raise their own types on corrupt data
         raise ValueError(f'chunk does not decompress: {exc}') from None
     if len(raw) != usize or (crc and zlib.crc32(raw) != crc):
@@ -229,7 +184,7 @@ def _parse_chunk(body: bytes, scan: McapScan, at: int) -> ScannedChunk:
                 raise ValueError('bad message record')
             rows.append((cid, log_time, p))
         elif op in (OP_SCHEMA, OP_CHANNEL):
-            _parse_def(op, rec, schemas, channels)
+            parse_definition(op, rec, schemas, channels)
         p += 9 + n
     for sid, schema in schemas.items():
         scan.schemas.setdefault(sid, schema)
@@ -238,20 +193,6 @@ def _parse_chunk(body: bytes, scan: McapScan, at: int) -> ScannedChunk:
     return ScannedChunk(
         at, 9 + len(body), start, end, comp, clen, usize, np.array(rows, np.int64).reshape(-1, 3)
     )
-
-
-def _parse_def(op: int, rec: bytes, schemas: dict, channels: dict) -> None:
-    """A Schema or Channel record into ``schemas``/``channels`` (the first one of an id wins)."""
-    c = _Cur(rec, 9)
-    if op == OP_SCHEMA:
-        (sid,) = c.u('H')
-        name, _enc = c.s(), c.s()
-        c.raw(c.u('I')[0])
-        schemas.setdefault(sid, (name, rec))
-    else:
-        cid, sid = c.u('HH')
-        topic, _enc = c.s(), c.s()
-        channels.setdefault(cid, (topic, sid, c.map(), rec))
 
 
 def _has_footer(f: BinaryIO, size: int) -> bool:
@@ -302,13 +243,13 @@ def scan_mcap(path: Path) -> McapScan:
                 if op == OP_CHUNK:
                     scan.chunks.append(_parse_chunk(rec[9:], scan, pos))
                 elif op in (OP_SCHEMA, OP_CHANNEL):
-                    _parse_def(op, rec, scan.schemas, scan.channels)
+                    parse_definition(op, rec, scan.schemas, scan.channels)
                 elif op == OP_METADATA:
-                    c = _Cur(rec, 9)
+                    c = Cursor(rec, 9)
                     scan.metadata.append((pos, len(rec), c.s()))
                     c.map()
                 elif op == OP_ATTACHMENT:
-                    c = _Cur(rec, 9)
+                    c = Cursor(rec, 9)
                     t_log, t_create = c.u('QQ')
                     name, media = c.s(), c.s()
                     (dlen,) = c.u('Q')

@@ -5,7 +5,7 @@ rclpy's ``Subscription.take_message(cls, raw=True)`` costs about 2 us per messag
 topic has several publishers. The recorder instead calls rcl's C API,
 ``rcl_take_serialized_message``, from a numba kernel (about 0.6 us per message measured
 here) on the ``rcl_subscription_t`` that rclpy created (``sub.handle.pointer``), and
-copies the CDR bytes into the open MCAP chunk (:mod:`im_tuner.mcap_writer`) as a Message
+copies the CDR bytes into the open MCAP chunk (:mod:`im_tuner.record.writer`) as a Message
 record. Per publisher (channel, GID) it keeps the first and last
 ``publication_sequence_number``, the count and the gaps: a gap is a message the
 publisher sent that this reader never got.
@@ -32,7 +32,7 @@ import numpy as np
 import rclpy.impl.implementation_singleton  # noqa: F401  (loads librcl into the process)
 from numba import types
 
-from .mcap_writer import MESSAGE_HEADER_BYTES, ST_TMAX, ST_TMIN, note_message, write_message_header
+from .writer import MESSAGE_HEADER_BYTES, ST_TMAX, ST_TMIN, note_message, write_message_header
 
 
 def _loaded_library(name: str) -> str:

@@ -3,7 +3,7 @@
 Why our own writer: the ``mcap`` library's ``Writer.add_message`` costs about 3.4 us per
 message in Python here, which alone would eat the recorder's budget at 15k messages per
 simulated second. This writer keeps the open chunk in a numpy buffer that a numba kernel
-(:mod:`im_tuner.rcl_take`) fills with Message records straight from the DDS reader, so the
+(:mod:`im_tuner.record.take`) fills with Message records straight from the DDS reader, so the
 per-message cost is a memcpy; Python only runs once per chunk (compress, index, write).
 
 File layout (MCAP v0, https://mcap.dev/spec), as rosbag2's MCAP storage writes it:
@@ -14,7 +14,7 @@ File layout (MCAP v0, https://mcap.dev/spec), as rosbag2's MCAP storage writes i
   its Message Index records. A chunk is closed when it reaches ``chunk_size`` bytes or
   when the caller flushes it (the recorder does so at least every ``max_chunk_age`` s),
   and the file is flushed to the OS after every chunk: after SIGKILL the file is readable
-  up to its last complete chunk, and :func:`im_tuner.mcap_repair.repair_bag` rewrites
+  up to its last complete chunk, and :func:`im_tuner.record.repair.repair_bag` rewrites
   the summary;
 * DataEnd, summary (Schemas, Channels, Statistics, Metadata Index, Chunk Indexes),
   Summary Offsets, Footer (with the summary CRC-32), magic.

@@ -26,9 +26,9 @@ import numpy as np
 import yaml
 from numba import njit
 
-from .bag import read_metadata_yaml
-from .mcap_repair import _decompress, _parse_def
-from .mcap_writer import MAGIC, OP_CHANNEL, OP_CHUNK, OP_DATA_END, OP_FOOTER, OP_MESSAGE, OP_SCHEMA
+from .metadata import read_metadata_yaml
+from .records import decompress, parse_definition
+from .writer import MAGIC, OP_CHANNEL, OP_CHUNK, OP_DATA_END, OP_FOOTER, OP_MESSAGE, OP_SCHEMA
 
 __all__ = [
     'BagData',
@@ -315,7 +315,7 @@ def read_bag(
             # definitions first: a Channel record may follow a chunk holding its messages
             for op, a, n in zip(ops.tolist(), offs.tolist(), lens.tolist(), strict=True):
                 if op in (OP_SCHEMA, OP_CHANNEL):
-                    _parse_def(op, bytes(mm[a - 9 : a + n]), schemas, channels)
+                    parse_definition(op, bytes(mm[a - 9 : a + n]), schemas, channels)
             for op, a, n in zip(ops.tolist(), offs.tolist(), lens.tolist(), strict=True):
                 if op == OP_CHUNK:
                     try:
@@ -360,7 +360,7 @@ def _read_chunk(mm: mmap.mmap, a: int, n: int) -> np.ndarray:
     if p + rlen > a + n:
         raise ValueError('chunk records past the chunk')
     try:
-        raw = _decompress(comp, mm[p : p + rlen], usize)
+        raw = decompress(comp, mm[p : p + rlen], usize)
     except Exception as exc:  # lz4/zstd raise their own types on corrupt data
         raise ValueError(f'chunk does not decompress: {exc}') from None
     if len(raw) != usize:
@@ -383,7 +383,7 @@ def _take_chunk(
         op = int(ops[i])
         if op in (OP_SCHEMA, OP_CHANNEL):
             a, n = int(offs[i]), int(lens[i])
-            _parse_def(op, bytes(buf[a - 9 : a + n]), schemas, channels)
+            parse_definition(op, bytes(buf[a - 9 : a + n]), schemas, channels)
     is_msg = ops == OP_MESSAGE
     cids, times, offs, lens = cids[is_msg], times[is_msg], offs[is_msg], lens[is_msg]
     if not len(cids):

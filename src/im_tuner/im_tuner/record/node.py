@@ -6,14 +6,14 @@ and command, controller internals and losses, ``/parameter_events``, ``/rosout``
 ``/clock``, service-introspection ``.../_service_event`` topics) and writes a bag
 directory (``metadata.yaml`` + ``<name>_0.mcap``, profile ros2, ``ros2msg`` schemas with
 their full dependency text -- ``ros2idl`` for service events, see
-:func:`im_tuner.msgdefs.schema_for` -- CDR messages, QoS in the channel metadata).
+:func:`im_tuner.record.schemas.schema_for` -- CDR messages, QoS in the channel metadata).
 
 Nothing lost, and proof of it:
 
 * subscriptions are reliable KEEP_ALL whenever the publishers are reliable (the
   project's recorded topics are reliable KEEP_ALL on the publisher side too, so a slow
   recorder back-pressures the publisher instead of losing data);
-* messages are taken in the recorder's own loop (:mod:`im_tuner.rcl_take`), never through
+* messages are taken in the recorder's own loop (:mod:`im_tuner.record.take`), never through
   an executor callback, which would serve one message per spin;
 * per publisher (GID) the recorder follows ``publication_sequence_number``: gaps are
   messages lost on the way; at close the per-topic ``recorded / published / lost`` counts
@@ -57,8 +57,8 @@ from rclpy.signals import SignalHandlerOptions
 from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, parse_cli
 from im_drive_sim.runtime import unknown_overrides, warn_unknown_overrides
 
-from . import rcl_take
-from .bag import (
+from . import take as rcl_take
+from .metadata import (
     BagError,
     TopicRecord,
     bag_metadata,
@@ -68,8 +68,8 @@ from .bag import (
     storage_file_name,
     write_metadata_yaml,
 )
-from .mcap_writer import MESSAGE_HEADER_BYTES, McapWriteError, McapWriter
-from .msgdefs import MsgDefError, schema_for
+from .schemas import MsgDefError, schema_for
+from .writer import MESSAGE_HEADER_BYTES, McapWriteError, McapWriter
 
 #: Lock-step steps between two polls of a recorder sharing the bench's process: about
 #: 200 samples per 5 kHz topic, far below Fast DDS's 5000 per reader, and rare enough
@@ -559,7 +559,7 @@ def main(args: list[str] | None = None) -> int:
         print(f'error: recorder: {exc}', file=sys.stderr)
         return 2
     if cli.repair is not None:
-        from .mcap_repair import RepairError, repair_bag
+        from .repair import RepairError, repair_bag
 
         try:
             report = repair_bag(cli.repair)
@@ -573,7 +573,7 @@ def main(args: list[str] | None = None) -> int:
     # instead of blocking on it (config/recorder_fastdds.xml says why).
     os.environ.setdefault(
         'FASTRTPS_DEFAULT_PROFILES_FILE',
-        str(Path(__file__).with_name('config') / 'recorder_fastdds.xml'),
+        str(Path(__file__).parent.parent / 'config' / 'recorder_fastdds.xml'),
     )
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     stop = {'sig': None}

@@ -1,0 +1,71 @@
+"""MCAP records read back: a cursor over a record body, chunk decompression, and the
+Schema/Channel definitions -- what the fast reader and the repair both parse (the MCAP
+specification's little-endian layouts; constants in ``writer``)."""
+
+from __future__ import annotations
+
+import struct
+
+from .writer import OP_SCHEMA
+
+__all__ = ['Cursor', 'decompress', 'parse_definition']
+
+
+class Cursor:
+    """Reads little-endian fields from a record body; raises ValueError past its end."""
+
+    def __init__(self, b: bytes, p: int = 0) -> None:
+        self.b, self.p = b, p
+
+    def u(self, fmt: str) -> tuple:
+        v = struct.unpack_from('<' + fmt, self.b, self.p)
+        self.p += struct.calcsize('<' + fmt)
+        return v
+
+    def raw(self, n: int) -> bytes:
+        if self.p + n > len(self.b):
+            raise ValueError('field past the end of its record')
+        self.p += n
+        return self.b[self.p - n : self.p]
+
+    def s(self) -> str:
+        return self.raw(self.u('I')[0]).decode('utf-8')
+
+    def map(self) -> dict[str, str]:
+        (n,) = self.u('I')
+        end = self.p + n
+        out = {}
+        while self.p < end:
+            k = self.s()
+            out[k] = self.s()
+        if self.p != end:
+            raise ValueError('bad map length')
+        return out
+
+
+def decompress(comp: str, data: bytes, size: int) -> bytes:
+    if comp == '':
+        return data
+    if comp == 'zstd':
+        import zstandard
+
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+    if comp == 'lz4':
+        import lz4.frame
+
+        return lz4.frame.decompress(data)
+    raise ValueError(f'unknown compression {comp!r}')
+
+
+def parse_definition(op: int, rec: bytes, schemas: dict, channels: dict) -> None:
+    """A Schema or Channel record into ``schemas``/``channels`` (the first one of an id wins)."""
+    c = Cursor(rec, 9)
+    if op == OP_SCHEMA:
+        (sid,) = c.u('H')
+        name, _enc = c.s(), c.s()
+        c.raw(c.u('I')[0])
+        schemas.setdefault(sid, (name, rec))
+    else:
+        cid, sid = c.u('HH')
+        topic, _enc = c.s(), c.s()
+        channels.setdefault(cid, (topic, sid, c.map(), rec))

@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from im_tuner import study as S
-from im_tuner.study_stats import PAPER
+from im_tuner.study import runs as S
+from im_tuner.study.stats import PAPER
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 START_LOSS = 0.9803040260343194  # experiment 0 of the hand-tuned start (test_controller_node)
@@ -230,8 +230,8 @@ def test_outputs_tables_figures_and_paper_values(small):
     }
     assert final == PAPER['final']
     # the figure shows the paper's values and ours
-    from im_tuner.study_cli import fig_tables
-    from im_tuner.study_stats import compute
+    from im_tuner.study.figures import fig_tables
+    from im_tuner.study.stats import compute
 
     st = compute(S.load(out))
     fig = fig_tables(st)

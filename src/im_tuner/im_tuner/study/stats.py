@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .study import Cell, StudyResult
+from .runs import Cell, StudyResult
 
 __all__ = ['PAPER', 'CellStats', 'Conclusion', 'StudyStats', 'compute', 'wilson']
 

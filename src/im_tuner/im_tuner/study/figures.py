@@ -1,0 +1,114 @@
+"""The study's figures: the tables as bars beside the paper's values, convergence."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .stats import (
+    PAPER_CELL,
+    StudyStats,
+)
+from .text import (
+    ALGO_NAME,
+    PAPER_KEY,
+    STATS,
+)
+
+
+# -- figures --------------------------------------------------------------------------------------
+def fig_tables(st: StudyStats):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(12, 9.5), layout='constrained')
+    axes = fig.subplots(3, 1)
+    labels = [f'{ALGO_NAME[c.cell.algo]}\n' + c.cell.label.replace(' ', '\n') for c in st.cells]
+    x = np.arange(len(st.cells))
+    colours = ['tab:blue' if c.cell.algo == 'spsa' else 'tab:orange' for c in st.cells]
+    for ax, (stat, title, _), ylab in zip(
+        axes,
+        (STATS[0], STATS[1], STATS[3]),
+        ('final loss (hand-tuned = 1)', 'satisfactory runs [%]', 'iterations to satisfactory'),
+        strict=True,
+    ):
+        ivs = [getattr(c, stat) for c in st.cells]
+        v = np.array([i.value for i in ivs])
+        # (a percentile interval of a small sample need not contain the point)
+        lo = np.array([max(i.value - i.lo, 0.0) if math.isfinite(i.lo) else 0.0 for i in ivs])
+        hi = np.array([max(i.hi - i.value, 0.0) if math.isfinite(i.hi) else 0.0 for i in ivs])
+        ax.bar(
+            x,
+            np.nan_to_num(v),
+            color=colours,
+            alpha=0.75,
+            gid=f'ours:{stat}',
+            label='simulation (mean, 95 % interval)',
+        )
+        ax.errorbar(x, np.nan_to_num(v), yerr=[lo, hi], fmt='none', ecolor='k', capsize=3)
+        key = PAPER_KEY[stat]
+        assert key is not None  # the figure's three statistics all have paper values
+        pv = np.array([c.paper(key) if c.paper(key) is not None else np.nan for c in st.cells])
+        ax.plot(
+            x, pv, 'D', color='tab:red', markersize=7, gid=f'paper:{stat}', label='paper (bench)'
+        )
+        if stat == 'final':
+            ax.axhline(
+                st.threshold,
+                color='tab:green',
+                ls='--',
+                lw=1,
+                label=f'satisfactory threshold {st.threshold:g}',
+            )
+            ax.axhline(1.0, color='0.4', ls=':', lw=1, label='hand-tuned start')
+        ax.set_title(title)
+        ax.set_ylabel(ylab)
+        ax.set_xticks(x, labels, fontsize=7)
+        ax.legend(fontsize=7, loc='best', framealpha=0.9)
+        ax.grid(axis='y', alpha=0.3)
+    return fig
+
+
+def fig_convergence(st: StudyStats):
+    from matplotlib.figure import Figure
+
+    res = st.res
+    Ln = np.where(res.aborted, np.inf, res.losses / res.l_ref)
+    best = np.minimum.accumulate(Ln, axis=2)  # best-so-far per run
+    evals = np.arange(1, res.spec.budget + 1)
+    algos = list(res.spec.algos)
+    fig = Figure(figsize=(6 * len(algos), 4.5), layout='constrained')
+    axes = np.atleast_1d(fig.subplots(1, len(algos), sharey=True))
+    import matplotlib
+
+    cmap = matplotlib.colormaps['tab10']
+    for ax, algo in zip(axes, algos, strict=True):
+        idx = [c for c, cell in enumerate(res.cells) if cell.algo == algo]
+        for k, c in enumerate(idx):
+            b = best[c]
+            with np.errstate(invalid='ignore'):
+                med = np.median(b, axis=0)
+            centre = (res.cells[c].row, res.cells[c].col) == PAPER_CELL[algo]
+            ax.plot(
+                evals,
+                np.where(np.isfinite(med), med, np.nan),
+                color=cmap(k % 10),
+                lw=2.5 if centre else 1.2,
+                gid=f'median:{res.cells[c].label}',
+                label=res.cells[c].label + (" (paper's)" if centre else ''),
+            )
+            if centre:
+                with np.errstate(invalid='ignore'):
+                    q1, q3 = np.nanquantile(
+                        np.where(np.isfinite(b), b, np.nan), [0.25, 0.75], axis=0
+                    )
+                ax.fill_between(evals, q1, q3, color=cmap(k % 10), alpha=0.2)
+        ax.axhline(st.threshold, color='tab:green', ls='--', lw=1, label='satisfactory')
+        ax.axhline(1.0, color='0.4', ls=':', lw=1, label='hand-tuned start')
+        ax.set_title(f'{ALGO_NAME[algo]}: median best-so-far loss of {res.spec.runs} runs')
+        ax.set_xlabel('loss evaluations (experiments of 1.125 s)')
+        ax.set_ylabel('best loss so far (hand-tuned = 1)')
+        ax.set_ylim(0.0, 1.6)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    return fig

@@ -1,0 +1,173 @@
+"""The study's files: runs.csv, tables.csv and a tuner command per run (starts/)."""
+
+from __future__ import annotations
+
+import csv
+import math
+import shlex
+from pathlib import Path
+
+import yaml
+
+from im_controller.config import GAIN_NAMES
+
+from . import runs as S
+from .stats import (
+    StudyStats,
+    per_run,
+)
+from .text import (
+    PAPER_KEY,
+    STATS,
+)
+
+
+# -- files ----------------------------------------------------------------------------------------
+def tuner_command(res: S.StudyResult, c: int, r: int, out: Path) -> str:
+    """The tuner command that repeats run ``r`` of cell ``c`` on the ROS bench (its losses
+    equal the study's bit for bit: test/test_study.py)."""
+    cell, sp = res.cells[c], res.spec
+    args = ['ros2', 'run', 'im_tuner', 'tuner', '--algo', cell.algo]
+    for k, v in cell.options:
+        args += [f'--{k.replace("_", "-")}', repr(v)]
+    args += [
+        '--seed',
+        str(int(res.run_seed[r])),
+        '--budget',
+        str(sp.budget),
+        '--model',
+        sp.model,
+        '--remeasure',
+        '1' if sp.remeasure else '0',
+    ]
+    if cell.algo in S.optim.TAKES_START:
+        args += ['--params', str(out / 'starts' / f'run_{r:03d}.yaml')]
+    elif sp.params_file:
+        args += ['--params', sp.params_file]
+    if sp.drive_config:
+        args += ['--drive-config', sp.drive_config]
+    return ' '.join(shlex.quote(a) for a in args)
+
+
+def write_starts(res: S.StudyResult, out: Path) -> None:
+    """starts/run_<r>.yaml: the tuner parameter file of SPSA run r (box + its start)."""
+    if 'spsa' not in res.spec.algos:
+        return
+    params = res.spec.params()
+    c = next(i for i, cell in enumerate(res.cells) if cell.algo == 'spsa')
+    d = out / 'starts'
+    d.mkdir(parents=True, exist_ok=True)
+    for r in range(res.spec.runs):
+        box = {
+            n: {'lo': lo, 'hi': hi, 'start': float(res.start[c, r, i])}
+            for i, (n, lo, hi) in enumerate(
+                zip(GAIN_NAMES, params.space.lo, params.space.hi, strict=True)
+            )
+        }
+        text = (
+            f'# SPSA run {r} of the study in {out.name}: random start (run seed '
+            f'{int(res.run_seed[r])})\n'
+            + yaml.safe_dump(
+                {'search_box': box, 'satisfactory_loss': params.satisfactory_loss}, sort_keys=False
+            )
+        )
+        (d / f'run_{r:03d}.yaml').write_text(text)
+
+
+RUN_COLUMNS = (
+    'algo',
+    'config',
+    'run',
+    'run_seed',
+    'drive_seed',
+    *(f'start_{n}' for n in GAIN_NAMES),
+    'start_loss',
+    'final_loss',
+    'final_loss_raw',
+    'best_eval',
+    *(f'best_{n}' for n in GAIN_NAMES),
+    'remeasured_loss',
+    'satisfactory',
+    'evals_to_satisfactory',
+    'iterations_to_satisfactory',
+    'aborted',
+    'faults',
+    'tuner_command',
+)
+
+
+def write_runs_csv(st: StudyStats, out: Path) -> Path:
+    res = st.res
+    pr = per_run(res, st.threshold)
+    path = out / 'runs.csv'
+    with path.open('w', newline='') as f:
+        w = csv.writer(f)
+        w.writerow(RUN_COLUMNS)
+        for c, cell in enumerate(res.cells):
+            for r in range(res.spec.runs):
+                be = int(res.best_eval[c, r])
+                w.writerow(
+                    [
+                        cell.algo,
+                        cell.label,
+                        r,
+                        int(res.run_seed[r]),
+                        int(res.drive_seed[r]),
+                        *(repr(float(x)) for x in res.start[c, r]),
+                        repr(float(pr['start'][c, r])),
+                        repr(float(pr['final'][c, r])),
+                        repr(float(res.losses[c, r, be])) if be >= 0 else 'nan',
+                        be,
+                        *(repr(float(x)) for x in res.best_gains[c, r]),
+                        repr(float(pr['remeasured'][c, r])),
+                        int(pr['satisfactory'][c, r]),
+                        '' if math.isnan(pr['evals'][c, r]) else int(pr['evals'][c, r]),
+                        '' if math.isnan(pr['iterations'][c, r]) else int(pr['iterations'][c, r]),
+                        int(res.aborted[c, r].sum()),
+                        int(res.faults[c, r].sum()),
+                        tuner_command(res, c, r, out),
+                    ]
+                )
+    return path
+
+
+def write_tables_csv(st: StudyStats, out: Path) -> Path:
+    path = out / 'tables.csv'
+    with path.open('w', newline='') as f:
+        w = csv.writer(f)
+        w.writerow(
+            (
+                'statistic',
+                'algo',
+                'config',
+                'row',
+                'col',
+                'value',
+                'ci_low',
+                'ci_high',
+                'n',
+                'paper',
+                'threshold',
+            )
+        )
+        for stat, _, _ in (*STATS, ('remeasured', '', 3)):
+            for c in st.cells:
+                iv = getattr(c, stat)
+                key = PAPER_KEY.get(stat)
+                p = c.paper(key) if key else None
+                w.writerow(
+                    (
+                        stat,
+                        c.cell.algo,
+                        c.cell.label,
+                        c.cell.row,
+                        c.cell.col,
+                        repr(iv.value),
+                        repr(iv.lo),
+                        repr(iv.hi),
+                        iv.n,
+                        '' if p is None else p,
+                        st.threshold,
+                    )
+                )
+    return path

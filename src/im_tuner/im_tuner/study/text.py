@@ -1,0 +1,118 @@
+"""The study's tables as text (tables.txt, also printed)."""
+
+from __future__ import annotations
+
+import math
+
+from . import runs as S
+from .stats import (
+    EXPERIMENT_S,
+    CellStats,
+    Interval,
+    StudyStats,
+)
+
+EXIT_USAGE = 2
+ALGO_NAME = {'spsa': 'SPSA', 'necga': 'neCGA'}
+STATS = (
+    ('final', 'Table I: average final loss (normalised: hand-tuned start = 1)', 3),
+    ('satisfactory', 'Table II: satisfactory runs [%]', 0),
+    ('evals', 'Table III: average evaluations to a satisfactory loss', 1),
+    (
+        'iterations',
+        'Table III: the same in iterations (SPSA: 2 evaluations each; neCGA: generations)',
+        1,
+    ),
+)
+PAPER_KEY = {
+    'final': 'final',
+    'satisfactory': 'satisfactory_pct',
+    'iterations': 'iterations',
+    'evals': None,
+}
+
+
+class StudyError(Exception):
+    """Bad input: one line, exit 2, nothing written."""
+
+
+# -- text -----------------------------------------------------------------------------------------
+def _iv(iv: Interval, d: int) -> str:
+    if not math.isfinite(iv.value):
+        return '-'
+    if not math.isfinite(iv.lo):
+        return f'{iv.value:.{d}f}'
+    return f'{iv.value:.{d}f} [{iv.lo:.{d}f}, {iv.hi:.{d}f}]'
+
+
+def _paper(c: CellStats, stat: str, d: int) -> str:
+    key = PAPER_KEY.get(stat)
+    v = c.paper(key) if key else None
+    return '' if v is None else (f'{v:.2f}' if d == 3 else f'{v:.0f}')
+
+
+def _grids(
+    st: StudyStats,
+) -> list[tuple[str, list[str], list[str], dict[tuple[int, int], CellStats]]]:
+    """(algo, row labels, column labels, (row, col) -> stats) per algorithm."""
+    out = []
+    for algo in st.res.spec.algos:
+        cs = [c for c in st.cells if c.cell.algo == algo]
+        by = {(c.cell.row, c.cell.col): c for c in cs}
+        if algo == 'spsa':
+            rows = [c.cell.label.split()[0] for c in cs if c.cell.col == 0]
+            cols = [c.cell.label.split()[1] for c in cs if c.cell.row == 0]
+        else:
+            rows = ['eta=n/2']
+            cols = [c.cell.label.split()[0] for c in cs]
+        out.append((algo, rows, cols, by))
+    return out
+
+
+def tables_text(st: StudyStats) -> str:
+    res = st.res
+    sp = res.spec
+    L = [
+        f'Offline configuration study: {len(res.cells)} configurations x {sp.runs} runs x '
+        f'{sp.budget} evaluations, {sp.model} model, seed {sp.seed}',
+        f'loss normalised by L_ref = {res.l_ref:.5f} (+- {res.l_ref_sem:.5f}), the hand-tuned '
+        f'start over {S.REF_EXPERIMENTS} experiments; satisfactory: final loss <= '
+        f'{st.threshold:g}',
+        'cells: ours mean [95 % interval] | paper',
+        '',
+    ]
+    for stat, title, d in STATS:
+        L.append(title)
+        for algo, rows, cols, by in _grids(st):
+            w = 24
+            L.append(f'  {ALGO_NAME[algo]:<12}' + ''.join(f'{c:<{w + 7}}' for c in cols))
+            for i, rl in enumerate(rows):
+                line = f'  {rl:<12}'
+                for j in range(len(cols)):
+                    c = by[(i, j)]
+                    iv = getattr(c, stat)
+                    p = _paper(c, stat, d)
+                    cell = _iv(iv, d) + (f' | {p}' if p else '')
+                    line += f'{cell:<{w + 7}}'
+                L.append(line.rstrip())
+        L.append('')
+    notes = [c for c in st.cells if c.no_final]
+    if notes:
+        L.append(
+            'runs in which every experiment was aborted (no final controller; left out of '
+            'Table I, not satisfactory): '
+            + ', '.join(f'{c.cell.label}: {c.no_final}' for c in notes)
+        )
+    if st.conclusions:
+        L.append("The paper's conclusions in simulation:")
+        for k, concl in enumerate(st.conclusions, 1):
+            L.append(f'  {k}. {concl.claim}: {concl.verdict.upper()}')
+            L.append(f'     paper: {concl.paper}')
+            L.append(f'     here:  {concl.ours}')
+    rate = res.experiments / res.wall_s if res.wall_s > 0 else math.nan
+    L.append('')
+    L.append(
+        f'{res.experiments} experiments in {res.wall_s:.1f} s on {res.jobs} worker(s): '
+        f'{rate:.0f} experiments/s ({rate * EXPERIMENT_S:.0f} x real time)'
+    )
+    return '\n'.join(L) + '\n'

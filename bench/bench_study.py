@@ -53,7 +53,7 @@ def _bare_run(spec, cell_index: int, r: int) -> float:
     from im_controller.config import Gains
     from im_tuner import optim
     from im_tuner.bench.offline import OfflineBench
-    from im_tuner.study import run_seed, start_point
+    from im_tuner.study.runs import run_seed, start_point
     from im_tuner.tuning import run_seeds
 
     t0 = time.perf_counter()

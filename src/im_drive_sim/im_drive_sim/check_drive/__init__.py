@@ -7,16 +7,18 @@ summary; exit code 0 when every item passes, 1 otherwise, 2 when it refuses to r
 option, no drive, another node already commanding the drive). What each item checks and
 why its thresholds are what they are: docs/check-drive.md.
 
-A tool of the drive contract, in four modules by job: ``thresholds`` (items, limits,
-the result type), ``judges`` (pure functions, numpy only: the tests call them on
-synthetic arrays), ``probe`` (drives the check through DDS and records every state,
-joint state and command it saw) and ``cli``.
+A tool of the drive contract, in modules by job: ``thresholds`` (items, limits, the
+result type), ``judges`` (pure functions, numpy only: the tests call them on synthetic
+arrays), ``probe`` (drives the check through DDS and records every state, joint state
+and command it saw into a ``Recording``), ``evaluate`` (the pure evaluation of a
+recording, item by item) and ``cli``.
 """
 
 from .cli import (
     main,
     parse_args,
 )
+from .evaluate import Recording, evaluate, rows_by_step
 from .judges import (
     StepSegment,
     fit_acceleration,
@@ -112,7 +114,9 @@ __all__ = [
     'Item',
     'Options',
     'Probe',
+    'Recording',
     'StepSegment',
+    'evaluate',
     'fit_acceleration',
     'joint_state_problems',
     'judge_fields',
@@ -129,6 +133,7 @@ __all__ = [
     'parse_args',
     'period_stats',
     'rise_time',
+    'rows_by_step',
     'run_check',
     'state_field_problems',
     'step_metrics',

@@ -3,7 +3,6 @@ and command it sees, and hands the records to the judges (:func:`run_check`)."""
 
 from __future__ import annotations
 
-import itertools
 import math
 import time
 from collections.abc import Callable
@@ -11,34 +10,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .evaluate import Recording, evaluate, rows_by_step
 from .judges import (
-    StepSegment,
-    joint_state_problems,
-    judge_fields,
-    judge_latency,
-    judge_rate_lockstep,
-    judge_rate_realtime,
-    judge_step_response,
-    judge_topics,
-    judge_watchdog_lockstep,
-    judge_watchdog_realtime,
-    lockstep_step_problems,
-    onset_delay,
-    period_stats,
-    state_field_problems,
-    step_metrics,
-    units_ratio,
     watchdog_limits,
 )
 from .thresholds import (
-    CURRENT_BOUND_FACTOR,
     DEFAULT_TIMEOUT,
     DISCOVERY_SETTLE_S,
-    ITEMS,
     LOCKSTEP_SILENCE_S,
     NS_PER_S,
     STATE_FIELDS,
-    TYPES,
     WATCHDOG_ACT_FRACTION,
     ZERO_CURRENT_FRACTION,
     CheckRefused,
@@ -230,16 +211,8 @@ class Options:
 
 
 def _rows_by_step(p: Probe, first: int, last: int) -> tuple[np.ndarray, int]:
-    """States of steps first..last as a dense array indexed by step - first (NaN where a step
-    was not received; the first copy of a re-sent state)."""
-    out = np.full((last - first + 1, len(STATE_FIELDS)), np.nan)
-    ok = p.lengths[: p.n] == len(STATE_FIELDS)
-    s = p.states[: p.n][ok]
-    k = s[:, F['step_index']].astype(np.int64)
-    sel = (k >= first) & (k <= last)
-    for row, kk in zip(s[sel][::-1], k[sel][::-1], strict=True):
-        out[kk - first] = row
-    return out, first
+    """``rows_by_step`` over what the probe has taken so far."""
+    return rows_by_step(p.states[: p.n], p.lengths[: p.n], first, last)
 
 
 def run_check(
@@ -287,14 +260,14 @@ def run_check(
     timeout, timeout_src = _command_timeout(opts, node, drive_name, drive_ns)
     p.open_command()
     try:
-        return _probe_and_judge(
+        return _probe(
             p, opts, node, cfg, drive_full, timeout, timeout_src, state_topic, cmd_topic, log
         )
     finally:
         p.safe_stop()  # zero current, whatever happened (also on SIGINT and errors)
 
 
-def _probe_and_judge(
+def _probe(
     p: Probe,
     opts: Options,
     node,
@@ -436,119 +409,54 @@ def _probe_and_judge(
     info['status_mode'] = status_mode
     p.safe_stop()  # before judging: the drive is not left waiting for commands meanwhile
 
-    # ================================ judging ========================================
-    items: dict[str, Item] = {}
-    endpoints = {
-        'drive/state': [e.topic_type for e in node.get_publishers_info_by_topic(state_topic)],
-        'drive/command': [e.topic_type for e in node.get_subscriptions_info_by_topic(cmd_topic)],
-        'drive/joint_states': [
-            e.topic_type
-            for e in node.get_publishers_info_by_topic(
-                node.resolve_topic_name('drive/joint_states')
-            )
-        ],
-        'drive/status': [
-            e.topic_type
-            for e in node.get_publishers_info_by_topic(node.resolve_topic_name('drive/status'))
-        ],
-    }
-    items['topics'] = judge_topics(endpoints)
-
-    n = p.n
-    bound = CURRENT_BOUND_FACTOR * math.hypot(isq_max, cfg.machine.rated_flux_current)
-    sp = state_field_problems(p.states[:n], p.lengths[:n], p.seq[:n], ts_ns, realtime, bound)
-    k_first = step_trans[0][0] if step_trans else k_step_end
-    dense, _ = _rows_by_step(p, k_first, k_step_end + 1)
-    motion = dense[np.isfinite(dense[:, F['theta_meas']])]
-    if len(motion) > 20 and np.all(np.diff(motion[:, 0]) == 1):
-        th = motion[:, F['theta_meas']]
-        ratio = units_ratio(th, motion[:, F['omega_meas']], ts)
-        motion_counts = float(np.ptp(th) * counts_per_rad)
-    else:
-        ratio, motion_counts = math.nan, 0.0
-    joints_ok_type = endpoints['drive/joint_states'] and all(
-        t == TYPES['drive/joint_states'] for t in endpoints['drive/joint_states']
-    )
-    ok_rows = p.lengths[:n] == len(STATE_FIELDS)
-    jp = (
-        joint_state_problems(
-            np.array(p.joints, dtype=float).reshape(-1, 4), p.states[:n][ok_rows], ts_ns
-        )
-        if joints_ok_type
-        else None
-    )
-    items['fields'] = judge_fields(sp, ratio, motion_counts, jp)
-
-    steps = p.states[:n, F['step_index']]
-    if realtime:
-        sl = slice(i_rate0, i_rate1)
-        items['rate'] = judge_rate_realtime(
-            period_stats(steps[sl], p.source_ns[sl], ts), ts, mode_note
-        )
-    else:
-        new, unanswered, skipped = lockstep_step_problems(
-            steps[:n], p.take_ns[:n], p.cmd[: p.m, 0], p.cmd_ns[: p.m]
-        )
-        rate_steps = np.count_nonzero(np.diff(steps[i_rate0:i_rate1]) > 0)
-        items['rate'] = judge_rate_lockstep(
-            new, unanswered, skipped, idle_advance, rate_steps / rate_wall, mode_note
-        )
-
-    # latency: wall time command(k) -> state k+1 received, and the onset of each change
-    by_step = {}
-    for i in range(n):
-        if ok_rows[i]:
-            by_step.setdefault(int(steps[i]), i)
-    wall = []
-    for j in range(m_rate0, p.m):
-        k = int(p.cmd[j, 0])
-        i = by_step.get(k + 1)
-        if k >= 0 and i is not None:
-            wall.append((p.recv_ns[i] - p.cmd_ns[j]) * 1e-9)
-    delays = []
-    for k0, level, prev in trans[1:] + step_trans[1:]:
-        d, _ = _rows_by_step(p, k0 - 20, k0 + 25)
-        delays.append(onset_delay(d[:, F['isq']], 20, level - prev))
-    items['latency'] = judge_latency(delays, np.array(wall), realtime)
-
-    # step response
-    if len(step_trans) >= 4 and not aborted['why']:
-        metrics = []
-        for (k0, level, prev), (k1, _, _) in itertools.pairwise(step_trans[1:4]):
-            d, _ = _rows_by_step(p, k0 - 20, k1)
-            delay = onset_delay(d[:, F['isq']], 20, level - prev)
-            seg = d[20 : k1 - k0 + 20]
-            metrics.append(
-                step_metrics(
-                    StepSegment(
-                        level, prev, seg[:, F['isq']], seg[:, F['torque']], seg[:, F['theta_meas']]
-                    ),
-                    ts,
-                    delay,
+    rec = Recording(
+        states=p.states[: p.n].copy(),
+        lengths=p.lengths[: p.n].copy(),
+        source_ns=p.source_ns[: p.n].copy(),
+        recv_ns=p.recv_ns[: p.n].copy(),
+        take_ns=p.take_ns[: p.n].copy(),
+        seq=p.seq[: p.n].copy(),
+        cmd=p.cmd[: p.m].copy(),
+        cmd_ns=p.cmd_ns[: p.m].copy(),
+        joints=np.array(p.joints, dtype=float).reshape(-1, 4),
+        endpoints={
+            'drive/state': [e.topic_type for e in node.get_publishers_info_by_topic(state_topic)],
+            'drive/command': [
+                e.topic_type for e in node.get_subscriptions_info_by_topic(cmd_topic)
+            ],
+            'drive/joint_states': [
+                e.topic_type
+                for e in node.get_publishers_info_by_topic(
+                    node.resolve_topic_name('drive/joint_states')
                 )
-            )
-        items['step_response'] = judge_step_response(metrics[0], metrics[1], a, counts_per_rad)
-    else:
-        nan = {
-            'rise_s': math.nan,
-            'steady_error': math.nan,
-            'torque_per_amp': math.nan,
-            'accel': math.nan,
-            'duration_s': 0.0,
-        }
-        items['step_response'] = judge_step_response(
-            nan, nan, a, counts_per_rad, aborted['why'] or 'step test incomplete'
-        )
-
-    if realtime:
-        items['watchdog'] = judge_watchdog_realtime(
-            wd['t_act'], wd['t_zero'], timeout, wd['resumed_s'], timeout_src, wd['aborted']
-        )
-    else:
-        items['watchdog'] = judge_watchdog_lockstep(
-            wd['silence_s'], wd['advanced'], wd['resumed_s']
-        )
-    return [items[name] for name in ITEMS], info
+            ],
+            'drive/status': [
+                e.topic_type
+                for e in node.get_publishers_info_by_topic(node.resolve_topic_name('drive/status'))
+            ],
+        },
+        ts=ts,
+        ts_ns=ts_ns,
+        isq_max=isq_max,
+        rated_flux_current=cfg.machine.rated_flux_current,
+        counts_per_rad=counts_per_rad,
+        amplitude=a,
+        realtime=realtime,
+        idle_advance=idle_advance,
+        mode_note=mode_note,
+        i_rate0=i_rate0,
+        i_rate1=i_rate1,
+        m_rate0=m_rate0,
+        rate_wall=rate_wall,
+        trans=trans,
+        step_trans=step_trans,
+        k_step_end=k_step_end,
+        aborted_why=aborted['why'],
+        watchdog=wd,
+        command_timeout=timeout,
+        command_timeout_source=timeout_src,
+    )
+    return evaluate(rec), info
 
 
 def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, ts: float) -> dict:

@@ -1,0 +1,219 @@
+"""check_drive's evaluation of a recording: what the probe saw and did (``Recording``),
+judged item by item (``evaluate``). Pure: numpy only, no ROS -- a recording can be saved
+and judged again, and the tests judge synthetic ones."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .judges import (
+    StepSegment,
+    joint_state_problems,
+    judge_fields,
+    judge_latency,
+    judge_rate_lockstep,
+    judge_rate_realtime,
+    judge_step_response,
+    judge_topics,
+    judge_watchdog_lockstep,
+    judge_watchdog_realtime,
+    lockstep_step_problems,
+    onset_delay,
+    period_stats,
+    state_field_problems,
+    step_metrics,
+    units_ratio,
+)
+from .thresholds import CURRENT_BOUND_FACTOR, ITEMS, STATE_FIELDS, TYPES, F, Item
+
+__all__ = ['Recording', 'evaluate', 'rows_by_step']
+
+
+def rows_by_step(
+    states: np.ndarray, lengths: np.ndarray, first: int, last: int
+) -> tuple[np.ndarray, int]:
+    """States of steps first..last as a dense array indexed by step - first (NaN where a step
+    was not received; the first copy of a re-sent state)."""
+    out = np.full((last - first + 1, len(STATE_FIELDS)), np.nan)
+    ok = lengths == len(STATE_FIELDS)
+    s = states[ok]
+    k = s[:, F['step_index']].astype(np.int64)
+    sel = (k >= first) & (k <= last)
+    for row, kk in zip(s[sel][::-1], k[sel][::-1], strict=True):
+        out[kk - first] = row
+    return out, first
+
+
+@dataclass
+class Recording:
+    """Everything the probe took and sent, and the marks of its phases.
+
+    Arrays (rows in the order taken): ``states`` [n, STATE_FIELDS] (NaN rows where the
+    message had another length, ``lengths``), their DDS ``source_ns``/``recv_ns`` and
+    ``take_ns`` wall times [ns] and publication ``seq``; ``cmd`` [m, 3] (answers_step, isq*
+    [A], load [N m]) published at ``cmd_ns``; ``joints`` [j, 4] (stamp [ns], position
+    [rad], velocity [rad/s], effort [N m]). Marks: the rate phase's state rows
+    ``i_rate0:i_rate1``, its first command ``m_rate0`` and wall time ``rate_wall`` [s];
+    the level changes ``trans`` (latency) and ``step_trans`` (step response) as (step,
+    level, previous level); the watchdog phase's figures ``watchdog``.
+    """
+
+    states: np.ndarray
+    lengths: np.ndarray
+    source_ns: np.ndarray
+    recv_ns: np.ndarray
+    take_ns: np.ndarray
+    seq: np.ndarray
+    cmd: np.ndarray
+    cmd_ns: np.ndarray
+    joints: np.ndarray
+    endpoints: dict[str, list[str]]
+    ts: float
+    ts_ns: int
+    isq_max: float
+    rated_flux_current: float
+    counts_per_rad: float
+    amplitude: float
+    realtime: bool
+    idle_advance: int
+    mode_note: str
+    i_rate0: int
+    i_rate1: int
+    m_rate0: int
+    rate_wall: float
+    trans: list[tuple[int, float, float]]
+    step_trans: list[tuple[int, float, float]]
+    k_step_end: int
+    aborted_why: str
+    watchdog: dict[str, Any]
+    command_timeout: float
+    command_timeout_source: str
+
+    @property
+    def n(self) -> int:
+        return len(self.states)
+
+    @property
+    def m(self) -> int:
+        return len(self.cmd)
+
+    def rows_by_step(self, first: int, last: int) -> tuple[np.ndarray, int]:
+        return rows_by_step(self.states, self.lengths, first, last)
+
+
+def evaluate(rec: Recording) -> list[Item]:
+    """The six items, in ``ITEMS`` order, judged from ``rec``."""
+    ts, ts_ns, isq_max, a = rec.ts, rec.ts_ns, rec.isq_max, rec.amplitude
+    counts_per_rad, realtime, mode_note = rec.counts_per_rad, rec.realtime, rec.mode_note
+    i_rate0, i_rate1, m_rate0, rate_wall = rec.i_rate0, rec.i_rate1, rec.m_rate0, rec.rate_wall
+    trans, step_trans, k_step_end = rec.trans, rec.step_trans, rec.k_step_end
+    idle_advance, timeout = rec.idle_advance, rec.command_timeout
+    items: dict[str, Item] = {}
+    endpoints = rec.endpoints
+    items['topics'] = judge_topics(endpoints)
+
+    n = rec.n
+    bound = CURRENT_BOUND_FACTOR * math.hypot(isq_max, rec.rated_flux_current)
+    sp = state_field_problems(rec.states[:n], rec.lengths[:n], rec.seq[:n], ts_ns, realtime, bound)
+    k_first = step_trans[0][0] if step_trans else k_step_end
+    dense, _ = rec.rows_by_step(k_first, k_step_end + 1)
+    motion = dense[np.isfinite(dense[:, F['theta_meas']])]
+    if len(motion) > 20 and np.all(np.diff(motion[:, 0]) == 1):
+        th = motion[:, F['theta_meas']]
+        ratio = units_ratio(th, motion[:, F['omega_meas']], ts)
+        motion_counts = float(np.ptp(th) * counts_per_rad)
+    else:
+        ratio, motion_counts = math.nan, 0.0
+    joints_ok_type = endpoints['drive/joint_states'] and all(
+        t == TYPES['drive/joint_states'] for t in endpoints['drive/joint_states']
+    )
+    ok_rows = rec.lengths[:n] == len(STATE_FIELDS)
+    jp = (
+        joint_state_problems(
+            np.array(rec.joints, dtype=float).reshape(-1, 4), rec.states[:n][ok_rows], ts_ns
+        )
+        if joints_ok_type
+        else None
+    )
+    items['fields'] = judge_fields(sp, ratio, motion_counts, jp)
+
+    steps = rec.states[:n, F['step_index']]
+    if realtime:
+        sl = slice(i_rate0, i_rate1)
+        items['rate'] = judge_rate_realtime(
+            period_stats(steps[sl], rec.source_ns[sl], ts), ts, mode_note
+        )
+    else:
+        new, unanswered, skipped = lockstep_step_problems(
+            steps[:n], rec.take_ns[:n], rec.cmd[: rec.m, 0], rec.cmd_ns[: rec.m]
+        )
+        rate_steps = np.count_nonzero(np.diff(steps[i_rate0:i_rate1]) > 0)
+        items['rate'] = judge_rate_lockstep(
+            new, unanswered, skipped, idle_advance, rate_steps / rate_wall, mode_note
+        )
+
+    # latency: wall time command(k) -> state k+1 received, and the onset of each change
+    by_step: dict[int, int] = {}  # step -> the row of its first copy
+    for i in range(n):
+        if ok_rows[i]:
+            by_step.setdefault(int(steps[i]), i)
+    wall = []
+    for j in range(m_rate0, rec.m):
+        k = int(rec.cmd[j, 0])
+        row = by_step.get(k + 1)
+        if k >= 0 and row is not None:
+            wall.append((rec.recv_ns[row] - rec.cmd_ns[j]) * 1e-9)
+    delays = []
+    for k0, level, prev in trans[1:] + step_trans[1:]:
+        d, _ = rec.rows_by_step(k0 - 20, k0 + 25)
+        delays.append(onset_delay(d[:, F['isq']], 20, level - prev))
+    items['latency'] = judge_latency(delays, np.array(wall), realtime)
+
+    # step response
+    if len(step_trans) >= 4 and not rec.aborted_why:
+        metrics = []
+        for (k0, level, prev), (k1, _, _) in itertools.pairwise(step_trans[1:4]):
+            d, _ = rec.rows_by_step(k0 - 20, k1)
+            delay = onset_delay(d[:, F['isq']], 20, level - prev)
+            seg = d[20 : k1 - k0 + 20]
+            metrics.append(
+                step_metrics(
+                    StepSegment(
+                        level, prev, seg[:, F['isq']], seg[:, F['torque']], seg[:, F['theta_meas']]
+                    ),
+                    ts,
+                    delay,
+                )
+            )
+        items['step_response'] = judge_step_response(metrics[0], metrics[1], a, counts_per_rad)
+    else:
+        nan = {
+            'rise_s': math.nan,
+            'steady_error': math.nan,
+            'torque_per_amp': math.nan,
+            'accel': math.nan,
+            'duration_s': 0.0,
+        }
+        items['step_response'] = judge_step_response(
+            nan, nan, a, counts_per_rad, rec.aborted_why or 'step test incomplete'
+        )
+
+    if realtime:
+        items['watchdog'] = judge_watchdog_realtime(
+            rec.watchdog['t_act'],
+            rec.watchdog['t_zero'],
+            timeout,
+            rec.watchdog['resumed_s'],
+            rec.command_timeout_source,
+            rec.watchdog['aborted'],
+        )
+    else:
+        items['watchdog'] = judge_watchdog_lockstep(
+            rec.watchdog['silence_s'], rec.watchdog['advanced'], rec.watchdog['resumed_s']
+        )
+    return [items[name] for name in ITEMS]

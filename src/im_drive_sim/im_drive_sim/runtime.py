@@ -21,6 +21,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import (
@@ -180,22 +181,18 @@ def run_stepped_node(
     The node must provide ``run(executor)``, ``stop_requested``, ``flush()`` and
     ``destroy_node()``; ``on_exit(node)`` runs first at shutdown (a summary log).
     """
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    node = None
+    node: Any = None
     executor = None
-    stop = {'requested': False}
 
-    def _on_signal(signum, _frame) -> None:
-        stop['requested'] = True
+    def _on_signal(_signum: int) -> None:
         if node is None:
             raise KeyboardInterrupt  # still starting: nothing to stop cleanly yet
         node.stop_requested = True
 
-    signal.signal(signal.SIGINT, _on_signal)
-    signal.signal(signal.SIGTERM, _on_signal)
+    session = RosSession(argv, on_signal=_on_signal)
     try:
         node = make_node()
-        node.stop_requested = stop['requested']
+        node.stop_requested = session.stopped
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
         node.run(executor)
@@ -218,7 +215,7 @@ def run_stepped_node(
             if executor is not None:
                 executor.shutdown()
             node.destroy_node()
-        rclpy.try_shutdown()
+        session.close()
     return 0
 
 
@@ -270,3 +267,42 @@ def param_descriptor(
             FloatingPointRange(from_value=float_range[0], to_value=float_range[1], step=0.0)
         ]
     return d
+
+
+class RosSession:
+    """The rclpy start/stop idiom of every executable of the workspace.
+
+    ``RosSession(argv)`` initialises rclpy (in ``context``, or the default one) with this
+    process's own SIGINT/SIGTERM handlers instead of rclpy's, which would raise
+    KeyboardInterrupt anywhere, inside a 5 kHz loop or a bag write included. A signal sets
+    ``signum`` (``stopped`` is then True) and calls ``on_signal(signum)`` -- which may raise
+    KeyboardInterrupt while nothing is up yet to stop cleanly. ``close()`` (in the
+    caller's ``finally``) shuts rclpy down and puts the previous handlers back.
+    """
+
+    def __init__(
+        self,
+        argv: list[str],
+        *,
+        context: object | None = None,
+        on_signal: Callable[[int], None] | None = None,
+    ) -> None:
+        self.context = context
+        self.signum: int | None = None
+        self._on_signal = on_signal
+        rclpy.init(args=argv, context=context, signal_handler_options=SignalHandlerOptions.NO)
+        self._old = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def _handle(self, signum: int, _frame: object) -> None:
+        self.signum = signum
+        if self._on_signal is not None:
+            self._on_signal(signum)
+
+    @property
+    def stopped(self) -> bool:
+        return self.signum is not None
+
+    def close(self) -> None:
+        rclpy.try_shutdown(context=self.context)
+        for s, h in self._old.items():
+            signal.signal(s, h)

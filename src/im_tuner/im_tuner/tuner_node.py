@@ -43,20 +43,18 @@ import argparse
 import os
 import shlex
 import shutil
-import signal
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-import rclpy
 import yaml
 from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.signals import SignalHandlerOptions
 
 from im_drive_sim.cli import UsageError, check_ros_args
+from im_drive_sim.runtime import RosSession
 
 from .bench import forms
 from .link import ControllerLink, controller_topics
@@ -170,16 +168,11 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
     if '--ros-args' in argv:
         ros_args = [*argv[argv.index('--ros-args') :], '--disable-stdout-logs']
     ctx = Context()
-    rclpy.init(
-        args=[argv[0], *ros_args], context=ctx, signal_handler_options=SignalHandlerOptions.NO
-    )
-    stop = {'sig': None}
+    ros = RosSession([argv[0], *ros_args], context=ctx)
 
-    def _on_signal(signum, _frame) -> None:
-        stop['sig'] = signum
+    def should_stop() -> bool:
+        return ros.stopped
 
-    old_handlers = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    should_stop = lambda: stop['sig'] is not None  # noqa: E731
     bench: forms.Bench | None = None
     node = None
     exe = None
@@ -389,9 +382,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             node.destroy_node()
         if exe is not None:
             exe.executor.shutdown()
-        rclpy.try_shutdown(context=ctx)
-        for s, h in old_handlers.items():
-            signal.signal(s, h)
+        ros.close()
     return code
 
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import signal
 import sys
 from dataclasses import asdict
 from pathlib import Path
@@ -117,26 +116,16 @@ def main(args: list[str] | None = None) -> int:
         print(f'error: check_drive: {exc}', file=sys.stderr)
         return 2
     opts = parse_args(rest[1:])
-    import rclpy
     from rclpy.node import Node
-    from rclpy.signals import SignalHandlerOptions
 
     from im_drive_sim.params import ConfigError
+    from im_drive_sim.runtime import RosSession
 
-    stop = {'signal': None}
-
-    def on_signal(signum, _frame) -> None:
-        stop['signal'] = signum
-
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    session = RosSession(argv)
     node = Node('check_drive', **({'namespace': opts.namespace} if opts.namespace else {}))
     code = 0
     try:
-        items, info = run_check(
-            opts, node, lambda s: print(s, flush=True), lambda: stop['signal'] is not None
-        )
+        items, info = run_check(opts, node, lambda s: print(s, flush=True), lambda: session.stopped)
         for item in items:
             print(item.line())
         print(summary_line(items, info.get('mode', ''), info.get('status_mode')))
@@ -161,7 +150,7 @@ def main(args: list[str] | None = None) -> int:
         code = 130
     finally:
         node.destroy_node()
-        rclpy.try_shutdown()
+        session.close()
     return code
 
 

@@ -29,10 +29,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-import rclpy
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.parameter import Parameter
-from rclpy.signals import SignalHandlerOptions
 
 from im_controller.config import ControllerConfigError
 from im_controller.controller_node import ControllerError
@@ -40,6 +38,7 @@ from im_drive_sim.cli import Parser, UsageError, input_file, int_in, parse_cli
 from im_drive_sim.params import ConfigError, load_config
 from im_drive_sim.runtime import (
     ParameterOverrideError,
+    RosSession,
     stop_child,
 )
 
@@ -172,17 +171,15 @@ def main(args: list[str] | None = None) -> int:
         if v is not None
     ]
     ctl_over = [Parameter('drive_config_file', value=config)] if config else []
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     bench = None
     rec = None
 
-    def _on_signal(signum, _frame) -> None:
+    def _on_signal(_signum: int) -> None:
         if bench is None:
-            raise KeyboardInterrupt
+            raise KeyboardInterrupt  # still starting: nothing to stop cleanly yet
         bench.stop_requested = True
 
-    signal.signal(signal.SIGINT, _on_signal)
-    signal.signal(signal.SIGTERM, _on_signal)
+    session = RosSession(argv, on_signal=_on_signal)
 
     def _start_recorder(b: InProcessBench) -> None:
         nonlocal rec
@@ -231,7 +228,7 @@ def main(args: list[str] | None = None) -> int:
             rec.node.destroy_node()
         if bench is not None:
             bench.destroy()
-        rclpy.try_shutdown()
+        session.close()
     return 0
 
 

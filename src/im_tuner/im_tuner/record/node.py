@@ -40,7 +40,6 @@ import json
 import os
 import platform
 import shlex
-import signal
 import socket
 import sys
 import time
@@ -48,14 +47,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import rclpy
 import yaml
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
 
 from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, parse_cli
-from im_drive_sim.runtime import unknown_overrides, warn_unknown_overrides
+from im_drive_sim.runtime import RosSession, unknown_overrides, warn_unknown_overrides
 
 from . import take as rcl_take
 from .metadata import (
@@ -575,14 +572,7 @@ def main(args: list[str] | None = None) -> int:
         'FASTRTPS_DEFAULT_PROFILES_FILE',
         str(Path(__file__).parent.parent / 'config' / 'recorder_fastdds.xml'),
     )
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    stop = {'sig': None}
-
-    def _on_signal(signum, _frame) -> None:
-        stop['sig'] = signum
-
-    signal.signal(signal.SIGINT, _on_signal)
-    signal.signal(signal.SIGTERM, _on_signal)
+    session = RosSession(argv)
     node = None
     rec = None
     try:
@@ -601,7 +591,7 @@ def main(args: list[str] | None = None) -> int:
             return 2
         warn_unknown_overrides(node, unknown_overrides(node))  # it has no parameters
         node.get_logger().info(f'recording to {rec.out} (compression {cli.compression})')
-        while stop['sig'] is None:
+        while not session.stopped:
             if rec.poll() == 0:
                 time.sleep(0.001)
         rec.close(settle=0.1)
@@ -611,7 +601,7 @@ def main(args: list[str] | None = None) -> int:
             rec.close()
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        session.close()
 
 
 if __name__ == '__main__':

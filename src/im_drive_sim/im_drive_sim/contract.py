@@ -79,7 +79,8 @@ STATE_INDEX: dict[str, int] = {n: i for i, n in enumerate(STATE_FIELDS)}
 COMMAND_FIELDS: tuple[str, ...] = ('answers_step', 'isq_ref', 'load_torque')
 CMD_STEP, CMD_ISQ, CMD_LOAD = 0, 1, 2
 
-#: ``drive/status`` counters (a DiagnosticStatus's key/values), in this order:
+#: ``drive/status`` counters (a DiagnosticStatus's key/values; a drive may publish them in
+#: any order; the example drive, real time only, has no ``republished``):
 #: steps (periods run), commands (valid commands received), fresh/held (periods driven by
 #: a command answering the latest state / holding an older one), late (commands answering
 #: an older state than the latest), stale_ignored (duplicates, out-of-order or, in

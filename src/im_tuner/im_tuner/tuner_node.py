@@ -54,6 +54,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from im_drive_sim.cli import UsageError, check_ros_args
+from im_drive_sim.contract import STATE_TOPIC
 from im_drive_sim.runtime import RosSession
 
 from .bench import forms
@@ -205,7 +206,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                 'tune it with --bench none, or use another ROS_DOMAIN_ID'
             )
         simulated = bench_mode in SIM_BENCHES
-        if simulated and node.count_publishers('/drive/state') > 0:
+        if simulated and node.count_publishers('/' + STATE_TOPIC) > 0:
             # a drive without a controller: a second (simulated) drive would fight it
             raise BenchFailure(
                 'a drive is publishing /drive/state but no controller answers '

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from ..contract import JOINT_STATE_TOPIC
 from .judges import (
     StepSegment,
     joint_state_problems,
@@ -129,8 +130,8 @@ def evaluate(rec: Recording) -> list[Item]:
         motion_counts = float(np.ptp(th) * counts_per_rad)
     else:
         ratio, motion_counts = math.nan, 0.0
-    joints_ok_type = endpoints['drive/joint_states'] and all(
-        t == TYPES['drive/joint_states'] for t in endpoints['drive/joint_states']
+    joints_ok_type = endpoints[JOINT_STATE_TOPIC] and all(
+        t == TYPES[JOINT_STATE_TOPIC] for t in endpoints[JOINT_STATE_TOPIC]
     )
     ok_rows = rec.lengths[:n] == len(STATE_FIELDS)
     jp = (

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..contract import COMMAND_TOPIC
 from .thresholds import (
     ACCEL_MIN_COUNTS,
     CURRENT_FIELDS,
@@ -47,7 +48,7 @@ def judge_topics(endpoints: dict[str, list[str]]) -> Item:
     their publishers, for 'drive/command' the types of its subscribers other than us."""
     problems, seen = [], []
     for topic, want in TYPES.items():
-        role = 'subscriber' if topic == 'drive/command' else 'publisher'
+        role = 'subscriber' if topic == COMMAND_TOPIC else 'publisher'
         types = endpoints.get(topic, [])
         if not types:
             problems.append(f'no {role} on {topic}')

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..contract import COMMAND_TOPIC, JOINT_STATE_TOPIC, STATE_TOPIC, STATUS_TOPIC
 from .evaluate import Recording, evaluate, rows_by_step
 from .judges import (
     watchdog_limits,
@@ -65,9 +66,9 @@ class Probe:
             durability=DurabilityPolicy.VOLATILE,
         )
         noop = lambda _m: None  # noqa: E731 (taken by hand, never by an executor)
-        self.state_sub = node.create_subscription(Float64MultiArray, 'drive/state', noop, deep)
-        self.joint_sub = node.create_subscription(JointState, 'drive/joint_states', noop, 1000)
-        self.status_sub = node.create_subscription(DiagnosticArray, 'drive/status', noop, 10)
+        self.state_sub = node.create_subscription(Float64MultiArray, STATE_TOPIC, noop, deep)
+        self.joint_sub = node.create_subscription(JointState, JOINT_STATE_TOPIC, noop, 1000)
+        self.status_sub = node.create_subscription(DiagnosticArray, STATUS_TOPIC, noop, 10)
         self.cmd_pub = None
         self.stopped = False
         self.waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)
@@ -92,7 +93,7 @@ class Probe:
         from im_drive_sim.drive_sim_node import RECORDED_QOS
 
         self.cmd_pub = self.node.create_publisher(
-            self._Float64MultiArray, 'drive/command', RECORDED_QOS
+            self._Float64MultiArray, COMMAND_TOPIC, RECORDED_QOS
         )
         self._cmd_msg = self._Float64MultiArray(data=[0.0, 0.0, 0.0])
 
@@ -231,7 +232,7 @@ def run_check(
     p = Probe(node)
     p.stop = stop
     state_topic = p.state_sub.topic_name
-    cmd_topic = node.resolve_topic_name('drive/command')
+    cmd_topic = node.resolve_topic_name(COMMAND_TOPIC)
 
     # -- discovery --------------------------------------------------------------------
     deadline = time.monotonic() + opts.timeout
@@ -420,19 +421,17 @@ def _probe(
         cmd_ns=p.cmd_ns[: p.m].copy(),
         joints=np.array(p.joints, dtype=float).reshape(-1, 4),
         endpoints={
-            'drive/state': [e.topic_type for e in node.get_publishers_info_by_topic(state_topic)],
-            'drive/command': [
-                e.topic_type for e in node.get_subscriptions_info_by_topic(cmd_topic)
-            ],
-            'drive/joint_states': [
+            STATE_TOPIC: [e.topic_type for e in node.get_publishers_info_by_topic(state_topic)],
+            COMMAND_TOPIC: [e.topic_type for e in node.get_subscriptions_info_by_topic(cmd_topic)],
+            JOINT_STATE_TOPIC: [
                 e.topic_type
                 for e in node.get_publishers_info_by_topic(
-                    node.resolve_topic_name('drive/joint_states')
+                    node.resolve_topic_name(JOINT_STATE_TOPIC)
                 )
             ],
-            'drive/status': [
+            STATUS_TOPIC: [
                 e.topic_type
-                for e in node.get_publishers_info_by_topic(node.resolve_topic_name('drive/status'))
+                for e in node.get_publishers_info_by_topic(node.resolve_topic_name(STATUS_TOPIC))
             ],
         },
         ts=ts,

@@ -26,6 +26,8 @@ import numpy as np
 import yaml
 from numba import njit
 
+from im_controller.contract import LOSS_TOPIC
+
 from .metadata import read_metadata_yaml
 from .records import decompress, parse_definition
 from .writer import MAGIC, OP_CHANNEL, OP_CHUNK, OP_DATA_END, OP_FOOTER, OP_MESSAGE, OP_SCHEMA
@@ -278,7 +280,7 @@ def find_mcap(bag_dir: Path) -> Path:
 def read_bag(
     bag_dir: Path | str,
     arrays: dict[str, list[tuple[int, int]] | None] | None = None,
-    loss_topic: str = '/controller/loss',
+    loss_topic: str = '/' + LOSS_TOPIC,
 ) -> BagData:
     """Read ``bag_dir`` (see the module docstring).
 

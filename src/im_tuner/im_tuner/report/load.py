@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from im_controller import contract as C
 from im_controller.config import GAIN_NAMES
 from im_controller.experiment import INTERNALS_FIELDS
 
@@ -21,8 +22,8 @@ from ..rundir import RunDir, RunDirError
 from ..tuning import summarize, tally_all
 
 EXIT_USAGE = 2
-INTERNALS_TOPIC = '/controller/internals'
-LOSS_TOPIC = '/controller/loss'
+INTERNALS_TOPIC = '/' + C.INTERNALS_TOPIC  # the bench's controller, in the root namespace
+LOSS_TOPIC = '/' + C.LOSS_TOPIC
 #: Columns of evaluations.csv, in order (units in docs/tuner.md).
 CSV_COLUMNS: tuple[str, ...] = (
     'run',

@@ -26,14 +26,9 @@ from .thresholds import (
 # ========================================== CLI ============================================
 
 
-class _Parser(Parser):
-    def error(self, message: str) -> None:  # one line, exit 2
-        print(f'error: check_drive: {message}', file=sys.stderr)
-        sys.exit(2)
-
-
 def parse_args(argv: list[str]) -> Options:
-    ap = _Parser(
+    """The options, checked; a bad one raises UsageError (one line, exit 2 in main)."""
+    ap = Parser(
         prog='ros2 run im_drive_sim check_drive',
         description='Check a drive node against docs/interfaces.md (see '
         'docs/check-drive.md). Exit 0: all items pass; 1: some fail; '
@@ -111,11 +106,10 @@ def parse_args(argv: list[str]) -> Options:
 def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
     try:
-        rest = check_ros_args(argv)
+        opts = parse_args(check_ros_args(argv)[1:])
     except UsageError as exc:
         print(f'error: check_drive: {exc}', file=sys.stderr)
         return 2
-    opts = parse_args(rest[1:])
     from rclpy.node import Node
 
     from im_drive_sim.params import ConfigError

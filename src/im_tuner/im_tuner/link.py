@@ -289,21 +289,7 @@ class ControllerLink:
             except (BenchFailure, LostEvaluation) as exc:
                 # keep this result; the next start meets the fault and tries once more
                 self.node.get_logger().error(f'experiment {eid}: {exc}')
-        return Measurement(
-            loss=r.loss,
-            terms=r.terms,
-            aborted=r.aborted,
-            reason=r.reason,
-            fault=fault,
-            experiment_id=r.experiment_id,
-            direction=r.direction,
-            steps=r.steps,
-            trip_step=r.trip_step,
-            t_start_ns=r.t_start,
-            t_end_ns=r.t_end,
-            wall_s=time.perf_counter() - t0,
-            gains=ran,
-        )
+        return Measurement.of(r, time.perf_counter() - t0)
 
     def apply(self, gains: Gains) -> None:
         """Leave ``gains`` applied on the controller (the run's final controller); also

@@ -42,6 +42,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from im_controller.config import GAIN_NAMES, Gains
+from im_controller.layout import SAFETY_REASONS
+from im_controller.result import LossResult
 
 from .optim.base import Optimizer
 from .rundir import RunDir, RunDirError
@@ -88,6 +90,25 @@ class Measurement:
     t_end_ns: int
     wall_s: float  #: set gains -> loss received [s]
     gains: tuple[float, ...]  #: the gains the controller reports it ran
+
+    @classmethod
+    def of(cls, r: LossResult, wall_s: float) -> Measurement:
+        """The controller's result as the tuner records it (a safety reason is a fault)."""
+        return cls(
+            loss=r.loss,
+            terms=r.terms,
+            aborted=r.aborted,
+            reason=r.reason,
+            fault=r.reason in SAFETY_REASONS,
+            experiment_id=r.experiment_id,
+            direction=r.direction,
+            steps=r.steps,
+            trip_step=r.trip_step,
+            t_start_ns=r.t_start,
+            t_end_ns=r.t_end,
+            wall_s=wall_s,
+            gains=r.gains.as_tuple(),
+        )
 
 
 class LostEvaluation(Exception):

@@ -33,7 +33,6 @@ from im_controller.layout import (
     R_N,
     R_REASON,
     REASON_POSITION,
-    SAFETY_REASONS,
     STATUS_ABORTED,
     STATUS_DONE,
 )
@@ -259,24 +258,10 @@ class OfflineBench:
             self.sim, gains, self.runner.config, self.next_id, self.runner, record=False
         )
         self.next_id += 1
-        fault = res.reason in SAFETY_REASONS
-        if fault:
+        m = Measurement.of(res, time.perf_counter() - t0)
+        if m.fault:
             self.runner.reset(self.sim.theta_meas)
-        return Measurement(
-            loss=res.loss,
-            terms=res.terms,
-            aborted=res.aborted,
-            reason=res.reason,
-            fault=fault,
-            experiment_id=res.experiment_id,
-            direction=res.direction,
-            steps=res.steps,
-            trip_step=res.trip_step,
-            t_start_ns=res.t_start,
-            t_end_ns=res.t_end,
-            wall_s=time.perf_counter() - t0,
-            gains=res.gains.as_tuple(),
-        )
+        return m
 
     def apply(self, gains: Gains) -> None:
         """Offline there is no controller to leave the final gains on."""

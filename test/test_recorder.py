@@ -379,6 +379,53 @@ def test_standalone_recorder_burst_sigint(ros_context, procs, tmp_path, wait_unt
     node.destroy_node()
 
 
+def test_recorder_next_to_a_live_realtime_drive_closes_within_2_s(procs, tmp_path, wait_until):
+    """Issue 18 (3): a real-time drive publishes 5000 states a second and never stops, so
+    the recorder's close never sees the quiet it used to wait for (the bag stayed open for
+    15-30 s, or for ever). SIGINT now closes the bag within 2 s, and the bag says that it
+    was cut while messages were still arriving."""
+    drive = procs.start(
+        [
+            ROS2,
+            'run',
+            'im_drive_sim',
+            'drive_sim',
+            '--mode',
+            'realtime',
+            '--ros-args',
+            '-p',
+            'realtime_wait_for_controller:=false',
+        ]
+    )
+    bag = tmp_path / 'bag'
+    rec = _start_recorder(procs, bag)
+
+    # recording the live drive: the bag file grows (chunks of states are written)
+    def size() -> int:
+        return sum(f.stat().st_size for f in bag.glob('*.mcap')) if bag.is_dir() else 0
+
+    wait_until(lambda: size() > 200_000, 60.0, message='bag grows')
+    assert drive.poll() is None
+    t0 = time.monotonic()
+    rec.send_signal(signal.SIGINT)
+    _out, err = rec.communicate(timeout=30)
+    took = time.monotonic() - t0
+    assert rec.returncode == 0, err[-2000:]
+    assert took < 2.0, f'closing took {took:.2f} s'
+    assert drive.poll() is None  # the drive never stopped publishing
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    custom = meta['custom_data']
+    assert custom['im_tuner.state'] == 'closed'
+    assert custom['im_tuner.close'].startswith('cut after 1 s of taking')
+    assert 'cut after 1 s of taking' in err
+    counts = {
+        t['topic_metadata']['name']: t['message_count'] for t in meta['topics_with_message_count']
+    }
+    assert counts['/drive/state'] > 1000
+    # the closed bag opens in an independent reader, with every state it counted
+    assert read_with_mcap(bag)['/drive/state'] == counts['/drive/state']
+
+
 def test_sigkill_then_repair(ros_context, procs, tmp_path, wait_until):
     node = Node('killed', context=ros_context)
     pub = node.create_publisher(Float64MultiArray, 'killed', RELIABLE_ALL)

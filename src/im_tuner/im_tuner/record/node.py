@@ -72,6 +72,8 @@ from .writer import MESSAGE_HEADER_BYTES, McapWriteError, McapWriter
 #: 200 samples per 5 kHz topic, far below Fast DDS's 5000 per reader, and rare enough
 #: that polling the (mostly empty) low-rate subscriptions costs nothing measurable.
 RECORD_POLL_STEPS = 64
+#: Longest a closing recorder keeps taking messages that are still arriving [s].
+CLOSE_MAX_WAIT = 1.0
 
 #: Packages whose versions go into the run metadata.
 VERSIONED = (
@@ -420,18 +422,31 @@ class Recorder:
             }
         return out
 
-    def close(self, settle: float = 0.0) -> dict[str, dict[str, int]]:
+    def close(
+        self, settle: float = 0.0, max_wait: float = CLOSE_MAX_WAIT
+    ) -> dict[str, dict[str, int]]:
         """Take what is left, finish the bag (summary, metadata.yaml); returns the counts.
 
         ``settle`` [s]: keep taking until nothing arrived for this long (for publishers
-        in other processes still delivering)."""
+        in other processes still delivering), but for ``max_wait`` s at most: next to a
+        live bench (a real-time drive publishes 5000 states a second) it is never quiet.
+        A bag cut that way says so (``im_tuner.close`` in its metadata, and a log line):
+        what was published after the cut is not in it."""
         if self.writer.closed:
             return self.counts()
         self.discover()
         self.drain()
+        cut = ''
         if settle > 0:
-            quiet_since = time.monotonic()
+            t0 = quiet_since = time.monotonic()
             while time.monotonic() - quiet_since < settle:
+                if time.monotonic() - t0 >= max_wait:
+                    cut = (
+                        f'cut after {max_wait:g} s of taking: messages were still '
+                        'arriving (a live publisher); what they published after the cut '
+                        'is not in the bag'
+                    )
+                    break
                 if self.drain():
                     quiet_since = time.monotonic()
                 else:
@@ -447,6 +462,9 @@ class Recorder:
         }
         if self.unrecordable:
             custom['im_tuner.unrecordable'] = json.dumps(self.unrecordable, sort_keys=True)
+        if cut:
+            custom['im_tuner.close'] = cut
+            self.node.get_logger().warn(f'bag {self.out.name}: {cut}')
         meta = self._metadata(custom)
         self.writer.add_metadata(
             'rosbag2',

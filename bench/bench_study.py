@@ -47,30 +47,16 @@ def run(out: Path, *args: str) -> tuple[float, int]:
 def _bare_run(spec, cell_index: int, r: int) -> float:
     """The yardstick: what a study run computes, as a bare loop (reference, budget
     evaluations, one re-measurement of the best) on the same offline bench; wall [s]."""
-    import dataclasses
     import math
 
     from im_controller.config import Gains
-    from im_tuner import optim
     from im_tuner.bench.offline import OfflineBench
-    from im_tuner.study.runs import run_seed, start_point
-    from im_tuner.tuning import run_seeds
+    from im_tuner.study.runs import prepare_run
 
     t0 = time.perf_counter()
-    cell, params = spec.cells[cell_index], spec.params()
-    rseed = run_seed(spec.seed, r)
-    opt_ss, drive_seed = run_seeds(rseed)
-    start = start_point(cell.algo, rseed, params.space)
-    space = dataclasses.replace(params.space, start=start)
-    opt = optim.make_optimizer(
-        cell.algo,
-        space.dim,
-        opt_ss,
-        space.start_u if cell.algo in optim.TAKES_START else None,
-        **cell.opts,
-    )
+    space, opt, drive_seed = prepare_run(spec, cell_index, r, spec.params())
     bench = OfflineBench(spec.drive(), drive_seed)
-    bench.measure(Gains(*start))
+    bench.measure(Gains(*space.start))
     best, best_loss = None, math.inf
     for _ in range(spec.budget):
         u = opt.ask()

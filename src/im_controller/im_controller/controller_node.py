@@ -476,7 +476,7 @@ class ControllerNode(LenientDoubles, Node):
             self.next_experiment_id += 1
             response.success = True
             response.message = C.started(eid)
-            self.get_logger().info(f'experiment {eid} started with {self.gains}')
+            self.get_logger().info(f'experiment {eid} started with {gains}')
         if not response.success:
             self._refusal('start_experiment', f'start_experiment {response.message}')
         return response

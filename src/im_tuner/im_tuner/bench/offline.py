@@ -48,7 +48,6 @@ __all__ = [
     'N_REC',
     'REC_FIELDS',
     'OfflineBench',
-    'config_for_drive',
     'finish_stopped_move',
     'hold_offline',
     'run_experiment_offline',

@@ -193,6 +193,25 @@ class RunResult:
     exp_s: float  #: wall time in experiments [s]
 
 
+def prepare_run(
+    spec: StudySpec, cell_index: int, r: int, params: TunerParams
+) -> tuple[SearchSpace, optim.Optimizer, int]:
+    """Run ``r`` of cell ``cell_index`` before it starts: its search space (the run's
+    start point), its optimiser (seeded from the run seed) and its drive's noise seed."""
+    cell = spec.cells[cell_index]
+    rseed = run_seed(spec.seed, r)
+    opt_ss, drive_seed = run_seeds(rseed)
+    space = dataclasses.replace(params.space, start=start_point(cell.algo, rseed, params.space))
+    opt = optim.make_optimizer(
+        cell.algo,
+        space.dim,
+        opt_ss,
+        space.start_u if cell.algo in optim.TAKES_START else None,
+        **cell.opts,
+    )
+    return space, opt, drive_seed
+
+
 def run_one(
     spec: StudySpec,
     cell_index: int,
@@ -205,17 +224,7 @@ def run_one(
     cell = spec.cells[cell_index]
     drive = spec.drive() if drive is None else drive
     params = spec.params() if params is None else params
-    rseed = run_seed(spec.seed, r)
-    opt_ss, drive_seed = run_seeds(rseed)
-    start = start_point(cell.algo, rseed, params.space)
-    space = dataclasses.replace(params.space, start=start)
-    opt = optim.make_optimizer(
-        cell.algo,
-        space.dim,
-        opt_ss,
-        space.start_u if cell.algo in optim.TAKES_START else None,
-        **cell.opts,
-    )
+    space, opt, drive_seed = prepare_run(spec, cell_index, r, params)
     B = spec.budget
     iteration = np.empty(B, dtype=np.int32)
     # The paper's iteration each evaluation belongs to (Table III): the optimiser's,
@@ -252,9 +261,9 @@ def run_one(
     return RunResult(
         cell=cell_index,
         run=r,
-        run_seed=rseed,
+        run_seed=run_seed(spec.seed, r),
         drive_seed=drive_seed,
-        start=start,
+        start=space.start,
         ref_loss=ref['loss'],
         ref_aborted=ref['aborted'],
         losses=np.array([x['loss'] for x in evals]),

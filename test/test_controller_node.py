@@ -23,7 +23,7 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from im_controller.config import Gains
-from im_controller.contract import NO_DRIVE_STATE, SAFETY_FAULT, refusal_code
+from im_controller.contract import NO_DRIVE_STATE, SAFETY_FAULT, refusal_code, started_id
 from im_controller.controller_node import INTERNALS_FIELDS
 from im_controller.experiment import ExperimentRunner, config_for_drive
 from im_controller.messages import msg_to_result, result_to_msg
@@ -99,8 +99,15 @@ class Probe:
             assert self.spin_until(lambda: False, 0.1) is False
             resp = self.start()
         assert resp.success, resp.message
-        assert self.spin_until(lambda: len(self.results) > n, timeout), 'no result'
-        return self.results[-1]
+        # The result of the experiment this call started: a late loss of one that was in
+        # flight when the probe joined (a tuner killed mid-experiment) is not it.
+        eid = started_id(resp.message)
+
+        def mine():
+            return next((r for r in self.results[n:] if r.experiment_id == eid), None)
+
+        assert self.spin_until(lambda: mine() is not None, timeout), 'no result'
+        return mine()
 
     def set(self, **values) -> list:
         res = self.call(

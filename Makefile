@@ -34,6 +34,9 @@ $(VENV)/.deps: requirements.txt constraints.txt | $(PY)
 	touch $@
 
 $(VENV)/.installed: $(VENV)/.deps $(PKG_FILES) tools/ros2 Makefile
+	@# numba's cache knows only the file of each function: a fused kernel (bench/offline.py)
+	@# would keep a stale copy of a changed kernel it calls. Compile afresh on reinstall.
+	@find $(VENV)/lib -path '*/im_*/__pycache__/*.nb[ci]' -delete 2>/dev/null || true
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation \
 	    --force-reinstall $(addprefix ./,$(PKGS))
 	@# The ros2 command, bound to this venv's interpreter so it works without activation.

@@ -292,7 +292,7 @@ def test_period_stats_and_rate_verdict():
 
 
 def _states(n: int, k0: int = 0) -> np.ndarray:
-    s = np.zeros((n, 12))
+    s = np.zeros((n, 13))
     s[:, 0] = np.arange(k0, k0 + n)
     s[:, 1] = s[:, 0] * 200_000
     s[:, 5] = 2.45
@@ -301,7 +301,7 @@ def _states(n: int, k0: int = 0) -> np.ndarray:
 
 def test_state_field_problems():
     s = _states(50)
-    ok = np.full(50, 12)
+    ok = np.full(50, 13)
     seq = np.arange(50)
     assert cd.state_field_problems(s, ok, seq, 200_000, True, 11.0) == []
     gap = np.delete(s, 10, axis=0)
@@ -329,7 +329,7 @@ def test_state_field_problems():
     short = ok.copy()
     short[5] = 11
     assert cd.state_field_problems(s, short, seq, 200_000, True, 11.0) == [
-        '1 states without 12 values'
+        '1 states without 13 values'
     ]
     # lock-step re-sends: an identical repeat is fine, a changed one is not
     rep = np.insert(s, 5, s[4], axis=0)
@@ -430,7 +430,7 @@ def test_judge_topics():
 def test_check_drive_layout_is_the_simulators():
     from im_drive_sim.sim import STATE_FIELDS
 
-    assert cd.STATE_FIELDS == STATE_FIELDS and len(cd.STATE_FIELDS) == 12
+    assert cd.STATE_FIELDS == STATE_FIELDS and len(cd.STATE_FIELDS) == 13
 
 
 # ------------------------------------------------------------------ the example drive itself

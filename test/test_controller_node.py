@@ -473,16 +473,22 @@ def test_real_time_mode_runs_an_experiment(procs, ros_context):
         t0 = time.monotonic()
         r = probe.experiment(30.0)
         wall = time.monotonic() - t0
-    # Paced by the wall clock: 1.125 s of experiment takes at least that long (lock-step
-    # on an idle bench would take ~0.1 s). Across two processes on a loaded 2-core machine
-    # the controller skips states it could not answer in time, so the experiment stretches
-    # (1.4-2.8x measured; CI saw 3.09 s of wall time): the upper bound only catches a hang.
-    # Experiments on the drive's timeline, exactly 5625 periods, are issue 18.
-    assert 1.0 < wall < 8.0
-    assert not r.aborted and r.steps == 5625 and math.isfinite(r.loss)
-    # Commands may arrive a period late in real time: the loss is close to lock-step's.
-    ref = offline_losses([Gains()])[0]
-    assert r.loss == pytest.approx(ref.loss, rel=0.5)
+    # On the drive's timeline: the experiment spans drive periods, however many states
+    # the controller (its own process: it misses many on a 2-core machine) could answer
+    # in time; each period was fresh, held or late, and the result says whether it ran on
+    # the paper's timing (tolerance 0, the default). A controller that misses most states
+    # may be stopped by the supervisor: then it is flagged too.
+    assert r.fresh + r.held + r.late == r.steps
+    assert r.timing == (r.held + r.late > 0)
+    assert wall < 8.0  # no hang
+    if r.aborted:
+        assert r.timing and r.steps == r.trip_step + 1, r
+        return
+    # paced by the wall clock: 1.125 s of experiment takes at least that long (lock-step
+    # on an idle bench would take ~0.1 s); exactly 5625 drive periods
+    assert wall > 1.0 and r.steps == 5625 and r.t_end - r.t_start == 1_125_000_000, (wall, r)
+    if not r.timing:  # commands all in time: the loss is close to lock-step's
+        assert r.loss == pytest.approx(offline_losses([Gains()])[0].loss, rel=0.5)
 
 
 @pytest.mark.parametrize(

@@ -155,7 +155,7 @@ class ControllerNode(LenientDoubles, Node):
         self._declare_structure()
         self._declare_tunables()
         cfg, gains = self._candidate({})
-        self.runner = ExperimentRunner(cfg, gains)
+        self.runner = ExperimentRunner(cfg, gains, timing_tolerance=self.timing_tolerance)
         #: refused requests, by kind (logged, throttled; and at exit)
         self.refused = {'start_experiment': 0, 'parameters': 0}
         self.add_pre_set_parameters_callback(self._pre_set)
@@ -267,6 +267,17 @@ class ControllerNode(LenientDoubles, Node):
             param_descriptor(
                 'serve services and parameters every N steps (and whenever idle)',
                 int_range=(1, 1000000),
+            ),
+        ).value
+        self.timing_tolerance = self.declare_parameter(
+            'timing_tolerance',
+            0,
+            param_descriptor(
+                'periods of an experiment (of its 5625 on the drive timeline) that may be held '
+                "or late before its result is marked 'timing' (not the paper's timing: the "
+                'tuner re-runs it). 0 on a simulated bench; a real bench whose power stage '
+                'applies commands at period starts may need a few (docs/real-drive.md).',
+                int_range=(0, 1_000_000),
             ),
         ).value
         self.declare_parameter(
@@ -588,9 +599,16 @@ class ControllerNode(LenientDoubles, Node):
             f'experiment {res.experiment_id}: loss {res.loss:.6g} terms '
             f'({res.terms[0]:.4g}, {res.terms[1]:.4g}, {res.terms[2]:.4g})'
         )
+        if res.timing:
+            text += (
+                f' TIMING: {res.held} held and {res.late} late of {res.steps} periods '
+                f'(tolerance {self.timing_tolerance}): not the paper timing, not a loss'
+            )
         # Two call sites: rclpy refuses one call site logging at two severities.
-        if res.aborted:
-            self.get_logger().warn(f'{text} ABORTED {res.reason} at step {res.trip_step}')
+        if res.aborted or res.timing:
+            self.get_logger().warn(
+                f'{text} ABORTED {res.reason} at step {res.trip_step}' if res.aborted else text
+            )
         else:
             self.get_logger().info(text)
 

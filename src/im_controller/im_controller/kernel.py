@@ -46,15 +46,19 @@ from .layout import (
     Q_THR3,
     Q_TS,
     Q_TS_NS,
+    R_APPLIED,
     R_DIR,
     R_END_NS,
     R_FAULT_REASON,
+    R_FRESH,
+    R_HELD,
     R_HOLD_REF,
     R_ISQF,
     R_LAST_ISQ,
     R_LAST_LOAD,
     R_LAST_STATUS,
     R_LAST_STEP,
+    R_LATE,
     R_MODE,
     R_N,
     R_REASON,
@@ -62,6 +66,7 @@ from .layout import (
     R_S1,
     R_S2,
     R_S3,
+    R_SEEN,
     R_START_NS,
     R_START_STEP,
     R_STEPS,
@@ -78,6 +83,7 @@ from .layout import (
     REASON_TERM1,
     REASON_TERM2,
     REASON_TERM3,
+    S_APPLIED,
     STATUS_ABORTED,
     STATUS_DONE,
     STATUS_FAULT,
@@ -125,6 +131,47 @@ def experiment_step(
     th = state[2]
     w = state[3]
     running = R[R_MODE] == MODE_RUN
+    ended_unseen = False
+    # The command the drive applied over the period that ended at this state (-1: none,
+    # or a drive that does not say: never fresh).
+    applied = state[S_APPLIED] if state.shape[0] > S_APPLIED else -1.0
+    if running:
+        # The experiment runs on the drive's timeline: local step n = k - (first step),
+        # so a state the controller never answered still counts as a period. Each of
+        # its periods (the one ending at each of its states, which the loss integrates)
+        # was driven by a fresh answer (to state k - 1), a late one (a new command
+        # answering an older state) or a held one (no new command, or a state the
+        # controller never saw).
+        if R[R_N] == 0.0:
+            R[R_START_STEP] = k
+            R[R_START_NS] = state[1]
+            R[R_FRESH] = 0.0
+            R[R_LATE] = 0.0
+            R[R_HELD] = 0.0
+        last = R[R_START_STEP] + Q[Q_N] - 1.0  # the experiment's last state
+        if k > last:
+            # Its last state(s) went by unseen: it ended there, exactly N periods after
+            # its start (the unseen periods count as held); this state is the hold's.
+            R[R_HELD] += last - R[R_SEEN]
+            R[R_N] = Q[Q_N]
+            _finish(R, Q, STATUS_DONE, REASON_NONE, R[R_START_NS] + (Q[Q_N] - 1.0) * Q[Q_TS_NS])
+            R[R_HOLD_REF] = R[R_TARGET]
+            R[R_MODE] = MODE_HOLD
+            running = False
+            ended_unseen = True
+        else:
+            if R[R_N] != 0.0:
+                R[R_HELD] += k - R[R_SEEN] - 1.0
+            if applied == k - 1.0:
+                R[R_FRESH] += 1.0
+            elif applied > R[R_APPLIED] and R[R_SEEN] == k - 1.0:
+                # a command newer than the one the previous state showed (after an
+                # unseen state the two cannot be told apart: held)
+                R[R_LATE] += 1.0
+            else:
+                R[R_HELD] += 1.0
+    R[R_SEEN] = k
+    R[R_APPLIED] = applied
     status = STATUS_HOLD
     reason = REASON_NONE
     isq = 0.0
@@ -147,17 +194,14 @@ def experiment_step(
             safety = REASON_NONFINITE
         else:
             if running:
-                n = R[R_N]
-                if n == 0.0:
-                    R[R_START_STEP] = k
-                    R[R_START_NS] = state[1]
+                n = k - R[R_START_STEP]
                 ref = R[R_THETA0] + R[R_DIR] * traj_pos(n * Q[Q_TS], Q)
                 if n >= Q[Q_LOAD_N]:
                     load = Q[Q_LOAD] if Q[Q_LOAD_FIXED] != 0.0 else R[R_DIR] * Q[Q_LOAD]
             elif R[R_MODE] == MODE_RETURN:
                 # after a supervisor stop: the fallback gains finish the move along the
                 # unchanged trajectory (no reference jump), then hold the target
-                nn = R[R_N]
+                nn = k - R[R_START_STEP]
                 ref = R[R_THETA0] + R[R_DIR] * traj_pos(nn * Q[Q_TS], Q)
                 R[R_N] = nn + 1.0
                 if nn * Q[Q_TS] >= Q[Q_TEND]:
@@ -181,7 +225,7 @@ def experiment_step(
             reason = safety
             if running:
                 if n < 0.0:
-                    n = R[R_N]
+                    n = k - R[R_START_STEP]
                 R[R_N] = n + 1.0
                 _finish(R, Q, STATUS_ABORTED, safety, state[1])
                 status = STATUS_ABORTED
@@ -233,6 +277,8 @@ def experiment_step(
                 status = STATUS_DONE
             else:
                 status = STATUS_RUNNING
+    if ended_unseen and status == STATUS_HOLD:
+        status = STATUS_DONE  # the result of the experiment that ended unseen is ready
     eout[E_ISQ] = isq
     eout[E_LOAD] = load
     eout[E_STATUS] = status

@@ -4,6 +4,8 @@ index plain float64 arrays by these constants). Pure: no rclpy, no numba."""
 
 from __future__ import annotations
 
+from im_drive_sim.contract import STATE_INDEX
+
 from .control import CONTROL_FIELDS
 
 # ----------------------------------------------------------------- status and reasons
@@ -93,7 +95,17 @@ R_FAULT_REASON = 21
 R_TERM1 = 22  # weighted terms a_j Ts S_j (kept for the result)
 R_TERM2 = 23
 R_TERM3 = 24
-N_RSTATE = 25
+# the experiment on the drive's timeline (docs/controller.md, "Timing"): periods whose end
+# state came from a fresh answer, a late one, or a held (or unseen) one
+R_FRESH = 25
+R_LATE = 26
+R_HELD = 27
+R_SEEN = 28  # step index of the last state processed
+R_APPLIED = 29  # its applied_step
+N_RSTATE = 30
+
+#: Index of ``applied_step`` in a drive state (the drive contract).
+S_APPLIED = STATE_INDEX['applied_step']
 
 # ----------------------------------------------------------------- per-step outputs E
 EXP_FIELDS: tuple[str, ...] = (

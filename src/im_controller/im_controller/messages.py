@@ -3,7 +3,8 @@
 One ``DiagnosticStatus`` per experiment (see docs/controller.md, "Loss topic"):
 
 * ``header.stamp``: the sim time at the end of the experiment (exact, from ``t_end``);
-* ``level``: OK (completed), WARN (stopped by the supervisor), ERROR (safety or watchdog);
+* ``level``: OK (completed), WARN (stopped by the supervisor, or ``timing``: not run on the
+  paper's timing), ERROR (safety or watchdog);
 * ``name``: ``"<node>: experiment <id>"``, ``message``: ``"done"`` or the abort reason;
 * ``values``: the fields below as key/value strings; floats are written with ``repr``,
   so they read back bit for bit.
@@ -33,7 +34,13 @@ LOSS_KEYS: tuple[str, ...] = (
     't_end_ns',
     'steps',
     'direction',
+    'fresh',
+    'held',
+    'late',
+    'timing',
 )
+#: Keys a loss message from before the drive-timeline counts may lack (read as 0 / false).
+OPTIONAL_KEYS: tuple[str, ...] = ('fresh', 'held', 'late', 'timing')
 
 
 def result_to_msg(result: LossResult, node_name: str) -> DiagnosticArray:
@@ -54,13 +61,20 @@ def result_to_msg(result: LossResult, node_name: str) -> DiagnosticArray:
         't_end_ns': str(r.t_end),
         'steps': str(r.steps),
         'direction': str(r.direction),
+        'fresh': str(r.fresh),
+        'held': str(r.held),
+        'late': str(r.late),
+        'timing': 'true' if r.timing else 'false',
     }
     st = DiagnosticStatus(
         name=f'{node_name}: experiment {r.experiment_id}',
         hardware_id=node_name,
-        message=r.reason if r.aborted else 'done',
+        message=(r.reason if r.aborted else 'done')
+        + (f' (timing: {r.held} held, {r.late} late periods)' if r.timing else ''),
     )
-    if not r.aborted:
+    if r.timing:
+        st.level = DiagnosticStatus.WARN  # not the paper's timing: not a loss
+    elif not r.aborted:
         st.level = DiagnosticStatus.OK
     elif r.reason in SAFETY_REASONS:
         st.level = DiagnosticStatus.ERROR
@@ -77,7 +91,7 @@ def msg_to_result(msg: DiagnosticArray) -> LossResult:
     if len(msg.status) != 1:
         raise ValueError(f'a loss message has one status, got {len(msg.status)}')
     kv = {v.key: v.value for v in msg.status[0].values}
-    missing = [k for k in LOSS_KEYS if k not in kv]
+    missing = [k for k in LOSS_KEYS if k not in kv and k not in OPTIONAL_KEYS]
     if missing:
         raise ValueError(f'loss message lacks {missing}')
     return LossResult(
@@ -93,4 +107,8 @@ def msg_to_result(msg: DiagnosticArray) -> LossResult:
         t_end=int(kv['t_end_ns']),
         steps=int(kv['steps']),
         direction=int(kv['direction']),
+        fresh=int(kv.get('fresh', '0')),
+        held=int(kv.get('held', '0')),
+        late=int(kv.get('late', '0')),
+        timing=kv.get('timing', 'false') == 'true',
     )

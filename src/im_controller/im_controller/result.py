@@ -23,7 +23,14 @@ class LossResult:
         'max_speed', 'non_finite_measurement' (safety; the runner is then in FAULT).
     trip_step: local step (0-based) that stopped it, -1 if none; trip_time = trip_step Ts [s].
     t_start, t_end: sim time [ns] of the first step's state and of the end of the last step.
-    steps: steps run; direction: +1 / -1.
+    steps: drive periods run (counted by the drive's step_index); direction: +1 / -1.
+    fresh, held, late: of those periods (the one ending at each state the loss integrates),
+        how many were driven by the answer to the state before (fresh), by a new command
+        answering an older state (late), or by an older command held (held; also a state
+        the controller never answered). fresh + held + late = steps.
+    timing: held + late exceeded the controller's ``timing_tolerance``: the experiment did
+        not run on the paper's timing and its loss is not a measurement of the paper's
+        loss (the tuner re-runs it instead of reporting it).
     """
 
     experiment_id: int
@@ -38,6 +45,10 @@ class LossResult:
     t_end: int
     steps: int
     direction: int
+    fresh: int = 0
+    held: int = 0
+    late: int = 0
+    timing: bool = False
 
 
 @dataclass(frozen=True)

@@ -32,9 +32,12 @@ from .layout import (
     R_DIR,
     R_END_NS,
     R_FAULT_REASON,
+    R_FRESH,
+    R_HELD,
     R_HOLD_REF,
     R_ISQF,
     R_LAST_STEP,
+    R_LATE,
     R_MODE,
     R_N,
     R_REASON,
@@ -76,7 +79,15 @@ class ExperimentRunner:
     Safety limits are active in every mode.
     """
 
-    def __init__(self, config: ExperimentConfig | None = None, gains: Gains | None = None) -> None:
+    def __init__(
+        self,
+        config: ExperimentConfig | None = None,
+        gains: Gains | None = None,
+        timing_tolerance: int = 0,
+    ) -> None:
+        #: periods of an experiment that may be held or late before its result is marked
+        #: ``timing`` (a measurement on another timing than the paper's: not a loss)
+        self.timing_tolerance: int = check_tolerance(timing_tolerance)
         self.config: ExperimentConfig = validate_experiment_config(
             ExperimentConfig() if config is None else config
         )
@@ -227,6 +238,7 @@ class ExperimentRunner:
         if aborted:
             loss *= self.config.loss.penalty
         trip = int(R[R_TRIP_STEP])
+        held, late = int(R[R_HELD]), int(R[R_LATE])
         return LossResult(
             experiment_id=self.experiment_id,
             loss=float(loss),
@@ -240,7 +252,18 @@ class ExperimentRunner:
             t_end=int(R[R_END_NS]),
             steps=int(R[R_STEPS]),
             direction=int(R[R_DIR]),
+            fresh=int(R[R_FRESH]),
+            held=held,
+            late=late,
+            timing=held + late > self.timing_tolerance,
         )
+
+
+def check_tolerance(value: object) -> int:
+    """A timing tolerance: an integer number of periods >= 0 (ValueError otherwise)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+        raise ValueError(f'timing_tolerance must be an integer >= 0 [periods], got {value!r}')
+    return int(value)
 
 
 # ------------------------------------------------------------------------- offline

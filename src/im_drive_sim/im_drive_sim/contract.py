@@ -57,7 +57,13 @@ TOPIC_TYPES: dict[str, str] = {
 #: Layout of ``drive/state`` (Float64MultiArray.data), one sample per period k:
 #: step_index k, time_ns = k Ts [ns], the measured position [rad] and speed [rad/s] the
 #: controller uses, electromagnetic torque [N m], d/q and alpha/beta stator currents [A],
-#: the load torque [N m] and the true position [rad] and speed [rad/s].
+#: the load torque [N m], the true position [rad] and speed [rad/s], and applied_step: the
+#: ``answers_step`` of the command the drive applied over the period that ended at this
+#: state (k - 1 when the controller's answer to state k - 1 came in time; an older step
+#: when the drive held or applied a late command; -1 for no command: zero current before
+#: the first command or under the watchdog, or an untagged command). It is what lets the
+#: controller count, on the drive's timeline, the periods its experiment was not driven
+#: by fresh answers (docs/interfaces.md, "Timing").
 STATE_FIELDS: tuple[str, ...] = (
     'step_index',
     'time_ns',
@@ -71,6 +77,7 @@ STATE_FIELDS: tuple[str, ...] = (
     'load_torque',
     'theta',
     'omega',
+    'applied_step',
 )
 STATE_INDEX: dict[str, int] = {n: i for i, n in enumerate(STATE_FIELDS)}
 

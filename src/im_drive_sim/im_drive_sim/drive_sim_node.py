@@ -51,6 +51,7 @@ from .contract import (
     STATE_TOPIC,
     STATUS_TOPIC,
 )
+from .pacing import Pacer
 from .params import ConfigError, load_config
 from .runtime import (
     LenientDoubles,
@@ -62,6 +63,8 @@ from .runtime import (
     run_stepped_node,
 )
 from .sim import STATE_FIELDS, DriveSim, start_position
+
+F_APPLIED = contract.STATE_INDEX['applied_step']
 
 # The contract (names, layouts, QoS) lives in contract.py; re-exported here for callers
 # that import it from the node module.
@@ -134,6 +137,7 @@ class DriveSimNode(LenientDoubles, Node):
         self.spin_margin: float = p['realtime_spin_margin']
         self.command_timeout: float = p['command_timeout']
         self.counters = Counters()
+        self._t_made = time.perf_counter()
         #: Set by SIGINT/SIGTERM (see main): the loops stop at the next step boundary, so
         #: the context is never shut down under a publish.
         self.stop_requested = False
@@ -164,8 +168,10 @@ class DriveSimNode(LenientDoubles, Node):
         self._isq_ref = 0.0
         self._load = 0.0
         self._cmd_fresh = False
-        self._held_answers = -1  # answers_step of the held command (real time)
-        self._last_cmd_wall: float | None = None  # perf_counter of the last valid command
+        self._held_answers = -1  # answers_step of the newest tagged command (real time)
+        self._applied = -1  # answers_step of the held command (-1: none, untagged, watchdog)
+        self._since_cmd = -1  # periods since the last valid command (-1: none yet)
+        self._watchdog_periods = max(1, round(self.command_timeout / self.config.Ts))
         self._watchdog_tripped = False
         self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
 
@@ -333,7 +339,11 @@ class DriveSimNode(LenientDoubles, Node):
                 j.effort[0] = float(s[self._idx['torque']])
                 self.joint_pub.publish(j)
 
-    def publish_status(self, wall_elapsed: float) -> None:
+    def publish_status(self, wall_elapsed: float | None = None) -> None:
+        """drive/status: mode, sim time, real-time factor over ``wall_elapsed`` [s] (None:
+        since the node was made) and the counters."""
+        if wall_elapsed is None:
+            wall_elapsed = time.perf_counter() - self._t_made
         c = self.counters
         sim_s = self.sim.step_index * self.config.Ts
         st = DiagnosticStatus(
@@ -394,9 +404,12 @@ class DriveSimNode(LenientDoubles, Node):
         self.counters.commands += 1
         return int(data[CMD_STEP]), isq, load
 
-    def step_once(self, isq_ref: float, load_torque: float) -> None:
-        """Advance the model one period with this command and publish the new state."""
+    def step_once(self, isq_ref: float, load_torque: float, applied: int) -> None:
+        """Advance the model one period with this command and publish the new state;
+        ``applied``: the ``answers_step`` of the command (-1: none), the new state's
+        ``applied_step``."""
         self.sim.step_into(isq_ref, load_torque, self._state)
+        self._state[F_APPLIED] = applied
         self.counters.steps += 1
         self.publish_state()
 
@@ -427,7 +440,7 @@ class DriveSimNode(LenientDoubles, Node):
                 self.counters.stale_ignored += 1  # a duplicate answer to a re-sent state
                 cmd = self._take_command()
                 continue
-            self.step_once(isq, load)
+            self.step_once(isq, load, answers)
             return True
         return False
 
@@ -475,14 +488,13 @@ class DriveSimNode(LenientDoubles, Node):
     def run_realtime(self, executor) -> None:
         """Step every Ts by the wall clock, holding the last command when none is fresh.
 
-        Each period: wait (sleeping in rcl_wait, then busy-waiting the last
-        ``realtime_spin_margin``) until its start, take every command that came, step
-        with the newest one, publish. A period that starts more than one period late
-        counts as an overrun and the schedule is re-anchored (the simulation never skips
-        steps; sim time stays k * Ts).
+        Each period (:class:`~im_drive_sim.pacing.Pacer`): wait (sleeping in rcl_wait,
+        taking commands as they come, then busy-waiting the last ``realtime_spin_margin``)
+        until its start, then :meth:`period`. A period that starts more than one period
+        late counts as an overrun and the schedule is re-anchored (the simulation never
+        skips steps; sim time stays k * Ts).
         """
         c = self.counters
-        ts = self.config.Ts
         if self.realtime_wait_for_controller:
             # A drive with no controller would only hold zero current: the clock starts
             # when one is matched, so it never misses the first periods.
@@ -494,51 +506,53 @@ class DriveSimNode(LenientDoubles, Node):
             ):
                 executor.spin_once(timeout_sec=0.01)
         self.start()
-        t0 = t_start = time.perf_counter()
-        n = 0  # periods since t0
-        next_status = t0 + 1.0
+        pacer = Pacer(self.config.Ts, self.spin_margin)
+        t_start = pacer.t0
+        next_status = t_start + 1.0
         since_service = 0
         while not self.stop_requested and rclpy.ok(context=self.context):
             if self.max_steps and c.steps >= self.max_steps:
                 break
-            deadline = t0 + (n + 1) * ts
-            # Sleep in rcl_wait (woken by commands, which we take as they come) ...
-            while True:
-                remaining = deadline - time.perf_counter() - self.spin_margin
-                if remaining <= 0:
-                    break
-                if self._wait_command(int(remaining * NS_PER_S)):
-                    self._absorb_commands()
-            # ... then busy-wait the last stretch for a precise period start.
-            while time.perf_counter() < deadline:
-                pass
-            lateness = time.perf_counter() - deadline
-            c.max_lateness_us = max(c.max_lateness_us, lateness * 1e6)
-            if lateness > ts:
-                c.overruns += 1
-                t0 = time.perf_counter() - (n + 1) * ts  # re-anchor: no burst catch-up
-            n += 1
-            self._absorb_commands()
-            self._watchdog()
-            if self._cmd_fresh:
-                c.fresh += 1
-            else:
-                c.held += 1
-            self.step_once(self._isq_ref, self._load)
-            self._cmd_fresh = False  # it answered the state before this step
+            pacer.wait(self.wait_command, self.take_commands)
+            c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
+            self.period()
             since_service += 1
             if since_service >= self.service_period_steps:
                 since_service = 0
                 next_status = self._serve(executor, t_start, next_status)
         self.publish_status(time.perf_counter() - t_start)
 
+    # -- one real-time period (the composed bench runs these; pacing.PeriodicDrive) -------
+    def period(self) -> None:
+        """One real-time period at its start: take the commands, the watchdog, step the
+        model with the held command, publish state k+1 (``applied_step`` = the command's
+        step)."""
+        c = self.counters
+        self.take_commands()
+        self._watchdog()
+        if self._cmd_fresh:
+            c.fresh += 1
+        else:
+            c.held += 1
+        self.step_once(self._isq_ref, self._load, self._applied)
+        self._cmd_fresh = False  # it answered the state before this step
+
+    def wait_command(self, timeout_s: float) -> bool:
+        """Sleep up to ``timeout_s`` [s] in rcl_wait; True when a command is pending."""
+        return self._wait_command(int(timeout_s * NS_PER_S))
+
     def _watchdog(self) -> None:
-        """Real time: no command for ``command_timeout`` -> zero current and no load, held
-        until a command comes (then it resumes).  Before the first command the held
-        command is already zero."""
-        if self._last_cmd_wall is None:
+        """Real time: no command for ``command_timeout`` (counted in periods run:
+        command_timeout / Ts) -> zero current and no load, held until a command comes
+        (then it resumes). Before the first command the held command is already zero.
+
+        Counted in periods, not wall time: a loop that stalls does not step the drive
+        either, and a composed bench (drive and controller in one loop) must not trip
+        because the loop itself paused."""
+        if self._since_cmd < 0:
             return
-        if time.perf_counter() - self._last_cmd_wall <= self.command_timeout:
+        self._since_cmd += 1
+        if self._since_cmd <= self._watchdog_periods:
             return
         if not self._watchdog_tripped:
             self._watchdog_tripped = True
@@ -549,9 +563,10 @@ class DriveSimNode(LenientDoubles, Node):
             )
         self._isq_ref = 0.0
         self._load = 0.0
+        self._applied = -1
         self.counters.watchdog_steps += 1
 
-    def _absorb_commands(self) -> None:
+    def take_commands(self) -> None:
         """Take all pending commands; the newest becomes the held command.
 
         ``_cmd_fresh`` tells whether the held command answers the latest published state
@@ -566,7 +581,7 @@ class DriveSimNode(LenientDoubles, Node):
             if cmd is None:
                 return
             answers, isq, load = cmd
-            self._last_cmd_wall = time.perf_counter()  # the controller is alive either way
+            self._since_cmd = 0  # the controller is alive either way
             if self._watchdog_tripped:
                 self._watchdog_tripped = False
                 self.get_logger().info(f'watchdog: commands resumed at step {k}')
@@ -576,6 +591,7 @@ class DriveSimNode(LenientDoubles, Node):
                 self.counters.stale_ignored += 1
                 continue
             self._isq_ref, self._load = isq, load
+            self._applied = answers if answers >= 0 else -1
             if answers >= 0:
                 self._held_answers = answers
             if 0 <= answers < k:

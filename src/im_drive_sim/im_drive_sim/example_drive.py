@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 import sys
-import time
 from dataclasses import dataclass, fields
 
 import rclpy
@@ -48,6 +47,7 @@ from .contract import (
     STATE_TOPIC,
     STATUS_TOPIC,
 )
+from .pacing import Pacer
 from .params import ConfigError, DriveConfig, load_config
 from .runtime import (
     LenientDoubles,
@@ -151,9 +151,16 @@ class Counters:
 class ExampleDrive(LenientDoubles, Node):
     """The ROS side (real time only). Hooks for subclasses: ``make_hardware``,
     ``apply_command``, ``fill_state``, ``make_joint_publisher``/``publish_joint_state``,
-    ``watchdog`` and the attribute ``period_s``."""
+    ``watchdog`` and the attribute ``period_s``. ``start``/``period``/``take_commands``/
+    ``wait_command`` are what a loop runs (its own :meth:`run`, or the composed bench:
+    ``pacing.PeriodicDrive``)."""
 
-    def __init__(self, node_name: str = 'example_drive', **kwargs) -> None:
+    def __init__(
+        self, node_name: str = 'example_drive', *, hardware_class: type | None = None, **kwargs
+    ) -> None:
+        """``hardware_class``: the class whose instance (``hardware_class(config)``) talks to
+        the power stage; None = the simulated stand-in :class:`Hardware`."""
+        self.hardware_class = Hardware if hardware_class is None else hardware_class
         super().__init__(node_name, **kwargs)
         d = self.declare_parameter
         cfg_file = d(
@@ -209,9 +216,11 @@ class ExampleDrive(LenientDoubles, Node):
         self.stop_requested = False
         self.k = 0  # step index of the latest published state
         self.isq_ref = self.load_ref = 0.0  # the held command (zero before the first one)
-        self.held_answers = -2  # answers_step of the held command (-2: none yet)
+        self.held_answers = -2  # answers_step of the newest tagged command (-2: none yet)
+        self.applied = -1  # answers_step of the held command (-1: none, untagged, watchdog)
         self.fresh = False
-        self.last_cmd_wall: float | None = None
+        self.since_cmd = -1  # periods since the last valid command (-1: none yet)
+        self.watchdog_periods = max(1, round(self.command_timeout / self.period_s))
         self.tripped = False
 
         self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
@@ -234,7 +243,7 @@ class ExampleDrive(LenientDoubles, Node):
 
     # -- hooks ----------------------------------------------------------------------------
     def make_hardware(self) -> Hardware:
-        return Hardware(self.config)
+        return self.hardware_class(self.config)
 
     def make_joint_publisher(self):
         return self.create_publisher(JointState, JOINT_STATE_TOPIC, 10)
@@ -252,10 +261,17 @@ class ExampleDrive(LenientDoubles, Node):
         v[2], v[3], v[4] = m.theta_meas, m.omega_meas, m.torque
         v[5], v[6], v[7], v[8] = m.isd, m.isq, m.i_alpha, m.i_beta
         v[9], v[10], v[11] = m.load_torque, m.theta_meas, m.omega_meas
+        v[12] = self.applied  # the command applied over the period that just ended
 
-    def watchdog(self, now: float) -> None:
-        """No command for ``command_timeout`` -> zero current and no load until the next."""
-        if self.last_cmd_wall is None or now - self.last_cmd_wall <= self.command_timeout:
+    def watchdog(self) -> None:
+        """No command for ``command_timeout`` (counted in periods run) -> zero current and
+        no load until the next command. In periods, not wall time: a loop that stalls does
+        not run the hardware's periods either, and a loop that also runs the controller
+        (the composed bench) must not trip because it paused."""
+        if self.since_cmd < 0:
+            return
+        self.since_cmd += 1
+        if self.since_cmd <= self.watchdog_periods:
             return
         if not self.tripped:
             self.tripped = True
@@ -265,6 +281,7 @@ class ExampleDrive(LenientDoubles, Node):
                 f'{self.command_timeout:g} s at step {self.k}: zero current'
             )
         self.isq_ref = self.load_ref = 0.0
+        self.applied = -1
         self.counters.watchdog_steps += 1
 
     # -- commands ---------------------------------------------------------------------------
@@ -289,8 +306,9 @@ class ExampleDrive(LenientDoubles, Node):
                 self.counters.stale_ignored += 1
                 continue
             self.held_answers = answers
+            self.applied = max(answers, -1)
             self.isq_ref, self.load_ref = float(data[CMD_ISQ]), float(data[CMD_LOAD])
-            self.last_cmd_wall = time.perf_counter()
+            self.since_cmd = 0
             self.fresh = answers < 0 or answers == self.k
             self.counters.late += 0 <= answers < self.k
             if self.tripped:
@@ -341,38 +359,37 @@ class ExampleDrive(LenientDoubles, Node):
         self.status_pub.publish(msg)
 
     # -- the loop ------------------------------------------------------------------------------
-    def run(self, executor) -> None:
-        """Period n starts at t0 + n period_s: take commands, apply, sample, publish."""
-        c = self.counters
+    def start(self) -> None:
+        """Sample and publish state 0 (zero current is held until the first command)."""
         self.fill_state(self.hw.read())
         self.publish_state()
-        t0 = time.perf_counter()
-        next_status, n = t0 + 1.0, 0
+
+    def period(self) -> None:
+        """One period at its start: take commands, watchdog, apply, sample, publish."""
+        c = self.counters
+        self.take_commands()
+        self.watchdog()
+        c.fresh += self.fresh
+        c.held += not self.fresh
+        self.fresh = False
+        self.apply_command(self.isq_ref, self.load_ref)
+        self.k += 1
+        self.fill_state(self.hw.read())
+        self.publish_state()
+        c.steps += 1
+
+    def run(self, executor) -> None:
+        """Period n starts at t0 + n period_s (pacing.Pacer): take commands, apply,
+        sample, publish."""
+        c = self.counters
+        self.start()
+        pacer = Pacer(self.period_s, self.spin_margin)
+        next_status = pacer.t0 + 1.0
         while not self.stop_requested and rclpy.ok(context=self.context):
-            deadline = t0 + (n + 1) * self.period_s
-            while (remaining := deadline - time.perf_counter() - self.spin_margin) > 0:
-                if self.wait_command(remaining):  # sleeps; a command wakes it early
-                    self.take_commands()  # (held until the period start)
-            while time.perf_counter() < deadline:
-                pass  # busy-wait the last stretch: a precise period start
-            now = time.perf_counter()
-            lateness = now - deadline
-            c.max_lateness_us = max(c.max_lateness_us, lateness * 1e6)
-            if lateness > self.period_s:  # overrun: re-anchor, no burst of catch-up steps
-                c.overruns += 1
-                t0 = now - (n + 1) * self.period_s
-            n += 1
-            self.take_commands()
-            self.watchdog(now)
-            c.fresh += self.fresh
-            c.held += not self.fresh
-            self.fresh = False
-            self.apply_command(self.isq_ref, self.load_ref)
-            self.k += 1
-            self.fill_state(self.hw.read())
-            self.publish_state()
-            c.steps += 1
-            if n % 250 == 0:  # serve parameter requests between periods, every 50 ms
+            now = pacer.wait(self.wait_command, self.take_commands)
+            c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
+            self.period()
+            if pacer.n % 250 == 0:  # serve parameter requests between periods, every 50 ms
                 executor.spin_once(timeout_sec=0.0)
                 if now >= next_status:
                     self.publish_status()

@@ -129,6 +129,7 @@ RUN_FIELDS = STATE_FIELDS + EXTRA_FIELDS
     F_LOAD,
     F_THETA,
     F_OMEGA,
+    F_APPLIED,
     F_COUNT,
     F_U_ALPHA,
     F_U_BETA,
@@ -573,6 +574,9 @@ def write_out(S: np.ndarray, P: np.ndarray, out: np.ndarray) -> None:
     out[F_LOAD] = S[S_TLOAD]
     out[F_THETA] = S[S_THETA]
     out[F_OMEGA] = S[S_OMEGA]
+    # the core applies each command over the period after the state it was given for
+    # (a node in real time overwrites this with the command it really applied)
+    out[F_APPLIED] = S[S_STEP] - 1.0
     if out.shape[0] >= N_RUN_FIELDS:
         out[F_COUNT] = S[S_COUNT]
         out[F_U_ALPHA] = S[S_UA]

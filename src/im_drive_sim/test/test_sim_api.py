@@ -51,8 +51,9 @@ def test_package_metadata_and_fields() -> None:
         'load_torque',
         'theta',
         'omega',
+        'applied_step',
     )
-    assert RUN_FIELDS[:12] == STATE_FIELDS and len(RUN_FIELDS) == K.N_RUN_FIELDS
+    assert RUN_FIELDS[:13] == STATE_FIELDS and len(RUN_FIELDS) == K.N_RUN_FIELDS
 
 
 @pytest.mark.parametrize('model', ['full', 'reduced'])

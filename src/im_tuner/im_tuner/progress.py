@@ -59,6 +59,8 @@ class Progress:
     def _fmt(rec: dict[str, Any]) -> str:
         if rec['status'] == 'lost':
             return 'lost (re-run)'
+        if rec['status'] == 'timing':
+            return f'{rec["reason"]} (re-run)'
         return f'{rec["loss"]:.4f}' + (f' (aborted: {rec["reason"]})' if rec['aborted'] else '')
 
     def _line(self, text: str, force: bool) -> None:
@@ -225,4 +227,13 @@ def _drive_text(d: dict[str, Any] | None, which: str | None) -> str:
         )
     if d.get('level', 0) >= 2:
         text += f'; last status ERROR: {d.get("message")}'
+    loop = d.get('loop')
+    if loop and loop.get('period_work_us'):
+        w, a = loop['period_work_us'], loop['controller_answer_us']
+        text += (
+            f'\n{head} (composed loop): per-period work p50 {w["p50"]:.0f} / p99 '
+            f'{w["p99"]:.0f} / max {w["max"]:.0f} us of {200} us; controller answer p50 '
+            f'{a["p50"]:.0f} / p99 {a["p99"]:.0f} us; states unanswered in their period '
+            f'{loop["answers_missed"]}'
+        )
     return text

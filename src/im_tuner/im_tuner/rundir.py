@@ -95,7 +95,7 @@ def _lock_holder(path: Path) -> str | None:
 
 
 KINDS = ('reference', 'eval', 'remeasure')
-STATUSES = ('ok', 'aborted', 'lost')
+STATUSES = ('ok', 'aborted', 'lost', 'timing')
 
 
 def _number(v: Any) -> bool:
@@ -116,11 +116,15 @@ def check_record(rec: dict[str, Any]) -> str | None:
         return "record without 'gains' (name: value)"
     if (
         kind == 'eval'
-        and status != 'lost'
+        and status in ('ok', 'aborted')
         and not (isinstance(rec.get('u'), list) and all(_number(x) for x in rec['u']))
     ):
         return "evaluation record without 'u' (a list of numbers)"
     if status == 'lost':
+        return None
+    if status == 'timing':
+        if not _number(rec.get('off_timing_loss')):
+            return "timing record without 'off_timing_loss' (a number)"
         return None
     if not _number(rec.get('loss')):
         return "record without 'loss' (a number)"

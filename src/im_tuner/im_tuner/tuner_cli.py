@@ -23,8 +23,10 @@ from .tuning import (
     run_seeds,
 )
 
-BENCHES = ('auto', 'inproc', 'processes', 'realtime', 'none')
-SIM_BENCHES = ('inproc', 'processes', 'realtime')
+BENCHES = ('auto', 'inproc', 'processes', 'realtime', 'realtime-processes', 'none')
+SIM_BENCHES = ('inproc', 'processes', 'realtime', 'realtime-processes')
+#: benches that run the drive and the controller in this process
+IN_PROCESS_BENCHES = ('inproc', 'realtime')
 #: simulated benches that repeat a plant history bit for bit (a resumed run replays it)
 LOCKSTEP_BENCHES = ('inproc', 'processes')
 RECORDER_RESTARTS = 3  # replacements of a recorder child that died, per session
@@ -40,6 +42,7 @@ RUN_SETTINGS = (
     'model',
     'drive_config',
     'retries',
+    'drive',
 )
 
 
@@ -76,8 +79,17 @@ def _build_parser() -> argparse.ArgumentParser:
         '--bench',
         choices=BENCHES,
         help='where the controller comes from '
-        '(default: auto = use one on the graph, else simulate in-process; '
-        'realtime = the simulated bench as processes at 5 kHz wall clock)',
+        '(default: auto = use one on the graph, else simulate in-process, lock-step; '
+        'realtime = drive and controller composed in this process, one 5 kHz wall-clock '
+        'loop; realtime-processes = the same as separate processes)',
+    )
+    ap.add_argument(
+        '--drive',
+        metavar='DRIVE',
+        help="--bench realtime: the drive in the loop: 'sim' (the simulator, default), "
+        "'example' (the example drive's stand-in hardware) or package.module:Class (your "
+        'hardware class, as example_drive.Hardware, or your drive node class; '
+        'docs/real-drive.md)',
     )
     ap.add_argument('--quiet', action='store_true', help='no progress bar (for scripts)')
     ap.add_argument(
@@ -103,7 +115,8 @@ def _build_parser() -> argparse.ArgumentParser:
         '--retries',
         type=int,
         metavar='R',
-        help='re-runs of an evaluation whose result is lost (default 3)',
+        help='re-runs of an evaluation whose result is lost, or marked timing (its '
+        "experiment did not run on the paper's timing) (default 3)",
     )
     ap.add_argument(
         '--eval-timeout',
@@ -214,6 +227,18 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str,
             load_config(cli.drive_config)
         except ConfigError as exc:
             raise UsageError(str(exc)) from None
+    if cli.drive is not None:
+        if (cli.bench or 'auto') != 'realtime':
+            raise UsageError(
+                f'--drive {cli.drive}: a drive is plugged into the composed real-time bench '
+                'only (--bench realtime)'
+            )
+        from .bench.realtime import DriveSpecError, check_drive_spec
+
+        try:
+            check_drive_spec(cli.drive)
+        except DriveSpecError as exc:
+            raise UsageError(str(exc)) from None
     options = _algo_options(cli, algo)
     opt_ss, drive_seed = run_seeds(seed)
     try:  # validate the options now: nothing is created on bad input
@@ -229,12 +254,19 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str,
         'remeasure': remeasure,
         'reference': not cli.no_reference,
         'retries': retries,
+        'drive': cli.drive or 'sim',
         'satisfactory_loss': params.satisfactory_loss,
         'params_file': params.source,
         'search_box': params.space.as_dict(),
         'command': ' '.join(shlex.quote(a) for a in argv),
     }
     return run, params
+
+
+def is_simulated(bench: str | None, drive: str | None) -> bool:
+    """A simulated bench (the plant restarts from a seed; safety faults are reset by
+    default): a simulated bench mode with the simulator or the example's stand-in."""
+    return bench in SIM_BENCHES and (drive or 'sim') in ('sim', 'example')
 
 
 def _start(algo: str, params: TunerParams) -> np.ndarray | None:

@@ -68,6 +68,7 @@ from .tuner_cli import (
     EXIT_INTERRUPTED,
     EXIT_OK,
     EXIT_USAGE,
+    IN_PROCESS_BENCHES,
     LOCKSTEP_BENCHES,
     RUN_SETTINGS,
     SIM_BENCHES,
@@ -77,6 +78,7 @@ from .tuner_cli import (
     _make_tuning,
     _new_run_config,
     _params_of_run,
+    is_simulated,
 )
 from .tuning import BenchFailure, ResumeError, StopRequested, replay, replay_plan
 
@@ -205,15 +207,16 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                 f'a controller ({cli.controller}) is already on the graph: '
                 'tune it with --bench none, or use another ROS_DOMAIN_ID'
             )
-        simulated = bench_mode in SIM_BENCHES
-        if simulated and node.count_publishers('/' + STATE_TOPIC) > 0:
+        drive = run.get('drive') or 'sim'
+        simulated = is_simulated(bench_mode, drive)
+        if bench_mode in SIM_BENCHES and node.count_publishers('/' + STATE_TOPIC) > 0:
             # a drive without a controller: a second (simulated) drive would fight it
             raise BenchFailure(
                 'a drive is publishing /drive/state but no controller answers '
                 f'({cli.controller}): start `ros2 run im_controller controller` '
                 'for it and use --bench auto, or stop that drive'
             )
-        if cli.resume is not None and simulated != (run.get('bench') in SIM_BENCHES):
+        if cli.resume is not None and simulated != is_simulated(run.get('bench'), drive):
             raise UsageError(
                 f'--resume: the run used bench {run.get("bench")!r}, now '
                 f'{bench_mode!r}: the plant history cannot be restored'
@@ -266,11 +269,13 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             if cli.drive_config:
                 drive_over.append(Parameter('config_file', value=str(cli.drive_config)))
                 ctl_over.append(Parameter('drive_config_file', value=str(cli.drive_config)))
-        if bench_mode == 'inproc':
+        if bench_mode in IN_PROCESS_BENCHES:
             bench = forms.InProcess(
                 ctx,
                 node,
                 exe,
+                realtime=bench_mode == 'realtime',
+                drive=drive,
                 drive_overrides=drive_over,
                 controller_overrides=ctl_over,
                 bag_dir=bag_dir,
@@ -329,7 +334,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             }
         )
         if cli.resume is not None and tuning.records:
-            if bench_mode == 'realtime':
+            if simulated and bench_mode not in LOCKSTEP_BENCHES:
                 progress.note(
                     'real-time simulated bench: the plant starts again at rest '
                     '(no replay); the search goes on from the checkpoint'

@@ -8,8 +8,10 @@ One evaluation (``kind='eval'``):
 
 1. ``u = optimizer.ask()``; the gains are ``space.to_gains(u)``;
 2. ``measurer.measure(gains)`` sets them (atomically), runs the experiment, returns its
-   loss; a lost result (:class:`LostEvaluation`) is re-run with the SAME gains, at most
-   ``retries`` times, never resampled;
+   loss; a lost result (:class:`LostEvaluation`) and a result marked ``timing`` (the
+   experiment did not run on the paper's timing: held or late drive periods beyond the
+   controller's tolerance, so its loss is not the paper's loss) are re-run with the SAME
+   gains, at most ``retries`` times, never resampled, and never told to the optimiser;
 3. the record goes to ``results.jsonl`` (fsync'ed), then ``optimizer.tell(u, loss)``,
    then ``checkpoint.json`` (atomic).  A penalised (aborted) experiment is told its
    penalised loss, costs one evaluation and can never become the best.
@@ -50,6 +52,7 @@ from .rundir import RunDir, RunDirError
 from .space import SearchSpace
 
 __all__ = [
+    'MEASURED',
     'BenchFailure',
     'LostEvaluation',
     'Measurement',
@@ -90,6 +93,11 @@ class Measurement:
     t_end_ns: int
     wall_s: float  #: set gains -> loss received [s]
     gains: tuple[float, ...]  #: the gains the controller reports it ran
+    #: drive periods driven by a fresh / held / late answer (fresh + held + late = steps)
+    fresh: int = 0
+    held: int = 0
+    late: int = 0
+    timing: bool = False  #: held + late beyond the controller's tolerance: not a loss
 
     @classmethod
     def of(cls, r: LossResult, wall_s: float) -> Measurement:
@@ -108,7 +116,15 @@ class Measurement:
             t_end_ns=r.t_end,
             wall_s=wall_s,
             gains=r.gains.as_tuple(),
+            fresh=r.fresh,
+            held=r.held,
+            late=r.late,
+            timing=r.timing,
         )
+
+
+#: Record statuses that carry a loss (told to the optimiser); 'lost' and 'timing' do not.
+MEASURED = ('ok', 'aborted')
 
 
 class LostEvaluation(Exception):
@@ -202,6 +218,7 @@ class TunerState:
     aborted: int = 0
     faults: int = 0
     lost: int = 0
+    timing: int = 0  #: experiments re-run because they did not run on the paper's timing
     sim_s: float = 0.0
     loop_wall_s: float = 0.0
     opt_us: list[float] = field(default_factory=list)  #: ask + tell [us] per live evaluation
@@ -306,7 +323,7 @@ class TuningRun:
     # -- state updates -------------------------------------------------------------------
     def _apply(self, rec: dict[str, Any], live: bool) -> None:
         """Update the counters (and, for an evaluation, the optimiser) from one record."""
-        if rec['status'] != 'lost' and rec['kind'] == 'eval':
+        if rec['status'] in MEASURED and rec['kind'] == 'eval':
             u = np.asarray(rec['u'], dtype=float)
             if not live:
                 asked = self.opt.ask()
@@ -369,6 +386,28 @@ class TuningRun:
                 sim_s=0.0,
                 wall_s=wall_s,
             )
+        elif m.timing:
+            # measured, but not the paper's loss: kept under another name, never a loss
+            rec.update(
+                status='timing',
+                loss=None,
+                terms=None,
+                aborted=None,
+                reason=(
+                    f'timing: {m.held} held and {m.late} late of {m.steps} drive periods'
+                    + (f' (and {m.reason})' if m.aborted else '')
+                ),
+                fault=m.fault,
+                off_timing_loss=m.loss,
+                experiment_id=m.experiment_id,
+                direction=m.direction,
+                steps=m.steps,
+                trip_step=m.trip_step,
+                t_start_ns=m.t_start_ns,
+                t_end_ns=m.t_end_ns,
+                sim_s=(m.t_end_ns - m.t_start_ns) * 1e-9,
+                wall_s=m.wall_s,
+            )
         else:
             rec.update(
                 status='aborted' if m.aborted else 'ok',
@@ -386,12 +425,15 @@ class TuningRun:
                 sim_s=(m.t_end_ns - m.t_start_ns) * 1e-9,
                 wall_s=m.wall_s,
             )
+        if m is not None:
+            rec['periods'] = {'fresh': m.fresh, 'held': m.held, 'late': m.late}
         return rec
 
     def _measure(
         self, measurer: Measurer, kind: str, index: int, u: np.ndarray | None, gains: Gains
     ) -> dict[str, Any]:
-        """Measure ``gains`` (re-running lost results); records every attempt."""
+        """Measure ``gains`` (re-running lost and off-timing results); records every
+        attempt."""
         for attempt in range(1, self.retries + 2):
             t0 = time.perf_counter()
             try:
@@ -408,7 +450,7 @@ class TuningRun:
             now = time.perf_counter()
             self.state.loop_wall_s += now - self._t_mark
             self._t_mark = now
-            if rec['status'] != 'lost' and kind == 'eval':
+            if rec['status'] in MEASURED and kind == 'eval':
                 # best-so-far after this evaluation, for the results table
                 b = self.state.best
                 rec['best_loss'] = (
@@ -422,7 +464,7 @@ class TuningRun:
             self._checkpoint()
             if self.progress is not None:
                 self.progress(kind, rec, self)
-            if rec['status'] != 'lost':
+            if rec['status'] in MEASURED:
                 return rec
         raise BenchFailure(
             f'{kind} {index}: no result after {self.retries + 1} attempts '
@@ -525,6 +567,10 @@ def tally(st: TunerState, rec: dict[str, Any], satisfactory_loss: float) -> None
     if rec['status'] == 'lost':
         st.lost += 1
         return
+    if rec['status'] == 'timing':
+        st.timing += 1
+        st.faults += bool(rec['fault'])
+        return
     st.faults += bool(rec['fault'])
     kind = rec['kind']
     if kind == 'reference':
@@ -594,6 +640,7 @@ def summarize(
         'aborted': st.aborted,
         'safety_faults': st.faults,
         'lost': st.lost,
+        'timing': st.timing,
         'reference': None
         if st.reference is None
         else {
@@ -648,7 +695,7 @@ def replay(
             m = measurer.measure(_gains_of(rec))
         except LostEvaluation as exc:
             raise ResumeError(f'replay: experiment {k} lost ({exc})') from None
-        if rec['status'] != 'lost' and not (
+        if rec['status'] in MEASURED and not (
             m.loss == rec['loss'] and m.experiment_id == rec['experiment_id']
         ):
             raise ResumeError(

@@ -39,6 +39,7 @@ class FakeBench:
     ) -> None:
         self.calls: list[tuple[float, ...]] = []
         self.lose = set(lose)  # call indices whose result is lost
+        self.off_timing: set[int] = set()  # call indices measured off the paper timing
         self.abort_above = abort_above
         self.stop_at = stop_at
         self.applied: Gains | None = None
@@ -70,6 +71,9 @@ class FakeBench:
             t_end_ns=eid * 10**9 + 1125 * 10**6,
             wall_s=0.001,
             gains=gains.as_tuple(),
+            fresh=5625 - 7 * (k in self.off_timing),
+            held=7 * (k in self.off_timing),
+            timing=k in self.off_timing,
         )
 
     def apply(self, gains: Gains) -> None:
@@ -132,6 +136,29 @@ def test_lost_result_is_rerun_with_the_same_gains(tmp_path):
     assert recs[5]['attempt'] == 3 and recs[5]['status'] in ('ok', 'aborted')
     assert run.state.lost == 2 and run.state.evals == 5 and run.opt.evaluations == 5
     assert run.state.experiments == len(recs)  # lost ones ran on the bench too
+
+
+def test_off_timing_result_is_rerun_never_told_and_counted(tmp_path):
+    bench = FakeBench()
+    bench.off_timing = {3, 4}  # evaluation 2, attempts 1 and 2
+    run = make_run(tmp_path / 'r', budget=5, remeasure=0)
+    assert run.run(bench) == 'done'
+    assert bench.calls[3] == bench.calls[4] == bench.calls[5] != bench.calls[6]
+    recs = records(tmp_path / 'r')
+    off = [r for r in recs if r['status'] == 'timing']
+    assert [(r['eval'], r['attempt']) for r in off] == [(2, 1), (2, 2)]
+    for r in off:
+        # the measured number is kept under another name, never as the loss
+        assert r['loss'] is None and isinstance(r['off_timing_loss'], float)
+        assert r['periods'] == {'fresh': 5618, 'held': 7, 'late': 0}
+        assert r['reason'] == 'timing: 7 held and 0 late of 5625 drive periods'
+    assert recs[5]['status'] in ('ok', 'aborted') and recs[5]['periods']['held'] == 0
+    # the optimiser was told 5 losses, none of them off timing; the summary counts them
+    assert run.state.timing == 2 and run.state.evals == 5 and run.opt.evaluations == 5
+    assert run.summary(outcome='done', wall_s=1.0)['timing'] == 2
+    # a resume rebuilds the same counters from results.jsonl
+    again = make_run_from(RunDir(tmp_path / 'r'), budget=5, remeasure=0)
+    assert again.restore() == len(recs) and again.state.timing == 2
 
 
 def test_results_lost_beyond_retries_end_the_run_with_best_applied(tmp_path):

@@ -2,7 +2,9 @@
 
 * :class:`InProcess` (``--bench inproc``): drive simulator + controller nodes in this
   process, lock-step, the recorder polled between steps (``inprocess.InProcessBench``);
-* :class:`Children` (``processes``, ``realtime``, ``external``): the drive and the
+* :class:`InProcess` with ``realtime`` (``--bench realtime``): a drive and the controller
+  composed in this process, one wall-clock loop (``realtime.RealtimeBench``);
+* :class:`Children` (``processes``, ``realtime-processes``, ``external``): the drive and the
   controller as child processes (lock-step or real time), or a controller already on the
   graph; the recorder is a child process. Children are supervised between spins: a dead
   recorder is replaced (its bag repaired), a dead drive or controller ends the run. They
@@ -40,7 +42,7 @@ SpinUntil = Callable[[Callable[[], bool], float | None], bool]
 class Bench(Protocol):
     """What a tuner run needs of a bench (see the module docstring)."""
 
-    mode: str  #: 'inproc', 'processes', 'realtime' or 'external'
+    mode: str  #: 'inproc', 'realtime', 'processes', 'realtime-processes' or 'external'
 
     def spin_until(self, pred: Callable[[], bool], timeout: float | None = None) -> bool:
         """Advance the bench and serve the tuner's node until ``pred()`` or the timeout."""
@@ -114,9 +116,9 @@ def parameter_args(params: list[Parameter]) -> list[str]:
 
 # ------------------------------------------------------------------------------ in process
 class InProcess:
-    """``--bench inproc``: the nodes in this process, the recorder polled between steps."""
-
-    mode = 'inproc'
+    """``--bench inproc`` (lock-step) or ``realtime`` (the composed real-time bench,
+    ``realtime.RealtimeBench``): the nodes in this process, the recorder polled between
+    steps (periods)."""
 
     def __init__(
         self,
@@ -124,6 +126,8 @@ class InProcess:
         node: Node,
         exe: Executor,
         *,
+        realtime: bool = False,
+        drive: str = 'sim',
         drive_overrides: list[Parameter],
         controller_overrides: list[Parameter],
         bag_dir: Path | None,
@@ -152,12 +156,25 @@ class InProcess:
             b.add_poller(self.rec.poll, RECORD_POLL_STEPS)
 
         exe.executor.remove_node(node)
-        self.bench = InProcessBench(
-            context=ctx,
-            drive_overrides=drive_overrides,
-            controller_overrides=controller_overrides or None,
-            before_start=start_recorder,
-        )
+        self.mode = 'realtime' if realtime else 'inproc'
+        self.bench: Any
+        if realtime:
+            from .realtime import RealtimeBench
+
+            self.bench = RealtimeBench(
+                context=ctx,
+                drive=drive,
+                drive_overrides=drive_overrides,
+                controller_overrides=controller_overrides or None,
+                before_start=start_recorder,
+            )
+        else:
+            self.bench = InProcessBench(
+                context=ctx,
+                drive_overrides=drive_overrides,
+                controller_overrides=controller_overrides or None,
+                before_start=start_recorder,
+            )
         self.bench.executor.add_node(node)
         self.spin_until = self.bench.spin_until
         # Discovery can be slow on a loaded machine: look again now that ours exist.
@@ -179,13 +196,16 @@ class InProcess:
 
     def drive_report(self) -> dict[str, Any] | None:
         d = self.bench.drive
-        return drive_report(
+        report = drive_report(
             {
-                'mode': d.mode,
-                'model': d.config.model,
+                'mode': getattr(d, 'mode', 'realtime'),
+                'model': getattr(d.config, 'model', '-'),
                 **{k: str(v) for k, v in vars(d.counters).items()},
             }
         )
+        if report is not None and hasattr(self.bench, 'timing'):
+            report['loop'] = self.bench.timing()  # the composed loop's per-period figures
+        return report
 
     def close(self) -> None:
         if self.rec is not None:
@@ -231,7 +251,7 @@ class Children:
         self.names = controller_topics(controller)
         self.rec_topics = (
             [self.names['loss'], '/' + STATE_TOPIC]
-            if mode in ('processes', 'realtime')
+            if mode in ('processes', 'realtime-processes')
             else [self.names['loss']]
         )
         # set by attach(): the run whose bags a replaced recorder continues
@@ -244,8 +264,8 @@ class Children:
         self.recording = bag_dir is not None
         if bag_dir is not None:
             self._start_recorder(bag_dir)
-        if mode in ('processes', 'realtime'):
-            rt = ['--mode', 'realtime'] if mode == 'realtime' else []
+        if mode in ('processes', 'realtime-processes'):
+            rt = ['--mode', 'realtime'] if mode == 'realtime-processes' else []
             r2, q = self._ros2, self._quiet_logs
             self._spawn(
                 'drive_sim',

@@ -19,7 +19,7 @@ from im_controller.experiment import INTERNALS_FIELDS
 
 from ..record.reader import BagData, BagReadError, read_bag
 from ..rundir import RunDir, RunDirError
-from ..tuning import summarize, tally_all
+from ..tuning import MEASURED, summarize, tally_all
 
 EXIT_USAGE = 2
 INTERNALS_TOPIC = '/' + C.INTERNALS_TOPIC  # the bench's controller, in the root namespace
@@ -120,7 +120,7 @@ class RunReport:
     @property
     def evals(self) -> list[dict[str, Any]]:
         """The evaluation records (not lost), in order."""
-        return [r for r in self.records if r['kind'] == 'eval' and r['status'] != 'lost']
+        return [r for r in self.records if r['kind'] == 'eval' and r['status'] in MEASURED]
 
 
 def _session_bags(sessions: list[dict[str, Any]], n_records: int) -> list[str | None]:
@@ -217,7 +217,9 @@ def _window(rec: dict[str, Any]) -> tuple[int, int] | None:
 def _wanted(rr: RunReport) -> dict[str, int]:
     """Which records' signals the figures need: name -> record index."""
     want: dict[str, int] = {}
-    ran = [i for i, r in enumerate(rr.records) if r['status'] != 'lost' and _window(r) is not None]
+    ran = [
+        i for i, r in enumerate(rr.records) if r['status'] in MEASURED and _window(r) is not None
+    ]
     for i in ran:
         if rr.records[i]['kind'] == 'reference':
             want['reference'] = i
@@ -315,7 +317,7 @@ def _check_losses(rr: RunReport) -> dict[str, int]:
             out['elsewhere'] += got is not None and bag_name is not None
         if got is None:
             out['missing'] += 1
-        elif float(got) == rec['loss']:
+        elif float(got) == (rec['loss'] if rec['loss'] is not None else rec['off_timing_loss']):
             out['matched'] += 1
         else:
             out['differ'] += 1

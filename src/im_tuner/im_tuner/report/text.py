@@ -70,8 +70,10 @@ def summary_text(rr: RunReport) -> str:
     )
     L.append(
         f'  aborted experiments: {s["aborted"]} of {s["evaluations"]} evaluations '
-        f'(safety faults {s["safety_faults"]}); lost results re-run: {s["lost"]}'
+        f'(safety faults {s["safety_faults"]}); lost results re-run: {s["lost"]}; '
+        f'off the paper timing, re-run: {s.get("timing", 0)}'
     )
+    L.extend(_period_lines(rr.records))
     rtf = s.get('real_time_factor')
     wall = f'wall time {s["wall_s"]:.1f} s, ' if s.get('wall_s') is not None else ''
     L.append(
@@ -97,6 +99,34 @@ def summary_text(rr: RunReport) -> str:
         )
     L.extend(f'  no signals in the bags for {m}: its plot is left out' for m in rr.missing)
     return '\n'.join(L)
+
+
+def _period_lines(records: list[dict]) -> list[str]:
+    """The drive timeline of the experiments: how their periods were driven."""
+    ran = [r for r in records if isinstance(r.get('periods'), dict)]
+    if not ran:
+        return []
+    tot = {k: sum(int(r['periods'][k]) for r in ran) for k in ('fresh', 'held', 'late')}
+    n = sum(tot.values())
+    spans = sorted({int(r['steps']) for r in ran if r.get('steps') is not None})
+    line = (
+        f'  drive periods of the {len(ran)} experiments: {n} ({tot["fresh"]} fresh, '
+        f'{tot["held"]} held, {tot["late"]} late'
+        + (f', {100.0 * (tot["held"] + tot["late"]) / n:.3f} % not fresh' if n else '')
+        + '); periods per experiment: '
+        + (', '.join(str(x) for x in spans[:4]) + (' ...' if len(spans) > 4 else ''))
+    )
+    out = [line]
+    bad = [r for r in ran if r['periods']['held'] or r['periods']['late']]
+    for r in bad[:10]:
+        p = r['periods']
+        out.append(
+            f'    experiment {r["experiment_id"]} ({r["kind"]} {r["eval"]}, {r["status"]}): '
+            f'{p["fresh"]} fresh, {p["held"]} held, {p["late"]} late'
+        )
+    if len(bad) > 10:
+        out.append(f'    ... and {len(bad) - 10} more experiments with held or late periods')
+    return out
 
 
 def _bag_lines(bag: BagData, live: bool = False) -> list[str]:

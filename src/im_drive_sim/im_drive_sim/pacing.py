@@ -1,0 +1,103 @@
+"""The wall-clock schedule of a real-time drive, and what a drive offers a loop that runs it.
+
+Every real-time loop of the project -- the simulator's (``drive_sim --mode realtime``), the
+example drive's, and the composed bench's (``im_tuner.bench.realtime``: drive and
+controller in one process) -- paces its periods with one :class:`Pacer`: period n starts at
+``t0 + n Ts``; the loop sleeps in the drive's command wait (taking commands as they come)
+and busy-waits the last ``spin_margin`` for a precise start; a period that starts more than
+one period late is an *overrun*: it is counted and the schedule re-anchored (no burst of
+catch-up periods; a simulated drive's time stays k Ts).
+
+A drive that a composed loop can run (:class:`PeriodicDrive`) is a node with the contract's
+topics and these methods; ``DriveSimNode`` (real time) and ``ExampleDrive`` are two.
+
+Pure Python on purpose: the pacing is a handful of float operations per period and calls
+into rcl's wait; numba would gain nothing. Nothing here allocates per period.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any, Protocol
+
+__all__ = ['Pacer', 'PeriodicDrive']
+
+
+class PeriodicDrive(Protocol):
+    """A real-time drive, one period at a time (see docs/real-drive.md, "Timing").
+
+    ``start()`` publishes state 0; ``period()`` runs one period at its start: take every
+    pending command (newest wins), the watchdog, apply the held command to the hardware
+    (or step the model), sample, publish state k+1 with its ``applied_step``;
+    ``take_commands()`` takes what came since (the loop calls it once the controller
+    answered, so that answer is fresh for the next period); ``wait_command(s)`` sleeps up
+    to ``s`` seconds in rcl_wait, True when a command is pending.
+    """
+
+    counters: Any
+    stop_requested: bool
+
+    def start(self) -> None: ...
+
+    def period(self) -> None: ...
+
+    def take_commands(self) -> None: ...
+
+    def wait_command(self, timeout_s: float) -> bool: ...
+
+    def publish_status(self) -> None: ...
+
+
+class Pacer:
+    """Period starts at ``t0 + n ts`` on ``time.perf_counter`` (see the module docstring).
+
+    ``overruns``: periods that started more than a period late; ``max_lateness_us``: the
+    worst start lateness [us]; ``lateness_s``: the last period's.
+    """
+
+    def __init__(self, ts: float, spin_margin: float) -> None:
+        if not ts > 0.0:
+            raise ValueError(f'period must be > 0 s, got {ts!r}')
+        if not 0.0 <= spin_margin <= ts:
+            raise ValueError(f'spin margin must be in [0, {ts}] s, got {spin_margin!r}')
+        self.ts = float(ts)
+        self.spin_margin = float(spin_margin)
+        self.t0 = time.perf_counter()
+        self.n = 0  #: periods started since t0
+        self.deadline = self.t0  #: start of the current period
+        self.overruns = 0
+        self.max_lateness_us = 0.0
+        self.lateness_s = 0.0
+
+    def restart(self) -> None:
+        """Start the schedule now (period 0 starts now, the next one Ts later)."""
+        self.t0 = self.deadline = time.perf_counter()
+        self.n = 0
+
+    def wait(self, sleep: Callable[[float], bool], on_wake: Callable[[], None]) -> float:
+        """Wait for the next period start and return it (perf_counter [s]).
+
+        ``sleep(s)`` sleeps up to s seconds and returns True when woken by work, which
+        ``on_wake()`` then does (a drive: ``wait_command`` / ``take_commands``)."""
+        deadline = self.t0 + (self.n + 1) * self.ts
+        while True:
+            remaining = deadline - time.perf_counter() - self.spin_margin
+            if remaining <= 0.0:
+                break
+            if sleep(remaining):
+                on_wake()
+        while time.perf_counter() < deadline:
+            pass  # busy-wait the last stretch: a precise period start
+        now = time.perf_counter()
+        late = now - deadline
+        self.lateness_s = late
+        if late * 1e6 > self.max_lateness_us:
+            self.max_lateness_us = late * 1e6
+        self.n += 1
+        if late > self.ts:
+            self.overruns += 1
+            self.t0 = now - self.n * self.ts  # re-anchor: no burst of catch-up periods
+            deadline = now
+        self.deadline = deadline
+        return deadline

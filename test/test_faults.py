@@ -583,16 +583,19 @@ def test_flood_of_parameter_calls_and_triggers(procs, ros_context):
 
 # -- real time, separate processes ---------------------------------------------------------
 def test_realtime_tuning_run_reports_overruns(tmp_path):
-    """`tuner --bench realtime`: drive_sim and controller as processes at 5 kHz wall
-    clock, recorder too; the tuner unchanged. The run completes and its summary reports
-    the drive's overruns, late and held commands (whatever this machine's load made them)."""
+    """`tuner --bench realtime-processes`: drive_sim and controller as processes at 5 kHz
+    wall clock, recorder too; the tuner unchanged. The summary reports the drive's
+    overruns, late and held commands (whatever this machine's load made them). A
+    controller in its own process misses states on a 2-core machine: such experiments are
+    flagged 'timing' and re-run, and the run may end failed when none ran on the paper's
+    timing within --retries -- never with a stretched experiment reported as a loss."""
     run = tmp_path / 'run'
     p = subprocess.run(
         ros2(
             'im_tuner',
             'tuner',
             '--bench',
-            'realtime',
+            'realtime-processes',
             '--budget',
             '3',
             '--seed',
@@ -607,24 +610,42 @@ def test_realtime_tuning_run_reports_overruns(tmp_path):
         text=True,
         timeout=300,
     )
-    assert p.returncode == 0, p.stderr[-3000:]
+    assert p.returncode in (0, 1), p.stderr[-3000:]
     recs = results(run)
-    assert [r['kind'] for r in recs] == ['reference', 'eval', 'eval', 'eval', 'remeasure'], p.stdout
-    assert all(r['status'] in ('ok', 'aborted') for r in recs)
+    assert recs and recs[0]['kind'] == 'reference', p.stdout
+    for r in recs:
+        assert r['status'] in ('ok', 'aborted', 'timing'), r
+        per = r['periods']
+        assert per['fresh'] + per['held'] + per['late'] == r['steps'], r
+        if r['status'] == 'timing':
+            assert r['loss'] is None and per['held'] + per['late'] > 0, r
+        else:
+            assert per['held'] + per['late'] == 0, r
+    if p.returncode == 1:
+        assert 'no result after 4 attempts' in p.stdout + p.stderr
+    else:
+        assert [r['kind'] for r in recs if r['status'] != 'timing'] == [
+            'reference',
+            'eval',
+            'eval',
+            'eval',
+            'remeasure',
+        ]
     summary = json.loads((run / 'summary.json').read_text())
+    assert summary['timing'] == sum(r['status'] == 'timing' for r in recs)
     d = summary['sessions'][0]['drive']
     assert d['mode'] == 'realtime', d
-    assert d['steps'] >= 5 * STEPS, d  # five experiments at least, in real time
+    assert d['steps'] >= STEPS, d
     for k in ('overruns', 'late', 'held', 'fresh', 'max_lateness_us', 'watchdog_trips'):
         assert isinstance(d[k], (int, float)) and d[k] >= 0, k
     assert d['fresh'] + d['held'] == d['steps'], d
     line = next(x for x in p.stdout.splitlines() if x.startswith('  drive (real time):'))
     assert f'overruns {d["overruns"]}' in line and f'late commands {d["late"]}' in line
     run_yaml = yaml.safe_load((run / 'run.yaml').read_text())
-    assert run_yaml['bench'] == 'realtime'
+    assert run_yaml['bench'] == 'realtime-processes'
     # everything the drive published while recorded is in the bag, nothing lost
     meta = yaml.safe_load((run / 'bag_0' / 'metadata.yaml').read_text())
     assert bag_state(run / 'bag_0') == 'closed'
     custom = meta['rosbag2_bagfile_information']['custom_data']
     assert custom['im_tuner.lost_total'] == '0', custom['im_tuner.counts']
-    assert bag_counts(run / 'bag_0')['/drive/state'] >= 5 * STEPS
+    assert bag_counts(run / 'bag_0')['/drive/state'] >= STEPS

@@ -102,7 +102,8 @@ R_LATE = 26
 R_HELD = 27
 R_SEEN = 28  # step index of the last state processed
 R_APPLIED = 29  # its applied_step
-N_RSTATE = 30
+R_GAINS_STEP = 30  # the first state the current gains acted on (set_gains)
+N_RSTATE = 31
 
 #: Index of ``applied_step`` in a drive state (the drive contract).
 S_APPLIED = STATE_INDEX['applied_step']

@@ -38,9 +38,10 @@ LOSS_KEYS: tuple[str, ...] = (
     'held',
     'late',
     'timing',
+    'gains_step',
 )
 #: Keys a loss message from before the drive-timeline counts may lack (read as 0 / false).
-OPTIONAL_KEYS: tuple[str, ...] = ('fresh', 'held', 'late', 'timing')
+OPTIONAL_KEYS: tuple[str, ...] = ('fresh', 'held', 'late', 'timing', 'gains_step')
 
 
 def result_to_msg(result: LossResult, node_name: str) -> DiagnosticArray:
@@ -65,6 +66,7 @@ def result_to_msg(result: LossResult, node_name: str) -> DiagnosticArray:
         'held': str(r.held),
         'late': str(r.late),
         'timing': 'true' if r.timing else 'false',
+        'gains_step': str(r.gains_step),
     }
     st = DiagnosticStatus(
         name=f'{node_name}: experiment {r.experiment_id}',
@@ -111,4 +113,5 @@ def msg_to_result(msg: DiagnosticArray) -> LossResult:
         held=int(kv.get('held', '0')),
         late=int(kv.get('late', '0')),
         timing=kv.get('timing', 'false') == 'true',
+        gains_step=int(kv.get('gains_step', '0')),
     )

@@ -31,6 +31,9 @@ class LossResult:
     timing: held + late exceeded the controller's ``timing_tolerance``: the experiment did
         not run on the paper's timing and its loss is not a measurement of the paper's
         loss (the tuner re-runs it instead of reporting it).
+    gains_step: the drive step of the first state the experiment's gains acted on (they
+        were set while the controller held the position, or at the start): with t_start
+        and the seeds, what a lock-step replay of a real-time plant history needs.
     """
 
     experiment_id: int
@@ -49,6 +52,7 @@ class LossResult:
     held: int = 0
     late: int = 0
     timing: bool = False
+    gains_step: int = 0
 
 
 @dataclass(frozen=True)

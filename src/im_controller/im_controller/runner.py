@@ -29,10 +29,12 @@ from .layout import (
     N_EXP_FIELDS,
     N_RSTATE,
     Q_DIST,
+    R_APPLIED,
     R_DIR,
     R_END_NS,
     R_FAULT_REASON,
     R_FRESH,
+    R_GAINS_STEP,
     R_HELD,
     R_HOLD_REF,
     R_ISQF,
@@ -45,6 +47,7 @@ from .layout import (
     R_S1,
     R_S2,
     R_S3,
+    R_SEEN,
     R_START_NS,
     R_STEPS,
     R_TARGET,
@@ -101,6 +104,8 @@ class ExperimentRunner:
         self.eout: np.ndarray = np.zeros(N_EXP_FIELDS)
         self.experiment_id: int = -1
         self._exp_gains: Gains = self.gains
+        self.R[R_SEEN] = -1.0  # no state seen yet
+        self.R[R_APPLIED] = -1.0
         self.reset(0.0)
 
     # -- modes
@@ -110,7 +115,10 @@ class ExperimentRunner:
         if not math.isfinite(theta_meas):
             raise ValueError(f'theta_meas must be finite, got {theta_meas!r}')
         control_reset(self.X, float(theta_meas))
+        # the drive-timeline facts survive a reset: they describe the drive, not the runner
+        seen, applied, gstep = self.R[R_SEEN], self.R[R_APPLIED], self.R[R_GAINS_STEP]
         self.R[:] = 0.0
+        self.R[R_SEEN], self.R[R_APPLIED], self.R[R_GAINS_STEP] = seen, applied, gstep
         self.R[R_MODE] = MODE_HOLD
         self.R[R_HOLD_REF] = float(theta_meas)
         self.R[R_TARGET] = float(theta_meas)
@@ -125,6 +133,7 @@ class ExperimentRunner:
         c = self.config.control
         fill_control_params(self.C, g, c.Ts, c.isq_max, c.feedforward)
         self.gains = g
+        self.R[R_GAINS_STEP] = self.R[R_SEEN] + 1.0  # they act from the next state on
 
     def set_config(self, config: ExperimentConfig) -> None:
         """Apply a new experiment configuration (loss, trajectory, ...), validated and
@@ -256,6 +265,7 @@ class ExperimentRunner:
             held=held,
             late=late,
             timing=held + late > self.timing_tolerance,
+            gains_step=int(R[R_GAINS_STEP]),
         )
 
 

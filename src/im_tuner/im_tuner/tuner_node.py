@@ -354,6 +354,12 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         tuning.state.sessions.append(session)
         outcome = tuning.run(link, should_stop)
         session['drive'] = bench.drive_report()
+        # the bag is closed before the summary: a bag that was not closed is a failure
+        problems = bench.close_recording()
+        for text in problems:
+            progress.warn(f'error: {text}')
+        if problems and outcome == 'done':
+            outcome = f'failed: {problems[0]}'
         if outcome == 'interrupted':
             code = EXIT_INTERRUPTED
         elif outcome != 'done':

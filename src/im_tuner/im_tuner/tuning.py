@@ -98,6 +98,7 @@ class Measurement:
     held: int = 0
     late: int = 0
     timing: bool = False  #: held + late beyond the controller's tolerance: not a loss
+    gains_step: int = 0  #: drive step from which the experiment's gains acted
 
     @classmethod
     def of(cls, r: LossResult, wall_s: float) -> Measurement:
@@ -120,6 +121,7 @@ class Measurement:
             held=r.held,
             late=r.late,
             timing=r.timing,
+            gains_step=r.gains_step,
         )
 
 
@@ -427,6 +429,7 @@ class TuningRun:
             )
         if m is not None:
             rec['periods'] = {'fresh': m.fresh, 'held': m.held, 'late': m.late}
+            rec['gains_step'] = m.gains_step
         return rec
 
     def _measure(

@@ -60,6 +60,10 @@ class Bench(Protocol):
         """The drive's counters after the last experiment (summary.json)."""
         ...
 
+    def close_recording(self) -> list[str]:
+        """Close the bag (bounded); returns what went wrong (empty: the bag is closed)."""
+        ...
+
     def close(self) -> None:
         """Close the bag, stop what this bench started."""
         ...
@@ -207,18 +211,23 @@ class InProcess:
             report['loop'] = self.bench.timing()  # the composed loop's per-period figures
         return report
 
+    def close_recording(self) -> list[str]:
+        if self.rec is None:
+            return []
+        rec, self.rec = self.rec, None
+        self.bench.final_status()  # the drive's counters at exit, into the bag
+        counts = rec.close(settle=0.05)
+        lost = sum(c['lost'] for c in counts.values())
+        if lost:
+            print(
+                f'warning: the recorder counted {lost} lost messages (see {rec.out}/metadata.yaml)',
+                file=sys.stderr,
+            )
+        rec.node.destroy_node()
+        return []
+
     def close(self) -> None:
-        if self.rec is not None:
-            self.bench.final_status()  # the drive's counters at exit, into the bag
-            counts = self.rec.close(settle=0.05)
-            lost = sum(c['lost'] for c in counts.values())
-            if lost:
-                print(
-                    f'warning: the recorder counted {lost} lost messages (see '
-                    f'{self.rec.out}/metadata.yaml)',
-                    file=sys.stderr,
-                )
-            self.rec.node.destroy_node()
+        self.close_recording()
         self.bench.destroy()
 
 
@@ -374,8 +383,34 @@ class Children:
         self.spin_until(lambda: self.monitor.received > n0, 1.5)
         return self.monitor.last
 
+    def close_recording(self) -> list[str]:
+        """Stop the recorder child (SIGINT: it closes its bag within ~1 s however much
+        traffic flows) and check that it did: a recorder that had to be killed, or that
+        exited with an error, left its bag unclosed -- it is repaired and reported."""
+        from im_drive_sim.runtime import stop_child
+
+        p = self.children.pop('recorder', None)
+        if p is None:
+            return []
+        self.ended.append(p)
+        rc = stop_child(p)
+        if rc == 0:
+            return []
+        why = f'killed by signal {-rc}' if rc < 0 else f'exit code {rc}'
+        problem = f'the recorder did not close its bag ({why})'
+        if self.rundir is not None:
+            from ..record.repair import RepairError, repair_bag
+
+            bag = self.rundir.bag_dirs()[-1]
+            try:
+                problem += f'; {bag.name} repaired: ' + repair_bag(bag).summary().splitlines()[0]
+            except RepairError as exc:
+                problem += f'; could not repair {bag}: {exc}'
+        return [problem]
+
     def close(self) -> None:
         from im_drive_sim.runtime import stop_child
 
+        self.close_recording()
         for p in [*reversed(list(self.children.values())), *self.ended]:
             stop_child(p)

@@ -10,11 +10,12 @@ and a step-by-step run (the node's path, ``python_loop=True``) give bit-identica
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
 from numba import njit
 
-from im_controller.config import ExperimentConfig, Gains
+from im_controller.config import GAIN_NAMES, ExperimentConfig, Gains
 from im_controller.control import CONTROL_FIELDS, N_CONTROL_FIELDS
 from im_controller.kernel import experiment_step
 from im_controller.layout import (
@@ -264,3 +265,43 @@ class OfflineBench:
 
     def apply(self, gains: Gains) -> None:
         """Offline there is no controller to leave the final gains on."""
+
+
+def replay_realtime(
+    records: list[dict[str, Any]], drive: DriveConfig, drive_seed: int
+) -> list[LossResult]:
+    """Replay in lock-step, on the pure core, the plant history of a real-time run.
+
+    ``records``: the run's results.jsonl records in order (those that ran on the bench);
+    each gives its experiment id, gains, first step (``t_start_ns``) and the step from
+    which its gains acted (``gains_step``). Between experiments the runner holds the
+    position, exactly as many periods as the real-time controller held it, with the gains
+    it had. Where the real-time run had no held or late period, every loss returned equals
+    the recorded one bit for bit: the real-time bench measured the paper's loss.
+    Assumes no safety fault was reset in between (the reset's step is not recorded).
+    """
+    sim = DriveSim(drive, seed=drive_seed)
+    sim.reset(omega=0.0, fluxed=True)
+    runner = ExperimentRunner(config_for_drive(None, sim), Gains())
+    runner.reset(sim.theta_meas)
+    ts_ns = round(drive.Ts * 1e9)
+    out = []
+    for rec in records:
+        if rec.get('experiment_id') is None or rec.get('t_start_ns') is None:
+            continue
+        k0 = int(rec['t_start_ns']) // ts_ns
+        gains = Gains(*(float(rec['gains'][n]) for n in GAIN_NAMES))
+        g_step = int(rec.get('gains_step', k0))
+        if g_step > sim.step_index:
+            hold_offline(sim, runner, g_step - sim.step_index)
+        if gains != runner.gains:
+            runner.set_gains(gains)
+        if k0 < sim.step_index:
+            raise ValueError(f'experiment {rec["experiment_id"]} starts before the replay')
+        hold_offline(sim, runner, k0 - sim.step_index)
+        runner.start(int(rec['experiment_id']))
+        _run(sim, runner, int(runner.Q[Q_N]), False, True, False)
+        res = runner.result()
+        assert res is not None, 'experiment did not finish'
+        out.append(res)
+    return out

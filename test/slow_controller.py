@@ -1,0 +1,45 @@
+"""A controller slowed on purpose, for test_realtime_bench.py: the controller node whose
+answer takes ``--delay-us`` longer (a busy wait), run in its own process next to a
+real-time drive, so that it falls behind the 5 kHz drive whatever the machine.
+
+    python test/slow_controller.py --delay-us 400 [--ros-args ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from rclpy.utilities import remove_ros_args
+
+from im_controller.controller_node import ControllerError, ControllerNode
+from im_drive_sim.params import ConfigError
+from im_drive_sim.runtime import run_stepped_node
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument('--delay-us', type=float, default=400.0)
+    cli = ap.parse_args(remove_ros_args(sys.argv)[1:])
+    delay = cli.delay_us * 1e-6
+
+    class SlowController(ControllerNode):
+        def answer(self) -> bool:
+            t_end = time.perf_counter() + delay
+            while time.perf_counter() < t_end:
+                pass
+            return super().answer()
+
+    from rclpy.parameter import Parameter
+
+    return run_stepped_node(
+        sys.argv,
+        lambda: SlowController(parameter_overrides=[Parameter('mode', value='realtime')]),
+        (ConfigError, ControllerError),
+        'slow_controller',
+    )
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,144 @@
+"""The real bench at 5 kHz (issue 18): losses that are the paper's loss, or are flagged.
+
+* the composed real-time bench (``tuner --bench realtime``: drive and controller in one
+  process, one wall-clock loop, recording on) runs every experiment on exactly 5625 drive
+  periods, all driven by fresh answers, and its losses equal, bit for bit, the lock-step
+  replay of the same plant history: it measures the paper's loss;
+* a controller in its own process that falls behind the drive (slowed on purpose) has
+  its experiments flagged ``timing``; the tuner re-runs them within ``--retries`` and
+  never reports one as a loss; the external-bench run still leaves a closed bag.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+from im_drive_sim.params import load_config
+from im_tuner.bench.offline import replay_realtime
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_faults import bag_counts, bag_state, results, ros2
+
+STEPS = 5625
+SLOW = str(Path(__file__).with_name('slow_controller.py'))
+
+
+def test_composed_realtime_run_measures_the_paper_loss_bit_for_bit(tmp_path):
+    run = tmp_path / 'run'
+    p = subprocess.run(
+        [
+            *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '3', '--seed', '4'),
+            '--remeasure',
+            '1',
+            '--quiet',
+            '--out',
+            str(run),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert p.returncode == 0, p.stderr[-3000:]
+    recs = results(run)
+    assert [r['kind'] for r in recs] == ['reference', 'eval', 'eval', 'eval', 'remeasure']
+    for r in recs:
+        # exactly 5625 drive periods, every one driven by the answer to the state before
+        assert r['status'] in ('ok', 'aborted'), r
+        assert r['steps'] == STEPS and r['t_end_ns'] - r['t_start_ns'] == 1_125_000_000, r
+        assert r['periods'] == {'fresh': STEPS, 'held': 0, 'late': 0}, r
+    summary = json.loads((run / 'summary.json').read_text())
+    assert summary['timing'] == 0
+    d = summary['sessions'][0]['drive']
+    assert d['watchdog_trips'] == 0, d
+    assert d['held'] + d['late'] <= 0.001 * d['steps'], d
+    loop = d['loop']
+    assert loop['periods'] == d['steps'] and loop['answers_missed'] == 0, loop
+    for k in ('drive_period_us', 'controller_answer_us', 'period_work_us'):
+        assert 0 < loop[k]['p50'] <= loop[k]['p99'] <= loop[k]['max'], loop
+    assert 'drive (composed loop): per-period work p50' in p.stdout
+    # the bag: closed, nothing lost, every state of the run in it
+    assert bag_state(run / 'bag_0') == 'closed'
+    meta = yaml.safe_load((run / 'bag_0' / 'metadata.yaml').read_text())
+    custom = meta['rosbag2_bagfile_information']['custom_data']
+    assert custom['im_tuner.lost_total'] == '0', custom['im_tuner.counts']
+    assert bag_counts(run / 'bag_0')['/drive/state'] >= 5 * STEPS
+    # the same plant history replayed in lock-step: the same losses, bit for bit
+    seed = yaml.safe_load((run / 'run.yaml').read_text())['drive_seed']
+    replayed = replay_realtime(recs, load_config(None), seed)
+    assert [r.experiment_id for r in replayed] == [r['experiment_id'] for r in recs]
+    assert [r.loss for r in replayed] == [r['loss'] for r in recs]
+    assert all(r.steps == STEPS and not r.timing for r in replayed)
+
+
+def test_a_controller_that_falls_behind_is_flagged_rerun_and_never_a_loss(procs, tmp_path):
+    drive = procs.start(ros2('im_drive_sim', 'drive_sim', '--mode', 'realtime', '--seed', '2'))
+    ctl = procs.start([sys.executable, SLOW, '--delay-us', '400'])
+    run = tmp_path / 'run'
+    p = subprocess.run(
+        [
+            *ros2('im_tuner', 'tuner', '--bench', 'none', '--budget', '1', '--retries', '1'),
+            '--no-reference',
+            '--remeasure',
+            '0',
+            '--fault-policy',
+            'reset',
+            '--seed',
+            '3',
+            '--discovery-timeout',
+            '20',
+            '--quiet',
+            '--out',
+            str(run),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert drive.poll() is None and ctl.poll() is None
+    # two attempts, both off the paper timing: the run fails, with no loss reported
+    assert p.returncode == 1, p.stdout + p.stderr[-3000:]
+    assert 'no result after 2 attempts' in p.stdout + p.stderr
+    recs = results(run)
+    assert [(r['eval'], r['attempt'], r['status']) for r in recs] == [
+        (0, 1, 'timing'),
+        (0, 2, 'timing'),
+    ]
+    for r in recs:
+        assert r['loss'] is None and isinstance(r['off_timing_loss'], float)
+        per = r['periods']
+        assert per['fresh'] + per['held'] + per['late'] == r['steps']
+        assert per['held'] + per['late'] > 0 and r['reason'].startswith('timing: ')
+    summary = json.loads((run / 'summary.json').read_text())
+    assert summary['timing'] == 2 and summary['evaluations'] == 0 and summary['best'] is None
+    # the external run's bag (the loss topic) is closed, with both flagged results in it
+    assert bag_state(run / 'bag_0') == 'closed'
+    assert bag_counts(run / 'bag_0')['/controller/loss'] == 2
+
+
+def test_a_recorder_child_that_does_not_close_its_bag_is_reported(tmp_path):
+    """The tuner checks its recorder child's exit: one that ignores SIGINT (it had to be
+    killed) left its bag unclosed, and close_recording says so (the tuner then ends
+    'failed', not 'done' with exit 0)."""
+    from im_tuner.bench.forms import Children
+
+    stubborn = subprocess.Popen(
+        [
+            sys.executable,
+            '-c',
+            'import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); '
+            'print("up", flush=True); time.sleep(60)',
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert stubborn.stdout.readline() == 'up\n'  # SIGINT is ignored from here on
+    bench = object.__new__(Children)  # only what close_recording reads
+    bench.children, bench.ended, bench.rundir = {'recorder': stubborn}, [], None
+    problems = bench.close_recording()
+    assert problems == ['the recorder did not close its bag (killed by signal 9)']
+    assert stubborn.returncode == -9 and bench.close_recording() == []

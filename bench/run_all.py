@@ -15,6 +15,7 @@ import bench_experiment
 import bench_lockstep
 import bench_model
 import bench_optim
+import bench_realtime
 import bench_study
 import bench_tuner
 
@@ -56,6 +57,20 @@ TARGETS = {
     'study_reduced_exp_per_s': ('exp/s', None),
     'study_full_1job_exp_per_s': ('exp/s', None),
     'study_scaling': ('x', None),
+    # issue 18: real-time tuning runs, recording on (composed bench; separate processes)
+    'rt_composed_held_late_pct': ('%', 0.1),
+    'rt_composed_watchdog_trips': ('trips', 0.0),
+    'rt_composed_overrun_pct': ('%', None),
+    'rt_composed_timing_flagged': ('exp', 0.0),
+    **{
+        f'rt_composed_{w}_{q}_us': ('us', None)
+        for w in ('work', 'answer')
+        for q in ('p50', 'p99', 'max')
+    },
+    'rt_processes_held_late_pct': ('%', None),
+    'rt_processes_overrun_pct': ('%', None),
+    'rt_processes_watchdog_trips': ('trips', None),
+    'rt_processes_timing_flagged': ('exp', None),
 }
 
 
@@ -86,6 +101,12 @@ def main() -> int:
         flush=True,
     )
     figures.update(bench_tuner.main())
+    print(
+        '\n== real time at 5 kHz: tuner --bench realtime / realtime-processes '
+        '(budget 20, recorded, 3 runs) ==',
+        flush=True,
+    )
+    figures.update(bench_realtime.main())
     print(
         "\n== the offline study: ros2 run im_tuner study (the paper's grid, every core) ==",
         flush=True,

@@ -396,5 +396,35 @@ def load_config(
         raise ConfigError(f'{name}: YAML syntax error{where}: {problem}') from exc
     if data is None:
         raise ConfigError(f'{name}: file is empty')
+    if isinstance(data, Mapping) and 'base' in data:
+        data = _with_base(name, p, data)
     src = name if not overrides else f'{name} (with overrides)'
     return config_from_dict(data, source=src, overrides=overrides)
+
+
+def _with_base(name: str, path: Path, data: Mapping[str, Any]) -> dict[str, Any]:
+    """A drive file with ``base: <file>``: that file's values, with this file's on top.
+
+    A real drive's file needs only what the controller reads (``Ts``, ``machine.isq_max``)
+    and what is really known; ``base`` gives the rest (a packaged name such as
+    ``paper_750w``, or a path relative to this file). One level: a base has no base."""
+    base = data['base']
+    if not isinstance(base, str) or not base:
+        raise ConfigError(f'{name}: base must be a file name, got {base!r}')
+    packaged = default_config_path().with_name(base if base.endswith('.yaml') else base + '.yaml')
+    bp = packaged if packaged.is_file() and '/' not in base else path.parent / base
+    try:
+        bdata = yaml.safe_load(bp.read_text(encoding='utf-8'))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ConfigError(f'{name}: base {base!r}: cannot read {bp} ({exc})') from None
+    if not isinstance(bdata, Mapping) or 'base' in bdata:
+        raise ConfigError(f'{name}: base {base!r}: not a complete drive file (or has a base)')
+    merged = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in bdata.items()}
+    for k, v in data.items():
+        if k == 'base':
+            continue
+        if isinstance(v, Mapping) and isinstance(merged.get(k), dict):
+            merged[k].update(v)
+        else:
+            merged[k] = v
+    return merged

@@ -42,3 +42,27 @@ def test_qos_profiles_from_the_contract() -> None:
     assert RECORDED_QOS.history == HistoryPolicy.KEEP_ALL
     assert RECORDED_QOS.reliability == ReliabilityPolicy.RELIABLE
     assert RECORDED_QOS.durability == DurabilityPolicy.VOLATILE
+
+
+def test_a_minimal_drive_file_takes_the_rest_from_its_base(tmp_path):
+    """A real drive's file (docs/real-drive.md): only what the controller reads and what is
+    known; ``base`` names the file that gives the rest."""
+    import pytest
+
+    from im_drive_sim.params import ConfigError, load_config
+
+    f = tmp_path / 'my_drive.yaml'
+    f.write_text('base: paper_750w\nTs: 200.0e-6\nmachine:\n  isq_max: 5.0\n')
+    cfg, full = load_config(f), load_config(None)
+    assert (cfg.Ts, cfg.machine.isq_max) == (2e-4, 5.0)
+    assert cfg.machine.J == full.machine.J and cfg.sensors == full.sensors
+    (tmp_path / 'other.yaml').write_text(f.read_text().replace('5.0', '6.0'))
+    f.write_text('base: other.yaml\nmachine:\n  isq_max: 4.0\n')  # a base with a base
+    with pytest.raises(ConfigError, match='has a base'):
+        load_config(f)
+    f.write_text('base: nowhere\nTs: 200.0e-6\n')
+    with pytest.raises(ConfigError, match=r"my_drive\.yaml: base 'nowhere': cannot read"):
+        load_config(f)
+    f.write_text('base: paper_750w\nmachine:\n  isq_max: -1.0\n')
+    with pytest.raises(ConfigError, match=r'machine\.isq_max'):
+        load_config(f)

@@ -59,6 +59,8 @@ TARGETS = {
     'study_scaling': ('x', None),
     # issue 18: real-time tuning runs, recording on (composed bench; separate processes)
     'rt_composed_held_late_pct': ('%', 0.1),
+    'rt_composed_exp_held_late_pct': ('%', 0.1),
+    'rt_processes_exp_held_late_pct': ('%', None),
     'rt_composed_watchdog_trips': ('trips', 0.0),
     'rt_composed_overrun_pct': ('%', None),
     'rt_composed_timing_flagged': ('exp', 0.0),

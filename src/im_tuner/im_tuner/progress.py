@@ -150,7 +150,8 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
     )
     L.append(
         f'  aborted experiments: {s["aborted"]} of {s["evaluations"]} (safety faults '
-        f'{s["safety_faults"]}); lost results re-run: {s["lost"]}'
+        f'{s["safety_faults"]}); lost results re-run: {s["lost"]}; off the paper '
+        f'timing, re-run: {s.get("timing", 0)}'
     )
     rtf = s['real_time_factor']
     # a real drive's experiments take drive time, not simulated time

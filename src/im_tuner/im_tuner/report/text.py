@@ -7,6 +7,7 @@ from typing import Any
 
 from im_controller.config import GAIN_NAMES, GAIN_UNITS
 
+from ..progress import _drive_text
 from ..record.reader import BagData
 from .load import (
     RunReport,
@@ -74,6 +75,14 @@ def summary_text(rr: RunReport) -> str:
         f'off the paper timing, re-run: {s.get("timing", 0)}'
     )
     L.extend(_period_lines(rr.records))
+    sessions = s.get('sessions') or []
+    for i, sess in enumerate(sessions):  # the drive's own counters, per session
+        if 'drive' in sess:
+            L.extend(
+                _drive_text(
+                    sess['drive'], None if len(sessions) == 1 else f'session {i + 1}'
+                ).splitlines()
+            )
     rtf = s.get('real_time_factor')
     wall = f'wall time {s["wall_s"]:.1f} s, ' if s.get('wall_s') is not None else ''
     L.append(

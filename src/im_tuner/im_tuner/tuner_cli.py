@@ -207,7 +207,9 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str,
         raise UsageError(f'--budget must be >= 1 loss evaluations, got {budget}')
     if cli.seed is not None and cli.seed < 0:
         raise UsageError(f'--seed must be >= 0, got {cli.seed}')
-    seed = cli.seed if cli.seed is not None else int(np.random.SeedSequence().entropy % 2**31)
+    entropy = np.random.SeedSequence().entropy  # a fresh SeedSequence draws an int
+    assert isinstance(entropy, int)
+    seed = cli.seed if cli.seed is not None else entropy % 2**31
     remeasure = 3 if cli.remeasure is None else cli.remeasure
     if remeasure < 0:
         raise UsageError(f'--remeasure must be >= 0, got {remeasure}')

@@ -81,9 +81,9 @@ def broken_class(breaks: set[str]) -> type:
                 isq_ref, load_torque = self._late.popleft()
             super().apply_command(isq_ref, load_torque)
 
-        def watchdog(self, now: float) -> None:
+        def watchdog(self) -> None:
             if 'watchdog' not in breaks:
-                super().watchdog(now)
+                super().watchdog()
 
         def fill_state(self, m) -> None:
             super().fill_state(m)

@@ -171,6 +171,7 @@ class DriveSimNode(LenientDoubles, Node):
         self._held_answers = -1  # answers_step of the newest tagged command (real time)
         self._applied = -1  # answers_step of the held command (-1: none, untagged, watchdog)
         self._since_cmd = -1  # periods since the last valid command (-1: none yet)
+        self._last_cmd_wall = 0.0  # perf_counter of the last valid command
         self._watchdog_periods = max(1, round(self.command_timeout / self.config.Ts))
         self._watchdog_tripped = False
         self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
@@ -542,17 +543,21 @@ class DriveSimNode(LenientDoubles, Node):
         return self._wait_command(int(timeout_s * NS_PER_S))
 
     def _watchdog(self) -> None:
-        """Real time: no command for ``command_timeout`` (counted in periods run:
-        command_timeout / Ts) -> zero current and no load, held until a command comes
-        (then it resumes). Before the first command the held command is already zero.
+        """Real time: no command for ``command_timeout`` -> zero current and no load, held
+        until a command comes (then it resumes). Before the first command the held
+        command is already zero.
 
-        Counted in periods, not wall time: a loop that stalls does not step the drive
-        either, and a composed bench (drive and controller in one loop) must not trip
-        because the loop itself paused."""
+        It trips on wall time (or command_timeout / Ts periods run, whichever comes
+        first), but only once two periods ran without a command: a loop that paused
+        (the composed bench while the tuner works; a stall) takes the commands that came
+        before it checks, and must not trip because the loop itself paused."""
         if self._since_cmd < 0:
             return
         self._since_cmd += 1
-        if self._since_cmd <= self._watchdog_periods:
+        if self._since_cmd < 2 or (
+            self._since_cmd <= self._watchdog_periods
+            and time.perf_counter() - self._last_cmd_wall <= self.command_timeout
+        ):
             return
         if not self._watchdog_tripped:
             self._watchdog_tripped = True
@@ -582,6 +587,7 @@ class DriveSimNode(LenientDoubles, Node):
                 return
             answers, isq, load = cmd
             self._since_cmd = 0  # the controller is alive either way
+            self._last_cmd_wall = time.perf_counter()
             if self._watchdog_tripped:
                 self._watchdog_tripped = False
                 self.get_logger().info(f'watchdog: commands resumed at step {k}')

@@ -174,7 +174,7 @@ def judge_fields(
     figures = (
         '; '.join(problems)
         if problems
-        else f'12 finite values, step_index consecutive, time_ns = k Ts; {units}; {joints}'
+        else f'{len(STATE_FIELDS)} finite values, step_index consecutive, time_ns = k Ts; {units}; {joints}'
     )
     if problems and joint_problems is None:
         figures += f'; {joints}'
@@ -182,7 +182,7 @@ def judge_fields(
         'fields',
         not problems,
         figures,
-        f'12 finite values, time_ns = k Ts exactly, currents plausible, ratio in '
+        f'{len(STATE_FIELDS)} finite values, time_ns = k Ts exactly, currents plausible, ratio in '
         f'[{UNITS_RATIO_BAND[0]}, {UNITS_RATIO_BAND[1]}], joint_states = state',
         {
             'problems': problems,

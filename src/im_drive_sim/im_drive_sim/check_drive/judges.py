@@ -174,7 +174,8 @@ def judge_fields(
     figures = (
         '; '.join(problems)
         if problems
-        else f'{len(STATE_FIELDS)} finite values, step_index consecutive, time_ns = k Ts; {units}; {joints}'
+        else f'{len(STATE_FIELDS)} finite values, step_index consecutive, time_ns = k Ts; '
+        f'{units}; {joints}'
     )
     if problems and joint_problems is None:
         figures += f'; {joints}'

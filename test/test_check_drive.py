@@ -333,12 +333,12 @@ def test_state_field_problems():
     ]
     # lock-step re-sends: an identical repeat is fine, a changed one is not
     rep = np.insert(s, 5, s[4], axis=0)
-    assert cd.state_field_problems(rep, np.full(51, 12), np.arange(51), 200_000, False, 11.0) == []
-    assert cd.state_field_problems(rep, np.full(51, 12), np.arange(51), 200_000, True, 11.0) == [
+    assert cd.state_field_problems(rep, np.full(51, 13), np.arange(51), 200_000, False, 11.0) == []
+    assert cd.state_field_problems(rep, np.full(51, 13), np.arange(51), 200_000, True, 11.0) == [
         'step_index not consecutive 1 times'
     ]
     rep[5, 2] = 1.0
-    assert cd.state_field_problems(rep, np.full(51, 12), np.arange(51), 200_000, False, 11.0) == [
+    assert cd.state_field_problems(rep, np.full(51, 13), np.arange(51), 200_000, False, 11.0) == [
         'a re-sent state differs from the original'
     ]
 

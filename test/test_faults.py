@@ -253,7 +253,17 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
     re-runs the lost evaluation a bounded number of times, then ends 'failed' (exit 1) with
     the bag closed, saying the best gains could not be applied."""
     drive = procs.start(ros2('im_drive_sim', 'drive_sim', '--mode', 'realtime', '--seed', '3'))
-    ctl = procs.start(ros2('im_controller', 'controller', '--mode', 'realtime'))
+    # A controller in its own process misses periods on a 2-core machine, which flags its
+    # experiments 'timing' (test_realtime_bench.py); this test is about the kill, so its
+    # controller accepts any timing.
+    ctl = procs.start(
+        [
+            *ros2('im_controller', 'controller', '--mode', 'realtime'),
+            '--ros-args',
+            '-p',
+            'timing_tolerance:=5625',
+        ]
+    )
     run = tmp_path / 'run'
     # SPSA: its first evaluation is next to the hand-tuned start. Still, a real-time
     # experiment stretched by a loaded machine (issue 18) may trip a safety limit before

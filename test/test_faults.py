@@ -302,8 +302,9 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
     assert tuner.returncode == 1, err[-3000:]
     recs = results(run)
     statuses = [r['status'] for r in recs]
-    # the reference, evaluation 0 (real-time jitter may abort it), then 1 + 1 retry lost
-    assert statuses[0] == 'ok' and statuses[1] in ('ok', 'aborted'), statuses
+    # the reference and evaluation 0 (a controller in its own process misses periods: on
+    # the drive's timeline that may abort either), then 1 + 1 retry lost
+    assert statuses[0] in ('ok', 'aborted') and statuses[1] in ('ok', 'aborted'), statuses
     assert statuses[2:] == ['lost', 'lost'], statuses
     # lost mid-experiment, or (killed as it started) the start call unanswered
     assert (

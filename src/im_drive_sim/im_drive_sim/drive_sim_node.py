@@ -51,7 +51,7 @@ from .contract import (
     STATE_TOPIC,
     STATUS_TOPIC,
 )
-from .pacing import Pacer
+from .pacing import CommandWatchdog, Pacer
 from .params import ConfigError, load_config
 from .runtime import (
     LenientDoubles,
@@ -170,9 +170,7 @@ class DriveSimNode(LenientDoubles, Node):
         self._cmd_fresh = False
         self._held_answers = -1  # answers_step of the newest tagged command (real time)
         self._applied = -1  # answers_step of the held command (-1: none, untagged, watchdog)
-        self._since_cmd = -1  # periods since the last valid command (-1: none yet)
-        self._last_cmd_wall = 0.0  # perf_counter of the last valid command
-        self._watchdog_periods = max(1, round(self.command_timeout / self.config.Ts))
+        self._cmd_watchdog = CommandWatchdog(self.command_timeout, self.config.Ts)
         self._watchdog_tripped = False
         self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
 
@@ -545,19 +543,8 @@ class DriveSimNode(LenientDoubles, Node):
     def _watchdog(self) -> None:
         """Real time: no command for ``command_timeout`` -> zero current and no load, held
         until a command comes (then it resumes). Before the first command the held
-        command is already zero.
-
-        It trips on wall time (or command_timeout / Ts periods run, whichever comes
-        first), but only once two periods ran without a command: a loop that paused
-        (the composed bench while the tuner works; a stall) takes the commands that came
-        before it checks, and must not trip because the loop itself paused."""
-        if self._since_cmd < 0:
-            return
-        self._since_cmd += 1
-        if self._since_cmd < 2 or (
-            self._since_cmd <= self._watchdog_periods
-            and time.perf_counter() - self._last_cmd_wall <= self.command_timeout
-        ):
+        command is already zero. When it expires: ``pacing.CommandWatchdog``."""
+        if not self._cmd_watchdog.expired():
             return
         if not self._watchdog_tripped:
             self._watchdog_tripped = True
@@ -586,8 +573,7 @@ class DriveSimNode(LenientDoubles, Node):
             if cmd is None:
                 return
             answers, isq, load = cmd
-            self._since_cmd = 0  # the controller is alive either way
-            self._last_cmd_wall = time.perf_counter()
+            self._cmd_watchdog.command()  # the controller is alive either way
             if self._watchdog_tripped:
                 self._watchdog_tripped = False
                 self.get_logger().info(f'watchdog: commands resumed at step {k}')

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 import sys
-import time
 from dataclasses import dataclass, fields
 
 import rclpy
@@ -48,7 +47,7 @@ from .contract import (
     STATE_TOPIC,
     STATUS_TOPIC,
 )
-from .pacing import Pacer
+from .pacing import CommandWatchdog, Pacer
 from .params import ConfigError, DriveConfig, load_config
 from .runtime import (
     LenientDoubles,
@@ -220,9 +219,7 @@ class ExampleDrive(LenientDoubles, Node):
         self.held_answers = -2  # answers_step of the newest tagged command (-2: none yet)
         self.applied = -1  # answers_step of the held command (-1: none, untagged, watchdog)
         self.fresh = False
-        self.since_cmd = -1  # periods since the last valid command (-1: none yet)
-        self.last_cmd_wall = 0.0  # perf_counter of the last valid command
-        self.watchdog_periods = max(1, round(self.command_timeout / self.period_s))
+        self.cmd_watchdog = CommandWatchdog(self.command_timeout, self.period_s)
         self.tripped = False
 
         self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
@@ -266,17 +263,9 @@ class ExampleDrive(LenientDoubles, Node):
         v[12] = self.applied  # the command applied over the period that just ended
 
     def watchdog(self) -> None:
-        """No command for ``command_timeout`` (wall time, or that many periods run) ->
-        zero current and no load until the next command; only once two periods ran
-        without one, so a loop that paused (the composed bench while the tuner works)
-        takes the commands that came before it trips."""
-        if self.since_cmd < 0:
-            return
-        self.since_cmd += 1
-        if self.since_cmd < 2 or (
-            self.since_cmd <= self.watchdog_periods
-            and time.perf_counter() - self.last_cmd_wall <= self.command_timeout
-        ):
+        """No command for ``command_timeout`` -> zero current and no load until the next
+        command (when it expires: ``pacing.CommandWatchdog``)."""
+        if not self.cmd_watchdog.expired():
             return
         if not self.tripped:
             self.tripped = True
@@ -313,8 +302,7 @@ class ExampleDrive(LenientDoubles, Node):
             self.held_answers = answers
             self.applied = max(answers, -1)
             self.isq_ref, self.load_ref = float(data[CMD_ISQ]), float(data[CMD_LOAD])
-            self.since_cmd = 0
-            self.last_cmd_wall = time.perf_counter()
+            self.cmd_watchdog.command()
             self.fresh = answers < 0 or answers == self.k
             self.counters.late += 0 <= answers < self.k
             if self.tripped:

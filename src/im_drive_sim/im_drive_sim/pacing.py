@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
-__all__ = ['Pacer', 'PeriodicDrive']
+__all__ = ['CommandWatchdog', 'Pacer', 'PeriodicDrive']
 
 
 class PeriodicDrive(Protocol):
@@ -101,3 +101,34 @@ class Pacer:
             deadline = now
         self.deadline = deadline
         return deadline
+
+
+class CommandWatchdog:
+    """A drive's command watchdog: no command for ``timeout_s`` -> expired.
+
+    It expires on wall time, or after ``timeout_s / ts`` periods run, whichever comes
+    first -- but only once two periods ran without a command: a loop that paused (the
+    composed bench while the tuner works; a stall) takes the commands that came before it
+    checks, and must not trip because the loop itself paused. Before the first command
+    it never expires (the drive already holds zero current).
+    """
+
+    def __init__(self, timeout_s: float, ts: float) -> None:
+        self.timeout_s = float(timeout_s)
+        self.max_periods = max(1, round(timeout_s / ts))
+        self.since = -1  #: periods since the last command (-1: none yet)
+        self.last_wall = 0.0  #: perf_counter of the last command
+
+    def command(self) -> None:
+        """A valid command came."""
+        self.since = 0
+        self.last_wall = time.perf_counter()
+
+    def expired(self) -> bool:
+        """Call once per period, after taking the commands: is the watchdog expired?"""
+        if self.since < 0:
+            return False
+        self.since += 1
+        return self.since >= 2 and (
+            self.since > self.max_periods or time.perf_counter() - self.last_wall > self.timeout_s
+        )

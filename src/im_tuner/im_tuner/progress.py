@@ -170,7 +170,7 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
     for i, p in enumerate(sessions):
         if 'drive' in p:
             L.append(
-                _drive_text(
+                drive_text(
                     p['drive'],
                     None
                     if len(sessions) == 1
@@ -203,7 +203,7 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
     return '\n'.join(L)
 
 
-def _drive_text(d: dict[str, Any] | None, which: str | None) -> str:
+def drive_text(d: dict[str, Any] | None, which: str | None) -> str:
     """One summary line of the drive's own counters (drive/status) in session ``which``
     (None: the run has one session)."""
     head = '  drive' + (f' ({which})' if which else '')

@@ -388,28 +388,6 @@ class TuningRun:
                 sim_s=0.0,
                 wall_s=wall_s,
             )
-        elif m.timing:
-            # measured, but not the paper's loss: kept under another name, never a loss
-            rec.update(
-                status='timing',
-                loss=None,
-                terms=None,
-                aborted=None,
-                reason=(
-                    f'timing: {m.held} held and {m.late} late of {m.steps} drive periods'
-                    + (f' (and {m.reason})' if m.aborted else '')
-                ),
-                fault=m.fault,
-                off_timing_loss=m.loss,
-                experiment_id=m.experiment_id,
-                direction=m.direction,
-                steps=m.steps,
-                trip_step=m.trip_step,
-                t_start_ns=m.t_start_ns,
-                t_end_ns=m.t_end_ns,
-                sim_s=(m.t_end_ns - m.t_start_ns) * 1e-9,
-                wall_s=m.wall_s,
-            )
         else:
             rec.update(
                 status='aborted' if m.aborted else 'ok',
@@ -427,7 +405,17 @@ class TuningRun:
                 sim_s=(m.t_end_ns - m.t_start_ns) * 1e-9,
                 wall_s=m.wall_s,
             )
-        if m is not None:
+            if m.timing:
+                # measured, but not the paper's loss: kept under another name, never a loss
+                rec.update(
+                    status='timing',
+                    loss=None,
+                    terms=None,
+                    aborted=None,
+                    reason=f'timing: {m.held} held and {m.late} late of {m.steps} drive periods'
+                    + (f' (and {m.reason})' if m.aborted else ''),
+                    off_timing_loss=m.loss,
+                )
             rec['periods'] = {'fresh': m.fresh, 'held': m.held, 'late': m.late}
             rec['gains_step'] = m.gains_step
         return rec

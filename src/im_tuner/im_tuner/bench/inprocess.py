@@ -26,6 +26,26 @@ from im_drive_sim.runtime import (
 NS_PER_S = 1_000_000_000
 
 
+def compose(drive, make_controller) -> tuple[ControllerNode, SingleThreadedExecutor]:
+    """The controller (``make_controller()``) composed with ``drive`` in this process:
+    a failed controller destroys the drive; ``-p`` overrides reach both nodes, so those
+    neither declares are warned about once; one executor serves both nodes' services."""
+    try:
+        controller = make_controller()
+    except Exception:
+        drive.destroy_node()
+        raise
+    declared = set(drive._parameters) | set(controller._parameters)
+    warn_unknown_overrides(
+        controller,
+        sorted((set(unknown_overrides(drive)) | set(unknown_overrides(controller))) - declared),
+    )
+    executor = SingleThreadedExecutor(context=drive.context)
+    executor.add_node(drive)
+    executor.add_node(controller)
+    return controller, executor
+
+
 class InProcessBench:
     """Drive simulator + controller in one process, stepped lock-step by hand.
 
@@ -47,25 +67,12 @@ class InProcessBench:
         self.drive = DriveSimNode(
             context=context, parameter_overrides=drive_overrides, warn_unknown=False
         )
-        try:
-            self.controller = ControllerNode(
+        self.controller, self.executor = compose(
+            self.drive,
+            lambda: ControllerNode(
                 context=context, parameter_overrides=controller_overrides, warn_unknown=False
-            )
-        except Exception:
-            self.drive.destroy_node()
-            raise
-        # `-p` overrides reach both nodes of this process: warn about those neither has.
-        declared = set(self.drive._parameters) | set(self.controller._parameters)
-        warn_unknown_overrides(
-            self.controller,
-            sorted(
-                (set(unknown_overrides(self.drive)) | set(unknown_overrides(self.controller)))
-                - declared
             ),
         )
-        self.executor = SingleThreadedExecutor(context=self.drive.context)
-        self.executor.add_node(self.drive)
-        self.executor.add_node(self.controller)
         self.stop_requested = False
         self._since_service = 0
         #: (callable, period in steps): run every ``period`` lock-step round trips and at

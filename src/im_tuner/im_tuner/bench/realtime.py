@@ -42,14 +42,14 @@ from typing import Any
 
 import numpy as np
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from im_controller.controller_node import ControllerNode
 from im_drive_sim.pacing import Pacer
-from im_drive_sim.runtime import unknown_overrides, warn_unknown_overrides
+
+from .inprocess import compose
 
 #: Drives by name; anything else is ``package.module:Class``.
 DRIVES = ('sim', 'example')
@@ -144,30 +144,17 @@ class RealtimeBench:
         the place to start a recorder that must not miss the first message."""
         self.drive = make_drive(drive, context, list(drive_overrides or []))
         self.drive_kind = drive
-        try:
-            self.controller = ControllerNode(
+        self.controller, self.executor = compose(
+            self.drive,
+            lambda: ControllerNode(
                 context=context,
                 parameter_overrides=[
                     Parameter('mode', value='realtime'),
                     *(controller_overrides or []),
                 ],
                 warn_unknown=False,
-            )
-        except Exception:
-            self.drive.destroy_node()
-            raise
-        declared = set(self.drive._parameters) | set(self.controller._parameters)
-        warn_unknown_overrides(
-            self.controller,
-            sorted(
-                (set(unknown_overrides(self.drive)) | set(unknown_overrides(self.controller)))
-                - declared
             ),
         )
-        ctx = self.drive.context
-        self.executor = SingleThreadedExecutor(context=ctx)
-        self.executor.add_node(self.drive)
-        self.executor.add_node(self.controller)
         self.stop_requested = False
         self._pollers: list[tuple[Callable[[], Any], int]] = []
         self._polled: list[int] = []  # the period each poller last ran

@@ -7,7 +7,7 @@ from typing import Any
 
 from im_controller.config import GAIN_NAMES, GAIN_UNITS
 
-from ..progress import _drive_text
+from ..progress import drive_text
 from ..record.reader import BagData
 from .load import (
     RunReport,
@@ -79,7 +79,7 @@ def summary_text(rr: RunReport) -> str:
     for i, sess in enumerate(sessions):  # the drive's own counters, per session
         if 'drive' in sess:
             L.extend(
-                _drive_text(
+                drive_text(
                     sess['drive'], None if len(sessions) == 1 else f'session {i + 1}'
                 ).splitlines()
             )

@@ -98,7 +98,7 @@ foxglove-check:
 lock: | $(PY)
 	$(PY) -m pip install --quiet -r requirements.txt
 	{ echo '# Full resolved dependency set (pip freeze), used as constraints by `make setup`.'; \
-	  $(PY) -m pip freeze --exclude-editable | grep -viE '^im[-_](drive[-_]sim|controller|tuner)=='; } > constraints.txt
+	  $(PY) -m pip freeze --exclude-editable | grep -viE '^im[-_](drive[-_]sim|controller|tuner)( @|==)'; } > constraints.txt
 
 clean:
 	rm -rf $(VENV) build src/*/build src/*/*.egg-info

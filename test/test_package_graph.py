@@ -33,6 +33,10 @@ ROSDEP = {
     'mcap': 'python3-mcap-pip',
     'mcap_ros2': 'python3-mcap-ros2-support-pip',
     'scipy': 'python3-scipy',
+    'cma': 'python3-cma-pip',
+    'optuna': 'python3-optuna-pip',
+    'dask': 'python3-dask',
+    'distributed': 'python3-distributed',
 }
 ROS_PACKAGES = {
     'rclpy',

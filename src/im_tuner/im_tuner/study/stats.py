@@ -18,6 +18,11 @@ Intervals: Table I and III means and every difference use a percentile bootstrap
 runs (``BOOT`` resamples, fixed seed: the intervals are reproducible); the run indices are
 resampled together for every cell, because run r of every cell shares its seeds (common
 random numbers).  Table II uses Wilson's score interval.
+
+Both come from scipy (issue 19: the field's library, not hand-written code):
+``scipy.stats.bootstrap(..., paired=True, method='percentile')`` with one fixed seed for
+every call, so every cell and every difference sees the same resampled run indices, and
+``scipy.stats.binomtest(k, n).proportion_ci(method='wilson')``.
 """
 
 from __future__ import annotations
@@ -25,7 +30,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import warnings
+
 import numpy as np
+import scipy.stats
 
 from .runs import Cell, StudyResult
 
@@ -83,18 +91,14 @@ PAPER_US_PER_ITERATION: dict[str, float] = {'spsa': 180.0, 'necga': 600.0}
 EXPERIMENT_S = 1.125  # one experiment on the bench [s]
 BOOT = 4000
 BOOT_SEED = 20051
-Z95 = 1.959963984540054
 
 
-def wilson(k: int, n: int, z: float = Z95) -> tuple[float, float]:
-    """Wilson score interval of a proportion k/n (as fractions)."""
+def wilson(k: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Wilson score interval of a proportion k/n (as fractions); (nan, nan) when n = 0."""
     if n == 0:
         return (math.nan, math.nan)
-    p = k / n
-    d = 1.0 + z * z / n
-    mid = (p + z * z / (2 * n)) / d
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
-    return (max(0.0, mid - half), min(1.0, mid + half))
+    ci = scipy.stats.binomtest(int(k), int(n)).proportion_ci(confidence, method='wilson')
+    return (float(ci.low), float(ci.high))
 
 
 @dataclass
@@ -181,26 +185,52 @@ def per_run(res: StudyResult, threshold: float) -> dict[str, np.ndarray]:
     }
 
 
+def _mean_defined(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Mean over ``axis`` of the defined (non-nan) values; nan where none is (no warning)."""
+    ok = ~np.isnan(x)
+    cnt = np.sum(ok, axis=axis)
+    tot = np.sum(np.where(ok, x, 0.0), axis=axis)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return np.where(cnt > 0, tot / np.maximum(cnt, 1), np.nan)
+
+
 class _Boot:
-    """Paired percentile bootstrap over run indices (shared by every cell)."""
+    """Paired percentile bootstrap over run indices (``scipy.stats.bootstrap``): every call
+    uses the same seed, hence the same resampled run indices, for every cell."""
 
     def __init__(self, runs: int) -> None:
-        rng = np.random.default_rng(BOOT_SEED)
-        self.idx = rng.integers(0, runs, size=(BOOT, runs))
+        self.runs = runs
+
+    def dist(self, statistic, *samples: np.ndarray) -> np.ndarray:
+        """Bootstrap distribution [BOOT] of ``statistic(*samples, axis=-1)`` (runs paired)."""
+        with warnings.catch_warnings():
+            # a constant sample is "degenerate" to scipy; its percentile interval is fine
+            warnings.simplefilter('ignore', scipy.stats.DegenerateDataWarning)
+            res = scipy.stats.bootstrap(
+                samples,
+                statistic,
+                n_resamples=BOOT,
+                paired=True,
+                vectorized=True,
+                confidence_level=0.95,
+                method='percentile',
+                rng=np.random.default_rng(BOOT_SEED),
+            )
+        return np.asarray(res.bootstrap_distribution, dtype=float)
 
     def mean(self, x: np.ndarray) -> np.ndarray:
-        """Bootstrap distribution of nanmean(x) for x[runs] (nan where undefined)."""
-        v = x[self.idx]
-        cnt = np.sum(~np.isnan(v), axis=1)
-        with np.errstate(invalid='ignore', divide='ignore'):
-            return np.where(cnt > 0, np.nansum(v, axis=1) / np.maximum(cnt, 1), np.nan)
+        """Bootstrap distribution of the mean of the defined values of x[runs]."""
+        return self.dist(_mean_defined, x)
 
     @staticmethod
     def interval(point: float, dist: np.ndarray, n: int) -> Interval:
+        """The percentile interval of ``dist``, over the resamples where the statistic is
+        defined (a mean of runs that reached a level is undefined in a resample that drew
+        none of them); no interval if fewer than half are."""
         d = dist[np.isfinite(dist)]
         if not math.isfinite(point) or d.size < BOOT // 2:
             return Interval(point, math.nan, math.nan, n)
-        lo, hi = np.quantile(d, [0.025, 0.975])
+        lo, hi = np.percentile(d, [2.5, 97.5])
         return Interval(point, float(lo), float(hi), n)
 
 
@@ -291,7 +321,10 @@ def _range_dist(boot: _Boot, rows: list[np.ndarray], pct: bool) -> tuple[float, 
     distribution (runs resampled together)."""
     if pct:
         pts = [100.0 * float(r.mean()) for r in rows]
-        dists = [100.0 * r[boot.idx].mean(axis=1) for r in rows]
+        dists = [
+            boot.dist(lambda x, axis=-1: 100.0 * np.mean(x, axis=axis), r.astype(float))
+            for r in rows
+        ]
     else:
         pts = [_nanmean(r) for r in rows]
         dists = [boot.mean(r) for r in rows]

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import im_tuner.optim as optim
-from im_tuner.optim import ALGOS, OPTIONS, Optimizer, OptimizerError, OptionSpec, make_optimizer
+from im_tuner.optim import ALGOS, OPTIONS, TAKES_START, Optimizer, OptimizerError, OptionSpec, make_optimizer
 
 EXPECTED_OPTIONS = {
     'spsa': {'a', 'c', 'A', 'alpha', 'gamma', 'gains', 'max_step'},
@@ -23,11 +23,13 @@ EXPECTED_OPTIONS = {
     'pecga': {'n', 'bits', 'coding'},
     'necga': {'n', 'bits', 'coding', 'eta', 'elite_replacement'},
     'rcga': {'n', 'elitism', 'eta', 'sigma0'},
+    'cmaes': {'sigma0', 'popsize'},
+    'tpe': {'n_startup_trials', 'n_ei_candidates', 'multivariate'},
 }
 
 
 def test_algos_and_option_table():
-    assert ALGOS == ('spsa', 'necga', 'cga', 'pecga', 'rcga')
+    assert ALGOS == ('spsa', 'necga', 'cga', 'pecga', 'rcga', 'cmaes', 'tpe')
     assert set(OPTIONS) == set(ALGOS)
     for algo, specs in OPTIONS.items():
         assert set(specs) == EXPECTED_OPTIONS[algo]
@@ -167,8 +169,8 @@ def test_bad_start(start):
         make_optimizer('spsa', 5, 0, start=start)
 
 
-@pytest.mark.parametrize('algo', [a for a in ALGOS if a != 'spsa'])
-def test_start_only_for_spsa(algo):
+@pytest.mark.parametrize('algo', [a for a in ALGOS if a not in TAKES_START])
+def test_start_only_for_spsa_cmaes_tpe(algo):
     with pytest.raises(OptimizerError, match='start'):
         make_optimizer(algo, 5, 0, start=np.full(5, 0.5))
 
@@ -200,6 +202,10 @@ VARIANTS = [
     ('pecga', {'n': 5}),
     ('rcga', {}),
     ('rcga', {'elitism': 'pe', 'sigma0': 0.5, 'n': 8}),
+    ('cmaes', {}),
+    ('cmaes', {'sigma0': 0.3, 'popsize': 5}),
+    ('tpe', {}),
+    ('tpe', {'multivariate': 'no', 'n_startup_trials': 4}),
 ]
 
 
@@ -219,13 +225,57 @@ def test_state_round_trip_continues_bit_identically(algo, opts):
         twin = Optimizer.from_state(json.loads(text))
         assert type(twin) is type(opt) and twin.evaluations == opt.evaluations
         assert json.dumps(twin.state_dict()) == text
-        for _ in range(50 - cut + 150):
+        for _ in range(50 - cut + (50 if algo == 'tpe' else 150)):  # tpe: ~20 ms per ask
             u, v = opt.ask(), twin.ask()
             assert u.tobytes() == v.tobytes()
             opt.tell(u, _quad(u))
             twin.tell(v, _quad(v))
         assert json.dumps(twin.state_dict()) == json.dumps(opt.state_dict())
         assert twin.converged() == opt.converged()
+
+
+@pytest.mark.parametrize('algo', ['cmaes', 'tpe'])
+def test_start_point_and_resume_with_it(algo):
+    start = np.array([0.16, 0.1, 0.19, 0.1, 0.14])
+    opt = make_optimizer(algo, 5, 4, start=start)
+    first = opt.ask()
+    if algo == 'tpe':  # the start is the first (enqueued) trial
+        assert first.tobytes() == start.tobytes()
+    else:  # the first generation is spread around the start with sigma0 = 0.1
+        assert np.max(np.abs(first - start)) < 0.5
+        np.testing.assert_array_equal(opt.mean, start)
+    assert opt.config()['start'] == start.tolist()
+    for cut in (0, 1, 3):  # before the start is asked, while it is pending, after it
+        a = make_optimizer(algo, 5, 4, start=start)
+        for i in range(cut):
+            u = a.ask()
+            a.tell(u, _quad(u) + i)
+        if cut == 1:
+            a.ask()
+        b = Optimizer.from_state(json.loads(json.dumps(a.state_dict())))
+        for i in range(12):
+            u, v = a.ask(), b.ask()
+            assert u.tobytes() == v.tobytes(), (cut, i)
+            a.tell(u, _quad(u))
+            b.tell(v, _quad(v))
+
+
+def test_cmaes_ignores_numpy_global_rng_and_refuses_a_state_that_does_not_replay():
+    runs = []
+    for g in (1, 2):
+        np.random.seed(g)
+        opt = make_optimizer('cmaes', 5, 8)
+        us = []
+        for _ in range(20):
+            u = opt.ask()
+            us.append(u.tobytes())
+            opt.tell(u, _quad(u))
+        runs.append(us)
+    assert runs[0] == runs[1]
+    st = opt.state_dict()
+    st['told_u'][3][0] += 1e-9
+    with pytest.raises(OptimizerError, match='replay'):
+        Optimizer.from_state(st)
 
 
 @pytest.mark.parametrize('algo', ALGOS)

@@ -1,4 +1,5 @@
-"""Optimiser core of the tuner: SPSA and the compact-GA family, pure numpy (no rclpy).
+"""Optimiser core of the tuner (no rclpy): SPSA and the compact-GA family (numpy), CMA-ES
+(pycma) and TPE (optuna).
 
     from im_tuner.optim import make_optimizer, OPTIONS, ALGOS
     opt = make_optimizer('necga', dim=5, seed=1, n=25, eta=12)
@@ -28,18 +29,22 @@ from .base import (
     check_start,
 )
 from .cga import CGA, NECGA, PECGA, BinaryCGA
+from .cmaes import CMAES
 from .rcga import RCGA
 from .spsa import SPSA
+from .tpe import TPE
 
 __all__ = [
     'ALGOS',
     'CGA',
+    'CMAES',
     'CLASSES',
     'NECGA',
     'OPTIONS',
     'PECGA',
     'RCGA',
     'SPSA',
+    'TPE',
     'TAKES_START',
     'BinaryCGA',
     'Optimizer',
@@ -49,7 +54,7 @@ __all__ = [
 ]
 
 #: Every algorithm name accepted by make_optimizer (and ``--algo``).
-ALGOS: tuple[str, ...] = ('spsa', 'necga', 'cga', 'pecga', 'rcga')
+ALGOS: tuple[str, ...] = ('spsa', 'necga', 'cga', 'pecga', 'rcga', 'cmaes', 'tpe')
 
 CLASSES: dict[str, type[Optimizer]] = {
     'spsa': SPSA,
@@ -57,13 +62,16 @@ CLASSES: dict[str, type[Optimizer]] = {
     'cga': CGA,
     'pecga': PECGA,
     'rcga': RCGA,
+    'cmaes': CMAES,
+    'tpe': TPE,
 }
 
 #: algo -> option name -> OptionSpec (names are python identifiers, usable as flags).
 OPTIONS: dict[str, dict[str, OptionSpec]] = {a: dict(CLASSES[a].OPTIONS) for a in ALGOS}
 
-#: algorithms that use ``start`` (the compact GAs start from their distribution).
-TAKES_START: frozenset[str] = frozenset({'spsa'})
+#: algorithms that use ``start`` (the compact GAs start from their distribution): SPSA's
+#: iterate, CMA-ES's mean, TPE's first (enqueued) trial.
+TAKES_START: frozenset[str] = frozenset({'spsa', 'cmaes', 'tpe'})
 
 
 def make_optimizer(
@@ -76,7 +84,8 @@ def make_optimizer(
     """Validate everything, then build the optimiser ``algo`` on ``dim`` parameters.
 
     ``seed``: int >= 0 or SeedSequence (the optimiser's own PCG64 stream).  ``start``:
-    normalised start point in [0, 1]^dim (spsa only; None = uniform random start).
+    normalised start point in [0, 1]^dim (``TAKES_START`` only; None = spsa and cmaes
+    draw a uniform random start, tpe starts with random trials).
     ``options``: see ``OPTIONS[algo]``; unset ones take their defaults.  Any problem
     (unknown algo or option, wrong type, bool for a number, out of range, eta >= n, a
     start for a compact GA...) raises OptimizerError with a one-line message naming it

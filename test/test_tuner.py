@@ -195,8 +195,9 @@ def _same_evaluations(a: list[dict], b: list[dict]) -> None:
         assert {k: x.get(k) for k in key} == {k: y.get(k) for k in key}
 
 
-def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until):
-    args = ['--algo', 'necga', '--budget', '12', '--seed', '11', '--quiet']
+@pytest.mark.parametrize('algo', ['necga', 'cmaes', 'tpe'])
+def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until, algo):
+    args = ['--algo', algo, '--budget', '12', '--seed', '11', '--quiet']
     whole = tmp_path / 'whole'
     assert tuner(*args, '--out', str(whole)).returncode == 0
     killed = tmp_path / 'killed'
@@ -207,6 +208,15 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
     child.wait(timeout=30)
     n_killed = res.read_text().count('\n')
     assert 6 <= n_killed < 16
+    if algo != 'necga':  # the other algorithms: the same results after the resume
+        proc = tuner('--resume', str(killed))
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        _same_evaluations(results(whole), results(killed))
+        sw = json.loads((whole / 'summary.json').read_text())
+        sk = json.loads((killed / 'summary.json').read_text())
+        for k in ('best', 'applied', 'evaluations', 'aborted', 'remeasured'):
+            assert sw[k] == sk[k], k
+        return
     # The killed session's bag is still marked as being recorded ...
     meta0 = yaml.safe_load((killed / 'bag_0' / 'metadata.yaml').read_text())
     assert meta0['rosbag2_bagfile_information']['custom_data']['im_tuner.state'] == 'recording'

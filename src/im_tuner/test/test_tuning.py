@@ -181,7 +181,7 @@ def make_run_from(rd: RunDir, algo: str = 'necga', budget: int = 10, **kw) -> Tu
     return TuningRun(rd, SPACE, opt, budget=budget, satisfactory_loss=0.2, **kw)
 
 
-@pytest.mark.parametrize('algo', ['necga', 'spsa', 'rcga'])
+@pytest.mark.parametrize('algo', ['necga', 'spsa', 'rcga', 'cmaes', 'tpe'])
 def test_interrupted_then_resumed_equals_uninterrupted(tmp_path, algo):
     whole = make_run(tmp_path / 'whole', algo, budget=20)
     assert whole.run(FakeBench()) == 'done'

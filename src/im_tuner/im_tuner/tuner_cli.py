@@ -39,6 +39,7 @@ RUN_SETTINGS = (
     'params',
     'remeasure',
     'no_reference',
+    'no_start',
     'model',
     'drive_config',
     'retries',
@@ -110,6 +111,13 @@ def _build_parser() -> argparse.ArgumentParser:
         '--no-reference',
         action='store_true',
         help='do not measure the start gains first (the reference)',
+    )
+    ap.add_argument(
+        '--no-start',
+        action='store_true',
+        help='spsa, cmaes, tpe: do not start from the parameter file\'s start point '
+        '(spsa, cmaes: a uniform random one; tpe: random trials first); the reference '
+        'experiment still measures it',
     )
     ap.add_argument(
         '--retries',
@@ -244,7 +252,9 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str,
     options = _algo_options(cli, algo)
     opt_ss, drive_seed = run_seeds(seed)
     try:  # validate the options now: nothing is created on bad input
-        optim.make_optimizer(algo, params.space.dim, opt_ss, _start(algo, params), **options)
+        optim.make_optimizer(
+            algo, params.space.dim, opt_ss, _start(algo, params, cli.no_start), **options
+        )
     except OptimizerError as exc:
         raise UsageError(str(exc)) from None
     run = {
@@ -255,6 +265,7 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str,
         'drive_seed': drive_seed,
         'remeasure': remeasure,
         'reference': not cli.no_reference,
+        'start': not cli.no_start,
         'retries': retries,
         'drive': cli.drive or 'sim',
         'satisfactory_loss': params.satisfactory_loss,
@@ -271,9 +282,10 @@ def is_simulated(bench: str | None, drive: str | None) -> bool:
     return bench in SIM_BENCHES and (drive or 'sim') in ('sim', 'example')
 
 
-def _start(algo: str, params: TunerParams) -> np.ndarray | None:
-    """SPSA starts from the file's start point; the compact GAs from their distribution."""
-    return params.space.start_u if algo in optim.TAKES_START else None
+def _start(algo: str, params: TunerParams, no_start: bool = False) -> np.ndarray | None:
+    """SPSA, CMA-ES and TPE start from the file's start point (unless ``--no-start``); the
+    compact GAs from their distribution."""
+    return params.space.start_u if algo in optim.TAKES_START and not no_start else None
 
 
 def _check_controller_name(name: str) -> None:
@@ -325,7 +337,11 @@ def _params_of_run(run: dict[str, Any]) -> TunerParams:
 def _make_tuning(rundir: RunDir, run: dict[str, Any], params: TunerParams, progress) -> TuningRun:
     opt_ss, _ = run_seeds(run['seed'])
     opt = optim.make_optimizer(
-        run['algo'], params.space.dim, opt_ss, _start(run['algo'], params), **run['options']
+        run['algo'],
+        params.space.dim,
+        opt_ss,
+        _start(run['algo'], params, not run.get('start', True)),
+        **run['options'],
     )
     return TuningRun(
         rundir,

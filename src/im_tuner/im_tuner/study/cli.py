@@ -15,6 +15,7 @@ from im_drive_sim.cli import Parser, UsageError, int_in
 from ..space import TunerParamsError
 from . import runs as S
 from .figures import (
+    fig_comparison,
     fig_convergence,
     fig_tables,
 )
@@ -50,7 +51,9 @@ def write_outputs(st: StudyStats, out: Path, command: str) -> dict[str, Path]:
     paths['tables_csv'] = write_tables_csv(st, out)
     write_starts(st.res, out)
     paths['runs_csv'] = write_runs_csv(st, out)
-    figs = {'tables': fig_tables(st), 'convergence': fig_convergence(st)}
+    figs = {'convergence': fig_convergence(st), 'comparison': fig_comparison(st)}
+    if any(a in S.PAPER_ALGOS for a in st.res.spec.algos):
+        figs = {'tables': fig_tables(st), **figs}
     for name, fig in figs.items():
         paths[f'{name}_png'] = out / f'{name}.png'
         fig.savefig(paths[f'{name}_png'], dpi=110)
@@ -72,8 +75,10 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         '--algos',
-        default=','.join(S.STUDY_ALGOS),
-        help='comma-separated: spsa, necga (default both)',
+        default=','.join(S.PAPER_ALGOS),
+        help='comma-separated algorithms, each with its own small grid: '
+        + ', '.join(S.STUDY_ALGOS)
+        + " (default: the paper's spsa,necga)",
     )
     ap.add_argument(
         '--model',

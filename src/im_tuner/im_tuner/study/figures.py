@@ -6,7 +6,9 @@ import math
 
 import numpy as np
 
+from .runs import PAPER_ALGOS
 from .stats import (
+    FAST_LEVEL,
     PAPER_CELL,
     StudyStats,
 )
@@ -21,18 +23,19 @@ from .text import (
 def fig_tables(st: StudyStats):
     from matplotlib.figure import Figure
 
+    cells = [c for c in st.cells if c.cell.algo in PAPER_ALGOS]  # Tables I-III
     fig = Figure(figsize=(12, 9.5), layout='constrained')
     axes = fig.subplots(3, 1)
-    labels = [f'{ALGO_NAME[c.cell.algo]}\n' + c.cell.label.replace(' ', '\n') for c in st.cells]
-    x = np.arange(len(st.cells))
-    colours = ['tab:blue' if c.cell.algo == 'spsa' else 'tab:orange' for c in st.cells]
+    labels = [f'{ALGO_NAME[c.cell.algo]}\n' + c.cell.label.replace(' ', '\n') for c in cells]
+    x = np.arange(len(cells))
+    colours = ['tab:blue' if c.cell.algo == 'spsa' else 'tab:orange' for c in cells]
     for ax, (stat, title, _), ylab in zip(
         axes,
         (STATS[0], STATS[1], STATS[3]),
         ('final loss (hand-tuned = 1)', 'satisfactory runs [%]', 'iterations to satisfactory'),
         strict=True,
     ):
-        ivs = [getattr(c, stat) for c in st.cells]
+        ivs = [getattr(c, stat) for c in cells]
         v = np.array([i.value for i in ivs])
         # (a percentile interval of a small sample need not contain the point)
         lo = np.array([max(i.value - i.lo, 0.0) if math.isfinite(i.lo) else 0.0 for i in ivs])
@@ -48,7 +51,7 @@ def fig_tables(st: StudyStats):
         ax.errorbar(x, np.nan_to_num(v), yerr=[lo, hi], fmt='none', ecolor='k', capsize=3)
         key = PAPER_KEY[stat]
         assert key is not None  # the figure's three statistics all have paper values
-        pv = np.array([c.paper(key) if c.paper(key) is not None else np.nan for c in st.cells])
+        pv = np.array([c.paper(key) if c.paper(key) is not None else np.nan for c in cells])
         ax.plot(
             x, pv, 'D', color='tab:red', markersize=7, gid=f'paper:{stat}', label='paper (bench)'
         )
@@ -77,8 +80,13 @@ def fig_convergence(st: StudyStats):
     best = np.minimum.accumulate(Ln, axis=2)  # best-so-far per run
     evals = np.arange(1, res.spec.budget + 1)
     algos = list(res.spec.algos)
-    fig = Figure(figsize=(6 * len(algos), 4.5), layout='constrained')
-    axes = np.atleast_1d(fig.subplots(1, len(algos), sharey=True))
+    ncol = min(4, len(algos))
+    nrow = -(-len(algos) // ncol)
+    fig = Figure(figsize=(6 * ncol, 4.5 * nrow), layout='constrained')
+    grid = np.atleast_1d(fig.subplots(nrow, ncol, sharey=True)).ravel()
+    for ax in grid[len(algos) :]:
+        ax.set_visible(False)
+    axes = grid[: len(algos)]
     import matplotlib
 
     cmap = matplotlib.colormaps['tab10']
@@ -88,14 +96,16 @@ def fig_convergence(st: StudyStats):
             b = best[c]
             with np.errstate(invalid='ignore'):
                 med = np.median(b, axis=0)
-            centre = (res.cells[c].row, res.cells[c].col) == PAPER_CELL[algo]
+            # the paper's configuration; beyond the paper, the grid's second (default) cell
+            centre = (res.cells[c].row, res.cells[c].col) == PAPER_CELL.get(algo, (0, 1))
             ax.plot(
                 evals,
                 np.where(np.isfinite(med), med, np.nan),
                 color=cmap(k % 10),
                 lw=2.5 if centre else 1.2,
                 gid=f'median:{res.cells[c].label}',
-                label=res.cells[c].label + (" (paper's)" if centre else ''),
+                label=res.cells[c].label
+                + ((" (paper's)" if algo in PAPER_CELL else ' (default)') if centre else ''),
             )
             if centre:
                 with np.errstate(invalid='ignore'):
@@ -111,4 +121,47 @@ def fig_convergence(st: StudyStats):
         ax.set_ylim(0.0, 1.6)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
+    return fig
+
+
+#: The goal of issue 19 for a real-bench default (drawn on the comparison figure).
+GOAL = {'remeasured': 0.46, 'evals': 3.0, 'fast': 25.0, 'aborted_per_run': 1.0}
+
+
+def fig_comparison(st: StudyStats):
+    """Every configuration side by side: re-measured final loss, evaluations to the
+    satisfactory level and to FAST_LEVEL, aborted experiments per run (95 % intervals)."""
+    from matplotlib.figure import Figure
+
+    cells = st.cells
+    fig = Figure(figsize=(15, 0.32 * len(cells) + 2.2), layout='constrained')
+    axes = fig.subplots(1, 4, sharey=True)
+    y = np.arange(len(cells))[::-1]
+    labels = [f'{ALGO_NAME.get(c.cell.algo, c.cell.algo)} {c.cell.label}' for c in cells]
+    algos = list(dict.fromkeys(c.cell.algo for c in cells))
+    cmap = {a: f'C{i % 10}' for i, a in enumerate(algos)}
+    titles = (
+        ('remeasured', 're-measured final loss (mean)'),
+        ('evals', f'evaluations to <= {st.threshold:g} (mean)'),
+        ('fast', f'evaluations to <= {FAST_LEVEL:g} (median)'),
+        ('aborted_per_run', 'aborted experiments per run (mean)'),
+    )
+    for ax, (stat, title) in zip(axes, titles, strict=True):
+        ivs = [getattr(c, stat) for c in cells]
+        v = np.array([i.value for i in ivs])
+        lo = np.array([max(i.value - i.lo, 0.0) if math.isfinite(i.lo) else 0.0 for i in ivs])
+        hi = np.array([max(i.hi - i.value, 0.0) if math.isfinite(i.hi) else 0.0 for i in ivs])
+        ax.barh(y, np.nan_to_num(v), color=[cmap[c.cell.algo] for c in cells], alpha=0.75,
+                gid=f'ours:{stat}')
+        ax.errorbar(np.nan_to_num(v), y, xerr=[lo, hi], fmt='none', ecolor='k', capsize=2)
+        ax.axvline(GOAL[stat], color='tab:red', ls='--', lw=1, label='goal of a real-bench default')
+        ax.set_title(title, fontsize=9)
+        ax.grid(axis='x', alpha=0.3)
+    axes[0].set_yticks(y, labels, fontsize=8)
+    axes[0].legend(fontsize=8, loc='lower right')
+    fig.suptitle(
+        'Beyond the paper: every configuration on the same seeds (normalised loss, '
+        '95 % intervals; bars missing where no run reached the level)',
+        fontsize=10,
+    )
     return fig

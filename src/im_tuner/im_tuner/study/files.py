@@ -28,7 +28,7 @@ def tuner_command(res: S.StudyResult, c: int, r: int, out: Path) -> str:
     equal the study's bit for bit: test/test_study.py)."""
     cell, sp = res.cells[c], res.spec
     args = ['ros2', 'run', 'im_tuner', 'tuner', '--algo', cell.algo]
-    for k, v in cell.options:
+    for k, v in cell.opts.items():
         args += [f'--{k.replace("_", "-")}', repr(v)]
     args += [
         '--seed',
@@ -40,21 +40,25 @@ def tuner_command(res: S.StudyResult, c: int, r: int, out: Path) -> str:
         '--remeasure',
         '1' if sp.remeasure else '0',
     ]
-    if cell.algo in S.optim.TAKES_START:
+    if cell.start_kind == 'random':
         args += ['--params', str(out / 'starts' / f'run_{r:03d}.yaml')]
     elif sp.params_file:
         args += ['--params', sp.params_file]
+    if cell.start_kind == 'none' and cell.algo in S.optim.TAKES_START:
+        args += ['--no-start']
     if sp.drive_config:
         args += ['--drive-config', sp.drive_config]
     return ' '.join(shlex.quote(a) for a in args)
 
 
 def write_starts(res: S.StudyResult, out: Path) -> None:
-    """starts/run_<r>.yaml: the tuner parameter file of SPSA run r (box + its start)."""
-    if 'spsa' not in res.spec.algos:
+    """starts/run_<r>.yaml: the tuner parameter file of run r of the random-start cells
+    (box + its start; every such cell's run r has the same start)."""
+    rand = [i for i, cell in enumerate(res.cells) if cell.start_kind == 'random']
+    if not rand:
         return
     params = res.spec.params()
-    c = next(i for i, cell in enumerate(res.cells) if cell.algo == 'spsa')
+    c = rand[0]
     d = out / 'starts'
     d.mkdir(parents=True, exist_ok=True)
     for r in range(res.spec.runs):
@@ -65,7 +69,7 @@ def write_starts(res: S.StudyResult, out: Path) -> None:
             )
         }
         text = (
-            f'# SPSA run {r} of the study in {out.name}: random start (run seed '
+            f'# run {r} of the study in {out.name}: random start (run seed '
             f'{int(res.run_seed[r])})\n'
             + yaml.safe_dump(
                 {'search_box': box, 'satisfactory_loss': params.satisfactory_loss}, sort_keys=False
@@ -150,7 +154,8 @@ def write_tables_csv(st: StudyStats, out: Path) -> Path:
                 'threshold',
             )
         )
-        for stat, _, _ in (*STATS, ('remeasured', '', 3)):
+        extra = (('remeasured', '', 3), ('fast', '', 1), ('fast_reached', '', 0))
+        for stat, _, _ in (*STATS, *extra, ('aborted_per_run', '', 1)):
             for c in st.cells:
                 iv = getattr(c, stat)
                 key = PAPER_KEY.get(stat)

@@ -33,6 +33,7 @@ __all__ = [
     'FACTORS',
     'META_FILE',
     'REF_EXPERIMENTS',
+    'PAPER_ALGOS',
     'STUDY_ALGOS',
     'Cell',
     'RunResult',
@@ -49,14 +50,40 @@ __all__ = [
     'start_point',
 ]
 
-#: Algorithms the study has a grid for (the paper's two).
-STUDY_ALGOS: tuple[str, ...] = ('spsa', 'necga')
+#: The paper's two algorithms: Tables I-III and the paper's conclusions.
+PAPER_ALGOS: tuple[str, ...] = ('spsa', 'necga')
+#: Algorithms the study has a grid for: every tuner algorithm.
+STUDY_ALGOS: tuple[str, ...] = optim.ALGOS
+#: Start of a run when its cell does not say: SPSA a random point (as the paper), every
+#: other algorithm that takes a start the hand-tuned gains (what a real bench has).
+RANDOM_START_DEFAULT: frozenset[str] = frozenset({'spsa'})
 #: The grid factors around the paper's configuration (x/5, x, 5x).
 FACTORS: tuple[tuple[str, float], ...] = (('/5', 0.2), ('', 1.0), ('*5', 5.0))
 #: Experiments of the hand-tuned start that define L_ref.
 REF_EXPERIMENTS = 100
 DEFAULT_SATISFACTORY = 0.9
 DEFAULT_SEED = 2005  # the paper's year: a fixed, documented default
+
+
+#: The small grids of the algorithms beyond the paper: (label, options); the option
+#: 'start' ('random' or 'hand') is the run's start, not an optimiser option.
+EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
+    'rcga': (
+        ('sigma0=10', (('sigma0', 10.0),)),
+        ('sigma0=1', (('sigma0', 1.0),)),
+        ('sigma0=0.3', (('sigma0', 0.3),)),
+    ),
+    'cmaes': (
+        ('sigma0=0.3 random start', (('sigma0', 0.3), ('start', 'random'))),
+        ('sigma0=0.1', (('sigma0', 0.1),)),
+        ('sigma0=0.03', (('sigma0', 0.03),)),
+    ),
+    'tpe': (
+        ('defaults, no start', (('start', 'none'),)),
+        ('defaults', ()),
+        ('n_startup_trials=5', (('n_startup_trials', 5),)),
+    ),
+}
 
 
 @dataclass(frozen=True)
@@ -76,7 +103,19 @@ class Cell:
 
     @property
     def opts(self) -> dict[str, Any]:
-        return dict(self.options)
+        """The optimiser's options (without the run's start kind)."""
+        return {k: v for k, v in self.options if k != 'start'}
+
+    @property
+    def start_kind(self) -> str:
+        """'random' (a uniform point, third stream of the run seed), 'hand' (the parameter
+        file's start) or 'none' (the optimiser's own, without a start point)."""
+        kind = dict(self.options).get('start')
+        if kind is not None:
+            return str(kind)
+        if self.algo not in optim.TAKES_START:
+            return 'none'
+        return 'random' if self.algo in RANDOM_START_DEFAULT else 'hand'
 
 
 def grid(algos: tuple[str, ...] = STUDY_ALGOS) -> list[Cell]:
@@ -97,15 +136,19 @@ def grid(algos: tuple[str, ...] = STUDY_ALGOS) -> list[Cell]:
                             (('a', a0 * fa), ('c', c0 * fc)),
                         )
                     )
-        elif algo == 'necga':
-            n0 = optim.OPTIONS['necga']['n'].default
+        elif algo in ('necga', 'cga', 'pecga'):
+            n0 = optim.OPTIONS[algo]['n'].default
             for j, (sn, fn) in enumerate(FACTORS):
                 n = round(n0 * fn)
-                cells.append(
-                    Cell('necga', f'n={n0}{sn} eta={n // 2}', 0, j, (('n', n), ('eta', n // 2)))
-                )
+                if algo == 'necga':
+                    cells.append(
+                        Cell(algo, f'n={n0}{sn} eta={n // 2}', 0, j, (('n', n), ('eta', n // 2)))
+                    )
+                else:
+                    cells.append(Cell(algo, f'n={n0}{sn}', 0, j, (('n', n),)))
         else:
-            raise ValueError(f'no study grid for algo {algo!r} (allowed: {", ".join(STUDY_ALGOS)})')
+            for j, (label, opts) in enumerate(EXTRA_GRIDS[algo]):
+                cells.append(Cell(algo, label, 0, j, opts))
     return cells
 
 
@@ -161,11 +204,12 @@ def run_seed(seed: int, r: int) -> int:
     return int(ss.generate_state(1)[0]) >> 1
 
 
-def start_point(algo: str, rseed: int, space: SearchSpace) -> tuple[float, ...]:
-    """Start gains of a run: SPSA a uniform random point of the box (third stream of the
-    run seed), the others the parameter file's (hand-tuned) start.  In gains, so that a
-    tuner parameter file with these starts reproduces the run exactly."""
-    if algo not in optim.TAKES_START:
+def start_point(kind: str, rseed: int, space: SearchSpace) -> tuple[float, ...]:
+    """Start gains of a run: ``'random'`` a uniform random point of the box (third stream
+    of the run seed), otherwise the parameter file's (hand-tuned) start: the reference
+    experiment measures it whatever the optimiser starts from.  In gains, so that a tuner
+    parameter file with these starts reproduces the run exactly."""
+    if kind != 'random':
         return tuple(space.start)
     u = np.random.default_rng(np.random.SeedSequence(rseed, spawn_key=(2,))).random(space.dim)
     return space.to_gains(u).as_tuple()
@@ -201,13 +245,10 @@ def prepare_run(
     cell = spec.cells[cell_index]
     rseed = run_seed(spec.seed, r)
     opt_ss, drive_seed = run_seeds(rseed)
-    space = dataclasses.replace(params.space, start=start_point(cell.algo, rseed, params.space))
+    kind = cell.start_kind
+    space = dataclasses.replace(params.space, start=start_point(kind, rseed, params.space))
     opt = optim.make_optimizer(
-        cell.algo,
-        space.dim,
-        opt_ss,
-        space.start_u if cell.algo in optim.TAKES_START else None,
-        **cell.opts,
+        cell.algo, space.dim, opt_ss, None if kind == 'none' else space.start_u, **cell.opts
     )
     return space, opt, drive_seed
 

@@ -89,6 +89,9 @@ PAPER_CELL: dict[str, tuple[int, int]] = {'spsa': (1, 1), 'necga': (0, 1)}
 #: The paper's optimiser time per iteration [us] (dSPACE 1104, 5 parameters x 16 bits).
 PAPER_US_PER_ITERATION: dict[str, float] = {'spsa': 180.0, 'necga': 600.0}
 EXPERIMENT_S = 1.125  # one experiment on the bench [s]
+#: The second level of the comparison beyond the paper (normalised loss): "good", where
+#: every sensible method ends (issue 19's table: evaluations to <= 0.5, median).
+FAST_LEVEL = 0.5
 BOOT = 4000
 BOOT_SEED = 20051
 
@@ -131,6 +134,9 @@ class CellStats:
     start: float  #: mean L_n of the reference (start) experiments
     aborted_pct: float  #: % of evaluations aborted
     faults: int  #: safety faults
+    fast: Interval  #: median evaluations to <= FAST_LEVEL (runs that reach it)
+    fast_reached: Interval  #: % of runs reaching FAST_LEVEL (Wilson)
+    aborted_per_run: Interval  #: mean aborted experiments per run
 
     def paper(self, stat: str) -> float | None:
         return PAPER[stat].get((self.cell.algo, self.cell.row, self.cell.col))
@@ -173,6 +179,8 @@ def per_run(res: StudyResult, threshold: float) -> dict[str, np.ndarray]:
     reached = hit.any(axis=2)
     first = np.argmax(hit, axis=2)  # 0-based index of the first hit
     evals = np.where(reached, first + 1.0, np.nan)
+    fast_hit = ok & (Ln <= FAST_LEVEL)
+    fast = np.where(fast_hit.any(axis=2), np.argmax(fast_hit, axis=2) + 1.0, np.nan)
     iters = np.take_along_axis(res.iteration, first[..., None], axis=2)[..., 0]
     iters = np.where(reached, iters.astype(float), np.nan)
     return {
@@ -182,6 +190,8 @@ def per_run(res: StudyResult, threshold: float) -> dict[str, np.ndarray]:
         'iterations': iters,
         'remeasured': res.remeasured / res.l_ref,
         'start': res.ref_loss / res.l_ref,
+        'fast': fast,
+        'aborted': res.aborted.sum(axis=2).astype(float),
     }
 
 
@@ -234,6 +244,13 @@ class _Boot:
         return Interval(point, float(lo), float(hi), n)
 
 
+def _median_defined(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Median over ``axis`` of the defined values; nan where none is (no warning)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', RuntimeWarning)
+        return np.nanmedian(x, axis=axis)
+
+
 def _nanmean(x: np.ndarray) -> float:
     x = x[~np.isnan(x)]
     return float(x.mean()) if x.size else math.nan
@@ -253,6 +270,8 @@ def compute(res: StudyResult, threshold: float | None = None) -> StudyStats:
         nf = int(np.sum(~np.isnan(fin)))
         k = int(sat.sum())
         lo, hi = wilson(k, res.spec.runs)
+        kf = int(np.sum(~np.isnan(pr['fast'][c])))
+        flo, fhi = wilson(kf, res.spec.runs)
         cells.append(
             CellStats(
                 cell=cell,
@@ -273,6 +292,15 @@ def compute(res: StudyResult, threshold: float | None = None) -> StudyStats:
                 start=_nanmean(pr['start'][c]),
                 aborted_pct=100.0 * float(res.aborted[c].mean()),
                 faults=int(res.faults[c].sum()),
+                fast=boot.interval(
+                    float(_median_defined(pr['fast'][c])) if kf else math.nan,
+                    boot.dist(_median_defined, pr['fast'][c]),
+                    kf,
+                ),
+                fast_reached=Interval(100.0 * kf / res.spec.runs, 100 * flo, 100 * fhi, res.spec.runs),
+                aborted_per_run=boot.interval(
+                    float(pr['aborted'][c].mean()), boot.mean(pr['aborted'][c]), res.spec.runs
+                ),
             )
         )
     st = StudyStats(res=res, threshold=thr, cells=cells)

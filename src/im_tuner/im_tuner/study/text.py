@@ -13,7 +13,16 @@ from .stats import (
 )
 
 EXIT_USAGE = 2
-ALGO_NAME = {'spsa': 'SPSA', 'necga': 'neCGA'}
+ALGO_NAME = {
+    'spsa': 'SPSA',
+    'necga': 'neCGA',
+    'cga': 'cGA',
+    'pecga': 'peCGA',
+    'rcga': 'rcGA',
+    'cmaes': 'CMA-ES',
+    'tpe': 'TPE',
+    'safe': 'safe',
+}
 STATS = (
     ('final', 'Table I: average final loss (normalised: hand-tuned start = 1)', 3),
     ('satisfactory', 'Table II: satisfactory runs [%]', 0),
@@ -57,6 +66,8 @@ def _grids(
     """(algo, row labels, column labels, (row, col) -> stats) per algorithm."""
     out = []
     for algo in st.res.spec.algos:
+        if algo not in S.PAPER_ALGOS:  # Tables I-III are the paper's two algorithms
+            continue
         cs = [c for c in st.cells if c.cell.algo == algo]
         by = {(c.cell.row, c.cell.col): c for c in cs}
         if algo == 'spsa':
@@ -67,6 +78,44 @@ def _grids(
             cols = [c.cell.label.split()[0] for c in cs]
         out.append((algo, rows, cols, by))
     return out
+
+
+#: The comparison beyond the paper: (header, CellStats attribute, digits, kind).
+COMPARISON = (
+    ('final (min measured)', 'final', 3, 'mean'),
+    ('re-measured', 'remeasured', 3, 'mean'),
+    ('evaluations to <= {thr:g}, mean', 'evals', 1, 'mean'),
+    ('to <= {fast:g}, median', 'fast', 1, 'median'),
+    ('runs reaching {fast:g} [%]', 'fast_reached', 0, 'pct'),
+    ('aborted per run', 'aborted_per_run', 1, 'mean'),
+)
+
+
+def comparison_rows(st: StudyStats) -> tuple[list[str], list[list[str]]]:
+    """The comparison of every configuration (issue 19): header and one row per cell,
+    each value with its 95 % interval."""
+    from .stats import FAST_LEVEL
+
+    head = ['method (configuration, start)'] + [
+        h.format(thr=st.threshold, fast=FAST_LEVEL) for h, _a, _d, _k in COMPARISON
+    ]
+    rows = []
+    for c in st.cells:
+        start = {'random': 'random start', 'hand': 'hand-tuned start', 'none': 'no start'}[
+            c.cell.start_kind
+        ]
+        label = f'{ALGO_NAME.get(c.cell.algo, c.cell.algo)} {c.cell.label} ({start})'
+        rows.append([label] + [_iv(getattr(c, a), d) for _h, a, d, _k in COMPARISON])
+    return head, rows
+
+
+def comparison_text(st: StudyStats) -> str:
+    head, rows = comparison_rows(st)
+    w = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
+    L = ['Beyond the paper: every configuration, 95 % intervals (normalised loss)']
+    for r in [head, *rows]:
+        L.append('  ' + '  '.join(f'{x:<{w[i]}}' for i, x in enumerate(r)).rstrip())
+    return '\n'.join(L) + '\n'
 
 
 def tables_text(st: StudyStats) -> str:
@@ -81,7 +130,7 @@ def tables_text(st: StudyStats) -> str:
         'cells: ours mean [95 % interval] | paper',
         '',
     ]
-    for stat, title, d in STATS:
+    for stat, title, d in STATS if any(a in S.PAPER_ALGOS for a in sp.algos) else ():
         L.append(title)
         for algo, rows, cols, by in _grids(st):
             w = 24
@@ -96,6 +145,7 @@ def tables_text(st: StudyStats) -> str:
                     line += f'{cell:<{w + 7}}'
                 L.append(line.rstrip())
         L.append('')
+    L.append(comparison_text(st))
     notes = [c for c in st.cells if c.no_final]
     if notes:
         L.append(

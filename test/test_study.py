@@ -183,6 +183,27 @@ def test_tables_are_identical_for_any_number_of_workers(tmp_path):
     assert files['1'] == files['2']
 
 
+def test_a_dask_cluster_gives_byte_identical_tables(tmp_path):
+    """Issue 19: the study on a Dask LocalCluster of 2 worker processes equals --jobs 1,
+    byte for byte, for the paper's algorithm and two beyond it."""
+    from distributed import LocalCluster
+
+    args = ('--runs', '2', '--budget', '4', '--algos', 'necga,cmaes,tpe', '--quiet')
+    one = tmp_path / 'jobs1'
+    proc = study(*args, '--jobs', '1', '--out', str(one))
+    assert proc.returncode == 0, proc.stderr
+    dsk = tmp_path / 'dask'
+    with LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as lc:
+        proc = study(*args, '--cluster', lc.scheduler_address, '--out', str(dsk))
+    assert proc.returncode == 0, proc.stderr
+    assert (one / 'tables.csv').read_bytes() == (dsk / 'tables.csv').read_bytes()
+    a, b = ((d / 'runs.csv').read_text().replace(str(d), 'OUT') for d in (one, dsk))
+    assert a == b
+    assert json.loads((dsk / 'study.json').read_text())['jobs'] == 2  # the cluster's threads
+
+
 def test_seeds_starts_and_the_normalisation(small):
     res = S.load(small[0])
     spsa = [i for i, c in enumerate(res.cells) if c.algo == 'spsa']
@@ -277,6 +298,8 @@ def test_from_retabulates_without_new_experiments(small, tmp_path):
         (['--seed', '-2'], '--seed must be an integer >= 0'),
         (['--from', '/nonexistent/study'], 'not a study directory'),
         (['--params', '/nonexistent.yaml'], 'cannot read'),
+        (['--cluster', 'localhost'], 'Dask scheduler address tcp://HOST:PORT'),
+        (['--cluster', 'tcp://127.0.0.1:8786', '--jobs', '2'], 'exclude each other'),
     ],
 )
 def test_bad_input_one_line_exit_2_nothing_written(tmp_path, args, expect):

@@ -115,7 +115,7 @@ def _build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         '--no-start',
         action='store_true',
-        help='spsa, cmaes, tpe: do not start from the parameter file\'s start point '
+        help="spsa, cmaes, tpe: do not start from the parameter file's start point "
         '(spsa, cmaes: a uniform random one; tpe: random trials first); the reference '
         'experiment still measures it',
     )

@@ -15,7 +15,15 @@ import numpy as np
 import pytest
 
 import im_tuner.optim as optim
-from im_tuner.optim import ALGOS, OPTIONS, TAKES_START, Optimizer, OptimizerError, OptionSpec, make_optimizer
+from im_tuner.optim import (
+    ALGOS,
+    OPTIONS,
+    TAKES_START,
+    Optimizer,
+    OptimizerError,
+    OptionSpec,
+    make_optimizer,
+)
 
 EXPECTED_OPTIONS = {
     'spsa': {'a', 'c', 'A', 'alpha', 'gamma', 'gains', 'max_step'},

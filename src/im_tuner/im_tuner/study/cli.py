@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import math
+import re
 import os
 import shlex
 import sys
@@ -94,6 +95,14 @@ def _build_parser() -> argparse.ArgumentParser:
         f'{max_jobs()}, 4 per core); results do not depend on it',
     )
     ap.add_argument(
+        '--cluster',
+        metavar='tcp://HOST:PORT',
+        default=None,
+        help='run on the Dask cluster whose scheduler listens there (start one with '
+        '`dask scheduler --port 8786` and `dask worker tcp://HOST:8786 --nthreads 1` in '
+        "this project's venv on each machine); the tables are the same as with --jobs",
+    )
+    ap.add_argument(
         '--seed', type=int, default=S.DEFAULT_SEED, help=f'study seed (default {S.DEFAULT_SEED})'
     )
     ap.add_argument(
@@ -178,6 +187,15 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
             )
     if cli.jobs is not None and cli.jobs < 1:
         raise StudyError(f'--jobs must be >= 1, got {cli.jobs}')
+    if cli.cluster is not None:
+        if cli.jobs is not None:
+            raise StudyError(
+                '--cluster and --jobs exclude each other (the cluster has its workers)'
+            )
+        if not re.fullmatch(r'(tcp|tls)://[A-Za-z0-9_.\-\[\]:]+:[0-9]{1,5}', cli.cluster):
+            raise StudyError(
+                f'--cluster must be a Dask scheduler address tcp://HOST:PORT, got {cli.cluster!r}'
+            )
     try:
         spec = S.StudySpec(
             runs=cli.runs,
@@ -254,12 +272,20 @@ def main(args: list[str] | None = None) -> int:
             print(
                 f'study: {len(spec.cells)} configurations x {spec.runs} runs x {spec.budget} '
                 f'evaluations = {n * per_run} experiments ({spec.model} model) on '
-                f'{cli.jobs or S.default_jobs()} worker(s) -> {out}',
+                + (
+                    f'the Dask cluster at {cli.cluster}'
+                    if cli.cluster
+                    else f'{cli.jobs or S.default_jobs()} worker(s)'
+                )
+                + f' -> {out}',
                 file=sys.stderr,
             )
         try:
-            res = S.run_study(spec, cli.jobs, Progress(per_run, cli.quiet))
+            res = S.run_study(spec, cli.jobs, Progress(per_run, cli.quiet), cluster=cli.cluster)
             res.command = command
+        except OSError as exc:  # no scheduler at --cluster (distributed raises OSError)
+            print(f'error: study: --cluster {cli.cluster}: {exc}'.splitlines()[0], file=sys.stderr)
+            return EXIT_USAGE
         except KeyboardInterrupt:
             print('study: interrupted; nothing written', file=sys.stderr)
             return 130

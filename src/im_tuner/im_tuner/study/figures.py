@@ -151,8 +151,13 @@ def fig_comparison(st: StudyStats):
         v = np.array([i.value for i in ivs])
         lo = np.array([max(i.value - i.lo, 0.0) if math.isfinite(i.lo) else 0.0 for i in ivs])
         hi = np.array([max(i.hi - i.value, 0.0) if math.isfinite(i.hi) else 0.0 for i in ivs])
-        ax.barh(y, np.nan_to_num(v), color=[cmap[c.cell.algo] for c in cells], alpha=0.75,
-                gid=f'ours:{stat}')
+        ax.barh(
+            y,
+            np.nan_to_num(v),
+            color=[cmap[c.cell.algo] for c in cells],
+            alpha=0.75,
+            gid=f'ours:{stat}',
+        )
         ax.errorbar(np.nan_to_num(v), y, xerr=[lo, hi], fmt='none', ecolor='k', capsize=2)
         ax.axvline(GOAL[stat], color='tab:red', ls='--', lw=1, label='goal of a real-bench default')
         ax.set_title(title, fontsize=9)

@@ -57,9 +57,9 @@ def beyond_md(st: StudyStats, figures: dict[str, str]) -> list[str]:
         'percentages. SPSA starts at random (the paper); CMA-ES and TPE from the hand-tuned '
         'start unless the row says otherwise; the compact GAs from their distributions. '
         f"The goal for a real bench's default (the dashed lines in the figure): re-measured "
-        f"<= {GOAL['remeasured']:g}, <= {GOAL['evals']:g} evaluations to "
-        f"{st.threshold:g}, <= {GOAL['fast']:g} to {FAST_LEVEL:g} in >= 99 % of runs, "
-        f"<= {GOAL['aborted_per_run']:g} aborted experiment per run.",
+        f'<= {GOAL["remeasured"]:g}, <= {GOAL["evals"]:g} evaluations to '
+        f'{st.threshold:g}, <= {GOAL["fast"]:g} to {FAST_LEVEL:g} in >= 99 % of runs, '
+        f'<= {GOAL["aborted_per_run"]:g} aborted experiment per run.',
         '',
         '| ' + ' | '.join(head) + ' |',
         '|---' * len(head) + '|',

@@ -350,6 +350,41 @@ def _work(task: tuple[int, int]) -> RunResult:
     return run_one(_WORKER['spec'], task[0], task[1], _WORKER['drive'], _WORKER['params'])
 
 
+def run_task(spec: StudySpec, c: int, r: int) -> RunResult:
+    """Run ``r`` of cell ``c`` in a worker of a Dask cluster: the drive and parameter
+    files are loaded once per worker process and spec."""
+    if _WORKER.get('spec') != spec:
+        _init_worker(spec)
+    return _work((c, r))
+
+
+def _run_on_cluster(
+    address: str,
+    spec: StudySpec,
+    tasks: list[tuple[int, int]],
+    store: Callable[[RunResult], None],
+) -> int:
+    """Every task on the Dask cluster whose scheduler is at ``address`` (``tcp://HOST:PORT``);
+    ``store`` gets each result as it completes.  Returns the workers' thread count.
+
+    Runs are independent and seeded by their index, so the results do not depend on
+    which worker ran what (the same tables as the local pool, byte for byte)."""
+    from distributed import Client, as_completed
+
+    with Client(address, timeout='30s') as client:
+        nthreads = sum(client.nthreads().values())
+        futures = [
+            client.submit(
+                run_task, spec, c, r, key=f'im_tuner-study-{spec.seed}-{c}-{r}', pure=False
+            )
+            for c, r in tasks
+        ]
+        for fut in as_completed(futures):
+            store(fut.result())
+            fut.release()
+    return nthreads
+
+
 @dataclass
 class StudyResult:
     """All runs of a study, as arrays indexed [cell, run, (evaluation)]; raw losses."""
@@ -446,11 +481,14 @@ def run_study(
     spec: StudySpec,
     jobs: int | None = None,
     progress: Callable[[int, int, float], None] | None = None,
+    cluster: str | None = None,
 ) -> StudyResult:
-    """Run the whole grid on ``jobs`` processes (None: every core; 1: in this process).
+    """Run the whole grid on ``jobs`` processes (None: every core; 1: in this process), or
+    on the Dask cluster whose scheduler is at ``cluster`` (``tcp://HOST:PORT``).
 
     ``progress(done_runs, total_runs, elapsed_s)`` is called after every run.  The result
-    does not depend on ``jobs`` (runs are independent and seeded by their index).
+    does not depend on ``jobs`` or the cluster (runs are independent and seeded by their
+    index).
     """
     jobs = default_jobs() if jobs is None else int(jobs)
     if jobs < 1:
@@ -465,7 +503,17 @@ def run_study(
     # run-major order: early progress covers every cell
     tasks = [(c, r) for r in range(spec.runs) for c in range(len(cells))]
     total, done = len(tasks), 0
-    if jobs == 1:
+    if cluster is not None:
+        counter = [0]
+
+        def store(res: RunResult) -> None:
+            _store(arrays, res)
+            counter[0] += 1
+            if progress is not None:
+                progress(counter[0], total, time.perf_counter() - t0)
+
+        jobs = _run_on_cluster(cluster, spec, tasks, store)
+    elif jobs == 1:
         for c, r in tasks:
             _store(arrays, run_one(spec, c, r, drive, params))
             done += 1

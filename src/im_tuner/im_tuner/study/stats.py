@@ -297,7 +297,9 @@ def compute(res: StudyResult, threshold: float | None = None) -> StudyStats:
                     boot.dist(_median_defined, pr['fast'][c]),
                     kf,
                 ),
-                fast_reached=Interval(100.0 * kf / res.spec.runs, 100 * flo, 100 * fhi, res.spec.runs),
+                fast_reached=Interval(
+                    100.0 * kf / res.spec.runs, 100 * flo, 100 * fhi, res.spec.runs
+                ),
                 aborted_per_run=boot.interval(
                     float(pr['aborted'][c].mean()), boot.mean(pr['aborted'][c]), res.spec.runs
                 ),

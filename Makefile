@@ -5,7 +5,7 @@
 #   make lint    ruff (lint + format check) over the tree, mypy over the pure modules
 #   make demo    the main job: ros2 run im_tuner tuner --algo necga (ALGO=spsa ...)
 #   make bench   the benchmarks, printing their figures
-#   make reproduction  the paper's configuration study (full grid) -> docs/reproduction.md
+#   make reproduction  the paper's study (full grid) + every algorithm beyond it -> docs/reproduction.md
 # Every target does the set-up it needs first; a re-run with nothing changed is quick.
 
 PYTHON ?= python3
@@ -78,13 +78,16 @@ bench: setup
 
 # The paper's Tables I-III offline (issue 7): the full grid, then its write-up into docs/.
 STUDY_OUT := bags/study_reproduction
+# the paper's two (Tables I-III) and every algorithm beyond the paper (the comparison)
+STUDY_ALGOS ?= spsa,necga,cga,pecga,rcga,cmaes,tpe,safe
 reproduction: setup
 	rm -rf $(STUDY_OUT)
-	$(VENV)/bin/ros2 run im_tuner study --out $(STUDY_OUT) $(ARGS)
+	$(VENV)/bin/ros2 run im_tuner study --out $(STUDY_OUT) --algos $(STUDY_ALGOS) $(ARGS)
 	mkdir -p docs/reproduction
-	cp $(STUDY_OUT)/tables.png $(STUDY_OUT)/convergence.png docs/reproduction/
+	cp $(STUDY_OUT)/tables.png $(STUDY_OUT)/convergence.png $(STUDY_OUT)/comparison.png docs/reproduction/
 	sed -e 's#](tables.png)#](reproduction/tables.png)#' \
 	    -e 's#](convergence.png)#](reproduction/convergence.png)#' \
+	    -e 's#](comparison.png)#](reproduction/comparison.png)#' \
 	    $(STUDY_OUT)/reproduction.md > docs/reproduction.md
 
 # Decode every message of a bag with Foxglove's own libraries (Node.js + npm; pinned in

@@ -335,7 +335,7 @@ class TuningRun:
                         'what the checkpointed optimiser asks; the files do not belong together'
                     )
             t0 = time.perf_counter()
-            self.opt.tell(u, rec['loss'])
+            self.opt.tell_measurement(u, rec['loss'], bool(rec.get('aborted')))
             if live:
                 self.state.opt_us.append(self._ask_us + 1e6 * (time.perf_counter() - t0))
         tally(self.state, rec, self.satisfactory)

@@ -33,11 +33,12 @@ EXPECTED_OPTIONS = {
     'rcga': {'n', 'elitism', 'eta', 'sigma0'},
     'cmaes': {'sigma0', 'popsize'},
     'tpe': {'n_startup_trials', 'n_ei_candidates', 'multivariate'},
+    'safe': {'sigma0', 'grow', 'abort_shrink', 'remeasure_every'},
 }
 
 
 def test_algos_and_option_table():
-    assert ALGOS == ('spsa', 'necga', 'cga', 'pecga', 'rcga', 'cmaes', 'tpe')
+    assert ALGOS == ('spsa', 'necga', 'cga', 'pecga', 'rcga', 'cmaes', 'tpe', 'safe')
     assert set(OPTIONS) == set(ALGOS)
     for algo, specs in OPTIONS.items():
         assert set(specs) == EXPECTED_OPTIONS[algo]
@@ -214,6 +215,8 @@ VARIANTS = [
     ('cmaes', {'sigma0': 0.3, 'popsize': 5}),
     ('tpe', {}),
     ('tpe', {'multivariate': 'no', 'n_startup_trials': 4}),
+    ('safe', {}),
+    ('safe', {'sigma0': 0.3, 'remeasure_every': 3}),
 ]
 
 
@@ -266,6 +269,34 @@ def test_start_point_and_resume_with_it(algo):
             assert u.tobytes() == v.tobytes(), (cut, i)
             a.tell(u, _quad(u))
             b.tell(v, _quad(v))
+
+
+def test_safe_starts_at_the_start_and_treats_an_abort_as_a_constraint():
+    start = np.array([0.16, 0.1, 0.19, 0.1, 0.14])
+    opt = make_optimizer('safe', 5, 1, start=start, sigma0=0.1, remeasure_every=0)
+    u = opt.ask()
+    assert u.tobytes() == start.tobytes()  # evaluation 1: the known-stable start
+    opt.tell(u, 1.0)
+    assert opt.f == 1.0 and opt.sigma == 0.1
+    # a candidate that aborts: however small its (penalised) loss, it is not taken
+    y = opt.ask()
+    assert 0 < np.max(np.abs(y - start)) < 0.6
+    opt.tell_measurement(y, 0.01, True)
+    assert opt.x.tobytes() == start.tobytes() and opt.sigma == pytest.approx(0.05)
+    assert opt.aborts == 1
+    # a completed better one is: the step grows and is repeated (pattern move)
+    y = opt.ask()
+    opt.tell(y, 0.8)
+    assert opt.x.tobytes() == y.tobytes() and opt.sigma == pytest.approx(0.075)
+    z = opt.ask()
+    np.testing.assert_allclose(z, np.clip(y + (y - start), 0, 1))
+    # a worse one shrinks the step by grow^(-1/4) (the 1/5 success rule)
+    opt.tell(z, 0.9)
+    assert opt.sigma == pytest.approx(0.075 * 1.5**-0.25)
+    for _ in range(400):  # never below the floor
+        w = opt.ask()
+        opt.tell(w, 5.0)
+    assert opt.sigma == pytest.approx(0.005)
 
 
 def test_cmaes_ignores_numpy_global_rng_and_refuses_a_state_that_does_not_replay():

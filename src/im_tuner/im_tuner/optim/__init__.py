@@ -31,21 +31,23 @@ from .base import (
 from .cga import CGA, NECGA, PECGA, BinaryCGA
 from .cmaes import CMAES
 from .rcga import RCGA
+from .safe import SAFE
 from .spsa import SPSA
 from .tpe import TPE
 
 __all__ = [
     'ALGOS',
     'CGA',
-    'CMAES',
     'CLASSES',
+    'CMAES',
     'NECGA',
     'OPTIONS',
     'PECGA',
     'RCGA',
+    'SAFE',
     'SPSA',
-    'TPE',
     'TAKES_START',
+    'TPE',
     'BinaryCGA',
     'Optimizer',
     'OptimizerError',
@@ -54,7 +56,7 @@ __all__ = [
 ]
 
 #: Every algorithm name accepted by make_optimizer (and ``--algo``).
-ALGOS: tuple[str, ...] = ('spsa', 'necga', 'cga', 'pecga', 'rcga', 'cmaes', 'tpe')
+ALGOS: tuple[str, ...] = ('spsa', 'necga', 'cga', 'pecga', 'rcga', 'cmaes', 'tpe', 'safe')
 
 CLASSES: dict[str, type[Optimizer]] = {
     'spsa': SPSA,
@@ -64,6 +66,7 @@ CLASSES: dict[str, type[Optimizer]] = {
     'rcga': RCGA,
     'cmaes': CMAES,
     'tpe': TPE,
+    'safe': SAFE,
 }
 
 #: algo -> option name -> OptionSpec (names are python identifiers, usable as flags).
@@ -71,7 +74,7 @@ OPTIONS: dict[str, dict[str, OptionSpec]] = {a: dict(CLASSES[a].OPTIONS) for a i
 
 #: algorithms that use ``start`` (the compact GAs start from their distribution): SPSA's
 #: iterate, CMA-ES's mean, TPE's first (enqueued) trial.
-TAKES_START: frozenset[str] = frozenset({'spsa', 'cmaes', 'tpe'})
+TAKES_START: frozenset[str] = frozenset({'spsa', 'cmaes', 'tpe', 'safe'})
 
 
 def make_optimizer(

@@ -344,6 +344,12 @@ class Optimizer(ABC):
     def converged(self) -> bool:
         return False
 
+    def tell_measurement(self, u: np.ndarray, loss: float, aborted: bool) -> None:
+        """``tell`` with the experiment's aborted flag (the tuner calls this).  The default
+        ignores the flag: the penalised loss says it; an optimiser that treats an aborted
+        experiment as a constraint (safe) overrides it."""
+        self.tell(u, loss)
+
     @staticmethod
     def from_state(state: dict[str, Any]) -> Optimizer:
         """Rebuild any optimiser from ``state_dict()`` output (dispatch on 'algo')."""

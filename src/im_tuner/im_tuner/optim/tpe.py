@@ -21,7 +21,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 import optuna
-from optuna.distributions import FloatDistribution
+from optuna.distributions import BaseDistribution, FloatDistribution
 from optuna.trial import TrialState, create_trial
 
 from .base import (
@@ -115,7 +115,9 @@ class TPE(Optimizer):
         # optuna seeds numpy RandomStates with a 32-bit int: one drawn from our stream
         self._sampler_seed = int(make_rng(seed).integers(0, 2**32 - 1))
         self._names = [f'u{i}' for i in range(self.dim)]
-        self._dists = {n: FloatDistribution(0.0, 1.0) for n in self._names}
+        self._dists: dict[str, BaseDistribution] = {
+            n: FloatDistribution(0.0, 1.0) for n in self._names
+        }
         self._sampler = optuna.samplers.TPESampler(
             seed=self._sampler_seed,
             n_startup_trials=opts['n_startup_trials'],

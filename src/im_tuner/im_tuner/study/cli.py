@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import math
-import re
 import os
+import re
 import shlex
 import sys
 from pathlib import Path

@@ -32,8 +32,8 @@ __all__ = [
     'DEFAULT_SEED',
     'FACTORS',
     'META_FILE',
-    'REF_EXPERIMENTS',
     'PAPER_ALGOS',
+    'REF_EXPERIMENTS',
     'STUDY_ALGOS',
     'Cell',
     'RunResult',
@@ -77,6 +77,11 @@ EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
         ('sigma0=0.3 random start', (('sigma0', 0.3), ('start', 'random'))),
         ('sigma0=0.1', (('sigma0', 0.1),)),
         ('sigma0=0.03', (('sigma0', 0.03),)),
+    ),
+    'safe': (
+        ('sigma0=0.05', (('sigma0', 0.05),)),
+        ('sigma0=0.1', (('sigma0', 0.1),)),
+        ('sigma0=0.2', (('sigma0', 0.2),)),
     ),
     'tpe': (
         ('defaults, no start', (('start', 'none'),)),

@@ -28,9 +28,8 @@ every call, so every cell and every difference sees the same resampled run indic
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-
 import warnings
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.stats

@@ -113,8 +113,7 @@ def comparison_text(st: StudyStats) -> str:
     head, rows = comparison_rows(st)
     w = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
     L = ['Beyond the paper: every configuration, 95 % intervals (normalised loss)']
-    for r in [head, *rows]:
-        L.append('  ' + '  '.join(f'{x:<{w[i]}}' for i, x in enumerate(r)).rstrip())
+    L += ['  ' + '  '.join(f'{x:<{w[i]}}' for i, x in enumerate(r)).rstrip() for r in [head, *rows]]
     return '\n'.join(L) + '\n'
 
 

@@ -45,11 +45,14 @@ __all__ = [
     'check_seed',
     'check_start',
     'check_told',
+    'check_version',
     'make_rng',
     'rebuild',
     'rng_state',
+    'seed_from_json',
     'seed_json',
     'set_rng_state',
+    'told_history',
     'told_loss',
     'zero_signs_match',
 ]
@@ -382,17 +385,40 @@ def told_loss(pending: list[float] | None, u: Any, loss: Any) -> float:
     return loss
 
 
-def rebuild(cls: Any, state: dict[str, Any], version: int) -> Any:
-    """The first half of every ``_from_state``: check the state's version, build ``cls``
-    from the saved configuration (seed 0, no start) and put the saved RNG state in it.
-    The caller then restores its own fields."""
+def check_version(cls: Any, state: dict[str, Any], version: int) -> None:
+    """The state's format version is ``version``, else OptimizerError."""
     if state.get('version') != version:
         raise OptimizerError(
             f'{cls.algo} state version {state.get("version")!r} not supported (expected {version})'
         )
+
+
+def seed_from_json(j: Any) -> int | np.random.SeedSequence:
+    """The seed written by :func:`seed_json` (an int, or a SeedSequence's entropy and key)."""
+    if isinstance(j, dict):
+        return np.random.SeedSequence(j['entropy'], spawn_key=tuple(j['spawn_key']))
+    return int(j)
+
+
+def told_history(algo: str, state: dict[str, Any]) -> tuple[list[list[float]], list[float]]:
+    """The candidates and losses told so far, saved by an optimiser whose state is its
+    history (cmaes, tpe), checked for matching lengths."""
+    us, losses = state['told_u'], state['told_loss']
+    if len(us) != len(losses) or state['evaluations'] != len(losses):
+        raise OptimizerError(f'{algo} state: told candidates and losses do not match')
+    return [[float(x) for x in u] for u in us], [check_loss(v) for v in losses]
+
+
+def rebuild(cls: Any, state: dict[str, Any], version: int) -> Any:
+    """The first half of every ``_from_state``: check the state's version, build ``cls``
+    from the saved configuration (seed 0, no start; the saved seed is what ``config()``
+    reports) and put the saved RNG state in it.
+    The caller then restores its own fields."""
+    check_version(cls, state, version)
     cfg = dict(state['config'])
     dim = cfg.pop('dim')
     cfg.pop('algo'), cfg.pop('seed')
     opt = cls(dim, 0, None, **cfg)
+    opt._seed_json = state['config']['seed']
     set_rng_state(opt._rng, state['rng'])
     return opt

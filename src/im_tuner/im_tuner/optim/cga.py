@@ -409,7 +409,6 @@ class BinaryCGA(Optimizer):
                         'cannot produce (1 where p = 0 or 0 where p = 1)'
                     )
             opt._pu = None if opt._pg is None else opt._decode_g(opt._pg)
-            opt._seed_json = state['config']['seed']
         except (KeyError, TypeError, ValueError) as e:
             if isinstance(e, OptimizerError):
                 raise

@@ -31,12 +31,14 @@ from .base import (
     OptimizerError,
     OptionSpec,
     check_dim,
-    check_loss,
     check_options,
     check_seed,
     check_start,
+    check_version,
     make_rng,
+    seed_from_json,
     seed_json,
+    told_history,
     told_loss,
 )
 
@@ -94,7 +96,6 @@ class CMAES(Optimizer):
         x0 = check_start(start, self.dim)
         opts = check_options(self.algo, self.OPTIONS, options)
         self._opts = opts
-        self._seed = seed
         self._seed_json = seed_json(seed)
         self._rng = make_rng(seed)
         self._start_given = x0 is not None
@@ -184,7 +185,6 @@ class CMAES(Optimizer):
             'algo': self.algo,
             'version': _STATE_VERSION,
             'config': self.config(),
-            'start_used': self._x0.tolist(),
             'told_u': [list(u) for u in self._history_u],
             'told_loss': list(self._history_loss),
             'pending': None if self._pending is None else list(self._pending),
@@ -193,43 +193,28 @@ class CMAES(Optimizer):
 
     @classmethod
     def _from_state(cls, state: dict[str, Any]) -> CMAES:
-        if state.get('version') != _STATE_VERSION:
-            raise OptimizerError(
-                f'cmaes state version {state.get("version")!r} not supported '
-                f'(expected {_STATE_VERSION})'
-            )
+        check_version(cls, state, _STATE_VERSION)
         try:
-            cfg = dict(state['config'])
-            seed_j = cfg['seed']
-            seed: int | np.random.SeedSequence = (
-                int(seed_j)
-                if not isinstance(seed_j, dict)
-                else np.random.SeedSequence(seed_j['entropy'], spawn_key=tuple(seed_j['spawn_key']))
-            )
+            cfg = state['config']
             start = cfg['start']
             opt = cls(
                 int(cfg['dim']),
-                seed,
+                seed_from_json(cfg['seed']),
                 None if start is None else np.array(start, dtype=np.float64),
-                sigma0=cfg['sigma0'],
-                popsize=cfg['popsize'],
+                **{k: cfg[k] for k in cls.OPTIONS},
             )
-            us, losses = state['told_u'], state['told_loss']
-            if len(us) != len(losses) or state['evaluations'] != len(losses):
-                raise OptimizerError('cmaes state: told candidates and losses do not match')
+            us, losses = told_history(cls.algo, state)
             for u, loss in zip(us, losses, strict=True):
                 a = opt.ask()
-                if a.tolist() != [float(x) for x in u]:
+                if a.tolist() != u:
                     raise OptimizerError(
                         f'cmaes state does not replay with pycma {cma.__version__} '
                         '(a candidate differs from the saved one)'
                     )
-                opt.tell(a, check_loss(loss))
+                opt.tell(a, loss)
             pending = state['pending']
             if pending is not None and opt.ask().tolist() != [float(x) for x in pending]:
                 raise OptimizerError('cmaes state: the pending candidate does not replay')
-            if pending is None:
-                opt._pending = None
         except OptimizerError:
             raise
         except (KeyError, TypeError, ValueError) as exc:

@@ -325,7 +325,6 @@ class RCGA(Optimizer):
             opt._elite_loss = float(state['elite_loss'])
             opt._px = None if state['pending'] is None else vec(state['pending'])
             opt._pu = None if opt._px is None else opt._to_u(opt._px)
-            opt._seed_json = state['config']['seed']
         except (KeyError, TypeError, ValueError) as e:
             if isinstance(e, OptimizerError):
                 raise

@@ -189,7 +189,6 @@ class SAFE(Optimizer):
     def _from_state(cls, state: dict[str, Any]) -> SAFE:
         try:
             opt: SAFE = rebuild(cls, state, _STATE_VERSION)
-            opt._seed_json = state['config']['seed']
             x = np.array(state['x'], dtype=np.float64)
             if x.shape != (opt.dim,) or not np.all((x >= 0) & (x <= 1)):
                 raise OptimizerError('safe state: x is not a point of [0, 1]^dim')

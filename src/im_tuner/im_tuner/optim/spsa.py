@@ -327,7 +327,6 @@ class SPSA(Optimizer):
             )
             g = state['last_gradient']
             opt._last_gradient = None if g is None else [float(x) for x in g]
-            opt._seed_json = state['config']['seed']
         except (KeyError, TypeError, ValueError) as e:
             if isinstance(e, OptimizerError):
                 raise

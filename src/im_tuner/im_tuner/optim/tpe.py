@@ -29,12 +29,14 @@ from .base import (
     OptimizerError,
     OptionSpec,
     check_dim,
-    check_loss,
     check_options,
     check_seed,
     check_start,
+    check_version,
     make_rng,
+    seed_from_json,
     seed_json,
+    told_history,
     told_loss,
 )
 
@@ -190,44 +192,24 @@ class TPE(Optimizer):
 
     @classmethod
     def _from_state(cls, state: dict[str, Any]) -> TPE:
-        if state.get('version') != _STATE_VERSION:
-            raise OptimizerError(
-                f'tpe state version {state.get("version")!r} not supported '
-                f'(expected {_STATE_VERSION})'
-            )
+        check_version(cls, state, _STATE_VERSION)
         try:
-            cfg = dict(state['config'])
-            seed_j = cfg['seed']
-            seed: int | np.random.SeedSequence = (
-                int(seed_j)
-                if not isinstance(seed_j, dict)
-                else np.random.SeedSequence(seed_j['entropy'], spawn_key=tuple(seed_j['spawn_key']))
-            )
+            cfg = state['config']
             start = cfg['start']
             pending = state['pending']
-            us, losses = state['told_u'], state['told_loss']
-            if len(us) != len(losses) or state['evaluations'] != len(losses):
-                raise OptimizerError('tpe state: told candidates and losses do not match')
+            us, losses = told_history(cls.algo, state)
             # the start is enqueued only while it has not been asked yet
             opt = cls(
                 int(cfg['dim']),
-                seed,
+                seed_from_json(cfg['seed']),
                 np.array(start, dtype=np.float64)
                 if start is not None and not us and pending is None
                 else None,
-                n_startup_trials=cfg['n_startup_trials'],
-                n_ei_candidates=cfg['n_ei_candidates'],
-                multivariate=cfg['multivariate'],
+                **{k: cfg[k] for k in cls.OPTIONS},
             )
             opt._x0 = None if start is None else np.array(start, dtype=np.float64)
-            opt._study.add_trials(
-                [
-                    opt._frozen([float(x) for x in u], check_loss(v))
-                    for u, v in zip(us, losses, strict=True)
-                ]
-            )
-            opt._told_u = [[float(x) for x in u] for u in us]
-            opt._told_loss = [float(v) for v in losses]
+            opt._study.add_trials([opt._frozen(u, v) for u, v in zip(us, losses, strict=True)])
+            opt._told_u, opt._told_loss = us, losses
             opt.evaluations = len(losses)
             _set_rs_state(opt._sampler._rng.rng, state['rng_tpe'])
             _set_rs_state(opt._sampler._random_sampler._rng.rng, state['rng_random'])

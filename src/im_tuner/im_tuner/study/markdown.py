@@ -9,6 +9,7 @@ import numpy as np
 from . import runs as S
 from .stats import (
     EXPERIMENT_S,
+    FAST_LEVEL,
     PAPER_US_PER_ITERATION,
     StudyStats,
 )
@@ -42,7 +43,6 @@ def _md_table(st: StudyStats, stat: str, d: int) -> list[str]:
 def beyond_md(st: StudyStats, figures: dict[str, str]) -> list[str]:
     """The section 'beyond the paper': every configuration on one table (issue 19)."""
     from .figures import GOAL
-    from .stats import FAST_LEVEL
 
     head, rows = comparison_rows(st)
     L = [

@@ -168,7 +168,8 @@ class StudyStats:
 # -- per-run quantities ------------------------------------------------------------------------
 def per_run(res: StudyResult, threshold: float) -> dict[str, np.ndarray]:
     """[cells, runs] arrays: final L_n (nan: none), satisfactory, evaluations and
-    iterations to satisfactory (nan: not reached), re-measured L_n, start L_n."""
+    iterations to satisfactory (nan: not reached), re-measured L_n, start L_n,
+    evaluations to FAST_LEVEL (nan: not reached), aborted experiments."""
     Ln = res.losses / res.l_ref
     ok = ~res.aborted
     masked = np.where(ok, Ln, np.inf)
@@ -178,7 +179,7 @@ def per_run(res: StudyResult, threshold: float) -> dict[str, np.ndarray]:
     reached = hit.any(axis=2)
     first = np.argmax(hit, axis=2)  # 0-based index of the first hit
     evals = np.where(reached, first + 1.0, np.nan)
-    fast_hit = ok & (Ln <= FAST_LEVEL)
+    fast_hit = ok & (Ln <= FAST_LEVEL)  # the same count at the comparison's second level
     fast = np.where(fast_hit.any(axis=2), np.argmax(fast_hit, axis=2) + 1.0, np.nan)
     iters = np.take_along_axis(res.iteration, first[..., None], axis=2)[..., 0]
     iters = np.where(reached, iters.astype(float), np.nan)

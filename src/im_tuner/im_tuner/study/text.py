@@ -7,6 +7,7 @@ import math
 from . import runs as S
 from .stats import (
     EXPERIMENT_S,
+    FAST_LEVEL,
     CellStats,
     Interval,
     StudyStats,
@@ -94,8 +95,6 @@ COMPARISON = (
 def comparison_rows(st: StudyStats) -> tuple[list[str], list[list[str]]]:
     """The comparison of every configuration (issue 19): header and one row per cell,
     each value with its 95 % interval."""
-    from .stats import FAST_LEVEL
-
     head = ['method (configuration, start)'] + [
         h.format(thr=st.threshold, fast=FAST_LEVEL) for h, _a, _d, _k in COMPARISON
     ]

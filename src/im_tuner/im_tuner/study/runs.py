@@ -123,7 +123,7 @@ class Cell:
         return 'random' if self.algo in RANDOM_START_DEFAULT else 'hand'
 
 
-def grid(algos: tuple[str, ...] = STUDY_ALGOS) -> list[Cell]:
+def grid(algos: tuple[str, ...] = PAPER_ALGOS) -> list[Cell]:
     """The paper's grid, SPSA cells row-major (a down, c across), then neCGA (n across)."""
     cells: list[Cell] = []
     for algo in algos:
@@ -163,7 +163,7 @@ class StudySpec:
 
     runs: int = 100
     budget: int = 200
-    algos: tuple[str, ...] = STUDY_ALGOS
+    algos: tuple[str, ...] = PAPER_ALGOS
     model: str = 'full'
     seed: int = DEFAULT_SEED
     satisfactory: float = DEFAULT_SATISFACTORY
@@ -507,23 +507,19 @@ def run_study(
     arrays = _allocate(spec, cells)
     # run-major order: early progress covers every cell
     tasks = [(c, r) for r in range(spec.runs) for c in range(len(cells))]
-    total, done = len(tasks), 0
+    total, done = len(tasks), [0]
+
+    def store(res: RunResult) -> None:
+        _store(arrays, res)
+        done[0] += 1
+        if progress is not None:
+            progress(done[0], total, time.perf_counter() - t0)
+
     if cluster is not None:
-        counter = [0]
-
-        def store(res: RunResult) -> None:
-            _store(arrays, res)
-            counter[0] += 1
-            if progress is not None:
-                progress(counter[0], total, time.perf_counter() - t0)
-
         jobs = _run_on_cluster(cluster, spec, tasks, store)
     elif jobs == 1:
         for c, r in tasks:
-            _store(arrays, run_one(spec, c, r, drive, params))
-            done += 1
-            if progress is not None:
-                progress(done, total, time.perf_counter() - t0)
+            store(run_one(spec, c, r, drive, params))
     else:
         # forkserver: workers start from a clean interpreter (no inherited threads or ROS)
         ctx = multiprocessing.get_context('forkserver')
@@ -536,10 +532,7 @@ def run_study(
             while pending:
                 finished, pending = wait(pending, return_when=FIRST_COMPLETED)
                 for f in finished:
-                    _store(arrays, f.result())
-                    done += 1
-                    if progress is not None:
-                        progress(done, total, time.perf_counter() - t0)
+                    store(f.result())
                 pending |= {pool.submit(_work, t) for t in _take(it, len(finished))}
     return StudyResult(
         spec=spec,

@@ -77,7 +77,7 @@ def test_composed_realtime_run_measures_the_paper_loss_bit_for_bit(tmp_path):
 
 def test_a_controller_that_falls_behind_is_flagged_rerun_and_never_a_loss(procs, tmp_path):
     drive = procs.start(ros2('im_drive_sim', 'drive_sim', '--mode', 'realtime', '--seed', '2'))
-    ctl = procs.start([sys.executable, SLOW, '--delay-us', '400'])
+    ctl = procs.start([sys.executable, SLOW, '--delay-us', '2000'])
     run = tmp_path / 'run'
     p = subprocess.run(
         [

@@ -33,7 +33,7 @@ EXPECTED_OPTIONS = {
     'rcga': {'n', 'elitism', 'eta', 'sigma0'},
     'cmaes': {'sigma0', 'popsize'},
     'tpe': {'n_startup_trials', 'n_ei_candidates', 'multivariate'},
-    'safe': {'sigma0', 'grow', 'abort_shrink', 'remeasure_every'},
+    'safe': {'sigma0', 'grow', 'abort_shrink', 'remeasure_every', 'model_every'},
 }
 
 
@@ -217,6 +217,7 @@ VARIANTS = [
     ('tpe', {'multivariate': 'no', 'n_startup_trials': 4}),
     ('safe', {}),
     ('safe', {'sigma0': 0.3, 'remeasure_every': 3}),
+    ('safe', {'model_every': 1, 'abort_shrink': 0.5}),
 ]
 
 
@@ -273,30 +274,62 @@ def test_start_point_and_resume_with_it(algo):
 
 def test_safe_starts_at_the_start_and_treats_an_abort_as_a_constraint():
     start = np.array([0.16, 0.1, 0.19, 0.1, 0.14])
-    opt = make_optimizer('safe', 5, 1, start=start, sigma0=0.1, remeasure_every=0)
+    opt = make_optimizer('safe', 5, 1, start=start, sigma0=0.1, remeasure_every=0, model_every=0)
     u = opt.ask()
     assert u.tobytes() == start.tobytes()  # evaluation 1: the known-stable start
     opt.tell(u, 1.0)
     assert opt.f == 1.0 and opt.sigma == 0.1
-    # a candidate that aborts: however small its (penalised) loss, it is not taken
+    # a candidate that aborts: however small its (penalised) loss, it is not taken; the
+    # step shrinks by abort_shrink (0.3) and the point enters the model at 3 f
     y = opt.ask()
     assert 0 < np.max(np.abs(y - start)) < 0.6
     opt.tell_measurement(y, 0.01, True)
-    assert opt.x.tobytes() == start.tobytes() and opt.sigma == pytest.approx(0.05)
-    assert opt.aborts == 1
+    assert opt.x.tobytes() == start.tobytes() and opt.sigma == pytest.approx(0.03)
+    assert opt.aborts == 1 and opt._vals == [1.0, 3.0]
     # a completed better one is: the step grows and is repeated (pattern move)
     y = opt.ask()
     opt.tell(y, 0.8)
-    assert opt.x.tobytes() == y.tobytes() and opt.sigma == pytest.approx(0.075)
+    assert opt.x.tobytes() == y.tobytes() and opt.sigma == pytest.approx(0.045)
     z = opt.ask()
     np.testing.assert_allclose(z, np.clip(y + (y - start), 0, 1))
     # a worse one shrinks the step by grow^(-1/4) (the 1/5 success rule)
     opt.tell(z, 0.9)
-    assert opt.sigma == pytest.approx(0.075 * 1.5**-0.25)
+    assert opt.sigma == pytest.approx(0.045 * 1.5**-0.25)
     for _ in range(400):  # never below the floor
         w = opt.ask()
         opt.tell(w, 5.0)
     assert opt.sigma == pytest.approx(0.005)
+
+
+def test_safe_model_step_descends_the_fitted_slope_and_avoids_aborted_points():
+    c = np.array([1.0, -2.0, 0.5, 0.0, 0.25])
+    start = np.full(5, 0.5)
+
+    def plane(u: np.ndarray) -> float:
+        return float(3.0 + c @ (u - start))
+
+    # (abort_shrink 0.9: the model radius, 3 sigma sqrt(5), still holds the aborted point)
+    opt = make_optimizer(
+        'safe', 5, 2, start=start, remeasure_every=0, model_every=1, abort_shrink=0.9
+    )
+    assert opt.slope() is None  # no data: no model
+    u = opt.ask()
+    opt.tell(u, plane(u))
+    # measured points around the start, all on the plane (as failed candidates leave them)
+    near = start + 0.02 * np.random.default_rng(3).standard_normal((8, 5))
+    opt._pts += near.tolist()
+    opt._vals += [plane(q) for q in near]
+    np.testing.assert_allclose(opt.slope(), c, rtol=1e-9, atol=1e-9)
+    y = opt.ask()  # no pattern step pending: a model step, -sigma sqrt(5) c/|c| + noise
+    s = y - opt.x
+    assert s @ -c / (np.linalg.norm(s) * np.linalg.norm(c)) > 0.9
+    assert 0.5 * opt.sigma * 5**0.5 < np.linalg.norm(s) < 2 * opt.sigma * 5**0.5
+    # the step was downhill; it aborts: the model sees its point at 3 f, far above the
+    # plane there, and the slope along that step turns uphill (away from the instability)
+    assert opt.slope() @ s < 0
+    opt.tell_measurement(y, 1e6, True)
+    assert opt._vals[-1] == 3.0 * opt.f and opt.x.tobytes() == start.tobytes()
+    assert opt.slope() @ s > 0
 
 
 def test_cmaes_ignores_numpy_global_rng_and_refuses_a_state_that_does_not_replay():

@@ -1,30 +1,45 @@
-"""A local, abort-aware (1+1) evolution strategy for real benches ('safe').
+"""A local, abort-aware (1+1) evolution strategy with a local linear model ('safe').
 
 Why hand-written: no maintained library offers a one-at-a-time local search that starts
 from known-safe gains and treats an aborted experiment (an unstable controller) as a
 constraint rather than a loss; pycma's (1+1) variants and Py-BOBYQA drive the loop
 themselves and model a penalised loss as if it were a real one.  The whole method is a
-few vector operations per evaluation (microseconds), so it never stalls a bench.
+small weighted least-squares fit per evaluation (well under a millisecond for 200
+points), so it never stalls a bench.
 
 On u in [0, 1]^dim, from the start point u0 (the hand-tuned gains, known to be stable):
 
-* evaluation 1 measures u0 itself: the incumbent x = u0 with its loss f;
-* a candidate is y = clip(x + s), with s = the last successful step ("pattern move",
-  Hooke-Jeeves) right after a success, otherwise s = sigma z, z ~ N(0, I);
+* evaluation 1 measures u0 itself: the incumbent x = u0 with its loss f.  (The tuner's
+  reference experiment measures u0 too, but it is the first experiment from rest: 0.874
+  against 1.000 for every later one on the simulated bench; taken as f it made the
+  search reject true improvements, 11.2 evaluations to 0.9 against 5.1.)
+* a candidate is y = clip(x + s) with, in order of preference:
+  - s = the last successful step right after a success (pattern move, Hooke-Jeeves);
+  - every ``model_every``-th evaluation, once at least ``dim + 1`` measured points lie
+    within r = 3 sigma sqrt(dim) of x: s = -sigma sqrt(dim) g/|g| + 0.3 sigma z, where
+    g is the slope of a linear model L(v) = c + g.(v - x) fitted by least squares with
+    weights exp(-(|v - x|/r)^2) to every measured point (a descent step on the local
+    model: the measurements of the whole run, not only the last one, steer the search);
+  - otherwise s = sigma z, z ~ N(0, I);
 * y replaces x if its loss is lower than f (success): sigma <- sigma * grow; otherwise
-  sigma <- sigma * shrink (grow = 1.5, shrink = 1.5^(-1/4): Rechenberg's 1/5 success
-  rule in its steady-state form); an aborted experiment counts as a failure with
-  sigma <- sigma * abort_shrink (0.5): a step that reached instability is not repeated
-  at that size;
+  sigma <- sigma * grow^(-1/4) (grow = 1.5: Rechenberg's 1/5 success rule in its
+  steady-state form);
+* an aborted experiment is a constraint, not a number: sigma <- sigma * abort_shrink
+  (0.3), and its point enters the model with 3 f as its value, so the model's slope
+  points away from where the controller went unstable;
 * every ``remeasure_every`` evaluations the incumbent is measured again and f becomes
   the mean of its measurements, so one lucky measurement does not freeze the search
-  (the loss is noisy near the optimum);
+  (the loss varies from one experiment to the next near the optimum);
 * sigma stays within [0.005, 0.5] (normalised units): a smaller floor let 5-30 % of
   the runs stall on a lucky measurement (20-run studies, issue 19).
 
-An aborted experiment's loss is only used as "not better" (never as a number): the tuner
-tells it through ``tell_measurement(u, loss, aborted)``; a plain ``tell`` is a completed
-experiment.
+Measured against the same method without the model (60 runs x 200 evaluations, full
+model, hand-tuned start): median evaluations to a normalised loss of 0.5 21 against 34,
+aborted experiments per run 1.6 against 3.3, re-measured final loss 0.467 against 0.481.
+
+The tuner tells an aborted experiment through ``tell_measurement(u, loss, aborted)``; a
+plain ``tell`` is a completed experiment.  The least-squares fit is numpy's (LAPACK
+``gelsd``): a resumed run continues bit for bit on the same machine and numpy build.
 """
 
 from __future__ import annotations
@@ -51,7 +66,7 @@ from .base import (
 
 __all__ = ['SAFE']
 
-_STATE_VERSION = 1
+_STATE_VERSION = 2
 
 
 class SAFE(Optimizer):
@@ -60,14 +75,14 @@ class SAFE(Optimizer):
     algo: ClassVar[str] = 'safe'
     OPTIONS: ClassVar[dict[str, OptionSpec]] = {
         'sigma0': OptionSpec(
-            float, 0.1, 'initial step size (normalised units)', low=0.0, high=1.0, low_strict=True
+            float, 0.05, 'initial step size (normalised units)', low=0.0, high=1.0, low_strict=True
         ),
         'grow': OptionSpec(
             float, 1.5, 'step-size factor after a success', low=1.0, high=10.0, low_strict=True
         ),
         'abort_shrink': OptionSpec(
             float,
-            0.5,
+            0.3,
             'step-size factor after an aborted experiment',
             low=0.0,
             high=1.0,
@@ -80,10 +95,23 @@ class SAFE(Optimizer):
             low=0,
             high=1_000_000,
         ),
+        'model_every': OptionSpec(
+            int,
+            2,
+            'take a descent step on the local linear model every this many evaluations '
+            '(0: never, a plain (1+1)-ES)',
+            low=0,
+            high=1_000_000,
+        ),
     }
     #: floor of the step size: below half a percent of a range the search stalls on noise
     SIGMA_MIN: ClassVar[float] = 0.005
     SIGMA_MAX: ClassVar[float] = 0.5
+    #: model radius in units of sigma sqrt(dim); noise of a model step in units of sigma;
+    #: value of an aborted point in the model in units of the incumbent's loss
+    MODEL_RADIUS: ClassVar[float] = 3.0
+    MODEL_NOISE: ClassVar[float] = 0.3
+    ABORT_VALUE: ClassVar[float] = 3.0
 
     def __init__(
         self,
@@ -112,19 +140,47 @@ class SAFE(Optimizer):
         self.aborts = 0
         self._pending: list[float] | None = None
         self._kind = ''  # 'incumbent' or 'candidate'
+        # the local model's data: every measured point and its loss (an aborted
+        # candidate with ABORT_VALUE times the incumbent's loss)
+        self._pts: list[list[float]] = []
+        self._vals: list[float] = []
 
     @property
     def iterations(self) -> int:
         return self.evaluations
+
+    def slope(self) -> np.ndarray | None:
+        """Slope g of the local linear model at x (None: fewer than dim + 1 measured points
+        within the model radius, or a flat fit)."""
+        if len(self._pts) <= self.dim:
+            return None
+        r = self.MODEL_RADIUS * self.sigma * math.sqrt(self.dim)
+        P = np.array(self._pts) - self.x
+        d = np.sqrt(np.einsum('ij,ij->i', P, P))
+        near = d <= r
+        if int(near.sum()) <= self.dim:
+            return None
+        w = np.exp(-((d[near] / r) ** 2))
+        A = np.hstack([np.ones((int(near.sum()), 1)), P[near]]) * w[:, None]
+        coef = np.linalg.lstsq(A, np.array(self._vals)[near] * w, rcond=None)[0]
+        g = coef[1:]
+        return g if np.all(np.isfinite(g)) and np.any(g) else None
 
     def _next(self) -> tuple[np.ndarray, str]:
         every = self._opts['remeasure_every']
         if self.f_n == 0 or (every and self.evaluations % every == every - 1):
             return self.x.copy(), 'incumbent'
         if self.step is not None:
-            s = self.step
+            return np.clip(self.x + self.step, 0.0, 1.0), 'candidate'
+        z = self._rng.standard_normal(self.dim)
+        m = self._opts['model_every']
+        g = self.slope() if m and self.evaluations % m == 0 else None
+        if g is None:
+            s = self.sigma * z
         else:
-            s = self.sigma * self._rng.standard_normal(self.dim)
+            s = self.sigma * (
+                -math.sqrt(self.dim) * g / float(np.linalg.norm(g)) + self.MODEL_NOISE * z
+            )
         return np.clip(self.x + s, 0.0, 1.0), 'candidate'
 
     def ask(self) -> np.ndarray:
@@ -140,6 +196,12 @@ class SAFE(Optimizer):
         loss = told_loss(self._pending, u, loss)
         y = np.array(self._pending)
         aborted = bool(aborted)
+        if not aborted:
+            self._pts.append(y.tolist())  # (the model's data)
+            self._vals.append(loss)
+        elif self._kind == 'candidate' and self.f_n:
+            self._pts.append(y.tolist())
+            self._vals.append(self.ABORT_VALUE * self.f)
         if self._kind == 'incumbent':
             if not aborted:  # (an incumbent that aborts keeps its mean)
                 self.f = (self.f * self.f_n + loss) / (self.f_n + 1) if self.f_n else loss
@@ -183,6 +245,8 @@ class SAFE(Optimizer):
             'aborts': self.aborts,
             'pending': self._pending,
             'kind': self._kind,
+            'points': self._pts,
+            'values': self._vals,
         }
 
     @classmethod
@@ -203,6 +267,11 @@ class SAFE(Optimizer):
             p = state['pending']
             opt._pending = None if p is None else [float(v) for v in p]
             opt._kind = str(state['kind'])
+            pts = [[float(v) for v in q] for q in state['points']]
+            vals = [float(v) for v in state['values']]
+            if len(pts) != len(vals) or any(len(q) != opt.dim for q in pts):
+                raise OptimizerError('safe state: points and values do not match')
+            opt._pts, opt._vals = pts, vals
         except OptimizerError:
             raise
         except (KeyError, TypeError, ValueError) as exc:

@@ -79,9 +79,9 @@ EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
         ('sigma0=0.03', (('sigma0', 0.03),)),
     ),
     'safe': (
-        ('sigma0=0.05', (('sigma0', 0.05),)),
+        ('no model (a plain 1+1-ES)', (('model_every', 0),)),
+        ('defaults', ()),
         ('sigma0=0.1', (('sigma0', 0.1),)),
-        ('sigma0=0.2', (('sigma0', 0.2),)),
     ),
     'tpe': (
         ('defaults, no start', (('start', 'none'),)),

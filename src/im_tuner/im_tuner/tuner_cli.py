@@ -50,8 +50,9 @@ RUN_SETTINGS = (
 def _build_parser() -> argparse.ArgumentParser:
     ap = Parser(
         prog='ros2 run im_tuner tuner',
-        description='Tune the cascaded position/speed controller online by SPSA or '
-        'a compact GA on measured experiment losses (docs/tuner.md).',
+        description='Tune the cascaded position/speed controller online by SPSA, a '
+        'compact GA (the paper), CMA-ES, TPE or safe (a local search for real benches) '
+        'on measured experiment losses (docs/tuner.md).',
     )
     ap.add_argument('--algo', choices=optim.ALGOS, help='optimiser (default: necga)')
     ap.add_argument(
@@ -177,8 +178,14 @@ def _build_parser() -> argparse.ArgumentParser:
             if name in seen:
                 continue
             seen[name] = spec
-            algos = ', '.join(a for a, s in optim.OPTIONS.items() if name in s)
-            text = f'{spec.help} (default {spec.default!r}; for {algos})'
+            owners = [(a, s[name]) for a, s in optim.OPTIONS.items() if name in s]
+            if all(o.help == spec.help and o.default == spec.default for _, o in owners):
+                algos = ', '.join(a for a, _ in owners)
+                text = f'{spec.help} (default {spec.default!r}; for {algos})'
+            else:  # one flag, several meanings (sigma0): each algorithm's own
+                text = '; '.join(
+                    f'{a}: {o.help} (default {o.default!r})' for a, o in owners
+                )
             # argparse %-formats help texts: a literal % (e.g. "~10% of") must be doubled
             kw: dict[str, Any] = {
                 'dest': f'opt_{name}',

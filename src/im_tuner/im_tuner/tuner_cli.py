@@ -183,9 +183,7 @@ def _build_parser() -> argparse.ArgumentParser:
                 algos = ', '.join(a for a, _ in owners)
                 text = f'{spec.help} (default {spec.default!r}; for {algos})'
             else:  # one flag, several meanings (sigma0): each algorithm's own
-                text = '; '.join(
-                    f'{a}: {o.help} (default {o.default!r})' for a, o in owners
-                )
+                text = '; '.join(f'{a}: {o.help} (default {o.default!r})' for a, o in owners)
             # argparse %-formats help texts: a literal % (e.g. "~10% of") must be doubled
             kw: dict[str, Any] = {
                 'dest': f'opt_{name}',

@@ -33,9 +33,10 @@ On u in [0, 1]^dim, from the start point u0 (the hand-tuned gains, known to be s
 * sigma stays within [0.005, 0.5] (normalised units): a smaller floor let 5-30 % of
   the runs stall on a lucky measurement (20-run studies, issue 19).
 
-Measured against the same method without the model (60 runs x 200 evaluations, full
-model, hand-tuned start): median evaluations to a normalised loss of 0.5 21 against 34,
-aborted experiments per run 1.6 against 3.3, re-measured final loss 0.467 against 0.481.
+Measured against the same method without the model (``make reproduction``: 100 runs x
+200 evaluations, full model, hand-tuned start): median evaluations to a normalised loss
+of 0.5, 23.5 against 42; aborted experiments per run, 1.7 against 2.4; re-measured final
+loss, 0.470 against 0.480.
 
 The tuner tells an aborted experiment through ``tell_measurement(u, loss, aborted)``; a
 plain ``tell`` is a completed experiment.  The least-squares fit is numpy's (LAPACK

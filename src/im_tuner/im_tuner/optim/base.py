@@ -347,6 +347,18 @@ class Optimizer(ABC):
     def converged(self) -> bool:
         return False
 
+    def _init_checked(
+        self, dim: int, seed: int | np.random.SeedSequence, start: Any, options: dict[str, Any]
+    ) -> tuple[int | np.random.SeedSequence, np.ndarray | None]:
+        """The checks every optimiser that takes a start runs first: sets ``dim``,
+        ``_opts`` and ``_seed_json``; returns the checked seed and start (None: none)."""
+        self.dim = check_dim(dim)
+        seed = check_seed(seed)
+        x0 = check_start(start, self.dim)
+        self._opts = check_options(self.algo, dict(self.OPTIONS), options)
+        self._seed_json = seed_json(seed)
+        return seed, x0
+
     def tell_measurement(self, u: np.ndarray, loss: float, aborted: bool) -> None:
         """``tell`` with the experiment's aborted flag (the tuner calls this).  The default
         ignores the flag: the penalised loss says it; an optimiser that treats an aborted

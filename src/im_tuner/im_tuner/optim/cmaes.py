@@ -30,14 +30,9 @@ from .base import (
     Optimizer,
     OptimizerError,
     OptionSpec,
-    check_dim,
-    check_options,
-    check_seed,
-    check_start,
     check_version,
     make_rng,
     seed_from_json,
-    seed_json,
     told_history,
     told_loss,
 )
@@ -91,12 +86,8 @@ class CMAES(Optimizer):
         start: np.ndarray | None = None,
         **options: Any,
     ) -> None:
-        self.dim = check_dim(dim)
-        seed = check_seed(seed)
-        x0 = check_start(start, self.dim)
-        opts = check_options(self.algo, self.OPTIONS, options)
-        self._opts = opts
-        self._seed_json = seed_json(seed)
+        seed, x0 = self._init_checked(dim, seed, start, options)
+        opts = self._opts
         self._rng = make_rng(seed)
         self._start_given = x0 is not None
         if x0 is None:

@@ -54,14 +54,9 @@ from .base import (
     Optimizer,
     OptimizerError,
     OptionSpec,
-    check_dim,
-    check_options,
-    check_seed,
-    check_start,
     make_rng,
     rebuild,
     rng_state,
-    seed_json,
     told_loss,
 )
 
@@ -121,14 +116,9 @@ class SAFE(Optimizer):
         start: np.ndarray | None = None,
         **options: Any,
     ) -> None:
-        self.dim = check_dim(dim)
-        seed = check_seed(seed)
-        x0 = check_start(start, self.dim)
-        opts = check_options(self.algo, self.OPTIONS, options)
-        self._opts = opts
-        self._seed_json = seed_json(seed)
+        seed, x0 = self._init_checked(dim, seed, start, options)
+        opts = self._opts
         self._rng = make_rng(seed)
-        self._start_given = x0 is not None
         if x0 is None:  # (a real bench always has a start: this is for tests and studies)
             x0 = self._rng.random(self.dim)
         self.x = x0.copy()

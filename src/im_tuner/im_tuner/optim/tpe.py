@@ -28,14 +28,9 @@ from .base import (
     Optimizer,
     OptimizerError,
     OptionSpec,
-    check_dim,
-    check_options,
-    check_seed,
-    check_start,
     check_version,
     make_rng,
     seed_from_json,
-    seed_json,
     told_history,
     told_loss,
 )
@@ -107,12 +102,8 @@ class TPE(Optimizer):
         start: np.ndarray | None = None,
         **options: Any,
     ) -> None:
-        self.dim = check_dim(dim)
-        seed = check_seed(seed)
-        x0 = check_start(start, self.dim)
-        opts = check_options(self.algo, self.OPTIONS, options)
-        self._opts = opts
-        self._seed_json = seed_json(seed)
+        seed, x0 = self._init_checked(dim, seed, start, options)
+        opts = self._opts
         self._x0 = x0
         # optuna seeds numpy RandomStates with a 32-bit int: one drawn from our stream
         self._sampler_seed = int(make_rng(seed).integers(0, 2**32 - 1))

@@ -36,6 +36,7 @@ from ..link import DriveMonitor, controller_topics, drive_report
 from ..tuning import BenchFailure
 
 RECORDER_RESTARTS = 3  # replacements of a recorder child that died, per session
+RECORDER_READY_TIMEOUT = 20.0  # [s] for a replacement recorder to subscribe
 SpinUntil = Callable[[Callable[[], bool], float | None], bool]
 
 
@@ -94,9 +95,27 @@ def controller_on_graph(node: Node, spin_until: SpinUntil, controller: str, time
     return spin_until(seen, timeout)
 
 
-def recorder_subscribed(node: Node, topics: list[str]) -> bool:
+def recorder_endpoints(node: Node, topics: list[str]) -> set[bytes]:
+    """GIDs of the subscriptions a node named ``recorder`` has on ``topics``."""
+    return {
+        bytes(i.endpoint_gid)
+        for t in topics
+        for i in node.get_subscriptions_info_by_topic(t)
+        if i.node_name == 'recorder'
+    }
+
+
+def recorder_subscribed(
+    node: Node, topics: list[str], ignore: frozenset[bytes] = frozenset()
+) -> bool:
+    """Does a recorder subscribe to every topic of ``topics``? ``ignore``: GIDs of a dead
+    recorder's subscriptions, which stay on the graph until its DDS lease runs out
+    (about a second): a replacement must not be taken for ready on them."""
     for t in topics:
-        if not any(i.node_name == 'recorder' for i in node.get_subscriptions_info_by_topic(t)):
+        if not any(
+            i.node_name == 'recorder' and bytes(i.endpoint_gid) not in ignore
+            for i in node.get_subscriptions_info_by_topic(t)
+        ):
             return False
     return True
 
@@ -339,20 +358,28 @@ class Children:
             progress.warn(f'  not recording any more (already replaced {RECORDER_RESTARTS} times)')
             return
         self.recorder_restarts += 1
+        dead_endpoints = frozenset(recorder_endpoints(self.node, self.rec_topics))
         new = self.rundir.next_bag_dir()
         self._start_recorder(new)
         self.session.setdefault('more_bags', []).append(
             {'bag': new.name, 'first_record': len(self.tuning.records)}
         )
         self.tuning._checkpoint()
-        deadline = time.monotonic() + 20.0
-        while (
-            not recorder_subscribed(self.node, self.rec_topics)
-            and time.monotonic() < deadline
-            and self.children['recorder'].poll() is None
-        ):
+        deadline = time.monotonic() + RECORDER_READY_TIMEOUT
+        ready = False
+        while time.monotonic() < deadline and self.children['recorder'].poll() is None:
+            ready = recorder_subscribed(self.node, self.rec_topics, dead_endpoints)
+            if ready:
+                break
             time.sleep(0.05)  # graph queries need no spinning
-        progress.warn(f'  recording again into {new.name} (messages in between are in no bag)')
+        if ready:
+            progress.warn(f'  recording again into {new.name} (messages in between are in no bag)')
+        else:
+            progress.warn(
+                f'  warning: the new recorder ({new.name}) did not subscribe to every recorded '
+                f'topic within {RECORDER_READY_TIMEOUT:g} s; the run goes on, and what is '
+                'published until it does is in no bag'
+            )
 
     def supervise(self) -> None:
         """Between spins: a dead bench process is noticed at once."""

@@ -33,7 +33,7 @@ EXPECTED_OPTIONS = {
     'rcga': {'n', 'elitism', 'eta', 'sigma0'},
     'cmaes': {'sigma0', 'popsize'},
     'tpe': {'n_startup_trials', 'n_ei_candidates', 'multivariate'},
-    'safe': {'sigma0', 'grow', 'abort_shrink', 'remeasure_every', 'model_every'},
+    'safe': {'sigma0', 'grow', 'abort_shrink', 'sigma_max', 'remeasure_every', 'model_every'},
 }
 
 
@@ -216,7 +216,7 @@ VARIANTS = [
     ('tpe', {}),
     ('tpe', {'multivariate': 'no', 'n_startup_trials': 4}),
     ('safe', {}),
-    ('safe', {'sigma0': 0.3, 'remeasure_every': 3}),
+    ('safe', {'sigma0': 0.3, 'sigma_max': 0.5, 'remeasure_every': 3}),
     ('safe', {'model_every': 1, 'abort_shrink': 0.5}),
 ]
 
@@ -274,7 +274,9 @@ def test_start_point_and_resume_with_it(algo):
 
 def test_safe_starts_at_the_start_and_treats_an_abort_as_a_constraint():
     start = np.array([0.16, 0.1, 0.19, 0.1, 0.14])
-    opt = make_optimizer('safe', 5, 1, start=start, sigma0=0.1, remeasure_every=0, model_every=0)
+    opt = make_optimizer(
+        'safe', 5, 1, start=start, sigma0=0.1, sigma_max=0.5, remeasure_every=0, model_every=0
+    )
     u = opt.ask()
     assert u.tobytes() == start.tobytes()  # evaluation 1: the known-stable start
     opt.tell(u, 1.0)
@@ -299,6 +301,27 @@ def test_safe_starts_at_the_start_and_treats_an_abort_as_a_constraint():
         w = opt.ask()
         opt.tell(w, 5.0)
     assert opt.sigma == pytest.approx(0.005)
+
+
+def test_safe_steps_stay_within_the_trust_region_sigma_max():
+    # every candidate better than the last: sigma grows by 1.5 a success up to sigma_max
+    # (default 0.08), never past it, and so do the steps (pattern and random alike)
+    start = np.full(5, 0.5)
+    opt = make_optimizer('safe', 5, 3, start=start, remeasure_every=0, model_every=0)
+    assert opt.config()['sigma_max'] == 0.08 and opt.sigma == 0.05
+    loss, sigmas, steps = 10.0, [], []
+    for _ in range(30):
+        u = opt.ask()
+        steps.append(float(np.linalg.norm(u - opt.x)))
+        sigmas.append(opt.sigma)
+        loss -= 0.1
+        opt.tell(u, loss)
+    assert max(sigmas) == 0.08 and sigmas[2] == pytest.approx(0.075)
+    # a step is sigma z (z ~ N(0, I_5)) or a repeat of one (pattern move), with sigma
+    # <= 0.08; |z| > 8 has a probability below 1e-10 (and the run is seeded)
+    assert max(steps) < 8 * 0.08
+    with pytest.raises(OptimizerError, match='sigma0 0.1 is larger than sigma_max 0.08'):
+        make_optimizer('safe', 5, 3, sigma0=0.1)
 
 
 def test_safe_model_step_descends_the_fitted_slope_and_avoids_aborted_points():

@@ -80,8 +80,8 @@ EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
     ),
     'safe': (
         ('no model (a plain 1+1-ES)', (('model_every', 0),)),
+        ('no trust region (sigma_max=0.5)', (('sigma_max', 0.5),)),
         ('defaults', ()),
-        ('sigma0=0.1', (('sigma0', 0.1),)),
     ),
     'tpe': (
         ('defaults, no start', (('start', 'none'),)),

@@ -206,6 +206,8 @@ def template(tmp_path_factory) -> Path:
             'run',
             'im_tuner',
             'tuner',
+            '--algo',
+            'necga',
             '--budget',
             '4',
             '--seed',

@@ -23,13 +23,14 @@ from .tuning import (
     run_seeds,
 )
 
+#: the optimiser when --algo is not given (issue 19: docs/tuner.md, "Which algorithm")
+DEFAULT_ALGO = 'safe'
 BENCHES = ('auto', 'inproc', 'processes', 'realtime', 'realtime-processes', 'none')
 SIM_BENCHES = ('inproc', 'processes', 'realtime', 'realtime-processes')
 #: benches that run the drive and the controller in this process
 IN_PROCESS_BENCHES = ('inproc', 'realtime')
 #: simulated benches that repeat a plant history bit for bit (a resumed run replays it)
 LOCKSTEP_BENCHES = ('inproc', 'processes')
-RECORDER_RESTARTS = 3  # replacements of a recorder child that died, per session
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 #: settings a resumed run takes from run.yaml (giving them with --resume is an error)
 RUN_SETTINGS = (
@@ -54,7 +55,12 @@ def _build_parser() -> argparse.ArgumentParser:
         'compact GA (the paper), CMA-ES, TPE or safe (a local search for real benches) '
         'on measured experiment losses (docs/tuner.md).',
     )
-    ap.add_argument('--algo', choices=optim.ALGOS, help='optimiser (default: necga)')
+    ap.add_argument(
+        '--algo',
+        choices=optim.ALGOS,
+        help=f'optimiser (default: {DEFAULT_ALGO}, the fewest experiments and aborts from the '
+        "hand-tuned start; the paper's are spsa and necga)",
+    )
     ap.add_argument(
         '--budget', type=int, metavar='N', help='loss evaluations (default 200, as in the paper)'
     )
@@ -214,7 +220,7 @@ def _algo_options(cli: argparse.Namespace, algo: str) -> dict[str, Any]:
 
 # -- the run configuration -------------------------------------------------------------------
 def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str, Any], TunerParams]:
-    algo = cli.algo or 'necga'
+    algo = cli.algo or DEFAULT_ALGO
     budget = 200 if cli.budget is None else cli.budget
     if budget < 1:
         raise UsageError(f'--budget must be >= 1 loss evaluations, got {budget}')

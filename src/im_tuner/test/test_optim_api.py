@@ -320,7 +320,7 @@ def test_safe_steps_stay_within_the_trust_region_sigma_max():
     # a step is sigma z (z ~ N(0, I_5)) or a repeat of one (pattern move), with sigma
     # <= 0.08; |z| > 8 has a probability below 1e-10 (and the run is seeded)
     assert max(steps) < 8 * 0.08
-    with pytest.raises(OptimizerError, match='sigma0 0.1 is larger than sigma_max 0.08'):
+    with pytest.raises(OptimizerError, match=r'sigma0 0\.1 is larger than sigma_max 0\.08'):
         make_optimizer('safe', 5, 3, sigma0=0.1)
 
 

@@ -486,6 +486,19 @@ def run6(tmp_path_factory) -> Path:
     return run
 
 
+def test_without_algo_the_tuner_runs_safe_from_the_hand_tuned_start(run6):
+    """Issue 19: ``--algo`` defaults to safe with its own defaults; its evaluation 1 is the
+    hand-tuned start again (the reference is the first experiment from rest), and its
+    step size stays inside the trust region sigma_max = 0.08."""
+    run_yaml = yaml.safe_load((run6 / 'run.yaml').read_text())
+    assert run_yaml['algo'] == 'safe' and run_yaml['options'] == {}
+    evals = [r for r in results(run6) if r['kind'] == 'eval']
+    assert len(evals) == 6 and evals[0]['gains'] == START
+    opt = json.loads((run6 / 'checkpoint.json').read_text())['optimizer']
+    assert opt['config']['sigma0'] == 0.05 and opt['config']['sigma_max'] == 0.08
+    assert 0.005 <= opt['sigma'] <= 0.08 and opt['evaluations'] == 6
+
+
 def test_budget_6_bag_opens_in_rosbags_anyreader_every_message_decodes(run6):
     """AnyReader (types from the bag only, hashes checked on open) decodes every message of
     every connection with ``reader.deserialize(raw, conn.msgtype)``, service events

@@ -23,8 +23,6 @@ from .tuning import (
     run_seeds,
 )
 
-#: the optimiser when --algo is not given (issue 19: docs/tuner.md, "Which algorithm")
-DEFAULT_ALGO = 'safe'
 BENCHES = ('auto', 'inproc', 'processes', 'realtime', 'realtime-processes', 'none')
 SIM_BENCHES = ('inproc', 'processes', 'realtime', 'realtime-processes')
 #: benches that run the drive and the controller in this process
@@ -58,8 +56,8 @@ def _build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         '--algo',
         choices=optim.ALGOS,
-        help=f'optimiser (default: {DEFAULT_ALGO}, the fewest experiments and aborts from the '
-        "hand-tuned start; the paper's are spsa and necga)",
+        help=f'optimiser (default: {optim.DEFAULT_ALGO}, the fewest experiments and aborts '
+        "from the hand-tuned start; the paper's are spsa and necga)",
     )
     ap.add_argument(
         '--budget', type=int, metavar='N', help='loss evaluations (default 200, as in the paper)'
@@ -220,7 +218,7 @@ def _algo_options(cli: argparse.Namespace, algo: str) -> dict[str, Any]:
 
 # -- the run configuration -------------------------------------------------------------------
 def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str, Any], TunerParams]:
-    algo = cli.algo or DEFAULT_ALGO
+    algo = cli.algo or optim.DEFAULT_ALGO
     budget = 200 if cli.budget is None else cli.budget
     if budget < 1:
         raise UsageError(f'--budget must be >= 1 loss evaluations, got {budget}')

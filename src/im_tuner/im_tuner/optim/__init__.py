@@ -40,6 +40,7 @@ __all__ = [
     'CGA',
     'CLASSES',
     'CMAES',
+    'DEFAULT_ALGO',
     'NECGA',
     'OPTIONS',
     'PECGA',
@@ -57,6 +58,9 @@ __all__ = [
 
 #: Every algorithm name accepted by make_optimizer (and ``--algo``).
 ALGOS: tuple[str, ...] = ('spsa', 'necga', 'cga', 'pecga', 'rcga', 'cmaes', 'tpe', 'safe')
+#: the tuner's optimiser when none is named: the fewest experiments and aborted ones from
+#: a hand-tuned start (issue 19; docs/tuner.md, "Which algorithm")
+DEFAULT_ALGO = 'safe'
 
 CLASSES: dict[str, type[Optimizer]] = {
     'spsa': SPSA,

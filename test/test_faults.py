@@ -408,6 +408,35 @@ def test_tuner_killed_then_resumed_on_the_same_bench(procs, ros_context, tmp_pat
 
 
 # -- the recorder dies ---------------------------------------------------------------------
+def test_a_replacement_recorder_is_not_taken_for_ready_on_the_dead_ones_subscriptions(
+    ros_context, wait_until
+):
+    """The wait after a recorder died ignores the dead one's endpoints (they stay on the
+    graph until its DDS lease runs out): only a recorder with new subscriptions counts."""
+    from rclpy.node import Node
+    from std_msgs.msg import Empty
+
+    from im_tuner.bench.forms import recorder_endpoints, recorder_subscribed
+
+    topics = ['/t_a', '/t_b']
+    watcher = Node('watcher', context=ros_context)
+    old = Node('recorder', namespace='/old', context=ros_context)
+    for t in topics:
+        old.create_subscription(Empty, t, lambda _m: None, 10)
+    wait_until(lambda: recorder_subscribed(watcher, topics), 10, message='old recorder')
+    dead = frozenset(recorder_endpoints(watcher, topics))
+    assert len(dead) == 2
+    assert not recorder_subscribed(watcher, topics, dead)  # (the bug: this was True)
+    new = Node('recorder', namespace='/new', context=ros_context)
+    new.create_subscription(Empty, topics[0], lambda _m: None, 10)
+    wait_until(lambda: len(recorder_endpoints(watcher, topics)) == 3, 10, message='one more')
+    assert not recorder_subscribed(watcher, topics, dead)  # one topic of two
+    new.create_subscription(Empty, topics[1], lambda _m: None, 10)
+    wait_until(lambda: recorder_subscribed(watcher, topics, dead), 10, message='new recorder')
+    for n in (new, old, watcher):
+        n.destroy_node()
+
+
 def test_recorder_killed_the_run_goes_on_bit_for_bit(procs, tmp_path, wait_until):
     """SIGKILL the tuner's recorder child (processes bench) during the run: the tuner
     notices, repairs the dead bag (kept up to its last chunk), records on into a new one,

@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import faulthandler
 import os
 import subprocess
 import sys
@@ -32,6 +33,16 @@ if str(VENV) not in os.environ['AMENT_PREFIX_PATH'].split(os.pathsep):
 os.environ.setdefault('ROS_LOG_DIR', tempfile.mkdtemp(prefix='im_tuner_test_roslog_'))
 if not os.environ.get('HOME'):
     os.environ['HOME'] = tempfile.gettempdir()
+
+
+#: After the last test, the interpreter must be gone within this many seconds; past it,
+#: a thread or child that keeps it alive (a hang at exit) prints every thread's stack and
+#: the run fails, instead of running out the CI job's time with no word of why.
+EXIT_GRACE_S = 180
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    faulthandler.dump_traceback_later(EXIT_GRACE_S, exit=True)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

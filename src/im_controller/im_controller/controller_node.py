@@ -87,6 +87,8 @@ from .experiment import (
 from .messages import result_to_msg
 
 NS_PER_S = 1_000_000_000
+#: Shortest time between two logged refusals of one kind [s] (all are counted).
+REFUSAL_LOG_PERIOD = 1.0
 
 #: Tunable sections: parameter prefix -> dataclass. Gains are top-level (k_pw, ...).
 TUNABLE_SECTIONS = {'loss': LossConfig, 'trajectory': TrajectoryConfig}
@@ -158,6 +160,8 @@ class ControllerNode(LenientDoubles, Node):
         self.runner = ExperimentRunner(cfg, gains, timing_tolerance=self.timing_tolerance)
         #: refused requests, by kind (logged, throttled; and at exit)
         self.refused = {'start_experiment': 0, 'parameters': 0}
+        #: Monotonic time [s] of the last refusal logged, per kind (the log throttle).
+        self._refusal_logged = dict.fromkeys(self.refused, -math.inf)
         self.add_pre_set_parameters_callback(self._pre_set)
         self.add_on_set_parameters_callback(self._on_set)
         self.add_post_set_parameters_callback(self._post_set)
@@ -398,13 +402,15 @@ class ControllerNode(LenientDoubles, Node):
         return result
 
     def _refusal(self, kind: str, text: str) -> None:
-        """Count a refused request and log it -- throttled: a flood of requests must not
-        flood the log (or a piped stderr)."""
+        """Count a refused request and log it, at most once a second per kind: a flood of
+        requests must not flood the log (or a piped stderr). The throttle is per kind, not
+        rclpy's per call site, so a flood of refused starts cannot hide the first refused
+        parameter change (or the other way round)."""
         self.refused[kind] += 1
-        self.get_logger().warn(
-            f'{text} ({self.refused[kind]} {kind} requests refused so far)',
-            throttle_duration_sec=1.0,
-        )
+        now = time.monotonic()
+        if now - self._refusal_logged[kind] >= REFUSAL_LOG_PERIOD:
+            self._refusal_logged[kind] = now
+            self.get_logger().warn(f'{text} ({self.refused[kind]} {kind} requests refused so far)')
 
     def _check_set(self, params: list[Parameter]) -> SetParametersResult:
         tunable = [

@@ -130,8 +130,9 @@ class QosSpec:
 #: bridges scheduling hiccups.
 LOCKSTEP = QosSpec('keep_last', 64, 'reliable')
 
-#: Publishers whose every message must reach the recorder (state; the controller's
-#: command, internals and losses): reliable KEEP_ALL. A reader that falls behind
+#: Publishers whose every message must reach the recorder -- every recorded topic: the
+#: drive's state, joint states, status and /clock; the controller's command, internals
+#: and losses: reliable KEEP_ALL. A reader that falls behind
 #: back-pressures the publisher instead of losing samples, which KEEP_LAST would
 #: overwrite. Readers in the lock-step path stay LOCKSTEP: they take every step.
 RECORDED = QosSpec('keep_all', 0, 'reliable')

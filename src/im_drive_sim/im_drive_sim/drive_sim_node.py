@@ -55,10 +55,9 @@ from .pacing import CommandWatchdog, Pacer
 from .params import ConfigError, load_config
 from .runtime import (
     LenientDoubles,
-    RCLError,
     param_descriptor,
     parameter_hygiene,
-    publish_retry,
+    publish_lossless,
     qos_profile,
     run_stepped_node,
 )
@@ -144,9 +143,11 @@ class DriveSimNode(LenientDoubles, Node):
 
         # Publishers (all on the visible node).
         self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
-        self.clock_pub = self.create_publisher(Clock, '/clock', 10)
-        self.joint_pub = self.create_publisher(JointState, JOINT_STATE_TOPIC, 10)
-        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, 10)
+        # Every drive topic is recorded, so every publisher is reliable KEEP_ALL: a recorder
+        # that stalls (a loaded real-time machine) back-pressures, it never loses a sample.
+        self.clock_pub = self.create_publisher(Clock, '/clock', RECORDED_QOS)
+        self.joint_pub = self.create_publisher(JointState, JOINT_STATE_TOPIC, RECORDED_QOS)
+        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, RECORDED_QOS)
         # The 5 kHz command path: its own hidden node, never touched by the executor.
         self.io_node = Node(f'_{node_name}_io', context=context, namespace=self.get_namespace())
         self.cmd_sub = self.io_node.create_subscription(
@@ -318,17 +319,16 @@ class DriveSimNode(LenientDoubles, Node):
         s = self._state
         k = int(s[0])
         payload = self._state_wire.payload()
-        try:
-            self.state_pub.publish(payload)
-        except RCLError:
-            self.counters.backpressure += publish_retry(self.state_pub, payload, self.context)
+        self.counters.backpressure += publish_lossless(self.state_pub, payload, self.context)
         if k % self.clock_decimation == 0 or k % self.joint_state_decimation == 0:
             t_ns = k * self.ts_ns
             sec, nsec = divmod(t_ns, NS_PER_S)
             if k % self.clock_decimation == 0:
                 self._clock_msg.clock.sec = sec
                 self._clock_msg.clock.nanosec = nsec
-                self.clock_pub.publish(self._clock_msg)
+                self.counters.backpressure += publish_lossless(
+                    self.clock_pub, self._clock_msg, self.context
+                )
             if k % self.joint_state_decimation == 0:
                 j = self._joint_msg
                 j.header.stamp.sec = sec
@@ -336,7 +336,7 @@ class DriveSimNode(LenientDoubles, Node):
                 j.position[0] = float(s[self._idx['theta_meas']])
                 j.velocity[0] = float(s[self._idx['omega_meas']])
                 j.effort[0] = float(s[self._idx['torque']])
-                self.joint_pub.publish(j)
+                self.counters.backpressure += publish_lossless(self.joint_pub, j, self.context)
 
     def publish_status(self, wall_elapsed: float | None = None) -> None:
         """drive/status: mode, sim time, real-time factor over ``wall_elapsed`` [s] (None:
@@ -369,7 +369,7 @@ class DriveSimNode(LenientDoubles, Node):
         st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         msg = DiagnosticArray(status=[st])
         msg.header.stamp = self.get_clock().now().to_msg()
-        self.status_pub.publish(msg)
+        self.counters.backpressure += publish_lossless(self.status_pub, msg, self.context)
 
     # -- the command path ------------------------------------------------------------------
     def _wait_command(self, timeout_ns: int) -> bool:

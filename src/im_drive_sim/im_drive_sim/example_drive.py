@@ -51,10 +51,9 @@ from .pacing import CommandWatchdog, Pacer
 from .params import ConfigError, DriveConfig, load_config
 from .runtime import (
     LenientDoubles,
-    RCLError,
     param_descriptor,
     parameter_hygiene,
-    publish_retry,
+    publish_lossless,
     qos_profile,
     run_stepped_node,
 )
@@ -224,7 +223,7 @@ class ExampleDrive(LenientDoubles, Node):
 
         self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
         self.joint_pub = self.make_joint_publisher()
-        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, 10)
+        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, RECORDED_QOS)
         # The 5 kHz command path lives on a hidden node that no executor ever spins.
         self.io_node = Node(
             f'_{node_name}_io', context=self.context, namespace=self.get_namespace()
@@ -245,7 +244,7 @@ class ExampleDrive(LenientDoubles, Node):
         return self.hardware_class(self.config)
 
     def make_joint_publisher(self):
-        return self.create_publisher(JointState, JOINT_STATE_TOPIC, 10)
+        return self.create_publisher(JointState, JOINT_STATE_TOPIC, RECORDED_QOS)
 
     def apply_command(self, isq_ref: float, load_torque: float) -> None:
         """Clamp and hand the command to the hardware for the coming period."""
@@ -320,10 +319,8 @@ class ExampleDrive(LenientDoubles, Node):
     # -- publishing ------------------------------------------------------------------------
     def publish_state(self) -> None:
         payload = self.wire.payload()
-        try:
-            self.state_pub.publish(payload)
-        except RCLError:  # a full reliable reader (recorder): back-pressure, never drop
-            self.counters.backpressure += publish_retry(self.state_pub, payload, self.context)
+        # a full reliable reader (the recorder): back-pressure, never drop
+        self.counters.backpressure += publish_lossless(self.state_pub, payload, self.context)
         if self.k % self.joint_decimation == 0:
             self.publish_joint_state()
 
@@ -332,7 +329,7 @@ class ExampleDrive(LenientDoubles, Node):
         j, v = self.joint, self.wire.values
         j.header.stamp.sec, j.header.stamp.nanosec = divmod(self.k * self.ts_ns, NS_PER_S)
         j.position[0], j.velocity[0], j.effort[0] = float(v[2]), float(v[3]), float(v[4])
-        self.joint_pub.publish(j)
+        self.counters.backpressure += publish_lossless(self.joint_pub, j, self.context)
 
     def publish_status(self) -> None:
         c = self.counters
@@ -350,7 +347,7 @@ class ExampleDrive(LenientDoubles, Node):
         st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         msg = DiagnosticArray(status=[st])
         msg.header.stamp = self.get_clock().now().to_msg()
-        self.status_pub.publish(msg)
+        self.counters.backpressure += publish_lossless(self.status_pub, msg, self.context)
 
     # -- the loop ------------------------------------------------------------------------------
     def start(self) -> None:

@@ -50,6 +50,17 @@ class PublishStalled(RuntimeError):
     """A reliable reader took nothing for longer than the back-pressure timeout."""
 
 
+def publish_lossless(pub, msg, context) -> int:
+    """Publish ``msg`` on a reliable KEEP_ALL publisher, never dropping it: the common
+    case is one ``publish``; if a full reader made it raise, :func:`publish_retry`.
+    Returns the back-pressure retries (0 when the first publish went through)."""
+    try:
+        pub.publish(msg)
+        return 0
+    except RCLError:
+        return publish_retry(pub, msg, context)
+
+
 def publish_retry(pub, msg, context, timeout: float = 30.0) -> int:
     """Publish ``msg`` after a publish raised: wait for the readers to make room.
 

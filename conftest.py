@@ -35,14 +35,25 @@ if not os.environ.get('HOME'):
     os.environ['HOME'] = tempfile.gettempdir()
 
 
-#: After the last test, the interpreter must be gone within this many seconds; past it,
-#: a thread or child that keeps it alive (a hang at exit) prints every thread's stack and
-#: the run fails, instead of running out the CI job's time with no word of why.
+#: The whole run must end within this many seconds (it takes about 13 minutes here; a
+#: machine 2x slower needs 26). Past it, every thread's stack is printed and the run ends
+#: with exit 1 -- a hang that pytest-timeout cannot break (in C code, or at exit) fails
+#: with a word of where, instead of running out CI's 90 minutes in silence.
+SESSION_LIMIT_S = 60 * 60
+#: After the last test, the interpreter must be gone within this many seconds (a thread
+#: or child that keeps it alive is a hang at exit: same stacks, same exit 1).
 EXIT_GRACE_S = 180
+_STDERR_FD: list[int] = []  # a copy of the real stderr (fd 2 is captured during tests)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # Output capture is suspended here, so fd 2 is the terminal or CI's log.
+    _STDERR_FD.append(os.dup(2))
+    faulthandler.dump_traceback_later(SESSION_LIMIT_S, exit=True, file=_STDERR_FD[0])
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
-    faulthandler.dump_traceback_later(EXIT_GRACE_S, exit=True)
+    faulthandler.dump_traceback_later(EXIT_GRACE_S, exit=True, file=_STDERR_FD[0])
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

@@ -178,3 +178,42 @@ def test_threshold_must_be_positive():
     for bad in (0.0, -1.0, math.nan, math.inf):
         with pytest.raises(ValueError, match='threshold'):
             compute(res, bad)
+
+
+def test_comparison_rows_by_hand():
+    """Issue 19's comparison table: each column against a hand computation on constructed
+    runs, and each row named once by its algorithm, configuration and start."""
+    from im_tuner.study.text import comparison_rows
+
+    spec = S.StudySpec(runs=3, budget=4, algos=('cmaes', 'safe'))
+    arrays = S._allocate(spec, spec.cells)
+    res = S.StudyResult(
+        spec=spec, cells=spec.cells, l_ref=L_REF, l_ref_sem=0.001, l_first=1.8, **arrays
+    )
+    res.losses[:] = L_REF * 1.0
+    c = next(
+        i for i, cell in enumerate(res.cells) if cell.algo == 'safe' and cell.label == 'defaults'
+    )
+    # run 0: 0.9 at evaluation 2, 0.5 at 4; run 1: 0.85 at 3 (never 0.5), 1 aborted;
+    # run 2: 0.45 at evaluation 1 after 2 aborted tries
+    res.losses[c] = L_REF * np.array(
+        [[1.0, 0.9, 0.7, 0.5], [1.0, 0.95, 0.85, 2.0], [0.1, 0.1, 0.45, 0.6]]
+    )
+    res.aborted[c, 1, 3] = True
+    res.aborted[c, 2, :2] = True
+    res.remeasured[c] = L_REF * np.array([0.52, 0.88, 0.47])
+    st = compute(res, 0.9)
+    head, rows = comparison_rows(st)
+    assert head[0] == 'method (configuration, start)' and len(head) == 7
+    labels = [r[0] for r in rows]
+    assert 'safe defaults (hand-tuned start)' in labels
+    assert 'CMA-ES sigma0=0.3 random start' in labels  # the start is not said twice
+    assert len(set(labels)) == len(labels)
+    row = rows[labels.index('safe defaults (hand-tuned start)')]
+    value = [float(x.split(' [')[0]) for x in row[1:]]
+    assert value[0] == pytest.approx((0.5 + 0.85 + 0.45) / 3, abs=5e-4)  # final: min measured
+    assert value[1] == pytest.approx((0.52 + 0.88 + 0.47) / 3, abs=5e-4)  # re-measured
+    assert value[2] == pytest.approx((2 + 3 + 3) / 3, abs=0.05)  # evaluations to <= 0.9
+    assert value[3] == pytest.approx((4 + 3) / 2, abs=0.05)  # to <= 0.5: median of 2 runs
+    assert value[4] == pytest.approx(100 * 2 / 3, abs=0.5)  # runs reaching 0.5 [%]
+    assert value[5] == pytest.approx((0 + 1 + 2) / 3, abs=0.05)  # aborted per run

@@ -103,7 +103,9 @@ def comparison_rows(st: StudyStats) -> tuple[list[str], list[list[str]]]:
         start = {'random': 'random start', 'hand': 'hand-tuned start', 'none': 'no start'}[
             c.cell.start_kind
         ]
-        label = f'{ALGO_NAME.get(c.cell.algo, c.cell.algo)} {c.cell.label} ({start})'
+        label = f'{ALGO_NAME.get(c.cell.algo, c.cell.algo)} {c.cell.label}'
+        if start not in c.cell.label:  # ('sigma0=0.3 random start' says it already)
+            label += f' ({start})'
         rows.append([label] + [_iv(getattr(c, a), d) for _h, a, d, _k in COMPARISON])
     return head, rows
 

@@ -461,9 +461,15 @@ def test_recorder_killed_the_run_goes_on_bit_for_bit(procs, tmp_path, wait_until
     assert 'warning: the recorder died (killed by signal 9); bag_0 keeps what it wrote' in err
     assert 'recording again into bag_1' in err
     got, want = results(run), results(whole)
+    # on a mismatch, say why each experiment ended as it did (a stall shows as an abort
+    # `drive_state_timeout` or a lost result) and what the tuner and its children said
+    why = [
+        (r.get('experiment_id'), r['status'], r.get('reason'), r['loss'], r.get('wall_s'))
+        for r in got
+    ]
     assert [(r['kind'], r['loss'], r['experiment_id']) for r in got] == [
         (r['kind'], r['loss'], r['experiment_id']) for r in want
-    ]
+    ], (why, err[-6000:])
     summary = json.loads((run / 'summary.json').read_text())
     (more,) = summary['sessions'][0]['more_bags']
     assert more['bag'] == 'bag_1' and more['first_record'] >= 2

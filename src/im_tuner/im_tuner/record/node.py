@@ -242,6 +242,10 @@ class Recorder:
         write_metadata_yaml(
             self.out, bag_metadata([(self.file_name, 0, 0, 0)], [], {'im_tuner.state': 'recording'})
         )
+        # Load the take kernel (numba: 0.3 s from its cache, seconds to compile) before any
+        # reader matches: a reliable KEEP_ALL reader that is not taken fills up, and then
+        # back-pressures the 5 kHz publishers -- a stalled drive, aborted experiments.
+        self.drain()
         self.discover()
 
     # -- topics ------------------------------------------------------------------------
@@ -264,6 +268,7 @@ class Recorder:
                 self.log.warning(f'{name} has several types {types}; recording {types[0]}')
             if self._subscribe(name, types[0], infos):
                 added += 1
+                self.drain()  # the new reader is taken at once, not after every subscription
         self._check_matches()
         return added
 

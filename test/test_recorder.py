@@ -379,11 +379,8 @@ def test_standalone_recorder_burst_sigint(ros_context, procs, tmp_path, wait_unt
     node.destroy_node()
 
 
-def test_recorder_next_to_a_live_realtime_drive_closes_within_2_s(procs, tmp_path, wait_until):
-    """Issue 18 (3): a real-time drive publishes 5000 states a second and never stops, so
-    the recorder's close never sees the quiet it used to wait for (the bag stayed open for
-    15-30 s, or for ever). SIGINT now closes the bag within 2 s, and the bag says that it
-    was cut while messages were still arriving."""
+def _realtime_drive_and_recorder(procs, bag: Path) -> tuple[subprocess.Popen, subprocess.Popen]:
+    """A real-time drive that publishes at once (no controller) and a recorder into ``bag``."""
     drive = procs.start(
         [
             ROS2,
@@ -397,14 +394,24 @@ def test_recorder_next_to_a_live_realtime_drive_closes_within_2_s(procs, tmp_pat
             'realtime_wait_for_controller:=false',
         ]
     )
+    return drive, _start_recorder(procs, bag)
+
+
+def _bag_size(bag: Path) -> int:
+    """Bytes of MCAP written into ``bag`` so far."""
+    return sum(f.stat().st_size for f in bag.glob('*.mcap')) if bag.is_dir() else 0
+
+
+def test_recorder_next_to_a_live_realtime_drive_closes_within_2_s(procs, tmp_path, wait_until):
+    """Issue 18 (3): a real-time drive publishes 5000 states a second and never stops, so
+    the recorder's close never sees the quiet it used to wait for (the bag stayed open for
+    15-30 s, or for ever). SIGINT now closes the bag within 2 s, and the bag says that it
+    was cut while messages were still arriving."""
     bag = tmp_path / 'bag'
-    rec = _start_recorder(procs, bag)
+    drive, rec = _realtime_drive_and_recorder(procs, bag)
 
     # recording the live drive: the bag file grows (chunks of states are written)
-    def size() -> int:
-        return sum(f.stat().st_size for f in bag.glob('*.mcap')) if bag.is_dir() else 0
-
-    wait_until(lambda: size() > 200_000, 60.0, message='bag grows')
+    wait_until(lambda: _bag_size(bag) > 200_000, 60.0, message='bag grows')
     assert drive.poll() is None
     t0 = time.monotonic()
     rec.send_signal(signal.SIGINT)
@@ -431,33 +438,17 @@ def test_a_recorder_stalled_next_to_a_realtime_drive_loses_nothing(procs, tmp_pa
     taking for a while (SIGSTOP: a loaded 2-core machine, for 0.4 s) back-pressures the
     drive instead of losing samples -- /clock and drive/joint_states too, which at depth
     10 lost 43 and 123 samples in a loaded real-time tuning run."""
-    drive = procs.start(
-        [
-            ROS2,
-            'run',
-            'im_drive_sim',
-            'drive_sim',
-            '--mode',
-            'realtime',
-            '--ros-args',
-            '-p',
-            'realtime_wait_for_controller:=false',
-        ]
-    )
     bag = tmp_path / 'bag'
-    rec = _start_recorder(procs, bag)
+    drive, rec = _realtime_drive_and_recorder(procs, bag)
 
-    def size() -> int:
-        return sum(f.stat().st_size for f in bag.glob('*.mcap')) if bag.is_dir() else 0
-
-    wait_until(lambda: size() > 200_000, 60.0, message='bag grows')
+    wait_until(lambda: _bag_size(bag) > 200_000, 60.0, message='bag grows')
     # 0.4 s is 200 joint states and 80 clocks (depth 10 keeps 10 of each) and 2000 states
     rec.send_signal(signal.SIGSTOP)
     t0 = time.monotonic()
     wait_until(lambda: time.monotonic() - t0 > 0.4, 5.0, message='0.4 s stalled')
     rec.send_signal(signal.SIGCONT)
-    grown = size()
-    wait_until(lambda: size() > grown + 200_000, 60.0, message='recording again')
+    grown = _bag_size(bag)
+    wait_until(lambda: _bag_size(bag) > grown + 200_000, 60.0, message='recording again')
     rec.send_signal(signal.SIGINT)
     _out, err = rec.communicate(timeout=30)
     assert rec.returncode == 0, err[-2000:]

@@ -53,10 +53,9 @@ from im_drive_sim.drive_sim_node import RECORDED_QOS
 from im_drive_sim.params import ConfigError, load_config
 from im_drive_sim.runtime import (
     LenientDoubles,
-    RCLError,
     param_descriptor,
     parameter_hygiene,
-    publish_retry,
+    publish_lossless,
     run_stepped_node,
 )
 
@@ -573,10 +572,7 @@ class ControllerNode(LenientDoubles, Node):
             v[1 : 1 + len(CONTROL_FIELDS)] = self.runner.cout
             v[1 + len(CONTROL_FIELDS) :] = self.runner.eout
             payload = self._internals.payload()
-            try:
-                self.internals_pub.publish(payload)
-            except RCLError:
-                self.client.backpressure += publish_retry(self.internals_pub, payload, self.context)
+            self.client.backpressure += publish_lossless(self.internals_pub, payload, self.context)
         if status >= STATUS_DONE:
             self._on_status(status)
         return True
@@ -597,10 +593,7 @@ class ControllerNode(LenientDoubles, Node):
             return
         self.results.append(res)
         msg = result_to_msg(res, self.get_name())
-        try:
-            self.loss_pub.publish(msg)
-        except RCLError:
-            self.client.backpressure += publish_retry(self.loss_pub, msg, self.context)
+        self.client.backpressure += publish_lossless(self.loss_pub, msg, self.context)
         text = (
             f'experiment {res.experiment_id}: loss {res.loss:.6g} terms '
             f'({res.terms[0]:.4g}, {res.terms[1]:.4g}, {res.terms[2]:.4g})'

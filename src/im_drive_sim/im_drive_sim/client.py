@@ -18,7 +18,7 @@ from std_msgs.msg import Float64MultiArray
 from .cdr import Float64ArrayWire, parse_float64_array
 from .contract import COMMAND_FIELDS, COMMAND_TOPIC, STATE_TOPIC
 from .drive_sim_node import LOCKSTEP_QOS, RECORDED_QOS
-from .runtime import RCLError, publish_retry
+from .runtime import publish_lossless
 from .sim import STATE_FIELDS
 
 NS_PER_S = 1_000_000_000
@@ -93,10 +93,7 @@ class DriveClient:
         v[1] = isq_ref
         v[2] = load_torque
         payload = self._cmd.payload()
-        try:
-            self.command_pub.publish(payload)
-        except RCLError:
-            self.backpressure += publish_retry(self.command_pub, payload, self.node.context)
+        self.backpressure += publish_lossless(self.command_pub, payload, self.node.context)
         if answers_step > self.answered:
             self.answered = answers_step
 

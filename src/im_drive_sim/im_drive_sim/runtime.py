@@ -5,8 +5,8 @@
   loop), SIGINT/SIGTERM asking the loop to stop at the next step boundary, a clean
   summary/flush/destroy, configuration errors as one line and exit code 2.
 * :func:`stop_child`: end a child process we started, by PID (SIGINT, grace, SIGKILL).
-* :func:`publish_retry`: back-pressure instead of a crash when a reliable KEEP_ALL reader
-  (the recorder) is full.
+* :func:`publish_lossless` (and :func:`publish_retry` under it): back-pressure instead of
+  a crash or a lost sample when a reliable KEEP_ALL reader (the recorder) is full.
 * :func:`parameter_hygiene`: what every node of ours does once its parameters are
   declared -- a ``-p`` override naming no parameter is warned about by name (a typo would
   otherwise be silently ignored), and an override of a parameter that only *reports* a

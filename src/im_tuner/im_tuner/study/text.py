@@ -82,6 +82,9 @@ def _grids(
 
 
 #: The comparison beyond the paper: (header, CellStats attribute, digits, kind).
+#: How the comparison names a cell's start kind.
+START_TEXT = {'random': 'random start', 'hand': 'hand-tuned start', 'none': 'no start'}
+
 COMPARISON = (
     ('final (min measured)', 'final', 3, 'mean'),
     ('re-measured', 'remeasured', 3, 'mean'),
@@ -100,9 +103,7 @@ def comparison_rows(st: StudyStats) -> tuple[list[str], list[list[str]]]:
     ]
     rows = []
     for c in st.cells:
-        start = {'random': 'random start', 'hand': 'hand-tuned start', 'none': 'no start'}[
-            c.cell.start_kind
-        ]
+        start = START_TEXT[c.cell.start_kind]
         label = f'{ALGO_NAME.get(c.cell.algo, c.cell.algo)} {c.cell.label}'
         if start not in c.cell.label:  # ('sigma0=0.3 random start' says it already)
             label += f' ({start})'

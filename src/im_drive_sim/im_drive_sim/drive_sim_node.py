@@ -173,6 +173,8 @@ class DriveSimNode(LenientDoubles, Node):
         self._applied = -1  # answers_step of the held command (-1: none, untagged, watchdog)
         self._cmd_watchdog = CommandWatchdog(self.command_timeout, self.config.Ts)
         self._watchdog_tripped = False
+        #: latched by :meth:`safe_stop`: zero current and no load from then on
+        self.safe_stopped = False
         self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
 
         # The layouts are facts of this node: an override may not advertise another one.
@@ -529,6 +531,10 @@ class DriveSimNode(LenientDoubles, Node):
         c = self.counters
         self.take_commands()
         self._watchdog()
+        if self.safe_stopped:  # the model runs on with zero current and no load
+            self._isq_ref = self._load = 0.0
+            self._applied = -1
+            self._cmd_fresh = False
         if self._cmd_fresh:
             c.fresh += 1
         else:
@@ -539,6 +545,17 @@ class DriveSimNode(LenientDoubles, Node):
     def wait_command(self, timeout_s: float) -> bool:
         """Sleep up to ``timeout_s`` [s] in rcl_wait; True when a command is pending."""
         return self._wait_command(int(timeout_s * NS_PER_S))
+
+    def safe_stop(self) -> None:
+        """Zero current and no load from the next period on, whatever command comes (a
+        latch: the stop of a real-time run; ``pacing.PeriodicDrive``)."""
+        self.safe_stopped = True
+        self._isq_ref = self._load = 0.0
+        self._applied = -1
+
+    def close_hardware(self) -> None:
+        """The simulated drive has no power stage to release: the safe stop only."""
+        self.safe_stop()
 
     def _watchdog(self) -> None:
         """Real time: no command for ``command_timeout`` -> zero current and no load, held

@@ -5,7 +5,10 @@ Copy this file for a real drive. It has two parts:
 (a) :class:`Hardware` -- the only code that touches the power stage. Replace its two
     methods: ``write(isq_ref, load_torque)`` applies the current reference (and the load
     machine's torque) for the coming period, ``read()`` samples the sensors and returns a
-    :class:`Measurement`. Here they are backed by a small simulated stand-in plant
+    :class:`Measurement`; an optional ``close()`` runs once at the stop, right after a
+    last ``write(0.0, 0.0)`` (every way out of a run writes zero first: the end, SIGINT,
+    SIGTERM, an exception in the loop; SIGKILL cannot -- the inverter's own
+    communication-loss trip must cover it). Here they are backed by a small simulated stand-in plant
     (first-order current loop, torque = kt isq, inertia + viscous friction, a
     4096-count encoder, speed = low-pass filtered backward difference of the measured
     position), with constants from the drive parameter file.
@@ -129,6 +132,10 @@ class Hardware:
         """Electromagnetic torque [N m] of a q current [A]."""
         return self.kt * isq
 
+    def close(self) -> None:
+        """Optional: called once when the drive stops, right after a last ``write(0.0,
+        0.0)``; release the bus, disable the inverter's output. Nothing to do here."""
+
 
 @dataclass
 class Counters:
@@ -220,6 +227,10 @@ class ExampleDrive(LenientDoubles, Node):
         self.fresh = False
         self.cmd_watchdog = CommandWatchdog(self.command_timeout, self.period_s)
         self.tripped = False
+        #: latched by :meth:`safe_stop`: from then on every period writes zero current and
+        #: zero load torque, whatever command comes
+        self.safe_stopped = False
+        self._hw_closed = False
 
         self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
         self.joint_pub = self.make_joint_publisher()
@@ -247,8 +258,39 @@ class ExampleDrive(LenientDoubles, Node):
         return self.create_publisher(JointState, JOINT_STATE_TOPIC, RECORDED_QOS)
 
     def apply_command(self, isq_ref: float, load_torque: float) -> None:
-        """Clamp and hand the command to the hardware for the coming period."""
+        """Clamp and hand the command to the hardware for the coming period (zero current
+        and zero load torque once :meth:`safe_stop` latched)."""
+        if self.safe_stopped:
+            self.hw.write(0.0, 0.0)
+            return
         self.hw.write(max(-self.isq_max, min(self.isq_max, isq_ref)), load_torque)
+
+    # -- the safe stop ----------------------------------------------------------------------
+    def safe_stop(self) -> None:
+        """Zero current and zero load torque, now and in every later period (a latch: a
+        command that still comes is not applied). Called on every way out of a run --
+        its end, SIGINT/SIGTERM, an exception in the loop, a failed run -- by this node's
+        own loop and by the composed bench. Idempotent; the hardware stays open (a loop
+        may still run periods, e.g. to serve the tuner's last parameter calls)."""
+        self.safe_stopped = True
+        self.isq_ref = self.load_ref = 0.0
+        self.applied = -1
+        if not self._hw_closed:
+            self.hw.write(0.0, 0.0)
+
+    def close_hardware(self) -> None:
+        """The last word to the power stage: zero current and zero load torque, then the
+        hardware class's optional ``close()`` (release the bus, disable the inverter).
+        Idempotent; after it the hardware is never touched again."""
+        if self._hw_closed:
+            return
+        try:
+            self.safe_stop()
+        finally:
+            self._hw_closed = True
+            close = getattr(self.hw, 'close', None)
+            if callable(close):
+                close()
 
     def fill_state(self, m: Measurement) -> None:
         """Copy a measurement into the drive/state buffer (a real drive repeats the measured
@@ -356,10 +398,15 @@ class ExampleDrive(LenientDoubles, Node):
         self.publish_state()
 
     def period(self) -> None:
-        """One period at its start: take commands, watchdog, apply, sample, publish."""
+        """One period at its start: take commands, watchdog, apply, sample, publish
+        (nothing once the hardware is closed)."""
+        if self._hw_closed:
+            return
         c = self.counters
         self.take_commands()
         self.watchdog()
+        if self.safe_stopped:
+            self.applied, self.fresh = -1, False  # zero was applied, not a command
         c.fresh += self.fresh
         c.held += not self.fresh
         self.fresh = False
@@ -373,18 +420,22 @@ class ExampleDrive(LenientDoubles, Node):
         """Period n starts at t0 + n period_s (pacing.Pacer): take commands, apply,
         sample, publish."""
         c = self.counters
-        self.start()
-        pacer = Pacer(self.period_s, self.spin_margin)
-        next_status = pacer.t0 + 1.0
-        while not self.stop_requested and rclpy.ok(context=self.context):
-            now = pacer.wait(self.wait_command, self.take_commands)
-            c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
-            self.period()
-            if pacer.n % 250 == 0:  # serve parameter requests between periods, every 50 ms
-                executor.spin_once(timeout_sec=0.0)
-                if now >= next_status:
-                    self.publish_status()
-                    next_status = now + 1.0
+        try:
+            self.start()
+            pacer = Pacer(self.period_s, self.spin_margin)
+            next_status = pacer.t0 + 1.0
+            while not self.stop_requested and rclpy.ok(context=self.context):
+                now = pacer.wait(self.wait_command, self.take_commands)
+                c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
+                self.period()
+                if pacer.n % 250 == 0:  # serve parameter requests between periods, every 50 ms
+                    executor.spin_once(timeout_sec=0.0)
+                    if now >= next_status:
+                        self.publish_status()
+                        next_status = now + 1.0
+        finally:
+            # however the loop ends (a signal, an exception): zero current first
+            self.close_hardware()
         self.publish_status()
 
     def log_summary(self) -> None:
@@ -400,8 +451,11 @@ class ExampleDrive(LenientDoubles, Node):
             pub.wait_for_all_acked(Duration(seconds=timeout))
 
     def destroy_node(self) -> None:
-        self.io_node.destroy_node()
-        super().destroy_node()
+        try:
+            self.close_hardware()  # never destroyed with a current in the inverter
+        finally:
+            self.io_node.destroy_node()
+            super().destroy_node()
 
 
 def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:

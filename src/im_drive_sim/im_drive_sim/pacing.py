@@ -32,7 +32,10 @@ class PeriodicDrive(Protocol):
     (or step the model), sample, publish state k+1 with its ``applied_step``;
     ``take_commands()`` takes what came since (the loop calls it once the controller
     answered, so that answer is fresh for the next period); ``wait_command(s)`` sleeps up
-    to ``s`` seconds in rcl_wait, True when a command is pending.
+    to ``s`` seconds in rcl_wait, True when a command is pending. ``safe_stop()`` writes
+    zero current and zero load torque at once and latches them for every later period;
+    ``close_hardware()`` does that a last time and releases the power stage (after it
+    ``period()`` does nothing). A loop calls them on every way out.
     """
 
     counters: Any
@@ -47,6 +50,10 @@ class PeriodicDrive(Protocol):
     def wait_command(self, timeout_s: float) -> bool: ...
 
     def publish_status(self) -> None: ...
+
+    def safe_stop(self) -> None: ...
+
+    def close_hardware(self) -> None: ...
 
 
 class Pacer:

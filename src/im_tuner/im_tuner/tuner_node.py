@@ -282,6 +282,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                 compression=cli.compression,
                 tuner_metadata={k: v for k, v in run.items() if k != 'search_box'},
                 command=argv,
+                should_stop=should_stop,
             )
         else:
             bench = forms.Children(

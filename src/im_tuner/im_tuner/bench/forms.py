@@ -157,7 +157,10 @@ class InProcess:
         compression: str,
         tuner_metadata: dict[str, Any],
         command: list[str],
+        should_stop: Callable[[], bool] | None = None,
     ) -> None:
+        """``should_stop()``: the run was asked to stop (a signal); a real-time drive then
+        gets zero current at once, before the tuner winds down."""
         from . import InProcessBench, bench_metadata
 
         self.rec: Any = None
@@ -190,6 +193,7 @@ class InProcess:
                 drive_overrides=drive_overrides,
                 controller_overrides=controller_overrides or None,
                 before_start=start_recorder,
+                should_stop=should_stop,
             )
         else:
             self.bench = InProcessBench(

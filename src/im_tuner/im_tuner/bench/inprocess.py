@@ -160,16 +160,25 @@ class InProcessBench:
         self.drive.destroy_node()
 
 
-def bench_metadata(bench: InProcessBench) -> dict[str, dict]:
+def bench_metadata(bench) -> dict[str, dict]:
     """What the bag should say about this bench: the drive's configuration and seed, and
     the controller's parameters at start."""
     d = bench.drive
+    # any drive of the composed bench: the simulator, the example drive, a user's hardware
+    # class or drive node (only the simulator has a seed and a model)
+    hw = getattr(d, 'hw', None)
     drive = {
-        'config_file': d.get_parameter('config_file').value or '(packaged default)',
-        'model': d.config.model,
-        'seed': d.get_parameter('seed').value,
+        'class': f'{type(hw if hw is not None else d).__module__}.'
+        f'{type(hw if hw is not None else d).__qualname__}',
+        'config_file': (
+            d.get_parameter('config_file').value if d.has_parameter('config_file') else ''
+        )
+        or '(packaged default)',
+        'model': getattr(d.config, 'model', '-'),
         'config': json.dumps(dataclasses.asdict(d.config), sort_keys=True),
     }
+    if d.has_parameter('seed'):
+        drive['seed'] = d.get_parameter('seed').value
     ctl = {name: p.value for name, p in sorted(bench.controller._parameters.items())}
     return {
         'im_tuner.drive': drive,

@@ -139,9 +139,12 @@ class RealtimeBench:
         drive_overrides: list[Parameter] | None = None,
         controller_overrides: list[Parameter] | None = None,
         before_start: Callable[[RealtimeBench], None] | None = None,
+        should_stop: Callable[[], bool] | None = None,
     ) -> None:
         """``before_start(bench)`` runs once both nodes exist and match, before state 0:
-        the place to start a recorder that must not miss the first message."""
+        the place to start a recorder that must not miss the first message.
+        ``should_stop()``: checked every 5 periods; once True the drive is safe-stopped
+        (zero current, latched) -- the tuner's SIGINT/SIGTERM."""
         self.drive = make_drive(drive, context, list(drive_overrides or []))
         self.drive_kind = drive
         self.controller, self.executor = compose(
@@ -156,6 +159,10 @@ class RealtimeBench:
             ),
         )
         self.stop_requested = False
+        #: called between periods (every 5): True -> :meth:`safe_stop` (the tuner's
+        #: SIGINT/SIGTERM: zero current within a millisecond, before anything else)
+        self.should_stop: Callable[[], bool] = should_stop or (lambda: False)
+        self.safe_stopped = False
         self._pollers: list[tuple[Callable[[], Any], int]] = []
         self._polled: list[int] = []  # the period each poller last ran
         self.service_period = int(self.controller.service_period_steps)
@@ -307,15 +314,31 @@ class RealtimeBench:
         once it was false) or the timeout [s]; requests are served every period here
         (the tuner is waiting on one)."""
         deadline = None if timeout is None else time.monotonic() + timeout
-        while not self.stop_requested and rclpy.ok(context=self.drive.context):
-            if predicate():
-                return True
-            if deadline is not None and time.monotonic() > deadline:
-                return False
-            for _ in range(5):
-                self.step()
-            self._serve()  # the tuner waits on a response: serve it within a ms
+        try:
+            while not self.stop_requested and rclpy.ok(context=self.drive.context):
+                if not self.safe_stopped and self.should_stop():
+                    self.safe_stop()
+                if predicate():
+                    return True
+                if deadline is not None and time.monotonic() > deadline:
+                    return False
+                for _ in range(5):
+                    self.step()
+                self._serve()  # the tuner waits on a response: serve it within a ms
+        except BaseException:
+            self.safe_stop()  # an exception in the loop: zero current before anything else
+            raise
         return predicate()
+
+    def safe_stop(self) -> None:
+        """Zero current and zero load torque to the drive now, latched for every later
+        period (the loop may still run to serve the tuner's last calls). Every way out of
+        a run comes here: :attr:`should_stop` (a signal), an exception in the loop,
+        :meth:`destroy` (the run's end, a failure)."""
+        self.safe_stopped = True
+        stop = getattr(self.drive, 'safe_stop', None)
+        if callable(stop):
+            stop()
 
     def run(self) -> None:
         self.spin_until(lambda: False)
@@ -351,8 +374,15 @@ class RealtimeBench:
         return out
 
     def destroy(self) -> None:
+        """Zero current to the drive and close its hardware first, then the nodes."""
         gc.enable()
         gc.unfreeze()
-        self.executor.shutdown()
-        self.controller.destroy_node()
-        self.drive.destroy_node()
+        try:
+            self.safe_stop()
+            close = getattr(self.drive, 'close_hardware', None)
+            if callable(close):
+                close()
+        finally:
+            self.executor.shutdown()
+            self.controller.destroy_node()
+            self.drive.destroy_node()

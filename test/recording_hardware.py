@@ -20,7 +20,7 @@ import os
 
 import numpy as np
 
-from im_drive_sim.example_drive import Hardware, Measurement
+from im_drive_sim.example_drive import ExampleDrive, Hardware, Measurement
 from im_drive_sim.params import DriveConfig
 
 SLOTS = 6
@@ -70,3 +70,11 @@ def read_log(path: str) -> dict[str, float]:
         'writes_after_close': float(v[4]),
         'max_abs_isq': float(v[5]),
     }
+
+
+class RecordingDrive(ExampleDrive):
+    """A whole drive node class (the other form ``--drive`` takes): the example drive's
+    ROS side with :class:`RecordingHardware` as its power stage."""
+
+    def make_hardware(self) -> RecordingHardware:
+        return RecordingHardware(self.config)

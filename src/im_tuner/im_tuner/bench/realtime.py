@@ -49,12 +49,30 @@ from rclpy.parameter import Parameter
 from im_controller.controller_node import ControllerNode
 from im_drive_sim.pacing import Pacer
 
+from ..tuning import BenchFailure
 from .inprocess import compose
 
 #: Drives by name; anything else is ``package.module:Class``.
 DRIVES = ('sim', 'example')
 #: Periods of per-period timings kept (a ring): 10 min at 5 kHz.
 TIMING_CAPACITY = 3_000_000
+
+
+class DriveLoopError(BenchFailure):
+    """The real-time loop raised (a hardware class's read/write, a node's period): the
+    drive was safe-stopped and the loop runs no more; the run ends as a bench failure
+    (the message says where)."""
+
+
+def _where(exc: BaseException) -> str:
+    """``file:line in function`` of the innermost frame of ``exc``'s traceback."""
+    tb = exc.__traceback__
+    if tb is None:
+        return 'unknown'
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    code = tb.tb_frame.f_code
+    return f'{code.co_filename}:{tb.tb_lineno} in {code.co_name}'
 
 
 class DriveSpecError(ValueError):
@@ -163,6 +181,7 @@ class RealtimeBench:
         #: SIGINT/SIGTERM: zero current within a millisecond, before anything else)
         self.should_stop: Callable[[], bool] = should_stop or (lambda: False)
         self.safe_stopped = False
+        self.failed: DriveLoopError | None = None  #: the loop raised: it runs no more
         self._pollers: list[tuple[Callable[[], Any], int]] = []
         self._polled: list[int] = []  # the period each poller last ran
         self.service_period = int(self.controller.service_period_steps)
@@ -314,6 +333,8 @@ class RealtimeBench:
         once it was false) or the timeout [s]; requests are served every period here
         (the tuner is waiting on one)."""
         deadline = None if timeout is None else time.monotonic() + timeout
+        if self.failed is not None:  # a loop that raised runs no more periods
+            raise DriveLoopError('the real-time loop stopped earlier (see above)')
         try:
             while not self.stop_requested and rclpy.ok(context=self.drive.context):
                 if not self.safe_stopped and self.should_stop():
@@ -325,8 +346,14 @@ class RealtimeBench:
                 for _ in range(5):
                     self.step()
                 self._serve()  # the tuner waits on a response: serve it within a ms
-        except BaseException:
+        except BaseException as exc:
             self.safe_stop()  # an exception in the loop: zero current before anything else
+            if isinstance(exc, Exception) and not isinstance(exc, BenchFailure):
+                self.failed = DriveLoopError(
+                    f'the real-time loop stopped on {type(exc).__name__}: {exc} (in '
+                    f'{_where(exc)}); zero current and zero load were written to the drive'
+                )
+                raise self.failed from exc
             raise
         return predicate()
 

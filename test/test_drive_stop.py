@@ -1,0 +1,99 @@
+"""A real drive on the composed bench (issue 26): every ``--drive`` form tunes with
+recording on, and every way out of a run leaves zero current in the power stage.
+
+The power stage is :mod:`recording_hardware` (the example drive's simulated plant; every
+``write`` lands in a memory-mapped file the test reads after the process ended), named
+as docs/real-drive.md tells a user to name theirs: ``--drive module:Class`` with the
+module on PYTHONPATH.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from recording_hardware import read_log
+from test_faults import bag_counts, bag_state, results, ros2
+
+HERE = Path(__file__).parent
+STEPS = 5625
+
+
+def _env(hw_file: Path, **extra: str) -> dict[str, str]:
+    env = dict(os.environ)
+    env['PYTHONPATH'] = os.pathsep.join([str(HERE), env.get('PYTHONPATH', '')]).rstrip(os.pathsep)
+    env['RECORDING_HW_FILE'] = str(hw_file)
+    env.update(extra)
+    return env
+
+
+def _tuner(run: Path, drive: str, budget: int) -> list[str]:
+    return [
+        *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--drive', drive),
+        *('--budget', str(budget), '--seed', '3', '--remeasure', '0', '--quiet'),
+        *('--out', str(run)),
+    ]
+
+
+@pytest.mark.parametrize(
+    'drive',
+    ['example', 'recording_hardware:RecordingHardware', 'recording_hardware:RecordingDrive'],
+)
+def test_every_drive_form_tunes_three_evaluations_with_recording(tmp_path, drive):
+    run, hw = tmp_path / 'run', tmp_path / 'hw.bin'
+    p = subprocess.run(
+        _tuner(run, drive, 3), env=_env(hw), capture_output=True, text=True, timeout=300
+    )
+    assert p.returncode == 0, p.stderr[-3000:]
+    recs = results(run)
+    assert [r['kind'] for r in recs] == ['reference', 'eval', 'eval', 'eval'], recs
+    for r in recs:
+        assert r['status'] in ('ok', 'aborted') and r['steps'] == STEPS, r
+    bag = run / 'bag_0'
+    assert bag_state(bag) == 'closed'
+    counts = bag_counts(bag)
+    # every period's state recorded: at least the four experiments' periods
+    assert counts['/drive/state'] >= 4 * STEPS, counts
+    assert counts['/controller/loss'] == 4, counts
+    if drive != 'example':
+        log = read_log(str(hw))
+        assert log['writes'] >= 4 * STEPS, log
+        assert (log['isq_ref'], log['load_torque']) == (0.0, 0.0), log
+        assert log['closes'] == 1.0 and log['writes_after_close'] == 0.0, log
+
+
+@pytest.mark.parametrize('how', ['SIGINT', 'SIGTERM', 'exception'])
+def test_every_way_out_leaves_zero_current(tmp_path, procs, wait_until, how):
+    """Stopped in the middle of an experiment, with current flowing: the last write to
+    the power stage is zero current and zero load torque, then close(), then nothing."""
+    run, hw = tmp_path / 'run', tmp_path / 'hw.bin'
+    mid = 2 * STEPS + 1000  # inside the second experiment (the load is on after 3500)
+    extra = {'RECORDING_HW_RAISE_AFTER': str(mid)} if how == 'exception' else {}
+    proc = procs.start(
+        _tuner(run, 'recording_hardware:RecordingHardware', 50), env=_env(hw, **extra)
+    )
+    if how != 'exception':
+        wait_until(
+            lambda: hw.exists() and read_log(str(hw))['writes'] >= mid,
+            120,
+            message='the run to reach the middle of its second experiment',
+        )
+        proc.send_signal(getattr(signal, how))
+    out, err = proc.communicate(timeout=120)
+    log = read_log(str(hw))
+    assert log['max_abs_isq'] > 0.5, log  # current was flowing before the stop
+    assert (log['isq_ref'], log['load_torque']) == (0.0, 0.0), log
+    assert log['closes'] == 1.0 and log['writes_after_close'] == 0.0, log
+    assert bag_state(run / 'bag_0') == 'closed'
+    if how == 'exception':
+        assert proc.returncode == 1, err[-3000:]
+        assert 'Traceback' not in err, err[-3000:]
+        assert 'failed: the real-time loop stopped on OSError: fieldbus' in out, out + err
+    else:
+        assert proc.returncode == 130, err[-3000:]

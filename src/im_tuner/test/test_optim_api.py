@@ -461,6 +461,45 @@ def test_no_rclpy_anywhere():
     assert subprocess.run([sys.executable, '-c', code], timeout=60).returncode == 0
 
 
+def test_algorithm_modules_load_only_when_built():
+    """Importing im_tuner.optim (and reading OPTIONS, ALGOS, TAKES_START: what the tuner's
+    command line needs) imports no algorithm module and none of pycma, optuna, scipy;
+    building one imports its own module only; a state restores in a fresh process (the
+    registry loads the module)."""
+    state = make_optimizer('cmaes', 5, 1).state_dict()
+    code = (
+        'import json, sys\n'
+        'import im_tuner.optim as o\n'
+        'assert o.OPTIONS["cmaes"]["sigma0"].default == 0.1 and "safe" in o.TAKES_START\n'
+        'heavy = ("cma", "optuna", "scipy", "im_tuner.optim.cmaes", "im_tuner.optim.tpe",\n'
+        '         "im_tuner.optim.rcga", "im_tuner.optim.spsa", "im_tuner.optim.cga",\n'
+        '         "im_tuner.optim.safe")\n'
+        'first = sorted(m for m in heavy if m in sys.modules)\n'
+        'o.make_optimizer("spsa", 5, 0)\n'
+        'second = sorted(m for m in heavy if m in sys.modules)\n'
+        'opt = o.Optimizer.from_state(json.loads(sys.stdin.read()))\n'
+        'print(json.dumps([first, second, type(opt).__name__, "cma" in sys.modules]))\n'
+    )
+    proc = subprocess.run(
+        [sys.executable, '-c', code],
+        input=json.dumps(state),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    first, second, name, cma_loaded = json.loads(proc.stdout)
+    assert first == [] and second == ['im_tuner.optim.spsa']
+    assert name == 'CMAES' and cma_loaded
+    assert optim.CMAES is type(make_optimizer('cmaes', 5, 1))
+    with pytest.raises(AttributeError):
+        optim.NoSuchOptimiser  # noqa: B018
+    from im_tuner.optim.options import GAIN_PRESETS, NO_START_ALGOS
+
+    assert tuple(GAIN_PRESETS) == OPTIONS['spsa']['gains'].choices
+    assert NO_START_ALGOS < TAKES_START and 'safe' not in NO_START_ALGOS
+
+
 def test_evaluations_per_generation():
     """Evaluations, not iterations: spsa 2 per iteration, cga 2 per generation, the
     elitist ones 1 (+ the first elite; + 1 per sampled replacement for neCGA)."""

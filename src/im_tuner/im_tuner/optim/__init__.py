@@ -1,5 +1,5 @@
-"""Optimiser core of the tuner (no rclpy): SPSA and the compact-GA family (numpy), CMA-ES
-(pycma) and TPE (optuna).
+"""Optimiser core of the tuner (no rclpy): SPSA, safe and the compact-GA family (numpy),
+rcGA (scipy), CMA-ES (pycma) and TPE (optuna).
 
     from im_tuner.optim import make_optimizer, OPTIONS, ALGOS
     opt = make_optimizer('necga', dim=5, seed=1, n=25, eta=12)
@@ -8,14 +8,18 @@
         opt.tell(u, measure(u))        # the loss of one experiment
 
 ``OPTIONS[algo][name]`` is an :class:`OptionSpec` (type, default, help, accepted range or
-choices), the single source for command-line flags.  The contract of every optimiser
-(ask/tell, state_dict/from_state, evaluations, converged, config) is in ``base.py``;
-the algorithms, the options and the decisions taken are in docs/optimisers.md.
+choices), the single source for command-line flags (``options.py``).  Importing this
+package imports no algorithm: each algorithm's module (with pycma, optuna or scipy) is
+imported when one is built or restored, so a command line is parsed and refused in a
+fraction of a second.  The contract of every optimiser (ask/tell, state_dict/from_state,
+evaluations, converged, config) is in ``base.py``; the algorithms, the options and the
+decisions taken are in docs/optimisers.md.
 """
 
 from __future__ import annotations
 
-from typing import Any
+import importlib
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -28,20 +32,31 @@ from .base import (
     check_seed,
     check_start,
 )
-from .cga import CGA, NECGA, PECGA, BinaryCGA
-from .cmaes import CMAES
-from .rcga import RCGA
-from .safe import SAFE
-from .spsa import SPSA
-from .tpe import TPE
+from .options import (
+    ALGOS,
+    DEFAULT_ALGO,
+    MODULES,
+    NO_START_ALGOS,
+    OPTIONS,
+    TAKES_START,
+    algorithm_class,
+)
+
+if TYPE_CHECKING:  # the classes are loaded on first use (module __getattr__ below)
+    from .cga import CGA, NECGA, PECGA, BinaryCGA
+    from .cmaes import CMAES
+    from .rcga import RCGA
+    from .safe import SAFE
+    from .spsa import SPSA
+    from .tpe import TPE
 
 __all__ = [
     'ALGOS',
     'CGA',
-    'CLASSES',
     'CMAES',
     'DEFAULT_ALGO',
     'NECGA',
+    'NO_START_ALGOS',
     'OPTIONS',
     'PECGA',
     'RCGA',
@@ -53,32 +68,21 @@ __all__ = [
     'Optimizer',
     'OptimizerError',
     'OptionSpec',
+    'algorithm_class',
     'make_optimizer',
 ]
 
-#: Every algorithm name accepted by make_optimizer (and ``--algo``).
-ALGOS: tuple[str, ...] = ('spsa', 'necga', 'cga', 'pecga', 'rcga', 'cmaes', 'tpe', 'safe')
-#: the tuner's optimiser when none is named: the fewest experiments and aborted ones from
-#: a hand-tuned start (issue 19; docs/tuner.md, "Which algorithm")
-DEFAULT_ALGO = 'safe'
+#: class name -> its module (``from im_tuner.optim import CMAES`` imports pycma then)
+_CLASS_MODULES: dict[str, str] = {cls: mod for mod, cls in MODULES.values()} | {'BinaryCGA': 'cga'}
 
-CLASSES: dict[str, type[Optimizer]] = {
-    'spsa': SPSA,
-    'necga': NECGA,
-    'cga': CGA,
-    'pecga': PECGA,
-    'rcga': RCGA,
-    'cmaes': CMAES,
-    'tpe': TPE,
-    'safe': SAFE,
-}
 
-#: algo -> option name -> OptionSpec (names are python identifiers, usable as flags).
-OPTIONS: dict[str, dict[str, OptionSpec]] = {a: dict(CLASSES[a].OPTIONS) for a in ALGOS}
-
-#: algorithms that use ``start`` (the compact GAs start from their distribution): SPSA's
-#: iterate, CMA-ES's mean, TPE's first (enqueued) trial.
-TAKES_START: frozenset[str] = frozenset({'spsa', 'cmaes', 'tpe', 'safe'})
+def __getattr__(name: str) -> Any:
+    """The optimiser classes, each module imported on first use (PEP 562): importing
+    this package costs numpy only, not pycma, optuna or scipy."""
+    module = _CLASS_MODULES.get(name)
+    if module is None:
+        raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
+    return getattr(importlib.import_module(f'{__name__}.{module}'), name)
 
 
 def make_optimizer(
@@ -91,14 +95,15 @@ def make_optimizer(
     """Validate everything, then build the optimiser ``algo`` on ``dim`` parameters.
 
     ``seed``: int >= 0 or SeedSequence (the optimiser's own PCG64 stream).  ``start``:
-    normalised start point in [0, 1]^dim (``TAKES_START`` only; None = spsa and cmaes
-    draw a uniform random start, tpe starts with random trials).
+    normalised start point in [0, 1]^dim (``TAKES_START`` only; None = spsa, cmaes and
+    safe draw a uniform random start, tpe starts with random trials; the tuner runs
+    only ``NO_START_ALGOS`` without one).
     ``options``: see ``OPTIONS[algo]``; unset ones take their defaults.  Any problem
     (unknown algo or option, wrong type, bool for a number, out of range, eta >= n, a
     start for a compact GA...) raises OptimizerError with a one-line message naming it
     and the accepted values, before anything is created.
     """
-    if not isinstance(algo, str) or algo not in CLASSES:
+    if not isinstance(algo, str) or algo not in OPTIONS:
         raise OptimizerError(f'unknown algo {algo!r} (allowed: {", ".join(ALGOS)})')
     dim = check_dim(dim)
     check_seed(seed)
@@ -111,4 +116,4 @@ def make_optimizer(
     check_options(algo, OPTIONS[algo], options)
     # The constructors repeat these checks and add the cross-option ones (eta < n) before
     # they create anything.
-    return CLASSES[algo](dim, seed, start, **options)
+    return algorithm_class(algo)(dim, seed, start, **options)

@@ -369,7 +369,11 @@ class Optimizer(ABC):
     def from_state(state: dict[str, Any]) -> Optimizer:
         """Rebuild any optimiser from ``state_dict()`` output (dispatch on 'algo')."""
         try:
-            cls = Optimizer._registry[state['algo']]
+            cls = Optimizer._registry.get(state['algo'])
+            if cls is None:  # its module not imported yet (im_tuner.optim loads them lazily)
+                from .options import algorithm_class
+
+                cls = algorithm_class(state['algo'])
         except (KeyError, TypeError):
             raise OptimizerError(
                 f'not an optimiser state (algo {state.get("algo")!r})'

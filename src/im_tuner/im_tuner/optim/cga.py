@@ -49,6 +49,7 @@ from .base import (
     seed_json,
     told_loss,
 )
+from .options import CGA_OPTIONS, NECGA_OPTIONS
 
 __all__ = ['CGA', 'NECGA', 'PECGA', 'BinaryCGA']
 
@@ -66,29 +67,6 @@ _NEWCOMER = 'newcomer'
 # A genome's guard bytes (0x80 = bit 1, 0x00 = bit 0) <-> its '0'/'1' string.
 _TO_CHARS = bytes.maketrans(b'\x00\x80', b'01')
 _FROM_CHARS = bytes.maketrans(b'01', b'\x00\x80')
-
-_COMMON_OPTIONS: dict[str, OptionSpec] = {
-    'n': OptionSpec(
-        int,
-        25,
-        'virtual population size n: each competition moves a probability by 1/n',
-        low=2,
-        high=1_000_000,
-    ),
-    'bits': OptionSpec(
-        int,
-        16,
-        'bits per parameter (resolution 1/(2^bits - 1) of the normalised range)',
-        low=1,
-        high=32,
-    ),
-    'coding': OptionSpec(
-        str,
-        'binary',
-        "gene coding: 'binary' (plain, most significant bit first) or 'gray' (reflected Gray code)",
-        choices=('binary', 'gray'),
-    ),
-}
 
 
 class BinaryCGA(Optimizer):
@@ -115,7 +93,7 @@ class BinaryCGA(Optimizer):
       when the loser was sampled from an older PV (an elite beaten by a newcomer).
     """
 
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = _COMMON_OPTIONS
+    OPTIONS: ClassVar[dict[str, OptionSpec]] = CGA_OPTIONS
     _ELITIST: ClassVar[bool] = False  # pe/neCGA: an elite and one newcomer
     _NE: ClassVar[bool] = False  # neCGA: theta and the elite replacement
     eta: int  # neCGA only (set by NECGA.__init__)
@@ -454,25 +432,7 @@ class NECGA(PECGA):
 
     algo: ClassVar[str] = 'necga'
     _NE: ClassVar[bool] = True
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = {
-        **_COMMON_OPTIONS,
-        'eta': OptionSpec(
-            int,
-            12,
-            'allowed length of inheritance eta: after eta '
-            'consecutive wins the elite is replaced (must be < n)',
-            low=1,
-            high=1_000_000,
-        ),
-        'elite_replacement': OptionSpec(
-            str,
-            'sample',
-            "what replaces an elite that won eta times in a row: 'sample' "
-            "(a fresh PV sample, one extra evaluation; the paper's Fig. 3) or 'newcomer' "
-            "(the newcomer just evaluated; the authors' Java code)",
-            choices=('sample', 'newcomer'),
-        ),
-    }
+    OPTIONS: ClassVar[dict[str, OptionSpec]] = NECGA_OPTIONS
 
     def _check_more(self, opts: dict[str, Any]) -> None:
         if opts['eta'] >= opts['n']:

@@ -36,6 +36,7 @@ from .base import (
     told_history,
     told_loss,
 )
+from .options import CMAES_OPTIONS
 
 __all__ = ['CMAES']
 
@@ -60,24 +61,7 @@ class CMAES(Optimizer):
     """
 
     algo: ClassVar[str] = 'cmaes'
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = {
-        'sigma0': OptionSpec(
-            float,
-            0.1,
-            'initial step size sigma0 (normalised units: a fraction of each parameter range)',
-            low=0.0,
-            high=1.0,
-            low_strict=True,
-        ),
-        'popsize': OptionSpec(
-            int,
-            None,
-            "population size lambda per generation (default: pycma's 4 + floor(3 ln dim), "
-            '8 for 5 gains)',
-            low=2,
-            high=10_000,
-        ),
-    }
+    OPTIONS: ClassVar[dict[str, OptionSpec]] = CMAES_OPTIONS
 
     def __init__(
         self,

@@ -51,6 +51,7 @@ from .base import (
     seed_json,
     told_loss,
 )
+from .options import RCGA_OPTIONS
 
 __all__ = ['RCGA', 'SIGMA_TOL', 'erfinv', 'ndtri', 'norm_cdf', 'truncnorm_ppf']
 
@@ -119,38 +120,7 @@ class RCGA(Optimizer):
     """
 
     algo: ClassVar[str] = 'rcga'
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = {
-        'n': OptionSpec(
-            int,
-            25,
-            'virtual population size n: a competition moves mu by (w - l)/n',
-            low=2,
-            high=1_000_000,
-        ),
-        'elitism': OptionSpec(
-            str,
-            'ne',
-            "'ne' (elite replaced by the newcomer after eta "
-            "consecutive wins) or 'pe' (persistent elite)",
-            choices=('ne', 'pe'),
-        ),
-        'eta': OptionSpec(
-            int,
-            12,
-            "allowed length of inheritance with elitism='ne' (consecutive elite wins; must be < n)",
-            low=1,
-            high=1_000_000,
-        ),
-        'sigma0': OptionSpec(
-            float,
-            10.0,
-            'initial spread of every variable on x in '
-            '[-1, 1] (10: nearly uniform; 0.577: a uniform population)',
-            low=0.0,
-            high=1e6,
-            low_strict=True,
-        ),
-    }
+    OPTIONS: ClassVar[dict[str, OptionSpec]] = RCGA_OPTIONS
     #: samples per random block (one rng call per block)
     _BLOCK: ClassVar[int] = 64
 

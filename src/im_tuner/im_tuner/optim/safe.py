@@ -67,6 +67,7 @@ from .base import (
     rng_state,
     told_loss,
 )
+from .options import SAFE_OPTIONS
 
 __all__ = ['SAFE']
 
@@ -77,44 +78,7 @@ class SAFE(Optimizer):
     """Local abort-aware (1+1)-ES from the start point (see the module docstring)."""
 
     algo: ClassVar[str] = 'safe'
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = {
-        'sigma0': OptionSpec(
-            float, 0.05, 'initial step size (normalised units)', low=0.0, high=1.0, low_strict=True
-        ),
-        'grow': OptionSpec(
-            float, 1.5, 'step-size factor after a success', low=1.0, high=10.0, low_strict=True
-        ),
-        'abort_shrink': OptionSpec(
-            float,
-            0.3,
-            'step-size factor after an aborted experiment',
-            low=0.0,
-            high=1.0,
-            low_strict=True,
-        ),
-        'sigma_max': OptionSpec(
-            float,
-            0.08,
-            'largest step size (normalised units): the trust region around the incumbent',
-            low=0.005,
-            high=1.0,
-        ),
-        'remeasure_every': OptionSpec(
-            int,
-            10,
-            'measure the incumbent again every this many evaluations (0: never)',
-            low=0,
-            high=1_000_000,
-        ),
-        'model_every': OptionSpec(
-            int,
-            2,
-            'take a descent step on the local linear model every this many evaluations '
-            '(0: never, a plain (1+1)-ES)',
-            low=0,
-            high=1_000_000,
-        ),
-    }
+    OPTIONS: ClassVar[dict[str, OptionSpec]] = SAFE_OPTIONS
     #: floor of the step size: below half a percent of a range the search stalls on noise
     SIGMA_MIN: ClassVar[float] = 0.005
     #: model radius in units of sigma sqrt(dim); noise of a model step in units of sigma;

@@ -29,7 +29,6 @@ either preset.  See docs/optimisers.md.
 
 from __future__ import annotations
 
-import math
 from typing import Any, ClassVar
 
 import numpy as np
@@ -48,11 +47,9 @@ from .base import (
     seed_json,
     told_loss,
 )
+from .options import GAIN_PRESETS, SPSA_OPTIONS
 
 __all__ = ['GAIN_PRESETS', 'SPSA']
-
-#: (alpha, gamma) of each ``gains`` preset.
-GAIN_PRESETS: dict[str, tuple[float, float]] = {'paper': (0.3, 0.3), 'spall': (0.602, 0.101)}
 
 _STATE_VERSION = 1
 
@@ -65,66 +62,7 @@ class SPSA(Optimizer):
     """
 
     algo: ClassVar[str] = 'spsa'
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = {
-        'a': OptionSpec(
-            float,
-            0.0183,
-            'step gain a of a_k = a/(k+1+A)^alpha (normalised units per unit of loss gradient)',
-            low=0.0,
-            high=math.inf,
-            low_strict=True,
-            high_strict=True,
-        ),
-        'c': OptionSpec(
-            float,
-            0.03,
-            'perturbation size c of c_k = c/(k+1)^gamma '
-            '(normalised units, fraction of each parameter range)',
-            low=0.0,
-            high=0.5,
-            low_strict=True,
-            high_strict=True,
-        ),
-        'A': OptionSpec(
-            float,
-            20.0,
-            'stability constant A of a_k (iterations; ~10% of the expected iterations)',
-            low=0.0,
-            high=math.inf,
-            high_strict=True,
-        ),
-        'alpha': OptionSpec(
-            float,
-            None,
-            "decay exponent of a_k (default: 0.3 with gains='paper', 0.602 with gains='spall')",
-            low=0.0,
-            high=1.0,
-            low_strict=True,
-        ),
-        'gamma': OptionSpec(
-            float,
-            None,
-            "decay exponent of c_k (default: 0.3 with gains='paper', 0.101 with gains='spall')",
-            low=0.0,
-            high=1.0,
-        ),
-        'gains': OptionSpec(
-            str,
-            'paper',
-            "alpha/gamma preset: 'paper' (0.3/0.3) or 'spall' (0.602/0.101)",
-            choices=tuple(GAIN_PRESETS),
-        ),
-        'max_step': OptionSpec(
-            float,
-            0.1,
-            'largest change of any normalised parameter in '
-            'one iteration (the step vector is scaled down to it); '
-            'inf disables the cap',
-            low=0.0,
-            high=math.inf,
-            low_strict=True,
-        ),
-    }
+    OPTIONS: ClassVar[dict[str, OptionSpec]] = SPSA_OPTIONS
     #: iterations per random block (one rng call per block)
     _BLOCK: ClassVar[int] = 32
 

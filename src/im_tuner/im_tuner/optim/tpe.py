@@ -34,6 +34,7 @@ from .base import (
     told_history,
     told_loss,
 )
+from .options import TPE_OPTIONS
 
 __all__ = ['TPE']
 
@@ -71,29 +72,7 @@ class TPE(Optimizer):
     """
 
     algo: ClassVar[str] = 'tpe'
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = {
-        'n_startup_trials': OptionSpec(
-            int,
-            10,
-            'evaluations sampled at random before TPE models the losses (the start counts)',
-            low=0,
-            high=1_000_000,
-        ),
-        'n_ei_candidates': OptionSpec(
-            int,
-            24,
-            'candidates drawn from the good-loss density per ask; the best l(x)/g(x) is asked',
-            low=1,
-            high=1_000_000,
-        ),
-        'multivariate': OptionSpec(
-            str,
-            'yes',
-            "'yes': one joint Parzen density over the gains (optuna 5's default); "
-            "'no': one per gain",
-            choices=('yes', 'no'),
-        ),
-    }
+    OPTIONS: ClassVar[dict[str, OptionSpec]] = TPE_OPTIONS
 
     def __init__(
         self,

@@ -233,7 +233,8 @@ def test_bench_at_full_speed_every_message_recorded(ros_context, tmp_path, monke
     assert records['im_tuner.drive']['seed'] == '5'
     assert json.loads(records['im_tuner.controller']['parameters'])['k_pw'] == 0.53
     assert json.loads(records['im_tuner.counts']['/drive/state']) == counts['/drive/state']
-    assert 'serialized_metadata' in records['rosbag2']
+    # rosbag2's record: metadata.yaml's map itself, without the outer key (issue 25)
+    assert yaml.safe_load(records['rosbag2']['serialized_metadata']) == meta
 
 
 def test_a_backlog_taken_late_still_makes_chunks_of_at_most_max_chunk_age(ros_context, tmp_path):

@@ -154,6 +154,21 @@ def bag_metadata(
     }
 
 
+def rosbag2_record(metadata: dict) -> dict[str, str]:
+    """The MCAP metadata record ``rosbag2`` for :func:`bag_metadata`'s ``metadata``.
+
+    rosbag2's MCAP storage (Jazzy, ``rosbag2_storage_mcap/src/mcap_storage.cpp``,
+    ``update_metadata``) writes one key, ``serialized_metadata``: the BagMetadata itself
+    in YAML -- the map *inside* ``metadata.yaml``'s ``rosbag2_bagfile_information``, with
+    ``version`` at the top. On open it decodes that map with ``node["version"]`` first
+    (``convert<BagMetadata>::decode``, ``rosbag2_storage/yaml.hpp``), so the outer key
+    would make every ``ros2 bag`` command fail on the bag. ``ros_distro`` is inside the
+    map (rosbag2 before version 8 wrote a separate ``ROS_DISTRO`` key; Jazzy writes none).
+    """
+    inner = metadata['rosbag2_bagfile_information']
+    return {'serialized_metadata': yaml.safe_dump(inner, sort_keys=False)}
+
+
 def write_metadata_yaml(out: Path, metadata: dict) -> None:
     """Write ``metadata.yaml`` atomically (a crash never leaves half a file)."""
     path = Path(out) / 'metadata.yaml'
@@ -166,5 +181,6 @@ def write_metadata_yaml(out: Path, metadata: dict) -> None:
 
 
 def read_metadata_yaml(out: Path) -> dict:
+    """The map inside ``out/metadata.yaml``'s ``rosbag2_bagfile_information``."""
     with open(Path(out) / 'metadata.yaml', encoding='utf-8') as f:
         return yaml.safe_load(f)['rosbag2_bagfile_information']

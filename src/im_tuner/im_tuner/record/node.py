@@ -47,7 +47,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -62,6 +61,7 @@ from .metadata import (
     prepare_bag_dir,
     qos_to_dict,
     qos_yaml,
+    rosbag2_record,
     storage_file_name,
     write_metadata_yaml,
 )
@@ -471,10 +471,7 @@ class Recorder:
             custom['im_tuner.close'] = cut
             self.node.get_logger().warn(f'bag {self.out.name}: {cut}')
         meta = self._metadata(custom)
-        self.writer.add_metadata(
-            'rosbag2',
-            {'serialized_metadata': yaml.safe_dump(meta, sort_keys=False), 'ros_distro': 'jazzy'},
-        )
+        self.writer.add_metadata('rosbag2', rosbag2_record(meta))
         self.writer.add_metadata(
             'im_tuner.counts', {k: json.dumps(v, sort_keys=True) for k, v in counts.items()}
         )

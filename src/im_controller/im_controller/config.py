@@ -24,6 +24,8 @@ __all__ = [
     'GAIN_NAMES',
     'GAIN_RANGES',
     'GAIN_UNITS',
+    'MOVE_KEYS',
+    'MOVE_RULE',
     'NUMERIC_SPECS',
     'SEARCH_BOX',
     'ControlConfig',
@@ -34,6 +36,7 @@ __all__ = [
     'NumSpec',
     'SafetyConfig',
     'TrajectoryConfig',
+    'trajectory_times',
     'validate_control_config',
     'validate_experiment_config',
     'validate_gains',
@@ -291,6 +294,45 @@ class TrajectoryConfig:
     load_sign: str = 'oppose_move'
 
 
+#: The parameters that set how long the move takes, and the rule they obey together
+#: (checked by :func:`validate_experiment_config`, which knows Ts; the controller's
+#: parameter descriptors say it).
+MOVE_KEYS: tuple[str, ...] = (
+    'trajectory.distance',
+    'trajectory.a_max',
+    'trajectory.v_max',
+    'trajectory.duration',
+)
+MOVE_RULE = (
+    'the move (distance under a_max and v_max, minimum time) must end by the '
+    "experiment's last sample, duration - Ts"
+)
+
+
+def trajectory_times(
+    distance: float, a_max: float, v_max: float
+) -> tuple[float, float, float, float]:
+    """Minimum-time rest-to-rest move under |a| <= a_max, |v| <= v_max.
+
+    Returns (t_acc, t_dec, t_end, v_peak) [s, s, s, rad/s]: acceleration until t_acc,
+    cruise at v_peak until t_dec, deceleration until t_end.  Trapezoid if
+    distance >= v_max^2/a_max (t_acc = v_max/a_max, cruise (distance - v_max^2/a_max)/v_max),
+    else triangle (t_acc = sqrt(distance/a_max), v_peak = a_max t_acc, no cruise).
+    Default pi rad, 600 rad/s^2, 40 rad/s: t_acc = 0.0667, t_end = 0.1452 s.
+    (One function for the controller's trajectory generator,
+    ``trajectory.make_experiment_params``, and for the check of :data:`MOVE_RULE`.)
+    """
+    if distance >= v_max * v_max / a_max:
+        t_acc = v_max / a_max
+        t_cruise = (distance - v_max * v_max / a_max) / v_max
+        v_peak = v_max
+    else:
+        t_acc = math.sqrt(distance / a_max)
+        t_cruise = 0.0
+        v_peak = a_max * t_acc
+    return t_acc, t_acc + t_cruise, 2.0 * t_acc + t_cruise, v_peak
+
+
 def validate_trajectory_config(c: Any, prefix: str = 'trajectory') -> TrajectoryConfig:
     if not isinstance(c, TrajectoryConfig):
         raise ControllerConfigError(f'{prefix} must be a TrajectoryConfig, got {type(c).__name__}')
@@ -363,6 +405,17 @@ def validate_experiment_config(c: Any) -> ExperimentConfig:
         raise ControllerConfigError(
             f'trajectory.duration must be an integer number of control periods '
             f'(Ts = {ctl.Ts:g} s), got {traj.duration!r}'
+        )
+    # MOVE_RULE. The kernel samples t = n Ts, n = 0 .. N-1: the move reaches its end
+    # (exactly `distance`) within the experiment only if it ends by (N-1) Ts.
+    t_end = trajectory_times(traj.distance, traj.a_max, traj.v_max)[2]
+    last = (round(traj.duration / ctl.Ts) - 1) * ctl.Ts
+    if t_end > last * (1.0 + 1e-12):
+        raise ControllerConfigError(
+            f'trajectory: the move of {traj.distance:g} rad (a_max {traj.a_max:g} rad/s^2, '
+            f'v_max {traj.v_max:g} rad/s) takes {t_end:.4g} s, longer than the experiment: '
+            f'it must end by its last sample, trajectory.duration - Ts = {last:.6g} s '
+            '(a shorter distance, a higher a_max or v_max, or a longer duration)'
         )
     return ExperimentConfig(
         ctl,

@@ -62,6 +62,8 @@ from im_drive_sim.runtime import (
 from . import contract as C
 from .config import (
     GAIN_NAMES,
+    MOVE_KEYS,
+    MOVE_RULE,
     NUMERIC_SPECS,
     ControlConfig,
     ControllerConfigError,
@@ -136,7 +138,7 @@ def _float_descriptor(key: str, description: str, read_only: bool) -> ParameterD
         description + unit,
         param_type=ParameterType.PARAMETER_DOUBLE,
         read_only=read_only,
-        additional=f'finite, in {bounds}',
+        additional=f'finite, in {bounds}' + (f'; {MOVE_RULE}' if key in MOVE_KEYS else ''),
         float_range=(sp.lo, sp.hi),
     )
 

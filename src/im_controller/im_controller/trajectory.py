@@ -8,7 +8,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .config import ExperimentConfig, validate_experiment_config
+from .config import ExperimentConfig, trajectory_times, validate_experiment_config
 from .layout import (
     N_QPARAMS,
     Q_A1,
@@ -38,28 +38,6 @@ from .layout import (
 
 
 # ------------------------------------------------------------------------ trajectory
-def trajectory_times(
-    distance: float, a_max: float, v_max: float
-) -> tuple[float, float, float, float]:
-    """Minimum-time rest-to-rest move under |a| <= a_max, |v| <= v_max.
-
-    Returns (t_acc, t_dec, t_end, v_peak) [s, s, s, rad/s]: acceleration until t_acc,
-    cruise at v_peak until t_dec, deceleration until t_end.  Trapezoid if
-    distance >= v_max^2/a_max (t_acc = v_max/a_max, cruise (distance - v_max^2/a_max)/v_max),
-    else triangle (t_acc = sqrt(distance/a_max), v_peak = a_max t_acc, no cruise).
-    Default pi rad, 600 rad/s^2, 40 rad/s: t_acc = 0.0667, t_end = 0.1452 s.
-    """
-    if distance >= v_max * v_max / a_max:
-        t_acc = v_max / a_max
-        t_cruise = (distance - v_max * v_max / a_max) / v_max
-        v_peak = v_max
-    else:
-        t_acc = math.sqrt(distance / a_max)
-        t_cruise = 0.0
-        v_peak = a_max * t_acc
-    return t_acc, t_acc + t_cruise, 2.0 * t_acc + t_cruise, v_peak
-
-
 @njit(cache=True)
 def traj_pos(t: float, Q: np.ndarray) -> float:
     """Distance travelled s(t) [rad] of the move (0 before, exactly ``distance`` after)."""

@@ -16,6 +16,7 @@ import bench_lockstep
 import bench_model
 import bench_optim
 import bench_realtime
+import bench_report
 import bench_study
 import bench_tuner
 
@@ -50,6 +51,11 @@ TARGETS = {
     # issue 6: the report of a default run (whole command: bag read, 4 figures, CSV)
     'report_necga_s': ('s', 10.0),
     'report_spsa_s': ('s', 10.0),
+    # issue 25: the report's start-up (--help, a refusal) and a whole report of a 25 MB bag
+    'report_help_s': ('s', 1.0),
+    'report_refusal_s': ('s', 1.0),
+    'report_25mb_s': ('s', 3.0),
+    'report_25mb_bag_mb': ('MB', None),
     # issue 7: the offline study, the paper's whole grid (240k experiments), whole command
     'study_full_grid_s': ('s', 300.0),
     'study_reduced_grid_s': ('s', 120.0),
@@ -103,6 +109,11 @@ def main() -> int:
         flush=True,
     )
     figures.update(bench_tuner.main())
+    print(
+        "\n== the report: start-up (--help, a refusal) and a 25 MB bag's whole report ==",
+        flush=True,
+    )
+    figures.update(bench_report.main())
     print(
         '\n== real time at 5 kHz: tuner --bench realtime / realtime-processes '
         '(budget 20, recorded, 3 runs) ==',

@@ -24,7 +24,15 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 
-from im_tuner.report import CSV_COLUMNS, FIGURES, load_run, make_figures, read_csv, write_csv
+from im_tuner.report import (
+    CSV_COLUMNS,
+    FIGURES,
+    load_run,
+    make_figures,
+    read_csv,
+    summary_text,
+    write_csv,
+)
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 GAINS = ('k_pw', 'k_iw', 'k_pos', 'tau_sm', 'tau_eq')
@@ -330,3 +338,59 @@ def test_a_bag_directory_is_not_a_run_and_bad_options_are_refused(runs, tmp_path
         proc = run_cmd('report', *args)
         assert proc.returncode == 2 and proc.stderr.count('\n') == 1, proc.stderr
         assert expect in proc.stderr, proc.stderr
+
+
+def test_an_external_bench_is_not_called_simulated(runs, tmp_path):
+    """Issue 25: on an external bench (``--bench none``) or with a hardware class in the
+    loop the experiment time is the drive's clock, and the summary says so; a simulated
+    bench (the simulator, or the example drive's stand-in) says simulated."""
+    src, _ = runs['necga']
+    sim_s = json.loads((src / 'summary.json').read_text())['sim_s']
+    sim_line = f'simulated experiment time {sim_s:.1f} s'
+    real_line = f"experiment time (the drive's clock) {sim_s:.1f} s"
+    for bench, drive, simulated in (
+        ('inproc', 'sim', True),
+        ('realtime', 'example', True),
+        ('none', 'sim', False),
+        ('none', None, False),
+        ('realtime', 'my_pkg.hw:Hardware', False),
+    ):
+        run = tmp_path / f'{bench}_{drive}'
+        shutil.copytree(src, run, ignore=shutil.ignore_patterns('report'))
+        cfg = yaml.safe_load((run / 'run.yaml').read_text())
+        cfg['bench'], cfg['drive'] = bench, drive
+        (run / 'run.yaml').write_text(yaml.safe_dump(cfg, sort_keys=False))
+        text = summary_text(load_run(run, 'x', signals=False))
+        assert (sim_line in text, real_line in text) == (simulated, not simulated), text
+        assert ('simulat' in text) == simulated, (bench, drive)
+    # the command, as printed, on the external bench
+    proc = run_cmd('report', str(tmp_path / 'none_sim'))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert real_line in proc.stdout and 'simulat' not in proc.stdout
+
+
+def test_the_report_imports_no_rclpy_and_no_optimiser(runs, tmp_path):
+    """A whole report (bags read, figures drawn) needs none of rclpy, pycma, optuna, dask
+    or scipy's statistics and optimisers (numba imports scipy's base package itself)."""
+    run, _ = runs['spsa']
+    code = (
+        'import contextlib, io, json, sys\n'
+        'from im_tuner.report.cli import main\n'
+        'quiet = io.StringIO()\n'
+        'with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):\n'
+        '    code = main(sys.argv[1:])\n'
+        'print(json.dumps([code, sorted(sys.modules)]))\n'
+    )
+    proc = subprocess.run(
+        [sys.executable, '-c', code, str(run), '--out', str(tmp_path / 'rep')],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    code, modules = json.loads(proc.stdout)
+    assert code == 0 and 'matplotlib' in modules and 'im_tuner.record.reader' in modules
+    for name in ('rclpy', 'cma', 'optuna', 'dask', 'scipy.stats', 'scipy.optimize'):
+        assert name not in modules, name
+    for name in FIGURES:  # the two processes drew all four
+        assert (tmp_path / 'rep' / f'{name}.png').stat().st_size > 20_000

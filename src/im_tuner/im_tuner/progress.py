@@ -5,14 +5,16 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from im_controller.config import GAIN_NAMES, GAIN_UNITS
 
-from .tuner_cli import SIM_BENCHES
-from .tuning import (
-    TuningRun,
-)
+# benches, not tuner_cli (rclpy), and the tuning loop only for its type: the report
+# imports drive_text from here and must start without rclpy, pycma or scipy
+from .benches import SIM_BENCHES
+
+if TYPE_CHECKING:
+    from .tuning import TuningRun
 
 
 class Progress:

@@ -1,47 +1,100 @@
-"""``ros2 run im_tuner report``: the command (checks every run first, then writes)."""
+"""``ros2 run im_tuner report``: the command (checks every run first, then writes).
+
+Imports only what the check needs at start (argparse, yaml for run.yaml): ``--help``
+and a refusal answer without numpy, the bag reader (numba) or matplotlib; ``load``,
+``text``, ``table`` and ``figures`` are imported once the runs are known to be runs.
+"""
 
 from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import multiprocessing
+import multiprocessing.process
+import os
+import signal
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from im_drive_sim.cli import Parser, UsageError
 
 from ..rundir import RunDir, RunDirError
-from .figures import (
-    make_figures,
-)
-from .load import (
-    EXIT_USAGE,
-    ReportError,
-    RunReport,
-    load_run,
-)
-from .table import (
-    write_csv,
-)
-from .text import (
-    summary_text,
-)
+from .errors import EXIT_USAGE, ReportError
+
+if TYPE_CHECKING:
+    from .load import RunReport
 
 
 # ------------------------------------------------------------------------- the command
-def write_report(runs: list[RunReport], out: Path) -> dict[str, Path]:
-    """Write summary.txt, the PNGs and evaluations.csv into ``out``; returns name -> path."""
+def write_report(
+    runs: list[RunReport], out: Path, progress: Callable[[str], None] | None = None
+) -> dict[str, Path]:
+    """Write summary.txt, evaluations.csv and the PNGs into ``out``; returns name -> path.
+
+    Runs loaded without their signals (``load_run(..., signals=False)``) have their bags
+    read here, while a second process draws the figures that need only the records
+    (:data:`~.figures.RECORD_FIGURES`): on two cores the bag read and half the drawing
+    overlap. If that process fails, its figures are drawn here."""
+    from .figures import RECORD_FIGURES, load_matplotlib, save_figures
+    from .load import FIGURES, load_signals
+    from .table import write_csv
+    from .text import summary_text
+
     out.mkdir(parents=True, exist_ok=True)
-    paths = {}
-    text = '\n\n'.join(summary_text(rr) for rr in runs) + '\n'
-    paths['summary'] = out / 'summary.txt'
-    paths['summary'].write_text(text)
-    paths['csv'] = out / 'evaluations.csv'
-    write_csv(runs, paths['csv'])
-    for name, fig in make_figures(runs).items():
-        paths[name] = out / f'{name}.png'
-        fig.savefig(paths[name], dpi=110)
-    return paths
+    pending = [rr for rr in runs if not rr.signals_read]
+    load_matplotlib()  # here, once for both processes
+    ahead = _draw_ahead(runs, out, RECORD_FIGURES) if pending else None
+    try:
+        for rr in pending:
+            load_signals(rr, progress)
+        paths = {'summary': out / 'summary.txt', 'csv': out / 'evaluations.csv'}
+        paths['summary'].write_text('\n\n'.join(summary_text(rr) for rr in runs) + '\n')
+        write_csv(runs, paths['csv'])
+        if progress:
+            progress('plotting')
+        drawn = save_figures(
+            runs, out, [n for n in FIGURES if ahead is None or n not in RECORD_FIGURES]
+        )
+    except BaseException:
+        if ahead is not None:  # leaving on an error: the child is ended by its PID
+            ahead.terminate()
+            ahead.join()
+        raise
+    if ahead is not None:
+        ahead.join()
+        drawn.update(
+            {n: out / f'{n}.png' for n in RECORD_FIGURES}
+            if ahead.exitcode == 0
+            else save_figures(runs, out, RECORD_FIGURES)  # again here: an error says why
+        )
+    return paths | {n: drawn[n] for n in FIGURES}
+
+
+def _draw_ahead(
+    runs: list[RunReport], out: Path, names: tuple[str, ...]
+) -> multiprocessing.process.BaseProcess | None:
+    """A forked child drawing ``names`` into ``out`` (None: one core, or no fork)."""
+    if len(os.sched_getaffinity(0)) < 2 or 'fork' not in multiprocessing.get_all_start_methods():
+        return None
+    sys.stdout.flush()  # nothing buffered twice
+    sys.stderr.flush()
+    proc = multiprocessing.get_context('fork').Process(
+        target=_draw_child, args=(runs, out, names), name='report-figures', daemon=True
+    )
+    proc.start()
+    return proc
+
+
+def _draw_child(runs: list[RunReport], out: Path, names: tuple[str, ...]) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)  # Ctrl-C: the parent reports, this ends
+    try:
+        from .figures import save_figures
+
+        save_figures(runs, out, names)
+    except BaseException:
+        os._exit(1)  # quietly: the parent draws these again and reports any error
 
 
 def _labels(paths: list[Path], runs: list[dict[str, Any]]) -> list[str]:
@@ -95,6 +148,8 @@ def main(args: list[str] | None = None) -> int:
     except (ReportError, UsageError) as exc:
         print(f'error: report: {exc}', file=sys.stderr)
         return EXIT_USAGE
+    from .load import load_run  # numpy, the bag reader: only for a real report
+
     heads = [RunDir(p).read_run() for p in cli.runs]
     labels = _labels(cli.runs, heads)
 
@@ -102,9 +157,8 @@ def main(args: list[str] | None = None) -> int:
         print(f'report: {msg}', file=sys.stderr, flush=True)
 
     try:
-        runs = [
-            load_run(p, lab, progress=progress) for p, lab in zip(cli.runs, labels, strict=True)
-        ]
+        # the records now, the bags in write_report (beside the figures of the records)
+        runs = [load_run(p, lab, signals=False) for p, lab in zip(cli.runs, labels, strict=True)]
     except ReportError as exc:
         print(f'error: report: {exc}', file=sys.stderr)
         return EXIT_USAGE
@@ -115,9 +169,8 @@ def main(args: list[str] | None = None) -> int:
     else:
         stamp = _dt.datetime.now(_dt.UTC).strftime('%Y%m%dT%H%M%SZ')
         out = runs[0].path.parent / f'compare_{stamp}'
-    progress('plotting')
     try:
-        paths = write_report(runs, out)
+        paths = write_report(runs, out, progress)
     except OSError as exc:
         print(f'error: report: cannot write {out}: {exc.strerror or exc}', file=sys.stderr)
         return 1

@@ -15,13 +15,24 @@ import numpy as np
 
 from im_controller import contract as C
 from im_controller.config import GAIN_NAMES
-from im_controller.experiment import INTERNALS_FIELDS
+from im_controller.layout import INTERNALS_FIELDS
 
 from ..record.reader import BagData, BagReadError, read_bag
 from ..rundir import RunDir, RunDirError
 from ..tuning import MEASURED, summarize, tally_all
+from .errors import EXIT_USAGE, ReportError
 
-EXIT_USAGE = 2
+__all__ = [
+    'CSV_COLUMNS',
+    'EXIT_USAGE',
+    'FIGURES',
+    'Experiment',
+    'ReportError',
+    'RunReport',
+    'load_run',
+    'load_signals',
+]
+
 INTERNALS_TOPIC = '/' + C.INTERNALS_TOPIC  # the bench's controller, in the root namespace
 LOSS_TOPIC = '/' + C.LOSS_TOPIC
 #: Columns of evaluations.csv, in order (units in docs/tuner.md).
@@ -77,10 +88,6 @@ _BOOL_COLS = ('aborted', 'fault')
 FIGURES = ('fig5_trajectory', 'fig8_best_vs_start', 'fig9_loss', 'fig9_gains')
 
 
-class ReportError(Exception):
-    """The report cannot be made (message says why, in one line)."""
-
-
 # ------------------------------------------------------------------------------ data
 @dataclass
 class Experiment:
@@ -116,6 +123,7 @@ class RunReport:
     missing: list[str] = field(default_factory=list)  #: experiments not found in a bag
     loss_check: dict[str, int] = field(default_factory=dict)
     live: str | None = None  #: the tuner working on the run now, if any
+    signals_read: bool = False  #: its bags have been read (:func:`load_signals`)
 
     @property
     def evals(self) -> list[dict[str, Any]]:
@@ -143,7 +151,8 @@ def load_run(
     signals: bool = True,
     progress: Callable[[str], None] | None = None,
 ) -> RunReport:
-    """Read one run directory (and, with ``signals``, its bags).
+    """Read one run directory (and, with ``signals``, its bags: else
+    :func:`load_signals` reads them later).
 
     Raises :class:`ReportError` when ``path`` is not a tuning run."""
     try:
@@ -195,7 +204,7 @@ def load_run(
     rr = RunReport(rd.path, label or rd.path.name, run, records, summary, source, live=live)
     rr.record_bag = _session_bags(summary.get('sessions') or [], len(records))
     if signals:
-        _load_signals(rr, progress)
+        load_signals(rr, progress)
     return rr
 
 
@@ -240,7 +249,10 @@ def _wanted(rr: RunReport) -> dict[str, int]:
     return want
 
 
-def _load_signals(rr: RunReport, progress: Callable[[str], None] | None = None) -> None:
+def load_signals(rr: RunReport, progress: Callable[[str], None] | None = None) -> None:
+    """Read the run's bags: the experiments the figures need (``reference``, ``best``,
+    ``consecutive``, ``missing``), the bags' topics, and the loss check. A bag that cannot
+    be read is named in ``bag_errors``."""
     want = _wanted(rr)
     windows = [w for i in set(want.values()) if (w := _window(rr.records[i])) is not None]
     for bag_dir in RunDir(rr.path).bag_dirs():
@@ -268,6 +280,7 @@ def _load_signals(rr: RunReport, progress: Callable[[str], None] | None = None) 
     rr.best = found.get('best')
     rr.consecutive = [found[n] for n in ('consecutive0', 'consecutive1') if n in found]
     rr.loss_check = _check_losses(rr)
+    rr.signals_read = True
 
 
 def _experiment(rr: RunReport, i: int, fields: tuple[str, ...]) -> Experiment | None:

@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import datetime as _dt
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from im_controller.config import GAIN_NAMES, GAIN_UNITS
 
+from ..benches import is_simulated
 from ..progress import drive_text
-from ..record.reader import BagData
-from .load import (
-    RunReport,
-)
+
+if TYPE_CHECKING:
+    from ..record.reader import BagData
+    from .load import RunReport
 
 
 # --------------------------------------------------------------------------- summary
@@ -85,9 +86,14 @@ def summary_text(rr: RunReport) -> str:
             )
     rtf = s.get('real_time_factor')
     wall = f'wall time {s["wall_s"]:.1f} s, ' if s.get('wall_s') is not None else ''
+    # an external bench (--bench none) or a hardware class: the drive's clock, not a simulation
+    clock = (
+        'simulated experiment time'
+        if is_simulated(run.get('bench'), run.get('drive'))
+        else "experiment time (the drive's clock)"
+    )
     L.append(
-        f'  {wall}simulated experiment time {s["sim_s"]:.1f} s'
-        + (f', real-time factor {rtf:.2f}' if rtf else '')
+        f'  {wall}{clock} {s["sim_s"]:.1f} s' + (f', real-time factor {rtf:.2f}' if rtf else '')
     )
     for bag in rr.bags:
         L.extend(_bag_lines(bag, live=rr.live is not None))

@@ -113,6 +113,7 @@ NUMERIC_SPECS: dict[str, NumSpec] = {
     'trajectory.duration': NumSpec(0.0, 100.0, True, 's'),
     'trajectory.load_delay': NumSpec(0.0, 100.0, False, 's'),
     'trajectory.load_torque': NumSpec(0.0, 1e3, False, 'N m'),
+    'trajectory.settle': NumSpec(0.0, 100.0, False, 's'),
     'safety.max_position_error': NumSpec(0.0, 1e3, True, 'rad'),
     'safety.max_speed': NumSpec(0.0, 1e4, True, 'rad/s'),
 }
@@ -283,6 +284,12 @@ class TrajectoryConfig:
     load_sign: 'oppose_move' (default): the load torque opposes the move direction, so
         the two directions are mirror images; 'fixed': +load_torque in every experiment
         (positive opposes positive rotation, drive convention).
+    settle [s]: standstill settle before each experiment's step 0 (0.5 s = 2500 steps):
+        the fallback gains hold the position, no load, nothing counted. It makes the loss
+        a function of the gains alone: without it, what the previous experiment left (its
+        load removal, the integrator unwinding) reaches the next one, and the loss of the
+        hand-tuned gains read 1.122 right after an experiment, 1.054 after 45 periods and
+        0.979 after 2500 (docs/controller.md, "The defined experiment"). 0 = no settle.
     """
 
     distance: float = math.pi
@@ -292,6 +299,7 @@ class TrajectoryConfig:
     load_delay: float = 0.7
     load_torque: float = 1.75
     load_sign: str = 'oppose_move'
+    settle: float = 0.5
 
 
 #: The parameters that set how long the move takes, and the rule they obey together
@@ -400,12 +408,13 @@ def validate_experiment_config(c: Any) -> ExperimentConfig:
         raise ControllerConfigError(f'config must be an ExperimentConfig, got {type(c).__name__}')
     ctl = validate_control_config(c.control)
     traj = validate_trajectory_config(c.trajectory)
-    steps = traj.duration / ctl.Ts
-    if abs(steps - round(steps)) > 1e-9 * max(1.0, steps):
-        raise ControllerConfigError(
-            f'trajectory.duration must be an integer number of control periods '
-            f'(Ts = {ctl.Ts:g} s), got {traj.duration!r}'
-        )
+    for name in ('duration', 'settle'):
+        steps = getattr(traj, name) / ctl.Ts
+        if abs(steps - round(steps)) > 1e-9 * max(1.0, steps):
+            raise ControllerConfigError(
+                f'trajectory.{name} must be an integer number of control periods '
+                f'(Ts = {ctl.Ts:g} s), got {getattr(traj, name)!r}'
+            )
     # MOVE_RULE. The kernel samples t = n Ts, n = 0 .. N-1: the move reaches its end
     # (exactly `distance`) within the experiment only if it ends by (N-1) Ts.
     t_end = trajectory_times(traj.distance, traj.a_max, traj.v_max)[2]

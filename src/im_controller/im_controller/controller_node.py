@@ -120,6 +120,7 @@ DESCRIPTIONS = {
     'trajectory.load_delay': 'load step this long after the reference change',
     'trajectory.load_torque': 'load step magnitude (70 % of rated torque)',
     'trajectory.load_sign': "'oppose_move' or 'fixed'",
+    'trajectory.settle': 'standstill settle before each experiment, fallback gains, no loss',
     'control.feedforward': "speed feed-forward reading: 'model' (d theta_m/dt) or 'undelayed'",
     'safety.max_position_error': 'hard limit on |theta_m - theta| (read-only)',
     'safety.max_speed': 'hard limit on |omega| (read-only)',

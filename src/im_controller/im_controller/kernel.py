@@ -28,6 +28,7 @@ from .layout import (
     MODE_HOLD,
     MODE_RETURN,
     MODE_RUN,
+    MODE_SETTLE,
     Q_A1,
     Q_A2,
     Q_A3,
@@ -40,6 +41,7 @@ from .layout import (
     Q_MAX_SPEED,
     Q_N,
     Q_SAT_RATIO,
+    Q_SETTLE_N,
     Q_TEND,
     Q_THR1,
     Q_THR2,
@@ -131,6 +133,19 @@ def experiment_step(
     th = state[2]
     w = state[3]
     running = R[R_MODE] == MODE_RUN
+    settling = R[R_MODE] == MODE_SETTLE
+    if settling:
+        # The experiment's standstill settle: Q_SETTLE_N periods on the drive's timeline
+        # from the first state after the start, holding with the fallback gains; its
+        # step 0 is the first state at or after that (so the time between experiments,
+        # and what the previous one left, does not reach the loss).
+        if R[R_START_STEP] < 0.0:
+            R[R_START_STEP] = k + Q[Q_SETTLE_N]
+        if k >= R[R_START_STEP]:
+            R[R_MODE] = MODE_RUN
+            R[R_N] = 0.0
+            running = True
+            settling = False
     ended_unseen = False
     # The command the drive applied over the period that ended at this state (-1: none,
     # or a drive that does not say: never fresh).
@@ -198,6 +213,9 @@ def experiment_step(
                 ref = R[R_THETA0] + R[R_DIR] * traj_pos(n * Q[Q_TS], Q)
                 if n >= Q[Q_LOAD_N]:
                     load = Q[Q_LOAD] if Q[Q_LOAD_FIXED] != 0.0 else R[R_DIR] * Q[Q_LOAD]
+            elif settling:
+                n = k - R[R_START_STEP]  # < 0: the settle's steps
+                ref = R[R_HOLD_REF]
             elif R[R_MODE] == MODE_RETURN:
                 # after a supervisor stop: the fallback gains finish the move along the
                 # unchanged trajectory (no reference jump), then hold the target
@@ -209,7 +227,7 @@ def experiment_step(
                     R[R_HOLD_REF] = R[R_TARGET]
             else:
                 ref = R[R_HOLD_REF]
-            isq = control_step(X, C, ref, th, w, cout)
+            isq = control_step(X, CF if settling else C, ref, th, w, cout)
             if abs(cout[O_E_THETA]) > Q[Q_MAX_ERR]:
                 safety = REASON_POSITION
             elif abs(w) > Q[Q_MAX_SPEED]:
@@ -228,6 +246,15 @@ def experiment_step(
                     n = k - R[R_START_STEP]
                 R[R_N] = n + 1.0
                 _finish(R, Q, STATUS_ABORTED, safety, state[1])
+                status = STATUS_ABORTED
+            elif settling:
+                # a fault in the settle ends the experiment before its step 0: aborted,
+                # no step measured
+                R[R_START_STEP] = k
+                R[R_START_NS] = state[1]
+                R[R_N] = 0.0
+                _finish(R, Q, STATUS_ABORTED, safety, state[1])
+                R[R_TRIP_STEP] = -1.0
                 status = STATUS_ABORTED
             else:
                 status = STATUS_FAULT
@@ -277,6 +304,8 @@ def experiment_step(
                 status = STATUS_DONE
             else:
                 status = STATUS_RUNNING
+        elif settling:
+            status = STATUS_RUNNING
     if ended_unseen and status == STATUS_HOLD:
         status = STATUS_DONE  # the result of the experiment that ended unseen is ready
     eout[E_ISQ] = isq

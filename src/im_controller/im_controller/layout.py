@@ -42,6 +42,7 @@ MODE_HOLD = 0.0
 MODE_RUN = 1.0
 MODE_FAULT = 2.0
 MODE_RETURN = 3.0  # hold after a supervisor stop, still following the trajectory
+MODE_SETTLE = 4.0  # an experiment's standstill settle (fallback gains, no load, no loss)
 
 # ------------------------------------------------------------ experiment parameters Q
 Q_TS = 0
@@ -67,7 +68,8 @@ Q_TDEC = 19  # start of deceleration [s]
 Q_TEND = 20  # end of the move [s]
 Q_MAX_ERR = 21
 Q_MAX_SPEED = 22
-N_QPARAMS = 23
+Q_SETTLE_N = 23  # periods of standstill settle before an experiment's step 0
+N_QPARAMS = 24
 
 # -------------------------------------------------------------------- runner state R
 R_MODE = 0

@@ -26,9 +26,11 @@ from .layout import (
     MODE_HOLD,
     MODE_RETURN,
     MODE_RUN,
+    MODE_SETTLE,
     N_EXP_FIELDS,
     N_RSTATE,
     Q_DIST,
+    Q_SETTLE_N,
     R_APPLIED,
     R_DIR,
     R_END_NS,
@@ -49,6 +51,7 @@ from .layout import (
     R_S3,
     R_SEEN,
     R_START_NS,
+    R_START_STEP,
     R_STEPS,
     R_TARGET,
     R_TERM1,
@@ -164,15 +167,21 @@ class ExperimentRunner:
         (a ``REASON_*`` code); a running experiment ends aborted (penalised) at sim time
         ``time_ns`` [ns] of the last state seen.  ``reset()`` clears the fault."""
         R = self.R
+        if R[R_MODE] == MODE_SETTLE:  # before its step 0: no step measured
+            R[R_N] = 0.0
+            R[R_START_NS] = float(time_ns)
         if self.running:
             _finish(R, self.Q, float(STATUS_ABORTED), float(reason), float(time_ns))
         R[R_MODE] = MODE_FAULT
         R[R_FAULT_REASON] = float(reason)
 
     def start(self, experiment_id: int, gains: Gains | None = None) -> None:
-        """Arm experiment ``experiment_id`` (int >= 0) with ``gains`` (None: current);
-        the next ``step`` is its step 0.  It starts at the current hold reference and moves
-        by +distance (even id) or -distance (odd id)."""
+        """Arm experiment ``experiment_id`` (int >= 0) with ``gains`` (None: current).
+        The next ``step`` begins its standstill settle: ``trajectory.settle`` seconds
+        (Q_SETTLE_N periods on the drive's timeline) holding the current hold reference
+        with the fallback gains, no load, no loss; the first state after it is step 0,
+        where ``gains`` take over. It moves from the hold reference by +distance (even
+        id) or -distance (odd id)."""
         if (
             isinstance(experiment_id, bool)
             or not isinstance(experiment_id, (int, np.integer))
@@ -196,7 +205,11 @@ class ExperimentRunner:
         for j in (R_S1, R_S2, R_S3, R_TERM1, R_TERM2, R_TERM3, R_ISQF, R_RESULT, R_REASON, R_STEPS):
             R[j] = 0.0
         R[R_TRIP_STEP] = -1.0
-        R[R_MODE] = MODE_RUN
+        R[R_FRESH] = R[R_LATE] = R[R_HELD] = 0.0
+        # a standstill settle first (Q_SETTLE_N periods with the fallback gains, from the
+        # next state on: the kernel counts them on the drive's timeline), then step 0
+        R[R_START_STEP] = -1.0
+        R[R_MODE] = MODE_SETTLE if self.Q[Q_SETTLE_N] > 0 else MODE_RUN
         self.experiment_id = int(experiment_id)
         self._exp_gains = self.gains
 
@@ -211,7 +224,8 @@ class ExperimentRunner:
     # -- queries
     @property
     def running(self) -> bool:
-        return bool(self.R[R_MODE] == MODE_RUN)
+        """An experiment is under way (its settle or its measured steps)."""
+        return bool(self.R[R_MODE] == MODE_RUN or self.R[R_MODE] == MODE_SETTLE)
 
     @property
     def ready(self) -> bool:

@@ -25,6 +25,7 @@ from .layout import (
     Q_MAX_SPEED,
     Q_N,
     Q_SAT_RATIO,
+    Q_SETTLE_N,
     Q_TACC,
     Q_TDEC,
     Q_TEND,
@@ -84,6 +85,7 @@ def make_experiment_params(cfg: ExperimentConfig) -> np.ndarray:
     Q[Q_TS] = c.Ts
     Q[Q_TS_NS] = float(round(c.Ts * 1e9))
     Q[Q_N] = float(round(tr.duration / c.Ts))
+    Q[Q_SETTLE_N] = float(round(tr.settle / c.Ts))
     # ceil: the load is on from the first sample at or after load_delay (0.7 s -> n = 3500)
     Q[Q_LOAD_N] = float(math.ceil(tr.load_delay / c.Ts - 1e-9))
     Q[Q_LOAD] = tr.load_torque

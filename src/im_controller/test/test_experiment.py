@@ -19,12 +19,14 @@ from im_controller.config import (
     validate_gains,
 )
 from im_controller.experiment import (
+    STATUS_ABORTED,
     STATUS_RUNNING,
     Experiment,
     ExperimentRunner,
     trajectory,
     trajectory_times,
 )
+from im_controller.layout import E_N, Q_SETTLE_N, R_S1, R_S2, R_S3
 from im_drive_sim.sim import STATE_FIELDS
 
 TS = 2e-4
@@ -86,7 +88,7 @@ def test_experiment_reference_and_load_profile():
 
 
 def test_repeated_step_index_is_answered_once():
-    r = ExperimentRunner()
+    r = ExperimentRunner(ExperimentConfig(trajectory=TrajectoryConfig(settle=0.0)))
     r.reset(0.0)
     r.start(0)
     st = np.zeros(len(STATE_FIELDS))
@@ -96,6 +98,53 @@ def test_repeated_step_index_is_answered_once():
     st[3] = 5.0  # a re-sent state must not step the controller
     assert r.step(st) == first
     assert r.R[1] == 1.0  # one experiment step consumed
+
+
+def _state(k: int, theta: float = 0.0, omega: float = 0.0) -> np.ndarray:
+    st = np.zeros(len(STATE_FIELDS))
+    st[:4] = [k, k * 200_000, theta, omega]
+    st[STATE_FIELDS.index('applied_step')] = k - 1
+    return st
+
+
+def test_the_settle_holds_with_the_fallback_gains_then_step_0_takes_the_candidate():
+    """An experiment begins with trajectory.settle (0.5 s = 2500 periods) of standstill on
+    the drive's timeline: the fallback gains hold, no load, no loss; the first state after
+    it is step 0, from which the candidate acts and the loss counts."""
+    cand = Gains(k_pw=2.0, k_iw=100.0, k_pos=60.0, tau_sm=0.0, tau_eq=0.0)
+    r = ExperimentRunner()
+    r.reset(0.0)
+    r.start(0, cand)
+    assert r.running and int(r.Q[Q_SETTLE_N]) == 2500
+    # during the settle: the hand-tuned (fallback) gains answer a 1 mrad error, status
+    # running, the local step negative, no load, nothing summed
+    isq, load, status = r.step(_state(100, theta=-1e-3))
+    hand = ExperimentRunner()
+    hand.reset(0.0)
+    assert isq == pytest.approx(hand.step(_state(100, theta=-1e-3))[0], rel=1e-15)
+    assert (load, status, r.eout[E_N]) == (0.0, STATUS_RUNNING, -2500.0)
+    with pytest.raises(RuntimeError, match='running'):
+        r.set_gains(Gains())  # the experiment is under way
+    for k in range(101, 2600):
+        isq, load, status = r.step(_state(k))
+        assert status == STATUS_RUNNING and load == 0.0 and r.eout[E_N] == k - 2600
+    assert r.R[R_S1] == r.R[R_S2] == r.R[R_S3] == 0.0
+    # state 2600 = 100 + 2500 is step 0: the candidate's proportional gain answers
+    r.step(_state(2600, omega=-1e-3))
+    assert r.eout[E_N] == 0.0 and r.cout[9] == pytest.approx(r.cout[7] + r.cout[8])
+    assert r.cout[7] == pytest.approx(cand.k_pw * r.cout[6], rel=1e-12)  # P = k_pw e_w
+
+
+def test_a_fault_in_the_settle_ends_the_experiment_aborted_before_step_0():
+    r = ExperimentRunner()
+    r.reset(0.0)
+    r.start(3)
+    r.step(_state(50))
+    _isq, _load, status = r.step(_state(51, theta=float('nan')))
+    assert status == STATUS_ABORTED and r.faulted
+    res = r.result()
+    assert res is not None and res.aborted and res.reason == 'non_finite_measurement'
+    assert res.steps == 0 and res.t_start == 51 * 200_000 and res.trip_step == -1
 
 
 # -------------------------------------------------------- consecutive experiments

@@ -84,6 +84,9 @@ class Counters:
     #: out of order (answering the same or an older state than the held command)
     stale_ignored: int = 0
     overruns: int = 0  #: real time: periods that started later than one period
+    #: real time, hardware-like: whole periods those late starts skipped, run by the model
+    #: with the held command (counted held too)
+    missed: int = 0
     republished: int = 0  #: lock-step: state re-sent while waiting for a command
     max_lateness_us: float = 0.0  #: real time: worst start-of-period lateness
     backpressure: int = 0  #: publish retries while a reliable reader (recorder) was full
@@ -135,6 +138,10 @@ class DriveSimNode(LenientDoubles, Node):
         self.realtime_wait_for_controller: bool = p['realtime_wait_for_controller']
         self.spin_margin: float = p['realtime_spin_margin']
         self.command_timeout: float = p['command_timeout']
+        #: a drive that cannot pause (``pacing.Pacer``'s ``wall_clock``): real time only
+        self.wall_clock: bool = bool(p['hardware_like']) and self.mode == 'realtime'
+        self.stall_step: int = p['test_stall_step']
+        self.stall_s: float = p['test_stall_duration']
         self.counters = Counters()
         self._t_made = time.perf_counter()
         #: Set by SIGINT/SIGTERM (see main): the loops stop at the next step boundary, so
@@ -291,6 +298,34 @@ class DriveSimNode(LenientDoubles, Node):
                     'load until the next command (the safe state of a drive whose controller '
                     'stopped).',
                     float_range=(0.0002, 10.0),
+                ),
+            ),
+            (
+                'hardware_like',
+                False,
+                param_descriptor(
+                    'Real time: run on the wall clock like a power stage, which cannot pause. '
+                    'A period that starts m >= 1 whole periods late follows m periods that '
+                    'went by with the held command: the model runs them (unpublished), they '
+                    'count as held and missed, and the step index advances by them. '
+                    'false: the model pauses while the loop is late (simulated time waits).'
+                ),
+            ),
+            (
+                'test_stall_step',
+                -1,
+                param_descriptor(
+                    'Test hook: stall the loop once, in the period that publishes this step '
+                    'index (-1: never), for test_stall_duration.',
+                    int_range=(-1, 2**62),
+                ),
+            ),
+            (
+                'test_stall_duration',
+                0.02,
+                param_descriptor(
+                    'Test hook: how long the stall at test_stall_step lasts [s].',
+                    float_range=(0.0, 10.0),
                 ),
             ),
             (
@@ -507,7 +542,7 @@ class DriveSimNode(LenientDoubles, Node):
             ):
                 executor.spin_once(timeout_sec=0.01)
         self.start()
-        pacer = Pacer(self.config.Ts, self.spin_margin)
+        pacer = Pacer(self.config.Ts, self.spin_margin, wall_clock=self.wall_clock)
         t_start = pacer.t0
         next_status = t_start + 1.0
         since_service = 0
@@ -516,7 +551,7 @@ class DriveSimNode(LenientDoubles, Node):
                 break
             pacer.wait(self.wait_command, self.take_commands)
             c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
-            self.period()
+            self.period(pacer.missed)
             since_service += 1
             if since_service >= self.service_period_steps:
                 since_service = 0
@@ -524,11 +559,24 @@ class DriveSimNode(LenientDoubles, Node):
         self.publish_status(time.perf_counter() - t_start)
 
     # -- one real-time period (the composed bench runs these; pacing.PeriodicDrive) -------
-    def period(self) -> None:
+    def period(self, missed: int = 0) -> None:
         """One real-time period at its start: take the commands, the watchdog, step the
         model with the held command, publish state k+1 (``applied_step`` = the command's
-        step)."""
+        step).
+
+        ``missed`` (hardware-like mode, ``pacing.Pacer`` with ``wall_clock``): whole
+        periods that went by before this one without a period of the loop; the model runs
+        them first with the command it held (unpublished: a late loop sampled nothing),
+        counted held and missed."""
         c = self.counters
+        if missed > 0 and self.wall_clock:
+            state = self._state
+            for _ in range(missed):
+                self.sim.step_into(self._isq_ref, self._load, state)
+            state[F_APPLIED] = self._applied
+            c.steps += missed
+            c.held += missed
+            c.missed += missed
         self.take_commands()
         self._watchdog()
         if self.safe_stopped:  # the model runs on with zero current and no load
@@ -541,6 +589,8 @@ class DriveSimNode(LenientDoubles, Node):
             c.held += 1
         self.step_once(self._isq_ref, self._load, self._applied)
         self._cmd_fresh = False  # it answered the state before this step
+        if self.sim.step_index == self.stall_step:
+            time.sleep(self.stall_s)  # the test hook: this loop stalls once, here
 
     def wait_command(self, timeout_s: float) -> bool:
         """Sleep up to ``timeout_s`` [s] in rcl_wait; True when a command is pending."""

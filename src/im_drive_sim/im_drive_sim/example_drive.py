@@ -108,19 +108,37 @@ class Hardware:
         """Apply isq* [A] (already clamped) and the load torque [N m] for the next period."""
         self.isq_ref, self.load_ref = isq_ref, load_torque
 
-    def read(self) -> Measurement:
-        """Sample the sensors (the stand-in first integrates the plant over one period)."""
-        ts, m = self.ts, self.m
+    def elapse(self, periods: int) -> None:
+        """Stand-in only (a real plant lives on the wall clock and needs nothing like it):
+        ``periods`` periods went by unsampled, the last command held."""
+        for _ in range(periods):
+            self._integrate()
+            self._encoder()  # the inverter's own speed estimate runs every period
+
+    def _integrate(self) -> float:
+        """One period of the stand-in plant under the held command; returns the torque."""
+        ts = self.ts
         self.isq = self.a_i * self.isq + (1.0 - self.a_i) * self.isq_ref
         torque = self.torque_of(self.isq)
         # Load: positive opposes positive rotation (docs/interfaces.md).
         self.omega += (torque - self.load_ref - self.b * self.omega) * self.inv_j * ts
         self.theta += self.omega * ts
+        return torque
+
+    def _encoder(self) -> None:
+        """Sample the encoder: position and the filtered backward-difference speed."""
+        m = self.m
         count = math.floor(self.theta * self.counts_per_rad)
-        raw = (count - self.count) / (self.counts_per_rad * ts)  # backward difference
+        raw = (count - self.count) / (self.counts_per_rad * self.ts)  # backward difference
         self.count = count
         m.theta_meas = count / self.counts_per_rad
         m.omega_meas = self.a_w * m.omega_meas + (1.0 - self.a_w) * raw
+
+    def read(self) -> Measurement:
+        """Sample the sensors (the stand-in first integrates the plant over one period)."""
+        m = self.m
+        torque = self._integrate()
+        self._encoder()
         m.torque, m.isq, m.load_torque = torque, self.isq, self.load_ref
         rho = self.pole_pairs * m.theta_meas  # field angle of the stand-in (slip neglected)
         c, s = math.cos(rho), math.sin(rho)
@@ -148,6 +166,7 @@ class Counters:
     late: int = 0  #: commands answering an older state than the latest
     stale_ignored: int = 0  #: out-of-order or duplicate commands, ignored
     overruns: int = 0  #: periods that started more than one period late
+    missed: int = 0  #: whole periods those late starts skipped (counted held too)
     max_lateness_us: float = 0.0  #: worst period-start lateness [us]
     watchdog_trips: int = 0  #: times commands stopped for more than command_timeout
     watchdog_steps: int = 0  #: steps run at zero current by the watchdog
@@ -231,6 +250,9 @@ class ExampleDrive(LenientDoubles, Node):
         #: zero load torque, whatever command comes
         self.safe_stopped = False
         self._hw_closed = False
+        #: a power stage cannot pause: a late period start means periods that went by with
+        #: the old command held (``pacing.Pacer``'s ``wall_clock``)
+        self.wall_clock = True
 
         self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
         self.joint_pub = self.make_joint_publisher()
@@ -397,12 +419,25 @@ class ExampleDrive(LenientDoubles, Node):
         self.fill_state(self.hw.read())
         self.publish_state()
 
-    def period(self) -> None:
+    def period(self, missed: int = 0) -> None:
         """One period at its start: take commands, watchdog, apply, sample, publish
-        (nothing once the hardware is closed)."""
+        (nothing once the hardware is closed).
+
+        ``missed``: whole periods that went by since the last one without a period of
+        this loop (the loop started late: ``pacing.Pacer`` with ``wall_clock``). A power
+        stage cannot pause: it held the last command over them. They are counted
+        ``held`` and ``missed``, and the step index advances by them, so the state
+        published now is the one of the drive's real time (``time_ns = k Ts``)."""
         if self._hw_closed:
             return
         c = self.counters
+        if missed > 0:
+            elapse = getattr(self.hw, 'elapse', None)
+            if callable(elapse):  # a simulated stand-in plant must be told time passed
+                elapse(missed)
+            self.k += missed
+            c.held += missed
+            c.missed += missed
         self.take_commands()
         self.watchdog()
         if self.safe_stopped:
@@ -422,12 +457,12 @@ class ExampleDrive(LenientDoubles, Node):
         c = self.counters
         try:
             self.start()
-            pacer = Pacer(self.period_s, self.spin_margin)
+            pacer = Pacer(self.period_s, self.spin_margin, wall_clock=self.wall_clock)
             next_status = pacer.t0 + 1.0
             while not self.stop_requested and rclpy.ok(context=self.context):
                 now = pacer.wait(self.wait_command, self.take_commands)
                 c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
-                self.period()
+                self.period(pacer.missed)
                 if pacer.n % 250 == 0:  # serve parameter requests between periods, every 50 ms
                     executor.spin_once(timeout_sec=0.0)
                     if now >= next_status:

@@ -61,9 +61,16 @@ class Pacer:
 
     ``overruns``: periods that started more than a period late; ``max_lateness_us``: the
     worst start lateness [us]; ``lateness_s``: the last period's.
+
+    ``wall_clock``: the drive cannot pause (a real power stage; the simulator in its
+    hardware-like mode). A period that starts late by m >= 1 whole periods then is the
+    period m periods further on: ``missed`` = m periods went by with the old command held
+    (the drive counts them held and advances its step index by them), and the schedule
+    stays on the wall clock. Otherwise (a simulated drive that pauses) the schedule is
+    re-anchored and ``missed`` is 0: simulated time waits for the loop.
     """
 
-    def __init__(self, ts: float, spin_margin: float) -> None:
+    def __init__(self, ts: float, spin_margin: float, wall_clock: bool = False) -> None:
         if not ts > 0.0:
             raise ValueError(f'period must be > 0 s, got {ts!r}')
         if not 0.0 <= spin_margin <= ts:
@@ -76,6 +83,9 @@ class Pacer:
         self.overruns = 0
         self.max_lateness_us = 0.0
         self.lateness_s = 0.0
+        self.wall_clock = bool(wall_clock)
+        self.missed = 0  #: whole periods the last start skipped (wall_clock only)
+        self.missed_total = 0  #: their sum since t0
 
     def restart(self) -> None:
         """Start the schedule now (period 0 starts now, the next one Ts later)."""
@@ -102,10 +112,20 @@ class Pacer:
         if late * 1e6 > self.max_lateness_us:
             self.max_lateness_us = late * 1e6
         self.n += 1
+        self.missed = 0
         if late > self.ts:
             self.overruns += 1
-            self.t0 = now - self.n * self.ts  # re-anchor: no burst of catch-up periods
-            deadline = now
+            if self.wall_clock:
+                # the periods that went by: the drive held its command over them
+                m = int(late // self.ts)
+                self.missed = m
+                self.missed_total += m
+                self.n += m
+                deadline += m * self.ts
+                self.lateness_s = now - deadline
+            else:
+                self.t0 = now - self.n * self.ts  # re-anchor: no burst of catch-up periods
+                deadline = now
         self.deadline = deadline
         return deadline
 

@@ -416,6 +416,17 @@ class TuningRun:
                     + (f' (and {m.reason})' if m.aborted else ''),
                     off_timing_loss=m.loss,
                 )
+            elif m.aborted and m.steps == 0:
+                # stopped in its standstill settle (a safety fault while the fallback gains
+                # held): not one step of these gains was measured -- re-run, never a loss
+                rec.update(
+                    status='lost',
+                    loss=None,
+                    terms=None,
+                    aborted=None,
+                    reason=f'ended in its settle, before step 0 ({m.reason}): no step of '
+                    'these gains measured',
+                )
             rec['periods'] = {'fresh': m.fresh, 'held': m.held, 'late': m.late}
             rec['gains_step'] = m.gains_step
         return rec

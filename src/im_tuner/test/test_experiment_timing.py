@@ -9,6 +9,7 @@ import pytest
 
 from im_controller.config import Gains
 from im_controller.experiment import STATUS_DONE, ExperimentRunner
+from im_controller.layout import Q_SETTLE_N
 from im_controller.runner import config_for_drive
 from im_drive_sim.contract import STATE_INDEX
 from im_drive_sim.sim import STATE_FIELDS, DriveSim
@@ -19,9 +20,10 @@ N = 5625
 
 
 def _run(pattern, tolerance: int = 0):
-    """Drive the core in real-time fashion: ``pattern(k)`` says what happens to the
-    controller's answer to state k: 'fresh' (in time), 'late' (applied one period
-    later), 'skip' (the controller never sees state k: the drive holds)."""
+    """Drive the core in real-time fashion: ``pattern(n)`` says what happens to the
+    controller's answer to the experiment's state n (n < 0: its settle): 'fresh' (in
+    time), 'late' (applied one period later), 'skip' (the controller never sees that
+    state: the drive holds)."""
     sim = DriveSim(seed=1)
     sim.reset(omega=0.0, fluxed=True)
     runner = ExperimentRunner(config_for_drive(None, sim), Gains(), timing_tolerance=tolerance)
@@ -29,12 +31,13 @@ def _run(pattern, tolerance: int = 0):
     sim.read_into(state)
     runner.reset(float(state[2]))
     runner.start(0)
+    settle = int(runner.Q[Q_SETTLE_N])  # state `settle` is the experiment's step 0
     held = (0.0, 0.0, -1)  # the command the drive holds: isq, load, answers
     pending = None  # a late answer, applied one period later
     res = None
-    for _ in range(N + 200):
+    for _ in range(settle + N + 200):
         k = int(state[0])
-        how = pattern(k)
+        how = pattern(k - settle)
         if pending is not None:
             held, pending = pending, None
         if how != 'skip':

@@ -50,7 +50,8 @@ def hand_tuned():
 def test_hand_tuned_start_reaches_pi_rejects_load_no_trip(hand_tuned):
     res, sig, _sim = hand_tuned
     assert not res.aborted and res.reason == '' and res.trip_step == -1
-    assert res.steps == 5625 and res.t_start == 0 and res.t_end == 1_125_000_000
+    # step 0 after the 0.5 s standstill settle (2500 periods)
+    assert res.steps == 5625 and res.t_start == 500_000_000 and res.t_end == 1_625_000_000
     assert res.direction == 1 and res.gains == Gains()
     assert math.isfinite(res.loss)
     assert res.loss == pytest.approx(0.9803040260343194, rel=1e-9)
@@ -122,7 +123,7 @@ def test_supervisor_stops_destabilising_gains_early_with_penalty():
     assert res.aborted and res.reason == 'term2'
     assert res.trip_step == 522 and res.trip_time == pytest.approx(0.1044)
     assert res.trip_step < first_over_limit and res.trip_time < 0.11
-    assert res.steps == 523 and res.t_end == 523 * 200_000
+    assert res.steps == 523 and res.t_end - res.t_start == 523 * 200_000
     assert res.terms[1] > cfg.loss.threshold2
     assert res.loss == pytest.approx(10.0 * sum(res.terms), rel=1e-15)
     assert np.max(np.abs(sig['e_theta'][:-1])) < 0.5  # stopped well before 1 rad
@@ -197,12 +198,16 @@ def test_alternating_direction_with_state_carried_over():
         results.append(res)
         assert sig['theta_ref'][0] == (0.0 if i % 2 == 0 else math.pi)  # starts at the hold
     assert [r.direction for r in results] == [1, -1, 1, -1]
-    assert [r.t_start for r in results] == [i * 1_125_000_000 for i in range(4)]
-    assert all(a.t_end == b.t_start for a, b in itertools.pairwise(results))
-    assert abs(sim.theta - 0.0) < 0.01 and sim.step_index == 4 * 5625
-    # experiment 0 starts from rest; the later ones start with the load just removed
+    # each one: a 0.5 s settle, then 1.125 s measured; back to back on the timeline
+    assert [r.t_start for r in results] == [500_000_000 + i * 1_625_000_000 for i in range(4)]
+    assert all(b.t_start - a.t_end == 500_000_000 for a, b in itertools.pairwise(results))
+    assert abs(sim.theta - 0.0) < 0.01 and sim.step_index == 4 * (2500 + 5625)
+    # experiment 0 starts from rest; after the settle the later ones start from a
+    # standstill too, not with the load just removed (1.1216 without the settle): their
+    # losses differ from the first by the encoder's quantization only (0.15 %, see
+    # test_defined_experiment)
     assert results[0].loss == pytest.approx(0.9803040260343194, rel=1e-9)
-    assert results[1].loss == pytest.approx(1.1216316257479648, rel=1e-9)
+    assert results[1].loss == pytest.approx(results[0].loss, rel=5e-3)
     assert not any(r.aborted for r in results)
     # mirror symmetry of the 'oppose_move' load: directions give nearly the same loss
     assert results[3].loss == pytest.approx(results[2].loss, rel=1e-3)

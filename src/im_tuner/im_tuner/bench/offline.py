@@ -28,6 +28,7 @@ from im_controller.layout import (
     MODE_RETURN,
     N_EXP_FIELDS,
     Q_N,
+    Q_SETTLE_N,
     Q_TEND,
     Q_TS,
     R_MODE,
@@ -178,9 +179,9 @@ def run_experiment_offline(
     gains: the candidate; config: experiment config (Ts, isq_max are taken from ``sim``).
     runner: pass the same runner for consecutive experiments (it carries the controller
         state and the hold reference); None creates one holding ``sim.theta_meas``.
-    record: return per-step signals (``REC_FIELDS`` + 't' [s from the start]); row n is
+    record: return per-step signals (``REC_FIELDS`` + 't' [s from step 0]); row n is
         drive state n (before its command) with the controller internals and the
-        experiment outputs computed from it.
+        experiment outputs computed from it (the settle before step 0 is not returned).
     python_loop: step through ``ExperimentRunner.step``/``DriveSim.step_into`` in Python
         (the node's path) instead of the fused numba loop; results are bit-identical.
 
@@ -191,12 +192,12 @@ def run_experiment_offline(
         runner.reset(sim.theta_meas)
     finish_stopped_move(sim, runner, python_loop)
     runner.start(experiment_id, gains)
-    n = int(runner.Q[Q_N])
-    k0 = float(sim.step_index)
-    _done, rec = _run(sim, runner, n, record, True, python_loop)
+    settle = int(runner.Q[Q_SETTLE_N])
+    k0 = float(sim.step_index + settle)  # step 0 follows the settle (lock-step: exactly)
+    _done, rec = _run(sim, runner, settle + int(runner.Q[Q_N]), record, True, python_loop)
     res = runner.result()
     assert res is not None, 'experiment did not finish'
-    sig = _signals(rec, runner.config.control.Ts, k0) if record else {}
+    sig = _signals(rec[settle:], runner.config.control.Ts, k0) if record else {}
     return res, sig
 
 
@@ -296,11 +297,12 @@ def replay_realtime(
             hold_offline(sim, runner, g_step - sim.step_index)
         if gains != runner.gains:
             runner.set_gains(gains)
-        if k0 < sim.step_index:
+        settle = int(runner.Q[Q_SETTLE_N])
+        if k0 - settle < sim.step_index:
             raise ValueError(f'experiment {rec["experiment_id"]} starts before the replay')
-        hold_offline(sim, runner, k0 - sim.step_index)
-        runner.start(int(rec['experiment_id']))
-        _run(sim, runner, int(runner.Q[Q_N]), False, True, False)
+        hold_offline(sim, runner, k0 - settle - sim.step_index)
+        runner.start(int(rec['experiment_id']))  # its settle, then step 0 at k0
+        _run(sim, runner, settle + int(runner.Q[Q_N]), False, True, False)
         res = runner.result()
         assert res is not None, 'experiment did not finish'
         out.append(res)

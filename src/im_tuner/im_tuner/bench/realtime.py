@@ -199,7 +199,12 @@ class RealtimeBench:
                 self.destroy()
                 raise
         ts = float(self.controller.Ts)
-        self.pacer = Pacer(ts, float(getattr(self.drive, 'spin_margin', 150e-6)))
+        self.pacer = Pacer(
+            ts,
+            float(getattr(self.drive, 'spin_margin', 150e-6)),
+            # a drive that cannot pause: late starts are periods held (docs/real-drive.md)
+            wall_clock=bool(getattr(self.drive, 'wall_clock', False)),
+        )
         # per-period timings [us] (a ring): the drive's period done (state k published),
         # the controller's answer out, the command taken by the drive, the whole period
         self.t_state = np.zeros(TIMING_CAPACITY, np.float32)
@@ -238,7 +243,10 @@ class RealtimeBench:
         t0 = pacer.wait(drive.wait_command, drive.take_commands)
         c = drive.counters
         c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
-        drive.period()
+        if pacer.missed:
+            drive.period(pacer.missed)  # periods that went by, the old command held
+        else:
+            drive.period()
         t1 = time.perf_counter()
         ctl.take()
         if not ctl._pending:
@@ -378,6 +386,8 @@ class RealtimeBench:
         out: dict[str, Any] = {
             'periods': self.periods,
             'overruns': int(self.pacer.overruns),
+            # a drive that cannot pause: whole periods the late starts skipped (held)
+            'missed_periods': int(self.pacer.missed_total),
             'max_lateness_us': round(float(self.pacer.max_lateness_us), 1),
             'answers_missed': self.answers_missed,
             'gc_young_runs': self.gc_runs,

@@ -184,7 +184,12 @@ def test_experiments_through_dds_equal_the_pure_core(bench):
     # The hand-tuned start reaches pi, rejects the load step and gives a finite loss.
     assert not r0.aborted and math.isfinite(r0.loss) and r0.loss > 0
     assert (r0.experiment_id, r0.direction, r1.experiment_id, r1.direction) == (0, 1, 1, -1)
-    assert (r0.t_start, r0.t_end, r1.t_start) == (0, 5625 * 200_000, 5625 * 200_000)
+    # each: its 2500-period settle, then 5625 measured periods (docs/controller.md)
+    assert (r0.t_start, r0.t_end, r1.t_start) == (
+        2500 * 200_000,
+        8125 * 200_000,
+        (8125 + 2500) * 200_000,
+    )
     theta = b.drive._state[b.drive._idx['theta']]
     assert abs(theta - 0.0) < 0.01  # back at 0 after 0 -> pi -> 0
     ref = offline_losses([Gains(), Gains()])
@@ -192,13 +197,17 @@ def test_experiments_through_dds_equal_the_pure_core(bench):
         assert got.loss == pytest.approx(want.loss, rel=1e-9, abs=0)
         assert got.terms == pytest.approx(want.terms, rel=1e-9, abs=0)
         assert got.loss == want.loss, 'lock-step through DDS is bit-identical to the core'
-    # Internals were published every step of the experiments, with their layout.
-    probe.spin_until(lambda: len(probe.internals) >= 2 * 5625, 10)
-    assert probe.spin_until(lambda: len(probe.internals) >= 2 * 5625, 10)
+    # Internals were published every step of the experiments (settles included), with
+    # their layout; exp_step counts the settle negative, the measured steps from 0.
+    n = 2 * 8125
+    probe.spin_until(lambda: len(probe.internals) >= n, 10)
+    assert probe.spin_until(lambda: len(probe.internals) >= n, 10)
     data = np.array(probe.internals)
     assert data.shape[1] == len(INTERNALS_FIELDS)
     steps = data[:, 0]
-    assert np.array_equal(np.unique(steps), np.arange(2 * 5625))
+    assert np.array_equal(np.unique(steps), np.arange(n))
+    exp_step = data[np.argsort(steps, kind='stable'), INTERNALS_FIELDS.index('exp_step')][:n]
+    assert exp_step[:8125].tolist() == list(range(-2500, 5625))
 
 
 def test_gain_changes_apply_between_experiments_and_are_refused_during_one(bench):
@@ -395,7 +404,8 @@ def fake_drive(ros_context, **params):
 
 def test_watchdog_zero_current_and_abort_when_the_drive_goes_silent(ros_context):
     """A drive that stops publishing mid-experiment: zero current, aborted with a reason."""
-    with fake_drive(ros_context, state_timeout=0.05) as fd:
+    # no settle: the experiment's step 0 is the first state (the fault mid-experiment)
+    with fake_drive(ros_context, state_timeout=0.05, **{'trajectory.settle': 0.0}) as fd:
         ctl, probe, commands = fd.ctl, fd.probe, fd.commands
         assert probe.start().success
         for k in range(1, 50):  # a few steps of the experiment, answered one by one
@@ -434,7 +444,7 @@ def test_non_finite_drive_state_zero_current_abort_and_reset(ros_context, field,
     zero current and no load, the experiment ends aborted ('non_finite_measurement', not
     a loss to trust), the controller stays in FAULT (zero current) and keeps running;
     after reset_fault with a sane state it runs experiments again."""
-    with fake_drive(ros_context, state_timeout=5.0) as fd:
+    with fake_drive(ros_context, state_timeout=5.0, **{'trajectory.settle': 0.0}) as fd:
         ctl, probe = fd.ctl, fd.probe
         assert probe.start().success
         for k in range(1, 40):
@@ -463,6 +473,22 @@ def test_non_finite_drive_state_zero_current_abort_and_reset(ros_context, field,
         assert probe.start().success
         isq = [fd.answered(k)[1] for k in range(42, 60)]
         assert all(math.isfinite(x) for x in isq)
+
+
+def test_a_fault_in_the_settle_ends_the_experiment_before_step_0(ros_context):
+    """A NaN in the settle (the fallback gains holding, before step 0): zero current at
+    once, the experiment ends aborted with no step measured -- the tuner re-runs such an
+    experiment and never tells it as a loss (its loss, 0, measured nothing)."""
+    with fake_drive(ros_context, state_timeout=5.0) as fd:
+        ctl, probe = fd.ctl, fd.probe
+        assert probe.start().success
+        for k in range(1, 30):
+            assert fd.answered(k)[2] == 0.0  # no load in the settle
+        assert fd.answered(30, theta_meas=math.nan) == (30.0, 0.0, 0.0)
+        assert fd.spin_until(lambda: len(probe.results) == 1, 5)
+        r = probe.results[0]
+        assert r.aborted and r.reason == 'non_finite_measurement' and r.steps == 0
+        assert r.t_start == 30 * 200_000 and ctl.runner.faulted
 
 
 def test_real_time_mode_runs_an_experiment(procs, ros_context):

@@ -217,3 +217,48 @@ def test_comparison_rows_by_hand():
     assert value[3] == pytest.approx((4 + 3) / 2, abs=0.05)  # to <= 0.5: median of 2 runs
     assert value[4] == pytest.approx(100 * 2 / 3, abs=0.5)  # runs reaching 0.5 [%]
     assert value[5] == pytest.approx((0 + 1 + 2) / 3, abs=0.05)  # aborted per run
+
+
+def test_one_run_per_configuration_has_means_without_intervals():
+    """A 1-run study (a smoke test) is tabulated: scipy's bootstrap refuses a sample of
+    one run, so every mean stands alone (no interval) and a verdict that needs one is
+    'not significant'; Wilson's interval of a percentage is defined for n = 1 and kept."""
+    from im_tuner.study.text import comparison_rows, tables_text
+
+    finals = {('spsa', i, j): 0.8 for i in range(3) for j in range(3)}
+    finals.update({('necga', 0, j): 0.6 for j in range(3)})
+    res = make_result(runs=1, budget=10, finals=finals)
+    st = compute(res)
+    for c, cs in enumerate(st.cells):
+        for name in ('final', 'remeasured', 'evals', 'iterations', 'aborted_per_run'):
+            iv = getattr(cs, name)
+            assert math.isfinite(iv.value) and math.isnan(iv.lo) and math.isnan(iv.hi), name
+        # the mean of one run is that run (nothing aborted: the smallest loss)
+        assert cs.final.value == pytest.approx(float(res.losses[c, 0].min() / L_REF), abs=1e-15)
+        lo, hi = wilson(1, 1)
+        assert cs.satisfactory.value == 100.0
+        assert (cs.satisfactory.lo, cs.satisfactory.hi) == pytest.approx((100 * lo, 100 * hi))
+    verdicts = {c.claim: c.verdict for c in st.conclusions}
+    assert verdicts['neCGA reaches a lower average final loss than SPSA'] == 'not significant'
+    assert verdicts['neCGA reaches a satisfactory loss faster than SPSA'] == 'not significant'
+    text = tables_text(st)
+    assert '1 run per configuration: means without intervals' in text
+    assert '[' not in text.split('Table I:')[1].split('Table II:')[0]  # no interval in Table I
+    _head, rows = comparison_rows(st)
+    assert all(' [' not in r[1] for r in rows)  # the final loss column
+    # two runs: intervals again, and no note
+    st2 = compute(make_result(runs=2, budget=10, finals=finals))
+    assert all(math.isfinite(c.final.lo) for c in st2.cells)
+    assert 'means without intervals' not in tables_text(st2)
+
+
+def test_the_study_has_a_grid_for_every_tuner_algorithm():
+    from im_tuner import optim
+    from im_tuner.study import spec
+
+    assert spec.STUDY_ALGOS == optim.ALGOS
+    for algo in optim.ALGOS:
+        cells = spec.grid((algo,))
+        assert len(cells) >= 3 and {c.algo for c in cells} == {algo}, algo
+    with pytest.raises(ValueError, match="no study grid for 'simplex'"):
+        S.StudySpec(algos=('spsa', 'simplex'))

@@ -34,26 +34,37 @@ when its final loss (the smallest measured non-aborted loss: the paper's final
 controller) is at most ``satisfactory`` (default 0.9: 10 % better than the hand-tuned
 start).  docs/reproduction.md says why.
 
-Modules by job: ``runs`` (the grid, one run = a TuningRun on the offline bench, the pool,
-save/load), ``stats`` (intervals, Tables I-III, the paper's values), ``text``, ``files``
-(CSV, tuner commands), ``figures``, ``markdown`` (reproduction.md), ``cli``.
+Modules by job: ``spec`` (the grid and the spec; light: the command checks its options
+with it alone), ``results`` (StudyResult, study.npz/study.json), ``runs`` (one run = a
+TuningRun on the offline bench, the pool), ``cluster`` (the Dask scheduler checked),
+``stats`` (intervals, Tables I-III, the paper's values), ``text``, ``files`` (CSV, tuner
+commands), ``figures``, ``markdown`` (reproduction.md), ``cli``.
+
+This package imports nothing heavy itself: the names below are loaded from ``runs`` (the
+optimisers, the numba kernels) on first use, so that ``python -m im_tuner.study`` with a
+bad option refuses at once.
 """
 
-from .runs import (
-    DEFAULT_SATISFACTORY,
-    DEFAULT_SEED,
-    REF_EXPERIMENTS,
-    STUDY_ALGOS,
-    Cell,
-    StudyResult,
-    StudySpec,
-    grid,
-    load,
-    reference_loss,
-    run_one,
-    run_study,
-    save,
-)
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .runs import (
+        DEFAULT_SATISFACTORY,
+        DEFAULT_SEED,
+        REF_EXPERIMENTS,
+        STUDY_ALGOS,
+        Cell,
+        StudyResult,
+        StudySpec,
+        grid,
+        load,
+        reference_loss,
+        run_one,
+        run_study,
+        save,
+    )
 
 __all__ = [
     'DEFAULT_SATISFACTORY',
@@ -70,3 +81,11 @@ __all__ = [
     'run_study',
     'save',
 ]
+
+
+def __getattr__(name: str) -> Any:
+    if name in __all__:
+        from . import runs
+
+        return getattr(runs, name)
+    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')

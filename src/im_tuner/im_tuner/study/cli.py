@@ -1,4 +1,12 @@
-"""``ros2 run im_tuner study``: the command (see the package docstring)."""
+"""``ros2 run im_tuner study``: the command (see the package docstring).
+
+The options are parsed and checked with light modules only (``spec``, ``cluster``,
+``results``): a refusal comes before the optimisers, the numba kernels, scipy, Dask or
+matplotlib are imported (they take seconds).  Then, in order: the Dask scheduler (if
+``--cluster``) is checked within bounded times, the study runs, the files are written.
+SIGINT and SIGTERM end the study and its worker processes, writing nothing; a killed
+study's workers end by themselves (``worker.init_pool_worker``).
+"""
 
 from __future__ import annotations
 
@@ -6,44 +14,37 @@ import argparse
 import datetime as _dt
 import math
 import os
-import re
 import shlex
+import signal
 import sys
+import threading
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from im_drive_sim.cli import Parser, UsageError, int_in
 
-from ..space import TunerParamsError
-from . import runs as S
-from .figures import (
-    fig_comparison,
-    fig_convergence,
-    fig_tables,
-)
-from .files import (
-    tuner_command,
-    write_runs_csv,
-    write_starts,
-    write_tables_csv,
-)
-from .markdown import (
-    reproduction_md,
-)
-from .stats import (
-    StudyStats,
-    compute,
-)
-from .text import (
-    EXIT_USAGE,
-    StudyError,
-    tables_text,
-)
+from . import cluster as K
+from . import spec as S
+from .results import META_FILE, StudyResult, load, save
+from .spec import EXIT_USAGE, StudyError
 
-__all__ = ['main', 'reproduction_md', 'tables_text', 'tuner_command', 'write_outputs']
+if TYPE_CHECKING:
+    from .stats import StudyStats
+
+__all__ = ['main', 'write_outputs']
+
+#: Exit status after SIGTERM (the shell's 128 + 15) and SIGINT (128 + 2).
+EXIT_TERMINATED = 143
+EXIT_INTERRUPTED = 130
 
 
 # -- output ---------------------------------------------------------------------------------------
 def write_outputs(st: StudyStats, out: Path, command: str) -> dict[str, Path]:
+    from .figures import fig_comparison, fig_convergence, fig_tables
+    from .files import write_runs_csv, write_starts, write_tables_csv
+    from .markdown import reproduction_md
+    from .text import tables_text
+
     out.mkdir(parents=True, exist_ok=True)
     paths: dict[str, Path] = {}
     text = tables_text(st)
@@ -61,6 +62,17 @@ def write_outputs(st: StudyStats, out: Path, command: str) -> dict[str, Path]:
     paths['md'] = out / 'reproduction.md'
     paths['md'].write_text(reproduction_md(st, command, {k: f'{k}.png' for k in figs}))
     return paths
+
+
+def _seconds(text: str) -> float:
+    """A duration in seconds: a finite number > 0."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'not a number of seconds: {text!r}') from None
+    if not (v > 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f'must be a number of seconds > 0, got {text}')
+    return v
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -100,7 +112,25 @@ def _build_parser() -> argparse.ArgumentParser:
         default=None,
         help='run on the Dask cluster whose scheduler listens there (start one with '
         '`dask scheduler --port 8786` and `dask worker tcp://HOST:8786 --nthreads 1` in '
-        "this project's venv on each machine); the tables are the same as with --jobs",
+        "this project's venv on each machine); the tables are the same as with --jobs. "
+        'Checked first: refused at once if nothing listens there, within --cluster-timeout '
+        's if it is not a Dask scheduler',
+    )
+    ap.add_argument(
+        '--cluster-timeout',
+        type=_seconds,
+        default=None,
+        metavar='S',
+        help='with --cluster: the connection to the scheduler and each of its answers must '
+        f'come within S seconds (default {K.CONNECT_TIMEOUT_S:g})',
+    )
+    ap.add_argument(
+        '--cluster-wait',
+        type=_seconds,
+        default=None,
+        metavar='S',
+        help='with --cluster: how long to wait for a first worker when the scheduler has '
+        f'none (default {K.WORKER_WAIT_S:g} s)',
     )
     ap.add_argument(
         '--seed', type=int, default=S.DEFAULT_SEED, help=f'study seed (default {S.DEFAULT_SEED})'
@@ -192,10 +222,13 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
             raise StudyError(
                 '--cluster and --jobs exclude each other (the cluster has its workers)'
             )
-        if not re.fullmatch(r'(tcp|tls)://[A-Za-z0-9_.\-\[\]:]+:[0-9]{1,5}', cli.cluster):
-            raise StudyError(
-                f'--cluster must be a Dask scheduler address tcp://HOST:PORT, got {cli.cluster!r}'
-            )
+        try:
+            K.check_address(cli.cluster)
+        except ValueError as exc:
+            raise StudyError(f'--cluster {exc}') from None
+    for name in ('cluster_timeout', 'cluster_wait'):
+        if getattr(cli, name) is not None and cli.cluster is None:
+            raise StudyError(f'--{name.replace("_", "-")} needs --cluster')
     try:
         spec = S.StudySpec(
             runs=cli.runs,
@@ -212,6 +245,8 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
         )
     except ValueError as exc:
         raise StudyError(f'--{exc}') from None  # the messages start with the option's name
+    from ..space import TunerParamsError  # (the parameter files: once the options are good)
+
     try:
         spec.params()
         spec.drive()
@@ -223,6 +258,8 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if args is None else args)
     command = ' '.join(['ros2 run im_tuner study', *(shlex.quote(a) for a in argv)])
+    spec: S.StudySpec | None = None  # a new study, or
+    res: StudyResult | None = None  # an existing one (--from)
     try:
         cli = _build_parser().parse_args(argv)
         if cli.satisfactory is not None and not (
@@ -233,7 +270,7 @@ def main(args: list[str] | None = None) -> int:
             )
         if cli.source is not None:
             try:
-                res = S.load(cli.source)
+                res = load(cli.source)
             except ValueError as exc:
                 raise StudyError(str(exc)) from None
             out = cli.out or cli.source
@@ -243,7 +280,7 @@ def main(args: list[str] | None = None) -> int:
             out = cli.out or Path('bags') / f'study_{spec.model}_{stamp}'
         if out.exists() and not out.is_dir():
             raise StudyError(f'--out {out}: exists and is not a directory')
-        if cli.source is None and out.is_dir() and (out / S.META_FILE).exists():
+        if cli.source is None and out.is_dir() and (out / META_FILE).exists():
             raise StudyError(
                 f'--out {out}: already holds a study (use --from to re-tabulate '
                 'it, or another --out)'
@@ -265,40 +302,110 @@ def main(args: list[str] | None = None) -> int:
     except (StudyError, UsageError) as exc:
         print(f'error: study: {exc}', file=sys.stderr)
         return EXIT_USAGE
-    if cli.source is None:
-        per_run = spec.budget + 1 + int(spec.remeasure)
-        n = len(spec.cells) * spec.runs
-        if not cli.quiet:
-            print(
-                f'study: {len(spec.cells)} configurations x {spec.runs} runs x {spec.budget} '
-                f'evaluations = {n * per_run} experiments ({spec.model} model) on '
-                + (
-                    f'the Dask cluster at {cli.cluster}'
-                    if cli.cluster
-                    else f'{cli.jobs or S.default_jobs()} worker(s)'
-                )
-                + f' -> {out}',
-                file=sys.stderr,
-            )
-        try:
-            res = S.run_study(spec, cli.jobs, Progress(per_run, cli.quiet), cluster=cli.cluster)
-            res.command = command
-        except OSError as exc:  # no scheduler at --cluster (distributed raises OSError)
-            print(f'error: study: --cluster {cli.cluster}: {exc}'.splitlines()[0], file=sys.stderr)
-            return EXIT_USAGE
-        except KeyboardInterrupt:
-            print('study: interrupted; nothing written', file=sys.stderr)
-            return 130
-        S.save(res, out)
-    st = compute(res, cli.satisfactory)
-    paths = write_outputs(st, out, command)
+    return _run(cli, spec, res, out, command)
+
+
+class _Terminated(BaseException):
+    """SIGTERM, raised in the main thread (a BaseException: no ``except Exception`` takes
+    it for a failure)."""
+
+
+def _on_sigterm(_signum: int, _frame: Any) -> None:
+    raise _Terminated
+
+
+def _run(
+    cli: argparse.Namespace,
+    spec: S.StudySpec | None,
+    res: StudyResult | None,
+    out: Path,
+    command: str,
+) -> int:
+    """Everything after the checks: the cluster, the runs, the files.  SIGTERM and Ctrl-C
+    end it (and the workers: ``runs.run_study``) with one line and 143 or 130."""
+    writing = False  # (files are being written: an interruption leaves them incomplete)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
+    try:
+        if spec is not None:
+            res = _study(cli, spec, out, command)
+            if res is None:
+                return EXIT_USAGE
+            writing = True
+            save(res, out)
+        assert res is not None
+        from .stats import compute
+
+        st = compute(res, cli.satisfactory)
+        writing = True
+        paths = write_outputs(st, out, command)
+    except (KeyboardInterrupt, _Terminated) as exc:
+        what = 'terminated' if isinstance(exc, _Terminated) else 'interrupted'
+        if writing:
+            print(f'study: {what} while writing {out}/; its files are incomplete', file=sys.stderr)
+        else:
+            print(f'study: {what}; nothing written', file=sys.stderr)
+        return EXIT_TERMINATED if isinstance(exc, _Terminated) else EXIT_INTERRUPTED
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     print(paths['tables'].read_text(), end='')
     print(
         f'study written to {out}/: '
         + ', '.join(p.name for p in paths.values())
-        + (', study.npz, study.json, starts/' if cli.source is None else '')
+        + (', study.npz, study.json, starts/' if spec is not None else '')
     )
     return 0
+
+
+def _study(
+    cli: argparse.Namespace, spec: S.StudySpec, out: Path, command: str
+) -> StudyResult | None:
+    """Check the cluster (if any) and run the study; None after a one-line error."""
+    if cli.cluster is not None:
+        try:
+            K.wait_for_scheduler(
+                cli.cluster,
+                K.CONNECT_TIMEOUT_S if cli.cluster_timeout is None else cli.cluster_timeout,
+                K.WORKER_WAIT_S if cli.cluster_wait is None else cli.cluster_wait,
+                say=lambda text: print(text, file=sys.stderr, flush=True),
+            )
+        except K.ClusterError as exc:
+            print(f'error: study: --cluster {cli.cluster}: {exc}', file=sys.stderr)
+            return None
+    from . import runs  # the optimisers and the numba kernels: seconds
+
+    per_run = spec.budget + 1 + int(spec.remeasure)
+    cells = len(spec.cells)
+    n = cells * spec.runs
+    if not cli.quiet:
+        print(
+            f'study: {cells} configurations x {spec.runs} runs x {spec.budget} '
+            f'evaluations = {n * per_run} experiments ({spec.model} model) on '
+            + (
+                f'the Dask cluster at {cli.cluster}'
+                if cli.cluster
+                else f'{cli.jobs or S.default_jobs()} worker(s)'
+            )
+            + f' -> {out}',
+            file=sys.stderr,
+        )
+    try:
+        res = runs.run_study(
+            spec,
+            cli.jobs,
+            Progress(per_run, cli.quiet),
+            cluster=cli.cluster,
+            cluster_timeout=cli.cluster_timeout or K.CONNECT_TIMEOUT_S,
+        )
+    except OSError as exc:
+        if cli.cluster is None:
+            raise
+        # the scheduler went away after the check (distributed raises OSError)
+        print(f'error: study: --cluster {cli.cluster}: {exc}'.splitlines()[0], file=sys.stderr)
+        return None
+    res.command = command
+    return res
 
 
 if __name__ == '__main__':

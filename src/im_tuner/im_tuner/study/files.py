@@ -11,7 +11,8 @@ import yaml
 
 from im_controller.config import GAIN_NAMES
 
-from . import runs as S
+from .. import optim
+from .results import StudyResult
 from .stats import (
     StudyStats,
     per_run,
@@ -23,7 +24,7 @@ from .text import (
 
 
 # -- files ----------------------------------------------------------------------------------------
-def tuner_command(res: S.StudyResult, c: int, r: int, out: Path) -> str:
+def tuner_command(res: StudyResult, c: int, r: int, out: Path) -> str:
     """The tuner command that repeats run ``r`` of cell ``c`` on the ROS bench (its losses
     equal the study's bit for bit: test/test_study.py)."""
     cell, sp = res.cells[c], res.spec
@@ -44,14 +45,14 @@ def tuner_command(res: S.StudyResult, c: int, r: int, out: Path) -> str:
         args += ['--params', str(out / 'starts' / f'run_{r:03d}.yaml')]
     elif sp.params_file:
         args += ['--params', sp.params_file]
-    if cell.start_kind == 'none' and cell.algo in S.optim.TAKES_START:
+    if cell.start_kind == 'none' and cell.algo in optim.TAKES_START:
         args += ['--no-start']
     if sp.drive_config:
         args += ['--drive-config', sp.drive_config]
     return ' '.join(shlex.quote(a) for a in args)
 
 
-def write_starts(res: S.StudyResult, out: Path) -> None:
+def write_starts(res: StudyResult, out: Path) -> None:
     """starts/run_<r>.yaml: the tuner parameter file of run r of the random-start cells
     (box + its start; every such cell's run r has the same start)."""
     rand = [i for i, cell in enumerate(res.cells) if cell.start_kind == 'random']

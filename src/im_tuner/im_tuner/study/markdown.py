@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from . import runs as S
+from . import spec as S
 from .stats import (
     EXPERIMENT_S,
     FAST_LEVEL,
@@ -20,6 +20,7 @@ from .text import (
     _iv,
     _paper,
     comparison_rows,
+    no_intervals_note,
 )
 
 
@@ -131,7 +132,8 @@ def reproduction_md(st: StudyStats, command: str, figures: dict[str, str]) -> st
         '* **Intervals** are 95 %: a percentile bootstrap over runs for means and '
         'differences (run indices resampled together across configurations, because they '
         'share seeds) and Wilson intervals for percentages. A verdict needs the interval of '
-        'the difference to exclude zero.',
+        'the difference to exclude zero.'
+        + (f' **{no_intervals_note(sp.runs)}.**' if sp.runs < S.MIN_RUNS_FOR_INTERVALS else ''),
         '',
     ]
     for stat, title, d in STATS if any(a in S.PAPER_ALGOS for a in sp.algos) else ():
@@ -198,8 +200,8 @@ def reproduction_md(st: StudyStats, command: str, figures: dict[str, str]) -> st
         "a load step, not the paper's bench: unmodelled friction, cogging and sensor "
         'effects are absent, so absolute values (and the share of aborted experiments) '
         'differ. The pattern is what can be compared.',
-        '* Verdicts come from the intervals above; "not significant" means 100 runs per '
-        'configuration cannot tell.',
+        '* Verdicts come from the intervals above; "not significant" means '
+        f'{sp.runs} run{"s" if sp.runs != 1 else ""} per configuration cannot tell.',
         "* Timing (conclusion on computation) is this machine's Python, not the paper's "
         f'dSPACE board ({PAPER_US_PER_ITERATION["spsa"]:.0f} and '
         f'{PAPER_US_PER_ITERATION["necga"]:.0f} us per iteration there): '

@@ -1,11 +1,15 @@
-"""The study's runs: the grid, one run (the tuner's TuningRun on the offline bench), the
-process pool, and the results saved and loaded (study.npz, study.json). See the package
-docstring for what a study is."""
+"""The study's runs: one run (the tuner's TuningRun on the offline bench), the process
+pool and the Dask cluster.  The grid and the spec are in ``spec``, the results and their
+files in ``results`` (both re-exported here).  See the package docstring for what a study
+is.
+
+This module imports the optimisers and the numba kernels (seconds): the command imports
+it only once its options are checked.
+"""
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import multiprocessing
 import os
@@ -13,26 +17,43 @@ import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from im_controller.config import GAIN_NAMES, Gains
-from im_drive_sim.params import DriveConfig, load_config
+from im_drive_sim.params import DriveConfig
 
 from .. import optim
 from ..bench.offline import OfflineBench
-from ..space import SearchSpace, TunerParams, load_params
+from ..space import SearchSpace, TunerParams
 from ..tuning import MemoryRecord, TuningRun, run_seeds
+from .results import ARRAYS_FILE, META_FILE, StudyResult, load, save
+from .spec import (
+    DEFAULT_SATISFACTORY,
+    DEFAULT_SEED,
+    EXTRA_GRIDS,
+    FACTORS,
+    PAPER_ALGOS,
+    RANDOM_START_DEFAULT,
+    REF_EXPERIMENTS,
+    STUDY_ALGOS,
+    Cell,
+    StudySpec,
+    default_jobs,
+    grid,
+)
+from .worker import WORKER, init_pool_worker, init_worker
 
 __all__ = [
     'ARRAYS_FILE',
     'DEFAULT_SATISFACTORY',
     'DEFAULT_SEED',
+    'EXTRA_GRIDS',
     'FACTORS',
     'META_FILE',
     'PAPER_ALGOS',
+    'RANDOM_START_DEFAULT',
     'REF_EXPERIMENTS',
     'STUDY_ALGOS',
     'Cell',
@@ -42,6 +63,7 @@ __all__ = [
     'default_jobs',
     'grid',
     'load',
+    'optim',
     'reference_loss',
     'run_one',
     'run_seed',
@@ -49,158 +71,6 @@ __all__ = [
     'save',
     'start_point',
 ]
-
-#: The paper's two algorithms: Tables I-III and the paper's conclusions.
-PAPER_ALGOS: tuple[str, ...] = ('spsa', 'necga')
-#: Algorithms the study has a grid for: every tuner algorithm.
-STUDY_ALGOS: tuple[str, ...] = optim.ALGOS
-#: Start of a run when its cell does not say: SPSA a random point (as the paper), every
-#: other algorithm that takes a start the hand-tuned gains (what a real bench has).
-RANDOM_START_DEFAULT: frozenset[str] = frozenset({'spsa'})
-#: The grid factors around the paper's configuration (x/5, x, 5x).
-FACTORS: tuple[tuple[str, float], ...] = (('/5', 0.2), ('', 1.0), ('*5', 5.0))
-#: Experiments of the hand-tuned start that define L_ref.
-REF_EXPERIMENTS = 100
-DEFAULT_SATISFACTORY = 0.9
-DEFAULT_SEED = 2005  # the paper's year: a fixed, documented default
-
-
-#: The small grids of the algorithms beyond the paper: (label, options); the option
-#: 'start' ('random' or 'hand') is the run's start, not an optimiser option.
-EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
-    'rcga': (
-        ('sigma0=10', (('sigma0', 10.0),)),
-        ('sigma0=1', (('sigma0', 1.0),)),
-        ('sigma0=0.3', (('sigma0', 0.3),)),
-    ),
-    'cmaes': (
-        ('sigma0=0.3 random start', (('sigma0', 0.3), ('start', 'random'))),
-        ('sigma0=0.1', (('sigma0', 0.1),)),
-        ('sigma0=0.03', (('sigma0', 0.03),)),
-    ),
-    'safe': (
-        ('no model (a plain 1+1-ES)', (('model_every', 0),)),
-        ('no trust region (sigma_max=0.5)', (('sigma_max', 0.5),)),
-        ('defaults', ()),
-    ),
-    'tpe': (
-        ('defaults, no start', (('start', 'none'),)),
-        ('defaults', ()),
-        ('n_startup_trials=5', (('n_startup_trials', 5),)),
-    ),
-}
-
-
-@dataclass(frozen=True)
-class Cell:
-    """One configuration of the grid: a cell of the paper's tables.
-
-    ``label`` is the paper's notation ('a=0.0183/5 c=0.03', 'n=25*5 eta=62');
-    ``row``/``col`` the cell's place in the paper's table; ``options`` the optimiser
-    options (exact floats: a0/5 is what the tuner gets from ``--a`` with repr).
-    """
-
-    algo: str
-    label: str
-    row: int
-    col: int
-    options: tuple[tuple[str, Any], ...]
-
-    @property
-    def opts(self) -> dict[str, Any]:
-        """The optimiser's options (without the run's start kind)."""
-        return {k: v for k, v in self.options if k != 'start'}
-
-    @property
-    def start_kind(self) -> str:
-        """'random' (a uniform point, third stream of the run seed), 'hand' (the parameter
-        file's start) or 'none' (the optimiser's own, without a start point)."""
-        kind = dict(self.options).get('start')
-        if kind is not None:
-            return str(kind)
-        if self.algo not in optim.TAKES_START:
-            return 'none'
-        return 'random' if self.algo in RANDOM_START_DEFAULT else 'hand'
-
-
-def grid(algos: tuple[str, ...] = PAPER_ALGOS) -> list[Cell]:
-    """The paper's grid, SPSA cells row-major (a down, c across), then neCGA (n across)."""
-    cells: list[Cell] = []
-    for algo in algos:
-        if algo == 'spsa':
-            a0 = optim.OPTIONS['spsa']['a'].default
-            c0 = optim.OPTIONS['spsa']['c'].default
-            for i, (sa, fa) in enumerate(FACTORS):
-                for j, (sc, fc) in enumerate(FACTORS):
-                    cells.append(
-                        Cell(
-                            'spsa',
-                            f'a={a0:g}{sa} c={c0:g}{sc}',
-                            i,
-                            j,
-                            (('a', a0 * fa), ('c', c0 * fc)),
-                        )
-                    )
-        elif algo in ('necga', 'cga', 'pecga'):
-            n0 = optim.OPTIONS[algo]['n'].default
-            for j, (sn, fn) in enumerate(FACTORS):
-                n = round(n0 * fn)
-                if algo == 'necga':
-                    cells.append(
-                        Cell(algo, f'n={n0}{sn} eta={n // 2}', 0, j, (('n', n), ('eta', n // 2)))
-                    )
-                else:
-                    cells.append(Cell(algo, f'n={n0}{sn}', 0, j, (('n', n),)))
-        else:
-            for j, (label, opts) in enumerate(EXTRA_GRIDS[algo]):
-                cells.append(Cell(algo, label, 0, j, opts))
-    return cells
-
-
-@dataclass(frozen=True)
-class StudySpec:
-    """What a study computes; equal specs give bit-identical results."""
-
-    runs: int = 100
-    budget: int = 200
-    algos: tuple[str, ...] = PAPER_ALGOS
-    model: str = 'full'
-    seed: int = DEFAULT_SEED
-    satisfactory: float = DEFAULT_SATISFACTORY
-    remeasure: bool = True
-    drive_config: str | None = None  #: drive parameter file (None: packaged)
-    params_file: str | None = None  #: tuner parameter file (None: packaged)
-
-    def __post_init__(self) -> None:
-        for name, lo in (('runs', 1), ('budget', 1)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-                raise ValueError(f'{name} must be an integer >= {lo}, got {v!r}')
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f'seed must be an integer >= 0, got {self.seed!r}')
-        if self.model not in ('full', 'reduced'):
-            raise ValueError(f"model must be 'full' or 'reduced', got {self.model!r}")
-        if not (
-            isinstance(self.satisfactory, float)
-            and self.satisfactory > 0.0
-            and math.isfinite(self.satisfactory)
-        ):
-            raise ValueError(
-                f'satisfactory must be a normalised loss > 0, got {self.satisfactory!r}'
-            )
-        if not self.algos or len(set(self.algos)) != len(self.algos):
-            raise ValueError(f'algos must be distinct names, got {self.algos!r}')
-        grid(self.algos)  # raises on an unknown algo
-
-    @property
-    def cells(self) -> list[Cell]:
-        return grid(self.algos)
-
-    def drive(self) -> DriveConfig:
-        return load_config(self.drive_config, overrides={'model': self.model})
-
-    def params(self) -> TunerParams:
-        return load_params(self.params_file)
 
 
 def run_seed(seed: int, r: int) -> int:
@@ -342,25 +212,40 @@ def reference_loss(
 
 
 # -- the pool ---------------------------------------------------------------------------------
-_WORKER: dict[str, Any] = {}
+#: How long the study waits for its terminated workers to end [s].
+_END_GRACE_S = 5.0
 
 
-def _init_worker(spec: StudySpec) -> None:
-    _WORKER['spec'] = spec
-    _WORKER['drive'] = spec.drive()
-    _WORKER['params'] = spec.params()
+def _end_pool(pool: ProcessPoolExecutor) -> None:
+    """Stop the pool now: pending runs cancelled, running ones killed (their results are
+    not wanted: the study is being interrupted or failed)."""
+    terminate = getattr(pool, 'terminate_workers', None)  # Python >= 3.14
+    if terminate is not None:
+        terminate()
+        return
+    # before 3.14: the executor's own table of its worker processes (killed first: the
+    # manager thread then finds the pool broken and ends)
+    procs = list((getattr(pool, '_processes', None) or {}).values())
+    for p in procs:
+        p.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
+    deadline = time.monotonic() + _END_GRACE_S
+    for p in procs:
+        p.join(max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
 
 
 def _work(task: tuple[int, int]) -> RunResult:
-    return run_one(_WORKER['spec'], task[0], task[1], _WORKER['drive'], _WORKER['params'])
+    return run_one(WORKER['spec'], task[0], task[1], WORKER['drive'], WORKER['params'])
 
 
 def run_task(spec: StudySpec, c: int, r: int) -> RunResult:
     """Run ``r`` of cell ``c`` in a worker of a Dask cluster: the drive and parameter
-    files are loaded once per worker process and spec."""
-    if _WORKER.get('spec') != spec:
-        _init_worker(spec)
-    return _work((c, r))
+    files are loaded once per worker process and spec (thread-safe: a worker may run
+    several tasks at once)."""
+    drive, params = init_worker(spec)
+    return run_one(spec, c, r, drive, params)
 
 
 def _run_on_cluster(
@@ -368,6 +253,7 @@ def _run_on_cluster(
     spec: StudySpec,
     tasks: list[tuple[int, int]],
     store: Callable[[RunResult], None],
+    timeout: float = 30.0,
 ) -> int:
     """Every task on the Dask cluster whose scheduler is at ``address`` (``tcp://HOST:PORT``);
     ``store`` gets each result as it completes.  Returns the workers' thread count.
@@ -376,7 +262,7 @@ def _run_on_cluster(
     which worker ran what (the same tables as the local pool, byte for byte)."""
     from distributed import Client, as_completed
 
-    with Client(address, timeout='30s') as client:
+    with Client(address, timeout=f'{timeout}s') as client:
         nthreads = sum(client.nthreads().values())
         futures = [
             client.submit(
@@ -388,59 +274,6 @@ def _run_on_cluster(
             store(fut.result())
             fut.release()
     return nthreads
-
-
-@dataclass
-class StudyResult:
-    """All runs of a study, as arrays indexed [cell, run, (evaluation)]; raw losses."""
-
-    spec: StudySpec
-    cells: list[Cell]
-    l_ref: float
-    l_ref_sem: float
-    l_first: float
-    run_seed: np.ndarray  #: int64[runs]
-    drive_seed: np.ndarray  #: int64[runs]
-    start: np.ndarray  #: float64[cells, runs, 5]
-    ref_loss: np.ndarray  #: float64[cells, runs]
-    ref_aborted: np.ndarray  #: bool[cells, runs]
-    losses: np.ndarray  #: float64[cells, runs, budget]
-    aborted: np.ndarray  #: bool[cells, runs, budget]
-    faults: np.ndarray  #: bool[cells, runs, budget]
-    iteration: np.ndarray  #: int32[cells, runs, budget]
-    best_eval: np.ndarray  #: int32[cells, runs]
-    best_gains: np.ndarray  #: float64[cells, runs, 5]
-    remeasured: np.ndarray  #: float64[cells, runs]
-    opt_s: np.ndarray  #: float64[cells, runs] (timing)
-    exp_s: np.ndarray  #: float64[cells, runs] (timing)
-    wall_s: float = 0.0
-    jobs: int = 1
-    command: str = ''  #: the command that ran the study (for the write-up)
-
-    @property
-    def experiments(self) -> int:
-        """Experiments run (reference + evaluations + re-measurements)."""
-        return int(
-            self.losses.size + self.ref_loss.size + np.count_nonzero(np.isfinite(self.remeasured))
-        )
-
-    # arrays saved by save()/load() (the rest goes into study.json)
-    ARRAYS = (
-        'run_seed',
-        'drive_seed',
-        'start',
-        'ref_loss',
-        'ref_aborted',
-        'losses',
-        'aborted',
-        'faults',
-        'iteration',
-        'best_eval',
-        'best_gains',
-        'remeasured',
-        'opt_s',
-        'exp_s',
-    )
 
 
 def _allocate(spec: StudySpec, cells: list[Cell]) -> dict[str, Any]:
@@ -474,22 +307,17 @@ def _store(a: dict[str, np.ndarray], res: RunResult) -> None:
         a[name][res.cell, res.run] = getattr(res, name)
 
 
-def default_jobs() -> int:
-    """Every core this process may use."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
 def run_study(
     spec: StudySpec,
     jobs: int | None = None,
     progress: Callable[[int, int, float], None] | None = None,
     cluster: str | None = None,
+    cluster_timeout: float = 30.0,
 ) -> StudyResult:
     """Run the whole grid on ``jobs`` processes (None: every core; 1: in this process), or
-    on the Dask cluster whose scheduler is at ``cluster`` (``tcp://HOST:PORT``).
+    on the Dask cluster whose scheduler is at ``cluster`` (``tcp://HOST:PORT``; the
+    command checks it first, ``cluster.wait_for_scheduler``: Dask's client bounds only
+    the TCP connection by ``cluster_timeout`` s).
 
     ``progress(done_runs, total_runs, elapsed_s)`` is called after every run.  The result
     does not depend on ``jobs`` or the cluster (runs are independent and seeded by their
@@ -516,16 +344,20 @@ def run_study(
             progress(done[0], total, time.perf_counter() - t0)
 
     if cluster is not None:
-        jobs = _run_on_cluster(cluster, spec, tasks, store)
+        jobs = _run_on_cluster(cluster, spec, tasks, store, cluster_timeout)
     elif jobs == 1:
         for c, r in tasks:
             store(run_one(spec, c, r, drive, params))
     else:
         # forkserver: workers start from a clean interpreter (no inherited threads or ROS)
         ctx = multiprocessing.get_context('forkserver')
-        with ProcessPoolExecutor(
-            max_workers=jobs, mp_context=ctx, initializer=_init_worker, initargs=(spec,)
-        ) as pool:
+        pool = ProcessPoolExecutor(
+            max_workers=jobs,
+            mp_context=ctx,
+            initializer=init_pool_worker,
+            initargs=(spec, os.getpid()),
+        )
+        try:
             # a bounded window of pending tasks keeps memory flat and progress honest
             it = iter(tasks)
             pending = {pool.submit(_work, t) for t in _take(it, 4 * jobs)}
@@ -534,6 +366,10 @@ def run_study(
                 for f in finished:
                     store(f.result())
                 pending |= {pool.submit(_work, t) for t in _take(it, len(finished))}
+        except BaseException:  # Ctrl-C, SIGTERM (the command raises), a failed run
+            _end_pool(pool)
+            raise
+        pool.shutdown(wait=True)
     return StudyResult(
         spec=spec,
         cells=cells,
@@ -554,69 +390,3 @@ def _take(it, k: int) -> list:
         except StopIteration:
             break
     return out
-
-
-# -- files ------------------------------------------------------------------------------------
-ARRAYS_FILE = 'study.npz'
-META_FILE = 'study.json'
-
-
-def save(res: StudyResult, out: Path | str) -> None:
-    """Write ``study.npz`` (every array: nothing is lost) and ``study.json`` (the spec,
-    L_ref, timing) into ``out`` (created)."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(out / ARRAYS_FILE, **{k: getattr(res, k) for k in StudyResult.ARRAYS})
-    meta = {
-        'spec': dataclasses.asdict(res.spec),
-        'cells': [dataclasses.asdict(c) for c in res.cells],
-        'l_ref': res.l_ref,
-        'l_ref_sem': res.l_ref_sem,
-        'l_first': res.l_first,
-        'ref_experiments': REF_EXPERIMENTS,
-        'experiments': res.experiments,
-        'wall_s': res.wall_s,
-        'jobs': res.jobs,
-        'command': res.command,
-    }
-    tmp = out / (META_FILE + '.tmp')
-    tmp.write_text(json.dumps(meta, indent=1) + '\n')
-    os.replace(tmp, out / META_FILE)
-
-
-def load(out: Path | str) -> StudyResult:
-    """Read a study written by :func:`save` (ValueError with the reason if it is not one)."""
-    out = Path(out)
-    try:
-        meta = json.loads((out / META_FILE).read_text())
-        with np.load(out / ARRAYS_FILE) as z:
-            arrays = {k: z[k] for k in StudyResult.ARRAYS}
-    except FileNotFoundError as exc:
-        raise ValueError(
-            f'{out}: not a study directory ({Path(exc.filename).name} missing)'
-        ) from None
-    except (OSError, KeyError, ValueError) as exc:  # ValueError: bad JSON, a bad npz
-        raise ValueError(f'{out}: unreadable study ({exc})') from None
-    try:
-        sp = dict(meta['spec'])
-        sp['algos'] = tuple(sp['algos'])
-        spec = StudySpec(**sp)
-        cells = [
-            Cell(c['algo'], c['label'], c['row'], c['col'], tuple(tuple(o) for o in c['options']))
-            for c in meta['cells']
-        ]
-        return StudyResult(
-            spec=spec,
-            cells=cells,
-            l_ref=meta['l_ref'],
-            l_ref_sem=meta['l_ref_sem'],
-            l_first=meta['l_first'],
-            wall_s=meta['wall_s'],
-            jobs=meta['jobs'],
-            command=meta.get('command', ''),
-            **arrays,
-        )
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(
-            f'{out}: not a study written by `ros2 run im_tuner study` ({exc!r:.100})'
-        ) from None

@@ -19,6 +19,10 @@ runs (``BOOT`` resamples, fixed seed: the intervals are reproducible); the run i
 resampled together for every cell, because run r of every cell shares its seeds (common
 random numbers).  Table II uses Wilson's score interval.
 
+A study of a single run per configuration (a smoke test) has no bootstrap intervals
+(``MIN_RUNS_FOR_INTERVALS``): its means stand alone (Wilson's interval of a percentage is
+defined for one run and kept), and a verdict that needs an interval is 'not significant'.
+
 Both come from scipy (issue 19: the field's library, not hand-written code):
 ``scipy.stats.bootstrap(..., paired=True, method='percentile')`` with one fixed seed for
 every call, so every cell and every difference sees the same resampled run indices, and
@@ -34,7 +38,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.stats
 
-from .runs import Cell, StudyResult
+from .results import StudyResult
+from .spec import MIN_RUNS_FOR_INTERVALS, Cell
 
 __all__ = ['PAPER', 'CellStats', 'Conclusion', 'StudyStats', 'compute', 'wilson']
 
@@ -211,8 +216,17 @@ class _Boot:
     def __init__(self, runs: int) -> None:
         self.runs = runs
 
+    @property
+    def defined(self) -> bool:
+        """Whether there are intervals: a resample of a single run is that run (scipy
+        refuses a sample of one), so a 1-run study reports its means without them."""
+        return self.runs >= MIN_RUNS_FOR_INTERVALS
+
     def dist(self, statistic, *samples: np.ndarray) -> np.ndarray:
-        """Bootstrap distribution [BOOT] of ``statistic(*samples, axis=-1)`` (runs paired)."""
+        """Bootstrap distribution [BOOT] of ``statistic(*samples, axis=-1)`` (runs paired);
+        all nan when there are too few runs (:attr:`defined`)."""
+        if not self.defined:
+            return np.full(BOOT, np.nan)
         with warnings.catch_warnings():
             # a constant sample is "degenerate" to scipy; its percentile interval is fine
             warnings.simplefilter('ignore', scipy.stats.DegenerateDataWarning)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 
-from . import runs as S
+from . import spec as S
+from .spec import EXIT_USAGE, StudyError
 from .stats import (
     EXPERIMENT_S,
     FAST_LEVEL,
@@ -13,7 +14,20 @@ from .stats import (
     StudyStats,
 )
 
-EXIT_USAGE = 2
+__all__ = [
+    'ALGO_NAME',
+    'COMPARISON',
+    'EXIT_USAGE',
+    'PAPER_KEY',
+    'START_TEXT',
+    'STATS',
+    'StudyError',
+    'comparison_rows',
+    'comparison_text',
+    'no_intervals_note',
+    'tables_text',
+]
+
 ALGO_NAME = {
     'spsa': 'SPSA',
     'necga': 'neCGA',
@@ -42,8 +56,12 @@ PAPER_KEY = {
 }
 
 
-class StudyError(Exception):
-    """Bad input: one line, exit 2, nothing written."""
+def no_intervals_note(runs: int) -> str:
+    """Why a study of too few runs shows its means without intervals."""
+    return (
+        f'{runs} run per configuration: means without intervals (a bootstrap interval '
+        f'needs >= {S.MIN_RUNS_FOR_INTERVALS} runs); percentages with Wilson intervals'
+    )
 
 
 # -- text -----------------------------------------------------------------------------------------
@@ -129,6 +147,7 @@ def tables_text(st: StudyStats) -> str:
         f'start over {S.REF_EXPERIMENTS} experiments; satisfactory: final loss <= '
         f'{st.threshold:g}',
         'cells: ours mean [95 % interval] | paper',
+        *([no_intervals_note(sp.runs)] if sp.runs < S.MIN_RUNS_FOR_INTERVALS else []),
         '',
     ]
     for stat, title, d in STATS if any(a in S.PAPER_ALGOS for a in sp.algos) else ():

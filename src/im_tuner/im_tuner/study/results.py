@@ -1,0 +1,136 @@
+"""A study's results (:class:`StudyResult`) and their files, study.npz and study.json.
+
+Light at import (numpy and ``spec``), so that ``study --from DIR`` refuses a directory
+that is not a study at once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .spec import REF_EXPERIMENTS, Cell, StudySpec
+
+__all__ = ['ARRAYS_FILE', 'META_FILE', 'StudyResult', 'load', 'save']
+
+ARRAYS_FILE = 'study.npz'
+META_FILE = 'study.json'
+
+
+@dataclass
+class StudyResult:
+    """All runs of a study, as arrays indexed [cell, run, (evaluation)]; raw losses."""
+
+    spec: StudySpec
+    cells: list[Cell]
+    l_ref: float
+    l_ref_sem: float
+    l_first: float
+    run_seed: np.ndarray  #: int64[runs]
+    drive_seed: np.ndarray  #: int64[runs]
+    start: np.ndarray  #: float64[cells, runs, 5]
+    ref_loss: np.ndarray  #: float64[cells, runs]
+    ref_aborted: np.ndarray  #: bool[cells, runs]
+    losses: np.ndarray  #: float64[cells, runs, budget]
+    aborted: np.ndarray  #: bool[cells, runs, budget]
+    faults: np.ndarray  #: bool[cells, runs, budget]
+    iteration: np.ndarray  #: int32[cells, runs, budget]
+    best_eval: np.ndarray  #: int32[cells, runs]
+    best_gains: np.ndarray  #: float64[cells, runs, 5]
+    remeasured: np.ndarray  #: float64[cells, runs]
+    opt_s: np.ndarray  #: float64[cells, runs] (timing)
+    exp_s: np.ndarray  #: float64[cells, runs] (timing)
+    wall_s: float = 0.0
+    jobs: int = 1
+    command: str = ''  #: the command that ran the study (for the write-up)
+
+    @property
+    def experiments(self) -> int:
+        """Experiments run (reference + evaluations + re-measurements)."""
+        return int(
+            self.losses.size + self.ref_loss.size + np.count_nonzero(np.isfinite(self.remeasured))
+        )
+
+    # arrays saved by save()/load() (the rest goes into study.json)
+    ARRAYS = (
+        'run_seed',
+        'drive_seed',
+        'start',
+        'ref_loss',
+        'ref_aborted',
+        'losses',
+        'aborted',
+        'faults',
+        'iteration',
+        'best_eval',
+        'best_gains',
+        'remeasured',
+        'opt_s',
+        'exp_s',
+    )
+
+
+def save(res: StudyResult, out: Path | str) -> None:
+    """Write ``study.npz`` (every array: nothing is lost) and ``study.json`` (the spec,
+    L_ref, timing) into ``out`` (created)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out / ARRAYS_FILE, **{k: getattr(res, k) for k in StudyResult.ARRAYS})
+    meta = {
+        'spec': dataclasses.asdict(res.spec),
+        'cells': [dataclasses.asdict(c) for c in res.cells],
+        'l_ref': res.l_ref,
+        'l_ref_sem': res.l_ref_sem,
+        'l_first': res.l_first,
+        'ref_experiments': REF_EXPERIMENTS,
+        'experiments': res.experiments,
+        'wall_s': res.wall_s,
+        'jobs': res.jobs,
+        'command': res.command,
+    }
+    tmp = out / (META_FILE + '.tmp')
+    tmp.write_text(json.dumps(meta, indent=1) + '\n')
+    os.replace(tmp, out / META_FILE)
+
+
+def load(out: Path | str) -> StudyResult:
+    """Read a study written by :func:`save` (ValueError with the reason if it is not one)."""
+    out = Path(out)
+    try:
+        meta = json.loads((out / META_FILE).read_text())
+        with np.load(out / ARRAYS_FILE) as z:
+            arrays = {k: z[k] for k in StudyResult.ARRAYS}
+    except FileNotFoundError as exc:
+        raise ValueError(
+            f'{out}: not a study directory ({Path(exc.filename).name} missing)'
+        ) from None
+    except (OSError, KeyError, ValueError) as exc:  # ValueError: bad JSON, a bad npz
+        raise ValueError(f'{out}: unreadable study ({exc})') from None
+    try:
+        sp = dict(meta['spec'])
+        sp['algos'] = tuple(sp['algos'])
+        spec = StudySpec(**sp)
+        cells = [
+            Cell(c['algo'], c['label'], c['row'], c['col'], tuple(tuple(o) for o in c['options']))
+            for c in meta['cells']
+        ]
+        return StudyResult(
+            spec=spec,
+            cells=cells,
+            l_ref=meta['l_ref'],
+            l_ref_sem=meta['l_ref_sem'],
+            l_first=meta['l_first'],
+            wall_s=meta['wall_s'],
+            jobs=meta['jobs'],
+            command=meta.get('command', ''),
+            **arrays,
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(
+            f'{out}: not a study written by `ros2 run im_tuner study` ({exc!r:.100})'
+        ) from None

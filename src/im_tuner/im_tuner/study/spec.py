@@ -1,0 +1,221 @@
+"""What a study is (its grid and :class:`StudySpec`), light enough to check a command line.
+
+Nothing here imports scipy, numba, an optimiser's algorithm module, Dask or matplotlib:
+``ros2 run im_tuner study`` parses and checks its options with this module alone, so that
+a refusal comes at once (the heavy modules take seconds to import).  ``im_tuner.optim``
+itself is light (its algorithms load when one is built): the grid's names and option
+values are the optimisers' own.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from .. import optim
+
+if TYPE_CHECKING:  # the types only; the modules are imported where they are used
+    from im_drive_sim.params import DriveConfig
+
+    from ..space import TunerParams
+
+__all__ = [
+    'DEFAULT_SATISFACTORY',
+    'DEFAULT_SEED',
+    'EXIT_USAGE',
+    'EXTRA_GRIDS',
+    'FACTORS',
+    'MIN_RUNS_FOR_INTERVALS',
+    'PAPER_ALGOS',
+    'RANDOM_START_DEFAULT',
+    'REF_EXPERIMENTS',
+    'STUDY_ALGOS',
+    'Cell',
+    'StudyError',
+    'StudySpec',
+    'default_jobs',
+    'grid',
+]
+
+EXIT_USAGE = 2
+
+
+class StudyError(Exception):
+    """Bad input: one line, exit 2, nothing written."""
+
+
+#: The paper's two algorithms: Tables I-III and the paper's conclusions.
+PAPER_ALGOS: tuple[str, ...] = ('spsa', 'necga')
+#: The small grids of the algorithms beyond the paper: (label, options); the option
+#: 'start' ('random' or 'hand') is the run's start, not an optimiser option.
+EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
+    'rcga': (
+        ('sigma0=10', (('sigma0', 10.0),)),
+        ('sigma0=1', (('sigma0', 1.0),)),
+        ('sigma0=0.3', (('sigma0', 0.3),)),
+    ),
+    'cmaes': (
+        ('sigma0=0.3 random start', (('sigma0', 0.3), ('start', 'random'))),
+        ('sigma0=0.1', (('sigma0', 0.1),)),
+        ('sigma0=0.03', (('sigma0', 0.03),)),
+    ),
+    'safe': (
+        ('no model (a plain 1+1-ES)', (('model_every', 0),)),
+        ('no trust region (sigma_max=0.5)', (('sigma_max', 0.5),)),
+        ('defaults', ()),
+    ),
+    'tpe': (
+        ('defaults, no start', (('start', 'none'),)),
+        ('defaults', ()),
+        ('n_startup_trials=5', (('n_startup_trials', 5),)),
+    ),
+}
+#: The compact GAs: a grid over their population size n.
+CGA_ALGOS: tuple[str, ...] = ('necga', 'cga', 'pecga')
+#: Algorithms the study has a grid for: every tuner algorithm.
+STUDY_ALGOS: tuple[str, ...] = optim.ALGOS
+#: Start of a run when its cell does not say: SPSA a random point (as the paper), every
+#: other algorithm that takes a start the hand-tuned gains (what a real bench has).
+RANDOM_START_DEFAULT: frozenset[str] = frozenset({'spsa'})
+#: The grid factors around the paper's configuration (x/5, x, 5x).
+FACTORS: tuple[tuple[str, float], ...] = (('/5', 0.2), ('', 1.0), ('*5', 5.0))
+#: Experiments of the hand-tuned start that define L_ref.
+REF_EXPERIMENTS = 100
+DEFAULT_SATISFACTORY = 0.9
+DEFAULT_SEED = 2005  # the paper's year: a fixed, documented default
+#: Runs per configuration a bootstrap interval needs (a resample of one run is that run);
+#: a study of fewer runs reports its means without intervals.
+MIN_RUNS_FOR_INTERVALS = 2
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One configuration of the grid: a cell of the paper's tables.
+
+    ``label`` is the paper's notation ('a=0.0183/5 c=0.03', 'n=25*5 eta=62');
+    ``row``/``col`` the cell's place in the paper's table; ``options`` the optimiser
+    options (exact floats: a0/5 is what the tuner gets from ``--a`` with repr).
+    """
+
+    algo: str
+    label: str
+    row: int
+    col: int
+    options: tuple[tuple[str, Any], ...]
+
+    @property
+    def opts(self) -> dict[str, Any]:
+        """The optimiser's options (without the run's start kind)."""
+        return {k: v for k, v in self.options if k != 'start'}
+
+    @property
+    def start_kind(self) -> str:
+        """'random' (a uniform point, third stream of the run seed), 'hand' (the parameter
+        file's start) or 'none' (the optimiser's own, without a start point)."""
+        kind = dict(self.options).get('start')
+        if kind is not None:
+            return str(kind)
+        if self.algo not in optim.TAKES_START:
+            return 'none'
+        return 'random' if self.algo in RANDOM_START_DEFAULT else 'hand'
+
+
+def grid(algos: tuple[str, ...] = PAPER_ALGOS) -> list[Cell]:
+    """The paper's grid, SPSA cells row-major (a down, c across), then neCGA (n across)."""
+    unknown = [a for a in algos if a not in STUDY_ALGOS]
+    if unknown:
+        raise ValueError(f'algos: no study grid for {unknown[0]!r}')
+    cells: list[Cell] = []
+    for algo in algos:
+        if algo == 'spsa':
+            a0 = optim.OPTIONS['spsa']['a'].default
+            c0 = optim.OPTIONS['spsa']['c'].default
+            for i, (sa, fa) in enumerate(FACTORS):
+                for j, (sc, fc) in enumerate(FACTORS):
+                    cells.append(
+                        Cell(
+                            'spsa',
+                            f'a={a0:g}{sa} c={c0:g}{sc}',
+                            i,
+                            j,
+                            (('a', a0 * fa), ('c', c0 * fc)),
+                        )
+                    )
+        elif algo in CGA_ALGOS:
+            n0 = optim.OPTIONS[algo]['n'].default
+            for j, (sn, fn) in enumerate(FACTORS):
+                n = round(n0 * fn)
+                if algo == 'necga':
+                    cells.append(
+                        Cell(algo, f'n={n0}{sn} eta={n // 2}', 0, j, (('n', n), ('eta', n // 2)))
+                    )
+                else:
+                    cells.append(Cell(algo, f'n={n0}{sn}', 0, j, (('n', n),)))
+        else:
+            for j, (label, opts) in enumerate(EXTRA_GRIDS[algo]):
+                cells.append(Cell(algo, label, 0, j, opts))
+    return cells
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """What a study computes; equal specs give bit-identical results."""
+
+    runs: int = 100
+    budget: int = 200
+    algos: tuple[str, ...] = PAPER_ALGOS
+    model: str = 'full'
+    seed: int = DEFAULT_SEED
+    satisfactory: float = DEFAULT_SATISFACTORY
+    remeasure: bool = True
+    drive_config: str | None = None  #: drive parameter file (None: packaged)
+    params_file: str | None = None  #: tuner parameter file (None: packaged)
+
+    def __post_init__(self) -> None:
+        for name, lo in (('runs', 1), ('budget', 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise ValueError(f'{name} must be an integer >= {lo}, got {v!r}')
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f'seed must be an integer >= 0, got {self.seed!r}')
+        if self.model not in ('full', 'reduced'):
+            raise ValueError(f"model must be 'full' or 'reduced', got {self.model!r}")
+        if not (
+            isinstance(self.satisfactory, float)
+            and self.satisfactory > 0.0
+            and math.isfinite(self.satisfactory)
+        ):
+            raise ValueError(
+                f'satisfactory must be a normalised loss > 0, got {self.satisfactory!r}'
+            )
+        if not self.algos or len(set(self.algos)) != len(self.algos):
+            raise ValueError(f'algos must be distinct names, got {self.algos!r}')
+        for a in self.algos:
+            if a not in STUDY_ALGOS:
+                raise ValueError(
+                    f'algos: no study grid for {a!r} (allowed: {", ".join(STUDY_ALGOS)})'
+                )
+
+    @property
+    def cells(self) -> list[Cell]:
+        return grid(self.algos)
+
+    def drive(self) -> DriveConfig:
+        from im_drive_sim.params import load_config
+
+        return load_config(self.drive_config, overrides={'model': self.model})
+
+    def params(self) -> TunerParams:
+        from ..space import load_params
+
+        return load_params(self.params_file)
+
+
+def default_jobs() -> int:
+    """Every core this process may use."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1

@@ -116,47 +116,6 @@ def test_study_runs_through_the_ros_nodes_give_the_same_losses(small, tmp_path):
     assert sampled_aborts >= 1
 
 
-def test_a_run_with_a_safety_fault_through_the_ros_nodes(tmp_path):
-    """Run 53 of SPSA a=a0, c=c0/5 (default seed) trips a safety limit at evaluation 7:
-    the controller faults, the tuner resets it (fault policy 'reset' on the simulated
-    bench) and goes on -- the study does the same, bit for bit."""
-    spec = S.StudySpec(runs=54, budget=10, algos=('spsa',))
-    c = next(i for i, cell in enumerate(spec.cells) if cell.label == 'a=0.0183 c=0.03/5')
-    run = S.run_one(spec, c, 53)
-    assert run.faults.any(), 'this sample no longer has a safety fault: pick another'
-    params = spec.params()
-    box = {
-        n: {'lo': lo, 'hi': hi, 'start': s}
-        for n, lo, hi, s in zip(
-            ('k_pw', 'k_iw', 'k_pos', 'tau_sm', 'tau_eq'),
-            params.space.lo,
-            params.space.hi,
-            run.start,
-            strict=True,
-        )
-    }
-    pfile = tmp_path / 'start.yaml'
-    pfile.write_text(json.dumps({'search_box': box, 'satisfactory_loss': 1.0}))  # JSON is YAML
-    opts = spec.cells[c].opts
-    cmd = (
-        f'ros2 run im_tuner tuner --algo spsa --a {opts["a"]!r} --c {opts["c"]!r} '
-        f'--seed {run.run_seed} --budget {spec.budget} --model full --remeasure 1 '
-        f'--params {pfile}'
-    )
-    recs = run_tuner(cmd, tmp_path / 'run')
-    assert_same_run(
-        recs,
-        budget=spec.budget,
-        ref_loss=run.ref_loss,
-        start=run.start,
-        losses=run.losses.tolist(),
-        aborted=run.aborted.tolist(),
-        faults=run.faults.tolist(),
-        best_eval=run.best_eval,
-        remeasured=run.remeasured,
-    )
-
-
 def test_results_do_not_depend_on_the_number_of_workers(small):
     out, _ = small
     via_cli = S.load(out)  # 2 workers
@@ -215,10 +174,11 @@ def test_seeds_starts_and_the_normalisation(small):
     # neCGA: the hand-tuned start, so its reference experiment is the one from rest
     assert np.all(res.start[necga] == np.array([0.53, 20.0, 30.0, 0.005, 0.007]))
     assert np.all(res.ref_loss[necga] == START_LOSS)
-    # L_ref: the hand-tuned start after the first experiment (which lacks the load-removal
-    # transient): docs/controller.md measures 1.121 for these experiments
+    # L_ref: the hand-tuned start in the experiments after the first; each starts after
+    # its standstill settle, so they read as the first one from rest does, within the
+    # bench's noise (docs/controller.md: 0.979-0.981; 1.121 without the settle)
     assert res.l_first == START_LOSS
-    assert 1.10 < res.l_ref < 1.14 and res.l_ref_sem < 1e-3
+    assert abs(res.l_ref - START_LOSS) < 0.005 and res.l_ref_sem < 1e-3
     assert len(set(res.run_seed.tolist())) == res.spec.runs
 
 

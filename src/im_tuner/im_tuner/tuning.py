@@ -129,6 +129,11 @@ class Measurement:
 MEASURED = ('ok', 'aborted')
 
 
+#: Re-runs of a lost or off-timing measurement with the same gains (the tuner's --retries;
+#: the study's runs use it too, so a study run is the tuner's run bit for bit).
+DEFAULT_RETRIES = 3
+
+
 class LostEvaluation(Exception):
     """No result within the timeout.  ``experiment_id``: set if the experiment started."""
 
@@ -255,7 +260,7 @@ class TuningRun:
         budget: int,
         satisfactory_loss: float,
         remeasure: int = 3,
-        retries: int = 3,
+        retries: int = DEFAULT_RETRIES,
         reference: bool = True,
         progress: Callable[[str, dict[str, Any], TuningRun], None] | None = None,
     ) -> None:

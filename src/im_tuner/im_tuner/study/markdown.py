@@ -105,10 +105,11 @@ def reproduction_md(st: StudyStats, command: str, figures: dict[str, str]) -> st
         f'makes sense relative to a reference controller; its runs start from a working '
         f'controller. We divide every loss by L_ref = {res.l_ref:.5f} (standard error '
         f'{res.l_ref_sem:.5f}), the mean loss of the hand-tuned start gains over '
-        f'{S.REF_EXPERIMENTS} consecutive experiments after the first one from rest (that '
-        f'first one, {res.l_first:.4f}, lacks the load-removal transient every later '
-        'experiment starts with). The hand-tuned controller is therefore 1.00; a value '
-        'below 1 is an improvement over it.',
+        f'{S.REF_EXPERIMENTS} consecutive experiments after the first one from rest '
+        f'({res.l_first:.4f}). Every experiment starts after a 0.5 s standstill settle '
+        '(docs/controller.md), so its loss depends on the gains, not on what the previous '
+        'experiment left. The hand-tuned controller is therefore 1.00; a value below 1 is '
+        'an improvement over it.',
         '* **Final loss** of a run: its smallest measured non-aborted loss (the paper: the '
         'final controller is "the one generating the smallest loss"). This minimum over '
         'noisy measurements is biased low; the re-measured loss of the same controller is '

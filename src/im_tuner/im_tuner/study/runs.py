@@ -27,7 +27,7 @@ from im_drive_sim.params import DriveConfig
 from .. import optim
 from ..bench.offline import OfflineBench
 from ..space import SearchSpace, TunerParams
-from ..tuning import MemoryRecord, TuningRun, run_seeds
+from ..tuning import DEFAULT_RETRIES, MemoryRecord, TuningRun, run_seeds
 from .results import ARRAYS_FILE, META_FILE, StudyResult, load, save
 from .spec import (
     DEFAULT_SATISFACTORY,
@@ -160,7 +160,7 @@ def run_one(
         budget=B,
         satisfactory_loss=params.satisfactory_loss,
         remeasure=1 if spec.remeasure else 0,
-        retries=0,
+        retries=DEFAULT_RETRIES,  # as the tuner: a fault in a settle is re-run
         reference=True,
         progress=progress,
     )

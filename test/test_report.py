@@ -201,14 +201,16 @@ def test_figures_show_what_their_captions_say(runs):
     assert f5.axes[1].get_ylabel() == 'load torque [N m]'
     dist, t_load = params['trajectory.distance'], params['trajectory.load_delay']
     torque, dur = params['trajectory.load_torque'], params['trajectory.duration']
+    # the second starts after the first's end and its own 0.5 s settle (docs/controller.md)
+    gap = dur + params['trajectory.settle']
     for j, sign in ((0, 1), (1, -1)):
         t, th = line(f5, f'theta_ref:{j}').get_data()
-        assert t[0] == pytest.approx(j * dur) and len(t) == 5625
+        assert t[0] == pytest.approx(j * gap) and len(t) == 5625
         assert th[0] == pytest.approx(0 if j == 0 else dist, abs=1e-9)
         assert th[-1] == pytest.approx(dist if j == 0 else 0, abs=1e-9)
         assert np.all(np.diff(th) * sign >= -1e-12)  # monotonic move
         _t, load = line(f5, f'load:{j}').get_data()
-        before = (t - j * dur) < t_load - 1e-6
+        before = (t - j * gap) < t_load - 1e-6
         assert np.all(load[before] == 0)
         # 'oppose_move': a positive load torque opposes positive rotation
         # (docs/interfaces.md), so the command carries the move's sign

@@ -240,10 +240,16 @@ def _wanted(rr: RunReport) -> dict[str, int]:
             if r['kind'] == 'eval' and r['eval'] == best['eval']:
                 want['best'] = i
                 break
-    # Fig. 5: the first two experiments that ran back to back in one session
+    # Fig. 5: the first two consecutive experiments on one session's drive timeline (the
+    # controller's ids follow each other; between them the hold and the next one's settle,
+    # however long the bench held: lock-step, real time or a real drive)
     for a, b in itertools.pairwise(ran):
         ra, rb = rr.records[a], rr.records[b]
-        if rr.record_bag[a] == rr.record_bag[b] and ra['t_end_ns'] == rb['t_start_ns']:
+        if (
+            rr.record_bag[a] == rr.record_bag[b]
+            and rb['experiment_id'] == ra['experiment_id'] + 1
+            and rb['t_start_ns'] >= ra['t_end_ns']
+        ):
             want['consecutive0'], want['consecutive1'] = a, b
             break
     return want

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import shutil
 import signal
@@ -29,6 +30,7 @@ ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 PAPER = Path(sys.prefix) / 'share' / 'im_drive_sim' / 'config' / 'paper_750w.yaml'
 TUNER_YAML = Path(sys.prefix) / 'share' / 'im_tuner' / 'config' / 'tuner.yaml'
 CASE_TIMEOUT = 60.0
+DISTANCE_1000 = 'trajectory.distance:=1000.0'
 
 EXES = {
     'drive_sim': ('im_drive_sim', 'drive_sim'),
@@ -96,6 +98,9 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('controller', 'p-gain-inf', ['--ros-args', '-p', 'k_pos:=.inf']),
     ('controller', 'p-gain-type', ['--ros-args', '-p', 'k_pw:=abc']),
     ('controller', 'p-isq-max-above-drive', ['--ros-args', '-p', 'safety.isq_max:=20.0']),
+    # a 25 s move in a 1.125 s experiment (config.MOVE_RULE)
+    ('controller', 'p-move-longer-than-experiment', ['--ros-args', '-p', DISTANCE_1000]),
+    ('controller', 'config-comments-only', ['--config', 'comments.yaml']),
     *_file_cases('controller', '--config'),
     *_params_file_cases('controller'),
     # -- sim_bench
@@ -105,6 +110,14 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('sim_bench', 'out-is-a-file', ['--out', 'corrupt.yaml']),
     ('sim_bench', 'processes-seed-negative', ['--processes', '--seed', '-1']),
     ('sim_bench', 'p-isq-max-above-drive', ['--ros-args', '-p', 'safety.isq_max:=20.0']),
+    ('sim_bench', 'p-move-longer-than-experiment', ['--ros-args', '-p', DISTANCE_1000]),
+    (
+        'sim_bench',
+        'processes-p-move-longer-than-experiment',
+        ['--processes', '--ros-args', '-p', DISTANCE_1000],
+    ),
+    ('sim_bench', 'out-with-no-record', ['--out', 'newbag', '--no-record']),
+    ('sim_bench', 'compression-with-no-record', ['--compression', 'zstd', '--no-record']),
     *_file_cases('sim_bench', '--config'),
     *[
         ('sim_bench', 'processes-' + n, a)
@@ -167,6 +180,32 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('tuner', 'out-not-empty', ['--out', 'adir_full']),
     ('tuner', 'algo-bad', ['--algo', 'simplex']),
     ('tuner', 'option-of-other-algo', ['--algo', 'spsa', '--n', '25']),
+    # --no-start: only spsa, cmaes, tpe (safe would start from an untested random point)
+    ('tuner', 'no-start-safe-default', ['--no-start']),
+    ('tuner', 'no-start-compact-ga', ['--algo', 'necga', '--no-start']),
+    ('tuner', 'drive-config-comments-only', ['--drive-config', 'comments.yaml']),
+    # -p reaches the in-process bench's nodes; refused after the run directory was made,
+    # which is then removed (the gain's case ended in a traceback, the run directory left)
+    ('tuner', 'p-gain-negative', ['--bench', 'inproc', '--ros-args', '-p', 'k_pw:=-1.0']),
+    (
+        'tuner',
+        'p-move-longer-than-experiment',
+        ['--bench', 'inproc', '--out', 'newrun', '--ros-args', '-p', DISTANCE_1000],
+    ),
+    # --drive: checked against docs/real-drive.md's contract (bad_drives.py)
+    *[
+        ('tuner', f'drive-{name}', ['--bench', 'realtime', '--drive', spec])
+        for name, spec in (
+            ('ros-node-not-a-drive', 'rclpy.node:Node'),
+            ('controller-node', 'im_controller.controller_node:ControllerNode'),
+            ('not-hardware', 'io:BytesIO'),
+            ('write-signature', 'bad_drives:WriteTakesOne'),
+            ('abstract', 'bad_drives:AbstractHardware'),
+            ('exits-at-import', 'exits_at_import:Hardware'),
+            ('hardware-raises', 'bad_drives:RaisingHardware'),
+            ('node-raises', 'bad_drives:RaisingDrive'),
+        )
+    ],
     *_file_cases('tuner', '--params'),
     *_file_cases('tuner', '--drive-config'),
     # -- tuner --resume: every way a run directory can be broken
@@ -178,10 +217,72 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('tuner', 'resume-run-yaml-bad-algo', ['--resume', 'run_bad_algo']),
     ('tuner', 'resume-run-yaml-bad-budget', ['--resume', 'run_bad_budget']),
     ('tuner', 'resume-with-settings', ['--resume', 'run', '--budget', '9']),
+    # a run.yaml of safe without its start (--no-start, accepted before issue 25)
+    ('tuner', 'resume-run-yaml-safe-no-start', ['--resume', 'run_safe_no_start']),
 ]
 
 
+#: what the one line must say, for the cases whose reason matters (issue 25)
+EXPECT: dict[tuple[str, str], str] = {
+    ('controller', 'p-move-longer-than-experiment'): 'takes 25.07 s, longer than the experiment',
+    ('controller', 'config-comments-only'): 'no settings (the file holds only comments)',
+    ('sim_bench', 'p-move-longer-than-experiment'): 'takes 25.07 s, longer than the experiment',
+    ('sim_bench', 'processes-p-move-longer-than-experiment'): 'takes 25.07 s, longer than',
+    ('sim_bench', 'out-with-no-record'): '--out newbag is for the bag, and --no-record',
+    ('sim_bench', 'compression-with-no-record'): '--compression zstd is for the bag',
+    ('tuner', 'no-start-safe-default'): 'does not apply to --algo safe: safe is a local search',
+    ('tuner', 'no-start-compact-ga'): 'necga takes no start point',
+    ('tuner', 'drive-config-comments-only'): 'no settings (the file holds only comments)',
+    ('tuner', 'p-gain-negative'): 'k_pw',
+    ('tuner', 'p-move-longer-than-experiment'): 'takes 25.07 s, longer than the experiment',
+    ('tuner', 'drive-ros-node-not-a-drive'): 'Node is a ROS node but not a drive node',
+    ('tuner', 'drive-controller-node'): 'ControllerNode is a ROS node but not a drive node',
+    ('tuner', 'drive-not-hardware'): 'BytesIO.write(isq_ref, load_torque) is not a valid call',
+    ('tuner', 'drive-write-signature'): 'WriteTakesOne.write(isq_ref, load_torque) is not',
+    ('tuner', 'drive-abstract'): 'AbstractHardware is abstract',
+    ('tuner', 'drive-exits-at-import'): 'importing exits_at_import called sys.exit(3)',
+    ('tuner', 'drive-hardware-raises'): (
+        'RaisingHardware(config) raised RuntimeError: no inverter on /dev/ttyUSB0 (test)'
+    ),
+    ('tuner', 'drive-node-raises'): 'RaisingDrive raised OSError: EtherCAT master not found',
+    ('tuner', 'resume-run-yaml-safe-no-start'): 'start: false (--no-start) does not apply to',
+}
+
 # -- the work directory every case starts from ---------------------------------------------
+#: drive classes that break docs/real-drive.md's contract, each in one way
+BAD_DRIVES = """
+from abc import ABC, abstractmethod
+
+from im_drive_sim.example_drive import ExampleDrive, Hardware
+
+
+class WriteTakesOne(Hardware):
+    def write(self, isq_ref):  # no load torque
+        pass
+
+
+class AbstractHardware(ABC):
+    def __init__(self, config):
+        pass
+
+    @abstractmethod
+    def read(self): ...
+
+    def write(self, isq_ref, load_torque):
+        pass
+
+
+class RaisingHardware(Hardware):
+    def __init__(self, config):
+        raise RuntimeError('no inverter on /dev/ttyUSB0 (test)')
+
+
+class RaisingDrive(ExampleDrive):
+    def __init__(self, **kwargs):
+        raise OSError('EtherCAT master not found (test)')
+"""
+
+
 def _corrupt_copy(src: Path, dst: Path, edit) -> None:
     shutil.copytree(src, dst)
     edit(dst)
@@ -197,6 +298,9 @@ def template(tmp_path_factory) -> Path:
     (root / 'adir_full' / 'x.txt').write_text('x\n')
     (root / 'corrupt.yaml').write_bytes(b'{{{ : [\x00\xff not yaml\n')
     (root / 'notros.yaml').write_text('- just\n- a list\n')
+    (root / 'comments.yaml').write_text('# my drive, to be filled in\n# Ts: 2.0e-4\n')
+    (root / 'bad_drives.py').write_text(BAD_DRIVES)
+    (root / 'exits_at_import.py').write_text('import sys\n\nsys.exit(3)\n')
     # a real run, cut after its budget of 3 (done) and then made resumable by dropping
     # the last records, as a killed run leaves it
     run = root / 'run'
@@ -270,6 +374,16 @@ def template(tmp_path_factory) -> Path:
         _corrupt_copy(run, root / name, edit)
 
     run_yaml('run_bad_algo', 'algo: necga', 'algo: simplex')
+
+    def safe_no_start(d: Path) -> None:
+        p = d / 'run.yaml'
+        text = p.read_text()
+        assert 'algo: necga' in text and 'start: true' in text
+        p.write_text(
+            text.replace('algo: necga', 'algo: safe').replace('start: true', 'start: false')
+        )
+
+    _corrupt_copy(run, root / 'run_safe_no_start', safe_no_start)
     run_yaml('run_bad_budget', 'budget: 4', 'budget: lots')
     # a run with a bag whose metadata.yaml is garbage (for report)
     bag_run = root / 'run_bad_metadata'
@@ -297,6 +411,9 @@ def _run_case(template: Path, base: Path, i: int, exe: str, argv: list[str]) -> 
     # each case its own DDS domain: a node that wrongly starts must not meet another case
     env['ROS_DOMAIN_ID'] = str(100 + (int(env.get('ROS_DOMAIN_ID', '20')) + i) % 100)
     env['ROS_LOG_DIR'] = str(base / f'log_{i}')
+    # the case's drive modules (bad_drives.py) importable, and no __pycache__ left beside
+    env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(cwd), env.get('PYTHONPATH')]))
+    env['PYTHONDONTWRITEBYTECODE'] = '1'
     pkg, name = EXES[exe]
     # its own session: a case that wrongly starts a pool or children is ended whole
     proc = subprocess.Popen(
@@ -346,7 +463,7 @@ def outcomes(template: Path, tmp_path_factory, request) -> dict[int, dict]:
 
 @pytest.mark.parametrize('i', range(len(CASES)), ids=[f'{exe}-{name}' for exe, name, _a in CASES])
 def test_bad_input_one_line_exit_2_nothing_changed(i: int, outcomes: dict[int, dict]) -> None:
-    exe, _name, argv = CASES[i]
+    exe, name, argv = CASES[i]
     o = outcomes[i]
     what = (
         f'{exe} {" ".join(argv)}: rc={o["rc"]}\nstderr:\n{o["stderr"][-1500:]}\nstdout:\n'
@@ -357,12 +474,18 @@ def test_bad_input_one_line_exit_2_nothing_changed(i: int, outcomes: dict[int, d
     lines = o['stderr'].strip().splitlines()
     assert len(lines) == 1, what
     assert lines[0].startswith('error: ') and len(lines[0]) < 400, what
+    if (exe, name) in EXPECT:
+        assert EXPECT[exe, name] in lines[0], what
     if exe == 'check_drive':  # refused before looking for a drive, not for want of one
         assert 'no drive' not in lines[0], what
     assert o['stdout'].strip() == '', what
     assert o['created'] == [] and o['removed'] == [] and o['changed'] == [], (
         f'{what}\ncreated {o["created"]}, removed {o["removed"]}, changed {o["changed"]}'
     )
+
+
+def test_the_expected_reasons_name_real_cases() -> None:
+    assert set(EXPECT) <= {(e, n) for e, n, _a in CASES}
 
 
 def test_the_matrix_covers_every_executable() -> None:
@@ -409,3 +532,82 @@ def test_check_drive_old_name_still_works(tmp_path: Path) -> None:
         out[pkg] = proc.stdout
     assert out['im_controller'] == out['im_drive_sim']
     assert out['im_drive_sim'].startswith('usage: ros2 run im_drive_sim check_drive')
+
+
+# -- refusals that need no ROS graph: fast, nothing heavy imported ----------------------------
+#: (argv, what the line says): refused by argparse, the run checks, the option ranges
+FAST_REFUSALS = [
+    (['--algo', 'nosuch'], "argument --algo: invalid choice: 'nosuch'"),
+    (['--no-start'], '--no-start does not apply to --algo safe'),
+    (['--algo', 'cmaes', '--sigma0', '2'], 'sigma0'),
+    (['--algo', 'tpe', '--budget', '0'], '--budget must be >= 1'),
+    (['--drive-config', 'comments.yaml'], 'no settings (the file holds only comments)'),
+    (['--out', 'full'], '--out full: already exists'),
+]
+HEAVY = ('rclpy', 'cma', 'optuna', 'scipy', 'numba', 'matplotlib')
+
+
+@pytest.mark.parametrize('argv, says', FAST_REFUSALS, ids=[' '.join(a) for a, _s in FAST_REFUSALS])
+def test_a_refusal_of_the_tuner_imports_nothing_heavy(argv: list[str], says: str, tmp_path: Path):
+    """Issue 25: a bad --algo took 2.7 s on an idle machine (1.5 s of it importing pycma),
+    up to 30 s under load. The tuner parses and checks before it imports rclpy, the numba
+    kernels, pycma, optuna, scipy or matplotlib; checked on the modules its main leaves
+    loaded (speed itself is for the benchmarks)."""
+    (tmp_path / 'full').mkdir()
+    (tmp_path / 'full' / 'x.txt').write_text('x\n')
+    (tmp_path / 'comments.yaml').write_text('# my drive, to be filled in\n')
+    before = _tree(tmp_path)
+    code = (
+        'import json, sys\n'
+        'from im_tuner.tuner_node import main\n'
+        'rc = main(["tuner", *json.loads(sys.argv[1])])\n'
+        f'heavy = {HEAVY!r}\n'
+        'print(json.dumps([rc, sorted(m for m in heavy if m in sys.modules)]))\n'
+    )
+    proc = subprocess.run(
+        [sys.executable, '-c', code, json.dumps(argv)],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=CASE_TIMEOUT,
+        env={**os.environ, 'PYTHONDONTWRITEBYTECODE': '1'},
+    )
+    rc, loaded = json.loads(proc.stdout)
+    lines = proc.stderr.strip().splitlines()
+    assert rc == 2 and len(lines) == 1, proc.stderr
+    assert lines[0].startswith('error: tuner: ') and says in lines[0], lines[0]
+    assert loaded == [], f'{argv}: a refusal imported {loaded}'
+    assert _tree(tmp_path) == before
+
+
+def test_the_controller_refuses_a_move_longer_than_the_experiment_at_run_time(ros_context):
+    """set_parameters of a distance (or a combination) whose move does not fit the
+    experiment is refused with the reason, nothing changes; the descriptors of the four
+    parameters that set the move's time say the rule."""
+    from rclpy.parameter import Parameter
+
+    from im_controller.config import MOVE_KEYS, MOVE_RULE
+    from im_controller.controller_node import ControllerNode
+
+    node = ControllerNode(context=ros_context)
+    try:
+        res = node.set_parameters([Parameter('trajectory.distance', value=1000.0)])
+        assert not res[0].successful
+        assert 'takes 25.07 s, longer than the experiment' in res[0].reason, res[0].reason
+        assert node.get_parameter('trajectory.distance').value == math.pi
+        # pi rad at 5 rad/s takes 0.637 s: it fits the 1.125 s experiment, not a 0.5 s one
+        squeeze = [
+            Parameter('trajectory.v_max', value=5.0),
+            Parameter('trajectory.duration', value=0.5),
+            Parameter('trajectory.load_delay', value=0.4),
+        ]
+        res_atomic = node.set_parameters_atomically(squeeze)
+        assert not res_atomic.successful
+        assert 'takes 0.6367 s, longer than the experiment' in res_atomic.reason
+        assert node.get_parameter('trajectory.duration').value == 1.125
+        assert node.set_parameters(squeeze[:1])[0].successful
+        for key in MOVE_KEYS:
+            desc = node.describe_parameter(key)
+            assert MOVE_RULE in desc.additional_constraints, (key, desc)
+    finally:
+        node.destroy_node()

@@ -73,6 +73,10 @@ def check_ros_args(argv: Sequence[str]) -> list[str]:
             raise UsageError(f'--params-file {f}: not a file')
         if not os.access(p, os.R_OK):
             raise UsageError(f'--params-file {f}: not readable')
+    if '--ros-args' not in argv and not any(':=' in a for a in argv):
+        # nothing for rcl to remove (not even a deprecated bare 'from:=to' remap) or to
+        # check: no need to load rclpy, and a refusal of the command line comes at once
+        return list(argv)
     from rclpy.utilities import remove_ros_args
 
     try:

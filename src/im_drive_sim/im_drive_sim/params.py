@@ -394,8 +394,18 @@ def load_config(
             where = f' at line {mark.line + 1}, column {mark.column + 1}'
         problem = getattr(exc, 'problem', None) or str(exc)
         raise ConfigError(f'{name}: YAML syntax error{where}: {problem}') from exc
-    if data is None:
-        raise ConfigError(f'{name}: file is empty')
+    if data is None:  # an empty file, only comments, or a bare null: no settings at all
+        content = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        if not content:
+            what = 'the file is empty'
+        elif all(ln.startswith('#') or ln in ('---', '...') for ln in content):
+            what = 'the file holds only comments'
+        else:
+            what = 'the YAML document is null'
+        raise ConfigError(
+            f'{name}: no settings ({what}); a drive file is a mapping, e.g. '
+            "'base: paper_750w' and the values you know (docs/real-drive.md)"
+        )
     if isinstance(data, Mapping) and 'base' in data:
         data = _with_base(name, p, data)
     src = name if not overrides else f'{name} (with overrides)'

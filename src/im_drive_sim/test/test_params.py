@@ -166,10 +166,22 @@ def test_yaml_syntax_error_and_empty_and_missing_file(tmp_path: Path) -> None:
         ConfigError, match=r'^broken\.yaml: YAML syntax error at line \d+, column \d+'
     ):
         load_config(p)
-    p = tmp_path / 'empty.yaml'
-    p.write_text('# nothing\n')
-    with pytest.raises(ConfigError, match=r'^empty\.yaml: file is empty'):
-        load_config(p)
+    # no settings: said as it is (a comments-only file is not "empty"), on one line
+    for text, what in (
+        ('', 'the file is empty'),
+        ('\n  \n', 'the file is empty'),
+        ('# nothing\n# Ts: 2e-4\n', 'the file holds only comments'),
+        ('---\n# a document of comments\n...\n', 'the file holds only comments'),
+        ('~\n', 'the YAML document is null'),
+        ('null # nothing\n', 'the YAML document is null'),
+    ):
+        p = tmp_path / 'empty.yaml'
+        p.write_text(text)
+        with pytest.raises(ConfigError) as exc:
+            load_config(p)
+        msg = str(exc.value)
+        assert msg.startswith(f'empty.yaml: no settings ({what}); a drive file is a mapping')
+        assert '\n' not in msg
     p = tmp_path / 'list.yaml'
     p.write_text('- 1\n- 2\n')
     with pytest.raises(ConfigError, match=r'^list\.yaml: top level must be a mapping'):

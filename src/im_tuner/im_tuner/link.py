@@ -17,7 +17,6 @@ bench's (which steps the simulation) or a plain executor's -- and gives up on a 
 
 from __future__ import annotations
 
-import posixpath
 import time
 from collections.abc import Callable
 from typing import Any
@@ -32,8 +31,9 @@ from std_srvs.srv import Trigger
 from im_controller import contract as C
 from im_controller.config import GAIN_NAMES, Gains
 from im_controller.messages import SAFETY_REASONS, msg_to_result
-from im_drive_sim.contract import STATUS_COUNTERS, STATUS_TOPIC
+from im_drive_sim.contract import STATUS_COUNTERS
 
+from .names import FAULT_POLICIES, controller_topics
 from .tuning import BenchFailure, LostEvaluation, Measurement, StopRequested
 
 __all__ = [
@@ -44,24 +44,8 @@ __all__ = [
     'drive_report',
 ]
 
-FAULT_POLICIES = ('reset', 'stop')
 RETRY_PERIOD = 0.02  # [s] between retries of a refused call
 SUPERVISE_PERIOD = 0.2  # [s] between checks of the bench processes
-
-
-def controller_topics(controller: str) -> dict[str, str]:
-    """Fully qualified names of the controller's services and loss topic."""
-    if not controller.startswith('/'):
-        controller = '/' + controller
-    ns = posixpath.dirname(controller)
-    return {
-        'start': f'{controller}/{C.START_SERVICE}',
-        'reset': f'{controller}/{C.RESET_SERVICE}',
-        'set_atomic': f'{controller}/set_parameters_atomically',
-        'loss': posixpath.join(ns, C.LOSS_TOPIC),
-        'node': controller,
-        'drive_status': posixpath.join(ns, STATUS_TOPIC),
-    }
 
 
 #: drive/status counters (docs/interfaces.md) the run summary reports

@@ -1,27 +1,37 @@
 """The tuner's command line and run configuration: options, checks of a new run and of
-``run.yaml`` on ``--resume``, and the TuningRun built from them (no ROS)."""
+``run.yaml`` on ``--resume``, and the TuningRun built from them.
+
+Every check of a new run is made here, before anything is created and before anything
+heavy is imported: this module imports no rclpy, numba, pycma, optuna or scipy at load
+(``im_tuner.optim`` loads an algorithm's module only when one is built), so a refusal is
+one line within a fraction of a second. The checks that need more come last, in this
+order: the controller's name (rclpy's name rules), ``--drive`` (imports the user's
+module), the optimiser (built once: its module, e.g. pycma), the user's hardware class
+(built once, kept for the bench).
+"""
 
 from __future__ import annotations
 
 import argparse
 import math
 import shlex
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from im_drive_sim.cli import Parser, UsageError, finite_float
 
 from . import optim
-from .link import FAULT_POLICIES, controller_topics
-from .optim.base import OptimizerError
+from .names import FAULT_POLICIES, controller_topics
+from .optim.base import OptimizerError, check_options
 from .rundir import RunDir
 from .space import TunerParams, TunerParamsError, load_params, parse_params
-from .tuning import (
-    TuningRun,
-    run_seeds,
-)
+
+if TYPE_CHECKING:
+    from .bench.drive_spec import DriveChoice
+    from .tuning import TuningRun
 
 BENCHES = ('auto', 'inproc', 'processes', 'realtime', 'realtime-processes', 'none')
 SIM_BENCHES = ('inproc', 'processes', 'realtime', 'realtime-processes')
@@ -44,6 +54,10 @@ RUN_SETTINGS = (
     'retries',
     'drive',
 )
+
+
+#: the algorithms --no-start is for, in --algo's order
+NO_START_TEXT = ', '.join(a for a in optim.ALGOS if a in optim.NO_START_ALGOS)
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -120,9 +134,11 @@ def _build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         '--no-start',
         action='store_true',
-        help="spsa, cmaes, tpe: do not start from the parameter file's start point "
-        '(spsa, cmaes: a uniform random one; tpe: random trials first); the reference '
-        'experiment still measures it',
+        help=f'{NO_START_TEXT} only: do not start from the parameter '
+        "file's start point (spsa, cmaes: a uniform random one; tpe: random trials first); "
+        'the reference experiment still measures it. Refused with safe (a local search '
+        'from the start: its first experiment would be an untested random controller) '
+        'and with the compact GAs (they take no start)',
     )
     ap.add_argument(
         '--retries',
@@ -217,16 +233,44 @@ def _algo_options(cli: argparse.Namespace, algo: str) -> dict[str, Any]:
 
 
 # -- the run configuration -------------------------------------------------------------------
-def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str, Any], TunerParams]:
+def check_no_start(algo: str, where: str = '--no-start') -> None:
+    """``--no-start`` (run.yaml ``start: false``) is for ``optim.NO_START_ALGOS`` only:
+    with safe it would make the first experiment an untested random controller; the
+    compact GAs take no start, so it would mean nothing."""
+    if algo in optim.NO_START_ALGOS:
+        return
+    if algo in optim.TAKES_START:
+        why = (
+            f'{algo} is a local search from the start point (the hand-tuned gains); '
+            'without it the first experiment would be an untested random controller'
+        )
+    else:
+        why = f'{algo} takes no start point (it samples from its distribution)'
+    raise UsageError(f'{where} does not apply to --algo {algo}: {why}; it is for {NO_START_TEXT}')
+
+
+@dataclass
+class NewRun:
+    """A new run whose every check passed: its settings (run.yaml), its tuner parameters,
+    the run directory to create (None: the default, named when it is created) and the
+    checked ``--drive`` (None: the simulator; a hardware class already built)."""
+
+    run: dict[str, Any]
+    params: TunerParams
+    out: Path | None
+    drive: DriveChoice | None
+
+
+def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
+    """Check everything of a new run before anything is created (module docstring: the
+    cheap checks first, then the controller's name, ``--drive``, the optimiser and the
+    hardware class)."""
     algo = cli.algo or optim.DEFAULT_ALGO
     budget = 200 if cli.budget is None else cli.budget
     if budget < 1:
         raise UsageError(f'--budget must be >= 1 loss evaluations, got {budget}')
     if cli.seed is not None and cli.seed < 0:
         raise UsageError(f'--seed must be >= 0, got {cli.seed}')
-    entropy = np.random.SeedSequence().entropy  # a fresh SeedSequence draws an int
-    assert isinstance(entropy, int)
-    seed = cli.seed if cli.seed is not None else entropy % 2**31
     remeasure = 3 if cli.remeasure is None else cli.remeasure
     if remeasure < 0:
         raise UsageError(f'--remeasure must be >= 0, got {remeasure}')
@@ -235,6 +279,18 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str,
         raise UsageError(f'--retries must be >= 0, got {retries}')
     if not cli.eval_timeout > 0 or not math.isfinite(cli.eval_timeout):
         raise UsageError(f'--eval-timeout must be > 0 s, got {cli.eval_timeout}')
+    if cli.no_start:
+        check_no_start(algo)
+    options = _algo_options(cli, algo)
+    try:
+        check_options(algo, optim.OPTIONS[algo], options)  # (ranges: no module needed)
+    except OptimizerError as exc:
+        raise UsageError(str(exc)) from None
+    if cli.drive is not None and (cli.bench or 'auto') != 'realtime':
+        raise UsageError(
+            f'--drive {cli.drive}: a drive is plugged into the composed real-time bench '
+            'only (--bench realtime)'
+        )
     try:
         params = load_params(cli.params)
     except TunerParamsError as exc:
@@ -246,26 +302,41 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str,
             load_config(cli.drive_config)
         except ConfigError as exc:
             raise UsageError(str(exc)) from None
-    if cli.drive is not None:
-        if (cli.bench or 'auto') != 'realtime':
-            raise UsageError(
-                f'--drive {cli.drive}: a drive is plugged into the composed real-time bench '
-                'only (--bench realtime)'
-            )
-        from .bench.realtime import DriveSpecError, check_drive_spec
+    out = cli.out
+    if out is not None and out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise UsageError(
+            f'--out {out}: already exists; choose a new directory'
+            + (' (or continue that run with --resume)' if (out / 'run.yaml').exists() else '')
+        )
+    # -- the checks that import more: rclpy's name rules, the user's drive module, the
+    # optimiser's module (pycma for cmaes); the hardware class is built last (it may open
+    # a bus), and the run's seeds are drawn once everything passed
+    _check_controller_name(cli.controller)
+    from .bench import drive_spec
 
+    drive = None
+    if cli.drive is not None:
         try:
-            check_drive_spec(cli.drive)
-        except DriveSpecError as exc:
+            drive = drive_spec.resolve(cli.drive, cli.drive_config, build=False)
+        except drive_spec.DriveSpecError as exc:
             raise UsageError(str(exc)) from None
-    options = _algo_options(cli, algo)
-    opt_ss, drive_seed = run_seeds(seed)
-    try:  # validate the options now: nothing is created on bad input
+    entropy = np.random.SeedSequence().entropy  # a fresh SeedSequence draws an int
+    assert isinstance(entropy, int)
+    seed = cli.seed if cli.seed is not None else entropy % 2**31
+    try:  # the cross-option checks (eta < n ...) are the constructors' (any seed will do)
         optim.make_optimizer(
-            algo, params.space.dim, opt_ss, _start(algo, params, cli.no_start), **options
+            algo, params.space.dim, seed, _start(algo, params, cli.no_start), **options
         )
     except OptimizerError as exc:
         raise UsageError(str(exc)) from None
+    if drive is not None:
+        try:
+            drive = drive_spec.resolve(cli.drive, cli.drive_config)
+        except drive_spec.DriveSpecError as exc:
+            raise UsageError(str(exc)) from None
+    from .tuning import run_seeds
+
+    _opt_ss, drive_seed = run_seeds(seed)
     run = {
         'algo': algo,
         'options': options,
@@ -282,7 +353,7 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> tuple[dict[str,
         'search_box': params.space.as_dict(),
         'command': ' '.join(shlex.quote(a) for a in argv),
     }
-    return run, params
+    return NewRun(run, params, out, drive)
 
 
 def is_simulated(bench: str | None, drive: str | None) -> bool:
@@ -292,8 +363,9 @@ def is_simulated(bench: str | None, drive: str | None) -> bool:
 
 
 def _start(algo: str, params: TunerParams, no_start: bool = False) -> np.ndarray | None:
-    """SPSA, CMA-ES and TPE start from the file's start point (unless ``--no-start``); the
-    compact GAs from their distribution."""
+    """SPSA, CMA-ES, TPE and safe start from the file's start point (the first three
+    without it with ``--no-start``, checked by :func:`check_no_start`); the compact GAs
+    from their distribution."""
     return params.space.start_u if algo in optim.TAKES_START and not no_start else None
 
 
@@ -331,6 +403,11 @@ def _check_run(run: dict[str, Any], where: str) -> None:
         raise bad('options', 'a mapping of algorithm options')
     if not isinstance(run.get('reference'), bool):
         raise bad('reference', 'true or false')
+    if not isinstance(run.get('start', True), bool):
+        raise bad('start', 'true or false')
+    if run.get('start', True) is False and run['algo'] in optim.TAKES_START:
+        # the rule of --no-start (a run of the compact GAs ignores it: nothing to refuse)
+        check_no_start(run['algo'], f'{where}: start: false (--no-start)')
     if not isinstance(run.get('search_box'), dict):
         raise bad('search_box', 'a mapping (the search box)')
 
@@ -344,6 +421,8 @@ def _params_of_run(run: dict[str, Any]) -> TunerParams:
 
 
 def _make_tuning(rundir: RunDir, run: dict[str, Any], params: TunerParams, progress) -> TuningRun:
+    from .tuning import TuningRun, run_seeds
+
     opt_ss, _ = run_seeds(run['seed'])
     opt = optim.make_optimizer(
         run['algo'],

@@ -46,23 +46,12 @@ import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import yaml
-from rclpy.context import Context
-from rclpy.node import Node
-from rclpy.parameter import Parameter
-
+# Only what parsing and checking need: rclpy, the benches, numba kernels, pycma... are
+# imported once every check passed (tuner_cli), so a refusal is one line at once.
 from im_drive_sim.cli import UsageError, check_ros_args
-from im_drive_sim.contract import STATE_TOPIC
-from im_drive_sim.runtime import RosSession
 
-from .bench import forms
-from .link import ControllerLink, controller_topics
-from .optim.base import OptimizerError
-from .progress import Progress, format_summary
-from .rundir import RunDir, RunDirError
-from .space import TunerParamsError
 from .tuner_cli import (
     EXIT_FAILED,
     EXIT_INTERRUPTED,
@@ -80,15 +69,22 @@ from .tuner_cli import (
     _params_of_run,
     is_simulated,
 )
-from .tuning import BenchFailure, ResumeError, StopRequested, replay, replay_plan
+
+if TYPE_CHECKING:
+    from .rundir import RunDir
 
 
-def _repair_old_bags(rundir: RunDir, note) -> None:
+def _repair_old_bags(rundir: RunDir, note, current: Path | None) -> None:
     """Bags of killed sessions still say state 'recording': repair them (index, summary,
-    metadata.yaml) so that the whole run opens in any reader."""
+    metadata.yaml) so that the whole run opens in any reader. ``current``: this session's
+    bag, being recorded (it is not a killed session's)."""
+    import yaml
+
     from .record.repair import RepairError, repair_bag
 
     for bag in rundir.bag_dirs():
+        if current is not None and bag == current:
+            continue
         try:
             meta = yaml.safe_load((bag / 'metadata.yaml').read_text())
             state = meta['rosbag2_bagfile_information']['custom_data'].get('im_tuner.state')
@@ -106,7 +102,6 @@ def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv if args is None else args)
     try:
         cli = _build_parser().parse_args(check_ros_args(argv)[1:])
-        _check_controller_name(cli.controller)
     except UsageError as exc:
         print(f'error: tuner: {exc}', file=sys.stderr)
         return EXIT_USAGE
@@ -115,11 +110,45 @@ def main(args: list[str] | None = None) -> int:
     except UsageError as exc:
         print(f'error: tuner: {exc}', file=sys.stderr)
         return EXIT_USAGE
+    finally:
+        # a hardware class built by the checks and never taken by a bench (a refusal or a
+        # failure on the way): closed, whatever the way out
+        spec = sys.modules.get('im_tuner.bench.drive_spec')
+        if spec is not None:
+            spec.close_untaken()
+
+
+def _made_by_create(out: Path) -> tuple[Path, bool]:
+    """What ``RunDir.create(out)`` will make: the topmost missing directory of ``out``
+    (itself or a parent), or ``out`` itself if it is an existing empty directory (then
+    only its contents are ours: the bool is False)."""
+    if out.exists():
+        return out, False
+    made = out
+    while not made.parent.exists() and made.parent != made.parent.parent:
+        made = made.parent
+    return made, True
+
+
+def _undo_create(made: tuple[Path, bool] | None) -> None:
+    """A new run refused once its directory exists (a ``-p`` the controller refuses, a
+    drive node class whose constructor raises): leave nothing behind."""
+    if made is None:
+        return
+    path, whole = made
+    if whole:
+        shutil.rmtree(path, ignore_errors=True)
+    elif path.is_dir():
+        for child in path.iterdir():
+            shutil.rmtree(child) if child.is_dir() else child.unlink()
 
 
 def _main(cli: argparse.Namespace, argv: list[str]) -> int:
     t_wall0 = time.monotonic()
-    # ---- validate everything before creating anything --------------------------------------
+    # ---- validate everything before creating anything (tuner_cli: before importing ROS) ----
+    from .bench.drive_spec import DriveSpecError, resolve
+
+    drive_choice = None
     if cli.resume is not None:
         given = [k for k in RUN_SETTINGS if getattr(cli, k) not in (None, False)]
         given += [k[4:] for k, v in vars(cli).items() if k.startswith('opt_') and v is not None]
@@ -130,6 +159,9 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                 "--resume takes the run's settings from RUN_DIR/run.yaml; do not "
                 'also give ' + ', '.join('--' + g.replace('_', '-') for g in given)
             )
+        from .rundir import RunDir, RunDirError
+        from .space import TunerParamsError
+
         try:
             rundir = RunDir.open(cli.resume)
             rundir.lock()  # one tuner per run, from here to the end of the process
@@ -138,8 +170,13 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             params = _params_of_run(run)
         except (RunDirError, TunerParamsError) as exc:
             raise UsageError(f'--resume: {exc}') from None
+        _check_controller_name(cli.controller)
         # everything of the run is checked before anything starts (a refusal changes
         # nothing; the torn tail of results.jsonl is cut only once the run goes on)
+        from .optim.base import OptimizerError
+        from .progress import Progress
+        from .tuning import ResumeError
+
         progress = Progress(run['algo'], run['budget'], cli.quiet)
         try:
             tuning = _make_tuning(rundir, run, params, progress)
@@ -149,24 +186,58 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         except ResumeError as exc:
             raise UsageError(f'--resume: {exc}') from None
         bench_mode = cli.bench or run.get('bench_requested', 'auto')
+        if (run.get('drive') or 'sim') != 'sim':
+            try:  # the run's drive: checked (and a hardware class built) as for a new run
+                drive_choice = resolve(str(run['drive']), run.get('drive_config'))
+            except DriveSpecError as exc:
+                raise UsageError(f'--resume: {exc}') from None
+        made = None
     else:
-        run, params = _new_run_config(cli, argv)
-        out = cli.out
+        new = _new_run_config(cli, argv)
+        run, params, drive_choice = new.run, new.params, new.drive
+        out = new.out
         if out is None:
             from .record.node import default_out_dir
 
             out = default_out_dir(prefix=f'tuner_{run["algo"]}')
-        if out.exists() and (not out.is_dir() or any(out.iterdir())):
-            raise UsageError(
-                f'--out {out}: already exists; choose a new directory'
-                + (' (or continue that run with --resume)' if (out / 'run.yaml').exists() else '')
-            )
         rundir = None
+        made = _made_by_create(out)
         bench_mode = cli.bench or 'auto'
         run['bench_requested'] = bench_mode
+        from .progress import Progress
+
         progress = Progress(run['algo'], run['budget'], cli.quiet)
 
     # ---- ROS ---------------------------------------------------------------------------------
+    from rclpy.context import Context
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from im_controller.config import ControllerConfigError
+    from im_controller.controller_node import ControllerError
+    from im_drive_sim.contract import STATE_TOPIC
+    from im_drive_sim.params import ConfigError
+    from im_drive_sim.runtime import ParameterOverrideError, RosSession
+
+    from .bench import forms
+    from .link import ControllerLink, controller_topics
+    from .progress import format_summary
+    from .rundir import RunDir, RunDirError
+    from .tuning import BenchFailure, ResumeError, StopRequested, replay, replay_plan
+
+    #: what a node of the in-process bench refuses at start: its -p overrides (ranges,
+    #: types, the controller's cross-checks such as a move longer than the experiment),
+    #: the drive file, a user's drive class
+    node_refusals = (
+        ConfigError,
+        ControllerConfigError,
+        ControllerError,
+        DriveSpecError,
+        InvalidParameterTypeException,
+        InvalidParameterValueException,
+        ParameterOverrideError,
+    )
     ros_args = ['--ros-args', '--disable-stdout-logs']  # the tuner prints its own progress
     if '--ros-args' in argv:
         ros_args = [*argv[argv.index('--ros-args') :], '--disable-stdout-logs']
@@ -181,6 +252,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
     exe = None
     bag_dir: Path | None = None
     discard_bag = False
+    refused = False
     code = EXIT_OK
     try:
         node = Node('tuner', context=ctx, start_parameter_services=False)
@@ -241,16 +313,6 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                 raise UsageError(str(exc)) from None
             run['bench'] = bench_mode
             tuning = _make_tuning(rundir, run, params, progress)
-        else:
-            # accepted: from here on the run directory changes
-            rundir.cut_torn_tail()
-            if tuning.rebuilt:
-                progress.warn(f'warning: {tuning.rebuilt}; rebuilt from results.jsonl')
-            _repair_old_bags(rundir, progress.note)
-            progress.note(
-                f'resuming {rundir.path}: {n_restored} records, '
-                f'{tuning.state.evals}/{run["budget"]} evaluations done'
-            )
         bag_dir = None if cli.no_record else rundir.next_bag_dir()
 
         # ---- the bench ------------------------------------------------------------------------
@@ -270,20 +332,23 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                 drive_over.append(Parameter('config_file', value=str(cli.drive_config)))
                 ctl_over.append(Parameter('drive_config_file', value=str(cli.drive_config)))
         if bench_mode in IN_PROCESS_BENCHES:
-            bench = forms.InProcess(
-                ctx,
-                node,
-                exe,
-                realtime=bench_mode == 'realtime',
-                drive=drive,
-                drive_overrides=drive_over,
-                controller_overrides=ctl_over,
-                bag_dir=bag_dir,
-                compression=cli.compression,
-                tuner_metadata={k: v for k, v in run.items() if k != 'search_box'},
-                command=argv,
-                should_stop=should_stop,
-            )
+            try:
+                bench = forms.InProcess(
+                    ctx,
+                    node,
+                    exe,
+                    realtime=bench_mode == 'realtime',
+                    drive=drive_choice or drive,
+                    drive_overrides=drive_over,
+                    controller_overrides=ctl_over,
+                    bag_dir=bag_dir,
+                    compression=cli.compression,
+                    tuner_metadata={k: v for k, v in run.items() if k != 'search_box'},
+                    command=argv,
+                    should_stop=should_stop,
+                )
+            except node_refusals as exc:  # (nothing recorded yet: the nodes come first)
+                raise UsageError(str(exc).strip().splitlines()[0]) from None
         else:
             bench = forms.Children(
                 bench_mode,
@@ -295,6 +360,18 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                 bag_dir=bag_dir,
                 compression=cli.compression,
                 progress=progress,
+            )
+        if cli.resume is not None:
+            # accepted: from here on the run directory changes
+            rundir.cut_torn_tail()
+            if tuning.rebuilt:
+                progress.warn(f'warning: {tuning.rebuilt}; rebuilt from results.jsonl')
+            # (after the bench is up, so that a refusal by its nodes changes nothing: skip
+            # this session's bag, which its recorder has begun)
+            _repair_old_bags(rundir, progress.note, bag_dir)
+            progress.note(
+                f'resuming {rundir.path}: {n_restored} records, '
+                f'{tuning.state.evals}/{run["budget"]} evaluations done'
             )
         session: dict[str, Any] = {}
         if isinstance(bench, forms.Children):
@@ -386,6 +463,9 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         progress.close()
         print('tuner: interrupted before the search started', file=sys.stderr)
         code = EXIT_INTERRUPTED
+    except UsageError:
+        refused = True
+        raise
     finally:
         if bench is not None:
             bench.close()
@@ -396,6 +476,10 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         if exe is not None:
             exe.executor.shutdown()
         ros.close()
+        if refused and cli.resume is None and rundir is not None:
+            # refused by a node of the bench after the run directory was made: undo it
+            rundir.unlock()
+            _undo_create(made)
     return code
 
 

@@ -150,7 +150,7 @@ class InProcess:
         exe: Executor,
         *,
         realtime: bool = False,
-        drive: str = 'sim',
+        drive: Any = 'sim',  # a --drive name, or a drive_spec.DriveChoice
         drive_overrides: list[Parameter],
         controller_overrides: list[Parameter],
         bag_dir: Path | None,

@@ -22,7 +22,8 @@ real-time loop runs them, every Ts = 200 us on the wall clock (:class:`pacing.Pa
 The drive side is pluggable (:func:`make_drive`): the simulator in real time (the default),
 the example drive, or a user's class named ``package.module:Class`` -- a hardware class
 like ``example_drive.Hardware`` (``Class(config)`` with ``read()``/``write()``) run inside
-the example drive's ROS side, or a whole drive node class (an ``ExampleDrive`` subclass).
+the example drive's ROS side, or a whole drive node class (an ``ExampleDrive`` subclass);
+:mod:`.drive_spec` checks a class against that contract.
 
 Python's own jitter is kept out of the loop: nothing is allocated per period by the loop
 itself (the per-period timings go into preallocated arrays), no logging on the hot path,
@@ -35,7 +36,6 @@ the 200 us budget.
 from __future__ import annotations
 
 import gc
-import importlib
 import time
 from collections.abc import Callable
 from typing import Any
@@ -43,17 +43,15 @@ from typing import Any
 import numpy as np
 import rclpy
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from im_controller.controller_node import ControllerNode
 from im_drive_sim.pacing import Pacer
 
 from ..tuning import BenchFailure
+from .drive_spec import DriveChoice, build_node, resolve
 from .inprocess import compose
 
-#: Drives by name; anything else is ``package.module:Class``.
-DRIVES = ('sim', 'example')
 #: Periods of per-period timings kept (a ring): 10 min at 5 kHz.
 TIMING_CAPACITY = 3_000_000
 
@@ -75,50 +73,17 @@ def _where(exc: BaseException) -> str:
     return f'{code.co_filename}:{tb.tb_lineno} in {code.co_name}'
 
 
-class DriveSpecError(ValueError):
-    """``--drive`` names no usable drive (the message says why)."""
-
-
-def load_drive_class(spec: str) -> type:
-    """The class named by ``package.module:Class`` (DriveSpecError if there is none)."""
-    mod_name, sep, cls_name = spec.partition(':')
-    if not sep or not mod_name or not cls_name:
-        raise DriveSpecError(
-            f"--drive {spec!r}: expected 'sim', 'example' or 'package.module:Class'"
-        )
-    try:
-        mod = importlib.import_module(mod_name)
-    except Exception as exc:  # an import error of the user's module, whatever it is
-        raise DriveSpecError(f'--drive {spec!r}: cannot import {mod_name}: {exc}') from None
-    cls = getattr(mod, cls_name, None)
-    if not isinstance(cls, type):
-        raise DriveSpecError(f'--drive {spec!r}: {mod_name} has no class {cls_name}')
-    return cls
-
-
-def check_drive_spec(spec: str) -> str:
-    """Validate ``--drive`` early (before anything starts); returns it."""
-    if spec not in DRIVES:
-        cls = load_drive_class(spec)
-        from im_drive_sim.example_drive import ExampleDrive
-
-        if not issubclass(cls, Node) and not (
-            callable(getattr(cls, 'read', None)) and callable(getattr(cls, 'write', None))
-        ):
-            raise DriveSpecError(
-                f'--drive {spec!r}: {cls.__name__} is neither a drive node (an '
-                f'{ExampleDrive.__name__} subclass) nor a hardware class with read() and '
-                'write(isq_ref, load_torque) (docs/real-drive.md)'
-            )
-    return spec
-
-
-def make_drive(spec: str, context: Any, overrides: list[Parameter]) -> Any:
-    """The drive node named by ``spec`` (see the module docstring), in real time.
+def make_drive(spec: str | DriveChoice, context: Any, overrides: list[Parameter]) -> Any:
+    """The drive node named by ``spec`` (see the module docstring; a DriveChoice is a
+    ``--drive`` already checked, with its hardware built: ``drive_spec.resolve``), in
+    real time.
 
     ``overrides``: the tuner's drive parameters; the simulator takes them all (seed,
     model, config_file), the example drive and a user's drive only ``config_file``."""
-    if spec == 'sim':
+    choice = spec if isinstance(spec, DriveChoice) else None
+    name = choice.spec if choice is not None else spec
+    assert isinstance(name, str)
+    if name == 'sim':
         from im_drive_sim.drive_sim_node import DriveSimNode
 
         return DriveSimNode(
@@ -133,12 +98,9 @@ def make_drive(spec: str, context: Any, overrides: list[Parameter]) -> Any:
     from im_drive_sim.example_drive import ExampleDrive
 
     mine = [p for p in overrides if p.name == 'config_file']
-    if spec == 'example':
+    if name == 'example':
         return ExampleDrive(context=context, parameter_overrides=mine)
-    cls = load_drive_class(check_drive_spec(spec))
-    if issubclass(cls, Node):
-        return cls(context=context, parameter_overrides=mine)
-    return ExampleDrive(context=context, parameter_overrides=mine, hardware_class=cls)
+    return build_node(choice or resolve(name, None, build=False), context, mine)
 
 
 class RealtimeBench:

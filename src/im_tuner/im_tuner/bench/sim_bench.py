@@ -66,7 +66,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument(
         '--no-record',
         action='store_true',
-        help='do not record (default: all traffic to a bag, see --out)',
+        help='do not record (default: all traffic to a bag, see --out); refused with '
+        '--out or --compression, which would be ignored',
     )
     ap.add_argument(
         '--out',
@@ -77,7 +78,6 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument(
         '--compression',
         choices=('none', 'zstd', 'lz4'),
-        default='lz4',
         help='MCAP chunk compression of the bag (default: lz4; zstd: smaller files)',
     )
     return ap
@@ -90,8 +90,65 @@ def _check_cli(cli: argparse.Namespace) -> None:
             load_config(cli.config)
         except ConfigError as exc:
             raise UsageError(str(exc)) from None
-    if cli.out is not None and not cli.no_record and cli.out.exists():
+    if cli.no_record:  # a bag option with no bag would be silently ignored
+        for flag, value in (('--out', cli.out), ('--compression', cli.compression)):
+            if value is not None:
+                raise UsageError(
+                    f'{flag} {value} is for the bag, and --no-record records none: '
+                    'give one or the other'
+                )
+    cli.compression = cli.compression or 'lz4'
+    if cli.out is not None and cli.out.exists():
         raise UsageError(f'--out {cli.out}: already exists; choose a new directory')
+
+
+NODE_REFUSALS = (
+    ConfigError,
+    ControllerError,
+    ControllerConfigError,
+    ParameterOverrideError,
+    InvalidParameterValueException,
+    InvalidParameterTypeException,
+)
+
+
+def _overrides(cli: argparse.Namespace) -> tuple[list[Parameter], list[Parameter]]:
+    """The drive's and the controller's parameters from the command line's flags."""
+    config = str(cli.config) if cli.config else None
+    drive_over = [
+        Parameter(n, value=v)
+        for n, v in (('config_file', config), ('model', cli.model), ('seed', cli.seed))
+        if v is not None
+    ]
+    ctl_over = [Parameter('drive_config_file', value=config)] if config else []
+    return drive_over, ctl_over
+
+
+def _check_nodes(cli: argparse.Namespace, ros_args: list[str]) -> None:
+    """``--processes`` with ``--ros-args``: build the drive and the controller here first
+    (a private context, no log output, destroyed at once), so that an override either
+    child would refuse at start is refused here, on one line, before the recorder child
+    (which would print its own lines) or anything else is started."""
+    from rclpy.context import Context
+
+    from im_controller.controller_node import ControllerNode
+    from im_drive_sim.drive_sim_node import DriveSimNode
+
+    drive_over, ctl_over = _overrides(cli)
+    ctx = Context()
+    session = RosSession(['sim_bench', *ros_args, '--disable-stdout-logs'], context=ctx)
+    try:
+        drive = DriveSimNode(context=ctx, parameter_overrides=drive_over, warn_unknown=False)
+        try:
+            ControllerNode(
+                context=ctx, parameter_overrides=ctl_over, warn_unknown=False
+            ).destroy_node()
+        finally:
+            drive.destroy_node()
+    except NODE_REFUSALS as exc:
+        raise UsageError(str(exc).strip().splitlines()[0]) from None
+    finally:
+        session.close()
 
 
 def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
@@ -163,14 +220,14 @@ def main(args: list[str] | None = None) -> int:
         return 2
     ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
     if cli.processes:
+        if ros_args:
+            try:
+                _check_nodes(cli, ros_args)
+            except UsageError as exc:
+                print(f'error: sim_bench: {exc}', file=sys.stderr)
+                return 2
         return _children(cli, ros_args)
-    config = str(cli.config) if cli.config else None
-    drive_over = [
-        Parameter(n, value=v)
-        for n, v in (('config_file', config), ('model', cli.model), ('seed', cli.seed))
-        if v is not None
-    ]
-    ctl_over = [Parameter('drive_config_file', value=config)] if config else []
+    drive_over, ctl_over = _overrides(cli)
     bench = None
     rec = None
 
@@ -207,14 +264,7 @@ def main(args: list[str] | None = None) -> int:
             before_start=None if cli.no_record else _start_recorder,
         )
         bench.run()
-    except (
-        ConfigError,
-        ControllerError,
-        ControllerConfigError,
-        ParameterOverrideError,
-        InvalidParameterValueException,
-        InvalidParameterTypeException,
-    ) as exc:
+    except NODE_REFUSALS as exc:
         print(f'error: sim_bench: {exc}', file=sys.stderr)
         return 2
     except KeyboardInterrupt:

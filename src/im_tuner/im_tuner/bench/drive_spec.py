@@ -1,0 +1,266 @@
+"""``--drive``: which drive the composed real-time bench runs, checked against the drive
+contract of docs/real-drive.md before anything is created.
+
+A drive is named ``sim`` (the simulator), ``example`` (the example drive's stand-in
+hardware) or ``package.module:Class``, where the class is one of the two forms the
+document describes:
+
+* **a hardware class** (as ``im_drive_sim.example_drive.Hardware``): not a ROS node;
+  ``Class(config)`` takes the loaded drive file (a ``DriveConfig``), ``read()`` takes no
+  argument and returns the period's ``Measurement``, ``write(isq_ref, load_torque)``
+  takes two numbers, ``close()`` (optional) takes none. The example drive's ROS side runs it;
+* **a drive node class**: an ``ExampleDrive`` subclass, built as
+  ``Class(context=..., parameter_overrides=[...])``.
+
+Anything else is refused with one line saying which part of the contract it misses (a ROS
+node that is not an ``ExampleDrive``, e.g. ``rclpy.node:Node`` or the controller's node;
+a class whose ``read``/``write`` take other arguments, e.g. ``io:BytesIO``; an abstract
+class). Importing the module is guarded too: an exception, or ``sys.exit`` at import,
+becomes that one line.
+
+:func:`resolve` also builds the hardware class once, with the drive file the bench will
+load, so that a constructor that raises (no inverter on the bus) is refused before the
+run directory exists; the instance is handed to the bench (:meth:`DriveChoice.factory`),
+never built twice. No rclpy at import (it is imported only to check a class that is
+already a ROS node, whose module imported it).
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    'DRIVES',
+    'DriveChoice',
+    'DriveSpecError',
+    'check_drive_spec',
+    'close_hardware',
+    'close_untaken',
+    'load_drive_class',
+    'resolve',
+]
+
+#: Drives by name; anything else is ``package.module:Class``.
+DRIVES = ('sim', 'example')
+_DOC = 'docs/real-drive.md'
+
+
+class DriveSpecError(ValueError):
+    """``--drive`` names no usable drive (the message says why, on one line)."""
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f'{type(exc).__name__}: {text[0]}' if text else type(exc).__name__
+
+
+def load_drive_class(spec: str) -> type:
+    """The class named by ``package.module:Class`` (DriveSpecError if there is none)."""
+    mod_name, sep, cls_name = spec.partition(':')
+    if not sep or not mod_name or not cls_name:
+        raise DriveSpecError(
+            f"--drive {spec!r}: expected 'sim', 'example' or 'package.module:Class'"
+        )
+    try:
+        mod = importlib.import_module(mod_name)
+    except SystemExit as exc:  # a module that ends the process when imported
+        raise DriveSpecError(
+            f'--drive {spec!r}: importing {mod_name} called sys.exit({exc.code!r})'
+        ) from None
+    except Exception as exc:  # an import error of the user's module, whatever it is
+        raise DriveSpecError(
+            f'--drive {spec!r}: cannot import {mod_name}: {_first_line(exc)}'
+        ) from None
+    cls = getattr(mod, cls_name, None)
+    if not isinstance(cls, type):
+        raise DriveSpecError(f'--drive {spec!r}: {mod_name} has no class {cls_name}')
+    return cls
+
+
+def _is_ros_node(cls: type) -> bool:
+    node = sys.modules.get('rclpy.node')  # a node class's module imported rclpy already
+    return node is not None and issubclass(cls, node.Node)
+
+
+def _binds(fn: Any, args: tuple[Any, ...]) -> bool | None:
+    """Whether ``fn`` takes ``args`` (None: its signature cannot be read)."""
+    try:
+        sig = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return None
+    try:
+        sig.bind(*args)
+    except TypeError:
+        return False
+    return True
+
+
+def _method_takes(cls: type, name: str, n_args: int) -> bool | None:
+    """Whether ``instance.name(*n_args numbers)`` is a valid call (None: cannot tell)."""
+    raw = inspect.getattr_static(cls, name)
+    nums = (0.0,) * n_args
+    if isinstance(raw, staticmethod):
+        return _binds(raw.__func__, nums)
+    if isinstance(raw, classmethod):
+        return _binds(getattr(cls, name), nums)
+    return _binds(getattr(cls, name), (object(), *nums))  # a plain method: self first
+
+
+def check_drive_class(spec: str, cls: type) -> str:
+    """Check ``cls`` against the drive contract; returns its form, 'node' or 'hardware'."""
+    name = cls.__name__
+    if _is_ros_node(cls):
+        from im_drive_sim.example_drive import ExampleDrive
+
+        if not issubclass(cls, ExampleDrive):
+            hint = ' (the simulator is --drive sim)' if name == 'DriveSimNode' else ''
+            raise DriveSpecError(
+                f'--drive {spec!r}: {name} is a ROS node but not a drive node: a drive '
+                f'node class is an ExampleDrive subclass{hint} ({_DOC})'
+            )
+        if inspect.isabstract(cls):
+            raise DriveSpecError(f'--drive {spec!r}: {name} is abstract ({_DOC})')
+        try:
+            inspect.signature(cls).bind(context=None, parameter_overrides=[])
+        except (TypeError, ValueError):
+            raise DriveSpecError(
+                f'--drive {spec!r}: {name}(context=..., parameter_overrides=[...]) is not '
+                f"a valid call: a drive node class keeps ExampleDrive's constructor ({_DOC})"
+            ) from None
+        return 'node'
+    contract = (
+        f'a hardware class has read() -> Measurement, write(isq_ref, load_torque) and '
+        f'Class(config), or give an ExampleDrive subclass ({_DOC})'
+    )
+    missing = [m for m in ('read', 'write') if not callable(getattr(cls, m, None))]
+    if missing:
+        raise DriveSpecError(
+            f'--drive {spec!r}: {name} has no {" and no ".join(m + "()" for m in missing)}: '
+            f'{contract}'
+        )
+    if inspect.isabstract(cls):
+        raise DriveSpecError(f'--drive {spec!r}: {name} is abstract: {contract}')
+    for meth, n, call in (('read', 0, 'read()'), ('write', 2, 'write(isq_ref, load_torque)')):
+        if _method_takes(cls, meth, n) is False:
+            raise DriveSpecError(f'--drive {spec!r}: {name}.{call} is not a valid call: {contract}')
+    if callable(getattr(cls, 'close', None)) and _method_takes(cls, 'close', 0) is False:
+        raise DriveSpecError(
+            f'--drive {spec!r}: {name}.close() is not a valid call: close takes no '
+            f'arguments ({_DOC})'
+        )
+    if _binds(cls, (object(),)) is False:
+        raise DriveSpecError(f'--drive {spec!r}: {name}(config) is not a valid call: {contract}')
+    return 'hardware'
+
+
+def check_drive_spec(spec: str) -> str:
+    """Validate ``--drive`` (import and contract, nothing built); returns it."""
+    if spec not in DRIVES:
+        check_drive_class(spec, load_drive_class(spec))
+    return spec
+
+
+@dataclass
+class DriveChoice:
+    """A checked ``--drive``: its spec, the class and its form, and (a hardware class)
+    the instance built by :func:`resolve` with the drive file ``config``."""
+
+    spec: str
+    cls: type | None = None  #: None: 'sim' or 'example'
+    form: str = ''  #: 'node', 'hardware' or '' (a named drive)
+    hardware: Any = None  #: the hardware instance, until the bench takes it
+    config: Any = None  #: the DriveConfig it was built with
+    taken: bool = field(default=False, repr=False)
+
+    def factory(self, config: Any) -> Any:
+        """``hardware_class`` for ExampleDrive: hands over the instance built by
+        :func:`resolve` (once), or builds one if the drive loaded another file."""
+        if self.hardware is not None and not self.taken and config == self.config:
+            self.taken = True
+            return self.hardware
+        close_hardware(self)
+        cls = self.cls
+        assert cls is not None
+        return _build(self.spec, f'{cls.__name__}(config)', lambda: cls(config))
+
+
+def close_hardware(choice: DriveChoice | None) -> None:
+    """Close a hardware instance the bench never took (a run refused or failed before it
+    started); the errors of ``close()`` are not the run's concern then."""
+    if choice is None or choice.hardware is None or choice.taken:
+        return
+    choice.taken = True
+    close = getattr(choice.hardware, 'close', None)
+    if callable(close):
+        try:
+            close()
+        except Exception as exc:  # reported, not raised: the run is ending anyway
+            print(f'warning: {choice.spec}: close() raised {_first_line(exc)}', file=sys.stderr)
+
+
+#: every hardware instance :func:`resolve` built in this process (close_untaken)
+_BUILT: list[DriveChoice] = []
+
+
+def close_untaken() -> None:
+    """Close every hardware instance built by :func:`resolve` that no bench took (the
+    tuner calls this on its way out, whatever the way)."""
+    while _BUILT:
+        close_hardware(_BUILT.pop())
+
+
+def resolve(spec: str, drive_config: str | Path | None, build: bool = True) -> DriveChoice:
+    """Check ``--drive`` and, for a hardware class (``build``), build it now with the drive
+    file the bench will load (``drive_config``; None = the packaged motor). Every problem
+    is a DriveSpecError of one line; a constructor that raises is named with its exception."""
+    if spec in DRIVES:
+        return DriveChoice(spec)
+    cls = load_drive_class(spec)
+    form = check_drive_class(spec, cls)
+    choice = DriveChoice(spec, cls, form)
+    if form == 'hardware' and build:
+        from im_drive_sim.params import ConfigError, load_config
+
+        try:
+            config = load_config(drive_config)
+        except ConfigError as exc:
+            raise DriveSpecError(f'--drive {spec!r}: {exc}') from None
+        choice.hardware = _build(spec, f'{cls.__name__}(config)', lambda: cls(config))
+        choice.config = config
+        _BUILT.append(choice)
+    return choice
+
+
+def _build(spec: str, what: str, make: Any) -> Any:
+    """``make()``, with an exception (or sys.exit) of the user's code as a DriveSpecError
+    naming ``what`` and the exception."""
+    try:
+        return make()
+    except SystemExit as exc:
+        raise DriveSpecError(f'--drive {spec!r}: {what} called sys.exit({exc.code!r})') from None
+    except Exception as exc:
+        raise DriveSpecError(f'--drive {spec!r}: {what} raised {_first_line(exc)}') from None
+
+
+def build_node(choice: DriveChoice, context: Any, overrides: list[Any]) -> Any:
+    """The drive node of a user's class (``choice.form`` 'node' or 'hardware'). The
+    user's constructor that raises becomes a DriveSpecError naming the class and the
+    exception; the example drive's own errors (its parameters) stay what they are."""
+    from im_drive_sim.example_drive import ExampleDrive
+
+    cls = choice.cls
+    assert cls is not None
+    if choice.form == 'node':
+        return _build(
+            choice.spec,
+            cls.__name__,
+            lambda: cls(context=context, parameter_overrides=overrides),
+        )
+    return ExampleDrive(
+        context=context, parameter_overrides=overrides, hardware_class=choice.factory
+    )

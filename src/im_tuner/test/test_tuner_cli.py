@@ -1,0 +1,91 @@
+"""The tuner's run checks (im_tuner.tuner_cli) without a bench: --no-start's algorithms,
+the same rule on --resume (run.yaml ``start: false``), and what a new run's check leaves
+in run.yaml."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+
+from im_drive_sim.cli import UsageError
+from im_tuner import optim
+from im_tuner.tuner_cli import _build_parser, _check_run, _new_run_config, check_no_start
+
+
+def _new(*args: str):
+    argv = ['tuner', *args]
+    return _new_run_config(_build_parser().parse_args(argv[1:]), argv)
+
+
+@pytest.mark.parametrize('algo', optim.ALGOS)
+def test_no_start_is_for_spsa_cmaes_tpe_only(algo: str) -> None:
+    """Issue 25: --no-start made safe (the default) start from a random point (its first
+    experiment at k_pw 2.02, k_iw 154, k_pos 8.2 instead of the hand-tuned 0.53, 20,
+    30), and the compact GAs accepted it and ignored it."""
+    if algo in ('spsa', 'cmaes', 'tpe'):
+        new = _new('--algo', algo, '--no-start', '--seed', '4')
+        assert new.run['start'] is False and new.run['algo'] == algo
+        assert _new('--algo', algo, '--seed', '4').run['start'] is True
+        return
+    with pytest.raises(UsageError) as exc:
+        _new('--algo', algo, '--no-start', '--seed', '4')
+    msg = str(exc.value)
+    assert msg.startswith(f'--no-start does not apply to --algo {algo}: ')
+    assert msg.endswith('it is for spsa, cmaes, tpe') and '\n' not in msg
+    if algo == 'safe':
+        assert 'untested random controller' in msg
+    else:
+        assert f'{algo} takes no start point' in msg
+
+
+def test_the_default_algorithm_refuses_no_start_and_starts_from_the_file() -> None:
+    assert optim.DEFAULT_ALGO == 'safe'
+    with pytest.raises(UsageError, match='--algo safe'):
+        _new('--no-start')
+    new = _new('--seed', '3')
+    space = new.params.space
+    opt = optim.make_optimizer('safe', 5, 3, space.start_u)
+    # its first experiment is the hand-tuned start (the packaged file's), exactly
+    g = space.to_gains(opt.ask())
+    assert (g.k_pw, g.k_iw, g.k_pos) == (pytest.approx(0.53), pytest.approx(20.0), 30.0)
+
+
+def test_the_help_names_exactly_the_algorithms_that_take_it() -> None:
+    action = next(a for a in _build_parser()._actions if '--no-start' in a.option_strings)
+    assert action.help.startswith('spsa, cmaes, tpe only: ')
+    assert {'spsa', 'cmaes', 'tpe'} == optim.NO_START_ALGOS
+    assert 'Refused with safe' in action.help and 'with the compact GAs' in action.help
+
+
+def _run_yaml(algo: str, start: object) -> dict:
+    new = _new('--algo', 'spsa', '--seed', '1')
+    run = copy.deepcopy(new.run)
+    run.update(algo=algo, options={}, start=start)
+    return run
+
+
+def test_resume_keeps_the_same_rule() -> None:
+    """A run.yaml written with --no-start before issue 25: safe is refused as --no-start
+    is; a compact GA's is harmless (it takes no start) and goes on; spsa's is the
+    documented case; a start that is not a bool is refused."""
+    _check_run(_run_yaml('spsa', False), 'run.yaml')
+    _check_run(_run_yaml('necga', False), 'run.yaml')
+    _check_run(_run_yaml('safe', True), 'run.yaml')
+    run = _run_yaml('safe', False)
+    with pytest.raises(UsageError) as exc:
+        _check_run(run, 'R/run.yaml')
+    assert str(exc.value).startswith(
+        'R/run.yaml: start: false (--no-start) does not apply to --algo safe'
+    )
+    with pytest.raises(UsageError, match=r"start must be true or false, got 'no'"):
+        _check_run(_run_yaml('spsa', 'no'), 'R/run.yaml')
+    del run['start']  # a run.yaml from before the key: starts from the file
+    _check_run(run, 'run.yaml')
+
+
+def test_check_no_start_accepts_what_the_optimisers_run_without_a_start() -> None:
+    for algo in optim.NO_START_ALGOS:
+        check_no_start(algo)
+        opt = optim.make_optimizer(algo, 5, 2, None)  # a start of their own
+        assert opt.ask().shape == (5,)

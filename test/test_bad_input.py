@@ -184,6 +184,7 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('tuner', 'no-start-safe-default', ['--no-start']),
     ('tuner', 'no-start-compact-ga', ['--algo', 'necga', '--no-start']),
     ('tuner', 'drive-config-comments-only', ['--drive-config', 'comments.yaml']),
+    ('tuner', 'compression-with-no-record', ['--compression', 'zstd', '--no-record']),
     # -p reaches the in-process bench's nodes; refused after the run directory was made,
     # which is then removed (the gain's case ended in a traceback, the run directory left)
     ('tuner', 'p-gain-negative', ['--bench', 'inproc', '--ros-args', '-p', 'k_pw:=-1.0']),
@@ -233,6 +234,7 @@ EXPECT: dict[tuple[str, str], str] = {
     ('tuner', 'no-start-safe-default'): 'does not apply to --algo safe: safe is a local search',
     ('tuner', 'no-start-compact-ga'): 'necga takes no start point',
     ('tuner', 'drive-config-comments-only'): 'no settings (the file holds only comments)',
+    ('tuner', 'compression-with-no-record'): '--compression zstd is for the bag',
     ('tuner', 'p-gain-negative'): 'k_pw',
     ('tuner', 'p-move-longer-than-experiment'): 'takes 25.07 s, longer than the experiment',
     ('tuner', 'drive-ros-node-not-a-drive'): 'Node is a ROS node but not a drive node',
@@ -543,6 +545,7 @@ FAST_REFUSALS = [
     (['--algo', 'tpe', '--budget', '0'], '--budget must be >= 1'),
     (['--drive-config', 'comments.yaml'], 'no settings (the file holds only comments)'),
     (['--out', 'full'], '--out full: already exists'),
+    (['--no-record', '--compression', 'lz4'], '--compression lz4 is for the bag'),
 ]
 HEAVY = ('rclpy', 'cma', 'optuna', 'scipy', 'numba', 'matplotlib')
 

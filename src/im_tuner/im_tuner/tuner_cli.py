@@ -170,8 +170,7 @@ def _build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         '--compression',
         choices=('none', 'zstd', 'lz4'),
-        default='lz4',
-        help='MCAP chunk compression (default lz4)',
+        help='MCAP chunk compression (default lz4; refused with --no-record)',
     )
     ap.add_argument(
         '--model',
@@ -217,6 +216,17 @@ def _build_parser() -> argparse.ArgumentParser:
                 kw['type'] = spec.type
             g.add_argument(f'--{name.replace("_", "-")}', **kw)
     return ap
+
+
+def check_session(cli: argparse.Namespace) -> None:
+    """The options of this session (new or resumed) that go together: a bag option with
+    --no-record would be ignored, so it is refused; sets the default compression."""
+    if cli.no_record and cli.compression is not None:
+        raise UsageError(
+            f'--compression {cli.compression} is for the bag, and --no-record records none: '
+            'give one or the other'
+        )
+    cli.compression = cli.compression or 'lz4'
 
 
 def _algo_options(cli: argparse.Namespace, algo: str) -> dict[str, Any]:

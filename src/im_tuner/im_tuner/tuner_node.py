@@ -67,6 +67,7 @@ from .tuner_cli import (
     _make_tuning,
     _new_run_config,
     _params_of_run,
+    check_session,
     is_simulated,
 )
 
@@ -102,6 +103,7 @@ def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv if args is None else args)
     try:
         cli = _build_parser().parse_args(check_ros_args(argv)[1:])
+        check_session(cli)
     except UsageError as exc:
         print(f'error: tuner: {exc}', file=sys.stderr)
         return EXIT_USAGE

@@ -8,7 +8,7 @@
   the four figures: two of them drawn in a second process while the bag is read), on a
   run made here first with the real tuner (``--algo necga --seed 1``, in-process
   simulated bench, recording on; ``--budget 11`` first, and if its bag is not within
-  20 % of ``--mb`` (25 MB, about 235 000 messages) once more with the budget scaled to
+  20 % of ``--mb`` (25 MB, about 250 000 messages) once more with the budget scaled to
   it); median of ``--repeats`` runs, each into a new directory. Target: under 3 s on a
   2-core machine.
 

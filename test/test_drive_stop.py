@@ -9,6 +9,7 @@ module on PYTHONPATH.
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -16,6 +17,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 sys.path.insert(0, str(Path(__file__).parent))
 from recording_hardware import read_log
@@ -34,10 +36,16 @@ def _env(hw_file: Path, **extra: str) -> dict[str, str]:
 
 
 def _tuner(run: Path, drive: str, budget: int) -> list[str]:
+    # These drives cannot pause (a power stage's time is wall time): on a loaded machine a
+    # late period is held periods, and an experiment with any is flagged `timing` and
+    # re-run (test_realtime_bench checks that), and the held current can make the
+    # supervisor stop an experiment or trip a safety limit. What is tested here is the
+    # drive's form, the bag and the stop: any timing is accepted and faults are reset.
     return [
         *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--drive', drive),
         *('--budget', str(budget), '--seed', '3', '--remeasure', '0', '--quiet'),
-        *('--out', str(run)),
+        *('--fault-policy', 'reset'),
+        *('--out', str(run), '--ros-args', '-p', f'timing_tolerance:={STEPS}'),
     ]
 
 
@@ -54,12 +62,19 @@ def test_every_drive_form_tunes_three_evaluations_with_recording(tmp_path, drive
     recs = results(run)
     assert [r['kind'] for r in recs] == ['reference', 'eval', 'eval', 'eval'], recs
     for r in recs:
-        assert r['status'] in ('ok', 'aborted') and r['steps'] == STEPS, r
+        assert r['status'] in ('ok', 'aborted'), r
+        assert r['steps'] == STEPS or r['aborted'], r
     bag = run / 'bag_0'
     assert bag_state(bag) == 'closed'
     counts = bag_counts(bag)
-    # every period's state recorded: at least the four experiments' periods
-    assert counts['/drive/state'] >= 4 * STEPS, counts
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())
+    custom = meta['rosbag2_bagfile_information']['custom_data']
+    assert custom['im_tuner.lost_total'] == '0', custom['im_tuner.counts']
+    # every state the drive published is in the bag (a late loop publishes none for the
+    # periods it missed: they are held, on the drive's timeline), and every loss
+    last = recs[-1]['t_end_ns'] // 200_000
+    published = json.loads(custom['im_tuner.counts'])['/drive/state']['published']
+    assert counts['/drive/state'] == published and published > last // 2, (counts, last)
     assert counts['/controller/loss'] == 4, counts
     if drive != 'example':
         log = read_log(str(hw))

@@ -1,10 +1,14 @@
 """The real bench at 5 kHz (issue 18), timed: real-time tuning runs, recording on.
 
 Each run is the real command, ``ros2 run im_tuner tuner --bench B --budget N`` (a child
-process, recorder on, a fresh run directory), on two benches:
+process, recorder on, a fresh run directory), on these benches and drive modes:
 
 * ``realtime``: the composed bench -- drive simulator and controller in the tuner's
   process, one wall-clock loop (im_tuner.bench.realtime);
+* ``realtime-hardware-like``, ``realtime-example-drive``: the composed bench with a drive
+  that cannot pause (the simulator's ``hardware_like`` mode; the example drive): a late
+  period is periods held with the old current (``missed``), the experiments with any are
+  flagged ``timing`` (what a real drive would see on this machine);
 * ``realtime-processes``: drive, controller and recorder as separate processes (how a
   drive in its own process runs); experiments a controller answered late are flagged
   ``timing`` and re-run (--retries 1 here: the figure is the timing, not the search).
@@ -36,10 +40,30 @@ import tempfile
 from pathlib import Path
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
-BENCHES = ('realtime', 'realtime-processes')
+#: name -> (tuner --bench, extra tuner arguments, figure tag). The drive modes of the
+#: composed bench: the simulator that pauses while the loop is late (its model time
+#: waits), the simulator in its hardware-like mode and the example drive (they cannot
+#: pause: a late period start follows periods held with the old current, counted
+#: ``missed`` and held, so experiments with any are flagged timing and re-run).
+MODES: dict[str, tuple[str, list[str], str]] = {
+    'realtime': ('realtime', [], 'rt_composed'),
+    'realtime-hardware-like': (
+        'realtime',
+        ['--retries', '1', '--ros-args', '-p', 'hardware_like:=true'],
+        'rt_hwlike',
+    ),
+    'realtime-example-drive': (
+        'realtime',
+        ['--retries', '1', '--drive', 'example', '--fault-policy', 'reset'],
+        'rt_example',
+    ),
+    'realtime-processes': ('realtime-processes', ['--retries', '1'], 'rt_processes'),
+}
+BENCHES = tuple(MODES)
 
 
-def run_once(bench: str, budget: int, seed: int) -> dict:
+def run_once(mode: str, budget: int, seed: int) -> dict:
+    bench, extra, _tag = MODES[mode]
     tmp = Path(tempfile.mkdtemp(prefix='bench_rt_'))
     env = dict(os.environ)
     env.setdefault('ROS_DOMAIN_ID', str(100 + os.getpid() % 50))
@@ -48,8 +72,7 @@ def run_once(bench: str, budget: int, seed: int) -> dict:
     try:
         cmd = [ROS2, 'run', 'im_tuner', 'tuner', '--bench', bench, '--budget', str(budget)]
         cmd += ['--seed', str(seed), '--remeasure', '0', '--quiet', '--out', str(tmp / 'run')]
-        if bench == 'realtime-processes':
-            cmd += ['--retries', '1']
+        cmd += extra  # the tuner's options, then any --ros-args (always last in MODES)
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
         summary_path = tmp / 'run' / 'summary.json'
         if not summary_path.exists():
@@ -71,6 +94,8 @@ def run_once(bench: str, budget: int, seed: int) -> dict:
             * sum(r['periods']['held'] + r['periods']['late'] for r in recs if r.get('periods'))
             / max(1, sum(r['steps'] for r in recs if r.get('periods'))),
             'overruns': d.get('overruns'),
+            # a drive that cannot pause: the whole periods its late starts skipped
+            'missed_pct': 100.0 * d.get('missed', 0) / steps,
             'overrun_pct': 100.0 * d.get('overruns', 0) / steps,
             'watchdog_trips': d.get('watchdog_trips'),
             'periods': steps,
@@ -102,7 +127,7 @@ def main(argv: list[str] | None = None) -> dict:
     figures: dict[str, float] = {}
     for bench in args.benches:
         runs = [run_once(bench, args.budget, seed) for seed in range(1, args.runs + 1)]
-        tag = 'rt_composed' if bench == 'realtime' else 'rt_processes'
+        tag = MODES[bench][2]
 
         def med(key: str, runs: list[dict] = runs) -> float:
             return float(statistics.median(float(r[key]) for r in runs))
@@ -111,7 +136,8 @@ def main(argv: list[str] | None = None) -> dict:
             f'{bench:<20} periods held or late: {med("held_late_pct"):.3f} % of all the '
             f"drive's periods, {med('exp_held_late_pct'):.3f} % of the experiments'; late "
             f'commands {med("late_commands"):.0f}; overruns '
-            f'{med("overruns"):.0f} ({med("overrun_pct"):.2f} %), watchdog trips '
+            f'{med("overruns"):.0f} ({med("overrun_pct"):.2f} %), missed periods '
+            f'{med("missed_pct"):.2f} %, watchdog trips '
             f'{med("watchdog_trips"):.0f}; completed experiments exactly 5625 periods '
             f'{med("exact_5625"):.0f} of {med("completed"):.0f} (of {med("experiments"):.0f}'
             f' run; the others aborted or off timing), flagged timing '
@@ -121,6 +147,7 @@ def main(argv: list[str] | None = None) -> dict:
         figures[f'{tag}_held_late_pct'] = med('held_late_pct')
         figures[f'{tag}_exp_held_late_pct'] = med('exp_held_late_pct')
         figures[f'{tag}_overrun_pct'] = med('overrun_pct')
+        figures[f'{tag}_missed_pct'] = med('missed_pct')
         figures[f'{tag}_watchdog_trips'] = med('watchdog_trips')
         figures[f'{tag}_timing_flagged'] = med('timing_flagged')
         if all('work' in r for r in runs):

@@ -95,7 +95,8 @@ CMD_STEP, CMD_ISQ, CMD_LOAD = 0, 1, 2
 #: late), republished (lock-step: state re-sent while waiting), max_lateness_us (worst
 #: period-start lateness [us]), watchdog_trips/watchdog_steps (commands stopped for more
 #: than command_timeout / periods run at zero current by the watchdog), backpressure
-#: (publish retries while a reliable reader was full).
+#: (publish retries while a reliable reader was full), missed (a drive that cannot pause:
+#: whole periods its late starts skipped, the old command held; counted in held too).
 STATUS_COUNTERS: tuple[str, ...] = (
     'steps',
     'commands',
@@ -104,6 +105,7 @@ STATUS_COUNTERS: tuple[str, ...] = (
     'late',
     'stale_ignored',
     'overruns',
+    'missed',
     'republished',
     'max_lateness_us',
     'watchdog_trips',

@@ -436,6 +436,7 @@ class ExampleDrive(LenientDoubles, Node):
             if callable(elapse):  # a simulated stand-in plant must be told time passed
                 elapse(missed)
             self.k += missed
+            c.steps += missed  # periods of the drive's timeline: fresh + held = steps
             c.held += missed
             c.missed += missed
         self.take_commands()

@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 
 from .config import ControlConfig, Gains, validate_control_config, validate_gains
+from .layout import CONTROL_FIELDS
 
 __all__ = [
     'CONTROL_FIELDS',
@@ -77,20 +78,7 @@ X_I = 2  # integrator [A]
 N_CSTATE = 3
 
 # -------------------------------------------------------------------- internals
-CONTROL_FIELDS: tuple[str, ...] = (
-    'theta_ref',
-    'theta_sm',
-    'theta_m',
-    'omega_ff',
-    'omega_ref',
-    'e_theta',
-    'e_omega',
-    'p_term',
-    'i_term',
-    'isq_ref',
-    'saturated',
-)
-"""Internals written per step (units: rad, rad, rad, rad/s, rad/s, rad, rad/s, A, A, A, 0/1)."""
+# the layout (names, units) lives with the other array layouts, in a module without numba
 (
     O_THETA_REF,
     O_THETA_SM,

@@ -6,7 +6,22 @@ from __future__ import annotations
 
 from im_drive_sim.contract import STATE_INDEX
 
-from .control import CONTROL_FIELDS
+
+# ------------------------------------------------------------ controller internals
+CONTROL_FIELDS: tuple[str, ...] = (
+    'theta_ref',
+    'theta_sm',
+    'theta_m',
+    'omega_ff',
+    'omega_ref',
+    'e_theta',
+    'e_omega',
+    'p_term',
+    'i_term',
+    'isq_ref',
+    'saturated',
+)
+"""Internals written per step (units: rad, rad, rad, rad/s, rad/s, rad, rad/s, A, A, A, 0/1)."""
 
 # ----------------------------------------------------------------- status and reasons
 STATUS_HOLD = 0  # holding position between experiments

@@ -9,7 +9,6 @@ import numpy as np
 
 from .config import ExperimentConfig, Gains, validate_experiment_config
 from .layout import Q_LOAD_N
-from .trajectory import make_experiment_params, trajectory
 
 
 # ------------------------------------------------------------------------- results
@@ -79,6 +78,8 @@ class Experiment:
     def reference(self) -> dict[str, np.ndarray]:
         """theta* [rad], its speed [rad/s] and the load command [N m] for n = 0..steps-1."""
         cfg = validate_experiment_config(self.config)
+        from .trajectory import make_experiment_params, trajectory  # numba: when used
+
         Q = make_experiment_params(cfg)
         n = np.arange(self.steps)
         t = n * cfg.control.Ts

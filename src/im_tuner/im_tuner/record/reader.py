@@ -30,12 +30,10 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from numba import njit
 
 from im_controller.contract import LOSS_TOPIC
 
-from .records import decompress, parse_definition
-from .writer import (
+from .mcap_format import (
     MAGIC,
     OP_CHANNEL,
     OP_CHUNK,
@@ -45,6 +43,7 @@ from .writer import (
     OP_MESSAGE_INDEX,
     OP_SCHEMA,
 )
+from .records import decompress, parse_definition
 
 __all__ = [
     'BagData',
@@ -116,50 +115,6 @@ class BagData:
 
 
 # ----------------------------------------------------------------------- record walk
-@njit(cache=True)
-def _walk(
-    buf: np.ndarray,
-    start: int,
-    stop_op: int,
-    ops: np.ndarray,
-    offs: np.ndarray,
-    lens: np.ndarray,
-    cids: np.ndarray,
-    times: np.ndarray,
-) -> tuple[int, int]:
-    """Walk MCAP records in ``buf[start:]``; fills the arrays (op, body offset, body length,
-    channel id and log time of Message records).  Stops after a record with opcode
-    ``stop_op``, at the end, or before an incomplete record.  Returns (records, end)."""
-    p = start
-    n = 0
-    size = buf.size
-    cap = ops.size
-    while p + 9 <= size and n < cap:
-        op = buf[p]
-        ln = np.int64(0)
-        for j in range(8):
-            ln |= np.int64(buf[p + 1 + j]) << (8 * j)
-        if op == 0 or ln < 0 or p + 9 + ln > size:
-            break
-        ops[n] = op
-        offs[n] = p + 9
-        lens[n] = ln
-        if op == 5 and ln >= 22:
-            cids[n] = np.int64(buf[p + 9]) | (np.int64(buf[p + 10]) << 8)
-            t = np.int64(0)
-            for j in range(8):
-                t |= np.int64(buf[p + 15 + j]) << (8 * j)
-            times[n] = t
-        else:
-            cids[n] = -1
-            times[n] = 0
-        n += 1
-        p += 9 + int(ln)
-        if op == stop_op:
-            break
-    return n, p
-
-
 def _walk_all(
     buf: np.ndarray, start: int, stop_op: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
@@ -170,7 +125,9 @@ def _walk_all(
         lens = np.empty(cap, np.int64)
         cids = np.empty(cap, np.int64)
         times = np.empty(cap, np.int64)
-        n, end = _walk(buf, start, stop_op, ops, offs, lens, cids, times)
+        from .walk import walk  # numba (0.5 s to import): only for a bag without an index
+
+        n, end = walk(buf, start, stop_op, ops, offs, lens, cids, times)
         if n < cap or end >= buf.size:
             return ops[:n], offs[:n], lens[:n], cids[:n], times[:n], end
         cap *= 4  # many tiny records: walk again with room for them
@@ -179,7 +136,7 @@ def _walk_all(
 def _walk_py(
     buf: mmap.mmap | np.ndarray, start: int, end: int, stop_op: int
 ) -> tuple[list[tuple[int, int, int]], int]:
-    """:func:`_walk` in Python, for a few records (the top level: chunks and their
+    """:func:`.walk.walk` in Python, for a few records (the top level: chunks and their
     indexes; the definitions between a chunk's indexed messages): (op, body offset,
     body length) each, and where the walk stopped."""
     view = buf.data if isinstance(buf, np.ndarray) else buf  # uint8: one byte per index

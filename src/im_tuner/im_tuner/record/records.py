@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import struct
 
-from .writer import OP_SCHEMA
+from .mcap_format import OP_SCHEMA
 
 __all__ = ['Cursor', 'decompress', 'parse_definition']
 

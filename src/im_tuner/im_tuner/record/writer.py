@@ -42,25 +42,24 @@ from typing import BinaryIO
 import numba
 import numpy as np
 
-MAGIC = b'\x89MCAP0\r\n'
-OP_HEADER = 0x01
-OP_FOOTER = 0x02
-OP_SCHEMA = 0x03
-OP_CHANNEL = 0x04
-OP_MESSAGE = 0x05
-OP_CHUNK = 0x06
-OP_MESSAGE_INDEX = 0x07
-OP_CHUNK_INDEX = 0x08
-OP_STATISTICS = 0x0B
-OP_METADATA = 0x0C
-OP_METADATA_INDEX = 0x0D
-OP_SUMMARY_OFFSET = 0x0E
-OP_DATA_END = 0x0F
-
-#: Bytes of a Message record before its payload: opcode u8, length u64, channel_id u16,
-#: sequence u32, log_time u64, publish_time u64.
-MESSAGE_HEADER_BYTES = 31
-COMPRESSIONS = ('none', 'zstd', 'lz4')
+from .mcap_format import (  # the format's constants: one place, no numba
+    COMPRESSIONS,
+    MAGIC,
+    MESSAGE_HEADER_BYTES,
+    OP_CHANNEL,
+    OP_CHUNK,
+    OP_CHUNK_INDEX,
+    OP_DATA_END,
+    OP_FOOTER,
+    OP_HEADER,
+    OP_MESSAGE,
+    OP_MESSAGE_INDEX,
+    OP_METADATA,
+    OP_METADATA_INDEX,
+    OP_SCHEMA,
+    OP_STATISTICS,
+    OP_SUMMARY_OFFSET,
+)
 
 # Columns of the chunk state vector shared with the numba kernels.
 ST_POS = 0  #: bytes used in the chunk buffer

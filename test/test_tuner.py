@@ -222,6 +222,38 @@ def _offline_run(algo: str, budget: int, seed: int) -> tuple[list[dict], object]
     return run.records, run.state
 
 
+def test_a_resumed_realtime_run_keeps_experiment_ids_unique(tmp_path, procs, wait_until):
+    """A resumed real-time run does not replay: its controller starts past the run's ids
+    (first_experiment_id), so no id repeats in the run; every record names its session,
+    and the resumed session's bag has the losses under the same ids as its records."""
+    run = tmp_path / 'rt'
+    args = ['--bench', 'realtime', '--budget', '3', '--remeasure', '0', '--seed', '4']
+    child = procs.start([ROS2, 'run', 'im_tuner', 'tuner', *args, '--quiet', '--out', str(run)])
+    res = run / 'results.jsonl'
+    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 2, 120, message='2 records')
+    child.send_signal(signal.SIGKILL)
+    child.wait(timeout=30)
+    before = results(run)
+    assert 2 <= len(before) < 4
+    proc = tuner('--resume', str(run))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    first = max(r['experiment_id'] for r in before) + 1
+    assert f'experiment ids go on from {first}' in proc.stderr
+    recs = results(run)
+    assert recs[: len(before)] == before and [r['kind'] for r in recs][-1] == 'eval'
+    ids = [r['experiment_id'] for r in recs]
+    assert len(set(ids)) == len(ids), ids
+    assert [r['session'] for r in recs] == [0] * len(before) + [1] * (len(recs) - len(before))
+    assert ids[len(before)] == first, ids
+    summary = json.loads((run / 'summary.json').read_text())
+    assert [s['session'] for s in summary['sessions']] == [0, 1]
+    assert summary['sessions'][1]['first_experiment_id'] == first
+    msgs = bag_messages(run / 'bag_1', {'/controller/loss'})
+    assert [int(loss_values(m)['experiment_id']) for m in msgs['/controller/loss']] == ids[
+        len(before) :
+    ]
+
+
 @pytest.mark.parametrize('algo', ['cmaes', 'tpe', 'safe'])
 def test_resume_after_kill_continues_bit_for_bit(tmp_path, procs, wait_until, algo):
     """SIGKILL mid-run, then --resume: the records are those of the uninterrupted run,

@@ -127,6 +127,10 @@ DESCRIPTIONS = {
 }
 
 
+#: the largest ``first_experiment_id`` (ids stay exact in every reader: JSON, float64)
+MAX_EXPERIMENT_ID = 2**31 - 1
+
+
 class ControllerError(Exception):
     """A start-up configuration error: one line, exit code 2."""
 
@@ -191,7 +195,7 @@ class ControllerNode(LenientDoubles, Node):
                     ServiceIntrospectionState.CONTENTS,
                 )
 
-        self.next_experiment_id = 0
+        self.next_experiment_id = int(self.first_experiment_id)
         self.results = []  #: every LossResult published, in order
         self.stop_requested = False
         self._state: np.ndarray | None = None  # newest state taken
@@ -284,6 +288,17 @@ class ControllerNode(LenientDoubles, Node):
                 'tuner re-runs it). 0 on a simulated bench; a real bench whose power stage '
                 'applies commands at period starts may need a few (docs/real-drive.md).',
                 int_range=(0, 1_000_000),
+            ),
+        ).value
+        self.first_experiment_id = self.declare_parameter(
+            'first_experiment_id',
+            0,
+            param_descriptor(
+                'id of the first experiment this node starts; the next ones count up from '
+                'it (an id names an experiment in its start answer and loss message, and '
+                'its parity sets the move direction). A tuner resuming a run without '
+                'replay sets it past the ids of the run, so that they stay unique in it',
+                int_range=(0, MAX_EXPERIMENT_ID),
             ),
         ).value
         self.declare_parameter(

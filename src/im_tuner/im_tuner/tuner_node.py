@@ -99,6 +99,20 @@ def _repair_old_bags(rundir: RunDir, note, current: Path | None) -> None:
                 note(f'warning: could not repair {bag}: {exc}')
 
 
+def next_experiment_id(records: list[dict[str, Any]]) -> int:
+    """The first experiment id of a session that does not replay: past every id in the
+    run's records (0 for none)."""
+    ids = [int(r['experiment_id']) for r in records if r.get('experiment_id') is not None]
+    return max(ids) + 1 if ids else 0
+
+
+def session_number(sessions: list[dict[str, Any]], records: list[dict[str, Any]]) -> int:
+    """This session's number (0-based): after every session the checkpoint lists and
+    every session a record names (a rebuilt checkpoint lists none)."""
+    named = [int(r['session']) + 1 for r in records if isinstance(r.get('session'), int)]
+    return max([len(sessions), *named])
+
+
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv if args is None else args)
     try:
@@ -325,6 +339,16 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         if run.get('drive_config'):
             drive_over.append(Parameter('config_file', value=run['drive_config']))
             ctl_over.append(Parameter('drive_config_file', value=run['drive_config']))
+        # experiment ids unique within the run: a resume that does not replay (real time,
+        # a real drive) starts this session's controller past the run's ids; lock-step
+        # replays the killed sessions from id 0, bit for bit; an external controller's ids
+        # are its own (the records carry their session)
+        replays = simulated and bench_mode in LOCKSTEP_BENCHES
+        first_id = 0
+        if bench_mode in SIM_BENCHES and not replays:
+            first_id = next_experiment_id(tuning.records)
+            if first_id:
+                ctl_over.append(Parameter('first_experiment_id', value=first_id))
         if cli.resume is None:
             run['model'] = cli.model
             run['drive_config'] = str(cli.drive_config) if cli.drive_config else None
@@ -375,6 +399,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                 f'resuming {rundir.path}: {n_restored} records, '
                 f'{tuning.state.evals}/{run["budget"]} evaluations done'
             )
+        tuning.session = session_number(tuning.state.sessions, tuning.records)
         session: dict[str, Any] = {}
         if isinstance(bench, forms.Children):
             bench.attach(rundir, tuning, session)
@@ -406,6 +431,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             )
         session.update(
             {
+                'session': tuning.session,
                 'bag': bag_dir.name if bag_dir else None,
                 'bench': bench_mode,
                 'started': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
@@ -413,11 +439,14 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                 'first_record': len(tuning.records),
             }
         )
+        if bench_mode in SIM_BENCHES and not replays:
+            session['first_experiment_id'] = first_id
         if cli.resume is not None and tuning.records:
+            ids = f'; experiment ids go on from {first_id}' if first_id else ''
             if simulated and bench_mode not in LOCKSTEP_BENCHES:
                 progress.note(
                     'real-time simulated bench: the plant starts again at rest '
-                    '(no replay); the search goes on from the checkpoint'
+                    f'(no replay); the search goes on from the checkpoint{ids}'
                 )
             elif simulated:
                 progress.note(
@@ -428,8 +457,9 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                 session['replayed'] = replay(link, tuning.records)
             else:
                 progress.note(
-                    'external bench: the plant is where it is; the search goes on '
-                    'from the checkpoint (no replay)'
+                    ('external bench' if bench_mode == 'external' else 'a real drive')
+                    + ': the plant is where it is; the search goes on from the checkpoint '
+                    f'(no replay){ids}'
                 )
         tuning.state.sessions.append(session)
         outcome = tuning.run(link, should_stop)

@@ -281,6 +281,9 @@ class TuningRun:
         self._ask_us = 0.0
         #: whether the final gains reached the controller (None: not tried yet)
         self.applied: bool | None = None
+        #: this session's number in the run (0-based), written into every record as
+        #: ``session`` (None: no sessions, e.g. the study's runs; nothing written)
+        self.session: int | None = None
 
     # -- resume --------------------------------------------------------------------------
     def restore(self) -> int:
@@ -376,6 +379,8 @@ class TuningRun:
             'gains': gains_dict(gains),
             'time': _now(),
         }
+        if self.session is not None:
+            rec['session'] = self.session
         if m is None:
             rec.update(
                 status='lost',

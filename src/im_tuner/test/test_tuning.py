@@ -267,6 +267,46 @@ def test_reference_stays_applied_when_nothing_beats_it(tmp_path):
     assert run.summary(outcome='done', wall_s=1)['applied']['source'] == 'reference'
 
 
+def test_a_fault_in_the_settle_is_re_run_and_never_told(tmp_path):
+    """An experiment stopped by a safety fault in its standstill settle (before step 0:
+    the fallback gains held, not one step of the candidate ran) measured nothing: it is
+    recorded ``lost`` with the reason, the same gains run again, and the optimiser is
+    told only the re-run's loss (its penalised loss, 0, would otherwise be the best)."""
+
+    class SettleFault(FakeBench):
+        def measure(self, gains):
+            m = super().measure(gains)
+            if len(self.calls) == 3:  # the 2nd evaluation's first attempt
+                return Measurement(
+                    **{
+                        **m.__dict__,
+                        'loss': 0.0,
+                        'terms': (0.0, 0.0, 0.0),
+                        'aborted': True,
+                        'reason': 'max_speed',
+                        'fault': True,
+                        'steps': 0,
+                        'fresh': 0,
+                        'held': 0,
+                    }
+                )
+            return m
+
+    bench = SettleFault()
+    run = make_run(tmp_path / 'r', budget=4)
+    assert run.run(bench) == 'done'
+    recs = records(tmp_path / 'r')
+    lost = [r for r in recs if r['status'] == 'lost']
+    assert len(lost) == 1 and lost[0]['kind'] == 'eval' and lost[0]['eval'] == 1
+    assert lost[0]['loss'] is None and 'settle, before step 0 (max_speed)' in lost[0]['reason']
+    again = [r for r in recs if r['kind'] == 'eval' and r['eval'] == 1]
+    assert [r['status'] for r in again][0] == 'lost' and again[1]['attempt'] == 2
+    assert again[1]['status'] in ('ok', 'aborted')  # measured: told to the optimiser
+    assert again[0]['gains'] == again[1]['gains']  # the same gains, not a new candidate
+    assert bench.calls[2] == bench.calls[3]
+    assert run.opt.evaluations == 4 and run.state.best['loss'] > 0.0
+
+
 def test_bench_failure_ends_the_run_cleanly(tmp_path):
     class Breaks(FakeBench):
         def measure(self, gains):

@@ -27,7 +27,7 @@ from im_drive_sim.params import DriveConfig
 from .. import optim
 from ..bench.offline import OfflineBench
 from ..space import SearchSpace, TunerParams
-from ..tuning import DEFAULT_RETRIES, MemoryRecord, TuningRun, run_seeds
+from ..tuning import DEFAULT_RETRIES, MEASURED, MemoryRecord, TuningRun, run_seeds
 from .results import ARRAYS_FILE, META_FILE, StudyResult, load, save
 from .spec import (
     DEFAULT_SATISFACTORY,
@@ -168,12 +168,14 @@ def run_one(
     wall = time.perf_counter() - t0
     if outcome != 'done':
         raise RuntimeError(f'study run {cell.label} #{r}: {outcome}')
-    recs = tuning.records
+    # the measured records: an attempt lost in its settle (a fault while the fallback
+    # gains held, e.g. after an unstable candidate) was re-run, as the tuner does
+    recs = [x for x in tuning.records if x['status'] in MEASURED]
     ref = next(x for x in recs if x['kind'] == 'reference')
     evals = [x for x in recs if x['kind'] == 'eval']
     rem = [x for x in recs if x['kind'] == 'remeasure']
     best = tuning.state.best
-    exp_s = sum(x['wall_s'] for x in recs)
+    exp_s = sum(x['wall_s'] for x in tuning.records)  # every attempt's bench time
     return RunResult(
         cell=cell_index,
         run=r,

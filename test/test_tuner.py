@@ -396,6 +396,8 @@ def test_bench_none_without_controller_says_what_to_start(tmp_path):
     )
     assert proc.returncode == 1
     assert 'no controller reachable' in proc.stderr and 'sim_bench' in proc.stderr
+    # ... and what to try when one runs but discovery is slow (a loaded machine)
+    assert 'give it longer, e.g. --discovery-timeout 20' in proc.stderr
     assert time.monotonic() - t0 < 30
 
 
@@ -677,3 +679,87 @@ def test_a_resume_whose_replay_does_not_match_changes_nothing(run6, tmp_path):
     err = proc.stderr.strip().splitlines()
     assert err[-1].startswith('error: tuner: replay: ') and 'Traceback' not in proc.stderr
     assert _tree(run) == before
+
+
+# -- issue 26, item 7: what the summary tells the user ----------------------------------------
+def _summary(**over) -> dict:
+    s = {
+        'outcome': 'done',
+        'evaluations': 0,
+        'budget': 1,
+        'reference': None,
+        'best': None,
+        'applied': None,
+        'evaluations_to_satisfactory': None,
+        'satisfactory_loss': 0.85,
+        'aborted': 0,
+        'safety_faults': 0,
+        'lost': 0,
+        'timing': 0,
+        'real_time_factor': None,
+        'wall_s': 1.0,
+        'loop_wall_s': 1.0,
+        'sim_s': 0.0,
+        'optimizer_us_per_eval': None,
+        'sessions': [],
+    }
+    return s | over
+
+
+@pytest.mark.unit
+def test_a_timing_failure_says_where_to_run_the_controller():
+    from im_tuner.progress import format_summary
+    from im_tuner.tuner_node import failure_advice
+
+    timing = [{'status': 'ok'}, {'status': 'timing'}]
+    failed = 'failed: eval 0: no result after 4 attempts with the same gains (timing: ...)'
+    for bench in ('realtime-processes', 'external'):
+        (text,) = failure_advice(failed, timing, bench)
+        assert "in the drive's process" in text and '--bench realtime --drive' in text
+        assert 'did not answer every 200 us' in text
+    (text,) = failure_advice(failed, timing, 'realtime')  # already composed: the load
+    assert 'timing_tolerance' in text and '--bench realtime --drive' not in text
+    assert failure_advice('done', timing, 'external') == []
+    assert failure_advice(failed, [{'status': 'lost'}], 'external') == []
+    run = {'algo': 'safe', 'seed': 1, 'bench': 'realtime-processes', 'drive': 'sim'}
+    s = _summary(outcome=failed, what_to_do=failure_advice(failed, timing, 'external'))
+    out = format_summary(s, run, Path('run'))
+    assert out.splitlines()[-1].startswith('  what to do: the experiments kept coming out')
+
+
+@pytest.mark.unit
+def test_a_hardware_class_is_not_called_simulated_and_faults_between_experiments_count():
+    from im_tuner.progress import format_summary
+
+    run = {'algo': 'safe', 'seed': 1, 'bench': 'realtime', 'drive': 'my_pkg.my_hw:MyHardware'}
+    sess = {'faults_outside': ['refused: safety fault (drive_state_timeout) [safety_fault]']}
+    out = format_summary(_summary(safety_faults=1, sessions=[sess]), run, Path('run'))
+    assert "experiment time (the drive's clock)" in out and 'simulated' not in out
+    assert '(safety faults 1, 1 of them met between experiments)' in out
+    run['drive'] = 'example'  # the example's stand-in plant is simulated
+    assert 'simulated experiment time' in format_summary(_summary(), run, Path('run'))
+
+
+@pytest.mark.unit
+def test_an_external_drives_counters_are_the_sessions_share():
+    from im_tuner.link import drive_delta, drive_report
+    from im_tuner.progress import drive_text
+
+    def rep(**kv):
+        return drive_report({'mode': 'realtime', **{k: str(v) for k, v in kv.items()}})
+
+    start = rep(steps=100_000, held=40, overruns=7, max_lateness_us=900.0, watchdog_trips=1)
+    end = rep(steps=130_000, held=55, overruns=7, max_lateness_us=900.0, watchdog_trips=1)
+    d = drive_delta(start, end)
+    assert (d['steps'], d['held'], d['overruns'], d['watchdog_trips']) == (30_000, 15, 0, 0)
+    assert 'max_lateness_us' not in d and d['max_lateness_us_at_most'] == 900.0
+    text = drive_text(d, 'this session')
+    assert '30000 periods' in text and 'lateness <= 900 us' in text
+    assert "this session's share" in text
+    worse = drive_delta(start, rep(steps=130_000, max_lateness_us=2500.0))
+    assert worse['max_lateness_us'] == 2500.0 and 'held' not in worse  # unknown at the end
+    again = drive_delta(start, rep(steps=5_000, held=0))  # the drive restarted meanwhile
+    assert again['steps'] == 5_000 and again['restarted'] and not again['per_session']
+    assert 'restarted' in drive_text(again, None)
+    assert drive_delta(None, end)['per_session'] is False  # no status at the start
+    assert drive_delta(start, None) is None

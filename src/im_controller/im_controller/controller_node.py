@@ -12,7 +12,8 @@ A thin node around :class:`im_controller.experiment.ExperimentRunner` (docs/cont
   runs is **refused** with a reason (not deferred);
 * ``~/start_experiment`` (std_srvs/Trigger) starts the paper's experiment; the result is
   published on ``controller/loss`` (diagnostic_msgs/DiagnosticArray, see messages.py);
-  ``~/reset_fault`` (std_srvs/Trigger) clears a safety fault; ``controller/internals``
+  ``~/reset_fault`` (std_srvs/Trigger; ``ros2 run im_controller reset_fault`` calls it)
+  clears a safety fault; ``controller/internals``
   carries references, errors, PI terms, saturation and the running loss every step;
 * between experiments it holds the position (in lock-step simulation, by default, the
   loop pauses instead: sim time does not advance while nothing runs, which keeps runs
@@ -86,6 +87,7 @@ from .experiment import (
     ExperimentRunner,
 )
 from .messages import result_to_msg
+from .reset_fault import reset_command, service_name
 
 NS_PER_S = 1_000_000_000
 #: Shortest time between two logged refusals of one kind [s] (all are counted).
@@ -196,6 +198,9 @@ class ControllerNode(LenientDoubles, Node):
                 )
 
         self.next_experiment_id = int(self.first_experiment_id)
+        #: what the fault messages tell a user to run (the shipped ros2 has only `run`)
+        self._reset_command = reset_command(self.get_fully_qualified_name())
+        self._reset_service = service_name(self.get_fully_qualified_name())
         self.results = []  #: every LossResult published, in order
         self.stop_requested = False
         self._state: np.ndarray | None = None  # newest state taken
@@ -487,8 +492,8 @@ class ControllerNode(LenientDoubles, Node):
             response.success = False
             response.message = C.refusal(
                 C.SAFETY_FAULT,
-                f'refused: safety fault ({r.fault_reason}); call '
-                f'{self.reset_srv.srv_name} after checking the drive',
+                f'refused: safety fault ({r.fault_reason}); check the drive, then clear it '
+                f'with `{self._reset_command}` (the {self._reset_service} service)',
             )
         elif self._state is None:
             response.success = False
@@ -601,8 +606,8 @@ class ControllerNode(LenientDoubles, Node):
         if status == STATUS_FAULT and not self._fault_logged:
             self._fault_logged = True
             self.get_logger().error(
-                f'safety fault: {self.runner.fault_reason}; zero current '
-                f'until {self.reset_srv.srv_name}'
+                f'safety fault: {self.runner.fault_reason}; zero current until it is '
+                f'cleared: `{self._reset_command}` ({self._reset_service})'
             )
 
     def _publish_result(self) -> None:
@@ -643,7 +648,7 @@ class ControllerNode(LenientDoubles, Node):
         self.get_logger().error(
             f'no drive state for {self.state_timeout:g} s: zero current commanded'
             + (f', experiment {self.runner.experiment_id} aborted' if running else '')
-            + f'; FAULT until {self.reset_srv.srv_name}'
+            + f'; FAULT until `{self._reset_command}` ({self._reset_service})'
         )
         self._fault_logged = True
         if running:

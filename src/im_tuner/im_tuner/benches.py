@@ -1,8 +1,8 @@
 """The tuner's bench modes and which of them simulate the drive (pure: no rclpy).
 
-The same values as ``tuner_cli`` (``--bench``); here so that the report and the tuner's
-summary can tell a simulated drive from a real one without importing the tuner's command
-line (which imports rclpy). ``test_report_imports`` checks the two agree.
+The one copy of ``--bench``'s values (``tuner_cli`` imports them from here); pure, so
+that the report and the tuner's summary can tell a simulated drive from a real one
+without importing the tuner's command line.
 """
 
 from __future__ import annotations

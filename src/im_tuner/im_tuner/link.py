@@ -9,7 +9,9 @@ Standard interfaces only (docs/interfaces.md, docs/controller.md):
   ``im_controller.messages``), matched by experiment id; the gains it echoes must equal
   the gains set (else someone else changed them: the run stops);
 * safety faults: ``<controller>/reset_fault`` (std_srvs/Trigger), called only with
-  ``fault_policy='reset'`` (the default on the simulated bench).
+  ``fault_policy='reset'`` (the default on the simulated bench); with ``'stop'`` the run
+  ends and the message names ``ros2 run im_controller reset_fault`` for the person at the
+  bench. A fault met at a start that no result reported is counted in ``faults_outside``.
 
 Every wait spins through the given ``spin_until(predicate, timeout)`` -- the in-process
 bench's (which steps the simulation) or a plain executor's -- and gives up on a deadline.
@@ -31,6 +33,7 @@ from std_srvs.srv import Trigger
 from im_controller import contract as C
 from im_controller.config import GAIN_NAMES, Gains
 from im_controller.messages import SAFETY_REASONS, msg_to_result
+from im_controller.reset_fault import reset_command
 from im_drive_sim.contract import STATUS_COUNTERS
 
 from .names import FAULT_POLICIES, controller_topics
@@ -41,6 +44,7 @@ __all__ = [
     'ControllerLink',
     'DriveMonitor',
     'controller_topics',
+    'drive_delta',
     'drive_report',
 ]
 
@@ -69,6 +73,38 @@ def drive_report(
     return out
 
 
+def drive_delta(start: dict[str, Any] | None, end: dict[str, Any] | None) -> dict[str, Any] | None:
+    """A long-lived (external) drive's counters over one session: ``end`` minus
+    ``start`` (two :func:`drive_report` results), marked ``per_session``. The worst
+    lateness is a maximum, not a count: kept when it grew in the session, else given as
+    a bound (``max_lateness_us_at_most``). No ``start``: ``end`` as it is (the drive's
+    counters since it started, marked ``per_session: False``); a counter that went down
+    (the drive restarted in the session): ``end`` as it is, marked ``restarted``."""
+    if end is None:
+        return None
+    if start is None:
+        return {**end, 'per_session': False}
+    out = {k: v for k, v in end.items() if k not in DRIVE_COUNTERS}
+    for k in DRIVE_COUNTERS:
+        if k not in end:
+            continue
+        if k == 'max_lateness_us':  # a maximum, not a count
+            if k not in start or end[k] > start[k]:
+                out[k] = end[k]
+            else:
+                out['max_lateness_us_at_most'] = start[k]
+            continue
+        if k not in start:
+            continue  # (unknown at the start: the session's share is unknown)
+        if end[k] < start[k]:
+            return {**end, 'per_session': False, 'restarted': True}
+        out[k] = end[k] - start[k]
+    if 'sim_time_s' in end and 'sim_time_s' in start:
+        out['sim_time_s'] = end['sim_time_s'] - start['sim_time_s']
+    out['per_session'] = True
+    return out
+
+
 class DriveMonitor:
     """The drive's own counters (overruns, late and held commands, watchdog trips...),
     from the newest ``drive/status`` it publishes (about 1 Hz)."""
@@ -77,6 +113,8 @@ class DriveMonitor:
         self.topic = topic
         self.received = 0
         self.last: dict[str, Any] | None = None
+        #: the report the session started from (:meth:`mark`; None: not marked)
+        self.start: dict[str, Any] | None = None
         qos = QoSProfile(
             depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE
         )
@@ -92,6 +130,14 @@ class DriveMonitor:
             )
             self.last = drive_report(values, lvl, st.message)
             self.received += 1
+
+    def mark(self, spin_until: Callable[[Callable[[], bool], float], bool], timeout: float) -> None:
+        """Take the drive's counters at the session's start: a status newer than this
+        call, waited for up to ``timeout`` s (the drive reports about once a second);
+        else the newest one, if any."""
+        n0 = self.received
+        spin_until(lambda: self.received > n0, timeout)
+        self.start = None if self.last is None else dict(self.last)
 
 
 class ControllerLink:
@@ -128,6 +174,13 @@ class ControllerLink:
         self.results: dict[int, Any] = {}
         self.bad_messages = 0
         self.faults_reset = 0
+        #: safety faults met at a start that no result of this session reported (a drive
+        #: state watchdog between experiments, a fault left from before the session):
+        #: the records cannot count them, the summary must (docs/tuner.md)
+        self.faults_outside: list[str] = []
+        #: the last result was a safety fault that is not cleared yet (the next start
+        #: meets it: not another fault)
+        self._result_fault = False
         qos = QoSProfile(
             depth=1000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE
         )
@@ -211,6 +264,7 @@ class ControllerLink:
         if not resp.success:
             raise BenchFailure(f'reset_fault refused: {resp.message}')
         self.faults_reset += 1
+        self._result_fault = False
         return resp.message
 
     def _start(self, deadline: float) -> int:
@@ -226,10 +280,16 @@ class ControllerLink:
             msg = resp.message
             code = C.refusal_code(msg)
             if code == C.SAFETY_FAULT:
+                if not self._result_fault:
+                    self.faults_outside.append(msg)
+                    self._result_fault = True  # (counted once, however often it is met)
                 if self.fault_policy != 'reset':
+                    # (the controller's own words up to its advice: 'safety fault (why)')
+                    what = msg.split(';')[0].split(' [')[0].strip().removeprefix('refused: ')
                     raise BenchFailure(
-                        f'the controller is in a safety fault ({msg}); check '
-                        f'the drive, call {self.names["reset"]} and resume'
+                        f'start_experiment refused: {what}; fault policy stop: check the '
+                        f'drive, clear the fault with `{reset_command(self.names["node"])}`, '
+                        'then resume the run (--resume)'
                     )
                 self.node.get_logger().warn(f'{msg}; resetting it (fault policy: reset)')
                 self.reset_fault()
@@ -264,6 +324,7 @@ class ControllerLink:
                 f'{gains.as_tuple()}: something else changed them'
             )
         fault = r.reason in SAFETY_REASONS
+        self._result_fault = fault
         if fault and self.fault_policy == 'reset':
             self.node.get_logger().warn(
                 f'experiment {eid}: safety fault {r.reason}; resetting it (fault policy: reset)'

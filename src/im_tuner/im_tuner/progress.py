@@ -11,7 +11,7 @@ from im_controller.config import GAIN_NAMES, GAIN_UNITS
 
 # benches, not tuner_cli (rclpy), and the tuning loop only for its type: the report
 # imports drive_text from here and must start without rclpy, pycma or scipy
-from .benches import SIM_BENCHES
+from .benches import is_simulated
 
 if TYPE_CHECKING:
     from .tuning import TuningRun
@@ -150,16 +150,20 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
         f'  satisfactory (loss <= {s["satisfactory_loss"]:g}): '
         + (f'after {sat} evaluations' if sat else 'not reached')
     )
+    outside = sum(len(p.get('faults_outside', [])) for p in s['sessions'])
     L.append(
         f'  aborted experiments: {s["aborted"]} of {s["evaluations"]} (safety faults '
-        f'{s["safety_faults"]}); lost results re-run: {s["lost"]}; off the paper '
+        f'{s["safety_faults"]}'
+        + (f', {outside} of them met between experiments' if outside else '')
+        + f'); lost results re-run: {s["lost"]}; off the paper '
         f'timing, re-run: {s.get("timing", 0)}'
     )
     rtf = s['real_time_factor']
-    # a real drive's experiments take drive time, not simulated time
+    # a real drive's experiments take drive time, not simulated time (a hardware class on
+    # the composed bench too: benches.is_simulated)
     clock = (
         'simulated experiment time'
-        if run.get('bench') in SIM_BENCHES
+        if is_simulated(run.get('bench'), run.get('drive'))
         else "experiment time (the drive's clock)"
     )
     L.append(
@@ -202,6 +206,7 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
         )
     if s.get('report_command'):
         L.append(f'  report (summary, plots, CSV): {s["report_command"]}')
+    L.extend(f'  what to do: {text}' for text in s.get('what_to_do', []))
     return '\n'.join(L)
 
 
@@ -228,6 +233,17 @@ def drive_text(d: dict[str, Any] | None, which: str | None) -> str:
             f'{head} ({d.get("mode")}): {n("steps")} steps, commands ignored '
             f'{n("stale_ignored")}, states re-sent {n("republished")}'
         )
+    if d.get('per_session'):
+        # a long-lived (external) drive: its counters ran before this session
+        text += "; this session's share: the drive's counters at its end minus at its start"
+        if 'max_lateness_us_at_most' in d:
+            text = text.replace(
+                'lateness - us', f'lateness <= {d["max_lateness_us_at_most"]:.0f} us'
+            )
+    elif d.get('restarted'):
+        text += '; the drive restarted during the session: its counters since then'
+    elif d.get('per_session') is False:
+        text += "; the drive's counters since it started (none at the session's start)"
     if d.get('level', 0) >= 2:
         text += f'; last status ERROR: {d.get("message")}'
     loop = d.get('loop')

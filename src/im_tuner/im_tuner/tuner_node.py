@@ -52,15 +52,14 @@ from typing import TYPE_CHECKING, Any
 # imported once every check passed (tuner_cli), so a refusal is one line at once.
 from im_drive_sim.cli import UsageError, check_ros_args
 
+from .benches import IN_PROCESS_BENCHES, LOCKSTEP_BENCHES, SIM_BENCHES, is_simulated
 from .tuner_cli import (
+    DISCOVERY_TIMEOUT,
     EXIT_FAILED,
     EXIT_INTERRUPTED,
     EXIT_OK,
     EXIT_USAGE,
-    IN_PROCESS_BENCHES,
-    LOCKSTEP_BENCHES,
     RUN_SETTINGS,
-    SIM_BENCHES,
     _build_parser,
     _check_controller_name,
     _check_run,
@@ -68,7 +67,6 @@ from .tuner_cli import (
     _new_run_config,
     _params_of_run,
     check_session,
-    is_simulated,
 )
 
 if TYPE_CHECKING:
@@ -97,6 +95,35 @@ def _repair_old_bags(rundir: RunDir, note, current: Path | None) -> None:
                 note(f'repaired the bag of the killed session: {rep.summary().splitlines()[0]}')
             except RepairError as exc:
                 note(f'warning: could not repair {bag}: {exc}')
+
+
+#: [s] the --discovery-timeout a discovery-timeout message suggests for a loaded machine
+SLOW_DISCOVERY_HINT_S = 20.0
+
+
+def failure_advice(outcome: str, records: list[dict[str, Any]], bench: str) -> list[str]:
+    """What to do about a failed run, for the summary (empty: nothing to say). A run that
+    failed because its experiments kept coming out ``timing`` (held or late periods
+    beyond the tolerance) is told where the controller should run."""
+    if not (outcome.startswith('failed') and records and records[-1]['status'] == 'timing'):
+        return []
+    if bench in IN_PROCESS_BENCHES:
+        return [
+            'the experiments kept coming out `timing` although the controller runs in the '
+            "drive's process: the composed loop itself started periods late (the drive "
+            "line's overruns and worst lateness; a loaded machine). Run on a less loaded "
+            'machine or core, or allow a few held periods per experiment with --ros-args -p '
+            'timing_tolerance:=N and say so with the results (docs/real-drive.md, "Timing")'
+        ]
+    where = 'a separate controller process' if bench != 'external' else 'the external controller'
+    return [
+        f'the experiments kept coming out `timing`: {where} did not answer every 200 us '
+        'drive period (one DDS round trip between two Python processes takes about as long '
+        'as the period on a 2-core machine, and any other load makes it miss). Run the '
+        "controller in the drive's process: `ros2 run im_tuner tuner --bench realtime` "
+        '(simulated) or `--bench realtime --drive my_pkg.my_hw:MyHardware` with your '
+        "drive's hardware class (docs/real-drive.md)"
+    ]
 
 
 def next_experiment_id(records: list[dict[str, Any]]) -> int:
@@ -237,7 +264,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
     from im_drive_sim.runtime import ParameterOverrideError, RosSession
 
     from .bench import forms
-    from .link import ControllerLink, controller_topics
+    from .link import ControllerLink, controller_topics, drive_delta
     from .progress import format_summary
     from .rundir import RunDir, RunDirError
     from .tuning import BenchFailure, ResumeError, StopRequested, replay, replay_plan
@@ -276,6 +303,8 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         exe.executor.add_node(node)
         spin_until = exe.spin_until
         if bench_mode in ('auto', 'none'):
+            if cli.discovery_timeout is None:
+                cli.discovery_timeout = DISCOVERY_TIMEOUT[bench_mode]
             found = forms.controller_on_graph(
                 node, spin_until, cli.controller, cli.discovery_timeout
             )
@@ -285,7 +314,10 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                     f'not on the graph of ROS_DOMAIN_ID {os.environ.get("ROS_DOMAIN_ID", "0")} '
                     f'after {cli.discovery_timeout:g} s): start the bench first, e.g. '
                     '`ros2 run im_tuner sim_bench` or your drive + `ros2 run '
-                    'im_controller controller`, or use --bench auto'
+                    'im_controller controller`, or use --bench auto; if it is running, '
+                    'discovery is slow (a loaded machine): give it longer, e.g. '
+                    f'--discovery-timeout '
+                    f'{max(SLOW_DISCOVERY_HINT_S, 3 * cli.discovery_timeout):g}'
                 )
             bench_mode = 'external' if found else 'inproc'
         elif bench_mode == 'inproc' and forms.controller_on_graph(
@@ -421,6 +453,10 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             )
         if not bench.recording_ready(30.0):
             raise BenchFailure('the recorder child did not subscribe within 30 s')
+        if isinstance(bench, forms.Children) and bench.mode == 'external':
+            # a long-lived drive's counters run on from before this session: the summary
+            # gives their difference over the session (link.drive_delta)
+            bench.monitor.mark(bench.spin_until, 2.0)
         if cli.resume is None:
             run['controller_parameters'] = link.list_parameters()
             run['fault_policy'] = fault_policy
@@ -463,7 +499,16 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                 )
         tuning.state.sessions.append(session)
         outcome = tuning.run(link, should_stop)
-        session['drive'] = bench.drive_report()
+        drive_now = bench.drive_report()
+        if isinstance(bench, forms.Children) and bench.mode == 'external':
+            drive_now = drive_delta(bench.monitor.start, drive_now)
+        session['drive'] = drive_now
+        if link.faults_outside:
+            # faults no result reported (a watchdog between experiments, one left from
+            # before): counted with the records' faults, so the summary agrees with a
+            # failure they caused
+            session['faults_outside'] = list(link.faults_outside)
+            tuning.state.faults += len(link.faults_outside)
         # the bag is closed before the summary: a bag that was not closed is a failure
         problems = bench.close_recording()
         for text in problems:
@@ -477,12 +522,21 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         progress.close()
         summary = tuning.summary(outcome=outcome, wall_s=time.monotonic() - t_wall0)
         summary['report_command'] = f'ros2 run im_tuner report {shlex.quote(str(rundir.path))}'
+        advice = failure_advice(outcome, tuning.records, bench_mode)
+        if advice:
+            summary['what_to_do'] = advice
         tuning._checkpoint()
         rundir.write_summary(summary)
         print(format_summary(summary, run, rundir.path), flush=True)
         if code == EXIT_INTERRUPTED:
             print(
                 f'  interrupted: continue with `ros2 run im_tuner tuner --resume {rundir.path}`',
+                flush=True,
+            )
+        elif code == EXIT_FAILED:
+            print(
+                '  failed: once the cause is fixed, continue with `ros2 run im_tuner tuner '
+                f'--resume {shlex.quote(str(rundir.path))}`',
                 flush=True,
             )
     except (BenchFailure, ResumeError) as exc:

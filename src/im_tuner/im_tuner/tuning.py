@@ -576,14 +576,15 @@ def tally(st: TunerState, rec: dict[str, Any], satisfactory_loss: float) -> None
     if rec.get('experiment_id') is not None:  # it ran on the bench (a lost one too)
         st.experiments += 1
         st.sim_s += rec['sim_s']  # 0 for a lost one: its length is unknown
+    # a safety fault counts whatever became of the record (one in an experiment's settle
+    # is a lost record: no step of its gains ran, but the drive tripped)
+    st.faults += bool(rec['fault'])
     if rec['status'] == 'lost':
         st.lost += 1
         return
     if rec['status'] == 'timing':
         st.timing += 1
-        st.faults += bool(rec['fault'])
         return
-    st.faults += bool(rec['fault'])
     kind = rec['kind']
     if kind == 'reference':
         st.reference = _brief(rec) | {'aborted': rec['aborted']}

@@ -1,0 +1,146 @@
+"""Clear a controller's safety fault: ``ros2 run im_controller reset_fault``.
+
+Calls the controller's ``~/reset_fault`` service (std_srvs/Trigger) once and prints its
+answer on one line -- the shipped ``ros2`` (tools/ros2, ROS 2 from pip wheels) has only
+``ros2 run``, no ``ros2 service call``. Check the drive first: the controller then holds
+the position it measures (docs/controller.md, "Services").
+
+    ros2 run im_controller reset_fault [--controller /controller] [--timeout S]
+
+Exit codes: 0 the fault was cleared (or there was none: the controller answers
+``no fault``), 1 the controller refused it (its reason: e.g. no drive state since its
+watchdog tripped) or did not answer within ``--timeout``, 2 bad input, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+from . import contract as C
+
+EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+DEFAULT_TIMEOUT = 10.0  # [s] to find the service and get its answer (a loaded machine)
+
+
+def reset_command(controller: str = '/controller') -> str:
+    """The shell command that clears the fault of the controller node ``controller``
+    (fully qualified), for the messages that tell a user to reset a fault."""
+    node = controller if controller.startswith('/') else '/' + controller
+    extra = '' if node == '/controller' else f' --controller {node}'
+    return f'ros2 run im_controller reset_fault{extra}'
+
+
+def service_name(controller: str) -> str:
+    """The fully qualified reset service of the controller node ``controller``."""
+    node = controller if controller.startswith('/') else '/' + controller
+    return f'{node.rstrip("/")}/{C.RESET_SERVICE}'
+
+
+def _parser():
+    from im_drive_sim.cli import Parser, finite_float
+
+    ap = Parser(
+        prog='ros2 run im_controller reset_fault',
+        description="Clear the controller's safety fault (its ~/reset_fault service) after "
+        'checking the drive; prints the answer. Exit 0 cleared (or no fault), 1 refused or '
+        'no answer, 2 bad input.',
+    )
+    ap.add_argument(
+        '--controller',
+        default='/controller',
+        metavar='NODE',
+        help='the controller node (default /controller)',
+    )
+    ap.add_argument(
+        '--timeout',
+        type=finite_float(0.0, 3600.0, lo_open=True, unit='s'),
+        default=DEFAULT_TIMEOUT,
+        metavar='S',
+        help='how long to wait for the service and its answer [s] (default '
+        f'{DEFAULT_TIMEOUT:g}; a loaded machine may need more)',
+    )
+    return ap
+
+
+def _check_name(srv: str, controller: str) -> None:
+    from rclpy.exceptions import InvalidServiceNameException, InvalidTopicNameException
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+
+    from im_drive_sim.cli import UsageError
+
+    try:
+        validate_full_topic_name(srv)
+    except (InvalidTopicNameException, InvalidServiceNameException) as exc:
+        raise UsageError(
+            f'--controller {controller!r}: not a valid node name ({str(exc).splitlines()[0]})'
+        ) from None
+
+
+def call_reset(argv: list[str], srv: str, timeout: float) -> tuple[int, str]:
+    """Call ``srv`` once; returns the exit code and the line to print."""
+    from rclpy.node import Node
+    from std_srvs.srv import Trigger
+
+    from im_drive_sim.runtime import RosSession
+
+    ros = RosSession(argv)
+    node = None
+    try:
+        node = Node(
+            f'reset_fault_{os.getpid()}', start_parameter_services=False, context=ros.context
+        )
+        cli = node.create_client(Trigger, srv)
+        deadline = time.monotonic() + timeout
+        while not cli.service_is_ready():
+            if ros.stopped:
+                return EXIT_INTERRUPTED, 'reset_fault: interrupted'
+            if time.monotonic() > deadline:
+                return EXIT_REFUSED, (
+                    f'error: reset_fault: {srv} not on the graph of ROS_DOMAIN_ID '
+                    f'{os.environ.get("ROS_DOMAIN_ID", "0")} after {timeout:g} s (is the '
+                    'controller running? --controller names it; a loaded machine may need '
+                    'a longer --timeout)'
+                )
+            cli.wait_for_service(timeout_sec=0.05)
+        import rclpy
+
+        fut = cli.call_async(Trigger.Request())
+        while not fut.done():
+            if ros.stopped:
+                return EXIT_INTERRUPTED, 'reset_fault: interrupted'
+            if time.monotonic() > deadline:
+                return EXIT_REFUSED, (
+                    f'error: reset_fault: {srv} did not answer within {timeout:g} s'
+                )
+            rclpy.spin_once(node, timeout_sec=0.05)
+        resp = fut.result()
+        if resp.success:
+            return EXIT_OK, f'{srv}: {resp.message}'
+        return EXIT_REFUSED, f'error: reset_fault: {srv}: {resp.message}'
+    finally:
+        if node is not None:
+            node.destroy_node()
+        ros.close()
+
+
+def main(args: list[str] | None = None) -> int:
+    from im_drive_sim.cli import parse_cli, run_cli
+
+    argv = list(sys.argv if args is None else args)
+
+    def body() -> int:
+        cli = parse_cli(_parser(), argv)
+        srv = service_name(cli.controller)
+        _check_name(srv, cli.controller)
+        code, line = call_reset(argv, srv, cli.timeout)
+        print(line, file=sys.stdout if code == EXIT_OK else sys.stderr, flush=True)
+        return code
+
+    return run_cli('reset_fault', body)
+
+
+if __name__ == '__main__':
+    os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
+    sys.exit(main())

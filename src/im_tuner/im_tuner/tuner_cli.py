@@ -175,13 +175,15 @@ def _build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         '--model',
         choices=('full', 'reduced'),
-        help="simulated bench: drive model fidelity (default: the drive file's)",
+        help="the simulator's model fidelity (--drive sim only; default: the drive file's)",
     )
     ap.add_argument(
         '--drive-config',
         type=Path,
         metavar='FILE',
-        help="simulated bench: drive parameter file (default: the paper's motor)",
+        help='drive parameter file of a bench the tuner starts: Ts and isq_max for the '
+        "controller, and the simulator's motor or your --drive class's config "
+        "(default: the paper's 750 W motor; an external bench's controller has its own)",
     )
     ap.add_argument(
         '--discovery-timeout',

@@ -78,7 +78,7 @@ def test_every_drive_form_tunes_three_evaluations_with_recording(tmp_path, drive
     assert counts['/controller/loss'] == 4, counts
     if drive != 'example':
         log = read_log(str(hw))
-        assert log['writes'] >= 4 * STEPS, log
+        assert log['writes'] >= counts['/drive/state'], log  # a write before each state
         assert (log['isq_ref'], log['load_torque']) == (0.0, 0.0), log
         assert log['closes'] == 1.0 and log['writes_after_close'] == 0.0, log
 

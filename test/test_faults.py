@@ -51,6 +51,7 @@ from test_drive_sim_node import core_states, policy, run_closed_loop
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 F = {name: i for i, name in enumerate(STATE_FIELDS)}
 STEPS = 5625  # one experiment (1.125 s at 200 us)
+SETTLE = 2500  # its standstill settle before step 0 (0.5 s, docs/controller.md)
 TAP_QOS = QoSProfile(
     depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT
 )  # never back-pressures
@@ -158,9 +159,13 @@ def tap(ros_context):
         t.close()
 
 
-def wait_mid_experiment(run: Path, n_records: int, tap: Tap, wait_until, into: int = 1500) -> dict:
+def wait_mid_experiment(
+    run: Path, n_records: int, tap: Tap, wait_until, into: int = SETTLE + 1500
+) -> dict:
     """Wait until ``n_records`` results exist and the next experiment is ``into`` steps
-    in (read from the drive's own state); return the last record."""
+    past the last one's end (read from the drive's own state; by default 1500 steps into
+    the measured part, after the next experiment's 2500-step settle); return the last
+    record."""
     wait_until(lambda: len(results(run)) >= n_records, 120, message=f'{n_records} records')
     last = results(run)[n_records - 1]
     # A lost evaluation (no answer from the controller in time: a loaded machine, issue

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from im_drive_sim.contract import STATE_INDEX
 
-
 # ------------------------------------------------------------ controller internals
 CONTROL_FIELDS: tuple[str, ...] = (
     'theta_ref',

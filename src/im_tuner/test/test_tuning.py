@@ -300,7 +300,7 @@ def test_a_fault_in_the_settle_is_re_run_and_never_told(tmp_path):
     assert len(lost) == 1 and lost[0]['kind'] == 'eval' and lost[0]['eval'] == 1
     assert lost[0]['loss'] is None and 'settle, before step 0 (max_speed)' in lost[0]['reason']
     again = [r for r in recs if r['kind'] == 'eval' and r['eval'] == 1]
-    assert [r['status'] for r in again][0] == 'lost' and again[1]['attempt'] == 2
+    assert again[0]['status'] == 'lost' and again[1]['attempt'] == 2
     assert again[1]['status'] in ('ok', 'aborted')  # measured: told to the optimiser
     assert again[0]['gains'] == again[1]['gains']  # the same gains, not a new candidate
     assert bench.calls[2] == bench.calls[3]

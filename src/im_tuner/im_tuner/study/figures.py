@@ -120,7 +120,7 @@ def fig_convergence(st: StudyStats):
         ax.axhline(st.threshold, color='tab:green', ls='--', lw=1, label='satisfactory')
         ax.axhline(1.0, color='0.4', ls=':', lw=1, label='hand-tuned start')
         ax.set_title(f'{ALGO_NAME[algo]}: median best-so-far loss of {res.spec.runs} runs')
-        ax.set_xlabel('loss evaluations (experiments of 1.125 s)')
+        ax.set_xlabel('loss evaluations (experiments: 0.5 s settle + 1.125 s)')
         ax.set_ylabel('best loss so far (hand-tuned = 1)')
         ax.set_ylim(0.0, 1.6)
         ax.grid(alpha=0.3)

@@ -85,7 +85,8 @@ def reproduction_md(st: StudyStats, command: str, figures: dict[str, str]) -> st
         + (f' (tables re-made with `{command}`)' if res.command and command != res.command else ''),
         '',
         f'{len(res.cells)} configurations x {sp.runs} runs x {sp.budget} loss evaluations '
-        f'({res.experiments} experiments of 1.125 s, {res.experiments * EXPERIMENT_S / 3600:.0f} h '
+        f'({res.experiments} experiments of 1.625 s: a 0.5 s settle and 1.125 s measured; '
+        f'{res.experiments * EXPERIMENT_S / 3600:.0f} h '
         f'of bench time) on the {sp.model} voltage-fed model with the encoder, seed {sp.seed}: '
         f'the grid ran in {res.wall_s:.0f} s on {res.jobs} worker(s), {rate:.0f} experiments/s.',
         '',

@@ -315,8 +315,8 @@ class DriveSimNode(LenientDoubles, Node):
                 'test_stall_step',
                 -1,
                 param_descriptor(
-                    'Test hook: stall the loop once, in the period that publishes this step '
-                    'index (-1: never), for test_stall_duration.',
+                    'Test hook: stall the loop once, in the first period that publishes this '
+                    'step index or a later one (-1: never), for test_stall_duration.',
                     int_range=(-1, 2**62),
                 ),
             ),
@@ -589,8 +589,11 @@ class DriveSimNode(LenientDoubles, Node):
             c.held += 1
         self.step_once(self._isq_ref, self._load, self._applied)
         self._cmd_fresh = False  # it answered the state before this step
-        if self.sim.step_index == self.stall_step:
-            time.sleep(self.stall_s)  # the test hook: this loop stalls once, here
+        if 0 <= self.stall_step <= self.sim.step_index:
+            # the test hook: this loop stalls once, here (the first period at or past the
+            # step: a drive that cannot pause may skip the step itself)
+            self.stall_step = -1
+            time.sleep(self.stall_s)
 
     def wait_command(self, timeout_s: float) -> bool:
         """Sleep up to ``timeout_s`` [s] in rcl_wait; True when a command is pending."""

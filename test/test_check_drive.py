@@ -307,8 +307,10 @@ def test_state_field_problems():
     gap = np.delete(s, 10, axis=0)
     # lost in transit (sequence numbers jump too): not the drive's fault
     assert cd.state_field_problems(gap, ok[:49], np.delete(seq, 10), 200_000, True, 11.0) == []
-    # the drive skipped a step (sequence numbers consecutive)
-    assert cd.state_field_problems(gap, ok[:49], seq[:49], 200_000, True, 11.0) == [
+    # the drive skipped a step (sequence numbers consecutive): in real time a drive that
+    # cannot pause does so for a period its late loop missed (held); in lock-step never
+    assert cd.state_field_problems(gap, ok[:49], seq[:49], 200_000, True, 11.0) == []
+    assert cd.state_field_problems(gap, ok[:49], seq[:49], 200_000, False, 11.0) == [
         'step_index not consecutive 1 times'
     ]
     bad = s.copy()
@@ -335,7 +337,7 @@ def test_state_field_problems():
     rep = np.insert(s, 5, s[4], axis=0)
     assert cd.state_field_problems(rep, np.full(51, 13), np.arange(51), 200_000, False, 11.0) == []
     assert cd.state_field_problems(rep, np.full(51, 13), np.arange(51), 200_000, True, 11.0) == [
-        'step_index not consecutive 1 times'
+        'step_index not increasing 1 times'
     ]
     rep[5, 2] = 1.0
     assert cd.state_field_problems(rep, np.full(51, 13), np.arange(51), 200_000, False, 11.0) == [
@@ -488,3 +490,19 @@ def test_example_drive_clamps_and_ignores_stale_duplicate_and_bad_commands(procs
     counts = dict(kv.split('=') for kv in summary.split(': ', 1)[1].split(', '))
     assert counts['stale_ignored'] == '2'
     assert 'expected 3 finite values' in err
+
+
+def test_fill_missed_bridges_a_drive_that_cannot_pause_short_gaps_only():
+    """A drive on the wall clock skips the periods its late loop missed: the step analysis
+    bridges gaps of up to 50 steps linearly, leaves longer ones and the edges missing."""
+    from im_drive_sim.check_drive.evaluate import MISSED_FILL_MAX, fill_missed
+
+    d = np.arange(200, dtype=float)[:, None] * np.array([[1.0, 2.0]])
+    gaps = d.copy()
+    gaps[10:13] = np.nan  # 3 missed periods
+    gaps[50 : 51 + MISSED_FILL_MAX] = np.nan  # 51: too long to guess
+    gaps[0] = np.nan  # an edge
+    out = fill_missed(gaps)
+    np.testing.assert_allclose(out[10:13], d[10:13], rtol=0, atol=1e-12)
+    assert np.isnan(out[50 : 51 + MISSED_FILL_MAX]).all() and np.isnan(out[0]).all()
+    np.testing.assert_array_equal(out[13:50], d[13:50])

@@ -50,6 +50,26 @@ def rows_by_step(
     return out, first
 
 
+def fill_missed(d: np.ndarray) -> np.ndarray:
+    """``d`` (rows by step, NaN where no state came) with the interior gaps of at most
+    ``MISSED_FILL_MAX`` steps linearly interpolated, column by column: a drive on the wall
+    clock that cannot pause skips the periods its late loop missed (it held its command
+    over them; docs/real-drive.md), and their values lie between the states around them.
+    Longer gaps and the edges stay NaN (missing)."""
+    out = d.copy()
+    have = np.isfinite(d).all(axis=1)
+    idx = np.flatnonzero(have)
+    for a, b in itertools.pairwise(idx):
+        if 1 < b - a <= MISSED_FILL_MAX + 1:
+            w = (np.arange(a + 1, b) - a)[:, None] / (b - a)
+            out[a + 1 : b] = d[a] + w * (d[b] - d[a])
+    return out
+
+
+#: Longest run of skipped steps :func:`fill_missed` bridges (10 ms at 5 kHz).
+MISSED_FILL_MAX = 50
+
+
 @dataclass
 class Recording:
     """Everything the probe took and sent, and the marks of its phases.
@@ -123,6 +143,8 @@ def evaluate(rec: Recording) -> list[Item]:
     sp = state_field_problems(rec.states[:n], rec.lengths[:n], rec.seq[:n], ts_ns, realtime, bound)
     k_first = step_trans[0][0] if step_trans else k_step_end
     dense, _ = rec.rows_by_step(k_first, k_step_end + 1)
+    if realtime:
+        dense = fill_missed(dense)
     motion = dense[np.isfinite(dense[:, F['theta_meas']])]
     if len(motion) > 20 and np.all(np.diff(motion[:, 0]) == 1):
         th = motion[:, F['theta_meas']]
@@ -172,6 +194,8 @@ def evaluate(rec: Recording) -> list[Item]:
     delays = []
     for k0, level, prev in trans[1:] + step_trans[1:]:
         d, _ = rec.rows_by_step(k0 - 20, k0 + 25)
+        if realtime:
+            d = fill_missed(d)
         delays.append(onset_delay(d[:, F['isq']], 20, level - prev))
     items['latency'] = judge_latency(delays, np.array(wall), realtime)
 
@@ -180,6 +204,8 @@ def evaluate(rec: Recording) -> list[Item]:
         metrics = []
         for (k0, level, prev), (k1, _, _) in itertools.pairwise(step_trans[1:4]):
             d, _ = rec.rows_by_step(k0 - 20, k1)
+            if realtime:
+                d = fill_missed(d)
             delay = onset_delay(d[:, F['isq']], 20, level - prev)
             seg = d[20 : k1 - k0 + 20]
             metrics.append(

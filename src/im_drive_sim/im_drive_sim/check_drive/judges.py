@@ -75,8 +75,10 @@ def state_field_problems(
     realtime: bool,
     current_bound: float,
 ) -> list[str]:
-    """Problems with the raw states: count, integer and consecutive step_index (where the
-    publication sequence numbers are consecutive, i.e. nothing was lost in transit),
+    """Problems with the raw states: count, integer step_index, consecutive in lock-step
+    and increasing in real time (a drive that cannot pause skips the periods its late
+    loop missed) where the publication sequence numbers are consecutive (nothing lost in
+    transit),
     time_ns == step_index * Ts exactly, all finite, currents within ``current_bound`` [A];
     in lock-step a re-sent state must equal the original."""
     problems = []
@@ -101,14 +103,19 @@ def state_field_problems(
     dk, dq = np.diff(k), np.diff(q)
     lossless = dq == 1  # states with consecutive sequence numbers: the drive sent them so
     if realtime:
-        jumps = np.count_nonzero(lossless & (dk != 1))
+        # a drive on the wall clock cannot pause: a period its loop started late by m
+        # whole periods follows m periods held (not published), and its step index
+        # advances by them (docs/real-drive.md); it must never stand still or go back
+        back = np.count_nonzero(lossless & (dk < 1))
+        if back:
+            problems.append(f'step_index not increasing {back} times')
     else:  # lock-step re-sends state k while it waits: a repeat must be identical
         jumps = np.count_nonzero(lossless & (dk != 1) & (dk != 0))
         rep = np.flatnonzero(lossless & (dk == 0))
         if len(rep) and not np.array_equal(s[rep], s[rep + 1]):
             problems.append('a re-sent state differs from the original')
-    if jumps:
-        problems.append(f'step_index not consecutive {jumps} times')
+        if jumps:
+            problems.append(f'step_index not consecutive {jumps} times')
     cur = np.abs(s[:, [F[c] for c in CURRENT_FIELDS]]).max()
     if cur > current_bound:
         problems.append(f'current {cur:.3g} A beyond {current_bound:.3g} A')

@@ -281,17 +281,18 @@ def test_resume_after_kill_continues_bit_for_bit(tmp_path, procs, wait_until, al
 
 
 def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until):
-    args = ['--algo', 'necga', '--budget', '12', '--seed', '11', '--quiet']
+    # budget 8 (+ reference + 3 re-measurements): every experiment is 1.625 s of drive time
+    args = ['--algo', 'necga', '--budget', '8', '--seed', '11', '--quiet']
     whole = tmp_path / 'whole'
     assert tuner(*args, '--out', str(whole)).returncode == 0
     killed = tmp_path / 'killed'
     child = procs.start([ROS2, 'run', 'im_tuner', 'tuner', *args, '--out', str(killed)])
     res = killed / 'results.jsonl'
-    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 6, 120, message='6 records')
+    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 4, 120, message='4 records')
     child.send_signal(signal.SIGKILL)
     child.wait(timeout=30)
     n_killed = res.read_text().count('\n')
-    assert 6 <= n_killed < 16
+    assert 4 <= n_killed < 12
     # The killed session's bag is still marked as being recorded ...
     meta0 = yaml.safe_load((killed / 'bag_0' / 'metadata.yaml').read_text())
     assert meta0['rosbag2_bagfile_information']['custom_data']['im_tuner.state'] == 'recording'

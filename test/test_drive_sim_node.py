@@ -6,6 +6,7 @@ and talks to it from this process with :class:`im_drive_sim.client.DriveClient`.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -49,9 +50,14 @@ def core_states(steps: int, seed: int) -> np.ndarray:
     return ref
 
 
-def run_closed_loop(ctx, steps: int, timeout: float = 60.0, after_command=None) -> np.ndarray:
+def run_closed_loop(
+    ctx, steps: int, timeout: float = 60.0, after_command=None, proc=None
+) -> np.ndarray:
     """Answer states 0..steps-1 with ``policy``; return the states 0..steps.
-    ``after_command(client, k)`` runs after each answer (to send extra commands)."""
+    ``after_command(client, k)`` runs after each answer (to send extra commands).
+    ``proc``: the drive's process, which exits after its last step; it is reaped before
+    this node is destroyed (a destroy next to an exited, unreaped drive once spun for
+    minutes inside Fast DDS)."""
     node = Node('test_controller', context=ctx)
     try:
         client = DriveClient(node)
@@ -68,6 +74,9 @@ def run_closed_loop(ctx, steps: int, timeout: float = 60.0, after_command=None) 
             if after_command is not None:
                 after_command(client, k)
     finally:
+        if proc is not None:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(timeout=30)
         node.destroy_node()
 
 
@@ -76,7 +85,7 @@ def test_lockstep_is_deterministic_and_equals_the_core(procs, ros_context):
     runs = []
     for _ in range(2):
         p = drive_proc(procs, '--seed', '7', '--max-steps', str(steps))
-        runs.append(run_closed_loop(ros_context, steps))
+        runs.append(run_closed_loop(ros_context, steps, proc=p))
         _out, err = p.communicate(timeout=30)
         assert p.returncode == 0, err
     a, b = runs
@@ -101,7 +110,7 @@ def test_ros2_run_from_a_plain_shell_and_exit_after_max_steps(procs, ros_context
     }
     env['PATH'] = '/usr/bin:/bin'
     p = drive_proc(procs, '--max-steps', '200', env=env)
-    states = run_closed_loop(ros_context, 200)
+    states = run_closed_loop(ros_context, 200, proc=p)
     _out, err = p.communicate(timeout=30)
     assert p.returncode == 0, err
     assert 'stopped at step 200' in err

@@ -506,7 +506,7 @@ def test_duplicated_late_out_of_order_commands_lockstep(procs, ros_context):
         if k >= 1:
             client.command(k - 1, -7.0, 3.0)  # late and out of order
 
-    states = run_closed_loop(ros_context, steps, after_command=bad_commands)
+    states = run_closed_loop(ros_context, steps, after_command=bad_commands, proc=p)
     _, err = p.communicate(timeout=30)
     assert p.returncode == 0, err
     assert np.array_equal(states, core_states(steps, seed=7))

@@ -320,9 +320,16 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
         or 'set_parameters_atomically: no answer within 6 s' in lost['reason']
     ), lost['reason']
     assert f'failed: eval {lost["eval"]}: no result after 2 attempts' in out
-    assert 'NOT applied' in out
     summary = json.loads((run / 'summary.json').read_text())
-    assert summary['applied']['on_controller'] is False
+    # the gains to leave applied (the best, else the start) cannot reach the dead
+    # controller; when every experiment before the kill was aborted (a loaded machine,
+    # above) there is nothing to apply and the summary says nothing about it
+    measured = [r for r in recs if r['status'] == 'ok']
+    if measured:
+        assert 'NOT applied' in out, out
+        assert summary['applied']['on_controller'] is False
+    else:
+        assert summary['applied'] is None or summary['applied']['on_controller'] is False
     # the drive is alive and safe: its watchdog tripped, zero current since
     assert drive.poll() is None
     wait_until(

@@ -91,8 +91,8 @@ def test_a_stalled_period_on_a_drive_that_cannot_pause_is_held_and_flagged(tmp_p
     the controller; the loop stalls 0.4 s once (the drive's test hook, at step 6000,
     inside the reference experiment's measured part): that experiment has ~2000 held
     periods, is flagged ``timing`` and re-run; no other experiment is flagged. The
-    tolerance (800 periods of 5625) absorbs the late starts of a 2-core machine (measured
-    here, recording off: 26-370 held periods per experiment without a stall; the loop's
+    tolerance (1500 periods of 5625) absorbs the late starts of a 2-core machine (measured
+    here, recording off: 26-913 held periods per experiment without a stall; the loop's
     margin is issue 27's)."""
     run = tmp_path / 'run'
     stall = 6000
@@ -101,7 +101,7 @@ def test_a_stalled_period_on_a_drive_that_cannot_pause_is_held_and_flagged(tmp_p
             *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '1', '--seed', '4'),
             *('--remeasure', '0', '--no-record', '--quiet', '--out', str(run), '--ros-args'),
             *('-p', 'hardware_like:=true', '-p', f'test_stall_step:={stall}'),
-            *('-p', 'test_stall_duration:=0.4', '-p', 'timing_tolerance:=800'),
+            *('-p', 'test_stall_duration:=0.4', '-p', 'timing_tolerance:=1500'),
         ],
         capture_output=True,
         text=True,

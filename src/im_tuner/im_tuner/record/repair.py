@@ -32,9 +32,7 @@ from typing import BinaryIO
 import numpy as np
 import yaml
 
-from .metadata import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
-from .records import Cursor, decompress, parse_definition
-from .writer import (
+from .mcap_format import (
     MAGIC,
     OP_CHANNEL,
     OP_CHUNK,
@@ -49,6 +47,10 @@ from .writer import (
     OP_SCHEMA,
     OP_STATISTICS,
     OP_SUMMARY_OFFSET,
+)
+from .metadata import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
+from .records import Cursor, decompress, parse_definition
+from .writer import (
     ChunkInfo,
     _chunk_index,
     _record,

@@ -415,25 +415,22 @@ class TuningRun:
                 sim_s=(m.t_end_ns - m.t_start_ns) * 1e-9,
                 wall_s=m.wall_s,
             )
+            no_loss = {'loss': None, 'terms': None, 'aborted': None}  # re-run, never told
             if m.timing:
                 # measured, but not the paper's loss: kept under another name, never a loss
                 rec.update(
+                    no_loss,
                     status='timing',
-                    loss=None,
-                    terms=None,
-                    aborted=None,
                     reason=f'timing: {m.held} held and {m.late} late of {m.steps} drive periods'
                     + (f' (and {m.reason})' if m.aborted else ''),
                     off_timing_loss=m.loss,
                 )
             elif m.aborted and m.steps == 0:
                 # stopped in its standstill settle (a safety fault while the fallback gains
-                # held): not one step of these gains was measured -- re-run, never a loss
+                # held): not one step of these gains was measured
                 rec.update(
+                    no_loss,
                     status='lost',
-                    loss=None,
-                    terms=None,
-                    aborted=None,
                     reason=f'ended in its settle, before step 0 ({m.reason}): no step of '
                     'these gains measured',
                 )

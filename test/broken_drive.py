@@ -12,6 +12,7 @@ rate           publishes every 250 us instead of 200 us                rate
 watchdog       no command watchdog: holds the last command forever     watchdog
 degrees        theta_meas (and joint_states position) in degrees       fields
 late           applies each command 3 periods late                     latency
+slower         acts with command delay 2, declares (and labels) 1       latency
 sign           torque opposite to isq (torque sign inverted)           step_response
 slow_current   current loop 10 times too slow                          step_response
 joint_type     Float64MultiArray on drive/joint_states                 topics
@@ -31,7 +32,16 @@ from std_msgs.msg import Float64MultiArray
 from im_drive_sim.contract import JOINT_STATE_TOPIC
 from im_drive_sim.example_drive import ExampleDrive, Hardware, main
 
-BREAKAGES = ('rate', 'watchdog', 'degrees', 'late', 'sign', 'slow_current', 'joint_type')
+BREAKAGES = (
+    'rate',
+    'watchdog',
+    'degrees',
+    'late',
+    'slower',
+    'sign',
+    'slow_current',
+    'joint_type',
+)
 
 
 class SignInverted(Hardware):
@@ -54,14 +64,21 @@ def broken_class(breaks: set[str]) -> type:
             super().__init__('broken_drive')
             if 'rate' in breaks:
                 self.period_s = 250e-6
+            if 'slower' in breaks:  # the hardware acts with delay 2; the node says 1
+                self.command_delay = 1
+                self.wire.values[13] = 1
             self.get_logger().warn(f'BROKEN drive: {",".join(sorted(breaks))}')
 
         def make_hardware(self) -> Hardware:
+            cls = Hardware
             if 'sign' in breaks:
-                return SignInverted(self.config)
-            if 'slow_current' in breaks:
-                return SlowCurrent(self.config)
-            return super().make_hardware()
+                cls = SignInverted
+            elif 'slow_current' in breaks:
+                cls = SlowCurrent
+            hw = cls(self.config)
+            if 'slower' in breaks:  # a power stage that latches its command (delay 2)
+                hw.command_delay = 2
+            return hw
 
         def make_joint_publisher(self):
             if 'joint_type' in breaks:

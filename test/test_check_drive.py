@@ -77,12 +77,18 @@ def item_lines(out: str) -> dict[str, str]:
 # ------------------------------------------------------------------ passing drives
 
 
-def test_drive_sim_lockstep_passes(procs, tmp_path):
-    out, data = run_expect(procs, tmp_path, [ROS2, 'run', 'im_drive_sim', 'drive_sim'], set())
+@pytest.mark.parametrize('delay', [1, 2])
+def test_drive_sim_lockstep_passes(procs, tmp_path, delay):
+    """Delay 2: a power stage that latches its command at the period start (the command
+    answering state k acts over k+1 -> k+2) passes as it declares."""
+    argv = [ROS2, 'run', 'im_drive_sim', 'drive_sim', '--ros-args', '-p', f'command_delay:={delay}']
+    out, data = run_expect(procs, tmp_path, argv, set())
     assert data['mode'] == 'lockstep' and data['command_timeout_source'] == 'drive parameter'
     lines = item_lines(out)
     assert list(lines) == list(cd.ITEMS)
-    assert 'takes effect in k+1: 11' in lines['latency']  # every change, in the next state
+    # every change, in state k + d, where the drive's applied_step says
+    assert f'takes effect in k+{delay}: 11' in lines['latency']
+    assert f'declared delay {delay}: 11/11 where applied_step says' in lines['latency']
     assert 'check_drive: all 6 items PASS' in out
     print(out)
 
@@ -141,10 +147,10 @@ def test_example_drive_passes(procs, tmp_path):
     'breaks, expected',
     [
         ('rate,joint_type,slow_current', {'rate', 'topics', 'step_response'}),
-        ('watchdog,degrees', {'watchdog', 'fields'}),
-        ('late,sign', {'latency', 'step_response'}),
+        ('watchdog,degrees,late', {'watchdog', 'fields', 'latency'}),
+        ('slower,sign', {'latency', 'step_response'}),
     ],
-    ids=['rate+joint_type+slow_current', 'watchdog+degrees', 'late+sign'],
+    ids=['rate+joint_type+slow_current', 'watchdog+degrees+late', 'slower+sign'],
 )
 def test_broken_drive_fails_exactly_what_it_breaks(procs, tmp_path, breaks, expected):
     """Breakages grouped so that each group's items are disjoint (each alone fails exactly
@@ -159,10 +165,19 @@ def test_broken_drive_fails_exactly_what_it_breaks(procs, tmp_path, breaks, expe
         assert 'current never went to zero' in lines['watchdog']
     if 'fields' in expected:
         assert '(units?)' in lines['fields']
-    if 'latency' in expected:
-        lat = next(i for i in data['items'] if i['name'] == 'latency')['values']
+    lat = next(i for i in data['items'] if i['name'] == 'latency')['values']
+    if 'late' in breaks:
         assert np.median([d for d in lat['effect_delays'] if d is not None]) >= 4
-    if breaks.startswith('late'):
+    if 'slower' in breaks:  # declares 1, acts with 2: later than its labels in most changes
+        assert lat['declared_delay'] == 1
+        pairs = [
+            (d, b)
+            for d, b in zip(lat['effect_delays'], lat['label_delays'], strict=True)
+            if d and b
+        ]
+        assert sum(d > b for d, b in pairs) > 0.25 * len(pairs), pairs
+        assert 'later (slower than declared)' in lines['latency']
+    if 'sign' in breaks:
         assert 'torque sign opposite to isq' in lines['step_response']
     if 'slow_current' in breaks:
         assert 'rise time' in lines['step_response']
@@ -292,8 +307,9 @@ def test_period_stats_and_rate_verdict():
 
 
 def _states(n: int, k0: int = 0) -> np.ndarray:
-    s = np.zeros((n, 13))
+    s = np.zeros((n, 14))
     s[:, 0] = np.arange(k0, k0 + n)
+    s[:, 13] = 1.0  # command_delay
     s[:, 1] = s[:, 0] * 200_000
     s[:, 5] = 2.45
     return s
@@ -301,7 +317,7 @@ def _states(n: int, k0: int = 0) -> np.ndarray:
 
 def test_state_field_problems():
     s = _states(50)
-    ok = np.full(50, 13)
+    ok = np.full(50, 14)
     seq = np.arange(50)
     assert cd.state_field_problems(s, ok, seq, 200_000, True, 11.0) == []
     gap = np.delete(s, 10, axis=0)
@@ -331,16 +347,26 @@ def test_state_field_problems():
     short = ok.copy()
     short[5] = 11
     assert cd.state_field_problems(s, short, seq, 200_000, True, 11.0) == [
-        '1 states without 13 values'
+        '1 states without 14 values'
+    ]
+    short[5] = 13  # a drive from before command_delay: told which field it lacks
+    assert cd.state_field_problems(s, short, seq, 200_000, True, 11.0) == [
+        '1 states without 14 values (the last field, command_delay, is missing: 1 or 2, '
+        'docs/interfaces.md)'
+    ]
+    bad = s.copy()
+    bad[3:, 13] = 3.0
+    assert cd.state_field_problems(bad, ok, seq, 200_000, True, 11.0) == [
+        'command_delay 1, 3: one value, 1 or 2'
     ]
     # lock-step re-sends: an identical repeat is fine, a changed one is not
     rep = np.insert(s, 5, s[4], axis=0)
-    assert cd.state_field_problems(rep, np.full(51, 13), np.arange(51), 200_000, False, 11.0) == []
-    assert cd.state_field_problems(rep, np.full(51, 13), np.arange(51), 200_000, True, 11.0) == [
+    assert cd.state_field_problems(rep, np.full(51, 14), np.arange(51), 200_000, False, 11.0) == []
+    assert cd.state_field_problems(rep, np.full(51, 14), np.arange(51), 200_000, True, 11.0) == [
         'step_index not increasing 1 times'
     ]
     rep[5, 2] = 1.0
-    assert cd.state_field_problems(rep, np.full(51, 13), np.arange(51), 200_000, False, 11.0) == [
+    assert cd.state_field_problems(rep, np.full(51, 14), np.arange(51), 200_000, False, 11.0) == [
         'a re-sent state differs from the original'
     ]
 
@@ -386,6 +412,27 @@ def test_latency_and_watchdog_verdicts():
     item = cd.judge_latency([4, 5, 4, 4], wall, realtime=True)
     assert not item.passed and 'k+4: 3, k+5: 1' in item.figures
     assert not cd.judge_latency([1] * 11, np.full(100, 3e-3), realtime=False).passed
+    # a declared command delay of 2 (docs/real-drive.md): lock-step effect in k+2 exactly,
+    # real time by k+3 in the fastest quarter
+    assert cd.judge_latency([2] * 11, wall, False, declared=2, labels=[2] * 11).passed
+    assert not cd.judge_latency([2] * 11, wall, False, declared=1, labels=[1] * 11).passed
+    assert cd.judge_latency([2, 3, 3, 4, 3], wall, True, declared=2, labels=[2, 3, 3, 4, 3]).passed
+    # labels: a drive slower than it declares shows a period after its applied_step says
+    item = cd.judge_latency([2] * 8, wall, True, declared=1, labels=[1] * 8)
+    assert not item.passed and '0/8 where applied_step says, 8 later' in item.figures
+    assert item.values['label_delays'] == [1] * 8 and item.values['declared_delay'] == 1
+    # real time: at most a quarter later than the label (a late loop's bridged periods);
+    # an onset before the label (a conservative label) is not a fault
+    assert cd.judge_latency(
+        [1, 2, 2, 1, 3, 2, 2, 2], wall, True, labels=[1, 2, 2, 1, 2, 2, 2, 2]
+    ).passed
+    assert cd.judge_latency([1, 2, 6, 1], wall, True, labels=[1, 2, 11, 1]).passed
+    assert not cd.judge_latency([2, 2, 2, 1], wall, True, labels=[1, 1, 2, 1]).passed
+    assert not cd.judge_latency(
+        [1] * 4, wall, False, labels=[1, 1, 2, 1]
+    ).passed  # lock-step: exact
+    assert cd.label_delay(np.array([5.0, 6, 6, 6, 8, 9]), 1, 7) == 3
+    assert cd.label_delay(np.array([5.0, 6, np.nan, 9]), 1, 7) is None
     assert cd.watchdog_limits(0.05) == (0.025, pytest.approx(0.08))
     assert cd.watchdog_limits(1.0) == (0.5, 1.25)
     assert cd.judge_watchdog_realtime(0.051, 0.052, 0.05, 0.002, 'test').passed
@@ -432,7 +479,7 @@ def test_judge_topics():
 def test_check_drive_layout_is_the_simulators():
     from im_drive_sim.sim import STATE_FIELDS
 
-    assert cd.STATE_FIELDS == STATE_FIELDS and len(cd.STATE_FIELDS) == 13
+    assert cd.STATE_FIELDS == STATE_FIELDS and len(cd.STATE_FIELDS) == 14
 
 
 # ------------------------------------------------------------------ the example drive itself

@@ -86,6 +86,7 @@ from .layout import (
     REASON_TERM2,
     REASON_TERM3,
     S_APPLIED,
+    S_CMD_DELAY,
     STATUS_ABORTED,
     STATUS_DONE,
     STATUS_FAULT,
@@ -150,6 +151,9 @@ def experiment_step(
     # The command the drive applied over the period that ended at this state (-1: none,
     # or a drive that does not say: never fresh).
     applied = state[S_APPLIED] if state.shape[0] > S_APPLIED else -1.0
+    # The drive's declared command delay d: its answer to state k - d drove this period
+    # fresh (a drive without the field declares 1).
+    delay = state[S_CMD_DELAY] if state.shape[0] > S_CMD_DELAY else 1.0
     if running:
         # The experiment runs on the drive's timeline: local step n = k - (first step),
         # so a state the controller never answered still counts as a period. Each of
@@ -177,7 +181,7 @@ def experiment_step(
         else:
             if R[R_N] != 0.0:
                 R[R_HELD] += k - R[R_SEEN] - 1.0
-            if applied == k - 1.0:
+            if applied == k - delay:
                 R[R_FRESH] += 1.0
             elif applied > R[R_APPLIED] and R[R_SEEN] == k - 1.0:
                 # a command newer than the one the previous state showed (after an

@@ -123,6 +123,8 @@ N_RSTATE = 31
 
 #: Index of ``applied_step`` in a drive state (the drive contract).
 S_APPLIED = STATE_INDEX['applied_step']
+#: Index of ``command_delay`` in a drive state (absent from a 13-field legacy state: 1).
+S_CMD_DELAY = STATE_INDEX['command_delay']
 
 # ----------------------------------------------------------------- per-step outputs E
 EXP_FIELDS: tuple[str, ...] = (

@@ -16,7 +16,7 @@ from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float64MultiArray
 
 from .cdr import Float64ArrayWire, parse_float64_array
-from .contract import COMMAND_FIELDS, COMMAND_TOPIC, STATE_TOPIC
+from .contract import COMMAND_FIELDS, COMMAND_TOPIC, LEGACY_STATE_FIELDS, STATE_TOPIC
 from .drive_sim_node import LOCKSTEP_QOS, RECORDED_QOS
 from .runtime import publish_lossless
 from .sim import STATE_FIELDS
@@ -62,8 +62,13 @@ class DriveClient:
                 data = deserialize_message(r[0], Float64MultiArray).data
             if len(data) == n:
                 self.state[:] = data
-                self.source_timestamp_ns = r[1]['source_timestamp']
-                got = self.state
+            elif len(data) == LEGACY_STATE_FIELDS:  # a drive without command_delay: 1
+                self.state[:LEGACY_STATE_FIELDS] = data
+                self.state[LEGACY_STATE_FIELDS] = 1.0
+            else:
+                continue
+            self.source_timestamp_ns = r[1]['source_timestamp']
+            got = self.state
 
     def wait_state(self, timeout: float) -> np.ndarray | None:
         """Block up to ``timeout`` seconds for a state; return the newest one or None."""

@@ -17,9 +17,11 @@ __all__ = [
     'CMD_ISQ',
     'CMD_LOAD',
     'CMD_STEP',
+    'COMMAND_DELAYS',
     'COMMAND_FIELDS',
     'COMMAND_TOPIC',
     'JOINT_STATE_TOPIC',
+    'LEGACY_STATE_FIELDS',
     'LOCKSTEP',
     'MODES',
     'NS_PER_S',
@@ -57,13 +59,17 @@ TOPIC_TYPES: dict[str, str] = {
 #: Layout of ``drive/state`` (Float64MultiArray.data), one sample per period k:
 #: step_index k, time_ns = k Ts [ns], the measured position [rad] and speed [rad/s] the
 #: controller uses, electromagnetic torque [N m], d/q and alpha/beta stator currents [A],
-#: the load torque [N m], the true position [rad] and speed [rad/s], and applied_step: the
+#: the load torque [N m], the true position [rad] and speed [rad/s], applied_step: the
 #: ``answers_step`` of the command the drive applied over the period that ended at this
-#: state (k - 1 when the controller's answer to state k - 1 came in time; an older step
-#: when the drive held or applied a late command; -1 for no command: zero current before
-#: the first command or under the watchdog, or an untagged command). It is what lets the
-#: controller count, on the drive's timeline, the periods its experiment was not driven
-#: by fresh answers (docs/interfaces.md, "Timing").
+#: state (k - d when the controller's answer came in time; an older step when the drive
+#: held or applied a late command; -1 for no command: zero current before the first
+#: command or under the watchdog, or an untagged command), and command_delay d, the
+#: drive's declared command delay (1 or 2): the command answering state k acts over
+#: k + d - 1 -> k + d (1: the period right after the state, as the simulator; 2: a power
+#: stage that latches its command at the next period start). A drive that publishes only
+#: the first 13 fields declares d = 1 (``LEGACY_STATE_FIELDS``). applied_step and d let
+#: the controller count, on the drive's timeline, the periods its experiment was not
+#: driven by fresh answers (docs/interfaces.md, "Timing").
 STATE_FIELDS: tuple[str, ...] = (
     'step_index',
     'time_ns',
@@ -78,8 +84,16 @@ STATE_FIELDS: tuple[str, ...] = (
     'theta',
     'omega',
     'applied_step',
+    'command_delay',
 )
 STATE_INDEX: dict[str, int] = {n: i for i, n in enumerate(STATE_FIELDS)}
+
+#: Fields of a drive/state from a drive written to the contract before command_delay: it
+#: declares a delay of 1; every reader accepts it.
+LEGACY_STATE_FIELDS = len(STATE_FIELDS) - 1
+
+#: The command delays a drive can declare (periods; see STATE_FIELDS).
+COMMAND_DELAYS: tuple[int, ...] = (1, 2)
 
 #: Layout of ``drive/command``: the state step it answers, the q-axis current reference
 #: [A] and the load torque [N m] the bench applies (the simulator's load machine).

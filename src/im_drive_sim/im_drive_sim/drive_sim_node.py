@@ -113,7 +113,9 @@ class DriveSimNode(LenientDoubles, Node):
         p = self._declare_parameters()
         self.mode: str = p['mode']
         try:
-            overrides = {'model': p['model']} if p['model'] else {}
+            overrides: dict = {'model': p['model']} if p['model'] else {}
+            if p['command_delay']:
+                overrides['command_delay'] = p['command_delay']
             self.config = load_config(p['config_file'] or None, overrides=overrides)
         except ConfigError as exc:
             raise ConfigError(str(exc)) from exc
@@ -178,6 +180,8 @@ class DriveSimNode(LenientDoubles, Node):
         self._cmd_fresh = False
         self._held_answers = -1  # answers_step of the newest tagged command (real time)
         self._applied = -1  # answers_step of the held command (-1: none, untagged, watchdog)
+        #: command delay 2: (applied_step, fresh) of the command latched for the next period
+        self._pend: tuple[int, bool] = (-1, False)
         self._cmd_watchdog = CommandWatchdog(self.command_timeout, self.config.Ts)
         self._watchdog_tripped = False
         #: latched by :meth:`safe_stop`: zero current and no load from then on
@@ -193,7 +197,7 @@ class DriveSimNode(LenientDoubles, Node):
         # logged at start(): a process composing more nodes may still refuse to start
         self._start_text = (
             f'mode={self.mode} model={self.config.model} '
-            f'Ts={self.config.Ts * 1e6:.0f} us '
+            f'Ts={self.config.Ts * 1e6:.0f} us command_delay={self.config.command_delay} '
             f'config={p["config_file"] or "(packaged default)"} seed={p["seed"]}'
         )
 
@@ -224,6 +228,16 @@ class DriveSimNode(LenientDoubles, Node):
                     "'full' (voltage-fed IM + vector control) or 'reduced' (ideal field "
                     "orientation); '' = as in the parameter file.",
                     additional="one of: '', full, reduced",
+                ),
+            ),
+            (
+                'command_delay',
+                0,
+                param_descriptor(
+                    'Command delay d [periods]: 1, the command answering state k acts over '
+                    'k -> k+1; 2, a power stage that latches it at the next period start '
+                    '(k+1 -> k+2); 0 = as in the parameter file (its command_delay, default 1).',
+                    int_range=(0, 2),
                 ),
             ),
             (
@@ -398,6 +412,7 @@ class DriveSimNode(LenientDoubles, Node):
         values = {
             'mode': self.mode,
             'model': self.config.model,
+            'command_delay': str(self.config.command_delay),
             'step_index': str(self.sim.step_index),
             'sim_time_s': f'{sim_s:.6f}',
             'real_time_factor': f'{sim_s / wall_elapsed:.3f}' if wall_elapsed > 0 else 'nan',
@@ -440,10 +455,26 @@ class DriveSimNode(LenientDoubles, Node):
         self.counters.commands += 1
         return int(data[CMD_STEP]), isq, load
 
+    def _latch(self, applied: int, fresh: bool) -> tuple[int, bool]:
+        """The labels (applied_step, fresh) of the command that acts over the coming
+        period, given those of the command handed to the model now: the same with delay
+        1; with delay 2 the model runs the command latched one period earlier (see
+        ``kernels.step_model``), and this one waits."""
+        if self.config.command_delay == 2:
+            acting, self._pend = self._pend, (applied, fresh)
+            return acting
+        return applied, fresh
+
+    def _drop_latched(self) -> None:
+        """Zero current and no load at once (a safe stop, the watchdog): no latched command
+        runs after it."""
+        self.sim.clear_command()
+        self._pend = (-1, False)
+
     def step_once(self, isq_ref: float, load_torque: float, applied: int) -> None:
         """Advance the model one period with this command and publish the new state;
-        ``applied``: the ``answers_step`` of the command (-1: none), the new state's
-        ``applied_step``."""
+        ``applied``: the ``answers_step`` of the command that acted over the period (-1:
+        none; ``_latch``), the new state's ``applied_step``."""
         self.sim.step_into(isq_ref, load_torque, self._state)
         self._state[F_APPLIED] = applied
         self.counters.steps += 1
@@ -476,7 +507,7 @@ class DriveSimNode(LenientDoubles, Node):
                 self.counters.stale_ignored += 1  # a duplicate answer to a re-sent state
                 cmd = self._take_command()
                 continue
-            self.step_once(isq, load, answers)
+            self.step_once(isq, load, self._latch(answers, True)[0])
             return True
         return False
 
@@ -571,9 +602,11 @@ class DriveSimNode(LenientDoubles, Node):
         c = self.counters
         if missed > 0 and self.wall_clock:
             state = self._state
+            acting = self._applied
             for _ in range(missed):
+                acting = self._latch(self._applied, False)[0]
                 self.sim.step_into(self._isq_ref, self._load, state)
-            state[F_APPLIED] = self._applied
+            state[F_APPLIED] = acting
             c.steps += missed
             c.held += missed
             c.missed += missed
@@ -583,11 +616,12 @@ class DriveSimNode(LenientDoubles, Node):
             self._isq_ref = self._load = 0.0
             self._applied = -1
             self._cmd_fresh = False
-        if self._cmd_fresh:
+        acting, fresh = self._latch(self._applied, self._cmd_fresh)
+        if fresh:
             c.fresh += 1
         else:
             c.held += 1
-        self.step_once(self._isq_ref, self._load, self._applied)
+        self.step_once(self._isq_ref, self._load, acting)
         self._cmd_fresh = False  # it answered the state before this step
         if 0 <= self.stall_step <= self.sim.step_index:
             # the test hook: this loop stalls once, here (the first period at or past the
@@ -605,6 +639,7 @@ class DriveSimNode(LenientDoubles, Node):
         self.safe_stopped = True
         self._isq_ref = self._load = 0.0
         self._applied = -1
+        self._drop_latched()
 
     def close_hardware(self) -> None:
         """The simulated drive has no power stage to release: the safe stop only."""
@@ -626,6 +661,7 @@ class DriveSimNode(LenientDoubles, Node):
         self._isq_ref = 0.0
         self._load = 0.0
         self._applied = -1
+        self._drop_latched()
         self.counters.watchdog_steps += 1
 
     def take_commands(self) -> None:

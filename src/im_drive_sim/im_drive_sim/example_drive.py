@@ -5,7 +5,12 @@ Copy this file for a real drive. It has two parts:
 (a) :class:`Hardware` -- the only code that touches the power stage. Replace its two
     methods: ``write(isq_ref, load_torque)`` applies the current reference (and the load
     machine's torque) for the coming period, ``read()`` samples the sensors and returns a
-    :class:`Measurement`; an optional ``close()`` runs once at the stop, right after a
+    :class:`Measurement`; an optional attribute ``command_delay`` (1 or 2, default 1)
+    declares over which period a write acts: 1, the period that starts with it (the
+    stand-in below); 2, the next one (a power stage that latches its reference at the
+    period start and whose ``read()`` samples at that start, so the state read right
+    after a write still shows the command written one period before); an optional
+    ``close()`` runs once at the stop, right after a
     last ``write(0.0, 0.0)`` (every way out of a run writes zero first: the end, SIGINT,
     SIGTERM, an exception in the loop; SIGKILL cannot -- the inverter's own
     communication-loss trip must cover it). Here they are backed by a small simulated stand-in plant
@@ -86,7 +91,9 @@ class Hardware:
 
     ``write`` applies a command for the coming period; ``read`` samples the sensors at the
     period start. The stand-in advances its model by one period Ts inside ``read`` (time
-    that passes by itself on real hardware).
+    that passes by itself on real hardware). ``command_delay`` comes from the parameter
+    file: with 2 the stand-in runs each period on the command written one period earlier,
+    as a power stage that latches its reference at the period start.
     """
 
     def __init__(self, config: DriveConfig) -> None:
@@ -99,14 +106,20 @@ class Hardware:
         self.a_i = math.exp(-self.ts * config.control.current_bandwidth)  # current-loop pole
         self.a_w = math.exp(-self.ts / s.speed_filter_tau) if s.speed_filter_tau > 0 else 0.0
         self.counts_per_rad = s.encoder_counts / (2.0 * math.pi)
-        self.isq_ref = self.load_ref = 0.0
+        #: over which period a write acts (docs/real-drive.md, "Command delay")
+        self.command_delay: int = config.command_delay
+        self.isq_ref = self.load_ref = 0.0  # the command acting now
+        self._next = (0.0, 0.0)  # delay 2: the command written, acting from the next period
         self.isq = self.theta = self.omega = 0.0  # true plant state
         self.count = 0  # encoder count
         self.m = Measurement(isd=self.isd_ref)
 
     def write(self, isq_ref: float, load_torque: float) -> None:
         """Apply isq* [A] (already clamped) and the load torque [N m] for the next period."""
-        self.isq_ref, self.load_ref = isq_ref, load_torque
+        if self.command_delay == 2:
+            self._next = (isq_ref, load_torque)
+        else:
+            self.isq_ref, self.load_ref = isq_ref, load_torque
 
     def elapse(self, periods: int) -> None:
         """Stand-in only (a real plant lives on the wall clock and needs nothing like it):
@@ -123,6 +136,8 @@ class Hardware:
         # Load: positive opposes positive rotation (docs/interfaces.md).
         self.omega += (torque - self.load_ref - self.b * self.omega) * self.inv_j * ts
         self.theta += self.omega * ts
+        if self.command_delay == 2:  # the latched command acts from the next period on
+            self.isq_ref, self.load_ref = self._next
         return torque
 
     def _encoder(self) -> None:
@@ -137,9 +152,10 @@ class Hardware:
     def read(self) -> Measurement:
         """Sample the sensors (the stand-in first integrates the plant over one period)."""
         m = self.m
+        load = self.load_ref  # the load torque that acts over this period
         torque = self._integrate()
         self._encoder()
-        m.torque, m.isq, m.load_torque = torque, self.isq, self.load_ref
+        m.torque, m.isq, m.load_torque = torque, self.isq, load
         rho = self.pole_pairs * m.theta_meas  # field angle of the stand-in (slip neglected)
         c, s = math.cos(rho), math.sin(rho)
         m.i_alpha = c * m.isd - s * m.isq
@@ -153,6 +169,14 @@ class Hardware:
     def close(self) -> None:
         """Optional: called once when the drive stops, right after a last ``write(0.0,
         0.0)``; release the bus, disable the inverter's output. Nothing to do here."""
+
+
+def hardware_command_delay(hw: object) -> int:
+    """A hardware object's declared ``command_delay`` (absent: 1); ConfigError unless 1 or 2."""
+    d = getattr(hw, 'command_delay', 1)
+    if isinstance(d, bool) or not isinstance(d, int) or d not in contract.COMMAND_DELAYS:
+        raise ConfigError(f'{type(hw).__name__}.command_delay must be 1 or 2 (periods), got {d!r}')
+    return d
 
 
 @dataclass
@@ -237,6 +261,14 @@ class ExampleDrive(LenientDoubles, Node):
         )
 
         self.hw = self.make_hardware()
+        #: the hardware's declared command delay d (its ``command_delay``, default 1): the
+        #: state read right after the write answering state k shows the command written
+        #: d - 1 periods earlier; applied_step and the fresh/held counts say so
+        self.command_delay: int = hardware_command_delay(self.hw)
+        #: (applied_step, fresh) of the commands written and not yet acting (delay 2: one)
+        self._pend: tuple[int, bool] = (-1, False)
+        #: applied_step of the command that acted over the period that just ended
+        self.acting = -1
         self.counters = Counters()
         self.stop_requested = False
         self.k = 0  # step index of the latest published state
@@ -266,6 +298,7 @@ class ExampleDrive(LenientDoubles, Node):
         )
         self.waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
         self.wire = Float64ArrayWire(len(STATE_FIELDS))  # preallocated: nothing built per step
+        self.wire.values[13] = self.command_delay  # declared once, in every state
         self.joint = JointState(name=['motor'], position=[0.0], velocity=[0.0], effort=[0.0])
         self.get_logger().info(
             f'real time, Ts={self.config.Ts * 1e6:.0f} us, isq_max='
@@ -323,7 +356,8 @@ class ExampleDrive(LenientDoubles, Node):
         v[2], v[3], v[4] = m.theta_meas, m.omega_meas, m.torque
         v[5], v[6], v[7], v[8] = m.isd, m.isq, m.i_alpha, m.i_beta
         v[9], v[10], v[11] = m.load_torque, m.theta_meas, m.omega_meas
-        v[12] = self.applied  # the command applied over the period that just ended
+        v[12] = self.acting  # the command applied over the period that just ended
+        v[13] = self.command_delay
 
     def watchdog(self) -> None:
         """No command for ``command_timeout`` -> zero current and no load until the next
@@ -435,6 +469,8 @@ class ExampleDrive(LenientDoubles, Node):
             elapse = getattr(self.hw, 'elapse', None)
             if callable(elapse):  # a simulated stand-in plant must be told time passed
                 elapse(missed)
+            for _ in range(missed):
+                self.acting = self._latch(self.applied, False)[0]
             self.k += missed
             c.steps += missed  # periods of the drive's timeline: fresh + held = steps
             c.held += missed
@@ -443,14 +479,24 @@ class ExampleDrive(LenientDoubles, Node):
         self.watchdog()
         if self.safe_stopped:
             self.applied, self.fresh = -1, False  # zero was applied, not a command
-        c.fresh += self.fresh
-        c.held += not self.fresh
+        self.acting, fresh = self._latch(self.applied, self.fresh)
+        c.fresh += fresh
+        c.held += not fresh
         self.fresh = False
         self.apply_command(self.isq_ref, self.load_ref)
         self.k += 1
         self.fill_state(self.hw.read())
         self.publish_state()
         c.steps += 1
+
+    def _latch(self, applied: int, fresh: bool) -> tuple[int, bool]:
+        """The labels (applied_step, fresh) of the command acting over the coming period,
+        given those of the command written now: the same with delay 1; with delay 2 the
+        one written a period earlier (this one waits in the power stage's latch)."""
+        if self.command_delay == 2:
+            acting, self._pend = self._pend, (applied, fresh)
+            return acting
+        return applied, fresh
 
     def run(self, executor) -> None:
         """Period n starts at t0 + n period_s (pacing.Pacer): take commands, apply,

@@ -75,7 +75,8 @@ P_RS = 41
 P_RR = 42
 P_J = 43
 P_ISQ_A0 = 44  # reduced: isq(0+) weight, 1 for tau_i > 0, 0 for an ideal (tau_i = 0) loop
-N_PARAMS = 45
+P_CMD_DELAY = 45  # command delay d (1 or 2): the command given at state k acts over k+d-1 -> k+d
+N_PARAMS = 46
 
 # -------------------------------------------------------------------- state indices
 S_ISA = 0  # true stator current alpha [A]
@@ -111,7 +112,9 @@ S_LOAD_NOISE = 29  # random-load state
 S_NPOS = 30  # noise row cursor
 S_RED_ISQ = 31  # reduced: true isq [A]
 S_RED_SLIP = 32  # reduced: true flux angle minus p theta [rad]
-N_STATE = 33
+S_PEND_ISQ = 33  # command delay 2: the command latched for the next period, isq* [A]
+S_PEND_TL = 34  # ... and its load torque [N m]
+N_STATE = 35
 
 STATE_FIELDS = contract.STATE_FIELDS  # the published layout (contract.py)
 EXTRA_FIELDS = ('encoder_count', 'u_alpha', 'u_beta', 'psi_r', 'voltage_saturated', 'isq_ref')
@@ -130,6 +133,7 @@ RUN_FIELDS = STATE_FIELDS + EXTRA_FIELDS
     F_THETA,
     F_OMEGA,
     F_APPLIED,
+    F_CMD_DELAY,
     F_COUNT,
     F_U_ALPHA,
     F_U_BETA,
@@ -541,7 +545,19 @@ def step_reduced(
 def step_model(
     S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float, tl_cmd: float
 ) -> None:
-    """One step of the configured model (P[P_MODEL]: 0 full, 1 reduced)."""
+    """One step of the configured model (P[P_MODEL]: 0 full, 1 reduced).
+
+    Command delay (P[P_CMD_DELAY]): 1, the command acts over this step (given at state k,
+    it drives k -> k+1); 2, a power stage that latches its command at the period start:
+    this step runs the command given one step earlier and the new one waits for the next
+    step (given at state k, it drives k+1 -> k+2). Zero before the first command."""
+    if P[P_CMD_DELAY] == 2.0:
+        latched_isq = S[S_PEND_ISQ]
+        latched_tl = S[S_PEND_TL]
+        S[S_PEND_ISQ] = isq_ref
+        S[S_PEND_TL] = tl_cmd
+        isq_ref = latched_isq
+        tl_cmd = latched_tl
     if P[P_MODEL] == 0.0:
         step_full(S, P, noise, isq_ref, tl_cmd)
     else:
@@ -574,9 +590,11 @@ def write_out(S: np.ndarray, P: np.ndarray, out: np.ndarray) -> None:
     out[F_LOAD] = S[S_TLOAD]
     out[F_THETA] = S[S_THETA]
     out[F_OMEGA] = S[S_OMEGA]
-    # the core applies each command over the period after the state it was given for
-    # (a node in real time overwrites this with the command it really applied)
-    out[F_APPLIED] = S[S_STEP] - 1.0
+    # the core applies each command over the period d - 1 periods after the state it was
+    # given for (a node in real time overwrites this with the command it really applied)
+    out[F_APPLIED] = max(S[S_STEP] - P[P_CMD_DELAY], -1.0)
+    if out.shape[0] > F_CMD_DELAY:
+        out[F_CMD_DELAY] = P[P_CMD_DELAY]
     if out.shape[0] >= N_RUN_FIELDS:
         out[F_COUNT] = S[S_COUNT]
         out[F_U_ALPHA] = S[S_UA]

@@ -168,7 +168,9 @@ _SECTIONS: dict[str, type] = {
     'sensors': SensorParams,
     'disturbance': DisturbanceParams,
 }
-_TOP_SCALARS = ('model', 'Ts', 'seed')
+_TOP_SCALARS = ('model', 'Ts', 'seed', 'command_delay')
+#: Top-level keys a file may leave out, with their defaults (keys added after files existed).
+_OPTIONAL = {'command_delay': 1}
 _MODELS = ('full', 'reduced')
 
 
@@ -178,7 +180,10 @@ class DriveConfig:
 
     ``model``: ``'full'`` (voltage-fed IM + vector control) or ``'reduced'`` (ideal field
     orientation, isq lag); ``Ts``: control/simulation step [s] (an integer number of ns);
-    ``seed``: seed of the disturbance/noise streams; ``source``: where it was loaded from.
+    ``seed``: seed of the disturbance/noise streams; ``command_delay``: the drive's
+    command delay d [periods] (1: the command answering state k acts over k -> k+1; 2: a
+    power stage that latches it at the next period start, k+1 -> k+2; the one optional
+    key, default 1); ``source``: where it was loaded from.
     """
 
     model: str
@@ -188,6 +193,7 @@ class DriveConfig:
     control: ControlParams
     sensors: SensorParams
     disturbance: DisturbanceParams
+    command_delay: int = 1
     source: str = field(default='<dict>', compare=False)
 
     @property
@@ -197,7 +203,12 @@ class DriveConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict in the YAML layout (round-trips through ``config_from_dict``)."""
-        out: dict[str, Any] = {'model': self.model, 'Ts': self.Ts, 'seed': self.seed}
+        out: dict[str, Any] = {
+            'model': self.model,
+            'Ts': self.Ts,
+            'seed': self.seed,
+            'command_delay': self.command_delay,
+        }
         for name in _SECTIONS:
             sec = getattr(self, name)
             out[name] = {f.name: getattr(sec, f.name) for f in fields(sec)}
@@ -290,7 +301,7 @@ def config_from_dict(
         if k not in allowed:
             raise ConfigError(f'{src}: unknown key {k} (allowed: {", ".join(sorted(allowed))})')
     for k in list(_TOP_SCALARS) + list(_SECTIONS):
-        if k not in data:
+        if k not in data and k not in _OPTIONAL:
             raise ConfigError(f'{src}: missing key {k}')
 
     model = data['model']
@@ -300,6 +311,12 @@ def config_from_dict(
     if abs(Ts * 1e9 - round(Ts * 1e9)) > 1e-6 * max(1.0, Ts * 1e9):
         raise ConfigError(f'{src}: Ts must be an integer number of nanoseconds, got {Ts!r}')
     seed = _check_int(src, 'seed', data['seed'], {'lo': 0, 'hi': None})
+    command_delay = _check_int(
+        src,
+        'command_delay',
+        data.get('command_delay', _OPTIONAL['command_delay']),
+        {'lo': 1, 'hi': 2},
+    )
 
     built: dict[str, Any] = {}
     for sname, cls in _SECTIONS.items():
@@ -319,7 +336,9 @@ def config_from_dict(
             kwargs[f.name] = check(src, key, sec[f.name], f.metadata)
         built[sname] = cls(**kwargs)
 
-    cfg = DriveConfig(model=model, Ts=Ts, seed=seed, source=src, **built)
+    cfg = DriveConfig(
+        model=model, Ts=Ts, seed=seed, command_delay=command_delay, source=src, **built
+    )
     _check_consistency(src, cfg)
     return cfg
 

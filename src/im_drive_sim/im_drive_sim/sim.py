@@ -99,6 +99,7 @@ def make_param_array(cfg: DriveConfig) -> np.ndarray:
     P[K.P_RS] = m.Rs
     P[K.P_RR] = m.Rr
     P[K.P_J] = m.J
+    P[K.P_CMD_DELAY] = float(cfg.command_delay)
     return P
 
 
@@ -217,6 +218,17 @@ class DriveSim:
             raise ValueError(f'non-finite input: isq_ref={isq_ref!r}, load_torque={load_torque!r}')
         K.step_into_kernel(self.S, self.P, self._noise, float(isq_ref), float(load_torque), out)
         self._consume()
+
+    @property
+    def command_delay(self) -> int:
+        """The drive's command delay d [periods] (``DriveConfig.command_delay``)."""
+        return self.config.command_delay
+
+    def clear_command(self) -> None:
+        """Drop the command latched for the next step (delay 2): it runs zero current
+        and no load instead (a safe stop or a watchdog trip acts at once)."""
+        self.S[K.S_PEND_ISQ] = 0.0
+        self.S[K.S_PEND_TL] = 0.0
 
     def read_into(self, out: np.ndarray) -> None:
         """Write ``STATE_FIELDS`` for the current time (no stepping) into ``out``."""

@@ -52,8 +52,9 @@ def test_package_metadata_and_fields() -> None:
         'theta',
         'omega',
         'applied_step',
+        'command_delay',
     )
-    assert RUN_FIELDS[:13] == STATE_FIELDS and len(RUN_FIELDS) == K.N_RUN_FIELDS
+    assert RUN_FIELDS[: len(STATE_FIELDS)] == STATE_FIELDS and len(RUN_FIELDS) == K.N_RUN_FIELDS
 
 
 @pytest.mark.parametrize('model', ['full', 'reduced'])

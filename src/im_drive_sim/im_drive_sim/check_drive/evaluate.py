@@ -23,6 +23,7 @@ from .judges import (
     judge_topics,
     judge_watchdog_lockstep,
     judge_watchdog_realtime,
+    label_delay,
     lockstep_step_problems,
     onset_delay,
     period_stats,
@@ -191,13 +192,22 @@ def evaluate(rec: Recording) -> list[Item]:
         row = by_step.get(k + 1)
         if k >= 0 and row is not None:
             wall.append((rec.recv_ns[row] - rec.cmd_ns[j]) * 1e-9)
-    delays = []
+    delays: list[int | None] = []
+    labels: list[int | None] = []
     for k0, level, prev in trans[1:] + step_trans[1:]:
         d, _ = rec.rows_by_step(k0 - 20, k0 + 25)
         if realtime:
             d = fill_missed(d)
         delays.append(onset_delay(d[:, F['isq']], 20, level - prev))
-    items['latency'] = judge_latency(delays, np.array(wall), realtime)
+        labels.append(label_delay(d[:, F['applied_step']], 20, k0))
+    declared = rec.states[:n][ok_rows, F['command_delay']]
+    items['latency'] = judge_latency(
+        delays,
+        np.array(wall),
+        realtime,
+        declared=int(np.median(declared)) if len(declared) else 1,
+        labels=labels,
+    )
 
     # step response
     if len(step_trans) >= 4 and not rec.aborted_why:

@@ -11,12 +11,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..contract import COMMAND_TOPIC
+from ..contract import COMMAND_DELAYS, COMMAND_TOPIC
 from .thresholds import (
     ACCEL_MIN_COUNTS,
     CURRENT_FIELDS,
     EFFECT_DELAY_LOCKSTEP,
-    EFFECT_DELAY_REALTIME,
+    LABEL_SLOWER_MAX_REALTIME,
     LATENCY_MEDIAN_MAX,
     LATENCY_P99_MAX,
     LOCKSTEP_SILENCE_S,
@@ -26,6 +26,7 @@ from .thresholds import (
     RISE_TIME_MAX,
     STATE_FIELDS,
     STEADY_STATE_ERROR_MAX,
+    TRANSPORT_SLACK_REALTIME,
     TYPES,
     UNITS_MIN_COUNTS,
     UNITS_RATIO_BAND,
@@ -84,7 +85,13 @@ def state_field_problems(
     problems = []
     bad_len = int(np.count_nonzero(lengths != len(STATE_FIELDS)))
     if bad_len:
-        problems.append(f'{bad_len} states without {len(STATE_FIELDS)} values')
+        legacy = int(np.count_nonzero(lengths == len(STATE_FIELDS) - 1))
+        why = (
+            ' (the last field, command_delay, is missing: 1 or 2, docs/interfaces.md)'
+            if legacy == bad_len
+            else ''
+        )
+        problems.append(f'{bad_len} states without {len(STATE_FIELDS)} values{why}')
     ok = lengths == len(STATE_FIELDS)
     s, q = states[ok], seq[ok]
     if len(s) == 0:
@@ -93,6 +100,9 @@ def state_field_problems(
         bad = [STATE_FIELDS[i] for i in np.flatnonzero(~np.isfinite(s).all(axis=0))]
         problems.append(f'non-finite values in {",".join(bad)}')
         return problems
+    delays = np.unique(s[:, F['command_delay']])
+    if len(delays) > 1 or delays[0] not in COMMAND_DELAYS:
+        problems.append(f'command_delay {", ".join(f"{v:g}" for v in delays)}: one value, 1 or 2')
     k = s[:, F['step_index']]
     if np.any(k != np.floor(k)) or np.any(k < 0):
         problems.append('step_index not a non-negative integer')
@@ -316,27 +326,63 @@ def onset_delay(x: np.ndarray, i0: int, delta_ref: float, max_delay: int = 20) -
     return None
 
 
-def judge_latency(delays: Sequence[int | None], wall_s: np.ndarray, realtime: bool) -> Item:
+def label_delay(applied: np.ndarray, i0: int, k0: int, max_delay: int = 20) -> int | None:
+    """The first state after row ``i0`` (state k0) whose ``applied`` (applied_step) is
+    k0 or newer, as a delay d (row i0 + d); None when none does within ``max_delay`` rows
+    (or a row is missing)."""
+    for d in range(1, min(max_delay, len(applied) - 1 - i0) + 1):
+        a = applied[i0 + d]
+        if not math.isfinite(a):
+            return None
+        if a >= k0:
+            return d
+    return None
+
+
+def judge_latency(
+    delays: Sequence[int | None],
+    wall_s: np.ndarray,
+    realtime: bool,
+    declared: int = EFFECT_DELAY_LOCKSTEP,
+    labels: Sequence[int | None] | None = None,
+) -> Item:
     """``delays``: per command changing the reference, the state (k + d) in which it first
-    showed; ``wall_s``: command published -> next state received [s]."""
+    showed; ``wall_s``: command published -> next state received [s]; ``declared``: the
+    drive's command_delay; ``labels``: per change, the first state (k + l) whose
+    applied_step is the changing command's or newer (None: not judged)."""
     d = np.array([x for x in delays if x is not None], dtype=float)
     missing = sum(x is None for x in delays)
     med = float(np.median(wall_s)) if len(wall_s) else math.nan
     p99 = float(np.percentile(wall_s, 99)) if len(wall_s) else math.nan
-    limit = EFFECT_DELAY_REALTIME if realtime else EFFECT_DELAY_LOCKSTEP
+    limit = declared + (TRANSPORT_SLACK_REALTIME if realtime else 0)
     if realtime:
         effect_ok = len(d) >= 3 and float(np.percentile(d, 25, method='lower')) <= limit
     else:
         effect_ok = len(d) >= 3 and bool(np.all(d == limit)) and missing == 0
-    ok = effect_ok and med <= LATENCY_MEDIAN_MAX and p99 <= LATENCY_P99_MAX
+    pairs = [(x, y) for x, y in zip(delays, labels or (), strict=False) if x is not None]
+    judged = [(x, y) for x, y in pairs if y is not None]
+    honest = sum(x == y for x, y in judged)
+    slower = sum(y is not None and x > y for x, y in judged)
+    if labels is None:
+        labels_ok = True
+    elif realtime:
+        labels_ok = len(judged) >= 3 and slower <= LABEL_SLOWER_MAX_REALTIME * len(judged)
+    else:
+        labels_ok = len(judged) == len(d) and honest == len(judged)
+    ok = effect_ok and labels_ok and med <= LATENCY_MEDIAN_MAX and p99 <= LATENCY_P99_MAX
     hist = ', '.join(f'k+{int(v)}: {int(np.sum(d == v))}' for v in np.unique(d))
     figures = (
         f'command -> next state median {med * 1e6:.0f} us, p99 {p99 * 1e6:.0f} us; '
         f'takes effect in {hist or "-"}' + (f', never: {missing}' if missing else '')
     )
-    when = ' (fastest quarter by k+2)' if realtime else ' always'
+    if labels is not None:
+        figures += f'; declared delay {declared}: {honest}/{len(judged)} where applied_step says'
+        if slower:
+            figures += f', {slower} later (slower than declared)'
+    when = f' (fastest quarter by k+{limit})' if realtime else ' always'
     expected = (
-        f'effect in k+1{when}, median <= {LATENCY_MEDIAN_MAX * 1e3:g} ms, '
+        f'effect in k+{declared}{when}, never after applied_step says, '
+        f'median <= {LATENCY_MEDIAN_MAX * 1e3:g} ms, '
         f'p99 <= {LATENCY_P99_MAX * 1e3:g} ms'
     )
     return Item(
@@ -348,6 +394,8 @@ def judge_latency(delays: Sequence[int | None], wall_s: np.ndarray, realtime: bo
             'median_s': _finite_or_none(med),
             'p99_s': _finite_or_none(p99),
             'effect_delays': [None if x is None else int(x) for x in delays],
+            'declared_delay': declared,
+            'label_delays': None if labels is None else list(labels),
         },
     )
 

@@ -36,12 +36,22 @@ RATE_MAX_LONG_FRACTION = 0.20
 #: latency: command published -> next state received, wall time [s].
 LATENCY_MEDIAN_MAX = 2e-3
 LATENCY_P99_MAX = 20e-3
-#: latency: the state in which a command first shows (k+1 answers k). Real time allows one
-#: period of transport (k+2), judged on the fastest quarter of the changes: a change this
+#: latency: the state in which a command first shows: k+d for a command answering state k,
+#: d the drive's declared command_delay (1 or 2). Real time allows one period of
+#: transport more (k+d+1), judged on the fastest quarter of the changes: a change this
 #: check answers late (its own process descheduled on a loaded machine) shows later
 #: through no fault of the drive, but a drive that applies commands late never shows early.
+#: (The EFFECT_DELAY_* figures are those of a delay-1 drive.)
 EFFECT_DELAY_LOCKSTEP = 1
 EFFECT_DELAY_REALTIME = 2
+TRANSPORT_SLACK_REALTIME = EFFECT_DELAY_REALTIME - EFFECT_DELAY_LOCKSTEP
+#: latency: the drive's labels must be honest, whatever the transport: a change never
+#: shows after the first state whose applied_step is the changing command's (or newer) --
+#: in no change in lock-step (where it must show exactly there), in at most this fraction
+#: of the detected ones in real time (a drive that cannot pause bridges a late loop's
+#: missed periods, where an onset is not well placed). A drive slower than it declares
+#: shows a period after its label in every change.
+LABEL_SLOWER_MAX_REALTIME = 0.25
 #: latency/step: a response starts where isq leaves its extrapolated course by this fraction
 #: of the commanded change (or 8 noise levels, whichever is larger): 10 mA for 0.5 A.
 ONSET_FRACTION = 0.02

@@ -233,6 +233,13 @@ def resolve(spec: str, drive_config: str | Path | None, build: bool = True) -> D
         choice.hardware = _build(spec, f'{cls.__name__}(config)', lambda: cls(config))
         choice.config = config
         _BUILT.append(choice)
+        from im_drive_sim.example_drive import hardware_command_delay
+
+        try:
+            hardware_command_delay(choice.hardware)
+        except ConfigError as exc:
+            close_untaken()
+            raise DriveSpecError(f'--drive {spec!r}: {exc} (docs/real-drive.md)') from None
     return choice
 
 

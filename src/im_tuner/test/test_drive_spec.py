@@ -90,6 +90,14 @@ class Raises(Good):
 class Exits(Good):
     def __init__(self, config):
         raise SystemExit(4)
+
+
+class Latching(Good):
+    command_delay = 2
+
+
+class DelayThree(Good):
+    command_delay = 3
 """
 
 
@@ -223,3 +231,16 @@ def test_the_drive_file_is_checked_with_the_spec(hw, tmp_path) -> None:
     with pytest.raises(DriveSpecError, match=r'bad\.yaml: no settings'):
         drive_spec.resolve('hw_mod:Good', bad)
     assert hw.LOG == []
+
+
+def test_a_declared_command_delay_is_checked_when_the_hardware_is_built(hw) -> None:
+    """``command_delay`` (docs/real-drive.md): 1 or 2; anything else is refused in one line
+    and the instance built is closed."""
+    assert drive_spec.resolve('hw_mod:Latching', None).hardware.command_delay == 2
+    drive_spec.close_untaken()
+    hw.LOG.clear()
+    with pytest.raises(DriveSpecError) as exc:
+        drive_spec.resolve('hw_mod:DelayThree', None)
+    msg = str(exc.value)
+    assert 'DelayThree.command_delay must be 1 or 2 (periods), got 3' in msg and '\n' not in msg
+    assert [e for e, _ in hw.LOG] == ['built', 'closed']

@@ -238,7 +238,8 @@ def resolve(spec: str, drive_config: str | Path | None, build: bool = True) -> D
         try:
             hardware_command_delay(choice.hardware)
         except ConfigError as exc:
-            close_untaken()
+            _BUILT.remove(choice)
+            close_hardware(choice)
             raise DriveSpecError(f'--drive {spec!r}: {exc} (docs/real-drive.md)') from None
     return choice
 

@@ -96,6 +96,10 @@ class Hardware:
     as a power stage that latches its reference at the period start.
     """
 
+    #: over which period a write acts (docs/real-drive.md, "Command delay"); None: the
+    #: parameter file's ``command_delay`` (a subclass may set 1 or 2 here)
+    command_delay: int | None = None
+
     def __init__(self, config: DriveConfig) -> None:
         m, s = config.machine, config.sensors
         self.ts = config.Ts  # [s]
@@ -106,8 +110,8 @@ class Hardware:
         self.a_i = math.exp(-self.ts * config.control.current_bandwidth)  # current-loop pole
         self.a_w = math.exp(-self.ts / s.speed_filter_tau) if s.speed_filter_tau > 0 else 0.0
         self.counts_per_rad = s.encoder_counts / (2.0 * math.pi)
-        #: over which period a write acts (docs/real-drive.md, "Command delay")
-        self.command_delay: int = config.command_delay
+        if self.command_delay is None:
+            self.command_delay = config.command_delay
         self.isq_ref = self.load_ref = 0.0  # the command acting now
         self._next = (0.0, 0.0)  # delay 2: the command written, acting from the next period
         self.isq = self.theta = self.omega = 0.0  # true plant state
@@ -302,7 +306,8 @@ class ExampleDrive(LenientDoubles, Node):
         self.joint = JointState(name=['motor'], position=[0.0], velocity=[0.0], effort=[0.0])
         self.get_logger().info(
             f'real time, Ts={self.config.Ts * 1e6:.0f} us, isq_max='
-            f'{self.isq_max:g} A, command_timeout={self.command_timeout:g} s'
+            f'{self.isq_max:g} A, command_timeout={self.command_timeout:g} s, '
+            f'command_delay={self.command_delay}'
         )
 
     # -- hooks ----------------------------------------------------------------------------
@@ -439,6 +444,7 @@ class ExampleDrive(LenientDoubles, Node):
             st.level, st.message = DiagnosticStatus.ERROR, 'command watchdog: zero current'
         values = {
             'mode': 'realtime',
+            'command_delay': str(self.command_delay),
             'step_index': str(self.k),
             **{f.name: f'{getattr(c, f.name):g}' for f in fields(c)},
         }

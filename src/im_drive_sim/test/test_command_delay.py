@@ -69,3 +69,30 @@ def test_the_drive_file_key_is_optional_and_checked():
             config_from_dict({**data, 'command_delay': bad})
     assert contract.COMMAND_DELAYS == (1, 2)
     assert contract.LEGACY_STATE_FIELDS == len(contract.STATE_FIELDS) - 1 == 13
+
+
+def test_the_stand_in_hardware_declares_and_acts_with_its_delay():
+    from im_drive_sim.example_drive import Hardware, hardware_command_delay
+
+    class Latching(Hardware):
+        command_delay = 2  # a subclass's class attribute wins over the file's
+
+    class Three(Hardware):
+        command_delay = 3
+
+    cfg = load_config(None)
+    assert hardware_command_delay(Hardware(cfg)) == 1
+    assert hardware_command_delay(Latching(cfg)) == 2
+    with pytest.raises(ConfigError, match=r'Three.command_delay must be 1 or 2 \(periods\), got 3'):
+        hardware_command_delay(Three(cfg))
+    first_isq = {}
+    for d in (1, 2):
+        hw = Hardware(load_config(overrides={'command_delay': d}))
+        assert hw.command_delay == d
+        hw.write(2.0, 0.0)
+        first = hw.read().isq  # the period after the write
+        hw.write(2.0, 0.0)
+        second = hw.read().isq
+        first_isq[d] = (first, second)
+    assert first_isq[1][0] > 0.5  # delay 1: the write acts at once
+    assert first_isq[2][0] == 0.0 and first_isq[2][1] == pytest.approx(first_isq[1][0])

@@ -339,7 +339,7 @@ def test_the_workers_end_with_the_study(tmp_path, procs, wait_until, sig, code):
     assert isinstance(tree, dict)
     try:
         os.kill(proc.pid, sig)
-        assert proc.wait(timeout=30) == code, err.read_text()
+        assert proc.wait(timeout=90) == code, err.read_text()  # (a loaded machine)
         wait_until(
             lambda: not any(_alive(p, s) for p, s in tree.items()),
             10,

@@ -185,6 +185,10 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('tuner', 'no-start-compact-ga', ['--algo', 'necga', '--no-start']),
     ('tuner', 'drive-config-comments-only', ['--drive-config', 'comments.yaml']),
     ('tuner', 'compression-with-no-record', ['--compression', 'zstd', '--no-record']),
+    ('tuner', 'thread-priority-without-realtime', ['--bench', 'inproc', '--thread-priority', '50']),
+    ('tuner', 'thread-priority-100', ['--bench', 'realtime', '--thread-priority', '100']),
+    ('drive_sim', 'cpu-affinity-absent', ['--cpu-affinity', '4096']),
+    ('example_drive', 'thread-priority-type', ['--thread-priority', 'high']),
     # -p reaches the in-process bench's nodes; refused after the run directory was made,
     # which is then removed (the gain's case ended in a traceback, the run directory left)
     ('tuner', 'p-gain-negative', ['--bench', 'inproc', '--ros-args', '-p', 'k_pw:=-1.0']),
@@ -225,6 +229,10 @@ CASES: list[tuple[str, str, list[str]]] = [
 
 #: what the one line must say, for the cases whose reason matters (issue 25)
 EXPECT: dict[tuple[str, str], str] = {
+    ('tuner', 'thread-priority-without-realtime'): 'set up the composed real-time loop',
+    ('tuner', 'thread-priority-100'): 'must be 0 (off) or 1-99 (SCHED_FIFO), got 100',
+    ('drive_sim', 'cpu-affinity-absent'): 'CPU 4096 is not one this process may use',
+    ('example_drive', 'thread-priority-type'): "not an integer: 'high'",
     ('controller', 'p-move-longer-than-experiment'): 'takes 25.07 s, longer than the experiment',
     ('controller', 'config-comments-only'): 'no settings (the file holds only comments)',
     ('sim_bench', 'p-move-longer-than-experiment'): 'takes 25.07 s, longer than the experiment',

@@ -12,12 +12,14 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 import yaml
+from mcap.reader import make_reader
 
 from im_controller.config import GAIN_NAMES, Gains
 from im_drive_sim.params import load_config
@@ -35,6 +37,8 @@ def test_composed_realtime_run_measures_the_paper_loss_bit_for_bit(tmp_path):
     p = subprocess.run(
         [
             *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '3', '--seed', '4'),
+            # real-time scheduling of the loop, as ros2_control_node (CI runs as root)
+            *('--thread-priority', '50', '--lock-memory'),
             '--remeasure',
             '1',
             '--quiet',
@@ -63,6 +67,23 @@ def test_composed_realtime_run_measures_the_paper_loss_bit_for_bit(tmp_path):
     for k in ('drive_period_us', 'controller_answer_us', 'period_work_us'):
         assert 0 < loop[k]['p50'] <= loop[k]['p99'] <= loop[k]['max'], loop
     assert 'drive (composed loop): per-period work p50' in p.stdout
+    # what the loop ran with, in the summary and in the bag's metadata
+    sched = loop['realtime']
+    assert sched['requested'] == {'thread_priority': 50, 'cpu_affinity': -1, 'lock_memory': True}
+    assert sched['kernel'] and sched['cpu_model'] and isinstance(sched['preempt_rt'], bool)
+    if os.geteuid() == 0:
+        assert (sched['policy'], sched['priority'], sched['memory_locked']) == (
+            'SCHED_FIFO',
+            50,
+            True,
+        ), sched
+        assert sched['refused'] == [] and 'warning' not in p.stderr
+    else:  # refused in one line each, and the run went on
+        assert len(sched['refused']) == p.stderr.count('warning: --') >= 1, p.stderr
+    with next((run / 'bag_0').glob('*.mcap')).open('rb') as f:
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert meta['im_tuner.realtime']['policy'] == sched['policy']
+    assert json.loads(meta['im_tuner.realtime']['affinity']) == sched['affinity']
     # the bag: closed, nothing lost, every state of the run in it
     assert bag_state(run / 'bag_0') == 'closed'
     meta = yaml.safe_load((run / 'bag_0' / 'metadata.yaml').read_text())

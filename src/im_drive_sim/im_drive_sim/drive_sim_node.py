@@ -36,7 +36,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from . import contract
+from . import contract, rt
 from .cdr import Float64ArrayWire, parse_float64_array
 from .cli import Parser, input_file, int_in, parse_cli, run_cli
 from .contract import (
@@ -145,6 +145,10 @@ class DriveSimNode(LenientDoubles, Node):
         self.stall_step: int = p['test_stall_step']
         self.stall_s: float = p['test_stall_duration']
         self.counters = Counters()
+        #: the loop's real-time scheduling (``--thread-priority`` ...; :mod:`.rt`), applied
+        #: by :meth:`run` on the thread that runs the loop; :attr:`rt_report` says the result
+        self.rt_options = rt.RtOptions()
+        self.rt_report: dict | None = None
         self._t_made = time.perf_counter()
         #: Set by SIGINT/SIGTERM (see main): the loops stop at the next step boundary, so
         #: the context is never shut down under a publish.
@@ -703,6 +707,8 @@ class DriveSimNode(LenientDoubles, Node):
         if self._start_text:
             self.get_logger().info(self._start_text)
             self._start_text = ''
+        log = self.get_logger()
+        self.rt_report = rt.apply_and_say(self.rt_options, log.info, log.warn)
         if self.mode == 'lockstep':
             self.run_lockstep(executor)
         else:
@@ -747,6 +753,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         '--max-steps', type=int_in(0, 2**62), help='stop after N steps (0: run until shut down)'
     )
+    rt.add_arguments(parser, 'the drive loop')
     return parser
 
 
@@ -765,9 +772,16 @@ def main(args: list[str] | None = None) -> int:
         ):
             if value is not None:
                 overrides.append(Parameter(name, value=value))
+        opts = rt.RtOptions.from_cli(cli)
+
+        def make() -> DriveSimNode:
+            node = DriveSimNode(parameter_overrides=overrides or None)
+            node.rt_options = opts
+            return node
+
         return run_stepped_node(
             argv,
-            lambda: DriveSimNode(parameter_overrides=overrides or None),
+            make,
             (ConfigError,),
             'drive_sim',
             on_exit=lambda node: node.log_summary(),

@@ -42,7 +42,7 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from . import contract
+from . import contract, rt
 from .cdr import Float64ArrayWire, parse_float64_array
 from .cli import Parser, check_ros_args, parse_cli, run_cli
 from .contract import (
@@ -286,6 +286,10 @@ class ExampleDrive(LenientDoubles, Node):
         #: zero load torque, whatever command comes
         self.safe_stopped = False
         self._hw_closed = False
+        #: the loop's real-time scheduling (``--thread-priority`` ...; :mod:`.rt`), applied
+        #: by :meth:`run` on the thread that runs the loop; :attr:`rt_report` says the result
+        self.rt_options = rt.RtOptions()
+        self.rt_report: dict | None = None
         #: a power stage cannot pause: a late period start means periods that went by with
         #: the old command held (``pacing.Pacer``'s ``wall_clock``)
         self.wall_clock = True
@@ -508,6 +512,8 @@ class ExampleDrive(LenientDoubles, Node):
         """Period n starts at t0 + n period_s (pacing.Pacer): take commands, apply,
         sample, publish."""
         c = self.counters
+        log = self.get_logger()
+        self.rt_report = rt.apply_and_say(self.rt_options, log.info, log.warn)
         try:
             self.start()
             pacer = Pacer(self.period_s, self.spin_margin, wall_clock=self.wall_clock)
@@ -561,21 +567,26 @@ def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:
                 'example_drive',
                 on_exit=lambda node: node.log_summary(),
             )
-        parse_cli(
-            Parser(
-                prog='ros2 run im_drive_sim example_drive',
-                description='A minimal real-time drive node (the template for a '
-                'real drive): drive/state every 200 us, drive/command, '
-                'isq clamp, command watchdog. Parameters (all '
-                'read-only): --ros-args -p isq_max:=7.0 -p '
-                'command_timeout:=0.05 -p config_file:=FILE ... '
-                '(docs/real-drive.md).',
-            ),
-            argv,
+        parser = Parser(
+            prog='ros2 run im_drive_sim example_drive',
+            description='A minimal real-time drive node (the template for a '
+            'real drive): drive/state every 200 us, drive/command, '
+            'isq clamp, command watchdog. Parameters (all '
+            'read-only): --ros-args -p isq_max:=7.0 -p '
+            'command_timeout:=0.05 -p config_file:=FILE ... '
+            '(docs/real-drive.md).',
         )
+        rt.add_arguments(parser, 'the drive loop')
+        opts = rt.RtOptions.from_cli(parse_cli(parser, argv))
+
+        def make() -> ExampleDrive:
+            node = node_class()
+            node.rt_options = opts
+            return node
+
         return run_stepped_node(
             argv,
-            node_class,
+            make,
             (ConfigError,),
             'example_drive',
             on_exit=lambda node: node.log_summary(),

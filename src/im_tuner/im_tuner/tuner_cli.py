@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from im_drive_sim import rt
 from im_drive_sim.cli import Parser, UsageError, finite_float
 
 from . import optim
@@ -194,6 +195,7 @@ def _build_parser() -> argparse.ArgumentParser:
         f'{DISCOVERY_TIMEOUT["none"]:g} with none, which waits only until it is found; '
         'discovery took up to 2.3 s on a loaded 2-core machine)',
     )
+    rt.add_arguments(ap, 'the composed loop (--bench realtime)')
     g = ap.add_argument_group('algorithm options (docs/optimisers.md)')
     seen: dict[str, Any] = {}
     for specs in optim.OPTIONS.values():
@@ -300,6 +302,12 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
         check_options(algo, optim.OPTIONS[algo], options)  # (ranges: no module needed)
     except OptimizerError as exc:
         raise UsageError(str(exc)) from None
+    if rt.RtOptions.from_cli(cli).requested and (cli.bench or 'auto') != 'realtime':
+        raise UsageError(
+            '--thread-priority/--cpu-affinity/--lock-memory set up the composed real-time '
+            'loop: give --bench realtime (a drive or controller in its own process takes '
+            'them on its own command line)'
+        )
     if cli.drive is not None and (cli.bench or 'auto') != 'realtime':
         raise UsageError(
             f'--drive {cli.drive}: a drive is plugged into the composed real-time bench '

@@ -50,6 +50,7 @@ from typing import TYPE_CHECKING, Any
 
 # Only what parsing and checking need: rclpy, the benches, numba kernels, pycma... are
 # imported once every check passed (tuner_cli), so a refusal is one line at once.
+from im_drive_sim import rt
 from im_drive_sim.cli import UsageError, check_ros_args
 
 from .benches import IN_PROCESS_BENCHES, LOCKSTEP_BENCHES, SIM_BENCHES, is_simulated
@@ -396,6 +397,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                     node,
                     exe,
                     realtime=bench_mode == 'realtime',
+                    rt_options=rt.RtOptions.from_cli(cli),
                     drive=drive_choice or drive,
                     drive_overrides=drive_over,
                     controller_overrides=ctl_over,

@@ -150,6 +150,7 @@ class InProcess:
         exe: Executor,
         *,
         realtime: bool = False,
+        rt_options: Any = None,  # im_drive_sim.rt.RtOptions: the loop's scheduling
         drive: Any = 'sim',  # a --drive name, or a drive_spec.DriveChoice
         drive_overrides: list[Parameter],
         controller_overrides: list[Parameter],
@@ -194,6 +195,7 @@ class InProcess:
                 controller_overrides=controller_overrides or None,
                 before_start=start_recorder,
                 should_stop=should_stop,
+                rt_options=rt_options,
             )
         else:
             self.bench = InProcessBench(

@@ -180,7 +180,11 @@ def bench_metadata(bench) -> dict[str, dict]:
     if d.has_parameter('seed'):
         drive['seed'] = d.get_parameter('seed').value
     ctl = {name: p.value for name, p in sorted(bench.controller._parameters.items())}
-    return {
+    out = {
         'im_tuner.drive': drive,
         'im_tuner.controller': {'parameters': json.dumps(ctl, sort_keys=True, default=str)},
     }
+    rt_report = getattr(bench, 'rt_report', None)
+    if rt_report is not None:  # the composed real-time loop's scheduling
+        out['im_tuner.realtime'] = dict(rt_report)  # (an MCAP metadata record: JSON values)
+    return out

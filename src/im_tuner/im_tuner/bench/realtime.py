@@ -36,6 +36,7 @@ the 200 us budget.
 from __future__ import annotations
 
 import gc
+import sys
 import time
 from collections.abc import Callable
 from typing import Any
@@ -46,6 +47,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.parameter import Parameter
 
 from im_controller.controller_node import ControllerNode
+from im_drive_sim import rt
 from im_drive_sim.pacing import Pacer
 
 from ..tuning import BenchFailure
@@ -120,11 +122,15 @@ class RealtimeBench:
         controller_overrides: list[Parameter] | None = None,
         before_start: Callable[[RealtimeBench], None] | None = None,
         should_stop: Callable[[], bool] | None = None,
+        rt_options: rt.RtOptions | None = None,
     ) -> None:
         """``before_start(bench)`` runs once both nodes exist and match, before state 0:
         the place to start a recorder that must not miss the first message.
         ``should_stop()``: checked every 5 periods; once True the drive is safe-stopped
-        (zero current, latched) -- the tuner's SIGINT/SIGTERM."""
+        (zero current, latched) -- the tuner's SIGINT/SIGTERM. ``rt_options``: the
+        loop thread's real-time scheduling (:mod:`im_drive_sim.rt`), applied here, before
+        the recorder starts (its metadata records it); what is not permitted is said in
+        one line each on stderr, and the run goes on."""
         self.drive = make_drive(drive, context, list(drive_overrides or []))
         self.drive_kind = drive
         self.controller, self.executor = compose(
@@ -154,6 +160,13 @@ class RealtimeBench:
         if not self.controller.client.wait_for_drive(10.0):
             self.destroy()
             raise RuntimeError('the controller and the drive did not match within 10 s')
+        opts = rt_options or rt.RtOptions()
+        refused = rt.apply(opts) if opts.requested else []
+        for line in refused:
+            print(f'warning: {line}', file=sys.stderr, flush=True)
+        #: the loop thread's scheduling (policy, priority, affinity, memory lock, kernel,
+        #: CPU): in the summary and the bag's metadata
+        self.rt_report: dict[str, Any] = rt.report(opts, refused)
         if before_start is not None:
             try:
                 before_start(self)
@@ -353,6 +366,7 @@ class RealtimeBench:
             'max_lateness_us': round(float(self.pacer.max_lateness_us), 1),
             'answers_missed': self.answers_missed,
             'gc_young_runs': self.gc_runs,
+            'realtime': self.rt_report,
             'drive': {k: getattr(c, k) for k in ('fresh', 'held', 'late', 'watchdog_trips')},
         }
         for name, arr in (

@@ -1,0 +1,232 @@
+"""Real-time scheduling of a 5 kHz loop, as ros2_control_node does it (docs/real-drive.md,
+"Real-time set-up").
+
+Three options, applied to the thread that runs the loop (and inherited by the threads it
+starts afterwards):
+
+* ``--thread-priority N`` (1-99): the SCHED_FIFO policy at priority N
+  (``sched_setscheduler``); ros2_control_node's default is 50. The kernel's RT throttling
+  (``/proc/sys/kernel/sched_rt_runtime_us``, 95 % by default) keeps a runaway loop from
+  locking the machine.
+* ``--cpu-affinity CPU``: pin the loop to one CPU (``sched_setaffinity``); best with that
+  CPU isolated (``isolcpus=``, or a cpuset).
+* ``--lock-memory``: ``mlockall(MCL_CURRENT | MCL_FUTURE)``, so no page of the process is
+  paged out and faulted back in inside a period.
+
+When the system does not permit one (no CAP_SYS_NICE / rtprio limit, no CAP_IPC_LOCK /
+memlock limit) it is not applied: :func:`apply` returns one line saying why and how to
+grant it, and the run goes on. :func:`report` describes what the loop runs with: the
+policy, priority, affinity, memory lock, the kernel (PREEMPT_RT or not) and the CPU model
+-- the summary and the bag's metadata record it.
+
+Written by hand: the standard library has the scheduler calls (``os.sched_*``) but not
+``mlockall``, which comes from the C library through ctypes. No rclpy here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import ctypes.util
+import errno
+import os
+import resource
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+__all__ = ['RtOptions', 'add_arguments', 'apply', 'apply_and_say', 'report']
+
+MCL_CURRENT, MCL_FUTURE = 1, 2
+
+#: How to grant what was refused (one line each).
+GRANT_PRIORITY = (
+    'grant it with an rtprio limit (/etc/security/limits.conf: "<user> - rtprio 99") or '
+    'CAP_SYS_NICE (docker: --cap-add=sys_nice --ulimit rtprio=99)'
+)
+GRANT_MEMLOCK = (
+    'grant it with a memlock limit (/etc/security/limits.conf: "<user> - memlock '
+    'unlimited") or CAP_IPC_LOCK (docker: --cap-add=ipc_lock --ulimit memlock=-1)'
+)
+
+
+@dataclass(frozen=True)
+class RtOptions:
+    """What the loop asks for: ``priority`` 0 = the normal policy (SCHED_OTHER), 1-99 =
+    SCHED_FIFO at that priority; ``cpu`` -1 = any CPU; ``lock_memory``: mlockall."""
+
+    priority: int = 0
+    cpu: int = -1
+    lock_memory: bool = False
+
+    @property
+    def requested(self) -> bool:
+        return bool(self.priority or self.cpu >= 0 or self.lock_memory)
+
+    @classmethod
+    def from_cli(cls, ns: argparse.Namespace) -> RtOptions:
+        return cls(ns.thread_priority, ns.cpu_affinity, ns.lock_memory)
+
+
+def _cpu(text: str) -> int:
+    """A CPU this process may run on (``os.sched_getaffinity``)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'not an integer: {text!r}') from None
+    allowed = sorted(os.sched_getaffinity(0))
+    if v not in allowed:
+        raise argparse.ArgumentTypeError(
+            f'CPU {v} is not one this process may use ({", ".join(map(str, allowed))})'
+        )
+    return v
+
+
+def _priority(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'not an integer: {text!r}') from None
+    lo, hi = os.sched_get_priority_min(os.SCHED_FIFO), os.sched_get_priority_max(os.SCHED_FIFO)
+    if not (v == 0 or lo <= v <= hi):
+        raise argparse.ArgumentTypeError(f'must be 0 (off) or {lo}-{hi} (SCHED_FIFO), got {v}')
+    return v
+
+
+_priority.__name__ = _cpu.__name__ = 'integer'
+
+
+def add_arguments(parser: argparse.ArgumentParser, what: str = 'the real-time loop') -> None:
+    """The three options (docs/real-drive.md, "Real-time set-up")."""
+    g = parser.add_argument_group('real-time scheduling (docs/real-drive.md, "Real-time set-up")')
+    g.add_argument(
+        '--thread-priority',
+        type=_priority,
+        default=0,
+        metavar='N',
+        help=f'run {what} SCHED_FIFO at priority N (1-99; ros2_control uses 50; default 0: '
+        'the normal policy); when not permitted, one line says how to grant it and the run '
+        'goes on',
+    )
+    g.add_argument(
+        '--cpu-affinity',
+        type=_cpu,
+        default=-1,
+        metavar='CPU',
+        help=f'pin {what} to this CPU (default: any)',
+    )
+    g.add_argument(
+        '--lock-memory',
+        action='store_true',
+        help='lock the process memory in RAM (mlockall), so no page fault lands in a period',
+    )
+
+
+def _mlockall() -> int:
+    """mlockall(MCL_CURRENT | MCL_FUTURE); 0 or the errno."""
+    libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6', use_errno=True)
+    if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
+        return ctypes.get_errno() or errno.EPERM
+    return 0
+
+
+def apply(opts: RtOptions) -> list[str]:
+    """Apply ``opts`` to the calling thread (and the process, for the memory lock).
+    Returns one line per option that was not applied (why, and how to grant it)."""
+    refused: list[str] = []
+    if opts.cpu >= 0:
+        try:
+            os.sched_setaffinity(0, {opts.cpu})
+        except OSError as exc:
+            refused.append(f'--cpu-affinity {opts.cpu}: not applied ({exc.strerror})')
+    if opts.priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(opts.priority))
+        except OSError as exc:
+            soft = resource.getrlimit(resource.RLIMIT_RTPRIO)[0]
+            refused.append(
+                f'--thread-priority {opts.priority}: not permitted ({exc.strerror}; rtprio '
+                f'limit {soft}), running SCHED_OTHER; {GRANT_PRIORITY}'
+            )
+    if opts.lock_memory:
+        err = _mlockall()
+        if err:
+            soft = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
+            limit = 'unlimited' if soft == resource.RLIM_INFINITY else f'{soft} bytes'
+            refused.append(
+                f'--lock-memory: not permitted ({os.strerror(err)}; memlock limit {limit}); '
+                f'{GRANT_MEMLOCK}'
+            )
+    return refused
+
+
+def apply_and_say(opts: RtOptions, info: Any, warn: Any) -> dict[str, Any]:
+    """:func:`apply` (when anything is asked), then say it: ``warn(line)`` per refusal,
+    ``info(line)`` with what the loop runs with; returns :func:`report`."""
+    refused = apply(opts) if opts.requested else []
+    for line in refused:
+        warn(line)
+    r = report(opts, refused)
+    if opts.requested:
+        info(
+            f'real-time loop: {r["policy"]} priority {r["priority"]}, CPUs {r["affinity"]}, '
+            f'memory locked {r["memory_locked"]}, PREEMPT_RT {r["preempt_rt"]}'
+        )
+    return r
+
+
+def _memory_locked() -> bool:
+    """Whether the process has locked memory (VmLck > 0 in /proc/self/status)."""
+    try:
+        for line in Path('/proc/self/status').read_text().splitlines():
+            if line.startswith('VmLck:'):
+                return int(line.split()[1]) > 0
+    except (OSError, ValueError, IndexError):
+        pass
+    return False
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path('/proc/cpuinfo').read_text().splitlines():
+            if line.startswith('model name'):
+                return line.split(':', 1)[1].strip()
+    except OSError:
+        pass
+    return os.uname().machine
+
+
+def _preempt_rt() -> bool:
+    try:
+        if Path('/sys/kernel/realtime').read_text().strip() == '1':
+            return True
+    except OSError:
+        pass
+    return 'PREEMPT_RT' in os.uname().version
+
+
+def report(opts: RtOptions | None = None, refused: list[str] | None = None) -> dict[str, Any]:
+    """What the calling thread runs with now: the policy and priority, the CPUs it may
+    use, whether memory is locked, the kernel and the CPU; ``opts``/``refused``: what
+    was asked and what was not applied."""
+    policy = os.sched_getscheduler(0)
+    names = {os.SCHED_OTHER: 'SCHED_OTHER', os.SCHED_FIFO: 'SCHED_FIFO', os.SCHED_RR: 'SCHED_RR'}
+    u = os.uname()
+    out: dict[str, Any] = {
+        'policy': names.get(policy, str(policy)),
+        'priority': os.sched_getparam(0).sched_priority,
+        'affinity': sorted(os.sched_getaffinity(0)),
+        'memory_locked': _memory_locked(),
+        'kernel': f'{u.release} {u.version}',
+        'preempt_rt': _preempt_rt(),
+        'cpu_model': _cpu_model(),
+        'cpus': os.cpu_count(),
+    }
+    if opts is not None:
+        out['requested'] = {
+            'thread_priority': opts.priority,
+            'cpu_affinity': opts.cpu,
+            'lock_memory': opts.lock_memory,
+        }
+    out['refused'] = list(refused or [])
+    return out

@@ -47,13 +47,8 @@ $(VENV)/.installed: $(VENV)/.deps $(PKG_FILES) tools/ros2 Makefile
 	    printf '\n# im_tuner: ament index of this venv\nexport AMENT_PREFIX_PATH="$$VIRTUAL_ENV$${AMENT_PREFIX_PATH:+:$$AMENT_PREFIX_PATH}"\n' >> $(VENV)/bin/activate
 	touch $@
 
-# Two steps: every test not judged on the wall clock on two workers (a file per worker:
-# module fixtures run once), then the wall-clock tests alone; both always run.
 test: setup
-	@status=0; \
-	$(PY) -m pytest -n 2 --dist loadfile -m 'not serial' || status=$$?; \
-	$(PY) -m pytest -m serial || status=$$?; \
-	exit $$status
+	$(PY) -m pytest
 
 test-unit: setup
 	$(PY) -m pytest -m unit

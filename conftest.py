@@ -24,12 +24,8 @@ import pytest
 REPO = Path(__file__).resolve().parent
 VENV = Path(sys.prefix)
 
-# A domain per run (and per pytest-xdist worker: gw0, gw1 get different ones): derived
-# from the PID and the worker's number, within Fast DDS's usable range 0..232.
-_WORKER = int(os.environ.get('PYTEST_XDIST_WORKER', 'gw0')[2:] or 0) % 2
-os.environ['ROS_DOMAIN_ID'] = os.environ.get(
-    'IM_TEST_DOMAIN_ID', str(20 + (os.getpid() % 100) * 2 + _WORKER)
-)
+# A domain per run: derived from the PID, within Fast DDS's usable range 0..232.
+os.environ['ROS_DOMAIN_ID'] = os.environ.get('IM_TEST_DOMAIN_ID', str(20 + os.getpid() % 200))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('AMENT_PREFIX_PATH', str(VENV))
 if str(VENV) not in os.environ['AMENT_PREFIX_PATH'].split(os.pathsep):
@@ -60,32 +56,15 @@ def pytest_unconfigure(config: pytest.Config) -> None:
     faulthandler.dump_traceback_later(EXIT_GRACE_S, exit=True, file=_STDERR_FD[0])
 
 
-#: Test files whose verdicts rest on the wall clock (a 5 kHz loop's periods, latencies,
-#: a drive that cannot pause): ``make test`` runs them alone, after the rest has run on
-#: two workers, so no other test competes with them for the CPU (marker ``serial``).
-SERIAL_FILES = frozenset(
-    {
-        'test_check_drive.py',
-        'test_drive_sim_node.py',
-        'test_drive_stop.py',
-        'test_real_drive_docs.py',
-        'test_realtime_bench.py',
-    }
-)
-
-
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """The tiers: a package's own tests (src/<package>/test) are the pure unit tier; the
-    workspace tests (test/) start nodes and processes, unless marked unit. Tests of the
-    wall clock are also ``serial`` (SERIAL_FILES)."""
+    workspace tests (test/) start nodes and processes, unless marked unit."""
     for item in items:
         rel = Path(str(item.path)).resolve().relative_to(REPO)
         if rel.parts[0] == 'src' or item.get_closest_marker('unit') is not None:
             item.add_marker(pytest.mark.unit)  # (a static test in test/ says so itself)
         else:
             item.add_marker(pytest.mark.integration)
-        if rel.name in SERIAL_FILES:
-            item.add_marker(pytest.mark.serial)
 
 
 def wait_for(

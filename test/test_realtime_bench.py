@@ -176,7 +176,9 @@ def test_a_stalled_period_on_a_drive_that_cannot_pause_is_held_and_flagged(tmp_p
     stalled = recs[0]
     assert stalled['kind'] == 'reference' and stalled['status'] == 'timing', stalled
     # 0.4 s = 2000 periods went by with the old command held: counted, on the timeline
-    assert stalled['periods']['held'] >= 1980 and stalled['steps'] == STEPS, stalled
+    # (the current held 0.4 s may make the supervisor stop it: then it ends early)
+    assert stalled['periods']['held'] >= 1980, stalled
+    assert stalled['steps'] == STEPS or stalled['aborted'], stalled
     assert stalled['loss'] is None  # never a loss
     assert [(r['kind'], r['status']) for r in recs[1:]] == [('reference', 'ok'), ('eval', 'ok')]
     d = json.loads((run / 'summary.json').read_text())['sessions'][0]['drive']

@@ -11,7 +11,15 @@ process, recorder on, a fresh run directory), on these benches and drive modes:
   flagged ``timing`` (what a real drive would see on this machine);
 * ``realtime-processes``: drive, controller and recorder as separate processes (how a
   drive in its own process runs); experiments a controller answered late are flagged
-  ``timing`` and re-run (--retries 1 here: the figure is the timing, not the search).
+  ``timing`` and re-run (--retries 1 here: the figure is the timing, not the search);
+* the load scenario (issue 27): ``realtime-rt`` the composed bench with the loop
+  SCHED_FIFO 50 and memory locked (``--thread-priority 50 --lock-memory``, as
+  ros2_control_node), ``realtime-hogs`` next to two CPU hogs (busy processes at normal
+  priority, ended by PID), ``realtime-hogs-rt`` both, ``realtime-frozen-reader`` next
+  to a reliable KEEP_ALL reader of every drive and controller topic (frozen.py) frozen
+  with SIGSTOP from its 100th state to the run's end, with the tuner's memory growth
+  over the freeze (``rss_growth_mb``); their overruns and period work are also given as
+  ratios to the quiet ``realtime`` run.
 
 From each run's ``summary.json`` (the drive's own counters, and the composed loop's
 per-period timings) and ``results.jsonl``:
@@ -31,12 +39,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import select
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
@@ -58,8 +70,74 @@ MODES: dict[str, tuple[str, list[str], str]] = {
         'rt_example',
     ),
     'realtime-processes': ('realtime-processes', ['--retries', '1'], 'rt_processes'),
+    'realtime-rt': ('realtime', ['--thread-priority', '50', '--lock-memory'], 'rt_fifo'),
+    'realtime-hogs': ('realtime', [], 'rt_hogs'),
+    'realtime-hogs-rt': ('realtime', ['--thread-priority', '50', '--lock-memory'], 'rt_hogs_fifo'),
+    'realtime-frozen-reader': ('realtime', [], 'rt_frozen'),
 }
+FROZEN_READER = str(Path(__file__).with_name('frozen_reader.py'))
 BENCHES = tuple(MODES)
+#: the load scenario: CPU hogs (busy Python processes, normal priority) beside the run
+HOGS = {'realtime-hogs': 2, 'realtime-hogs-rt': 2}
+
+
+def start_hogs(n: int) -> list[subprocess.Popen]:
+    return [
+        subprocess.Popen([sys.executable, '-c', 'while True: pass'], stdin=subprocess.DEVNULL)
+        for _ in range(n)
+    ]
+
+
+def stop_hogs(hogs: list[subprocess.Popen]) -> None:
+    for h in hogs:  # by PID
+        h.kill()
+        h.wait(timeout=10)
+
+
+def _rss_kib(pid: int) -> int:
+    try:
+        for line in Path(f'/proc/{pid}/status').read_text().splitlines():
+            if line.startswith('VmRSS:'):
+                return int(line.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
+def _run_tuner(cmd: list[str], env: dict, frozen: bool) -> tuple[int, str, float]:
+    """Run the tuner; with ``frozen``, next to a reader frozen (SIGSTOP) from its 100th
+    state on. Returns (exit code, stderr, the tuner's RSS growth while it was frozen [MB])."""
+    if not frozen:
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
+        return proc.returncode, proc.stderr, 0.0
+    reader = subprocess.Popen(
+        [sys.executable, FROZEN_READER],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        env=env,
+    )
+    growth = 0.0
+    with tempfile.TemporaryFile('w+') as err:
+        tuner = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True, env=env)
+        try:
+            assert reader.stdout is not None
+            ready, _, _ = select.select([reader.stdout], [], [], 120.0)
+            if ready and reader.stdout.readline().strip() == 'ready' and tuner.poll() is None:
+                os.kill(reader.pid, signal.SIGSTOP)
+                rss0 = peak = _rss_kib(tuner.pid)
+                while tuner.poll() is None:
+                    peak = max(peak, _rss_kib(tuner.pid))
+                    time.sleep(0.2)  # sampling the memory while the run goes on
+                growth = (peak - rss0) / 1024.0
+            tuner.wait(timeout=1800)
+        finally:
+            for p in (tuner, reader):  # by PID
+                if p.poll() is None:
+                    p.kill()
+            reader.wait(timeout=30)
+        err.seek(0)
+        return tuner.returncode, err.read(), growth
 
 
 def run_once(mode: str, budget: int, seed: int) -> dict:
@@ -69,22 +147,22 @@ def run_once(mode: str, budget: int, seed: int) -> dict:
     env.setdefault('ROS_DOMAIN_ID', str(100 + os.getpid() % 50))
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     env.setdefault('AMENT_PREFIX_PATH', sys.prefix)
+    hogs = start_hogs(HOGS.get(mode, 0))
     try:
         cmd = [ROS2, 'run', 'im_tuner', 'tuner', '--bench', bench, '--budget', str(budget)]
         cmd += ['--seed', str(seed), '--remeasure', '0', '--quiet', '--out', str(tmp / 'run')]
         cmd += extra  # the tuner's options, then any --ros-args (always last in MODES)
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
+        code, stderr, growth = _run_tuner(cmd, env, mode == 'realtime-frozen-reader')
         summary_path = tmp / 'run' / 'summary.json'
         if not summary_path.exists():
-            raise RuntimeError(
-                f'{bench}: no summary (exit {proc.returncode}): {proc.stderr[-800:]}'
-            )
+            raise RuntimeError(f'{bench}: no summary (exit {code}): {stderr[-800:]}')
         s = json.loads(summary_path.read_text())
         recs = [json.loads(x) for x in (tmp / 'run' / 'results.jsonl').read_text().splitlines()]
         d = s['sessions'][-1]['drive'] or {}
         steps = max(int(d.get('steps', 0)), 1)
         out = {
-            'exit': proc.returncode,
+            'exit': code,
+            'rss_growth_mb': growth,
             # the drive counts per period fresh or held (a late command's period is held
             # there: fresh + held = steps); per command, late
             'held_late_pct': 100.0 * d.get('held', 0) / steps,
@@ -113,8 +191,12 @@ def run_once(mode: str, budget: int, seed: int) -> dict:
         if loop:
             out['work'] = loop['period_work_us']
             out['answer'] = loop['controller_answer_us']
+            out['max_lateness_us'] = loop['max_lateness_us']
+            sched = loop.get('realtime') or {}
+            out['policy'] = f'{sched.get("policy", "?")} {sched.get("priority", "")}'.strip()
         return out
     finally:
+        stop_hogs(hogs)
         shutil.rmtree(tmp, ignore_errors=True)
 
 
@@ -161,9 +243,29 @@ def main(argv: list[str] | None = None) -> dict:
                 f'{figures[f"{tag}_work_p50_us"]:.0f} / {figures[f"{tag}_work_p99_us"]:.0f} / '
                 f'{figures[f"{tag}_work_max_us"]:.0f} us (budget 200); controller answer '
                 f'p50/p99 {figures[f"{tag}_answer_p50_us"]:.0f} / '
-                f'{figures[f"{tag}_answer_p99_us"]:.0f} us',
+                f'{figures[f"{tag}_answer_p99_us"]:.0f} us; worst lateness '
+                f'{med("max_lateness_us"):.0f} us; loop {runs[0].get("policy")}',
                 flush=True,
             )
+            figures[f'{tag}_max_lateness_us'] = med('max_lateness_us')
+            if bench == 'realtime-frozen-reader':
+                figures[f'{tag}_rss_growth_mb'] = med('rss_growth_mb')
+                print(
+                    f"{'':<20} the tuner's memory grew {med('rss_growth_mb'):.1f} MB while "
+                    'the reader was frozen',
+                    flush=True,
+                )
+            quiet = 'rt_composed'
+            if tag != quiet and f'{quiet}_work_p99_us' in figures:
+                for key in ('overrun_pct', 'work_p99_us'):
+                    q = figures[f'{quiet}_{key}']
+                    figures[f'{tag}_{key}_ratio'] = figures[f'{tag}_{key}'] / q if q else math.inf
+                print(
+                    f'{"":<20} to the quiet run: overruns '
+                    f'x{figures[f"{tag}_overrun_pct_ratio"]:.2f}, work p99 '
+                    f'x{figures[f"{tag}_work_p99_us_ratio"]:.2f}',
+                    flush=True,
+                )
     return figures
 
 

@@ -79,6 +79,18 @@ TARGETS = {
     'rt_processes_overrun_pct': ('%', None),
     'rt_processes_watchdog_trips': ('trips', None),
     'rt_processes_timing_flagged': ('exp', None),
+    # issue 27's acceptance: quiet p99 <= 50 us and overruns <= 0.05 %; two CPU hogs with
+    # SCHED_FIFO 50 and memory locked: overruns <= 0.1 %, worst lateness <= 1 ms
+    'rt_fifo_overrun_pct': ('%', 0.05),
+    'rt_fifo_work_p99_us': ('us', 50.0),
+    'rt_hogs_overrun_pct': ('%', None),
+    'rt_hogs_overrun_pct_ratio': ('x', None),
+    'rt_hogs_fifo_overrun_pct': ('%', 0.1),
+    'rt_hogs_fifo_max_lateness_us': ('us', 1000.0),
+    'rt_hogs_fifo_overrun_pct_ratio': ('x', None),
+    # a reader frozen for the run: overruns within noise, memory growth <= 10 MB
+    'rt_frozen_overrun_pct_ratio': ('x', None),
+    'rt_frozen_rss_growth_mb': ('MB', 10.0),
 }
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import faulthandler
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -27,6 +28,10 @@ VENV = Path(sys.prefix)
 # A domain per run: derived from the PID, within Fast DDS's usable range 0..232.
 os.environ['ROS_DOMAIN_ID'] = os.environ.get('IM_TEST_DOMAIN_ID', str(20 + os.getpid() % 200))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+# A run started in the background of a script (`bash .ci/run &`) gets SIGINT ignored from
+# bash, and every child would inherit that: the tests that send SIGINT to a study then
+# wait for ever. A Python handler here becomes SIG_DFL in each exec'd child.
+signal.signal(signal.SIGINT, signal.default_int_handler)
 os.environ.setdefault('AMENT_PREFIX_PATH', str(VENV))
 if str(VENV) not in os.environ['AMENT_PREFIX_PATH'].split(os.pathsep):
     os.environ['AMENT_PREFIX_PATH'] = os.pathsep.join([str(VENV), os.environ['AMENT_PREFIX_PATH']])

@@ -192,6 +192,7 @@ def run_once(mode: str, budget: int, seed: int) -> dict:
             out['work'] = loop['period_work_us']
             out['answer'] = loop['controller_answer_us']
             out['max_lateness_us'] = loop['max_lateness_us']
+            out['lateness_histogram'] = loop.get('lateness_histogram') or {}
             sched = loop.get('realtime') or {}
             out['policy'] = f'{sched.get("policy", "?")} {sched.get("priority", "")}'.strip()
         return out
@@ -248,6 +249,14 @@ def main(argv: list[str] | None = None) -> dict:
                 flush=True,
             )
             figures[f'{tag}_max_lateness_us'] = med('max_lateness_us')
+            hist = runs[0]['lateness_histogram']
+            if hist:
+                total = max(1, sum(hist.values()))
+                print(
+                    f'{"":<20} period starts by lateness (run 1): '
+                    + ', '.join(f'{k} {100.0 * v / total:.2f} %' for k, v in hist.items()),
+                    flush=True,
+                )
             if bench == 'realtime-frozen-reader':
                 figures[f'{tag}_rss_growth_mb'] = med('rss_growth_mb')
                 print(

@@ -64,6 +64,8 @@ def test_composed_realtime_run_measures_the_paper_loss_bit_for_bit(tmp_path):
     assert d['held'] + d['late'] <= 0.001 * d['steps'], d
     loop = d['loop']
     assert loop['periods'] == d['steps'] and loop['answers_missed'] == 0, loop
+    # every period start in one bin of the lateness histogram
+    assert sum(loop['lateness_histogram'].values()) == loop['periods'], loop
     for k in ('drive_period_us', 'controller_answer_us', 'period_work_us'):
         assert 0 < loop[k]['p50'] <= loop[k]['p99'] <= loop[k]['max'], loop
     assert 'drive (composed loop): per-period work p50' in p.stdout

@@ -56,11 +56,18 @@ class PeriodicDrive(Protocol):
     def close_hardware(self) -> None: ...
 
 
+#: Upper edges [us] of the period-start lateness histogram (``Pacer.lateness_hist``; the
+#: last bin has no upper edge): within 10 us, 50, 200 (one period), 1 ms, 10 ms, beyond.
+LATENESS_EDGES_US: tuple[float, ...] = (10.0, 50.0, 200.0, 1000.0, 10000.0)
+LATENESS_BINS: tuple[str, ...] = ('<10us', '<50us', '<200us', '<1ms', '<10ms', '>=10ms')
+
+
 class Pacer:
     """Period starts at ``t0 + n ts`` on ``time.perf_counter`` (see the module docstring).
 
     ``overruns``: periods that started more than a period late; ``max_lateness_us``: the
-    worst start lateness [us]; ``lateness_s``: the last period's.
+    worst start lateness [us]; ``lateness_s``: the last period's; ``lateness_hist``:
+    period starts per lateness bin (:data:`LATENESS_BINS`).
 
     ``wall_clock``: the drive cannot pause (a real power stage; the simulator in its
     hardware-like mode). A period that starts late by m >= 1 whole periods then is the
@@ -83,6 +90,7 @@ class Pacer:
         self.overruns = 0
         self.max_lateness_us = 0.0
         self.lateness_s = 0.0
+        self.lateness_hist = [0] * len(LATENESS_BINS)
         self.wall_clock = bool(wall_clock)
         self.missed = 0  #: whole periods the last start skipped (wall_clock only)
         self.missed_total = 0  #: their sum since t0
@@ -109,8 +117,15 @@ class Pacer:
         now = time.perf_counter()
         late = now - deadline
         self.lateness_s = late
-        if late * 1e6 > self.max_lateness_us:
-            self.max_lateness_us = late * 1e6
+        late_us = late * 1e6
+        if late_us > self.max_lateness_us:
+            self.max_lateness_us = late_us
+        b = 0
+        for edge in LATENESS_EDGES_US:
+            if late_us < edge:
+                break
+            b += 1
+        self.lateness_hist[b] += 1
         self.n += 1
         self.missed = 0
         if late > self.ts:

@@ -51,3 +51,14 @@ def test_a_drive_that_pauses_reanchors_and_misses_nothing():
     assert (p.overruns, p.n) == (b['overruns'] + 1, b['n'] + 1)
     assert p.lateness_s > 4 * TS  # the lateness is reported, and the schedule re-anchored
     assert p.deadline == pytest.approx(p.t0 + p.n * TS, rel=0, abs=1e-9)  # 1 ns of rounding
+
+
+def test_the_lateness_histogram_puts_each_start_in_its_bin():
+    """A stall of 5.5 ms: that start lands in the 1-10 ms bin (or beyond, on a loaded
+    machine); every start is in exactly one bin."""
+    from im_drive_sim.pacing import LATENESS_BINS, LATENESS_EDGES_US
+
+    assert len(LATENESS_BINS) == len(LATENESS_EDGES_US) + 1
+    p, b = _stalled(False, 5.5e-3)
+    assert sum(p.lateness_hist) == p.n == b['n'] + 1
+    assert p.lateness_hist[4] + p.lateness_hist[5] >= 1

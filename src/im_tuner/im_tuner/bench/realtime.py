@@ -48,7 +48,7 @@ from rclpy.parameter import Parameter
 
 from im_controller.controller_node import ControllerNode
 from im_drive_sim import rt
-from im_drive_sim.pacing import Pacer
+from im_drive_sim.pacing import LATENESS_BINS, Pacer
 
 from ..tuning import BenchFailure
 from .drive_spec import DriveChoice, build_node, resolve
@@ -364,6 +364,8 @@ class RealtimeBench:
             # a drive that cannot pause: whole periods the late starts skipped (held)
             'missed_periods': int(self.pacer.missed_total),
             'max_lateness_us': round(float(self.pacer.max_lateness_us), 1),
+            # period starts by lateness (pacing.LATENESS_BINS)
+            'lateness_histogram': dict(zip(LATENESS_BINS, self.pacer.lateness_hist, strict=True)),
             'answers_missed': self.answers_missed,
             'gc_young_runs': self.gc_runs,
             'realtime': self.rt_report,

@@ -313,20 +313,7 @@ def test_sigint_and_sigterm_stop_cleanly(procs, ros_context, mode, sig):
 def test_realtime_counts_late_commands_and_holds_them(procs, ros_context):
     """Commands answering an older state are late: counted, never fresh, still held."""
     steps = 1500
-    # the drive's loop SCHED_FIFO (docs/real-drive.md, "Real-time set-up"; CI runs as root):
-    # this test's own client, a Python process answering every state, competes with it
-    # for the 2 cores (without it: 40 % of the periods late, typical period 367 us)
-    p = drive_proc(
-        procs,
-        '--mode',
-        'realtime',
-        '--max-steps',
-        str(steps),
-        '--thread-priority',
-        '50',
-        '--cpu-affinity',
-        str(max(os.sched_getaffinity(0))),
-    )
+    p = drive_proc(procs, '--mode', 'realtime', '--max-steps', str(steps))
     node = Node('test_late_controller', context=ros_context)
     try:
         client = DriveClient(node)

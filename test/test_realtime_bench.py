@@ -180,7 +180,14 @@ def test_a_stalled_period_on_a_drive_that_cannot_pause_is_held_and_flagged(tmp_p
     # 0.4 s = 2000 periods went by with the old command held: counted, on the timeline
     # (the current held 0.4 s may make the supervisor stop it: then it ends early)
     assert stalled['periods']['held'] >= 1980, stalled
-    assert stalled['steps'] == STEPS or stalled['aborted'], stalled
+    # it ran to its end on the drive's timeline (the loop runs from the bench's start, so
+    # where step 6000 falls in it varies; a stall across its end ends it with fewer
+    # states seen), or the supervisor stopped it
+    assert (
+        stalled['steps'] == STEPS
+        or stalled['aborted']
+        or stalled['steps'] + stalled['periods']['held'] >= STEPS
+    ), stalled
     assert stalled['loss'] is None  # never a loss
     assert [(r['kind'], r['status']) for r in recs[1:]] == [('reference', 'ok'), ('eval', 'ok')]
     d = json.loads((run / 'summary.json').read_text())['sessions'][0]['drive']

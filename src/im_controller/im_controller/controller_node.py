@@ -25,10 +25,13 @@ A thin node around :class:`im_controller.experiment.ExperimentRunner` (docs/cont
 from __future__ import annotations
 
 import argparse
+import collections
+import contextlib
 import dataclasses
 import math
 import sys
 import time
+from typing import Any
 
 import numpy as np
 import rclpy
@@ -88,6 +91,7 @@ from .experiment import (
 )
 from .messages import result_to_msg
 from .reset_fault import reset_command, service_name
+from .result import LossResult
 
 NS_PER_S = 1_000_000_000
 #: Shortest time between two logged refusals of one kind [s] (all are counted).
@@ -211,6 +215,13 @@ class ControllerNode(LenientDoubles, Node):
         self._initialised = False  # the hold reference is set from the first state
         self._fault_logged = False
         self._n_answered = 0
+        #: held while a request changes what the loop runs (gains, experiment start, fault
+        #: reset): a composed real-time loop (im_tuner.bench.realtime) runs the 5 kHz path
+        #: in its own thread under the same lock; alone, there is one thread and no lock
+        self.loop_lock: Any = contextlib.nullcontext()
+        #: composed loop: experiment ends (status, result) the loop thread leaves for the
+        #: serving thread to publish and log (:meth:`flush_deferred`); None: at once
+        self.deferred: collections.deque | None = None
         self.get_logger().info(
             f'mode={self.mode} Ts={self.Ts * 1e6:.0f} us isq_max={self.isq_max:g} A '
             f'gains={dict(zip(GAIN_NAMES, gains.as_tuple(), strict=True))}'
@@ -473,8 +484,9 @@ class ControllerNode(LenientDoubles, Node):
 
     def _post_set(self, params: list[Parameter]) -> None:
         cfg, gains = self._candidate({})
-        self.runner.set_config(cfg)
-        self.runner.set_gains(gains)
+        with self.loop_lock:
+            self.runner.set_config(cfg)
+            self.runner.set_gains(gains)
 
     @property
     def gains(self) -> Gains:
@@ -511,7 +523,8 @@ class ControllerNode(LenientDoubles, Node):
             # supervisor stop, whose fallback gains finished the move, do the parameters'
             # gains go back in here. Applied once per evaluation either way.
             gains = self.gains
-            r.start(eid, None if r.gains == gains else gains)
+            with self.loop_lock:
+                r.start(eid, None if r.gains == gains else gains)
             self.next_experiment_id += 1
             response.success = True
             response.message = C.started(eid)
@@ -549,7 +562,8 @@ class ControllerNode(LenientDoubles, Node):
         else:
             reason = self.runner.fault_reason
             self._timeout_wall = None
-            self.runner.reset(float(self._state[2]))
+            with self.loop_lock:
+                self.runner.reset(float(self._state[2]))
             self._fault_logged = False
             response.success = True
             response.message = f'fault {reason} cleared; holding {self._state[2]:.4f} rad'
@@ -568,7 +582,11 @@ class ControllerNode(LenientDoubles, Node):
 
     def take(self, timeout: float = 0.0) -> None:
         """Take the newest state, waiting up to ``timeout`` s if none is there."""
-        s = self.client.wait_state(timeout) if timeout > 0.0 else self.client.take_state()
+        self.offer(self.client.wait_state(timeout) if timeout > 0.0 else self.client.take_state())
+
+    def offer(self, s: np.ndarray | None) -> None:
+        """The newest drive state (``STATE_FIELDS``), from the subscription or -- composed
+        in one loop with the drive -- handed over in memory; None: none came."""
         if s is not None:
             self._last_msg_wall = time.monotonic()
         if s is not None and int(s[0]) > self.client.answered:
@@ -594,15 +612,30 @@ class ControllerNode(LenientDoubles, Node):
             v[0] = k
             v[1 : 1 + len(CONTROL_FIELDS)] = self.runner.cout
             v[1 + len(CONTROL_FIELDS) :] = self.runner.eout
-            payload = self._internals.payload()
-            self.client.backpressure += publish_lossless(self.internals_pub, payload, self.context)
+            self.client.backpressure += publish_lossless(
+                self.internals_pub, self._internals, self.context
+            )
         if status >= STATUS_DONE:
             self._on_status(status)
         return True
 
     def _on_status(self, status: int) -> None:
+        if self.deferred is not None:  # a composed loop: published and logged off the loop
+            self.deferred.append(
+                (status, self.runner.result() if status in (STATUS_DONE, STATUS_ABORTED) else None)
+            )
+            return
+        self._handle_status(status, None)
+
+    def flush_deferred(self) -> None:
+        """Publish and log the experiment ends the composed loop left (serving thread)."""
+        while self.deferred:
+            status, res = self.deferred.popleft()
+            self._handle_status(status, res)
+
+    def _handle_status(self, status: int, res: LossResult | None) -> None:
         if status in (STATUS_DONE, STATUS_ABORTED):
-            self._publish_result()
+            self._publish_result(res)
         if status == STATUS_FAULT and not self._fault_logged:
             self._fault_logged = True
             self.get_logger().error(
@@ -610,8 +643,11 @@ class ControllerNode(LenientDoubles, Node):
                 f'cleared: `{self._reset_command}` ({self._reset_service})'
             )
 
-    def _publish_result(self) -> None:
-        res = self.runner.result()
+    def _publish_result(self, res: LossResult | None = None) -> None:
+        """Publish and log the last experiment's result (``res``: taken by the loop at its
+        end; None: the runner's now)."""
+        if res is None:
+            res = self.runner.result()
         if res is None or (self.results and self.results[-1].experiment_id == res.experiment_id):
             return
         self.results.append(res)

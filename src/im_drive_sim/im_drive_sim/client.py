@@ -8,6 +8,7 @@ it lives on must not be spun by an executor (an executor would take the states).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -47,6 +48,10 @@ class DriveClient:
         self.backpressure: int = 0
         #: Publisher-side time stamp [ns, wall] of the newest state taken.
         self.source_timestamp_ns: int = 0
+        #: composed with the drive in one loop: ``hand_over(values)`` gives each command
+        #: to the drive in memory (``pacing.CommandSource.hand_over``), then it is
+        #: published as before (the outbox: for the graph and the recorder)
+        self.hand_over: Callable[[np.ndarray], None] | None = None
 
     def take_state(self) -> np.ndarray | None:
         """Take every pending state without waiting; return the newest (or None)."""
@@ -97,8 +102,9 @@ class DriveClient:
         v[0] = answers_step
         v[1] = isq_ref
         v[2] = load_torque
-        payload = self._cmd.payload()
-        self.backpressure += publish_lossless(self.command_pub, payload, self.node.context)
+        if self.hand_over is not None:
+            self.hand_over(v)
+        self.backpressure += publish_lossless(self.command_pub, self._cmd, self.node.context)
         if answers_step > self.answered:
             self.answered = answers_step
 

@@ -31,13 +31,12 @@ from rclpy.duration import Duration
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from . import contract, rt
-from .cdr import Float64ArrayWire, parse_float64_array
+from .cdr import ClockWire, Float64ArrayWire, JointStateWire
 from .cli import Parser, input_file, int_in, parse_cli, run_cli
 from .contract import (
     CMD_ISQ,
@@ -51,7 +50,7 @@ from .contract import (
     STATE_TOPIC,
     STATUS_TOPIC,
 )
-from .pacing import CommandWatchdog, Pacer
+from .pacing import CommandSource, CommandWatchdog, Pacer
 from .params import ConfigError, load_config
 from .runtime import (
     LenientDoubles,
@@ -166,6 +165,7 @@ class DriveSimNode(LenientDoubles, Node):
         self.cmd_sub = self.io_node.create_subscription(
             Float64MultiArray, COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS
         )
+        self.commands = CommandSource(self.cmd_sub, len(COMMAND_FIELDS))
         self._waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
 
         # Preallocated messages and buffers: nothing is built per step.
@@ -173,12 +173,8 @@ class DriveSimNode(LenientDoubles, Node):
         # buffer through a numpy view (see cdr.py), nothing is converted per step.
         self._state_wire = Float64ArrayWire(len(STATE_FIELDS))
         self._state = self._state_wire.values
-        self._clock_msg = Clock()
-        self._joint_msg = JointState()
-        self._joint_msg.name = ['motor']
-        self._joint_msg.position = [0.0]
-        self._joint_msg.velocity = [0.0]
-        self._joint_msg.effort = [0.0]
+        self._clock_wire = ClockWire()  # pre-serialised: patched in place, no conversion
+        self._joint_wire = JointStateWire('motor')
         self._isq_ref = 0.0
         self._load = 0.0
         self._cmd_fresh = False
@@ -191,6 +187,9 @@ class DriveSimNode(LenientDoubles, Node):
         #: latched by :meth:`safe_stop`: zero current and no load from then on
         self.safe_stopped = False
         self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
+        self._i_theta = self._idx['theta_meas']
+        self._i_omega = self._idx['omega_meas']
+        self._i_torque = self._idx['torque']
 
         # The layouts are facts of this node: an override may not advertise another one.
         parameter_hygiene(
@@ -373,24 +372,22 @@ class DriveSimNode(LenientDoubles, Node):
         """Publish the current state (and the decimated /clock, joint_states)."""
         s = self._state
         k = int(s[0])
-        payload = self._state_wire.payload()
-        self.counters.backpressure += publish_lossless(self.state_pub, payload, self.context)
+        self.counters.backpressure += publish_lossless(
+            self.state_pub, self._state_wire, self.context
+        )
         if k % self.clock_decimation == 0 or k % self.joint_state_decimation == 0:
             t_ns = k * self.ts_ns
             sec, nsec = divmod(t_ns, NS_PER_S)
             if k % self.clock_decimation == 0:
-                self._clock_msg.clock.sec = sec
-                self._clock_msg.clock.nanosec = nsec
-                self.counters.backpressure += publish_lossless(
-                    self.clock_pub, self._clock_msg, self.context
-                )
+                c = self._clock_wire
+                c.sec[0], c.nanosec[0] = sec, nsec
+                self.counters.backpressure += publish_lossless(self.clock_pub, c, self.context)
             if k % self.joint_state_decimation == 0:
-                j = self._joint_msg
-                j.header.stamp.sec = sec
-                j.header.stamp.nanosec = nsec
-                j.position[0] = float(s[self._idx['theta_meas']])
-                j.velocity[0] = float(s[self._idx['omega_meas']])
-                j.effort[0] = float(s[self._idx['torque']])
+                j = self._joint_wire
+                j.sec[0], j.nanosec[0] = sec, nsec
+                j.position[0] = s[self._i_theta]
+                j.velocity[0] = s[self._i_omega]
+                j.effort[0] = s[self._i_torque]
                 self.counters.backpressure += publish_lossless(self.joint_pub, j, self.context)
 
     def publish_status(self, wall_elapsed: float | None = None) -> None:
@@ -437,12 +434,9 @@ class DriveSimNode(LenientDoubles, Node):
         return ws.is_ready('subscription', 0)
 
     def _take_command(self):
-        r = self.cmd_sub.handle.take_message(Float64MultiArray, True)  # raw CDR bytes
-        if r is None:
+        data = self.commands.next()  # the subscription, or the composed controller's
+        if data is None:
             return None
-        data = parse_float64_array(r[0], len(COMMAND_FIELDS))
-        if data is None:  # not our compact layout: deserialise the general way
-            data = deserialize_message(r[0], Float64MultiArray).data
         if len(data) != len(COMMAND_FIELDS):
             self.get_logger().error(
                 f'{COMMAND_TOPIC}: expected {len(COMMAND_FIELDS)} values '
@@ -636,6 +630,14 @@ class DriveSimNode(LenientDoubles, Node):
     def wait_command(self, timeout_s: float) -> bool:
         """Sleep up to ``timeout_s`` [s] in rcl_wait; True when a command is pending."""
         return self._wait_command(int(timeout_s * NS_PER_S))
+
+    def warm_up(self) -> None:
+        """Compile the model's kernels now, not in the first real-time period."""
+        self.sim.warm_up(self._state)
+
+    def latest_state(self):
+        """The state last published (``STATE_FIELDS``; the array is reused each period)."""
+        return self._state
 
     def safe_stop(self) -> None:
         """Zero current and no load from the next period on, whatever command comes (a

@@ -38,12 +38,11 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.duration import Duration
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
-from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from . import contract, rt
-from .cdr import Float64ArrayWire, parse_float64_array
+from .cdr import Float64ArrayWire, JointStateWire
 from .cli import Parser, check_ros_args, parse_cli, run_cli
 from .contract import (
     CMD_ISQ,
@@ -55,7 +54,7 @@ from .contract import (
     STATE_TOPIC,
     STATUS_TOPIC,
 )
-from .pacing import CommandWatchdog, Pacer
+from .pacing import CommandSource, CommandWatchdog, Pacer
 from .params import ConfigError, DriveConfig, load_config
 from .runtime import (
     LenientDoubles,
@@ -304,10 +303,11 @@ class ExampleDrive(LenientDoubles, Node):
         self.cmd_sub = self.io_node.create_subscription(
             Float64MultiArray, COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS
         )
+        self.commands = CommandSource(self.cmd_sub, len(COMMAND_FIELDS))
         self.waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
         self.wire = Float64ArrayWire(len(STATE_FIELDS))  # preallocated: nothing built per step
         self.wire.values[13] = self.command_delay  # declared once, in every state
-        self.joint = JointState(name=['motor'], position=[0.0], velocity=[0.0], effort=[0.0])
+        self.joint = JointStateWire('motor')  # pre-serialised: patched in place
         self.get_logger().info(
             f'real time, Ts={self.config.Ts * 1e6:.0f} us, isq_max='
             f'{self.isq_max:g} A, command_timeout={self.command_timeout:g} s, '
@@ -388,10 +388,8 @@ class ExampleDrive(LenientDoubles, Node):
     def take_commands(self) -> None:
         """Take every pending command; the newest valid one becomes the held command."""
         n = len(COMMAND_FIELDS)
-        while (r := self.cmd_sub.handle.take_message(Float64MultiArray, True)) is not None:
-            data = parse_float64_array(r[0], n)  # our compact layout, read in place
-            if data is None:  # another layout: the general (slower) way
-                data = deserialize_message(r[0], Float64MultiArray).data
+        # the subscription (our compact layout read in place), or the composed controller's
+        while (data := self.commands.next()) is not None:
             if len(data) != n or not (
                 math.isfinite(data[0]) and math.isfinite(data[1]) and math.isfinite(data[2])
             ):
@@ -415,6 +413,10 @@ class ExampleDrive(LenientDoubles, Node):
                 self.tripped = False
                 self.get_logger().info(f'watchdog: commands resumed at step {self.k}')
 
+    def latest_state(self):
+        """The state last published (``STATE_FIELDS``; the array is reused each period)."""
+        return self.wire.values
+
     def wait_command(self, timeout_s: float) -> bool:
         """Sleep up to ``timeout_s`` [s]; True when a command is pending."""
         ws = self.waitset
@@ -425,17 +427,16 @@ class ExampleDrive(LenientDoubles, Node):
 
     # -- publishing ------------------------------------------------------------------------
     def publish_state(self) -> None:
-        payload = self.wire.payload()
         # a full reliable reader (the recorder): back-pressure, never drop
-        self.counters.backpressure += publish_lossless(self.state_pub, payload, self.context)
+        self.counters.backpressure += publish_lossless(self.state_pub, self.wire, self.context)
         if self.k % self.joint_decimation == 0:
             self.publish_joint_state()
 
     def publish_joint_state(self) -> None:
         """drive/joint_states: the state's theta_meas, omega_meas, torque, stamped k Ts."""
         j, v = self.joint, self.wire.values
-        j.header.stamp.sec, j.header.stamp.nanosec = divmod(self.k * self.ts_ns, NS_PER_S)
-        j.position[0], j.velocity[0], j.effort[0] = float(v[2]), float(v[3]), float(v[4])
+        j.sec[0], j.nanosec[0] = divmod(self.k * self.ts_ns, NS_PER_S)
+        j.position[0], j.velocity[0], j.effort[0] = v[2], v[3], v[4]
         self.counters.backpressure += publish_lossless(self.joint_pub, j, self.context)
 
     def publish_status(self) -> None:

@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
-__all__ = ['CommandWatchdog', 'Pacer', 'PeriodicDrive']
+__all__ = ['CommandSource', 'CommandWatchdog', 'Pacer', 'PeriodicDrive']
 
 
 class PeriodicDrive(Protocol):
@@ -35,7 +35,9 @@ class PeriodicDrive(Protocol):
     to ``s`` seconds in rcl_wait, True when a command is pending. ``safe_stop()`` writes
     zero current and zero load torque at once and latches them for every later period;
     ``close_hardware()`` does that a last time and releases the power stage (after it
-    ``period()`` does nothing). A loop calls them on every way out.
+    ``period()`` does nothing). A loop calls them on every way out. ``latest_state()``:
+    the values of the state last published (a composed loop hands them to the controller
+    in memory) and ``commands`` (a :class:`CommandSource`) where commands come from.
     """
 
     counters: Any
@@ -48,6 +50,8 @@ class PeriodicDrive(Protocol):
     def take_commands(self) -> None: ...
 
     def wait_command(self, timeout_s: float) -> bool: ...
+
+    def latest_state(self) -> Any: ...
 
     def publish_status(self) -> None: ...
 
@@ -174,3 +178,53 @@ class CommandWatchdog:
         return self.since >= 2 and (
             self.since > self.max_periods or time.perf_counter() - self.last_wall > self.timeout_s
         )
+
+
+class CommandSource:
+    """Where a drive takes its commands: the ``drive/command`` subscription (raw CDR,
+    our compact layout read in place), or -- composed with the controller in one loop
+    (``im_tuner.bench.realtime``) -- the command the controller handed over in memory
+    (:meth:`hand_over`): no DDS between the controller's answer and the drive's write.
+
+    :meth:`next` returns the values of the next command (a sequence of
+    ``len(COMMAND_FIELDS)`` floats, or another length for a malformed message the drive
+    then refuses) or None when none is pending."""
+
+    def __init__(self, subscription: Any, n: int) -> None:
+        self.subscription = subscription
+        self.n = n
+        self._handed: Any = None  #: the controller's command values (direct mode)
+        self._pending = False
+
+    @property
+    def direct(self) -> bool:
+        return self._handed is not None
+
+    def hand_over(self, values: Any) -> None:
+        """The controller's newest command (its reused values array), for the next take."""
+        self._handed = values
+        self._pending = True
+
+    def next(self) -> Any:
+        if self._handed is not None:
+            if not self._pending:
+                return None
+            self._pending = False
+            return self._handed
+        r = self.subscription.handle.take_message(_float64_array_type(), True)
+        if r is None:
+            return None
+        from .cdr import parse_float64_array
+
+        data = parse_float64_array(r[0], self.n)
+        if data is None:  # not our compact layout: deserialise the general way
+            from rclpy.serialization import deserialize_message
+
+            data = deserialize_message(r[0], _float64_array_type()).data
+        return data
+
+
+def _float64_array_type() -> Any:
+    from std_msgs.msg import Float64MultiArray
+
+    return Float64MultiArray

@@ -50,6 +50,11 @@ GRANT_MEMLOCK = (
 )
 
 
+#: The composed bench's loop priority when ``--thread-priority`` is not given: SCHED_FIFO
+#: 50, as ros2_control_node's update loop (its ``thread_priority``).
+DEFAULT_PRIORITY = 50
+
+
 @dataclass(frozen=True)
 class RtOptions:
     """What the loop asks for: ``priority`` 0 = the normal policy (SCHED_OTHER), 1-99 =
@@ -64,8 +69,10 @@ class RtOptions:
         return bool(self.priority or self.cpu >= 0 or self.lock_memory)
 
     @classmethod
-    def from_cli(cls, ns: argparse.Namespace) -> RtOptions:
-        return cls(ns.thread_priority, ns.cpu_affinity, ns.lock_memory)
+    def from_cli(cls, ns: argparse.Namespace, default_priority: int = 0) -> RtOptions:
+        """The options given (``--thread-priority`` not given: ``default_priority``)."""
+        priority = default_priority if ns.thread_priority is None else ns.thread_priority
+        return cls(priority, ns.cpu_affinity, ns.lock_memory)
 
 
 def _cpu(text: str) -> int:
@@ -96,17 +103,24 @@ def _priority(text: str) -> int:
 _priority.__name__ = _cpu.__name__ = 'integer'
 
 
-def add_arguments(parser: argparse.ArgumentParser, what: str = 'the real-time loop') -> None:
-    """The three options (docs/real-drive.md, "Real-time set-up")."""
+def add_arguments(
+    parser: argparse.ArgumentParser, what: str = 'the real-time loop', default_priority: int = 0
+) -> None:
+    """The three options (docs/real-drive.md, "Real-time set-up"). ``--thread-priority``
+    not given parses as None: :meth:`RtOptions.from_cli` puts ``default_priority``."""
     g = parser.add_argument_group('real-time scheduling (docs/real-drive.md, "Real-time set-up")')
+    default = (
+        f'default {default_priority}, as ros2_control_node; 0: the normal policy'
+        if default_priority
+        else 'default 0: the normal policy'
+    )
     g.add_argument(
         '--thread-priority',
         type=_priority,
-        default=0,
+        default=None,
         metavar='N',
-        help=f'run {what} SCHED_FIFO at priority N (1-99; ros2_control uses 50; default 0: '
-        'the normal policy); when not permitted, one line says how to grant it and the run '
-        'goes on',
+        help=f'run {what} SCHED_FIFO at priority N (1-99; {default}); when not permitted, '
+        'one line says how to grant it and the run goes on',
     )
     g.add_argument(
         '--cpu-affinity',

@@ -50,10 +50,26 @@ class PublishStalled(RuntimeError):
     """A reliable reader took nothing for longer than the back-pressure timeout."""
 
 
+#: publishers whose messages a real-time loop hands to an ``outbox.Outbox`` instead of
+#: publishing them itself (id(publisher) -> its Outbox; ``Outbox.route``)
+ROUTES: dict[int, Any] = {}
+
+
 def publish_lossless(pub, msg, context) -> int:
     """Publish ``msg`` on a reliable KEEP_ALL publisher, never dropping it: the common
     case is one ``publish``; if a full reader made it raise, :func:`publish_retry`.
-    Returns the back-pressure retries (0 when the first publish went through)."""
+    Returns the back-pressure retries (0 when the first publish went through).
+
+    ``msg``: a message, its CDR bytes, or a ``cdr.Float64ArrayWire``. A publisher routed
+    to an outbox (a composed real-time loop, :data:`ROUTES`) hands the message over
+    instead: never blocks, 0 retries."""
+    box = ROUTES.get(id(pub))
+    if box is not None:
+        box.emit(pub, msg)
+        return 0
+    payload = getattr(msg, 'payload', None)
+    if payload is not None:
+        msg = payload()
     try:
         pub.publish(msg)
         return 0

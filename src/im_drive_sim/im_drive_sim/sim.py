@@ -219,6 +219,15 @@ class DriveSim:
         K.step_into_kernel(self.S, self.P, self._noise, float(isq_ref), float(load_torque), out)
         self._consume()
 
+    def warm_up(self, out: np.ndarray) -> None:
+        """Compile (or load from numba's cache) the step kernel for output arrays like
+        ``out`` (its alignment is part of numba's signature), on scratch copies of the
+        model's state: nothing changes. A real-time loop calls this before its first
+        period, which must not wait seconds for a compiler."""
+        saved = out.copy()
+        K.step_into_kernel(self.S.copy(), self.P, self._noise.copy(), 0.0, 0.0, out)
+        out[:] = saved
+
     @property
     def command_delay(self) -> int:
         """The drive's command delay d [periods] (``DriveConfig.command_delay``)."""

@@ -195,7 +195,7 @@ def _build_parser() -> argparse.ArgumentParser:
         f'{DISCOVERY_TIMEOUT["none"]:g} with none, which waits only until it is found; '
         'discovery took up to 2.3 s on a loaded 2-core machine)',
     )
-    rt.add_arguments(ap, 'the composed loop (--bench realtime)')
+    rt.add_arguments(ap, 'the composed loop (--bench realtime)', rt.DEFAULT_PRIORITY)
     g = ap.add_argument_group('algorithm options (docs/optimisers.md)')
     seen: dict[str, Any] = {}
     for specs in optim.OPTIONS.values():

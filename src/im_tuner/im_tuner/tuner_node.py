@@ -397,7 +397,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                     node,
                     exe,
                     realtime=bench_mode == 'realtime',
-                    rt_options=rt.RtOptions.from_cli(cli),
+                    rt_options=rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY),
                     drive=drive_choice or drive,
                     drive_overrides=drive_over,
                     controller_overrides=ctl_over,

@@ -138,6 +138,25 @@ def parameter_args(params: list[Parameter]) -> list[str]:
 
 
 # ------------------------------------------------------------------------------ in process
+def say_outbox_losses(outbox: Any) -> None:
+    """One line on stderr when the real-time loop's outbox dropped or could not publish
+    a message (a reader that stopped taking; a full ring): the run says so."""
+    lost = outbox.lost()
+    if lost:
+        where = ', '.join(
+            f'{topic} {r["lost_dds"] + r["publish_failed"] + r.get("lost_recorder", 0)}'
+            for topic, r in outbox.counts().items()
+            if r['lost_dds'] + r['publish_failed'] + r.get('lost_recorder', 0)
+        )
+        print(
+            f'warning: the real-time loop could not deliver {lost} messages ({where}): '
+            'a reader that stopped taking, or a full outbox; counted in the summary '
+            "(loop.outbox) and the bag's im_tuner.outbox metadata",
+            file=sys.stderr,
+            flush=True,
+        )
+
+
 class InProcess:
     """``--bench inproc`` (lock-step) or ``realtime`` (the composed real-time bench,
     ``realtime.RealtimeBench``): the nodes in this process, the recorder polled between
@@ -178,6 +197,8 @@ class InProcess:
                 compression=compression,
                 extra_metadata=meta,
                 command=command,
+                # the real-time loop's topics: from its outbox's tap, lossless
+                taps=b.outbox.tap() if hasattr(b, 'outbox') else None,
             )
             self.rec.wait_matched(10.0)
             b.add_poller(self.rec.poll, RECORD_POLL_STEPS)
@@ -224,6 +245,9 @@ class InProcess:
         return True  # the recorder matched every topic before the first step
 
     def drive_report(self) -> dict[str, Any] | None:
+        stop_loop = getattr(self.bench, 'stop_loop', None)
+        if callable(stop_loop):
+            stop_loop()  # the run is over: zero current, and counters that stand still
         d = self.bench.drive
         report = drive_report(
             {
@@ -241,6 +265,10 @@ class InProcess:
             return []
         rec, self.rec = self.rec, None
         self.bench.final_status()  # the drive's counters at exit, into the bag
+        outbox = getattr(self.bench, 'outbox', None)
+        if outbox is not None:  # what the loop could not hand to DDS or the recorder
+            rec.add_metadata('im_tuner.outbox', outbox.counts())
+            say_outbox_losses(outbox)
         counts = rec.close(settle=0.05)
         lost = sum(c['lost'] for c in counts.values())
         if lost:

@@ -5,19 +5,27 @@ machine (a bare two-process rclpy round trip is 150-235 us, more than the 200 us
 docs/real-drive.md). ros2_control loads controllers into the process that owns the
 hardware for the same reason. Here both stay separate rclpy nodes -- their own topics,
 parameters and services on the graph, the same classes as ``drive_sim``/``example_drive``
-and ``controller`` -- composed into one process (as rclcpp_components does), and one
-real-time loop runs them, every Ts = 200 us on the wall clock (:class:`pacing.Pacer`):
+and ``controller`` -- composed into one process (as rclcpp_components does), and a
+real-time loop runs them in its own thread, every Ts = 200 us on the wall clock
+(:class:`pacing.Pacer`), as ros2_control_node runs its update loop:
 
-1. at the period start, the drive takes the command(s), runs its watchdog, steps the
-   model or writes/reads the hardware, and publishes state k (``applied_step`` = the
-   command it applied);
-2. the controller takes state k and answers (``drive/command``, internals, and a loss at
-   the end of an experiment);
-3. the drive takes that command at once: it drives the next period (fresh);
-4. then, in the rest of the period: the recorder takes its messages (in a period with
-   slack; at least every ``RECORD_POLL_STEPS`` periods), parameter and service requests
-   are served (every
-   ``service_period_steps`` periods, when any is pending), the drive status once a second.
+* **the loop thread** (``--thread-priority``/``--cpu-affinity``/``--lock-memory`` apply to
+  it) does only the control work of a period: the drive takes the command, runs its
+  watchdog, steps the model or writes/reads the hardware; the controller takes state k
+  *in memory* and answers; the drive takes that command at once (fresh for the next
+  period). What the nodes publish is handed to an :class:`im_drive_sim.outbox.Outbox`
+  (bounded rings, never blocking); experiment ends are left for the serving thread. It
+  never waits on DDS, a lock held by a request for long, the log or the garbage collector.
+* **a publisher thread** (``outbox.PublisherThread``) publishes the rings on the graph,
+  with the GIL released in rcl: a reader that stops taking (a frozen ``ros2 topic echo``)
+  can block it, never the loop; what it could not deliver is counted.
+* **the serving thread** (the tuner's, in :meth:`RealtimeBench.spin_until`): parameter and
+  service requests (the changes that touch the loop take the loop lock for a few
+  microseconds), the tuner's own callbacks, experiment results (published and logged),
+  the recorder (which takes the loop's topics from the outbox's tap rings, so the bag is
+  lossless whatever DDS readers do), the drive status once a second, and the garbage
+  collector's young generation. The loop runs on while the tuner works between
+  experiments: a drive that cannot pause is never left without control.
 
 The drive side is pluggable (:func:`make_drive`): the simulator in real time (the default),
 the example drive, or a user's class named ``package.module:Class`` -- a hardware class
@@ -25,18 +33,21 @@ like ``example_drive.Hardware`` (``Class(config)`` with ``read()``/``write()``) 
 the example drive's ROS side, or a whole drive node class (an ``ExampleDrive`` subclass);
 :mod:`.drive_spec` checks a class against that contract.
 
-Python's own jitter is kept out of the loop: nothing is allocated per period by the loop
-itself (the per-period timings go into preallocated arrays), no logging on the hot path,
-and the garbage collector is frozen at start (``gc.freeze``: the long-lived objects of the
-set-up are never scanned again) and run by hand, young generation only, at the end of a
-period with time left. :meth:`RealtimeBench.timing` reports the per-period work against
-the 200 us budget.
+Python's own jitter is kept out of the loop: the loop itself allocates nothing per period
+(timings go into preallocated arrays), logs nothing, and the garbage collector is frozen at
+start (``gc.freeze``) and run by hand in the serving thread; the interpreter's thread
+switch interval is lowered to :data:`SWITCH_INTERVAL` while the loop runs, so a thread
+holding the GIL gives it up within tens of microseconds when the loop wakes.
+:meth:`RealtimeBench.timing` reports the per-period work against the 200 us budget.
 """
 
 from __future__ import annotations
 
+import collections
+import ctypes
 import gc
 import sys
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -48,7 +59,9 @@ from rclpy.parameter import Parameter
 
 from im_controller.controller_node import ControllerNode
 from im_drive_sim import rt
+from im_drive_sim.outbox import Outbox, PublisherThread
 from im_drive_sim.pacing import LATENESS_BINS, Pacer
+from im_drive_sim.runtime import ROUTES
 
 from ..tuning import BenchFailure
 from .drive_spec import DriveChoice, build_node, resolve
@@ -56,6 +69,29 @@ from .inprocess import compose
 
 #: Periods of per-period timings kept (a ring): 10 min at 5 kHz.
 TIMING_CAPACITY = 3_000_000
+
+#: The interpreter's thread switch interval while the loop runs [s] (default 5 ms): how
+#: long the loop thread, woken for its period, waits for a thread holding the GIL before
+#: asking for it.
+SWITCH_INTERVAL = 50e-6
+
+#: The loop thread's busy-wait before a period start [s]: it sleeps until then (timer
+#: slack 1 ns, PR_SET_TIMERSLACK) and spins the rest, holding the GIL only that long.
+LOOP_SPIN_MARGIN = 40e-6
+
+#: Outbox slots [bytes] and capacities [messages] per message type of the loop's topics
+#: (other types: OTHER_SLOT, the outbox's default capacity).
+SLOTS = {
+    'std_msgs/msg/Float64MultiArray': (512, 5000),
+    'rosgraph_msgs/msg/Clock': (64, 5000),
+    'sensor_msgs/msg/JointState': (512, 5000),
+    'diagnostic_msgs/msg/DiagnosticArray': (32768, 64),
+}
+OTHER_SLOT = (4096, 1000)
+
+#: Topics the loop's nodes publish that stay off the outbox (rclpy publishes them from
+#: the serving thread, as any node does).
+NOT_ROUTED = ('/parameter_events', '/rosout')
 
 
 class DriveLoopError(BenchFailure):
@@ -105,12 +141,28 @@ def make_drive(spec: str | DriveChoice, context: Any, overrides: list[Parameter]
     return build_node(choice or resolve(name, None, build=False), context, mine)
 
 
-class RealtimeBench:
-    """A drive + the controller in this process, one real-time loop (module docstring).
+def _type_name(cls: type) -> str:
+    """'pkg/msg/Type' of a message class."""
+    return f'{cls.__module__.split(".")[0]}/msg/{cls.__name__}'
 
-    The same interface as the lock-step ``InProcessBench``: ``spin_until(predicate,
-    timeout)`` runs periods until ``predicate()``; pollers (the recorder) run between
-    periods; the tuner's node can be added to :attr:`executor`.
+
+def _precise_sleep() -> None:
+    """Timer slack 1 ns for the calling thread (Linux; the default 50 us makes every
+    sleep of the loop wake up to 50 us late). Nothing elsewhere."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(29, ctypes.c_ulong(1), 0, 0, 0)  # PR_SET_TIMERSLACK
+    except (OSError, AttributeError):
+        pass
+
+
+class RealtimeBench:
+    """A drive + the controller in this process, one real-time loop in its own thread
+    (module docstring).
+
+    The interface of the lock-step ``InProcessBench``: ``spin_until(predicate, timeout)``
+    serves requests (the tuner's node can be added to :attr:`executor`) and pollers (the
+    recorder) until ``predicate()``; the loop runs meanwhile, and between calls.
     """
 
     def __init__(
@@ -123,14 +175,17 @@ class RealtimeBench:
         before_start: Callable[[RealtimeBench], None] | None = None,
         should_stop: Callable[[], bool] | None = None,
         rt_options: rt.RtOptions | None = None,
+        outbox_capacity: int | None = None,
     ) -> None:
         """``before_start(bench)`` runs once both nodes exist and match, before state 0:
-        the place to start a recorder that must not miss the first message.
-        ``should_stop()``: checked every 5 periods; once True the drive is safe-stopped
-        (zero current, latched) -- the tuner's SIGINT/SIGTERM. ``rt_options``: the
-        loop thread's real-time scheduling (:mod:`im_drive_sim.rt`), applied here, before
-        the recorder starts (its metadata records it); what is not permitted is said in
-        one line each on stderr, and the run goes on."""
+        the place to start a recorder that must not miss the first message (it takes the
+        loop's topics from :attr:`outbox`'s tap: ``outbox.tap()``). ``should_stop()``:
+        checked by the loop every 5 ms and by the serving thread; once True the drive is
+        safe-stopped (zero current, latched) -- the tuner's SIGINT/SIGTERM.
+        ``rt_options``: the loop thread's real-time scheduling (:mod:`im_drive_sim.rt`),
+        applied in it before the recorder starts (its metadata records it); what is not
+        permitted is said in one line each on stderr, and the run goes on.
+        ``outbox_capacity``: messages per topic ring (None: :data:`SLOTS`)."""
         self.drive = make_drive(drive, context, list(drive_overrides or []))
         self.drive_kind = drive
         self.controller, self.executor = compose(
@@ -145,146 +200,217 @@ class RealtimeBench:
             ),
         )
         self.stop_requested = False
-        #: called between periods (every 5): True -> :meth:`safe_stop` (the tuner's
-        #: SIGINT/SIGTERM: zero current within a millisecond, before anything else)
+        #: True -> :meth:`safe_stop` (the tuner's SIGINT/SIGTERM: zero current within
+        #: 5 ms, whatever the serving thread is doing)
         self.should_stop: Callable[[], bool] = should_stop or (lambda: False)
         self.safe_stopped = False
         self.failed: DriveLoopError | None = None  #: the loop raised: it runs no more
-        self._pollers: list[tuple[Callable[[], Any], int]] = []
-        self._polled: list[int] = []  # the period each poller last ran
-        self.service_period = int(self.controller.service_period_steps)
-        # a cheap test for pending requests: one WaitSet over every service and client of
-        # the executor's nodes (built from the nodes' entity lists; rebuilt when they change)
+        self._pollers: list[tuple[Callable[[], Any], float]] = []
+        self._polled: list[float] = []
         self._service_ws: Any = None
         self._service_count = -1
-        if not self.controller.client.wait_for_drive(10.0):
+        self._entities_checked = 0.0
+        self._next_spin = 0.0
+        self._spin_always = False
+        self._entities: tuple[list, list, list] = ([], [], [])
+        ctl, drv = self.controller, self.drive
+        if not ctl.client.wait_for_drive(10.0):
             self.destroy()
             raise RuntimeError('the controller and the drive did not match within 10 s')
+
+        # -- in memory between the two nodes; their publishers through the outbox ---------
+        self.lock = threading.RLock()  #: held by the loop during a period's control work
+        ctl.loop_lock = self.lock
+        ctl.deferred = collections.deque()
+        ctl.client.hand_over = drv.commands.hand_over  # the answer, to the drive at once
+        # nothing takes the DDS copies of state and command in this process any more
+        ctl.io_node.destroy_subscription(ctl.client.state_sub)
+        drv.io_node.destroy_subscription(drv.cmd_sub)
+        self.outbox = Outbox()
+        for node in (drv, getattr(drv, 'io_node', None), ctl, ctl.io_node):
+            if node is None:
+                continue
+            for pub in node.publishers:
+                if pub.topic_name in NOT_ROUTED:
+                    continue
+                type_name = _type_name(pub.msg_type)
+                slot, cap = SLOTS.get(type_name, OTHER_SLOT)
+                self.outbox.add(pub, type_name, slot, outbox_capacity or cap)
+                ROUTES[id(pub)] = self.outbox
+
+        # -- the loop thread: real-time options applied in it, then it waits for go -------
         opts = rt_options or rt.RtOptions()
-        refused = rt.apply(opts) if opts.requested else []
-        for line in refused:
-            print(f'warning: {line}', file=sys.stderr, flush=True)
-        #: the loop thread's scheduling (policy, priority, affinity, memory lock, kernel,
-        #: CPU): in the summary and the bag's metadata
-        self.rt_report: dict[str, Any] = rt.report(opts, refused)
-        if before_start is not None:
-            try:
-                before_start(self)
-            except Exception:
-                self.destroy()
-                raise
-        ts = float(self.controller.Ts)
+        self._rt_options = opts
+        self.rt_report: dict[str, Any] = {}
+        self._refused: list[str] = []
+        self._ready = threading.Event()
+        self._go = threading.Event()
+        self._quit = False
+        self._thread = threading.Thread(target=self._loop_main, name='rt-loop', daemon=True)
+        ts = float(ctl.Ts)
         self.pacer = Pacer(
             ts,
-            float(getattr(self.drive, 'spin_margin', 150e-6)),
+            min(LOOP_SPIN_MARGIN, float(getattr(drv, 'spin_margin', LOOP_SPIN_MARGIN))),
             # a drive that cannot pause: late starts are periods held (docs/real-drive.md)
-            wall_clock=bool(getattr(self.drive, 'wall_clock', False)),
+            wall_clock=bool(getattr(drv, 'wall_clock', False)),
         )
         # per-period timings [us] (a ring): the drive's period done (state k published),
         # the controller's answer out, the command taken by the drive, the whole period
         self.t_state = np.zeros(TIMING_CAPACITY, np.float32)
         self.t_answer = np.zeros(TIMING_CAPACITY, np.float32)
         self.t_work = np.zeros(TIMING_CAPACITY, np.float32)
+        self.t_late = np.zeros(TIMING_CAPACITY, np.float32)  # the period start's lateness
         self.periods = 0
         self.answers_missed = 0  #: periods whose state the controller had no answer for
         self.gc_runs = 0
+        self.publisher: PublisherThread | None = None
+        self._switch_interval = sys.getswitchinterval()
+        self._thread.start()
+        self._ready.wait(10.0)
+        for line in self._refused:
+            print(f'warning: {line}', file=sys.stderr, flush=True)
+        if before_start is not None:
+            try:
+                before_start(self)
+            except Exception:
+                self.destroy()
+                raise
         self._t0 = time.perf_counter()
         self._next_status = self._t0 + 1.0
         gc.collect()
         gc.freeze()  # the set-up's objects: never scanned again
-        gc.disable()  # young-generation collections by hand, in a period's slack
-        self.drive.start()
+        gc.disable()  # young-generation collections by hand, in the serving thread
+        warm_up = getattr(drv, 'warm_up', None)
+        if callable(warm_up):
+            warm_up()  # numba compiles here, not in the first period
+        drv.start()
         # state 0 answered before the clock starts: the first period is driven fresh
-        deadline = time.monotonic() + 1.0
-        while not self.controller.answer() and time.monotonic() < deadline:
-            self.controller.take(0.01)
-        self.drive.take_commands()
-        self.pacer.restart()
+        ctl.offer(drv.latest_state())
+        ctl.answer()
+        drv.take_commands()
+        self.publisher = PublisherThread(self.outbox)
+        # one serving round now: the first of each costs up to ~150 ms (an executor's
+        # first spin, the first status), never beside a live loop
+        self._service()
+        self._next_status = time.perf_counter() + 1.0
+        self._pending_requests(0.0)
+        self.executor.spin_once(timeout_sec=0.0)
+        sys.setswitchinterval(SWITCH_INTERVAL)
+        self._go.set()
 
-    # -- the loop --------------------------------------------------------------------------
-    def add_poller(self, poll: Callable[[], Any], period_steps: int = 16) -> None:
-        """Call ``poll()`` at least every ``period_steps`` periods, and earlier (every
-        period_steps / 8) in a period with slack: small polls keep each period's work
-        under the budget (the recorder: it must take its messages between periods; Fast
-        DDS keeps at most 5000 samples per reader)."""
-        if not 1 <= period_steps <= 1000:
-            raise ValueError(f'period_steps must be in [1, 1000], got {period_steps}')
-        self._pollers.append((poll, int(period_steps)))
-        self._polled.append(0)
+    # -- the loop thread --------------------------------------------------------------------
+    def _loop_main(self) -> None:
+        opts = self._rt_options
+        try:
+            self._refused = rt.apply(opts) if opts.requested else []
+            self.rt_report = rt.report(opts, self._refused)
+            _precise_sleep()
+        finally:
+            self._ready.set()
+        self._go.wait()
+        if self._quit:
+            return
+        self.pacer.restart()
+        n = 0
+        try:
+            while not self._quit:
+                self.step()
+                n += 1
+                if n % 25 == 0 and not self.safe_stopped and self.should_stop():
+                    self.safe_stop()
+        except BaseException as exc:
+            self.safe_stop()  # an exception in the loop: zero current before anything else
+            self.failed = DriveLoopError(
+                f'the real-time loop stopped on {type(exc).__name__}: {exc} (in '
+                f'{_where(exc)}); zero current and zero load were written to the drive'
+            )
+            self.failed.__cause__ = exc
 
     def step(self) -> bool:
-        """One real-time period (module docstring). Returns True."""
+        """One real-time period (module docstring), in the loop thread. Returns True."""
         drive, ctl, pacer = self.drive, self.controller, self.pacer
-        t0 = pacer.wait(drive.wait_command, drive.take_commands)
-        c = drive.counters
-        c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
-        if pacer.missed:
-            drive.period(pacer.missed)  # periods that went by, the old command held
-        else:
-            drive.period()
-        t1 = time.perf_counter()
-        ctl.take()
-        if not ctl._pending:
-            # DDS has not handed the state over yet: wait for it within this period
-            ctl.take(max(1e-6, t0 + 0.5 * pacer.ts - time.perf_counter()))
-        answered = ctl.answer()
-        t2 = time.perf_counter()
-        if answered:
-            drive.take_commands()  # fresh for the next period
-        else:
-            self.answers_missed += 1
+        pacer.wait(time.sleep, _nothing)
+        # the work is timed from the actual start; how late that start was is the
+        # pacer's lateness (histogram, overruns), not the period's work
+        t0 = time.perf_counter()
+        with self.lock:
+            c = drive.counters
+            c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
+            if pacer.missed:
+                drive.period(pacer.missed)  # periods that went by, the old command held
+            else:
+                drive.period()
+            t1 = time.perf_counter()
+            ctl.offer(drive.latest_state())
+            answered = ctl.answer()
+            t2 = time.perf_counter()
+            if answered:
+                drive.take_commands()  # fresh for the next period
+            else:
+                self.answers_missed += 1
         i = self.periods % TIMING_CAPACITY
         self.t_state[i] = 1e6 * (t1 - t0)
         self.t_answer[i] = 1e6 * (t2 - t1)
-        self.periods += 1
-        n = self.periods
-        # pollers: in a period with slack, once `every/8` periods passed; always once
-        # `every` passed (a reader's backlog stays bounded either way)
-        slack = time.perf_counter() - t0 < 0.4 * pacer.ts
-        for j, (poll, every) in enumerate(self._pollers):
-            since = n - self._polled[j]
-            if since >= every or (slack and since >= max(1, every // 8)):
-                poll()
-                self._polled[j] = n
-                slack = False
-        if n % self.service_period == 0:
-            self._serve()
-        if n % 5000 == 0:
-            self._status()
-        # the young generation, by hand, only with half a period left
-        if gc.get_count()[0] > 2000 and time.perf_counter() - t0 < 0.5 * pacer.ts:
-            gc.collect(0)
-            self.gc_runs += 1
         self.t_work[i] = 1e6 * (time.perf_counter() - t0)
+        self.t_late[i] = 1e6 * pacer.lateness_s
+        self.periods += 1
         return True
 
-    def _serve(self) -> None:
-        """Serve parameter/service requests and the tuner's responses, if any is pending:
-        a full executor spin costs ~400 us, a wait on the prebuilt WaitSet a few."""
-        if self._pending_requests():
+    # -- the serving thread -----------------------------------------------------------------
+    def add_poller(self, poll: Callable[[], Any], period_steps: int = 16) -> None:
+        """Call ``poll()`` from the serving thread at least every ``period_steps`` periods
+        of time (the recorder: it drains the outbox's tap rings and its subscriptions)."""
+        if not 1 <= period_steps <= 1000:
+            raise ValueError(f'period_steps must be in [1, 1000], got {period_steps}')
+        self._pollers.append((poll, period_steps * float(self.controller.Ts)))
+        self._polled.append(0.0)
+
+    def _service(self) -> None:
+        """The serving thread's round: experiment results, pollers, status, gc."""
+        self.controller.flush_deferred()
+        now = time.perf_counter()
+        for j, (poll, every) in enumerate(self._pollers):
+            if now - self._polled[j] >= every:
+                poll()
+                self._polled[j] = now
+        if now >= self._next_status:
+            self.drive.publish_status()
+            self._next_status = now + 1.0
+        if gc.get_count()[0] > 2000:
+            gc.collect(0)
+            self.gc_runs += 1
+        if self.publisher is not None and self.publisher.error is not None:
+            raise DriveLoopError(f'the outbox publisher stopped: {self.publisher.error!r}')
+
+    def _serve(self, timeout: float) -> None:
+        """Wait up to ``timeout`` [s] for a request or a response, then serve it: a full
+        executor spin costs ~400 us, a wait on the prebuilt WaitSet a few."""
+        if self._pending_requests(timeout):
             self.executor.spin_once(timeout_sec=0.0)
 
-    def _pending_requests(self) -> bool:
-        nodes = list(self.executor.get_nodes())
-        services = [s for n in nodes for s in n.services]
-        clients = [c for n in nodes for c in n.clients]
-        subs = [
-            s
-            for n in nodes
-            for s in n.subscriptions
-            if n is not self.drive and n is not self.controller
-        ]
-        timers = [t for n in nodes for t in n.timers]
-        guards = [g for n in nodes for g in n.guards]
-        count = len(services) + len(clients) + len(subs) + len(timers) + len(guards)
-        if timers or guards:
-            return True  # something this test does not cover: spin every time
-        if count != self._service_count:
-            self._service_count = count
-            self._entities = (services, clients, subs)
-            self._service_ws = _rclpy.WaitSet(
-                len(subs), 0, 0, len(clients), len(services), 0, self.drive.context.handle
-            )
+    def _pending_requests(self, timeout: float) -> bool:
+        now = time.monotonic()
+        if now >= self._entities_checked:
+            # the nodes' entities, looked at twice a second (walking them costs ~100 us
+            # of Python, the GIL held: too much for every millisecond)
+            self._entities_checked = now + 0.5
+            nodes = list(self.executor.get_nodes())
+            services = [s for n in nodes for s in n.services]
+            clients = [c for n in nodes for c in n.clients]
+            subs = [s for n in nodes for s in n.subscriptions]
+            self._spin_always = any(list(n.timers) or list(n.guards) for n in nodes)
+            count = len(services) + len(clients) + len(subs)
+            if count != self._service_count:
+                self._service_count = count
+                self._entities = (services, clients, subs)
+                self._service_ws = _rclpy.WaitSet(
+                    len(subs), 0, 0, len(clients), len(services), 0, self.drive.context.handle
+                )
+        if self._spin_always:
+            return True  # something this wait does not cover (a timer): spin every time
+        if now >= self._next_spin:
+            self._next_spin = now + 0.05  # and every 50 ms (an entity made since we looked)
+            return True
         services, clients, subs = self._entities
         ws = self._service_ws
         ws.clear_entities()
@@ -294,49 +420,41 @@ class RealtimeBench:
             ws.add_client(c.handle)
         for s in services:
             ws.add_service(s.handle)
-        ws.wait(0)
+        ws.wait(int(timeout * 1e9))
         return (
             any(ws.is_ready('subscription', i) for i in range(len(subs)))
             or any(ws.is_ready('client', i) for i in range(len(clients)))
             or any(ws.is_ready('service', i) for i in range(len(services)))
         )
 
-    def _status(self) -> None:
-        now = time.perf_counter()
-        if now >= self._next_status:
-            self.drive.publish_status()
-            self._next_status = now + 1.0
-
     def final_status(self) -> None:
-        """The drive's counters at exit (before a recorder in this process is closed)."""
+        """Stop the loop (zero current), publish everything it handed over and the drive's
+        counters at exit (before a recorder in this process is closed)."""
+        self.stop_loop()
+        self.controller.flush_deferred()
         self.drive.publish_status()
+        if self.publisher is not None:
+            self.publisher.stop()
 
     def spin_until(self, predicate: Callable[[], bool], timeout: float | None = None) -> bool:
-        """Run periods until ``predicate()`` (checked between periods, every 5 periods
-        once it was false) or the timeout [s]; requests are served every period here
-        (the tuner is waiting on one)."""
+        """Serve requests, results and pollers until ``predicate()`` (checked about every
+        millisecond) or the timeout [s]; the loop runs in its thread meanwhile."""
         deadline = None if timeout is None else time.monotonic() + timeout
-        if self.failed is not None:  # a loop that raised runs no more periods
-            raise DriveLoopError('the real-time loop stopped earlier (see above)')
         try:
             while not self.stop_requested and rclpy.ok(context=self.drive.context):
+                if self.failed is not None:
+                    raise self.failed
                 if not self.safe_stopped and self.should_stop():
                     self.safe_stop()
+                self._service()
                 if predicate():
                     return True
                 if deadline is not None and time.monotonic() > deadline:
                     return False
-                for _ in range(5):
-                    self.step()
-                self._serve()  # the tuner waits on a response: serve it within a ms
+                self._serve(0.005)
         except BaseException as exc:
-            self.safe_stop()  # an exception in the loop: zero current before anything else
-            if isinstance(exc, Exception) and not isinstance(exc, BenchFailure):
-                self.failed = DriveLoopError(
-                    f'the real-time loop stopped on {type(exc).__name__}: {exc} (in '
-                    f'{_where(exc)}); zero current and zero load were written to the drive'
-                )
-                raise self.failed from exc
+            if not isinstance(exc, DriveLoopError):
+                self.safe_stop()  # anything else on the way out: zero current first
             raise
         return predicate()
 
@@ -345,19 +463,34 @@ class RealtimeBench:
         period (the loop may still run to serve the tuner's last calls). Every way out of
         a run comes here: :attr:`should_stop` (a signal), an exception in the loop,
         :meth:`destroy` (the run's end, a failure)."""
-        self.safe_stopped = True
-        stop = getattr(self.drive, 'safe_stop', None)
-        if callable(stop):
-            stop()
+        with getattr(self, 'lock', threading.RLock()):
+            self.safe_stopped = True
+            stop = getattr(self.drive, 'safe_stop', None)
+            if callable(stop):
+                stop()
+
+    def stop_loop(self, timeout: float = 2.0) -> None:
+        """Zero current, then end the loop thread (idempotent)."""
+        self.safe_stop()
+        self._quit = True
+        thread = getattr(self, '_thread', None)
+        if thread is None:
+            return  # the bench failed before its loop was made
+        self._go.set()
+        if thread.is_alive() and thread is not threading.current_thread():
+            thread.join(timeout)
+        sys.setswitchinterval(self._switch_interval)
 
     def run(self) -> None:
         self.spin_until(lambda: False)
 
     # -- figures ---------------------------------------------------------------------------
     def timing(self) -> dict[str, Any]:
-        """Per-period figures of the loop (us; over the last TIMING_CAPACITY periods)."""
+        """Per-period figures of the loop (us; over the last TIMING_CAPACITY periods) and
+        what the outbox could not deliver."""
         n = min(self.periods, TIMING_CAPACITY)
         c = self.drive.counters
+        counts = self.outbox.counts()
         out: dict[str, Any] = {
             'periods': self.periods,
             'overruns': int(self.pacer.overruns),
@@ -370,6 +503,12 @@ class RealtimeBench:
             'gc_young_runs': self.gc_runs,
             'realtime': self.rt_report,
             'drive': {k: getattr(c, k) for k in ('fresh', 'held', 'late', 'watchdog_trips')},
+            # per topic: handed over, published, lost (a full ring), refused by rcl
+            'outbox': counts,
+            'outbox_lost': sum(
+                r['lost_dds'] + r['publish_failed'] + r.get('lost_recorder', 0)
+                for r in counts.values()
+            ),
         }
         for name, arr in (
             ('drive_period_us', self.t_state),
@@ -390,14 +529,24 @@ class RealtimeBench:
 
     def destroy(self) -> None:
         """Zero current to the drive and close its hardware first, then the nodes."""
-        gc.enable()
-        gc.unfreeze()
         try:
-            self.safe_stop()
+            self.stop_loop()
             close = getattr(self.drive, 'close_hardware', None)
             if callable(close):
                 close()
         finally:
+            gc.enable()
+            gc.unfreeze()
+            publisher = getattr(self, 'publisher', None)
+            if publisher is not None:
+                publisher.stop(timeout=0.5)
+            outbox = getattr(self, 'outbox', None)
+            for ch in outbox.channels if outbox is not None else []:
+                ROUTES.pop(id(ch.publisher), None)
             self.executor.shutdown()
             self.controller.destroy_node()
             self.drive.destroy_node()
+
+
+def _nothing() -> None:
+    pass

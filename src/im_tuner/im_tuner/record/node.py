@@ -45,6 +45,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from rclpy.node import Node
@@ -97,7 +98,7 @@ class _Topic:
     name: str
     type: str
     channel: int
-    sub: object  # rclpy Subscription
+    sub: object  # rclpy Subscription (None: a tapped topic, Recorder.add_tap)
     reliable: bool
     qos_profiles: list[dict]
     type_hash: str
@@ -204,7 +205,10 @@ class Recorder:
         extra_metadata: dict[str, dict] | None = None,
         command: list[str] | None = None,
         background_writes: bool = True,
+        taps: dict[str, Any] | None = None,
     ) -> None:
+        """``taps``: topics to take from a real-time loop's outbox instead of DDS
+        (:meth:`add_tap`)."""
         self.node = node
         self.log = node.get_logger()
         self.out = prepare_bag_dir(Path(out))
@@ -223,6 +227,9 @@ class Recorder:
         self.max_chunk_age = max_chunk_age
         self.discovery_period = discovery_period
         self.topics: dict[str, _Topic] = {}
+        #: topics taken from a real-time loop's outbox instead of DDS (add_tap): the
+        #: topic and its ring (im_drive_sim.outbox.Channel)
+        self._taps: list[tuple[_Topic, Any]] = []
         self.unrecordable: dict[str, str] = {}
         self.unmatched: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
@@ -245,6 +252,8 @@ class Recorder:
         # Load the take kernel (numba: 0.3 s from its cache, seconds to compile) before any
         # reader matches: a reliable KEEP_ALL reader that is not taken fills up, and then
         # back-pressures the 5 kHz publishers -- a stalled drive, aborted experiments.
+        if taps:
+            self.add_tap(taps)
         self.drain()
         self.discover()
 
@@ -272,6 +281,64 @@ class Recorder:
         self._check_matches()
         return added
 
+    def _schema(self, type_name: str) -> int:
+        if type_name not in self._schemas:
+            try:
+                encoding, text = schema_for(type_name)
+            except MsgDefError as exc:
+                self.log.warning(
+                    f'{type_name}: no message definition ({exc}); recorded without schema text'
+                )
+                encoding, text = 'ros2msg', ''
+            self._schemas[type_name] = self.writer.add_schema(
+                type_name, encoding, text.encode('utf-8')
+            )
+        return self._schemas[type_name]
+
+    def add_tap(self, channels: dict[str, Any]) -> None:
+        """Record these topics from a real-time loop's outbox (``im_drive_sim.outbox``:
+        topic -> Channel with a ``tap`` ring) instead of subscribing: every message the
+        loop handed over, whatever DDS readers do (a frozen one cannot cost the bag a
+        message). Call before the loop starts; each :meth:`poll` drains the rings."""
+        for name, ch in channels.items():
+            if name in self.topics:
+                raise RecorderError(f'{name} is already recorded from DDS')
+            infos = self.node.get_publishers_info_by_topic(name)
+            profiles = [_endpoint_qos(i) for i in infos]
+            type_hash = _type_hash(infos[0]) if infos else ''
+            channel = self.writer.add_channel(
+                name,
+                self._schema(ch.type_name),
+                'cdr',
+                {'offered_qos_profiles': qos_yaml(profiles), 'topic_type_hash': type_hash},
+            )
+            t = _Topic(name, ch.type_name, channel, None, True, profiles, type_hash)
+            self.topics[name] = t
+            self._taps.append((t, ch))
+            # compile (or load) the kernel now: never in the first poll beside a live loop
+            r, ck = ch.tap, self.writer.chunk
+            rcl_take.drain_ring(
+                r.buf, r.lens, r.stamps, r.ctrl, 0, t.channel, ck.buf, ck.idx, ck.st
+            )
+
+    def drain_taps(self) -> int:
+        """Copy what the loop handed over since the last call into the chunk."""
+        total = 0
+        for t, ch in self._taps:
+            r = ch.tap
+            head = int(r.ctrl[0])  # outbox.R_HEAD, read under the GIL: its bytes are there
+            while int(r.ctrl[1]) < head:
+                ck = self.writer.chunk
+                n = rcl_take.drain_ring(
+                    r.buf, r.lens, r.stamps, r.ctrl, head, t.channel, ck.buf, ck.idx, ck.st
+                )
+                total += n
+                if int(r.ctrl[1]) < head:  # the chunk is full
+                    self.writer.flush_chunk()
+                    self._chunk_opened = None
+                    self.writer.chunk.grow(MESSAGE_HEADER_BYTES + int(ch.slot))
+        return total
+
     def _subscribe(self, name: str, type_name: str, infos) -> bool:
         try:
             cls = message_class(type_name)
@@ -287,22 +354,12 @@ class Recorder:
             reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
             durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
         )
-        if type_name not in self._schemas:
-            try:
-                encoding, text = schema_for(type_name)
-            except MsgDefError as exc:
-                self.log.warning(
-                    f'{name}: no message definition ({exc}); recorded without schema text'
-                )
-                encoding, text = 'ros2msg', ''
-            self._schemas[type_name] = self.writer.add_schema(
-                type_name, encoding, text.encode('utf-8')
-            )
+        schema = self._schema(type_name)
         profiles = [_endpoint_qos(i) for i in infos]
         type_hash = _type_hash(infos[0])
         channel = self.writer.add_channel(
             name,
-            self._schemas[type_name],
+            schema,
             'cdr',
             {'offered_qos_profiles': qos_yaml(profiles), 'topic_type_hash': type_hash},
         )
@@ -328,6 +385,7 @@ class Recorder:
             if all(
                 self.node.count_publishers(t.name) <= t.sub.get_publisher_count()
                 for t in self.topics.values()
+                if t.sub is not None
             ):
                 return True
             if time.monotonic() > deadline:
@@ -336,6 +394,8 @@ class Recorder:
 
     def _check_matches(self) -> None:
         for t in self.topics.values():
+            if t.sub is None:
+                continue
             missing = self.node.count_publishers(t.name) - t.sub.get_publisher_count()
             if missing > 0 and self.unmatched.get(t.name, 0) < missing:
                 self.log.warning(
@@ -370,7 +430,7 @@ class Recorder:
 
     def drain(self) -> int:
         """Take every waiting message into the open chunk (closing full chunks)."""
-        total = 0
+        total = self.drain_taps()
         tb = self._take
         while True:
             ch = self.writer.chunk
@@ -414,7 +474,18 @@ class Recorder:
         npubs = int(self._ctrl[rcl_take.C_NPUBS])
         rows = self._pubs[:npubs]
         out = {}
+        for t, ch in self._taps:
+            out[t.name] = {
+                'recorded': int(ch.tap.ctrl[1]),  # outbox.R_TAIL
+                'published': int(ch.put_count),
+                'lost': int(ch.tap.ctrl[2]),  # outbox.R_LOST: the ring was full
+                'publishers': 1,
+                'published_before_recording': 0,
+                'unmatched_publishers': 0,
+            }
         for t in self.topics.values():
+            if t.sub is None:
+                continue
             r = rows[rows[:, rcl_take.P_CHANNEL] == t.channel]
             published = int(np.sum(r[:, rcl_take.P_LAST] - r[:, rcl_take.P_FIRST] + 1))
             out[t.name] = {
@@ -509,6 +580,8 @@ class Recorder:
         self._subs = np.zeros(0, np.uint64)
         self._chans = np.zeros(0, np.int64)
         for t in self.topics.values():
+            if t.sub is None:
+                continue
             with contextlib.suppress(Exception):
                 self.node.destroy_subscription(t.sub)
         self._take.close()

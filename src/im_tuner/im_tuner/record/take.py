@@ -157,7 +157,7 @@ def _place(
     return True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def drain(
     subs: np.ndarray,
     chans: np.ndarray,
@@ -271,3 +271,39 @@ def new_publisher_table(rows: int = 256) -> np.ndarray:
 
 def new_ctrl() -> np.ndarray:
     return np.zeros(C_SIZE, np.int64)
+
+
+@numba.njit(cache=True, nogil=True)
+def drain_ring(
+    rbuf: np.ndarray,
+    rlens: np.ndarray,
+    rstamps: np.ndarray,
+    rctrl: np.ndarray,
+    head: int,
+    channel: int,
+    buf: np.ndarray,
+    idx: np.ndarray,
+    st: np.ndarray,
+) -> int:
+    """Copy the messages [tail, head) of an ``im_drive_sim.outbox.Ring`` (the loop's tap
+    for the recorder) into the chunk as Message records: log and publish time = the wall
+    time the loop handed each over, sequence = its index in the ring's stream. Stops
+    early when the chunk is full (the caller closes it and calls again). Returns how
+    many were copied; the ring's tail advances past each."""
+    cap = rbuf.shape[0]
+    t = rctrl[1]  # outbox.R_TAIL
+    t_start = t
+    while t < head:
+        i = t % cap
+        n = rlens[i]
+        pos = st[0]
+        if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or st[1] >= idx.shape[0]:
+            break
+        stamp = rstamps[i]
+        write_message_header(buf, pos, channel, t & 0xFFFFFFFF, stamp, stamp, n)
+        p = pos + MESSAGE_HEADER_BYTES
+        buf[p : p + n] = rbuf[i, :n]
+        note_message(idx, st, channel, stamp, pos, MESSAGE_HEADER_BYTES + n)
+        t += 1
+        rctrl[1] = t
+    return t - t_start

@@ -1,0 +1,308 @@
+"""What a real-time loop publishes, taken out of its period: bounded rings, a publisher
+thread that never holds the GIL while rcl publishes, and a tap for the run's recorder.
+
+Why (issue 27, docs/real-drive.md "Real-time set-up"): an rclpy ``publish`` costs 5-30 us
+of the loop's 200 us period, and on a reliable topic whose reader stopped taking (a
+visualiser, a ``ros2 topic echo`` suspended with Ctrl-Z) Fast DDS blocks it for up to its
+max blocking time (100 ms) -- with the GIL held, since rclpy does not release it in
+``rcl_publish``. A loop that publishes itself therefore stalls with any frozen reader.
+ros2_control's answer is realtime_tools' RealtimePublisher: the loop hands the message
+over without blocking, a non-real-time thread publishes it, and a message the other side
+had no room for is dropped, never waited for. Here:
+
+* the loop :meth:`Channel.put` s the CDR bytes of each message into a ring per topic and
+  per consumer (single producer, single consumer; preallocated, nothing allocated per
+  message): one ring for the DDS publisher and, when the run records, one for the
+  recorder (:meth:`Outbox.tap`), so that a reader who blocks DDS cannot cost the bag a
+  message;
+* :class:`PublisherThread` drains the DDS rings in a numba kernel that calls
+  ``rcl_publish_serialized_message`` with the GIL released (``nogil``): a publish that
+  blocks holds no Python thread back;
+* a full ring drops the new message for that consumer and counts it (``lost``); a publish
+  rcl refused (a reader that does not take, past the max blocking time) is counted
+  ``failed``. Both go into the run's summary and the bag's metadata
+  (:meth:`Outbox.counts`); in normal operation both are zero.
+
+Ordering: the producer writes the slot, then (from Python, after the kernel returned)
+the head; the consumer reads the head under the GIL, then the slots below it in its
+kernel. The GIL hand-over between the threads is a full memory barrier, so a consumer
+never sees a head before the bytes it covers. The consumer's tail is written only by the
+consumer; a stale tail read by the producer only makes a ring look fuller than it is.
+
+Struct layout (ROS 2 Jazzy headers, as in im_tuner.record.take):
+``rcl_serialized_message_t`` = {uint8* buffer; size_t length; size_t capacity;
+rcutils_allocator_t (5 pointers)}: rcl only reads buffer and length for a publish.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import llvmlite.binding as llb
+import numba
+import numpy as np
+import rclpy.impl.implementation_singleton  # noqa: F401  (loads librcl into the process)
+from numba import types
+
+__all__ = ['Channel', 'Outbox', 'PublisherThread', 'Ring']
+
+
+def _loaded_library(name: str) -> str:
+    """Path of a shared library already mapped into this process (by rclpy)."""
+    with open('/proc/self/maps', encoding='ascii', errors='replace') as f:
+        for line in f:
+            path = line.rstrip().split(' ')[-1]
+            if path.endswith('/' + name):
+                return path
+    raise RuntimeError(f'{name} is not loaded in this process (is rclpy installed?)')
+
+
+llb.load_library_permanently(_loaded_library('librcl.so'))
+
+# Pointers are passed as 64-bit integers: same registers in the x86-64 and AArch64 ABIs.
+_publish = types.ExternalFunction(
+    'rcl_publish_serialized_message',
+    types.int32(types.uint64, types.uint64, types.uint64),
+)
+
+# ring control words
+R_HEAD = 0  #: messages written (producer)
+R_TAIL = 1  #: messages consumed (consumer)
+R_LOST = 2  #: messages dropped: the ring was full (producer)
+R_FAILED = 3  #: messages rcl refused to publish (consumer; DDS rings only)
+R_TOO_BIG = 4  #: messages larger than a slot (producer; counted in lost too)
+R_SIZE = 5
+
+#: default ring capacity [messages]: 2 s of a 5 kHz topic
+DEFAULT_CAPACITY = 10_000
+
+
+@numba.njit(cache=True)
+def _put(buf: np.ndarray, lens: np.ndarray, stamps: np.ndarray, ctrl: np.ndarray,
+         src: np.ndarray, stamp: int) -> bool:  # fmt: skip
+    """Copy ``src`` (uint8) into the next slot; False (and counted) when full or too big.
+    The head is advanced by the caller, after this returns (module docstring)."""
+    cap = buf.shape[0]
+    h = ctrl[R_HEAD]
+    n = src.shape[0]
+    if n > buf.shape[1]:
+        ctrl[R_LOST] += 1
+        ctrl[R_TOO_BIG] += 1
+        return False
+    if h - ctrl[R_TAIL] >= cap:
+        ctrl[R_LOST] += 1
+        return False
+    i = h % cap
+    buf[i, :n] = src
+    lens[i] = n
+    stamps[i] = stamp
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _publish_ring(
+    pub: int, buf: np.ndarray, lens: np.ndarray, ctrl: np.ndarray, head: int, ser: np.ndarray
+) -> int:
+    """Publish the slots [tail, head) on the rcl publisher at address ``pub``, without
+    the GIL. Returns how many were handed to rcl (refused ones counted ``failed``)."""
+    cap = buf.shape[0]
+    t = ctrl[R_TAIL]
+    done = 0
+    base = np.uint64(buf.ctypes.data)
+    stride = np.uint64(buf.shape[1])
+    ser_p = np.uint64(ser.ctypes.data)
+    while t < head:
+        i = t % cap
+        ser[0] = base + np.uint64(i) * stride
+        ser[1] = np.uint64(lens[i])
+        ser[2] = np.uint64(lens[i])
+        if _publish(np.uint64(pub), ser_p, np.uint64(0)) != 0:
+            ctrl[R_FAILED] += 1
+        else:
+            done += 1
+        t += 1
+        ctrl[R_TAIL] = t  # the slot is free from here on
+    return done
+
+
+class Ring:
+    """A single-producer single-consumer ring of messages of at most ``slot`` bytes."""
+
+    def __init__(self, slot: int, capacity: int) -> None:
+        if slot < 1 or capacity < 1:
+            raise ValueError(f'slot and capacity must be >= 1, got {slot}, {capacity}')
+        self.buf = np.zeros((capacity, slot), np.uint8)
+        self.lens = np.zeros(capacity, np.int64)
+        self.stamps = np.zeros(capacity, np.int64)  #: wall time [ns] of each put
+        self.ctrl = np.zeros(R_SIZE, np.int64)
+        for a in (self.buf, self.lens, self.stamps):
+            a.fill(1)  # touch every page now: no page fault in a period (first lap)
+            a.fill(0)
+
+    def put(self, src: np.ndarray, stamp: int) -> bool:
+        if _put(self.buf, self.lens, self.stamps, self.ctrl, src, stamp):
+            self.ctrl[R_HEAD] += 1  # after the bytes (module docstring)
+            return True
+        return False
+
+    @property
+    def pending(self) -> int:
+        return int(self.ctrl[R_HEAD] - self.ctrl[R_TAIL])
+
+
+class Channel:
+    """One topic of the outbox: its rcl publisher and its rings (DDS, and the tap)."""
+
+    def __init__(
+        self, topic: str, type_name: str, publisher: Any, slot: int, capacity: int
+    ) -> None:
+        self.topic = topic
+        self.type_name = type_name  #: 'pkg/msg/Type'
+        self.publisher = publisher  #: the rclpy Publisher (graph identity, QoS)
+        self.address = int(publisher.handle.pointer)  #: its rcl_publisher_t
+        self.slot = slot
+        self.capacity = capacity
+        self.dds = Ring(slot, capacity)
+        self.tap: Ring | None = None  #: the recorder's ring (Outbox.tap)
+        self.put_count = 0
+
+    def put(self, src: np.ndarray) -> None:
+        """Hand a message (uint8 CDR bytes) over: never blocks; a full ring counts it lost."""
+        stamp = time.time_ns()
+        self.put_count += 1
+        self.dds.put(src, stamp)
+        if self.tap is not None:
+            self.tap.put(src, stamp)
+
+
+class Outbox:
+    """The channels of a loop's publishers (module docstring).
+
+    ``add(publisher, type_name, slot)`` makes a channel; :meth:`emit` is the drop-in for a
+    node's ``publish_lossless(pub, msg)``: bytes, a uint8 array, a ``Float64ArrayWire`` or
+    a message object (serialised here) -- a publisher without a channel is published as
+    before (None: the caller does it)."""
+
+    def __init__(self, capacity: int = DEFAULT_CAPACITY) -> None:
+        self.capacity = int(capacity)
+        self.channels: list[Channel] = []
+        self._by_pub: dict[int, Channel] = {}
+        self.tapped = False
+        # compile (or load) the kernels now, never in a period: a put into a scratch ring
+        # and a publish of nothing (head == tail: rcl is not called)
+        scratch = Ring(8, 4)
+        scratch.put(np.zeros(4, np.uint8), 0)  # a wire's bytes
+        scratch.put(np.frombuffer(bytes(4), np.uint8), 0)  # serialize_message's (read-only)
+        _publish_ring(0, scratch.buf, scratch.lens, scratch.ctrl, 0, np.zeros(8, np.uint64))
+
+    def add(self, publisher: Any, type_name: str, slot: int, capacity: int = 0) -> Channel:
+        ch = Channel(publisher.topic_name, type_name, publisher, slot, capacity or self.capacity)
+        self.channels.append(ch)
+        self._by_pub[id(publisher)] = ch
+        return ch
+
+    def channel(self, publisher: Any) -> Channel | None:
+        return self._by_pub.get(id(publisher))
+
+    def tap(self) -> dict[str, Channel]:
+        """Give every channel a second ring, for the run's recorder (before any put)."""
+        for ch in self.channels:
+            if ch.tap is None:
+                ch.tap = Ring(ch.slot, ch.capacity)
+        self.tapped = True
+        return {ch.topic: ch for ch in self.channels}
+
+    def emit(self, publisher: Any, msg: Any) -> bool:
+        """Put ``msg`` on ``publisher``'s channel; False when it has none."""
+        ch = self._by_pub.get(id(publisher))
+        if ch is None:
+            return False
+        raw = getattr(msg, 'raw', None)
+        if raw is not None:  # a Float64ArrayWire: its bytes, no copy
+            ch.put(raw)
+        elif isinstance(msg, bytes | bytearray):
+            ch.put(np.frombuffer(msg, np.uint8))
+        else:
+            from rclpy.serialization import serialize_message
+
+            ch.put(np.frombuffer(serialize_message(msg), np.uint8))
+        return True
+
+    def pending(self) -> int:
+        return sum(ch.dds.pending for ch in self.channels)
+
+    def counts(self) -> dict[str, dict[str, int]]:
+        """Per topic: messages put, published to DDS, lost (a full ring: DDS side and
+        recorder side), refused by rcl, too big for a slot."""
+        out = {}
+        for ch in self.channels:
+            d = ch.dds.ctrl
+            row = {
+                'put': ch.put_count,
+                'published': int(d[R_TAIL] - d[R_FAILED]),
+                'lost_dds': int(d[R_LOST]),
+                'publish_failed': int(d[R_FAILED]),
+                'too_big': int(d[R_TOO_BIG]),
+            }
+            if ch.tap is not None:
+                row['lost_recorder'] = int(ch.tap.ctrl[R_LOST])
+            out[ch.topic] = row
+        return out
+
+    def lost(self) -> int:
+        """Messages that did not reach DDS or the recorder (0 in normal operation)."""
+        return sum(
+            r['lost_dds'] + r['publish_failed'] + r.get('lost_recorder', 0)
+            for r in self.counts().values()
+        )
+
+
+class PublisherThread:
+    """The non-real-time side of an :class:`Outbox`: publishes every DDS ring, every
+    ``period`` s or sooner when :meth:`wake` is called, with the GIL released in rcl."""
+
+    def __init__(self, outbox: Outbox, period: float = 0.005) -> None:
+        self.outbox = outbox
+        self.period = float(period)
+        self._ser = np.zeros(8, np.uint64)
+        self._quit = False
+        self._event = threading.Event()
+        self.published = 0
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name='outbox-publisher', daemon=True)
+        self._thread.start()
+
+    def wake(self) -> None:
+        self._event.set()
+
+    def drain(self) -> int:
+        """Publish everything pending now (in the calling thread)."""
+        n = 0
+        for ch in self.outbox.channels:
+            r = ch.dds
+            head = int(r.ctrl[R_HEAD])  # read under the GIL: its bytes are visible
+            if head > r.ctrl[R_TAIL]:
+                n += _publish_ring(ch.address, r.buf, r.lens, r.ctrl, head, self._ser)
+        self.published += n
+        return n
+
+    def _run(self) -> None:
+        try:
+            while not self._quit:
+                self.drain()
+                self._event.wait(self.period)
+                self._event.clear()
+        except BaseException as exc:
+            self.error = exc
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Publish what is left (bounded by ``timeout``) and end the thread."""
+        deadline = time.monotonic() + timeout
+        while self.outbox.pending() and time.monotonic() < deadline and self.error is None:
+            self._event.set()
+            time.sleep(0.001)
+        self._quit = True
+        self._event.set()
+        self._thread.join(timeout)

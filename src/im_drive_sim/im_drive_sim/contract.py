@@ -23,6 +23,7 @@ __all__ = [
     'JOINT_STATE_TOPIC',
     'LEGACY_STATE_FIELDS',
     'LOCKSTEP',
+    'LOOP_PUBLISHED',
     'MODES',
     'NS_PER_S',
     'RECORDED',
@@ -152,3 +153,10 @@ LOCKSTEP = QosSpec('keep_last', 64, 'reliable')
 #: back-pressures the publisher instead of losing samples, which KEEP_LAST would
 #: overwrite. Readers in the lock-step path stay LOCKSTEP: they take every step.
 RECORDED = QosSpec('keep_all', 0, 'reliable')
+
+#: The same topics published by a composed real-time loop (``tuner --bench realtime``):
+#: its own recorder takes them from the loop's outbox, not from DDS, and a KEEP_ALL
+#: writer with a reader that stopped taking either blocks each publish for Fast DDS's max
+#: blocking time (100 ms) or grows without bound. KEEP_LAST 1000 (200 ms of a 5 kHz
+#: topic) never blocks and keeps memory bounded; a reader that keeps up loses nothing.
+LOOP_PUBLISHED = QosSpec('keep_last', 1000, 'reliable')

@@ -260,19 +260,35 @@ class Outbox:
 
 
 class PublisherThread:
-    """The non-real-time side of an :class:`Outbox`: publishes every DDS ring, every
-    ``period`` s or sooner when :meth:`wake` is called, with the GIL released in rcl."""
+    """The non-real-time side of an :class:`Outbox`: publishes its DDS rings every
+    ``period`` s or sooner when :meth:`wake` is called, with the GIL released in rcl.
 
-    def __init__(self, outbox: Outbox, period: float = 0.005) -> None:
+    One thread per channel (``channels``: those of this thread; None: all): a writer
+    that a reader keeps blocked (Fast DDS waits up to its max blocking time for room)
+    holds back its own topic only -- the experiment results the tuner waits for go on."""
+
+    def __init__(
+        self, outbox: Outbox, period: float = 0.005, channels: list[Channel] | None = None
+    ) -> None:
         self.outbox = outbox
+        self.channels = list(outbox.channels if channels is None else channels)
         self.period = float(period)
         self._ser = np.zeros(8, np.uint64)
         self._quit = False
         self._event = threading.Event()
         self.published = 0
         self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name='outbox-publisher', daemon=True)
+        name = 'outbox ' + (self.channels[0].topic if len(self.channels) == 1 else 'publisher')
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
+
+    @classmethod
+    def per_channel(cls, outbox: Outbox, period: float = 0.005) -> list[PublisherThread]:
+        """One publisher thread for each channel of ``outbox``."""
+        return [cls(outbox, period, [ch]) for ch in outbox.channels]
+
+    def pending(self) -> int:
+        return sum(ch.dds.pending for ch in self.channels)
 
     def wake(self) -> None:
         self._event.set()
@@ -280,7 +296,7 @@ class PublisherThread:
     def drain(self) -> int:
         """Publish everything pending now (in the calling thread)."""
         n = 0
-        for ch in self.outbox.channels:
+        for ch in self.channels:
             r = ch.dds
             head = int(r.ctrl[R_HEAD])  # read under the GIL: its bytes are visible
             if head > r.ctrl[R_TAIL]:
@@ -300,7 +316,7 @@ class PublisherThread:
     def stop(self, timeout: float = 2.0) -> None:
         """Publish what is left (bounded by ``timeout``) and end the thread."""
         deadline = time.monotonic() + timeout
-        while self.outbox.pending() and time.monotonic() < deadline and self.error is None:
+        while self.pending() and time.monotonic() < deadline and self.error is None:
             self._event.set()
             time.sleep(0.001)
         self._quit = True

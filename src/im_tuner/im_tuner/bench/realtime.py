@@ -16,9 +16,11 @@ real-time loop runs them in its own thread, every Ts = 200 us on the wall clock
   period). What the nodes publish is handed to an :class:`im_drive_sim.outbox.Outbox`
   (bounded rings, never blocking); experiment ends are left for the serving thread. It
   never waits on DDS, a lock held by a request for long, the log or the garbage collector.
-* **a publisher thread** (``outbox.PublisherThread``) publishes the rings on the graph,
-  with the GIL released in rcl: a reader that stops taking (a frozen ``ros2 topic echo``)
-  can block it, never the loop; what it could not deliver is counted.
+* **publisher threads** (``outbox.PublisherThread``, one per topic) publish the rings on
+  the graph, with the GIL released in rcl: a reader that stops taking (a frozen ``ros2
+  topic echo``) can slow its topic's thread, never the loop nor another topic (the losses
+  the tuner waits for); what a thread could not deliver is counted. The loop's topics
+  are published KEEP_LAST 1000 (``contract.LOOP_PUBLISHED``): bounded memory.
 * **the serving thread** (the tuner's, in :meth:`RealtimeBench.spin_until`): parameter and
   service requests (the changes that touch the loop take the loop lock for a few
   microseconds), the tuner's own callbacks, experiment results (published and logged),
@@ -52,23 +54,19 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import rclpy
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.parameter import Parameter
 
 from im_controller.controller_node import ControllerNode
-from im_drive_sim import rt
+from im_drive_sim import contract, rt
 from im_drive_sim.outbox import Outbox, PublisherThread
-from im_drive_sim.pacing import LATENESS_BINS, Pacer
-from im_drive_sim.runtime import ROUTES
+from im_drive_sim.pacing import LATENESS_BINS, DurationHistogram, Pacer
+from im_drive_sim.runtime import ROUTES, qos_profile
 
 from ..tuning import BenchFailure
 from .drive_spec import DriveChoice, build_node, resolve
 from .inprocess import compose
-
-#: Periods of per-period timings kept (a ring): 10 min at 5 kHz.
-TIMING_CAPACITY = 3_000_000
 
 #: The interpreter's thread switch interval while the loop runs [s] (default 5 ms): how
 #: long the loop thread, woken for its period, waits for a thread holding the GIL before
@@ -144,6 +142,20 @@ def make_drive(spec: str | DriveChoice, context: Any, overrides: list[Parameter]
 def _type_name(cls: type) -> str:
     """'pkg/msg/Type' of a message class."""
     return f'{cls.__module__.split(".")[0]}/msg/{cls.__name__}'
+
+
+def _republish(node: Any, old: Any, qos: Any, owners: tuple[Any, ...]) -> Any:
+    """``old`` made again with ``qos`` (contract.LOOP_PUBLISHED), before anything was
+    published on it; the attributes of ``owners`` that held it hold the new one."""
+    pub = node.create_publisher(old.msg_type, old.topic_name, qos)
+    for owner in owners:
+        if owner is None:
+            continue
+        for name, value in list(vars(owner).items()):
+            if value is old:
+                setattr(owner, name, pub)
+    node.destroy_publisher(old)
+    return pub
 
 
 def _precise_sleep() -> None:
@@ -227,12 +239,14 @@ class RealtimeBench:
         ctl.io_node.destroy_subscription(ctl.client.state_sub)
         drv.io_node.destroy_subscription(drv.cmd_sub)
         self.outbox = Outbox()
+        qos = qos_profile(contract.LOOP_PUBLISHED)
         for node in (drv, getattr(drv, 'io_node', None), ctl, ctl.io_node):
             if node is None:
                 continue
-            for pub in node.publishers:
-                if pub.topic_name in NOT_ROUTED:
+            for old in list(node.publishers):
+                if old.topic_name in NOT_ROUTED:
                     continue
+                pub = _republish(node, old, qos, (drv, ctl, ctl.client))
                 type_name = _type_name(pub.msg_type)
                 slot, cap = SLOTS.get(type_name, OTHER_SLOT)
                 self.outbox.add(pub, type_name, slot, outbox_capacity or cap)
@@ -254,16 +268,17 @@ class RealtimeBench:
             # a drive that cannot pause: late starts are periods held (docs/real-drive.md)
             wall_clock=bool(getattr(drv, 'wall_clock', False)),
         )
-        # per-period timings [us] (a ring): the drive's period done (state k published),
-        # the controller's answer out, the command taken by the drive, the whole period
-        self.t_state = np.zeros(TIMING_CAPACITY, np.float32)
-        self.t_answer = np.zeros(TIMING_CAPACITY, np.float32)
-        self.t_work = np.zeros(TIMING_CAPACITY, np.float32)
-        self.t_late = np.zeros(TIMING_CAPACITY, np.float32)  # the period start's lateness
+        # per-period timings [us], over the whole run in fixed memory: the drive's period
+        # (state k published), the controller's answer, the whole period's work, and how
+        # late the period started
+        self.t_state = DurationHistogram()
+        self.t_answer = DurationHistogram()
+        self.t_work = DurationHistogram()
+        self.t_late = DurationHistogram()
         self.periods = 0
         self.answers_missed = 0  #: periods whose state the controller had no answer for
         self.gc_runs = 0
-        self.publisher: PublisherThread | None = None
+        self.publishers: list[PublisherThread] = []
         self._switch_interval = sys.getswitchinterval()
         self._thread.start()
         self._ready.wait(10.0)
@@ -288,7 +303,7 @@ class RealtimeBench:
         ctl.offer(drv.latest_state())
         ctl.answer()
         drv.take_commands()
-        self.publisher = PublisherThread(self.outbox)
+        self.publishers = PublisherThread.per_channel(self.outbox)
         # one serving round now: the first of each costs up to ~150 ms (an executor's
         # first spin, the first status), never beside a live loop
         self._service()
@@ -348,11 +363,10 @@ class RealtimeBench:
                 drive.take_commands()  # fresh for the next period
             else:
                 self.answers_missed += 1
-        i = self.periods % TIMING_CAPACITY
-        self.t_state[i] = 1e6 * (t1 - t0)
-        self.t_answer[i] = 1e6 * (t2 - t1)
-        self.t_work[i] = 1e6 * (time.perf_counter() - t0)
-        self.t_late[i] = 1e6 * pacer.lateness_s
+        self.t_state.add(1e6 * (t1 - t0))
+        self.t_answer.add(1e6 * (t2 - t1))
+        self.t_work.add(1e6 * (time.perf_counter() - t0))
+        self.t_late.add(1e6 * pacer.lateness_s)
         self.periods += 1
         return True
 
@@ -379,8 +393,9 @@ class RealtimeBench:
         if gc.get_count()[0] > 2000:
             gc.collect(0)
             self.gc_runs += 1
-        if self.publisher is not None and self.publisher.error is not None:
-            raise DriveLoopError(f'the outbox publisher stopped: {self.publisher.error!r}')
+        for p in self.publishers:
+            if p.error is not None:
+                raise DriveLoopError(f'an outbox publisher stopped: {p.error!r}')
 
     def _serve(self, timeout: float) -> None:
         """Wait up to ``timeout`` [s] for a request or a response, then serve it: a full
@@ -433,8 +448,9 @@ class RealtimeBench:
         self.stop_loop()
         self.controller.flush_deferred()
         self.drive.publish_status()
-        if self.publisher is not None:
-            self.publisher.stop()
+        deadline = time.monotonic() + 2.0  # a topic a reader keeps blocked: bounded
+        for p in self.publishers:
+            p.stop(timeout=max(0.05, deadline - time.monotonic()))
 
     def spin_until(self, predicate: Callable[[], bool], timeout: float | None = None) -> bool:
         """Serve requests, results and pollers until ``predicate()`` (checked about every
@@ -486,9 +502,8 @@ class RealtimeBench:
 
     # -- figures ---------------------------------------------------------------------------
     def timing(self) -> dict[str, Any]:
-        """Per-period figures of the loop (us; over the last TIMING_CAPACITY periods) and
-        what the outbox could not deliver."""
-        n = min(self.periods, TIMING_CAPACITY)
+        """Per-period figures of the loop (us; over the whole run) and what the outbox
+        could not deliver."""
         c = self.drive.counters
         counts = self.outbox.counts()
         out: dict[str, Any] = {
@@ -510,21 +525,10 @@ class RealtimeBench:
                 for r in counts.values()
             ),
         }
-        for name, arr in (
-            ('drive_period_us', self.t_state),
-            ('controller_answer_us', self.t_answer),
-            ('period_work_us', self.t_work),
-        ):
-            a = arr[:n]
-            out[name] = (
-                {
-                    'p50': round(float(np.percentile(a, 50)), 1),
-                    'p99': round(float(np.percentile(a, 99)), 1),
-                    'max': round(float(a.max()), 1),
-                }
-                if n
-                else None
-            )
+        out['drive_period_us'] = self.t_state.summary()
+        out['controller_answer_us'] = self.t_answer.summary()
+        out['period_work_us'] = self.t_work.summary()
+        out['lateness_us'] = self.t_late.summary()
         return out
 
     def destroy(self) -> None:
@@ -537,9 +541,8 @@ class RealtimeBench:
         finally:
             gc.enable()
             gc.unfreeze()
-            publisher = getattr(self, 'publisher', None)
-            if publisher is not None:
-                publisher.stop(timeout=0.5)
+            for p in getattr(self, 'publishers', []):
+                p.stop(timeout=0.5)
             outbox = getattr(self, 'outbox', None)
             for ch in outbox.channels if outbox is not None else []:
                 ROUTES.pop(id(ch.publisher), None)

@@ -70,8 +70,11 @@ MODES: dict[str, tuple[str, list[str], str]] = {
         'rt_example',
     ),
     'realtime-processes': ('realtime-processes', ['--retries', '1'], 'rt_processes'),
+    # the composed loop runs SCHED_FIFO 50 by default (as ros2_control_node): the quiet
+    # `realtime` row; `--thread-priority 0` is the normal policy
+    'realtime-sched-other': ('realtime', ['--thread-priority', '0'], 'rt_other'),
     'realtime-rt': ('realtime', ['--thread-priority', '50', '--lock-memory'], 'rt_fifo'),
-    'realtime-hogs': ('realtime', [], 'rt_hogs'),
+    'realtime-hogs': ('realtime', ['--thread-priority', '0'], 'rt_hogs'),
     'realtime-hogs-rt': ('realtime', ['--thread-priority', '50', '--lock-memory'], 'rt_hogs_fifo'),
     'realtime-frozen-reader': ('realtime', [], 'rt_frozen'),
 }
@@ -104,38 +107,44 @@ def _rss_kib(pid: int) -> int:
     return 0
 
 
-def _run_tuner(cmd: list[str], env: dict, frozen: bool) -> tuple[int, str, float]:
+def _run_tuner(cmd: list[str], env: dict, frozen: bool, run: Path) -> tuple[int, str, float]:
     """Run the tuner; with ``frozen``, next to a reader frozen (SIGSTOP) from its 100th
-    state on. Returns (exit code, stderr, the tuner's RSS growth while it was frozen [MB])."""
-    if not frozen:
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
-        return proc.returncode, proc.stderr, 0.0
-    reader = subprocess.Popen(
-        [sys.executable, FROZEN_READER],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-        text=True,
-        env=env,
-    )
+    state on. Returns (exit code, stderr, the tuner's RSS growth [MB] from its first result
+    (``run``/results.jsonl, the reference experiment: start-up done) to its end: in every
+    mode, so the frozen run's growth compares with the quiet run's)."""
+    reader = None
+    if frozen:
+        reader = subprocess.Popen(
+            [sys.executable, FROZEN_READER],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+            env=env,
+        )
     growth = 0.0
     with tempfile.TemporaryFile('w+') as err:
         tuner = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True, env=env)
         try:
-            assert reader.stdout is not None
-            ready, _, _ = select.select([reader.stdout], [], [], 120.0)
-            if ready and reader.stdout.readline().strip() == 'ready' and tuner.poll() is None:
-                os.kill(reader.pid, signal.SIGSTOP)
-                rss0 = peak = _rss_kib(tuner.pid)
-                while tuner.poll() is None:
-                    peak = max(peak, _rss_kib(tuner.pid))
-                    time.sleep(0.2)  # sampling the memory while the run goes on
-                growth = (peak - rss0) / 1024.0
+            if reader is not None:
+                assert reader.stdout is not None
+                ready, _, _ = select.select([reader.stdout], [], [], 120.0)
+                if ready and reader.stdout.readline().strip() == 'ready':
+                    os.kill(reader.pid, signal.SIGSTOP)
+            rss0 = peak = 0
+            while tuner.poll() is None:
+                rss = _rss_kib(tuner.pid)
+                if not rss0 and (run / 'results.jsonl').exists():
+                    rss0 = peak = rss
+                peak = max(peak, rss)
+                time.sleep(0.2)  # sampling the memory while the run goes on
+            growth = (peak - rss0) / 1024.0 if rss0 else 0.0
             tuner.wait(timeout=1800)
         finally:
             for p in (tuner, reader):  # by PID
-                if p.poll() is None:
+                if p is not None and p.poll() is None:
                     p.kill()
-            reader.wait(timeout=30)
+            if reader is not None:
+                reader.wait(timeout=30)
         err.seek(0)
         return tuner.returncode, err.read(), growth
 
@@ -152,7 +161,7 @@ def run_once(mode: str, budget: int, seed: int) -> dict:
         cmd = [ROS2, 'run', 'im_tuner', 'tuner', '--bench', bench, '--budget', str(budget)]
         cmd += ['--seed', str(seed), '--remeasure', '0', '--quiet', '--out', str(tmp / 'run')]
         cmd += extra  # the tuner's options, then any --ros-args (always last in MODES)
-        code, stderr, growth = _run_tuner(cmd, env, mode == 'realtime-frozen-reader')
+        code, stderr, growth = _run_tuner(cmd, env, mode == 'realtime-frozen-reader', tmp / 'run')
         summary_path = tmp / 'run' / 'summary.json'
         if not summary_path.exists():
             raise RuntimeError(f'{bench}: no summary (exit {code}): {stderr[-800:]}')
@@ -193,6 +202,12 @@ def run_once(mode: str, budget: int, seed: int) -> dict:
             out['answer'] = loop['controller_answer_us']
             out['max_lateness_us'] = loop['max_lateness_us']
             out['lateness_histogram'] = loop.get('lateness_histogram') or {}
+            out['lateness_p99_us'] = (loop.get('lateness_us') or {}).get('p99', math.nan)
+            # messages the outbox could not deliver (to DDS readers, to the bag)
+            out['outbox_lost'] = loop.get('outbox_lost', 0)
+            out['bag_lost'] = sum(
+                c.get('lost_recorder', 0) for c in (loop.get('outbox') or {}).values()
+            )
             sched = loop.get('realtime') or {}
             out['policy'] = f'{sched.get("policy", "?")} {sched.get("priority", "")}'.strip()
         return out
@@ -257,13 +272,17 @@ def main(argv: list[str] | None = None) -> dict:
                     + ', '.join(f'{k} {100.0 * v / total:.2f} %' for k, v in hist.items()),
                     flush=True,
                 )
-            if bench == 'realtime-frozen-reader':
-                figures[f'{tag}_rss_growth_mb'] = med('rss_growth_mb')
-                print(
-                    f"{'':<20} the tuner's memory grew {med('rss_growth_mb'):.1f} MB while "
-                    'the reader was frozen',
-                    flush=True,
-                )
+            for key in ('rss_growth_mb', 'lateness_p99_us', 'outbox_lost', 'bag_lost'):
+                figures[f'{tag}_{key}'] = med(key)
+            print(
+                f'{"":<20} period-start lateness p99 {med("lateness_p99_us"):.0f} us; the '
+                f"tuner's memory grew {med('rss_growth_mb'):.1f} MB from its first result to "
+                f'its end'
+                + (' (the reader frozen meanwhile)' if bench == 'realtime-frozen-reader' else '')
+                + f'; messages not delivered: {med("outbox_lost"):.0f} (to the bag: '
+                f'{med("bag_lost"):.0f})',
+                flush=True,
+            )
             quiet = 'rt_composed'
             if tag != quiet and f'{quiet}_work_p99_us' in figures:
                 for key in ('overrun_pct', 'work_p99_us'):

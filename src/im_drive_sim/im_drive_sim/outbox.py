@@ -78,6 +78,9 @@ R_SIZE = 5
 #: default ring capacity [messages]: 2 s of a 5 kHz topic
 DEFAULT_CAPACITY = 10_000
 
+#: Most messages one kernel call publishes (the thread looks at its quit flag between).
+PUBLISH_BATCH = 64
+
 
 @numba.njit(cache=True)
 def _put(buf: np.ndarray, lens: np.ndarray, stamps: np.ndarray, ctrl: np.ndarray,
@@ -106,7 +109,8 @@ def _publish_ring(
     pub: int, buf: np.ndarray, lens: np.ndarray, ctrl: np.ndarray, head: int, ser: np.ndarray
 ) -> int:
     """Publish the slots [tail, head) on the rcl publisher at address ``pub``, without
-    the GIL. Returns how many were handed to rcl (refused ones counted ``failed``)."""
+    the GIL (``head``: at most tail + PUBLISH_BATCH, the caller's choice). Returns how
+    many were handed to rcl (refused ones counted ``failed``)."""
     cap = buf.shape[0]
     t = ctrl[R_TAIL]
     done = 0
@@ -206,11 +210,12 @@ class Outbox:
     def channel(self, publisher: Any) -> Channel | None:
         return self._by_pub.get(id(publisher))
 
-    def tap(self) -> dict[str, Channel]:
-        """Give every channel a second ring, for the run's recorder (before any put)."""
+    def tap(self, factor: int = 5) -> dict[str, Channel]:
+        """Give every channel a second ring, for the run's recorder (before any put),
+        ``factor`` times the DDS ring: the bag must outlast a serving thread held off."""
         for ch in self.channels:
             if ch.tap is None:
-                ch.tap = Ring(ch.slot, ch.capacity)
+                ch.tap = Ring(ch.slot, ch.capacity * factor)
         self.tapped = True
         return {ch.topic: ch for ch in self.channels}
 
@@ -242,7 +247,7 @@ class Outbox:
             row = {
                 'put': ch.put_count,
                 'published': int(d[R_TAIL] - d[R_FAILED]),
-                'lost_dds': int(d[R_LOST]),
+                'lost_dds': int(d[R_LOST]),  # the ring was full
                 'publish_failed': int(d[R_FAILED]),
                 'too_big': int(d[R_TOO_BIG]),
             }
@@ -294,12 +299,16 @@ class PublisherThread:
         self._event.set()
 
     def drain(self) -> int:
-        """Publish everything pending now (in the calling thread)."""
+        """Publish everything pending now (in the calling thread), in batches."""
         n = 0
         for ch in self.channels:
             r = ch.dds
-            head = int(r.ctrl[R_HEAD])  # read under the GIL: its bytes are visible
-            if head > r.ctrl[R_TAIL]:
+            while not self._quit:
+                head = int(r.ctrl[R_HEAD])  # read under the GIL: its bytes are visible
+                tail = int(r.ctrl[R_TAIL])
+                if head <= tail:
+                    break
+                head = min(head, tail + PUBLISH_BATCH)
                 n += _publish_ring(ch.address, r.buf, r.lens, r.ctrl, head, self._ser)
         self.published += n
         return n

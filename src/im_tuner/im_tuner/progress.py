@@ -255,4 +255,9 @@ def drive_text(d: dict[str, Any] | None, which: str | None) -> str:
             f'{a["p50"]:.0f} / p99 {a["p99"]:.0f} us; states unanswered in their period '
             f'{loop["answers_missed"]}'
         )
+        late = loop.get('lateness_us')
+        if late:
+            text += f'; period-start lateness p50 {late["p50"]:.0f} / p99 {late["p99"]:.0f} us'
+        if loop.get('outbox_lost'):
+            text += f'; NOT DELIVERED {loop["outbox_lost"]} messages (summary: loop.outbox)'
     return text

@@ -199,6 +199,10 @@ class InProcess:
                 command=command,
                 # the real-time loop's topics: from its outbox's tap, lossless
                 taps=b.outbox.tap() if hasattr(b, 'outbox') else None,
+                # beside a real-time loop, the graph is looked at every 2 s (a graph
+                # query holds the GIL for up to milliseconds); every topic it records
+                # exists before the first period (wait_matched below)
+                discovery_period=2.0 if hasattr(b, 'outbox') else 0.2,
             )
             self.rec.wait_matched(10.0)
             b.add_poller(self.rec.poll, RECORD_POLL_STEPS)

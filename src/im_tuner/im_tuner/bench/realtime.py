@@ -80,9 +80,9 @@ LOOP_SPIN_MARGIN = 40e-6
 #: Outbox slots [bytes] and capacities [messages] per message type of the loop's topics
 #: (other types: OTHER_SLOT, the outbox's default capacity).
 SLOTS = {
-    'std_msgs/msg/Float64MultiArray': (512, 5000),
+    'std_msgs/msg/Float64MultiArray': (256, 5000),  # state 132 B, internals 220 B
     'rosgraph_msgs/msg/Clock': (64, 5000),
-    'sensor_msgs/msg/JointState': (512, 5000),
+    'sensor_msgs/msg/JointState': (256, 5000),  # one joint: 84 B
     'diagnostic_msgs/msg/DiagnosticArray': (32768, 64),
 }
 OTHER_SLOT = (4096, 1000)

@@ -12,14 +12,18 @@ process, recorder on, a fresh run directory), on these benches and drive modes:
 * ``realtime-processes``: drive, controller and recorder as separate processes (how a
   drive in its own process runs); experiments a controller answered late are flagged
   ``timing`` and re-run (--retries 1 here: the figure is the timing, not the search);
-* the load scenario (issue 27): ``realtime-rt`` the composed bench with the loop
-  SCHED_FIFO 50 and memory locked (``--thread-priority 50 --lock-memory``, as
-  ros2_control_node), ``realtime-hogs`` next to two CPU hogs (busy processes at normal
-  priority, ended by PID), ``realtime-hogs-rt`` both, ``realtime-frozen-reader`` next
-  to a reliable KEEP_ALL reader of every drive and controller topic (frozen.py) frozen
-  with SIGSTOP from its 100th state to the run's end, with the tuner's memory growth
-  over the freeze (``rss_growth_mb``); their overruns and period work are also given as
-  ratios to the quiet ``realtime`` run.
+* the load scenario (issue 27): the composed loop runs SCHED_FIFO 50 by default (as
+  ros2_control_node), so ``realtime`` is the quiet reference; ``realtime-sched-other``
+  the same under the normal policy (``--thread-priority 0``); ``realtime-rt`` with the
+  memory locked too (``--thread-priority 50 --lock-memory``); ``realtime-hogs`` next to
+  two CPU hogs (busy processes at normal priority, ended by PID) under the normal policy,
+  ``realtime-hogs-rt`` with ``--thread-priority 50 --lock-memory``;
+  ``realtime-frozen-reader`` next to a reliable KEEP_ALL reader of every drive and
+  controller topic (frozen_reader.py) frozen with SIGSTOP from its 100th state to the
+  run's end. For every composed mode: the tuner's memory growth from its first result
+  to its end (``rss_growth_mb``), the messages the loop's outbox could not deliver (to
+  DDS readers, and to the bag), the period-start lateness p99; overruns and period work
+  also as ratios to the quiet ``realtime`` run.
 
 From each run's ``summary.json`` (the drive's own counters, and the composed loop's
 per-period timings) and ``results.jsonl``:

@@ -486,9 +486,10 @@ class RealtimeBench:
                 stop()
 
     def stop_loop(self, timeout: float = 2.0) -> None:
-        """Zero current, then end the loop thread (idempotent)."""
-        self.safe_stop()
+        """Zero current, then end the loop thread (idempotent). The loop is told to quit
+        first, so at most the period under way runs after the safe stop."""
         self._quit = True
+        self.safe_stop()
         thread = getattr(self, '_thread', None)
         if thread is None:
             return  # the bench failed before its loop was made

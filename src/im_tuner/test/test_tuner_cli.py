@@ -89,3 +89,24 @@ def test_check_no_start_accepts_what_the_optimisers_run_without_a_start() -> Non
         check_no_start(algo)
         opt = optim.make_optimizer(algo, 5, 2, None)  # a start of their own
         assert opt.ask().shape == (5,)
+
+
+def test_the_composed_loop_runs_sched_fifo_50_unless_told_otherwise() -> None:
+    """Issue 27: as ros2_control_node, the composed loop asks for SCHED_FIFO 50 when
+    --thread-priority is not given; 0 is the normal policy; given with another bench it
+    is refused (test_bad_input), not given it asks for nothing there."""
+    from im_drive_sim import rt
+
+    def opts(*args: str) -> rt.RtOptions:
+        cli = _build_parser().parse_args(list(args))
+        return rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY)
+
+    assert rt.DEFAULT_PRIORITY == 50
+    assert opts('--bench', 'realtime').priority == 50
+    assert opts('--bench', 'realtime', '--thread-priority', '0').priority == 0
+    assert opts('--bench', 'realtime', '--thread-priority', '70').priority == 70
+    # another bench: nothing asked for unless given (then refused, exit 2)
+    cli = _build_parser().parse_args(['--bench', 'inproc'])
+    assert not rt.RtOptions.from_cli(cli).requested
+    text = ' '.join(_build_parser().format_help().split())
+    assert 'SCHED_FIFO at priority N (1-99; default 50, as ros2_control_node;' in text

@@ -205,7 +205,9 @@ class InProcess:
                 discovery_period=2.0 if hasattr(b, 'outbox') else 0.2,
             )
             self.rec.wait_matched(10.0)
-            b.add_poller(self.rec.poll, RECORD_POLL_STEPS)
+            # beside a real-time loop every 50 ms (its tap rings hold 5 s): fewer rounds
+            # holding the GIL; lock-step: every RECORD_POLL_STEPS steps
+            b.add_poller(self.rec.poll, 250 if hasattr(b, 'outbox') else RECORD_POLL_STEPS)
 
         exe.executor.remove_node(node)
         self.mode = 'realtime' if realtime else 'inproc'

@@ -74,6 +74,10 @@ from .inprocess import compose
 #: asking for it.
 SWITCH_INTERVAL = 50e-6
 
+#: The serving thread's longest wait for a request [s]: between waits it runs its round
+#: (results, recorder, status), each a stretch holding the GIL the loop may need.
+SERVE_WAIT = 0.02
+
 #: The serving thread's nice value when the loop runs SCHED_FIFO (see RealtimeBench).
 SERVING_NICE = -10
 
@@ -481,7 +485,7 @@ class RealtimeBench:
                     return True
                 if deadline is not None and time.monotonic() > deadline:
                     return False
-                self._serve(0.005)
+                self._serve(SERVE_WAIT)
         except BaseException as exc:
             if not isinstance(exc, DriveLoopError):
                 self.safe_stop()  # anything else on the way out: zero current first

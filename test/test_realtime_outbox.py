@@ -56,7 +56,7 @@ def test_the_publisher_thread_delivers_every_message_in_order(ros_context, wait_
     box = Outbox()
     box.add(pub, 'std_msgs/msg/Float64MultiArray', 256, 512)
     ROUTES[id(pub)] = box
-    thread = PublisherThread(box, period=0.001)
+    thread = PublisherThread(box.channels[0], period=0.001)
     wire = Float64ArrayWire(3)
     got: list[bytes] = []
 

@@ -15,8 +15,8 @@ had no room for is dropped, never waited for. Here:
   message): one ring for the DDS publisher and, when the run records, one for the
   recorder (:meth:`Outbox.tap`), so that a reader who blocks DDS cannot cost the bag a
   message;
-* :class:`PublisherThread` drains the DDS rings in a numba kernel that calls
-  ``rcl_publish_serialized_message`` with the GIL released (``nogil``): a publish that
+* a :class:`PublisherThread` per topic drains its DDS ring in a numba loop that calls
+  ``rcl_publish_serialized_message`` and never holds the GIL (``nogil``): a publish that
   blocks holds no Python thread back;
 * a full ring drops the new message for that consumer and counts it (``lost``); a publish
   rcl refused (a reader that does not take, past the max blocking time) is counted
@@ -24,10 +24,11 @@ had no room for is dropped, never waited for. Here:
   (:meth:`Outbox.counts`); in normal operation both are zero.
 
 Ordering: the producer writes the slot, then (from Python, after the kernel returned)
-the head; the consumer reads the head under the GIL, then the slots below it in its
-kernel. The GIL hand-over between the threads is a full memory barrier, so a consumer
-never sees a head before the bytes it covers. The consumer's tail is written only by the
-consumer; a stale tail read by the producer only makes a ring look fuller than it is.
+the head; the consumer reads the head, then the slots below it. The recorder's tap is
+read under the GIL (its hand-over is a full memory barrier); the publisher loop reads
+the head after a syscall and relies on x86-64 keeping stores in order (a weakly ordered
+CPU would need a release fence in :meth:`Ring.put`). The consumer's tail is written only
+by the consumer; a stale tail read by the producer only makes a ring look fuller.
 
 Struct layout (ROS 2 Jazzy headers, as in im_tuner.record.take):
 ``rcl_serialized_message_t`` = {uint8* buffer; size_t length; size_t capacity;
@@ -49,7 +50,7 @@ from numba import types
 __all__ = ['Channel', 'Outbox', 'PublisherThread', 'Ring']
 
 
-def _loaded_library(name: str) -> str:
+def loaded_library(name: str) -> str:
     """Path of a shared library already mapped into this process (by rclpy)."""
     with open('/proc/self/maps', encoding='ascii', errors='replace') as f:
         for line in f:
@@ -59,7 +60,7 @@ def _loaded_library(name: str) -> str:
     raise RuntimeError(f'{name} is not loaded in this process (is rclpy installed?)')
 
 
-llb.load_library_permanently(_loaded_library('librcl.so'))
+llb.load_library_permanently(loaded_library('librcl.so'))
 
 # Pointers are passed as 64-bit integers: same registers in the x86-64 and AArch64 ABIs.
 _publish = types.ExternalFunction(
@@ -79,9 +80,6 @@ R_SIZE = 5
 
 #: default ring capacity [messages]: 2 s of a 5 kHz topic
 DEFAULT_CAPACITY = 10_000
-
-#: Most messages one kernel call publishes (the thread looks at its quit flag between).
-PUBLISH_BATCH = 64
 
 
 @numba.njit(cache=True)
@@ -111,8 +109,7 @@ def _publish_ring(
     pub: int, buf: np.ndarray, lens: np.ndarray, ctrl: np.ndarray, head: int, ser: np.ndarray
 ) -> int:
     """Publish the slots [tail, head) on the rcl publisher at address ``pub``, without
-    the GIL (``head``: at most tail + PUBLISH_BATCH, the caller's choice). Returns how
-    many were handed to rcl (refused ones counted ``failed``)."""
+    the GIL. Returns how many were handed to rcl (refused ones counted ``failed``)."""
     cap = buf.shape[0]
     t = ctrl[R_TAIL]
     done = 0
@@ -223,13 +220,11 @@ class Outbox:
         self.capacity = int(capacity)
         self.channels: list[Channel] = []
         self._by_pub: dict[int, Channel] = {}
-        self.tapped = False
         # compile (or load) the kernels now, never in a period: a put into a scratch ring
         # and a publish of nothing (head == tail: rcl is not called)
         scratch = Ring(8, 4)
         scratch.put(np.zeros(4, np.uint8), 0)  # a wire's bytes
         scratch.put(np.frombuffer(bytes(4), np.uint8), 0)  # serialize_message's (read-only)
-        _publish_ring(0, scratch.buf, scratch.lens, scratch.ctrl, 0, np.zeros(8, np.uint64))
         scratch.ctrl[R_TAIL] = scratch.ctrl[R_HEAD]  # nothing to publish: rcl is not called
         _publisher_loop(
             0,
@@ -256,7 +251,6 @@ class Outbox:
         for ch in self.channels:
             if ch.tap is None:
                 ch.tap = Ring(ch.slot, ch.capacity * factor)
-        self.tapped = True
         return {ch.topic: ch for ch in self.channels}
 
     def emit(self, publisher: Any, msg: Any) -> bool:
@@ -296,68 +290,48 @@ class Outbox:
             out[ch.topic] = row
         return out
 
+    def lost_by_topic(self) -> dict[str, int]:
+        """Per topic, messages that did not reach DDS or the recorder (0 normally)."""
+        return {
+            topic: r['lost_dds'] + r['publish_failed'] + r.get('lost_recorder', 0)
+            for topic, r in self.counts().items()
+        }
+
     def lost(self) -> int:
         """Messages that did not reach DDS or the recorder (0 in normal operation)."""
-        return sum(
-            r['lost_dds'] + r['publish_failed'] + r.get('lost_recorder', 0)
-            for r in self.counts().values()
-        )
+        return sum(self.lost_by_topic().values())
 
 
 class PublisherThread:
-    """The non-real-time side of an :class:`Outbox`: publishes its DDS rings every
-    ``period`` s or sooner when :meth:`wake` is called, with the GIL released in rcl.
+    """The non-real-time side of one :class:`Channel`: a thread that spends its whole life
+    in :func:`_publisher_loop` (no GIL), publishing the channel's DDS ring every
+    ``period`` s. One per topic (:meth:`per_channel`): a writer that a reader keeps
+    blocked (Fast DDS waits up to its max blocking time for room) holds back its own
+    topic only -- the experiment results the tuner waits for go on."""
 
-    One thread per channel (``channels``: those of this thread; None: all): a writer
-    that a reader keeps blocked (Fast DDS waits up to its max blocking time for room)
-    holds back its own topic only -- the experiment results the tuner waits for go on."""
-
-    def __init__(
-        self, outbox: Outbox, period: float = 0.005, channels: list[Channel] | None = None
-    ) -> None:
-        self.outbox = outbox
-        self.channels = list(outbox.channels if channels is None else channels)
+    def __init__(self, channel: Channel, period: float = 0.005) -> None:
+        self.channel = channel
         self.period = float(period)
         self._ser = np.zeros(8, np.uint64)
-        self._quit = False
         #: 0 run, 1 publish what is left and end, 2 end now (the GIL-free loop's flag)
         self._stop = np.zeros(1, np.int64)
-        self._event = threading.Event()
         self.published = 0
         self.error: BaseException | None = None
-        name = 'outbox ' + (self.channels[0].topic if len(self.channels) == 1 else 'publisher')
-        target = self._run_nogil if len(self.channels) == 1 else self._run
-        self._thread = threading.Thread(target=target, name=name, daemon=True)
+        self._thread = threading.Thread(
+            target=self._run, name=f'outbox {channel.topic}', daemon=True
+        )
         self._thread.start()
 
     @classmethod
     def per_channel(cls, outbox: Outbox, period: float = 0.005) -> list[PublisherThread]:
         """One publisher thread for each channel of ``outbox``."""
-        return [cls(outbox, period, [ch]) for ch in outbox.channels]
+        return [cls(ch, period) for ch in outbox.channels]
 
     def pending(self) -> int:
-        return sum(ch.dds.pending for ch in self.channels)
+        return self.channel.dds.pending
 
-    def wake(self) -> None:
-        self._event.set()
-
-    def drain(self) -> int:
-        """Publish everything pending now (in the calling thread), in batches."""
-        n = 0
-        for ch in self.channels:
-            r = ch.dds
-            while not self._quit:
-                head = int(r.ctrl[R_HEAD])  # read under the GIL: its bytes are visible
-                tail = int(r.ctrl[R_TAIL])
-                if head <= tail:
-                    break
-                head = min(head, tail + PUBLISH_BATCH)
-                n += _publish_ring(ch.address, r.buf, r.lens, r.ctrl, head, self._ser)
-        self.published += n
-        return n
-
-    def _run_nogil(self) -> None:
-        ch = self.channels[0]
+    def _run(self) -> None:
+        ch = self.channel
         r = ch.dds
         try:
             self.published += _publisher_loop(
@@ -366,22 +340,10 @@ class PublisherThread:
         except BaseException as exc:
             self.error = exc
 
-    def _run(self) -> None:
-        try:
-            while not self._quit:
-                self.drain()
-                self._event.wait(self.period)
-                self._event.clear()
-        except BaseException as exc:
-            self.error = exc
-
     def stop(self, timeout: float = 2.0) -> None:
         """Publish what is left (bounded by ``timeout``) and end the thread."""
         deadline = time.monotonic() + timeout
         while self.pending() and time.monotonic() < deadline and self.error is None:
-            self._event.set()
             time.sleep(0.001)
-        self._quit = True
         self._stop[0] = 1 if not self.pending() else 2
-        self._event.set()
         self._thread.join(timeout)

@@ -141,13 +141,10 @@ def parameter_args(params: list[Parameter]) -> list[str]:
 def say_outbox_losses(outbox: Any) -> None:
     """One line on stderr when the real-time loop's outbox dropped or could not publish
     a message (a reader that stopped taking; a full ring): the run says so."""
-    lost = outbox.lost()
+    by_topic = outbox.lost_by_topic()
+    lost = sum(by_topic.values())
     if lost:
-        where = ', '.join(
-            f'{topic} {r["lost_dds"] + r["publish_failed"] + r.get("lost_recorder", 0)}'
-            for topic, r in outbox.counts().items()
-            if r['lost_dds'] + r['publish_failed'] + r.get('lost_recorder', 0)
-        )
+        where = ', '.join(f'{topic} {n}' for topic, n in by_topic.items() if n)
         print(
             f'warning: the real-time loop could not deliver {lost} messages ({where}): '
             'a reader that stopped taking, or a full outbox; counted in the summary '

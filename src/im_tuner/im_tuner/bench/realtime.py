@@ -539,10 +539,7 @@ class RealtimeBench:
             'drive': {k: getattr(c, k) for k in ('fresh', 'held', 'late', 'watchdog_trips')},
             # per topic: handed over, published, lost (a full ring), refused by rcl
             'outbox': counts,
-            'outbox_lost': sum(
-                r['lost_dds'] + r['publish_failed'] + r.get('lost_recorder', 0)
-                for r in counts.values()
-            ),
+            'outbox_lost': self.outbox.lost(),
         }
         out['drive_period_us'] = self.t_state.summary()
         out['controller_answer_us'] = self.t_answer.summary()

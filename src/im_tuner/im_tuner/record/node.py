@@ -52,6 +52,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, parse_cli
+from im_drive_sim.outbox import R_HEAD, R_LOST, R_TAIL
 from im_drive_sim.runtime import RosSession, unknown_overrides, warn_unknown_overrides
 
 from . import take as rcl_take
@@ -326,14 +327,14 @@ class Recorder:
         total = 0
         for t, ch in self._taps:
             r = ch.tap
-            head = int(r.ctrl[0])  # outbox.R_HEAD, read under the GIL: its bytes are there
-            while int(r.ctrl[1]) < head:
+            head = int(r.ctrl[R_HEAD])  # read under the GIL: its bytes are there
+            while int(r.ctrl[R_TAIL]) < head:
                 ck = self.writer.chunk
                 n = rcl_take.drain_ring(
                     r.buf, r.lens, r.stamps, r.ctrl, head, t.channel, ck.buf, ck.idx, ck.st
                 )
                 total += n
-                if int(r.ctrl[1]) < head:  # the chunk is full
+                if int(r.ctrl[R_TAIL]) < head:  # the chunk is full
                     self.writer.flush_chunk()
                     self._chunk_opened = None
                     self.writer.chunk.grow(MESSAGE_HEADER_BYTES + int(ch.slot))
@@ -476,9 +477,9 @@ class Recorder:
         out = {}
         for t, ch in self._taps:
             out[t.name] = {
-                'recorded': int(ch.tap.ctrl[1]),  # outbox.R_TAIL
+                'recorded': int(ch.tap.ctrl[R_TAIL]),
                 'published': int(ch.put_count),
-                'lost': int(ch.tap.ctrl[2]),  # outbox.R_LOST: the ring was full
+                'lost': int(ch.tap.ctrl[R_LOST]),  # the ring was full
                 'publishers': 1,
                 'published_before_recording': 0,
                 'unmatched_publishers': 0,

@@ -32,21 +32,12 @@ import numpy as np
 import rclpy.impl.implementation_singleton  # noqa: F401  (loads librcl into the process)
 from numba import types
 
+from im_drive_sim.outbox import R_TAIL, loaded_library
+
 from .writer import MESSAGE_HEADER_BYTES, ST_TMAX, ST_TMIN, note_message, write_message_header
 
-
-def _loaded_library(name: str) -> str:
-    """Path of a shared library already mapped into this process (by rclpy)."""
-    with open('/proc/self/maps', encoding='ascii', errors='replace') as f:
-        for line in f:
-            path = line.rstrip().split(' ')[-1]
-            if path.endswith('/' + name):
-                return path
-    raise RuntimeError(f'{name} is not loaded in this process (is rclpy installed?)')
-
-
-_RCL = _loaded_library('librcl.so')
-_RCUTILS = _loaded_library('librcutils.so')
+_RCL = loaded_library('librcl.so')
+_RCUTILS = loaded_library('librcutils.so')
 llb.load_library_permanently(_RCL)
 
 # Pointers are passed as 64-bit integers: same registers in the x86-64 and AArch64 ABIs.
@@ -291,7 +282,7 @@ def drain_ring(
     early when the chunk is full (the caller closes it and calls again). Returns how
     many were copied; the ring's tail advances past each."""
     cap = rbuf.shape[0]
-    t = rctrl[1]  # outbox.R_TAIL
+    t = rctrl[R_TAIL]
     t_start = t
     while t < head:
         i = t % cap
@@ -305,5 +296,5 @@ def drain_ring(
         buf[p : p + n] = rbuf[i, :n]
         note_message(idx, st, channel, stamp, pos, MESSAGE_HEADER_BYTES + n)
         t += 1
-        rctrl[1] = t
+        rctrl[R_TAIL] = t
     return t - t_start

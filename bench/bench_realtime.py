@@ -81,11 +81,21 @@ MODES: dict[str, tuple[str, list[str], str]] = {
     'realtime-hogs': ('realtime', ['--thread-priority', '0'], 'rt_hogs'),
     'realtime-hogs-rt': ('realtime', ['--thread-priority', '50', '--lock-memory'], 'rt_hogs_fifo'),
     'realtime-frozen-reader': ('realtime', [], 'rt_frozen'),
+    # a plant on the wall clock (the example drive) next to two CPU hogs, the loop with
+    # --thread-priority 50 --lock-memory: what a real drive gets on a loaded machine
+    'realtime-example-drive-hogs-rt': (
+        'realtime',
+        [
+            *('--retries', '1', '--drive', 'example', '--fault-policy', 'reset'),
+            *('--thread-priority', '50', '--lock-memory'),
+        ],
+        'rt_example_hogs_fifo',
+    ),
 }
 FROZEN_READER = str(Path(__file__).with_name('frozen_reader.py'))
 BENCHES = tuple(MODES)
 #: the load scenario: CPU hogs (busy Python processes, normal priority) beside the run
-HOGS = {'realtime-hogs': 2, 'realtime-hogs-rt': 2}
+HOGS = {'realtime-hogs': 2, 'realtime-hogs-rt': 2, 'realtime-example-drive-hogs-rt': 2}
 
 
 def start_hogs(n: int) -> list[subprocess.Popen]:

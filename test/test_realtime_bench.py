@@ -189,7 +189,17 @@ def test_a_stalled_period_on_a_drive_that_cannot_pause_is_held_and_flagged(tmp_p
         or stalled['steps'] + stalled['periods']['held'] >= STEPS
     ), stalled
     assert stalled['loss'] is None  # never a loss
-    assert [(r['kind'], r['status']) for r in recs[1:]] == [('reference', 'ok'), ('eval', 'ok')]
+    rest = recs[1:]
+    if stalled['aborted'] and rest[0]['status'] == 'lost':
+        # the supervisor stopped it far off its path (0.4 s of held current); the next
+        # attempt may find the rotor still beyond the limit in its standstill settle:
+        # lost before step 0 (measured here: 1 run of 25), re-run, never a loss
+        assert rest[0]['kind'] == 'reference' and 'ended in its settle' in rest[0]['reason']
+        assert rest[0]['loss'] is None
+        rest = rest[1:]
+    assert [(r['kind'], r['status']) for r in rest] == [('reference', 'ok'), ('eval', 'ok')], [
+        (r['kind'], r['status'], r['reason'], r.get('periods')) for r in recs
+    ]
     d = json.loads((run / 'summary.json').read_text())['sessions'][0]['drive']
     assert d['loop']['missed_periods'] >= 1980, d['loop']
 

@@ -25,8 +25,12 @@ import pytest
 REPO = Path(__file__).resolve().parent
 VENV = Path(sys.prefix)
 
-# A domain per run: derived from the PID, within Fast DDS's usable range 0..232.
-os.environ['ROS_DOMAIN_ID'] = os.environ.get('IM_TEST_DOMAIN_ID', str(20 + os.getpid() % 200))
+# A domain per run, and per worker of a run (`make test` runs on two, pytest-xdist):
+# derived from the run's PID, within Fast DDS's usable range 0..232.
+_WORKER = os.environ.get('PYTEST_XDIST_WORKER', '')  # 'gw0', 'gw1', ... in a worker
+_RUN_PID = os.getppid() if _WORKER else os.getpid()  # a worker's parent is the run
+_DOMAIN = 20 + (_RUN_PID + (1 + int(_WORKER[2:]) if _WORKER else 0)) % 200
+os.environ['ROS_DOMAIN_ID'] = os.environ.get('IM_TEST_DOMAIN_ID', str(_DOMAIN))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 # A run started in the background of a script (`bash .ci/run &`) gets SIGINT ignored from
 # bash, and every child would inherit that: the tests that send SIGINT to a study then
@@ -63,8 +67,17 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """The tiers: a package's own tests (src/<package>/test) are the pure unit tier; the
-    workspace tests (test/) start nodes and processes, unless marked unit."""
+    workspace tests (test/) start nodes and processes, unless marked unit.
+
+    On two workers (``--dist loadgroup``), the tests that share a module-scoped fixture
+    (a run made once for several tests) go to one worker, so it is made once."""
     for item in items:
+        info = getattr(item, '_fixtureinfo', None)
+        shared = info is not None and any(
+            defs and defs[-1].scope == 'module' for defs in info.name2fixturedefs.values()
+        )
+        if shared:
+            item.add_marker(pytest.mark.xdist_group(str(item.path)))
         rel = Path(str(item.path)).resolve().relative_to(REPO)
         if rel.parts[0] == 'src' or item.get_closest_marker('unit') is not None:
             item.add_marker(pytest.mark.unit)  # (a static test in test/ says so itself)

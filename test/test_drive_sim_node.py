@@ -117,6 +117,7 @@ def test_ros2_run_from_a_plain_shell_and_exit_after_max_steps(procs, ros_context
     assert states[-1, F['step_index']] == 200
 
 
+@pytest.mark.serial  # its period timing is asserted: alone, not beside another test
 def test_realtime_mode_paces_at_5khz(procs, ros_context):
     """2500 states (0.5 s of sim time) arrive every 200 us of wall time."""
     steps = 2500

@@ -29,6 +29,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_faults import bag_counts, bag_state, results, ros2
 
 STEPS = 5625
+# wall-clock timing is asserted: alone, after the tests that run on two workers
+pytestmark = pytest.mark.serial
 SLOW = str(Path(__file__).with_name('slow_controller.py'))
 
 

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from mcap.reader import make_reader
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -36,6 +37,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_faults import bag_counts, results, ros2
 
 FROZEN_READER = Path(__file__).resolve().parents[1] / 'bench' / 'frozen_reader.py'
+
+# wall-clock timing is asserted: alone, after the tests that run on two workers
+pytestmark = pytest.mark.serial
 
 
 def test_the_publisher_thread_delivers_every_message_in_order(ros_context, wait_until):

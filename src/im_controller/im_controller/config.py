@@ -27,7 +27,6 @@ __all__ = [
     'MOVE_KEYS',
     'MOVE_RULE',
     'NUMERIC_SPECS',
-    'SEARCH_BOX',
     'ControlConfig',
     'ControllerConfigError',
     'ExperimentConfig',
@@ -69,15 +68,6 @@ GAIN_RANGES: dict[str, tuple[float, float]] = {
     'k_pos': (0.0, 300.0),
     'tau_sm': (0.0, 0.1),
     'tau_eq': (0.0, 0.1),
-}
-
-SEARCH_BOX: dict[str, tuple[float, float]] = {
-    # The exploration box of the shared notes (for the tuner; informational here).
-    'k_pw': (0.05, 3.0),
-    'k_iw': (0.0, 200.0),
-    'k_pos': (1.0, 150.0),
-    'tau_sm': (0.0, 0.05),
-    'tau_eq': (0.0, 0.05),
 }
 
 

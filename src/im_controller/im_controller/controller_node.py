@@ -93,7 +93,6 @@ from .messages import result_to_msg
 from .reset_fault import reset_command, service_name
 from .result import LossResult
 
-NS_PER_S = 1_000_000_000
 #: Shortest time between two logged refusals of one kind [s] (all are counted).
 REFUSAL_LOG_PERIOD = 1.0
 

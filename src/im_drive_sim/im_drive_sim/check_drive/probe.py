@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..contract import COMMAND_TOPIC, JOINT_STATE_TOPIC, STATE_TOPIC, STATUS_TOPIC
-from .evaluate import Recording, evaluate, rows_by_step
+from .evaluate import Recording, evaluate
 from .judges import (
     watchdog_limits,
 )
@@ -209,11 +209,6 @@ class Options:
     timeout: float = 10.0
     namespace: str | None = None
     json: str | None = None
-
-
-def _rows_by_step(p: Probe, first: int, last: int) -> tuple[np.ndarray, int]:
-    """``rows_by_step`` over what the probe has taken so far."""
-    return rows_by_step(p.states[: p.n], p.lengths[: p.n], first, last)
 
 
 def run_check(

@@ -45,8 +45,6 @@ from im_drive_sim.runtime import (
 from ..record import node as recorder_node
 from .inprocess import InProcessBench, bench_metadata
 
-NS_PER_S = 1_000_000_000
-
 
 def _parser() -> argparse.ArgumentParser:
     ap = Parser(

@@ -47,10 +47,11 @@ $(VENV)/.installed: $(VENV)/.deps $(PKG_FILES) tools/ros2 Makefile
 	    printf '\n# im_tuner: ament index of this venv\nexport AMENT_PREFIX_PATH="$$VIRTUAL_ENV$${AMENT_PREFIX_PATH:+:$$AMENT_PREFIX_PATH}"\n' >> $(VENV)/bin/activate
 	touch $@
 
-# Two workers (pytest-xdist) for all but the tests that assert wall-clock timing, which
-# then run alone (marked serial: another test beside them would be their load).
+# Two workers (pytest-xdist, a test file to a worker, the longest files first: conftest.py)
+# for all but the tests that assert wall-clock timing, which then run alone (marked
+# serial: another test beside them would be their load).
 test: setup
-	$(PY) -m pytest -n 2 --dist loadgroup -m 'not serial'
+	$(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder -m 'not serial'
 	$(PY) -m pytest -m serial
 
 test-unit: setup

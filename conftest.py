@@ -103,17 +103,40 @@ def wait_for(
         time.sleep(interval)
 
 
+class Child(subprocess.Popen):
+    """A child whose stdout and stderr, unless given, go to files, not pipes: a chatty
+    child (warnings of a loaded machine) never blocks on a full pipe that a test reads
+    only at its end. :meth:`communicate` waits for it and returns their text."""
+
+    def __init__(self, argv: list[str], **kwargs) -> None:
+        self._files: dict[str, object] = {}
+        for name in ('stdout', 'stderr'):
+            if name not in kwargs:
+                kwargs[name] = self._files[name] = tempfile.TemporaryFile()  # noqa: SIM115 (stop_all)
+        super().__init__(argv, **kwargs)
+
+    def communicate(self, input=None, timeout=None):
+        out, err = super().communicate(input, timeout)
+        return self._read('stdout', out), self._read('stderr', err)
+
+    def _read(self, name: str, piped):
+        f = self._files.get(name)
+        if f is None:
+            return piped
+        f.seek(0)  # type: ignore[attr-defined]
+        data = f.read()  # type: ignore[attr-defined]
+        return data.decode(errors='replace') if self.text_mode else data
+
+
 class Processes:
     """Starts child processes for a test and always ends them at teardown."""
 
     def __init__(self) -> None:
         self.children: list[subprocess.Popen] = []
 
-    def start(self, argv: list[str], **kwargs) -> subprocess.Popen:
-        kwargs.setdefault('stdout', subprocess.PIPE)
-        kwargs.setdefault('stderr', subprocess.PIPE)
+    def start(self, argv: list[str], **kwargs) -> Child:
         kwargs.setdefault('text', True)
-        proc = subprocess.Popen(argv, **kwargs)
+        proc = Child(argv, **kwargs)
         self.children.append(proc)
         return proc
 
@@ -122,6 +145,8 @@ class Processes:
 
         for proc in reversed(self.children):
             stop_child(proc)
+            for f in proc._files.values():
+                f.close()  # type: ignore[attr-defined]
 
 
 @pytest.fixture

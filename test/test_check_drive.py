@@ -93,6 +93,7 @@ def test_drive_sim_lockstep_passes(procs, tmp_path, delay):
     print(out)
 
 
+@pytest.mark.serial  # a drive on the wall clock is judged: alone, not beside another test
 def test_drive_sim_realtime_passes_in_a_namespace(procs, tmp_path):
     out, data = run_expect(
         procs,
@@ -117,6 +118,7 @@ def test_drive_sim_realtime_passes_in_a_namespace(procs, tmp_path):
     print(out)
 
 
+@pytest.mark.serial  # a drive on the wall clock is judged: alone, not beside another test
 def test_example_drive_passes(procs, tmp_path):
     out, data = run_expect(
         procs,

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -146,7 +147,7 @@ def test_an_outbox_overflow_is_counted_in_the_figures_the_bag_and_one_line(
 
 
 def test_a_frozen_reliable_reader_stalls_nothing_and_the_bag_stays_lossless(procs, tmp_path):
-    reader = procs.start([sys.executable, str(FROZEN_READER)])
+    reader = procs.start([sys.executable, str(FROZEN_READER)], stdout=subprocess.PIPE)
     run = tmp_path / 'run'
     tuner = procs.start(
         [

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -403,6 +404,7 @@ def _bag_size(bag: Path) -> int:
     return sum(f.stat().st_size for f in bag.glob('*.mcap')) if bag.is_dir() else 0
 
 
+@pytest.mark.serial  # a drive on the wall clock is judged: alone, not beside another test
 def test_recorder_next_to_a_live_realtime_drive_closes_within_2_s(procs, tmp_path, wait_until):
     """Issue 18 (3): a real-time drive publishes 5000 states a second and never stops, so
     the recorder's close never sees the quiet it used to wait for (the bag stayed open for
@@ -434,6 +436,7 @@ def test_recorder_next_to_a_live_realtime_drive_closes_within_2_s(procs, tmp_pat
     assert read_with_mcap(bag)['/drive/state'] == counts['/drive/state']
 
 
+@pytest.mark.serial  # a drive on the wall clock is judged: alone, not beside another test
 def test_a_recorder_stalled_next_to_a_realtime_drive_loses_nothing(procs, tmp_path, wait_until):
     """Every topic the drive publishes is reliable KEEP_ALL, so a recorder that stops
     taking for a while (SIGSTOP: a loaded 2-core machine, for 0.4 s) back-pressures the

@@ -23,7 +23,7 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from im_controller.config import Gains
-from im_controller.contract import NO_DRIVE_STATE, SAFETY_FAULT, refusal_code, started_id
+from im_controller.contract import BUSY, NO_DRIVE_STATE, SAFETY_FAULT, refusal_code, started_id
 from im_controller.controller_node import INTERNALS_FIELDS
 from im_controller.experiment import ExperimentRunner, config_for_drive
 from im_controller.messages import msg_to_result, result_to_msg
@@ -85,7 +85,8 @@ class Probe:
     def experiment(self, timeout: float = 60.0):
         n = len(self.results)
         resp = self.start()
-        for _ in range(100):  # up to ~10 s
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:
             code = refusal_code(resp.message)
             if code == SAFETY_FAULT and 'drive_state_timeout' in resp.message:
                 # Real time on a loaded machine: the drive's states paused for longer than
@@ -93,9 +94,11 @@ class Probe:
                 # does (fault policy 'reset'), and start again.
                 reset = self.call(self.reset_client.call_async(Trigger.Request()))
                 assert reset.success or refusal_code(reset.message) == NO_DRIVE_STATE
-            elif resp.success or code != NO_DRIVE_STATE:
+            elif resp.success or code not in (NO_DRIVE_STATE, BUSY):
                 break
-            # a controller that just came up: the drive re-sends its state every 0.1 s
+            # a controller that just came up: the drive re-sends its state every 0.1 s;
+            # or one that still runs an experiment started before (a tuner killed
+            # mid-experiment: on a loaded machine it may end seconds later)
             assert self.spin_until(lambda: False, 0.1) is False
             resp = self.start()
         assert resp.success, resp.message

@@ -44,8 +44,8 @@ if not os.environ.get('HOME'):
     os.environ['HOME'] = tempfile.gettempdir()
 
 
-#: The whole run must end within this many seconds (it takes about 20 minutes here; a
-#: machine 2x slower needs 40). Past it, every thread's stack is printed and the run ends
+#: The whole run must end within this many seconds (a pass takes 2-12 minutes here; a
+#: machine 2x slower needs 24). Past it, every thread's stack is printed and the run ends
 #: with exit 1 -- a hang that pytest-timeout cannot break (in C code, or at exit) fails
 #: with a word of where, instead of running out CI's 90 minutes in silence.
 SESSION_LIMIT_S = 60 * 60

@@ -151,10 +151,11 @@ def test_a_frozen_reliable_reader_stalls_nothing_and_the_bag_stays_lossless(proc
     run = tmp_path / 'run'
     tuner = procs.start(
         [
-            *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '2', '--seed', '4'),
+            *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '4', '--seed', '4'),
             *('--remeasure', '0', '--quiet', '--out', str(run)),
         ]
     )
+    # (5 experiments, ~8 s: the reader is ready 1-2 s into them on a loaded machine)
     # freeze the reader once it took 100 states (matched with every publisher)
     assert reader.stdout is not None
     assert reader.stdout.readline().strip() == 'ready'

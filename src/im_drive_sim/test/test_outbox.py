@@ -12,7 +12,7 @@ from sensor_msgs.msg import JointState
 
 from im_drive_sim.cdr import ClockWire, Float64ArrayWire, JointStateWire
 from im_drive_sim.outbox import R_HEAD, R_LOST, R_TAIL, R_TOO_BIG, Ring
-from im_drive_sim.pacing import DurationHistogram
+from im_drive_sim.pacing import DurationHistograms
 
 
 def test_a_ring_keeps_order_and_counts_what_did_not_fit():
@@ -63,16 +63,22 @@ def test_pre_serialised_joint_state_and_clock_equal_rclpy_messages():
     assert bytes(f.raw) == f.payload()  # the outbox takes the raw view, no copy
 
 
-def test_duration_histogram_percentiles_within_a_microsecond_in_fixed_memory():
+def test_duration_histograms_percentiles_within_a_microsecond_in_fixed_memory():
     rng = np.random.default_rng(3)
     x = np.concatenate([rng.gamma(3.0, 8.0, 50_000), [15_000.0, 250_000.0]])
-    h = DurationHistogram(limit_us=20_000)
+    y = rng.uniform(0.0, 100.0, len(x))
+    y[:3] = (-5.0, float('nan'), 30_000.0)  # counted in the first and the last bin
+    h = DurationHistograms(('x', 'y'), limit_us=20_000)
+    assert h.summary('x') is None and np.isnan(h.percentile('y', 50))
     size = h.counts.nbytes
-    for v in x:
-        h.add(float(v))
+    for a, b in zip(x, y, strict=True):
+        h.add((float(a), float(b)))
     assert h.counts.nbytes == size and h.n == len(x)
+    assert h.counts[0].sum() == h.counts[1].sum() == len(x)
+    assert h.counts[1, 0] == 2 + np.sum((y >= 0.0) & (y < 1.0)) and h.counts[1, -1] == 1
     for q in (50, 90, 99):
-        assert abs(h.percentile(q) - np.percentile(x, q)) <= 1.0, q
-    s = h.summary()
+        assert abs(h.percentile('x', q) - np.percentile(x, q)) <= 1.0, q
+        assert abs(h.percentile('y', q) - np.nanpercentile(y, q)) <= 1.5, q
+    s = h.summary('x')
     assert s is not None and s['max'] == 250_000.0
-    assert DurationHistogram().summary() is None
+    assert h.summary('y')['max'] == 30_000.0

@@ -62,7 +62,7 @@ from rclpy.parameter import Parameter
 from im_controller.controller_node import ControllerNode
 from im_drive_sim import contract, rt
 from im_drive_sim.outbox import Outbox, PublisherThread
-from im_drive_sim.pacing import LATENESS_BINS, DurationHistogram, Pacer
+from im_drive_sim.pacing import LATENESS_BINS, DurationHistograms, Pacer
 from im_drive_sim.runtime import ROUTES, qos_profile
 
 from ..tuning import BenchFailure
@@ -279,10 +279,9 @@ class RealtimeBench:
         # per-period timings [us], over the whole run in fixed memory: the drive's period
         # (state k published), the controller's answer, the whole period's work, and how
         # late the period started
-        self.t_state = DurationHistogram()
-        self.t_answer = DurationHistogram()
-        self.t_work = DurationHistogram()
-        self.t_late = DurationHistogram()
+        #: per period [us]: the drive's part, the controller's, the whole work, and how
+        #: late the period started
+        self.durations = DurationHistograms(('drive', 'answer', 'work', 'late'))
         self.periods = 0
         self.answers_missed = 0  #: periods whose state the controller had no answer for
         self.gc_runs = 0
@@ -381,10 +380,10 @@ class RealtimeBench:
                 drive.take_commands()  # fresh for the next period
             else:
                 self.answers_missed += 1
-        self.t_state.add(1e6 * (t1 - t0))
-        self.t_answer.add(1e6 * (t2 - t1))
-        self.t_work.add(1e6 * (time.perf_counter() - t0))
-        self.t_late.add(1e6 * pacer.lateness_s)
+        t3 = time.perf_counter()
+        self.durations.add(
+            (1e6 * (t1 - t0), 1e6 * (t2 - t1), 1e6 * (t3 - t0), 1e6 * pacer.lateness_s)
+        )
         self.periods += 1
         return True
 
@@ -541,10 +540,11 @@ class RealtimeBench:
             'outbox': counts,
             'outbox_lost': self.outbox.lost(),
         }
-        out['drive_period_us'] = self.t_state.summary()
-        out['controller_answer_us'] = self.t_answer.summary()
-        out['period_work_us'] = self.t_work.summary()
-        out['lateness_us'] = self.t_late.summary()
+        d = self.durations
+        out['drive_period_us'] = d.summary('drive')
+        out['controller_answer_us'] = d.summary('answer')
+        out['period_work_us'] = d.summary('work')
+        out['lateness_us'] = d.summary('late')
         return out
 
     def destroy(self) -> None:

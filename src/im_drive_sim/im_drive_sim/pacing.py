@@ -255,8 +255,9 @@ class DurationHistograms:
     1 us bins up to ``limit_us`` (longer ones in the last bin) with the exact maxima: a
     fixed few hundred kB per kind for a run of any length (a real-time loop's memory
     must not grow), percentiles to within a microsecond. :meth:`add` takes one value of
-    each kind in a single compiled call (four Python ones cost the composed loop ~6 us a
-    period, 15 % of its work: docs/real-drive.md)."""
+    each kind in a single compiled call: 0.56 us against 1.60 us for four Python
+    histograms in a hot loop (medians of 7 x 200000), and the Python ones held 15 % of
+    the composed loop thread's working samples in its profile (docs/real-drive.md)."""
 
     def __init__(self, names: tuple[str, ...], limit_us: int = 20_000) -> None:
         self.names = tuple(names)

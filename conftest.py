@@ -26,10 +26,13 @@ REPO = Path(__file__).resolve().parent
 VENV = Path(sys.prefix)
 
 # A domain per run, and per worker of a run (`make test` runs on two, pytest-xdist):
-# derived from the run's PID, within Fast DDS's usable range 0..232.
+# derived from the run's PID, within Fast DDS's usable range 0..232. The workers' domains
+# are spread 200 / workers apart: test_faults walks up from its worker's domain, one
+# fresh domain per test (a SIGKILLed node stays on a graph until its lease ends).
 _WORKER = os.environ.get('PYTEST_XDIST_WORKER', '')  # 'gw0', 'gw1', ... in a worker
 _RUN_PID = os.getppid() if _WORKER else os.getpid()  # a worker's parent is the run
-_DOMAIN = 20 + (_RUN_PID + (1 + int(_WORKER[2:]) if _WORKER else 0)) % 200
+_SPREAD = 200 // max(1, int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1')))
+_DOMAIN = 20 + (_RUN_PID + (1 + _SPREAD * int(_WORKER[2:]) if _WORKER else 0)) % 200
 os.environ['ROS_DOMAIN_ID'] = os.environ.get('IM_TEST_DOMAIN_ID', str(_DOMAIN))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 # A run started in the background of a script (`bash .ci/run &`) gets SIGINT ignored from

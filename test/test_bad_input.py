@@ -418,8 +418,9 @@ def _run_case(template: Path, base: Path, i: int, exe: str, argv: list[str]) -> 
     shutil.copytree(template, cwd, symlinks=True)
     before = _tree(cwd)
     env = dict(os.environ)
-    # each case its own DDS domain: a node that wrongly starts must not meet another case
-    env['ROS_DOMAIN_ID'] = str(100 + (int(env.get('ROS_DOMAIN_ID', '20')) + i) % 100)
+    # each case its own DDS domain (of 60, within this worker's 100: conftest.py): a node
+    # that wrongly starts must not meet another case, nor the other worker's tests
+    env['ROS_DOMAIN_ID'] = str((int(env['ROS_DOMAIN_ID']) + 1 + i % 60) % 233)
     env['ROS_LOG_DIR'] = str(base / f'log_{i}')
     # the case's drive modules (bad_drives.py) importable, and no __pycache__ left beside
     env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(cwd), env.get('PYTHONPATH')]))

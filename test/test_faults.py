@@ -107,7 +107,8 @@ _DOMAINS = iter(range(1, 1000))
 def own_domain(monkeypatch):
     """Each fault test in a DDS domain of its own: a SIGKILLed process stays on the graph
     until its lease expires (20 s), and the next test's tuner would find its dead
-    controller there. (Autouse: set before ros_context and the children start.)"""
+    controller there. (Autouse: set before ros_context and the children start. The ~20
+    tests here stay below the next worker's domain, 100 up: conftest.py.)"""
     base = int(os.environ['ROS_DOMAIN_ID'])
     monkeypatch.setenv('ROS_DOMAIN_ID', str((base + next(_DOMAINS)) % 233))
 

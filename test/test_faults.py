@@ -729,6 +729,7 @@ def reset_fault(*args: str) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.serial  # a real-time drive's status-based session share: alone
 def test_a_fault_between_experiments_is_counted_and_cleared_with_reset_fault(
     procs, tmp_path, tap, wait_until
 ):

@@ -279,8 +279,6 @@ class RealtimeBench:
         # per-period timings [us], over the whole run in fixed memory: the drive's period
         # (state k published), the controller's answer, the whole period's work, and how
         # late the period started
-        #: per period [us]: the drive's part, the controller's, the whole work, and how
-        #: late the period started
         self.durations = DurationHistograms(('drive', 'answer', 'work', 'late'))
         self.periods = 0
         self.answers_missed = 0  #: periods whose state the controller had no answer for

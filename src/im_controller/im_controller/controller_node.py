@@ -89,6 +89,7 @@ from .experiment import (
     STATUS_FAULT,
     ExperimentRunner,
 )
+from .kernel import N_ANSWER_WORDS, W_ANSWERED, W_DECIMATION, W_N_ANSWERED
 from .messages import result_to_msg
 from .reset_fault import reset_command, service_name
 from .result import LossResult
@@ -617,6 +618,46 @@ class ControllerNode(LenientDoubles, Node):
         if status >= STATUS_DONE:
             self._on_status(status)
         return True
+
+    # -- the same answer compiled (kernel.answer_state; a composed loop, bench.compiled_loop)
+    def answer_words(self) -> np.ndarray:
+        """``kernel.answer_state``'s ``W`` words from this node (then
+        :meth:`set_answer_words`)."""
+        w = np.zeros(N_ANSWER_WORDS, np.int64)
+        w[W_ANSWERED] = self.client.answered
+        w[W_N_ANSWERED] = self._n_answered
+        w[W_DECIMATION] = self.internals_decimation
+        return w
+
+    def answer_views(self) -> dict[str, np.ndarray]:
+        """The arrays a compiled answer runs on: the runner's (``R Q X C CF cout eout``),
+        the command's and the internals' values, and their messages' bytes (``*_raw``)."""
+        r = self.runner
+        cmd = self.client.command_wire
+        return {
+            'R': r.R,
+            'Q': r.Q,
+            'X': r.X,
+            'C': r.C,
+            'CF': r.CF,
+            'cout': r.cout,
+            'eout': r.eout,
+            'cmd': cmd.values,
+            'internals': self._internals.values,
+            'cmd_raw': cmd.raw,
+            'internals_raw': self._internals.raw,
+        }
+
+    def set_answer_words(self, W: np.ndarray, status: int) -> None:
+        """Take back what a compiled loop answered (:meth:`answer_words`); ``status``:
+        the last answer's, handled as :meth:`answer` does (an experiment's end)."""
+        self.client.answered = int(W[W_ANSWERED])
+        self._n_answered = int(W[W_N_ANSWERED])
+        self._pending = False
+        self._last_msg_wall = self._last_state_wall = time.monotonic()
+        if status >= STATUS_DONE:
+            self.runner.stepped(status)
+            self._on_status(status)
 
     def _on_status(self, status: int) -> None:
         if self.deferred is not None:  # a composed loop: published and logged off the loop

@@ -330,3 +330,49 @@ def experiment_step(
     R[R_LAST_ISQ] = isq
     R[R_LAST_LOAD] = load
     return status
+
+
+#: The words of :func:`answer_state`'s ``W`` (int64): the newest state answered, the
+#: states answered, the internals decimation, and whether this answer made internals due.
+W_ANSWERED, W_N_ANSWERED, W_DECIMATION, W_INTERNALS_DUE = range(4)
+N_ANSWER_WORDS = 4
+
+
+@njit(cache=True)
+def answer_state(
+    R: np.ndarray,
+    Q: np.ndarray,
+    X: np.ndarray,
+    C: np.ndarray,
+    CF: np.ndarray,
+    state: np.ndarray,
+    cout: np.ndarray,
+    eout: np.ndarray,
+    cmd: np.ndarray,
+    internals: np.ndarray,
+    W: np.ndarray,
+) -> int:
+    """``ControllerNode.answer`` compiled (a composed real-time loop calls it without the
+    GIL, ``im_tuner.bench.compiled_loop``): :func:`experiment_step` on drive state k, the
+    command (k, isq* [A], load [N m]) written into ``cmd`` (the command message's
+    values), and every ``W[W_DECIMATION]``-th answer the internals [k, cout, eout] into
+    ``internals`` (``W[W_INTERNALS_DUE]`` = 1). Returns the experiment status; the node
+    takes the words back (``ControllerNode.set_answer_words``)."""
+    k = state[0]
+    st = experiment_step(R, Q, X, C, CF, state, cout, eout)
+    cmd[0] = k
+    cmd[1] = eout[E_ISQ]
+    cmd[2] = eout[E_LOAD]
+    if k > W[W_ANSWERED]:
+        W[W_ANSWERED] = np.int64(k)
+    W[W_N_ANSWERED] += 1
+    W[W_INTERNALS_DUE] = 0
+    if W[W_N_ANSWERED] % W[W_DECIMATION] == 0:
+        nc = cout.shape[0]
+        internals[0] = k
+        for j in range(nc):
+            internals[1 + j] = cout[j]
+        for j in range(eout.shape[0]):
+            internals[1 + nc + j] = eout[j]
+        W[W_INTERNALS_DUE] = 1
+    return st

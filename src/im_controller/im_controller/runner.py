@@ -217,9 +217,15 @@ class ExperimentRunner:
         """One drive state (float64 array, ``STATE_FIELDS`` order; fields 0-3 used) ->
         (isq* [A], load torque command [N m], status)."""
         st = experiment_step(self.R, self.Q, self.X, self.C, self.CF, state, self.cout, self.eout)
-        if st == STATUS_ABORTED and self.R[R_REASON] < REASON_POSITION:
-            self.gains = self.config.fallback_gains  # the kernel switched to them
+        self.stepped(st)
         return float(self.eout[E_ISQ]), float(self.eout[E_LOAD]), int(st)
+
+    def stepped(self, status: int) -> None:
+        """What follows a kernel step that returned ``status`` (:meth:`step`, or a
+        compiled loop that ran ``kernel.answer_state``): an abort that is not a position
+        stop left the kernel on the fallback gains."""
+        if status == STATUS_ABORTED and self.R[R_REASON] < REASON_POSITION:
+            self.gains = self.config.fallback_gains  # the kernel switched to them
 
     # -- queries
     @property

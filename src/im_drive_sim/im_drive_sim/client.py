@@ -41,7 +41,8 @@ class DriveClient:
         )
         self.command_pub = node.create_publisher(Float64MultiArray, COMMAND_TOPIC, RECORDED_QOS)
         self._waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)
-        self._cmd = Float64ArrayWire(len(COMMAND_FIELDS))
+        #: the command message, preallocated (its values are written in place)
+        self.command_wire = Float64ArrayWire(len(COMMAND_FIELDS))
         self.state = np.zeros(len(STATE_FIELDS))
         self.answered: int = -1
         #: publish retries while a reliable reader (the recorder) was full
@@ -98,13 +99,15 @@ class DriveClient:
 
     def command(self, answers_step: int, isq_ref: float, load_torque: float = 0.0) -> None:
         """Publish the command answering state ``answers_step``."""
-        v = self._cmd.values
+        v = self.command_wire.values
         v[0] = answers_step
         v[1] = isq_ref
         v[2] = load_torque
         if self.hand_over is not None:
             self.hand_over(v)
-        self.backpressure += publish_lossless(self.command_pub, self._cmd, self.node.context)
+        self.backpressure += publish_lossless(
+            self.command_pub, self.command_wire, self.node.context
+        )
         if answers_step > self.answered:
             self.answered = answers_step
 

@@ -25,6 +25,7 @@ import sys
 import time
 from dataclasses import dataclass
 
+import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.duration import Duration
@@ -35,7 +36,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from . import contract, rt
+from . import contract, period_kernel, rt
 from .cdr import ClockWire, Float64ArrayWire, JointStateWire
 from .cli import Parser, input_file, int_in, parse_cli, run_cli
 from .contract import (
@@ -621,11 +622,81 @@ class DriveSimNode(LenientDoubles, Node):
             c.held += 1
         self.step_once(self._isq_ref, self._load, acting)
         self._cmd_fresh = False  # it answered the state before this step
+        self.stall_due()
+
+    # -- the same period compiled (period_kernel; a composed loop: bench.compiled_loop) --
+    def period_words(self) -> tuple[np.ndarray, np.ndarray]:
+        """The held command, its latch and the counters as ``period_kernel``'s ``D`` and
+        ``DC`` arrays, for a compiled loop to run periods with (then
+        :meth:`set_period_words`)."""
+        pend_applied, pend_fresh = self._pend
+        words = {
+            'isq_ref': self._isq_ref,
+            'load': self._load,
+            'applied': self._applied,
+            'fresh': self._cmd_fresh,
+            'held_answers': self._held_answers,
+            'pend_applied': pend_applied,
+            'pend_fresh': pend_fresh,
+            'safe_stopped': self.safe_stopped,
+            'command_delay': self.config.command_delay,
+            'wall_clock': self.wall_clock,
+            'clock_decimation': self.clock_decimation,
+            'joint_state_decimation': self.joint_state_decimation,
+            'ts_ns': self.ts_ns,
+            'i_theta': self._i_theta,
+            'i_omega': self._i_omega,
+            'i_torque': self._i_torque,
+        }
+        D = np.array([float(words[n]) for n in period_kernel.WORDS])
+        c = self.counters
+        DC = np.array([getattr(c, n) for n in period_kernel.COUNTERS], np.int64)
+        return D, DC
+
+    def set_period_words(self, D: np.ndarray, DC: np.ndarray, commands: bool) -> None:
+        """Take back what a compiled loop ran (:meth:`period_words`); ``commands``: it
+        took one (the watchdog is fed)."""
+        W = period_kernel
+        self._isq_ref = float(D[W.D_ISQ])
+        self._load = float(D[W.D_LOAD])
+        self._applied = int(D[W.D_APPLIED])
+        self._cmd_fresh = bool(D[W.D_FRESH])
+        self._held_answers = int(D[W.D_HELD])
+        self._pend = (int(D[W.D_PEND_APPLIED]), bool(D[W.D_PEND_FRESH]))
+        c = self.counters
+        for i, n in enumerate(W.COUNTERS):
+            setattr(c, n, int(DC[i]))
+        if commands:
+            self._cmd_watchdog.command()
+
+    def period_views(self) -> dict[str, np.ndarray]:
+        """The model's arrays and the preallocated messages a compiled period writes:
+        ``S``, ``P``, ``noise`` (the model, ``DriveSim.run_kernel`` hands them over),
+        ``state`` and the /clock and joint_states fields, and each message's bytes
+        (``*_raw``) for the loop's outbox."""
+        c, j = self._clock_wire, self._joint_wire
+        return {
+            'state': self._state,
+            'clock_sec': c.sec,
+            'clock_nsec': c.nanosec,
+            'joint_sec': j.sec,
+            'joint_nsec': j.nanosec,
+            'joint_pos': j.position,
+            'joint_vel': j.velocity,
+            'joint_eff': j.effort,
+            'state_raw': self._state_wire.raw,
+            'clock_raw': c.raw,
+            'joint_raw': j.raw,
+        }
+
+    def stall_due(self) -> bool:
+        """The test hook (``test_stall_step``): the loop stalls once, here -- in the first
+        period at or past the step (a drive that cannot pause may skip the step itself)."""
         if 0 <= self.stall_step <= self.sim.step_index:
-            # the test hook: this loop stalls once, here (the first period at or past the
-            # step: a drive that cannot pause may skip the step itself)
             self.stall_step = -1
             time.sleep(self.stall_s)
+            return True
+        return False
 
     def wait_command(self, timeout_s: float) -> bool:
         """Sleep up to ``timeout_s`` [s] in rcl_wait; True when a command is pending."""

@@ -47,7 +47,7 @@ import numpy as np
 import rclpy.impl.implementation_singleton  # noqa: F401  (loads librcl into the process)
 from numba import types
 
-__all__ = ['Channel', 'Outbox', 'PublisherThread', 'Ring']
+__all__ = ['Channel', 'Outbox', 'PublisherThread', 'Ring', 'put_slot']
 
 
 def loaded_library(name: str) -> str:
@@ -83,7 +83,7 @@ DEFAULT_CAPACITY = 10_000
 
 
 @numba.njit(cache=True)
-def _put(buf: np.ndarray, lens: np.ndarray, stamps: np.ndarray, ctrl: np.ndarray,
+def put_slot(buf: np.ndarray, lens: np.ndarray, stamps: np.ndarray, ctrl: np.ndarray,
          src: np.ndarray, stamp: int) -> bool:  # fmt: skip
     """Copy ``src`` (uint8) into the next slot; False (and counted) when full or too big.
     The head is advanced by the caller, after this returns (module docstring)."""
@@ -173,7 +173,7 @@ class Ring:
             a.fill(0)
 
     def put(self, src: np.ndarray, stamp: int) -> bool:
-        if _put(self.buf, self.lens, self.stamps, self.ctrl, src, stamp):
+        if put_slot(self.buf, self.lens, self.stamps, self.ctrl, src, stamp):
             self.ctrl[R_HEAD] += 1  # after the bytes (module docstring)
             return True
         return False

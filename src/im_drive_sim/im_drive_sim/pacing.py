@@ -26,7 +26,14 @@ from typing import Any, Protocol
 import numba
 import numpy as np
 
-__all__ = ['CommandSource', 'CommandWatchdog', 'DurationHistograms', 'Pacer', 'PeriodicDrive']
+__all__ = [
+    'CommandSource',
+    'CommandWatchdog',
+    'DurationHistograms',
+    'Pacer',
+    'PeriodicDrive',
+    'count_durations',
+]
 
 
 class PeriodicDrive(Protocol):
@@ -236,7 +243,7 @@ def _float64_array_type() -> Any:
 
 
 @numba.njit(cache=True)
-def _count(counts: Any, maxes: Any, values: Any) -> None:  # pragma: no cover (compiled)
+def count_durations(counts: Any, maxes: Any, values: Any) -> None:  # pragma: no cover (compiled)
     """Count ``values[r]`` [us] in row r of ``counts`` (1 us bins, the last one for every
     longer duration; a negative or NaN one in bin 0) and keep each row's maximum."""
     limit = counts.shape[1] - 1
@@ -267,13 +274,13 @@ class DurationHistograms:
         self.n = 0
         # compile (or load) the kernel for this many kinds now, not in a period; this
         # also touches every page of the counts
-        _count(self.counts, self.maxes, (0.0,) * len(self.names))
+        count_durations(self.counts, self.maxes, (0.0,) * len(self.names))
         self.counts.fill(0)
         self.maxes.fill(0.0)
 
     def add(self, values: tuple[float, ...]) -> None:
         """One period's durations [us], one per name, in the order of ``names``."""
-        _count(self.counts, self.maxes, values)
+        count_durations(self.counts, self.maxes, values)
         self.n += 1
 
     def percentile(self, name: str, q: float) -> float:

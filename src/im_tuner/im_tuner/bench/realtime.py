@@ -66,6 +66,7 @@ from im_drive_sim.pacing import LATENESS_BINS, DurationHistograms, Pacer
 from im_drive_sim.runtime import ROUTES, qos_profile
 
 from ..tuning import BenchFailure
+from .compiled_loop import CHUNK_PERIODS, CompiledPeriods, LoopGate
 from .drive_spec import DriveChoice, build_node, resolve
 from .inprocess import compose
 
@@ -73,6 +74,10 @@ from .inprocess import compose
 #: long the loop thread, woken for its period, waits for a thread holding the GIL before
 #: asking for it.
 SWITCH_INTERVAL = 50e-6
+
+#: A thread waiting for the loop lock gets it until this long before the next period
+#: start [s] (compiled_loop.LoopGate); after that the loop takes it back.
+LOOP_TURN_MARGIN = 60e-6
 
 #: The serving thread's longest wait for a request [s]: between waits it runs its round
 #: (results, recorder, status), each a stretch holding the GIL the loop may need.
@@ -196,6 +201,7 @@ class RealtimeBench:
         should_stop: Callable[[], bool] | None = None,
         rt_options: rt.RtOptions | None = None,
         outbox_capacity: int | None = None,
+        compiled: bool = True,
     ) -> None:
         """``before_start(bench)`` runs once both nodes exist and match, before state 0:
         the place to start a recorder that must not miss the first message (it takes the
@@ -205,7 +211,9 @@ class RealtimeBench:
         ``rt_options``: the loop thread's real-time scheduling (:mod:`im_drive_sim.rt`),
         applied in it before the recorder starts (its metadata records it); what is not
         permitted is said in one line each on stderr, and the run goes on.
-        ``outbox_capacity``: messages per topic ring (None: :data:`SLOTS`)."""
+        ``outbox_capacity``: messages per topic ring (None: :data:`SLOTS`).
+        ``compiled``: run the simulator's periods compiled (:mod:`.compiled_loop`; other
+        drives always run :meth:`step`, their periods in Python)."""
         self.drive = make_drive(drive, context, list(drive_overrides or []))
         self.drive_kind = drive
         self.controller, self.executor = compose(
@@ -239,7 +247,8 @@ class RealtimeBench:
             raise RuntimeError('the controller and the drive did not match within 10 s')
 
         # -- in memory between the two nodes; their publishers through the outbox ---------
-        self.lock = threading.RLock()  #: held by the loop during a period's control work
+        #: held by the loop during its control work (a waiter gets its turn: LoopGate)
+        self.lock = LoopGate()
         ctl.loop_lock = self.lock
         ctl.deferred = collections.deque()
         ctl.client.hand_over = drv.commands.hand_over  # the answer, to the drive at once
@@ -318,6 +327,13 @@ class RealtimeBench:
         ctl.offer(drv.latest_state())
         ctl.answer()
         drv.take_commands()
+        #: the simulator's periods compiled (after the recorder's tap rings were made)
+        self.compiled: CompiledPeriods | None = None
+        if compiled and callable(getattr(drv, 'period_words', None)):
+            self.compiled = CompiledPeriods(
+                drv, ctl, self.outbox, self.durations, self.pacer, self.lock
+            )
+            self.compiled.warm_up()
         self.publishers = PublisherThread.per_channel(self.outbox)
         # one serving round now: the first of each costs up to ~150 ms (an executor's
         # first spin, the first status), never beside a live loop
@@ -342,12 +358,26 @@ class RealtimeBench:
             return
         self.pacer.restart()
         n = 0
+        compiled = self.compiled
         try:
+            if compiled is not None:
+                compiled.start()
             while not self._quit:
-                self.step()
-                n += 1
-                if n % 25 == 0 and not self.safe_stopped and self.should_stop():
-                    self.safe_stop()
+                if compiled is not None:
+                    self.lock.loop_acquire()
+                    try:
+                        self.periods += compiled.run()
+                    finally:
+                        # a waiting thread's turn, up to this period's end
+                        self.lock.loop_release(compiled.next_start() - LOOP_TURN_MARGIN)
+                    n += CHUNK_PERIODS
+                else:
+                    self.step()
+                    n += 1
+                if n >= 25:
+                    n = 0
+                    if not self.safe_stopped and self.should_stop():
+                        self.safe_stop()
         except BaseException as exc:
             self.safe_stop()  # an exception in the loop: zero current before anything else
             self.failed = DriveLoopError(
@@ -363,7 +393,8 @@ class RealtimeBench:
         # the work is timed from the actual start; how late that start was is the
         # pacer's lateness (histogram, overruns), not the period's work
         t0 = time.perf_counter()
-        with self.lock:
+        self.lock.loop_acquire()
+        try:
             c = drive.counters
             c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
             if pacer.missed:
@@ -378,6 +409,8 @@ class RealtimeBench:
                 drive.take_commands()  # fresh for the next period
             else:
                 self.answers_missed += 1
+        finally:
+            self.lock.loop_release(0.0)
         t3 = time.perf_counter()
         self.durations.add(
             (1e6 * (t1 - t0), 1e6 * (t2 - t1), 1e6 * (t3 - t0), 1e6 * pacer.lateness_s)
@@ -494,7 +527,7 @@ class RealtimeBench:
         period (the loop may still run to serve the tuner's last calls). Every way out of
         a run comes here: :attr:`should_stop` (a signal), an exception in the loop,
         :meth:`destroy` (the run's end, a failure)."""
-        with getattr(self, 'lock', threading.RLock()):
+        with getattr(self, 'lock', None) or LoopGate():
             self.safe_stopped = True
             stop = getattr(self.drive, 'safe_stop', None)
             if callable(stop):

@@ -1,0 +1,215 @@
+"""The simulator's real-time period, compiled: what ``DriveSimNode.period`` and
+``DriveSimNode.take_commands`` do, as numba functions a composed loop calls without the
+GIL (``im_tuner.bench.compiled_loop``).
+
+Why (issue 27): run as Python, the glue of a period (the command latch, the counters, the
+state's message, the decimated /clock and joint_states) cost more than the model step
+itself -- the loop thread's per-period work was p50 ~40 us, p99 ~100 us on a 2-core
+machine, most of it interpreter time, and the thread needed the GIL every period. The
+same logic compiled, called once for many periods, takes a few microseconds a period
+and no GIL. The node stays the owner of the logic: :meth:`DriveSimNode.period_words`
+and :meth:`DriveSimNode.set_period_words` move its held command and counters to and from
+the arrays below, and the composed bench's bit-for-bit test (a real-time run against
+its lock-step replay) holds both paths to the same plant.
+
+``D`` (float64, :data:`N_WORDS`): the held command and its labels, the latch of a drive
+with command delay 2, the safe-stop latch and the node's constants. ``DC`` (int64,
+:data:`COUNTERS`): the node's counters of the same names.
+
+The watchdog is not here: composed with the controller, a command comes every period
+(the loop hands the answer over in memory), so it cannot expire; the loop tells the node
+after each call (``CommandWatchdog.command``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from . import contract
+from . import kernels as K
+
+__all__ = [
+    'COUNTERS',
+    'MSG_CLOCK',
+    'MSG_JOINT',
+    'MSG_STATE',
+    'N_WORDS',
+    'WORDS',
+    'run_missed',
+    'run_period',
+    'take_command',
+]
+
+#: the words of ``D``, in order
+WORDS: tuple[str, ...] = (
+    'isq_ref',  # the held command [A]
+    'load',  # [N m]
+    'applied',  # its answers_step (-1: none, untagged, a safe stop)
+    'fresh',  # 1: it answers the latest state and came since the last step
+    'held_answers',  # answers_step of the newest tagged command
+    'pend_applied',  # command delay 2: the latched command's labels
+    'pend_fresh',
+    'safe_stopped',  # 1: zero current and no load from now on
+    'command_delay',  # 1 or 2 [periods]
+    'wall_clock',  # 1: the drive cannot pause (missed periods run held)
+    'clock_decimation',  # /clock every n states
+    'joint_state_decimation',  # joint_states every n states
+    'ts_ns',  # the period [ns]
+    'i_theta',  # state fields of joint_states
+    'i_omega',
+    'i_torque',
+)
+(
+    D_ISQ,
+    D_LOAD,
+    D_APPLIED,
+    D_FRESH,
+    D_HELD,
+    D_PEND_APPLIED,
+    D_PEND_FRESH,
+    D_STOPPED,
+    D_DELAY,
+    D_WALL_CLOCK,
+    D_CLOCK_DEC,
+    D_JOINT_DEC,
+    D_TS_NS,
+    D_I_THETA,
+    D_I_OMEGA,
+    D_I_TORQUE,
+) = range(len(WORDS))
+N_WORDS = len(WORDS)
+
+#: the counters of ``DC`` (the node's ``Counters`` of the same names), in order
+COUNTERS: tuple[str, ...] = (
+    'steps',
+    'commands',
+    'fresh',
+    'held',
+    'late',
+    'stale_ignored',
+    'missed',
+)
+C_STEPS, C_COMMANDS, C_FRESH, C_HELD, C_LATE, C_STALE, C_MISSED = range(len(COUNTERS))
+
+#: the messages a period made due (the bits of :func:`run_period`'s result)
+MSG_STATE, MSG_CLOCK, MSG_JOINT = 1, 2, 4
+
+F_APPLIED = contract.STATE_INDEX['applied_step']
+NS_PER_S = contract.NS_PER_S
+
+
+@njit(cache=True)
+def _latch(D: np.ndarray, applied: float, fresh: float) -> tuple[float, float]:
+    """``DriveSimNode._latch``: the labels of the command acting over the coming period
+    (delay 2: the one latched a period earlier; this one waits)."""
+    if D[D_DELAY] == 2.0:
+        acting, was_fresh = D[D_PEND_APPLIED], D[D_PEND_FRESH]
+        D[D_PEND_APPLIED] = applied
+        D[D_PEND_FRESH] = fresh
+        return acting, was_fresh
+    return applied, fresh
+
+
+@njit(cache=True)
+def take_command(
+    D: np.ndarray, DC: np.ndarray, k: int, answers: float, isq: float, load: float
+) -> bool:
+    """``DriveSimNode.take_commands`` for one command (answering state ``answers``; the
+    drive's step index is ``k``): the newest becomes the held command; a duplicate or
+    out-of-order one is counted ``stale_ignored``, one answering an older state ``late``.
+    False (not counted): a non-finite command, which the drive refuses."""
+    if not (math.isfinite(isq) and math.isfinite(load)):
+        return False
+    DC[C_COMMANDS] += 1
+    if 0.0 <= answers <= D[D_HELD]:
+        DC[C_STALE] += 1
+        return True
+    D[D_ISQ] = isq
+    D[D_LOAD] = load
+    D[D_APPLIED] = answers if answers >= 0.0 else -1.0
+    if answers >= 0.0:
+        D[D_HELD] = answers
+    if 0.0 <= answers < k:
+        DC[C_LATE] += 1
+        D[D_FRESH] = 0.0
+    else:
+        D[D_FRESH] = 1.0
+    return True
+
+
+@njit(cache=True)
+def run_missed(
+    S: np.ndarray, P: np.ndarray, noise: np.ndarray, D: np.ndarray, DC: np.ndarray,
+    state: np.ndarray, n: int,
+) -> None:  # fmt: skip
+    """``n`` periods a late loop skipped on a drive that cannot pause: the model runs
+    them with the held command, unpublished (``DriveSimNode.period``'s ``missed``)."""
+    acting = D[D_APPLIED]
+    for _ in range(n):
+        acting = _latch(D, D[D_APPLIED], 0.0)[0]
+        K.step_into_kernel(S, P, noise, D[D_ISQ], D[D_LOAD], state)
+    if n > 0:
+        state[F_APPLIED] = acting
+        DC[C_STEPS] += n
+        DC[C_HELD] += n
+        DC[C_MISSED] += n
+
+
+@njit(cache=True)
+def run_period(
+    S: np.ndarray,
+    P: np.ndarray,
+    noise: np.ndarray,
+    D: np.ndarray,
+    DC: np.ndarray,
+    state: np.ndarray,
+    clock_sec: np.ndarray,
+    clock_nsec: np.ndarray,
+    joint_sec: np.ndarray,
+    joint_nsec: np.ndarray,
+    joint_pos: np.ndarray,
+    joint_vel: np.ndarray,
+    joint_eff: np.ndarray,
+) -> int:
+    """One period at its start (``DriveSimNode.period`` after the missed periods): the
+    safe-stop latch, the command latch, one model step with the held command into
+    ``state`` (state k+1, ``applied_step`` its command's step), the counters, and the
+    /clock and joint_states messages patched when due. Returns the messages due
+    (:data:`MSG_STATE` | :data:`MSG_CLOCK` | :data:`MSG_JOINT`)."""
+    if D[D_STOPPED] != 0.0:  # the model runs on with zero current and no load
+        D[D_ISQ] = 0.0
+        D[D_LOAD] = 0.0
+        D[D_APPLIED] = -1.0
+        D[D_FRESH] = 0.0
+    acting, fresh = _latch(D, D[D_APPLIED], D[D_FRESH])
+    if fresh != 0.0:
+        DC[C_FRESH] += 1
+    else:
+        DC[C_HELD] += 1
+    K.step_into_kernel(S, P, noise, D[D_ISQ], D[D_LOAD], state)
+    state[F_APPLIED] = acting
+    DC[C_STEPS] += 1
+    D[D_FRESH] = 0.0  # it answered the state before this step
+    due = MSG_STATE
+    k = np.int64(state[0])
+    clock_dec = np.int64(D[D_CLOCK_DEC])
+    joint_dec = np.int64(D[D_JOINT_DEC])
+    if k % clock_dec == 0 or k % joint_dec == 0:
+        t_ns = k * np.int64(D[D_TS_NS])
+        sec = t_ns // NS_PER_S
+        nsec = t_ns - sec * NS_PER_S
+        if k % clock_dec == 0:
+            clock_sec[0] = sec
+            clock_nsec[0] = nsec
+            due |= MSG_CLOCK
+        if k % joint_dec == 0:
+            joint_sec[0] = sec
+            joint_nsec[0] = nsec
+            joint_pos[0] = state[np.int64(D[D_I_THETA])]
+            joint_vel[0] = state[np.int64(D[D_I_OMEGA])]
+            joint_eff[0] = state[np.int64(D[D_I_TORQUE])]
+            due |= MSG_JOINT
+    return due

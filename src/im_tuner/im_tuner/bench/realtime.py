@@ -564,6 +564,8 @@ class RealtimeBench:
             # period starts by lateness (pacing.LATENESS_BINS)
             'lateness_histogram': dict(zip(LATENESS_BINS, self.pacer.lateness_hist, strict=True)),
             'answers_missed': self.answers_missed,
+            # the simulator's periods compiled (compiled_loop), or run as Python
+            'compiled': self.compiled is not None,
             'gc_young_runs': self.gc_runs,
             'realtime': self.rt_report,
             'drive': {k: getattr(c, k) for k in ('fresh', 'held', 'late', 'watchdog_trips')},

@@ -648,13 +648,17 @@ class ControllerNode(LenientDoubles, Node):
             'internals_raw': self._internals.raw,
         }
 
+    def state_seen(self) -> None:
+        """A compiled loop answered states just now (the state watchdog's clock)."""
+        self._last_msg_wall = self._last_state_wall = time.monotonic()
+
     def set_answer_words(self, W: np.ndarray, status: int) -> None:
         """Take back what a compiled loop answered (:meth:`answer_words`); ``status``:
         the last answer's, handled as :meth:`answer` does (an experiment's end)."""
         self.client.answered = int(W[W_ANSWERED])
         self._n_answered = int(W[W_N_ANSWERED])
         self._pending = False
-        self._last_msg_wall = self._last_state_wall = time.monotonic()
+        self.state_seen()
         if status >= STATUS_DONE:
             self.runner.stepped(status)
             self._on_status(status)

@@ -299,13 +299,17 @@ class LoopGate:
         """Release; if a thread wants the lock, wait (sleeping) until it took it or until
         ``until`` (perf_counter [s]: before the next period start)."""
         self._lock.release()
-        while self.want[0] != 0 and time.perf_counter() < until:
+        while self.want.item(0) != 0 and time.perf_counter() < until:
             time.sleep(10e-6)
 
 
 class CompiledPeriods:
     """:func:`run_periods` for a ``DriveSimNode`` composed with a ``ControllerNode``
-    whose loop topics go through ``outbox`` (after any recorder tap was made)."""
+    whose loop topics go through ``outbox`` (after any recorder tap was made).
+
+    What runs in Python between two calls is kept to a few microseconds: it runs in a
+    period's slack, and numpy scalar arithmetic there measured 40 us a call in the loop
+    thread (so the words are read with ``.item``)."""
 
     def __init__(
         self, drive: Any, controller: Any, outbox: Any, durations: Any, pacer: Any, gate: LoopGate
@@ -374,12 +378,12 @@ class CompiledPeriods:
         self._edges = np.array([round(e * 1000) for e in LATENESS_EDGES_US], np.int64)
         self._ts = np.zeros(2, np.int64)
         self._D = self._DC = self._W = np.zeros(0)
+        self.stale = True  #: the nodes own their state (take() before a run)
 
     def warm_up(self) -> None:
         """Compile (or load) :func:`run_periods` for these arrays now, not in a period:
         a call that runs no period."""
-        self._D, self._DC = self.drive.period_words()
-        self._W = self.controller.answer_words()
+        self.take()
         self.T[T_MAX_PERIODS] = self.T[T_PERIODS] = 0
         self.sim.run_kernel(1, self._kernel)  # returns at once: no period to run
 
@@ -387,6 +391,23 @@ class CompiledPeriods:
         """Period 0 starts now (the next one a period later), as ``Pacer.restart``."""
         self.T[T_T0] = time.perf_counter_ns()
         self.T[T_N] = 0
+
+    def take(self) -> None:
+        """The nodes' state into the loop's arrays (their owners: the nodes between
+        :meth:`give_back` and this; the loop's arrays from here on)."""
+        self._D, self._DC = self.drive.period_words()
+        self._W = self.controller.answer_words()
+        self.T[T_STALL] = self.drive.stall_step
+        self.stale = False
+
+    def give_back(self, status: int = 0) -> None:
+        """The loop's arrays back to the nodes (``status``: an experiment's end, handled
+        by the controller); :meth:`take` before the next :meth:`run`."""
+        T = self.T
+        self.drive.set_period_words(self._D, self._DC, T.item(T_COMMANDS) > 0)
+        T[T_COMMANDS] = T[T_REFUSED] = 0
+        self.controller.set_answer_words(self._W, status)
+        self.stale = True
 
     def _kernel(self, S: Any, P: Any, noise: Any, _offset: int, count: int) -> int:
         return int(
@@ -400,47 +421,56 @@ class CompiledPeriods:
         )  # fmt: skip
 
     def _ended(self) -> bool:
-        return bool(self.T[T_EXIT] != EXIT_BUDGET)
+        return self.T.item(T_EXIT) != EXIT_BUDGET
 
     def run(self, max_periods: int = CHUNK_PERIODS) -> int:
-        """Up to ``max_periods`` periods (the caller holds the loop lock); the nodes take
-        back their state, an ended experiment and the stall hook are handled. Returns
-        the periods run."""
-        drive, ctl, T = self.drive, self.controller, self.T
-        self._D, self._DC = drive.period_words()
-        self._W = ctl.answer_words()
+        """Up to ``max_periods`` periods; the caller holds the loop lock. Nothing else
+        runs in Python between two calls unless something needs it: an experiment's
+        end (the controller takes it), a thread waiting for the lock (it may change the
+        nodes' state: all is given back first) or the stall hook. Returns the periods
+        run."""
+        if self.stale:
+            self.take()
+        T = self.T
         T[T_MAX_PERIODS] = max_periods
-        T[T_STALL] = drive.stall_step
-        T[T_PERIODS] = T[T_COMMANDS] = T[T_REFUSED] = 0
+        T[T_PERIODS] = 0
         T[T_EXIT] = EXIT_BUDGET
         # until the periods are done or an event; the noise block refilled on the way
         self.sim.run_kernel(1 << 62, self._kernel, self._ended)
-        periods = int(T[T_PERIODS])
-        drive.set_period_words(self._D, self._DC, T[T_COMMANDS] > 0)
-        exit_code = int(T[T_EXIT])
-        ctl.set_answer_words(self._W, int(T[T_STATUS]) if exit_code == EXIT_STATUS else 0)
-        self._sync(periods)
-        if exit_code == EXIT_STALL:
-            drive.stall_due()
-        return periods
+        code = T.item(T_EXIT)
+        if code == EXIT_STATUS:
+            self.give_back(T.item(T_STATUS))
+        elif code == EXIT_WANT:
+            self.give_back()
+        elif code == EXIT_STALL:
+            self.give_back()
+            self.drive.stall_due()
+        return T.item(T_PERIODS)
 
-    def _sync(self, periods: int) -> None:
-        """The pacer's and the drive's timing figures, the histograms' count and the
-        channels' put counts from the compiled loop's arrays."""
+    def sync_figures(self) -> None:
+        """The pacer's and the drive's figures (the node's counters, for its status),
+        the histograms' count and the channels' put counts, from the loop's arrays: from
+        any thread (a figure read while the loop runs is a period old at most)."""
         T, pacer = self.T, self.pacer
         pacer.n = int(T[T_N])
         pacer.overruns = int(T[T_OVERRUNS])
         pacer.missed_total = int(T[T_MISSED_TOTAL])
-        pacer.max_lateness_us = T[T_MAX_LATE] * 1e-3
-        pacer.lateness_s = T[T_LATE] * 1e-9
+        pacer.max_lateness_us = T.item(T_MAX_LATE) * 1e-3
+        pacer.lateness_s = T.item(T_LATE) * 1e-9
         pacer.lateness_hist = [int(x) for x in self.late_hist]
         c = self.drive.counters
+        if not self.stale:  # the loop's arrays are the counters' owner
+            for i, name in enumerate(PK.COUNTERS):
+                setattr(c, name, int(self._DC[i]))
         c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
-        self.durations.n += periods
+        self.durations.n = int(self.durations.counts[0].sum())
         for m, ch in enumerate(self.channels):
-            ch.put_count += int(self.put_counts[m] - self._put_seen[m])
-            self._put_seen[m] = self.put_counts[m]
+            put = int(self.put_counts[m])
+            ch.put_count += put - int(self._put_seen[m])
+            self._put_seen[m] = put
 
     def next_start(self) -> float:
         """The next period's start (perf_counter [s])."""
-        return (self.T[T_T0] + (self.T[T_N] + 1) * self.T[T_TS]) * 1e-9
+        # Python ints: numpy scalar arithmetic measured 40 us here in the loop thread
+        T = self.T
+        return (T.item(T_T0) + (T.item(T_N) + 1) * T.item(T_TS)) * 1e-9

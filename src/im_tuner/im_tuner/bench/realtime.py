@@ -16,6 +16,9 @@ real-time loop runs them in its own thread, every Ts = 200 us on the wall clock
   period). What the nodes publish is handed to an :class:`im_drive_sim.outbox.Outbox`
   (bounded rings, never blocking); experiment ends are left for the serving thread. It
   never waits on DDS, a lock held by a request for long, the log or the garbage collector.
+  With the simulator (the default drive) the periods run compiled, many in one numba
+  call that holds no GIL (:mod:`.compiled_loop`: the same logic, bit for bit); other
+  drives run :meth:`RealtimeBench.step`, a period in Python (a hardware class is Python).
 * **publisher threads** (``outbox.PublisherThread``, one per topic) publish the rings on
   the graph, with the GIL released in rcl: a reader that stops taking (a frozen ``ros2
   topic echo``) can slow its topic's thread, never the loop nor another topic (the losses
@@ -367,6 +370,7 @@ class RealtimeBench:
                     self.lock.loop_acquire()
                     try:
                         self.periods += compiled.run()
+                        self.controller.state_seen()  # the controller's state watchdog
                     finally:
                         # a waiting thread's turn, up to this period's end
                         self.lock.loop_release(compiled.next_start() - LOOP_TURN_MARGIN)
@@ -378,13 +382,25 @@ class RealtimeBench:
                     n = 0
                     if not self.safe_stopped and self.should_stop():
                         self.safe_stop()
+            if compiled is not None:
+                self._give_back()
         except BaseException as exc:
+            if compiled is not None:
+                self._give_back()
             self.safe_stop()  # an exception in the loop: zero current before anything else
             self.failed = DriveLoopError(
                 f'the real-time loop stopped on {type(exc).__name__}: {exc} (in '
                 f'{_where(exc)}); zero current and zero load were written to the drive'
             )
             self.failed.__cause__ = exc
+
+    def _give_back(self) -> None:
+        """The compiled loop's state back to the nodes (the loop ended), under the lock."""
+        assert self.compiled is not None
+        with self.lock:
+            if not self.compiled.stale:
+                self.compiled.give_back()
+            self.compiled.sync_figures()
 
     def step(self) -> bool:
         """One real-time period (module docstring), in the loop thread. Returns True."""
@@ -436,6 +452,8 @@ class RealtimeBench:
                 poll()
                 self._polled[j] = now
         if now >= self._next_status:
+            if self.compiled is not None:
+                self.compiled.sync_figures()
             self.drive.publish_status()
             self._next_status = now + 1.0
         if gc.get_count()[0] > 2000:
@@ -553,6 +571,8 @@ class RealtimeBench:
     def timing(self) -> dict[str, Any]:
         """Per-period figures of the loop (us; over the whole run) and what the outbox
         could not deliver."""
+        if self.compiled is not None:
+            self.compiled.sync_figures()
         c = self.drive.counters
         counts = self.outbox.counts()
         out: dict[str, Any] = {

@@ -82,7 +82,11 @@ T_MAX_PERIODS = 14  #: the call's limit
 T_COMMANDS = 15  #: commands the drive took since the caller zeroed it
 T_REFUSED = 16  #: answers the drive refused (not finite), idem
 T_STALL = 17  #: the drive's stall test hook: its step (-1: none)
-N_T = 18
+T_MAX_LATE_AT = 18  #: when the worst late start was due [ns, CLOCK_MONOTONIC]
+#: the worst lateness of the starts that followed Python (a call's first period: the
+#: loop thread took the GIL, and ran Python, since the period before) [ns]
+T_MAX_LATE_PY = 19
+N_T = 20
 
 EXIT_BUDGET, EXIT_PERIODS, EXIT_STATUS, EXIT_WANT, EXIT_STALL = range(5)
 
@@ -106,9 +110,12 @@ def _sleep_until(ts: np.ndarray, t_ns: int) -> None:
 
 
 @numba.njit(cache=True)
-def _wait_start(T: np.ndarray, late_hist: np.ndarray, edges: np.ndarray, ts: np.ndarray) -> int:
+def _wait_start(
+    T: np.ndarray, late_hist: np.ndarray, edges: np.ndarray, ts: np.ndarray, first: bool
+) -> int:
     """Wait for the next period start (``pacing.Pacer.wait``, in ns); returns the whole
-    periods it skipped (a drive that cannot pause; else 0 and the schedule re-anchored)."""
+    periods it skipped (a drive that cannot pause; else 0 and the schedule re-anchored).
+    ``first``: the call's first period (Python ran since the period before)."""
     period = T[T_TS]
     deadline = T[T_T0] + (T[T_N] + 1) * period
     target = deadline - T[T_SPIN]
@@ -120,6 +127,9 @@ def _wait_start(T: np.ndarray, late_hist: np.ndarray, edges: np.ndarray, ts: np.
     late = now - deadline
     if late > T[T_MAX_LATE]:
         T[T_MAX_LATE] = late
+        T[T_MAX_LATE_AT] = deadline
+    if first and late > T[T_MAX_LATE_PY]:
+        T[T_MAX_LATE_PY] = late
     b = 0
     for e in edges:
         if late < e:
@@ -189,6 +199,7 @@ def run_periods(
     periods run. ``raws[m]``: message m's bytes (M_*); ring r (``bufs[r]`` ...) takes
     message ``ring_msg[r]``; ``want[0]`` != 0: return after the period under way."""
     used = 0
+    first = True
     T[T_EXIT] = EXIT_PERIODS
     n_rings = len(bufs)
     while True:
@@ -202,7 +213,8 @@ def run_periods(
             if used >= budget:
                 T[T_EXIT] = EXIT_BUDGET
                 break
-            T[T_RESUME] = _wait_start(T, late_hist, edges, ts)
+            T[T_RESUME] = _wait_start(T, late_hist, edges, ts, first)
+            first = False
         missed = T[T_RESUME]
         if missed > 0:  # periods that went by: the model runs them held, unpublished
             n = min(missed, budget - used)
@@ -468,6 +480,18 @@ class CompiledPeriods:
             put = int(self.put_counts[m])
             ch.put_count += put - int(self._put_seen[m])
             self._put_seen[m] = put
+
+    def lateness_figures(self, t0: float) -> dict[str, float]:
+        """Where the worst late start came from: its time since ``t0`` (perf_counter
+        [s], the loop's start) and the worst lateness of the starts that followed Python
+        (a call's first period) [us] -- when that is the worst, the interpreter (a thread
+        holding the GIL in a long C call, Python between calls) made it; otherwise the
+        loop thread itself was not scheduled."""
+        T = self.T
+        return {
+            'max_lateness_at_s': round(T.item(T_MAX_LATE_AT) * 1e-9 - t0, 3),
+            'max_lateness_after_python_us': round(T.item(T_MAX_LATE_PY) * 1e-3, 1),
+        }
 
     def next_start(self) -> float:
         """The next period's start (perf_counter [s])."""

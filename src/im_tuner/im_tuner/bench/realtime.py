@@ -586,6 +586,7 @@ class RealtimeBench:
             'answers_missed': self.answers_missed,
             # the simulator's periods compiled (compiled_loop), or run as Python
             'compiled': self.compiled is not None,
+            **(self.compiled.lateness_figures(self._t0) if self.compiled is not None else {}),
             'gc_young_runs': self.gc_runs,
             'realtime': self.rt_report,
             'drive': {k: getattr(c, k) for k in ('fresh', 'held', 'late', 'watchdog_trips')},

@@ -652,21 +652,23 @@ class ControllerNode(LenientDoubles, Node):
         """A compiled loop answered states just now (the state watchdog's clock)."""
         self._last_msg_wall = self._last_state_wall = time.monotonic()
 
-    def set_answer_words(self, W: np.ndarray, status: int) -> None:
-        """Take back what a compiled loop answered (:meth:`answer_words`); ``status``:
-        the last answer's, handled as :meth:`answer` does (an experiment's end)."""
+    def set_answer_words(self, W: np.ndarray) -> None:
+        """Take back what a compiled loop answered (:meth:`answer_words`)."""
         self.client.answered = int(W[W_ANSWERED])
         self._n_answered = int(W[W_N_ANSWERED])
         self._pending = False
         self.state_seen()
-        if status >= STATUS_DONE:
-            self.runner.stepped(status)
-            self._on_status(status)
 
-    def _on_status(self, status: int) -> None:
+    def compiled_event(self, status: int, R: np.ndarray) -> None:
+        """An experiment's end in a compiled loop (``status`` >= STATUS_DONE, ``R`` the
+        runner's words at that step): handled as :meth:`answer` does (serving thread)."""
+        self.runner.stepped(status)
+        self._on_status(status, R)
+
+    def _on_status(self, status: int, R: np.ndarray | None = None) -> None:
         if self.deferred is not None:  # a composed loop: published and logged off the loop
             self.deferred.append(
-                (status, self.runner.result() if status in (STATUS_DONE, STATUS_ABORTED) else None)
+                (status, self.runner.result(R) if status in (STATUS_DONE, STATUS_ABORTED) else None)
             )
             return
         self._handle_status(status, None)

@@ -256,10 +256,12 @@ class ExperimentRunner:
         """End position [rad] of the current / last experiment."""
         return float(self.R[R_TARGET])
 
-    def result(self) -> LossResult | None:
-        """The result of the last experiment, or None while running / before any."""
-        R = self.R
-        if R[R_RESULT] == 0.0 or self.running:
+    def result(self, R: np.ndarray | None = None) -> LossResult | None:
+        """The result of the last experiment, or None while running / before any.
+        ``R``: the kernel's words as they were at an experiment's end (a compiled loop
+        runs on meanwhile), instead of now."""
+        R = self.R if R is None else R
+        if R[R_RESULT] == 0.0 or R[R_MODE] == MODE_RUN or R[R_MODE] == MODE_SETTLE:
             return None
         aborted = R[R_RESULT] == STATUS_ABORTED
         terms = (float(R[R_TERM1]), float(R[R_TERM2]), float(R[R_TERM3]))

@@ -663,6 +663,7 @@ class DriveSimNode(LenientDoubles, Node):
         self._cmd_fresh = bool(D[W.D_FRESH])
         self._held_answers = int(D[W.D_HELD])
         self._pend = (int(D[W.D_PEND_APPLIED]), bool(D[W.D_PEND_FRESH]))
+        self.safe_stopped = bool(D[W.D_STOPPED])
         c = self.counters
         for i, n in enumerate(W.COUNTERS):
             setattr(c, n, int(DC[i]))

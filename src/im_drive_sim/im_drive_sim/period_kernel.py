@@ -40,6 +40,7 @@ __all__ = [
     'WORDS',
     'run_missed',
     'run_period',
+    'safe_stop',
     'take_command',
 ]
 
@@ -213,3 +214,17 @@ def run_period(
             joint_eff[0] = state[np.int64(D[D_I_TORQUE])]
             due |= MSG_JOINT
     return due
+
+
+@njit(cache=True)
+def safe_stop(S: np.ndarray, D: np.ndarray) -> None:
+    """``DriveSimNode.safe_stop``: zero current and no load from the next period on,
+    latched; no command latched for it runs (delay 2)."""
+    D[D_STOPPED] = 1.0
+    D[D_ISQ] = 0.0
+    D[D_LOAD] = 0.0
+    D[D_APPLIED] = -1.0
+    D[D_PEND_APPLIED] = -1.0
+    D[D_PEND_FRESH] = 0.0
+    S[K.S_PEND_ISQ] = 0.0
+    S[K.S_PEND_TL] = 0.0

@@ -50,11 +50,7 @@ from im_drive_sim import period_kernel as PK
 from im_drive_sim.outbox import R_HEAD, put_slot
 from im_drive_sim.pacing import LATENESS_EDGES_US, count_durations
 
-__all__ = ['CHUNK_PERIODS', 'CompiledPeriods', 'LoopGate', 'run_periods']
-
-#: Periods per compiled call at most (5 ms): how often the loop thread looks at Python
-#: (the tuner's stop request, the counters) when nothing else calls it back.
-CHUNK_PERIODS = 25
+__all__ = ['CompiledPeriods', 'LoopGate', 'run_periods']
 
 _clock_gettime = types.ExternalFunction('clock_gettime', types.int32(types.int32, types.uint64))
 _clock_nanosleep = types.ExternalFunction(
@@ -74,7 +70,7 @@ T_MISSED_TOTAL = 6  #: whole periods those starts skipped (wall clock)
 T_MAX_LATE = 7  #: worst start lateness [ns]
 T_LATE = 8  #: the last start's lateness [ns] (after a skip: from the period it became)
 T_EXIT = 9  #: why the last call returned (EXIT_*)
-T_STATUS = 10  #: the experiment status that ended it (EXIT_STATUS)
+T_STATUS = 10  #: the last experiment status >= STATUS_DONE
 T_PERIODS = 11  #: periods run since the caller zeroed it
 T_RESUME = 12  #: a period under way: its missed steps still to run (-1: none)
 T_START = 13  #: that period's start [ns]
@@ -86,9 +82,22 @@ T_MAX_LATE_AT = 18  #: when the worst late start was due [ns, CLOCK_MONOTONIC]
 #: the worst lateness of the starts that followed Python (a call's first period: the
 #: loop thread took the GIL, and ran Python, since the period before) [ns]
 T_MAX_LATE_PY = 19
-N_T = 20
+T_STALL_NS = 20  #: the stall test hook's duration [ns]
+N_T = 21
 
-EXIT_BUDGET, EXIT_PERIODS, EXIT_STATUS, EXIT_WANT, EXIT_STALL = range(5)
+EXIT_BUDGET, EXIT_PERIODS, EXIT_QUIT = range(3)
+
+# -- the words of the gate (int64), shared with the Python threads (LoopGate) -------------
+G_WANT = 0  #: != 0: a Python thread wants the loop parked (its turn at the nodes' state)
+G_PARKED = 1  #: 1: the loop is parked between two periods (set and cleared by the loop)
+G_STOP = 2  #: != 0: safe stop (zero current, latched) from the next period on
+G_QUIT = 3  #: != 0: return (after a waiter's turn)
+G_RUNNING = 4  #: 1: the loop's compiled run is on (cleared by the loop when it quits)
+N_G = 5
+
+#: experiment ends the loop leaves for the serving thread: status, step, then R
+EVENT_CAPACITY = 64
+EV_HEAD, EV_TAIL, EV_LOST = range(3)
 
 # the messages, in the order of the rings' sources
 M_STATE, M_CLOCK, M_JOINT, M_COMMAND, M_INTERNALS = range(5)
@@ -107,6 +116,11 @@ def _sleep_until(ts: np.ndarray, t_ns: int) -> None:
     ts[1] = t_ns - ts[0] * NS
     p = np.uint64(ts.ctypes.data)
     _clock_nanosleep(np.int32(CLOCK_MONOTONIC), np.int32(TIMER_ABSTIME), p, np.uint64(0))
+
+
+@numba.njit(cache=True)
+def _nap(ts: np.ndarray, ns: int) -> None:
+    _sleep_until(ts, _now(ts, CLOCK_MONOTONIC) + ns)
 
 
 @numba.njit(cache=True)
@@ -190,25 +204,39 @@ def run_periods(
     ctrls: Any,
     ring_msg: np.ndarray,
     put_counts: np.ndarray,
-    want: np.ndarray,
+    gate: np.ndarray,
+    events: np.ndarray,
+    ev_ctrl: np.ndarray,
     ts: np.ndarray,
 ) -> int:
-    """Up to ``T[T_MAX_PERIODS]`` periods (module docstring), stepping the model at most
-    ``budget`` times (``DriveSim.run_kernel``'s count: the noise block). Returns the
-    model steps taken; ``T[T_EXIT]`` says why it returned; ``T[T_PERIODS]`` counts the
-    periods run. ``raws[m]``: message m's bytes (M_*); ring r (``bufs[r]`` ...) takes
-    message ``ring_msg[r]``; ``want[0]`` != 0: return after the period under way."""
+    """Periods (module docstring) until ``gate[G_QUIT]`` or ``T[T_MAX_PERIODS]``,
+    stepping the model at most ``budget`` times (``DriveSim.run_kernel``'s count: the
+    noise block). Returns the model steps taken; ``T[T_EXIT]`` says why it returned;
+    ``T[T_PERIODS]`` counts the periods run. ``raws[m]``: message m's bytes (M_*); ring
+    r (``bufs[r]`` ...) takes message ``ring_msg[r]``. Between two periods it parks
+    while ``gate[G_WANT]`` (:class:`LoopGate`); an experiment's end goes into
+    ``events`` (status, step, R) for the serving thread."""
     used = 0
     first = True
     T[T_EXIT] = EXIT_PERIODS
     n_rings = len(bufs)
+    n_r = R.shape[0]
     while True:
-        if T[T_RESUME] < 0:  # no period under way: wait for the next start
+        if T[T_RESUME] < 0:  # between two periods: the gate, then the next start
+            if gate[G_WANT] != 0:
+                gate[G_PARKED] = 1  # a Python thread's turn at the nodes' state
+                while gate[G_WANT] != 0:
+                    _nap(ts, 20_000)
+                gate[G_PARKED] = 0
+                first = True  # the next start follows a park: counted as after Python
+            if gate[G_QUIT] != 0:
+                gate[G_RUNNING] = 0
+                T[T_EXIT] = EXIT_QUIT
+                break
+            if gate[G_STOP] != 0 and D[PK.D_STOPPED] == 0.0:
+                PK.safe_stop(S, D)
             if T[T_PERIODS] >= T[T_MAX_PERIODS]:
                 T[T_EXIT] = EXIT_PERIODS
-                break
-            if want[0] != 0:
-                T[T_EXIT] = EXIT_WANT
                 break
             if used >= budget:
                 T[T_EXIT] = EXIT_BUDGET
@@ -262,57 +290,86 @@ def run_periods(
             ((t1 - t0) * 1e-3, (t2 - t1) * 1e-3, (t3 - t0) * 1e-3, T[T_LATE] * 1e-3),
         )
         T[T_PERIODS] += 1
-        if st >= STATUS_DONE:
+        if st >= STATUS_DONE:  # an experiment's end: the serving thread publishes it
             T[T_STATUS] = st
-            T[T_EXIT] = EXIT_STATUS
-            break
-        if 0 <= T[T_STALL] <= state[0]:
-            T[T_EXIT] = EXIT_STALL
-            break
+            h = ev_ctrl[EV_HEAD]
+            if h - ev_ctrl[EV_TAIL] < events.shape[0]:
+                row = events[h % events.shape[0]]
+                row[0] = st
+                row[1] = state[0]
+                for j in range(n_r):
+                    row[2 + j] = R[j]
+                _now(ts, CLOCK_MONOTONIC)  # an opaque call: the row is written first
+                ev_ctrl[EV_HEAD] = h + 1
+            else:
+                ev_ctrl[EV_LOST] += 1
+        if 0 <= T[T_STALL] <= state[0]:  # the drive's stall test hook, once
+            T[T_STALL] = -1
+            _nap(ts, T[T_STALL_NS])
     return used
 
 
 class LoopGate:
-    """The loop lock (``RealtimeBench.lock``, the controller's ``loop_lock``), with a
-    turn for the other threads.
+    """The loop lock (``RealtimeBench.lock``, the controller's ``loop_lock``): what a
+    Python thread holds to read or change the state the loop runs on (gains, an
+    experiment's start, a fault reset, a safe stop).
 
-    The loop thread holds it over each compiled call (:meth:`loop_acquire`), many periods
-    long, and takes it again right after; a plain lock would starve a thread waiting for
-    it. So a thread entering it (``with gate:``) first raises :attr:`want`; the compiled
-    loop returns after the period under way, and :meth:`loop_release` lets the waiter in
-    before the loop takes the lock again (bounded by the next period start)."""
+    While a compiled loop runs (:attr:`running`) it never takes the GIL nor a Python
+    lock, so a thread entering the gate (``with gate:``) *parks* it instead: it raises
+    ``gate[G_WANT]``, the loop finishes the period under way and waits between two
+    periods (``gate[G_PARKED]``), the nodes take their state back from the loop's
+    arrays, the thread does its work, the loop's arrays take the nodes' state again
+    and the loop goes on -- late, if the thread held it past the next period start,
+    as with any lock. Without a compiled loop it is a plain re-entrant lock."""
 
     def __init__(self) -> None:
         self._lock = threading.RLock()
-        self._count = threading.Lock()
-        self._waiting = 0
-        #: != 0: a thread waits for the lock (read by the compiled loop every period)
-        self.want = np.zeros(1, np.int64)
+        self._depth = 0
+        self._parked = False
+        #: the loop's words shared with Python (G_*): read and written by both sides
+        self.gate = np.zeros(N_G, np.int64)
+        #: the compiled loop running now (None: the nodes own their state)
+        self.running: CompiledPeriods | None = None
 
     def __enter__(self) -> LoopGate:
-        with self._count:
-            self._waiting += 1
-            self.want[0] = 1
-        try:
-            self._lock.acquire()
-        finally:
-            with self._count:
-                self._waiting -= 1
-                self.want[0] = 1 if self._waiting else 0
+        self._lock.acquire()
+        self._depth += 1
+        if self._depth == 1 and self.running is not None:
+            self._park()
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._lock.release()
+        try:
+            if self._depth == 1 and self._parked:
+                self._parked = False
+                assert self.running is not None
+                self.running.take()  # the loop's arrays from the nodes again
+                self.gate[G_WANT] = 0  # after the arrays: the loop reads them next
+        finally:
+            self._depth -= 1
+            self._lock.release()
 
-    def loop_acquire(self) -> None:
-        self._lock.acquire()
+    def _park(self) -> None:
+        compiled, g = self.running, self.gate
+        assert compiled is not None
+        g[G_WANT] = 1
+        # parked within a period; between two compiled calls (the noise block's refill)
+        # the loop thread needs the GIL, which this sleep lets go of
+        while g.item(G_PARKED) == 0 and g.item(G_RUNNING) != 0:
+            time.sleep(20e-6)
+        if g.item(G_PARKED) != 0:
+            self._parked = True
+        else:  # the loop quit meanwhile: it runs no more
+            g[G_WANT] = 0
+            self.running = None
+        compiled.give_back()  # the nodes own their state during the turn
 
-    def loop_release(self, until: float) -> None:
-        """Release; if a thread wants the lock, wait (sleeping) until it took it or until
-        ``until`` (perf_counter [s]: before the next period start)."""
-        self._lock.release()
-        while self.want.item(0) != 0 and time.perf_counter() < until:
-            time.sleep(10e-6)
+    def loop_ended(self, compiled: CompiledPeriods) -> None:
+        """The loop thread, its compiled run over: the nodes own their state."""
+        with self._lock:
+            compiled.give_back()
+            compiled.sync_figures()
+            self.running = None
 
 
 class CompiledPeriods:
@@ -326,6 +383,7 @@ class CompiledPeriods:
     def __init__(
         self, drive: Any, controller: Any, outbox: Any, durations: Any, pacer: Any, gate: LoopGate
     ) -> None:
+        """``gate``: the bench's loop lock; its words are the loop's gate."""
         self.drive, self.controller, self.pacer, self.durations = (
             drive,
             controller,
@@ -391,6 +449,8 @@ class CompiledPeriods:
         self._ts = np.zeros(2, np.int64)
         self._D = self._DC = self._W = np.zeros(0)
         self.stale = True  #: the nodes own their state (take() before a run)
+        self.events = np.zeros((EVENT_CAPACITY, 2 + len(cv['R'])))
+        self.ev_ctrl = np.zeros(3, np.int64)
 
     def warm_up(self) -> None:
         """Compile (or load) :func:`run_periods` for these arrays now, not in a period:
@@ -398,6 +458,7 @@ class CompiledPeriods:
         self.take()
         self.T[T_MAX_PERIODS] = self.T[T_PERIODS] = 0
         self.sim.run_kernel(1, self._kernel)  # returns at once: no period to run
+        self.give_back()
 
     def start(self) -> None:
         """Period 0 starts now (the next one a period later), as ``Pacer.restart``."""
@@ -405,20 +466,28 @@ class CompiledPeriods:
         self.T[T_N] = 0
 
     def take(self) -> None:
-        """The nodes' state into the loop's arrays (their owners: the nodes between
-        :meth:`give_back` and this; the loop's arrays from here on)."""
-        self._D, self._DC = self.drive.period_words()
-        self._W = self.controller.answer_words()
+        """The nodes' state into the loop's arrays, in place (the kernel holds them):
+        the loop's arrays own it from here on, until :meth:`give_back`."""
+        D, DC = self.drive.period_words()
+        W = self.controller.answer_words()
+        if self._D.shape != D.shape:
+            self._D, self._DC, self._W = D, DC, W
+        else:
+            self._D[:], self._DC[:], self._W[:] = D, DC, W
         self.T[T_STALL] = self.drive.stall_step
+        self.T[T_STALL_NS] = round(self.drive.stall_s * 1e9)
         self.stale = False
 
-    def give_back(self, status: int = 0) -> None:
-        """The loop's arrays back to the nodes (``status``: an experiment's end, handled
-        by the controller); :meth:`take` before the next :meth:`run`."""
+    def give_back(self) -> None:
+        """The loop's arrays back to the nodes (idempotent): they own their state until
+        :meth:`take`."""
+        if self.stale:
+            return
         T = self.T
         self.drive.set_period_words(self._D, self._DC, T.item(T_COMMANDS) > 0)
+        self.drive.stall_step = T.item(T_STALL)
         T[T_COMMANDS] = T[T_REFUSED] = 0
-        self.controller.set_answer_words(self._W, status)
+        self.controller.set_answer_words(self._W)
         self.stale = True
 
     def _kernel(self, S: Any, P: Any, noise: Any, _offset: int, count: int) -> int:
@@ -428,36 +497,45 @@ class CompiledPeriods:
                 self.durations.counts, self.durations.maxes,
                 self._D, self._DC, *self._drive_args, *self._ctl_args, self._W,
                 self._raws, *self._rings, self._ring_msg, self.put_counts,
-                self.gate.want, self._ts,
+                self.gate.gate, self.events, self.ev_ctrl, self._ts,
             )
         )  # fmt: skip
 
     def _ended(self) -> bool:
         return self.T.item(T_EXIT) != EXIT_BUDGET
 
-    def run(self, max_periods: int = CHUNK_PERIODS) -> int:
-        """Up to ``max_periods`` periods; the caller holds the loop lock. Nothing else
-        runs in Python between two calls unless something needs it: an experiment's
-        end (the controller takes it), a thread waiting for the lock (it may change the
-        nodes' state: all is given back first) or the stall hook. Returns the periods
-        run."""
-        if self.stale:
-            self.take()
-        T = self.T
-        T[T_MAX_PERIODS] = max_periods
+    def run(self) -> None:
+        """The loop thread's whole compiled run: periods until ``gate[G_QUIT]`` (the
+        loop returns to Python only to refill the model's noise block, every 4096
+        periods). The caller then calls ``LoopGate.loop_ended``."""
+        T, g = self.T, self.gate.gate
+        T[T_MAX_PERIODS] = 1 << 62
         T[T_PERIODS] = 0
         T[T_EXIT] = EXIT_BUDGET
-        # until the periods are done or an event; the noise block refilled on the way
-        self.sim.run_kernel(1 << 62, self._kernel, self._ended)
-        code = T.item(T_EXIT)
-        if code == EXIT_STATUS:
-            self.give_back(T.item(T_STATUS))
-        elif code == EXIT_WANT:
-            self.give_back()
-        elif code == EXIT_STALL:
-            self.give_back()
-            self.drive.stall_due()
-        return T.item(T_PERIODS)
+        with self.gate:  # no thread is at the nodes' state: take it, then run
+            self.take()
+            g[G_RUNNING] = 1
+            self.gate.running = self
+        try:
+            self.sim.run_kernel(1 << 62, self._kernel, self._ended)
+        finally:
+            g[G_RUNNING] = 0
+
+    def poll_events(self) -> int:
+        """Hand the experiment ends the loop left to the controller (the serving
+        thread); returns how many."""
+        c = self.ev_ctrl
+        n = 0
+        while c.item(EV_TAIL) < c.item(EV_HEAD):
+            row = self.events[c.item(EV_TAIL) % len(self.events)].copy()
+            c[EV_TAIL] += 1
+            self.controller.compiled_event(int(row[0]), row[2:])
+            n += 1
+        return n
+
+    def periods(self) -> int:
+        """Periods run so far."""
+        return self.T.item(T_PERIODS)
 
     def sync_figures(self) -> None:
         """The pacer's and the drive's figures (the node's counters, for its status),
@@ -492,9 +570,3 @@ class CompiledPeriods:
             'max_lateness_at_s': round(T.item(T_MAX_LATE_AT) * 1e-9 - t0, 3),
             'max_lateness_after_python_us': round(T.item(T_MAX_LATE_PY) * 1e-3, 1),
         }
-
-    def next_start(self) -> float:
-        """The next period's start (perf_counter [s])."""
-        # Python ints: numpy scalar arithmetic measured 40 us here in the loop thread
-        T = self.T
-        return (T.item(T_T0) + (T.item(T_N) + 1) * T.item(T_TS)) * 1e-9

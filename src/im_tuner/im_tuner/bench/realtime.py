@@ -69,7 +69,7 @@ from im_drive_sim.pacing import LATENESS_BINS, DurationHistograms, Pacer
 from im_drive_sim.runtime import ROUTES, qos_profile
 
 from ..tuning import BenchFailure
-from .compiled_loop import CHUNK_PERIODS, CompiledPeriods, LoopGate
+from .compiled_loop import G_QUIT, G_STOP, CompiledPeriods, LoopGate
 from .drive_spec import DriveChoice, build_node, resolve
 from .inprocess import compose
 
@@ -78,9 +78,8 @@ from .inprocess import compose
 #: asking for it.
 SWITCH_INTERVAL = 50e-6
 
-#: A thread waiting for the loop lock gets it until this long before the next period
-#: start [s] (compiled_loop.LoopGate); after that the loop takes it back.
-LOOP_TURN_MARGIN = 60e-6
+#: How often the compiled loop's stop watcher looks at ``should_stop`` [s].
+STOP_WATCH_PERIOD = 0.005
 
 #: The serving thread's longest wait for a request [s]: between waits it runs its round
 #: (results, recorder, status), each a stretch holding the GIL the loop may need.
@@ -292,7 +291,8 @@ class RealtimeBench:
         # (state k published), the controller's answer, the whole period's work, and how
         # late the period started
         self.durations = DurationHistograms(('drive', 'answer', 'work', 'late'))
-        self.periods = 0
+        self._periods = 0
+        self._seen_periods = 0
         self.answers_missed = 0  #: periods whose state the controller had no answer for
         self.gc_runs = 0
         self.publishers: list[PublisherThread] = []
@@ -346,6 +346,8 @@ class RealtimeBench:
         self.executor.spin_once(timeout_sec=0.0)
         sys.setswitchinterval(SWITCH_INTERVAL)
         self._go.set()
+        if self.compiled is not None:
+            threading.Thread(target=self._watch_stop, name='rt-stop-watch', daemon=True).start()
 
     # -- the loop thread --------------------------------------------------------------------
     def _loop_main(self) -> None:
@@ -360,33 +362,21 @@ class RealtimeBench:
         if self._quit:
             return
         self.pacer.restart()
-        n = 0
         compiled = self.compiled
         try:
             if compiled is not None:
                 compiled.start()
+                try:
+                    compiled.run()  # until stop_loop: no GIL, no Python lock
+                finally:
+                    self.lock.loop_ended(compiled)
+            n = 0
             while not self._quit:
-                if compiled is not None:
-                    self.lock.loop_acquire()
-                    try:
-                        self.periods += compiled.run()
-                        self.controller.state_seen()  # the controller's state watchdog
-                    finally:
-                        # a waiting thread's turn, up to this period's end
-                        self.lock.loop_release(compiled.next_start() - LOOP_TURN_MARGIN)
-                    n += CHUNK_PERIODS
-                else:
-                    self.step()
-                    n += 1
-                if n >= 25:
-                    n = 0
-                    if not self.safe_stopped and self.should_stop():
-                        self.safe_stop()
-            if compiled is not None:
-                self._give_back()
+                self.step()
+                n += 1
+                if n % 25 == 0 and not self.safe_stopped and self.should_stop():
+                    self.safe_stop()
         except BaseException as exc:
-            if compiled is not None:
-                self._give_back()
             self.safe_stop()  # an exception in the loop: zero current before anything else
             self.failed = DriveLoopError(
                 f'the real-time loop stopped on {type(exc).__name__}: {exc} (in '
@@ -394,13 +384,23 @@ class RealtimeBench:
             )
             self.failed.__cause__ = exc
 
-    def _give_back(self) -> None:
-        """The compiled loop's state back to the nodes (the loop ended), under the lock."""
-        assert self.compiled is not None
-        with self.lock:
-            if not self.compiled.stale:
-                self.compiled.give_back()
-            self.compiled.sync_figures()
+    def _watch_stop(self) -> None:
+        """The compiled loop's stop watcher (its own thread): ``should_stop()`` checked
+        every 5 ms, whatever the serving thread is doing; once True the loop zeroes the
+        current in its next period (``gate[G_STOP]``), the safe stop's Python side
+        follows in the serving thread."""
+        while not self._quit:
+            if self.should_stop():
+                self.lock.gate[G_STOP] = 1
+                return
+            time.sleep(STOP_WATCH_PERIOD)
+
+    @property
+    def periods(self) -> int:
+        """Periods the loop ran."""
+        if self.compiled is not None:
+            return self.compiled.periods()
+        return self._periods
 
     def step(self) -> bool:
         """One real-time period (module docstring), in the loop thread. Returns True."""
@@ -409,8 +409,7 @@ class RealtimeBench:
         # the work is timed from the actual start; how late that start was is the
         # pacer's lateness (histogram, overruns), not the period's work
         t0 = time.perf_counter()
-        self.lock.loop_acquire()
-        try:
+        with self.lock:
             c = drive.counters
             c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
             if pacer.missed:
@@ -425,13 +424,11 @@ class RealtimeBench:
                 drive.take_commands()  # fresh for the next period
             else:
                 self.answers_missed += 1
-        finally:
-            self.lock.loop_release(0.0)
         t3 = time.perf_counter()
         self.durations.add(
             (1e6 * (t1 - t0), 1e6 * (t2 - t1), 1e6 * (t3 - t0), 1e6 * pacer.lateness_s)
         )
-        self.periods += 1
+        self._periods += 1
         return True
 
     # -- the serving thread -----------------------------------------------------------------
@@ -445,6 +442,12 @@ class RealtimeBench:
 
     def _service(self) -> None:
         """The serving thread's round: experiment results, pollers, status, gc."""
+        if self.compiled is not None:
+            self.compiled.poll_events()  # the experiment ends the compiled loop left
+            periods = self.compiled.periods()
+            if periods != self._seen_periods:  # the controller's state watchdog
+                self._seen_periods = periods
+                self.controller.state_seen()
         self.controller.flush_deferred()
         now = time.perf_counter()
         for j, (poll, every) in enumerate(self._pollers):
@@ -555,6 +558,7 @@ class RealtimeBench:
         """Zero current, then end the loop thread (idempotent). The loop is told to quit
         first, so at most the period under way runs after the safe stop."""
         self._quit = True
+        self.lock.gate[G_QUIT] = 1  # a compiled loop returns after the safe stop's turn
         self.safe_stop()
         thread = getattr(self, '_thread', None)
         if thread is None:

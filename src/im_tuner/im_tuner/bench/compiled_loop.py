@@ -1,15 +1,16 @@
-"""The composed real-time loop compiled: many periods of the simulator and the controller
-in one numba call that never holds the GIL (``tuner --bench realtime``, the default
-drive).
+"""The composed real-time loop compiled: the periods of the simulator and the controller
+in one numba call that never holds the Python GIL (``tuner --bench realtime``, the
+default drive).
 
 Why (issue 27, docs/real-drive.md "Real-time set-up"): the loop run as Python -- a
 handful of node methods per period, each a few dozen interpreter operations -- took
 p50 ~40 us and p99 ~100 us of the 200 us period on a 2-core machine, and needed the GIL
 every period, so any Python thread beside it (the tuner, the recorder's drain) could
-delay a period start by up to the interpreter's switch interval. ros2_control runs its
-update loop as compiled code that never waits for an interpreter; this is that loop for
-the simulator composed with the controller. One call of :func:`run_periods` runs up to
-:data:`CHUNK_PERIODS` periods (5 ms), each:
+delay a period start: by the interpreter's switch interval, or by as long as a thread
+holding the GIL stayed off the CPU (10-150 ms measured beside CPU hogs). ros2_control
+runs its update loop as compiled code that never waits for an interpreter; this is that
+loop for the simulator composed with the controller. :func:`run_periods` runs period
+after period, each:
 
 1. wait for the period start (``clock_nanosleep`` on CLOCK_MONOTONIC to the spin margin,
    then a busy-wait: ``pacing.Pacer``'s schedule, overruns and lateness histogram);
@@ -20,14 +21,24 @@ the simulator composed with the controller. One call of :func:`run_periods` runs
 4. the drive takes the answer (``period_kernel.take_command``): fresh for the next period;
 5. the period's durations into the loop's histograms (``pacing.count_durations``).
 
-It returns to Python after the work of a period -- in that period's slack, never at a
-period start -- when the chunk is done, an experiment ended (the controller's node
-publishes and logs it from the serving thread), the serving thread asked for the loop
-lock (:class:`LoopGate`), the model's noise block ran out (``DriveSim.run_kernel``
-refills it) or the drive's stall test hook is due. The nodes stay the owners of their
-state: ``DriveSimNode.period_words`` / ``ControllerNode.answer_words`` hand it over
-before a call and take it back after. The bit-for-bit test of the composed bench (a
-real-time run against its lock-step replay) holds this loop to the Python one.
+What needs Python comes to the loop through shared words, never through the GIL:
+
+* a thread that reads or changes the state the loop runs on (gains, an experiment's
+  start, a fault reset, a safe stop) enters the loop lock (:class:`LoopGate`): the loop
+  parks between two periods, the nodes take their state back for the thread's turn
+  (``DriveSimNode.period_words`` / ``ControllerNode.answer_words`` and their ``set_``
+  counterparts), and the loop goes on with it;
+* an experiment's end goes into an event ring (status, step, the runner's words) that
+  the serving thread hands to the controller (``RealtimeBench._service``);
+* a stop: ``gate[G_STOP]`` (a watcher thread sets it from the tuner's stop request),
+  and the loop zeroes the current from its next period (``period_kernel.safe_stop``);
+* the drive's stall test hook: the loop sleeps it itself.
+
+The call returns only when the loop is told to quit, or to refill a noisy model's noise
+block (``DriveSim.run_kernel``, every 4096 periods): then, between two periods, the
+loop thread takes the GIL. The bit-for-bit tests (test_compiled_loop: against the same
+periods run as Python; test_realtime_bench: a real-time run against its lock-step
+replay) hold this loop to the nodes' own logic.
 
 Written by hand, not with a library: no library runs a numba loop on a wall-clock
 schedule; the clock calls are libc's (``types.ExternalFunction``, as ``outbox`` calls

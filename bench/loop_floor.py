@@ -1,0 +1,91 @@
+"""The machine's floor for a 5 kHz loop: the composed loop's own wait for each period
+start (``compiled_loop._wait_start``: clock_nanosleep to 40 us before, then a busy-wait),
+run in a compiled loop that does nothing else and never touches Python, SCHED_FIFO 50,
+memory locked, timer slack 1 ns -- what the hypervisor and the kernel leave a real-time
+thread here. The composed bench can do no better than this; what it measures beyond it
+is its own (docs/real-drive.md, "What it bought on this machine").
+
+    .venv/bin/python bench/loop_floor.py [--seconds 30] [--hogs 2]
+
+Prints the overruns (starts more than a period late), the worst lateness and the
+lateness histogram (pacing.LATENESS_BINS), with and without ``--hogs`` busy processes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import subprocess
+import sys
+import time
+
+import numba
+import numpy as np
+
+from im_drive_sim import rt
+from im_drive_sim.pacing import LATENESS_BINS, LATENESS_EDGES_US
+from im_tuner.bench import compiled_loop as CL
+
+TS_NS = 200_000
+SPIN_NS = 40_000
+
+
+@numba.njit(nogil=True)
+def _periods(T: np.ndarray, hist: np.ndarray, edges: np.ndarray, ts: np.ndarray, n: int) -> None:
+    for _ in range(n):
+        CL._wait_start(T, hist, edges, ts, False)
+
+
+def measure(seconds: float) -> dict:
+    T = np.zeros(CL.N_T, np.int64)
+    T[CL.T_TS], T[CL.T_SPIN] = TS_NS, SPIN_NS
+    hist = np.zeros(len(LATENESS_BINS), np.int64)
+    edges = np.array([round(e * 1000) for e in LATENESS_EDGES_US], np.int64)
+    ts = np.zeros(2, np.int64)
+    T[CL.T_T0] = time.perf_counter_ns()
+    _periods(T, hist, edges, ts, 10)  # compile
+    T[:] = 0
+    T[CL.T_TS], T[CL.T_SPIN] = TS_NS, SPIN_NS
+    hist[:] = 0
+    n = int(seconds * 1e9 / TS_NS)
+    T[CL.T_T0] = time.perf_counter_ns()
+    _periods(T, hist, edges, ts, n)
+    return {
+        'periods': n,
+        'overruns': int(T[CL.T_OVERRUNS]),
+        'overrun_pct': 100.0 * int(T[CL.T_OVERRUNS]) / n,
+        'max_lateness_us': int(T[CL.T_MAX_LATE]) / 1000.0,
+        'lateness_histogram': dict(zip(LATENESS_BINS, hist.tolist(), strict=True)),
+    }
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--seconds', type=float, default=30.0)
+    ap.add_argument('--hogs', type=int, default=2, help='busy processes beside the second run')
+    args = ap.parse_args(argv)
+    refused = rt.apply(rt.RtOptions(50, -1, True))
+    for line in refused:
+        print(f'warning: {line}', file=sys.stderr)
+    libc = ctypes.CDLL(None)
+    libc.prctl(29, ctypes.c_ulong(1), 0, 0, 0)  # PR_SET_TIMERSLACK: 1 ns
+    out = {}
+    for hogs in (0, args.hogs):
+        procs = [subprocess.Popen([sys.executable, '-c', 'while True: pass']) for _ in range(hogs)]
+        try:
+            r = measure(args.seconds)
+        finally:
+            for p in procs:  # by PID
+                p.kill()
+                p.wait(timeout=10)
+        out[f'hogs_{hogs}'] = r
+        print(
+            f'floor, {hogs} hogs: {r["periods"]} periods, overruns {r["overruns"]} '
+            f'({r["overrun_pct"]:.3f} %), worst lateness {r["max_lateness_us"]:.0f} us, '
+            f'{r["lateness_histogram"]}'
+        )
+    return out
+
+
+if __name__ == '__main__':
+    main(sys.argv[1:])

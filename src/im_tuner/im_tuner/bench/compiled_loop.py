@@ -87,7 +87,7 @@ T_RESUME = 12  #: a period under way: its missed steps still to run (-1: none)
 T_START = 13  #: that period's start [ns]
 T_MAX_PERIODS = 14  #: the call's limit
 T_COMMANDS = 15  #: commands the drive took since the caller zeroed it
-T_REFUSED = 16  #: answers the drive refused (not finite), idem
+T_REFUSED = 16  #: answers the drive refused (not finite), since the loop was made
 T_STALL = 17  #: the drive's stall test hook: its step (-1: none)
 T_MAX_LATE_AT = 18  #: when the worst late start was due [ns, CLOCK_MONOTONIC]
 #: the worst lateness of the starts that followed Python (a call's first period: the
@@ -462,6 +462,8 @@ class CompiledPeriods:
         self.stale = True  #: the nodes own their state (take() before a run)
         self.events = np.zeros((EVENT_CAPACITY, 2 + len(cv['R'])))
         self.ev_ctrl = np.zeros(3, np.int64)
+        self._refused_said = 0
+        self._lost_said = 0
 
     def warm_up(self) -> None:
         """Compile (or load) :func:`run_periods` for these arrays now, not in a period:
@@ -497,7 +499,7 @@ class CompiledPeriods:
         T = self.T
         self.drive.set_period_words(self._D, self._DC, T.item(T_COMMANDS) > 0)
         self.drive.stall_step = T.item(T_STALL)
-        T[T_COMMANDS] = T[T_REFUSED] = 0
+        T[T_COMMANDS] = 0
         self.controller.set_answer_words(self._W)
         self.stale = True
 
@@ -535,7 +537,20 @@ class CompiledPeriods:
     def poll_events(self) -> int:
         """Hand the experiment ends the loop left to the controller (the serving
         thread); returns how many."""
+        refused = self.T.item(T_REFUSED)
+        if refused > self._refused_said:  # as the drive says it when not compiled
+            self._refused_said = refused
+            self.drive.get_logger().error(
+                f'drive/command: non-finite command ignored ({refused} so far)',
+                throttle_duration_sec=1.0,
+            )
         c = self.ev_ctrl
+        if c.item(EV_LOST) > self._lost_said:  # a full event ring: never in practice
+            self._lost_said = c.item(EV_LOST)
+            self.drive.get_logger().error(
+                f'the compiled loop lost {self._lost_said} experiment ends (the serving '
+                f'thread did not take them): their results are lost, the tuner re-runs them'
+            )
         n = 0
         while c.item(EV_TAIL) < c.item(EV_HEAD):
             row = self.events[c.item(EV_TAIL) % len(self.events)].copy()

@@ -71,7 +71,12 @@ def main(argv: list[str] | None = None) -> dict:
     libc.prctl(29, ctypes.c_ulong(1), 0, 0, 0)  # PR_SET_TIMERSLACK: 1 ns
     out = {}
     for hogs in (0, args.hogs):
-        procs = [subprocess.Popen([sys.executable, '-c', 'while True: pass']) for _ in range(hogs)]
+        procs = [
+            # at normal priority (chrt -o 0): a child inherits this thread's SCHED_FIFO,
+            # and two FIFO hogs would starve the machine
+            subprocess.Popen(['chrt', '-o', '0', sys.executable, '-c', 'while True: pass'])
+            for _ in range(hogs)
+        ]
         try:
             r = measure(args.seconds)
         finally:

@@ -3,7 +3,7 @@
 #   make test    the whole test suite (unit + integration)
 #   make test-unit  the pure tier only: no DDS graph, no child processes (under a minute)
 #   make lint    ruff (lint + format check) over the tree, mypy over the pure modules
-#   make demo    the main job: ros2 run im_tuner tuner --algo necga (ALGO=spsa ...)
+#   make demo    the main job: ros2 run im_tuner tuner (its default algorithm; ALGO=necga ...)
 #   make bench   the benchmarks, printing their figures
 #   make reproduction  the paper's study (full grid) + every algorithm beyond it -> docs/reproduction.md
 # Every target does the set-up it needs first; a re-run with nothing changed is quick.
@@ -73,10 +73,11 @@ format: setup
 	$(VENV)/bin/ruff check --fix .
 	$(VENV)/bin/ruff format .
 
-# The product: tune the simulated bench (ALGO=spsa|necga|cga|pecga|rcga, ARGS=more options).
-ALGO ?= necga
+# The product: tune the simulated bench with the tuner's default algorithm (named in one
+# place: im_tuner.optim.options.DEFAULT_ALGO); ALGO=necga|spsa|... picks another, ARGS=more options.
+ALGO ?=
 demo: setup
-	$(VENV)/bin/ros2 run im_tuner tuner --algo $(ALGO) $(ARGS)
+	$(VENV)/bin/ros2 run im_tuner tuner $(if $(ALGO),--algo $(ALGO)) $(ARGS)
 
 # The simulated drive closed over DDS by the hand-tuned cascade (one experiment, a plot).
 demo-drive: setup

@@ -1,4 +1,4 @@
-"""Test-run hygiene for every test in the workspace (see DEVELOPERS.md).
+"""Test-run hygiene for every test in the workspace (the rules: README.md, "Two commands").
 
 * Each test run gets its own DDS domain (``ROS_DOMAIN_ID``) and discovery stays on this
   host (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``), so concurrent runs and other

@@ -36,7 +36,10 @@ def test_make_demo_runs_the_tuners_default() -> None:
 
 
 def test_make_demo_algo_picks_another() -> None:
-    assert _demo_command('ALGO=necga').split('ros2 run im_tuner tuner', 1)[1].split() == ['--algo', 'necga']
+    assert _demo_command('ALGO=necga').split('ros2 run im_tuner tuner', 1)[1].split() == [
+        '--algo',
+        'necga',
+    ]
 
 
 def test_readme_main_command_and_default_name() -> None:

@@ -6,10 +6,11 @@ A thin node around :class:`im_controller.experiment.ExperimentRunner` (docs/cont
   with ``drive/command`` (isq*, load torque), through a hand-rolled WaitSet on a hidden io
   node (no executor in the 5 kHz path);
 * the five gains, the loss weights, thresholds, penalty and trajectory limits are ROS
-  parameters with descriptors and ranges (``config.NUMERIC_SPECS``); the hard safety limits
-  and the control structure are read-only. Every change is validated in one place
-  (``config.validate_*``) and applied whole or not at all; a change while an experiment
-  runs is **refused** with a reason (not deferred);
+  parameters with descriptors and ranges (``config.NUMERIC_SPECS``; declared by
+  ``declarations``, listed in ``parameters``); the hard safety limits and the control
+  structure are read-only. Every change is validated in one place
+  (``parameters.configuration``, ``config.validate_*``) and applied whole or not at all; a
+  change while an experiment runs is **refused** with a reason (``refusals``; not deferred);
 * ``~/start_experiment`` (std_srvs/Trigger) starts the paper's experiment; the result is
   published on ``controller/loss`` (diagnostic_msgs/DiagnosticArray, see messages.py);
   ``~/reset_fault`` (std_srvs/Trigger; ``ros2 run im_controller reset_fault`` calls it)

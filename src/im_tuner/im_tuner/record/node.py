@@ -51,6 +51,7 @@ from im_drive_sim.runtime import RosSession, unknown_overrides, warn_unknown_ove
 
 from . import take as rcl_take
 from .counts import closing_custom_data, counts_report
+from .mcap_format import COMPRESSIONS
 from .metadata import (
     BagError,
     TopicRecord,
@@ -491,7 +492,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         '--compression',
-        choices=('none', 'zstd', 'lz4'),
+        choices=COMPRESSIONS,
         default='lz4',
         help='MCAP chunk compression (default: lz4, the cheapest; zstd: smaller files)',
     )

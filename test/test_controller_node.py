@@ -23,7 +23,14 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from im_controller.config import Gains
-from im_controller.contract import BUSY, NO_DRIVE_STATE, SAFETY_FAULT, refusal_code, started_id
+from im_controller.contract import (
+    BUSY,
+    NO_DRIVE_STATE,
+    SAFETY_FAULT,
+    STATE_NOT_FINITE,
+    refusal_code,
+    started_id,
+)
 from im_controller.controller_node import INTERNALS_FIELDS
 from im_controller.experiment import ExperimentRunner, config_for_drive
 from im_controller.messages import msg_to_result, result_to_msg
@@ -193,7 +200,7 @@ def test_experiments_through_dds_equal_the_pure_core(bench):
         8125 * 200_000,
         (8125 + 2500) * 200_000,
     )
-    theta = b.drive._state[b.drive._idx['theta']]
+    theta = b.drive.sim.theta  # the true angle the drive's last state carried
     assert abs(theta - 0.0) < 0.01  # back at 0 after 0 -> pi -> 0
     ref = offline_losses([Gains(), Gains()])
     for got, want in zip((r0, r1), ref, strict=True):
@@ -221,9 +228,9 @@ def test_gain_changes_apply_between_experiments_and_are_refused_during_one(bench
     assert probe.start().success
     # Mid-experiment (the bench has not stepped it to the end yet): refused, not changed.
     res = probe.set(k_pw=1.0)
-    assert not res[0].successful and 'running' in res[0].reason
+    assert not res[0].successful and refusal_code(res[0].reason) == BUSY
     resp = probe.start()
-    assert not resp.success and 'running' in resp.message
+    assert not resp.success and refusal_code(resp.message) == BUSY
     n = len(probe.results)
     assert b.spin_until(lambda: len(probe.results) > n, 60)
     r = probe.results[-1]
@@ -397,7 +404,7 @@ def fake_drive(ros_context, **params):
         assert fd.spin_until(lambda: state_pub.get_subscription_count() > 0, 10)
         assert fd.spin_until(probe.start_client.service_is_ready, 10)
         fd.send(0)
-        assert fd.spin_until(lambda: ctl._state is not None, 5)
+        assert fd.spin_until(lambda: ctl.last_state is not None, 5)
         yield fd
     finally:
         ex.shutdown()
@@ -424,16 +431,17 @@ def test_watchdog_zero_current_and_abort_when_the_drive_goes_silent(ros_context)
         assert commands[-1][0] == -1.0
         # A start is refused until the fault is reset ...
         resp = probe.start()
-        assert not resp.success and 'drive_state_timeout' in resp.message
+        assert not resp.success and refusal_code(resp.message) == SAFETY_FAULT
+        assert 'drive_state_timeout' in resp.message  # the fault's reason code, named
         # ... and the reset is refused while the drive stays silent (a dead drive must not
         # be reset into experiment after experiment) ...
         reset_cli = probe.node.create_client(Trigger, '/controller/reset_fault')
         refused = probe.call(reset_cli.call_async(Trigger.Request()))
-        assert not refused.success and 'no drive state since the watchdog' in refused.message
+        assert not refused.success and refusal_code(refused.message) == NO_DRIVE_STATE
         assert ctl.runner.faulted
         # ... until the drive speaks again (here: the last state re-sent, as lock-step does)
         fd.send(50)
-        assert fd.spin_until(lambda: ctl._last_msg_wall > ctl._timeout_wall, 5)
+        assert fd.spin_until(lambda: ctl.silent_since_trip() is None, 5)
         reset = probe.call(reset_cli.call_async(Trigger.Request()))
         assert reset.success and 'drive_state_timeout' in reset.message
         assert probe.start().success
@@ -463,12 +471,12 @@ def test_non_finite_drive_state_zero_current_abort_and_reset(ros_context, field,
         assert not probe.start().success
         reset_cli = probe.node.create_client(Trigger, '/controller/reset_fault')
         refused = probe.call(reset_cli.call_async(Trigger.Request()))
-        assert not refused.success and 'not finite' in refused.message
+        assert not refused.success and refusal_code(refused.message) == STATE_NOT_FINITE
         assert ctl.runner.faulted
         # a sane state: taken but not answered (lock-step pauses in FAULT; zero current
         # was the last command), and now the reset is accepted
         fd.send(41)
-        assert fd.spin_until(lambda: int(ctl._state[0]) == 41, 5)
+        assert fd.spin_until(lambda: int(ctl.last_state[0]) == 41, 5)
         assert fd.commands[-1] == (40.0, 0.0, 0.0)
         reset = probe.call(reset_cli.call_async(Trigger.Request()))
         assert reset.success and 'non_finite_measurement' in reset.message

@@ -41,6 +41,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
 
 from im_controller.config import GAIN_NAMES, Gains
+from im_controller.contract import NO_DRIVE_STATE, SAFETY_FAULT, refusal_code
 from im_drive_sim.client import DriveClient
 from im_drive_sim.sim import STATE_FIELDS
 
@@ -225,7 +226,8 @@ def test_drive_killed_mid_experiment(procs, ros_context, tmp_path, tap, wait_unt
         got = probe.get(*GAIN_NAMES)
         assert got == [summary['applied']['gains'][n] for n in GAIN_NAMES]
         resp = probe.start()
-        assert not resp.success and 'drive_state_timeout' in resp.message
+        assert not resp.success and refusal_code(resp.message) == SAFETY_FAULT
+        assert 'drive_state_timeout' in resp.message  # the fault's reason code, named
     ctl.send_signal(signal.SIGINT)
     _, ctl_err = ctl.communicate(timeout=30)
     assert 'no drive state for 0.5 s: zero current commanded, experiment 2 aborted' in ctl_err
@@ -582,7 +584,9 @@ def test_flood_of_parameter_calls_and_triggers(procs, ros_context):
         first = probe.start()
         deadline = time.monotonic() + 20
         while (
-            not first.success and 'no drive state' in first.message and time.monotonic() < deadline
+            not first.success
+            and refusal_code(first.message) == NO_DRIVE_STATE
+            and time.monotonic() < deadline
         ):  # the drive re-sends its state every 0.1 s
             probe.spin_until(lambda: False, 0.05)
             first = probe.start()

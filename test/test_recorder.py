@@ -27,6 +27,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
+from im_controller.contract import NO_DRIVE_STATE, refusal_code
 from im_tuner.bench import InProcessBench, bench_metadata
 from im_tuner.record import take as rcl_take
 from im_tuner.record.node import RECORD_POLL_STEPS, Recorder
@@ -118,7 +119,7 @@ class Client:
         n = len(self.bench.controller.results)
         for _ in range(100):
             resp = self.call(self.start.call_async(Trigger.Request()))
-            if resp.success or 'no drive state' not in resp.message:
+            if resp.success or refusal_code(resp.message) != NO_DRIVE_STATE:
                 break
             self.bench.spin_until(lambda: False, 0.05)
         assert resp.success, resp.message

@@ -6,10 +6,11 @@ A thin node around :class:`im_controller.experiment.ExperimentRunner` (docs/cont
   with ``drive/command`` (isq*, load torque), through a hand-rolled WaitSet on a hidden io
   node (no executor in the 5 kHz path);
 * the five gains, the loss weights, thresholds, penalty and trajectory limits are ROS
-  parameters with descriptors and ranges (``config.NUMERIC_SPECS``); the hard safety limits
-  and the control structure are read-only. Every change is validated in one place
-  (``config.validate_*``) and applied whole or not at all; a change while an experiment
-  runs is **refused** with a reason (not deferred);
+  parameters with descriptors and ranges (``config.NUMERIC_SPECS``; declared by
+  ``declarations``, listed in ``parameters``); the hard safety limits and the control
+  structure are read-only. Every change is validated in one place
+  (``parameters.configuration``, ``config.validate_*``) and applied whole or not at all; a
+  change while an experiment runs is **refused** with a reason (``refusals``; not deferred);
 * ``~/start_experiment`` (std_srvs/Trigger) starts the paper's experiment; the result is
   published on ``controller/loss`` (diagnostic_msgs/DiagnosticArray, see messages.py);
   ``~/reset_fault`` (std_srvs/Trigger; ``ros2 run im_controller reset_fault`` calls it)
@@ -27,7 +28,6 @@ from __future__ import annotations
 import argparse
 import collections
 import contextlib
-import dataclasses
 import math
 import sys
 import time
@@ -36,11 +36,7 @@ from typing import Any
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import (
-    ParameterDescriptor,
-    ParameterType,
-    SetParametersResult,
-)
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -54,33 +50,18 @@ from im_drive_sim.cli import Parser, input_file, parse_cli, run_cli
 from im_drive_sim.client import DriveClient
 from im_drive_sim.contract import MODES
 from im_drive_sim.drive_sim_node import RECORDED_QOS
-from im_drive_sim.params import ConfigError, load_config
 from im_drive_sim.runtime import (
     LenientDoubles,
-    param_descriptor,
     parameter_hygiene,
     publish_lossless,
     run_stepped_node,
 )
 
 from . import contract as C
-from .config import (
-    GAIN_NAMES,
-    MOVE_KEYS,
-    MOVE_RULE,
-    NUMERIC_SPECS,
-    ControlConfig,
-    ControllerConfigError,
-    ExperimentConfig,
-    Gains,
-    LossConfig,
-    SafetyConfig,
-    TrajectoryConfig,
-    validate_experiment_config,
-    validate_gains,
-)
+from .config import GAIN_NAMES, ControllerConfigError, ExperimentConfig, Gains
 from .contract import INTERNALS_TOPIC, LOSS_TOPIC
 from .control import CONTROL_FIELDS
+from .declarations import declare_structure, declare_tunables
 from .experiment import (
     INTERNALS_FIELDS,
     REASON_DRIVE_TIMEOUT,
@@ -91,67 +72,13 @@ from .experiment import (
 )
 from .kernel import N_ANSWER_WORDS, W_ANSWERED, W_DECIMATION, W_N_ANSWERED
 from .messages import result_to_msg
+from .parameters import ControllerError, configuration
+from .refusals import change_refusal, reset_refusal, start_refusal
 from .reset_fault import reset_command, service_name
 from .result import LossResult
 
 #: Shortest time between two logged refusals of one kind [s] (all are counted).
 REFUSAL_LOG_PERIOD = 1.0
-
-#: Tunable sections: parameter prefix -> dataclass. Gains are top-level (k_pw, ...).
-TUNABLE_SECTIONS = {'loss': LossConfig, 'trajectory': TrajectoryConfig}
-#: Read-only sections (structure and hard safety limits).
-READ_ONLY_SECTIONS = {'control': ControlConfig, 'safety': SafetyConfig}
-#: Fields taken from the drive's parameter file, not declared as parameters.
-FROM_DRIVE = {'control.Ts', 'control.isq_max'}
-
-DESCRIPTIONS = {
-    'k_pw': 'PI speed controller, proportional gain',
-    'k_iw': 'PI speed controller, integral gain',
-    'k_pos': 'proportional position gain',
-    'tau_sm': 'reference smoothing time constant',
-    'tau_eq': 'equivalent time constant of the position loop (reference model)',
-    'loss.a1': 'weight of the position-error term f1 = |theta* - theta|',
-    'loss.a2': 'weight of the speed-error term f2 = |omega* - omega|',
-    'loss.a3': 'weight of the smoothness term f3 = |isqF* - isq*|',
-    'loss.threshold1': 'supervisor: stop when the running weighted term 1 exceeds this',
-    'loss.threshold2': 'supervisor: stop when the running weighted term 2 exceeds this',
-    'loss.threshold3': 'supervisor: stop when the running weighted term 3 exceeds this',
-    'loss.penalty': 'loss multiplier of a stopped experiment',
-    'loss.isqf_tau': 'time constant of the isq* filter in f3 (paper: 0.02 s)',
-    'loss.sat_ratio': 'terms count only while |isq*|/isq_max < sat_ratio (paper: 0.99)',
-    'trajectory.distance': 'rotation per experiment (direction alternates)',
-    'trajectory.a_max': 'acceleration limit of the minimum-time trajectory',
-    'trajectory.v_max': 'speed limit of the minimum-time trajectory',
-    'trajectory.duration': 'experiment length (1.125 s = 5625 steps)',
-    'trajectory.load_delay': 'load step this long after the reference change',
-    'trajectory.load_torque': 'load step magnitude (70 % of rated torque)',
-    'trajectory.load_sign': "'oppose_move' or 'fixed'",
-    'trajectory.settle': 'standstill settle before each experiment, fallback gains, no loss',
-    'control.feedforward': "speed feed-forward reading: 'model' (d theta_m/dt) or 'undelayed'",
-    'safety.max_position_error': 'hard limit on |theta_m - theta| (read-only)',
-    'safety.max_speed': 'hard limit on |omega| (read-only)',
-}
-
-
-#: the largest ``first_experiment_id`` (ids stay exact in every reader: JSON, float64)
-MAX_EXPERIMENT_ID = 2**31 - 1
-
-
-class ControllerError(Exception):
-    """A start-up configuration error: one line, exit code 2."""
-
-
-def _float_descriptor(key: str, description: str, read_only: bool) -> ParameterDescriptor:
-    sp = NUMERIC_SPECS[key]
-    unit = f' [{sp.unit}]' if sp.unit else ''
-    bounds = f'{"(" if sp.lo_strict else "["}{sp.lo:g}, {sp.hi:g}]'
-    return param_descriptor(
-        description + unit,
-        param_type=ParameterType.PARAMETER_DOUBLE,
-        read_only=read_only,
-        additional=f'finite, in {bounds}' + (f'; {MOVE_RULE}' if key in MOVE_KEYS else ''),
-        float_range=(sp.lo, sp.hi),
-    )
 
 
 class ControllerNode(LenientDoubles, Node):
@@ -166,8 +93,14 @@ class ControllerNode(LenientDoubles, Node):
         warn_unknown: bool = True,
     ) -> None:
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
-        self._declare_structure()
-        self._declare_tunables()
+        st = declare_structure(self)
+        declare_tunables(self)
+        self.mode, self.lockstep_idle = st.mode, st.lockstep_idle
+        self.Ts, self.isq_max, self.state_timeout = st.Ts, st.isq_max, st.state_timeout
+        self.internals_decimation = st.internals_decimation
+        self.service_period_steps = st.service_period_steps
+        self.timing_tolerance = st.timing_tolerance
+        self.first_experiment_id = st.first_experiment_id
         cfg, gains = self._candidate({})
         self.runner = ExperimentRunner(cfg, gains, timing_tolerance=self.timing_tolerance)
         #: refused requests, by kind (logged, throttled; and at exit)
@@ -228,191 +161,14 @@ class ControllerNode(LenientDoubles, Node):
         )
 
     # -- parameters --------------------------------------------------------------------
-    def _declare_structure(self) -> None:
-        self.mode = self.declare_parameter(
-            'mode',
-            'lockstep',
-            param_descriptor(
-                "'lockstep' (simulation) or 'realtime' (a real or real-time drive)",
-                additional='one of: lockstep, realtime',
-            ),
-        ).value
-        if self.mode not in MODES:
-            raise ControllerError(f"parameter 'mode' must be one of {MODES}, got {self.mode!r}")
-        self.lockstep_idle = self.declare_parameter(
-            'lockstep_idle',
-            'pause',
-            param_descriptor(
-                "lock-step, between experiments: 'pause' (sim time stops; "
-                "reproducible) or 'hold' (keep stepping the position hold)",
-                additional='one of: pause, hold',
-            ),
-        ).value
-        if self.lockstep_idle not in ('pause', 'hold'):
-            raise ControllerError(
-                f"parameter 'lockstep_idle' must be 'pause' or 'hold', got {self.lockstep_idle!r}"
-            )
-        drive_file = self.declare_parameter(
-            'drive_config_file',
-            '',
-            param_descriptor(
-                "the drive's parameter file, for Ts and isq_max ('' = the packaged 750 W default)"
-            ),
-        ).value
-        try:
-            drive_cfg = load_config(drive_file or None)
-        except ConfigError as exc:
-            raise ControllerError(str(exc)) from exc
-        self.Ts = float(drive_cfg.Ts)
-        self.isq_max = float(drive_cfg.machine.isq_max)
-        # Real time: a drive silent for 0.25 s (1250 periods) is gone.  Lock-step: the drive
-        # only moves when answered, so a stall is not a hazard, and a loaded machine can
-        # stall a process for a few hundred ms (seen on CI): allow 2 s there.
-        default_timeout = 0.25 if self.mode == 'realtime' else 2.0
-        self.state_timeout = self.declare_parameter(
-            'state_timeout',
-            default_timeout,
-            param_descriptor(
-                'watchdog: no drive state for this long while one is expected -> '
-                'zero current, running experiment aborted, FAULT [s]',
-                param_type=ParameterType.PARAMETER_DOUBLE,
-                float_range=(0.001, 60.0),
-            ),
-        ).value
-        self.internals_decimation = self.declare_parameter(
-            'internals_decimation',
-            1,
-            param_descriptor(
-                'publish controller/internals every N answered states (1 = every step)',
-                int_range=(1, 100000),
-            ),
-        ).value
-        self.service_period_steps = self.declare_parameter(
-            'service_period_steps',
-            250,
-            param_descriptor(
-                'serve services and parameters every N steps (and whenever idle)',
-                int_range=(1, 1000000),
-            ),
-        ).value
-        self.timing_tolerance = self.declare_parameter(
-            'timing_tolerance',
-            0,
-            param_descriptor(
-                'periods of an experiment (of its 5625 on the drive timeline) that may be held '
-                "or late before its result is marked 'timing' (not the paper's timing: the "
-                'tuner re-runs it). 0 on a simulated bench; a real bench whose power stage '
-                'applies commands at period starts may need a few (docs/real-drive.md).',
-                int_range=(0, 1_000_000),
-            ),
-        ).value
-        self.first_experiment_id = self.declare_parameter(
-            'first_experiment_id',
-            0,
-            param_descriptor(
-                'id of the first experiment this node starts; the next ones count up from '
-                'it (an id names an experiment in its start answer and loss message, and '
-                'its parity sets the move direction). A tuner resuming a run without '
-                'replay sets it past the ids of the run, so that they stay unique in it',
-                int_range=(0, MAX_EXPERIMENT_ID),
-            ),
-        ).value
-        self.declare_parameter(
-            'internals_fields',
-            list(INTERNALS_FIELDS),
-            param_descriptor('layout of controller/internals data'),
-        )
-        defaults = ExperimentConfig()
-        for section, cls in READ_ONLY_SECTIONS.items():
-            for f in dataclasses.fields(cls):
-                key = f'{section}.{f.name}'
-                if key in FROM_DRIVE:
-                    continue
-                value = getattr(getattr(defaults, section), f.name)
-                if isinstance(value, str):
-                    self.declare_parameter(
-                        key,
-                        value,
-                        param_descriptor(DESCRIPTIONS.get(key, key)),
-                    )
-                else:
-                    self.declare_parameter(
-                        key,
-                        float(value),
-                        _float_descriptor(key, DESCRIPTIONS.get(key, key), read_only=True),
-                    )
-        # The isq* clamp, read-only beside the other hard limits: the drive file's
-        # machine.isq_max, or a tighter one set at start (a bench may want less current
-        # than the drive can give); a looser one would be a lie the drive cannot keep.
-        drive_isq_max = self.isq_max
-        isq_max = self.declare_parameter(
-            'safety.isq_max',
-            drive_isq_max,
-            param_descriptor(
-                "isq* clamp [A]: the drive file's machine.isq_max, or lower if set "
-                'at start (a higher value is refused)',
-                param_type=ParameterType.PARAMETER_DOUBLE,
-                additional=f'finite, in (0, {drive_isq_max:g}] (the drive file)',
-            ),
-        ).value
-        if not (
-            isinstance(isq_max, float) and math.isfinite(isq_max) and 0.0 < isq_max <= drive_isq_max
-        ):
-            raise ControllerError(
-                f'parameter safety.isq_max must be in (0, {drive_isq_max:g}] A (the drive '
-                f"file's machine.isq_max; only a tighter clamp can be set), got {isq_max!r}"
-            )
-        self.isq_max = isq_max
-
-    def _declare_tunables(self) -> None:
-        g = Gains()
-        for name in GAIN_NAMES:
-            self.declare_parameter(
-                name,
-                float(getattr(g, name)),
-                _float_descriptor(f'gains.{name}', DESCRIPTIONS[name], read_only=False),
-            )
-        defaults = ExperimentConfig()
-        for section, cls in TUNABLE_SECTIONS.items():
-            for f in dataclasses.fields(cls):
-                key = f'{section}.{f.name}'
-                value = getattr(getattr(defaults, section), f.name)
-                if isinstance(value, str):
-                    self.declare_parameter(
-                        key, value, param_descriptor(DESCRIPTIONS.get(key, key), read_only=False)
-                    )
-                else:
-                    self.declare_parameter(
-                        key,
-                        float(value),
-                        _float_descriptor(key, DESCRIPTIONS.get(key, key), read_only=False),
-                    )
-
     def _candidate(self, changes: dict[str, object]) -> tuple[ExperimentConfig, Gains]:
-        """The configuration the node would have with ``changes`` applied: validated.
-
-        The one place where parameters become core configuration; raises
-        ControllerConfigError naming the bad parameter.
-        """
-
-        def value(name: str):
-            return changes[name] if name in changes else self.get_parameter(name).value
-
-        sections = {}
-        for section, cls in {**TUNABLE_SECTIONS, **READ_ONLY_SECTIONS}.items():
-            kw = {}
-            for f in dataclasses.fields(cls):
-                key = f'{section}.{f.name}'
-                if key == 'control.Ts':
-                    kw[f.name] = self.Ts
-                elif key == 'control.isq_max':
-                    kw[f.name] = self.isq_max
-                else:
-                    kw[f.name] = value(key)
-            sections[section] = cls(**kw)
-        cfg = validate_experiment_config(ExperimentConfig(**sections))
-        gains = validate_gains(Gains(*(value(n) for n in GAIN_NAMES)))
-        return cfg, gains
+        """The configuration the node would have with ``changes`` applied: validated
+        (``parameters.configuration``; ControllerConfigError names the bad parameter)."""
+        return configuration(
+            lambda name: changes[name] if name in changes else self.get_parameter(name).value,
+            self.Ts,
+            self.isq_max,
+        )
 
     def _pre_set(self, params: list[Parameter]) -> list[Parameter]:
         # Accept integers for double parameters (`k_iw:=20` means 20.0): a classic trap.
@@ -446,36 +202,9 @@ class ControllerNode(LenientDoubles, Node):
             self.get_logger().warn(f'{text} ({self.refused[kind]} {kind} requests refused so far)')
 
     def _check_set(self, params: list[Parameter]) -> SetParametersResult:
-        tunable = [
-            p for p in params if p.name in GAIN_NAMES or p.name.split('.', 1)[0] in TUNABLE_SECTIONS
-        ]
-        if tunable and self.runner.running:
-            return SetParametersResult(
-                successful=False,
-                reason=C.refusal(
-                    C.BUSY,
-                    f'experiment {self.runner.experiment_id} is running: gains and '
-                    'experiment parameters change only between experiments (refused, '
-                    'not deferred; set them again after the result arrives)',
-                ),
-            )
-        if tunable and not (self.runner.ready or self.runner.faulted):
-            # After a supervisor stop the fallback gains finish the move: new gains now
-            # would replace them mid-move (and at a wall-clock-dependent step).
-            return SetParametersResult(
-                successful=False,
-                reason=C.refusal(
-                    C.FINISHING_MOVE,
-                    'still finishing the stopped move with the fallback gains: gains and '
-                    'experiment parameters change once it ends (refused; retry shortly)',
-                ),
-            )
-        for p in params:
-            if isinstance(p.value, float) and not math.isfinite(p.value):
-                return SetParametersResult(
-                    successful=False,
-                    reason=C.refusal(C.INVALID, f'{p.name} must be finite, got {p.value!r}'),
-                )
+        reason = change_refusal([(p.name, p.value) for p in params], self.runner)
+        if reason is not None:
+            return SetParametersResult(successful=False, reason=reason)
         try:
             self._candidate({p.name: p.value for p in params})
         except ControllerConfigError as exc:
@@ -495,28 +224,14 @@ class ControllerNode(LenientDoubles, Node):
     # -- services ----------------------------------------------------------------------
     def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         r = self.runner
-        if r.running:
+        reason = start_refusal(
+            r,
+            self._state is not None,
+            f'`{self._reset_command}` (the {self._reset_service} service)',
+        )
+        if reason is not None:
             response.success = False
-            response.message = C.refusal(
-                C.BUSY, f'refused: experiment {r.experiment_id} is running'
-            )
-        elif r.faulted:
-            response.success = False
-            response.message = C.refusal(
-                C.SAFETY_FAULT,
-                f'refused: safety fault ({r.fault_reason}); check the drive, then clear it '
-                f'with `{self._reset_command}` (the {self._reset_service} service)',
-            )
-        elif self._state is None:
-            response.success = False
-            response.message = C.refusal(
-                C.NO_DRIVE_STATE, 'refused: no drive state received yet (is the drive running?)'
-            )
-        elif not r.ready:
-            response.success = False
-            response.message = C.refusal(
-                C.FINISHING_MOVE, 'refused: still finishing the stopped move; retry shortly'
-            )
+            response.message = reason
         else:
             eid = self.next_experiment_id
             # The gains were applied when they were set (post-set callback); only after a
@@ -538,37 +253,32 @@ class ControllerNode(LenientDoubles, Node):
     ) -> Trigger.Response:
         if not self.runner.faulted:
             response.success, response.message = True, 'no fault'
-        elif self._state is None:
-            response.success = False
-            response.message = C.refusal(C.NO_DRIVE_STATE, 'refused: no drive state yet')
-        elif not (math.isfinite(self._state[2]) and math.isfinite(self._state[3])):
-            # holding a position needs a sane measurement: the drive is still broken
-            response.success = False
-            response.message = C.refusal(
-                C.STATE_NOT_FINITE,
-                f'refused: the last drive state is not finite (theta_meas='
-                f'{self._state[2]!r}, omega_meas={self._state[3]!r}); check '
-                'the drive',
-            )
-        elif self._timeout_wall is not None and self._last_msg_wall <= self._timeout_wall:
-            # Holding needs a drive that answers: after the state watchdog, wait for one.
-            response.success = False
-            response.message = C.refusal(
-                C.NO_DRIVE_STATE,
-                f'refused: no drive state since the watchdog tripped '
-                f'{time.monotonic() - self._timeout_wall:.1f} s ago (is the '
-                'drive running?)',
-            )
-        else:
-            reason = self.runner.fault_reason
-            self._timeout_wall = None
-            with self.loop_lock:
-                self.runner.reset(float(self._state[2]))
-            self._fault_logged = False
-            response.success = True
-            response.message = f'fault {reason} cleared; holding {self._state[2]:.4f} rad'
-            self.get_logger().warn(response.message)
+            return response
+        refused = reset_refusal(self._state, self.silent_since_trip())
+        if refused is not None:
+            response.success, response.message = False, refused
+            return response
+        reason = self.runner.fault_reason
+        self._timeout_wall = None
+        with self.loop_lock:
+            self.runner.reset(float(self._state[2]))
+        self._fault_logged = False
+        response.success = True
+        response.message = f'fault {reason} cleared; holding {self._state[2]:.4f} rad'
+        self.get_logger().warn(response.message)
         return response
+
+    @property
+    def last_state(self) -> np.ndarray | None:
+        """The newest drive state taken (``STATE_FIELDS``; None before the first)."""
+        return self._state
+
+    def silent_since_trip(self) -> float | None:
+        """Seconds since the state watchdog tripped if no drive state came since (None:
+        one came, or it did not trip): a fault reset waits for the drive."""
+        if self._timeout_wall is not None and self._last_msg_wall <= self._timeout_wall:
+            return time.monotonic() - self._timeout_wall
+        return None
 
     # -- the 5 kHz path ----------------------------------------------------------------
     def _wants_to_step(self) -> bool:

@@ -95,10 +95,16 @@ from .layout import (
 )
 from .trajectory import traj_pos
 
+#: One of the kernels' arrays (float64, 1-D, C-contiguous; ``layout`` names its words; the
+#: answer words ``W`` are int64): the short name keeps the long kernel signatures on a line.
+Vec = np.ndarray
+
 
 # ---------------------------------------------------------------------- the kernel
 @njit(cache=True)
-def _finish(R: np.ndarray, Q: np.ndarray, status: float, reason: float, time_ns: float) -> None:
+def finish_experiment(R: Vec, Q: Vec, status: float, reason: float, time_ns: float) -> None:
+    """End the experiment in ``R``: its result (``status``, ``reason`` code), the steps it
+    ran, its end time [ns] (one period after ``time_ns``, the last state's), the trip step."""
     R[R_RESULT] = status
     R[R_REASON] = reason
     R[R_STEPS] = R[R_N]
@@ -108,14 +114,7 @@ def _finish(R: np.ndarray, Q: np.ndarray, status: float, reason: float, time_ns:
 
 @njit(cache=True)
 def experiment_step(
-    R: np.ndarray,
-    Q: np.ndarray,
-    X: np.ndarray,
-    C: np.ndarray,
-    CF: np.ndarray,
-    state: np.ndarray,
-    cout: np.ndarray,
-    eout: np.ndarray,
+    R: Vec, Q: Vec, X: Vec, C: Vec, CF: Vec, state: Vec, cout: Vec, eout: Vec
 ) -> int:
     """Process drive state k (``state``: step_index, time_ns, theta_meas, omega_meas, ...)
     and return the status; the command is ``eout[E_ISQ]`` [A], ``eout[E_LOAD]`` [N m].
@@ -173,7 +172,9 @@ def experiment_step(
             # its start (the unseen periods count as held); this state is the hold's.
             R[R_HELD] += last - R[R_SEEN]
             R[R_N] = Q[Q_N]
-            _finish(R, Q, STATUS_DONE, REASON_NONE, R[R_START_NS] + (Q[Q_N] - 1.0) * Q[Q_TS_NS])
+            finish_experiment(
+                R, Q, STATUS_DONE, REASON_NONE, R[R_START_NS] + (Q[Q_N] - 1.0) * Q[Q_TS_NS]
+            )
             R[R_HOLD_REF] = R[R_TARGET]
             R[R_MODE] = MODE_HOLD
             running = False
@@ -249,7 +250,7 @@ def experiment_step(
                 if n < 0.0:
                     n = k - R[R_START_STEP]
                 R[R_N] = n + 1.0
-                _finish(R, Q, STATUS_ABORTED, safety, state[1])
+                finish_experiment(R, Q, STATUS_ABORTED, safety, state[1])
                 status = STATUS_ABORTED
             elif settling:
                 # a fault in the settle ends the experiment before its step 0: aborted,
@@ -257,7 +258,7 @@ def experiment_step(
                 R[R_START_STEP] = k
                 R[R_START_NS] = state[1]
                 R[R_N] = 0.0
-                _finish(R, Q, STATUS_ABORTED, safety, state[1])
+                finish_experiment(R, Q, STATUS_ABORTED, safety, state[1])
                 R[R_TRIP_STEP] = -1.0
                 status = STATUS_ABORTED
             else:
@@ -290,7 +291,7 @@ def experiment_step(
                 trip = REASON_TERM3
             R[R_N] = n + 1.0
             if trip != REASON_NONE:
-                _finish(R, Q, STATUS_ABORTED, trip, state[1])
+                finish_experiment(R, Q, STATUS_ABORTED, trip, state[1])
                 # Stop at once: this step's command already comes from the position hold
                 # at the measured position with the fallback gains (bumpless: references
                 # = theta_meas, integrator 0); the load is removed.
@@ -302,7 +303,7 @@ def experiment_step(
                 status = STATUS_ABORTED
                 reason = trip
             elif R[R_N] >= Q[Q_N]:
-                _finish(R, Q, STATUS_DONE, REASON_NONE, state[1])
+                finish_experiment(R, Q, STATUS_DONE, REASON_NONE, state[1])
                 R[R_HOLD_REF] = R[R_TARGET]
                 R[R_MODE] = MODE_HOLD
                 status = STATUS_DONE
@@ -340,18 +341,9 @@ N_ANSWER_WORDS = 4
 
 @njit(cache=True)
 def answer_state(
-    R: np.ndarray,
-    Q: np.ndarray,
-    X: np.ndarray,
-    C: np.ndarray,
-    CF: np.ndarray,
-    state: np.ndarray,
-    cout: np.ndarray,
-    eout: np.ndarray,
-    cmd: np.ndarray,
-    internals: np.ndarray,
-    W: np.ndarray,
-) -> int:
+    R: Vec, Q: Vec, X: Vec, C: Vec, CF: Vec, state: Vec, cout: Vec, eout: Vec,
+    cmd: Vec, internals: Vec, W: Vec,
+) -> int:  # fmt: skip
     """``ControllerNode.answer`` compiled (a composed real-time loop calls it without the
     GIL, ``im_tuner.bench.compiled_loop``): :func:`experiment_step` on drive state k, the
     command (k, isq* [A], load [N m]) written into ``cmd`` (the command message's

@@ -120,6 +120,19 @@ R_SEEN = 28  # step index of the last state processed
 R_APPLIED = 29  # its applied_step
 R_GAINS_STEP = 30  # the first state the current gains acted on (set_gains)
 N_RSTATE = 31
+#: Words an experiment's start clears: loss sums and terms, the isq* filter, the last result.
+R_CLEARED_AT_START = (
+    R_S1,
+    R_S2,
+    R_S3,
+    R_TERM1,
+    R_TERM2,
+    R_TERM3,
+    R_ISQF,
+    R_RESULT,
+    R_REASON,
+    R_STEPS,
+)
 
 #: Index of ``applied_step`` in a drive state (the drive contract).
 S_APPLIED = STATE_INDEX['applied_step']

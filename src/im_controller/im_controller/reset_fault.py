@@ -17,6 +17,8 @@ from __future__ import annotations
 import os
 import sys
 import time
+from collections.abc import Callable
+from typing import Any
 
 from . import contract as C
 
@@ -78,6 +80,24 @@ def _check_name(srv: str, controller: str) -> None:
         ) from None
 
 
+def _wait(
+    done: Callable[[], bool],
+    wait: Callable[[], object],
+    ros: Any,
+    deadline: float,
+    timeout_line: str,
+) -> tuple[int, str] | None:
+    """``wait()`` until ``done()``; None then, else the exit code and line: interrupted
+    (``ros.stopped``), or ``timeout_line`` past ``deadline`` (monotonic [s])."""
+    while not done():
+        if ros.stopped:
+            return EXIT_INTERRUPTED, 'reset_fault: interrupted'
+        if time.monotonic() > deadline:
+            return EXIT_REFUSED, timeout_line
+        wait()
+    return None
+
+
 def call_reset(argv: list[str], srv: str, timeout: float) -> tuple[int, str]:
     """Call ``srv`` once; returns the exit code and the line to print."""
     from rclpy.node import Node
@@ -93,28 +113,30 @@ def call_reset(argv: list[str], srv: str, timeout: float) -> tuple[int, str]:
         )
         cli = node.create_client(Trigger, srv)
         deadline = time.monotonic() + timeout
-        while not cli.service_is_ready():
-            if ros.stopped:
-                return EXIT_INTERRUPTED, 'reset_fault: interrupted'
-            if time.monotonic() > deadline:
-                return EXIT_REFUSED, (
-                    f'error: reset_fault: {srv} not on the graph of ROS_DOMAIN_ID '
-                    f'{os.environ.get("ROS_DOMAIN_ID", "0")} after {timeout:g} s (is the '
-                    'controller running? --controller names it; a loaded machine may need '
-                    'a longer --timeout)'
-                )
-            cli.wait_for_service(timeout_sec=0.05)
+        missing = _wait(
+            cli.service_is_ready,
+            lambda: cli.wait_for_service(timeout_sec=0.05),
+            ros,
+            deadline,
+            f'error: reset_fault: {srv} not on the graph of ROS_DOMAIN_ID '
+            f'{os.environ.get("ROS_DOMAIN_ID", "0")} after {timeout:g} s (is the '
+            'controller running? --controller names it; a loaded machine may need '
+            'a longer --timeout)',
+        )
+        if missing is not None:
+            return missing
         import rclpy
 
         fut = cli.call_async(Trigger.Request())
-        while not fut.done():
-            if ros.stopped:
-                return EXIT_INTERRUPTED, 'reset_fault: interrupted'
-            if time.monotonic() > deadline:
-                return EXIT_REFUSED, (
-                    f'error: reset_fault: {srv} did not answer within {timeout:g} s'
-                )
-            rclpy.spin_once(node, timeout_sec=0.05)
+        silent = _wait(
+            fut.done,
+            lambda: rclpy.spin_once(node, timeout_sec=0.05),
+            ros,
+            deadline,
+            f'error: reset_fault: {srv} did not answer within {timeout:g} s',
+        )
+        if silent is not None:
+            return silent
         resp = fut.result()
         if resp.success:
             return EXIT_OK, f'{srv}: {resp.message}'

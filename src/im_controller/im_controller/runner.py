@@ -10,6 +10,7 @@ import numpy as np
 
 from im_drive_sim.sim import DriveSim
 
+from . import layout as L
 from .config import ExperimentConfig, Gains, validate_experiment_config, validate_gains
 from .control import (
     N_CONTROL_FIELDS,
@@ -18,51 +19,7 @@ from .control import (
     fill_control_params,
     make_control_params,
 )
-from .kernel import _finish, experiment_step
-from .layout import (
-    E_ISQ,
-    E_LOAD,
-    MODE_FAULT,
-    MODE_HOLD,
-    MODE_RETURN,
-    MODE_RUN,
-    MODE_SETTLE,
-    N_EXP_FIELDS,
-    N_RSTATE,
-    Q_DIST,
-    Q_SETTLE_N,
-    R_APPLIED,
-    R_DIR,
-    R_END_NS,
-    R_FAULT_REASON,
-    R_FRESH,
-    R_GAINS_STEP,
-    R_HELD,
-    R_HOLD_REF,
-    R_ISQF,
-    R_LAST_STEP,
-    R_LATE,
-    R_MODE,
-    R_N,
-    R_REASON,
-    R_RESULT,
-    R_S1,
-    R_S2,
-    R_S3,
-    R_SEEN,
-    R_START_NS,
-    R_START_STEP,
-    R_STEPS,
-    R_TARGET,
-    R_TERM1,
-    R_TERM2,
-    R_TERM3,
-    R_THETA0,
-    R_TRIP_STEP,
-    REASON_POSITION,
-    REASONS,
-    STATUS_ABORTED,
-)
+from .kernel import experiment_step, finish_experiment
 from .result import LossResult
 from .trajectory import make_experiment_params
 
@@ -77,7 +34,7 @@ class ExperimentRunner:
         runner.reset(theta_meas)                  # hold here (also clears a FAULT)
         runner.start(experiment_id, gains)        # the next step() is experiment step 0
         isq, load, status = runner.step(state)    # state: STATE_FIELDS (uses fields 0-3)
-        if status in (STATUS_DONE, STATUS_ABORTED): res = runner.result()
+        if status in (STATUS_DONE, L.STATUS_ABORTED): res = runner.result()
 
     Between experiments (and after DONE) it holds the last target with the current gains;
     after a supervisor stop ``fallback_gains`` finish the move along the trajectory and
@@ -102,13 +59,13 @@ class ExperimentRunner:
         self.C: np.ndarray = make_control_params(self.gains, self.config.control)
         self.CF: np.ndarray = make_control_params(self.config.fallback_gains, self.config.control)
         self.X: np.ndarray = np.zeros(N_CSTATE)
-        self.R: np.ndarray = np.zeros(N_RSTATE)
+        self.R: np.ndarray = np.zeros(L.N_RSTATE)
         self.cout: np.ndarray = np.zeros(N_CONTROL_FIELDS)
-        self.eout: np.ndarray = np.zeros(N_EXP_FIELDS)
+        self.eout: np.ndarray = np.zeros(L.N_EXP_FIELDS)
         self.experiment_id: int = -1
         self._exp_gains: Gains = self.gains
-        self.R[R_SEEN] = -1.0  # no state seen yet
-        self.R[R_APPLIED] = -1.0
+        self.R[L.R_SEEN] = -1.0  # no state seen yet
+        self.R[L.R_APPLIED] = -1.0
         self.reset(0.0)
 
     # -- modes
@@ -119,14 +76,14 @@ class ExperimentRunner:
             raise ValueError(f'theta_meas must be finite, got {theta_meas!r}')
         control_reset(self.X, float(theta_meas))
         # the drive-timeline facts survive a reset: they describe the drive, not the runner
-        seen, applied, gstep = self.R[R_SEEN], self.R[R_APPLIED], self.R[R_GAINS_STEP]
+        seen, applied, gstep = self.R[L.R_SEEN], self.R[L.R_APPLIED], self.R[L.R_GAINS_STEP]
         self.R[:] = 0.0
-        self.R[R_SEEN], self.R[R_APPLIED], self.R[R_GAINS_STEP] = seen, applied, gstep
-        self.R[R_MODE] = MODE_HOLD
-        self.R[R_HOLD_REF] = float(theta_meas)
-        self.R[R_TARGET] = float(theta_meas)
-        self.R[R_LAST_STEP] = -1.0
-        self.R[R_TRIP_STEP] = -1.0
+        self.R[L.R_SEEN], self.R[L.R_APPLIED], self.R[L.R_GAINS_STEP] = seen, applied, gstep
+        self.R[L.R_MODE] = L.MODE_HOLD
+        self.R[L.R_HOLD_REF] = float(theta_meas)
+        self.R[L.R_TARGET] = float(theta_meas)
+        self.R[L.R_LAST_STEP] = -1.0
+        self.R[L.R_TRIP_STEP] = -1.0
 
     def set_gains(self, gains: Gains) -> None:
         """Apply new gains now (validated, atomic).  Refused while an experiment runs."""
@@ -136,7 +93,7 @@ class ExperimentRunner:
         c = self.config.control
         fill_control_params(self.C, g, c.Ts, c.isq_max, c.feedforward)
         self.gains = g
-        self.R[R_GAINS_STEP] = self.R[R_SEEN] + 1.0  # they act from the next state on
+        self.R[L.R_GAINS_STEP] = self.R[L.R_SEEN] + 1.0  # they act from the next state on
 
     def set_config(self, config: ExperimentConfig) -> None:
         """Apply a new experiment configuration (loss, trajectory, ...), validated and
@@ -167,18 +124,18 @@ class ExperimentRunner:
         (a ``REASON_*`` code); a running experiment ends aborted (penalised) at sim time
         ``time_ns`` [ns] of the last state seen.  ``reset()`` clears the fault."""
         R = self.R
-        if R[R_MODE] == MODE_SETTLE:  # before its step 0: no step measured
-            R[R_N] = 0.0
-            R[R_START_NS] = float(time_ns)
+        if R[L.R_MODE] == L.MODE_SETTLE:  # before its step 0: no step measured
+            R[L.R_N] = 0.0
+            R[L.R_START_NS] = float(time_ns)
         if self.running:
-            _finish(R, self.Q, float(STATUS_ABORTED), float(reason), float(time_ns))
-        R[R_MODE] = MODE_FAULT
-        R[R_FAULT_REASON] = float(reason)
+            finish_experiment(R, self.Q, float(L.STATUS_ABORTED), float(reason), float(time_ns))
+        R[L.R_MODE] = L.MODE_FAULT
+        R[L.R_FAULT_REASON] = float(reason)
 
     def start(self, experiment_id: int, gains: Gains | None = None) -> None:
         """Arm experiment ``experiment_id`` (int >= 0) with ``gains`` (None: current).
         The next ``step`` begins its standstill settle: ``trajectory.settle`` seconds
-        (Q_SETTLE_N periods on the drive's timeline) holding the current hold reference
+        (L.Q_SETTLE_N periods on the drive's timeline) holding the current hold reference
         with the fallback gains, no load, no loss; the first state after it is step 0,
         where ``gains`` take over. It moves from the hold reference by +distance (even
         id) or -distance (odd id)."""
@@ -188,7 +145,7 @@ class ExperimentRunner:
             or experiment_id < 0
         ):
             raise ValueError(f'experiment_id must be an integer >= 0, got {experiment_id!r}')
-        if self.R[R_MODE] == MODE_FAULT:
+        if self.R[L.R_MODE] == L.MODE_FAULT:
             raise RuntimeError(f'runner in FAULT ({self.fault_reason}); call reset() first')
         if self.running:
             raise RuntimeError('an experiment is already running')
@@ -198,18 +155,18 @@ class ExperimentRunner:
             self.set_gains(gains)
         R = self.R
         d = 1.0 if experiment_id % 2 == 0 else -1.0
-        R[R_DIR] = d
-        R[R_THETA0] = R[R_HOLD_REF]
-        R[R_TARGET] = R[R_THETA0] + d * self.Q[Q_DIST]
-        R[R_N] = 0.0
-        for j in (R_S1, R_S2, R_S3, R_TERM1, R_TERM2, R_TERM3, R_ISQF, R_RESULT, R_REASON, R_STEPS):
+        R[L.R_DIR] = d
+        R[L.R_THETA0] = R[L.R_HOLD_REF]
+        R[L.R_TARGET] = R[L.R_THETA0] + d * self.Q[L.Q_DIST]
+        R[L.R_N] = 0.0
+        for j in L.R_CLEARED_AT_START:
             R[j] = 0.0
-        R[R_TRIP_STEP] = -1.0
-        R[R_FRESH] = R[R_LATE] = R[R_HELD] = 0.0
-        # a standstill settle first (Q_SETTLE_N periods with the fallback gains, from the
+        R[L.R_TRIP_STEP] = -1.0
+        R[L.R_FRESH] = R[L.R_LATE] = R[L.R_HELD] = 0.0
+        # a standstill settle first (L.Q_SETTLE_N periods with the fallback gains, from the
         # next state on: the kernel counts them on the drive's timeline), then step 0
-        R[R_START_STEP] = -1.0
-        R[R_MODE] = MODE_SETTLE if self.Q[Q_SETTLE_N] > 0 else MODE_RUN
+        R[L.R_START_STEP] = -1.0
+        R[L.R_MODE] = L.MODE_SETTLE if self.Q[L.Q_SETTLE_N] > 0 else L.MODE_RUN
         self.experiment_id = int(experiment_id)
         self._exp_gains = self.gains
 
@@ -218,76 +175,78 @@ class ExperimentRunner:
         (isq* [A], load torque command [N m], status)."""
         st = experiment_step(self.R, self.Q, self.X, self.C, self.CF, state, self.cout, self.eout)
         self.stepped(st)
-        return float(self.eout[E_ISQ]), float(self.eout[E_LOAD]), int(st)
+        return float(self.eout[L.E_ISQ]), float(self.eout[L.E_LOAD]), int(st)
 
     def stepped(self, status: int) -> None:
         """What follows a kernel step that returned ``status`` (:meth:`step`, or a
         compiled loop that ran ``kernel.answer_state``): an abort that is not a position
         stop left the kernel on the fallback gains."""
-        if status == STATUS_ABORTED and self.R[R_REASON] < REASON_POSITION:
+        if status == L.STATUS_ABORTED and self.R[L.R_REASON] < L.REASON_POSITION:
             self.gains = self.config.fallback_gains  # the kernel switched to them
 
     # -- queries
     @property
     def running(self) -> bool:
         """An experiment is under way (its settle or its measured steps)."""
-        return bool(self.R[R_MODE] == MODE_RUN or self.R[R_MODE] == MODE_SETTLE)
+        return bool(self.R[L.R_MODE] == L.MODE_RUN or self.R[L.R_MODE] == L.MODE_SETTLE)
 
     @property
     def ready(self) -> bool:
         """True in plain position hold: ``start`` may be called."""
-        return bool(self.R[R_MODE] == MODE_HOLD)
+        return bool(self.R[L.R_MODE] == L.MODE_HOLD)
 
     @property
     def faulted(self) -> bool:
-        return bool(self.R[R_MODE] == MODE_FAULT)
+        return bool(self.R[L.R_MODE] == L.MODE_FAULT)
 
     @property
     def fault_reason(self) -> str:
-        return REASONS[int(self.R[R_FAULT_REASON])] if self.faulted else ''
+        return L.REASONS[int(self.R[L.R_FAULT_REASON])] if self.faulted else ''
 
     @property
     def hold_reference(self) -> float:
         """Position [rad] held between experiments (the next experiment starts here)."""
-        return float(self.R[R_TARGET] if self.R[R_MODE] == MODE_RETURN else self.R[R_HOLD_REF])
+        return float(
+            self.R[L.R_TARGET] if self.R[L.R_MODE] == L.MODE_RETURN else self.R[L.R_HOLD_REF]
+        )
 
     @property
     def target(self) -> float:
         """End position [rad] of the current / last experiment."""
-        return float(self.R[R_TARGET])
+        return float(self.R[L.R_TARGET])
 
     def result(self, R: np.ndarray | None = None) -> LossResult | None:
         """The result of the last experiment, or None while running / before any.
         ``R``: the kernel's words as they were at an experiment's end (a compiled loop
         runs on meanwhile), instead of now."""
         R = self.R if R is None else R
-        if R[R_RESULT] == 0.0 or R[R_MODE] == MODE_RUN or R[R_MODE] == MODE_SETTLE:
+        if R[L.R_RESULT] == 0.0 or R[L.R_MODE] == L.MODE_RUN or R[L.R_MODE] == L.MODE_SETTLE:
             return None
-        aborted = R[R_RESULT] == STATUS_ABORTED
-        terms = (float(R[R_TERM1]), float(R[R_TERM2]), float(R[R_TERM3]))
+        aborted = R[L.R_RESULT] == L.STATUS_ABORTED
+        terms = (float(R[L.R_TERM1]), float(R[L.R_TERM2]), float(R[L.R_TERM3]))
         loss = terms[0] + terms[1] + terms[2]
         if aborted:
             loss *= self.config.loss.penalty
-        trip = int(R[R_TRIP_STEP])
-        held, late = int(R[R_HELD]), int(R[R_LATE])
+        trip = int(R[L.R_TRIP_STEP])
+        held, late = int(R[L.R_HELD]), int(R[L.R_LATE])
         return LossResult(
             experiment_id=self.experiment_id,
             loss=float(loss),
             terms=terms,
             aborted=bool(aborted),
-            reason=REASONS[int(R[R_REASON])],
+            reason=L.REASONS[int(R[L.R_REASON])],
             trip_step=trip,
             trip_time=trip * self.config.control.Ts if trip >= 0 else -1.0,
             gains=self._exp_gains,
-            t_start=int(R[R_START_NS]),
-            t_end=int(R[R_END_NS]),
-            steps=int(R[R_STEPS]),
-            direction=int(R[R_DIR]),
-            fresh=int(R[R_FRESH]),
+            t_start=int(R[L.R_START_NS]),
+            t_end=int(R[L.R_END_NS]),
+            steps=int(R[L.R_STEPS]),
+            direction=int(R[L.R_DIR]),
+            fresh=int(R[L.R_FRESH]),
             held=held,
             late=late,
             timing=held + late > self.timing_tolerance,
-            gains_step=int(R[R_GAINS_STEP]),
+            gains_step=int(R[L.R_GAINS_STEP]),
         )
 
 

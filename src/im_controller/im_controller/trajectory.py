@@ -8,100 +8,74 @@ import math
 import numpy as np
 from numba import njit
 
+from . import layout as L
 from .config import ExperimentConfig, trajectory_times, validate_experiment_config
-from .layout import (
-    N_QPARAMS,
-    Q_A1,
-    Q_A2,
-    Q_A3,
-    Q_AMAX,
-    Q_DIST,
-    Q_ISQ_MAX,
-    Q_ISQF_A,
-    Q_LOAD,
-    Q_LOAD_FIXED,
-    Q_LOAD_N,
-    Q_MAX_ERR,
-    Q_MAX_SPEED,
-    Q_N,
-    Q_SAT_RATIO,
-    Q_SETTLE_N,
-    Q_TACC,
-    Q_TDEC,
-    Q_TEND,
-    Q_THR1,
-    Q_THR2,
-    Q_THR3,
-    Q_TS,
-    Q_TS_NS,
-    Q_VPEAK,
-)
 
 
 # ------------------------------------------------------------------------ trajectory
 @njit(cache=True)
 def traj_pos(t: float, Q: np.ndarray) -> float:
     """Distance travelled s(t) [rad] of the move (0 before, exactly ``distance`` after)."""
-    a = Q[Q_AMAX]
+    a = Q[L.Q_AMAX]
     if t <= 0.0:
         return 0.0
-    if t < Q[Q_TACC]:
+    if t < Q[L.Q_TACC]:
         return 0.5 * a * t * t
-    if t < Q[Q_TDEC]:
-        ta = Q[Q_TACC]
-        return 0.5 * a * ta * ta + Q[Q_VPEAK] * (t - ta)
-    if t < Q[Q_TEND]:
-        r = Q[Q_TEND] - t
-        return Q[Q_DIST] - 0.5 * a * r * r
-    return Q[Q_DIST]
+    if t < Q[L.Q_TDEC]:
+        ta = Q[L.Q_TACC]
+        return 0.5 * a * ta * ta + Q[L.Q_VPEAK] * (t - ta)
+    if t < Q[L.Q_TEND]:
+        r = Q[L.Q_TEND] - t
+        return Q[L.Q_DIST] - 0.5 * a * r * r
+    return Q[L.Q_DIST]
 
 
 @njit(cache=True)
 def _traj_arrays(
     t: np.ndarray, Q: np.ndarray, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray
 ) -> None:
-    a = Q[Q_AMAX]
+    a = Q[L.Q_AMAX]
     for i in range(t.shape[0]):
         ti = t[i]
         pos[i] = traj_pos(ti, Q)
-        if ti <= 0.0 or ti >= Q[Q_TEND]:
+        if ti <= 0.0 or ti >= Q[L.Q_TEND]:
             vel[i] = 0.0
             acc[i] = 0.0
-        elif ti < Q[Q_TACC]:
+        elif ti < Q[L.Q_TACC]:
             vel[i] = a * ti
             acc[i] = a
-        elif ti < Q[Q_TDEC]:
-            vel[i] = Q[Q_VPEAK]
+        elif ti < Q[L.Q_TDEC]:
+            vel[i] = Q[L.Q_VPEAK]
             acc[i] = 0.0
         else:
-            vel[i] = a * (Q[Q_TEND] - ti)
+            vel[i] = a * (Q[L.Q_TEND] - ti)
             acc[i] = -a
 
 
 def make_experiment_params(cfg: ExperimentConfig) -> np.ndarray:
     """Kernel parameter vector ``Q`` from a validated config."""
     c, lo, tr, sf = cfg.control, cfg.loss, cfg.trajectory, cfg.safety
-    Q = np.zeros(N_QPARAMS)
-    Q[Q_TS] = c.Ts
-    Q[Q_TS_NS] = float(round(c.Ts * 1e9))
-    Q[Q_N] = float(round(tr.duration / c.Ts))
-    Q[Q_SETTLE_N] = float(round(tr.settle / c.Ts))
+    Q = np.zeros(L.N_QPARAMS)
+    Q[L.Q_TS] = c.Ts
+    Q[L.Q_TS_NS] = float(round(c.Ts * 1e9))
+    Q[L.Q_N] = float(round(tr.duration / c.Ts))
+    Q[L.Q_SETTLE_N] = float(round(tr.settle / c.Ts))
     # ceil: the load is on from the first sample at or after load_delay (0.7 s -> n = 3500)
-    Q[Q_LOAD_N] = float(math.ceil(tr.load_delay / c.Ts - 1e-9))
-    Q[Q_LOAD] = tr.load_torque
-    Q[Q_LOAD_FIXED] = 1.0 if tr.load_sign == 'fixed' else 0.0
-    Q[Q_A1], Q[Q_A2], Q[Q_A3] = lo.a1, lo.a2, lo.a3
-    Q[Q_THR1], Q[Q_THR2], Q[Q_THR3] = lo.threshold1, lo.threshold2, lo.threshold3
-    Q[Q_ISQ_MAX] = c.isq_max
-    Q[Q_SAT_RATIO] = lo.sat_ratio
-    Q[Q_ISQF_A] = math.exp(-c.Ts / lo.isqf_tau)
+    Q[L.Q_LOAD_N] = float(math.ceil(tr.load_delay / c.Ts - 1e-9))
+    Q[L.Q_LOAD] = tr.load_torque
+    Q[L.Q_LOAD_FIXED] = 1.0 if tr.load_sign == 'fixed' else 0.0
+    Q[L.Q_A1], Q[L.Q_A2], Q[L.Q_A3] = lo.a1, lo.a2, lo.a3
+    Q[L.Q_THR1], Q[L.Q_THR2], Q[L.Q_THR3] = lo.threshold1, lo.threshold2, lo.threshold3
+    Q[L.Q_ISQ_MAX] = c.isq_max
+    Q[L.Q_SAT_RATIO] = lo.sat_ratio
+    Q[L.Q_ISQF_A] = math.exp(-c.Ts / lo.isqf_tau)
     t_acc, t_dec, t_end, v_peak = trajectory_times(tr.distance, tr.a_max, tr.v_max)
-    Q[Q_DIST] = tr.distance
-    Q[Q_AMAX] = tr.a_max
-    Q[Q_VPEAK] = v_peak
-    Q[Q_TACC], Q[Q_TDEC], Q[Q_TEND] = t_acc, t_dec, t_end
-    Q[Q_MAX_ERR] = sf.max_position_error
-    Q[Q_MAX_SPEED] = sf.max_speed
+    Q[L.Q_DIST] = tr.distance
+    Q[L.Q_AMAX] = tr.a_max
+    Q[L.Q_VPEAK] = v_peak
+    Q[L.Q_TACC], Q[L.Q_TDEC], Q[L.Q_TEND] = t_acc, t_dec, t_end
+    Q[L.Q_MAX_ERR] = sf.max_position_error
+    Q[L.Q_MAX_SPEED] = sf.max_speed
     return Q
 
 

@@ -12,27 +12,20 @@ import math
 import numpy as np
 import pytest
 
-from im_controller.config import (
-    ExperimentConfig,
-    Gains,
-    LossConfig,
-    SafetyConfig,
-)
-from im_controller.experiment import (
+from im_controller.config import ExperimentConfig, Gains, LossConfig, SafetyConfig
+from im_controller.experiment import Experiment, ExperimentRunner, config_for_drive
+from im_controller.layout import (
     STATUS_ABORTED,
     STATUS_DONE,
     STATUS_FAULT,
     STATUS_HOLD,
     STATUS_RUNNING,
-    Experiment,
-    ExperimentRunner,
-    config_for_drive,
 )
 from im_drive_sim.params import load_config
 from im_drive_sim.sim import STATE_FIELDS, DriveSim
 from im_tuner.bench.offline import hold_offline, run_experiment_offline
 
-TS = 2e-4
+TS = load_config().Ts  # the drive's period (0.2 ms) [s]
 UNSTABLE = Gains(k_pw=0.05, k_iw=20.0, k_pos=300.0, tau_sm=0.005, tau_eq=0.007)
 
 

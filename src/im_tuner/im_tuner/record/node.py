@@ -33,14 +33,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import datetime as _dt
-import importlib
-import importlib.metadata
 import json
 import os
-import platform
-import shlex
-import socket
 import sys
 import time
 from dataclasses import dataclass
@@ -56,18 +50,21 @@ from im_drive_sim.outbox import R_HEAD, R_LOST, R_TAIL
 from im_drive_sim.runtime import RosSession, unknown_overrides, warn_unknown_overrides
 
 from . import take as rcl_take
+from .counts import closing_custom_data, counts_report
+from .mcap_format import COMPRESSIONS
 from .metadata import (
     BagError,
     TopicRecord,
     bag_metadata,
     prepare_bag_dir,
-    qos_to_dict,
     qos_yaml,
     rosbag2_record,
     storage_file_name,
     write_metadata_yaml,
 )
+from .run_info import default_out_dir, recorder_version, run_metadata
 from .schemas import MsgDefError, schema_for
+from .topic_info import endpoint_qos, endpoint_type_hash, message_class
 from .writer import MESSAGE_HEADER_BYTES, McapWriteError, McapWriter
 
 #: Lock-step steps between two polls of a recorder sharing the bench's process: about
@@ -76,18 +73,6 @@ from .writer import MESSAGE_HEADER_BYTES, McapWriteError, McapWriter
 RECORD_POLL_STEPS = 64
 #: Longest a closing recorder keeps taking messages that are still arriving [s].
 CLOSE_MAX_WAIT = 1.0
-
-#: Packages whose versions go into the run metadata.
-VERSIONED = (
-    'im_drive_sim',
-    'im_controller',
-    'im_tuner',
-    'ros-jazzy-rclpy',
-    'ros-jazzy-rmw-fastrtps-cpp',
-    'numpy',
-    'numba',
-    'mcap',
-)
 
 
 class RecorderError(Exception):
@@ -103,86 +88,6 @@ class _Topic:
     reliable: bool
     qos_profiles: list[dict]
     type_hash: str
-
-
-def default_out_dir(base: Path | str = 'bags', prefix: str = 'recording') -> Path:
-    stamp = _dt.datetime.now(_dt.UTC).strftime('%Y_%m_%d-%H_%M_%S')
-    return Path(base) / f'{prefix}_{stamp}'
-
-
-def message_class(type_name: str):
-    """The Python class of a ROS type string (``pkg/msg/T``, ``pkg/srv/T_Event``...)."""
-    parts = type_name.split('/')
-    if len(parts) != 3:
-        raise ImportError(f'not a ROS type name: {type_name!r}')
-    pkg, kind, name = parts
-    mod = importlib.import_module(f'{pkg}.{kind}')
-    if kind == 'msg':
-        return getattr(mod, name)
-    for suffix, attr in (('_Event', 'Event'), ('_Request', 'Request'), ('_Response', 'Response')):
-        if kind == 'srv' and name.endswith(suffix):
-            return getattr(getattr(mod, name[: -len(suffix)]), attr)
-    if kind == 'action':
-        for suffix, path in (
-            ('_FeedbackMessage', ('Impl', 'FeedbackMessage')),
-            ('_Feedback', ('Feedback',)),
-            ('_Goal', ('Goal',)),
-            ('_Result', ('Result',)),
-        ):
-            if name.endswith(suffix):
-                obj = getattr(mod, name[: -len(suffix)])
-                for a in path:
-                    obj = getattr(obj, a)
-                return obj
-    return getattr(mod, name)
-
-
-def _enum_name(value) -> str:
-    return getattr(value, 'name', str(value)).lower()
-
-
-def _endpoint_qos(info) -> dict:
-    q = info.qos_profile
-    return qos_to_dict(
-        _enum_name(q.history),
-        q.depth,
-        _enum_name(q.reliability),
-        _enum_name(q.durability),
-        q.deadline.nanoseconds,
-        q.lifespan.nanoseconds,
-        _enum_name(q.liveliness),
-        q.liveliness_lease_duration.nanoseconds,
-    )
-
-
-def _type_hash(info) -> str:
-    h = getattr(info, 'topic_type_hash', None)
-    if h is None:
-        return ''
-    if isinstance(h, dict):
-        v, val = h.get('version', 1), h.get('value', b'')
-        return f'RIHS{int(v):02d}_' + bytes(val).hex() if val else ''
-    return str(h)
-
-
-def run_metadata(command: list[str] | None = None) -> dict[str, str]:
-    """What ran, where and with which versions: the bag's ``im_tuner.run`` record."""
-    versions = {}
-    for pkg in VERSIONED:
-        try:
-            versions[pkg] = importlib.metadata.version(pkg)
-        except importlib.metadata.PackageNotFoundError:
-            versions[pkg] = 'not installed'
-    return {
-        'command': shlex.join(command if command is not None else sys.argv),
-        'started_utc': _dt.datetime.now(_dt.UTC).isoformat(timespec='seconds'),
-        'host': socket.gethostname(),
-        'python': platform.python_version(),
-        'ros_distro': os.environ.get('ROS_DISTRO', 'jazzy'),
-        'rmw_implementation': os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp'),
-        'ros_domain_id': os.environ.get('ROS_DOMAIN_ID', '0'),
-        'versions': json.dumps(versions, sort_keys=True),
-    }
 
 
 class Recorder:
@@ -219,7 +124,7 @@ class Recorder:
                 self.out / self.file_name,
                 compression=compression,
                 chunk_size=chunk_size,
-                library=f'im_tuner recorder {_version()}',
+                library=f'im_tuner recorder {recorder_version()}',
                 background=background_writes,
             )
         except McapWriteError as exc:
@@ -296,6 +201,19 @@ class Recorder:
             )
         return self._schemas[type_name]
 
+    def _add_channel(self, name: str, type_name: str, infos: list) -> tuple[int, list[dict], str]:
+        """A bag channel for topic ``name`` (its schema first), with its publishers' QoS
+        profiles and type hash, as rosbag2 writes them; returns (channel, profiles, hash)."""
+        profiles = [endpoint_qos(i) for i in infos]
+        type_hash = endpoint_type_hash(infos[0]) if infos else ''
+        channel = self.writer.add_channel(
+            name,
+            self._schema(type_name),
+            'cdr',
+            {'offered_qos_profiles': qos_yaml(profiles), 'topic_type_hash': type_hash},
+        )
+        return channel, profiles, type_hash
+
     def add_tap(self, channels: dict[str, Any]) -> None:
         """Record these topics from a real-time loop's outbox (``im_drive_sim.outbox``:
         topic -> Channel with a ``tap`` ring) instead of subscribing: every message the
@@ -305,14 +223,7 @@ class Recorder:
             if name in self.topics:
                 raise RecorderError(f'{name} is already recorded from DDS')
             infos = self.node.get_publishers_info_by_topic(name)
-            profiles = [_endpoint_qos(i) for i in infos]
-            type_hash = _type_hash(infos[0]) if infos else ''
-            channel = self.writer.add_channel(
-                name,
-                self._schema(ch.type_name),
-                'cdr',
-                {'offered_qos_profiles': qos_yaml(profiles), 'topic_type_hash': type_hash},
-            )
+            channel, profiles, type_hash = self._add_channel(name, ch.type_name, infos)
             t = _Topic(name, ch.type_name, channel, None, True, profiles, type_hash)
             self.topics[name] = t
             self._taps.append((t, ch))
@@ -355,15 +266,7 @@ class Recorder:
             reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
             durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
         )
-        schema = self._schema(type_name)
-        profiles = [_endpoint_qos(i) for i in infos]
-        type_hash = _type_hash(infos[0])
-        channel = self.writer.add_channel(
-            name,
-            schema,
-            'cdr',
-            {'offered_qos_profiles': qos_yaml(profiles), 'topic_type_hash': type_hash},
-        )
+        channel, profiles, type_hash = self._add_channel(name, type_name, infos)
         sub = self.node.create_subscription(cls, name, lambda _m: None, qos, raw=True)
         self.topics[name] = _Topic(name, type_name, channel, sub, reliable, profiles, type_hash)
         self._subs = np.append(self._subs, np.uint64(sub.handle.pointer))
@@ -531,16 +434,8 @@ class Recorder:
         self._check_matches()
         self.writer.flush_chunk()
         counts = self.counts()
-        lost = sum(c['lost'] for c in counts.values())
-        custom = {
-            'im_tuner.counts': json.dumps(counts, sort_keys=True),
-            'im_tuner.lost_total': str(lost),
-            'im_tuner.state': 'closed',
-        }
-        if self.unrecordable:
-            custom['im_tuner.unrecordable'] = json.dumps(self.unrecordable, sort_keys=True)
+        custom = closing_custom_data(counts, self.unrecordable, cut)
         if cut:
-            custom['im_tuner.close'] = cut
             self.node.get_logger().warn(f'bag {self.out.name}: {cut}')
         meta = self._metadata(custom)
         self.writer.add_metadata('rosbag2', rosbag2_record(meta))
@@ -566,16 +461,7 @@ class Recorder:
         )
 
     def _log_counts(self, counts: dict) -> None:
-        lines = [f'bag {self.out}: {self.writer.message_count} messages on {len(counts)} topics']
-        for name, c in sorted(counts.items()):
-            flag = '' if c['lost'] == 0 and c['unmatched_publishers'] == 0 else '   <-- LOST'
-            lines.append(
-                f'  {name}: recorded {c["recorded"]} / published {c["published"]}, '
-                f'lost {c["lost"]}{flag}'
-            )
-        for name, why in self.unrecordable.items():
-            lines.append(f'  {name}: NOT RECORDED ({why})')
-        self.log.info('\n'.join(lines))
+        self.log.info(counts_report(self.out, self.writer.message_count, counts, self.unrecordable))
 
     def _destroy_subscriptions(self) -> None:
         self._subs = np.zeros(0, np.uint64)
@@ -586,13 +472,6 @@ class Recorder:
             with contextlib.suppress(Exception):
                 self.node.destroy_subscription(t.sub)
         self._take.close()
-
-
-def _version() -> str:
-    try:
-        return importlib.metadata.version('im_tuner')
-    except importlib.metadata.PackageNotFoundError:
-        return 'dev'
 
 
 #: bounds of --chunk-size [bytes]: the open chunk is a buffer of this size in memory
@@ -613,7 +492,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         '--compression',
-        choices=('none', 'zstd', 'lz4'),
+        choices=COMPRESSIONS,
         default='lz4',
         help='MCAP chunk compression (default: lz4, the cheapest; zstd: smaller files)',
     )

@@ -115,9 +115,13 @@ class BagData:
 
 
 # ----------------------------------------------------------------------- record walk
-def _walk_all(
+def walk_records(
     buf: np.ndarray, start: int, stop_op: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Every record of ``buf`` from byte ``start`` (up to and including one of opcode
+    ``stop_op``; -1: none), walked one by one (:func:`.walk.walk`, numba): opcodes, body
+    offsets and lengths, and for Message records channel ids and log times [ns]; and
+    where the walk stopped. What a chunk whose index does not tile it is read by."""
     cap = max(0, buf.size - start) // 31 + 64  # a message record is >= 31 bytes
     while True:
         ops = np.empty(cap, np.uint8)
@@ -465,7 +469,7 @@ def _take_chunk(
     if found is not None:
         offs, lens, cids, times = found
     else:  # no index, or one that does not match the chunk: walk every record
-        ops, offs, lens, cids, times, _end = _walk_all(buf, 0, -1)
+        ops, offs, lens, cids, times, _end = walk_records(buf, 0, -1)
         for i in np.flatnonzero(ops != OP_MESSAGE):
             op = int(ops[i])
             if op in (OP_SCHEMA, OP_CHANNEL):

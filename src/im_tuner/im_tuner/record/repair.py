@@ -32,33 +32,32 @@ from typing import BinaryIO
 import numpy as np
 import yaml
 
+from .mcap_encode import (
+    ChunkInfo,
+    chunk_index_record,
+    metadata_index_record,
+    record,
+    statistics_record,
+    string,
+    summary_and_footer,
+)
 from .mcap_format import (
     MAGIC,
+    OP_ATTACHMENT,
+    OP_ATTACHMENT_INDEX,
     OP_CHANNEL,
     OP_CHUNK,
-    OP_CHUNK_INDEX,
     OP_DATA_END,
     OP_FOOTER,
     OP_HEADER,
     OP_MESSAGE,
     OP_MESSAGE_INDEX,
     OP_METADATA,
-    OP_METADATA_INDEX,
     OP_SCHEMA,
-    OP_STATISTICS,
-    OP_SUMMARY_OFFSET,
 )
 from .metadata import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
 from .records import Cursor, decompress, parse_definition
-from .writer import (
-    ChunkInfo,
-    _chunk_index,
-    _record,
-    _string,
-)
 
-OP_ATTACHMENT = 0x09
-OP_ATTACHMENT_INDEX = 0x0A
 #: Messages found outside chunks are packed into new chunks of at most this many bytes.
 LOOSE_CHUNK_BYTES = 1 << 20
 _FOOTER_BYTES = 29  # opcode, length, summary_start, summary_offset_start, summary_crc
@@ -302,7 +301,7 @@ def _message_indexes(idx: np.ndarray) -> list[tuple[int, bytes, int]]:
     for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
         entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
         out.append(
-            (cid, _record(OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries), b - a)
+            (cid, record(OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries), b - a)
         )
     return out
 
@@ -341,11 +340,11 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
                 recs = b''.join(read(o, n) for o, n, _c, _t in ch.loose)
                 body = (
                     struct.pack('<QQQI', ch.start, ch.end, len(recs), zlib.crc32(recs))
-                    + _string('')
+                    + string('')
                     + struct.pack('<Q', len(recs))
                     + recs
                 )
-                at = put(_record(OP_CHUNK, body))
+                at = put(record(OP_CHUNK, body))
                 length = 9 + len(body)
             index_at, offsets = pos, {}
             for cid, rec, _n in _message_indexes(ch.index):
@@ -363,61 +362,31 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
                     ch.uncompressed_size,
                 )
             )
-    put(_record(OP_DATA_END, struct.pack('<I', 0)))
-    summary_start, out, groups = pos, bytearray(), []
-    for op, records in (
-        (OP_SCHEMA, [rec for _n, rec in scan.schemas.values()]),
-        (OP_CHANNEL, [c[3] for c in scan.channels.values()]),
-        (OP_STATISTICS, [_statistics(scan, len(meta_index), len(infos))]),
-        (
-            OP_METADATA_INDEX,
-            [
-                _record(OP_METADATA_INDEX, struct.pack('<QQ', at, n) + _string(name))
-                for at, n, name in meta_index
-            ],
-        ),
-        (
-            OP_ATTACHMENT_INDEX,
-            [
-                _record(
-                    OP_ATTACHMENT_INDEX,
-                    struct.pack('<QQQQQ', *a[:5]) + _string(a[5]) + _string(a[6]),
-                )
-                for a in att_index
-            ],
-        ),
-        (OP_CHUNK_INDEX, [_chunk_index(c) for c in infos]),
-    ):
-        if records:
-            at = summary_start + len(out)
-            out.extend(b''.join(records))
-            groups.append((op, at, summary_start + len(out) - at))
-    offsets_start = summary_start + len(out)
-    for op, at, n in groups:
-        out.extend(_record(OP_SUMMARY_OFFSET, struct.pack('<BQQ', op, at, n)))
-    footer_head = struct.pack('<BQQQ', OP_FOOTER, 20, summary_start, offsets_start)
-    put(bytes(out) + footer_head + struct.pack('<I', zlib.crc32(bytes(out) + footer_head)) + MAGIC)
-
-
-def _statistics(scan: McapScan, n_metadata: int, n_chunks: int) -> bytes:
-    counts = b''.join(struct.pack('<HQ', c, k) for c, k in sorted(scan.channel_counts().items()))
-    t0, t1 = scan.time_range()
-    return _record(
-        OP_STATISTICS,
-        struct.pack(
-            '<QHIIIIQQ',
-            scan.messages,
-            len(scan.schemas),
-            len(scan.channels),
-            len(scan.attachments),
-            n_metadata,
-            n_chunks,
-            t0,
-            t1,
-        )
-        + struct.pack('<I', len(counts))
-        + counts,
+    put(record(OP_DATA_END, struct.pack('<I', 0)))
+    attachment_index = [
+        record(OP_ATTACHMENT_INDEX, struct.pack('<QQQQQ', *a[:5]) + string(a[5]) + string(a[6]))
+        for a in att_index
+    ]
+    stats = statistics_record(
+        scan.messages,
+        len(scan.schemas),
+        len(scan.channels),
+        len(scan.attachments),
+        len(meta_index),
+        len(infos),
+        scan.time_range(),
+        scan.channel_counts(),
     )
+    summary = summary_and_footer(
+        pos,
+        schemas=[rec for _n, rec in scan.schemas.values()],
+        channels=[c[3] for c in scan.channels.values()],
+        statistics=stats,
+        metadata_index=[metadata_index_record(*m) for m in meta_index],
+        attachment_index=attachment_index,
+        chunk_index=[chunk_index_record(c) for c in infos],
+    )
+    put(summary)
 
 
 def _find_mcap(bag_dir: Path) -> Path:

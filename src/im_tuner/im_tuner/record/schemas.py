@@ -203,7 +203,7 @@ def schema_idl(type_name: str, prefixes: list[str] | None = None) -> str:
             continue
         seen.add(file_type)
         fpkg, folder, fname = file_type.split('/')
-        text = loader._read(fpkg, folder, fname + '.idl', file_type, parent)
+        text = loader.read_file(fpkg, folder, fname + '.idl', file_type, parent)
         todo.extend((inc, file_type) for inc in _INCLUDE_RE.findall(text))
         text = _VERBATIM_RE.sub('', _INCLUDE_RE.sub('', text))
         sections.append((file_type, text))
@@ -267,7 +267,9 @@ class _Loader:
         self.prefixes = prefixes
         self._cache: dict[Path, str] = {}
 
-    def _read(self, pkg: str, folder: str, filename: str, what: str, referenced_by: str) -> str:
+    def read_file(self, pkg: str, folder: str, filename: str, what: str, referenced_by: str) -> str:
+        """The text of ``share/<pkg>/<folder>/<filename>`` in the first prefix that has it
+        (``what`` and ``referenced_by`` name it in the error: MsgDefError)."""
         candidates = [Path(p) / 'share' / pkg / folder / filename for p in self.prefixes]
         for path in candidates:
             if path in self._cache:
@@ -290,7 +292,7 @@ class _Loader:
         self, pkg: str, service: str, what: str, referenced_by: str = ''
     ) -> tuple[str, str]:
         """(request, response) texts of ``share/<pkg>/srv/<service>.srv``."""
-        text = self._read(pkg, 'srv', service + '.srv', what, referenced_by)
+        text = self.read_file(pkg, 'srv', service + '.srv', what, referenced_by)
         lines = text.splitlines(keepends=True)
         cuts = [i for i, line in enumerate(lines) if line.strip() == '---']
         if len(cuts) != 1:
@@ -306,7 +308,7 @@ class _Loader:
         """The definition text of a message or of one part of a service."""
         pkg, kind, name = key
         if kind == 'msg':
-            return self._read(pkg, 'msg', name + '.msg', what, referenced_by)
+            return self.read_file(pkg, 'msg', name + '.msg', what, referenced_by)
         is_request = name.endswith(_PART_SUFFIXES[0])
         service = name[: -len(_PART_SUFFIXES[0 if is_request else 1])]
         request, response = self.srv_parts(pkg, service, what, referenced_by)

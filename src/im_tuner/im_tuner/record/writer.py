@@ -42,23 +42,28 @@ from typing import BinaryIO
 import numba
 import numpy as np
 
+from .mcap_encode import (
+    ChunkInfo,
+    channel_record,
+    chunk_index_record,
+    metadata_index_record,
+    record,
+    schema_record,
+    statistics_record,
+    string,
+    string_map,
+    summary_and_footer,
+)
 from .mcap_format import (  # the format's constants: one place, no numba
     COMPRESSIONS,
     MAGIC,
     MESSAGE_HEADER_BYTES,
-    OP_CHANNEL,
     OP_CHUNK,
-    OP_CHUNK_INDEX,
     OP_DATA_END,
-    OP_FOOTER,
     OP_HEADER,
     OP_MESSAGE,
     OP_MESSAGE_INDEX,
     OP_METADATA,
-    OP_METADATA_INDEX,
-    OP_SCHEMA,
-    OP_STATISTICS,
-    OP_SUMMARY_OFFSET,
 )
 
 # Columns of the chunk state vector shared with the numba kernels.
@@ -68,29 +73,9 @@ ST_TMIN = 2  #: smallest log_time in the chunk [ns]
 ST_TMAX = 3  #: largest log_time in the chunk [ns]
 ST_SIZE = 4
 
-_U64 = struct.Struct('<Q')
-
 
 class McapWriteError(Exception):
     """The bag could not be written (path, permission, a closed writer)."""
-
-
-def _string(s: str) -> bytes:
-    b = s.encode('utf-8')
-    return struct.pack('<I', len(b)) + b
-
-
-def _bytes(b: bytes) -> bytes:
-    return struct.pack('<I', len(b)) + b
-
-
-def _map_ss(d: dict[str, str]) -> bytes:
-    body = b''.join(_string(k) + _string(v) for k, v in sorted(d.items()))
-    return struct.pack('<I', len(body)) + body
-
-
-def _record(op: int, body: bytes) -> bytes:
-    return struct.pack('<BQ', op, len(body)) + body
 
 
 @numba.njit(cache=True)
@@ -192,21 +177,6 @@ class ChunkState:
             self.buf = np.zeros(need_bytes + (64 << 10), np.uint8)
 
 
-@dataclass
-class ChunkInfo:
-    """What the summary needs to know of a written chunk."""
-
-    start: int
-    end: int
-    offset: int
-    length: int
-    index_offsets: dict[int, int]
-    index_length: int
-    compression: str
-    compressed_size: int
-    uncompressed_size: int
-
-
 class McapWriter:
     """Writes one MCAP file. Not thread-safe; one writer per file.
 
@@ -247,9 +217,11 @@ class McapWriter:
         self.t_start: int | None = None
         self.t_end: int | None = None
         self._pool = ThreadPoolExecutor(1, 'mcap_writer') if background else None
-        self._pending: deque[Future] = deque()
+        #: background writes not yet seen finished, oldest first (their errors are
+        #: raised at the next submit or at close)
+        self.pending: deque[Future] = deque()
         self._write(MAGIC)
-        self._write(_record(OP_HEADER, _string(profile) + _string(library)))
+        self._write(record(OP_HEADER, string(profile) + string(library)))
         self.flush()
 
     # -- low level ---------------------------------------------------------------------
@@ -275,18 +247,18 @@ class McapWriter:
         # is read once per look and only a done future is asked for its exception: a write
         # may finish at any instant on the worker thread (a future seen running stays and
         # is looked at again at the next submit or at close).
-        while self._pending and self._pending[0].done():
-            exc = self._pending.popleft().exception()
+        while self.pending and self.pending[0].done():
+            exc = self.pending.popleft().exception()
             if exc is not None:
                 raise McapWriteError(f'{self.path}: background write failed: {exc!r}')
-        self._pending.append(self._pool.submit(job))
+        self.pending.append(self._pool.submit(job))
 
     def _drain_pool(self) -> None:
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
-            errors = [f.exception() for f in self._pending if f.exception()]
-            self._pending.clear()
+            errors = [f.exception() for f in self.pending if f.exception()]
+            self.pending.clear()
             if errors:
                 raise McapWriteError(f'{self.path}: background write failed: {errors[0]!r}')
 
@@ -298,9 +270,7 @@ class McapWriter:
     def add_schema(self, name: str, encoding: str, data: bytes) -> int:
         sid = len(self.schemas) + 1
         self.schemas[sid] = (name, encoding, data)
-        rec = _record(
-            OP_SCHEMA, struct.pack('<H', sid) + _string(name) + _string(encoding) + _bytes(data)
-        )
+        rec = schema_record(sid, name, encoding, data)
         self._submit(lambda: self._write(rec))
         return sid
 
@@ -317,19 +287,13 @@ class McapWriter:
         meta = dict(metadata or {})
         self.channels[cid] = (topic, schema_id, message_encoding, meta)
         self.channel_counts[cid] = 0
-        rec = _record(
-            OP_CHANNEL,
-            struct.pack('<HH', cid, schema_id)
-            + _string(topic)
-            + _string(message_encoding)
-            + _map_ss(meta),
-        )
+        rec = channel_record(cid, schema_id, topic, message_encoding, meta)
         self._submit(lambda: self._write(rec))
         return cid
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """A Metadata record (name + string map), written at once, indexed in the summary."""
-        rec = _record(OP_METADATA, _string(name) + _map_ss(data))
+        rec = record(OP_METADATA, string(name) + string_map(data))
 
         def job() -> None:
             self.metadata_index.append((self._write(rec), len(rec), name))
@@ -341,28 +305,18 @@ class McapWriter:
     ) -> None:
         """Slow path (one Python call per message) for low-rate messages and tests."""
         arr = np.frombuffer(data, np.uint8)
-        if not append_message(
-            self.chunk.buf,
-            self.chunk.idx,
-            self.chunk.st,
-            channel_id,
-            sequence & 0xFFFFFFFF,
-            log_time,
-            publish_time,
-            arr,
-        ):
+
+        def append() -> bool:
+            ch = self.chunk
+            seq = sequence & 0xFFFFFFFF
+            return append_message(
+                ch.buf, ch.idx, ch.st, channel_id, seq, log_time, publish_time, arr
+            )
+
+        if not append():
             self.flush_chunk()
             self.chunk.grow(MESSAGE_HEADER_BYTES + len(data))
-            ok = append_message(
-                self.chunk.buf,
-                self.chunk.idx,
-                self.chunk.st,
-                channel_id,
-                sequence & 0xFFFFFFFF,
-                log_time,
-                publish_time,
-                arr,
-            )
+            ok = append()
             assert ok
         if self.chunk.used >= self.chunk_size:
             self.flush_chunk()
@@ -395,8 +349,8 @@ class McapWriter:
         comp = '' if self.compression == 'none' else self.compression
         body = (
             struct.pack('<QQQI', t0, t1, len(raw), zlib.crc32(raw))
-            + _string(comp)
-            + _U64.pack(len(payload))
+            + string(comp)
+            + struct.pack('<Q', len(payload))
         )
         head = struct.pack('<BQ', OP_CHUNK, len(body) + len(payload))
         chunk_at = self._write(head + body)
@@ -411,7 +365,7 @@ class McapWriter:
         for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
             entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
             index_offsets[cid] = self._write(
-                _record(OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries)
+                record(OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries)
             )
         self.chunks.append(
             ChunkInfo(
@@ -435,74 +389,31 @@ class McapWriter:
             return
         self.flush_chunk()
         self._drain_pool()
-        self._write(_record(OP_DATA_END, struct.pack('<I', 0)))
-        summary_start = self._pos
-        groups: list[tuple[int, int, int]] = []
-        out = bytearray()
-
-        def group(op: int, records: list[bytes]) -> None:
-            if records:
-                at = summary_start + len(out)
-                for r in records:
-                    out.extend(r)
-                groups.append((op, at, summary_start + len(out) - at))
-
-        group(
-            OP_SCHEMA,
-            [
-                _record(OP_SCHEMA, struct.pack('<H', sid) + _string(n) + _string(e) + _bytes(d))
-                for sid, (n, e, d) in self.schemas.items()
-            ],
+        self._write(record(OP_DATA_END, struct.pack('<I', 0)))
+        schemas = [schema_record(sid, *sch) for sid, sch in self.schemas.items()]
+        channels = [
+            channel_record(cid, sid, topic, enc, meta)
+            for cid, (topic, sid, enc, meta) in self.channels.items()
+        ]
+        stats = statistics_record(
+            self.message_count,
+            len(self.schemas),
+            len(self.channels),
+            0,
+            len(self.metadata_index),
+            len(self.chunks),
+            (self.t_start or 0, self.t_end or 0),
+            self.channel_counts,
         )
-        group(
-            OP_CHANNEL,
-            [
-                _record(
-                    OP_CHANNEL,
-                    struct.pack('<HH', cid, sid) + _string(t) + _string(enc) + _map_ss(m),
-                )
-                for cid, (t, sid, enc, m) in self.channels.items()
-            ],
+        summary = summary_and_footer(
+            self._pos,
+            schemas=schemas,
+            channels=channels,
+            statistics=stats,
+            metadata_index=[metadata_index_record(*m) for m in self.metadata_index],
+            chunk_index=[chunk_index_record(c) for c in self.chunks],
         )
-        counts = b''.join(struct.pack('<HQ', c, k) for c, k in sorted(self.channel_counts.items()))
-        group(
-            OP_STATISTICS,
-            [
-                _record(
-                    OP_STATISTICS,
-                    struct.pack(
-                        '<QHIIIIQQ',
-                        self.message_count,
-                        len(self.schemas),
-                        len(self.channels),
-                        0,
-                        len(self.metadata_index),
-                        len(self.chunks),
-                        self.t_start or 0,
-                        self.t_end or 0,
-                    )
-                    + struct.pack('<I', len(counts))
-                    + counts,
-                )
-            ],
-        )
-        group(
-            OP_METADATA_INDEX,
-            [
-                _record(OP_METADATA_INDEX, struct.pack('<QQ', at, ln) + _string(name))
-                for at, ln, name in self.metadata_index
-            ],
-        )
-        group(OP_CHUNK_INDEX, [_chunk_index(c) for c in self.chunks])
-        offsets_start = summary_start + len(out)
-        for op, at, ln in groups:
-            out.extend(_record(OP_SUMMARY_OFFSET, struct.pack('<BQQ', op, at, ln)))
-        footer_head = struct.pack(
-            '<BQQQ', OP_FOOTER, 20, summary_start if groups else 0, offsets_start if groups else 0
-        )
-        crc = zlib.crc32(bytes(out) + footer_head)
-        self._write(bytes(out))
-        self._write(footer_head + struct.pack('<I', crc) + MAGIC)
+        self._write(summary)
         f, self._f = self._f, None
         f.flush()
         os.fsync(f.fileno())
@@ -516,19 +427,6 @@ class McapWriter:
         if self._f is not None:
             self._f.close()
             self._f = None
-
-
-def _chunk_index(c: ChunkInfo) -> bytes:
-    offs = b''.join(struct.pack('<HQ', k, v) for k, v in sorted(c.index_offsets.items()))
-    return _record(
-        OP_CHUNK_INDEX,
-        struct.pack('<QQQQ', c.start, c.end, c.offset, c.length)
-        + struct.pack('<I', len(offs))
-        + offs
-        + _U64.pack(c.index_length)
-        + _string(c.compression)
-        + struct.pack('<QQ', c.compressed_size, c.uncompressed_size),
-    )
 
 
 def _compressor(name: str):

@@ -2,7 +2,7 @@
 MessageIndex records after it, without the numba record walk, and the walk taken instead
 whenever an index is missing or does not match its chunk.
 
-Each case reads a bag written by McapWriter (test_bagread's ``write_bag``) whose index
+Each case reads a bag written by McapWriter (test_record_reader's ``write_bag``) whose index
 records are then removed or altered on disk; whatever the index, the reader must give
 what the mcap library's reader and the written values say.
 """
@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 
 from im_tuner.record import reader
+from im_tuner.record.mcap_format import OP_CHUNK, OP_DATA_END, OP_MESSAGE_INDEX
 from im_tuner.record.reader import read_bag
-from im_tuner.record.writer import OP_CHUNK, OP_DATA_END, OP_MESSAGE_INDEX
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_bagread import mcap_library_counts, write_bag
+from test_record_reader import mcap_library_counts, write_bag
 
 ARRAYS = {'/controller/internals': None, '/labelled': None}
 
@@ -41,19 +41,19 @@ def top_records(data: bytes) -> list[tuple[int, int, int]]:
 def counting_walk(monkeypatch) -> list[int]:
     """Counts the record walks of chunks (start 0) that read_bag makes."""
     calls: list[int] = []
-    real = reader._walk_all
+    real = reader.walk_records
 
     def walk(buf, start, stop_op):
         if start == 0:
             calls.append(1)
         return real(buf, start, stop_op)
 
-    monkeypatch.setattr(reader, '_walk_all', walk)
+    monkeypatch.setattr(reader, 'walk_records', walk)
     return calls
 
 
 def written(bag: Path) -> dict:
-    """A bag (test_bagread's) and what it holds: the values written, and the log times
+    """A bag (test_record_reader's) and what it holds: the values written, and the log times
     the mcap library reads from the file as written (before any edit here: the library
     follows the summary's offsets, which an edit moves)."""
     want = write_bag(bag)
@@ -116,44 +116,34 @@ def _first_index_of_chunk(target: int):
     return pick
 
 
-def test_a_wrong_log_time_in_an_index_walks_that_chunk(tmp_path, monkeypatch):
-    want = written(tmp_path / 'b')
-    pick = _first_index_of_chunk(3)
+def walks_with_one_index_edited(path: Path, monkeypatch, chunk: int, edit) -> int:
+    """Write a bag, replace the first message index of chunk ``chunk`` by ``edit(rec)``,
+    and read it back (checked against what was written): the chunks read by a walk."""
+    want = written(path)
+    pick = _first_index_of_chunk(chunk)
+    _rewrite(want['file'], lambda op, rec, c: edit(rec) if pick(op, c) else rec)
+    calls = counting_walk(monkeypatch)
+    check_against_written(path, want)
+    return len(calls)
 
-    def edit(op, rec, chunk):
-        if not pick(op, chunk):
-            return rec
+
+def test_a_wrong_log_time_in_an_index_walks_that_chunk(tmp_path, monkeypatch):
+    def later_first_entry(rec: bytes) -> bytes:
         # first entry: (log_time, offset) after opcode, length, channel id, byte count
         (t,) = struct.unpack_from('<Q', rec, 15)
         return rec[:15] + struct.pack('<Q', t + 1) + rec[23:]
 
-    _rewrite(want['file'], edit)
-    calls = counting_walk(monkeypatch)
-    check_against_written(tmp_path / 'b', want)
-    assert len(calls) == 1  # that chunk only
+    assert walks_with_one_index_edited(tmp_path / 'b', monkeypatch, 3, later_first_entry) == 1
 
 
 def test_a_missing_channel_index_walks_that_chunk(tmp_path, monkeypatch):
     """A chunk whose first channel's index is gone: its messages lie between the indexed
     ones, so the index does not tile the chunk."""
-    want = written(tmp_path / 'b')
-    pick = _first_index_of_chunk(5)
-    _rewrite(want['file'], lambda op, rec, chunk: b'' if pick(op, chunk) else rec)
-    calls = counting_walk(monkeypatch)
-    check_against_written(tmp_path / 'b', want)
-    assert len(calls) == 1
+    assert walks_with_one_index_edited(tmp_path / 'b', monkeypatch, 5, lambda rec: b'') == 1
 
 
 def test_an_offset_past_the_chunk_walks_that_chunk(tmp_path, monkeypatch):
-    want = written(tmp_path / 'b')
-    pick = _first_index_of_chunk(2)
-
-    def edit(op, rec, chunk):
-        if not pick(op, chunk):
-            return rec
+    def past_the_chunk(rec: bytes) -> bytes:
         return rec[:23] + struct.pack('<Q', 2**63 + 5) + rec[31:]
 
-    _rewrite(want['file'], edit)
-    calls = counting_walk(monkeypatch)
-    check_against_written(tmp_path / 'b', want)
-    assert len(calls) == 1
+    assert walks_with_one_index_edited(tmp_path / 'b', monkeypatch, 2, past_the_chunk) == 1

@@ -34,7 +34,7 @@ class _FinishesWhileLookedAt(Future):
 def test_a_write_finishing_between_two_looks_is_not_an_error(tmp_path: Path) -> None:
     w = McapWriter(tmp_path / 'a.mcap', compression='none', background=True)
     racer = _FinishesWhileLookedAt()
-    w._pending.append(racer)
+    w.pending.append(racer)
     w.add_metadata('m', {'k': 'v'})  # used to raise: "background write failed: None"
     w.close()
     with open(tmp_path / 'a.mcap', 'rb') as f:
@@ -45,7 +45,7 @@ def test_a_failed_background_write_is_reported(tmp_path: Path) -> None:
     w = McapWriter(tmp_path / 'b.mcap', compression='none', background=True)
     bad: Future = Future()
     bad.set_exception(OSError(28, 'No space left on device'))
-    w._pending.append(bad)
+    w.pending.append(bad)
     with pytest.raises(McapWriteError, match='No space left on device'):
         w.add_metadata('m', {'k': 'v'})
     w.abandon()

@@ -46,7 +46,8 @@ WIDTH = 6
 
 
 def f64_array_cdr(values: np.ndarray) -> bytes:
-    """The drive's fast layout: header, no dims, data_offset 0, n, pad, data."""
+    """The drive's fast layout (a Float64MultiArray with an empty layout): header, no
+    dims, data_offset 0, n, pad, data."""
     return (
         b'\x00\x01\x00\x00'
         + struct.pack('<III', 0, 0, len(values))

@@ -14,6 +14,7 @@ import hashlib
 import io
 import os
 import struct
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +46,9 @@ from im_tuner.record.metadata import (
 from im_tuner.record.schemas import schema_text
 from im_tuner.record.writer import McapWriter
 
+sys.path.insert(0, str(Path(__file__).parent))
+from test_record_reader import f64_array_cdr
+
 RepairError = mcap_repair.RepairError
 repair_bag = mcap_repair.repair_bag
 scan_mcap = mcap_repair.scan_mcap
@@ -54,16 +58,6 @@ ARRAY = 'std_msgs/msg/Float64MultiArray'
 STRING = 'std_msgs/msg/String'
 QOS = [qos_to_dict('keep_all', 0, 'reliable', 'volatile')]
 TYPE_HASH = 'RIHS01_' + 'ab' * 32
-
-
-def f64_array_cdr(values: np.ndarray) -> bytes:
-    """A Float64MultiArray with empty layout: header, dim len 0, data_offset 0, n, pad, data."""
-    return (
-        b'\x00\x01\x00\x00'
-        + struct.pack('<III', 0, 0, len(values))
-        + bytes(4)
-        + np.asarray(values, '<f8').tobytes()
-    )
 
 
 def sha(path: Path) -> str:
@@ -626,7 +620,7 @@ def test_failure_leaves_the_original(tmp_path: Path, monkeypatch: pytest.MonkeyP
     def interrupted(*_a, **_k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(mcap_repair, '_statistics', interrupted)  # mid-way through the summary
+    monkeypatch.setattr(mcap_repair, 'statistics_record', interrupted)  # mid-way: the summary
     with pytest.raises(KeyboardInterrupt):
         repair_bag(rec.out)
     assert snapshot(rec.out) == before

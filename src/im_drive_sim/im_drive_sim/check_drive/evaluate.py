@@ -33,7 +33,7 @@ from .judges import (
 )
 from .thresholds import CURRENT_BOUND_FACTOR, ITEMS, STATE_FIELDS, TYPES, F, Item
 
-__all__ = ['Recording', 'evaluate', 'rows_by_step']
+__all__ = ['Recording', 'evaluate', 'json_ready', 'rows_by_step']
 
 
 def rows_by_step(
@@ -254,3 +254,19 @@ def evaluate(rec: Recording) -> list[Item]:
             rec.watchdog['silence_s'], rec.watchdog['advanced'], rec.watchdog['resumed_s']
         )
     return [items[name] for name in ITEMS]
+
+
+def json_ready(obj: Any) -> Any:
+    """``obj`` ready for ``json.dump`` (the ``--json`` report): non-finite floats ->
+    None, numpy scalars -> Python, dicts and sequences converted throughout."""
+    if isinstance(obj, dict):
+        return {str(k): json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    return obj

@@ -37,6 +37,30 @@ from .thresholds import (
     Item,
 )
 
+__all__ = [
+    'StepSegment',
+    'fit_acceleration',
+    'joint_state_problems',
+    'judge_fields',
+    'judge_latency',
+    'judge_rate_lockstep',
+    'judge_rate_realtime',
+    'judge_step_response',
+    'judge_topics',
+    'judge_watchdog_lockstep',
+    'judge_watchdog_realtime',
+    'label_delay',
+    'lockstep_step_problems',
+    'onset_delay',
+    'period_stats',
+    'rise_time',
+    'state_field_problems',
+    'step_metrics',
+    'summary_line',
+    'units_ratio',
+    'watchdog_limits',
+]
+
 # ================================ pure judging functions ===================================
 
 

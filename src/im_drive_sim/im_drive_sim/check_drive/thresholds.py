@@ -9,6 +9,38 @@ from dataclasses import dataclass, field
 
 from ..contract import STATE_FIELDS, TOPIC_TYPES
 
+__all__ = [
+    'ACCEL_MIN_COUNTS',
+    'CURRENT_BOUND_FACTOR',
+    'CURRENT_FIELDS',
+    'DEFAULT_TIMEOUT',
+    'DISCOVERY_SETTLE_S',
+    'EFFECT_DELAY_LOCKSTEP',
+    'EFFECT_DELAY_REALTIME',
+    'ITEMS',
+    'LABEL_SLOWER_MAX_REALTIME',
+    'LATENCY_MEDIAN_MAX',
+    'LATENCY_P99_MAX',
+    'LOCKSTEP_SILENCE_S',
+    'NS_PER_S',
+    'ONSET_FRACTION',
+    'RATE_MAX_LONG_FRACTION',
+    'RATE_TOLERANCE',
+    'RISE_TIME_MAX',
+    'STATE_FIELDS',
+    'STEADY_STATE_ERROR_MAX',
+    'TRANSPORT_SLACK_REALTIME',
+    'TYPES',
+    'UNITS_MIN_COUNTS',
+    'UNITS_RATIO_BAND',
+    'WATCHDOG_ACT_FRACTION',
+    'WATCHDOG_EARLIEST',
+    'ZERO_CURRENT_FRACTION',
+    'CheckRefused',
+    'F',
+    'Item',
+]
+
 #: Items, in the order they are printed.
 ITEMS: tuple[str, ...] = ('topics', 'fields', 'rate', 'latency', 'step_response', 'watchdog')
 

@@ -50,7 +50,7 @@ from .contract import (
     STATE_TOPIC,
     STATUS_TOPIC,
 )
-from .drive_io import CommandPath, publish_status, run_drive_node
+from .drive_io import CommandPath, publish_status, run_drive_node, watchdog_expired
 from .drive_sim_counters import Counters, counter_values
 from .drive_sim_loops import run_lockstep, run_realtime
 from .drive_sim_parameters import declare_initial_position, declare_parameters
@@ -139,7 +139,6 @@ class DriveSimNode(LenientDoubles, Node):
         self.held = HeldCommand()
         self.latch = CommandLatch(self.config.command_delay)
         self._cmd_watchdog = CommandWatchdog(self.command_timeout, self.config.Ts)
-        self._watchdog_tripped = False
         #: latched by :meth:`safe_stop`: zero current and no load from then on
         self.safe_stopped = False
         self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
@@ -197,7 +196,7 @@ class DriveSimNode(LenientDoubles, Node):
         problems = c.overruns + c.late + c.held if self.mode == 'realtime' else c.stale_ignored
         st.level = DiagnosticStatus.OK if problems == 0 else DiagnosticStatus.WARN
         st.message = 'ok' if problems == 0 else 'late commands / overruns counted'
-        if self._watchdog_tripped:
+        if self._cmd_watchdog.tripped:
             st.level = DiagnosticStatus.ERROR
             st.message = (
                 f'command watchdog: no command for more than '
@@ -402,18 +401,15 @@ class DriveSimNode(LenientDoubles, Node):
         """Real time: no command for ``command_timeout`` -> zero current and no load, held
         until a command comes (then it resumes). Before the first command the held
         command is already zero. When it expires: ``pacing.CommandWatchdog``."""
-        if not self._cmd_watchdog.expired():
-            return
-        if not self._watchdog_tripped:
-            self._watchdog_tripped = True
-            self.counters.watchdog_trips += 1
-            self.get_logger().warn(
-                f'watchdog: no command on {COMMAND_TOPIC} for {self.command_timeout:g} s at step '
-                f'{self.sim.step_index}: zero current and no load until the next command'
-            )
-        self.held.zero()
-        self._drop_latched()
-        self.counters.watchdog_steps += 1
+        if watchdog_expired(
+            self,
+            self._cmd_watchdog,
+            self.counters,
+            self.sim.step_index,
+            'zero current and no load until the next command',
+        ):
+            self.held.zero()
+            self._drop_latched()
 
     def take_commands(self) -> None:
         """Take all pending commands; the newest becomes the held command.
@@ -432,8 +428,7 @@ class DriveSimNode(LenientDoubles, Node):
                 return
             answers, isq, load = cmd
             self._cmd_watchdog.command()  # the controller is alive either way
-            if self._watchdog_tripped:
-                self._watchdog_tripped = False
+            if self._cmd_watchdog.resume():
                 self.get_logger().info(f'watchdog: commands resumed at step {k}')
             if 0 <= answers <= held.answers:
                 # A duplicate, or out of order (an older answer overtaken by a newer one):
@@ -518,14 +513,12 @@ def main(args: list[str] | None = None) -> int:
         ):
             if value is not None:
                 overrides.append(Parameter(name, value=value))
-        opts = rt.RtOptions.from_cli(cli)
-
-        def make() -> DriveSimNode:
-            node = DriveSimNode(parameter_overrides=overrides or None)
-            node.rt_options = opts
-            return node
-
-        return run_drive_node(argv, make, 'drive_sim')
+        return run_drive_node(
+            argv,
+            lambda: DriveSimNode(parameter_overrides=overrides or None),
+            'drive_sim',
+            rt.RtOptions.from_cli(cli),
+        )
 
     return run_cli('drive_sim', body)
 

@@ -56,7 +56,7 @@ from .contract import (
     STATE_TOPIC,
     STATUS_TOPIC,
 )
-from .drive_io import CommandPath, publish_status, run_drive_node
+from .drive_io import CommandPath, publish_status, run_drive_node, watchdog_expired
 from .pacing import CommandWatchdog, Pacer
 from .params import ConfigError, DriveConfig, load_config
 from .qos import RECORDED_QOS
@@ -256,13 +256,9 @@ class ExampleDrive(LenientDoubles, Node):
         )
 
         self.hw = self.make_hardware()
-        #: the hardware's declared command delay d (its ``command_delay``, default 1): the
-        #: state read right after the write answering state k shows the command written
-        #: d - 1 periods earlier; applied_step and the fresh/held counts say so
-        self.command_delay: int = hardware_command_delay(self.hw)
         #: the labels (applied_step, fresh) of the command written and not yet acting
-        #: (delay 2: the power stage's latch)
-        self.latch = CommandLatch(self.command_delay)
+        #: (delay 2: the power stage's latch); its delay is :attr:`command_delay`
+        self.latch = CommandLatch(hardware_command_delay(self.hw))
         #: applied_step of the command that acted over the period that just ended
         self.acting = -1
         self.counters = Counters()
@@ -273,7 +269,6 @@ class ExampleDrive(LenientDoubles, Node):
         self.applied = -1  # answers_step of the held command (-1: none, untagged, watchdog)
         self.fresh = False
         self.cmd_watchdog = CommandWatchdog(self.command_timeout, self.period_s)
-        self.tripped = False
         #: latched by :meth:`safe_stop`: from then on every period writes zero current and
         #: zero load torque, whatever command comes
         self.safe_stopped = False
@@ -302,6 +297,18 @@ class ExampleDrive(LenientDoubles, Node):
             f'{self.isq_max:g} A, command_timeout={self.command_timeout:g} s, '
             f'command_delay={self.command_delay}'
         )
+
+    @property
+    def command_delay(self) -> int:
+        """The hardware's declared command delay d (its ``command_delay``, default 1): the
+        state read right after the write answering state k shows the command written
+        d - 1 periods earlier; applied_step and the fresh/held counts say so (the latch
+        labels by it: setting it sets the latch's)."""
+        return self.latch.delay
+
+    @command_delay.setter
+    def command_delay(self, d: int) -> None:
+        self.latch.delay = d
 
     # -- hooks ----------------------------------------------------------------------------
     def make_hardware(self) -> Hardware:
@@ -360,18 +367,9 @@ class ExampleDrive(LenientDoubles, Node):
     def watchdog(self) -> None:
         """No command for ``command_timeout`` -> zero current and no load until the next
         command (when it expires: ``pacing.CommandWatchdog``)."""
-        if not self.cmd_watchdog.expired():
-            return
-        if not self.tripped:
-            self.tripped = True
-            self.counters.watchdog_trips += 1
-            self.get_logger().warn(
-                f'watchdog: no command on {COMMAND_TOPIC} for '
-                f'{self.command_timeout:g} s at step {self.k}: zero current'
-            )
-        self.isq_ref = self.load_ref = 0.0
-        self.applied = -1
-        self.counters.watchdog_steps += 1
+        if watchdog_expired(self, self.cmd_watchdog, self.counters, self.k, 'zero current'):
+            self.isq_ref = self.load_ref = 0.0
+            self.applied = -1
 
     # -- commands ---------------------------------------------------------------------------
     def take_commands(self) -> None:
@@ -398,8 +396,7 @@ class ExampleDrive(LenientDoubles, Node):
             self.cmd_watchdog.command()
             self.fresh = answers < 0 or answers == self.k
             self.counters.late += 0 <= answers < self.k
-            if self.tripped:
-                self.tripped = False
+            if self.cmd_watchdog.resume():
                 self.get_logger().info(f'watchdog: commands resumed at step {self.k}')
 
     def latest_state(self):
@@ -430,7 +427,7 @@ class ExampleDrive(LenientDoubles, Node):
         st.level, st.message = DiagnosticStatus.OK, 'ok'
         if c.overruns or c.late or c.stale_ignored:
             st.level, st.message = DiagnosticStatus.WARN, 'late commands / overruns counted'
-        if self.tripped:
+        if self.cmd_watchdog.tripped:
             st.level, st.message = DiagnosticStatus.ERROR, 'command watchdog: zero current'
         values = {
             'mode': 'realtime',
@@ -546,13 +543,7 @@ def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:
         )
         rt.add_arguments(parser, 'the drive loop')
         opts = rt.RtOptions.from_cli(parse_cli(parser, argv))
-
-        def make() -> ExampleDrive:
-            node = node_class()
-            node.rt_options = opts
-            return node
-
-        return run_drive_node(argv, make, 'example_drive')
+        return run_drive_node(argv, node_class, 'example_drive', opts)
 
     return run_cli('example_drive', body)
 

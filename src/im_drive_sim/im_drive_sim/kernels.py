@@ -235,6 +235,17 @@ def _clamp_isq(S: np.ndarray, P: np.ndarray, isq_ref: float) -> float:
 
 
 @njit(cache=True)
+def _one_period_later(S: np.ndarray, i: int, j: int, a: float, b: float) -> tuple[float, float]:
+    """A one-period pipeline of a pair held in ``S[i]``, ``S[j]``: keeps (a, b) for the
+    next period and returns the pair kept in the last one."""
+    was_a = S[i]
+    was_b = S[j]
+    S[i] = a
+    S[j] = b
+    return was_a, was_b
+
+
+@njit(cache=True)
 def _advance_full(
     S: np.ndarray, P: np.ndarray, noise: np.ndarray, r: int, ua: float, ub: float, tl_cmd: float
 ) -> None:
@@ -302,13 +313,8 @@ def step_full(
     """One Ts step of the full model with vector control (k -> k+1)."""
     r = _next_noise_row(S, noise)
     ua, ub = current_control(S, P, isq_ref)
-    if P[P_DELAY] != 0.0:
-        ua_now = S[S_UA_NEXT]
-        ub_now = S[S_UB_NEXT]
-        S[S_UA_NEXT] = ua
-        S[S_UB_NEXT] = ub
-        ua = ua_now
-        ub = ub_now
+    if P[P_DELAY] != 0.0:  # computation delay: this step applies the previous voltage
+        ua, ub = _one_period_later(S, S_UA_NEXT, S_UB_NEXT, ua, ub)
     S[S_UA] = ua
     S[S_UB] = ub
     _advance_full(S, P, noise, r, ua, ub, tl_cmd)
@@ -386,12 +392,7 @@ def step_model(
     this step runs the command given one step earlier and the new one waits for the next
     step (given at state k, it drives k+1 -> k+2). Zero before the first command."""
     if P[P_CMD_DELAY] == 2.0:
-        latched_isq = S[S_PEND_ISQ]
-        latched_tl = S[S_PEND_TL]
-        S[S_PEND_ISQ] = isq_ref
-        S[S_PEND_TL] = tl_cmd
-        isq_ref = latched_isq
-        tl_cmd = latched_tl
+        isq_ref, tl_cmd = _one_period_later(S, S_PEND_ISQ, S_PEND_TL, isq_ref, tl_cmd)
     if P[P_MODEL] == 0.0:
         step_full(S, P, noise, isq_ref, tl_cmd)
     else:

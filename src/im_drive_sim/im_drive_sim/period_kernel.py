@@ -8,9 +8,13 @@ itself -- the loop thread's per-period work was p50 ~40 us, p99 ~100 us on a 2-c
 machine, most of it interpreter time, and the thread needed the GIL every period. The
 same logic compiled, called once for many periods, takes a few microseconds a period
 and no GIL. The node stays the owner of the logic: :meth:`DriveSimNode.period_words`
-and :meth:`DriveSimNode.set_period_words` move its held command and counters to and from
-the arrays below, and the composed bench's bit-for-bit test (a real-time run against
-its lock-step replay) holds both paths to the same plant.
+and :meth:`DriveSimNode.set_period_words` move its held command, latch and counters to
+and from the arrays below (:func:`pack_words`, :func:`unpack_words`), and the composed
+bench's bit-for-bit test (a real-time run against its lock-step replay) holds both paths
+to the same plant. The rules here are compiled copies of the Python ones, on purpose
+(the loop runs them without the GIL): :func:`latch_labels` of
+``command_latch.CommandLatch.latch``, :func:`take_command` of
+``DriveSimNode.take_commands``, :func:`run_period` of ``DriveSimNode.period``.
 
 ``D`` (float64, :data:`N_WORDS`): the held command and its labels, the latch of a drive
 with command delay 2, the safe-stop latch and the node's constants. ``DC`` (int64,
@@ -40,6 +44,7 @@ __all__ = [
     'MSG_STATE',
     'N_WORDS',
     'WORDS',
+    'latch_labels',
     'pack_words',
     'run_missed',
     'run_period',
@@ -148,7 +153,7 @@ def unpack_words(D: np.ndarray, DC: np.ndarray, held: Any, latch: Any, counters:
 
 
 @njit(cache=True)
-def _latch(D: np.ndarray, applied: float, fresh: float) -> tuple[float, float]:
+def latch_labels(D: np.ndarray, applied: float, fresh: float) -> tuple[float, float]:
     """``command_latch.CommandLatch.latch``, compiled (a deliberate copy: the 5 kHz loop
     runs it without the GIL): the labels of the command acting over the coming period
     (delay 2: the one latched a period earlier; this one waits)."""
@@ -196,7 +201,7 @@ def run_missed(
     them with the held command, unpublished (``DriveSimNode.period``'s ``missed``)."""
     acting = D[D_APPLIED]
     for _ in range(n):
-        acting = _latch(D, D[D_APPLIED], 0.0)[0]
+        acting = latch_labels(D, D[D_APPLIED], 0.0)[0]
         K.step_into_kernel(S, P, noise, D[D_ISQ], D[D_LOAD], state)
     if n > 0:
         state[F_APPLIED] = acting
@@ -231,7 +236,7 @@ def run_period(
         D[D_LOAD] = 0.0
         D[D_APPLIED] = -1.0
         D[D_FRESH] = 0.0
-    acting, fresh = _latch(D, D[D_APPLIED], D[D_FRESH])
+    acting, fresh = latch_labels(D, D[D_APPLIED], D[D_FRESH])
     if fresh != 0.0:
         DC[C_FRESH] += 1
     else:

@@ -322,12 +322,10 @@ class DriveSim:
             raise ValueError(f'isq_ref and load_torque lengths differ: {isq.shape} vs {tl.shape}')
         if not (np.all(np.isfinite(isq)) and np.all(np.isfinite(tl))):
             raise ValueError('non-finite values in run inputs')
-        out = np.empty((isq.shape[0], L.N_RUN_FIELDS))
-        self._batch(
+        return self._run_rows(
             isq.shape[0],
-            lambda s0, c: K.run_batch(self.S, self.P, self._noise, isq, tl, out, s0, c, True),
+            lambda out, s0, c: K.run_batch(self.S, self.P, self._noise, isq, tl, out, s0, c, True),
         )
-        return {name: out[:, j] for j, name in enumerate(RUN_FIELDS)}
 
     def run_voltage(
         self, u_alpha: np.ndarray, u_beta: np.ndarray, load_torque: np.ndarray
@@ -342,11 +340,18 @@ class DriveSim:
         )
         if ub.shape != ua.shape:
             raise ValueError('u_alpha and u_beta lengths differ')
-        out = np.empty((ua.shape[0], L.N_RUN_FIELDS))
-        self._batch(
+        return self._run_rows(
             ua.shape[0],
-            lambda s0, c: K.run_voltage_batch(self.S, self.P, self._noise, ua, ub, tl, out, s0, c),
+            lambda out, s0, c: K.run_voltage_batch(
+                self.S, self.P, self._noise, ua, ub, tl, out, s0, c
+            ),
         )
+
+    def _run_rows(self, n: int, kernel: Any) -> dict[str, np.ndarray]:
+        """``n`` steps by ``kernel(out, start, count)`` (in noise-block chunks), one row of
+        ``out`` (``RUN_FIELDS``) a step; the columns by name."""
+        out = np.empty((n, L.N_RUN_FIELDS))
+        self._batch(n, lambda s0, c: kernel(out, s0, c))
         return {name: out[:, j] for j, name in enumerate(RUN_FIELDS)}
 
     # ------------------------------------------------------------------ state

@@ -8,12 +8,13 @@ option, no drive, another node already commanding the drive). What each item che
 why its thresholds are what they are: docs/check-drive.md.
 
 A tool of the drive contract, in modules by job: ``thresholds`` (items, limits, the
-result type), ``judges`` (pure functions, numpy only: the tests call them on synthetic
-arrays), ``probe`` (the participant on the graph: records every state, joint state and command
-it saw), ``procedure`` (what the check does to the drive, in order, into a
-``Recording``), ``evaluate`` (the pure evaluation of a recording, item by item) and
-``cli``. This package's namespace is the union of their public names (each module's
-``__all__``).
+result type), ``judges`` (the topics, fields and rate items) and ``response`` (the
+latency, step response and watchdog items) -- pure functions, numpy only: the tests call
+them on synthetic arrays --, ``probe`` (the participant on the graph: records every
+state, joint state and command it saw), ``procedure`` (what the check does to the
+drive, in order, into a ``Recording``), ``evaluate`` (the pure evaluation of a
+recording, item by item) and ``cli``. This package's namespace is the union of their
+public names (each module's ``__all__``).
 """
 
 from . import cli as _cli
@@ -21,12 +22,14 @@ from . import evaluate as _evaluate
 from . import judges as _judges
 from . import probe as _probe
 from . import procedure as _procedure
+from . import response as _response
 from . import thresholds as _thresholds
 from .cli import *  # noqa: F403
 from .evaluate import *  # noqa: F403
 from .judges import *  # noqa: F403
 from .probe import *  # noqa: F403
 from .procedure import *  # noqa: F403
+from .response import *  # noqa: F403
 from .thresholds import *  # noqa: F403
 
 __all__: list[str] = []
@@ -35,4 +38,5 @@ __all__ += _evaluate.__all__
 __all__ += _judges.__all__
 __all__ += _probe.__all__
 __all__ += _procedure.__all__
+__all__ += _response.__all__
 __all__ += _thresholds.__all__

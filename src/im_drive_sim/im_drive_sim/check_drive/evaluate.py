@@ -13,23 +13,25 @@ import numpy as np
 
 from ..contract import JOINT_STATE_TOPIC
 from .judges import (
-    StepSegment,
     joint_state_problems,
     judge_fields,
-    judge_latency,
     judge_rate_lockstep,
     judge_rate_realtime,
-    judge_step_response,
     judge_topics,
+    lockstep_step_problems,
+    period_stats,
+    state_field_problems,
+    units_ratio,
+)
+from .response import (
+    StepSegment,
+    judge_latency,
+    judge_step_response,
     judge_watchdog_lockstep,
     judge_watchdog_realtime,
     label_delay,
-    lockstep_step_problems,
     onset_delay,
-    period_stats,
-    state_field_problems,
     step_metrics,
-    units_ratio,
 )
 from .thresholds import CURRENT_BOUND_FACTOR, ITEMS, STATE_FIELDS, TYPES, F, Item
 

@@ -16,8 +16,8 @@ import numpy as np
 
 from ..contract import COMMAND_TOPIC, JOINT_STATE_TOPIC, STATE_TOPIC, STATUS_TOPIC
 from .evaluate import Recording, evaluate
-from .judges import watchdog_limits
 from .probe import DriveLost, Probe
+from .response import watchdog_limits
 from .thresholds import (
     DEFAULT_TIMEOUT,
     DISCOVERY_SETTLE_S,

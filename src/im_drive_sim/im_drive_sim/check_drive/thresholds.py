@@ -5,6 +5,7 @@ Pure: no ROS, no numba. The drive's field layout and topic types come from the c
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from ..contract import STATE_FIELDS, TOPIC_TYPES
@@ -39,6 +40,7 @@ __all__ = [
     'CheckRefused',
     'F',
     'Item',
+    'finite_or_none',
 ]
 
 #: Items, in the order they are printed.
@@ -115,6 +117,12 @@ NS_PER_S = 1_000_000_000
 
 class CheckRefused(Exception):
     """The check cannot run (bad option, no drive, another commander): exit code 2."""
+
+
+def finite_or_none(x: float | None) -> float | None:
+    """A figure for an :class:`Item`'s ``values``: None unless a finite number (JSON has no
+    inf or nan)."""
+    return float(x) if x is not None and math.isfinite(x) else None
 
 
 @dataclass

@@ -5,6 +5,10 @@ trip unchanged."""
 
 from __future__ import annotations
 
+import ast
+import sys
+from pathlib import Path
+
 import numpy as np
 
 from im_drive_sim import period_kernel as W
@@ -101,3 +105,31 @@ def test_watchdog_trips_once_and_resumes_once() -> None:
     assert not wd.trip()  # said once
     assert wd.resume() and not wd.tripped
     assert not wd.resume()
+
+
+def _imports(module: object) -> set[str]:
+    """Top-level names of what a module's source imports (relative ones as 'im_drive_sim.x')."""
+    tree = ast.parse(Path(module.__file__).read_text())
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and not node.level:
+            names.add(str(node.module))
+        elif isinstance(node, ast.ImportFrom):  # relative: the package's own modules
+            names |= {f'im_drive_sim.{node.module or a.name}' for a in node.names}
+    return names
+
+
+def test_the_shared_pure_pieces_import_neither_rclpy_nor_numba() -> None:
+    """The latch, the counters and the layout are pure; the QoS module needs rclpy.qos only
+    (the controller and the tuner import it without the simulator node or numba)."""
+    from im_drive_sim import command_latch, drive_sim_counters, model_layout, qos
+
+    for m in (command_latch, drive_sim_counters, model_layout):
+        foreign = {n for n in _imports(m) if n.split('.')[0] not in sys.stdlib_module_names}
+        assert foreign <= {'im_drive_sim.contract'}, (m.__name__, foreign)
+    assert _imports(qos) - {'__future__'} == {
+        'rclpy.qos',
+        'im_drive_sim.contract',
+    }

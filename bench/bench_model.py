@@ -21,11 +21,13 @@ import numpy as np
 
 try:
     from im_drive_sim import kernels as K
+    from im_drive_sim import model_layout as L
     from im_drive_sim.params import load_config
     from im_drive_sim.sim import DriveSim
 except ImportError:  # running from a source checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / 'im_drive_sim'))
     from im_drive_sim import kernels as K
+    from im_drive_sim import model_layout as L
     from im_drive_sim.params import load_config
     from im_drive_sim.sim import DriveSim
 
@@ -42,15 +44,15 @@ def bench_model(model: str, steps: int = 100_000, repeats: int = 7) -> dict[str,
     """Median/min/max ns per step of ``run_batch`` for ``model`` ('full' | 'reduced')."""
     sim = DriveSim(load_config(overrides={'model': model}))
     isq, tl = _inputs(steps)
-    dummy = np.empty((1, K.N_RUN_FIELDS))
-    noise = np.zeros((steps + 1, K.NOISE_COLS))  # noise-free: one block covers the batch
+    dummy = np.empty((1, L.N_RUN_FIELDS))
+    noise = np.zeros((steps + 1, L.NOISE_COLS))  # noise-free: one block covers the batch
     # Warm-up (compilation or cache load, caches, branch predictors).
     sim.reset()
     K.run_batch(sim.S, sim.P, noise, isq, tl, dummy, 0, min(steps, 10_000), False)
     per_step = []
     for _ in range(repeats):
         sim.reset()
-        sim.S[K.S_NPOS] = 0.0
+        sim.S[L.S_NPOS] = 0.0
         t0 = time.perf_counter_ns()
         K.run_batch(sim.S, sim.P, noise, isq, tl, dummy, 0, steps, False)
         per_step.append((time.perf_counter_ns() - t0) / steps)

@@ -382,7 +382,7 @@ def fake_drive(ros_context, **params):
     from im_controller.controller_node import ControllerNode
     from im_drive_sim.cdr import Float64ArrayWire
     from im_drive_sim.contract import COMMAND_TOPIC, STATE_TOPIC
-    from im_drive_sim.drive_sim_node import LOCKSTEP_QOS
+    from im_drive_sim.qos import LOCKSTEP_QOS
     from im_drive_sim.sim import STATE_FIELDS
 
     ctl = ControllerNode(

@@ -49,7 +49,7 @@ from im_drive_sim.cdr import Float64ArrayWire
 from im_drive_sim.cli import Parser, input_file, parse_cli, run_cli
 from im_drive_sim.client import DriveClient
 from im_drive_sim.contract import MODES
-from im_drive_sim.drive_sim_node import RECORDED_QOS
+from im_drive_sim.qos import RECORDED_QOS
 from im_drive_sim.runtime import (
     LenientDoubles,
     parameter_hygiene,

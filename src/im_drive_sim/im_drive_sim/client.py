@@ -17,12 +17,16 @@ from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float64MultiArray
 
 from .cdr import Float64ArrayWire, parse_float64_array
-from .contract import COMMAND_FIELDS, COMMAND_TOPIC, LEGACY_STATE_FIELDS, STATE_TOPIC
-from .drive_sim_node import LOCKSTEP_QOS, RECORDED_QOS
+from .contract import (
+    COMMAND_FIELDS,
+    COMMAND_TOPIC,
+    LEGACY_STATE_FIELDS,
+    NS_PER_S,
+    STATE_FIELDS,
+    STATE_TOPIC,
+)
+from .qos import LOCKSTEP_QOS, RECORDED_QOS
 from .runtime import publish_lossless
-from .sim import STATE_FIELDS
-
-NS_PER_S = 1_000_000_000
 
 
 class DriveClient:

@@ -23,13 +23,10 @@ import argparse
 import math
 import sys
 import time
-from dataclasses import dataclass
 
 import numpy as np
-import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.duration import Duration
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
@@ -39,6 +36,7 @@ from std_msgs.msg import Float64MultiArray
 from . import contract, period_kernel, rt
 from .cdr import ClockWire, Float64ArrayWire, JointStateWire
 from .cli import Parser, input_file, int_in, parse_cli, run_cli
+from .command_latch import CommandLatch, HeldCommand
 from .contract import (
     CMD_ISQ,
     CMD_LOAD,
@@ -48,50 +46,21 @@ from .contract import (
     JOINT_STATE_TOPIC,
     MODES,
     NS_PER_S,
+    STATE_FIELDS,
     STATE_TOPIC,
     STATUS_TOPIC,
 )
-from .pacing import CommandSource, CommandWatchdog, Pacer
+from .drive_io import CommandPath, publish_status, run_drive_node, watchdog_expired
+from .drive_sim_counters import Counters, counter_values
+from .drive_sim_loops import run_lockstep, run_realtime
+from .drive_sim_parameters import declare_initial_position, declare_parameters
+from .pacing import CommandWatchdog
 from .params import ConfigError, load_config
-from .runtime import (
-    LenientDoubles,
-    param_descriptor,
-    parameter_hygiene,
-    publish_lossless,
-    qos_profile,
-    run_stepped_node,
-)
-from .sim import STATE_FIELDS, DriveSim, start_position
+from .qos import RECORDED_QOS
+from .runtime import LenientDoubles, parameter_hygiene, publish_lossless
+from .sim import DriveSim
 
 F_APPLIED = contract.STATE_INDEX['applied_step']
-
-# The contract (names, layouts, QoS) lives in contract.py; re-exported here for callers
-# that import it from the node module.
-LOCKSTEP_QOS = qos_profile(contract.LOCKSTEP)
-RECORDED_QOS = qos_profile(contract.RECORDED)
-
-
-@dataclass
-class Counters:
-    """What the loop counts; published on ``drive/status`` and logged at shutdown."""
-
-    steps: int = 0  #: model steps taken since start
-    commands: int = 0  #: commands received
-    fresh: int = 0  #: real time: steps driven by a command answering the latest state
-    held: int = 0  #: real time: steps that held the previous command
-    late: int = 0  #: commands answering an older state than the latest one
-    #: commands ignored: lock-step, answering another step; real time, a duplicate or
-    #: out of order (answering the same or an older state than the held command)
-    stale_ignored: int = 0
-    overruns: int = 0  #: real time: periods that started later than one period
-    #: real time, hardware-like: whole periods those late starts skipped, run by the model
-    #: with the held command (counted held too)
-    missed: int = 0
-    republished: int = 0  #: lock-step: state re-sent while waiting for a command
-    max_lateness_us: float = 0.0  #: real time: worst start-of-period lateness
-    backpressure: int = 0  #: publish retries while a reliable reader (recorder) was full
-    watchdog_trips: int = 0  #: real time: times commands stopped for > command_timeout
-    watchdog_steps: int = 0  #: real time: steps run at zero current by the watchdog
 
 
 class DriveSimNode(LenientDoubles, Node):
@@ -110,7 +79,7 @@ class DriveSimNode(LenientDoubles, Node):
         warn_unknown: bool = True,
     ) -> None:
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
-        p = self._declare_parameters()
+        p = declare_parameters(self)
         self.mode: str = p['mode']
         try:
             overrides: dict = {'model': p['model']} if p['model'] else {}
@@ -119,16 +88,7 @@ class DriveSimNode(LenientDoubles, Node):
             self.config = load_config(p['config_file'] or None, overrides=overrides)
         except ConfigError as exc:
             raise ConfigError(str(exc)) from exc
-        # declared once the encoder is known: its default is half a count (sim.start_position)
-        p['initial_position'] = self.declare_parameter(
-            'initial_position',
-            start_position(self.config),
-            param_descriptor(
-                'Rotor position at start [rad]; default half an encoder count (inside a '
-                'count: no figure hinges on a round-off at a count edge).',
-                float_range=(-1e6, 1e6),
-            ),
-        ).value
+        p['initial_position'] = declare_initial_position(self, self.config)
         self.sim = DriveSim(self.config, seed=p['seed'] if p['seed'] >= 0 else None)
         self.sim.reset(theta=p['initial_position'], omega=0.0, fluxed=True)
         self.ts_ns: int = round(self.config.Ts * NS_PER_S)
@@ -162,12 +122,10 @@ class DriveSimNode(LenientDoubles, Node):
         self.joint_pub = self.create_publisher(JointState, JOINT_STATE_TOPIC, RECORDED_QOS)
         self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, RECORDED_QOS)
         # The 5 kHz command path: its own hidden node, never touched by the executor.
-        self.io_node = Node(f'_{node_name}_io', context=context, namespace=self.get_namespace())
-        self.cmd_sub = self.io_node.create_subscription(
-            Float64MultiArray, COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS
-        )
-        self.commands = CommandSource(self.cmd_sub, len(COMMAND_FIELDS))
-        self._waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
+        self.command_path = CommandPath(self, node_name)
+        self.io_node = self.command_path.io_node
+        self.cmd_sub = self.command_path.subscription
+        self.commands = self.command_path.source
 
         # Preallocated messages and buffers: nothing is built per step.
         # The state is published pre-serialised: the model writes straight into the CDR
@@ -176,15 +134,11 @@ class DriveSimNode(LenientDoubles, Node):
         self._state = self._state_wire.values
         self._clock_wire = ClockWire()  # pre-serialised: patched in place, no conversion
         self._joint_wire = JointStateWire('motor')
-        self._isq_ref = 0.0
-        self._load = 0.0
-        self._cmd_fresh = False
-        self._held_answers = -1  # answers_step of the newest tagged command (real time)
-        self._applied = -1  # answers_step of the held command (-1: none, untagged, watchdog)
-        #: command delay 2: (applied_step, fresh) of the command latched for the next period
-        self._pend: tuple[int, bool] = (-1, False)
+        #: the held command (zero before the first one) and the latch of a drive with
+        #: command delay 2 (the command that acts over the next period)
+        self.held = HeldCommand()
+        self.latch = CommandLatch(self.config.command_delay)
         self._cmd_watchdog = CommandWatchdog(self.command_timeout, self.config.Ts)
-        self._watchdog_tripped = False
         #: latched by :meth:`safe_stop`: zero current and no load from then on
         self.safe_stopped = False
         self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
@@ -204,169 +158,6 @@ class DriveSimNode(LenientDoubles, Node):
             f'Ts={self.config.Ts * 1e6:.0f} us command_delay={self.config.command_delay} '
             f'config={p["config_file"] or "(packaged default)"} seed={p["seed"]}'
         )
-
-    # -- parameters ------------------------------------------------------------------
-    def _declare_parameters(self) -> dict:
-        specs = [
-            (
-                'mode',
-                'lockstep',
-                param_descriptor(
-                    "'lockstep': one 200 us step per command received; 'realtime': paced at "
-                    '5 kHz by the wall clock, holding the last command.',
-                    additional='one of: lockstep, realtime',
-                ),
-            ),
-            (
-                'config_file',
-                '',
-                param_descriptor(
-                    'Drive parameter file (YAML, see share/im_drive_sim/config/paper_750w.yaml); '
-                    "'' = the packaged 750 W default."
-                ),
-            ),
-            (
-                'model',
-                '',
-                param_descriptor(
-                    "'full' (voltage-fed IM + vector control) or 'reduced' (ideal field "
-                    "orientation); '' = as in the parameter file.",
-                    additional="one of: '', full, reduced",
-                ),
-            ),
-            (
-                'command_delay',
-                0,
-                param_descriptor(
-                    'Command delay d [periods]: 1, the command answering state k acts over '
-                    'k -> k+1; 2, a power stage that latches it at the next period start '
-                    '(k+1 -> k+2); 0 = as in the parameter file (its command_delay, default 1).',
-                    int_range=(0, 2),
-                ),
-            ),
-            (
-                'seed',
-                -1,
-                param_descriptor(
-                    "Seed of the disturbance sources; -1 = the parameter file's seed.",
-                    int_range=(-1, 2**31 - 1),
-                ),
-            ),
-            (
-                'clock_decimation',
-                25,
-                param_descriptor(
-                    'Publish /clock every N steps (N = 25: every 5 ms of sim time).',
-                    int_range=(1, 100000),
-                ),
-            ),
-            (
-                'joint_state_decimation',
-                10,
-                param_descriptor(
-                    'Publish drive/joint_states every N steps.', int_range=(1, 100000)
-                ),
-            ),
-            (
-                'max_steps',
-                0,
-                param_descriptor(
-                    'Stop after this many steps (0 = run until shut down).', int_range=(0, 2**62)
-                ),
-            ),
-            (
-                'service_period_steps',
-                250,
-                param_descriptor(
-                    'Serve parameter requests every N steps (and whenever idle).',
-                    int_range=(1, 1000000),
-                ),
-            ),
-            (
-                'republish_period',
-                0.1,
-                param_descriptor(
-                    'Lock-step: re-send the current state after this long without a command '
-                    '[s], so a controller that starts later still gets it.',
-                    float_range=(0.001, 60.0),
-                ),
-            ),
-            (
-                'realtime_wait_for_controller',
-                True,
-                param_descriptor(
-                    'Real time: start the clock only once a controller publishes on '
-                    'drive/command (false: start at once and hold zero current).'
-                ),
-            ),
-            (
-                'realtime_spin_margin',
-                150e-6,
-                param_descriptor(
-                    'Real time: busy-wait this long before each period start instead of '
-                    'sleeping, for low jitter [s].',
-                    float_range=(0.0, 200e-6),
-                ),
-            ),
-            (
-                'command_timeout',
-                0.05,
-                param_descriptor(
-                    'Real time: watchdog -- no command for this long [s] -> zero current and no '
-                    'load until the next command (the safe state of a drive whose controller '
-                    'stopped).',
-                    float_range=(0.0002, 10.0),
-                ),
-            ),
-            (
-                'hardware_like',
-                False,
-                param_descriptor(
-                    'Real time: run on the wall clock like a power stage, which cannot pause. '
-                    'A period that starts m >= 1 whole periods late follows m periods that '
-                    'went by with the held command: the model runs them (unpublished), they '
-                    'count as held and missed, and the step index advances by them. '
-                    'false: the model pauses while the loop is late (simulated time waits).'
-                ),
-            ),
-            (
-                'test_stall_step',
-                -1,
-                param_descriptor(
-                    'Test hook: stall the loop once, in the first period that publishes this '
-                    'step index or a later one (-1: never), for test_stall_duration.',
-                    int_range=(-1, 2**62),
-                ),
-            ),
-            (
-                'test_stall_duration',
-                0.02,
-                param_descriptor(
-                    'Test hook: how long the stall at test_stall_step lasts [s].',
-                    float_range=(0.0, 10.0),
-                ),
-            ),
-            (
-                'state_fields',
-                list(STATE_FIELDS),
-                param_descriptor('Layout of drive/state data (read-only): field names in order.'),
-            ),
-            (
-                'command_fields',
-                list(COMMAND_FIELDS),
-                param_descriptor('Layout of drive/command data (read-only): field names in order.'),
-            ),
-        ]
-        values = {}
-        for name, default, desc in specs:
-            values[name] = self.declare_parameter(name, default, desc).value
-        if values['mode'] not in MODES:
-            raise ConfigError(f"parameter 'mode' must be one of {MODES}, got {values['mode']!r}")
-        if values['model'] not in ('', 'full', 'reduced'):
-            raise ConfigError(
-                f"parameter 'model' must be '', 'full' or 'reduced', got {values['model']!r}"
-            )
-        return values
 
     # -- publishing --------------------------------------------------------------------
     def publish_state(self) -> None:
@@ -405,7 +196,7 @@ class DriveSimNode(LenientDoubles, Node):
         problems = c.overruns + c.late + c.held if self.mode == 'realtime' else c.stale_ignored
         st.level = DiagnosticStatus.OK if problems == 0 else DiagnosticStatus.WARN
         st.message = 'ok' if problems == 0 else 'late commands / overruns counted'
-        if self._watchdog_tripped:
+        if self._cmd_watchdog.tripped:
             st.level = DiagnosticStatus.ERROR
             st.message = (
                 f'command watchdog: no command for more than '
@@ -418,22 +209,11 @@ class DriveSimNode(LenientDoubles, Node):
             'step_index': str(self.sim.step_index),
             'sim_time_s': f'{sim_s:.6f}',
             'real_time_factor': f'{sim_s / wall_elapsed:.3f}' if wall_elapsed > 0 else 'nan',
-            **{k: (f'{v:.1f}' if isinstance(v, float) else str(v)) for k, v in vars(c).items()},
+            **counter_values(c),
         }
-        st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-        msg = DiagnosticArray(status=[st])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.counters.backpressure += publish_lossless(self.status_pub, msg, self.context)
+        self.counters.backpressure += publish_status(self, self.status_pub, st, values)
 
     # -- the command path ------------------------------------------------------------------
-    def _wait_command(self, timeout_ns: int) -> bool:
-        """Wait up to timeout_ns for the command subscription to be ready."""
-        ws = self._waitset
-        ws.clear_entities()  # rcl_wait nulls entries that were not ready: re-add every time
-        ws.add_subscription(self.cmd_sub.handle)
-        ws.wait(timeout_ns)
-        return ws.is_ready('subscription', 0)
-
     def _take_command(self):
         data = self.commands.next()  # the subscription, or the composed controller's
         if data is None:
@@ -454,26 +234,16 @@ class DriveSimNode(LenientDoubles, Node):
         self.counters.commands += 1
         return int(data[CMD_STEP]), isq, load
 
-    def _latch(self, applied: int, fresh: bool) -> tuple[int, bool]:
-        """The labels (applied_step, fresh) of the command that acts over the coming
-        period, given those of the command handed to the model now: the same with delay
-        1; with delay 2 the model runs the command latched one period earlier (see
-        ``kernels.step_model``), and this one waits."""
-        if self.config.command_delay == 2:
-            acting, self._pend = self._pend, (applied, fresh)
-            return acting
-        return applied, fresh
-
     def _drop_latched(self) -> None:
         """Zero current and no load at once (a safe stop, the watchdog): no latched command
         runs after it."""
         self.sim.clear_command()
-        self._pend = (-1, False)
+        self.latch.drop()
 
     def step_once(self, isq_ref: float, load_torque: float, applied: int) -> None:
         """Advance the model one period with this command and publish the new state;
         ``applied``: the ``answers_step`` of the command that acted over the period (-1:
-        none; ``_latch``), the new state's ``applied_step``."""
+        none; the latch's), the new state's ``applied_step``."""
         self.sim.step_into(isq_ref, load_torque, self._state)
         self._state[F_APPLIED] = applied
         self.counters.steps += 1
@@ -497,7 +267,7 @@ class DriveSimNode(LenientDoubles, Node):
         """
         cmd = self._take_command()  # in one process the answer is usually there already
         if cmd is None:
-            if not self._wait_command(timeout_ns):
+            if not self.command_path.wait(timeout_ns):
                 return False
             cmd = self._take_command()
         while cmd is not None:
@@ -506,87 +276,9 @@ class DriveSimNode(LenientDoubles, Node):
                 self.counters.stale_ignored += 1  # a duplicate answer to a re-sent state
                 cmd = self._take_command()
                 continue
-            self.step_once(isq, load, self._latch(answers, True)[0])
+            self.step_once(isq, load, self.latch.latch(answers, True)[0])
             return True
         return False
-
-    def _serve(self, executor, t_start: float, next_status: float) -> float:
-        """Between steps: serve pending parameter requests; publish the status once a second.
-
-        Returns the wall time of the next status publication.
-        """
-        executor.spin_once(timeout_sec=0.0)
-        now = time.perf_counter()
-        if now >= next_status:
-            self.publish_status(now - t_start)
-            return now + 1.0
-        return next_status
-
-    def run_lockstep(self, executor) -> None:
-        """One step per command answering the current state; see docs/interfaces.md."""
-        c = self.counters
-        self.start()
-        since_service = 0
-        t_wall0 = last_step = time.perf_counter()
-        next_status = t_wall0 + 1.0
-        while not self.stop_requested and rclpy.ok(context=self.context):
-            if self.max_steps and c.steps >= self.max_steps:
-                break
-            wait_s = max(0.0, last_step + self.republish_period - time.perf_counter())
-            if self.lockstep_poll(int(wait_s * NS_PER_S)):
-                last_step = time.perf_counter()
-            elif time.perf_counter() - last_step >= self.republish_period:
-                # Idle: serve parameters (and the status: an idle drive still reports),
-                # then re-send the state for a late-starting peer.
-                next_status = self._serve(executor, t_wall0, next_status)
-                self.publish_state()
-                c.republished += 1
-                last_step = time.perf_counter()
-                continue
-            else:
-                continue
-            since_service += 1
-            if since_service >= self.service_period_steps:
-                since_service = 0
-                next_status = self._serve(executor, t_wall0, next_status)
-        self.publish_status(time.perf_counter() - t_wall0)
-
-    def run_realtime(self, executor) -> None:
-        """Step every Ts by the wall clock, holding the last command when none is fresh.
-
-        Each period (:class:`~im_drive_sim.pacing.Pacer`): wait (sleeping in rcl_wait,
-        taking commands as they come, then busy-waiting the last ``realtime_spin_margin``)
-        until its start, then :meth:`period`. A period that starts more than one period
-        late counts as an overrun and the schedule is re-anchored (the simulation never
-        skips steps; sim time stays k * Ts).
-        """
-        c = self.counters
-        if self.realtime_wait_for_controller:
-            # A drive with no controller would only hold zero current: the clock starts
-            # when one is matched, so it never misses the first periods.
-            self.get_logger().info('real time: waiting for a controller on drive/command')
-            while (
-                not self.stop_requested
-                and rclpy.ok(context=self.context)
-                and self.cmd_sub.get_publisher_count() == 0
-            ):
-                executor.spin_once(timeout_sec=0.01)
-        self.start()
-        pacer = Pacer(self.config.Ts, self.spin_margin, wall_clock=self.wall_clock)
-        t_start = pacer.t0
-        next_status = t_start + 1.0
-        since_service = 0
-        while not self.stop_requested and rclpy.ok(context=self.context):
-            if self.max_steps and c.steps >= self.max_steps:
-                break
-            pacer.wait(self.wait_command, self.take_commands)
-            c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
-            self.period(pacer.missed)
-            since_service += 1
-            if since_service >= self.service_period_steps:
-                since_service = 0
-                next_status = self._serve(executor, t_start, next_status)
-        self.publish_status(time.perf_counter() - t_start)
 
     # -- one real-time period (the composed bench runs these; pacing.PeriodicDrive) -------
     def period(self, missed: int = 0) -> None:
@@ -599,12 +291,13 @@ class DriveSimNode(LenientDoubles, Node):
         them first with the command it held (unpublished: a late loop sampled nothing),
         counted held and missed."""
         c = self.counters
+        held = self.held
         if missed > 0 and self.wall_clock:
             state = self._state
-            acting = self._applied
+            acting = held.applied
             for _ in range(missed):
-                acting = self._latch(self._applied, False)[0]
-                self.sim.step_into(self._isq_ref, self._load, state)
+                acting = self.latch.latch(held.applied, False)[0]
+                self.sim.step_into(held.isq_ref, held.load, state)
             state[F_APPLIED] = acting
             c.steps += missed
             c.held += missed
@@ -612,16 +305,15 @@ class DriveSimNode(LenientDoubles, Node):
         self.take_commands()
         self._watchdog()
         if self.safe_stopped:  # the model runs on with zero current and no load
-            self._isq_ref = self._load = 0.0
-            self._applied = -1
-            self._cmd_fresh = False
-        acting, fresh = self._latch(self._applied, self._cmd_fresh)
+            held.zero()
+            held.fresh = False
+        acting, fresh = self.latch.latch(held.applied, held.fresh)
         if fresh:
             c.fresh += 1
         else:
             c.held += 1
-        self.step_once(self._isq_ref, self._load, acting)
-        self._cmd_fresh = False  # it answered the state before this step
+        self.step_once(held.isq_ref, held.load, acting)
+        held.fresh = False  # it answered the state before this step
         self.stall_due()
 
     # -- the same period compiled (period_kernel; a composed loop: bench.compiled_loop) --
@@ -629,16 +321,13 @@ class DriveSimNode(LenientDoubles, Node):
         """The held command, its latch and the counters as ``period_kernel``'s ``D`` and
         ``DC`` arrays, for a compiled loop to run periods with (then
         :meth:`set_period_words`)."""
-        pend_applied, pend_fresh = self._pend
-        words = {
-            'isq_ref': self._isq_ref,
-            'load': self._load,
-            'applied': self._applied,
-            'fresh': self._cmd_fresh,
-            'held_answers': self._held_answers,
-            'pend_applied': pend_applied,
-            'pend_fresh': pend_fresh,
-            'safe_stopped': self.safe_stopped,
+        return period_kernel.pack_words(
+            self.held, self.latch, self.safe_stopped, self._period_constants(), self.counters
+        )
+
+    def _period_constants(self) -> dict[str, float]:
+        """The node's constants among ``period_kernel.WORDS``."""
+        return {
             'command_delay': self.config.command_delay,
             'wall_clock': self.wall_clock,
             'clock_decimation': self.clock_decimation,
@@ -648,25 +337,11 @@ class DriveSimNode(LenientDoubles, Node):
             'i_omega': self._i_omega,
             'i_torque': self._i_torque,
         }
-        D = np.array([float(words[n]) for n in period_kernel.WORDS])
-        c = self.counters
-        DC = np.array([getattr(c, n) for n in period_kernel.COUNTERS], np.int64)
-        return D, DC
 
     def set_period_words(self, D: np.ndarray, DC: np.ndarray, commands: bool) -> None:
         """Take back what a compiled loop ran (:meth:`period_words`); ``commands``: it
         took one (the watchdog is fed)."""
-        W = period_kernel
-        self._isq_ref = float(D[W.D_ISQ])
-        self._load = float(D[W.D_LOAD])
-        self._applied = int(D[W.D_APPLIED])
-        self._cmd_fresh = bool(D[W.D_FRESH])
-        self._held_answers = int(D[W.D_HELD])
-        self._pend = (int(D[W.D_PEND_APPLIED]), bool(D[W.D_PEND_FRESH]))
-        self.safe_stopped = bool(D[W.D_STOPPED])
-        c = self.counters
-        for i, n in enumerate(W.COUNTERS):
-            setattr(c, n, int(DC[i]))
+        self.safe_stopped = period_kernel.unpack_words(D, DC, self.held, self.latch, self.counters)
         if commands:
             self._cmd_watchdog.command()
 
@@ -701,7 +376,7 @@ class DriveSimNode(LenientDoubles, Node):
 
     def wait_command(self, timeout_s: float) -> bool:
         """Sleep up to ``timeout_s`` [s] in rcl_wait; True when a command is pending."""
-        return self._wait_command(int(timeout_s * NS_PER_S))
+        return self.command_path.wait(int(timeout_s * NS_PER_S))
 
     def warm_up(self) -> None:
         """Compile the model's kernels now, not in the first real-time period."""
@@ -715,8 +390,7 @@ class DriveSimNode(LenientDoubles, Node):
         """Zero current and no load from the next period on, whatever command comes (a
         latch: the stop of a real-time run; ``pacing.PeriodicDrive``)."""
         self.safe_stopped = True
-        self._isq_ref = self._load = 0.0
-        self._applied = -1
+        self.held.zero()
         self._drop_latched()
 
     def close_hardware(self) -> None:
@@ -727,54 +401,49 @@ class DriveSimNode(LenientDoubles, Node):
         """Real time: no command for ``command_timeout`` -> zero current and no load, held
         until a command comes (then it resumes). Before the first command the held
         command is already zero. When it expires: ``pacing.CommandWatchdog``."""
-        if not self._cmd_watchdog.expired():
-            return
-        if not self._watchdog_tripped:
-            self._watchdog_tripped = True
-            self.counters.watchdog_trips += 1
-            self.get_logger().warn(
-                f'watchdog: no command on {COMMAND_TOPIC} for {self.command_timeout:g} s at step '
-                f'{self.sim.step_index}: zero current and no load until the next command'
-            )
-        self._isq_ref = 0.0
-        self._load = 0.0
-        self._applied = -1
-        self._drop_latched()
-        self.counters.watchdog_steps += 1
+        if watchdog_expired(
+            self,
+            self._cmd_watchdog,
+            self.counters,
+            self.sim.step_index,
+            'zero current and no load until the next command',
+        ):
+            self.held.zero()
+            self._drop_latched()
 
     def take_commands(self) -> None:
         """Take all pending commands; the newest becomes the held command.
 
-        ``_cmd_fresh`` tells whether the held command answers the latest published state
+        ``held.fresh`` tells whether the held command answers the latest published state
         (or is untagged, -1) and came since the last step; a command answering an older
         state counts as late (it is still the newest value, so it is held). A command
         answering the same or an older state than the held one (a duplicate, or out of
         order) is ignored and counted as ``stale_ignored``.
         """
         k = self.sim.step_index
+        held = self.held
         while True:
             cmd = self._take_command()
             if cmd is None:
                 return
             answers, isq, load = cmd
             self._cmd_watchdog.command()  # the controller is alive either way
-            if self._watchdog_tripped:
-                self._watchdog_tripped = False
+            if self._cmd_watchdog.resume():
                 self.get_logger().info(f'watchdog: commands resumed at step {k}')
-            if 0 <= answers <= self._held_answers:
+            if 0 <= answers <= held.answers:
                 # A duplicate, or out of order (an older answer overtaken by a newer one):
                 # holding it would step back in time.
                 self.counters.stale_ignored += 1
                 continue
-            self._isq_ref, self._load = isq, load
-            self._applied = answers if answers >= 0 else -1
+            held.isq_ref, held.load = isq, load
+            held.applied = answers if answers >= 0 else -1
             if answers >= 0:
-                self._held_answers = answers
+                held.answers = answers
             if 0 <= answers < k:
                 self.counters.late += 1
-                self._cmd_fresh = False
+                held.fresh = False
             else:
-                self._cmd_fresh = True
+                held.fresh = True
 
     def run(self, executor) -> None:
         # the first log call of a node costs 33-70 ms: never inside the real-time loop
@@ -784,18 +453,16 @@ class DriveSimNode(LenientDoubles, Node):
         log = self.get_logger()
         self.rt_report = rt.apply_and_say(self.rt_options, log.info, log.warn)
         if self.mode == 'lockstep':
-            self.run_lockstep(executor)
+            run_lockstep(self, executor)
         else:
-            self.run_realtime(executor)
+            run_realtime(self, executor)
 
     def log_summary(self) -> None:
         c = self.counters
         self.get_logger().info(
             f'stopped at step {self.sim.step_index} '
             f'(sim time {self.sim.step_index * self.config.Ts:.4f} s): '
-            + ', '.join(
-                f'{k}={v:.1f}' if isinstance(v, float) else f'{k}={v}' for k, v in vars(c).items()
-            )
+            + ', '.join(f'{k}={v}' for k, v in counter_values(c).items())
         )
 
     def flush(self, timeout: float = 1.0) -> None:
@@ -846,19 +513,11 @@ def main(args: list[str] | None = None) -> int:
         ):
             if value is not None:
                 overrides.append(Parameter(name, value=value))
-        opts = rt.RtOptions.from_cli(cli)
-
-        def make() -> DriveSimNode:
-            node = DriveSimNode(parameter_overrides=overrides or None)
-            node.rt_options = opts
-            return node
-
-        return run_stepped_node(
+        return run_drive_node(
             argv,
-            make,
-            (ConfigError,),
+            lambda: DriveSimNode(parameter_overrides=overrides or None),
             'drive_sim',
-            on_exit=lambda node: node.log_summary(),
+            rt.RtOptions.from_cli(cli),
         )
 
     return run_cli('drive_sim', body)

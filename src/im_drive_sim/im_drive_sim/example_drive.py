@@ -34,9 +34,8 @@ import sys
 from dataclasses import dataclass, fields
 
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.duration import Duration
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -44,6 +43,7 @@ from std_msgs.msg import Float64MultiArray
 from . import contract, rt
 from .cdr import Float64ArrayWire, JointStateWire
 from .cli import Parser, check_ros_args, parse_cli, run_cli
+from .command_latch import CommandLatch
 from .contract import (
     CMD_ISQ,
     CMD_LOAD,
@@ -51,24 +51,16 @@ from .contract import (
     COMMAND_FIELDS,
     COMMAND_TOPIC,
     JOINT_STATE_TOPIC,
+    NS_PER_S,
+    STATE_FIELDS,
     STATE_TOPIC,
     STATUS_TOPIC,
 )
-from .pacing import CommandSource, CommandWatchdog, Pacer
+from .drive_io import CommandPath, publish_status, run_drive_node, watchdog_expired
+from .pacing import CommandWatchdog, Pacer
 from .params import ConfigError, DriveConfig, load_config
-from .runtime import (
-    LenientDoubles,
-    param_descriptor,
-    parameter_hygiene,
-    publish_lossless,
-    qos_profile,
-    run_stepped_node,
-)
-from .sim import STATE_FIELDS
-
-NS_PER_S = 1_000_000_000
-LOCKSTEP_QOS = qos_profile(contract.LOCKSTEP)
-RECORDED_QOS = qos_profile(contract.RECORDED)
+from .qos import RECORDED_QOS
+from .runtime import LenientDoubles, param_descriptor, parameter_hygiene, publish_lossless
 
 
 @dataclass
@@ -264,12 +256,9 @@ class ExampleDrive(LenientDoubles, Node):
         )
 
         self.hw = self.make_hardware()
-        #: the hardware's declared command delay d (its ``command_delay``, default 1): the
-        #: state read right after the write answering state k shows the command written
-        #: d - 1 periods earlier; applied_step and the fresh/held counts say so
-        self.command_delay: int = hardware_command_delay(self.hw)
-        #: (applied_step, fresh) of the commands written and not yet acting (delay 2: one)
-        self._pend: tuple[int, bool] = (-1, False)
+        #: the labels (applied_step, fresh) of the command written and not yet acting
+        #: (delay 2: the power stage's latch); its delay is :attr:`command_delay`
+        self.latch = CommandLatch(hardware_command_delay(self.hw))
         #: applied_step of the command that acted over the period that just ended
         self.acting = -1
         self.counters = Counters()
@@ -280,7 +269,6 @@ class ExampleDrive(LenientDoubles, Node):
         self.applied = -1  # answers_step of the held command (-1: none, untagged, watchdog)
         self.fresh = False
         self.cmd_watchdog = CommandWatchdog(self.command_timeout, self.period_s)
-        self.tripped = False
         #: latched by :meth:`safe_stop`: from then on every period writes zero current and
         #: zero load torque, whatever command comes
         self.safe_stopped = False
@@ -297,14 +285,10 @@ class ExampleDrive(LenientDoubles, Node):
         self.joint_pub = self.make_joint_publisher()
         self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, RECORDED_QOS)
         # The 5 kHz command path lives on a hidden node that no executor ever spins.
-        self.io_node = Node(
-            f'_{node_name}_io', context=self.context, namespace=self.get_namespace()
-        )
-        self.cmd_sub = self.io_node.create_subscription(
-            Float64MultiArray, COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS
-        )
-        self.commands = CommandSource(self.cmd_sub, len(COMMAND_FIELDS))
-        self.waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
+        self.command_path = CommandPath(self, node_name)
+        self.io_node = self.command_path.io_node
+        self.cmd_sub = self.command_path.subscription
+        self.commands = self.command_path.source
         self.wire = Float64ArrayWire(len(STATE_FIELDS))  # preallocated: nothing built per step
         self.wire.values[13] = self.command_delay  # declared once, in every state
         self.joint = JointStateWire('motor')  # pre-serialised: patched in place
@@ -313,6 +297,18 @@ class ExampleDrive(LenientDoubles, Node):
             f'{self.isq_max:g} A, command_timeout={self.command_timeout:g} s, '
             f'command_delay={self.command_delay}'
         )
+
+    @property
+    def command_delay(self) -> int:
+        """The hardware's declared command delay d (its ``command_delay``, default 1): the
+        state read right after the write answering state k shows the command written
+        d - 1 periods earlier; applied_step and the fresh/held counts say so (the latch
+        labels by it: setting it sets the latch's)."""
+        return self.latch.delay
+
+    @command_delay.setter
+    def command_delay(self, d: int) -> None:
+        self.latch.delay = d
 
     # -- hooks ----------------------------------------------------------------------------
     def make_hardware(self) -> Hardware:
@@ -371,18 +367,9 @@ class ExampleDrive(LenientDoubles, Node):
     def watchdog(self) -> None:
         """No command for ``command_timeout`` -> zero current and no load until the next
         command (when it expires: ``pacing.CommandWatchdog``)."""
-        if not self.cmd_watchdog.expired():
-            return
-        if not self.tripped:
-            self.tripped = True
-            self.counters.watchdog_trips += 1
-            self.get_logger().warn(
-                f'watchdog: no command on {COMMAND_TOPIC} for '
-                f'{self.command_timeout:g} s at step {self.k}: zero current'
-            )
-        self.isq_ref = self.load_ref = 0.0
-        self.applied = -1
-        self.counters.watchdog_steps += 1
+        if watchdog_expired(self, self.cmd_watchdog, self.counters, self.k, 'zero current'):
+            self.isq_ref = self.load_ref = 0.0
+            self.applied = -1
 
     # -- commands ---------------------------------------------------------------------------
     def take_commands(self) -> None:
@@ -409,8 +396,7 @@ class ExampleDrive(LenientDoubles, Node):
             self.cmd_watchdog.command()
             self.fresh = answers < 0 or answers == self.k
             self.counters.late += 0 <= answers < self.k
-            if self.tripped:
-                self.tripped = False
+            if self.cmd_watchdog.resume():
                 self.get_logger().info(f'watchdog: commands resumed at step {self.k}')
 
     def latest_state(self):
@@ -419,11 +405,7 @@ class ExampleDrive(LenientDoubles, Node):
 
     def wait_command(self, timeout_s: float) -> bool:
         """Sleep up to ``timeout_s`` [s]; True when a command is pending."""
-        ws = self.waitset
-        ws.clear_entities()  # rcl_wait nulls entries that were not ready: re-add every time
-        ws.add_subscription(self.cmd_sub.handle)
-        ws.wait(int(timeout_s * NS_PER_S))
-        return ws.is_ready('subscription', 0)
+        return self.command_path.wait(int(timeout_s * NS_PER_S))
 
     # -- publishing ------------------------------------------------------------------------
     def publish_state(self) -> None:
@@ -445,7 +427,7 @@ class ExampleDrive(LenientDoubles, Node):
         st.level, st.message = DiagnosticStatus.OK, 'ok'
         if c.overruns or c.late or c.stale_ignored:
             st.level, st.message = DiagnosticStatus.WARN, 'late commands / overruns counted'
-        if self.tripped:
+        if self.cmd_watchdog.tripped:
             st.level, st.message = DiagnosticStatus.ERROR, 'command watchdog: zero current'
         values = {
             'mode': 'realtime',
@@ -453,10 +435,7 @@ class ExampleDrive(LenientDoubles, Node):
             'step_index': str(self.k),
             **{f.name: f'{getattr(c, f.name):g}' for f in fields(c)},
         }
-        st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-        msg = DiagnosticArray(status=[st])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.counters.backpressure += publish_lossless(self.status_pub, msg, self.context)
+        self.counters.backpressure += publish_status(self, self.status_pub, st, values)
 
     # -- the loop ------------------------------------------------------------------------------
     def start(self) -> None:
@@ -481,7 +460,7 @@ class ExampleDrive(LenientDoubles, Node):
             if callable(elapse):  # a simulated stand-in plant must be told time passed
                 elapse(missed)
             for _ in range(missed):
-                self.acting = self._latch(self.applied, False)[0]
+                self.acting = self.latch.latch(self.applied, False)[0]
             self.k += missed
             c.steps += missed  # periods of the drive's timeline: fresh + held = steps
             c.held += missed
@@ -490,7 +469,7 @@ class ExampleDrive(LenientDoubles, Node):
         self.watchdog()
         if self.safe_stopped:
             self.applied, self.fresh = -1, False  # zero was applied, not a command
-        self.acting, fresh = self._latch(self.applied, self.fresh)
+        self.acting, fresh = self.latch.latch(self.applied, self.fresh)
         c.fresh += fresh
         c.held += not fresh
         self.fresh = False
@@ -499,15 +478,6 @@ class ExampleDrive(LenientDoubles, Node):
         self.fill_state(self.hw.read())
         self.publish_state()
         c.steps += 1
-
-    def _latch(self, applied: int, fresh: bool) -> tuple[int, bool]:
-        """The labels (applied_step, fresh) of the command acting over the coming period,
-        given those of the command written now: the same with delay 1; with delay 2 the
-        one written a period earlier (this one waits in the power stage's latch)."""
-        if self.command_delay == 2:
-            acting, self._pend = self._pend, (applied, fresh)
-            return acting
-        return applied, fresh
 
     def run(self, executor) -> None:
         """Period n starts at t0 + n period_s (pacing.Pacer): take commands, apply,
@@ -561,13 +531,7 @@ def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:
             # a drive built on this one (its own main parses its own options): only the
             # ROS arguments are checked here
             check_ros_args(argv)
-            return run_stepped_node(
-                argv,
-                node_class,
-                (ConfigError,),
-                'example_drive',
-                on_exit=lambda node: node.log_summary(),
-            )
+            return run_drive_node(argv, node_class, 'example_drive')
         parser = Parser(
             prog='ros2 run im_drive_sim example_drive',
             description='A minimal real-time drive node (the template for a '
@@ -579,19 +543,7 @@ def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:
         )
         rt.add_arguments(parser, 'the drive loop')
         opts = rt.RtOptions.from_cli(parse_cli(parser, argv))
-
-        def make() -> ExampleDrive:
-            node = node_class()
-            node.rt_options = opts
-            return node
-
-        return run_stepped_node(
-            argv,
-            make,
-            (ConfigError,),
-            'example_drive',
-            on_exit=lambda node: node.log_summary(),
-        )
+        return run_drive_node(argv, node_class, 'example_drive', opts)
 
     return run_cli('example_drive', body)
 

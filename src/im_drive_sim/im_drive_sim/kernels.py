@@ -1,4 +1,6 @@
-"""Numba kernels of the IM drive simulator: plant, vector control, measurement.
+"""Numba kernels of the IM drive simulator: measurement, flux estimator, vector control,
+the model's step and the published output. The plant itself (machine, shaft, RK4) is in
+:mod:`.plant`; the arrays' layout (``P_*``, ``S_*``, ``F_*``) in :mod:`.model_layout`.
 
 Free functions over two float64 arrays (documented in docs/drive-model.md):
 
@@ -25,291 +27,114 @@ import math
 import numpy as np
 from numba import njit
 
-from . import contract
-
-TWO_PI = 2.0 * math.pi
-
-# ---------------------------------------------------------------- parameter indices
-P_TS = 0  # step [s]
-P_TS_NS = 1  # step [ns] (integer valued)
-P_NP = 2  # pole pairs
-P_LM = 3  # magnetising inductance [H]
-P_LS = 4  # stator inductance [H]
-P_LR = 5  # rotor inductance [H]
-P_KR = 6  # Lm/Lr
-P_RSIG = 7  # R_sigma = Rs + kr^2 Rr [ohm]
-P_INV_SIGLS = 8  # 1/(sigma Ls) [1/H]
-P_KR_TAUR = 9  # kr/tau_r [1/s]
-P_INV_TAUR = 10  # 1/tau_r [1/s]
-P_KTE = 11  # 1.5 p kr (torque = KTE (psi_ra i_sb - psi_rb i_sa))
-P_INV_J = 12  # 1/J
-P_B = 13  # viscous friction
-P_TC = 14  # Coulomb torque (0 = off)
-P_INV_WC = 15  # 1/omega_c (Coulomb smoothing)
-P_UMAX = 16  # voltage limit Udc/sqrt(3)
-P_ISD_REF = 17  # rated flux current
-P_ISQ_MAX = 18
-P_KP = 19  # sigma Ls wc
-P_KI_TS = 20  # R_sigma wc Ts
-P_SIGLS = 21  # sigma Ls (controller nominal)
-P_PSI_MIN = 22  # flux floor
-P_EST_A = 23  # exp(-Ts/tau_r) (estimator)
-P_ENC_K = 24  # counts/(2 pi)
-P_ENC_RES = 25  # 2 pi/counts
-P_ENC_RES_TS = 26  # (2 pi/counts)/Ts
-P_SPD_A = 27  # exp(-Ts/tau_speed) (0 when disabled)
-P_DELAY = 28  # computation delay steps (0 or 1)
-P_MODEL = 29  # 0 full, 1 reduced
-P_KT = 30  # reduced: torque constant at rated flux
-P_PSI_RATED = 31  # Lm isd_rated
-P_ISQ_A = 32  # reduced: exp(-Ts/tau_i)
-P_ISQ_AH = 33  # reduced: exp(-Ts/(2 tau_i))
-P_ISQ_INT = 34  # reduced: tau_i (1 - exp(-Ts/tau_i)) (exact integral weight)
-P_SLIP_K = 35  # reduced: Lm/(tau_r psi_rated) (slip per A of isq)
-P_LOAD_A = 36  # exp(-Ts/tau_load) (0 = ideal)
-P_RIP_AMP = 37
-P_RIP_HARM = 38
-P_RIP_PHASE = 39
-P_LN_A = 40  # exp(-Ts/tau_loadnoise)
-P_RS = 41
-P_RR = 42
-P_J = 43
-P_ISQ_A0 = 44  # reduced: isq(0+) weight, 1 for tau_i > 0, 0 for an ideal (tau_i = 0) loop
-P_CMD_DELAY = 45  # command delay d (1 or 2): the command given at state k acts over k+d-1 -> k+d
-N_PARAMS = 46
-
-# -------------------------------------------------------------------- state indices
-S_ISA = 0  # true stator current alpha [A]
-S_ISB = 1
-S_PSIA = 2  # true rotor flux alpha [Wb]
-S_PSIB = 3
-S_OMEGA = 4  # true mechanical speed [rad/s]
-S_THETA = 5  # true mechanical angle [rad] (multi-turn)
-S_STEP = 6  # step index k (integer valued)
-S_COUNT = 7  # encoder count (integer valued, multi-turn)
-S_COUNT_PREV = 8
-S_THETA_MEAS = 9  # count * 2 pi/counts [rad]
-S_OMEGA_RAW = 10  # backward difference [rad/s]
-S_OMEGA_F = 11  # filtered speed (noise free)
-S_OMEGA_MEAS = 12  # filtered speed + noise (what the controller sees)
-S_ISD = 13  # sampled current in the estimated flux frame [A]
-S_ISQ = 14
-S_RHO = 15  # estimated flux angle at the sample [rad, electrical]
-S_SLIP_INT = 16  # integral of omega_sl [rad] (wrapped to +-pi)
-S_PSI_HAT = 17  # estimated rotor flux [Wb]
-S_OMEGA_SL = 18  # slip frequency [rad/s]
-S_INT_D = 19  # PI integrators [V]
-S_INT_Q = 20
-S_UA = 21  # voltage applied during the last step [V]
-S_UB = 22
-S_UA_NEXT = 23  # voltage computed, waiting (computation delay 1)
-S_UB_NEXT = 24
-S_VSAT = 25  # 1 if the voltage limit was active in the last step
-S_ISQ_REF = 26  # clamped isq* of the last step [A]
-S_TLOAD = 27  # total load torque applied during the last step [N m]
-S_TLOAD_F = 28  # lagged load command
-S_LOAD_NOISE = 29  # random-load state
-S_NPOS = 30  # noise row cursor
-S_RED_ISQ = 31  # reduced: true isq [A]
-S_RED_SLIP = 32  # reduced: true flux angle minus p theta [rad]
-S_PEND_ISQ = 33  # command delay 2: the command latched for the next period, isq* [A]
-S_PEND_TL = 34  # ... and its load torque [N m]
-N_STATE = 35
-
-STATE_FIELDS = contract.STATE_FIELDS  # the published layout (contract.py)
-EXTRA_FIELDS = ('encoder_count', 'u_alpha', 'u_beta', 'psi_r', 'voltage_saturated', 'isq_ref')
-RUN_FIELDS = STATE_FIELDS + EXTRA_FIELDS
-(
-    F_STEP,
-    F_TIME_NS,
-    F_THETA_MEAS,
-    F_OMEGA_MEAS,
-    F_TORQUE,
-    F_ISD,
-    F_ISQ,
-    F_I_ALPHA,
-    F_I_BETA,
-    F_LOAD,
-    F_THETA,
-    F_OMEGA,
+from .model_layout import (
     F_APPLIED,
     F_CMD_DELAY,
     F_COUNT,
+    F_I_ALPHA,
+    F_I_BETA,
+    F_ISD,
+    F_ISQ,
+    F_ISQ_REF,
+    F_LOAD,
+    F_OMEGA,
+    F_OMEGA_MEAS,
+    F_PSI_R,
+    F_STEP,
+    F_THETA,
+    F_THETA_MEAS,
+    F_TIME_NS,
+    F_TORQUE,
     F_U_ALPHA,
     F_U_BETA,
-    F_PSI_R,
     F_VSAT,
-    F_ISQ_REF,
-) = range(len(RUN_FIELDS))
-N_STATE_FIELDS = len(STATE_FIELDS)
-N_RUN_FIELDS = len(RUN_FIELDS)
+    N_RUN_FIELDS,
+    P_B,
+    P_CMD_DELAY,
+    P_DELAY,
+    P_ENC_K,
+    P_ENC_RES,
+    P_ENC_RES_TS,
+    P_EST_A,
+    P_INV_J,
+    P_INV_TAUR,
+    P_INV_WC,
+    P_ISD_REF,
+    P_ISQ_A,
+    P_ISQ_A0,
+    P_ISQ_AH,
+    P_ISQ_INT,
+    P_ISQ_MAX,
+    P_KI_TS,
+    P_KP,
+    P_KR,
+    P_KR_TAUR,
+    P_KT,
+    P_KTE,
+    P_LM,
+    P_LN_A,
+    P_LOAD_A,
+    P_LS,
+    P_MODEL,
+    P_NP,
+    P_PSI_MIN,
+    P_PSI_RATED,
+    P_RIP_AMP,
+    P_RIP_HARM,
+    P_RIP_PHASE,
+    P_RS,
+    P_RSIG,
+    P_SIGLS,
+    P_SLIP_K,
+    P_SPD_A,
+    P_TC,
+    P_TS,
+    P_TS_NS,
+    P_UMAX,
+    S_COUNT,
+    S_COUNT_PREV,
+    S_INT_D,
+    S_INT_Q,
+    S_ISA,
+    S_ISB,
+    S_ISD,
+    S_ISQ,
+    S_ISQ_REF,
+    S_LOAD_NOISE,
+    S_NPOS,
+    S_OMEGA,
+    S_OMEGA_F,
+    S_OMEGA_MEAS,
+    S_OMEGA_RAW,
+    S_OMEGA_SL,
+    S_PEND_ISQ,
+    S_PEND_TL,
+    S_PSI_HAT,
+    S_PSIA,
+    S_PSIB,
+    S_RED_ISQ,
+    S_RED_SLIP,
+    S_RHO,
+    S_SLIP_INT,
+    S_STEP,
+    S_THETA,
+    S_THETA_MEAS,
+    S_TLOAD,
+    S_TLOAD_F,
+    S_UA,
+    S_UA_NEXT,
+    S_UB,
+    S_UB_NEXT,
+    S_VSAT,
+)
+from .model_layout import N_STATE_FIELDS as N_STATE_FIELDS  # re-exported: see below
+from .model_layout import STATE_FIELDS as STATE_FIELDS
+from .plant import friction_torque, plant_rk4
 
-NOISE_COLS = 4  # i_alpha, i_beta, speed, random-load increment
+# STATE_FIELDS and N_STATE_FIELDS stand here too, beside ``write_out`` that fills them:
+# the fused offline bench (im_tuner.bench.offline) reads them with the kernels.
 
-
-# ------------------------------------------------------------------------- plant
-@njit(cache=True)
-def friction_torque(w: float, b: float, tc: float, iwc: float) -> float:
-    """Friction [N m] at speed w [rad/s]: b w + tc tanh(w iwc) (Coulomb term if tc != 0).
-
-    b = B, tc = Tc, iwc = 1/omega_c as scalars: callers load them from P once, outside
-    their RK4 stages (loads from P inside would be repeated after every store to S).
-    """
-    tf = b * w
-    if tc != 0.0:
-        tf += tc * math.tanh(w * iwc)
-    return tf
-
-
-@njit(cache=True)
-def plant_deriv(
-    isa: float,
-    isb: float,
-    pa: float,
-    pb: float,
-    w: float,
-    ua: float,
-    ub: float,
-    tl: float,
-    P: np.ndarray,
-):
-    """Right-hand side of the voltage-fed IM in the stationary frame (notes' equations).
-
-    sigma Ls di_s/dt = -R_sigma i_s + (kr/tau_r) psi_r - j kr omega_e psi_r + u_s
-    dpsi_r/dt = (Lm i_s - psi_r)/tau_r + j omega_e psi_r
-    J domega/dt = 1.5 p kr (psi_ra i_sb - psi_rb i_sa) - B omega - Tc tanh(omega/omega_c) - T_L
-    Returns (di_sa, di_sb, dpsi_ra, dpsi_rb, domega); dtheta/dt = omega.
-    """
-    kr = P[P_KR]
-    we = P[P_NP] * w
-    krt = P[P_KR_TAUR]
-    rsig = P[P_RSIG]
-    isl = P[P_INV_SIGLS]
-    itr = P[P_INV_TAUR]
-    lm = P[P_LM]
-    disa = (-rsig * isa + krt * pa + kr * we * pb + ua) * isl
-    disb = (-rsig * isb + krt * pb - kr * we * pa + ub) * isl
-    dpa = (lm * isa - pa) * itr - we * pb
-    dpb = (lm * isb - pb) * itr + we * pa
-    tf = friction_torque(w, P[P_B], P[P_TC], P[P_INV_WC])
-    dw = (P[P_KTE] * (pa * isb - pb * isa) - tf - tl) * P[P_INV_J]
-    return disa, disb, dpa, dpb, dw
-
-
-@njit(cache=True)
-def plant_rk4(S: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray) -> None:
-    """One classic RK4 step of length Ts on S[0:6] with u and T_L held (ZOH)."""
-    h = P[P_TS]
-    h2 = 0.5 * h
-    x0 = S[S_ISA]
-    x1 = S[S_ISB]
-    x2 = S[S_PSIA]
-    x3 = S[S_PSIB]
-    x4 = S[S_OMEGA]
-    a0, a1, a2, a3, a4 = plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P)
-    w2 = x4 + h2 * a4
-    b0, b1, b2, b3, b4 = plant_deriv(
-        x0 + h2 * a0, x1 + h2 * a1, x2 + h2 * a2, x3 + h2 * a3, w2, ua, ub, tl, P
-    )
-    w3 = x4 + h2 * b4
-    c0, c1, c2, c3, c4 = plant_deriv(
-        x0 + h2 * b0, x1 + h2 * b1, x2 + h2 * b2, x3 + h2 * b3, w3, ua, ub, tl, P
-    )
-    w4 = x4 + h * c4
-    d0, d1, d2, d3, d4 = plant_deriv(
-        x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3, w4, ua, ub, tl, P
-    )
-    h6 = h / 6.0
-    S[S_ISA] = x0 + h6 * (a0 + 2.0 * (b0 + c0) + d0)
-    S[S_ISB] = x1 + h6 * (a1 + 2.0 * (b1 + c1) + d1)
-    S[S_PSIA] = x2 + h6 * (a2 + 2.0 * (b2 + c2) + d2)
-    S[S_PSIB] = x3 + h6 * (a3 + 2.0 * (b3 + c3) + d3)
-    S[S_OMEGA] = x4 + h6 * (a4 + 2.0 * (b4 + c4) + d4)
-    S[S_THETA] = S[S_THETA] + h6 * (x4 + 2.0 * (w2 + w3) + w4)
-
-
-@njit(cache=True)
-def plant_powers(
-    isa: float,
-    isb: float,
-    pa: float,
-    pb: float,
-    w: float,
-    ua: float,
-    ub: float,
-    tl: float,
-    P: np.ndarray,
-):
-    """Power terms [W] for the energy balance (amplitude-invariant: factor 1.5).
-
-    Returns (p_in = 1.5 u.i_s, p_cu_s = 1.5 Rs |i_s|^2, p_cu_r = 1.5 Rr |i_r|^2,
-    p_friction = (B omega + Tc tanh(omega/omega_c)) omega, p_load = T_L omega)
-    with the rotor current i_r = (psi_r - Lm i_s)/Lr.
-    """
-    ira = (pa - P[P_LM] * isa) / P[P_LR]
-    irb = (pb - P[P_LM] * isb) / P[P_LR]
-    tf = friction_torque(w, P[P_B], P[P_TC], P[P_INV_WC])
-    return (
-        1.5 * (ua * isa + ub * isb),
-        1.5 * P[P_RS] * (isa * isa + isb * isb),
-        1.5 * P[P_RR] * (ira * ira + irb * irb),
-        tf * w,
-        tl * w,
-    )
-
-
-@njit(cache=True)
-def stored_energy(x: np.ndarray, P: np.ndarray):
-    """(magnetic, kinetic) energy [J] of plant state x = [i_sa, i_sb, psi_ra, psi_rb, omega, ...].
-
-    W_mag = 1.5 * 0.5 (Ls |i_s|^2 + 2 Lm i_s.i_r + Lr |i_r|^2),  W_kin = 0.5 J omega^2.
-    """
-    lm = P[P_LM]
-    ira = (x[2] - lm * x[0]) / P[P_LR]
-    irb = (x[3] - lm * x[1]) / P[P_LR]
-    wm = 0.75 * (
-        P[P_LS] * (x[0] * x[0] + x[1] * x[1])
-        + 2.0 * lm * (x[0] * ira + x[1] * irb)
-        + P[P_LR] * (ira * ira + irb * irb)
-    )
-    return wm, 0.5 * P[P_J] * x[4] * x[4]
-
-
-@njit(cache=True)
-def plant_rk4_energy(
-    x: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray, e: np.ndarray
-) -> None:
-    """RK4 step of the plant augmented with the energy integrals (diagnostics, tests).
-
-    x[0:6] is advanced exactly as ``plant_rk4`` does (the augmented components do not feed
-    back), e[0:5] += RK4 quadrature of ``plant_powers`` over the step.
-    """
-    h = P[P_TS]
-    h2 = 0.5 * h
-    x0, x1, x2, x3, x4 = x[0], x[1], x[2], x[3], x[4]
-    a0, a1, a2, a3, a4 = plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P)
-    pa_ = plant_powers(x0, x1, x2, x3, x4, ua, ub, tl, P)
-    y0, y1, y2, y3, y4 = x0 + h2 * a0, x1 + h2 * a1, x2 + h2 * a2, x3 + h2 * a3, x4 + h2 * a4
-    b0, b1, b2, b3, b4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P)
-    pb_ = plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
-    w2 = y4
-    y0, y1, y2, y3, y4 = x0 + h2 * b0, x1 + h2 * b1, x2 + h2 * b2, x3 + h2 * b3, x4 + h2 * b4
-    c0, c1, c2, c3, c4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P)
-    pc_ = plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
-    w3 = y4
-    y0, y1, y2, y3, y4 = x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3, x4 + h * c4
-    d0, d1, d2, d3, d4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P)
-    pd_ = plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
-    w4 = y4
-    h6 = h / 6.0
-    x[0] = x0 + h6 * (a0 + 2.0 * (b0 + c0) + d0)
-    x[1] = x1 + h6 * (a1 + 2.0 * (b1 + c1) + d1)
-    x[2] = x2 + h6 * (a2 + 2.0 * (b2 + c2) + d2)
-    x[3] = x3 + h6 * (a3 + 2.0 * (b3 + c3) + d3)
-    x[4] = x4 + h6 * (a4 + 2.0 * (b4 + c4) + d4)
-    x[5] = x[5] + h6 * (x4 + 2.0 * (w2 + w3) + w4)
-    for j in range(5):
-        e[j] += h6 * (pa_[j] + 2.0 * (pb_[j] + pc_[j]) + pd_[j])
+TWO_PI = 2.0 * math.pi
 
 
 # ------------------------------------------------------------------- measurement
@@ -398,6 +223,40 @@ def _next_noise_row(S: np.ndarray, noise: np.ndarray) -> int:
     return r
 
 
+@njit(cache=True)
+def _clamp_isq(S: np.ndarray, P: np.ndarray, isq_ref: float) -> float:
+    """isq* [A] clamped to +-isq_max, kept in S as the last step's reference."""
+    if isq_ref > P[P_ISQ_MAX]:
+        isq_ref = P[P_ISQ_MAX]
+    elif isq_ref < -P[P_ISQ_MAX]:
+        isq_ref = -P[P_ISQ_MAX]
+    S[S_ISQ_REF] = isq_ref
+    return isq_ref
+
+
+@njit(cache=True)
+def _one_period_later(S: np.ndarray, i: int, j: int, a: float, b: float) -> tuple[float, float]:
+    """A one-period pipeline of a pair held in ``S[i]``, ``S[j]``: keeps (a, b) for the
+    next period and returns the pair kept in the last one."""
+    was_a = S[i]
+    was_b = S[j]
+    S[i] = a
+    S[j] = b
+    return was_a, was_b
+
+
+@njit(cache=True)
+def _advance_full(
+    S: np.ndarray, P: np.ndarray, noise: np.ndarray, r: int, ua: float, ub: float, tl_cmd: float
+) -> None:
+    """The full model over one period with the voltage (ua, ub) [V] applied: the load of
+    the period, the plant's RK4 step, then the sample at the new time (noise row r)."""
+    tl = _load(S, P, tl_cmd, noise[r, 3])
+    plant_rk4(S, ua, ub, tl, P)
+    S[S_STEP] += 1.0
+    sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], True)
+
+
 # ---------------------------------------------------------------------- control
 @njit(cache=True)
 def current_control(S: np.ndarray, P: np.ndarray, isq_ref: float):
@@ -411,11 +270,7 @@ def current_control(S: np.ndarray, P: np.ndarray, isq_ref: float):
     its error pushes further into the limit).  The voltage is rotated by
     rho + omega_s Ts (0.5 + delay) (the mean flux angle while it is applied).
     """
-    if isq_ref > P[P_ISQ_MAX]:
-        isq_ref = P[P_ISQ_MAX]
-    elif isq_ref < -P[P_ISQ_MAX]:
-        isq_ref = -P[P_ISQ_MAX]
-    S[S_ISQ_REF] = isq_ref
+    isq_ref = _clamp_isq(S, P, isq_ref)
     isd = S[S_ISD]
     isq = S[S_ISQ]
     psi = S[S_PSI_HAT]
@@ -458,19 +313,11 @@ def step_full(
     """One Ts step of the full model with vector control (k -> k+1)."""
     r = _next_noise_row(S, noise)
     ua, ub = current_control(S, P, isq_ref)
-    if P[P_DELAY] != 0.0:
-        ua_now = S[S_UA_NEXT]
-        ub_now = S[S_UB_NEXT]
-        S[S_UA_NEXT] = ua
-        S[S_UB_NEXT] = ub
-        ua = ua_now
-        ub = ub_now
+    if P[P_DELAY] != 0.0:  # computation delay: this step applies the previous voltage
+        ua, ub = _one_period_later(S, S_UA_NEXT, S_UB_NEXT, ua, ub)
     S[S_UA] = ua
     S[S_UB] = ub
-    tl = _load(S, P, tl_cmd, noise[r, 3])
-    plant_rk4(S, ua, ub, tl, P)
-    S[S_STEP] += 1.0
-    sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], True)
+    _advance_full(S, P, noise, r, ua, ub, tl_cmd)
 
 
 @njit(cache=True)
@@ -484,10 +331,7 @@ def step_voltage_kernel(
     S[S_UA_NEXT] = ua
     S[S_UB_NEXT] = ub
     S[S_VSAT] = 0.0
-    tl = _load(S, P, tl_cmd, noise[r, 3])
-    plant_rk4(S, ua, ub, tl, P)
-    S[S_STEP] += 1.0
-    sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], True)
+    _advance_full(S, P, noise, r, ua, ub, tl_cmd)
 
 
 @njit(cache=True)
@@ -501,11 +345,7 @@ def step_reduced(
     evaluated exactly at the stage times 0, Ts/2, Ts.
     """
     r = _next_noise_row(S, noise)
-    if isq_ref > P[P_ISQ_MAX]:
-        isq_ref = P[P_ISQ_MAX]
-    elif isq_ref < -P[P_ISQ_MAX]:
-        isq_ref = -P[P_ISQ_MAX]
-    S[S_ISQ_REF] = isq_ref
+    isq_ref = _clamp_isq(S, P, isq_ref)
     tl = _load(S, P, tl_cmd, noise[r, 3])
     i0 = S[S_RED_ISQ]
     di = i0 - isq_ref
@@ -552,12 +392,7 @@ def step_model(
     this step runs the command given one step earlier and the new one waits for the next
     step (given at state k, it drives k+1 -> k+2). Zero before the first command."""
     if P[P_CMD_DELAY] == 2.0:
-        latched_isq = S[S_PEND_ISQ]
-        latched_tl = S[S_PEND_TL]
-        S[S_PEND_ISQ] = isq_ref
-        S[S_PEND_TL] = tl_cmd
-        isq_ref = latched_isq
-        tl_cmd = latched_tl
+        isq_ref, tl_cmd = _one_period_later(S, S_PEND_ISQ, S_PEND_TL, isq_ref, tl_cmd)
     if P[P_MODEL] == 0.0:
         step_full(S, P, noise, isq_ref, tl_cmd)
     else:

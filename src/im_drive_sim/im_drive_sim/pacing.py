@@ -176,6 +176,8 @@ class CommandWatchdog:
         self.max_periods = max(1, round(timeout_s / ts))
         self.since = -1  #: periods since the last command (-1: none yet)
         self.last_wall = 0.0  #: perf_counter of the last command
+        #: it expired and no command resumed the drive since (the drive holds zero current)
+        self.tripped = False
 
     def command(self) -> None:
         """A valid command came."""
@@ -190,6 +192,19 @@ class CommandWatchdog:
         return self.since >= 2 and (
             self.since > self.max_periods or time.perf_counter() - self.last_wall > self.timeout_s
         )
+
+    def trip(self) -> bool:
+        """The drive found it :meth:`expired` this period: True the first time since the
+        last :meth:`resume` (the drive counts the trip and says so once)."""
+        newly = not self.tripped
+        self.tripped = True
+        return newly
+
+    def resume(self) -> bool:
+        """A command resumes the drive: True when the watchdog had tripped (say so once)."""
+        was = self.tripped
+        self.tripped = False
+        return was
 
 
 class CommandSource:

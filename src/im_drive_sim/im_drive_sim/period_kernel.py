@@ -8,9 +8,13 @@ itself -- the loop thread's per-period work was p50 ~40 us, p99 ~100 us on a 2-c
 machine, most of it interpreter time, and the thread needed the GIL every period. The
 same logic compiled, called once for many periods, takes a few microseconds a period
 and no GIL. The node stays the owner of the logic: :meth:`DriveSimNode.period_words`
-and :meth:`DriveSimNode.set_period_words` move its held command and counters to and from
-the arrays below, and the composed bench's bit-for-bit test (a real-time run against
-its lock-step replay) holds both paths to the same plant.
+and :meth:`DriveSimNode.set_period_words` move its held command, latch and counters to
+and from the arrays below (:func:`pack_words`, :func:`unpack_words`), and the composed
+bench's bit-for-bit test (a real-time run against its lock-step replay) holds both paths
+to the same plant. The rules here are compiled copies of the Python ones, on purpose
+(the loop runs them without the GIL): :func:`latch_labels` of
+``command_latch.CommandLatch.latch``, :func:`take_command` of
+``DriveSimNode.take_commands``, :func:`run_period` of ``DriveSimNode.period``.
 
 ``D`` (float64, :data:`N_WORDS`): the held command and its labels, the latch of a drive
 with command delay 2, the safe-stop latch and the node's constants. ``DC`` (int64,
@@ -24,12 +28,14 @@ after each call (``CommandWatchdog.command``).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit
 
 from . import contract
 from . import kernels as K
+from . import model_layout as L
 
 __all__ = [
     'COUNTERS',
@@ -38,10 +44,13 @@ __all__ = [
     'MSG_STATE',
     'N_WORDS',
     'WORDS',
+    'latch_labels',
+    'pack_words',
     'run_missed',
     'run_period',
     'safe_stop',
     'take_command',
+    'unpack_words',
 ]
 
 #: the words of ``D``, in order
@@ -83,16 +92,20 @@ WORDS: tuple[str, ...] = (
 ) = range(len(WORDS))
 N_WORDS = len(WORDS)
 
-#: the counters of ``DC`` (the node's ``Counters`` of the same names), in order
-COUNTERS: tuple[str, ...] = (
-    'steps',
-    'commands',
-    'fresh',
-    'held',
-    'late',
-    'stale_ignored',
-    'missed',
+#: the status counters a period does not touch: the pacer's (overruns, max_lateness_us),
+#: the publishers' (backpressure), the watchdog's and lock-step's (republished)
+_NOT_IN_A_PERIOD = frozenset(
+    (
+        'overruns',
+        'max_lateness_us',
+        'backpressure',
+        'watchdog_trips',
+        'watchdog_steps',
+        'republished',
+    )
 )
+#: the counters of ``DC`` (the node's ``Counters`` of the same names), in order
+COUNTERS: tuple[str, ...] = tuple(n for n in contract.STATUS_COUNTERS if n not in _NOT_IN_A_PERIOD)
 C_STEPS, C_COMMANDS, C_FRESH, C_HELD, C_LATE, C_STALE, C_MISSED = range(len(COUNTERS))
 
 #: the messages a period made due (the bits of :func:`run_period`'s result)
@@ -102,9 +115,47 @@ F_APPLIED = contract.STATE_INDEX['applied_step']
 NS_PER_S = contract.NS_PER_S
 
 
+def pack_words(
+    held: Any, latch: Any, safe_stopped: bool, constants: dict[str, Any], counters: Any
+) -> tuple[np.ndarray, np.ndarray]:
+    """``D`` and ``DC`` of a drive's held command (``command_latch.HeldCommand``), its
+    latch (``command_latch.CommandLatch``), the safe-stop latch, its ``constants`` (the
+    other names of :data:`WORDS`) and its counters (:data:`COUNTERS` by name)."""
+    pend_applied, pend_fresh = latch.pending
+    words = {
+        'isq_ref': held.isq_ref,
+        'load': held.load,
+        'applied': held.applied,
+        'fresh': held.fresh,
+        'held_answers': held.answers,
+        'pend_applied': pend_applied,
+        'pend_fresh': pend_fresh,
+        'safe_stopped': safe_stopped,
+        **constants,
+    }
+    D = np.array([float(words[n]) for n in WORDS])
+    DC = np.array([getattr(counters, n) for n in COUNTERS], np.int64)
+    return D, DC
+
+
+def unpack_words(D: np.ndarray, DC: np.ndarray, held: Any, latch: Any, counters: Any) -> bool:
+    """Back from ``D`` and ``DC`` (:func:`pack_words`) into the held command, the latch and
+    the counters; returns the safe-stop latch."""
+    held.isq_ref = float(D[D_ISQ])
+    held.load = float(D[D_LOAD])
+    held.applied = int(D[D_APPLIED])
+    held.fresh = bool(D[D_FRESH])
+    held.answers = int(D[D_HELD])
+    latch.pending = (int(D[D_PEND_APPLIED]), bool(D[D_PEND_FRESH]))
+    for i, n in enumerate(COUNTERS):
+        setattr(counters, n, int(DC[i]))
+    return bool(D[D_STOPPED])
+
+
 @njit(cache=True)
-def _latch(D: np.ndarray, applied: float, fresh: float) -> tuple[float, float]:
-    """``DriveSimNode._latch``: the labels of the command acting over the coming period
+def latch_labels(D: np.ndarray, applied: float, fresh: float) -> tuple[float, float]:
+    """``command_latch.CommandLatch.latch``, compiled (a deliberate copy: the 5 kHz loop
+    runs it without the GIL): the labels of the command acting over the coming period
     (delay 2: the one latched a period earlier; this one waits)."""
     if D[D_DELAY] == 2.0:
         acting, was_fresh = D[D_PEND_APPLIED], D[D_PEND_FRESH]
@@ -150,7 +201,7 @@ def run_missed(
     them with the held command, unpublished (``DriveSimNode.period``'s ``missed``)."""
     acting = D[D_APPLIED]
     for _ in range(n):
-        acting = _latch(D, D[D_APPLIED], 0.0)[0]
+        acting = latch_labels(D, D[D_APPLIED], 0.0)[0]
         K.step_into_kernel(S, P, noise, D[D_ISQ], D[D_LOAD], state)
     if n > 0:
         state[F_APPLIED] = acting
@@ -185,7 +236,7 @@ def run_period(
         D[D_LOAD] = 0.0
         D[D_APPLIED] = -1.0
         D[D_FRESH] = 0.0
-    acting, fresh = _latch(D, D[D_APPLIED], D[D_FRESH])
+    acting, fresh = latch_labels(D, D[D_APPLIED], D[D_FRESH])
     if fresh != 0.0:
         DC[C_FRESH] += 1
     else:
@@ -226,5 +277,5 @@ def safe_stop(S: np.ndarray, D: np.ndarray) -> None:
     D[D_APPLIED] = -1.0
     D[D_PEND_APPLIED] = -1.0
     D[D_PEND_FRESH] = 0.0
-    S[K.S_PEND_ISQ] = 0.0
-    S[K.S_PEND_TL] = 0.0
+    S[L.S_PEND_ISQ] = 0.0
+    S[L.S_PEND_TL] = 0.0

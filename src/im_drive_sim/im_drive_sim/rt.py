@@ -35,6 +35,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .cli import int_in
+
 __all__ = ['RtOptions', 'add_arguments', 'apply', 'apply_and_say', 'report']
 
 MCL_CURRENT, MCL_FUTURE = 1, 2
@@ -75,12 +77,12 @@ class RtOptions:
         return cls(priority, ns.cpu_affinity, ns.lock_memory)
 
 
+_integer = int_in()  # any integer; the checks below say which
+
+
 def _cpu(text: str) -> int:
     """A CPU this process may run on (``os.sched_getaffinity``)."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'not an integer: {text!r}') from None
+    v = _integer(text)
     allowed = sorted(os.sched_getaffinity(0))
     if v not in allowed:
         raise argparse.ArgumentTypeError(
@@ -90,10 +92,8 @@ def _cpu(text: str) -> int:
 
 
 def _priority(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'not an integer: {text!r}') from None
+    """A SCHED_FIFO priority this system offers, or 0 (off)."""
+    v = _integer(text)
     lo, hi = os.sched_get_priority_min(os.SCHED_FIFO), os.sched_get_priority_max(os.SCHED_FIFO)
     if not (v == 0 or lo <= v <= hi):
         raise argparse.ArgumentTypeError(f'must be 0 (off) or {lo}-{hi} (SCHED_FIFO), got {v}')

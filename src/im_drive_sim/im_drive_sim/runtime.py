@@ -38,10 +38,7 @@ from rclpy.exceptions import (
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
-
-from .contract import QosSpec
 
 RCLError = _rclpy.RCLError
 
@@ -118,7 +115,9 @@ class LenientDoubles:
     """
 
     def _refuse_undeclared(self, parameter_list) -> None:
-        missing = [p.name for p in parameter_list if p.name not in self._parameters]
+        missing = [p.name for p in parameter_list if not self.has_parameter(p.name)]
+        # rclpy (7.1) has no public reader of the node's allow_undeclared_parameters: this
+        # mixin reads its own base class's attribute
         if missing and not self._allow_undeclared_parameters:
             raise ParameterNotDeclaredException(missing)
 
@@ -131,6 +130,8 @@ class LenientDoubles:
         return super().set_parameters(parameter_list)
 
     def declare_parameter(self, name, value=None, descriptor=None, ignore_override=False):
+        # rclpy (7.1) has no public API for the start-up overrides (-p, params files): the
+        # mixin rewrites its own base class's table before Node.declare_parameter reads it
         over = getattr(self, '_parameter_overrides', {})
         p = over.get(name)
         if (
@@ -175,8 +176,10 @@ def parameter_hygiene(
 
 def unknown_overrides(node) -> list[str]:
     """The ``-p``/params-file overrides that name no declared parameter of ``node``."""
-    declared = set(node._parameters)  # rclpy keeps no public list of declared names
-    return sorted(n for n in node._parameter_overrides if n not in declared)
+    # rclpy (7.1) has no public API for the start-up overrides (-p, params files): read
+    # from the Node's own table, the one place they are kept
+    overrides = node._parameter_overrides
+    return sorted(n for n in overrides if not node.has_parameter(n))
 
 
 def warn_unknown_overrides(node, names: list[str]) -> None:
@@ -256,16 +259,6 @@ def stop_child(proc: subprocess.Popen, grace: float = 5.0) -> int:
             proc.kill()
             proc.wait(timeout=grace)
     return proc.returncode
-
-
-def qos_profile(spec: QosSpec) -> QoSProfile:
-    """The rclpy ``QoSProfile`` of a contract ``QosSpec`` (contract.LOCKSTEP, RECORDED)."""
-    return QoSProfile(
-        history=HistoryPolicy[spec.history.upper()],
-        depth=spec.depth,
-        reliability=ReliabilityPolicy[spec.reliability.upper()],
-        durability=DurabilityPolicy[spec.durability.upper()],
-    )
 
 
 def param_descriptor(

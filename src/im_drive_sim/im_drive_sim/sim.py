@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from . import kernels as K
+from . import model_layout as L
 from .params import DriveConfig, load_config
 
 __all__ = [
@@ -32,9 +33,9 @@ __all__ = [
     'start_position',
 ]
 
-STATE_FIELDS: tuple[str, ...] = K.STATE_FIELDS
+STATE_FIELDS: tuple[str, ...] = L.STATE_FIELDS
 """Fields written by ``step_into``/``read_into``, in order (units in docs/drive-model.md)."""
-RUN_FIELDS: tuple[str, ...] = K.RUN_FIELDS
+RUN_FIELDS: tuple[str, ...] = L.RUN_FIELDS
 """Fields returned by ``run``: STATE_FIELDS + encoder_count, u_alpha, u_beta, psi_r,
 voltage_saturated, isq_ref."""
 
@@ -48,58 +49,58 @@ def _lag(Ts: float, tau: float) -> float:
 
 
 def make_param_array(cfg: DriveConfig) -> np.ndarray:
-    """Precompute the kernel constant vector ``P`` (indices ``kernels.P_*``) from a config."""
+    """Precompute the kernel constant vector ``P`` (indices ``model_layout.P_*``) from a config."""
     m, c, s, d = cfg.machine, cfg.control, cfg.sensors, cfg.disturbance
     Ts = cfg.Ts
-    P = np.zeros(K.N_PARAMS)
+    P = np.zeros(L.N_PARAMS)
     sigls = m.sigma * m.Ls
-    P[K.P_TS] = Ts
-    P[K.P_TS_NS] = float(cfg.Ts_ns)
-    P[K.P_NP] = float(m.pole_pairs)
-    P[K.P_LM] = m.Lm
-    P[K.P_LS] = m.Ls
-    P[K.P_LR] = m.Lr
-    P[K.P_KR] = m.kr
-    P[K.P_RSIG] = m.R_sigma
-    P[K.P_INV_SIGLS] = 1.0 / sigls
-    P[K.P_KR_TAUR] = m.kr / m.tau_r
-    P[K.P_INV_TAUR] = 1.0 / m.tau_r
-    P[K.P_KTE] = 1.5 * m.pole_pairs * m.kr
-    P[K.P_INV_J] = 1.0 / m.J
-    P[K.P_B] = m.B
-    P[K.P_TC] = m.coulomb_torque
-    P[K.P_INV_WC] = 1.0 / m.coulomb_speed
-    P[K.P_UMAX] = m.u_max
-    P[K.P_ISD_REF] = m.rated_flux_current
-    P[K.P_ISQ_MAX] = m.isq_max
-    P[K.P_KP] = sigls * c.current_bandwidth
-    P[K.P_KI_TS] = m.R_sigma * c.current_bandwidth * Ts
-    P[K.P_SIGLS] = sigls
-    P[K.P_PSI_MIN] = c.flux_floor
-    P[K.P_EST_A] = math.exp(-Ts / m.tau_r)
-    P[K.P_ENC_K] = s.encoder_counts / (2.0 * math.pi)
-    P[K.P_ENC_RES] = 2.0 * math.pi / s.encoder_counts
-    P[K.P_ENC_RES_TS] = (2.0 * math.pi / s.encoder_counts) / Ts
-    P[K.P_SPD_A] = _lag(Ts, s.speed_filter_tau)
-    P[K.P_DELAY] = float(c.computation_delay_steps)
-    P[K.P_MODEL] = 0.0 if cfg.model == 'full' else 1.0
-    P[K.P_KT] = m.Kt
-    P[K.P_PSI_RATED] = m.rated_flux
+    P[L.P_TS] = Ts
+    P[L.P_TS_NS] = float(cfg.Ts_ns)
+    P[L.P_NP] = float(m.pole_pairs)
+    P[L.P_LM] = m.Lm
+    P[L.P_LS] = m.Ls
+    P[L.P_LR] = m.Lr
+    P[L.P_KR] = m.kr
+    P[L.P_RSIG] = m.R_sigma
+    P[L.P_INV_SIGLS] = 1.0 / sigls
+    P[L.P_KR_TAUR] = m.kr / m.tau_r
+    P[L.P_INV_TAUR] = 1.0 / m.tau_r
+    P[L.P_KTE] = 1.5 * m.pole_pairs * m.kr
+    P[L.P_INV_J] = 1.0 / m.J
+    P[L.P_B] = m.B
+    P[L.P_TC] = m.coulomb_torque
+    P[L.P_INV_WC] = 1.0 / m.coulomb_speed
+    P[L.P_UMAX] = m.u_max
+    P[L.P_ISD_REF] = m.rated_flux_current
+    P[L.P_ISQ_MAX] = m.isq_max
+    P[L.P_KP] = sigls * c.current_bandwidth
+    P[L.P_KI_TS] = m.R_sigma * c.current_bandwidth * Ts
+    P[L.P_SIGLS] = sigls
+    P[L.P_PSI_MIN] = c.flux_floor
+    P[L.P_EST_A] = math.exp(-Ts / m.tau_r)
+    P[L.P_ENC_K] = s.encoder_counts / (2.0 * math.pi)
+    P[L.P_ENC_RES] = 2.0 * math.pi / s.encoder_counts
+    P[L.P_ENC_RES_TS] = (2.0 * math.pi / s.encoder_counts) / Ts
+    P[L.P_SPD_A] = _lag(Ts, s.speed_filter_tau)
+    P[L.P_DELAY] = float(c.computation_delay_steps)
+    P[L.P_MODEL] = 0.0 if cfg.model == 'full' else 1.0
+    P[L.P_KT] = m.Kt
+    P[L.P_PSI_RATED] = m.rated_flux
     tau_i = c.reduced_current_lag
-    P[K.P_ISQ_A] = _lag(Ts, tau_i)
-    P[K.P_ISQ_AH] = _lag(0.5 * Ts, tau_i)
-    P[K.P_ISQ_INT] = tau_i * (1.0 - P[K.P_ISQ_A])
-    P[K.P_ISQ_A0] = 1.0 if tau_i > 0.0 else 0.0
-    P[K.P_SLIP_K] = m.Lm / (m.tau_r * m.rated_flux)
-    P[K.P_LOAD_A] = _lag(Ts, d.load_lag_tau)
-    P[K.P_RIP_AMP] = d.ripple_amplitude
-    P[K.P_RIP_HARM] = d.ripple_harmonic
-    P[K.P_RIP_PHASE] = d.ripple_phase
-    P[K.P_LN_A] = _lag(Ts, d.load_noise_tau)
-    P[K.P_RS] = m.Rs
-    P[K.P_RR] = m.Rr
-    P[K.P_J] = m.J
-    P[K.P_CMD_DELAY] = float(cfg.command_delay)
+    P[L.P_ISQ_A] = _lag(Ts, tau_i)
+    P[L.P_ISQ_AH] = _lag(0.5 * Ts, tau_i)
+    P[L.P_ISQ_INT] = tau_i * (1.0 - P[L.P_ISQ_A])
+    P[L.P_ISQ_A0] = 1.0 if tau_i > 0.0 else 0.0
+    P[L.P_SLIP_K] = m.Lm / (m.tau_r * m.rated_flux)
+    P[L.P_LOAD_A] = _lag(Ts, d.load_lag_tau)
+    P[L.P_RIP_AMP] = d.ripple_amplitude
+    P[L.P_RIP_HARM] = d.ripple_harmonic
+    P[L.P_RIP_PHASE] = d.ripple_phase
+    P[L.P_LN_A] = _lag(Ts, d.load_noise_tau)
+    P[L.P_RS] = m.Rs
+    P[L.P_RR] = m.Rr
+    P[L.P_J] = m.J
+    P[L.P_CMD_DELAY] = float(cfg.command_delay)
     return P
 
 
@@ -111,6 +112,17 @@ def start_position(config: DriveConfig) -> float:
     figure hinges on a round-off; the encoder still reads 0.0 rad.
     """
     return math.pi / config.sensors.encoder_counts
+
+
+def _state_word(index: int, doc: str) -> Any:
+    """A read-only float property of :class:`DriveSim`: its state word ``S[index]``."""
+    return property(lambda self: float(self.S[index]), doc=doc)
+
+
+def _published(index: int, doc: str) -> Any:
+    """A read-only float property of :class:`DriveSim`: the published field ``index`` at
+    the current time (``kernels.write_out``)."""
+    return property(lambda self: float(self._read()[index]), doc=doc)
 
 
 class DriveSim:
@@ -135,10 +147,10 @@ class DriveSim:
             raise ValueError(f'seed must be an integer >= 0, got {seed!r}')
         self.seed: int = int(self.config.seed if seed is None else seed)
         self.P: np.ndarray = make_param_array(self.config)
-        self.S: np.ndarray = np.zeros(K.N_STATE)
-        self._noise: np.ndarray = np.zeros((NOISE_BLOCK, K.NOISE_COLS))
+        self.S: np.ndarray = np.zeros(L.N_STATE)
+        self._noise: np.ndarray = np.zeros((NOISE_BLOCK, L.NOISE_COLS))
         s, d = self.config.sensors, self.config.disturbance
-        ln_a = self.P[K.P_LN_A]
+        ln_a = self.P[L.P_LN_A]
         self._noise_scale = np.array(
             [
                 s.current_noise_std,
@@ -150,7 +162,7 @@ class DriveSim:
         self._noise_on: bool = bool(np.any(self._noise_scale > 0.0))
         self._rng: np.random.Generator | None = None
         self._left: int = NOISE_BLOCK
-        self._scratch = np.zeros(K.N_RUN_FIELDS)
+        self._scratch = np.zeros(L.N_RUN_FIELDS)
         self.reset()
 
     # ------------------------------------------------------------------ noise
@@ -160,7 +172,7 @@ class DriveSim:
             assert self._rng is not None
             self._rng.standard_normal(out=self._noise)
             self._noise *= self._noise_scale
-        self.S[K.S_NPOS] = 0.0
+        self.S[L.S_NPOS] = 0.0
         self._left = NOISE_BLOCK
 
     # ------------------------------------------------------------------ control
@@ -236,8 +248,8 @@ class DriveSim:
     def clear_command(self) -> None:
         """Drop the command latched for the next step (delay 2): it runs zero current
         and no load instead (a safe stop or a watchdog trip acts at once)."""
-        self.S[K.S_PEND_ISQ] = 0.0
-        self.S[K.S_PEND_TL] = 0.0
+        self.S[L.S_PEND_ISQ] = 0.0
+        self.S[L.S_PEND_TL] = 0.0
 
     def read_into(self, out: np.ndarray) -> None:
         """Write ``STATE_FIELDS`` for the current time (no stepping) into ``out``."""
@@ -310,12 +322,10 @@ class DriveSim:
             raise ValueError(f'isq_ref and load_torque lengths differ: {isq.shape} vs {tl.shape}')
         if not (np.all(np.isfinite(isq)) and np.all(np.isfinite(tl))):
             raise ValueError('non-finite values in run inputs')
-        out = np.empty((isq.shape[0], K.N_RUN_FIELDS))
-        self._batch(
+        return self._run_rows(
             isq.shape[0],
-            lambda s0, c: K.run_batch(self.S, self.P, self._noise, isq, tl, out, s0, c, True),
+            lambda out, s0, c: K.run_batch(self.S, self.P, self._noise, isq, tl, out, s0, c, True),
         )
-        return {name: out[:, j] for j, name in enumerate(RUN_FIELDS)}
 
     def run_voltage(
         self, u_alpha: np.ndarray, u_beta: np.ndarray, load_torque: np.ndarray
@@ -330,16 +340,23 @@ class DriveSim:
         )
         if ub.shape != ua.shape:
             raise ValueError('u_alpha and u_beta lengths differ')
-        out = np.empty((ua.shape[0], K.N_RUN_FIELDS))
-        self._batch(
+        return self._run_rows(
             ua.shape[0],
-            lambda s0, c: K.run_voltage_batch(self.S, self.P, self._noise, ua, ub, tl, out, s0, c),
+            lambda out, s0, c: K.run_voltage_batch(
+                self.S, self.P, self._noise, ua, ub, tl, out, s0, c
+            ),
         )
+
+    def _run_rows(self, n: int, kernel: Any) -> dict[str, np.ndarray]:
+        """``n`` steps by ``kernel(out, start, count)`` (in noise-block chunks), one row of
+        ``out`` (``RUN_FIELDS``) a step; the columns by name."""
+        out = np.empty((n, L.N_RUN_FIELDS))
+        self._batch(n, lambda s0, c: kernel(out, s0, c))
         return {name: out[:, j] for j, name in enumerate(RUN_FIELDS)}
 
     # ------------------------------------------------------------------ state
     def state_vector(self) -> np.ndarray:
-        """Copy of the complete internal state (indices ``kernels.S_*``; S[0:6] is the plant
+        """Copy of the complete internal state (indices ``model_layout.S_*``; S[0:6] is the plant
         state [i_sa A, i_sb A, psi_ra Wb, psi_rb Wb, omega rad/s, theta rad])."""
         return self.S.copy()
 
@@ -350,99 +367,49 @@ class DriveSim:
     @property
     def step_index(self) -> int:
         """Step k (the object describes time k*Ts)."""
-        return int(self.S[K.S_STEP])
+        return int(self.S[L.S_STEP])
 
     @property
     def time_ns(self) -> int:
         """Exact simulated time k*Ts [ns]."""
-        return int(self.S[K.S_STEP]) * self.config.Ts_ns
+        return int(self.S[L.S_STEP]) * self.config.Ts_ns
 
     @property
     def time(self) -> float:
         """Simulated time k*Ts [s]."""
         return self.time_ns * 1e-9
 
-    @property
-    def theta_meas(self) -> float:
-        """Encoder angle count*2pi/counts [rad, mechanical]."""
-        return float(self.S[K.S_THETA_MEAS])
-
-    @property
-    def omega_meas(self) -> float:
-        """Speed estimate (filtered backward difference + noise) [rad/s]."""
-        return float(self.S[K.S_OMEGA_MEAS])
+    theta_meas = _state_word(L.S_THETA_MEAS, 'Encoder angle count*2pi/counts [rad, mechanical].')
+    omega_meas = _state_word(
+        L.S_OMEGA_MEAS, 'Speed estimate (filtered backward difference + noise) [rad/s].'
+    )
 
     @property
     def encoder_count(self) -> int:
         """Multi-turn encoder count floor(theta * counts/(2 pi))."""
-        return int(self.S[K.S_COUNT])
+        return int(self.S[L.S_COUNT])
 
-    @property
-    def theta(self) -> float:
-        """True mechanical angle [rad]."""
-        return float(self.S[K.S_THETA])
-
-    @property
-    def omega(self) -> float:
-        """True mechanical speed [rad/s]."""
-        return float(self.S[K.S_OMEGA])
-
-    @property
-    def torque(self) -> float:
-        """Electromagnetic torque [N m]."""
-        return float(self._read()[K.F_TORQUE])
-
-    @property
-    def i_alpha(self) -> float:
-        """True stator current alpha [A, peak amplitude-invariant]."""
-        return float(self._read()[K.F_I_ALPHA])
-
-    @property
-    def i_beta(self) -> float:
-        """True stator current beta [A]."""
-        return float(self._read()[K.F_I_BETA])
-
-    @property
-    def isd(self) -> float:
-        """Sampled d current in the estimated flux frame (as the controller sees it) [A]."""
-        return float(self.S[K.S_ISD])
-
-    @property
-    def isq(self) -> float:
-        """Sampled q current in the estimated flux frame [A]."""
-        return float(self.S[K.S_ISQ])
-
-    @property
-    def psi_r(self) -> float:
-        """True rotor flux magnitude [Wb] (reduced: rated flux)."""
-        return float(self._read()[K.F_PSI_R])
-
-    @property
-    def psi_hat(self) -> float:
-        """Estimated rotor flux (current model) [Wb]."""
-        return float(self.S[K.S_PSI_HAT])
-
-    @property
-    def u_alpha(self) -> float:
-        """Stator voltage alpha applied during the last step [V] (0 in the reduced model)."""
-        return float(self.S[K.S_UA])
-
-    @property
-    def u_beta(self) -> float:
-        """Stator voltage beta applied during the last step [V]."""
-        return float(self.S[K.S_UB])
-
-    @property
-    def load_torque(self) -> float:
-        """Total load torque applied during the last step [N m] (lag + ripple + random)."""
-        return float(self.S[K.S_TLOAD])
-
-    @property
-    def isq_ref(self) -> float:
-        """Clamped isq* of the last step [A]."""
-        return float(self.S[K.S_ISQ_REF])
+    theta = _state_word(L.S_THETA, 'True mechanical angle [rad].')
+    omega = _state_word(L.S_OMEGA, 'True mechanical speed [rad/s].')
+    torque = _published(L.F_TORQUE, 'Electromagnetic torque [N m].')
+    i_alpha = _published(L.F_I_ALPHA, 'True stator current alpha [A, peak amplitude-invariant].')
+    i_beta = _published(L.F_I_BETA, 'True stator current beta [A].')
+    isd = _state_word(
+        L.S_ISD, 'Sampled d current in the estimated flux frame (as the controller sees it) [A].'
+    )
+    isq = _state_word(L.S_ISQ, 'Sampled q current in the estimated flux frame [A].')
+    psi_r = _published(L.F_PSI_R, 'True rotor flux magnitude [Wb] (reduced: rated flux).')
+    psi_hat = _state_word(L.S_PSI_HAT, 'Estimated rotor flux (current model) [Wb].')
+    u_alpha = _state_word(
+        L.S_UA, 'Stator voltage alpha applied during the last step [V] (0 in the reduced model).'
+    )
+    u_beta = _state_word(L.S_UB, 'Stator voltage beta applied during the last step [V].')
+    load_torque = _state_word(
+        L.S_TLOAD, 'Total load torque applied during the last step [N m] (lag + ripple + random).'
+    )
+    isq_ref = _state_word(L.S_ISQ_REF, 'Clamped isq* of the last step [A].')
 
     @property
     def voltage_saturated(self) -> bool:
         """True if the circular voltage limit was active in the last step."""
-        return bool(self.S[K.S_VSAT] != 0.0)
+        return bool(self.S[L.S_VSAT] != 0.0)

@@ -7,10 +7,10 @@ import dataclasses
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
 
-from im_drive_sim import contract, kernels
-from im_drive_sim.drive_sim_node import LOCKSTEP_QOS, RECORDED_QOS, Counters
+from im_drive_sim import contract, kernels, model_layout
+from im_drive_sim.drive_sim_counters import Counters
 from im_drive_sim.example_drive import Counters as ExampleCounters
-from im_drive_sim.runtime import qos_profile
+from im_drive_sim.qos import LOCKSTEP_QOS, RECORDED_QOS, qos_profile
 
 
 def test_status_counters_are_the_simulators_counters() -> None:
@@ -22,7 +22,7 @@ def test_status_counters_are_the_simulators_counters() -> None:
 
 
 def test_layouts() -> None:
-    assert kernels.STATE_FIELDS is contract.STATE_FIELDS
+    assert kernels.STATE_FIELDS is model_layout.STATE_FIELDS is contract.STATE_FIELDS
     assert contract.STATE_INDEX['step_index'] == 0 and contract.STATE_INDEX['omega'] == 11
     assert contract.COMMAND_FIELDS[contract.CMD_STEP] == 'answers_step'
     assert contract.COMMAND_FIELDS[contract.CMD_ISQ] == 'isq_ref'

@@ -15,7 +15,8 @@ except ImportError:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from im_drive_sim import analytic as A
-from im_drive_sim import kernels as K
+from im_drive_sim import model_layout as L
+from im_drive_sim import plant
 from im_drive_sim.params import load_config
 from im_drive_sim.sim import DriveSim
 
@@ -138,16 +139,16 @@ def test_energy_balance_closed_loop() -> None:
     sim.reset(fluxed=False)
     x = sim.state_vector()[:6].copy()
     e = np.zeros(5)
-    w0 = K.stored_energy(x, sim.P)
+    w0 = plant.stored_energy(x, sim.P)
     n = 2500
     for k in range(n):
         isq_ref = 0.0 if k < 500 else (4.0 if k < 1200 else (-3.0 if k < 1800 else 1.0))
         tl = 1.75 if k >= 1500 else 0.0
         sim.step(isq_ref, tl)
-        K.plant_rk4_energy(x, sim.u_alpha, sim.u_beta, sim.load_torque, sim.P, e)
+        plant.plant_rk4_energy(x, sim.u_alpha, sim.u_beta, sim.load_torque, sim.P, e)
         # the production kernel integrates exactly the same ODE with the same RK4
         assert np.array_equal(x, sim.state_vector()[:6])
-    w1 = K.stored_energy(x, sim.P)
+    w1 = plant.stored_energy(x, sim.P)
     e_in, cu_s, cu_r, fric, load = e
     d_mag = w1[0] - w0[0]
     d_kin = w1[1] - w0[1]
@@ -193,15 +194,15 @@ def _position_experiment(model: str, gains=(0.53, 20.0, 30.0, 0.005, 0.007)):
     th_sm = th_m = integ = isq_f = 0.0
     loss = qloss = 0.0
     theta = np.empty(n)
-    out = np.zeros(len(K.STATE_FIELDS))
+    out = np.zeros(len(L.STATE_FIELDS))
     sim.read_into(out)
     for k in range(n):
         th_sm = a_sm * th_sm + (1 - a_sm) * th_ref[k]
         th_m_new = a_eq * th_m + (1 - a_eq) * th_sm
         w_ff = (th_sm - th_m) / tau_eq
         th_m = th_m_new
-        w_ref = k_pos * (th_m - out[K.F_THETA_MEAS]) + w_ff
-        e = w_ref - out[K.F_OMEGA_MEAS]
+        w_ref = k_pos * (th_m - out[L.F_THETA_MEAS]) + w_ff
+        e = w_ref - out[L.F_OMEGA_MEAS]
         u = k_pw * e + integ
         isq = min(max(u, -isq_max), isq_max)
         if isq == u:
@@ -209,14 +210,14 @@ def _position_experiment(model: str, gains=(0.53, 20.0, 30.0, 0.005, 0.007)):
         isq_f = a_f * isq_f + (1 - a_f) * isq
         if abs(isq) / isq_max < 0.99:
             loss += TS * (
-                abs(th_ref[k] - out[K.F_THETA_MEAS]) + 0.01 * abs(e) + 0.1 * abs(isq_f - isq)
+                abs(th_ref[k] - out[L.F_THETA_MEAS]) + 0.01 * abs(e) + 0.1 * abs(isq_f - isq)
             )
             qloss += TS * (
-                (th_ref[k] - out[K.F_THETA_MEAS]) ** 2 + 1e-4 * e * e + 0.01 * (isq_f - isq) ** 2
+                (th_ref[k] - out[L.F_THETA_MEAS]) ** 2 + 1e-4 * e * e + 0.01 * (isq_f - isq) ** 2
             )
         tl = 1.75 if k * TS >= 0.7 else 0.0
         sim.step_into(isq, tl, out)
-        theta[k] = out[K.F_THETA]
+        theta[k] = out[L.F_THETA]
     return theta, loss, qloss
 
 

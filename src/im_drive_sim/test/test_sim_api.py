@@ -15,7 +15,7 @@ except ImportError:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import im_drive_sim
-from im_drive_sim import kernels as K
+from im_drive_sim import model_layout as L
 from im_drive_sim.params import load_config
 from im_drive_sim.sim import NOISE_BLOCK, RUN_FIELDS, STATE_FIELDS, DriveSim
 
@@ -38,23 +38,12 @@ def _profile(n: int) -> tuple[np.ndarray, np.ndarray]:
 def test_package_metadata_and_fields() -> None:
     assert im_drive_sim.__version__ == '0.1.0'
     assert im_drive_sim.DriveSim is DriveSim
-    assert STATE_FIELDS == (
-        'step_index',
-        'time_ns',
-        'theta_meas',
-        'omega_meas',
-        'torque',
-        'isd',
-        'isq',
-        'i_alpha',
-        'i_beta',
-        'load_torque',
-        'theta',
-        'omega',
-        'applied_step',
-        'command_delay',
+    # the published layout, pinned: a change to it is a change of the drive contract
+    assert ' '.join(STATE_FIELDS) == (
+        'step_index time_ns theta_meas omega_meas torque isd isq i_alpha i_beta '
+        'load_torque theta omega applied_step command_delay'
     )
-    assert RUN_FIELDS[: len(STATE_FIELDS)] == STATE_FIELDS and len(RUN_FIELDS) == K.N_RUN_FIELDS
+    assert RUN_FIELDS[: len(STATE_FIELDS)] == STATE_FIELDS and len(RUN_FIELDS) == L.N_RUN_FIELDS
 
 
 @pytest.mark.parametrize('model', ['full', 'reduced'])
@@ -63,15 +52,15 @@ def test_step_semantics_read_into_step_into_time(model: str) -> None:
     sim.reset(theta=1.0, omega=2.0, step_index=7)
     out = np.zeros(len(STATE_FIELDS))
     sim.read_into(out)
-    assert out[K.F_STEP] == 7 and out[K.F_TIME_NS] == 7 * 200_000
-    assert out[K.F_THETA] == 1.0 and out[K.F_OMEGA] == 2.0 and out[K.F_OMEGA_MEAS] == 2.0
+    assert out[L.F_STEP] == 7 and out[L.F_TIME_NS] == 7 * 200_000
+    assert out[L.F_THETA] == 1.0 and out[L.F_OMEGA] == 2.0 and out[L.F_OMEGA_MEAS] == 2.0
     assert sim.step_index == 7 and sim.time_ns == 1_400_000 and sim.time == pytest.approx(1.4e-3)
     sim.step_into(1.0, 0.0, out)
-    assert out[K.F_STEP] == 8 and out[K.F_TIME_NS] == 1_600_000 and sim.step_index == 8
-    assert out[K.F_THETA] == sim.theta and out[K.F_OMEGA] == sim.omega
-    assert out[K.F_THETA_MEAS] == sim.theta_meas and out[K.F_OMEGA_MEAS] == sim.omega_meas
-    assert out[K.F_TORQUE] == sim.torque and out[K.F_ISQ] == sim.isq and out[K.F_ISD] == sim.isd
-    assert out[K.F_I_ALPHA] == sim.i_alpha and out[K.F_I_BETA] == sim.i_beta
+    assert out[L.F_STEP] == 8 and out[L.F_TIME_NS] == 1_600_000 and sim.step_index == 8
+    assert out[L.F_THETA] == sim.theta and out[L.F_OMEGA] == sim.omega
+    assert out[L.F_THETA_MEAS] == sim.theta_meas and out[L.F_OMEGA_MEAS] == sim.omega_meas
+    assert out[L.F_TORQUE] == sim.torque and out[L.F_ISQ] == sim.isq and out[L.F_ISD] == sim.isd
+    assert out[L.F_I_ALPHA] == sim.i_alpha and out[L.F_I_BETA] == sim.i_beta
     # exact integer time for long runs
     sim.reset(step_index=10**9)
     assert sim.time_ns == 200_000 * 10**9
@@ -97,8 +86,8 @@ def test_run_equals_step_and_step_into() -> None:
     for k in range(n):
         b.step(isq[k], tl[k])
         c.step_into(isq[k], tl[k], out)
-        assert out[K.F_THETA] == r['theta'][k] and out[K.F_OMEGA_MEAS] == r['omega_meas'][k]
-        assert out[K.F_ISQ] == r['isq'][k] and out[K.F_LOAD] == r['load_torque'][k]
+        assert out[L.F_THETA] == r['theta'][k] and out[L.F_OMEGA_MEAS] == r['omega_meas'][k]
+        assert out[L.F_ISQ] == r['isq'][k] and out[L.F_LOAD] == r['load_torque'][k]
     assert np.array_equal(b.state_vector(), a.state_vector())
     assert np.array_equal(c.state_vector(), a.state_vector())
     assert r['step_index'][-1] == n and r['time_ns'][0] == 200_000

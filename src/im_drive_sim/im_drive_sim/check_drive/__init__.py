@@ -8,138 +8,35 @@ option, no drive, another node already commanding the drive). What each item che
 why its thresholds are what they are: docs/check-drive.md.
 
 A tool of the drive contract, in modules by job: ``thresholds`` (items, limits, the
-result type), ``judges`` (pure functions, numpy only: the tests call them on synthetic
-arrays), ``probe`` (drives the check through DDS and records every state, joint state
-and command it saw into a ``Recording``), ``evaluate`` (the pure evaluation of a
-recording, item by item) and ``cli``.
+result type), ``judges`` (the topics, fields and rate items) and ``response`` (the
+latency, step response and watchdog items) -- pure functions, numpy only: the tests call
+them on synthetic arrays --, ``probe`` (the participant on the graph: records every
+state, joint state and command it saw), ``procedure`` (what the check does to the
+drive, in order, into a ``Recording``), ``evaluate`` (the pure evaluation of a
+recording, item by item) and ``cli``. This package's namespace is the union of their
+public names (each module's ``__all__``).
 """
 
-from .cli import (
-    main,
-    parse_args,
-)
-from .evaluate import Recording, evaluate, rows_by_step
-from .judges import (
-    StepSegment,
-    fit_acceleration,
-    joint_state_problems,
-    judge_fields,
-    judge_latency,
-    judge_rate_lockstep,
-    judge_rate_realtime,
-    judge_step_response,
-    judge_topics,
-    judge_watchdog_lockstep,
-    judge_watchdog_realtime,
-    label_delay,
-    lockstep_step_problems,
-    onset_delay,
-    period_stats,
-    rise_time,
-    state_field_problems,
-    step_metrics,
-    summary_line,
-    units_ratio,
-    watchdog_limits,
-)
-from .probe import (
-    DriveLost,
-    Interrupted,
-    Options,
-    Probe,
-    run_check,
-)
-from .thresholds import (
-    ACCEL_MIN_COUNTS,
-    CURRENT_BOUND_FACTOR,
-    CURRENT_FIELDS,
-    DEFAULT_TIMEOUT,
-    DISCOVERY_SETTLE_S,
-    EFFECT_DELAY_LOCKSTEP,
-    EFFECT_DELAY_REALTIME,
-    ITEMS,
-    LATENCY_MEDIAN_MAX,
-    LATENCY_P99_MAX,
-    LOCKSTEP_SILENCE_S,
-    NS_PER_S,
-    ONSET_FRACTION,
-    RATE_MAX_LONG_FRACTION,
-    RATE_TOLERANCE,
-    RISE_TIME_MAX,
-    STATE_FIELDS,
-    STEADY_STATE_ERROR_MAX,
-    TYPES,
-    UNITS_MIN_COUNTS,
-    UNITS_RATIO_BAND,
-    WATCHDOG_ACT_FRACTION,
-    WATCHDOG_EARLIEST,
-    WATCHDOG_MARGIN_REL,
-    WATCHDOG_MARGIN_S,
-    ZERO_CURRENT_FRACTION,
-    CheckRefused,
-    F,
-    Item,
-)
+from . import cli as _cli
+from . import evaluate as _evaluate
+from . import judges as _judges
+from . import probe as _probe
+from . import procedure as _procedure
+from . import response as _response
+from . import thresholds as _thresholds
+from .cli import *  # noqa: F403
+from .evaluate import *  # noqa: F403
+from .judges import *  # noqa: F403
+from .probe import *  # noqa: F403
+from .procedure import *  # noqa: F403
+from .response import *  # noqa: F403
+from .thresholds import *  # noqa: F403
 
-__all__ = [
-    'ACCEL_MIN_COUNTS',
-    'CURRENT_BOUND_FACTOR',
-    'CURRENT_FIELDS',
-    'DEFAULT_TIMEOUT',
-    'DISCOVERY_SETTLE_S',
-    'EFFECT_DELAY_LOCKSTEP',
-    'EFFECT_DELAY_REALTIME',
-    'ITEMS',
-    'LATENCY_MEDIAN_MAX',
-    'LATENCY_P99_MAX',
-    'LOCKSTEP_SILENCE_S',
-    'NS_PER_S',
-    'ONSET_FRACTION',
-    'RATE_MAX_LONG_FRACTION',
-    'RATE_TOLERANCE',
-    'RISE_TIME_MAX',
-    'STATE_FIELDS',
-    'STEADY_STATE_ERROR_MAX',
-    'TYPES',
-    'UNITS_MIN_COUNTS',
-    'UNITS_RATIO_BAND',
-    'WATCHDOG_ACT_FRACTION',
-    'WATCHDOG_EARLIEST',
-    'WATCHDOG_MARGIN_REL',
-    'WATCHDOG_MARGIN_S',
-    'ZERO_CURRENT_FRACTION',
-    'CheckRefused',
-    'DriveLost',
-    'F',
-    'Interrupted',
-    'Item',
-    'Options',
-    'Probe',
-    'Recording',
-    'StepSegment',
-    'evaluate',
-    'fit_acceleration',
-    'joint_state_problems',
-    'judge_fields',
-    'judge_latency',
-    'judge_rate_lockstep',
-    'judge_rate_realtime',
-    'judge_step_response',
-    'judge_topics',
-    'judge_watchdog_lockstep',
-    'judge_watchdog_realtime',
-    'label_delay',
-    'lockstep_step_problems',
-    'main',
-    'onset_delay',
-    'parse_args',
-    'period_stats',
-    'rise_time',
-    'rows_by_step',
-    'run_check',
-    'state_field_problems',
-    'step_metrics',
-    'summary_line',
-    'units_ratio',
-    'watchdog_limits',
-]
+__all__: list[str] = []
+__all__ += _cli.__all__
+__all__ += _evaluate.__all__
+__all__ += _judges.__all__
+__all__ += _probe.__all__
+__all__ += _procedure.__all__
+__all__ += _response.__all__
+__all__ += _thresholds.__all__

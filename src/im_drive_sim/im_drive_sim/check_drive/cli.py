@@ -9,19 +9,13 @@ from dataclasses import asdict
 from pathlib import Path
 
 from ..cli import Parser, UsageError, check_ros_args, input_file, output_file
-from .judges import (
-    summary_line,
-)
-from .probe import (
-    DriveLost,
-    Interrupted,
-    Options,
-    _clean,
-    run_check,
-)
-from .thresholds import (
-    CheckRefused,
-)
+from .evaluate import json_ready
+from .judges import summary_line
+from .probe import DriveLost, Interrupted
+from .procedure import Options, run_check
+from .thresholds import CheckRefused
+
+__all__ = ['main', 'parse_args']
 
 # ========================================== CLI ============================================
 
@@ -127,7 +121,7 @@ def main(args: list[str] | None = None) -> int:
         if opts.json:
             Path(opts.json).write_text(
                 json.dumps(
-                    _clean({'passed': code == 0, **info, 'items': [asdict(i) for i in items]}),
+                    json_ready({'passed': code == 0, **info, 'items': [asdict(i) for i in items]}),
                     indent=1,
                     allow_nan=False,
                 )

@@ -13,27 +13,29 @@ import numpy as np
 
 from ..contract import JOINT_STATE_TOPIC
 from .judges import (
-    StepSegment,
     joint_state_problems,
     judge_fields,
-    judge_latency,
     judge_rate_lockstep,
     judge_rate_realtime,
-    judge_step_response,
     judge_topics,
+    lockstep_step_problems,
+    period_stats,
+    state_field_problems,
+    units_ratio,
+)
+from .response import (
+    StepSegment,
+    judge_latency,
+    judge_step_response,
     judge_watchdog_lockstep,
     judge_watchdog_realtime,
     label_delay,
-    lockstep_step_problems,
     onset_delay,
-    period_stats,
-    state_field_problems,
     step_metrics,
-    units_ratio,
 )
 from .thresholds import CURRENT_BOUND_FACTOR, ITEMS, STATE_FIELDS, TYPES, F, Item
 
-__all__ = ['Recording', 'evaluate', 'rows_by_step']
+__all__ = ['Recording', 'evaluate', 'json_ready', 'rows_by_step']
 
 
 def rows_by_step(
@@ -254,3 +256,19 @@ def evaluate(rec: Recording) -> list[Item]:
             rec.watchdog['silence_s'], rec.watchdog['advanced'], rec.watchdog['resumed_s']
         )
     return [items[name] for name in ITEMS]
+
+
+def json_ready(obj: Any) -> Any:
+    """``obj`` ready for ``json.dump`` (the ``--json`` report): non-finite floats ->
+    None, numpy scalars -> Python, dicts and sequences converted throughout."""
+    if isinstance(obj, dict):
+        return {str(k): json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    return obj

@@ -5,9 +5,43 @@ Pure: no ROS, no numba. The drive's field layout and topic types come from the c
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from ..contract import STATE_FIELDS, TOPIC_TYPES
+
+__all__ = [
+    'ACCEL_MIN_COUNTS',
+    'CURRENT_BOUND_FACTOR',
+    'CURRENT_FIELDS',
+    'DEFAULT_TIMEOUT',
+    'DISCOVERY_SETTLE_S',
+    'EFFECT_DELAY_LOCKSTEP',
+    'EFFECT_DELAY_REALTIME',
+    'ITEMS',
+    'LABEL_SLOWER_MAX_REALTIME',
+    'LATENCY_MEDIAN_MAX',
+    'LATENCY_P99_MAX',
+    'LOCKSTEP_SILENCE_S',
+    'NS_PER_S',
+    'ONSET_FRACTION',
+    'RATE_MAX_LONG_FRACTION',
+    'RATE_TOLERANCE',
+    'RISE_TIME_MAX',
+    'STATE_FIELDS',
+    'STEADY_STATE_ERROR_MAX',
+    'TRANSPORT_SLACK_REALTIME',
+    'TYPES',
+    'UNITS_MIN_COUNTS',
+    'UNITS_RATIO_BAND',
+    'WATCHDOG_ACT_FRACTION',
+    'WATCHDOG_EARLIEST',
+    'ZERO_CURRENT_FRACTION',
+    'CheckRefused',
+    'F',
+    'Item',
+    'finite_or_none',
+]
 
 #: Items, in the order they are printed.
 ITEMS: tuple[str, ...] = ('topics', 'fields', 'rate', 'latency', 'step_response', 'watchdog')
@@ -83,6 +117,12 @@ NS_PER_S = 1_000_000_000
 
 class CheckRefused(Exception):
     """The check cannot run (bad option, no drive, another commander): exit code 2."""
+
+
+def finite_or_none(x: float | None) -> float | None:
+    """A figure for an :class:`Item`'s ``values``: None unless a finite number (JSON has no
+    inf or nan)."""
+    return float(x) if x is not None and math.isfinite(x) else None
 
 
 @dataclass

@@ -66,7 +66,8 @@ from im_controller.controller_node import ControllerNode
 from im_drive_sim import contract, rt
 from im_drive_sim.outbox import Outbox, PublisherThread
 from im_drive_sim.pacing import LATENESS_BINS, DurationHistograms, Pacer
-from im_drive_sim.runtime import ROUTES, qos_profile
+from im_drive_sim.qos import qos_profile
+from im_drive_sim.runtime import ROUTES
 
 from ..tuning import BenchFailure
 from .compiled_loop import G_QUIT, G_STOP, CompiledPeriods, LoopGate

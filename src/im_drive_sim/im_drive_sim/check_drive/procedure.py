@@ -1,0 +1,419 @@
+"""check_drive's procedure: what the check does to the drive, in order -- find it (and
+refuse to run beside another commander), learn its command timeout, then the items'
+experiments (mode, fields, rate, latency, step response, watchdog) through a
+:class:`~.probe.Probe`, whose recording :func:`~.evaluate.evaluate` judges
+(:func:`run_check`). ROS is imported inside the functions: importing this module needs
+none."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..contract import COMMAND_TOPIC, JOINT_STATE_TOPIC, STATE_TOPIC, STATUS_TOPIC
+from .evaluate import Recording, evaluate
+from .probe import DriveLost, Probe
+from .response import watchdog_limits
+from .thresholds import (
+    DEFAULT_TIMEOUT,
+    DISCOVERY_SETTLE_S,
+    LOCKSTEP_SILENCE_S,
+    WATCHDOG_ACT_FRACTION,
+    ZERO_CURRENT_FRACTION,
+    CheckRefused,
+    F,
+    Item,
+)
+
+__all__ = ['Options', 'run_check']
+
+
+@dataclass
+class Options:
+    config: str | None = None
+    amplitude: float = 0.5
+    step_duration: float = 0.02
+    command_timeout: float | None = None
+    max_speed: float = 30.0
+    timeout: float = 10.0
+    namespace: str | None = None
+    json: str | None = None
+
+
+def run_check(
+    opts: Options, node, log: Callable[[str], None], stop: Callable[[], bool]
+) -> tuple[list[Item], dict]:
+    """Probe the drive in ``node``'s namespace; return the items and run information."""
+    from im_drive_sim.params import load_config
+
+    cfg = load_config(opts.config)
+    isq_max = cfg.machine.isq_max
+    if not 0 < opts.amplitude <= 0.5 * isq_max:
+        raise CheckRefused(
+            f'--amplitude {opts.amplitude:g} A: must be in (0, '
+            f'{0.5 * isq_max:g}] A (50 % of isq_max {isq_max:g} A)'
+        )
+    p = Probe(node)
+    p.stop = stop
+    state_topic = p.state_sub.topic_name
+    cmd_topic = node.resolve_topic_name(COMMAND_TOPIC)
+
+    # -- discovery --------------------------------------------------------------------
+    deadline = time.monotonic() + opts.timeout
+    while not node.get_publishers_info_by_topic(state_topic):
+        if time.monotonic() > deadline:
+            raise CheckRefused(
+                f'no publisher of {state_topic} within {opts.timeout:g} s '
+                '(is the drive running, in this namespace and ROS_DOMAIN_ID?)'
+            )
+        p.poll(0.05)
+    # Node names arrive a moment after the endpoints; other commanders with them.
+    settle = time.monotonic() + 0.5
+    drive_name = drive_ns = None
+    while time.monotonic() < settle or drive_name is None:
+        pubs = node.get_publishers_info_by_topic(state_topic)
+        known = [e for e in pubs if not e.node_name.startswith('_NODE_NAME_UNKNOWN')]
+        if known:
+            drive_name, drive_ns = known[0].node_name, known[0].node_namespace
+        if time.monotonic() > settle + 2.0:
+            break
+        if node.get_publishers_info_by_topic(cmd_topic):
+            _refuse_commander(node, cmd_topic, p)
+        p.poll(0.05)
+    drive_full = (drive_ns.rstrip('/') + '/' + drive_name) if drive_name else '(unknown node)'
+
+    timeout, timeout_src = _command_timeout(opts, node, drive_name, drive_ns)
+    p.open_command()
+    try:
+        return _probe(
+            p, opts, node, cfg, drive_full, timeout, timeout_src, state_topic, cmd_topic, log
+        )
+    finally:
+        p.safe_stop()  # zero current, whatever happened (also on SIGINT and errors)
+
+
+def _probe(
+    p: Probe,
+    opts: Options,
+    node,
+    cfg,
+    drive_full: str,
+    timeout: float,
+    timeout_src: str,
+    state_topic: str,
+    cmd_topic: str,
+    log: Callable[[str], None],
+) -> tuple[list[Item], dict]:
+    ts, ts_ns = cfg.Ts, cfg.Ts_ns
+    isq_max = cfg.machine.isq_max
+    a = opts.amplitude
+    counts_per_rad = cfg.sensors.encoder_counts / (2.0 * math.pi)
+
+    info = {
+        'drive': drive_full,
+        'namespace': node.get_namespace(),
+        'Ts_s': ts,
+        'isq_max_A': isq_max,
+        'amplitude_A': a,
+        'command_timeout_s': timeout,
+        'command_timeout_source': timeout_src,
+    }
+
+    def check_alone() -> None:
+        if len(node.get_publishers_info_by_topic(cmd_topic)) > 1:
+            _refuse_commander(node, cmd_topic, p)
+
+    # -- mode: does step_index advance without commands? ---------------------------------
+    if not p.run(lambda k, s: None, lambda: p.newest() is not None, opts.timeout):
+        raise CheckRefused(
+            f'{state_topic} has a publisher but no state came within {opts.timeout:g} s'
+        )
+    k_idle0 = int(p.newest()[F['step_index']])
+    t_end = time.monotonic() + 0.3
+    p.run(lambda k, s: None, lambda: time.monotonic() > t_end, 1.0)
+    idle_advance = int(p.newest()[F['step_index']]) - k_idle0
+    realtime = idle_advance >= 5
+    mode = 'realtime' if realtime else 'lockstep'
+    status_mode = p.status.get('mode')
+    mode_note = ''
+    if status_mode is not None and status_mode != mode:
+        mode_note = f'drive/status says mode={status_mode}'
+    info['mode'] = mode
+    log(
+        f'check_drive: drive {drive_full}, mode {mode} (by behaviour; drive/status: '
+        f'{status_mode or "not seen yet"}), Ts {ts * 1e6:g} us, isq_max {isq_max:g} A, '
+        f'step +-{a:g} A, command_timeout {timeout:g} s ({timeout_src})'
+    )
+    check_alone()
+
+    def schedule(
+        segments: list[tuple[int, float]],
+        record: list | None = None,
+        guard: Callable[[np.ndarray], bool] | None = None,
+    ) -> int:
+        """Answer states with piecewise-constant isq*: ``segments`` of (steps, isq*),
+        counted in step indices from the first state answered. ``record`` collects
+        (k, level, previous level) at every change; ``guard(state)`` True aborts to zero.
+        Returns the first step index answered."""
+        total = sum(n for n, _ in segments)
+        bounds = np.cumsum([n for n, _ in segments])
+        st = {'k0': None, 'last': None, 'done': False}
+
+        def policy(k: int, s: np.ndarray) -> float | None:
+            if st['k0'] is None:
+                st['k0'] = k
+            rel = k - st['k0']
+            if guard is not None and guard(s):
+                st['done'] = True
+                return 0.0  # abort to zero current at once
+            if rel >= total:
+                st['done'] = True
+                return None  # the next phase answers this state
+            level = segments[int(np.searchsorted(bounds, rel, side='right'))][1]
+            if record is not None and level != st['last']:
+                record.append((k, level, 0.0 if st['last'] is None else st['last']))
+            st['last'] = level
+            return level
+
+        if not p.run(policy, lambda: st['done'], 5.0 + total * ts * 20):
+            raise DriveLost(
+                f'the drive stopped stepping (last state '
+                f'{int(p.newest()[0])}, {p.n} states received)'
+            )
+        return st['k0']
+
+    # -- rate: zero current, answer every state; and no current before the whole graph is
+    # known (another commander discovered late must still refuse the check) -------------
+    i_rate0, m_rate0 = p.n, p.m
+    t0 = time.monotonic()
+    while True:
+        schedule([(2500 if realtime else 500, 0.0)])
+        if time.monotonic() >= p.created + DISCOVERY_SETTLE_S:
+            break
+    rate_wall = time.monotonic() - t0
+    i_rate1 = p.n
+    check_alone()
+
+    # -- latency: small level changes, every 25 steps -----------------------------------
+    trans: list[tuple[int, float, float]] = []
+    levels = [0.0, a, 0.0, -a, 0.0, a, 0.0, -a, 0.0]
+    schedule([(25, lv) for lv in levels], trans)
+
+    # -- step response ----------------------------------------------------------------
+    n_step = max(10, round(opts.step_duration / ts))
+    step_trans: list[tuple[int, float, float]] = []
+    aborted = {'why': ''}
+
+    def overspeed(s: np.ndarray) -> bool:
+        if abs(s[F['omega_meas']]) > opts.max_speed:
+            aborted['why'] = (
+                f'aborted: |omega_meas| {abs(s[F["omega_meas"]]):.1f} > {opts.max_speed:g} rad/s'
+            )
+            return True
+        return False
+
+    schedule([(25, 0.0), (n_step, a), (n_step, -a), (n_step // 2, 0.0)], step_trans, overspeed)
+    k_step_end = p.answered
+    check_alone()
+
+    # -- watchdog -----------------------------------------------------------------------
+    w = a / 2
+    if realtime:
+        wd = _watchdog_realtime(p, schedule, w, timeout, overspeed, ts)
+    else:
+        wd = _watchdog_lockstep(p)
+    schedule([(50 if realtime else 10, 0.0)])
+    check_alone()
+    # A status message (about 1 Hz) to cross-check the mode, if none came yet.
+    if status_mode is None and realtime:
+        t_end = time.monotonic() + 1.2
+        p.run(lambda k, s: 0.0, lambda: bool(p.status) or time.monotonic() > t_end, 2.0)
+        status_mode = p.status.get('mode')
+        if status_mode is not None and status_mode != mode:
+            mode_note = f'drive/status says mode={status_mode}'
+    info['status_mode'] = status_mode
+    p.safe_stop()  # before judging: the drive is not left waiting for commands meanwhile
+
+    rec = Recording(
+        states=p.states[: p.n].copy(),
+        lengths=p.lengths[: p.n].copy(),
+        source_ns=p.source_ns[: p.n].copy(),
+        recv_ns=p.recv_ns[: p.n].copy(),
+        take_ns=p.take_ns[: p.n].copy(),
+        seq=p.seq[: p.n].copy(),
+        cmd=p.cmd[: p.m].copy(),
+        cmd_ns=p.cmd_ns[: p.m].copy(),
+        joints=np.array(p.joints, dtype=float).reshape(-1, 4),
+        endpoints={
+            STATE_TOPIC: [e.topic_type for e in node.get_publishers_info_by_topic(state_topic)],
+            COMMAND_TOPIC: [e.topic_type for e in node.get_subscriptions_info_by_topic(cmd_topic)],
+            JOINT_STATE_TOPIC: [
+                e.topic_type
+                for e in node.get_publishers_info_by_topic(
+                    node.resolve_topic_name(JOINT_STATE_TOPIC)
+                )
+            ],
+            STATUS_TOPIC: [
+                e.topic_type
+                for e in node.get_publishers_info_by_topic(node.resolve_topic_name(STATUS_TOPIC))
+            ],
+        },
+        ts=ts,
+        ts_ns=ts_ns,
+        isq_max=isq_max,
+        rated_flux_current=cfg.machine.rated_flux_current,
+        counts_per_rad=counts_per_rad,
+        amplitude=a,
+        realtime=realtime,
+        idle_advance=idle_advance,
+        mode_note=mode_note,
+        i_rate0=i_rate0,
+        i_rate1=i_rate1,
+        m_rate0=m_rate0,
+        rate_wall=rate_wall,
+        trans=trans,
+        step_trans=step_trans,
+        k_step_end=k_step_end,
+        aborted_why=aborted['why'],
+        watchdog=wd,
+        command_timeout=timeout,
+        command_timeout_source=timeout_src,
+    )
+    return evaluate(rec), info
+
+
+def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, ts: float) -> dict:
+    """Command w, go silent until zero current (or too long), then command -w for as long
+    as w was on (so the shaft ends near rest) and check that the current follows."""
+    _lo, hi = watchdog_limits(timeout)
+    i_on = p.n
+    schedule([(25, w)])
+    i_silent, t_last = p.n, p.cmd_ns[p.m - 1]
+    st = {'zero_at': None, 'zero_run': 0, 'why': ''}
+    end = time.monotonic() + 2 * hi + 0.05
+
+    def silent(k: int, s: np.ndarray) -> None:
+        return None
+
+    def done() -> bool:
+        for i in range(st.get('i', i_silent), p.n):
+            s = p.states[i]
+            if abs(s[F['isq']]) < ZERO_CURRENT_FRACTION * w:
+                if st['zero_at'] is None:
+                    st['zero_at'] = i
+                st['zero_run'] += 1
+            else:
+                st['zero_at'], st['zero_run'] = None, 0
+            if overspeed(s):
+                st['why'] = 'aborted silence: overspeed'
+        st['i'] = p.n
+        return st['zero_run'] >= 10 or bool(st['why']) or time.monotonic() > end
+
+    p.run(silent, done, 2 * hi + 1.0)
+    t_zero = t_act = None
+    if st['zero_at'] is not None:
+        t_zero = (p.source_ns[st['zero_at']] - t_last) * 1e-9
+        i = st['zero_at']  # back along the fall to where it began
+        while i > i_silent and p.states[i - 1, F['isq']] < WATCHDOG_ACT_FRACTION * w:
+            i -= 1
+        t_act = (p.source_ns[i] - t_last) * 1e-9
+    if st['why']:
+        p.command(max(p.answered, int(p.newest()[0])), 0.0)
+    # Steps at +w: as many at -w bring the shaft back near rest.
+    on = int(np.count_nonzero(p.states[i_on : p.n, F['isq']] > w / 2))
+    # resume with -w; it must reach -w within 50 ms
+    i_res, j_res, t_res = p.n, p.m, None
+    k_res = schedule([(max(on, 50), -w)])
+    for i in range(i_res, p.n):
+        s = p.states[i]
+        if s[F['step_index']] > k_res and abs(s[F['isq']] + w) < ZERO_CURRENT_FRACTION * w:
+            t_res = (p.source_ns[i] - p.cmd_ns[j_res]) * 1e-9
+            break
+    if t_res is not None and t_res > 0.05:
+        t_res = None
+    return {'t_act': t_act, 't_zero': t_zero, 'resumed_s': t_res, 'aborted': st['why']}
+
+
+def _watchdog_lockstep(p: Probe) -> dict:
+    """Silence for LOCKSTEP_SILENCE_S: only re-sends of the same state allowed; then one
+    command must make it step."""
+    k_last = p.answered
+    t0 = time.monotonic()
+    i0 = p.n
+    p.run(lambda k, s: None, lambda: time.monotonic() - t0 >= LOCKSTEP_SILENCE_S, 2.0)
+    silence = time.monotonic() - t0
+    ks = p.states[i0 : p.n, F['step_index']]
+    advanced = int(np.count_nonzero(ks > k_last + 1))
+    s = p.newest()
+    k = int(s[F['step_index']])
+    t1 = time.monotonic()
+    p.command(k, 0.0)
+    resumed = None
+    while time.monotonic() - t1 < 2.0:
+        p.poll(0.05)
+        if int(p.newest()[F['step_index']]) > k:
+            resumed = time.monotonic() - t1
+            break
+    return {'silence_s': silence, 'advanced': advanced, 'resumed_s': resumed}
+
+
+def _refuse_commander(node, topic: str, p: Probe) -> None:
+    """Raise CheckRefused naming the other publishers of ``topic`` (their node names are
+    discovered a moment after the endpoints: wait up to 1 s for them)."""
+    deadline = time.monotonic() + 1.0
+    while True:
+        others = [
+            e
+            for e in node.get_publishers_info_by_topic(topic)
+            if not (e.node_name == node.get_name() and e.node_namespace == node.get_namespace())
+        ]
+        if time.monotonic() > deadline or not any(
+            e.node_name.startswith('_NODE_NAME_UNKNOWN') for e in others
+        ):
+            break
+        p.poll(0.05)
+    names = sorted({(e.node_namespace.rstrip('/') + '/' + e.node_name) for e in others})
+    raise CheckRefused(
+        f'{", ".join(names) or "another node"} already publishes {topic}: a '
+        'controller is connected and two commanders would fight; stop it first'
+    )
+
+
+def _command_timeout(
+    opts: Options, node, drive_name: str | None, drive_ns: str | None
+) -> tuple[float, str]:
+    """The expected watchdog time: --command-timeout, else the drive node's
+    ``command_timeout`` parameter, else 0.05 s."""
+    if opts.command_timeout is not None:
+        return opts.command_timeout, '--command-timeout'
+    if drive_name is None:
+        return DEFAULT_TIMEOUT, 'default'
+    from rcl_interfaces.msg import ParameterType
+    from rcl_interfaces.srv import GetParameters
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    helper = Node('check_drive_params', context=node.context)
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(helper)
+    try:
+        srv = drive_ns.rstrip('/') + '/' + drive_name + '/get_parameters'
+        client = helper.create_client(GetParameters, srv)
+        if not client.wait_for_service(timeout_sec=2.0):
+            return DEFAULT_TIMEOUT, 'default: drive has no parameter service'
+        future = client.call_async(GetParameters.Request(names=['command_timeout']))
+        executor.spin_until_future_complete(future, timeout_sec=3.0)
+        res = future.result()
+        if res is None:
+            return DEFAULT_TIMEOUT, 'default: no parameter answer'
+        v = res.values[0] if res.values else None
+        if v is not None and v.type == ParameterType.PARAMETER_DOUBLE:
+            return float(v.double_value), 'drive parameter'
+        return DEFAULT_TIMEOUT, 'default: drive has no command_timeout'
+    finally:
+        executor.shutdown()
+        helper.destroy_node()

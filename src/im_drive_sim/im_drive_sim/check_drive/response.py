@@ -1,0 +1,319 @@
+"""check_drive's pure judges of the drive's response to commands: the ``latency`` item
+(how many periods a command takes to act, against its ``applied_step`` labels), the
+``step_response`` item (rise time, steady-state error, torque and acceleration) and the
+``watchdog`` item. Numpy arrays in, an :class:`~.thresholds.Item` out; no ROS.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .thresholds import (
+    ACCEL_MIN_COUNTS,
+    EFFECT_DELAY_LOCKSTEP,
+    LABEL_SLOWER_MAX_REALTIME,
+    LATENCY_MEDIAN_MAX,
+    LATENCY_P99_MAX,
+    LOCKSTEP_SILENCE_S,
+    ONSET_FRACTION,
+    RISE_TIME_MAX,
+    STEADY_STATE_ERROR_MAX,
+    TRANSPORT_SLACK_REALTIME,
+    WATCHDOG_EARLIEST,
+    WATCHDOG_MARGIN_REL,
+    WATCHDOG_MARGIN_S,
+    Item,
+    finite_or_none,
+)
+
+__all__ = [
+    'StepSegment',
+    'fit_acceleration',
+    'judge_latency',
+    'judge_step_response',
+    'judge_watchdog_lockstep',
+    'judge_watchdog_realtime',
+    'label_delay',
+    'onset_delay',
+    'rise_time',
+    'step_metrics',
+    'watchdog_limits',
+]
+
+
+def onset_delay(x: np.ndarray, i0: int, delta_ref: float, max_delay: int = 20) -> int | None:
+    """Steps after sample ``i0`` (the state answered by a command changing the reference by
+    ``delta_ref``) until ``x`` first leaves its course -- the straight line fitted to samples
+    i0-4..i0 -- by more than max(ONSET_FRACTION |delta_ref|, 8 x the median |second
+    difference| over the 16 samples before i0, a noise level). None when it never does
+    within ``max_delay`` steps (or samples are missing)."""
+    if i0 < 16 or i0 + 1 >= len(x):
+        return None
+    pre = x[i0 - 16 : i0 + 1]
+    if not np.isfinite(pre).all():
+        return None
+    noise = float(np.median(np.abs(np.diff(pre, 2))))
+    thr = max(ONSET_FRACTION * abs(delta_ref), 8.0 * noise)
+    slope, level = np.polyfit(np.arange(-4, 1), x[i0 - 4 : i0 + 1], 1)
+    for d in range(1, min(max_delay, len(x) - 1 - i0) + 1):
+        if not math.isfinite(x[i0 + d]):
+            return None
+        if abs(x[i0 + d] - (level + d * slope)) > thr:
+            return d
+    return None
+
+
+def label_delay(applied: np.ndarray, i0: int, k0: int, max_delay: int = 20) -> int | None:
+    """The first state after row ``i0`` (state k0) whose ``applied`` (applied_step) is
+    k0 or newer, as a delay d (row i0 + d); None when none does within ``max_delay`` rows
+    (or a row is missing)."""
+    for d in range(1, min(max_delay, len(applied) - 1 - i0) + 1):
+        a = applied[i0 + d]
+        if not math.isfinite(a):
+            return None
+        if a >= k0:
+            return d
+    return None
+
+
+def judge_latency(
+    delays: Sequence[int | None],
+    wall_s: np.ndarray,
+    realtime: bool,
+    declared: int = EFFECT_DELAY_LOCKSTEP,
+    labels: Sequence[int | None] | None = None,
+) -> Item:
+    """``delays``: per command changing the reference, the state (k + d) in which it first
+    showed; ``wall_s``: command published -> next state received [s]; ``declared``: the
+    drive's command_delay; ``labels``: per change, the first state (k + l) whose
+    applied_step is the changing command's or newer (None: not judged)."""
+    d = np.array([x for x in delays if x is not None], dtype=float)
+    missing = sum(x is None for x in delays)
+    med = float(np.median(wall_s)) if len(wall_s) else math.nan
+    p99 = float(np.percentile(wall_s, 99)) if len(wall_s) else math.nan
+    limit = declared + (TRANSPORT_SLACK_REALTIME if realtime else 0)
+    if realtime:
+        effect_ok = len(d) >= 3 and float(np.percentile(d, 25, method='lower')) <= limit
+    else:
+        effect_ok = len(d) >= 3 and bool(np.all(d == limit)) and missing == 0
+    pairs = [(x, y) for x, y in zip(delays, labels or (), strict=False) if x is not None]
+    judged = [(x, y) for x, y in pairs if y is not None]
+    honest = sum(x == y for x, y in judged)
+    slower = sum(y is not None and x > y for x, y in judged)
+    if labels is None:
+        labels_ok = True
+    elif realtime:
+        labels_ok = len(judged) >= 3 and slower <= LABEL_SLOWER_MAX_REALTIME * len(judged)
+    else:
+        labels_ok = len(judged) == len(d) and honest == len(judged)
+    ok = effect_ok and labels_ok and med <= LATENCY_MEDIAN_MAX and p99 <= LATENCY_P99_MAX
+    hist = ', '.join(f'k+{int(v)}: {int(np.sum(d == v))}' for v in np.unique(d))
+    figures = (
+        f'command -> next state median {med * 1e6:.0f} us, p99 {p99 * 1e6:.0f} us; '
+        f'takes effect in {hist or "-"}' + (f', never: {missing}' if missing else '')
+    )
+    if labels is not None:
+        figures += f'; declared delay {declared}: {honest}/{len(judged)} where applied_step says'
+        if slower:
+            figures += f', {slower} later (slower than declared)'
+    when = f' (fastest quarter by k+{limit})' if realtime else ' always'
+    expected = (
+        f'effect in k+{declared}{when}, never after applied_step says, '
+        f'median <= {LATENCY_MEDIAN_MAX * 1e3:g} ms, '
+        f'p99 <= {LATENCY_P99_MAX * 1e3:g} ms'
+    )
+    return Item(
+        'latency',
+        ok,
+        figures,
+        expected,
+        {
+            'median_s': finite_or_none(med),
+            'p99_s': finite_or_none(p99),
+            'effect_delays': [None if x is None else int(x) for x in delays],
+            'declared_delay': declared,
+            'label_delays': None if labels is None else list(labels),
+        },
+    )
+
+
+def rise_time(x: np.ndarray, ts: float, x0: float, x1: float) -> float:
+    """10-90 % rise time [s] of samples ``x`` (every ``ts`` s) going from x0 towards x1,
+    crossings linearly interpolated; inf when 90 % is never reached."""
+    y = (np.asarray(x, dtype=float) - x0) / (x1 - x0)
+
+    def crossing(level: float) -> float:
+        above = np.flatnonzero(y >= level)
+        if len(above) == 0:
+            return math.inf
+        i = int(above[0])
+        if i == 0:
+            return 0.0
+        return (i - 1 + (level - y[i - 1]) / (y[i] - y[i - 1])) * ts
+
+    return crossing(0.9) - crossing(0.1)
+
+
+def fit_acceleration(theta: np.ndarray, ts: float) -> float:
+    """Acceleration [rad/s^2] of a least-squares parabola through consecutive positions."""
+    t = np.arange(len(theta)) * ts
+    return float(2.0 * np.polyfit(t, theta, 2)[0])
+
+
+@dataclass
+class StepSegment:
+    """One commanded level of the step test, as recorded."""
+
+    level: float  #: commanded isq* [A]
+    previous: float  #: the level before [A]
+    isq: np.ndarray  #: isq from the state answered by the first command of the level
+    torque: np.ndarray  #: torque, same samples [N m]
+    theta: np.ndarray  #: theta_meas, same samples [rad]
+
+
+def step_metrics(seg: StepSegment, ts: float, delay: int | None) -> dict[str, float]:
+    """Rise time (from the onset), steady-state error, torque per ampere and acceleration of
+    one level of the step test."""
+    n = len(seg.isq)
+    start = delay if delay is not None else 1
+    rise = (
+        rise_time(seg.isq[start - 1 :], ts, seg.isq[start - 1], seg.level)
+        if seg.level != seg.previous
+        else math.nan
+    )
+    tail = seg.isq[n - n // 4 :]
+    sse = abs(float(np.mean(tail)) - seg.level) / abs(seg.level) if seg.level else math.nan
+    half = slice(n // 2, n)
+    i_mean = float(np.mean(seg.isq[half]))
+    kt = float(np.mean(seg.torque[half])) / i_mean if i_mean else math.nan
+    acc = fit_acceleration(seg.theta[start:], ts) if n - start >= 10 else math.nan
+    return {
+        'rise_s': rise,
+        'steady_error': sse,
+        'torque_per_amp': kt,
+        'accel': acc,
+        'duration_s': (n - start) * ts,
+    }
+
+
+def judge_step_response(
+    plus: dict[str, float],
+    minus: dict[str, float],
+    amplitude: float,
+    counts_per_rad: float,
+    aborted: str = '',
+) -> Item:
+    """``plus``/``minus``: step_metrics of the +isq and the -isq step."""
+    problems = []
+    if aborted:
+        problems.append(aborted)
+    rise = max(plus['rise_s'], minus['rise_s'])
+    if not rise <= RISE_TIME_MAX:
+        problems.append(f'rise time {rise * 1e3:.2f} ms')
+    sse = max(plus['steady_error'], minus['steady_error'])
+    if not sse <= STEADY_STATE_ERROR_MAX:
+        problems.append(f'steady-state error {sse * 100:.1f} %')
+    if not (plus['torque_per_amp'] > 0 and minus['torque_per_amp'] > 0):
+        problems.append('torque sign opposite to isq')
+    for m, sign, name in ((plus, 1.0, '+'), (minus, -1.0, '-')):
+        moved = abs(m['accel']) * m['duration_s'] ** 2 / 2 * counts_per_rad
+        if not moved >= ACCEL_MIN_COUNTS:
+            problems.append(f'no acceleration in the {name} step')
+        elif m['accel'] * sign <= 0:
+            problems.append(f'acceleration {m["accel"]:+.3g} rad/s^2 in the {name}isq step')
+    figures = (
+        f'isq rise {rise * 1e3:.2f} ms, steady-state error {sse * 100:.1f} %, '
+        f'torque/isq {plus["torque_per_amp"]:+.3f}/{minus["torque_per_amp"]:+.3f} N m/A, '
+        f'accel {plus["accel"]:+.0f}/{minus["accel"]:+.0f} rad/s^2 for '
+        f'+-{amplitude:g} A'
+    )
+    if problems:
+        figures = '; '.join(problems) + ' -- ' + figures
+    return Item(
+        'step_response',
+        not problems,
+        figures,
+        f'rise <= {RISE_TIME_MAX * 1e3:g} ms, error <= {STEADY_STATE_ERROR_MAX * 100:g} %, '
+        'torque and acceleration with the sign of isq',
+        {
+            'plus': {k: finite_or_none(v) for k, v in plus.items()},
+            'minus': {k: finite_or_none(v) for k, v in minus.items()},
+            'aborted': aborted or None,
+        },
+    )
+
+
+def watchdog_limits(timeout: float) -> tuple[float, float]:
+    """(earliest, latest) time [s] after the last command at which zero current is due."""
+    return WATCHDOG_EARLIEST * timeout, timeout + max(
+        WATCHDOG_MARGIN_S, WATCHDOG_MARGIN_REL * timeout
+    )
+
+
+def judge_watchdog_realtime(
+    t_act: float | None,
+    t_zero: float | None,
+    timeout: float,
+    resumed_s: float | None,
+    timeout_source: str,
+    aborted: str = '',
+) -> Item:
+    """Times after the last command was published [s]: ``t_act`` when isq started its fall to
+    zero (left WATCHDOG_ACT_FRACTION of the test current), ``t_zero`` when it got there
+    (None: never); ``resumed_s``: new command -> current back [s] (None: did not resume).
+    The watchdog's own timing is judged on ``t_act``: the fall itself is the current
+    loop's business (step_response)."""
+    lo, hi = watchdog_limits(timeout)
+    ok = (
+        t_act is not None
+        and t_zero is not None
+        and lo <= t_act <= hi
+        and resumed_s is not None
+        and not aborted
+    )
+    zero = (
+        f'current falls {t_act * 1e3:.1f} ms after the last command, zero at {t_zero * 1e3:.1f} ms'
+        if t_act is not None and t_zero is not None
+        else 'current never went to zero'
+    )
+    back = (
+        f'resumed {resumed_s * 1e3:.1f} ms after a new command'
+        if resumed_s is not None
+        else 'did not resume on a new command'
+    )
+    figures = f'{zero}; {back}' + (f'; {aborted}' if aborted else '')
+    return Item(
+        'watchdog',
+        ok,
+        figures,
+        f'falls to zero {lo * 1e3:.0f}..{hi * 1e3:.0f} ms after (command_timeout '
+        f'{timeout:g} s, {timeout_source}), then resume',
+        {
+            't_act_s': t_act,
+            't_zero_s': t_zero,
+            'resumed_s': resumed_s,
+            'command_timeout_s': timeout,
+            'limits_s': [lo, hi],
+        },
+    )
+
+
+def judge_watchdog_lockstep(silence_s: float, advanced: int, resumed_s: float | None) -> Item:
+    ok = advanced == 0 and resumed_s is not None and silence_s >= LOCKSTEP_SILENCE_S * 0.99
+    back = (
+        f'stepped {resumed_s * 1e3:.1f} ms after a new command'
+        if resumed_s is not None
+        else 'did not step on a new command'
+    )
+    return Item(
+        'watchdog',
+        ok,
+        f'{advanced} steps during {silence_s:.2f} s without commands; {back}',
+        f'lock-step: no step during >= {LOCKSTEP_SILENCE_S} s of silence, '
+        'then one on the next command',
+        {'silence_s': silence_s, 'advanced': advanced, 'resumed_s': resumed_s},
+    )

@@ -1,0 +1,132 @@
+"""The layout of the drive kernels' arrays: which index of ``P``, ``S`` and ``out`` is what.
+
+* ``P_*`` index ``P`` (``N_PARAMS`` constants, ``sim.make_param_array``);
+* ``S_*`` index ``S`` (``N_STATE`` words: the whole simulator state; ``S[0:6]`` is the
+  plant state [i_sa, i_sb, psi_ra, psi_rb, omega, theta]);
+* ``F_*`` index a published row (``STATE_FIELDS``, the contract's, then ``EXTRA_FIELDS``);
+* ``NOISE_COLS``: the columns of the noise block.
+
+Pure data (no numba, no rclpy): the kernels (:mod:`.kernels`, :mod:`.plant`) compile these
+values in as constants; docs/drive-model.md describes each.
+"""
+
+from __future__ import annotations
+
+from . import contract
+
+# ---------------------------------------------------------------- parameter indices
+P_TS = 0  # step [s]
+P_TS_NS = 1  # step [ns] (integer valued)
+P_NP = 2  # pole pairs
+P_LM = 3  # magnetising inductance [H]
+P_LS = 4  # stator inductance [H]
+P_LR = 5  # rotor inductance [H]
+P_KR = 6  # Lm/Lr
+P_RSIG = 7  # R_sigma = Rs + kr^2 Rr [ohm]
+P_INV_SIGLS = 8  # 1/(sigma Ls) [1/H]
+P_KR_TAUR = 9  # kr/tau_r [1/s]
+P_INV_TAUR = 10  # 1/tau_r [1/s]
+P_KTE = 11  # 1.5 p kr (torque = KTE (psi_ra i_sb - psi_rb i_sa))
+P_INV_J = 12  # 1/J
+P_B = 13  # viscous friction
+P_TC = 14  # Coulomb torque (0 = off)
+P_INV_WC = 15  # 1/omega_c (Coulomb smoothing)
+P_UMAX = 16  # voltage limit Udc/sqrt(3)
+P_ISD_REF = 17  # rated flux current
+P_ISQ_MAX = 18
+P_KP = 19  # sigma Ls wc
+P_KI_TS = 20  # R_sigma wc Ts
+P_SIGLS = 21  # sigma Ls (controller nominal)
+P_PSI_MIN = 22  # flux floor
+P_EST_A = 23  # exp(-Ts/tau_r) (estimator)
+P_ENC_K = 24  # counts/(2 pi)
+P_ENC_RES = 25  # 2 pi/counts
+P_ENC_RES_TS = 26  # (2 pi/counts)/Ts
+P_SPD_A = 27  # exp(-Ts/tau_speed) (0 when disabled)
+P_DELAY = 28  # computation delay steps (0 or 1)
+P_MODEL = 29  # 0 full, 1 reduced
+P_KT = 30  # reduced: torque constant at rated flux
+P_PSI_RATED = 31  # Lm isd_rated
+P_ISQ_A = 32  # reduced: exp(-Ts/tau_i)
+P_ISQ_AH = 33  # reduced: exp(-Ts/(2 tau_i))
+P_ISQ_INT = 34  # reduced: tau_i (1 - exp(-Ts/tau_i)) (exact integral weight)
+P_SLIP_K = 35  # reduced: Lm/(tau_r psi_rated) (slip per A of isq)
+P_LOAD_A = 36  # exp(-Ts/tau_load) (0 = ideal)
+P_RIP_AMP = 37
+P_RIP_HARM = 38
+P_RIP_PHASE = 39
+P_LN_A = 40  # exp(-Ts/tau_loadnoise)
+P_RS = 41
+P_RR = 42
+P_J = 43
+P_ISQ_A0 = 44  # reduced: isq(0+) weight, 1 for tau_i > 0, 0 for an ideal (tau_i = 0) loop
+P_CMD_DELAY = 45  # command delay d (1 or 2): the command given at state k acts over k+d-1 -> k+d
+N_PARAMS = 46
+
+# -------------------------------------------------------------------- state indices
+S_ISA = 0  # true stator current alpha [A]
+S_ISB = 1
+S_PSIA = 2  # true rotor flux alpha [Wb]
+S_PSIB = 3
+S_OMEGA = 4  # true mechanical speed [rad/s]
+S_THETA = 5  # true mechanical angle [rad] (multi-turn)
+S_STEP = 6  # step index k (integer valued)
+S_COUNT = 7  # encoder count (integer valued, multi-turn)
+S_COUNT_PREV = 8
+S_THETA_MEAS = 9  # count * 2 pi/counts [rad]
+S_OMEGA_RAW = 10  # backward difference [rad/s]
+S_OMEGA_F = 11  # filtered speed (noise free)
+S_OMEGA_MEAS = 12  # filtered speed + noise (what the controller sees)
+S_ISD = 13  # sampled current in the estimated flux frame [A]
+S_ISQ = 14
+S_RHO = 15  # estimated flux angle at the sample [rad, electrical]
+S_SLIP_INT = 16  # integral of omega_sl [rad] (wrapped to +-pi)
+S_PSI_HAT = 17  # estimated rotor flux [Wb]
+S_OMEGA_SL = 18  # slip frequency [rad/s]
+S_INT_D = 19  # PI integrators [V]
+S_INT_Q = 20
+S_UA = 21  # voltage applied during the last step [V]
+S_UB = 22
+S_UA_NEXT = 23  # voltage computed, waiting (computation delay 1)
+S_UB_NEXT = 24
+S_VSAT = 25  # 1 if the voltage limit was active in the last step
+S_ISQ_REF = 26  # clamped isq* of the last step [A]
+S_TLOAD = 27  # total load torque applied during the last step [N m]
+S_TLOAD_F = 28  # lagged load command
+S_LOAD_NOISE = 29  # random-load state
+S_NPOS = 30  # noise row cursor
+S_RED_ISQ = 31  # reduced: true isq [A]
+S_RED_SLIP = 32  # reduced: true flux angle minus p theta [rad]
+S_PEND_ISQ = 33  # command delay 2: the command latched for the next period, isq* [A]
+S_PEND_TL = 34  # ... and its load torque [N m]
+N_STATE = 35
+
+STATE_FIELDS = contract.STATE_FIELDS  # the published layout (contract.py)
+EXTRA_FIELDS = ('encoder_count', 'u_alpha', 'u_beta', 'psi_r', 'voltage_saturated', 'isq_ref')
+RUN_FIELDS = STATE_FIELDS + EXTRA_FIELDS
+(
+    F_STEP,
+    F_TIME_NS,
+    F_THETA_MEAS,
+    F_OMEGA_MEAS,
+    F_TORQUE,
+    F_ISD,
+    F_ISQ,
+    F_I_ALPHA,
+    F_I_BETA,
+    F_LOAD,
+    F_THETA,
+    F_OMEGA,
+    F_APPLIED,
+    F_CMD_DELAY,
+    F_COUNT,
+    F_U_ALPHA,
+    F_U_BETA,
+    F_PSI_R,
+    F_VSAT,
+    F_ISQ_REF,
+) = range(len(RUN_FIELDS))
+N_STATE_FIELDS = len(STATE_FIELDS)
+N_RUN_FIELDS = len(RUN_FIELDS)
+
+NOISE_COLS = 4  # i_alpha, i_beta, speed, random-load increment

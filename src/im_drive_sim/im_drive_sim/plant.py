@@ -1,0 +1,206 @@
+"""The induction machine and its mechanics, compiled: the plant of the drive simulator.
+
+The voltage-fed machine in the stationary frame (stator current, rotor flux) and the
+shaft (inertia, viscous and Coulomb friction, load), integrated by classic RK4 over one
+period Ts with the voltage and the load torque held (``plant_rk4``); the power terms and
+stored energies of its energy balance, for the tests (``plant_rk4_energy``). Free numba
+functions over ``S`` and ``P`` (layout: :mod:`.model_layout`); docs/drive-model.md.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .model_layout import (
+    P_B,
+    P_INV_J,
+    P_INV_SIGLS,
+    P_INV_TAUR,
+    P_INV_WC,
+    P_J,
+    P_KR,
+    P_KR_TAUR,
+    P_KTE,
+    P_LM,
+    P_LR,
+    P_LS,
+    P_NP,
+    P_RR,
+    P_RS,
+    P_RSIG,
+    P_TC,
+    P_TS,
+    S_ISA,
+    S_ISB,
+    S_OMEGA,
+    S_PSIA,
+    S_PSIB,
+    S_THETA,
+)
+
+
+@njit(cache=True)
+def friction_torque(w: float, b: float, tc: float, iwc: float) -> float:
+    """Friction [N m] at speed w [rad/s]: b w + tc tanh(w iwc) (Coulomb term if tc != 0).
+
+    b = B, tc = Tc, iwc = 1/omega_c as scalars: callers load them from P once, outside
+    their RK4 stages (loads from P inside would be repeated after every store to S).
+    """
+    tf = b * w
+    if tc != 0.0:
+        tf += tc * math.tanh(w * iwc)
+    return tf
+
+
+@njit(cache=True)
+def plant_deriv(
+    isa: float,
+    isb: float,
+    pa: float,
+    pb: float,
+    w: float,
+    ua: float,
+    ub: float,
+    tl: float,
+    P: np.ndarray,
+):
+    """Right-hand side of the voltage-fed IM in the stationary frame (notes' equations).
+
+    sigma Ls di_s/dt = -R_sigma i_s + (kr/tau_r) psi_r - j kr omega_e psi_r + u_s
+    dpsi_r/dt = (Lm i_s - psi_r)/tau_r + j omega_e psi_r
+    J domega/dt = 1.5 p kr (psi_ra i_sb - psi_rb i_sa) - B omega - Tc tanh(omega/omega_c) - T_L
+    Returns (di_sa, di_sb, dpsi_ra, dpsi_rb, domega); dtheta/dt = omega.
+    """
+    kr = P[P_KR]
+    we = P[P_NP] * w
+    krt = P[P_KR_TAUR]
+    rsig = P[P_RSIG]
+    isl = P[P_INV_SIGLS]
+    itr = P[P_INV_TAUR]
+    lm = P[P_LM]
+    disa = (-rsig * isa + krt * pa + kr * we * pb + ua) * isl
+    disb = (-rsig * isb + krt * pb - kr * we * pa + ub) * isl
+    dpa = (lm * isa - pa) * itr - we * pb
+    dpb = (lm * isb - pb) * itr + we * pa
+    tf = friction_torque(w, P[P_B], P[P_TC], P[P_INV_WC])
+    dw = (P[P_KTE] * (pa * isb - pb * isa) - tf - tl) * P[P_INV_J]
+    return disa, disb, dpa, dpb, dw
+
+
+@njit(cache=True)
+def plant_rk4(S: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray) -> None:
+    """One classic RK4 step of length Ts on S[0:6] with u and T_L held (ZOH)."""
+    h = P[P_TS]
+    h2 = 0.5 * h
+    x0 = S[S_ISA]
+    x1 = S[S_ISB]
+    x2 = S[S_PSIA]
+    x3 = S[S_PSIB]
+    x4 = S[S_OMEGA]
+    a0, a1, a2, a3, a4 = plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P)
+    w2 = x4 + h2 * a4
+    b0, b1, b2, b3, b4 = plant_deriv(
+        x0 + h2 * a0, x1 + h2 * a1, x2 + h2 * a2, x3 + h2 * a3, w2, ua, ub, tl, P
+    )
+    w3 = x4 + h2 * b4
+    c0, c1, c2, c3, c4 = plant_deriv(
+        x0 + h2 * b0, x1 + h2 * b1, x2 + h2 * b2, x3 + h2 * b3, w3, ua, ub, tl, P
+    )
+    w4 = x4 + h * c4
+    d0, d1, d2, d3, d4 = plant_deriv(
+        x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3, w4, ua, ub, tl, P
+    )
+    h6 = h / 6.0
+    S[S_ISA] = x0 + h6 * (a0 + 2.0 * (b0 + c0) + d0)
+    S[S_ISB] = x1 + h6 * (a1 + 2.0 * (b1 + c1) + d1)
+    S[S_PSIA] = x2 + h6 * (a2 + 2.0 * (b2 + c2) + d2)
+    S[S_PSIB] = x3 + h6 * (a3 + 2.0 * (b3 + c3) + d3)
+    S[S_OMEGA] = x4 + h6 * (a4 + 2.0 * (b4 + c4) + d4)
+    S[S_THETA] = S[S_THETA] + h6 * (x4 + 2.0 * (w2 + w3) + w4)
+
+
+@njit(cache=True)
+def plant_powers(
+    isa: float,
+    isb: float,
+    pa: float,
+    pb: float,
+    w: float,
+    ua: float,
+    ub: float,
+    tl: float,
+    P: np.ndarray,
+):
+    """Power terms [W] for the energy balance (amplitude-invariant: factor 1.5).
+
+    Returns (p_in = 1.5 u.i_s, p_cu_s = 1.5 Rs |i_s|^2, p_cu_r = 1.5 Rr |i_r|^2,
+    p_friction = (B omega + Tc tanh(omega/omega_c)) omega, p_load = T_L omega)
+    with the rotor current i_r = (psi_r - Lm i_s)/Lr.
+    """
+    ira = (pa - P[P_LM] * isa) / P[P_LR]
+    irb = (pb - P[P_LM] * isb) / P[P_LR]
+    tf = friction_torque(w, P[P_B], P[P_TC], P[P_INV_WC])
+    return (
+        1.5 * (ua * isa + ub * isb),
+        1.5 * P[P_RS] * (isa * isa + isb * isb),
+        1.5 * P[P_RR] * (ira * ira + irb * irb),
+        tf * w,
+        tl * w,
+    )
+
+
+@njit(cache=True)
+def stored_energy(x: np.ndarray, P: np.ndarray):
+    """(magnetic, kinetic) energy [J] of plant state x = [i_sa, i_sb, psi_ra, psi_rb, omega, ...].
+
+    W_mag = 1.5 * 0.5 (Ls |i_s|^2 + 2 Lm i_s.i_r + Lr |i_r|^2),  W_kin = 0.5 J omega^2.
+    """
+    lm = P[P_LM]
+    ira = (x[2] - lm * x[0]) / P[P_LR]
+    irb = (x[3] - lm * x[1]) / P[P_LR]
+    wm = 0.75 * (
+        P[P_LS] * (x[0] * x[0] + x[1] * x[1])
+        + 2.0 * lm * (x[0] * ira + x[1] * irb)
+        + P[P_LR] * (ira * ira + irb * irb)
+    )
+    return wm, 0.5 * P[P_J] * x[4] * x[4]
+
+
+@njit(cache=True)
+def plant_rk4_energy(
+    x: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray, e: np.ndarray
+) -> None:
+    """RK4 step of the plant augmented with the energy integrals (diagnostics, tests).
+
+    x[0:6] is advanced exactly as ``plant_rk4`` does (the augmented components do not feed
+    back), e[0:5] += RK4 quadrature of ``plant_powers`` over the step.
+    """
+    h = P[P_TS]
+    h2 = 0.5 * h
+    x0, x1, x2, x3, x4 = x[0], x[1], x[2], x[3], x[4]
+    a0, a1, a2, a3, a4 = plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P)
+    pa_ = plant_powers(x0, x1, x2, x3, x4, ua, ub, tl, P)
+    y0, y1, y2, y3, y4 = x0 + h2 * a0, x1 + h2 * a1, x2 + h2 * a2, x3 + h2 * a3, x4 + h2 * a4
+    b0, b1, b2, b3, b4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P)
+    pb_ = plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
+    w2 = y4
+    y0, y1, y2, y3, y4 = x0 + h2 * b0, x1 + h2 * b1, x2 + h2 * b2, x3 + h2 * b3, x4 + h2 * b4
+    c0, c1, c2, c3, c4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P)
+    pc_ = plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
+    w3 = y4
+    y0, y1, y2, y3, y4 = x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3, x4 + h * c4
+    d0, d1, d2, d3, d4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P)
+    pd_ = plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
+    w4 = y4
+    h6 = h / 6.0
+    x[0] = x0 + h6 * (a0 + 2.0 * (b0 + c0) + d0)
+    x[1] = x1 + h6 * (a1 + 2.0 * (b1 + c1) + d1)
+    x[2] = x2 + h6 * (a2 + 2.0 * (b2 + c2) + d2)
+    x[3] = x3 + h6 * (a3 + 2.0 * (b3 + c3) + d3)
+    x[4] = x4 + h6 * (a4 + 2.0 * (b4 + c4) + d4)
+    x[5] = x[5] + h6 * (x4 + 2.0 * (w2 + w3) + w4)
+    for j in range(5):
+        e[j] += h6 * (pa_[j] + 2.0 * (pb_[j] + pc_[j]) + pd_[j])

@@ -10,11 +10,12 @@ from typing import Any
 
 from im_controller.config import GAIN_NAMES
 
-from .records import Evaluation, Record
+from .records import LINE_ORDER, Evaluation, Record
 
 __all__ = ['CSV_BOOL', 'CSV_COLUMNS', 'CSV_FLOAT', 'CSV_INT', 'csv_values']
 
-#: Record fields that are one CSV column each, in the CSV's order.
+#: Record fields that are one CSV column each, in the CSV's order: the record's identity
+#: and loss first, then the controller's outcome as the line has it, the time last.
 _CSV_FIELDS = (
     'kind',
     'eval',
@@ -22,17 +23,7 @@ _CSV_FIELDS = (
     'status',
     'loss',
     'best_loss',
-    'aborted',
-    'reason',
-    'fault',
-    'experiment_id',
-    'direction',
-    'steps',
-    'trip_step',
-    't_start_ns',
-    't_end_ns',
-    'sim_s',
-    'wall_s',
+    *LINE_ORDER[LINE_ORDER.index('aborted') : LINE_ORDER.index('wall_s') + 1],
     'time',
 )
 _TERMS = ('term1', 'term2', 'term3')  #: ``terms``, one column each

@@ -201,8 +201,9 @@ def _offline_run(algo: str, budget: int, seed: int) -> tuple[list[dict], object]
     from im_drive_sim.params import load_config
     from im_tuner import optim
     from im_tuner.bench.offline import OfflineBench
+    from im_tuner.runlog import MemoryRecord
     from im_tuner.space import load_params
-    from im_tuner.tuning import MemoryRecord, TuningRun, run_seeds
+    from im_tuner.tuning import TuningRun, run_seeds
 
     params = load_params(None)
     opt_ss, drive_seed = run_seeds(seed)

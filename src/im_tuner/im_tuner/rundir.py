@@ -13,6 +13,9 @@ Pure (no rclpy).  Layout (docs/tuner.md)::
       bag_0/, bag_1/ .. the MCAP log (rosbag2 directory) of each session (resumes add one)
 
 Atomic writes: temp file in the same directory, fsync, rename, fsync the directory.
+What the files hold -- typed records, run config, summary, their exact text and format
+versions -- is the run log's (:mod:`im_tuner.runlog`); this module reads and writes them
+only through it.
 
 One tuner per run directory: :meth:`RunDir.lock` takes an exclusive ``flock`` on the
 directory itself (no lock file to create or leave behind; the kernel drops it when the
@@ -29,7 +32,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-import yaml
+from .runlog import FileError, Record, RecordError, RunConfig, Summary, parse_results
 
 __all__ = [
     'CHECKPOINT_FILE',
@@ -91,53 +94,6 @@ def _lock_holder(path: Path) -> str | None:
             except OSError:
                 cmd_text = ''
             return f'pid {pid}' + (f' ({cmd_text[:160]})' if cmd_text else '')
-    return None
-
-
-KINDS = ('reference', 'eval', 'remeasure')
-STATUSES = ('ok', 'aborted', 'lost', 'timing')
-
-
-def _number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def check_record(rec: dict[str, Any]) -> str | None:
-    """What is wrong with one results.jsonl record (None: nothing) -- the fields that the
-    tuner's resume, the summary and the report read."""
-    kind, status = rec.get('kind'), rec.get('status')
-    if kind not in KINDS:
-        return f'record kind {kind!r} is not one of {", ".join(KINDS)}'
-    if status not in STATUSES:
-        return f'record status {status!r} is not one of {", ".join(STATUSES)}'
-    if not isinstance(rec.get('eval'), int) or isinstance(rec.get('eval'), bool):
-        return "record without an integer 'eval'"
-    if not isinstance(rec.get('gains'), dict) or not all(_number(v) for v in rec['gains'].values()):
-        return "record without 'gains' (name: value)"
-    if (
-        kind == 'eval'
-        and status in ('ok', 'aborted')
-        and not (isinstance(rec.get('u'), list) and all(_number(x) for x in rec['u']))
-    ):
-        return "evaluation record without 'u' (a list of numbers)"
-    if status == 'lost':
-        return None
-    if status == 'timing':
-        if not _number(rec.get('off_timing_loss')):
-            return "timing record without 'off_timing_loss' (a number)"
-        return None
-    if not _number(rec.get('loss')):
-        return "record without 'loss' (a number)"
-    if not (isinstance(rec.get('terms'), list) and all(_number(x) for x in rec['terms'])):
-        return "record without 'terms' (a list of numbers)"
-    if not isinstance(rec.get('aborted'), bool):
-        return "record without 'aborted' (true/false)"
-    for key in ('sim_s', 'wall_s'):
-        if key in rec and not _number(rec[key]):
-            return f'record with a non-numeric {key!r}'
-    for key in ('experiment_id', 'steps', 't_start_ns', 't_end_ns'):
-        if rec.get(key) is not None and not isinstance(rec[key], int):
-            return f'record with a non-integer {key!r}'
     return None
 
 
@@ -227,33 +183,35 @@ class RunDir:
         return cls(p)
 
     # -- run.yaml ------------------------------------------------------------------------
-    def write_run(self, run: dict[str, Any]) -> None:
-        atomic_write_text(
-            self.path / RUN_FILE,
-            '# im_tuner run: what ran (see docs/tuner.md)\n'
-            + yaml.safe_dump(run, sort_keys=False, default_flow_style=None, width=100),
-        )
+    def write_run(self, run: dict[str, Any] | RunConfig) -> None:
+        """Write run.yaml (a mapping: its keys in its order)."""
+        cfg = run if isinstance(run, RunConfig) else RunConfig.from_dict(run)
+        atomic_write_text(self.path / RUN_FILE, cfg.to_text())
+
+    def read_config(self) -> RunConfig:
+        """run.yaml as read (:class:`RunDirError` if it is not a run file)."""
+        path = self.path / RUN_FILE
+        try:
+            return RunConfig.from_text(path.read_text(encoding='utf-8'))
+        except (OSError, UnicodeDecodeError) as exc:
+            raise RunDirError(f'{path}: unreadable ({exc})') from None
+        except FileError as exc:
+            raise RunDirError(f'{path}: {exc}') from None
 
     def read_run(self) -> dict[str, Any]:
-        try:
-            data = yaml.safe_load((self.path / RUN_FILE).read_text(encoding='utf-8'))
-        except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-            raise RunDirError(f'{self.path / RUN_FILE}: unreadable ({exc})') from None
-        if not isinstance(data, dict) or 'algo' not in data:
-            raise RunDirError(f'{self.path / RUN_FILE}: not a tuner run file')
-        return data
+        """run.yaml's mapping (:meth:`read_config`, as the tuner keeps it)."""
+        return self.read_config().to_dict()
 
     # -- results.jsonl -------------------------------------------------------------------
-    def append_result(self, record: dict[str, Any]) -> None:
+    def append_result(self, record: Record) -> None:
         """Append one record as a JSON line and fsync (floats round-trip exactly)."""
-        line = json.dumps(record, allow_nan=False, separators=(',', ':')) + '\n'
         with open(self.path / RESULTS_FILE, 'a') as f:
-            f.write(line)
+            f.write(record.to_json() + '\n')
             f.flush()
             os.fsync(f.fileno())
 
-    def read_results(self, repair: bool = False) -> list[dict[str, Any]]:
-        """Every complete record, each checked (:func:`check_record`).  A torn last line
+    def read_results(self, repair: bool = False) -> list[Record]:
+        """Every complete record, each checked (``runlog.check_record``).  A torn last line
         (a kill while writing) is ignored, and cut off when ``repair`` -- only once every
         record is accepted, so a refusal changes nothing; a bad line elsewhere is an
         error (:class:`RunDirError` naming the line)."""
@@ -264,21 +222,10 @@ class RunDir:
             raw = path.read_bytes()
         except OSError as exc:
             raise RunDirError(f'{path}: unreadable ({exc.strerror or exc})') from None
-        # Each record is written as one line ending in a newline: bytes after the last
-        # newline are a record written only in part (the process died mid-write).
-        end = raw.rfind(b'\n') + 1
-        out: list[dict[str, Any]] = []
-        for i, line in enumerate(raw[:end].split(b'\n')[:-1]):
-            try:
-                rec = json.loads(line)
-            except ValueError:
-                rec = None
-            if not isinstance(rec, dict):
-                raise RunDirError(f'{path}: line {i + 1} is not a JSON record')
-            problem = check_record(rec)
-            if problem:
-                raise RunDirError(f'{path}: line {i + 1}: {problem}')
-            out.append(rec)
+        try:
+            out, end = parse_results(raw)
+        except RecordError as exc:
+            raise RunDirError(f'{path}: {exc}') from None
         if repair and end < len(raw):
             with open(path, 'r+b') as f:
                 f.truncate(end)
@@ -326,10 +273,18 @@ class RunDir:
             raise RunDirError(f'{path}: not a tuner checkpoint')
         return data
 
-    def write_summary(self, summary: dict[str, Any]) -> None:
-        atomic_write_text(
-            self.path / SUMMARY_FILE, json.dumps(summary, indent=2, allow_nan=False) + '\n'
-        )
+    def write_summary(self, summary: dict[str, Any] | Summary) -> None:
+        """Write summary.json (a mapping: its keys in its order)."""
+        s = summary if isinstance(summary, Summary) else Summary.from_dict(summary)
+        atomic_write_text(self.path / SUMMARY_FILE, s.to_text())
+
+    def read_summary(self) -> Summary | None:
+        """summary.json, or None if there is none or it is not one (a killed session
+        leaves none; the records are the truth)."""
+        try:
+            return Summary.from_text((self.path / SUMMARY_FILE).read_bytes())
+        except (OSError, FileError):
+            return None
 
     def bag_dirs(self) -> list[Path]:
         """The session bags, in order (bag_0, bag_1, ...)."""

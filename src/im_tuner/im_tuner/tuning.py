@@ -37,8 +37,7 @@ from __future__ import annotations
 import datetime as _dt
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -49,28 +48,35 @@ from im_controller.result import LossResult
 
 from .optim.base import Optimizer
 from .rundir import RunDir, RunDirError
+from .runlog import (
+    MEASURED,
+    Evaluation,
+    Lost,
+    Record,
+    Reference,
+    Remeasurement,
+    RunRecord,
+    Timing,
+    TunerState,
+    final_choice,
+    replay_plan,
+    summarize,
+    tally,
+)
 from .space import SearchSpace
 
 __all__ = [
-    'MEASURED',
     'BenchFailure',
     'LostEvaluation',
     'Measurement',
     'Measurer',
-    'MemoryRecord',
     'ResumeError',
-    'RunRecord',
     'StopRequested',
-    'TunerState',
     'TuningRun',
-    'final_choice',
     'gains_dict',
     'replay',
     'replay_plan',
     'run_seeds',
-    'summarize',
-    'tally',
-    'tally_all',
 ]
 
 CHECKPOINT_VERSION = 1
@@ -125,10 +131,6 @@ class Measurement:
         )
 
 
-#: Record statuses that carry a loss (told to the optimiser); 'lost' and 'timing' do not.
-MEASURED = ('ok', 'aborted')
-
-
 #: Re-runs of a lost or off-timing measurement with the same gains (the tuner's --retries;
 #: the study's runs use it too, so a study run is the tuner's run bit for bit).
 DEFAULT_RETRIES = 3
@@ -159,42 +161,6 @@ class Measurer(Protocol):
     def apply(self, gains: Gains) -> None: ...
 
 
-class RunRecord(Protocol):
-    """Where a run's records go: a run directory (:class:`RunDir`, durable: results.jsonl
-    fsync'ed, checkpoints, resume) or memory (:class:`MemoryRecord`: the study's runs)."""
-
-    path: Path
-    durable: bool  #: False: no checkpoints are written (nothing could resume from them)
-
-    def append_result(self, record: dict[str, Any]) -> None: ...
-    def read_results(self) -> list[dict[str, Any]]: ...
-    def write_checkpoint(self, state: dict[str, Any]) -> None: ...
-    def read_checkpoint(self) -> dict[str, Any] | None: ...
-
-
-class MemoryRecord:
-    """A run record in memory: the records in a list, no files, no checkpoints (an offline
-    run is repeated from its seed, not resumed)."""
-
-    durable = False
-
-    def __init__(self) -> None:
-        self.path = Path('<memory>')
-        self.results: list[dict[str, Any]] = []
-
-    def append_result(self, record: dict[str, Any]) -> None:
-        self.results.append(record)
-
-    def read_results(self) -> list[dict[str, Any]]:
-        return list(self.results)
-
-    def write_checkpoint(self, state: dict[str, Any]) -> None:
-        pass
-
-    def read_checkpoint(self) -> dict[str, Any] | None:
-        return None
-
-
 def run_seeds(seed: int) -> tuple[np.random.SeedSequence, int]:
     """Independent streams from a run seed (int >= 0): the optimiser's SeedSequence and the
     simulated drive's noise seed (int32 >= 0).  The tuner and the offline study both use
@@ -208,44 +174,13 @@ def gains_dict(g: Gains | tuple[float, ...]) -> dict[str, float]:
     return {n: float(v) for n, v in zip(GAIN_NAMES, t, strict=True)}
 
 
-def _gains_of(record: dict[str, Any]) -> Gains:
+def _gains_of(record: Record | dict[str, Any]) -> Gains:
+    """The gains of a record (or of the state's brief of one)."""
     return Gains(*(float(record['gains'][n]) for n in GAIN_NAMES))
 
 
 def _now() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec='milliseconds')
-
-
-@dataclass
-class TunerState:
-    """Counters and bests (JSON-serialisable via ``vars``)."""
-
-    evals: int = 0
-    experiments: int = 0
-    aborted: int = 0
-    faults: int = 0
-    lost: int = 0
-    timing: int = 0  #: experiments re-run because they did not run on the paper's timing
-    sim_s: float = 0.0
-    loop_wall_s: float = 0.0
-    opt_us: list[float] = field(default_factory=list)  #: ask + tell [us] per live evaluation
-    reference: dict[str, Any] | None = None
-    best: dict[str, Any] | None = None
-    first_satisfactory: int | None = None  #: evaluations it took (1-based count)
-    remeasured: list[dict[str, Any]] = field(default_factory=list)
-    remeasure_plan: list[int] | None = None
-    sessions: list[dict[str, Any]] = field(default_factory=list)
-
-
-def _brief(rec: dict[str, Any]) -> dict[str, Any]:
-    return {
-        'eval': rec['eval'],
-        'u': rec.get('u'),
-        'gains': rec['gains'],
-        'loss': rec['loss'],
-        'terms': rec['terms'],
-        'experiment_id': rec['experiment_id'],
-    }
 
 
 class TuningRun:
@@ -262,7 +197,7 @@ class TuningRun:
         remeasure: int = 3,
         retries: int = DEFAULT_RETRIES,
         reference: bool = True,
-        progress: Callable[[str, dict[str, Any], TuningRun], None] | None = None,
+        progress: Callable[[str, Record, TuningRun], None] | None = None,
     ) -> None:
         if budget < 1:
             raise ValueError(f'budget must be >= 1, got {budget}')
@@ -276,7 +211,7 @@ class TuningRun:
         self.with_reference = bool(reference)
         self.progress = progress
         self.state = TunerState()
-        self.records: list[dict[str, Any]] = []
+        self.records: list[Record] = []
         self._t_mark = time.perf_counter()
         self._ask_us = 0.0
         #: whether the final gains reached the controller (None: not tried yet)
@@ -331,19 +266,19 @@ class TuningRun:
         return len(self.records)
 
     # -- state updates -------------------------------------------------------------------
-    def _apply(self, rec: dict[str, Any], live: bool) -> None:
+    def _apply(self, rec: Record, live: bool) -> None:
         """Update the counters (and, for an evaluation, the optimiser) from one record."""
-        if rec['status'] in MEASURED and rec['kind'] == 'eval':
-            u = np.asarray(rec['u'], dtype=float)
+        if isinstance(rec, Evaluation):
+            u = np.asarray(rec.u, dtype=float)
             if not live:
                 asked = self.opt.ask()
                 if not np.array_equal(asked, u):
                     raise ResumeError(
-                        f'{self.rundir.path}: evaluation {rec["eval"]} in results.jsonl is not '
+                        f'{self.rundir.path}: evaluation {rec.eval} in results.jsonl is not '
                         'what the checkpointed optimiser asks; the files do not belong together'
                     )
             t0 = time.perf_counter()
-            self.opt.tell_measurement(u, rec['loss'], bool(rec.get('aborted')))
+            self.opt.tell_measurement(u, rec.loss, bool(rec.aborted))
             if live:
                 self.state.opt_us.append(self._ask_us + 1e6 * (time.perf_counter() - t0))
         tally(self.state, rec, self.satisfactory)
@@ -370,77 +305,76 @@ class TuningRun:
         m: Measurement | None,
         lost: LostEvaluation | None,
         wall_s: float,
-    ) -> dict[str, Any]:
-        rec: dict[str, Any] = {
+    ) -> Record:
+        """The results.jsonl record of one attempt (``m``: its measurement, None: lost)."""
+        common: dict[str, Any] = {
             'kind': kind,
             'eval': index,
             'attempt': attempt,
             'u': None if u is None else [float(x) for x in u],
             'gains': gains_dict(gains),
             'time': _now(),
+            'session': self.session,
         }
-        if self.session is not None:
-            rec['session'] = self.session
         if m is None:
-            rec.update(
-                status='lost',
-                loss=None,
-                terms=None,
-                aborted=None,
+            return Lost(
+                **common,
                 reason=str(lost),
                 fault=False,
                 experiment_id=lost.experiment_id if lost else None,
-                direction=None,
-                steps=None,
-                trip_step=None,
-                t_start_ns=None,
-                t_end_ns=None,
                 sim_s=0.0,
                 wall_s=wall_s,
             )
-        else:
-            rec.update(
-                status='aborted' if m.aborted else 'ok',
-                loss=m.loss,
-                terms=list(m.terms),
-                aborted=m.aborted,
-                reason=m.reason,
-                fault=m.fault,
-                experiment_id=m.experiment_id,
-                direction=m.direction,
-                steps=m.steps,
-                trip_step=m.trip_step,
-                t_start_ns=m.t_start_ns,
-                t_end_ns=m.t_end_ns,
-                sim_s=(m.t_end_ns - m.t_start_ns) * 1e-9,
-                wall_s=m.wall_s,
+        common.update(
+            reason=m.reason,
+            fault=m.fault,
+            experiment_id=m.experiment_id,
+            direction=m.direction,
+            steps=m.steps,
+            trip_step=m.trip_step,
+            t_start_ns=m.t_start_ns,
+            t_end_ns=m.t_end_ns,
+            sim_s=(m.t_end_ns - m.t_start_ns) * 1e-9,
+            wall_s=m.wall_s,
+            periods={'fresh': m.fresh, 'held': m.held, 'late': m.late},
+            gains_step=m.gains_step,
+        )
+        if m.timing:
+            # measured, but not the paper's loss: kept under another name, never a loss
+            common['reason'] = (
+                f'timing: {m.held} held and {m.late} late of {m.steps} drive periods'
+                + (f' (and {m.reason})' if m.aborted else '')
             )
-            no_loss = {'loss': None, 'terms': None, 'aborted': None}  # re-run, never told
-            if m.timing:
-                # measured, but not the paper's loss: kept under another name, never a loss
-                rec.update(
-                    no_loss,
-                    status='timing',
-                    reason=f'timing: {m.held} held and {m.late} late of {m.steps} drive periods'
-                    + (f' (and {m.reason})' if m.aborted else ''),
-                    off_timing_loss=m.loss,
-                )
-            elif m.aborted and m.steps == 0:
-                # stopped in its standstill settle (a safety fault while the fallback gains
-                # held): not one step of these gains was measured
-                rec.update(
-                    no_loss,
-                    status='lost',
-                    reason=f'ended in its settle, before step 0 ({m.reason}): no step of '
-                    'these gains measured',
-                )
-            rec['periods'] = {'fresh': m.fresh, 'held': m.held, 'late': m.late}
-            rec['gains_step'] = m.gains_step
-        return rec
+            return Timing(**common, off_timing_loss=m.loss)
+        if m.aborted and m.steps == 0:
+            # stopped in its standstill settle (a safety fault while the fallback gains
+            # held): not one step of these gains was measured
+            common['reason'] = (
+                f'ended in its settle, before step 0 ({m.reason}): no step of these gains measured'
+            )
+            return Lost(**common)
+        status = 'aborted' if m.aborted else 'ok'
+        measured: dict[str, Any] = {
+            'status': status,
+            'loss': m.loss,
+            'terms': list(m.terms),
+            'aborted': m.aborted,
+        }
+        if kind == 'eval':
+            # best-so-far after this evaluation, for the results table
+            b = self.state.best
+            best = (
+                m.loss
+                if not m.aborted and (b is None or m.loss < b['loss'])
+                else (b['loss'] if b else None)
+            )
+            return Evaluation(**common, **measured, best_loss=best)
+        cls = Reference if kind == 'reference' else Remeasurement
+        return cls(**common, **measured)
 
     def _measure(
         self, measurer: Measurer, kind: str, index: int, u: np.ndarray | None, gains: Gains
-    ) -> dict[str, Any]:
+    ) -> Record:
         """Measure ``gains`` (re-running lost and off-timing results); records every
         attempt."""
         for attempt in range(1, self.retries + 2):
@@ -459,25 +393,17 @@ class TuningRun:
             now = time.perf_counter()
             self.state.loop_wall_s += now - self._t_mark
             self._t_mark = now
-            if rec['status'] in MEASURED and kind == 'eval':
-                # best-so-far after this evaluation, for the results table
-                b = self.state.best
-                rec['best_loss'] = (
-                    rec['loss']
-                    if not rec['aborted'] and (b is None or rec['loss'] < b['loss'])
-                    else (b['loss'] if b else None)
-                )
             self.rundir.append_result(rec)
             self._apply(rec, live=True)
             self.records.append(rec)
             self._checkpoint()
             if self.progress is not None:
                 self.progress(kind, rec, self)
-            if rec['status'] in MEASURED:
+            if rec.status in MEASURED:
                 return rec
         raise BenchFailure(
             f'{kind} {index}: no result after {self.retries + 1} attempts '
-            f'with the same gains ({rec["reason"]})'
+            f'with the same gains ({rec.reason})'
         )
 
     # -- the run ---------------------------------------------------------------------------
@@ -510,7 +436,7 @@ class TuningRun:
                     rec = next(
                         r
                         for r in self.records
-                        if r['kind'] == 'eval' and r['eval'] == i and r['status'] == 'ok'
+                        if isinstance(r, Evaluation) and r.eval == i and r.status == 'ok'
                     )
                     self._measure(measurer, 'remeasure', i, None, _gains_of(rec))
         except StopRequested:
@@ -535,25 +461,27 @@ class TuningRun:
         """Indices of the k best distinct (by gains) non-aborted evaluations."""
         seen, out = set(), []
         evals = sorted(
-            (r for r in self.records if r['kind'] == 'eval' and r['status'] == 'ok'),
-            key=lambda r: (r['loss'], r['eval']),
+            (r for r in self.records if isinstance(r, Evaluation) and r.status == 'ok'),
+            key=lambda r: (r.loss, r.eval),
         )
         for r in evals:
-            key = tuple(r['gains'][n] for n in GAIN_NAMES)
+            key = tuple(r.gains[n] for n in GAIN_NAMES)
             if key in seen:
                 continue
             seen.add(key)
-            out.append(r['eval'])
+            out.append(r.eval)
             if len(out) == k:
                 break
         return out
 
     def final_choice(self) -> dict[str, Any] | None:
-        """See :func:`final_choice`."""
+        """See ``runlog.final_choice``."""
         return final_choice(self.state, self.records)
 
     # -- summary ---------------------------------------------------------------------------
     def summary(self, *, outcome: str, wall_s: float) -> dict[str, Any]:
+        """summary.json's mapping (``runlog.summarize``; ``applied.on_controller``: whether
+        the final gains reached the controller)."""
         s = summarize(
             self.state,
             self.records,
@@ -562,138 +490,14 @@ class TuningRun:
             outcome=outcome,
             wall_s=wall_s,
         )
-        if s['applied'] is not None:
-            s['applied']['on_controller'] = self.applied
-        return s
-
-
-# -- bookkeeping shared by the loop and the report (pure functions of the records) ------------
-def tally(st: TunerState, rec: dict[str, Any], satisfactory_loss: float) -> None:
-    """Update counters and bests of ``st`` from one results.jsonl record (no optimiser)."""
-    if rec.get('experiment_id') is not None:  # it ran on the bench (a lost one too)
-        st.experiments += 1
-        st.sim_s += rec['sim_s']  # 0 for a lost one: its length is unknown
-    # a safety fault counts whatever became of the record (one in an experiment's settle
-    # is a lost record: no step of its gains ran, but the drive tripped)
-    st.faults += bool(rec['fault'])
-    if rec['status'] == 'lost':
-        st.lost += 1
-        return
-    if rec['status'] == 'timing':
-        st.timing += 1
-        return
-    kind = rec['kind']
-    if kind == 'reference':
-        st.reference = _brief(rec) | {'aborted': rec['aborted']}
-    elif kind == 'remeasure':
-        st.remeasured.append({'eval': rec['eval'], 'loss': rec['loss'], 'aborted': rec['aborted']})
-    elif kind == 'eval':
-        st.evals += 1
-        st.aborted += bool(rec['aborted'])
-        if not rec['aborted'] and (st.best is None or rec['loss'] < st.best['loss']):
-            st.best = _brief(rec)
-        if (
-            st.first_satisfactory is None
-            and not rec['aborted']
-            and rec['loss'] <= satisfactory_loss
-        ):
-            st.first_satisfactory = st.evals
-    else:
-        raise ResumeError(f'unknown record kind {kind!r}')
-
-
-def tally_all(records: list[dict[str, Any]], satisfactory_loss: float) -> TunerState:
-    """The counters and bests of a run rebuilt from its records alone (the report)."""
-    st = TunerState()
-    for rec in records:
-        tally(st, rec, satisfactory_loss)
-    return st
-
-
-def final_choice(st: TunerState, records: list[dict[str, Any]]) -> dict[str, Any] | None:
-    """The record of the controller to leave applied (see the module docstring):
-    the smallest re-measured loss if re-measured, else the smallest measured; the
-    reference if nothing beat it; None before any successful measurement."""
-    cand = st.best
-    if st.remeasured:
-        ok = [r for r in st.remeasured if not r['aborted']]
-        if ok:
-            pick = min(ok, key=lambda r: (r['loss'], r['eval']))
-            cand = next(
-                _brief(r)
-                for r in records
-                if r['kind'] == 'eval' and r['eval'] == pick['eval'] and r['status'] == 'ok'
-            )
-    ref = st.reference
-    if ref is not None and not ref['aborted'] and (cand is None or ref['loss'] <= cand['loss']):
-        return ref
-    return cand
-
-
-def summarize(
-    st: TunerState,
-    records: list[dict[str, Any]],
-    *,
-    budget: int,
-    satisfactory_loss: float,
-    outcome: str,
-    wall_s: float | None,
-) -> dict[str, Any]:
-    """The run summary (summary.json's content) from the counters and the records."""
-    final = final_choice(st, records)
-    rem = {r['eval']: r['loss'] for r in st.remeasured}
-    return {
-        'outcome': outcome,
-        'evaluations': st.evals,
-        'budget': budget,
-        'experiments': st.experiments,
-        'aborted': st.aborted,
-        'safety_faults': st.faults,
-        'lost': st.lost,
-        'timing': st.timing,
-        'reference': None
-        if st.reference is None
-        else {
-            'gains': st.reference['gains'],
-            'loss': st.reference['loss'],
-            'aborted': st.reference['aborted'],
-        },
-        'best': None
-        if st.best is None
-        else {
-            **{k: st.best[k] for k in ('eval', 'gains', 'loss', 'terms')},
-            'remeasured_loss': rem.get(st.best['eval']),
-        },
-        'applied': None
-        if final is None
-        else {
-            'eval': final['eval'],
-            'gains': final['gains'],
-            'loss': final['loss'],
-            'remeasured_loss': rem.get(final['eval']) if final['eval'] >= 0 else None,
-            'source': 'reference' if final['eval'] < 0 else 'evaluation',
-        },
-        'remeasured': st.remeasured,
-        'satisfactory_loss': satisfactory_loss,
-        'evaluations_to_satisfactory': st.first_satisfactory,
-        'wall_s': wall_s,
-        'loop_wall_s': st.loop_wall_s,
-        'sim_s': st.sim_s,
-        'real_time_factor': st.sim_s / st.loop_wall_s if st.loop_wall_s > 0 else None,
-        # median: the first calls pay for cold caches and imports
-        'optimizer_us_per_eval': float(np.median(st.opt_us)) if st.opt_us else None,
-        'sessions': st.sessions,
-    }
-
-
-def replay_plan(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Records of the experiments that ran on the bench, in order (the plant history)."""
-    return [r for r in records if r.get('experiment_id') is not None]
+        if s.applied is not None:
+            s.applied['on_controller'] = self.applied
+        return s.to_dict()
 
 
 def replay(
     measurer: Measurer,
-    records: list[dict[str, Any]],
+    records: list[Record],
     progress: Callable[[int, int], None] | None = None,
 ) -> int:
     """Re-run the experiments of ``records`` with their gains, in order, to bring a fresh
@@ -705,12 +509,12 @@ def replay(
             m = measurer.measure(_gains_of(rec))
         except LostEvaluation as exc:
             raise ResumeError(f'replay: experiment {k} lost ({exc})') from None
-        if rec['status'] in MEASURED and not (
-            m.loss == rec['loss'] and m.experiment_id == rec['experiment_id']
+        if rec.status in MEASURED and not (
+            m.loss == rec.loss and m.experiment_id == rec.experiment_id
         ):
             raise ResumeError(
-                f'replay: experiment {rec["experiment_id"]} gave loss {m.loss!r} '
-                f'(id {m.experiment_id}), the run recorded {rec["loss"]!r}: this bench is not '
+                f'replay: experiment {rec.experiment_id} gave loss {m.loss!r} '
+                f'(id {m.experiment_id}), the run recorded {rec.loss!r}: this bench is not '
                 'the one of the run (drive file, model or seed changed?)'
             )
         if progress is not None:

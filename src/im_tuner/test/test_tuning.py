@@ -16,6 +16,7 @@ import pytest
 from im_controller.config import GAIN_NAMES, Gains
 from im_tuner import optim
 from im_tuner.rundir import RunDir, RunDirError
+from im_tuner.runlog import Record
 from im_tuner.space import TunerParamsError, load_params, parse_params
 from im_tuner.tuning import (
     BenchFailure,
@@ -238,8 +239,9 @@ def test_resume_refuses_results_that_do_not_match_the_checkpoint(tmp_path):
     ck = json.loads((tmp_path / 'part' / 'checkpoint.json').read_text())
     ck['records'] = 2  # pretend the checkpoint is older: records 2.. are caught up
     (tmp_path / 'part' / 'checkpoint.json').write_text(json.dumps(ck))
-    recs[3]['u'][0] = 0.123456  # ... but one of them is not what the optimiser asks
-    path.write_text(''.join(json.dumps(r) + '\n' for r in recs))
+    lines = [r.to_dict() for r in recs]
+    lines[3]['u'][0] = 0.123456  # ... but one of them is not what the optimiser asks
+    path.write_text(''.join(json.dumps(r) + '\n' for r in lines))
     with pytest.raises(ResumeError, match='not what the checkpointed optimiser asks'):
         make_run_from(RunDir(tmp_path / 'part'), budget=12).restore()
 
@@ -401,11 +403,13 @@ def test_run_directory_rules(tmp_path):
             'aborted': False,
         }
 
-    rd.append_result(rec(x))
-    rd.append_result(rec(1e-300))
+    rd.append_result(Record.from_dict(rec(x)))
+    rd.append_result(Record.from_dict(rec(1e-300)))
     with open(rd.path / 'results.jsonl', 'a') as f:
         f.write('{"loss": 0.')
-    assert rd.read_results() == [rec(x), rec(1e-300)]
+    got = rd.read_results()
+    assert got == [Record.from_dict(rec(x)), Record.from_dict(rec(1e-300))]
+    assert [r.loss for r in got] == [x, 1e-300]  # floats read back bit for bit
     assert (rd.path / 'results.jsonl').read_text().endswith('0.')  # reading changes nothing
     rd.read_results(repair=True)
     assert (rd.path / 'results.jsonl').read_text().endswith('}\n')

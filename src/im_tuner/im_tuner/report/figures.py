@@ -50,15 +50,11 @@ def fig5(runs: list[RunReport]):
         )
     else:
         e0 = rr.consecutive[0]
-        t_ref = e0.record['t_start_ns'] * 1e-9
+        t_ref = (e0.record.t_start_ns or 0) * 1e-9
         th0 = e0.signals['theta_ref'][0]
         for j, e in enumerate(rr.consecutive):
-            t = e.t + (e.record['t_start_ns'] * 1e-9 - t_ref)
-            what = (
-                'start gains'
-                if e.record['kind'] == 'reference'
-                else f'evaluation {e.record["eval"]}'
-            )
+            t = e.t + ((e.record.t_start_ns or 0) * 1e-9 - t_ref)
+            what = 'start gains' if e.record.kind == 'reference' else f'evaluation {e.record.eval}'
             ax_p.plot(
                 t,
                 e.signals['theta_ref'] - th0,
@@ -78,7 +74,7 @@ def fig5(runs: list[RunReport]):
             for ax in (ax_p, ax_l):
                 ax.axvline(t[0], color='grey', lw=0.8, ls=':')
             ax_p.annotate(
-                f'experiment {e.record["experiment_id"]}\n({what})',
+                f'experiment {e.record.experiment_id}\n({what})',
                 (t[0], 0),
                 xytext=(4, -4),
                 textcoords='offset points',
@@ -114,13 +110,13 @@ def fig8(runs: list[RunReport]):
     for rr in runs:  # runs from the same start gains share one start curve
         e = rr.reference
         if e is not None:
-            starts.setdefault(tuple(e.record['gains'][n] for n in GAIN_NAMES), (rr, e))
+            starts.setdefault(tuple(e.record.gains[n] for n in GAIN_NAMES), (rr, e))
     for j, (rr, e) in enumerate(starts.values()):  # several different starts: dashes
         curves.append(
             (
                 f'start:{rr.label}',
-                f'start gains (loss {e.record["loss"]:.3f}'
-                + (', aborted)' if e.record['aborted'] else ')')
+                f'start gains (loss {e.record.loss:.3f}'
+                + (', aborted)' if e.record.aborted else ')')
                 + ('' if len(starts) == 1 else f', {rr.label}'),
                 e,
                 _START_COLOR,
@@ -134,7 +130,7 @@ def fig8(runs: list[RunReport]):
             curves.append(
                 (
                     f'best:{rr.label}',
-                    f'{rr.label} best: evaluation {e.record["eval"]} (loss {e.record["loss"]:.3f})',
+                    f'{rr.label} best: evaluation {e.record.eval} (loss {e.record.loss:.3f})',
                     e,
                     c,
                     1.4,
@@ -199,9 +195,9 @@ def fig9_loss(runs: list[RunReport]):
         ev = rr.evals
         if not ev:
             continue
-        x = np.array([r['eval'] + 1 for r in ev], float)
-        y = np.array([r['loss'] for r in ev], float)
-        ab = np.array([bool(r['aborted']) for r in ev])
+        x = np.array([r.eval + 1 for r in ev], float)
+        y = np.array([r.loss for r in ev], float)
+        ab = np.array([bool(r.aborted) for r in ev])
         best = np.array(_best_so_far(ev), dtype=float)  # None -> nan
         ax.plot(
             x[~ab],
@@ -281,11 +277,11 @@ def fig9_gains(runs: list[RunReport]):
     axes = fig.subplots(len(GAIN_NAMES), 1, sharex=True)
     for rr, c in zip(runs, _colors(len(runs)), strict=True):
         ev = rr.evals
-        x = np.array([r['eval'] + 1 for r in ev], float)
+        x = np.array([r.eval + 1 for r in ev], float)
         for ax, n in zip(axes, GAIN_NAMES, strict=True):
             ax.plot(
                 x,
-                [r['gains'][n] for r in ev],
+                [r.gains[n] for r in ev],
                 '.-',
                 ms=3,
                 lw=0.7,

@@ -3,9 +3,7 @@ figures need, and the check of the bags' losses against results.jsonl."""
 
 from __future__ import annotations
 
-import contextlib
 import itertools
-import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,16 +12,24 @@ from typing import Any
 import numpy as np
 
 from im_controller import contract as C
-from im_controller.config import GAIN_NAMES
 from im_controller.layout import INTERNALS_FIELDS
 
 from ..record.reader import BagData, BagReadError, read_bag
 from ..rundir import RunDir, RunDirError
-from ..tuning import MEASURED, summarize, tally_all
+from ..runlog import (
+    Evaluation,
+    Measured,
+    Record,
+    Reference,
+    Timing,
+    summarize,
+    tally_all,
+)
+from ..runlog.columns import CSV_COLUMNS
 from .errors import EXIT_USAGE, ReportError
 
 __all__ = [
-    'CSV_COLUMNS',
+    'CSV_COLUMNS',  # (the run log's: evaluations.csv's columns)
     'EXIT_USAGE',
     'FIGURES',
     'Experiment',
@@ -35,56 +41,6 @@ __all__ = [
 
 INTERNALS_TOPIC = '/' + C.INTERNALS_TOPIC  # the bench's controller, in the root namespace
 LOSS_TOPIC = '/' + C.LOSS_TOPIC
-#: Columns of evaluations.csv, in order (units in docs/tuner.md).
-CSV_COLUMNS: tuple[str, ...] = (
-    'run',
-    'kind',
-    'eval',
-    'attempt',
-    'status',
-    'loss',
-    'best_loss',
-    'term1',
-    'term2',
-    'term3',
-    *GAIN_NAMES,
-    *(f'u{i}' for i in range(len(GAIN_NAMES))),
-    'aborted',
-    'reason',
-    'fault',
-    'experiment_id',
-    'direction',
-    'steps',
-    'trip_step',
-    't_start_ns',
-    't_end_ns',
-    'sim_s',
-    'wall_s',
-    'time',
-    'bag',
-)
-_INT_COLS = (
-    'eval',
-    'attempt',
-    'experiment_id',
-    'direction',
-    'steps',
-    'trip_step',
-    't_start_ns',
-    't_end_ns',
-)
-_FLOAT_COLS = (
-    'loss',
-    'best_loss',
-    'term1',
-    'term2',
-    'term3',
-    *GAIN_NAMES,
-    *(f'u{i}' for i in range(len(GAIN_NAMES))),
-    'sim_s',
-    'wall_s',
-)
-_BOOL_COLS = ('aborted', 'fault')
 FIGURES = ('fig5_trajectory', 'fig8_best_vs_start', 'fig9_loss', 'fig9_gains')
 
 
@@ -93,7 +49,7 @@ FIGURES = ('fig5_trajectory', 'fig8_best_vs_start', 'fig9_loss', 'fig9_gains')
 class Experiment:
     """The per-step signals of one experiment, from ``controller/internals``."""
 
-    record: dict[str, Any]  #: its results.jsonl record
+    record: Record  #: its results.jsonl record
     bag: str  #: the bag it was read from
     t: np.ndarray  #: time since the experiment's first step [s]
     k: np.ndarray  #: drive step index
@@ -101,7 +57,7 @@ class Experiment:
 
     @property
     def direction(self) -> int:
-        return int(self.record.get('direction') or 1)
+        return int(self.record.direction or 1)
 
 
 @dataclass
@@ -110,9 +66,9 @@ class RunReport:
 
     path: Path
     label: str
-    run: dict[str, Any]
-    records: list[dict[str, Any]]
-    summary: dict[str, Any]
+    run: dict[str, Any]  #: run.yaml's mapping
+    records: list[Record]
+    summary: dict[str, Any]  #: summary.json's mapping
     summary_source: str  #: 'summary.json' or 'results.jsonl'
     bags: list[BagData] = field(default_factory=list)
     bag_errors: list[str] = field(default_factory=list)
@@ -126,9 +82,9 @@ class RunReport:
     signals_read: bool = False  #: its bags have been read (:func:`load_signals`)
 
     @property
-    def evals(self) -> list[dict[str, Any]]:
-        """The evaluation records (not lost), in order."""
-        return [r for r in self.records if r['kind'] == 'eval' and r['status'] in MEASURED]
+    def evals(self) -> list[Evaluation]:
+        """The evaluation records (not lost, not off timing), in order."""
+        return [r for r in self.records if isinstance(r, Evaluation)]
 
 
 def _session_bags(sessions: list[dict[str, Any]], n_records: int) -> list[str | None]:
@@ -157,7 +113,7 @@ def load_run(
     Raises :class:`ReportError` when ``path`` is not a tuning run."""
     try:
         rd = RunDir.open(path)
-        run = rd.read_run()
+        run = rd.read_config().to_dict()
         records = rd.read_results(repair=False)  # a torn last line is left alone
     except RunDirError as exc:
         raise ReportError(str(exc)) from None
@@ -168,27 +124,19 @@ def load_run(
     live = rd.holder()  # a tuner is working on it now (its lock)
     sat = float(run.get('satisfactory_loss', 0.0))
     st = tally_all(records, sat)
-    saved = None
-    with contextlib.suppress(OSError, ValueError):
-        saved = json.loads((rd.path / 'summary.json').read_text())
-    if (
-        saved is not None
-        and saved.get('evaluations') == st.evals
-        and saved.get('experiments') == st.experiments
-    ):
-        summary, source = saved, 'summary.json'
+    saved = rd.read_summary()
+    if saved is not None and saved.evaluations == st.evals and saved.experiments == st.experiments:
+        summary, source = saved.to_dict(), 'summary.json'
     else:
         # killed (no summary, or the one of an earlier session): rebuild from the records
-        sessions = (
-            (ck or {}).get('tuner', {}).get('sessions') or (saved or {}).get('sessions') or []
-        )
+        sessions = (ck or {}).get('tuner', {}).get('sessions') or (saved and saved.sessions) or []
         st.sessions = sessions
         outcome = (
             f'running (a tuner has it: {live}); a snapshot of the records so far'
             if live
             else 'interrupted (killed: no final summary)'
         )
-        summary = summarize(
+        rebuilt = summarize(
             st,
             records,
             budget=int(run.get('budget', 0)),
@@ -196,10 +144,9 @@ def load_run(
             outcome=outcome,
             wall_s=None,
         )
-        summary['loop_wall_s'] = sum(float(r.get('wall_s') or 0.0) for r in records)
-        summary['real_time_factor'] = (
-            summary['sim_s'] / summary['loop_wall_s'] if summary['loop_wall_s'] > 0 else None
-        )
+        loop = rebuilt.loop_wall_s = sum(float(r.wall_s or 0.0) for r in records)
+        rebuilt.real_time_factor = (rebuilt.sim_s or 0.0) / loop if loop > 0 else None
+        summary = rebuilt.to_dict()
         source = 'results.jsonl'
     rr = RunReport(rd.path, label or rd.path.name, run, records, summary, source, live=live)
     rr.record_bag = _session_bags(summary.get('sessions') or [], len(records))
@@ -208,36 +155,36 @@ def load_run(
     return rr
 
 
-def _ts_ns(rec: dict[str, Any]) -> int | None:
-    steps = int(rec.get('steps') or 0)
-    if steps <= 0 or rec.get('t_start_ns') is None or rec.get('t_end_ns') is None:
+def _ts_ns(rec: Record) -> int | None:
+    steps = int(rec.steps or 0)
+    if steps <= 0 or rec.t_start_ns is None or rec.t_end_ns is None:
         return None
-    return round((int(rec['t_end_ns']) - int(rec['t_start_ns'])) / steps)
+    return round((int(rec.t_end_ns) - int(rec.t_start_ns)) / steps)
 
 
-def _window(rec: dict[str, Any]) -> tuple[int, int] | None:
+def _window(rec: Record) -> tuple[int, int] | None:
     ts = _ts_ns(rec)
     if not ts:
         return None
-    k0 = int(rec['t_start_ns']) // ts
-    return (k0, k0 + int(rec['steps']))
+    k0 = int(rec.t_start_ns or 0) // ts
+    return (k0, k0 + int(rec.steps or 0))
 
 
 def _wanted(rr: RunReport) -> dict[str, int]:
     """Which records' signals the figures need: name -> record index."""
     want: dict[str, int] = {}
     ran = [
-        i for i, r in enumerate(rr.records) if r['status'] in MEASURED and _window(r) is not None
+        i for i, r in enumerate(rr.records) if isinstance(r, Measured) and _window(r) is not None
     ]
     for i in ran:
-        if rr.records[i]['kind'] == 'reference':
+        if isinstance(rr.records[i], Reference):
             want['reference'] = i
             break
     best = rr.summary.get('best')
     if best is not None:
         for i in ran:
             r = rr.records[i]
-            if r['kind'] == 'eval' and r['eval'] == best['eval']:
+            if isinstance(r, Evaluation) and r.eval == best['eval']:
                 want['best'] = i
                 break
     # Fig. 5: the first two consecutive experiments on one session's drive timeline (the
@@ -247,8 +194,8 @@ def _wanted(rr: RunReport) -> dict[str, int]:
         ra, rb = rr.records[a], rr.records[b]
         if (
             rr.record_bag[a] == rr.record_bag[b]
-            and rb['experiment_id'] == ra['experiment_id'] + 1
-            and rb['t_start_ns'] >= ra['t_end_ns']
+            and rb.experiment_id == (ra.experiment_id or 0) + 1
+            and (rb.t_start_ns or 0) >= (ra.t_end_ns or 0)
         ):
             want['consecutive0'], want['consecutive1'] = a, b
             break
@@ -277,7 +224,7 @@ def load_signals(rr: RunReport, progress: Callable[[str], None] | None = None) -
         exp = _experiment(rr, i, fields)
         if exp is None:
             r = rr.records[i]
-            what = f'{r["kind"]} {r["eval"]} (experiment {r["experiment_id"]})'
+            what = f'{r.kind} {r.eval} (experiment {r.experiment_id})'
             if what not in rr.missing:  # one record may be wanted for two figures
                 rr.missing.append(what)
         else:
@@ -325,9 +272,9 @@ def _check_losses(rr: RunReport) -> dict[str, int]:
         }
     out = {'matched': 0, 'differ': 0, 'missing': 0, 'elsewhere': 0}
     for rec, bag_name in zip(rr.records, rr.record_bag, strict=True):
-        if rec['status'] == 'lost' or rec.get('experiment_id') is None:
+        if rec.status == 'lost' or rec.experiment_id is None:
             continue
-        key = (str(rec['experiment_id']), str(rec['t_start_ns']))
+        key = (str(rec.experiment_id), str(rec.t_start_ns))
         got = by_bag.get(bag_name, {}).get(key) if bag_name is not None else None
         if got is None:
             got = next(
@@ -336,7 +283,7 @@ def _check_losses(rr: RunReport) -> dict[str, int]:
             out['elsewhere'] += got is not None and bag_name is not None
         if got is None:
             out['missing'] += 1
-        elif float(got) == (rec['loss'] if rec['loss'] is not None else rec['off_timing_loss']):
+        elif float(got) == (rec.off_timing_loss if isinstance(rec, Timing) else rec.loss):
             out['matched'] += 1
         else:
             out['differ'] += 1

@@ -3,58 +3,45 @@
 from __future__ import annotations
 
 import csv
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from im_controller.config import GAIN_NAMES
-
-from .load import (
-    _BOOL_COLS,
-    _FLOAT_COLS,
-    _INT_COLS,
-    CSV_COLUMNS,
-    RunReport,
-)
+from ..runlog import Evaluation, Record
+from ..runlog.columns import CSV_BOOL, CSV_COLUMNS, CSV_FLOAT, CSV_INT, csv_values
+from .load import RunReport
 
 
 # ------------------------------------------------------------------------------- CSV
-def _best_so_far(records: list[dict[str, Any]]) -> list[float | None]:
-    best, out = None, []
+def _best_so_far(records: Sequence[Record]) -> list[float | None]:
+    best: float | None = None
+    out: list[float | None] = []
     for r in records:
         if (
-            r['kind'] == 'eval'
-            and r['status'] == 'ok'
-            and not r['aborted']
-            and (best is None or r['loss'] < best)
+            isinstance(r, Evaluation)
+            and r.status == 'ok'
+            and not r.aborted
+            and (best is None or r.loss < best)
         ):
-            best = r['loss']
-        out.append(best if r['kind'] == 'eval' else None)
+            best = r.loss
+        out.append(best if r.kind == 'eval' else None)
     return out
 
 
-def _csv_row(rr: RunReport, rec: dict[str, Any], best: float | None, bag: str | None) -> list[str]:
-    def f(v: Any) -> str:
-        if v is None:
-            return ''
-        if isinstance(v, bool):
-            return 'true' if v else 'false'
-        if isinstance(v, float):
-            return repr(v)
-        return str(v)
+def _cell(v: Any) -> str:
+    if v is None:
+        return ''
+    if isinstance(v, bool):
+        return 'true' if v else 'false'
+    if isinstance(v, float):
+        return repr(v)
+    return str(v)
 
-    terms = rec.get('terms') or [None] * 3
-    u = rec.get('u') or [None] * len(GAIN_NAMES)
-    vals = {
-        'run': rr.label,
-        'best_loss': best,
-        'term1': terms[0],
-        'term2': terms[1],
-        'term3': terms[2],
-        **(rec.get('gains') or {}),
-        **{f'u{i}': x for i, x in enumerate(u)},
-        'bag': bag,
-    }
-    return [f(vals[c]) if c in vals else f(rec.get(c)) for c in CSV_COLUMNS]
+
+def _csv_row(rr: RunReport, rec: Record, best: float | None, bag: str | None) -> list[str]:
+    """The record's cells (the run log's ``csv_values``) and the report's own three."""
+    vals = csv_values(rec) | {'run': rr.label, 'best_loss': best, 'bag': bag}
+    return [_cell(vals.get(c)) for c in CSV_COLUMNS]
 
 
 def write_csv(runs: list[RunReport], path: Path) -> int:
@@ -81,11 +68,11 @@ def read_csv(path: Path | str) -> list[dict[str, Any]]:
             for k, v in row.items():
                 if v == '':
                     r[k] = None
-                elif k in _INT_COLS:
+                elif k in CSV_INT:
                     r[k] = int(v)
-                elif k in _FLOAT_COLS:
+                elif k in CSV_FLOAT:
                     r[k] = float(v)
-                elif k in _BOOL_COLS:
+                elif k in CSV_BOOL:
                     r[k] = v == 'true'
                 else:
                     r[k] = v

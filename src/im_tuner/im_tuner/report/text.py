@@ -12,6 +12,7 @@ from ..progress import drive_text
 
 if TYPE_CHECKING:
     from ..record.reader import BagData
+    from ..runlog import Record
     from .load import RunReport
 
 
@@ -116,14 +117,14 @@ def summary_text(rr: RunReport) -> str:
     return '\n'.join(L)
 
 
-def _period_lines(records: list[dict]) -> list[str]:
+def _period_lines(records: list[Record]) -> list[str]:
     """The drive timeline of the experiments: how their periods were driven."""
-    ran = [r for r in records if isinstance(r.get('periods'), dict)]
+    ran = [r for r in records if r.periods is not None]
     if not ran:
         return []
-    tot = {k: sum(int(r['periods'][k]) for r in ran) for k in ('fresh', 'held', 'late')}
+    tot = {k: sum(int(r.periods[k]) for r in ran if r.periods) for k in ('fresh', 'held', 'late')}
     n = sum(tot.values())
-    spans = sorted({int(r['steps']) for r in ran if r.get('steps') is not None})
+    spans = sorted({int(r.steps) for r in ran if r.steps is not None})
     line = (
         f'  drive periods of the {len(ran)} experiments: {n} ({tot["fresh"]} fresh, '
         f'{tot["held"]} held, {tot["late"]} late'
@@ -132,11 +133,11 @@ def _period_lines(records: list[dict]) -> list[str]:
         + (', '.join(str(x) for x in spans[:4]) + (' ...' if len(spans) > 4 else ''))
     )
     out = [line]
-    bad = [r for r in ran if r['periods']['held'] or r['periods']['late']]
+    bad = [r for r in ran if r.periods and (r.periods['held'] or r.periods['late'])]
     for r in bad[:10]:
-        p = r['periods']
+        p = r.periods or {}
         out.append(
-            f'    experiment {r["experiment_id"]} ({r["kind"]} {r["eval"]}, {r["status"]}): '
+            f'    experiment {r.experiment_id} ({r.kind} {r.eval}, {r.status}): '
             f'{p["fresh"]} fresh, {p["held"]} held, {p["late"]} late'
         )
     if len(bad) > 10:

@@ -11,7 +11,7 @@ configuration.  Everything runs in-process on the same numba kernels as the node
 
 **A study run is a tuner run**, by construction: it is the tuner's own ``TuningRun`` on
 the offline bench (``bench.offline.OfflineBench``), its records kept in memory
-(``tuning.MemoryRecord``: no files, no checkpoints).  Run r of every configuration uses the run seed
+(``runlog.MemoryRecord``: no files, no checkpoints).  Run r of every configuration uses the run seed
 ``run_seed(seed, r)`` and does exactly what ``ros2 run im_tuner tuner --seed <run seed>
 --remeasure 1`` does on the simulated lock-step bench (``tuning.run_seeds`` splits the
 run seed into the optimiser's and the drive's streams): a fresh drive at rest, one

@@ -26,8 +26,9 @@ from im_drive_sim.params import DriveConfig
 
 from .. import optim
 from ..bench.offline import OfflineBench
+from ..runlog import Evaluation, MemoryRecord, Record, Reference, Remeasurement
 from ..space import SearchSpace, TunerParams
-from ..tuning import DEFAULT_RETRIES, MEASURED, MemoryRecord, TuningRun, run_seeds
+from ..tuning import DEFAULT_RETRIES, TuningRun, run_seeds
 from .results import ARRAYS_FILE, META_FILE, StudyResult, load, save
 from .spec import (
     DEFAULT_SATISFACTORY,
@@ -147,9 +148,9 @@ def run_one(
     # 1-based, as it stood when the evaluation was asked (after the previous tell).
     nxt = [opt.iterations + 1]
 
-    def progress(kind: str, rec: dict[str, Any], _run: TuningRun) -> None:
+    def progress(kind: str, rec: Record, _run: TuningRun) -> None:
         if kind == 'eval':
-            iteration[rec['eval']] = nxt[0]
+            iteration[rec.eval] = nxt[0]
             nxt[0] = opt.iterations + 1
 
     t0 = time.perf_counter()
@@ -170,23 +171,22 @@ def run_one(
         raise RuntimeError(f'study run {cell.label} #{r}: {outcome}')
     # the measured records: an attempt lost in its settle (a fault while the fallback
     # gains held, e.g. after an unstable candidate) was re-run, as the tuner does
-    recs = [x for x in tuning.records if x['status'] in MEASURED]
-    ref = next(x for x in recs if x['kind'] == 'reference')
-    evals = [x for x in recs if x['kind'] == 'eval']
-    rem = [x for x in recs if x['kind'] == 'remeasure']
+    ref = next(x for x in tuning.records if isinstance(x, Reference))
+    evals = [x for x in tuning.records if isinstance(x, Evaluation)]
+    rem = [x for x in tuning.records if isinstance(x, Remeasurement)]
     best = tuning.state.best
-    exp_s = sum(x['wall_s'] for x in tuning.records)  # every attempt's bench time
+    exp_s = sum(x.wall_s or 0.0 for x in tuning.records)  # every attempt's bench time
     return RunResult(
         cell=cell_index,
         run=r,
         run_seed=run_seed(spec.seed, r),
         drive_seed=drive_seed,
         start=space.start,
-        ref_loss=ref['loss'],
-        ref_aborted=ref['aborted'],
-        losses=np.array([x['loss'] for x in evals]),
-        aborted=np.array([x['aborted'] for x in evals], dtype=bool),
-        faults=np.array([x['fault'] for x in evals], dtype=bool),
+        ref_loss=ref.loss,
+        ref_aborted=ref.aborted,
+        losses=np.array([x.loss for x in evals]),
+        aborted=np.array([x.aborted for x in evals], dtype=bool),
+        faults=np.array([x.fault for x in evals], dtype=bool),
         iteration=iteration,
         best_eval=-1 if best is None else int(best['eval']),
         best_gains=(
@@ -194,7 +194,7 @@ def run_one(
             if best is None
             else tuple(float(best['gains'][n]) for n in GAIN_NAMES)
         ),
-        remeasured=rem[0]['loss'] if rem else math.nan,
+        remeasured=rem[0].loss if rem else math.nan,
         opt_s=wall - exp_s,
         exp_s=exp_s,
     )

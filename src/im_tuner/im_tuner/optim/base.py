@@ -76,6 +76,7 @@ __all__ = [
     'FLOAT',
     'FLOATS',
     'FLOATS_OR_NONE',
+    'HISTORY',
     'INT',
     'ROWS',
     'SAVED',
@@ -206,6 +207,14 @@ FLOATS_OR_NONE = Codec(
 ROWS = Codec(lambda o, v: [_floats(o, r) for r in v], lambda _o, v: [list(r) for r in v])
 #: written, not read back (``_restored`` recomputes or checks it)
 SAVED = Codec(None, _same)
+
+#: the first fields of a replaying optimiser's state: the history the template keeps
+#: (``REPLAYS``) and the pending candidate
+HISTORY: tuple[Field, ...] = (
+    Field('told_u', '_told_u', ROWS),
+    Field('told_loss', '_told_loss', FLOATS),
+    Field('pending', '_pending', FLOATS_OR_NONE),
+)
 
 
 # ----------------------------------------------------------------------------- template

@@ -26,7 +26,7 @@ from typing import Any, ClassVar
 import cma
 import numpy as np
 
-from .base import FLOATS, FLOATS_OR_NONE, INT, ROWS, Field, Optimizer, OptimizerError, told_history
+from .base import HISTORY, INT, Field, Optimizer, OptimizerError, told_history
 
 __all__ = ['CMAES']
 
@@ -51,9 +51,7 @@ class CMAES(Optimizer):
     algo: ClassVar[str] = 'cmaes'
     REPLAYS: ClassVar[bool] = True
     STATE: ClassVar[tuple[Field, ...]] = (
-        Field('told_u', '_told_u', ROWS),
-        Field('told_loss', '_told_loss', FLOATS),
-        Field('pending', '_pending', FLOATS_OR_NONE),
+        *HISTORY,
         Field('evaluations', 'evaluations', INT),
     )
     BAD_STATE: ClassVar[str] = 'not a cmaes state ({error!r:.80})'

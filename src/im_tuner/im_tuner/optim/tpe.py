@@ -25,10 +25,8 @@ from optuna.distributions import BaseDistribution, FloatDistribution
 from optuna.trial import TrialState, create_trial
 
 from .base import (
-    FLOATS,
-    FLOATS_OR_NONE,
+    HISTORY,
     INT,
-    ROWS,
     SAVED,
     Field,
     Optimizer,
@@ -73,9 +71,7 @@ class TPE(Optimizer):
     algo: ClassVar[str] = 'tpe'
     REPLAYS: ClassVar[bool] = True
     STATE: ClassVar[tuple[Field, ...]] = (
-        Field('told_u', '_told_u', ROWS),
-        Field('told_loss', '_told_loss', FLOATS),
-        Field('pending', '_pending', FLOATS_OR_NONE),
+        *HISTORY,
         Field('rng_tpe', 'rng_tpe', SAVED),
         Field('rng_random', 'rng_random', SAVED),
         Field('evaluations', 'evaluations', INT),

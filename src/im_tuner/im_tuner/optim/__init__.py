@@ -12,8 +12,10 @@ choices), the single source for command-line flags (``options.py``).  Importing 
 package imports no algorithm: each algorithm's module (with pycma, optuna or scipy) is
 imported when one is built or restored, so a command line is parsed and refused in a
 fraction of a second.  The contract of every optimiser (ask/tell, state_dict/from_state,
-evaluations, converged, config) is in ``base.py``; the algorithms, the options and the
-decisions taken are in docs/optimisers.md.
+evaluations, converged, config) and its lifecycle, written once, are in ``base.py`` (the
+template: an algorithm's module is its mathematics and a declaration of its state); the
+checks of what a caller hands in are in ``checks.py``; the algorithms, the options and
+the decisions taken are in docs/optimisers.md.
 """
 
 from __future__ import annotations
@@ -23,8 +25,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .base import (
-    Optimizer,
+from .base import Optimizer
+from .checks import (
     OptimizerError,
     OptionSpec,
     check_dim,

@@ -1,4 +1,4 @@
-"""The optimiser interface shared by SPSA and the compact-GA family.
+"""The optimiser template: the lifecycle every algorithm shares, written once.
 
 Pure numpy (no rclpy): the tuner node, the offline study and the tests drive the same
 objects.  One evaluation at a time (ask/tell), on parameters normalised to the search
@@ -10,72 +10,90 @@ Contract (every optimiser):
   Asking again before ``tell`` returns the SAME candidate: a lost evaluation is re-run
   with the same parameters, never resampled.
 * ``tell(u, loss)``: the measured loss of the candidate just asked (``u`` must equal it
-  bit for bit, else ValueError and nothing changes).  ``loss`` must be a finite float
-  (a penalised/aborted experiment is just a large loss); NaN/inf -> ValueError.
-* ``evaluations``: number of ``tell`` calls so far (loss evaluations, never iterations).
+  bit for bit, else OptimizerError and nothing changes).  ``loss`` must be a finite float
+  (a penalised/aborted experiment is just a large loss); NaN/inf -> OptimizerError.
+  ``tell_measurement(u, loss, aborted)`` is the same with the experiment's aborted flag
+  (only an ``ABORT_AWARE`` algorithm, safe, reads it).
+* ``evaluations``: number of ``tell`` calls so far (loss evaluations, never iterations);
+  ``iterations``: the algorithm's own (SPSA iterations, GA generations...).
 * ``state_dict()`` -> a JSON-serialisable dict holding everything, RNG state included;
-  ``Optimizer.from_state(d)`` (any subclass, dispatched on ``d['algo']``) rebuilds an
-  optimiser that continues exactly as the original would (bit-identical asks).
+  ``Optimizer.from_state(d)`` (dispatched on ``d['algo']``) rebuilds an optimiser that
+  continues exactly as the original would (bit-identical asks).
 * ``converged()``: True when the algorithm has nothing left to do (a compact GA whose
   probability vector is all 0/1); the tuner stops on its budget regardless.
 * ``config()``: the configuration as a JSON-serialisable dict (for the run files).
 
-Randomness: each optimiser owns one ``numpy.random.Generator(PCG64)`` built from its
-seed (an int or a SeedSequence); no global RNG.
+Design: :class:`Optimizer` is a template.  It owns the lifecycle -- the checks of dim,
+seed, start and options (``OPTIONS``, from the table in ``options.py``; a subclass adds
+its cross-option checks in ``_check_options``), the generator (one
+``numpy.random.Generator(PCG64)`` from the seed, an int or a SeedSequence; no global
+RNG), the pending candidate (``_pending``: ask's numbers as a list of floats), tell's
+checks (:func:`.checks.told_loss`) and counting, ``config()``, and the state: its
+envelope (algo, version, config, rng) and restore (version check, rebuild from the
+saved config, the RNG state, one refusal message per algorithm for a malformed state).
+An algorithm is its own mathematics in four hooks:
+
+* ``_setup(x0)``: its initial state (``x0``: the checked start point or None);
+* ``_propose() -> list[float]``: the next candidate (called by ``ask`` when none is
+  pending);
+* ``_update(u, loss, aborted)``: learn from the told loss of ``u`` (before the template
+  clears the pending candidate and counts the evaluation);
+* ``iterations``;
+
+and a declaration of its state: ``STATE``, the fields after the envelope in their JSON
+order, each a :class:`Field` (key, attribute, :class:`Codec`), plus ``_restored(state)``
+for what is derived from them or checked across them.  Two restore styles:
+
+* snapshot (spsa, the compact GAs, rcga, safe): the state holds the algorithm's variables
+  and the PCG64 state; uniforms drawn in blocks (``_block``/``_draws``) are saved as if
+  only the used ones had been drawn (:func:`rng_state`);
+* replay (``REPLAYS``: cmaes, tpe, whose libraries have no stable serialisation): the
+  state is the seed, the configuration and every candidate and loss told (kept by the
+  template in ``_told_u``/``_told_loss``); ``_restore`` rebuilds from the seed and replays.
 """
 
 from __future__ import annotations
 
-import math
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar
+from collections.abc import Callable, Mapping
+from typing import Any, ClassVar, NamedTuple, Self
 
 import numpy as np
 
+from .checks import (
+    OptimizerError,
+    OptionSpec,
+    check_dim,
+    check_loss,
+    check_options,
+    check_seed,
+    check_start,
+    told_loss,
+)
+from .options import OPTIONS, algorithm_class
+
 __all__ = [
-    'NDARRAY',
+    'FLOAT',
+    'FLOATS',
+    'FLOATS_OR_NONE',
+    'HISTORY',
+    'INT',
+    'ROWS',
+    'SAVED',
+    'STR',
+    'Codec',
+    'Field',
     'Optimizer',
     'OptimizerError',
     'OptionSpec',
-    'check_dim',
-    'check_loss',
     'check_options',
-    'check_seed',
-    'check_start',
-    'check_told',
-    'check_version',
     'make_rng',
-    'rebuild',
     'rng_state',
     'seed_from_json',
     'seed_json',
     'set_rng_state',
     'told_history',
-    'told_loss',
-    'zero_signs_match',
 ]
-
-#: The array type, bound once (tell's fast path tests ``type(u) is NDARRAY``).
-NDARRAY = np.ndarray
-
-
-class OptimizerError(ValueError):
-    """Bad optimiser configuration or misuse (the message says which and why)."""
-
-
-def check_seed(seed: Any) -> int | np.random.SeedSequence:
-    """An int seed (>= 0, bool refused) or a SeedSequence; returns it (ints as ``int``)."""
-    if isinstance(seed, (bool, np.bool_)) or not isinstance(
-        seed, (int, np.integer, np.random.SeedSequence)
-    ):
-        raise OptimizerError(f'seed must be an integer >= 0 or a SeedSequence, got {seed!r}')
-    if not isinstance(seed, np.random.SeedSequence):
-        if int(seed) < 0:
-            raise OptimizerError(f'seed must be an integer >= 0, got {seed}')
-        return int(seed)
-    return seed
 
 
 def make_rng(seed: int | np.random.SeedSequence) -> np.random.Generator:
@@ -98,6 +116,13 @@ def seed_json(seed: int | np.random.SeedSequence) -> Any:
             'spawn_key': [int(k) for k in seed.spawn_key],
         }
     return int(seed)
+
+
+def seed_from_json(j: Any) -> int | np.random.SeedSequence:
+    """The seed written by :func:`seed_json` (an int, or a SeedSequence's entropy and key)."""
+    if isinstance(j, dict):
+        return np.random.SeedSequence(j['entropy'], spawn_key=tuple(j['spawn_key']))
+    return int(j)
 
 
 #: PCG64's underlying LCG has period 2^128: advancing by 2^128 - d steps goes back d draws.
@@ -127,243 +152,231 @@ def set_rng_state(rng: np.random.Generator, state: dict[str, Any]) -> None:
     rng.bit_generator.state = state
 
 
-def check_loss(loss: Any) -> float:
-    """A told loss: a finite real number (bool and str refused)."""
-    if isinstance(loss, (bool, np.bool_)) or not isinstance(
-        loss, (int, float, np.integer, np.floating)
-    ):
-        raise OptimizerError(f'loss must be a finite number, got {loss!r}')
-    x = float(loss)
-    if not math.isfinite(x):
-        raise OptimizerError(f'loss must be finite, got {x!r}')
-    return x
+def told_history(algo: str, state: dict[str, Any]) -> tuple[list[list[float]], list[float]]:
+    """The candidates and losses told so far, saved by an optimiser whose state is its
+    history (``REPLAYS``), checked for matching lengths."""
+    us, losses = state['told_u'], state['told_loss']
+    if len(us) != len(losses) or state['evaluations'] != len(losses):
+        raise OptimizerError(f'{algo} state: told candidates and losses do not match')
+    return [[float(x) for x in u] for u in us], [check_loss(v) for v in losses]
 
 
-def check_dim(dim: Any) -> int:
-    """Number of parameters: an integer >= 1 (bool refused)."""
-    if isinstance(dim, (bool, np.bool_)) or not isinstance(dim, (int, np.integer)) or dim < 1:
-        raise OptimizerError(f'dim must be an integer >= 1, got {dim!r}')
-    return int(dim)
+# ------------------------------------------------------------------------- state fields
+class Codec(NamedTuple):
+    """How one state field goes to JSON and back.
+
+    ``dump(optimiser, attribute value) -> JSON value``; ``load(optimiser, JSON value) ->
+    attribute value`` (it converts and checks, raising KeyError/TypeError/ValueError or
+    OptimizerError on a malformed value), or None: the field is written for the reader
+    and recomputed or checked by ``_restored`` on restore."""
+
+    load: Callable[[Any, Any], Any] | None
+    dump: Callable[[Any, Any], Any]
 
 
-def check_start(start: Any, dim: int) -> np.ndarray | None:
-    """A start point: None, or ``dim`` finite numbers in [0, 1] (as a new float64 array)."""
-    if start is None:
-        return None
-    try:
-        x = np.array(start, dtype=np.float64)
-        ok = (
-            x.shape == (dim,)
-            and np.asarray(start).dtype != np.bool_
-            and bool(np.all(np.isfinite(x)))
-            and bool(np.all((x >= 0.0) & (x <= 1.0)))
-        )
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise OptimizerError(
-            f'start must be None or {dim} finite numbers in [0, 1] '
-            f'(normalised parameters), got {start!r}'
-        )
-    return x
+class Field(NamedTuple):
+    """One field of an algorithm's state: its JSON key, the attribute it holds, its codec."""
+
+    key: str
+    attr: str
+    codec: Codec
 
 
-@dataclass(frozen=True)
-class OptionSpec:
-    """One option of an optimiser: type, default, meaning, accepted values.
-
-    ``type`` is ``float``, ``int`` or ``str``.  Numbers must lie in [low, high] (a bound
-    is exclusive if ``low_strict``/``high_strict``; ``None`` = unbounded); ``+inf`` is
-    accepted only where ``high`` is ``inf`` and not strict.  Strings must be one of
-    ``choices``.  ``default`` None means "derived from other options" (``help`` says how).
-    Floats accept int/float (numpy scalars too) but never bool; ints refuse floats.
-    """
-
-    type: type
-    default: Any
-    help: str
-    low: float | None = None
-    high: float | None = None
-    low_strict: bool = False
-    high_strict: bool = False
-    choices: tuple[str, ...] | None = None
-
-    def allowed(self) -> str:
-        """The accepted values in words, e.g. 'a number in (0, 0.5)', "one of 'a', 'b'"."""
-        if self.choices is not None:
-            return 'one of ' + ', '.join(repr(c) for c in self.choices)
-        kind = 'an integer' if self.type is int else 'a number'
-        fmt = (lambda v: str(int(v))) if self.type is int else (lambda v: f'{v:g}')
-        lo, hi = self.low, self.high
-        if lo is not None and hi is not None:
-            return (
-                f'{kind} in {"(" if self.low_strict else "["}{fmt(lo)}, '
-                f'{fmt(hi)}{")" if self.high_strict else "]"}'
-            )
-        if lo is not None:
-            return f'{kind} {">" if self.low_strict else ">="} {fmt(lo)}'
-        if hi is not None:
-            return f'{kind} {"<" if self.high_strict else "<="} {fmt(hi)}'
-        return kind
-
-    def check(self, where: str, value: Any) -> Any:
-        """``value`` converted to the option's type, or OptimizerError naming ``where``."""
-        bad = OptimizerError(f'{where} must be {self.allowed()}, got {value!r}')
-        if self.choices is not None:
-            if not isinstance(value, str) or value not in self.choices:
-                raise bad
-            return str(value)
-        if isinstance(value, (bool, np.bool_)):
-            raise bad
-        if self.type is int:
-            if not isinstance(value, (int, np.integer)):
-                raise bad
-            x: Any = int(value)
-        else:
-            if not isinstance(value, (int, float, np.integer, np.floating)):
-                raise bad
-            x = float(value)
-            if math.isnan(x) or (
-                math.isinf(x) and not (x > 0 and self.high == math.inf and not self.high_strict)
-            ):
-                raise bad
-        if self.low is not None and (x <= self.low if self.low_strict else x < self.low):
-            raise bad
-        if self.high is not None and (x >= self.high if self.high_strict else x > self.high):
-            raise bad
-        return x
+def _same(_opt: Any, v: Any) -> Any:
+    return v
 
 
-def check_options(
-    algo: str, specs: dict[str, OptionSpec], options: dict[str, Any]
-) -> dict[str, Any]:
-    """Every option known and valid; returns them all, defaults filled in (None stays None)."""
-    for name in options:
-        if name not in specs:
-            raise OptimizerError(
-                f'unknown option {name!r} for {algo} (allowed: {", ".join(specs) or "none"})'
-            )
-    out = {}
-    for name, spec in specs.items():
-        if name in options and not (spec.default is None and options[name] is None):
-            out[name] = spec.check(f'{algo} option {name}', options[name])
-        else:
-            out[name] = spec.default
-    return out
+def _floats(_opt: Any, v: Any) -> list[float]:
+    return [float(x) for x in v]
 
 
-def check_told(pending: list[float] | None, u: Any, loss: Any) -> float:
-    """Validate a ``tell`` (the exact check, with the error messages): a pending candidate
-    (``ask``'s values as a list of floats, None when nothing is pending), ``u`` equal to
-    it bit for bit once converted to float64 (a list, or an int array of 0/1, is fine), a
-    finite loss.
-
-    The optimisers' ``tell`` first tries a fast path, written out in each (it runs once per
-    evaluation, with cold caches; docs/optimisers.md "Speed") and accepting only::
-
-        type(u) is ndarray and u.tolist() == pending   (Python's exact number comparison)
-        and (no zero pending, or zero_signs_match(u.tolist(), pending))
-        and type(loss) is float and loss - loss == 0.0   (finite)
-
-    ``tolist`` gives a nested list for a 2-d array and a scalar for a 0-d one, so equality
-    also checks the shape; numbers that compare equal convert to the same float64, whose
-    bytes differ only in the sign of zero, hence the zero test.  Everything else (lists,
-    numpy scalars as loss, mismatches, errors) comes here.
-    """
-    if pending is None:
-        raise OptimizerError('tell without a pending candidate: call ask() first')
-    try:
-        a = np.asarray(u, dtype=np.float64)
-        same = a.shape == (len(pending),) and a.tobytes() == np.array(pending).tobytes()
-    except (TypeError, ValueError):
-        same = False
-    if not same:
-        raise OptimizerError(
-            'tell: u is not the pending candidate returned by ask() (it must be equal bit for bit)'
-        )
-    return check_loss(loss)
+def _copy(_opt: Any, v: Any) -> list[Any]:
+    return list(v)
 
 
-def zero_signs_match(values: list[Any], pending: list[float]) -> bool:
-    """Equal lists (``==``) are equal float64 bytes unless a zero differs in sign."""
-    try:
-        return all(
-            math.copysign(1.0, a) == math.copysign(1.0, b)
-            for a, b in zip(values, pending, strict=True)
-        )
-    except TypeError:  # not real numbers (a complex zero...): the exact check
-        return False
+INT = Codec(lambda _o, v: int(v), _same)
+FLOAT = Codec(lambda _o, v: float(v), _same)
+STR = Codec(lambda _o, v: str(v), _same)
+#: a list of floats (kept as a python list)
+FLOATS = Codec(_floats, _copy)
+FLOATS_OR_NONE = Codec(
+    lambda o, v: None if v is None else _floats(o, v),
+    lambda o, v: None if v is None else list(v),
+)
+#: a list of lists of floats (points)
+ROWS = Codec(lambda o, v: [_floats(o, r) for r in v], lambda _o, v: [list(r) for r in v])
+#: written, not read back (``_restored`` recomputes or checks it)
+SAVED = Codec(None, _same)
+
+#: the first fields of a replaying optimiser's state: the history the template keeps
+#: (``REPLAYS``) and the pending candidate
+HISTORY: tuple[Field, ...] = (
+    Field('told_u', '_told_u', ROWS),
+    Field('told_loss', '_told_loss', FLOATS),
+    Field('pending', '_pending', FLOATS_OR_NONE),
+)
 
 
+# ----------------------------------------------------------------------------- template
 class Optimizer(ABC):
-    """Base class: see the module docstring for the contract."""
+    """The template of every optimiser: see the module docstring for the contract and
+    which hooks a subclass writes.
 
-    #: registry name ('spsa', 'cga', 'pecga', 'necga', 'rcga'); set by subclasses
+    ``Algo(dim, seed, start=None, **options)``: ``dim`` >= 1 parameters, ``seed`` an int
+    >= 0 or a SeedSequence, ``start`` a point of [0, 1]^dim (or None), ``options`` those
+    of ``OPTIONS`` (unset ones take their defaults); everything is checked, in that
+    order, before anything is created (OptimizerError naming the problem).
+    """
+
+    #: registry name ('spsa', 'cga', ...; ``options.ALGOS``); set by subclasses
     algo: ClassVar[str] = ''
     _registry: ClassVar[dict[str, type[Optimizer]]] = {}
+
+    #: the options the constructor takes (name -> spec): the algorithm's entry of
+    #: ``options.OPTIONS``, set when its class is defined
+    OPTIONS: ClassVar[Mapping[str, OptionSpec]] = {}
 
     def __init_subclass__(cls, **kw: Any) -> None:
         super().__init_subclass__(**kw)
         if cls.algo:
             Optimizer._registry[cls.algo] = cls
+            cls.OPTIONS = OPTIONS[cls.algo]
 
-    #: the options the constructor takes (name -> spec); set by subclasses
-    OPTIONS: ClassVar[Mapping[str, OptionSpec]] = {}
+    #: why the algorithm refuses a start point ('': it takes one)
+    NO_START: ClassVar[str] = ''
+    #: tell_measurement's aborted flag reaches ``_update`` (else it is always False)
+    ABORT_AWARE: ClassVar[bool] = False
+    #: the state format: its version, its fields after the envelope (in JSON order)
+    STATE_VERSION: ClassVar[int] = 1
+    STATE: ClassVar[tuple[Field, ...]] = ()
+    #: restored by replaying the told history from the seed (no 'rng' in the state)
+    REPLAYS: ClassVar[bool] = False
+    #: the refusal of a malformed state (``{algo}``, ``{error}``: the exception) and the
+    #: exceptions it stands for
+    BAD_STATE: ClassVar[str] = 'bad {algo} state: {error!r}'
+    STATE_ERRORS: ClassVar[tuple[type[Exception], ...]] = (KeyError, TypeError, ValueError)
+    #: samples (or iterations) per random block: one rng call per block
+    _BLOCK: ClassVar[int] = 64
 
     dim: int
     evaluations: int
 
-    if TYPE_CHECKING:
-        # The constructor every subclass has (make_optimizer calls it through the registry).
-        def __init__(
-            self,
-            dim: int,
-            seed: int | np.random.SeedSequence,
-            start: np.ndarray | None = None,
-            **options: Any,
-        ) -> None: ...
+    def __init__(
+        self,
+        dim: int,
+        seed: int | np.random.SeedSequence,
+        start: np.ndarray | None = None,
+        **options: Any,
+    ) -> None:
+        self.dim = check_dim(dim)
+        seed = check_seed(seed)
+        x0 = check_start(start, self.dim)
+        if x0 is not None and self.NO_START:
+            raise OptimizerError(
+                f'{self.algo} does not take a start point ({self.NO_START}); pass start=None'
+            )
+        self._opts = self._check_options(options)
+        self._seed_json = seed_json(seed)
+        self._rng = make_rng(seed)
+        self.evaluations = 0
+        self._pending: list[float] | None = None  # the candidate asked and not yet told
+        # the random block (``_block``'s values) and the next unused entry
+        self._blk: list[Any] = []
+        self._bi = 0
+        if self.REPLAYS:
+            self._told_u: list[list[float]] = []
+            self._told_loss: list[float] = []
+        self._setup(x0)
+
+    def _check_options(self, options: dict[str, Any]) -> dict[str, Any]:
+        """Every option known and valid, defaults filled in; a subclass adds its
+        cross-option checks (raising OptimizerError before anything is created)."""
+        return check_options(self.algo, self.OPTIONS, options)
+
+    # ------------------------------------------------------------ the algorithm's hooks
+    @abstractmethod
+    def _setup(self, x0: np.ndarray | None) -> None:
+        """The initial state (options in ``self._opts``, the generator in ``self._rng``)."""
+
+    @abstractmethod
+    def _propose(self) -> list[float]:
+        """The next candidate u, as python floats in [0, 1]."""
+
+    @abstractmethod
+    def _update(self, u: list[float], loss: float, aborted: bool) -> None:
+        """Learn from ``loss``, the measured loss of the pending candidate ``u``."""
 
     @property
     @abstractmethod
     def iterations(self) -> int:
-        """The paper's iterations completed so far: SPSA iterations, GA generations."""
+        """The algorithm's iterations completed so far: SPSA iterations, GA generations."""
 
-    @abstractmethod
-    def ask(self) -> np.ndarray: ...
+    def _block(self) -> list[Any]:
+        """A new random block (the algorithms that draw their uniforms in blocks)."""
+        raise NotImplementedError
 
-    @abstractmethod
-    def tell(self, u: np.ndarray, loss: float) -> None: ...
+    def _draws(self, n: int) -> int:
+        """The index in ``_blk`` of the next ``n`` unused entries (a new block when the
+        current one is used up; n divides the block's length)."""
+        i = self._bi
+        if i == len(self._blk):
+            self._blk, i = self._block(), 0
+        self._bi = i + n
+        return i
 
-    @abstractmethod
-    def state_dict(self) -> dict[str, Any]: ...
+    def _unread(self) -> int:
+        """How many doubles of the random block are drawn and not used yet."""
+        return len(self._blk) - self._bi
 
-    @classmethod
-    @abstractmethod
-    def _from_state(cls, state: dict[str, Any]) -> Optimizer: ...
+    def _settings(self) -> dict[str, Any]:
+        """The configuration after algo, dim and seed: the options (resolved)."""
+        return self._opts
 
-    @abstractmethod
-    def config(self) -> dict[str, Any]: ...
+    def _restored(self, state: dict[str, Any]) -> None:  # noqa: B027  (optional hook)
+        """After the fields are loaded: derived values and checks across fields."""
+
+    # -------------------------------------------------------------------- the lifecycle
+    def ask(self) -> np.ndarray:
+        pu = self._pending
+        if pu is None:
+            self._pending = pu = self._propose()
+        return np.array(pu)
+
+    def tell(self, u: np.ndarray, loss: float) -> None:
+        self.tell_measurement(u, loss, False)
+
+    def tell_measurement(self, u: np.ndarray, loss: float, aborted: bool) -> None:
+        """``tell`` with the experiment's aborted flag (the tuner calls this).  Only an
+        ``ABORT_AWARE`` algorithm (safe: an aborted experiment is a constraint) reads the
+        flag; for the others the penalised loss says it."""
+        pu = self._pending
+        loss = told_loss(pu, u, loss)
+        assert pu is not None  # told_loss refused a tell without an ask
+        self._update(pu, loss, bool(aborted) if self.ABORT_AWARE else False)
+        if self.REPLAYS:
+            self._told_u.append(pu)
+            self._told_loss.append(loss)
+        self._pending = None
+        self.evaluations += 1
 
     def converged(self) -> bool:
         return False
 
-    def _init_checked(
-        self, dim: int, seed: int | np.random.SeedSequence, start: Any, options: dict[str, Any]
-    ) -> tuple[int | np.random.SeedSequence, np.ndarray | None]:
-        """The checks every optimiser that takes a start runs first: sets ``dim``,
-        ``_opts`` and ``_seed_json``; returns the checked seed and start (None: none)."""
-        self.dim = check_dim(dim)
-        seed = check_seed(seed)
-        x0 = check_start(start, self.dim)
-        self._opts = check_options(self.algo, dict(self.OPTIONS), options)
-        self._seed_json = seed_json(seed)
-        return seed, x0
+    def config(self) -> dict[str, Any]:
+        return {'algo': self.algo, 'dim': self.dim, 'seed': self._seed_json, **self._settings()}
 
-    def tell_measurement(self, u: np.ndarray, loss: float, aborted: bool) -> None:
-        """``tell`` with the experiment's aborted flag (the tuner calls this).  The default
-        ignores the flag: the penalised loss says it; an optimiser that treats an aborted
-        experiment as a constraint (safe) overrides it."""
-        self.tell(u, loss)
+    # ------------------------------------------------------------------------ the state
+    def state_dict(self) -> dict[str, Any]:
+        state: dict[str, Any] = {
+            'algo': self.algo,
+            'version': self.STATE_VERSION,
+            'config': self.config(),
+        }
+        if not self.REPLAYS:
+            state['rng'] = rng_state(self._rng, self._unread())
+        for f in self.STATE:
+            state[f.key] = f.codec.dump(self, getattr(self, f.attr))
+        return state
 
     @staticmethod
     def from_state(state: dict[str, Any]) -> Optimizer:
@@ -371,8 +384,6 @@ class Optimizer(ABC):
         try:
             cls = Optimizer._registry.get(state['algo'])
             if cls is None:  # its module not imported yet (im_tuner.optim loads them lazily)
-                from .options import algorithm_class
-
                 cls = algorithm_class(state['algo'])
         except (KeyError, TypeError):
             raise OptimizerError(
@@ -380,61 +391,45 @@ class Optimizer(ABC):
                 if isinstance(state, dict)
                 else 'not an optimiser state'
             ) from None
-        return cls._from_state(state)
+        try:
+            if state.get('version') != cls.STATE_VERSION:
+                raise OptimizerError(
+                    f'{cls.algo} state version {state.get("version")!r} not supported '
+                    f'(expected {cls.STATE_VERSION})'
+                )
+            return cls._restore(state)
+        except OptimizerError:
+            raise
+        except cls.STATE_ERRORS as e:
+            raise OptimizerError(cls.BAD_STATE.format(algo=cls.algo, error=e)) from None
 
+    @classmethod
+    def _restore(cls, state: dict[str, Any]) -> Self:
+        """A snapshot: built from the saved configuration (seed 0, no start; the saved
+        seed is what ``config()`` reports), the saved RNG state put in, the fields loaded."""
+        cfg = dict(state['config'])
+        dim = cfg.pop('dim')
+        cfg.pop('algo'), cfg.pop('seed')
+        opt = cls(dim, 0, None, **cfg)
+        opt._load(state)
+        return opt
 
-def told_loss(pending: list[float] | None, u: Any, loss: Any) -> float:
-    """The loss of a ``tell``, after checking ``u`` is the pending candidate.
+    def _load(self, state: dict[str, Any]) -> None:
+        self._seed_json = state['config']['seed']
+        set_rng_state(self._rng, state['rng'])
+        for f in self.STATE:
+            if f.codec.load is not None:
+                setattr(self, f.attr, f.codec.load(self, state[f.key]))
+        self._restored(state)
 
-    Fast path (the tuner's case): an ndarray holding exactly the pending numbers (signs
-    of zeros included) and a finite float.  Anything else goes through
-    :func:`check_told`, the exact check with its error messages."""
-    if (
-        pending is None
-        or type(u) is not NDARRAY
-        or type(loss) is not float
-        or loss - loss != 0.0
-        or (tl := u.tolist()) != pending
-        or (0.0 in pending and not zero_signs_match(tl, pending))
-    ):
-        return check_told(pending, u, loss)
-    return loss
-
-
-def check_version(cls: Any, state: dict[str, Any], version: int) -> None:
-    """The state's format version is ``version``, else OptimizerError."""
-    if state.get('version') != version:
-        raise OptimizerError(
-            f'{cls.algo} state version {state.get("version")!r} not supported (expected {version})'
+    @classmethod
+    def _replica(cls, state: dict[str, Any], start: Any) -> Self:
+        """A replaying optimiser's restore starts here: a new one from the saved seed,
+        configuration and ``start`` (a saved start, or None)."""
+        cfg = state['config']
+        return cls(
+            int(cfg['dim']),
+            seed_from_json(cfg['seed']),
+            None if start is None else np.array(start, dtype=np.float64),
+            **{k: cfg[k] for k in cls.OPTIONS},
         )
-
-
-def seed_from_json(j: Any) -> int | np.random.SeedSequence:
-    """The seed written by :func:`seed_json` (an int, or a SeedSequence's entropy and key)."""
-    if isinstance(j, dict):
-        return np.random.SeedSequence(j['entropy'], spawn_key=tuple(j['spawn_key']))
-    return int(j)
-
-
-def told_history(algo: str, state: dict[str, Any]) -> tuple[list[list[float]], list[float]]:
-    """The candidates and losses told so far, saved by an optimiser whose state is its
-    history (cmaes, tpe), checked for matching lengths."""
-    us, losses = state['told_u'], state['told_loss']
-    if len(us) != len(losses) or state['evaluations'] != len(losses):
-        raise OptimizerError(f'{algo} state: told candidates and losses do not match')
-    return [[float(x) for x in u] for u in us], [check_loss(v) for v in losses]
-
-
-def rebuild(cls: Any, state: dict[str, Any], version: int) -> Any:
-    """The first half of every ``_from_state``: check the state's version, build ``cls``
-    from the saved configuration (seed 0, no start; the saved seed is what ``config()``
-    reports) and put the saved RNG state in it.
-    The caller then restores its own fields."""
-    check_version(cls, state, version)
-    cfg = dict(state['config'])
-    dim = cfg.pop('dim')
-    cfg.pop('algo'), cfg.pop('seed')
-    opt = cls(dim, 0, None, **cfg)
-    opt._seed_json = state['config']['seed']
-    set_rng_state(opt._rng, state['rng'])
-    return opt

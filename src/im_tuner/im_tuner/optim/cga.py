@@ -35,25 +35,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .base import (
-    Optimizer,
-    OptimizerError,
-    OptionSpec,
-    check_dim,
-    check_options,
-    check_seed,
-    check_start,
-    make_rng,
-    rebuild,
-    rng_state,
-    seed_json,
-    told_loss,
-)
-from .options import CGA_OPTIONS, NECGA_OPTIONS
+from .base import FLOAT, INT, SAVED, Codec, Field, Optimizer, OptimizerError
+from .options import check_eta_below_n
 
 __all__ = ['CGA', 'NECGA', 'PECGA', 'BinaryCGA']
-
-_STATE_VERSION = 1
 
 # Phases (in the state): what the next ask samples.  They follow from whether an
 # individual is held: cGA 'first' (a of a generation) when not, 'second' (b) when it is;
@@ -73,7 +58,7 @@ class BinaryCGA(Optimizer):
     """The binary compact GAs (PV, sampling, decoding, competitions, state I/O).
 
     ``CGA``, ``PECGA`` and ``NECGA`` differ only in the class flags ``_ELITIST`` and
-    ``_NE`` (and neCGA's options); ``tell`` holds the three competitions inline.
+    ``_NE`` (and neCGA's options); ``_update`` holds the three competitions inline.
 
     Representation (SWAR in python ints: a few big-int operations per ask and per tell
     instead of numpy calls, whose cost dominates with the cold caches of a tuning run;
@@ -93,39 +78,21 @@ class BinaryCGA(Optimizer):
       when the loser was sampled from an older PV (an elite beaten by a newcomer).
     """
 
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = CGA_OPTIONS
+    NO_START: ClassVar[str] = 'a compact GA starts from p = 0.5'
     _ELITIST: ClassVar[bool] = False  # pe/neCGA: an elite and one newcomer
     _NE: ClassVar[bool] = False  # neCGA: theta and the elite replacement
-    eta: int  # neCGA only (set by NECGA.__init__)
+    eta: int  # neCGA only (set by NECGA._setup)
     elite_replacement: str  # neCGA only
     #: samples per random block (one rng call and one vectorised pass per block)
     _BLOCK: ClassVar[int] = 64
 
-    def __init__(
-        self,
-        dim: int,
-        seed: int | np.random.SeedSequence,
-        start: np.ndarray | None = None,
-        **options: Any,
-    ) -> None:
-        self.dim = check_dim(dim)
-        seed = check_seed(seed)
-        if start is not None:
-            check_start(start, self.dim)
-            raise OptimizerError(
-                f'{self.algo} does not take a start point (a compact GA '
-                'starts from p = 0.5); pass start=None'
-            )
-        opts = check_options(self.algo, self.OPTIONS, options)
-        self._check_more(opts)
-        self._opts = opts
-        self._seed_json = seed_json(seed)
+    def _setup(self, x0: np.ndarray | None) -> None:
+        opts = self._opts
         self.n: int = opts['n']
         self.bits: int = opts['bits']
         self.gray: bool = opts['coding'] == 'gray'
         self.m = m = self.dim * self.bits
         self._K = K = (self.n + 1) // 2  # |k_j| = K <=> p_j in {0, 1}
-        self._rng = make_rng(seed)
         offsets = np.arange(-K, K + 1)
         # p_j = table[k_j + K]: one correctly rounded division per offset, exactly 0.0 and
         # 1.0 at the ends.
@@ -144,21 +111,13 @@ class BinaryCGA(Optimizer):
         self._mask = (1 << self.bits) - 1
         self._vmax = float(2**self.bits - 1)
         self._gray_shifts = [s for s in (1, 2, 4, 8, 16) if s < self.bits]
-        self.evaluations = 0
         self.generation = 0  # completed competitions (PV updates)
-        self._pu: list[float] | None = None  # the pending candidate (u)
-        self._pg: int | None = None  # and its genome (guard-bit form)
+        self._pg: int | None = None  # the pending candidate's genome (guard-bit form)
         # cGA: the first individual of the generation; pe/neCGA: the elite (None while a
         # sampled replacement is pending).
         self._held: int | None = None
         self._held_loss = 0.0
         self.theta = 0  # neCGA: consecutive wins of the current elite
-        # The random block: one packed level int per sample; _bi the next unused.
-        self._blk: list[int] = []
-        self._bi = 0
-
-    def _check_more(self, opts: dict[str, Any]) -> None:
-        """Cross-option checks of subclasses."""
 
     # ------------------------------------------------------------- packing and genomes
     def _pack(self, values: np.ndarray) -> int:
@@ -210,14 +169,16 @@ class BinaryCGA(Optimizer):
         return s & top == top and s & zero == 0
 
     # ----------------------------------------------------------------- PV and decoding
-    def _refill(self) -> None:
-        """Draw the next block: per sample, m uniforms r_j (rng.random(m), as one call),
-        kept as the packed levels L_j (the same sample bits as r_j < p_j)."""
+    def _block(self) -> list[int]:
+        """The next block: per sample, m uniforms r_j (rng.random(m), as one call), kept
+        as the packed levels L_j (the same sample bits as r_j < p_j)."""
         B, nb = self._BLOCK, self._nbytes
         lev = np.searchsorted(self._ptable, self._rng.random(B * self.m), side='right')
         buf = lev.astype(self._fdtype).tobytes()
-        self._blk = [int.from_bytes(buf[o : o + nb], 'big') for o in range(0, B * nb, nb)]
-        self._bi = 0
+        return [int.from_bytes(buf[o : o + nb], 'big') for o in range(0, B * nb, nb)]
+
+    def _unread(self) -> int:
+        return (len(self._blk) - self._bi) * self.m  # m doubles a sample
 
     def decode(self, bits: np.ndarray) -> np.ndarray:
         """Normalised parameters u (dim,) of a genome (m bools or 0/1 ints), see module doc."""
@@ -250,40 +211,30 @@ class BinaryCGA(Optimizer):
     def iterations(self) -> int:
         return self.generation
 
-    def ask(self) -> np.ndarray:
-        """The next candidate: a fresh sample from the PV (kept until told)."""
-        pu = self._pu
-        if pu is None:
-            i = self._bi
-            if i == len(self._blk):
-                self._refill()
-                i = 0
-            self._bi = i + 1
-            # Field j keeps its guard bit <=> P_j >= L_j <=> r_j < p_j.
-            self._pg = s = (self._Y - self._blk[i]) & self._H
-            # Decode (as _decode_g, inline: this is the per-evaluation path).
-            b = s.to_bytes(self._nbytes, 'big')
-            g = int((b[:: self._W] if self._W > 1 else b).translate(_TO_CHARS), 2)
-            mask, vmax, pu = self._mask, self._vmax, []
-            if self.gray:
-                for sh in self._shifts:
-                    v = (g >> sh) & mask
-                    for t in self._gray_shifts:  # prefix xor from the MSB
-                        v ^= v >> t
-                    pu.append(v / vmax)
-            else:
-                for sh in self._shifts:
-                    pu.append(((g >> sh) & mask) / vmax)
-            self._pu = pu
-        return np.array(pu)
+    def _propose(self) -> list[float]:
+        """A fresh sample from the PV (its genome kept in ``_pg`` until told)."""
+        # Field j keeps its guard bit <=> P_j >= L_j <=> r_j < p_j.
+        i = self._draws(1)
+        self._pg = s = (self._Y - self._blk[i]) & self._H
+        # Decode (as _decode_g, inline: this is the per-evaluation path).
+        b = s.to_bytes(self._nbytes, 'big')
+        g = int((b[:: self._W] if self._W > 1 else b).translate(_TO_CHARS), 2)
+        mask, vmax, pu = self._mask, self._vmax, []
+        if self.gray:
+            for sh in self._shifts:
+                v = (g >> sh) & mask
+                for t in self._gray_shifts:  # prefix xor from the MSB
+                    v ^= v >> t
+                pu.append(v / vmax)
+        else:
+            pu = [((g >> sh) & mask) / vmax for sh in self._shifts]
+        return pu
 
-    def tell(self, u: np.ndarray, loss: float) -> None:
-        pu = self._pu
-        loss = told_loss(pu, u, loss)
+    def _update(self, u: list[float], loss: float, aborted: bool) -> None:
+        """The competitions of Figs. 1-3 (module docstring)."""
         s = self._pg
-        assert s is not None  # told_loss refused a tell without an ask
-        self._pu = self._pg = None
-        self.evaluations += 1
+        assert s is not None  # asked: _propose set it
+        self._pg = None
         held = self._held
         if held is None:  # cGA: a; pe/neCGA: the first or a new elite
             self._held, self._held_loss = s, loss
@@ -331,67 +282,54 @@ class BinaryCGA(Optimizer):
                 else:
                     self._held = None  # the next ask samples the new elite
 
-    # ---------------------------------------------------------------------- reporting
-    def config(self) -> dict[str, Any]:
-        return {'algo': self.algo, 'dim': self.dim, 'seed': self._seed_json, **self._opts}
-
     # ---------------------------------------------------------------------- state I/O
-    def _phase(self) -> str:
+    @property
+    def phase(self) -> str:
+        """What the next ask samples (see _FIRST...): follows from the held individual."""
         if self._ELITIST:
             return _ELITE if self._held is None else _NEWCOMER
         return _FIRST if self._held is None else _SECOND
 
-    def state_dict(self) -> dict[str, Any]:
-        return {
-            'algo': self.algo,
-            'version': _STATE_VERSION,
-            'config': self.config(),
-            'rng': rng_state(self._rng, (len(self._blk) - self._bi) * self.m),
-            'k': self.offsets.tolist(),
-            'evaluations': self.evaluations,
-            'generation': self.generation,
-            'phase': self._phase(),
-            'theta': self.theta,
-            'held': self._to_str(self._held),
-            'held_loss': self._held_loss,
-            'pending': self._to_str(self._pg),
-        }
+    def _load_k(self, k: Any) -> int:
+        """The PV from the saved offsets k (m integers in [-K, K])."""
+        a = np.array(k, dtype=np.int64)
+        if a.shape != (self.m,) or np.any(np.abs(a) > self._K):
+            raise OptimizerError(
+                f'bad {self.algo} state: k must be {self.m} integers in [-{self._K}, {self._K}]'
+            )
+        return self._pack(a + self._K)
 
-    @classmethod
-    def _from_state(cls, state: dict[str, Any]) -> BinaryCGA:
-        try:
-            opt = rebuild(cls, state, _STATE_VERSION)
-            k = np.array(state['k'], dtype=np.int64)
-            if k.shape != (opt.m,) or np.any(np.abs(k) > opt._K):
+    def _dump_k(self, y: int) -> list[int]:
+        return (self._fields(y) - self._K).tolist()
+
+    #: a genome as its bit string ('0'/'1', genome order) or None
+    _GENOME = Codec(_from_str, _to_str)
+    STATE: ClassVar[tuple[Field, ...]] = (
+        Field('k', '_Y', Codec(_load_k, _dump_k)),
+        Field('evaluations', 'evaluations', INT),
+        Field('generation', 'generation', INT),
+        Field('phase', 'phase', SAVED),  # (checked against held by _restored)
+        Field('theta', 'theta', INT),
+        Field('held', '_held', _GENOME),
+        Field('held_loss', '_held_loss', FLOAT),
+        Field('pending', '_pg', _GENOME),
+    )
+
+    def _restored(self, state: dict[str, Any]) -> None:
+        if state['phase'] != self.phase:
+            raise OptimizerError(
+                f'bad {self.algo} state: phase {state["phase"]!r} with '
+                f'held {"None" if self._held is None else "a genome"}'
+            )
+        # What the state_dict of a real run always satisfies (and tell relies on): the
+        # pending sample, and the cGA's a, were drawn from this PV.
+        for s in (self._pg, None if self._ELITIST else self._held):
+            if s is not None and not self._agrees(s):
                 raise OptimizerError(
-                    f'bad {cls.algo} state: k must be {opt.m} integers in [-{opt._K}, {opt._K}]'
+                    f'bad {self.algo} state: a sample that this PV '
+                    'cannot produce (1 where p = 0 or 0 where p = 1)'
                 )
-            opt._Y = opt._pack(k + opt._K)
-            opt.evaluations = int(state['evaluations'])
-            opt.generation = int(state['generation'])
-            opt.theta = int(state['theta'])
-            opt._held = opt._from_str(state['held'])
-            opt._held_loss = float(state['held_loss'])
-            if state['phase'] != opt._phase():
-                raise OptimizerError(
-                    f'bad {cls.algo} state: phase {state["phase"]!r} with '
-                    f'held {"None" if opt._held is None else "a genome"}'
-                )
-            opt._pg = opt._from_str(state['pending'])
-            # What the state_dict of a real run always satisfies (and tell relies on): the
-            # pending sample, and the cGA's a, were drawn from this PV.
-            for s in (opt._pg, None if cls._ELITIST else opt._held):
-                if s is not None and not opt._agrees(s):
-                    raise OptimizerError(
-                        f'bad {cls.algo} state: a sample that this PV '
-                        'cannot produce (1 where p = 0 or 0 where p = 1)'
-                    )
-            opt._pu = None if opt._pg is None else opt._decode_g(opt._pg)
-        except (KeyError, TypeError, ValueError) as e:
-            if isinstance(e, OptimizerError):
-                raise
-            raise OptimizerError(f'bad {cls.algo} state: {e!r}') from None
-        return opt
+        self._pending = None if self._pg is None else self._decode_g(self._pg)
 
 
 class CGA(BinaryCGA):
@@ -432,13 +370,13 @@ class NECGA(PECGA):
 
     algo: ClassVar[str] = 'necga'
     _NE: ClassVar[bool] = True
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = NECGA_OPTIONS
 
-    def _check_more(self, opts: dict[str, Any]) -> None:
-        if opts['eta'] >= opts['n']:
-            raise OptimizerError(
-                f'necga option eta must be an integer in [1, n - 1] = '
-                f'[1, {opts["n"] - 1}] (eta < n), got {opts["eta"]!r}'
-            )
-        self.eta: int = opts['eta']
-        self.elite_replacement: str = opts['elite_replacement']
+    def _check_options(self, options: dict[str, Any]) -> dict[str, Any]:
+        opts = super()._check_options(options)
+        check_eta_below_n(self.algo, opts)
+        return opts
+
+    def _setup(self, x0: np.ndarray | None) -> None:
+        super()._setup(x0)
+        self.eta = self._opts['eta']
+        self.elite_replacement = self._opts['elite_replacement']

@@ -26,21 +26,9 @@ from typing import Any, ClassVar
 import cma
 import numpy as np
 
-from .base import (
-    Optimizer,
-    OptimizerError,
-    OptionSpec,
-    check_version,
-    make_rng,
-    seed_from_json,
-    told_history,
-    told_loss,
-)
-from .options import CMAES_OPTIONS
+from .base import HISTORY, INT, Field, Optimizer, OptimizerError, told_history
 
 __all__ = ['CMAES']
-
-_STATE_VERSION = 1
 
 
 class _Randn:
@@ -61,18 +49,15 @@ class CMAES(Optimizer):
     """
 
     algo: ClassVar[str] = 'cmaes'
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = CMAES_OPTIONS
+    REPLAYS: ClassVar[bool] = True
+    STATE: ClassVar[tuple[Field, ...]] = (
+        *HISTORY,
+        Field('evaluations', 'evaluations', INT),
+    )
+    BAD_STATE: ClassVar[str] = 'not a cmaes state ({error!r:.80})'
 
-    def __init__(
-        self,
-        dim: int,
-        seed: int | np.random.SeedSequence,
-        start: np.ndarray | None = None,
-        **options: Any,
-    ) -> None:
-        seed, x0 = self._init_checked(dim, seed, start, options)
+    def _setup(self, x0: np.ndarray | None) -> None:
         opts = self._opts
-        self._rng = make_rng(seed)
         self._start_given = x0 is not None
         if x0 is None:
             x0 = self._rng.random(self.dim)
@@ -98,10 +83,6 @@ class CMAES(Optimizer):
         self._es = cma.CMAEvolutionStrategy(x0.tolist(), opts['sigma0'], cma_opts)
         self._pop: list[np.ndarray] = []  # pycma's candidates of this generation
         self._losses: list[float] = []  # losses told in this generation
-        self._pending: list[float] | None = None
-        self._history_u: list[list[float]] = []
-        self._history_loss: list[float] = []
-        self.evaluations = 0
 
     @property
     def iterations(self) -> int:
@@ -112,21 +93,16 @@ class CMAES(Optimizer):
     def popsize(self) -> int:
         return int(self._es.popsize)
 
-    def ask(self) -> np.ndarray:
-        if self._pending is None:
-            if not self._pop:
-                self._pop = [np.asarray(x, dtype=np.float64) for x in self._es.ask()]
-            u = np.clip(self._pop[len(self._losses)], 0.0, 1.0)
-            self._pending = u.tolist()
-        return np.array(self._pending)
+    def _propose(self) -> list[float]:
+        """The next of pycma's population (a new generation asked when none is left)."""
+        if not self._pop:
+            self._pop = [np.asarray(x, dtype=np.float64) for x in self._es.ask()]
+        u: list[float] = np.clip(self._pop[len(self._losses)], 0.0, 1.0).tolist()
+        return u
 
-    def tell(self, u: np.ndarray, loss: float) -> None:
-        loss = told_loss(self._pending, u, loss)
-        self._history_u.append(self._pending)  # type: ignore[arg-type]  # checked above
-        self._history_loss.append(loss)
+    def _update(self, u: list[float], loss: float, aborted: bool) -> None:
+        """Collect the generation's losses; pycma updates once it has all lambda."""
         self._losses.append(loss)
-        self._pending = None
-        self.evaluations += 1
         if len(self._losses) == len(self._pop):
             self._es.tell(self._pop, self._losses)
             self._pop, self._losses = [], []
@@ -144,54 +120,28 @@ class CMAES(Optimizer):
     def sigma(self) -> float:
         return float(self._es.sigma)
 
-    def config(self) -> dict[str, Any]:
+    def _settings(self) -> dict[str, Any]:
         return {
-            'algo': self.algo,
-            'dim': self.dim,
-            'seed': self._seed_json,
             **self._opts,
             'popsize_used': self.popsize,
             'start': self._x0.tolist() if self._start_given else None,
             'pycma': cma.__version__,
         }
 
-    def state_dict(self) -> dict[str, Any]:
-        return {
-            'algo': self.algo,
-            'version': _STATE_VERSION,
-            'config': self.config(),
-            'told_u': [list(u) for u in self._history_u],
-            'told_loss': list(self._history_loss),
-            'pending': None if self._pending is None else list(self._pending),
-            'evaluations': self.evaluations,
-        }
-
     @classmethod
-    def _from_state(cls, state: dict[str, Any]) -> CMAES:
-        check_version(cls, state, _STATE_VERSION)
-        try:
-            cfg = state['config']
-            start = cfg['start']
-            opt = cls(
-                int(cfg['dim']),
-                seed_from_json(cfg['seed']),
-                None if start is None else np.array(start, dtype=np.float64),
-                **{k: cfg[k] for k in cls.OPTIONS},
-            )
-            us, losses = told_history(cls.algo, state)
-            for u, loss in zip(us, losses, strict=True):
-                a = opt.ask()
-                if a.tolist() != u:
-                    raise OptimizerError(
-                        f'cmaes state does not replay with pycma {cma.__version__} '
-                        '(a candidate differs from the saved one)'
-                    )
-                opt.tell(a, loss)
-            pending = state['pending']
-            if pending is not None and opt.ask().tolist() != [float(x) for x in pending]:
-                raise OptimizerError('cmaes state: the pending candidate does not replay')
-        except OptimizerError:
-            raise
-        except (KeyError, TypeError, ValueError) as exc:
-            raise OptimizerError(f'not a cmaes state ({exc!r:.80})') from None
+    def _restore(cls, state: dict[str, Any]) -> CMAES:
+        """From the seed and configuration, the told losses replayed (module docstring)."""
+        opt = cls._replica(state, state['config']['start'])
+        us, losses = told_history(cls.algo, state)
+        for u, loss in zip(us, losses, strict=True):
+            a = opt.ask()
+            if a.tolist() != u:
+                raise OptimizerError(
+                    f'cmaes state does not replay with pycma {cma.__version__} '
+                    '(a candidate differs from the saved one)'
+                )
+            opt.tell(a, loss)
+        pending = state['pending']
+        if pending is not None and opt.ask().tolist() != [float(x) for x in pending]:
+            raise OptimizerError('cmaes state: the pending candidate does not replay')
         return opt

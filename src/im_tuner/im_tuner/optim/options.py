@@ -2,7 +2,10 @@
 
 The single source of the command-line flags (``OPTIONS[algo][name]``: type, default, help,
 range or choices) and of the constructors' checks (each class's ``OPTIONS`` is its entry
-here).  Pure: numpy and :mod:`.base` only.  An algorithm's own module -- and pycma
+here).  The table declares each option once, a number by its interval as written in
+mathematics (``real(0.03, '(0, 0.5)', help)``), a string by its choices; the compact
+GAs' three options are shared by cga, pecga and necga.  Pure: numpy and :mod:`.checks`
+only.  An algorithm's own module -- and pycma
 (cmaes), optuna (tpe), scipy (rcga) with it -- is imported only when one is built
 (:func:`algorithm_class`, from ``make_optimizer`` and ``Optimizer.from_state``), so a
 tool that only parses its command line (the tuner refusing bad input) stays fast.
@@ -11,10 +14,9 @@ tool that only parses its command line (the tuner refusing bad input) stays fast
 from __future__ import annotations
 
 import importlib
-import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
-from .base import OptionSpec
+from .checks import OptimizerError, OptionSpec
 
 if TYPE_CHECKING:
     from .base import Optimizer
@@ -28,6 +30,10 @@ __all__ = [
     'OPTIONS',
     'TAKES_START',
     'algorithm_class',
+    'check_eta_below_n',
+    'choice',
+    'integer',
+    'real',
 ]
 
 #: Every algorithm name accepted by make_optimizer (and ``--algo``).
@@ -58,242 +64,201 @@ NO_START_ALGOS: frozenset[str] = frozenset({'spsa', 'cmaes', 'tpe'})
 #: (alpha, gamma) of each of SPSA's ``gains`` presets.
 GAIN_PRESETS: dict[str, tuple[float, float]] = {'paper': (0.3, 0.3), 'spall': (0.602, 0.101)}
 
-#: spsa (optim/spsa.py)
-SPSA_OPTIONS: dict[str, OptionSpec] = {
-    'a': OptionSpec(
-        float,
-        0.0183,
-        'step gain a of a_k = a/(k+1+A)^alpha (normalised units per unit of loss gradient)',
-        low=0.0,
-        high=math.inf,
-        low_strict=True,
-        high_strict=True,
-    ),
-    'c': OptionSpec(
-        float,
-        0.03,
-        'perturbation size c of c_k = c/(k+1)^gamma '
-        '(normalised units, fraction of each parameter range)',
-        low=0.0,
-        high=0.5,
-        low_strict=True,
-        high_strict=True,
-    ),
-    'A': OptionSpec(
-        float,
-        20.0,
-        'stability constant A of a_k (iterations; ~10% of the expected iterations)',
-        low=0.0,
-        high=math.inf,
-        high_strict=True,
-    ),
-    'alpha': OptionSpec(
-        float,
-        None,
-        "decay exponent of a_k (default: 0.3 with gains='paper', 0.602 with gains='spall')",
-        low=0.0,
-        high=1.0,
-        low_strict=True,
-    ),
-    'gamma': OptionSpec(
-        float,
-        None,
-        "decay exponent of c_k (default: 0.3 with gains='paper', 0.101 with gains='spall')",
-        low=0.0,
-        high=1.0,
-    ),
-    'gains': OptionSpec(
-        str,
-        'paper',
-        "alpha/gamma preset: 'paper' (0.3/0.3) or 'spall' (0.602/0.101)",
-        choices=tuple(GAIN_PRESETS),
-    ),
-    'max_step': OptionSpec(
-        float,
-        0.1,
-        'largest change of any normalised parameter in '
-        'one iteration (the step vector is scaled down to it); '
-        'inf disables the cap',
-        low=0.0,
-        high=math.inf,
-        low_strict=True,
-    ),
-}
+
+def _spec(kind: type, default: Any, interval: str, text: str) -> OptionSpec:
+    """A numeric option accepting ``interval``, written as in mathematics: '(0, 0.5)',
+    '[2, 1000000]', '(0, inf]' (a round bracket excludes its bound; 'inf' included
+    means +inf is accepted)."""
+    lo, hi = (b.strip() for b in interval[1:-1].split(','))
+    return OptionSpec(
+        kind,
+        default,
+        text,
+        low=kind(lo),
+        high=kind(hi),
+        low_strict=interval[0] == '(',
+        high_strict=interval[-1] == ')',
+    )
+
+
+def real(default: float | None, interval: str, text: str) -> OptionSpec:
+    """A float option (None: derived from other options, ``text`` says how)."""
+    return _spec(float, default, interval, text)
+
+
+def integer(default: int | None, interval: str, text: str) -> OptionSpec:
+    return _spec(int, default, interval, text)
+
+
+def choice(default: str, choices: tuple[str, ...], text: str) -> OptionSpec:
+    return OptionSpec(str, default, text, choices=choices)
+
+
+#: the upper bound of the counts (population, inheritance length, trials...)
+_MANY = 1_000_000
 
 #: the binary compact GAs cga and pecga (optim/cga.py)
-CGA_OPTIONS: dict[str, OptionSpec] = {
-    'n': OptionSpec(
-        int,
+_CGA: dict[str, OptionSpec] = {
+    'n': integer(
         25,
+        f'[2, {_MANY}]',
         'virtual population size n: each competition moves a probability by 1/n',
-        low=2,
-        high=1_000_000,
     ),
-    'bits': OptionSpec(
-        int,
-        16,
-        'bits per parameter (resolution 1/(2^bits - 1) of the normalised range)',
-        low=1,
-        high=32,
+    'bits': integer(
+        16, '[1, 32]', 'bits per parameter (resolution 1/(2^bits - 1) of the normalised range)'
     ),
-    'coding': OptionSpec(
-        str,
+    'coding': choice(
         'binary',
+        ('binary', 'gray'),
         "gene coding: 'binary' (plain, most significant bit first) or 'gray' (reflected Gray code)",
-        choices=('binary', 'gray'),
     ),
 }
 
-#: necga: the compact GAs' options and its own
-NECGA_OPTIONS: dict[str, OptionSpec] = {
-    **CGA_OPTIONS,
-    'eta': OptionSpec(
-        int,
-        12,
-        'allowed length of inheritance eta: after eta '
-        'consecutive wins the elite is replaced (must be < n)',
-        low=1,
-        high=1_000_000,
-    ),
-    'elite_replacement': OptionSpec(
-        str,
-        'sample',
-        "what replaces an elite that won eta times in a row: 'sample' "
-        "(a fresh PV sample, one extra evaluation; the paper's Fig. 3) or 'newcomer' "
-        "(the newcomer just evaluated; the authors' Java code)",
-        choices=('sample', 'newcomer'),
-    ),
-}
-
-#: rcga (optim/rcga.py)
-RCGA_OPTIONS: dict[str, OptionSpec] = {
-    'n': OptionSpec(
-        int,
-        25,
-        'virtual population size n: a competition moves mu by (w - l)/n',
-        low=2,
-        high=1_000_000,
-    ),
-    'elitism': OptionSpec(
-        str,
-        'ne',
-        "'ne' (elite replaced by the newcomer after eta "
-        "consecutive wins) or 'pe' (persistent elite)",
-        choices=('ne', 'pe'),
-    ),
-    'eta': OptionSpec(
-        int,
-        12,
-        "allowed length of inheritance with elitism='ne' (consecutive elite wins; must be < n)",
-        low=1,
-        high=1_000_000,
-    ),
-    'sigma0': OptionSpec(
-        float,
-        10.0,
-        'initial spread of every variable on x in '
-        '[-1, 1] (10: nearly uniform; 0.577: a uniform population)',
-        low=0.0,
-        high=1e6,
-        low_strict=True,
-    ),
-}
-
-#: cmaes (optim/cmaes.py)
-CMAES_OPTIONS: dict[str, OptionSpec] = {
-    'sigma0': OptionSpec(
-        float,
-        0.1,
-        'initial step size sigma0 (normalised units: a fraction of each parameter range)',
-        low=0.0,
-        high=1.0,
-        low_strict=True,
-    ),
-    'popsize': OptionSpec(
-        int,
-        None,
-        "population size lambda per generation (default: pycma's 4 + floor(3 ln dim), "
-        '8 for 5 gains)',
-        low=2,
-        high=10_000,
-    ),
-}
-
-#: tpe (optim/tpe.py)
-TPE_OPTIONS: dict[str, OptionSpec] = {
-    'n_startup_trials': OptionSpec(
-        int,
-        10,
-        'evaluations sampled at random before TPE models the losses (the start counts)',
-        low=0,
-        high=1_000_000,
-    ),
-    'n_ei_candidates': OptionSpec(
-        int,
-        24,
-        'candidates drawn from the good-loss density per ask; the best l(x)/g(x) is asked',
-        low=1,
-        high=1_000_000,
-    ),
-    'multivariate': OptionSpec(
-        str,
-        'yes',
-        "'yes': one joint Parzen density over the gains (optuna 5's default); 'no': one per gain",
-        choices=('yes', 'no'),
-    ),
-}
-
-#: safe (optim/safe.py)
-SAFE_OPTIONS: dict[str, OptionSpec] = {
-    'sigma0': OptionSpec(
-        float, 0.05, 'initial step size (normalised units)', low=0.0, high=1.0, low_strict=True
-    ),
-    'grow': OptionSpec(
-        float, 1.5, 'step-size factor after a success', low=1.0, high=10.0, low_strict=True
-    ),
-    'abort_shrink': OptionSpec(
-        float,
-        0.3,
-        'step-size factor after an aborted experiment',
-        low=0.0,
-        high=1.0,
-        low_strict=True,
-    ),
-    'sigma_max': OptionSpec(
-        float,
-        0.08,
-        'largest step size (normalised units): the trust region around the incumbent',
-        low=0.005,
-        high=1.0,
-    ),
-    'remeasure_every': OptionSpec(
-        int,
-        10,
-        'measure the incumbent again every this many evaluations (0: never)',
-        low=0,
-        high=1_000_000,
-    ),
-    'model_every': OptionSpec(
-        int,
-        2,
-        'take a descent step on the local linear model every this many evaluations '
-        '(0: never, a plain (1+1)-ES)',
-        low=0,
-        high=1_000_000,
-    ),
-}
-
-#: algo -> option name -> OptionSpec (names are python identifiers, usable as flags).
+#: algo -> option name -> OptionSpec (names are python identifiers, usable as flags);
+#: each algorithm's class takes its entry as ``OPTIONS``.
 OPTIONS: dict[str, dict[str, OptionSpec]] = {
-    'spsa': dict(SPSA_OPTIONS),
-    'necga': dict(NECGA_OPTIONS),
-    'cga': dict(CGA_OPTIONS),
-    'pecga': dict(CGA_OPTIONS),
-    'rcga': dict(RCGA_OPTIONS),
-    'cmaes': dict(CMAES_OPTIONS),
-    'tpe': dict(TPE_OPTIONS),
-    'safe': dict(SAFE_OPTIONS),
+    'spsa': {
+        'a': real(
+            0.0183,
+            '(0, inf)',
+            'step gain a of a_k = a/(k+1+A)^alpha (normalised units per unit of loss gradient)',
+        ),
+        'c': real(
+            0.03,
+            '(0, 0.5)',
+            'perturbation size c of c_k = c/(k+1)^gamma '
+            '(normalised units, fraction of each parameter range)',
+        ),
+        'A': real(
+            20.0,
+            '[0, inf)',
+            'stability constant A of a_k (iterations; ~10% of the expected iterations)',
+        ),
+        'alpha': real(
+            None,
+            '(0, 1]',
+            "decay exponent of a_k (default: 0.3 with gains='paper', 0.602 with gains='spall')",
+        ),
+        'gamma': real(
+            None,
+            '[0, 1]',
+            "decay exponent of c_k (default: 0.3 with gains='paper', 0.101 with gains='spall')",
+        ),
+        'gains': choice(
+            'paper',
+            tuple(GAIN_PRESETS),
+            "alpha/gamma preset: 'paper' (0.3/0.3) or 'spall' (0.602/0.101)",
+        ),
+        'max_step': real(
+            0.1,
+            '(0, inf]',
+            'largest change of any normalised parameter in '
+            'one iteration (the step vector is scaled down to it); '
+            'inf disables the cap',
+        ),
+    },
+    'necga': {
+        **_CGA,
+        'eta': integer(
+            12,
+            f'[1, {_MANY}]',
+            'allowed length of inheritance eta: after eta '
+            'consecutive wins the elite is replaced (must be < n)',
+        ),
+        'elite_replacement': choice(
+            'sample',
+            ('sample', 'newcomer'),
+            "what replaces an elite that won eta times in a row: 'sample' "
+            "(a fresh PV sample, one extra evaluation; the paper's Fig. 3) or 'newcomer' "
+            "(the newcomer just evaluated; the authors' Java code)",
+        ),
+    },
+    'cga': dict(_CGA),
+    'pecga': dict(_CGA),
+    'rcga': {
+        'n': integer(
+            25, f'[2, {_MANY}]', 'virtual population size n: a competition moves mu by (w - l)/n'
+        ),
+        'elitism': choice(
+            'ne',
+            ('ne', 'pe'),
+            "'ne' (elite replaced by the newcomer after eta "
+            "consecutive wins) or 'pe' (persistent elite)",
+        ),
+        'eta': integer(
+            12,
+            f'[1, {_MANY}]',
+            "allowed length of inheritance with elitism='ne' (consecutive elite wins; must be < n)",
+        ),
+        'sigma0': real(
+            10.0,
+            '(0, 1e6]',
+            'initial spread of every variable on x in '
+            '[-1, 1] (10: nearly uniform; 0.577: a uniform population)',
+        ),
+    },
+    'cmaes': {
+        'sigma0': real(
+            0.1,
+            '(0, 1]',
+            'initial step size sigma0 (normalised units: a fraction of each parameter range)',
+        ),
+        'popsize': integer(
+            None,
+            '[2, 10000]',
+            "population size lambda per generation (default: pycma's 4 + floor(3 ln dim), "
+            '8 for 5 gains)',
+        ),
+    },
+    'tpe': {
+        'n_startup_trials': integer(
+            10,
+            f'[0, {_MANY}]',
+            'evaluations sampled at random before TPE models the losses (the start counts)',
+        ),
+        'n_ei_candidates': integer(
+            24,
+            f'[1, {_MANY}]',
+            'candidates drawn from the good-loss density per ask; the best l(x)/g(x) is asked',
+        ),
+        'multivariate': choice(
+            'yes',
+            ('yes', 'no'),
+            "'yes': one joint Parzen density over the gains (optuna 5's default); "
+            "'no': one per gain",
+        ),
+    },
+    'safe': {
+        'sigma0': real(0.05, '(0, 1]', 'initial step size (normalised units)'),
+        'grow': real(1.5, '(1, 10]', 'step-size factor after a success'),
+        'abort_shrink': real(0.3, '(0, 1]', 'step-size factor after an aborted experiment'),
+        'sigma_max': real(
+            0.08,
+            '[0.005, 1]',
+            'largest step size (normalised units): the trust region around the incumbent',
+        ),
+        'remeasure_every': integer(
+            10,
+            f'[0, {_MANY}]',
+            'measure the incumbent again every this many evaluations (0: never)',
+        ),
+        'model_every': integer(
+            2,
+            f'[0, {_MANY}]',
+            'take a descent step on the local linear model every this many evaluations '
+            '(0: never, a plain (1+1)-ES)',
+        ),
+    },
 }
+
+
+def check_eta_below_n(algo: str, opts: dict[str, Any]) -> None:
+    """The elitist compact GAs' cross-option check: eta < n (an elite can be replaced)."""
+    if opts['eta'] >= opts['n']:
+        raise OptimizerError(
+            f'{algo} option eta must be an integer in [1, n - 1] = '
+            f'[1, {opts["n"] - 1}] (eta < n), got {opts["eta"]!r}'
+        )
 
 
 def algorithm_class(algo: str) -> type[Optimizer]:

@@ -37,21 +37,8 @@ from typing import Any, ClassVar
 import numpy as np
 import scipy.special as _sc
 
-from .base import (
-    Optimizer,
-    OptimizerError,
-    OptionSpec,
-    check_dim,
-    check_options,
-    check_seed,
-    check_start,
-    make_rng,
-    rebuild,
-    rng_state,
-    seed_json,
-    told_loss,
-)
-from .options import RCGA_OPTIONS
+from .base import FLOAT, INT, Codec, Field, Optimizer, OptimizerError
+from .options import check_eta_below_n
 
 __all__ = ['RCGA', 'SIGMA_TOL', 'erfinv', 'ndtri', 'norm_cdf', 'truncnorm_ppf']
 
@@ -59,7 +46,6 @@ __all__ = ['RCGA', 'SIGMA_TOL', 'erfinv', 'ndtri', 'norm_cdf', 'truncnorm_ppf']
 #: than a 16-bit gene's 1.5e-5).
 SIGMA_TOL = 1e-6
 
-_STATE_VERSION = 1
 _SQRT2 = math.sqrt(2.0)
 # bound once: one global lookup per call on the sampling path instead of two
 _erfc, _sqrt = math.erfc, math.sqrt
@@ -113,6 +99,22 @@ def truncnorm_ppf(r: float, mu: float, sigma: float) -> float:
     return -x if flip else x
 
 
+def _vector(opt: RCGA, v: Any) -> list[float]:
+    """A saved vector of dim floats."""
+    out = [float(t) for t in v]
+    if len(out) != opt.dim:
+        raise OptimizerError(f'bad rcga state: vectors must have {opt.dim} values')
+    return out
+
+
+def _vector_or_none(opt: RCGA, v: Any) -> list[float] | None:
+    return None if v is None else _vector(opt, v)
+
+
+_VECTOR = Codec(_vector, lambda _o, v: list(v))
+_VECTOR_OR_NONE = Codec(_vector_or_none, lambda _o, v: None if v is None else list(v))
+
+
 class RCGA(Optimizer):
     """Real-valued compact GA with persistent ('pe') or non-persistent ('ne') elitism.
 
@@ -120,50 +122,42 @@ class RCGA(Optimizer):
     """
 
     algo: ClassVar[str] = 'rcga'
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = RCGA_OPTIONS
+    NO_START: ClassVar[str] = 'it starts from mu = 0, sigma = sigma0'
     #: samples per random block (one rng call per block)
     _BLOCK: ClassVar[int] = 64
+    STATE: ClassVar[tuple[Field, ...]] = (
+        Field('mu', '_mu', _VECTOR),
+        Field('sigma', '_sigma', _VECTOR),
+        Field('evaluations', 'evaluations', INT),
+        Field('generation', 'generation', INT),
+        Field('theta', 'theta', INT),
+        Field('elite', '_elite', _VECTOR_OR_NONE),
+        Field('elite_loss', '_elite_loss', FLOAT),
+        Field('pending', '_px', _VECTOR_OR_NONE),  # (x; u = (x + 1)/2 by _restored)
+    )
 
-    def __init__(
-        self,
-        dim: int,
-        seed: int | np.random.SeedSequence,
-        start: np.ndarray | None = None,
-        **options: Any,
-    ) -> None:
-        self.dim = check_dim(dim)
-        seed = check_seed(seed)
-        if start is not None:
-            check_start(start, self.dim)
-            raise OptimizerError(
-                'rcga does not take a start point (it starts from mu = 0, '
-                'sigma = sigma0); pass start=None'
-            )
-        opts = check_options(self.algo, self.OPTIONS, options)
-        if opts['elitism'] == 'ne' and opts['eta'] >= opts['n']:  # (unused with 'pe')
-            raise OptimizerError(
-                f'rcga option eta must be an integer in [1, n - 1] = '
-                f'[1, {opts["n"] - 1}] (eta < n), got {opts["eta"]!r}'
-            )
-        self._opts = opts
-        self._seed_json = seed_json(seed)
+    def _check_options(self, options: dict[str, Any]) -> dict[str, Any]:
+        opts = super()._check_options(options)
+        if opts['elitism'] == 'ne':  # (eta is unused with 'pe')
+            check_eta_below_n(self.algo, opts)
+        return opts
+
+    def _setup(self, x0: np.ndarray | None) -> None:
+        opts = self._opts
         self.n: int = opts['n']
         self.elitism: str = opts['elitism']
         self.eta: int = opts['eta']
-        self._rng = make_rng(seed)
         self._mu = [0.0] * self.dim  # python floats: scalar math is faster at dim 5
         self._sigma = [opts['sigma0']] * self.dim
-        self.evaluations = 0
         self.generation = 0
         self.theta = 0
         self._elite: list[float] | None = None
         self._elite_loss = 0.0
-        self._pu: list[float] | None = None  # the pending candidate (u)
-        self._px: list[float] | None = None  # and its x
-        # Uniforms drawn in blocks of _BLOCK samples (the same stream as one
-        # rng.random(dim) per sample); _bi is the next unused one.
-        self._blk: list[float] = []
-        self._bi = 0
+        self._px: list[float] | None = None  # the pending candidate's x
+
+    def _block(self) -> list[float]:
+        """Uniforms for _BLOCK samples (the stream of one rng.random(dim) per sample)."""
+        return self._rng.random(self._BLOCK * self.dim).tolist()
 
     # ----------------------------------------------------------------------- sampling
     @staticmethod
@@ -175,32 +169,23 @@ class RCGA(Optimizer):
     def iterations(self) -> int:
         return self.generation
 
-    def ask(self) -> np.ndarray:
+    def _propose(self) -> list[float]:
         """The next candidate u = (x + 1)/2, x sampled from the truncated Gaussians."""
-        pu = self._pu
-        if pu is None:
-            i = self._bi
-            if i == len(self._blk):
-                self._blk = self._rng.random(self._BLOCK * self.dim).tolist()
-                i = 0
-            j = i + self.dim
-            self._bi = j
-            x, pu = [], []
-            for r, m, s in zip(self._blk[i:j], self._mu, self._sigma, strict=True):
-                xi = truncnorm_ppf(r, m, s)
-                x.append(xi)
-                pu.append((xi + 1.0) * 0.5)
-            self._px, self._pu = x, pu
-        return np.array(pu)
+        i = self._draws(self.dim)
+        x, pu = [], []
+        for r, m, s in zip(self._blk[i : i + self.dim], self._mu, self._sigma, strict=True):
+            xi = truncnorm_ppf(r, m, s)
+            x.append(xi)
+            pu.append((xi + 1.0) * 0.5)
+        self._px = x
+        return pu
 
-    def tell(self, u: np.ndarray, loss: float) -> None:
-        pu = self._pu
-        loss = told_loss(pu, u, loss)
+    def _update(self, u: list[float], loss: float, aborted: bool) -> None:
+        """The competition of elite and newcomer and the moment update (module docstring)."""
         y = loss
         x = self._px
-        assert x is not None  # told_loss refused a tell without an ask
-        self._pu = self._px = None
-        self.evaluations += 1
+        assert x is not None  # asked: _propose set it
+        self._px = None
         elite = self._elite
         if elite is None:  # first generation: the elite's evaluation
             self._elite, self._elite_loss = x, y
@@ -256,47 +241,6 @@ class RCGA(Optimizer):
         """Every sigma_i < SIGMA_TOL."""
         return max(self._sigma) < SIGMA_TOL
 
-    def config(self) -> dict[str, Any]:
-        return {'algo': self.algo, 'dim': self.dim, 'seed': self._seed_json, **self._opts}
-
     # ---------------------------------------------------------------------- state I/O
-    def state_dict(self) -> dict[str, Any]:
-        return {
-            'algo': self.algo,
-            'version': _STATE_VERSION,
-            'config': self.config(),
-            'rng': rng_state(self._rng, len(self._blk) - self._bi),
-            'mu': list(self._mu),
-            'sigma': list(self._sigma),
-            'evaluations': self.evaluations,
-            'generation': self.generation,
-            'theta': self.theta,
-            'elite': None if self._elite is None else list(self._elite),
-            'elite_loss': self._elite_loss,
-            'pending': None if self._px is None else list(self._px),
-        }
-
-    @classmethod
-    def _from_state(cls, state: dict[str, Any]) -> RCGA:
-        try:
-            opt = rebuild(cls, state, _STATE_VERSION)
-
-            def vec(v: Any) -> list[float]:
-                out = [float(t) for t in v]
-                if len(out) != opt.dim:
-                    raise OptimizerError(f'bad rcga state: vectors must have {opt.dim} values')
-                return out
-
-            opt._mu, opt._sigma = vec(state['mu']), vec(state['sigma'])
-            opt.evaluations = int(state['evaluations'])
-            opt.generation = int(state['generation'])
-            opt.theta = int(state['theta'])
-            opt._elite = None if state['elite'] is None else vec(state['elite'])
-            opt._elite_loss = float(state['elite_loss'])
-            opt._px = None if state['pending'] is None else vec(state['pending'])
-            opt._pu = None if opt._px is None else opt._to_u(opt._px)
-        except (KeyError, TypeError, ValueError) as e:
-            if isinstance(e, OptimizerError):
-                raise
-            raise OptimizerError(f'bad rcga state: {e!r}') from None
-        return opt
+    def _restored(self, state: dict[str, Any]) -> None:
+        self._pending = None if self._px is None else self._to_u(self._px)

@@ -59,26 +59,41 @@ from typing import Any, ClassVar
 import numpy as np
 
 from .base import (
+    FLOAT,
+    FLOATS,
+    FLOATS_OR_NONE,
+    INT,
+    ROWS,
+    STR,
+    Codec,
+    Field,
     Optimizer,
     OptimizerError,
-    OptionSpec,
-    make_rng,
-    rebuild,
-    rng_state,
-    told_loss,
 )
-from .options import SAFE_OPTIONS
 
 __all__ = ['SAFE']
 
-_STATE_VERSION = 3
+
+def _point(opt: SAFE, v: Any) -> np.ndarray:
+    """The saved incumbent: a point of [0, 1]^dim."""
+    x = np.array(v, dtype=np.float64)
+    if x.shape != (opt.dim,) or not np.all((x >= 0) & (x <= 1)):
+        raise OptimizerError('safe state: x is not a point of [0, 1]^dim')
+    return x
+
+
+_POINT = Codec(_point, lambda _o, x: x.tolist())
+_STEP = Codec(
+    lambda _o, v: None if v is None else np.array(v, dtype=np.float64),
+    lambda _o, s: None if s is None else s.tolist(),
+)
 
 
 class SAFE(Optimizer):
     """Local abort-aware (1+1)-ES from the start point (see the module docstring)."""
 
     algo: ClassVar[str] = 'safe'
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = SAFE_OPTIONS
+    ABORT_AWARE: ClassVar[bool] = True
     #: floor of the step size: below half a percent of a range the search stalls on noise
     SIGMA_MIN: ClassVar[float] = 0.005
     #: model radius in units of sigma sqrt(dim); noise of a model step in units of sigma;
@@ -86,33 +101,42 @@ class SAFE(Optimizer):
     MODEL_RADIUS: ClassVar[float] = 3.0
     MODEL_NOISE: ClassVar[float] = 0.3
     ABORT_VALUE: ClassVar[float] = 3.0
+    STATE_VERSION: ClassVar[int] = 3
+    STATE: ClassVar[tuple[Field, ...]] = (
+        Field('x', 'x', _POINT),
+        Field('f', 'f', FLOAT),
+        Field('f_n', 'f_n', INT),
+        Field('sigma', 'sigma', FLOAT),
+        Field('step', 'step', _STEP),
+        Field('evaluations', 'evaluations', INT),
+        Field('successes', 'successes', INT),
+        Field('aborts', 'aborts', INT),
+        Field('pending', '_pending', FLOATS_OR_NONE),
+        Field('kind', '_kind', STR),
+        Field('points', '_pts', ROWS),
+        Field('values', '_vals', FLOATS),
+    )
+    BAD_STATE: ClassVar[str] = 'not a safe state ({error!r:.80})'
 
-    def __init__(
-        self,
-        dim: int,
-        seed: int | np.random.SeedSequence,
-        start: np.ndarray | None = None,
-        **options: Any,
-    ) -> None:
-        seed, x0 = self._init_checked(dim, seed, start, options)
-        opts = self._opts
+    def _check_options(self, options: dict[str, Any]) -> dict[str, Any]:
+        opts = super()._check_options(options)
         if opts['sigma0'] > opts['sigma_max']:
             raise OptimizerError(
                 f'safe: sigma0 {opts["sigma0"]:g} is larger than sigma_max '
                 f'{opts["sigma_max"]:g} (the largest step)'
             )
-        self._rng = make_rng(seed)
+        return opts
+
+    def _setup(self, x0: np.ndarray | None) -> None:
         if x0 is None:  # (a real bench always has a start: this is for tests and studies)
             x0 = self._rng.random(self.dim)
         self.x = x0.copy()
         self.f = math.nan  # incumbent's mean measured loss (nan: not measured yet)
         self.f_n = 0  # measurements in that mean
-        self.sigma = float(opts['sigma0'])
+        self.sigma = float(self._opts['sigma0'])
         self.step: np.ndarray | None = None  # last successful step (pattern move)
-        self.evaluations = 0
         self.successes = 0
         self.aborts = 0
-        self._pending: list[float] | None = None
         self._kind = ''  # 'incumbent' or 'candidate'
         # the local model's data: every measured point and its loss (an aborted
         # candidate with ABORT_VALUE times the incumbent's loss)
@@ -157,19 +181,13 @@ class SAFE(Optimizer):
             )
         return np.clip(self.x + s, 0.0, 1.0), 'candidate'
 
-    def ask(self) -> np.ndarray:
-        if self._pending is None:
-            y, self._kind = self._next()
-            self._pending = y.tolist()
-        return np.array(self._pending)
+    def _propose(self) -> list[float]:
+        y, self._kind = self._next()
+        return y.tolist()
 
-    def tell(self, u: np.ndarray, loss: float) -> None:
-        self.tell_measurement(u, loss, False)
-
-    def tell_measurement(self, u: np.ndarray, loss: float, aborted: bool) -> None:
-        loss = told_loss(self._pending, u, loss)
-        y = np.array(self._pending)
-        aborted = bool(aborted)
+    def _update(self, u: list[float], loss: float, aborted: bool) -> None:
+        """The (1+1) rule, the step size and the model's data (module docstring)."""
+        y = np.array(u)
         if not aborted:
             self._pts.append(y.tolist())  # (the model's data)
             self._vals.append(loss)
@@ -192,62 +210,7 @@ class SAFE(Optimizer):
             factor = self._opts['abort_shrink'] if aborted else self._opts['grow'] ** -0.25
             self.sigma = max(self.sigma * factor, self.SIGMA_MIN)
             self.aborts += int(aborted)
-        self._pending = None
-        self.evaluations += 1
 
-    def config(self) -> dict[str, Any]:
-        return {
-            'algo': self.algo,
-            'dim': self.dim,
-            'seed': self._seed_json,
-            **self._opts,
-        }
-
-    def state_dict(self) -> dict[str, Any]:
-        return {
-            'algo': self.algo,
-            'version': _STATE_VERSION,
-            'config': self.config(),
-            'rng': rng_state(self._rng),
-            'x': self.x.tolist(),
-            'f': self.f,
-            'f_n': self.f_n,
-            'sigma': self.sigma,
-            'step': None if self.step is None else self.step.tolist(),
-            'evaluations': self.evaluations,
-            'successes': self.successes,
-            'aborts': self.aborts,
-            'pending': self._pending,
-            'kind': self._kind,
-            'points': self._pts,
-            'values': self._vals,
-        }
-
-    @classmethod
-    def _from_state(cls, state: dict[str, Any]) -> SAFE:
-        try:
-            opt: SAFE = rebuild(cls, state, _STATE_VERSION)
-            x = np.array(state['x'], dtype=np.float64)
-            if x.shape != (opt.dim,) or not np.all((x >= 0) & (x <= 1)):
-                raise OptimizerError('safe state: x is not a point of [0, 1]^dim')
-            opt.x = x
-            opt.f = float(state['f'])
-            opt.f_n = int(state['f_n'])
-            opt.sigma = float(state['sigma'])
-            opt.step = None if state['step'] is None else np.array(state['step'], dtype=np.float64)
-            opt.evaluations = int(state['evaluations'])
-            opt.successes = int(state['successes'])
-            opt.aborts = int(state['aborts'])
-            p = state['pending']
-            opt._pending = None if p is None else [float(v) for v in p]
-            opt._kind = str(state['kind'])
-            pts = [[float(v) for v in q] for q in state['points']]
-            vals = [float(v) for v in state['values']]
-            if len(pts) != len(vals) or any(len(q) != opt.dim for q in pts):
-                raise OptimizerError('safe state: points and values do not match')
-            opt._pts, opt._vals = pts, vals
-        except OptimizerError:
-            raise
-        except (KeyError, TypeError, ValueError) as exc:
-            raise OptimizerError(f'not a safe state ({exc!r:.80})') from None
-        return opt
+    def _restored(self, state: dict[str, Any]) -> None:
+        if len(self._pts) != len(self._vals) or any(len(q) != self.dim for q in self._pts):
+            raise OptimizerError('safe state: points and values do not match')

@@ -33,25 +33,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .base import (
-    Optimizer,
-    OptimizerError,
-    OptionSpec,
-    check_dim,
-    check_options,
-    check_seed,
-    check_start,
-    make_rng,
-    rebuild,
-    rng_state,
-    seed_json,
-    told_loss,
-)
-from .options import GAIN_PRESETS, SPSA_OPTIONS
+from .base import FLOAT, FLOATS, FLOATS_OR_NONE, INT, SAVED, Field, Optimizer, OptimizerError
+from .options import GAIN_PRESETS
 
 __all__ = ['GAIN_PRESETS', 'SPSA']
-
-_STATE_VERSION = 1
 
 
 class SPSA(Optimizer):
@@ -62,68 +47,66 @@ class SPSA(Optimizer):
     """
 
     algo: ClassVar[str] = 'spsa'
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = SPSA_OPTIONS
     #: iterations per random block (one rng call per block)
     _BLOCK: ClassVar[int] = 32
+    STATE: ClassVar[tuple[Field, ...]] = (
+        Field('k', 'k', INT),
+        Field('evaluations', 'evaluations', INT),
+        Field('u', '_u', FLOATS),
+        Field('phase', '_phase', INT),
+        Field('delta', '_delta', FLOATS),
+        Field('ck', '_ck', SAVED),  # (restored by _restored: it may be a function of k)
+        Field('y_plus', '_y_plus', FLOAT),
+        Field('pending', '_pending', FLOATS_OR_NONE),
+        Field('last_gradient', '_last_gradient', FLOATS_OR_NONE),
+    )
 
-    def __init__(
-        self,
-        dim: int,
-        seed: int | np.random.SeedSequence,
-        start: np.ndarray | None = None,
-        *,
-        bounded: bool = True,
-        **options: Any,
-    ) -> None:
-        self.dim = check_dim(dim)
-        self._seed_json = seed_json(check_seed(seed))
-        start_u = check_start(start, self.dim)
+    def _check_options(self, options: dict[str, Any]) -> dict[str, Any]:
+        """``bounded`` (constructor only, for analytic oracles), the options, and alpha
+        and gamma from the ``gains`` preset unless given."""
+        bounded = options.pop('bounded', True)
         if not isinstance(bounded, bool):
             raise OptimizerError(f'bounded must be True or False, got {bounded!r}')
-        opts = check_options(self.algo, self.OPTIONS, options)
+        self.bounded = bounded
+        opts = super()._check_options(options)
         preset_alpha, preset_gamma = GAIN_PRESETS[opts['gains']]
         if opts['alpha'] is None:
             opts['alpha'] = preset_alpha
         if opts['gamma'] is None:
             opts['gamma'] = preset_gamma
-        self._opts = opts
-        self.bounded = bounded
+        return opts
+
+    def _setup(self, x0: np.ndarray | None) -> None:
+        opts = self._opts
         self.a: float = opts['a']
         self.c: float = opts['c']
         self.A: float = opts['A']
         self.alpha: float = opts['alpha']
         self.gamma: float = opts['gamma']
         self.max_step: float = opts['max_step']
-        self._rng = make_rng(seed)
-        if start_u is None:
-            lo, hi = (self.c, 1.0 - self.c) if bounded else (0.0, 1.0)
-            start_u = lo + (hi - lo) * self._rng.random(self.dim)
+        if x0 is None:
+            lo, hi = (self.c, 1.0 - self.c) if self.bounded else (0.0, 1.0)
+            x0 = lo + (hi - lo) * self._rng.random(self.dim)
         # The per-evaluation state is held in python floats and lists: at dim 5, scalar
         # arithmetic beats numpy calls, above all with the cold caches of a tuning run
         # (docs/optimisers.md, "Speed").  The arithmetic is the same IEEE operations in
         # the same order as the vector form, so the results are bit-identical.
-        self._u: list[float] = self._project(start_u, self.c).tolist()
+        self._u: list[float] = self._project(x0, self.c).tolist()
         self.k = 0  # iteration index of u_k
-        self.evaluations = 0
         self._phase = 0  # 0: y+ next, 1: y- next
         self._delta = [0.0] * self.dim  # Delta_k (+-1.0), drawn at the iteration's 1st ask
         self._ck = self.c / (self.k + 1) ** self.gamma  # c_k of the current iteration
         self._y_plus = 0.0
-        self._pu: list[float] | None = None  # the pending candidate
         self._last_gradient: list[float] | None = None
-        # Delta is drawn in blocks of _BLOCK iterations (one rng call per block; the
-        # stream is the same as one rng.random(dim) per iteration).  _blk holds the block's
-        # +-1.0 values, _bi the next unused one.
-        self._blk: list[float] = []
-        self._bi = 0
 
-    def _refill(self) -> None:
-        # +-1 with probability exactly 1/2 each: r in [0, 1) is a multiple of 2^-53,
-        # r - 1/2 < 0 on exactly half of them (0.0 counts as +).  (rng.integers would do
-        # too but costs more per call.)
+    def _block(self) -> list[float]:
+        """Delta for _BLOCK iterations (the stream of one rng.random(dim) per iteration).
+
+        +-1 with probability exactly 1/2 each: r in [0, 1) is a multiple of 2^-53,
+        r - 1/2 < 0 on exactly half of them (0.0 counts as +).  (rng.integers would do
+        too but costs more per call.)"""
         r = self._rng.random(self._BLOCK * self.dim)
-        self._blk = np.copysign(1.0, r - 0.5).tolist()
-        self._bi = 0
+        return np.copysign(1.0, r - 0.5).tolist()
 
     # ------------------------------------------------------------------ gain sequences
     def gains(self, k: int) -> tuple[float, float]:
@@ -141,33 +124,17 @@ class SPSA(Optimizer):
     def iterations(self) -> int:
         return self.iteration
 
-    def ask(self) -> np.ndarray:
+    def _propose(self) -> list[float]:
         """u_k + c_k Delta_k (first evaluation of an iteration) or u_k - c_k Delta_k."""
-        pu = self._pu
-        if pu is None:
-            ck, pu = self._ck, []
-            if self._phase == 0:
-                i = self._bi
-                if i == len(self._blk):
-                    self._refill()
-                    i = 0
-                j = i + self.dim
-                self._bi = j
-                self._delta = d = self._blk[i:j]
-                for x, di in zip(self._u, d, strict=True):
-                    pu.append(x + ck * di)
-            else:
-                for x, di in zip(self._u, self._delta, strict=True):
-                    pu.append(x - ck * di)
-            self._pu = pu
-        return np.array(pu)
+        ck: float = self._ck
+        if self._phase == 0:
+            i = self._draws(self.dim)
+            self._delta = d = self._blk[i : i + self.dim]
+            return [x + ck * di for x, di in zip(self._u, d, strict=True)]
+        return [x - ck * di for x, di in zip(self._u, self._delta, strict=True)]
 
-    def tell(self, u: np.ndarray, loss: float) -> None:
+    def _update(self, u: list[float], loss: float, aborted: bool) -> None:
         """Record y+ (first call of an iteration) or y- and take the SPSA step."""
-        pu = self._pu
-        loss = told_loss(pu, u, loss)
-        self._pu = None
-        self.evaluations += 1
         if self._phase == 0:
             self._y_plus = loss
             self._phase = 1
@@ -217,63 +184,22 @@ class SPSA(Optimizer):
         """Completed iterations (= k of the current iterate u_k)."""
         return self.k
 
-    def config(self) -> dict[str, Any]:
-        return {
-            'algo': self.algo,
-            'dim': self.dim,
-            'seed': self._seed_json,
-            'bounded': self.bounded,
-            **self._opts,
-        }
+    def _settings(self) -> dict[str, Any]:
+        return {'bounded': self.bounded, **self._opts}
 
     # ---------------------------------------------------------------------- state I/O
-    def state_dict(self) -> dict[str, Any]:
-        return {
-            'algo': self.algo,
-            'version': _STATE_VERSION,
-            'config': self.config(),
-            'rng': rng_state(self._rng, len(self._blk) - self._bi),
-            'k': self.k,
-            'evaluations': self.evaluations,
-            'u': list(self._u),
-            'phase': self._phase,
-            'delta': list(self._delta),
-            'ck': self._ck,
-            'y_plus': self._y_plus,
-            'pending': None if self._pu is None else list(self._pu),
-            'last_gradient': (None if self._last_gradient is None else list(self._last_gradient)),
-        }
-
-    @classmethod
-    def _from_state(cls, state: dict[str, Any]) -> SPSA:
-        try:
-            opt = rebuild(cls, state, _STATE_VERSION)
-            opt.k = int(state['k'])
-            opt.evaluations = int(state['evaluations'])
-            opt._u = [float(x) for x in state['u']]
-            opt._phase = int(state['phase'])
-            opt._delta = [float(x) for x in state['delta']]
-            opt._y_plus = float(state['y_plus'])
-            p = state['pending']
-            opt._pu = None if p is None else [float(x) for x in p]
-            # ck is c_k of the current iteration once its first candidate is asked; before
-            # that it is a function of k (a state may hold the previous iteration's).
-            opt._ck = (
-                opt.c / (opt.k + 1) ** opt.gamma
-                if opt._phase == 0 and p is None
-                else float(state['ck'])
-            )
-            g = state['last_gradient']
-            opt._last_gradient = None if g is None else [float(x) for x in g]
-        except (KeyError, TypeError, ValueError) as e:
-            if isinstance(e, OptimizerError):
-                raise
-            raise OptimizerError(f'bad spsa state: {e!r}') from None
+    def _restored(self, state: dict[str, Any]) -> None:
+        # ck is c_k of the current iteration once its first candidate is asked; before
+        # that it is a function of k (a state may hold the previous iteration's).
+        self._ck = (
+            self.c / (self.k + 1) ** self.gamma
+            if self._phase == 0 and self._pending is None
+            else float(state['ck'])
+        )
         if (
-            len(opt._u) != opt.dim
-            or len(opt._delta) != opt.dim
-            or (opt._pu is not None and len(opt._pu) != opt.dim)
-            or (opt._last_gradient is not None and len(opt._last_gradient) != opt.dim)
+            len(self._u) != self.dim
+            or len(self._delta) != self.dim
+            or (self._pending is not None and len(self._pending) != self.dim)
+            or (self._last_gradient is not None and len(self._last_gradient) != self.dim)
         ):
             raise OptimizerError('bad spsa state: vectors do not match dim')
-        return opt

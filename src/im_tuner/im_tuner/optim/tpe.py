@@ -25,20 +25,17 @@ from optuna.distributions import BaseDistribution, FloatDistribution
 from optuna.trial import TrialState, create_trial
 
 from .base import (
+    HISTORY,
+    INT,
+    SAVED,
+    Field,
     Optimizer,
     OptimizerError,
-    OptionSpec,
-    check_version,
-    make_rng,
-    seed_from_json,
     told_history,
-    told_loss,
 )
-from .options import TPE_OPTIONS
 
 __all__ = ['TPE']
 
-_STATE_VERSION = 1
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 
 
@@ -72,20 +69,26 @@ class TPE(Optimizer):
     """
 
     algo: ClassVar[str] = 'tpe'
-    OPTIONS: ClassVar[dict[str, OptionSpec]] = TPE_OPTIONS
+    REPLAYS: ClassVar[bool] = True
+    STATE: ClassVar[tuple[Field, ...]] = (
+        *HISTORY,
+        Field('rng_tpe', 'rng_tpe', SAVED),
+        Field('rng_random', 'rng_random', SAVED),
+        Field('evaluations', 'evaluations', INT),
+    )
+    BAD_STATE: ClassVar[str] = 'not a tpe state ({error!r:.80})'
+    STATE_ERRORS: ClassVar[tuple[type[Exception], ...]] = (
+        KeyError,
+        TypeError,
+        ValueError,
+        IndexError,
+    )
 
-    def __init__(
-        self,
-        dim: int,
-        seed: int | np.random.SeedSequence,
-        start: np.ndarray | None = None,
-        **options: Any,
-    ) -> None:
-        seed, x0 = self._init_checked(dim, seed, start, options)
+    def _setup(self, x0: np.ndarray | None) -> None:
         opts = self._opts
         self._x0 = x0
         # optuna seeds numpy RandomStates with a 32-bit int: one drawn from our stream
-        self._sampler_seed = int(make_rng(seed).integers(0, 2**32 - 1))
+        self._sampler_seed = int(self._rng.integers(0, 2**32 - 1))
         self._names = [f'u{i}' for i in range(self.dim)]
         self._dists: dict[str, BaseDistribution] = {
             n: FloatDistribution(0.0, 1.0) for n in self._names
@@ -100,34 +103,24 @@ class TPE(Optimizer):
         if x0 is not None:
             self._study.enqueue_trial(dict(zip(self._names, x0.tolist(), strict=True)))
         self._trial: optuna.Trial | None = None
-        self._pending: list[float] | None = None
-        self._told_u: list[list[float]] = []
-        self._told_loss: list[float] = []
-        self.evaluations = 0
 
     @property
     def iterations(self) -> int:
         """Trials completed (one evaluation each)."""
         return self.evaluations
 
-    def ask(self) -> np.ndarray:
-        if self._pending is None:
-            self._trial = self._study.ask(self._dists)
-            self._pending = [float(self._trial.params[n]) for n in self._names]
-        return np.array(self._pending)
+    def _propose(self) -> list[float]:
+        """The next trial's parameters (optuna's study.ask)."""
+        self._trial = self._study.ask(self._dists)
+        return [float(self._trial.params[n]) for n in self._names]
 
-    def tell(self, u: np.ndarray, loss: float) -> None:
-        loss = told_loss(self._pending, u, loss)
-        pending = self._pending
-        assert pending is not None  # told_loss checked it
+    def _update(self, u: list[float], loss: float, aborted: bool) -> None:
+        """The trial completed with its loss."""
         if self._trial is not None:
             self._study.tell(self._trial, loss)
         else:  # a candidate restored from a state: the same trial, completed
-            self._study.add_trial(self._frozen(pending, loss))
-        self._told_u.append(pending)
-        self._told_loss.append(loss)
-        self._trial, self._pending = None, None
-        self.evaluations += 1
+            self._study.add_trial(self._frozen(u, loss))
+        self._trial = None
 
     def _frozen(self, u: list[float], loss: float) -> optuna.trial.FrozenTrial:
         return create_trial(
@@ -137,59 +130,46 @@ class TPE(Optimizer):
             state=TrialState.COMPLETE,
         )
 
-    def config(self) -> dict[str, Any]:
+    def _settings(self) -> dict[str, Any]:
         return {
-            'algo': self.algo,
-            'dim': self.dim,
-            'seed': self._seed_json,
             **self._opts,
             'start': None if self._x0 is None else self._x0.tolist(),
             'optuna': optuna.__version__,
         }
 
-    def state_dict(self) -> dict[str, Any]:
-        return {
-            'algo': self.algo,
-            'version': _STATE_VERSION,
-            'config': self.config(),
-            'told_u': [list(u) for u in self._told_u],
-            'told_loss': list(self._told_loss),
-            'pending': None if self._pending is None else list(self._pending),
-            'rng_tpe': _rs_state(self._sampler._rng.rng),
-            'rng_random': _rs_state(self._sampler._random_sampler._rng.rng),
-            'evaluations': self.evaluations,
-        }
+    @property
+    def rng_tpe(self) -> dict[str, Any]:
+        """The state of TPE's own RandomState."""
+        return _rs_state(self._sampler._rng.rng)
+
+    @property
+    def rng_random(self) -> dict[str, Any]:
+        """The state of the start-up random sampler's RandomState."""
+        return _rs_state(self._sampler._random_sampler._rng.rng)
 
     @classmethod
-    def _from_state(cls, state: dict[str, Any]) -> TPE:
-        check_version(cls, state, _STATE_VERSION)
-        try:
-            cfg = state['config']
-            start = cfg['start']
-            pending = state['pending']
-            us, losses = told_history(cls.algo, state)
-            # the start is enqueued only while it has not been asked yet
-            opt = cls(
-                int(cfg['dim']),
-                seed_from_json(cfg['seed']),
-                np.array(start, dtype=np.float64)
-                if start is not None and not us and pending is None
-                else None,
-                **{k: cfg[k] for k in cls.OPTIONS},
-            )
-            opt._x0 = None if start is None else np.array(start, dtype=np.float64)
-            opt._study.add_trials([opt._frozen(u, v) for u, v in zip(us, losses, strict=True)])
-            opt._told_u, opt._told_loss = us, losses
-            opt.evaluations = len(losses)
-            _set_rs_state(opt._sampler._rng.rng, state['rng_tpe'])
-            _set_rs_state(opt._sampler._random_sampler._rng.rng, state['rng_random'])
-            if pending is not None:
-                u = [float(x) for x in pending]
-                if len(u) != opt.dim:
-                    raise OptimizerError('tpe state: the pending candidate has the wrong size')
-                opt._pending = u
-        except OptimizerError:
-            raise
-        except (KeyError, TypeError, ValueError, IndexError) as exc:
-            raise OptimizerError(f'not a tpe state ({exc!r:.80})') from None
+    def _restore(cls, state: dict[str, Any]) -> TPE:
+        """The study rebuilt from the told trials, the sampler's streams put back."""
+        start = state['config']['start']
+        pending = state['pending']
+        us, losses = told_history(cls.algo, state)
+        # the start is enqueued only while it has not been asked yet
+        opt = cls._replica(state, start if not us and pending is None else None)
+        opt._resume(start, us, losses, state)
         return opt
+
+    def _resume(
+        self, start: Any, us: list[list[float]], losses: list[float], state: dict[str, Any]
+    ) -> None:
+        self._x0 = None if start is None else np.array(start, dtype=np.float64)
+        self._study.add_trials([self._frozen(u, v) for u, v in zip(us, losses, strict=True)])
+        self._told_u, self._told_loss = us, losses
+        self.evaluations = len(losses)
+        _set_rs_state(self._sampler._rng.rng, state['rng_tpe'])
+        _set_rs_state(self._sampler._random_sampler._rng.rng, state['rng_random'])
+        pending = state['pending']
+        if pending is not None:
+            u = [float(x) for x in pending]
+            if len(u) != self.dim:
+                raise OptimizerError('tpe state: the pending candidate has the wrong size')
+            self._pending = u

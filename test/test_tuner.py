@@ -710,7 +710,7 @@ def _summary(**over) -> dict:
 @pytest.mark.unit
 def test_a_timing_failure_says_where_to_run_the_controller():
     from im_tuner.progress import format_summary
-    from im_tuner.tuner_node import failure_advice
+    from im_tuner.tuner_session import failure_advice
 
     timing = [{'status': 'ok'}, {'status': 'timing'}]
     failed = 'failed: eval 0: no result after 4 attempts with the same gains (timing: ...)'
@@ -743,7 +743,7 @@ def test_a_hardware_class_is_not_called_simulated_and_faults_between_experiments
 
 @pytest.mark.unit
 def test_an_external_drives_counters_are_the_sessions_share():
-    from im_tuner.link import drive_delta, drive_report
+    from im_tuner.bench.drive_status import drive_delta, drive_report
     from im_tuner.progress import drive_text
 
     def rep(**kv):

@@ -25,7 +25,7 @@ from im_drive_sim import rt
 from im_drive_sim.cli import Parser, UsageError, finite_float
 
 from . import optim
-from .bench.spec import DISCOVERY_TIMEOUT
+from .bench.spec import DISCOVERY_TIMEOUT, recording_options
 from .benches import BENCHES  # (the bench modes: one copy, in benches)
 from .names import FAULT_POLICIES, controller_topics
 from .optim.base import OptimizerError, check_options
@@ -57,13 +57,15 @@ RUN_SETTINGS = (
 NO_START_TEXT = ', '.join(a for a in optim.ALGOS if a in optim.NO_START_ALGOS)
 
 
+DESCRIPTION = (
+    'Tune the cascaded position/speed controller online by SPSA, a compact GA (the '
+    'paper), CMA-ES, TPE or safe (a local search for real benches) on measured experiment '
+    'losses (docs/tuner.md).'
+)
+
+
 def _build_parser() -> argparse.ArgumentParser:
-    ap = Parser(
-        prog='ros2 run im_tuner tuner',
-        description='Tune the cascaded position/speed controller online by SPSA, a '
-        'compact GA (the paper), CMA-ES, TPE or safe (a local search for real benches) '
-        'on measured experiment losses (docs/tuner.md).',
-    )
+    ap = Parser(prog='ros2 run im_tuner tuner', description=DESCRIPTION)
     ap.add_argument(
         '--algo',
         choices=optim.ALGOS,
@@ -223,12 +225,7 @@ def _build_parser() -> argparse.ArgumentParser:
 def check_session(cli: argparse.Namespace) -> None:
     """The options of this session (new or resumed) that go together: a bag option with
     --no-record would be ignored, so it is refused; sets the default compression."""
-    if cli.no_record and cli.compression is not None:
-        raise UsageError(
-            f'--compression {cli.compression} is for the bag, and --no-record records none: '
-            'give one or the other'
-        )
-    cli.compression = cli.compression or 'lz4'
+    cli.compression = recording_options(cli.no_record, compression=cli.compression)
 
 
 def _algo_options(cli: argparse.Namespace, algo: str) -> dict[str, Any]:

@@ -38,16 +38,42 @@ from im_drive_sim.runtime import RosSession
 from ..record.node import default_out_dir
 from .forms import Children, InProcess, parameters
 from .open import open_bench
-from .spec import BenchSpec, Params
+from .spec import BenchSpec, Params, recording_options
+
+DESCRIPTION = (
+    'The simulated bench: drive_sim + controller, lock-step. Start experiments with '
+    '/controller/start_experiment (std_srvs/Trigger); results on /controller/loss.'
+)
+#: the bag's options: (flag, argparse keywords)
+BAG_OPTIONS: tuple[tuple[str, dict[str, Any]], ...] = (
+    (
+        '--no-record',
+        {
+            'action': 'store_true',
+            'help': 'do not record (default: all traffic to a bag, see --out); refused '
+            'with --out or --compression, which would be ignored',
+        },
+    ),
+    (
+        '--out',
+        {
+            'metavar': 'DIR',
+            'type': Path,
+            'help': 'bag directory to create (default: bags/sim_bench_<UTC time>)',
+        },
+    ),
+    (
+        '--compression',
+        {
+            'choices': ('none', 'zstd', 'lz4'),
+            'help': 'MCAP chunk compression of the bag (default: lz4; zstd: smaller files)',
+        },
+    ),
+)
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = Parser(
-        prog='ros2 run im_tuner sim_bench',
-        description='The simulated bench: drive_sim + controller, lock-step. Start '
-        'experiments with /controller/start_experiment (std_srvs/Trigger); '
-        'results on /controller/loss.',
-    )
+    ap = Parser(prog='ros2 run im_tuner sim_bench', description=DESCRIPTION)
     ap.add_argument(
         '--processes',
         action='store_true',
@@ -56,23 +82,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--config', metavar='FILE', type=input_file, help='drive parameter file (YAML)')
     ap.add_argument('--model', choices=('full', 'reduced'), help='drive model fidelity')
     ap.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
-    ap.add_argument(
-        '--no-record',
-        action='store_true',
-        help='do not record (default: all traffic to a bag, see --out); refused with '
-        '--out or --compression, which would be ignored',
-    )
-    ap.add_argument(
-        '--out',
-        metavar='DIR',
-        type=Path,
-        help='bag directory to create (default: bags/sim_bench_<UTC time>)',
-    )
-    ap.add_argument(
-        '--compression',
-        choices=('none', 'zstd', 'lz4'),
-        help='MCAP chunk compression of the bag (default: lz4; zstd: smaller files)',
-    )
+    for flag, kw in BAG_OPTIONS:
+        ap.add_argument(flag, **kw)
     return ap
 
 
@@ -83,14 +94,7 @@ def _check_cli(cli: argparse.Namespace) -> None:
             load_config(cli.config)
         except ConfigError as exc:
             raise UsageError(str(exc)) from None
-    if cli.no_record:  # a bag option with no bag would be silently ignored
-        for flag, value in (('--out', cli.out), ('--compression', cli.compression)):
-            if value is not None:
-                raise UsageError(
-                    f'{flag} {value} is for the bag, and --no-record records none: '
-                    'give one or the other'
-                )
-    cli.compression = cli.compression or 'lz4'
+    cli.compression = recording_options(cli.no_record, out=cli.out, compression=cli.compression)
     if cli.out is not None and cli.out.exists():
         raise UsageError(f'--out {cli.out}: already exists; choose a new directory')
 

@@ -31,6 +31,7 @@ __all__ = [
     'BenchPlan',
     'BenchSpec',
     'next_experiment_id',
+    'recording_options',
     'tuner_bench_spec',
 ]
 
@@ -51,6 +52,19 @@ def next_experiment_id(records: list[dict[str, Any]]) -> int:
     run's records (0 for none)."""
     ids = [int(r['experiment_id']) for r in records if r.get('experiment_id') is not None]
     return max(ids) + 1 if ids else 0
+
+
+def recording_options(no_record: bool, **bag_options: Any) -> str:
+    """The bag's compression (default lz4) of a command line with ``--no-record`` and
+    bag options (``flag_name=value``, None: not given): a bag option with no bag would
+    be silently ignored, so it is refused (UsageError)."""
+    for name, value in bag_options.items():
+        if no_record and value is not None:
+            raise UsageError(
+                f'--{name.replace("_", "-")} {value} is for the bag, and --no-record records '
+                'none: give one or the other'
+            )
+    return bag_options.get('compression') or 'lz4'
 
 
 def parameter_args(params: Params) -> list[str]:

@@ -222,6 +222,13 @@ def _build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def ros_arguments(argv: list[str]) -> list[str]:
+    """The tuner's rclpy arguments: its ``--ros-args`` (they reach an in-process bench's
+    nodes too), the console logs off (the tuner prints its own progress)."""
+    ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else ['--ros-args']
+    return [argv[0], *ros_args, '--disable-stdout-logs']
+
+
 def check_session(cli: argparse.Namespace) -> None:
     """The options of this session (new or resumed) that go together: a bag option with
     --no-record would be ignored, so it is refused; sets the default compression."""

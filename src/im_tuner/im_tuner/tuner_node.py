@@ -58,6 +58,7 @@ from .tuner_cli import (
     _build_parser,
     check_session,
     prepare_run,
+    ros_arguments,
 )
 
 
@@ -66,10 +67,6 @@ def main(args: list[str] | None = None) -> int:
     try:
         cli = _build_parser().parse_args(check_ros_args(argv)[1:])
         check_session(cli)
-    except UsageError as exc:
-        print(f'error: tuner: {exc}', file=sys.stderr)
-        return EXIT_USAGE
-    try:
         return _main(cli, argv)
     except UsageError as exc:
         print(f'error: tuner: {exc}', file=sys.stderr)
@@ -104,11 +101,8 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
     from .tuning import BenchFailure, ResumeError, StopRequested
 
     session = TunerSession(cli, argv, cfg)
-    ros_args = ['--ros-args', '--disable-stdout-logs']  # the tuner prints its own progress
-    if '--ros-args' in argv:
-        ros_args = [*argv[argv.index('--ros-args') :], '--disable-stdout-logs']
     ctx = Context()
-    ros = RosSession([argv[0], *ros_args], context=ctx)
+    ros = RosSession(ros_arguments(argv), context=ctx)
 
     def should_stop() -> bool:
         return ros.stopped

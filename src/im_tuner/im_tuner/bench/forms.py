@@ -496,17 +496,18 @@ class Children:
             return []
         self.ended.append(p)
         rc = stop_child(p)
-        if rc == 0 or self.bag is None or not self.bag.exists():
+        if rc == 0:
             return []
         why = f'killed by signal {-rc}' if rc < 0 else f'exit code {rc}'
         problem = f'the recorder did not close its bag ({why})'
-        from ..record.repair import RepairError, repair_bag
+        if self.bag is not None and self.bag.exists():  # (a refused recorder made none)
+            from ..record.repair import RepairError, repair_bag
 
-        try:
-            rep = repair_bag(self.bag)
-            problem += f'; {self.bag.name} repaired: ' + rep.summary().splitlines()[0]
-        except RepairError as exc:
-            problem += f'; could not repair {self.bag}: {exc}'
+            try:
+                rep = repair_bag(self.bag)
+                problem += f'; {self.bag.name} repaired: ' + rep.summary().splitlines()[0]
+            except RepairError as exc:
+                problem += f'; could not repair {self.bag}: {exc}'
         return [problem]
 
     def stop_nodes(self) -> None:

@@ -711,7 +711,7 @@ def _summary(**over) -> dict:
 @pytest.mark.unit
 def test_a_timing_failure_says_where_to_run_the_controller():
     from im_tuner.progress import format_summary
-    from im_tuner.tuner_node import failure_advice
+    from im_tuner.tuner_session import failure_advice
 
     timing = [{'status': 'ok'}, {'status': 'timing'}]
     failed = 'failed: eval 0: no result after 4 attempts with the same gains (timing: ...)'
@@ -740,28 +740,3 @@ def test_a_hardware_class_is_not_called_simulated_and_faults_between_experiments
     assert '(safety faults 1, 1 of them met between experiments)' in out
     run['drive'] = 'example'  # the example's stand-in plant is simulated
     assert 'simulated experiment time' in format_summary(_summary(), run, Path('run'))
-
-
-@pytest.mark.unit
-def test_an_external_drives_counters_are_the_sessions_share():
-    from im_tuner.link import drive_delta, drive_report
-    from im_tuner.progress import drive_text
-
-    def rep(**kv):
-        return drive_report({'mode': 'realtime', **{k: str(v) for k, v in kv.items()}})
-
-    start = rep(steps=100_000, held=40, overruns=7, max_lateness_us=900.0, watchdog_trips=1)
-    end = rep(steps=130_000, held=55, overruns=7, max_lateness_us=900.0, watchdog_trips=1)
-    d = drive_delta(start, end)
-    assert (d['steps'], d['held'], d['overruns'], d['watchdog_trips']) == (30_000, 15, 0, 0)
-    assert 'max_lateness_us' not in d and d['max_lateness_us_at_most'] == 900.0
-    text = drive_text(d, 'this session')
-    assert '30000 periods' in text and 'lateness <= 900 us' in text
-    assert "this session's share" in text
-    worse = drive_delta(start, rep(steps=130_000, max_lateness_us=2500.0))
-    assert worse['max_lateness_us'] == 2500.0 and 'held' not in worse  # unknown at the end
-    again = drive_delta(start, rep(steps=5_000, held=0))  # the drive restarted meanwhile
-    assert again['steps'] == 5_000 and again['restarted'] and not again['per_session']
-    assert 'restarted' in drive_text(again, None)
-    assert drive_delta(None, end)['per_session'] is False  # no status at the start
-    assert drive_delta(start, None) is None

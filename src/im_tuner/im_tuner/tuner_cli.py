@@ -1,5 +1,5 @@
 """The tuner's command line and run configuration: options, checks of a new run and of
-``run.yaml`` on ``--resume``, and the TuningRun built from them.
+``run.yaml`` on ``--resume`` (:func:`prepare_run`), and the TuningRun built from them.
 
 Every check of a new run is made here, before anything is created and before anything
 heavy is imported: this module imports no rclpy, numba, pycma, optuna or scipy at load
@@ -25,6 +25,7 @@ from im_drive_sim import rt
 from im_drive_sim.cli import Parser, UsageError, finite_float
 
 from . import optim
+from .bench.spec import DISCOVERY_TIMEOUT, recording_options
 from .benches import BENCHES  # (the bench modes: one copy, in benches)
 from .names import FAULT_POLICIES, controller_topics
 from .optim.base import OptimizerError, check_options
@@ -36,11 +37,6 @@ if TYPE_CHECKING:
     from .tuning import TuningRun
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
-#: [s] --discovery-timeout's default per bench mode: auto simulates when it finds no
-#: controller (short: the default run); none has nothing else to do (it waits only until
-#: the controller is found). Measured: 0-2.3 s to discover a running controller from a
-#: new process at load 3 on a 2-core machine (5 tries)
-DISCOVERY_TIMEOUT = {'auto': 2.0, 'none': 20.0}
 #: settings a resumed run takes from run.yaml (giving them with --resume is an error)
 RUN_SETTINGS = (
     'algo',
@@ -61,13 +57,15 @@ RUN_SETTINGS = (
 NO_START_TEXT = ', '.join(a for a in optim.ALGOS if a in optim.NO_START_ALGOS)
 
 
+DESCRIPTION = (
+    'Tune the cascaded position/speed controller online by SPSA, a compact GA (the '
+    'paper), CMA-ES, TPE or safe (a local search for real benches) on measured experiment '
+    'losses (docs/tuner.md).'
+)
+
+
 def _build_parser() -> argparse.ArgumentParser:
-    ap = Parser(
-        prog='ros2 run im_tuner tuner',
-        description='Tune the cascaded position/speed controller online by SPSA, a '
-        'compact GA (the paper), CMA-ES, TPE or safe (a local search for real benches) '
-        'on measured experiment losses (docs/tuner.md).',
-    )
+    ap = Parser(prog='ros2 run im_tuner tuner', description=DESCRIPTION)
     ap.add_argument(
         '--algo',
         choices=optim.ALGOS,
@@ -224,15 +222,17 @@ def _build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def ros_arguments(argv: list[str]) -> list[str]:
+    """The tuner's rclpy arguments: its ``--ros-args`` (they reach an in-process bench's
+    nodes too), the console logs off (the tuner prints its own progress)."""
+    ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else ['--ros-args']
+    return [argv[0], *ros_args, '--disable-stdout-logs']
+
+
 def check_session(cli: argparse.Namespace) -> None:
     """The options of this session (new or resumed) that go together: a bag option with
     --no-record would be ignored, so it is refused; sets the default compression."""
-    if cli.no_record and cli.compression is not None:
-        raise UsageError(
-            f'--compression {cli.compression} is for the bag, and --no-record records none: '
-            'give one or the other'
-        )
-    cli.compression = cli.compression or 'lz4'
+    cli.compression = recording_options(cli.no_record, compression=cli.compression)
 
 
 def _algo_options(cli: argparse.Namespace, algo: str) -> dict[str, Any]:
@@ -376,6 +376,83 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
         'command': ' '.join(shlex.quote(a) for a in argv),
     }
     return NewRun(run, params, out, drive)
+
+
+@dataclass
+class RunConfig:
+    """A session whose every check passed (new or resumed), nothing created yet: the
+    run's settings, its tuner parameters, the checked ``--drive`` (None: the simulator
+    or the example), the progress printer; a resumed run's directory (locked) and its
+    TuningRun restored with ``n_restored`` records (None for a new run, made once its
+    bench is decided); ``out``: a new run's directory to create."""
+
+    run: dict[str, Any]
+    params: TunerParams
+    drive: DriveChoice | None
+    progress: Any
+    rundir: RunDir | None = None
+    tuning: TuningRun | None = None
+    n_restored: int = 0
+    out: Path | None = None
+
+
+def prepare_run(cli: argparse.Namespace, argv: list[str]) -> RunConfig:
+    """Check everything of this session before anything is created (UsageError): a new
+    run's options (:func:`_new_run_config`), or a resumed run's run.yaml, checkpoint and
+    records (``--resume``, which takes the run's settings from run.yaml only)."""
+    from .progress import Progress
+
+    if cli.resume is None:
+        new = _new_run_config(cli, argv)
+        out = new.out
+        if out is None:
+            from .record.node import default_out_dir
+
+            out = default_out_dir(prefix=f'tuner_{new.run["algo"]}')
+        new.run['bench_requested'] = cli.bench or 'auto'
+        progress = Progress(new.run['algo'], new.run['budget'], cli.quiet)
+        return RunConfig(new.run, new.params, new.drive, progress, out=out)
+    given = [k for k in RUN_SETTINGS if getattr(cli, k) not in (None, False)]
+    given += [k[4:] for k, v in vars(cli).items() if k.startswith('opt_') and v is not None]
+    if cli.out is not None:
+        given.append('out')
+    if given:
+        raise UsageError(
+            "--resume takes the run's settings from RUN_DIR/run.yaml; do not "
+            'also give ' + ', '.join('--' + g.replace('_', '-') for g in given)
+        )
+    from .rundir import RunDirError
+
+    try:
+        rundir = RunDir.open(cli.resume)
+        rundir.lock()  # one tuner per run, from here to the end of the process
+        run = rundir.read_run()
+        _check_run(run, str(rundir.path / 'run.yaml'))
+        params = _params_of_run(run)
+    except (RunDirError, TunerParamsError) as exc:
+        raise UsageError(f'--resume: {exc}') from None
+    _check_controller_name(cli.controller)
+    # everything of the run is checked before anything starts (a refusal changes
+    # nothing; the torn tail of results.jsonl is cut only once the run goes on)
+    from .tuning import ResumeError
+
+    progress = Progress(run['algo'], run['budget'], cli.quiet)
+    try:
+        tuning = _make_tuning(rundir, run, params, progress)
+        n_restored = tuning.restore()
+    except (OptimizerError, ValueError, TypeError) as exc:
+        raise UsageError(f'--resume: {rundir.path}/run.yaml: {exc}') from None
+    except ResumeError as exc:
+        raise UsageError(f'--resume: {exc}') from None
+    drive = None
+    if (run.get('drive') or 'sim') != 'sim':
+        from .bench import drive_spec
+
+        try:  # the run's drive: checked (and a hardware class built) as for a new run
+            drive = drive_spec.resolve(str(run['drive']), run.get('drive_config'))
+        except drive_spec.DriveSpecError as exc:
+            raise UsageError(f'--resume: {exc}') from None
+    return RunConfig(run, params, drive, progress, rundir, tuning, n_restored)
 
 
 def _start(algo: str, params: TunerParams, no_start: bool = False) -> np.ndarray | None:

@@ -110,3 +110,28 @@ def test_the_composed_loop_runs_sched_fifo_50_unless_told_otherwise() -> None:
     assert not rt.RtOptions.from_cli(cli).requested
     text = ' '.join(_build_parser().format_help().split())
     assert 'SCHED_FIFO at priority N (1-99; default 50, as ros2_control_node;' in text
+
+
+def test_the_ros_arguments_and_the_bag_options() -> None:
+    from im_tuner.bench.spec import recording_options
+    from im_tuner.tuner_cli import check_session, ros_arguments
+
+    quiet = ['tuner', '--ros-args', '--disable-stdout-logs']
+    assert ros_arguments(['tuner', '--budget', '3']) == quiet
+    assert ros_arguments(['tuner', '--ros-args', '-p', 'a:=1']) == [
+        'tuner',
+        '--ros-args',
+        '-p',
+        'a:=1',
+        '--disable-stdout-logs',
+    ]
+    cli = _build_parser().parse_args(['--no-record', '--compression', 'zstd'])
+    with pytest.raises(UsageError, match=r'^--compression zstd is for the bag, and --no-record'):
+        check_session(cli)
+    cli = _build_parser().parse_args([])
+    check_session(cli)
+    assert cli.compression == 'lz4'
+    assert recording_options(False, out='x', compression='zstd') == 'zstd'
+    with pytest.raises(UsageError, match=r'^--out x is for the bag'):
+        recording_options(True, out='x', compression=None)
+    assert recording_options(True, out=None, compression=None) == 'lz4'

@@ -272,3 +272,35 @@ def build_node(choice: DriveChoice, context: Any, overrides: list[Any]) -> Any:
     return ExampleDrive(
         context=context, parameter_overrides=overrides, hardware_class=choice.factory
     )
+
+
+def make_drive(spec: str | DriveChoice, context: Any, overrides: list[Any]) -> Any:
+    """The drive node of the composed real-time bench (``realtime.RealtimeBench``) named
+    by ``spec`` ('sim', 'example' or a class; a DriveChoice is a ``--drive`` already
+    checked, with its hardware built: :func:`resolve`), in real time.
+
+    ``overrides``: the tuner's drive parameters; the simulator takes them all (seed,
+    model, config_file), the example drive and a user's drive only ``config_file``."""
+    from rclpy.parameter import Parameter
+
+    choice = spec if isinstance(spec, DriveChoice) else None
+    name = choice.spec if choice is not None else spec
+    assert isinstance(name, str)
+    if name == 'sim':
+        from im_drive_sim.drive_sim_node import DriveSimNode
+
+        return DriveSimNode(
+            context=context,
+            parameter_overrides=[
+                Parameter('mode', value='realtime'),
+                Parameter('realtime_wait_for_controller', value=False),
+                *overrides,
+            ],
+            warn_unknown=False,
+        )
+    from im_drive_sim.example_drive import ExampleDrive
+
+    mine = [p for p in overrides if p.name == 'config_file']
+    if name == 'example':
+        return ExampleDrive(context=context, parameter_overrides=mine)
+    return build_node(choice or resolve(name, None, build=False), context, mine)

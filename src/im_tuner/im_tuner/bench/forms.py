@@ -10,12 +10,15 @@
   recorder is replaced (its bag repaired), a dead drive or controller ends the run. They
   end with the tuner, however it ends (``PR_SET_PDEATHSIG``).
 
-The tuner's main only opens one, hands its ``spin_until`` and ``supervise`` to the
-controller link, asks it for the drive's report, and closes it.
+:func:`.open.open_bench` decides which and builds it (the tuner's and ``sim_bench``'s);
+the tuner hands its ``spin_until`` and ``supervise`` to the controller link, asks it for
+the drive's report, and closes it. What a bench needs of the run (a new bag for a replaced
+recorder, the checkpoint after it) comes through a :class:`RunHost`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -32,18 +35,47 @@ from rclpy.parameter import Parameter
 
 from im_drive_sim.contract import STATE_TOPIC
 
-from ..link import DriveMonitor, controller_topics, drive_report
+from ..names import controller_topics
 from ..tuning import BenchFailure
+from .drive_status import DriveMonitor, drive_delta, drive_report
+from .spec import BenchPlan
 
 RECORDER_RESTARTS = 3  # replacements of a recorder child that died, per session
 RECORDER_READY_TIMEOUT = 20.0  # [s] for a replacement recorder to subscribe
 SpinUntil = Callable[[Callable[[], bool], float | None], bool]
 
 
+class RunHost(Protocol):
+    """What a bench needs of the run it serves (the tuner's session; ``sim_bench``'s own)."""
+
+    def begin(self, plan: BenchPlan) -> Path | None:
+        """The bench is decided: make what the run needs; this session's bag directory
+        (None: nothing is recorded)."""
+        ...
+
+    def tuner_metadata(self) -> dict[str, Any] | None:
+        """The run's settings for the bag's metadata (None: no tuner run)."""
+        ...
+
+    def next_bag(self) -> Path | None:
+        """A new bag directory for a recorder that replaces a dead one (None: none; a
+        dead recorder then ends the bench)."""
+        ...
+
+    def bag_replaced(self, bag: Path) -> None:
+        """A replacement recorder records into ``bag`` from now on (the run's books)."""
+        ...
+
+    def warn(self, text: str) -> None:
+        """Say ``text`` to the person at the bench (one line)."""
+        ...
+
+
 class Bench(Protocol):
     """What a tuner run needs of a bench (see the module docstring)."""
 
     mode: str  #: 'inproc', 'realtime', 'processes', 'realtime-processes' or 'external'
+    plan: BenchPlan
 
     def spin_until(self, pred: Callable[[], bool], timeout: float | None = None) -> bool:
         """Advance the bench and serve the tuner's node until ``pred()`` or the timeout."""
@@ -57,8 +89,13 @@ class Bench(Protocol):
         """The recorder takes every topic the run records (or nothing is recorded)."""
         ...
 
+    def session_start(self) -> None:
+        """The session's experiments begin: a long-lived drive's counters are taken."""
+        ...
+
     def drive_report(self) -> dict[str, Any] | None:
-        """The drive's counters after the last experiment (summary.json)."""
+        """The drive's counters after the last experiment (summary.json); a long-lived
+        (external) drive's over this session only (drive_status.drive_delta)."""
         ...
 
     def close_recording(self) -> list[str]:
@@ -132,9 +169,9 @@ def die_with_parent() -> None:
         pass  # not Linux: the children outlive a killed tuner (SIGINT still ends them)
 
 
-def parameter_args(params: list[Parameter]) -> list[str]:
-    """``-p name:=value`` arguments of a child node."""
-    return [a for p in params for a in ('-p', f'{p.name}:={p.value}')]
+def parameters(params: tuple[tuple[str, Any], ...]) -> list[Parameter]:
+    """rclpy parameters of (name, value) pairs (BenchPlan)."""
+    return [Parameter(name, value=value) for name, value in params]
 
 
 # ------------------------------------------------------------------------------ in process
@@ -161,25 +198,23 @@ class InProcess:
 
     def __init__(
         self,
-        ctx: Context,
-        node: Node,
-        exe: Executor,
+        plan: BenchPlan,
+        ctx: Context | None,
+        node: Node | None,
+        exe: Executor | None,
         *,
-        realtime: bool = False,
-        rt_options: Any = None,  # im_drive_sim.rt.RtOptions: the loop's scheduling
-        drive: Any = 'sim',  # a --drive name, or a drive_spec.DriveChoice
-        drive_overrides: list[Parameter],
-        controller_overrides: list[Parameter],
         bag_dir: Path | None,
-        compression: str,
-        tuner_metadata: dict[str, Any],
+        tuner_metadata: dict[str, Any] | None,
         command: list[str],
         should_stop: Callable[[], bool] | None = None,
     ) -> None:
-        """``should_stop()``: the run was asked to stop (a signal); a real-time drive then
-        gets zero current at once, before the tuner winds down."""
+        """``node``: the tuner's node, served by the bench's executor from now on (None:
+        none, ``sim_bench``); ``tuner_metadata``: the run's settings in the bag's
+        metadata (None: none). ``should_stop()``: the run was asked to stop (a signal);
+        a real-time drive then gets zero current at once, before the tuner winds down."""
         from . import InProcessBench, bench_metadata
 
+        self.plan = plan
         self.rec: Any = None
 
         def start_recorder(b: Any) -> None:
@@ -187,11 +222,13 @@ class InProcess:
                 return
             from ..record.node import RECORD_POLL_STEPS, Recorder
 
-            meta = bench_metadata(b) | {'im_tuner.tuner': tuner_metadata}
+            meta = bench_metadata(b)
+            if tuner_metadata is not None:
+                meta |= {'im_tuner.tuner': tuner_metadata}
             self.rec = Recorder(
                 Node('recorder', context=ctx, start_parameter_services=False),
                 bag_dir,
-                compression=compression,
+                compression=plan.spec.compression,
                 extra_metadata=meta,
                 command=command,
                 # the real-time loop's topics: from its outbox's tap, lossless
@@ -206,30 +243,35 @@ class InProcess:
             # holding the GIL; lock-step: every RECORD_POLL_STEPS steps
             b.add_poller(self.rec.poll, 250 if hasattr(b, 'outbox') else RECORD_POLL_STEPS)
 
-        exe.executor.remove_node(node)
-        self.mode = 'realtime' if realtime else 'inproc'
+        if exe is not None and node is not None:
+            exe.executor.remove_node(node)
+        self.mode = plan.mode
+        drive_over = parameters(plan.drive_parameters)
+        ctl_over = parameters(plan.controller_parameters) or None
         self.bench: Any
-        if realtime:
+        if plan.mode == 'realtime':
             from .realtime import RealtimeBench
 
             self.bench = RealtimeBench(
                 context=ctx,
-                drive=drive,
-                drive_overrides=drive_overrides,
-                controller_overrides=controller_overrides or None,
+                drive=plan.spec.drive_choice or plan.spec.drive,
+                drive_overrides=drive_over,
+                controller_overrides=ctl_over,
                 before_start=start_recorder,
                 should_stop=should_stop,
-                rt_options=rt_options,
+                rt_options=plan.spec.rt_options,
             )
         else:
             self.bench = InProcessBench(
                 context=ctx,
-                drive_overrides=drive_overrides,
-                controller_overrides=controller_overrides or None,
+                drive_overrides=drive_over or None,
+                controller_overrides=ctl_over,
                 before_start=start_recorder,
             )
-        self.bench.executor.add_node(node)
         self.spin_until = self.bench.spin_until
+        if node is None:
+            return
+        self.bench.executor.add_node(node)
         # Discovery can be slow on a loaded machine: look again now that ours exist.
         if (
             node.count_publishers('/' + STATE_TOPIC) > 1
@@ -246,6 +288,9 @@ class InProcess:
 
     def recording_ready(self, timeout: float) -> bool:
         return True  # the recorder matched every topic before the first step
+
+    def session_start(self) -> None:
+        pass  # the drive starts with the session: its counters are the session's
 
     def drive_report(self) -> dict[str, Any] | None:
         stop_loop = getattr(self.bench, 'stop_loop', None)
@@ -289,119 +334,85 @@ class InProcess:
 
 # ------------------------------------------------------------------------------ children
 class Children:
-    """``processes`` / ``realtime``: drive and controller as children; ``external``: the
-    controller on the graph. Either way the recorder is a child (unless no bag)."""
+    """``processes`` / ``realtime-processes``: drive and controller as children;
+    ``external``: the controller on the graph. Either way the recorder is a child (unless
+    no bag). ``node`` None (``sim_bench``): nothing of the tuner's on the graph, the
+    children only started, watched and stopped."""
 
     def __init__(
         self,
-        mode: str,
-        node: Node,
-        exe: Executor,
+        plan: BenchPlan,
+        node: Node | None,
+        exe: Executor | None,
         *,
-        controller: str,
-        drive_overrides: list[Parameter],
-        controller_overrides: list[Parameter],
         bag_dir: Path | None,
-        compression: str,
-        progress: Any,
+        host: RunHost,
     ) -> None:
-        self.mode = mode
+        self.plan = plan
+        self.mode = plan.mode
         self.node = node
-        self.spin_until = exe.spin_until
-        self.compression = compression
-        self.progress = progress
+        self.spin_until = exe.spin_until if exe is not None else None
+        self.host = host
+        self.quiet = plan.spec.quiet
         self.children: dict[str, subprocess.Popen] = {}  # the live bench processes, by role
         self.ended: list[subprocess.Popen] = []  # ... and those already gone
         self.recorder_restarts = 0
-        self.names = controller_topics(controller)
+        self.names = controller_topics(plan.spec.controller)
         self.rec_topics = (
             [self.names['loss'], '/' + STATE_TOPIC]
-            if mode in ('processes', 'realtime-processes')
+            if plan.mode in ('processes', 'realtime-processes')
             else [self.names['loss']]
         )
-        # set by attach(): the run whose bags a replaced recorder continues
-        self.rundir: Any = None
-        self.tuning: Any = None
-        self.session: dict[str, Any] = {}
         self._ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
-        # the children log to /rosout (recorded) and their log files, not the console
-        self._quiet_logs = ['--ros-args', '--disable-stdout-logs']
         self.recording = bag_dir is not None
+        self.bag = bag_dir  #: the bag being recorded (a replacement's once replaced)
         if bag_dir is not None:
             self._start_recorder(bag_dir)
-        if mode in ('processes', 'realtime-processes'):
-            rt = ['--mode', 'realtime'] if mode == 'realtime-processes' else []
-            r2, q = self._ros2, self._quiet_logs
-            self._spawn(
-                'drive_sim',
-                [r2, 'run', 'im_drive_sim', 'drive_sim', *rt, *q, *parameter_args(drive_overrides)],
-            )
-            self._spawn(
-                'controller',
-                [
-                    r2,
-                    'run',
-                    'im_controller',
-                    'controller',
-                    *rt,
-                    *q,
-                    *parameter_args(controller_overrides),
-                ],
-            )
-        self.monitor = DriveMonitor(node, self.names['drive_status'])
-
-    def attach(self, rundir: Any, tuning: Any, session: dict[str, Any]) -> None:
-        self.rundir, self.tuning, self.session = rundir, tuning, session
+        if plan.mode in ('processes', 'realtime-processes'):
+            for pkg, role in (('im_drive_sim', 'drive_sim'), ('im_controller', 'controller')):
+                self._spawn(role, [self._ros2, 'run', pkg, role, *plan.child_args(role)])
+        self.monitor = DriveMonitor(node, self.names['drive_status']) if node else None
 
     def _spawn(self, role: str, argv: list[str]) -> None:
         self.children[role] = subprocess.Popen(
             argv,
-            stdout=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL if self.quiet else None,
             preexec_fn=die_with_parent,  # noqa: PLW1509 (only prctl, async-signal-safe)
         )
 
     def _start_recorder(self, out_dir: Path) -> None:
-        self._spawn(
-            'recorder',
-            [
-                self._ros2,
-                'run',
-                'im_tuner',
-                'recorder',
-                '--out',
-                str(out_dir),
-                '--compression',
-                self.compression,
-                *self._quiet_logs,
-            ],
-        )
+        self.bag = out_dir
+        quiet = ['--ros-args', '--disable-stdout-logs'] if self.quiet else []
+        compression = self.plan.spec.compression
+        args = ['--out', str(out_dir), '--compression', compression, *quiet]
+        self._spawn('recorder', [self._ros2, 'run', 'im_tuner', 'recorder', *args])
 
     def _recorder_died(self, why: str) -> None:
         """Keep what the dead recorder wrote; go on recording into a new bag."""
         from ..record.repair import RepairError, repair_bag
 
-        progress = self.progress
-        dead = self.rundir.bag_dirs()[-1]
-        progress.warn(
+        assert self.node is not None and self.bag is not None
+        warn = self.host.warn
+        dead = self.bag
+        warn(
             f'warning: the recorder died ({why}); {dead.name} keeps what it '
             'wrote up to its last complete chunk'
         )
         self.node.get_logger().error(f'recorder child died ({why}); bag {dead} repaired')
         try:
-            progress.warn('  ' + repair_bag(dead).summary().splitlines()[0])
+            warn('  ' + repair_bag(dead).summary().splitlines()[0])
         except RepairError as exc:
-            progress.warn(f'  could not repair {dead}: {exc}')
+            warn(f'  could not repair {dead}: {exc}')
         if self.recorder_restarts >= RECORDER_RESTARTS:
-            progress.warn(f'  not recording any more (already replaced {RECORDER_RESTARTS} times)')
+            warn(f'  not recording any more (already replaced {RECORDER_RESTARTS} times)')
+            return
+        new = self.host.next_bag()
+        if new is None:
             return
         self.recorder_restarts += 1
         dead_endpoints = frozenset(recorder_endpoints(self.node, self.rec_topics))
-        new = self.rundir.next_bag_dir()
         self._start_recorder(new)
-        self.session.setdefault('more_bags', []).append(
-            {'bag': new.name, 'first_record': len(self.tuning.records)}
-        )
-        self.tuning._checkpoint()
+        self.host.bag_replaced(new)
         deadline = time.monotonic() + RECORDER_READY_TIMEOUT
         ready = False
         while time.monotonic() < deadline and self.children['recorder'].poll() is None:
@@ -410,9 +421,9 @@ class Children:
                 break
             time.sleep(0.05)  # graph queries need no spinning
         if ready:
-            progress.warn(f'  recording again into {new.name} (messages in between are in no bag)')
+            warn(f'  recording again into {new.name} (messages in between are in no bag)')
         else:
-            progress.warn(
+            warn(
                 f'  warning: the new recorder ({new.name}) did not subscribe to every recorded '
                 f'topic within {RECORDER_READY_TIMEOUT:g} s; the run goes on, and what is '
                 'published until it does is in no bag'
@@ -429,23 +440,50 @@ class Children:
             if role == 'recorder':
                 self._recorder_died(why)
             else:
-                self.node.get_logger().error(f'bench process {role} died ({why})')
+                if self.node is not None:
+                    self.node.get_logger().error(f'bench process {role} died ({why})')
                 raise BenchFailure(
                     f'the bench process {role} died ({why}); the run '
                     'stops here (the simulated plant cannot be restored '
                     'under a running search)'
                 )
 
+    def wait(self, should_stop: Callable[[], bool]) -> int:
+        """``sim_bench``: until ``should_stop()`` or a bench process ends; the exit code
+        (a nonzero one of a process that ended, else 0)."""
+        drive = self.children['drive_sim']
+        procs = list(self.children.values())
+        while not should_stop() and all(p.poll() is None for p in procs):
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                drive.wait(timeout=0.2)  # wakes at once if the drive exits
+        code = 0
+        for p in procs:
+            if p.poll() is not None and p.returncode not in (0, None):
+                code = p.returncode
+        return code
+
     def recording_ready(self, timeout: float) -> bool:
-        if not self.recording:
+        if not self.recording or self.node is None or self.spin_until is None:
             return True
-        return self.spin_until(lambda: recorder_subscribed(self.node, self.rec_topics), timeout)
+        node = self.node
+        return self.spin_until(lambda: recorder_subscribed(node, self.rec_topics), timeout)
+
+    def session_start(self) -> None:
+        if self.mode == 'external' and self.monitor is not None and self.spin_until:
+            # a long-lived drive's counters run on from before this session: the summary
+            # gives their difference over the session (drive_status.drive_delta)
+            self.monitor.mark(self.spin_until, 2.0)
 
     def drive_report(self) -> dict[str, Any] | None:
+        monitor = self.monitor
+        if monitor is None or self.spin_until is None:
+            return None
         # the drive's counters after the last experiment (it reports about once a second)
-        n0 = self.monitor.received
-        self.spin_until(lambda: self.monitor.received > n0, 1.5)
-        return self.monitor.last
+        n0 = monitor.received
+        self.spin_until(lambda: monitor.received > n0, 1.5)
+        if self.mode == 'external':
+            return drive_delta(monitor.start, monitor.last)
+        return monitor.last
 
     def close_recording(self) -> list[str]:
         """Stop the recorder child (SIGINT: it closes its bag within ~1 s however much
@@ -462,15 +500,26 @@ class Children:
             return []
         why = f'killed by signal {-rc}' if rc < 0 else f'exit code {rc}'
         problem = f'the recorder did not close its bag ({why})'
-        if self.rundir is not None:
+        if self.bag is not None and self.bag.exists():  # (a refused recorder made none)
             from ..record.repair import RepairError, repair_bag
 
-            bag = self.rundir.bag_dirs()[-1]
             try:
-                problem += f'; {bag.name} repaired: ' + repair_bag(bag).summary().splitlines()[0]
+                rep = repair_bag(self.bag)
+                problem += f'; {self.bag.name} repaired: ' + rep.summary().splitlines()[0]
             except RepairError as exc:
-                problem += f'; could not repair {bag}: {exc}'
+                problem += f'; could not repair {self.bag}: {exc}'
         return [problem]
+
+    def stop_nodes(self) -> None:
+        """Stop the drive and the controller, the recorder still recording (it takes what
+        they sent last): ``sim_bench``'s order."""
+        from im_drive_sim.runtime import stop_child
+
+        for role in ('controller', 'drive_sim'):
+            p = self.children.pop(role, None)
+            if p is not None:
+                self.ended.append(p)
+                stop_child(p)
 
     def close(self) -> None:
         from im_drive_sim.runtime import stop_child

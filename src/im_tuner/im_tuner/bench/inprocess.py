@@ -46,6 +46,17 @@ def compose(drive, make_controller) -> tuple[ControllerNode, SingleThreadedExecu
     return controller, executor
 
 
+def run_before_start(bench, before_start) -> None:
+    """``before_start(bench)`` (None: nothing), the bench destroyed if it raises."""
+    if before_start is None:
+        return
+    try:
+        before_start(bench)
+    except Exception:
+        bench.destroy()
+        raise
+
+
 class InProcessBench:
     """Drive simulator + controller in one process, stepped lock-step by hand.
 
@@ -83,12 +94,7 @@ class InProcessBench:
         if not self.controller.client.wait_for_drive(10.0):
             self.destroy()
             raise RuntimeError('controller and drive_sim did not match within 10 s')
-        if before_start is not None:
-            try:
-                before_start(self)
-            except Exception:
-                self.destroy()
-                raise
+        run_before_start(self, before_start)
         self.drive.start()
         # drive/status about once a second, as the drive's own loop publishes it
         self._t0 = time.perf_counter()

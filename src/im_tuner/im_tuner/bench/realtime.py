@@ -23,7 +23,7 @@ real-time loop runs them in its own thread, every Ts = 200 us on the wall clock
   the graph, with the GIL released in rcl: a reader that stops taking (a frozen ``ros2
   topic echo``) can slow its topic's thread, never the loop nor another topic (the losses
   the tuner waits for); what a thread could not deliver is counted. The loop's topics
-  are published KEEP_LAST 1000 (``contract.LOOP_PUBLISHED``): bounded memory.
+  are published KEEP_LAST 1000 (``contract.LOOP_PUBLISHED``; :mod:`.loop_routes`).
 * **the serving thread** (the tuner's, in :meth:`RealtimeBench.spin_until`): parameter and
   service requests (the changes that touch the loop take the loop lock for a few
   microseconds), the tuner's own callbacks, experiment results (published and logged),
@@ -32,11 +32,11 @@ real-time loop runs them in its own thread, every Ts = 200 us on the wall clock
   collector's young generation. The loop runs on while the tuner works between
   experiments: a drive that cannot pause is never left without control.
 
-The drive side is pluggable (:func:`make_drive`): the simulator in real time (the default),
-the example drive, or a user's class named ``package.module:Class`` -- a hardware class
-like ``example_drive.Hardware`` (``Class(config)`` with ``read()``/``write()``) run inside
-the example drive's ROS side, or a whole drive node class (an ``ExampleDrive`` subclass);
-:mod:`.drive_spec` checks a class against that contract.
+The drive side is pluggable (:func:`.drive_spec.make_drive`): the simulator in real time
+(the default), the example drive, or a user's class named ``package.module:Class`` -- a
+hardware class like ``example_drive.Hardware`` (``Class(config)`` with ``read()`` and
+``write()``) run inside the example drive's ROS side, or a whole drive node class (an
+``ExampleDrive`` subclass); :mod:`.drive_spec` checks a class against that contract.
 
 Python's own jitter is kept out of the loop: the loop itself allocates nothing per period
 (timings go into preallocated arrays), logs nothing, and the garbage collector is frozen at
@@ -63,16 +63,16 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.parameter import Parameter
 
 from im_controller.controller_node import ControllerNode
-from im_drive_sim import contract, rt
-from im_drive_sim.outbox import Outbox, PublisherThread
+from im_drive_sim import rt
+from im_drive_sim.outbox import PublisherThread
 from im_drive_sim.pacing import LATENESS_BINS, DurationHistograms, Pacer
-from im_drive_sim.qos import qos_profile
 from im_drive_sim.runtime import ROUTES
 
 from ..tuning import BenchFailure
 from .compiled_loop import G_QUIT, G_STOP, CompiledPeriods, LoopGate
-from .drive_spec import DriveChoice, build_node, resolve
-from .inprocess import compose
+from .drive_spec import make_drive
+from .inprocess import compose, run_before_start
+from .loop_routes import route_through_outbox
 
 #: The interpreter's thread switch interval while the loop runs [s] (default 5 ms): how
 #: long the loop thread, woken for its period, waits for a thread holding the GIL before
@@ -93,20 +93,6 @@ SERVING_NICE = -10
 #: slack 1 ns, PR_SET_TIMERSLACK) and spins the rest, holding the GIL only that long.
 LOOP_SPIN_MARGIN = 40e-6
 
-#: Outbox slots [bytes] and capacities [messages] per message type of the loop's topics
-#: (other types: OTHER_SLOT, the outbox's default capacity).
-SLOTS = {
-    'std_msgs/msg/Float64MultiArray': (256, 5000),  # state 132 B, internals 220 B
-    'rosgraph_msgs/msg/Clock': (64, 5000),
-    'sensor_msgs/msg/JointState': (256, 5000),  # one joint: 84 B
-    'diagnostic_msgs/msg/DiagnosticArray': (32768, 64),
-}
-OTHER_SLOT = (4096, 1000)
-
-#: Topics the loop's nodes publish that stay off the outbox (rclpy publishes them from
-#: the serving thread, as any node does).
-NOT_ROUTED = ('/parameter_events', '/rosout')
-
 
 class DriveLoopError(BenchFailure):
     """The real-time loop raised (a hardware class's read/write, a node's period): the
@@ -123,55 +109,6 @@ def _where(exc: BaseException) -> str:
         tb = tb.tb_next
     code = tb.tb_frame.f_code
     return f'{code.co_filename}:{tb.tb_lineno} in {code.co_name}'
-
-
-def make_drive(spec: str | DriveChoice, context: Any, overrides: list[Parameter]) -> Any:
-    """The drive node named by ``spec`` (see the module docstring; a DriveChoice is a
-    ``--drive`` already checked, with its hardware built: ``drive_spec.resolve``), in
-    real time.
-
-    ``overrides``: the tuner's drive parameters; the simulator takes them all (seed,
-    model, config_file), the example drive and a user's drive only ``config_file``."""
-    choice = spec if isinstance(spec, DriveChoice) else None
-    name = choice.spec if choice is not None else spec
-    assert isinstance(name, str)
-    if name == 'sim':
-        from im_drive_sim.drive_sim_node import DriveSimNode
-
-        return DriveSimNode(
-            context=context,
-            parameter_overrides=[
-                Parameter('mode', value='realtime'),
-                Parameter('realtime_wait_for_controller', value=False),
-                *overrides,
-            ],
-            warn_unknown=False,
-        )
-    from im_drive_sim.example_drive import ExampleDrive
-
-    mine = [p for p in overrides if p.name == 'config_file']
-    if name == 'example':
-        return ExampleDrive(context=context, parameter_overrides=mine)
-    return build_node(choice or resolve(name, None, build=False), context, mine)
-
-
-def _type_name(cls: type) -> str:
-    """'pkg/msg/Type' of a message class."""
-    return f'{cls.__module__.split(".")[0]}/msg/{cls.__name__}'
-
-
-def _republish(node: Any, old: Any, qos: Any, owners: tuple[Any, ...]) -> Any:
-    """``old`` made again with ``qos`` (contract.LOOP_PUBLISHED), before anything was
-    published on it; the attributes of ``owners`` that held it hold the new one."""
-    pub = node.create_publisher(old.msg_type, old.topic_name, qos)
-    for owner in owners:
-        if owner is None:
-            continue
-        for name, value in list(vars(owner).items()):
-            if value is old:
-                setattr(owner, name, pub)
-    node.destroy_publisher(old)
-    return pub
 
 
 def _precise_sleep() -> None:
@@ -214,7 +151,7 @@ class RealtimeBench:
         ``rt_options``: the loop thread's real-time scheduling (:mod:`im_drive_sim.rt`),
         applied in it before the recorder starts (its metadata records it); what is not
         permitted is said in one line each on stderr, and the run goes on.
-        ``outbox_capacity``: messages per topic ring (None: :data:`SLOTS`).
+        ``outbox_capacity``: messages per topic ring (None: ``loop_routes.SLOTS``).
         ``compiled``: run the simulator's periods compiled (:mod:`.compiled_loop`; other
         drives always run :meth:`step`, their periods in Python)."""
         self.drive = make_drive(drive, context, list(drive_overrides or []))
@@ -258,19 +195,7 @@ class RealtimeBench:
         # nothing takes the DDS copies of state and command in this process any more
         ctl.io_node.destroy_subscription(ctl.client.state_sub)
         drv.io_node.destroy_subscription(drv.cmd_sub)
-        self.outbox = Outbox()
-        qos = qos_profile(contract.LOOP_PUBLISHED)
-        for node in (drv, getattr(drv, 'io_node', None), ctl, ctl.io_node):
-            if node is None:
-                continue
-            for old in list(node.publishers):
-                if old.topic_name in NOT_ROUTED:
-                    continue
-                pub = _republish(node, old, qos, (drv, ctl, ctl.client))
-                type_name = _type_name(pub.msg_type)
-                slot, cap = SLOTS.get(type_name, OTHER_SLOT)
-                self.outbox.add(pub, type_name, slot, outbox_capacity or cap)
-                ROUTES[id(pub)] = self.outbox
+        self.outbox = route_through_outbox(drv, ctl, outbox_capacity)
 
         # -- the loop thread: real-time options applied in it, then it waits for go -------
         opts = rt_options or rt.RtOptions()
@@ -312,12 +237,7 @@ class RealtimeBench:
                 self.rt_report['serving_thread_nice'] = SERVING_NICE
             except OSError:
                 self.rt_report['serving_thread_nice'] = os.getpriority(os.PRIO_PROCESS, 0)
-        if before_start is not None:
-            try:
-                before_start(self)
-            except Exception:
-                self.destroy()
-                raise
+        run_before_start(self, before_start)
         self._t0 = time.perf_counter()
         self._next_status = self._t0 + 1.0
         gc.collect()

@@ -7,7 +7,11 @@ Brings up the drive simulator and the controller together, lock-step:
   state k+1 -- real DDS traffic, but no executor in the per-step path (parameters and
   services are served every ``service_period_steps`` steps and whenever idle);
 * ``--processes``: ``ros2 run im_drive_sim drive_sim`` and ``ros2 run im_controller
-  controller`` as two child processes (ended by PID: SIGINT, grace, SIGKILL).
+  controller`` as two child processes (ended by PID: SIGINT, grace, SIGKILL; ended by
+  the kernel too if this process is killed, as the tuner's children).
+
+The bench is opened as the tuner's is (``bench.open.open_bench``: the same forms, the
+same children, the same signal handling).
 
 Either way the graph is the same (``drive_sim``, ``controller``, their topics and
 services), and so is what it computes: the same seed gives bit-identical losses.
@@ -21,38 +25,55 @@ message is lost; with ``--processes`` it is a third child, ``ros2 run im_tuner r
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import shutil
-import signal
-import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
-from rclpy.parameter import Parameter
-
-from im_controller.config import ControllerConfigError
-from im_controller.controller_node import ControllerError
 from im_drive_sim.cli import Parser, UsageError, input_file, int_in, parse_cli
 from im_drive_sim.params import ConfigError, load_config
-from im_drive_sim.runtime import (
-    ParameterOverrideError,
-    RosSession,
-    stop_child,
-)
+from im_drive_sim.runtime import RosSession
 
-from ..record import node as recorder_node
-from .inprocess import InProcessBench, bench_metadata
+from ..record.node import default_out_dir
+from .forms import Children, InProcess, parameters
+from .open import open_bench
+from .spec import BenchSpec, Params, recording_options
+
+DESCRIPTION = (
+    'The simulated bench: drive_sim + controller, lock-step. Start experiments with '
+    '/controller/start_experiment (std_srvs/Trigger); results on /controller/loss.'
+)
+#: the bag's options: (flag, argparse keywords)
+BAG_OPTIONS: tuple[tuple[str, dict[str, Any]], ...] = (
+    (
+        '--no-record',
+        {
+            'action': 'store_true',
+            'help': 'do not record (default: all traffic to a bag, see --out); refused '
+            'with --out or --compression, which would be ignored',
+        },
+    ),
+    (
+        '--out',
+        {
+            'metavar': 'DIR',
+            'type': Path,
+            'help': 'bag directory to create (default: bags/sim_bench_<UTC time>)',
+        },
+    ),
+    (
+        '--compression',
+        {
+            'choices': ('none', 'zstd', 'lz4'),
+            'help': 'MCAP chunk compression of the bag (default: lz4; zstd: smaller files)',
+        },
+    ),
+)
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = Parser(
-        prog='ros2 run im_tuner sim_bench',
-        description='The simulated bench: drive_sim + controller, lock-step. Start '
-        'experiments with /controller/start_experiment (std_srvs/Trigger); '
-        'results on /controller/loss.',
-    )
+    ap = Parser(prog='ros2 run im_tuner sim_bench', description=DESCRIPTION)
     ap.add_argument(
         '--processes',
         action='store_true',
@@ -61,23 +82,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--config', metavar='FILE', type=input_file, help='drive parameter file (YAML)')
     ap.add_argument('--model', choices=('full', 'reduced'), help='drive model fidelity')
     ap.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
-    ap.add_argument(
-        '--no-record',
-        action='store_true',
-        help='do not record (default: all traffic to a bag, see --out); refused with '
-        '--out or --compression, which would be ignored',
-    )
-    ap.add_argument(
-        '--out',
-        metavar='DIR',
-        type=Path,
-        help='bag directory to create (default: bags/sim_bench_<UTC time>)',
-    )
-    ap.add_argument(
-        '--compression',
-        choices=('none', 'zstd', 'lz4'),
-        help='MCAP chunk compression of the bag (default: lz4; zstd: smaller files)',
-    )
+    for flag, kw in BAG_OPTIONS:
+        ap.add_argument(flag, **kw)
     return ap
 
 
@@ -88,38 +94,35 @@ def _check_cli(cli: argparse.Namespace) -> None:
             load_config(cli.config)
         except ConfigError as exc:
             raise UsageError(str(exc)) from None
-    if cli.no_record:  # a bag option with no bag would be silently ignored
-        for flag, value in (('--out', cli.out), ('--compression', cli.compression)):
-            if value is not None:
-                raise UsageError(
-                    f'{flag} {value} is for the bag, and --no-record records none: '
-                    'give one or the other'
-                )
-    cli.compression = cli.compression or 'lz4'
+    cli.compression = recording_options(cli.no_record, out=cli.out, compression=cli.compression)
     if cli.out is not None and cli.out.exists():
         raise UsageError(f'--out {cli.out}: already exists; choose a new directory')
 
 
-NODE_REFUSALS = (
-    ConfigError,
-    ControllerError,
-    ControllerConfigError,
-    ParameterOverrideError,
-    InvalidParameterValueException,
-    InvalidParameterTypeException,
-)
-
-
-def _overrides(cli: argparse.Namespace) -> tuple[list[Parameter], list[Parameter]]:
+def _overrides(cli: argparse.Namespace) -> tuple[Params, Params]:
     """The drive's and the controller's parameters from the command line's flags."""
     config = str(cli.config) if cli.config else None
-    drive_over = [
-        Parameter(n, value=v)
+    drive = tuple(
+        (n, v)
         for n, v in (('config_file', config), ('model', cli.model), ('seed', cli.seed))
         if v is not None
-    ]
-    ctl_over = [Parameter('drive_config_file', value=config)] if config else []
-    return drive_over, ctl_over
+    )
+    return drive, ((('drive_config_file', config),) if config else ())
+
+
+def _child_args(cli: argparse.Namespace, ros_args: list[str]) -> tuple[tuple[str, ...], ...]:
+    """``--processes``: the drive's and the controller's command-line tails (their own
+    flags, then the user's ``--ros-args``)."""
+    drive: list[str] = []
+    ctl: list[str] = []
+    if cli.config:
+        drive += ['--config', str(cli.config)]
+        ctl += ['--config', str(cli.config)]
+    if cli.model:
+        drive += ['--model', cli.model]
+    if cli.seed is not None:
+        drive += ['--seed', str(cli.seed)]
+    return (*drive, *ros_args), (*ctl, *ros_args)
 
 
 def _check_nodes(cli: argparse.Namespace, ros_args: list[str]) -> None:
@@ -132,7 +135,9 @@ def _check_nodes(cli: argparse.Namespace, ros_args: list[str]) -> None:
     from im_controller.controller_node import ControllerNode
     from im_drive_sim.drive_sim_node import DriveSimNode
 
-    drive_over, ctl_over = _overrides(cli)
+    from .open import NODE_REFUSALS
+
+    drive_over, ctl_over = (parameters(p) for p in _overrides(cli))
     ctx = Context()
     session = RosSession(['sim_bench', *ros_args, '--disable-stdout-logs'], context=ctx)
     try:
@@ -149,63 +154,37 @@ def _check_nodes(cli: argparse.Namespace, ros_args: list[str]) -> None:
         session.close()
 
 
-def _children(cli: argparse.Namespace, ros_args: list[str]) -> int:
-    ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
-    drive = [ros2, 'run', 'im_drive_sim', 'drive_sim']
-    ctl = [ros2, 'run', 'im_controller', 'controller']
-    if cli.config:
-        drive += ['--config', str(cli.config)]
-        ctl += ['--config', str(cli.config)]
-    if cli.model:
-        drive += ['--model', cli.model]
-    if cli.seed is not None:
-        drive += ['--seed', str(cli.seed)]
-    if ros_args:
-        drive += ros_args
-        ctl += ros_args
-    procs = []
-    out = made = None
-    if not cli.no_record:
-        rn = recorder_node
-        out = Path(cli.out or rn.default_out_dir(prefix='sim_bench'))
+class _Bag:
+    """sim_bench's side of its bench (forms.RunHost): one bag, no run; a dead recorder
+    ends the bench."""
+
+    def __init__(self, cli: argparse.Namespace) -> None:
+        self.out = None if cli.no_record else Path(cli.out or default_out_dir(prefix='sim_bench'))
         # what this run creates (the bag and any missing parents): removed again if a
         # child refuses its configuration at start (exit 2), so a refusal leaves nothing
-        made = out
-        while not made.parent.exists() and made.parent != made.parent.parent:
+        made = self.out
+        while made is not None and not made.parent.exists() and made.parent != made.parent.parent:
             made = made.parent
-        rec = [
-            ros2,
-            'run',
-            'im_tuner',
-            'recorder',
-            '--compression',
-            cli.compression,
-            '--out',
-            str(out),
-        ]
-        procs.append(subprocess.Popen(rec))
-    procs += [subprocess.Popen(drive), subprocess.Popen(ctl)]
-    stop = {'sig': None}
+        self.made = made
 
-    def _on_signal(signum, _frame) -> None:
-        stop['sig'] = signum
+    def begin(self, _plan: object) -> Path | None:
+        return self.out
 
-    signal.signal(signal.SIGINT, _on_signal)
-    signal.signal(signal.SIGTERM, _on_signal)
-    code = 0
-    try:
-        while stop['sig'] is None and all(p.poll() is None for p in procs):
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                procs[-2].wait(timeout=0.2)  # wakes at once if the drive exits
-        for p in procs:
-            if p.poll() is not None and p.returncode not in (0, None):
-                code = p.returncode
-    finally:
-        for p in reversed(procs):  # the recorder last: it takes what the others sent
-            stop_child(p)
-    if code == 2 and made is not None and made.exists():
-        shutil.rmtree(made, ignore_errors=True)  # refused at start: the bag holds nothing
-    return code
+    def tuner_metadata(self) -> None:
+        return None
+
+    def next_bag(self) -> None:
+        return None
+
+    def bag_replaced(self, _bag: Path) -> None:
+        pass
+
+    def warn(self, text: str) -> None:
+        print(text, file=sys.stderr, flush=True)
+
+    def remove(self) -> None:
+        if self.made is not None and self.made.exists():
+            shutil.rmtree(self.made, ignore_errors=True)  # refused at start: holds nothing
 
 
 def main(args: list[str] | None = None) -> int:
@@ -213,71 +192,62 @@ def main(args: list[str] | None = None) -> int:
     try:
         cli = parse_cli(_parser(), argv)
         _check_cli(cli)
+        ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
+        if cli.processes and ros_args:
+            _check_nodes(cli, ros_args)
     except UsageError as exc:
         print(f'error: sim_bench: {exc}', file=sys.stderr)
         return 2
-    ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
-    if cli.processes:
-        if ros_args:
-            try:
-                _check_nodes(cli, ros_args)
-            except UsageError as exc:
-                print(f'error: sim_bench: {exc}', file=sys.stderr)
-                return 2
-        return _children(cli, ros_args)
     drive_over, ctl_over = _overrides(cli)
-    bench = None
-    rec = None
+    spec = BenchSpec(
+        requested='processes' if cli.processes else 'inproc',
+        record=not cli.no_record,
+        compression=cli.compression,
+        drive_parameters=drive_over,
+        controller_parameters=ctl_over,
+        child_args=_child_args(cli, ros_args) if cli.processes else None,
+        quiet=False,
+    )
+    host = _Bag(cli)
+    bench: Any = None
 
     def _on_signal(_signum: int) -> None:
         if bench is None:
             raise KeyboardInterrupt  # still starting: nothing to stop cleanly yet
-        bench.stop_requested = True
+        if isinstance(bench, InProcess):
+            bench.bench.stop_requested = True
 
+    # the children's parent: the same signal handling as the tuner's (RosSession), and
+    # the same end (they die with it: PR_SET_PDEATHSIG)
     session = RosSession(argv, on_signal=_on_signal)
-
-    def _start_recorder(b: InProcessBench) -> None:
-        nonlocal rec
-        rn = recorder_node
-        from rclpy.node import Node
-
-        try:
-            rec = rn.Recorder(
-                Node('recorder', start_parameter_services=False),
-                cli.out or rn.default_out_dir(prefix='sim_bench'),
-                compression=cli.compression,
-                extra_metadata=bench_metadata(b),
-                command=argv,
-            )
-        except (rn.BagError, rn.RecorderError) as exc:
-            raise ControllerError(str(exc)) from None
-        rec.wait_matched(10.0)
-        b.add_poller(rec.poll, rn.RECORD_POLL_STEPS)
-        b.drive.get_logger().info(f'recording all topics to {rec.out}')
-
+    code = 0
     try:
-        bench = InProcessBench(
-            drive_overrides=drive_over or None,
-            controller_overrides=ctl_over or None,
-            before_start=None if cli.no_record else _start_recorder,
-        )
-        bench.run()
-    except NODE_REFUSALS as exc:
+        bench = open_bench(spec, host, command=argv, should_stop=lambda: session.stopped)
+        if isinstance(bench, Children):
+            code = bench.wait(lambda: session.stopped)
+            bench.stop_nodes()  # (the recorder last: it takes what the others sent)
+        else:
+            lockstep = bench.bench
+            if bench.rec is not None:
+                lockstep.drive.get_logger().info(f'recording all topics to {bench.rec.out}')
+            try:
+                lockstep.run()
+            finally:
+                lockstep.drive.log_summary()
+                if bench.rec is None:
+                    lockstep.final_status()
+    except UsageError as exc:
         print(f'error: sim_bench: {exc}', file=sys.stderr)
-        return 2
+        code = 2
     except KeyboardInterrupt:
         pass
     finally:
         if bench is not None:
-            bench.drive.log_summary()
-            bench.final_status()
-        if rec is not None:
-            rec.close(settle=0.05)
-            rec.node.destroy_node()
-        if bench is not None:
-            bench.destroy()
+            bench.close()
         session.close()
-    return 0
+    if code == 2 and cli.processes:
+        host.remove()
+    return code
 
 
 if __name__ == '__main__':

@@ -1,0 +1,299 @@
+"""One session of a tuner run: the run's side of the bench, from its start to its summary.
+
+A :class:`TunerSession` is the :class:`im_tuner.bench.forms.RunHost` the tuner hands to
+``open_bench``: once the bench is decided it makes the run directory of a new run and
+the TuningRun (:meth:`begin`), gives a replaced recorder its new bag and books it
+(:meth:`next_bag`, :meth:`bag_replaced`); then it starts the session (:meth:`accepted`,
+:meth:`start`: run.yaml, the resume's replay, the session record) and ends it
+(:meth:`finish`: the drive's counters, the bag closed, summary.json, the summary printed).
+A new run refused once its directory exists is undone (:meth:`undo`). No rclpy at import.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import shutil
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from im_drive_sim.cli import UsageError
+
+from .benches import IN_PROCESS_BENCHES, LOCKSTEP_BENCHES
+from .tuner_cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RunConfig, _make_tuning
+
+if TYPE_CHECKING:
+    from .bench.forms import Bench
+    from .bench.spec import BenchPlan
+    from .link import ControllerLink
+    from .rundir import RunDir
+
+
+def failure_advice(outcome: str, records: list[dict[str, Any]], bench: str) -> list[str]:
+    """What to do about a failed run, for the summary (empty: nothing to say). A run that
+    failed because its experiments kept coming out ``timing`` (held or late periods
+    beyond the tolerance) is told where the controller should run."""
+    if not (outcome.startswith('failed') and records and records[-1]['status'] == 'timing'):
+        return []
+    if bench in IN_PROCESS_BENCHES:
+        return [
+            'the experiments kept coming out `timing` although the controller runs in the '
+            "drive's process: the composed loop itself started periods late (the drive "
+            "line's overruns and worst lateness; a loaded machine). Run on a less loaded "
+            'machine or core, or allow a few held periods per experiment with --ros-args -p '
+            'timing_tolerance:=N and say so with the results (docs/real-drive.md, "Timing")'
+        ]
+    where = 'a separate controller process' if bench != 'external' else 'the external controller'
+    return [
+        f'the experiments kept coming out `timing`: {where} did not answer every 200 us '
+        'drive period (one DDS round trip between two Python processes takes about as long '
+        'as the period on a 2-core machine, and any other load makes it miss). Run the '
+        "controller in the drive's process: `ros2 run im_tuner tuner --bench realtime` "
+        '(simulated) or `--bench realtime --drive my_pkg.my_hw:MyHardware` with your '
+        "drive's hardware class (docs/real-drive.md)"
+    ]
+
+
+def session_number(sessions: list[dict[str, Any]], records: list[dict[str, Any]]) -> int:
+    """This session's number (0-based): after every session the checkpoint lists and
+    every session a record names (a rebuilt checkpoint lists none)."""
+    named = [int(r['session']) + 1 for r in records if isinstance(r.get('session'), int)]
+    return max([len(sessions), *named])
+
+
+def _repair_old_bags(rundir: RunDir, note, current: Path | None) -> None:
+    """Bags of killed sessions still say state 'recording': repair them (index, summary,
+    metadata.yaml) so that the whole run opens in any reader. ``current``: this session's
+    bag, being recorded (it is not a killed session's)."""
+    import yaml
+
+    from .record.repair import RepairError, repair_bag
+
+    for bag in rundir.bag_dirs():
+        if current is not None and bag == current:
+            continue
+        try:
+            meta = yaml.safe_load((bag / 'metadata.yaml').read_text())
+            state = meta['rosbag2_bagfile_information']['custom_data'].get('im_tuner.state')
+        except (OSError, KeyError, TypeError, yaml.YAMLError):
+            state = 'recording'
+        if state == 'recording':
+            try:
+                rep = repair_bag(bag)
+                note(f'repaired the bag of the killed session: {rep.summary().splitlines()[0]}')
+            except RepairError as exc:
+                note(f'warning: could not repair {bag}: {exc}')
+
+
+def _made_by_create(out: Path) -> tuple[Path, bool]:
+    """What ``RunDir.create(out)`` will make: the topmost missing directory of ``out``
+    (itself or a parent), or ``out`` itself if it is an existing empty directory (then
+    only its contents are ours: the bool is False)."""
+    if out.exists():
+        return out, False
+    made = out
+    while not made.parent.exists() and made.parent != made.parent.parent:
+        made = made.parent
+    return made, True
+
+
+class TunerSession:
+    """The run's side of one tuner session (module docstring)."""
+
+    def __init__(self, cli: argparse.Namespace, argv: list[str], cfg: RunConfig) -> None:
+        self.cli = cli
+        self.argv = argv
+        self.run = cfg.run
+        self.params = cfg.params
+        self.progress = cfg.progress
+        self.rundir = cfg.rundir  # (None: a new run, made by begin)
+        self.tuning = cfg.tuning
+        self.n_restored = cfg.n_restored
+        self.out = cfg.out
+        self.resumed = cli.resume is not None
+        #: what a new run's directory creation makes (undone if the run is refused)
+        self.made = None if self.resumed else _made_by_create(cfg.out)
+        self.plan: BenchPlan | None = None
+        self.bag_dir: Path | None = None
+        #: this session's record in the checkpoint (its bags, its bench, its replay)
+        self.session: dict[str, Any] = {}
+
+    # -- forms.RunHost -------------------------------------------------------------------
+    def begin(self, plan: BenchPlan) -> Path | None:
+        """The bench is decided: a new run's directory (locked) and TuningRun; this
+        session's bag directory (None: --no-record)."""
+        from .rundir import RunDir, RunDirError
+
+        self.plan = plan
+        if self.rundir is None:
+            try:
+                self.rundir = RunDir.create(self.out)
+                self.rundir.lock()
+            except RunDirError as exc:
+                raise UsageError(str(exc)) from None
+            self.run['bench'] = plan.mode
+            self.tuning = _make_tuning(self.rundir, self.run, self.params, self.progress)
+        self.bag_dir = None if self.cli.no_record else self.rundir.next_bag_dir()
+        if not self.resumed:
+            self.run['model'] = self.cli.model
+            self.run['drive_config'] = str(self.cli.drive_config) if self.cli.drive_config else None
+        return self.bag_dir
+
+    def tuner_metadata(self) -> dict[str, Any] | None:
+        return {k: v for k, v in self.run.items() if k != 'search_box'}
+
+    def next_bag(self) -> Path | None:
+        assert self.rundir is not None
+        return self.rundir.next_bag_dir()
+
+    def bag_replaced(self, bag: Path) -> None:
+        self.session.setdefault('more_bags', []).append(
+            {'bag': bag.name, 'first_record': len(self.tuning.records)}
+        )
+        self.tuning._checkpoint()
+
+    def warn(self, text: str) -> None:
+        self.progress.warn(text)
+
+    # -- the session ---------------------------------------------------------------------
+    def accepted(self) -> None:
+        """The bench is up (its nodes accepted their settings): from here on the run
+        directory changes (a resume cuts results.jsonl's torn tail, repairs old bags)."""
+        rundir, tuning, progress = self.rundir, self.tuning, self.progress
+        assert rundir is not None
+        if self.resumed:
+            rundir.cut_torn_tail()
+            if tuning.rebuilt:
+                progress.warn(f'warning: {tuning.rebuilt}; rebuilt from results.jsonl')
+            # (after the bench is up, so that a refusal by its nodes changes nothing: skip
+            # this session's bag, which its recorder has begun)
+            _repair_old_bags(rundir, progress.note, self.bag_dir)
+            progress.note(
+                f'resuming {rundir.path}: {self.n_restored} records, '
+                f'{tuning.state.evals}/{self.run["budget"]} evaluations done'
+            )
+        tuning.session = session_number(tuning.state.sessions, tuning.records)
+
+    def start(self, link: ControllerLink) -> None:
+        """The controller answers: a new run's run.yaml; the session's record; a resumed
+        lock-step run replays its experiments (checked bit for bit)."""
+        from .tuning import replay, replay_plan
+
+        run, rundir, tuning, progress, plan = (
+            self.run,
+            self.rundir,
+            self.tuning,
+            self.progress,
+            self.plan,
+        )
+        assert rundir is not None and plan is not None
+        if not self.resumed:
+            run['controller_parameters'] = link.list_parameters()
+            run['fault_policy'] = plan.fault_policy
+            rundir.write_run(run)
+            progress.note(
+                f'im_tuner: {run["algo"]} on the {plan.mode} bench, budget '
+                f'{run["budget"]}, seed {run["seed"]}; run directory {rundir.path}'
+            )
+        session = self.session
+        session.update(
+            {
+                'session': tuning.session,
+                'bag': self.bag_dir.name if self.bag_dir else None,
+                'bench': plan.mode,
+                'started': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
+                'replayed': 0,
+                'first_record': len(tuning.records),
+            }
+        )
+        first_id = plan.first_experiment_id
+        if plan.counts_experiment_ids:
+            session['first_experiment_id'] = first_id
+        if self.resumed and tuning.records:
+            ids = f'; experiment ids go on from {first_id}' if first_id else ''
+            if plan.simulated and plan.mode not in LOCKSTEP_BENCHES:
+                progress.note(
+                    'real-time simulated bench: the plant starts again at rest '
+                    f'(no replay); the search goes on from the checkpoint{ids}'
+                )
+            elif plan.simulated:
+                progress.note(
+                    f'restoring the simulated plant: replaying '
+                    f'{len(replay_plan(tuning.records))} experiments (checked bit '
+                    'for bit)'
+                )
+                session['replayed'] = replay(link, tuning.records)
+            else:
+                progress.note(
+                    ('external bench' if plan.mode == 'external' else 'a real drive')
+                    + ': the plant is where it is; the search goes on from the checkpoint '
+                    f'(no replay){ids}'
+                )
+        tuning.state.sessions.append(session)
+
+    def finish(self, outcome: str, bench: Bench, link: ControllerLink, t_wall0: float) -> int:
+        """The search ended with ``outcome``: the drive's counters, the bag closed (a bag
+        not closed fails the run), summary.json and the summary printed; the exit code."""
+        from .progress import format_summary
+
+        tuning, progress, rundir, plan = self.tuning, self.progress, self.rundir, self.plan
+        assert rundir is not None and plan is not None
+        session = self.session
+        session['drive'] = bench.drive_report()
+        if link.faults_outside:
+            # faults no result reported (a watchdog between experiments, one left from
+            # before): counted with the records' faults, so the summary agrees with a
+            # failure they caused
+            session['faults_outside'] = list(link.faults_outside)
+            tuning.state.faults += len(link.faults_outside)
+        # the bag is closed before the summary: a bag that was not closed is a failure
+        problems = bench.close_recording()
+        for text in problems:
+            progress.warn(f'error: {text}')
+        if problems and outcome == 'done':
+            outcome = f'failed: {problems[0]}'
+        code = EXIT_OK
+        if outcome == 'interrupted':
+            code = EXIT_INTERRUPTED
+        elif outcome != 'done':
+            code = EXIT_FAILED
+        progress.close()
+        summary = tuning.summary(outcome=outcome, wall_s=time.monotonic() - t_wall0)
+        summary['report_command'] = f'ros2 run im_tuner report {shlex.quote(str(rundir.path))}'
+        advice = failure_advice(outcome, tuning.records, plan.mode)
+        if advice:
+            summary['what_to_do'] = advice
+        tuning._checkpoint()
+        rundir.write_summary(summary)
+        print(format_summary(summary, self.run, rundir.path), flush=True)
+        if code == EXIT_INTERRUPTED:
+            print(
+                f'  interrupted: continue with `ros2 run im_tuner tuner --resume {rundir.path}`',
+                flush=True,
+            )
+        elif code == EXIT_FAILED:
+            print(
+                '  failed: once the cause is fixed, continue with `ros2 run im_tuner tuner '
+                f'--resume {shlex.quote(str(rundir.path))}`',
+                flush=True,
+            )
+        return code
+
+    def discard_bag(self) -> None:
+        """A replay that did not match refused the resume: its bag holds only the replay."""
+        if self.bag_dir is not None and self.bag_dir.exists():
+            shutil.rmtree(self.bag_dir, ignore_errors=True)
+
+    def undo(self) -> None:
+        """A new run refused once its directory exists (a ``-p`` the controller refuses, a
+        drive node class whose constructor raises): leave nothing behind."""
+        if self.resumed or self.rundir is None or self.made is None:
+            return
+        self.rundir.unlock()
+        path, whole = self.made
+        if whole:
+            shutil.rmtree(path, ignore_errors=True)
+        elif path.is_dir():
+            for child in path.iterdir():
+                shutil.rmtree(child) if child.is_dir() else child.unlink()

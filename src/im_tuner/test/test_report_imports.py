@@ -112,3 +112,46 @@ def test_bench_modes_have_one_copy_the_tuner_imports():
     assert not benches.is_simulated('external', 'sim')
     assert not benches.is_simulated('realtime', 'my_pkg.hw:Hardware')
     assert benches.is_simulated('inproc', None) and benches.is_simulated('realtime', 'example')
+
+
+_NO_ROS_PROBE = """
+import importlib, json, pkgutil, sys
+names = []
+for pkg in json.loads(sys.argv[1]):
+    mod = importlib.import_module(pkg)
+    names.append(pkg)
+    for info in pkgutil.walk_packages(getattr(mod, '__path__', []), pkg + '.'):
+        if info.name.endswith('.__main__'):
+            continue  # runs the command line
+        importlib.import_module(info.name)
+        names.append(info.name)
+ros = sorted(m for m in sys.modules if m.split('.')[0] in ('rclpy', 'rosidl_runtime_py'))
+print(json.dumps({'modules': names, 'ros': ros}))
+"""
+
+
+@pytest.mark.parametrize(
+    'packages',
+    [
+        ['im_tuner.report', 'im_tuner.study'],
+        ['im_tuner.runlog', 'im_tuner.rundir', 'im_tuner.tuning', 'im_tuner.bench.spec'],
+    ],
+    ids=['report+study', 'run log, tuning, bench spec'],
+)
+def test_every_module_of_the_pure_side_imports_no_rclpy(packages):
+    """Issue 28: the report, the study, the run log and the bench spec load no rclpy, each
+    of their modules imported (not only the package names)."""
+    proc = subprocess.run(
+        [sys.executable, '-c', _NO_ROS_PROBE, json.dumps(packages)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    r = json.loads(proc.stdout)
+    assert r['ros'] == [], r['ros']
+    assert len(r['modules']) >= len(packages)
+    if 'im_tuner.study' in packages:  # walked, not only the package names
+        assert {'im_tuner.report.load', 'im_tuner.study.runs', 'im_tuner.study.cli'} <= set(
+            r['modules']
+        )

@@ -35,7 +35,10 @@ def compose(drive, make_controller) -> tuple[ControllerNode, SingleThreadedExecu
     except Exception:
         drive.destroy_node()
         raise
-    declared = set(drive._parameters) | set(controller._parameters)
+    # every declared parameter ('' matches all: rclpy's public view of node._parameters)
+    declared = set(drive.get_parameters_by_prefix('')) | set(
+        controller.get_parameters_by_prefix('')
+    )
     warn_unknown_overrides(
         controller,
         sorted((set(unknown_overrides(drive)) | set(unknown_overrides(controller))) - declared),
@@ -185,7 +188,9 @@ def bench_metadata(bench) -> dict[str, dict]:
     }
     if d.has_parameter('seed'):
         drive['seed'] = d.get_parameter('seed').value
-    ctl = {name: p.value for name, p in sorted(bench.controller._parameters.items())}
+    ctl = {
+        name: p.value for name, p in sorted(bench.controller.get_parameters_by_prefix('').items())
+    }
     out = {
         'im_tuner.drive': drive,
         'im_tuner.controller': {'parameters': json.dumps(ctl, sort_keys=True, default=str)},

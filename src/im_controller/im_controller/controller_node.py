@@ -37,7 +37,6 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_services_default
@@ -51,10 +50,12 @@ from im_drive_sim.client import DriveClient
 from im_drive_sim.contract import MODES
 from im_drive_sim.qos import RECORDED_QOS
 from im_drive_sim.runtime import (
+    IoNodeOwner,
     LenientDoubles,
     parameter_hygiene,
     publish_lossless,
     run_stepped_node,
+    start_overrides,
 )
 
 from . import contract as C
@@ -81,7 +82,7 @@ from .result import LossResult
 REFUSAL_LOG_PERIOD = 1.0
 
 
-class ControllerNode(LenientDoubles, Node):
+class ControllerNode(IoNodeOwner, LenientDoubles, Node):
     """The cascaded controller node (see module docstring)."""
 
     def __init__(
@@ -468,14 +469,9 @@ class ControllerNode(LenientDoubles, Node):
             since_service = 0
             executor.spin_once(timeout_sec=0.0)
 
-    def flush(self, timeout: float = 1.0) -> None:
-        """Wait (bounded) until subscribers acknowledged every result and command."""
-        for pub in (self.loss_pub, self.internals_pub, self.client.command_pub):
-            pub.wait_for_all_acked(Duration(seconds=timeout))
-
-    def destroy_node(self) -> None:
-        self.io_node.destroy_node()
-        super().destroy_node()
+    def flushed_publishers(self) -> tuple[Any, ...]:
+        """Every result and command."""
+        return (self.loss_pub, self.internals_pub, self.client.command_pub)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -498,14 +494,12 @@ def main(args: list[str] | None = None) -> int:
 
     def body() -> int:
         cli = parse_cli(_parser(), argv)
-        overrides = [
-            Parameter(n, value=v)
-            for n, v in (('mode', cli.mode), ('drive_config_file', cli.config and str(cli.config)))
-            if v is not None
-        ]
+        overrides = start_overrides(
+            (('mode', cli.mode), ('drive_config_file', cli.config and str(cli.config)))
+        )
         return run_stepped_node(
             argv,
-            lambda: ControllerNode(parameter_overrides=overrides or None),
+            lambda: ControllerNode(parameter_overrides=overrides),
             (ControllerError, ControllerConfigError),
             'controller',
             on_exit=lambda node: node.get_logger().info(

@@ -23,12 +23,11 @@ import argparse
 import math
 import sys
 import time
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rclpy.duration import Duration
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -57,13 +56,19 @@ from .drive_sim_parameters import declare_initial_position, declare_parameters
 from .pacing import CommandWatchdog
 from .params import ConfigError, load_config
 from .qos import RECORDED_QOS
-from .runtime import LenientDoubles, parameter_hygiene, publish_lossless
+from .runtime import (
+    IoNodeOwner,
+    LenientDoubles,
+    parameter_hygiene,
+    publish_lossless,
+    start_overrides,
+)
 from .sim import DriveSim
 
 F_APPLIED = contract.STATE_INDEX['applied_step']
 
 
-class DriveSimNode(LenientDoubles, Node):
+class DriveSimNode(IoNodeOwner, LenientDoubles, Node):
     """The drive simulator node (see module docstring and docs/interfaces.md).
 
     All parameters are read-only: they fix the structure of the simulation (model, mode,
@@ -465,16 +470,8 @@ class DriveSimNode(LenientDoubles, Node):
             + ', '.join(f'{k}={v}' for k, v in counter_values(c).items())
         )
 
-    def flush(self, timeout: float = 1.0) -> None:
-        """Wait (bounded) until subscribers acknowledged everything published: the last
-        samples before an exit are not lost (reliable QoS only promises this while the
-        writer lives)."""
-        for pub in (self.state_pub, self.clock_pub, self.joint_pub, self.status_pub):
-            pub.wait_for_all_acked(Duration(seconds=timeout))
-
-    def destroy_node(self) -> None:
-        self.io_node.destroy_node()
-        super().destroy_node()
+    def flushed_publishers(self) -> tuple[Any, ...]:
+        return (self.state_pub, self.clock_pub, self.joint_pub, self.status_pub)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -503,19 +500,18 @@ def main(args: list[str] | None = None) -> int:
 
     def body() -> int:
         cli = parse_cli(_parser(), argv)
-        overrides = []
-        for name, value in (
-            ('mode', cli.mode),
-            ('config_file', cli.config and str(cli.config)),
-            ('model', cli.model),
-            ('seed', cli.seed),
-            ('max_steps', cli.max_steps),
-        ):
-            if value is not None:
-                overrides.append(Parameter(name, value=value))
+        overrides = start_overrides(
+            (
+                ('mode', cli.mode),
+                ('config_file', cli.config and str(cli.config)),
+                ('model', cli.model),
+                ('seed', cli.seed),
+                ('max_steps', cli.max_steps),
+            )
+        )
         return run_drive_node(
             argv,
-            lambda: DriveSimNode(parameter_overrides=overrides or None),
+            lambda: DriveSimNode(parameter_overrides=overrides),
             'drive_sim',
             rt.RtOptions.from_cli(cli),
         )

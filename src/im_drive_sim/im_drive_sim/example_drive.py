@@ -32,10 +32,10 @@ from __future__ import annotations
 import math
 import sys
 from dataclasses import dataclass, fields
+from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -60,7 +60,13 @@ from .drive_io import CommandPath, publish_status, run_drive_node, watchdog_expi
 from .pacing import CommandWatchdog, Pacer
 from .params import ConfigError, DriveConfig, load_config
 from .qos import RECORDED_QOS
-from .runtime import LenientDoubles, param_descriptor, parameter_hygiene, publish_lossless
+from .runtime import (
+    IoNodeOwner,
+    LenientDoubles,
+    param_descriptor,
+    parameter_hygiene,
+    publish_lossless,
+)
 
 
 @dataclass
@@ -192,7 +198,7 @@ class Counters:
     backpressure: int = 0  #: publish retries while a reliable reader was full
 
 
-class ExampleDrive(LenientDoubles, Node):
+class ExampleDrive(IoNodeOwner, LenientDoubles, Node):
     """The ROS side (real time only). Hooks for subclasses: ``make_hardware``,
     ``apply_command``, ``fill_state``, ``make_joint_publisher``/``publish_joint_state``,
     ``watchdog`` and the attribute ``period_s``. ``start``/``period``/``take_commands``/
@@ -511,16 +517,14 @@ class ExampleDrive(LenientDoubles, Node):
             )
         )
 
-    def flush(self, timeout: float = 1.0) -> None:
-        for pub in (self.state_pub, self.joint_pub, self.status_pub):
-            pub.wait_for_all_acked(Duration(seconds=timeout))
+    def flushed_publishers(self) -> tuple[Any, ...]:
+        return (self.state_pub, self.joint_pub, self.status_pub)
 
     def destroy_node(self) -> None:
         try:
             self.close_hardware()  # never destroyed with a current in the inverter
         finally:
-            self.io_node.destroy_node()
-            super().destroy_node()
+            super().destroy_node()  # (the io node, then this one)
 
 
 def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:

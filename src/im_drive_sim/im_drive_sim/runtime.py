@@ -20,7 +20,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import rclpy
@@ -30,6 +30,7 @@ from rcl_interfaces.msg import (
     ParameterDescriptor,
     ParameterType,
 )
+from rclpy.duration import Duration
 from rclpy.exceptions import (
     InvalidParameterTypeException,
     InvalidParameterValueException,
@@ -142,6 +143,37 @@ class LenientDoubles:
         ):
             over[name] = Parameter(name, Parameter.Type.DOUBLE, float(p.value))
         return super().declare_parameter(name, value, descriptor, ignore_override)
+
+
+class IoNodeOwner:
+    """Mixin for an rclpy ``Node`` that owns a hidden ``io_node`` (destroyed with it) and
+    publishers whose last samples must reach their subscribers before it exits.
+
+    A subclass says which publishers those are in :meth:`flushed_publishers`.
+    """
+
+    io_node: Any
+
+    def flushed_publishers(self) -> tuple[Any, ...]:
+        """The publishers :meth:`flush` waits on, in order."""
+        raise NotImplementedError
+
+    def flush(self, timeout: float = 1.0) -> None:
+        """Wait (bounded: ``timeout`` [s] a publisher) until subscribers acknowledged
+        everything published: the last samples before an exit are not lost (reliable QoS
+        only promises this while the writer lives)."""
+        for pub in self.flushed_publishers():
+            pub.wait_for_all_acked(Duration(seconds=timeout))
+
+    def destroy_node(self) -> None:
+        self.io_node.destroy_node()
+        super().destroy_node()  # (the Node this is mixed into)
+
+
+def start_overrides(options: Iterable[tuple[str, object]]) -> list[Parameter] | None:
+    """The start-up parameter overrides of the command-line shortcuts that were given
+    (``(parameter name, option value)``, None: not given); None when none was."""
+    return [Parameter(name, value=value) for name, value in options if value is not None] or None
 
 
 class ParameterOverrideError(ValueError):

@@ -174,17 +174,18 @@ def test_speed_estimate_is_filtered_count_difference(tau: float) -> None:
         )
 
 
+def _reduced_sim(
+    seed: int | None = None, machine: dict[str, float] | None = None, **disturbance: float
+) -> DriveSim:
+    """A simulator of the reduced model with these disturbance (and machine) parameters."""
+    overrides = {'model': 'reduced', 'disturbance': disturbance, 'machine': machine or {}}
+    return DriveSim(load_config(overrides=overrides), seed=seed)
+
+
 def test_load_lag_and_ripple() -> None:
-    cfg = load_config(
-        overrides={
-            'model': 'reduced',
-            'disturbance.load_lag_tau': 0.01,
-            'disturbance.ripple_amplitude': 0.2,
-            'disturbance.ripple_harmonic': 3.0,
-            'disturbance.ripple_phase': 0.4,
-        }
+    sim = _reduced_sim(
+        load_lag_tau=0.01, ripple_amplitude=0.2, ripple_harmonic=3.0, ripple_phase=0.4
     )
-    sim = DriveSim(cfg)
     sim.reset(theta=0.2, omega=30.0)
     n = 400
     r = sim.run(np.full(n, 1.0), np.full(n, 1.5))
@@ -196,15 +197,7 @@ def test_load_lag_and_ripple() -> None:
 
 
 def test_random_load_statistics() -> None:
-    cfg = load_config(
-        overrides={
-            'model': 'reduced',
-            'disturbance.load_noise_std': 0.2,
-            'disturbance.load_noise_tau': 0.005,
-            'machine.J': 1.0,
-        }
-    )
-    sim = DriveSim(cfg, seed=5)
+    sim = _reduced_sim(seed=5, machine={'J': 1.0}, load_noise_std=0.2, load_noise_tau=0.005)
     n = 200_000
     r = sim.run(np.zeros(n), np.zeros(n))
     v = r['load_torque'][1000:]

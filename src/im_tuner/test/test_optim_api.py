@@ -52,26 +52,22 @@ def test_algos_and_option_table():
                 assert spec.choices and spec.default in spec.choices
 
 
+def _defaults(algo: str, names: str) -> tuple:
+    """The defaults of an algorithm's options, in the order named (space-separated)."""
+    return tuple(OPTIONS[algo][name].default for name in names.split())
+
+
 def test_paper_defaults():
-    s = OPTIONS['spsa']
-    assert (
-        s['a'].default,
-        s['c'].default,
-        s['A'].default,
-        s['gains'].default,
-        s['max_step'].default,
-    ) == (0.0183, 0.03, 20.0, 'paper', 0.1)
-    assert s['alpha'].default is None and s['gamma'].default is None  # from the preset
-    n = OPTIONS['necga']
-    assert (
-        n['n'].default,
-        n['eta'].default,
-        n['bits'].default,
-        n['coding'].default,
-        n['elite_replacement'].default,
-    ) == (25, 12, 16, 'binary', 'sample')
-    r = OPTIONS['rcga']
-    assert (r['elitism'].default, r['sigma0'].default) == ('ne', 10.0)
+    assert _defaults('spsa', 'a c A gains max_step') == (0.0183, 0.03, 20.0, 'paper', 0.1)
+    assert _defaults('spsa', 'alpha gamma') == (None, None)  # from the preset
+    assert _defaults('necga', 'n eta bits coding elite_replacement') == (
+        25,
+        12,
+        16,
+        'binary',
+        'sample',
+    )
+    assert _defaults('rcga', 'elitism sigma0') == ('ne', 10.0)
 
 
 BAD = [

@@ -82,6 +82,7 @@ __all__ = [
     'SAVED',
     'STR',
     'Codec',
+    'Elitist',
     'Field',
     'Optimizer',
     'OptimizerError',
@@ -215,6 +216,31 @@ HISTORY: tuple[Field, ...] = (
     Field('told_loss', '_told_loss', FLOATS),
     Field('pending', '_pending', FLOATS_OR_NONE),
 )
+
+
+# ------------------------------------------------------------------------------ elitism
+class Elitist:
+    """``elite`` and ``elite_loss`` of an elitist optimiser (pe/neCGA, rcGA): the elite it
+    holds, in its own form, as normalised parameters, and the loss stored with it.
+
+    A subclass writes ``_held_elite``: (the elite's u, its stored loss), or None before
+    the elite's evaluation (and while a replacement is pending).
+    """
+
+    def _held_elite(self) -> tuple[list[float], float] | None:
+        raise NotImplementedError
+
+    @property
+    def elite(self) -> np.ndarray | None:
+        """The elite's normalised parameters (None before its evaluation)."""
+        held = self._held_elite()
+        return None if held is None else np.array(held[0])
+
+    @property
+    def elite_loss(self) -> float | None:
+        """The elite's stored loss (measured once, when it was evaluated)."""
+        held = self._held_elite()
+        return None if held is None else held[1]
 
 
 # ----------------------------------------------------------------------------- template

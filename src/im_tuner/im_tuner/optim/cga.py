@@ -35,7 +35,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .base import FLOAT, INT, SAVED, Codec, Field, Optimizer, OptimizerError
+from .base import FLOAT, INT, SAVED, Codec, Elitist, Field, Optimizer, OptimizerError
 from .options import check_eta_below_n
 
 __all__ = ['CGA', 'NECGA', 'PECGA', 'BinaryCGA']
@@ -341,7 +341,7 @@ class CGA(BinaryCGA):
     algo: ClassVar[str] = 'cga'
 
 
-class PECGA(BinaryCGA):
+class PECGA(Elitist, BinaryCGA):
     """Persistent elitist compact GA, Fig. 2: elite vs one newcomer, ties -> the elite.
 
     ``PECGA(dim, seed, start=None, *, n=25, bits=16, coding='binary')``.
@@ -350,15 +350,8 @@ class PECGA(BinaryCGA):
     algo: ClassVar[str] = 'pecga'
     _ELITIST: ClassVar[bool] = True
 
-    @property
-    def elite(self) -> np.ndarray | None:
-        """The elite's normalised parameters (None before its evaluation)."""
-        return None if self._held is None else np.array(self._decode_g(self._held))
-
-    @property
-    def elite_loss(self) -> float | None:
-        """The elite's stored loss (measured once, when it was evaluated)."""
-        return None if self._held is None else self._held_loss
+    def _held_elite(self) -> tuple[list[float], float] | None:
+        return None if self._held is None else (self._decode_g(self._held), self._held_loss)
 
 
 class NECGA(PECGA):

@@ -37,7 +37,7 @@ from typing import Any, ClassVar
 import numpy as np
 import scipy.special as _sc
 
-from .base import FLOAT, INT, Codec, Field, Optimizer, OptimizerError
+from .base import FLOAT, INT, Codec, Elitist, Field, Optimizer, OptimizerError
 from .options import check_eta_below_n
 
 __all__ = ['RCGA', 'SIGMA_TOL', 'erfinv', 'ndtri', 'norm_cdf', 'truncnorm_ppf']
@@ -115,7 +115,7 @@ _VECTOR = Codec(_vector, lambda _o, v: list(v))
 _VECTOR_OR_NONE = Codec(_vector_or_none, lambda _o, v: None if v is None else list(v))
 
 
-class RCGA(Optimizer):
+class RCGA(Elitist, Optimizer):
     """Real-valued compact GA with persistent ('pe') or non-persistent ('ne') elitism.
 
     ``RCGA(dim, seed, start=None, *, n=25, elitism='ne', eta=12, sigma0=10.0)``.
@@ -224,14 +224,8 @@ class RCGA(Optimizer):
         """Spreads of the sampling distributions on [-1, 1] (a copy)."""
         return np.array(self._sigma)
 
-    @property
-    def elite(self) -> np.ndarray | None:
-        """The elite's normalised parameters (None before its evaluation)."""
-        return None if self._elite is None else np.array(self._to_u(self._elite))
-
-    @property
-    def elite_loss(self) -> float | None:
-        return None if self._elite is None else self._elite_loss
+    def _held_elite(self) -> tuple[list[float], float] | None:
+        return None if self._elite is None else (self._to_u(self._elite), self._elite_loss)
 
     def solution(self) -> np.ndarray:
         """The distribution's centre as normalised parameters, (clip(mu, -1, 1) + 1)/2."""

@@ -199,27 +199,22 @@ def fig9_loss(runs: list[RunReport]):
         y = np.array([r.loss for r in ev], float)
         ab = np.array([bool(r.aborted) for r in ev])
         best = np.array(_best_so_far(ev), dtype=float)  # None -> nan
-        ax.plot(
-            x[~ab],
-            y[~ab],
-            '.',
-            ms=4,
-            color=c,
-            alpha=0.6,
-            label=f'{rr.label}: loss',
-            gid=f'loss:{rr.label}',
-        )
-        if ab.any():
-            ax.plot(
-                x[ab],
-                y[ab],
-                'x',
-                ms=5,
-                color=c,
-                alpha=0.8,
-                label=f'{rr.label}: aborted (penalised)',
-                gid=f'aborted:{rr.label}',
-            )
+        # the measured losses always; the aborted experiments' penalties only when there are any
+        for pts, marker, ms, alpha, what, gid in (
+            (~ab, '.', 4, 0.6, 'loss', 'loss'),
+            (ab, 'x', 5, 0.8, 'aborted (penalised)', 'aborted'),
+        ):
+            if gid == 'loss' or pts.any():
+                ax.plot(
+                    x[pts],
+                    y[pts],
+                    marker,
+                    ms=ms,
+                    color=c,
+                    alpha=alpha,
+                    label=f'{rr.label}: {what}',
+                    gid=f'{gid}:{rr.label}',
+                )
         ax.step(
             x,
             best,

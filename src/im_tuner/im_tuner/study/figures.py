@@ -21,6 +21,17 @@ from .text import (
 
 
 # -- figures --------------------------------------------------------------------------------------
+def _bars(cells: list, stat: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bar lengths (nan -> 0) and the error bars below and above them of one statistic of
+    each cell (its Interval): the lengths to the interval's ends, 0 where an end is nan."""
+    ivs = [getattr(c, stat) for c in cells]
+    v = np.array([i.value for i in ivs])
+    # (a percentile interval of a small sample need not contain the point)
+    lo = np.array([max(i.value - i.lo, 0.0) if math.isfinite(i.lo) else 0.0 for i in ivs])
+    hi = np.array([max(i.hi - i.value, 0.0) if math.isfinite(i.hi) else 0.0 for i in ivs])
+    return np.nan_to_num(v), lo, hi
+
+
 def fig_tables(st: StudyStats):
     from matplotlib.figure import Figure
 
@@ -36,20 +47,16 @@ def fig_tables(st: StudyStats):
         ('final loss (hand-tuned = 1)', 'satisfactory runs [%]', 'iterations to satisfactory'),
         strict=True,
     ):
-        ivs = [getattr(c, stat) for c in cells]
-        v = np.array([i.value for i in ivs])
-        # (a percentile interval of a small sample need not contain the point)
-        lo = np.array([max(i.value - i.lo, 0.0) if math.isfinite(i.lo) else 0.0 for i in ivs])
-        hi = np.array([max(i.hi - i.value, 0.0) if math.isfinite(i.hi) else 0.0 for i in ivs])
+        v, lo, hi = _bars(cells, stat)
         ax.bar(
             x,
-            np.nan_to_num(v),
+            v,
             color=colours,
             alpha=0.75,
             gid=f'ours:{stat}',
             label='simulation (mean, 95 % interval)',
         )
-        ax.errorbar(x, np.nan_to_num(v), yerr=[lo, hi], fmt='none', ecolor='k', capsize=3)
+        ax.errorbar(x, v, yerr=[lo, hi], fmt='none', ecolor='k', capsize=3)
         key = PAPER_KEY[stat]
         assert key is not None  # the figure's three statistics all have paper values
         pv = np.array([c.paper(key) if c.paper(key) is not None else np.nan for c in cells])
@@ -151,18 +158,15 @@ def fig_comparison(st: StudyStats):
         ('aborted_per_run', 'aborted experiments per run (mean)'),
     )
     for ax, (stat, title) in zip(axes, titles, strict=True):
-        ivs = [getattr(c, stat) for c in cells]
-        v = np.array([i.value for i in ivs])
-        lo = np.array([max(i.value - i.lo, 0.0) if math.isfinite(i.lo) else 0.0 for i in ivs])
-        hi = np.array([max(i.hi - i.value, 0.0) if math.isfinite(i.hi) else 0.0 for i in ivs])
+        v, lo, hi = _bars(cells, stat)
         ax.barh(
             y,
-            np.nan_to_num(v),
+            v,
             color=[cmap[c.cell.algo] for c in cells],
             alpha=0.75,
             gid=f'ours:{stat}',
         )
-        ax.errorbar(np.nan_to_num(v), y, xerr=[lo, hi], fmt='none', ecolor='k', capsize=2)
+        ax.errorbar(v, y, xerr=[lo, hi], fmt='none', ecolor='k', capsize=2)
         ax.axvline(GOAL[stat], color='tab:red', ls='--', lw=1, label='goal of a real-bench default')
         ax.set_title(title, fontsize=9)
         ax.grid(axis='x', alpha=0.3)

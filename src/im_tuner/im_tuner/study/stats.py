@@ -43,50 +43,22 @@ from .spec import MIN_RUNS_FOR_INTERVALS, Cell
 
 __all__ = ['PAPER', 'CellStats', 'Conclusion', 'StudyStats', 'compute', 'wilson']
 
-#: The paper's Tables I-III: statistic -> (algo, row, col) -> value.
+#: The paper's Tables I-III on its grid of configurations: (algo, row) -> each column's
+#: (final loss (Table I), satisfactory runs [%] (Table II), iterations to satisfactory (III)).
+_PAPER_GRID: dict[tuple[str, int], tuple[tuple[float, int, int], ...]] = {
+    ('spsa', 0): ((0.91, 92, 92), (0.99, 64, 82), (0.99, 54, 93)),
+    ('spsa', 1): ((0.83, 86, 46), (0.81, 90, 47), (0.88, 84, 64)),
+    ('spsa', 2): ((0.97, 44, 46), (0.84, 90, 23), (0.83, 78, 25)),
+    ('necga', 0): ((0.85, 90, 36), (0.70, 92, 25), (0.72, 85, 28)),
+}
+#: The same by statistic: statistic -> (algo, row, col) -> value.
 PAPER: dict[str, dict[tuple[str, int, int], float]] = {
-    'final': {
-        ('spsa', 0, 0): 0.91,
-        ('spsa', 0, 1): 0.99,
-        ('spsa', 0, 2): 0.99,
-        ('spsa', 1, 0): 0.83,
-        ('spsa', 1, 1): 0.81,
-        ('spsa', 1, 2): 0.88,
-        ('spsa', 2, 0): 0.97,
-        ('spsa', 2, 1): 0.84,
-        ('spsa', 2, 2): 0.83,
-        ('necga', 0, 0): 0.85,
-        ('necga', 0, 1): 0.70,
-        ('necga', 0, 2): 0.72,
-    },
-    'satisfactory_pct': {
-        ('spsa', 0, 0): 92,
-        ('spsa', 0, 1): 64,
-        ('spsa', 0, 2): 54,
-        ('spsa', 1, 0): 86,
-        ('spsa', 1, 1): 90,
-        ('spsa', 1, 2): 84,
-        ('spsa', 2, 0): 44,
-        ('spsa', 2, 1): 90,
-        ('spsa', 2, 2): 78,
-        ('necga', 0, 0): 90,
-        ('necga', 0, 1): 92,
-        ('necga', 0, 2): 85,
-    },
-    'iterations': {
-        ('spsa', 0, 0): 92,
-        ('spsa', 0, 1): 82,
-        ('spsa', 0, 2): 93,
-        ('spsa', 1, 0): 46,
-        ('spsa', 1, 1): 47,
-        ('spsa', 1, 2): 64,
-        ('spsa', 2, 0): 46,
-        ('spsa', 2, 1): 23,
-        ('spsa', 2, 2): 25,
-        ('necga', 0, 0): 36,
-        ('necga', 0, 1): 25,
-        ('necga', 0, 2): 28,
-    },
+    stat: {
+        (algo, row, col): values[i]
+        for (algo, row), columns in _PAPER_GRID.items()
+        for col, values in enumerate(columns)
+    }
+    for i, stat in enumerate(('final', 'satisfactory_pct', 'iterations'))
 }
 #: The paper's own configuration of each algorithm (the centre of its grid).
 PAPER_CELL: dict[str, tuple[int, int]] = {'spsa': (1, 1), 'necga': (0, 1)}

@@ -59,6 +59,9 @@ from .model_layout import (
     P_INV_J,
     P_INV_TAUR,
     P_INV_WC,
+    P_INV_WS2,
+    P_IOFF_A,
+    P_IOFF_B,
     P_ISD_REF,
     P_ISQ_A,
     P_ISQ_A0,
@@ -87,6 +90,7 @@ from .model_layout import (
     P_SIGLS,
     P_SLIP_K,
     P_SPD_A,
+    P_STRIBECK,
     P_TC,
     P_TS,
     P_TS_NS,
@@ -129,7 +133,7 @@ from .model_layout import (
 )
 from .model_layout import N_STATE_FIELDS as N_STATE_FIELDS  # re-exported: see below
 from .model_layout import STATE_FIELDS as STATE_FIELDS
-from .plant import friction_torque, plant_rk4
+from .plant import applied_voltage, friction_torque, plant_rk4
 
 # STATE_FIELDS and N_STATE_FIELDS stand here too, beside ``write_out`` that fills them:
 # the fused offline bench (im_tuner.bench.offline) reads them with the kernels.
@@ -157,7 +161,8 @@ def sample(
     a = exp(-Ts/tau_speed); omega_meas = y + noise.
     advance=True first moves the current-model estimator from the previous sample:
     psi_hat <- a_r psi_hat + (1 - a_r) Lm isd_prev (exact ZOH), slip_int += omega_sl_prev Ts.
-    Then rho = p theta_meas + slip_int, (isd, isq) = rotation of the sampled currents by -rho,
+    Then rho = p theta_meas + slip_int, (isd, isq) = rotation by -rho of the sampled currents
+    (true + noise + the current sensors' offset in alpha, beta),
     omega_sl = Lm isq/(tau_r max(psi_hat, flux_floor)).  Reduced model: ideal orientation,
     (isd, isq) = (isd_rated, isq_true) + noise.
     """
@@ -181,8 +186,8 @@ def sample(
         rho = P[P_NP] * S[S_THETA_MEAS] + S[S_SLIP_INT]
         cr = math.cos(rho)
         sr = math.sin(rho)
-        ia = S[S_ISA] + n_ia
-        ib = S[S_ISB] + n_ib
+        ia = S[S_ISA] + n_ia + P[P_IOFF_A]
+        ib = S[S_ISB] + n_ib + P[P_IOFF_B]
         S[S_RHO] = rho
         S[S_ISD] = cr * ia + sr * ib
         S[S_ISQ] = -sr * ia + cr * ib
@@ -252,6 +257,7 @@ def _advance_full(
     """The full model over one period with the voltage (ua, ub) [V] applied: the load of
     the period, the plant's RK4 step, then the sample at the new time (noise row r)."""
     tl = _load(S, P, tl_cmd, noise[r, 3])
+    ua, ub = applied_voltage(S, ua, ub, P)  # the inverter's dead-time error
     plant_rk4(S, ua, ub, tl, P)
     S[S_STEP] += 1.0
     sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], True)
@@ -341,7 +347,7 @@ def step_reduced(
     """One Ts step of the reduced model (ideal field orientation, k -> k+1).
 
     isq(t) = isq* + (isq_k - isq*) exp(-t/tau_i) exactly; the mechanics
-    J domega/dt = Kt isq(t) - B omega - Tc tanh(omega/omega_c) - T_L by RK4 with isq(t)
+    J domega/dt = Kt isq(t) - T_friction(omega) - T_L by RK4 with isq(t)
     evaluated exactly at the stage times 0, Ts/2, Ts.
     """
     r = _next_noise_row(S, noise)
@@ -357,19 +363,21 @@ def step_reduced(
     b = P[P_B]
     tc = P[P_TC]
     iwc = P[P_INV_WC]
+    ds = P[P_STRIBECK]
+    iws2 = P[P_INV_WS2]
     h = P[P_TS]
     h2 = 0.5 * h
     w0 = S[S_OMEGA]
-    f = friction_torque(w0, b, tc, iwc)
+    f = friction_torque(w0, b, tc, iwc, ds, iws2)
     k1 = (kt * i_0 - f - tl) * ij
     w2 = w0 + h2 * k1
-    f = friction_torque(w2, b, tc, iwc)
+    f = friction_torque(w2, b, tc, iwc, ds, iws2)
     k2 = (kt * i_h - f - tl) * ij
     w3 = w0 + h2 * k2
-    f = friction_torque(w3, b, tc, iwc)
+    f = friction_torque(w3, b, tc, iwc, ds, iws2)
     k3 = (kt * i_h - f - tl) * ij
     w4 = w0 + h * k3
-    f = friction_torque(w4, b, tc, iwc)
+    f = friction_torque(w4, b, tc, iwc, ds, iws2)
     k4 = (kt * i_1 - f - tl) * ij
     h6 = h / 6.0
     S[S_OMEGA] = w0 + h6 * (k1 + 2.0 * (k2 + k3) + k4)

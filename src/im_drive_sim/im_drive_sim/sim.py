@@ -22,6 +22,7 @@ import numpy as np
 
 from . import kernels as K
 from . import model_layout as L
+from . import plant
 from .params import DriveConfig, load_config
 
 __all__ = [
@@ -101,6 +102,13 @@ def make_param_array(cfg: DriveConfig) -> np.ndarray:
     P[L.P_RR] = m.Rr
     P[L.P_J] = m.J
     P[L.P_CMD_DELAY] = float(cfg.command_delay)
+    P[L.P_IOFF_A] = s.current_offset_a
+    P[L.P_IOFF_B] = (s.current_offset_a + 2.0 * s.current_offset_b) / math.sqrt(3.0)
+    P[L.P_STRIBECK] = m.static_torque - m.coulomb_torque if m.static_torque != 0.0 else 0.0
+    P[L.P_INV_WS2] = 1.0 / (m.stribeck_speed * m.stribeck_speed)
+    P[L.P_VDT] = m.deadtime_voltage
+    P[L.P_RR_RISE] = m.rr_temp_coeff * m.rr_temp_rise
+    P[L.P_INV_TTH] = 1.0 / m.rr_temp_tau
     return P
 
 
@@ -408,6 +416,12 @@ class DriveSim:
         L.S_TLOAD, 'Total load torque applied during the last step [N m] (lag + ripple + random).'
     )
     isq_ref = _state_word(L.S_ISQ_REF, 'Clamped isq* of the last step [A].')
+
+    @property
+    def rotor_resistance(self) -> float:
+        """The plant's rotor resistance now [ohm]: Rr0 (1 + alpha dT (1 - exp(-t/tau_th)))
+        (``machine.rr_temp_*``; the controller keeps the nominal Rr0)."""
+        return self.config.machine.Rr * float(plant.rotor_resistance_scale(self.time, self.P))
 
     @property
     def voltage_saturated(self) -> bool:

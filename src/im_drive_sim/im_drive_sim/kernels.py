@@ -10,9 +10,10 @@ Free functions over two float64 arrays (documented in docs/drive-model.md):
   flux estimator, PI integrators, delayed voltage, load lag, random-load state, noise
   cursor).  ``S[0:6]`` is the plant state [i_sa, i_sb, psi_ra, psi_rb, omega, theta].
 
-and ``noise`` (``(block, 4)``): pre-scaled Gaussian samples (i_alpha, i_beta, speed,
-random-load increments) generated in Python from ``Generator(PCG64(seed))``; one row is
-consumed per step, the cursor ``S[S_NPOS]`` wraps at the end of the block (the Python
+and ``noise`` (``(block, 5)``): pre-scaled Gaussian samples (i_alpha, i_beta, speed,
+random-load increments, encoder edge jitter [s]) generated in Python from
+``Generator(PCG64(seed))`` (the jitter from its own jumped stream); one row is consumed per
+step, the cursor ``S[S_NPOS]`` wraps at the end of the block (the Python
 side refills the block exactly when it wraps).
 
 Per-step kernels allocate nothing.  Step semantics: ``step_*`` advances from time k Ts to
@@ -152,11 +153,18 @@ def _wrap(a: float) -> float:
 
 @njit(cache=True)
 def sample(
-    S: np.ndarray, P: np.ndarray, n_ia: float, n_ib: float, n_w: float, advance: bool
+    S: np.ndarray,
+    P: np.ndarray,
+    n_ia: float,
+    n_ib: float,
+    n_w: float,
+    n_t: float,
+    advance: bool,
 ) -> None:
     """Sample the measurements at the current time and run the flux estimator.
 
-    Encoder: count = floor(theta * (counts/(2 pi))), theta_meas = count * (2 pi/counts).
+    Encoder: count = floor((theta + omega n_t) * (counts/(2 pi))), theta_meas = count *
+    (2 pi/counts); n_t [s] is the edge jitter (the counter latched n_t off the sample).
     Speed: raw = (count - count_prev) * (2 pi/counts)/Ts; filtered y = a y + (1 - a) raw,
     a = exp(-Ts/tau_speed); omega_meas = y + noise.
     advance=True first moves the current-model estimator from the previous sample:
@@ -166,7 +174,10 @@ def sample(
     omega_sl = Lm isq/(tau_r max(psi_hat, flux_floor)).  Reduced model: ideal orientation,
     (isd, isq) = (isd_rated, isq_true) + noise.
     """
-    c = math.floor(S[S_THETA] * P[P_ENC_K])
+    th = S[S_THETA]
+    if n_t != 0.0:  # encoder edge jitter: the position the counter saw
+        th += S[S_OMEGA] * n_t
+    c = math.floor(th * P[P_ENC_K])
     if advance:
         S[S_COUNT_PREV] = S[S_COUNT]
         S[S_OMEGA_RAW] = (c - S[S_COUNT_PREV]) * P[P_ENC_RES_TS]
@@ -260,7 +271,7 @@ def _advance_full(
     ua, ub = applied_voltage(S, ua, ub, P)  # the inverter's dead-time error
     plant_rk4(S, ua, ub, tl, P)
     S[S_STEP] += 1.0
-    sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], True)
+    sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], noise[r, 4], True)
 
 
 # ---------------------------------------------------------------------- control
@@ -386,7 +397,7 @@ def step_reduced(
     S[S_RED_SLIP] = _wrap(S[S_RED_SLIP] + P[P_SLIP_K] * (isq_ref * h + di * P[P_ISQ_INT]))
     S[S_RED_ISQ] = i_1
     S[S_STEP] += 1.0
-    sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], True)
+    sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], noise[r, 4], True)
 
 
 @njit(cache=True)
@@ -516,7 +527,7 @@ def reset_kernel(
     S[S_OMEGA] = omega
     S[S_STEP] = step_index
     S[S_OMEGA_F] = omega
-    sample(S, P, 0.0, 0.0, 0.0, False)
+    sample(S, P, 0.0, 0.0, 0.0, 0.0, False)
     if P[P_MODEL] == 0.0 and fluxed:
         rho = P[P_NP] * S[S_THETA_MEAS]
         c = math.cos(rho)
@@ -536,4 +547,4 @@ def reset_kernel(
         S[S_UB] = s * ud + c * uq
         S[S_UA_NEXT] = S[S_UA]
         S[S_UB_NEXT] = S[S_UB]
-        sample(S, P, 0.0, 0.0, 0.0, False)
+        sample(S, P, 0.0, 0.0, 0.0, 0.0, False)

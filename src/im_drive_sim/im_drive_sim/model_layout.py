@@ -137,4 +137,5 @@ RUN_FIELDS = STATE_FIELDS + EXTRA_FIELDS
 N_STATE_FIELDS = len(STATE_FIELDS)
 N_RUN_FIELDS = len(RUN_FIELDS)
 
-NOISE_COLS = 4  # i_alpha, i_beta, speed, random-load increment
+NOISE_COLS = 5  # i_alpha, i_beta, speed, random-load increment, encoder edge jitter [s]
+NOISE_BASE_COLS = 4  # the first four: one stream (PCG64(seed)); the jitter its own (jumped)

@@ -184,6 +184,9 @@ class SensorParams:
     speed_noise_std: float = _f('rad/s', strict=False)
     current_offset_a: float = _f('A', lo=None, doc='offset of phase a sensor', off=0.0, new=True)
     current_offset_b: float = _f('A', lo=None, doc='offset of phase b sensor', off=0.0, new=True)
+    encoder_jitter: float = _f(
+        's', strict=False, doc='std of the encoder edge (latch) time', off=0.0, new=True
+    )
 
 
 @dataclass(frozen=True)
@@ -220,6 +223,7 @@ REALISM_PROFILES: dict[str, dict[str, float]] = {
         'sensors.current_noise_std': 0.01,
         'sensors.current_offset_a': 0.05,
         'sensors.current_offset_b': -0.03,
+        'sensors.encoder_jitter': 1.0e-6,
         'machine.coulomb_torque': 0.02,
         'machine.static_torque': 0.03,
         'machine.stribeck_speed': 2.0,

@@ -210,3 +210,28 @@ def test_rotor_resistance_drifts_to_its_warm_value() -> None:
     cold = DriveSim(load_config())
     cold.reset(step_index=k, fluxed=False)
     assert np.max(np.abs(cold.run_voltage(ua, ub, 0.0)['omega'] - runs[1]['omega'])) > 1e-3
+
+
+def _counts(jitter: float, seed: int, noisy: bool) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    ov = {'model': 'reduced', 'sensors.encoder_jitter': jitter, 'machine.B': 0.0}
+    if noisy:
+        ov['sensors.current_noise_std'] = 0.05
+    sim = DriveSim(load_config(overrides=ov), seed=seed)
+    sim.reset(omega=100.0)
+    res = sim.run(np.zeros(6000), 0.0)
+    return res['encoder_count'], res
+
+
+def test_encoder_edge_jitter_has_its_std_and_its_own_stream() -> None:
+    """Reduced model (the true motion does not depend on the measurement): the count with
+    jitter minus without is omega * dt * counts/(2 pi), dt of std ``encoder_jitter``."""
+    c0, r0 = _counts(0.0, 5, True)
+    c1, r1 = _counts(1e-4, 5, True)
+    assert np.array_equal(r0['omega'], r1['omega'])
+    k = 4096 / (2 * math.pi)
+    dt = (c1 - c0) / (r1['omega'] * k)  # the latch time error [s]
+    assert np.std(dt) == pytest.approx(1e-4, rel=0.05) and abs(np.mean(dt)) < 5e-6
+    # its own stream: the current noise draws as without it; a seed reproduces it
+    assert np.array_equal(r0['isd'], r1['isd'])
+    assert np.array_equal(_counts(1e-4, 5, True)[0], c1)
+    assert not np.array_equal(_counts(1e-4, 6, True)[0], c1)

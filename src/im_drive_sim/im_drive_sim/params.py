@@ -232,6 +232,8 @@ REALISM_PROFILES: dict[str, dict[str, float]] = {
         'machine.rr_temp_tau': 1200.0,
         'disturbance.ripple_amplitude': 0.025,
         'disturbance.ripple_harmonic': 6.0,
+        'disturbance.load_noise_std': 0.0125,
+        'disturbance.load_noise_tau': 0.02,
     },
 }
 

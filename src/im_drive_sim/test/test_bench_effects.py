@@ -156,7 +156,12 @@ def test_stribeck_friction_is_the_formula_and_decelerates_the_shaft() -> None:
 
 def test_position_ripple_has_its_period_and_amplitude() -> None:
     cfg = load_config(
-        overrides={'model': 'reduced', 'realism': 'bench', 'disturbance.ripple_phase': 0.3}
+        overrides={
+            'model': 'reduced',
+            'realism': 'bench',
+            'disturbance.ripple_phase': 0.3,
+            'disturbance.load_noise_std': 0.0,  # explicit: the bench without its random load
+        }
     )
     sim = DriveSim(cfg)
     sim.reset(omega=50.0)
@@ -235,3 +240,14 @@ def test_encoder_edge_jitter_has_its_std_and_its_own_stream() -> None:
     assert np.array_equal(r0['isd'], r1['isd'])
     assert np.array_equal(_counts(1e-4, 5, True)[0], c1)
     assert not np.array_equal(_counts(1e-4, 6, True)[0], c1)
+
+
+def test_bench_random_load_has_its_std_and_correlation_time() -> None:
+    cfg = load_config(
+        overrides={'model': 'reduced', 'realism': 'bench', 'disturbance.ripple_amplitude': 0.0}
+    )
+    tl = DriveSim(cfg, seed=11).run(np.zeros(100_000), 0.0)['load_torque'][1000:]
+    assert np.std(tl) == pytest.approx(0.0125, rel=0.1)
+    lag = 100  # one correlation time (20 ms): autocorrelation exp(-1)
+    rho = np.corrcoef(tl[:-lag], tl[lag:])[0, 1]
+    assert rho == pytest.approx(math.exp(-1.0), abs=0.08)

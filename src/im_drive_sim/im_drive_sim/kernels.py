@@ -10,9 +10,10 @@ Free functions over two float64 arrays (documented in docs/drive-model.md):
   flux estimator, PI integrators, delayed voltage, load lag, random-load state, noise
   cursor).  ``S[0:6]`` is the plant state [i_sa, i_sb, psi_ra, psi_rb, omega, theta].
 
-and ``noise`` (``(block, 4)``): pre-scaled Gaussian samples (i_alpha, i_beta, speed,
-random-load increments) generated in Python from ``Generator(PCG64(seed))``; one row is
-consumed per step, the cursor ``S[S_NPOS]`` wraps at the end of the block (the Python
+and ``noise`` (``(block, 5)``): pre-scaled Gaussian samples (i_alpha, i_beta, speed,
+random-load increments, encoder edge jitter [s]) generated in Python from
+``Generator(PCG64(seed))`` (the jitter from its own jumped stream); one row is consumed per
+step, the cursor ``S[S_NPOS]`` wraps at the end of the block (the Python
 side refills the block exactly when it wraps).
 
 Per-step kernels allocate nothing.  Step semantics: ``step_*`` advances from time k Ts to
@@ -59,6 +60,9 @@ from .model_layout import (
     P_INV_J,
     P_INV_TAUR,
     P_INV_WC,
+    P_INV_WS2,
+    P_IOFF_A,
+    P_IOFF_B,
     P_ISD_REF,
     P_ISQ_A,
     P_ISQ_A0,
@@ -87,6 +91,7 @@ from .model_layout import (
     P_SIGLS,
     P_SLIP_K,
     P_SPD_A,
+    P_STRIBECK,
     P_TC,
     P_TS,
     P_TS_NS,
@@ -129,7 +134,7 @@ from .model_layout import (
 )
 from .model_layout import N_STATE_FIELDS as N_STATE_FIELDS  # re-exported: see below
 from .model_layout import STATE_FIELDS as STATE_FIELDS
-from .plant import friction_torque, plant_rk4
+from .plant import applied_voltage, friction_torque, plant_rk4
 
 # STATE_FIELDS and N_STATE_FIELDS stand here too, beside ``write_out`` that fills them:
 # the fused offline bench (im_tuner.bench.offline) reads them with the kernels.
@@ -148,20 +153,31 @@ def _wrap(a: float) -> float:
 
 @njit(cache=True)
 def sample(
-    S: np.ndarray, P: np.ndarray, n_ia: float, n_ib: float, n_w: float, advance: bool
+    S: np.ndarray,
+    P: np.ndarray,
+    n_ia: float,
+    n_ib: float,
+    n_w: float,
+    n_t: float,
+    advance: bool,
 ) -> None:
     """Sample the measurements at the current time and run the flux estimator.
 
-    Encoder: count = floor(theta * (counts/(2 pi))), theta_meas = count * (2 pi/counts).
+    Encoder: count = floor((theta + omega n_t) * (counts/(2 pi))), theta_meas = count *
+    (2 pi/counts); n_t [s] is the edge jitter (the counter latched n_t off the sample).
     Speed: raw = (count - count_prev) * (2 pi/counts)/Ts; filtered y = a y + (1 - a) raw,
     a = exp(-Ts/tau_speed); omega_meas = y + noise.
     advance=True first moves the current-model estimator from the previous sample:
     psi_hat <- a_r psi_hat + (1 - a_r) Lm isd_prev (exact ZOH), slip_int += omega_sl_prev Ts.
-    Then rho = p theta_meas + slip_int, (isd, isq) = rotation of the sampled currents by -rho,
+    Then rho = p theta_meas + slip_int, (isd, isq) = rotation by -rho of the sampled currents
+    (true + noise + the current sensors' offset in alpha, beta),
     omega_sl = Lm isq/(tau_r max(psi_hat, flux_floor)).  Reduced model: ideal orientation,
     (isd, isq) = (isd_rated, isq_true) + noise.
     """
-    c = math.floor(S[S_THETA] * P[P_ENC_K])
+    th = S[S_THETA]
+    if n_t != 0.0:  # encoder edge jitter: the position the counter saw
+        th += S[S_OMEGA] * n_t
+    c = math.floor(th * P[P_ENC_K])
     if advance:
         S[S_COUNT_PREV] = S[S_COUNT]
         S[S_OMEGA_RAW] = (c - S[S_COUNT_PREV]) * P[P_ENC_RES_TS]
@@ -181,8 +197,8 @@ def sample(
         rho = P[P_NP] * S[S_THETA_MEAS] + S[S_SLIP_INT]
         cr = math.cos(rho)
         sr = math.sin(rho)
-        ia = S[S_ISA] + n_ia
-        ib = S[S_ISB] + n_ib
+        ia = S[S_ISA] + n_ia + P[P_IOFF_A]
+        ib = S[S_ISB] + n_ib + P[P_IOFF_B]
         S[S_RHO] = rho
         S[S_ISD] = cr * ia + sr * ib
         S[S_ISQ] = -sr * ia + cr * ib
@@ -252,9 +268,10 @@ def _advance_full(
     """The full model over one period with the voltage (ua, ub) [V] applied: the load of
     the period, the plant's RK4 step, then the sample at the new time (noise row r)."""
     tl = _load(S, P, tl_cmd, noise[r, 3])
+    ua, ub = applied_voltage(S, ua, ub, P)  # the inverter's dead-time error
     plant_rk4(S, ua, ub, tl, P)
     S[S_STEP] += 1.0
-    sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], True)
+    sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], noise[r, 4], True)
 
 
 # ---------------------------------------------------------------------- control
@@ -341,7 +358,7 @@ def step_reduced(
     """One Ts step of the reduced model (ideal field orientation, k -> k+1).
 
     isq(t) = isq* + (isq_k - isq*) exp(-t/tau_i) exactly; the mechanics
-    J domega/dt = Kt isq(t) - B omega - Tc tanh(omega/omega_c) - T_L by RK4 with isq(t)
+    J domega/dt = Kt isq(t) - T_friction(omega) - T_L by RK4 with isq(t)
     evaluated exactly at the stage times 0, Ts/2, Ts.
     """
     r = _next_noise_row(S, noise)
@@ -357,19 +374,21 @@ def step_reduced(
     b = P[P_B]
     tc = P[P_TC]
     iwc = P[P_INV_WC]
+    ds = P[P_STRIBECK]
+    iws2 = P[P_INV_WS2]
     h = P[P_TS]
     h2 = 0.5 * h
     w0 = S[S_OMEGA]
-    f = friction_torque(w0, b, tc, iwc)
+    f = friction_torque(w0, b, tc, iwc, ds, iws2)
     k1 = (kt * i_0 - f - tl) * ij
     w2 = w0 + h2 * k1
-    f = friction_torque(w2, b, tc, iwc)
+    f = friction_torque(w2, b, tc, iwc, ds, iws2)
     k2 = (kt * i_h - f - tl) * ij
     w3 = w0 + h2 * k2
-    f = friction_torque(w3, b, tc, iwc)
+    f = friction_torque(w3, b, tc, iwc, ds, iws2)
     k3 = (kt * i_h - f - tl) * ij
     w4 = w0 + h * k3
-    f = friction_torque(w4, b, tc, iwc)
+    f = friction_torque(w4, b, tc, iwc, ds, iws2)
     k4 = (kt * i_1 - f - tl) * ij
     h6 = h / 6.0
     S[S_OMEGA] = w0 + h6 * (k1 + 2.0 * (k2 + k3) + k4)
@@ -378,7 +397,7 @@ def step_reduced(
     S[S_RED_SLIP] = _wrap(S[S_RED_SLIP] + P[P_SLIP_K] * (isq_ref * h + di * P[P_ISQ_INT]))
     S[S_RED_ISQ] = i_1
     S[S_STEP] += 1.0
-    sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], True)
+    sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], noise[r, 4], True)
 
 
 @njit(cache=True)
@@ -508,7 +527,7 @@ def reset_kernel(
     S[S_OMEGA] = omega
     S[S_STEP] = step_index
     S[S_OMEGA_F] = omega
-    sample(S, P, 0.0, 0.0, 0.0, False)
+    sample(S, P, 0.0, 0.0, 0.0, 0.0, False)
     if P[P_MODEL] == 0.0 and fluxed:
         rho = P[P_NP] * S[S_THETA_MEAS]
         c = math.cos(rho)
@@ -528,4 +547,4 @@ def reset_kernel(
         S[S_UB] = s * ud + c * uq
         S[S_UA_NEXT] = S[S_UA]
         S[S_UB_NEXT] = S[S_UB]
-        sample(S, P, 0.0, 0.0, 0.0, False)
+        sample(S, P, 0.0, 0.0, 0.0, 0.0, False)

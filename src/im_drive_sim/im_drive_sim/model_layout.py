@@ -61,7 +61,15 @@ P_RR = 42
 P_J = 43
 P_ISQ_A0 = 44  # reduced: isq(0+) weight, 1 for tau_i > 0, 0 for an ideal (tau_i = 0) loop
 P_CMD_DELAY = 45  # command delay d (1 or 2): the command given at state k acts over k+d-1 -> k+d
-N_PARAMS = 46
+# bench effects (docs/drive-model.md, "Bench effects"); each 0 = off
+P_IOFF_A = 46  # current-sensor offset in alpha [A] (phase a sensor)
+P_IOFF_B = 47  # ... in beta [A]: (off_a + 2 off_b)/sqrt(3)
+P_STRIBECK = 48  # Stribeck rise Ts - Tc [N m] (0 = off)
+P_INV_WS2 = 49  # 1/ws^2 [s^2/rad^2]
+P_VDT = 50  # inverter dead-time voltage error per leg [V]
+P_RR_RISE = 51  # alpha dT: the relative rise of Rr over a run (0 = off)
+P_INV_TTH = 52  # 1/tau_thermal [1/s]
+N_PARAMS = 53
 
 # -------------------------------------------------------------------- state indices
 S_ISA = 0  # true stator current alpha [A]
@@ -129,4 +137,5 @@ RUN_FIELDS = STATE_FIELDS + EXTRA_FIELDS
 N_STATE_FIELDS = len(STATE_FIELDS)
 N_RUN_FIELDS = len(RUN_FIELDS)
 
-NOISE_COLS = 4  # i_alpha, i_beta, speed, random-load increment
+NOISE_COLS = 5  # i_alpha, i_beta, speed, random-load increment, encoder edge jitter [s]
+NOISE_BASE_COLS = 4  # the first four: one stream (PCG64(seed)); the jitter its own (jumped)

@@ -31,6 +31,7 @@ from typing import Any
 import yaml
 
 __all__ = [
+    'REALISM_PROFILES',
     'ConfigError',
     'ControlParams',
     'DisturbanceParams',
@@ -48,12 +49,27 @@ class ConfigError(ValueError):
 
 
 def _f(
-    unit: str, lo: float | None = 0.0, strict: bool = True, hi: float | None = None, doc: str = ''
+    unit: str,
+    lo: float | None = 0.0,
+    strict: bool = True,
+    hi: float | None = None,
+    doc: str = '',
+    off: float | None = None,
+    new: bool = False,
 ) -> Any:
-    """Float field metadata: bounds ``lo < x`` (strict) or ``lo <= x``, optional ``x <= hi``."""
-    return field(
-        metadata={'kind': 'float', 'unit': unit, 'lo': lo, 'strict': strict, 'hi': hi, 'doc': doc}
-    )
+    """Float field metadata: bounds ``lo < x`` (strict) or ``lo <= x``, optional ``x <= hi``.
+
+    ``off``: a bench effect's key, optional in a file: when absent, the realism profile's
+    value, else ``off`` (the value that switches the effect off). ``new``: a key added after
+    files existed, also a keyword default of the dataclass (constructors need not name it).
+    """
+    meta = {'kind': 'float', 'unit': unit, 'lo': lo, 'strict': strict, 'hi': hi, 'doc': doc}
+    if off is None:
+        return field(metadata=meta)
+    meta['off'] = off
+    if new:
+        return field(default=off, kw_only=True, metadata=meta)
+    return field(metadata=meta)
 
 
 def _i(unit: str, lo: int = 0, hi: int | None = None, doc: str = '') -> Any:
@@ -73,13 +89,31 @@ class MachineParams:
     pole_pairs: int = _i('-', lo=1, doc='pole pairs p')
     J: float = _f('kg m^2', doc='total inertia, motor + load machine')
     B: float = _f('N m s/rad', strict=False, doc='viscous friction')
-    coulomb_torque: float = _f('N m', strict=False, doc='Coulomb friction Tc (0 = off)')
+    coulomb_torque: float = _f('N m', strict=False, doc='Coulomb friction Tc (0 = off)', off=0.0)
     coulomb_speed: float = _f('rad/s', doc='smoothing speed: Tc tanh(omega/omega_c)')
     rated_torque: float = _f('N m')
     rated_speed: float = _f('rad/s', doc='mechanical')
     rated_flux_current: float = _f('A', doc='isd* (peak, amplitude-invariant)')
     isq_max: float = _f('A', doc='clamp of the torque-current command')
     Udc: float = _f('V', doc='DC-link voltage; voltage limit Udc/sqrt(3)')
+    static_torque: float = _f(
+        'N m', strict=False, doc='Stribeck static torque Ts >= Tc (0 = off)', off=0.0, new=True
+    )
+    stribeck_speed: float = _f('rad/s', doc='Stribeck speed ws', off=1.0, new=True)
+    deadtime_voltage: float = _f(
+        'V',
+        strict=False,
+        doc='inverter dead-time voltage error per leg (0 = off)',
+        off=0.0,
+        new=True,
+    )
+    rr_temp_rise: float = _f(
+        'K', strict=False, doc='rotor temperature rise over a run (0 = off)', off=0.0, new=True
+    )
+    rr_temp_tau: float = _f('s', doc='thermal time constant of the rise', off=1200.0, new=True)
+    rr_temp_coeff: float = _f(
+        '1/K', strict=False, doc='temperature coefficient of Rr (copper)', off=0.00393, new=True
+    )
 
     # Derived constants (equations in docs/drive-model.md)
     @property
@@ -146,8 +180,13 @@ class SensorParams:
 
     encoder_counts: int = _i('counts/rev', lo=1)
     speed_filter_tau: float = _f('s', strict=False, doc='0 disables the filter')
-    current_noise_std: float = _f('A', strict=False)
+    current_noise_std: float = _f('A', strict=False, off=0.0)
     speed_noise_std: float = _f('rad/s', strict=False)
+    current_offset_a: float = _f('A', lo=None, doc='offset of phase a sensor', off=0.0, new=True)
+    current_offset_b: float = _f('A', lo=None, doc='offset of phase b sensor', off=0.0, new=True)
+    encoder_jitter: float = _f(
+        's', strict=False, doc='std of the encoder edge (latch) time', off=0.0, new=True
+    )
 
 
 @dataclass(frozen=True)
@@ -155,11 +194,11 @@ class DisturbanceParams:
     """Load-side dynamics and disturbances."""
 
     load_lag_tau: float = _f('s', strict=False, doc='load machine torque lag, 0 = ideal')
-    ripple_amplitude: float = _f('N m', strict=False)
-    ripple_harmonic: float = _f('per rev', strict=False)
+    ripple_amplitude: float = _f('N m', strict=False, off=0.0)
+    ripple_harmonic: float = _f('per rev', strict=False, off=1.0)
     ripple_phase: float = _f('rad', lo=None)
-    load_noise_std: float = _f('N m', strict=False, doc='stationary std of random load')
-    load_noise_tau: float = _f('s', strict=False, doc='correlation time, 0 = white')
+    load_noise_std: float = _f('N m', strict=False, doc='stationary std of random load', off=0.0)
+    load_noise_tau: float = _f('s', strict=False, doc='correlation time, 0 = white', off=0.0)
 
 
 _SECTIONS: dict[str, type] = {
@@ -168,22 +207,48 @@ _SECTIONS: dict[str, type] = {
     'sensors': SensorParams,
     'disturbance': DisturbanceParams,
 }
-_TOP_SCALARS = ('model', 'Ts', 'seed', 'command_delay')
+_TOP_SCALARS = ('model', 'Ts', 'seed', 'command_delay', 'realism')
 #: Top-level keys a file may leave out, with their defaults (keys added after files existed).
-_OPTIONAL = {'command_delay': 1}
+_OPTIONAL: dict[str, Any] = {'command_delay': 1, 'realism': 'ideal'}
 _MODELS = ('full', 'reduced')
+
+#: Realism profiles: the values of the bench-effect keys (those with an ``off`` value) that
+#: a file leaves out. ``ideal``: every effect off (the bench of the paper reproduction, bit
+#: identical to the files before profiles existed). ``bench``: each effect at the magnitude
+#: documented, with its source, in docs/drive-model.md ("Bench effects"). A key the file
+#: (or an override) gives explicitly wins over its profile.
+REALISM_PROFILES: dict[str, dict[str, float]] = {
+    'ideal': {},
+    'bench': {
+        'sensors.current_noise_std': 0.01,
+        'sensors.current_offset_a': 0.05,
+        'sensors.current_offset_b': -0.03,
+        'sensors.encoder_jitter': 1.0e-6,
+        'machine.coulomb_torque': 0.02,
+        'machine.static_torque': 0.03,
+        'machine.stribeck_speed': 2.0,
+        'machine.deadtime_voltage': 3.0,
+        'machine.rr_temp_rise': 40.0,
+        'machine.rr_temp_tau': 1200.0,
+        'disturbance.ripple_amplitude': 0.025,
+        'disturbance.ripple_harmonic': 6.0,
+        'disturbance.load_noise_std': 0.0125,
+        'disturbance.load_noise_tau': 0.02,
+    },
+}
 
 
 @dataclass(frozen=True)
 class DriveConfig:
     """Complete simulator configuration.
 
-    ``model``: ``'full'`` (voltage-fed IM + vector control) or ``'reduced'`` (ideal field
-    orientation, isq lag); ``Ts``: control/simulation step [s] (an integer number of ns);
-    ``seed``: seed of the disturbance/noise streams; ``command_delay``: the drive's
-    command delay d [periods] (1: the command answering state k acts over k -> k+1; 2: a
-    power stage that latches it at the next period start, k+1 -> k+2; the one optional
-    key, default 1); ``source``: where it was loaded from.
+        ``model``: ``'full'`` (voltage-fed IM + vector control) or ``'reduced'`` (ideal field
+        orientation, isq lag); ``Ts``: control/simulation step [s] (an integer number of ns);
+        ``seed``: seed of the disturbance/noise streams; ``command_delay``: the drive's
+        command delay d [periods] (1: the command answering state k acts over k -> k+1; 2: a
+        power stage that latches it at the next period start, k+1 -> k+2; the one optional
+        key, default 1); ``realism``: the profile (``REALISM_PROFILES``) that gave the bench-effect
+    keys the file leaves out (optional, default ``ideal``); ``source``: where it was loaded from.
     """
 
     model: str
@@ -194,6 +259,7 @@ class DriveConfig:
     sensors: SensorParams
     disturbance: DisturbanceParams
     command_delay: int = 1
+    realism: str = 'ideal'
     source: str = field(default='<dict>', compare=False)
 
     @property
@@ -208,6 +274,7 @@ class DriveConfig:
             'Ts': self.Ts,
             'seed': self.seed,
             'command_delay': self.command_delay,
+            'realism': self.realism,
         }
         for name in _SECTIONS:
             sec = getattr(self, name)
@@ -317,6 +384,12 @@ def config_from_dict(
         data.get('command_delay', _OPTIONAL['command_delay']),
         {'lo': 1, 'hi': 2},
     )
+    realism = data.get('realism', _OPTIONAL['realism'])
+    if not isinstance(realism, str) or realism not in REALISM_PROFILES:
+        raise ConfigError(
+            f'{src}: realism must be one of {", ".join(REALISM_PROFILES)}, got {realism!r}'
+        )
+    profile = REALISM_PROFILES[realism]
 
     built: dict[str, Any] = {}
     for sname, cls in _SECTIONS.items():
@@ -330,14 +403,24 @@ def config_from_dict(
         kwargs: dict[str, Any] = {}
         for f in fields(cls):
             key = f'{sname}.{f.name}'
-            if f.name not in sec:
+            if f.name in sec:
+                value = sec[f.name]
+            elif 'off' in f.metadata:  # a bench effect: the profile's value, else off
+                value = profile.get(key, f.metadata['off'])
+            else:
                 raise ConfigError(f'{src}: missing key {key}')
             check = _check_float if f.metadata['kind'] == 'float' else _check_int
-            kwargs[f.name] = check(src, key, sec[f.name], f.metadata)
+            kwargs[f.name] = check(src, key, value, f.metadata)
         built[sname] = cls(**kwargs)
 
     cfg = DriveConfig(
-        model=model, Ts=Ts, seed=seed, command_delay=command_delay, source=src, **built
+        model=model,
+        Ts=Ts,
+        seed=seed,
+        command_delay=command_delay,
+        realism=realism,
+        source=src,
+        **built,
     )
     _check_consistency(src, cfg)
     return cfg
@@ -378,6 +461,11 @@ def _check_consistency(src: str, cfg: DriveConfig) -> None:
             f'{src}: machine.isq_max {m.isq_max:g} A is implausible: {m.isq_max / isq_rated:.3g}'
             f'x the rated torque current {isq_rated:.3g} A (rated_torque/Kt); at most '
             f'{ISQ_MAX_PER_RATED:g}x ({ISQ_MAX_PER_RATED * isq_rated:.3g} A) is accepted'
+        )
+    if m.static_torque != 0.0 and m.static_torque < m.coulomb_torque:
+        raise ConfigError(
+            f'{src}: machine.static_torque {m.static_torque:g} N m must be 0 (off) or >= '
+            f'machine.coulomb_torque {m.coulomb_torque:g} N m'
         )
     if c.flux_floor >= m.rated_flux:
         raise ConfigError(

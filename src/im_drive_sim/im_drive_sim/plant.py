@@ -19,7 +19,9 @@ from .model_layout import (
     P_INV_J,
     P_INV_SIGLS,
     P_INV_TAUR,
+    P_INV_TTH,
     P_INV_WC,
+    P_INV_WS2,
     P_J,
     P_KR,
     P_KR_TAUR,
@@ -29,30 +31,86 @@ from .model_layout import (
     P_LS,
     P_NP,
     P_RR,
+    P_RR_RISE,
     P_RS,
     P_RSIG,
+    P_STRIBECK,
     P_TC,
     P_TS,
+    P_VDT,
     S_ISA,
     S_ISB,
     S_OMEGA,
     S_PSIA,
     S_PSIB,
+    S_STEP,
     S_THETA,
 )
 
+SQRT3 = math.sqrt(3.0)
+
 
 @njit(cache=True)
-def friction_torque(w: float, b: float, tc: float, iwc: float) -> float:
-    """Friction [N m] at speed w [rad/s]: b w + tc tanh(w iwc) (Coulomb term if tc != 0).
+def friction_torque(w: float, b: float, tc: float, iwc: float, ds: float, iws2: float) -> float:
+    """Friction [N m] at speed w [rad/s], viscous + Coulomb + Stribeck:
 
-    b = B, tc = Tc, iwc = 1/omega_c as scalars: callers load them from P once, outside
-    their RK4 stages (loads from P inside would be repeated after every store to S).
+    b w + (tc + ds exp(-(w/ws)^2)) tanh(w iwc), ds = Ts - Tc (static minus Coulomb torque),
+    each term only if its constant is non-zero.
+    b = B, tc = Tc, iwc = 1/omega_c, iws2 = 1/ws^2 as scalars: callers load them from P
+    once, outside their RK4 stages (loads from P inside would be repeated after every
+    store to S).
     """
     tf = b * w
     if tc != 0.0:
         tf += tc * math.tanh(w * iwc)
+    if ds != 0.0:
+        tf += ds * math.exp(-w * w * iws2) * math.tanh(w * iwc)
     return tf
+
+
+@njit(cache=True)
+def friction_of(w: float, P: np.ndarray) -> float:
+    """``friction_torque`` at speed w [rad/s] with the constants of P [N m]."""
+    return friction_torque(w, P[P_B], P[P_TC], P[P_INV_WC], P[P_STRIBECK], P[P_INV_WS2])
+
+
+@njit(cache=True)
+def rotor_resistance_scale(t: float, P: np.ndarray) -> float:
+    """Rr(t)/Rr0 = 1 + alpha dT (1 - exp(-t/tau_th)) at time t [s] (1.0 when drift is off).
+
+    The rotor warms by dT over the run with the thermal time constant tau_th;
+    alpha dT = P[P_RR_RISE]."""
+    rise = P[P_RR_RISE]
+    if rise == 0.0:
+        return 1.0
+    return 1.0 + rise * (1.0 - math.exp(-t * P[P_INV_TTH]))
+
+
+@njit(cache=True)
+def deadtime_error(isa: float, isb: float, vdt: float) -> tuple[float, float]:
+    """Mean voltage error [V] (alpha, beta) of the inverter's dead time over a period.
+
+    Each leg x loses vdt against its phase current: du_x = -vdt sign(i_x), with
+    i_a = i_alpha, i_b = (-i_alpha + sqrt(3) i_beta)/2, i_c = (-i_alpha - sqrt(3) i_beta)/2;
+    amplitude-invariant Clarke: du_alpha = (2 du_a - du_b - du_c)/3,
+    du_beta = (du_b - du_c)/sqrt(3)."""
+    ib = 0.5 * (-isa + SQRT3 * isb)
+    ic = 0.5 * (-isa - SQRT3 * isb)
+    da = -vdt * np.sign(isa)
+    db = -vdt * np.sign(ib)
+    dc = -vdt * np.sign(ic)
+    return (2.0 * da - db - dc) / 3.0, (db - dc) / SQRT3
+
+
+@njit(cache=True)
+def applied_voltage(S: np.ndarray, ua: float, ub: float, P: np.ndarray) -> tuple[float, float]:
+    """The voltage [V] the machine gets for the inverter command (ua, ub): the command
+    plus the dead-time error for the currents at the period start (held over the period)."""
+    vdt = P[P_VDT]
+    if vdt == 0.0:
+        return ua, ub
+    da, db = deadtime_error(S[S_ISA], S[S_ISB], vdt)
+    return ua + da, ub + db
 
 
 @njit(cache=True)
@@ -66,52 +124,60 @@ def plant_deriv(
     ub: float,
     tl: float,
     P: np.ndarray,
+    g: float,
 ):
     """Right-hand side of the voltage-fed IM in the stationary frame (notes' equations).
 
     sigma Ls di_s/dt = -R_sigma i_s + (kr/tau_r) psi_r - j kr omega_e psi_r + u_s
     dpsi_r/dt = (Lm i_s - psi_r)/tau_r + j omega_e psi_r
-    J domega/dt = 1.5 p kr (psi_ra i_sb - psi_rb i_sa) - B omega - Tc tanh(omega/omega_c) - T_L
+    J domega/dt = 1.5 p kr (psi_ra i_sb - psi_rb i_sa) - T_friction(omega) - T_L
+    with the rotor resistance g Rr (g = ``rotor_resistance_scale``, 1.0 nominal).
     Returns (di_sa, di_sb, dpsi_ra, dpsi_rb, domega); dtheta/dt = omega.
     """
     kr = P[P_KR]
     we = P[P_NP] * w
     krt = P[P_KR_TAUR]
     rsig = P[P_RSIG]
-    isl = P[P_INV_SIGLS]
     itr = P[P_INV_TAUR]
+    if g != 1.0:  # a warm rotor: every Rr term scales (kr/tau_r, 1/tau_r, kr^2 Rr)
+        krt = krt * g
+        itr = itr * g
+        rsig = P[P_RS] + (rsig - P[P_RS]) * g
+    isl = P[P_INV_SIGLS]
     lm = P[P_LM]
     disa = (-rsig * isa + krt * pa + kr * we * pb + ua) * isl
     disb = (-rsig * isb + krt * pb - kr * we * pa + ub) * isl
     dpa = (lm * isa - pa) * itr - we * pb
     dpb = (lm * isb - pb) * itr + we * pa
-    tf = friction_torque(w, P[P_B], P[P_TC], P[P_INV_WC])
+    tf = friction_of(w, P)
     dw = (P[P_KTE] * (pa * isb - pb * isa) - tf - tl) * P[P_INV_J]
     return disa, disb, dpa, dpb, dw
 
 
 @njit(cache=True)
 def plant_rk4(S: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray) -> None:
-    """One classic RK4 step of length Ts on S[0:6] with u and T_L held (ZOH)."""
+    """One classic RK4 step of length Ts on S[0:6] with u and T_L held (ZOH); the rotor
+    resistance of the period start (its drift is slow) held too."""
     h = P[P_TS]
+    g = rotor_resistance_scale(S[S_STEP] * h, P)
     h2 = 0.5 * h
     x0 = S[S_ISA]
     x1 = S[S_ISB]
     x2 = S[S_PSIA]
     x3 = S[S_PSIB]
     x4 = S[S_OMEGA]
-    a0, a1, a2, a3, a4 = plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P)
+    a0, a1, a2, a3, a4 = plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P, g)
     w2 = x4 + h2 * a4
     b0, b1, b2, b3, b4 = plant_deriv(
-        x0 + h2 * a0, x1 + h2 * a1, x2 + h2 * a2, x3 + h2 * a3, w2, ua, ub, tl, P
+        x0 + h2 * a0, x1 + h2 * a1, x2 + h2 * a2, x3 + h2 * a3, w2, ua, ub, tl, P, g
     )
     w3 = x4 + h2 * b4
     c0, c1, c2, c3, c4 = plant_deriv(
-        x0 + h2 * b0, x1 + h2 * b1, x2 + h2 * b2, x3 + h2 * b3, w3, ua, ub, tl, P
+        x0 + h2 * b0, x1 + h2 * b1, x2 + h2 * b2, x3 + h2 * b3, w3, ua, ub, tl, P, g
     )
     w4 = x4 + h * c4
     d0, d1, d2, d3, d4 = plant_deriv(
-        x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3, w4, ua, ub, tl, P
+        x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3, w4, ua, ub, tl, P, g
     )
     h6 = h / 6.0
     S[S_ISA] = x0 + h6 * (a0 + 2.0 * (b0 + c0) + d0)
@@ -137,12 +203,12 @@ def plant_powers(
     """Power terms [W] for the energy balance (amplitude-invariant: factor 1.5).
 
     Returns (p_in = 1.5 u.i_s, p_cu_s = 1.5 Rs |i_s|^2, p_cu_r = 1.5 Rr |i_r|^2,
-    p_friction = (B omega + Tc tanh(omega/omega_c)) omega, p_load = T_L omega)
+    p_friction = T_friction(omega) omega, p_load = T_L omega)
     with the rotor current i_r = (psi_r - Lm i_s)/Lr.
     """
     ira = (pa - P[P_LM] * isa) / P[P_LR]
     irb = (pb - P[P_LM] * isb) / P[P_LR]
-    tf = friction_torque(w, P[P_B], P[P_TC], P[P_INV_WC])
+    tf = friction_of(w, P)
     return (
         1.5 * (ua * isa + ub * isb),
         1.5 * P[P_RS] * (isa * isa + isb * isb),
@@ -175,24 +241,24 @@ def plant_rk4_energy(
 ) -> None:
     """RK4 step of the plant augmented with the energy integrals (diagnostics, tests).
 
-    x[0:6] is advanced exactly as ``plant_rk4`` does (the augmented components do not feed
-    back), e[0:5] += RK4 quadrature of ``plant_powers`` over the step.
+    x[0:6] is advanced exactly as ``plant_rk4`` does with the nominal rotor resistance (the
+    augmented components do not feed back), e[0:5] += RK4 quadrature of ``plant_powers``.
     """
     h = P[P_TS]
     h2 = 0.5 * h
     x0, x1, x2, x3, x4 = x[0], x[1], x[2], x[3], x[4]
-    a0, a1, a2, a3, a4 = plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P)
+    a0, a1, a2, a3, a4 = plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P, 1.0)
     pa_ = plant_powers(x0, x1, x2, x3, x4, ua, ub, tl, P)
     y0, y1, y2, y3, y4 = x0 + h2 * a0, x1 + h2 * a1, x2 + h2 * a2, x3 + h2 * a3, x4 + h2 * a4
-    b0, b1, b2, b3, b4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P)
+    b0, b1, b2, b3, b4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P, 1.0)
     pb_ = plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
     w2 = y4
     y0, y1, y2, y3, y4 = x0 + h2 * b0, x1 + h2 * b1, x2 + h2 * b2, x3 + h2 * b3, x4 + h2 * b4
-    c0, c1, c2, c3, c4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P)
+    c0, c1, c2, c3, c4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P, 1.0)
     pc_ = plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
     w3 = y4
     y0, y1, y2, y3, y4 = x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3, x4 + h * c4
-    d0, d1, d2, d3, d4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P)
+    d0, d1, d2, d3, d4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P, 1.0)
     pd_ = plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
     w4 = y4
     h6 = h / 6.0

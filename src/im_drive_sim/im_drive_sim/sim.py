@@ -22,6 +22,7 @@ import numpy as np
 
 from . import kernels as K
 from . import model_layout as L
+from . import plant
 from .params import DriveConfig, load_config
 
 __all__ = [
@@ -101,6 +102,13 @@ def make_param_array(cfg: DriveConfig) -> np.ndarray:
     P[L.P_RR] = m.Rr
     P[L.P_J] = m.J
     P[L.P_CMD_DELAY] = float(cfg.command_delay)
+    P[L.P_IOFF_A] = s.current_offset_a
+    P[L.P_IOFF_B] = (s.current_offset_a + 2.0 * s.current_offset_b) / math.sqrt(3.0)
+    P[L.P_STRIBECK] = m.static_torque - m.coulomb_torque if m.static_torque != 0.0 else 0.0
+    P[L.P_INV_WS2] = 1.0 / (m.stribeck_speed * m.stribeck_speed)
+    P[L.P_VDT] = m.deadtime_voltage
+    P[L.P_RR_RISE] = m.rr_temp_coeff * m.rr_temp_rise
+    P[L.P_INV_TTH] = 1.0 / m.rr_temp_tau
     return P
 
 
@@ -131,7 +139,8 @@ class DriveSim:
     One ``step`` = one control period Ts (default 200 us).  State k is at time k*Ts; after
     ``step`` the object describes time (k+1)*Ts.  Deterministic: the same config, seed,
     ``reset`` arguments and inputs give bit-identical outputs (noise is pre-generated in
-    blocks of ``NOISE_BLOCK`` rows from ``numpy.random.Generator(PCG64(seed))``).
+    blocks of ``NOISE_BLOCK`` rows from ``numpy.random.Generator(PCG64(seed))``, the encoder
+    jitter from ``PCG64(seed).jumped()``).
 
     Parameters
     ----------
@@ -149,7 +158,11 @@ class DriveSim:
         self.P: np.ndarray = make_param_array(self.config)
         self.S: np.ndarray = np.zeros(L.N_STATE)
         self._noise: np.ndarray = np.zeros((NOISE_BLOCK, L.NOISE_COLS))
+        # the first columns drawn as one (block, 4) stream, as before the jitter column
+        self._base: np.ndarray = np.zeros((NOISE_BLOCK, L.NOISE_BASE_COLS))
+        self._jitter: np.ndarray = np.zeros(NOISE_BLOCK)
         s, d = self.config.sensors, self.config.disturbance
+        self._jitter_std: float = s.encoder_jitter
         ln_a = self.P[L.P_LN_A]
         self._noise_scale = np.array(
             [
@@ -161,6 +174,7 @@ class DriveSim:
         )
         self._noise_on: bool = bool(np.any(self._noise_scale > 0.0))
         self._rng: np.random.Generator | None = None
+        self._rng_jitter: np.random.Generator | None = None
         self._left: int = NOISE_BLOCK
         self._scratch = np.zeros(L.N_RUN_FIELDS)
         self.reset()
@@ -170,8 +184,13 @@ class DriveSim:
         """Fill the noise block in place (no allocation) and rewind the kernel cursor."""
         if self._noise_on:
             assert self._rng is not None
-            self._rng.standard_normal(out=self._noise)
-            self._noise *= self._noise_scale
+            self._rng.standard_normal(out=self._base)
+            self._base *= self._noise_scale
+            self._noise[:, : L.NOISE_BASE_COLS] = self._base
+        if self._jitter_std > 0.0:
+            assert self._rng_jitter is not None
+            self._rng_jitter.standard_normal(out=self._jitter)
+            np.multiply(self._jitter, self._jitter_std, out=self._noise[:, L.NOISE_BASE_COLS])
         self.S[L.S_NPOS] = 0.0
         self._left = NOISE_BLOCK
 
@@ -200,6 +219,8 @@ class DriveSim:
         if isinstance(step_index, bool) or int(step_index) != step_index or step_index < 0:
             raise ValueError(f'step_index must be an integer >= 0, got {step_index!r}')
         self._rng = np.random.Generator(np.random.PCG64(self.seed))
+        # the jitter's own stream: the other columns draw as they did before it existed
+        self._rng_jitter = np.random.Generator(np.random.PCG64(self.seed).jumped())
         self._refill()
         K.reset_kernel(self.S, self.P, float(theta), float(omega), bool(fluxed), float(step_index))
 
@@ -408,6 +429,12 @@ class DriveSim:
         L.S_TLOAD, 'Total load torque applied during the last step [N m] (lag + ripple + random).'
     )
     isq_ref = _state_word(L.S_ISQ_REF, 'Clamped isq* of the last step [A].')
+
+    @property
+    def rotor_resistance(self) -> float:
+        """The plant's rotor resistance now [ohm]: Rr0 (1 + alpha dT (1 - exp(-t/tau_th)))
+        (``machine.rr_temp_*``; the controller keeps the nominal Rr0)."""
+        return self.config.machine.Rr * float(plant.rotor_resistance_scale(self.time, self.P))
 
     @property
     def voltage_saturated(self) -> bool:

@@ -220,7 +220,7 @@ def _offline_run(algo: str, budget: int, seed: int) -> tuple[list[dict], object]
         reference=True,
     )
     assert run.run(OfflineBench(load_config(None), drive_seed)) == 'done'
-    return run.records, run.state
+    return [r.to_dict() for r in run.records], run.state  # (the records' lines)
 
 
 def test_a_resumed_realtime_run_keeps_experiment_ids_unique(tmp_path, procs, wait_until):
@@ -642,15 +642,16 @@ def test_summary_names_each_sessions_drive_line_and_the_clock(run6):
     """A resumed run's summary said 'drive (this session)' for every session, and called a
     real drive's experiment time 'simulated'."""
     from im_tuner.progress import format_summary
+    from im_tuner.rundir import RunDir
 
-    s = json.loads((run6 / 'summary.json').read_text())
-    run = yaml.safe_load((run6 / 'run.yaml').read_text())
-    assert 'simulated experiment time' in format_summary(s, run, run6)
-    s['sessions'] = [s['sessions'][0], dict(s['sessions'][0], bag='bag_1')]
+    s = RunDir(run6).read_summary()
+    run = RunDir(run6).read_config()
+    assert s is not None and 'simulated experiment time' in format_summary(s, run, run6)
+    s.sessions = [s.sessions[0], dict(s.sessions[0], bag='bag_1')]
     text = format_summary(s, run, run6)
     assert text.count('  drive (') == 2
     assert '  drive (session 1, bag_0)' in text and '  drive (this session)' in text
-    run['bench'] = 'external'
+    run.bench = 'external'
     text = format_summary(s, run, run6)
     assert "experiment time (the drive's clock)" in text and 'simulated' not in text
 
@@ -684,7 +685,9 @@ def test_a_resume_whose_replay_does_not_match_changes_nothing(run6, tmp_path):
 
 
 # -- issue 26, item 7: what the summary tells the user ----------------------------------------
-def _summary(**over) -> dict:
+def _summary(**over):
+    from im_tuner.runlog import Summary
+
     s = {
         'outcome': 'done',
         'evaluations': 0,
@@ -705,15 +708,17 @@ def _summary(**over) -> dict:
         'optimizer_us_per_eval': None,
         'sessions': [],
     }
-    return s | over
+    return Summary.from_dict(s | over)
 
 
 @pytest.mark.unit
 def test_a_timing_failure_says_where_to_run_the_controller():
     from im_tuner.progress import format_summary
+    from im_tuner.runlog import Evaluation, Lost, RunConfig, Timing
     from im_tuner.tuner_session import failure_advice
 
-    timing = [{'status': 'ok'}, {'status': 'timing'}]
+    ok = Evaluation(eval=0, status='ok', gains={}, u=[0.5], loss=0.5, terms=[0.5], aborted=False)
+    timing = [ok, Timing(kind='eval', eval=1, gains={}, off_timing_loss=0.4)]
     failed = 'failed: eval 0: no result after 4 attempts with the same gains (timing: ...)'
     for bench in ('realtime-processes', 'external'):
         (text,) = failure_advice(failed, timing, bench)
@@ -722,8 +727,8 @@ def test_a_timing_failure_says_where_to_run_the_controller():
     (text,) = failure_advice(failed, timing, 'realtime')  # already composed: the load
     assert 'timing_tolerance' in text and '--bench realtime --drive' not in text
     assert failure_advice('done', timing, 'external') == []
-    assert failure_advice(failed, [{'status': 'lost'}], 'external') == []
-    run = {'algo': 'safe', 'seed': 1, 'bench': 'realtime-processes', 'drive': 'sim'}
+    assert failure_advice(failed, [Lost(kind='eval', eval=1, gains={})], 'external') == []
+    run = RunConfig(algo='safe', seed=1, bench='realtime-processes', drive='sim')
     s = _summary(outcome=failed, what_to_do=failure_advice(failed, timing, 'external'))
     out = format_summary(s, run, Path('run'))
     assert out.splitlines()[-1].startswith('  what to do: the experiments kept coming out')
@@ -732,11 +737,12 @@ def test_a_timing_failure_says_where_to_run_the_controller():
 @pytest.mark.unit
 def test_a_hardware_class_is_not_called_simulated_and_faults_between_experiments_count():
     from im_tuner.progress import format_summary
+    from im_tuner.runlog import RunConfig
 
-    run = {'algo': 'safe', 'seed': 1, 'bench': 'realtime', 'drive': 'my_pkg.my_hw:MyHardware'}
+    run = RunConfig(algo='safe', seed=1, bench='realtime', drive='my_pkg.my_hw:MyHardware')
     sess = {'faults_outside': ['refused: safety fault (drive_state_timeout) [safety_fault]']}
     out = format_summary(_summary(safety_faults=1, sessions=[sess]), run, Path('run'))
     assert "experiment time (the drive's clock)" in out and 'simulated' not in out
     assert '(safety faults 1, 1 of them met between experiments)' in out
-    run['drive'] = 'example'  # the example's stand-in plant is simulated
+    run.drive = 'example'  # the example's stand-in plant is simulated
     assert 'simulated experiment time' in format_summary(_summary(), run, Path('run'))

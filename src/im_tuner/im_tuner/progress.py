@@ -14,6 +14,7 @@ from im_controller.config import GAIN_NAMES, GAIN_UNITS
 from .benches import is_simulated
 
 if TYPE_CHECKING:
+    from .runlog import Record, RunConfig, Summary
     from .tuning import TuningRun
 
 
@@ -29,7 +30,7 @@ class Progress:
         self.every = max(1, budget // 20)
         self._open = False
 
-    def __call__(self, kind: str, rec: dict[str, Any], run: TuningRun) -> None:
+    def __call__(self, kind: str, rec: Record, run: TuningRun) -> None:
         if self.quiet:
             return
         st = run.state
@@ -40,7 +41,7 @@ class Progress:
             return
         if kind == 'remeasure':
             self._line(
-                f'{self.algo}: re-measured evaluation {rec["eval"]}: {self._fmt(rec)}', force=True
+                f'{self.algo}: re-measured evaluation {rec.eval}: {self._fmt(rec)}', force=True
             )
             return
         if self.n0 is None:
@@ -58,12 +59,12 @@ class Progress:
         self._line(text, force=i == n or i % self.every == 0)
 
     @staticmethod
-    def _fmt(rec: dict[str, Any]) -> str:
-        if rec['status'] == 'lost':
+    def _fmt(rec: Record) -> str:
+        if rec.status == 'lost':
             return 'lost (re-run)'
-        if rec['status'] == 'timing':
-            return f'{rec["reason"]} (re-run)'
-        return f'{rec["loss"]:.4f}' + (f' (aborted: {rec["reason"]})' if rec['aborted'] else '')
+        if rec.status == 'timing':
+            return f'{rec.reason} (re-run)'
+        return f'{rec.loss:.4f}' + (f' (aborted: {rec.reason})' if rec.aborted else '')
 
     def _line(self, text: str, force: bool) -> None:
         if self.tty:
@@ -103,14 +104,15 @@ def _gains_text(g: dict[str, float]) -> str:
     return ', '.join(f'{n} {g[n]:.6g} {GAIN_UNITS[n]}' for n in GAIN_NAMES)
 
 
-def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
+def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
+    """The summary the tuner prints at the end of a session (summary.json and run.yaml)."""
     L = [
-        f'im_tuner: {run["algo"]}, {s["evaluations"]}/{s["budget"]} evaluations, seed '
-        f'{run["seed"]}: {s["outcome"]}'
+        f'im_tuner: {run.algo}, {s.evaluations}/{s.budget} evaluations, seed '
+        f'{run.seed}: {s.outcome}'
     ]
-    ref = s['reference']
-    if s['best'] is not None:
-        b = s['best']
+    ref = s.reference
+    if s.best is not None:
+        b = s.best
         rm = f'; re-measured {b["remeasured_loss"]:.4f}' if b['remeasured_loss'] is not None else ''
         L.append(f'  best loss:   {b["loss"]:.4f} (evaluation {b["eval"]}{rm})')
         L.append(f'  best gains:  {_gains_text(b["gains"])}')
@@ -121,7 +123,7 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
             f'  start (hand-tuned) loss: {ref["loss"]:.4f}'
             + (' (aborted)' if ref['aborted'] else '')
         )
-    a = s['applied']
+    a = s.applied
     if a is not None and a.get('on_controller') is False:
         L.append(
             '  NOT applied: the controller could not be reached at the end; its gains are '
@@ -139,40 +141,36 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
             L.append(
                 f'  applied on the controller: evaluation {a["eval"]} (loss {a["loss"]:.4f}'
                 f'{rm})'
-                + (
-                    ''
-                    if s['best'] and a['eval'] == s['best']['eval']
-                    else f': {_gains_text(a["gains"])}'
-                )
+                + ('' if s.best and a['eval'] == s.best['eval'] else f': {_gains_text(a["gains"])}')
             )
-    sat = s['evaluations_to_satisfactory']
+    sat = s.evaluations_to_satisfactory
     L.append(
-        f'  satisfactory (loss <= {s["satisfactory_loss"]:g}): '
+        f'  satisfactory (loss <= {s.satisfactory_loss:g}): '
         + (f'after {sat} evaluations' if sat else 'not reached')
     )
-    outside = sum(len(p.get('faults_outside', [])) for p in s['sessions'])
+    sessions = s.sessions or []
+    outside = sum(len(p.get('faults_outside', [])) for p in sessions)
     L.append(
-        f'  aborted experiments: {s["aborted"]} of {s["evaluations"]} (safety faults '
-        f'{s["safety_faults"]}'
+        f'  aborted experiments: {s.aborted} of {s.evaluations} (safety faults '
+        f'{s.safety_faults}'
         + (f', {outside} of them met between experiments' if outside else '')
-        + f'); lost results re-run: {s["lost"]}; off the paper '
-        f'timing, re-run: {s.get("timing", 0)}'
+        + f'); lost results re-run: {s.lost}; off the paper '
+        f'timing, re-run: {s.timing or 0}'
     )
-    rtf = s['real_time_factor']
+    rtf = s.real_time_factor
     # a real drive's experiments take drive time, not simulated time (a hardware class on
     # the composed bench too: benches.is_simulated)
     clock = (
         'simulated experiment time'
-        if is_simulated(run.get('bench'), run.get('drive'))
+        if is_simulated(run.bench, run.drive)
         else "experiment time (the drive's clock)"
     )
     L.append(
-        f'  wall time {s["wall_s"]:.1f} s (tuning loop {s["loop_wall_s"]:.1f} s); '
-        f'{clock} {s["sim_s"]:.1f} s; real-time factor ' + (f'{rtf:.2f}' if rtf else '-')
+        f'  wall time {s.wall_s:.1f} s (tuning loop {s.loop_wall_s:.1f} s); '
+        f'{clock} {s.sim_s:.1f} s; real-time factor ' + (f'{rtf:.2f}' if rtf else '-')
     )
-    if s['optimizer_us_per_eval'] is not None:
-        L.append(f'  optimiser ask+tell: {s["optimizer_us_per_eval"]:.1f} us per evaluation')
-    sessions = s['sessions']
+    if s.optimizer_us_per_eval is not None:
+        L.append(f'  optimiser ask+tell: {s.optimizer_us_per_eval:.1f} us per evaluation')
     for i, p in enumerate(sessions):
         if 'drive' in p:
             L.append(
@@ -187,7 +185,7 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
             )
     bags = [
         b
-        for p in s['sessions']
+        for p in sessions
         for b in [p.get('bag'), *(m['bag'] for m in p.get('more_bags', []))]
         if b
     ]
@@ -196,17 +194,17 @@ def format_summary(s: dict[str, Any], run: dict[str, Any], rundir: Path) -> str:
         + ''.join(f', {b}/' for b in bags)
         + ')'
     )
-    if len(s['sessions']) > 1:
-        rep = sum(p.get('replayed', 0) for p in s['sessions'])
+    if len(sessions) > 1:
+        rep = sum(p.get('replayed', 0) for p in sessions)
         L.append(
-            f'  sessions: {len(s["sessions"])} (resumed; {rep} experiments replayed to '
+            f'  sessions: {len(sessions)} (resumed; {rep} experiments replayed to '
             'restore the simulated plant)'
             if rep
-            else f'  sessions: {len(s["sessions"])} (resumed)'
+            else f'  sessions: {len(sessions)} (resumed)'
         )
-    if s.get('report_command'):
-        L.append(f'  report (summary, plots, CSV): {s["report_command"]}')
-    L.extend(f'  what to do: {text}' for text in s.get('what_to_do', []))
+    if s.report_command:
+        L.append(f'  report (summary, plots, CSV): {s.report_command}')
+    L.extend(f'  what to do: {text}' for text in s.what_to_do or [])
     return '\n'.join(L)
 
 

@@ -183,10 +183,9 @@ class RunDir:
         return cls(p)
 
     # -- run.yaml ------------------------------------------------------------------------
-    def write_run(self, run: dict[str, Any] | RunConfig) -> None:
-        """Write run.yaml (a mapping: its keys in its order)."""
-        cfg = run if isinstance(run, RunConfig) else RunConfig.from_dict(run)
-        atomic_write_text(self.path / RUN_FILE, cfg.to_text())
+    def write_run(self, run: RunConfig) -> None:
+        """Write run.yaml (its keys in their order: :meth:`RunConfig.to_text`)."""
+        atomic_write_text(self.path / RUN_FILE, run.to_text())
 
     def read_config(self) -> RunConfig:
         """run.yaml as read (:class:`RunDirError` if it is not a run file)."""
@@ -197,10 +196,6 @@ class RunDir:
             raise RunDirError(f'{path}: unreadable ({exc})') from None
         except FileError as exc:
             raise RunDirError(f'{path}: {exc}') from None
-
-    def read_run(self) -> dict[str, Any]:
-        """run.yaml's mapping (:meth:`read_config`, as the tuner keeps it)."""
-        return self.read_config().to_dict()
 
     # -- results.jsonl -------------------------------------------------------------------
     def append_result(self, record: Record) -> None:
@@ -273,10 +268,9 @@ class RunDir:
             raise RunDirError(f'{path}: not a tuner checkpoint')
         return data
 
-    def write_summary(self, summary: dict[str, Any] | Summary) -> None:
-        """Write summary.json (a mapping: its keys in its order)."""
-        s = summary if isinstance(summary, Summary) else Summary.from_dict(summary)
-        atomic_write_text(self.path / SUMMARY_FILE, s.to_text())
+    def write_summary(self, summary: Summary) -> None:
+        """Write summary.json (its keys in their order: :meth:`Summary.to_text`)."""
+        atomic_write_text(self.path / SUMMARY_FILE, summary.to_text())
 
     def read_summary(self) -> Summary | None:
         """summary.json, or None if there is none or it is not one (a killed session

@@ -30,6 +30,7 @@ from .benches import BENCHES  # (the bench modes: one copy, in benches)
 from .names import FAULT_POLICIES, controller_topics
 from .optim.base import OptimizerError, check_options
 from .rundir import RunDir
+from .runlog import RunConfig
 from .space import TunerParams, TunerParamsError, load_params, parse_params
 
 if TYPE_CHECKING:
@@ -271,7 +272,7 @@ class NewRun:
     the run directory to create (None: the default, named when it is created) and the
     checked ``--drive`` (None: the simulator; a hardware class already built)."""
 
-    run: dict[str, Any]
+    run: RunConfig
     params: TunerParams
     out: Path | None
     drive: DriveChoice | None
@@ -359,34 +360,36 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
     from .tuning import run_seeds
 
     _opt_ss, drive_seed = run_seeds(seed)
-    run = {
-        'algo': algo,
-        'options': options,
-        'budget': budget,
-        'seed': seed,
-        'drive_seed': drive_seed,
-        'remeasure': remeasure,
-        'reference': not cli.no_reference,
-        'start': not cli.no_start,
-        'retries': retries,
-        'drive': cli.drive or 'sim',
-        'satisfactory_loss': params.satisfactory_loss,
-        'params_file': params.source,
-        'search_box': params.space.as_dict(),
-        'command': ' '.join(shlex.quote(a) for a in argv),
-    }
+    run = RunConfig.from_dict(
+        {
+            'algo': algo,
+            'options': options,
+            'budget': budget,
+            'seed': seed,
+            'drive_seed': drive_seed,
+            'remeasure': remeasure,
+            'reference': not cli.no_reference,
+            'start': not cli.no_start,
+            'retries': retries,
+            'drive': cli.drive or 'sim',
+            'satisfactory_loss': params.satisfactory_loss,
+            'params_file': params.source,
+            'search_box': params.space.as_dict(),
+            'command': ' '.join(shlex.quote(a) for a in argv),
+        }
+    )
     return NewRun(run, params, out, drive)
 
 
 @dataclass
-class RunConfig:
+class PreparedSession:
     """A session whose every check passed (new or resumed), nothing created yet: the
     run's settings, its tuner parameters, the checked ``--drive`` (None: the simulator
     or the example), the progress printer; a resumed run's directory (locked) and its
     TuningRun restored with ``n_restored`` records (None for a new run, made once its
     bench is decided); ``out``: a new run's directory to create."""
 
-    run: dict[str, Any]
+    run: RunConfig
     params: TunerParams
     drive: DriveChoice | None
     progress: Any
@@ -396,7 +399,7 @@ class RunConfig:
     out: Path | None = None
 
 
-def prepare_run(cli: argparse.Namespace, argv: list[str]) -> RunConfig:
+def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
     """Check everything of this session before anything is created (UsageError): a new
     run's options (:func:`_new_run_config`), or a resumed run's run.yaml, checkpoint and
     records (``--resume``, which takes the run's settings from run.yaml only)."""
@@ -408,10 +411,11 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> RunConfig:
         if out is None:
             from .record.node import default_out_dir
 
-            out = default_out_dir(prefix=f'tuner_{new.run["algo"]}')
-        new.run['bench_requested'] = cli.bench or 'auto'
-        progress = Progress(new.run['algo'], new.run['budget'], cli.quiet)
-        return RunConfig(new.run, new.params, new.drive, progress, out=out)
+            out = default_out_dir(prefix=f'tuner_{new.run.algo}')
+        new.run.put(bench_requested=cli.bench or 'auto')
+        assert new.run.budget is not None
+        progress = Progress(new.run.algo, new.run.budget, cli.quiet)
+        return PreparedSession(new.run, new.params, new.drive, progress, out=out)
     given = [k for k in RUN_SETTINGS if getattr(cli, k) not in (None, False)]
     given += [k[4:] for k, v in vars(cli).items() if k.startswith('opt_') and v is not None]
     if cli.out is not None:
@@ -426,7 +430,7 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> RunConfig:
     try:
         rundir = RunDir.open(cli.resume)
         rundir.lock()  # one tuner per run, from here to the end of the process
-        run = rundir.read_run()
+        run = rundir.read_config()
         _check_run(run, str(rundir.path / 'run.yaml'))
         params = _params_of_run(run)
     except (RunDirError, TunerParamsError) as exc:
@@ -436,23 +440,24 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> RunConfig:
     # nothing; the torn tail of results.jsonl is cut only once the run goes on)
     from .tuning import ResumeError
 
-    progress = Progress(run['algo'], run['budget'], cli.quiet)
+    assert run.budget is not None  # (checked)
+    progress = Progress(run.algo, run.budget, cli.quiet)
     try:
-        tuning = _make_tuning(rundir, run, params, progress)
+        tuning = make_tuning(rundir, run, params, progress)
         n_restored = tuning.restore()
     except (OptimizerError, ValueError, TypeError) as exc:
         raise UsageError(f'--resume: {rundir.path}/run.yaml: {exc}') from None
     except ResumeError as exc:
         raise UsageError(f'--resume: {exc}') from None
     drive = None
-    if (run.get('drive') or 'sim') != 'sim':
+    if (run.drive or 'sim') != 'sim':
         from .bench import drive_spec
 
         try:  # the run's drive: checked (and a hardware class built) as for a new run
-            drive = drive_spec.resolve(str(run['drive']), run.get('drive_config'))
+            drive = drive_spec.resolve(str(run.drive), run.drive_config)
         except drive_spec.DriveSpecError as exc:
             raise UsageError(f'--resume: {exc}') from None
-    return RunConfig(run, params, drive, progress, rundir, tuning, n_restored)
+    return PreparedSession(run, params, drive, progress, rundir, tuning, n_restored)
 
 
 def _start(algo: str, params: TunerParams, no_start: bool = False) -> np.ndarray | None:
@@ -476,63 +481,66 @@ def _check_controller_name(name: str) -> None:
         ) from None
 
 
-def _check_run(run: dict[str, Any], where: str) -> None:
+def _check_run(run: RunConfig, where: str) -> None:
     """run.yaml of a run to resume: the settings the tuner reads, with their types."""
 
     def bad(key: str, what: str) -> UsageError:
-        return UsageError(f'{where}: {key} must be {what}, got {run.get(key)!r}')
+        return UsageError(f'{where}: {key} must be {what}, got {getattr(run, key)!r}')
 
     def is_int(v: Any) -> bool:
         return isinstance(v, int) and not isinstance(v, bool)
 
-    if run.get('algo') not in optim.ALGOS:
+    if run.algo not in optim.ALGOS:
         raise bad('algo', 'one of ' + ', '.join(optim.ALGOS))
-    if not is_int(run.get('budget')) or run['budget'] < 1:
+    if not is_int(run.budget) or run.budget < 1:
         raise bad('budget', 'an integer >= 1')
     for key in ('seed', 'drive_seed', 'remeasure', 'retries'):
-        if not is_int(run.get(key)) or run[key] < 0:
+        if not is_int(getattr(run, key)) or getattr(run, key) < 0:
             raise bad(key, 'an integer >= 0')
-    if not isinstance(run.get('options'), dict):
+    if not isinstance(run.options, dict):
         raise bad('options', 'a mapping of algorithm options')
-    if not isinstance(run.get('reference'), bool):
+    if not isinstance(run.reference, bool):
         raise bad('reference', 'true or false')
-    if not isinstance(run.get('start', True), bool):
+    start = run.start if 'start' in run.keys else True  # (absent: a run of an older tuner)
+    if not isinstance(start, bool):
         raise bad('start', 'true or false')
-    if run.get('start', True) is False and run['algo'] in optim.TAKES_START:
+    if start is False and run.algo in optim.TAKES_START:
         # the rule of --no-start (a run of the compact GAs ignores it: nothing to refuse)
-        check_no_start(run['algo'], f'{where}: start: false (--no-start)')
-    if not isinstance(run.get('search_box'), dict):
+        check_no_start(run.algo, f'{where}: start: false (--no-start)')
+    if not isinstance(run.search_box, dict):
         raise bad('search_box', 'a mapping (the search box)')
 
 
-def _params_of_run(run: dict[str, Any]) -> TunerParams:
-    box = {n: {k: v[k] for k in ('lo', 'hi', 'start')} for n, v in run['search_box'].items()}
+def _params_of_run(run: RunConfig) -> TunerParams:
+    box = {n: {k: v[k] for k in ('lo', 'hi', 'start')} for n, v in (run.search_box or {}).items()}
     return parse_params(
-        {'search_box': box, 'satisfactory_loss': run['satisfactory_loss']},
-        f'run.yaml ({run.get("params_file")})',
+        {'search_box': box, 'satisfactory_loss': run.satisfactory_loss},
+        f'run.yaml ({run.params_file})',
     )
 
 
-def _make_tuning(rundir: RunDir, run: dict[str, Any], params: TunerParams, progress) -> TuningRun:
+def make_tuning(rundir: RunDir, run: RunConfig, params: TunerParams, progress) -> TuningRun:
+    """The TuningRun of a checked run configuration (a new run's, or run.yaml's)."""
     from .tuning import TuningRun, run_seeds
 
-    opt_ss, _ = run_seeds(run['seed'])
+    assert run.seed is not None and run.budget is not None  # (checked)
+    opt_ss, _ = run_seeds(run.seed)
     opt = optim.make_optimizer(
-        run['algo'],
+        run.algo,
         params.space.dim,
         opt_ss,
-        _start(run['algo'], params, not run.get('start', True)),
-        **run['options'],
+        _start(run.algo, params, run.start is False),
+        **(run.options or {}),
     )
     return TuningRun(
         rundir,
         params.space,
         opt,
-        budget=run['budget'],
+        budget=run.budget,
         satisfactory_loss=params.satisfactory_loss,
-        remeasure=run['remeasure'],
-        retries=run['retries'],
-        reference=run['reference'],
+        remeasure=run.remeasure,
+        retries=run.retries,
+        reference=run.reference,
         progress=progress,
     )
 

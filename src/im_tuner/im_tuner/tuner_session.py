@@ -21,7 +21,8 @@ from typing import TYPE_CHECKING, Any
 from im_drive_sim.cli import UsageError
 
 from .benches import IN_PROCESS_BENCHES, LOCKSTEP_BENCHES
-from .tuner_cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RunConfig, _make_tuning
+from .runlog import Record, Timing, replay_plan
+from .tuner_cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PreparedSession, make_tuning
 
 if TYPE_CHECKING:
     from .bench.forms import Bench
@@ -30,11 +31,11 @@ if TYPE_CHECKING:
     from .rundir import RunDir
 
 
-def failure_advice(outcome: str, records: list[dict[str, Any]], bench: str) -> list[str]:
+def failure_advice(outcome: str, records: list[Record], bench: str) -> list[str]:
     """What to do about a failed run, for the summary (empty: nothing to say). A run that
     failed because its experiments kept coming out ``timing`` (held or late periods
     beyond the tolerance) is told where the controller should run."""
-    if not (outcome.startswith('failed') and records and records[-1]['status'] == 'timing'):
+    if not (outcome.startswith('failed') and records and isinstance(records[-1], Timing)):
         return []
     if bench in IN_PROCESS_BENCHES:
         return [
@@ -55,10 +56,10 @@ def failure_advice(outcome: str, records: list[dict[str, Any]], bench: str) -> l
     ]
 
 
-def session_number(sessions: list[dict[str, Any]], records: list[dict[str, Any]]) -> int:
+def session_number(sessions: list[dict[str, Any]], records: list[Record]) -> int:
     """This session's number (0-based): after every session the checkpoint lists and
     every session a record names (a rebuilt checkpoint lists none)."""
-    named = [int(r['session']) + 1 for r in records if isinstance(r.get('session'), int)]
+    named = [r.session + 1 for r in records if isinstance(r.session, int)]
     return max([len(sessions), *named])
 
 
@@ -101,7 +102,7 @@ def _made_by_create(out: Path) -> tuple[Path, bool]:
 class TunerSession:
     """The run's side of one tuner session (module docstring)."""
 
-    def __init__(self, cli: argparse.Namespace, argv: list[str], cfg: RunConfig) -> None:
+    def __init__(self, cli: argparse.Namespace, argv: list[str], cfg: PreparedSession) -> None:
         self.cli = cli
         self.argv = argv
         self.run = cfg.run
@@ -132,16 +133,16 @@ class TunerSession:
                 self.rundir.lock()
             except RunDirError as exc:
                 raise UsageError(str(exc)) from None
-            self.run['bench'] = plan.mode
-            self.tuning = _make_tuning(self.rundir, self.run, self.params, self.progress)
+            self.run.put(bench=plan.mode)
+            self.tuning = make_tuning(self.rundir, self.run, self.params, self.progress)
         self.bag_dir = None if self.cli.no_record else self.rundir.next_bag_dir()
         if not self.resumed:
-            self.run['model'] = self.cli.model
-            self.run['drive_config'] = str(self.cli.drive_config) if self.cli.drive_config else None
+            config = str(self.cli.drive_config) if self.cli.drive_config else None
+            self.run.put(model=self.cli.model, drive_config=config)
         return self.bag_dir
 
     def tuner_metadata(self) -> dict[str, Any] | None:
-        return {k: v for k, v in self.run.items() if k != 'search_box'}
+        return {k: v for k, v in self.run.to_dict().items() if k != 'search_box'}
 
     def next_bag(self) -> Path | None:
         assert self.rundir is not None
@@ -151,7 +152,7 @@ class TunerSession:
         self.session.setdefault('more_bags', []).append(
             {'bag': bag.name, 'first_record': len(self.tuning.records)}
         )
-        self.tuning._checkpoint()
+        self.tuning.checkpoint()
 
     def warn(self, text: str) -> None:
         self.progress.warn(text)
@@ -171,14 +172,14 @@ class TunerSession:
             _repair_old_bags(rundir, progress.note, self.bag_dir)
             progress.note(
                 f'resuming {rundir.path}: {self.n_restored} records, '
-                f'{tuning.state.evals}/{self.run["budget"]} evaluations done'
+                f'{tuning.state.evals}/{self.run.budget} evaluations done'
             )
         tuning.session = session_number(tuning.state.sessions, tuning.records)
 
     def start(self, link: ControllerLink) -> None:
         """The controller answers: a new run's run.yaml; the session's record; a resumed
         lock-step run replays its experiments (checked bit for bit)."""
-        from .tuning import replay, replay_plan
+        from .tuning import replay
 
         run, rundir, tuning, progress, plan = (
             self.run,
@@ -189,12 +190,11 @@ class TunerSession:
         )
         assert rundir is not None and plan is not None
         if not self.resumed:
-            run['controller_parameters'] = link.list_parameters()
-            run['fault_policy'] = plan.fault_policy
+            run.put(controller_parameters=link.list_parameters(), fault_policy=plan.fault_policy)
             rundir.write_run(run)
             progress.note(
-                f'im_tuner: {run["algo"]} on the {plan.mode} bench, budget '
-                f'{run["budget"]}, seed {run["seed"]}; run directory {rundir.path}'
+                f'im_tuner: {run.algo} on the {plan.mode} bench, budget '
+                f'{run.budget}, seed {run.seed}; run directory {rundir.path}'
             )
         session = self.session
         session.update(
@@ -260,11 +260,11 @@ class TunerSession:
             code = EXIT_FAILED
         progress.close()
         summary = tuning.summary(outcome=outcome, wall_s=time.monotonic() - t_wall0)
-        summary['report_command'] = f'ros2 run im_tuner report {shlex.quote(str(rundir.path))}'
+        summary.report_command = f'ros2 run im_tuner report {shlex.quote(str(rundir.path))}'
         advice = failure_advice(outcome, tuning.records, plan.mode)
         if advice:
-            summary['what_to_do'] = advice
-        tuning._checkpoint()
+            summary.what_to_do = advice
+        tuning.checkpoint()
         rundir.write_summary(summary)
         print(format_summary(summary, self.run, rundir.path), flush=True)
         if code == EXIT_INTERRUPTED:

@@ -56,6 +56,7 @@ from .runlog import (
     Reference,
     Remeasurement,
     RunRecord,
+    Summary,
     Timing,
     TunerState,
     final_choice,
@@ -63,6 +64,7 @@ from .runlog import (
     summarize,
     tally,
 )
+from .runlog.records import LINE_ORDER
 from .space import SearchSpace
 
 __all__ = [
@@ -75,7 +77,6 @@ __all__ = [
     'TuningRun',
     'gains_dict',
     'replay',
-    'replay_plan',
     'run_seeds',
 ]
 
@@ -110,26 +111,39 @@ class Measurement:
     def of(cls, r: LossResult, wall_s: float) -> Measurement:
         """The controller's result as the tuner records it (a safety reason is a fault)."""
         return cls(
-            loss=r.loss,
-            terms=r.terms,
-            aborted=r.aborted,
-            reason=r.reason,
+            **{k: getattr(r, k) for k in _AS_IN_RESULT},
             fault=r.reason in SAFETY_REASONS,
-            experiment_id=r.experiment_id,
-            direction=r.direction,
-            steps=r.steps,
-            trip_step=r.trip_step,
             t_start_ns=r.t_start,
             t_end_ns=r.t_end,
             wall_s=wall_s,
             gains=r.gains.as_tuple(),
-            fresh=r.fresh,
-            held=r.held,
-            late=r.late,
-            timing=r.timing,
-            gains_step=r.gains_step,
         )
 
+
+#: The fields of a Measurement that are the controller's LossResult's, by the same name.
+_AS_IN_RESULT = (
+    'loss',
+    'terms',
+    'aborted',
+    'reason',
+    'experiment_id',
+    'direction',
+    'steps',
+    'trip_step',
+    'fresh',
+    'held',
+    'late',
+    'timing',
+    'gains_step',
+)
+
+#: The fields of a Measurement its record carries as they are (the record's own names):
+#: reason .. t_end_ns of the line, its wall time and the step its gains acted from.
+_RECORDED = (
+    *LINE_ORDER[LINE_ORDER.index('reason') : LINE_ORDER.index('t_end_ns') + 1],
+    'wall_s',
+    'gains_step',
+)
 
 #: Re-runs of a lost or off-timing measurement with the same gains (the tuner's --retries;
 #: the study's runs use it too, so a study run is the tuner's run bit for bit).
@@ -174,9 +188,9 @@ def gains_dict(g: Gains | tuple[float, ...]) -> dict[str, float]:
     return {n: float(v) for n, v in zip(GAIN_NAMES, t, strict=True)}
 
 
-def _gains_of(record: Record | dict[str, Any]) -> Gains:
-    """The gains of a record (or of the state's brief of one)."""
-    return Gains(*(float(record['gains'][n]) for n in GAIN_NAMES))
+def _gains_of(gains: dict[str, float]) -> Gains:
+    """The Gains of a record's ``gains`` (or of the state's brief of one)."""
+    return Gains(*(float(gains[n]) for n in GAIN_NAMES))
 
 
 def _now() -> str:
@@ -283,7 +297,9 @@ class TuningRun:
                 self.state.opt_us.append(self._ask_us + 1e6 * (time.perf_counter() - t0))
         tally(self.state, rec, self.satisfactory)
 
-    def _checkpoint(self) -> None:
+    def checkpoint(self) -> None:
+        """Write checkpoint.json: the optimiser and the counters after the records so far
+        (atomic; nothing for a record that is not durable, e.g. the study's runs)."""
         if not self.rundir.durable:
             return  # (an optimiser state per evaluation costs the study ~5 % for nothing)
         self.rundir.write_checkpoint(
@@ -326,18 +342,9 @@ class TuningRun:
                 wall_s=wall_s,
             )
         common.update(
-            reason=m.reason,
-            fault=m.fault,
-            experiment_id=m.experiment_id,
-            direction=m.direction,
-            steps=m.steps,
-            trip_step=m.trip_step,
-            t_start_ns=m.t_start_ns,
-            t_end_ns=m.t_end_ns,
+            {k: getattr(m, k) for k in _RECORDED},
             sim_s=(m.t_end_ns - m.t_start_ns) * 1e-9,
-            wall_s=m.wall_s,
             periods={'fresh': m.fresh, 'held': m.held, 'late': m.late},
-            gains_step=m.gains_step,
         )
         if m.timing:
             # measured, but not the paper's loss: kept under another name, never a loss
@@ -396,7 +403,7 @@ class TuningRun:
             self.rundir.append_result(rec)
             self._apply(rec, live=True)
             self.records.append(rec)
-            self._checkpoint()
+            self.checkpoint()
             if self.progress is not None:
                 self.progress(kind, rec, self)
             if rec.status in MEASURED:
@@ -426,7 +433,7 @@ class TuningRun:
             if self.remeasure > 0:
                 if st.remeasure_plan is None:
                     st.remeasure_plan = self._top_evals(self.remeasure)
-                    self._checkpoint()
+                    self.checkpoint()
                 done = {r['eval'] for r in st.remeasured}
                 for i in st.remeasure_plan:
                     if i in done:
@@ -438,7 +445,7 @@ class TuningRun:
                         for r in self.records
                         if isinstance(r, Evaluation) and r.eval == i and r.status == 'ok'
                     )
-                    self._measure(measurer, 'remeasure', i, None, _gains_of(rec))
+                    self._measure(measurer, 'remeasure', i, None, _gains_of(rec.gains))
         except StopRequested:
             outcome = 'interrupted'
         except BenchFailure as exc:
@@ -446,7 +453,7 @@ class TuningRun:
         final = self.final_choice()
         if final is not None:
             try:
-                measurer.apply(_gains_of(final))
+                measurer.apply(_gains_of(final['gains']))
                 self.applied = True
             except (BenchFailure, LostEvaluation, StopRequested) as exc:
                 self.applied = False
@@ -479,9 +486,9 @@ class TuningRun:
         return final_choice(self.state, self.records)
 
     # -- summary ---------------------------------------------------------------------------
-    def summary(self, *, outcome: str, wall_s: float) -> dict[str, Any]:
-        """summary.json's mapping (``runlog.summarize``; ``applied.on_controller``: whether
-        the final gains reached the controller)."""
+    def summary(self, *, outcome: str, wall_s: float) -> Summary:
+        """summary.json (``runlog.summarize``; ``applied.on_controller``: whether the final
+        gains reached the controller)."""
         s = summarize(
             self.state,
             self.records,
@@ -492,7 +499,7 @@ class TuningRun:
         )
         if s.applied is not None:
             s.applied['on_controller'] = self.applied
-        return s.to_dict()
+        return s
 
 
 def replay(
@@ -506,7 +513,7 @@ def replay(
     plan = replay_plan(records)
     for k, rec in enumerate(plan):
         try:
-            m = measurer.measure(_gains_of(rec))
+            m = measurer.measure(_gains_of(rec.gains))
         except LostEvaluation as exc:
             raise ResumeError(f'replay: experiment {k} lost ({exc})') from None
         if rec.status in MEASURED and not (

@@ -16,6 +16,7 @@ from im_tuner.bench.spec import (
     next_experiment_id,
     tuner_bench_spec,
 )
+from im_tuner.runlog import Lost, RunConfig
 from im_tuner.tuner_cli import _build_parser
 
 
@@ -25,12 +26,16 @@ def _cli(*args: str):
     return cli
 
 
+def _run(**fields) -> RunConfig:
+    return RunConfig.from_dict({'algo': 'safe', **fields})
+
+
 NEW_RUN = {'drive_seed': 77, 'drive': 'sim'}
 
 
 def test_a_new_runs_spec_takes_the_command_line():
     cli = _cli('--model', 'reduced', '--drive-config', 'motor.yaml', '--no-record')
-    spec = tuner_bench_spec(cli, dict(NEW_RUN), resumed=False)
+    spec = tuner_bench_spec(cli, _run(**NEW_RUN), resumed=False)
     assert spec.requested == 'auto' and spec.drive == 'sim' and not spec.resumed
     assert spec.drive_parameters == (
         ('seed', 77),
@@ -41,23 +46,25 @@ def test_a_new_runs_spec_takes_the_command_line():
     assert (spec.record, spec.compression, spec.controller) == (False, 'lz4', '/controller')
     assert spec.next_experiment_id == 0 and spec.previous_bench is None
     assert spec.probe_timeout() == DISCOVERY_TIMEOUT['auto'] == 2.0
-    bare = tuner_bench_spec(_cli('--bench', 'none'), dict(NEW_RUN), resumed=False)
+    bare = tuner_bench_spec(_cli('--bench', 'none'), _run(**NEW_RUN), resumed=False)
     assert bare.drive_parameters == (('seed', 77),) and bare.controller_parameters == ()
     assert bare.probe_timeout() == 20.0
-    given = tuner_bench_spec(_cli('--discovery-timeout', '7.5'), dict(NEW_RUN), resumed=False)
+    given = tuner_bench_spec(_cli('--discovery-timeout', '7.5'), _run(**NEW_RUN), resumed=False)
     assert given.probe_timeout() == 7.5
 
 
 def test_a_resumed_runs_spec_takes_run_yaml_and_goes_on_past_its_ids():
-    run = {
-        'drive_seed': 5,
-        'drive': 'sim',
-        'model': 'full',
-        'drive_config': 'm.yaml',
-        'bench_requested': 'realtime',
-        'bench': 'realtime',
-    }
-    records = [{'experiment_id': 3}, {'experiment_id': None}, {'experiment_id': 11}]
+    run = _run(
+        drive_seed=5,
+        drive='sim',
+        model='full',
+        drive_config='m.yaml',
+        bench_requested='realtime',
+        bench='realtime',
+    )
+    records = [
+        Lost(kind='eval', eval=i, gains={}, experiment_id=n) for i, n in enumerate((3, None, 11))
+    ]
     spec = tuner_bench_spec(_cli('--resume', 'r'), run, resumed=True, records=records)
     assert spec.requested == 'realtime' and spec.previous_bench == 'realtime'
     assert spec.drive_parameters == (('seed', 5), ('model', 'full'), ('config_file', 'm.yaml'))

@@ -4,12 +4,14 @@ in run.yaml."""
 
 from __future__ import annotations
 
-import copy
+import dataclasses
 
 import pytest
+import yaml
 
 from im_drive_sim.cli import UsageError
 from im_tuner import optim
+from im_tuner.runlog import RunConfig
 from im_tuner.tuner_cli import _build_parser, _check_run, _new_run_config, check_no_start
 
 
@@ -25,8 +27,8 @@ def test_no_start_is_for_spsa_cmaes_tpe_only(algo: str) -> None:
     30), and the compact GAs accepted it and ignored it."""
     if algo in ('spsa', 'cmaes', 'tpe'):
         new = _new('--algo', algo, '--no-start', '--seed', '4')
-        assert new.run['start'] is False and new.run['algo'] == algo
-        assert _new('--algo', algo, '--seed', '4').run['start'] is True
+        assert new.run.start is False and new.run.algo == algo
+        assert _new('--algo', algo, '--seed', '4').run.start is True
         return
     with pytest.raises(UsageError) as exc:
         _new('--algo', algo, '--no-start', '--seed', '4')
@@ -58,11 +60,14 @@ def test_the_help_names_exactly_the_algorithms_that_take_it() -> None:
     assert 'Refused with safe' in action.help and 'with the compact GAs' in action.help
 
 
-def _run_yaml(algo: str, start: object) -> dict:
+def _run_yaml(algo: str, start: object, drop: tuple[str, ...] = ()) -> RunConfig:
+    """A new run's run.yaml as a resume reads it, with ``algo`` and ``start``."""
     new = _new('--algo', 'spsa', '--seed', '1')
-    run = copy.deepcopy(new.run)
-    run.update(algo=algo, options={}, start=start)
-    return run
+    text = dataclasses.replace(new.run, algo=algo, options={}, start=start).to_text()
+    data = yaml.safe_load(text)
+    for key in drop:
+        del data[key]
+    return RunConfig.from_text(yaml.safe_dump(data, sort_keys=False))
 
 
 def test_resume_keeps_the_same_rule() -> None:
@@ -80,8 +85,9 @@ def test_resume_keeps_the_same_rule() -> None:
     )
     with pytest.raises(UsageError, match=r"start must be true or false, got 'no'"):
         _check_run(_run_yaml('spsa', 'no'), 'R/run.yaml')
-    del run['start']  # a run.yaml from before the key: starts from the file
-    _check_run(run, 'run.yaml')
+    run = _run_yaml('safe', False, drop=('start',))  # a run.yaml from before the key
+    assert 'start' not in run.keys and run.start is None
+    _check_run(run, 'run.yaml')  # (starts from the file)
 
 
 def test_check_no_start_accepts_what_the_optimisers_run_without_a_start() -> None:

@@ -16,7 +16,7 @@ import pytest
 from im_controller.config import GAIN_NAMES, Gains
 from im_tuner import optim
 from im_tuner.rundir import RunDir, RunDirError
-from im_tuner.runlog import Record
+from im_tuner.runlog import Record, RunConfig
 from im_tuner.space import TunerParamsError, load_params, parse_params
 from im_tuner.tuning import (
     BenchFailure,
@@ -88,7 +88,7 @@ def make_run(path: Path, algo: str = 'necga', budget: int = 30, **kw) -> TuningR
     return TuningRun(rd, SPACE, opt, budget=budget, satisfactory_loss=0.2, **kw)
 
 
-def records(path: Path) -> list[dict]:
+def records(path: Path) -> list[Record]:
     return RunDir(path).read_results()
 
 
@@ -98,28 +98,28 @@ def test_run_counts_evaluations_and_tracks_the_best(tmp_path, algo):
     run = make_run(tmp_path / 'r', algo)
     assert run.run(bench) == 'done'
     recs = records(tmp_path / 'r')
-    evals = [r for r in recs if r['kind'] == 'eval']
+    evals = [r for r in recs if r.kind == 'eval']
     assert len(evals) == 30 == run.state.evals == run.opt.evaluations
-    assert recs[0]['kind'] == 'reference' and recs[0]['gains'] == dict(
+    assert recs[0].kind == 'reference' and recs[0].gains == dict(
         zip(GAIN_NAMES, SPACE.start, strict=True)
     )
-    ok = [r for r in evals if not r['aborted']]
-    assert any(r['aborted'] for r in evals) or algo == 'spsa'
-    best = min(ok, key=lambda r: r['loss'])
-    assert run.state.best['eval'] == best['eval'] and run.state.best['loss'] == best['loss']
+    ok = [r for r in evals if not r.aborted]
+    assert any(r.aborted for r in evals) or algo == 'spsa'
+    best = min(ok, key=lambda r: r.loss)
+    assert run.state.best['eval'] == best.eval and run.state.best['loss'] == best.loss
     # the best is never an aborted one, even when its penalised loss would be smaller
-    assert all(not evals[i]['aborted'] for i in [run.state.best['eval']])
-    rem = [r for r in recs if r['kind'] == 'remeasure']
-    assert [r['eval'] for r in rem] == [r['eval'] for r in sorted(ok, key=lambda r: r['loss'])[:3]]
-    pick = min(rem, key=lambda r: r['loss'])
-    assert bench.applied == Gains(*(pick['gains'][n] for n in GAIN_NAMES))
+    assert all(not evals[i].aborted for i in [run.state.best['eval']])
+    rem = [r for r in recs if r.kind == 'remeasure']
+    assert [r.eval for r in rem] == [r.eval for r in sorted(ok, key=lambda r: r.loss)[:3]]
+    pick = min(rem, key=lambda r: r.loss)
+    assert bench.applied == Gains(*(pick.gains[n] for n in GAIN_NAMES))
     s = run.summary(outcome='done', wall_s=1.0)
-    assert s['evaluations'] == 30 and s['experiments'] == len(recs)
-    assert s['sim_s'] == pytest.approx(1.125 * len(recs))
-    sat = next(i + 1 for i, r in enumerate(evals) if not r['aborted'] and r['loss'] <= 0.2)
-    assert s['evaluations_to_satisfactory'] == sat
+    assert s.evaluations == 30 and s.experiments == len(recs)
+    assert s.sim_s == pytest.approx(1.125 * len(recs))
+    sat = next(i + 1 for i, r in enumerate(evals) if not r.aborted and r.loss <= 0.2)
+    assert s.evaluations_to_satisfactory == sat
     assert len(run.state.opt_us) == 30
-    json.dumps(s, allow_nan=False)
+    json.loads(s.to_text())  # (to_text: no NaN/inf)
 
 
 def test_lost_result_is_rerun_with_the_same_gains(tmp_path):
@@ -129,12 +129,12 @@ def test_lost_result_is_rerun_with_the_same_gains(tmp_path):
     # calls: 0 the reference, 1 evaluation 0, 2 evaluation 1, 3-5 evaluation 2
     assert bench.calls[3] == bench.calls[4] == bench.calls[5] != bench.calls[6]
     recs = records(tmp_path / 'r')
-    assert [(r['kind'], r['eval'], r['attempt'], r['status']) for r in recs[2:5]] == [
-        ('eval', 1, 1, recs[2]['status']),
+    assert [(r.kind, r.eval, r.attempt, r.status) for r in recs[2:5]] == [
+        ('eval', 1, 1, recs[2].status),
         ('eval', 2, 1, 'lost'),
         ('eval', 2, 2, 'lost'),
     ]
-    assert recs[5]['attempt'] == 3 and recs[5]['status'] in ('ok', 'aborted')
+    assert recs[5].attempt == 3 and recs[5].status in ('ok', 'aborted')
     assert run.state.lost == 2 and run.state.evals == 5 and run.opt.evaluations == 5
     assert run.state.experiments == len(recs)  # lost ones ran on the bench too
 
@@ -146,17 +146,17 @@ def test_off_timing_result_is_rerun_never_told_and_counted(tmp_path):
     assert run.run(bench) == 'done'
     assert bench.calls[3] == bench.calls[4] == bench.calls[5] != bench.calls[6]
     recs = records(tmp_path / 'r')
-    off = [r for r in recs if r['status'] == 'timing']
-    assert [(r['eval'], r['attempt']) for r in off] == [(2, 1), (2, 2)]
+    off = [r for r in recs if r.status == 'timing']
+    assert [(r.eval, r.attempt) for r in off] == [(2, 1), (2, 2)]
     for r in off:
         # the measured number is kept under another name, never as the loss
-        assert r['loss'] is None and isinstance(r['off_timing_loss'], float)
-        assert r['periods'] == {'fresh': 5618, 'held': 7, 'late': 0}
-        assert r['reason'] == 'timing: 7 held and 0 late of 5625 drive periods'
-    assert recs[5]['status'] in ('ok', 'aborted') and recs[5]['periods']['held'] == 0
+        assert r.loss is None and isinstance(r.off_timing_loss, float)
+        assert r.periods == {'fresh': 5618, 'held': 7, 'late': 0}
+        assert r.reason == 'timing: 7 held and 0 late of 5625 drive periods'
+    assert recs[5].status in ('ok', 'aborted') and recs[5].periods['held'] == 0
     # the optimiser was told 5 losses, none of them off timing; the summary counts them
     assert run.state.timing == 2 and run.state.evals == 5 and run.opt.evaluations == 5
-    assert run.summary(outcome='done', wall_s=1.0)['timing'] == 2
+    assert run.summary(outcome='done', wall_s=1.0).timing == 2
     # a resume rebuilds the same counters from results.jsonl
     again = make_run_from(RunDir(tmp_path / 'r'), budget=5, remeasure=0)
     assert again.restore() == len(recs) and again.state.timing == 2
@@ -173,7 +173,7 @@ def test_results_lost_beyond_retries_end_the_run_with_best_applied(tmp_path):
     rd = RunDir(tmp_path / 'r')
     again = make_run_from(rd)
     again.restore()
-    assert np.array_equal(again.opt.ask(), np.array(records(tmp_path / 'r')[-1]['u']))
+    assert np.array_equal(again.opt.ask(), np.array(records(tmp_path / 'r')[-1].u))
 
 
 def make_run_from(rd: RunDir, algo: str = 'necga', budget: int = 10, **kw) -> TuningRun:
@@ -196,7 +196,7 @@ def test_interrupted_then_resumed_equals_uninterrupted(tmp_path, algo):
     bench2 = FakeBench()
     assert replay(bench2, resumed.records) == 9
     assert resumed.run(bench2) == 'done'
-    key = lambda r: {k: r[k] for k in ('kind', 'eval', 'u', 'gains', 'loss', 'experiment_id')}  # noqa: E731
+    key = lambda r: [getattr(r, k) for k in ('kind', 'eval', 'u', 'gains', 'loss', 'experiment_id')]  # noqa: E731
     assert [key(r) for r in records(tmp_path / 'whole')] == [
         key(r) for r in records(tmp_path / 'part')
     ]
@@ -226,8 +226,8 @@ def test_resume_catches_up_records_written_after_the_checkpoint(tmp_path):
     bench2 = FakeBench()
     replay(bench2, resumed.records)
     resumed.run(bench2)
-    assert [r['loss'] for r in records(tmp_path / 'whole')] == [
-        r['loss'] for r in records(tmp_path / 'part')
+    assert [r.loss for r in records(tmp_path / 'whole')] == [
+        r.loss for r in records(tmp_path / 'part')
     ]
 
 
@@ -266,7 +266,7 @@ def test_reference_stays_applied_when_nothing_beats_it(tmp_path):
     run = make_run(tmp_path / 'r', budget=6)
     run.run(bench)
     assert bench.applied == Gains(*SPACE.start)
-    assert run.summary(outcome='done', wall_s=1)['applied']['source'] == 'reference'
+    assert run.summary(outcome='done', wall_s=1).applied['source'] == 'reference'
 
 
 def test_a_fault_in_the_settle_is_re_run_and_never_told(tmp_path):
@@ -298,13 +298,13 @@ def test_a_fault_in_the_settle_is_re_run_and_never_told(tmp_path):
     run = make_run(tmp_path / 'r', budget=4)
     assert run.run(bench) == 'done'
     recs = records(tmp_path / 'r')
-    lost = [r for r in recs if r['status'] == 'lost']
-    assert len(lost) == 1 and lost[0]['kind'] == 'eval' and lost[0]['eval'] == 1
-    assert lost[0]['loss'] is None and 'settle, before step 0 (max_speed)' in lost[0]['reason']
-    again = [r for r in recs if r['kind'] == 'eval' and r['eval'] == 1]
-    assert again[0]['status'] == 'lost' and again[1]['attempt'] == 2
-    assert again[1]['status'] in ('ok', 'aborted')  # measured: told to the optimiser
-    assert again[0]['gains'] == again[1]['gains']  # the same gains, not a new candidate
+    lost = [r for r in recs if r.status == 'lost']
+    assert len(lost) == 1 and lost[0].kind == 'eval' and lost[0].eval == 1
+    assert lost[0].loss is None and 'settle, before step 0 (max_speed)' in lost[0].reason
+    again = [r for r in recs if r.kind == 'eval' and r.eval == 1]
+    assert again[0].status == 'lost' and again[1].attempt == 2
+    assert again[1].status in ('ok', 'aborted')  # measured: told to the optimiser
+    assert again[0].gains == again[1].gains  # the same gains, not a new candidate
     assert bench.calls[2] == bench.calls[3]
     assert run.opt.evaluations == 4 and run.state.best['loss'] > 0.0
 
@@ -374,8 +374,8 @@ def test_parameter_file_read_errors(tmp_path):
 # -- run directory ----------------------------------------------------------------------------
 def test_run_directory_rules(tmp_path):
     rd = RunDir.create(tmp_path / 'a' / 'b')
-    rd.write_run({'algo': 'spsa', 'x': 1.5})
-    assert RunDir.open(rd.path).read_run() == {'algo': 'spsa', 'x': 1.5}
+    rd.write_run(RunConfig.from_dict({'algo': 'spsa', 'x': 1.5}))
+    assert RunDir.open(rd.path).read_config().to_dict() == {'algo': 'spsa', 'x': 1.5}
     with pytest.raises(RunDirError, match='continue it with --resume'):
         RunDir.create(rd.path)
     (tmp_path / 'other').mkdir()

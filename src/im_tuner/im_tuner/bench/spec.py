@@ -18,13 +18,17 @@ Pure: no rclpy (unit-tested without ROS).
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from im_drive_sim import rt
 from im_drive_sim.cli import UsageError
 
 from ..benches import LOCKSTEP_BENCHES, SIM_BENCHES, is_simulated
+
+if TYPE_CHECKING:
+    from ..runlog import Record, RunConfig
 
 __all__ = [
     'DISCOVERY_TIMEOUT',
@@ -47,10 +51,10 @@ QUIET_LOGS = ('--ros-args', '--disable-stdout-logs')
 Params = tuple[tuple[str, Any], ...]
 
 
-def next_experiment_id(records: list[dict[str, Any]]) -> int:
+def next_experiment_id(records: Sequence[Record]) -> int:
     """The first experiment id of a session that does not replay: past every id in the
     run's records (0 for none)."""
-    ids = [int(r['experiment_id']) for r in records if r.get('experiment_id') is not None]
+    ids = [r.experiment_id for r in records if r.experiment_id is not None]
     return max(ids) + 1 if ids else 0
 
 
@@ -197,10 +201,10 @@ class BenchSpec:
 
 def tuner_bench_spec(
     cli: argparse.Namespace,
-    run: dict[str, Any],
+    run: RunConfig,
     *,
     resumed: bool,
-    records: list[dict[str, Any]] = (),  # type: ignore[assignment]
+    records: Sequence[Record] = (),
     drive_choice: Any = None,
 ) -> BenchSpec:
     """The tuner's bench from its options and its run: ``run`` is run.yaml's settings
@@ -208,13 +212,13 @@ def tuner_bench_spec(
     ``records``: the run's results so far (a resumed session's experiment ids go on past
     them); ``drive_choice``: the checked ``--drive`` (drive_spec.resolve)."""
     if resumed:
-        requested = cli.bench or run.get('bench_requested', 'auto')
-        model, config = run.get('model'), run.get('drive_config')
+        requested = cli.bench or run.bench_requested or 'auto'
+        model, config = run.model, run.drive_config
     else:
         requested = cli.bench or 'auto'
         model = cli.model
         config = str(cli.drive_config) if cli.drive_config else None
-    drive = [('seed', run['drive_seed'])]
+    drive: list[tuple[str, Any]] = [('seed', run.drive_seed)]
     ctl = []
     if model:
         drive.append(('model', model))
@@ -223,7 +227,7 @@ def tuner_bench_spec(
         ctl.append(('drive_config_file', config))
     return BenchSpec(
         requested=requested,
-        drive=run.get('drive') or 'sim',
+        drive=run.drive or 'sim',
         drive_choice=drive_choice,
         record=not cli.no_record,
         compression=cli.compression,
@@ -235,5 +239,5 @@ def tuner_bench_spec(
         fault_policy=cli.fault_policy,
         rt_options=rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY),
         resumed=resumed,
-        previous_bench=run.get('bench') if resumed else None,
+        previous_bench=run.bench if resumed else None,
     )

@@ -16,7 +16,7 @@ import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from im_drive_sim.cli import Parser, UsageError
 
@@ -24,6 +24,7 @@ from ..rundir import RunDir, RunDirError
 from .errors import EXIT_USAGE, ReportError
 
 if TYPE_CHECKING:
+    from ..runlog import RunConfig
     from .load import RunReport
 
 
@@ -97,9 +98,9 @@ def _draw_child(runs: list[RunReport], out: Path, names: tuple[str, ...]) -> Non
         os._exit(1)  # quietly: the parent draws these again and reports any error
 
 
-def _labels(paths: list[Path], runs: list[dict[str, Any]]) -> list[str]:
+def _labels(paths: list[Path], runs: list[RunConfig]) -> list[str]:
     """Short names: '<algo> seed <s>', the directory name when that is not unique."""
-    short = [f'{r.get("algo")} seed {r.get("seed")}' for r in runs]
+    short = [f'{r.algo} seed {r.seed}' for r in runs]
     if len(set(short)) == len(short):
         return short
     return (
@@ -139,7 +140,7 @@ def main(args: list[str] | None = None) -> int:
         # validate every run before reading any bag or writing anything
         for p in cli.runs:
             try:
-                RunDir.open(p).read_run()
+                RunDir.open(p).read_config()
                 RunDir(p).read_results()  # every record checked: no traceback later
             except RunDirError as exc:
                 raise ReportError(str(exc)) from None
@@ -150,7 +151,7 @@ def main(args: list[str] | None = None) -> int:
         return EXIT_USAGE
     from .load import load_run  # numpy, the bag reader: only for a real report
 
-    heads = [RunDir(p).read_run() for p in cli.runs]
+    heads = [RunDir(p).read_config() for p in cli.runs]
     labels = _labels(cli.runs, heads)
 
     def progress(msg: str) -> None:

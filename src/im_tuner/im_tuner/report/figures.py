@@ -27,7 +27,7 @@ def _colors(n: int) -> list:
 
 
 def _load_step(rr: RunReport) -> float | None:
-    p = rr.run.get('controller_parameters') or {}
+    p = rr.run.controller_parameters or {}
     v = p.get('trajectory.load_delay')
     return float(v) if v is not None else None
 
@@ -224,7 +224,7 @@ def fig9_loss(runs: list[RunReport]):
             label=f'{rr.label}: best so far',
             gid=f'best:{rr.label}',
         )
-        sat = rr.summary.get('evaluations_to_satisfactory')
+        sat = rr.summary.evaluations_to_satisfactory
         if sat:
             ax.plot(
                 [sat],
@@ -237,15 +237,16 @@ def fig9_loss(runs: list[RunReport]):
             )
     if runs:
         s0 = runs[0].summary
+        sat_loss = s0.satisfactory_loss or 0.0  # (every summary the tuner writes has it)
         ax.axhline(
-            s0['satisfactory_loss'],
+            sat_loss,
             color='grey',
             ls='--',
             lw=1,
-            label=f'satisfactory loss {s0["satisfactory_loss"]:g}',
+            label=f'satisfactory loss {sat_loss:g}',
             gid='satisfactory',
         )
-        ref = s0.get('reference')
+        ref = s0.reference
         if ref is not None and not ref['aborted']:
             ax.axhline(
                 ref['loss'],
@@ -284,7 +285,7 @@ def fig9_gains(runs: list[RunReport]):
                 label=rr.label,
                 gid=f'{n}:{rr.label}',
             )
-    box = (runs[0].run.get('search_box') or {}) if runs else {}
+    box = (runs[0].run.search_box or {}) if runs else {}
     for ax, n in zip(axes, GAIN_NAMES, strict=True):
         b = box.get(n)
         if b:

@@ -21,6 +21,8 @@ from ..runlog import (
     Measured,
     Record,
     Reference,
+    RunConfig,
+    Summary,
     Timing,
     summarize,
     tally_all,
@@ -66,9 +68,9 @@ class RunReport:
 
     path: Path
     label: str
-    run: dict[str, Any]  #: run.yaml's mapping
+    run: RunConfig  #: run.yaml
     records: list[Record]
-    summary: dict[str, Any]  #: summary.json's mapping
+    summary: Summary  #: summary.json (or rebuilt from the records)
     summary_source: str  #: 'summary.json' or 'results.jsonl'
     bags: list[BagData] = field(default_factory=list)
     bag_errors: list[str] = field(default_factory=list)
@@ -113,7 +115,7 @@ def load_run(
     Raises :class:`ReportError` when ``path`` is not a tuning run."""
     try:
         rd = RunDir.open(path)
-        run = rd.read_config().to_dict()
+        run = rd.read_config()
         records = rd.read_results(repair=False)  # a torn last line is left alone
     except RunDirError as exc:
         raise ReportError(str(exc)) from None
@@ -122,11 +124,11 @@ def load_run(
     except RunDirError:
         ck = None  # only its session list is read; the records are the truth
     live = rd.holder()  # a tuner is working on it now (its lock)
-    sat = float(run.get('satisfactory_loss', 0.0))
+    sat = float(run.satisfactory_loss or 0.0)
     st = tally_all(records, sat)
     saved = rd.read_summary()
     if saved is not None and saved.evaluations == st.evals and saved.experiments == st.experiments:
-        summary, source = saved.to_dict(), 'summary.json'
+        summary, source = saved, 'summary.json'
     else:
         # killed (no summary, or the one of an earlier session): rebuild from the records
         sessions = (ck or {}).get('tuner', {}).get('sessions') or (saved and saved.sessions) or []
@@ -139,17 +141,17 @@ def load_run(
         rebuilt = summarize(
             st,
             records,
-            budget=int(run.get('budget', 0)),
+            budget=int(run.budget or 0),
             satisfactory_loss=sat,
             outcome=outcome,
             wall_s=None,
         )
         loop = rebuilt.loop_wall_s = sum(float(r.wall_s or 0.0) for r in records)
         rebuilt.real_time_factor = (rebuilt.sim_s or 0.0) / loop if loop > 0 else None
-        summary = rebuilt.to_dict()
+        summary = rebuilt
         source = 'results.jsonl'
     rr = RunReport(rd.path, label or rd.path.name, run, records, summary, source, live=live)
-    rr.record_bag = _session_bags(summary.get('sessions') or [], len(records))
+    rr.record_bag = _session_bags(summary.sessions or [], len(records))
     if signals:
         load_signals(rr, progress)
     return rr
@@ -180,7 +182,7 @@ def _wanted(rr: RunReport) -> dict[str, int]:
         if isinstance(rr.records[i], Reference):
             want['reference'] = i
             break
-    best = rr.summary.get('best')
+    best = rr.summary.best
     if best is not None:
         for i in ran:
             r = rr.records[i]
@@ -216,9 +218,7 @@ def load_signals(rr: RunReport, progress: Callable[[str], None] | None = None) -
             rr.bags.append(read_bag(bag_dir, {INTERNALS_TOPIC: windows}, LOSS_TOPIC))
         except (BagReadError, OSError) as exc:
             rr.bag_errors.append(f'{bag_dir.name}: {exc}')
-    fields = tuple(
-        (rr.run.get('controller_parameters') or {}).get('internals_fields') or INTERNALS_FIELDS
-    )
+    fields = tuple((rr.run.controller_parameters or {}).get('internals_fields') or INTERNALS_FIELDS)
     found: dict[str, Experiment] = {}
     for name, i in want.items():
         exp = _experiment(rr, i, fields)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import datetime as _dt
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from im_controller.config import GAIN_NAMES, GAIN_UNITS
 
@@ -12,7 +12,7 @@ from ..progress import drive_text
 
 if TYPE_CHECKING:
     from ..record.reader import BagData
-    from ..runlog import Record
+    from ..runlog import Record, RunConfig
     from .load import RunReport
 
 
@@ -21,8 +21,8 @@ def _gains_text(g: dict[str, float]) -> str:
     return ', '.join(f'{n} {g[n]:.6g} {GAIN_UNITS[n]}' for n in GAIN_NAMES)
 
 
-def _options_text(run: dict[str, Any]) -> str:
-    opts = run.get('options') or {}
+def _options_text(run: RunConfig) -> str:
+    opts = run.options or {}
     return ', '.join(f'{k}={v}' for k, v in opts.items()) or 'defaults'
 
 
@@ -30,22 +30,22 @@ def summary_text(rr: RunReport) -> str:
     """The printed summary of one run (see the module docstring)."""
     s, run = rr.summary, rr.run
     L = [
-        f'run {rr.path}: {run.get("algo")} ({_options_text(run)}), seed {run.get("seed")}, '
-        f'budget {run.get("budget")}, bench {run.get("bench")}'
+        f'run {rr.path}: {run.algo} ({_options_text(run)}), seed {run.seed}, '
+        f'budget {run.budget}, bench {run.bench}'
     ]
     L.append(
-        f'  outcome: {s["outcome"]}; {s["evaluations"]}/{s["budget"]} evaluations, '
-        f'{s["experiments"]} experiments'
+        f'  outcome: {s.outcome}; {s.evaluations}/{s.budget} evaluations, '
+        f'{s.experiments} experiments'
         + ('' if rr.summary_source == 'summary.json' else ' (from results.jsonl)')
     )
-    ref = s.get('reference')
+    ref = s.reference
     if ref is not None:
         L.append(
             f'  start (hand-tuned) loss: {ref["loss"]:.4f}'
             + (' (aborted)' if ref['aborted'] else '')
             + f': {_gains_text(ref["gains"])}'
         )
-    b = s.get('best')
+    b = s.best
     if b is not None:
         rm = (
             f', re-measured {b["remeasured_loss"]:.4f}'
@@ -56,7 +56,7 @@ def summary_text(rr: RunReport) -> str:
         L.append(f'  best gains: {_gains_text(b["gains"])}')
     else:
         L.append('  best loss: none (no evaluation completed without abort)')
-    a = s.get('applied')
+    a = s.applied
     if a is not None and (b is None or a['eval'] != b['eval']):
         L.append(
             '  applied at the end: '
@@ -66,18 +66,18 @@ def summary_text(rr: RunReport) -> str:
                 else f'evaluation {a["eval"]} (loss {a["loss"]:.4f})'
             )
         )
-    sat = s.get('evaluations_to_satisfactory')
+    sat = s.evaluations_to_satisfactory
     L.append(
-        f'  satisfactory (loss <= {s["satisfactory_loss"]:g}): '
+        f'  satisfactory (loss <= {s.satisfactory_loss:g}): '
         + (f'after {sat} evaluations' if sat else 'not reached')
     )
     L.append(
-        f'  aborted experiments: {s["aborted"]} of {s["evaluations"]} evaluations '
-        f'(safety faults {s["safety_faults"]}); lost results re-run: {s["lost"]}; '
-        f'off the paper timing, re-run: {s.get("timing", 0)}'
+        f'  aborted experiments: {s.aborted} of {s.evaluations} evaluations '
+        f'(safety faults {s.safety_faults}); lost results re-run: {s.lost}; '
+        f'off the paper timing, re-run: {s.timing or 0}'
     )
     L.extend(_period_lines(rr.records))
-    sessions = s.get('sessions') or []
+    sessions = s.sessions or []
     for i, sess in enumerate(sessions):  # the drive's own counters, per session
         if 'drive' in sess:
             L.extend(
@@ -85,17 +85,15 @@ def summary_text(rr: RunReport) -> str:
                     sess['drive'], None if len(sessions) == 1 else f'session {i + 1}'
                 ).splitlines()
             )
-    rtf = s.get('real_time_factor')
-    wall = f'wall time {s["wall_s"]:.1f} s, ' if s.get('wall_s') is not None else ''
+    rtf = s.real_time_factor
+    wall = f'wall time {s.wall_s:.1f} s, ' if s.wall_s is not None else ''
     # an external bench (--bench none) or a hardware class: the drive's clock, not a simulation
     clock = (
         'simulated experiment time'
-        if is_simulated(run.get('bench'), run.get('drive'))
+        if is_simulated(run.bench, run.drive)
         else "experiment time (the drive's clock)"
     )
-    L.append(
-        f'  {wall}{clock} {s["sim_s"]:.1f} s' + (f', real-time factor {rtf:.2f}' if rtf else '')
-    )
+    L.append(f'  {wall}{clock} {s.sim_s:.1f} s' + (f', real-time factor {rtf:.2f}' if rtf else ''))
     for bag in rr.bags:
         L.extend(_bag_lines(bag, live=rr.live is not None))
     L.extend(f'  bag {e}' for e in rr.bag_errors)

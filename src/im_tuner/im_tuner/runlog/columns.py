@@ -63,7 +63,7 @@ def csv_values(rec: Record) -> dict[str, Any]:
     none: list[float | None] = [None] * len(GAIN_NAMES)
     terms: list[float | None] = list(rec.terms) if rec.terms else none[:3]
     u: list[float | None] = list(rec.u) if rec.u else none
-    out = {c: rec.get(c) for c in _CSV_FIELDS}
+    out = {c: getattr(rec, c, None) for c in _CSV_FIELDS}  # (best_loss: evaluations only)
     out.update(zip(_TERMS, terms, strict=True))
     out.update(rec.gains)
     out.update(zip(_U, u, strict=True))

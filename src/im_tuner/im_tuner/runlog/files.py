@@ -49,6 +49,14 @@ class _Keyed:
         extra = {k: v for k, v in data.items() if k not in names}
         return cls(**known, extra=extra, keys=tuple(data))
 
+    def put(self, **fields: Any) -> None:
+        """Set fields as the file will hold them: in the order put, after the keys it has,
+        and written even when None (``null``), as a mapping's keys would be."""
+        for k, v in fields.items():
+            setattr(self, k, v)
+            if k not in self.keys:
+                self.keys = (*self.keys, k)
+
     def to_dict(self) -> dict[str, Any]:
         """The file's mapping: its keys in order, then the fields set since (not None)."""
         out: dict[str, Any] = {}
@@ -138,7 +146,7 @@ class Summary(_Keyed):
     optimizer_us_per_eval: float | None = None  #: median ask + tell [us]
     sessions: list[dict[str, Any]] | None = None
     report_command: str | None = None
-    what_to_do: str | None = None
+    what_to_do: list[str] | None = None  #: advice about a failed run, one line each
 
     def to_text(self) -> str:
         """summary.json's text (no NaN/inf)."""

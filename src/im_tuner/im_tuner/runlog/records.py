@@ -18,8 +18,8 @@ byte: the fields in the order the tuner writes them, floats as ``repr``.  Fields
 does not carry (older lines) read as None; fields this format does not know are kept, in
 ``extra``, and written back after the known ones.
 
-A record also answers ``rec['loss']`` / ``rec.get('session')`` with the value its JSON
-line has (for the code that reads records as the dicts they were).  Pure (no rclpy).
+Code reads a record by its attributes (``rec.loss``, ``rec.session``); a field its line
+does not carry is None.  Pure (no rclpy).
 """
 
 from __future__ import annotations
@@ -241,20 +241,6 @@ class Record:
         if not isinstance(rec, dict):
             raise RecordError('is not a JSON record')
         return Record.from_dict(rec)
-
-    # -- read as the dict of its line (see the module docstring) ---------------------------
-    def __getitem__(self, key: str) -> Any:
-        if key in self.extra:
-            return self.extra[key]
-        if key in set(self._keys()):
-            return getattr(self, key)
-        raise KeyError(key)
-
-    def get(self, key: str, default: Any = None) -> Any:
-        try:
-            return self[key]
-        except KeyError:
-            return default
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import fcntl
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +49,31 @@ RUN_FILE = 'run.yaml'
 RESULTS_FILE = 'results.jsonl'
 CHECKPOINT_FILE = 'checkpoint.json'
 SUMMARY_FILE = 'summary.json'
+
+
+def claim_out_dir(out: Path, error: type[Exception], what_is_there: Callable[[Path], str]) -> Path:
+    """Make ``out`` (``--out``) for a new run or bag: refuse a file, a directory that holds
+    anything (``what_is_there(out)`` says what), an unwritable place. An existing *empty*
+    writable directory is taken. Nothing is created when this raises ``error``."""
+    if out.exists():
+        if not out.is_dir():
+            raise error(f'--out {out}: exists and is not a directory')
+        if any(out.iterdir()):
+            what = what_is_there(out)
+            raise error(f'--out {out}: already exists ({what}); choose a new directory')
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise error(f'--out {out}: directory is not writable')
+        return out
+    parent = out.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise error(f'--out {out}: cannot create it ({parent} is not a writable directory)')
+    try:
+        out.mkdir(parents=True)
+    except OSError as exc:
+        raise error(f'--out {out}: cannot create it ({exc.strerror or exc})') from None
+    return out
 
 
 class RunDirError(Exception):
@@ -148,28 +174,15 @@ class RunDir:
     @classmethod
     def create(cls, path: Path | str) -> RunDir:
         """Create a new run directory; refuses anything that already holds files."""
-        p = Path(path)
-        if p.exists():
-            if not p.is_dir():
-                raise RunDirError(f'--out {p}: exists and is not a directory')
-            if any(p.iterdir()):
-                what = (
-                    'a tuning run; continue it with --resume'
-                    if (p / RUN_FILE).exists()
-                    else 'not empty'
-                )
-                raise RunDirError(f'--out {p}: already exists ({what}); choose a new directory')
-        parent = p.parent
-        while not parent.exists() and parent != parent.parent:
-            parent = parent.parent
-        if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-            raise RunDirError(f'--out {p}: cannot create it ({parent} is not a writable directory)')
-        try:
-            p.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise RunDirError(f'--out {p}: cannot create it ({exc.strerror or exc})') from None
-        if not os.access(p, os.W_OK | os.X_OK):
-            raise RunDirError(f'--out {p}: directory is not writable')
+        p = claim_out_dir(
+            Path(path),
+            RunDirError,
+            lambda d: (
+                'a tuning run; continue it with --resume'
+                if (d / RUN_FILE).exists()
+                else 'not empty'
+            ),
+        )
         return cls(p)
 
     @classmethod

@@ -65,7 +65,7 @@ DESCRIPTION = (
 )
 
 
-def _build_parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     ap = Parser(prog='ros2 run im_tuner tuner', description=DESCRIPTION)
     ap.add_argument(
         '--algo',

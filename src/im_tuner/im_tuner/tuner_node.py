@@ -55,7 +55,7 @@ from .tuner_cli import (
     EXIT_FAILED,
     EXIT_INTERRUPTED,
     EXIT_USAGE,
-    _build_parser,
+    build_parser,
     check_session,
     prepare_run,
     ros_arguments,
@@ -65,7 +65,7 @@ from .tuner_cli import (
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv if args is None else args)
     try:
-        cli = _build_parser().parse_args(check_ros_args(argv)[1:])
+        cli = build_parser().parse_args(check_ros_args(argv)[1:])
         check_session(cli)
         return _main(cli, argv)
     except UsageError as exc:

@@ -12,12 +12,12 @@ import yaml
 from im_drive_sim.cli import UsageError
 from im_tuner import optim
 from im_tuner.runlog import RunConfig
-from im_tuner.tuner_cli import _build_parser, _check_run, _new_run_config, check_no_start
+from im_tuner.tuner_cli import _check_run, _new_run_config, build_parser, check_no_start
 
 
 def _new(*args: str):
     argv = ['tuner', *args]
-    return _new_run_config(_build_parser().parse_args(argv[1:]), argv)
+    return _new_run_config(build_parser().parse_args(argv[1:]), argv)
 
 
 @pytest.mark.parametrize('algo', optim.ALGOS)
@@ -54,7 +54,7 @@ def test_the_default_algorithm_refuses_no_start_and_starts_from_the_file() -> No
 
 
 def test_the_help_names_exactly_the_algorithms_that_take_it() -> None:
-    action = next(a for a in _build_parser()._actions if '--no-start' in a.option_strings)
+    action = next(a for a in build_parser()._actions if '--no-start' in a.option_strings)
     assert action.help.startswith('spsa, cmaes, tpe only: ')
     assert {'spsa', 'cmaes', 'tpe'} == optim.NO_START_ALGOS
     assert 'Refused with safe' in action.help and 'with the compact GAs' in action.help
@@ -104,7 +104,7 @@ def test_the_composed_loop_runs_sched_fifo_50_unless_told_otherwise() -> None:
     from im_drive_sim import rt
 
     def opts(*args: str) -> rt.RtOptions:
-        cli = _build_parser().parse_args(list(args))
+        cli = build_parser().parse_args(list(args))
         return rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY)
 
     assert rt.DEFAULT_PRIORITY == 50
@@ -112,9 +112,9 @@ def test_the_composed_loop_runs_sched_fifo_50_unless_told_otherwise() -> None:
     assert opts('--bench', 'realtime', '--thread-priority', '0').priority == 0
     assert opts('--bench', 'realtime', '--thread-priority', '70').priority == 70
     # another bench: nothing asked for unless given (then refused, exit 2)
-    cli = _build_parser().parse_args(['--bench', 'inproc'])
+    cli = build_parser().parse_args(['--bench', 'inproc'])
     assert not rt.RtOptions.from_cli(cli).requested
-    text = ' '.join(_build_parser().format_help().split())
+    text = ' '.join(build_parser().format_help().split())
     assert 'SCHED_FIFO at priority N (1-99; default 50, as ros2_control_node;' in text
 
 
@@ -131,10 +131,10 @@ def test_the_ros_arguments_and_the_bag_options() -> None:
         'a:=1',
         '--disable-stdout-logs',
     ]
-    cli = _build_parser().parse_args(['--no-record', '--compression', 'zstd'])
+    cli = build_parser().parse_args(['--no-record', '--compression', 'zstd'])
     with pytest.raises(UsageError, match=r'^--compression zstd is for the bag, and --no-record'):
         check_session(cli)
-    cli = _build_parser().parse_args([])
+    cli = build_parser().parse_args([])
     check_session(cli)
     assert cli.compression == 'lz4'
     assert recording_options(False, out='x', compression='zstd') == 'zstd'

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import yaml
 
+from ..rundir import claim_out_dir
+
 ROSBAG2_VERSION = 9
 ROS_DISTRO = 'jazzy'
 #: rosbag2's spelling of an infinite QoS duration.
@@ -29,30 +31,13 @@ def prepare_bag_dir(out: Path) -> Path:
 
     An existing *empty* directory is accepted. Nothing is created when this raises.
     """
-    out = Path(out)
-    if out.exists():
-        if not out.is_dir():
-            raise BagError(f'--out {out}: exists and is not a directory')
-        if any(out.iterdir()):
-            what = (
-                'a bag'
-                if (out / 'metadata.yaml').exists() or any(out.glob('*.mcap'))
-                else 'not empty'
-            )
-            raise BagError(f'--out {out}: already exists ({what}); choose a new directory')
-        if not os.access(out, os.W_OK | os.X_OK):
-            raise BagError(f'--out {out}: directory is not writable')
-        return out
-    parent = out.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-        raise BagError(f'--out {out}: cannot create it ({parent} is not a writable directory)')
-    try:
-        out.mkdir(parents=True)
-    except OSError as exc:
-        raise BagError(f'--out {out}: cannot create it ({exc.strerror})') from None
-    return out
+    return claim_out_dir(
+        Path(out),
+        BagError,
+        lambda d: (
+            'a bag' if (d / 'metadata.yaml').exists() or any(d.glob('*.mcap')) else 'not empty'
+        ),
+    )
 
 
 def storage_file_name(out: Path) -> str:

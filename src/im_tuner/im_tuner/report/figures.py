@@ -10,7 +10,7 @@ import numpy as np
 
 from im_controller.config import GAIN_NAMES, GAIN_UNITS
 
-from .table import _best_so_far
+from .table import best_so_far
 
 if TYPE_CHECKING:
     from .load import Experiment, RunReport
@@ -198,7 +198,7 @@ def fig9_loss(runs: list[RunReport]):
         x = np.array([r.eval + 1 for r in ev], float)
         y = np.array([r.loss for r in ev], float)
         ab = np.array([bool(r.aborted) for r in ev])
-        best = np.array(_best_so_far(ev), dtype=float)  # None -> nan
+        best = np.array(best_so_far(ev), dtype=float)  # None -> nan
         # the measured losses always; the aborted experiments' penalties only when there are any
         for pts, marker, ms, alpha, what, gid in (
             (~ab, '.', 4, 0.6, 'loss', 'loss'),

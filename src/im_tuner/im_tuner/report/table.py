@@ -13,7 +13,7 @@ from .load import RunReport
 
 
 # ------------------------------------------------------------------------------- CSV
-def _best_so_far(records: Sequence[Record]) -> list[float | None]:
+def best_so_far(records: Sequence[Record]) -> list[float | None]:
     best: float | None = None
     out: list[float | None] = []
     for r in records:
@@ -52,7 +52,7 @@ def write_csv(runs: list[RunReport], path: Path) -> int:
         w.writerow(CSV_COLUMNS)
         for rr in runs:
             for rec, best, bag in zip(
-                rr.records, _best_so_far(rr.records), rr.record_bag, strict=True
+                rr.records, best_so_far(rr.records), rr.record_bag, strict=True
             ):
                 w.writerow(_csv_row(rr, rec, best, bag))
                 n += 1

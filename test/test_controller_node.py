@@ -241,7 +241,7 @@ def test_gain_changes_apply_between_experiments_and_are_refused_during_one(bench
 @pytest.mark.parametrize(
     'name, value, why',
     [
-        ('k_pw', 7.0, 'range'),  # above the safe range
+        ('k_pw', 700.0, 'range'),  # above the safe range
         ('k_pw', -0.1, 'range'),
         ('k_iw', float('nan'), ''),
         ('k_pos', float('inf'), ''),

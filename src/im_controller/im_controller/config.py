@@ -4,7 +4,7 @@ Frozen dataclasses with defaults, and ONE place that validates them (``validate_
 Every check raises :class:`ControllerConfigError` (a ``ValueError``) whose message names
 the parameter and says why, e.g.::
 
-    gains.k_pw must be a finite number in [0, 5] A s/rad, got 7.0
+    gains.k_pw must be a finite number in [0, 200] A s/rad, got 700.0
 
 Policy: float parameters accept ``int`` and ``float`` (and numpy floating/integer
 scalars) but never ``bool`` or ``str``; NaN and +-inf are rejected everywhere.
@@ -62,9 +62,11 @@ GAIN_UNITS: dict[str, str] = {
 
 GAIN_RANGES: dict[str, tuple[float, float]] = {
     # Safe ranges accepted anywhere (node parameters, tuner candidates).  They contain the
-    # notes' search box with margin; values outside are refused, never clipped silently.
-    'k_pw': (0.0, 5.0),
-    'k_iw': (0.0, 500.0),
+    # notes' search box with margin, and the packaged family's (docs/drive-family.md: the
+    # speed-loop gains scale with J/Kt, up to 38x for im7500w-j10); values outside are
+    # refused, never clipped silently.
+    'k_pw': (0.0, 200.0),
+    'k_iw': (0.0, 20000.0),
     'k_pos': (0.0, 300.0),
     'tau_sm': (0.0, 0.1),
     'tau_eq': (0.0, 0.1),

@@ -30,6 +30,8 @@ from typing import Any
 
 import yaml
 
+from . import family
+
 __all__ = [
     'REALISM_PROFILES',
     'ConfigError',
@@ -479,12 +481,15 @@ def load_config(
 ) -> DriveConfig:
     """Load and validate a drive configuration.
 
-    path: YAML file; ``None`` loads the packaged default (``default_config_path()``).
+    path: YAML file, or the name of a packaged drive (``family.PACKAGED_NAMES``: a motor's
+    file such as ``paper_750w`` or a drive such as ``im3700w-j3``; a name is taken only
+    when no such file exists); ``None`` loads the packaged default (``default_config_path()``).
     overrides: partial nested (``{"machine": {"J": 1.0}}``) or dotted (``{"machine.J": 1.0}``)
     values merged onto the file before validation.
-    Raises ``ConfigError`` (a ``ValueError``) naming the file and the key path.
+    Raises ``ConfigError`` (a ``ValueError``) naming the file and the key path; a bare name
+    that is neither a file nor a packaged drive is refused in one line naming the drives.
     """
-    p = default_config_path() if path is None else Path(path)
+    p = default_config_path() if path is None else _drive_path(path)
     name = p.name
     try:
         text = p.read_text(encoding='utf-8')
@@ -517,6 +522,19 @@ def load_config(
         data = _with_base(name, p, data)
     src = name if not overrides else f'{name} (with overrides)'
     return config_from_dict(data, source=src, overrides=overrides)
+
+
+def _drive_path(path: str | Path) -> Path:
+    """The file ``path`` names: the file itself, else the packaged drive of that name."""
+    p = Path(path)
+    if p.exists():
+        return p
+    packaged = family.packaged_path(str(path))
+    if packaged is not None:
+        return packaged
+    if p.suffix == '' and p.name == str(path):  # a bare name: a drive's, mistyped
+        raise ConfigError(family.unknown_drive_message(str(path)))
+    return p
 
 
 def _with_base(name: str, path: Path, data: Mapping[str, Any]) -> dict[str, Any]:

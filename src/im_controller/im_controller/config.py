@@ -88,6 +88,10 @@ class NumSpec:
 #: descriptors of the controller node.
 NUMERIC_SPECS: dict[str, NumSpec] = {
     **{f'gains.{n}': NumSpec(lo, hi, False, GAIN_UNITS[n]) for n, (lo, hi) in GAIN_RANGES.items()},
+    **{
+        f'fallback_gains.{n}': NumSpec(lo, hi, False, GAIN_UNITS[n])
+        for n, (lo, hi) in GAIN_RANGES.items()
+    },
     'control.Ts': NumSpec(0.0, 0.01, True, 's'),
     'control.isq_max': NumSpec(0.0, 1e3, True, 'A'),
     'loss.a1': NumSpec(0.0, 1e6, False, '1/(rad s)'),

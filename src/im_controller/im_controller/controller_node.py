@@ -45,7 +45,7 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from im_drive_sim.cdr import Float64ArrayWire
-from im_drive_sim.cli import Parser, input_file, parse_cli, run_cli
+from im_drive_sim.cli import Parser, drive_file, parse_cli, run_cli
 from im_drive_sim.client import DriveClient
 from im_drive_sim.contract import MODES
 from im_drive_sim.qos import RECORDED_QOS
@@ -484,7 +484,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     ap.add_argument('--mode', choices=MODES, help='lockstep (default) or realtime')
     ap.add_argument(
-        '--config', metavar='FILE', type=input_file, help="the drive's parameter file (Ts, isq_max)"
+        '--config',
+        metavar='FILE|NAME',
+        type=drive_file,
+        help="the drive's parameter file or packaged name (Ts, isq_max)",
     )
     return ap
 

@@ -26,8 +26,9 @@ from .config import (
 
 #: Tunable sections: parameter prefix -> dataclass. Gains are top-level (k_pw, ...).
 TUNABLE_SECTIONS = {'loss': LossConfig, 'trajectory': TrajectoryConfig}
-#: Read-only sections (structure and hard safety limits).
-READ_ONLY_SECTIONS = {'control': ControlConfig, 'safety': SafetyConfig}
+#: Read-only sections (structure, hard safety limits, and the fallback gains that hold the
+#: settle and finish a stopped move: a drive's own start, docs/drive-family.md).
+READ_ONLY_SECTIONS = {'control': ControlConfig, 'safety': SafetyConfig, 'fallback_gains': Gains}
 #: Fields taken from the drive's parameter file, not declared as parameters.
 FROM_DRIVE = {'control.Ts', 'control.isq_max'}
 
@@ -60,6 +61,11 @@ DESCRIPTIONS = {
     'control.feedforward': "speed feed-forward reading: 'model' (d theta_m/dt) or 'undelayed'",
     'safety.max_position_error': 'hard limit on |theta_m - theta| (read-only)',
     'safety.max_speed': 'hard limit on |omega| (read-only)',
+    **{
+        f'fallback_gains.{n}': f'fallback {n}: holds the settle, finishes a stopped move '
+        '(read-only; the hand-tuned start)'
+        for n in GAIN_NAMES
+    },
 }
 
 #: The integer structure parameters (read-only): name -> (default, description, range).

@@ -158,6 +158,20 @@ def output_file(text: str) -> Path:
     return p
 
 
+def drive_file(text: str) -> Path:
+    """A drive file to be read, or a packaged drive's name (``family.PACKAGED_NAMES``;
+    ``params.load_config`` takes either): a bare name that is neither is refused naming
+    the packaged drives."""
+    from . import family
+
+    p = Path(text)
+    if not p.exists() and p.name == text and p.suffix == '':
+        if text in family.PACKAGED_NAMES:
+            return p
+        raise argparse.ArgumentTypeError(family.unknown_drive_message(text))
+    return input_file(text)
+
+
 def input_file(text: str) -> Path:
     """A file to be read: it exists and is a regular file."""
     p = Path(text)

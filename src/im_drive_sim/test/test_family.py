@@ -82,3 +82,18 @@ def test_motor_rated_point_is_the_circuits():
         assert mach.rated_torque * mach.rated_speed == pytest.approx(m.rating_w, rel=1e-3)
         assert abs(ss.psi_r) / mach.Lm == pytest.approx(mach.rated_flux_current, rel=0.01)
         assert mach.isq_max == pytest.approx(2 * mach.rated_torque / mach.Kt, rel=1e-3)
+
+
+def test_command_line_drive_file_takes_names_and_refuses_unknown_ones(tmp_path, monkeypatch):
+    import argparse
+
+    from im_drive_sim.cli import drive_file
+
+    monkeypatch.chdir(tmp_path)
+    assert str(drive_file('im7500w-j10')) == 'im7500w-j10'
+    with pytest.raises(argparse.ArgumentTypeError, match=r'^im9-j3: no such drive file.*im750w-j1'):
+        drive_file('im9-j3')
+    with pytest.raises(argparse.ArgumentTypeError, match=r'missing\.yaml: no such file'):
+        drive_file('missing.yaml')
+    (tmp_path / 'mine.yaml').write_text('x: 1')
+    assert drive_file('mine.yaml') == tmp_path.joinpath('mine.yaml').relative_to(tmp_path)

@@ -34,7 +34,9 @@ from im_controller.config import (
     GAIN_NAMES,
     ExperimentConfig,
     Gains,
+    LossConfig,
     validate_experiment_config,
+    validate_loss_config,
 )
 from im_drive_sim.family import DRIVE_NAMES, PACKAGED_NAMES
 from im_drive_sim.params import DriveConfig, MachineParams, load_config
@@ -46,8 +48,10 @@ __all__ = [
     'PACKAGED_NAMES',
     'DriveScales',
     'DriveSetup',
+    'controller_parameters',
     'drive_scales',
     'drive_setup',
+    'tuner_setup',
 ]
 
 #: gains scaled with the drive's J/Kt (the speed loop's); the others are kept
@@ -79,8 +83,12 @@ class DriveScales:
 
 
 @lru_cache(maxsize=1)
+def _paper_drive() -> DriveConfig:
+    return load_config(None)
+
+
 def _paper() -> MachineParams:
-    return load_config(None).machine
+    return _paper_drive().machine
 
 
 def drive_scales(m: MachineParams) -> DriveScales:
@@ -101,14 +109,17 @@ def _scaled(values: tuple[float, ...], inertia: float) -> tuple[float, ...]:
     )
 
 
-def experiment_for(drive: DriveConfig) -> ExperimentConfig:
-    """The drive's experiment by the rule (module docstring); validated."""
+def experiment_for(drive: DriveConfig, reference: DriveConfig | None = None) -> ExperimentConfig:
+    """The drive's experiment by the rule (module docstring); validated.
+
+    reference: the same drive on the ideal bench, full model, seed 0 (the weights are
+    calibrated there, whatever ``drive``'s realism); None: ``drive`` itself."""
     base = ExperimentConfig()
     m = drive.machine
     s = drive_scales(m)
-    t, loss = base.trajectory, base.loss
+    t = base.trajectory
     start = Gains(*_scaled(base.fallback_gains.as_tuple(), s.inertia))
-    return validate_experiment_config(
+    cfg = validate_experiment_config(
         dataclasses.replace(
             base,
             control=dataclasses.replace(base.control, Ts=drive.Ts, isq_max=m.isq_max),
@@ -118,12 +129,39 @@ def experiment_for(drive: DriveConfig) -> ExperimentConfig:
                 v_max=min(t.v_max, m.rated_speed),
                 load_torque=t.load_torque * s.torque,
             ),
-            loss=dataclasses.replace(
-                loss, a1=loss.a1 / s.accel, a2=loss.a2 / s.accel, a3=loss.a3 / s.current
-            ),
             fallback_gains=start,
         )
     )
+    ref = drive if reference is None else reference
+    if ref == _paper_drive():
+        return cfg  # the paper's drive: its own weights, the calibration's reference
+    return dataclasses.replace(cfg, loss=_calibrated_loss(ref, cfg))
+
+
+#: experiments of the weights' calibration (+pi and -pi: the two directions)
+CALIBRATION_EXPERIMENTS = 2
+
+
+@lru_cache(maxsize=64)
+def _start_terms(drive: DriveConfig, cfg: ExperimentConfig) -> tuple[float, float, float]:
+    """Mean terms (a_j int f_j dt) of the start (``cfg.fallback_gains``) on ``drive`` over
+    ``CALIBRATION_EXPERIMENTS`` experiments, the supervisor off (thresholds 1e12)."""
+    from .bench.offline import OfflineBench  # numba: only where a drive is calibrated
+
+    off = dataclasses.replace(cfg.loss, threshold1=1e12, threshold2=1e12, threshold3=1e12)
+    bench = OfflineBench(drive, drive.seed, dataclasses.replace(cfg, loss=off))
+    runs = [bench.measure(cfg.fallback_gains).terms for _ in range(CALIBRATION_EXPERIMENTS)]
+    return tuple(sum(r[j] for r in runs) / len(runs) for j in range(3))  # type: ignore[return-value]
+
+
+def _calibrated_loss(reference: DriveConfig, cfg: ExperimentConfig) -> LossConfig:
+    """Weights a_j such that each term of the drive's start equals the paper's start's
+    term on the paper's drive (the paper's rule: the start's terms about 1/3 each)."""
+    want = _start_terms(_paper_drive(), experiment_for(_paper_drive()))
+    have = _start_terms(reference, cfg)
+    w = cfg.loss
+    a = [x * t / h for x, t, h in zip((w.a1, w.a2, w.a3), want, have, strict=True)]
+    return validate_loss_config(dataclasses.replace(w, a1=a[0], a2=a[1], a3=a[2]))
 
 
 def params_for(drive: DriveConfig, name: str) -> TunerParams:
@@ -150,5 +188,41 @@ def drive_setup(
     if model is not None:
         overrides['model'] = model
     cfg = load_config(drive, overrides=overrides or None)
+    ref = cfg
+    if (cfg.model, cfg.realism, cfg.seed) != tuple(_REFERENCE.values()):
+        ref = load_config(drive, overrides=_REFERENCE)
     name = 'paper_750w' if drive is None else str(drive)
-    return DriveSetup(name, cfg, experiment_for(cfg), params_for(cfg, name))
+    return DriveSetup(name, cfg, experiment_for(cfg, ref), params_for(cfg, name))
+
+
+#: the bench the weights are calibrated on: the drive file's own, full model, ideal, seed 0
+_REFERENCE: dict[str, object] = {'model': 'full', 'realism': 'ideal', 'seed': 0}
+
+
+def controller_parameters(setup: DriveSetup) -> tuple[tuple[str, float], ...]:
+    """The controller's parameters (``trajectory.*``, ``loss.*``, ``fallback_gains.*`` and
+    the gains, which start at the drive's start) where ``setup`` differs from the
+    controller's defaults: none for the paper's drive."""
+    base = ExperimentConfig()
+    e = setup.experiment
+    out: list[tuple[str, float]] = []
+    for section in ('trajectory', 'loss'):
+        mine, theirs = getattr(e, section), getattr(base, section)
+        for f in dataclasses.fields(mine):
+            v = getattr(mine, f.name)
+            if v != getattr(theirs, f.name):
+                out.append((f'{section}.{f.name}', v))
+    if e.fallback_gains != base.fallback_gains:
+        start = e.fallback_gains.as_tuple()
+        out.extend((f'fallback_gains.{n}', v) for n, v in zip(GAIN_NAMES, start, strict=True))
+        out.extend(zip(GAIN_NAMES, start, strict=True))
+    return tuple(out)
+
+
+def tuner_setup(drive_config: str | Path | None) -> DriveSetup | None:
+    """The setup the tuner takes from ``--drive-config``: a packaged drive's name gives its
+    setup (its experiment on the controller, its box and start for the optimiser unless
+    ``--params`` is given); a file path, or none, gives None (the defaults, as before)."""
+    if drive_config is None or str(drive_config) not in PACKAGED_NAMES:
+        return None
+    return drive_setup(str(drive_config))

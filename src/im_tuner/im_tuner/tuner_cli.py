@@ -117,7 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         metavar='FILE',
         help='tuner parameter file: search box, start point, satisfactory loss '
-        "(default: the packaged config/tuner.yaml, the paper's motor)",
+        "(default: the packaged config/tuner.yaml, the paper's motor, or a packaged "
+        "--drive-config's own)",
     )
     ap.add_argument(
         '--remeasure',
@@ -180,10 +181,12 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         '--drive-config',
         type=Path,
-        metavar='FILE',
+        metavar='FILE|NAME',
         help='drive parameter file of a bench the tuner starts: Ts and isq_max for the '
         "controller, and the simulator's motor or your --drive class's config "
-        "(default: the paper's 750 W motor; an external bench's controller has its own)",
+        "(default: the paper's 750 W motor; an external bench's controller has its own). "
+        "A packaged drive's name (im3700w-j3, ...; docs/drive-family.md) also gives the "
+        'controller its experiment and the optimiser its box and start',
     )
     ap.add_argument(
         '--discovery-timeout',
@@ -314,10 +317,6 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
             f'--drive {cli.drive}: a drive is plugged into the composed real-time bench '
             'only (--bench realtime)'
         )
-    try:
-        params = load_params(cli.params)
-    except TunerParamsError as exc:
-        raise UsageError(str(exc)) from None
     if cli.drive_config is not None:
         from im_drive_sim.params import ConfigError, load_config
 
@@ -325,6 +324,15 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
             load_config(cli.drive_config)
         except ConfigError as exc:
             raise UsageError(str(exc)) from None
+    try:
+        params = load_params(cli.params)
+    except TunerParamsError as exc:
+        raise UsageError(str(exc)) from None
+    if cli.params is None:  # a packaged drive's own box and start (docs/drive-family.md)
+        from . import family
+
+        setup = family.tuner_setup(cli.drive_config)
+        params = params if setup is None else setup.params
     out = cli.out
     if out is not None and out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise UsageError(

@@ -62,3 +62,46 @@ def test_rule(name):
     )
     assert (e.control.Ts, e.control.isq_max) == (s.drive.Ts, m.isq_max)
     assert s.name in PACKAGED_NAMES
+
+
+def test_controller_parameters_and_the_tuner_setup():
+    from im_tuner.family import controller_parameters, tuner_setup
+
+    assert controller_parameters(drive_setup(None)) == ()
+    assert tuner_setup(None) is None and tuner_setup('some/motor.yaml') is None
+    s = tuner_setup('im7500w-j10')
+    assert s is not None and s.name == 'im7500w-j10'
+    p = dict(controller_parameters(s))
+    e = s.experiment
+    assert p['trajectory.a_max'] == e.trajectory.a_max and 'trajectory.v_max' not in p
+    assert p['loss.a1'] == e.loss.a1 and 'loss.threshold1' not in p
+    assert p['fallback_gains.k_pw'] == p['k_pw'] == e.fallback_gains.k_pw
+    assert p['fallback_gains.k_pos'] == 30.0
+
+
+@pytest.mark.parametrize('name', DRIVE_NAMES)
+def test_each_drive_start_is_finite_not_aborted_and_near_the_papers(name):
+    """The start over 2 experiments offline (the calibration's own bench): the weights make
+    each term the paper's start's (0.33 each, docs/controller.md), so the loss is 0.98."""
+    from im_tuner.bench.offline import OfflineBench
+
+    s = drive_setup(name)
+    bench = OfflineBench(s.drive, 0, s.experiment)
+    ms = [bench.measure(s.experiment.fallback_gains) for _ in range(2)]
+    assert not any(m.aborted or m.fault for m in ms)
+    for m in ms:
+        assert m.loss == pytest.approx(0.98, abs=0.02)
+        assert all(0.31 < t < 0.35 for t in m.terms)
+
+
+def test_bench_spec_gives_the_controller_a_packaged_drives_experiment():
+    from im_tuner.bench.spec import tuner_bench_spec
+    from im_tuner.runlog import RunConfig
+    from im_tuner.tuner_cli import build_parser
+
+    cli = build_parser().parse_args(['--drive-config', 'im3700w-j3', '--no-record'])
+    cli.compression = 'lz4'
+    run = RunConfig.from_dict({'algo': 'safe', 'drive_seed': 1, 'drive': 'sim'})
+    ctl = dict(tuner_bench_spec(cli, run, resumed=False).controller_parameters)
+    assert ctl['drive_config_file'] == 'im3700w-j3'
+    assert ctl['trajectory.a_max'] == drive_setup('im3700w-j3').experiment.trajectory.a_max

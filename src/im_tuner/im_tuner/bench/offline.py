@@ -240,10 +240,16 @@ class OfflineBench:
     :class:`~im_tuner.tuning.Measurer`: the study runs the tuner's own ``TuningRun`` on it.
     """
 
-    def __init__(self, drive: DriveConfig, drive_seed: int) -> None:
+    def __init__(
+        self, drive: DriveConfig, drive_seed: int, experiment: ExperimentConfig | None = None
+    ) -> None:
+        """``experiment``: the drive's (``im_tuner.family.drive_setup``); None: the
+        default ``ExperimentConfig()`` (Ts and isq_max are taken from ``drive`` either way);
+        the controller starts with its fallback gains."""
         self.sim = DriveSim(drive, seed=drive_seed)
         self.sim.reset(omega=0.0, fluxed=True)  # at rest, half a count in (start_position)
-        self.runner = ExperimentRunner(config_for_drive(None, self.sim), Gains())
+        cfg = config_for_drive(experiment, self.sim)
+        self.runner = ExperimentRunner(cfg, cfg.fallback_gains)
         self.runner.reset(self.sim.theta_meas)
         self.next_id = 0
 

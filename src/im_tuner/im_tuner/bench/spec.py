@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 from im_drive_sim import rt
 from im_drive_sim.cli import UsageError
 
+from .. import family
 from ..benches import LOCKSTEP_BENCHES, SIM_BENCHES, is_simulated
 
 if TYPE_CHECKING:
@@ -219,12 +220,15 @@ def tuner_bench_spec(
         model = cli.model
         config = str(cli.drive_config) if cli.drive_config else None
     drive: list[tuple[str, Any]] = [('seed', run.drive_seed)]
-    ctl = []
+    ctl: list[tuple[str, Any]] = []
     if model:
         drive.append(('model', model))
     if config:
         drive.append(('config_file', config))
         ctl.append(('drive_config_file', config))
+        setup = family.tuner_setup(config)  # a packaged drive: its experiment and start
+        if setup is not None:
+            ctl.extend(family.controller_parameters(setup))
     return BenchSpec(
         requested=requested,
         drive=run.drive or 'sim',

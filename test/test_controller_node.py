@@ -531,7 +531,7 @@ def test_real_time_mode_runs_an_experiment(procs, ros_context):
 @pytest.mark.parametrize(
     'args, expect',
     [
-        (['--ros-args', '-p', 'k_pw:=9.0'], 'k_pw'),
+        (['--ros-args', '-p', 'k_pw:=900.0'], 'k_pw'),
         (['--ros-args', '-p', 'k_pw:=abc'], 'k_pw'),
         (['--ros-args', '-p', 'mode:=fast'], "'mode'"),
         (['--ros-args', '-p', 'safety.max_speed:=-1.0'], 'safety.max_speed'),

@@ -57,3 +57,23 @@ def test_unknown_drive_name_refused_in_one_line(tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and 'im2200w-j3' in lines[0] and 'im7500w-j10' in lines[0]
     assert not run.exists()
+
+
+def test_check_drive_passes_on_the_heaviest_drive_with_its_amplitude(procs, tmp_path):
+    """check_drive's default 0.5 A step is the paper motor's: on im7500w-j10 (38x its J/Kt)
+    it accelerates the shaft by 1 count; the drive's own amplitude (family.check_amplitude:
+    the paper's acceleration, at most 40 % of isq_max) passes every item."""
+    from im_tuner.family import check_amplitude
+
+    name = 'im7500w-j10'
+    amp = check_amplitude(drive_setup(name).drive)
+    assert 10.0 < amp <= 0.4 * 34.84
+    drive = procs.start([ROS2, 'run', 'im_drive_sim', 'drive_sim', '--config', name])
+    out_json = tmp_path / 'check.json'
+    check = ['--config', name, '--amplitude', f'{amp:.4g}', '--json', str(out_json)]
+    p = procs.start([ROS2, 'run', 'im_drive_sim', 'check_drive', *check])
+    out, err = p.communicate(timeout=90)
+    assert p.returncode == 0, f'{out}\n{err}'
+    data = json.loads(out_json.read_text())
+    assert all(i['passed'] for i in data['items'])
+    assert drive.poll() is None

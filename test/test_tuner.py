@@ -379,7 +379,7 @@ def test_bad_files_one_line_exit_2(tmp_path):
         assert proc.returncode == 2 and len(lines) == 1 and expect in lines[0], proc.stderr
     full = yaml.safe_load(bad.read_text())
     full['search_box'] = {n: {'lo': 0.0, 'hi': 1.0, 'start': 0.5} for n in GAINS}
-    full['search_box']['k_iw'] = {'lo': 0.0, 'hi': 900.0, 'start': 20.0}
+    full['search_box']['k_iw'] = {'lo': 0.0, 'hi': 90000.0, 'start': 20.0}
     bad.write_text(yaml.safe_dump(full))
     proc = tuner('--params', str(bad), timeout=60)
     assert proc.returncode == 2 and "leaves the controller's accepted range" in proc.stderr

@@ -5,22 +5,24 @@ Pure (no rclpy). ``drive_setup(drive, realism, model)`` is the seam the tuner an
 share: the drive's config, its experiment (``ExperimentConfig`` with Ts/isq_max from the
 drive) and its tuner parameters (box, start, satisfactory loss). The paper's 750 W motor
 (``paper_750w``, the default) gives exactly today's ``ExperimentConfig()`` and packaged
-``tuner.yaml``; every other drive is scaled from it by three ratios of the drive file's
-constants to the paper file's (each exactly 1.0 for the paper's file):
+``tuner.yaml``; every other drive is scaled from it by ratios of the drive file's constants
+to the paper file's (each exactly 1.0 for the paper's file):
 
 * ``accel = (T_rated/J) / (T_rated/J)_paper``: the trajectory's ``a_max`` (600 rad/s^2 is
-  0.6 T_rated/J for the paper: the move takes the same fraction of rated torque), and the
-  weights a1, a2 divided by it (position and speed errors grow with the acceleration the
-  move and the load step ask);
+  0.6 T_rated/J for the paper: the move asks the same fraction of rated torque);
+  ``v_max`` stays 40 rad/s, capped by the rated speed;
 * ``torque = T_rated / T_rated_paper``: the load step (70 % of rated torque);
-* ``current = (T_rated/Kt) / (T_rated/Kt)_paper``: the weight a3 divided by it (f3 is in
-  amperes of torque current);
 * ``inertia = (J/Kt) / (J/Kt)_paper``: k_pw and k_iw of the start, of the box and of the
   fallback gains multiplied by it (the speed loop's gain k_pw Kt/J and its integral
   corner k_iw/k_pw stay the paper's: the same loop bandwidths); k_pos, tau_sm, tau_eq,
-  the thresholds and the satisfactory loss kept.
-
-``v_max`` stays 40 rad/s, capped by the rated speed.
+  the thresholds and the satisfactory loss kept;
+* the weights a1..a3: the paper's rule (each term of the hand-tuned start about 1/3)
+  applied to the drive: a_j = a_j,paper term_j,paper / term_j,drive, the terms of each
+  start measured on its own drive (offline bench, full model, ideal, seed 0, the
+  supervisor off, ``CALIBRATION_EXPERIMENTS`` experiments; cached per process). A fixed
+  scaling (a1, a2 / accel, a3 / the rated torque current's ratio) was tried first: the
+  slower moves of the heavier drives last longer and the load step's error does not
+  scale with it, so the terms grew to 0.6-2.3 and the ratio-10 starts were stopped.
 """
 
 from __future__ import annotations
@@ -48,9 +50,11 @@ __all__ = [
     'PACKAGED_NAMES',
     'DriveScales',
     'DriveSetup',
+    'check_amplitude',
     'controller_parameters',
     'drive_scales',
     'drive_setup',
+    'family_table',
     'tuner_setup',
 ]
 
@@ -78,7 +82,6 @@ class DriveScales:
 
     accel: float  # [-] (T_rated/J) / paper's: a_max
     torque: float  # [-] T_rated / paper's: load step
-    current: float  # [-] (T_rated/Kt) / paper's: weight a3
     inertia: float  # [-] (J/Kt) / paper's: k_pw, k_iw
 
 
@@ -97,7 +100,6 @@ def drive_scales(m: MachineParams) -> DriveScales:
     return DriveScales(
         accel=(m.rated_torque * p.J) / (m.J * p.rated_torque),
         torque=m.rated_torque / p.rated_torque,
-        current=(m.rated_torque * p.Kt) / (m.Kt * p.rated_torque),
         inertia=(m.J * p.Kt) / (p.J * m.Kt),
     )
 
@@ -226,3 +228,54 @@ def tuner_setup(drive_config: str | Path | None) -> DriveSetup | None:
     if drive_config is None or str(drive_config) not in PACKAGED_NAMES:
         return None
     return drive_setup(str(drive_config))
+
+
+#: ``check_drive``'s default current step [A] (the paper's motor) and the largest fraction
+#: of isq_max a family drive's step takes
+CHECK_AMPLITUDE = 0.5
+CHECK_AMPLITUDE_MAX = 0.4
+
+
+def check_amplitude(drive: DriveConfig) -> float:
+    """``check_drive --amplitude`` for ``drive`` [A]: the default 0.5 A times the drive's
+    J/Kt ratio to the paper's (the same acceleration of the shaft), at most 40 % of
+    isq_max (check_drive refuses more than 50 %)."""
+    m = drive.machine
+    return min(CHECK_AMPLITUDE * drive_scales(m).inertia, CHECK_AMPLITUDE_MAX * m.isq_max)
+
+
+def family_table(names: tuple[str, ...] = DRIVE_NAMES, experiments: int = 3) -> str:
+    """Markdown table of each drive's setup and its start measured offline (``experiments``
+    experiments from rest, drive seed 0, the drive file's own model and realism): the
+    table of docs/drive-family.md (``python -m im_tuner.family``)."""
+    from .bench.offline import OfflineBench
+
+    head = (
+        '| drive | J_total [kg m^2] | a_max [rad/s^2] | load [N m] | k_pw [A s/rad] | '
+        'k_iw [A/rad] | a1, a2, a3 | start loss (min-max) | terms | aborted | '
+        'check_drive A [A] |\n|' + '---|' * 11
+    )
+    rows = [head]
+    for name in names:
+        s = drive_setup(name)
+        e, g = s.experiment, s.experiment.fallback_gains
+        bench = OfflineBench(s.drive, 0, e)
+        ms = [bench.measure(g) for _ in range(experiments)]
+        loss = [m.loss for m in ms]
+        terms = [sum(m.terms[j] for m in ms) / len(ms) for j in range(3)]
+        w = e.loss
+        rows.append(
+            f'| {name} | {s.drive.machine.J:.4g} | {e.trajectory.a_max:.1f} | '
+            f'{e.trajectory.load_torque:.3g} | {g.k_pw:.4g} | {g.k_iw:.4g} | '
+            f'{w.a1:.3g}, {w.a2:.3g}, {w.a3:.3g} | {sum(loss) / len(loss):.4f} '
+            f'({min(loss):.4f}-{max(loss):.4f}) | '
+            f'{terms[0]:.3f}, {terms[1]:.3f}, {terms[2]:.3f} | '
+            f'{sum(m.aborted for m in ms)}/{len(ms)} | {check_amplitude(s.drive):.3g} |'
+        )
+    return '\n'.join(rows)
+
+
+if __name__ == '__main__':  # python -m im_tuner.family [EXPERIMENTS]
+    import sys
+
+    print(family_table(experiments=int(sys.argv[1]) if len(sys.argv) > 1 else 3))

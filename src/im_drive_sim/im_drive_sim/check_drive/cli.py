@@ -8,7 +8,7 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
-from ..cli import Parser, UsageError, check_ros_args, input_file, output_file
+from ..cli import Parser, UsageError, check_ros_args, drive_file, output_file
 from .evaluate import json_ready
 from .judges import summary_line
 from .probe import DriveLost, Interrupted
@@ -33,9 +33,10 @@ def parse_args(argv: list[str]) -> Options:
     )
     ap.add_argument(
         '--config',
-        metavar='FILE',
-        type=input_file,
-        help='drive parameter file (Ts, isq_max, encoder); default: the packaged motor',
+        metavar='FILE|NAME',
+        type=drive_file,
+        help='drive parameter file or packaged drive name (Ts, isq_max, encoder); '
+        'default: the packaged motor',
     )
     ap.add_argument(
         '--amplitude',

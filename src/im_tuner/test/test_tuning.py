@@ -349,7 +349,7 @@ def _box(**over):
         ({'search_box': {}}, 'missing key satisfactory_loss'),
         ({**_box(), 'extra': 1}, "unknown key(s) ['extra']"),
         (_box(k_pw={'lo': 1.0, 'hi': 0.5, 'start': 0.7}), 'search_box.k_pw: lo must be below hi'),
-        (_box(k_pw={'lo': 0.1, 'hi': 900.0, 'start': 0.7}), "leaves the controller's accepted range"),
+        (_box(k_pw={'lo': 0.1, 'hi': 900, 'start': 0.7}), "leaves the controller's accepted range"),
         (_box(k_iw={'lo': 0.0, 'hi': 100.0, 'start': 150.0}), 'search_box.k_iw.start 150'),
         (_box(tau_eq={'lo': 0.0, 'hi': float('nan'), 'start': 0.0}), 'search_box.tau_eq.hi'),
         (_box(k_pos={'lo': True, 'hi': 10.0, 'start': 5.0}), 'search_box.k_pos.lo'),

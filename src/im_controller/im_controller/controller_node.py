@@ -45,7 +45,7 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from im_drive_sim.cdr import Float64ArrayWire
-from im_drive_sim.cli import Parser, drive_file, parse_cli, run_cli
+from im_drive_sim.cli import Parser, add_config_option, parse_cli, run_cli
 from im_drive_sim.client import DriveClient
 from im_drive_sim.contract import MODES
 from im_drive_sim.qos import RECORDED_QOS
@@ -483,12 +483,7 @@ def _parser() -> argparse.ArgumentParser:
         'name:=value (see docs/controller.md).',
     )
     ap.add_argument('--mode', choices=MODES, help='lockstep (default) or realtime')
-    ap.add_argument(
-        '--config',
-        metavar='FILE|NAME',
-        type=drive_file,
-        help="the drive's parameter file or packaged name (Ts, isq_max)",
-    )
+    add_config_option(ap, 'Ts and isq_max')
     return ap
 
 

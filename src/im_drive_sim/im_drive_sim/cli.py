@@ -158,6 +158,17 @@ def output_file(text: str) -> Path:
     return p
 
 
+def add_config_option(parser: argparse.ArgumentParser, what: str) -> None:
+    """The ``--config FILE|NAME`` option of every executable that loads a drive file:
+    ``what`` it takes from it."""
+    parser.add_argument(
+        '--config',
+        metavar='FILE|NAME',
+        type=drive_file,
+        help=f'drive parameter file (YAML) or packaged drive name (im3700w-j3, ...): {what}',
+    )
+
+
 def drive_file(text: str) -> Path:
     """A drive file to be read, or a packaged drive's name (``family.PACKAGED_NAMES``;
     ``params.load_config`` takes either): a bare name that is neither is refused naming

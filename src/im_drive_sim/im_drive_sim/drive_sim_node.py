@@ -34,7 +34,7 @@ from std_msgs.msg import Float64MultiArray
 
 from . import contract, period_kernel, rt
 from .cdr import ClockWire, Float64ArrayWire, JointStateWire
-from .cli import Parser, drive_file, int_in, parse_cli, run_cli
+from .cli import Parser, add_config_option, int_in, parse_cli, run_cli
 from .command_latch import CommandLatch, HeldCommand
 from .contract import (
     CMD_ISQ,
@@ -483,12 +483,7 @@ def _parser() -> argparse.ArgumentParser:
         'are shortcuts for them. See docs/interfaces.md.',
     )
     parser.add_argument('--mode', choices=MODES, help='lockstep (default) or realtime')
-    parser.add_argument(
-        '--config',
-        metavar='FILE|NAME',
-        type=drive_file,
-        help='drive parameter file (YAML) or a packaged drive (im3700w-j3, ...)',
-    )
+    add_config_option(parser, 'the simulated motor')
     parser.add_argument('--model', choices=('full', 'reduced'), help='model fidelity')
     parser.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
     parser.add_argument(

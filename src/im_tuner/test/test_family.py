@@ -30,6 +30,14 @@ def test_paper_setup_is_todays_exactly(drive):
     assert s.experiment.fallback_gains == Gains()
 
 
+def test_the_papers_experiment_does_not_depend_on_realism_or_model():
+    s = drive_setup('paper_750w', realism='bench', model='reduced')
+    assert s.experiment == _today() and s.params == load_params(None)
+    assert s.drive.realism == 'bench' and s.drive.machine.coulomb_torque > 0.0
+    other = drive_setup('im750w-j3', realism='bench')
+    assert other.experiment == drive_setup('im750w-j3').experiment  # calibrated on ideal
+
+
 def test_realism_and_model_reach_the_drive():
     s = drive_setup('im3700w-j3', realism='bench', model='reduced')
     assert (s.drive.realism, s.drive.model) == ('bench', 'reduced')

@@ -8,7 +8,7 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
-from ..cli import Parser, UsageError, check_ros_args, drive_file, output_file
+from ..cli import Parser, UsageError, add_config_option, check_ros_args, output_file
 from .evaluate import json_ready
 from .judges import summary_line
 from .probe import DriveLost, Interrupted
@@ -31,13 +31,7 @@ def parse_args(argv: list[str]) -> Options:
     ap.add_argument(
         '--namespace', help='namespace of the drive (also: --ros-args -r __ns:=/bench1)'
     )
-    ap.add_argument(
-        '--config',
-        metavar='FILE|NAME',
-        type=drive_file,
-        help='drive parameter file or packaged drive name (Ts, isq_max, encoder); '
-        'default: the packaged motor',
-    )
+    add_config_option(ap, 'Ts, isq_max, encoder; default: the packaged motor')
     ap.add_argument(
         '--amplitude',
         type=float,

@@ -31,7 +31,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from im_drive_sim.cli import Parser, UsageError, drive_file, int_in, parse_cli
+from im_drive_sim.cli import Parser, UsageError, add_config_option, int_in, parse_cli
 from im_drive_sim.params import ConfigError, load_config
 from im_drive_sim.runtime import RosSession
 
@@ -79,12 +79,7 @@ def _parser() -> argparse.ArgumentParser:
         action='store_true',
         help='run drive_sim and controller as two processes (default: one)',
     )
-    ap.add_argument(
-        '--config',
-        metavar='FILE|NAME',
-        type=drive_file,
-        help='drive parameter file (YAML) or a packaged drive (im3700w-j3, ...)',
-    )
+    add_config_option(ap, 'the simulated motor')
     ap.add_argument('--model', choices=('full', 'reduced'), help='drive model fidelity')
     ap.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
     for flag, kw in BAG_OPTIONS:

@@ -542,7 +542,8 @@ def _with_base(name: str, path: Path, data: Mapping[str, Any]) -> dict[str, Any]
 
     A real drive's file needs only what the controller reads (``Ts``, ``machine.isq_max``)
     and what is really known; ``base`` gives the rest (a packaged name such as
-    ``paper_750w``, or a path relative to this file). One level: a base has no base."""
+    ``paper_750w`` or ``im3700w-j3``, or a path relative to this file). One level: a base
+    has no base, but a packaged drive may be one (its own base is its motor's file)."""
     base = data['base']
     if not isinstance(base, str) or not base:
         raise ConfigError(f'{name}: base must be a file name, got {base!r}')
@@ -552,6 +553,8 @@ def _with_base(name: str, path: Path, data: Mapping[str, Any]) -> dict[str, Any]
         bdata = yaml.safe_load(bp.read_text(encoding='utf-8'))
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
         raise ConfigError(f'{name}: base {base!r}: cannot read {bp} ({exc})') from None
+    if isinstance(bdata, Mapping) and 'base' in bdata and bp == packaged:
+        bdata = _with_base(bp.name, bp, bdata)  # a packaged drive: its motor's file under it
     if not isinstance(bdata, Mapping) or 'base' in bdata:
         raise ConfigError(f'{name}: base {base!r}: not a complete drive file (or has a base)')
     merged = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in bdata.items()}

@@ -97,3 +97,15 @@ def test_command_line_drive_file_takes_names_and_refuses_unknown_ones(tmp_path, 
         drive_file('missing.yaml')
     (tmp_path / 'mine.yaml').write_text('x: 1')
     assert drive_file('mine.yaml') == tmp_path.joinpath('mine.yaml').relative_to(tmp_path)
+
+
+def test_a_users_file_may_take_a_packaged_drive_as_its_base(tmp_path):
+    mine = tmp_path / 'mine.yaml'
+    mine.write_text('base: im7500w-j3\nmachine:\n  isq_max: 30.0\n')
+    cfg = load_config(mine)
+    assert cfg.machine.J == load_config('im7500w-j3').machine.J == 0.1372
+    assert cfg.machine.isq_max == 30.0 and cfg.machine.Rs == 0.7384
+    chain = tmp_path / 'chain.yaml'
+    chain.write_text('base: mine.yaml\n')  # a user's base with a base: still one level
+    with pytest.raises(ConfigError, match='has a base'):
+        load_config(chain)

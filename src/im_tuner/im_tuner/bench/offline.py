@@ -240,10 +240,14 @@ class OfflineBench:
     :class:`~im_tuner.tuning.Measurer`: the study runs the tuner's own ``TuningRun`` on it.
     """
 
-    def __init__(self, drive: DriveConfig, drive_seed: int) -> None:
+    def __init__(
+        self, drive: DriveConfig, drive_seed: int, experiment: ExperimentConfig | None = None
+    ) -> None:
+        """``experiment``: the experiment (None: the default one), its Ts and isq_max
+        taken from the drive."""
         self.sim = DriveSim(drive, seed=drive_seed)
         self.sim.reset(omega=0.0, fluxed=True)  # at rest, half a count in (start_position)
-        self.runner = ExperimentRunner(config_for_drive(None, self.sim), Gains())
+        self.runner = ExperimentRunner(config_for_drive(experiment, self.sim), Gains())
         self.runner.reset(self.sim.theta_meas)
         self.next_id = 0
 

@@ -44,9 +44,7 @@ def drive_setup(
     default) on the realism profile ``realism`` (None: the file's own) and drive model
     ``model`` (None: the file's).  ValueError (one line) for an unknown name or profile."""
     if realism is not None and realism not in REALISM_PROFILES:
-        raise ValueError(
-            f'realism must be one of {", ".join(REALISM_PROFILES)}, got {realism!r}'
-        )
+        raise ValueError(f'realism must be one of {", ".join(REALISM_PROFILES)}, got {realism!r}')
     name = DEFAULT_DRIVE if drive is None else drive
     if name in DRIVES:
         path: str | None = DRIVES[name]

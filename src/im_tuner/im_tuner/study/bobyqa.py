@@ -24,6 +24,7 @@ while its process runs one run at a time (the local pool; a Dask worker with
 
 from __future__ import annotations
 
+import contextlib
 import queue
 import threading
 
@@ -119,14 +120,10 @@ class BobyqaRun:
         if t is None or not t.is_alive():
             return
         while t.is_alive():
-            try:  # a blocked objective takes the sentinel and raises _Closed
+            with contextlib.suppress(queue.Full):  # a blocked objective raises _Closed
                 self._losses.put_nowait(None)
-            except queue.Full:
-                pass
-            try:  # the solver may be blocked putting its next point
+            with contextlib.suppress(queue.Empty):  # the solver may wait to put a point
                 self._points.get_nowait()
-            except queue.Empty:
-                pass
             t.join(0.05)
 
     # -- the solver's side (its thread) -----------------------------------------------------

@@ -13,7 +13,7 @@ import dataclasses
 import math
 import os
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from .. import optim
 
@@ -187,11 +187,7 @@ def grid(algos: tuple[str, ...] = PAPER_ALGOS) -> list[Cell]:
 def recommended(algos: tuple[str, ...]) -> list[Cell]:
     """One cell per algorithm: its recommended configuration (``RECOMMENDED``), as it
     stands in the full grid (same label, place and options)."""
-    cells = []
-    for c in grid(algos):
-        if c.label == RECOMMENDED.get(c.algo):
-            cells.append(c)
-    return cells
+    return [c for c in grid(algos) if c.label == RECOMMENDED.get(c.algo)]
 
 
 @dataclass(frozen=True)
@@ -216,7 +212,7 @@ class StudySpec:
 
     #: fields written to study.json only when they differ from these defaults (a study
     #: without them writes the same file as before they existed)
-    NEW_FIELDS = {'drives': (), 'realism': None, 'full_grid': True}
+    NEW_FIELDS: ClassVar[dict[str, Any]] = {'drives': (), 'realism': None, 'full_grid': True}
 
     def __post_init__(self) -> None:
         for name, lo in (('runs', 1), ('budget', 1)):
@@ -260,11 +256,6 @@ class StudySpec:
         or neCGA."""
         return self.full_grid and any(a in PAPER_ALGOS for a in self.algos)
 
-    @property
-    def family(self) -> bool:
-        """A study of several drives (one study per drive, :meth:`for_drive`)."""
-        return len(self.drives) > 1
-
     def for_drive(self, name: str) -> StudySpec:
         """The study of drive ``name`` (one of :attr:`drives`)."""
         return dataclasses.replace(self, drives=(name,))
@@ -272,8 +263,8 @@ class StudySpec:
     def setup(self) -> DriveSetup:
         """The drive's set-up (``im_tuner.family.drive_setup``): drive, experiment,
         tuner parameters.  ValueError for an unknown drive or a bad file."""
-        if self.family:
-            raise ValueError('a family study has a set-up per drive (for_drive)')
+        if len(self.drives) > 1:
+            raise ValueError('a study of several drives has a set-up per drive (for_drive)')
         from ..family import drive_setup
 
         name = self.drives[0] if self.drives else self.drive_config

@@ -210,6 +210,14 @@ def _build_parser() -> argparse.ArgumentParser:
         help='re-tabulate an existing study (no new experiments; with '
         '--satisfactory); writes into DIR unless --out',
     )
+    ap.add_argument(
+        '--beside',
+        type=Path,
+        metavar='DIR',
+        help="also write beside.md: this study's Tables I-III beside those of the study in "
+        "DIR (the same grid, e.g. on another --realism) and the paper's, and the paper's "
+        'conclusions on both',
+    )
     ap.add_argument('--quiet', action='store_true', help='no progress line')
     return ap
 
@@ -312,6 +320,19 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
     return spec
 
 
+def _beside(cli: argparse.Namespace, res: StudyResult | FamilyResult | None) -> StudyResult:
+    """The study of ``--beside DIR``, checked: a single study with Tables I-III."""
+    if cli.drives or isinstance(res, FamilyResult):
+        raise StudyError('--beside compares the Tables I-III of two single-drive studies')
+    try:
+        other = load(cli.beside)
+    except ValueError as exc:
+        raise StudyError(f'--beside {exc}') from None
+    if not other.spec.paper_tables:
+        raise StudyError(f"--beside {cli.beside}: has no Tables I-III (the paper's grids)")
+    return other
+
+
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if args is None else args)
     command = ' '.join(['ros2 run im_tuner study', *(shlex.quote(a) for a in argv)])
@@ -335,6 +356,8 @@ def main(args: list[str] | None = None) -> int:
             spec = _spec(cli)
             stamp = _dt.datetime.now(_dt.UTC).strftime('%Y_%m_%d-%H_%M_%S')
             out = cli.out or Path('bags') / f'study_{spec.model}_{stamp}'
+        if cli.beside is not None:
+            cli.beside_res = _beside(cli, res)
         if out.exists() and not out.is_dir():
             raise StudyError(f'--out {out}: exists and is not a directory')
         if cli.source is None and out.is_dir() and (out / META_FILE).exists():
@@ -415,6 +438,11 @@ def _run(
             st = compute(res, cli.satisfactory)
             writing = True
             paths = write_outputs(st, out, command)
+            if cli.beside is not None:
+                from .markdown import beside_md
+
+                paths['beside'] = out / 'beside.md'
+                paths['beside'].write_text(beside_md(st, compute(cli.beside_res, cli.satisfactory)))
     except (KeyboardInterrupt, _Terminated) as exc:
         what = 'terminated' if isinstance(exc, _Terminated) else 'interrupted'
         if writing:

@@ -111,7 +111,7 @@ reproduction: setup
 	rm -rf docs/reproduction && mkdir -p docs/reproduction/family
 	cp $(STUDY_OUT)/tables.png $(STUDY_OUT)/convergence.png $(STUDY_OUT)/comparison.png docs/reproduction/
 	cd $(FAMILY_OUT) && for d in */; do mkdir -p $(CURDIR)/docs/reproduction/family/$$d && \
-	    cp $$d/*.png $(CURDIR)/docs/reproduction/family/$$d; done
+	    cp $$d/comparison.png $(CURDIR)/docs/reproduction/family/$$d; done
 	{ sed -e 's#](tables.png)#](reproduction/tables.png)#' \
 	      -e 's#](convergence.png)#](reproduction/convergence.png)#' \
 	      -e 's#](comparison.png)#](reproduction/comparison.png)#' \

@@ -76,9 +76,8 @@ def write_family_outputs(fs: FamilyStats, out: Path, command: str) -> dict[str, 
     figures: dict[str, dict[str, str]] = {}
     for (name, st), d in zip(fs.drives, drive_dirs(fs.fam.spec.drives), strict=True):
         sub = write_outputs(st, out / d, command)
-        figures[name] = {
-            k[: -len('_png')]: f'{d}/{p.name}' for k, p in sub.items() if k.endswith('_png')
-        }
+        # the comparison only: the write-up links it (each drive's directory has the rest)
+        figures[name] = {'comparison': f'{d}/{sub["comparison_png"].name}'}
     paths = {'tables': out / 'family.txt', 'md': out / 'family.md'}
     paths['tables'].write_text(family_text(fs))
     paths['md'].write_text(family_md(fs, command, figures))
@@ -457,8 +456,11 @@ def _run(
     print(
         f'study written to {out}/: '
         + ', '.join(p.name for p in paths.values())
-        + (', study.npz, study.json, starts/' if spec is not None else '')
-        + (' and a directory per drive' if isinstance(res, FamilyResult) else '')
+        + (
+            ' and a study directory per drive'
+            if isinstance(res, FamilyResult)
+            else (', study.npz, study.json, starts/' if spec is not None else '')
+        )
     )
     return 0
 

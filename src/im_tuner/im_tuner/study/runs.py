@@ -348,7 +348,7 @@ def run_study(
     if jobs < 1:
         raise ValueError(f'jobs must be >= 1, got {jobs}')
     cells = spec.cells
-    drive, params, experiment = spec.drive(), spec.params(), spec.experiment()
+    drive, params, experiment = spec.loaded()
     t0 = time.perf_counter()
     # L_ref first: it also loads (or compiles and caches) the kernels before workers start,
     # so they do not all compile at once.  Per drive: its own hand-tuned start.

@@ -270,6 +270,17 @@ class StudySpec:
         name = self.drives[0] if self.drives else self.drive_config
         return drive_setup(name, self.realism, self.model)
 
+    def loaded(self) -> tuple[DriveConfig, TunerParams, ExperimentConfig]:
+        """(drive, tuner parameters, experiment), the files read once."""
+        from ..space import load_params
+
+        s = self.setup()
+        return (
+            s.drive,
+            load_params(self.params_file) if self.params_file else s.params,
+            s.experiment,
+        )
+
     def drive(self) -> DriveConfig:
         return self.setup().drive
 

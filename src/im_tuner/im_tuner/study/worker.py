@@ -38,7 +38,7 @@ def init_worker(spec: StudySpec) -> tuple[DriveConfig, TunerParams, ExperimentCo
     process and spec (thread-safe: a Dask worker may run several tasks at once)."""
     with _LOCK:
         if WORKER.get('spec') != spec:
-            drive, params, experiment = spec.drive(), spec.params(), spec.experiment()
+            drive, params, experiment = spec.loaded()
             WORKER.update(drive=drive, params=params, experiment=experiment, spec=spec)
         return WORKER['drive'], WORKER['params'], WORKER['experiment']
 

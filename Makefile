@@ -5,7 +5,8 @@
 #   make lint    ruff (lint + format check) over the tree, mypy over the pure modules
 #   make demo    the main job: ros2 run im_tuner tuner (its default algorithm; ALGO=necga ...)
 #   make bench   the benchmarks, printing their figures
-#   make reproduction  the paper's study (full grid) + every algorithm beyond it -> docs/reproduction.md
+#   make reproduction  the paper's study (full grid) + every algorithm beyond it, on `ideal` and
+#                      `bench`, and the study over drives -> docs/reproduction*.md
 # Every target does the set-up it needs first; a re-run with nothing changed is quick.
 
 PYTHON ?= python3
@@ -86,19 +87,41 @@ demo-drive: setup
 bench: setup
 	$(PY) bench/run_all.py
 
-# The paper's Tables I-III offline (issue 7): the full grid, then its write-up into docs/.
-STUDY_OUT := bags/study_reproduction
-# the paper's two (Tables I-III) and every algorithm beyond the paper (the comparison)
+# The paper's Tables I-III offline (issue 7) and beyond (issues 19, 29), then their write-up
+# into docs/: reproduction.md (the paper's drive on the `ideal` profile: Tables I-III and
+# every algorithm; then Tables I-III on the `bench` profile beside `ideal` and the paper's)
+# and reproduction-family.md (a study per drive on `bench`, the summary over the drives).
+# Hours at the defaults; a smoke run: make reproduction ARGS='--runs 3 --budget 10'.
+STUDY_OUT  := bags/study_reproduction
+BENCH_OUT  := bags/study_reproduction_bench
+FAMILY_OUT := bags/study_reproduction_family
+# the paper's two (Tables I-III) and every algorithm beyond it (the comparison)
 STUDY_ALGOS ?= spsa,necga,cga,pecga,rcga,cmaes,tpe,safe
+# the drives of the family study (packaged names or drive files), its runs and budget
+FAMILY_DRIVES ?= paper_750w
+FAMILY_RUNS   ?= 100
+FAMILY_BUDGET ?= 200
+STUDY := $(VENV)/bin/ros2 run im_tuner study
 reproduction: setup
-	rm -rf $(STUDY_OUT)
-	$(VENV)/bin/ros2 run im_tuner study --out $(STUDY_OUT) --algos $(STUDY_ALGOS) $(ARGS)
-	mkdir -p docs/reproduction
+	rm -rf $(STUDY_OUT) $(BENCH_OUT) $(FAMILY_OUT)
+	$(STUDY) --out $(STUDY_OUT) --algos $(STUDY_ALGOS) $(ARGS)
+	$(STUDY) --out $(BENCH_OUT) --algos spsa,necga --realism bench --beside $(STUDY_OUT) $(ARGS)
+	$(STUDY) --out $(FAMILY_OUT) --drives $(FAMILY_DRIVES) --realism bench \
+	    --runs $(FAMILY_RUNS) --budget $(FAMILY_BUDGET) $(ARGS)
+	rm -rf docs/reproduction && mkdir -p docs/reproduction/family
 	cp $(STUDY_OUT)/tables.png $(STUDY_OUT)/convergence.png $(STUDY_OUT)/comparison.png docs/reproduction/
-	sed -e 's#](tables.png)#](reproduction/tables.png)#' \
-	    -e 's#](convergence.png)#](reproduction/convergence.png)#' \
-	    -e 's#](comparison.png)#](reproduction/comparison.png)#' \
-	    $(STUDY_OUT)/reproduction.md > docs/reproduction.md
+	cd $(FAMILY_OUT) && for d in */; do mkdir -p $(CURDIR)/docs/reproduction/family/$$d && \
+	    cp $$d/comparison.png $(CURDIR)/docs/reproduction/family/$$d; done
+	{ sed -e 's#](tables.png)#](reproduction/tables.png)#' \
+	      -e 's#](convergence.png)#](reproduction/convergence.png)#' \
+	      -e 's#](comparison.png)#](reproduction/comparison.png)#' \
+	      $(STUDY_OUT)/reproduction.md; \
+	  cat $(BENCH_OUT)/beside.md; echo; \
+	  echo '## The study over a family of drives'; echo; \
+	  echo 'Every algorithm and the Py-BOBYQA reference on each drive of the family on the `bench` profile, the summary over the drives and the default against the goal of issue 29: [reproduction-family.md](reproduction-family.md).'; \
+	} > docs/reproduction.md
+	sed -e 's#](\([^)/]*\)/\([a-z_]*\).png)#](reproduction/family/\1/\2.png)#' \
+	    $(FAMILY_OUT)/family.md > docs/reproduction-family.md
 
 # Decode every message of a bag with Foxglove's own libraries (Node.js + npm; pinned in
 # tools/foxglove-check/package-lock.json): make foxglove-check BAG=bags/<run>/bag_0

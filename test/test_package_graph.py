@@ -35,6 +35,7 @@ ROSDEP = {
     'scipy': 'python3-scipy',
     'cma': 'python3-cma-pip',
     'optuna': 'python3-optuna-pip',
+    'pybobyqa': 'python3-py-bobyqa-pip',  # the study's reference row (issue 29)
     'dask': 'python3-dask',
     'distributed': 'python3-distributed',
 }

@@ -46,6 +46,7 @@ from im_drive_sim.params import DriveConfig, MachineParams, load_config
 from .space import SearchSpace, TunerParams, load_params
 
 __all__ = [
+    'DEFAULT_DRIVE',
     'DRIVE_NAMES',
     'PACKAGED_NAMES',
     'DriveScales',
@@ -57,6 +58,9 @@ __all__ = [
     'family_table',
     'tuner_setup',
 ]
+
+#: the packaged default drive (the paper's 750 W motor; ``drive_setup(None)``)
+DEFAULT_DRIVE = 'paper_750w'
 
 #: gains scaled with the drive's J/Kt (the speed loop's); the others are kept
 _SPEED_LOOP_GAINS = ('k_pw', 'k_iw')
@@ -193,7 +197,7 @@ def drive_setup(
     ref = cfg
     if (cfg.model, cfg.realism, cfg.seed) != tuple(_REFERENCE.values()):
         ref = load_config(drive, overrides=_REFERENCE)
-    name = 'paper_750w' if drive is None else str(drive)
+    name = DEFAULT_DRIVE if drive is None else str(drive)
     return DriveSetup(name, cfg, experiment_for(cfg, ref), params_for(cfg, name))
 
 

@@ -2,6 +2,7 @@
 
     ros2 run im_tuner study [--runs 100] [--budget 200] [--algos spsa,necga]
                             [--model full|reduced] [--jobs N] [--seed S] [--out DIR]
+                            [--realism ideal|bench] [--drives NAME,... [--full-grid]]
 
 The grid (paper, "Summary of experimental results"): SPSA over a in {a0/5, a0, 5 a0} x
 c in {c0/5, c0, 5 c0} (a0 = 0.0183, c0 = 0.03; A = 20, alpha = gamma = 0.3), neCGA over
@@ -34,11 +35,21 @@ when its final loss (the smallest measured non-aborted loss: the paper's final
 controller) is at most ``satisfactory`` (default 0.9: 10 % better than the hand-tuned
 start).  docs/reproduction.md says why.
 
+**Drives** (issue 29): a study's drive, experiment and tuner parameters come from
+``im_tuner.family.drive_setup`` (``StudySpec.drives``/``realism``; none given: the
+packaged drive, as before).  ``--drives A,B`` runs one study per drive (``drives``), each
+normalised by its own hand-tuned start, at each algorithm's recommended configuration
+(``spec.RECOMMENDED``) plus the outside reference row Py-BOBYQA (``bobyqa``), and sums them
+up over the drives (``summary``: mean and worst drive per method; the default against
+the issue's goal).
+
 Modules by job: ``spec`` (the grid and the spec; light: the command checks its options
 with it alone), ``results`` (StudyResult, study.npz/study.json), ``runs`` (one run = a
-TuningRun on the offline bench, the pool), ``cluster`` (the Dask scheduler checked),
-``stats`` (intervals, Tables I-III, the paper's values), ``text``, ``files`` (CSV, tuner
-commands), ``figures``, ``markdown`` (reproduction.md), ``cli``.
+TuningRun on the offline bench, the pool), ``bobyqa`` (Py-BOBYQA one evaluation at a
+time), ``drives`` (a study per drive, family.json), ``cluster`` (the Dask scheduler
+checked), ``stats`` (intervals, Tables I-III, the paper's values), ``summary`` (over
+drives), ``text``, ``files`` (CSV, tuner commands), ``figures``, ``markdown``
+(reproduction.md, beside.md, family.md), ``cli``.
 
 This package imports nothing heavy itself: the names below are loaded from ``runs`` (the
 optimisers, the numba kernels) on first use, so that ``python -m im_tuner.study`` with a

@@ -22,16 +22,19 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from im_drive_sim.cli import Parser, UsageError, int_in
+from im_drive_sim.params import REALISM_PROFILES
 
 from . import cluster as K
 from . import spec as S
+from .drives import FamilyResult, drive_dirs, is_family, load_family, save_family
 from .results import META_FILE, StudyResult, load, save
 from .spec import EXIT_USAGE, StudyError
 
 if TYPE_CHECKING:
     from .stats import StudyStats
+    from .summary import FamilyStats
 
-__all__ = ['main', 'write_outputs']
+__all__ = ['main', 'write_family_outputs', 'write_outputs']
 
 #: Exit status after SIGTERM (the shell's 128 + 15) and SIGINT (128 + 2).
 EXIT_TERMINATED = 143
@@ -54,13 +57,30 @@ def write_outputs(st: StudyStats, out: Path, command: str) -> dict[str, Path]:
     write_starts(st.res, out)
     paths['runs_csv'] = write_runs_csv(st, out)
     figs = {'convergence': fig_convergence(st), 'comparison': fig_comparison(st)}
-    if any(a in S.PAPER_ALGOS for a in st.res.spec.algos):
+    if st.res.spec.paper_tables:
         figs = {'tables': fig_tables(st), **figs}
     for name, fig in figs.items():
         paths[f'{name}_png'] = out / f'{name}.png'
         fig.savefig(paths[f'{name}_png'], dpi=110)
     paths['md'] = out / 'reproduction.md'
     paths['md'].write_text(reproduction_md(st, command, {k: f'{k}.png' for k in figs}))
+    return paths
+
+
+def write_family_outputs(fs: FamilyStats, out: Path, command: str) -> dict[str, Path]:
+    """Each drive's files (``write_outputs``) in its directory, then family.txt and
+    family.md (every drive's comparison, the summary, the goal lines) in ``out``."""
+    from .markdown import family_md
+    from .text import family_text
+
+    figures: dict[str, dict[str, str]] = {}
+    for (name, st), d in zip(fs.drives, drive_dirs(fs.fam.spec.drives), strict=True):
+        sub = write_outputs(st, out / d, command)
+        # the comparison only: the write-up links it (each drive's directory has the rest)
+        figures[name] = {'comparison': f'{d}/{sub["comparison_png"].name}'}
+    paths = {'tables': out / 'family.txt', 'md': out / 'family.md'}
+    paths['tables'].write_text(family_text(fs))
+    paths['md'].write_text(family_md(fs, command, figures))
     return paths
 
 
@@ -88,10 +108,30 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         '--algos',
-        default=','.join(S.PAPER_ALGOS),
+        default=None,
         help='comma-separated algorithms, each with its own small grid: '
         + ', '.join(S.STUDY_ALGOS)
-        + " (default: the paper's spsa,necga)",
+        + " (default: the paper's spsa,necga; with --drives every one)",
+    )
+    ap.add_argument(
+        '--drives',
+        metavar='NAME,...',
+        default=None,
+        help='a study per drive (packaged names, e.g. paper_750w, or drive files) and a '
+        'summary over them; each drive has its own experiment, search box, start and L_ref '
+        '(im_tuner.family); one row per algorithm at its recommended configuration, plus '
+        'the Py-BOBYQA reference row',
+    )
+    ap.add_argument(
+        '--realism',
+        choices=tuple(REALISM_PROFILES),
+        default=None,
+        help="the drives' realism profile (default: each drive file's own)",
+    )
+    ap.add_argument(
+        '--full-grid',
+        action='store_true',
+        help='with --drives: every configuration of each grid, not the recommended ones',
     )
     ap.add_argument(
         '--model',
@@ -169,6 +209,14 @@ def _build_parser() -> argparse.ArgumentParser:
         help='re-tabulate an existing study (no new experiments; with '
         '--satisfactory); writes into DIR unless --out',
     )
+    ap.add_argument(
+        '--beside',
+        type=Path,
+        metavar='DIR',
+        help="also write beside.md: this study's Tables I-III beside those of the study in "
+        "DIR (the same grid, e.g. on another --realism) and the paper's, and the paper's "
+        'conclusions on both',
+    )
     ap.add_argument('--quiet', action='store_true', help='no progress line')
     return ap
 
@@ -209,7 +257,19 @@ def max_jobs() -> int:
 
 
 def _spec(cli: argparse.Namespace) -> S.StudySpec:
-    algos = tuple(a.strip() for a in cli.algos.split(',') if a.strip())
+    drives: tuple[str, ...] = ()
+    if cli.drives is not None:
+        drives = tuple(d.strip() for d in cli.drives.split(',') if d.strip())
+        if not drives:
+            raise StudyError('--drives: no drive named')
+        if cli.drive_config is not None:
+            raise StudyError('--drives and --drive-config exclude each other')
+    elif cli.full_grid:
+        raise StudyError('--full-grid needs --drives (a study of one drive is the full grid)')
+    if cli.algos is None:
+        algos = S.STUDY_ALGOS if drives else S.PAPER_ALGOS
+    else:
+        algos = tuple(a.strip() for a in cli.algos.split(',') if a.strip())
     for a in algos:
         if a not in S.STUDY_ALGOS:
             raise StudyError(
@@ -242,24 +302,41 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
             remeasure=not cli.no_remeasure,
             drive_config=cli.drive_config,
             params_file=cli.params,
+            drives=drives,
+            realism=cli.realism,
+            full_grid=not drives or cli.full_grid,
         )
     except ValueError as exc:
         raise StudyError(f'--{exc}') from None  # the messages start with the option's name
     from ..space import TunerParamsError  # (the parameter files: once the options are good)
 
-    try:
-        spec.params()
-        spec.drive()
-    except (TunerParamsError, ValueError) as exc:
-        raise StudyError(str(exc)) from None
+    for one in [spec.for_drive(d) for d in drives] or [spec]:
+        try:
+            one.params()
+            one.drive()
+        except (TunerParamsError, ValueError) as exc:
+            raise StudyError(('--drives: ' if drives else '') + str(exc)) from None
     return spec
+
+
+def _beside(cli: argparse.Namespace, res: StudyResult | FamilyResult | None) -> StudyResult:
+    """The study of ``--beside DIR``, checked: a single study with Tables I-III."""
+    if cli.drives or isinstance(res, FamilyResult):
+        raise StudyError('--beside compares the Tables I-III of two single-drive studies')
+    try:
+        other = load(cli.beside)
+    except ValueError as exc:
+        raise StudyError(f'--beside {exc}') from None
+    if not other.spec.paper_tables:
+        raise StudyError(f"--beside {cli.beside}: has no Tables I-III (the paper's grids)")
+    return other
 
 
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if args is None else args)
     command = ' '.join(['ros2 run im_tuner study', *(shlex.quote(a) for a in argv)])
     spec: S.StudySpec | None = None  # a new study, or
-    res: StudyResult | None = None  # an existing one (--from)
+    res: StudyResult | FamilyResult | None = None  # an existing one (--from)
     try:
         cli = _build_parser().parse_args(argv)
         if cli.satisfactory is not None and not (
@@ -270,7 +347,7 @@ def main(args: list[str] | None = None) -> int:
             )
         if cli.source is not None:
             try:
-                res = load(cli.source)
+                res = load_family(cli.source)[0] if is_family(cli.source) else load(cli.source)
             except ValueError as exc:
                 raise StudyError(str(exc)) from None
             out = cli.out or cli.source
@@ -278,6 +355,8 @@ def main(args: list[str] | None = None) -> int:
             spec = _spec(cli)
             stamp = _dt.datetime.now(_dt.UTC).strftime('%Y_%m_%d-%H_%M_%S')
             out = cli.out or Path('bags') / f'study_{spec.model}_{stamp}'
+        if cli.beside is not None:
+            cli.beside_res = _beside(cli, res)
         if out.exists() and not out.is_dir():
             raise StudyError(f'--out {out}: exists and is not a directory')
         if cli.source is None and out.is_dir() and (out / META_FILE).exists():
@@ -302,6 +381,12 @@ def main(args: list[str] | None = None) -> int:
     except (StudyError, UsageError) as exc:
         print(f'error: study: {exc}', file=sys.stderr)
         return EXIT_USAGE
+    if cli.source is not None and (cli.drives or cli.realism or cli.full_grid):
+        print(
+            'error: study: --from re-tabulates: it takes no --drives, --realism or --full-grid',
+            file=sys.stderr,
+        )
+        return EXIT_USAGE
     return _run(cli, spec, res, out, command)
 
 
@@ -317,7 +402,7 @@ def _on_sigterm(_signum: int, _frame: Any) -> None:
 def _run(
     cli: argparse.Namespace,
     spec: S.StudySpec | None,
-    res: StudyResult | None,
+    res: StudyResult | FamilyResult | None,
     out: Path,
     command: str,
 ) -> int:
@@ -327,18 +412,36 @@ def _run(
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
     try:
-        if spec is not None:
+        if spec is not None and spec.drives:
+            res = _study_drives(cli, spec, out, command)
+            if res is None:
+                return EXIT_USAGE
+            writing = True
+            save_family(res, out)
+        elif spec is not None:
             res = _study(cli, spec, out, command)
             if res is None:
                 return EXIT_USAGE
             writing = True
             save(res, out)
         assert res is not None
-        from .stats import compute
+        if isinstance(res, FamilyResult):
+            from .summary import compute_family
 
-        st = compute(res, cli.satisfactory)
-        writing = True
-        paths = write_outputs(st, out, command)
+            fs = compute_family(res, cli.satisfactory)
+            writing = True
+            paths = write_family_outputs(fs, out, command)
+        else:
+            from .stats import compute
+
+            st = compute(res, cli.satisfactory)
+            writing = True
+            paths = write_outputs(st, out, command)
+            if cli.beside is not None:
+                from .markdown import beside_md
+
+                paths['beside'] = out / 'beside.md'
+                paths['beside'].write_text(beside_md(st, compute(cli.beside_res, cli.satisfactory)))
     except (KeyboardInterrupt, _Terminated) as exc:
         what = 'terminated' if isinstance(exc, _Terminated) else 'interrupted'
         if writing:
@@ -353,16 +456,39 @@ def _run(
     print(
         f'study written to {out}/: '
         + ', '.join(p.name for p in paths.values())
-        + (', study.npz, study.json, starts/' if spec is not None else '')
+        + (
+            ' and a study directory per drive'
+            if isinstance(res, FamilyResult)
+            else (', study.npz, study.json, starts/' if spec is not None else '')
+        )
     )
     return 0
 
 
-def _study(
+def _study_drives(
     cli: argparse.Namespace, spec: S.StudySpec, out: Path, command: str
+) -> FamilyResult | None:
+    """Each drive's study in turn (``_study``); None after a one-line error."""
+    results = []
+    for i, (d, sub) in enumerate(zip(spec.drives, drive_dirs(spec.drives), strict=True)):
+        if not cli.quiet:
+            print(f'study: drive {i + 1}/{len(spec.drives)}: {d}', file=sys.stderr)
+        res = _study(cli, spec.for_drive(d), out / sub, command, check_cluster=i == 0)
+        if res is None:
+            return None
+        results.append(res)
+    return FamilyResult(spec, results, command)
+
+
+def _study(
+    cli: argparse.Namespace,
+    spec: S.StudySpec,
+    out: Path,
+    command: str,
+    check_cluster: bool = True,
 ) -> StudyResult | None:
     """Check the cluster (if any) and run the study; None after a one-line error."""
-    if cli.cluster is not None:
+    if cli.cluster is not None and check_cluster:
         try:
             K.wait_for_scheduler(
                 cli.cluster,

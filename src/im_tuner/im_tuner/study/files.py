@@ -12,7 +12,9 @@ import yaml
 from im_controller.config import GAIN_NAMES
 
 from .. import optim
+from ..family import DEFAULT_DRIVE
 from .results import StudyResult
+from .spec import REFERENCE_ALGOS
 from .stats import (
     StudyStats,
     per_run,
@@ -28,6 +30,9 @@ def tuner_command(res: StudyResult, c: int, r: int, out: Path) -> str:
     """The tuner command that repeats run ``r`` of cell ``c`` on the ROS bench (its losses
     equal the study's bit for bit: test/test_study.py)."""
     cell, sp = res.cells[c], res.spec
+    if cell.algo in REFERENCE_ALGOS or sp.realism or (sp.drives and sp.drives[0] != DEFAULT_DRIVE):
+        # an outside reference row, or a drive/profile the tuner has no option for yet
+        return ''
     args = ['ros2', 'run', 'im_tuner', 'tuner', '--algo', cell.algo]
     for k, v in cell.opts.items():
         args += [f'--{k.replace("_", "-")}', repr(v)]
@@ -49,6 +54,7 @@ def tuner_command(res: StudyResult, c: int, r: int, out: Path) -> str:
         args += ['--no-start']
     if sp.drive_config:
         args += ['--drive-config', sp.drive_config]
+
     return ' '.join(shlex.quote(a) for a in args)
 
 

@@ -82,7 +82,11 @@ def save(res: StudyResult, out: Path | str) -> None:
     out.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out / ARRAYS_FILE, **{k: getattr(res, k) for k in StudyResult.ARRAYS})
     meta = {
-        'spec': dataclasses.asdict(res.spec),
+        'spec': {
+            k: v
+            for k, v in dataclasses.asdict(res.spec).items()
+            if k not in StudySpec.NEW_FIELDS or v != StudySpec.NEW_FIELDS[k]
+        },
         'cells': [dataclasses.asdict(c) for c in res.cells],
         'l_ref': res.l_ref,
         'l_ref_sem': res.l_ref_sem,
@@ -114,6 +118,7 @@ def load(out: Path | str) -> StudyResult:
     try:
         sp = dict(meta['spec'])
         sp['algos'] = tuple(sp['algos'])
+        sp['drives'] = tuple(sp.get('drives', ()))
         spec = StudySpec(**sp)
         cells = [
             Cell(c['algo'], c['label'], c['row'], c['col'], tuple(tuple(o) for o in c['options']))

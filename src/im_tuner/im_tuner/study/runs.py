@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from im_controller.config import GAIN_NAMES, Gains
+from im_controller.config import GAIN_NAMES, ExperimentConfig, Gains
 from im_drive_sim.params import DriveConfig
 
 from .. import optim
@@ -123,9 +123,15 @@ def prepare_run(
     opt_ss, drive_seed = run_seeds(rseed)
     kind = cell.start_kind
     space = dataclasses.replace(params.space, start=start_point(kind, rseed, params.space))
-    opt = optim.make_optimizer(
-        cell.algo, space.dim, opt_ss, None if kind == 'none' else space.start_u, **cell.opts
-    )
+    opt: Any
+    if cell.algo == 'bobyqa':  # the outside reference row (not a tuner algorithm)
+        from .bobyqa import BobyqaRun
+
+        opt = BobyqaRun(space.dim, opt_ss, space.start_u, spec.budget, **cell.opts)
+    else:
+        opt = optim.make_optimizer(
+            cell.algo, space.dim, opt_ss, None if kind == 'none' else space.start_u, **cell.opts
+        )
     return space, opt, drive_seed
 
 
@@ -135,12 +141,14 @@ def run_one(
     r: int,
     drive: DriveConfig | None = None,
     params: TunerParams | None = None,
+    experiment: ExperimentConfig | None = None,
 ) -> RunResult:
     """Run ``r`` of cell ``cell_index``: the tuner's own :class:`TuningRun` (reference,
     budget, best, re-measurement) on the offline bench, its records kept in memory."""
     cell = spec.cells[cell_index]
     drive = spec.drive() if drive is None else drive
     params = spec.params() if params is None else params
+    experiment = spec.experiment() if experiment is None else experiment
     space, opt, drive_seed = prepare_run(spec, cell_index, r, params)
     B = spec.budget
     iteration = np.empty(B, dtype=np.int32)
@@ -165,7 +173,12 @@ def run_one(
         reference=True,
         progress=progress,
     )
-    outcome = tuning.run(OfflineBench(drive, drive_seed))
+    try:
+        outcome = tuning.run(OfflineBench(drive, drive_seed, experiment))
+    finally:
+        close = getattr(opt, 'close', None)  # (BobyqaRun: its solver thread)
+        if close is not None:
+            close()
     wall = time.perf_counter() - t0
     if outcome != 'done':
         raise RuntimeError(f'study run {cell.label} #{r}: {outcome}')
@@ -201,13 +214,17 @@ def run_one(
 
 
 def reference_loss(
-    drive: DriveConfig, experiments: int = REF_EXPERIMENTS
+    drive: DriveConfig,
+    experiments: int = REF_EXPERIMENTS,
+    experiment: ExperimentConfig | None = None,
+    start: Gains | None = None,
 ) -> tuple[float, float, float]:
-    """L_ref: (mean, standard error of the mean) of the hand-tuned start's loss over
-    ``experiments`` consecutive experiments after the first from rest (drive file seed),
-    and that first one's loss.  Deterministic for a drive file and model."""
-    bench = OfflineBench(drive, drive.seed)
-    g = Gains()
+    """L_ref: (mean, standard error of the mean) of the hand-tuned start's loss (``start``;
+    None: the default gains) over ``experiments`` consecutive experiments after the first
+    from rest (drive file seed), and that first one's loss.  Deterministic for a drive
+    file and model."""
+    bench = OfflineBench(drive, drive.seed, experiment)
+    g = Gains() if start is None else start
     first = bench.measure(g).loss
     x = np.array([bench.measure(g).loss for _ in range(experiments)])
     return float(x.mean()), float(x.std(ddof=1) / math.sqrt(len(x))), float(first)
@@ -239,15 +256,17 @@ def _end_pool(pool: ProcessPoolExecutor) -> None:
 
 
 def _work(task: tuple[int, int]) -> RunResult:
-    return run_one(WORKER['spec'], task[0], task[1], WORKER['drive'], WORKER['params'])
+    return run_one(
+        WORKER['spec'], task[0], task[1], WORKER['drive'], WORKER['params'], WORKER['experiment']
+    )
 
 
 def run_task(spec: StudySpec, c: int, r: int) -> RunResult:
     """Run ``r`` of cell ``c`` in a worker of a Dask cluster: the drive and parameter
     files are loaded once per worker process and spec (thread-safe: a worker may run
     several tasks at once)."""
-    drive, params = init_worker(spec)
-    return run_one(spec, c, r, drive, params)
+    drive, params, experiment = init_worker(spec)
+    return run_one(spec, c, r, drive, params, experiment)
 
 
 def _run_on_cluster(
@@ -329,11 +348,13 @@ def run_study(
     if jobs < 1:
         raise ValueError(f'jobs must be >= 1, got {jobs}')
     cells = spec.cells
-    drive, params = spec.drive(), spec.params()
+    drive, params, experiment = spec.loaded()
     t0 = time.perf_counter()
     # L_ref first: it also loads (or compiles and caches) the kernels before workers start,
-    # so they do not all compile at once.
-    l_ref, l_sem, l_first = reference_loss(drive)
+    # so they do not all compile at once.  Per drive: its own hand-tuned start.
+    l_ref, l_sem, l_first = reference_loss(
+        drive, experiment=experiment, start=Gains(*params.space.start) if spec.drives else None
+    )
     arrays = _allocate(spec, cells)
     # run-major order: early progress covers every cell
     tasks = [(c, r) for r in range(spec.runs) for c in range(len(cells))]
@@ -349,7 +370,7 @@ def run_study(
         jobs = _run_on_cluster(cluster, spec, tasks, store, cluster_timeout)
     elif jobs == 1:
         for c, r in tasks:
-            store(run_one(spec, c, r, drive, params))
+            store(run_one(spec, c, r, drive, params, experiment))
     else:
         # forkserver: workers start from a clean interpreter (no inherited threads or ROS)
         ctx = multiprocessing.get_context('forkserver')

@@ -9,16 +9,19 @@ values are the optimisers' own.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from .. import optim
 
 if TYPE_CHECKING:  # the types only; the modules are imported where they are used
+    from im_controller.config import ExperimentConfig
     from im_drive_sim.params import DriveConfig
 
+    from ..family import DriveSetup
     from ..space import TunerParams
 
 __all__ = [
@@ -30,6 +33,8 @@ __all__ = [
     'MIN_RUNS_FOR_INTERVALS',
     'PAPER_ALGOS',
     'RANDOM_START_DEFAULT',
+    'RECOMMENDED',
+    'REFERENCE_ALGOS',
     'REF_EXPERIMENTS',
     'STUDY_ALGOS',
     'Cell',
@@ -37,6 +42,7 @@ __all__ = [
     'StudySpec',
     'default_jobs',
     'grid',
+    'recommended',
 ]
 
 EXIT_USAGE = 2
@@ -71,11 +77,30 @@ EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
         ('defaults', ()),
         ('n_startup_trials=5', (('n_startup_trials', 5),)),
     ),
+    # the outside reference (not a tuner algorithm: study/bobyqa.py): trust-region radius
+    # 0.08 of the [0, 1]-normalised box, from the hand-tuned start
+    'bobyqa': (('rhobeg=0.08', (('rhobeg', 0.08), ('start', 'hand'))),),
 }
+#: Study rows that are not tuner algorithms: an outside reference (Py-BOBYQA).
+REFERENCE_ALGOS: tuple[str, ...] = ('bobyqa',)
 #: The compact GAs: a grid over their population size n.
 CGA_ALGOS: tuple[str, ...] = ('necga', 'cga', 'pecga')
-#: Algorithms the study has a grid for: every tuner algorithm.
-STUDY_ALGOS: tuple[str, ...] = optim.ALGOS
+#: Algorithms the study has a grid for: every tuner algorithm and the reference rows.
+STUDY_ALGOS: tuple[str, ...] = optim.ALGOS + REFERENCE_ALGOS
+#: The recommended configuration of each algorithm (the per-drive study's row): the label
+#: of its grid cell.  SPSA and the compact GAs: the paper's centre (n=25 is also the best
+#: of cGA's and peCGA's grids in docs/reproduction.md).
+RECOMMENDED: dict[str, str] = {
+    'spsa': 'a=0.0183 c=0.03',
+    'necga': 'n=25 eta=12',
+    'cga': 'n=25',
+    'pecga': 'n=25',
+    'rcga': 'sigma0=0.3',
+    'cmaes': 'sigma0=0.1',
+    'tpe': 'n_startup_trials=5',
+    'safe': 'defaults',
+    'bobyqa': 'rhobeg=0.08',
+}
 #: Start of a run when its cell does not say: SPSA a random point (as the paper), every
 #: other algorithm that takes a start the hand-tuned gains (what a real bench has).
 RANDOM_START_DEFAULT: frozenset[str] = frozenset({'spsa'})
@@ -159,6 +184,12 @@ def grid(algos: tuple[str, ...] = PAPER_ALGOS) -> list[Cell]:
     return cells
 
 
+def recommended(algos: tuple[str, ...]) -> list[Cell]:
+    """One cell per algorithm: its recommended configuration (``RECOMMENDED``), as it
+    stands in the full grid (same label, place and options)."""
+    return [c for c in grid(algos) if c.label == RECOMMENDED.get(c.algo)]
+
+
 @dataclass(frozen=True)
 class StudySpec:
     """What a study computes; equal specs give bit-identical results."""
@@ -171,7 +202,17 @@ class StudySpec:
     satisfactory: float = DEFAULT_SATISFACTORY
     remeasure: bool = True
     drive_config: str | None = None  #: drive parameter file (None: packaged)
-    params_file: str | None = None  #: tuner parameter file (None: packaged)
+    params_file: str | None = None  #: tuner parameter file (None: the drive's)
+    #: the drives (packaged names or drive files; ``im_tuner.family``): () the single
+    #: drive of ``drive_config``; one name: that drive's study; several: a family study,
+    #: one study per drive (:meth:`for_drive`)
+    drives: tuple[str, ...] = ()
+    realism: str | None = None  #: realism profile (None: the drive file's own)
+    full_grid: bool = True  #: every cell of the grid, else the recommended ones
+
+    #: fields written to study.json only when they differ from these defaults (a study
+    #: without them writes the same file as before they existed)
+    NEW_FIELDS: ClassVar[dict[str, Any]] = {'drives': (), 'realism': None, 'full_grid': True}
 
     def __post_init__(self) -> None:
         for name, lo in (('runs', 1), ('budget', 1)):
@@ -190,6 +231,13 @@ class StudySpec:
             raise ValueError(
                 f'satisfactory must be a normalised loss > 0, got {self.satisfactory!r}'
             )
+        if len(set(self.drives)) != len(self.drives):
+            dup = next(d for d in self.drives if self.drives.count(d) > 1)
+            raise ValueError(f'drives: {dup!r} given twice')
+        if self.drives and self.drive_config is not None:
+            raise ValueError('drives and drive-config exclude each other')
+        if self.realism is not None and not isinstance(self.realism, str):
+            raise ValueError(f'realism must be a profile name, got {self.realism!r}')
         if not self.algos or len(set(self.algos)) != len(self.algos):
             raise ValueError(f'algos must be distinct names, got {self.algos!r}')
         for a in self.algos:
@@ -200,17 +248,49 @@ class StudySpec:
 
     @property
     def cells(self) -> list[Cell]:
-        return grid(self.algos)
+        return grid(self.algos) if self.full_grid else recommended(self.algos)
+
+    @property
+    def paper_tables(self) -> bool:
+        """Whether Tables I-III (the paper's grids) can be made: the full grid of SPSA
+        or neCGA."""
+        return self.full_grid and any(a in PAPER_ALGOS for a in self.algos)
+
+    def for_drive(self, name: str) -> StudySpec:
+        """The study of drive ``name`` (one of :attr:`drives`)."""
+        return dataclasses.replace(self, drives=(name,))
+
+    def setup(self) -> DriveSetup:
+        """The drive's set-up (``im_tuner.family.drive_setup``): drive, experiment,
+        tuner parameters.  ValueError for an unknown drive or a bad file."""
+        if len(self.drives) > 1:
+            raise ValueError('a study of several drives has a set-up per drive (for_drive)')
+        from ..family import drive_setup
+
+        name = self.drives[0] if self.drives else self.drive_config
+        return drive_setup(name, self.realism, self.model)
+
+    def loaded(self) -> tuple[DriveConfig, TunerParams, ExperimentConfig]:
+        """(drive, tuner parameters, experiment), the files read once."""
+        from ..space import load_params
+
+        s = self.setup()
+        return (
+            s.drive,
+            load_params(self.params_file) if self.params_file else s.params,
+            s.experiment,
+        )
 
     def drive(self) -> DriveConfig:
-        from im_drive_sim.params import load_config
+        return self.setup().drive
 
-        return load_config(self.drive_config, overrides={'model': self.model})
+    def experiment(self) -> ExperimentConfig:
+        return self.setup().experiment
 
     def params(self) -> TunerParams:
         from ..space import load_params
 
-        return load_params(self.params_file)
+        return load_params(self.params_file) if self.params_file else self.setup().params
 
 
 def default_jobs() -> int:

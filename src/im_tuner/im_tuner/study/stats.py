@@ -350,7 +350,7 @@ def _range_dist(boot: _Boot, rows: list[np.ndarray], pct: bool) -> tuple[float, 
 def _conclusions(st: StudyStats, pr: dict[str, np.ndarray], boot: _Boot) -> list[Conclusion]:
     res = st.res
     algos = set(res.spec.algos)
-    if not {'spsa', 'necga'} <= algos:
+    if not {'spsa', 'necga'} <= algos or not res.spec.full_grid:
         return []
     ci = {(c.algo, c.row, c.col): i for i, c in enumerate(res.cells)}
     sp, ne = ci[('spsa', *PAPER_CELL['spsa'])], ci[('necga', *PAPER_CELL['necga'])]

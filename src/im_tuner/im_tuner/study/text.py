@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 from . import spec as S
 from .spec import EXIT_USAGE, StudyError
@@ -14,6 +15,9 @@ from .stats import (
     StudyStats,
 )
 
+if TYPE_CHECKING:
+    from .summary import FamilyStats
+
 __all__ = [
     'ALGO_NAME',
     'COMPARISON',
@@ -24,7 +28,10 @@ __all__ = [
     'StudyError',
     'comparison_rows',
     'comparison_text',
+    'family_text',
+    'goal_lines',
     'no_intervals_note',
+    'summary_rows',
     'tables_text',
 ]
 
@@ -37,6 +44,7 @@ ALGO_NAME = {
     'cmaes': 'CMA-ES',
     'tpe': 'TPE',
     'safe': 'safe',
+    'bobyqa': 'Py-BOBYQA',
 }
 STATS = (
     ('final', 'Table I: average final loss (normalised: hand-tuned start = 1)', 3),
@@ -85,8 +93,8 @@ def _grids(
     """(algo, row labels, column labels, (row, col) -> stats) per algorithm."""
     out = []
     for algo in st.res.spec.algos:
-        if algo not in S.PAPER_ALGOS:  # Tables I-III are the paper's two algorithms
-            continue
+        if algo not in S.PAPER_ALGOS or not st.res.spec.full_grid:
+            continue  # Tables I-III: the paper's two algorithms on their grids
         cs = [c for c in st.cells if c.cell.algo == algo]
         by = {(c.cell.row, c.cell.col): c for c in cs}
         if algo == 'spsa':
@@ -121,19 +129,86 @@ def comparison_rows(st: StudyStats) -> tuple[list[str], list[list[str]]]:
     ]
     rows = []
     for c in st.cells:
-        start = START_TEXT[c.cell.start_kind]
-        label = f'{ALGO_NAME.get(c.cell.algo, c.cell.algo)} {c.cell.label}'
-        if start not in c.cell.label:  # ('sigma0=0.3 random start' says it already)
-            label += f' ({start})'
+        label = _method(c.cell.algo, c.cell.label, c.cell.start_kind)
         rows.append([label] + [_iv(getattr(c, a), d) for _h, a, d, _k in COMPARISON])
     return head, rows
 
 
+def _aligned(head: list[str], rows: list[list[str]]) -> list[str]:
+    w = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
+    return [
+        '  ' + '  '.join(f'{x:<{w[i]}}' for i, x in enumerate(r)).rstrip() for r in [head, *rows]
+    ]
+
+
 def comparison_text(st: StudyStats) -> str:
     head, rows = comparison_rows(st)
-    w = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
     L = ['Beyond the paper: every configuration, 95 % intervals (normalised loss)']
-    L += ['  ' + '  '.join(f'{x:<{w[i]}}' for i, x in enumerate(r)).rstrip() for r in [head, *rows]]
+    L += _aligned(head, rows)
+    return '\n'.join(L) + '\n'
+
+
+def _method(algo: str, label: str, start_kind: str) -> str:
+    """A row's name: algorithm, configuration and start ('sigma0=0.3 random start' says
+    it already)."""
+    start = START_TEXT[start_kind]
+    text = f'{ALGO_NAME.get(algo, algo)} {label}'
+    return text if start in label else f'{text} ({start})'
+
+
+def summary_rows(fs: FamilyStats) -> tuple[list[str], list[list[str]]]:
+    """The summary over drives: per method, each statistic's mean over the drives and
+    its worst drive."""
+    from .summary import SUMMARY_STATS
+
+    names = dict(zip((a for _h, a, _d, _k in COMPARISON), COMPARISON, strict=True))
+    head = ['method (configuration, start)'] + [
+        names[a][0].format(thr=fs.threshold, fast=FAST_LEVEL) + ': mean over drives (worst)'
+        for a, _d, _s in SUMMARY_STATS
+    ]
+    rows = []
+    for m in fs.methods:
+        row = [_method(m.algo, m.label, m.start_kind)]
+        for a, d, _s in SUMMARY_STATS:
+            v, w = m.mean[a], m.worst[a]
+            row.append('-' if not math.isfinite(v) else f'{v:.{d}f} ({w:.{d}f} {m.worst_drive[a]})')
+        rows.append(row)
+    return head, rows
+
+
+def goal_lines(fs: FamilyStats) -> list[str]:
+    """One line per drive: whether the default meets issue 29's goal there."""
+    return [
+        f'{g.drive}: the default ({g.method}) '
+        + ('meets the goal' if g.meets else 'misses the goal: ' + '; '.join(g.misses))
+        for g in fs.checks
+    ]
+
+
+def family_text(fs: FamilyStats) -> str:
+    """Each drive's comparison, then the summary over the drives and the goal lines."""
+    sp = fs.fam.spec
+    L = [
+        f'Study over {len(fs.drives)} drive(s), realism {sp.realism or "of each drive file"}: '
+        f'{len(fs.drives[0][1].cells)} configurations x {sp.runs} runs x {sp.budget} '
+        f'evaluations per drive, {sp.model} model, seed {sp.seed}; loss normalised per drive '
+        'by its hand-tuned start',
+        *([no_intervals_note(sp.runs)] if sp.runs < S.MIN_RUNS_FOR_INTERVALS else []),
+        '',
+    ]
+    for name, st in fs.drives:
+        res = st.res
+        L.append(
+            f'Drive {name}: L_ref = {res.l_ref:.5f} (+- {res.l_ref_sem:.5f}); '
+            f'{res.experiments} experiments in {res.wall_s:.1f} s'
+        )
+        L.append(comparison_text(st))
+    head, rows = summary_rows(fs)
+    L.append('Summary over the drives (normalised loss: each drive by its own hand-tuned start)')
+    L += _aligned(head, rows)
+    L.append('')
+    L.append('The default against the goal (issue 29):')
+    L += ['  ' + g for g in goal_lines(fs)] or ['  (the default is not in this study)']
     return '\n'.join(L) + '\n'
 
 
@@ -150,7 +225,7 @@ def tables_text(st: StudyStats) -> str:
         *([no_intervals_note(sp.runs)] if sp.runs < S.MIN_RUNS_FOR_INTERVALS else []),
         '',
     ]
-    for stat, title, d in STATS if any(a in S.PAPER_ALGOS for a in sp.algos) else ():
+    for stat, title, d in STATS if sp.paper_tables else ():
         L.append(title)
         for algo, rows, cols, by in _grids(st):
             w = 24

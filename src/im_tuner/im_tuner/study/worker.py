@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 from .spec import StudySpec
 
 if TYPE_CHECKING:
+    from im_controller.config import ExperimentConfig
     from im_drive_sim.params import DriveConfig
 
     from ..space import TunerParams
@@ -32,14 +33,14 @@ _LOCK = threading.Lock()
 WATCH_POLL_S = 0.5
 
 
-def init_worker(spec: StudySpec) -> tuple[DriveConfig, TunerParams]:
-    """(drive, tuner parameters) of ``spec``: the files are loaded once per process and
-    spec (thread-safe: a Dask worker may run several tasks at once)."""
+def init_worker(spec: StudySpec) -> tuple[DriveConfig, TunerParams, ExperimentConfig]:
+    """(drive, tuner parameters, experiment) of ``spec``: the files are loaded once per
+    process and spec (thread-safe: a Dask worker may run several tasks at once)."""
     with _LOCK:
         if WORKER.get('spec') != spec:
-            drive, params = spec.drive(), spec.params()
-            WORKER.update(drive=drive, params=params, spec=spec)
-        return WORKER['drive'], WORKER['params']
+            drive, params, experiment = spec.loaded()
+            WORKER.update(drive=drive, params=params, experiment=experiment, spec=spec)
+        return WORKER['drive'], WORKER['params'], WORKER['experiment']
 
 
 def init_pool_worker(spec: StudySpec, study_pid: int) -> None:

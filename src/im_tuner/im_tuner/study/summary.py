@@ -1,0 +1,179 @@
+"""The study over several drives: a summary per method over the drives, and whether the
+tuner's default meets issue 29's goal on each drive.  Pure (numpy-free arithmetic on the
+per-drive :class:`~.stats.StudyStats`).
+
+Per method (one configuration, matched by algorithm and label across the drives), for
+each statistic of the comparison: the mean over the drives of the per-drive value and
+the worst drive's value (highest loss, evaluations or aborts; lowest share of runs
+reaching ``FAST_LEVEL``).  Every drive's losses are normalised by its own L_ref (its own
+hand-tuned start = 1), so the drives' values can be averaged.
+
+The goal (issue 29, for the default on the bench profile and across the family): mean
+evaluations to <= the satisfactory level <= 3; median evaluations to <= FAST_LEVEL <= 25,
+reached in >= 99 % of runs; <= 1 aborted experiment per run; re-measured final loss
+within 2 % of the best row of the drive.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .. import optim
+from .drives import FamilyResult
+from .spec import RECOMMENDED
+from .stats import FAST_LEVEL, CellStats, StudyStats, compute
+
+__all__ = [
+    'GOAL',
+    'SUMMARY_STATS',
+    'FamilyStats',
+    'GoalCheck',
+    'MethodSummary',
+    'compute_family',
+    'default_cell',
+    'goal_check',
+    'summarize',
+]
+
+#: Issue 29's goal for the default: evaluations to the satisfactory level (mean), to
+#: FAST_LEVEL (median) and the share reaching it [%], aborted per run, and the re-measured
+#: loss's allowed excess over the drive's best row (relative).
+GOAL = {
+    'evals': 3.0,
+    'fast': 25.0,
+    'fast_reached': 99.0,
+    'aborted_per_run': 1.0,
+    'remeasured': 0.02,
+}
+#: (CellStats attribute, digits, the worst drive is the highest (+1) or the lowest (-1)).
+SUMMARY_STATS: tuple[tuple[str, int, int], ...] = (
+    ('remeasured', 3, +1),
+    ('evals', 1, +1),
+    ('fast', 1, +1),
+    ('fast_reached', 0, -1),
+    ('aborted_per_run', 1, +1),
+)
+
+
+@dataclass
+class MethodSummary:
+    """One method over the drives: per statistic (mean over drives, worst value, the
+    worst drive's name); nan where no drive has a value."""
+
+    algo: str
+    label: str
+    start_kind: str
+    mean: dict[str, float]
+    worst: dict[str, float]
+    worst_drive: dict[str, str]
+
+
+@dataclass
+class GoalCheck:
+    """Whether the default's row on one drive meets the goal, and what misses."""
+
+    drive: str
+    method: str  #: the default's row ('safe defaults')
+    meets: bool
+    misses: list[str]
+
+
+@dataclass
+class FamilyStats:
+    """A study over drives, tabulated: each drive's stats, the summary, the goal checks."""
+
+    fam: FamilyResult
+    threshold: float
+    drives: list[tuple[str, StudyStats]]
+    methods: list[MethodSummary]
+    checks: list[GoalCheck]
+
+
+def compute_family(fam: FamilyResult, threshold: float | None = None) -> FamilyStats:
+    """Every drive's tables (``stats.compute``) and the summary over the drives."""
+    drives = [(n, compute(r, threshold)) for n, r in zip(fam.names, fam.results, strict=True)]
+    checks = [g for g in (goal_check(n, st) for n, st in drives) if g is not None]
+    return FamilyStats(fam, drives[0][1].threshold, drives, summarize(drives), checks)
+
+
+def summarize(drives: list[tuple[str, StudyStats]]) -> list[MethodSummary]:
+    """The summary per method (in the first drive's row order) over ``drives``
+    ((name, stats) each)."""
+    if not drives:
+        return []
+    out = []
+    for c0 in drives[0][1].cells:
+        key = (c0.cell.algo, c0.cell.label)
+        rows = [(name, _find(st, key)) for name, st in drives]
+        mean: dict[str, float] = {}
+        worst: dict[str, float] = {}
+        worst_drive: dict[str, str] = {}
+        for stat, _d, sign in SUMMARY_STATS:
+            vals = [
+                (name, getattr(cs, stat).value)
+                for name, cs in rows
+                if cs is not None and math.isfinite(getattr(cs, stat).value)
+            ]
+            if not vals:
+                mean[stat], worst[stat], worst_drive[stat] = math.nan, math.nan, ''
+                continue
+            mean[stat] = sum(v for _n, v in vals) / len(vals)
+            name, v = max(vals, key=lambda nv: sign * nv[1])
+            worst[stat], worst_drive[stat] = v, name
+        out.append(
+            MethodSummary(c0.cell.algo, c0.cell.label, c0.cell.start_kind, mean, worst, worst_drive)
+        )
+    return out
+
+
+def _find(st: StudyStats, key: tuple[str, str]) -> CellStats | None:
+    for c in st.cells:
+        if (c.cell.algo, c.cell.label) == key:
+            return c
+    return None
+
+
+def default_cell(st: StudyStats) -> CellStats | None:
+    """The tuner's default (``optim.DEFAULT_ALGO``) at its recommended configuration, if
+    the study has it."""
+    return _find(st, (optim.DEFAULT_ALGO, RECOMMENDED[optim.DEFAULT_ALGO]))
+
+
+def goal_check(name: str, st: StudyStats) -> GoalCheck | None:
+    """Whether the default's row of drive ``name`` meets the goal (None: no such row)."""
+    cs = default_cell(st)
+    if cs is None:
+        return None
+    misses: list[str] = []
+    thr = st.threshold
+    if not cs.evals.value <= GOAL['evals']:
+        misses.append(f'mean evaluations to <= {thr:g} {cs.evals.value:.1f} > {GOAL["evals"]:g}')
+    if not math.isfinite(cs.fast.value):
+        misses.append(f'no run reaches {FAST_LEVEL:g}')
+    elif cs.fast.value > GOAL['fast']:
+        misses.append(
+            f'median evaluations to <= {FAST_LEVEL:g} {cs.fast.value:.1f} > {GOAL["fast"]:g}'
+        )
+    if not cs.fast_reached.value >= GOAL['fast_reached']:
+        misses.append(
+            f'{cs.fast_reached.value:.0f} % of runs reach {FAST_LEVEL:g} '
+            f'< {GOAL["fast_reached"]:g} %'
+        )
+    if not cs.aborted_per_run.value <= GOAL['aborted_per_run']:
+        misses.append(
+            f'{cs.aborted_per_run.value:.2f} aborted per run > {GOAL["aborted_per_run"]:g}'
+        )
+    best = min(
+        (c for c in st.cells if math.isfinite(c.remeasured.value)),
+        key=lambda c: c.remeasured.value,
+        default=None,
+    )
+    if best is not None and not (
+        cs.remeasured.value <= (1.0 + GOAL['remeasured']) * best.remeasured.value
+    ):
+        misses.append(
+            f're-measured {cs.remeasured.value:.3f} > {100 * GOAL["remeasured"]:g} % above '
+            f'the best row ({best.cell.algo} {best.cell.label}: {best.remeasured.value:.3f})'
+        )
+    return GoalCheck(name, f'{cs.cell.algo} {cs.cell.label}', not misses, misses)

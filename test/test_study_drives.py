@@ -1,0 +1,128 @@
+"""``ros2 run im_tuner study --drives ... --realism ...`` (issue 29): a table per drive, the
+summary over drives, the Py-BOBYQA reference row with its evaluations counted, the
+refusals; ``--beside`` (Tables I-III of two profiles side by side); and without
+``--drives`` the study's files are those of the code before issue 29, byte for byte.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
+STUDY = [ROS2, 'run', 'im_tuner', 'study']
+
+
+def study(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([*STUDY, *args], capture_output=True, text=True, timeout=timeout)
+
+
+def test_without_drives_the_files_are_unchanged(tmp_path):
+    """Digests of the tables and runs of a small study made with the code before issue 29
+    (main at a897583): the same study now gives the same bytes (out directory aside)."""
+    out = tmp_path / 's'
+    p = study(
+        '--runs', '2', '--budget', '6', '--algos', 'spsa,necga,cmaes,safe', '--jobs', '1',
+        '--quiet', '--out', str(out),
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    tables = hashlib.sha256((out / 'tables.csv').read_bytes()).hexdigest()
+    runs = (out / 'runs.csv').read_bytes().replace(str(out).encode(), b'OUT')
+    assert tables == 'e6de7e9d59bf6fcc6065ec2bffd83244c6b3c77c1e58f103707d6b3b4e4adc0b'
+    assert (
+        hashlib.sha256(runs).hexdigest()
+        == '50d76073ebfaaa9884526a5da5bb61fca3e88eb1f223e49fd94ead851bbbd47f'
+    )
+    assert 'drives' not in json.loads((out / 'study.json').read_text())['spec']
+    assert not (out / 'family.json').exists()
+    # beside it, the same grid on the bench profile: Tables I-III side by side
+    bench = tmp_path / 'b'
+    p = study(
+        '--runs', '2', '--budget', '6', '--algos', 'spsa,necga', '--realism', 'bench',
+        '--jobs', '1', '--quiet', '--out', str(bench), '--beside', str(out),
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    md = (bench / 'beside.md').read_text()
+    assert '## Tables I-III on the `bench` realism profile, beside `ideal` and the paper' in md
+    assert md.count('(ideal ') == 4 * 12 and '; paper 0.81)' in md
+    assert "### The paper's conclusions on `bench` and on `ideal`" in md
+    assert json.loads((bench / 'study.json').read_text())['spec']['realism'] == 'bench'
+
+
+def test_drives_a_table_per_drive_the_summary_and_bobyqa(tmp_path):
+    out = tmp_path / 'fam'
+    drive_file = tmp_path / 'mine.yaml'
+    from im_drive_sim.params import default_config_path
+
+    drive_file.write_text(default_config_path().read_text())
+    p = study(
+        '--drives', f'paper_750w,{drive_file}', '--realism', 'bench', '--algos', 'safe,bobyqa',
+        '--runs', '2', '--budget', '12', '--jobs', '1', '--quiet', '--out', str(out),
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    fam = json.loads((out / 'family.json').read_text())
+    assert fam['drives'] == ['paper_750w', str(drive_file)] and fam['dirs'] == [
+        'paper_750w',
+        'mine',
+    ]
+    for d in fam['dirs']:
+        assert (out / d / 'study.npz').is_file() and (out / d / 'tables.txt').is_file()
+        with np.load(out / d / 'study.npz') as z:
+            # two rows (safe, bobyqa) x 2 runs x 12 evaluations, every one measured
+            assert z['losses'].shape == (2, 2, 12) and np.isfinite(z['losses']).all()
+            assert np.isfinite(z['remeasured']).all()
+            # the same drive file twice: the same losses (seeded, deterministic)
+            if d == 'mine':
+                with np.load(out / 'paper_750w' / 'study.npz') as z0:
+                    assert np.array_equal(z['losses'], z0['losses'])
+        meta = json.loads((out / d / 'study.json').read_text())
+        assert meta['spec']['realism'] == 'bench' and meta['spec']['full_grid'] is False
+    txt = (out / 'family.txt').read_text()
+    assert p.stdout.startswith(txt)
+    assert txt.count('Beyond the paper: every configuration') == 2
+    assert txt.count('Py-BOBYQA rhobeg=0.08 (hand-tuned start)') == 3  # 2 drives + summary
+    assert 'Summary over the drives' in txt
+    assert txt.count(': the default (safe defaults) m') == 2  # meets / misses, per drive
+    md = (out / 'family.md').read_text()
+    assert (
+        md.count('## Drive ') == 2 and '![paper_750w comparison](paper_750w/comparison.png)' in md
+    )
+    # --from re-tabulates the family: the same text, no new experiments
+    npz = (out / 'mine' / 'study.npz').read_bytes()
+    (out / 'family.txt').unlink()
+    p = study('--from', str(out), '--quiet')
+    assert p.returncode == 0, p.stderr
+    assert (out / 'family.txt').read_text() == txt and (
+        out / 'mine' / 'study.npz'
+    ).read_bytes() == npz
+
+
+@pytest.mark.parametrize(
+    ('args', 'expect'),
+    [
+        (
+            ['--drives', 'paper_750w,nosuch'],
+            '--drives: nosuch: no such drive file, and not a packaged drive',
+        ),
+        (['--drives', 'paper_750w', '--realism', 'noisy'], 'argument --realism: invalid choice'),
+        (['--drives', 'paper_750w,paper_750w'], "--drives: 'paper_750w' given twice"),
+        (['--drives', ','], '--drives: no drive named'),
+        (['--drives', 'paper_750w', '--drive-config', 'x.yaml'], 'exclude each other'),
+        (['--full-grid'], '--full-grid needs --drives'),
+        (['--drives', 'paper_750w', '--beside', '.'], '--beside compares'),
+        (['--beside', '/nonexistent'], '--beside /nonexistent: not a study directory'),
+    ],
+)
+def test_bad_drives_one_line_exit_2_nothing_written(tmp_path, args, expect):
+    out = tmp_path / 'out'
+    p = study(*args, '--out', str(out))
+    lines = p.stderr.strip().splitlines()
+    assert p.returncode == 2 and len(lines) == 1, p.stderr
+    assert lines[0].startswith('error: study: ') and expect in lines[0], lines[0]
+    assert not out.exists() and p.stdout == ''

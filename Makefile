@@ -6,6 +6,7 @@
 #   make demo    the main job: ros2 run im_tuner tuner (its default algorithm; ALGO=necga ...)
 #   make bench   the benchmarks, printing their figures
 #   make reproduction  the paper's study (full grid) + every algorithm beyond it -> docs/reproduction.md
+#   make calibrate-bench  the `bench` realism profile's calibration -> docs/calibration.md
 # Every target does the set-up it needs first; a re-run with nothing changed is quick.
 
 PYTHON ?= python3
@@ -22,7 +23,7 @@ export HOME ?= $(CURDIR)
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: test-parallel setup test test-unit lint format demo demo-drive bench reproduction foxglove-check lock clean
+.PHONY: test-parallel setup test test-unit lint format demo demo-drive bench reproduction calibrate-bench foxglove-check lock clean
 
 setup: $(VENV)/.installed
 
@@ -85,6 +86,12 @@ demo-drive: setup
 
 bench: setup
 	$(PY) bench/run_all.py
+
+# The `bench` realism profile's calibration (issue 29): the spread of repeated experiments
+# and the paper's centre cells (Tables I-II) for `ideal` and `bench` at noise scales s,
+# the fit -> docs/calibration.md (im_tuner.study.calibrate; ~5-10 min on 2 cores, niced).
+calibrate-bench: setup
+	nice -n 10 $(PY) -m im_tuner.study.calibrate --out docs/calibration.md $(ARGS)
 
 # The paper's Tables I-III offline (issue 7): the full grid, then its write-up into docs/.
 STUDY_OUT := bags/study_reproduction

@@ -204,7 +204,7 @@ class DisturbanceParams:
     load_noise_std: float = _f('N m', strict=False, doc='stationary std of random load', off=0.0)
     load_noise_tau: float = _f('s', strict=False, doc='correlation time, 0 = white', off=0.0)
     # the load step's variation (docs/drive-model.md 7a): relative std [-], largest delay [s]
-    load_step_amplitude_std: float = _f('-', False, hi=0.5, off=0.0, new=True)
+    load_step_amplitude_std: float = _f('-', strict=False, hi=0.5, off=0.0, new=True)
     load_step_delay_max: float = _f('s', strict=False, hi=1.0, off=0.0, new=True)
 
 

@@ -31,8 +31,14 @@ def test_distance_and_the_chosen_scale_in_the_markdown() -> None:
     far = _row(1.0, (0.70, 0.60), (100.0, 100.0))
     assert near.distance == pytest.approx(1.0)
     assert far.distance == pytest.approx((0.11 / 0.05) ** 2 + 1 + (0.1 / 0.05) ** 2 + 0.64)
-    text = C.markdown([ideal, far, near], 30, 200, 30, 'python -m im_tuner.study.calibrate')
+    text = C.markdown([ideal, far, near], 0.01, 30, 200, 30, 'python -m im_tuner.study.calibrate')
     assert '**Chosen: s = 2**' in text and '| bench s=2 (chosen) |' in text
+    assert 'current noise 0.02 A' in text and 'The chosen s is the largest tested' in text
+    text = C.markdown([ideal, near, far], 0.01, 30, 200, 30, 'python -m im_tuner.study.calibrate')
+    assert '| bench s=2 (chosen) |' in text and 'largest tested' in text
+    far4 = _row(4.0, (0.70, 0.60), (100.0, 100.0))
+    text = C.markdown([ideal, near, far4], 0.01, 30, 200, 30, 'cmd')
+    assert '**Chosen: s = 2**' in text and 'largest tested' not in text
     assert 'Table I 0.75 (paper 0.70, ideal 0.50)' in text
 
 
@@ -46,7 +52,7 @@ def test_bench_profile_scales_only_the_noise_like_keys() -> None:
 @pytest.mark.parametrize(
     ('argv', 'message'),
     [
-        (['--scales', '0,1'], "scales must be numbers in (0, 8], got '0,1'"),
+        (['--scales', '0,1'], "scales must be numbers in (0, 16], got '0,1'"),
         (['--scales', 'a'], "not a list of numbers: 'a'"),
         (['--runs', '0'], "must be an integer >= 1, got '0'"),
         (['--out', '/nonexistent/dir/c.md'], '--out: no directory /nonexistent/dir'),

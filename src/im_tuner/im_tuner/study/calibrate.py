@@ -127,8 +127,9 @@ def _results(tasks: list, jobs: int) -> Iterator[tuple[float | None, int, Any]]:
 
 def calibrate(
     scales: tuple[float, ...], runs: int, budget: int, n_spread: int, jobs: int, seed: int
-) -> list[Row]:
-    """The rows of ``ideal`` and of ``bench`` at each scale (module docstring)."""
+) -> tuple[list[Row], float]:
+    """The rows of ``ideal`` and of ``bench`` at each scale (module docstring), and the
+    spread of ``bench`` with its noise-like effects off (s = 0: the systematic ones alone)."""
     from .runs import reference_loss
 
     spec = StudySpec(runs=runs, budget=budget, seed=seed)
@@ -159,11 +160,16 @@ def calibrate(
             row.final[lab] = float(ok.mean()) if ok.size else math.nan
             row.sat[lab] = 100.0 * float(np.mean(np.nan_to_num(f, nan=np.inf) <= THRESHOLD))
             row.aborted[lab] = 100.0 * sum(x[1] for x in finals[(s, c)]) / (runs * budget)
-    return [rows[s] for s in profiles]
+    cv0 = spread(drive_for(0.0), n_spread)[0]
+    print(f'bench s=0 (systematic effects only): spread CV {100 * cv0:.2f} %', flush=True)
+    return [rows[s] for s in profiles], cv0
 
 
-def markdown(rows: list[Row], runs: int, budget: int, n_spread: int, command: str) -> str:
-    """docs/calibration.md: the target, the rows, the fit and what remains different."""
+def markdown(
+    rows: list[Row], cv0: float, runs: int, budget: int, n_spread: int, command: str
+) -> str:
+    """docs/calibration.md: the target, the rows (``ideal`` first), the fit and what remains
+    different; ``cv0`` the spread of ``bench`` at s = 0."""
     bench = [r for r in rows if r.scale is not None]
     best = min(bench, key=lambda r: r.distance)
     spsa, ga = CENTRE
@@ -213,11 +219,15 @@ def markdown(rows: list[Row], runs: int, budget: int, n_spread: int, command: st
         f'process) takes {ideal.exp_ms:.1f} ms on `ideal` and {slow:.1f}x that on `bench` '
         '(its noise blocks, friction and dead-time terms; wall time on a shared 2-core '
         'machine, indicative).\n\n'
-        '**What remains different.** ' + _remaining(best, ideal) + '\n'
+        '**What remains different.** '
+        + _remaining(best, ideal, cv0, best.scale == max(r.scale or 0.0 for r in bench))
+        + '\n'
     )
 
 
-def _remaining(best: Row, ideal: Row) -> str:
+def _remaining(best: Row, ideal: Row, cv0: float, at_edge: bool) -> str:
+    from im_drive_sim.params import bench_profile
+
     spsa, ga = CENTRE
     parts = []
     for lab, name in ((spsa, 'SPSA'), (ga, 'neCGA')):
@@ -229,12 +239,28 @@ def _remaining(best: Row, ideal: Row) -> str:
         )
     parts.append(
         f"The spread of the start's loss is {100 * best.cv:.2f} % on `bench` against "
-        f'{100 * ideal.cv:.2f} % on `ideal`; most of it comes from the systematic effects '
-        "(friction and ripple make each experiment's loss depend on the state the previous "
-        'one left), which s does not scale. A small study (its runs are few) carries a '
+        f'{100 * ideal.cv:.2f} % on `ideal` and {100 * cv0:.2f} % with the noise-like '
+        'effects off (s = 0): the systematic effects (friction, ripple, offsets, dead time '
+        "make each experiment's loss depend on the state the previous one left) set most "
+        'of it, and s does not scale them. A small study (its runs are few) carries a '
         'sampling error of about 0.03-0.05 in Table I and 5-10 points in Table II; the other '
         "cells of the paper's grid are not fitted (`make reproduction` shows them)."
     )
+    prof = bench_profile(best.scale or 0.0)
+    parts.append(
+        f'At s = {best.scale:g} the noise-like magnitudes are: current noise '
+        f'{prof["sensors.current_noise_std"]:g} A, encoder jitter '
+        f'{1e6 * prof["sensors.encoder_jitter"]:g} us, random load '
+        f'{prof["disturbance.load_noise_std"]:g} N m, load step amplitude std '
+        f'{100 * prof["disturbance.load_step_amplitude_std"]:g} %, load step delay up to '
+        f'{1e3 * prof["disturbance.load_step_delay_max"]:g} ms.'
+    )
+    if at_edge:
+        parts.append(
+            'The chosen s is the largest tested: the distance still falls there, so the '
+            "paper's centre cells ask for more noise than the sourced magnitudes x s give; "
+            'the remaining gap is not a noise level the sources support.'
+        )
     return ' '.join(parts)
 
 
@@ -249,8 +275,8 @@ def _scales(text: str) -> tuple[float, ...]:
         vals = tuple(float(x) for x in text.split(','))
     except ValueError:
         raise argparse.ArgumentTypeError(f'not a list of numbers: {text!r}') from None
-    if not vals or not all(math.isfinite(v) and 0.0 < v <= 8.0 for v in vals):
-        raise argparse.ArgumentTypeError(f'scales must be numbers in (0, 8], got {text!r}')
+    if not vals or not all(math.isfinite(v) and 0.0 < v <= 16.0 for v in vals):
+        raise argparse.ArgumentTypeError(f'scales must be numbers in (0, 16], got {text!r}')
     return vals
 
 
@@ -266,7 +292,7 @@ def _positive(text: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     p = _Parser(prog='python -m im_tuner.study.calibrate', description=__doc__.split('\n')[0])
-    p.add_argument('--scales', type=_scales, default=(0.5, 1.0, 2.0, 4.0))
+    p.add_argument('--scales', type=_scales, default=(1.0, 2.0, 4.0, 8.0))
     p.add_argument('--runs', type=_positive, default=30)
     p.add_argument('--budget', type=_positive, default=200)
     p.add_argument('--spread', type=_positive, default=30, help='experiments for the CV')
@@ -278,9 +304,11 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f'--out: no directory {a.out.parent}')
     if a.seed < 0:
         p.error(f'--seed must be >= 0, got {a.seed}')
-    rows = calibrate(a.scales, a.runs, a.budget, a.spread, a.jobs, a.seed)
+    rows, cv0 = calibrate(a.scales, a.runs, a.budget, a.spread, a.jobs, a.seed)
     args = ' '.join(sys.argv[1:]) if argv is None else ' '.join(argv)
-    text = markdown(rows, a.runs, a.budget, a.spread, f'python -m im_tuner.study.calibrate {args}')
+    text = markdown(
+        rows, cv0, a.runs, a.budget, a.spread, f'python -m im_tuner.study.calibrate {args}'
+    )
     print(text)
     if a.out is not None:
         a.out.write_text(text, encoding='utf-8')

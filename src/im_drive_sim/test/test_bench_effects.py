@@ -258,13 +258,18 @@ def test_bench_random_load_has_its_std_and_correlation_time() -> None:
 STEP_STD, STEP_DELAY = 0.05, 1.0e-3  # 5 %, up to 5 periods of 200 us
 
 
-def _step_run(seed: int, std: float, delay: float, edges: int, hold: int = 40) -> dict:
+def _step_run(
+    seed: int, std: float, delay: float, edges: int, hold: int = 40, realism: str = 'ideal'
+) -> dict:
     """Reduced model, the load command a square wave 0 / 1 N m (``edges`` edges, ``hold``
-    periods apart), every other effect off: the load acting is the load machine's step."""
+    periods apart), every other load effect off: the load acting is the load machine's step."""
     ov = {
         'model': 'reduced',
+        'realism': realism,
         'disturbance.load_step_amplitude_std': std,
         'disturbance.load_step_delay_max': delay,
+        'disturbance.ripple_amplitude': 0.0,
+        'disturbance.load_noise_std': 0.0,
     }
     sim = DriveSim(load_config(overrides=ov), seed=seed)
     cmd = np.repeat(np.arange(edges + 1) % 2, hold).astype(float)
@@ -324,6 +329,25 @@ def test_load_step_amplitude_and_delay_have_their_documented_distribution() -> N
     assert np.all(d0 == 0) and np.std(f0) > 0.02
     f1, d1 = _edges(_step_run(7, 0.0, STEP_DELAY, 200))
     assert np.all(f1 == 1.0) and set(d1) == set(range(6))
+
+
+def test_bench_profile_load_step_has_its_magnitude() -> None:
+    """The ``bench`` profile's own magnitudes (calibrated, docs/calibration.md), measured."""
+    prof = REALISM_PROFILES['bench']
+    std, delay = (
+        prof['disturbance.load_step_amplitude_std'],
+        prof['disturbance.load_step_delay_max'],
+    )
+    n = round(delay / 2e-4)
+    assert std > 0.0 and n >= 1
+    hold = n + 20
+    res = _step_run(9, std, delay, 2000, hold, 'bench')
+    factors, delays = _edges(res, hold)
+    assert np.std(factors, ddof=1) == pytest.approx(std, rel=0.08)
+    assert abs(np.mean(factors) - 1.0) < 3 * std / math.sqrt(factors.size)
+    counts = np.bincount(delays, minlength=n + 1)
+    want = delays.size / (n + 1)
+    assert counts.size == n + 1 and np.all(np.abs(counts - want) < 4.5 * math.sqrt(want))
 
 
 def test_load_step_variation_is_seeded_and_reproducible() -> None:

@@ -60,7 +60,7 @@ class Row:
     scale: float | None
     cv: float  #: spread of repeated measurements (std/mean of the start's loss)
     loss: float  #: mean of those measurements (raw)
-    exp_ms: float  #: wall time of one experiment [ms]
+    exp_ms: float  #: wall time of one experiment [ms], over the study's runs
     l_ref: float
     final: dict[str, float]  #: Table I per centre cell
     sat: dict[str, float]  #: Table II [%] per centre cell
@@ -105,14 +105,17 @@ def spread(drive: Any, n: int) -> tuple[float, float, float]:
 
 
 def _run(task: tuple[StudySpec, int, int, float | None]) -> tuple[float | None, int, Any]:
-    """One study run (a pool task): (scale, cell, the run's final raw loss, aborted count)."""
+    """One study run (a pool task): (scale, cell, (the run's final raw loss, aborted
+    count, its experiments' wall time [s], its experiments: evaluations, reference and
+    re-measurement))."""
     from .runs import run_one
 
     spec, c, r, scale = task
     res = run_one(spec, c, r, drive_for(scale))
     ok = ~res.aborted
     final = float(res.losses[ok].min()) if ok.any() else math.nan
-    return scale, c, (final, int(res.aborted.sum()))
+    n_exp = res.losses.size + 1 + (0 if math.isnan(res.remeasured) else 1)
+    return scale, c, (final, int(res.aborted.sum()), res.exp_s, n_exp)
 
 
 def _results(tasks: list, jobs: int) -> Iterator[tuple[float | None, int, Any]]:
@@ -139,12 +142,12 @@ def calibrate(
     rows: dict[float | None, Row] = {}
     for s in profiles:
         drive = drive_for(s)
-        cv, loss, ms = spread(drive, n_spread)
+        cv, loss, _ms = spread(drive, n_spread)
         l_ref = reference_loss(drive)[0]
-        rows[s] = Row(s, cv, loss, ms, l_ref, {}, {}, {})
-        print(f'{rows[s].name}: spread CV {100 * cv:.2f} %, {ms:.2f} ms/experiment', flush=True)
+        rows[s] = Row(s, cv, loss, math.nan, l_ref, {}, {}, {})
+        print(f'{rows[s].name}: spread CV {100 * cv:.2f} %', flush=True)
     tasks = [(spec, c, r, s) for s in profiles for c in cells for r in range(runs)]
-    finals: dict[tuple[float | None, int], list[tuple[float, int]]] = {}
+    finals: dict[tuple[float | None, int], list[tuple[float, int, float, int]]] = {}
     t0 = time.perf_counter()
     for i, (s, c, out) in enumerate(_results(tasks, jobs), 1):
         finals.setdefault((s, c), []).append(out)
@@ -160,6 +163,8 @@ def calibrate(
             row.final[lab] = float(ok.mean()) if ok.size else math.nan
             row.sat[lab] = 100.0 * float(np.mean(np.nan_to_num(f, nan=np.inf) <= THRESHOLD))
             row.aborted[lab] = 100.0 * sum(x[1] for x in finals[(s, c)]) / (runs * budget)
+        done = [x for c in cells for x in finals[(s, c)]]
+        row.exp_ms = 1e3 * sum(x[2] for x in done) / sum(x[3] for x in done)
     cv0 = spread(drive_for(0.0), n_spread)[0]
     print(f'bench s=0 (systematic effects only): spread CV {100 * cv0:.2f} %', flush=True)
     return [rows[s] for s in profiles], cv0
@@ -215,10 +220,10 @@ def markdown(
         + body
         + f'\n**Chosen: s = {best.scale:g}** (`params.BENCH_NOISE_SCALE`; the `bench` '
         f'profile is `bench_profile({best.scale:g})`). D = {best.distance:.1f} against '
-        f'{ideal.distance:.1f} for `ideal`. One experiment (1.625 s of bench time, one '
-        f'process) takes {ideal.exp_ms:.1f} ms on `ideal` and {slow:.1f}x that on `bench` '
-        '(its noise blocks, friction and dead-time terms; wall time on a shared 2-core '
-        'machine, indicative).\n\n'
+        f'{ideal.distance:.1f} for `ideal`. One experiment (1.625 s of bench time) takes '
+        f'{ideal.exp_ms:.1f} ms on `ideal` and {slow:.1f}x that on `bench` (its noise '
+        "blocks, friction, ripple and dead-time terms): the mean over the study's runs, "
+        'wall time in parallel workers on a shared 2-core machine, indicative.\n\n'
         '**What remains different.** '
         + _remaining(best, ideal, cv0, best.scale == max(r.scale or 0.0 for r in bench))
         + '\n'

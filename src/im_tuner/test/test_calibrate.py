@@ -33,13 +33,13 @@ def test_distance_and_the_chosen_scale_in_the_markdown() -> None:
     assert far.distance == pytest.approx((0.11 / 0.05) ** 2 + 1 + (0.1 / 0.05) ** 2 + 0.64)
     text = C.markdown([ideal, far, near], 0.01, 30, 200, 30, 'python -m im_tuner.study.calibrate')
     assert '**Chosen: s = 2**' in text and '| bench s=2 (chosen) |' in text
-    assert 'current noise 0.02 A' in text and 'The chosen s is the largest tested' in text
-    text = C.markdown([ideal, near, far], 0.01, 30, 200, 30, 'python -m im_tuner.study.calibrate')
-    assert '| bench s=2 (chosen) |' in text and 'largest tested' in text
-    far4 = _row(4.0, (0.70, 0.60), (100.0, 100.0))
-    text = C.markdown([ideal, near, far4], 0.01, 30, 200, 30, 'cmd')
-    assert '**Chosen: s = 2**' in text and 'largest tested' not in text
+    assert 'current noise 0.02 A' in text and 'Without the bound' not in text
     assert 'Table I 0.75 (paper 0.70, ideal 0.50)' in text
+    # a better s beyond the sources' bound is shown, not chosen
+    far8 = _row(8.0, (0.81, 0.70), (90.0, 92.0))
+    text = C.markdown([ideal, near, far8], 0.01, 30, 200, 30, 'cmd', max_scale=4.0)
+    assert '| bench s=2 (chosen) |' in text and '| bench s=8 (beyond the sources) |' in text
+    assert 'Without the bound the fit goes on to s = 8 (D = 0.0)' in text
 
 
 def test_bench_profile_scales_only_the_noise_like_keys() -> None:

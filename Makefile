@@ -7,6 +7,7 @@
 #   make bench   the benchmarks, printing their figures
 #   make reproduction  the paper's study (full grid) + every algorithm beyond it, on `ideal` and
 #                      `bench`, and the study over drives -> docs/reproduction*.md
+#   make calibrate-bench  the `bench` realism profile's calibration -> docs/calibration.md
 # Every target does the set-up it needs first; a re-run with nothing changed is quick.
 
 PYTHON ?= python3
@@ -23,7 +24,7 @@ export HOME ?= $(CURDIR)
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: test-parallel setup test test-unit lint format demo demo-drive bench reproduction foxglove-check lock clean
+.PHONY: test-parallel setup test test-unit lint format demo demo-drive bench reproduction calibrate-bench foxglove-check lock clean
 
 setup: $(VENV)/.installed
 
@@ -87,6 +88,12 @@ demo-drive: setup
 bench: setup
 	$(PY) bench/run_all.py
 
+# The `bench` realism profile's calibration (issue 29): the spread of repeated experiments
+# and the paper's centre cells (Tables I-II) for `ideal` and `bench` at noise scales s,
+# the fit -> docs/calibration.md (im_tuner.study.calibrate; ~5-10 min on 2 cores, niced).
+calibrate-bench: setup
+	nice -n 10 $(PY) -m im_tuner.study.calibrate --out docs/calibration.md $(ARGS)
+
 # The paper's Tables I-III offline (issue 7) and beyond (issues 19, 29), then their write-up
 # into docs/: reproduction.md (the paper's drive on the `ideal` profile: Tables I-III and
 # every algorithm; then Tables I-III on the `bench` profile beside `ideal` and the paper's)
@@ -98,7 +105,7 @@ FAMILY_OUT := bags/study_reproduction_family
 # the paper's two (Tables I-III) and every algorithm beyond it (the comparison)
 STUDY_ALGOS ?= spsa,necga,cga,pecga,rcga,cmaes,tpe,safe
 # the drives of the family study (packaged names or drive files), its runs and budget
-FAMILY_DRIVES ?= paper_750w
+FAMILY_DRIVES ?= im750w-j1,im750w-j3,im750w-j10,im3700w-j1,im3700w-j3,im3700w-j10,im7500w-j1,im7500w-j3,im7500w-j10
 FAMILY_RUNS   ?= 100
 FAMILY_BUDGET ?= 200
 STUDY := $(VENV)/bin/ros2 run im_tuner study

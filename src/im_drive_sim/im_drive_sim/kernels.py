@@ -10,11 +10,12 @@ Free functions over two float64 arrays (documented in docs/drive-model.md):
   flux estimator, PI integrators, delayed voltage, load lag, random-load state, noise
   cursor).  ``S[0:6]`` is the plant state [i_sa, i_sb, psi_ra, psi_rb, omega, theta].
 
-and ``noise`` (``(block, 5)``): pre-scaled Gaussian samples (i_alpha, i_beta, speed,
-random-load increments, encoder edge jitter [s]) generated in Python from
-``Generator(PCG64(seed))`` (the jitter from its own jumped stream); one row is consumed per
-step, the cursor ``S[S_NPOS]`` wraps at the end of the block (the Python
-side refills the block exactly when it wraps).
+and ``noise`` (``(block, 7)``): pre-scaled Gaussian samples (i_alpha, i_beta, speed,
+random-load increments, encoder edge jitter [s], the load step's relative amplitude error)
+and a uniform draw (the load step's delay) generated in Python from
+``Generator(PCG64(seed))`` (the jitter and the load step's from their own jumped streams);
+one row is consumed per step, the cursor ``S[S_NPOS]`` wraps at the end of the block (the
+Python side refills the block exactly when it wraps).
 
 Per-step kernels allocate nothing.  Step semantics: ``step_*`` advances from time k Ts to
 (k+1) Ts and leaves the measurements sampled at (k+1) Ts in ``S``; ``write_out`` writes the
@@ -49,6 +50,8 @@ from .model_layout import (
     F_U_ALPHA,
     F_U_BETA,
     F_VSAT,
+    N_AMP,
+    N_DELAY,
     N_RUN_FIELDS,
     P_B,
     P_CMD_DELAY,
@@ -79,6 +82,8 @@ from .model_layout import (
     P_LN_A,
     P_LOAD_A,
     P_LS,
+    P_LS_DELAY_N,
+    P_LS_ON,
     P_MODEL,
     P_NP,
     P_PSI_MIN,
@@ -106,6 +111,10 @@ from .model_layout import (
     S_ISQ,
     S_ISQ_REF,
     S_LOAD_NOISE,
+    S_LS_ACT,
+    S_LS_CMD,
+    S_LS_TARGET,
+    S_LS_WAIT,
     S_NPOS,
     S_OMEGA,
     S_OMEGA_F,
@@ -214,8 +223,33 @@ def sample(
 
 
 @njit(cache=True)
-def _load(S: np.ndarray, P: np.ndarray, tl_cmd: float, n_load: float) -> float:
-    """Load torque for this step (held over the step): lagged command + ripple + random."""
+def load_step_acting(
+    S: np.ndarray, P: np.ndarray, tl_cmd: float, n_amp: float, u_delay: float
+) -> float:
+    """The load torque [N m] the load machine applies for the command ``tl_cmd`` when its
+    steps vary (P[P_LS_ON]): on each change (edge) of the command, the new value times an
+    amplitude factor 1 + n_amp (n_amp ~ N(0, std), drawn then and held until the next
+    edge) acts after floor(u_delay (N + 1)) periods, U{0..N} (u_delay uniform in [0, 1),
+    N = P[P_LS_DELAY_N]); the value acting before stays until then. An edge while one
+    waits replaces it (the old acting value holds until the new one's delay ends)."""
+    if tl_cmd != S[S_LS_CMD]:
+        S[S_LS_CMD] = tl_cmd
+        S[S_LS_TARGET] = tl_cmd * (1.0 + n_amp)
+        S[S_LS_WAIT] = math.floor(u_delay * (P[P_LS_DELAY_N] + 1.0))
+    if S[S_LS_WAIT] > 0.0:
+        S[S_LS_WAIT] -= 1.0
+    else:
+        S[S_LS_ACT] = S[S_LS_TARGET]
+    return S[S_LS_ACT]
+
+
+@njit(cache=True)
+def _load(S: np.ndarray, P: np.ndarray, tl_cmd: float, noise: np.ndarray, r: int) -> float:
+    """Load torque for this step (held over the step): the load machine's step (its
+    variation, ``load_step_acting``, when on), lagged, + ripple + random (noise row r)."""
+    if P[P_LS_ON] != 0.0:
+        tl_cmd = load_step_acting(S, P, tl_cmd, noise[r, N_AMP], noise[r, N_DELAY])
+    n_load = noise[r, 3]
     a = P[P_LOAD_A]
     tlf = a * S[S_TLOAD_F] + (1.0 - a) * tl_cmd
     S[S_TLOAD_F] = tlf
@@ -267,7 +301,7 @@ def _advance_full(
 ) -> None:
     """The full model over one period with the voltage (ua, ub) [V] applied: the load of
     the period, the plant's RK4 step, then the sample at the new time (noise row r)."""
-    tl = _load(S, P, tl_cmd, noise[r, 3])
+    tl = _load(S, P, tl_cmd, noise, r)
     ua, ub = applied_voltage(S, ua, ub, P)  # the inverter's dead-time error
     plant_rk4(S, ua, ub, tl, P)
     S[S_STEP] += 1.0
@@ -363,7 +397,7 @@ def step_reduced(
     """
     r = _next_noise_row(S, noise)
     isq_ref = _clamp_isq(S, P, isq_ref)
-    tl = _load(S, P, tl_cmd, noise[r, 3])
+    tl = _load(S, P, tl_cmd, noise, r)
     i0 = S[S_RED_ISQ]
     di = i0 - isq_ref
     i_0 = isq_ref + di * P[P_ISQ_A0]  # isq(0+): continuous unless the lag is ideal

@@ -69,7 +69,9 @@ P_INV_WS2 = 49  # 1/ws^2 [s^2/rad^2]
 P_VDT = 50  # inverter dead-time voltage error per leg [V]
 P_RR_RISE = 51  # alpha dT: the relative rise of Rr over a run (0 = off)
 P_INV_TTH = 52  # 1/tau_thermal [1/s]
-N_PARAMS = 53
+P_LS_ON = 53  # 1: the load step's amplitude/instant vary (either below non-zero), 0 = off
+P_LS_DELAY_N = 54  # largest delay of a load step [periods] (integer valued)
+N_PARAMS = 55
 
 # -------------------------------------------------------------------- state indices
 S_ISA = 0  # true stator current alpha [A]
@@ -107,7 +109,13 @@ S_RED_ISQ = 31  # reduced: true isq [A]
 S_RED_SLIP = 32  # reduced: true flux angle minus p theta [rad]
 S_PEND_ISQ = 33  # command delay 2: the command latched for the next period, isq* [A]
 S_PEND_TL = 34  # ... and its load torque [N m]
-N_STATE = 35
+# the load step's variation (P_LS_ON): the command's last value, the value it will act
+# with (command x amplitude factor), the periods until it acts, the value acting now
+S_LS_CMD = 35
+S_LS_TARGET = 36
+S_LS_WAIT = 37
+S_LS_ACT = 38
+N_STATE = 39
 
 STATE_FIELDS = contract.STATE_FIELDS  # the published layout (contract.py)
 EXTRA_FIELDS = ('encoder_count', 'u_alpha', 'u_beta', 'psi_r', 'voltage_saturated', 'isq_ref')
@@ -137,5 +145,10 @@ RUN_FIELDS = STATE_FIELDS + EXTRA_FIELDS
 N_STATE_FIELDS = len(STATE_FIELDS)
 N_RUN_FIELDS = len(RUN_FIELDS)
 
-NOISE_COLS = 5  # i_alpha, i_beta, speed, random-load increment, encoder edge jitter [s]
+#: i_alpha, i_beta, speed, random-load increment, encoder edge jitter [s], the load step's
+#: relative amplitude error (N(0, std)) and its delay draw (uniform in [0, 1)): a step's
+#: row serves a load step commanded then
+NOISE_COLS = 7
 NOISE_BASE_COLS = 4  # the first four: one stream (PCG64(seed)); the jitter its own (jumped)
+N_AMP = 5  # column of the load step's amplitude error (stream PCG64(seed).jumped(2))
+N_DELAY = 6  # column of its delay draw (the same stream)

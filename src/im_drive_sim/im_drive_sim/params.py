@@ -33,6 +33,9 @@ import yaml
 from . import family
 
 __all__ = [
+    'BENCH_ESTIMATES',
+    'BENCH_NOISE_KEYS',
+    'BENCH_NOISE_SCALE',
     'REALISM_PROFILES',
     'ConfigError',
     'ControlParams',
@@ -40,6 +43,7 @@ __all__ = [
     'DriveConfig',
     'MachineParams',
     'SensorParams',
+    'bench_profile',
     'config_from_dict',
     'default_config_path',
     'load_config',
@@ -201,6 +205,9 @@ class DisturbanceParams:
     ripple_phase: float = _f('rad', lo=None)
     load_noise_std: float = _f('N m', strict=False, doc='stationary std of random load', off=0.0)
     load_noise_tau: float = _f('s', strict=False, doc='correlation time, 0 = white', off=0.0)
+    # the load step's variation (docs/drive-model.md 7a): relative std [-], largest delay [s]
+    load_step_amplitude_std: float = _f('-', strict=False, hi=0.5, off=0.0, new=True)
+    load_step_delay_max: float = _f('s', strict=False, hi=1.0, off=0.0, new=True)
 
 
 _SECTIONS: dict[str, type] = {
@@ -214,29 +221,58 @@ _TOP_SCALARS = ('model', 'Ts', 'seed', 'command_delay', 'realism')
 _OPTIONAL: dict[str, Any] = {'command_delay': 1, 'realism': 'ideal'}
 _MODELS = ('full', 'reduced')
 
+#: The bench effects that vary from one experiment to the next (noise-like): the calibration
+#: (``python -m im_tuner.study.calibrate``, docs/calibration.md) scales them together by one
+#: factor s; the others (offsets, friction, ripple, dead time, Rr drift) are systematic and
+#: keep their sourced magnitude.
+BENCH_NOISE_KEYS: tuple[str, ...] = (
+    'sensors.current_noise_std',
+    'sensors.encoder_jitter',
+    'disturbance.load_noise_std',
+    'disturbance.load_step_amplitude_std',
+    'disturbance.load_step_delay_max',
+)
+#: Each bench effect at its sourced magnitude (docs/drive-model.md, "Bench effects": the
+#: source, equation and magnitude of each): the ``bench`` profile at noise scale s = 1.
+BENCH_ESTIMATES: dict[str, float] = {
+    'sensors.current_noise_std': 0.01,
+    'sensors.current_offset_a': 0.05,
+    'sensors.current_offset_b': -0.03,
+    'sensors.encoder_jitter': 1.0e-6,
+    'machine.coulomb_torque': 0.02,
+    'machine.static_torque': 0.03,
+    'machine.stribeck_speed': 2.0,
+    'machine.deadtime_voltage': 3.0,
+    'machine.rr_temp_rise': 40.0,
+    'machine.rr_temp_tau': 1200.0,
+    'disturbance.ripple_amplitude': 0.025,
+    'disturbance.ripple_harmonic': 6.0,
+    'disturbance.load_noise_std': 0.0125,
+    'disturbance.load_noise_tau': 0.02,
+    'disturbance.load_step_amplitude_std': 0.02,
+    'disturbance.load_step_delay_max': 1.0e-3,
+}
+#: The calibrated scale of the noise-like magnitudes (docs/calibration.md: the fit that
+#: chose it, reproduced by ``make calibrate-bench``).
+BENCH_NOISE_SCALE = 4.0
+
+
+def bench_profile(scale: float = BENCH_NOISE_SCALE) -> dict[str, float]:
+    """The ``bench`` effect values with the noise-like ones (``BENCH_NOISE_KEYS``) scaled
+    by ``scale`` from their sourced magnitudes (``BENCH_ESTIMATES``); as overrides, a
+    drive file's ``realism: bench`` at another noise scale."""
+    return {k: v * scale if k in BENCH_NOISE_KEYS else v for k, v in BENCH_ESTIMATES.items()}
+
+
 #: Realism profiles: the values of the bench-effect keys (those with an ``off`` value) that
 #: a file leaves out. ``ideal``: every effect off (the bench of the paper reproduction, bit
 #: identical to the files before profiles existed). ``bench``: each effect at the magnitude
-#: documented, with its source, in docs/drive-model.md ("Bench effects"). A key the file
-#: (or an override) gives explicitly wins over its profile.
+#: documented, with its source, in docs/drive-model.md ("Bench effects"), the noise-like
+#: ones scaled by the calibrated ``BENCH_NOISE_SCALE``. A key the file (or an override)
+#: gives explicitly wins over its profile.
 REALISM_PROFILES: dict[str, dict[str, float]] = {
     'ideal': {},
-    'bench': {
-        'sensors.current_noise_std': 0.01,
-        'sensors.current_offset_a': 0.05,
-        'sensors.current_offset_b': -0.03,
-        'sensors.encoder_jitter': 1.0e-6,
-        'machine.coulomb_torque': 0.02,
-        'machine.static_torque': 0.03,
-        'machine.stribeck_speed': 2.0,
-        'machine.deadtime_voltage': 3.0,
-        'machine.rr_temp_rise': 40.0,
-        'machine.rr_temp_tau': 1200.0,
-        'disturbance.ripple_amplitude': 0.025,
-        'disturbance.ripple_harmonic': 6.0,
-        'disturbance.load_noise_std': 0.0125,
-        'disturbance.load_noise_tau': 0.02,
-    },
+    'bench': bench_profile(),
 }
 
 

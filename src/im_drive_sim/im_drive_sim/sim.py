@@ -30,6 +30,7 @@ __all__ = [
     'RUN_FIELDS',
     'STATE_FIELDS',
     'DriveSim',
+    'load_step_delay_periods',
     'make_param_array',
     'start_position',
 ]
@@ -109,7 +110,16 @@ def make_param_array(cfg: DriveConfig) -> np.ndarray:
     P[L.P_VDT] = m.deadtime_voltage
     P[L.P_RR_RISE] = m.rr_temp_coeff * m.rr_temp_rise
     P[L.P_INV_TTH] = 1.0 / m.rr_temp_tau
+    P[L.P_LS_DELAY_N] = float(load_step_delay_periods(cfg))
+    on = d.load_step_amplitude_std != 0.0 or P[L.P_LS_DELAY_N] != 0.0
+    P[L.P_LS_ON] = 1.0 if on else 0.0
     return P
+
+
+def load_step_delay_periods(cfg: DriveConfig) -> int:
+    """N, the largest delay of a commanded load step in periods: round(load_step_delay_max
+    / Ts); a step waits U{0, ..., N} periods (docs/drive-model.md, "Bench effects")."""
+    return round(cfg.disturbance.load_step_delay_max / cfg.Ts)
 
 
 def start_position(config: DriveConfig) -> float:
@@ -140,7 +150,8 @@ class DriveSim:
     ``step`` the object describes time (k+1)*Ts.  Deterministic: the same config, seed,
     ``reset`` arguments and inputs give bit-identical outputs (noise is pre-generated in
     blocks of ``NOISE_BLOCK`` rows from ``numpy.random.Generator(PCG64(seed))``, the encoder
-    jitter from ``PCG64(seed).jumped()``).
+    jitter from ``PCG64(seed).jumped()``, the load step's variation from
+    ``PCG64(seed).jumped(2)``).
 
     Parameters
     ----------
@@ -163,6 +174,8 @@ class DriveSim:
         self._jitter: np.ndarray = np.zeros(NOISE_BLOCK)
         s, d = self.config.sensors, self.config.disturbance
         self._jitter_std: float = s.encoder_jitter
+        self._step_var: bool = self.P[L.P_LS_ON] != 0.0
+        self._step_amp_std: float = d.load_step_amplitude_std
         ln_a = self.P[L.P_LN_A]
         self._noise_scale = np.array(
             [
@@ -175,6 +188,7 @@ class DriveSim:
         self._noise_on: bool = bool(np.any(self._noise_scale > 0.0))
         self._rng: np.random.Generator | None = None
         self._rng_jitter: np.random.Generator | None = None
+        self._rng_step: np.random.Generator | None = None
         self._left: int = NOISE_BLOCK
         self._scratch = np.zeros(L.N_RUN_FIELDS)
         self.reset()
@@ -191,6 +205,12 @@ class DriveSim:
             assert self._rng_jitter is not None
             self._rng_jitter.standard_normal(out=self._jitter)
             np.multiply(self._jitter, self._jitter_std, out=self._noise[:, L.NOISE_BASE_COLS])
+        if self._step_var:  # the load step's variation: its own stream, in place
+            assert self._rng_step is not None
+            self._rng_step.standard_normal(out=self._jitter)
+            np.multiply(self._jitter, self._step_amp_std, out=self._noise[:, L.N_AMP])
+            self._rng_step.random(out=self._jitter)
+            self._noise[:, L.N_DELAY] = self._jitter
         self.S[L.S_NPOS] = 0.0
         self._left = NOISE_BLOCK
 
@@ -221,6 +241,8 @@ class DriveSim:
         self._rng = np.random.Generator(np.random.PCG64(self.seed))
         # the jitter's own stream: the other columns draw as they did before it existed
         self._rng_jitter = np.random.Generator(np.random.PCG64(self.seed).jumped())
+        # the load step's variation: a third stream (the others draw as without it)
+        self._rng_step = np.random.Generator(np.random.PCG64(self.seed).jumped(2))
         self._refill()
         K.reset_kernel(self.S, self.P, float(theta), float(omega), bool(fluxed), float(step_index))
 

@@ -247,7 +247,123 @@ def test_bench_random_load_has_its_std_and_correlation_time() -> None:
         overrides={'model': 'reduced', 'realism': 'bench', 'disturbance.ripple_amplitude': 0.0}
     )
     tl = DriveSim(cfg, seed=11).run(np.zeros(100_000), 0.0)['load_torque'][1000:]
-    assert np.std(tl) == pytest.approx(0.0125, rel=0.1)
+    assert np.std(tl) == pytest.approx(cfg.disturbance.load_noise_std, rel=0.1)
+    assert cfg.disturbance.load_noise_std == REALISM_PROFILES['bench']['disturbance.load_noise_std']
     lag = 100  # one correlation time (20 ms): autocorrelation exp(-1)
     rho = np.corrcoef(tl[:-lag], tl[lag:])[0, 1]
     assert rho == pytest.approx(math.exp(-1.0), abs=0.08)
+
+
+# ---------------------------------------------------------------- the load step's variation
+STEP_STD, STEP_DELAY = 0.05, 1.0e-3  # 5 %, up to 5 periods of 200 us
+
+
+def _step_run(
+    seed: int, std: float, delay: float, edges: int, hold: int = 40, realism: str = 'ideal'
+) -> dict:
+    """Reduced model, the load command a square wave 0 / 1 N m (``edges`` edges, ``hold``
+    periods apart), every other load effect off: the load acting is the load machine's step."""
+    ov = {
+        'model': 'reduced',
+        'realism': realism,
+        'disturbance.load_step_amplitude_std': std,
+        'disturbance.load_step_delay_max': delay,
+        'disturbance.ripple_amplitude': 0.0,
+        'disturbance.load_noise_std': 0.0,
+    }
+    sim = DriveSim(load_config(overrides=ov), seed=seed)
+    cmd = np.repeat(np.arange(edges + 1) % 2, hold).astype(float)
+    res = sim.run(np.zeros(cmd.size), cmd)
+    res['cmd'] = cmd
+    return res
+
+
+def _edges(res: dict, hold: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """Per rising edge of the command: the factor (level acting / commanded) and the delay
+    [periods] before the new level acted (row k of a run is the load of step k)."""
+    tl, cmd = res['load_torque'], res['cmd']
+    factors, delays = [], []
+    for k in range(hold, cmd.size, hold):
+        seg = tl[k : k + hold]
+        moved = np.flatnonzero(seg != tl[k - 1])
+        delays.append(int(moved[0]))
+        if cmd[k] == 1.0:
+            factors.append(seg[-1])
+    return np.array(factors), np.array(delays)
+
+
+def test_load_step_off_or_without_edges_is_the_bench_without_it() -> None:
+    """Off: the drive file without the keys (the ``ideal`` digests pin that). On, with a
+    command that never changes: bit-identical to off (its stream is its own)."""
+    cfg_off = load_config(overrides={**NOISY, 'model': 'reduced'})
+    cfg_on = load_config(
+        overrides={
+            **NOISY,
+            'model': 'reduced',
+            'disturbance.load_step_amplitude_std': STEP_STD,
+            'disturbance.load_step_delay_max': STEP_DELAY,
+        }
+    )
+    assert cfg_off.disturbance.load_step_amplitude_std == 0.0
+    assert DriveSim(cfg_off).P[L.P_LS_ON] == 0.0 and DriveSim(cfg_on).P[L.P_LS_DELAY_N] == 5
+    isq = np.full(9000, 1.0)  # over two noise blocks
+    a, b = DriveSim(cfg_off, seed=2).run(isq, 0.0), DriveSim(cfg_on, seed=2).run(isq, 0.0)
+    for k in a:
+        assert np.array_equal(a[k], b[k]), k
+
+
+def test_load_step_amplitude_and_delay_have_their_documented_distribution() -> None:
+    """2000 seeded edges: the factor 1 + N(0, std) (mean 1, std 5 %), the delay uniform
+    on {0, ..., 5} periods (1 ms / 200 us), the falling edges delayed the same way."""
+    res = _step_run(7, STEP_STD, STEP_DELAY, 2000)
+    factors, delays = _edges(res)
+    assert factors.size == 1000 and delays.size == 2000
+    assert np.mean(factors) == pytest.approx(1.0, abs=3 * STEP_STD / math.sqrt(1000))
+    assert np.std(factors, ddof=1) == pytest.approx(STEP_STD, rel=0.08)
+    counts = np.bincount(delays, minlength=6)
+    assert counts.size == 6 and np.all(np.abs(counts - 2000 / 6) < 4 * math.sqrt(2000 / 6))
+    # a falling edge ends at exactly 0: the factor scales the command
+    assert np.all(res['load_torque'][res['cmd'] == 0.0][-20:] == 0.0)
+    # the amplitude without a delay, the delay without an amplitude error
+    f0, d0 = _edges(_step_run(7, STEP_STD, 0.0, 200))
+    assert np.all(d0 == 0) and np.std(f0) > 0.02
+    f1, d1 = _edges(_step_run(7, 0.0, STEP_DELAY, 200))
+    assert np.all(f1 == 1.0) and set(d1) == set(range(6))
+
+
+def test_bench_profile_load_step_has_its_magnitude() -> None:
+    """The ``bench`` profile's own magnitudes (calibrated, docs/calibration.md), measured."""
+    prof = REALISM_PROFILES['bench']
+    std, delay = (
+        prof['disturbance.load_step_amplitude_std'],
+        prof['disturbance.load_step_delay_max'],
+    )
+    n = round(delay / 2e-4)
+    assert std > 0.0 and n >= 1
+    hold = n + 20
+    res = _step_run(9, std, delay, 2000, hold, 'bench')
+    factors, delays = _edges(res, hold)
+    assert np.std(factors, ddof=1) == pytest.approx(std, rel=0.08)
+    assert abs(np.mean(factors) - 1.0) < 3 * std / math.sqrt(factors.size)
+    counts = np.bincount(delays, minlength=n + 1)
+    want = delays.size / (n + 1)
+    assert counts.size == n + 1 and np.all(np.abs(counts - want) < 4.5 * math.sqrt(want))
+
+
+def test_load_step_variation_is_seeded_and_reproducible() -> None:
+    a = _edges(_step_run(3, STEP_STD, STEP_DELAY, 100))
+    b = _edges(_step_run(3, STEP_STD, STEP_DELAY, 100))
+    c = _edges(_step_run(4, STEP_STD, STEP_DELAY, 100))
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert not np.array_equal(a[0], c[0]) and not np.array_equal(a[1], c[1])
+
+
+def test_load_step_keys_refused_in_one_line() -> None:
+    with pytest.raises(
+        ConfigError,
+        match=r'^paper_750w\.yaml \(with overrides\): disturbance\.load_step_amplitude_std '
+        r'must be a finite number >= 0 and <= 0\.5, got -0\.1$',
+    ):
+        load_config(overrides={'disturbance.load_step_amplitude_std': -0.1})
+    with pytest.raises(ConfigError, match=r'load_step_delay_max must be .* <= 1, got 2\.0$'):
+        load_config(overrides={'disturbance.load_step_delay_max': 2.0})

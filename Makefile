@@ -24,7 +24,7 @@ export HOME ?= $(CURDIR)
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: test-parallel setup test test-unit lint format demo demo-drive bench reproduction calibrate-bench foxglove-check lock clean
+.PHONY: test-parallel setup test test-unit lint format demo demo-drive bench reproduction reproduction-docs calibrate-bench foxglove-check lock clean
 
 setup: $(VENV)/.installed
 
@@ -115,6 +115,10 @@ reproduction: setup
 	$(STUDY) --out $(BENCH_OUT) --algos spsa,necga --realism bench --beside $(STUDY_OUT) $(ARGS)
 	$(STUDY) --out $(FAMILY_OUT) --drives $(FAMILY_DRIVES) --realism bench \
 	    --runs $(FAMILY_RUNS) --budget $(FAMILY_BUDGET) $(ARGS)
+	$(MAKE) reproduction-docs
+
+# The write-up alone, from the three studies' directories (no experiment run).
+reproduction-docs:
 	rm -rf docs/reproduction && mkdir -p docs/reproduction/family
 	cp $(STUDY_OUT)/tables.png $(STUDY_OUT)/convergence.png $(STUDY_OUT)/comparison.png docs/reproduction/
 	cd $(FAMILY_OUT) && for d in */; do mkdir -p $(CURDIR)/docs/reproduction/family/$$d && \

@@ -123,8 +123,19 @@ def prepare_run(
     opt_ss, drive_seed = run_seeds(rseed)
     kind = cell.start_kind
     space = dataclasses.replace(params.space, start=start_point(kind, rseed, params.space))
+    first = None
+    if cell.first == 'model':  # the study's drive file is the model (a run may differ)
+        from ..prior import model_prior
+
+        prior = model_prior(spec.drive(), space)
+        first = None if prior is None else prior.u
     opt = optim.make_optimizer(
-        cell.algo, space.dim, opt_ss, None if kind == 'none' else space.start_u, **cell.opts
+        cell.algo,
+        space.dim,
+        opt_ss,
+        None if kind == 'none' else space.start_u,
+        first=first,
+        **cell.opts,
     )
     return space, opt, drive_seed
 

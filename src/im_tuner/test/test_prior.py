@@ -136,3 +136,34 @@ def test_the_study_row_runs_safe_from_the_model(prior):
     spec = StudySpec(runs=1, algos=('safe',))
     _space, opt, _seed = prepare_run(spec, row[0], 0, load_params(None))
     assert opt.config()['first'] == list(prior.u)
+
+
+def _new(*args: str):
+    from im_tuner.tuner_cli import _new_run_config, build_parser
+
+    argv = ['tuner', *args]
+    return _new_run_config(build_parser().parse_args(argv[1:]), argv)
+
+
+def test_the_tuner_takes_the_model_where_it_knows_the_drive(prior, tmp_path):
+    from im_drive_sim.cli import UsageError
+
+    # a simulated bench, or a drive file given: safe's first step from the model
+    for args in (('--bench', 'inproc'), ('--drive-config', str(_bench_file(tmp_path)))):
+        assert _new('--seed', '3', *args).run.options == {'first': list(prior.u)}
+    # --bench auto may find a controller of another motor: no model unless asked
+    assert _new('--seed', '3').run.options == {}
+    assert _new('--seed', '3', '--first', 'model').run.options == {'first': list(prior.u)}
+    assert _new('--seed', '3', '--bench', 'inproc', '--first', 'none').run.options == {}
+    with pytest.raises(UsageError, match="--first does not apply to --algo spsa: it is safe's"):
+        _new('--seed', '3', '--algo', 'spsa', '--first', 'model')
+
+
+def _bench_file(tmp_path):
+    from im_drive_sim.params import default_config_path
+
+    text = default_config_path().read_text().replace('\nrealism: ideal ', '\nrealism: bench ')
+    assert '\nrealism: bench ' in text
+    path = tmp_path / 'bench.yaml'
+    path.write_text(text)
+    return path

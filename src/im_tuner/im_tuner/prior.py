@@ -128,7 +128,9 @@ class _ModelBench:
         return m.loss, m.aborted
 
 
-def _search(model: DriveConfig, experiment: ExperimentConfig | None, space: SearchSpace):
+def _search(
+    model: DriveConfig, experiment: ExperimentConfig | None, space: SearchSpace
+) -> tuple[list[tuple[float, bool, tuple[float, ...]]], _ModelBench]:
     """Step 1: ``safe`` on the nominal model; its measured points and the bench."""
     from .optim import make_optimizer
 

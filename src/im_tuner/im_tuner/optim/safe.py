@@ -13,6 +13,11 @@ On u in [0, 1]^dim, from the start point u0 (the hand-tuned gains, known to be s
   reference experiment measures u0 too, but it is the first experiment from rest: 0.874
   against 1.000 for every later one on the simulated bench; taken as f it made the
   search reject true improvements, 11.2 evaluations to 0.9 against 5.1.)
+* with ``first`` (the drive model's point, ``im_tuner.prior``; the tuner's ``--first
+  model``), evaluation 2 measures that point: a candidate like any other (it replaces
+  x if its loss is lower, an aborted one is a constraint), but no pattern move repeats
+  its long step.  Without it (None) the search is the same as before it existed, ask
+  for ask and state for state (the golden tests);
 * a candidate is y = clip(x + s) with, in order of preference:
   - s = the last successful step right after a success (pattern move, Hooke-Jeeves);
   - every ``model_every``-th evaluation, once at least ``dim + 1`` measured points lie

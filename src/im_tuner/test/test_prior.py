@@ -49,7 +49,7 @@ def test_the_prior_is_deterministic_and_cached(bench_drive, prior):
     assert (
         again.experiments
         == prior.experiments
-        == (1 + P.MODEL_EVALUATIONS + len(P.PERTURBATIONS) * (2 + P.CANDIDATES))
+        == (1 + len(P.SEEDS) * P.MODEL_EVALUATIONS + len(P.PERTURBATIONS) * (2 + P.CANDIDATES))
     )
 
 

@@ -47,6 +47,7 @@ RUN_SETTINGS = (
     'remeasure',
     'no_reference',
     'no_start',
+    'first',
     'model',
     'drive_config',
     'retries',
@@ -140,6 +141,16 @@ def build_parser() -> argparse.ArgumentParser:
         'the reference experiment still measures it. Refused with safe (a local search '
         'from the start: its first experiment would be an untested random controller) '
         'and with the compact GAs (they take no start)',
+    )
+    ap.add_argument(
+        '--first',
+        choices=('model', 'none'),
+        help="safe only: its first step after the start. 'model': the best point of an "
+        "offline tuning on the drive file's nominal model (bench effects off; about a "
+        "second), robust to J x0.7-1.4 and Rr x0.8-1.2 (docs/optimisers.md); 'none': a "
+        'local step. Default: model when the tuner knows the drive (--drive-config, or a '
+        'simulated bench: --bench inproc, processes, realtime...), none otherwise (--bench '
+        'auto or none without --drive-config: the controller found may drive another motor)',
     )
     ap.add_argument(
         '--retries',
@@ -354,6 +365,7 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
     entropy = np.random.SeedSequence().entropy  # a fresh SeedSequence draws an int
     assert isinstance(entropy, int)
     seed = cli.seed if cli.seed is not None else entropy % 2**31
+    options.update(_first_point(cli, algo, params))  # (an offline tuning: seconds)
     try:  # the cross-option checks (eta < n ...) are the constructors' (any seed will do)
         optim.make_optimizer(
             algo, params.space.dim, seed, _start(algo, params, cli.no_start), **options
@@ -466,6 +478,31 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
         except drive_spec.DriveSpecError as exc:
             raise UsageError(f'--resume: {exc}') from None
     return PreparedSession(run, params, drive, progress, rundir, tuning, n_restored)
+
+
+def _first_point(cli: argparse.Namespace, algo: str, params: TunerParams) -> dict[str, Any]:
+    """safe's ``first`` option from ``--first`` (default: 'model' where the tuner knows
+    the drive): the prior of the drive file's nominal model (``im_tuner.prior``), or
+    nothing.  Stored with the run's options, so a resumed run continues with it."""
+    if algo != 'safe':
+        if cli.first is not None:
+            raise UsageError(f"--first does not apply to --algo {algo}: it is safe's first step")
+        return {}
+    from .benches import is_simulated
+
+    known = cli.drive_config is not None or is_simulated(cli.bench, cli.drive)
+    if (cli.first or ('model' if known else 'none')) == 'none':
+        return {}
+    from im_drive_sim.params import load_config
+
+    from .prior import model_prior
+
+    from . import family
+
+    drive = load_config(cli.drive_config, overrides={'model': cli.model} if cli.model else None)
+    setup = family.tuner_setup(cli.drive_config)  # a packaged drive's own experiment
+    prior = model_prior(drive, params.space, None if setup is None else setup.experiment)
+    return {} if prior is None else {'first': list(prior.u)}
 
 
 def _start(algo: str, params: TunerParams, no_start: bool = False) -> np.ndarray | None:

@@ -92,6 +92,8 @@ def make_optimizer(
     dim: int,
     seed: int | np.random.SeedSequence,
     start: np.ndarray | None = None,
+    *,
+    first: Any = None,
     **options: Any,
 ) -> Optimizer:
     """Validate everything, then build the optimiser ``algo`` on ``dim`` parameters.
@@ -100,6 +102,8 @@ def make_optimizer(
     normalised start point in [0, 1]^dim (``TAKES_START`` only; None = spsa, cmaes and
     safe draw a uniform random start, tpe starts with random trials; the tuner runs
     only ``NO_START_ALGOS`` without one).
+    ``first``: safe only, the drive model's point (``im_tuner.prior``) measured right
+    after the start (None: none; then safe is exactly as before the prior existed).
     ``options``: see ``OPTIONS[algo]``; unset ones take their defaults.  Any problem
     (unknown algo or option, wrong type, bool for a number, out of range, eta >= n, a
     start for a compact GA...) raises OptimizerError with a one-line message naming it
@@ -116,6 +120,10 @@ def make_optimizer(
             f'{", ".join(sorted(TAKES_START))} does); pass start=None'
         )
     check_options(algo, OPTIONS[algo], options)
+    if first is not None:
+        if algo != 'safe':
+            raise OptimizerError(f'{algo} does not take a first point (only safe does)')
+        options = {**options, 'first': first}
     # The constructors repeat these checks and add the cross-option ones (eta < n) before
     # they create anything.
     return algorithm_class(algo)(dim, seed, start, **options)

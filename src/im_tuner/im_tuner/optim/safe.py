@@ -13,6 +13,11 @@ On u in [0, 1]^dim, from the start point u0 (the hand-tuned gains, known to be s
   reference experiment measures u0 too, but it is the first experiment from rest: 0.874
   against 1.000 for every later one on the simulated bench; taken as f it made the
   search reject true improvements, 11.2 evaluations to 0.9 against 5.1.)
+* with ``first`` (the drive model's point, ``im_tuner.prior``; the tuner's ``--first
+  model``), evaluation 2 measures that point: a candidate like any other (it replaces
+  x if its loss is lower, an aborted one is a constraint), but no pattern move repeats
+  its long step.  Without it (None) the search is the same as before it existed, ask
+  for ask and state for state (the golden tests);
 * a candidate is y = clip(x + s) with, in order of preference:
   - s = the last successful step right after a success (pattern move, Hooke-Jeeves);
   - every ``model_every``-th evaluation, once at least ``dim + 1`` measured points lie
@@ -70,8 +75,22 @@ from .base import (
     Optimizer,
     OptimizerError,
 )
+from .checks import check_start
 
-__all__ = ['SAFE']
+__all__ = ['SAFE', 'check_first']
+
+
+def check_first(first: Any, dim: int) -> list[float]:
+    """The model's first point: dim finite numbers in [0, 1] (as python floats)."""
+    try:
+        u = check_start(first, dim)
+    except OptimizerError:
+        raise OptimizerError(
+            f"safe: first must be {dim} finite numbers in [0, 1] (the model's point, "
+            f'normalised), got {first!r}'
+        ) from None
+    assert u is not None
+    return [float(x) for x in u]
 
 
 def _point(opt: SAFE, v: Any) -> np.ndarray:
@@ -118,6 +137,24 @@ class SAFE(Optimizer):
     )
     BAD_STATE: ClassVar[str] = 'not a safe state ({error!r:.80})'
 
+    def __init__(
+        self,
+        dim: int,
+        seed: int | np.random.SeedSequence,
+        start: np.ndarray | None = None,
+        first: Any = None,
+        **options: Any,
+    ) -> None:
+        # ``first``: the model's point (im_tuner.prior), measured right after the start;
+        # not an option of the table (a point, computed from the drive, not typed in)
+        self._first = None if first is None else check_first(first, dim)
+        super().__init__(dim, seed, start, **options)
+
+    def _settings(self) -> dict[str, Any]:
+        if self._first is None:  # (the configuration of a safe without a model, as before)
+            return self._opts
+        return {**self._opts, 'first': list(self._first)}
+
     def _check_options(self, options: dict[str, Any]) -> dict[str, Any]:
         opts = super()._check_options(options)
         if opts['sigma0'] > opts['sigma_max']:
@@ -142,6 +179,7 @@ class SAFE(Optimizer):
         # candidate with ABORT_VALUE times the incumbent's loss)
         self._pts: list[list[float]] = []
         self._vals: list[float] = []
+        self.first_left = self._first is not None  # the model's point not yet proposed
 
     @property
     def iterations(self) -> int:
@@ -168,6 +206,8 @@ class SAFE(Optimizer):
         every = self._opts['remeasure_every']
         if self.f_n == 0 or (every and self.evaluations % every == every - 1):
             return self.x.copy(), 'incumbent'
+        if self.first_left:
+            return np.array(self._first), 'first'
         if self.step is not None:
             return np.clip(self.x + self.step, 0.0, 1.0), 'candidate'
         z = self._rng.standard_normal(self.dim)
@@ -185,9 +225,19 @@ class SAFE(Optimizer):
         y, self._kind = self._next()
         return y.tolist()
 
+    def state_dict(self) -> dict[str, Any]:
+        state = super().state_dict()
+        if self._first is not None:  # (a safe without a model: the state as before)
+            state['first_left'] = self.first_left
+        return state
+
     def _update(self, u: list[float], loss: float, aborted: bool) -> None:
         """The (1+1) rule, the step size and the model's data (module docstring)."""
         y = np.array(u)
+        first = self._kind == 'first'
+        if first:  # the model's point is a candidate, but no pattern move repeats its step
+            self.first_left = False
+            self._kind = 'candidate'
         if not aborted:
             self._pts.append(y.tolist())  # (the model's data)
             self._vals.append(loss)
@@ -199,8 +249,8 @@ class SAFE(Optimizer):
                 self.f = (self.f * self.f_n + loss) / (self.f_n + 1) if self.f_n else loss
                 self.f_n += 1
         elif not aborted and loss < self.f:
-            self.step = y - self.x
-            if not np.any(self.step):
+            self.step = None if first else y - self.x
+            if self.step is not None and not np.any(self.step):
                 self.step = None
             self.x, self.f, self.f_n = y, loss, 1
             self.sigma = min(self.sigma * self._opts['grow'], self._opts['sigma_max'])
@@ -212,5 +262,7 @@ class SAFE(Optimizer):
             self.aborts += int(aborted)
 
     def _restored(self, state: dict[str, Any]) -> None:
+        if self._first is not None:
+            self.first_left = bool(state['first_left'])
         if len(self._pts) != len(self._vals) or any(len(q) != self.dim for q in self._pts):
             raise OptimizerError('safe state: points and values do not match')

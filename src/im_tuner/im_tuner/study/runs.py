@@ -129,8 +129,20 @@ def prepare_run(
 
         opt = BobyqaRun(space.dim, opt_ss, space.start_u, spec.budget, **cell.opts)
     else:
+        first = None
+        if cell.first == 'model':  # the study's drive file is the model (a run may differ)
+            from ..prior import model_prior
+
+            setup = spec.setup()
+            prior = model_prior(setup.drive, space, setup.experiment)
+            first = None if prior is None else prior.u
         opt = optim.make_optimizer(
-            cell.algo, space.dim, opt_ss, None if kind == 'none' else space.start_u, **cell.opts
+            cell.algo,
+            space.dim,
+            opt_ss,
+            None if kind == 'none' else space.start_u,
+            first=first,
+            **cell.opts,
         )
     return space, opt, drive_seed
 

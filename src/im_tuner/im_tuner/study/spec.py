@@ -55,7 +55,9 @@ class StudyError(Exception):
 #: The paper's two algorithms: Tables I-III and the paper's conclusions.
 PAPER_ALGOS: tuple[str, ...] = ('spsa', 'necga')
 #: The small grids of the algorithms beyond the paper: (label, options); the option
-#: 'start' ('random' or 'hand') is the run's start, not an optimiser option.
+#: 'start' ('random' or 'hand') is the run's start, and 'first' ('model': safe's first
+#: step from the study's drive file as a nominal model, ``im_tuner.prior``) a point the
+#: run computes: neither is an optimiser option.
 EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
     'rcga': (
         ('sigma0=10', (('sigma0', 10.0),)),
@@ -71,6 +73,7 @@ EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
         ('no model (a plain 1+1-ES)', (('model_every', 0),)),
         ('no trust region (sigma_max=0.5)', (('sigma_max', 0.5),)),
         ('defaults', ()),
+        ('first step from the drive model', (('first', 'model'),)),
     ),
     'tpe': (
         ('defaults, no start', (('start', 'none'),)),
@@ -132,8 +135,13 @@ class Cell:
 
     @property
     def opts(self) -> dict[str, Any]:
-        """The optimiser's options (without the run's start kind)."""
-        return {k: v for k, v in self.options if k != 'start'}
+        """The optimiser's options (without the run's start kind and first step)."""
+        return {k: v for k, v in self.options if k not in ('start', 'first')}
+
+    @property
+    def first(self) -> str:
+        """'model' (safe's first step from the drive model) or 'none'."""
+        return str(dict(self.options).get('first', 'none'))
 
     @property
     def start_kind(self) -> str:

@@ -1,0 +1,169 @@
+"""safe's first step from the drive model (``im_tuner.prior``, safe's ``first``)."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from im_drive_sim.params import load_config
+from im_tuner import prior as P
+from im_tuner.bench.offline import OfflineBench
+from im_tuner.optim import Optimizer, OptimizerError, make_optimizer
+from im_tuner.space import load_params
+from im_tuner.study.spec import StudySpec, grid
+
+SPACE = load_params(None).space
+START = SPACE.start_u
+
+
+@pytest.fixture(scope='module')
+def bench_drive():
+    return load_config(None, overrides={'realism': 'bench'})
+
+
+@pytest.fixture(scope='module')
+def prior(bench_drive):
+    p = P.model_prior(bench_drive, SPACE)
+    assert p is not None
+    return p
+
+
+def test_the_nominal_model_is_the_file_without_its_bench_effects(bench_drive):
+    assert bench_drive.machine.coulomb_torque == 0.02  # (the bench profile is on)
+    nominal = P.nominal_model(bench_drive)
+    assert nominal == load_config(None)  # the packaged ideal drive, field for field
+    wrong = load_config(None, overrides={'realism': 'bench', 'machine.J': 3.5e-3})
+    assert P.nominal_model(wrong).machine.J == 3.5e-3  # the nameplate is kept
+
+
+def test_the_prior_is_deterministic_and_cached(bench_drive, prior):
+    assert P.model_prior(bench_drive, SPACE) is prior  # cached: the same object
+    # the bench profile and the ideal file share one nominal model: one cache entry
+    assert P.model_prior(load_config(None), SPACE) is prior
+    again = P._compute(bench_drive, None, SPACE)  # (recomputed, not from the cache)
+    assert again is not None
+    assert again.u == prior.u  # bit for bit
+    assert (
+        again.experiments
+        == prior.experiments
+        == (1 + len(P.SEEDS) * P.MODEL_EVALUATIONS + len(P.PERTURBATIONS) * (2 + P.CANDIDATES))
+    )
+
+
+def test_the_prior_is_in_the_box_and_better_than_the_start_on_every_model(bench_drive, prior):
+    u = np.array(prior.u)
+    assert u.shape == (SPACE.dim,) and np.all((u >= 0) & (u <= 1))
+    assert np.linalg.norm(u - START) > 0.05  # a real step, not the start
+    assert 0 < prior.model_ratio < prior.worst_ratio < 0.7
+    model = P.nominal_model(bench_drive)
+    for j, rr in ((1.0, 1.0), (1.4, 0.8)):  # the nominal model, a perturbed one
+        m = P.nominal_model(
+            load_config(
+                None,
+                overrides={'machine.J': model.machine.J * j, 'machine.Rr': model.machine.Rr * rr},
+            )
+        )
+        b = OfflineBench(m, 0)
+        b.measure(SPACE.to_gains(START))  # from rest
+        f0 = b.measure(SPACE.to_gains(START))
+        f1 = b.measure(SPACE.to_gains(u))
+        assert not f1.aborted and f1.loss < 0.7 * f0.loss
+
+
+def test_safe_measures_the_start_then_the_first_point_and_no_pattern_move():
+    first = [0.3, 0.35, 0.6, 0.01, 0.02]
+    opt = make_optimizer('safe', 5, 4, START, first=first)
+    assert opt.config()['first'] == first
+    u1 = opt.ask()
+    assert u1.tolist() == START.tolist()
+    opt.tell(u1, 1.0)
+    u2 = opt.ask()
+    assert u2.tolist() == first  # the model's point, exactly
+    opt.tell(u2, 0.5)
+    assert opt.x.tolist() == first and opt.f == 0.5 and opt.step is None
+    u3 = opt.ask()  # a step of sigma0 around it, not the long jump again
+    assert 0 < np.linalg.norm(u3 - u2) < 0.2
+
+
+def test_a_failed_first_point_shrinks_the_step_and_keeps_the_start():
+    first = [0.9] * 5
+    opt = make_optimizer('safe', 5, 4, START, first=first)
+    opt.tell(opt.ask(), 1.0)
+    opt.tell_measurement(opt.ask(), 50.0, True)  # the model was wrong: aborted
+    assert opt.x.tolist() == START.tolist() and opt.aborts == 1
+    assert opt.sigma == pytest.approx(0.05 * 0.3)
+
+
+def test_without_first_safe_is_as_before():
+    plain = make_optimizer('safe', 5, 4, START)
+    assert 'first' not in plain.config() and 'first_left' not in plain.state_dict()
+
+
+def test_a_checkpoint_restores_before_and_after_the_first_point():
+    opt = make_optimizer('safe', 5, 9, START, first=[0.3, 0.3, 0.5, 0.05, 0.05])
+    for step in range(6):
+        u = opt.ask()
+        state = json.loads(json.dumps(opt.state_dict()))
+        twin = Optimizer.from_state(state)
+        assert twin.ask().tolist() == u.tolist()
+        assert json.dumps(twin.state_dict()) == json.dumps(opt.state_dict())
+        opt.tell(u, 1.0 - 0.1 * step)
+
+
+@pytest.mark.parametrize(
+    ('algo', 'first', 'message'),
+    [
+        ('spsa', [0.5] * 5, 'spsa does not take a first point (only safe does)'),
+        ('safe', [0.5] * 4, 'safe: first must be 5 finite numbers in [0, 1]'),
+        ('safe', [1.5] * 5, 'safe: first must be 5 finite numbers in [0, 1]'),
+    ],
+)
+def test_a_bad_first_point_is_refused(algo, first, message):
+    with pytest.raises(OptimizerError, match=re.escape(message)):
+        make_optimizer(algo, 5, 0, START, first=first)
+
+
+def test_the_study_row_runs_safe_from_the_model(prior):
+    from im_tuner.study.runs import prepare_run
+
+    cells = grid(('safe',))
+    row = [i for i, c in enumerate(cells) if c.first == 'model']
+    assert len(row) == 1 and 'first' not in cells[row[0]].opts
+    assert all(c.first == 'none' for i, c in enumerate(cells) if i != row[0])
+    spec = StudySpec(runs=1, algos=('safe',))
+    _space, opt, _seed = prepare_run(spec, row[0], 0, load_params(None))
+    assert opt.config()['first'] == list(prior.u)
+
+
+def _new(*args: str):
+    from im_tuner.tuner_cli import _new_run_config, build_parser
+
+    argv = ['tuner', *args]
+    return _new_run_config(build_parser().parse_args(argv[1:]), argv)
+
+
+def test_the_tuner_takes_the_model_where_it_knows_the_drive(prior, tmp_path):
+    from im_drive_sim.cli import UsageError
+
+    # a simulated bench, or a drive file given: safe's first step from the model
+    for args in (('--bench', 'inproc'), ('--drive-config', str(_bench_file(tmp_path)))):
+        assert _new('--seed', '3', *args).run.options == {'first': list(prior.u)}
+    # --bench auto may find a controller of another motor: no model unless asked
+    assert _new('--seed', '3').run.options == {}
+    assert _new('--seed', '3', '--first', 'model').run.options == {'first': list(prior.u)}
+    assert _new('--seed', '3', '--bench', 'inproc', '--first', 'none').run.options == {}
+    with pytest.raises(UsageError, match="--first does not apply to --algo spsa: it is safe's"):
+        _new('--seed', '3', '--algo', 'spsa', '--first', 'model')
+
+
+def _bench_file(tmp_path):
+    from im_drive_sim.params import default_config_path
+
+    text = default_config_path().read_text().replace('\nrealism: ideal ', '\nrealism: bench ')
+    assert '\nrealism: bench ' in text
+    path = tmp_path / 'bench.yaml'
+    path.write_text(text)
+    return path

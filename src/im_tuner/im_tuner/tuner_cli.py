@@ -495,9 +495,8 @@ def _first_point(cli: argparse.Namespace, algo: str, params: TunerParams) -> dic
         return {}
     from im_drive_sim.params import load_config
 
-    from .prior import model_prior
-
     from . import family
+    from .prior import model_prior
 
     drive = load_config(cli.drive_config, overrides={'model': cli.model} if cli.model else None)
     setup = family.tuner_setup(cli.drive_config)  # a packaged drive's own experiment

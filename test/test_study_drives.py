@@ -25,15 +25,25 @@ def study(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
 
 def test_without_drives_the_files_are_unchanged(tmp_path):
     """Digests of the tables and runs of a small study made with the code before issue 29
-    (main at a897583): the same study now gives the same bytes (out directory aside)."""
+    (main at a897583): the same study now gives the same bytes (out directory and the one
+    new row of safe's grid aside)."""
     out = tmp_path / 's'
     p = study(
         '--runs', '2', '--budget', '6', '--algos', 'spsa,necga,cmaes,safe', '--jobs', '1',
         '--quiet', '--out', str(out),
     )  # fmt: skip
     assert p.returncode == 0, p.stderr
-    tables = hashlib.sha256((out / 'tables.csv').read_bytes()).hexdigest()
-    runs = (out / 'runs.csv').read_bytes().replace(str(out).encode(), b'OUT')
+    # issue 29 added one row to safe's grid (its first step from the drive model): every
+    # other line is the bytes of before, the new row is there
+    new_row = b',first step from the drive model,'
+
+    def before(name: str) -> bytes:
+        lines = (out / name).read_bytes().splitlines(keepends=True)
+        assert sum(new_row in ln for ln in lines) >= 2
+        return b''.join(ln for ln in lines if new_row not in ln)
+
+    tables = hashlib.sha256(before('tables.csv')).hexdigest()
+    runs = before('runs.csv').replace(str(out).encode(), b'OUT')
     assert tables == 'e6de7e9d59bf6fcc6065ec2bffd83244c6b3c77c1e58f103707d6b3b4e4adc0b'
     assert (
         hashlib.sha256(runs).hexdigest()
@@ -74,8 +84,8 @@ def test_drives_a_table_per_drive_the_summary_and_bobyqa(tmp_path):
     for d in fam['dirs']:
         assert (out / d / 'study.npz').is_file() and (out / d / 'tables.txt').is_file()
         with np.load(out / d / 'study.npz') as z:
-            # two rows (safe, bobyqa) x 2 runs x 12 evaluations, every one measured
-            assert z['losses'].shape == (2, 2, 12) and np.isfinite(z['losses']).all()
+            # three rows (safe blind and from the model, bobyqa) x 2 runs x 12 evaluations, every one measured
+            assert z['losses'].shape == (3, 2, 12) and np.isfinite(z['losses']).all()
             assert np.isfinite(z['remeasured']).all()
             # the same drive file twice: the same losses (seeded, deterministic)
             if d == 'mine':
@@ -88,7 +98,9 @@ def test_drives_a_table_per_drive_the_summary_and_bobyqa(tmp_path):
     assert txt.count('Beyond the paper: every configuration') == 2
     assert txt.count('Py-BOBYQA rhobeg=0.08 (hand-tuned start)') == 3  # 2 drives + summary
     assert 'Summary over the drives' in txt
-    assert txt.count(': the default (safe defaults) m') == 2  # meets / misses, per drive
+    assert (
+        txt.count(': the default (safe first step from the drive model) m') == 2
+    )  # meets / misses, per drive
     md = (out / 'family.md').read_text()
     assert (
         md.count('## Drive ') == 2 and '![paper_750w comparison](paper_750w/comparison.png)' in md

@@ -33,6 +33,7 @@ __all__ = [
     'MIN_RUNS_FOR_INTERVALS',
     'PAPER_ALGOS',
     'RANDOM_START_DEFAULT',
+    'DEFAULT_ROW',
     'RECOMMENDED',
     'REFERENCE_ALGOS',
     'REF_EXPERIMENTS',
@@ -90,20 +91,25 @@ REFERENCE_ALGOS: tuple[str, ...] = ('bobyqa',)
 CGA_ALGOS: tuple[str, ...] = ('necga', 'cga', 'pecga')
 #: Algorithms the study has a grid for: every tuner algorithm and the reference rows.
 STUDY_ALGOS: tuple[str, ...] = optim.ALGOS + REFERENCE_ALGOS
-#: The recommended configuration of each algorithm (the per-drive study's row): the label
-#: of its grid cell.  SPSA and the compact GAs: the paper's centre (n=25 is also the best
-#: of cGA's and peCGA's grids in docs/reproduction.md).
-RECOMMENDED: dict[str, str] = {
-    'spsa': 'a=0.0183 c=0.03',
-    'necga': 'n=25 eta=12',
-    'cga': 'n=25',
-    'pecga': 'n=25',
-    'rcga': 'sigma0=0.3',
-    'cmaes': 'sigma0=0.1',
-    'tpe': 'n_startup_trials=5',
-    'safe': 'defaults',
-    'bobyqa': 'rhobeg=0.08',
+#: The recommended configurations of each algorithm (the per-drive study's rows): the
+#: labels of its grid cells.  SPSA and the compact GAs: the paper's centre (n=25 is also
+#: the best of cGA's and peCGA's grids in docs/reproduction.md).  ``safe``: blind (what the
+#: tuner does on a drive it does not know) and with the first step from the drive model
+#: (the tuner's default where it knows the drive: ``DEFAULT_ROW``).
+RECOMMENDED: dict[str, tuple[str, ...]] = {
+    'spsa': ('a=0.0183 c=0.03',),
+    'necga': ('n=25 eta=12',),
+    'cga': ('n=25',),
+    'pecga': ('n=25',),
+    'rcga': ('sigma0=0.3',),
+    'cmaes': ('sigma0=0.1',),
+    'tpe': ('n_startup_trials=5',),
+    'safe': ('defaults', 'first step from the drive model'),
+    'bobyqa': ('rhobeg=0.08',),
 }
+#: The tuner's default on a drive it knows (``optim.DEFAULT_ALGO`` with ``--first model``,
+#: the default with ``--drive-config`` or a simulated bench): the row issue 29's goal is for.
+DEFAULT_ROW: tuple[str, str] = (optim.DEFAULT_ALGO, 'first step from the drive model')
 #: Start of a run when its cell does not say: SPSA a random point (as the paper), every
 #: other algorithm that takes a start the hand-tuned gains (what a real bench has).
 RANDOM_START_DEFAULT: frozenset[str] = frozenset({'spsa'})
@@ -195,7 +201,7 @@ def grid(algos: tuple[str, ...] = PAPER_ALGOS) -> list[Cell]:
 def recommended(algos: tuple[str, ...]) -> list[Cell]:
     """One cell per algorithm: its recommended configuration (``RECOMMENDED``), as it
     stands in the full grid (same label, place and options)."""
-    return [c for c in grid(algos) if c.label == RECOMMENDED.get(c.algo)]
+    return [c for c in grid(algos) if c.label in RECOMMENDED.get(c.algo, ())]
 
 
 @dataclass(frozen=True)

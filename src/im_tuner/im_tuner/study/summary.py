@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 from .. import optim
 from .drives import FamilyResult
-from .spec import RECOMMENDED
+from .spec import DEFAULT_ROW
 from .stats import FAST_LEVEL, CellStats, StudyStats, compute
 
 __all__ = [
@@ -135,9 +135,8 @@ def _find(st: StudyStats, key: tuple[str, str]) -> CellStats | None:
 
 
 def default_cell(st: StudyStats) -> CellStats | None:
-    """The tuner's default (``optim.DEFAULT_ALGO``) at its recommended configuration, if
-    the study has it."""
-    return _find(st, (optim.DEFAULT_ALGO, RECOMMENDED[optim.DEFAULT_ALGO]))
+    """The tuner's default on a drive it knows (``spec.DEFAULT_ROW``), if the study has it."""
+    return _find(st, DEFAULT_ROW)
 
 
 def goal_check(name: str, st: StudyStats) -> GoalCheck | None:

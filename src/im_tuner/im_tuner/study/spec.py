@@ -25,6 +25,7 @@ if TYPE_CHECKING:  # the types only; the modules are imported where they are use
     from ..space import TunerParams
 
 __all__ = [
+    'DEFAULT_ROW',
     'DEFAULT_SATISFACTORY',
     'DEFAULT_SEED',
     'EXIT_USAGE',
@@ -33,7 +34,6 @@ __all__ = [
     'MIN_RUNS_FOR_INTERVALS',
     'PAPER_ALGOS',
     'RANDOM_START_DEFAULT',
-    'DEFAULT_ROW',
     'RECOMMENDED',
     'REFERENCE_ALGOS',
     'REF_EXPERIMENTS',

@@ -19,7 +19,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from .. import optim
 from .drives import FamilyResult
 from .spec import DEFAULT_ROW
 from .stats import FAST_LEVEL, CellStats, StudyStats, compute

@@ -84,7 +84,8 @@ def test_drives_a_table_per_drive_the_summary_and_bobyqa(tmp_path):
     for d in fam['dirs']:
         assert (out / d / 'study.npz').is_file() and (out / d / 'tables.txt').is_file()
         with np.load(out / d / 'study.npz') as z:
-            # three rows (safe blind and from the model, bobyqa) x 2 runs x 12 evaluations, every one measured
+            # three rows (safe blind and from the model, bobyqa) x 2 runs x 12 evaluations,
+            # every one measured
             assert z['losses'].shape == (3, 2, 12) and np.isfinite(z['losses']).all()
             assert np.isfinite(z['remeasured']).all()
             # the same drive file twice: the same losses (seeded, deterministic)

@@ -138,6 +138,29 @@ def test_the_study_row_runs_safe_from_the_model(prior):
     assert opt.config()['first'] == list(prior.u)
 
 
+def test_the_study_commands_repeat_safe_with_or_without_the_model(prior, tmp_path):
+    """runs.csv's tuner command of each safe row gives the tuner the study's first point
+    (the model's, or none), whatever the tuner's own default on its bench."""
+    import shlex
+    from types import SimpleNamespace
+
+    from im_tuner.study.files import tuner_command
+    from im_tuner.study.runs import prepare_run, run_seed
+
+    spec = StudySpec(runs=1, algos=('safe',))
+    cells = grid(('safe',))
+    res = SimpleNamespace(cells=cells, spec=spec, run_seed=[run_seed(spec.seed, 0)])
+    for c, cell in enumerate(cells):
+        argv = shlex.split(tuner_command(res, c, 0, tmp_path))[3:]  # from 'tuner'
+        assert argv.count('--first') == 1
+        _space, opt, _seed = prepare_run(spec, c, 0, load_params(None))
+        first = opt.config().get('first')
+        for bench in ((), ('--bench', 'inproc')):  # auto: none by default; inproc: model
+            options = _new(*argv[1:], *bench).run.options
+            assert options.get('first') == first, (cell.label, bench)
+        assert (first is not None) == (cell.first == 'model')
+
+
 def _new(*args: str):
     from im_tuner.tuner_cli import _new_run_config, build_parser
 

@@ -8,7 +8,9 @@ its own copy of a work directory (cwd) holding the inputs; afterwards the direct
 be exactly as before (no run directory, bag or JSON left behind, no input modified).
 
 The cases run a few at a time in a module fixture (each is a separate process, most of it
-Python and rclpy start-up); each case is then its own test, named after the case.
+Python start-up: a node's command line is refused before numba and rclpy are imported,
+test_a_refusal_of_a_node_imports_nothing_heavy); each case is then its own test, named
+after the case.
 """
 
 from __future__ import annotations

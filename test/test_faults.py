@@ -460,10 +460,10 @@ def test_recorder_killed_the_run_goes_on_bit_for_bit(procs, tmp_path, wait_until
     and the run is bit for bit the run nothing happened to (the drive did not stall on
     the dead reader: the recorder's short DDS lease); that run computed on the pure core's
     offline bench, which the ROS nodes reproduce bit for bit (test_study.py)."""
-    args = ['--budget', '4', '--seed', '1', '--remeasure', '0', '--quiet']
-    from im_tuner.optim.options import DEFAULT_ALGO  # the tuner's, as --algo is not given
-
-    want, _st, _s = offline_run(DEFAULT_ALGO, 4, 1, remeasure=0)
+    # (SPSA: a run whose first step does not depend on which bench the tuner thinks it
+    # is on, as safe's default --first does)
+    args = ['--algo', 'spsa', '--budget', '4', '--seed', '1', '--remeasure', '0', '--quiet']
+    want, _st, _s = offline_run('spsa', 4, 1, remeasure=0)
     run = tmp_path / 'run'
     tuner = procs.start(ros2('im_tuner', 'tuner', '--bench', 'processes', *args, '--out', str(run)))
     wait_until(lambda: len(results(run)) >= 2, 120, message='2 records')

@@ -8,7 +8,9 @@ its own copy of a work directory (cwd) holding the inputs; afterwards the direct
 be exactly as before (no run directory, bag or JSON left behind, no input modified).
 
 The cases run a few at a time in a module fixture (each is a separate process, most of it
-Python and rclpy start-up); each case is then its own test, named after the case.
+Python start-up: a node's command line is refused before numba and rclpy are imported,
+test_a_refusal_of_a_node_imports_nothing_heavy); each case is then its own test, named
+after the case.
 """
 
 from __future__ import annotations
@@ -623,3 +625,69 @@ def test_the_controller_refuses_a_move_longer_than_the_experiment_at_run_time(ro
             assert MOVE_RULE in desc.additional_constraints, (key, desc)
     finally:
         node.destroy_node()
+
+
+#: the node executables' entries (``<pkg>/scripts/<exe>``: ``python -m <entry>``)
+NODE_ENTRIES = {
+    'drive_sim': 'im_drive_sim.drive_sim_main',
+    'example_drive': 'im_drive_sim.example_drive_main',
+    'controller': 'im_controller.controller_main',
+    'sim_bench': 'im_tuner.bench.sim_bench_main',
+    'recorder': 'im_tuner.record.recorder_main',
+}
+
+
+#: a command line each node's parser accepts and the node refuses
+NODE_REFUSES = {
+    'drive_sim': ['--ros-args', '-p', 'seed:=abc'],
+    'example_drive': ['--ros-args', '-p', 'isq_max:=abc'],
+    'controller': ['--ros-args', '-p', 'k_pw:=-1.0'],
+    'sim_bench': ['--no-record', '--ros-args', '-p', 'safety.isq_max:=20.0'],
+    'recorder': ['--repair', 'missing_bag'],
+}
+
+
+@pytest.mark.parametrize('exe', sorted(NODE_ENTRIES))
+def test_a_refusal_of_a_node_imports_nothing_heavy(exe: str, tmp_path: Path) -> None:
+    """A node's command line is checked before its module (numba kernels, rclpy: about a
+    second each, many seconds under load; most of test_bad_input's time) is imported:
+    a wrong flag, a bad number and a missing --params-file are refused with the node's
+    own line, nothing heavy loaded; an accepted one goes on to the node (it imports
+    them: the check would fail if the entry stopped handing over)."""
+    code = (
+        'import json, runpy, sys\n'
+        'sys.argv = ["x", *json.loads(sys.argv[1])]\n'
+        'try:\n'
+        f'    runpy.run_module({NODE_ENTRIES[exe]!r}, run_name="__main__")\n'
+        '    rc = 0\n'
+        'except SystemExit as exc:\n'
+        '    rc = exc.code\n'
+        f'heavy = {HEAVY!r}\n'
+        'print(json.dumps([rc, sorted(m for m in heavy if m in sys.modules)]))\n'
+    )
+
+    def run(argv: list[str]) -> tuple[int, list[str], str]:
+        proc = subprocess.run(
+            [sys.executable, '-c', code, json.dumps(argv)],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=CASE_TIMEOUT,
+            env={**os.environ, 'PYTHONDONTWRITEBYTECODE': '1'},
+        )
+        rc, loaded = json.loads(proc.stdout.strip().splitlines()[-1])
+        return rc, loaded, proc.stderr
+
+    for argv, says in (
+        (['--no-such-flag'], 'unrecognized arguments: --no-such-flag'),
+        (['--ros-args', '--params-file', 'missing.yaml'], '--params-file missing.yaml: no such'),
+        (['--config', 'adir'] if exe != 'recorder' else ['--chunk-size', '0'], ''),
+    ):
+        rc, loaded, err = run(argv)
+        (line,) = err.strip().splitlines()
+        assert rc == 2 and line.startswith(f'error: {exe}: ') and says in line, err
+        assert loaded == [], f'{exe} {argv}: a refusal imported {loaded}'
+    # accepted by the parser, refused by the node (a parameter, a missing bag): the node's
+    # module was imported
+    rc, loaded, err = run(NODE_REFUSES[exe])
+    assert rc == 2 and err.startswith(f'error: {exe}') and 'numba' in loaded, (loaded, err)

@@ -25,7 +25,6 @@ A thin node around :class:`im_controller.experiment.ExperimentRunner` (docs/cont
 
 from __future__ import annotations
 
-import argparse
 import collections
 import contextlib
 import math
@@ -45,9 +44,8 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from im_drive_sim.cdr import Float64ArrayWire
-from im_drive_sim.cli import Parser, add_config_option, parse_cli, run_cli
+from im_drive_sim.cli import parse_cli, run_cli
 from im_drive_sim.client import DriveClient
-from im_drive_sim.contract import MODES
 from im_drive_sim.qos import RECORDED_QOS
 from im_drive_sim.runtime import (
     IoNodeOwner,
@@ -62,6 +60,7 @@ from . import contract as C
 from .config import GAIN_NAMES, ControllerConfigError, ExperimentConfig, Gains
 from .contract import INTERNALS_TOPIC, LOSS_TOPIC
 from .control import CONTROL_FIELDS
+from .controller_main import parser
 from .declarations import declare_structure, declare_tunables
 from .experiment import (
     INTERNALS_FIELDS,
@@ -474,24 +473,11 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         return (self.loss_pub, self.internals_pub, self.client.command_pub)
 
 
-def _parser() -> argparse.ArgumentParser:
-    ap = Parser(
-        prog='ros2 run im_controller controller',
-        description="Cascaded position/speed controller with the paper's loss experiment. "
-        'Start an experiment with the ~/start_experiment service (std_srvs/'
-        'Trigger); results on controller/loss. Parameters: --ros-args -p '
-        'name:=value (see docs/controller.md).',
-    )
-    ap.add_argument('--mode', choices=MODES, help='lockstep (default) or realtime')
-    add_config_option(ap, 'Ts and isq_max')
-    return ap
-
-
 def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
 
     def body() -> int:
-        cli = parse_cli(_parser(), argv)
+        cli = parse_cli(parser(), argv)
         overrides = start_overrides(
             (('mode', cli.mode), ('drive_config_file', cli.config and str(cli.config)))
         )

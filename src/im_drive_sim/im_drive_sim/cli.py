@@ -91,6 +91,23 @@ def parse_cli(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.
     return parser.parse_args(check_ros_args(argv)[1:])
 
 
+def check_then_run(prog: str, parser: Callable[[], argparse.ArgumentParser], node_main: str) -> int:
+    """An executable's entry (``python -m <pkg>.<exe>_main``): the command line is parsed
+    with the node's own parser *before* the node's module is imported (numba kernels,
+    rclpy: about a second, more on a loaded machine), so a refusal (one line, exit 2)
+    or ``--help`` comes at once; an accepted command line goes on to ``node_main``
+    (``'package.module:function'``), which parses it again and checks the rest."""
+    try:
+        parse_cli(parser(), sys.argv)
+    except UsageError as exc:
+        print(f'error: {prog}: {exc}', file=sys.stderr, flush=True)
+        return EXIT_USAGE
+    import importlib
+
+    module, function = node_main.split(':')
+    return getattr(importlib.import_module(module), function)()
+
+
 def run_cli(prog: str, body: Callable[[], int]) -> int:
     """``body()``, with a :class:`UsageError` printed as ``error: <prog>: <reason>`` (exit 2)."""
     try:

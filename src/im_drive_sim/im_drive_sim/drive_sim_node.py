@@ -19,7 +19,6 @@ and whenever the loop is idle.
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import time
@@ -34,7 +33,7 @@ from std_msgs.msg import Float64MultiArray
 
 from . import contract, period_kernel, rt
 from .cdr import ClockWire, Float64ArrayWire, JointStateWire
-from .cli import Parser, add_config_option, int_in, parse_cli, run_cli
+from .cli import parse_cli, run_cli
 from .command_latch import CommandLatch, HeldCommand
 from .contract import (
     CMD_ISQ,
@@ -43,7 +42,6 @@ from .contract import (
     COMMAND_FIELDS,
     COMMAND_TOPIC,
     JOINT_STATE_TOPIC,
-    MODES,
     NS_PER_S,
     STATE_FIELDS,
     STATE_TOPIC,
@@ -52,6 +50,7 @@ from .contract import (
 from .drive_io import CommandPath, publish_status, run_drive_node, watchdog_expired
 from .drive_sim_counters import Counters, counter_values
 from .drive_sim_loops import run_lockstep, run_realtime
+from .drive_sim_main import parser
 from .drive_sim_parameters import declare_initial_position, declare_parameters
 from .pacing import CommandWatchdog
 from .params import ConfigError, load_config
@@ -474,30 +473,11 @@ class DriveSimNode(IoNodeOwner, LenientDoubles, Node):
         return (self.state_pub, self.clock_pub, self.joint_pub, self.status_pub)
 
 
-def _parser() -> argparse.ArgumentParser:
-    parser = Parser(
-        prog='ros2 run im_drive_sim drive_sim',
-        description='Induction-motor drive simulator (5 kHz). Topics: drive/state (out), '
-        'drive/command (in), drive/joint_states, drive/status, /clock. '
-        'Parameters are set with --ros-args -p name:=value; the options below '
-        'are shortcuts for them. See docs/interfaces.md.',
-    )
-    parser.add_argument('--mode', choices=MODES, help='lockstep (default) or realtime')
-    add_config_option(parser, 'the simulated motor')
-    parser.add_argument('--model', choices=('full', 'reduced'), help='model fidelity')
-    parser.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
-    parser.add_argument(
-        '--max-steps', type=int_in(0, 2**62), help='stop after N steps (0: run until shut down)'
-    )
-    rt.add_arguments(parser, 'the drive loop')
-    return parser
-
-
 def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
 
     def body() -> int:
-        cli = parse_cli(_parser(), argv)
+        cli = parse_cli(parser(), argv)
         overrides = start_overrides(
             (
                 ('mode', cli.mode),

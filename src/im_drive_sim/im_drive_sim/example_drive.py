@@ -42,7 +42,7 @@ from std_msgs.msg import Float64MultiArray
 
 from . import contract, rt
 from .cdr import Float64ArrayWire, JointStateWire
-from .cli import Parser, check_ros_args, parse_cli, run_cli
+from .cli import check_ros_args, parse_cli, run_cli
 from .command_latch import CommandLatch
 from .contract import (
     CMD_ISQ,
@@ -57,6 +57,7 @@ from .contract import (
     STATUS_TOPIC,
 )
 from .drive_io import CommandPath, publish_status, run_drive_node, watchdog_expired
+from .example_drive_main import parser
 from .pacing import CommandWatchdog, Pacer
 from .params import ConfigError, DriveConfig, load_config
 from .qos import RECORDED_QOS
@@ -536,17 +537,7 @@ def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:
             # ROS arguments are checked here
             check_ros_args(argv)
             return run_drive_node(argv, node_class, 'example_drive')
-        parser = Parser(
-            prog='ros2 run im_drive_sim example_drive',
-            description='A minimal real-time drive node (the template for a '
-            'real drive): drive/state every 200 us, drive/command, '
-            'isq clamp, command watchdog. Parameters (all '
-            'read-only): --ros-args -p isq_max:=7.0 -p '
-            'command_timeout:=0.05 -p config_file:=FILE ... '
-            '(docs/real-drive.md).',
-        )
-        rt.add_arguments(parser, 'the drive loop')
-        opts = rt.RtOptions.from_cli(parse_cli(parser, argv))
+        opts = rt.RtOptions.from_cli(parse_cli(parser(), argv))
         return run_drive_node(argv, node_class, 'example_drive', opts)
 
     return run_cli('example_drive', body)

@@ -31,60 +31,15 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from im_drive_sim.cli import Parser, UsageError, add_config_option, int_in, parse_cli
+from im_drive_sim.cli import UsageError, parse_cli
 from im_drive_sim.params import ConfigError, load_config
 from im_drive_sim.runtime import RosSession
 
 from ..record.node import default_out_dir
 from .forms import Children, InProcess, parameters
 from .open import open_bench
+from .sim_bench_main import parser
 from .spec import BenchSpec, Params, recording_options
-
-DESCRIPTION = (
-    'The simulated bench: drive_sim + controller, lock-step. Start experiments with '
-    '/controller/start_experiment (std_srvs/Trigger); results on /controller/loss.'
-)
-#: the bag's options: (flag, argparse keywords)
-BAG_OPTIONS: tuple[tuple[str, dict[str, Any]], ...] = (
-    (
-        '--no-record',
-        {
-            'action': 'store_true',
-            'help': 'do not record (default: all traffic to a bag, see --out); refused '
-            'with --out or --compression, which would be ignored',
-        },
-    ),
-    (
-        '--out',
-        {
-            'metavar': 'DIR',
-            'type': Path,
-            'help': 'bag directory to create (default: bags/sim_bench_<UTC time>)',
-        },
-    ),
-    (
-        '--compression',
-        {
-            'choices': ('none', 'zstd', 'lz4'),
-            'help': 'MCAP chunk compression of the bag (default: lz4; zstd: smaller files)',
-        },
-    ),
-)
-
-
-def _parser() -> argparse.ArgumentParser:
-    ap = Parser(prog='ros2 run im_tuner sim_bench', description=DESCRIPTION)
-    ap.add_argument(
-        '--processes',
-        action='store_true',
-        help='run drive_sim and controller as two processes (default: one)',
-    )
-    add_config_option(ap, 'the simulated motor')
-    ap.add_argument('--model', choices=('full', 'reduced'), help='drive model fidelity')
-    ap.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
-    for flag, kw in BAG_OPTIONS:
-        ap.add_argument(flag, **kw)
-    return ap
 
 
 def _check_cli(cli: argparse.Namespace) -> None:
@@ -190,7 +145,7 @@ class _Bag:
 def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
     try:
-        cli = parse_cli(_parser(), argv)
+        cli = parse_cli(parser(), argv)
         _check_cli(cli)
         ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
         if cli.processes and ros_args:

@@ -31,7 +31,6 @@ The simulated bench (``ros2 run im_tuner sim_bench``) and the tuner run a
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import os
@@ -45,13 +44,12 @@ import numpy as np
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, parse_cli
+from im_drive_sim.cli import UsageError, parse_cli
 from im_drive_sim.outbox import R_HEAD, R_LOST, R_TAIL
 from im_drive_sim.runtime import RosSession, unknown_overrides, warn_unknown_overrides
 
 from . import take as rcl_take
 from .counts import closing_custom_data, counts_report
-from .mcap_format import COMPRESSIONS
 from .metadata import (
     BagError,
     TopicRecord,
@@ -62,6 +60,7 @@ from .metadata import (
     storage_file_name,
     write_metadata_yaml,
 )
+from .recorder_main import parser
 from .run_info import default_out_dir, recorder_version, run_metadata
 from .schemas import MsgDefError, schema_for
 from .topic_info import endpoint_qos, endpoint_type_hash, message_class
@@ -475,56 +474,12 @@ class Recorder:
 
 
 #: bounds of --chunk-size [bytes]: the open chunk is a buffer of this size in memory
-CHUNK_SIZE_RANGE = (4096, 1 << 28)
-
-
-def _parser() -> argparse.ArgumentParser:
-    ap = Parser(
-        prog='ros2 run im_tuner recorder',
-        description='Record every topic on the ROS graph to a rosbag2 MCAP bag, losslessly '
-        '(reliable KEEP_ALL, per-topic published/recorded/lost counts).',
-    )
-    ap.add_argument(
-        '--out',
-        metavar='DIR',
-        type=Path,
-        help='bag directory to create (default: bags/recording_<UTC time>)',
-    )
-    ap.add_argument(
-        '--compression',
-        choices=COMPRESSIONS,
-        default='lz4',
-        help='MCAP chunk compression (default: lz4, the cheapest; zstd: smaller files)',
-    )
-    ap.add_argument(
-        '--chunk-size',
-        type=int_in(*CHUNK_SIZE_RANGE),
-        default=1 << 20,
-        metavar='BYTES',
-        help='close chunks at this size (default 1 MiB; '
-        f'{CHUNK_SIZE_RANGE[0]} to {CHUNK_SIZE_RANGE[1]})',
-    )
-    ap.add_argument(
-        '--max-chunk-age',
-        type=finite_float(0.0, 3600.0, lo_open=True, unit='s'),
-        default=0.5,
-        metavar='S',
-        help='close a chunk after this many seconds at most: bounds what a '
-        'SIGKILL loses (default 0.5)',
-    )
-    ap.add_argument(
-        '--repair',
-        metavar='DIR',
-        type=Path,
-        help='repair a bag left by a crash (rewrite summary, index and metadata.yaml), then exit',
-    )
-    return ap
 
 
 def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
     try:
-        cli = parse_cli(_parser(), argv)
+        cli = parse_cli(parser(), argv)
     except UsageError as exc:
         print(f'error: recorder: {exc}', file=sys.stderr)
         return 2

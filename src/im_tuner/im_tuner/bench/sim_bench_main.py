@@ -1,0 +1,60 @@
+"""``ros2 run im_tuner sim_bench``: checks its command line before the node is imported."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from im_drive_sim.cli import Parser, add_config_option, check_then_run, int_in
+
+DESCRIPTION = (
+    'The simulated bench: drive_sim + controller, lock-step. Start experiments with '
+    '/controller/start_experiment (std_srvs/Trigger); results on /controller/loss.'
+)
+#: the bag's options: (flag, argparse keywords)
+BAG_OPTIONS: tuple[tuple[str, dict[str, Any]], ...] = (
+    (
+        '--no-record',
+        {
+            'action': 'store_true',
+            'help': 'do not record (default: all traffic to a bag, see --out); refused '
+            'with --out or --compression, which would be ignored',
+        },
+    ),
+    (
+        '--out',
+        {
+            'metavar': 'DIR',
+            'type': Path,
+            'help': 'bag directory to create (default: bags/sim_bench_<UTC time>)',
+        },
+    ),
+    (
+        '--compression',
+        {
+            'choices': ('none', 'zstd', 'lz4'),
+            'help': 'MCAP chunk compression of the bag (default: lz4; zstd: smaller files)',
+        },
+    ),
+)
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = Parser(prog='ros2 run im_tuner sim_bench', description=DESCRIPTION)
+    ap.add_argument(
+        '--processes',
+        action='store_true',
+        help='run drive_sim and controller as two processes (default: one)',
+    )
+    add_config_option(ap, 'the simulated motor')
+    ap.add_argument('--model', choices=('full', 'reduced'), help='drive model fidelity')
+    ap.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
+    for flag, kw in BAG_OPTIONS:
+        ap.add_argument(flag, **kw)
+    return ap
+
+
+if __name__ == '__main__':
+    sys.exit(check_then_run('sim_bench', parser, 'im_tuner.bench.sim_bench:main'))

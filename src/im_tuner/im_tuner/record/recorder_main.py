@@ -1,0 +1,60 @@
+"""``ros2 run im_tuner recorder``: checks its command line before the node is imported."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from im_drive_sim.cli import Parser, check_then_run, finite_float, int_in
+
+from .mcap_format import COMPRESSIONS
+
+CHUNK_SIZE_RANGE = (4096, 1 << 28)
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = Parser(
+        prog='ros2 run im_tuner recorder',
+        description='Record every topic on the ROS graph to a rosbag2 MCAP bag, losslessly '
+        '(reliable KEEP_ALL, per-topic published/recorded/lost counts).',
+    )
+    ap.add_argument(
+        '--out',
+        metavar='DIR',
+        type=Path,
+        help='bag directory to create (default: bags/recording_<UTC time>)',
+    )
+    ap.add_argument(
+        '--compression',
+        choices=COMPRESSIONS,
+        default='lz4',
+        help='MCAP chunk compression (default: lz4, the cheapest; zstd: smaller files)',
+    )
+    ap.add_argument(
+        '--chunk-size',
+        type=int_in(*CHUNK_SIZE_RANGE),
+        default=1 << 20,
+        metavar='BYTES',
+        help='close chunks at this size (default 1 MiB; '
+        f'{CHUNK_SIZE_RANGE[0]} to {CHUNK_SIZE_RANGE[1]})',
+    )
+    ap.add_argument(
+        '--max-chunk-age',
+        type=finite_float(0.0, 3600.0, lo_open=True, unit='s'),
+        default=0.5,
+        metavar='S',
+        help='close a chunk after this many seconds at most: bounds what a '
+        'SIGKILL loses (default 0.5)',
+    )
+    ap.add_argument(
+        '--repair',
+        metavar='DIR',
+        type=Path,
+        help='repair a bag left by a crash (rewrite summary, index and metadata.yaml), then exit',
+    )
+    return ap
+
+
+if __name__ == '__main__':
+    sys.exit(check_then_run('recorder', parser, 'im_tuner.record.node:main'))

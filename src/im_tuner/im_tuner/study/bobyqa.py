@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import queue
 import threading
+import warnings
 
 import numpy as np
 
@@ -144,15 +145,21 @@ class BobyqaRun:
             while self.evaluations < self.budget:
                 before = self.evaluations
                 self.solves += 1
-                pybobyqa.solve(
-                    self._objective,
-                    x,
-                    bounds=(lo, hi),
-                    rhobeg=self.rhobeg,
-                    maxfun=self.budget - self.evaluations,
-                    objfun_has_noise=True,
-                    do_logging=False,
-                )
+                with warnings.catch_warnings():
+                    # a restart near the end of the budget has maxfun <= npt (2 dim + 1):
+                    # fewer evaluations than its model needs, by design here; not news
+                    warnings.filterwarnings(
+                        'ignore', message='maxfun <= npt', category=RuntimeWarning
+                    )
+                    pybobyqa.solve(
+                        self._objective,
+                        x,
+                        bounds=(lo, hi),
+                        rhobeg=self.rhobeg,
+                        maxfun=self.budget - self.evaluations,
+                        objfun_has_noise=True,
+                        do_logging=False,
+                    )
                 if self.evaluations == before or self._best is None:
                     self._error = RuntimeError('the solver returned without evaluating')
                     break

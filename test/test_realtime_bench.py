@@ -39,6 +39,11 @@ def test_composed_realtime_run_measures_the_paper_loss_bit_for_bit(tmp_path):
     p = subprocess.run(
         [
             *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '3', '--seed', '4'),
+            # the blind search's gains, whose loss the defined experiment repeats within
+            # 0.03-0.8 % (checked below); the drive model's first point (the default on a
+            # simulated bench) is a high-gain controller whose consecutive losses differ
+            # by up to ~5 % (0.447 lock-step vs 0.470 real-time, CI of 2026-11-26)
+            *('--first', 'none'),
             # real-time scheduling of the loop, as ros2_control_node (CI runs as root)
             *('--thread-priority', '50', '--lock-memory'),
             '--remeasure',

@@ -561,6 +561,26 @@ FAST_REFUSALS = [
 HEAVY = ('rclpy', 'cma', 'optuna', 'scipy', 'numba', 'matplotlib')
 
 
+def _heavy_probe(body: str, argv: list[str], cwd: Path) -> tuple[object, list[str], str]:
+    """Run ``body`` (Python that sets ``rc`` from ``json.loads(sys.argv[1])``, the command
+    line) in a fresh interpreter; its exit code, the HEAVY modules it left loaded, stderr."""
+    code = (
+        f'import json, runpy, sys\n{body}'
+        f'heavy = {HEAVY!r}\n'
+        'print(json.dumps([rc, sorted(m for m in heavy if m in sys.modules)]))\n'
+    )
+    proc = subprocess.run(
+        [sys.executable, '-c', code, json.dumps(argv)],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=CASE_TIMEOUT,
+        env={**os.environ, 'PYTHONDONTWRITEBYTECODE': '1'},
+    )
+    rc, loaded = json.loads(proc.stdout.strip().splitlines()[-1])
+    return rc, loaded, proc.stderr
+
+
 @pytest.mark.parametrize('argv, says', FAST_REFUSALS, ids=[' '.join(a) for a, _s in FAST_REFUSALS])
 def test_a_refusal_of_the_tuner_imports_nothing_heavy(argv: list[str], says: str, tmp_path: Path):
     """Issue 25: a bad --algo took 2.7 s on an idle machine (1.5 s of it importing pycma),
@@ -571,24 +591,10 @@ def test_a_refusal_of_the_tuner_imports_nothing_heavy(argv: list[str], says: str
     (tmp_path / 'full' / 'x.txt').write_text('x\n')
     (tmp_path / 'comments.yaml').write_text('# my drive, to be filled in\n')
     before = _tree(tmp_path)
-    code = (
-        'import json, sys\n'
-        'from im_tuner.tuner_node import main\n'
-        'rc = main(["tuner", *json.loads(sys.argv[1])])\n'
-        f'heavy = {HEAVY!r}\n'
-        'print(json.dumps([rc, sorted(m for m in heavy if m in sys.modules)]))\n'
-    )
-    proc = subprocess.run(
-        [sys.executable, '-c', code, json.dumps(argv)],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=CASE_TIMEOUT,
-        env={**os.environ, 'PYTHONDONTWRITEBYTECODE': '1'},
-    )
-    rc, loaded = json.loads(proc.stdout)
-    lines = proc.stderr.strip().splitlines()
-    assert rc == 2 and len(lines) == 1, proc.stderr
+    body = 'from im_tuner.tuner_node import main\nrc = main(["tuner", *json.loads(sys.argv[1])])\n'
+    rc, loaded, err = _heavy_probe(body, argv, tmp_path)
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1, err
     assert lines[0].startswith('error: tuner: ') and says in lines[0], lines[0]
     assert loaded == [], f'{argv}: a refusal imported {loaded}'
     assert _tree(tmp_path) == before
@@ -654,29 +660,17 @@ def test_a_refusal_of_a_node_imports_nothing_heavy(exe: str, tmp_path: Path) -> 
     a wrong flag, a bad number and a missing --params-file are refused with the node's
     own line, nothing heavy loaded; an accepted one goes on to the node (it imports
     them: the check would fail if the entry stopped handing over)."""
-    code = (
-        'import json, runpy, sys\n'
+    body = (
         'sys.argv = ["x", *json.loads(sys.argv[1])]\n'
         'try:\n'
         f'    runpy.run_module({NODE_ENTRIES[exe]!r}, run_name="__main__")\n'
         '    rc = 0\n'
         'except SystemExit as exc:\n'
         '    rc = exc.code\n'
-        f'heavy = {HEAVY!r}\n'
-        'print(json.dumps([rc, sorted(m for m in heavy if m in sys.modules)]))\n'
     )
 
-    def run(argv: list[str]) -> tuple[int, list[str], str]:
-        proc = subprocess.run(
-            [sys.executable, '-c', code, json.dumps(argv)],
-            cwd=tmp_path,
-            capture_output=True,
-            text=True,
-            timeout=CASE_TIMEOUT,
-            env={**os.environ, 'PYTHONDONTWRITEBYTECODE': '1'},
-        )
-        rc, loaded = json.loads(proc.stdout.strip().splitlines()[-1])
-        return rc, loaded, proc.stderr
+    def run(argv: list[str]) -> tuple[object, list[str], str]:
+        return _heavy_probe(body, argv, tmp_path)
 
     for argv, says in (
         (['--no-such-flag'], 'unrecognized arguments: --no-such-flag'),

@@ -6,6 +6,9 @@
 * ROS finds the venv's ament index and a writable log directory.
 * Child processes are started through the ``procs`` fixture and ended by PID
   (SIGINT, a grace period, then SIGKILL), never by name.
+* Every test process runs on the project's numeric baseline (``im_drive_sim.numeric``:
+  numpy's and OpenBLAS's dispatch held at x86-64-v3), set here before anything imports
+  numpy and inherited by every child; the run's header says what it is.
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+
+import im_drive_sim  # noqa: F401 (the numeric baseline, set before anything imports numpy)
 
 REPO = Path(__file__).resolve().parent
 VENV = Path(sys.prefix)
@@ -62,6 +67,12 @@ def pytest_configure(config: pytest.Config) -> None:
     # Output capture is suspended here, so fd 2 is the terminal or CI's log.
     _STDERR_FD.append(os.dup(2))
     faulthandler.dump_traceback_later(SESSION_LIMIT_S, exit=True, file=_STDERR_FD[0])
+
+
+def pytest_report_header(config: pytest.Config) -> str:
+    from im_drive_sim import numeric
+
+    return f'numeric baseline: {numeric.describe(numeric.status())}'
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:

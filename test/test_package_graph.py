@@ -33,6 +33,7 @@ ROSDEP = {
     'mcap': 'python3-mcap-pip',
     'mcap_ros2': 'python3-mcap-ros2-support-pip',
     'scipy': 'python3-scipy',
+    'threadpoolctl': 'python3-threadpoolctl',  # the numeric baseline's check (issue 37)
     'cma': 'python3-cma-pip',
     'optuna': 'python3-optuna-pip',
     'pybobyqa': 'python3-py-bobyqa-pip',  # the study's reference row (issue 29)

@@ -2,11 +2,20 @@
 
 Model, control, measurement and API are documented in docs/drive-model.md.
 Heavy modules (numba kernels) are imported lazily on first attribute access.
+
+Importing this package first sets the project's numeric baseline (:mod:`.numeric`: numpy's
+and OpenBLAS's dispatch held at x86-64-v3, so that a run gives the same bits on every
+x86-64 CPU) -- before numpy is imported, which is why every package of the project
+imports this one first.
 """
 
 from __future__ import annotations
 
 from typing import Any
+
+from . import numeric as _numeric
+
+_numeric.apply()
 
 __version__ = '0.1.0'
 

@@ -27,6 +27,8 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from . import numeric
+
 EXIT_USAGE = 2
 
 
@@ -35,10 +37,18 @@ class UsageError(Exception):
 
 
 class Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (raised as :class:`UsageError`)."""
+    """argparse with one-line errors (raised as :class:`UsageError`); a bad value of the
+    numeric baseline's switch (``IM_NUMERIC_BASELINE``, :mod:`.numeric`) is refused as a
+    bad command line is, by every executable."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
         raise UsageError(message)
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[no-untyped-def]
+        problem = numeric.switch_problem()
+        if problem:
+            raise UsageError(problem)
+        return super().parse_known_args(args, namespace)
 
 
 def _ros_args_reason(text: str) -> str:

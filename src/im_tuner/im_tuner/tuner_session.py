@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from im_drive_sim import numeric
 from im_drive_sim.cli import UsageError
 
 from .benches import IN_PROCESS_BENCHES, LOCKSTEP_BENCHES
@@ -189,17 +190,32 @@ class TunerSession:
             self.plan,
         )
         assert rundir is not None and plan is not None
+        numeric_now = numeric.status()
         if not self.resumed:
-            run.put(controller_parameters=link.list_parameters(), fault_policy=plan.fault_policy)
+            run.put(
+                controller_parameters=link.list_parameters(),
+                fault_policy=plan.fault_policy,
+                numeric=numeric_now,
+            )
             rundir.write_run(run)
             progress.note(
                 f'im_tuner: {run.algo} on the {plan.mode} bench, budget '
                 f'{run.budget}, seed {run.seed}; run directory {rundir.path}'
             )
+        else:
+            differs = numeric.differs(run.numeric, numeric_now)
+            if differs:
+                progress.warn(
+                    f'warning: {differs}: its results are not bit-identical to an '
+                    'uninterrupted run on the baseline (docs/tuner.md)'
+                )
+        if numeric_now['state'] != 'held':
+            progress.warn(f'warning: numeric baseline {numeric.describe(numeric_now)}')
         session = self.session
         session.update(
             {
                 'session': tuning.session,
+                'numeric': numeric_now,
                 'bag': self.bag_dir.name if self.bag_dir else None,
                 'bench': plan.mode,
                 'started': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),

@@ -100,6 +100,9 @@ class RunConfig(_Keyed):
     drive_config: str | None = None
     controller_parameters: dict[str, Any] | None = None
     fault_policy: str | None = None
+    #: the numeric baseline the run began on (im_drive_sim.numeric.status(): level, state,
+    #: reason, numpy dispatch, OpenBLAS cores, cpu)
+    numeric: dict[str, Any] | None = None
 
     HEADER = '# im_tuner run: what ran (see docs/tuner.md)\n'
 

@@ -530,6 +530,10 @@ def _study(
         # the scheduler went away after the check (distributed raises OSError)
         print(f'error: study: --cluster {cli.cluster}: {exc}'.splitlines()[0], file=sys.stderr)
         return None
+    except runs.NumericMismatch as exc:  # a worker off the study's numeric baseline
+        where = f' --cluster {cli.cluster}' if cli.cluster else ''
+        print(f'error: study:{where} {exc}'.splitlines()[0], file=sys.stderr)
+        return None
     res.command = command
     return res
 

@@ -122,6 +122,21 @@ def beyond_md(st: StudyStats, figures: dict[str, str]) -> list[str]:
     return L
 
 
+def numeric_line(st: dict | None) -> str:
+    """The write-up's sentence on the numeric baseline its runs ran on."""
+    if st is None:
+        return 'Numeric baseline: not recorded (a study from before issue 37).'
+    from im_drive_sim.numeric import describe
+
+    held = st['state'] == 'held'
+    return f'Numeric baseline: {describe(st)}' + (
+        ' -- every number here is reproduced to the last digit on any x86-64-v3 CPU '
+        '(docs/tuner.md, "The same bits on every machine").'
+        if held
+        else ' -- off the baseline: another CPU may give other last digits.'
+    )
+
+
 def reproduction_md(st: StudyStats, command: str, figures: dict[str, str]) -> str:
     res, sp = st.res, st.res.spec
     rate = res.experiments / res.wall_s if res.wall_s > 0 else math.nan
@@ -139,6 +154,8 @@ def reproduction_md(st: StudyStats, command: str, figures: dict[str, str]) -> st
         f'{res.experiments * EXPERIMENT_S / 3600:.0f} h '
         f'of bench time) on the {sp.model} voltage-fed model with the encoder, seed {sp.seed}: '
         f'the grid ran in {res.wall_s:.0f} s on {res.jobs} worker(s), {rate:.0f} experiments/s.',
+        '',
+        numeric_line(res.numeric),
         '',
         '## What is compared, and how',
         '',
@@ -305,6 +322,8 @@ def family_md(fs: FamilyStats, command: str, figures: dict[str, dict[str, str]])
             f'{n} ran in {st.res.wall_s:.0f} s on {st.res.jobs} worker(s)' for n, st in fs.drives
         )
         + '.',
+        '',
+        numeric_line(first.res.numeric),
         '',
         'What is compared is the comparison "Beyond the paper" of [reproduction.md]'
         '(reproduction.md), per drive: every algorithm (at its recommended configuration '

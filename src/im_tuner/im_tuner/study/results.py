@@ -48,6 +48,9 @@ class StudyResult:
     wall_s: float = 0.0
     jobs: int = 1
     command: str = ''  #: the command that ran the study (for the write-up)
+    #: the numeric baseline its runs ran on (im_drive_sim.numeric.status() of the study's
+    #: process; every worker was checked to agree); None: a study from before it was recorded
+    numeric: dict | None = None
 
     @property
     def experiments(self) -> int:
@@ -96,6 +99,7 @@ def save(res: StudyResult, out: Path | str) -> None:
         'wall_s': res.wall_s,
         'jobs': res.jobs,
         'command': res.command,
+        'numeric': res.numeric,
     }
     tmp = out / (META_FILE + '.tmp')
     tmp.write_text(json.dumps(meta, indent=1) + '\n')
@@ -133,6 +137,7 @@ def load(out: Path | str) -> StudyResult:
             wall_s=meta['wall_s'],
             jobs=meta['jobs'],
             command=meta.get('command', ''),
+            numeric=meta.get('numeric'),
             **arrays,
         )
     except (KeyError, TypeError, ValueError) as exc:

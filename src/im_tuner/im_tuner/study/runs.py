@@ -13,6 +13,7 @@ import dataclasses
 import math
 import multiprocessing
 import os
+import socket
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -22,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from im_controller.config import GAIN_NAMES, ExperimentConfig, Gains
+from im_drive_sim import numeric
 from im_drive_sim.params import DriveConfig
 
 from .. import optim
@@ -267,16 +269,41 @@ def _end_pool(pool: ProcessPoolExecutor) -> None:
             p.kill()
 
 
-def _work(task: tuple[int, int]) -> RunResult:
+class NumericMismatch(RuntimeError):
+    """A worker runs on another numeric baseline than the study (one line: which, and how
+    to start it on the study's)."""
+
+
+def check_numeric(expected: dict[str, Any] | None) -> None:
+    """Refuse to run in a worker whose numeric baseline (:mod:`im_drive_sim.numeric`)
+    would give other bits than the study's process: its runs would make the tables depend
+    on which worker ran which run.  Checked once per worker process."""
+    if expected is None:
+        return
+    if 'numeric' not in WORKER:
+        WORKER['numeric'] = numeric.status()
+    differs = numeric.differs(expected, WORKER['numeric'])
+    if differs:
+        where = f'worker {socket.gethostname()} pid {os.getpid()}'
+        raise NumericMismatch(
+            f'{where}: {differs.replace("the run", "the study")}; start it with '
+            '`env $(python -m im_drive_sim.numeric_main --env) dask worker ...`'
+        )
+
+
+def _work(task: tuple[int, int, dict[str, Any] | None]) -> RunResult:
+    check_numeric(task[2])
     return run_one(
         WORKER['spec'], task[0], task[1], WORKER['drive'], WORKER['params'], WORKER['experiment']
     )
 
 
-def run_task(spec: StudySpec, c: int, r: int) -> RunResult:
+def run_task(spec: StudySpec, c: int, r: int, expected: dict[str, Any] | None = None) -> RunResult:
     """Run ``r`` of cell ``c`` in a worker of a Dask cluster: the drive and parameter
     files are loaded once per worker process and spec (thread-safe: a worker may run
-    several tasks at once)."""
+    several tasks at once); refused where the worker's numeric baseline differs from
+    ``expected`` (the study's)."""
+    check_numeric(expected)
     drive, params, experiment = init_worker(spec)
     return run_one(spec, c, r, drive, params, experiment)
 
@@ -287,6 +314,7 @@ def _run_on_cluster(
     tasks: list[tuple[int, int]],
     store: Callable[[RunResult], None],
     timeout: float = 30.0,
+    expected: dict[str, Any] | None = None,
 ) -> int:
     """Every task on the Dask cluster whose scheduler is at ``address`` (``tcp://HOST:PORT``);
     ``store`` gets each result as it completes.  Returns the workers' thread count.
@@ -299,7 +327,13 @@ def _run_on_cluster(
         nthreads = sum(client.nthreads().values())
         futures = [
             client.submit(
-                run_task, spec, c, r, key=f'im_tuner-study-{spec.seed}-{c}-{r}', pure=False
+                run_task,
+                spec,
+                c,
+                r,
+                expected,
+                key=f'im_tuner-study-{spec.seed}-{c}-{r}',
+                pure=False,
             )
             for c, r in tasks
         ]
@@ -361,6 +395,7 @@ def run_study(
         raise ValueError(f'jobs must be >= 1, got {jobs}')
     cells = spec.cells
     drive, params, experiment = spec.loaded()
+    expected = numeric.status()  # every worker must agree (check_numeric)
     t0 = time.perf_counter()
     # L_ref first: it also loads (or compiles and caches) the kernels before workers start,
     # so they do not all compile at once.  Per drive: its own hand-tuned start.
@@ -379,7 +414,7 @@ def run_study(
             progress(done[0], total, time.perf_counter() - t0)
 
     if cluster is not None:
-        jobs = _run_on_cluster(cluster, spec, tasks, store, cluster_timeout)
+        jobs = _run_on_cluster(cluster, spec, tasks, store, cluster_timeout, expected)
     elif jobs == 1:
         for c, r in tasks:
             store(run_one(spec, c, r, drive, params, experiment))
@@ -395,12 +430,12 @@ def run_study(
         try:
             # a bounded window of pending tasks keeps memory flat and progress honest
             it = iter(tasks)
-            pending = {pool.submit(_work, t) for t in _take(it, 4 * jobs)}
+            pending = {pool.submit(_work, (*t, expected)) for t in _take(it, 4 * jobs)}
             while pending:
                 finished, pending = wait(pending, return_when=FIRST_COMPLETED)
                 for f in finished:
                     store(f.result())
-                pending |= {pool.submit(_work, t) for t in _take(it, len(finished))}
+                pending |= {pool.submit(_work, (*t, expected)) for t in _take(it, len(finished))}
         except BaseException:  # Ctrl-C, SIGTERM (the command raises), a failed run
             _end_pool(pool)
             raise
@@ -413,6 +448,7 @@ def run_study(
         l_first=l_first,
         wall_s=time.perf_counter() - t0,
         jobs=jobs,
+        numeric=expected,
         **arrays,
     )
 

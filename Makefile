@@ -24,7 +24,7 @@ export HOME ?= $(CURDIR)
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: test-parallel setup test test-unit lint format demo demo-drive bench reproduction reproduction-docs calibrate-bench foxglove-check lock clean
+.PHONY: test-parallel setup test test-unit test-levels lint format demo demo-drive bench reproduction reproduction-docs calibrate-bench foxglove-check lock clean
 
 setup: $(VENV)/.installed
 
@@ -63,6 +63,14 @@ test-parallel: setup
 
 test-unit: setup
 	$(PY) -m pytest -m unit
+
+# The pure tier (every digest: optimisers, drive model, study) again on a machine without
+# AVX-512, emulated: numpy's dispatch held at X86_V3 and OpenBLAS's Zen core type, as on an
+# AMD Zen 2/3. With the numeric baseline (im_drive_sim.numeric) it must pass as natively;
+# CI runs it after `make test` (docs/tuner.md, "The same bits on every machine").
+test-levels: setup
+	NPY_DISABLE_CPU_FEATURES=X86_V4,AVX512_ICL,AVX512_SPR OPENBLAS_CORETYPE=Zen \
+	    $(PY) -m pytest -m unit -p no:cacheprovider
 
 # Lint and types: ruff.toml and mypy.ini say what is checked and why.
 lint: setup

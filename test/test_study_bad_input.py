@@ -362,3 +362,31 @@ def _ppid(pid: int) -> int | None:
     except (FileNotFoundError, ProcessLookupError):
         return None
     return int(text.rsplit(')', 1)[1].split()[1])
+
+
+def test_a_worker_off_the_numeric_baseline_is_refused_in_one_line(tmp_path):
+    """A Dask worker process whose numpy/OpenBLAS dispatch is not the study's (here: the
+    baseline switched off in its environment) would make the tables depend on which worker
+    ran which run: the study refuses it in one line, exit 2, nothing written."""
+    from distributed import LocalCluster
+
+    with LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=True,
+        protocol='tcp://',
+        host='127.0.0.1',
+        dashboard_address=None,
+        env={'IM_NUMERIC_BASELINE': 'off'},
+    ) as lc:
+        out = tmp_path / 'never'
+        proc, _ = study(
+            *('--cluster', lc.scheduler_address, '--runs', '1', '--budget', '2'),
+            *('--algos', 'necga', '--quiet', '--out', str(out)),
+            timeout=300,
+        )
+    line = assert_refused(proc, 'IM_NUMERIC_BASELINE=off: every library dispatches natively')
+    assert f'--cluster {lc.scheduler_address} worker ' in line
+    assert 'the study began held x86-64-v3' in line
+    assert 'env $(python -m im_drive_sim.numeric_main --env) dask worker' in line
+    assert not out.exists()

@@ -32,6 +32,55 @@ STEPS = 5625
 # wall-clock timing is asserted: alone, after the tests that run on two workers
 pytestmark = pytest.mark.serial
 SLOW = str(Path(__file__).with_name('slow_controller.py'))
+#: the tolerance the tests give the controller [periods of 5625]
+TOLERANCE = 1500
+#: the loop's real-time options (as ros2_control_node; CI runs as root: granted)
+RT = ('--thread-priority', '50', '--lock-memory')
+FLOOR_S = 2.0
+
+
+@pytest.fixture(scope='module')
+def floor() -> dict:
+    """This machine's own floor for a 5 kHz loop, measured first (bench/loop_floor.py's
+    compiled wait, SCHED_FIFO, for FLOOR_S s): overruns and worst lateness. A VM starts
+    some periods late whatever the code does (0.1-2 % here and on CI's machines); the tests
+    below judge what the code does with them, and say the floor when they fail."""
+    code = (
+        'import json, sys; sys.path.insert(0, sys.argv[1]); import loop_floor as F; '
+        'from im_drive_sim import rt; rt.apply(rt.RtOptions(50, -1, True)); '
+        f'print(json.dumps(F.measure({FLOOR_S})))'
+    )
+    bench = str(Path(__file__).resolve().parents[1] / 'bench')
+    p = subprocess.run([sys.executable, '-c', code, bench], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr[-2000:]
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    return {k: out[k] for k in ('overrun_pct', 'max_lateness_us')}
+
+
+def assert_flagged_as_counted(recs: list[dict], floor: dict) -> None:
+    """What the code controls about timing, whatever the machine: an experiment is flagged
+    ``timing`` exactly when its held + late periods exceed the tolerance, a flagged one
+    carries no loss (its number is ``off_timing_loss``), and it is re-run with the same
+    gains (the next record of the same kind and evaluation)."""
+    for i, r in enumerate(recs):
+        if r['status'] == 'lost':
+            continue
+        per = r['periods']
+        off = per['held'] + per['late'] > TOLERANCE
+        assert (r['status'] == 'timing') == off, (r, floor)
+        if off:
+            assert r['loss'] is None and isinstance(r['off_timing_loss'], float), r
+            again = recs[i + 1]
+            assert (again['kind'], again['eval'], again['gains']) == (
+                r['kind'],
+                r['eval'],
+                r['gains'],
+            ), (again, floor)
+
+
+def measured(recs: list[dict]) -> list[tuple[str, str]]:
+    """(kind, status) of the records that count: timing and lost attempts were re-run."""
+    return [(r['kind'], r['status']) for r in recs if r['status'] not in ('timing', 'lost')]
 
 
 def test_composed_realtime_run_measures_the_paper_loss_bit_for_bit(tmp_path):
@@ -115,12 +164,14 @@ def test_composed_realtime_run_measures_the_paper_loss_bit_for_bit(tmp_path):
             assert m.loss == pytest.approx(r['loss'], rel=0.035), (r, m.loss)
 
 
-def test_a_drive_that_declares_command_delay_2_runs_fresh_experiments(tmp_path):
+def test_a_drive_that_declares_command_delay_2_runs_fresh_experiments(tmp_path, floor):
     """A drive file with ``command_delay: 2`` (a power stage that latches its command at
     the period start, docs/real-drive.md): the simulator composed in real time runs every
     period fresh under the declared delay, and its losses equal, bit for bit, the
     lock-step replay on a delay-2 drive; the example drive (wall clock, its stand-in
-    latching the command) labels its periods by the same delay, so they count fresh."""
+    latching the command) labels its periods by the same delay, so they count fresh. The
+    example drive cannot pause: the machine's late starts hold periods (its floor), and an
+    attempt past the tolerance is flagged and re-run (``assert_flagged_as_counted``)."""
     cfg = load_config(None)
     drive_file = tmp_path / 'delay2.yaml'
     drive_file.write_text(yaml.safe_dump({**cfg.to_dict(), 'command_delay': 2}))
@@ -132,21 +183,22 @@ def test_a_drive_that_declares_command_delay_2_runs_fresh_experiments(tmp_path):
             [
                 *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '1', '--seed', '4'),
                 *('--drive', drive, '--drive-config', str(drive_file), '--remeasure', '0'),
-                *('--no-record', '--quiet', '--out', str(run)),
-                *('--ros-args', '-p', 'timing_tolerance:=1500'),
+                *('--no-record', '--quiet', '--out', str(run), '--retries', '6', *RT),
+                *('--ros-args', '-p', f'timing_tolerance:={TOLERANCE}'),
             ],
             capture_output=True,
             text=True,
             timeout=300,
         )
-        assert p.returncode == 0, p.stdout + p.stderr[-3000:]
+        assert p.returncode == 0, (floor, p.stdout + p.stderr[-3000:])
         recs = results(run)
-        assert [(r['kind'], r['status']) for r in recs] == [('reference', 'ok'), ('eval', 'ok')]
+        assert_flagged_as_counted(recs, floor)
+        assert measured(recs) == [('reference', 'ok'), ('eval', 'ok')], (recs, floor)
         for r in recs:
             if drive == 'sim':  # it pauses when the loop is late: every period fresh
                 assert r['periods'] == {'fresh': STEPS, 'held': 0, 'late': 0}, r
-            else:  # the wall clock: a late loop start holds periods (issue 27's margin)
-                assert r['periods']['fresh'] >= STEPS - 1500, r
+            elif r['status'] == 'ok':  # the wall clock: late starts hold periods
+                assert r['periods']['fresh'] >= STEPS - TOLERANCE, r
         if drive == 'sim':
             seed = yaml.safe_load((run / 'run.yaml').read_text())['drive_seed']
             replayed = replay_realtime(recs, d2, seed)
@@ -155,63 +207,56 @@ def test_a_drive_that_declares_command_delay_2_runs_fresh_experiments(tmp_path):
             assert [r.loss for r in replay_realtime(recs, cfg, seed)] != [r['loss'] for r in recs]
 
 
-def test_a_stalled_period_on_a_drive_that_cannot_pause_is_held_and_flagged(tmp_path):
+def test_a_stalled_period_on_a_drive_that_cannot_pause_is_held_and_flagged(tmp_path, floor):
     """The simulated drive in its hardware-like mode (a power stage cannot pause: a late
     period start follows periods that went by with the old current held), composed with
-    the controller; the loop stalls 0.4 s once (the drive's test hook, at step 6000,
-    inside the reference experiment's measured part): that experiment has ~2000 held
-    periods, is flagged ``timing`` and re-run; no other experiment is flagged. The
-    tolerance (1500 periods of 5625) absorbs the late starts of a 2-core machine (measured
-    here, recording off: 26-913 held periods per experiment without a stall; the loop's
-    margin is issue 27's)."""
+    the controller; the loop stalls 0.6 s once (the drive's test hook, at step 6000). 0.6 s
+    = 3000 periods is longer than an experiment's 0.5 s settle: wherever the stall falls
+    once the reference has begun (the loop runs from the bench's start, so where step 6000
+    falls depends on the machine's start-up), it holds >= 500 periods of a measured part,
+    and the experiment it holds >= the tolerance of is flagged ``timing`` and re-run.
+    What else the machine's own late starts (its floor) hold is judged as counted
+    (``assert_flagged_as_counted``), never assumed away."""
     run = tmp_path / 'run'
-    stall = 6000
+    stall, stall_s = 6000, 0.6
     p = subprocess.run(
         [
             *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '1', '--seed', '4'),
-            *('--remeasure', '0', '--no-record', '--quiet', '--out', str(run), '--ros-args'),
-            *('-p', 'hardware_like:=true', '-p', f'test_stall_step:={stall}'),
-            *('-p', 'test_stall_duration:=0.4', '-p', 'timing_tolerance:=1500'),
+            *('--remeasure', '0', '--no-record', '--quiet', '--out', str(run), '--retries', '6'),
+            *(*RT, '--ros-args', '-p', 'hardware_like:=true', '-p', f'test_stall_step:={stall}'),
+            *('-p', f'test_stall_duration:={stall_s}', '-p', f'timing_tolerance:={TOLERANCE}'),
         ],
         capture_output=True,
         text=True,
         timeout=300,
     )
-    assert p.returncode == 0, p.stdout + p.stderr[-3000:]
+    assert p.returncode == 0, (floor, p.stdout + p.stderr[-3000:])
     recs = results(run)
-    k0 = [r['t_start_ns'] // 200_000 for r in recs]
-    hit = [i for i, r in enumerate(recs) if k0[i] <= stall < k0[i] + r['steps']]
-    assert hit == [0], [(r['kind'], r['status'], k) for r, k in zip(recs, k0, strict=True)]
-    stalled = recs[0]
-    assert stalled['kind'] == 'reference' and stalled['status'] == 'timing', stalled
-    # 0.4 s = 2000 periods went by with the old command held: counted, on the timeline
-    # (the current held 0.4 s may make the supervisor stop it: then it ends early)
-    assert stalled['periods']['held'] >= 1980, stalled
-    # a timing record carries no 'aborted' (no loss fields): the supervisor's stop is in
-    # its reason, 'timing: ... (and max_position_error)'
-    aborted = '(and ' in stalled['reason']
-    # it ran to its end on the drive's timeline (the loop runs from the bench's start, so
-    # where step 6000 falls in it varies; a stall across its end ends it with fewer
-    # states seen), or the supervisor stopped it
-    assert (
-        stalled['steps'] == STEPS
-        or aborted
-        or stalled['steps'] + stalled['periods']['held'] >= STEPS
-    ), stalled
-    assert stalled['loss'] is None  # never a loss
-    rest = recs[1:]
-    if aborted and rest[0]['status'] == 'lost':
-        # the supervisor stopped it far off its path (0.4 s of held current); the next
-        # attempt may find the rotor still beyond the limit in its standstill settle:
-        # lost before step 0 (measured here: 1 run of 25), re-run, never a loss
-        assert rest[0]['kind'] == 'reference' and 'ended in its settle' in rest[0]['reason']
-        assert rest[0]['loss'] is None
-        rest = rest[1:]
-    assert [(r['kind'], r['status']) for r in rest] == [('reference', 'ok'), ('eval', 'ok')], [
-        (r['kind'], r['status'], r['reason'], r.get('periods')) for r in recs
-    ]
     d = json.loads((run / 'summary.json').read_text())['sessions'][0]['drive']
-    assert d['loop']['missed_periods'] >= 1980, d['loop']
+    assert d['loop']['missed_periods'] >= 0.99 * stall_s * 5000, d['loop']  # it stalled
+    assert_flagged_as_counted(recs, floor)
+    assert measured(recs) == [('reference', 'ok'), ('eval', 'ok')], (recs, floor)
+    # the experiment whose timeline the stall fell in: ran on the drive's timeline
+    k0 = [r['t_start_ns'] // 200_000 for r in recs if r['status'] != 'lost']
+    ran = [r for r in recs if r['status'] != 'lost']
+    hit = [r for r, k in zip(ran, k0, strict=True) if k <= stall < k + r['steps']]
+    if hit:
+        # it fell inside a measured part: >= the rest of the stall's periods were held,
+        # counted on the timeline, flagged, never a loss
+        (stalled,) = hit
+        assert stalled['status'] == 'timing', (stalled, floor)
+        assert stalled['periods']['held'] > TOLERANCE and stalled['loss'] is None, stalled
+    else:
+        # it began in a settle (2500 periods before a measured part): the stall outlasts
+        # the settle, so that experiment's first periods went by held, counted; or it
+        # began before the bench started the reference (a slow start-up): nothing of an
+        # experiment was held by it, and the checks above are what can be judged
+        settle = 2500
+        into = [(r, k) for r, k in zip(ran, k0, strict=True) if k - settle <= stall < k]
+        for r, k in into:
+            held_at_least = stall + round(stall_s * 5000) - k - 2  # (the start's jitter)
+            assert r['periods']['held'] >= held_at_least, (r, k, floor)
+    assert not any(r['status'] == 'timing' and r['loss'] is not None for r in recs)
 
 
 def test_a_controller_that_falls_behind_is_flagged_rerun_and_never_a_loss(procs, tmp_path):

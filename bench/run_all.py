@@ -14,6 +14,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_experiment
 import bench_lockstep
 import bench_model
+import bench_numeric
 import bench_optim
 import bench_realtime
 import bench_report
@@ -44,6 +45,8 @@ TARGETS = {
     'tuner_spsa_ask_tell_us': ('us/eval', 50.0),
     # the optimiser alone, caches disturbed between calls as in the tuner (bench_optim)
     **{f'optim_{a}_cold_us': ('us/eval', 50.0) for a in ('spsa', 'necga', 'cga', 'pecga', 'rcga')},
+    # issue 37: what holding numpy/OpenBLAS at x86-64-v3 costs the optimisers (held/off)
+    **{f'numeric_{a}_ratio': ('ratio', None) for a in ('cmaes', 'tpe', 'safe')},
     'tuner_necga_wall_s': ('s', None),
     'tuner_spsa_wall_s': ('s', None),
     'tuner_necga_sim_s': ('s', None),
@@ -122,6 +125,12 @@ def main() -> int:
     figures.update(bench_experiment.main())
     print('\n== optimisers: ask+tell per evaluation, dim 5 ==', flush=True)
     figures.update(optim_figures(bench_optim.main()))
+    print(
+        '\n== the numeric baseline (x86-64-v3) against native dispatch: ask+tell [us] ==',
+        flush=True,
+    )
+    numeric = bench_numeric.main()
+    figures.update({k: v for k, v in numeric.items() if isinstance(v, float)})
     print(
         '\n== the default tuning run: ros2 run im_tuner tuner (200 evaluations, recorded) ==',
         flush=True,

@@ -288,7 +288,9 @@ def test_rosbag2_decodes_the_record_and_metadata_yaml(bag):
     stats = opened['statistics']
     assert record['message_count'] == stats.message_count == meta['message_count'] > 100_000
     assert record['starting_time'] == stats.message_start_time
-    assert record['duration'] == stats.message_end_time - stats.message_start_time > 3 * 10**9
+    # in ns of log (wall) time: 4+ experiments of 2.625 s simulated take 0.5-3 s of wall
+    # time on the lock-step bench, depending on the machine; in seconds it would be < 10
+    assert record['duration'] == stats.message_end_time - stats.message_start_time > 10**8
     assert record['relative_file_paths'] == [_mcap(bag).name]
     assert record['files'] == [
         {

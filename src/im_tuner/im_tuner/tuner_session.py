@@ -190,10 +190,12 @@ class TunerSession:
             self.plan,
         )
         assert rundir is not None and plan is not None
-        numeric_now = numeric.status()
+        if not self.resumed:
+            parameters = link.list_parameters()
+        numeric_now = numeric.status()  # (after the controller's answer: it loads scipy)
         if not self.resumed:
             run.put(
-                controller_parameters=link.list_parameters(),
+                controller_parameters=parameters,
                 fault_policy=plan.fault_policy,
                 numeric=numeric_now,
             )

@@ -113,17 +113,24 @@ def switch_problem(environ: Mapping[str, str] | None = None) -> str | None:
     return f'{SWITCH}={value!r}: must be {LEVEL} (the default) or off'
 
 
-def cpu_flags() -> frozenset[str] | None:
-    """The CPU's flags from /proc/cpuinfo (the first processor's); None where there is no
-    such file (not Linux)."""
+def _cpuinfo(key: str) -> str | None:
+    """The first processor's ``key`` line of /proc/cpuinfo ('' if absent); None where
+    there is no such file (not Linux)."""
     try:
         with open('/proc/cpuinfo', encoding='ascii', errors='replace') as f:
             for line in f:
-                if line.startswith('flags'):
-                    return frozenset(line.partition(':')[2].split())
+                if line.startswith(key):
+                    return line.partition(':')[2].strip()
     except OSError:
         return None
-    return frozenset()
+    return ''
+
+
+def cpu_flags() -> frozenset[str] | None:
+    """The CPU's flags from /proc/cpuinfo (the first processor's); None where there is no
+    such file (not Linux)."""
+    text = _cpuinfo('flags')
+    return None if text is None else frozenset(text.split())
 
 
 def _words(text: str) -> list[str]:
@@ -256,14 +263,7 @@ def differs(before: Mapping[str, Any] | None, now: Mapping[str, Any]) -> str | N
 
 def cpu_model() -> str:
     """The CPU's model name (/proc/cpuinfo), '' where unknown."""
-    try:
-        with open('/proc/cpuinfo', encoding='ascii', errors='replace') as f:
-            for line in f:
-                if line.startswith('model name'):
-                    return line.partition(':')[2].strip()
-    except OSError:
-        pass
-    return ''
+    return _cpuinfo('model name') or ''
 
 
 def describe(st: Mapping[str, Any]) -> str:

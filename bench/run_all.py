@@ -20,6 +20,7 @@ import bench_realtime
 import bench_report
 import bench_study
 import bench_tuner
+import bench_user_drive
 
 #: figure -> (unit, target): what the issues ask of each figure; a positive target is an
 #: upper bound, a negative one a lower bound (stored negated), None: informational.
@@ -147,6 +148,12 @@ def main() -> int:
         flush=True,
     )
     figures.update(bench_realtime.main())
+    print(
+        "\n== a user's drive at the simulator's timing: each form of a power stage on the "
+        'composed bench beside the floor (budget 10, quiet and beside two hogs) ==',
+        flush=True,
+    )
+    figures.update(bench_user_drive.main(['--stops', '10']))
     print(
         "\n== the offline study: ros2 run im_tuner study (the paper's grid, every core) ==",
         flush=True,

@@ -211,8 +211,22 @@ CASES: list[tuple[str, str, list[str]]] = [
             ('exits-at-import', 'exits_at_import:Hardware'),
             ('hardware-raises', 'bad_drives:RaisingHardware'),
             ('node-raises', 'bad_drives:RaisingDrive'),
+            ('library-missing', 'lib:missing_lib.so'),
+            ('library-not-a-library', 'lib:comments.yaml'),
+            ('library-empty-path', 'lib:'),
         )
     ],
+    ('tuner', 'timing-tolerance-negative', ['--timing-tolerance', '-1']),
+    ('tuner', 'timing-tolerance-type', ['--timing-tolerance', 'few']),
+    ('tuner', 'p-timing-tolerance-type', ['--ros-args', '-p', 'timing_tolerance:=few']),
+    (
+        'tuner',
+        'timing-tolerance-twice',
+        ['--timing-tolerance', '3', '--ros-args', '-p', 'timing_tolerance:=4'],
+    ),
+    ('tuner', 'resume-with-timing-tolerance', ['--resume', 'run', '--timing-tolerance', '4']),
+    ('example_drive', 'hardware-unknown', ['--hardware', 'fpga']),
+    ('example_drive', 'hardware-library-missing', ['--hardware', 'lib:missing_lib.so']),
     *_file_cases('tuner', '--params'),
     *_file_cases('tuner', '--drive-config'),
     # -- tuner --resume: every way a run directory can be broken
@@ -257,6 +271,15 @@ EXPECT: dict[tuple[str, str], str] = {
         'RaisingHardware(config) raised RuntimeError: no inverter on /dev/ttyUSB0 (test)'
     ),
     ('tuner', 'drive-node-raises'): 'RaisingDrive raised OSError: EtherCAT master not found',
+    ('tuner', 'drive-library-missing'): 'no such file',
+    ('tuner', 'drive-library-not-a-library'): 'cannot load',
+    ('tuner', 'drive-library-empty-path'): "expected 'lib:PATH'",
+    ('tuner', 'timing-tolerance-negative'): 'must be in [0, 1000000] periods, got -1',
+    ('tuner', 'p-timing-tolerance-type'): 'timing_tolerance:=few: an integer >= 0',
+    ('tuner', 'timing-tolerance-twice'): '--timing-tolerance 3 and -p timing_tolerance:=4',
+    ('tuner', 'resume-with-timing-tolerance'): 'do not also give --timing-tolerance',
+    ('example_drive', 'hardware-unknown'): "expected 'python', 'example' or 'lib:PATH'",
+    ('example_drive', 'hardware-library-missing'): 'no such file',
     ('tuner', 'resume-run-yaml-safe-no-start'): 'start: false (--no-start) does not apply to',
 }
 

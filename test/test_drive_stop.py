@@ -60,8 +60,12 @@ def test_every_drive_form_tunes_three_evaluations_with_recording(tmp_path, drive
     )
     assert p.returncode == 0, p.stderr[-3000:]
     recs = results(run)
-    assert [r['kind'] for r in recs] == ['reference', 'eval', 'eval', 'eval'], recs
-    for r in recs:
+    # an experiment whose drive faulted (the held current of a late loop can trip a
+    # limit) is reset and measured again: a retry is a record with attempt > 1
+    final = {(r['kind'], r['eval']): r for r in recs}
+    assert list(final) == [('reference', -1), ('eval', 0), ('eval', 1), ('eval', 2)], recs
+    assert len(recs) <= len(final) + 2, recs  # retries are the exception, not the rule
+    for r in final.values():
         assert r['status'] in ('ok', 'aborted'), r
         assert r['steps'] == STEPS or r['aborted'], r
     bag = run / 'bag_0'
@@ -75,7 +79,7 @@ def test_every_drive_form_tunes_three_evaluations_with_recording(tmp_path, drive
     last = recs[-1]['t_end_ns'] // 200_000
     published = json.loads(custom['im_tuner.counts'])['/drive/state']['published']
     assert counts['/drive/state'] == published and published > last // 2, (counts, last)
-    assert counts['/controller/loss'] == 4, counts
+    assert len(final) <= counts['/controller/loss'] <= len(recs), (counts, recs)
     if drive != 'example':
         log = read_log(str(hw))
         assert log['writes'] >= counts['/drive/state'], log  # a write before each state

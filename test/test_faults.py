@@ -827,3 +827,34 @@ def test_a_fault_between_experiments_is_counted_and_cleared_with_reset_fault(
     line = next(x for x in p.stdout.splitlines() if x.startswith('  drive (this session)'))
     assert "this session's share" in line, line
     assert ctl.poll() is None
+
+
+def test_the_fault_advice_on_a_bench_of_its_own_works(tmp_path):
+    """Fault policy stop on the composed bench: the controller ended with the tuner, so
+    the advice is to resume (not `reset_fault`, which could reach no controller), and
+    the resumed run, its cause fixed, indeed starts with no fault and tunes."""
+    run = tmp_path / 'run'
+    common = ('--quiet', '--thread-priority', '50', '--lock-memory')
+    p = subprocess.run(
+        ros2(
+            'im_tuner', 'tuner', '--bench', 'realtime', '--budget', '2', '--fault-policy',
+            'stop', '--remeasure', '0', *common, '--out', str(run),
+            '--ros-args', '-p', 'safety.max_speed:=5.0',
+        ),
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert p.returncode == 1, p.stderr[-3000:]
+    first = p.stdout.splitlines()[0]
+    assert 'safety fault (max_speed); fault policy stop: check the drive, then resume' in first
+    assert 'reset_fault' not in p.stdout, p.stdout
+    # the cause fixed (a limit that fits the move; the run's own -p applies first, the
+    # one given now after it), the resumed run's fresh controller has no fault and tunes
+    again = subprocess.run(
+        ros2(
+            'im_tuner', 'tuner', '--resume', str(run), *common,
+            '--ros-args', '-p', 'safety.max_speed:=100.0',
+        ),
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert again.returncode == 0, again.stdout[-2000:] + again.stderr[-3000:]
+    assert [r['kind'] for r in results(run) if r['status'] == 'ok'][-2:] == ['eval', 'eval']

@@ -32,7 +32,9 @@ _BLOCK = re.compile(r'<!-- real-drive-example: (\S+) -->\n```[a-z]*\n(.*?)\n```'
 def examples() -> dict[str, str]:
     """The doc's marked blocks, by name."""
     found = {name: body + '\n' for name, body in _BLOCK.findall(DOC.read_text())}
-    assert set(found) == {'my_pkg/my_hw.py', 'my_drive.yaml', 'command'}, sorted(found)
+    assert set(found) == {'my_pkg/my_hw.py', 'my_drive.yaml', 'command', 'lib-command'}, sorted(
+        found
+    )
     return found
 
 
@@ -99,6 +101,39 @@ def test_the_worked_example_runs_as_written(tmp_path):
             (st,) = reader.deserialize(raw, conn.msgtype).status
             losses.append(float({kv.key: kv.value for kv in st.values}['loss']))
     assert losses == [r['loss'] for r in recs if r['status'] != 'lost']
+
+
+def test_the_drive_library_example_builds_and_tunes_as_written(tmp_path):
+    """The C library worked example: the shipped stand-in copied, built with the
+    system compiler against the installed header, and tuned, each line as the doc has
+    it (only --out, a short --budget and --quiet added to the tuner's)."""
+    import shutil
+
+    import pytest
+
+    if shutil.which('cc') is None:
+        pytest.skip('no C compiler (cc) on this machine')
+    ex = examples()
+    (tmp_path / 'my_drive.yaml').write_text(ex['my_drive.yaml'])
+    lines = [x for x in ex['lib-command'].splitlines() if x.strip()]
+    assert lines[-1].startswith('ros2 run im_tuner tuner --bench realtime --drive lib:'), lines
+    run = tmp_path / 'run'
+    lines[-1] += f' --out {shlex.quote(str(run))} --budget 2 --quiet'
+    env = dict(os.environ, PATH=os.pathsep.join([str(Path(ROS2).parent), os.environ['PATH']]))
+    p = subprocess.run(
+        ['bash', '-ec', '\n'.join(lines)],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    assert (tmp_path / 'libmy_drive.so').exists()
+    summary = json.loads((run / 'summary.json').read_text())
+    assert summary['sessions'][0]['drive']['loop']['compiled'] is True
+    recs = [json.loads(x) for x in (run / 'results.jsonl').read_text().splitlines()]
+    assert [r['kind'] for r in recs if r['status'] in ('ok', 'aborted')][:3] == [
+        'reference',
+        'eval',
+        'eval',
+    ], recs
 
 
 def test_tuner_help_says_drive_config_is_for_a_real_drive_too():

@@ -40,7 +40,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from . import contract, rt
+from . import contract, hardware_period, rt
 from .cdr import Float64ArrayWire, JointStateWire
 from .cli import check_ros_args, parse_cli, run_cli
 from .command_latch import CommandLatch
@@ -57,7 +57,8 @@ from .contract import (
     STATUS_TOPIC,
 )
 from .drive_io import CommandPath, publish_status, run_drive_node, watchdog_expired
-from .example_drive_main import parser
+from .example_drive_main import check_hardware, parser
+from .hardware_abi import HardwareEntry, HardwareFault, Measurement
 from .pacing import CommandWatchdog, Pacer
 from .params import ConfigError, DriveConfig, load_config
 from .qos import RECORDED_QOS
@@ -68,20 +69,6 @@ from .runtime import (
     parameter_hygiene,
     publish_lossless,
 )
-
-
-@dataclass
-class Measurement:
-    """What the drive samples each period (SI units; updated in place, never re-created)."""
-
-    theta_meas: float = 0.0  #: [rad] encoder position, multi-turn
-    omega_meas: float = 0.0  #: [rad/s] speed estimate
-    torque: float = 0.0  #: [N m] electromagnetic torque (estimated on a real drive)
-    isd: float = 0.0  #: [A] d-axis current
-    isq: float = 0.0  #: [A] q-axis current
-    i_alpha: float = 0.0  #: [A] stator current, alpha axis
-    i_beta: float = 0.0  #: [A] stator current, beta axis
-    load_torque: float = 0.0  #: [N m] load machine torque
 
 
 class Hardware:
@@ -343,7 +330,10 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, Node):
         self.isq_ref = self.load_ref = 0.0
         self.applied = -1
         if not self._hw_closed:
-            self.hw.write(0.0, 0.0)
+            try:
+                self.hw.write(0.0, 0.0)
+            except HardwareFault as exc:  # the power stage's own fault: said, not raised
+                self.get_logger().error(f'safe stop: {exc}')
 
     def close_hardware(self) -> None:
         """The last word to the power stage: zero current and zero load torque, then the
@@ -405,6 +395,48 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, Node):
             self.counters.late += 0 <= answers < self.k
             if self.cmd_watchdog.resume():
                 self.get_logger().info(f'watchdog: commands resumed at step {self.k}')
+
+    # -- the compiled period (hardware_period; the composed bench's loop) -------------------
+    def hardware_entry(self) -> HardwareEntry | None:
+        """The power stage's addresses for a compiled loop (``hardware_abi``: a C library,
+        a compiled class); None for a Python hardware class (its periods run as Python)."""
+        entry = getattr(self.hw, 'entry', None)
+        return entry() if callable(entry) else None
+
+    def period_words(self) -> tuple[Any, Any]:
+        """The held command, latch, step index and counters as ``hardware_period``'s
+        ``D`` and ``DC``, for a compiled loop to run periods with (then
+        :meth:`set_period_words`)."""
+        return hardware_period.pack(
+            self,
+            {
+                'joint_state_decimation': self.joint_decimation,
+                'ts_ns': self.ts_ns,
+                'isq_max': self.isq_max,
+            },
+        )
+
+    def set_period_words(self, D: Any, DC: Any, commands: bool) -> None:
+        """Take back what a compiled loop ran; ``commands``: it took one (the watchdog
+        is fed)."""
+        hardware_period.unpack(D, DC, self)
+        if commands:
+            self.cmd_watchdog.command()
+
+    def period_views(self) -> dict[str, Any]:
+        """The preallocated messages a compiled period writes: ``state`` and the
+        joint_states fields, and each message's bytes (``*_raw``) for the loop's outbox."""
+        j = self.joint
+        return {
+            'state': self.wire.values,
+            'joint_sec': j.sec,
+            'joint_nsec': j.nanosec,
+            'joint_pos': j.position,
+            'joint_vel': j.velocity,
+            'joint_eff': j.effort,
+            'state_raw': self.wire.raw,
+            'joint_raw': j.raw,
+        }
 
     def latest_state(self):
         """The state last published (``STATE_FIELDS``; the array is reused each period)."""
@@ -505,6 +537,11 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, Node):
                     if now >= next_status:
                         self.publish_status()
                         next_status = now + 1.0
+        except HardwareFault as exc:  # the power stage's negative return: one line, exit 1
+            self.close_hardware()
+            self.get_logger().error(f'{exc}: zero current written, the drive stopped')
+            print(f'error: {self.get_name()}: {exc}; zero current written', file=sys.stderr)
+            raise SystemExit(1) from None
         finally:
             # however the loop ends (a signal, an exception): zero current first
             self.close_hardware()
@@ -528,6 +565,21 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, Node):
             super().destroy_node()  # (the io node, then this one)
 
 
+def hardware_factory(spec: str) -> Any:
+    """``hardware_class`` for ``--hardware``: None (the Python stand-in), the compiled
+    stand-in, or a drive library (``hardware_abi.LibraryHardware``)."""
+    if spec == 'python':
+        return None
+    if spec == 'example':
+        from .example_hardware import CompiledHardware
+        from .hardware_abi import CompiledClassHardware
+
+        return lambda config: CompiledClassHardware(CompiledHardware(config), name='example')
+    from .hardware_abi import LibraryHardware
+
+    return lambda config: LibraryHardware(spec[4:], config)
+
+
 def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:
     argv = sys.argv if args is None else args
 
@@ -537,8 +589,10 @@ def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:
             # ROS arguments are checked here
             check_ros_args(argv)
             return run_drive_node(argv, node_class, 'example_drive')
-        opts = rt.RtOptions.from_cli(parse_cli(parser(), argv))
-        return run_drive_node(argv, node_class, 'example_drive', opts)
+        cli = parse_cli(parser(), argv)
+        opts = rt.RtOptions.from_cli(cli)
+        make = hardware_factory(check_hardware(cli.hardware))
+        return run_drive_node(argv, lambda: node_class(hardware_class=make), 'example_drive', opts)
 
     return run_cli('example_drive', body)
 

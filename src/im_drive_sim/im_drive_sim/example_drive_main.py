@@ -19,8 +19,31 @@ def parser() -> argparse.ArgumentParser:
         'command_timeout:=0.05 -p config_file:=FILE ... '
         '(docs/real-drive.md).',
     )
+    ap.add_argument(
+        '--hardware',
+        default='python',
+        metavar='HW',
+        help="the power stage: 'python' (the stand-in plant as a Python hardware class, "
+        "the default), 'example' (the same plant compiled), or 'lib:PATH' (a C shared "
+        'library with the drive ABI, share/im_drive_sim/include/im_drive.h; docs/real-drive.md)',
+    )
     rt.add_arguments(ap, 'the drive loop')
     return ap
+
+
+def check_hardware(spec: str) -> str:
+    """``--hardware``: 'python', 'example' or 'lib:PATH' (UsageError otherwise)."""
+    from pathlib import Path
+
+    from .cli import UsageError
+
+    if spec in ('python', 'example'):
+        return spec
+    if spec.startswith('lib:') and len(spec) > 4:
+        if not Path(spec[4:]).expanduser().is_file():
+            raise UsageError(f'--hardware {spec}: no such file')
+        return spec
+    raise UsageError(f"--hardware {spec!r}: expected 'python', 'example' or 'lib:PATH'")
 
 
 if __name__ == '__main__':

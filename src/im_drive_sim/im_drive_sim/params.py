@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -299,6 +299,9 @@ class DriveConfig:
     command_delay: int = 1
     realism: str = 'ideal'
     source: str = field(default='<dict>', compare=False)
+    #: the file it was loaded from, absolute ('' for a mapping): a drive library's
+    #: ``im_drive_open`` gets it (hardware_abi)
+    path: str = field(default='', compare=False)
 
     @property
     def Ts_ns(self) -> int:
@@ -557,7 +560,7 @@ def load_config(
     if isinstance(data, Mapping) and 'base' in data:
         data = _with_base(name, p, data)
     src = name if not overrides else f'{name} (with overrides)'
-    return config_from_dict(data, source=src, overrides=overrides)
+    return replace(config_from_dict(data, source=src, overrides=overrides), path=str(p.resolve()))
 
 
 def _drive_path(path: str | Path) -> Path:

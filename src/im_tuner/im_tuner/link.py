@@ -58,7 +58,11 @@ class ControllerLink:
         fault_policy: str = 'reset',
         should_stop: Callable[[], bool] = lambda: False,
         supervise: Callable[[], None] | None = None,
+        owns_controller: bool = False,
     ) -> None:
+        """``owns_controller``: the tuner started the controller (a bench of its own), so
+        it ends with the tuner and a resumed run starts a fresh one: the fault advice
+        says to resume, not to call ``reset_fault`` on a controller that is gone."""
         if fault_policy not in FAULT_POLICIES:
             raise ValueError(f'fault_policy must be one of {FAULT_POLICIES}, got {fault_policy!r}')
         self.node = node
@@ -67,6 +71,7 @@ class ControllerLink:
         self.eval_timeout = float(eval_timeout)
         self.call_timeout = float(call_timeout)
         self.fault_policy = fault_policy
+        self.owns_controller = owns_controller
         self.should_stop = should_stop
         #: called between spins (at most every SUPERVISE_PERIOD s): may raise BenchFailure
         #: (a bench process died) -- so a dead bench ends a wait at once
@@ -132,13 +137,26 @@ class ControllerLink:
         return self._wait(self.reachable, timeout)
 
     # -- parameters --------------------------------------------------------------------------
+    def _call_again(self, make: Callable[[], Any], what: str, tries: int = 3) -> Any:
+        """An idempotent call (a read), asked again when no answer came: a service's
+        response can be lost while its reply path is still being matched (a client new
+        to the graph, a loaded machine), and asking again costs nothing."""
+        for i in range(tries):
+            try:
+                return self._call(make(), what)
+            except LostEvaluation:
+                if i == tries - 1:
+                    raise
+        raise AssertionError('unreachable')
+
     def get_parameters(self, names: list[str]) -> dict[str, Any]:
-        resp = self._call(self.params.get_parameters(names), 'get_parameters')
+        resp = self._call_again(lambda: self.params.get_parameters(names), 'get_parameters')
         return {n: parameter_value_to_python(v) for n, v in zip(names, resp.values, strict=True)}
 
     def list_parameters(self) -> dict[str, Any]:
         """Every parameter of the controller with its value (for the run file)."""
-        names = list(self._call(self.params.list_parameters(), 'list_parameters').result.names)
+        resp = self._call_again(self.params.list_parameters, 'list_parameters')
+        names = list(resp.result.names)
         if not names:
             return {}
         return self.get_parameters(sorted(names))
@@ -190,11 +208,7 @@ class ControllerLink:
                 if self.fault_policy != 'reset':
                     # (the controller's own words up to its advice: 'safety fault (why)')
                     what = msg.split(';')[0].split(' [')[0].strip().removeprefix('refused: ')
-                    raise BenchFailure(
-                        f'start_experiment refused: {what}; fault policy stop: check the '
-                        f'drive, clear the fault with `{reset_command(self.names["node"])}`, '
-                        'then resume the run (--resume)'
-                    )
+                    raise BenchFailure(f'start_experiment refused: {what}; {self.fault_advice()}')
                 self.node.get_logger().warn(f'{msg}; resetting it (fault policy: reset)')
                 self.reset_fault()
                 continue
@@ -203,6 +217,22 @@ class ControllerLink:
             if time.monotonic() > deadline:
                 raise LostEvaluation(f'start_experiment refused until the timeout: {msg}')
             self._wait(lambda: False, RETRY_PERIOD)
+
+    def fault_advice(self) -> str:
+        """What the person at the bench does about a safety fault under the policy
+        'stop' -- a command that works on this bench."""
+        if self.owns_controller:
+            # the controller ran in (or beside) this tuner and ends with it: nothing is
+            # left to reset; a resumed run starts a fresh controller, fault-free
+            return (
+                'fault policy stop: check the drive, then resume the run (--resume: the '
+                "tuner's controller ended with it, and the resumed run's starts without "
+                'the fault)'
+            )
+        return (
+            f'fault policy stop: check the drive, clear the fault with '
+            f'`{reset_command(self.names["node"])}`, then resume the run (--resume)'
+        )
 
     def measure(self, gains: Gains) -> Measurement:
         """Set ``gains``, run one experiment, return its result (see module doc)."""

@@ -155,7 +155,7 @@ def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
         f'{s.safety_faults}'
         + (f', {outside} of them met between experiments' if outside else '')
         + f'); lost results re-run: {s.lost}; off the paper '
-        f'timing, re-run: {s.timing or 0}'
+        f'timing, re-run: {s.timing or 0}{tolerance_text(s)}'
     )
     rtf = s.real_time_factor
     # a real drive's experiments take drive time, not simulated time (a hardware class on
@@ -225,6 +225,7 @@ def drive_text(d: dict[str, Any] | None, which: str | None) -> str:
             f'period-start lateness {n("max_lateness_us")} us), late commands {n("late")}, '
             f'held {n("held")}, ignored {n("stale_ignored")}, watchdog trips '
             f'{n("watchdog_trips")}'
+            + (f', command delay {n("command_delay")}' if 'command_delay' in d else '')
         )
     else:
         text = (
@@ -259,3 +260,18 @@ def drive_text(d: dict[str, Any] | None, which: str | None) -> str:
         if loop.get('outbox_lost'):
             text += f'; NOT DELIVERED {loop["outbox_lost"]} messages (summary: loop.outbox)'
     return text
+
+
+def tolerance_text(s: Any) -> str:
+    """The timing tolerance and the held periods of the counted experiments, for a
+    summary line ('' for a run of an older tuner, without them)."""
+    h, tol = s.held_periods, s.timing_tolerance
+    if tol is None or not h:
+        return ''
+    text = f' (tolerance {tol} held + late periods per experiment'
+    if h.get('with_held'):
+        text += (
+            f'; {h["with_held"]} of the {h["counted"]} counted experiments had some, '
+            f'at most {h["max"]}'
+        )
+    return text + ')'

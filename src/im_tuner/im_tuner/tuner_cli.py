@@ -52,6 +52,7 @@ RUN_SETTINGS = (
     'drive_config',
     'retries',
     'drive',
+    'timing_tolerance',
 )
 
 
@@ -160,6 +161,16 @@ def build_parser() -> argparse.ArgumentParser:
         "experiment did not run on the paper's timing) (default 3)",
     )
     ap.add_argument(
+        '--timing-tolerance',
+        type=int,
+        metavar='N',
+        help='held or late drive periods an experiment may have and still count (its '
+        'held periods are recorded with its loss); past N it is marked timing and re-run. '
+        f'Default {DEFAULT_TIMING_TOLERANCE}: the change of a loss by that many held periods '
+        'stays within the bench\'s noise (docs/real-drive.md, "Timing tolerance"); 0: '
+        "the paper's timing exactly. Also -p timing_tolerance:=N after --ros-args",
+    )
+    ap.add_argument(
         '--eval-timeout',
         type=finite_float(0.0, lo_open=True, unit='s'),
         default=60.0,
@@ -237,11 +248,62 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def ros_arguments(argv: list[str]) -> list[str]:
+#: an experiment with at most this many held + late drive periods counts (issue 38: 10
+#: held periods change a loss by at most ~2 % (95th percentile), within the bench
+#: profile's 2.4 % spread of repeated experiments; ``python -m im_tuner.study.held``)
+DEFAULT_TIMING_TOLERANCE = 10
+
+
+def timing_tolerance(cli: argparse.Namespace, argv: list[str]) -> int | None:
+    """The tolerance asked for: ``--timing-tolerance N`` or ``-p timing_tolerance:=N``
+    after ``--ros-args`` (the controller's parameter, as the docs said before); None:
+    neither. Both, differing, or a value that is not an integer >= 0: UsageError."""
+    given = cli.timing_tolerance
+    ros = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
+    from_ros = None
+    for i, a in enumerate(ros[:-1]):
+        if a in ('-p', '--param') and ros[i + 1].startswith('timing_tolerance:='):
+            text = ros[i + 1].split(':=', 1)[1]
+            try:
+                from_ros = int(text)
+            except ValueError:
+                raise UsageError(
+                    f'-p timing_tolerance:={text}: an integer >= 0 [periods]'
+                ) from None
+    if given is not None and from_ros is not None and given != from_ros:
+        raise UsageError(
+            f'--timing-tolerance {given} and -p timing_tolerance:={from_ros}: give one'
+        )
+    value = given if given is not None else from_ros
+    if value is not None and (value < 0 or value > 1_000_000):
+        raise UsageError(f'--timing-tolerance must be in [0, 1000000] periods, got {value}')
+    return value
+
+
+def ros_arguments(argv: list[str], run: RunConfig | None = None) -> list[str]:
     """The tuner's rclpy arguments: its ``--ros-args`` (they reach an in-process bench's
-    nodes too), the console logs off (the tuner prints its own progress)."""
+    nodes too), the console logs off (the tuner prints its own progress). ``run``: a
+    resumed run's run.yaml, whose command's ``-p name:=value`` parameters come first
+    (its bench runs with them again: a safety limit or an experiment parameter the run
+    began with is not dropped; the timing tolerance is run.yaml's own)."""
     ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else ['--ros-args']
-    return [argv[0], *ros_args, '--disable-stdout-logs']
+    kept = run_parameters(run) if run is not None else []
+    return [argv[0], '--ros-args', *kept, *ros_args[1:], '--disable-stdout-logs']
+
+
+def run_parameters(run: RunConfig) -> list[str]:
+    """``-p name:=value`` items of the command a run began with (run.yaml ``command``),
+    but ``timing_tolerance`` (run.yaml's own key)."""
+    try:
+        words = shlex.split(run.command or '')
+    except ValueError:
+        return []
+    ros = words[words.index('--ros-args') + 1 :] if '--ros-args' in words else []
+    out = []
+    for i, w in enumerate(ros[:-1]):
+        if w in ('-p', '--param') and not ros[i + 1].startswith('timing_tolerance:='):
+            out += ['-p', ros[i + 1]]
+    return out
 
 
 def check_session(cli: argparse.Namespace) -> None:
@@ -308,6 +370,8 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
     retries = 3 if cli.retries is None else cli.retries
     if retries < 0:
         raise UsageError(f'--retries must be >= 0, got {retries}')
+    tolerance = timing_tolerance(cli, argv)
+    tolerance = DEFAULT_TIMING_TOLERANCE if tolerance is None else tolerance
     if not cli.eval_timeout > 0 or not math.isfinite(cli.eval_timeout):
         raise UsageError(f'--eval-timeout must be > 0 s, got {cli.eval_timeout}')
     if cli.no_start:
@@ -391,6 +455,7 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
             'reference': not cli.no_reference,
             'start': not cli.no_start,
             'retries': retries,
+            'timing_tolerance': tolerance,
             'drive': cli.drive or 'sim',
             'satisfactory_loss': params.satisfactory_loss,
             'params_file': params.source,
@@ -436,6 +501,8 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
         assert new.run.budget is not None
         progress = Progress(new.run.algo, new.run.budget, cli.quiet)
         return PreparedSession(new.run, new.params, new.drive, progress, out=out)
+    if timing_tolerance(cli, argv) is not None:
+        cli.timing_tolerance = True  # (given: refused below, with the other settings)
     given = [k for k in RUN_SETTINGS if getattr(cli, k) not in (None, False)]
     given += [k[4:] for k, v in vars(cli).items() if k.startswith('opt_') and v is not None]
     if cli.out is not None:
@@ -541,6 +608,9 @@ def _check_run(run: RunConfig, where: str) -> None:
     for key in ('seed', 'drive_seed', 'remeasure', 'retries'):
         if not is_int(getattr(run, key)) or getattr(run, key) < 0:
             raise bad(key, 'an integer >= 0')
+    tol = run.tolerance()
+    if not is_int(tol) or tol < 0:
+        raise bad('timing_tolerance', 'an integer >= 0')
     if not isinstance(run.options, dict):
         raise bad('options', 'a mapping of algorithm options')
     if not isinstance(run.reference, bool):
@@ -576,7 +646,7 @@ def make_tuning(rundir: RunDir, run: RunConfig, params: TunerParams, progress) -
         _start(run.algo, params, run.start is False),
         **(run.options or {}),
     )
-    return TuningRun(
+    tuning = TuningRun(
         rundir,
         params.space,
         opt,
@@ -587,6 +657,8 @@ def make_tuning(rundir: RunDir, run: RunConfig, params: TunerParams, progress) -
         reference=run.reference,
         progress=progress,
     )
+    tuning.timing_tolerance = run.tolerance()
+    return tuning
 
 
 # -- progress and summary ----------------------------------------------------------------------

@@ -51,6 +51,7 @@ import time
 from im_drive_sim.cli import UsageError, check_ros_args
 
 from .bench.spec import tuner_bench_spec
+from .benches import SIM_BENCHES
 from .tuner_cli import (
     EXIT_FAILED,
     EXIT_INTERRUPTED,
@@ -102,7 +103,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
 
     session = TunerSession(cli, argv, cfg)
     ctx = Context()
-    ros = RosSession(ros_arguments(argv), context=ctx)
+    ros = RosSession(ros_arguments(argv, cfg.run if cli.resume is not None else None), context=ctx)
 
     def should_stop() -> bool:
         return ros.stopped
@@ -124,6 +125,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             controller=cli.controller,
             eval_timeout=cli.eval_timeout,
             fault_policy=bench.plan.fault_policy,
+            owns_controller=bench.plan.mode in SIM_BENCHES,
             should_stop=should_stop,
             supervise=bench.supervise,
             call_timeout=min(10.0, cli.eval_timeout),

@@ -190,9 +190,24 @@ class TunerSession:
             self.plan,
         )
         assert rundir is not None and plan is not None
-        if not self.resumed:
+        from .tuning import BenchFailure, LostEvaluation
+
+        try:
             parameters = link.list_parameters()
+        except LostEvaluation as exc:  # a controller that does not answer: one line
+            raise BenchFailure(f'the controller did not list its parameters: {exc}') from None
         numeric_now = numeric.status()  # (after the controller's answer: it loads scipy)
+        enforced = parameters.get('timing_tolerance')
+        if enforced is not None and enforced != run.tolerance():
+            # a controller the tuner did not start (--bench auto/none): its read-only
+            # parameter is what counts; the run records what was enforced
+            progress.warn(
+                f'warning: the controller enforces timing_tolerance {enforced}, not the '
+                f"run's {run.tolerance()} (it was started with it); the run records {enforced}"
+            )
+            tuning.timing_tolerance = enforced
+            if not self.resumed:
+                run.put(timing_tolerance=enforced)
         if not self.resumed:
             run.put(
                 controller_parameters=parameters,

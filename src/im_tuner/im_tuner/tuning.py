@@ -222,6 +222,8 @@ class TuningRun:
         self.satisfactory = float(satisfactory_loss)
         self.remeasure = int(remeasure)
         self.retries = int(retries)
+        #: the run's timing tolerance [periods] (run.yaml; for the summary)
+        self.timing_tolerance: int | None = None
         self.with_reference = bool(reference)
         self.progress = progress
         self.state = TunerState()
@@ -496,6 +498,7 @@ class TuningRun:
             satisfactory_loss=self.satisfactory,
             outcome=outcome,
             wall_s=wall_s,
+            timing_tolerance=self.timing_tolerance,
         )
         if s.applied is not None:
             s.applied['on_controller'] = self.applied

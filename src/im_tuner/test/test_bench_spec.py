@@ -30,7 +30,7 @@ def _run(**fields) -> RunConfig:
     return RunConfig.from_dict({'algo': 'safe', **fields})
 
 
-NEW_RUN = {'drive_seed': 77, 'drive': 'sim'}
+NEW_RUN = {'drive_seed': 77, 'drive': 'sim', 'timing_tolerance': 10}
 
 
 def test_a_new_runs_spec_takes_the_command_line():
@@ -42,12 +42,17 @@ def test_a_new_runs_spec_takes_the_command_line():
         ('model', 'reduced'),
         ('config_file', 'motor.yaml'),
     )
-    assert spec.controller_parameters == (('drive_config_file', 'motor.yaml'),)
+    assert spec.controller_parameters == (
+        ('timing_tolerance', 10),
+        ('drive_config_file', 'motor.yaml'),
+    )
     assert (spec.record, spec.compression, spec.controller) == (False, 'lz4', '/controller')
     assert spec.next_experiment_id == 0 and spec.previous_bench is None
     assert spec.probe_timeout() == DISCOVERY_TIMEOUT['auto'] == 2.0
     bare = tuner_bench_spec(_cli('--bench', 'none'), _run(**NEW_RUN), resumed=False)
-    assert bare.drive_parameters == (('seed', 77),) and bare.controller_parameters == ()
+    assert bare.drive_parameters == (('seed', 77),) and bare.controller_parameters == (
+        ('timing_tolerance', 10),
+    )
     assert bare.probe_timeout() == 20.0
     given = tuner_bench_spec(_cli('--discovery-timeout', '7.5'), _run(**NEW_RUN), resumed=False)
     assert given.probe_timeout() == 7.5
@@ -72,6 +77,7 @@ def test_a_resumed_runs_spec_takes_run_yaml_and_goes_on_past_its_ids():
     plan = spec.resolve('realtime')
     assert plan.simulated and not plan.replays and plan.first_experiment_id == 12
     assert plan.controller_parameters == (
+        ('timing_tolerance', 0),  # a run of an older tuner: what its controller had (0)
         ('drive_config_file', 'm.yaml'),
         ('first_experiment_id', 12),
     )

@@ -18,19 +18,24 @@ from im_tuner.bench.drive_spec import DriveSpecError, check_drive_class, load_dr
 MODULE = """
 from abc import ABC, abstractmethod
 
+from im_drive_sim.example_drive import Measurement
+
 LOG = []  # (event, instance id)
 
 
 class Good:
     def __init__(self, config):
         self.config = config
+        self.m = Measurement()
+        self.isq = 0.0
         LOG.append(('built', id(self)))
 
-    def read(self):
-        return None
+    def read(self):  # the current follows its reference at once (command delay 1)
+        self.m.isq = self.isq
+        return self.m
 
     def write(self, isq_ref, load_torque):
-        pass
+        self.isq = isq_ref
 
     def close(self):
         LOG.append(('closed', id(self)))
@@ -94,6 +99,10 @@ class Exits(Good):
 
 class Latching(Good):
     command_delay = 2
+    pending = 0.0
+
+    def write(self, isq_ref, load_torque):  # latched: acts a period later
+        self.isq, self.pending = self.pending, isq_ref
 
 
 class DelayThree(Good):
@@ -150,7 +159,7 @@ def test_the_example_drive_forms() -> None:
         ('hw_mod:CloseTakesOne', 'CloseTakesOne.close() is not a valid call: close takes no'),
         ('hw_mod:NoConfig', 'NoConfig(config) is not a valid call'),
         ('hw_mod:Abstract', 'Abstract is abstract'),
-        ('hw_mod', "expected 'sim', 'example' or 'package.module:Class'"),
+        ('hw_mod', "expected 'sim', 'example', 'lib:PATH' or 'package.module:Class'"),
         (':Good', "expected 'sim', 'example'"),
         ('no_such_module_x:Good', 'cannot import no_such_module_x: ModuleNotFoundError'),
         ('raises_mod:Good', 'cannot import raises_mod: ImportError: libinverter.so: not found'),

@@ -141,3 +141,27 @@ def test_the_ros_arguments_and_the_bag_options() -> None:
     with pytest.raises(UsageError, match=r'^--out x is for the bag'):
         recording_options(True, out='x', compression=None)
     assert recording_options(True, out=None, compression=None) == 'lz4'
+
+
+def test_a_resumed_run_keeps_the_parameters_its_command_gave():
+    """--resume runs the bench with the -p parameters of the run's first command (a
+    safety limit, an experiment parameter), its own after them; the tolerance is
+    run.yaml's key, not repeated."""
+    from im_tuner.tuner_cli import ros_arguments, run_parameters
+
+    run = RunConfig.from_dict(
+        {
+            'algo': 'safe',
+            'command': 'ros2 run im_tuner tuner --bench inproc --ros-args '
+            "-p 'safety.max_speed:=5.0' --param timing_tolerance:=3 -p move.distance:=6.28 "
+            '--log-level warn',
+        }
+    )
+    assert run_parameters(run) == ['-p', 'safety.max_speed:=5.0', '-p', 'move.distance:=6.28']
+    argv = ['tuner', '--resume', 'r', '--ros-args', '-p', 'safety.max_speed:=9.0']
+    assert ros_arguments(argv, run) == [
+        'tuner', '--ros-args', '-p', 'safety.max_speed:=5.0', '-p', 'move.distance:=6.28',
+        '-p', 'safety.max_speed:=9.0', '--disable-stdout-logs',
+    ]  # fmt: skip
+    assert ros_arguments(['tuner']) == ['tuner', '--ros-args', '--disable-stdout-logs']
+    assert run_parameters(RunConfig.from_dict({'algo': 'safe', 'command': "x 'y"})) == []

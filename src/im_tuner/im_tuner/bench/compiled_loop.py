@@ -47,6 +47,8 @@ rcl).
 
 from __future__ import annotations
 
+import contextlib
+import os
 import threading
 import time
 from typing import Any
@@ -57,11 +59,19 @@ from numba import types
 
 from im_controller.experiment import STATUS_DONE
 from im_controller.kernel import W_INTERNALS_DUE, answer_state
+from im_drive_sim import hardware_period as HP
 from im_drive_sim import period_kernel as PK
+from im_drive_sim.hardware_abi import KIND_C, N_MEASUREMENT, HardwareFault, entry_words
 from im_drive_sim.outbox import R_HEAD, put_slot
 from im_drive_sim.pacing import LATENESS_EDGES_US, count_durations
 
-__all__ = ['CompiledPeriods', 'LoopGate', 'run_periods']
+__all__ = [
+    'CompiledHardwarePeriods',
+    'CompiledPeriods',
+    'LoopGate',
+    'run_hardware_periods',
+    'run_periods',
+]
 
 _clock_gettime = types.ExternalFunction('clock_gettime', types.int32(types.int32, types.uint64))
 _clock_nanosleep = types.ExternalFunction(
@@ -96,7 +106,7 @@ T_MAX_LATE_PY = 19
 T_STALL_NS = 20  #: the stall test hook's duration [ns]
 N_T = 21
 
-EXIT_BUDGET, EXIT_PERIODS, EXIT_QUIT = range(3)
+EXIT_BUDGET, EXIT_PERIODS, EXIT_QUIT, EXIT_FAULT = range(4)
 
 # -- the words of the gate (int64), shared with the Python threads (LoopGate) -------------
 G_WANT = 0  #: != 0: a Python thread wants the loop parked (its turn at the nodes' state)
@@ -178,6 +188,80 @@ def _wait_start(
 
 
 @numba.njit(cache=True, nogil=True)
+def _answer_and_hand_over(
+    T: np.ndarray, t0: int, due: int, dur_counts: np.ndarray, dur_maxes: np.ndarray,
+    D: np.ndarray, DC: np.ndarray, state: np.ndarray, R: np.ndarray, Q: np.ndarray,
+    X: np.ndarray, C: np.ndarray, CF: np.ndarray, cout: np.ndarray, eout: np.ndarray,
+    cmd: np.ndarray, internals: np.ndarray, W: np.ndarray, raws: Any, bufs: Any,
+    lens: Any, stamps: Any, ctrls: Any, ring_msg: np.ndarray, put_counts: np.ndarray,
+    events: np.ndarray, ev_ctrl: np.ndarray, ts: np.ndarray,
+) -> None:  # fmt: skip
+    """A period's second half, once the drive published state k+1 (``due``: its
+    messages): the controller's answer, the messages into their rings, the drive takes
+    the answer (``period_kernel.take_command``: the words of ``D`` it shares with every
+    drive), the period's durations, an experiment's end into the event ring."""
+    n_rings = len(bufs)
+    n_r = R.shape[0]
+    stamp = _now(ts, CLOCK_REALTIME)
+    t1 = _now(ts, CLOCK_MONOTONIC)
+    st = answer_state(R, Q, X, C, CF, state, cout, eout, cmd, internals, W)
+    due |= 1 << M_COMMAND
+    if W[W_INTERNALS_DUE] != 0:
+        due |= 1 << M_INTERNALS
+    # the messages into their rings (the heads advance after the clock call below:
+    # an opaque call, so the slots are written before a consumer can see them)
+    put = 0
+    for m in range(N_MSG):
+        if due & (1 << m):
+            put_counts[m] += 1
+    for r in range(n_rings):
+        m = ring_msg[r]
+        if due & (1 << m) and put_slot(bufs[r], lens[r], stamps[r], ctrls[r], raws[m], stamp):
+            put |= 1 << r
+    t2 = _now(ts, CLOCK_MONOTONIC)
+    if PK.take_command(D, DC, np.int64(state[0]), cmd[0], cmd[1], cmd[2]):
+        T[T_COMMANDS] += 1
+    else:
+        T[T_REFUSED] += 1
+    t3 = _now(ts, CLOCK_MONOTONIC)
+    for r in range(n_rings):
+        if put & (1 << r):
+            ctrls[r][R_HEAD] += 1
+    count_durations(
+        dur_counts,
+        dur_maxes,
+        ((t1 - t0) * 1e-3, (t2 - t1) * 1e-3, (t3 - t0) * 1e-3, T[T_LATE] * 1e-3),
+    )
+    T[T_PERIODS] += 1
+    if st >= STATUS_DONE:  # an experiment's end: the serving thread publishes it
+        T[T_STATUS] = st
+        h = ev_ctrl[EV_HEAD]
+        if h - ev_ctrl[EV_TAIL] < events.shape[0]:
+            row = events[h % events.shape[0]]
+            row[0] = st
+            row[1] = state[0]
+            for j in range(n_r):
+                row[2 + j] = R[j]
+            _now(ts, CLOCK_MONOTONIC)  # an opaque call: the row is written first
+            ev_ctrl[EV_HEAD] = h + 1
+        else:
+            ev_ctrl[EV_LOST] += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _park(gate: np.ndarray, ts: np.ndarray) -> bool:
+    """Between two periods: park while a Python thread has its turn at the nodes'
+    state (``gate[G_WANT]``, :class:`LoopGate`); True if it parked."""
+    if gate[G_WANT] == 0:
+        return False
+    gate[G_PARKED] = 1
+    while gate[G_WANT] != 0:
+        _nap(ts, 20_000)
+    gate[G_PARKED] = 0
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
 def run_periods(
     S: np.ndarray,
     P: np.ndarray,
@@ -230,15 +314,9 @@ def run_periods(
     used = 0
     first = True
     T[T_EXIT] = EXIT_PERIODS
-    n_rings = len(bufs)
-    n_r = R.shape[0]
     while True:
         if T[T_RESUME] < 0:  # between two periods: the gate, then the next start
-            if gate[G_WANT] != 0:
-                gate[G_PARKED] = 1  # a Python thread's turn at the nodes' state
-                while gate[G_WANT] != 0:
-                    _nap(ts, 20_000)
-                gate[G_PARKED] = 0
+            if _park(gate, ts):
                 first = True  # the next start follows a park: counted as after Python
             if gate[G_QUIT] != 0:
                 gate[G_RUNNING] = 0
@@ -270,54 +348,96 @@ def run_periods(
         )  # fmt: skip
         used += 1
         T[T_RESUME] = -1
-        stamp = _now(ts, CLOCK_REALTIME)
-        t1 = _now(ts, CLOCK_MONOTONIC)
-        st = answer_state(R, Q, X, C, CF, state, cout, eout, cmd, internals, W)
-        due |= 1 << M_COMMAND
-        if W[W_INTERNALS_DUE] != 0:
-            due |= 1 << M_INTERNALS
-        # the messages into their rings (the heads advance after the clock call below:
-        # an opaque call, so the slots are written before a consumer can see them)
-        put = 0
-        for m in range(N_MSG):
-            if due & (1 << m):
-                put_counts[m] += 1
-        for r in range(n_rings):
-            m = ring_msg[r]
-            if due & (1 << m) and put_slot(bufs[r], lens[r], stamps[r], ctrls[r], raws[m], stamp):
-                put |= 1 << r
-        t2 = _now(ts, CLOCK_MONOTONIC)
-        if PK.take_command(D, DC, np.int64(state[0]), cmd[0], cmd[1], cmd[2]):
-            T[T_COMMANDS] += 1
-        else:
-            T[T_REFUSED] += 1
-        t3 = _now(ts, CLOCK_MONOTONIC)
-        for r in range(n_rings):
-            if put & (1 << r):
-                ctrls[r][R_HEAD] += 1
-        count_durations(
-            dur_counts,
-            dur_maxes,
-            ((t1 - t0) * 1e-3, (t2 - t1) * 1e-3, (t3 - t0) * 1e-3, T[T_LATE] * 1e-3),
-        )
-        T[T_PERIODS] += 1
-        if st >= STATUS_DONE:  # an experiment's end: the serving thread publishes it
-            T[T_STATUS] = st
-            h = ev_ctrl[EV_HEAD]
-            if h - ev_ctrl[EV_TAIL] < events.shape[0]:
-                row = events[h % events.shape[0]]
-                row[0] = st
-                row[1] = state[0]
-                for j in range(n_r):
-                    row[2 + j] = R[j]
-                _now(ts, CLOCK_MONOTONIC)  # an opaque call: the row is written first
-                ev_ctrl[EV_HEAD] = h + 1
-            else:
-                ev_ctrl[EV_LOST] += 1
+        _answer_and_hand_over(
+            T, t0, due, dur_counts, dur_maxes, D, DC, state, R, Q, X, C, CF, cout, eout,
+            cmd, internals, W, raws, bufs, lens, stamps, ctrls, ring_msg, put_counts,
+            events, ev_ctrl, ts,
+        )  # fmt: skip
         if 0 <= T[T_STALL] <= state[0]:  # the drive's stall test hook, once
             T[T_STALL] = -1
             _nap(ts, T[T_STALL_NS])
     return used
+
+
+@numba.njit(cache=True, nogil=True)
+def run_hardware_periods(
+    T: np.ndarray,
+    late_hist: np.ndarray,
+    edges: np.ndarray,
+    dur_counts: np.ndarray,
+    dur_maxes: np.ndarray,
+    E: np.ndarray,
+    D: np.ndarray,
+    DC: np.ndarray,
+    F: np.ndarray,
+    meas: np.ndarray,
+    state: np.ndarray,
+    joint_sec: np.ndarray,
+    joint_nsec: np.ndarray,
+    joint_pos: np.ndarray,
+    joint_vel: np.ndarray,
+    joint_eff: np.ndarray,
+    R: np.ndarray,
+    Q: np.ndarray,
+    X: np.ndarray,
+    C: np.ndarray,
+    CF: np.ndarray,
+    cout: np.ndarray,
+    eout: np.ndarray,
+    cmd: np.ndarray,
+    internals: np.ndarray,
+    W: np.ndarray,
+    raws: Any,
+    bufs: Any,
+    lens: Any,
+    stamps: Any,
+    ctrls: Any,
+    ring_msg: np.ndarray,
+    put_counts: np.ndarray,
+    gate: np.ndarray,
+    events: np.ndarray,
+    ev_ctrl: np.ndarray,
+    ts: np.ndarray,
+) -> int:
+    """:func:`run_periods` for a user's power stage called by address
+    (``im_drive_sim.hardware_period``: a C library, a compiled class): periods until
+    ``gate[G_QUIT]``, ``T[T_MAX_PERIODS]`` or a drive fault (``T[T_EXIT]`` = EXIT_FAULT,
+    ``F`` says which call returned what; zero current was written). The power stage
+    lives on the wall clock: a late start's whole periods went by with the command held
+    (``hardware_missed``). Returns the periods run."""
+    first = True
+    T[T_EXIT] = EXIT_PERIODS
+    while True:
+        if _park(gate, ts):
+            first = True
+        if gate[G_QUIT] != 0:
+            gate[G_RUNNING] = 0
+            T[T_EXIT] = EXIT_QUIT
+            break
+        if gate[G_STOP] != 0 and D[PK.D_STOPPED] == 0.0:
+            HP.safe_stop(E, D)
+        if T[T_PERIODS] >= T[T_MAX_PERIODS]:
+            T[T_EXIT] = EXIT_PERIODS
+            break
+        missed = _wait_start(T, late_hist, edges, ts, first)
+        first = False
+        t0 = T[T_START]
+        due = HP.hardware_missed(E, D, DC, F, missed)
+        if due != HP.FAULT:
+            due = HP.hardware_period(
+                E, D, DC, F, meas, state, joint_sec, joint_nsec, joint_pos, joint_vel,
+                joint_eff,
+            )  # fmt: skip
+        if due == HP.FAULT:
+            gate[G_RUNNING] = 0
+            T[T_EXIT] = EXIT_FAULT
+            break
+        _answer_and_hand_over(
+            T, t0, due, dur_counts, dur_maxes, D, DC, state, R, Q, X, C, CF, cout, eout,
+            cmd, internals, W, raws, bufs, lens, stamps, ctrls, ring_msg, put_counts,
+            events, ev_ctrl, ts,
+        )  # fmt: skip
+    return T[T_PERIODS]
 
 
 class LoopGate:
@@ -337,6 +457,13 @@ class LoopGate:
         self._lock = threading.RLock()
         self._depth = 0
         self._parked = False
+        #: > 0: a thread that parks the loop runs SCHED_FIFO at this priority for its
+        #: turn (the loop's minus one: priority inheritance, as a PI mutex gives a
+        #: real-time waiter's priority to the holder) -- beside busy processes a normal
+        #: thread the loop waits for would otherwise wait for the CPU with it
+        self.boost = 0
+        self.boosted = 0  #: turns run boosted (the summary's loop figures)
+        self._restore: tuple[int, Any] | None = None
         #: the loop's words shared with Python (G_*): read and written by both sides
         self.gate = np.zeros(N_G, np.int64)
         #: the compiled loop running now (None: the nodes own their state)
@@ -358,11 +485,30 @@ class LoopGate:
                 self.gate[G_WANT] = 0  # after the arrays: the loop reads them next
         finally:
             self._depth -= 1
+            if self._depth == 0 and self._restore is not None:
+                self._lower_priority()
             self._lock.release()
+
+    def _raise_priority(self) -> None:
+        """This thread to SCHED_FIFO ``boost`` for its turn (what it was, kept)."""
+        try:
+            self._restore = (os.sched_getscheduler(0), os.sched_getparam(0))
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.boost))
+            self.boosted += 1
+        except OSError:  # not permitted (the loop's FIFO was): run the turn as it is
+            self._restore = None
+
+    def _lower_priority(self) -> None:
+        policy, param = self._restore or (os.SCHED_OTHER, os.sched_param(0))
+        self._restore = None
+        with contextlib.suppress(OSError):  # (what it was is always permitted back)
+            os.sched_setscheduler(0, policy, param)
 
     def _park(self) -> None:
         compiled, g = self.running, self.gate
         assert compiled is not None
+        if self.boost > 0:
+            self._raise_priority()
         g[G_WANT] = 1
         # parked within a period; between two compiled calls (the noise block's refill)
         # the loop thread needs the GIL, which this sleep lets go of
@@ -391,6 +537,12 @@ class CompiledPeriods:
     period's slack, and numpy scalar arithmetic there measured 40 us a call in the loop
     thread (so the words are read with ``.item``)."""
 
+    #: the drive's arrays :func:`run_periods` takes (``period_views``' keys, in order)
+    DRIVE_VIEWS: tuple[str, ...] = (
+        'state', 'clock_sec', 'clock_nsec', 'joint_sec', 'joint_nsec',
+        'joint_pos', 'joint_vel', 'joint_eff',
+    )  # fmt: skip
+
     def __init__(
         self, drive: Any, controller: Any, outbox: Any, durations: Any, pacer: Any, gate: LoopGate
     ) -> None:
@@ -402,41 +554,36 @@ class CompiledPeriods:
             durations,
         )
         self.gate = gate
-        self.sim = drive.sim
+        self.sim = getattr(drive, 'sim', None)  # the simulator's model (run_kernel)
         dv = drive.period_views()
         cv = controller.answer_views()
-        self._drive_args = tuple(
-            dv[k]
-            for k in (
-                'state', 'clock_sec', 'clock_nsec', 'joint_sec', 'joint_nsec',
-                'joint_pos', 'joint_vel', 'joint_eff',
-            )
-        )  # fmt: skip
+        self._drive_args = tuple(dv[k] for k in self.DRIVE_VIEWS)
         self._ctl_args = tuple(
             cv[k] for k in ('R', 'Q', 'X', 'C', 'CF', 'cout', 'eout', 'cmd', 'internals')
         )
+        # in the order M_*; a drive without /clock (a user's) has no such message
         pubs = (
             drive.state_pub,
-            drive.clock_pub,
+            getattr(drive, 'clock_pub', None),
             drive.joint_pub,
             controller.client.command_pub,
             controller.internals_pub,
         )
         raws = (
             dv['state_raw'],
-            dv['clock_raw'],
+            dv.get('clock_raw', np.zeros(0, np.uint8)),
             dv['joint_raw'],
             cv['cmd_raw'],
             cv['internals_raw'],
         )
-        self.channels = []
+        self.channels: list[Any] = []
         rings, ring_msg = [], []
         for m, pub in enumerate(pubs):
-            ch = outbox.channel(pub)
-            if ch is None:
+            ch = None if pub is None else outbox.channel(pub)
+            if pub is not None and ch is None:
                 raise ValueError(f'{pub.topic_name} does not go through the outbox')
             self.channels.append(ch)
-            for ring in (ch.dds, ch.tap):
+            for ring in (ch.dds, ch.tap) if ch is not None else ():
                 if ring is not None:
                     rings.append(ring)
                     ring_msg.append(m)
@@ -487,8 +634,8 @@ class CompiledPeriods:
             self._D, self._DC, self._W = D, DC, W
         else:
             self._D[:], self._DC[:], self._W[:] = D, DC, W
-        self.T[T_STALL] = self.drive.stall_step
-        self.T[T_STALL_NS] = round(self.drive.stall_s * 1e9)
+        self.T[T_STALL] = getattr(self.drive, 'stall_step', -1)
+        self.T[T_STALL_NS] = round(getattr(self.drive, 'stall_s', 0.0) * 1e9)
         self.stale = False
 
     def give_back(self) -> None:
@@ -498,7 +645,8 @@ class CompiledPeriods:
             return
         T = self.T
         self.drive.set_period_words(self._D, self._DC, T.item(T_COMMANDS) > 0)
-        self.drive.stall_step = T.item(T_STALL)
+        if hasattr(self.drive, 'stall_step'):
+            self.drive.stall_step = T.item(T_STALL)
         T[T_COMMANDS] = 0
         self.controller.set_answer_words(self._W)
         self.stale = True
@@ -581,6 +729,8 @@ class CompiledPeriods:
         c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
         self.durations.n = int(self.durations.counts[0].sum())
         for m, ch in enumerate(self.channels):
+            if ch is None:
+                continue
             put = int(self.put_counts[m])
             ch.put_count += put - int(self._put_seen[m])
             self._put_seen[m] = put
@@ -596,3 +746,73 @@ class CompiledPeriods:
             'max_lateness_at_s': round(T.item(T_MAX_LATE_AT) * 1e-9 - t0, 3),
             'max_lateness_after_python_us': round(T.item(T_MAX_LATE_PY) * 1e-3, 1),
         }
+
+
+class CompiledHardwarePeriods(CompiledPeriods):
+    """:func:`run_hardware_periods` for an ``ExampleDrive`` whose power stage is given by
+    address (``ExampleDrive.hardware_entry``: a C library, a compiled class), composed
+    with a ``ControllerNode``. The loop returns to Python only to quit, or on a drive
+    fault (:meth:`run` raises ``HardwareFault``: zero current was written)."""
+
+    DRIVE_VIEWS = ('state', 'joint_sec', 'joint_nsec', 'joint_pos', 'joint_vel', 'joint_eff')
+
+    def __init__(
+        self, drive: Any, controller: Any, outbox: Any, durations: Any, pacer: Any, gate: LoopGate
+    ) -> None:
+        super().__init__(drive, controller, outbox, durations, pacer, gate)
+        entry = drive.hardware_entry()
+        if entry is None:
+            raise ValueError(f'{type(drive.hw).__name__} is not a compiled power stage')
+        self.entry = entry
+        self._E = entry_words(entry)
+        self._F = np.zeros(3, np.int64)
+        self._m = np.zeros(N_MEASUREMENT)
+
+    def warm_up(self) -> None:
+        """Compile (or load) :func:`run_hardware_periods` now: a call that runs no period."""
+        self.take()
+        self.T[T_MAX_PERIODS] = self.T[T_PERIODS] = 0
+        self._kernel()
+        self.give_back()
+
+    def _kernel(self, *_: Any) -> int:  # type: ignore[override]
+        return int(
+            run_hardware_periods(
+                self.T, self.late_hist, self._edges,
+                self.durations.counts, self.durations.maxes,
+                self._E, self._D, self._DC, self._F, self._m,
+                *self._drive_args, *self._ctl_args, self._W,
+                self._raws, *self._rings, self._ring_msg, self.put_counts,
+                self.gate.gate, self.events, self.ev_ctrl, self._ts,
+            )
+        )  # fmt: skip
+
+    def fault(self) -> str | None:
+        """The drive fault that ended the loop, in words (None: none)."""
+        F = self._F
+        if F.item(HP.F_CALL) == 0:
+            return None
+        call = HP.CALL_NAMES[F.item(HP.F_CALL)]
+        if self.entry.kind == KIND_C:
+            call = f'im_drive_{call}'
+        return (
+            f'{self.entry.name}: {call} returned {F.item(HP.F_CODE)} at step '
+            f'{F.item(HP.F_STEP)} (a drive fault)'
+        )
+
+    def run(self) -> None:
+        """The loop thread's whole compiled run: periods until ``gate[G_QUIT]``, or a
+        drive fault (``HardwareFault``, after the loop wrote zero current)."""
+        T, g = self.T, self.gate.gate
+        T[T_MAX_PERIODS] = 1 << 62
+        T[T_PERIODS] = 0
+        with self.gate:
+            self.take()
+            g[G_RUNNING] = 1
+            self.gate.running = self
+        try:
+            self._kernel()
+        finally:
+            g[G_RUNNING] = 0
+        if T.item(T_EXIT) == EXIT_FAULT:
+            raise HardwareFault(self.fault() or 'a drive fault')

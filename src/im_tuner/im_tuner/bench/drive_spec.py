@@ -2,8 +2,14 @@
 contract of docs/real-drive.md before anything is created.
 
 A drive is named ``sim`` (the simulator), ``example`` (the example drive's stand-in
-hardware) or ``package.module:Class``, where the class is one of the two forms the
-document describes:
+hardware, compiled: ``im_drive_sim.example_hardware``), ``lib:PATH`` (a C shared library
+with the drive ABI, ``im_drive_sim.hardware_abi``: loaded, checked and opened here) or
+``package.module:Class``, where the class is one of the three forms the document
+describes:
+
+* **a compiled hardware class**: numba-jitted ``write(state, isq_ref, load_torque)``,
+  ``read(state, m)`` (optional ``elapse(state, periods)``) on the class and a float64
+  array ``state`` on the instance; the composed loop calls them by address, no GIL;
 
 * **a hardware class** (as ``im_drive_sim.example_drive.Hardware``): not a ROS node;
   ``Class(config)`` takes the loaded drive file (a ``DriveConfig``), ``read()`` takes no
@@ -59,12 +65,16 @@ def _first_line(exc: BaseException) -> str:
     return f'{type(exc).__name__}: {text[0]}' if text else type(exc).__name__
 
 
+#: the prefix of a drive library: ``lib:PATH``
+LIB = 'lib:'
+
+
 def load_drive_class(spec: str) -> type:
     """The class named by ``package.module:Class`` (DriveSpecError if there is none)."""
     mod_name, sep, cls_name = spec.partition(':')
     if not sep or not mod_name or not cls_name:
         raise DriveSpecError(
-            f"--drive {spec!r}: expected 'sim', 'example' or 'package.module:Class'"
+            f"--drive {spec!r}: expected 'sim', 'example', 'lib:PATH' or 'package.module:Class'"
         )
     try:
         mod = importlib.import_module(mod_name)
@@ -133,6 +143,20 @@ def check_drive_class(spec: str, cls: type) -> str:
                 f"a valid call: a drive node class keeps ExampleDrive's constructor ({_DOC})"
             ) from None
         return 'node'
+    from im_drive_sim.hardware_abi import (
+        DriveLibraryError,
+        check_compiled_class,
+        is_compiled_class,
+    )
+
+    if is_compiled_class(cls):
+        try:
+            check_compiled_class(cls)
+        except DriveLibraryError as exc:
+            raise DriveSpecError(f'--drive {spec!r}: {exc}') from None
+        if _binds(cls, (object(),)) is False:
+            raise DriveSpecError(f'--drive {spec!r}: {name}(config) is not a valid call ({_DOC})')
+        return 'compiled'
     contract = (
         f'a hardware class has read() -> Measurement, write(isq_ref, load_torque) and '
         f'Class(config), or give an ExampleDrive subclass ({_DOC})'
@@ -160,9 +184,22 @@ def check_drive_class(spec: str, cls: type) -> str:
 
 def check_drive_spec(spec: str) -> str:
     """Validate ``--drive`` (import and contract, nothing built); returns it."""
-    if spec not in DRIVES:
+    if spec.startswith(LIB):
+        _library_path(spec)
+    elif spec not in DRIVES:
         check_drive_class(spec, load_drive_class(spec))
     return spec
+
+
+def _library_path(spec: str) -> Path:
+    """``lib:PATH``'s file (DriveSpecError: none given, or no such file)."""
+    path = spec[len(LIB) :]
+    if not path:
+        raise DriveSpecError(f"--drive {spec!r}: expected 'lib:PATH' (a shared library)")
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise DriveSpecError(f'--drive {spec!r}: no such file: {p}')
+    return p
 
 
 @dataclass
@@ -171,10 +208,12 @@ class DriveChoice:
     the instance built by :func:`resolve` with the drive file ``config``."""
 
     spec: str
-    cls: type | None = None  #: None: 'sim' or 'example'
-    form: str = ''  #: 'node', 'hardware' or '' (a named drive)
+    cls: type | None = None  #: None: 'sim', 'example' or a library
+    form: str = ''  #: 'node', 'hardware', 'compiled', 'library' or '' (a named drive)
     hardware: Any = None  #: the hardware instance, until the bench takes it
     config: Any = None  #: the DriveConfig it was built with
+    #: the command-delay probe of the hardware (hardware_probe.DelayProbe), once built
+    probe: Any = None
     taken: bool = field(default=False, repr=False)
 
     def factory(self, config: Any) -> Any:
@@ -184,9 +223,33 @@ class DriveChoice:
             self.taken = True
             return self.hardware
         close_hardware(self)
-        cls = self.cls
+        return _make_hardware(self, config)
+
+
+def _make_hardware(choice: DriveChoice, config: Any) -> Any:
+    """The power stage of a checked ``--drive`` (a hardware, compiled or library form),
+    built with ``config``: every problem one DriveSpecError line."""
+    from im_drive_sim.hardware_abi import (
+        CompiledClassHardware,
+        DriveLibraryError,
+        LibraryHardware,
+    )
+
+    spec = choice.spec
+    try:
+        if choice.form == 'library':
+            return LibraryHardware(spec[len(LIB) :], config)
+        cls = choice.cls
         assert cls is not None
-        return _build(self.spec, f'{cls.__name__}(config)', lambda: cls(config))
+        hw = _build(spec, f'{cls.__name__}(config)', lambda: cls(config))
+        if choice.form == 'compiled':
+            wrapped = CompiledClassHardware(hw, name=spec)
+            wrapped.entry()  # the loop's wrappers compiled now: an error is this line
+            return wrapped
+        return hw
+    except DriveLibraryError as exc:
+        msg = str(exc)
+        raise DriveSpecError(msg if msg.startswith(spec) else f'--drive {spec!r}: {msg}') from None
 
 
 def close_hardware(choice: DriveChoice | None) -> None:
@@ -220,28 +283,59 @@ def resolve(spec: str, drive_config: str | Path | None, build: bool = True) -> D
     is a DriveSpecError of one line; a constructor that raises is named with its exception."""
     if spec in DRIVES:
         return DriveChoice(spec)
-    cls = load_drive_class(spec)
-    form = check_drive_class(spec, cls)
-    choice = DriveChoice(spec, cls, form)
-    if form == 'hardware' and build:
+    if spec.startswith(LIB):
+        _library_path(spec)
+        choice = DriveChoice(spec, None, 'library')
+    else:
+        cls = load_drive_class(spec)
+        choice = DriveChoice(spec, cls, check_drive_class(spec, cls))
+    if choice.form in ('hardware', 'compiled', 'library') and build:
         from im_drive_sim.params import ConfigError, load_config
 
         try:
             config = load_config(drive_config)
         except ConfigError as exc:
             raise DriveSpecError(f'--drive {spec!r}: {exc}') from None
-        choice.hardware = _build(spec, f'{cls.__name__}(config)', lambda: cls(config))
+        choice.hardware = _make_hardware(choice, config)
         choice.config = config
         _BUILT.append(choice)
         from im_drive_sim.example_drive import hardware_command_delay
 
         try:
-            hardware_command_delay(choice.hardware)
+            declared = hardware_command_delay(choice.hardware)
         except ConfigError as exc:
             _BUILT.remove(choice)
             close_hardware(choice)
             raise DriveSpecError(f'--drive {spec!r}: {exc} (docs/real-drive.md)') from None
+        _check_delay(choice, declared)
     return choice
+
+
+def _check_delay(choice: DriveChoice, declared: int) -> None:
+    """The declared command delay measured on the power stage (``hardware_probe``): a
+    drive slower than it declares is refused in one line (nothing created yet)."""
+    from im_drive_sim.hardware_probe import probe_delay
+
+    config = choice.config
+    try:
+        choice.probe = probe_delay(
+            choice.hardware, float(config.Ts), float(config.machine.isq_max), declared
+        )
+    except Exception as exc:  # the user's read/write raised (a HardwareFault too): one line
+        _BUILT.remove(choice)
+        close_hardware(choice)
+        raise DriveSpecError(
+            f'--drive {choice.spec!r}: the command-delay probe failed: {_first_line(exc)}'
+        ) from None
+    if not choice.probe.ok:
+        _BUILT.remove(choice)
+        close_hardware(choice)
+        slower = choice.probe.fastest
+        raise DriveSpecError(
+            f'--drive {choice.spec!r}: slower than it declares: {choice.probe.text()}; '
+            f'declare command_delay = {slower} if it is {slower} '
+            f'(docs/real-drive.md, "Command delay")'
+        )
 
 
 def _build(spec: str, what: str, make: Any) -> Any:
@@ -262,16 +356,18 @@ def build_node(choice: DriveChoice, context: Any, overrides: list[Any]) -> Any:
     from im_drive_sim.example_drive import ExampleDrive
 
     cls = choice.cls
-    assert cls is not None
     if choice.form == 'node':
+        assert cls is not None
         return _build(
             choice.spec,
             cls.__name__,
             lambda: cls(context=context, parameter_overrides=overrides),
         )
-    return ExampleDrive(
+    node = ExampleDrive(
         context=context, parameter_overrides=overrides, hardware_class=choice.factory
     )
+    node.delay_probe = choice.probe  # (for the bag's metadata)
+    return node
 
 
 def make_drive(spec: str | DriveChoice, context: Any, overrides: list[Any]) -> Any:
@@ -302,5 +398,16 @@ def make_drive(spec: str | DriveChoice, context: Any, overrides: list[Any]) -> A
 
     mine = [p for p in overrides if p.name == 'config_file']
     if name == 'example':
-        return ExampleDrive(context=context, parameter_overrides=mine)
+        return ExampleDrive(
+            context=context, parameter_overrides=mine, hardware_class=compiled_example
+        )
     return build_node(choice or resolve(name, None, build=False), context, mine)
+
+
+def compiled_example(config: Any) -> Any:
+    """``--drive example``'s power stage: the stand-in plant, compiled
+    (``im_drive_sim.example_hardware``), behind the ABI's Python interface."""
+    from im_drive_sim.example_hardware import CompiledHardware
+    from im_drive_sim.hardware_abi import CompiledClassHardware
+
+    return CompiledClassHardware(CompiledHardware(config), name='example')

@@ -27,7 +27,7 @@ def drive_report(
     """The summary's view of a drive's status key/values: the mode, the counters as
     numbers (unknown or unparsable ones left out: a real drive may report fewer)."""
     out: dict[str, Any] = {'mode': values.get('mode', 'unknown'), 'model': values.get('model')}
-    for k in (*DRIVE_COUNTERS, 'real_time_factor', 'sim_time_s'):
+    for k in (*DRIVE_COUNTERS, 'command_delay', 'real_time_factor', 'sim_time_s'):
         try:
             v = float(values[k])
         except (KeyError, ValueError):

@@ -185,7 +185,13 @@ def bench_metadata(bench) -> dict[str, dict]:
         or '(packaged default)',
         'model': getattr(d.config, 'model', '-'),
         'config': json.dumps(dataclasses.asdict(d.config), sort_keys=True),
+        # the delay the drive runs with: a hardware's declared one (its class or library),
+        # else the drive file's (the config above)
+        'command_delay': int(getattr(d, 'command_delay', d.config.command_delay)),
     }
+    probe = getattr(d, 'delay_probe', None)
+    if probe is not None:  # the declared delay as measured at start (hardware_probe)
+        drive['delay_probe'] = probe.text()
     if d.has_parameter('seed'):
         drive['seed'] = d.get_parameter('seed').value
     ctl = {

@@ -50,10 +50,13 @@ __all__ = [
     'N_REC',
     'REC_FIELDS',
     'OfflineBench',
+    'StandInPlant',
     'finish_stopped_move',
     'hold_offline',
+    'replay_stand_in',
     'run_experiment_offline',
     'run_fused',
+    'stand_in_losses',
 ]
 
 N_REC = DK.N_STATE_FIELDS + N_CONTROL_FIELDS + N_EXP_FIELDS
@@ -312,4 +315,95 @@ def replay_realtime(
         res = runner.result()
         assert res is not None, 'experiment did not finish'
         out.append(res)
+    return out
+
+
+class StandInPlant:
+    """The example drive's stand-in plant (``example_drive.Hardware``) as the offline
+    loop's drive (``read_into``/``step_into``, as ``DriveSim``): a write of the clamped
+    command, then a read, per step -- what ``ExampleDrive.period`` does with its power
+    stage when no period is late. Its state 0 is a first read, as ``ExampleDrive.start``."""
+
+    def __init__(self, config: DriveConfig) -> None:
+        from im_drive_sim.example_drive import Hardware
+
+        self.config = config
+        self.hw = Hardware(config)
+        self.step_index = 0
+        self.isq_max = float(config.machine.isq_max)
+        self._m = self.hw.read()
+
+    @property
+    def theta_meas(self) -> float:
+        return float(self._m.theta_meas)
+
+    def read_into(self, state: np.ndarray) -> None:
+        m = self._m
+        state[0] = self.step_index
+        state[1] = self.step_index * round(self.config.Ts * 1e9)
+        state[2], state[3], state[4] = m.theta_meas, m.omega_meas, m.torque
+        state[5], state[6], state[7], state[8] = m.isd, m.isq, m.i_alpha, m.i_beta
+        state[9], state[10], state[11] = m.load_torque, m.theta_meas, m.omega_meas
+        # every period fresh: the command answering the state before acted over it
+        state[12], state[13] = self.step_index - 1, self.hw.command_delay
+
+    def step_into(self, isq: float, load: float, state: np.ndarray) -> None:
+        self.hw.write(max(-self.isq_max, min(self.isq_max, isq)), load)
+        self.step_index += 1
+        self._m = self.hw.read()
+        self.read_into(state)
+
+
+def replay_stand_in(records: list[dict[str, Any]], drive: DriveConfig) -> list[LossResult]:
+    """:func:`replay_realtime` for the example drive (``--drive example``): its run's
+    experiments again, in lock-step on the same stand-in plant, the same holds between
+    them -- every period fresh. Where the run had no held period, each loss equals the
+    recorded one bit for bit; where it had some (within the timing tolerance), the
+    difference is what those held periods did to the loss."""
+    sim: Any = StandInPlant(drive)
+    runner = ExperimentRunner(config_for_drive(None, sim), Gains())
+    runner.reset(sim.theta_meas)
+    ts_ns = round(drive.Ts * 1e9)
+    out = []
+    for rec in records:
+        if rec.get('experiment_id') is None or rec.get('t_start_ns') is None:
+            continue
+        k0 = int(rec['t_start_ns']) // ts_ns
+        gains = Gains(*(float(rec['gains'][n]) for n in GAIN_NAMES))
+        g_step = int(rec.get('gains_step', k0))
+        if g_step > sim.step_index:
+            _run(sim, runner, g_step - sim.step_index, False, False, True)
+        if gains != runner.gains:
+            runner.set_gains(gains)
+        settle = int(runner.Q[Q_SETTLE_N])
+        if k0 - settle < sim.step_index:
+            raise ValueError(f'experiment {rec["experiment_id"]} starts before the replay')
+        _run(sim, runner, k0 - settle - sim.step_index, False, False, True)
+        runner.start(int(rec['experiment_id']))
+        _run(sim, runner, settle + int(runner.Q[Q_N]), False, True, True)
+        res = runner.result()
+        assert res is not None, 'experiment did not finish'
+        out.append(res)
+    return out
+
+
+def stand_in_losses(
+    drive: DriveConfig, gains: Gains, n: int, seed: int = 0, max_hold: int = 2000
+) -> list[float]:
+    """The loss of ``gains`` on the example drive's stand-in plant at ideal timing (lock-
+    step, every period fresh), ``n`` times, each after a seeded random hold of 1 to
+    ``max_hold`` periods: the spread a run's experiment shows from where it starts (the
+    rest position within an encoder count, the current's ripple), with no held period."""
+    rng = np.random.default_rng(seed)
+    sim: Any = StandInPlant(drive)
+    runner = ExperimentRunner(config_for_drive(None, sim), gains)
+    runner.reset(sim.theta_meas)
+    out = []
+    for i in range(n):
+        _run(sim, runner, int(rng.integers(1, max_hold + 1)), False, False, True)
+        runner.start(i)
+        _run(sim, runner, int(runner.Q[Q_SETTLE_N]) + int(runner.Q[Q_N]), False, True, True)
+        res = runner.result()
+        assert res is not None
+        out.append(res.loss)
     return out

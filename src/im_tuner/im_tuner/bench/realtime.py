@@ -69,7 +69,7 @@ from im_drive_sim.pacing import LATENESS_BINS, DurationHistograms, Pacer
 from im_drive_sim.runtime import ROUTES
 
 from ..tuning import BenchFailure
-from .compiled_loop import G_QUIT, G_STOP, CompiledPeriods, LoopGate
+from .compiled_loop import G_QUIT, G_STOP, CompiledHardwarePeriods, CompiledPeriods, LoopGate
 from .drive_spec import make_drive
 from .inprocess import compose, run_before_start
 from .loop_routes import route_through_outbox
@@ -237,6 +237,11 @@ class RealtimeBench:
                 self.rt_report['serving_thread_nice'] = SERVING_NICE
             except OSError:
                 self.rt_report['serving_thread_nice'] = os.getpriority(os.PRIO_PROCESS, 0)
+            # and a thread that parks the loop runs its turn just below the loop
+            # (LoopGate.boost: priority inheritance)
+            if os.environ.get('IM_LOOP_GATE_BOOST', '1') != '0':
+                self.lock.boost = max(1, int(self.rt_report.get('priority', 1)) - 1)
+            self.rt_report['gate_boost'] = self.lock.boost
         run_before_start(self, before_start)
         self._t0 = time.perf_counter()
         self._next_status = self._t0 + 1.0
@@ -254,10 +259,15 @@ class RealtimeBench:
         #: the simulator's periods compiled (after the recorder's tap rings were made)
         self.compiled: CompiledPeriods | None = None
         if compiled and callable(getattr(drv, 'period_words', None)):
-            self.compiled = CompiledPeriods(
-                drv, ctl, self.outbox, self.durations, self.pacer, self.lock
-            )
-            self.compiled.warm_up()
+            # the simulator's model, or a power stage given by address (a C library, a
+            # compiled class); a Python hardware class runs its periods as Python
+            kind: type[CompiledPeriods] | None = CompiledPeriods
+            if getattr(drv, 'sim', None) is None:
+                entry = getattr(drv, 'hardware_entry', None)
+                kind = CompiledHardwarePeriods if callable(entry) and entry() else None
+            if kind is not None:
+                self.compiled = kind(drv, ctl, self.outbox, self.durations, self.pacer, self.lock)
+                self.compiled.warm_up()
         self.publishers = PublisherThread.per_channel(self.outbox)
         # one serving round now: the first of each costs up to ~150 ms (an executor's
         # first spin, the first status), never beside a live loop
@@ -513,6 +523,7 @@ class RealtimeBench:
             'compiled': self.compiled is not None,
             **(self.compiled.lateness_figures(self._t0) if self.compiled is not None else {}),
             'gc_young_runs': self.gc_runs,
+            'gate_turns_boosted': self.lock.boosted,
             'realtime': self.rt_report,
             'drive': {k: getattr(c, k) for k in ('fresh', 'held', 'late', 'watchdog_trips')},
             # per topic: handed over, published, lost (a full ring), refused by rcl

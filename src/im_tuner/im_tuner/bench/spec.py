@@ -220,7 +220,8 @@ def tuner_bench_spec(
         model = cli.model
         config = str(cli.drive_config) if cli.drive_config else None
     drive: list[tuple[str, Any]] = [('seed', run.drive_seed)]
-    ctl: list[tuple[str, Any]] = []
+    # the run's timing tolerance: every controller the tuner starts gets it
+    ctl: list[tuple[str, Any]] = [('timing_tolerance', int(run.tolerance() or 0))]
     if model:
         drive.append(('model', model))
     if config:

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 from im_controller.config import GAIN_NAMES, GAIN_UNITS
 
 from ..benches import is_simulated
-from ..progress import drive_text
+from ..progress import drive_text, tolerance_text
 
 if TYPE_CHECKING:
     from ..record.reader import BagData
@@ -74,7 +74,7 @@ def summary_text(rr: RunReport) -> str:
     L.append(
         f'  aborted experiments: {s.aborted} of {s.evaluations} evaluations '
         f'(safety faults {s.safety_faults}); lost results re-run: {s.lost}; '
-        f'off the paper timing, re-run: {s.timing or 0}'
+        f'off the paper timing, re-run: {s.timing or 0}{tolerance_text(s)}'
     )
     L.extend(_period_lines(rr.records))
     sessions = s.sessions or []

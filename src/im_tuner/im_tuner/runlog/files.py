@@ -89,6 +89,8 @@ class RunConfig(_Keyed):
     reference: bool | None = None  #: a reference experiment of the start gains
     start: bool | None = None  #: False: --no-start
     retries: int | None = None  #: re-runs of a lost / off-timing attempt
+    #: held + late drive periods an experiment may have and count (--timing-tolerance)
+    timing_tolerance: int | None = None
     drive: str | None = None  #: 'sim' or the drive given with --drive
     satisfactory_loss: float | None = None
     params_file: str | None = None
@@ -105,6 +107,13 @@ class RunConfig(_Keyed):
     numeric: dict[str, Any] | None = None
 
     HEADER = '# im_tuner run: what ran (see docs/tuner.md)\n'
+
+    def tolerance(self) -> Any:
+        """The run's timing tolerance [periods]: ``timing_tolerance``; a run of an older
+        tuner has none: what its controller reported (``controller_parameters``), else 0."""
+        if 'timing_tolerance' in self.keys:
+            return self.timing_tolerance
+        return (self.controller_parameters or {}).get('timing_tolerance', 0)
 
     def to_text(self) -> str:
         """run.yaml's text."""
@@ -136,6 +145,10 @@ class Summary(_Keyed):
     safety_faults: int | None = None
     lost: int | None = None
     timing: int | None = None  #: experiments off the paper's timing (re-run)
+    #: held + late drive periods an experiment may have and count (run.yaml's)
+    timing_tolerance: int | None = None
+    #: of the counted experiments: {counted, with_held, total, max} held + late periods
+    held_periods: dict[str, Any] | None = None
     reference: dict[str, Any] | None = None  #: {gains, loss, aborted}
     best: dict[str, Any] | None = None  #: {eval, gains, loss, terms, remeasured_loss}
     applied: dict[str, Any] | None = None  #: {eval, gains, loss, remeasured_loss, source, ..}

@@ -157,6 +157,7 @@ def summarize(
     satisfactory_loss: float,
     outcome: str,
     wall_s: float | None,
+    timing_tolerance: int | None = None,
 ) -> Summary:
     """The run summary (summary.json) from the counters and the records."""
     import numpy as np  # (here: reading the run's files needs no numpy, a report's --help)
@@ -173,6 +174,8 @@ def summarize(
             'safety_faults': st.faults,
             'lost': st.lost,
             'timing': st.timing,
+            'timing_tolerance': timing_tolerance,
+            'held_periods': held_periods(records),
             'reference': None
             if st.reference is None
             else {
@@ -207,6 +210,23 @@ def summarize(
             'sessions': st.sessions,
         }
     )
+
+
+def held_periods(records: list[Record]) -> dict[str, int]:
+    """Held + late drive periods of the experiments that counted (a loss reported: ok or
+    aborted, within the timing tolerance): how many counted, how many had any, their sum
+    and the most in one."""
+    n = [
+        int(r.periods.get('held', 0)) + int(r.periods.get('late', 0))
+        for r in records
+        if r.status in ('ok', 'aborted') and r.periods is not None
+    ]
+    return {
+        'counted': len(n),
+        'with_held': sum(1 for x in n if x > 0),
+        'total': sum(n),
+        'max': max(n, default=0),
+    }
 
 
 def replay_plan(records: list[Record]) -> list[Record]:

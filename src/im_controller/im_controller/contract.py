@@ -11,6 +11,8 @@ Codes (``REFUSALS``):
   finishing_move  the supervisor stopped a move and the fallback gains finish it; transient
   no_drive_state  no drive state received yet (or none since the state watchdog); transient
   safety_fault    the controller is in FAULT: check the drive, then ``~/reset_fault``
+  tuner_lost      the controller is in FAULT because its tuner went silent (no heartbeat
+                  for ``tuner_timeout``): the drive is fine, ``~/reset_fault`` clears it
   state_not_finite the last drive state is not finite: the drive is broken, no reset
   invalid         a parameter value the controller does not accept (the text says why)
 """
@@ -22,6 +24,8 @@ import re
 __all__ = [
     'BUSY',
     'FINISHING_MOVE',
+    'HEARTBEAT_PERIOD',
+    'HEARTBEAT_TOPIC',
     'INTERNALS_TOPIC',
     'INVALID',
     'LOSS_TOPIC',
@@ -32,6 +36,7 @@ __all__ = [
     'START_SERVICE',
     'STATE_NOT_FINITE',
     'TRANSIENT',
+    'TUNER_LOST',
     'refusal',
     'refusal_code',
     'started',
@@ -44,15 +49,22 @@ INTERNALS_TOPIC = 'controller/internals'
 #: Services (private: ``<controller node>/<name>``), both std_srvs/srv/Trigger.
 START_SERVICE = 'start_experiment'
 RESET_SERVICE = 'reset_fault'
+#: A client's heartbeat (private: ``<controller node>/heartbeat``, std_msgs/msg/Header:
+#: stamp = the client's wall time, frame_id = the client's node name), published every
+#: ``HEARTBEAT_PERIOD`` s, best effort. A controller with ``tuner_timeout`` > 0 arms its
+#: tuner watchdog on the first one and trips when none came for that long.
+HEARTBEAT_TOPIC = 'heartbeat'
+HEARTBEAT_PERIOD = 0.1  # [s]
 
 BUSY = 'busy'
 FINISHING_MOVE = 'finishing_move'
 NO_DRIVE_STATE = 'no_drive_state'
 SAFETY_FAULT = 'safety_fault'
+TUNER_LOST = 'tuner_lost'
 STATE_NOT_FINITE = 'state_not_finite'
 INVALID = 'invalid'
 REFUSALS: frozenset[str] = frozenset(
-    {BUSY, FINISHING_MOVE, NO_DRIVE_STATE, SAFETY_FAULT, STATE_NOT_FINITE, INVALID}
+    {BUSY, FINISHING_MOVE, NO_DRIVE_STATE, SAFETY_FAULT, TUNER_LOST, STATE_NOT_FINITE, INVALID}
 )
 #: Refusals that clear by themselves: a client retries them (within its own deadline).
 TRANSIENT: frozenset[str] = frozenset({BUSY, FINISHING_MOVE, NO_DRIVE_STATE})

@@ -20,7 +20,11 @@ A thin node around :class:`im_controller.experiment.ExperimentRunner` (docs/cont
   loop pauses instead: sim time does not advance while nothing runs, which keeps runs
   reproducible whatever the wall-clock gaps between experiments);
 * a watchdog: no drive state for ``state_timeout`` s while the loop expects one -> zero
-  current commanded, a running experiment aborted (``drive_state_timeout``), FAULT.
+  current commanded, a running experiment aborted (``drive_state_timeout``), FAULT;
+* a tuner watchdog (``tuner_timeout`` > 0, a drive host's): once a client published a
+  heartbeat on ``~/heartbeat``, none for ``tuner_timeout`` s -> zero current, a running
+  experiment aborted (``tuner_lost``), FAULT until ``~/reset_fault`` (the link's, not the
+  drive's: a tuner that comes back clears it and re-runs the experiment).
 """
 
 from __future__ import annotations
@@ -38,9 +42,9 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_services_default
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_services_default
 from rclpy.service_introspection import ServiceIntrospectionState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, Header
 from std_srvs.srv import Trigger
 
 from im_drive_sim.cdr import Float64ArrayWire
@@ -65,6 +69,7 @@ from .declarations import declare_structure, declare_tunables
 from .experiment import (
     INTERNALS_FIELDS,
     REASON_DRIVE_TIMEOUT,
+    REASON_TUNER_LOST,
     STATUS_ABORTED,
     STATUS_DONE,
     STATUS_FAULT,
@@ -122,6 +127,19 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.internals_pub = self.create_publisher(Float64MultiArray, INTERNALS_TOPIC, RECORDED_QOS)
         self._internals = Float64ArrayWire(len(INTERNALS_FIELDS))
         self.start_srv = self.create_service(Trigger, f'~/{C.START_SERVICE}', self._on_start)
+        self.tuner_timeout = st.tuner_timeout
+        self._heartbeat_wall: float | None = None  # monotonic [s] of the last heartbeat
+        self.heartbeat_from = ''  #: the frame_id (node name) of the last heartbeat
+        self.tuner_trips = 0  #: times the tuner watchdog tripped
+        self._tuner_tripped = False
+        if self.tuner_timeout > 0:
+            # best effort, newest only: a lost heartbeat is replaced by the next one
+            self.heartbeat_sub = self.create_subscription(
+                Header,
+                f'~/{C.HEARTBEAT_TOPIC}',
+                self._on_heartbeat,
+                QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT),
+            )
         self.reset_srv = self.create_service(Trigger, f'~/{C.RESET_SERVICE}', self._on_reset_fault)
         # Service introspection (request + response contents on <service>/_service_event)
         # on the experiment services and the parameter services, so that the recorder
@@ -376,6 +394,8 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self._on_status(status, R)
 
     def _on_status(self, status: int, R: np.ndarray | None = None) -> None:
+        if status == STATUS_FAULT and self._fault_logged:
+            return  # the kernel answers FAULT every period it stays there: said once
         if self.deferred is not None:  # a composed loop: published and logged off the loop
             self.deferred.append(
                 (status, self.runner.result(R) if status in (STATUS_DONE, STATUS_ABORTED) else None)
@@ -446,6 +466,56 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         if running:
             self._publish_result()
 
+    def _on_heartbeat(self, msg: Header) -> None:
+        if self._heartbeat_wall is None:
+            self.get_logger().info(
+                f'tuner watchdog armed: {msg.frame_id or "a client"} sends heartbeats; '
+                f'none for {self.tuner_timeout:g} s -> zero current (tuner_lost)'
+            )
+        elif self._tuner_tripped:
+            self.get_logger().warn(
+                f'{msg.frame_id or "a client"} is back after '
+                f'{time.monotonic() - self._heartbeat_wall:.1f} s; FAULT (tuner_lost) '
+                f'stays until it is cleared: `{self._reset_command}`'
+            )
+        self._heartbeat_wall = time.monotonic()
+        self.heartbeat_from = msg.frame_id
+        self._tuner_tripped = False
+
+    def tuner_watchdog(self) -> None:
+        """No heartbeat for ``tuner_timeout`` s since the last one: zero current (the
+        kernel's FAULT answers every state with isq* = 0 and no load), a running
+        experiment aborted with ``tuner_lost``, FAULT. Called by the serving loop."""
+        last = self._heartbeat_wall
+        if self.tuner_timeout <= 0 or last is None or self._tuner_tripped:
+            return
+        silent = time.monotonic() - last
+        if silent <= self.tuner_timeout:
+            return
+        self._tuner_tripped = True
+        self.tuner_trips += 1
+        who = self.heartbeat_from or 'the tuner'
+        if self.runner.faulted:
+            self.get_logger().error(
+                f'no heartbeat from {who} for {silent:.2f} s (tuner_timeout '
+                f'{self.tuner_timeout:g} s); already in FAULT ({self.runner.fault_reason}): '
+                'zero current'
+            )
+            return
+        running = self.runner.running
+        t_ns = int(self._state[1]) if self._state is not None else 0
+        with self.loop_lock:
+            self.runner.abort_external(REASON_TUNER_LOST, t_ns)
+        self._fault_logged = True
+        self.get_logger().error(
+            f'no heartbeat from {who} for {silent:.2f} s (tuner_timeout '
+            f'{self.tuner_timeout:g} s): zero current'
+            + (f', experiment {self.runner.experiment_id} aborted' if running else '')
+            + f'; FAULT (tuner_lost) until `{self._reset_command}` ({self._reset_service})'
+        )
+        if running:
+            self._publish_result()
+
     def run(self, executor) -> None:
         """The standalone loop: wait for states, answer them, serve services between."""
         since_service = 0
@@ -464,9 +534,11 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
             else:
                 executor.spin_once(timeout_sec=0.01)
                 self.take()
+                self.tuner_watchdog()
                 continue
             since_service = 0
             executor.spin_once(timeout_sec=0.0)
+            self.tuner_watchdog()
 
     def flushed_publishers(self) -> tuple[Any, ...]:
         """Every result and command."""

@@ -39,6 +39,7 @@ class Structure:
     Ts: float  #: control period [s] (the drive file's)
     isq_max: float  #: the isq* clamp [A]
     state_timeout: float  #: the drive-state watchdog [s]
+    tuner_timeout: float  #: the tuner watchdog [s] (0: off)
     internals_decimation: int
     service_period_steps: int
     timing_tolerance: int  #: [periods]
@@ -118,6 +119,17 @@ def declare_structure(node: Node) -> Structure:
             float_range=(0.001, 60.0),
         ),
     ).value
+    tuner_timeout = node.declare_parameter(
+        'tuner_timeout',
+        0.0,
+        param_descriptor(
+            'tuner watchdog: once a client (the tuner) sent a heartbeat on ~/heartbeat, none '
+            'for this long -> zero current, running experiment aborted (tuner_lost), FAULT '
+            'until ~/reset_fault [s]; 0: off (a drive host sets it: --tuner-timeout)',
+            param_type=ParameterType.PARAMETER_DOUBLE,
+            float_range=(0.0, 60.0),
+        ),
+    ).value
     ints = {
         name: node.declare_parameter(name, default, param_descriptor(text, int_range=bounds)).value
         for name, (default, text, bounds) in INT_PARAMETERS.items()
@@ -148,6 +160,7 @@ def declare_structure(node: Node) -> Structure:
         Ts=float(drive_cfg.Ts),
         isq_max=check_isq_max(isq_max, drive_isq_max),
         state_timeout=state_timeout,
+        tuner_timeout=float(tuner_timeout),
         **ints,
     )
 

@@ -38,7 +38,9 @@ from .kernel import experiment_step
 from .layout import (
     EXP_FIELDS,
     INTERNALS_FIELDS,
+    LINK_REASONS,
     REASON_DRIVE_TIMEOUT,
+    REASON_TUNER_LOST,
     REASONS,
     SAFETY_REASONS,
     STATUS_ABORTED,
@@ -55,8 +57,10 @@ from .trajectory import make_experiment_params, trajectory, trajectory_times
 __all__ = [
     'EXP_FIELDS',
     'INTERNALS_FIELDS',
+    'LINK_REASONS',
     'REASONS',
     'REASON_DRIVE_TIMEOUT',
+    'REASON_TUNER_LOST',
     'SAFETY_REASONS',
     'STATUS_ABORTED',
     'STATUS_DONE',

@@ -38,6 +38,7 @@ REASON_POSITION = 4
 REASON_SPEED = 5
 REASON_NONFINITE = 6
 REASON_DRIVE_TIMEOUT = 7  # set by the node's watchdog (ExperimentRunner.abort_external)
+REASON_TUNER_LOST = 8  # set by the node's tuner watchdog (its client's heartbeat stopped)
 REASONS: tuple[str, ...] = (
     '',
     'term1',
@@ -47,10 +48,15 @@ REASONS: tuple[str, ...] = (
     'max_speed',
     'non_finite_measurement',
     'drive_state_timeout',
+    'tuner_lost',
 )
 """Reason strings by reason code (LossResult.reason, ExperimentRunner.fault_reason)."""
-SAFETY_REASONS: tuple[str, ...] = REASONS[REASON_POSITION:]
-"""Reasons that put the runner in FAULT (the rest are supervisor stops)."""
+SAFETY_REASONS: tuple[str, ...] = REASONS[REASON_POSITION:REASON_TUNER_LOST]
+"""The drive's safety reasons: they put the runner in FAULT (the rest are supervisor
+stops, and the link's ``LINK_REASONS``)."""
+LINK_REASONS: tuple[str, ...] = (REASONS[REASON_TUNER_LOST],)
+"""Reasons that put the runner in FAULT for the link, not the drive: the client that
+tunes it went silent (``tuner_timeout``). Its experiment is lost, not a drive fault."""
 
 MODE_HOLD = 0.0
 MODE_RUN = 1.0

@@ -20,6 +20,12 @@ def start_refusal(runner: ExperimentRunner, has_state: bool, reset_hint: str) ->
     drive state came; ``reset_hint``: how a user clears a fault (command and service)."""
     if runner.running:
         return C.refusal(C.BUSY, f'refused: experiment {runner.experiment_id} is running')
+    if runner.faulted and runner.fault_reason == 'tuner_lost':
+        return C.refusal(
+            C.TUNER_LOST,
+            'refused: FAULT (tuner_lost): the tuner went silent and the drive was brought '
+            f'to zero current; the drive is fine: clear it with {reset_hint}',
+        )
     if runner.faulted:
         return C.refusal(
             C.SAFETY_FAULT,

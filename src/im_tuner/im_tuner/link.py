@@ -8,6 +8,12 @@ Standard interfaces only (docs/interfaces.md, docs/controller.md):
 * result: ``<namespace>/controller/loss`` (diagnostic_msgs/DiagnosticArray, one status,
   ``im_controller.messages``), matched by experiment id; the gains it echoes must equal
   the gains set (else someone else changed them: the run stops);
+* a heartbeat: ``<controller>/heartbeat`` (std_msgs/Header, every 0.1 s from a thread of
+  its own, :class:`Heartbeat`), for a controller whose tuner watchdog is on (a drive
+  host's, ``tuner_timeout``): the tuner's silence brings its drive to zero current. A
+  result aborted ``tuner_lost`` (the link was down, not the drive) is a lost evaluation:
+  re-run, never told to the optimiser; a start refused ``[tuner_lost]`` is reset at
+  once, whatever the fault policy (the drive is fine);
 * safety faults: ``<controller>/reset_fault`` (std_srvs/Trigger), called only with
   ``fault_policy='reset'`` (the default on the simulated bench); with ``'stop'`` the run
   ends and the message names ``ros2 run im_controller reset_fault`` for the person at the
@@ -19,6 +25,7 @@ bench's (which steps the simulation) or a plain executor's -- and gives up on a 
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -28,20 +35,56 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from im_controller import contract as C
 from im_controller.config import GAIN_NAMES, Gains
+from im_controller.layout import LINK_REASONS
 from im_controller.messages import SAFETY_REASONS, msg_to_result
 from im_controller.reset_fault import reset_command
 
 from .names import FAULT_POLICIES, controller_topics
 from .tuning import BenchFailure, LostEvaluation, Measurement, StopRequested
 
-__all__ = ['FAULT_POLICIES', 'ControllerLink', 'controller_topics']
+__all__ = ['FAULT_POLICIES', 'ControllerLink', 'Heartbeat', 'controller_topics']
 
 RETRY_PERIOD = 0.02  # [s] between retries of a refused call
 SUPERVISE_PERIOD = 0.2  # [s] between checks of the bench processes
+
+
+class Heartbeat:
+    """The tuner's heartbeat to a controller (``contract.HEARTBEAT_TOPIC``): a thread of
+    its own publishes every ``contract.HEARTBEAT_PERIOD`` s, best effort, so a tuner busy
+    in its optimiser still beats; only a tuner that is gone (or cut off) falls silent."""
+
+    def __init__(self, node: Node, topic: str, period: float = C.HEARTBEAT_PERIOD) -> None:
+        self.node = node
+        self.period = float(period)
+        self.pub = node.create_publisher(
+            Header, topic, QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+        )
+        self.sent = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name='tuner-heartbeat', daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        msg = Header(frame_id=self.node.get_fully_qualified_name())
+        while not self._stop.is_set():
+            ns = time.time_ns()
+            msg.stamp.sec, msg.stamp.nanosec = divmod(ns, 1_000_000_000)
+            try:
+                self.pub.publish(msg)
+                self.sent += 1
+            except Exception:  # the context is shutting down: stop beating
+                return
+            self._stop.wait(self.period)
+
+    def stop(self) -> None:
+        """No more heartbeats (before the node is destroyed)."""
+        self._stop.set()
+        self._thread.join(timeout=2.0)
 
 
 class ControllerLink:
@@ -83,6 +126,7 @@ class ControllerLink:
         self.results: dict[int, Any] = {}
         self.bad_messages = 0
         self.faults_reset = 0
+        self.links_reset = 0  #: tuner_lost faults cleared (the link's, not the drive's)
         #: safety faults met at a start that no result of this session reported (a drive
         #: state watchdog between experiments, a fault left from before the session):
         #: the records cannot count them, the summary must (docs/tuner.md)
@@ -201,6 +245,13 @@ class ControllerLink:
                 return eid
             msg = resp.message
             code = C.refusal_code(msg)
+            if code == C.TUNER_LOST:
+                # the drive host lost this tuner's heartbeat (a network outage, a tuner
+                # that was killed): the link's fault, not the drive's -- clear it and go on
+                self.node.get_logger().warn(f'{msg.split(";")[0]}; resetting it')
+                self.reset_fault()
+                self.links_reset += 1
+                continue
             if code == C.SAFETY_FAULT:
                 if not self._result_fault:
                     self.faults_outside.append(msg)
@@ -251,6 +302,13 @@ class ControllerLink:
                 f'no loss for experiment {eid} within {self.eval_timeout:g} s', experiment_id=eid
             )
         r = self.results.pop(eid)
+        if r.reason in LINK_REASONS:
+            # the link was down (the host's tuner watchdog), not the drive: not a loss
+            raise LostEvaluation(
+                f'experiment {eid} aborted by the drive host: {r.reason} (no heartbeat '
+                'from this tuner within its tuner_timeout: a network outage?)',
+                experiment_id=eid,
+            )
         ran = r.gains.as_tuple()
         if ran != gains.as_tuple():
             raise BenchFailure(

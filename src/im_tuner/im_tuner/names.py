@@ -9,9 +9,17 @@ from __future__ import annotations
 import posixpath
 
 from im_controller import contract as C
-from im_drive_sim.contract import STATUS_TOPIC
+from im_drive_sim.contract import COMMAND_TOPIC, JOINT_STATE_TOPIC, STATE_TOPIC, STATUS_TOPIC
 
-__all__ = ['FAULT_POLICIES', 'controller_topics']
+__all__ = ['DRIVE_HOST_NODE', 'FAULT_POLICIES', 'HOST_LOOP_TOPICS', 'controller_topics']
+
+#: The node a drive host (``ros2 run im_tuner drive_host``) puts on the graph: a tuner
+#: that sees it leaves the host's 5 kHz topics to the host's own bag.
+DRIVE_HOST_NODE = 'drive_host'
+#: A drive host's 5 kHz topics (relative to the namespace): recorded losslessly by the
+#: host itself, from its loop's outbox; a tuner on another computer does not pull them
+#: across the network (``recorder --exclude-topics``).
+HOST_LOOP_TOPICS = (STATE_TOPIC, COMMAND_TOPIC, JOINT_STATE_TOPIC, C.INTERNALS_TOPIC)
 
 #: after a safety fault: reset it and go on, or stop the run (``--fault-policy``)
 FAULT_POLICIES = ('reset', 'stop')
@@ -25,6 +33,7 @@ def controller_topics(controller: str) -> dict[str, str]:
     return {
         'start': f'{controller}/{C.START_SERVICE}',
         'reset': f'{controller}/{C.RESET_SERVICE}',
+        'heartbeat': f'{controller}/{C.HEARTBEAT_TOPIC}',
         'set_atomic': f'{controller}/set_parameters_atomically',
         'loss': posixpath.join(ns, C.LOSS_TOPIC),
         'node': controller,

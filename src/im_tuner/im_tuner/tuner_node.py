@@ -97,7 +97,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
 
     from .bench.forms import Bench, Executor
     from .bench.open import open_bench
-    from .link import ControllerLink
+    from .link import ControllerLink, Heartbeat
     from .tuner_session import TunerSession
     from .tuning import BenchFailure, ResumeError, StopRequested
 
@@ -110,6 +110,7 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
 
     bench: Bench | None = None
     node = exe = None
+    heartbeat = None
     discard_bag = refused = False
     try:
         node = Node('tuner', context=ctx, start_parameter_services=False)
@@ -130,6 +131,9 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             supervise=bench.supervise,
             call_timeout=min(10.0, cli.eval_timeout),
         )
+        if bench.plan.mode == 'external':
+            # a controller of its own (a drive host's): its tuner watchdog hears us
+            heartbeat = Heartbeat(node, link.names['heartbeat'])
         if not link.wait_ready(30.0):
             raise BenchFailure(
                 f'the controller {cli.controller} did not become reachable '
@@ -155,6 +159,8 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
         refused = True
         raise
     finally:
+        if heartbeat is not None:
+            heartbeat.stop()
         if bench is not None:
             bench.close()
         if discard_bag:

@@ -57,7 +57,7 @@ import numba
 import numpy as np
 from numba import types
 
-from im_controller.experiment import STATUS_DONE
+from im_controller.experiment import STATUS_DONE, STATUS_FAULT
 from im_controller.kernel import W_INTERNALS_DUE, answer_state
 from im_drive_sim import hardware_period as HP
 from im_drive_sim import period_kernel as PK
@@ -104,7 +104,8 @@ T_MAX_LATE_AT = 18  #: when the worst late start was due [ns, CLOCK_MONOTONIC]
 #: loop thread took the GIL, and ran Python, since the period before) [ns]
 T_MAX_LATE_PY = 19
 T_STALL_NS = 20  #: the stall test hook's duration [ns]
-N_T = 21
+T_LAST_ST = 21  #: the last period's experiment status (a FAULT is an event once, not each period)
+N_T = 22
 
 EXIT_BUDGET, EXIT_PERIODS, EXIT_QUIT, EXIT_FAULT = range(4)
 
@@ -233,7 +234,11 @@ def _answer_and_hand_over(
         ((t1 - t0) * 1e-3, (t2 - t1) * 1e-3, (t3 - t0) * 1e-3, T[T_LATE] * 1e-3),
     )
     T[T_PERIODS] += 1
-    if st >= STATUS_DONE:  # an experiment's end: the serving thread publishes it
+    # an experiment's end, or the step into FAULT (the kernel answers STATUS_FAULT every
+    # period it stays there): the serving thread publishes it
+    first = not (st == STATUS_FAULT and T[T_LAST_ST] == STATUS_FAULT)
+    T[T_LAST_ST] = st
+    if st >= STATUS_DONE and first:
         T[T_STATUS] = st
         h = ev_ctrl[EV_HEAD]
         if h - ev_ctrl[EV_TAIL] < events.shape[0]:

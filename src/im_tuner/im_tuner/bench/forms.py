@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import posixpath
 import signal
 import subprocess
 import sys
@@ -35,7 +36,7 @@ from rclpy.parameter import Parameter
 
 from im_drive_sim.contract import STATE_TOPIC
 
-from ..names import controller_topics
+from ..names import DRIVE_HOST_NODE, HOST_LOOP_TOPICS, controller_topics
 from ..tuning import BenchFailure
 from .drive_status import DriveMonitor, drive_delta, drive_report
 from .spec import BenchPlan
@@ -366,6 +367,17 @@ class Children:
         self._ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
         self.recording = bag_dir is not None
         self.bag = bag_dir  #: the bag being recorded (a replacement's once replaced)
+        #: a drive host's 5 kHz topics, left to the host's own bag (a host is on the graph)
+        self.excluded: list[str] = []
+        if plan.mode == 'external' and node is not None and self.spin_until is not None:
+            # node names come in the graph's own messages, apart from the services the
+            # probe found: wait for the controller's name (a host announced its node in
+            # the same message: it makes it first)
+            ctl_name = posixpath.basename(self.names['node'])
+            self.spin_until(lambda: ctl_name in node.get_node_names(), 2.0)
+            if DRIVE_HOST_NODE in node.get_node_names():
+                ns = posixpath.dirname(self.names['node'])
+                self.excluded = [posixpath.join(ns, t) for t in HOST_LOOP_TOPICS]
         if bag_dir is not None:
             self._start_recorder(bag_dir)
         if plan.mode in ('processes', 'realtime-processes'):
@@ -384,7 +396,8 @@ class Children:
         self.bag = out_dir
         quiet = ['--ros-args', '--disable-stdout-logs'] if self.quiet else []
         compression = self.plan.spec.compression
-        args = ['--out', str(out_dir), '--compression', compression, *quiet]
+        exclude = ['--exclude-topics', *self.excluded] if self.excluded else []
+        args = ['--out', str(out_dir), '--compression', compression, *exclude, *quiet]
         self._spawn('recorder', [self._ros2, 'run', 'im_tuner', 'recorder', *args])
 
     def _recorder_died(self, why: str) -> None:

@@ -380,6 +380,7 @@ class RealtimeBench:
                 self._seen_periods = periods
                 self.controller.state_seen()
         self.controller.flush_deferred()
+        self.controller.tuner_watchdog()
         now = time.perf_counter()
         for j, (poll, every) in enumerate(self._pollers):
             if now - self._polled[j] >= every:

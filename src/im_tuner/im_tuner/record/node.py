@@ -111,9 +111,10 @@ class Recorder:
         command: list[str] | None = None,
         background_writes: bool = True,
         taps: dict[str, Any] | None = None,
+        exclude: tuple[str, ...] | list[str] = (),
     ) -> None:
         """``taps``: topics to take from a real-time loop's outbox instead of DDS
-        (:meth:`add_tap`)."""
+        (:meth:`add_tap`); ``exclude``: topics never recorded (named in the metadata)."""
         self.node = node
         self.log = node.get_logger()
         self.out = prepare_bag_dir(Path(out))
@@ -136,6 +137,7 @@ class Recorder:
         #: topic and its ring (im_drive_sim.outbox.Channel)
         self._taps: list[tuple[_Topic, Any]] = []
         self.unrecordable: dict[str, str] = {}
+        self.excluded = frozenset(exclude)
         self.unmatched: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._take = rcl_take.TakeBuffers()
@@ -148,6 +150,8 @@ class Recorder:
         self._chunk_opened: float | None = None
         self.messages = 0
         self.writer.add_metadata('im_tuner.run', run_metadata(command))
+        if self.excluded:
+            self.add_metadata('im_tuner.excluded_topics', {'topics': sorted(self.excluded)})
         for name, data in (extra_metadata or {}).items():
             self.add_metadata(name, data)
         # A provisional metadata.yaml marks the directory as a bag being recorded.
@@ -173,7 +177,7 @@ class Recorder:
         """Subscribe to topics that appeared; returns how many were added."""
         added = 0
         for name, types in self.node.get_topic_names_and_types():
-            if name in self.topics or name in self.unrecordable:
+            if name in self.topics or name in self.unrecordable or name in self.excluded:
                 continue
             infos = self.node.get_publishers_info_by_topic(name)
             if not infos:
@@ -513,6 +517,7 @@ def main(args: list[str] | None = None) -> int:
                 chunk_size=cli.chunk_size,
                 max_chunk_age=cli.max_chunk_age,
                 command=argv,
+                exclude=[t if t.startswith('/') else '/' + t for t in cli.exclude_topics],
             )
         except (BagError, RecorderError) as exc:
             print(f'error: recorder: {exc}', file=sys.stderr)

@@ -48,6 +48,15 @@ def parser() -> argparse.ArgumentParser:
         'SIGKILL loses (default 0.5)',
     )
     ap.add_argument(
+        '--exclude-topics',
+        nargs='+',
+        default=[],
+        metavar='TOPIC',
+        help='topics (fully qualified, /drive/state) not to record, as ros2 bag record '
+        "--exclude-topics: a tuner on another computer leaves a drive host's 5 kHz "
+        "topics to the host's own bag",
+    )
+    ap.add_argument(
         '--repair',
         metavar='DIR',
         type=Path,

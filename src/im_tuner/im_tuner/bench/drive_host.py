@@ -1,0 +1,144 @@
+"""The drive host: ``ros2 run im_tuner drive_host --drive sim|example|lib:PATH|pkg.mod:Class``.
+
+A real bench puts the power stage on a real-time computer of its own and the engineer
+tunes from another, as ros2_control puts the controller manager on the robot and the
+planners elsewhere. This process is the drive's computer's half: the composed real-time
+loop of ``--bench realtime`` (:class:`.realtime.RealtimeBench`: the drive's period, the
+controller and its supervisor, every 200 us on the wall clock) and the recorder, which
+takes the loop's topics from its outbox (lossless, whatever the network does). A tuner on
+any computer of the same ``ROS_DOMAIN_ID`` attaches with ``--bench none`` (``auto`` finds
+it) and reaches it at experiment rate only: the gains (parameters), ``start_experiment``,
+``controller/loss``, ``reset_fault``, ``drive/status`` -- never the 5 kHz path.
+
+The network may fail (docs/two-computers.md). The controller's tuner watchdog
+(``tuner_timeout`` = ``--tuner-timeout``): once a tuner sent a heartbeat, none for that
+long brings the drive to zero current, aborts a running experiment (``tuner_lost``) and
+latches FAULT; a tuner that comes back clears it (the link's fault, not the drive's) and
+runs the experiment again. A SIGINT/SIGTERM of the host: zero current at once, the bag
+closed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import Any
+
+from rclpy.node import Node
+
+from im_drive_sim import rt
+from im_drive_sim.cli import UsageError, parse_cli
+from im_drive_sim.runtime import RosSession
+
+from .. import family
+from ..names import DRIVE_HOST_NODE
+from ..record.node import default_out_dir
+from . import drive_spec
+from .drive_host_main import parser
+from .forms import InProcess
+from .open import open_bench
+from .sim_bench import _Bag
+from .spec import BenchSpec, recording_options
+
+
+def _spec(cli: argparse.Namespace, choice: Any) -> BenchSpec:
+    """The composed real-time bench of ``cli`` (``choice``: the checked ``--drive``)."""
+    config = str(cli.config) if cli.config else None
+    given = (('config_file', config), ('model', cli.model), ('seed', cli.seed))
+    drive: list[tuple[str, Any]] = [(n, v) for n, v in given if v is not None]
+    ctl: list[tuple[str, Any]] = [
+        ('timing_tolerance', int(cli.timing_tolerance)),
+        ('tuner_timeout', float(cli.tuner_timeout)),
+    ]
+    if config:
+        ctl.append(('drive_config_file', config))
+        setup = family.tuner_setup(config)  # a packaged drive: its experiment
+        if setup is not None:
+            ctl.extend(family.controller_parameters(setup))
+    return BenchSpec(
+        requested='realtime',
+        drive=cli.drive,
+        drive_choice=choice,
+        record=not cli.no_record,
+        compression=cli.compression,
+        drive_parameters=tuple(drive),
+        controller_parameters=tuple(ctl),
+        rt_options=rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY),
+        quiet=False,
+    )
+
+
+def main(args: list[str] | None = None) -> int:
+    argv = sys.argv if args is None else args
+    try:
+        cli = parse_cli(parser(), argv)
+        cli.compression = recording_options(cli.no_record, out=cli.out, compression=cli.compression)
+        if cli.out is not None and cli.out.exists():
+            raise UsageError(f'--out {cli.out}: already exists; choose a new directory')
+        if cli.model is not None and cli.drive != 'sim':
+            raise UsageError(f"--model is the simulator's (--drive sim), not --drive {cli.drive}")
+        try:
+            choice = drive_spec.resolve(cli.drive, cli.config)
+        except drive_spec.DriveSpecError as exc:
+            raise UsageError(str(exc)) from None
+    except UsageError as exc:
+        print(f'error: drive_host: {exc}', file=sys.stderr)
+        return 2
+    if cli.out is None and not cli.no_record:
+        cli.out = default_out_dir(prefix='drive_host')
+    host = _Bag(cli)
+    bench: Any = None
+
+    def _on_signal(_signum: int) -> None:
+        if bench is None:
+            raise KeyboardInterrupt  # still starting: nothing to stop cleanly yet
+
+    session = RosSession(argv, on_signal=_on_signal)
+    code = 0
+    marker = None
+    try:
+        # who we are, on the graph, announced before the controller: a tuner that sees
+        # this node leaves the 5 kHz topics to this host's bag instead of pulling them
+        # across the network
+        marker = Node(DRIVE_HOST_NODE, start_parameter_services=False)
+        bench = open_bench(
+            _spec(cli, choice), host, command=argv, should_stop=lambda: session.stopped
+        )
+        assert isinstance(bench, InProcess)
+        loop = bench.bench
+        log = marker.get_logger()
+        log.info(
+            f'drive host ready: --drive {cli.drive}, controller '
+            f'{loop.controller.get_fully_qualified_name()} (tuner watchdog '
+            f'{cli.tuner_timeout:g} s), '
+            + (f'recording to {bench.rec.out}' if bench.rec is not None else 'not recording')
+            + f'; tune it from any computer of ROS_DOMAIN_ID '
+            f'{os.environ.get("ROS_DOMAIN_ID", "0")}: ros2 run im_tuner tuner --bench none'
+        )
+        loop.spin_until(lambda: session.stopped or loop.safe_stopped)
+        if loop.safe_stopped and not session.stopped:
+            log.error('the drive was safe-stopped: the host ends')
+            code = 1
+    except UsageError as exc:
+        print(f'error: drive_host: {exc}', file=sys.stderr)
+        code = 2
+    except KeyboardInterrupt:
+        pass
+    except Exception as exc:  # a drive loop error: one line (zero current: safe_stop)
+        print(f'error: drive_host: {exc}', file=sys.stderr)
+        code = 1
+    finally:
+        if bench is not None:
+            bench.close()
+        if marker is not None:
+            marker.destroy_node()
+        session.close()
+    if code == 2:
+        host.remove()
+    return code
+
+
+if __name__ == '__main__':
+    os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
+    sys.exit(main())

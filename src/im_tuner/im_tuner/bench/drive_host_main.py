@@ -1,0 +1,65 @@
+"""``ros2 run im_tuner drive_host``: checks its command line before the node is imported."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from im_drive_sim import rt
+from im_drive_sim.cli import Parser, add_config_option, check_then_run, finite_float, int_in
+
+from .sim_bench_main import BAG_OPTIONS
+
+DESCRIPTION = (
+    "A drive on a computer of its own: the 5 kHz loop (the drive's period, the controller, "
+    "the supervisor, the recorder's tap) in this process, on this computer. Tune it from "
+    'any computer of the same ROS_DOMAIN_ID with `ros2 run im_tuner tuner --bench none` '
+    '(docs/two-computers.md): only experiment-rate traffic crosses the network. Once a '
+    'tuner sends heartbeats, none for --tuner-timeout brings the drive to zero current.'
+)
+#: [s] the default tuner watchdog: 10 heartbeats (contract.HEARTBEAT_PERIOD) missed
+DEFAULT_TUNER_TIMEOUT = 1.0
+#: [periods] the default timing tolerance (the tuner's: tuner_cli.DEFAULT_TIMING_TOLERANCE)
+DEFAULT_TIMING_TOLERANCE = 10
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = Parser(prog='ros2 run im_tuner drive_host', description=DESCRIPTION)
+    ap.add_argument(
+        '--drive',
+        metavar='DRIVE',
+        default='sim',
+        help="the drive in the loop: 'sim' (the simulator in real time, default), 'example' "
+        "(the example drive's stand-in hardware), lib:PATH (a C library, "
+        'share/im_drive_sim/include/im_drive.h) or package.module:Class (docs/real-drive.md)',
+    )
+    add_config_option(ap, "the drive's parameters (the simulator's motor, your drive's Ts)")
+    ap.add_argument(
+        '--model', choices=('full', 'reduced'), help="the simulator's model fidelity (--drive sim)"
+    )
+    ap.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
+    ap.add_argument(
+        '--tuner-timeout',
+        type=finite_float(0.05, 60.0, unit='s'),
+        default=DEFAULT_TUNER_TIMEOUT,
+        metavar='S',
+        help='the tuner watchdog [s]: once a tuner sent a heartbeat (every 0.1 s), none for '
+        'S -> zero current, a running experiment aborted (tuner_lost), FAULT until the '
+        f'tuner comes back and clears it (default {DEFAULT_TUNER_TIMEOUT:g}; 0.05 to 60)',
+    )
+    ap.add_argument(
+        '--timing-tolerance',
+        type=int_in(0, 1_000_000),
+        default=DEFAULT_TIMING_TOLERANCE,
+        metavar='N',
+        help='held or late periods an experiment may have and still count (default '
+        f'{DEFAULT_TIMING_TOLERANCE}; docs/real-drive.md, "Timing tolerance")',
+    )
+    for flag, kw in BAG_OPTIONS:
+        ap.add_argument(flag, **kw)
+    rt.add_arguments(ap, 'the 5 kHz loop', rt.DEFAULT_PRIORITY)
+    return ap
+
+
+if __name__ == '__main__':
+    sys.exit(check_then_run('drive_host', parser, 'im_tuner.bench.drive_host:main'))

@@ -1,0 +1,117 @@
+"""Two computers on one machine, for the tests: two network namespaces joined by a veth
+pair, made and removed by the test itself (iproute2), and packet loss or an outage on
+the link (nftables: this kernel has no netem).
+
+Each namespace has its own network stack: DDS in one reaches the other only over the
+veth, as over a cable. Fast DDS would take its shared-memory transport between two
+participants on one machine, past the veth, so the processes run with
+``FASTDDS_BUILTIN_TRANSPORTS=UDPv4``; discovery is ``SUBNET`` (multicast on the veth).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+IP = shutil.which('ip')
+NFT = shutil.which('nft')
+
+
+def why_not() -> str | None:
+    """Why two namespaces cannot be made here (None: they can)."""
+    if IP is None:
+        return 'no `ip` (iproute2) on this machine'
+    if NFT is None:
+        return 'no `nft` (nftables) on this machine: packet loss cannot be made'
+    if os.geteuid() != 0:
+        return 'network namespaces need root (CAP_NET_ADMIN)'
+    name = f'im_probe_{os.getpid()}'
+    p = subprocess.run([IP, 'netns', 'add', name], capture_output=True, text=True)
+    if p.returncode != 0:
+        return f'`ip netns add` refused here: {p.stderr.strip()}'
+    subprocess.run([IP, 'netns', 'del', name], capture_output=True)
+    return None
+
+
+def _run(*argv: str, stdin: str | None = None) -> None:
+    subprocess.run(argv, check=True, capture_output=True, text=True, input=stdin)
+
+
+class TwoComputers:
+    """``a`` (10.x.0.1) and ``b`` (10.x.0.2), joined by a veth pair; ``with`` makes and
+    removes them (the veth goes with its namespace)."""
+
+    def __init__(self, tag: str = '') -> None:
+        n = os.getpid() % 100_000
+        self.ns = {'a': f'im_{tag}{n}_a', 'b': f'im_{tag}{n}_b'}
+        self.dev = {'a': f'im{n}a', 'b': f'im{n}b'}  # <= 15 characters
+        net = 16 + n % 200
+        self.addr = {'a': f'10.{net}.0.1', 'b': f'10.{net}.0.2'}
+
+    def __enter__(self) -> TwoComputers:
+        try:
+            for side in ('a', 'b'):
+                _run(IP or 'ip', 'netns', 'add', self.ns[side])
+            _run(
+                IP or 'ip', 'link', 'add', self.dev['a'], 'type', 'veth', 'peer', 'name',
+                self.dev['b'],
+            )  # fmt: skip
+            for side in ('a', 'b'):
+                ns, dev = self.ns[side], self.dev[side]
+                _run(IP or 'ip', 'link', 'set', dev, 'netns', ns)
+                _run(IP or 'ip', '-n', ns, 'addr', 'add', f'{self.addr[side]}/24', 'dev', dev)
+                _run(IP or 'ip', '-n', ns, 'link', 'set', 'lo', 'up')
+                _run(IP or 'ip', '-n', ns, 'link', 'set', dev, 'up')
+                # multicast (SUBNET discovery) out of the veth
+                _run(IP or 'ip', '-n', ns, 'route', 'add', '224.0.0.0/4', 'dev', dev)
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for ns in self.ns.values():
+            subprocess.run([IP or 'ip', 'netns', 'del', ns], capture_output=True)
+
+    def argv(self, side: str, argv: list[str]) -> list[str]:
+        """``argv`` run in namespace ``side`` (the same PID: ``ip netns exec`` execs it)."""
+        return [IP or 'ip', 'netns', 'exec', self.ns[side], *argv]
+
+    @staticmethod
+    def env(base: dict[str, str]) -> dict[str, str]:
+        """The environment of a process on either computer."""
+        env = dict(base)
+        env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SUBNET'
+        env['FASTDDS_BUILTIN_TRANSPORTS'] = 'UDPv4'
+        return env
+
+    def loss(self, percent: int) -> None:
+        """Drop ``percent`` % of the packets each computer receives on the veth, at random
+        (nftables ``numgen random``); 0: none; 100: the cable out (an outage: a link set
+        down would also drop its routes)."""
+        for side in ('a', 'b'):
+            ns = self.ns[side]
+            nft = [IP or 'ip', 'netns', 'exec', ns, NFT or 'nft']
+            subprocess.run([*nft, 'delete', 'table', 'inet', 'imloss'], capture_output=True)
+            if percent > 0:
+                match = f'numgen random mod 100 < {int(percent)}' if percent < 100 else ''
+                rules = (
+                    'table inet imloss {\n  chain input {\n'
+                    '    type filter hook input priority 0; policy accept;\n'
+                    f'    iifname "{self.dev[side]}" {match} drop\n'
+                    '  }\n}\n'
+                )
+                _run(*nft, '-f', '-', stdin=rules)
+
+
+def bag_topics(bag: Path) -> dict[str, int]:
+    """Message count per topic of a closed bag (its metadata.yaml)."""
+    import yaml
+
+    info = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    return {
+        t['topic_metadata']['name']: int(t['message_count'])
+        for t in info['topics_with_message_count']
+    }

@@ -24,7 +24,7 @@ export HOME ?= $(CURDIR)
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: test-parallel setup test test-unit test-levels lint format demo demo-drive bench reproduction reproduction-docs calibrate-bench foxglove-check lock clean
+.PHONY: test-serial setup test test-unit test-levels lint format demo demo-drive bench reproduction reproduction-docs calibrate-bench foxglove-check lock clean
 
 setup: $(VENV)/.installed
 
@@ -49,17 +49,19 @@ $(VENV)/.installed: $(VENV)/.deps $(PKG_FILES) tools/ros2 Makefile
 	    printf '\n# im_tuner: ament index of this venv\nexport AMENT_PREFIX_PATH="$$VIRTUAL_ENV$${AMENT_PREFIX_PATH:+:$$AMENT_PREFIX_PATH}"\n' >> $(VENV)/bin/activate
 	touch $@
 
+# The whole suite in two passes (CI's command): every test but those that assert wall-clock
+# timing on two workers (pytest-xdist, a test file to a worker so a module's fixture is made
+# once, the longest files first: conftest.py), then those (marked serial: another test
+# beside them would be their load) alone. Both passes always run; either failing fails.
+# `make test-serial` is the same suite in one process.
 test: setup
-	$(PY) -m pytest
+	@$(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder -m 'not serial'; a=$$?; \
+	    $(PY) -m pytest -m serial -p no:cacheprovider; b=$$?; \
+	    echo "make test: parallel pass exit $$a, serial pass exit $$b"; \
+	    [ $$a -eq 0 ] && [ $$b -eq 0 ]
 
-# The same suite in about two thirds of the time: two workers (pytest-xdist, a test file
-# to a worker, the longest files first: conftest.py) for all but the tests that assert
-# wall-clock timing, which then run alone (marked serial: another test beside them would
-# be their load). Not yet CI's command: each parallel run here still found a test that
-# assumed an idle machine (README).
-test-parallel: setup
-	$(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder -m 'not serial'
-	$(PY) -m pytest -m serial
+test-serial: setup
+	$(PY) -m pytest
 
 test-unit: setup
 	$(PY) -m pytest -m unit

@@ -30,7 +30,7 @@ import im_drive_sim  # noqa: F401 (the numeric baseline, set before anything imp
 REPO = Path(__file__).resolve().parent
 VENV = Path(sys.prefix)
 
-# A domain per run, and per worker of a run (`make test-parallel` runs two, pytest-xdist):
+# A domain per run, and per worker of a run (`make test` runs two, pytest-xdist):
 # derived from the run's PID, within Fast DDS's usable range 0..232. The workers' domains
 # are spread 200 / workers apart: test_faults walks up from its worker's domain, one
 # fresh domain per test (a SIGKILLed node stays on a graph until its lease ends).
@@ -52,8 +52,8 @@ if not os.environ.get('HOME'):
     os.environ['HOME'] = tempfile.gettempdir()
 
 
-#: The whole run must end within this many seconds (one process takes about 22 minutes here; a
-#: machine 2x slower needs 44). Past it, every thread's stack is printed and the run ends
+#: The whole run must end within this many seconds (about 12 minutes here; a machine 2x
+#: slower needs 24). Past it, every thread's stack is printed and the run ends
 #: with exit 1 -- a hang that pytest-timeout cannot break (in C code, or at exit) fails
 #: with a word of where, instead of running out CI's 90 minutes in silence.
 SESSION_LIMIT_S = 60 * 60
@@ -79,11 +79,23 @@ def pytest_unconfigure(config: pytest.Config) -> None:
     faulthandler.dump_traceback_later(EXIT_GRACE_S, exit=True, file=_STDERR_FD[0])
 
 
-#: The test files that take longest (seconds on a 2-core machine, `--durations=0`,
-#: 2026-11-26): `make test-parallel` runs files on two workers (pytest-xdist ``--dist loadfile``,
+#: The test files that take longest, longest first (seconds of their tests not marked
+#: serial on a 2-core machine, `--durations=0`, 2026-11-27: 200, 189, 65, 63, 48, 37, 30,
+#: 28, 27, 25): `make test` runs files on two workers (pytest-xdist ``--dist loadfile``,
 #: so a module's shared fixture is made once), these first, so neither worker is left
 #: with a long file at the end.
-LONGEST_FIRST = ('test_tuner.py', 'test_faults.py', 'test_study.py', 'test_bad_input.py')
+LONGEST_FIRST = (
+    'test_faults.py',
+    'test_tuner.py',
+    'test_numeric_baseline.py',
+    'test_study.py',
+    'test_drive_stop.py',
+    'test_bad_input.py',
+    'test_report.py',
+    'test_study_bad_input.py',
+    'test_study_drives.py',
+    'test_bag_clients.py',
+)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -96,7 +108,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             item.add_marker(pytest.mark.unit)  # (a static test in test/ says so itself)
         else:
             item.add_marker(pytest.mark.integration)
-    if _WORKER:  # on workers only (make test-parallel); one process keeps pytest's order
+    if _WORKER:  # on workers only (make test); one process keeps pytest's order
         rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
         items.sort(key=lambda it: rank.get(it.path.name, len(rank)))
 

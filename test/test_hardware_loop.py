@@ -149,6 +149,7 @@ def env(log: Path, **extra: str) -> dict[str, str]:
     return e
 
 
+@pytest.mark.serial  # a drive on the wall clock tunes with the default tolerance: alone
 def test_a_wall_clock_library_tunes_to_the_end_compiled(tmp_path, wallclock_lib):
     run, log = tmp_path / 'run', tmp_path / 'drive.log'
     p = subprocess.run(

@@ -20,6 +20,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 
 REPO = Path(__file__).resolve().parent.parent
@@ -48,6 +49,7 @@ def test_the_measurement_table_names_every_field():
     assert named == [f.name for f in dataclasses.fields(Measurement)]
 
 
+@pytest.mark.serial  # a drive on the wall clock tunes with the default tolerance: alone
 def test_the_worked_example_runs_as_written(tmp_path):
     ex = examples()
     for name in ('my_pkg/my_hw.py', 'my_drive.yaml'):
@@ -103,6 +105,7 @@ def test_the_worked_example_runs_as_written(tmp_path):
     assert losses == [r['loss'] for r in recs if r['status'] != 'lost']
 
 
+@pytest.mark.serial  # a drive on the wall clock tunes with the default tolerance: alone
 def test_the_drive_library_example_builds_and_tunes_as_written(tmp_path):
     """The C library worked example: the shipped stand-in copied, built with the
     system compiler against the installed header, and tuned, each line as the doc has

@@ -141,6 +141,11 @@ def run_once(drive: str, hogs: int, budget: int, seed: int, lib: Path) -> dict:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+#: the documented noise of a repeated experiment: the `bench` profile's CV
+#: (docs/calibration.md; docs/real-drive.md, "Timing tolerance")
+BENCH_CV = 0.024
+
+
 def replayed(recs: list[dict]) -> dict:
     """The run's counted losses against the same experiments replayed in lock-step on the
     same plant, every period fresh (``offline.replay_stand_in``). Until the first held
@@ -155,13 +160,16 @@ def replayed(recs: list[dict]) -> dict:
     cfg = load_config(None)
     ran = [r for r in recs if r.get('experiment_id') is not None]
     res = replay_stand_in(ran, cfg)
-    before, first, later, inside = [], None, [], 0
+    before, first, later, inside, within = [], None, [], 0, 0
+    counted = 0
     for r, x in zip(ran, res, strict=True):
         loss = r['loss'] if r['status'] in ('ok', 'aborted') else r.get('off_timing_loss')
         if loss is None:
             continue
         held = r['periods']['held'] + r['periods']['late']
         rel = abs(loss / x.loss - 1.0)
+        counted += 1
+        within += rel <= 2.0 * BENCH_CV
         if first is None and held == 0:
             before.append(loss == x.loss)
         elif first is None:
@@ -174,6 +182,7 @@ def replayed(recs: list[dict]) -> dict:
             inside += min(ideal) <= loss <= max(ideal) or rel <= 0.0
     return {
         'replay_later_inside': f'{inside}/{len(later)}',
+        'replay_within_2cv': f'{within}/{counted}',
         'replay_equal': f'{sum(before)}/{len(before)}',
         'replay_first_held': first[0] if first else 0,
         'replay_first_pct': 100.0 * first[1] if first else 0.0,
@@ -273,7 +282,9 @@ def main(argv: list[str] | None = None) -> dict:
                     f'held periods ({r0["replay_first_held"]}) {r0["replay_first_pct"]:.2f} %; '
                     f'the later ones at most {r0["replay_later_max_pct"]:.2f} % (their start '
                     f'differs too), {r0["replay_later_inside"]} within the spread of the same '
-                    'gains at ideal timing from 8 start states'
+                    'gains at ideal timing from 8 start states; '
+                    f'{r0["replay_within_2cv"]} within 2 CV of the bench noise '
+                    f'({200 * BENCH_CV:.1f} %) of their replay'
                 )
             print(line, flush=True)
             for k in ('overrun_pct', 'floor_overrun_pct', 'work_p50', 'work_p99', 'held_pct',

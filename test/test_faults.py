@@ -163,13 +163,23 @@ def tap(ros_context):
 
 
 def wait_mid_experiment(
-    run: Path, n_records: int, tap: Tap, wait_until, into: int = SETTLE + 1500
+    run: Path, n_records: int, tap: Tap, wait_until, into: int = SETTLE + 1500, tuner=None
 ) -> dict:
     """Wait until ``n_records`` results exist and the next experiment is ``into`` steps
     past the last one's end (read from the drive's own state; by default 1500 steps into
     the measured part, after the next experiment's 2500-step settle); return the last
-    record."""
-    wait_until(lambda: len(results(run)) >= n_records, 120, message=f'{n_records} records')
+    record. ``tuner``: its process; if it ends first, the wait fails with its words."""
+
+    def enough() -> bool:
+        if tuner is not None and tuner.poll() is not None:
+            out, err = tuner.communicate()
+            raise AssertionError(
+                f'the tuner ended ({tuner.returncode}) before {n_records} records: '
+                f'{results(run)}\n{out[-2000:]}\n{err[-3000:]}'
+            )
+        return len(results(run)) >= n_records
+
+    wait_until(enough, 120, message=f'{n_records} records')
     last = results(run)[n_records - 1]
     # A lost evaluation (no answer from the controller in time: a loaded machine, issue
     # 18) has no drive timeline; count from where the drive is now instead.
@@ -185,7 +195,8 @@ def test_drive_killed_mid_experiment(procs, ros_context, tmp_path, tap, wait_unt
     that result, cannot reset a fault of a silent drive, ends 'failed' with the best gains
     applied and the bag closed. The controller keeps running, in FAULT."""
     drive = procs.start(ros2('im_drive_sim', 'drive_sim', '--seed', '3'))
-    ctl = procs.start(ros2('im_controller', 'controller', '--ros-args', '-p', 'state_timeout:=0.5'))
+    # the lock-step default (2 s): a loaded machine stalls a process for hundreds of ms
+    ctl = procs.start(ros2('im_controller', 'controller', '--ros-args', '-p', 'state_timeout:=2.0'))
     run = tmp_path / 'run'
     tuner = procs.start(
         ros2(
@@ -208,7 +219,7 @@ def test_drive_killed_mid_experiment(procs, ros_context, tmp_path, tap, wait_unt
             str(run),
         )
     )
-    last = wait_mid_experiment(run, 2, tap, wait_until)
+    last = wait_mid_experiment(run, 2, tap, wait_until, tuner=tuner)
     drive.send_signal(signal.SIGKILL)
     out, err = tuner.communicate(timeout=120)
     assert tuner.returncode == 1, err[-3000:]
@@ -231,7 +242,7 @@ def test_drive_killed_mid_experiment(procs, ros_context, tmp_path, tap, wait_unt
         assert 'drive_state_timeout' in resp.message  # the fault's reason code, named
     ctl.send_signal(signal.SIGINT)
     _, ctl_err = ctl.communicate(timeout=30)
-    assert 'no drive state for 0.5 s: zero current commanded, experiment 2 aborted' in ctl_err
+    assert 'no drive state for 2 s: zero current commanded, experiment 2 aborted' in ctl_err
     # the bag is closed and holds the drive's states up to its death, and the controller's
     # last word to the drive: zero current, no load
     bag = run / 'bag_0'
@@ -305,7 +316,7 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
             str(run),
         )
     )
-    wait_mid_experiment(run, 2, tap, wait_until)
+    wait_mid_experiment(run, 2, tap, wait_until, tuner=tuner)
     ctl.send_signal(signal.SIGKILL)
     out, err = tuner.communicate(timeout=120)
     assert tuner.returncode == 1, err[-3000:]
@@ -384,7 +395,7 @@ def test_tuner_killed_then_resumed_on_the_same_bench(procs, ros_context, tmp_pat
         '--quiet',
     ]
     tuner = procs.start(ros2('im_tuner', 'tuner', *args, '--out', str(run)))
-    wait_mid_experiment(run, 3, tap, wait_until)
+    wait_mid_experiment(run, 3, tap, wait_until, tuner=tuner)
     recorder = pids_with(str(run / 'bag_0'))
     assert len(recorder) == 1
     tuner.send_signal(signal.SIGKILL)

@@ -226,9 +226,18 @@ class ControllerLink:
 
     # -- experiments -------------------------------------------------------------------------
     def reset_fault(self) -> str:
-        resp = self._call(self.reset_cli.call_async(Trigger.Request()), 'reset_fault')
-        if not resp.success:
-            raise BenchFailure(f'reset_fault refused: {resp.message}')
+        """Clear the controller's fault. A refusal that clears by itself (``no_drive_state``:
+        the drive was silent, as a loaded machine can stall a process for seconds) is
+        asked again for up to ``call_timeout`` s; any other, or one that outlasts it, stops
+        the run (BenchFailure)."""
+        deadline = time.monotonic() + self.call_timeout
+        while True:
+            resp = self._call(self.reset_cli.call_async(Trigger.Request()), 'reset_fault')
+            if resp.success:
+                break
+            if C.refusal_code(resp.message) not in C.TRANSIENT or time.monotonic() > deadline:
+                raise BenchFailure(f'reset_fault refused: {resp.message}')
+            self._wait(lambda: False, 10 * RETRY_PERIOD)
         self.faults_reset += 1
         self._result_fault = False
         return resp.message

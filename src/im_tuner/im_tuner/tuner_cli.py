@@ -27,7 +27,7 @@ from im_drive_sim.cli import Parser, UsageError, finite_float
 from . import optim
 from .bench.spec import DISCOVERY_TIMEOUT, recording_options
 from .benches import BENCHES  # (the bench modes: one copy, in benches)
-from .names import FAULT_POLICIES, controller_topics
+from .names import DEFAULT_TIMING_TOLERANCE, FAULT_POLICIES, controller_topics
 from .optim.base import OptimizerError, check_options
 from .rundir import RunDir
 from .runlog import RunConfig
@@ -246,12 +246,6 @@ def build_parser() -> argparse.ArgumentParser:
                 kw['type'] = spec.type
             g.add_argument(f'--{name.replace("_", "-")}', **kw)
     return ap
-
-
-#: an experiment with at most this many held + late drive periods counts (issue 38: 10
-#: held periods change a loss by at most ~2 % (95th percentile), within the bench
-#: profile's 2.4 % spread of repeated experiments; ``python -m im_tuner.study.held``)
-DEFAULT_TIMING_TOLERANCE = 10
 
 
 def timing_tolerance(cli: argparse.Namespace, argv: list[str]) -> int | None:

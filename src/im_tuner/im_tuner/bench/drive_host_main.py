@@ -8,6 +8,7 @@ import sys
 from im_drive_sim import rt
 from im_drive_sim.cli import Parser, add_config_option, check_then_run, finite_float, int_in
 
+from ..names import DEFAULT_TIMING_TOLERANCE
 from .sim_bench_main import BAG_OPTIONS
 
 DESCRIPTION = (
@@ -19,8 +20,6 @@ DESCRIPTION = (
 )
 #: [s] the default tuner watchdog: 10 heartbeats (contract.HEARTBEAT_PERIOD) missed
 DEFAULT_TUNER_TIMEOUT = 1.0
-#: [periods] the default timing tolerance (the tuner's: tuner_cli.DEFAULT_TIMING_TOLERANCE)
-DEFAULT_TIMING_TOLERANCE = 10
 
 
 def parser() -> argparse.ArgumentParser:

@@ -292,9 +292,18 @@ def replay_realtime(
     """
     sim = DriveSim(drive, seed=drive_seed)
     sim.reset(omega=0.0, fluxed=True)
+    return _replay(sim, records, drive.Ts, python_loop=False)
+
+
+def _replay(
+    sim: Any, records: list[dict[str, Any]], Ts: float, python_loop: bool
+) -> list[LossResult]:
+    """A real-time run's experiments again on ``sim`` in lock-step (the holds between
+    them as long as in the run, each experiment's gains from its ``gains_step``), with
+    the fused kernel or, ``python_loop``, step by step (a plant with no kernel)."""
     runner = ExperimentRunner(config_for_drive(None, sim), Gains())
     runner.reset(sim.theta_meas)
-    ts_ns = round(drive.Ts * 1e9)
+    ts_ns = round(Ts * 1e9)
     out = []
     for rec in records:
         if rec.get('experiment_id') is None or rec.get('t_start_ns') is None:
@@ -303,15 +312,15 @@ def replay_realtime(
         gains = Gains(*(float(rec['gains'][n]) for n in GAIN_NAMES))
         g_step = int(rec.get('gains_step', k0))
         if g_step > sim.step_index:
-            hold_offline(sim, runner, g_step - sim.step_index)
+            _run(sim, runner, g_step - sim.step_index, False, False, python_loop)
         if gains != runner.gains:
             runner.set_gains(gains)
         settle = int(runner.Q[Q_SETTLE_N])
         if k0 - settle < sim.step_index:
             raise ValueError(f'experiment {rec["experiment_id"]} starts before the replay')
-        hold_offline(sim, runner, k0 - settle - sim.step_index)
+        _run(sim, runner, k0 - settle - sim.step_index, False, False, python_loop)
         runner.start(int(rec['experiment_id']))  # its settle, then step 0 at k0
-        _run(sim, runner, settle + int(runner.Q[Q_N]), False, True, False)
+        _run(sim, runner, settle + int(runner.Q[Q_N]), False, True, python_loop)
         res = runner.result()
         assert res is not None, 'experiment did not finish'
         out.append(res)
@@ -360,31 +369,7 @@ def replay_stand_in(records: list[dict[str, Any]], drive: DriveConfig) -> list[L
     them -- every period fresh. Where the run had no held period, each loss equals the
     recorded one bit for bit; where it had some (within the timing tolerance), the
     difference is what those held periods did to the loss."""
-    sim: Any = StandInPlant(drive)
-    runner = ExperimentRunner(config_for_drive(None, sim), Gains())
-    runner.reset(sim.theta_meas)
-    ts_ns = round(drive.Ts * 1e9)
-    out = []
-    for rec in records:
-        if rec.get('experiment_id') is None or rec.get('t_start_ns') is None:
-            continue
-        k0 = int(rec['t_start_ns']) // ts_ns
-        gains = Gains(*(float(rec['gains'][n]) for n in GAIN_NAMES))
-        g_step = int(rec.get('gains_step', k0))
-        if g_step > sim.step_index:
-            _run(sim, runner, g_step - sim.step_index, False, False, True)
-        if gains != runner.gains:
-            runner.set_gains(gains)
-        settle = int(runner.Q[Q_SETTLE_N])
-        if k0 - settle < sim.step_index:
-            raise ValueError(f'experiment {rec["experiment_id"]} starts before the replay')
-        _run(sim, runner, k0 - settle - sim.step_index, False, False, True)
-        runner.start(int(rec['experiment_id']))
-        _run(sim, runner, settle + int(runner.Q[Q_N]), False, True, True)
-        res = runner.result()
-        assert res is not None, 'experiment did not finish'
-        out.append(res)
-    return out
+    return _replay(StandInPlant(drive), records, drive.Ts, python_loop=True)
 
 
 def stand_in_losses(

@@ -250,7 +250,11 @@ def test_drive_killed_mid_experiment(procs, ros_context, tmp_path, tap, wait_unt
         assert 'drive_state_timeout' in resp.message  # the fault's reason code, named
     ctl.send_signal(signal.SIGINT)
     _, ctl_err = ctl.communicate(timeout=30)
-    assert 'no drive state for 2 s: zero current commanded, experiment 2 aborted' in ctl_err
+    # (its id: 2, or later when a loaded machine lost an attempt before it)
+    aborted_id = recs[2]['experiment_id']
+    assert f'no drive state for 2 s: zero current commanded, experiment {aborted_id} aborted' in (
+        ctl_err
+    )
     # the bag is closed and holds the drive's states up to its death, and the controller's
     # last word to the drive: zero current, no load
     bag = run / 'bag_0'

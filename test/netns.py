@@ -87,16 +87,17 @@ class TwoComputers:
         env['FASTDDS_BUILTIN_TRANSPORTS'] = 'UDPv4'
         return env
 
-    def loss(self, percent: int) -> None:
+    def loss(self, percent: float) -> None:
         """Drop ``percent`` % of the packets each computer receives on the veth, at random
-        (nftables ``numgen random``); 0: none; 100: the cable out (an outage: a link set
-        down would also drop its routes)."""
+        (nftables ``numgen random``, in steps of 0.01 %); 0: none; 100: the cable out (an
+        outage: a link set down would also drop its routes)."""
         for side in ('a', 'b'):
             ns = self.ns[side]
             nft = [IP or 'ip', 'netns', 'exec', ns, NFT or 'nft']
             subprocess.run([*nft, 'delete', 'table', 'inet', 'imloss'], capture_output=True)
             if percent > 0:
-                match = f'numgen random mod 100 < {int(percent)}' if percent < 100 else ''
+                per_10k = round(percent * 100)
+                match = f'numgen random mod 10000 < {per_10k}' if percent < 100 else ''
                 rules = (
                     'table inet imloss {\n  chain input {\n'
                     '    type filter hook input priority 0; policy accept;\n'

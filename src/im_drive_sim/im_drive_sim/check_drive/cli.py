@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 from dataclasses import asdict
 from pathlib import Path
 
 from ..cli import Parser, UsageError, add_config_option, check_ros_args, output_file
 from .evaluate import json_ready
-from .judges import summary_line
+from .judges import conditions_line, exit_code, summary_line
 from .probe import DriveLost, Interrupted
 from .procedure import Options, run_check
 from .thresholds import CheckRefused
@@ -26,7 +27,8 @@ def parse_args(argv: list[str]) -> Options:
         prog='ros2 run im_drive_sim check_drive',
         description='Check a drive node against docs/interfaces.md (see '
         'docs/check-drive.md). Exit 0: all items pass; 1: some fail; '
-        '2: refused (bad option, no drive, another commander).',
+        '2: refused (bad option, no drive, another commander); 3: none fails but some '
+        'could not be judged (inconclusive: the check or the link fell behind).',
     )
     ap.add_argument(
         '--namespace', help='namespace of the drive (also: --ros-args -r __ns:=/bench1)'
@@ -104,6 +106,11 @@ def main(args: list[str] | None = None) -> int:
     from im_drive_sim.params import ConfigError
     from im_drive_sim.runtime import RosSession
 
+    # A lost command is repaired within milliseconds, not a second (the file says why).
+    os.environ.setdefault(
+        'FASTRTPS_DEFAULT_PROFILES_FILE',
+        str(Path(__file__).parent.parent / 'config' / 'check_drive_fastdds.xml'),
+    )
     session = RosSession(argv)
     node = Node('check_drive', **({'namespace': opts.namespace} if opts.namespace else {}))
     code = 0
@@ -111,12 +118,16 @@ def main(args: list[str] | None = None) -> int:
         items, info = run_check(opts, node, lambda s: print(s, flush=True), lambda: session.stopped)
         for item in items:
             print(item.line())
+        if info.get('conditions') and info.get('mode') == 'realtime':
+            print(conditions_line(info['conditions']))
         print(summary_line(items, info.get('mode', ''), info.get('status_mode')))
-        code = 0 if all(i.passed for i in items) else 1
+        code = exit_code(items)
         if opts.json:
+            verdict = {0: 'pass', 1: 'fail', 3: 'inconclusive'}[code]
+            rows = [{**asdict(i), 'verdict': i.verdict} for i in items]
             Path(opts.json).write_text(
                 json.dumps(
-                    json_ready({'passed': code == 0, **info, 'items': [asdict(i) for i in items]}),
+                    json_ready({'passed': code == 0, 'verdict': verdict, **info, 'items': rows}),
                     indent=1,
                     allow_nan=False,
                 )

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ..contract import JOINT_STATE_TOPIC
+from .conditions import Conditions, busy_reason, command_lag, excess_delay, phase_conditions
 from .judges import (
     joint_state_problems,
     judge_fields,
@@ -32,8 +33,18 @@ from .response import (
     label_delay,
     onset_delay,
     step_metrics,
+    watchdog_limits,
 )
-from .thresholds import CURRENT_BOUND_FACTOR, ITEMS, STATE_FIELDS, TYPES, F, Item
+from .thresholds import (
+    CURRENT_BOUND_FACTOR,
+    ITEMS,
+    STATE_FIELDS,
+    STEP_GAP_MAX,
+    STEP_LAG_FRACTION,
+    TYPES,
+    F,
+    Item,
+)
 
 __all__ = ['Recording', 'evaluate', 'json_ready', 'rows_by_step']
 
@@ -117,6 +128,8 @@ class Recording:
     watchdog: dict[str, Any]
     command_timeout: float
     command_timeout_source: str
+    #: state rows (start, end) of the phases: 'rate', 'latency', 'step'
+    phases: dict[str, tuple[int, int]] = field(default_factory=dict)
 
     @property
     def n(self) -> int:
@@ -130,8 +143,9 @@ class Recording:
         return rows_by_step(self.states, self.lengths, first, last)
 
 
-def evaluate(rec: Recording) -> list[Item]:
-    """The six items, in ``ITEMS`` order, judged from ``rec``."""
+def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
+    """The six items, in ``ITEMS`` order, judged from ``rec``. ``kept_up``, when given,
+    receives the check's own measures per phase (:mod:`.conditions`)."""
     ts, ts_ns, isq_max, a = rec.ts, rec.ts_ns, rec.isq_max, rec.amplitude
     counts_per_rad, realtime, mode_note = rec.counts_per_rad, rec.realtime, rec.mode_note
     i_rate0, i_rate1, m_rate0, rate_wall = rec.i_rate0, rec.i_rate1, rec.m_rate0, rec.rate_wall
@@ -168,11 +182,26 @@ def evaluate(rec: Recording) -> list[Item]:
     )
     items['fields'] = judge_fields(sp, ratio, motion_counts, jp)
 
+    declared = rec.states[:n][ok_rows, F['command_delay']]
+    d_declared = int(np.median(declared)) if len(declared) else 1
+    excess = excess_delay(rec.take_ns[:n], rec.source_ns[:n])
+    conds: dict[str, Conditions] = {}
+    for name, (r0, r1) in {'rate': (i_rate0, i_rate1), **rec.phases}.items():
+        conds[name] = phase_conditions(
+            rec.states[:n], rec.lengths[:n], rec.seq[:n], excess, d_declared, slice(r0, r1)
+        )
+    if kept_up is not None:
+        kept_up.update({k: c.as_dict() for k, c in conds.items()})
+
+    def busy(phase: str) -> str:
+        c = conds.get(phase)
+        return busy_reason(c, ts) if c is not None and realtime else ''
+
     steps = rec.states[:n, F['step_index']]
     if realtime:
         sl = slice(i_rate0, i_rate1)
         items['rate'] = judge_rate_realtime(
-            period_stats(steps[sl], rec.source_ns[sl], ts), ts, mode_note
+            period_stats(steps[sl], rec.source_ns[sl], ts), ts, mode_note, busy('rate')
         )
     else:
         new, unanswered, skipped = lockstep_step_problems(
@@ -196,19 +225,23 @@ def evaluate(rec: Recording) -> list[Item]:
             wall.append((rec.recv_ns[row] - rec.cmd_ns[j]) * 1e-9)
     delays: list[int | None] = []
     labels: list[int | None] = []
+    complete: list[bool] = []
     for k0, level, prev in trans[1:] + step_trans[1:]:
         d, _ = rec.rows_by_step(k0 - 20, k0 + 25)
         if realtime:
             d = fill_missed(d)
+        # judged only with every state from 16 before to 21 after (filled in real time)
+        complete.append(bool(np.isfinite(d[4:42]).all()))
         delays.append(onset_delay(d[:, F['isq']], 20, level - prev))
         labels.append(label_delay(d[:, F['applied_step']], 20, k0))
-    declared = rec.states[:n][ok_rows, F['command_delay']]
     items['latency'] = judge_latency(
         delays,
         np.array(wall),
         realtime,
-        declared=int(np.median(declared)) if len(declared) else 1,
+        declared=d_declared,
         labels=labels,
+        complete=complete,
+        busy=busy('latency'),
     )
 
     # step response
@@ -229,7 +262,9 @@ def evaluate(rec: Recording) -> list[Item]:
                     delay,
                 )
             )
-        items['step_response'] = judge_step_response(metrics[0], metrics[1], a, counts_per_rad)
+        items['step_response'] = judge_step_response(
+            metrics[0], metrics[1], a, counts_per_rad, busy=step_busy(rec, d_declared)
+        )
     else:
         nan = {
             'rise_s': math.nan,
@@ -250,12 +285,71 @@ def evaluate(rec: Recording) -> list[Item]:
             rec.watchdog['resumed_s'],
             rec.command_timeout_source,
             rec.watchdog['aborted'],
+            busy=watchdog_busy(rec, d_declared, excess),
         )
     else:
         items['watchdog'] = judge_watchdog_lockstep(
             rec.watchdog['silence_s'], rec.watchdog['advanced'], rec.watchdog['resumed_s']
         )
     return [items[name] for name in ITEMS]
+
+
+def step_busy(rec: Recording, declared: int) -> str:
+    """Why the step the drive was given may not be the one commanded ('' when it was):
+    more than STEP_GAP_MAX consecutive states missing, or commands that reached the drive
+    later than STEP_LAG_FRACTION of the step's duration (by its labels), during the +A
+    and -A steps."""
+    if len(rec.step_trans) < 4:
+        return ''
+    k0, k1, k2 = rec.step_trans[1][0], rec.step_trans[2][0], rec.step_trans[3][0]
+    d, _ = rec.rows_by_step(k0, k2 + 2)
+    have = np.isfinite(d).all(axis=1)
+    why = []
+    idx = np.flatnonzero(have)
+    gap = int(np.diff(np.concatenate(([-1], idx, [len(d)]))).max()) - 1 if len(d) else 0
+    if gap > STEP_GAP_MAX:
+        why.append(f'{gap} consecutive states missing in the step')
+    lag = command_lag(d[have], declared)
+    lag = lag[np.isfinite(lag)]
+    if len(lag) and lag.max() > STEP_LAG_FRACTION * (k1 - k0):
+        why.append(
+            f'commands reached the drive up to {lag.max():.0f} periods late during the step '
+            f'(in time: {np.mean(lag <= 0) * 100:.0f} %)'
+        )
+    return '; '.join(why)
+
+
+def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:
+    """Why the watchdog's timing cannot be trusted ('' when it can): the drive saw a
+    silence in the commands before the check fell silent (a command lag over half the
+    timeout: it may have tripped early), the states stop before the silence was long
+    enough to judge, or the resume command and its answer took more than 50 ms to
+    cross while the check was late."""
+    wd, why = rec.watchdog, []
+    n = rec.n
+    r0, r1 = wd.get('rows_on', (0, 0))
+    lag = command_lag(rec.states[r0:r1][rec.lengths[r0:r1] == len(STATE_FIELDS)], declared)
+    lag = lag[np.isfinite(lag)]
+    if len(lag) and lag.max() * rec.ts > rec.command_timeout / 2:
+        why.append(
+            f'commands reached the drive up to {lag.max() * rec.ts * 1e3:.1f} ms late before '
+            'the silence'
+        )
+    if wd.get('t_zero') is None:
+        hi = watchdog_limits(rec.command_timeout)[1]
+        if wd.get('coverage_s', math.inf) < hi:
+            why.append(
+                f'the states received cover only {wd["coverage_s"] * 1e3:.0f} ms of the silence'
+            )
+    if wd.get('resumed_s') is None:
+        q0, q1 = wd.get('rows_resume', (0, 0))
+        c = phase_conditions(
+            rec.states[:n], rec.lengths[:n], rec.seq[:n], excess, declared, slice(q0, q1)
+        )
+        reason = busy_reason(c, rec.ts)
+        if reason:
+            why.append(f'while resuming, {reason}')
+    return '; '.join(why)
 
 
 def json_ready(obj: Any) -> Any:

@@ -46,18 +46,31 @@ class Probe:
         self._parse, self._deserialize = parse_float64_array, deserialize_message
         self._Float64MultiArray, self._JointState = Float64MultiArray, JointState
         self._DiagnosticArray = DiagnosticArray
-        # A deep keep-last reader: a stall of this process up to 1 s loses nothing, and
-        # the drive's reliable writer is never held back by it.
-        deep = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST,
-            depth=5000,
-            reliability=ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.VOLATILE,
-        )
+
+        # Best-effort readers: what the network loses is lost (the publication sequence
+        # numbers show it), never held back. A reliable reader delivers in order, so one
+        # lost packet held every later state until the drive's writer repaired it (1.4 s
+        # across a lossy link: the check went silent and the drive's watchdog tripped).
+        # Deep keep-last: a stall of this process up to 1 s loses nothing, and the drive's
+        # reliable writer is never held back by a best-effort reader.
+        def best_effort(depth: int) -> QoSProfile:
+            return QoSProfile(
+                history=HistoryPolicy.KEEP_LAST,
+                depth=depth,
+                reliability=ReliabilityPolicy.BEST_EFFORT,
+                durability=DurabilityPolicy.VOLATILE,
+            )
+
         noop = lambda _m: None  # noqa: E731 (taken by hand, never by an executor)
-        self.state_sub = node.create_subscription(Float64MultiArray, STATE_TOPIC, noop, deep)
-        self.joint_sub = node.create_subscription(JointState, JOINT_STATE_TOPIC, noop, 1000)
-        self.status_sub = node.create_subscription(DiagnosticArray, STATUS_TOPIC, noop, 10)
+        self.state_sub = node.create_subscription(
+            Float64MultiArray, STATE_TOPIC, noop, best_effort(5000)
+        )
+        self.joint_sub = node.create_subscription(
+            JointState, JOINT_STATE_TOPIC, noop, best_effort(1000)
+        )
+        self.status_sub = node.create_subscription(
+            DiagnosticArray, STATUS_TOPIC, noop, best_effort(10)
+        )
         self.cmd_pub = None
         self.stopped = False
         self.waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)

@@ -88,6 +88,11 @@ def run_check(
 
     timeout, timeout_src = _command_timeout(opts, node, drive_name, drive_ns)
     p.open_command()
+    # the drive must know our publisher before it is judged (a simulator in real time
+    # starts its clock only then; across a network matching takes a moment)
+    deadline = time.monotonic() + opts.timeout
+    while p.cmd_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        p.poll(0.02)
     try:
         return _probe(
             p, opts, node, cfg, drive_full, timeout, timeout_src, state_topic, cmd_topic, log
@@ -133,8 +138,20 @@ def _probe(
             f'{state_topic} has a publisher but no state came within {opts.timeout:g} s'
         )
     k_idle0 = int(p.newest()[F['step_index']])
-    t_end = time.monotonic() + 0.3
-    p.run(lambda k, s: None, lambda: time.monotonic() > t_end, 1.0)
+    t0, n0 = time.monotonic(), p.n
+
+    def decided() -> bool:
+        # Real time: the step index advances without commands. Lock-step: the drive
+        # re-sends the same state while it waits (every 0.1 s). At least 0.3 s; then as
+        # long as neither is seen, up to --timeout: a drive in real time may start its
+        # clock only once it has matched our publisher (the simulator waits for a
+        # commander), which takes a moment after a process start or across a network.
+        waited = time.monotonic() - t0
+        moved = int(p.newest()[F['step_index']]) - k_idle0
+        resent = int(np.count_nonzero(p.states[n0 : p.n, F['step_index']] == k_idle0))
+        return waited > opts.timeout or (waited > 0.3 and (moved >= 5 or resent >= 3))
+
+    p.run(lambda k, s: None, decided, opts.timeout + 1.0)
     idle_advance = int(p.newest()[F['step_index']]) - k_idle0
     realtime = idle_advance >= 5
     mode = 'realtime' if realtime else 'lockstep'
@@ -201,7 +218,10 @@ def _probe(
     # -- latency: small level changes, every 25 steps -----------------------------------
     trans: list[tuple[int, float, float]] = []
     levels = [0.0, a, 0.0, -a, 0.0, a, 0.0, -a, 0.0]
+    phases = {'rate': (i_rate0, i_rate1)}
+    i0 = p.n
     schedule([(25, lv) for lv in levels], trans)
+    phases['latency'] = (i0, p.n)
 
     # -- step response ----------------------------------------------------------------
     n_step = max(10, round(opts.step_duration / ts))
@@ -216,7 +236,9 @@ def _probe(
             return True
         return False
 
+    i0 = p.n
     schedule([(25, 0.0), (n_step, a), (n_step, -a), (n_step // 2, 0.0)], step_trans, overspeed)
+    phases['step'] = (i0, p.n)
     k_step_end = p.answered
     check_alone()
 
@@ -280,28 +302,41 @@ def _probe(
         k_step_end=k_step_end,
         aborted_why=aborted['why'],
         watchdog=wd,
+        phases=phases,
         command_timeout=timeout,
         command_timeout_source=timeout_src,
     )
-    return evaluate(rec), info
+    kept_up: dict = {}
+    items = evaluate(rec, kept_up)
+    info['conditions'] = kept_up
+    return items, info
 
 
 def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, ts: float) -> dict:
     """Command w, go silent until zero current (or too long), then command -w for as long
-    as w was on (so the shaft ends near rest) and check that the current follows."""
+    as w was on (so the shaft ends near rest) and check that the current follows.
+
+    Times are on the drive's clock from the state in which the drive first shows the last
+    command applied (its ``applied_step`` label): neither the link's delay nor the offset
+    of two computers' clocks enters. A drive whose labels never show it is timed from the
+    check's publication instead (``ref``)."""
     _lo, hi = watchdog_limits(timeout)
     i_on = p.n
     schedule([(25, w)])
-    i_silent, t_last = p.n, p.cmd_ns[p.m - 1]
-    st = {'zero_at': None, 'zero_run': 0, 'why': ''}
-    end = time.monotonic() + 2 * hi + 0.05
+    i_silent, t_last, k_last = p.n, int(p.cmd_ns[p.m - 1]), int(p.cmd[p.m - 1, 0])
+    st: dict = {'zero_at': None, 'zero_run': 0, 'why': '', 'ref': None, 'i': i_on}
+    end = time.monotonic() + 2 * hi + 1.0
 
     def silent(k: int, s: np.ndarray) -> None:
         return None
 
     def done() -> bool:
-        for i in range(st.get('i', i_silent), p.n):
+        for i in range(st['i'], p.n):
             s = p.states[i]
+            if st['ref'] is None and s[F['applied_step']] >= k_last:
+                st['ref'] = int(p.source_ns[i])  # the drive applied our last command
+            if i < i_silent:
+                continue
             if abs(s[F['isq']]) < ZERO_CURRENT_FRACTION * w:
                 if st['zero_at'] is None:
                     st['zero_at'] = i
@@ -311,31 +346,47 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
             if overspeed(s):
                 st['why'] = 'aborted silence: overspeed'
         st['i'] = p.n
-        return st['zero_run'] >= 10 or bool(st['why']) or time.monotonic() > end
+        ref = st['ref'] if st['ref'] is not None else t_last
+        drive_time = (int(p.source_ns[p.n - 1]) - ref) * 1e-9 if p.n > i_silent else 0.0
+        return (
+            st['zero_run'] >= 10 or bool(st['why']) or drive_time > 2 * hi or time.monotonic() > end
+        )
 
-    p.run(silent, done, 2 * hi + 1.0)
+    p.run(silent, done, 2 * hi + 1.5)
+    ref = st['ref'] if st['ref'] is not None else t_last
+    coverage = (int(p.source_ns[p.n - 1]) - ref) * 1e-9 if p.n > i_silent else 0.0
     t_zero = t_act = None
     if st['zero_at'] is not None:
-        t_zero = (p.source_ns[st['zero_at']] - t_last) * 1e-9
+        t_zero = (p.source_ns[st['zero_at']] - ref) * 1e-9
         i = st['zero_at']  # back along the fall to where it began
         while i > i_silent and p.states[i - 1, F['isq']] < WATCHDOG_ACT_FRACTION * w:
             i -= 1
-        t_act = (p.source_ns[i] - t_last) * 1e-9
+        t_act = (p.source_ns[i] - ref) * 1e-9
     if st['why']:
         p.command(max(p.answered, int(p.newest()[0])), 0.0)
     # Steps at +w: as many at -w bring the shaft back near rest.
     on = int(np.count_nonzero(p.states[i_on : p.n, F['isq']] > w / 2))
-    # resume with -w; it must reach -w within 50 ms
+    # resume with -w; it must reach -w within 50 ms (the check's clock: publication to
+    # reception, so the link's delay both ways is inside)
     i_res, j_res, t_res = p.n, p.m, None
     k_res = schedule([(max(on, 50), -w)])
     for i in range(i_res, p.n):
         s = p.states[i]
         if s[F['step_index']] > k_res and abs(s[F['isq']] + w) < ZERO_CURRENT_FRACTION * w:
-            t_res = (p.source_ns[i] - p.cmd_ns[j_res]) * 1e-9
+            t_res = (p.recv_ns[i] - p.cmd_ns[j_res]) * 1e-9
             break
     if t_res is not None and t_res > 0.05:
         t_res = None
-    return {'t_act': t_act, 't_zero': t_zero, 'resumed_s': t_res, 'aborted': st['why']}
+    return {
+        't_act': t_act,
+        't_zero': t_zero,
+        'resumed_s': t_res,
+        'aborted': st['why'],
+        'ref': 'applied' if st['ref'] is not None else 'published',
+        'coverage_s': coverage,
+        'rows_on': (i_on, i_silent),
+        'rows_resume': (i_res, p.n),
+    }
 
 
 def _watchdog_lockstep(p: Probe) -> dict:

@@ -86,36 +86,62 @@ def judge_latency(
     realtime: bool,
     declared: int = EFFECT_DELAY_LOCKSTEP,
     labels: Sequence[int | None] | None = None,
+    complete: Sequence[bool] | None = None,
+    busy: str = '',
 ) -> Item:
     """``delays``: per command changing the reference, the state (k + d) in which it first
     showed; ``wall_s``: command published -> next state received [s]; ``declared``: the
     drive's command_delay; ``labels``: per change, the first state (k + l) whose
-    applied_step is the changing command's or newer (None: not judged)."""
-    d = np.array([x for x in delays if x is not None], dtype=float)
-    missing = sum(x is None for x in delays)
+    applied_step is the changing command's or newer (None: not judged); ``complete``: per
+    change, whether every state around it came (False: a None delay is not 'never', the
+    change is not judged); ``busy``: why the check's timing cannot be trusted ('').
+
+    In real time a change whose label is later than k+d+1 reached the drive late (the
+    check answered late, or the link held it: the drive says so): its effect is not
+    judged against the declared delay, only against its label. Fewer than 3 changes
+    judged, or wall-time limits missed while ``busy``: inconclusive, with the reason."""
+    n = len(delays)
+    whole = list(complete) if complete is not None else [True] * n
+    lab = list(labels) if labels is not None else [None] * n
+    limit = declared + (TRANSPORT_SLACK_REALTIME if realtime else 0)
+    usable = [(x, y) for x, y, c in zip(delays, lab, whole, strict=False) if c]
+    gaps = n - len(usable)  # changes with states missing around them
+
+    def came_in_time(y: int | None) -> bool:
+        # by the drive's labels (real time): applied by k+d+1; without labels, assumed
+        return not realtime or labels is None or (y is not None and y <= limit)
+
+    # complete, came in time, and isq never moved: the drive ignored the command
+    missing = sum(x is None and came_in_time(y) for x, y in usable)
+    late = sum(not came_in_time(y) for _, y in usable)
+    d = np.array([x for x, y in usable if x is not None and came_in_time(y)], dtype=float)
+    shown = np.array([x for x, _ in usable if x is not None], dtype=float)
     med = float(np.median(wall_s)) if len(wall_s) else math.nan
     p99 = float(np.percentile(wall_s, 99)) if len(wall_s) else math.nan
-    limit = declared + (TRANSPORT_SLACK_REALTIME if realtime else 0)
     if realtime:
         effect_ok = len(d) >= 3 and float(np.percentile(d, 25, method='lower')) <= limit
     else:
         effect_ok = len(d) >= 3 and bool(np.all(d == limit)) and missing == 0
-    pairs = [(x, y) for x, y in zip(delays, labels or (), strict=False) if x is not None]
-    judged = [(x, y) for x, y in pairs if y is not None]
+    judged = [(x, y) for x, y in usable if x is not None and y is not None]
     honest = sum(x == y for x, y in judged)
-    slower = sum(y is not None and x > y for x, y in judged)
+    slower = sum(x > y for x, y in judged)
     if labels is None:
         labels_ok = True
     elif realtime:
         labels_ok = len(judged) >= 3 and slower <= LABEL_SLOWER_MAX_REALTIME * len(judged)
     else:
-        labels_ok = len(judged) == len(d) and honest == len(judged)
-    ok = effect_ok and labels_ok and med <= LATENCY_MEDIAN_MAX and p99 <= LATENCY_P99_MAX
-    hist = ', '.join(f'k+{int(v)}: {int(np.sum(d == v))}' for v in np.unique(d))
+        labels_ok = len(judged) == len(shown) and honest == len(judged)
+    wall_ok = med <= LATENCY_MEDIAN_MAX and p99 <= LATENCY_P99_MAX
+    ok = effect_ok and labels_ok and wall_ok
+    hist = ', '.join(f'k+{int(v)}: {int(np.sum(shown == v))}' for v in np.unique(shown))
     figures = (
         f'command -> next state median {med * 1e6:.0f} us, p99 {p99 * 1e6:.0f} us; '
         f'takes effect in {hist or "-"}' + (f', never: {missing}' if missing else '')
     )
+    if late:
+        figures += f' ({late} reached the drive late, by its labels: not judged against k+{limit})'
+    if gaps:
+        figures += f'; {gaps} not judged (states missing around them)'
     if labels is not None:
         figures += f'; declared delay {declared}: {honest}/{len(judged)} where applied_step says'
         if slower:
@@ -126,7 +152,7 @@ def judge_latency(
         f'median <= {LATENCY_MEDIAN_MAX * 1e3:g} ms, '
         f'p99 <= {LATENCY_P99_MAX * 1e3:g} ms'
     )
-    return Item(
+    item = Item(
         'latency',
         ok,
         figures,
@@ -137,8 +163,28 @@ def judge_latency(
             'effect_delays': [None if x is None else int(x) for x in delays],
             'declared_delay': declared,
             'label_delays': None if labels is None else list(labels),
+            'complete': whole,
         },
     )
+    # What is not the drive's fault: too few changes judged (the check answered late, or
+    # the link lost the states), or wall-time limits missed while the check was late.
+    # A label the drive broke (slower than declared) or an effect later than allowed in
+    # a change that reached it in time is its fault whatever the load.
+    why = []
+    if (realtime and len(d) < 3) or (labels is not None and len(judged) < 3):
+        why.append(
+            f'only {len(d)} of {n} changes reached the drive in time with every state '
+            'around them received'
+        )
+    if not wall_ok and busy:
+        why.append(busy)
+    if (
+        why
+        and not (len(d) >= 3 and not effect_ok)
+        and not (labels is not None and len(judged) >= 3 and not labels_ok)
+    ):
+        return item.undecided('; '.join(why))
+    return item
 
 
 def rise_time(x: np.ndarray, ts: float, x0: float, x1: float) -> float:
@@ -206,25 +252,33 @@ def judge_step_response(
     amplitude: float,
     counts_per_rad: float,
     aborted: str = '',
+    busy: str = '',
 ) -> Item:
-    """``plus``/``minus``: step_metrics of the +isq and the -isq step."""
+    """``plus``/``minus``: step_metrics of the +isq and the -isq step; ``busy``: why the
+    step the drive was given is not the one commanded ('': it is) -- a failure is then
+    inconclusive."""
     problems = []
     if aborted:
         problems.append(aborted)
+    # signs are the drive's whatever the load; the timing figures are not
+    signs: list[str] = []
     rise = max(plus['rise_s'], minus['rise_s'])
     if not rise <= RISE_TIME_MAX:
         problems.append(f'rise time {rise * 1e3:.2f} ms')
     sse = max(plus['steady_error'], minus['steady_error'])
     if not sse <= STEADY_STATE_ERROR_MAX:
         problems.append(f'steady-state error {sse * 100:.1f} %')
-    if not (plus['torque_per_amp'] > 0 and minus['torque_per_amp'] > 0):
-        problems.append('torque sign opposite to isq')
+    if plus['torque_per_amp'] < 0 or minus['torque_per_amp'] < 0:
+        signs.append('torque sign opposite to isq')
+    elif not (plus['torque_per_amp'] > 0 and minus['torque_per_amp'] > 0):
+        problems.append('no torque')
     for m, sign, name in ((plus, 1.0, '+'), (minus, -1.0, '-')):
         moved = abs(m['accel']) * m['duration_s'] ** 2 / 2 * counts_per_rad
         if not moved >= ACCEL_MIN_COUNTS:
             problems.append(f'no acceleration in the {name} step')
         elif m['accel'] * sign <= 0:
-            problems.append(f'acceleration {m["accel"]:+.3g} rad/s^2 in the {name}isq step')
+            signs.append(f'acceleration {m["accel"]:+.3g} rad/s^2 in the {name}isq step')
+    problems = signs + problems
     figures = (
         f'isq rise {rise * 1e3:.2f} ms, steady-state error {sse * 100:.1f} %, '
         f'torque/isq {plus["torque_per_amp"]:+.3f}/{minus["torque_per_amp"]:+.3f} N m/A, '
@@ -233,7 +287,7 @@ def judge_step_response(
     )
     if problems:
         figures = '; '.join(problems) + ' -- ' + figures
-    return Item(
+    item = Item(
         'step_response',
         not problems,
         figures,
@@ -245,6 +299,7 @@ def judge_step_response(
             'aborted': aborted or None,
         },
     )
+    return item if signs else item.undecided(busy)
 
 
 def watchdog_limits(timeout: float) -> tuple[float, float]:
@@ -261,6 +316,7 @@ def judge_watchdog_realtime(
     resumed_s: float | None,
     timeout_source: str,
     aborted: str = '',
+    busy: str = '',
 ) -> Item:
     """Times after the last command was published [s]: ``t_act`` when isq started its fall to
     zero (left WATCHDOG_ACT_FRACTION of the test current), ``t_zero`` when it got there
@@ -286,7 +342,7 @@ def judge_watchdog_realtime(
         else 'did not resume on a new command'
     )
     figures = f'{zero}; {back}' + (f'; {aborted}' if aborted else '')
-    return Item(
+    item = Item(
         'watchdog',
         ok,
         figures,
@@ -300,6 +356,7 @@ def judge_watchdog_realtime(
             'limits_s': [lo, hi],
         },
     )
+    return item.undecided(busy)
 
 
 def judge_watchdog_lockstep(silence_s: float, advanced: int, resumed_s: float | None) -> Item:

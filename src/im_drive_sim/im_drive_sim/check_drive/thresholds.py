@@ -12,6 +12,9 @@ from ..contract import STATE_FIELDS, TOPIC_TYPES
 
 __all__ = [
     'ACCEL_MIN_COUNTS',
+    'BUSY_FRESH_MIN',
+    'BUSY_LATE_P99_S',
+    'CLOCK_TOLERANCE',
     'CURRENT_BOUND_FACTOR',
     'CURRENT_FIELDS',
     'DEFAULT_TIMEOUT',
@@ -30,6 +33,8 @@ __all__ = [
     'RISE_TIME_MAX',
     'STATE_FIELDS',
     'STEADY_STATE_ERROR_MAX',
+    'STEP_GAP_MAX',
+    'STEP_LAG_FRACTION',
     'TRANSPORT_SLACK_REALTIME',
     'TYPES',
     'UNITS_MIN_COUNTS',
@@ -67,6 +72,28 @@ RATE_TOLERANCE = 0.10
 #: ... and at most this fraction of periods longer than 2 Ts (measured 0.4-4 %, 9 % while
 #: another real-time test ran beside it).
 RATE_MAX_LONG_FRACTION = 0.20
+#: rate (real time): the drive's clock -- the slope of its publication times over its step
+#: index, fitted to the punctual half of the periods -- within this fraction of Ts: a
+#: drive that cannot pause skips the periods its late loop missed, and its step index
+#: keeps to the wall clock however loaded the machine (measured 200.0 us/step beside two
+#: hogs). A drive paced right has this clock or a median period within RATE_TOLERANCE;
+#: one paced at 250 us has neither, whatever the load.
+CLOCK_TOLERANCE = 0.02
+#: The check kept up over a phase when it answered at least this fraction of the periods
+#: in time (the drive's applied_step labels: lag 0) ...
+BUSY_FRESH_MIN = 0.5
+#: ... and took the states at most this late (99th percentile of the delay from the
+#: drive's publication to the check's take, less the smallest) [s]. Otherwise the timing
+#: items it judged there are `inconclusive`, not failed (conditions.py).
+BUSY_LATE_P99_S = 2e-3
+#: step_response: the step the drive was given is the one commanded when no more than this
+#: many consecutive states are missing in it (a longer gap, bridged by a line, would
+#: stretch a 1.5 ms rise) ...
+STEP_GAP_MAX = 10
+#: ... and its commands reached the drive at most this fraction of the step's duration
+#: late (by its labels): the last quarter, where the steady state is measured, is then
+#: still inside the applied step.
+STEP_LAG_FRACTION = 0.25
 #: latency: command published -> next state received, wall time [s].
 LATENCY_MEDIAN_MAX = 2e-3
 LATENCY_P99_MAX = 20e-3
@@ -130,12 +157,35 @@ class Item:
     """The verdict on one item: one printed line, one JSON object."""
 
     name: str
-    passed: bool
+    passed: bool  #: True only for a pass (an inconclusive item has not passed)
     figures: str  #: what was measured, human-readable
     expected: str  #: what the contract asks
     values: dict = field(default_factory=dict)  #: the figures, machine-readable (SI)
+    #: why the item could not be judged ('' when it was): the check fell behind or the
+    #: link lost or held what it needed; then ``passed`` is False and the verdict
+    #: 'inconclusive', never 'fail'
+    inconclusive: str = ''
+
+    @property
+    def verdict(self) -> str:
+        """'pass', 'fail' or 'inconclusive'."""
+        if self.inconclusive:
+            return 'inconclusive'
+        return 'pass' if self.passed else 'fail'
+
+    def undecided(self, why: str) -> Item:
+        """This item as `inconclusive` for reason ``why`` (a failed verdict whose
+        preconditions did not hold); a passing item stays as it is."""
+        if self.passed or not why:
+            return self
+        return Item(self.name, False, self.figures, self.expected, self.values, why)
 
     def line(self) -> str:
+        if self.inconclusive:
+            return (
+                f'INCONCLUSIVE  {self.name:<13s} {self.figures} -- not judged: '
+                f'{self.inconclusive} (expected: {self.expected})'
+            )
         return (
             f'{"PASS" if self.passed else "FAIL"}  {self.name:<13s} {self.figures} '
             f'(expected: {self.expected})'

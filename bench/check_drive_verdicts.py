@@ -1,0 +1,170 @@
+"""check_drive's verdicts, repeated: quiet, beside CPU hogs, and across two network
+namespaces with packet loss (issue 39's acceptance: for each documented broken drive and
+a correct one, every verdict correct or ``inconclusive``, never wrong).
+
+    python bench/check_drive_verdicts.py [--runs N] [--conditions quiet,hogs,netns]
+                                         [--drives correct,sim,slower,...] [--loss PERCENT]
+                                         [--hogs N] [--json FILE]
+
+A drive is started, ``check_drive --json`` run against it, the drive stopped (by PID); each
+item's verdict is compared with the drive's expectation (the items it breaks fail, the
+others pass): ``right``, ``inconclusive`` or ``WRONG``. ``netns`` puts the drive in one
+network namespace and the check in another (test/netns.py; root, iproute2, nftables), with
+``--loss`` % of the packets dropped at random on each side. Takes about 12 s per check.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / 'test'))
+
+BIN = Path(sys.prefix) / 'bin'
+BROKEN = str(ROOT / 'test' / 'broken_drive.py')
+
+#: drive name -> (argv, the items it must fail)
+DRIVES: dict[str, tuple[list[str], set[str]]] = {
+    'example': ([str(BIN / 'ros2'), 'run', 'im_drive_sim', 'example_drive'], set()),
+    'sim': ([str(BIN / 'ros2'), 'run', 'im_drive_sim', 'drive_sim', '--mode', 'realtime'], set()),
+    'rate': ([sys.executable, BROKEN, '--break', 'rate'], {'rate'}),
+    'watchdog': ([sys.executable, BROKEN, '--break', 'watchdog'], {'watchdog'}),
+    'degrees': ([sys.executable, BROKEN, '--break', 'degrees'], {'fields'}),
+    'late': ([sys.executable, BROKEN, '--break', 'late'], {'latency'}),
+    'slower': ([sys.executable, BROKEN, '--break', 'slower'], {'latency'}),
+    'sign': ([sys.executable, BROKEN, '--break', 'sign'], {'step_response'}),
+    'slow_current': ([sys.executable, BROKEN, '--break', 'slow_current'], {'step_response'}),
+    'joint_type': ([sys.executable, BROKEN, '--break', 'joint_type'], {'topics'}),
+}
+
+
+def hog() -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, '-c', 'while True: pass'],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+
+
+def stop(p: subprocess.Popen, timeout: float = 10.0) -> None:
+    if p.poll() is None:
+        p.send_signal(signal.SIGINT)
+        try:
+            p.wait(timeout)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def one_check(drive: str, condition: str, loss: float, tmp: Path, net) -> dict:
+    argv, expect = DRIVES[drive]
+    env = dict(os.environ)
+    env['ROS_DOMAIN_ID'] = str(random.Random().randrange(1, 200))
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    out_json = tmp / f'{drive}_{condition}_{time.monotonic_ns()}.json'
+    check = [str(BIN / 'ros2'), 'run', 'im_drive_sim', 'check_drive', '--json', str(out_json)]
+    if net is not None:
+        env = net.env(env)
+        argv, check = net.argv('a', argv), net.argv('b', check)
+    d = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        c = subprocess.run(check, env=env, capture_output=True, text=True, timeout=120)
+    finally:
+        stop(d)
+    data = json.loads(out_json.read_text()) if out_json.exists() else None
+    row = {'drive': drive, 'condition': condition, 'exit': c.returncode, 'items': {}}
+    if data is None:
+        row['error'] = (c.stderr.strip().splitlines() or ['?'])[-1]
+        return row
+    for it in data['items']:
+        verdict = it.get('verdict', 'pass' if it['passed'] else 'fail')
+        want = 'fail' if it['name'] in expect else 'pass'
+        grade = (
+            'right' if verdict == want else 'inconclusive' if verdict == 'inconclusive' else 'WRONG'
+        )
+        row['items'][it['name']] = {'verdict': verdict, 'grade': grade, 'figures': it['figures']}
+    row['stdout'] = c.stdout
+    return row
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--runs', type=int, default=10)
+    ap.add_argument('--conditions', default='quiet,hogs,netns')
+    ap.add_argument('--drives', default=','.join(DRIVES))
+    ap.add_argument('--loss', type=float, default=0.1, help='packet loss in netns [%%]')
+    ap.add_argument('--hogs', type=int, default=2)
+    ap.add_argument('--json', help='write every row here')
+    ns = ap.parse_args()
+    drives = ns.drives.split(',')
+    conditions = ns.conditions.split(',')
+    rows = []
+    with tempfile.TemporaryDirectory() as tmpd:
+        tmp = Path(tmpd)
+        for condition in conditions:
+            hogs = [hog() for _ in range(ns.hogs)] if condition == 'hogs' else []
+            net = None
+            try:
+                if condition == 'netns':
+                    import netns
+
+                    why = netns.why_not()
+                    if why:
+                        print(f'netns: skipped: {why}')
+                        continue
+                    net = netns.TwoComputers('cdv').__enter__()
+                    net.loss(ns.loss)
+                for run in range(ns.runs):
+                    for drive in drives:
+                        row = one_check(drive, condition, ns.loss, tmp, net)
+                        rows.append(row)
+                        wrong = [k for k, v in row['items'].items() if v['grade'] == 'WRONG']
+                        inc = [k for k, v in row['items'].items() if v['grade'] == 'inconclusive']
+                        print(
+                            f'{condition:6s} run {run} {drive:13s} exit {row["exit"]} '
+                            f'wrong {wrong or "-"} inconclusive {inc or "-"}'
+                            + (f' ERROR {row["error"]}' if 'error' in row else ''),
+                            flush=True,
+                        )
+                        for k in wrong:
+                            print(f'    {k}: {row["items"][k]["figures"]}', flush=True)
+            finally:
+                for h in hogs:
+                    h.kill()
+                    h.wait()
+                if net is not None:
+                    net.__exit__(None, None, None)
+    print('\ncondition drive: right / inconclusive / WRONG (checks)')
+    for condition in conditions:
+        for drive in drives:
+            sel = [r for r in rows if r['condition'] == condition and r['drive'] == drive]
+            if not sel:
+                continue
+            grades = [
+                'WRONG'
+                if 'error' in r or any(v['grade'] == 'WRONG' for v in r['items'].values())
+                else 'inconclusive'
+                if any(v['grade'] == 'inconclusive' for v in r['items'].values())
+                else 'right'
+                for r in sel
+            ]
+            print(
+                f'{condition:6s} {drive:13s} {grades.count("right")} / '
+                f'{grades.count("inconclusive")} / {grades.count("WRONG")}'
+            )
+    if ns.json:
+        Path(ns.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,120 @@
+"""check_drive's measure of itself: did the check keep up, and did the link deliver?
+
+A verdict on a drive is only as good as the experiment that produced it. On a loaded
+machine the check's own process is descheduled and answers late; across a network a
+packet is lost or held. Either changes what the drive was asked to do, through no fault
+of the drive. Two measures tell it, both from what was recorded (pure numpy, no ROS):
+
+* **command lag** (the drive's view): in state k the drive labels the command it applied
+  (``applied_step``); a command that came in time gives ``applied_step = k - d``
+  (d = ``command_delay``, docs/interfaces.md). The lag ``k - d - applied_step`` [periods]
+  is 0 for a fresh period, and > 0 when the check answered late or the link held the
+  command (states under the watchdog, ``applied_step = -1``, are not counted);
+* **excess take delay** (the check's view): the time from the drive's publication
+  (``source_timestamp``, the drive's clock) to the check taking the state (its clock),
+  less the smallest such delay of the whole check [s]. The offset of two computers'
+  clocks cancels; what is left is the check's own lateness and the link's.
+
+``lost`` counts the states the link lost (gaps in the DDS publication sequence numbers:
+the check reads best effort). :func:`busy_reason` turns a phase's measures into the
+reason a timing verdict cannot be trusted ('' when the check kept up); the items that
+depend on timing say ``inconclusive`` with it instead of a pass or a fail.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from .thresholds import (
+    BUSY_FRESH_MIN,
+    BUSY_LATE_P99_S,
+    STATE_FIELDS,
+    F,
+)
+
+__all__ = [
+    'Conditions',
+    'busy_reason',
+    'command_lag',
+    'excess_delay',
+    'phase_conditions',
+]
+
+
+def excess_delay(take_ns: np.ndarray, source_ns: np.ndarray) -> np.ndarray:
+    """Per state: (take - source) - min(take - source) [s]; the clocks' offset cancels."""
+    d = take_ns.astype(np.int64) - source_ns.astype(np.int64)
+    if len(d) == 0:
+        return np.zeros(0)
+    return (d - d.min()) * 1e-9
+
+
+def command_lag(states: np.ndarray, declared: int) -> np.ndarray:
+    """Per state: step_index - declared - applied_step [periods]; NaN where no command was
+    applied (applied_step < 0) or the row is not a full state."""
+    k = states[:, F['step_index']]
+    a = states[:, F['applied_step']]
+    lag = k - declared - a
+    return np.where(np.isfinite(a) & (a >= 0), lag, np.nan)
+
+
+@dataclass
+class Conditions:
+    """What the check and the link did over one phase (its state rows)."""
+
+    states: int  #: states received
+    lost: int  #: states lost in transit (publication sequence gaps)
+    fresh: float  #: fraction of the commanded states with lag 0 (answered in time)
+    lag_max: float  #: largest command lag [periods]
+    late_p99_s: float  #: 99th percentile of the excess take delay [s]
+    late_max_s: float  #: largest excess take delay [s]
+
+    def as_dict(self) -> dict:
+        return {k: (v if not isinstance(v, float) or math.isfinite(v) else None)
+                for k, v in asdict(self).items()}  # fmt: skip
+
+
+def phase_conditions(
+    states: np.ndarray,
+    lengths: np.ndarray,
+    seq: np.ndarray,
+    excess: np.ndarray,
+    declared: int,
+    rows: slice,
+) -> Conditions:
+    """The measures over state ``rows`` (``excess``: :func:`excess_delay` of all rows)."""
+    ok = lengths[rows] == len(STATE_FIELDS)
+    s = states[rows][ok]
+    q = seq[rows][ok]
+    lost = int(np.sum(np.clip(np.diff(q) - 1, 0, None))) if len(q) > 1 else 0
+    lag = command_lag(s, declared)
+    lag = lag[np.isfinite(lag)]
+    ex = excess[rows][ok]
+    return Conditions(
+        states=len(s),
+        lost=lost,
+        fresh=float(np.mean(lag <= 0)) if len(lag) else math.nan,
+        lag_max=float(lag.max()) if len(lag) else math.nan,
+        late_p99_s=float(np.percentile(ex, 99)) if len(ex) else math.nan,
+        late_max_s=float(ex.max()) if len(ex) else math.nan,
+    )
+
+
+def busy_reason(c: Conditions, ts: float) -> str:
+    """Why timing measured over this phase cannot be trusted ('' when the check kept up):
+    it answered fewer than BUSY_FRESH_MIN of the periods in time, or took states more than
+    BUSY_LATE_P99_S late (99th percentile)."""
+    why = []
+    if math.isfinite(c.fresh) and c.fresh < BUSY_FRESH_MIN:
+        why.append(
+            f'the check answered {c.fresh * 100:.0f} % of the periods in time '
+            f'(lag up to {c.lag_max:.0f} periods)'
+        )
+    if math.isfinite(c.late_p99_s) and c.late_p99_s > BUSY_LATE_P99_S:
+        why.append(f'it took states up to {c.late_p99_s * 1e3:.1f} ms late (p99)')
+    if why and c.lost:
+        why.append(f'{c.lost} states lost in transit')
+    return '; '.join(why)

@@ -143,12 +143,16 @@ def main() -> int:
                     h.wait()
                 if net is not None:
                     net.__exit__(None, None, None)
-    print('\ncondition drive: right / inconclusive / WRONG (checks)')
-    for condition in conditions:
-        for drive in drives:
+    print(
+        '\n| drive (must fail) | '
+        + ' | '.join(f'{c}: right / inconc. / WRONG' for c in conditions)
+        + ' |'
+    )
+    print('|---|' + '---|' * len(conditions))
+    for drive in drives:
+        cells = []
+        for condition in conditions:
             sel = [r for r in rows if r['condition'] == condition and r['drive'] == drive]
-            if not sel:
-                continue
             grades = [
                 'WRONG'
                 if 'error' in r or any(v['grade'] == 'WRONG' for v in r['items'].values())
@@ -157,10 +161,12 @@ def main() -> int:
                 else 'right'
                 for r in sel
             ]
-            print(
-                f'{condition:6s} {drive:13s} {grades.count("right")} / '
-                f'{grades.count("inconclusive")} / {grades.count("WRONG")}'
+            cells.append(
+                f'{grades.count("right")} / {grades.count("inconclusive")} / '
+                f'{grades.count("WRONG")}'
             )
+        must = ', '.join(sorted(DRIVES[drive][1])) or 'nothing'
+        print(f'| {drive} ({must}) | ' + ' | '.join(cells) + ' |')
     if ns.json:
         Path(ns.json).write_text(json.dumps(rows, indent=1))
     return 0

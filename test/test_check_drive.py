@@ -555,3 +555,160 @@ def test_fill_missed_bridges_a_drive_that_cannot_pause_short_gaps_only():
     np.testing.assert_allclose(out[10:13], d[10:13], rtol=0, atol=1e-12)
     assert np.isnan(out[50 : 51 + MISSED_FILL_MAX]).all() and np.isnan(out[0]).all()
     np.testing.assert_array_equal(out[13:50], d[13:50])
+
+
+# ------------------------------------------------ the check's own lateness (issue 39)
+
+
+def test_clock_period_keeps_to_the_wall_clock_under_load():
+    """A drive that skips the periods its late loop missed keeps Ts per step whatever the
+    load; one that pauses (re-anchors) does not; one paced at 250 us is 250 us."""
+    rng = np.random.default_rng(7)
+    k = np.arange(5000)
+    late = np.where(rng.random(5000) < 0.3, rng.integers(0, 150_000, 5000), 0)
+    skipping = (k * 200_000 + late).astype(np.int64)
+    assert cd.clock_period(k.astype(float), skipping) == pytest.approx(200e-6, rel=1e-3)
+    # re-anchoring after each late period: the lateness accumulates
+    pausing = (k * 200_000 + np.cumsum(late)).astype(np.int64)
+    mean_late = float(np.mean(late)) * 1e-9  # each late period delays all that follow
+    assert cd.clock_period(k.astype(float), pausing) == pytest.approx(200e-6 + mean_late, rel=0.01)
+    slow = (k * 250_000 + late).astype(np.int64)
+    assert cd.clock_period(k.astype(float), slow) == pytest.approx(250e-6, rel=1e-3)
+    assert math.isnan(cd.clock_period(np.arange(5, dtype=float), np.arange(5) * 200_000))
+
+
+def test_rate_is_inconclusive_only_for_a_drive_paced_right():
+    busy = 'the check answered 30 % of the periods in time (lag up to 40 periods)'
+    k = np.arange(3001, dtype=float)
+    # paced right but late in a third of its periods (a loaded machine), skipping
+    src = (np.arange(3001) * 200_000).astype(np.int64)
+    src[1::3] += 300_000  # every third period 300 us late: 1/3 of the periods > 2 Ts
+    st = cd.period_stats(k, src, TS)
+    assert st['long_fraction'] == pytest.approx(1 / 3, abs=0.01)
+    assert st['clock'] == pytest.approx(200e-6, rel=1e-3)
+    assert cd.judge_rate_realtime(st, TS).verdict == 'fail'  # the check kept up: the drive
+    item = cd.judge_rate_realtime(st, TS, busy=busy)
+    assert item.verdict == 'inconclusive' and item.inconclusive == busy and not item.passed
+    assert item.line().startswith('INCONCLUSIVE  rate') and 'not judged: the check' in item.line()
+    # paced at 250 us: no load explains it
+    st250 = cd.period_stats(k, (np.arange(3001) * 250_000).astype(np.int64), TS)
+    assert cd.judge_rate_realtime(st250, TS, busy=busy).verdict == 'fail'
+    # a wrong mode is never the machine's fault
+    quiet = cd.period_stats(k, (np.arange(3001) * 200_000).astype(np.int64), TS)
+    assert cd.judge_rate_realtime(quiet, TS, 'drive/status says mode=lockstep', busy).verdict == (
+        'fail'
+    )
+
+
+def test_latency_leaves_out_changes_that_reached_the_drive_late():
+    wall = np.full(100, 150e-6)
+    busy = 'it took states up to 4.0 ms late (p99)'
+    # 8 of 11 changes answered late (labels 6..9): 3 in time are judged and pass
+    labels = [1, 2, 1, 6, 7, 8, 9, 6, 7, 8, 9]
+    item = cd.judge_latency(labels, wall, True, labels=labels, busy=busy)
+    assert item.verdict == 'pass' and '8 reached the drive late' in item.figures
+    # 2 in time: too few to judge the declared delay -> inconclusive, never a pass or fail
+    labels = [1, 2, 6, 7, 8, 9, 6, 7, 8, 9, 6]
+    item = cd.judge_latency(labels, wall, True, labels=labels, busy=busy)
+    assert item.verdict == 'inconclusive' and 'only 2 of 11 changes' in item.inconclusive
+    # a drive slower than it declares fails whatever the load: one period after its label
+    labels = [1, 1, 6, 7, 8, 9, 6, 7, 8, 9, 6]
+    item = cd.judge_latency([x + 1 for x in labels], wall, True, labels=labels, busy=busy)
+    assert item.verdict == 'fail' and '11 later (slower than declared)' in item.figures
+    # states missing around a change: not judged, and not counted as 'never'
+    item = cd.judge_latency(
+        [None, None, 1, 1, 1], wall, True, labels=[None, None, 1, 1, 1],
+        complete=[False, False, True, True, True],
+    )  # fmt: skip
+    assert item.verdict == 'pass' and 'never' not in item.figures
+    assert '2 not judged (states missing around them)' in item.figures
+    # complete, came in time, and isq never moved: the drive ignored it
+    item = cd.judge_latency([None] * 5, wall, True, labels=[1] * 5, complete=[True] * 5)
+    assert item.verdict != 'pass' and 'never: 5' in item.figures
+    # wall-time limits missed: a fail on a quiet check, inconclusive on a late one
+    late_wall = np.full(100, 30e-3)
+    assert cd.judge_latency([1] * 11, late_wall, True, labels=[1] * 11).verdict == 'fail'
+    item = cd.judge_latency([1] * 11, late_wall, True, labels=[1] * 11, busy=busy)
+    assert item.verdict == 'inconclusive' and item.inconclusive == busy
+
+
+def test_step_response_signs_fail_whatever_the_load_timing_does_not():
+    m = {'rise_s': 1.5e-3, 'steady_error': 0.0, 'torque_per_amp': 0.71, 'accel': 140.0,
+         'duration_s': 0.02}  # fmt: skip
+    minus = dict(m, accel=-140.0)
+    counts = 4096 / (2 * math.pi)
+    gaps = '30 consecutive states missing in the step'
+    late = 'commands reached the drive up to 40 periods late during the step (in time: 20 %)'
+    slow = dict(m, rise_s=14.7e-3)
+    item = cd.judge_step_response(slow, minus, 0.5, counts, gaps=gaps)
+    assert item.verdict == 'inconclusive' and item.inconclusive == gaps
+    assert cd.judge_step_response(slow, minus, 0.5, counts).verdict == 'fail'
+    # the rise is timed from the onset: a late command does not make it slow
+    assert cd.judge_step_response(slow, minus, 0.5, counts, busy=late).verdict == 'fail'
+    off = dict(m, steady_error=0.3)
+    item = cd.judge_step_response(off, minus, 0.5, counts, busy=late)
+    assert item.verdict == 'inconclusive' and item.inconclusive == late
+    inverted = cd.judge_step_response(
+        dict(m, torque_per_amp=-0.71),
+        dict(minus, torque_per_amp=-0.71),
+        0.5,
+        counts,
+        busy=late,
+        gaps=gaps,
+    )
+    assert inverted.verdict == 'fail' and 'torque sign opposite' in inverted.figures
+
+
+def test_conditions_measure_the_check_and_the_link():
+    n = 1000
+    s = _states(n)
+    s[:, 12] = s[:, 0] - 1  # applied_step: every period fresh (d = 1)
+    s[600:700, 12] = 598  # the check fell silent for 100 periods: held
+    s[900:, 12] = -1  # under the watchdog: not counted
+    lengths = np.full(n, 14)
+    seq = np.arange(n) + 1
+    seq[500:] += 3  # three states lost in transit
+    source = (np.arange(n) * 200_000 + 10**12).astype(np.int64)
+    take = source + 5_000_000_000 + 50_000  # another computer's clock: 5 s off
+    take[600:700] += 4_000_000  # taken 4 ms late while descheduled
+    excess = cd.excess_delay(take, source)
+    assert excess.min() == 0 and excess.max() == pytest.approx(4e-3)
+    lag = cd.command_lag(s, 1)
+    assert np.nanmax(lag) == 100 and np.isnan(lag[900:]).all() and lag[1] == 0
+    c = cd.phase_conditions(s, lengths, seq, excess, 1, slice(0, n))
+    assert c.states == n and c.lost == 3 and c.lag_max == 100
+    assert c.fresh == pytest.approx(799 / 899)  # state 0 has no command (applied_step -1)
+    assert c.late_max_s == pytest.approx(4e-3)
+    assert cd.busy_reason(c, TS) == (
+        'it took states up to 4.0 ms late (p99); 3 states lost in transit'
+    )
+    quiet = cd.phase_conditions(s, lengths, seq, excess, 1, slice(0, 500))
+    assert quiet.fresh == 1.0 and quiet.lost == 0 and cd.busy_reason(quiet, TS) == ''
+    held = cd.phase_conditions(s, lengths, seq, np.zeros(n), 1, slice(550, 750))
+    assert held.fresh == pytest.approx(0.5)
+    assert cd.busy_reason(held, TS) == ''  # half in time is the limit
+    worse = cd.phase_conditions(s, lengths, seq, np.zeros(n), 1, slice(580, 720))
+    assert 'the check answered 29 % of the periods in time' in cd.busy_reason(worse, TS)
+
+
+def test_joint_states_of_a_drive_that_skips_periods():
+    s = _states(200)
+    joints = np.array([(s[k, 1], s[k, 2], s[k, 3], s[k, 4]) for k in range(0, 200, 10)])
+    # periods 30, 40 and 90 skipped (a late loop): spacings 10, 30 and 20, all of them 10s
+    assert cd.joint_state_problems(np.delete(joints, [3, 4, 9], axis=0), s, 200_000) == []
+    assert cd.joint_state_problems(joints[::3], s, 200_000) == [
+        'joint_states every 30 steps, not 10'
+    ]
+
+
+def test_summary_and_exit_code_of_inconclusive_items():
+    ok = cd.Item('topics', True, '4/4', 'x')
+    bad = cd.Item('rate', False, 'median 250 us', 'x')
+    unsure = cd.Item('latency', False, 'f', 'x').undecided('the check fell behind')
+    assert unsure.verdict == 'inconclusive' and not unsure.passed
+    assert cd.Item('topics', True, 'f', 'x').undecided('why').verdict == 'pass'
+    assert cd.exit_code([ok, ok]) == 0
+    assert cd.exit_code([ok, unsure]) == 3
+    assert cd.exit_code([ok, unsure, bad]) == 1
+    line = cd.summary_line([ok, unsure, bad], 'realtime', 'realtime')
+    assert line.startswith('check_drive: 1/3 items pass; FAIL: rate; INCONCLUSIVE: latency')

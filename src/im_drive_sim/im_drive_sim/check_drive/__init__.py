@@ -12,12 +12,14 @@ result type), ``judges`` (the topics, fields and rate items) and ``response`` (t
 latency, step response and watchdog items) -- pure functions, numpy only: the tests call
 them on synthetic arrays --, ``probe`` (the participant on the graph: records every
 state, joint state and command it saw), ``procedure`` (what the check does to the
-drive, in order, into a ``Recording``), ``evaluate`` (the pure evaluation of a
+drive, in order, into a ``Recording``), ``conditions`` (the check's measure of itself:
+did it keep up, did the link deliver), ``evaluate`` (the pure evaluation of a
 recording, item by item) and ``cli``. This package's namespace is the union of their
 public names (each module's ``__all__``).
 """
 
 from . import cli as _cli
+from . import conditions as _conditions
 from . import evaluate as _evaluate
 from . import judges as _judges
 from . import probe as _probe
@@ -25,6 +27,7 @@ from . import procedure as _procedure
 from . import response as _response
 from . import thresholds as _thresholds
 from .cli import *  # noqa: F403
+from .conditions import *  # noqa: F403
 from .evaluate import *  # noqa: F403
 from .judges import *  # noqa: F403
 from .probe import *  # noqa: F403
@@ -34,6 +37,7 @@ from .thresholds import *  # noqa: F403
 
 __all__: list[str] = []
 __all__ += _cli.__all__
+__all__ += _conditions.__all__
 __all__ += _evaluate.__all__
 __all__ += _judges.__all__
 __all__ += _probe.__all__

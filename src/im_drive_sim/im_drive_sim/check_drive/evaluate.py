@@ -262,8 +262,9 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
                     delay,
                 )
             )
+        gaps, late = step_busy(rec, d_declared)
         items['step_response'] = judge_step_response(
-            metrics[0], metrics[1], a, counts_per_rad, busy=step_busy(rec, d_declared)
+            metrics[0], metrics[1], a, counts_per_rad, busy=late, gaps=gaps
         )
     else:
         nan = {
@@ -294,29 +295,29 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
     return [items[name] for name in ITEMS]
 
 
-def step_busy(rec: Recording, declared: int) -> str:
-    """Why the step the drive was given may not be the one commanded ('' when it was):
-    more than STEP_GAP_MAX consecutive states missing, or commands that reached the drive
-    later than STEP_LAG_FRACTION of the step's duration (by its labels), during the +A
-    and -A steps."""
+def step_busy(rec: Recording, declared: int) -> tuple[str, str]:
+    """Why the step the drive was given may not be the one commanded (('', '') when it
+    was), during the +A and -A steps: (more than STEP_GAP_MAX consecutive states missing,
+    commands that reached the drive later than STEP_LAG_FRACTION of the step's duration
+    by its labels)."""
     if len(rec.step_trans) < 4:
-        return ''
+        return '', ''
     k0, k1, k2 = rec.step_trans[1][0], rec.step_trans[2][0], rec.step_trans[3][0]
     d, _ = rec.rows_by_step(k0, k2 + 2)
     have = np.isfinite(d).all(axis=1)
-    why = []
+    gaps = late = ''
     idx = np.flatnonzero(have)
     gap = int(np.diff(np.concatenate(([-1], idx, [len(d)]))).max()) - 1 if len(d) else 0
     if gap > STEP_GAP_MAX:
-        why.append(f'{gap} consecutive states missing in the step')
+        gaps = f'{gap} consecutive states missing in the step'
     lag = command_lag(d[have], declared)
     lag = lag[np.isfinite(lag)]
     if len(lag) and lag.max() > STEP_LAG_FRACTION * (k1 - k0):
-        why.append(
+        late = (
             f'commands reached the drive up to {lag.max():.0f} periods late during the step '
             f'(in time: {np.mean(lag <= 0) * 100:.0f} %)'
         )
-    return '; '.join(why)
+    return gaps, late
 
 
 def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:

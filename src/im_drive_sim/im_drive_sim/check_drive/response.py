@@ -253,17 +253,23 @@ def judge_step_response(
     counts_per_rad: float,
     aborted: str = '',
     busy: str = '',
+    gaps: str = '',
 ) -> Item:
-    """``plus``/``minus``: step_metrics of the +isq and the -isq step; ``busy``: why the
-    step the drive was given is not the one commanded ('': it is) -- a failure is then
-    inconclusive."""
+    """``plus``/``minus``: step_metrics of the +isq and the -isq step. Why the step the
+    drive was given may not be the one commanded ('': it is): ``gaps`` (states missing:
+    a line across a gap stretches the rise) and ``busy`` (commands that reached the drive
+    late: the steady state is measured where the step may not have been applied). A
+    wrong sign fails whatever they say; the rise time is inconclusive only with
+    ``gaps`` (it is measured from the onset, wherever a late command put it); the other
+    figures with either."""
     problems = []
     if aborted:
         problems.append(aborted)
     # signs are the drive's whatever the load; the timing figures are not
     signs: list[str] = []
     rise = max(plus['rise_s'], minus['rise_s'])
-    if not rise <= RISE_TIME_MAX:
+    rise_bad = not rise <= RISE_TIME_MAX
+    if rise_bad:
         problems.append(f'rise time {rise * 1e3:.2f} ms')
     sse = max(plus['steady_error'], minus['steady_error'])
     if not sse <= STEADY_STATE_ERROR_MAX:
@@ -299,7 +305,9 @@ def judge_step_response(
             'aborted': aborted or None,
         },
     )
-    return item if signs else item.undecided(busy)
+    if signs or (rise_bad and not gaps):
+        return item  # the drive's, whatever the load
+    return item.undecided('; '.join(w for w in (gaps, busy) if w))
 
 
 def watchdog_limits(timeout: float) -> tuple[float, float]:

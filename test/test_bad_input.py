@@ -168,6 +168,8 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('report', 'record-without-loss', ['run_noloss']),
     ('report', 'garbage-results-line', ['run_garbage_line']),
     ('report', 'out-is-a-file', ['run', '--out', 'corrupt.yaml']),
+    ('report', 'bags-not-a-bag', ['run', '--bags', 'adir']),
+    ('report', 'bags-missing', ['run', '--bags', 'no_such_bag']),
     # -- study
     ('study', 'runs-zero', ['--runs', '0']),
     ('study', 'runs-type', ['--runs', 'many']),

@@ -37,7 +37,11 @@ def run_check(
 
 
 def failed(data: dict) -> set[str]:
-    return {i['name'] for i in data['items'] if not i['passed']}
+    return {i['name'] for i in data['items'] if i['verdict'] == 'fail'}
+
+
+def inconclusive(data: dict) -> set[str]:
+    return {i['name'] for i in data['items'] if i['verdict'] == 'inconclusive'}
 
 
 def run_expect(
@@ -47,30 +51,38 @@ def run_expect(
     expected_fail: set[str],
     check_args: tuple[str, ...] = (),
 ) -> tuple[str, dict]:
-    """Start a drive, check it, stop it; assert the set of failing items. A run that differs
-    only in timing items is repeated once with a fresh drive (a loaded shared machine)."""
+    """Start a drive, check it, stop it; assert the set of failing items. An item may be
+    inconclusive (the check fell behind on a loaded machine), never wrong: a run that
+    differs from the expectation only in timing items is repeated once with a fresh
+    drive, and the last run must have no item failed that should pass nor passed that
+    should fail."""
     for attempt in range(2):
         drive = procs.start(drive_argv)
         code, out, err, data = run_check(procs, tmp_path, *check_args)
         procs.stop_all()
         procs.children.clear()
         assert data is not None, f'exit {code}\n{out}\n{err}'
-        got = failed(data)
-        if got == expected_fail or attempt == 1 or not (got ^ expected_fail) <= TIMING_ITEMS:
+        got, unsure = failed(data), inconclusive(data)
+        differ = (got ^ expected_fail) | unsure
+        if not differ or attempt == 1 or not differ <= TIMING_ITEMS:
             break
         print(
-            f'timing item differs ({sorted(got ^ expected_fail)}), load '
+            f'timing item differs or inconclusive ({sorted(differ)}), load '
             f'{Path("/proc/loadavg").read_text().split()[:3]}; repeating once:\n{out}'
         )
-    assert got == expected_fail, f'{out}\n{err}'
-    assert code == (0 if not expected_fail else 1), out
+    wrong = (got - expected_fail) | (expected_fail - got - unsure)
+    assert not wrong, f'{out}\n{err}'
+    assert code == (1 if got else 3 if unsure else 0), out
+    assert data['verdict'] == {0: 'pass', 1: 'fail', 3: 'inconclusive'}[code]
     assert drive.returncode == 0, 'the drive did not stop cleanly'
     return out, data
 
 
 def item_lines(out: str) -> dict[str, str]:
     return {
-        line.split()[1]: line for line in out.splitlines() if line.startswith(('PASS ', 'FAIL '))
+        line.split()[1]: line
+        for line in out.splitlines()
+        if line.startswith(('PASS ', 'FAIL ', 'INCONCLUSIVE '))
     }
 
 
@@ -114,7 +126,10 @@ def test_drive_sim_realtime_passes_in_a_namespace(procs, tmp_path):
     )
     assert data['mode'] == 'realtime' and data['drive'] == '/bench2/drive_sim'
     wd = next(i for i in data['items'] if i['name'] == 'watchdog')['values']
-    assert 0.05 <= wd['t_act_s'] <= wd['t_zero_s']  # never before the timeout itself
+    # never before the timeout itself, timed from the state that shows the last command
+    # applied (published up to two periods after the drive took it)
+    if wd['t_act_s'] is not None:
+        assert 0.05 - 2 * TS <= wd['t_act_s'] <= wd['t_zero_s']
     print(out)
 
 
@@ -159,6 +174,7 @@ def test_broken_drive_fails_exactly_what_it_breaks(procs, tmp_path, breaks, expe
     its own item too: see the table in broken_drive.py)."""
     out, data = run_expect(procs, tmp_path, [sys.executable, BROKEN, '--break', breaks], expected)
     lines = item_lines(out)
+    expected = failed(data)  # what an inconclusive item would have shown is not asserted
     if 'rate' in expected:
         assert 'median period 2' in lines['rate']
         rate = next(i for i in data['items'] if i['name'] == 'rate')['values']
@@ -168,9 +184,11 @@ def test_broken_drive_fails_exactly_what_it_breaks(procs, tmp_path, breaks, expe
     if 'fields' in expected:
         assert '(units?)' in lines['fields']
     lat = next(i for i in data['items'] if i['name'] == 'latency')['values']
-    if 'late' in breaks:
+    if 'late' in breaks and 'latency' in expected:
         assert np.median([d for d in lat['effect_delays'] if d is not None]) >= 4
-    if 'slower' in breaks:  # declares 1, acts with 2: later than its labels in most changes
+    if (
+        'slower' in breaks and 'latency' in expected
+    ):  # declares 1, acts with 2: later than its labels in most changes
         assert lat['declared_delay'] == 1
         pairs = [
             (d, b)
@@ -179,9 +197,9 @@ def test_broken_drive_fails_exactly_what_it_breaks(procs, tmp_path, breaks, expe
         ]
         assert sum(d > b for d, b in pairs) > 0.25 * len(pairs), pairs
         assert 'later (slower than declared)' in lines['latency']
-    if 'sign' in breaks:
+    if 'sign' in breaks and 'step_response' in expected:
         assert 'torque sign opposite to isq' in lines['step_response']
-    if 'slow_current' in breaks:
+    if 'slow_current' in breaks and 'step_response' in expected:
         assert 'rise time' in lines['step_response']
     if 'topics' in expected:
         assert 'drive/joint_states publisher type std_msgs/msg/Float64MultiArray' in lines['topics']

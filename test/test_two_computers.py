@@ -108,6 +108,25 @@ def test_a_run_across_the_network_at_0_and_1_percent_loss(two, procs, tmp_path):
     host_topics = netns.bag_topics(tmp_path / 'host_bag')
     assert host_topics['/drive/state'] > 5 * 5625, host_topics  # every period, on the host
 
+    # the report of a run whose bags are on two computers: the host's bag, copied over,
+    # gives the experiments' signals the tuner's own bag left out
+    alone = subprocess.run(
+        ros2('im_tuner', 'report', str(tmp_path / 'run_1'), '--out', str(tmp_path / 'r0')),
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert alone.returncode == 0, alone.stderr[-2000:]
+    assert 'no signals in the bags for' in alone.stdout  # the 5 kHz is on the host
+    both = subprocess.run(
+        ros2('im_tuner', 'report', str(tmp_path / 'run_1'), '--bags', str(tmp_path / 'host_bag'),
+             '--out', str(tmp_path / 'r1')),
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert both.returncode == 0, both.stderr[-2000:]
+    assert 'no signals in the bags for' not in both.stdout, both.stdout
+    assert 'host_bag' in both.stdout and 'DIFFER' not in both.stdout, both.stdout
+    for fig in ('fig5_trajectory', 'fig8_best_vs_start'):
+        assert (tmp_path / 'r1' / f'{fig}.png').stat().st_size > 10_000
+
     # every loss against the same experiments at the paper's timing: the host's plant
     # history replayed in lock-step from both runs' records (they ran one after the
     # other on one plant; the second tuner reset the first one's tuner_lost fault, if

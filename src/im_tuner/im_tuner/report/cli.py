@@ -124,6 +124,15 @@ def _build_parser() -> argparse.ArgumentParser:
         help='run directories made by `ros2 run im_tuner tuner` (several: overlaid)',
     )
     ap.add_argument(
+        '--bags',
+        nargs='+',
+        type=Path,
+        default=[],
+        metavar='BAG_DIR',
+        help="more bags to take the experiments' signals from, beside the run's own: a "
+        "drive host's bag copied from the drive's computer (docs/two-computers.md)",
+    )
+    ap.add_argument(
         '--out',
         type=Path,
         metavar='DIR',
@@ -144,6 +153,11 @@ def main(args: list[str] | None = None) -> int:
                 RunDir(p).read_results()  # every record checked: no traceback later
             except RunDirError as exc:
                 raise ReportError(str(exc)) from None
+        for bag in cli.bags:
+            if not bag.is_dir() or not (
+                (bag / 'metadata.yaml').is_file() or any(bag.glob('*.mcap'))
+            ):
+                raise ReportError(f'--bags {bag}: not a bag directory (no metadata.yaml or .mcap)')
         if cli.out is not None and cli.out.exists() and not cli.out.is_dir():
             raise ReportError(f'--out {cli.out}: exists and is not a directory')
     except (ReportError, UsageError) as exc:
@@ -159,7 +173,10 @@ def main(args: list[str] | None = None) -> int:
 
     try:
         # the records now, the bags in write_report (beside the figures of the records)
-        runs = [load_run(p, lab, signals=False) for p, lab in zip(cli.runs, labels, strict=True)]
+        runs = [
+            load_run(p, lab, signals=False, extra_bags=cli.bags)
+            for p, lab in zip(cli.runs, labels, strict=True)
+        ]
     except ReportError as exc:
         print(f'error: report: {exc}', file=sys.stderr)
         return EXIT_USAGE

@@ -82,6 +82,8 @@ class RunReport:
     loss_check: dict[str, int] = field(default_factory=dict)
     live: str | None = None  #: the tuner working on the run now, if any
     signals_read: bool = False  #: its bags have been read (:func:`load_signals`)
+    #: bags beside the run's own (``report --bags``): a drive host's, from its computer
+    extra_bags: list[Path] = field(default_factory=list)
 
     @property
     def evals(self) -> list[Evaluation]:
@@ -108,9 +110,12 @@ def load_run(
     label: str | None = None,
     signals: bool = True,
     progress: Callable[[str], None] | None = None,
+    extra_bags: list[Path] | tuple[Path, ...] = (),
 ) -> RunReport:
     """Read one run directory (and, with ``signals``, its bags: else
-    :func:`load_signals` reads them later).
+    :func:`load_signals` reads them later). ``extra_bags``: more bags the experiments'
+    signals may be in -- a drive host's bag, recorded on the drive's computer, holds the
+    5 kHz topics a two-computer run's own bag leaves out (docs/two-computers.md).
 
     Raises :class:`ReportError` when ``path`` is not a tuning run."""
     try:
@@ -150,7 +155,16 @@ def load_run(
         rebuilt.real_time_factor = (rebuilt.sim_s or 0.0) / loop if loop > 0 else None
         summary = rebuilt
         source = 'results.jsonl'
-    rr = RunReport(rd.path, label or rd.path.name, run, records, summary, source, live=live)
+    rr = RunReport(
+        rd.path,
+        label or rd.path.name,
+        run,
+        records,
+        summary,
+        source,
+        live=live,
+        extra_bags=[Path(b) for b in extra_bags],
+    )
     rr.record_bag = _session_bags(summary.sessions or [], len(records))
     if signals:
         load_signals(rr, progress)
@@ -210,7 +224,7 @@ def load_signals(rr: RunReport, progress: Callable[[str], None] | None = None) -
     be read is named in ``bag_errors``."""
     want = _wanted(rr)
     windows = [w for i in set(want.values()) if (w := _window(rr.records[i])) is not None]
-    for bag_dir in RunDir(rr.path).bag_dirs():
+    for bag_dir in [*RunDir(rr.path).bag_dirs(), *rr.extra_bags]:
         if progress:
             size = sum(p.stat().st_size for p in bag_dir.glob('*.mcap'))
             progress(f'reading {rr.label}/{bag_dir.name} ({size / 1e6:.0f} MB)')

@@ -104,7 +104,9 @@ def summary_text(rr: RunReport) -> str:
         L.append(
             f'  losses in the bags vs results.jsonl: {c["matched"]} equal'
             + (
-                f" ({c['elsewhere']} found only in a later session's replay)"
+                f" ({c['elsewhere']} found only in another bag: a later session's replay"
+                + (', or --bags' if rr.extra_bags else '')
+                + ')'
                 if c.get('elsewhere')
                 else ''
             )

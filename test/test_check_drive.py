@@ -611,6 +611,14 @@ def test_rate_is_inconclusive_only_for_a_drive_paced_right():
     # paced at 250 us: no load explains it
     st250 = cd.period_stats(k, (np.arange(3001) * 250_000).astype(np.int64), TS)
     assert cd.judge_rate_realtime(st250, TS, busy=busy).verdict == 'fail'
+    # a drive that pauses when late (the simulator beside hogs): its clock runs slow and
+    # its median is 25 % long, but its punctual periods are Ts: the machine's, maybe
+    src = (np.arange(3001) * 200_000).astype(np.int64)
+    src[1:] += np.cumsum(np.where(np.arange(3000) % 2 == 0, 100_000, 0))  # every other +100 us
+    paused = cd.period_stats(k, src, TS)
+    assert paused['median'] == pytest.approx(250e-6) and paused['p10'] == pytest.approx(200e-6)
+    assert cd.judge_rate_realtime(paused, TS, busy=busy).verdict == 'inconclusive'
+    assert cd.judge_rate_realtime(paused, TS).verdict == 'fail'
     # a wrong mode is never the machine's fault
     quiet = cd.period_stats(k, (np.arange(3001) * 200_000).astype(np.int64), TS)
     assert cd.judge_rate_realtime(quiet, TS, 'drive/status says mode=lockstep', busy).verdict == (

@@ -608,9 +608,21 @@ def test_rate_is_inconclusive_only_for_a_drive_paced_right():
     item = cd.judge_rate_realtime(st, TS, busy=busy)
     assert item.verdict == 'inconclusive' and item.inconclusive == busy and not item.passed
     assert item.line().startswith('INCONCLUSIVE  rate') and 'not judged: the check' in item.line()
-    # paced at 250 us: no load explains it
+    # paced at 250 us: no load explains it, punctual (never skipping) ...
     st250 = cd.period_stats(k, (np.arange(3001) * 250_000).astype(np.int64), TS)
+    assert st250['skipped'] == 0 and st250['p10'] == pytest.approx(250e-6)
     assert cd.judge_rate_realtime(st250, TS, busy=busy).verdict == 'fail'
+    # ... or late and making up on its own 250 us schedule: the step index skips, short
+    # periods follow the late ones (a 10th percentile under 1.1 Ts), the clock is 250 us
+    t = np.arange(3001) * 250_000
+    t[1::3] += 200_000
+    kk = np.arange(3001, dtype=float)
+    kk[2::3] += 1  # a missed period skipped after each late one, its seq consecutive
+    kk = np.maximum.accumulate(kk)
+    late250 = cd.period_stats(kk, t.astype(np.int64), TS, np.arange(3001))
+    assert late250['skipped'] > 0 and late250['p10'] < 1.1 * TS
+    assert late250['clock'] > 1.1 * TS
+    assert cd.judge_rate_realtime(late250, TS, busy=busy).verdict == 'fail'
     # a drive that pauses when late (the simulator beside hogs): its clock runs slow and
     # its median is 25 % long, but its punctual periods are Ts: the machine's, maybe
     src = (np.arange(3001) * 200_000).astype(np.int64)

@@ -201,7 +201,10 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
     if realtime:
         sl = slice(i_rate0, i_rate1)
         items['rate'] = judge_rate_realtime(
-            period_stats(steps[sl], rec.source_ns[sl], ts), ts, mode_note, busy('rate')
+            period_stats(steps[sl], rec.source_ns[sl], ts, rec.seq[sl]),
+            ts,
+            mode_note,
+            busy('rate'),
         )
     else:
         new, unanswered, skipped = lockstep_step_problems(

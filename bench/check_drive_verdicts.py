@@ -65,7 +65,7 @@ def stop(p: subprocess.Popen, timeout: float = 10.0) -> None:
             p.wait()
 
 
-def one_check(drive: str, condition: str, loss: float, tmp: Path, net) -> dict:
+def one_check(drive: str, condition: str, tmp: Path, net) -> dict:
     argv, expect = DRIVES[drive]
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(random.Random().randrange(1, 200))
@@ -125,7 +125,7 @@ def main() -> int:
                     net.loss(ns.loss)
                 for run in range(ns.runs):
                     for drive in drives:
-                        row = one_check(drive, condition, ns.loss, tmp, net)
+                        row = one_check(drive, condition, tmp, net)
                         rows.append(row)
                         wrong = [k for k, v in row['items'].items() if v['grade'] == 'WRONG']
                         inc = [k for k, v in row['items'].items() if v['grade'] == 'inconclusive']

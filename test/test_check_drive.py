@@ -717,16 +717,14 @@ def test_conditions_measure_the_check_and_the_link():
     assert c.states == n and c.lost == 3 and c.lag_max == 100
     assert c.fresh == pytest.approx(799 / 899)  # state 0 has no command (applied_step -1)
     assert c.late_max_s == pytest.approx(4e-3)
-    assert cd.busy_reason(c, TS) == (
-        'it took states up to 4.0 ms late (p99); 3 states lost in transit'
-    )
+    assert cd.busy_reason(c) == ('it took states up to 4.0 ms late (p99); 3 states lost in transit')
     quiet = cd.phase_conditions(s, lengths, seq, excess, 1, slice(0, 500))
-    assert quiet.fresh == 1.0 and quiet.lost == 0 and cd.busy_reason(quiet, TS) == ''
+    assert quiet.fresh == 1.0 and quiet.lost == 0 and cd.busy_reason(quiet) == ''
     held = cd.phase_conditions(s, lengths, seq, np.zeros(n), 1, slice(550, 750))
     assert held.fresh == pytest.approx(0.5)
-    assert cd.busy_reason(held, TS) == ''  # half in time is the limit
+    assert cd.busy_reason(held) == ''  # half in time is the limit
     worse = cd.phase_conditions(s, lengths, seq, np.zeros(n), 1, slice(580, 720))
-    assert 'the check answered 29 % of the periods in time' in cd.busy_reason(worse, TS)
+    assert 'the check answered 29 % of the periods in time' in cd.busy_reason(worse)
 
 
 def test_joint_states_of_a_drive_that_skips_periods():

@@ -103,7 +103,7 @@ def phase_conditions(
     )
 
 
-def busy_reason(c: Conditions, ts: float) -> str:
+def busy_reason(c: Conditions) -> str:
     """Why timing measured over this phase cannot be trusted ('' when the check kept up):
     it answered fewer than BUSY_FRESH_MIN of the periods in time, or took states more than
     BUSY_LATE_P99_S late (99th percentile)."""

@@ -195,7 +195,7 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
 
     def busy(phase: str) -> str:
         c = conds.get(phase)
-        return busy_reason(c, ts) if c is not None and realtime else ''
+        return busy_reason(c) if c is not None and realtime else ''
 
     steps = rec.states[:n, F['step_index']]
     if realtime:
@@ -350,7 +350,7 @@ def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:
         c = phase_conditions(
             rec.states[:n], rec.lengths[:n], rec.seq[:n], excess, declared, slice(q0, q1)
         )
-        reason = busy_reason(c, rec.ts)
+        reason = busy_reason(c)
         if reason:
             why.append(f'while resuming, {reason}')
     return '; '.join(why)

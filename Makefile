@@ -36,7 +36,7 @@ $(VENV)/.deps: requirements.txt constraints.txt | $(PY)
 	touch $@
 
 $(VENV)/.installed: $(VENV)/.deps $(PKG_FILES) tools/ros2 Makefile
-	@# numba's cache knows only the file of each function: a fused kernel (bench/offline.py)
+	@# numba's cache knows only the file of each function: a fused kernel (im_tuner/offline.py)
 	@# would keep a stale copy of a changed kernel it calls. Compile afresh on reinstall.
 	@find $(VENV)/lib -path '*/im_*/__pycache__/*.nb[ci]' -delete 2>/dev/null || true
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation \
@@ -96,7 +96,7 @@ demo-drive: setup
 	$(PY) tools/demo_drive.py
 
 bench: setup
-	$(PY) bench/run_all.py
+	$(PY) benchmarks/run_all.py
 
 # The `bench` realism profile's calibration (issue 29): the spread of repeated experiments
 # and the paper's centre cells (Tables I-II) for `ideal` and `bench` at noise scales s,

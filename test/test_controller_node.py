@@ -37,7 +37,7 @@ from im_controller.messages import msg_to_result, result_to_msg
 from im_drive_sim.params import load_config
 from im_drive_sim.sim import DriveSim
 from im_tuner.bench import InProcessBench
-from im_tuner.bench.offline import run_experiment_offline
+from im_tuner.offline import run_experiment_offline
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 SEED = 3

@@ -23,7 +23,7 @@ from mcap.reader import make_reader
 
 from im_controller.config import GAIN_NAMES, Gains
 from im_drive_sim.params import load_config
-from im_tuner.bench.offline import OfflineBench, replay_realtime
+from im_tuner.offline import OfflineBench, replay_realtime
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_faults import bag_counts, bag_state, results, ros2
@@ -41,7 +41,7 @@ FLOOR_S = 2.0
 
 @pytest.fixture(scope='module')
 def floor() -> dict:
-    """This machine's own floor for a 5 kHz loop, measured first (bench/loop_floor.py's
+    """This machine's own floor for a 5 kHz loop, measured first (benchmarks/loop_floor.py's
     compiled wait, SCHED_FIFO, for FLOOR_S s): overruns and worst lateness. A VM starts
     some periods late whatever the code does (0.1-2 % here and on CI's machines); the tests
     below judge what the code does with them, and say the floor when they fail."""
@@ -50,7 +50,7 @@ def floor() -> dict:
         'from im_drive_sim import rt; rt.apply(rt.RtOptions(50, -1, True)); '
         f'print(json.dumps(F.measure({FLOOR_S})))'
     )
-    bench = str(Path(__file__).resolve().parents[1] / 'bench')
+    bench = str(Path(__file__).resolve().parents[1] / 'benchmarks')
     p = subprocess.run([sys.executable, '-c', code, bench], capture_output=True, text=True)
     assert p.returncode == 0, p.stderr[-2000:]
     out = json.loads(p.stdout.strip().splitlines()[-1])

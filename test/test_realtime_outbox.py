@@ -37,7 +37,7 @@ from im_tuner.record.node import Recorder
 sys.path.insert(0, str(Path(__file__).parent))
 from test_faults import bag_counts, results, ros2
 
-FROZEN_READER = Path(__file__).resolve().parents[1] / 'bench' / 'frozen_reader.py'
+FROZEN_READER = Path(__file__).resolve().parents[1] / 'benchmarks' / 'frozen_reader.py'
 
 # wall-clock timing is asserted: alone, after the tests that run on two workers
 pytestmark = pytest.mark.serial

@@ -203,7 +203,7 @@ def offline_run(
     state and its summary.json (as a dict). (test_faults.py uses it too.)"""
     from im_drive_sim.params import load_config
     from im_tuner import optim
-    from im_tuner.bench.offline import OfflineBench
+    from im_tuner.offline import OfflineBench
     from im_tuner.runlog import MemoryRecord
     from im_tuner.space import load_params
     from im_tuner.tuning import TuningRun, run_seeds

@@ -29,7 +29,7 @@ what the node calls once per received state), ``result`` (:class:`LossResult`,
 :class:`Experiment`) and ``runner`` (:class:`ExperimentRunner`, the node's core). This
 module gathers their public names. The same kernel fused with the drive kernels in one
 numba loop -- the oracle of the ROS tests and the engine of offline studies -- is a bench:
-``im_tuner.bench.offline``.
+``im_tuner.offline``.
 """
 
 from __future__ import annotations

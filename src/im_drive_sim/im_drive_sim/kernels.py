@@ -146,7 +146,7 @@ from .model_layout import STATE_FIELDS as STATE_FIELDS
 from .plant import applied_voltage, friction_torque, plant_rk4
 
 # STATE_FIELDS and N_STATE_FIELDS stand here too, beside ``write_out`` that fills them:
-# the fused offline bench (im_tuner.bench.offline) reads them with the kernels.
+# the fused offline bench (im_tuner.offline) reads them with the kernels.
 
 TWO_PI = 2.0 * math.pi
 

@@ -22,7 +22,7 @@ server and desktop CPU since 2013-2015, Intel Haswell and AMD Excavator/Zen on):
   only cost).
 
 It is the widest level every machine of ours has (AVX-512 is not everywhere); its cost is
-measured by ``bench/bench_numeric.py`` (the optimisers are not on the 5 kHz path).  Both
+measured by ``benchmarks/bench_numeric.py`` (the optimisers are not on the 5 kHz path).  Both
 libraries read these variables once, when they are loaded: :func:`apply` sets them in
 ``os.environ`` before numpy is imported (``import im_drive_sim`` calls it, and every
 package of the project imports im_drive_sim first), so every child process (the nodes a

@@ -152,7 +152,7 @@ CALIBRATION_EXPERIMENTS = 2
 def _start_terms(drive: DriveConfig, cfg: ExperimentConfig) -> tuple[float, float, float]:
     """Mean terms (a_j int f_j dt) of the start (``cfg.fallback_gains``) on ``drive`` over
     ``CALIBRATION_EXPERIMENTS`` experiments, the supervisor off (thresholds 1e12)."""
-    from .bench.offline import OfflineBench  # numba: only where a drive is calibrated
+    from .offline import OfflineBench  # numba: only where a drive is calibrated
 
     off = dataclasses.replace(cfg.loss, threshold1=1e12, threshold2=1e12, threshold3=1e12)
     bench = OfflineBench(drive, drive.seed, dataclasses.replace(cfg, loss=off))
@@ -252,7 +252,7 @@ def family_table(names: tuple[str, ...] = DRIVE_NAMES, experiments: int = 3) -> 
     """Markdown table of each drive's setup and its start measured offline (``experiments``
     experiments from rest, drive seed 0, the drive file's own model and realism): the
     table of docs/drive-family.md (``python -m im_tuner.family``)."""
-    from .bench.offline import OfflineBench
+    from .offline import OfflineBench
 
     head = (
         '| drive | J_total [kg m^2] | a_max [rad/s^2] | load [N m] | k_pw [A s/rad] | '

@@ -115,7 +115,7 @@ class _ModelBench:
     """The offline bench on a model with the run's experiment (a fresh drive at rest)."""
 
     def __init__(self, drive: DriveConfig, experiment: ExperimentConfig | None) -> None:
-        from .bench.offline import OfflineBench  # (numba: imported when a prior is built)
+        from .offline import OfflineBench  # (numba: imported when a prior is built)
 
         self.bench = OfflineBench(drive, drive.seed)
         if experiment is not None:

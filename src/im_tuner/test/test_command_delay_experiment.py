@@ -19,7 +19,7 @@ from im_controller.runner import ExperimentRunner, config_for_drive
 from im_drive_sim import contract
 from im_drive_sim.params import load_config
 from im_drive_sim.sim import DriveSim
-from im_tuner.bench.offline import OfflineBench
+from im_tuner.offline import OfflineBench
 
 EDGE = Gains(k_pw=0.3, k_iw=60.0, k_pos=60.0, tau_sm=0.0, tau_eq=0.0)
 

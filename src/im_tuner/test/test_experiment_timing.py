@@ -13,7 +13,7 @@ from im_controller.layout import Q_SETTLE_N
 from im_controller.runner import config_for_drive
 from im_drive_sim.contract import STATE_INDEX
 from im_drive_sim.sim import STATE_FIELDS, DriveSim
-from im_tuner.bench.offline import run_experiment_offline
+from im_tuner.offline import run_experiment_offline
 
 A = STATE_INDEX['applied_step']
 N = 5625

@@ -91,7 +91,7 @@ def test_controller_parameters_and_the_tuner_setup():
 def test_each_drive_start_is_finite_not_aborted_and_near_the_papers(name):
     """The start over 2 experiments offline (the calibration's own bench): the weights make
     each term the paper's start's (0.33 each, docs/controller.md), so the loss is 0.98."""
-    from im_tuner.bench.offline import OfflineBench
+    from im_tuner.offline import OfflineBench
 
     s = drive_setup(name)
     bench = OfflineBench(s.drive, 0, s.experiment)

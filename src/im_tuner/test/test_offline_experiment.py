@@ -1,7 +1,7 @@
 """The loss experiment on the offline bench: controller and drive in closed loop, no ROS.
 
 Moved from im_controller's tests in issue 17 (the closed loop is a bench,
-``im_tuner.bench.offline``); the experiment's semantics, supervisor, safety limits and
+``im_tuner.offline``); the experiment's semantics, supervisor, safety limits and
 determinism, exactly as they were asserted there."""
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from im_controller.layout import (
 )
 from im_drive_sim.params import load_config
 from im_drive_sim.sim import STATE_FIELDS, DriveSim
-from im_tuner.bench.offline import hold_offline, run_experiment_offline
+from im_tuner.offline import hold_offline, run_experiment_offline
 
 TS = load_config().Ts  # the drive's period (0.2 ms) [s]
 UNSTABLE = Gains(k_pw=0.05, k_iw=20.0, k_pos=300.0, tau_sm=0.005, tau_eq=0.007)

@@ -10,7 +10,7 @@ import pytest
 
 from im_drive_sim.params import load_config
 from im_tuner import prior as P
-from im_tuner.bench.offline import OfflineBench
+from im_tuner.offline import OfflineBench
 from im_tuner.optim import Optimizer, OptimizerError, make_optimizer
 from im_tuner.space import load_params
 from im_tuner.study.spec import StudySpec, grid

@@ -4,7 +4,7 @@
 when the report's text pulled the tuner's command line, rclpy, and the optimisers with
 pycma, optuna and scipy). Each check runs in a fresh interpreter and reads
 ``sys.modules`` (a module list, not a wall time: speed is measured in
-bench/bench_report.py). Also: the bench modes the report uses to say whether the drive
+benchmarks/bench_report.py). Also: the bench modes the report uses to say whether the drive
 was simulated agree with the tuner's own.
 """
 

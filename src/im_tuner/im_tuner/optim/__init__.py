@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .base import Optimizer
+from .base import Optimizer, algorithm_class
 from .checks import (
     OptimizerError,
     OptionSpec,
@@ -41,7 +41,6 @@ from .options import (
     NO_START_ALGOS,
     OPTIONS,
     TAKES_START,
-    algorithm_class,
 )
 
 if TYPE_CHECKING:  # the classes are loaded on first use (module __getattr__ below)

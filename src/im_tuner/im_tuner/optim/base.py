@@ -54,6 +54,7 @@ for what is derived from them or checked across them.  Two restore styles:
 
 from __future__ import annotations
 
+import importlib
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from typing import Any, ClassVar, NamedTuple, Self
@@ -70,7 +71,7 @@ from .checks import (
     check_start,
     told_loss,
 )
-from .options import OPTIONS, algorithm_class
+from .options import MODULES, OPTIONS
 
 __all__ = [
     'FLOAT',
@@ -459,3 +460,12 @@ class Optimizer(ABC):
             None if start is None else np.array(start, dtype=np.float64),
             **{k: cfg[k] for k in cls.OPTIONS},
         )
+
+
+def algorithm_class(algo: str) -> type[Optimizer]:
+    """The class of ``algo`` (one of ``ALGOS``), its module imported now if it was not
+    (the table ``options.MODULES`` names it; the algorithms load lazily so that a run
+    imports only its own library)."""
+    module, name = MODULES[algo]
+    cls: type[Optimizer] = getattr(importlib.import_module(f'{__package__}.{module}'), name)
+    return cls

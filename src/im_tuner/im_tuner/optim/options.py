@@ -7,19 +7,15 @@ mathematics (``real(0.03, '(0, 0.5)', help)``), a string by its choices; the com
 GAs' three options are shared by cga, pecga and necga.  Pure: numpy and :mod:`.checks`
 only.  An algorithm's own module -- and pycma
 (cmaes), optuna (tpe), scipy (rcga) with it -- is imported only when one is built
-(:func:`algorithm_class`, from ``make_optimizer`` and ``Optimizer.from_state``), so a
+(:func:`.base.algorithm_class`, from ``make_optimizer`` and ``Optimizer.from_state``), so a
 tool that only parses its command line (the tuner refusing bad input) stays fast.
 """
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from .checks import OptimizerError, OptionSpec
-
-if TYPE_CHECKING:
-    from .base import Optimizer
 
 __all__ = [
     'ALGOS',
@@ -29,7 +25,6 @@ __all__ = [
     'NO_START_ALGOS',
     'OPTIONS',
     'TAKES_START',
-    'algorithm_class',
     'check_eta_below_n',
     'choice',
     'integer',
@@ -41,7 +36,7 @@ ALGOS: tuple[str, ...] = ('spsa', 'necga', 'cga', 'pecga', 'rcga', 'cmaes', 'tpe
 #: the tuner's optimiser when none is named: the fewest experiments and aborted ones from
 #: a hand-tuned start (issue 19; docs/tuner.md, "Which algorithm")
 DEFAULT_ALGO = 'safe'
-#: algo -> (module of this package, class): imported by :func:`algorithm_class` only
+#: algo -> (module of this package, class): imported by :func:`.base.algorithm_class` only
 MODULES: dict[str, tuple[str, str]] = {
     'spsa': ('spsa', 'SPSA'),
     'necga': ('cga', 'NECGA'),
@@ -259,10 +254,3 @@ def check_eta_below_n(algo: str, opts: dict[str, Any]) -> None:
             f'{algo} option eta must be an integer in [1, n - 1] = '
             f'[1, {opts["n"] - 1}] (eta < n), got {opts["eta"]!r}'
         )
-
-
-def algorithm_class(algo: str) -> type[Optimizer]:
-    """The class of ``algo`` (one of ``ALGOS``), its module imported now if it was not."""
-    module, name = MODULES[algo]
-    cls: type[Optimizer] = getattr(importlib.import_module(f'{__package__}.{module}'), name)
-    return cls

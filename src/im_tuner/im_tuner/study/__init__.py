@@ -8,10 +8,10 @@ The grid (paper, "Summary of experimental results"): SPSA over a in {a0/5, a0, 5
 c in {c0/5, c0, 5 c0} (a0 = 0.0183, c0 = 0.03; A = 20, alpha = gamma = 0.3), neCGA over
 n in {5, 25, 125} with eta = floor(n/2); ``runs`` runs of ``budget`` loss evaluations per
 configuration.  Everything runs in-process on the same numba kernels as the nodes
-(``im_tuner.bench.offline``), in a process pool.
+(``im_tuner.offline``), in a process pool.
 
 **A study run is a tuner run**, by construction: it is the tuner's own ``TuningRun`` on
-the offline bench (``bench.offline.OfflineBench``), its records kept in memory
+the offline bench (``offline.OfflineBench``), its records kept in memory
 (``runlog.MemoryRecord``: no files, no checkpoints).  Run r of every configuration uses the run seed
 ``run_seed(seed, r)`` and does exactly what ``ros2 run im_tuner tuner --seed <run seed>
 --remeasure 1`` does on the simulated lock-step bench (``tuning.run_seeds`` splits the

@@ -98,7 +98,7 @@ def spread(drive: Any, n: int) -> tuple[float, float, float]:
     experiments after the first from rest (drive seed of the file)."""
     from im_controller.config import Gains
 
-    from ..bench.offline import OfflineBench
+    from ..offline import OfflineBench
 
     bench = OfflineBench(drive, drive.seed)
     g = Gains()

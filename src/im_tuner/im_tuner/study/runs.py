@@ -27,7 +27,7 @@ from im_drive_sim import numeric
 from im_drive_sim.params import DriveConfig
 
 from .. import optim
-from ..bench.offline import OfflineBench
+from ..offline import OfflineBench
 from ..runlog import Evaluation, MemoryRecord, Record, Reference, Remeasurement
 from ..space import SearchSpace, TunerParams
 from ..tuning import DEFAULT_RETRIES, TuningRun, run_seeds

@@ -15,7 +15,7 @@
 The load average is printed before and after: on a shared machine the figures are
 inflated; compare them with the load in mind.
 
-Run: ``.venv/bin/python bench/bench_report.py [--mb 25] [--repeats 5]`` (part of
+Run: ``.venv/bin/python benchmarks/bench_report.py [--mb 25] [--repeats 5]`` (part of
 ``make bench``).  ``main() -> dict`` returns the figures for run_all.py.
 """
 

@@ -2,7 +2,7 @@
 namespaces with packet loss (issue 39's acceptance: for each documented broken drive and
 a correct one, every verdict correct or ``inconclusive``, never wrong).
 
-    python bench/check_drive_verdicts.py [--runs N] [--conditions quiet,hogs,netns]
+    python benchmarks/check_drive_verdicts.py [--runs N] [--conditions quiet,hogs,netns]
                                          [--drives correct,sim,slower,...] [--loss PERCENT]
                                          [--hogs N] [--json FILE]
 

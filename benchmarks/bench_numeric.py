@@ -8,7 +8,7 @@ algorithm whose state goes through numpy's SIMD loops or OpenBLAS (cmaes, tpe, s
 ``evals`` ask/tell steps on a cheap deterministic loss after a warm-up; the child's figure
 is the median step [us].  Printed: the median over samples per setting and their ratio.
 
-    python bench/bench_numeric.py [--samples 5] [--evals 200]
+    python benchmarks/bench_numeric.py [--samples 5] [--evals 200]
 
 ``main() -> dict`` (for run_all): ``{f'numeric_{algo}_held_us', f'numeric_{algo}_off_us',
 f'numeric_{algo}_ratio'}``.

@@ -1,7 +1,7 @@
 """A user's drive at the simulator's timing (issue 38): each form of a power stage on the
 composed bench, beside the machine's floor measured in the same minute.
 
-    .venv/bin/python bench/bench_user_drive.py [--budget 10] [--runs 1] [--stops 10]
+    .venv/bin/python benchmarks/bench_user_drive.py [--budget 10] [--runs 1] [--stops 10]
 
 Drives: ``sim`` (the simulator, compiled), ``example`` (the stand-in plant as a compiled
 class), ``library`` (a C library that lives on the wall clock, ``test/wallclock_drive.c``,
@@ -155,7 +155,7 @@ def replayed(recs: list[dict]) -> dict:
     a later difference is that and the held periods together."""
     from im_controller.config import GAIN_NAMES, Gains
     from im_drive_sim.params import load_config
-    from im_tuner.bench.offline import replay_stand_in, stand_in_losses
+    from im_tuner.offline import replay_stand_in, stand_in_losses
 
     cfg = load_config(None)
     ran = [r for r in recs if r.get('experiment_id') is not None]

@@ -11,7 +11,7 @@ numpy expression, about 1 us, included in the hot figure only).  Issue target: w
 * **cold**: what the tuner sees.  There every ask and every tell comes right after a
   150 ms experiment (numba kernels, DDS) and fsync'ed file writes, so code and data have
   left the caches and each numpy call costs 5-10 us.  Here, before every ask and before
-  every tell: one offline experiment (``im_tuner.bench.offline.run_experiment_offline``
+  every tell: one offline experiment (``im_tuner.offline.run_experiment_offline``
   on an ``im_drive_sim.sim.DriveSim``, signals recorded) and a line appended to a file and
   fsync'ed (``--disturb stream`` streams a 32 MB array instead of the experiment, for a
   checkout without the drive packages).  ask and tell are timed alone, as tuning.py does,
@@ -21,10 +21,10 @@ numpy expression, about 1 us, included in the hot figure only).  Issue target: w
   idle sleep between the calls would inflate it 2-3x: an idle virtual CPU loses far more
   than the tuner's busy one.)
 
-    python bench/bench_optim.py [--evals 2000] [--repeats 7] [--cold-evals 40]
+    python benchmarks/bench_optim.py [--evals 2000] [--repeats 7] [--cold-evals 40]
                                 [--disturb experiment|stream]
 
-``main() -> dict`` (for ``bench/run_all.py``) returns a flat dict of medians in us per
+``main() -> dict`` (for ``benchmarks/run_all.py``) returns a flat dict of medians in us per
 evaluation: ``{algo: hot_us, f'{algo}_cold': cold_us}`` for every algo of ``ALGOS``, i.e.
 ``{'spsa': ..., 'spsa_cold': ..., 'necga': ..., 'necga_cold': ..., 'cga': ...,
 'cga_cold': ..., 'pecga': ..., 'pecga_cold': ..., 'rcga': ..., 'rcga_cold': ...}``
@@ -82,7 +82,7 @@ def make_disturbance(
     if kind == 'experiment':
         from im_controller.config import Gains
         from im_drive_sim.sim import DriveSim
-        from im_tuner.bench.offline import run_experiment_offline
+        from im_tuner.offline import run_experiment_offline
 
         sim = DriveSim()
         run_experiment_offline(sim, Gains())  # compiles/loads the kernels

@@ -1,6 +1,6 @@
 """A reliable KEEP_ALL reader of every drive and controller topic, to be frozen (SIGSTOP).
 
-    python bench/frozen_reader.py
+    python benchmarks/frozen_reader.py
 
 Prints ``ready`` on stdout once it has taken 100 drive states (so it is matched with every
 publisher), then takes whatever comes until it is stopped -- a visualiser or a ``ros2 topic

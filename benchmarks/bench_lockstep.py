@@ -7,7 +7,7 @@ with a command, the drive takes the command, steps the model and publishes state
   in one thread, over real DDS (Fast DDS intra-process path);
 * two processes: ``ros2 run im_drive_sim drive_sim`` as a child, the responder here.
 
-Run: ``.venv/bin/python bench/bench_lockstep.py`` (or ``make bench``). Prints medians
+Run: ``.venv/bin/python benchmarks/bench_lockstep.py`` (or ``make bench``). Prints medians
 over repeated batches; the machines are shared and noisy.
 """
 

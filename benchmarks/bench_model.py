@@ -4,9 +4,9 @@ Runs ``kernels.run_batch`` (a numba loop, no per-step Python) over a batch of st
 the full model (vector control + RK4 plant) and the reduced model, after a warm-up that
 also triggers compilation; repeats and prints median/min/max ns per step.
 
-    python bench/bench_model.py [--steps 100000] [--repeats 7]
+    python benchmarks/bench_model.py [--steps 100000] [--repeats 7]
 
-``main() -> dict`` returns the figures for ``bench/run_all.py``.  See docs/drive-model.md.
+``main() -> dict`` returns the figures for ``benchmarks/run_all.py``.  See docs/drive-model.md.
 """
 
 from __future__ import annotations

@@ -44,7 +44,7 @@ from im_drive_sim import kernels as DK
 from im_drive_sim.params import DriveConfig
 from im_drive_sim.sim import DriveSim
 
-from ..tuning import Measurement
+from .tuning import Measurement
 
 __all__ = [
     'N_REC',

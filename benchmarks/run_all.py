@@ -1,6 +1,6 @@
 """All benchmarks of the workspace, with the issue targets beside each figure.
 
-Run: ``make bench`` (or ``.venv/bin/python bench/run_all.py``). Figures are medians over
+Run: ``make bench`` (or ``.venv/bin/python benchmarks/run_all.py``). Figures are medians over
 repeated batches on a shared, noisy machine; compare medians and ratios, not single runs.
 """
 

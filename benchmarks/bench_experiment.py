@@ -11,7 +11,7 @@ experiment (1.125 s, 5625 steps) run through the ROS nodes, lock-step.
   and the ratio is taken per pair.
 
 Wall time per experiment = from the start call to the loss message. Prints medians.
-Run: ``.venv/bin/python bench/bench_experiment.py`` (or ``make bench``).
+Run: ``.venv/bin/python benchmarks/bench_experiment.py`` (or ``make bench``).
 """
 
 from __future__ import annotations

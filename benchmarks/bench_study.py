@@ -11,7 +11,7 @@
   yardstick, below), in this process, alternating, median ratio of 5 pairs. Target:
   within 10 %.
 
-Run: ``.venv/bin/python bench/bench_study.py [--runs N]`` (or ``make bench``).  Targets
+Run: ``.venv/bin/python benchmarks/bench_study.py [--runs N]`` (or ``make bench``).  Targets
 (issue 7): full grid <= 300 s on a 2-core machine, reduced <= 120 s.
 """
 
@@ -50,7 +50,7 @@ def _bare_run(spec, cell_index: int, r: int) -> float:
     import math
 
     from im_controller.config import Gains
-    from im_tuner.bench.offline import OfflineBench
+    from im_tuner.offline import OfflineBench
     from im_tuner.study.runs import prepare_run
 
     t0 = time.perf_counter()

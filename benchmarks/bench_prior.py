@@ -1,8 +1,8 @@
 """safe's first step from the drive model: its cost, and the goals of issue 29, on a plant
 that may differ from the model, or on the packaged family of drives.
 
-    python bench/bench_prior.py MODEL.yaml [PLANT.yaml] [--runs N] [--budget B]
-    python bench/bench_prior.py --drives NAME,...|all [--realism bench] [--runs N]
+    python benchmarks/bench_prior.py MODEL.yaml [PLANT.yaml] [--runs N] [--budget B]
+    python benchmarks/bench_prior.py --drives NAME,...|all [--realism bench] [--runs N]
 
 MODEL.yaml is the drive file the tuner knows (its nominal model gives the prior); the runs
 measure on PLANT.yaml (default: MODEL.yaml), e.g. a copy with another J and Rr, to see
@@ -27,7 +27,7 @@ import numpy as np
 
 from im_drive_sim.params import load_config
 from im_tuner import optim
-from im_tuner.bench.offline import OfflineBench
+from im_tuner.offline import OfflineBench
 from im_tuner.prior import model_prior
 from im_tuner.runlog import Evaluation, MemoryRecord, Remeasurement
 from im_tuner.space import TunerParams, load_params

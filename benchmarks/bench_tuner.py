@@ -14,7 +14,7 @@ budget 200, 3 re-measurements, the reference), in a fresh run directory. From it
 * the report of that run, ``ros2 run im_tuner report RUN --out DIR`` (reads the ~345 MB
   bag, writes the four figures and the CSV): whole-command wall time, median of 3.
 
-Run: ``.venv/bin/python bench/bench_tuner.py [--algos necga spsa] [--budget 200]``
+Run: ``.venv/bin/python benchmarks/bench_tuner.py [--algos necga spsa] [--budget 200]``
 (part of ``make bench``).  ``main() -> dict`` returns the figures for run_all.py.
 """
 

@@ -34,7 +34,7 @@ per-period timings) and ``results.jsonl``:
   the controller's answer latency (state taken -> command out) p50/p99 [us];
 * experiments that ran exactly 5625 drive periods, and those flagged timing.
 
-Medians over ``--runs`` runs (3). Run: ``.venv/bin/python bench/bench_realtime.py
+Medians over ``--runs`` runs (3). Run: ``.venv/bin/python benchmarks/bench_realtime.py
 [--budget 20] [--runs 3]`` (part of ``make bench``). ``main() -> dict`` returns the
 figures for run_all.py.
 """

@@ -5,7 +5,7 @@ memory locked, timer slack 1 ns -- what the hypervisor and the kernel leave a re
 thread here. The composed bench can do no better than this; what it measures beyond it
 is its own (docs/real-drive.md, "What it bought on this machine").
 
-    .venv/bin/python bench/loop_floor.py [--seconds 30] [--hogs 2]
+    .venv/bin/python benchmarks/loop_floor.py [--seconds 30] [--hogs 2]
 
 Prints the overruns (starts more than a period late), the worst lateness and the
 lateness histogram (pacing.LATENESS_BINS), with and without ``--hogs`` busy processes.

@@ -3,7 +3,8 @@
 Without options it prints the path of every installed layout, one a line (the files
 Foxglove's "Import from file..." takes). ``--out DIR`` writes the layouts into DIR from the
 contracts (``make foxglove-layouts`` regenerates the committed copies this way);
-``--namespace NS`` names the topics of a bench started under a namespace. Bad input: one
+``--namespace NS`` names the topics of a bench started under a namespace. ``--table``
+prints the index table of docs/foxglove.md. Bad input: one
 line on stderr, exit 2, nothing written.
 """
 
@@ -17,6 +18,7 @@ from pathlib import Path
 from im_drive_sim.cli import Parser, UsageError, run_cli
 
 from .layouts import LAYOUTS, build, render
+from .signals import index_table
 
 PROG = 'im_tuner.foxglove'
 PACKAGE = 'im_tuner'
@@ -49,6 +51,11 @@ def _parser() -> Parser:
         default='',
         help='topics under a namespace, e.g. /bench1 (default: none; needs --out)',
     )
+    p.add_argument(
+        '--table',
+        action='store_true',
+        help='print the index table of the 5 kHz topics (Markdown, as docs/foxglove.md has it)',
+    )
     return p
 
 
@@ -56,6 +63,11 @@ def _body(argv: list[str]) -> int:
     a = _parser().parse_args(argv)
     if a.namespace and not _NAMESPACE.match(a.namespace):
         raise UsageError(f'--namespace: not a ROS namespace (like /bench1): {a.namespace!r}')
+    if a.table:
+        if a.out is not None or a.namespace:
+            raise UsageError('--table takes no other option')
+        sys.stdout.write(index_table())
+        return 0
     if a.out is None:
         if a.namespace:
             raise UsageError('--namespace needs --out DIR (the installed layouts have none)')

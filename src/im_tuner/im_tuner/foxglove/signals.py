@@ -24,6 +24,7 @@ __all__ = [
     'LOSS_KEY',
     'LOSS_TOPIC',
     'Signal',
+    'index_table',
     'label',
     'loss_signals',
     'signal',
@@ -148,3 +149,15 @@ def loss_signals() -> dict[str, Signal]:
 def label(s: Signal) -> str:
     """A plot series' label: ``name: meaning [unit]``."""
     return f'{s.name}: {s.meaning} [{s.unit}]'
+
+
+def index_table() -> str:
+    """The index table of docs/foxglove.md (Markdown): every array index of the 5 kHz
+    topics with its name, meaning and unit, from the contracts."""
+    rows = ['| message path | field | meaning | unit |', '|---|---|---|---|']
+    for topic, (fields, _words) in ARRAY_TOPICS.items():
+        for i in range(len(fields)):
+            s = signal(topic, i)
+            meaning = s.meaning.replace('|', '\\|')  # a literal bar inside a table cell
+            rows.append(f'| `{topic}.data[{i}]` | `{s.name}` | {meaning} | {s.unit} |')
+    return '\n'.join(rows) + '\n'

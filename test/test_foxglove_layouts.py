@@ -19,6 +19,7 @@ import itertools
 import json
 import math
 import re
+import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -401,6 +402,41 @@ def test_the_cli_prints_the_installed_layouts_and_refuses_bad_input(tmp_path):
         assert proc.returncode == 2 and proc.stdout == '', bad
         assert proc.stderr.count('\n') == 1 and why in proc.stderr, proc.stderr
         assert sorted(tmp_path.rglob('*')) == before, bad
+
+
+# JavaScript's JSON.parse, as Foxglove reads an imported layout, then every panel the
+# mosaic trees (the top one and each tab's) name has a config and every config is shown.
+NODE_CHECK = """
+const fs = require('fs');
+const leaves = (n) => typeof n === 'string' ? [n] : [...leaves(n.first), ...leaves(n.second)];
+for (const f of process.argv.slice(1)) {
+  const l = JSON.parse(fs.readFileSync(f, 'utf8'));
+  let ids = leaves(l.layout);
+  for (const id of ids.filter((i) => i.startsWith('Tab!')))
+    for (const t of l.configById[id].tabs) ids = ids.concat(leaves(t.layout));
+  const configs = Object.keys(l.configById).sort();
+  if (JSON.stringify([...ids].sort()) !== JSON.stringify(configs)) throw new Error(f);
+  for (const id of ids.filter((i) => i.startsWith('Plot!')))
+    for (const p of l.configById[id].paths)
+      if (typeof p.value !== 'string' || !p.value.startsWith('/')) throw new Error(id);
+  console.log(f.split('/').pop(), ids.length);
+}
+"""
+
+
+def test_javascript_reads_every_installed_layout(installed):
+    """Optional (needs Node.js, no network): the layouts parse as Foxglove parses them."""
+    node = shutil.which('node')
+    if node is None:
+        pytest.skip('Node.js is not installed (optional check)')
+    share = Path(get_package_share_directory('im_tuner')) / 'foxglove'
+    files = [str(share / f'{n}.json') for n in LAYOUTS]
+    proc = subprocess.run(
+        [node, '-e', NODE_CHECK, *files], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 0, proc.stderr
+    shown = {line.split()[0]: int(line.split()[1]) for line in proc.stdout.splitlines()}
+    assert shown == {f'{n}.json': len(panels(installed[n])) for n in LAYOUTS}
 
 
 def test_the_doc_carries_the_generators_index_table_and_names_every_layout():

@@ -266,5 +266,6 @@ def build(namespace: str = '') -> dict[str, dict[str, Any]]:
 
 def render(layout: dict[str, Any]) -> str:
     """A layout as the file's text (2-space JSON, ASCII, a final newline): the same bytes
-    for the same contract on every machine."""
-    return json.dumps(layout, indent=2, ensure_ascii=True) + '\n'
+    for the same contract on every machine. Strict JSON: no NaN or Infinity, which
+    Python writes by default and JavaScript's ``JSON.parse`` (Foxglove's) refuses."""
+    return json.dumps(layout, indent=2, ensure_ascii=True, allow_nan=False) + '\n'

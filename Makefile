@@ -16,7 +16,7 @@ PY     := $(VENV)/bin/python
 PKGS   := src/im_drive_sim src/im_controller src/im_tuner
 # Anything that changes what gets installed re-triggers the (fast, no-deps) package install.
 PKG_FILES := $(shell find $(PKGS) -type f \( -name '*.py' -o -name '*.yaml' -o -name '*.xml' \
-               -o -name '*.cfg' -o -path '*/scripts/*' -o -path '*/resource/*' \) -not -path '*/test/*' \
+               -o -name '*.cfg' -o -name '*.json' -o -path '*/scripts/*' -o -path '*/resource/*' \) -not -path '*/test/*' \
                -not -path '*/__pycache__/*' 2>/dev/null)
 
 # ROS needs a writable log directory and the ament index of the venv.
@@ -24,7 +24,7 @@ export HOME ?= $(CURDIR)
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: test-serial setup test test-unit test-levels lint format demo demo-drive bench reproduction reproduction-docs calibrate-bench foxglove-check lock clean
+.PHONY: test-serial setup test test-unit test-levels lint format demo demo-drive bench reproduction reproduction-docs calibrate-bench foxglove-check foxglove-layouts lock clean
 
 setup: $(VENV)/.installed
 
@@ -150,6 +150,12 @@ foxglove-check:
 	@test -n "$(BAG)" || { echo 'usage: make foxglove-check BAG=<bag directory>'; exit 2; }
 	cd tools/foxglove-check && npm ci --silent --no-audit --no-fund
 	node tools/foxglove-check/check.mjs $(BAG)/*.mcap
+
+# The Foxglove layouts shipped in share/im_tuner/foxglove/, regenerated from the contracts into
+# their committed place (docs/foxglove.md); a test checks the committed files are these bytes.
+foxglove-layouts: setup
+	$(PY) -m im_tuner.foxglove --out src/im_tuner/foxglove
+	@$(MAKE) --no-print-directory setup
 
 # Re-resolve the pinned set after editing requirements.txt.
 lock: | $(PY)

@@ -1,0 +1,446 @@
+"""The Foxglove layouts shipped in share/im_tuner/foxglove/ resolve in a real bag (issue 41).
+
+One short real tuner run (``ros2 run im_tuner tuner --budget 1``: the reference and one
+evaluation, lock-step, recorded) makes the bag. Each layout is loaded from the installed
+share directory (``ament_index_python``), every message path in it is extracted and
+resolved against the bag with rosbags' ``AnyReader`` (the types from the bag's own
+schemas): the topic is in the bag with messages, every field exists on every decoded
+message, every array index is below the array's length in every message, every path
+gives one plottable number per message, and every label names the field the contract
+puts at that index, with the unit docs/interfaces.md documents. The resolver is shown to
+catch a wrong topic, field, index, filter and label. The committed and installed files
+are the generator's bytes, and docs/foxglove.md carries the generator's index table.
+"""
+
+from __future__ import annotations
+
+import ast
+import itertools
+import json
+import math
+import re
+import shutil
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from ament_index_python.packages import get_package_share_directory
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+import im_controller.layout
+from im_controller.config import GAIN_NAMES, GAIN_UNITS
+from im_controller.layout import CONTROL_FIELDS, INTERNALS_FIELDS
+from im_controller.messages import LOSS_KEYS
+from im_drive_sim.contract import COMMAND_FIELDS, STATE_FIELDS
+from im_tuner.foxglove import LAYOUTS, build, render
+from im_tuner.foxglove.signals import index_table
+
+REPO = Path(__file__).resolve().parents[1]
+ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
+COMMITTED = REPO / 'src' / 'im_tuner' / 'foxglove'
+FIELDS = {
+    '/drive/state': STATE_FIELDS,
+    '/drive/command': COMMAND_FIELDS,
+    '/controller/internals': INTERNALS_FIELDS,
+}
+LOSS_TOPIC = '/controller/loss'
+N_STATE, N_CMD = len(STATE_FIELDS), len(COMMAND_FIELDS)
+THETA_MEAS = f'/drive/state.data[{STATE_FIELDS.index("theta_meas")}]'
+E_THETA = f'/controller/internals.data[{INTERNALS_FIELDS.index("e_theta")}]'
+LABEL = re.compile(r'^(?P<name>\w+): (?P<meaning>.+) \[(?P<unit>[^\]]+)\]$')
+
+
+# -- the bag --------------------------------------------------------------------------------
+@pytest.fixture(scope='module')
+def run(tmp_path_factory) -> Path:
+    """A real tuner run: the reference experiment and one evaluation, recorded."""
+    out = tmp_path_factory.mktemp('foxglove') / 'run'
+    args = ('--budget', '1', '--remeasure', '0', '--seed', '1', '--quiet', '--out', str(out))
+    proc = subprocess.run(
+        [ROS2, 'run', 'im_tuner', 'tuner', *args], capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out
+
+
+@pytest.fixture(scope='module')
+def installed() -> dict[str, dict]:
+    """Every shipped layout, loaded from the installed share directory."""
+    d = Path(get_package_share_directory('im_tuner')) / 'foxglove'
+    files = sorted(d.glob('*.json'))
+    assert [f.stem for f in files] == sorted(LAYOUTS)
+    return {f.stem: json.loads(f.read_text(encoding='utf-8')) for f in files}
+
+
+# -- Foxglove message paths: the syntax the layouts use -------------------------------------
+# docs.foxglove.dev/docs/visualization/message-path-syntax: a topic, then `.field`,
+# `[i]` (index), `[:]` (every element) and `{key=="value"}` (keep the elements whose
+# field equals the literal). Anything else is refused, so a path this parser does not
+# understand cannot pass unchecked.
+_STEP = re.compile(
+    r'\.(?P<field>[A-Za-z_]\w*)|\[(?P<index>\d+)\]|(?P<all>\[:\])'
+    r'|\{(?P<fkey>[A-Za-z_]\w*)==(?P<q>["\'])(?P<fval>[^"\']*)(?P=q)\}'
+)
+
+
+class Unresolved(AssertionError):
+    """A message path that does not resolve in the bag."""
+
+
+def parse_path(path: str) -> tuple[str, list[tuple[str, Any]]]:
+    """``(topic, steps)``; a step is ('field', name), ('index', i), ('all', None) or
+    ('filter', (key, value))."""
+    m = re.match(r'^(/[A-Za-z_][\w/]*)', path)
+    if not m:
+        raise Unresolved(f'{path}: no topic')
+    topic, rest, steps = m.group(1), path[m.end() :], []
+    while rest:
+        s = _STEP.match(rest)
+        if not s:
+            raise Unresolved(f'{path}: cannot parse {rest!r}')
+        if s.group('field'):
+            steps.append(('field', s.group('field')))
+        elif s.group('index'):
+            steps.append(('index', int(s.group('index'))))
+        elif s.group('all'):
+            steps.append(('all', None))
+        else:
+            steps.append(('filter', (s.group('fkey'), s.group('fval'))))
+        rest = rest[s.end() :]
+    return topic, steps
+
+
+def evaluate(msg: object, path: str, steps: list[tuple[str, Any]]) -> list[object]:
+    """The values ``steps`` select in one decoded message (Unresolved: a field that does
+    not exist, an index beyond the array)."""
+    items = [msg]
+    for kind, arg in steps:
+        out: list[object] = []
+        for it in items:
+            if kind == 'field':
+                if not hasattr(it, arg):
+                    raise Unresolved(f'{path}: {type(it).__name__} has no field {arg!r}')
+                out.append(getattr(it, arg))
+            elif kind == 'index':
+                if not arg < len(it):
+                    raise Unresolved(f'{path}: index {arg} beyond an array of {len(it)}')
+                out.append(it[arg])
+            elif kind == 'all':
+                out.extend(it)
+            else:
+                key, value = arg
+                if not hasattr(it, key):
+                    raise Unresolved(f'{path}: filter on a field {key!r} that does not exist')
+                if str(getattr(it, key)) == value:
+                    out.append(it)
+        items = out
+    return items
+
+
+def plottable(v: object) -> float:
+    """The number Foxglove's Plot draws for a value: numbers and numeric strings."""
+    if isinstance(v, bool) or not isinstance(v, int | float | str):
+        raise Unresolved(f'not a plottable value: {v!r}')
+    return float(v)
+
+
+def resolve(bag: Path, paths: list[str]) -> dict[str, list[float]]:
+    """Resolve every path in every message of its topic: path -> the value of each message
+    (one per message, in log-time order)."""
+    parsed = {p: parse_path(p) for p in paths}
+    out: dict[str, list[float]] = {p: [] for p in paths}
+    with AnyReader([bag], default_typestore=get_typestore(Stores.EMPTY)) as reader:
+        conns = {c.topic: c for c in reader.connections}
+        for p, (topic, _steps) in parsed.items():
+            if topic not in conns:
+                raise Unresolved(f'{p}: topic {topic} is not in the bag')
+            if conns[topic].msgcount == 0:
+                raise Unresolved(f'{p}: topic {topic} has no messages')
+        wanted = [conns[t] for t in {t for t, _s in parsed.values()}]
+        for c, _t, raw in reader.messages(connections=wanted):
+            msg = reader.deserialize(raw, c.msgtype)
+            for p, (topic, steps) in parsed.items():
+                if topic == c.topic:
+                    values = evaluate(msg, p, steps)
+                    if len(values) != 1:
+                        raise Unresolved(f'{p}: {len(values)} values in a message, not one')
+                    out[p].append(plottable(values[0]))
+    return out
+
+
+# -- what a layout holds --------------------------------------------------------------------
+def leaves(node: Any) -> Iterator[str]:
+    """The panel ids of a mosaic tree."""
+    if isinstance(node, str):
+        yield node
+    else:
+        assert set(node) <= {'first', 'second', 'direction', 'splitPercentage'}, node
+        assert node['direction'] in ('row', 'column')
+        yield from leaves(node['first'])
+        yield from leaves(node['second'])
+
+
+def panels(layout: dict) -> list[str]:
+    """Every panel id the layout shows (inside tabs too); checks the structure."""
+    assert set(layout) == {'configById', 'globalVariables', 'userNodes', 'playbackConfig', 'layout'}
+    ids = list(leaves(layout['layout']))
+    for pid in list(ids):
+        if pid.startswith('Tab!'):
+            cfg = layout['configById'][pid]
+            assert 0 <= cfg['activeTabIdx'] < len(cfg['tabs'])
+            for tab in cfg['tabs']:
+                ids.extend(leaves(tab['layout']))
+    assert len(ids) == len(set(ids)), 'a panel shown twice'
+    assert sorted(ids) == sorted(layout['configById']), 'panels without a config, or configs unused'
+    return ids
+
+
+def series(layout: dict) -> list[tuple[str, str, str | None]]:
+    """``(panel id, message path, label)`` of every Plot series and custom x axis."""
+    out = []
+    for pid in panels(layout):
+        if not pid.startswith('Plot!'):
+            continue
+        cfg = layout['configById'][pid]
+        assert cfg['xAxisVal'] in ('timestamp', 'custom')
+        for p in cfg['paths']:
+            assert p['enabled'] is True and p['timestampMethod'] == 'receiveTime'
+            out.append((pid, p['value'], p['label']))
+        if cfg['xAxisVal'] == 'custom':
+            out.append((pid, cfg['xAxisPath']['value'], None))
+    return out
+
+
+# -- what the contract documents ------------------------------------------------------------
+def interfaces_units() -> dict[str, dict[int, tuple[str, str]]]:
+    """docs/interfaces.md's tables: topic -> index -> (field, unit)."""
+    text = (REPO / 'docs' / 'interfaces.md').read_text(encoding='utf-8')
+    out: dict[str, dict[int, tuple[str, str]]] = {}
+    for topic, heading in (('/drive/state', 'drive/state'), ('/drive/command', 'drive/command')):
+        section = text.split(f'### `{heading}` (data[')[1].split('\n### ')[0]
+        rows = re.findall(r'^\| (\d+) \| `(\w+)` \| ([^|]+) \|', section, re.M)
+        out[topic] = {int(i): (name, unit.strip()) for i, name, unit in rows}
+    return out
+
+
+def control_units() -> dict[str, str]:
+    """The units im_controller.layout documents for CONTROL_FIELDS (its docstring)."""
+    tree = ast.parse(Path(im_controller.layout.__file__).read_text(encoding='utf-8'))
+    body = tree.body
+    for a, b in itertools.pairwise(body):
+        if isinstance(a, ast.AnnAssign) and getattr(a.target, 'id', '') == 'CONTROL_FIELDS':
+            doc = b.value.value
+            units = re.search(r'units: ([^)]+)\)', doc).group(1).split(', ')
+            return {
+                n: ('-' if u == '0/1' else u) for n, u in zip(CONTROL_FIELDS, units, strict=True)
+            }
+    raise AssertionError('CONTROL_FIELDS has no docstring of units')
+
+
+def check_label(path: str, text: str | None) -> None:
+    """The label names the field at the path's index (or the loss key) with its documented
+    unit (AssertionError otherwise)."""
+    topic, steps = parse_path(path)
+    if text is None:  # a custom x axis: the loss message's experiment id
+        assert topic == LOSS_TOPIC and steps[-2] == ('filter', ('key', 'experiment_id'))
+        return
+    m = LABEL.match(text)
+    assert m, f'{path}: label {text!r} is not "name: meaning [unit]"'
+    name, unit = m.group('name'), m.group('unit')
+    if topic in FIELDS:
+        assert steps[:-1] == [('field', 'data')] and steps[-1][0] == 'index', path
+        i = steps[-1][1]
+        assert name == FIELDS[topic][i], f'{path} is {FIELDS[topic][i]}, labelled {name}'
+        documented = interfaces_units().get(topic, {}).get(i)
+        if documented is not None:
+            assert documented[0] == name and unit == documented[1], (
+                f'{path}: {text} vs {documented}'
+            )
+        elif name in control_units():
+            assert unit == control_units()[name], f'{path}: {text} vs {control_units()[name]}'
+    else:
+        assert topic == LOSS_TOPIC, path
+        key = steps[-2][1][1]
+        assert steps[-2] == ('filter', ('key', key)) and key in LOSS_KEYS, path
+        assert name == key, f'{path} is {key}, labelled {name}'
+        if key in GAIN_NAMES:
+            assert unit == GAIN_UNITS[key], f'{path}: {text}'
+
+
+def at(topic: str, name: str) -> str:
+    """The message path of a field, its index from the contract."""
+    return f'{topic}.data[{FIELDS[topic].index(name)}]'
+
+
+# -- the tests ------------------------------------------------------------------------------
+def test_every_path_of_every_layout_resolves_in_a_recorded_bag(run, installed):
+    bag = run / 'bag_0'
+    results = [json.loads(line) for line in (run / 'results.jsonl').read_text().splitlines()]
+    assert len(results) == 2  # the reference and one evaluation
+    every = {p for layout in installed.values() for _pid, p, _l in series(layout)}
+    values = resolve(bag, sorted(every))
+    with AnyReader([bag], default_typestore=get_typestore(Stores.EMPTY)) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+    for p, vs in values.items():
+        assert len(vs) == counts[parse_path(p)[0]] > 0, p
+        assert all(math.isfinite(v) for v in vs), p
+    for name, layout in installed.items():
+        for _pid, p, text in series(layout):
+            check_label(p, text)
+        assert len(series(layout)) > 0, name
+    # the numbers mean what the labels say: the loss and gains of each experiment as the
+    # run recorded them, bit for bit, against the experiment id (Fig. 9's x axis)
+    loss = {
+        k: values[f'{LOSS_TOPIC}.status[0].values[:]{{key=="{k}"}}.value']
+        for k in ('experiment_id', 'loss', *GAIN_NAMES)
+    }
+    assert loss['experiment_id'] == [r['experiment_id'] for r in results]
+    assert loss['loss'] == [r['loss'] for r in results]
+    for g in GAIN_NAMES:
+        assert loss[g] == [r['gains'][g] for r in results]
+    # Fig. 5: the position reference is the pi rad move there and back; the measured
+    # position follows it; the load steps to one value
+    theta_ref = values[at('/controller/internals', 'theta_ref')]
+    theta_meas = values[at('/drive/state', 'theta_meas')]
+    assert max(theta_ref) - min(theta_ref) == pytest.approx(math.pi, abs=1e-9)
+    # (lock-step, seeded: the same every run; the measured range exceeds the move by 0.071 rad)
+    assert abs(max(theta_meas) - max(theta_ref)) < 0.05 * math.pi
+    assert abs(min(theta_meas) - min(theta_ref)) < 0.05 * math.pi
+    load = {round(v, 12) for v in values[at('/controller/internals', 'load_cmd')]}
+    assert len(load) == 3 and 0.0 in load  # off, and on against each direction of the move
+    # the drive's step index counts the states (a lock-step drive may re-send one)
+    steps = values[at('/drive/state', 'step_index')]
+    assert steps[0] == 0.0 and {b - a for a, b in itertools.pairwise(steps)} <= {0.0, 1.0}
+    assert set(values[at('/drive/state', 'command_delay')]) == {1.0}  # the simulator's d
+
+
+def test_drive_signals_label_every_index_of_the_5khz_topics_once(installed):
+    seen: dict[str, list[int]] = {t: [] for t in FIELDS}
+    for _pid, p, _text in series(installed['drive_signals']):
+        topic, steps = parse_path(p)
+        seen[topic].append(steps[-1][1])
+    for topic, fields in FIELDS.items():
+        assert sorted(seen[topic]) == list(range(len(fields))), topic
+
+
+def test_the_paper_figures_show_what_the_paper_does(installed):
+    """Fig. 5: position reference and load torque; Fig. 8: position error, speed error,
+    current reference; Fig. 9: loss and the speed controller's gain per experiment."""
+
+    def names(layout: dict) -> set[str]:
+        return {LABEL.match(t).group('name') for _p, _v, t in series(layout) if t}
+
+    assert {'theta_ref', 'theta_meas', 'load_cmd'} <= names(installed['fig5_trajectory'])
+    assert {'e_theta', 'e_omega', 'isq_ref'} <= names(installed['fig8_errors'])
+    assert {'loss', *GAIN_NAMES} == names(installed['fig9_loss_gains'])
+    for pid, cfg in installed['fig9_loss_gains']['configById'].items():
+        assert cfg['xAxisVal'] == 'custom', pid  # per experiment, not over time
+
+
+@pytest.mark.parametrize(
+    ('path', 'label', 'why'),
+    [
+        (f'/drive/state.data[{N_STATE}]', None, f'index {N_STATE} beyond an array of {N_STATE}'),
+        (f'/drive/command.data[{N_CMD}]', None, f'index {N_CMD} beyond an array of {N_CMD}'),
+        ('/drive/stat.data[2]', None, 'topic /drive/stat is not in the bag'),
+        ('/drive/state.dat[2]', None, "no field 'dat'"),
+        ('/controller/loss.status[0].values[:]{key=="losss"}.value', None, '0 values'),
+        ('/controller/loss.status[1].key', None, 'index 1 beyond an array of 1'),
+        ('/controller/loss.status[0].values[:]{name=="loss"}.value', None, "field 'name'"),
+        ('/drive/state.data[2] + 1', None, 'cannot parse'),
+        (THETA_MEAS, 'omega_meas: measured speed [rad/s]', 'labelled omega_meas'),
+        (THETA_MEAS, 'theta_meas: measured position [deg]', 'theta_meas: measured'),
+        (E_THETA, 'e_theta: position error [rad/s]', 'vs rad'),
+    ],
+)
+def test_the_resolver_catches_a_wrong_path_or_label(run, path, label, why):
+    with pytest.raises(AssertionError, match=re.escape(why)):
+        resolve(run / 'bag_0', [path])
+        check_label(path, label)
+
+
+def test_committed_and_installed_layouts_are_the_generators_bytes(installed):
+    share = Path(get_package_share_directory('im_tuner')) / 'foxglove'
+    texts = {name: render(layout) for name, layout in build().items()}
+    assert sorted(p.name for p in COMMITTED.iterdir()) == sorted(f'{n}.json' for n in texts)
+    for name, text in texts.items():
+        assert (COMMITTED / f'{name}.json').read_bytes() == text.encode('ascii'), name
+        assert (share / f'{name}.json').read_bytes() == text.encode('ascii'), name
+
+
+def test_the_cli_prints_the_installed_layouts_and_refuses_bad_input(tmp_path):
+    py = [sys.executable, '-m', 'im_tuner.foxglove']
+    share = Path(get_package_share_directory('im_tuner')) / 'foxglove'
+    proc = subprocess.run(py, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines() == [str(share / f'{n}.json') for n in LAYOUTS]
+    # a namespaced bench: the same layouts with every topic under it
+    proc = subprocess.run(
+        [*py, '--out', str(tmp_path / 'ns'), '--namespace', '/bench1'],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 0, proc.stderr
+    ns = json.loads((tmp_path / 'ns' / 'fig8_errors.json').read_text())
+    assert [v for _pid, v, _l in series(ns)] == [
+        '/bench1' + v for _pid, v, _l in series(build()['fig8_errors'])
+    ]
+    for bad, why in (
+        (['--namespace', 'bench1', '--out', str(tmp_path / 'x')], 'not a ROS namespace'),
+        (['--out', str(tmp_path / 'missing' / 'x')], 'does not exist'),
+        (['--namespace', '/b'], 'needs --out'),
+        (['--table', '--out', str(tmp_path / 'x')], 'takes no other option'),
+        (['--nope'], 'unrecognized arguments'),
+    ):
+        before = sorted(tmp_path.rglob('*'))
+        proc = subprocess.run([*py, *bad], capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 2 and proc.stdout == '', bad
+        assert proc.stderr.count('\n') == 1 and why in proc.stderr, proc.stderr
+        assert sorted(tmp_path.rglob('*')) == before, bad
+
+
+# JavaScript's JSON.parse, as Foxglove reads an imported layout, then every panel the
+# mosaic trees (the top one and each tab's) name has a config and every config is shown.
+NODE_CHECK = """
+const fs = require('fs');
+const leaves = (n) => typeof n === 'string' ? [n] : [...leaves(n.first), ...leaves(n.second)];
+for (const f of process.argv.slice(1)) {
+  const l = JSON.parse(fs.readFileSync(f, 'utf8'));
+  let ids = leaves(l.layout);
+  for (const id of ids.filter((i) => i.startsWith('Tab!')))
+    for (const t of l.configById[id].tabs) ids = ids.concat(leaves(t.layout));
+  const configs = Object.keys(l.configById).sort();
+  if (JSON.stringify([...ids].sort()) !== JSON.stringify(configs)) throw new Error(f);
+  for (const id of ids.filter((i) => i.startsWith('Plot!')))
+    for (const p of l.configById[id].paths)
+      if (typeof p.value !== 'string' || !p.value.startsWith('/')) throw new Error(id);
+  console.log(f.split('/').pop(), ids.length);
+}
+"""
+
+
+def test_javascript_reads_every_installed_layout(installed):
+    """Optional (needs Node.js, no network): the layouts parse as Foxglove parses them."""
+    node = shutil.which('node')
+    if node is None:
+        pytest.skip('Node.js is not installed (optional check)')
+    share = Path(get_package_share_directory('im_tuner')) / 'foxglove'
+    files = [str(share / f'{n}.json') for n in LAYOUTS]
+    proc = subprocess.run(
+        [node, '-e', NODE_CHECK, *files], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 0, proc.stderr
+    shown = {line.split()[0]: int(line.split()[1]) for line in proc.stdout.splitlines()}
+    assert shown == {f'{n}.json': len(panels(installed[n])) for n in LAYOUTS}
+
+
+def test_the_doc_carries_the_generators_index_table_and_names_every_layout():
+    doc = (REPO / 'docs' / 'foxglove.md').read_text(encoding='utf-8')
+    assert index_table() in doc
+    for name in LAYOUTS:
+        assert f'`{name}.json`' in doc, name

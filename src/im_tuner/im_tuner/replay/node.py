@@ -31,6 +31,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
+from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
@@ -239,7 +240,9 @@ def replay(plan: ReplayPlan, progress: Callable[[int, int], None] | None = None)
     out = np.full((n, len(COMMAND_FIELDS)), np.nan)
     requests = plan.requests()
     context = rclpy.Context()
-    rclpy.init(context=context)
+    # no rclpy signal handlers: Ctrl-C must raise KeyboardInterrupt here (the command
+    # then ends the controller and exits 130), not only shut the context down
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     with tempfile.TemporaryDirectory(prefix='im_tuner_replay_') as tmp:
         child = _Child(plan, ns, Path(tmp))
         drive = None

@@ -1,0 +1,375 @@
+"""What a replay feeds a controller and what it compares: read from a recorded bag (pure).
+
+A bag of the tuner's in-process benches (``--bench inproc``, lock-step, or ``--bench
+realtime``, the composed real-time loop) holds everything a controller saw and did: every
+drive state (``/drive/state``), every command it answered with (``/drive/command``), its
+internals per answered state (``/controller/internals``: status and experiment step), one
+loss result per experiment (``/controller/loss``: the gains, and ``gains_step``, the drive
+step from which they acted), its parameters at start (the ``im_tuner.controller``
+metadata record) and ``/clock``. :func:`load_plan` turns that into a :class:`ReplayPlan`:
+
+* the states to feed, in order: every state the controller answered (a state it never
+  answered, the lock-step drive's last one or one a real-time controller missed, is not
+  fed: the recorded controller never stepped on it);
+* the requests, each before the state it acted on: the gains of experiment i before state
+  ``gains_step`` (``ExperimentRunner.set_gains`` makes them act from the next state on),
+  its start before its first state (the first internals row of its settle);
+* the recorded command answering each fed state, and whether the period it drove was
+  fresh (the drive's state ``k + d`` shows ``applied_step == k``, d the declared command
+  delay; docs/interfaces.md, "Timing model").
+
+:func:`compare` sets replayed commands beside the recorded ones. No rclpy here: the node
+side is :mod:`im_tuner.replay.node`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from im_controller.config import GAIN_NAMES
+from im_controller.contract import INTERNALS_TOPIC, LOSS_TOPIC
+from im_controller.layout import (
+    INTERNALS_FIELDS,
+    LINK_REASONS,
+    SAFETY_REASONS,
+    STATUS_ABORTED,
+    STATUS_DONE,
+    STATUS_FAULT,
+    STATUS_RUNNING,
+)
+from im_drive_sim.contract import (
+    COMMAND_FIELDS,
+    COMMAND_TOPIC,
+    LEGACY_STATE_FIELDS,
+    STATE_FIELDS,
+    STATE_INDEX,
+    STATE_TOPIC,
+)
+
+__all__ = [
+    'CLOCK_TOPIC',
+    'Comparison',
+    'Experiment',
+    'ReplayError',
+    'ReplayPlan',
+    'compare',
+    'load_plan',
+]
+
+#: The simulated clock's topic (absolute, as the drive publishes it).
+CLOCK_TOPIC = '/clock'
+#: The bag's topics the replay reads (the bench's root namespace).
+STATE = '/' + STATE_TOPIC
+COMMAND = '/' + COMMAND_TOPIC
+INTERNALS = '/' + INTERNALS_TOPIC
+LOSS = '/' + LOSS_TOPIC
+#: Metadata record holding the controller's parameters at start (im_tuner.bench.inprocess).
+CONTROLLER_RECORD = 'im_tuner.controller'
+#: Command fields compared (``answers_step`` is the key, equal by construction).
+COMPARED = ('isq_ref', 'load_torque')
+
+_I_STATUS = INTERNALS_FIELDS.index('status')
+_K_APPLIED = STATE_INDEX['applied_step']
+_K_DELAY = STATE_INDEX['command_delay']
+
+
+class ReplayError(Exception):
+    """The bag cannot be replayed (bad input: one line, exit 2)."""
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """One recorded experiment on the drive's timeline."""
+
+    eid: int  #: experiment id
+    first_step: int  #: step index of its first state (the first of its settle)
+    last_step: int  #: step index of the state that ended it (status done or aborted)
+    gains: tuple[float, ...]  #: its gains, ``GAIN_NAMES`` order
+    gains_step: int  #: the first state its gains acted on (``LossResult.gains_step``)
+    reason: str = ''  #: why it stopped early ('' done)
+
+
+@dataclass
+class ReplayPlan:
+    """What to feed, which requests to make when, and what to compare (see module doc)."""
+
+    bag: Path
+    mode: str  #: the recorded controller's ``mode``: ``lockstep`` or ``realtime``
+    params: dict[str, object]  #: the controller's parameters at start, as recorded
+    states: np.ndarray  #: (n, w) the states to feed, in order (w = 14, or 13: legacy)
+    recorded: np.ndarray  #: (n, 3) the recorded command answering each fed state
+    fresh: np.ndarray  #: (n,) bool: the period that command drove was fresh
+    experiments: list[Experiment]  #: every experiment with a result, in order
+    target: Experiment | None  #: --experiment N, or None: every experiment
+    clock_ns: np.ndarray  #: stamps [ns] of the recorded /clock messages, in order
+    clock_raw: list[bytes] = field(default_factory=list)  #: their CDR bytes
+
+    @property
+    def window(self) -> tuple[int, int]:
+        """Step indices [first, last] compared: the target's span, or every fed state."""
+        if self.target is not None:
+            return self.target.first_step, self.target.last_step
+        return int(self.states[0, 0]), int(self.states[-1, 0])
+
+    def compared_mask(self) -> np.ndarray:
+        """Fed states whose answers are compared: inside :attr:`window` and, on a
+        real-time bag, only those whose command drove a fresh period."""
+        k = self.states[:, 0]
+        a, b = self.window
+        inside = (k >= a) & (k <= b)
+        return inside & self.fresh if self.mode == 'realtime' else inside
+
+    def requests(self) -> dict[int, list[tuple[str, object]]]:
+        """Fed-state index -> the requests to make before feeding it, in order: the gains
+        (``('gains', tuple)``) before the start (``('start', eid)``)."""
+        k = self.states[:, 0]
+        out: dict[int, list[tuple[str, object]]] = {}
+        for e in self.experiments:
+            # the first fed state at or after gains_step: the gains acted from there on
+            i = int(np.searchsorted(k, e.gains_step))
+            if i < len(k):
+                out.setdefault(i, []).append(('gains', e.gains))
+        for e in self.experiments:
+            i = int(np.searchsorted(k, e.first_step))
+            out.setdefault(i, []).append(('start', e.eid))
+        return out
+
+
+@dataclass
+class Comparison:
+    """Replayed commands beside the recorded ones (:func:`compare`)."""
+
+    compared: int  #: commands compared
+    differing: int  #: of those, how many differ in any compared field
+    max_abs_diff: float  #: the largest |recorded - replayed| over compared fields [A, N m]
+    first: dict[str, object] | None  #: the first differing: step, field, recorded, replayed
+
+    @property
+    def match(self) -> bool:
+        return self.differing == 0
+
+
+def compare(plan: ReplayPlan, replayed: np.ndarray) -> Comparison:
+    """Compare ``replayed`` ((n, 3), the commands the live controller answered each fed
+    state with; NaN rows for states it did not answer) with the recorded commands on
+    :meth:`ReplayPlan.compared_mask`. Bit for bit: a difference of one ulp counts."""
+    mask = plan.compared_mask()
+    rec = plan.recorded[mask][:, 1:]
+    rep = replayed[mask][:, 1:]
+    # NaN-safe "differs": an unanswered state (NaN) differs from any command
+    differs = ~(rec == rep)
+    rows = np.flatnonzero(differs.any(axis=1))
+    diff = np.abs(rec - rep)
+    max_abs = float(np.nanmax(diff)) if diff.size and not np.all(np.isnan(diff)) else 0.0
+    if rows.size and np.isnan(diff[rows]).any():
+        max_abs = math.inf  # a command never came
+    first: dict[str, object] | None = None
+    if rows.size:
+        r = int(rows[0])
+        j = int(np.flatnonzero(differs[r])[0])
+        first = {
+            'step': int(plan.states[mask][r, 0]),
+            'field': COMPARED[j],
+            'recorded': float(rec[r, j]),
+            'replayed': float(rep[r, j]),
+        }
+    return Comparison(int(mask.sum()), int(rows.size), max_abs, first)
+
+
+# ---------------------------------------------------------------------------- reading
+def _metadata(mcap_file: Path) -> tuple[dict[str, dict[str, str]], np.ndarray, list[bytes]]:
+    """The bag's metadata records and its /clock messages (stamps [ns], CDR bytes), read
+    with the ``mcap`` library (its index: a closed or repaired bag)."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    records: dict[str, dict[str, str]] = {}
+    stamps: list[int] = []
+    raw: list[bytes] = []
+    try:
+        with open(mcap_file, 'rb') as f:
+            reader = make_reader(f)
+            for m in reader.iter_metadata():
+                records[m.name] = dict(m.metadata)
+            for _s, _c, msg in reader.iter_messages(topics=[CLOCK_TOPIC]):
+                # rosgraph_msgs/Clock CDR: encapsulation (4), int32 sec, uint32 nanosec
+                sec = int.from_bytes(msg.data[4:8], 'little', signed=True)
+                nsec = int.from_bytes(msg.data[8:12], 'little')
+                stamps.append(sec * 1_000_000_000 + nsec)
+                raw.append(bytes(msg.data))
+    except (McapError, OSError, ValueError, EOFError) as exc:
+        raise ReplayError(
+            f'{mcap_file}: cannot read its index ({exc}); '
+            'a bag left by a killed recorder: `ros2 run im_tuner recorder --repair DIR` first'
+        ) from None
+    return records, np.array(stamps, np.int64), raw
+
+
+def _spans(internals: np.ndarray) -> list[tuple[int, int]]:
+    """(first, last) step of each experiment in the internals rows (one per answered
+    state, in order): it starts at a running/done/aborted row not preceded by a running
+    one and ends at its first done/aborted row."""
+    k, st = internals[:, 0], internals[:, _I_STATUS]
+    spans = []
+    prev = -1.0
+    start: int | None = None
+    for i in range(len(k)):
+        s = st[i]
+        if start is None and s in (STATUS_RUNNING, STATUS_DONE, STATUS_ABORTED) and prev != 1:
+            start = int(k[i])
+        if start is not None and s in (STATUS_DONE, STATUS_ABORTED):
+            spans.append((start, int(k[i])))
+            start = None
+        prev = s
+    return spans
+
+
+def _check_no_fault(internals: np.ndarray, experiments: list[Experiment]) -> None:
+    """Refuse a FAULT before the last experiment replayed ends: the fault reset that
+    followed it is a request made at a wall-clock moment the bag does not pin to a state
+    (a safety abort of an earlier experiment, or FAULT rows in the internals)."""
+    for e in experiments[:-1]:
+        if e.reason in (*SAFETY_REASONS, *LINK_REASONS):
+            raise ReplayError(
+                f'experiment {e.eid} ended in a safety fault ({e.reason}): a replay cannot '
+                'place the fault reset that followed; replay an experiment up to it'
+            )
+    k, st = internals[:, 0], internals[:, _I_STATUS]
+    at = np.flatnonzero((st == STATUS_FAULT) & (k < experiments[-1].last_step))
+    if at.size:
+        raise ReplayError(
+            f'the controller went to FAULT at step {int(k[at[0]])}: a replay cannot place '
+            'the fault reset that followed; replay an experiment before it'
+        )
+
+
+def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
+    """Read ``bag_dir`` and decide the replay (see the module docstring); ReplayError
+    (one line) when the bag cannot be replayed or has no experiment ``experiment``."""
+    from ..record.reader import BagReadError, find_mcap, read_bag
+
+    if not bag_dir.exists():
+        raise ReplayError(f'{bag_dir}: no such directory')
+    if not bag_dir.is_dir():
+        raise ReplayError(f'{bag_dir}: not a directory (a bag directory holds a .mcap file)')
+    try:
+        mcap_file = find_mcap(bag_dir)
+    except BagReadError:
+        hint = ''
+        if sorted(bag_dir.glob('bag_*/*.mcap')):
+            hint = f' (a run directory: give its bag, {sorted(bag_dir.glob("bag_*"))[0]})'
+        raise ReplayError(f'{bag_dir}: not a bag (no .mcap file){hint}') from None
+    try:
+        data = read_bag(bag_dir, arrays={STATE: None, COMMAND: None, INTERNALS: None})
+    except (BagReadError, ValueError, OSError) as exc:
+        raise ReplayError(f'{bag_dir}: not a readable bag ({exc})') from None
+    for topic in (STATE, COMMAND, INTERNALS):
+        if topic not in data.topics or not data.topics[topic].count:
+            raise ReplayError(f'{bag_dir}: no {topic} messages: nothing to replay')
+        lost = (data.recorder_counts or {}).get(topic, {})
+        if lost.get('lost', 0) or lost.get('published_before_recording', 0):
+            raise ReplayError(
+                f'{bag_dir}: {topic} is incomplete ({lost.get("lost", 0)} lost, '
+                f'{lost.get("published_before_recording", 0)} before recording): '
+                'the controller saw messages the bag does not hold'
+            )
+    records, clock_ns, clock_raw = _metadata(mcap_file)
+    if CONTROLLER_RECORD not in records:
+        raise ReplayError(
+            f'{bag_dir}: no {CONTROLLER_RECORD} record (the controller parameters at start): '
+            "only the tuner's in-process benches (inproc, realtime) write it"
+        )
+    params = json.loads(records[CONTROLLER_RECORD]['parameters'])
+    if int(params.get('internals_decimation', 1)) != 1:
+        raise ReplayError(
+            f'{bag_dir}: internals_decimation is {params["internals_decimation"]}: '
+            'the experiments cannot be found on every state'
+        )
+    mode = str(params.get('mode', 'lockstep'))
+
+    S, Cm, Itn = data.arrays[STATE], data.arrays[COMMAND], data.arrays[INTERNALS]
+    if S.shape[1] not in (len(STATE_FIELDS), LEGACY_STATE_FIELDS):
+        raise ReplayError(f'{bag_dir}: drive states of {S.shape[1]} values, not the contract')
+    if Cm.shape[1] != len(COMMAND_FIELDS) or Itn.shape[1] != len(INTERNALS_FIELDS):
+        raise ReplayError(f'{bag_dir}: commands or internals not in the contract layout')
+    # a lock-step drive re-sends a state nobody answered: keep each step's first copy
+    _, first = np.unique(S[:, 0], return_index=True)
+    S = S[np.sort(first)]
+    if int(S[0, 0]) != 0:
+        raise ReplayError(
+            f'{bag_dir}: the drive states begin at step {int(S[0, 0])}, not 0: the controller '
+            'saw states before the bag began'
+        )
+    # the recorded answer to each step (a -1 command answers no state: not fed)
+    answers = Cm[Cm[:, 0] >= 0]
+    _, last_copy = np.unique(answers[::-1, 0], return_index=True)
+    answers = answers[len(answers) - 1 - last_copy]  # sorted by step; the newest copy
+
+    spans = _spans(Itn)
+    losses = sorted(data.losses, key=lambda d: int(d['experiment_id']))
+    first_id = int(params.get('first_experiment_id', 0))
+    experiments = []
+    for i, loss in enumerate(losses):
+        eid = int(loss['experiment_id'])
+        if eid != first_id + i or i >= len(spans):
+            raise ReplayError(
+                f'{bag_dir}: experiment results {[int(d["experiment_id"]) for d in losses]} '
+                f'do not follow the starts in the internals (first id {first_id})'
+            )
+        experiments.append(
+            Experiment(
+                eid,
+                spans[i][0],
+                spans[i][1],
+                tuple(float(loss[g]) for g in GAIN_NAMES),
+                int(loss.get('gains_step', spans[i][0])),
+                loss.get('reason', ''),
+            )
+        )
+    if not experiments:
+        raise ReplayError(f'{bag_dir}: no experiment result in the bag')
+    target = None
+    if experiment is not None:
+        ids = [e.eid for e in experiments]
+        if experiment not in ids:
+            raise ReplayError(
+                f'--experiment {experiment}: not in the bag (it holds experiments '
+                f'{ids[0]}..{ids[-1]})'
+            )
+        target = experiments[ids.index(experiment)]
+        experiments = experiments[: ids.index(experiment) + 1]
+    _check_no_fault(Itn, experiments)
+    end = experiments[-1].last_step
+
+    fed = answers[answers[:, 0] <= end]
+    by_step = {int(k): i for i, k in enumerate(S[:, 0])}
+    missing = [int(k) for k in fed[:, 0] if int(k) not in by_step]
+    if missing:
+        raise ReplayError(f'{bag_dir}: a command answers step {missing[0]}, a state not in the bag')
+    states = S[[by_step[int(k)] for k in fed[:, 0]]]
+    fresh = np.zeros(len(fed), bool)
+    for i, k in enumerate(fed[:, 0]):
+        row = by_step.get(int(k + _delay(states[i])))
+        fresh[i] = row is not None and S[row, _K_APPLIED] == k
+    return ReplayPlan(
+        bag=bag_dir,
+        mode=mode,
+        params=params,
+        states=states,
+        recorded=fed,
+        fresh=fresh,
+        experiments=experiments,
+        target=target,
+        clock_ns=clock_ns,
+        clock_raw=clock_raw,
+    )
+
+
+def _delay(state: np.ndarray) -> int:
+    """The drive's declared command delay d in a state (a 13-value state declares 1)."""
+    return int(state[_K_DELAY]) if state.shape[0] > _K_DELAY else 1

@@ -1,0 +1,159 @@
+"""``ros2 run im_tuner replay BAG_DIR``: re-drive a live controller from a recorded bag and
+compare its commands with the recorded ones (docs/replay.md).
+
+The command line and the bag are checked before rclpy is imported (:mod:`.plan` is pure),
+so bad input is one line and exit 2 at once, and nothing is created. Exit codes: 0 the
+commands match, 1 they do not (or the live controller did something the recorded one did
+not), 2 bad input, 3 inconclusive (the live controller never came up, or died), 130 on
+Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from im_drive_sim.cli import Parser, UsageError, int_in, parse_cli, run_cli
+
+EXIT_MISMATCH = 1
+EXIT_INCONCLUSIVE = 3
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = Parser(
+        prog='ros2 run im_tuner replay',
+        description="Play a recorded run's drive states (and /clock) from its bag into a live "
+        "controller started with the recorded parameters, making the tuner's requests "
+        '(gains, starts) where the bag says, and compare the commands it answers with '
+        'the recorded ones: every period of a lock-step bag bit for bit, every fresh '
+        'period of a real-time one (docs/replay.md).',
+    )
+    ap.add_argument(
+        'bag', type=Path, metavar='BAG_DIR', help='a bag directory of a tuner run (RUN/bag_0)'
+    )
+    ap.add_argument(
+        '--experiment',
+        type=int_in(0, 2**31 - 1),
+        metavar='N',
+        help='compare experiment N only (the states before it are replayed too: the '
+        "controller's filters and integrator carry over); default: every period up to "
+        'the last experiment with a result',
+    )
+    ap.add_argument('--json', action='store_true', help='print the result as one JSON object')
+    ap.add_argument('--quiet', action='store_true', help='no progress lines')
+    return ap
+
+
+class _Progress:
+    """``replay: state i/n (p %), ETA m:ss`` on stderr: one updating line on a terminal,
+    a line every 10 % otherwise."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.quiet = quiet
+        self.tty = sys.stderr.isatty()
+        self.t0 = time.monotonic()
+        self.next_pct = 10
+        self.last_draw = 0.0
+
+    def __call__(self, i: int, n: int) -> None:
+        if self.quiet:
+            return
+        pct = 100 * i // n
+        now = time.monotonic()
+        if self.tty and (now - self.last_draw < 0.2 and i < n):
+            return
+        if not self.tty and pct < self.next_pct and i < n:
+            return
+        self.next_pct = pct - pct % 10 + 10
+        self.last_draw = now
+        eta = int((now - self.t0) / i * (n - i))
+        text = f'replay: state {i}/{n} ({pct} %), ETA {eta // 60}:{eta % 60:02d}'
+        end = '\r' if self.tty and i < n else '\n'
+        print(text, end=end, file=sys.stderr, flush=True)
+
+
+def result_dict(plan: Any, cmp: Any, failure: str | None, wall_s: float) -> dict[str, Any]:
+    """What the replay found, as printed with ``--json``."""
+    a, b = plan.window
+    return {
+        'bag': str(plan.bag),
+        'mode': plan.mode,
+        'experiment': None if plan.target is None else plan.target.eid,
+        'first_step': a,
+        'last_step': b,
+        'periods': b - a + 1,
+        'states_fed': len(plan.states),
+        'compared': cmp.compared,
+        'fresh_only': plan.mode == 'realtime',
+        'differing': cmp.differing,
+        'max_abs_diff': cmp.max_abs_diff,
+        'first_mismatch': cmp.first,
+        'failure': failure,
+        'match': cmp.match and failure is None,
+        'wall_s': round(wall_s, 3),
+    }
+
+
+def result_line(r: dict[str, Any]) -> str:
+    what = 'every experiment' if r['experiment'] is None else f'experiment {r["experiment"]}'
+    scope = (
+        f'steps {r["first_step"]}..{r["last_step"]} ({r["periods"]} periods, '
+        + ('the fresh ones compared' if r['fresh_only'] else 'every period compared')
+        + f'), {r["mode"]} bag'
+    )
+    if r['match']:
+        return (
+            f'replay: MATCH {what}: {r["compared"]} commands bit for bit '
+            f'(max |diff| {r["max_abs_diff"]:g}); {scope}'
+        )
+    text = f'replay: MISMATCH {what}: {r["differing"]} of {r["compared"]} commands differ'
+    f = r['first_mismatch']
+    if f is not None:
+        text += (
+            f', the first at step {f["step"]} ({f["field"]} recorded {f["recorded"]!r}, '
+            f'replayed {f["replayed"]!r}); max |diff| {r["max_abs_diff"]:g}'
+        )
+    if r['failure']:
+        text += f'; {r["failure"]}'
+    return f'{text}; {scope}'
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv if argv is None else argv
+
+    def body() -> int:
+        cli = parse_cli(parser(), argv)
+        from .plan import ReplayError, compare, load_plan
+
+        try:
+            plan = load_plan(cli.bag, cli.experiment)
+        except ReplayError as exc:
+            raise UsageError(str(exc)) from None
+        from .node import ReplayFailed, ReplayInconclusive, replay
+
+        t0 = time.monotonic()
+        failure = None
+        try:
+            replayed = replay(plan, _Progress(cli.quiet))
+        except ReplayInconclusive as exc:
+            print(f'replay: INCONCLUSIVE: {exc}', file=sys.stderr, flush=True)
+            return EXIT_INCONCLUSIVE
+        except ReplayFailed as exc:
+            failure, replayed = exc.args[0], exc.args[1]
+        r = result_dict(plan, compare(plan, replayed), failure, time.monotonic() - t0)
+        print(json.dumps(r) if cli.json else result_line(r), flush=True)
+        return 0 if r['match'] else EXIT_MISMATCH
+
+    try:
+        return run_cli('replay', body)
+    except KeyboardInterrupt:
+        print('replay: interrupted', file=sys.stderr, flush=True)
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())

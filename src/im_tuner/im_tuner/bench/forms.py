@@ -217,6 +217,7 @@ class InProcess:
 
         self.plan = plan
         self.rec: Any = None
+        self._final_status_sent = False
 
         def start_recorder(b: Any) -> None:
             if bag_dir is None:
@@ -293,10 +294,20 @@ class InProcess:
     def session_start(self) -> None:
         pass  # the drive starts with the session: its counters are the session's
 
+    def _final_status(self) -> None:
+        """The drive's counters at exit, published once (into the bag, if recording):
+        before the summary's figures are taken, so that they count it too."""
+        if not self._final_status_sent:
+            self._final_status_sent = True
+            self.bench.final_status()
+
     def drive_report(self) -> dict[str, Any] | None:
         stop_loop = getattr(self.bench, 'stop_loop', None)
         if callable(stop_loop):
             stop_loop()  # the run is over: zero current, and counters that stand still
+        # the last status now: the summary's loop.outbox counted one /drive/status fewer
+        # than the bag when it was published after these figures were taken (issue 41)
+        self._final_status()
         d = self.bench.drive
         report = drive_report(
             {
@@ -313,7 +324,7 @@ class InProcess:
         if self.rec is None:
             return []
         rec, self.rec = self.rec, None
-        self.bench.final_status()  # the drive's counters at exit, into the bag
+        self._final_status()  # the drive's counters at exit, into the bag (once)
         outbox = getattr(self.bench, 'outbox', None)
         if outbox is not None:  # what the loop could not hand to DDS or the recorder
             rec.add_metadata('im_tuner.outbox', outbox.counts())

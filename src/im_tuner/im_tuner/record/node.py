@@ -21,9 +21,11 @@ Nothing lost, and proof of it:
 * publishers the recorder cannot match (incompatible QoS) and types it cannot load are
   reported, not ignored.
 
-Crash safety: chunks are closed at least every ``max_chunk_age`` seconds and handed to
-the OS; SIGINT/SIGTERM close the bag properly; after SIGKILL, ``ros2 run im_tuner
-recorder --repair DIR`` rewrites the summary, index and ``metadata.yaml``.
+Crash safety: a chunk spans at most ``max_chunk_age`` seconds of log time and is closed
+and handed to the OS once its first message is that old -- by a timer thread
+(:mod:`.chunk_timer`) when the owner does not poll; SIGINT/SIGTERM close the bag
+properly; after SIGKILL, ``ros2 run im_tuner recorder --repair DIR`` rewrites the
+summary, index and ``metadata.yaml``.
 
 The simulated bench (``ros2 run im_tuner sim_bench``) and the tuner run a
 :class:`Recorder` in their own process and call :meth:`Recorder.poll` between steps.
@@ -35,6 +37,7 @@ import contextlib
 import json
 import os
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +52,7 @@ from im_drive_sim.outbox import R_HEAD, R_LOST, R_TAIL
 from im_drive_sim.runtime import RosSession, unknown_overrides, warn_unknown_overrides
 
 from . import take as rcl_take
+from .chunk_timer import ChunkTimer
 from .counts import closing_custom_data, counts_report
 from .metadata import (
     BagError,
@@ -94,8 +98,13 @@ class Recorder:
 
     Call :meth:`poll` often (the bench does every few steps; the standalone recorder
     every millisecond): it discovers new topics (at most every ``discovery_period`` s),
-    takes every waiting message and closes chunks that are full or older than
-    ``max_chunk_age`` s. :meth:`close` finishes the bag and returns the counts.
+    takes every waiting message and closes chunks that are full or whose first message
+    is ``max_chunk_age`` s old. No chunk spans more than ``max_chunk_age`` of log time
+    (the take kernels close it before a message that would stretch it further). With
+    ``flush_timer``, a :class:`~.chunk_timer.ChunkTimer` does the same when the owner has
+    not polled for a quarter of ``max_chunk_age``, so that nothing taken waits in memory
+    (the methods that touch the chunk take turns on a lock). :meth:`close` finishes the
+    bag and returns the counts.
     """
 
     def __init__(
@@ -112,6 +121,7 @@ class Recorder:
         background_writes: bool = True,
         taps: dict[str, Any] | None = None,
         exclude: tuple[str, ...] | list[str] = (),
+        flush_timer: bool = True,
     ) -> None:
         """``taps``: topics to take from a real-time loop's outbox instead of DDS
         (:meth:`add_tap`); ``exclude``: topics never recorded (named in the metadata)."""
@@ -126,11 +136,17 @@ class Recorder:
                 chunk_size=chunk_size,
                 library=f'im_tuner recorder {recorder_version()}',
                 background=background_writes,
+                max_span=max_chunk_age,
             )
         except McapWriteError as exc:
             raise RecorderError(str(exc)) from None
         self.compression = compression
         self.max_chunk_age = max_chunk_age
+        self._max_span_ns = round(max_chunk_age * 1e9)
+        #: poll, drain, discover, add_metadata and close take turns with the chunk timer
+        self._lock = threading.RLock()
+        self._last_poll = time.monotonic()
+        self._timer: ChunkTimer | None = None
         self.discovery_period = discovery_period
         self.topics: dict[str, _Topic] = {}
         #: topics taken from a real-time loop's outbox instead of DDS (add_tap): the
@@ -143,7 +159,7 @@ class Recorder:
         self._take = rcl_take.TakeBuffers()
         self._pubs = rcl_take.new_publisher_table()
         self._ctrl = rcl_take.new_ctrl()
-        self._ctrl[rcl_take.C_MAX_SPAN_NS] = int(max_chunk_age * 1e9)
+        self._ctrl[rcl_take.C_MAX_SPAN_NS] = self._max_span_ns
         self._subs = np.zeros(0, np.uint64)
         self._chans = np.zeros(0, np.int64)
         self._next_discovery = 0.0
@@ -165,16 +181,23 @@ class Recorder:
             self.add_tap(taps)
         self.drain()
         self.discover()
+        if flush_timer:
+            self._timer = ChunkTimer(self._tick, max_chunk_age / 4, 'recorder chunk timer')
 
     # -- topics ------------------------------------------------------------------------
     def add_metadata(self, name: str, data: dict) -> None:
         """An MCAP metadata record (values turned into strings)."""
-        self.writer.add_metadata(
-            name, {str(k): v if isinstance(v, str) else json.dumps(v) for k, v in data.items()}
-        )
+        with self._lock:
+            self.writer.add_metadata(
+                name, {str(k): v if isinstance(v, str) else json.dumps(v) for k, v in data.items()}
+            )
 
     def discover(self) -> int:
         """Subscribe to topics that appeared; returns how many were added."""
+        with self._lock:
+            return self._discover()
+
+    def _discover(self) -> int:
         added = 0
         for name, types in self.node.get_topic_names_and_types():
             if name in self.topics or name in self.unrecordable or name in self.excluded:
@@ -233,7 +256,7 @@ class Recorder:
             # compile (or load) the kernel now: never in the first poll beside a live loop
             r, ck = ch.tap, self.writer.chunk
             rcl_take.drain_ring(
-                r.buf, r.lens, r.stamps, r.ctrl, 0, t.channel, ck.buf, ck.idx, ck.st
+                r.buf, r.lens, r.stamps, r.ctrl, 0, t.channel, ck.buf, ck.idx, ck.st, 0
             )
 
     def drain_taps(self) -> int:
@@ -245,10 +268,11 @@ class Recorder:
             while int(r.ctrl[R_TAIL]) < head:
                 ck = self.writer.chunk
                 n = rcl_take.drain_ring(
-                    r.buf, r.lens, r.stamps, r.ctrl, head, t.channel, ck.buf, ck.idx, ck.st
-                )
+                    r.buf, r.lens, r.stamps, r.ctrl, head, t.channel,
+                    ck.buf, ck.idx, ck.st, self._max_span_ns,
+                )  # fmt: skip
                 total += n
-                if int(r.ctrl[R_TAIL]) < head:  # the chunk is full
+                if int(r.ctrl[R_TAIL]) < head:  # the chunk is full, or spans max_chunk_age
                     self.writer.flush_chunk()
                     self._chunk_opened = None
                     self.writer.chunk.grow(MESSAGE_HEADER_BYTES + int(ch.slot))
@@ -314,29 +338,56 @@ class Recorder:
                 self.unmatched[t.name] = max(self.unmatched.get(t.name, 0), missing)
 
     # -- the loop ----------------------------------------------------------------------
-    def _age_check(self, now: float, force: bool = False) -> None:
-        if self.writer.chunk.count:
-            if force or self.writer.chunk.used >= self.writer.chunk_size:
-                self.writer.flush_chunk()
-                self._chunk_opened = None
-            elif self._chunk_opened is None:
-                self._chunk_opened = now
-            elif now - self._chunk_opened >= self.max_chunk_age:
-                self.writer.flush_chunk()
-                self._chunk_opened = None
+    def _age_check(self, now: float) -> None:
+        """Close the open chunk when it is full or its first message is ``max_chunk_age``
+        old: by its log time (the wall clock it was received at), or -- should the wall
+        clock step back -- by ``now`` (monotonic [s]) since a poll first saw it."""
+        ck = self.writer.chunk
+        if not ck.count:
+            self._chunk_opened = None
+            return
+        if self._chunk_opened is None:
+            self._chunk_opened = now
+        if (
+            ck.used >= self.writer.chunk_size
+            or time.time_ns() - ck.first_log_time >= self._max_span_ns
+            or now - self._chunk_opened >= self.max_chunk_age
+        ):
+            self.writer.flush_chunk()
+            self._chunk_opened = None
 
     def poll(self, now: float | None = None) -> int:
         """Discover (when due), take everything waiting, close old chunks. Messages taken."""
         now = time.monotonic() if now is None else now
-        if now >= self._next_discovery:
-            self._next_discovery = now + self.discovery_period
-            self.discover()
-        n = self.drain()
-        self._age_check(now)
-        return n
+        with self._lock:
+            if self._timer is not None and self._timer.error is not None:
+                raise RecorderError(f'the chunk timer failed: {self._timer.error!r}')
+            self._last_poll = time.monotonic()
+            if now >= self._next_discovery:
+                self._next_discovery = now + self.discovery_period
+                self._discover()
+            n = self.drain()
+            self._age_check(now)
+            return n
+
+    def _tick(self) -> None:
+        """The chunk timer's round: when the owner has not polled for a timer period,
+        take what is waiting (the graph is not looked at) and close an old chunk."""
+        with self._lock:
+            now = time.monotonic()
+            if self.writer.closed or self._timer is None:
+                return
+            if now - self._last_poll < self._timer.period:
+                return
+            self.drain()
+            self._age_check(now)
 
     def drain(self) -> int:
         """Take every waiting message into the open chunk (closing full chunks)."""
+        with self._lock:
+            return self._drain()
+
+    def _drain(self) -> int:
         total = self.drain_taps()
         tb = self._take
         while True:
@@ -417,6 +468,9 @@ class Recorder:
         what was published after the cut is not in it."""
         if self.writer.closed:
             return self.counts()
+        if self._timer is not None:  # from here on only this thread touches the chunk
+            self._timer.stop()
+            self._timer = None
         self.discover()
         self.drain()
         cut = ''
@@ -475,9 +529,6 @@ class Recorder:
             with contextlib.suppress(Exception):
                 self.node.destroy_subscription(t.sub)
         self._take.close()
-
-
-#: bounds of --chunk-size [bytes]: the open chunk is a buffer of this size in memory
 
 
 def main(args: list[str] | None = None) -> int:

@@ -41,13 +41,15 @@ from .mcap_format import (
     OP_FOOTER,
     OP_MESSAGE,
     OP_MESSAGE_INDEX,
+    OP_METADATA,
     OP_SCHEMA,
 )
-from .records import decompress, parse_definition
+from .records import Cursor, decompress, parse_definition
 
 __all__ = [
     'BagData',
     'BagReadError',
+    'ChunkStats',
     'TopicStats',
     'parse_diagnostic_array',
     'parse_float64_multiarray',
@@ -76,6 +78,7 @@ class TopicStats:
     count: int = 0
     first_ns: int = 0  #: log time of the first message [ns since the epoch]
     last_ns: int = 0
+    bytes: int = 0  #: serialised message data (CDR), without MCAP record headers [B]
 
     @property
     def rate_hz(self) -> float | None:
@@ -83,6 +86,22 @@ class TopicStats:
         if self.count < 2 or self.last_ns <= self.first_ns:
             return None
         return (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
+
+
+@dataclass(frozen=True)
+class ChunkStats:
+    """One chunk as its header says (MCAP Chunk record)."""
+
+    start_ns: int  #: message_start_time: the smallest log time in it [ns]
+    end_ns: int  #: message_end_time: the largest [ns]
+    compression: str  #: '' (none), 'lz4' or 'zstd'
+    compressed_bytes: int
+    uncompressed_bytes: int
+
+    @property
+    def span_s(self) -> float:
+        """Log time the chunk spans [s] (what ``--max-chunk-age`` bounds)."""
+        return (self.end_ns - self.start_ns) * 1e-9
 
 
 @dataclass
@@ -95,6 +114,10 @@ class BagData:
     state: str = 'unknown'  #: metadata.yaml im_tuner.state
     unread_bytes: int = 0  #: after the last complete record
     chunks: int = 0
+    #: every complete chunk read, in file order
+    chunk_stats: list[ChunkStats] = field(default_factory=list)
+    #: the MCAP Metadata records found (name -> string map; the first of a name wins)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     topics: dict[str, TopicStats] = field(default_factory=dict)
     #: the recorder's own count per topic (recorded, published, lost, ...) when it closed
     recorder_counts: dict[str, dict[str, int]] | None = None
@@ -377,7 +400,7 @@ def read_bag(
     arrays = arrays or {}
     schemas: dict[int, tuple[str, bytes]] = {}
     channels: dict[int, tuple[str, int, dict, bytes]] = {}
-    per_chan: dict[int, list] = {}  # cid -> [count, first, last]
+    per_chan: dict[int, list] = {}  # cid -> [count, first, last, bytes]
     rows: dict[str, list[np.ndarray]] = {t: [] for t in arrays}
     losses: list[tuple[int, bytes]] = []
     with open(path, 'rb') as f:
@@ -393,6 +416,8 @@ def read_bag(
             for op, a, n in top:
                 if op in (OP_SCHEMA, OP_CHANNEL):
                     parse_definition(op, bytes(mm[a - 9 : a + n]), schemas, channels)
+                elif op == OP_METADATA:
+                    _take_metadata(bytes(mm[a : a + n]), out.metadata)
             # each chunk with the message indexes that follow it (before the next chunk)
             chunks: list[tuple[int, int, list[tuple[int, np.ndarray]]]] = []
             for op, a, n in top:
@@ -412,19 +437,28 @@ def read_bag(
                     out.unread_bytes = size - (a - 9)
                     break
                 out.chunks += 1
+                out.chunk_stats.append(_chunk_stats(mm, a, chunk.size))
                 _take_chunk(
                     chunk, index, schemas, channels, per_chan, arrays, rows, losses, loss_topic
                 )
+    if out.recorder_counts is None and 'im_tuner.counts' in out.metadata:
+        # no metadata.yaml (or one without them): the record the recorder wrote at close
+        try:
+            rec_counts = out.metadata['im_tuner.counts']
+            out.recorder_counts = {k: json.loads(v) for k, v in rec_counts.items()}
+        except ValueError:
+            pass
     for cid, (topic, sid, _meta, _rec) in channels.items():
-        c = per_chan.get(cid, [0, 0, 0])
+        c = per_chan.get(cid, [0, 0, 0, 0])
         ty = schemas.get(sid, ('?', b''))[0]
         prev = out.topics.get(topic)
         if prev is None:
-            out.topics[topic] = TopicStats(topic, ty, c[0], c[1], c[2])
+            out.topics[topic] = TopicStats(topic, ty, c[0], c[1], c[2], c[3])
         elif c[0]:  # the same topic on a second channel (a second type): merge the counts
             prev.first_ns = min(prev.first_ns, c[1]) if prev.count else c[1]
             prev.last_ns = max(prev.last_ns, c[2])
             prev.count += c[0]
+            prev.bytes += c[3]
     for t, parts in rows.items():
         parts = [p for p in parts if p.size]
         out.arrays[t] = np.concatenate(parts) if parts else np.zeros((0, 0))
@@ -432,6 +466,25 @@ def read_bag(
         for st in parse_diagnostic_array(data):
             out.losses.append(st | {'log_time_ns': str(log_time)})
     return out
+
+
+def _take_metadata(body: bytes, into: dict[str, dict[str, str]]) -> None:
+    """A Metadata record's body (name, string map) into ``into`` (the first name wins;
+    a malformed record is left out)."""
+    try:
+        c = Cursor(body)
+        name = c.s()
+        into.setdefault(name, c.map())
+    except (ValueError, struct.error, UnicodeDecodeError):
+        pass
+
+
+def _chunk_stats(mm: mmap.mmap, a: int, usize: int) -> ChunkStats:
+    """The header of the Chunk record body at ``a`` (read before: it is complete)."""
+    start, end, _usize, _crc, clen = struct.unpack_from('<QQQII', mm, a)
+    comp = mm[a + 32 : a + 32 + clen].decode()
+    (rlen,) = struct.unpack_from('<Q', mm, a + 32 + clen)
+    return ChunkStats(start, end, comp, rlen, usize)
 
 
 def _read_chunk(mm: mmap.mmap, a: int, n: int) -> np.ndarray:
@@ -483,10 +536,11 @@ def _take_chunk(
     for cid, n in zip(ids.tolist(), counts.tolist(), strict=True):
         sel = cids == cid
         t = times[sel]
-        c = per_chan.setdefault(cid, [0, 0, 0])
+        c = per_chan.setdefault(cid, [0, 0, 0, 0])
         c[1] = int(t.min()) if not c[0] else min(c[1], int(t.min()))
         c[2] = max(c[2], int(t.max()))
         c[0] += n
+        c[3] += int(lens[sel].sum()) - _MSG_HEAD * n  # the message data, without its head
         topic = channels.get(cid, ('',))[0]
         if topic in arrays:
             rows[topic].append(_f64_rows(buf, offs[sel], lens[sel], arrays[topic]))

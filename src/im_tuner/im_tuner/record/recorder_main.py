@@ -44,8 +44,8 @@ def parser() -> argparse.ArgumentParser:
         type=finite_float(0.0, 3600.0, lo_open=True, unit='s'),
         default=0.5,
         metavar='S',
-        help='close a chunk after this many seconds at most: bounds what a '
-        'SIGKILL loses (default 0.5)',
+        help='most log time one chunk spans, and the age of its first message at which '
+        'it is closed and written: bounds what a SIGKILL loses (default 0.5)',
     )
     ap.add_argument(
         '--exclude-topics',

@@ -34,7 +34,7 @@ from numba import types
 
 from im_drive_sim.outbox import R_TAIL, loaded_library
 
-from .writer import MESSAGE_HEADER_BYTES, ST_TMAX, ST_TMIN, note_message, write_message_header
+from .writer import MESSAGE_HEADER_BYTES, note_message, too_wide, write_message_header
 
 _RCL = loaded_library('librcl.so')
 _RCUTILS = loaded_library('librcutils.so')
@@ -131,8 +131,7 @@ def _place(
     if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or st[1] >= idx.shape[0]:
         return False
     log_time = np.int64(info[I_RECEIVED_TS])
-    span = ctrl[C_MAX_SPAN_NS]
-    if span > 0 and st[1] > 0 and (log_time - st[ST_TMIN] > span or st[ST_TMAX] - log_time > span):
+    if too_wide(st, log_time, ctrl[C_MAX_SPAN_NS]):
         return False  # the chunk would span more than max_chunk_age of log time
     write_message_header(
         buf,
@@ -275,12 +274,14 @@ def drain_ring(
     buf: np.ndarray,
     idx: np.ndarray,
     st: np.ndarray,
+    max_span_ns: int,
 ) -> int:
     """Copy the messages [tail, head) of an ``im_drive_sim.outbox.Ring`` (the loop's tap
     for the recorder) into the chunk as Message records: log and publish time = the wall
     time the loop handed each over, sequence = its index in the ring's stream. Stops
-    early when the chunk is full (the caller closes it and calls again). Returns how
-    many were copied; the ring's tail advances past each."""
+    early when the chunk is full, or when the next message would make it span more than
+    ``max_span_ns`` of log time (0: no limit) -- the caller closes it and calls again.
+    Returns how many were copied; the ring's tail advances past each."""
     cap = rbuf.shape[0]
     t = rctrl[R_TAIL]
     t_start = t
@@ -291,6 +292,8 @@ def drain_ring(
         if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or st[1] >= idx.shape[0]:
             break
         stamp = rstamps[i]
+        if too_wide(st, stamp, max_span_ns):
+            break
         write_message_header(buf, pos, channel, t & 0xFFFFFFFF, stamp, stamp, n)
         p = pos + MESSAGE_HEADER_BYTES
         buf[p : p + n] = rbuf[i, :n]

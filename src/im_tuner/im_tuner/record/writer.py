@@ -11,8 +11,10 @@ File layout (MCAP v0, https://mcap.dev/spec), as rosbag2's MCAP storage writes i
 * magic, Header (profile ``ros2``);
 * data section: Schema and Channel records written *outside* chunks as soon as a topic
   is added (so a crash never loses them), Metadata records, and Chunks, each followed by
-  its Message Index records. A chunk is closed when it reaches ``chunk_size`` bytes or
-  when the caller flushes it (the recorder does so at least every ``max_chunk_age`` s),
+  its Message Index records. A chunk is closed when it reaches ``chunk_size`` bytes,
+  before a message that would make it span more than ``max_span`` of log time, or when
+  the caller flushes it (the recorder does so once its first message is
+  ``max_chunk_age`` s old),
   and the file is flushed to the OS after every chunk: after SIGKILL the file is readable
   up to its last complete chunk, and :func:`im_tuner.record.repair.repair_bag` rewrites
   the summary;
@@ -88,8 +90,10 @@ def append_message(
     log_time: int,
     publish_time: int,
     data: np.ndarray,
+    max_span_ns: int,
 ) -> bool:
-    """Append one Message record to the open chunk; False (nothing written) if it is full.
+    """Append one Message record to the open chunk; False (nothing written) if it is full
+    or would then span more than ``max_span_ns`` of log time (0: no limit).
 
     ``buf`` is the uint8 chunk buffer, ``idx`` the int64 index rows (channel_id, log_time
     [ns], offset [bytes]), ``st`` the chunk state vector (``ST_*``); see :class:`ChunkState`.
@@ -98,6 +102,8 @@ def append_message(
     pos = st[ST_POS]
     k = st[ST_COUNT]
     if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or k >= idx.shape[0]:
+        return False
+    if too_wide(st, log_time, max_span_ns):
         return False
     write_message_header(buf, pos, channel_id, sequence, log_time, publish_time, n)
     buf[pos + MESSAGE_HEADER_BYTES : pos + MESSAGE_HEADER_BYTES + n] = data
@@ -127,6 +133,15 @@ def write_message_header(
     for b in range(8):
         buf[pos + 15 + b] = (log_time >> (8 * b)) & 0xFF
         buf[pos + 23 + b] = (publish_time >> (8 * b)) & 0xFF
+
+
+@numba.njit(cache=True, inline='always')
+def too_wide(st: np.ndarray, log_time: int, max_span_ns: int) -> bool:
+    """Whether a message of ``log_time`` [ns] would make the open chunk span more than
+    ``max_span_ns`` of log time (0: no limit); an empty chunk takes any message."""
+    if max_span_ns <= 0 or st[ST_COUNT] == 0:
+        return False
+    return log_time - st[ST_TMIN] > max_span_ns or st[ST_TMAX] - log_time > max_span_ns
 
 
 @numba.njit(cache=True, inline='always')
@@ -170,6 +185,11 @@ class ChunkState:
     def count(self) -> int:
         return int(self.st[ST_COUNT])
 
+    @property
+    def first_log_time(self) -> int:
+        """Smallest log time in the chunk [ns] (meaningless when it is empty)."""
+        return int(self.st[ST_TMIN])
+
     def grow(self, need_bytes: int) -> None:
         """Make room for a record of ``need_bytes`` (the chunk must be empty)."""
         assert self.count == 0
@@ -192,7 +212,10 @@ class McapWriter:
         library: str = 'im_tuner',
         profile: str = 'ros2',
         background: bool = False,
+        max_span: float = 0.0,
     ) -> None:
+        """``max_span`` [s]: most log time one chunk may span (0: no limit); a message
+        that would stretch the open chunk beyond it closes the chunk first."""
         if compression not in COMPRESSIONS:
             raise McapWriteError(
                 f'compression must be one of {", ".join(COMPRESSIONS)}, got {compression!r}'
@@ -200,6 +223,7 @@ class McapWriter:
         self.path = Path(path)
         self.compression = compression
         self.chunk_size = int(chunk_size)
+        self.max_span_ns = round(max_span * 1e9)
         self._compress = _compressor(compression)
         try:
             # 'xb': never overwrite an existing file.
@@ -310,8 +334,9 @@ class McapWriter:
             ch = self.chunk
             seq = sequence & 0xFFFFFFFF
             return append_message(
-                ch.buf, ch.idx, ch.st, channel_id, seq, log_time, publish_time, arr
-            )
+                ch.buf, ch.idx, ch.st, channel_id, seq, log_time, publish_time, arr,
+                self.max_span_ns,
+            )  # fmt: skip
 
         if not append():
             self.flush_chunk()

@@ -114,11 +114,12 @@ def _build_parser() -> argparse.ArgumentParser:
     ap = Parser(
         prog='ros2 run im_tuner report',
         description='Summary, plots (paper Figs. 5, 8, 9) and per-evaluation CSV of '
-        'one or more tuning runs (docs/tuner.md, "The report").',
+        'one or more tuning runs (docs/tuner.md, "The report"); or, with --bag-info, '
+        'one bag\'s statistics (docs/report.md, "Bag statistics").',
     )
     ap.add_argument(
         'runs',
-        nargs='+',
+        nargs='*',
         type=Path,
         metavar='RUN_DIR',
         help='run directories made by `ros2 run im_tuner tuner` (several: overlaid)',
@@ -139,13 +140,39 @@ def _build_parser() -> argparse.ArgumentParser:
         help='where to write (default: RUN_DIR/report, or for several runs '
         '<parent of the first>/compare_<UTC time>)',
     )
+    ap.add_argument(
+        '--bag-info',
+        type=Path,
+        metavar='BAG_DIR',
+        help="print one bag's statistics instead, as `ros2 bag info` does, with the "
+        "recorder's recorded / published / lost per topic (any bag, a repaired one too)",
+    )
+    ap.add_argument('--json', action='store_true', help='with --bag-info: the statistics as JSON')
     return ap
+
+
+def _bag_info(cli: argparse.Namespace) -> int:
+    """``--bag-info``: nothing is written; a bad path is one line and exit 2."""
+    if cli.runs or cli.bags or cli.out is not None:
+        raise ReportError('--bag-info takes one bag directory and no run, --bags or --out')
+    from .baginfo import main_bag_info
+
+    print(main_bag_info(cli.bag_info, cli.json))
+    return 0
 
 
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if args is None else args)
     try:
         cli = _build_parser().parse_args(argv)
+        if cli.bag_info is not None:
+            return _bag_info(cli)
+        if cli.json:
+            raise ReportError('--json goes with --bag-info BAG_DIR')
+        if not cli.runs:
+            raise ReportError(
+                'the following arguments are required: RUN_DIR (or --bag-info BAG_DIR)'
+            )
         # validate every run before reading any bag or writing anything
         for p in cli.runs:
             try:

@@ -1,0 +1,56 @@
+"""A thread that closes the recorder's open chunk by wall time when nobody polls it.
+
+Why: the recorder takes messages and closes chunks only when its owner polls it (the
+lock-step bench every 64 steps, the real-time bench's serving thread every 50 ms). When
+the owner is busy elsewhere -- numba loading the bench's kernels at start-up, a tuner
+waiting for its first experiment -- what was already taken sat in the open chunk, in
+memory: in one real-time run state 0 and the first log line waited 17.6 s, and a SIGKILL
+then would have lost them. This thread wakes every ``period`` s and, when the owner has
+not polled for that long, calls ``tick()`` (the recorder takes what is waiting and closes
+a chunk whose first message is ``max_chunk_age`` old). It never touches the graph.
+
+No rclpy here; the recorder owns the lock that makes ``tick()`` and its own polls take
+turns.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+__all__ = ['ChunkTimer']
+
+
+class ChunkTimer:
+    """Calls ``tick()`` every ``period`` [s] on a daemon thread until :meth:`stop`.
+
+    An exception from ``tick()`` ends the thread; it is kept in :attr:`error` for the
+    owner to raise (the thread itself has no one to report to)."""
+
+    def __init__(self, tick: Callable[[], None], period: float, name: str = 'chunk timer') -> None:
+        if not period > 0:
+            raise ValueError(f'period must be > 0 s, got {period!r}')
+        self.period = float(period)
+        self.error: BaseException | None = None
+        self._tick = tick
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period):
+            try:
+                self._tick()
+            except BaseException as exc:  # kept for the owner: a thread cannot raise
+                self.error = exc
+                return
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """End the thread (after a tick under way, if any); idempotent."""
+        self._stop.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout)

@@ -208,6 +208,13 @@ class TunerSession:
             tuning.timing_tolerance = enforced
             if not self.resumed:
                 run.put(timing_tolerance=enforced)
+        if not self.resumed and plan.mode == 'external' and (run.options or {}).get('first'):
+            # a controller the tuner did not start: the first step must be its drive's model
+            from .prior import model_drive_mismatch
+
+            why = model_drive_mismatch(run.drive_config, parameters.get('drive_config_file'))
+            if why is not None:
+                raise UsageError(why)  # (the run directory is undone: nothing is left)
         if not self.resumed:
             run.put(
                 controller_parameters=parameters,

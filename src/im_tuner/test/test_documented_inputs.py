@@ -151,12 +151,12 @@ def test_results_in_the_tuners_order_are_read():
 @pytest.mark.parametrize(
     'recs, says',
     [
-        (GOOD[:6] + (GOOD[5],), 'line 7: evaluation 2 again (it was measured on line 6)'),
-        (GOOD[:3] + (GOOD[5],), 'line 4: evaluation 2, but evaluation 1 is missing'),
-        (GOOD[:3] + (_line('remeasure', 7),), 'line 4: re-measurement of evaluation 7, which'),
-        (GOOD[:5] + (_line('remeasure', 1),), 'line 6: re-measurement of evaluation 1, which'),
-        (GOOD + (GOOD[7],), 'line 10: evaluation 2 re-measured again (first on line 8)'),
-        (GOOD[:2] + (GOOD[1],), 'line 3: a second measured reference (the first is line 2)'),
+        ((*GOOD[:6], GOOD[5]), 'line 7: evaluation 2 again (it was measured on line 6)'),
+        ((*GOOD[:3], GOOD[5]), 'line 4: evaluation 2, but evaluation 1 is missing'),
+        ((*GOOD[:3], _line('remeasure', 7)), 'line 4: re-measurement of evaluation 7, which'),
+        ((*GOOD[:5], _line('remeasure', 1)), 'line 6: re-measurement of evaluation 1, which'),
+        ((*GOOD, GOOD[7]), 'line 10: evaluation 2 re-measured again (first on line 8)'),
+        ((*GOOD[:2], GOOD[1]), 'line 3: a second measured reference (the first is line 2)'),
         ((_line('reference', 0),), 'line 1: a reference record with eval 0'),
         ((_line('eval', 1, 'lost'),), 'line 1: evaluation 1, but evaluation 0 is missing'),
     ],

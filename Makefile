@@ -120,6 +120,7 @@ FAMILY_RUNS   ?= 100
 FAMILY_BUDGET ?= 200
 STUDY := $(VENV)/bin/ros2 run im_tuner study
 reproduction: setup
+	@echo 'reproduction: three studies, hours at the defaults (each prints its runs, rate and ETA as it goes)'
 	rm -rf $(STUDY_OUT) $(BENCH_OUT) $(FAMILY_OUT)
 	$(STUDY) --out $(STUDY_OUT) --algos $(STUDY_ALGOS) $(ARGS)
 	$(STUDY) --out $(BENCH_OUT) --algos spsa,necga --realism bench --beside $(STUDY_OUT) $(ARGS)
@@ -127,22 +128,10 @@ reproduction: setup
 	    --runs $(FAMILY_RUNS) --budget $(FAMILY_BUDGET) $(ARGS)
 	$(MAKE) reproduction-docs
 
-# The write-up alone, from the three studies' directories (no experiment run).
+# The write-up alone, from the three studies' directories (no experiment run); every input
+# is checked first: one missing leaves docs/ untouched (one line, exit 2).
 reproduction-docs:
-	rm -rf docs/reproduction && mkdir -p docs/reproduction/family
-	cp $(STUDY_OUT)/tables.png $(STUDY_OUT)/convergence.png $(STUDY_OUT)/comparison.png docs/reproduction/
-	cd $(FAMILY_OUT) && for d in */; do mkdir -p $(CURDIR)/docs/reproduction/family/$$d && \
-	    cp $$d/comparison.png $(CURDIR)/docs/reproduction/family/$$d; done
-	{ sed -e 's#](tables.png)#](reproduction/tables.png)#' \
-	      -e 's#](convergence.png)#](reproduction/convergence.png)#' \
-	      -e 's#](comparison.png)#](reproduction/comparison.png)#' \
-	      $(STUDY_OUT)/reproduction.md; \
-	  cat $(BENCH_OUT)/beside.md; echo; \
-	  echo '## The study over a family of drives'; echo; \
-	  echo 'Every algorithm and the Py-BOBYQA reference on each drive of the family on the `bench` profile, the summary over the drives and the default against the goal of issue 29: [reproduction-family.md](reproduction-family.md).'; \
-	} > docs/reproduction.md
-	sed -e 's#](\([^)/]*\)/\([a-z_]*\).png)#](reproduction/family/\1/\2.png)#' \
-	    $(FAMILY_OUT)/family.md > docs/reproduction-family.md
+	bash tools/reproduction_docs.sh $(STUDY_OUT) $(BENCH_OUT) $(FAMILY_OUT)
 
 # Decode every message of a bag with Foxglove's own libraries (Node.js + npm; pinned in
 # tools/foxglove-check/package-lock.json): make foxglove-check BAG=bags/<run>/bag_0

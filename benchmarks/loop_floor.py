@@ -7,6 +7,9 @@ is its own (docs/real-drive.md, "What it bought on this machine").
 
     .venv/bin/python benchmarks/loop_floor.py [--seconds 30] [--hogs 2]
 
+(each of the two runs lasts ``--seconds``: about 2 x 30 s with the defaults; a bad value is
+one line on stderr, exit 2).
+
 Prints the overruns (starts more than a period late), the worst lateness and the
 lateness histogram (pacing.LATENESS_BINS), with and without ``--hogs`` busy processes.
 """
@@ -23,6 +26,7 @@ import numba
 import numpy as np
 
 from im_drive_sim import rt
+from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, run_cli
 from im_drive_sim.pacing import LATENESS_BINS, LATENESS_EDGES_US
 from im_tuner.bench import compiled_loop as CL
 
@@ -59,11 +63,31 @@ def measure(seconds: float) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--seconds', type=float, default=30.0)
-    ap.add_argument('--hogs', type=int, default=2, help='busy processes beside the second run')
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line; a bad value raises ``UsageError`` (one line, exit 2 in ``main``)."""
+    ap = Parser(description=__doc__.splitlines()[0])
+    ap.add_argument(
+        '--seconds',
+        type=finite_float(0.0, 3600.0, lo_open=True, unit='s'),
+        default=30.0,
+        help='length of each run [s] (0 < s <= 3600)',
+    )
+    ap.add_argument(
+        '--hogs', type=int_in(0, 64), default=2, help='busy processes beside the second run'
+    )
     args = ap.parse_args(argv)
+    if int(args.seconds * 1e9 / TS_NS) < 1:
+        raise UsageError(f'--seconds {args.seconds:g}: shorter than one period (200 us)')
+    return args
+
+
+def main(argv: list[str] | None = None) -> dict:
+    args = parse(argv)
+    print(
+        f'loop_floor: two runs of {args.seconds:g} s (0 and {args.hogs} hogs): about '
+        f'{2 * args.seconds + 5:.0f} s',
+        flush=True,
+    )
     refused = rt.apply(rt.RtOptions(50, -1, True))
     for line in refused:
         print(f'warning: {line}', file=sys.stderr)
@@ -93,4 +117,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == '__main__':
-    main(sys.argv[1:])
+    sys.exit(run_cli('loop_floor', lambda: (main(sys.argv[1:]), 0)[1]))

@@ -1,5 +1,5 @@
 """Configuration of the induction-motor drive simulator: frozen dataclasses, YAML loading
-and validation.
+and validation (reading a drive file and its ``base``: ``drive_file.py``).
 
 The packaged default (``config/paper_750w.yaml``) is the paper's 750 W, 1-pole-pair motor
 with the constants of the shared model notes.  Every value is validated on load and a
@@ -23,14 +23,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from importlib import resources
 from pathlib import Path
 from typing import Any
-
-import yaml
-
-from . import family
 
 __all__ = [
     'BENCH_ESTIMATES',
@@ -518,90 +514,10 @@ def _check_consistency(src: str, cfg: DriveConfig) -> None:
 def load_config(
     path: str | Path | None = None, overrides: Mapping[str, Any] | None = None
 ) -> DriveConfig:
-    """Load and validate a drive configuration.
+    """Load and validate a drive configuration (a drive file, a packaged drive's name, or
+    None: the packaged default); ``overrides`` merged onto it before validation.  The
+    file's reading and its ``base`` are ``im_drive_sim.drive_file.load_drive_file``'s
+    (this delegate keeps the one import every caller uses).  Raises ``ConfigError``."""
+    from .drive_file import load_drive_file
 
-    path: YAML file, or the name of a packaged drive (``family.PACKAGED_NAMES``: a motor's
-    file such as ``paper_750w`` or a drive such as ``im3700w-j3``; a name is taken only
-    when no such file exists); ``None`` loads the packaged default (``default_config_path()``).
-    overrides: partial nested (``{"machine": {"J": 1.0}}``) or dotted (``{"machine.J": 1.0}``)
-    values merged onto the file before validation.
-    Raises ``ConfigError`` (a ``ValueError``) naming the file and the key path; a bare name
-    that is neither a file nor a packaged drive is refused in one line naming the drives.
-    """
-    p = default_config_path() if path is None else _drive_path(path)
-    name = p.name
-    try:
-        text = p.read_text(encoding='utf-8')
-    except OSError as exc:
-        raise ConfigError(f'{name}: cannot read {p}: {exc.strerror or exc}') from exc
-    except UnicodeDecodeError:
-        raise ConfigError(f'{name}: not a text (UTF-8) file') from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        where = ''
-        mark = getattr(exc, 'problem_mark', None)
-        if mark is not None:
-            where = f' at line {mark.line + 1}, column {mark.column + 1}'
-        problem = getattr(exc, 'problem', None) or str(exc)
-        raise ConfigError(f'{name}: YAML syntax error{where}: {problem}') from exc
-    if data is None:  # an empty file, only comments, or a bare null: no settings at all
-        content = [ln.strip() for ln in text.splitlines() if ln.strip()]
-        if not content:
-            what = 'the file is empty'
-        elif all(ln.startswith('#') or ln in ('---', '...') for ln in content):
-            what = 'the file holds only comments'
-        else:
-            what = 'the YAML document is null'
-        raise ConfigError(
-            f'{name}: no settings ({what}); a drive file is a mapping, e.g. '
-            "'base: paper_750w' and the values you know (docs/real-drive.md)"
-        )
-    if isinstance(data, Mapping) and 'base' in data:
-        data = _with_base(name, p, data)
-    src = name if not overrides else f'{name} (with overrides)'
-    return replace(config_from_dict(data, source=src, overrides=overrides), path=str(p.resolve()))
-
-
-def _drive_path(path: str | Path) -> Path:
-    """The file ``path`` names: the file itself, else the packaged drive of that name."""
-    p = Path(path)
-    if p.exists():
-        return p
-    packaged = family.packaged_path(str(path))
-    if packaged is not None:
-        return packaged
-    if p.suffix == '' and p.name == str(path):  # a bare name: a drive's, mistyped
-        raise ConfigError(family.unknown_drive_message(str(path)))
-    return p
-
-
-def _with_base(name: str, path: Path, data: Mapping[str, Any]) -> dict[str, Any]:
-    """A drive file with ``base: <file>``: that file's values, with this file's on top.
-
-    A real drive's file needs only what the controller reads (``Ts``, ``machine.isq_max``)
-    and what is really known; ``base`` gives the rest (a packaged name such as
-    ``paper_750w`` or ``im3700w-j3``, or a path relative to this file). One level: a base
-    has no base, but a packaged drive may be one (its own base is its motor's file)."""
-    base = data['base']
-    if not isinstance(base, str) or not base:
-        raise ConfigError(f'{name}: base must be a file name, got {base!r}')
-    packaged = default_config_path().with_name(base if base.endswith('.yaml') else base + '.yaml')
-    bp = packaged if packaged.is_file() and '/' not in base else path.parent / base
-    try:
-        bdata = yaml.safe_load(bp.read_text(encoding='utf-8'))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise ConfigError(f'{name}: base {base!r}: cannot read {bp} ({exc})') from None
-    if isinstance(bdata, Mapping) and 'base' in bdata and bp == packaged:
-        bdata = _with_base(bp.name, bp, bdata)  # a packaged drive: its motor's file under it
-    if not isinstance(bdata, Mapping) or 'base' in bdata:
-        raise ConfigError(f'{name}: base {base!r}: not a complete drive file (or has a base)')
-    merged = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in bdata.items()}
-    for k, v in data.items():
-        if k == 'base':
-            continue
-        if isinstance(v, Mapping) and isinstance(merged.get(k), dict):
-            merged[k].update(v)
-        else:
-            merged[k] = v
-    return merged
+    return load_drive_file(path, overrides)

@@ -40,6 +40,7 @@ from im_controller.config import (
     validate_experiment_config,
     validate_loss_config,
 )
+from im_drive_sim.drive_file import packaged_base
 from im_drive_sim.family import DRIVE_NAMES, PACKAGED_NAMES
 from im_drive_sim.params import DriveConfig, MachineParams, load_config
 
@@ -228,10 +229,22 @@ def controller_parameters(setup: DriveSetup) -> tuple[tuple[str, float], ...]:
 def tuner_setup(drive_config: str | Path | None) -> DriveSetup | None:
     """The setup the tuner takes from ``--drive-config``: a packaged drive's name gives its
     setup (its experiment on the controller, its box and start for the optimiser unless
-    ``--params`` is given); a file path, or none, gives None (the defaults, as before)."""
-    if drive_config is None or str(drive_config) not in PACKAGED_NAMES:
+    ``--params`` is given); a drive file on a packaged base (``base: im7500w-j3``) gives
+    that base's setup with the file's own drive (its Ts and isq_max in the experiment);
+    none, or a file without a packaged base, gives None (the defaults: the paper's)."""
+    if drive_config is None:
         return None
-    return drive_setup(str(drive_config))
+    base = packaged_base(drive_config)
+    if base is None:
+        return None
+    setup = drive_setup(base)
+    if str(drive_config) == base:
+        return setup
+    drive = load_config(drive_config)
+    e = setup.experiment
+    control = dataclasses.replace(e.control, Ts=drive.Ts, isq_max=drive.machine.isq_max)
+    experiment = validate_experiment_config(dataclasses.replace(e, control=control))
+    return DriveSetup(str(drive_config), drive, experiment, setup.params)
 
 
 #: ``check_drive``'s default current step [A] (the paper's motor) and the largest fraction

@@ -22,7 +22,9 @@ point, bit for bit):
    score is its worst loss relative to the start's on the same perturbed model (an
    aborted experiment: never chosen).
 3. The point of the lowest score is the prior.  None when no candidate beats the start
-   on every perturbed model (``safe`` then runs as without a model).
+   on every perturbed model, or when the start itself aborts on the nominal model (a box
+   given with ``--params`` for another drive: nothing to compare with); ``safe`` then runs
+   as without a model.
 
 ``model_prior`` is cached per (nominal drive, experiment, box) in the process: a study
 computes it once per drive and worker.  Cost on the development machine: see
@@ -50,6 +52,7 @@ __all__ = [
     'MODEL_EVALUATIONS',
     'PERTURBATIONS',
     'Prior',
+    'model_drive_mismatch',
     'model_prior',
     'nominal_model',
 ]
@@ -157,7 +160,9 @@ def _compute(
     model = nominal_model(drive)
     seen, bench = _search(model, experiment, space)
     start = tuple(space.start_u.tolist())
-    f0 = next(loss for loss, ab, u in seen if u == start and not ab)
+    f0 = next((loss for loss, ab, u in seen if u == start and not ab), None)
+    if f0 is None:  # the box's start is unstable on the model: no ratio to beat, no prior
+        return None
     best: dict[tuple[float, ...], float] = {}
     for loss, aborted, u in sorted(seen):
         if not aborted and u != start and u not in best and loss < f0:
@@ -206,3 +211,31 @@ def model_prior(
     if key not in _CACHE:
         _CACHE[key] = _compute(drive, experiment, space)
     return _CACHE[key]
+
+
+def model_drive_mismatch(mine: str | None, theirs: str | None) -> str | None:
+    """Why a first step computed on the drive file ``mine`` (the tuner's ``--drive-config``;
+    None: the packaged default) does not fit a controller whose ``drive_config_file`` is
+    ``theirs`` ('' or None: the default): one line naming the fix, or None when both name
+    the same machine and period.  A file the tuner cannot read here is a mismatch only when
+    the names differ (a drive host on another computer may keep it elsewhere)."""
+    from im_drive_sim.params import ConfigError, load_config
+
+    mine, theirs = mine or None, theirs or None
+    try:
+        same = _drive_key(load_config(mine)) == _drive_key(load_config(theirs))
+    except ConfigError:
+        same = mine == theirs
+    if same:
+        return None
+    said = '(none)' if mine is None else mine
+    return (
+        f'--first model: the controller drives {theirs or "paper_750w (its default)"} '
+        f'(its drive_config_file), but the first step would be the model of --drive-config '
+        f'{said}; give --drive-config {theirs or "paper_750w"} (or --first none)'
+    )
+
+
+def _drive_key(drive: DriveConfig) -> tuple[Any, ...]:
+    """What the model of a drive depends on: its machine and its period."""
+    return (drive.machine, drive.Ts)

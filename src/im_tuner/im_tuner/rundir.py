@@ -33,7 +33,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .runlog import FileError, Record, RecordError, RunConfig, Summary, parse_results
+from .runlog import (
+    FileError,
+    Record,
+    RecordError,
+    RunConfig,
+    Summary,
+    VersionError,
+    parse_results,
+)
 
 __all__ = [
     'CHECKPOINT_FILE',
@@ -287,9 +295,13 @@ class RunDir:
 
     def read_summary(self) -> Summary | None:
         """summary.json, or None if there is none or it is not one (a killed session
-        leaves none; the records are the truth)."""
+        leaves none; the records are the truth); :class:`RunDirError` for one of a format
+        version this im_tuner does not read (a newer tuner's: not a killed session's)."""
+        path = self.path / SUMMARY_FILE
         try:
-            return Summary.from_text((self.path / SUMMARY_FILE).read_bytes())
+            return Summary.from_text(path.read_bytes())
+        except VersionError as exc:
+            raise RunDirError(f'{path}: {exc}') from None
         except (OSError, FileError):
             return None
 

@@ -196,6 +196,13 @@ class TunerSession:
             parameters = link.list_parameters()
         except LostEvaluation as exc:  # a controller that does not answer: one line
             raise BenchFailure(f'the controller did not list its parameters: {exc}') from None
+        if not self.resumed and plan.mode == 'external' and (run.options or {}).get('first'):
+            # a controller the tuner did not start: the first step must be its drive's model
+            from .prior import model_drive_mismatch
+
+            why = model_drive_mismatch(run.drive_config, parameters.get('drive_config_file'))
+            if why is not None:
+                raise UsageError(why)  # (the run directory is undone: nothing is left)
         numeric_now = numeric.status()  # (after the controller's answer: it loads scipy)
         enforced = parameters.get('timing_tolerance')
         if enforced is not None and enforced != run.tolerance():

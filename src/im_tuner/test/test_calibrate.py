@@ -79,3 +79,14 @@ def test_a_tiny_calibration_runs_and_writes_its_page(tmp_path: Path) -> None:
     rows = [ln for ln in text.splitlines() if ln.startswith('| ideal |')]
     cv = float(rows[0].split('|')[2])
     assert 0.0 <= cv < 1.0 and not math.isnan(cv)  # ideal: a spread far below 1 %
+
+
+def test_calibrate_says_how_long_it_will_take():
+    """``make calibrate-bench`` said nothing for 5-10 minutes: the estimate comes first."""
+    from im_tuner.study.calibrate import RATE_PER_WORKER, estimate
+
+    line = estimate((1.0, 2.0, 4.0, 8.0), 30, 200, 30, 2)
+    # 5 profiles x 2 cells x 30 runs x 200 evaluations on 2 workers, plus the side runs
+    assert line.startswith('calibrate: 60686 experiments (5 profiles x 2 cells x 30 runs')
+    assert RATE_PER_WORKER == 50.0 and line.endswith('about 10 min on 2 worker(s)')
+    assert estimate((4.0,), 2, 10, 5, 1).endswith('about 1 min on 1 worker(s)')

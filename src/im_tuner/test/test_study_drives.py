@@ -213,3 +213,28 @@ def test_family_l_ref_is_each_drives_hand_tuned_start():
     l_ideal = R.reference_loss(S.StudySpec().drive(), experiments=2)
     l_bench = R.reference_loss(spec.drive(), 2, spec.experiment(), None)
     assert math.isfinite(l_bench[0]) and l_bench[0] != l_ideal[0]
+
+
+def test_a_study_row_whose_runs_all_aborted_is_named_not_averaged_away():
+    from im_tuner.study.summary import compute_family
+    from im_tuner.study.text import comparison_rows, summary_rows
+
+    fam = _family({'a': {'safe': 0.40}, 'b': {'safe': 0.60}}, {'b': 6})  # b: all 6 aborted
+    fam.results[1].remeasured[:] = np.nan  # (no final controller: nothing re-measured)
+    fs = compute_family(fam)
+    st_b = dict(fs.drives)['b']
+    safe_b = next(c for c in st_b.cells if c.cell.algo == 'safe')
+    assert safe_b.no_final == safe_b.runs == 3 and math.isnan(safe_b.final.value)
+    _head, rows = comparison_rows(st_b)
+    row = next(r for r in rows if r[0].startswith('safe'))
+    assert row[1] == row[2] == 'all 3 runs aborted (n=0)'
+    safe = next(m for m in fs.methods if m.algo == 'safe')
+    assert safe.mean['remeasured'] == pytest.approx(0.404)  # a's alone ...
+    assert safe.left_out['remeasured'] == ['b: all 3 runs aborted']  # ... and b named
+    assert safe.left_out['evals'] == ['b: all 3 runs aborted'] and safe.left_out['fast'] == [
+        'b: all 3 runs aborted'
+    ]
+    assert safe.left_out['aborted_per_run'] == []  # (6 per run: a value, averaged)
+    _head, rows = summary_rows(fs)
+    cell = next(r for r in rows if r[0].startswith('safe'))[1]
+    assert cell == '0.404 (0.404 a); left out: b: all 3 runs aborted'

@@ -391,10 +391,10 @@ def test_run_directory_rules(tmp_path):
     # a bad line in the middle is an error
     x = 0.1 + 0.2
 
-    def rec(loss: float) -> dict:
+    def rec(loss: float, index: int = 0) -> dict:
         return {
             'kind': 'eval',
-            'eval': 0,
+            'eval': index,
             'status': 'ok',
             'u': [0.5],
             'gains': {'k_pw': 1.0},
@@ -404,11 +404,11 @@ def test_run_directory_rules(tmp_path):
         }
 
     rd.append_result(Record.from_dict(rec(x)))
-    rd.append_result(Record.from_dict(rec(1e-300)))
+    rd.append_result(Record.from_dict(rec(1e-300, 1)))
     with open(rd.path / 'results.jsonl', 'a') as f:
         f.write('{"loss": 0.')
     got = rd.read_results()
-    assert got == [Record.from_dict(rec(x)), Record.from_dict(rec(1e-300))]
+    assert got == [Record.from_dict(rec(x)), Record.from_dict(rec(1e-300, 1))]
     assert [r.loss for r in got] == [x, 1e-300]  # floats read back bit for bit
     assert (rd.path / 'results.jsonl').read_text().endswith('0.')  # reading changes nothing
     rd.read_results(repair=True)
@@ -424,7 +424,7 @@ def test_run_directory_rules(tmp_path):
     (rd.path / 'results.jsonl').write_text(
         json.dumps(rec(x))
         + '\n'
-        + json.dumps({k: v for k, v in rec(x).items() if k != 'loss'})
+        + json.dumps({k: v for k, v in rec(x, 1).items() if k != 'loss'})
         + '\n'
     )
     with pytest.raises(RunDirError, match="line 2: record without 'loss'"):

@@ -39,7 +39,7 @@ from ..record.node import default_out_dir
 from .forms import Children, InProcess, parameters
 from .open import open_bench
 from .sim_bench_main import parser
-from .spec import BenchSpec, Params, recording_options
+from .spec import BenchSpec, Params, parameter_args, recording_options
 
 
 def _check_cli(cli: argparse.Namespace) -> None:
@@ -54,25 +54,49 @@ def _check_cli(cli: argparse.Namespace) -> None:
         raise UsageError(f'--out {cli.out}: already exists; choose a new directory')
 
 
-def _overrides(cli: argparse.Namespace) -> tuple[Params, Params]:
-    """The drive's and the controller's parameters from the command line's flags."""
+def _drive_gains(cli: argparse.Namespace, ros_args: list[str]) -> Params:
+    """The controller's experiment and start gains for ``--config`` (``family.tuner_setup``:
+    a packaged drive, or a file on a packaged base; none for the paper's drive), less those
+    the user's ``--ros-args -p NAME:=VALUE`` sets (the command line wins)."""
+    if not cli.config:
+        return ()
+    from .. import family
+
+    setup = family.tuner_setup(str(cli.config))
+    if setup is None:
+        return ()
+    given = {
+        ros_args[i + 1].split(':=', 1)[0]
+        for i, a in enumerate(ros_args[:-1])
+        if a in ('-p', '--param') and ':=' in ros_args[i + 1]
+    }
+    return tuple((n, v) for n, v in family.controller_parameters(setup) if n not in given)
+
+
+def _overrides(cli: argparse.Namespace, ros_args: list[str]) -> tuple[Params, Params]:
+    """The drive's and the controller's parameters from the command line's flags (and the
+    drive's experiment and gains, :func:`_drive_gains`)."""
     config = str(cli.config) if cli.config else None
     drive = tuple(
         (n, v)
         for n, v in (('config_file', config), ('model', cli.model), ('seed', cli.seed))
         if v is not None
     )
-    return drive, ((('drive_config_file', config),) if config else ())
+    ctl = ((('drive_config_file', config),) if config else ()) + _drive_gains(cli, ros_args)
+    return drive, ctl
 
 
 def _child_args(cli: argparse.Namespace, ros_args: list[str]) -> tuple[tuple[str, ...], ...]:
     """``--processes``: the drive's and the controller's command-line tails (their own
-    flags, then the user's ``--ros-args``)."""
+    flags, the drive's experiment and gains, then the user's ``--ros-args``)."""
     drive: list[str] = []
     ctl: list[str] = []
     if cli.config:
         drive += ['--config', str(cli.config)]
         ctl += ['--config', str(cli.config)]
+        gains = _drive_gains(cli, ros_args)
+        if gains:
+            ctl += ['--ros-args', *parameter_args(gains)]
     if cli.model:
         drive += ['--model', cli.model]
     if cli.seed is not None:
@@ -92,7 +116,7 @@ def _check_nodes(cli: argparse.Namespace, ros_args: list[str]) -> None:
 
     from .open import NODE_REFUSALS
 
-    drive_over, ctl_over = (parameters(p) for p in _overrides(cli))
+    drive_over, ctl_over = (parameters(p) for p in _overrides(cli, ros_args))
     ctx = Context()
     session = RosSession(['sim_bench', *ros_args, '--disable-stdout-logs'], context=ctx)
     try:
@@ -153,7 +177,7 @@ def main(args: list[str] | None = None) -> int:
     except UsageError as exc:
         print(f'error: sim_bench: {exc}', file=sys.stderr)
         return 2
-    drive_over, ctl_over = _overrides(cli)
+    drive_over, ctl_over = _overrides(cli, ros_args)
     spec = BenchSpec(
         requested='processes' if cli.processes else 'inproc',
         record=not cli.no_record,

@@ -161,6 +161,12 @@ def _bag_info(cli: argparse.Namespace) -> int:
     return 0
 
 
+def _holds_bag(path: Path) -> bool:
+    """``path`` is a directory holding a bag (its metadata or an MCAP file): a report's
+    files do not belong there (a recorder may be writing it)."""
+    return path.is_dir() and ((path / 'metadata.yaml').exists() or any(path.glob('*.mcap')))
+
+
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if args is None else args)
     try:
@@ -178,6 +184,7 @@ def main(args: list[str] | None = None) -> int:
             try:
                 RunDir.open(p).read_config()
                 RunDir(p).read_results()  # every record checked: no traceback later
+                RunDir(p).read_summary()  # (one of a newer tuner's format: refused)
             except RunDirError as exc:
                 raise ReportError(str(exc)) from None
         for bag in cli.bags:
@@ -187,6 +194,11 @@ def main(args: list[str] | None = None) -> int:
                 raise ReportError(f'--bags {bag}: not a bag directory (no metadata.yaml or .mcap)')
         if cli.out is not None and cli.out.exists() and not cli.out.is_dir():
             raise ReportError(f'--out {cli.out}: exists and is not a directory')
+        if cli.out is not None and _holds_bag(cli.out):
+            raise ReportError(
+                f'--out {cli.out}: a bag folder (it holds metadata.yaml or .mcap files, '
+                'perhaps still recording); choose another directory'
+            )
     except (ReportError, UsageError) as exc:
         print(f'error: report: {exc}', file=sys.stderr)
         return EXIT_USAGE

@@ -122,6 +122,7 @@ def load_run(
         rd = RunDir.open(path)
         run = rd.read_config()
         records = rd.read_results(repair=False)  # a torn last line is left alone
+        saved = rd.read_summary()  # (a newer tuner's format: refused, not "killed")
     except RunDirError as exc:
         raise ReportError(str(exc)) from None
     try:
@@ -131,7 +132,6 @@ def load_run(
     live = rd.holder()  # a tuner is working on it now (its lock)
     sat = float(run.satisfactory_loss or 0.0)
     st = tally_all(records, sat)
-    saved = rd.read_summary()
     if saved is not None and saved.evaluations == st.evals and saved.experiments == st.experiments:
         summary, source = saved, 'summary.json'
     else:

@@ -29,6 +29,9 @@ from .files import (
 from .files import (
     Summary as Summary,
 )
+from .files import (
+    VersionError as VersionError,
+)
 from .records import (
     FORMAT_VERSION as FORMAT_VERSION,
 )

@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 
-__all__ = ['FILE_VERSION', 'FileError', 'RunConfig', 'Summary']
+__all__ = ['FILE_VERSION', 'FileError', 'RunConfig', 'Summary', 'VersionError']
 
 #: The run.yaml / summary.json format this im_tuner writes (and the newest it reads).
 FILE_VERSION = 1
@@ -23,6 +23,11 @@ FILE_VERSION = 1
 
 class FileError(ValueError):
     """Not a run.yaml / summary.json of a format this im_tuner reads (message: why)."""
+
+
+class VersionError(FileError):
+    """A run.yaml / summary.json of a format version this im_tuner does not read (a newer
+    im_tuner wrote it): never taken for a missing file."""
 
 
 @dataclass(kw_only=True)
@@ -41,8 +46,9 @@ class _Keyed:
             or isinstance(version, bool)
             or not 1 <= version <= FILE_VERSION
         ):
-            raise FileError(
-                f'format version {version!r}: this im_tuner reads versions 1 to {FILE_VERSION}'
+            raise VersionError(
+                f'format version {version!r}: this im_tuner reads versions 1 to {FILE_VERSION} '
+                '(a newer im_tuner wrote it?)'
             )
         names = {f.name for f in dataclasses.fields(cls)} - {'extra', 'keys'}
         known = {k: v for k, v in data.items() if k in names}

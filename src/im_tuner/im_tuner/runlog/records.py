@@ -311,13 +311,72 @@ def parse_results(raw: bytes) -> tuple[list[Record], int]:
 
     Each record is written as one line ending in a newline: bytes after the last newline
     are a record written only in part (the process died mid-write) and are not read.
-    :class:`RecordError` ('line N ...') for a line that is not a record."""
+    :class:`RecordError` ('line N ...') for a line that is not a record, or one out of
+    the order the tuner writes them in (:class:`_Order`: an evaluation twice or skipped,
+    a re-measurement of an evaluation that does not exist)."""
     end = raw.rfind(b'\n') + 1
     out: list[Record] = []
+    order = _Order()
     for i, line in enumerate(raw[:end].split(b'\n')[:-1]):
         try:
-            out.append(Record.from_json(line))
+            rec = Record.from_json(line)
         except RecordError as exc:
             sep = ' ' if str(exc) == 'is not a JSON record' else ': '
             raise RecordError(f'line {i + 1}{sep}{exc}') from None
+        problem = order.take(rec, i + 1)
+        if problem:
+            raise RecordError(f'line {i + 1}: {problem}')
+        out.append(rec)
     return out, end
+
+
+class _Order:
+    """The order the tuner writes records in, checked line by line: one reference (eval
+    -1), then evaluations 0, 1, 2, ... each measured once (its lost and off-timing
+    attempts before it), then re-measurements, each of a completed (``ok``) evaluation
+    written before it, once.  A file out of that order (a line pasted twice, one deleted,
+    a re-measurement of an evaluation that does not exist) is refused, not summed up."""
+
+    def __init__(self) -> None:
+        self.next_eval = 0  #: the evaluation the next eval record is (an attempt of)
+        self.eval_line: dict[int, int] = {}  #: measured evaluation -> its line
+        self.completed: set[int] = set()  #: evaluations with status ok
+        self.reference_line = 0  #: the measured reference's line (0: none yet)
+        self.remeasured: dict[int, int] = {}  #: re-measured evaluation -> its line
+
+    def take(self, rec: Record, line: int) -> str | None:
+        """What is wrong with ``rec`` (on ``line``) after the records before it, or None
+        (then it is counted)."""
+        measured = rec.status in MEASURED
+        e = rec.eval
+        if rec.kind == 'reference':
+            if e != -1:
+                return f'a reference record with eval {e} (the reference is eval -1)'
+            if measured and self.reference_line:
+                return f'a second measured reference (the first is line {self.reference_line})'
+            if measured:
+                self.reference_line = line
+            return None
+        if rec.kind == 'eval':
+            if e < self.next_eval:
+                return f'evaluation {e} again (it was measured on line {self.eval_line[e]})'
+            if e > self.next_eval:
+                return (
+                    f'evaluation {e}, but evaluation {self.next_eval} is missing (each '
+                    'evaluation follows the one before)'
+                )
+            if measured:
+                self.eval_line[e] = line
+                self.next_eval += 1
+                if rec.status == 'ok':
+                    self.completed.add(e)
+            return None
+        if e not in self.completed:  # a re-measurement
+            return (
+                f're-measurement of evaluation {e}, which is not a completed evaluation before it'
+            )
+        if measured and e in self.remeasured:
+            return f'evaluation {e} re-measured again (first on line {self.remeasured[e]})'
+        if measured:
+            self.remeasured[e] = line
+        return None

@@ -289,6 +289,27 @@ def _remaining(best: Row, ideal: Row, cv0: float, free: Row) -> str:
     return ' '.join(parts)
 
 
+#: offline experiments per second of one worker (full model, ``bench`` profile): the rate
+#: docs/calibration.md measured (63 ideal, 55-60 bench), rounded down for a loaded machine
+RATE_PER_WORKER = 50.0
+#: experiments of the reference loss L_ref per profile (``runs.reference_loss``)
+_REF_EXPERIMENTS = 100
+
+
+def estimate(scales: tuple[float, ...], runs: int, budget: int, n_spread: int, jobs: int) -> str:
+    """One line said at the start: the experiments :func:`calibrate` will run and about how
+    long they take on ``jobs`` workers (at ``RATE_PER_WORKER`` each)."""
+    profiles = 1 + len(scales)  # ideal, then bench at each scale
+    runs_total = profiles * len(CENTRE) * runs * budget
+    side = (profiles + 1) * (n_spread + 1) + profiles * _REF_EXPERIMENTS  # spreads, L_ref
+    seconds = runs_total / (RATE_PER_WORKER * jobs) + side / RATE_PER_WORKER
+    return (
+        f'calibrate: {runs_total + side} experiments ({profiles} profiles x {len(CENTRE)} '
+        f'cells x {runs} runs x {budget} evaluations, plus spreads and L_ref): about '
+        f'{max(1, round(seconds / 60))} min on {jobs} worker(s)'
+    )
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:  # one line, exit 2 (the project's rule)
         print(f'calibrate: {message}', file=sys.stderr)
@@ -329,6 +350,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f'--out: no directory {a.out.parent}')
     if a.seed < 0:
         p.error(f'--seed must be >= 0, got {a.seed}')
+    print(estimate(a.scales, a.runs, a.budget, a.spread, a.jobs), file=sys.stderr, flush=True)
     rows, cv0 = calibrate(a.scales, a.runs, a.budget, a.spread, a.jobs, a.seed)
     args = ' '.join(sys.argv[1:]) if argv is None else ' '.join(argv)
     text = markdown(

@@ -17,7 +17,7 @@ within 2 % of the best row of the drive.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .drives import FamilyResult
 from .spec import DEFAULT_ROW
@@ -58,7 +58,9 @@ SUMMARY_STATS: tuple[tuple[str, int, int], ...] = (
 @dataclass
 class MethodSummary:
     """One method over the drives: per statistic (mean over drives, worst value, the
-    worst drive's name); nan where no drive has a value."""
+    worst drive's name); nan where no drive has a value. ``left_out``: per statistic, the
+    drives without a value, each with why ('im7500w-j10: all 5 runs aborted'; 'n=0': no
+    run reached it): never dropped from the mean without a word."""
 
     algo: str
     label: str
@@ -66,6 +68,7 @@ class MethodSummary:
     mean: dict[str, float]
     worst: dict[str, float]
     worst_drive: dict[str, str]
+    left_out: dict[str, list[str]] = field(default_factory=dict)
 
 
 @dataclass
@@ -108,11 +111,17 @@ def summarize(drives: list[tuple[str, StudyStats]]) -> list[MethodSummary]:
         mean: dict[str, float] = {}
         worst: dict[str, float] = {}
         worst_drive: dict[str, str] = {}
+        left_out: dict[str, list[str]] = {}
         for stat, _d, sign in SUMMARY_STATS:
             vals = [
                 (name, getattr(cs, stat).value)
                 for name, cs in rows
                 if cs is not None and math.isfinite(getattr(cs, stat).value)
+            ]
+            left_out[stat] = [
+                f'{name}: ' + (f'all {cs.runs} runs aborted' if cs.no_final == cs.runs else 'n=0')
+                for name, cs in rows
+                if cs is not None and not math.isfinite(getattr(cs, stat).value)
             ]
             if not vals:
                 mean[stat], worst[stat], worst_drive[stat] = math.nan, math.nan, ''
@@ -121,7 +130,9 @@ def summarize(drives: list[tuple[str, StudyStats]]) -> list[MethodSummary]:
             name, v = max(vals, key=lambda nv: sign * nv[1])
             worst[stat], worst_drive[stat] = v, name
         out.append(
-            MethodSummary(c0.cell.algo, c0.cell.label, c0.cell.start_kind, mean, worst, worst_drive)
+            MethodSummary(
+                c0.cell.algo, c0.cell.label, c0.cell.start_kind, mean, worst, worst_drive, left_out
+            )
         )
     return out
 

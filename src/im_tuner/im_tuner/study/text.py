@@ -130,7 +130,16 @@ def comparison_rows(st: StudyStats) -> tuple[list[str], list[list[str]]]:
     rows = []
     for c in st.cells:
         label = _method(c.cell.algo, c.cell.label, c.cell.start_kind)
-        rows.append([label] + [_iv(getattr(c, a), d) for _h, a, d, _k in COMPARISON])
+        none = c.no_final == c.runs  # no final controller in any run: say so, not '-'
+        rows.append(
+            [label]
+            + [
+                f'all {c.runs} runs aborted (n=0)'
+                if none and a in ('final', 'remeasured')
+                else _iv(getattr(c, a), d)
+                for _h, a, d, _k in COMPARISON
+            ]
+        )
     return head, rows
 
 
@@ -171,7 +180,11 @@ def summary_rows(fs: FamilyStats) -> tuple[list[str], list[list[str]]]:
         row = [_method(m.algo, m.label, m.start_kind)]
         for a, d, _s in SUMMARY_STATS:
             v, w = m.mean[a], m.worst[a]
-            row.append('-' if not math.isfinite(v) else f'{v:.{d}f} ({w:.{d}f} {m.worst_drive[a]})')
+            cell = '-' if not math.isfinite(v) else f'{v:.{d}f} ({w:.{d}f} {m.worst_drive[a]})'
+            out = m.left_out.get(a)
+            if out:  # a drive without a value is named, not averaged away silently
+                cell += ('; ' if math.isfinite(v) else ' ') + 'left out: ' + ', '.join(out)
+            row.append(cell)
         rows.append(row)
     return head, rows
 

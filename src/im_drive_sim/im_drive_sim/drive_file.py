@@ -1,0 +1,168 @@
+"""Reading a drive file: the YAML, a packaged drive's name, and ``base:`` inheritance.
+
+Pure (no rclpy). ``params.load_config`` delegates here; the dataclasses, the validation and
+the realism profiles stay in ``params``.  A drive file may start with ``base: <drive>``:
+
+* a packaged drive's name (``paper_750w``, ``im3700w-j3``, ... ``family.PACKAGED_NAMES``;
+  a packaged drive's own base, its motor's file, comes with it), or
+* a path (``sub/motor.yaml``, ``../motors/m.yaml``, or absolute) resolved relative to the
+  folder of the file that names it, not to the working directory.
+
+One level: a user's base has no base of its own (a packaged drive may).  Every problem is
+one ``ConfigError`` line naming the file.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from . import family
+from .params import ConfigError, DriveConfig, config_from_dict, default_config_path
+
+__all__ = ['base_path', 'load_drive_file', 'packaged_base']
+
+
+def load_drive_file(
+    path: str | Path | None = None, overrides: Mapping[str, Any] | None = None
+) -> DriveConfig:
+    """Load and validate a drive configuration.
+
+    path: YAML file, or the name of a packaged drive (``family.PACKAGED_NAMES``: a motor's
+    file such as ``paper_750w`` or a drive such as ``im3700w-j3``; a name is taken only
+    when no such file exists); ``None`` loads the packaged default (``default_config_path()``).
+    overrides: partial nested (``{"machine": {"J": 1.0}}``) or dotted (``{"machine.J": 1.0}``)
+    values merged onto the file before validation.
+    Raises ``ConfigError`` (a ``ValueError``) naming the file and the key path; a bare name
+    that is neither a file nor a packaged drive is refused in one line naming the drives.
+    """
+    p = default_config_path() if path is None else _drive_path(path)
+    name = p.name
+    data = _read(name, p)
+    if isinstance(data, Mapping) and 'base' in data:
+        data = _with_base(name, p, data)
+    src = name if not overrides else f'{name} (with overrides)'
+    return replace(config_from_dict(data, source=src, overrides=overrides), path=str(p.resolve()))
+
+
+def _read(name: str, p: Path) -> Any:
+    """The YAML document of the drive file ``p`` (``name``: how errors call it)."""
+    try:
+        text = p.read_text(encoding='utf-8')
+    except OSError as exc:
+        raise ConfigError(f'{name}: cannot read {p}: {exc.strerror or exc}') from exc
+    except UnicodeDecodeError:
+        raise ConfigError(f'{name}: not a text (UTF-8) file') from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        where = ''
+        mark = getattr(exc, 'problem_mark', None)
+        if mark is not None:
+            where = f' at line {mark.line + 1}, column {mark.column + 1}'
+        problem = getattr(exc, 'problem', None) or str(exc)
+        raise ConfigError(f'{name}: YAML syntax error{where}: {problem}') from exc
+    if data is None:  # an empty file, only comments, or a bare null: no settings at all
+        content = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        if not content:
+            what = 'the file is empty'
+        elif all(ln.startswith('#') or ln in ('---', '...') for ln in content):
+            what = 'the file holds only comments'
+        else:
+            what = 'the YAML document is null'
+        raise ConfigError(
+            f'{name}: no settings ({what}); a drive file is a mapping, e.g. '
+            "'base: paper_750w' and the values you know (docs/real-drive.md)"
+        )
+    return data
+
+
+def _drive_path(path: str | Path) -> Path:
+    """The file ``path`` names: the file itself, else the packaged drive of that name."""
+    p = Path(path)
+    if p.exists():
+        return p
+    packaged = family.packaged_path(str(path))
+    if packaged is not None:
+        return packaged
+    if p.suffix == '' and p.name == str(path):  # a bare name: a drive's, mistyped
+        raise ConfigError(family.unknown_drive_message(str(path)))
+    return p
+
+
+def _packaged_file(base: str) -> Path | None:
+    """The packaged file ``base`` names (``im7500w-j3`` or ``im7500w-j3.yaml``), else None.
+    A name with a folder in it is a path, never a packaged drive."""
+    if '/' in base or '\\' in base:
+        return None
+    stem = base[: -len('.yaml')] if base.endswith('.yaml') else base
+    p = family.packaged_path(stem)
+    return p if p is not None and p.is_file() else None
+
+
+def base_path(name: str, path: Path, base: Any) -> Path:
+    """The file ``base`` (the value of ``base:`` in the drive file ``path``) names: a
+    packaged drive's file, else ``base`` relative to ``path``'s folder (an absolute path as
+    it is). Raises ``ConfigError`` for a value that is not a file name."""
+    if not isinstance(base, str) or not base.strip():
+        raise ConfigError(f'{name}: base must be a file name, got {base!r}')
+    packaged = _packaged_file(base)
+    return packaged if packaged is not None else path.parent / base
+
+
+def _with_base(name: str, path: Path, data: Mapping[str, Any]) -> dict[str, Any]:
+    """A drive file with ``base: <file>``: that file's values, with this file's on top.
+
+    A real drive's file needs only what the controller reads (``Ts``, ``machine.isq_max``)
+    and what is really known; ``base`` gives the rest (module docstring)."""
+    base = data['base']
+    bp = base_path(name, path, base)
+    packaged = _packaged_file(base) is not None
+    if not bp.is_file():
+        raise ConfigError(
+            f'{name}: base {base!r}: cannot read {bp} (no such file; a packaged drive '
+            f"or a path relative to {name}'s folder)"
+        )
+    try:
+        bdata = yaml.safe_load(bp.read_text(encoding='utf-8'))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        what = ' '.join(str(exc).split())  # (a YAML error spans lines: one line here)
+        raise ConfigError(f'{name}: base {base!r}: cannot read {bp} ({what})') from None
+    if isinstance(bdata, Mapping) and 'base' in bdata and packaged:
+        bdata = _with_base(bp.name, bp, bdata)  # a packaged drive: its motor's file under it
+    if not isinstance(bdata, Mapping) or 'base' in bdata:
+        raise ConfigError(f'{name}: base {base!r}: not a complete drive file (or has a base)')
+    merged = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in bdata.items()}
+    for k, v in data.items():
+        if k == 'base':
+            continue
+        if isinstance(v, Mapping) and isinstance(merged.get(k), dict):
+            merged[k].update(v)
+        else:
+            merged[k] = v
+    return merged
+
+
+def packaged_base(path: str | Path | None) -> str | None:
+    """The packaged drive a drive file stands on: ``path`` itself when it is a packaged
+    drive's name (None: the default ``paper_750w``), else the packaged name of its
+    ``base:`` (``im7500w-j3`` for a user's ``base: im7500w-j3``); None for a file without a
+    base, on a base of its own, or that cannot be read (``load_config`` says why)."""
+    if path is None:
+        return family.MOTOR_FILES[0]
+    if str(path) in family.PACKAGED_NAMES and not Path(path).exists():
+        return str(path)
+    try:
+        p = _drive_path(path)
+        data = _read(p.name, p)
+    except ConfigError:  # (not a drive file: load_config says why, to whoever loads it)
+        return None
+    base = data.get('base') if isinstance(data, Mapping) else None
+    if not isinstance(base, str) or _packaged_file(base) is None:
+        return None
+    stem = base[: -len('.yaml')] if base.endswith('.yaml') else base
+    return stem if stem in family.PACKAGED_NAMES else None

@@ -133,7 +133,7 @@ def test_one_line_exit_2_nothing_changed(i: int, outcomes: dict[int, dict]) -> N
 def test_loop_floor_refuses_bad_numbers_in_one_line(argv, says, tmp_path):
     before = _tree(tmp_path)
     proc = subprocess.run(
-        [sys.executable, str(REPO / 'bench' / 'loop_floor.py'), *argv],
+        [sys.executable, str(REPO / 'benchmarks' / 'loop_floor.py'), *argv],
         cwd=tmp_path,
         capture_output=True,
         text=True,

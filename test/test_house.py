@@ -10,7 +10,6 @@ from __future__ import annotations
 import ast
 import shutil
 import subprocess
-from collections.abc import Iterable
 from pathlib import Path
 
 import pytest
@@ -37,10 +36,9 @@ def _modules() -> dict[str, tuple[Path, bool]]:
     return out
 
 
-def _targets(mod: str, init: bool, node: ast.AST, mods: Iterable[str]) -> set[str]:
+def _targets(mod: str, init: bool, node: ast.AST, known: frozenset[str]) -> set[str]:
     """The project's modules an import statement in ``mod`` loads (a submodule named in
     ``from pkg import sub`` counts as the submodule, not its package)."""
-    known = set(mods)
     out: set[str] = set()
     if isinstance(node, ast.Import):
         out |= {a.name for a in node.names}
@@ -58,10 +56,11 @@ def _targets(mod: str, init: bool, node: ast.AST, mods: Iterable[str]) -> set[st
 
 def _graph(mods: dict[str, tuple[Path, bool]]) -> dict[str, set[str]]:
     g: dict[str, set[str]] = {}
+    known = frozenset(mods)
     for m, (path, init) in mods.items():
         edges: set[str] = set()
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            edges |= _targets(m, init, node, mods)
+            edges |= _targets(m, init, node, known)
         g[m] = edges - {m}
     return g
 

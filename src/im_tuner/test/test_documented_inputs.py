@@ -32,7 +32,7 @@ def _big(tmp_path: Path) -> Path:
 def test_a_users_file_on_a_bigger_base_takes_that_drives_setup(tmp_path):
     """docs/drive-family.md's own example (``base: im7500w-j3``): before, the paper's box
     and experiment, the start aborted on the model and prior.py raised StopIteration."""
-    from im_tuner.bench.offline import OfflineBench
+    from im_tuner.offline import OfflineBench
 
     mine, base = family.tuner_setup(_big(tmp_path)), family.tuner_setup('im7500w-j3')
     assert mine is not None and base is not None

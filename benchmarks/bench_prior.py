@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from im_drive_sim.params import load_config
+from im_drive_sim.drive_file import load_config
 from im_tuner import optim
 from im_tuner.offline import OfflineBench
 from im_tuner.prior import model_prior

@@ -154,7 +154,7 @@ def replayed(recs: list[dict]) -> dict:
     plant's history differs (where each experiment starts, within an encoder count), so
     a later difference is that and the held periods together."""
     from im_controller.config import GAIN_NAMES, Gains
-    from im_drive_sim.params import load_config
+    from im_drive_sim.drive_file import load_config
     from im_tuner.offline import replay_stand_in, stand_in_losses
 
     cfg = load_config(None)

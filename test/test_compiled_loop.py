@@ -22,8 +22,8 @@ from rclpy.parameter import Parameter
 
 from im_drive_sim.cdr import parse_float64_array
 from im_drive_sim.contract import COMMAND_FIELDS, STATE_FIELDS
+from im_drive_sim.drive_file import load_config
 from im_drive_sim.outbox import R_HEAD
-from im_drive_sim.params import load_config
 from im_drive_sim.sim import NOISE_BLOCK
 from im_tuner.bench.realtime import RealtimeBench
 

@@ -34,7 +34,7 @@ from im_controller.contract import (
 from im_controller.controller_node import INTERNALS_FIELDS
 from im_controller.experiment import ExperimentRunner, config_for_drive
 from im_controller.messages import msg_to_result, result_to_msg
-from im_drive_sim.params import load_config
+from im_drive_sim.drive_file import load_config
 from im_drive_sim.sim import DriveSim
 from im_tuner.bench import InProcessBench
 from im_tuner.offline import run_experiment_offline

@@ -19,7 +19,7 @@ import pytest
 from rclpy.node import Node
 
 from im_drive_sim.client import DriveClient
-from im_drive_sim.params import load_config
+from im_drive_sim.drive_file import load_config
 from im_drive_sim.sim import STATE_FIELDS, DriveSim
 
 F = {name: i for i, name in enumerate(STATE_FIELDS)}

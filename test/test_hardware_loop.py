@@ -61,10 +61,10 @@ def wallclock_lib(tmp_path_factory) -> Path:
 def _drives(ros_context, delay: int):
     from rclpy.parameter import Parameter
 
+    from im_drive_sim.drive_file import load_config
     from im_drive_sim.example_drive import ExampleDrive, Hardware
     from im_drive_sim.example_hardware import CompiledHardware
     from im_drive_sim.hardware_abi import CompiledClassHardware
-    from im_drive_sim.params import load_config
 
     cfg = load_config(None, {'command_delay': delay})
 

@@ -22,7 +22,7 @@ import yaml
 from mcap.reader import make_reader
 
 from im_controller.config import GAIN_NAMES, Gains
-from im_drive_sim.params import load_config
+from im_drive_sim.drive_file import load_config
 from im_tuner.offline import OfflineBench, replay_realtime
 
 sys.path.insert(0, str(Path(__file__).parent))

@@ -201,7 +201,7 @@ def offline_run(
     """The tuner's run (defaults: hand-tuned start, remeasure 3) on the pure core's
     offline bench: the same records as through the ROS nodes, bit for bit; with its
     state and its summary.json (as a dict). (test_faults.py uses it too.)"""
-    from im_drive_sim.params import load_config
+    from im_drive_sim.drive_file import load_config
     from im_tuner import optim
     from im_tuner.offline import OfflineBench
     from im_tuner.runlog import MemoryRecord

@@ -131,7 +131,7 @@ def test_a_run_across_the_network_at_0_and_1_percent_loss(two, procs, tmp_path):
     # history replayed in lock-step from both runs' records (they ran one after the
     # other on one plant; the second tuner reset the first one's tuner_lost fault, if
     # the host's watchdog tripped between them: no step of the plant is lost by it)
-    from im_drive_sim.params import load_config
+    from im_drive_sim.drive_file import load_config
     from im_tuner.offline import replay_realtime
 
     ran = [r for recs in runs for r in recs if r.get('experiment_id') is not None]

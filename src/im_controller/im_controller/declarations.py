@@ -11,7 +11,8 @@ from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.node import Node
 
 from im_drive_sim.contract import MODES
-from im_drive_sim.params import ConfigError, load_config
+from im_drive_sim.drive_file import load_config
+from im_drive_sim.params import ConfigError
 from im_drive_sim.runtime import param_descriptor
 
 from .config import GAIN_NAMES, MOVE_KEYS, MOVE_RULE, NUMERIC_SPECS, Gains

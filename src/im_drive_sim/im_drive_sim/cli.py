@@ -198,7 +198,7 @@ def add_config_option(parser: argparse.ArgumentParser, what: str) -> None:
 
 def drive_file(text: str) -> Path:
     """A drive file to be read, or a packaged drive's name (``family.PACKAGED_NAMES``;
-    ``params.load_config`` takes either): a bare name that is neither is refused naming
+    ``drive_file.load_config`` takes either): a bare name that is neither is refused naming
     the packaged drives."""
     from . import family
 

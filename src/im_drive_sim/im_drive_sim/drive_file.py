@@ -1,6 +1,6 @@
 """Reading a drive file: the YAML, a packaged drive's name, and ``base:`` inheritance.
 
-Pure (no rclpy). ``params.load_config`` delegates here; the dataclasses, the validation and
+Pure (no rclpy). ``load_config`` reads a drive file here; the dataclasses, the validation and
 the realism profiles stay in ``params``.  A drive file may start with ``base: <drive>``:
 
 * a packaged drive's name (``paper_750w``, ``im3700w-j3``, ... ``family.PACKAGED_NAMES``;
@@ -24,10 +24,10 @@ import yaml
 from . import family
 from .params import ConfigError, DriveConfig, config_from_dict, default_config_path
 
-__all__ = ['base_path', 'load_drive_file', 'packaged_base']
+__all__ = ['base_path', 'load_config', 'packaged_base']
 
 
-def load_drive_file(
+def load_config(
     path: str | Path | None = None, overrides: Mapping[str, Any] | None = None
 ) -> DriveConfig:
     """Load and validate a drive configuration.

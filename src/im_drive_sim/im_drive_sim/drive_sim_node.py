@@ -47,13 +47,14 @@ from .contract import (
     STATE_TOPIC,
     STATUS_TOPIC,
 )
+from .drive_file import load_config
 from .drive_io import CommandPath, publish_status, run_drive_node, watchdog_expired
 from .drive_sim_counters import Counters, counter_values
 from .drive_sim_loops import run_lockstep, run_realtime
 from .drive_sim_main import parser
 from .drive_sim_parameters import declare_initial_position, declare_parameters
 from .pacing import CommandWatchdog
-from .params import ConfigError, load_config
+from .params import ConfigError
 from .qos import RECORDED_QOS
 from .runtime import (
     IoNodeOwner,

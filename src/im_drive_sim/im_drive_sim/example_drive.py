@@ -56,11 +56,12 @@ from .contract import (
     STATE_TOPIC,
     STATUS_TOPIC,
 )
+from .drive_file import load_config
 from .drive_io import CommandPath, publish_status, run_drive_node, watchdog_expired
 from .example_drive_main import check_hardware, parser
 from .hardware_abi import HardwareEntry, HardwareFault, Measurement
 from .pacing import CommandWatchdog, Pacer
-from .params import ConfigError, DriveConfig, load_config
+from .params import ConfigError, DriveConfig
 from .qos import RECORDED_QOS
 from .runtime import (
     IoNodeOwner,

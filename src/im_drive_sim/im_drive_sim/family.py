@@ -4,7 +4,7 @@ Pure (no rclpy, no YAML): the names, what each name is, and where its file lives
 name is ``<motor>-j<ratio>`` (``im3700w-j3``: the 3.7 kW motor with a load of three times
 its own inertia, J_total = J_motor (1 + ratio)); the motors' own files (``paper_750w``,
 ``im3700w``, ``im7500w``) are the ratio-1 drives under their file names. Every name is a
-file in ``im_drive_sim/config`` (``<name>.yaml``); ``params.load_config`` takes a name where
+file in ``im_drive_sim/config`` (``<name>.yaml``); ``drive_file.load_config`` takes a name where
 it takes a path. Sources, derivation and the rule of each drive's experiment:
 docs/drive-family.md.
 """

@@ -1,5 +1,5 @@
 """Configuration of the induction-motor drive simulator: frozen dataclasses, YAML loading
-and validation (reading a drive file and its ``base``: ``drive_file.py``).
+and validation (reading a drive file and its ``base``, ``load_config``: ``drive_file.py``).
 
 The packaged default (``config/paper_750w.yaml``) is the paper's 750 W, 1-pole-pair motor
 with the constants of the shared model notes.  Every value is validated on load and a
@@ -42,7 +42,6 @@ __all__ = [
     'bench_profile',
     'config_from_dict',
     'default_config_path',
-    'load_config',
 ]
 
 
@@ -509,15 +508,3 @@ def _check_consistency(src: str, cfg: DriveConfig) -> None:
             f'{src}: control.flux_floor {c.flux_floor:g} Wb must be below the '
             f'rated flux {m.rated_flux:.4g} Wb'
         )
-
-
-def load_config(
-    path: str | Path | None = None, overrides: Mapping[str, Any] | None = None
-) -> DriveConfig:
-    """Load and validate a drive configuration (a drive file, a packaged drive's name, or
-    None: the packaged default); ``overrides`` merged onto it before validation.  The
-    file's reading and its ``base`` are ``im_drive_sim.drive_file.load_drive_file``'s
-    (this delegate keeps the one import every caller uses).  Raises ``ConfigError``."""
-    from .drive_file import load_drive_file
-
-    return load_drive_file(path, overrides)

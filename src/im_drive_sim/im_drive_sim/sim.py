@@ -23,7 +23,8 @@ import numpy as np
 from . import kernels as K
 from . import model_layout as L
 from . import plant
-from .params import DriveConfig, load_config
+from .drive_file import load_config
+from .params import DriveConfig
 
 __all__ = [
     'NOISE_BLOCK',

@@ -18,7 +18,8 @@ except ImportError:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from im_drive_sim import model_layout as L
-from im_drive_sim.params import REALISM_PROFILES, ConfigError, load_config
+from im_drive_sim.drive_file import load_config
+from im_drive_sim.params import REALISM_PROFILES, ConfigError
 from im_drive_sim.plant import deadtime_error, friction_of
 from im_drive_sim.sim import DriveSim
 

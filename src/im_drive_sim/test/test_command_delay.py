@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from im_drive_sim import contract
-from im_drive_sim.params import ConfigError, config_from_dict, load_config
+from im_drive_sim.drive_file import load_config
+from im_drive_sim.params import ConfigError, config_from_dict
 from im_drive_sim.sim import STATE_FIELDS, DriveSim
 
 F = contract.STATE_INDEX

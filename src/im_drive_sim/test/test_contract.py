@@ -49,7 +49,8 @@ def test_a_minimal_drive_file_takes_the_rest_from_its_base(tmp_path):
     known; ``base`` names the file that gives the rest."""
     import pytest
 
-    from im_drive_sim.params import ConfigError, load_config
+    from im_drive_sim.drive_file import load_config
+    from im_drive_sim.params import ConfigError
 
     f = tmp_path / 'my_drive.yaml'
     f.write_text('base: paper_750w\nTs: 200.0e-6\nmachine:\n  isq_max: 5.0\n')

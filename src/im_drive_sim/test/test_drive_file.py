@@ -8,8 +8,8 @@ import os
 
 import pytest
 
-from im_drive_sim.drive_file import packaged_base
-from im_drive_sim.params import ConfigError, default_config_path, load_config
+from im_drive_sim.drive_file import load_config, packaged_base
+from im_drive_sim.params import ConfigError, default_config_path
 
 
 @pytest.fixture

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 
+from im_drive_sim.drive_file import load_config
 from im_drive_sim.family import (
     DRIVE_NAMES,
     MOTOR_FILES,
@@ -15,7 +16,7 @@ from im_drive_sim.family import (
     motor_and_ratio,
     packaged_path,
 )
-from im_drive_sim.params import ConfigError, default_config_path, load_config
+from im_drive_sim.params import ConfigError, default_config_path
 
 
 def test_nine_drives_three_motors():

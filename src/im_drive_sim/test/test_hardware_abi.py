@@ -13,9 +13,9 @@ import pytest
 from numba import njit
 
 from im_drive_sim import hardware_abi as H
+from im_drive_sim.drive_file import load_config
 from im_drive_sim.example_drive import Hardware
 from im_drive_sim.example_hardware import CompiledHardware
-from im_drive_sim.params import load_config
 
 PKG = Path(__file__).resolve().parents[1]
 EXAMPLE_C = PKG / 'examples' / 'example_drive.c'

@@ -17,7 +17,7 @@ except ImportError:
 from im_drive_sim import analytic as A
 from im_drive_sim import model_layout as L
 from im_drive_sim import plant
-from im_drive_sim.params import load_config
+from im_drive_sim.drive_file import load_config
 from im_drive_sim.sim import DriveSim
 
 TS = 200e-6

@@ -16,13 +16,8 @@ try:  # source checkout without an installed package (the lead's packaging insta
 except ImportError:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from im_drive_sim.params import (
-    ConfigError,
-    DriveConfig,
-    config_from_dict,
-    default_config_path,
-    load_config,
-)
+from im_drive_sim.drive_file import load_config
+from im_drive_sim.params import ConfigError, DriveConfig, config_from_dict, default_config_path
 
 
 @pytest.fixture(scope='module')

@@ -16,7 +16,7 @@ except ImportError:
 
 import im_drive_sim
 from im_drive_sim import model_layout as L
-from im_drive_sim.params import load_config
+from im_drive_sim.drive_file import load_config
 from im_drive_sim.sim import NOISE_BLOCK, RUN_FIELDS, STATE_FIELDS, DriveSim
 
 TS = 200e-6

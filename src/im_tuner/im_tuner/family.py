@@ -40,9 +40,9 @@ from im_controller.config import (
     validate_experiment_config,
     validate_loss_config,
 )
-from im_drive_sim.drive_file import packaged_base
+from im_drive_sim.drive_file import load_config, packaged_base
 from im_drive_sim.family import DRIVE_NAMES, PACKAGED_NAMES
-from im_drive_sim.params import DriveConfig, MachineParams, load_config
+from im_drive_sim.params import DriveConfig, MachineParams
 
 from .space import SearchSpace, TunerParams, load_params
 

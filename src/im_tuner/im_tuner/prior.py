@@ -219,7 +219,8 @@ def model_drive_mismatch(mine: str | None, theirs: str | None) -> str | None:
     ``theirs`` ('' or None: the default): one line naming the fix, or None when both name
     the same machine and period.  A file the tuner cannot read here is a mismatch only when
     the names differ (a drive host on another computer may keep it elsewhere)."""
-    from im_drive_sim.params import ConfigError, load_config
+    from im_drive_sim.drive_file import load_config
+    from im_drive_sim.params import ConfigError
 
     mine, theirs = mine or None, theirs or None
     try:

@@ -387,7 +387,8 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
             'only (--bench realtime)'
         )
     if cli.drive_config is not None:
-        from im_drive_sim.params import ConfigError, load_config
+        from im_drive_sim.drive_file import load_config
+        from im_drive_sim.params import ConfigError
 
         try:
             load_config(cli.drive_config)
@@ -554,7 +555,7 @@ def _first_point(cli: argparse.Namespace, algo: str, params: TunerParams) -> dic
     known = cli.drive_config is not None or is_simulated(cli.bench, cli.drive)
     if (cli.first or ('model' if known else 'none')) == 'none':
         return {}
-    from im_drive_sim.params import load_config
+    from im_drive_sim.drive_file import load_config
 
     from . import family
     from .prior import model_prior

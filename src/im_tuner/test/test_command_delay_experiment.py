@@ -17,7 +17,7 @@ from im_controller.config import Gains
 from im_controller.layout import R_FRESH, R_HELD, R_LATE
 from im_controller.runner import ExperimentRunner, config_for_drive
 from im_drive_sim import contract
-from im_drive_sim.params import load_config
+from im_drive_sim.drive_file import load_config
 from im_drive_sim.sim import DriveSim
 from im_tuner.offline import OfflineBench
 

@@ -27,7 +27,7 @@ import pytest
 
 from im_controller.config import ExperimentConfig, Gains, TrajectoryConfig
 from im_controller.runner import ExperimentRunner, config_for_drive
-from im_drive_sim.params import load_config
+from im_drive_sim.drive_file import load_config
 from im_drive_sim.sim import DriveSim
 from im_tuner.offline import hold_offline, run_experiment_offline
 

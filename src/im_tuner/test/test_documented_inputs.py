@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from im_drive_sim.params import load_config
+from im_drive_sim.drive_file import load_config
 from im_tuner import family
 from im_tuner.runlog import RecordError, parse_results
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from im_drive_sim.params import load_config
+from im_drive_sim.drive_file import load_config
 from im_tuner.bench import drive_spec
 from im_tuner.bench.drive_spec import DriveSpecError, check_drive_class, load_drive_class
 

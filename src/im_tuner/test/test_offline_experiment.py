@@ -21,7 +21,7 @@ from im_controller.layout import (
     STATUS_HOLD,
     STATUS_RUNNING,
 )
-from im_drive_sim.params import load_config
+from im_drive_sim.drive_file import load_config
 from im_drive_sim.sim import STATE_FIELDS, DriveSim
 from im_tuner.offline import hold_offline, run_experiment_offline
 

@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-from im_drive_sim.params import load_config
+from im_drive_sim.drive_file import load_config
 from im_tuner import prior as P
 from im_tuner.offline import OfflineBench
 from im_tuner.optim import Optimizer, OptimizerError, make_optimizer

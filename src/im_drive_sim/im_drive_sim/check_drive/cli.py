@@ -75,7 +75,8 @@ def parse_args(argv: list[str]) -> Options:
     if not 0.005 <= ns.step_duration <= 0.5:
         ap.error(f'--step-duration {ns.step_duration:g} s: must be in [0.005, 0.5] s')
     if ns.config is not None:  # the file is read after the probe starts: check it now
-        from im_drive_sim.params import ConfigError, load_config
+        from im_drive_sim.drive_file import load_config
+        from im_drive_sim.params import ConfigError
 
         try:
             load_config(ns.config)

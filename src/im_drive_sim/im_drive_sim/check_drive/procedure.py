@@ -48,7 +48,7 @@ def run_check(
     opts: Options, node, log: Callable[[str], None], stop: Callable[[], bool]
 ) -> tuple[list[Item], dict]:
     """Probe the drive in ``node``'s namespace; return the items and run information."""
-    from im_drive_sim.params import load_config
+    from im_drive_sim.drive_file import load_config
 
     cfg = load_config(opts.config)
     isq_max = cfg.machine.isq_max

@@ -290,7 +290,8 @@ def resolve(spec: str, drive_config: str | Path | None, build: bool = True) -> D
         cls = load_drive_class(spec)
         choice = DriveChoice(spec, cls, check_drive_class(spec, cls))
     if choice.form in ('hardware', 'compiled', 'library') and build:
-        from im_drive_sim.params import ConfigError, load_config
+        from im_drive_sim.drive_file import load_config
+        from im_drive_sim.params import ConfigError
 
         try:
             config = load_config(drive_config)

@@ -32,7 +32,8 @@ from pathlib import Path
 from typing import Any
 
 from im_drive_sim.cli import UsageError, parse_cli
-from im_drive_sim.params import ConfigError, load_config
+from im_drive_sim.drive_file import load_config
+from im_drive_sim.params import ConfigError
 from im_drive_sim.runtime import RosSession
 
 from ..record.node import default_out_dir

@@ -86,7 +86,8 @@ class Row:
 
 def drive_for(scale: float | None) -> Any:
     """The packaged drive (full model): ``ideal``, or ``bench`` at noise scale ``scale``."""
-    from im_drive_sim.params import bench_profile, load_config
+    from im_drive_sim.drive_file import load_config
+    from im_drive_sim.params import bench_profile
 
     if scale is None:
         return load_config(overrides={'realism': 'ideal'})

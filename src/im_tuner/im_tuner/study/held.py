@@ -35,7 +35,8 @@ import numpy as np
 from im_controller.config import Gains
 from im_controller.layout import Q_N, Q_SETTLE_N, STATUS_DONE
 from im_controller.runner import ExperimentRunner, config_for_drive
-from im_drive_sim.params import DriveConfig, load_config
+from im_drive_sim.drive_file import load_config
+from im_drive_sim.params import DriveConfig
 from im_drive_sim.sim import DriveSim
 
 __all__ = ['HeldRow', 'loss_with_held', 'main', 'measure']

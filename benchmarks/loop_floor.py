@@ -1,5 +1,5 @@
 """The machine's floor for a 5 kHz loop: the composed loop's own wait for each period
-start (``compiled_loop._wait_start``: clock_nanosleep to 40 us before, then a busy-wait),
+start (``loop_kernels._wait_start``: clock_nanosleep to 40 us before, then a busy-wait),
 run in a compiled loop that does nothing else and never touches Python, SCHED_FIFO 50,
 memory locked, timer slack 1 ns -- what the hypervisor and the kernel leave a real-time
 thread here. The composed bench can do no better than this; what it measures beyond it
@@ -28,7 +28,7 @@ import numpy as np
 from im_drive_sim import rt
 from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, run_cli
 from im_drive_sim.pacing import LATENESS_BINS, LATENESS_EDGES_US
-from im_tuner.bench import compiled_loop as CL
+from im_tuner.bench import loop_kernels as CL
 
 TS_NS = 200_000
 SPIN_NS = 40_000

@@ -22,7 +22,8 @@ Copy this file for a real drive. It has two parts:
     wins; out-of-order and duplicate commands are ignored and counted), ``drive/joint_states``
     every 10 steps, ``drive/status`` about once a second, the isq clamp and the command
     watchdog. Loop: hand-paced on the wall clock (sleep in rcl_wait, busy-wait the last
-    ``realtime_spin_margin``), as drive_sim's real-time mode.
+    ``realtime_spin_margin``), as drive_sim's real-time mode. What a compiled loop (the
+    tuner's composed bench) calls on it is :mod:`.example_drive_compiled`'s.
 
 Check a drive built from it with ``ros2 run im_drive_sim check_drive`` (docs/check-drive.md).
 """
@@ -40,7 +41,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from . import contract, hardware_period, rt
+from . import contract, rt
 from .cdr import Float64ArrayWire, JointStateWire
 from .cli import check_ros_args, parse_cli, run_cli
 from .command_latch import CommandLatch
@@ -58,8 +59,9 @@ from .contract import (
 )
 from .drive_file import load_config
 from .drive_io import CommandPath, publish_status, run_drive_node, watchdog_expired
-from .example_drive_main import check_hardware, parser
-from .hardware_abi import HardwareEntry, HardwareFault, Measurement
+from .example_drive_compiled import CompiledPeriodHooks
+from .example_drive_main import check_hardware, hardware_factory, parser
+from .hardware_abi import HardwareFault, Measurement
 from .pacing import CommandWatchdog, Pacer
 from .params import ConfigError, DriveConfig
 from .qos import RECORDED_QOS
@@ -187,7 +189,7 @@ class Counters:
     backpressure: int = 0  #: publish retries while a reliable reader was full
 
 
-class ExampleDrive(IoNodeOwner, LenientDoubles, Node):
+class ExampleDrive(IoNodeOwner, LenientDoubles, CompiledPeriodHooks, Node):
     """The ROS side (real time only). Hooks for subclasses: ``make_hardware``,
     ``apply_command``, ``fill_state``, ``make_joint_publisher``/``publish_joint_state``,
     ``watchdog`` and the attribute ``period_s``. ``start``/``period``/``take_commands``/
@@ -397,48 +399,6 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, Node):
             if self.cmd_watchdog.resume():
                 self.get_logger().info(f'watchdog: commands resumed at step {self.k}')
 
-    # -- the compiled period (hardware_period; the composed bench's loop) -------------------
-    def hardware_entry(self) -> HardwareEntry | None:
-        """The power stage's addresses for a compiled loop (``hardware_abi``: a C library,
-        a compiled class); None for a Python hardware class (its periods run as Python)."""
-        entry = getattr(self.hw, 'entry', None)
-        return entry() if callable(entry) else None
-
-    def period_words(self) -> tuple[Any, Any]:
-        """The held command, latch, step index and counters as ``hardware_period``'s
-        ``D`` and ``DC``, for a compiled loop to run periods with (then
-        :meth:`set_period_words`)."""
-        return hardware_period.pack(
-            self,
-            {
-                'joint_state_decimation': self.joint_decimation,
-                'ts_ns': self.ts_ns,
-                'isq_max': self.isq_max,
-            },
-        )
-
-    def set_period_words(self, D: Any, DC: Any, commands: bool) -> None:
-        """Take back what a compiled loop ran; ``commands``: it took one (the watchdog
-        is fed)."""
-        hardware_period.unpack(D, DC, self)
-        if commands:
-            self.cmd_watchdog.command()
-
-    def period_views(self) -> dict[str, Any]:
-        """The preallocated messages a compiled period writes: ``state`` and the
-        joint_states fields, and each message's bytes (``*_raw``) for the loop's outbox."""
-        j = self.joint
-        return {
-            'state': self.wire.values,
-            'joint_sec': j.sec,
-            'joint_nsec': j.nanosec,
-            'joint_pos': j.position,
-            'joint_vel': j.velocity,
-            'joint_eff': j.effort,
-            'state_raw': self.wire.raw,
-            'joint_raw': j.raw,
-        }
-
     def latest_state(self):
         """The state last published (``STATE_FIELDS``; the array is reused each period)."""
         return self.wire.values
@@ -564,21 +524,6 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, Node):
             self.close_hardware()  # never destroyed with a current in the inverter
         finally:
             super().destroy_node()  # (the io node, then this one)
-
-
-def hardware_factory(spec: str) -> Any:
-    """``hardware_class`` for ``--hardware``: None (the Python stand-in), the compiled
-    stand-in, or a drive library (``hardware_abi.LibraryHardware``)."""
-    if spec == 'python':
-        return None
-    if spec == 'example':
-        from .example_hardware import CompiledHardware
-        from .hardware_abi import CompiledClassHardware
-
-        return lambda config: CompiledClassHardware(CompiledHardware(config), name='example')
-    from .hardware_abi import LibraryHardware
-
-    return lambda config: LibraryHardware(spec[4:], config)
 
 
 def main(args: list[str] | None = None, node_class: type = ExampleDrive) -> int:

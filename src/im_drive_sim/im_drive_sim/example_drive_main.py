@@ -1,9 +1,11 @@
-"""``ros2 run im_drive_sim example_drive``: checks its command line before the node is imported."""
+"""``ros2 run im_drive_sim example_drive``: checks its command line before the node is imported,
+and turns ``--hardware`` into the node's hardware class (:func:`hardware_factory`)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
 
 from . import rt
 from .cli import Parser, check_then_run
@@ -44,6 +46,21 @@ def check_hardware(spec: str) -> str:
             raise UsageError(f'--hardware {spec}: no such file')
         return spec
     raise UsageError(f"--hardware {spec!r}: expected 'python', 'example' or 'lib:PATH'")
+
+
+def hardware_factory(spec: str) -> Any:
+    """``hardware_class`` for ``--hardware``: None (the Python stand-in), the compiled
+    stand-in, or a drive library (``hardware_abi.LibraryHardware``)."""
+    if spec == 'python':
+        return None
+    if spec == 'example':
+        from .example_hardware import CompiledHardware
+        from .hardware_abi import CompiledClassHardware
+
+        return lambda config: CompiledClassHardware(CompiledHardware(config), name='example')
+    from .hardware_abi import LibraryHardware
+
+    return lambda config: LibraryHardware(spec[4:], config)
 
 
 if __name__ == '__main__':

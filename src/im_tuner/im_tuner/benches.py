@@ -1,6 +1,6 @@
 """The tuner's bench modes and which of them simulate the drive (pure: no rclpy).
 
-The one copy of ``--bench``'s values (``tuner_cli`` imports them from here); pure, so
+The one copy of ``--bench``'s values (``tuner_args`` imports them from here); pure, so
 that the report and the tuner's summary can tell a simulated drive from a real one
 without importing the tuner's command line.
 """

@@ -1,5 +1,6 @@
-"""The tuner's command line and run configuration: options, checks of a new run and of
-``run.yaml`` on ``--resume`` (:func:`prepare_run`), and the TuningRun built from them.
+"""The tuner's run configuration: the checks of a new run's options and of ``run.yaml`` on
+``--resume`` (:func:`prepare_run`), and the TuningRun built from them. The options
+themselves (the parser, what is read from ``--ros-args``) live in :mod:`.tuner_args`.
 
 Every check of a new run is made here, before anything is created and before anything
 heavy is imported: this module imports no rclpy, numba, pycma, optuna or scipy at load
@@ -22,16 +23,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from im_drive_sim import rt
-from im_drive_sim.cli import Parser, UsageError, finite_float
+from im_drive_sim.cli import UsageError
 
 from . import optim
-from .bench.spec import DISCOVERY_TIMEOUT, recording_options
-from .benches import BENCHES  # (the bench modes: one copy, in benches)
-from .names import DEFAULT_TIMING_TOLERANCE, FAULT_POLICIES, controller_topics
+from .bench.spec import recording_options
+from .names import DEFAULT_TIMING_TOLERANCE, controller_topics
 from .optim.base import OptimizerError, check_options
 from .rundir import RunDir
 from .runlog import RunConfig
 from .space import TunerParams, TunerParamsError, load_params, parse_params
+from .tuner_args import NO_START_TEXT, timing_tolerance
 
 if TYPE_CHECKING:
     from .bench.drive_spec import DriveChoice
@@ -54,250 +55,6 @@ RUN_SETTINGS = (
     'drive',
     'timing_tolerance',
 )
-
-
-#: the algorithms --no-start is for, in --algo's order
-NO_START_TEXT = ', '.join(a for a in optim.ALGOS if a in optim.NO_START_ALGOS)
-
-
-DESCRIPTION = (
-    'Tune the cascaded position/speed controller online by SPSA, a compact GA (the '
-    'paper), CMA-ES, TPE or safe (a local search for real benches) on measured experiment '
-    'losses (docs/tuner.md).'
-)
-
-
-def build_parser() -> argparse.ArgumentParser:
-    ap = Parser(prog='ros2 run im_tuner tuner', description=DESCRIPTION)
-    ap.add_argument(
-        '--algo',
-        choices=optim.ALGOS,
-        help=f'optimiser (default: {optim.DEFAULT_ALGO}, the fewest experiments and aborts '
-        "from the hand-tuned start; the paper's are spsa and necga)",
-    )
-    ap.add_argument(
-        '--budget', type=int, metavar='N', help='loss evaluations (default 200, as in the paper)'
-    )
-    ap.add_argument(
-        '--seed',
-        type=int,
-        metavar='S',
-        help="seed of the optimiser and of the simulated drive's noise "
-        '(default: a fresh one, printed and stored in run.yaml)',
-    )
-    ap.add_argument(
-        '--out',
-        type=Path,
-        metavar='DIR',
-        help='run directory to create (default: bags/tuner_<algo>_<UTC time>)',
-    )
-    ap.add_argument(
-        '--resume',
-        type=Path,
-        metavar='RUN_DIR',
-        help='continue the killed or interrupted run in RUN_DIR',
-    )
-    ap.add_argument(
-        '--bench',
-        choices=BENCHES,
-        help='where the controller comes from '
-        '(default: auto = use one on the graph, else simulate in-process, lock-step; '
-        'realtime = drive and controller composed in this process, one 5 kHz wall-clock '
-        'loop; realtime-processes = the same as separate processes)',
-    )
-    ap.add_argument(
-        '--drive',
-        metavar='DRIVE',
-        help="--bench realtime: the drive in the loop: 'sim' (the simulator, default), "
-        "'example' (the example drive's stand-in hardware) or package.module:Class (your "
-        'hardware class, as example_drive.Hardware, or your drive node class; '
-        'docs/real-drive.md)',
-    )
-    ap.add_argument('--quiet', action='store_true', help='no progress bar (for scripts)')
-    ap.add_argument(
-        '--params',
-        type=Path,
-        metavar='FILE',
-        help='tuner parameter file: search box, start point, satisfactory loss '
-        "(default: the packaged config/tuner.yaml, the paper's motor, or a packaged "
-        "--drive-config's own)",
-    )
-    ap.add_argument(
-        '--remeasure',
-        type=int,
-        metavar='K',
-        help='re-measure the K best distinct evaluations once at the end '
-        '(default 3; 0 = off); the best re-measured is left applied',
-    )
-    ap.add_argument(
-        '--no-reference',
-        action='store_true',
-        help='do not measure the start gains first (the reference)',
-    )
-    ap.add_argument(
-        '--no-start',
-        action='store_true',
-        help=f'{NO_START_TEXT} only: do not start from the parameter '
-        "file's start point (spsa, cmaes: a uniform random one; tpe: random trials first); "
-        'the reference experiment still measures it. Refused with safe (a local search '
-        'from the start: its first experiment would be an untested random controller) '
-        'and with the compact GAs (they take no start)',
-    )
-    ap.add_argument(
-        '--first',
-        choices=('model', 'none'),
-        help="safe only: its first step after the start. 'model': the best point of an "
-        "offline tuning on the drive file's nominal model (bench effects off; about a "
-        "second), robust to J x0.7-1.4 and Rr x0.8-1.2 (docs/optimisers.md); 'none': a "
-        'local step. Default: model when the tuner knows the drive (--drive-config, or a '
-        'simulated bench: --bench inproc, processes, realtime...), none otherwise (--bench '
-        'auto or none without --drive-config: the controller found may drive another motor)',
-    )
-    ap.add_argument(
-        '--retries',
-        type=int,
-        metavar='R',
-        help='re-runs of an evaluation whose result is lost, or marked timing (its '
-        "experiment did not run on the paper's timing) (default 3)",
-    )
-    ap.add_argument(
-        '--timing-tolerance',
-        type=int,
-        metavar='N',
-        help='held or late drive periods an experiment may have and still count (its '
-        'held periods are recorded with its loss); past N it is marked timing and re-run. '
-        f'Default {DEFAULT_TIMING_TOLERANCE}: the change of a loss by that many held periods '
-        'stays within the bench\'s noise (docs/real-drive.md, "Timing tolerance"); 0: '
-        "the paper's timing exactly. Also -p timing_tolerance:=N after --ros-args",
-    )
-    ap.add_argument(
-        '--eval-timeout',
-        type=finite_float(0.0, lo_open=True, unit='s'),
-        default=60.0,
-        metavar='S',
-        help='wall time allowed per experiment [s] (default 60)',
-    )
-    ap.add_argument(
-        '--fault-policy',
-        choices=FAULT_POLICIES,
-        help='after a safety fault: reset it and go on, or stop the run '
-        '(default: reset on the simulated bench, stop on an external one)',
-    )
-    ap.add_argument(
-        '--controller',
-        default='/controller',
-        metavar='NODE',
-        help='controller node name (default /controller)',
-    )
-    ap.add_argument('--no-record', action='store_true', help='do not record a bag')
-    ap.add_argument(
-        '--compression',
-        choices=('none', 'zstd', 'lz4'),
-        help='MCAP chunk compression (default lz4; refused with --no-record)',
-    )
-    ap.add_argument(
-        '--model',
-        choices=('full', 'reduced'),
-        help="the simulator's model fidelity (--drive sim only; default: the drive file's)",
-    )
-    ap.add_argument(
-        '--drive-config',
-        type=Path,
-        metavar='FILE|NAME',
-        help='drive parameter file of a bench the tuner starts: Ts and isq_max for the '
-        "controller, and the simulator's motor or your --drive class's config "
-        "(default: the paper's 750 W motor; an external bench's controller has its own). "
-        "A packaged drive's name (im3700w-j3, ...; docs/drive-family.md) also gives the "
-        'controller its experiment and the optimiser its box and start',
-    )
-    ap.add_argument(
-        '--discovery-timeout',
-        type=finite_float(0.0, 3600.0, unit='s'),
-        metavar='S',
-        help='--bench auto/none: how long to look for a controller [s] (default: '
-        f'{DISCOVERY_TIMEOUT["auto"]:g} with auto, then it simulates; '
-        f'{DISCOVERY_TIMEOUT["none"]:g} with none, which waits only until it is found; '
-        'discovery took up to 2.3 s on a loaded 2-core machine)',
-    )
-    rt.add_arguments(ap, 'the composed loop (--bench realtime)', rt.DEFAULT_PRIORITY)
-    g = ap.add_argument_group('algorithm options (docs/optimisers.md)')
-    seen: dict[str, Any] = {}
-    for specs in optim.OPTIONS.values():
-        for name, spec in specs.items():
-            if name in seen:
-                continue
-            seen[name] = spec
-            owners = [(a, s[name]) for a, s in optim.OPTIONS.items() if name in s]
-            if all(o.help == spec.help and o.default == spec.default for _, o in owners):
-                algos = ', '.join(a for a, _ in owners)
-                text = f'{spec.help} (default {spec.default!r}; for {algos})'
-            else:  # one flag, several meanings (sigma0): each algorithm's own
-                text = '; '.join(f'{a}: {o.help} (default {o.default!r})' for a, o in owners)
-            # argparse %-formats help texts: a literal % (e.g. "~10% of") must be doubled
-            kw: dict[str, Any] = {
-                'dest': f'opt_{name}',
-                'default': None,
-                'help': text.replace('%', '%%'),
-            }
-            choices = getattr(spec, 'choices', None)
-            if choices:
-                kw['choices'] = list(choices)
-            elif spec.type in (int, float):
-                kw['type'] = spec.type
-            g.add_argument(f'--{name.replace("_", "-")}', **kw)
-    return ap
-
-
-def timing_tolerance(cli: argparse.Namespace, argv: list[str]) -> int | None:
-    """The tolerance asked for: ``--timing-tolerance N`` or ``-p timing_tolerance:=N``
-    after ``--ros-args`` (the controller's parameter, as the docs said before); None:
-    neither. Both, differing, or a value that is not an integer >= 0: UsageError."""
-    given = cli.timing_tolerance
-    ros = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
-    from_ros = None
-    for i, a in enumerate(ros[:-1]):
-        if a in ('-p', '--param') and ros[i + 1].startswith('timing_tolerance:='):
-            text = ros[i + 1].split(':=', 1)[1]
-            try:
-                from_ros = int(text)
-            except ValueError:
-                raise UsageError(
-                    f'-p timing_tolerance:={text}: an integer >= 0 [periods]'
-                ) from None
-    if given is not None and from_ros is not None and given != from_ros:
-        raise UsageError(
-            f'--timing-tolerance {given} and -p timing_tolerance:={from_ros}: give one'
-        )
-    value = given if given is not None else from_ros
-    if value is not None and (value < 0 or value > 1_000_000):
-        raise UsageError(f'--timing-tolerance must be in [0, 1000000] periods, got {value}')
-    return value
-
-
-def ros_arguments(argv: list[str], run: RunConfig | None = None) -> list[str]:
-    """The tuner's rclpy arguments: its ``--ros-args`` (they reach an in-process bench's
-    nodes too), the console logs off (the tuner prints its own progress). ``run``: a
-    resumed run's run.yaml, whose command's ``-p name:=value`` parameters come first
-    (its bench runs with them again: a safety limit or an experiment parameter the run
-    began with is not dropped; the timing tolerance is run.yaml's own)."""
-    ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else ['--ros-args']
-    kept = run_parameters(run) if run is not None else []
-    return [argv[0], '--ros-args', *kept, *ros_args[1:], '--disable-stdout-logs']
-
-
-def run_parameters(run: RunConfig) -> list[str]:
-    """``-p name:=value`` items of the command a run began with (run.yaml ``command``),
-    but ``timing_tolerance`` (run.yaml's own key)."""
-    try:
-        words = shlex.split(run.command or '')
-    except ValueError:
-        return []
-    ros = words[words.index('--ros-args') + 1 :] if '--ros-args' in words else []
-    out = []
-    for i, w in enumerate(ros[:-1]):
-        if w in ('-p', '--param') and not ros[i + 1].startswith('timing_tolerance:='):
-            out += ['-p', ros[i + 1]]
-    return out
 
 
 def check_session(cli: argparse.Namespace) -> None:
@@ -654,6 +411,3 @@ def make_tuning(rundir: RunDir, run: RunConfig, params: TunerParams, progress) -
     )
     tuning.timing_tolerance = run.tolerance()
     return tuning
-
-
-# -- progress and summary ----------------------------------------------------------------------

@@ -28,12 +28,12 @@ The run directory (``--out``, default ``bags/tuner_<algo>_<UTC time>``) holds
 ``run.yaml``, ``results.jsonl``, ``checkpoint.json``, ``summary.json`` and the bags;
 ``--resume RUN_DIR`` continues a killed run exactly (docs/tuner.md).
 
-The pieces: ``tuner_cli`` (options, run configuration, resume checks), ``bench.spec``
-(which bench, built how), ``bench.open`` (opens it: ``bench.forms``, the benches behind
-one protocol), ``tuner_session`` (the run's side of a session: run directory, replay,
-summary), ``link`` (the controller link), ``tuning`` (the ask/measure/tell loop and its
-record), ``progress`` (what is printed). This module only wires them: parse, spec, open,
-run, close.
+The pieces: ``tuner_args`` (options), ``tuner_cli`` (run configuration, resume checks),
+``bench.spec`` (which bench, built how), ``bench.open`` (opens it: ``bench.forms``, the
+benches behind one protocol), ``tuner_session`` (the run's side of a session: run
+directory, replay, summary), ``link`` (the controller link), ``tuning`` (the
+ask/measure/tell loop and its record), ``progress`` (what is printed). This module only
+wires them: parse, spec, open, run, close.
 
 Exit codes: 0 done, 1 the bench failed (best gains applied, bag closed), 2 bad input,
 130 interrupted (SIGINT/SIGTERM; resumable).
@@ -52,15 +52,8 @@ from im_drive_sim.cli import UsageError, check_ros_args
 
 from .bench.spec import tuner_bench_spec
 from .benches import SIM_BENCHES
-from .tuner_cli import (
-    EXIT_FAILED,
-    EXIT_INTERRUPTED,
-    EXIT_USAGE,
-    build_parser,
-    check_session,
-    prepare_run,
-    ros_arguments,
-)
+from .tuner_args import build_parser, ros_arguments
+from .tuner_cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, check_session, prepare_run
 
 
 def main(args: list[str] | None = None) -> int:

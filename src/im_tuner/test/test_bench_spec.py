@@ -17,7 +17,7 @@ from im_tuner.bench.spec import (
     tuner_bench_spec,
 )
 from im_tuner.runlog import Lost, RunConfig
-from im_tuner.tuner_cli import build_parser
+from im_tuner.tuner_args import build_parser
 
 
 def _cli(*args: str):

@@ -61,7 +61,8 @@ def test_a_users_file_on_a_bigger_base_takes_that_drives_setup(tmp_path):
 
 
 def _new(*args: str):
-    from im_tuner.tuner_cli import _new_run_config, build_parser
+    from im_tuner.tuner_args import build_parser
+    from im_tuner.tuner_cli import _new_run_config
 
     argv = ['tuner', *args]
     return _new_run_config(build_parser().parse_args(argv[1:]), argv)

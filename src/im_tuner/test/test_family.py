@@ -106,7 +106,7 @@ def test_each_drive_start_is_finite_not_aborted_and_near_the_papers(name):
 def test_bench_spec_gives_the_controller_a_packaged_drives_experiment():
     from im_tuner.bench.spec import tuner_bench_spec
     from im_tuner.runlog import RunConfig
-    from im_tuner.tuner_cli import build_parser
+    from im_tuner.tuner_args import build_parser
 
     cli = build_parser().parse_args(['--drive-config', 'im3700w-j3', '--no-record'])
     cli.compression = 'lz4'

@@ -101,12 +101,13 @@ def test_the_package_names_load_on_first_use():
 
 
 def test_bench_modes_have_one_copy_the_tuner_imports():
-    from im_tuner import benches, tuner_cli
+    from im_tuner import benches, tuner_args, tuner_cli
 
-    assert tuner_cli.BENCHES is benches.BENCHES  # --bench's choices
+    assert tuner_args.BENCHES is benches.BENCHES  # --bench's choices
     for name in ('SIM_BENCHES', 'IN_PROCESS_BENCHES', 'LOCKSTEP_BENCHES', 'is_simulated'):
         # the tuner's command line keeps no copy of its own
-        assert getattr(tuner_cli, name, getattr(benches, name)) is getattr(benches, name), name
+        for mod in (tuner_args, tuner_cli):
+            assert getattr(mod, name, getattr(benches, name)) is getattr(benches, name), name
     # an external bench is never simulated; nor is a hardware class in the loop
     assert not benches.is_simulated('none', 'sim')
     assert not benches.is_simulated('external', 'sim')

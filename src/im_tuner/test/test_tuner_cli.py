@@ -12,7 +12,8 @@ import yaml
 from im_drive_sim.cli import UsageError
 from im_tuner import optim
 from im_tuner.runlog import RunConfig
-from im_tuner.tuner_cli import _check_run, _new_run_config, build_parser, check_no_start
+from im_tuner.tuner_args import build_parser
+from im_tuner.tuner_cli import _check_run, _new_run_config, check_no_start
 
 
 def _new(*args: str):
@@ -120,7 +121,8 @@ def test_the_composed_loop_runs_sched_fifo_50_unless_told_otherwise() -> None:
 
 def test_the_ros_arguments_and_the_bag_options() -> None:
     from im_tuner.bench.spec import recording_options
-    from im_tuner.tuner_cli import check_session, ros_arguments
+    from im_tuner.tuner_args import ros_arguments
+    from im_tuner.tuner_cli import check_session
 
     quiet = ['tuner', '--ros-args', '--disable-stdout-logs']
     assert ros_arguments(['tuner', '--budget', '3']) == quiet
@@ -147,7 +149,7 @@ def test_a_resumed_run_keeps_the_parameters_its_command_gave():
     """--resume runs the bench with the -p parameters of the run's first command (a
     safety limit, an experiment parameter), its own after them; the tolerance is
     run.yaml's key, not repeated."""
-    from im_tuner.tuner_cli import ros_arguments, run_parameters
+    from im_tuner.tuner_args import ros_arguments, run_parameters
 
     run = RunConfig.from_dict(
         {

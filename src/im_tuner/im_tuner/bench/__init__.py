@@ -5,8 +5,8 @@
 * ``inprocess``: the drive simulator and controller nodes in one process, lock-step, with
   the recorder polled between steps (the tuner's default);
 * ``realtime``: a drive and the controller composed in one process, one wall-clock loop
-  (``compiled_loop``: its periods compiled; ``loop_routes``: its publishers through an
-  outbox);
+  (``compiled_loop``: its periods compiled, over the numba kernels of ``loop_kernels``;
+  ``loop_routes``: its publishers through an outbox);
 * ``spec`` (which bench, built how; pure), ``open`` (``open_bench``: the one builder of
   every form), ``forms`` (the benches behind one protocol), ``drive_spec`` (``--drive``),
   ``drive_status`` (the drive's counters for the summary);

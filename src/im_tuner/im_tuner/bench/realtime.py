@@ -69,9 +69,10 @@ from im_drive_sim.pacing import LATENESS_BINS, DurationHistograms, Pacer
 from im_drive_sim.runtime import ROUTES
 
 from ..tuning import BenchFailure
-from .compiled_loop import G_QUIT, G_STOP, CompiledHardwarePeriods, CompiledPeriods, LoopGate
+from .compiled_loop import CompiledHardwarePeriods, CompiledPeriods, LoopGate
 from .drive_spec import make_drive
 from .inprocess import compose, run_before_start
+from .loop_kernels import G_QUIT, G_STOP
 from .loop_routes import route_through_outbox
 
 #: The interpreter's thread switch interval while the loop runs [s] (default 5 ms): how

@@ -1,0 +1,433 @@
+"""The composed real-time loop's compiled kernels: the periods of the simulator and the
+controller in one numba call that never holds the Python GIL (``tuner --bench realtime``,
+the default drive), and the layout of the words they share with Python (``T_*``: the
+schedule and its figures; ``G_*``: the gate; ``EV_*``: the event ring; ``M_*``: the
+messages). The Python side that drives them -- the loop lock, the nodes' state handed in
+and out, the figures read back -- is :mod:`.compiled_loop`.
+
+Why (issue 27, docs/real-drive.md "Real-time set-up"): the loop run as Python -- a
+handful of node methods per period, each a few dozen interpreter operations -- took
+p50 ~40 us and p99 ~100 us of the 200 us period on a 2-core machine, and needed the GIL
+every period, so any Python thread beside it (the tuner, the recorder's drain) could
+delay a period start: by the interpreter's switch interval, or by as long as a thread
+holding the GIL stayed off the CPU (10-150 ms measured beside CPU hogs). ros2_control
+runs its update loop as compiled code that never waits for an interpreter; this is that
+loop for the simulator composed with the controller. :func:`run_periods` runs period
+after period, each:
+
+1. wait for the period start (``clock_nanosleep`` on CLOCK_MONOTONIC to the spin margin,
+   then a busy-wait: ``pacing.Pacer``'s schedule, overruns and lateness histogram);
+2. the drive's period (``im_drive_sim.period_kernel.run_period``: latch, model step,
+   state k+1) and its messages into the outbox's rings (``outbox.put_slot``);
+3. the controller's answer (``im_controller.kernel.answer_state``) and its command and
+   internals into the rings;
+4. the drive takes the answer (``period_kernel.take_command``): fresh for the next period;
+5. the period's durations into the loop's histograms (``pacing.count_durations``).
+
+:func:`run_hardware_periods` is the same loop around a user's power stage called by
+address (``im_drive_sim.hardware_period``).
+
+What needs Python comes to the loop through shared words, never through the GIL:
+
+* a thread that reads or changes the state the loop runs on (gains, an experiment's
+  start, a fault reset, a safe stop) enters the loop lock (``compiled_loop.LoopGate``):
+  the loop parks between two periods (``gate[G_WANT]``, ``gate[G_PARKED]``), the nodes
+  take their state back for the thread's turn, and the loop goes on with it;
+* an experiment's end goes into an event ring (status, step, the runner's words) that
+  the serving thread hands to the controller (``RealtimeBench._service``);
+* a stop: ``gate[G_STOP]`` (a watcher thread sets it from the tuner's stop request),
+  and the loop zeroes the current from its next period (``period_kernel.safe_stop``);
+* the drive's stall test hook: the loop sleeps it itself.
+
+Written by hand, not with a library: no library runs a numba loop on a wall-clock
+schedule; the clock calls are libc's (``types.ExternalFunction``, as ``outbox`` calls
+rcl).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numba
+import numpy as np
+from numba import types
+
+from im_controller.experiment import STATUS_DONE, STATUS_FAULT
+from im_controller.kernel import W_INTERNALS_DUE, answer_state
+from im_drive_sim import hardware_period as HP
+from im_drive_sim import period_kernel as PK
+from im_drive_sim.outbox import R_HEAD, put_slot
+from im_drive_sim.pacing import count_durations
+
+__all__ = ['run_hardware_periods', 'run_periods']
+
+_clock_gettime = types.ExternalFunction('clock_gettime', types.int32(types.int32, types.uint64))
+_clock_nanosleep = types.ExternalFunction(
+    'clock_nanosleep', types.int32(types.int32, types.int32, types.uint64, types.uint64)
+)
+CLOCK_REALTIME, CLOCK_MONOTONIC, TIMER_ABSTIME = 0, 1, 1
+NS = 1_000_000_000
+
+# -- the words of T (int64) ---------------------------------------------------------------
+T_T0 = 0  #: the schedule's anchor [ns, CLOCK_MONOTONIC]: period n starts at t0 + n ts
+T_N = 1  #: periods started since t0
+T_TS = 2  #: the period [ns]
+T_SPIN = 3  #: busy-wait before a start [ns]
+T_WALL = 4  #: 1: a drive that cannot pause (late starts skip whole periods, held)
+T_OVERRUNS = 5  #: starts more than a period late
+T_MISSED_TOTAL = 6  #: whole periods those starts skipped (wall clock)
+T_MAX_LATE = 7  #: worst start lateness [ns]
+T_LATE = 8  #: the last start's lateness [ns] (after a skip: from the period it became)
+T_EXIT = 9  #: why the last call returned (EXIT_*)
+T_STATUS = 10  #: the last experiment status >= STATUS_DONE
+T_PERIODS = 11  #: periods run since the caller zeroed it
+T_RESUME = 12  #: a period under way: its missed steps still to run (-1: none)
+T_START = 13  #: that period's start [ns]
+T_MAX_PERIODS = 14  #: the call's limit
+T_COMMANDS = 15  #: commands the drive took since the caller zeroed it
+T_REFUSED = 16  #: answers the drive refused (not finite), since the loop was made
+T_STALL = 17  #: the drive's stall test hook: its step (-1: none)
+T_MAX_LATE_AT = 18  #: when the worst late start was due [ns, CLOCK_MONOTONIC]
+#: the worst lateness of the starts that followed Python (a call's first period: the
+#: loop thread took the GIL, and ran Python, since the period before) [ns]
+T_MAX_LATE_PY = 19
+T_STALL_NS = 20  #: the stall test hook's duration [ns]
+T_LAST_ST = 21  #: the last period's experiment status (a FAULT is an event once, not each period)
+N_T = 22
+
+EXIT_BUDGET, EXIT_PERIODS, EXIT_QUIT, EXIT_FAULT = range(4)
+
+# -- the words of the gate (int64), shared with the Python threads (LoopGate) -------------
+G_WANT = 0  #: != 0: a Python thread wants the loop parked (its turn at the nodes' state)
+G_PARKED = 1  #: 1: the loop is parked between two periods (set and cleared by the loop)
+G_STOP = 2  #: != 0: safe stop (zero current, latched) from the next period on
+G_QUIT = 3  #: != 0: return (after a waiter's turn)
+G_RUNNING = 4  #: 1: the loop's compiled run is on (cleared by the loop when it quits)
+N_G = 5
+
+#: experiment ends the loop leaves for the serving thread: status, step, then R
+EVENT_CAPACITY = 64
+EV_HEAD, EV_TAIL, EV_LOST = range(3)
+
+# the messages, in the order of the rings' sources
+M_STATE, M_CLOCK, M_JOINT, M_COMMAND, M_INTERNALS = range(5)
+N_MSG = 5
+
+
+@numba.njit(cache=True)
+def _now(ts: np.ndarray, clock: int) -> int:
+    _clock_gettime(np.int32(clock), np.uint64(ts.ctypes.data))
+    return ts[0] * NS + ts[1]
+
+
+@numba.njit(cache=True)
+def _sleep_until(ts: np.ndarray, t_ns: int) -> None:
+    ts[0] = t_ns // NS
+    ts[1] = t_ns - ts[0] * NS
+    p = np.uint64(ts.ctypes.data)
+    _clock_nanosleep(np.int32(CLOCK_MONOTONIC), np.int32(TIMER_ABSTIME), p, np.uint64(0))
+
+
+@numba.njit(cache=True)
+def _nap(ts: np.ndarray, ns: int) -> None:
+    _sleep_until(ts, _now(ts, CLOCK_MONOTONIC) + ns)
+
+
+@numba.njit(cache=True)
+def _wait_start(
+    T: np.ndarray, late_hist: np.ndarray, edges: np.ndarray, ts: np.ndarray, first: bool
+) -> int:
+    """Wait for the next period start (``pacing.Pacer.wait``, in ns); returns the whole
+    periods it skipped (a drive that cannot pause; else 0 and the schedule re-anchored).
+    ``first``: the call's first period (Python ran since the period before)."""
+    period = T[T_TS]
+    deadline = T[T_T0] + (T[T_N] + 1) * period
+    target = deadline - T[T_SPIN]
+    if _now(ts, CLOCK_MONOTONIC) < target:
+        _sleep_until(ts, target)
+    now = _now(ts, CLOCK_MONOTONIC)
+    while now < deadline:
+        now = _now(ts, CLOCK_MONOTONIC)
+    late = now - deadline
+    if late > T[T_MAX_LATE]:
+        T[T_MAX_LATE] = late
+        T[T_MAX_LATE_AT] = deadline
+    if first and late > T[T_MAX_LATE_PY]:
+        T[T_MAX_LATE_PY] = late
+    b = 0
+    for e in edges:
+        if late < e:
+            break
+        b += 1
+    late_hist[b] += 1
+    T[T_N] += 1
+    missed = 0
+    if late > period:
+        T[T_OVERRUNS] += 1
+        if T[T_WALL] != 0:
+            missed = late // period
+            T[T_MISSED_TOTAL] += missed
+            T[T_N] += missed
+            late -= missed * period
+        else:
+            T[T_T0] = now - T[T_N] * period  # re-anchor: no burst of catch-up periods
+    T[T_LATE] = late
+    T[T_START] = now
+    return missed
+
+
+@numba.njit(cache=True, nogil=True)
+def _answer_and_hand_over(
+    T: np.ndarray, t0: int, due: int, dur_counts: np.ndarray, dur_maxes: np.ndarray,
+    D: np.ndarray, DC: np.ndarray, state: np.ndarray, R: np.ndarray, Q: np.ndarray,
+    X: np.ndarray, C: np.ndarray, CF: np.ndarray, cout: np.ndarray, eout: np.ndarray,
+    cmd: np.ndarray, internals: np.ndarray, W: np.ndarray, raws: Any, bufs: Any,
+    lens: Any, stamps: Any, ctrls: Any, ring_msg: np.ndarray, put_counts: np.ndarray,
+    events: np.ndarray, ev_ctrl: np.ndarray, ts: np.ndarray,
+) -> None:  # fmt: skip
+    """A period's second half, once the drive published state k+1 (``due``: its
+    messages): the controller's answer, the messages into their rings, the drive takes
+    the answer (``period_kernel.take_command``: the words of ``D`` it shares with every
+    drive), the period's durations, an experiment's end into the event ring."""
+    n_rings = len(bufs)
+    n_r = R.shape[0]
+    stamp = _now(ts, CLOCK_REALTIME)
+    t1 = _now(ts, CLOCK_MONOTONIC)
+    st = answer_state(R, Q, X, C, CF, state, cout, eout, cmd, internals, W)
+    due |= 1 << M_COMMAND
+    if W[W_INTERNALS_DUE] != 0:
+        due |= 1 << M_INTERNALS
+    # the messages into their rings (the heads advance after the clock call below:
+    # an opaque call, so the slots are written before a consumer can see them)
+    put = 0
+    for m in range(N_MSG):
+        if due & (1 << m):
+            put_counts[m] += 1
+    for r in range(n_rings):
+        m = ring_msg[r]
+        if due & (1 << m) and put_slot(bufs[r], lens[r], stamps[r], ctrls[r], raws[m], stamp):
+            put |= 1 << r
+    t2 = _now(ts, CLOCK_MONOTONIC)
+    if PK.take_command(D, DC, np.int64(state[0]), cmd[0], cmd[1], cmd[2]):
+        T[T_COMMANDS] += 1
+    else:
+        T[T_REFUSED] += 1
+    t3 = _now(ts, CLOCK_MONOTONIC)
+    for r in range(n_rings):
+        if put & (1 << r):
+            ctrls[r][R_HEAD] += 1
+    count_durations(
+        dur_counts,
+        dur_maxes,
+        ((t1 - t0) * 1e-3, (t2 - t1) * 1e-3, (t3 - t0) * 1e-3, T[T_LATE] * 1e-3),
+    )
+    T[T_PERIODS] += 1
+    # an experiment's end, or the step into FAULT (the kernel answers STATUS_FAULT every
+    # period it stays there): the serving thread publishes it
+    first = not (st == STATUS_FAULT and T[T_LAST_ST] == STATUS_FAULT)
+    T[T_LAST_ST] = st
+    if st >= STATUS_DONE and first:
+        T[T_STATUS] = st
+        h = ev_ctrl[EV_HEAD]
+        if h - ev_ctrl[EV_TAIL] < events.shape[0]:
+            row = events[h % events.shape[0]]
+            row[0] = st
+            row[1] = state[0]
+            for j in range(n_r):
+                row[2 + j] = R[j]
+            _now(ts, CLOCK_MONOTONIC)  # an opaque call: the row is written first
+            ev_ctrl[EV_HEAD] = h + 1
+        else:
+            ev_ctrl[EV_LOST] += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _park(gate: np.ndarray, ts: np.ndarray) -> bool:
+    """Between two periods: park while a Python thread has its turn at the nodes'
+    state (``gate[G_WANT]``, :class:`LoopGate`); True if it parked."""
+    if gate[G_WANT] == 0:
+        return False
+    gate[G_PARKED] = 1
+    while gate[G_WANT] != 0:
+        _nap(ts, 20_000)
+    gate[G_PARKED] = 0
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def run_periods(
+    S: np.ndarray,
+    P: np.ndarray,
+    noise: np.ndarray,
+    budget: int,
+    T: np.ndarray,
+    late_hist: np.ndarray,
+    edges: np.ndarray,
+    dur_counts: np.ndarray,
+    dur_maxes: np.ndarray,
+    D: np.ndarray,
+    DC: np.ndarray,
+    state: np.ndarray,
+    clock_sec: np.ndarray,
+    clock_nsec: np.ndarray,
+    joint_sec: np.ndarray,
+    joint_nsec: np.ndarray,
+    joint_pos: np.ndarray,
+    joint_vel: np.ndarray,
+    joint_eff: np.ndarray,
+    R: np.ndarray,
+    Q: np.ndarray,
+    X: np.ndarray,
+    C: np.ndarray,
+    CF: np.ndarray,
+    cout: np.ndarray,
+    eout: np.ndarray,
+    cmd: np.ndarray,
+    internals: np.ndarray,
+    W: np.ndarray,
+    raws: Any,
+    bufs: Any,
+    lens: Any,
+    stamps: Any,
+    ctrls: Any,
+    ring_msg: np.ndarray,
+    put_counts: np.ndarray,
+    gate: np.ndarray,
+    events: np.ndarray,
+    ev_ctrl: np.ndarray,
+    ts: np.ndarray,
+) -> int:
+    """Periods (module docstring) until ``gate[G_QUIT]`` or ``T[T_MAX_PERIODS]``,
+    stepping the model at most ``budget`` times (``DriveSim.run_kernel``'s count: the
+    noise block). Returns the model steps taken; ``T[T_EXIT]`` says why it returned;
+    ``T[T_PERIODS]`` counts the periods run. ``raws[m]``: message m's bytes (M_*); ring
+    r (``bufs[r]`` ...) takes message ``ring_msg[r]``. Between two periods it parks
+    while ``gate[G_WANT]`` (:class:`LoopGate`); an experiment's end goes into
+    ``events`` (status, step, R) for the serving thread."""
+    used = 0
+    first = True
+    T[T_EXIT] = EXIT_PERIODS
+    while True:
+        if T[T_RESUME] < 0:  # between two periods: the gate, then the next start
+            if _park(gate, ts):
+                first = True  # the next start follows a park: counted as after Python
+            if gate[G_QUIT] != 0:
+                gate[G_RUNNING] = 0
+                T[T_EXIT] = EXIT_QUIT
+                break
+            if gate[G_STOP] != 0 and D[PK.D_STOPPED] == 0.0:
+                PK.safe_stop(S, D)
+            if T[T_PERIODS] >= T[T_MAX_PERIODS]:
+                T[T_EXIT] = EXIT_PERIODS
+                break
+            if used >= budget:
+                T[T_EXIT] = EXIT_BUDGET
+                break
+            T[T_RESUME] = _wait_start(T, late_hist, edges, ts, first)
+            first = False
+        missed = T[T_RESUME]
+        if missed > 0:  # periods that went by: the model runs them held, unpublished
+            n = min(missed, budget - used)
+            PK.run_missed(S, P, noise, D, DC, state, n)
+            used += n
+            T[T_RESUME] = missed - n
+        if used >= budget:  # the noise block ran out inside the period: refill, go on
+            T[T_EXIT] = EXIT_BUDGET
+            break
+        t0 = T[T_START]
+        due = PK.run_period(
+            S, P, noise, D, DC, state, clock_sec, clock_nsec,
+            joint_sec, joint_nsec, joint_pos, joint_vel, joint_eff,
+        )  # fmt: skip
+        used += 1
+        T[T_RESUME] = -1
+        _answer_and_hand_over(
+            T, t0, due, dur_counts, dur_maxes, D, DC, state, R, Q, X, C, CF, cout, eout,
+            cmd, internals, W, raws, bufs, lens, stamps, ctrls, ring_msg, put_counts,
+            events, ev_ctrl, ts,
+        )  # fmt: skip
+        if 0 <= T[T_STALL] <= state[0]:  # the drive's stall test hook, once
+            T[T_STALL] = -1
+            _nap(ts, T[T_STALL_NS])
+    return used
+
+
+@numba.njit(cache=True, nogil=True)
+def run_hardware_periods(
+    T: np.ndarray,
+    late_hist: np.ndarray,
+    edges: np.ndarray,
+    dur_counts: np.ndarray,
+    dur_maxes: np.ndarray,
+    E: np.ndarray,
+    D: np.ndarray,
+    DC: np.ndarray,
+    F: np.ndarray,
+    meas: np.ndarray,
+    state: np.ndarray,
+    joint_sec: np.ndarray,
+    joint_nsec: np.ndarray,
+    joint_pos: np.ndarray,
+    joint_vel: np.ndarray,
+    joint_eff: np.ndarray,
+    R: np.ndarray,
+    Q: np.ndarray,
+    X: np.ndarray,
+    C: np.ndarray,
+    CF: np.ndarray,
+    cout: np.ndarray,
+    eout: np.ndarray,
+    cmd: np.ndarray,
+    internals: np.ndarray,
+    W: np.ndarray,
+    raws: Any,
+    bufs: Any,
+    lens: Any,
+    stamps: Any,
+    ctrls: Any,
+    ring_msg: np.ndarray,
+    put_counts: np.ndarray,
+    gate: np.ndarray,
+    events: np.ndarray,
+    ev_ctrl: np.ndarray,
+    ts: np.ndarray,
+) -> int:
+    """:func:`run_periods` for a user's power stage called by address
+    (``im_drive_sim.hardware_period``: a C library, a compiled class): periods until
+    ``gate[G_QUIT]``, ``T[T_MAX_PERIODS]`` or a drive fault (``T[T_EXIT]`` = EXIT_FAULT,
+    ``F`` says which call returned what; zero current was written). The power stage
+    lives on the wall clock: a late start's whole periods went by with the command held
+    (``hardware_missed``). Returns the periods run."""
+    first = True
+    T[T_EXIT] = EXIT_PERIODS
+    while True:
+        if _park(gate, ts):
+            first = True
+        if gate[G_QUIT] != 0:
+            gate[G_RUNNING] = 0
+            T[T_EXIT] = EXIT_QUIT
+            break
+        if gate[G_STOP] != 0 and D[PK.D_STOPPED] == 0.0:
+            HP.safe_stop(E, D)
+        if T[T_PERIODS] >= T[T_MAX_PERIODS]:
+            T[T_EXIT] = EXIT_PERIODS
+            break
+        missed = _wait_start(T, late_hist, edges, ts, first)
+        first = False
+        t0 = T[T_START]
+        due = HP.hardware_missed(E, D, DC, F, missed)
+        if due != HP.FAULT:
+            due = HP.hardware_period(
+                E, D, DC, F, meas, state, joint_sec, joint_nsec, joint_pos, joint_vel,
+                joint_eff,
+            )  # fmt: skip
+        if due == HP.FAULT:
+            gate[G_RUNNING] = 0
+            T[T_EXIT] = EXIT_FAULT
+            break
+        _answer_and_hand_over(
+            T, t0, due, dur_counts, dur_maxes, D, DC, state, R, Q, X, C, CF, cout, eout,
+            cmd, internals, W, raws, bufs, lens, stamps, ctrls, ring_msg, put_counts,
+            events, ev_ctrl, ts,
+        )  # fmt: skip
+    return T[T_PERIODS]

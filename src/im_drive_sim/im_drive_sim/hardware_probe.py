@@ -16,8 +16,12 @@ a Python hardware class, a compiled class, a C library), paced on the wall clock
    2 % of the step or 8 noise levels (check_drive's rule).
 
 With command delay d the onset is d (the power stage applies the command over the
-period that starts d - 1 periods after the write). Repeated ``REPEATS`` times; a late
-probe period only makes an onset later, so the fastest one is judged: a drive whose
+period that starts d - 1 periods after the write). A probe period that starts late (by
+more than half a period: the process was preempted) is not caught up: the schedule moves
+on from it, since writes bunched to catch up could all land in one of the power stage's
+periods and the step never be applied; a repeat with a late period is run again (at most
+``REPEATS`` extra). Repeated ``REPEATS`` times; what lateness is left only makes an onset
+later, so the fastest one is judged: a drive whose
 fastest onset is later than it declares is slower than it declares, and the bench
 refuses it in one line. The motion is small: ``ON`` periods of a tenth of the current
 limit, about 0.1 degree on the packaged motor.
@@ -75,11 +79,16 @@ def probe_delay(hw: Any, ts: float, isq_max: float, declared: int) -> DelayProbe
     onsets = []
     t0 = time.perf_counter()
     n = 0
+    late = False
 
     def period(isq_ref: float) -> float:
-        nonlocal n
+        nonlocal n, t0, late
         n += 1
         deadline = t0 + n * ts
+        now = time.perf_counter()
+        if now > deadline + 0.5 * ts:  # preempted: move on from here, no burst to catch up
+            late = True
+            t0 += now - deadline
         while time.perf_counter() < deadline:  # busy-wait: a few ms in all
             pass
         hw.write(isq_ref, 0.0)
@@ -89,8 +98,10 @@ def probe_delay(hw: Any, ts: float, isq_max: float, declared: int) -> DelayProbe
         return float(m.isq)
 
     try:
-        for r in range(REPEATS):
+        r = again = 0
+        while r < REPEATS:
             sign = 1.0 if r % 2 == 0 else -1.0
+            late = False
             base = np.array([period(0.0) for _ in range(BASELINE)])
             after = [period(sign * step) for _ in range(ON)]
             after += [period(0.0) for _ in range(SETTLE)]
@@ -104,7 +115,11 @@ def probe_delay(hw: Any, ts: float, isq_max: float, declared: int) -> DelayProbe
                 if abs(x - (slope * (BASELINE + i) + icpt)) > thr:
                     onset = i + 1
                     break
+            if late and again < REPEATS:  # this repeat was preempted: run it again
+                again += 1
+                continue
             onsets.append(onset)
+            r += 1
     finally:
         hw.write(0.0, 0.0)
     return DelayProbe(tuple(onsets), int(declared))

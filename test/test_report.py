@@ -323,7 +323,7 @@ def test_not_a_run_one_line_exit_2(tmp_path, make, expect):
 def test_a_bag_directory_is_not_a_run_and_bad_options_are_refused(runs, tmp_path):
     run, _ = runs['necga']
     for args, expect in (
-        ([str(run / 'bag_0')], 'not a tuning run'),
+        ([str(run / 'bag_0')], f'a bag: its run is {run}, its statistics `report --bag-info'),
         ([], 'the following arguments are required: RUN_DIR'),
         ([str(run), '--plots'], 'unrecognized arguments: --plots'),
         ([str(run), '--out', str(run / 'run.yaml')], 'is not a directory'),

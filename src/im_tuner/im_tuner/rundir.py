@@ -200,7 +200,9 @@ class RunDir:
         if not p.is_dir():
             raise RunDirError(f'{p}: not a directory')
         if not (p / RUN_FILE).is_file():
-            raise RunDirError(f'{p}: not a tuning run (no {RUN_FILE})')
+            bag = (p / 'metadata.yaml').is_file() or any(p.glob('*.mcap'))
+            hint = f'; a bag: its run is {p.parent}, its statistics `report --bag-info {p}`'
+            raise RunDirError(f'{p}: not a tuning run (no {RUN_FILE}){hint if bag else ""}')
         return cls(p)
 
     # -- run.yaml ------------------------------------------------------------------------

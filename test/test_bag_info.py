@@ -190,6 +190,34 @@ def test_bag_info_of_a_lockstep_bag_equals_the_readers(lockstep_run):
     assert rows['/drive/state']['count'] > 10_000  # two experiments and the start's, 5 kHz
 
 
+def test_a_file_cut_short_beside_its_metadata_says_so(lockstep_run, tmp_path):
+    """A closed bag's MCAP file cut to half (a copy that broke off), its metadata.yaml beside
+    it: the state says both, and the messages the recorder counted but the file lacks are
+    named, not hidden behind "lost 0"; a metadata.yaml that is not YAML is called so."""
+    import shutil
+
+    from im_tuner.report.baginfo import format_info
+
+    (bag,) = lockstep_run.glob('bag_*')
+    cut = tmp_path / 'cut'
+    shutil.copytree(bag, cut)
+    (f,) = cut.glob('*.mcap')
+    f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
+    info = bag_info(cut)
+    assert info['state'] == 'closed' and not info['complete']
+    rows = {t['topic']: t for t in info['topics']}
+    short = sum(t['recorded'] - t['count'] for t in rows.values())
+    assert (
+        info['not_in_file'] == short > 0
+        and rows['/drive/state']['count'] < (rows['/drive/state']['recorded'])
+    )
+    text = format_info(info)
+    assert 'metadata.yaml says closed, but the MCAP file is NOT CLOSED' in text
+    assert f'{short} the recorder counted are NOT in the file' in text
+    (cut / 'metadata.yaml').write_text('{{{ not yaml')
+    assert bag_info(cut)['state'] == 'metadata.yaml unreadable'
+
+
 def test_the_table_a_user_pastes(lockstep_run):
     """The default output: the totals, then one aligned row per topic with the same
     figures as --json."""
@@ -299,7 +327,7 @@ def _tree(d: Path) -> list[tuple[str, int]]:
 @pytest.mark.parametrize(
     'args, says',
     [
-        (['--bag-info', '{tmp}/missing'], 'not a directory'),
+        (['--bag-info', '{tmp}/missing'], 'no such directory'),
         (['--bag-info', '{tmp}/a_file'], 'not a directory'),
         (['--bag-info', '{tmp}/empty'], 'no .mcap file'),
         (['--bag-info', '{tmp}/not_mcap'], 'not an MCAP file'),

@@ -396,6 +396,9 @@ def test_the_cli_prints_the_installed_layouts_and_refuses_bad_input(tmp_path):
         (['--namespace', '/b'], 'needs --out'),
         (['--table', '--out', str(tmp_path / 'x')], 'takes no other option'),
         (['--nope'], 'unrecognized arguments'),
+        (['--out', ''], 'an empty path'),
+        (['--namespace', '', '--out', str(tmp_path / 'x')], '--namespace: empty'),
+        (['--out', '/proc/im_tuner_layouts'], 'cannot write /proc/im_tuner_layouts'),
     ):
         before = sorted(tmp_path.rglob('*'))
         proc = subprocess.run([*py, *bad], capture_output=True, text=True, timeout=60)

@@ -61,6 +61,10 @@ def _parser() -> Parser:
 
 def _body(argv: list[str]) -> int:
     a = _parser().parse_args(argv)
+    if a.out == '':
+        raise UsageError('--out: an empty path (give a directory)')
+    if a.namespace == '' and any(x.startswith('--namespace') for x in argv):
+        raise UsageError('--namespace: empty (leave it out for no namespace)')
     if a.namespace and not _NAMESPACE.match(a.namespace):
         raise UsageError(f'--namespace: not a ROS namespace (like /bench1): {a.namespace!r}')
     if a.table:
@@ -84,10 +88,13 @@ def _body(argv: list[str]) -> int:
     if not out.parent.is_dir():
         raise UsageError(f'--out: the parent directory {out.parent} does not exist')
     texts = {name: render(layout) for name, layout in build(a.namespace).items()}
-    out.mkdir(exist_ok=True)
-    for name, text in texts.items():
-        (out / f'{name}.json').write_text(text, encoding='ascii')
-        print(out / f'{name}.json')
+    try:
+        out.mkdir(exist_ok=True)
+        for name, text in texts.items():
+            (out / f'{name}.json').write_text(text, encoding='ascii')
+            print(out / f'{name}.json')
+    except OSError as exc:
+        raise UsageError(f'--out: cannot write {out}: {exc.strerror or exc}') from None
     return 0
 
 

@@ -395,8 +395,10 @@ def read_bag(
         out.state = custom.get('im_tuner.state', 'unknown')
         if 'im_tuner.counts' in custom:
             out.recorder_counts = json.loads(custom['im_tuner.counts'])
-    except (OSError, ValueError, KeyError, TypeError, AttributeError, yaml.YAMLError):
+    except FileNotFoundError:
         out.state = 'no metadata.yaml'
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, yaml.YAMLError):
+        out.state = 'metadata.yaml unreadable'
     arrays = arrays or {}
     schemas: dict[int, tuple[str, bytes]] = {}
     channels: dict[int, tuple[str, int, dict, bytes]] = {}

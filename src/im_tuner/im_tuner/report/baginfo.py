@@ -39,6 +39,8 @@ def bag_info(bag_dir: Path) -> dict[str, Any]:
     from ..record.reader import BagReadError, read_bag
 
     bag_dir = Path(bag_dir)
+    if not bag_dir.exists():
+        raise ReportError(f'--bag-info {bag_dir}: no such directory')
     if not bag_dir.is_dir():
         raise ReportError(f'--bag-info {bag_dir}: not a directory (give the bag directory)')
     files = sorted(bag_dir.glob('*.mcap'))
@@ -97,10 +99,21 @@ def bag_info(bag_dir: Path) -> dict[str, Any]:
         'first_chunk_span_s': spans[0] if spans else None,
         'recorder_counts': bag.recorder_counts is not None,
         'lost_total': (sum(int(c.get('lost', 0)) for c in rc.values()) if rc else None),
+        # recorded by the recorder's counts but not in the file (a file cut short)
+        'not_in_file': _not_in_file(rc, {n: t.count for n, t in bag.topics.items()}),
         # the composed real-time loop's hand-over counts (put, published, lost_...)
         'outbox': {k: json.loads(v) for k, v in outbox.items()} if outbox else None,
         'topics': topics,
     }
+
+
+def _not_in_file(counts: dict[str, Any], in_file: dict[str, int]) -> int:
+    """Messages the recorder counted as recorded that the file does not hold (a file cut
+    short after the recorder closed it): the sum over topics of recorded - count."""
+    short = 0
+    for name, c in counts.items():
+        short += max(0, int(c.get('recorded', 0)) - in_file.get(name, 0))
+    return short
 
 
 def _when(ns: int | None) -> str:
@@ -121,8 +134,9 @@ def _size(n: int) -> str:
 def _state(info: dict[str, Any]) -> str:
     if info['complete']:
         return info['state']
+    said = f'metadata.yaml says {info["state"]}, but ' if info['state'] == 'closed' else ''
     return (
-        f'{info["state"]}, NOT CLOSED: read up to its last complete chunk '
+        f'{said}the MCAP file is NOT CLOSED: read up to its last complete chunk '
         f'({info["unread_bytes"]} bytes after it not read)'
     )
 
@@ -150,6 +164,11 @@ def format_info(info: dict[str, Any]) -> str:
             f"lost {lost} (the recorder's count)"
             if lost is not None
             else "recorder's counts not in the bag (not closed by the recorder)"
+        )
+        + (
+            f'; {info["not_in_file"]} the recorder counted are NOT in the file'
+            if info['not_in_file']
+            else ''
         ),
         '',
     ]

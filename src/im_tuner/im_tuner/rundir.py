@@ -59,6 +59,12 @@ CHECKPOINT_FILE = 'checkpoint.json'
 SUMMARY_FILE = 'summary.json'
 
 
+def is_bag_dir(path: Path) -> bool:
+    """``path`` is a directory holding a bag: its ``metadata.yaml`` or an MCAP file (a
+    closed, a repaired, or a still-recording one)."""
+    return path.is_dir() and ((path / 'metadata.yaml').is_file() or any(path.glob('*.mcap')))
+
+
 def claim_out_dir(out: Path, error: type[Exception], what_is_there: Callable[[Path], str]) -> Path:
     """Make ``out`` (``--out``) for a new run or bag: refuse a file, a directory that holds
     anything (``what_is_there(out)`` says what), an unwritable place. An existing *empty*
@@ -200,9 +206,10 @@ class RunDir:
         if not p.is_dir():
             raise RunDirError(f'{p}: not a directory')
         if not (p / RUN_FILE).is_file():
-            bag = (p / 'metadata.yaml').is_file() or any(p.glob('*.mcap'))
             hint = f'; a bag: its run is {p.parent}, its statistics `report --bag-info {p}`'
-            raise RunDirError(f'{p}: not a tuning run (no {RUN_FILE}){hint if bag else ""}')
+            raise RunDirError(
+                f'{p}: not a tuning run (no {RUN_FILE}){hint if is_bag_dir(p) else ""}'
+            )
         return cls(p)
 
     # -- run.yaml ------------------------------------------------------------------------

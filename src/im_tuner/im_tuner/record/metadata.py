@@ -14,7 +14,7 @@ from pathlib import Path
 
 import yaml
 
-from ..rundir import claim_out_dir
+from ..rundir import claim_out_dir, is_bag_dir
 
 ROSBAG2_VERSION = 9
 ROS_DISTRO = 'jazzy'
@@ -34,9 +34,7 @@ def prepare_bag_dir(out: Path) -> Path:
     return claim_out_dir(
         Path(out),
         BagError,
-        lambda d: (
-            'a bag' if (d / 'metadata.yaml').exists() or any(d.glob('*.mcap')) else 'not empty'
-        ),
+        lambda d: 'a bag' if is_bag_dir(d) else 'not empty',
     )
 
 

@@ -182,20 +182,17 @@ def compare(plan: ReplayPlan, replayed: np.ndarray) -> Comparison:
 
 
 # ---------------------------------------------------------------------------- reading
-def _metadata(mcap_file: Path) -> tuple[dict[str, dict[str, str]], np.ndarray, list[bytes]]:
-    """The bag's metadata records and its /clock messages (stamps [ns], CDR bytes), read
-    with the ``mcap`` library (its index: a closed or repaired bag)."""
+def _clock(mcap_file: Path) -> tuple[np.ndarray, list[bytes]]:
+    """The bag's /clock messages (stamps [ns], CDR bytes), read with the ``mcap`` library
+    (its index: a closed or repaired bag); the project's reader keeps no raw messages."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
-    records: dict[str, dict[str, str]] = {}
     stamps: list[int] = []
     raw: list[bytes] = []
     try:
         with open(mcap_file, 'rb') as f:
             reader = make_reader(f)
-            for m in reader.iter_metadata():
-                records[m.name] = dict(m.metadata)
             for _s, _c, msg in reader.iter_messages(topics=[CLOCK_TOPIC]):
                 # rosgraph_msgs/Clock CDR: encapsulation (4), int32 sec, uint32 nanosec
                 sec = int.from_bytes(msg.data[4:8], 'little', signed=True)
@@ -207,7 +204,7 @@ def _metadata(mcap_file: Path) -> tuple[dict[str, dict[str, str]], np.ndarray, l
             f'{mcap_file}: cannot read its index ({exc}); '
             'a bag left by a killed recorder: `ros2 run im_tuner recorder --repair DIR` first'
         ) from None
-    return records, np.array(stamps, np.int64), raw
+    return np.array(stamps, np.int64), raw
 
 
 def _spans(internals: np.ndarray) -> list[tuple[int, int]]:
@@ -278,7 +275,8 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
                 f'{lost.get("published_before_recording", 0)} before recording): '
                 'the controller saw messages the bag does not hold'
             )
-    records, clock_ns, clock_raw = _metadata(mcap_file)
+    clock_ns, clock_raw = _clock(mcap_file)
+    records = data.metadata  # the bag's metadata records, as the reader found them
     if CONTROLLER_RECORD not in records:
         raise ReplayError(
             f'{bag_dir}: no {CONTROLLER_RECORD} record (the controller parameters at start): '

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 from im_drive_sim.cli import Parser, UsageError
 
-from ..rundir import RunDir, RunDirError
+from ..rundir import RunDir, RunDirError, is_bag_dir
 from .errors import EXIT_USAGE, ReportError
 
 if TYPE_CHECKING:
@@ -161,12 +161,6 @@ def _bag_info(cli: argparse.Namespace) -> int:
     return 0
 
 
-def _holds_bag(path: Path) -> bool:
-    """``path`` is a directory holding a bag (its metadata or an MCAP file): a report's
-    files do not belong there (a recorder may be writing it)."""
-    return path.is_dir() and ((path / 'metadata.yaml').exists() or any(path.glob('*.mcap')))
-
-
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if args is None else args)
     try:
@@ -188,13 +182,11 @@ def main(args: list[str] | None = None) -> int:
             except RunDirError as exc:
                 raise ReportError(str(exc)) from None
         for bag in cli.bags:
-            if not bag.is_dir() or not (
-                (bag / 'metadata.yaml').is_file() or any(bag.glob('*.mcap'))
-            ):
+            if not is_bag_dir(bag):
                 raise ReportError(f'--bags {bag}: not a bag directory (no metadata.yaml or .mcap)')
         if cli.out is not None and cli.out.exists() and not cli.out.is_dir():
             raise ReportError(f'--out {cli.out}: exists and is not a directory')
-        if cli.out is not None and _holds_bag(cli.out):
+        if cli.out is not None and is_bag_dir(cli.out):
             raise ReportError(
                 f'--out {cli.out}: a bag folder (it holds metadata.yaml or .mcap files, '
                 'perhaps still recording); choose another directory'

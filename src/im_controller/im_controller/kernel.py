@@ -32,6 +32,8 @@ from .layout import (
     Q_A1,
     Q_A2,
     Q_A3,
+    Q_ID_K,
+    Q_ID_WDEAD,
     Q_ISQ_MAX,
     Q_ISQF_A,
     Q_LOAD,
@@ -40,6 +42,10 @@ from .layout import (
     Q_MAX_ERR,
     Q_MAX_SPEED,
     Q_N,
+    Q_RIP1_A,
+    Q_RIP1_B,
+    Q_RIP2_A,
+    Q_RIP2_B,
     Q_SAT_RATIO,
     Q_SETTLE_N,
     Q_TEND,
@@ -55,6 +61,15 @@ from .layout import (
     R_FRESH,
     R_HELD,
     R_HOLD_REF,
+    R_ID_CHAIN,
+    R_ID_M,
+    R_ID_NB,
+    R_ID_RISE,
+    R_ID_ROWS,
+    R_ID_S0,
+    R_ID_S1,
+    R_ID_THA,
+    R_ID_THB,
     R_ISQF,
     R_LAST_ISQ,
     R_LAST_LOAD,
@@ -65,6 +80,7 @@ from .layout import (
     R_N,
     R_REASON,
     R_RESULT,
+    R_RIP,
     R_S1,
     R_S2,
     R_S3,
@@ -87,6 +103,8 @@ from .layout import (
     REASON_TERM3,
     S_APPLIED,
     S_CMD_DELAY,
+    S_ISQ,
+    S_LOAD,
     STATUS_ABORTED,
     STATUS_DONE,
     STATUS_FAULT,
@@ -110,6 +128,89 @@ def finish_experiment(R: Vec, Q: Vec, status: float, reason: float, time_ns: flo
     R[R_STEPS] = R[R_N]
     R[R_END_NS] = time_ns + Q[Q_TS_NS]
     R[R_TRIP_STEP] = R[R_N] - 1.0 if status == STATUS_ABORTED else -1.0
+
+
+@njit(cache=True)
+def ripple_step(R: Vec, Q: Vec, n: float, isq: float) -> None:
+    """The standstill ripple's sums: isq* [A] of local step ``n`` into its window's count,
+    sum, sum of squares, min and max (``R_RIP``), if ``n`` lies in one (``Q_RIP*``)."""
+    if Q[Q_RIP1_A] <= n < Q[Q_RIP1_B]:
+        j = R_RIP
+    elif Q[Q_RIP2_A] <= n < Q[Q_RIP2_B]:
+        j = R_RIP + 5
+    else:
+        return
+    if R[j] == 0.0 or isq < R[j + 3]:
+        R[j + 3] = isq
+    if R[j] == 0.0 or isq > R[j + 4]:
+        R[j + 4] = isq
+    R[j] += 1.0
+    R[j + 1] += isq
+    R[j + 2] += isq * isq
+
+
+@njit(cache=True)
+def motion_step(R: Vec, Q: Vec, n: float, th: float, w: float, state: Vec) -> None:
+    """The motion sums (layout ``R_ID_*``) with local step ``n``'s state.
+
+    Blocks b of K = ``Q_ID_K`` periods; the mean speed of block b is
+    wbar_b = (theta(b+1) - theta(b)) / (K Ts) from the encoder (no filter lag).  Their
+    change is exactly the acceleration under a triangle: wbar_b - wbar_{b-1} =
+    int alpha(t) h(t) dt, h rising 0 -> 1 over block b - 1 and falling 1 -> 0 over block b,
+    so with J alpha = Kt isq - B omega - Tc sign(omega) - T_load each pair of blocks
+    gives one row J z0 = Kt z1 - B z2 - Tc z3 - z4, z1..z4 the h-weighted integrals of
+    isq, omega_meas, sign(omega_meas) (0 within the dead band ``Q_ID_WDEAD``) and
+    load_torque.  The rows are summed as z z^T (least squares needs no more)."""
+    K = Q[Q_ID_K]
+    blk = math.floor(n / K)
+    m = n - K * blk  # this step's place in its block
+    if blk >= R[R_ID_NB]:  # the first state of a block this experiment sees
+        if m == 0.0 and blk == R[R_ID_NB]:
+            if R[R_ID_CHAIN] >= 2.0:
+                ts = Q[Q_TS]
+                z0 = ((th - R[R_ID_THB]) - (R[R_ID_THB] - R[R_ID_THA])) / (K * ts)
+                z = (
+                    z0,
+                    ts * (R[R_ID_RISE] + R[R_ID_S0] - R[R_ID_S1] / K),
+                    ts * (R[R_ID_RISE + 1] + R[R_ID_S0 + 1] - R[R_ID_S1 + 1] / K),
+                    ts * (R[R_ID_RISE + 2] + R[R_ID_S0 + 2] - R[R_ID_S1 + 2] / K),
+                    ts * (R[R_ID_RISE + 3] + R[R_ID_S0 + 3] - R[R_ID_S1 + 3] / K),
+                )
+                j = R_ID_M
+                for a in range(5):
+                    for b in range(a, 5):
+                        R[j] += z[a] * z[b]
+                        j += 1
+                R[R_ID_ROWS] += 1.0
+            for q in range(4):
+                R[R_ID_RISE + q] = R[R_ID_S1 + q] / K
+            R[R_ID_THA] = R[R_ID_THB]
+            R[R_ID_THB] = th
+            R[R_ID_CHAIN] += 1.0
+        else:  # a block's first state went by unseen: its sums would be short
+            R[R_ID_CHAIN] = 0.0
+        for q in range(4):
+            R[R_ID_S0 + q] = 0.0
+            R[R_ID_S1 + q] = 0.0
+        R[R_ID_NB] = blk + 1.0
+    if R[R_ID_CHAIN] == 0.0:
+        return
+    sgn = 0.0
+    if w > Q[Q_ID_WDEAD]:
+        sgn = 1.0
+    elif w < -Q[Q_ID_WDEAD]:
+        sgn = -1.0
+    x0 = state[S_ISQ]
+    x3 = state[S_LOAD]
+    mh = m + 0.5
+    R[R_ID_S0] += x0
+    R[R_ID_S0 + 1] += w
+    R[R_ID_S0 + 2] += sgn
+    R[R_ID_S0 + 3] += x3
+    R[R_ID_S1] += mh * x0
+    R[R_ID_S1 + 1] += mh * w
+    R[R_ID_S1 + 2] += mh * sgn
+    R[R_ID_S1 + 3] += mh * x3
 
 
 @njit(cache=True)
@@ -278,6 +379,8 @@ def experiment_step(
                 R[R_S3] += f3
             a = Q[Q_ISQF_A]
             R[R_ISQF] = a * isqf + (1.0 - a) * isq
+            ripple_step(R, Q, n, isq)
+            motion_step(R, Q, n, th, w, state)
             ts = Q[Q_TS]
             R[R_TERM1] = Q[Q_A1] * ts * R[R_S1]
             R[R_TERM2] = Q[Q_A2] * ts * R[R_S2]

@@ -89,7 +89,26 @@ Q_TEND = 20  # end of the move [s]
 Q_MAX_ERR = 21
 Q_MAX_SPEED = 22
 Q_SETTLE_N = 23  # periods of standstill settle before an experiment's step 0
-N_QPARAMS = 24
+# the standstill windows of the current ripple (local steps [A, B)): after the move has
+# settled and before the load step; after the load step has settled to the end
+Q_RIP1_A = 24
+Q_RIP1_B = 25
+Q_RIP2_A = 26
+Q_RIP2_B = 27
+Q_ID_K = 28  # periods per block of the motion sums (MOTION_BLOCK seconds)
+Q_ID_WDEAD = 29  # |omega_meas| [rad/s] below which the shaft counts as at rest
+N_QPARAMS = 30
+
+#: The ripple windows, relative to the experiment: from RIPPLE_AFTER_MOVE after the move's
+#: end to the load step, and from RIPPLE_AFTER_LOAD after the load step to the end [s]
+#: (0.300-0.700 s and 0.900-1.125 s for the paper's experiment: its Fig. 8's flat parts).
+RIPPLE_AFTER_MOVE = 0.155
+RIPPLE_AFTER_LOAD = 0.2
+#: The motion sums' block [s] and dead band (a fraction of the move's peak speed: above
+#: one encoder count per period after the speed filter, 1.4 rad/s on the paper's drive).
+#: (20 ms: shorter blocks let the encoder's quantisation bias J low, docs/controller.md)
+MOTION_BLOCK = 0.02
+MOTION_DEAD_BAND = 0.1
 
 # -------------------------------------------------------------------- runner state R
 R_MODE = 0
@@ -125,7 +144,28 @@ R_HELD = 27
 R_SEEN = 28  # step index of the last state processed
 R_APPLIED = 29  # its applied_step
 R_GAINS_STEP = 30  # the first state the current gains acted on (set_gains)
-N_RSTATE = 31
+#: The standstill ripple of isq* in the two windows w = 0, 1 (Q_RIP*): the words
+#: R_RIP + 5 w + (count, sum [A], sum of squares [A^2], min [A], max [A]).
+R_RIP = 31
+N_RIP_WORDS = 10
+#: The motion sums (``im_tuner.identify``): blocks b of Q_ID_K periods; at the start of
+#: block b + 1 the pair (b - 1, b) gives one row z (MOTION_COLUMNS) and sum z z^T grows.
+R_ID_THA = 41  # theta_meas at the start of block b - 1 [rad]
+R_ID_THB = 42  # theta_meas at the start of block b [rad]
+R_ID_NB = 43  # the next block's index (blocks before it were seen or skipped)
+R_ID_RISE = 44  # 4 words: the previous block's rising part, sum (m + 1/2)/K x_q
+R_ID_S0 = 48  # 4 words: this block's sum x_q
+R_ID_S1 = 52  # 4 words: this block's sum (m + 1/2) x_q
+R_ID_M = 56  # 15 words: sum z_i z_j, i <= j, row by row
+R_ID_ROWS = 71  # rows in it
+R_ID_CHAIN = 72  # consecutive blocks whose first state was seen (a row needs 2 before)
+N_RSTATE = 73
+#: The motion rows' columns: z = (mean-speed change [rad/s], triangle-weighted integrals
+#: of isq [A s], omega_meas [rad], sign(omega_meas) [s] and load_torque [N m s]).  With
+#: J d(omega)/dt = Kt isq - B omega - Tc sign(omega) - T_load each row reads
+#: J z0 = Kt z1 - B z2 - Tc z3 - z4 (up to the encoder's and the model's errors).
+MOTION_COLUMNS: tuple[str, ...] = ('domega', 'isq', 'omega', 'sign', 'load')
+N_MOTION = 16  # the rows' count and the 15 sums (LossResult.motion)
 #: Words an experiment's start clears: loss sums and terms, the isq* filter, the last result.
 R_CLEARED_AT_START = (
     R_S1,
@@ -138,12 +178,17 @@ R_CLEARED_AT_START = (
     R_RESULT,
     R_REASON,
     R_STEPS,
+    *range(R_RIP, N_RSTATE),
 )
 
 #: Index of ``applied_step`` in a drive state (the drive contract).
 S_APPLIED = STATE_INDEX['applied_step']
 #: Index of ``command_delay`` in a drive state (absent from a 13-field legacy state: 1).
 S_CMD_DELAY = STATE_INDEX['command_delay']
+#: Indices of the measured isq and the load machine's torque in a drive state (the motion
+#: sums; the control itself uses fields 0-3 only).
+S_ISQ = STATE_INDEX['isq']
+S_LOAD = STATE_INDEX['load_torque']
 
 # ----------------------------------------------------------------- per-step outputs E
 EXP_FIELDS: tuple[str, ...] = (

@@ -12,6 +12,8 @@ One ``DiagnosticStatus`` per experiment (see docs/controller.md, "Loss topic"):
 
 from __future__ import annotations
 
+import math
+
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from .config import GAIN_NAMES, Gains
@@ -39,9 +41,25 @@ LOSS_KEYS: tuple[str, ...] = (
     'late',
     'timing',
     'gains_step',
+    'ripple',
+    'motion',
 )
-#: Keys a loss message from before the drive-timeline counts may lack (read as 0 / false).
-OPTIONAL_KEYS: tuple[str, ...] = ('fresh', 'held', 'late', 'timing', 'gains_step')
+#: Keys a loss message from before the drive-timeline counts may lack (read as 0 / false),
+#: or from before the ripple and motion sums (read as nan and ()).
+OPTIONAL_KEYS: tuple[str, ...] = (
+    'fresh',
+    'held',
+    'late',
+    'timing',
+    'gains_step',
+    'ripple',
+    'motion',
+)
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    """Space-separated floats (written with repr: they read back bit for bit)."""
+    return tuple(float(x) for x in text.split())
 
 
 def result_to_msg(result: LossResult, node_name: str) -> DiagnosticArray:
@@ -67,6 +85,10 @@ def result_to_msg(result: LossResult, node_name: str) -> DiagnosticArray:
         'late': str(r.late),
         'timing': 'true' if r.timing else 'false',
         'gains_step': str(r.gains_step),
+        # the standstill ripple (rms, peak-to-peak [A] after the move, after the load)
+        # and the motion sums (im_tuner.identify): space-separated reprs
+        'ripple': ' '.join(repr(float(x)) for x in r.ripple),
+        'motion': ' '.join(repr(float(x)) for x in r.motion),
     }
     st = DiagnosticStatus(
         name=f'{node_name}: experiment {r.experiment_id}',
@@ -114,4 +136,13 @@ def msg_to_result(msg: DiagnosticArray) -> LossResult:
         late=int(kv.get('late', '0')),
         timing=kv.get('timing', 'false') == 'true',
         gains_step=int(kv.get('gains_step', '0')),
+        ripple=_ripple(kv.get('ripple')),
+        motion=_floats(kv.get('motion', '')),
     )
+
+
+def _ripple(text: str | None) -> tuple[float, float, float, float]:
+    v = _floats(text) if text else ()
+    if len(v) != 4:
+        return (math.nan, math.nan, math.nan, math.nan)
+    return (v[0], v[1], v[2], v[3])

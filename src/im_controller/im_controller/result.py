@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +34,13 @@ class LossResult:
     gains_step: the drive step of the first state the experiment's gains acted on (they
         were set while the controller held the position, or at the start): with t_start
         and the seeds, what a lock-step replay of a real-time plant history needs.
+    ripple: the standstill ripple of isq* (rms about its mean [A], peak-to-peak [A]) in
+        the window after the move and in the window after the load step (layout
+        ``Q_RIP*``: 0.300-0.700 s and 0.900-1.125 s of the paper's experiment); nan where
+        the experiment did not reach or fill the window.
+    motion: the motion sums of the experiment (``layout.N_MOTION`` values: the number of
+        rows, then sum z_i z_j for i <= j over ``layout.MOTION_COLUMNS``), from which
+        ``im_tuner.identify`` estimates J, Kt, B and Tc; () where not measured.
     """
 
     experiment_id: int
@@ -52,6 +60,8 @@ class LossResult:
     late: int = 0
     timing: bool = False
     gains_step: int = 0
+    ripple: tuple[float, float, float, float] = (math.nan, math.nan, math.nan, math.nan)
+    motion: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -247,7 +247,28 @@ class ExperimentRunner:
             late=late,
             timing=held + late > self.timing_tolerance,
             gains_step=int(R[L.R_GAINS_STEP]),
+            ripple=ripple_of(R),
+            motion=motion_of(R),
         )
+
+
+def ripple_of(R: np.ndarray) -> tuple[float, float, float, float]:
+    """(rms [A], peak-to-peak [A]) of isq* in each standstill window from the kernel's
+    sums (``layout.R_RIP``); nan for a window without samples."""
+    out: list[float] = []
+    for w in range(2):
+        n, s1, s2, lo, hi = (float(v) for v in R[L.R_RIP + 5 * w : L.R_RIP + 5 * w + 5])
+        if n < 1.0:
+            out += [math.nan, math.nan]
+            continue
+        mean = s1 / n
+        out += [math.sqrt(max(0.0, s2 / n - mean * mean)), hi - lo]
+    return (out[0], out[1], out[2], out[3])
+
+
+def motion_of(R: np.ndarray) -> tuple[float, ...]:
+    """The motion sums as ``LossResult.motion``: rows, then the 15 sums z_i z_j."""
+    return (float(R[L.R_ID_ROWS]), *(float(v) for v in R[L.R_ID_M : L.R_ID_M + 15]))
 
 
 def check_tolerance(value: object) -> int:

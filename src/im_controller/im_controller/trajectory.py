@@ -76,6 +76,13 @@ def make_experiment_params(cfg: ExperimentConfig) -> np.ndarray:
     Q[L.Q_TACC], Q[L.Q_TDEC], Q[L.Q_TEND] = t_acc, t_dec, t_end
     Q[L.Q_MAX_ERR] = sf.max_position_error
     Q[L.Q_MAX_SPEED] = sf.max_speed
+    n_load = Q[L.Q_LOAD_N]
+    Q[L.Q_RIP1_A] = float(math.ceil((t_end + L.RIPPLE_AFTER_MOVE) / c.Ts - 1e-9))
+    Q[L.Q_RIP1_B] = n_load
+    Q[L.Q_RIP2_A] = n_load + float(round(L.RIPPLE_AFTER_LOAD / c.Ts))
+    Q[L.Q_RIP2_B] = Q[L.Q_N]
+    Q[L.Q_ID_K] = float(max(1, round(L.MOTION_BLOCK / c.Ts)))
+    Q[L.Q_ID_WDEAD] = L.MOTION_DEAD_BAND * v_peak
     return Q
 
 

@@ -64,7 +64,7 @@ from .runlog import (
     summarize,
     tally,
 )
-from .runlog.records import LINE_ORDER
+from .runlog.records import LINE_ORDER, ripple_dict
 from .space import SearchSpace
 
 __all__ = [
@@ -106,6 +106,9 @@ class Measurement:
     late: int = 0
     timing: bool = False  #: held + late beyond the controller's tolerance: not a loss
     gains_step: int = 0  #: drive step from which the experiment's gains acted
+    #: standstill ripple of isq* [A]: rms, peak-to-peak after the move, after the load
+    ripple: tuple[float, ...] = ()
+    motion: tuple[float, ...] = ()  #: the motion sums (im_tuner.identify)
 
     @classmethod
     def of(cls, r: LossResult, wall_s: float) -> Measurement:
@@ -135,6 +138,8 @@ _AS_IN_RESULT = (
     'late',
     'timing',
     'gains_step',
+    'ripple',
+    'motion',
 )
 
 #: The fields of a Measurement its record carries as they are (the record's own names):
@@ -347,6 +352,8 @@ class TuningRun:
             {k: getattr(m, k) for k in _RECORDED},
             sim_s=(m.t_end_ns - m.t_start_ns) * 1e-9,
             periods={'fresh': m.fresh, 'held': m.held, 'late': m.late},
+            ripple=ripple_dict(m.ripple),
+            motion=[float(x) for x in m.motion] if m.motion else None,
         )
         if m.timing:
             # measured, but not the paper's loss: kept under another name, never a loss

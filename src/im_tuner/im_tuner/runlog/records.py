@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -83,6 +84,8 @@ LINE_ORDER = (
     'off_timing_loss',
     'periods',
     'gains_step',
+    'ripple',
+    'motion',
     'best_loss',
 )
 #: Fields written only when they have a value (the tuner never writes them as null; a
@@ -97,7 +100,25 @@ _WHEN_SET = (
     'wall_s',
     'periods',
     'gains_step',
+    'ripple',
+    'motion',
 )
+
+#: The keys of a record's ``ripple``: the standstill ripple of isq* [A] (rms about its
+#: mean, peak-to-peak) after the move and after the load step (im_controller LossResult).
+RIPPLE_KEYS = ('rms_after_move', 'pp_after_move', 'rms_after_load', 'pp_after_load')
+
+
+def ripple_dict(ripple: tuple[float, ...]) -> dict[str, float | None] | None:
+    """A measurement's ripple as a record's (None where a window had no sample; None in
+    all: not written)."""
+    if len(ripple) != len(RIPPLE_KEYS):
+        return None
+    out = {
+        k: (float(v) if math.isfinite(v) else None)
+        for k, v in zip(RIPPLE_KEYS, ripple, strict=True)
+    }
+    return out if any(v is not None for v in out.values()) else None
 
 
 class RecordError(ValueError):
@@ -142,6 +163,16 @@ def check_record(rec: dict[str, Any]) -> str | None:
         and all(_integer(periods.get(k)) for k in ('fresh', 'held', 'late'))
     ):
         return "record with 'periods' that are not {fresh, held, late} (integers)"
+    ripple = rec.get('ripple')
+    if ripple is not None and not (
+        isinstance(ripple, dict)
+        and set(ripple) == set(RIPPLE_KEYS)
+        and all(v is None or _number(v) for v in ripple.values())
+    ):
+        return f"record with a 'ripple' that is not {{{', '.join(RIPPLE_KEYS)}}} (A or null)"
+    motion = rec.get('motion')
+    if motion is not None and not (isinstance(motion, list) and all(_number(x) for x in motion)):
+        return "record with a 'motion' that is not a list of numbers"
     if status == 'lost':
         return None
     if status == 'timing':
@@ -193,6 +224,9 @@ class Record:
     wall_s: float | None = None  #: set gains -> loss received [s]
     periods: dict[str, int] | None = None  #: {fresh, held, late} drive periods
     gains_step: int | None = None  #: drive step from which its gains acted
+    #: standstill ripple of isq* [A] (``RIPPLE_KEYS``; None: not measured)
+    ripple: dict[str, float | None] | None = None
+    motion: list[float] | None = None  #: the motion sums (im_tuner.identify; None: none)
     version: int = FORMAT_VERSION  #: the line's format version (absent in a line: 1)
     extra: dict[str, Any] = field(default_factory=dict)  #: fields this format does not know
 

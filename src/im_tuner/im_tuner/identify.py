@@ -1,0 +1,190 @@
+"""The drive's mechanics from the start's experiments: J, Kt, B and Tc with uncertainties.
+
+What a drive vendor's one-button tuning does before it sets gains, from data the run has
+anyway: the controller's kernel sums, during every experiment, the rows of
+
+    J z0 = Kt z1 - B z2 - Tc z3 - z4
+
+(``im_controller.kernel.motion_step``: z0 the change of the encoder's mean speed between
+two 20 ms blocks [rad/s], z1..z4 the triangle-weighted integrals of the measured isq [A s],
+omega_meas [rad], sign(omega_meas) [s] and the load machine's torque [N m s]) as the
+5 x 5 matrix M = sum z z^T (``LossResult.motion``).  The move identifies J/Kt (the
+acceleration against the current), the load step fixes the scale (isq against a known
+torque), the two directions of the start's two experiments separate B from Tc.
+
+Estimate (Bayesian linear least squares, written out: 4 unknowns and one 5 x 5 matrix,
+no library call would be shorter).  With c = (J, -Kt, B, Tc, 1) every row's residual
+is r = z.c [N m s]; M = [[A, v], [v^T, s]] gives sum r^2 = a^T A a + 2 a^T v + s for
+a = (J, -Kt, B, Tc).  A Gaussian prior a ~ N(a0, diag(sd0^2)) from the drive file keeps
+an unobservable direction (no load step: Kt; one direction only: B against Tc) at the
+file's value instead of at noise:
+
+    a = (A / s2 + P0)^-1 (-v / s2 + P0 a0),   cov(a) = INFLATION (A / s2 + P0)^-1,
+
+s2 the residual variance of the plain least-squares fit (sum r^2 / (rows - 4)).
+``INFLATION`` = 2: neighbouring rows share a block, so the rows are not independent;
+twice the textbook covariance is what covers the simulated plants' errors (measured in
+test_identify: the plant's J within 2 standard deviations on every packaged drive).
+
+Pure: no rclpy, numpy only.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from im_controller.layout import N_MOTION
+from im_drive_sim.params import MachineParams
+
+__all__ = ['INFLATION', 'MIN_ROWS', 'Identified', 'identify', 'sum_motion']
+
+#: covariance inflation for rows that share a block (module docstring)
+INFLATION = 2.0
+#: fewer rows than this identify nothing (a run of 4 unknowns needs a move and a hold)
+MIN_ROWS = 20
+#: prior standard deviations, relative to the file's value (J, Kt) or to the rated
+#: torque (B at 1 rad/s... see _prior): wide for J, the number people know least
+PRIOR_J = 1.0
+PRIOR_KT = 0.3
+PRIOR_TC = 0.1  # of the rated torque
+PRIOR_B_SPEED = 100.0  # B's prior sd is PRIOR_TC rated torque at this speed [rad/s]
+
+
+@dataclass(frozen=True)
+class Identified:
+    """The identified mechanics (SI) with one standard deviation each, and the file's.
+
+    J [kg m^2], Kt [N m/A] (the effective torque constant: torque per A of the measured
+    isq), B [N m s/rad], Tc [N m]; ``*_file``: the drive file's values; ``rows``: the
+    rows used; ``residual``: rms residual per row [N m s]; ``experiments``: how many
+    experiments' sums were added."""
+
+    J: float
+    J_sd: float
+    Kt: float
+    Kt_sd: float
+    B: float
+    B_sd: float
+    Tc: float
+    Tc_sd: float
+    J_file: float
+    Kt_file: float
+    B_file: float
+    Tc_file: float
+    rows: int
+    residual: float
+    experiments: int
+
+    @property
+    def j_ratio(self) -> float:
+        """J / J_file: the load inertia against the file's."""
+        return self.J / self.J_file
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def line(self) -> str:
+        """One line for a log: identified +- sd (the file's)."""
+
+        def one(name: str, v: float, sd: float, f: float, unit: str) -> str:
+            return f'{name} {v:.4g} +- {sd:.2g} {unit} (file {f:.4g})'
+
+        return (
+            '; '.join(
+                (
+                    one('J', self.J, self.J_sd, self.J_file, 'kg m^2'),
+                    one('Kt', self.Kt, self.Kt_sd, self.Kt_file, 'N m/A'),
+                    one('B', self.B, self.B_sd, self.B_file, 'N m s/rad'),
+                    one('Tc', self.Tc, self.Tc_sd, self.Tc_file, 'N m'),
+                )
+            )
+            + f' [{self.rows} rows of {self.experiments} experiments]'
+        )
+
+
+def sum_motion(motions: Iterable[Sequence[float]]) -> tuple[np.ndarray, int, int]:
+    """The experiments' sums added: (M 5 x 5 [symmetric], rows, experiments).  Sums of
+    another length (a controller without them: ()) are skipped."""
+    M = np.zeros((5, 5))
+    rows = 0
+    n = 0
+    for mo in motions:
+        if len(mo) != N_MOTION or not all(math.isfinite(x) for x in mo):
+            continue
+        rows += int(mo[0])
+        j = 1
+        for a in range(5):
+            for b in range(a, 5):
+                M[a, b] += mo[j]
+                if a != b:
+                    M[b, a] += mo[j]
+                j += 1
+        n += 1
+    return M, rows, n
+
+
+def _prior(m: MachineParams) -> tuple[np.ndarray, np.ndarray]:
+    """a0 = (J, -Kt, B, Tc) of the file and the prior's standard deviations."""
+    tc_file = float(getattr(m, 'coulomb_torque', 0.0) or 0.0)
+    a0 = np.array([m.J, -m.Kt, m.B, tc_file])
+    sd = np.array(
+        [
+            PRIOR_J * m.J,
+            PRIOR_KT * m.Kt,
+            PRIOR_TC * m.rated_torque / PRIOR_B_SPEED,
+            PRIOR_TC * m.rated_torque,
+        ]
+    )
+    return a0, sd
+
+
+def identify(motions: Iterable[Sequence[float]], machine: MachineParams) -> Identified | None:
+    """J, Kt, B, Tc from the experiments' motion sums (module docstring); None when they
+    hold fewer than ``MIN_ROWS`` rows or the fit is singular."""
+    M, rows, n = sum_motion(motions)
+    if rows < MIN_ROWS:
+        return None
+    A, v, s = M[:4, :4], M[:4, 4], M[4, 4]
+    a0, sd0 = _prior(machine)
+    P0 = np.diag(1.0 / sd0**2)
+    # residual variance at the (lightly regularised) least-squares point: the data's noise
+    try:
+        a_ls = np.linalg.solve(A + P0 * 1e-9 * np.trace(A) / np.trace(P0), -v)
+    except np.linalg.LinAlgError:
+        return None
+    ss = float(a_ls @ A @ a_ls + 2.0 * a_ls @ v + s)
+    s2 = max(ss, 0.0) / max(rows - 4, 1)
+    if not (s2 > 0.0 and math.isfinite(s2)):
+        s2 = 1e-30
+    H = A / s2 + P0
+    try:
+        cov = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return None
+    a = cov @ (-v / s2 + P0 @ a0)
+    sd = np.sqrt(np.maximum(np.diag(cov) * INFLATION, 0.0))
+    if not np.all(np.isfinite(a)):
+        return None
+    res = float(a @ A @ a + 2.0 * a @ v + s)
+    return Identified(
+        J=float(a[0]),
+        J_sd=float(sd[0]),
+        Kt=float(-a[1]),
+        Kt_sd=float(sd[1]),
+        B=float(a[2]),
+        B_sd=float(sd[2]),
+        Tc=float(a[3]),
+        Tc_sd=float(sd[3]),
+        J_file=float(machine.J),
+        Kt_file=float(machine.Kt),
+        B_file=float(machine.B),
+        Tc_file=float(a0[3]),
+        rows=rows,
+        residual=math.sqrt(max(res, 0.0) / rows),
+        experiments=n,
+    )

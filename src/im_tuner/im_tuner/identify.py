@@ -188,3 +188,28 @@ def identify(motions: Iterable[Sequence[float]], machine: MachineParams) -> Iden
         residual=math.sqrt(max(res, 0.0) / rows),
         experiments=n,
     )
+
+
+def start_motions(records: Iterable[Any]) -> list[tuple[float, ...]]:
+    """The motion sums of the completed experiments of the start gains (the reference's
+    gains) among ``records`` (results.jsonl records): what identifies the drive before
+    the search leaves the start."""
+    records = list(records)
+    ref = next((r for r in records if r.kind == 'reference'), None)
+    if ref is None:
+        return []
+
+    def same(g: dict[str, float]) -> bool:
+        # (the start's gains through the normalised box and back differ in the last bits)
+        return g.keys() == ref.gains.keys() and all(
+            math.isclose(g[k], ref.gains[k], rel_tol=1e-9) for k in g
+        )
+
+    return [
+        tuple(r.motion)
+        for r in records
+        if r.kind in ('reference', 'eval')
+        and r.status == 'ok'
+        and same(r.gains)
+        and r.motion is not None
+    ]

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -45,6 +46,7 @@ from im_controller.config import ExperimentConfig, Gains
 from im_controller.runner import ExperimentRunner, config_for_drive
 from im_drive_sim.params import DriveConfig
 
+from .identify import Identified
 from .space import SearchSpace
 
 __all__ = [
@@ -52,6 +54,8 @@ __all__ = [
     'MODEL_EVALUATIONS',
     'PERTURBATIONS',
     'Prior',
+    'identified_model',
+    'identified_prior',
     'model_drive_mismatch',
     'model_prior',
     'nominal_model',
@@ -154,10 +158,12 @@ def _search(
 
 
 def _compute(
-    drive: DriveConfig, experiment: ExperimentConfig | None, space: SearchSpace
+    model: DriveConfig,
+    experiment: ExperimentConfig | None,
+    space: SearchSpace,
+    perturbations: tuple[tuple[float, float], ...] = PERTURBATIONS,
 ) -> Prior | None:
     t0 = time.perf_counter()
-    model = nominal_model(drive)
     seen, bench = _search(model, experiment, space)
     start = tuple(space.start_u.tolist())
     f0 = next((loss for loss, ab, u in seen if u == start and not ab), None)
@@ -173,7 +179,7 @@ def _compute(
         return None
     experiments = bench.experiments
     worst = dict.fromkeys(best, 0.0)
-    for j, rr in PERTURBATIONS:
+    for j, rr in perturbations:
         pb = _ModelBench(_perturbed(model, j, rr), experiment)
         pb.loss(space, space.start_u)  # from rest
         ref, ref_aborted = pb.loss(space, space.start_u)
@@ -209,16 +215,72 @@ def model_prior(
     model = nominal_model(drive)
     key = json.dumps([model.to_dict(), repr(experiment), dataclasses.asdict(space)], sort_keys=True)
     if key not in _CACHE:
-        _CACHE[key] = _compute(drive, experiment, space)
+        _CACHE[key] = _compute(model, experiment, space)
     return _CACHE[key]
 
 
-def model_drive_mismatch(mine: str | None, theirs: str | None) -> str | None:
+#: The identified model's J is rounded to this relative step, Kt's ratio and Tc likewise
+#: (Tc in units of the rated torque): a study's runs on one plant share a few models (the
+#: cache) instead of one each, for errors well inside the identification's (~1-2 %).
+ROUND_J = 0.01
+ROUND_TC = 0.005
+#: The identified model's perturbations: J within +-(the larger of this and 3 standard
+#: deviations of the identified J), Rr as for the file's model (not identified).
+IDENTIFIED_J_SPREAD = 0.1
+
+
+def identified_model(
+    drive: DriveConfig, experiment: ExperimentConfig | None, idf: Identified
+) -> tuple[DriveConfig, ExperimentConfig]:
+    """The drive file's nominal model with the identified mechanics, in the file's current
+    units: the file's torque constant Kt_f stays, so J, B, Tc and the experiment's load
+    torque are scaled by Kt_f / Kt (the same shaft acceleration, the same isq for the
+    load); J rounded to ``ROUND_J`` and Tc to ``ROUND_TC`` of the rated torque."""
+    model = nominal_model(drive)
+    m = model.machine
+    k = idf.Kt_file / idf.Kt if idf.Kt > 0 else 1.0
+    k = round(k / ROUND_J) * ROUND_J
+    jr = math.exp(round(math.log(max(idf.J * k, 1e-12) / m.J) / ROUND_J) * ROUND_J)
+    tc_step = ROUND_TC * m.rated_torque
+    tc = max(0.0, round(idf.Tc * k / tc_step) * tc_step)
+    b = max(0.0, idf.B * k)
+    b = float(f'{b:.2g}') if b > 0 else 0.0
+    machine = dataclasses.replace(m, J=m.J * jr, B=b, coulomb_torque=tc)
+    exp = ExperimentConfig() if experiment is None else experiment
+    tr = dataclasses.replace(exp.trajectory, load_torque=exp.trajectory.load_torque * k)
+    return dataclasses.replace(model, machine=machine), dataclasses.replace(exp, trajectory=tr)
+
+
+def identified_prior(
+    drive: DriveConfig,
+    space: SearchSpace,
+    experiment: ExperimentConfig | None,
+    idf: Identified,
+) -> Prior | None:
+    """``model_prior`` on the identified model (:func:`identified_model`) instead of the
+    file's, robust over the identification's uncertainty in J (``IDENTIFIED_J_SPREAD``)
+    and the file's in Rr.  Cached per rounded model, experiment and box."""
+    model, exp = identified_model(drive, experiment, idf)
+    spread = max(IDENTIFIED_J_SPREAD, 3.0 * idf.J_sd / idf.J if idf.J > 0 else 1.0)
+    spread = round(spread, 2)
+    lo, hi = 1.0 - min(spread, 0.5), 1.0 + spread
+    perturbations = ((lo, 0.8), (lo, 1.2), (hi, 0.8), (hi, 1.2), (lo, 1.0), (hi, 1.0))
+    key = json.dumps(
+        ['identified', model.to_dict(), repr(exp), dataclasses.asdict(space), spread],
+        sort_keys=True,
+    )
+    if key not in _CACHE:
+        _CACHE[key] = _compute(model, exp, space, perturbations)
+    return _CACHE[key]
+
+
+def model_drive_mismatch(mine: str | None, theirs: str | None, option: str = 'model') -> str | None:
     """Why a first step computed on the drive file ``mine`` (the tuner's ``--drive-config``;
     None: the packaged default) does not fit a controller whose ``drive_config_file`` is
     ``theirs`` ('' or None: the default): one line naming the fix, or None when both name
-    the same machine and period.  A file the tuner cannot read here is a mismatch only when
-    the names differ (a drive host on another computer may keep it elsewhere)."""
+    the same machine and period (``option``: the --first that needs the model).  A file
+    the tuner cannot read here is a mismatch only when the names differ (a drive host on
+    another computer may keep it elsewhere)."""
     from im_drive_sim.drive_file import load_config
     from im_drive_sim.params import ConfigError
 
@@ -231,7 +293,7 @@ def model_drive_mismatch(mine: str | None, theirs: str | None) -> str | None:
         return None
     said = '(none)' if mine is None else mine
     return (
-        f'--first model: the controller drives {theirs or "paper_750w (its default)"} '
+        f'--first {option}: the controller drives {theirs or "paper_750w (its default)"} '
         f'(its drive_config_file), but the first step would be the model of --drive-config '
         f'{said}; give --drive-config {theirs or "paper_750w"} (or --first none)'
     )

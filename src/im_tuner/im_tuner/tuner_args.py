@@ -112,11 +112,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         '--first',
-        choices=('model', 'none'),
-        help="safe only: its first step after the start. 'model': the best point of an "
-        "offline tuning on the drive file's nominal model (bench effects off; about a "
-        "second), robust to J x0.7-1.4 and Rr x0.8-1.2 (docs/optimisers.md); 'none': a "
-        'local step. Default: model when the tuner knows the drive (--drive-config, or a '
+        choices=('identify', 'model', 'none'),
+        help="safe only: its first step after the start. 'identify': the start's two "
+        'experiments identify the shaft (J, Kt, B, Tc: printed, in summary.json), then the '
+        "best point of an offline tuning on the drive file's model with those values, "
+        "robust to J +-10 %% and Rr x0.8-1.2; 'model': the same on the drive file's "
+        'model as written, before the run, robust to J x0.7-1.4 (docs/optimisers.md); '
+        "'none': a local step. Default: identify when the tuner knows the drive "
+        '(--drive-config, or a '
         'simulated bench: --bench inproc, processes, realtime...), none otherwise (--bench '
         'auto or none without --drive-config: the controller found may drive another motor)',
     )

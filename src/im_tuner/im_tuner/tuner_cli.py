@@ -300,9 +300,11 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
 
 
 def _first_point(cli: argparse.Namespace, algo: str, params: TunerParams) -> dict[str, Any]:
-    """safe's ``first`` option from ``--first`` (default: 'model' where the tuner knows
-    the drive): the prior of the drive file's nominal model (``im_tuner.prior``), or
-    nothing.  Stored with the run's options, so a resumed run continues with it."""
+    """safe's ``first`` option from ``--first`` (default: 'identify' where the tuner knows
+    the drive): 'identify' (the point comes after the start's two measurements, from the
+    drive they identify: ``im_tuner.first_step``), the prior of the drive file's nominal
+    model computed now ('model', ``im_tuner.prior``), or nothing.  Stored with the run's
+    options, so a resumed run continues with it."""
     if algo != 'safe':
         if cli.first is not None:
             raise UsageError(f"--first does not apply to --algo {algo}: it is safe's first step")
@@ -310,8 +312,11 @@ def _first_point(cli: argparse.Namespace, algo: str, params: TunerParams) -> dic
     from .benches import is_simulated
 
     known = cli.drive_config is not None or is_simulated(cli.bench, cli.drive)
-    if (cli.first or ('model' if known else 'none')) == 'none':
+    first = cli.first or ('identify' if known else 'none')
+    if first == 'none':
         return {}
+    if first == 'identify':
+        return {'first': 'identify'}
     from im_drive_sim.drive_file import load_config
 
     from . import family
@@ -321,6 +326,21 @@ def _first_point(cli: argparse.Namespace, algo: str, params: TunerParams) -> dic
     setup = family.tuner_setup(cli.drive_config)  # a packaged drive's own experiment
     prior = model_prior(drive, params.space, None if setup is None else setup.experiment)
     return {} if prior is None else {'first': list(prior.u)}
+
+
+def _first_step_hook(run: RunConfig, params: TunerParams) -> Any:
+    """The run's ``IdentifiedFirstStep`` (safe with first: identify), else None: the
+    drive file it names (the packaged default without one) and its experiment."""
+    if (run.options or {}).get('first') != 'identify':
+        return None
+    from im_drive_sim.drive_file import load_config
+
+    from . import family
+    from .first_step import IdentifiedFirstStep
+
+    drive = load_config(run.drive_config, overrides={'model': run.model} if run.model else None)
+    setup = family.tuner_setup(run.drive_config)
+    return IdentifiedFirstStep(drive, params.space, None if setup is None else setup.experiment)
 
 
 def _start(algo: str, params: TunerParams, no_start: bool = False) -> np.ndarray | None:
@@ -408,6 +428,7 @@ def make_tuning(rundir: RunDir, run: RunConfig, params: TunerParams, progress) -
         retries=run.retries,
         reference=run.reference,
         progress=progress,
+        first_step=_first_step_hook(run, params),
     )
     tuning.timing_tolerance = run.tolerance()
     return tuning

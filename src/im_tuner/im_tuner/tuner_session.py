@@ -200,7 +200,12 @@ class TunerSession:
             # a controller the tuner did not start: the first step must be its drive's model
             from .prior import model_drive_mismatch
 
-            why = model_drive_mismatch(run.drive_config, parameters.get('drive_config_file'))
+            first = (run.options or {}).get('first')
+            why = model_drive_mismatch(
+                run.drive_config,
+                parameters.get('drive_config_file'),
+                'identify' if first == 'identify' else 'model',
+            )
             if why is not None:
                 raise UsageError(why)  # (the run directory is undone: nothing is left)
         numeric_now = numeric.status()  # (after the controller's answer: it loads scipy)

@@ -217,7 +217,12 @@ class TuningRun:
         retries: int = DEFAULT_RETRIES,
         reference: bool = True,
         progress: Callable[[str, Record, TuningRun], None] | None = None,
+        first_step: Any = None,
     ) -> None:
+        """``first_step``: for ``safe`` with ``first='identify'``, what gives its first
+        step from the records so far (``im_tuner.first_step.IdentifiedFirstStep``): called
+        once, before evaluation 2 is asked (live and when a resume replays the records);
+        its ``identified(records)`` goes into the summary."""
         if budget < 1:
             raise ValueError(f'budget must be >= 1, got {budget}')
         self.rundir = rundir
@@ -231,6 +236,7 @@ class TuningRun:
         self.timing_tolerance: int | None = None
         self.with_reference = bool(reference)
         self.progress = progress
+        self.first_step = first_step
         self.state = TunerState()
         self.records: list[Record] = []
         self._t_mark = time.perf_counter()
@@ -292,6 +298,7 @@ class TuningRun:
         if isinstance(rec, Evaluation):
             u = np.asarray(rec.u, dtype=float)
             if not live:
+                self._give_first()
                 asked = self.opt.ask()
                 if not np.array_equal(asked, u):
                     raise ResumeError(
@@ -303,6 +310,11 @@ class TuningRun:
             if live:
                 self.state.opt_us.append(self._ask_us + 1e6 * (time.perf_counter() - t0))
         tally(self.state, rec, self.satisfactory)
+
+    def _give_first(self) -> None:
+        """safe's first step from the start's measurements, when it wants one now."""
+        if self.first_step is not None and getattr(self.opt, 'wants_first', False):
+            self.opt.set_first(self.first_step(self.records))  # type: ignore[attr-defined]
 
     def checkpoint(self) -> None:
         """Write checkpoint.json: the optimiser and the counters after the records so far
@@ -435,6 +447,7 @@ class TuningRun:
             while st.evals < self.budget:
                 if should_stop():
                     raise StopRequested()
+                self._give_first()
                 t0 = time.perf_counter()
                 u = self.opt.ask()
                 self._ask_us = 1e6 * (time.perf_counter() - t0)
@@ -509,6 +522,9 @@ class TuningRun:
         )
         if s.applied is not None:
             s.applied['on_controller'] = self.applied
+        if self.first_step is not None:
+            idf = self.first_step.identified(self.records)
+            s.identification = None if idf is None else idf.as_dict()
         return s
 
 

@@ -43,7 +43,7 @@ def test_the_prior_is_deterministic_and_cached(bench_drive, prior):
     assert P.model_prior(bench_drive, SPACE) is prior  # cached: the same object
     # the bench profile and the ideal file share one nominal model: one cache entry
     assert P.model_prior(load_config(None), SPACE) is prior
-    again = P._compute(bench_drive, None, SPACE)  # (recomputed, not from the cache)
+    again = P._compute(P.nominal_model(bench_drive), None, SPACE)  # (not from the cache)
     assert again is not None
     assert again.u == prior.u  # bit for bit
     assert (
@@ -132,7 +132,9 @@ def test_the_study_row_runs_safe_from_the_model(prior):
     cells = grid(('safe',))
     row = [i for i, c in enumerate(cells) if c.first == 'model']
     assert len(row) == 1 and 'first' not in cells[row[0]].opts
-    assert all(c.first == 'none' for i, c in enumerate(cells) if i != row[0])
+    ident = [i for i, c in enumerate(cells) if c.first == 'identify']
+    assert len(ident) == 1 and 'first' not in cells[ident[0]].opts
+    assert all(c.first == 'none' for i, c in enumerate(cells) if i not in (row[0], ident[0]))
     spec = StudySpec(runs=1, algos=('safe',))
     _space, opt, _seed = prepare_run(spec, row[0], 0, load_params(None))
     assert opt.config()['first'] == list(prior.u)
@@ -158,7 +160,7 @@ def test_the_study_commands_repeat_safe_with_or_without_the_model(prior, tmp_pat
         for bench in ((), ('--bench', 'inproc')):  # auto: none by default; inproc: model
             options = _new(*argv[1:], *bench).run.options
             assert options.get('first') == first, (cell.label, bench)
-        assert (first is not None) == (cell.first == 'model')
+        assert (first is not None) == (cell.first in ('model', 'identify'))
 
 
 def _new(*args: str):
@@ -172,9 +174,12 @@ def _new(*args: str):
 def test_the_tuner_takes_the_model_where_it_knows_the_drive(prior, tmp_path):
     from im_drive_sim.cli import UsageError
 
-    # a simulated bench, or a drive file given: safe's first step from the model
+    # a simulated bench, or a drive file given: safe's first step from the identified
+    # drive (after the start's experiments), or from the file's model when asked
     for args in (('--bench', 'inproc'), ('--drive-config', str(_bench_file(tmp_path)))):
-        assert _new('--seed', '3', *args).run.options == {'first': list(prior.u)}
+        assert _new('--seed', '3', *args).run.options == {'first': 'identify'}
+        got = _new('--seed', '3', *args, '--first', 'model').run.options
+        assert got == {'first': list(prior.u)}
     # --bench auto may find a controller of another motor: no model unless asked
     assert _new('--seed', '3').run.options == {}
     assert _new('--seed', '3', '--first', 'model').run.options == {'first': list(prior.u)}

@@ -17,7 +17,11 @@ On u in [0, 1]^dim, from the start point u0 (the hand-tuned gains, known to be s
   model``), evaluation 2 measures that point: a candidate like any other (it replaces
   x if its loss is lower, an aborted one is a constraint), but no pattern move repeats
   its long step.  Without it (None) the search is the same as before it existed, ask
-  for ask and state for state (the golden tests);
+  for ask and state for state (the golden tests).  ``first='identify'`` (the tuner's
+  ``--first identify``): the point is not known when the run starts; the tuner gives it
+  with :meth:`SAFE.set_first` after evaluation 1 (the start's own measurements identify
+  the drive, ``im_tuner.identify``, and the point is the identified model's); a point
+  never given, or None, is no first step (the search goes on as without a model);
 * a candidate is y = clip(x + s) with, in order of preference:
   - s = the last successful step right after a success (pattern move, Hooke-Jeeves);
   - every ``model_every``-th evaluation, once at least ``dim + 1`` measured points lie
@@ -77,7 +81,10 @@ from .base import (
 )
 from .checks import check_start
 
-__all__ = ['SAFE', 'check_first']
+__all__ = ['IDENTIFY', 'SAFE', 'check_first']
+
+#: ``first`` for a point given after the start's measurements (:meth:`SAFE.set_first`)
+IDENTIFY = 'identify'
 
 
 def check_first(first: Any, dim: int) -> list[float]:
@@ -146,14 +153,35 @@ class SAFE(Optimizer):
         **options: Any,
     ) -> None:
         # ``first``: the model's point (im_tuner.prior), measured right after the start;
-        # not an option of the table (a point, computed from the drive, not typed in)
-        self._first = None if first is None else check_first(first, dim)
+        # not an option of the table (a point, computed from the drive, not typed in);
+        # 'identify': a point given later (set_first), from the start's measurements
+        self._identify = isinstance(first, str) and first == IDENTIFY
+        self._first = None if first is None or self._identify else check_first(first, dim)
         super().__init__(dim, seed, start, **options)
 
     def _settings(self) -> dict[str, Any]:
+        if self._identify:
+            return {**self._opts, 'first': IDENTIFY}
         if self._first is None:  # (the configuration of a safe without a model, as before)
             return self._opts
         return {**self._opts, 'first': list(self._first)}
+
+    @property
+    def wants_first(self) -> bool:
+        """``first='identify'`` and the point not given yet, with the start measured:
+        the tuner should call :meth:`set_first` before the next ``ask``."""
+        return self._identify and self.first_left and self._first is None and self.f_n > 0
+
+    def set_first(self, first: Any) -> None:
+        """The identified model's point (``first='identify'``), or None: no first step."""
+        if not self._identify or self._first is not None or not self.first_left:
+            raise OptimizerError('safe: set_first is for first=identify, once, before it is asked')
+        if self._pending is not None:
+            raise OptimizerError('safe: set_first while a point is asked and not told')
+        if first is None:
+            self.first_left = False
+        else:
+            self._first = check_first(first, self.dim)
 
     def _check_options(self, options: dict[str, Any]) -> dict[str, Any]:
         opts = super()._check_options(options)
@@ -179,7 +207,8 @@ class SAFE(Optimizer):
         # candidate with ABORT_VALUE times the incumbent's loss)
         self._pts: list[list[float]] = []
         self._vals: list[float] = []
-        self.first_left = self._first is not None  # the model's point not yet proposed
+        # the model's point not yet proposed (first=identify: not given yet either)
+        self.first_left = self._first is not None or self._identify
 
     @property
     def iterations(self) -> int:
@@ -207,7 +236,10 @@ class SAFE(Optimizer):
         if self.f_n == 0 or (every and self.evaluations % every == every - 1):
             return self.x.copy(), 'incumbent'
         if self.first_left:
-            return np.array(self._first), 'first'
+            if self._first is None:  # first=identify and no point given: none
+                self.first_left = False
+            else:
+                return np.array(self._first), 'first'
         if self.step is not None:
             return np.clip(self.x + self.step, 0.0, 1.0), 'candidate'
         z = self._rng.standard_normal(self.dim)
@@ -227,8 +259,10 @@ class SAFE(Optimizer):
 
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
-        if self._first is not None:  # (a safe without a model: the state as before)
+        if self._first is not None or self._identify:  # (without a model: as before)
             state['first_left'] = self.first_left
+        if self._identify:
+            state['first_point'] = None if self._first is None else list(self._first)
         return state
 
     def _update(self, u: list[float], loss: float, aborted: bool) -> None:
@@ -262,7 +296,10 @@ class SAFE(Optimizer):
             self.aborts += int(aborted)
 
     def _restored(self, state: dict[str, Any]) -> None:
-        if self._first is not None:
+        if self._identify:
+            point = state['first_point']
+            self._first = None if point is None else check_first(point, self.dim)
+        if self._first is not None or self._identify:
             self.first_left = bool(state['first_left'])
         if len(self._pts) != len(self._vals) or any(len(q) != self.dim for q in self._pts):
             raise OptimizerError('safe state: points and values do not match')

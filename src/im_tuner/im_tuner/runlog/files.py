@@ -167,6 +167,12 @@ class Summary(_Keyed):
     real_time_factor: float | None = None
     optimizer_us_per_eval: float | None = None  #: median ask + tell [us]
     sessions: list[dict[str, Any]] | None = None
+    #: the standstill ripple of isq* [A]: {start, applied}, each the mean over the
+    #: experiments of those gains of {rms_after_move, pp_after_move, rms_after_load,
+    #: pp_after_load} (records' ``ripple``)
+    ripple: dict[str, Any] | None = None
+    #: the drive identified from the start's experiments (im_tuner.identify.Identified)
+    identification: dict[str, Any] | None = None
     report_command: str | None = None
     what_to_do: list[str] | None = None  #: advice about a failed run, one line each
 

@@ -208,8 +208,36 @@ def summarize(
             # median: the first calls pay for cold caches and imports
             'optimizer_us_per_eval': float(np.median(st.opt_us)) if st.opt_us else None,
             'sessions': st.sessions,
+            'ripple': ripple_summary(records, final),
         }
     )
+
+
+def ripple_summary(records: list[Record], final: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The standstill ripple of the start and of the applied gains: each key of the
+    records' ``ripple`` averaged over the completed experiments of those gains (None: no
+    experiment measured it)."""
+
+    def mean_of(gains: dict[str, float] | None) -> dict[str, float | None] | None:
+        rs = [
+            r.ripple
+            for r in records
+            if gains is not None and r.gains == gains and r.status == 'ok' and r.ripple
+        ]
+        if not rs:
+            return None
+        out: dict[str, float | None] = {}
+        for k in rs[0]:
+            v = [r[k] for r in rs if r.get(k) is not None]
+            out[k] = sum(v) / len(v) if v else None
+        return out
+
+    ref = next((r for r in records if r.kind == 'reference'), None)
+    start = mean_of(None if ref is None else ref.gains)
+    applied = mean_of(None if final is None else final['gains'])
+    if start is None and applied is None:
+        return None
+    return {'start': start, 'applied': applied}
 
 
 def held_periods(records: list[Record]) -> dict[str, int]:

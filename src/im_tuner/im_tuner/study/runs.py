@@ -138,6 +138,8 @@ def prepare_run(
             setup = spec.setup()
             prior = model_prior(setup.drive, space, setup.experiment)
             first = None if prior is None else prior.u
+        elif cell.first == 'identify':  # a point after the start's two measurements
+            first = 'identify'
         opt = optim.make_optimizer(
             cell.algo,
             space.dim,
@@ -147,6 +149,17 @@ def prepare_run(
             **cell.opts,
         )
     return space, opt, drive_seed
+
+
+def first_step_of(spec: StudySpec, first: str, space: SearchSpace) -> Any:
+    """The run's ``IdentifiedFirstStep`` for a cell with first 'identify' (the study's
+    drive file is what the tuner is told), else None."""
+    if first != 'identify':
+        return None
+    from ..first_step import IdentifiedFirstStep
+
+    setup = spec.setup()
+    return IdentifiedFirstStep(setup.drive, space, setup.experiment)
 
 
 def run_one(
@@ -186,6 +199,7 @@ def run_one(
         retries=DEFAULT_RETRIES,  # as the tuner: a fault in a settle is re-run
         reference=True,
         progress=progress,
+        first_step=first_step_of(spec, cell.first, space),
     )
     try:
         outcome = tuning.run(OfflineBench(drive, drive_seed, experiment))

@@ -57,8 +57,9 @@ class StudyError(Exception):
 PAPER_ALGOS: tuple[str, ...] = ('spsa', 'necga')
 #: The small grids of the algorithms beyond the paper: (label, options); the option
 #: 'start' ('random' or 'hand') is the run's start, and 'first' ('model': safe's first
-#: step from the study's drive file as a nominal model, ``im_tuner.prior``) a point the
-#: run computes: neither is an optimiser option.
+#: step from the study's drive file as a nominal model, ``im_tuner.prior``; 'identify':
+#: from that file's model with the mechanics the start's experiments identify,
+#: ``im_tuner.first_step``) a point the run computes: neither is an optimiser option.
 EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
     'rcga': (
         ('sigma0=10', (('sigma0', 10.0),)),
@@ -75,6 +76,7 @@ EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
         ('no trust region (sigma_max=0.5)', (('sigma_max', 0.5),)),
         ('defaults', ()),
         ('first step from the drive model', (('first', 'model'),)),
+        ('first step from the identified drive', (('first', 'identify'),)),
     ),
     'tpe': (
         ('defaults, no start', (('start', 'none'),)),
@@ -104,12 +106,13 @@ RECOMMENDED: dict[str, tuple[str, ...]] = {
     'rcga': ('sigma0=0.3',),
     'cmaes': ('sigma0=0.1',),
     'tpe': ('n_startup_trials=5',),
-    'safe': ('defaults', 'first step from the drive model'),
+    'safe': ('defaults', 'first step from the drive model', 'first step from the identified drive'),
     'bobyqa': ('rhobeg=0.08',),
 }
-#: The tuner's default on a drive it knows (``optim.DEFAULT_ALGO`` with ``--first model``,
-#: the default with ``--drive-config`` or a simulated bench): the row issue 29's goal is for.
-DEFAULT_ROW: tuple[str, str] = (optim.DEFAULT_ALGO, 'first step from the drive model')
+#: The tuner's default on a drive it knows (``optim.DEFAULT_ALGO`` with ``--first
+#: identify``, the default with ``--drive-config`` or a simulated bench): the row issue 29's
+#: and issue 40's goals are for.
+DEFAULT_ROW: tuple[str, str] = (optim.DEFAULT_ALGO, 'first step from the identified drive')
 #: Start of a run when its cell does not say: SPSA a random point (as the paper), every
 #: other algorithm that takes a start the hand-tuned gains (what a real bench has).
 RANDOM_START_DEFAULT: frozenset[str] = frozenset({'spsa'})
@@ -146,7 +149,8 @@ class Cell:
 
     @property
     def first(self) -> str:
-        """'model' (safe's first step from the drive model) or 'none'."""
+        """'model' (safe's first step from the drive file's model), 'identify' (from the
+        drive the start's experiments identify) or 'none'."""
         return str(dict(self.options).get('first', 'none'))
 
     @property

@@ -1,0 +1,123 @@
+"""safe's first step from the identified drive (``first='identify'``, im_tuner.first_step):
+the optimiser's protocol, its state, and a whole run on a plant whose J is twice the
+drive file's (the run identifies it, takes the identified model's step, writes both into
+summary.json, and a resume without its checkpoint asks the same points)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from im_tuner.family import drive_setup
+from im_tuner.first_step import IdentifiedFirstStep
+from im_tuner.offline import OfflineBench
+from im_tuner.optim import Optimizer, OptimizerError, make_optimizer
+from im_tuner.prior import identified_model, model_prior
+from im_tuner.rundir import RunDir
+from im_tuner.tuning import TuningRun
+
+POINT = [0.3, 0.35, 0.6, 0.01, 0.02]
+
+
+def _safe(seed: int = 4):
+    setup = drive_setup('im750w-j1')
+    return make_optimizer('safe', 5, seed, setup.params.space.start_u, first='identify')
+
+
+def test_identify_waits_for_the_start_then_measures_the_given_point():
+    opt = _safe()
+    assert opt.config()['first'] == 'identify' and not opt.wants_first
+    u1 = opt.ask()
+    opt.tell(u1, 1.0)
+    assert opt.wants_first
+    opt.set_first(POINT)
+    assert not opt.wants_first
+    assert opt.ask().tolist() == POINT
+    opt.tell(np.array(POINT), 0.5)
+    assert opt.x.tolist() == POINT and opt.step is None
+    with pytest.raises(OptimizerError, match='once, before it is asked'):
+        opt.set_first(POINT)
+
+
+def test_no_point_given_is_the_search_without_a_model():
+    a, b = _safe(), make_optimizer('safe', 5, 4, _safe().x)
+    for opt in (a, b):
+        opt.tell(opt.ask(), 1.0)
+    a.set_first(None)  # the identification found nothing: no first step
+    for _ in range(5):
+        ua, ub = a.ask(), b.ask()
+        assert ua.tolist() == ub.tolist()
+        a.tell(ua, 0.9)
+        b.tell(ub, 0.9)
+
+
+def test_a_checkpoint_keeps_the_given_point_and_whether_it_was_asked():
+    opt = _safe(9)
+    for step in range(5):
+        if opt.wants_first:
+            opt.set_first(POINT)
+        u = opt.ask()
+        twin = Optimizer.from_state(json.loads(json.dumps(opt.state_dict())))
+        assert twin.ask().tolist() == u.tolist()
+        assert json.dumps(twin.state_dict()) == json.dumps(opt.state_dict())
+        opt.tell(u, 1.0 - 0.1 * step)
+    assert opt.state_dict()['first_point'] == POINT
+
+
+def test_the_identified_model_carries_the_mechanics_in_the_files_current_units():
+    setup = drive_setup('im750w-j1')
+    m = setup.drive.machine
+
+    class Idf:
+        J, J_sd, Kt, Kt_file, B, Tc = 2.0 * m.J, 0.01 * m.J, 0.5 * m.Kt, m.Kt, 0.0, 0.05
+
+    model, exp = identified_model(setup.drive, setup.experiment, Idf())  # type: ignore[arg-type]
+    # Kt half the file's: J, Tc and the load torque doubled in the file's current units
+    assert model.machine.J == pytest.approx(4.0 * m.J, rel=0.01)
+    assert model.machine.coulomb_torque == pytest.approx(0.1, abs=0.005 * m.rated_torque)
+    assert exp.trajectory.load_torque == pytest.approx(
+        2.0 * setup.experiment.trajectory.load_torque
+    )
+    assert model.realism == 'ideal' and model.machine.Kt == m.Kt
+
+
+def _run(path, plant, budget: int) -> TuningRun:
+    setup = drive_setup('im750w-j1')
+    space = setup.params.space
+    hook = IdentifiedFirstStep(setup.drive, space, setup.experiment)
+    opt = make_optimizer('safe', 5, 3, space.start_u, first='identify')
+    rd = RunDir.create(path) if not path.exists() else RunDir(path)
+    return TuningRun(
+        rd, space, opt, budget=budget, satisfactory_loss=0.9, remeasure=0, first_step=hook
+    )
+
+
+def test_a_run_on_a_plant_with_twice_the_files_inertia(tmp_path):
+    setup = drive_setup('im750w-j1')
+    m = setup.drive.machine
+    plant = dataclasses.replace(setup.drive, machine=dataclasses.replace(m, J=2.0 * m.J))
+    run = _run(tmp_path / 'r', plant, budget=3)
+    assert run.run(OfflineBench(plant, 5, setup.experiment)) == 'done'
+    s = run.summary(outcome='done', wall_s=1.0)
+    idf = s.identification
+    assert idf is not None and idf['experiments'] == 2 and idf['J_file'] == m.J
+    assert abs(idf['J'] / (2.0 * m.J) - 1.0) < 0.03  # the plant's, not the file's
+    # evaluation 2 is the identified model's point, not the file's model's
+    first = run.first_step.prior
+    assert first is not None
+    evals = [r for r in run.records if r.kind == 'eval']
+    assert evals[1].u == list(first.u)
+    assert evals[1].u != list(model_prior(setup.drive, setup.params.space, setup.experiment).u)
+    # it is a real improvement on this plant: the loss well below the start's
+    assert evals[1].loss < 0.75 * evals[0].loss and not evals[1].aborted
+    # the ripple of the start and of the applied gains, in A
+    assert s.ripple is not None and 0.0 < s.ripple['start']['rms_after_move'] < 1.0
+    # a resume whose checkpoint is gone rebuilds the optimiser from results.jsonl: the
+    # same identification from the recorded motion sums, the same first point
+    (tmp_path / 'r' / 'checkpoint.json').unlink()
+    again = _run(tmp_path / 'r', plant, budget=4)
+    assert again.restore() == len(run.records)
+    assert again.opt.state_dict()['first_point'] == list(first.u)

@@ -76,7 +76,7 @@ def test_the_identified_model_carries_the_mechanics_in_the_files_current_units()
 
     model, exp = identified_model(setup.drive, setup.experiment, Idf())  # type: ignore[arg-type]
     # Kt half the file's: J, Tc and the load torque doubled in the file's current units
-    assert model.machine.J == pytest.approx(4.0 * m.J, rel=0.01)
+    assert pytest.approx(4.0 * m.J, rel=0.01) == model.machine.J
     assert model.machine.coulomb_torque == pytest.approx(0.1, abs=0.005 * m.rated_torque)
     assert exp.trajectory.load_torque == pytest.approx(
         2.0 * setup.experiment.trajectory.load_torque

@@ -143,6 +143,7 @@ class SAFE(Optimizer):
         Field('values', '_vals', FLOATS),
     )
     BAD_STATE: ClassVar[str] = 'not a safe state ({error!r:.80})'
+    first_left: bool  #: the model's point not proposed yet
 
     def __init__(
         self,

@@ -228,7 +228,7 @@ def ripple_summary(records: list[Record], final: dict[str, Any] | None) -> dict[
             return None
         out: dict[str, float | None] = {}
         for k in rs[0]:
-            v = [r[k] for r in rs if r.get(k) is not None]
+            v = [float(x) for r in rs if (x := r.get(k)) is not None]
             out[k] = sum(v) / len(v) if v else None
         return out
 

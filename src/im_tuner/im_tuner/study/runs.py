@@ -131,7 +131,7 @@ def prepare_run(
 
         opt = BobyqaRun(space.dim, opt_ss, space.start_u, spec.budget, **cell.opts)
     else:
-        first = None
+        first: Any = None
         if cell.first == 'model':  # the study's drive file is the model (a run may differ)
             from ..prior import model_prior
 

@@ -43,8 +43,9 @@ LEVELS = {
 #: the study: the algorithms whose state goes through numpy's SIMD loops and OpenBLAS
 STUDY = ('study', '--algos', 'cmaes,tpe,safe', '--runs', '2', '--budget', '40', '--quiet')
 #: sha256 of that study's tables.csv on the baseline, taken on an AMD EPYC (Zen 4, AVX-512) on
-#: 2026-11-27; the same at the avx2 level here, and on every x86-64-v3 CPU
-STUDY_TABLES_SHA256 = '634d932ab0b874447ff33579e16ad8c22fcd415d8d260d5ab05252d19ba6f18b'
+#: 2026-11-28 (issue 40 added safe's row 'first step from the identified drive'); the same
+#: at the avx2 level here, and on every x86-64-v3 CPU
+STUDY_TABLES_SHA256 = '23a2463d212804e41ec31829f3cc9b02c8e1c37471199c93f4a38fa2c6a99673'
 #: results.jsonl fields that are wall-clock readings, not results
 WALL_FIELDS = ('time', 'wall_s')
 

@@ -11,6 +11,7 @@ same point.  Pure: no rclpy.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from im_controller.config import ExperimentConfig
@@ -27,9 +28,15 @@ class IdentifiedFirstStep:
     """The hook ``TuningRun(first_step=...)`` calls before safe's evaluation 2."""
 
     def __init__(
-        self, drive: DriveConfig, space: SearchSpace, experiment: ExperimentConfig | None
+        self,
+        drive: DriveConfig,
+        space: SearchSpace,
+        experiment: ExperimentConfig | None,
+        say: Callable[[str], None] | None = None,
     ) -> None:
-        self.drive, self.space, self.experiment = drive, space, experiment
+        """``say``: where to print what was identified and the step taken (the tuner's
+        progress lines; None: nothing)."""
+        self.drive, self.space, self.experiment, self.say = drive, space, experiment, say
         self.prior: Prior | None = None  #: the last point's prior (None: none)
 
     def identified(self, records: list[Any]) -> Identified | None:
@@ -40,6 +47,21 @@ class IdentifiedFirstStep:
         idf = self.identified(records)
         if idf is None:
             self.prior = None
+            self._say("identification: too few rows in the start's experiments; no first step")
             return None
+        self._say(f'identified from the start: {idf.line()}')
         self.prior = identified_prior(self.drive, self.space, self.experiment, idf)
-        return None if self.prior is None else list(self.prior.u)
+        if self.prior is None:
+            self._say('first step: none (the identified model finds nothing better than the start)')
+            return None
+        p = self.prior
+        self._say(
+            f"first step: the identified model's best point (its loss {p.model_ratio:.2f}x the "
+            f"start's on the model, at most {p.worst_ratio:.2f}x over J and Rr errors; "
+            f'{p.experiments} offline experiments, {p.seconds:.1f} s)'
+        )
+        return list(p.u)
+
+    def _say(self, text: str) -> None:
+        if self.say is not None:
+            self.say(text)

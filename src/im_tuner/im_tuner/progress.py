@@ -100,6 +100,42 @@ class Progress:
             self._open = False
 
 
+def mechanics_lines(s: Summary) -> list[str]:
+    """The drive the start identified (against the file's) and the standstill ripple of
+    isq* of the start and of the applied gains: lines for the summary and the report."""
+    L: list[str] = []
+    i = s.identification
+    if i:
+        L.append(
+            f'  identified from the start: J {i["J"]:.4g} +- {i["J_sd"]:.2g} kg m^2 '
+            f"({i['J'] / i['J_file']:.2f}x the file's {i['J_file']:.4g}), Kt {i['Kt']:.4g} "
+            f'+- {i["Kt_sd"]:.2g} N m/A (file {i["Kt_file"]:.4g}), B {i["B"]:.3g} N m s/rad, '
+            f'Tc {i["Tc"]:.3g} +- {i["Tc_sd"]:.2g} N m'
+        )
+    r = s.ripple
+    if r:
+        rated = r.get('rated_isq_a')
+
+        def one(d: dict[str, Any] | None) -> str:
+            if not d:
+                return 'not measured'
+            rms = [d.get('rms_after_move'), d.get('rms_after_load')]
+            pp = [d.get('pp_after_move'), d.get('pp_after_load')]
+            f = lambda v: '-' if v is None else f'{v:.3f}'  # noqa: E731
+            pct = (
+                f' ({max(v for v in rms if v is not None) / rated:.1%} of rated isq)'
+                if rated and any(v is not None for v in rms)
+                else ''
+            )
+            return f'{f(rms[0])}/{f(rms[1])} A rms, {f(pp[0])}/{f(pp[1])} A p-p{pct}'
+
+        L.append(
+            f'  standstill ripple of isq* (after the move/after the load): start '
+            f'{one(r.get("start"))}; applied {one(r.get("applied"))}'
+        )
+    return L
+
+
 def _gains_text(g: dict[str, float]) -> str:
     return ', '.join(f'{n} {g[n]:.6g} {GAIN_UNITS[n]}' for n in GAIN_NAMES)
 
@@ -148,6 +184,7 @@ def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
         f'  satisfactory (loss <= {s.satisfactory_loss:g}): '
         + (f'after {sat} evaluations' if sat else 'not reached')
     )
+    L.extend(mechanics_lines(s))
     sessions = s.sessions or []
     outside = sum(len(p.get('faults_outside', [])) for p in sessions)
     L.append(

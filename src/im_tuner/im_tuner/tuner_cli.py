@@ -328,7 +328,7 @@ def _first_point(cli: argparse.Namespace, algo: str, params: TunerParams) -> dic
     return {} if prior is None else {'first': list(prior.u)}
 
 
-def _first_step_hook(run: RunConfig, params: TunerParams) -> Any:
+def _first_step_hook(run: RunConfig, params: TunerParams, progress: Any = None) -> Any:
     """The run's ``IdentifiedFirstStep`` (safe with first: identify), else None: the
     drive file it names (the packaged default without one) and its experiment."""
     if (run.options or {}).get('first') != 'identify':
@@ -340,7 +340,12 @@ def _first_step_hook(run: RunConfig, params: TunerParams) -> Any:
 
     drive = load_config(run.drive_config, overrides={'model': run.model} if run.model else None)
     setup = family.tuner_setup(run.drive_config)
-    return IdentifiedFirstStep(drive, params.space, None if setup is None else setup.experiment)
+    return IdentifiedFirstStep(
+        drive,
+        params.space,
+        None if setup is None else setup.experiment,
+        getattr(progress, 'note', None),
+    )
 
 
 def _start(algo: str, params: TunerParams, no_start: bool = False) -> np.ndarray | None:
@@ -428,7 +433,7 @@ def make_tuning(rundir: RunDir, run: RunConfig, params: TunerParams, progress) -
         retries=run.retries,
         reference=run.reference,
         progress=progress,
-        first_step=_first_step_hook(run, params),
+        first_step=_first_step_hook(run, params, progress),
     )
     tuning.timing_tolerance = run.tolerance()
     return tuning

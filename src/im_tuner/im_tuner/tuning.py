@@ -525,6 +525,9 @@ class TuningRun:
         if self.first_step is not None:
             idf = self.first_step.identified(self.records)
             s.identification = None if idf is None else idf.as_dict()
+            m = self.first_step.drive.machine
+            if s.ripple is not None:  # the rated torque's q current [A], for a percentage
+                s.ripple['rated_isq_a'] = m.rated_torque / m.Kt
         return s
 
 

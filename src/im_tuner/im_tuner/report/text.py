@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 from im_controller.config import GAIN_NAMES, GAIN_UNITS
 
 from ..benches import is_simulated
-from ..progress import drive_text, tolerance_text
+from ..progress import drive_text, mechanics_lines, tolerance_text
 
 if TYPE_CHECKING:
     from ..record.reader import BagData
@@ -76,6 +76,7 @@ def summary_text(rr: RunReport) -> str:
         f'(safety faults {s.safety_faults}); lost results re-run: {s.lost}; '
         f'off the paper timing, re-run: {s.timing or 0}{tolerance_text(s)}'
     )
+    L.extend(mechanics_lines(s))
     L.extend(_period_lines(rr.records))
     sessions = s.sessions or []
     for i, sess in enumerate(sessions):  # the drive's own counters, per session

@@ -51,9 +51,9 @@ derives from its drive (experiment, box, start, ``safe``'s first step) stays the
 drive's; ``plant`` says what must match and why.
 
 Modules by job: ``spec`` (the grid and the spec; light: the command checks its options
-with it alone), ``plant`` (the plant apart from the told drive; light), ``results`` (StudyResult, study.npz/study.json), ``runs`` (one run = a
-TuningRun on the offline bench, the pool), ``bobyqa`` (Py-BOBYQA one evaluation at a
-time), ``drives`` (a study per drive, family.json), ``cluster`` (the Dask scheduler
+with it alone), ``plant`` (the plant apart from the told drive; light), ``results``
+(StudyResult, study.npz/study.json), ``runs`` (one run = a TuningRun on the offline
+bench, the pool), ``bobyqa`` (Py-BOBYQA one evaluation at a time), ``drives`` (a study per drive, family.json), ``cluster`` (the Dask scheduler
 checked), ``stats`` (intervals, Tables I-III, the paper's values), ``summary`` (over
 drives), ``text``, ``files`` (CSV, tuner commands), ``figures``, ``markdown``
 (reproduction.md, beside.md, family.md), ``cli``.

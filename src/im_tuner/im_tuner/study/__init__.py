@@ -53,10 +53,11 @@ drive's; ``plant`` says what must match and why.
 Modules by job: ``spec`` (the grid and the spec; light: the command checks its options
 with it alone), ``plant`` (the plant apart from the told drive; light), ``results``
 (StudyResult, study.npz/study.json), ``runs`` (one run = a TuningRun on the offline
-bench, the pool), ``bobyqa`` (Py-BOBYQA one evaluation at a time), ``drives`` (a study per drive, family.json), ``cluster`` (the Dask scheduler
-checked), ``stats`` (intervals, Tables I-III, the paper's values), ``summary`` (over
-drives), ``text``, ``files`` (CSV, tuner commands), ``figures``, ``markdown``
-(reproduction.md, beside.md, family.md), ``cli``.
+bench, the pool), ``bobyqa`` (Py-BOBYQA one evaluation at a time), ``drives`` (a study
+per drive, family.json), ``cluster`` (the Dask scheduler checked), ``stats`` (intervals,
+Tables I-III, the paper's values), ``summary`` (over drives), ``text``, ``files`` (CSV,
+tuner commands), ``figures``, ``markdown`` (reproduction.md, beside.md, family.md),
+``cli``.
 
 This package imports nothing heavy itself: the names below are loaded from ``runs`` (the
 optimisers, the numba kernels) on first use, so that ``python -m im_tuner.study`` with a

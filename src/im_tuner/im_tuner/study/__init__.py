@@ -3,6 +3,7 @@
     ros2 run im_tuner study [--runs 100] [--budget 200] [--algos spsa,necga]
                             [--model full|reduced] [--jobs N] [--seed S] [--out DIR]
                             [--realism ideal|bench] [--drives NAME,... [--full-grid]]
+                            [--plant FILE|NAME[,...]] [--plant-mismatch 'J=x2 ...']
 
 The grid (paper, "Summary of experimental results"): SPSA over a in {a0/5, a0, 5 a0} x
 c in {c0/5, c0, 5 c0} (a0 = 0.0183, c0 = 0.03; A = 20, alpha = gamma = 0.3), neCGA over
@@ -43,13 +44,20 @@ normalised by its own hand-tuned start, at each algorithm's recommended configur
 up over the drives (``summary``: mean and worst drive per method; the default against
 the issue's goal).
 
+**The plant** (issue 40): ``--plant`` and ``--plant-mismatch`` make the offline bench a
+drive other than the one the tuner is told (``StudySpec.plant``, ``StudySpec.mismatch``):
+the runs measure there, L_ref is the hand-tuned start there, and everything the tuner
+derives from its drive (experiment, box, start, ``safe``'s first step) stays the told
+drive's; ``plant`` says what must match and why.
+
 Modules by job: ``spec`` (the grid and the spec; light: the command checks its options
-with it alone), ``results`` (StudyResult, study.npz/study.json), ``runs`` (one run = a
-TuningRun on the offline bench, the pool), ``bobyqa`` (Py-BOBYQA one evaluation at a
-time), ``drives`` (a study per drive, family.json), ``cluster`` (the Dask scheduler
-checked), ``stats`` (intervals, Tables I-III, the paper's values), ``summary`` (over
-drives), ``text``, ``files`` (CSV, tuner commands), ``figures``, ``markdown``
-(reproduction.md, beside.md, family.md), ``cli``.
+with it alone), ``plant`` (the plant apart from the told drive; light), ``results``
+(StudyResult, study.npz/study.json), ``runs`` (one run = a TuningRun on the offline
+bench, the pool), ``bobyqa`` (Py-BOBYQA one evaluation at a time), ``drives`` (a study
+per drive, family.json), ``cluster`` (the Dask scheduler checked), ``stats`` (intervals,
+Tables I-III, the paper's values), ``summary`` (over drives), ``text``, ``files`` (CSV,
+tuner commands), ``figures``, ``markdown`` (reproduction.md, beside.md, family.md),
+``cli``.
 
 This package imports nothing heavy itself: the names below are loaded from ``runs`` (the
 optimisers, the numba kernels) on first use, so that ``python -m im_tuner.study`` with a

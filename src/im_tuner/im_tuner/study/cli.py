@@ -123,6 +123,25 @@ def _build_parser() -> argparse.ArgumentParser:
         'the Py-BOBYQA reference row',
     )
     ap.add_argument(
+        '--plant',
+        metavar='FILE|NAME[,...]',
+        default=None,
+        help='the simulated plant, when it is not the drive the tuner is told (a packaged '
+        'name or a drive file, loaded as --drives): the experiment, search box, start and '
+        "safe's first step still come from the told drive (--drives, --drive-config); "
+        'with --drives one plant per drive or one for all. Its Ts and machine.isq_max must '
+        'be the told drive\'s (docs/optimisers.md, "When the drive file is wrong")',
+    )
+    ap.add_argument(
+        '--plant-mismatch',
+        metavar="'KEY=xF ... coulomb=P% delay=D'",
+        default=None,
+        help='change the plant (the told drive without --plant): KEY=xF multiplies a '
+        'machine constant of the drive file (J, Rr, Rs, Lm, B, ...), coulomb=P%% sets the '
+        'Coulomb friction to P %% of rated torque, delay=D the command delay (1 or 2 '
+        "periods); e.g. 'J=x1.5 Rr=x1.3 Lm=x0.85 coulomb=2%% delay=2'",
+    )
+    ap.add_argument(
         '--realism',
         choices=tuple(REALISM_PROFILES),
         default=None,
@@ -266,6 +285,12 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
             raise StudyError('--drives and --drive-config exclude each other')
     elif cli.full_grid:
         raise StudyError('--full-grid needs --drives (a study of one drive is the full grid)')
+    from .plant import PlantError, plant_options
+
+    try:
+        plant, mismatch = plant_options(cli.plant, cli.plant_mismatch, drives)
+    except PlantError as exc:
+        raise StudyError(str(exc)) from None
     if cli.algos is None:
         algos = S.STUDY_ALGOS if drives else S.PAPER_ALGOS
     else:
@@ -305,6 +330,8 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
             drives=drives,
             realism=cli.realism,
             full_grid=not drives or cli.full_grid,
+            plant=plant,
+            mismatch=mismatch,
         )
     except ValueError as exc:
         raise StudyError(f'--{exc}') from None  # the messages start with the option's name
@@ -313,9 +340,14 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
     for one in [spec.for_drive(d) for d in drives] or [spec]:
         try:
             one.params()
-            one.drive()
+            told = one.drive()
         except (TunerParamsError, ValueError) as exc:
             raise StudyError(('--drives: ' if drives else '') + str(exc)) from None
+        try:
+            one.plant_drive(told)  # (plant.PlantError: its message names the option)
+        except ValueError as exc:
+            where = f' (told {one.drives[0]})' if len(drives) > 1 else ''
+            raise StudyError(f'{exc}{where}') from None
     return spec
 
 
@@ -384,6 +416,13 @@ def main(args: list[str] | None = None) -> int:
     if cli.source is not None and (cli.drives or cli.realism or cli.full_grid):
         print(
             'error: study: --from re-tabulates: it takes no --drives, --realism or --full-grid',
+            file=sys.stderr,
+        )
+        return EXIT_USAGE
+    if cli.source is not None and (cli.plant is not None or cli.plant_mismatch is not None):
+        print(
+            'error: study: --from re-tabulates: its plant is the one it ran on (no --plant '
+            'or --plant-mismatch)',
             file=sys.stderr,
         )
         return EXIT_USAGE

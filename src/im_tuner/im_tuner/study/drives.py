@@ -104,5 +104,7 @@ def load_family(out: Path | str) -> tuple[FamilyResult, list[Path]]:
         raise ValueError(f'{out}: {FAMILY_FILE} names {len(drives)} drives, {len(results)} dirs')
     import dataclasses
 
-    spec = dataclasses.replace(results[0].spec, drives=drives)
+    # each drive's study holds its own plant (StudySpec.for_drive): the family's, one per drive
+    plant = tuple(r.spec.plant[0] for r in results) if results[0].spec.plant else ()
+    spec = dataclasses.replace(results[0].spec, drives=drives, plant=plant)
     return FamilyResult(spec, results, command), dirs

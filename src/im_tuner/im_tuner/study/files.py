@@ -30,8 +30,14 @@ def tuner_command(res: StudyResult, c: int, r: int, out: Path) -> str:
     """The tuner command that repeats run ``r`` of cell ``c`` on the ROS bench (its losses
     equal the study's bit for bit: test/test_study.py)."""
     cell, sp = res.cells[c], res.spec
-    if cell.algo in REFERENCE_ALGOS or sp.realism or (sp.drives and sp.drives[0] != DEFAULT_DRIVE):
-        # an outside reference row, or a drive/profile the tuner has no option for yet
+    if (
+        cell.algo in REFERENCE_ALGOS
+        or sp.realism
+        or (sp.drives and sp.drives[0] != DEFAULT_DRIVE)
+        or sp.split
+    ):
+        # an outside reference row, a drive/profile the tuner has no option for yet, or a
+        # plant that is not the told drive (the ROS bench would need a drive file of it)
         return ''
     args = ['ros2', 'run', 'im_tuner', 'tuner', '--algo', cell.algo]
     for k, v in cell.opts.items():

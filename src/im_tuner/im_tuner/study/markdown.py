@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import spec as S
+from .plant import plant_line, plants_line
 from .stats import (
     EXPERIMENT_S,
     FAST_LEVEL,
@@ -137,6 +138,16 @@ def numeric_line(st: dict | None) -> str:
     )
 
 
+def _plant_md(line: str | None) -> list[str]:
+    """A paragraph of a study whose plant is not the told drive (``plant.plant_line``, or
+    ``plant.plants_line`` for a family); nothing otherwise."""
+    if line is None:
+        return []
+    head = 'the plant is not the drive the tuner is told'
+    text = line[len(head) + 2 :] if line.startswith(head) else line
+    return [f'**{head[0].upper()}{head[1:]}.** {text[0].upper()}{text[1:]}.', '']
+
+
 def reproduction_md(st: StudyStats, command: str, figures: dict[str, str]) -> str:
     res, sp = st.res, st.res.spec
     rate = res.experiments / res.wall_s if res.wall_s > 0 else math.nan
@@ -157,6 +168,7 @@ def reproduction_md(st: StudyStats, command: str, figures: dict[str, str]) -> st
         '',
         numeric_line(res.numeric),
         '',
+        *_plant_md(plant_line(sp, res.l_ref, res.l_ref_told)),
         '## What is compared, and how',
         '',
         '* **Runs.** Every run is what `ros2 run im_tuner tuner` does on the simulated '
@@ -325,6 +337,7 @@ def family_md(fs: FamilyStats, command: str, figures: dict[str, dict[str, str]])
         '',
         numeric_line(first.res.numeric),
         '',
+        *_plant_md(plants_line([(n, st.res.spec) for n, st in fs.drives])),
         'What is compared is the comparison "Beyond the paper" of [reproduction.md]'
         '(reproduction.md), per drive: every algorithm (at its recommended configuration '
         'unless the study ran the full grid) on the same run seeds (common random numbers, '
@@ -362,6 +375,7 @@ def family_md(fs: FamilyStats, command: str, figures: dict[str, dict[str, str]])
             f'L_ref = {res.l_ref:.5f} (standard error {res.l_ref_sem:.5f}); '
             f'{res.experiments} experiments in {res.wall_s:.0f} s.',
             '',
+            *_plant_md(plant_line(res.spec, res.l_ref, res.l_ref_told)),
             *_md_rows(*comparison_rows(st)),
         ]
         for fig, rel in figures.get(name, {}).items():

@@ -51,6 +51,9 @@ class StudyResult:
     #: the numeric baseline its runs ran on (im_drive_sim.numeric.status() of the study's
     #: process; every worker was checked to agree); None: a study from before it was recorded
     numeric: dict | None = None
+    #: the hand-tuned start's L_ref on the told drive, when the plant is another
+    #: (``spec.split``; ``l_ref`` is always the plant's); None otherwise
+    l_ref_told: float | None = None
 
     @property
     def experiments(self) -> int:
@@ -101,6 +104,8 @@ def save(res: StudyResult, out: Path | str) -> None:
         'command': res.command,
         'numeric': res.numeric,
     }
+    if res.l_ref_told is not None:  # (a study of the told drive writes the file as before)
+        meta['l_ref_told'] = res.l_ref_told
     tmp = out / (META_FILE + '.tmp')
     tmp.write_text(json.dumps(meta, indent=1) + '\n')
     os.replace(tmp, out / META_FILE)
@@ -123,6 +128,8 @@ def load(out: Path | str) -> StudyResult:
         sp = dict(meta['spec'])
         sp['algos'] = tuple(sp['algos'])
         sp['drives'] = tuple(sp.get('drives', ()))
+        sp['plant'] = tuple(sp.get('plant', ()))
+        sp['mismatch'] = tuple(tuple(kv) for kv in sp.get('mismatch', ()))
         spec = StudySpec(**sp)
         cells = [
             Cell(c['algo'], c['label'], c['row'], c['col'], tuple(tuple(o) for o in c['options']))
@@ -138,6 +145,7 @@ def load(out: Path | str) -> StudyResult:
             jobs=meta['jobs'],
             command=meta.get('command', ''),
             numeric=meta.get('numeric'),
+            l_ref_told=meta.get('l_ref_told'),
             **arrays,
         )
     except (KeyError, TypeError, ValueError) as exc:

@@ -132,7 +132,9 @@ def prepare_run(
         opt = BobyqaRun(space.dim, opt_ss, space.start_u, spec.budget, **cell.opts)
     else:
         first: Any = None
-        if cell.first == 'model':  # the study's drive file is the model (a run may differ)
+        if cell.first == 'model':
+            # the told drive's file is the model (the tuner's --first model), whatever the
+            # plant the run measures on (spec.plant, spec.mismatch)
             from ..prior import model_prior
 
             setup = spec.setup()
@@ -171,9 +173,10 @@ def run_one(
     experiment: ExperimentConfig | None = None,
 ) -> RunResult:
     """Run ``r`` of cell ``cell_index``: the tuner's own :class:`TuningRun` (reference,
-    budget, best, re-measurement) on the offline bench, its records kept in memory."""
+    budget, best, re-measurement) on the offline bench of ``drive`` (None: the spec's
+    plant), its records kept in memory."""
     cell = spec.cells[cell_index]
-    drive = spec.drive() if drive is None else drive
+    drive = spec.plant_drive() if drive is None else drive
     params = spec.params() if params is None else params
     experiment = spec.experiment() if experiment is None else experiment
     space, opt, drive_seed = prepare_run(spec, cell_index, r, params)
@@ -408,14 +411,17 @@ def run_study(
     if jobs < 1:
         raise ValueError(f'jobs must be >= 1, got {jobs}')
     cells = spec.cells
-    drive, params, experiment = spec.loaded()
+    drive, params, experiment = spec.loaded()  # drive: the plant
     expected = numeric.status()  # every worker must agree (check_numeric)
     t0 = time.perf_counter()
     # L_ref first: it also loads (or compiles and caches) the kernels before workers start,
-    # so they do not all compile at once.  Per drive: its own hand-tuned start.
-    l_ref, l_sem, l_first = reference_loss(
-        drive, experiment=experiment, start=Gains(*params.space.start) if spec.drives else None
-    )
+    # so they do not all compile at once.  Per drive: its own hand-tuned start, measured on
+    # the plant (study.plant says why); beside it, on the told drive when that is another.
+    start = Gains(*params.space.start) if spec.drives else None
+    l_ref, l_sem, l_first = reference_loss(drive, experiment=experiment, start=start)
+    l_ref_told = None
+    if spec.split:
+        l_ref_told = reference_loss(spec.drive(), experiment=experiment, start=start)[0]
     arrays = _allocate(spec, cells)
     # run-major order: early progress covers every cell
     tasks = [(c, r) for r in range(spec.runs) for c in range(len(cells))]
@@ -463,6 +469,7 @@ def run_study(
         wall_s=time.perf_counter() - t0,
         jobs=jobs,
         numeric=expected,
+        l_ref_told=l_ref_told,
         **arrays,
     )
 

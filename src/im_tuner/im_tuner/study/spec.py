@@ -227,10 +227,21 @@ class StudySpec:
     drives: tuple[str, ...] = ()
     realism: str | None = None  #: realism profile (None: the drive file's own)
     full_grid: bool = True  #: every cell of the grid, else the recommended ones
+    #: the simulated plant, when it is not the drive the tuner is told (``study.plant``):
+    #: () the told drive; one name (packaged or a file) for every drive; or one per drive
+    plant: tuple[str, ...] = ()
+    #: the mismatch applied to the plant (``plant.parse_mismatch``): (key, value) pairs
+    mismatch: tuple[tuple[str, float], ...] = ()
 
     #: fields written to study.json only when they differ from these defaults (a study
     #: without them writes the same file as before they existed)
-    NEW_FIELDS: ClassVar[dict[str, Any]] = {'drives': (), 'realism': None, 'full_grid': True}
+    NEW_FIELDS: ClassVar[dict[str, Any]] = {
+        'drives': (),
+        'realism': None,
+        'full_grid': True,
+        'plant': (),
+        'mismatch': (),
+    }
 
     def __post_init__(self) -> None:
         for name, lo in (('runs', 1), ('budget', 1)):
@@ -256,6 +267,18 @@ class StudySpec:
             raise ValueError('drives and drive-config exclude each other')
         if self.realism is not None and not isinstance(self.realism, str):
             raise ValueError(f'realism must be a profile name, got {self.realism!r}')
+        if not all(isinstance(p, str) and p for p in self.plant):
+            raise ValueError(f'plant: drive names or files expected, got {self.plant!r}')
+        if len(self.plant) > 1 and len(self.plant) != len(self.drives):
+            n = max(len(self.drives), 1)
+            raise ValueError(
+                f'plant: {len(self.plant)} plants for {n} drive{"s" if n > 1 else ""} '
+                '(give one per drive, or one for all)'
+            )
+        if self.mismatch:
+            from .plant import check_mismatch
+
+            check_mismatch(self.mismatch)
         if not self.algos or len(set(self.algos)) != len(self.algos):
             raise ValueError(f'algos must be distinct names, got {self.algos!r}')
         for a in self.algos:
@@ -275,8 +298,11 @@ class StudySpec:
         return self.full_grid and any(a in PAPER_ALGOS for a in self.algos)
 
     def for_drive(self, name: str) -> StudySpec:
-        """The study of drive ``name`` (one of :attr:`drives`)."""
-        return dataclasses.replace(self, drives=(name,))
+        """The study of drive ``name`` (one of :attr:`drives`), with its plant."""
+        plant = self.plant
+        if len(plant) > 1:
+            plant = (plant[self.drives.index(name)],)
+        return dataclasses.replace(self, drives=(name,), plant=plant)
 
     def setup(self) -> DriveSetup:
         """The drive's set-up (``im_tuner.family.drive_setup``): drive, experiment,
@@ -289,18 +315,40 @@ class StudySpec:
         return drive_setup(name, self.realism, self.model)
 
     def loaded(self) -> tuple[DriveConfig, TunerParams, ExperimentConfig]:
-        """(drive, tuner parameters, experiment), the files read once."""
+        """(the plant, tuner parameters, experiment), the files read once: what a run
+        measures on, and what the tuner knows (the told drive's box and experiment)."""
         from ..space import load_params
 
         s = self.setup()
         return (
-            s.drive,
+            self.plant_drive(s.drive),
             load_params(self.params_file) if self.params_file else s.params,
             s.experiment,
         )
 
+    @property
+    def split(self) -> bool:
+        """Whether the plant is not the told drive (``--plant`` or ``--plant-mismatch``)."""
+        return bool(self.plant or self.mismatch)
+
     def drive(self) -> DriveConfig:
+        """The drive the tuner is told (its model gives ``safe``'s first step)."""
         return self.setup().drive
+
+    def plant_drive(self, told: DriveConfig | None = None) -> DriveConfig:
+        """The simulated plant the runs measure on (``study.plant``): the told drive
+        (``told``, else :meth:`drive`) itself unless :attr:`plant` or :attr:`mismatch`
+        says otherwise.  ``plant.PlantError`` (a ValueError, one line) for a plant that
+        cannot run the told drive's experiment."""
+        told = self.drive() if told is None else told
+        if not self.split:
+            return told
+        if len(self.plant) > 1:
+            raise ValueError('a study of several drives has a plant per drive (for_drive)')
+        from .plant import make_plant
+
+        name = self.plant[0] if self.plant else None
+        return make_plant(told, name, self.mismatch, self.realism, self.model)
 
     def experiment(self) -> ExperimentConfig:
         return self.setup().experiment

@@ -6,6 +6,7 @@ import math
 from typing import TYPE_CHECKING
 
 from . import spec as S
+from .plant import plant_line, plants_line
 from .spec import EXIT_USAGE, StudyError
 from .stats import (
     EXPERIMENT_S,
@@ -206,6 +207,7 @@ def family_text(fs: FamilyStats) -> str:
         f'{len(fs.drives[0][1].cells)} configurations x {sp.runs} runs x {sp.budget} '
         f'evaluations per drive, {sp.model} model, seed {sp.seed}; loss normalised per drive '
         'by its hand-tuned start',
+        *filter(None, [plants_line([(n, st.res.spec) for n, st in fs.drives])]),
         *([no_intervals_note(sp.runs)] if sp.runs < S.MIN_RUNS_FOR_INTERVALS else []),
         '',
     ]
@@ -215,6 +217,9 @@ def family_text(fs: FamilyStats) -> str:
             f'Drive {name}: L_ref = {res.l_ref:.5f} (+- {res.l_ref_sem:.5f}); '
             f'{res.experiments} experiments in {res.wall_s:.1f} s'
         )
+        pl = plant_line(res.spec, res.l_ref, res.l_ref_told)
+        if pl:
+            L.append(pl)
         L.append(comparison_text(st))
     head, rows = summary_rows(fs)
     L.append('Summary over the drives (normalised loss: each drive by its own hand-tuned start)')
@@ -234,6 +239,7 @@ def tables_text(st: StudyStats) -> str:
         f'loss normalised by L_ref = {res.l_ref:.5f} (+- {res.l_ref_sem:.5f}), the hand-tuned '
         f'start over {S.REF_EXPERIMENTS} experiments; satisfactory: final loss <= '
         f'{st.threshold:g}',
+        *filter(None, [plant_line(sp, res.l_ref, res.l_ref_told)]),
         'cells: ours mean [95 % interval] | paper',
         *([no_intervals_note(sp.runs)] if sp.runs < S.MIN_RUNS_FOR_INTERVALS else []),
         '',

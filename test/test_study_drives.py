@@ -87,9 +87,9 @@ def test_drives_a_table_per_drive_the_summary_and_bobyqa(tmp_path):
     for d in fam['dirs']:
         assert (out / d / 'study.npz').is_file() and (out / d / 'tables.txt').is_file()
         with np.load(out / d / 'study.npz') as z:
-            # three rows (safe blind and from the model, bobyqa) x 2 runs x 12 evaluations,
-            # every one measured
-            assert z['losses'].shape == (3, 2, 12) and np.isfinite(z['losses']).all()
+            # four rows (safe blind, from the model, from the identified drive, bobyqa)
+            # x 2 runs x 12 evaluations, every one measured
+            assert z['losses'].shape == (4, 2, 12) and np.isfinite(z['losses']).all()
             assert np.isfinite(z['remeasured']).all()
             # the same drive file twice: the same losses (seeded, deterministic)
             if d == 'mine':
@@ -103,7 +103,7 @@ def test_drives_a_table_per_drive_the_summary_and_bobyqa(tmp_path):
     assert txt.count('Py-BOBYQA rhobeg=0.08 (hand-tuned start)') == 3  # 2 drives + summary
     assert 'Summary over the drives' in txt
     assert (
-        txt.count(': the default (safe first step from the drive model) m') == 2
+        txt.count(': the default (safe first step from the identified drive) m') == 2
     )  # meets / misses, per drive
     md = (out / 'family.md').read_text()
     assert (

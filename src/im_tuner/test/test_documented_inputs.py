@@ -75,9 +75,11 @@ def test_the_tuner_on_a_users_bigger_drive_takes_its_first_step_and_box(tmp_path
     setup = family.tuner_setup(big)
     assert setup is not None
     run = _new('--seed', '3', '--drive-config', str(big))
+    assert run.run.options == {'first': 'identify'}  # the default: after the start
     prior = model_prior(load_config(big), setup.params.space, setup.experiment)
     assert prior is not None and prior.worst_ratio < 1.0
-    assert run.run.options == {'first': list(prior.u)}
+    model = _new('--seed', '3', '--drive-config', str(big), '--first', 'model')
+    assert model.run.options == {'first': list(prior.u)}
     assert run.params == setup.params  # the box the optimiser searches
     assert _new('--seed', '3', '--drive-config', str(big), '--first', 'none').run.options == {}
 
@@ -89,8 +91,10 @@ def test_a_box_of_another_drive_runs_without_a_model_step(tmp_path):
 
     paper_box = default_config_path().parent.parent.parent / 'im_tuner' / 'config' / 'tuner.yaml'
     assert paper_box.is_file()
-    run = _new('--seed', '3', '--drive-config', 'im7500w-j3', '--params', str(paper_box))
-    assert run.run.options == {}
+    args = ('--seed', '3', '--drive-config', 'im7500w-j3', '--params', str(paper_box))
+    assert _new(*args, '--first', 'model').run.options == {}
+    # identify decides after the start's experiments (an aborted start identifies nothing)
+    assert _new(*args).run.options == {'first': 'identify'}
 
 
 def test_a_first_step_of_one_drive_never_goes_to_another_drives_controller(tmp_path):

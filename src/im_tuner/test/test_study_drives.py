@@ -188,8 +188,8 @@ def test_family_text_and_markdown_have_every_drive_the_summary_and_the_goal(tmp_
     assert txt.count('Beyond the paper: every configuration') == 2
     assert 'Drive a: L_ref = 2.00000' in txt and 'Drive b: L_ref' in txt
     assert 'Py-BOBYQA rhobeg=0.08 (hand-tuned start)' in txt
-    assert 'a: the default (safe first step from the drive model) meets the goal' in txt
-    miss = 'b: the default (safe first step from the drive model) misses the goal'
+    assert 'a: the default (safe first step from the identified drive) meets the goal' in txt
+    miss = 'b: the default (safe first step from the identified drive) misses the goal'
     assert miss + ': mean evaluations to <= 0.9' in txt
     md = family_md(fs, 'cmd', {'a': {'comparison': 'a/comparison.png'}})
     assert md.count('## Drive ') == 2 and '## Summary over the drives' in md

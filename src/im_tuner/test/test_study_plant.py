@@ -26,7 +26,8 @@ from im_tuner.study.plant import (
 from im_tuner.study.worker import init_worker
 
 TOLD = 'im750w-j1'  # the paper's motor, load inertia 1x its own (J 0.0025 kg m^2)
-#: the told drive's study: safe blind and with the first step from the drive model
+#: the told drive's study: safe blind, with the first step from the drive model and from
+#: the identified drive
 EXACT = S.StudySpec(runs=2, budget=6, algos=('safe',), drives=(TOLD,), full_grid=False)
 J2 = dataclasses.replace(EXACT, mismatch=(('J', 2.0),))
 
@@ -40,7 +41,11 @@ def studies() -> tuple[R.StudyResult, R.StudyResult]:
 
 def test_the_runs_measure_the_plant_and_the_tuner_knows_the_told_drive(studies):
     exact, j2 = studies
-    assert [c.label for c in EXACT.cells] == ['defaults', 'first step from the drive model']
+    assert [c.label for c in EXACT.cells] == [
+        'defaults',
+        'first step from the drive model',
+        'first step from the identified drive',
+    ]
     # the tuner's side is the told drive's: the same starts, box and first step
     assert np.array_equal(exact.start, j2.start)
     model = EXACT.cells.index(next(c for c in EXACT.cells if c.first == 'model'))
@@ -76,6 +81,9 @@ def test_the_runs_measure_the_plant_and_the_tuner_knows_the_told_drive(studies):
     assert line is not None and line.startswith(f'plant: {TOLD} with J x2; the tuner told {TOLD}')
     assert f'{j2.l_ref / exact.l_ref:.3f} x its {exact.l_ref:.5f} on the told drive' in line
     assert plant_line(exact.spec, exact.l_ref, None) is None
+    # the identified drive's first step is the plant's: another point on the J x2 plant
+    ident = EXACT.cells.index(next(c for c in EXACT.cells if c.first == 'identify'))
+    assert not np.array_equal(exact.losses[ident, :, 1], j2.losses[ident, :, 1])
 
 
 def _j_identified(drive) -> float:

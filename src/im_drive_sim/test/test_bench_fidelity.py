@@ -7,6 +7,7 @@ first period, not after the load machine's command cycle."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -245,3 +246,15 @@ def test_every_packaged_drive_loads_on_bench() -> None:
     for name in DRIVE_NAMES:
         cfg = load_config(name, overrides={'realism': 'bench'})
         assert cfg.machine.static_torque >= cfg.machine.coulomb_torque > 0.0
+
+
+def test_drive_family_page_holds_the_generated_bench_table() -> None:
+    """docs/drive-family.md's "The bench per drive" is ``python -m im_drive_sim.bench_table``'s
+    output, not typed: regenerate it when a drive file or a rule changes."""
+    from im_drive_sim.bench_table import bench_table, main
+
+    doc = Path(__file__).resolve().parents[3] / 'docs' / 'drive-family.md'
+    table = bench_table()
+    assert table in doc.read_text()
+    assert '| im7500w-j10 | 19.82, 1.819, 4.452 | 49.54 | 565.7 | 13.5 |' in table
+    assert main(['--all']) == 2

@@ -12,9 +12,9 @@ cycle became a current chatter of several amperes, on ``im7500w-j10`` at the cur
 the start by the inertia rule alone (``before``) and by the rule now (``now``): k_pw, k_iw,
 the count step, the q-current reference's rms around its median at standstill, the periods
 it spends at the limit, and the start's loss with the weights each rule calibrates and with
-the weights of the rule before (the same yardstick for both rows). Offline bench, full model, the drive
-file's bench (ideal; or the profile asked), drive seed 0, EXPERIMENTS (3) experiments from
-rest, alternating +pi, -pi.
+the weights of the rule before (the same yardstick for both rows). Offline bench, full
+model, the drive file's bench (ideal; or the profile asked), drive seed 0, EXPERIMENTS (3)
+experiments from rest, alternating +pi, -pi.
 """
 
 from __future__ import annotations

@@ -299,10 +299,14 @@ def _one_period_later(S: np.ndarray, i: int, j: int, a: float, b: float) -> tupl
 def _advance_full(
     S: np.ndarray, P: np.ndarray, noise: np.ndarray, r: int, ua: float, ub: float, tl_cmd: float
 ) -> None:
-    """The full model over one period with the voltage (ua, ub) [V] applied: the load of
-    the period, the plant's RK4 step, then the sample at the new time (noise row r)."""
+    """The full model over one period with the inverter commanded (ua, ub) [V]: the load
+    of the period, the voltage the machine gets (the command plus the dead-time error),
+    kept as the period's ``u_alpha``, ``u_beta``, the plant's RK4 step, then the sample at
+    the new time (noise row r)."""
     tl = _load(S, P, tl_cmd, noise, r)
     ua, ub = applied_voltage(S, ua, ub, P)  # the inverter's dead-time error
+    S[S_UA] = ua  # recorded as applied, not as commanded (they differ by the dead time)
+    S[S_UB] = ub
     plant_rk4(S, ua, ub, tl, P)
     S[S_STEP] += 1.0
     sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], noise[r, 4], True)
@@ -366,8 +370,6 @@ def step_full(
     ua, ub = current_control(S, P, isq_ref)
     if P[P_DELAY] != 0.0:  # computation delay: this step applies the previous voltage
         ua, ub = _one_period_later(S, S_UA_NEXT, S_UB_NEXT, ua, ub)
-    S[S_UA] = ua
-    S[S_UB] = ub
     _advance_full(S, P, noise, r, ua, ub, tl_cmd)
 
 
@@ -377,8 +379,6 @@ def step_voltage_kernel(
 ) -> None:
     """One Ts step of the bare full model with given stationary-frame voltages (no control)."""
     r = _next_noise_row(S, noise)
-    S[S_UA] = ua
-    S[S_UB] = ub
     S[S_UA_NEXT] = ua
     S[S_UB_NEXT] = ub
     S[S_VSAT] = 0.0
@@ -450,6 +450,20 @@ def step_model(
         step_full(S, P, noise, isq_ref, tl_cmd)
     else:
         step_reduced(S, P, noise, isq_ref, tl_cmd)
+
+
+@njit(cache=True)
+def clear_command(S: np.ndarray) -> None:
+    """A safe stop, the watchdog: zero current and no load over the next step, at once.
+    The command latched for it (delay 2) and a load step waiting in the load machine's
+    command cycle (``load_step_acting``) are dropped (the load lag, ripple and random load
+    are the shaft's: they stay)."""
+    S[S_PEND_ISQ] = 0.0
+    S[S_PEND_TL] = 0.0
+    S[S_LS_CMD] = 0.0
+    S[S_LS_TARGET] = 0.0
+    S[S_LS_ACT] = 0.0
+    S[S_LS_WAIT] = 0.0
 
 
 # ----------------------------------------------------------------------- output

@@ -30,7 +30,7 @@ P_KTE = 11  # 1.5 p kr (torque = KTE (psi_ra i_sb - psi_rb i_sa))
 P_INV_J = 12  # 1/J
 P_B = 13  # viscous friction
 P_TC = 14  # Coulomb torque (0 = off)
-P_INV_WC = 15  # 1/omega_c (Coulomb smoothing)
+P_INV_WC = 15  # 1/omega_c (Coulomb smoothing; sim.friction_smoothing_speed)
 P_UMAX = 16  # voltage limit Udc/sqrt(3)
 P_ISD_REF = 17  # rated flux current
 P_ISQ_MAX = 18
@@ -64,7 +64,7 @@ P_CMD_DELAY = 45  # command delay d (1 or 2): the command given at state k acts 
 # bench effects (docs/drive-model.md, "Bench effects"); each 0 = off
 P_IOFF_A = 46  # current-sensor offset in alpha [A] (phase a sensor)
 P_IOFF_B = 47  # ... in beta [A]: (off_a + 2 off_b)/sqrt(3)
-P_STRIBECK = 48  # Stribeck rise Ts - Tc [N m] (0 = off)
+P_STRIBECK = 48  # Stribeck gain sqrt(2e) (Ts - Tc)/ws [N m s/rad] (0 = off)
 P_INV_WS2 = 49  # 1/ws^2 [s^2/rad^2]
 P_VDT = 50  # inverter dead-time voltage error per leg [V]
 P_RR_RISE = 51  # alpha dT: the relative rise of Rr over a run (0 = off)

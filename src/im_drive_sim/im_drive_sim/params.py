@@ -32,6 +32,8 @@ __all__ = [
     'BENCH_ESTIMATES',
     'BENCH_NOISE_KEYS',
     'BENCH_NOISE_SCALE',
+    'BENCH_REFERENCE',
+    'BENCH_SCALING',
     'REALISM_PROFILES',
     'ConfigError',
     'ControlParams',
@@ -42,6 +44,8 @@ __all__ = [
     'bench_profile',
     'config_from_dict',
     'default_config_path',
+    'rating_scales',
+    'realism_values',
 ]
 
 
@@ -162,6 +166,14 @@ class MachineParams:
         """Circular voltage limit Udc/sqrt(3) [V, peak phase]."""
         return self.Udc / math.sqrt(3.0)
 
+    @property
+    def rated_current(self) -> float:
+        """Rated stator current [A, peak]: sqrt(isd_rated^2 + isq_rated^2) at rated flux
+        and torque, isq_rated = rated_torque/Kt (4.29 A peak, 3.03 A rms for the paper's
+        motor: its nameplate says 3.1 A)."""
+        isq = self.rated_torque / self.Kt
+        return math.sqrt(self.rated_flux_current * self.rated_flux_current + isq * isq)
+
 
 @dataclass(frozen=True)
 class ControlParams:
@@ -227,8 +239,9 @@ BENCH_NOISE_KEYS: tuple[str, ...] = (
     'disturbance.load_step_amplitude_std',
     'disturbance.load_step_delay_max',
 )
-#: Each bench effect at its sourced magnitude (docs/drive-model.md, "Bench effects": the
-#: source, equation and magnitude of each): the ``bench`` profile at noise scale s = 1.
+#: Each bench effect at its sourced magnitude for the reference drive, the paper's 750 W
+#: (``BENCH_REFERENCE``; docs/drive-model.md, "Bench effects": the source, equation and
+#: magnitude of each): the ``bench`` profile at noise scale s = 1 on that drive.
 BENCH_ESTIMATES: dict[str, float] = {
     'sensors.current_noise_std': 0.01,
     'sensors.current_offset_a': 0.05,
@@ -247,28 +260,83 @@ BENCH_ESTIMATES: dict[str, float] = {
     'disturbance.load_step_amplitude_std': 0.02,
     'disturbance.load_step_delay_max': 1.0e-3,
 }
+#: The rating the magnitudes of ``BENCH_ESTIMATES`` are sourced for: the paper's 750 W drive
+#: (``paper_750w.yaml``: rated torque [N m], DC bus [V], ``MachineParams.rated_current``
+#: [A peak]; a test checks they are that file's, so its scales are exactly 1.0).
+BENCH_REFERENCE: dict[str, float] = {
+    'torque': 2.5,
+    'bus': 311.0,
+    'current': 4.289303488773733,
+}
+#: How each bench effect follows the drive's rating (docs/drive-model.md, "Bench effects";
+#: the per-drive values in docs/drive-family.md): ``torque``, in proportion to the rated
+#: torque (friction, torque ripple, the random load: the bearings, seals and load machine
+#: of a larger motor); ``bus``, to the DC bus (the dead time's lost volt-seconds,
+#: t_d/T_pwm Udc); ``current``, to the rated current (a current sensor is chosen for the
+#: drive's current, its noise and offset are fractions of its range). The others (times,
+#: speeds, relative values, the rotor's warming) keep their magnitude.
+BENCH_SCALING: dict[str, str] = {
+    'sensors.current_noise_std': 'current',
+    'sensors.current_offset_a': 'current',
+    'sensors.current_offset_b': 'current',
+    'machine.coulomb_torque': 'torque',
+    'machine.static_torque': 'torque',
+    'machine.deadtime_voltage': 'bus',
+    'disturbance.ripple_amplitude': 'torque',
+    'disturbance.load_noise_std': 'torque',
+}
 #: The calibrated scale of the noise-like magnitudes (docs/calibration.md: the fit that
 #: chose it, reproduced by ``make calibrate-bench``).
 BENCH_NOISE_SCALE = 4.0
 
 
-def bench_profile(scale: float = BENCH_NOISE_SCALE) -> dict[str, float]:
+def rating_scales(m: MachineParams) -> dict[str, float]:
+    """The machine's rating over the reference's (``BENCH_REFERENCE``), by ``BENCH_SCALING``
+    rule: rated torque, DC bus, rated current; each exactly 1.0 for the paper's 750 W."""
+    return {
+        'torque': m.rated_torque / BENCH_REFERENCE['torque'],
+        'bus': m.Udc / BENCH_REFERENCE['bus'],
+        'current': m.rated_current / BENCH_REFERENCE['current'],
+    }
+
+
+def bench_profile(
+    scale: float = BENCH_NOISE_SCALE, machine: MachineParams | None = None
+) -> dict[str, float]:
     """The ``bench`` effect values with the noise-like ones (``BENCH_NOISE_KEYS``) scaled
-    by ``scale`` from their sourced magnitudes (``BENCH_ESTIMATES``); as overrides, a
-    drive file's ``realism: bench`` at another noise scale."""
-    return {k: v * scale if k in BENCH_NOISE_KEYS else v for k, v in BENCH_ESTIMATES.items()}
+    by ``scale`` from their sourced magnitudes (``BENCH_ESTIMATES``), and each effect of
+    ``BENCH_SCALING`` by ``machine``'s rating over the reference's (``rating_scales``;
+    None: the reference drive, the paper's 750 W). As overrides, a drive file's
+    ``realism: bench`` at another noise scale."""
+    r = rating_scales(machine) if machine is not None else {}
+    out = {}
+    for k, v in BENCH_ESTIMATES.items():
+        x = v * scale if k in BENCH_NOISE_KEYS else v
+        rule = BENCH_SCALING.get(k)
+        out[k] = x * r[rule] if rule is not None and machine is not None else x
+    return out
 
 
 #: Realism profiles: the values of the bench-effect keys (those with an ``off`` value) that
-#: a file leaves out. ``ideal``: every effect off (the bench of the paper reproduction, bit
-#: identical to the files before profiles existed). ``bench``: each effect at the magnitude
-#: documented, with its source, in docs/drive-model.md ("Bench effects"), the noise-like
-#: ones scaled by the calibrated ``BENCH_NOISE_SCALE``. A key the file (or an override)
-#: gives explicitly wins over its profile.
+#: a file leaves out, at the reference rating (``BENCH_REFERENCE``, the paper's 750 W; a
+#: drive's own: ``realism_values``). ``ideal``: every effect off (the bench of the paper
+#: reproduction, bit identical to the files before profiles existed). ``bench``: each
+#: effect at the magnitude documented, with its source, in docs/drive-model.md ("Bench
+#: effects"), the noise-like ones scaled by the calibrated ``BENCH_NOISE_SCALE``, the
+#: rating-bound ones (``BENCH_SCALING``) by the drive's rating. A key the file (or an
+#: override) gives explicitly wins over its profile.
 REALISM_PROFILES: dict[str, dict[str, float]] = {
     'ideal': {},
     'bench': bench_profile(),
 }
+
+
+def realism_values(realism: str, machine: MachineParams) -> dict[str, float]:
+    """The profile ``realism``'s values for a drive with ``machine``'s rating: ``bench``
+    scaled by ``rating_scales`` (``bench_profile``), ``ideal`` none."""
+    if realism == 'bench':
+        return bench_profile(BENCH_NOISE_SCALE, machine)
+    return dict(REALISM_PROFILES[realism])
 
 
 @dataclass(frozen=True)
@@ -425,8 +493,29 @@ def config_from_dict(
         raise ConfigError(
             f'{src}: realism must be one of {", ".join(REALISM_PROFILES)}, got {realism!r}'
         )
-    profile = REALISM_PROFILES[realism]
+    # the effects off first (every key checked), then the profile for the drive's rating
+    built = _build_sections(src, data, {})
+    if REALISM_PROFILES[realism]:
+        built = _build_sections(src, data, realism_values(realism, built['machine']))
 
+    cfg = DriveConfig(
+        model=model,
+        Ts=Ts,
+        seed=seed,
+        command_delay=command_delay,
+        realism=realism,
+        source=src,
+        **built,
+    )
+    _check_consistency(src, cfg)
+    return cfg
+
+
+def _build_sections(
+    src: str, data: Mapping[str, Any], profile: Mapping[str, float]
+) -> dict[str, Any]:
+    """The sections' dataclasses from ``data``, a bench effect's key the file leaves out
+    taking ``profile``'s value, else its off value; each value checked."""
     built: dict[str, Any] = {}
     for sname, cls in _SECTIONS.items():
         sec = data[sname]
@@ -448,18 +537,7 @@ def config_from_dict(
             check = _check_float if f.metadata['kind'] == 'float' else _check_int
             kwargs[f.name] = check(src, key, value, f.metadata)
         built[sname] = cls(**kwargs)
-
-    cfg = DriveConfig(
-        model=model,
-        Ts=Ts,
-        seed=seed,
-        command_delay=command_delay,
-        realism=realism,
-        source=src,
-        **built,
-    )
-    _check_consistency(src, cfg)
-    return cfg
+    return built
 
 
 #: machine.isq_max above this multiple of the rated torque current is refused as a typo

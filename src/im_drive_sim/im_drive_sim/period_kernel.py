@@ -35,7 +35,6 @@ from numba import njit
 
 from . import contract
 from . import kernels as K
-from . import model_layout as L
 
 __all__ = [
     'COUNTERS',
@@ -277,5 +276,4 @@ def safe_stop(S: np.ndarray, D: np.ndarray) -> None:
     D[D_APPLIED] = -1.0
     D[D_PEND_APPLIED] = -1.0
     D[D_PEND_FRESH] = 0.0
-    S[L.S_PEND_ISQ] = 0.0
-    S[L.S_PEND_TL] = 0.0
+    K.clear_command(S)  # nothing latched, no load step waiting in the load machine

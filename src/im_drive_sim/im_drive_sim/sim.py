@@ -24,16 +24,18 @@ from . import kernels as K
 from . import model_layout as L
 from . import plant
 from .drive_file import load_config
-from .params import DriveConfig
+from .params import DriveConfig, MachineParams
 
 __all__ = [
     'NOISE_BLOCK',
     'RUN_FIELDS',
     'STATE_FIELDS',
     'DriveSim',
+    'friction_smoothing_speed',
     'load_step_delay_periods',
     'make_param_array',
     'start_position',
+    'stribeck_gain',
 ]
 
 STATE_FIELDS: tuple[str, ...] = L.STATE_FIELDS
@@ -72,7 +74,7 @@ def make_param_array(cfg: DriveConfig) -> np.ndarray:
     P[L.P_INV_J] = 1.0 / m.J
     P[L.P_B] = m.B
     P[L.P_TC] = m.coulomb_torque
-    P[L.P_INV_WC] = 1.0 / m.coulomb_speed
+    P[L.P_INV_WC] = 1.0 / friction_smoothing_speed(m)
     P[L.P_UMAX] = m.u_max
     P[L.P_ISD_REF] = m.rated_flux_current
     P[L.P_ISQ_MAX] = m.isq_max
@@ -106,7 +108,7 @@ def make_param_array(cfg: DriveConfig) -> np.ndarray:
     P[L.P_CMD_DELAY] = float(cfg.command_delay)
     P[L.P_IOFF_A] = s.current_offset_a
     P[L.P_IOFF_B] = (s.current_offset_a + 2.0 * s.current_offset_b) / math.sqrt(3.0)
-    P[L.P_STRIBECK] = m.static_torque - m.coulomb_torque if m.static_torque != 0.0 else 0.0
+    P[L.P_STRIBECK] = stribeck_gain(m)
     P[L.P_INV_WS2] = 1.0 / (m.stribeck_speed * m.stribeck_speed)
     P[L.P_VDT] = m.deadtime_voltage
     P[L.P_RR_RISE] = m.rr_temp_coeff * m.rr_temp_rise
@@ -115,6 +117,24 @@ def make_param_array(cfg: DriveConfig) -> np.ndarray:
     on = d.load_step_amplitude_std != 0.0 or P[L.P_LS_DELAY_N] != 0.0
     P[L.P_LS_ON] = 1.0 if on else 0.0
     return P
+
+
+def friction_smoothing_speed(m: MachineParams) -> float:
+    """omega_c [rad/s], the smoothing speed of the Coulomb term Tc tanh(w/omega_c):
+    ``coulomb_speed``; with the Stribeck rise on, at most w_brk/10 (Simscape's rule,
+    w_brk = ws/sqrt(2) the breakaway speed), so that the Coulomb term has its full Tc
+    (tanh(10)) where the Stribeck term peaks: the friction reaches the breakaway torque."""
+    if m.static_torque == 0.0:
+        return m.coulomb_speed
+    return min(m.coulomb_speed, m.stribeck_speed / (10.0 * math.sqrt(2.0)))
+
+
+def stribeck_gain(m: MachineParams) -> float:
+    """ds [N m s/rad] of the Stribeck term ds w exp(-(w/ws)^2) (``plant.friction_torque``):
+    sqrt(2e) (Ts - Tc)/ws, whose peak at w_brk = ws/sqrt(2) is Ts - Tc; 0 when off."""
+    if m.static_torque == 0.0:
+        return 0.0
+    return math.sqrt(2.0 * math.e) * (m.static_torque - m.coulomb_torque) / m.stribeck_speed
 
 
 def load_step_delay_periods(cfg: DriveConfig) -> int:
@@ -291,9 +311,9 @@ class DriveSim:
 
     def clear_command(self) -> None:
         """Drop the command latched for the next step (delay 2): it runs zero current
-        and no load instead (a safe stop or a watchdog trip acts at once)."""
-        self.S[L.S_PEND_ISQ] = 0.0
-        self.S[L.S_PEND_TL] = 0.0
+        and no load instead (a safe stop or a watchdog trip acts at once), and a load step
+        waiting in the load machine's command cycle is dropped (``kernels.clear_command``)."""
+        K.clear_command(self.S)
 
     def read_into(self, out: np.ndarray) -> None:
         """Write ``STATE_FIELDS`` for the current time (no stepping) into ``out``."""

@@ -12,10 +12,13 @@ to the paper file's (each exactly 1.0 for the paper's file):
   0.6 T_rated/J for the paper: the move asks the same fraction of rated torque);
   ``v_max`` stays 40 rad/s, capped by the rated speed;
 * ``torque = T_rated / T_rated_paper``: the load step (70 % of rated torque);
-* ``inertia = (J/Kt) / (J/Kt)_paper``: k_pw and k_iw of the start, of the box and of the
-  fallback gains multiplied by it (the speed loop's gain k_pw Kt/J and its integral
-  corner k_iw/k_pw stay the paper's: the same loop bandwidths); k_pos, tau_sm, tau_eq,
-  the thresholds and the satisfactory loss kept;
+* ``inertia = (J/Kt) / (J/Kt)_paper``: k_pw and k_iw of the box multiplied by it, and
+  those of the start and the fallback gains by ``start_scale`` = min(inertia, the largest
+  factor whose k_pw turns one encoder count into a current step of at most
+  ``COUNT_STEP_MAX`` = 1/4 of isq_max): the speed loop's gain k_pw Kt/J is the paper's
+  unless that would make the drive chatter at its current limit at standstill (the
+  ratio-10 drives: one count was 58-80 % of the limit); its integral corner k_iw/k_pw is
+  the paper's; k_pos, tau_sm, tau_eq, the thresholds and the satisfactory loss kept;
 * the weights a1..a3: the paper's rule (each term of the hand-tuned start about 1/3)
   applied to the drive: a_j = a_j,paper term_j,paper / term_j,drive, the terms of each
   start measured on its own drive (offline bench, full model, ideal, seed 0, the
@@ -28,6 +31,7 @@ to the paper file's (each exactly 1.0 for the paper's file):
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -54,10 +58,13 @@ __all__ = [
     'DriveSetup',
     'check_amplitude',
     'controller_parameters',
+    'count_step',
     'drive_scales',
     'drive_setup',
     'family_table',
+    'start_scale',
     'tuner_setup',
+    'with_start',
 ]
 
 #: the packaged default drive (the paper's 750 W motor; ``drive_setup(None)``)
@@ -109,6 +116,34 @@ def drive_scales(m: MachineParams) -> DriveScales:
     )
 
 
+#: the largest current step one encoder count may make through the start's k_pw, as a
+#: fraction of isq_max (the paper's start: 0.74 A of 7 A, 10.5 %): two counts of the
+#: standstill limit cycle on top of the load step's current (70 % of rated torque, 35 %
+#: of isq_max) stay 15 % inside the limit (docs/drive-family.md, "Start gains")
+COUNT_STEP_MAX = 0.25
+
+
+def count_step(drive: DriveConfig, k_pw: float) -> float:
+    """The q-current step [A] one encoder count makes through the speed loop's P gain k_pw
+    [A s/rad]: k_pw times the speed estimate's step for one count in one period,
+    (1 - a) 2 pi/(N Ts), a = exp(-Ts/tau_f) the drive's speed filter (docs/drive-model.md
+    section 4; 1.39 rad/s for 4096 counts, 200 us and 1 ms)."""
+    s = drive.sensors
+    tau = s.speed_filter_tau
+    a = math.exp(-drive.Ts / tau) if tau > 0.0 else 0.0
+    return k_pw * (1.0 - a) * (2.0 * math.pi / s.encoder_counts) / drive.Ts
+
+
+def start_scale(drive: DriveConfig) -> float:
+    """The factor of the start's (and fallback gains') k_pw and k_iw: ``inertia`` (the
+    paper's speed-loop gain on this drive), at most the factor whose k_pw makes one
+    encoder count a current step of ``COUNT_STEP_MAX`` isq_max; exactly 1.0 for the
+    paper's drive (its count step is 10.5 % of its limit)."""
+    k_pw = ExperimentConfig().fallback_gains.k_pw
+    cap = COUNT_STEP_MAX * drive.machine.isq_max / count_step(drive, k_pw)
+    return min(drive_scales(drive.machine).inertia, cap)
+
+
 def _scaled(values: tuple[float, ...], inertia: float) -> tuple[float, ...]:
     return tuple(
         v * inertia if n in _SPEED_LOOP_GAINS else v
@@ -125,7 +160,7 @@ def experiment_for(drive: DriveConfig, reference: DriveConfig | None = None) -> 
     m = drive.machine
     s = drive_scales(m)
     t = base.trajectory
-    start = Gains(*_scaled(base.fallback_gains.as_tuple(), s.inertia))
+    start = Gains(*_scaled(base.fallback_gains.as_tuple(), start_scale(drive)))
     cfg = validate_experiment_config(
         dataclasses.replace(
             base,
@@ -172,13 +207,14 @@ def _calibrated_loss(reference: DriveConfig, cfg: ExperimentConfig) -> LossConfi
 
 
 def params_for(drive: DriveConfig, name: str) -> TunerParams:
-    """The packaged tuner parameters with k_pw, k_iw (box and start) scaled to ``drive``."""
+    """The packaged tuner parameters with k_pw, k_iw scaled to ``drive``: the box's by
+    ``inertia``, the start's by ``start_scale``."""
     base = load_params(None)
-    k = drive_scales(drive.machine).inertia
-    if k == 1.0:
+    k, k0 = drive_scales(drive.machine).inertia, start_scale(drive)
+    if k == 1.0 and k0 == 1.0:
         return base
     sp = base.space
-    space = SearchSpace(_scaled(sp.lo, k), _scaled(sp.hi, k), _scaled(sp.start, k))
+    space = SearchSpace(_scaled(sp.lo, k), _scaled(sp.hi, k), _scaled(sp.start, k0))
     return TunerParams(space, base.satisfactory_loss, f'{base.source} scaled for {name}')
 
 
@@ -204,6 +240,18 @@ def drive_setup(
 
 #: the bench the weights are calibrated on: the drive file's own, full model, ideal, seed 0
 _REFERENCE: dict[str, object] = {'model': 'full', 'realism': 'ideal', 'seed': 0}
+
+
+def with_start(setup: DriveSetup, start: Gains) -> ExperimentConfig:
+    """``setup``'s experiment with another start (and fallback gains), its loss weights
+    calibrated on that start as ``drive_setup`` calibrates them on the rule's."""
+    if start == setup.experiment.fallback_gains:
+        return setup.experiment
+    cfg = dataclasses.replace(setup.experiment, fallback_gains=start)
+    ref = load_config(setup.name, overrides=_REFERENCE)
+    if ref == _paper_drive():
+        raise ValueError("the paper's drive keeps the paper's weights: no other start")
+    return dataclasses.replace(cfg, loss=_calibrated_loss(ref, cfg))
 
 
 def controller_parameters(setup: DriveSetup) -> tuple[tuple[str, float], ...]:

@@ -8,7 +8,7 @@ plants that are not the told drive (``study --plant-mismatch``), per told drive.
 Runs one ``ros2 run im_tuner study`` per (drive, case) into OUT/<drive>/<case>/ (a case
 already done is read, not re-run), then prints one markdown table: per case and row, the
 mean evaluations to 0.9 of the plant's L_ref, aborted experiments per run and the mean
-re-measured final loss (the study's tables.csv: ``fast``, ``aborted_per_run``,
+re-measured final loss (the study's tables.csv: ``evals``, ``aborted_per_run``,
 ``remeasured``), the best re-measured row of the case in bold.
 """
 
@@ -48,7 +48,9 @@ def _study(drive: str, case: str, out: Path, runs: int, budget: int) -> float:
     if CASES[case]:
         cmd += ['--plant-mismatch', CASES[case]]
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True)
+    out.mkdir(parents=True, exist_ok=True)
+    with (out.parent / f'{out.name}.log').open('w') as log:  # (the study's tables on stdout)
+        subprocess.run(cmd, check=True, stdout=log)
     return time.perf_counter() - t0
 
 
@@ -57,7 +59,7 @@ def _read(path: Path) -> dict[tuple[str, str, str], float]:
         return {
             (r['statistic'], r['algo'], r['config']): float(r['value'])
             for r in csv.DictReader(f)
-            if r['statistic'] in ('fast', 'aborted_per_run', 'remeasured')
+            if r['statistic'] in ('evals', 'aborted_per_run', 'remeasured')
         }
 
 
@@ -85,7 +87,7 @@ def main() -> None:
                 r = rem[lab]
                 rtext = '-' if r is None else (f'**{r:.3f}**' if r == best else f'{r:.3f}')
                 print(
-                    f'| {drive} | {case}{took} | {lab} | {v[("fast", al, cfg)]:.2f} | '
+                    f'| {drive} | {case}{took} | {lab} | {v[("evals", al, cfg)]:.2f} | '
                     f'{v[("aborted_per_run", al, cfg)]:.2f} | {rtext} |',
                     flush=True,
                 )

@@ -46,15 +46,8 @@ LOSS_KEYS: tuple[str, ...] = (
 )
 #: Keys a loss message from before the drive-timeline counts may lack (read as 0 / false),
 #: or from before the ripple and motion sums (read as nan and ()).
-OPTIONAL_KEYS: tuple[str, ...] = (
-    'fresh',
-    'held',
-    'late',
-    'timing',
-    'gains_step',
-    'ripple',
-    'motion',
-)
+#: (Every key from 'fresh' on: the newer keys come last.)
+OPTIONAL_KEYS: tuple[str, ...] = LOSS_KEYS[LOSS_KEYS.index('fresh') :]
 
 
 def _floats(text: str) -> tuple[float, ...]:

@@ -130,7 +130,7 @@ def sum_motion(motions: Iterable[Sequence[float]]) -> tuple[np.ndarray, int, int
 
 def _prior(m: MachineParams) -> tuple[np.ndarray, np.ndarray]:
     """a0 = (J, -Kt, B, Tc) of the file and the prior's standard deviations."""
-    tc_file = float(getattr(m, 'coulomb_torque', 0.0) or 0.0)
+    tc_file = float(m.coulomb_torque)
     a0 = np.array([m.J, -m.Kt, m.B, tc_file])
     sd = np.array(
         [

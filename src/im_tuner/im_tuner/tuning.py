@@ -65,6 +65,7 @@ from .runlog import (
     tally,
 )
 from .runlog.records import LINE_ORDER, ripple_dict
+from .runlog.tally import ripple_bound, top_evals
 from .space import SearchSpace
 
 __all__ = [
@@ -218,8 +219,12 @@ class TuningRun:
         reference: bool = True,
         progress: Callable[[str, Record, TuningRun], None] | None = None,
         first_step: Any = None,
+        ripple_limit: float | None = None,
     ) -> None:
-        """``first_step``: for ``safe`` with ``first='identify'``, what gives its first
+        """``ripple_limit``: the largest standstill rms of isq* the final choice may have,
+        as a ratio to the start's in each window (the tuner's ``--ripple-limit``; None:
+        off): the re-measured and applied gains are chosen among the evaluations within it
+        (``runlog.final_choice``).  ``first_step``: for ``safe`` with ``first='identify'``, what gives its first
         step from the records so far (``im_tuner.first_step.IdentifiedFirstStep``): called
         once, before evaluation 2 is asked (live and when a resume replays the records);
         its ``identified(records)`` goes into the summary."""
@@ -237,6 +242,9 @@ class TuningRun:
         self.with_reference = bool(reference)
         self.progress = progress
         self.first_step = first_step
+        if ripple_limit is not None and not (ripple_limit > 0 and np.isfinite(ripple_limit)):
+            raise ValueError(f'ripple_limit must be a ratio > 0, got {ripple_limit!r}')
+        self.ripple_limit = None if ripple_limit is None else float(ripple_limit)
         self.state = TunerState()
         self.records: list[Record] = []
         self._t_mark = time.perf_counter()
@@ -487,25 +495,13 @@ class TuningRun:
         return outcome
 
     def _top_evals(self, k: int) -> list[int]:
-        """Indices of the k best distinct (by gains) non-aborted evaluations."""
-        seen, out = set(), []
-        evals = sorted(
-            (r for r in self.records if isinstance(r, Evaluation) and r.status == 'ok'),
-            key=lambda r: (r.loss, r.eval),
-        )
-        for r in evals:
-            key = tuple(r.gains[n] for n in GAIN_NAMES)
-            if key in seen:
-                continue
-            seen.add(key)
-            out.append(r.eval)
-            if len(out) == k:
-                break
-        return out
+        """Indices of the k best distinct (by gains) non-aborted evaluations (within the
+        ripple limit: ``runlog.top_evals``)."""
+        return top_evals(self.records, k, ripple_bound(self.records, self.ripple_limit))
 
     def final_choice(self) -> dict[str, Any] | None:
         """See ``runlog.final_choice``."""
-        return final_choice(self.state, self.records)
+        return final_choice(self.state, self.records, self.ripple_limit)
 
     # -- summary ---------------------------------------------------------------------------
     def summary(self, *, outcome: str, wall_s: float) -> Summary:
@@ -519,6 +515,8 @@ class TuningRun:
             outcome=outcome,
             wall_s=wall_s,
             timing_tolerance=self.timing_tolerance,
+            ripple_limit=self.ripple_limit,
+            remeasure=self.remeasure,
         )
         if s.applied is not None:
             s.applied['on_controller'] = self.applied

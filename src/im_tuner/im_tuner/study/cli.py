@@ -142,6 +142,16 @@ def _build_parser() -> argparse.ArgumentParser:
         "periods); e.g. 'J=x1.5 Rr=x1.3 Lm=x0.85 coulomb=2%% delay=2'",
     )
     ap.add_argument(
+        '--ripple-limit',
+        metavar="R|off",
+        default=None,
+        help="the final choice's standstill-ripple limit for every row, as the tuner's "
+        "--ripple-limit: a ratio >= 1 to the start's rms of isq* in both standstill "
+        "windows, or 'off' (default: each row's tuner default, on (1.5) for safe, off for "
+        "the others); e.g. --algos spsa,necga --ripple-limit 1.5 shows what the limit "
+        "costs the paper's algorithms",
+    )
+    ap.add_argument(
         '--realism',
         choices=tuple(REALISM_PROFILES),
         default=None,
@@ -291,6 +301,14 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
         plant, mismatch = plant_options(cli.plant, cli.plant_mismatch, drives)
     except PlantError as exc:
         raise StudyError(str(exc)) from None
+    ripple_limit: float | str | None = 'default'
+    if cli.ripple_limit is not None:
+        from ..names import parse_ripple_limit
+
+        try:
+            ripple_limit = parse_ripple_limit(cli.ripple_limit)
+        except ValueError as exc:
+            raise StudyError(str(exc)) from None
     if cli.algos is None:
         algos = S.STUDY_ALGOS if drives else S.PAPER_ALGOS
     else:
@@ -332,6 +350,7 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
             full_grid=not drives or cli.full_grid,
             plant=plant,
             mismatch=mismatch,
+            ripple_limit=ripple_limit,
         )
     except ValueError as exc:
         raise StudyError(f'--{exc}') from None  # the messages start with the option's name
@@ -419,10 +438,12 @@ def main(args: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return EXIT_USAGE
-    if cli.source is not None and (cli.plant is not None or cli.plant_mismatch is not None):
+    if cli.source is not None and (
+        cli.plant is not None or cli.plant_mismatch is not None or cli.ripple_limit is not None
+    ):
         print(
-            'error: study: --from re-tabulates: its plant is the one it ran on (no --plant '
-            'or --plant-mismatch)',
+            'error: study: --from re-tabulates: its plant and limit are the ones it ran with '
+            '(no --plant, --plant-mismatch or --ripple-limit)',
             file=sys.stderr,
         )
         return EXIT_USAGE

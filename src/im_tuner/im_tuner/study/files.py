@@ -169,7 +169,13 @@ def write_tables_csv(st: StudyStats, out: Path) -> Path:
                 'threshold',
             )
         )
-        extra = (('remeasured', '', 3), ('fast', '', 1), ('fast_reached', '', 0))
+        extra = (
+            ('remeasured', '', 3),
+            ('fast', '', 1),
+            ('fast_reached', '', 0),
+            ('ripple_ratio', '', 2),
+            ('ripple_over', '', 0),
+        )
         for stat, _, _ in (*STATS, *extra, ('aborted_per_run', '', 1)):
             for c in st.cells:
                 iv = getattr(c, stat)

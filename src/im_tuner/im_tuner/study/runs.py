@@ -29,6 +29,7 @@ from im_drive_sim.params import DriveConfig
 from .. import optim
 from ..offline import OfflineBench
 from ..runlog import Evaluation, MemoryRecord, Record, Reference, Remeasurement
+from ..runlog.tally import ripple_summary
 from ..space import SearchSpace, TunerParams
 from ..tuning import DEFAULT_RETRIES, TuningRun, run_seeds
 from .results import ARRAYS_FILE, META_FILE, StudyResult, load, save
@@ -113,6 +114,11 @@ class RunResult:
     remeasured: float  #: the best's re-measured loss (nan: not re-measured)
     opt_s: float  #: wall time in ask + tell [s] (timing, not results)
     exp_s: float  #: wall time in experiments [s]
+    #: standstill rms of isq* [A] after the move, after the load: the start's, then the
+    #: final choice's (the gains the tuner would leave applied); nan: not measured
+    ripple: tuple[float, float, float, float] = (math.nan,) * 4
+    #: whether the ripple limit kept out a point the run would otherwise have re-measured
+    ripple_changed: bool = False
 
 
 def prepare_run(
@@ -203,6 +209,7 @@ def run_one(
         reference=True,
         progress=progress,
         first_step=first_step_of(spec, cell.first, space),
+        ripple_limit=spec.limit_of(cell),
     )
     try:
         outcome = tuning.run(OfflineBench(drive, drive_seed, experiment))
@@ -220,6 +227,17 @@ def run_one(
     rem = [x for x in tuning.records if isinstance(x, Remeasurement)]
     best = tuning.state.best
     exp_s = sum(x.wall_s or 0.0 for x in tuning.records)  # every attempt's bench time
+    rip = (
+        ripple_summary(tuning.records, tuning.final_choice(), tuning.ripple_limit, 1) or {}
+    )
+
+    def rms(d: dict[str, Any] | None) -> tuple[float, float]:
+        d = d or {}
+        return tuple(  # type: ignore[return-value]
+            math.nan if d.get(k) is None else float(d[k])
+            for k in ('rms_after_move', 'rms_after_load')
+        )
+
     return RunResult(
         cell=cell_index,
         run=r,
@@ -241,6 +259,8 @@ def run_one(
         remeasured=rem[0].loss if rem else math.nan,
         opt_s=wall - exp_s,
         exp_s=exp_s,
+        ripple=(*rms(rip.get('start')), *rms(rip.get('applied'))),
+        ripple_changed=bool(rip.get('changed')),
     )
 
 
@@ -379,6 +399,8 @@ def _allocate(spec: StudySpec, cells: list[Cell]) -> dict[str, Any]:
         'remeasured': np.full((C, R), np.nan),
         'opt_s': np.zeros((C, R)),
         'exp_s': np.zeros((C, R)),
+        'ripple': np.full((C, R, 4), np.nan),
+        'ripple_changed': np.zeros((C, R), bool),
     }
 
 

@@ -1,0 +1,236 @@
+"""The standstill-ripple limit of the final choice (issue 40 part 6; ``--ripple-limit``):
+the re-measured and applied gains are the best evaluated ones whose rms of isq* is within
+the limit x the start's in both standstill windows, the start if none is.
+
+A fake bench whose loss falls towards a point that ripples (rms grows with k_pw's
+coordinate), so the unlimited choice breaks the limit; then the same run with the limit,
+its summary, a resume, and the tuner's and study's options.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from im_controller.config import GAIN_NAMES, Gains
+from im_drive_sim.cli import UsageError
+from im_tuner import optim
+from im_tuner.names import DEFAULT_RIPPLE_LIMIT, default_ripple_limit, parse_ripple_limit
+from im_tuner.rundir import RunDir
+from im_tuner.runlog import RunConfig
+from im_tuner.space import load_params
+from im_tuner.tuner_args import build_parser
+from im_tuner.tuner_cli import _check_run, _new_run_config
+from im_tuner.tuning import Measurement, TuningRun
+
+SPACE = load_params().space
+U_START = SPACE.start_u
+
+
+class RippleBench:
+    """Loss = 1 + |u - u*|^2 (u* = the start + 0.15, but 0.9 in k_pw: the loss wants a
+    fast speed loop), standstill
+    rms of isq* = 0.15 A (after the move) and 0.20 A (after the load) x (1 + 8 max(0,
+    u_kpw - u_kpw,start)): the faster speed loop hunts at standstill, as on the plant."""
+
+    def __init__(self, ripple_gain: float = 8.0) -> None:
+        self.n = 0
+        self.k = ripple_gain
+        self.applied: Gains | None = None
+
+    def ripple_of(self, u: np.ndarray) -> tuple[float, float, float, float]:
+        f = 1.0 + self.k * max(0.0, float(u[0]) - float(U_START[0]))
+        return (0.15 * f, 1.2 * f, 0.20 * f, 1.5 * f)
+
+    def measure(self, gains: Gains) -> Measurement:
+        u = SPACE.to_u(gains)
+        target = np.clip(U_START + 0.15, 0.0, 1.0)
+        target[0] = 0.9
+        loss = 1.0 + float(np.sum((u - target) ** 2)) + 1e-3 * (self.n % 3)
+        eid, self.n = self.n, self.n + 1
+        return Measurement(
+            loss=loss,
+            terms=(loss, 0.0, 0.0),
+            aborted=False,
+            reason='',
+            fault=False,
+            experiment_id=eid,
+            direction=1 - 2 * (eid % 2),
+            steps=5625,
+            trip_step=-1,
+            t_start_ns=eid * 10**9,
+            t_end_ns=eid * 10**9 + 1125 * 10**6,
+            wall_s=0.001,
+            gains=gains.as_tuple(),
+            fresh=5625,
+            ripple=self.ripple_of(u),
+        )
+
+    def apply(self, gains: Gains) -> None:
+        self.applied = gains
+
+
+def run_with(path: Path, limit: float | None, bench: RippleBench | None = None, **kw):
+    bench = bench or RippleBench()
+    opt = optim.make_optimizer('safe', 5, 11, U_START)
+    run = TuningRun(
+        RunDir.create(path),
+        SPACE,
+        opt,
+        budget=40,
+        satisfactory_loss=0.5,
+        remeasure=3,
+        ripple_limit=limit,
+        **kw,
+    )
+    assert run.run(bench) == 'done'
+    return run, bench
+
+
+def ratio(bench: RippleBench, gains: Gains) -> float:
+    r, s = bench.ripple_of(SPACE.to_u(gains)), bench.ripple_of(U_START)
+    return max(r[0] / s[0], r[2] / s[2])
+
+
+def test_without_the_limit_the_choice_ripples_with_it_it_does_not(tmp_path):
+    free, bench0 = run_with(tmp_path / 'free', None)
+    assert bench0.applied is not None and ratio(bench0, bench0.applied) > 2.0
+    s0 = free.summary(outcome='done', wall_s=1.0)
+    assert s0.ripple['limit'] is None and s0.ripple['bound'] is None
+    assert s0.ripple['changed'] is False and s0.ripple['applied_within'] is None
+
+    lim, bench = run_with(tmp_path / 'lim', 1.5)
+    g = bench.applied
+    assert g is not None and g != Gains(*SPACE.start)
+    assert ratio(bench, g) <= 1.5 < ratio(bench, bench0.applied)
+    # the same search (the limit steers nothing): the same evaluations, others re-measured
+    e0 = [r.loss for r in free.records if r.kind == 'eval']
+    e1 = [r.loss for r in lim.records if r.kind == 'eval']
+    assert e0 == e1
+    rem0 = [r.eval for r in free.records if r.kind == 'remeasure']
+    rem1 = [r.eval for r in lim.records if r.kind == 'remeasure']
+    assert len(rem1) == 3 and rem0 != rem1
+    evals = {r.eval: r for r in lim.records if r.kind == 'eval'}
+    for i in rem1:  # every re-measured point is within the limit
+        assert ratio(bench, Gains(*(evals[i].gains[n] for n in GAIN_NAMES))) <= 1.5
+    s = lim.summary(outcome='done', wall_s=1.0)
+    rip = s.ripple
+    assert rip['limit'] == 1.5
+    assert rip['bound'] == pytest.approx({'rms_after_move': 0.225, 'rms_after_load': 0.30})
+    assert rip['start']['rms_after_move'] == pytest.approx(0.15)
+    assert rip['applied']['rms_after_move'] <= 0.225 and rip['applied_within'] is True
+    assert rip['changed'] is True and rip['excluded'] == rem0 and rip['fallback'] is False
+    assert s.applied['eval'] in rem1
+    # the price: the limited choice's loss is higher than the free one's
+    assert s.applied['loss'] > free.summary(outcome='done', wall_s=1.0).applied['loss']
+
+
+class Everywhere(RippleBench):
+    """The standstill rms grows with any change of the gains: only the start is within."""
+
+    def ripple_of(self, u):
+        f = 1.0 + 50.0 * float(np.sum(np.abs(u - U_START)))
+        return (0.15 * f, 1.2 * f, 0.20 * f, 1.5 * f)
+
+
+def test_with_no_point_within_the_limit_the_start_stays(tmp_path):
+    # safe's evaluation 1 is the start itself: the only point within, re-measured alone
+    run, bench = run_with(tmp_path / 'safe', 1.2, Everywhere())
+    assert bench.applied == Gains(*SPACE.start)
+    assert [r.eval for r in run.records if r.kind == 'remeasure'] == [0]
+    s = run.summary(outcome='done', wall_s=1.0)
+    assert s.ripple['changed'] is True and s.ripple['fallback'] is False
+    assert s.ripple['applied']['rms_after_move'] == pytest.approx(0.15)
+    # neCGA never measures the start: nothing is within, nothing re-measured, the start
+    # stays and the summary says why
+    opt = optim.make_optimizer('necga', 5, 11, None)
+    run = TuningRun(RunDir.create(tmp_path / 'necga'), SPACE, opt, budget=30,
+                    satisfactory_loss=0.5, remeasure=3, ripple_limit=1.2)  # fmt: skip
+    bench = Everywhere()
+    assert run.run(bench) == 'done'
+    assert bench.applied == Gains(*SPACE.start)
+    assert not [r for r in run.records if r.kind == 'remeasure']
+    s = run.summary(outcome='done', wall_s=1.0)
+    assert s.applied['source'] == 'reference' and s.ripple['fallback'] is True
+    assert s.best['loss'] < s.reference['loss']  # (it found lower losses: all too loud)
+
+
+def test_a_resumed_run_keeps_its_limit(tmp_path):
+    whole, bench = run_with(tmp_path / 'whole', 1.5)
+    # killed after 25 evaluations: resumed from run.yaml's limit, the same choice
+    part = tmp_path / 'part'
+    opt = optim.make_optimizer('safe', 5, 11, U_START)
+    b2 = RippleBench()
+    run = TuningRun(RunDir.create(part), SPACE, opt, budget=40, satisfactory_loss=0.5,
+                    remeasure=3, ripple_limit=1.5)  # fmt: skip
+    assert run.run(b2, should_stop=lambda: run.state.evals >= 25) == 'interrupted'
+    again = TuningRun(
+        RunDir(part),
+        SPACE,
+        optim.make_optimizer('safe', 5, 11, U_START),
+        budget=40,
+        satisfactory_loss=0.5,
+        remeasure=3,
+        ripple_limit=1.5,
+    )
+    again.restore()
+    assert again.run(b2) == 'done'
+    assert b2.applied == bench.applied
+
+
+# -- the options -------------------------------------------------------------------------------
+def _new(*args: str):
+    argv = ['tuner', *args]
+    return _new_run_config(build_parser().parse_args(argv[1:]), argv)
+
+
+def test_the_default_is_on_for_safe_off_for_the_papers_algorithms():
+    assert DEFAULT_RIPPLE_LIMIT == 1.5
+    assert default_ripple_limit('safe') == 1.5
+    assert all(default_ripple_limit(a) is None for a in optim.ALGOS if a != 'safe')
+    assert _new('--seed', '3', '--first', 'none').run.ripple_limit == 1.5
+    assert _new('--algo', 'necga', '--seed', '3').run.ripple_limit is None
+    assert _new('--algo', 'spsa', '--seed', '3', '--ripple-limit', '2').run.ripple_limit == 2.0
+    assert _new('--seed', '3', '--first', 'none', '--ripple-limit', 'off').run.ripple_limit is None
+    # without a reference the start's ripple is unknown: off by default, refused if given
+    assert _new('--seed', '3', '--first', 'none', '--no-reference').run.ripple_limit is None
+    # written to run.yaml, off as null (a resume reads it back)
+    text = _new('--algo', 'necga', '--seed', '3').run.to_text()
+    assert 'ripple_limit: null' in text
+    assert RunConfig.from_text(text).ripple_limit is None
+
+
+@pytest.mark.parametrize(
+    'args, expect',
+    [
+        (['--ripple-limit', '0.5'], "--ripple-limit: a ratio >= 1 or 'off', got '0.5'"),
+        (['--ripple-limit', 'inf'], "--ripple-limit: a ratio >= 1 or 'off', got 'inf'"),
+        (['--ripple-limit', 'loud'], "--ripple-limit: a ratio >= 1 or 'off', got 'loud'"),
+        (['--ripple-limit', '1.5', '--no-reference'], 'not with --no-reference'),
+    ],
+)
+def test_bad_limits_are_one_line(args, expect):
+    with pytest.raises(UsageError) as exc:
+        _new('--seed', '3', '--first', 'none', *args)
+    assert expect in str(exc.value) and '\n' not in str(exc.value)
+
+
+def test_a_run_file_with_a_bad_limit_is_refused():
+    run = _new('--algo', 'necga', '--seed', '3').run
+    for bad in (0.5, 'x', True, math.inf):
+        run.ripple_limit = bad
+        with pytest.raises(UsageError, match='ripple_limit must be a ratio >= 1 or null'):
+            _check_run(run, 'run.yaml')
+    run.ripple_limit = 1.5
+    _check_run(run, 'run.yaml')
+
+
+def test_parse():
+    assert parse_ripple_limit('off') is None and parse_ripple_limit('OFF') is None
+    assert parse_ripple_limit('1') == 1.0 and parse_ripple_limit('2.5') == 2.5
+    for bad in ('0.99', '-1', 'nan', '', '1.5x'):
+        with pytest.raises(ValueError):
+            parse_ripple_limit(bad)

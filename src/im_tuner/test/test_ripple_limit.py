@@ -124,6 +124,15 @@ def test_without_the_limit_the_choice_ripples_with_it_it_does_not(tmp_path):
     assert rip['applied']['rms_after_move'] <= 0.225 and rip['applied_within'] is True
     assert rip['changed'] is True and rip['excluded'] == rem0 and rip['fallback'] is False
     assert s.applied['eval'] in rem1
+    # the summary's and the report's line
+    from im_tuner.progress import mechanics_lines
+
+    line = mechanics_lines(s)[-1]
+    assert line == (
+        "  ripple limit 1.5x the start's (0.225/0.300 A rms): applied gains within it; "
+        'it kept out evaluations ' + ', '.join(str(i) for i in rem0)
+    )
+    assert mechanics_lines(s0)[-1] == '  ripple limit: off'
     # the price: the limited choice's loss is higher than the free one's
     assert s.applied['loss'] > free.summary(outcome='done', wall_s=1.0).applied['loss']
 
@@ -234,3 +243,38 @@ def test_parse():
     for bad in ('0.99', '-1', 'nan', '', '1.5x'):
         with pytest.raises(ValueError):
             parse_ripple_limit(bad)
+
+
+def test_the_issues_necga_run_on_the_paper_drive():
+    """Issue 40 part 6: the paper's drive (`ideal`), `--algo necga --budget 30 --seed 2`:
+    its choice hunts at standstill (0.585/0.587 A rms, 4.6 A peak-to-peak: 3.8x the
+    start's 0.155/0.198 A); with --ripple-limit 1.5 the same search leaves evaluation 22
+    applied (0.203/0.205 A rms) at a re-measured loss 8 % higher (0.831 against 0.769)."""
+    from im_drive_sim.drive_file import load_config
+    from im_tuner.offline import OfflineBench
+    from im_tuner.runlog import MemoryRecord
+    from im_tuner.tuning import run_seeds
+
+    drive = load_config(None)
+    got = {}
+    for limit in (None, 1.5):
+        opt_ss, drive_seed = run_seeds(2)
+        opt = optim.make_optimizer('necga', SPACE.dim, opt_ss, None)
+        run = TuningRun(MemoryRecord(), SPACE, opt, budget=30, satisfactory_loss=0.85,
+                        remeasure=3, ripple_limit=limit)  # fmt: skip
+        assert run.run(OfflineBench(drive, drive_seed, None)) == 'done'
+        got[limit] = run.summary(outcome='done', wall_s=0.0)
+    free, lim = got[None].ripple, got[1.5].ripple
+    start = free['start']
+    assert start == lim['start']
+    assert start['rms_after_move'] == pytest.approx(0.155, abs=0.001)
+    assert start['rms_after_load'] == pytest.approx(0.198, abs=0.001)
+    assert free['applied']['rms_after_move'] == pytest.approx(0.585, abs=0.001)
+    assert free['applied']['pp_after_move'] == pytest.approx(4.595, abs=0.001)
+    assert got[None].applied['eval'] == 25 and free['changed'] is False
+    assert got[1.5].applied['eval'] == 22 and lim['excluded'] == [25, 14]
+    for k in ('rms_after_move', 'rms_after_load'):
+        assert lim['applied'][k] <= 1.5 * start[k] < free['applied'][k]
+    assert lim['applied']['rms_after_move'] == pytest.approx(0.203, abs=0.001)
+    assert got[None].applied['remeasured_loss'] == pytest.approx(0.7695, abs=1e-4)
+    assert got[1.5].applied['remeasured_loss'] == pytest.approx(0.8315, abs=1e-4)

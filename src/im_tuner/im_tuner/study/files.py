@@ -62,6 +62,9 @@ def tuner_command(res: StudyResult, c: int, r: int, out: Path) -> str:
         args += ['--first', cell.first]
     if sp.drive_config:
         args += ['--drive-config', sp.drive_config]
+    if sp.ripple_limit != 'default':  # (the default: the tuner's own for the algorithm)
+        limit = sp.limit_of(cell)
+        args += ['--ripple-limit', 'off' if limit is None else repr(limit)]
 
     return ' '.join(shlex.quote(a) for a in args)
 

@@ -1,0 +1,100 @@
+"""The standstill-ripple limit's price (issue 40 part 6): per told drive and plant case,
+the same study twice, with the final choice's ripple limit 1.5 and without
+(``study --ripple-limit 1.5`` / ``off``), for the default (safe, first step from the
+identified drive) and the paper's SPSA and neCGA at their centre configurations.
+
+    python benchmarks/ripple_grid.py --out bags/ripple [--runs 8 --budget 60]
+        [--drives im750w-j1,im7500w-j10] [--cases exact,J=x0.5,...]
+
+Runs one ``study`` per (drive, case, limit) into OUT/<drive>/<case>/<limit>/ (a study
+already done is read, not re-run), then prints one markdown table: per case and row, the
+mean over runs of the applied gains' standstill rms of isq* over the start's (the larger
+window), the runs above 1.5, and the mean re-measured final loss (normalised by the
+plant's L_ref), without and with the limit, and the change of that loss.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+from mismatch_grid import CASES  # noqa: E402  (the same plant cases)
+
+ROWS = (
+    ('safe', 'first step from the identified drive', 'default (safe, identified)'),
+    ('spsa', 'a=0.0183 c=0.03', 'SPSA (paper centre)'),
+    ('necga', 'n=25 eta=12', 'neCGA (paper centre)'),
+)
+LIMITS = ('off', '1.5')
+
+
+def _study(drive: str, case: str, limit: str, out: Path, runs: int, budget: int) -> float:
+    cmd = [
+        sys.executable, '-m', 'im_tuner.study',
+        '--drives', drive, '--algos', 'safe,spsa,necga', '--runs', str(runs),
+        '--budget', str(budget), '--jobs', '2', '--quiet', '--out', str(out),
+        '--ripple-limit', limit,
+    ]  # fmt: skip
+    if CASES[case]:
+        cmd += ['--plant-mismatch', CASES[case]]
+    t0 = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    with (out.parent / f'{out.name}.log').open('w') as log:
+        subprocess.run(cmd, check=True, stdout=log, env=os.environ)
+    return time.perf_counter() - t0
+
+
+def _read(path: Path) -> dict[tuple[str, str, str], float]:
+    with path.open() as f:
+        return {
+            (r['statistic'], r['algo'], r['config']): float(r['value'])
+            for r in csv.DictReader(f)
+            if r['statistic'] in ('remeasured', 'ripple_ratio', 'ripple_over')
+        }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--out', type=Path, required=True)
+    ap.add_argument('--runs', type=int, default=8)
+    ap.add_argument('--budget', type=int, default=60)
+    ap.add_argument('--drives', default='im750w-j1,im7500w-j10')
+    ap.add_argument('--cases', default=','.join(CASES))
+    a = ap.parse_args()
+    print(
+        '| told drive | plant | row | ripple / start, off -> 1.5 | runs > 1.5, off -> 1.5 '
+        '| re-measured, off -> 1.5 | change |'
+    )
+    print('|---|---|---|---|---|---|---|')
+    for drive in a.drives.split(','):
+        for case in a.cases.split(','):
+            v, took = {}, []
+            for limit in LIMITS:
+                d = a.out / drive / case.replace('=', '') / limit
+                tables = d / drive / 'tables.csv'
+                if not tables.exists():
+                    took.append(f'{_study(drive, case, limit, d, a.runs, a.budget):.0f}')
+                v[limit] = _read(tables)
+            when = f' ({" + ".join(took)} s)' if took else ''
+            for al, cfg, lab in ROWS:
+                off, on = ({k: v[lim].get((k, al, cfg)) for k in ('remeasured', 'ripple_ratio',
+                           'ripple_over')} for lim in LIMITS)  # fmt: skip
+                change = 100.0 * (on['remeasured'] / off['remeasured'] - 1.0)
+                n_over = [round(x['ripple_over'] * a.runs / 100.0) for x in (off, on)]
+                print(
+                    f'| {drive} | {case}{when} | {lab} | {off["ripple_ratio"]:.2f} -> '
+                    f'{on["ripple_ratio"]:.2f} | {n_over[0]} -> {n_over[1]} of {a.runs} | '
+                    f'{off["remeasured"]:.3f} -> {on["remeasured"]:.3f} | {change:+.1f} % |',
+                    flush=True,
+                )
+                when = ''
+
+
+if __name__ == '__main__':
+    main()

@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
-from mismatch_grid import CASES  # noqa: E402  (the same plant cases)
+from mismatch_grid import CASES
 
 ROWS = (
     ('safe', 'first step from the identified drive', 'default (safe, identified)'),

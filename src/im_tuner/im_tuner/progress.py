@@ -145,14 +145,20 @@ def _limit_lines(r: dict[str, Any]) -> list[str]:
     if limit is None:
         return ['  ripple limit: off']
     if not bound:
-        return [f"  ripple limit {limit:g}x the start's: not applied (the start's ripple not measured)"]
-    b = '/'.join(f'{bound[k]:.3f}' if k in bound else '-' for k in ('rms_after_move', 'rms_after_load'))
+        return [
+            f"  ripple limit {limit:g}x the start's: not applied (the start's ripple not measured)"
+        ]
+    b = '/'.join(
+        f'{bound[k]:.3f}' if k in bound else '-' for k in ('rms_after_move', 'rms_after_load')
+    )
     if r.get('fallback'):
         what = 'no evaluated point within it: the start is applied'
     else:
-        what = 'applied gains within it' if r.get('applied_within') else 'applied gains NOT within it'
+        what = (
+            'applied gains within it' if r.get('applied_within') else 'applied gains NOT within it'
+        )
     if r.get('changed'):
-        what += f"; it kept out evaluation{'s' if len(r['excluded']) > 1 else ''} " + ', '.join(
+        what += f'; it kept out evaluation{"s" if len(r["excluded"]) > 1 else ""} ' + ', '.join(
             str(i) for i in r['excluded']
         )
     else:

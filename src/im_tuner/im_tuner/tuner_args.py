@@ -131,13 +131,13 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         '--ripple-limit',
         metavar='R|off',
-        help="the largest standstill current ripple the applied gains may have: the rms "
-        "of isq* in both standstill windows (after the move, after the load step) at most "
+        help='the largest standstill current ripple the applied gains may have: the rms '
+        'of isq* in both standstill windows (after the move, after the load step) at most '
         "R times the hand-tuned start's, as the reference experiment measures it; the "
-        "re-measured and applied gains are the best evaluated within it (the start if "
+        're-measured and applied gains are the best evaluated within it (the start if '
         f"none). A ratio >= 1 or 'off'. Default: {DEFAULT_RIPPLE_LIMIT:g} for "
         f"{', '.join(RIPPLE_LIMIT_ALGOS)}, off for the others (the paper's final controller is "
-        "the smallest loss); off with --no-reference (nothing to compare with) "
+        'the smallest loss); off with --no-reference (nothing to compare with) '
         '(docs/optimisers.md, "The standstill ripple")',
     )
     ap.add_argument(

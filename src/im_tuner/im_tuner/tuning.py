@@ -224,9 +224,10 @@ class TuningRun:
         """``ripple_limit``: the largest standstill rms of isq* the final choice may have,
         as a ratio to the start's in each window (the tuner's ``--ripple-limit``; None:
         off): the re-measured and applied gains are chosen among the evaluations within it
-        (``runlog.final_choice``).  ``first_step``: for ``safe`` with ``first='identify'``, what gives its first
-        step from the records so far (``im_tuner.first_step.IdentifiedFirstStep``): called
-        once, before evaluation 2 is asked (live and when a resume replays the records);
+        (``runlog.final_choice``).  ``first_step``: for ``safe`` with
+        ``first='identify'``, what gives its first step from the records so far
+        (``im_tuner.first_step.IdentifiedFirstStep``): called once, before evaluation 2
+        is asked (live and when a resume replays the records);
         its ``identified(records)`` goes into the summary."""
         if budget < 1:
             raise ValueError(f'budget must be >= 1, got {budget}')

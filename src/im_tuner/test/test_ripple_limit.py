@@ -168,26 +168,25 @@ def test_with_no_point_within_the_limit_the_start_stays(tmp_path):
 
 
 def test_a_resumed_run_keeps_its_limit(tmp_path):
-    whole, bench = run_with(tmp_path / 'whole', 1.5)
-    # killed after 25 evaluations: resumed from run.yaml's limit, the same choice
-    part = tmp_path / 'part'
-    opt = optim.make_optimizer('safe', 5, 11, U_START)
+    """The limit goes from the command line to run.yaml and from run.yaml to the resumed
+    run (``make_tuning``): killed after 25 evaluations, resumed, the same choice as the
+    run left alone."""
+    from im_tuner.tuner_cli import make_tuning
+
+    new = _new('--seed', '11', '--first', 'none', '--budget', '40')
+    assert new.run.ripple_limit == 1.5
+    whole = make_tuning(RunDir.create(tmp_path / 'whole'), new.run, new.params, None)
+    assert whole.ripple_limit == 1.5 and whole.run(bench := RippleBench()) == 'done'
+    part = make_tuning(RunDir.create(tmp_path / 'part'), new.run, new.params, None)
     b2 = RippleBench()
-    run = TuningRun(RunDir.create(part), SPACE, opt, budget=40, satisfactory_loss=0.5,
-                    remeasure=3, ripple_limit=1.5)  # fmt: skip
-    assert run.run(b2, should_stop=lambda: run.state.evals >= 25) == 'interrupted'
-    again = TuningRun(
-        RunDir(part),
-        SPACE,
-        optim.make_optimizer('safe', 5, 11, U_START),
-        budget=40,
-        satisfactory_loss=0.5,
-        remeasure=3,
-        ripple_limit=1.5,
-    )
-    again.restore()
+    assert part.run(b2, should_stop=lambda: part.state.evals >= 25) == 'interrupted'
+    run = RunConfig.from_text(new.run.to_text())  # (run.yaml read back)
+    again = make_tuning(RunDir(tmp_path / 'part'), run, new.params, None)
+    assert again.ripple_limit == 1.5 and again.restore() > 25
     assert again.run(b2) == 'done'
-    assert b2.applied == bench.applied
+    assert b2.applied == bench.applied and bench.applied != Gains(*SPACE.start)
+    s = again.summary(outcome='done', wall_s=1.0)
+    assert s.ripple['changed'] is True and s.ripple['applied_within'] is True
 
 
 # -- the options -------------------------------------------------------------------------------

@@ -18,9 +18,9 @@ __all__ = [
     'TunerState',
     'brief',
     'final_choice',
+    'replay_plan',
     'ripple_bound',
     'ripple_of_gains',
-    'replay_plan',
     'summarize',
     'tally',
     'tally_all',
@@ -133,7 +133,9 @@ def tally_all(records: list[Record], satisfactory_loss: float) -> TunerState:
     return st
 
 
-def ripple_of_gains(records: list[Record], gains: dict[str, float] | None) -> dict[str, float | None] | None:
+def ripple_of_gains(
+    records: list[Record], gains: dict[str, float] | None
+) -> dict[str, float | None] | None:
     """The standstill ripple of ``gains``: each key of the records' ``ripple`` (A) averaged
     over the completed experiments of those gains (None: no experiment measured it)."""
     rs = [
@@ -220,7 +222,9 @@ def final_choice(
         cand = None
         best = top_evals(records, 1, bound)
         if best:
-            cand = next(brief(r) for r in records if isinstance(r, Evaluation) and r.eval == best[0])
+            cand = next(
+                brief(r) for r in records if isinstance(r, Evaluation) and r.eval == best[0]
+            )
     if st.remeasured:
         ok = [
             r
@@ -242,7 +246,9 @@ def final_choice(
 
 def _gains_of_eval(records: list[Record], i: int) -> dict[str, float]:
     """The gains of completed evaluation ``i``."""
-    return next(r.gains for r in records if isinstance(r, Evaluation) and r.eval == i and r.status == 'ok')
+    return next(
+        r.gains for r in records if isinstance(r, Evaluation) and r.eval == i and r.status == 'ok'
+    )
 
 
 def summarize(
@@ -348,7 +354,10 @@ def ripple_summary(
     out['changed'] = bool(excluded)
     out['excluded'] = excluded
     out['fallback'] = bool(
-        bound is not None and final is not None and final['eval'] < 0 and not top_evals(records, 1, bound)
+        bound is not None
+        and final is not None
+        and final['eval'] < 0
+        and not top_evals(records, 1, bound)
     )
     return out
 

@@ -143,12 +143,12 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         '--ripple-limit',
-        metavar="R|off",
+        metavar='R|off',
         default=None,
         help="the final choice's standstill-ripple limit for every row, as the tuner's "
         "--ripple-limit: a ratio >= 1 to the start's rms of isq* in both standstill "
         "windows, or 'off' (default: each row's tuner default, on (1.5) for safe, off for "
-        "the others); e.g. --algos spsa,necga --ripple-limit 1.5 shows what the limit "
+        'the others); e.g. --algos spsa,necga --ripple-limit 1.5 shows what the limit '
         "costs the paper's algorithms",
     )
     ap.add_argument(

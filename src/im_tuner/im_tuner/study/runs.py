@@ -227,9 +227,7 @@ def run_one(
     rem = [x for x in tuning.records if isinstance(x, Remeasurement)]
     best = tuning.state.best
     exp_s = sum(x.wall_s or 0.0 for x in tuning.records)  # every attempt's bench time
-    rip = (
-        ripple_summary(tuning.records, tuning.final_choice(), tuning.ripple_limit, 1) or {}
-    )
+    rip = ripple_summary(tuning.records, tuning.final_choice(), tuning.ripple_limit, 1) or {}
 
     def rms(d: dict[str, Any] | None) -> tuple[float, float]:
         d = d or {}

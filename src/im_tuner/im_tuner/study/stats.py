@@ -39,7 +39,6 @@ import numpy as np
 import scipy.stats
 
 from ..names import DEFAULT_RIPPLE_LIMIT
-
 from .results import StudyResult
 from .spec import MIN_RUNS_FOR_INTERVALS, Cell
 
@@ -117,7 +116,9 @@ class CellStats:
     aborted_per_run: Interval  #: mean aborted experiments per run
     #: mean over runs of the final choice's standstill rms of isq* / the start's (the larger
     #: of the two windows); nan: not measured
-    ripple_ratio: Interval = field(default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0))
+    ripple_ratio: Interval = field(
+        default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0)
+    )
     #: % of runs whose ripple ratio exceeds the default limit (names.DEFAULT_RIPPLE_LIMIT)
     ripple_over: Interval = field(default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0))
 

@@ -114,8 +114,9 @@ class CellStats:
     fast: Interval  #: median evaluations to <= FAST_LEVEL (runs that reach it)
     fast_reached: Interval  #: % of runs reaching FAST_LEVEL (Wilson)
     aborted_per_run: Interval  #: mean aborted experiments per run
-    #: mean over runs of the final choice's standstill rms of isq* / the start's (the larger
-    #: of the two windows); nan: not measured
+    #: median over runs of the final choice's standstill rms of isq* / the start's (the
+    #: larger of the two windows; a median: a quiet random start makes one ratio huge);
+    #: nan: not measured
     ripple_ratio: Interval = field(
         default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0)
     )
@@ -314,7 +315,9 @@ def compute(res: StudyResult, threshold: float | None = None) -> StudyStats:
                     float(pr['aborted'][c].mean()), boot.mean(pr['aborted'][c]), res.spec.runs
                 ),
                 ripple_ratio=boot.interval(
-                    _nanmean(pr['ripple_ratio'][c]), boot.mean(pr['ripple_ratio'][c]), nr
+                    float(_median_defined(rr)) if nr else math.nan,
+                    boot.dist(_median_defined, rr),
+                    nr,
                 ),
                 ripple_over=Interval(100.0 * ko / nr if nr else math.nan, 100 * olo, 100 * ohi, nr),
             )

@@ -8,15 +8,15 @@ identified drive) and the paper's SPSA and neCGA at their centre configurations.
 
 Runs one ``study`` per (drive, case, limit) into OUT/<drive>/<case>/<limit>/ (a study
 already done is read, not re-run), then prints one markdown table: per case and row, the
-mean over runs of the applied gains' standstill rms of isq* over the start's (the larger
-window), the runs above 1.5, and the mean re-measured final loss (normalised by the
-plant's L_ref), without and with the limit, and the change of that loss.
+median over runs of the applied gains' standstill rms of isq* over the start's (the larger
+window), the runs above 1.5, the aborted experiments per run and the mean re-measured
+final loss (normalised by the plant's L_ref), without and with the limit, and the change
+of that loss.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import subprocess
 import sys
@@ -34,10 +34,12 @@ ROWS = (
 LIMITS = ('off', '1.5')
 
 
-def _study(drive: str, case: str, limit: str, out: Path, runs: int, budget: int) -> float:
+def _study(
+    drive: str, case: str, limit: str, out: Path, runs: int, budget: int, algos: str
+) -> float:
     cmd = [
         sys.executable, '-m', 'im_tuner.study',
-        '--drives', drive, '--algos', 'safe,spsa,necga', '--runs', str(runs),
+        '--drives', drive, '--algos', algos, '--runs', str(runs),
         '--budget', str(budget), '--jobs', '2', '--quiet', '--out', str(out),
         '--ripple-limit', limit,
     ]  # fmt: skip
@@ -50,13 +52,17 @@ def _study(drive: str, case: str, limit: str, out: Path, runs: int, budget: int)
     return time.perf_counter() - t0
 
 
-def _read(path: Path) -> dict[tuple[str, str, str], float]:
-    with path.open() as f:
-        return {
-            (r['statistic'], r['algo'], r['config']): float(r['value'])
-            for r in csv.DictReader(f)
-            if r['statistic'] in ('remeasured', 'ripple_ratio', 'ripple_over')
-        }
+def _read(study_dir: Path) -> dict[tuple[str, str, str], float]:
+    """(statistic, algo, config) -> value of a study directory, tabulated afresh (a study
+    written before a statistic changed is read the same way)."""
+    from im_tuner.study.results import load
+    from im_tuner.study.stats import compute
+
+    out = {}
+    for c in compute(load(study_dir)).cells:
+        for k in ('remeasured', 'ripple_ratio', 'ripple_over', 'aborted_per_run'):
+            out[(k, c.cell.algo, c.cell.label)] = getattr(c, k).value
+    return out
 
 
 def main() -> None:
@@ -66,30 +72,33 @@ def main() -> None:
     ap.add_argument('--budget', type=int, default=60)
     ap.add_argument('--drives', default='im750w-j1,im7500w-j10')
     ap.add_argument('--cases', default=','.join(CASES))
+    ap.add_argument('--algos', default='safe,spsa,necga', help="the study's --algos")
     a = ap.parse_args()
     print(
-        '| told drive | plant | row | ripple / start, off -> 1.5 | runs > 1.5, off -> 1.5 '
-        '| re-measured, off -> 1.5 | change |'
+        '| told drive | plant | row | ripple / start (median), off -> 1.5 | runs > 1.5 '
+        '| aborted / run | re-measured, off -> 1.5 | change |'
     )
-    print('|---|---|---|---|---|---|---|')
+    print('|---|---|---|---|---|---|---|---|')
     for drive in a.drives.split(','):
         for case in a.cases.split(','):
             v, took = {}, []
             for limit in LIMITS:
                 d = a.out / drive / case.replace('=', '') / limit
-                tables = d / drive / 'tables.csv'
-                if not tables.exists():
-                    took.append(f'{_study(drive, case, limit, d, a.runs, a.budget):.0f}')
-                v[limit] = _read(tables)
+                if not (d / drive / 'study.npz').exists():
+                    took.append(f'{_study(drive, case, limit, d, a.runs, a.budget, a.algos):.0f}')
+                v[limit] = _read(d / drive)
             when = f' ({" + ".join(took)} s)' if took else ''
             for al, cfg, lab in ROWS:
-                off, on = ({k: v[lim].get((k, al, cfg)) for k in ('remeasured', 'ripple_ratio',
-                           'ripple_over')} for lim in LIMITS)  # fmt: skip
+                if ('remeasured', al, cfg) not in v['off']:
+                    continue  # (not in this study's --algos)
+                off, on = ({k: v[lim][(k, al, cfg)] for k in ('remeasured', 'ripple_ratio',
+                           'ripple_over', 'aborted_per_run')} for lim in LIMITS)  # fmt: skip
                 change = 100.0 * (on['remeasured'] / off['remeasured'] - 1.0)
                 n_over = [round(x['ripple_over'] * a.runs / 100.0) for x in (off, on)]
                 print(
                     f'| {drive} | {case}{when} | {lab} | {off["ripple_ratio"]:.2f} -> '
                     f'{on["ripple_ratio"]:.2f} | {n_over[0]} -> {n_over[1]} of {a.runs} | '
+                    f'{off["aborted_per_run"]:.1f} -> {on["aborted_per_run"]:.1f} | '
                     f'{off["remeasured"]:.3f} -> {on["remeasured"]:.3f} | {change:+.1f} % |',
                     flush=True,
                 )

@@ -65,7 +65,7 @@ from .runlog import (
     tally,
 )
 from .runlog.records import LINE_ORDER, ripple_dict
-from .runlog.tally import ripple_bound, top_evals
+from .runlog.tally import ripple_bound, told_loss, top_evals
 from .space import SearchSpace
 
 __all__ = [
@@ -314,8 +314,10 @@ class TuningRun:
                         f'{self.rundir.path}: evaluation {rec.eval} in results.jsonl is not '
                         'what the checkpointed optimiser asks; the files do not belong together'
                     )
+            # above the ripple limit: what the search is told (runlog.told_loss)
+            told = told_loss(self.records, rec, self.ripple_limit)
             t0 = time.perf_counter()
-            self.opt.tell_measurement(u, rec.loss, bool(rec.aborted))
+            self.opt.tell_measurement(u, told, bool(rec.aborted))
             if live:
                 self.state.opt_us.append(self._ask_us + 1e6 * (time.perf_counter() - t0))
         tally(self.state, rec, self.satisfactory)

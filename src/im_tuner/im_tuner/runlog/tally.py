@@ -5,6 +5,7 @@ run's records go (:class:`RunRecord`: a run directory, or :class:`MemoryRecord`)
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -24,6 +25,7 @@ __all__ = [
     'summarize',
     'tally',
     'tally_all',
+    'told_loss',
     'top_evals',
     'within_limit',
 ]
@@ -203,6 +205,47 @@ def top_evals(records: list[Record], k: int, bound: dict[str, float] | None = No
         if len(out) == k:
             break
     return out
+
+
+#: Above the ripple limit the loss told to the optimiser is multiplied by
+#: 1 + RIPPLE_PENALTY (r - 1), r = the experiment's rms over the limit's bound
+#: (:func:`told_loss`; docs/optimisers.md, "The standstill ripple": 1, 2 and 4 measured).
+RIPPLE_PENALTY = 1.0
+
+
+def _over(rip: dict[str, Any] | None, bound: dict[str, float]) -> float | None:
+    """The largest of one experiment's standstill rms over ``bound`` in the windows it
+    bounds (None: a bounded window not measured)."""
+    if not rip:
+        return None
+    r = [float(v) / b for k, b in bound.items() if (v := rip.get(k)) is not None]
+    return max(r) if len(r) == len(bound) else None
+
+
+def told_loss(records: list[Record], rec: Evaluation, ripple_limit: float | None) -> float:
+    """The loss the optimiser is told for evaluation ``rec`` (``records``: those before
+    it): the measured one, but above the ripple limit (its own rms r times the bound,
+    r > 1) ``max(L (1 + RIPPLE_PENALTY (r - 1)), L_quiet)``, L_quiet the smallest loss
+    measured so far by an evaluation within the limit.  So a loud point is never better
+    than a quiet one already found (the search does not settle where only loud gains are
+    good: the first step from a model that does not see the limit cycle often lands
+    there), and among loud points the louder costs more.  Without a limit, for an
+    aborted experiment (already penalised) or without a measured start: the loss."""
+    if ripple_limit is None or rec.aborted or rec.loss is None:
+        return rec.loss
+    bound = ripple_bound(records, ripple_limit)
+    r = None if bound is None else _over(rec.ripple, bound)
+    if bound is None or r is None or r <= 1.0:
+        return rec.loss
+    quiet = [
+        x.loss
+        for x in records
+        if isinstance(x, Evaluation)
+        and x.status == 'ok'
+        and (q := _over(x.ripple, bound)) is not None
+        and q <= 1.0
+    ]
+    return max(rec.loss * (1.0 + RIPPLE_PENALTY * (r - 1.0)), min(quiet, default=-math.inf))
 
 
 def final_choice(

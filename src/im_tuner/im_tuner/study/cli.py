@@ -144,12 +144,9 @@ def _build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         '--ripple-limit',
         metavar='R|off',
-        default=None,
-        help="the final choice's standstill-ripple limit for every row, as the tuner's "
-        "--ripple-limit: a ratio >= 1 to the start's rms of isq* in both standstill "
-        "windows, or 'off' (default: each row's tuner default, on (1.5) for safe, off for "
-        'the others); e.g. --algos spsa,necga --ripple-limit 1.5 shows what the limit '
-        "costs the paper's algorithms",
+        help="every row's standstill-ripple limit, as the tuner's --ripple-limit (default: "
+        "each row's tuner default: 1.5 for safe, off for the others); e.g. --algos "
+        "spsa,necga --ripple-limit 1.5: what the limit costs the paper's algorithms",
     )
     ap.add_argument(
         '--realism',
@@ -301,14 +298,14 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
         plant, mismatch = plant_options(cli.plant, cli.plant_mismatch, drives)
     except PlantError as exc:
         raise StudyError(str(exc)) from None
-    ripple_limit: float | str | None = 'default'
-    if cli.ripple_limit is not None:
-        from ..names import parse_ripple_limit
+    from ..names import parse_ripple_limit
 
-        try:
-            ripple_limit = parse_ripple_limit(cli.ripple_limit)
-        except ValueError as exc:
-            raise StudyError(str(exc)) from None
+    try:
+        ripple_limit = (
+            'default' if cli.ripple_limit is None else parse_ripple_limit(cli.ripple_limit)
+        )
+    except ValueError as exc:
+        raise StudyError(str(exc)) from None
     if cli.algos is None:
         algos = S.STUDY_ALGOS if drives else S.PAPER_ALGOS
     else:

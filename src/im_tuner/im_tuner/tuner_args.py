@@ -133,9 +133,10 @@ def build_parser() -> argparse.ArgumentParser:
         metavar='R|off',
         help='the largest standstill current ripple the applied gains may have: the rms '
         'of isq* in both standstill windows (after the move, after the load step) at most '
-        "R times the hand-tuned start's, as the reference experiment measures it; the "
-        're-measured and applied gains are the best evaluated within it (the start if '
-        f"none). A ratio >= 1 or 'off'. Default: {DEFAULT_RIPPLE_LIMIT:g} for "
+        "R times the hand-tuned start's, as the reference experiment measures it; a "
+        'louder evaluation is told to the optimiser as no better than the best quiet one '
+        'so far, and the re-measured and applied gains are the best evaluated within it '
+        f"(the start if none). A ratio >= 1 or 'off'. Default: {DEFAULT_RIPPLE_LIMIT:g} for "
         f"{', '.join(RIPPLE_LIMIT_ALGOS)}, off for the others (the paper's final controller is "
         'the smallest loss); off with --no-reference (nothing to compare with) '
         '(docs/optimisers.md, "The standstill ripple")',

@@ -310,3 +310,20 @@ def test_the_issues_necga_run_on_the_paper_drive():
     for k in ('rms_after_move', 'rms_after_load'):
         assert lim.ripple['applied'][k] <= 1.5 * start[k]
     assert lim.ripple['applied']['rms_after_move'] == pytest.approx(0.177, abs=0.001)
+
+
+def test_a_study_run_that_keeps_its_start_reports_the_starts_loss():
+    """A study row with the limit (``study --ripple-limit``): a neCGA run of 4 evaluations
+    on the paper's drive finds nothing within 1.0x the start's ripple, so the start stays:
+    its re-measured column is the reference's loss (not left out of the mean), its ripple
+    the start's; without the limit its best (louder) evaluation is re-measured."""
+    from im_tuner.study.runs import run_one
+    from im_tuner.study.spec import StudySpec
+
+    lim = run_one(StudySpec(runs=1, budget=4, algos=('necga',), ripple_limit=1.0), 1, 0)
+    assert lim.remeasured == lim.ref_loss == pytest.approx(0.9803, abs=1e-4)
+    assert lim.ripple[2:] == lim.ripple[:2] and lim.ripple_changed
+    assert lim.ripple[0] == pytest.approx(0.1546, abs=1e-4)
+    free = run_one(StudySpec(runs=1, budget=4, algos=('necga',), ripple_limit=None), 1, 0)
+    assert math.isfinite(free.remeasured) and free.remeasured != free.ref_loss
+    assert not free.ripple_changed

@@ -111,7 +111,9 @@ class RunResult:
     iteration: np.ndarray  #: int32[budget]: SPSA iteration / GA generation (1-based)
     best_eval: int  #: smallest non-aborted loss (-1: none)
     best_gains: tuple[float, ...]
-    remeasured: float  #: the best's re-measured loss (nan: not re-measured)
+    #: the best's re-measured loss (nan: not re-measured; the reference's loss when the
+    #: ripple limit left no evaluation within it, the start applied)
+    remeasured: float
     opt_s: float  #: wall time in ask + tell [s] (timing, not results)
     exp_s: float  #: wall time in experiments [s]
     #: standstill rms of isq* [A] after the move, after the load: the start's, then the
@@ -254,7 +256,9 @@ def run_one(
             if best is None
             else tuple(float(best['gains'][n]) for n in GAIN_NAMES)
         ),
-        remeasured=rem[0].loss if rem else math.nan,
+        # (the ripple limit left no evaluation within it: the start stays applied, and
+        # its loss is the reference's, not left out of the study's mean)
+        remeasured=rem[0].loss if rem else (ref.loss if rip.get('fallback') else math.nan),
         opt_s=wall - exp_s,
         exp_s=exp_s,
         ripple=(*rms(rip.get('start')), *rms(rip.get('applied'))),

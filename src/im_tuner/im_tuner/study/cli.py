@@ -17,6 +17,7 @@ import os
 import shlex
 import signal
 import sys
+import tempfile
 import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -29,6 +30,9 @@ from . import spec as S
 from .drives import FamilyResult, drive_dirs, is_family, load_family, save_family
 from .results import META_FILE, StudyResult, load, save
 from .spec import EXIT_USAGE, StudyError
+
+#: im_tuner.prior.CACHE_ENV (not imported here: it loads the kernels)
+PRIOR_CACHE_ENV = 'IM_TUNER_PRIOR_CACHE'
 
 if TYPE_CHECKING:
     from .stats import StudyStats
@@ -468,6 +472,13 @@ def _run(
     writing = False  # (files are being written: an interruption leaves them incomplete)
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
+    # The workers share the first steps they compute (a study's runs on one drive share a
+    # few models: each computed once, not once per worker): a directory for this study,
+    # unless the caller names one.
+    cache = None
+    if spec is not None and not os.environ.get(PRIOR_CACHE_ENV):
+        cache = tempfile.TemporaryDirectory(prefix='im_tuner_priors_')
+        os.environ[PRIOR_CACHE_ENV] = cache.name
     try:
         if spec is not None and spec.drives:
             res = _study_drives(cli, spec, out, command)
@@ -509,6 +520,9 @@ def _run(
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if cache is not None:
+            os.environ.pop(PRIOR_CACHE_ENV, None)
+            cache.cleanup()
     print(paths['tables'].read_text(), end='')
     print(
         f'study written to {out}/: '

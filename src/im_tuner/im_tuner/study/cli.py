@@ -145,13 +145,7 @@ def _build_parser() -> argparse.ArgumentParser:
         'Coulomb friction to P %% of rated torque, delay=D the command delay (1 or 2 '
         "periods); e.g. 'J=x1.5 Rr=x1.3 Lm=x0.85 coulomb=2%% delay=2'",
     )
-    ap.add_argument(
-        '--ripple-limit',
-        metavar='R|off',
-        help="every row's standstill-ripple limit, as the tuner's --ripple-limit (default: "
-        "each row's tuner default: 1.5 for safe, off for the others); e.g. --algos "
-        "spsa,necga --ripple-limit 1.5: what the limit costs the paper's algorithms",
-    )
+    ap.add_argument('--ripple-limit', metavar='R|off', help=S.RIPPLE_LIMIT_HELP)
     ap.add_argument(
         '--realism',
         choices=tuple(REALISM_PROFILES),
@@ -302,14 +296,7 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
         plant, mismatch = plant_options(cli.plant, cli.plant_mismatch, drives)
     except PlantError as exc:
         raise StudyError(str(exc)) from None
-    from ..names import parse_ripple_limit
-
-    try:
-        ripple_limit = (
-            'default' if cli.ripple_limit is None else parse_ripple_limit(cli.ripple_limit)
-        )
-    except ValueError as exc:
-        raise StudyError(str(exc)) from None
+    ripple_limit = S.ripple_limit_option(cli.ripple_limit)
     if cli.algos is None:
         algos = S.STUDY_ALGOS if drives else S.PAPER_ALGOS
     else:
@@ -439,9 +426,7 @@ def main(args: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return EXIT_USAGE
-    if cli.source is not None and (
-        cli.plant is not None or cli.plant_mismatch is not None or cli.ripple_limit is not None
-    ):
+    if cli.source is not None and {cli.plant, cli.plant_mismatch, cli.ripple_limit} != {None}:
         print(
             'error: study: --from re-tabulates: its plant and limit are the ones it ran with '
             '(no --plant, --plant-mismatch or --ripple-limit)',

@@ -380,6 +380,27 @@ class StudySpec:
         return load_params(self.params_file) if self.params_file else self.setup().params
 
 
+#: ``study --ripple-limit``'s help (the value: :func:`ripple_limit_option`)
+RIPPLE_LIMIT_HELP = (
+    "every row's standstill-ripple limit, as the tuner's --ripple-limit (default: each "
+    "row's tuner default: 1.5 for safe, off for the others); e.g. --algos spsa,necga "
+    "--ripple-limit 1.5: what the limit costs the paper's algorithms"
+)
+
+
+def ripple_limit_option(text: str | None) -> float | str | None:
+    """``study --ripple-limit``'s value as :attr:`StudySpec.ripple_limit`: 'default' when
+    not given, a ratio, None for 'off'; :class:`StudyError` (one line) for anything else."""
+    if text is None:
+        return 'default'
+    from ..names import parse_ripple_limit
+
+    try:
+        return parse_ripple_limit(text)
+    except ValueError as exc:
+        raise StudyError(str(exc)) from None
+
+
 def default_jobs() -> int:
     """Every core this process may use."""
     try:

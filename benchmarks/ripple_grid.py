@@ -17,6 +17,7 @@ of that loss.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import subprocess
 import sys
@@ -65,6 +66,10 @@ def _read(study_dir: Path) -> dict[tuple[str, str, str], float]:
     return out
 
 
+def _n(x: float, fmt: str = '.2f') -> str:
+    return '-' if math.isnan(x) else format(x, fmt)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', type=Path, required=True)
@@ -94,10 +99,11 @@ def main() -> None:
                 off, on = ({k: v[lim][(k, al, cfg)] for k in ('remeasured', 'ripple_ratio',
                            'ripple_over', 'aborted_per_run')} for lim in LIMITS)  # fmt: skip
                 change = 100.0 * (on['remeasured'] / off['remeasured'] - 1.0)
-                n_over = [round(x['ripple_over'] * a.runs / 100.0) for x in (off, on)]
+                # (nan: the start's ripple not measured, e.g. its reference aborted)
+                n_over = [_n(x['ripple_over'] * a.runs / 100.0, '.0f') for x in (off, on)]
                 print(
-                    f'| {drive} | {case}{when} | {lab} | {off["ripple_ratio"]:.2f} -> '
-                    f'{on["ripple_ratio"]:.2f} | {n_over[0]} -> {n_over[1]} of {a.runs} | '
+                    f'| {drive} | {case}{when} | {lab} | {_n(off["ripple_ratio"])} -> '
+                    f'{_n(on["ripple_ratio"])} | {n_over[0]} -> {n_over[1]} of {a.runs} | '
                     f'{off["aborted_per_run"]:.1f} -> {on["aborted_per_run"]:.1f} | '
                     f'{off["remeasured"]:.3f} -> {on["remeasured"]:.3f} | {change:+.1f} % |',
                     flush=True,

@@ -145,6 +145,7 @@ def _build_parser() -> argparse.ArgumentParser:
         'Coulomb friction to P %% of rated torque, delay=D the command delay (1 or 2 '
         "periods); e.g. 'J=x1.5 Rr=x1.3 Lm=x0.85 coulomb=2%% delay=2'",
     )
+    ap.add_argument('--ripple-limit', metavar='R|off', help=S.RIPPLE_LIMIT_HELP)
     ap.add_argument(
         '--realism',
         choices=tuple(REALISM_PROFILES),
@@ -295,6 +296,7 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
         plant, mismatch = plant_options(cli.plant, cli.plant_mismatch, drives)
     except PlantError as exc:
         raise StudyError(str(exc)) from None
+    ripple_limit = S.ripple_limit_option(cli.ripple_limit)
     if cli.algos is None:
         algos = S.STUDY_ALGOS if drives else S.PAPER_ALGOS
     else:
@@ -336,6 +338,7 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
             full_grid=not drives or cli.full_grid,
             plant=plant,
             mismatch=mismatch,
+            ripple_limit=ripple_limit,
         )
     except ValueError as exc:
         raise StudyError(f'--{exc}') from None  # the messages start with the option's name
@@ -423,10 +426,10 @@ def main(args: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return EXIT_USAGE
-    if cli.source is not None and (cli.plant is not None or cli.plant_mismatch is not None):
+    if cli.source is not None and {cli.plant, cli.plant_mismatch, cli.ripple_limit} != {None}:
         print(
-            'error: study: --from re-tabulates: its plant is the one it ran on (no --plant '
-            'or --plant-mismatch)',
+            'error: study: --from re-tabulates: its plant and limit are the ones it ran with '
+            '(no --plant, --plant-mismatch or --ripple-limit)',
             file=sys.stderr,
         )
         return EXIT_USAGE

@@ -138,10 +138,13 @@ class _ModelBench:
 
 
 def _search(
-    model: DriveConfig, experiment: ExperimentConfig | None, space: SearchSpace
+    model: DriveConfig,
+    experiment: ExperimentConfig | None,
+    space: SearchSpace,
+    evaluations: int = MODEL_EVALUATIONS,
 ) -> tuple[list[tuple[float, bool, tuple[float, ...]]], _ModelBench]:
-    """Step 1: ``safe`` on the nominal model, once per seed; the measured points (the
-    first is the start's) and the bench."""
+    """Step 1: ``safe`` on the nominal model, ``evaluations`` experiments per seed; the
+    measured points (the first is the start's) and the bench."""
     from .optim import make_optimizer
 
     bench = _ModelBench(model, experiment)
@@ -149,7 +152,7 @@ def _search(
     seen: list[tuple[float, bool, tuple[float, ...]]] = []
     for seed in SEEDS:
         opt = make_optimizer('safe', space.dim, seed, space.start_u)
-        for _ in range(MODEL_EVALUATIONS):
+        for _ in range(evaluations):
             u = opt.ask()
             loss, aborted = bench.loss(space, u)
             opt.tell_measurement(u, loss, aborted)
@@ -162,9 +165,10 @@ def _compute(
     experiment: ExperimentConfig | None,
     space: SearchSpace,
     perturbations: tuple[tuple[float, float], ...] = PERTURBATIONS,
+    evaluations: int = MODEL_EVALUATIONS,
 ) -> Prior | None:
     t0 = time.perf_counter()
-    seen, bench = _search(model, experiment, space)
+    seen, bench = _search(model, experiment, space, evaluations)
     start = tuple(space.start_u.tolist())
     f0 = next((loss for loss, ab, u in seen if u == start and not ab), None)
     if f0 is None:  # the box's start is unstable on the model: no ratio to beat, no prior
@@ -227,6 +231,9 @@ ROUND_TC = 0.005
 #: The identified model's perturbations: J within +-(the larger of this and 3 standard
 #: deviations of the identified J), Rr as for the file's model (not identified).
 IDENTIFIED_J_SPREAD = 0.1
+#: Experiments per seed of the offline search on the identified model (the file's model:
+#: ``MODEL_EVALUATIONS``): TBD
+IDENTIFIED_MODEL_EVALUATIONS = 300
 
 
 def identified_model(
@@ -266,11 +273,12 @@ def identified_prior(
     lo, hi = 1.0 - min(spread, 0.5), 1.0 + spread
     perturbations = ((lo, 0.8), (lo, 1.2), (hi, 0.8), (hi, 1.2), (lo, 1.0), (hi, 1.0))
     key = json.dumps(
-        ['identified', model.to_dict(), repr(exp), dataclasses.asdict(space), spread],
+        ['identified', model.to_dict(), repr(exp), dataclasses.asdict(space), spread,
+         IDENTIFIED_MODEL_EVALUATIONS],
         sort_keys=True,
     )
     if key not in _CACHE:
-        _CACHE[key] = _compute(model, exp, space, perturbations)
+        _CACHE[key] = _compute(model, exp, space, perturbations, IDENTIFIED_MODEL_EVALUATIONS)
     return _CACHE[key]
 
 

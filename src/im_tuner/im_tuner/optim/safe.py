@@ -147,7 +147,6 @@ class SAFE(Optimizer):
     )
     BAD_STATE: ClassVar[str] = 'not a safe state ({error!r:.80})'
     first_left: bool  #: the model's point not proposed yet
-    recheck: bool  #: first='identify': the model's point, just taken, to be measured again
 
     def __init__(
         self,
@@ -214,7 +213,6 @@ class SAFE(Optimizer):
         self._vals: list[float] = []
         # the model's point not yet proposed (first=identify: not given yet either)
         self.first_left = self._first is not None or self._identify
-        self.recheck = False
 
     @property
     def iterations(self) -> int:
@@ -238,8 +236,6 @@ class SAFE(Optimizer):
         return g if np.all(np.isfinite(g)) and np.any(g) else None
 
     def _next(self) -> tuple[np.ndarray, str]:
-        if self.recheck:
-            return self.x.copy(), 'recheck'
         every = self._opts['remeasure_every']
         if self.f_n == 0 or (every and self.evaluations % every == every - 1):
             return self.x.copy(), 'incumbent'
@@ -271,7 +267,6 @@ class SAFE(Optimizer):
             state['first_left'] = self.first_left
         if self._identify:
             state['first_point'] = None if self._first is None else list(self._first)
-            state['recheck'] = self.recheck
         return state
 
     def _update(self, u: list[float], loss: float, aborted: bool) -> None:
@@ -281,9 +276,6 @@ class SAFE(Optimizer):
         if first:  # the model's point is a candidate, but no pattern move repeats its step
             self.first_left = False
             self._kind = 'candidate'
-        if self._kind == 'recheck':  # (first='identify': the model's point measured again)
-            self._recheck(loss, aborted)
-            return
         if not aborted:
             self._pts.append(y.tolist())  # (the model's data)
             self._vals.append(loss)
@@ -302,7 +294,6 @@ class SAFE(Optimizer):
             self.sigma = min(self.sigma * self._opts['grow'], self._opts['sigma_max'])
             if first and self._identify:  # its step was the model's, not the search's
                 self.sigma = min(self.IDENTIFIED_SIGMA, self._opts['sigma_max'])
-                self.recheck = True
             self.successes += 1
         else:
             self.step = None
@@ -310,20 +301,8 @@ class SAFE(Optimizer):
             self.sigma = max(self.sigma * factor, self.SIGMA_MIN)
             self.aborts += int(aborted)
 
-    def _recheck(self, loss: float, aborted: bool) -> None:
-        """The identified model's point measured a second time, right after itself: this
-        measurement is its loss (the first, right after the start's gains, is not) for
-        the incumbent and in the local model's data.  An aborted one changes nothing."""
-        self.recheck = False
-        if aborted:
-            self.aborts += 1
-            return
-        self.f, self.f_n = loss, 1
-        self._vals[-1] = loss  # (the point's entry: the last data point since it was told)
-
     def _restored(self, state: dict[str, Any]) -> None:
         if self._identify:
-            self.recheck = bool(state['recheck'])
             point = state['first_point']
             self._first = None if point is None else check_first(point, self.dim)
         if self._first is not None or self._identify:

@@ -47,7 +47,7 @@ STUDY = ('study', '--algos', 'cmaes,tpe,safe', '--runs', '2', '--budget', '40', 
 #: at the avx2 level here, and on every x86-64-v3 CPU.  Retaken on this machine on
 #: 2026-11-28 (the same command, `ros2 run im_tuner study --algos cmaes,tpe,safe --runs 2
 #: --budget 40`) when that row changed (the identified model searched by 300 experiments
-#: per seed, sigma 0.02 after its point); every other row of tables.csv is as before
+#: per seed, sigma 0.02 after its point; only that row's code changed)
 STUDY_TABLES_SHA256 = 'e01d8617066b1d47d4e7e20bdd715a22177493421af1c4565da4248fbe145782'
 #: results.jsonl fields that are wall-clock readings, not results
 WALL_FIELDS = ('time', 'wall_s')

@@ -42,6 +42,33 @@ def test_identify_waits_for_the_start_then_measures_the_given_point():
         opt.set_first(POINT)
 
 
+def test_after_the_identified_point_the_step_is_small_not_grown():
+    """The identified model's point sits near the stability edge (on im7500w-j10 a grown
+    step of 0.075 from it aborted in 3-5 of 8 runs): after it succeeds the search goes on
+    with sigma 0.02; after the file's model's point (first=model) as before, grown."""
+    ident = _safe()
+    ident.tell(ident.ask(), 1.0)
+    ident.set_first(POINT)
+    ident.tell(ident.ask(), 0.5)
+    model = make_optimizer('safe', 5, 4, _safe().x, first=POINT)
+    model.tell(model.ask(), 1.0)
+    assert model.ask().tolist() == POINT
+    model.tell(np.array(POINT), 0.5)
+    assert ident.x.tolist() == model.x.tolist() == POINT and ident.f == model.f == 0.5
+    assert ident.sigma == 0.02
+    assert model.sigma == pytest.approx(0.05 * 1.5)  # sigma0 grown on a success
+    # the next candidate: the same random direction, 0.02/0.075 as far (where neither is
+    # clipped at the box's edge)
+    y_ident, y_model = ident.ask(), model.ask()
+    inside = (y_ident > 0) & (y_model > 0) & (y_ident < 1) & (y_model < 1)
+    assert inside.sum() >= 3
+    d_ident, d_model = (y - np.array(POINT) for y in (y_ident, y_model))
+    assert np.allclose(d_ident[inside], 0.02 / 0.075 * d_model[inside])
+    # a later success grows it as any other
+    ident.tell(y_ident, 0.4)
+    assert ident.sigma == pytest.approx(0.03)
+
+
 def test_no_point_given_is_the_search_without_a_model():
     a, b = _safe(), make_optimizer('safe', 5, 4, _safe().x)
     for opt in (a, b):
@@ -108,6 +135,8 @@ def test_a_run_on_a_plant_with_twice_the_files_inertia(tmp_path):
     # evaluation 2 is the identified model's point, not the file's model's
     first = run.first_step.prior
     assert first is not None
+    # found by 300 experiments per seed on the identified model (the file's model: 150)
+    assert first.experiments == 1 + 4 * 300 + 6 * (2 + 8)
     evals = [r for r in run.records if r.kind == 'eval']
     assert evals[1].u == list(first.u)
     assert evals[1].u != list(model_prior(setup.drive, setup.params.space, setup.experiment).u)

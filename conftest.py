@@ -89,23 +89,24 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
 
 #: The test files that take longest, longest first (seconds of their tests not marked
-#: serial on a 2-core machine, `--durations=0`, 2026-11-27: 200, 189, 65, 63, 48, 37, 30,
-#: 28, 27, 25): `make test` runs files on two workers (pytest-xdist ``--dist loadfile``,
-#: so a module's shared fixture is made once), these first, so neither worker is left
-#: with a long file at the end.
+#: serial, `--durations=0` on the 2-core machine while two other jobs ran, 2026-11-28:
+#: 455, 249, 193, 193, 147, 132, 123, 121, 116, 94, 73, 73, 70): `make test` runs files on
+#: two workers (pytest-xdist ``--dist loadfile``, so a module's shared fixture is made
+#: once), these first, so neither worker is left with a long file at the end.
 LONGEST_FIRST = (
-    'test_faults.py',
     'test_tuner.py',
+    'test_faults.py',
     'test_numeric_baseline.py',
     'test_study.py',
-    'test_drive_stop.py',
-    'test_bad_input.py',
-    'test_replay.py',
-    'test_report.py',
-    'test_documented_paths.py',
-    'test_study_bad_input.py',
     'test_study_drives.py',
+    'test_study_bad_input.py',
+    'test_replay.py',
+    'test_bad_input.py',
     'test_bag_clients.py',
+    'test_report.py',
+    'test_drive_stop.py',
+    'test_controller_node.py',
+    'test_documented_paths.py',
 )
 
 

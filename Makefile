@@ -53,10 +53,13 @@ $(VENV)/.installed: $(VENV)/.deps $(PKG_FILES) tools/ros2 Makefile
 # timing on two workers (pytest-xdist, a test file to a worker so a module's fixture is made
 # once, the longest files first: conftest.py), then those (marked serial: another test
 # beside them would be their load) alone. Both passes always run; either failing fails.
+# The first steps safe computes are shared by both passes (IM_TUNER_PRIOR_CACHE, conftest.py).
 # `make test-serial` is the same suite in one process.
 test: setup
-	@$(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder -m 'not serial'; a=$$?; \
+	@export IM_TUNER_PRIOR_CACHE=$$(mktemp -d /tmp/im_tuner_test_priors.XXXXXX); \
+	    $(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder -m 'not serial'; a=$$?; \
 	    $(PY) -m pytest -m serial -p no:cacheprovider; b=$$?; \
+	    rm -rf "$$IM_TUNER_PRIOR_CACHE"; \
 	    echo "make test: parallel pass exit $$a, serial pass exit $$b"; \
 	    [ $$a -eq 0 ] && [ $$b -eq 0 ]
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import faulthandler
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -48,6 +49,12 @@ os.environ.setdefault('AMENT_PREFIX_PATH', str(VENV))
 if str(VENV) not in os.environ['AMENT_PREFIX_PATH'].split(os.pathsep):
     os.environ['AMENT_PREFIX_PATH'] = os.pathsep.join([str(VENV), os.environ['AMENT_PREFIX_PATH']])
 os.environ.setdefault('ROS_LOG_DIR', tempfile.mkdtemp(prefix='im_tuner_test_roslog_'))
+# The first steps safe computes (im_tuner.prior, 5-10 s each) shared by every process of
+# the run: the suite's tuner runs on one drive identify the same few models. `make test`
+# names one directory for both passes; otherwise the run makes one and removes it.
+_OWN_PRIOR_CACHE = not os.environ.get('IM_TUNER_PRIOR_CACHE')
+if _OWN_PRIOR_CACHE:
+    os.environ['IM_TUNER_PRIOR_CACHE'] = tempfile.mkdtemp(prefix='im_tuner_test_priors_')
 if not os.environ.get('HOME'):
     os.environ['HOME'] = tempfile.gettempdir()
 
@@ -77,6 +84,8 @@ def pytest_report_header(config: pytest.Config) -> str:
 
 def pytest_unconfigure(config: pytest.Config) -> None:
     faulthandler.dump_traceback_later(EXIT_GRACE_S, exit=True, file=_STDERR_FD[0])
+    if _OWN_PRIOR_CACHE and not _WORKER:
+        shutil.rmtree(os.environ['IM_TUNER_PRIOR_CACHE'], ignore_errors=True)
 
 
 #: The test files that take longest, longest first (seconds of their tests not marked

@@ -23,6 +23,9 @@ import sys
 import time
 from typing import Any
 
+import im_drive_sim  # noqa: F401 (the numeric baseline, set before numpy loads)
+
+# isort: split
 import numpy as np
 
 from im_drive_sim.drive_file import load_config

@@ -22,6 +22,9 @@ import subprocess
 import sys
 import time
 
+import im_drive_sim  # noqa: F401 (the numeric baseline, set before numpy loads)
+
+# isort: split
 import numba
 import numpy as np
 

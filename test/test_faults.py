@@ -43,6 +43,7 @@ from std_msgs.msg import Float64MultiArray
 from im_controller.config import GAIN_NAMES, Gains
 from im_controller.contract import NO_DRIVE_STATE, SAFETY_FAULT, refusal_code
 from im_drive_sim.client import DriveClient
+from im_drive_sim.qos import SERVICES_QOS
 from im_drive_sim.sim import STATE_FIELDS
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -585,8 +586,14 @@ def test_duplicated_late_out_of_order_commands_realtime(procs, ros_context):
     assert p.returncode == 0, err
     k, i = np.array(isq).T
     settled = i[k > 500]
-    assert settled.size > 100 and np.all(np.abs(settled - 2.0) < 0.2), settled.min()
     counts = stop_counts(err)
+    assert settled.size > 100
+    if int(counts['watchdog_trips']) == 0:
+        assert np.all(np.abs(settled - 2.0) < 0.2), settled.min()
+    else:  # this client stalled past the command timeout (a loaded machine): the drive
+        # ran zero current until the next command -- never a -5 A it ignored
+        assert np.all((settled > -0.2) & (settled < 2.2)), (settled.min(), counts)
+        assert np.mean(np.abs(settled - 2.0) < 0.2) > 0.5, counts
     assert int(counts['stale_ignored']) >= int(counts['commands']) // 2
 
 
@@ -624,10 +631,14 @@ def test_flood_of_parameter_calls_and_triggers(procs, ros_context):
             first = probe.start()
         assert first.success, first.message
         futures = {'start': [], 'valid': [], 'invalid': []}
+        # Deep client queues, as the controller's: rclpy's default 10 would drop answers
+        # of a burst before the probe takes them (the test's loss, not the controller's).
         clients = [
             (
-                probe.node.create_client(Trigger, '/controller/start_experiment'),
-                AsyncParameterClient(probe.node, '/controller'),
+                probe.node.create_client(
+                    Trigger, '/controller/start_experiment', qos_profile=SERVICES_QOS
+                ),
+                AsyncParameterClient(probe.node, '/controller', qos_profile=SERVICES_QOS),
             )
             for _ in range(3)
         ]
@@ -645,19 +656,11 @@ def test_flood_of_parameter_calls_and_triggers(procs, ros_context):
                 par.set_parameters(bad) if i % 2 else par.set_parameters_atomically(bad)
             )
         every = [f for fs in futures.values() for f in fs]
-        # Requests past a service reader's depth (10) may be dropped by DDS and never
-        # answered: wait until all are answered or none more came for 3 s.
-        seen = {'n': -1, 't': time.monotonic()}
-
-        def settled() -> bool:
-            n = sum(f.done() for f in every)
-            if n != seen['n']:
-                seen.update(n=n, t=time.monotonic())
-            return n == len(every) or time.monotonic() - seen['t'] > 3.0
-
-        assert probe.spin_until(settled, 120)
+        # Every request is answered (both ends keep 100), however long the controller is
+        # busy (a cold start compiles its kernels for seconds): wait for all of them.
+        probe.spin_until(lambda: all(f.done() for f in every), 120)
         answered = {k: sum(f.done() for f in fs) for k, fs in futures.items()}
-        assert sum(answered.values()) >= len(every) // 2, answered
+        assert sum(answered.values()) == len(every), answered
         assert drive.poll() is None and ctl.poll() is None
         # no invalid value ever applied
         for f in futures['invalid']:

@@ -81,6 +81,8 @@ REFUSALS = [
     (['--cluster', 'tcp://127.0.0.1:8786', '--jobs', '2'], 'exclude each other'),
     (['--cluster-timeout', '5'], '--cluster-timeout needs --cluster'),
     (['--plant-mismatch', 'J=1.5'], 'a machine key takes a factor xF'),
+    (['--ripple-limit', '0.9'], "--ripple-limit: a ratio >= 1 or 'off', got '0.9'"),
+    (['--ripple-limit', 'quiet'], "--ripple-limit: a ratio >= 1 or 'off', got 'quiet'"),
     (['--plant', 'im3700w-j1'], 'machine.isq_max 17.66 A, the told drive 7 A'),
     (['--cluster', 'tcp://127.0.0.1:8786', '--cluster-wait', '-1'], 'must be a number'),
     (['--cluster', 'tcp://127.0.0.1:8786', '--cluster-timeout', 'inf'], 'must be a number'),

@@ -23,14 +23,20 @@ def study(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
     return subprocess.run([*STUDY, *args], capture_output=True, text=True, timeout=timeout)
 
 
+#: sha256 of that study's tables.csv with safe's default ripple limit (issue 40 part 6)
+DEFAULT_LIMIT_TABLES = 'ca81a0d0d28765cd1ebca50c64f1e9ede6e26fa0c042883644ebfa9ebcea7a17'
+
+
 def test_without_drives_the_files_are_unchanged(tmp_path):
     """Digests of the tables and runs of a small study made with the code before issue 29
     (main at a897583): the same study now gives the same bytes (out directory and the one
     new row of safe's grid aside)."""
     out = tmp_path / 's'
+    # (--ripple-limit off: issue 40 part 6 made safe's ripple limit on by default, which
+    # steers its rows here: the tables' digest with it is DEFAULT_LIMIT_TABLES below)
     p = study(
         '--runs', '2', '--budget', '6', '--algos', 'spsa,necga,cmaes,safe', '--jobs', '1',
-        '--quiet', '--out', str(out),
+        '--quiet', '--out', str(out), '--ripple-limit', 'off',
     )  # fmt: skip
     assert p.returncode == 0, p.stderr
     # issue 29 added one row to safe's grid (its first step from the drive model): every
@@ -42,17 +48,38 @@ def test_without_drives_the_files_are_unchanged(tmp_path):
         lines = (out / name).read_bytes().splitlines(keepends=True)
         for new_row in new_rows:
             assert sum(new_row in ln for ln in lines) >= 2
-        return b''.join(ln for ln in lines if not any(r in ln for r in new_rows))
+        # (and issue 40 part 6 two statistics: the choice's standstill ripple)
+        return b''.join(
+            ln
+            for ln in lines
+            if not any(r in ln for r in new_rows) and not ln.startswith(b'ripple_')
+        )
 
     tables = hashlib.sha256(before('tables.csv')).hexdigest()
     # and safe's commands now say --first (the tuner's default depends on its bench)
-    runs = before('runs.csv').replace(str(out).encode(), b'OUT').replace(b' --first none', b'')
+    runs = (
+        before('runs.csv')
+        .replace(str(out).encode(), b'OUT')
+        .replace(b' --first none', b'')
+        .replace(b' --ripple-limit off', b'')
+    )
     assert tables == 'e6de7e9d59bf6fcc6065ec2bffd83244c6b3c77c1e58f103707d6b3b4e4adc0b'
     assert (
         hashlib.sha256(runs).hexdigest()
         == '50d76073ebfaaa9884526a5da5bb61fca3e88eb1f223e49fd94ead851bbbd47f'
     )
     assert 'drives' not in json.loads((out / 'study.json').read_text())['spec']
+    # the same study with safe's default ripple limit: only safe's rows differ
+    dflt = tmp_path / 'default'
+    p = study(
+        '--runs', '2', '--budget', '6', '--algos', 'spsa,necga,cmaes,safe', '--jobs', '1',
+        '--quiet', '--out', str(dflt),
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    a, b = ((d / 'tables.csv').read_text().splitlines() for d in (out, dflt))
+    differ = {x.split(',')[1] for x, y in zip(a, b, strict=True) if x != y}
+    assert differ == {'safe'}
+    assert hashlib.sha256((dflt / 'tables.csv').read_bytes()).hexdigest() == DEFAULT_LIMIT_TABLES
     assert not (out / 'family.json').exists()
     # beside it, the same grid on the bench profile: Tables I-III side by side
     bench = tmp_path / 'b'

@@ -359,6 +359,8 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
         (['--seed', '-1'], '--seed must be >= 0'),
         (['--budget', 'ten'], "invalid int value: 'ten'"),
         (['--fault-policy', 'ignore'], 'invalid choice'),
+        (['--ripple-limit', '0.5'], "--ripple-limit: a ratio >= 1 or 'off', got '0.5'"),
+        (['--ripple-limit', '2', '--no-reference'], 'not with --no-reference'),
     ],
 )
 def test_bad_command_line_one_line_exit_2(tmp_path, args, expect):
@@ -380,6 +382,7 @@ def test_bad_files_one_line_exit_2(tmp_path):
         (['--params', str(tmp_path / 'missing.yaml')], 'cannot read'),
         (['--resume', str(tmp_path)], 'not a tuning run'),
         (['--resume', str(tmp_path), '--seed', '3'], 'do not also give --seed'),
+        (['--resume', str(tmp_path), '--ripple-limit', '2'], 'do not also give --ripple-limit'),
     ):
         proc = tuner(*args, timeout=60)
         lines = proc.stderr.strip().splitlines()

@@ -42,7 +42,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_services_default
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.service_introspection import ServiceIntrospectionState
 from std_msgs.msg import Float64MultiArray, Header
 from std_srvs.srv import Trigger
@@ -50,7 +50,8 @@ from std_srvs.srv import Trigger
 from im_drive_sim.cdr import Float64ArrayWire
 from im_drive_sim.cli import parse_cli, run_cli
 from im_drive_sim.client import DriveClient
-from im_drive_sim.qos import RECORDED_QOS
+from im_drive_sim.contract import STATE_FIELDS
+from im_drive_sim.qos import RECORDED_QOS, SERVICES_QOS
 from im_drive_sim.runtime import (
     IoNodeOwner,
     LenientDoubles,
@@ -108,6 +109,11 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.first_experiment_id = st.first_experiment_id
         cfg, gains = self._candidate({})
         self.runner = ExperimentRunner(cfg, gains, timing_tolerance=self.timing_tolerance)
+        # The experiment kernel compiled (or loaded from numba's cache) now, on a scratch
+        # runner: its first call otherwise comes with the first state answered, and on a
+        # cold cache (a fresh install) its seconds of compiling would be the first
+        # experiment's, which the drive-state watchdog then aborts.
+        ExperimentRunner(cfg, gains).step(np.zeros(len(STATE_FIELDS)))
         #: refused requests, by kind (logged, throttled; and at exit)
         self.refused = {'start_experiment': 0, 'parameters': 0}
         #: Monotonic time [s] of the last refusal logged, per kind (the log throttle).
@@ -126,7 +132,9 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.loss_pub = self.create_publisher(DiagnosticArray, LOSS_TOPIC, RECORDED_QOS)
         self.internals_pub = self.create_publisher(Float64MultiArray, INTERNALS_TOPIC, RECORDED_QOS)
         self._internals = Float64ArrayWire(len(INTERNALS_FIELDS))
-        self.start_srv = self.create_service(Trigger, f'~/{C.START_SERVICE}', self._on_start)
+        self.start_srv = self.create_service(
+            Trigger, f'~/{C.START_SERVICE}', self._on_start, qos_profile=SERVICES_QOS
+        )
         self.tuner_timeout = st.tuner_timeout
         self._heartbeat_wall: float | None = None  # monotonic [s] of the last heartbeat
         self.heartbeat_from = ''  #: the frame_id (node name) of the last heartbeat
@@ -140,7 +148,9 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
                 self._on_heartbeat,
                 QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT),
             )
-        self.reset_srv = self.create_service(Trigger, f'~/{C.RESET_SERVICE}', self._on_reset_fault)
+        self.reset_srv = self.create_service(
+            Trigger, f'~/{C.RESET_SERVICE}', self._on_reset_fault, qos_profile=SERVICES_QOS
+        )
         # Service introspection (request + response contents on <service>/_service_event)
         # on the experiment services and the parameter services, so that the recorder
         # keeps who changed which gain when. get_type_description does not support it.
@@ -148,7 +158,7 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
             if not srv.srv_name.endswith('get_type_description'):
                 srv.configure_introspection(
                     self.get_clock(),
-                    qos_profile_services_default,
+                    SERVICES_QOS,
                     ServiceIntrospectionState.CONTENTS,
                 )
 

@@ -27,6 +27,7 @@ __all__ = [
     'MODES',
     'NS_PER_S',
     'RECORDED',
+    'SERVICES',
     'STATE_FIELDS',
     'STATE_INDEX',
     'STATE_TOPIC',
@@ -160,3 +161,9 @@ RECORDED = QosSpec('keep_all', 0, 'reliable')
 #: blocking time (100 ms) or grows without bound. KEEP_LAST 1000 (200 ms of a 5 kHz
 #: topic) never blocks and keeps memory bounded; a reader that keeps up loses nothing.
 LOOP_PUBLISHED = QosSpec('keep_last', 1000, 'reliable')
+
+#: The controller's experiment services (start_experiment, reset_fault) and their
+#: introspection events: reliable KEEP_LAST 100. rclpy's default (10) drops requests past
+#: the tenth when many arrive before the executor takes them (3 clients firing 50 each:
+#: fewer than half answered); 100 answers every burst a tuner or a test makes.
+SERVICES = QosSpec('keep_last', 100, 'reliable')

@@ -150,6 +150,10 @@ class DriveSimNode(IoNodeOwner, LenientDoubles, Node):
         self._i_theta = self._idx['theta_meas']
         self._i_omega = self._idx['omega_meas']
         self._i_torque = self._idx['torque']
+        # Compiled (or loaded from numba's cache) now, not in the first period: on a cold
+        # cache (a fresh install) that would be seconds with no state, and the
+        # controller's drive-state watchdog aborts the first experiment.
+        self.warm_up()
 
         # The layouts are facts of this node: an override may not advertise another one.
         parameter_hygiene(

@@ -13,7 +13,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from . import contract
 from .contract import QosSpec
 
-__all__ = ['LOCKSTEP_QOS', 'RECORDED_QOS', 'qos_profile']
+__all__ = ['LOCKSTEP_QOS', 'RECORDED_QOS', 'SERVICES_QOS', 'qos_profile']
 
 
 def qos_profile(spec: QosSpec) -> QoSProfile:
@@ -30,3 +30,5 @@ def qos_profile(spec: QosSpec) -> QoSProfile:
 LOCKSTEP_QOS = qos_profile(contract.LOCKSTEP)
 #: every recorded topic's publisher: reliable KEEP_ALL (contract.RECORDED)
 RECORDED_QOS = qos_profile(contract.RECORDED)
+#: the controller's experiment services and their introspection (contract.SERVICES)
+SERVICES_QOS = qos_profile(contract.SERVICES)

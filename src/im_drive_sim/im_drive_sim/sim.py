@@ -303,6 +303,7 @@ class DriveSim:
         saved = out.copy()
         K.step_into_kernel(self.S.copy(), self.P, self._noise.copy(), 0.0, 0.0, out)
         out[:] = saved
+        K.clear_command(self.S.copy())  # a safe stop's, which must act at once
 
     @property
     def command_delay(self) -> int:

@@ -26,18 +26,27 @@ point, bit for bit):
    given with ``--params`` for another drive: nothing to compare with); ``safe`` then runs
    as without a model.
 
-``model_prior`` is cached per (nominal drive, experiment, box) in the process: a study
-computes it once per drive and worker.  Cost on the development machine: see
-docs/optimisers.md ("The first step from the model").  Pure: no rclpy.
+``model_prior`` is cached per (nominal drive, experiment, box) in the process, and across
+processes in the directory named by ``IM_TUNER_PRIOR_CACHE`` when it is set (a study
+sets one for its workers, the test suite one per session): one JSON file per key, the key
+holding the model, experiment and box, this numeric baseline's bits and a digest of the
+project's code, so a file is never read by a process that would compute another point.
+Cost on the development machine: see docs/optimisers.md ("The first step from the
+model").  Pure: no rclpy.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 import json
 import math
+import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -50,6 +59,7 @@ from .identify import Identified
 from .space import SearchSpace
 
 __all__ = [
+    'CACHE_ENV',
     'CANDIDATES',
     'MODEL_EVALUATIONS',
     'PERTURBATIONS',
@@ -207,6 +217,63 @@ def _compute(
 
 
 _CACHE: dict[str, Prior | None] = {}
+#: a directory where computed first steps are kept across processes (module docstring)
+CACHE_ENV = 'IM_TUNER_PRIOR_CACHE'
+
+
+@functools.cache
+def _code_digest() -> str:
+    """sha256 of the three packages' Python sources as this process imports them, numpy's
+    version and the numeric baseline's bits: what decides a computed point besides its
+    key (so a cache directory outlives no change of code, numpy or CPU dispatch)."""
+    import im_controller
+    import im_drive_sim
+    from im_drive_sim import numeric
+
+    h = hashlib.sha256()
+    for pkg in (im_drive_sim, im_controller):
+        root = Path(str(pkg.__file__)).parent
+        for f in sorted(root.rglob('*.py')):
+            h.update(f.relative_to(root).as_posix().encode() + b'\0' + f.read_bytes())
+    root = Path(__file__).parent
+    for f in sorted(root.rglob('*.py')):
+        h.update(f.relative_to(root).as_posix().encode() + b'\0' + f.read_bytes())
+    st = numeric.status()
+    bits = {k: st[k] for k in ('state', 'numpy', 'openblas')}
+    h.update(json.dumps([np.__version__, bits], sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def _cached(key: str, compute: Callable[[], Prior | None]) -> Prior | None:
+    """``compute()`` once per ``key``: from this process's cache, else from the directory
+    ``IM_TUNER_PRIOR_CACHE`` (when set), else computed and kept in both (written to a
+    temporary file and renamed: a reader never sees half a file; two processes that miss
+    at once both compute the same point)."""
+    if key in _CACHE:
+        return _CACHE[key]
+    where = os.environ.get(CACHE_ENV, '')
+    path = None
+    if where:
+        name = hashlib.sha256((_code_digest() + key).encode()).hexdigest()
+        path = Path(where) / f'prior-{name}.json'
+        try:
+            data = json.loads(path.read_text())
+            value = None if data is None else Prior(**{**data, 'u': tuple(data['u'])})
+            _CACHE[key] = value
+            return value
+        except (OSError, ValueError, TypeError, KeyError):
+            pass  # not there (or unreadable): compute it
+    value = compute()
+    _CACHE[key] = value
+    if path is not None:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f'{path.name}.{os.getpid()}.tmp')
+            tmp.write_text(json.dumps(None if value is None else dataclasses.asdict(value)))
+            os.replace(tmp, path)
+        except OSError:
+            pass  # a cache that cannot be written costs time, not a result
+    return value
 
 
 def model_prior(
@@ -218,9 +285,7 @@ def model_prior(
     box) in this process; None when the model finds nothing better than the start."""
     model = nominal_model(drive)
     key = json.dumps([model.to_dict(), repr(experiment), dataclasses.asdict(space)], sort_keys=True)
-    if key not in _CACHE:
-        _CACHE[key] = _compute(model, experiment, space)
-    return _CACHE[key]
+    return _cached(key, lambda: _compute(model, experiment, space))
 
 
 #: The identified model's J is rounded to this relative step, Kt's ratio and Tc likewise
@@ -289,9 +354,9 @@ def identified_prior(
         ],
         sort_keys=True,
     )
-    if key not in _CACHE:
-        _CACHE[key] = _compute(model, exp, space, perturbations, IDENTIFIED_MODEL_EVALUATIONS)
-    return _CACHE[key]
+    return _cached(
+        key, lambda: _compute(model, exp, space, perturbations, IDENTIFIED_MODEL_EVALUATIONS)
+    )
 
 
 def model_drive_mismatch(mine: str | None, theirs: str | None, option: str = 'model') -> str | None:

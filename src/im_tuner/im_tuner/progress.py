@@ -133,7 +133,37 @@ def mechanics_lines(s: Summary) -> list[str]:
             f'  standstill ripple of isq* (after the move/after the load): start '
             f'{one(r.get("start"))}; applied {one(r.get("applied"))}'
         )
+        L += _limit_lines(r)
     return L
+
+
+def _limit_lines(r: dict[str, Any]) -> list[str]:
+    """The ripple limit's line of the summary (none for a summary from before it)."""
+    if 'limit' not in r:
+        return []
+    limit, bound = r.get('limit'), r.get('bound')
+    if limit is None:
+        return ['  ripple limit: off']
+    if not bound:
+        return [
+            f"  ripple limit {limit:g}x the start's: not applied (the start's ripple not measured)"
+        ]
+    b = '/'.join(
+        f'{bound[k]:.3f}' if k in bound else '-' for k in ('rms_after_move', 'rms_after_load')
+    )
+    if r.get('fallback'):
+        what = 'no evaluated point within it: the start is applied'
+    else:
+        what = (
+            'applied gains within it' if r.get('applied_within') else 'applied gains NOT within it'
+        )
+    if r.get('changed'):
+        what += f'; it kept out evaluation{"s" if len(r["excluded"]) > 1 else ""} ' + ', '.join(
+            str(i) for i in r['excluded']
+        )
+    else:
+        what += '; it changed nothing'
+    return [f"  ripple limit {limit:g}x the start's ({b} A rms): {what}"]
 
 
 def _gains_text(g: dict[str, float]) -> str:

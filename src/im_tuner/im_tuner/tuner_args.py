@@ -20,7 +20,12 @@ from im_drive_sim.cli import Parser, UsageError, finite_float
 from . import optim
 from .bench.spec import DISCOVERY_TIMEOUT
 from .benches import BENCHES  # (the bench modes: one copy, in benches)
-from .names import DEFAULT_TIMING_TOLERANCE, FAULT_POLICIES
+from .names import (
+    DEFAULT_RIPPLE_LIMIT,
+    DEFAULT_TIMING_TOLERANCE,
+    FAULT_POLICIES,
+    RIPPLE_LIMIT_ALGOS,
+)
 from .runlog import RunConfig
 
 #: the algorithms --no-start is for, in --algo's order
@@ -122,6 +127,19 @@ def build_parser() -> argparse.ArgumentParser:
         '(--drive-config, or a '
         'simulated bench: --bench inproc, processes, realtime...), none otherwise (--bench '
         'auto or none without --drive-config: the controller found may drive another motor)',
+    )
+    ap.add_argument(
+        '--ripple-limit',
+        metavar='R|off',
+        help='the largest standstill current ripple the applied gains may have: the rms '
+        'of isq* in both standstill windows (after the move, after the load step) at most '
+        "R times the hand-tuned start's, as the reference experiment measures it; a "
+        'louder evaluation is told to the optimiser as no better than the best quiet one '
+        'so far, and the re-measured and applied gains are the best evaluated within it '
+        f"(the start if none). A ratio >= 1 or 'off'. Default: {DEFAULT_RIPPLE_LIMIT:g} for "
+        f"{', '.join(RIPPLE_LIMIT_ALGOS)}, off for the others (the paper's final controller is "
+        'the smallest loss); off with --no-reference (nothing to compare with) '
+        '(docs/optimisers.md, "The standstill ripple")',
     )
     ap.add_argument(
         '--retries',

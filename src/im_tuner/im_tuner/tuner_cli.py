@@ -54,6 +54,7 @@ RUN_SETTINGS = (
     'retries',
     'drive',
     'timing_tolerance',
+    'ripple_limit',
 )
 
 
@@ -127,6 +128,7 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
         raise UsageError(f'--eval-timeout must be > 0 s, got {cli.eval_timeout}')
     if cli.no_start:
         check_no_start(algo)
+    ripple_limit = _ripple_limit(cli, algo)
     options = _algo_options(cli, algo)
     try:
         check_options(algo, optim.OPTIONS[algo], options)  # (ranges: no module needed)
@@ -208,6 +210,7 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
             'start': not cli.no_start,
             'retries': retries,
             'timing_tolerance': tolerance,
+            'ripple_limit': ripple_limit,
             'drive': cli.drive or 'sim',
             'satisfactory_loss': params.satisfactory_loss,
             'params_file': params.source,
@@ -297,6 +300,26 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
         except drive_spec.DriveSpecError as exc:
             raise UsageError(f'--resume: {exc}') from None
     return PreparedSession(run, params, drive, progress, rundir, tuning, n_restored)
+
+
+def _ripple_limit(cli: argparse.Namespace, algo: str) -> float | None:
+    """The run's standstill-ripple limit (None: off): ``--ripple-limit``, else the
+    algorithm's default (``names.default_ripple_limit``); off without a reference
+    experiment (the start's ripple is what it is a ratio to), refused if given then."""
+    from .names import default_ripple_limit, parse_ripple_limit
+
+    if cli.ripple_limit is None:
+        return None if cli.no_reference else default_ripple_limit(algo)
+    try:
+        limit = parse_ripple_limit(cli.ripple_limit)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if limit is not None and cli.no_reference:
+        raise UsageError(
+            f"--ripple-limit {cli.ripple_limit} is a ratio to the start's ripple, which the "
+            'reference experiment measures: not with --no-reference'
+        )
+    return limit
 
 
 def _first_point(cli: argparse.Namespace, algo: str, params: TunerParams) -> dict[str, Any]:
@@ -400,6 +423,11 @@ def _check_run(run: RunConfig, where: str) -> None:
         check_no_start(run.algo, f'{where}: start: false (--no-start)')
     if not isinstance(run.search_box, dict):
         raise bad('search_box', 'a mapping (the search box)')
+    rl = run.ripple_limit
+    if rl is not None and not (
+        isinstance(rl, (int, float)) and not isinstance(rl, bool) and 1.0 <= rl < math.inf
+    ):
+        raise bad('ripple_limit', 'a ratio >= 1 or null (off)')
 
 
 def _params_of_run(run: RunConfig) -> TunerParams:
@@ -434,6 +462,8 @@ def make_tuning(rundir: RunDir, run: RunConfig, params: TunerParams, progress) -
         reference=run.reference,
         progress=progress,
         first_step=_first_step_hook(run, params, progress),
+        # (a run of a tuner before the limit has no key: off, as it ran)
+        ripple_limit=run.ripple_limit,
     )
     tuning.timing_tolerance = run.tolerance()
     return tuning

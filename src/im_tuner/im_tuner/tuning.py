@@ -65,6 +65,7 @@ from .runlog import (
     tally,
 )
 from .runlog.records import LINE_ORDER, ripple_dict
+from .runlog.tally import ripple_bound, told_loss, top_evals
 from .space import SearchSpace
 
 __all__ = [
@@ -218,10 +219,15 @@ class TuningRun:
         reference: bool = True,
         progress: Callable[[str, Record, TuningRun], None] | None = None,
         first_step: Any = None,
+        ripple_limit: float | None = None,
     ) -> None:
-        """``first_step``: for ``safe`` with ``first='identify'``, what gives its first
-        step from the records so far (``im_tuner.first_step.IdentifiedFirstStep``): called
-        once, before evaluation 2 is asked (live and when a resume replays the records);
+        """``ripple_limit``: the largest standstill rms of isq* the final choice may have,
+        as a ratio to the start's in each window (the tuner's ``--ripple-limit``; None:
+        off): the re-measured and applied gains are chosen among the evaluations within it
+        (``runlog.final_choice``).  ``first_step``: for ``safe`` with
+        ``first='identify'``, what gives its first step from the records so far
+        (``im_tuner.first_step.IdentifiedFirstStep``): called once, before evaluation 2
+        is asked (live and when a resume replays the records);
         its ``identified(records)`` goes into the summary."""
         if budget < 1:
             raise ValueError(f'budget must be >= 1, got {budget}')
@@ -237,6 +243,9 @@ class TuningRun:
         self.with_reference = bool(reference)
         self.progress = progress
         self.first_step = first_step
+        if ripple_limit is not None and not (ripple_limit > 0 and np.isfinite(ripple_limit)):
+            raise ValueError(f'ripple_limit must be a ratio > 0, got {ripple_limit!r}')
+        self.ripple_limit = None if ripple_limit is None else float(ripple_limit)
         self.state = TunerState()
         self.records: list[Record] = []
         self._t_mark = time.perf_counter()
@@ -305,8 +314,10 @@ class TuningRun:
                         f'{self.rundir.path}: evaluation {rec.eval} in results.jsonl is not '
                         'what the checkpointed optimiser asks; the files do not belong together'
                     )
+            # above the ripple limit: what the search is told (runlog.told_loss)
+            told = told_loss(self.records, rec, self.ripple_limit)
             t0 = time.perf_counter()
-            self.opt.tell_measurement(u, rec.loss, bool(rec.aborted))
+            self.opt.tell_measurement(u, told, bool(rec.aborted))
             if live:
                 self.state.opt_us.append(self._ask_us + 1e6 * (time.perf_counter() - t0))
         tally(self.state, rec, self.satisfactory)
@@ -487,25 +498,13 @@ class TuningRun:
         return outcome
 
     def _top_evals(self, k: int) -> list[int]:
-        """Indices of the k best distinct (by gains) non-aborted evaluations."""
-        seen, out = set(), []
-        evals = sorted(
-            (r for r in self.records if isinstance(r, Evaluation) and r.status == 'ok'),
-            key=lambda r: (r.loss, r.eval),
-        )
-        for r in evals:
-            key = tuple(r.gains[n] for n in GAIN_NAMES)
-            if key in seen:
-                continue
-            seen.add(key)
-            out.append(r.eval)
-            if len(out) == k:
-                break
-        return out
+        """Indices of the k best distinct (by gains) non-aborted evaluations (within the
+        ripple limit: ``runlog.top_evals``)."""
+        return top_evals(self.records, k, ripple_bound(self.records, self.ripple_limit))
 
     def final_choice(self) -> dict[str, Any] | None:
         """See ``runlog.final_choice``."""
-        return final_choice(self.state, self.records)
+        return final_choice(self.state, self.records, self.ripple_limit)
 
     # -- summary ---------------------------------------------------------------------------
     def summary(self, *, outcome: str, wall_s: float) -> Summary:
@@ -519,6 +518,8 @@ class TuningRun:
             outcome=outcome,
             wall_s=wall_s,
             timing_tolerance=self.timing_tolerance,
+            ripple_limit=self.ripple_limit,
+            remeasure=self.remeasure,
         )
         if s.applied is not None:
             s.applied['on_controller'] = self.applied

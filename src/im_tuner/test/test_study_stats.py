@@ -202,9 +202,13 @@ def test_comparison_rows_by_hand():
     res.aborted[c, 1, 3] = True
     res.aborted[c, 2, :2] = True
     res.remeasured[c] = L_REF * np.array([0.52, 0.88, 0.47])
+    # standstill rms [A] (the start's after the move, after the load; the choice's): the
+    # larger ratio of the two windows per run, their median (run 2 a quiet start)
+    res.ripple[c] = [[0.2, 0.25, 0.3, 0.25], [0.2, 0.25, 0.1, 0.5], [1e-9, 0.2, 2.0, 0.2]]
     st = compute(res, 0.9)
     head, rows = comparison_rows(st)
-    assert head[0] == 'method (configuration, start)' and len(head) == 7
+    assert head[0] == 'method (configuration, start)' and len(head) == 8
+    assert head[7] == 'ripple / start, median'
     labels = [r[0] for r in rows]
     assert 'safe defaults (hand-tuned start)' in labels
     assert 'CMA-ES sigma0=0.3 random start' in labels  # the start is not said twice
@@ -217,6 +221,10 @@ def test_comparison_rows_by_hand():
     assert value[3] == pytest.approx((4 + 3) / 2, abs=0.05)  # to <= 0.5: median of 2 runs
     assert value[4] == pytest.approx(100 * 2 / 3, abs=0.5)  # runs reaching 0.5 [%]
     assert value[5] == pytest.approx((0 + 1 + 2) / 3, abs=0.05)  # aborted per run
+    assert value[6] == pytest.approx(2.0, abs=5e-3)  # ripple ratio: 1.5, 2.0, 2e9
+    cs = next(x for x in st.cells if x.cell.algo == 'safe' and x.cell.label == 'defaults')
+    assert cs.ripple_over.value == pytest.approx(200 / 3) and cs.ripple_over.n == 3
+    assert cs.ripple_ratio.n == 3
 
 
 def test_one_run_per_configuration_has_means_without_intervals():

@@ -150,6 +150,8 @@ def load_run(
             satisfactory_loss=sat,
             outcome=outcome,
             wall_s=None,
+            ripple_limit=run.ripple_limit if isinstance(run.ripple_limit, (int, float)) else None,
+            remeasure=int(run.remeasure or 0),
         )
         loop = rebuilt.loop_wall_s = sum(float(r.wall_s or 0.0) for r in records)
         rebuilt.real_time_factor = (rebuilt.sim_s or 0.0) / loop if loop > 0 else None

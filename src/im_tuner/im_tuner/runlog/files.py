@@ -97,6 +97,9 @@ class RunConfig(_Keyed):
     retries: int | None = None  #: re-runs of a lost / off-timing attempt
     #: held + late drive periods an experiment may have and count (--timing-tolerance)
     timing_tolerance: int | None = None
+    #: the final choice's standstill-ripple limit (--ripple-limit): a ratio to the
+    #: start's rms of isq*; None: off (or a run of a tuner before it: off)
+    ripple_limit: float | None = None
     drive: str | None = None  #: 'sim' or the drive given with --drive
     satisfactory_loss: float | None = None
     params_file: str | None = None
@@ -169,7 +172,8 @@ class Summary(_Keyed):
     sessions: list[dict[str, Any]] | None = None
     #: the standstill ripple of isq* [A]: {start, applied}, each the mean over the
     #: experiments of those gains of {rms_after_move, pp_after_move, rms_after_load,
-    #: pp_after_load} (records' ``ripple``)
+    #: pp_after_load} (records' ``ripple``); the limit (``runlog.tally.ripple_summary``:
+    #: limit, bound, applied_within, changed, excluded, fallback); rated_isq_a
     ripple: dict[str, Any] | None = None
     #: the drive identified from the start's experiments (im_tuner.identify.Identified)
     identification: dict[str, Any] | None = None

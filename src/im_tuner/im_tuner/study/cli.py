@@ -17,6 +17,7 @@ import os
 import shlex
 import signal
 import sys
+import tempfile
 import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -29,6 +30,9 @@ from . import spec as S
 from .drives import FamilyResult, drive_dirs, is_family, load_family, save_family
 from .results import META_FILE, StudyResult, load, save
 from .spec import EXIT_USAGE, StudyError
+
+#: im_tuner.prior.CACHE_ENV (not imported here: it loads the kernels)
+PRIOR_CACHE_ENV = 'IM_TUNER_PRIOR_CACHE'
 
 if TYPE_CHECKING:
     from .stats import StudyStats
@@ -141,6 +145,7 @@ def _build_parser() -> argparse.ArgumentParser:
         'Coulomb friction to P %% of rated torque, delay=D the command delay (1 or 2 '
         "periods); e.g. 'J=x1.5 Rr=x1.3 Lm=x0.85 coulomb=2%% delay=2'",
     )
+    ap.add_argument('--ripple-limit', metavar='R|off', help=S.RIPPLE_LIMIT_HELP)
     ap.add_argument(
         '--realism',
         choices=tuple(REALISM_PROFILES),
@@ -291,6 +296,7 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
         plant, mismatch = plant_options(cli.plant, cli.plant_mismatch, drives)
     except PlantError as exc:
         raise StudyError(str(exc)) from None
+    ripple_limit = S.ripple_limit_option(cli.ripple_limit)
     if cli.algos is None:
         algos = S.STUDY_ALGOS if drives else S.PAPER_ALGOS
     else:
@@ -332,6 +338,7 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
             full_grid=not drives or cli.full_grid,
             plant=plant,
             mismatch=mismatch,
+            ripple_limit=ripple_limit,
         )
     except ValueError as exc:
         raise StudyError(f'--{exc}') from None  # the messages start with the option's name
@@ -419,10 +426,10 @@ def main(args: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return EXIT_USAGE
-    if cli.source is not None and (cli.plant is not None or cli.plant_mismatch is not None):
+    if cli.source is not None and {cli.plant, cli.plant_mismatch, cli.ripple_limit} != {None}:
         print(
-            'error: study: --from re-tabulates: its plant is the one it ran on (no --plant '
-            'or --plant-mismatch)',
+            'error: study: --from re-tabulates: its plant and limit are the ones it ran with '
+            '(no --plant, --plant-mismatch or --ripple-limit)',
             file=sys.stderr,
         )
         return EXIT_USAGE
@@ -450,6 +457,13 @@ def _run(
     writing = False  # (files are being written: an interruption leaves them incomplete)
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
+    # The workers share the first steps they compute (a study's runs on one drive share a
+    # few models: each computed once, not once per worker): a directory for this study,
+    # unless the caller names one.
+    cache = None
+    if spec is not None and not os.environ.get(PRIOR_CACHE_ENV):
+        cache = tempfile.TemporaryDirectory(prefix='im_tuner_priors_')
+        os.environ[PRIOR_CACHE_ENV] = cache.name
     try:
         if spec is not None and spec.drives:
             res = _study_drives(cli, spec, out, command)
@@ -491,6 +505,9 @@ def _run(
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if cache is not None:
+            os.environ.pop(PRIOR_CACHE_ENV, None)
+            cache.cleanup()
     print(paths['tables'].read_text(), end='')
     print(
         f'study written to {out}/: '

@@ -62,6 +62,9 @@ def tuner_command(res: StudyResult, c: int, r: int, out: Path) -> str:
         args += ['--first', cell.first]
     if sp.drive_config:
         args += ['--drive-config', sp.drive_config]
+    if sp.ripple_limit != 'default':  # (the default: the tuner's own for the algorithm)
+        limit = sp.limit_of(cell)
+        args += ['--ripple-limit', 'off' if limit is None else repr(limit)]
 
     return ' '.join(shlex.quote(a) for a in args)
 
@@ -169,7 +172,13 @@ def write_tables_csv(st: StudyStats, out: Path) -> Path:
                 'threshold',
             )
         )
-        extra = (('remeasured', '', 3), ('fast', '', 1), ('fast_reached', '', 0))
+        extra = (
+            ('remeasured', '', 3),
+            ('fast', '', 1),
+            ('fast_reached', '', 0),
+            ('ripple_ratio', '', 2),
+            ('ripple_over', '', 0),
+        )
         for stat, _, _ in (*STATS, *extra, ('aborted_per_run', '', 1)):
             for c in st.cells:
                 iv = getattr(c, stat)

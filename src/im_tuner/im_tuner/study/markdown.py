@@ -288,9 +288,9 @@ def reproduction_md(st: StudyStats, command: str, figures: dict[str, str]) -> st
         f'dSPACE board ({PAPER_US_PER_ITERATION["spsa"]:.0f} and '
         f'{PAPER_US_PER_ITERATION["necga"]:.0f} us per iteration there): '
         + (
-            f'{us.get("spsa", math.nan):.1f} and {us.get("necga", math.nan):.1f} us here. '
-            if us
-            else ''
+            f'{us["spsa"]:.1f} and {us["necga"]:.1f} us here. '
+            if 'spsa' in us and 'necga' in us
+            else ''.join(f'{us[a]:.1f} us ({a}) here. ' for a in ('spsa', 'necga') if a in us)
         )
         + 'Either is negligible beside a 1.125 s experiment.',
         '',

@@ -54,6 +54,19 @@ class StudyResult:
     #: the hand-tuned start's L_ref on the told drive, when the plant is another
     #: (``spec.split``; ``l_ref`` is always the plant's); None otherwise
     l_ref_told: float | None = None
+    #: float64[cells, runs, 4]: the standstill rms of isq* [A] after the move and after
+    #: the load, of the start then of the final choice (nan: not measured, or a study
+    #: from before it was kept)
+    ripple: np.ndarray | None = None
+    #: bool[cells, runs]: the ripple limit kept out a point the run would have re-measured
+    ripple_changed: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        C, R = self.ref_loss.shape
+        if self.ripple is None:
+            self.ripple = np.full((C, R, 4), np.nan)
+        if self.ripple_changed is None:
+            self.ripple_changed = np.zeros((C, R), bool)
 
     @property
     def experiments(self) -> int:
@@ -78,7 +91,11 @@ class StudyResult:
         'remeasured',
         'opt_s',
         'exp_s',
+        'ripple',
+        'ripple_changed',
     )
+    #: arrays a study from before them does not have (read as not measured)
+    OPTIONAL_ARRAYS = ('ripple', 'ripple_changed')
 
 
 def save(res: StudyResult, out: Path | str) -> None:
@@ -117,7 +134,11 @@ def load(out: Path | str) -> StudyResult:
     try:
         meta = json.loads((out / META_FILE).read_text())
         with np.load(out / ARRAYS_FILE) as z:
-            arrays = {k: z[k] for k in StudyResult.ARRAYS}
+            arrays = {
+                k: z[k]
+                for k in StudyResult.ARRAYS
+                if k in z.files or k not in StudyResult.OPTIONAL_ARRAYS
+            }
     except FileNotFoundError as exc:
         raise ValueError(
             f'{out}: not a study directory ({Path(exc.filename).name} missing)'

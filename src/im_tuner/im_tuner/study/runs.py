@@ -29,6 +29,7 @@ from im_drive_sim.params import DriveConfig
 from .. import optim
 from ..offline import OfflineBench
 from ..runlog import Evaluation, MemoryRecord, Record, Reference, Remeasurement
+from ..runlog.tally import ripple_summary
 from ..space import SearchSpace, TunerParams
 from ..tuning import DEFAULT_RETRIES, TuningRun, run_seeds
 from .results import ARRAYS_FILE, META_FILE, StudyResult, load, save
@@ -110,9 +111,16 @@ class RunResult:
     iteration: np.ndarray  #: int32[budget]: SPSA iteration / GA generation (1-based)
     best_eval: int  #: smallest non-aborted loss (-1: none)
     best_gains: tuple[float, ...]
-    remeasured: float  #: the best's re-measured loss (nan: not re-measured)
+    #: the best's re-measured loss (nan: not re-measured; the reference's loss when the
+    #: ripple limit left no evaluation within it, the start applied)
+    remeasured: float
     opt_s: float  #: wall time in ask + tell [s] (timing, not results)
     exp_s: float  #: wall time in experiments [s]
+    #: standstill rms of isq* [A] after the move, after the load: the start's, then the
+    #: final choice's (the gains the tuner would leave applied); nan: not measured
+    ripple: tuple[float, float, float, float] = (math.nan,) * 4
+    #: whether the ripple limit kept out a point the run would otherwise have re-measured
+    ripple_changed: bool = False
 
 
 def prepare_run(
@@ -203,6 +211,7 @@ def run_one(
         reference=True,
         progress=progress,
         first_step=first_step_of(spec, cell.first, space),
+        ripple_limit=spec.limit_of(cell),
     )
     try:
         outcome = tuning.run(OfflineBench(drive, drive_seed, experiment))
@@ -220,6 +229,15 @@ def run_one(
     rem = [x for x in tuning.records if isinstance(x, Remeasurement)]
     best = tuning.state.best
     exp_s = sum(x.wall_s or 0.0 for x in tuning.records)  # every attempt's bench time
+    rip = ripple_summary(tuning.records, tuning.final_choice(), tuning.ripple_limit, 1) or {}
+
+    def rms(d: dict[str, Any] | None) -> tuple[float, float]:
+        d = d or {}
+        return tuple(  # type: ignore[return-value]
+            math.nan if d.get(k) is None else float(d[k])
+            for k in ('rms_after_move', 'rms_after_load')
+        )
+
     return RunResult(
         cell=cell_index,
         run=r,
@@ -238,9 +256,13 @@ def run_one(
             if best is None
             else tuple(float(best['gains'][n]) for n in GAIN_NAMES)
         ),
-        remeasured=rem[0].loss if rem else math.nan,
+        # (the ripple limit left no evaluation within it: the start stays applied, and
+        # its loss is the reference's, not left out of the study's mean)
+        remeasured=rem[0].loss if rem else (ref.loss if rip.get('fallback') else math.nan),
         opt_s=wall - exp_s,
         exp_s=exp_s,
+        ripple=(*rms(rip.get('start')), *rms(rip.get('applied'))),
+        ripple_changed=bool(rip.get('changed')),
     )
 
 
@@ -379,6 +401,8 @@ def _allocate(spec: StudySpec, cells: list[Cell]) -> dict[str, Any]:
         'remeasured': np.full((C, R), np.nan),
         'opt_s': np.zeros((C, R)),
         'exp_s': np.zeros((C, R)),
+        'ripple': np.full((C, R, 4), np.nan),
+        'ripple_changed': np.zeros((C, R), bool),
     }
 
 

@@ -232,6 +232,10 @@ class StudySpec:
     plant: tuple[str, ...] = ()
     #: the mismatch applied to the plant (``plant.parse_mismatch``): (key, value) pairs
     mismatch: tuple[tuple[str, float], ...] = ()
+    #: the final choice's standstill-ripple limit of every row (``--ripple-limit``): a
+    #: ratio to the start's rms, None (off), or 'default': each row's tuner default
+    #: (``names.default_ripple_limit``: on for safe, off for the others)
+    ripple_limit: float | str | None = 'default'
 
     #: fields written to study.json only when they differ from these defaults (a study
     #: without them writes the same file as before they existed)
@@ -241,6 +245,7 @@ class StudySpec:
         'full_grid': True,
         'plant': (),
         'mismatch': (),
+        'ripple_limit': 'default',
     }
 
     def __post_init__(self) -> None:
@@ -279,6 +284,13 @@ class StudySpec:
             from .plant import check_mismatch
 
             check_mismatch(self.mismatch)
+        rl = self.ripple_limit
+        if not (
+            rl is None
+            or rl == 'default'
+            or (isinstance(rl, float) and rl >= 1.0 and math.isfinite(rl))
+        ):
+            raise ValueError(f"ripple_limit: a ratio >= 1, None or 'default', got {rl!r}")
         if not self.algos or len(set(self.algos)) != len(self.algos):
             raise ValueError(f'algos must be distinct names, got {self.algos!r}')
         for a in self.algos:
@@ -286,6 +298,15 @@ class StudySpec:
                 raise ValueError(
                     f'algos: no study grid for {a!r} (allowed: {", ".join(STUDY_ALGOS)})'
                 )
+
+    def limit_of(self, cell: Cell) -> float | None:
+        """The ripple limit of ``cell``'s runs (None: off): :attr:`ripple_limit`, or the
+        tuner's default for the cell's algorithm (a reference row: off)."""
+        if self.ripple_limit != 'default':
+            return None if self.ripple_limit is None else float(self.ripple_limit)
+        from ..names import default_ripple_limit
+
+        return default_ripple_limit(cell.algo)
 
     @property
     def cells(self) -> list[Cell]:
@@ -357,6 +378,27 @@ class StudySpec:
         from ..space import load_params
 
         return load_params(self.params_file) if self.params_file else self.setup().params
+
+
+#: ``study --ripple-limit``'s help (the value: :func:`ripple_limit_option`)
+RIPPLE_LIMIT_HELP = (
+    "every row's standstill-ripple limit, as the tuner's --ripple-limit (default: each "
+    "row's tuner default: 1.5 for safe, off for the others); e.g. --algos spsa,necga "
+    "--ripple-limit 1.5: what the limit costs the paper's algorithms"
+)
+
+
+def ripple_limit_option(text: str | None) -> float | str | None:
+    """``study --ripple-limit``'s value as :attr:`StudySpec.ripple_limit`: 'default' when
+    not given, a ratio, None for 'off'; :class:`StudyError` (one line) for anything else."""
+    if text is None:
+        return 'default'
+    from ..names import parse_ripple_limit
+
+    try:
+        return parse_ripple_limit(text)
+    except ValueError as exc:
+        raise StudyError(str(exc)) from None
 
 
 def default_jobs() -> int:

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.stats
 
+from ..names import DEFAULT_RIPPLE_LIMIT
 from .results import StudyResult
 from .spec import MIN_RUNS_FOR_INTERVALS, Cell
 
@@ -113,6 +114,14 @@ class CellStats:
     fast: Interval  #: median evaluations to <= FAST_LEVEL (runs that reach it)
     fast_reached: Interval  #: % of runs reaching FAST_LEVEL (Wilson)
     aborted_per_run: Interval  #: mean aborted experiments per run
+    #: median over runs of the final choice's standstill rms of isq* / the start's (the
+    #: larger of the two windows; a median: a quiet random start makes one ratio huge);
+    #: nan: not measured
+    ripple_ratio: Interval = field(
+        default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0)
+    )
+    #: % of runs whose ripple ratio exceeds the default limit (names.DEFAULT_RIPPLE_LIMIT)
+    ripple_over: Interval = field(default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0))
 
     def paper(self, stat: str) -> float | None:
         return PAPER[stat].get((self.cell.algo, self.cell.row, self.cell.col))
@@ -169,7 +178,19 @@ def per_run(res: StudyResult, threshold: float) -> dict[str, np.ndarray]:
         'start': res.ref_loss / res.l_ref,
         'fast': fast,
         'aborted': res.aborted.sum(axis=2).astype(float),
+        'ripple_ratio': ripple_ratio(res),
     }
+
+
+def ripple_ratio(res: StudyResult) -> np.ndarray:
+    """[cells, runs]: the final choice's standstill rms of isq* over the start's, the
+    larger of the two windows (after the move, after the load); nan: not measured."""
+    rip = np.asarray(res.ripple, dtype=float)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        r = rip[..., 2:] / rip[..., :2]
+    out = np.max(r, axis=-1)
+    out[np.any(np.isnan(r), axis=-1)] = np.nan
+    return out
 
 
 def _mean_defined(x: np.ndarray, axis: int = -1) -> np.ndarray:
@@ -258,6 +279,10 @@ def compute(res: StudyResult, threshold: float | None = None) -> StudyStats:
         lo, hi = wilson(k, res.spec.runs)
         kf = int(np.sum(~np.isnan(pr['fast'][c])))
         flo, fhi = wilson(kf, res.spec.runs)
+        rr = pr['ripple_ratio'][c]
+        nr = int(np.sum(~np.isnan(rr)))
+        ko = int(np.sum(rr[~np.isnan(rr)] > DEFAULT_RIPPLE_LIMIT))
+        olo, ohi = wilson(ko, nr)
         cells.append(
             CellStats(
                 cell=cell,
@@ -289,6 +314,12 @@ def compute(res: StudyResult, threshold: float | None = None) -> StudyStats:
                 aborted_per_run=boot.interval(
                     float(pr['aborted'][c].mean()), boot.mean(pr['aborted'][c]), res.spec.runs
                 ),
+                ripple_ratio=boot.interval(
+                    float(_median_defined(rr)) if nr else math.nan,
+                    boot.dist(_median_defined, rr),
+                    nr,
+                ),
+                ripple_over=Interval(100.0 * ko / nr if nr else math.nan, 100 * olo, 100 * ohi, nr),
             )
         )
     st = StudyStats(res=res, threshold=thr, cells=cells)

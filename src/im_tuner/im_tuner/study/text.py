@@ -119,6 +119,7 @@ COMPARISON = (
     ('to <= {fast:g}, median', 'fast', 1, 'median'),
     ('runs reaching {fast:g} [%]', 'fast_reached', 0, 'pct'),
     ('aborted per run', 'aborted_per_run', 1, 'mean'),
+    ('ripple / start, median', 'ripple_ratio', 2, 'median'),
 )
 
 

@@ -23,8 +23,11 @@ def study(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
     return subprocess.run([*STUDY, *args], capture_output=True, text=True, timeout=timeout)
 
 
-#: sha256 of that study's tables.csv with safe's default ripple limit (issue 40 part 6)
-DEFAULT_LIMIT_TABLES = 'ca81a0d0d28765cd1ebca50c64f1e9ede6e26fa0c042883644ebfa9ebcea7a17'
+#: sha256 of that study's tables.csv with safe's default ripple limit (issue 40 part 6);
+#: retaken (the study below, `study --runs 2 --budget 6 --algos spsa,necga,cmaes,safe`) when
+#: safe's identified row changed (its model searched by 300 experiments per seed, sigma
+#: 0.02 after its point): still only safe's rows differ from the study without the limit
+DEFAULT_LIMIT_TABLES = 'ff3144df0f6638260c0f2018d0c731d95d9952911770e9c92f5909cccbc2f4b2'
 
 
 def test_without_drives_the_files_are_unchanged(tmp_path):

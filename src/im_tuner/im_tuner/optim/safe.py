@@ -25,11 +25,12 @@ On u in [0, 1]^dim, from the start point u0 (the hand-tuned gains, known to be s
   After the identified point succeeds, sigma is ``IDENTIFIED_SIGMA`` (0.02), not sigma0
   grown to 0.075 as after the file's model's point: the identified model's optimum lies
   near the plant's stability edge, and its step was the model's, not the search's.  On
-  im7500w-j10 (8 runs x 60 evaluations per plant; the exact file, J x0.5, J x1.5) the
-  grown step aborted 1.0, 1.4 and 0.4 times per run, 21 of 22 in evaluations 3-8, and
-  sigma0 kept 0.6, 1.2 and 0 (the prior's search then 150 experiments per seed); with
-  the 300 of now 0.03 aborted 0.1, 0.8 and 0, and 0.02 0, 0.5 and 0, at the same or a
-  lower re-measured loss (J x0.5: 0.492 with 0.03, 0.486 with 0.02; Py-BOBYQA 0.478);
+  im7500w-j10 (8 runs x 60 evaluations per plant, no ripple limit; the exact file, J
+  x0.5, J x1.5) the grown step aborted 1.0, 1.4 and 0.4 times per run, 21 of 22 in
+  evaluations 3-8, and sigma0 kept 0.6, 1.2 and 0 (the prior's search then 150
+  experiments per seed); with the 300 of now 0.03 aborted 0.1, 0.8 and 0, and 0.02 0,
+  0.5 and 0, at the same or a lower re-measured loss (J x0.5: 0.492 with 0.03, 0.486
+  with 0.02; Py-BOBYQA 0.478);
 * a candidate is y = clip(x + s) with, in order of preference:
   - s = the last successful step right after a success (pattern move, Hooke-Jeeves);
   - every ``model_every``-th evaluation, once at least ``dim + 1`` measured points lie

@@ -169,6 +169,13 @@ def test_necga_short_run(tmp_path):
     run = tmp_path / 'necga_run'
     proc = tuner('--algo', 'necga', '--budget', '20', '--seed', '4', '--out', str(run), '--quiet')
     recs = check_run(run, 'necga', 20, proc)
+    # the simulated drive is known: its rated q current beside the ripple (a percentage),
+    # for the paper's algorithms too (not only with safe's identification)
+    from im_drive_sim.drive_file import load_config
+
+    m = load_config(None).machine
+    ripple = json.loads((run / 'summary.json').read_text())['ripple']
+    assert ripple['rated_isq_a'] == m.rated_torque / m.Kt and ripple['limit'] is None
     # 16-bit genes: every gain is lo + (hi - lo) v/65535 with integer v
     for r in recs:
         if r['kind'] == 'eval':

@@ -466,4 +466,23 @@ def make_tuning(rundir: RunDir, run: RunConfig, params: TunerParams, progress) -
         ripple_limit=run.ripple_limit,
     )
     tuning.timing_tolerance = run.tolerance()
+    tuning.rated_isq_a = _rated_isq(run)
     return tuning
+
+
+def _rated_isq(run: RunConfig) -> float | None:
+    """The rated torque's q current [A] of the drive the tuner knows (``--drive-config``,
+    or the simulated bench's drive file), for the summary's ripple in % of it; None when
+    the controller found may drive another motor."""
+    from .benches import is_simulated
+
+    if run.drive_config is None and not is_simulated(run.bench, run.drive):
+        return None
+    from im_drive_sim.drive_file import load_config
+    from im_drive_sim.params import ConfigError
+
+    try:
+        m = load_config(run.drive_config).machine
+    except ConfigError:
+        return None
+    return m.rated_torque / m.Kt if m.Kt > 0 else None

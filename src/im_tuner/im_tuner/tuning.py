@@ -246,6 +246,9 @@ class TuningRun:
         if ripple_limit is not None and not (ripple_limit > 0 and np.isfinite(ripple_limit)):
             raise ValueError(f'ripple_limit must be a ratio > 0, got {ripple_limit!r}')
         self.ripple_limit = None if ripple_limit is None else float(ripple_limit)
+        #: the drive's rated torque's q current [A] (rated torque / Kt of its drive file),
+        #: for the summary's ripple in % of it; None: the tuner does not know the drive
+        self.rated_isq_a: float | None = None
         self.state = TunerState()
         self.records: list[Record] = []
         self._t_mark = time.perf_counter()
@@ -523,12 +526,14 @@ class TuningRun:
         )
         if s.applied is not None:
             s.applied['on_controller'] = self.applied
+        rated = self.rated_isq_a
         if self.first_step is not None:
             idf = self.first_step.identified(self.records)
             s.identification = None if idf is None else idf.as_dict()
             m = self.first_step.drive.machine
-            if s.ripple is not None:  # the rated torque's q current [A], for a percentage
-                s.ripple['rated_isq_a'] = m.rated_torque / m.Kt
+            rated = m.rated_torque / m.Kt
+        if s.ripple is not None and rated is not None:  # for a percentage
+            s.ripple['rated_isq_a'] = rated
         return s
 
 

@@ -228,16 +228,13 @@ def _code_digest() -> str:
     key (so a cache directory outlives no change of code, numpy or CPU dispatch)."""
     import im_controller
     import im_drive_sim
+    import im_tuner
     from im_drive_sim import numeric
 
     h = hashlib.sha256()
-    for pkg in (im_drive_sim, im_controller):
-        root = Path(str(pkg.__file__)).parent
+    for root in (Path(str(p.__file__)).parent for p in (im_drive_sim, im_controller, im_tuner)):
         for f in sorted(root.rglob('*.py')):
             h.update(f.relative_to(root).as_posix().encode() + b'\0' + f.read_bytes())
-    root = Path(__file__).parent
-    for f in sorted(root.rglob('*.py')):
-        h.update(f.relative_to(root).as_posix().encode() + b'\0' + f.read_bytes())
     st = numeric.status()
     bits = {k: st[k] for k in ('state', 'numpy', 'openblas')}
     h.update(json.dumps([np.__version__, bits], sort_keys=True).encode())

@@ -1,25 +1,26 @@
 """Does the identified model see the standstill ripple the plant shows? (issue 40 part 6)
 
-For each run of the study's default row (safe, first step from the identified drive) on a
-told drive and a mismatched plant: the drive the start's two experiments identify, the
-offline search on that model (``prior._search``, as ``identified_prior``), and for each of
-its candidates (``prior.CANDIDATES`` best distinct points) its loss and standstill rms on
-the model over the start's there, its worst ratios over the perturbed models, and what
-the plant then measures (loss over the start's, rms over the start's, in the two windows
-of ``runlog.tally.LIMIT_KEYS``).  The chosen point is marked.
+For the first run of the study's default row (safe, first step from the identified drive)
+on a told drive and a mismatched plant: the drive its start's two experiments identify,
+the offline search on that model (``prior._search``, as ``identified_prior`` runs it) and
+its ``--candidates`` best distinct points.  Per candidate: its loss over the start's on
+the model, its worst loss ratio over the perturbed models, its standstill rms over the
+start's (``_ModelBench.ripple_ratio``: the largest over its experiments, per window of
+``runlog.tally.LIMIT_KEYS``) in the nominal search and over the perturbed models, and
+what the plant measures in six experiments of it (every other one after the start's, so
+that they start from different rest positions): loss and the largest and mean rms, over
+the start's.  ``*`` the first step without a ripple limit, ``+`` with ``--limit``.
 
-    python benchmarks/prior_ripple.py --drive im750w-j1 --mismatch J=x1.5 [--runs 8]
+    python benchmarks/prior_ripple.py --drive im750w-j1 --mismatch J=x1.5 [--limit 1.5]
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 from typing import Any
 
 import numpy as np
 
-from im_controller.config import ExperimentConfig
 from im_tuner import first_step as FS
 from im_tuner import prior as P
 from im_tuner.offline import OfflineBench
@@ -28,34 +29,22 @@ from im_tuner.study.plant import parse_mismatch
 from im_tuner.study.spec import StudySpec
 
 
-def _rms(rip: tuple[float, ...]) -> tuple[float, float]:
-    return (rip[0], rip[2])
-
-
-def _measure_all(bench: Any, space: Any, points: list[tuple[float, ...]]) -> dict[Any, Any]:
-    """Each point twice (both directions), after the start from rest: (loss, rms pair)."""
-    out: dict[Any, Any] = {}
-    bench.measure(space.to_gains(space.start_u))
-    for u in [tuple(space.start_u.tolist()), *points]:
-        ms = [bench.measure(space.to_gains(np.array(u))) for _ in range(2)]
-        ok = [m for m in ms if not m.aborted]
-        if not ok:
-            out[u] = (math.inf, (math.nan, math.nan))
-            continue
-        loss = sum(m.loss for m in ok) / len(ok)
-        rms = tuple(sum(_rms(m.ripple)[w] for m in ok) / len(ok) for w in range(2))
-        out[u] = (loss, rms)
-    return out
+def _ratio(bench: Any, u: tuple[float, ...], start: tuple[float, ...]) -> tuple[float, float]:
+    """The largest rms of ``u`` over the start's mean on ``bench``, per window."""
+    s0 = np.mean(bench.rms[start], axis=0)
+    r = np.max(bench.rms.get(u, [(0.0, 0.0)]), axis=0)
+    return (float(r[0] / s0[0]), float(r[1] / s0[1]))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--drive', default='im750w-j1')
     ap.add_argument('--mismatch', default='J=x1.5')
-    ap.add_argument('--runs', type=int, default=8)
+    ap.add_argument('--limit', type=float, default=1.5)
+    ap.add_argument('--candidates', type=int, default=16)
     a = ap.parse_args()
     spec = StudySpec(
-        runs=a.runs,
+        runs=1,
         budget=3,
         algos=('safe',),
         drives=(a.drive,),
@@ -63,62 +52,74 @@ def main() -> None:
         mismatch=parse_mismatch(a.mismatch),
     )
     cell = next(i for i, c in enumerate(spec.cells) if c.first == 'identify')
-    seen_keys: dict[str, list[int]] = {}
     calls: list[Any] = []
     orig = FS.identified_prior
-
-    def capture(drive: Any, space: Any, experiment: ExperimentConfig | None, idf: Any) -> Any:
-        calls.append((drive, space, experiment, idf))
-        return None
-
-    FS.identified_prior = capture  # type: ignore[assignment]
+    FS.identified_prior = lambda *args: calls.append(args)
     try:
-        for r in range(a.runs):
-            R.run_one(spec, cell, r)
+        R.run_one(spec, cell, 0)  # the run's start: its two experiments identify the drive
     finally:
-        FS.identified_prior = orig  # type: ignore[assignment]
+        FS.identified_prior = orig
+    drive, space, exp, idf = calls[0][:4]
     plant, _params, experiment = spec.loaded()
-    for r, (drive, space, exp, idf) in enumerate(calls):
-        model, mexp = P.identified_model(drive, exp, idf)
-        k = repr((model.machine, mexp))
-        seen_keys.setdefault(k, []).append(r)
-    print(f'{a.drive}, plant {a.mismatch}: {len(seen_keys)} identified model(s)')
-    done: set[str] = set()
-    for r, (drive, space, exp, idf) in enumerate(calls):
-        model, mexp = P.identified_model(drive, exp, idf)
-        k = repr((model.machine, mexp))
-        if k in done:
-            continue
-        done.add(k)
-        print(f'\nruns {seen_keys[k]}: J model {model.machine.J:.6g} (file {drive.machine.J:.6g})')
-        seen, _ = P._search(model, mexp, space, P.IDENTIFIED_MODEL_EVALUATIONS)
-        start = tuple(space.start_u.tolist())
-        f0 = next(loss for loss, ab, u in seen if u == start and not ab)
-        best: dict[tuple[float, ...], float] = {}
-        for loss, aborted, u in sorted(seen):
-            if not aborted and u != start and u not in best and loss < f0:
-                best[u] = loss
-            if len(best) == P.CANDIDATES:
-                break
-        cands = list(best)
-        mb = P._ModelBench(model, mexp)
-        on_model = _measure_all(mb.bench, space, cands)
-        pb = OfflineBench(plant, 0, experiment)
-        on_plant = _measure_all(pb, space, cands)
-        chosen = orig(drive, space, exp, idf)
-        l0m, r0m = on_model[start]
-        l0p, r0p = on_plant[start]
-        print(f'start: model rms {r0m[0]:.3f}/{r0m[1]:.3f} A, plant rms {r0p[0]:.3f}/{r0p[1]:.3f} A')
-        print('  u | model loss/start | model rms/start (move, load) | plant loss/start | plant rms/start')
-        for u in cands:
-            lm, rm = on_model[u]
-            lp, rp = on_plant[u]
-            mark = '*' if chosen is not None and tuple(chosen.u) == u else ' '
-            print(
-                f'{mark} {", ".join(f"{x:.3f}" for x in u)} | {lm / l0m:.3f} | '
-                f'{rm[0] / r0m[0]:.2f}, {rm[1] / r0m[1]:.2f} | {lp / l0p:.3f} | '
-                f'{rp[0] / r0p[0]:.2f}, {rp[1] / r0p[1]:.2f}'
-            )
+    model, mexp = P.identified_model(drive, exp, idf)
+    seen, bench = P._search(model, mexp, space, P.IDENTIFIED_MODEL_EVALUATIONS)
+    start = tuple(space.start_u.tolist())
+    f0 = next(loss for loss, ab, u in seen if u == start and not ab)
+    best: dict[tuple[float, ...], float] = {}
+    for loss, aborted, u in sorted(seen):
+        if not aborted and u != start and u not in best and loss < f0:
+            best[u] = loss
+        if len(best) == a.candidates:
+            break
+    spread = round(max(P.IDENTIFIED_J_SPREAD, 3.0 * idf.J_sd / idf.J), 2)
+    lo, hi = 1.0 - min(spread, 0.5), 1.0 + spread
+    worst = dict.fromkeys(best, 0.0)
+    loud = dict.fromkeys(best, (0.0, 0.0))
+    order = list(best)
+    for b in range(0, len(order), P.CANDIDATES):  # as _compute: a batch per fresh model
+        for j, rr in ((lo, 0.8), (lo, 1.2), (hi, 0.8), (hi, 1.2), (lo, 1.0), (hi, 1.0)):
+            pb = P._ModelBench(P._perturbed(model, j, rr), mexp)
+            pb.loss(space, space.start_u)
+            ref, _ = pb.loss(space, space.start_u)
+            for u in order[b : b + P.CANDIDATES]:
+                loss, aborted = pb.loss(space, np.array(u))
+                worst[u] = max(worst[u], np.inf if aborted else loss / ref)
+                r = _ratio(pb, u, start)
+                loud[u] = (max(loud[u][0], r[0]), max(loud[u][1], r[1]))
+    pl = OfflineBench(plant, 0, experiment)
+    g0 = space.to_gains(space.start_u)
+    pl.measure(g0)
+    ms0 = [pl.measure(g0) for _ in range(2)]
+    l0 = np.mean([m.loss for m in ms0])
+    r0 = np.mean([(m.ripple[0], m.ripple[2]) for m in ms0], axis=0)
+    plain, limited = orig(drive, space, exp, idf), orig(drive, space, exp, idf, a.limit)
+    print(
+        f'{a.drive}, plant {a.mismatch}: identified J {idf.J:.6g} (file {drive.machine.J:.6g}); '
+        f"start's rms on the model {np.mean(bench.rms[start], axis=0).round(3)} A, "
+        f'on the plant {r0.round(3)} A (after the move, after the load)'
+    )
+    print(
+        '| | model loss / start | worst over perturbed | model rms / start: nominal '
+        '| perturbed, max | plant loss / start | plant rms / start, max | mean |'
+    )
+    print('|---|---|---|---|---|---|---|---|')
+    for k, u in enumerate(best):
+        ms = []
+        for i in range(6):
+            if i % 2 == 0:
+                pl.measure(g0)
+            ms.append(pl.measure(space.to_gains(np.array(u))))
+        pr = np.array([(m.ripple[0], m.ripple[2]) for m in ms]) / r0
+        mark = ('*' if plain is not None and plain.u == u else '') + (
+            '+' if limited is not None and limited.u == u else ''
+        )
+        nom = _ratio(bench, u, start)
+        print(
+            f'| {k}{mark} | {best[u] / f0:.3f} | {worst[u]:.3f} | {nom[0]:.2f}, {nom[1]:.2f} '
+            f'| {loud[u][0]:.2f}, {loud[u][1]:.2f} | {np.mean([m.loss for m in ms]) / l0:.3f} '
+            f'| {pr[:, 0].max():.2f}, {pr[:, 1].max():.2f} '
+            f'| {pr[:, 0].mean():.2f}, {pr[:, 1].mean():.2f} |'
+        )
 
 
 if __name__ == '__main__':

@@ -18,6 +18,9 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+import im_drive_sim  # noqa: F401 (the numeric baseline, set before numpy loads)
+
+# isort: split
 import numpy as np
 
 from im_controller.config import Gains

@@ -12,6 +12,10 @@ that they start from different rest positions): loss and the largest and mean rm
 the start's.  ``*`` the first step without a ripple limit, ``+`` with ``--limit``.
 
     python benchmarks/prior_ripple.py --drive im750w-j1 --mismatch J=x1.5 [--limit 1.5]
+
+With ``--same D1,D2,...`` instead: per drive (its own file as the plant), whether the
+first step of run 0 with the limit is the point without it, and its largest rms ratio
+on the models.
 """
 
 from __future__ import annotations
@@ -19,6 +23,9 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+import im_drive_sim  # noqa: F401 (the numeric baseline, set before numpy loads)
+
+# isort: split
 import numpy as np
 
 from im_tuner import first_step as FS
@@ -36,21 +43,8 @@ def _ratio(bench: Any, u: tuple[float, ...], start: tuple[float, ...]) -> tuple[
     return (float(r[0] / s0[0]), float(r[1] / s0[1]))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    ap.add_argument('--drive', default='im750w-j1')
-    ap.add_argument('--mismatch', default='J=x1.5')
-    ap.add_argument('--limit', type=float, default=1.5)
-    ap.add_argument('--candidates', type=int, default=16)
-    a = ap.parse_args()
-    spec = StudySpec(
-        runs=1,
-        budget=3,
-        algos=('safe',),
-        drives=(a.drive,),
-        full_grid=False,
-        mismatch=parse_mismatch(a.mismatch),
-    )
+def _identified(spec: StudySpec) -> tuple[Any, ...]:
+    """(told drive, space, experiment, identification) of run 0 of the default row."""
     cell = next(i for i, c in enumerate(spec.cells) if c.first == 'identify')
     calls: list[Any] = []
     orig = FS.identified_prior
@@ -59,7 +53,42 @@ def main() -> None:
         R.run_one(spec, cell, 0)  # the run's start: its two experiments identify the drive
     finally:
         FS.identified_prior = orig
-    drive, space, exp, idf = calls[0][:4]
+    return tuple(calls[0][:4])
+
+
+def _same(drives: list[str], limit: float) -> None:
+    print('| drive | first step with the limit | its largest rms / start on the models |')
+    print('|---|---|---|')
+    for d in drives:
+        spec = StudySpec(runs=1, budget=3, algos=('safe',), drives=(d,), full_grid=False)
+        drive, space, exp, idf = _identified(spec)
+        a = P.identified_prior(drive, space, exp, idf)
+        b = P.identified_prior(drive, space, exp, idf, limit)
+        same = (a is None) == (b is None) and (a is None or b is None or a.u == b.u)
+        rr = '-' if b is None or b.ripple_ratio is None else f'{b.ripple_ratio:.2f}'
+        print(f'| {d} | {"the same point" if same else "another point"} | {rr} |', flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--drive', default='im750w-j1')
+    ap.add_argument('--mismatch', default='J=x1.5')
+    ap.add_argument('--limit', type=float, default=1.5)
+    ap.add_argument('--candidates', type=int, default=16)
+    ap.add_argument('--same', default='', help='drives: is the limited first step the same?')
+    a = ap.parse_args()
+    if a.same:
+        _same(a.same.split(','), a.limit)
+        return
+    spec = StudySpec(
+        runs=1,
+        budget=3,
+        algos=('safe',),
+        drives=(a.drive,),
+        full_grid=False,
+        mismatch=parse_mismatch(a.mismatch),
+    )
+    drive, space, exp, idf = _identified(spec)
     plant, _params, experiment = spec.loaded()
     model, mexp = P.identified_model(drive, exp, idf)
     seen, bench = P._search(model, mexp, space, P.IDENTIFIED_MODEL_EVALUATIONS)
@@ -92,7 +121,8 @@ def main() -> None:
     ms0 = [pl.measure(g0) for _ in range(2)]
     l0 = np.mean([m.loss for m in ms0])
     r0 = np.mean([(m.ripple[0], m.ripple[2]) for m in ms0], axis=0)
-    plain, limited = orig(drive, space, exp, idf), orig(drive, space, exp, idf, a.limit)
+    plain = P.identified_prior(drive, space, exp, idf)
+    limited = P.identified_prior(drive, space, exp, idf, a.limit)
     print(
         f'{a.drive}, plant {a.mismatch}: identified J {idf.J:.6g} (file {drive.machine.J:.6g}); '
         f"start's rms on the model {np.mean(bench.rms[start], axis=0).round(3)} A, "

@@ -31,8 +31,9 @@ point, bit for bit):
    isq* in each window at most R times the start's mean rms on that model.  The nominal
    search's one experiment of a point often rests within an encoder count (rms 0); the
    perturbed models' experiments start from other positions and show the limit cycle the
-   plant then measures (im750w-j1, plant J x1.5: the largest ratio over them 1.45-1.66
-   where the plant's over six experiments was 1.38-1.66, point by point).  When no
+   plant then measures (im750w-j1, plant J x1.5: the largest ratio after the move over
+   them 1.41-1.80 for the 16 best candidates, the plant's over six experiments of each
+   1.34-1.74, point by point 0.07 below to 0.17 above it).  When no
    candidate of a batch is within it, the next ``CANDIDATES`` of the search's ranking are
    checked (``RIPPLE_BATCHES`` at most); None if none is.
 
@@ -220,9 +221,10 @@ def _compute(
     ripple_limit: float | None = None,
 ) -> Prior | None:
     """Steps 1-3 of the module docstring; with ``ripple_limit`` (a ratio, the run's
-    ``--ripple-limit``) only candidates within it on every model (``_within``), the next
-    ``CANDIDATES`` of the search's ranking checked when none of a batch is, at most
-    ``RIPPLE_BATCHES`` batches."""
+    ``--ripple-limit``) step 4: only candidates whose ``_ModelBench.ripple_ratio`` is
+    within it on the nominal and every perturbed model, the next ``CANDIDATES`` of the
+    search's ranking checked when no candidate of a batch is (``RIPPLE_BATCHES`` at
+    most).  Without a limit the same experiments and point as before the limit existed."""
     t0 = time.perf_counter()
     seen, bench = _search(model, experiment, space, evaluations)
     start = tuple(space.start_u.tolist())

@@ -33,10 +33,14 @@ class IdentifiedFirstStep:
         space: SearchSpace,
         experiment: ExperimentConfig | None,
         say: Callable[[str], None] | None = None,
+        ripple_limit: float | None = None,
     ) -> None:
         """``say``: where to print what was identified and the step taken (the tuner's
-        progress lines; None: nothing)."""
+        progress lines; None: nothing); ``ripple_limit``: the run's standstill-ripple
+        limit (a ratio to the start's rms; None: off), which the step keeps on the models
+        (``im_tuner.prior``, step 4)."""
         self.drive, self.space, self.experiment, self.say = drive, space, experiment, say
+        self.ripple_limit = ripple_limit
         self.prior: Prior | None = None  #: the last point's prior (None: none)
 
     def identified(self, records: list[Any]) -> Identified | None:
@@ -50,14 +54,25 @@ class IdentifiedFirstStep:
             self._say("identification: too few rows in the start's experiments; no first step")
             return None
         self._say(f'identified from the start: {idf.line()}')
-        self.prior = identified_prior(self.drive, self.space, self.experiment, idf)
+        self.prior = identified_prior(
+            self.drive, self.space, self.experiment, idf, self.ripple_limit
+        )
         if self.prior is None:
-            self._say('first step: none (the identified model finds nothing better than the start)')
+            within = '' if self.ripple_limit is None else ' within the ripple limit'
+            self._say(
+                'first step: none (the identified model finds nothing better than the start'
+                f'{within})'
+            )
             return None
         p = self.prior
+        quiet = (
+            ''
+            if p.ripple_ratio is None
+            else f"; its standstill rms at most {p.ripple_ratio:.2f}x the start's on the models"
+        )
         self._say(
             f"first step: the identified model's best point (its loss {p.model_ratio:.2f}x the "
-            f"start's on the model, at most {p.worst_ratio:.2f}x over J and Rr errors; "
+            f"start's on the model, at most {p.worst_ratio:.2f}x over J and Rr errors{quiet}; "
             f'{p.experiments} offline experiments, {p.seconds:.1f} s)'
         )
         return list(p.u)

@@ -25,6 +25,17 @@ point, bit for bit):
    on every perturbed model, or when the start itself aborts on the nominal model (a box
    given with ``--params`` for another drive: nothing to compare with); ``safe`` then runs
    as without a model.
+4. With a standstill-ripple limit R (the identified prior of a run with ``--ripple-limit
+   R``; docs/optimisers.md, "The standstill ripple"), the point must also be quiet on the
+   models: in every experiment of it, on the nominal and each perturbed model, its rms of
+   isq* in each window at most R times the start's mean rms on that model.  The nominal
+   search's one experiment of a point often rests within an encoder count (rms 0); the
+   perturbed models' experiments start from other positions and show the limit cycle the
+   plant then measures (im750w-j1, plant J x1.5: the largest ratio after the move over
+   them 1.41-1.80 for the 16 best candidates, the plant's over six experiments of each
+   1.34-1.74, point by point 0.07 below to 0.17 above it).  When no
+   candidate of a batch is within it, the next ``CANDIDATES`` of the search's ranking are
+   checked (``RIPPLE_BATCHES`` at most); None if none is.
 
 ``model_prior`` is cached per (nominal drive, experiment, box) in the process, and across
 processes in the directory named by ``IM_TUNER_PRIOR_CACHE`` when it is set (a study
@@ -63,6 +74,7 @@ __all__ = [
     'CANDIDATES',
     'MODEL_EVALUATIONS',
     'PERTURBATIONS',
+    'RIPPLE_BATCHES',
     'Prior',
     'identified_model',
     'identified_prior',
@@ -86,6 +98,10 @@ PERTURBATIONS: tuple[tuple[float, float], ...] = (
 )
 #: the searches' seeds (fixed numbers: the prior is a function of the drive alone)
 SEEDS: tuple[int, ...] = (0, 1, 2, 3)
+#: With a ripple limit, batches of ``CANDIDATES`` checked at most (the next batch of the
+#: search's ranking when no candidate of one is within the limit and beats the start on
+#: every perturbed model): 4 x 8 x 6 = 192 more offline experiments at most.
+RIPPLE_BATCHES = 4
 
 
 @dataclass(frozen=True)
@@ -95,7 +111,10 @@ class Prior:
     ``u``: the point (normalised, in [0, 1]^dim); ``model_ratio``: its loss on the nominal
     model over the start's there; ``worst_ratio``: the largest such ratio over the
     perturbed models; ``experiments``: offline experiments it cost; ``seconds``: wall
-    time of the first computation [s] (a cached call returns the same object).
+    time of the first computation [s] (a cached call returns the same object);
+    ``ripple_ratio``: with a ripple limit, the point's largest standstill rms over the
+    start's on the same model, in either window, over the nominal and perturbed models
+    (``_ModelBench.ripple_ratio``; None: no limit asked).
     """
 
     u: tuple[float, ...]
@@ -103,6 +122,7 @@ class Prior:
     worst_ratio: float
     experiments: int
     seconds: float
+    ripple_ratio: float | None = None
 
 
 def nominal_model(drive: DriveConfig) -> DriveConfig:
@@ -140,11 +160,33 @@ class _ModelBench:
             self.bench.runner = ExperimentRunner(config_for_drive(experiment, sim), Gains())
             self.bench.runner.reset(sim.theta_meas)
         self.experiments = 0
+        #: per measured point, each non-aborted experiment's (rms after move, after load) [A]
+        self.rms: dict[tuple[float, ...], list[tuple[float, float]]] = {}
 
     def loss(self, space: SearchSpace, u: np.ndarray) -> tuple[float, bool]:
         m = self.bench.measure(space.to_gains(u))
         self.experiments += 1
+        # the standstill rms of isq* [A] after the move and after the load
+        # (runlog.tally.LIMIT_KEYS), per point: the ripple check of a limited prior
+        if not m.aborted:
+            self.rms.setdefault(tuple(u.tolist()), []).append((m.ripple[0], m.ripple[2]))
         return m.loss, m.aborted
+
+    def ripple_ratio(self, u: tuple[float, ...], start: tuple[float, ...]) -> float:
+        """The largest standstill rms of ``u`` over this model's experiments of it, in
+        either window, over the mean rms of the start's experiments on this model in the
+        same window: max_k,w rms_w(u, k) / mean_k rms_w(start, k) (inf where a window of
+        ``u`` or the start has no samples, or the start's rms is 0 where ``u``'s is not;
+        0 where ``u`` was not measured here)."""
+        ref = self.rms.get(start, [])
+        out = 0.0
+        for r in self.rms.get(u, []):
+            for w in range(2):
+                s0 = sum(x[w] for x in ref) / len(ref) if ref else math.nan
+                if math.isnan(r[w]) or math.isnan(s0):
+                    return math.inf
+                out = max(out, r[w] / s0 if s0 > 0.0 else (0.0 if r[w] == 0.0 else math.inf))
+        return out
 
 
 def _search(
@@ -176,44 +218,60 @@ def _compute(
     space: SearchSpace,
     perturbations: tuple[tuple[float, float], ...] = PERTURBATIONS,
     evaluations: int = MODEL_EVALUATIONS,
+    ripple_limit: float | None = None,
 ) -> Prior | None:
+    """Steps 1-3 of the module docstring; with ``ripple_limit`` (a ratio, the run's
+    ``--ripple-limit``) step 4: only candidates whose ``_ModelBench.ripple_ratio`` is
+    within it on the nominal and every perturbed model, the next ``CANDIDATES`` of the
+    search's ranking checked when no candidate of a batch is (``RIPPLE_BATCHES`` at
+    most).  Without a limit the same experiments and point as before the limit existed."""
     t0 = time.perf_counter()
     seen, bench = _search(model, experiment, space, evaluations)
     start = tuple(space.start_u.tolist())
     f0 = next((loss for loss, ab, u in seen if u == start and not ab), None)
     if f0 is None:  # the box's start is unstable on the model: no ratio to beat, no prior
         return None
-    best: dict[tuple[float, ...], float] = {}
+    ranked: dict[tuple[float, ...], float] = {}  # distinct points better than the start
     for loss, aborted, u in sorted(seen):
-        if not aborted and u != start and u not in best and loss < f0:
-            best[u] = loss
-        if len(best) == CANDIDATES:
-            break
-    if not best:
-        return None
+        if not aborted and u != start and u not in ranked and loss < f0:
+            ranked[u] = loss
+    order = list(ranked)
     experiments = bench.experiments
-    worst = dict.fromkeys(best, 0.0)
-    for j, rr in perturbations:
-        pb = _ModelBench(_perturbed(model, j, rr), experiment)
-        pb.loss(space, space.start_u)  # from rest
-        ref, ref_aborted = pb.loss(space, space.start_u)
-        if ref_aborted:  # the start itself is unstable there: this model says nothing
+    for b in range(1 if ripple_limit is None else RIPPLE_BATCHES):
+        best = {u: ranked[u] for u in order[b * CANDIDATES : (b + 1) * CANDIDATES]}
+        if not best:
+            return None
+        worst = dict.fromkeys(best, 0.0)
+        loud = {u: bench.ripple_ratio(u, start) for u in best}
+        for j, rr in perturbations:
+            pb = _ModelBench(_perturbed(model, j, rr), experiment)
+            pb.loss(space, space.start_u)  # from rest
+            ref, ref_aborted = pb.loss(space, space.start_u)
+            if ref_aborted:  # the start itself is unstable there: this model says nothing
+                experiments += pb.experiments
+                continue
+            for u in best:
+                loss, aborted = pb.loss(space, np.array(u))
+                worst[u] = max(worst[u], np.inf if aborted else loss / ref)
+                loud[u] = max(loud[u], pb.ripple_ratio(u, start))
             experiments += pb.experiments
+        ok = [u for u in best if ripple_limit is None or loud[u] <= ripple_limit]
+        if not ok:
             continue
-        for u in best:
-            loss, aborted = pb.loss(space, np.array(u))
-            worst[u] = max(worst[u], np.inf if aborted else loss / ref)
-        experiments += pb.experiments
-    u_best = min(best, key=lambda u: (worst[u], best[u]))
-    if not worst[u_best] < 1.0:
-        return None
-    return Prior(
-        u=u_best,
-        model_ratio=best[u_best] / f0,
-        worst_ratio=float(worst[u_best]),
-        experiments=experiments,
-        seconds=time.perf_counter() - t0,
-    )
+        u_best = min(ok, key=lambda u: (worst[u], best[u]))
+        if not worst[u_best] < 1.0:
+            if ripple_limit is None:
+                return None
+            continue
+        return Prior(
+            u=u_best,
+            model_ratio=best[u_best] / f0,
+            worst_ratio=float(worst[u_best]),
+            experiments=experiments,
+            seconds=time.perf_counter() - t0,
+            ripple_ratio=None if ripple_limit is None else float(loud[u_best]),
+        )
+    return None
 
 
 _CACHE: dict[str, Prior | None] = {}
@@ -300,8 +358,8 @@ IDENTIFIED_J_SPREAD = 0.1
 #: search 0.48; the four searches ended at 0.50-0.60 of the start's loss on the model),
 #: 300 found 0.47-0.49; the default's re-measured loss on the issue-40 grid went from
 #: 0.511 to 0.492 (J x0.5), 0.437 to 0.417 (J x1.5), 0.506 to 0.479 (all mismatches; each
-#: with sigma 0.03 after the point, no ripple limit).  Not yet: a choice within the ripple
-#: limit (im750w-j1 at J x1.5 finds a loud point: docs/optimisers.md).
+#: with sigma 0.03 after the point, no ripple limit).  With a ripple limit the choice is
+#: within it on the models (``_compute``; im750w-j1 at J x1.5 found a loud point before).
 #: The price: twice the offline experiments between evaluations 1 and 2.
 IDENTIFIED_MODEL_EVALUATIONS = 300
 
@@ -333,10 +391,13 @@ def identified_prior(
     space: SearchSpace,
     experiment: ExperimentConfig | None,
     idf: Identified,
+    ripple_limit: float | None = None,
 ) -> Prior | None:
     """``model_prior`` on the identified model (:func:`identified_model`) instead of the
     file's, robust over the identification's uncertainty in J (``IDENTIFIED_J_SPREAD``)
-    and the file's in Rr.  Cached per rounded model, experiment and box."""
+    and the file's in Rr; with ``ripple_limit`` (the run's, a ratio to the start's rms)
+    a point within it on every model (module docstring, step 4).  Cached per rounded
+    model, experiment, box and limit."""
     model, exp = identified_model(drive, experiment, idf)
     spread = max(IDENTIFIED_J_SPREAD, 3.0 * idf.J_sd / idf.J if idf.J > 0 else 1.0)
     spread = round(spread, 2)
@@ -350,11 +411,15 @@ def identified_prior(
             dataclasses.asdict(space),
             spread,
             IDENTIFIED_MODEL_EVALUATIONS,
+            ripple_limit,
         ],
         sort_keys=True,
     )
     return _cached(
-        key, lambda: _compute(model, exp, space, perturbations, IDENTIFIED_MODEL_EVALUATIONS)
+        key,
+        lambda: _compute(
+            model, exp, space, perturbations, IDENTIFIED_MODEL_EVALUATIONS, ripple_limit
+        ),
     )
 
 

@@ -136,7 +136,8 @@ def build_parser() -> argparse.ArgumentParser:
         "R times the hand-tuned start's, as the reference experiment measures it; a "
         'louder evaluation is told to the optimiser as no better than the best quiet one '
         'so far, and the re-measured and applied gains are the best evaluated within it '
-        f"(the start if none). A ratio >= 1 or 'off'. Default: {DEFAULT_RIPPLE_LIMIT:g} for "
+        "(the start if none); safe's first step from the identified drive is chosen within "
+        f"it on the models. A ratio >= 1 or 'off'. Default: {DEFAULT_RIPPLE_LIMIT:g} for "
         f"{', '.join(RIPPLE_LIMIT_ALGOS)}, off for the others (the paper's final controller is "
         'the smallest loss); off with --no-reference (nothing to compare with) '
         '(docs/optimisers.md, "The standstill ripple")',

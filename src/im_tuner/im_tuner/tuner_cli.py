@@ -368,6 +368,7 @@ def _first_step_hook(run: RunConfig, params: TunerParams, progress: Any = None) 
         params.space,
         None if setup is None else setup.experiment,
         getattr(progress, 'note', None),
+        run.ripple_limit,  # (the first step within the limit the run applies)
     )
 
 

@@ -17,6 +17,8 @@ from im_tuner.offline import OfflineBench
 from im_tuner.optim import Optimizer, OptimizerError, make_optimizer
 from im_tuner.prior import identified_model, model_prior
 from im_tuner.rundir import RunDir
+from im_tuner.runlog import MemoryRecord
+from im_tuner.runlog.tally import LIMIT_KEYS, ripple_bound, told_loss
 from im_tuner.tuning import TuningRun
 
 POINT = [0.3, 0.35, 0.6, 0.01, 0.02]
@@ -150,3 +152,48 @@ def test_a_run_on_a_plant_with_twice_the_files_inertia(tmp_path):
     again = _run(tmp_path / 'r', plant, budget=4)
     assert again.restore() == len(run.records)
     assert again.opt.state_dict()['first_point'] == list(first.u)
+
+
+def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest_best():
+    """issue 40's miss: im750w-j1 on a plant with 1.5x the file's inertia.  Without the
+    limit on the models (the rule before) the identified model's best robust point hunts
+    on the plant: evaluation 2's standstill rms after the move 0.233 A, 1.57x the start's
+    (0.148 A), over the run's limit 1.5, so the search is told the start's loss for it (the
+    floor of ``told_loss``) and goes on from the start.  With the run's limit the prior
+    takes a candidate within it on every model (1.41x there; the second batch of the
+    search's ranking): on the plant 1.24x/1.07x the start's, told its measured loss."""
+    setup = drive_setup('im750w-j1')
+    space, m = setup.params.space, setup.drive.machine
+    plant = dataclasses.replace(setup.drive, machine=dataclasses.replace(m, J=1.5 * m.J))
+    runs = {}
+    for name, limit in (('before', None), ('limited', 1.5)):
+        hook = IdentifiedFirstStep(setup.drive, space, setup.experiment, None, limit)
+        opt = make_optimizer('safe', 5, 3, space.start_u, first='identify')
+        run = TuningRun(
+            MemoryRecord(), space, opt, budget=2, satisfactory_loss=0.9, remeasure=0,
+            first_step=hook, ripple_limit=1.5,
+        )  # fmt: skip
+        assert run.run(OfflineBench(plant, 5, setup.experiment)) == 'done'
+        runs[name] = run
+    before, limited = (runs[k].first_step.prior for k in ('before', 'limited'))
+    assert before is not None and limited is not None
+    assert before.ripple_ratio is None and limited.u != before.u
+    assert 1.0 < limited.ripple_ratio <= 1.5
+    # both of the model's best: the quiet one's loss within 2 % of the loud one's there
+    assert before.model_ratio < limited.model_ratio < 1.02 * before.model_ratio
+    assert limited.worst_ratio < 0.5 and limited.experiments == before.experiments + 6 * (2 + 8)
+    ratios = {}
+    for name, run in runs.items():
+        start, step = (r for r in run.records if r.kind == 'eval')
+        assert step.u == list(run.first_step.prior.u) and not step.aborted
+        bound = ripple_bound(run.records, 1.5)
+        assert bound is not None
+        ratios[name] = [step.ripple[k] / start.ripple[k] for k in LIMIT_KEYS]
+        told = told_loss(run.records[: run.records.index(step)], step, 1.5)
+        ok = all(step.ripple[k] <= b for k, b in bound.items())
+        assert ok == (name == 'limited')
+        # over the limit: told the start's loss (no quiet point below it yet)
+        assert told == (step.loss if ok else start.loss)
+        assert step.loss < 0.5 * start.loss  # a real improvement either way
+    assert ratios['before'][0] == pytest.approx(1.57, abs=0.01)
+    assert ratios['limited'][0] == pytest.approx(1.24, abs=0.01)

@@ -127,7 +127,7 @@ def test_a_bad_first_point_is_refused(algo, first, message):
 
 
 def test_the_study_row_runs_safe_from_the_model(prior):
-    from im_tuner.study.runs import prepare_run
+    from im_tuner.study.runs import first_step_of, prepare_run
 
     cells = grid(('safe',))
     row = [i for i, c in enumerate(cells) if c.first == 'model']
@@ -136,8 +136,13 @@ def test_the_study_row_runs_safe_from_the_model(prior):
     assert len(ident) == 1 and 'first' not in cells[ident[0]].opts
     assert all(c.first == 'none' for i, c in enumerate(cells) if i not in (row[0], ident[0]))
     spec = StudySpec(runs=1, algos=('safe',))
-    _space, opt, _seed = prepare_run(spec, row[0], 0, load_params(None))
+    space, opt, _seed = prepare_run(spec, row[0], 0, load_params(None))
     assert opt.config()['first'] == list(prior.u)
+    # the identified row's first step within the row's ripple limit (safe's default 1.5)
+    for given, limit in (('default', 1.5), (2.0, 2.0), (None, None)):
+        s = StudySpec(runs=1, algos=('safe',), ripple_limit=given)
+        assert s.limit_of(cells[ident[0]]) == limit
+        assert first_step_of(s, 'identify', space, limit).ripple_limit == limit
 
 
 def test_the_study_commands_repeat_safe_with_or_without_the_model(prior, tmp_path):
@@ -173,11 +178,21 @@ def _new(*args: str):
 
 def test_the_tuner_takes_the_model_where_it_knows_the_drive(prior, tmp_path):
     from im_drive_sim.cli import UsageError
+    from im_tuner.tuner_cli import _first_step_hook
 
     # a simulated bench, or a drive file given: safe's first step from the identified
     # drive (after the start's experiments), or from the file's model when asked
     for args in (('--bench', 'inproc'), ('--drive-config', str(_bench_file(tmp_path)))):
         assert _new('--seed', '3', *args).run.options == {'first': 'identify'}
+        # its first step kept within the run's ripple limit (1.5 by default; off: none)
+        for more, limit in (
+            ((), 1.5),
+            (('--ripple-limit', '2'), 2.0),
+            (('--ripple-limit', 'off'), None),
+        ):
+            new = _new('--seed', '3', *args, *more)
+            assert new.run.ripple_limit == limit
+            assert _first_step_hook(new.run, new.params).ripple_limit == limit
         got = _new('--seed', '3', *args, '--first', 'model').run.options
         assert got == {'first': list(prior.u)}
     # --bench auto may find a controller of another motor: no model unless asked

@@ -161,15 +161,17 @@ def prepare_run(
     return space, opt, drive_seed
 
 
-def first_step_of(spec: StudySpec, first: str, space: SearchSpace) -> Any:
+def first_step_of(
+    spec: StudySpec, first: str, space: SearchSpace, ripple_limit: float | None = None
+) -> Any:
     """The run's ``IdentifiedFirstStep`` for a cell with first 'identify' (the study's
-    drive file is what the tuner is told), else None."""
+    drive file is what the tuner is told; ``ripple_limit``: the cell's), else None."""
     if first != 'identify':
         return None
     from ..first_step import IdentifiedFirstStep
 
     setup = spec.setup()
-    return IdentifiedFirstStep(setup.drive, space, setup.experiment)
+    return IdentifiedFirstStep(setup.drive, space, setup.experiment, None, ripple_limit)
 
 
 def run_one(
@@ -210,7 +212,7 @@ def run_one(
         retries=DEFAULT_RETRIES,  # as the tuner: a fault in a settle is re-run
         reference=True,
         progress=progress,
-        first_step=first_step_of(spec, cell.first, space),
+        first_step=first_step_of(spec, cell.first, space, spec.limit_of(cell)),
         ripple_limit=spec.limit_of(cell),
     )
     try:

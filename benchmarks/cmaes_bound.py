@@ -14,10 +14,15 @@ hand-tuned start's mean loss over 100 experiments, ``study.runs.reference_loss``
 
 The default: ``ros2 run im_tuner study --drives D --algos safe --runs R --budget B``
 (the recommended safe row is the default, first step from the identified drive, ripple
-limit 1.5; the study's Py-BOBYQA row comes with it) per budget of ``--budgets`` into
-OUT/<drive>/b<B>/ (a study already there is read, not re-run); its mean re-measured loss
-(tables.csv ``remeasured``) against the bound: the goal is within 4 % at 50 and 2 % at
-200.  Prints one markdown table.
+limit 1.5; blind safe and safe from the file's model come with it) per budget of
+``--budgets`` into OUT/<drive>/b<B>/ (a study already there is read, not re-run): its mean
+re-measured loss (tables.csv ``remeasured``: one experiment of each run's choice), and the
+same runs repeated in this process as the tuner runs them (``--remeasure``: its default
+3 best re-measured, the best re-measured chosen) with each choice measured ``--repeats``
+times (:func:`expected_loss`): the choices' expected loss, what the goal compares with the
+bound (within 4 % at 50 evaluations, 2 % at 200).  One re-measurement scatters by 3-5 %
+per run here, so 8 runs' mean of it by about 1.5 %: the size of the goal.  Prints one
+markdown table; exit 1 when the goal is missed.
 """
 
 from __future__ import annotations
@@ -28,19 +33,28 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
+import im_drive_sim  # noqa: F401 (the numeric baseline, set before numpy loads)
+
+# isort: split
 import numpy as np
 
+from im_controller.config import Gains
 from im_tuner.family import drive_setup
 from im_tuner.offline import OfflineBench
 from im_tuner.optim import make_optimizer
-from im_tuner.runlog.records import Evaluation
+from im_tuner.runlog.records import Evaluation, Reference
 from im_tuner.runlog.tally import MemoryRecord
+from im_tuner.study import runs as R
 from im_tuner.study.runs import reference_loss
+from im_tuner.study.spec import StudySpec
 from im_tuner.tuning import TuningRun, run_seeds
 
-#: the issue's goal: the default's re-measured loss over the bound, per budget
+#: the issue's goal: the default's expected loss over the bound, per budget
 GOAL = {50: 1.04, 200: 1.02}
+#: the study's default row
+DEFAULT_LABEL = 'first step from the identified drive'
 
 
 def bound(
@@ -112,13 +126,54 @@ def default_loss(name: str, budget: int, runs: int, out: Path, realism: str | No
             subprocess.run(cmd, check=True, stdout=log)
     with tables.open() as f:
         for r in csv.DictReader(f):
-            if (r['statistic'], r['algo'], r['config']) == (
-                'remeasured',
-                'safe',
-                'first step from the identified drive',
-            ):
+            if (r['statistic'], r['algo'], r['config']) == ('remeasured', 'safe', DEFAULT_LABEL):
                 return float(r['value'])
     raise SystemExit(f'{tables}: no remeasured row of the default')
+
+
+def expected_loss(
+    name: str, budget: int, runs: int, repeats: int, realism: str | None, remeasure: int
+) -> float:
+    """The default's expected loss [L_ref] at ``budget``: each of the study's ``runs`` runs
+    of the default row repeated in this process (the same seeds: the same records, the
+    same choice), its final choice measured ``repeats`` times on a fresh bench of the
+    drive (one experiment of the start before every third, so they start from other rest
+    positions), the mean over the repeats and runs (benchmarks/choice_scatter.py's
+    protocol).  ``remeasure``: the K best distinct evaluations re-measured at the run's end
+    (the tuner's ``--remeasure``, default 3; the study's runs re-measure 1)."""
+    spec = StudySpec(
+        runs=runs, budget=budget, algos=('safe',), drives=(name,), full_grid=False,
+        realism=realism,
+    )  # fmt: skip
+    kept: list[Any] = []
+
+    class Kept(R.TuningRun):  # the study's own run, its records kept
+        def __init__(self, *args: Any, **kw: Any) -> None:
+            super().__init__(*args, **{**kw, 'remeasure': remeasure})
+            kept.append(self)
+
+    R.TuningRun = Kept  # type: ignore[misc]
+    drive, _params, experiment = spec.loaded()
+    setup = drive_setup(name, realism=realism)
+    space = setup.params.space
+    l_ref = reference_loss(drive, experiment=experiment, start=space.to_gains(space.start_u))[0]
+    cell = next(i for i, c in enumerate(spec.cells) if c.label == DEFAULT_LABEL)
+    means = []
+    for r in range(runs):
+        R.run_one(spec, cell, r)
+        run = kept[-1]
+        ref = next(x for x in run.records if isinstance(x, Reference))
+        start, choice = Gains(**ref.gains), Gains(**run.final_choice()['gains'])
+        bench = OfflineBench(drive, 1, experiment)
+        bench.measure(start)  # (from rest)
+        ls = []
+        for i in range(repeats):
+            if i % 3 == 0:
+                bench.measure(start)
+            m = bench.measure(choice)
+            ls.append(np.inf if m.aborted else m.loss)
+        means.append(float(np.mean(ls)) / l_ref)
+    return float(np.mean(means))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -131,20 +186,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--repeats', type=int, default=10)
     ap.add_argument('--runs', type=int, default=8)
     ap.add_argument('--budgets', default='50,200')
+    ap.add_argument(
+        '--remeasure',
+        type=int,
+        default=3,
+        help="the runs' re-measured best (the tuner's default 3)",
+    )
     ap.add_argument('--realism', default=None, help="the drives' profile (default: the file's)")
     a = ap.parse_args(argv)
     seeds = [int(s) for s in a.seeds.split(',')]
     budgets = [int(b) for b in a.budgets.split(',') if b]
-    print('| drive | bound (L_ref) | its best measured | ' + ' | '.join(
-        f'default at {b} | / bound' for b in budgets) + ' |')  # fmt: skip
-    print('|---|---|---|' + '---|---|' * len(budgets))
+    cols = ' | '.join(f'default at {b}: re-measured once | expected | / bound' for b in budgets)
+    print(f'| drive | bound (L_ref) | its best measured | {cols} |')
+    print('|---|---|---|' + '---|---|---|' * len(budgets))
     missed = []
     for d in a.drives.split(','):
         b = bound(d, seeds, a.evaluations, a.points, a.repeats, a.realism)
         cells = []
         for budget in budgets:
-            x = default_loss(d, budget, a.runs, a.out / d / f'b{budget}', a.realism)
-            cells += [f'{x:.3f}', f'{x / b["bound"]:.3f}']
+            once = default_loss(d, budget, a.runs, a.out / d / f'b{budget}', a.realism)
+            x = expected_loss(d, budget, a.runs, a.repeats, a.realism, a.remeasure)
+            cells += [f'{once:.3f}', f'{x:.3f}', f'{x / b["bound"]:.3f}']
             if budget in GOAL and x / b['bound'] > GOAL[budget]:
                 missed.append(f'{d} at {budget}: {100 * (x / b["bound"] - 1):+.1f} %')
         print(f'| {d} | {b["bound"]:.3f} | {b["measured_best"]:.3f} | ' + ' | '.join(cells) + ' |')

@@ -12,11 +12,18 @@ also triggers compilation; repeats and prints median/min/max ns per step.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import statistics
 import sys
 import time
 from pathlib import Path
 
+# the numeric baseline (set by im_drive_sim before numpy loads), as in the nodes; a source
+# checkout without the package: the fallback below
+with contextlib.suppress(ImportError):
+    import im_drive_sim  # noqa: F401
+
+# isort: split
 import numpy as np
 
 try:

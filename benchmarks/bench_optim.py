@@ -35,6 +35,7 @@ evaluation: ``{algo: hot_us, f'{algo}_cold': cold_us}`` for every algo of ``ALGO
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import statistics
 import sys
@@ -43,6 +44,12 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+# the numeric baseline (set by im_drive_sim before numpy loads), as in the nodes; a source
+# checkout without the package: the fallback below
+with contextlib.suppress(ImportError):
+    import im_drive_sim  # noqa: F401
+
+# isort: split
 import numpy as np
 
 try:

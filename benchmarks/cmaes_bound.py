@@ -8,8 +8,10 @@ The bound (the issue's definition): a CMA-ES run of ``--evaluations`` experiment
 study's row ``sigma0=0.1``, the tuner's own ``TuningRun`` on the offline bench of the
 drive file as written, each seed of ``--seeds`` with the study's run seeds), then its
 ``--points`` best distinct evaluated points each measured ``--repeats`` more times on a
-fresh bench of the same drive (the drive file's seed, the points interleaved); the bound is
-the smallest of those means over every seed, in units of L_ref (the study's: the
+fresh bench of the same drive (the drive file's seed, the points interleaved); the point
+of the smallest of those means over every seed is then measured ``CONFIRM`` = 30 more times
+as the default's choices are (:func:`choice_mean`): the least of 8-32 means is biased low
+by the picking, and the bound is the fresh mean, in units of L_ref (the study's: the
 hand-tuned start's mean loss over 100 experiments, ``study.runs.reference_loss``).
 
 The default: ``ros2 run im_tuner study --drives D --algos safe --runs R --budget B``
@@ -57,6 +59,26 @@ GOAL = {50: 1.04, 200: 1.02}
 DEFAULT_LABEL = 'first step from the identified drive'
 
 
+#: fresh experiments of the bound's point (its expected loss, not the least of the means)
+CONFIRM = 30
+
+
+def choice_mean(drive: Any, experiment: Any, start: Gains, choice: Gains, repeats: int) -> float:
+    """The mean loss of ``choice`` over ``repeats`` experiments on a fresh bench of
+    ``drive`` (seed 1), one experiment of ``start`` before every third, so they start
+    from other rest positions (benchmarks/choice_scatter.py's protocol); inf if one
+    aborts."""
+    bench = OfflineBench(drive, 1, experiment)
+    bench.measure(start)  # (from rest)
+    ls = []
+    for i in range(repeats):
+        if i % 3 == 0:
+            bench.measure(start)
+        m = bench.measure(choice)
+        ls.append(np.inf if m.aborted else m.loss)
+    return float(np.mean(ls))
+
+
 def bound(
     name: str, seeds: list[int], evaluations: int, points: int, repeats: int, realism: str | None
 ) -> dict:
@@ -101,9 +123,13 @@ def bound(
             losses[g].append(np.inf if m.aborted else m.loss)
     means = {g: float(np.mean(v)) for g, v in losses.items()}
     g_best = min(means, key=means.__getitem__)
+    # the least of 8-32 means is biased low (it was picked by them): its expected loss
+    # from fresh experiments, as the default's choices are measured (choice_mean)
+    fresh = choice_mean(setup.drive, setup.experiment, start, gains[g_best], CONFIRM)
     return {
         'l_ref': l_ref,
-        'bound': means[g_best] / l_ref,
+        'bound': fresh / l_ref,
+        'picked_by': means[g_best] / l_ref,
         'measured_best': best[g_best] / l_ref,
         'gains': dict(g_best),
         'seconds': time.perf_counter() - t0,
@@ -164,15 +190,7 @@ def expected_loss(
         run = kept[-1]
         ref = next(x for x in run.records if isinstance(x, Reference))
         start, choice = Gains(**ref.gains), Gains(**run.final_choice()['gains'])
-        bench = OfflineBench(drive, 1, experiment)
-        bench.measure(start)  # (from rest)
-        ls = []
-        for i in range(repeats):
-            if i % 3 == 0:
-                bench.measure(start)
-            m = bench.measure(choice)
-            ls.append(np.inf if m.aborted else m.loss)
-        means.append(float(np.mean(ls)) / l_ref)
+        means.append(choice_mean(drive, experiment, start, choice, repeats) / l_ref)
     return float(np.mean(means))
 
 
@@ -197,8 +215,8 @@ def main(argv: list[str] | None = None) -> int:
     seeds = [int(s) for s in a.seeds.split(',')]
     budgets = [int(b) for b in a.budgets.split(',') if b]
     cols = ' | '.join(f'default at {b}: re-measured once | expected | / bound' for b in budgets)
-    print(f'| drive | bound (L_ref) | its best measured | {cols} |')
-    print('|---|---|---|' + '---|---|---|' * len(budgets))
+    print(f'| drive | bound (L_ref) | picked by | its best measured | {cols} |')
+    print('|---|---|---|---|' + '---|---|---|' * len(budgets))
     missed = []
     for d in a.drives.split(','):
         b = bound(d, seeds, a.evaluations, a.points, a.repeats, a.realism)
@@ -209,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
             cells += [f'{once:.3f}', f'{x:.3f}', f'{x / b["bound"]:.3f}']
             if budget in GOAL and x / b['bound'] > GOAL[budget]:
                 missed.append(f'{d} at {budget}: {100 * (x / b["bound"] - 1):+.1f} %')
-        print(f'| {d} | {b["bound"]:.3f} | {b["measured_best"]:.3f} | ' + ' | '.join(cells) + ' |')
+        head = f'| {d} | {b["bound"]:.3f} | {b["picked_by"]:.3f} | {b["measured_best"]:.3f} | '
+        print(head + ' | '.join(cells) + ' |')
         took = f'the bound in {b["seconds"]:.0f} s at {b["gains"]}'
         print(f'<!-- {d}: L_ref {b["l_ref"]:.6g}, {took} -->')
     print(f'\ngoal: within 4 % at 50, 2 % at 200; missed: {"; ".join(missed) or "none"}')

@@ -23,6 +23,8 @@ import argparse
 import sys
 import time
 
+from mismatch_grid import CASES  # the mismatches (this directory)
+
 from im_drive_sim.family import PACKAGED_NAMES
 from im_tuner.family import drive_setup
 from im_tuner.identify import identify, start_motions
@@ -32,15 +34,6 @@ from im_tuner.runlog.tally import MemoryRecord
 from im_tuner.study.plant import apply_mismatch, parse_mismatch
 from im_tuner.tuning import TuningRun, run_seeds
 
-#: the issue's mismatches (benchmarks/mismatch_grid.py's cases)
-CASES: dict[str, str] = {
-    'exact': '',
-    'J=x0.5': 'J=x0.5',
-    'J=x1.5': 'J=x1.5',
-    'J=x2': 'J=x2',
-    'J=x2.5': 'J=x2.5',
-    'all': 'J=x1.5 Rr=x1.3 Lm=x0.85 coulomb=2% delay=2',
-}
 #: the issue's goal: |J identified / J plant - 1| <= GOAL
 GOAL = 0.10
 

@@ -16,6 +16,7 @@ mean, standard deviation, least and largest, all over the run's reference loss.
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterator
 from typing import Any
 
 import im_drive_sim  # noqa: F401 (the numeric baseline, set before numpy loads)
@@ -36,6 +37,49 @@ ROWS = (
 )
 
 
+def repeated_runs(
+    spec: StudySpec, label: str, remeasure: int | None = None
+) -> Iterator[tuple[Any, Any]]:
+    """The study's runs of row ``label`` repeated in this process (the same seeds: the
+    same records and choice): (the run's result, its ``TuningRun``) per run.
+    ``remeasure``: the K best re-measured at each run's end (None: the study's own)."""
+    kept: list[Any] = []
+
+    class Kept(R.TuningRun):  # the study's own run, its records kept
+        def __init__(self, *args: Any, **kw: Any) -> None:
+            if remeasure is not None:
+                kw = {**kw, 'remeasure': remeasure}
+            super().__init__(*args, **kw)
+            kept.append(self)
+
+    R.TuningRun = Kept  # type: ignore[misc]
+    cell = next(i for i, c in enumerate(spec.cells) if c.label == label)
+    for r in range(spec.runs):
+        res = R.run_one(spec, cell, r)
+        yield res, kept[-1]
+
+
+def start_and_choice(run: Any) -> tuple[Gains, Gains, float]:
+    """A finished run's start gains, final choice and reference loss."""
+    ref = next(x for x in run.records if isinstance(x, Reference))
+    return Gains(**ref.gains), Gains(**run.final_choice()['gains']), ref.loss
+
+
+def choice_losses(
+    drive: Any, experiment: Any, start: Gains, choice: Gains, repeats: int
+) -> list[float]:
+    """``choice`` measured ``repeats`` times on a fresh bench of ``drive`` (seed 1), one
+    experiment of ``start`` before every third (so from other rest positions)."""
+    bench = OfflineBench(drive, 1, experiment)
+    bench.measure(start)  # (from rest)
+    ls = []
+    for i in range(repeats):
+        if i % 3 == 0:
+            bench.measure(start)
+        ls.append(bench.measure(choice).loss)
+    return ls
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--drive', default='im7500w-j10')
@@ -52,34 +96,16 @@ def main() -> None:
         full_grid=False,
         mismatch=parse_mismatch(a.mismatch),
     )
-    runs: list[Any] = []
-
-    class Kept(R.TuningRun):  # the study's own run, its records kept
-        def __init__(self, *args: Any, **kw: Any) -> None:
-            super().__init__(*args, **kw)
-            runs.append(self)
-
-    R.TuningRun = Kept  # type: ignore[misc]
     plant, _params, experiment = spec.loaded()
     print('| row | run | re-measured | repeats: mean | sd | least | largest |')
     print('|---|---|---|---|---|---|---|')
     for label, name in ROWS:
-        cell = next(i for i, c in enumerate(spec.cells) if c.label == label)
         means, rems = [], []
-        for r in range(a.runs):
-            res = R.run_one(spec, cell, r)
-            run = runs[-1]
-            ref = next(x for x in run.records if isinstance(x, Reference))
-            start, choice = Gains(**ref.gains), Gains(**run.final_choice()['gains'])
-            bench = OfflineBench(plant, 1, experiment)
-            bench.measure(start)  # (from rest)
-            ls = []
-            for i in range(a.repeats):
-                if i % 3 == 0:
-                    bench.measure(start)
-                ls.append(bench.measure(choice).loss / ref.loss)
+        for r, (res, run) in enumerate(repeated_runs(spec, label)):
+            start, choice, ref_loss = start_and_choice(run)
+            ls = [x / ref_loss for x in choice_losses(plant, experiment, start, choice, a.repeats)]
             means.append(float(np.mean(ls)))
-            rems.append(res.remeasured / ref.loss)
+            rems.append(res.remeasured / ref_loss)
             print(
                 f'| {name} | {r} | {rems[-1]:.4f} | {means[-1]:.4f} | {np.std(ls):.4f} '
                 f'| {min(ls):.4f} | {max(ls):.4f} |',

@@ -9,10 +9,11 @@ study's row ``sigma0=0.1``, the tuner's own ``TuningRun`` on the offline bench o
 drive file as written, each seed of ``--seeds`` with the study's run seeds), then its
 ``--points`` best distinct evaluated points each measured ``--repeats`` more times on a
 fresh bench of the same drive (the drive file's seed, the points interleaved); the point
-of the smallest of those means over every seed is then measured ``CONFIRM`` = 30 more times
-as the default's choices are (:func:`choice_mean`): the least of 8-32 means is biased low
-by the picking, and the bound is the fresh mean, in units of L_ref (the study's: the
-hand-tuned start's mean loss over 100 experiments, ``study.runs.reference_loss``).
+of the smallest of those means over every seed is then measured ``CONFIRM`` = 30 more
+times as the default's choices are (``choice_scatter.choice_losses``): the least of 8-32
+means is biased low by the picking, and the bound is the fresh mean, in units of L_ref
+(the study's: the hand-tuned start's mean loss over 100 experiments,
+``study.runs.reference_loss``).
 
 The default: ``ros2 run im_tuner study --drives D --algos safe --runs R --budget B``
 (the recommended safe row is the default, first step from the identified drive, ripple
@@ -30,25 +31,23 @@ markdown table; exit 1 when the goal is missed.
 from __future__ import annotations
 
 import argparse
-import csv
 import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import im_drive_sim  # noqa: F401 (the numeric baseline, set before numpy loads)
 
 # isort: split
 import numpy as np
+from choice_scatter import choice_losses, repeated_runs, start_and_choice  # (this directory)
+from mismatch_grid import _read as read_tables  # (this directory)
 
-from im_controller.config import Gains
 from im_tuner.family import drive_setup
 from im_tuner.offline import OfflineBench
 from im_tuner.optim import make_optimizer
-from im_tuner.runlog.records import Evaluation, Reference
+from im_tuner.runlog.records import Evaluation
 from im_tuner.runlog.tally import MemoryRecord
-from im_tuner.study import runs as R
 from im_tuner.study.runs import reference_loss
 from im_tuner.study.spec import StudySpec
 from im_tuner.tuning import TuningRun, run_seeds
@@ -61,22 +60,6 @@ DEFAULT_LABEL = 'first step from the identified drive'
 
 #: fresh experiments of the bound's point (its expected loss, not the least of the means)
 CONFIRM = 30
-
-
-def choice_mean(drive: Any, experiment: Any, start: Gains, choice: Gains, repeats: int) -> float:
-    """The mean loss of ``choice`` over ``repeats`` experiments on a fresh bench of
-    ``drive`` (seed 1), one experiment of ``start`` before every third, so they start
-    from other rest positions (benchmarks/choice_scatter.py's protocol); inf if one
-    aborts."""
-    bench = OfflineBench(drive, 1, experiment)
-    bench.measure(start)  # (from rest)
-    ls = []
-    for i in range(repeats):
-        if i % 3 == 0:
-            bench.measure(start)
-        m = bench.measure(choice)
-        ls.append(np.inf if m.aborted else m.loss)
-    return float(np.mean(ls))
 
 
 def bound(
@@ -124,8 +107,10 @@ def bound(
     means = {g: float(np.mean(v)) for g, v in losses.items()}
     g_best = min(means, key=means.__getitem__)
     # the least of 8-32 means is biased low (it was picked by them): its expected loss
-    # from fresh experiments, as the default's choices are measured (choice_mean)
-    fresh = choice_mean(setup.drive, setup.experiment, start, gains[g_best], CONFIRM)
+    # from fresh experiments, as the default's choices are measured (choice_losses)
+    fresh = float(
+        np.mean(choice_losses(setup.drive, setup.experiment, start, gains[g_best], CONFIRM))
+    )
     return {
         'l_ref': l_ref,
         'bound': fresh / l_ref,
@@ -150,11 +135,10 @@ def default_loss(name: str, budget: int, runs: int, out: Path, realism: str | No
         out.mkdir(parents=True, exist_ok=True)
         with (out.parent / f'{out.name}.log').open('w') as log:
             subprocess.run(cmd, check=True, stdout=log)
-    with tables.open() as f:
-        for r in csv.DictReader(f):
-            if (r['statistic'], r['algo'], r['config']) == ('remeasured', 'safe', DEFAULT_LABEL):
-                return float(r['value'])
-    raise SystemExit(f'{tables}: no remeasured row of the default')
+    got = read_tables(tables).get(('remeasured', 'safe', DEFAULT_LABEL))
+    if got is None:
+        raise SystemExit(f'{tables}: no remeasured row of the default')
+    return got
 
 
 def expected_loss(
@@ -171,26 +155,15 @@ def expected_loss(
         runs=runs, budget=budget, algos=('safe',), drives=(name,), full_grid=False,
         realism=realism,
     )  # fmt: skip
-    kept: list[Any] = []
-
-    class Kept(R.TuningRun):  # the study's own run, its records kept
-        def __init__(self, *args: Any, **kw: Any) -> None:
-            super().__init__(*args, **{**kw, 'remeasure': remeasure})
-            kept.append(self)
-
-    R.TuningRun = Kept  # type: ignore[misc]
     drive, _params, experiment = spec.loaded()
     setup = drive_setup(name, realism=realism)
     space = setup.params.space
     l_ref = reference_loss(drive, experiment=experiment, start=space.to_gains(space.start_u))[0]
-    cell = next(i for i, c in enumerate(spec.cells) if c.label == DEFAULT_LABEL)
     means = []
-    for r in range(runs):
-        R.run_one(spec, cell, r)
-        run = kept[-1]
-        ref = next(x for x in run.records if isinstance(x, Reference))
-        start, choice = Gains(**ref.gains), Gains(**run.final_choice()['gains'])
-        means.append(choice_mean(drive, experiment, start, choice, repeats) / l_ref)
+    for _res, run in repeated_runs(spec, DEFAULT_LABEL, remeasure):
+        start, choice, _ref_loss = start_and_choice(run)
+        ls = choice_losses(drive, experiment, start, choice, repeats)
+        means.append(float(np.mean(ls)) / l_ref)
     return float(np.mean(means))
 
 

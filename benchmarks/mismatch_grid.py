@@ -63,13 +63,18 @@ def _read(path: Path) -> dict[tuple[str, str, str], float]:
         }
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+def grid_arguments(ap: argparse.ArgumentParser) -> None:
+    """The grid's options (this script's and ripple_grid.py's)."""
     ap.add_argument('--out', type=Path, required=True)
     ap.add_argument('--runs', type=int, default=8)
     ap.add_argument('--budget', type=int, default=60)
     ap.add_argument('--drives', default='im750w-j1,im7500w-j10')
     ap.add_argument('--cases', default=','.join(CASES))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    grid_arguments(ap)
     a = ap.parse_args()
     print('| told drive | plant | row | to 0.9, mean | aborted / run | re-measured |')
     print('|---|---|---|---|---|---|')

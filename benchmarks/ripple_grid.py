@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
-from mismatch_grid import CASES
+from mismatch_grid import CASES, grid_arguments
 
 ROWS = (
     ('safe', 'first step from the identified drive', 'default (safe, identified)'),
@@ -72,11 +72,7 @@ def _n(x: float, fmt: str = '.2f') -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    ap.add_argument('--out', type=Path, required=True)
-    ap.add_argument('--runs', type=int, default=8)
-    ap.add_argument('--budget', type=int, default=60)
-    ap.add_argument('--drives', default='im750w-j1,im7500w-j10')
-    ap.add_argument('--cases', default=','.join(CASES))
+    grid_arguments(ap)
     ap.add_argument('--algos', default='safe,spsa,necga', help="the study's --algos")
     a = ap.parse_args()
     print(

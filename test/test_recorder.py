@@ -637,3 +637,67 @@ def test_sim_bench_executable_records_by_default(ros_context, procs, tmp_path, w
         records = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
     assert records['im_tuner.drive']['seed'] == '2'
     assert '--seed 2' in records['im_tuner.run']['command']
+
+
+def test_the_recorder_childs_status_and_the_tuners_wait_for_what_it_received(
+    ros_context, procs, tmp_path, wait_until
+):
+    """The recorder child says on ``/recorder/status`` what it matched and recorded; the
+    tuner (``Children``) starts only when every publisher of the recorded topics is
+    matched, and stops the recorder only when the bag holds every message the tuner
+    received itself, waiting at most ``catch_up_s`` (then it warns, naming the topic):
+    over a network a reliable message the recorder lost is resent only at the writer's
+    next heartbeat, after the tuner already had its copy (CI, 2026-11-28)."""
+    from types import SimpleNamespace
+
+    from rclpy.executors import SingleThreadedExecutor
+
+    from im_tuner.bench.forms import Children
+
+    node = Node('tuner', context=ros_context)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(node)
+    pub = node.create_publisher(String, '/note', RELIABLE_ALL)
+
+    def spin_until(pred, timeout):
+        deadline = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > deadline:
+                return False
+            ex.spin_once(timeout_sec=0.005)
+        return True
+
+    def bench_recording(bag: Path, claimed_extra: int, catch_up: float):
+        bench = object.__new__(Children)  # what recording_ready and close_recording use
+        warnings: list[str] = []
+        bench.node, bench.spin_until, bench.recording = node, spin_until, True
+        bench.host = SimpleNamespace(warn=warnings.append)
+        bench.rec_topics, bench.rec_status, bench.bag = ['/note'], {}, bag
+        bench._received, bench._received_at_ready, bench.ended = None, {}, []
+        bench.catch_up_s = catch_up
+        bench.watch_recorder_status(node)
+        bench.children = {'recorder': _start_recorder(procs, bag)}
+        sent = [0]
+        assert bench.recording_ready(60.0, lambda: {'/note': sent[0]})
+        # the recorder's own word, not the graph's: matched, with the bag named
+        assert bench.rec_status['/note'].matched and bench.rec_status['/note'].recorded == 0
+        for i in range(5):
+            pub.publish(String(data=f'note {i}'))
+        sent[0] = 5 + claimed_extra  # what the tuner counted on its own subscription
+        t0 = time.monotonic()
+        problems = bench.close_recording()  # at once: the status may not say 5 yet
+        return problems, time.monotonic() - t0, warnings
+
+    # everything arrived: the stop waits only for the recorder's status to say so
+    problems, took, warnings = bench_recording(tmp_path / 'a', 0, 20.0)
+    assert problems == [] and warnings == [] and took < 10.0, (problems, took, warnings)
+    msgs = read_with_rosbags(tmp_path / 'a')
+    assert [m.data for m in msgs['/note']] == [f'note {i}' for i in range(5)]
+    assert '/recorder/status' not in msgs  # its own status: not recorded
+
+    # the tuner received one more than the recorder ever can: it waits catch_up_s, says so
+    problems, took, warnings = bench_recording(tmp_path / 'b', 1, 1.0)
+    assert problems == [] and took >= 1.0, (problems, took)
+    assert len(warnings) == 1 and '(/note 5 of 6)' in warnings[0], warnings
+    ex.shutdown()
+    node.destroy_node()

@@ -125,6 +125,9 @@ class ControllerLink:
         self.reset_cli = node.create_client(Trigger, self.names['reset'])
         self.results: dict[int, Any] = {}
         self.bad_messages = 0
+        #: messages received on the loss topic, malformed ones too (the recorder child's
+        #: bag must hold as many: bench.forms.Children.close_recording)
+        self.loss_messages = 0
         self.faults_reset = 0
         self.links_reset = 0  #: tuner_lost faults cleared (the link's, not the drive's)
         #: safety faults met at a start that no result of this session reported (a drive
@@ -143,6 +146,7 @@ class ControllerLink:
 
     # -- plumbing ----------------------------------------------------------------------------
     def _on_loss(self, msg: DiagnosticArray) -> None:
+        self.loss_messages += 1
         try:
             r = msg_to_result(msg)
         except ValueError as exc:

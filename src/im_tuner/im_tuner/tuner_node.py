@@ -132,8 +132,11 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
                 f'the controller {cli.controller} did not become reachable '
                 'within 30 s (services and loss topic)'
             )
-        if not bench.recording_ready(30.0):
-            raise BenchFailure('the recorder child did not subscribe within 30 s')
+        loss_topic = link.names['loss']
+        if not bench.recording_ready(30.0, lambda: {loss_topic: link.loss_messages}):
+            raise BenchFailure(
+                'the recorder child did not subscribe to and match every recorded topic within 30 s'
+            )
         bench.session_start()
         session.start(link)
         outcome = session.tuning.run(link, should_stop)

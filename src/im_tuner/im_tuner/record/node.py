@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -67,6 +68,7 @@ from .metadata import (
 from .recorder_main import parser
 from .run_info import default_out_dir, recorder_version, run_metadata
 from .schemas import MsgDefError, schema_for
+from .status import STATUS_PERIOD_S, STATUS_TOPIC, TopicStatus, to_msg
 from .topic_info import endpoint_qos, endpoint_type_hash, message_class
 from .writer import MESSAGE_HEADER_BYTES, McapWriteError, McapWriter
 
@@ -154,6 +156,8 @@ class Recorder:
         self._taps: list[tuple[_Topic, Any]] = []
         self.unrecordable: dict[str, str] = {}
         self.excluded = frozenset(exclude)
+        #: topics this process publishes about itself (the child's status): never recorded
+        self.own_topics: set[str] = set()
         self.unmatched: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._take = rcl_take.TakeBuffers()
@@ -200,7 +204,12 @@ class Recorder:
     def _discover(self) -> int:
         added = 0
         for name, types in self.node.get_topic_names_and_types():
-            if name in self.topics or name in self.unrecordable or name in self.excluded:
+            if (
+                name in self.topics
+                or name in self.unrecordable
+                or name in self.excluded
+                or name in self.own_topics
+            ):
                 continue
             infos = self.node.get_publishers_info_by_topic(name)
             if not infos:
@@ -322,6 +331,21 @@ class Recorder:
             if time.monotonic() > deadline:
                 return False
             time.sleep(0.005)
+
+    def topic_status(self) -> dict[str, TopicStatus]:
+        """Per topic taken from DDS: messages recorded, publishers matched / on the graph
+        (the child's status topic, :mod:`.status`)."""
+        with self._lock:
+            counts = self.counts()
+            return {
+                t.name: TopicStatus(
+                    counts.get(t.name, {}).get('recorded', 0),
+                    t.sub.get_publisher_count(),  # type: ignore[attr-defined]
+                    self.node.count_publishers(t.name),
+                )
+                for t in self.topics.values()
+                if t.sub is not None
+            }
 
     def _check_matches(self) -> None:
         for t in self.topics.values():
@@ -531,6 +555,35 @@ class Recorder:
         self._take.close()
 
 
+class StatusPublisher:
+    """The recorder child's ``~/status`` (:mod:`.status`): published when it changed, at
+    most every ``STATUS_PERIOD_S``; its own topic is not recorded."""
+
+    def __init__(self, node: Node, rec: Recorder) -> None:
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=1,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        )
+        self.rec = rec
+        self.pub = node.create_publisher(DiagnosticArray, STATUS_TOPIC, qos)
+        rec.own_topics.add(self.pub.topic_name)
+        self.bag = str(Path(rec.out).resolve())
+        self._last: dict[str, TopicStatus] | None = None
+        self._next = 0.0
+
+    def poll(self) -> None:
+        now = time.monotonic()
+        if now < self._next:
+            return
+        self._next = now + STATUS_PERIOD_S
+        topics = self.rec.topic_status()
+        if topics != self._last:
+            self._last = topics
+            self.pub.publish(to_msg(self.bag, topics, time.time_ns()))
+
+
 def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
     try:
@@ -575,9 +628,11 @@ def main(args: list[str] | None = None) -> int:
             return 2
         warn_unknown_overrides(node, unknown_overrides(node))  # it has no parameters
         node.get_logger().info(f'recording to {rec.out} (compression {cli.compression})')
+        status = StatusPublisher(node, rec)
         while not session.stopped:
             if rec.poll() == 0:
                 time.sleep(0.001)
+            status.poll()
         rec.close(settle=0.1)
         return 0
     finally:

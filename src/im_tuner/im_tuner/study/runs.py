@@ -298,8 +298,9 @@ def _end_pool(pool: ProcessPoolExecutor) -> None:
         terminate()
         return
     # before 3.14: the executor's own table of its worker processes (killed first: the
-    # manager thread then finds the pool broken and ends)
+    # manager thread then finds the pool broken and ends); shutdown() forgets both
     procs = list((getattr(pool, '_processes', None) or {}).values())
+    manager = getattr(pool, '_executor_manager_thread', None)
     for p in procs:
         p.terminate()
     pool.shutdown(wait=False, cancel_futures=True)
@@ -308,6 +309,12 @@ def _end_pool(pool: ProcessPoolExecutor) -> None:
         p.join(max(0.0, deadline - time.monotonic()))
         if p.is_alive():
             p.kill()
+    # Wait for the executor's manager thread to see the broken pool and close its wakeup
+    # pipe.  Otherwise the interpreter's exit hook (concurrent.futures' _python_exit, which
+    # takes no lock) can pass the pipe's "not closed" check just before the manager closes
+    # it and print an OSError traceback (EBADF) after the study's one line (CPython < 3.14).
+    if manager is not None:
+        manager.join(max(0.0, deadline - time.monotonic()) + 1.0)
 
 
 class NumericMismatch(RuntimeError):

@@ -4,6 +4,7 @@ manager thread has ended and closed its wakeup pipe, so the interpreter's exit h
 the manager is closing (the OSError traceback CI saw after ``study: interrupted``)."""
 
 import multiprocessing
+import signal
 import time
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures import process as cf_process
@@ -52,3 +53,25 @@ def test_end_pool_leaves_no_manager_thread_and_closes_its_wakeup(monkeypatch):
     assert not any(p.is_alive() for p in procs)
     assert took < 10.0  # not the 60 s runs
     wakeups[0].wakeup()  # what the exit hook does: a no-op now, not EBADF
+
+
+def test_end_pool_kills_a_worker_the_executor_has_not_registered():
+    """A signal landing while the executor waits for a new worker's PID leaves that
+    worker out of its table; it went on starting after the study ended and printed a
+    traceback (test/test_study_bad_input.py, under load). Here a forkserver child the
+    pool does not know stands for it."""
+    ctx = multiprocessing.get_context('forkserver')
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx)
+    fut = pool.submit(_sleep, 60.0)
+    stray = ctx.Process(target=_sleep, args=(60.0,))
+    stray.start()
+    deadline = time.monotonic() + 60.0
+    while not fut.running():
+        assert time.monotonic() < deadline, 'no worker started a run within 60 s'
+        time.sleep(0.01)
+    assert stray.pid not in pool._processes and stray.is_alive()
+
+    _end_pool(pool)
+
+    stray.join(5.0)
+    assert stray.exitcode == -signal.SIGKILL

@@ -9,10 +9,13 @@ it only once its options are checked.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import multiprocessing
+import multiprocessing.forkserver
 import os
+import signal
 import socket
 import time
 from collections.abc import Callable
@@ -290,12 +293,49 @@ def reference_loss(
 _END_GRACE_S = 5.0
 
 
+def _forkserver_children() -> list[int]:
+    """PIDs of the forkserver's children (Linux ``/proc``; empty elsewhere): the pool's
+    workers, and a worker still starting that the executor has not registered yet."""
+    server = getattr(multiprocessing.forkserver, '_forkserver', None)
+    fs_pid = getattr(server, '_forkserver_pid', None)
+    if not fs_pid:
+        return []
+    try:
+        entries = os.listdir('/proc')
+    except OSError:
+        return []
+    kids = []
+    for d in entries:
+        if not d.isdigit():
+            continue
+        try:
+            with open(f'/proc/{d}/stat') as f:
+                stat = f.read()
+        except OSError:
+            continue
+        if int(stat.rsplit(')', 1)[1].split()[1]) == fs_pid:
+            kids.append(int(d))
+    return kids
+
+
+def _kill_starting_workers() -> None:
+    """SIGKILL every child of the forkserver. A signal that lands while the executor waits
+    for a new worker's PID leaves that worker out of the executor's table: it went on
+    starting after the study had ended, and printed a traceback (its call queue's
+    semaphore was gone) after the study's one line. A child of the forkserver can only
+    be a worker of this study's pools, whose results are no longer wanted."""
+    for pid in _forkserver_children():
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGKILL)
+
+
 def _end_pool(pool: ProcessPoolExecutor) -> None:
     """Stop the pool now: pending runs cancelled, running ones killed (their results are
     not wanted: the study is being interrupted or failed)."""
     terminate = getattr(pool, 'terminate_workers', None)  # Python >= 3.14
     if terminate is not None:
         terminate()
+        _kill_starting_workers()
         return
     # before 3.14: the executor's own table of its worker processes (killed first: the
     # manager thread then finds the pool broken and ends); shutdown() forgets both
@@ -303,6 +343,7 @@ def _end_pool(pool: ProcessPoolExecutor) -> None:
     manager = getattr(pool, '_executor_manager_thread', None)
     for p in procs:
         p.terminate()
+    _kill_starting_workers()
     pool.shutdown(wait=False, cancel_futures=True)
     deadline = time.monotonic() + _END_GRACE_S
     for p in procs:

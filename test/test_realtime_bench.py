@@ -323,7 +323,7 @@ def test_a_recorder_child_that_does_not_close_its_bag_is_reported(tmp_path):
     assert stubborn.stdout.readline() == 'up\n'  # SIGINT is ignored from here on
     bench = object.__new__(Children)  # only what close_recording reads
     bench.children, bench.ended, bench.bag = {'recorder': stubborn}, [], None
-    bench._received = None  # no tuner counts: nothing to wait for before the stop
+    bench.watch = None  # no tuner node: nothing to wait for before the stop
     problems = bench.close_recording()
     assert problems == ['the recorder did not close its bag (killed by signal 9)']
     assert stubborn.returncode == -9 and bench.close_recording() == []

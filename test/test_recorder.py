@@ -653,6 +653,7 @@ def test_the_recorder_childs_status_and_the_tuners_wait_for_what_it_received(
     from rclpy.executors import SingleThreadedExecutor
 
     from im_tuner.bench.forms import Children
+    from im_tuner.bench.recorder_watch import RecorderWatch
 
     node = Node('tuner', context=ros_context)
     ex = SingleThreadedExecutor(context=ros_context)
@@ -672,15 +673,16 @@ def test_the_recorder_childs_status_and_the_tuners_wait_for_what_it_received(
         warnings: list[str] = []
         bench.node, bench.spin_until, bench.recording = node, spin_until, True
         bench.host = SimpleNamespace(warn=warnings.append)
-        bench.rec_topics, bench.rec_status, bench.bag = ['/note'], {}, bag
-        bench._received, bench._received_at_ready, bench.ended = None, {}, []
-        bench.catch_up_s = catch_up
-        bench.watch_recorder_status(node)
+        bench.rec_topics, bench.ended = ['/note'], []
+        bench.watch = RecorderWatch(node)
+        bench.watch.catch_up_s = catch_up
+        bench.bag = bag
+        bench.watch.expect(bag)
         bench.children = {'recorder': _start_recorder(procs, bag)}
         sent = [0]
         assert bench.recording_ready(60.0, lambda: {'/note': sent[0]})
         # the recorder's own word, not the graph's: matched, with the bag named
-        assert bench.rec_status['/note'].matched and bench.rec_status['/note'].recorded == 0
+        assert bench.watch.status['/note'].matched and bench.watch.status['/note'].recorded == 0
         for i in range(5):
             pub.publish(String(data=f'note {i}'))
         sent[0] = 5 + claimed_extra  # what the tuner counted on its own subscription

@@ -249,7 +249,7 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
         new = _new_run_config(cli, argv)
         out = new.out
         if out is None:
-            from .record.node import default_out_dir
+            from .record.run_info import default_out_dir
 
             out = default_out_dir(prefix=f'tuner_{new.run.algo}')
         new.run.put(bench_requested=cli.bench or 'auto')

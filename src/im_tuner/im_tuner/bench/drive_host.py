@@ -33,7 +33,7 @@ from im_drive_sim.runtime import RosSession
 
 from .. import family
 from ..names import DRIVE_HOST_NODE
-from ..record.node import default_out_dir
+from ..record.run_info import default_out_dir
 from . import drive_spec
 from .drive_host_main import parser
 from .forms import InProcess

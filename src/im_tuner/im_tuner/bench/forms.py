@@ -29,26 +29,21 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from im_drive_sim.contract import STATE_TOPIC
 
 from ..names import DRIVE_HOST_NODE, HOST_LOOP_TOPICS, controller_topics
-from ..record.status import CATCH_UP_S, TopicStatus
-from ..record.status import from_msg as status_from_msg
 from ..tuning import BenchFailure
 from .drive_status import DriveMonitor, drive_delta, drive_report
+from .recorder_watch import RecorderWatch
 from .spec import BenchPlan
 
 RECORDER_RESTARTS = 3  # replacements of a recorder child that died, per session
 RECORDER_READY_TIMEOUT = 20.0  # [s] for a replacement recorder to subscribe
-#: the recorder child's status (record/status.py; the child's node is ``recorder``)
-RECORDER_STATUS_TOPIC = '/recorder/status'
 SpinUntil = Callable[[Callable[[], bool], float | None], bool]
 
 
@@ -365,9 +360,6 @@ class Children:
     no bag). ``node`` None (``sim_bench``): nothing of the tuner's on the graph, the
     children only started, watched and stopped."""
 
-    #: longest wait for the bag to hold what the tuner received, before the stop [s]
-    catch_up_s = CATCH_UP_S
-
     def __init__(
         self,
         plan: BenchPlan,
@@ -395,14 +387,8 @@ class Children:
         self._ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
         self.recording = bag_dir is not None
         self.bag = bag_dir  #: the bag being recorded (a replacement's once replaced)
-        #: the recorder child's last status (record/status.py) for self.bag
-        self.rec_status: dict[str, TopicStatus] = {}
-        #: the tuner's own counts of received messages (recording_ready), and their
-        #: values when the present recorder became ready
-        self._received: Callable[[], dict[str, int]] | None = None
-        self._received_at_ready: dict[str, int] = {}
-        if node is not None and self.recording:
-            self.watch_recorder_status(node)
+        #: the recorder child's status, and the tuner's counts it must reach
+        self.watch = RecorderWatch(node) if node is not None and self.recording else None
         #: a drive host's 5 kHz topics, left to the host's own bag (a host is on the graph)
         self.excluded: list[str] = []
         if plan.mode == 'external' and node is not None and self.spin_until is not None:
@@ -428,36 +414,10 @@ class Children:
             preexec_fn=die_with_parent,  # noqa: PLW1509 (only prctl, async-signal-safe)
         )
 
-    def watch_recorder_status(self, node: Node) -> None:
-        """Subscribe to the recorder child's status (``rec_status``, record/status.py)."""
-        qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST,
-            depth=10,  # a replaced recorder's last status may still be on the graph
-            reliability=ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL,
-        )
-        node.create_subscription(
-            DiagnosticArray, RECORDER_STATUS_TOPIC, self._on_recorder_status, qos
-        )
-
-    def _on_recorder_status(self, msg: DiagnosticArray) -> None:
-        try:
-            bag, topics = status_from_msg(msg)
-        except ValueError:
-            return  # not our recorder's
-        if self.bag is not None and bag == str(self.bag.resolve()):
-            self.rec_status = topics
-
-    def _recorder_matched(self) -> bool:
-        """The recorder child's own word: every publisher of every recorded topic is
-        matched (the graph shows its subscriptions before that, over a network seconds
-        before; a message published in between is not in the bag)."""
-        st = self.rec_status
-        return all(t in st and st[t].matched for t in self.rec_topics)
-
     def _start_recorder(self, out_dir: Path) -> None:
         self.bag = out_dir
-        self.rec_status = {}
+        if self.watch is not None:
+            self.watch.expect(out_dir)
         quiet = ['--ros-args', '--disable-stdout-logs'] if self.quiet else []
         compression = self.plan.spec.compression
         exclude = ['--exclude-topics', *self.excluded] if self.excluded else []
@@ -498,8 +458,8 @@ class Children:
                 break
             time.sleep(0.05)  # graph queries need no spinning
         if ready:
-            if self._received is not None:
-                self._received_at_ready = self._received()
+            if self.watch is not None:
+                self.watch.ready()
             warn(f'  recording again into {new.name} (messages in between are in no bag)')
         else:
             warn(
@@ -546,39 +506,17 @@ class Children:
     ) -> bool:
         if not self.recording or self.node is None or self.spin_until is None:
             return True
-        node = self.node
+        node, watch = self.node, self.watch
+        assert watch is not None
+        # the graph shows the recorder's subscriptions before they are matched: its own
+        # status says when they are (record/status.py)
         ready = self.spin_until(
-            lambda: recorder_subscribed(node, self.rec_topics) and self._recorder_matched(),
+            lambda: recorder_subscribed(node, self.rec_topics) and watch.matched(self.rec_topics),
             timeout,
         )
-        if ready and received is not None:
-            self._received = received
-            self._received_at_ready = received()
+        if ready:
+            watch.ready(received)
         return ready
-
-    def _catch_up(self) -> None:
-        """Before the recorder is stopped: wait until its bag holds every message the
-        tuner received since it became ready (the losses). A reliable message lost on the
-        network reaches the recorder only after the writer's next heartbeat (Fast DDS:
-        3 s), though the tuner got its own copy; stopping at once left it out of the bag."""
-        if self._received is None or self.spin_until is None or self.node is None:
-            return
-        got = self._received()
-        need = {t: n - self._received_at_ready.get(t, 0) for t, n in got.items()}
-
-        def recorded(t: str) -> int:
-            st = self.rec_status.get(t)
-            return 0 if st is None else st.recorded
-
-        wait = self.catch_up_s
-        if self.spin_until(lambda: all(recorded(t) >= n for t, n in need.items()), wait):
-            return
-        short = ', '.join(f'{t} {recorded(t)} of {n}' for t, n in need.items() if recorded(t) < n)
-        self.host.warn(
-            f'warning: the bag holds fewer messages than the tuner received ({short}) '
-            f'{wait:g} s after the last one: lost on the way to the recorder; '
-            'results.jsonl has every loss'
-        )
 
     def session_start(self) -> None:
         if self.mode == 'external' and self.monitor is not None and self.spin_until:
@@ -603,8 +541,8 @@ class Children:
         exited with an error, left its bag unclosed -- it is repaired and reported."""
         from im_drive_sim.runtime import stop_child
 
-        if 'recorder' in self.children:
-            self._catch_up()
+        if 'recorder' in self.children and self.watch is not None and self.spin_until:
+            self.watch.catch_up(self.spin_until, self.host.warn)  # the bag holds the losses
         p = self.children.pop('recorder', None)
         if p is None:
             return []

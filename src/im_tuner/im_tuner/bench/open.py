@@ -107,7 +107,8 @@ def open_bench(
     bag_dir = host.begin(plan)
     if plan.mode not in IN_PROCESS_BENCHES:
         return Children(plan, node, exe, bag_dir=bag_dir, host=host)
-    from ..record.node import BagError, RecorderError
+    from ..record.metadata import BagError
+    from ..record.node import RecorderError
 
     try:
         return InProcess(

@@ -36,7 +36,7 @@ from im_drive_sim.drive_file import load_config
 from im_drive_sim.params import ConfigError
 from im_drive_sim.runtime import RosSession
 
-from ..record.node import default_out_dir
+from ..record.run_info import default_out_dir
 from .forms import Children, InProcess, parameters
 from .open import open_bench
 from .sim_bench_main import parser

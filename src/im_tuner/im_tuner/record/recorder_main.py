@@ -66,4 +66,4 @@ def parser() -> argparse.ArgumentParser:
 
 
 if __name__ == '__main__':
-    sys.exit(check_then_run('recorder', parser, 'im_tuner.record.node:main'))
+    sys.exit(check_then_run('recorder', parser, 'im_tuner.record.child:main'))

@@ -39,12 +39,11 @@ from im_drive_sim.contract import STATE_TOPIC
 from ..names import DRIVE_HOST_NODE, HOST_LOOP_TOPICS, controller_topics
 from ..tuning import BenchFailure
 from .drive_status import DriveMonitor, drive_delta, drive_report
-from .recorder_watch import RecorderWatch
+from .recorder_watch import RecorderWatch, SpinUntil
 from .spec import BenchPlan
 
 RECORDER_RESTARTS = 3  # replacements of a recorder child that died, per session
 RECORDER_READY_TIMEOUT = 20.0  # [s] for a replacement recorder to subscribe
-SpinUntil = Callable[[Callable[[], bool], float | None], bool]
 
 
 class RunHost(Protocol):

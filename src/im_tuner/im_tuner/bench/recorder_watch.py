@@ -22,6 +22,7 @@ from ..record.status import CATCH_UP_S, TopicStatus, from_msg
 
 #: the recorder child's status (its node is ``recorder``, in no namespace)
 RECORDER_STATUS_TOPIC = '/recorder/status'
+#: ``spin_until(pred, timeout)``: serve the node until ``pred()`` or the timeout
 SpinUntil = Callable[[Callable[[], bool], float | None], bool]
 
 

@@ -180,7 +180,12 @@ def test_a_wall_clock_library_tunes_to_the_end_compiled(tmp_path, wallclock_lib)
     drive = meta['im_tuner.drive']
     # a power stage whose read samples the period start acts with 2: declared, probed
     assert json.loads(drive['command_delay']) == 2, drive
-    assert 'takes effect in k+2, k+2, k+2, k+2 (declared command delay 2)' in drive['delay_probe']
+    # the median is judged: one repeat whose calls fell close to the library's period
+    # boundary may count a period off (two repeats in 4 of 300 probes under load,
+    # benchmarks/delay_probe_load.py)
+    assert 'takes effect in k+2 (median of ' in drive['delay_probe'], drive['delay_probe']
+    seen = drive['delay_probe'].split('median of ')[1].split(';')[0].split(', ')
+    assert len(seen) == 5 and seen.count('k+2') >= 3, drive['delay_probe']
 
 
 @pytest.mark.parametrize('how', ['SIGINT', 'SIGTERM'])
@@ -279,5 +284,8 @@ def test_a_drive_slower_than_it_declares_is_refused_in_one_line(tmp_path):
     assert p.returncode == 2, p.stderr[-3000:]
     lines = p.stderr.strip().splitlines()
     assert len(lines) == 1 and 'slower than it declares' in lines[0], p.stderr
-    assert 'takes effect in k+2, k+2, k+2, k+2 (declared command delay 1)' in lines[0]
+    assert (
+        'takes effect in k+2 (median of k+2, k+2, k+2, k+2, k+2; declared command delay 1)'
+        in lines[0]
+    )
     assert not run.exists()

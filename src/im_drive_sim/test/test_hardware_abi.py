@@ -241,4 +241,4 @@ def test_the_delay_probe_finds_the_delay_a_stage_has(delay: int) -> None:
         assert p.onsets == (delay,) * REPEATS and p.ok, p
     slow = probe_delay(_LatchedLate(load_config(None)), 200e-6, 7.0, 1)
     assert slow.onsets == (2,) * REPEATS and not slow.ok
-    assert 'k+2, k+2, k+2, k+2 (declared command delay 1)' in slow.text()
+    assert 'k+2 (median of k+2, k+2, k+2, k+2, k+2; declared command delay 1)' in slow.text()

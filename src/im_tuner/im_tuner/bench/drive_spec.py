@@ -331,7 +331,7 @@ def _check_delay(choice: DriveChoice, declared: int) -> None:
     if not choice.probe.ok:
         _BUILT.remove(choice)
         close_hardware(choice)
-        slower = choice.probe.fastest
+        slower = choice.probe.onset
         raise DriveSpecError(
             f'--drive {choice.spec!r}: slower than it declares: {choice.probe.text()}; '
             f'declare command_delay = {slower} if it is {slower} '

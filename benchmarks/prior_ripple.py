@@ -12,6 +12,7 @@ that they start from different rest positions): loss and the largest and mean rm
 the start's.  ``*`` the first step without a ripple limit, ``+`` with ``--limit``.
 
     python benchmarks/prior_ripple.py --drive im750w-j1 --mismatch J=x1.5 [--limit 1.5]
+        [--realism bench]
 
 With ``--same D1,D2,...`` instead: per drive (its own file as the plant), whether the
 first step of run 0 with the limit is the point without it, and its largest rms ratio
@@ -75,6 +76,7 @@ def main() -> None:
     ap.add_argument('--mismatch', default='J=x1.5')
     ap.add_argument('--limit', type=float, default=1.5)
     ap.add_argument('--candidates', type=int, default=16)
+    ap.add_argument('--realism', default=None, help="the plant's profile (default its file's)")
     ap.add_argument('--same', default='', help='drives: is the limited first step the same?')
     a = ap.parse_args()
     if a.same:
@@ -86,7 +88,8 @@ def main() -> None:
         algos=('safe',),
         drives=(a.drive,),
         full_grid=False,
-        mismatch=parse_mismatch(a.mismatch),
+        mismatch=parse_mismatch(a.mismatch) if a.mismatch else (),
+        realism=a.realism,
     )
     drive, space, exp, idf = _identified(spec)
     plant, _params, experiment = spec.loaded()

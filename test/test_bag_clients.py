@@ -246,7 +246,17 @@ def rosbag2_open_mcap(path: Path) -> dict:
 def bag(tmp_path_factory) -> Path:
     """A whole tuner bag: 3 evaluations, about 124 000 messages on 17 topics."""
     run = tmp_path_factory.mktemp('bag_clients') / 'run'
-    args = ('--budget', '3', '--seed', '1', '--quiet', '--out', str(run))
+    args = (
+        '--budget',
+        '3',
+        '--seed',
+        '1',
+        '--quiet',
+        '--discovery-timeout',
+        '0.2',
+        '--out',
+        str(run),
+    )
     proc = subprocess.run(
         [ROS2, 'run', 'im_tuner', 'tuner', *args],
         capture_output=True,

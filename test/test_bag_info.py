@@ -153,7 +153,7 @@ def lockstep_run(tmp_path_factory) -> Path:
     r = subprocess.run(
         [
             *(ROS2, 'run', 'im_tuner', 'tuner', '--budget', '2', '--remeasure', '0'),
-            *('--seed', '3', '--quiet', '--out', str(run)),
+            *('--seed', '3', '--quiet', '--discovery-timeout', '0.2', '--out', str(run)),
         ],
         capture_output=True,
         text=True,

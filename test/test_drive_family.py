@@ -20,8 +20,12 @@ DRIVE = 'im3700w-j3'
 
 
 def tuner(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    # (no controller on the test's graph: auto need not look for one for 2 s)
     return subprocess.run(
-        [ROS2, 'run', 'im_tuner', 'tuner', *args], capture_output=True, text=True, timeout=timeout
+        [ROS2, 'run', 'im_tuner', 'tuner', *args, '--discovery-timeout', '0.2'],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
     )
 
 

@@ -60,6 +60,7 @@ def run(tmp_path_factory) -> Path:
     """A real tuner run: the reference experiment and one evaluation, recorded."""
     out = tmp_path_factory.mktemp('foxglove') / 'run'
     args = ('--budget', '1', '--remeasure', '0', '--seed', '1', '--quiet', '--out', str(out))
+    args += ('--discovery-timeout', '0.2')  # no controller on the graph: no 2 s look
     proc = subprocess.run(
         [ROS2, 'run', 'im_tuner', 'tuner', *args], capture_output=True, text=True, timeout=300
     )

@@ -26,7 +26,16 @@ START = {'k_pw': 0.53, 'k_iw': 20.0, 'k_pos': 30.0, 'tau_sm': 0.005, 'tau_eq': 0
 START_LOSS = 0.9803040260343194  # experiment 0 of the hand-tuned start (test_controller_node)
 
 
+#: no controller is on a test's graph (its own ROS_DOMAIN_ID) unless it starts one: `auto`
+#: need not look for one for its default 2 s (``bench.spec.DISCOVERY_TIMEOUT``)
+NO_CONTROLLER = ('--discovery-timeout', '0.2')
+
+
 def tuner(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    """``ros2 run im_tuner tuner ARGS``; on the default bench (auto) with
+    :data:`NO_CONTROLLER` unless ARGS say how long to look or which bench."""
+    if '--bench' not in args and '--discovery-timeout' not in args:
+        args = (*args, *NO_CONTROLLER)
     return subprocess.run(
         [ROS2, 'run', 'im_tuner', 'tuner', *args], capture_output=True, text=True, timeout=timeout
     )
@@ -274,7 +283,9 @@ def test_resume_after_kill_continues_bit_for_bit(tmp_path, procs, wait_until, al
     budget = 8
     killed = tmp_path / 'killed'
     args = ['--algo', algo, '--budget', str(budget), '--seed', '11', '--quiet']
-    child = procs.start([ROS2, 'run', 'im_tuner', 'tuner', *args, '--out', str(killed)])
+    child = procs.start(
+        [ROS2, 'run', 'im_tuner', 'tuner', *args, *NO_CONTROLLER, '--out', str(killed)]
+    )
     res = killed / 'results.jsonl'
     wait_until(lambda: res.exists() and res.read_text().count('\n') >= 4, 120, message='4 records')
     child.send_signal(signal.SIGKILL)
@@ -301,7 +312,9 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
     args = ['--algo', 'necga', '--budget', '8', '--seed', '11', '--quiet']
     whole, _st, sw = offline_run('necga', 8, 11)
     killed = tmp_path / 'killed'
-    child = procs.start([ROS2, 'run', 'im_tuner', 'tuner', *args, '--out', str(killed)])
+    child = procs.start(
+        [ROS2, 'run', 'im_tuner', 'tuner', *args, *NO_CONTROLLER, '--out', str(killed)]
+    )
     res = killed / 'results.jsonl'
     wait_until(lambda: res.exists() and res.read_text().count('\n') >= 4, 120, message='4 records')
     child.send_signal(signal.SIGKILL)

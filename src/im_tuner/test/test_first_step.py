@@ -83,6 +83,48 @@ def test_no_point_given_is_the_search_without_a_model():
         b.tell(ub, 0.9)
 
 
+def test_a_failed_first_point_is_followed_by_the_points_half_way_back():
+    """The identified point told no better than the start (a loud point under the ripple
+    limit is told so): the next two asks are half-way back to the start, then a quarter;
+    the first of them that succeeds is the incumbent with sigma 0.02, as the point
+    itself would have been; an aborted point backs off nothing; a checkpoint between
+    them resumes the same asks; and a first point that succeeds backs off nothing."""
+    x0 = np.array(_safe().x)
+    half, quarter = (x0 + np.array(POINT)) / 2, (x0 + (x0 + np.array(POINT)) / 2) / 2
+
+    def after_start(opt):
+        opt.tell(opt.ask(), 1.0)
+        opt.set_first(POINT)
+        assert opt.ask().tolist() == POINT
+        return opt
+
+    opt = after_start(_safe())
+    opt.tell(np.array(POINT), 1.0)  # not below f: failed
+    assert np.allclose(opt.ask(), half)
+    twin = Optimizer.from_state(json.loads(json.dumps(opt.state_dict())))
+    assert twin.ask().tolist() == opt.ask().tolist()
+    opt.tell(opt.ask(), 1.2)  # failed again
+    assert np.allclose(opt.ask(), quarter)
+    opt.tell(opt.ask(), 0.8)  # success: the incumbent, the identified point's sigma
+    assert np.allclose(opt.x, quarter) and opt.f == 0.8 and opt.sigma == 0.02
+    assert opt.step is None  # (no pattern move repeats a model's step)
+    # two back-offs at most: after three failures the search goes on from the start
+    opt = after_start(_safe())
+    for _ in range(3):
+        opt.tell(opt.ask(), 1.5)
+    y = opt.ask()
+    assert not np.allclose(y, (x0 + quarter) / 2) and np.allclose(opt.x, x0)
+    # an aborted point: no back-off, the search as before
+    a, b = after_start(_safe()), after_start(_safe())
+    a.tell_measurement(np.array(POINT), 3.0, True)
+    b.tell_measurement(np.array(POINT), 3.0, True)
+    assert not np.allclose(a.ask(), half) and a.ask().tolist() == b.ask().tolist()
+    # a point that succeeds: nothing backs off (the runs of the ideal study, unchanged)
+    opt = after_start(_safe())
+    opt.tell(np.array(POINT), 0.5)
+    assert opt.state_dict()['first_back'] is None and opt.state_dict()['first_backoffs'] == 0
+
+
 def test_a_checkpoint_keeps_the_given_point_and_whether_it_was_asked():
     opt = _safe(9)
     for step in range(5):

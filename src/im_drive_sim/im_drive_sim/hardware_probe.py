@@ -132,7 +132,7 @@ def probe_delay(hw: Any, ts: float, isq_max: float, declared: int) -> DelayProbe
         while r < REPEATS:
             sign = 1.0 if r % 2 == 0 else -1.0
             late = False
-            t0 += ts / REPEATS  # this repeat's phase: a fifth of a period on
+            t0 += ts / REPEATS  # this repeat's phase: 1/REPEATS of a period on
             base_lags = [period(0.0) for _ in range(BASELINE)]
             after_lags = [period(sign * step) for _ in range(ON)]
             after_lags += [period(0.0) for _ in range(SETTLE)]

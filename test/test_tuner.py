@@ -152,8 +152,9 @@ def check_run(run: Path, algo: str, budget: int, proc: subprocess.CompletedProce
 
 def test_spsa_short_run(tmp_path):
     run = tmp_path / 'spsa_run'
-    proc = tuner('--algo', 'spsa', '--budget', '20', '--seed', '3', '--out', str(run), '--quiet')
-    recs = check_run(run, 'spsa', 20, proc)
+    # (12 evaluations, 6 pairs: a longer run checks nothing more and costs the suite)
+    proc = tuner('--algo', 'spsa', '--budget', '12', '--seed', '3', '--out', str(run), '--quiet')
+    recs = check_run(run, 'spsa', 12, proc)
     evals = [r for r in recs if r['kind'] == 'eval']
     # SPSA: evaluations come in pairs u_k +- c_k Delta_k around the iterate, c_k per the
     # paper's c = 0.03, gamma = 0.3 (normalised box), Delta_k = +-1 per gain.
@@ -166,7 +167,7 @@ def test_spsa_short_run(tmp_path):
             for n in GAINS
         ]
     )
-    for k in range(10):
+    for k in range(6):
         up, um = np.array(evals[2 * k]['u']), np.array(evals[2 * k + 1]['u'])
         ck = 0.03 / (k + 1) ** 0.3
         np.testing.assert_allclose(np.abs(up - um), 2 * ck, rtol=1e-9)
@@ -176,8 +177,8 @@ def test_spsa_short_run(tmp_path):
 
 def test_necga_short_run(tmp_path):
     run = tmp_path / 'necga_run'
-    proc = tuner('--algo', 'necga', '--budget', '20', '--seed', '4', '--out', str(run), '--quiet')
-    recs = check_run(run, 'necga', 20, proc)
+    proc = tuner('--algo', 'necga', '--budget', '12', '--seed', '4', '--out', str(run), '--quiet')
+    recs = check_run(run, 'necga', 12, proc)
     # the simulated drive is known: its rated q current beside the ripple (a percentage),
     # for the paper's algorithms too (not only with safe's identification)
     from im_drive_sim.drive_file import load_config

@@ -212,6 +212,13 @@ def top_evals(records: list[Record], k: int, bound: dict[str, float] | None = No
 #: (:func:`told_loss`; docs/optimisers.md, "The standstill ripple": 1, 2 and 4 measured).
 RIPPLE_PENALTY = 1.0
 
+#: One experiment's standstill rms scatters about its gains' mean (on ``bench``: the
+#: random load and the current sensor's noise), so :func:`told_loss` penalises it only
+#: above RIPPLE_TOLERANCE x the limit's bound: a point that is quiet on average is not
+#: told it is loud for one loud experiment (docs/optimisers.md, "The standstill ripple").
+#: The final choice keeps the strict bound on the mean (:func:`within_limit`).
+RIPPLE_TOLERANCE = 1.4
+
 
 def _over(rip: dict[str, Any] | None, bound: dict[str, float]) -> float | None:
     """The largest of one experiment's standstill rms over ``bound`` in the windows it
@@ -235,7 +242,7 @@ def told_loss(records: list[Record], rec: Evaluation, ripple_limit: float | None
         return rec.loss
     bound = ripple_bound(records, ripple_limit)
     r = None if bound is None else _over(rec.ripple, bound)
-    if bound is None or r is None or r <= 1.0:
+    if bound is None or r is None or r <= RIPPLE_TOLERANCE:
         return rec.loss
     quiet = [
         x.loss

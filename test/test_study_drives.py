@@ -25,7 +25,7 @@ def study(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
 
 #: sha256 of that study's tables.csv with safe's default ripple limit (issue 40 part 6),
 #: retaken when the identified first step changed (300 experiments per seed, sigma 0.02)
-DEFAULT_LIMIT_TABLES = 'ff3144df0f6638260c0f2018d0c731d95d9952911770e9c92f5909cccbc2f4b2'
+DEFAULT_LIMIT_TABLES = '3d72d530e6960ec9c3351fcf7e500ca7929f62b437bd77fe750bbf33f7a035a6'
 
 
 def test_without_drives_the_files_are_unchanged(tmp_path):
@@ -79,7 +79,10 @@ def test_without_drives_the_files_are_unchanged(tmp_path):
     assert p.returncode == 0, p.stderr
     a, b = ((d / 'tables.csv').read_text().splitlines() for d in (out, dflt))
     differ = {x.split(',')[1] for x, y in zip(a, b, strict=True) if x != y}
-    assert differ == {'safe'}
+    # (only safe's rows may differ; here none does: no experiment of these short runs is
+    # over RIPPLE_TOLERANCE x the limit, and no choice over it; test_ripple_limit.py has
+    # the runs the limit steers)
+    assert differ <= {'safe'}
     assert hashlib.sha256((dflt / 'tables.csv').read_bytes()).hexdigest() == DEFAULT_LIMIT_TABLES
     assert not (out / 'family.json').exists()
     # beside it, the same grid on the bench profile: Tables I-III side by side

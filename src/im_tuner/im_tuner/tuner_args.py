@@ -20,6 +20,7 @@ from im_drive_sim.cli import Parser, UsageError, finite_float
 from . import optim
 from .bench.spec import DISCOVERY_TIMEOUT
 from .benches import BENCHES  # (the bench modes: one copy, in benches)
+from .runlog.tally import RIPPLE_TOLERANCE
 from .names import (
     DEFAULT_RIPPLE_LIMIT,
     DEFAULT_TIMING_TOLERANCE,
@@ -134,8 +135,9 @@ def build_parser() -> argparse.ArgumentParser:
         help='the largest standstill current ripple the applied gains may have: the rms '
         'of isq* in both standstill windows (after the move, after the load step) at most '
         "R times the hand-tuned start's, as the reference experiment measures it; a "
-        'louder evaluation is told to the optimiser as no better than the best quiet one '
-        'so far, and the re-measured and applied gains are the best evaluated within it '
+        f'louder evaluation (by more than {RIPPLE_TOLERANCE:g}x the limit: one experiment '
+        'scatters) is told to the optimiser as no better than the best quiet one so far, '
+        'and the re-measured and applied gains are the best evaluated within it '
         "(the start if none); safe's first step from the identified drive is chosen within "
         f"it on the models. A ratio >= 1 or 'off'. Default: {DEFAULT_RIPPLE_LIMIT:g} for "
         f"{', '.join(RIPPLE_LIMIT_ALGOS)}, off for the others (the paper's final controller is "

@@ -137,6 +137,7 @@ class BobyqaRun:
 
     def _solve(self) -> None:
         import pybobyqa
+        from scipy.linalg import LinAlgWarning
 
         lo, hi = np.zeros(self.dim), np.ones(self.dim)
         x = self.x0
@@ -151,6 +152,11 @@ class BobyqaRun:
                     warnings.filterwarnings(
                         'ignore', message='maxfun <= npt', category=RuntimeWarning
                     )
+                    # its interpolation points can become degenerate (noisy steps clipped
+                    # to a bound of the box), and scipy warns that the model's LU factor
+                    # is singular; the solver goes on and its row shows what it achieves.
+                    # Printed in a worker, the warning broke the study's progress line
+                    warnings.filterwarnings('ignore', category=LinAlgWarning)
                     pybobyqa.solve(
                         self._objective,
                         x,

@@ -20,7 +20,6 @@ from im_drive_sim.cli import Parser, UsageError, finite_float
 from . import optim
 from .bench.spec import DISCOVERY_TIMEOUT
 from .benches import BENCHES  # (the bench modes: one copy, in benches)
-from .runlog.tally import RIPPLE_TOLERANCE
 from .names import (
     DEFAULT_RIPPLE_LIMIT,
     DEFAULT_TIMING_TOLERANCE,
@@ -28,6 +27,7 @@ from .names import (
     RIPPLE_LIMIT_ALGOS,
 )
 from .runlog import RunConfig
+from .runlog.tally import RIPPLE_TOLERANCE
 
 #: the algorithms --no-start is for, in --algo's order
 NO_START_TEXT = ', '.join(a for a in optim.ALGOS if a in optim.NO_START_ALGOS)

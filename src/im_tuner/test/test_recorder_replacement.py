@@ -62,7 +62,7 @@ class Node:
         pass
 
 
-def _children(tmp_path: Path, watch: Watch, child: Child, spinner=True):
+def _children(tmp_path: Path, watch: Watch, child: Child):
     c = forms.Children.__new__(forms.Children)
     c.node, c.watch, c.host = Node(), watch, Host(tmp_path / 'bag_1')
     c.bag, c.rec_topics, c.recorder_restarts = tmp_path / 'bag_0', ['/l', '/s'], 0
@@ -82,7 +82,7 @@ def _children(tmp_path: Path, watch: Watch, child: Child, spinner=True):
             watch.spins += 1
         return pred()
 
-    c.spin_until = spin_until if spinner else None
+    c.spin_until = spin_until
     return c
 
 
@@ -129,11 +129,3 @@ def test_a_replacement_that_dies_while_awaited_is_not_ready(tmp_path):
     c._recorder_died('killed by signal 9')
     assert watch.readied == 0 and watch.spins < 50
     assert 'did not subscribe to and match' in c.host.lines[-1]
-
-
-def test_without_an_executor_the_graph_alone_decides(tmp_path):
-    watch, child = Watch(after=None), Child()
-    c = _children(tmp_path, watch, child, spinner=False)
-    c.watch = None  # (no node to follow a status with)
-    c._recorder_died('killed by signal 9')
-    assert c.host.lines[-1].startswith('  recording again into bag_1')

@@ -231,12 +231,13 @@ def _over(rip: dict[str, Any] | None, bound: dict[str, float]) -> float | None:
 
 def told_loss(records: list[Record], rec: Evaluation, ripple_limit: float | None) -> float:
     """The loss the optimiser is told for evaluation ``rec`` (``records``: those before
-    it): the measured one, but above the ripple limit (its own rms r times the bound,
-    r > 1) ``max(L (1 + RIPPLE_PENALTY (r - 1)), L_quiet)``, L_quiet the smallest loss
-    measured so far by an evaluation within the limit.  So a loud point is never better
-    than a quiet one already found (the search does not settle where only loud gains are
-    good: the first step from a model that does not see the limit cycle often lands
-    there), and among loud points the louder costs more.  Without a limit, for an
+    it): the measured one, but well above the ripple limit (its own rms r times the
+    bound, r > RIPPLE_TOLERANCE) ``max(L (1 + RIPPLE_PENALTY (r - 1)), L_quiet)``,
+    L_quiet the smallest loss measured so far by an evaluation within the limit
+    (r <= 1).  So a loud point is never better than a quiet one already found (the
+    search does not settle where only loud gains are good: the first step from a model
+    that does not see the limit cycle often lands there), and among loud points the
+    louder costs more.  Without a limit, for an
     aborted experiment (already penalised) or without a measured start: the loss."""
     if ripple_limit is None or rec.aborted or rec.loss is None:
         return rec.loss

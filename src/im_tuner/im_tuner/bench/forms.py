@@ -446,31 +446,25 @@ class Children:
         if new is None:
             return
         self.recorder_restarts += 1
-        node, topics, watch = self.node, self.rec_topics, self.watch
-        dead_endpoints = frozenset(recorder_endpoints(node, topics))
-        self._start_recorder(new)  # (the watch now follows the new bag's status only)
+        dead_endpoints = frozenset(recorder_endpoints(self.node, self.rec_topics))
+        self._start_recorder(new)
         self.host.bag_replaced(new)
-        child = self.children['recorder']
-
-        def up() -> bool:
-            # the graph shows the subscriptions before they are matched: the new
-            # recorder's own status says when every publisher is (as at the start)
-            return recorder_subscribed(node, topics, dead_endpoints) and (
-                watch is None or watch.matched(topics)
-            )
-
-        # (the status arrives by spinning; a node comes with its executor: open_bench)
-        assert self.spin_until is not None
-        self.spin_until(lambda: child.poll() is not None or up(), RECORDER_READY_TIMEOUT)
-        if child.poll() is None and up():
-            if watch is not None:
-                watch.ready()
+        deadline = time.monotonic() + RECORDER_READY_TIMEOUT
+        ready = False
+        while time.monotonic() < deadline and self.children['recorder'].poll() is None:
+            ready = recorder_subscribed(self.node, self.rec_topics, dead_endpoints)
+            if ready:
+                break
+            time.sleep(0.05)  # graph queries need no spinning
+        if ready:
+            if self.watch is not None:
+                self.watch.ready()
             warn(f'  recording again into {new.name} (messages in between are in no bag)')
         else:
             warn(
-                f'  warning: the new recorder ({new.name}) did not subscribe to and match '
-                f'every recorded topic within {RECORDER_READY_TIMEOUT:g} s; the run goes '
-                'on, and what is published until it does is in no bag'
+                f'  warning: the new recorder ({new.name}) did not subscribe to every recorded '
+                f'topic within {RECORDER_READY_TIMEOUT:g} s; the run goes on, and what is '
+                'published until it does is in no bag'
             )
 
     def supervise(self) -> None:

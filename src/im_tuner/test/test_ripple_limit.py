@@ -332,6 +332,34 @@ def test_a_study_run_that_keeps_its_start_reports_the_starts_loss():
     assert not free.ripple_changed
 
 
+def test_a_study_run_reports_the_loss_of_what_it_leaves_applied():
+    """With a ripple limit the study's re-measured column is the applied gains' loss: a
+    run whose re-measured point failed the limit on the mean of its experiments (its
+    search ended among loud points: im750w-j1 on the per-drive bench, run 17 of 25, left
+    its start applied after 200 evaluations while the column said 0.604) reports the
+    applied evaluation's loss, or the reference's when the start stays; without a limit,
+    and where the applied point is the re-measured one, the best's re-measurement."""
+    from types import SimpleNamespace as NS
+
+    from im_tuner.study.runs import applied_loss
+
+    ref = NS(eval=-1, loss=1.04)
+    rem = [NS(eval=23, loss=0.628)]
+    at = {'eval': 23, 'loss': 0.60}
+    other = {'eval': 40, 'loss': 0.59}
+    start = {'eval': -1, 'loss': 1.04}
+    assert applied_loss(at, ref, rem, limited=True) == 0.628  # applied = re-measured
+    assert applied_loss(other, ref, rem, limited=False) == 0.628  # no limit: as before
+    assert applied_loss(other, ref, rem, limited=True) == 0.59  # the next within it
+    assert applied_loss(start, ref, rem, limited=True) == 1.04  # the start stays
+    assert applied_loss(start, ref, [], limited=True) == 1.04  # nothing within the limit
+    assert math.isnan(applied_loss(other, ref, [], limited=False))  # nothing re-measured
+    assert math.isnan(applied_loss(None, ref, [], limited=True))
+    # a run with two re-measured points applies the second: its re-measurement
+    two = [*rem, NS(eval=40, loss=0.61)]
+    assert applied_loss(other, ref, two, limited=True) == 0.61
+
+
 def test_one_loud_experiment_within_the_tolerance_is_told_its_loss_the_choice_stays_strict():
     """On ``bench`` one experiment's standstill rms scatters about its gains' mean (the
     random load, the current sensor's noise), so the search penalises an experiment only

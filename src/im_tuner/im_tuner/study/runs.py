@@ -114,8 +114,9 @@ class RunResult:
     iteration: np.ndarray  #: int32[budget]: SPSA iteration / GA generation (1-based)
     best_eval: int  #: smallest non-aborted loss (-1: none)
     best_gains: tuple[float, ...]
-    #: the best's re-measured loss (nan: not re-measured; the reference's loss when the
-    #: ripple limit left no evaluation within it, the start applied)
+    #: the best's re-measured loss (nan: not re-measured); with a ripple limit, that of
+    #: the gains the run leaves applied (:func:`applied_loss`: the reference's loss when
+    #: the start stays applied)
     remeasured: float
     opt_s: float  #: wall time in ask + tell [s] (timing, not results)
     exp_s: float  #: wall time in experiments [s]
@@ -234,7 +235,8 @@ def run_one(
     rem = [x for x in tuning.records if isinstance(x, Remeasurement)]
     best = tuning.state.best
     exp_s = sum(x.wall_s or 0.0 for x in tuning.records)  # every attempt's bench time
-    rip = ripple_summary(tuning.records, tuning.final_choice(), tuning.ripple_limit, 1) or {}
+    final = tuning.final_choice()
+    rip = ripple_summary(tuning.records, final, tuning.ripple_limit, 1) or {}
 
     def rms(d: dict[str, Any] | None) -> tuple[float, float]:
         d = d or {}
@@ -261,14 +263,37 @@ def run_one(
             if best is None
             else tuple(float(best['gains'][n]) for n in GAIN_NAMES)
         ),
-        # (the ripple limit left no evaluation within it: the start stays applied, and
-        # its loss is the reference's, not left out of the study's mean)
-        remeasured=rem[0].loss if rem else (ref.loss if rip.get('fallback') else math.nan),
+        remeasured=applied_loss(final, ref, rem, rip.get('bound') is not None),
         opt_s=wall - exp_s,
         exp_s=exp_s,
         ripple=(*rms(rip.get('start')), *rms(rip.get('applied'))),
         ripple_changed=bool(rip.get('changed')),
     )
+
+
+def applied_loss(
+    final: dict[str, Any] | None,
+    ref: Reference,
+    rem: list[Remeasurement],
+    limited: bool,
+) -> float:
+    """The study's ``re-measured`` figure of a run: the best's re-measurement (nan: none),
+    except where a ripple limit applies (``limited``: the run has a bound), whose point
+    is what the run leaves applied: there the loss of those gains (``final``:
+    ``TuningRun.final_choice()``) when they are not the re-measured point -- the
+    reference's loss when the start stays applied (nothing within the limit beat it),
+    else their re-measurement or, when the re-measured point failed the limit on the mean
+    of its experiments and the next best within it is applied, its one measured loss.
+    Without this a run whose search ended among loud points reported the re-measured
+    loss of gains it does not apply."""
+    if rem and (not limited or final is None or final['eval'] == rem[0].eval):
+        return rem[0].loss
+    if not limited or final is None:
+        return math.nan
+    if final['eval'] < 0:
+        return ref.loss
+    again = [x.loss for x in rem if x.eval == final['eval']]
+    return again[0] if again else float(final['loss'])
 
 
 def reference_loss(

@@ -50,10 +50,10 @@ def test_the_goal_is_judged_on_expected_loss_per_stable_case(grid, tmp_path, cap
     assert grid.main(argv) == 0
     out = capsys.readouterr().out
     assert (
-        '| im750w-j1 | exact | default (safe, identified) | - | 0.510 [0.383, 0.637] | 1.020 |'
+        '| im750w-j1 | exact | default (safe, identified) | 0.510 | 0.510 [0.383, 0.637] | 1.020 |'
         in out
     )
-    assert '| Py-BOBYQA | - | 0.500 [0.500, 0.500] |' in out
+    assert '| Py-BOBYQA | 0.500 | 0.500 [0.500, 0.500] |' in out
     assert 'start unstable: no goal' in out and out.rstrip().endswith('missed: none')
     # 2.1 % above: missed, and said
     _case(tmp_path, 'im7500w-j10', 'J=x0.5', [0.5105, 0.5105], 0.500)

@@ -135,9 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
         help='the largest standstill current ripple the applied gains may have: the rms '
         'of isq* in both standstill windows (after the move, after the load step) at most '
         "R times the hand-tuned start's, as the reference experiment measures it; a "
-        'a louder evaluation is told its loss times how much louder it is, and (more than '
-        f'{RIPPLE_TOLERANCE:g}x the limit: one experiment scatters) no better than the '
-        'best quiet one so far, '
+        f'louder evaluation (by more than {RIPPLE_TOLERANCE:g}x the limit: one experiment '
+        'scatters) is told to the optimiser as no better than the best quiet one so far, '
         'and the re-measured and applied gains are the best evaluated within it '
         "(the start if none); safe's first step from the identified drive is chosen within "
         f"it on the models. A ratio >= 1 or 'off'. Default: {DEFAULT_RIPPLE_LIMIT:g} for "

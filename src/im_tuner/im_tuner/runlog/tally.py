@@ -213,16 +213,11 @@ def top_evals(records: list[Record], k: int, bound: dict[str, float] | None = No
 RIPPLE_PENALTY = 1.0
 
 #: One experiment's standstill rms scatters about its gains' mean (on ``bench``: the
-#: random load and the current sensor's noise), so :func:`told_loss` floors a loud
-#: experiment's told loss at the best quiet loss only above RIPPLE_TOLERANCE x the
-#: limit's bound: a point that is quiet on average is not sent back to the start for one
-#: loud experiment.  Between the bound and that, the loss is only scaled by its loudness,
-#: so a search cannot settle among points a little above the bound either (with no
-#: penalty at all up to 1.4x it did: on im750w-j1's per-drive bench one run of 25 spent
-#: 197 of its 200 evaluations there, and the strict final choice left its start applied;
-#: docs/optimisers.md, "The standstill ripple").  The final choice keeps the strict bound
-#: on the mean (:func:`within_limit`).
-RIPPLE_TOLERANCE = 2.0
+#: random load and the current sensor's noise), so :func:`told_loss` penalises it only
+#: above RIPPLE_TOLERANCE x the limit's bound: a point that is quiet on average is not
+#: told it is loud for one loud experiment (docs/optimisers.md, "The standstill ripple").
+#: The final choice keeps the strict bound on the mean (:func:`within_limit`).
+RIPPLE_TOLERANCE = 1.4
 
 
 def _over(rip: dict[str, Any] | None, bound: dict[str, float]) -> float | None:
@@ -236,24 +231,20 @@ def _over(rip: dict[str, Any] | None, bound: dict[str, float]) -> float | None:
 
 def told_loss(records: list[Record], rec: Evaluation, ripple_limit: float | None) -> float:
     """The loss the optimiser is told for evaluation ``rec`` (``records``: those before
-    it), r its own rms over the limit's bound: the measured loss L within the limit
-    (r <= 1); above it ``L (1 + RIPPLE_PENALTY (r - 1))``, and well above it
-    (r > RIPPLE_TOLERANCE) at least L_quiet, the smallest loss measured so far by an
-    evaluation within the limit.  So a loud point is never better than a quiet one
-    already found (the search does not settle where only loud gains are good: the first
-    step from a model that does not see the limit cycle often lands there), a slightly
-    loud one costs what it is louder, and among loud points the louder costs more.
-    Without a limit, for an aborted experiment (already penalised) or without a measured
-    start: the loss."""
+    it): the measured one, but well above the ripple limit (its own rms r times the
+    bound, r > RIPPLE_TOLERANCE) ``max(L (1 + RIPPLE_PENALTY (r - 1)), L_quiet)``,
+    L_quiet the smallest loss measured so far by an evaluation within the limit
+    (r <= 1).  So a loud point is never better than a quiet one already found (the
+    search does not settle where only loud gains are good: the first step from a model
+    that does not see the limit cycle often lands there), and among loud points the
+    louder costs more.  Without a limit, for an
+    aborted experiment (already penalised) or without a measured start: the loss."""
     if ripple_limit is None or rec.aborted or rec.loss is None:
         return rec.loss
     bound = ripple_bound(records, ripple_limit)
     r = None if bound is None else _over(rec.ripple, bound)
-    if bound is None or r is None or r <= 1.0:
+    if bound is None or r is None or r <= RIPPLE_TOLERANCE:
         return rec.loss
-    louder = rec.loss * (1.0 + RIPPLE_PENALTY * (r - 1.0))
-    if r <= RIPPLE_TOLERANCE:
-        return louder
     quiet = [
         x.loss
         for x in records
@@ -262,7 +253,7 @@ def told_loss(records: list[Record], rec: Evaluation, ripple_limit: float | None
         and (q := _over(x.ripple, bound)) is not None
         and q <= 1.0
     ]
-    return max(louder, min(quiet, default=-math.inf))
+    return max(rec.loss * (1.0 + RIPPLE_PENALTY * (r - 1.0)), min(quiet, default=-math.inf))
 
 
 def final_choice(

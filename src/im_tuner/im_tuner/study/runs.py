@@ -219,8 +219,9 @@ def run_one(
         first_step=first_step_of(spec, cell.first, space, spec.limit_of(cell)),
         ripple_limit=spec.limit_of(cell),
     )
+    bench = OfflineBench(drive, drive_seed, experiment)
     try:
-        outcome = tuning.run(OfflineBench(drive, drive_seed, experiment))
+        outcome = tuning.run(bench)
     finally:
         close = getattr(opt, 'close', None)  # (BobyqaRun: its solver thread)
         if close is not None:
@@ -237,6 +238,19 @@ def run_one(
     exp_s = sum(x.wall_s or 0.0 for x in tuning.records)  # every attempt's bench time
     final = tuning.final_choice()
     rip = ripple_summary(tuning.records, final, tuning.ripple_limit, 1) or {}
+    limited = rip.get('bound') is not None
+    again = None
+    # the re-measured point failed the limit on its mean and the next best within it is
+    # applied: one more experiment of those gains, so that the column is a fresh
+    # measurement of what is applied, not its least (picked) one
+    if (
+        limited
+        and final is not None
+        and final['eval'] >= 0
+        and rem
+        and all(x.eval != final['eval'] for x in rem)
+    ):
+        again = bench.measure(Gains(**final['gains'])).loss
 
     def rms(d: dict[str, Any] | None) -> tuple[float, float]:
         d = d or {}
@@ -263,7 +277,7 @@ def run_one(
             if best is None
             else tuple(float(best['gains'][n]) for n in GAIN_NAMES)
         ),
-        remeasured=applied_loss(final, ref, rem, rip.get('bound') is not None),
+        remeasured=applied_loss(final, ref, rem, limited, again),
         opt_s=wall - exp_s,
         exp_s=exp_s,
         ripple=(*rms(rip.get('start')), *rms(rip.get('applied'))),
@@ -276,24 +290,29 @@ def applied_loss(
     ref: Reference,
     rem: list[Remeasurement],
     limited: bool,
+    again: float | None = None,
 ) -> float:
     """The study's ``re-measured`` figure of a run: the best's re-measurement (nan: none),
     except where a ripple limit applies (``limited``: the run has a bound), whose point
     is what the run leaves applied: there the loss of those gains (``final``:
     ``TuningRun.final_choice()``) when they are not the re-measured point -- the
     reference's loss when the start stays applied (nothing within the limit beat it),
-    else their re-measurement or, when the re-measured point failed the limit on the mean
-    of its experiments and the next best within it is applied, its one measured loss.
-    Without this a run whose search ended among loud points reported the re-measured
-    loss of gains it does not apply."""
+    else their re-measurement, or ``again``, one more experiment of them after the run
+    (:func:`run_one` measures it when the re-measured point failed the limit on the mean
+    of its experiments and the next best within it is applied: its one measured loss
+    from the search is the least of many, biased low); nan without it.  Without this a
+    run whose search ended among loud points reported the re-measured loss of gains it
+    does not apply."""
     if rem and (not limited or final is None or final['eval'] == rem[0].eval):
         return rem[0].loss
     if not limited or final is None:
         return math.nan
     if final['eval'] < 0:
         return ref.loss
-    again = [x.loss for x in rem if x.eval == final['eval']]
-    return again[0] if again else float(final['loss'])
+    same = [x.loss for x in rem if x.eval == final['eval']]
+    if same:
+        return same[0]
+    return math.nan if again is None else again
 
 
 def reference_loss(

@@ -292,17 +292,13 @@ def applied_loss(
     limited: bool,
     again: float | None = None,
 ) -> float:
-    """The study's ``re-measured`` figure of a run: the best's re-measurement (nan: none),
-    except where a ripple limit applies (``limited``: the run has a bound), whose point
-    is what the run leaves applied: there the loss of those gains (``final``:
-    ``TuningRun.final_choice()``) when they are not the re-measured point -- the
-    reference's loss when the start stays applied (nothing within the limit beat it),
-    else their re-measurement, or ``again``, one more experiment of them after the run
-    (:func:`run_one` measures it when the re-measured point failed the limit on the mean
-    of its experiments and the next best within it is applied: its one measured loss
-    from the search is the least of many, biased low); nan without it.  Without this a
-    run whose search ended among loud points reported the re-measured loss of gains it
-    does not apply."""
+    """The study's ``re-measured`` figure of a run: the best's re-measurement (nan: none);
+    with a ripple limit (``limited``), the loss of the gains the run leaves applied
+    (``final``: ``TuningRun.final_choice()``) when they are not the re-measured point:
+    the reference's when the start stays, else their re-measurement, or ``again``, one
+    more experiment of them (:func:`run_one`: their loss from the search is the least of
+    many, biased low); nan without it.  Before, a run that left its start applied
+    reported the re-measured loss of gains it does not apply."""
     if rem and (not limited or final is None or final['eval'] == rem[0].eval):
         return rem[0].loss
     if not limited or final is None:

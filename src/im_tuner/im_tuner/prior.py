@@ -49,6 +49,7 @@ model").  Pure: no rclpy.
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import functools
 import hashlib
 import json
@@ -299,35 +300,57 @@ def _code_digest() -> str:
     return h.hexdigest()
 
 
+def _read(path: Path) -> tuple[bool, Prior | None]:
+    """(found, value) of a cache file (not found: missing or unreadable)."""
+    try:
+        data = json.loads(path.read_text())
+        return True, None if data is None else Prior(**{**data, 'u': tuple(data['u'])})
+    except (OSError, ValueError, TypeError, KeyError):
+        return False, None
+
+
 def _cached(key: str, compute: Callable[[], Prior | None]) -> Prior | None:
     """``compute()`` once per ``key``: from this process's cache, else from the directory
     ``IM_TUNER_PRIOR_CACHE`` (when set), else computed and kept in both (written to a
-    temporary file and renamed: a reader never sees half a file; two processes that miss
-    at once both compute the same point)."""
+    temporary file and renamed: a reader never sees half a file).  Processes that miss
+    the same key at once compute it once: the first takes the key's lock file
+    (``fcntl.flock``, released when its process ends, however) and the others wait on it,
+    then read its result -- a study's workers start their first runs together and would
+    otherwise each spend the same seconds on the same point."""
     if key in _CACHE:
         return _CACHE[key]
     where = os.environ.get(CACHE_ENV, '')
-    path = None
-    if where:
-        name = hashlib.sha256((_code_digest() + key).encode()).hexdigest()
-        path = Path(where) / f'prior-{name}.json'
-        try:
-            data = json.loads(path.read_text())
-            value = None if data is None else Prior(**{**data, 'u': tuple(data['u'])})
-            _CACHE[key] = value
-            return value
-        except (OSError, ValueError, TypeError, KeyError):
-            pass  # not there (or unreadable): compute it
-    value = compute()
+    if not where:
+        _CACHE[key] = value = compute()
+        return value
+    name = hashlib.sha256((_code_digest() + key).encode()).hexdigest()
+    path = Path(where) / f'prior-{name}.json'
+    found, value = _read(path)
+    if found:
+        _CACHE[key] = value
+        return value
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        lock = os.open(path.with_suffix('.lock'), os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError:
+        lock = -1  # a cache that cannot be written costs time, not a result
+    try:
+        if lock >= 0:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # another process computing it: wait for it
+            found, value = _read(path)
+        if not found:
+            value = compute()
+            if lock >= 0:
+                try:
+                    tmp = path.with_name(f'{path.name}.{os.getpid()}.tmp')
+                    tmp.write_text(json.dumps(None if value is None else dataclasses.asdict(value)))
+                    os.replace(tmp, path)
+                except OSError:
+                    pass
+    finally:
+        if lock >= 0:
+            os.close(lock)  # (releases the lock)
     _CACHE[key] = value
-    if path is not None:
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(f'{path.name}.{os.getpid()}.tmp')
-            tmp.write_text(json.dumps(None if value is None else dataclasses.asdict(value)))
-            os.replace(tmp, path)
-        except OSError:
-            pass  # a cache that cannot be written costs time, not a result
     return value
 
 

@@ -9,6 +9,8 @@ import json
 import math
 import subprocess
 import sys
+import threading
+import time
 
 import pytest
 
@@ -92,6 +94,47 @@ def test_without_the_variable_nothing_is_written(fresh, monkeypatch):
     monkeypatch.delenv(CACHE_ENV)
     prior._cached('k', compute)
     assert not where.exists() and len(calls) == 1
+
+
+def test_two_that_miss_at_once_compute_once(fresh, monkeypatch):
+    """A study's workers start together: the second to miss a key waits on the first's
+    lock and reads its point instead of computing it again.  (Threads with their own
+    lock descriptions behave as processes do; the first's computation waits until the
+    second is at the lock, so without it the second would compute too.)"""
+    where, calls, compute = fresh
+    real_flock, at_lock = prior.fcntl.flock, threading.Event()
+    entered = []
+
+    def flock(fd, op):
+        entered.append(op)
+        if len(entered) == 2:
+            at_lock.set()
+        return real_flock(fd, op)
+
+    monkeypatch.setattr(prior.fcntl, 'flock', flock)
+
+    def slow():
+        assert at_lock.wait(10), 'the second never reached the lock'
+        return compute()
+
+    got = []
+    other = threading.Thread(target=lambda: got.append(prior._cached('k', compute)))
+    first = threading.Thread(target=lambda: got.append(prior._cached('k', slow)))
+    first.start()
+    assert wait_for_lock(entered)
+    other.start()
+    first.join(20)
+    other.join(20)
+    assert got == [AWKWARD, AWKWARD] and len(calls) == 1
+    assert len(list(where.glob('prior-*.json'))) == 1
+
+
+def wait_for_lock(entered: list, timeout: float = 10.0) -> bool:
+    """Until the first thread has taken the lock (a deadline, not a sleep)."""
+    deadline = time.monotonic() + timeout
+    while not entered and time.monotonic() < deadline:
+        time.sleep(0.001)
+    return bool(entered)
 
 
 def test_the_paper_drives_first_step_from_another_process_is_the_same(tmp_path, monkeypatch):

@@ -72,10 +72,13 @@ test-unit: setup
 # The pure tier (every digest: optimisers, drive model, study) again on a machine without
 # AVX-512, emulated: numpy's dispatch held at X86_V3 and OpenBLAS's Zen core type, as on an
 # AMD Zen 2/3. With the numeric baseline (im_drive_sim.numeric) it must pass as natively;
-# CI runs it after `make test` (docs/tuner.md, "The same bits on every machine").
+# CI runs it after `make test` (docs/tuner.md, "The same bits on every machine"), on two
+# workers as `make test`, with a first-step cache of its own (each point computed at this level).
 test-levels: setup
-	NPY_DISABLE_CPU_FEATURES=X86_V4,AVX512_ICL,AVX512_SPR OPENBLAS_CORETYPE=Zen \
-	    $(PY) -m pytest -m unit -p no:cacheprovider
+	@export IM_TUNER_PRIOR_CACHE=$$(mktemp -d /tmp/im_tuner_test_priors.XXXXXX); \
+	    NPY_DISABLE_CPU_FEATURES=X86_V4,AVX512_ICL,AVX512_SPR OPENBLAS_CORETYPE=Zen \
+	    $(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder -m unit -p no:cacheprovider; \
+	    a=$$?; rm -rf "$$IM_TUNER_PRIOR_CACHE"; exit $$a
 
 # Lint and types: ruff.toml and mypy.ini say what is checked and why.
 lint: setup

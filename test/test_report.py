@@ -1,6 +1,6 @@
 """The report end to end: ``ros2 run im_tuner report`` on short real tuner runs.
 
-Two short runs (SPSA and neCGA, 10 evaluations each) are made with the real tuner on
+Two short runs (SPSA and neCGA, 8 evaluations each) are made with the real tuner on
 the in-process simulated bench; the report command the tuner prints is run as printed.
 The figures are checked on their plotted data: each line against results.jsonl or
 against the bag read by the ``mcap`` library (an independent reader), and against the
@@ -36,7 +36,7 @@ from im_tuner.report import (
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 GAINS = ('k_pw', 'k_iw', 'k_pos', 'tau_sm', 'tau_eq')
-BUDGET = 10
+BUDGET = 8
 
 
 def run_cmd(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:

@@ -10,7 +10,6 @@ import math
 import subprocess
 import sys
 import threading
-import time
 
 import pytest
 
@@ -96,7 +95,7 @@ def test_without_the_variable_nothing_is_written(fresh, monkeypatch):
     assert not where.exists() and len(calls) == 1
 
 
-def test_two_that_miss_at_once_compute_once(fresh, monkeypatch):
+def test_two_that_miss_at_once_compute_once(fresh, monkeypatch, wait_until):
     """A study's workers start together: the second to miss a key waits on the first's
     lock and reads its point instead of computing it again.  (Threads with their own
     lock descriptions behave as processes do; the first's computation waits until the
@@ -121,20 +120,12 @@ def test_two_that_miss_at_once_compute_once(fresh, monkeypatch):
     other = threading.Thread(target=lambda: got.append(prior._cached('k', compute)))
     first = threading.Thread(target=lambda: got.append(prior._cached('k', slow)))
     first.start()
-    assert wait_for_lock(entered)
+    wait_until(lambda: entered, 10, message='the first caller at the lock')
     other.start()
     first.join(20)
     other.join(20)
     assert got == [AWKWARD, AWKWARD] and len(calls) == 1
     assert len(list(where.glob('prior-*.json'))) == 1
-
-
-def wait_for_lock(entered: list, timeout: float = 10.0) -> bool:
-    """Until the first thread has taken the lock (a deadline, not a sleep)."""
-    deadline = time.monotonic() + timeout
-    while not entered and time.monotonic() < deadline:
-        time.sleep(0.001)
-    return bool(entered)
 
 
 def test_the_paper_drives_first_step_from_another_process_is_the_same(tmp_path, monkeypatch):

@@ -240,16 +240,10 @@ def run_one(
     rip = ripple_summary(tuning.records, final, tuning.ripple_limit, 1) or {}
     limited = rip.get('bound') is not None
     again = None
-    # the re-measured point failed the limit on its mean and the next best within it is
-    # applied: one more experiment of those gains, so that the column is a fresh
-    # measurement of what is applied, not its least (picked) one
-    if (
-        limited
-        and final is not None
-        and final['eval'] >= 0
-        and rem
-        and all(x.eval != final['eval'] for x in rem)
-    ):
+    # applied gains with no loss for the column (the re-measured point failed the limit
+    # on its mean, the next best within it is applied): one more experiment of them, a
+    # fresh measurement of what is applied, not its least (picked) one
+    if limited and rem and final is not None and math.isnan(applied_loss(final, ref, rem, True)):
         again = bench.measure(Gains(**final['gains'])).loss
 
     def rms(d: dict[str, Any] | None) -> tuple[float, float]:

@@ -49,7 +49,7 @@ from im_drive_sim.sim import STATE_FIELDS
 sys.path.insert(0, str(Path(__file__).parent))
 from test_controller_node import offline_losses, probe_of_children
 from test_drive_sim_node import core_states, policy, run_closed_loop
-from test_tuner import offline_run
+from test_tuner import bag_messages, loss_values, offline_run
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 F = {name: i for i, name in enumerate(STATE_FIELDS)}
@@ -396,8 +396,21 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
     assert 'watchdog: no command on drive/command for 0.05 s' in drive_err
     bag = run / 'bag_0'
     assert bag_state(bag) == 'closed'
-    # every result the controller published before it was killed (the lost ones have none)
-    assert bag_counts(bag)['/controller/loss'] == sum(x != 'lost' for x in statuses)
+    # every result the controller published before it was killed: each measured record's,
+    # and at most a late one for an attempt the tuner had given up on ('no loss for
+    # experiment N' within 6 s on a loaded machine: the recorder still got it; CI of
+    # 2026-11-29); nothing else
+    ids = [
+        int(loss_values(m)['experiment_id'])
+        for m in bag_messages(bag, {'/controller/loss'})['/controller/loss']
+    ]
+    measured_ids = [r['experiment_id'] for r in recs if r['status'] != 'lost']
+    late = [i for i in ids if i not in measured_ids]
+    assert [i for i in ids if i in measured_ids] == measured_ids, (ids, statuses)
+    given_up = {
+        r['experiment_id'] for r in recs if r['status'] == 'lost' and r['experiment_id'] is not None
+    }
+    assert set(late) <= given_up and len(late) == len(set(late)), (ids, statuses)
 
 
 # -- the tuner dies ------------------------------------------------------------------------
@@ -834,7 +847,13 @@ def test_a_fault_between_experiments_is_counted_and_cleared_with_reset_fault(
     assert f'--resume {run}' in p.stdout
     assert 'safety faults 1, 1 of them met between experiments' in p.stdout, p.stdout
     s = json.loads((run / 'summary.json').read_text())
-    assert s['safety_faults'] == 1 and results(run) == []
+    # nothing ran; a start whose answer a new client lost (its reply path still being
+    # matched: CI of 2026-11-29) is a lost record, asked again, and that got the refusal
+    assert s['safety_faults'] == 1
+    assert all(
+        r['status'] == 'lost' and r['reason'] == 'start_experiment: no answer within 10 s'
+        for r in results(run)
+    ), results(run)
     (outside,) = s['sessions'][0]['faults_outside']
     assert 'drive_state_timeout' in outside
     ok = reset_fault('--controller', '/controller')

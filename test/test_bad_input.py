@@ -170,6 +170,12 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('report', 'out-is-a-file', ['run', '--out', 'corrupt.yaml']),
     ('report', 'bags-not-a-bag', ['run', '--bags', 'adir']),
     ('report', 'bags-missing', ['run', '--bags', 'no_such_bag']),
+    # found by a new user (2026-11-29): a YAML error spanning lines, a run directory or a
+    # bag's subfolder as --out, the default place taken by a file
+    ('report', 'run-yaml-not-yaml', ['run_yaml_tab']),
+    ('report', 'out-is-a-run', ['run', '--out', 'run_noloss']),
+    ('report', 'out-in-a-bag', ['run', '--out', 'run_bad_metadata/bag_0/sub']),
+    ('report', 'default-out-is-a-file', ['run_report_file']),
     # -- study
     ('study', 'runs-zero', ['--runs', '0']),
     ('study', 'runs-type', ['--runs', 'many']),
@@ -251,6 +257,8 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('tuner', 'resume-torn-line-then-refused', ['--resume', 'run_torn_and_bad']),
     ('tuner', 'resume-run-yaml-bad-algo', ['--resume', 'run_bad_algo']),
     ('tuner', 'resume-run-yaml-bad-budget', ['--resume', 'run_bad_budget']),
+    ('tuner', 'resume-run-yaml-not-yaml', ['--resume', 'run_yaml_tab']),
+    ('tuner', 'resume-newer-summary', ['--resume', 'run_newer_summary']),
     ('tuner', 'resume-with-settings', ['--resume', 'run', '--budget', '9']),
     # a run.yaml of safe without its start (--no-start, accepted before issue 25)
     ('tuner', 'resume-run-yaml-safe-no-start', ['--resume', 'run_safe_no_start']),
@@ -272,6 +280,11 @@ EXPECT: dict[tuple[str, str], str] = {
     ('drive_host', 'tuner-timeout-zero'): '--tuner-timeout: must be >= 0.05 s, got 0',
     ('drive_host', 'model-with-example'): "--model is the simulator's",
     ('drive_host', 'p-isq-max-above-drive'): 'isq_max',
+    ('report', 'out-is-a-run'): 'a run directory (the report never writes into one',
+    ('report', 'out-in-a-bag'): 'a bag folder or in one',
+    ('report', 'default-out-is-a-file'): 'exists and is not a directory (the default place',
+    ('tuner', 'resume-newer-summary'): 'format version 99',
+    ('tuner', 'resume-run-yaml-not-yaml'): "found character '\\t' that cannot start any token",
     ('tuner', 'no-start-safe-default'): 'does not apply to --algo safe: safe is a local search',
     ('tuner', 'no-start-compact-ga'): 'necga takes no start point',
     ('tuner', 'drive-config-comments-only'): 'no settings (the file holds only comments)',
@@ -412,6 +425,9 @@ def template(tmp_path_factory) -> Path:
             + ''.join(lines[2:3])
             + '{"kind": "ev',
         ),
+        'run_yaml_tab': write('run.yaml', 'algo: necga\n\tbudget: {\n'),
+        'run_newer_summary': write('summary.json', '{"version": 99, "outcome": "done"}\n'),
+        'run_report_file': write('report', 'not a directory\n'),
     }
     for name, edit in variants.items():
         _corrupt_copy(run, root / name, edit)

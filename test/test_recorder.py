@@ -488,6 +488,17 @@ def test_sigkill_then_repair(ros_context, procs, tmp_path, wait_until):
         return len(sizes) > 5 and len(set(sizes[-5:])) == 1 and sizes[-1] > 8192
 
     wait_until(settled, 20.0, interval=0.05, message='chunks on disk')
+    # while it records, the bag is not a killed recorder's: --repair and replay refuse it
+    # (one line, exit 2, nothing changed; a user's run of 2026-11-29 lost the rest of a
+    # live run's bag to a repair that said it succeeded)
+    live = _tree_hash(bag)
+    for argv in (['recorder', '--repair', str(bag)], ['replay', str(bag), '--quiet']):
+        p = subprocess.run(
+            [ROS2, 'run', 'im_tuner', *argv], capture_output=True, text=True, timeout=120
+        )
+        assert p.returncode == 2 and p.stderr.count('\n') == 1 and not p.stdout, p
+        assert 'being recorded now by pid ' in p.stderr, p.stderr
+    assert _tree_hash(bag) == live and rec.poll() is None
     for i in range(3000, 3050):  # some more that may sit in the open chunk when killed
         msg.data[0] = float(i)
         pub.publish(msg)

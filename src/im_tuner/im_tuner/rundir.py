@@ -51,6 +51,7 @@ __all__ = [
     'RunDir',
     'RunDirError',
     'atomic_write_text',
+    'writer_of',
 ]
 
 RUN_FILE = 'run.yaml'
@@ -134,6 +135,24 @@ def _lock_holder(path: Path) -> str | None:
             except OSError:
                 cmd_text = ''
             return f'pid {pid}' + (f' ({cmd_text[:160]})' if cmd_text else '')
+    return None
+
+
+def writer_of(path: Path) -> str | None:
+    """Who is writing the file ``path`` now ('pid N (command line)'), or None: the MCAP
+    writer (``record.writer.McapWriter``) holds an exclusive ``flock`` on its file until
+    it closes it (the kernel drops it when the process ends, however), so a bag that is
+    being recorded is told from one a killed recorder left."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return _lock_holder(path) or 'another process'
+    finally:
+        os.close(fd)  # also drops the shared lock taken to test
     return None
 
 

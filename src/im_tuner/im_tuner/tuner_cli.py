@@ -273,6 +273,7 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
         rundir = RunDir.open(cli.resume)
         rundir.lock()  # one tuner per run, from here to the end of the process
         run = rundir.read_config()
+        rundir.read_summary()  # one of a newer tuner's format: refused, not overwritten
         _check_run(run, str(rundir.path / 'run.yaml'))
         params = _params_of_run(run)
     except (RunDirError, TunerParamsError) as exc:

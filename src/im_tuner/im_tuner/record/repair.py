@@ -32,6 +32,7 @@ from typing import BinaryIO
 import numpy as np
 import yaml
 
+from ..rundir import writer_of
 from .mcap_encode import (
     ChunkInfo,
     chunk_index_record,
@@ -412,6 +413,12 @@ def repair_bag(bag_dir: Path) -> RepairReport:
     """Repair the bag directory ``bag_dir`` (see the module doc); returns what was done."""
     bag_dir = Path(bag_dir)
     path = _find_mcap(bag_dir)
+    writer = writer_of(path)
+    if writer is not None:
+        raise RepairError(
+            f'{bag_dir}: being recorded now by {writer}; left untouched (a recorder closes '
+            'its bag when it stops: repair only a bag whose recorder was killed)'
+        )
     scan = scan_mcap(path)
     if scan.complete and not scan.ended:
         raise RepairError(

@@ -32,6 +32,8 @@ No rclpy here: the writer serves the recorder node, the repair tool and the test
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
 import struct
 import zlib
@@ -230,6 +232,11 @@ class McapWriter:
             self._f: BinaryIO | None = open(self.path, 'xb')  # noqa: SIM115
         except OSError as exc:
             raise McapWriteError(f'cannot create {self.path}: {exc.strerror}') from None
+        # held until the file is closed or this process ends: `recorder --repair` and
+        # replay tell a bag being recorded from a killed recorder's (rundir.writer_of);
+        # a file system without locks (ENOLCK) records all the same, unguarded
+        with contextlib.suppress(OSError):
+            fcntl.flock(self._f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         self._pos = 0
         self.chunk = ChunkState.create(self.chunk_size)
         self.schemas: dict[int, tuple[str, str, bytes]] = {}

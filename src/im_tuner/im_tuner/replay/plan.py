@@ -51,6 +51,8 @@ from im_drive_sim.contract import (
     STATE_TOPIC,
 )
 
+from ..rundir import writer_of
+
 __all__ = [
     'CLOCK_TOPIC',
     'Comparison',
@@ -261,6 +263,12 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
         if sorted(bag_dir.glob('bag_*/*.mcap')):
             hint = f' (a run directory: give its bag, {sorted(bag_dir.glob("bag_*"))[0]})'
         raise ReplayError(f'{bag_dir}: not a bag (no .mcap file){hint}') from None
+    writer = writer_of(mcap_file)
+    if writer is not None:  # its index is written when it closes: not a killed recorder's
+        raise ReplayError(
+            f'{bag_dir}: being recorded now by {writer}; replay it once its recorder has '
+            'closed it (at the end of the run)'
+        )
     try:
         data = read_bag(bag_dir, arrays={STATE: None, COMMAND: None, INTERNALS: None})
     except (BagReadError, ValueError, OSError) as exc:

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 from im_drive_sim.cli import Parser, UsageError
 
-from ..rundir import RunDir, RunDirError, is_bag_dir
+from ..rundir import RUN_FILE, RunDir, RunDirError, is_bag_dir
 from .errors import EXIT_USAGE, ReportError
 
 if TYPE_CHECKING:
@@ -114,7 +114,7 @@ def _build_parser() -> argparse.ArgumentParser:
     ap = Parser(
         prog='ros2 run im_tuner report',
         description='Summary, plots (paper Figs. 5, 8, 9) and per-evaluation CSV of '
-        'one or more tuning runs (docs/tuner.md, "The report"); or, with --bag-info, '
+        'one or more tuning runs (docs/report.md); or, with --bag-info, '
         'one bag\'s statistics (docs/report.md, "Bag statistics").',
     )
     ap.add_argument(
@@ -186,11 +186,22 @@ def main(args: list[str] | None = None) -> int:
                 raise ReportError(f'--bags {bag}: not a bag directory (no metadata.yaml or .mcap)')
         if cli.out is not None and cli.out.exists() and not cli.out.is_dir():
             raise ReportError(f'--out {cli.out}: exists and is not a directory')
-        if cli.out is not None and is_bag_dir(cli.out):
+        if cli.out is not None and any(is_bag_dir(d) for d in (cli.out, *cli.out.parents)):
             raise ReportError(
-                f'--out {cli.out}: a bag folder (it holds metadata.yaml or .mcap files, '
-                'perhaps still recording); choose another directory'
+                f'--out {cli.out}: a bag folder or in one (it holds metadata.yaml or .mcap '
+                'files, perhaps still recording); choose another directory'
             )
+        if cli.out is not None and (cli.out / RUN_FILE).exists():
+            raise ReportError(
+                f'--out {cli.out}: a run directory (the report never writes into one; '
+                f'its default place is {cli.out / "report"})'
+            )
+        for p in cli.runs if cli.out is None and len(cli.runs) == 1 else ():
+            if (p / 'report').exists() and not (p / 'report').is_dir():
+                raise ReportError(
+                    f'{p / "report"}: exists and is not a directory (the default place of '
+                    'the report); give --out DIR'
+                )
     except (ReportError, UsageError) as exc:
         print(f'error: report: {exc}', file=sys.stderr)
         return EXIT_USAGE

@@ -136,7 +136,8 @@ class RunConfig(_Keyed):
         try:
             data = yaml.safe_load(text)
         except yaml.YAMLError as exc:
-            raise FileError(f'unreadable ({exc})') from None
+            # (YAML's message spans lines: the refusal is one)
+            raise FileError(f'unreadable ({" ".join(str(exc).split())})') from None
         if not isinstance(data, dict) or 'algo' not in data:
             raise FileError('not a tuner run file')
         return cls.from_dict(data)

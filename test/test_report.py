@@ -301,6 +301,16 @@ def test_interrupted_run_is_reported_from_what_it_left(runs, tmp_path):
     # the loss messages found in the half bag equal the records; later ones are missing
     c = rr.loss_check
     assert c['differ'] == 0 and c['matched'] >= 1 and c['matched'] + c['missing'] == keep
+    assert rr.summary.outcome == 'interrupted (killed: no final summary)'
+    # a summary.json that does not match the records (an earlier session's) or is not one
+    # (damaged: it is written atomically, not torn by a kill): the outcome says which
+    shutil.copy(src / 'summary.json', run / 'summary.json')
+    o = load_run(run, 'k', signals=False).summary.outcome
+    assert o.startswith(f'interrupted (killed: summary.json counts {BUDGET} evaluations'), o
+    assert o.endswith(f'results.jsonl {keep - 1} and {keep})'), o
+    (run / 'summary.json').write_text('{"not": json')
+    o = load_run(run, 'k', signals=False).summary.outcome
+    assert o == 'not known (summary.json is not a summary; rebuilt from results.jsonl)'
 
 
 @pytest.mark.parametrize(

@@ -15,7 +15,7 @@ from im_controller import contract as C
 from im_controller.layout import INTERNALS_FIELDS
 
 from ..record.reader import BagData, BagReadError, read_bag
-from ..rundir import RunDir, RunDirError
+from ..rundir import SUMMARY_FILE, RunDir, RunDirError
 from ..runlog import (
     Evaluation,
     Measured,
@@ -138,11 +138,18 @@ def load_run(
         # killed (no summary, or the one of an earlier session): rebuild from the records
         sessions = (ck or {}).get('tuner', {}).get('sessions') or (saved and saved.sessions) or []
         st.sessions = sessions
-        outcome = (
-            f'running (a tuner has it: {live}); a snapshot of the records so far'
-            if live
-            else 'interrupted (killed: no final summary)'
-        )
+        if live:
+            outcome = f'running (a tuner has it: {live}); a snapshot of the records so far'
+        elif saved is not None:  # a killed later session kept an earlier one's summary
+            outcome = (
+                f'interrupted (killed: summary.json counts {saved.evaluations} evaluations '
+                f'and {saved.experiments} experiments, results.jsonl {st.evals} and '
+                f'{st.experiments})'
+            )
+        elif (rd.path / SUMMARY_FILE).exists():  # written atomically: not by a kill
+            outcome = 'not known (summary.json is not a summary; rebuilt from results.jsonl)'
+        else:
+            outcome = 'interrupted (killed: no final summary)'
         rebuilt = summarize(
             st,
             records,

@@ -159,6 +159,7 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('recorder', 'repair-missing', ['--repair', 'missing_bag']),
     ('recorder', 'repair-not-a-bag', ['--repair', 'adir']),
     ('recorder', 'repair-a-file', ['--repair', 'corrupt.yaml']),
+    ('recorder', 'repair-with-out', ['--repair', 'run_bad_metadata/bag_0', '--out', 'newbag']),
     *_params_file_cases('recorder'),
     # -- report
     ('report', 'no-run', []),
@@ -280,6 +281,7 @@ EXPECT: dict[tuple[str, str], str] = {
     ('drive_host', 'tuner-timeout-zero'): '--tuner-timeout: must be >= 0.05 s, got 0',
     ('drive_host', 'model-with-example'): "--model is the simulator's",
     ('drive_host', 'p-isq-max-above-drive'): 'isq_max',
+    ('recorder', 'repair-with-out'): 'repairs that bag in place and exits: --out would be',
     ('report', 'out-is-a-run'): 'a run directory (the report never writes into one',
     ('report', 'out-in-a-bag'): 'a bag folder or in one',
     ('report', 'default-out-is-a-file'): 'exists and is not a directory (the default place',

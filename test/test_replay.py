@@ -275,13 +275,17 @@ def tree(d: Path) -> dict[str, str]:
 
 
 @pytest.mark.parametrize(
-    'case', ['missing', 'file', 'empty-dir', 'not-mcap', 'run-dir', 'experiment-out-of-range']
+    'case',
+    ['missing', 'file', 'empty-dir', 'not-mcap', 'run-dir', 'experiment-out-of-range', 'two-mcap'],
 )
 def test_bad_input_one_line_exit_2_nothing_created(bags, tmp_path, case):
     shutil.copytree(bags['lockstep'].parent, tmp_path / 'run')
     (tmp_path / 'empty').mkdir()
     (tmp_path / 'junk').mkdir()
     (tmp_path / 'junk' / 'x_0.mcap').write_bytes(b'not an mcap file at all')
+    (tmp_path / 'two').mkdir()  # (a split bag: not read as its first file)
+    for name in ('a.mcap', 'b.mcap'):
+        shutil.copy(next((tmp_path / 'run' / 'bag_0').glob('*.mcap')), tmp_path / 'two' / name)
     args, expect = {
         'missing': ([str(tmp_path / 'nope')], 'no such directory'),
         'file': ([str(tmp_path / 'run' / 'run.yaml')], 'not a directory'),
@@ -292,6 +296,7 @@ def test_bad_input_one_line_exit_2_nothing_created(bags, tmp_path, case):
             [str(tmp_path / 'run' / 'bag_0'), '--experiment', '3'],
             'not in the bag (it holds experiments 0..2)',
         ),
+        'two-mcap': ([str(tmp_path / 'two')], 'several .mcap files (a.mcap, b.mcap)'),
     }[case]
     before = tree(tmp_path)
     proc = ros2('replay', *args, timeout=60)

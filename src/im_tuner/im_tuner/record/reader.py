@@ -369,10 +369,24 @@ def _in_windows(k: np.ndarray, windows: list[tuple[int, int]] | None) -> np.ndar
 
 # ----------------------------------------------------------------------------- reader
 def find_mcap(bag_dir: Path) -> Path:
-    files = sorted(Path(bag_dir).glob('*.mcap'))
-    if not files:
-        raise BagReadError(f'{bag_dir}: no .mcap file')
-    return files[0]
+    """The bag's MCAP file: ``<dir name>_0.mcap`` (rosbag2's first), else the only one;
+    :class:`BagReadError` for none or several (a split bag is not read as its first
+    file)."""
+    bag_dir = Path(bag_dir)
+    preferred = bag_dir / f'{bag_dir.resolve().name}_0.mcap'
+    if preferred.is_file():
+        return preferred
+    found = sorted(p for p in bag_dir.glob('*.mcap') if p.is_file())
+    if len(found) != 1:
+        raise BagReadError(
+            f'{bag_dir}: '
+            + (
+                'no .mcap file'
+                if not found
+                else f'several .mcap files ({", ".join(p.name for p in found)})'
+            )
+        )
+    return found[0]
 
 
 def read_bag(

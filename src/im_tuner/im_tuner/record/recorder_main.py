@@ -6,15 +6,36 @@ import argparse
 import sys
 from pathlib import Path
 
-from im_drive_sim.cli import Parser, check_then_run, finite_float, int_in
+from im_drive_sim.cli import Parser, UsageError, check_then_run, finite_float, int_in
 
 from .mcap_format import COMPRESSIONS
 
 CHUNK_SIZE_RANGE = (4096, 1 << 28)
 
 
+class _RecorderParser(Parser):
+    """``--repair DIR`` repairs in place and exits: a recording option beside it would be
+    ignored, so it is refused (as the tuner refuses ``--compression`` with
+    ``--no-record``)."""
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[no-untyped-def]
+        ns, rest = super().parse_known_args(args, namespace)
+        if getattr(ns, 'repair', None) is not None:
+            given = [
+                a.option_strings[0]
+                for a in self._actions
+                if a.dest not in ('repair', 'help') and getattr(ns, a.dest) != a.default
+            ]
+            if given:
+                raise UsageError(
+                    f'--repair {ns.repair} repairs that bag in place and exits: '
+                    f'{", ".join(given)} would be ignored'
+                )
+        return ns, rest
+
+
 def parser() -> argparse.ArgumentParser:
-    ap = Parser(
+    ap = _RecorderParser(
         prog='ros2 run im_tuner recorder',
         description='Record every topic on the ROS graph to a rosbag2 MCAP bag, losslessly '
         '(reliable KEEP_ALL, per-topic published/recorded/lost counts).',

@@ -57,6 +57,7 @@ from .mcap_format import (
     OP_SCHEMA,
 )
 from .metadata import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
+from .reader import BagReadError, find_mcap
 from .records import Cursor, decompress, parse_definition
 
 #: Messages found outside chunks are packed into new chunks of at most this many bytes.
@@ -393,20 +394,10 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
 def _find_mcap(bag_dir: Path) -> Path:
     if not bag_dir.is_dir():
         raise RepairError(f'{bag_dir}: not a directory')
-    preferred = bag_dir / f'{bag_dir.resolve().name}_0.mcap'
-    if preferred.is_file():
-        return preferred
-    found = sorted(p for p in bag_dir.glob('*.mcap') if p.is_file())
-    if len(found) != 1:
-        raise RepairError(
-            f'{bag_dir}: '
-            + (
-                'no .mcap file'
-                if not found
-                else f'several .mcap files ({", ".join(p.name for p in found)})'
-            )
-        )
-    return found[0]
+    try:
+        return find_mcap(bag_dir)
+    except BagReadError as exc:
+        raise RepairError(str(exc)) from None
 
 
 def repair_bag(bag_dir: Path) -> RepairReport:

@@ -258,7 +258,9 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
         raise ReplayError(f'{bag_dir}: not a directory (a bag directory holds a .mcap file)')
     try:
         mcap_file = find_mcap(bag_dir)
-    except BagReadError:
+    except BagReadError as exc:
+        if 'several .mcap files' in str(exc):
+            raise ReplayError(f'{exc}: give a bag of one') from None
         hint = ''
         if sorted(bag_dir.glob('bag_*/*.mcap')):
             hint = f' (a run directory: give its bag, {sorted(bag_dir.glob("bag_*"))[0]})'

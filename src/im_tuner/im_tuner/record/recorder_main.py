@@ -18,7 +18,7 @@ class _RecorderParser(Parser):
     ignored, so it is refused (as the tuner refuses ``--compression`` with
     ``--no-record``)."""
 
-    def parse_known_args(self, args=None, namespace=None):  # type: ignore[no-untyped-def]
+    def parse_known_args(self, args=None, namespace=None):
         ns, rest = super().parse_known_args(args, namespace)
         if getattr(ns, 'repair', None) is not None:
             given = [

@@ -166,6 +166,8 @@ def test_missing_verb_names_its_package(tmp_path, args, provider):
     assert res.stdout == ''
     [line] = lines(res.stderr)
     assert f"'{provider}'" in line
+    # `ros2 bag info` is what a ROS user tries first on a run's bag: the line names ours
+    assert ('report --bag-info BAG_DIR' in line) == (args[0] == 'bag'), line
 
 
 def test_gibberish_verb_is_a_usage_error(tmp_path):

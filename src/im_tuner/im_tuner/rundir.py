@@ -139,10 +139,11 @@ def _lock_holder(path: Path) -> str | None:
 
 
 def writer_of(path: Path) -> str | None:
-    """Who is writing the file ``path`` now ('pid N (command line)'), or None: the MCAP
-    writer (``record.writer.McapWriter``) holds an exclusive ``flock`` on its file until
-    it closes it (the kernel drops it when the process ends, however), so a bag that is
-    being recorded is told from one a killed recorder left."""
+    """Who holds an exclusive ``flock`` on ``path`` now ('pid N (command line)'), or None.
+    A tuner holds one on its run directory (:meth:`RunDir.holder`), the MCAP writer
+    (``record.writer.McapWriter``) one on its file until it closes it; the kernel drops
+    them when the process ends, however, so a bag being recorded is told from one a
+    killed recorder left."""
     try:
         fd = os.open(path, os.O_RDONLY)
     except OSError:
@@ -191,17 +192,7 @@ class RunDir:
         """Who holds the run ('pid N (command line)'), or None if nobody does."""
         if self._lock_fd is not None:
             return f'pid {os.getpid()} (this process)'
-        try:
-            fd = os.open(self.path, os.O_RDONLY | os.O_DIRECTORY)
-        except OSError:
-            return None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return _lock_holder(self.path) or 'another process'
-        finally:
-            os.close(fd)  # also drops the shared lock taken to test
-        return None
+        return writer_of(self.path)  # (a directory's flock is tested as a file's)
 
     # -- creation / opening ------------------------------------------------------------
     @classmethod

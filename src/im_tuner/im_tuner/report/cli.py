@@ -196,12 +196,12 @@ def main(args: list[str] | None = None) -> int:
                 f'--out {cli.out}: a run directory (the report never writes into one; '
                 f'its default place is {cli.out / "report"})'
             )
-        for p in cli.runs if cli.out is None and len(cli.runs) == 1 else ():
-            if (p / 'report').exists() and not (p / 'report').is_dir():
-                raise ReportError(
-                    f'{p / "report"}: exists and is not a directory (the default place of '
-                    'the report); give --out DIR'
-                )
+        default = cli.runs[0] / 'report' if cli.out is None and len(cli.runs) == 1 else None
+        if default is not None and default.exists() and not default.is_dir():
+            raise ReportError(
+                f'{default}: exists and is not a directory (the default place of the '
+                'report); give --out DIR'
+            )
     except (ReportError, UsageError) as exc:
         print(f'error: report: {exc}', file=sys.stderr)
         return EXIT_USAGE

@@ -1,9 +1,11 @@
 """The machine's floor for a 5 kHz loop: the composed loop's own wait for each period
-start (``loop_kernels._wait_start``: clock_nanosleep to 40 us before, then a busy-wait),
-run in a compiled loop that does nothing else and never touches Python, SCHED_FIFO 50,
-memory locked, timer slack 1 ns -- what the hypervisor and the kernel leave a real-time
-thread here. The composed bench can do no better than this; what it measures beyond it
-is its own (docs/real-drive.md, "What it bought on this machine").
+start (``im_drive_sim.loop_clock.wait_start``: clock_nanosleep to 40 us before, then a
+busy-wait), run in a compiled loop that does nothing else and never touches Python,
+SCHED_FIFO 50, memory locked, the CPU latency request held, timer slack 1 ns -- what the
+hypervisor and the kernel leave a real-time thread here. It is ``host_check``'s
+measurement (``im_drive_sim.host.probe``), run twice: alone and beside ``--hogs`` busy
+processes. The composed bench can do no better than this; what it measures beyond it is
+its own (docs/real-drive.md, "What it bought on this machine").
 
     .venv/bin/python benchmarks/loop_floor.py [--seconds 30] [--hogs 2]
 
@@ -17,52 +19,31 @@ lateness histogram (pacing.LATENESS_BINS), with and without ``--hogs`` busy proc
 from __future__ import annotations
 
 import argparse
-import ctypes
 import subprocess
 import sys
-import time
 
 import im_drive_sim  # noqa: F401 (the numeric baseline, set before numpy loads)
 
 # isort: split
-import numba
-import numpy as np
-
-from im_drive_sim import rt
+from im_drive_sim import host, rt
 from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, run_cli
-from im_drive_sim.pacing import LATENESS_BINS, LATENESS_EDGES_US
-from im_tuner.bench import loop_kernels as CL
 
 TS_NS = 200_000
-SPIN_NS = 40_000
-
-
-@numba.njit(nogil=True)
-def _periods(T: np.ndarray, hist: np.ndarray, edges: np.ndarray, ts: np.ndarray, n: int) -> None:
-    for _ in range(n):
-        CL._wait_start(T, hist, edges, ts, False)
 
 
 def measure(seconds: float) -> dict:
-    T = np.zeros(CL.N_T, np.int64)
-    T[CL.T_TS], T[CL.T_SPIN] = TS_NS, SPIN_NS
-    hist = np.zeros(len(LATENESS_BINS), np.int64)
-    edges = np.array([round(e * 1000) for e in LATENESS_EDGES_US], np.int64)
-    ts = np.zeros(2, np.int64)
-    T[CL.T_T0] = time.perf_counter_ns()
-    _periods(T, hist, edges, ts, 10)  # compile
-    T[:] = 0
-    T[CL.T_TS], T[CL.T_SPIN] = TS_NS, SPIN_NS
-    hist[:] = 0
-    n = int(seconds * 1e9 / TS_NS)
-    T[CL.T_T0] = time.perf_counter_ns()
-    _periods(T, hist, edges, ts, n)
+    f = host.probe(seconds, rt.RtOptions(50, -1, True))
+    for line in f.realtime.get('refused', []):
+        print(f'warning: {line}', file=sys.stderr)
     return {
-        'periods': n,
-        'overruns': int(T[CL.T_OVERRUNS]),
-        'overrun_pct': 100.0 * int(T[CL.T_OVERRUNS]) / n,
-        'max_lateness_us': int(T[CL.T_MAX_LATE]) / 1000.0,
-        'lateness_histogram': dict(zip(LATENESS_BINS, hist.tolist(), strict=True)),
+        'periods': f.periods,
+        'overruns': f.overruns,
+        'overrun_pct': f.late_pct,
+        'held': f.held,
+        'max_lateness_us': f.max_lateness_us,
+        'lateness_histogram': f.histogram,
+        'tolerance': f.tolerance,
+        'pm_qos_held': f.realtime['pm_qos']['held'],
     }
 
 
@@ -91,11 +72,6 @@ def main(argv: list[str] | None = None) -> dict:
         f'{2 * args.seconds + 5:.0f} s',
         flush=True,
     )
-    refused = rt.apply(rt.RtOptions(50, -1, True))
-    for line in refused:
-        print(f'warning: {line}', file=sys.stderr)
-    libc = ctypes.CDLL(None)
-    libc.prctl(29, ctypes.c_ulong(1), 0, 0, 0)  # PR_SET_TIMERSLACK: 1 ns
     out = {}
     for hogs in (0, args.hogs):
         procs = [
@@ -113,8 +89,9 @@ def main(argv: list[str] | None = None) -> dict:
         out[f'hogs_{hogs}'] = r
         print(
             f'floor, {hogs} hogs: {r["periods"]} periods, overruns {r["overruns"]} '
-            f'({r["overrun_pct"]:.3f} %), worst lateness {r["max_lateness_us"]:.0f} us, '
-            f'{r["lateness_histogram"]}'
+            f'({r["overrun_pct"]:.3f} %), held {r["held"]}, worst lateness '
+            f'{r["max_lateness_us"]:.0f} us, {r["lateness_histogram"]}; 95 % of experiments '
+            f'meet --timing-tolerance {r["tolerance"]}'
         )
     return out
 

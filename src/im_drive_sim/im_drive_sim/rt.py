@@ -13,6 +13,12 @@ starts afterwards):
 * ``--lock-memory``: ``mlockall(MCL_CURRENT | MCL_FUTURE)``, so no page of the process is
   paged out and faulted back in inside a period.
 
+And one without an option, held whenever a real-time loop runs (:func:`hold_latency`):
+the kernel's PM QoS CPU latency request, ``/dev/cpu_dma_latency`` = 0 for as long as the
+file stays open (as rt-tests' cyclictest and the real-time guides do), which keeps the
+CPUs out of deep idle states: waking from one is what makes a sleeping loop start late.
+The kernel drops the request when the process ends, however it ends.
+
 When the system does not permit one (no CAP_SYS_NICE / rtprio limit, no CAP_IPC_LOCK /
 memlock limit) it is not applied: :func:`apply` returns one line saying why and how to
 grant it, and the run goes on. :func:`report` describes what the loop runs with: the
@@ -37,7 +43,7 @@ from typing import Any
 
 from .cli import int_in
 
-__all__ = ['RtOptions', 'add_arguments', 'apply', 'apply_and_say', 'report']
+__all__ = ['RtOptions', 'add_arguments', 'apply', 'apply_and_say', 'hold_latency', 'report']
 
 MCL_CURRENT, MCL_FUTURE = 1, 2
 
@@ -50,6 +56,54 @@ GRANT_MEMLOCK = (
     'grant it with a memlock limit (/etc/security/limits.conf: "<user> - memlock '
     'unlimited") or CAP_IPC_LOCK (docker: --cap-add=ipc_lock --ulimit memlock=-1)'
 )
+
+
+#: The kernel's PM QoS CPU latency request (docs/real-drive.md, "The CPU latency request").
+PM_QOS_PATH = '/dev/cpu_dma_latency'
+GRANT_PM_QOS = (
+    'grant it with a udev rule (/etc/udev/rules.d/99-cpu-dma-latency.rules: '
+    'KERNEL=="cpu_dma_latency", GROUP="realtime", MODE="0660") or run as root'
+)
+#: What the request bought on a 2-core VM (docs/real-drive.md): without it the loop's
+#: wait started 2-5 % of periods more than a period late, with it 0.02-0.3 %.
+PM_QOS_COST = 'the CPUs may sleep in deep idle states between periods, and more periods start late'
+
+_pm_qos: dict[str, object] = {}  #: the held request: its file descriptor and what it says
+
+
+def hold_latency(path: str = PM_QOS_PATH) -> str | None:
+    """Hold the PM QoS CPU latency request at 0 us for the rest of the process (the file
+    stays open; idempotent). None when held; else one line saying why not, what it
+    costs and how to grant it (the caller says it and goes on)."""
+    if _pm_qos.get('held'):
+        return None
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CLOEXEC)
+    except OSError as exc:
+        _pm_qos.update(held=False, reason=f'{path}: {exc.strerror}')
+        grant = GRANT_PM_QOS if exc.errno in (errno.EACCES, errno.EPERM) else 'no PM QoS here'
+        return (
+            f'the CPU latency request ({path}) is not held ({exc.strerror}): {PM_QOS_COST}; {grant}'
+        )
+    try:
+        os.write(fd, (0).to_bytes(4, 'little', signed=True))
+    except OSError as exc:
+        os.close(fd)
+        _pm_qos.update(held=False, reason=f'{path}: {exc.strerror}')
+        return f'the CPU latency request ({path}) is not held ({exc.strerror}): {PM_QOS_COST}'
+    _pm_qos.update(held=True, fd=fd, reason='', path=path)
+    return None
+
+
+def latency_report() -> dict[str, object]:
+    """The CPU latency request as held by this process: ``held``, ``latency_us`` (0 when
+    held), ``reason`` (why not, when not)."""
+    held = bool(_pm_qos.get('held'))
+    return {
+        'held': held,
+        'latency_us': 0 if held else None,
+        'reason': '' if held else str(_pm_qos.get('reason', 'not asked')),
+    }
 
 
 #: The composed bench's loop priority when ``--thread-priority`` is not given: SCHED_FIFO
@@ -146,8 +200,12 @@ def _mlockall() -> int:
 
 def apply(opts: RtOptions) -> list[str]:
     """Apply ``opts`` to the calling thread (and the process, for the memory lock).
-    Returns one line per option that was not applied (why, and how to grant it)."""
+    Returns one line per option that was not applied (why, and how to grant it). The
+    CPU latency request is held whatever was asked (:func:`hold_latency`)."""
     refused: list[str] = []
+    pm_qos = hold_latency()
+    if pm_qos:
+        refused.append(pm_qos)
     if opts.cpu >= 0:
         try:
             os.sched_setaffinity(0, {opts.cpu})
@@ -175,16 +233,17 @@ def apply(opts: RtOptions) -> list[str]:
 
 
 def apply_and_say(opts: RtOptions, info: Any, warn: Any) -> dict[str, Any]:
-    """:func:`apply` (when anything is asked), then say it: ``warn(line)`` per refusal,
-    ``info(line)`` with what the loop runs with; returns :func:`report`."""
-    refused = apply(opts) if opts.requested else []
+    """:func:`apply`, then say it: ``warn(line)`` per refusal, ``info(line)`` with what
+    the loop runs with; returns :func:`report`."""
+    refused = apply(opts)
     for line in refused:
         warn(line)
     r = report(opts, refused)
     if opts.requested:
         info(
             f'real-time loop: {r["policy"]} priority {r["priority"]}, CPUs {r["affinity"]}, '
-            f'memory locked {r["memory_locked"]}, PREEMPT_RT {r["preempt_rt"]}'
+            f'memory locked {r["memory_locked"]}, CPU latency request held '
+            f'{r["pm_qos"]["held"]}, PREEMPT_RT {r["preempt_rt"]}'
         )
     return r
 
@@ -231,6 +290,7 @@ def report(opts: RtOptions | None = None, refused: list[str] | None = None) -> d
         'priority': os.sched_getparam(0).sched_priority,
         'affinity': sorted(os.sched_getaffinity(0)),
         'memory_locked': _memory_locked(),
+        'pm_qos': latency_report(),
         'kernel': f'{u.release} {u.version}',
         'preempt_rt': _preempt_rt(),
         'cpu_model': _cpu_model(),

@@ -38,6 +38,19 @@ import numpy as np
 from im_drive_sim import hardware_period as HP
 from im_drive_sim import period_kernel as PK
 from im_drive_sim.hardware_abi import KIND_C, N_MEASUREMENT, HardwareFault, entry_words
+from im_drive_sim.loop_clock import (
+    T_LATE,
+    T_MAX_LATE,
+    T_MAX_LATE_AT,
+    T_MAX_LATE_PY,
+    T_MISSED_TOTAL,
+    T_N,
+    T_OVERRUNS,
+    T_SPIN,
+    T_T0,
+    T_TS,
+    T_WALL,
+)
 from im_drive_sim.pacing import LATENESS_EDGES_US
 
 from .loop_kernels import (
@@ -55,23 +68,12 @@ from .loop_kernels import (
     N_T,
     T_COMMANDS,
     T_EXIT,
-    T_LATE,
-    T_MAX_LATE,
-    T_MAX_LATE_AT,
-    T_MAX_LATE_PY,
     T_MAX_PERIODS,
-    T_MISSED_TOTAL,
-    T_N,
-    T_OVERRUNS,
     T_PERIODS,
     T_REFUSED,
     T_RESUME,
-    T_SPIN,
     T_STALL,
     T_STALL_NS,
-    T_T0,
-    T_TS,
-    T_WALL,
     run_hardware_periods,
     run_periods,
 )

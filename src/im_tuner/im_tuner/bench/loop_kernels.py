@@ -50,50 +50,39 @@ from typing import Any
 
 import numba
 import numpy as np
-from numba import types
 
 from im_controller.experiment import STATUS_DONE, STATUS_FAULT
 from im_controller.kernel import W_INTERNALS_DUE, answer_state
 from im_drive_sim import hardware_period as HP
 from im_drive_sim import period_kernel as PK
+from im_drive_sim.loop_clock import (
+    CLOCK_MONOTONIC,
+    CLOCK_REALTIME,
+    N_CLOCK,
+    T_LATE,
+    T_START,
+)
+from im_drive_sim.loop_clock import nap as _nap
+from im_drive_sim.loop_clock import now_ns as _now
+from im_drive_sim.loop_clock import wait_start as _wait_start
 from im_drive_sim.outbox import R_HEAD, put_slot
 from im_drive_sim.pacing import count_durations
 
 __all__ = ['run_hardware_periods', 'run_periods']
 
-_clock_gettime = types.ExternalFunction('clock_gettime', types.int32(types.int32, types.uint64))
-_clock_nanosleep = types.ExternalFunction(
-    'clock_nanosleep', types.int32(types.int32, types.int32, types.uint64, types.uint64)
-)
-CLOCK_REALTIME, CLOCK_MONOTONIC, TIMER_ABSTIME = 0, 1, 1
-NS = 1_000_000_000
-
-# -- the words of T (int64) ---------------------------------------------------------------
-T_T0 = 0  #: the schedule's anchor [ns, CLOCK_MONOTONIC]: period n starts at t0 + n ts
-T_N = 1  #: periods started since t0
-T_TS = 2  #: the period [ns]
-T_SPIN = 3  #: busy-wait before a start [ns]
-T_WALL = 4  #: 1: a drive that cannot pause (late starts skip whole periods, held)
-T_OVERRUNS = 5  #: starts more than a period late
-T_MISSED_TOTAL = 6  #: whole periods those starts skipped (wall clock)
-T_MAX_LATE = 7  #: worst start lateness [ns]
-T_LATE = 8  #: the last start's lateness [ns] (after a skip: from the period it became)
-T_EXIT = 9  #: why the last call returned (EXIT_*)
-T_STATUS = 10  #: the last experiment status >= STATUS_DONE
-T_PERIODS = 11  #: periods run since the caller zeroed it
-T_RESUME = 12  #: a period under way: its missed steps still to run (-1: none)
-T_START = 13  #: that period's start [ns]
-T_MAX_PERIODS = 14  #: the call's limit
-T_COMMANDS = 15  #: commands the drive took since the caller zeroed it
-T_REFUSED = 16  #: answers the drive refused (not finite), since the loop was made
-T_STALL = 17  #: the drive's stall test hook: its step (-1: none)
-T_MAX_LATE_AT = 18  #: when the worst late start was due [ns, CLOCK_MONOTONIC]
-#: the worst lateness of the starts that followed Python (a call's first period: the
-#: loop thread took the GIL, and ran Python, since the period before) [ns]
-T_MAX_LATE_PY = 19
-T_STALL_NS = 20  #: the stall test hook's duration [ns]
-T_LAST_ST = 21  #: the last period's experiment status (a FAULT is an event once, not each period)
-N_T = 22
+# -- the words of T (int64): the schedule's first (im_drive_sim.loop_clock), then the loop's
+T_EXIT = N_CLOCK + 0  #: why the last call returned (EXIT_*)
+T_STATUS = N_CLOCK + 1  #: the last experiment status >= STATUS_DONE
+T_PERIODS = N_CLOCK + 2  #: periods run since the caller zeroed it
+T_RESUME = N_CLOCK + 3  #: a period under way: its missed steps still to run (-1: none)
+T_MAX_PERIODS = N_CLOCK + 4  #: the call's limit
+T_COMMANDS = N_CLOCK + 5  #: commands the drive took since the caller zeroed it
+T_REFUSED = N_CLOCK + 6  #: answers the drive refused (not finite), since the loop was made
+T_STALL = N_CLOCK + 7  #: the drive's stall test hook: its step (-1: none)
+T_STALL_NS = N_CLOCK + 8  #: the stall test hook's duration [ns]
+#: the last period's experiment status (a FAULT is an event once, not each period)
+T_LAST_ST = N_CLOCK + 9
+N_T = N_CLOCK + 10
 
 EXIT_BUDGET, EXIT_PERIODS, EXIT_QUIT, EXIT_FAULT = range(4)
 
@@ -112,68 +101,6 @@ EV_HEAD, EV_TAIL, EV_LOST = range(3)
 # the messages, in the order of the rings' sources
 M_STATE, M_CLOCK, M_JOINT, M_COMMAND, M_INTERNALS = range(5)
 N_MSG = 5
-
-
-@numba.njit(cache=True)
-def _now(ts: np.ndarray, clock: int) -> int:
-    _clock_gettime(np.int32(clock), np.uint64(ts.ctypes.data))
-    return ts[0] * NS + ts[1]
-
-
-@numba.njit(cache=True)
-def _sleep_until(ts: np.ndarray, t_ns: int) -> None:
-    ts[0] = t_ns // NS
-    ts[1] = t_ns - ts[0] * NS
-    p = np.uint64(ts.ctypes.data)
-    _clock_nanosleep(np.int32(CLOCK_MONOTONIC), np.int32(TIMER_ABSTIME), p, np.uint64(0))
-
-
-@numba.njit(cache=True)
-def _nap(ts: np.ndarray, ns: int) -> None:
-    _sleep_until(ts, _now(ts, CLOCK_MONOTONIC) + ns)
-
-
-@numba.njit(cache=True)
-def _wait_start(
-    T: np.ndarray, late_hist: np.ndarray, edges: np.ndarray, ts: np.ndarray, first: bool
-) -> int:
-    """Wait for the next period start (``pacing.Pacer.wait``, in ns); returns the whole
-    periods it skipped (a drive that cannot pause; else 0 and the schedule re-anchored).
-    ``first``: the call's first period (Python ran since the period before)."""
-    period = T[T_TS]
-    deadline = T[T_T0] + (T[T_N] + 1) * period
-    target = deadline - T[T_SPIN]
-    if _now(ts, CLOCK_MONOTONIC) < target:
-        _sleep_until(ts, target)
-    now = _now(ts, CLOCK_MONOTONIC)
-    while now < deadline:
-        now = _now(ts, CLOCK_MONOTONIC)
-    late = now - deadline
-    if late > T[T_MAX_LATE]:
-        T[T_MAX_LATE] = late
-        T[T_MAX_LATE_AT] = deadline
-    if first and late > T[T_MAX_LATE_PY]:
-        T[T_MAX_LATE_PY] = late
-    b = 0
-    for e in edges:
-        if late < e:
-            break
-        b += 1
-    late_hist[b] += 1
-    T[T_N] += 1
-    missed = 0
-    if late > period:
-        T[T_OVERRUNS] += 1
-        if T[T_WALL] != 0:
-            missed = late // period
-            T[T_MISSED_TOTAL] += missed
-            T[T_N] += missed
-            late -= missed * period
-        else:
-            T[T_T0] = now - T[T_N] * period  # re-anchor: no burst of catch-up periods
-    T[T_LATE] = late
-    T[T_START] = now
-    return missed
 
 
 @numba.njit(cache=True, nogil=True)

@@ -1,0 +1,125 @@
+"""``ros2 run im_drive_sim host_check [--seconds N] [--json]``: can this host run a 5 kHz
+drive loop, and at which timing tolerance? Run it first, on the machine that will run
+the loop (docs/real-drive.md, "Check the host first").
+
+It runs the composed loop's own wait for N seconds (:mod:`.host`; SCHED_FIFO 50 and the
+CPU latency request when permitted, saying which) and prints the late periods, the
+lateness histogram, the bursts of held periods, the worst start, and the verdict: the
+share of 1.125 s experiments that would meet ``--timing-tolerance``, the least tolerance
+95 % of them meet and what it may change a loss by. ``--json``: one JSON object on
+stdout for scripts (``late_pct``, ``tolerance``, ``meets``, ...). Exit 0 with a verdict
+either way; bad input one line, exit 2; Ctrl-C exit 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+
+from . import host, rt
+from .cli import Parser, finite_float, int_in, run_cli
+
+PROG = 'host_check'
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = Parser(
+        prog='ros2 run im_drive_sim host_check',
+        description=(__doc__ or '').split('\n\n')[0].split(': ', 1)[1],
+        epilog='docs/real-drive.md, "Check the host first"',
+    )
+    ap.add_argument(
+        '--seconds',
+        type=finite_float(0.5, 3600.0, unit='s'),
+        default=10.0,
+        metavar='S',
+        help='how long to run the loop [s] (0.5-3600, default 10; an experiment is 1.125 s)',
+    )
+    ap.add_argument(
+        '--timing-tolerance',
+        type=int_in(0, 1_000_000),
+        default=10,
+        metavar='N',
+        help="the tolerance to judge [held periods per experiment] (default 10, the tuner's)",
+    )
+    ap.add_argument(
+        '--spin-us',
+        type=finite_float(0.0, 200.0, unit='us'),
+        default=host.SPIN_US,
+        metavar='US',
+        help=f'busy-wait before each period start [us] (0: sleep only; 200: spin only; '
+        f"default {host.SPIN_US:g}, the composed loop's)",
+    )
+    ap.add_argument('--json', action='store_true', help='one JSON object on stdout')
+    rt.add_arguments(ap, 'the loop', default_priority=rt.DEFAULT_PRIORITY)
+    return ap
+
+
+def describe(f: host.HostFloor) -> list[str]:
+    """The human report of one measurement (the lines ``host_check`` prints)."""
+    r = f.realtime
+    lines = [
+        f"host_check: {f.seconds:.1f} s of the 5 kHz loop's wait ({r.get('policy')} "
+        f'priority {r.get("priority")}, CPU latency request held '
+        f'{r.get("pm_qos", {}).get("held")}, memory locked {r.get("memory_locked")}, '
+        f'spin {f.spin_us:g} us)',
+        f'periods {f.periods}: late {f.overruns} ({f.late_pct:.3f} %, {f.late_per_s:.1f}/s), '
+        f'held {f.held} ({f.held_pct:.3f} %), worst start {f.max_lateness_us:.0f} us late',
+        'lateness: ' + ', '.join(f'{k} {v}' for k, v in f.histogram.items()),
+        'bursts of held periods: '
+        + ', '.join(f'{k}: {v}' for k, v in f.bursts.items())
+        + f'; longest {f.longest_burst}',
+    ]
+    h = f.held_per_experiment
+    guess = ' (from the rate: measure longer than 1.125 s)' if h['from'] == 'rate' else ''
+    lines.append(
+        f'held periods per 1.125 s experiment: p50 {h["p50"]:.0f}, p95 {h["p95"]:.0f}, '
+        f'max {h["max"]:.0f}{guess}'
+    )
+    change = (
+        f"a loss may change by up to {f.loss_change_pct:.2f} % (95th percentile; the bench's "
+        'own noise is 2.4 %)'
+        if math.isfinite(f.loss_change_pct)
+        else 'beyond the held periods whose effect on a loss was measured (50)'
+    )
+    if f.meets:
+        lines.append(
+            f'verdict: {100 * f.share_meeting:.0f} % of experiments meet --timing-tolerance '
+            f'{f.tolerance_checked}; 95 % meet {f.tolerance} ({change})'
+        )
+    else:
+        lines.append(
+            f'verdict: this host cannot meet --timing-tolerance {f.tolerance_checked} '
+            f'({100 * f.share_meeting:.0f} % of experiments would): 95 % meet '
+            f'{f.tolerance} ({change}); run with --timing-tolerance auto, or quieten the '
+            'host (docs/real-drive.md, "Check the host first")'
+        )
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(sys.argv[1:] if argv is None else argv)
+    opts = rt.RtOptions.from_cli(args, rt.DEFAULT_PRIORITY)
+    if not args.json:
+        print(f'host_check: running the loop for {args.seconds:g} s ...', flush=True)
+    floor = host.probe(args.seconds, opts, args.timing_tolerance, args.spin_us)
+    for line in floor.realtime.get('refused', []):
+        print(f'warning: {line}', file=sys.stderr, flush=True)
+    if args.json:
+        print(json.dumps(floor.as_dict()))
+    else:
+        print('\n'.join(describe(floor)), flush=True)
+    return 0
+
+
+def entry() -> int:
+    try:
+        return run_cli(PROG, main)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(entry())

@@ -139,7 +139,7 @@ def _bursts(held: np.ndarray) -> tuple[dict[str, int], int]:
         end = n + m
     bins = dict.fromkeys(BURST_BINS, 0)
     for r in runs:
-        bins[BURST_BINS[int(np.searchsorted(BURST_EDGES, r, side='right'))]] += 1
+        bins[BURST_BINS[int(np.searchsorted(BURST_EDGES, r))]] += 1
     return bins, max(runs, default=0)
 
 
@@ -205,7 +205,7 @@ def measure(
     t0 = time.perf_counter()
     _run(T, held, hist, edges, scratch)
     elapsed = time.perf_counter() - t0
-    periods = n
+    periods = int(T[LC.T_N])  # (the last start may have skipped past n)
     overruns, missed = int(T[LC.T_OVERRUNS]), int(T[LC.T_MISSED_TOTAL])
     bursts, longest = _bursts(held)
     verdict = judge(held, tolerance)

@@ -71,12 +71,13 @@ PM_QOS_COST = 'the CPUs may sleep in deep idle states between periods, and more 
 _pm_qos: dict[str, object] = {}  #: the held request: its file descriptor and what it says
 
 
-def hold_latency(path: str = PM_QOS_PATH) -> str | None:
-    """Hold the PM QoS CPU latency request at 0 us for the rest of the process (the file
-    stays open; idempotent). None when held; else one line saying why not, what it
-    costs and how to grant it (the caller says it and goes on)."""
+def hold_latency() -> str | None:
+    """Hold the PM QoS CPU latency request (:data:`PM_QOS_PATH`) at 0 us for the rest of
+    the process (the file stays open; idempotent). None when held; else one line saying
+    why not, what it costs and how to grant it (the caller says it and goes on)."""
     if _pm_qos.get('held'):
         return None
+    path = PM_QOS_PATH
     try:
         fd = os.open(path, os.O_WRONLY | os.O_CLOEXEC)
     except OSError as exc:

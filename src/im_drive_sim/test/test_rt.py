@@ -39,7 +39,44 @@ def test_options_parse_and_bad_values_are_usage_errors():
             _parse(*argv)
 
 
-def test_refusals_say_why_and_how_to_grant_and_the_run_goes_on(monkeypatch):
+@pytest.fixture
+def latency_file(tmp_path, monkeypatch):
+    """The CPU latency request on a file of the test's, not the machine's device."""
+    f = tmp_path / 'cpu_dma_latency'
+    f.write_bytes(b'\xff' * 4)
+    monkeypatch.setattr(rt, 'PM_QOS_PATH', str(f))
+    monkeypatch.setattr(rt, '_pm_qos', {})
+    return f
+
+
+def test_the_cpu_latency_request_is_held_at_zero_and_recorded(latency_file):
+    assert rt.latency_report() == {'held': False, 'latency_us': None, 'reason': 'not asked'}
+    assert rt.hold_latency() is None and rt.hold_latency() is None  # (idempotent)
+    assert latency_file.read_bytes() == b'\0\0\0\0'  # an s32 of 0 us, as cyclictest writes
+    assert rt.report()['pm_qos'] == {'held': True, 'latency_us': 0, 'reason': ''}
+
+
+def test_a_cpu_latency_request_not_permitted_is_one_line_and_the_run_goes_on(
+    latency_file, monkeypatch
+):
+    def denied(*_a, **_k):
+        raise PermissionError(errno.EACCES, 'Permission denied')
+
+    monkeypatch.setattr(os, 'open', denied)
+    (line,) = rt.apply(rt.RtOptions())
+    assert line.startswith(f'the CPU latency request ({latency_file}) is not held (Permission')
+    assert 'deep idle states' in line and 'udev rule' in line, line
+    r = rt.report()['pm_qos']
+    assert r['held'] is False and 'Permission denied' in r['reason'], r
+
+
+def test_a_machine_without_the_cpu_latency_request_says_so(latency_file, monkeypatch):
+    monkeypatch.setattr(rt, 'PM_QOS_PATH', str(latency_file.parent / 'none' / 'x'))
+    (line,) = rt.apply(rt.RtOptions())
+    assert 'No such file or directory' in line and 'no PM QoS here' in line, line
+
+
+def test_refusals_say_why_and_how_to_grant_and_the_run_goes_on(monkeypatch, latency_file):
     def no_fifo(*_a):
         raise PermissionError(errno.EPERM, 'Operation not permitted')
 
@@ -67,7 +104,10 @@ def test_applied_when_permitted_in_a_child_process():
     cpu = max(os.sched_getaffinity(0))
     code = (
         'import json; from im_drive_sim import rt; '
-        f'o = rt.RtOptions(10, {cpu}, True); r = rt.apply(o); print(json.dumps(rt.report(o, r)))'
+        f'o = rt.RtOptions(10, {cpu}, True); r = rt.apply(o); d = rt.report(o, r); '
+        "import struct, os; p = '/dev/cpu_dma_latency'; d['device'] = "
+        "struct.unpack('i', open(p, 'rb').read(4))[0] if os.access(p, os.R_OK) else None; "
+        'print(json.dumps(d))'
     )
     p = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=60)
     assert p.returncode == 0, p.stderr
@@ -77,6 +117,8 @@ def test_applied_when_permitted_in_a_child_process():
     assert isinstance(r['preempt_rt'], bool) and r['cpus'] == os.cpu_count()
     if os.geteuid() == 0:
         assert (r['policy'], r['priority'], r['memory_locked']) == ('SCHED_FIFO', 10, True), r
+        if os.path.exists('/dev/cpu_dma_latency'):  # held: the kernel's request reads 0 us
+            assert r['pm_qos']['held'] is True and r['device'] == 0, r
         assert r['refused'] == []
     else:
         assert r['policy'] == 'SCHED_OTHER' or r['priority'] == 10, r

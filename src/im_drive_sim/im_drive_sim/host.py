@@ -14,23 +14,22 @@ meets a timing tolerance, the least tolerance 95 % of them meet, and the change 
 loss that tolerance allows (the held-period table of docs/real-drive.md, "Timing
 tolerance").
 
-Pure: numba and numpy, no rclpy. The measurement runs in the calling thread; the caller
-applies the real-time options first (``rt.apply``: SCHED_FIFO, locked memory, and the
-PM QoS latency request).
+Pure: numpy (numba in the measurement, :mod:`.loop_clock`), no rclpy. :func:`measure`
+runs in the calling thread; :func:`probe` runs it in a thread of its own with the
+real-time options applied (``rt.apply``: SCHED_FIFO, and the CPU latency request).
 """
 
 from __future__ import annotations
 
+import argparse
 import math
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-import numba
 import numpy as np
 
-from . import loop_clock as LC
-from .pacing import LATENESS_BINS, LATENESS_EDGES_US
+from . import rt
 
 __all__ = [
     'EXPERIMENT_PERIODS',
@@ -45,8 +44,8 @@ __all__ = [
 EXPERIMENT_PERIODS = 5625
 #: The period of the loop the host is checked for [s].
 TS = 200e-6
-#: The loop's busy-wait before each start [us] (the composed loop's).
-SPIN_US = LC.SPIN_NS / 1000.0
+#: The composed loop's busy-wait before each period start [us] (``rt.SPIN_US``).
+SPIN_US = rt.SPIN_US
 #: The share of experiments a tolerance must let count (the host check's verdict).
 MEET_SHARE = 0.95
 
@@ -72,20 +71,6 @@ def loss_change_pct(tolerance: int) -> float:
         if tolerance <= held:
             return pct
     return math.inf
-
-
-@numba.njit(cache=True, nogil=True)
-def _run(
-    T: np.ndarray, held: np.ndarray, hist: np.ndarray, edges: np.ndarray, ts: np.ndarray
-) -> None:
-    """Wait for period after period until ``len(held)`` periods went by on the wall
-    clock; ``held[n]``: the periods skipped (held) at period n's start."""
-    n_max = len(held)
-    while T[LC.T_N] < n_max:
-        n = T[LC.T_N]
-        missed = LC.wait_start(T, hist, edges, ts, False)
-        if missed > 0:
-            held[min(n + 1, n_max - 1)] += missed
 
 
 @dataclass
@@ -184,6 +169,10 @@ def measure(
     judge it against ``tolerance`` held periods per experiment (:func:`judge`)."""
     if not seconds > 0.0:
         raise ValueError(f'seconds must be > 0, got {seconds!r}')
+    # (numba: imported when a loop runs, not with a command line that refuses at once)
+    from . import loop_clock as LC
+    from .pacing import LATENESS_BINS, LATENESS_EDGES_US
+
     ts_ns = round(ts * 1e9)
     n = max(1, int(seconds * 1e9 / ts_ns))
     T = np.zeros(LC.N_CLOCK, np.int64)
@@ -200,10 +189,10 @@ def measure(
         T[LC.T_T0] = LC.now_ns(scratch, LC.CLOCK_MONOTONIC)
 
     reset()
-    _run(T, held[:10], hist, edges, scratch)  # compiled (or loaded from the cache) here
+    LC.run_schedule(T, held[:10], hist, edges, scratch)  # compiled (or loaded from the cache) here
     reset()
     t0 = time.perf_counter()
-    _run(T, held, hist, edges, scratch)
+    LC.run_schedule(T, held, hist, edges, scratch)
     elapsed = time.perf_counter() - t0
     periods = int(T[LC.T_N])  # (the last start may have skipped past n)
     overruns, missed = int(T[LC.T_OVERRUNS]), int(T[LC.T_MISSED_TOTAL])
@@ -239,8 +228,6 @@ def probe(
     import ctypes
     import threading
 
-    from . import rt
-
     options = rt.RtOptions(rt.DEFAULT_PRIORITY) if opts is None else opts
     out: dict[str, Any] = {}
 
@@ -260,3 +247,79 @@ def probe(
     if 'error' in out:
         raise out['error']
     return out['floor']
+
+
+# -- the check before a run ---------------------------------------------------------------
+#: ``--timing-tolerance auto``: the tolerance the host check derives (never below the
+#: default, whose held periods stay within the bench's noise).
+AUTO = 'auto'
+#: How long a run's check of its host lasts [s] (before the first experiment).
+PROBE_S = 2.0
+
+
+def tolerance_arg(text: str) -> int | str:
+    """argparse type of ``--timing-tolerance``: an integer 0-1000000 [held periods per
+    experiment] or ``auto``."""
+    if text.strip().lower() == AUTO:
+        return AUTO
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"not an integer or 'auto': {text!r} [held periods per experiment]"
+        ) from None
+    if not 0 <= v <= 1_000_000:
+        raise argparse.ArgumentTypeError(f'must be in [0, 1000000] periods or auto, got {v}')
+    return v
+
+
+tolerance_arg.__name__ = 'tolerance'
+
+
+def check_before_run(
+    tolerance: int | str, default: int, opts: Any = None, seconds: float = PROBE_S
+) -> tuple[int, dict[str, Any], str | None]:
+    """A run's check of its host, before its first experiment: :func:`probe` for
+    ``seconds``, judged at ``tolerance`` (``auto``: at ``default``). Returns the tolerance
+    to run with (``auto``: the larger of ``default`` and what 95 % of the experiments
+    meet), the record (``as_dict`` and ``auto``) and one line to say, or None when there
+    is nothing to say (a fixed tolerance the host meets)."""
+    auto = tolerance == AUTO
+    asked = default if auto else int(tolerance)
+    f = probe(seconds, opts, asked)
+    record = {**f.as_dict(), 'auto': auto}
+    rt_seen = record.pop('realtime')  # (the run records its loop's own settings)
+    record['policy'] = rt_seen.get('policy')
+    record['pm_qos_held'] = rt_seen.get('pm_qos', {}).get('held')
+    change = (
+        f'a loss may change by up to {f.loss_change_pct:.2f} %, 95th percentile'
+        if math.isfinite(f.loss_change_pct)
+        else 'beyond the 50 held periods whose effect on a loss was measured'
+    )
+    seen = (
+        f'{f.seconds:.1f} s host check: late {f.late_pct:.3f} % of periods, worst '
+        f'{f.max_lateness_us / 1000:.1f} ms'
+    )
+    if auto:
+        chosen = max(default, f.tolerance)
+        record['tolerance_chosen'] = chosen
+        return (
+            chosen,
+            record,
+            (
+                f'timing tolerance auto: {chosen} held periods per experiment ({seen}; 95 % of '
+                f'experiments meet {f.tolerance}; {change})'
+            ),
+        )
+    if f.meets:
+        return asked, record, None
+    return (
+        asked,
+        record,
+        (
+            f'this host cannot meet --timing-tolerance {asked}: {100 * f.share_meeting:.0f} % of '
+            f'experiments would ({seen}); 95 % meet {f.tolerance} ({change}): give '
+            '--timing-tolerance auto, or quieten the host (docs/real-drive.md, "Check the host '
+            'first")'
+        ),
+    )

@@ -2,9 +2,10 @@
 words it keeps.
 
 Every compiled 5 kHz loop of the workspace waits here -- the composed bench's
-(``im_tuner.bench.loop_kernels``), the host check (:mod:`.host`) and the benchmark of the
-host's floor (``benchmarks/loop_floor.py``) -- so that what the host check measures is the
-loop's own wait, nothing else. The schedule is ``pacing.Pacer``'s, in nanoseconds of
+(``im_tuner.bench.loop_kernels``), the host check (:mod:`.host`, through
+:func:`run_schedule`) and the benchmark of the host's floor (``benchmarks/loop_floor.py``)
+-- so that what the host check measures is the loop's own wait, nothing else. The
+schedule is ``pacing.Pacer``'s, in nanoseconds of
 CLOCK_MONOTONIC: period n starts at ``t0 + n ts``; the wait sleeps (``clock_nanosleep``,
 absolute) to ``T[T_SPIN]`` before the start and busy-waits the rest. ``T_SPIN`` = 0 is a
 pure sleep, ``T_SPIN`` >= the period a pure spin. A start more than one period late is an
@@ -24,7 +25,9 @@ import numba
 import numpy as np
 from numba import types
 
-__all__ = ['N_CLOCK', 'nap', 'now_ns', 'sleep_until', 'wait_start']
+from .rt import SPIN_US
+
+__all__ = ['N_CLOCK', 'nap', 'now_ns', 'run_schedule', 'sleep_until', 'wait_start']
 
 _clock_gettime = types.ExternalFunction('clock_gettime', types.int32(types.int32, types.uint64))
 _clock_nanosleep = types.ExternalFunction(
@@ -32,11 +35,8 @@ _clock_nanosleep = types.ExternalFunction(
 )
 CLOCK_REALTIME, CLOCK_MONOTONIC, TIMER_ABSTIME = 0, 1, 1
 NS = 1_000_000_000
-#: The composed loop's busy-wait before each period start [ns]: it sleeps (timer slack
-#: 1 ns) to 40 us before the start and spins the rest. On a 2-core VM a pure sleep started
-#: most periods 10-50 us late, a pure spin met the hypervisor's 10-50 ms stalls
-#: (docs/real-drive.md, "Check the host first").
-SPIN_NS = 40_000
+#: The composed loop's busy-wait before each period start [ns] (``rt.SPIN_US``)
+SPIN_NS = round(SPIN_US * 1000)
 
 # -- the schedule's words of T (int64) ----------------------------------------------------
 T_T0 = 0  #: the schedule's anchor [ns, CLOCK_MONOTONIC]: period n starts at t0 + n ts
@@ -120,3 +120,17 @@ def wait_start(
     T[T_LATE] = late
     T[T_START] = now
     return missed
+
+
+@numba.njit(cache=True, nogil=True)
+def run_schedule(
+    T: np.ndarray, held: np.ndarray, hist: np.ndarray, edges: np.ndarray, ts: np.ndarray
+) -> None:
+    """Wait for period after period until ``len(held)`` periods went by on the wall
+    clock; ``held[n]``: the periods skipped (held) at period n's start."""
+    n_max = len(held)
+    while T[T_N] < n_max:
+        n = T[T_N]
+        missed = wait_start(T, hist, edges, ts, False)
+        if missed > 0:
+            held[min(n + 1, n_max - 1)] += missed

@@ -107,6 +107,13 @@ def latency_report() -> dict[str, object]:
     }
 
 
+#: The composed loop's busy-wait before each period start [us] (``loop_clock.SPIN_NS``;
+#: ``host_check --spin-us`` tries others): it sleeps (timer slack 1 ns) to 40 us before
+#: the start and spins the rest. On a 2-core VM a pure sleep started most periods
+#: 10-50 us late and a pure spin met the
+#: hypervisor's 10-50 ms stalls (docs/real-drive.md, "Check the host first").
+SPIN_US = 40.0
+
 #: The composed bench's loop priority when ``--thread-priority`` is not given: SCHED_FIFO
 #: 50, as ros2_control_node's update loop (its ``thread_priority``).
 DEFAULT_PRIORITY = 50

@@ -14,7 +14,7 @@ import shlex
 from pathlib import Path
 from typing import Any
 
-from im_drive_sim import rt
+from im_drive_sim import host, rt
 from im_drive_sim.cli import Parser, UsageError, finite_float
 
 from . import optim
@@ -153,13 +153,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         '--timing-tolerance',
-        type=int,
-        metavar='N',
+        type=host.tolerance_arg,
+        metavar='N|auto',
         help='held or late drive periods an experiment may have and still count (its '
         'held periods are recorded with its loss); past N it is marked timing and re-run. '
         f'Default {DEFAULT_TIMING_TOLERANCE}: the change of a loss by that many held periods '
         'stays within the bench\'s noise (docs/real-drive.md, "Timing tolerance"); 0: '
-        "the paper's timing exactly. Also -p timing_tolerance:=N after --ros-args",
+        "the paper's timing exactly; auto: what a 2 s check of this host finds 95 %% of "
+        f'experiments meet, at least {DEFAULT_TIMING_TOLERANCE} (--bench realtime; '
+        'elsewhere the default). Also -p timing_tolerance:=N after --ros-args',
     )
     ap.add_argument(
         '--eval-timeout',
@@ -239,10 +241,11 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def timing_tolerance(cli: argparse.Namespace, argv: list[str]) -> int | None:
+def timing_tolerance(cli: argparse.Namespace, argv: list[str]) -> int | str | None:
     """The tolerance asked for: ``--timing-tolerance N`` or ``-p timing_tolerance:=N``
     after ``--ros-args`` (the controller's parameter, as the docs said before); None:
-    neither. Both, differing, or a value that is not an integer >= 0: UsageError."""
+    neither; ``auto``: ``host.AUTO``. Both, differing, or a value that is not an integer
+    >= 0: UsageError."""
     given = cli.timing_tolerance
     ros = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
     from_ros = None
@@ -255,6 +258,12 @@ def timing_tolerance(cli: argparse.Namespace, argv: list[str]) -> int | None:
                 raise UsageError(
                     f'-p timing_tolerance:={text}: an integer >= 0 [periods]'
                 ) from None
+    if given == host.AUTO:
+        if from_ros is not None:
+            raise UsageError(
+                f'--timing-tolerance auto and -p timing_tolerance:={from_ros}: give one'
+            )
+        return host.AUTO
     if given is not None and from_ros is not None and given != from_ros:
         raise UsageError(
             f'--timing-tolerance {given} and -p timing_tolerance:={from_ros}: give one'

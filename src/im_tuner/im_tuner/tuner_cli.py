@@ -16,13 +16,14 @@ from __future__ import annotations
 import argparse
 import math
 import shlex
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from im_drive_sim import rt
+from im_drive_sim import host, rt
 from im_drive_sim.cli import UsageError
 
 from . import optim
@@ -198,6 +199,7 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
     from .tuning import run_seeds
 
     _opt_ss, drive_seed = run_seeds(seed)
+    tolerance, host_record = _check_host(cli, tolerance)
     run = RunConfig.from_dict(
         {
             'algo': algo,
@@ -210,6 +212,7 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
             'start': not cli.no_start,
             'retries': retries,
             'timing_tolerance': tolerance,
+            'host_check': host_record,
             'ripple_limit': ripple_limit,
             'drive': cli.drive or 'sim',
             'satisfactory_loss': params.satisfactory_loss,
@@ -219,6 +222,24 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
         }
     )
     return NewRun(run, params, out, drive)
+
+
+def _check_host(cli: argparse.Namespace, tolerance: int | str) -> tuple[int, dict | None]:
+    """On the composed real-time bench, the host's check before the first experiment
+    (``host.check_before_run``: 2 s of the loop's wait with the run's real-time options):
+    one line when the host cannot meet the tolerance (or what ``auto`` chose). Returns
+    the tolerance to run with and the check's record (None: not a real-time bench, where
+    ``auto`` is the default)."""
+    if (cli.bench or 'auto') != 'realtime':
+        return (DEFAULT_TIMING_TOLERANCE if tolerance == host.AUTO else int(tolerance)), None
+    chosen, record, line = host.check_before_run(
+        tolerance, DEFAULT_TIMING_TOLERANCE, rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY)
+    )
+    if line and record['auto']:
+        print(line, flush=True)
+    elif line:
+        print(f'warning: {line}', file=sys.stderr, flush=True)
+    return chosen, record
 
 
 @dataclass

@@ -268,6 +268,7 @@ class InProcess:
                 before_start=start_recorder,
                 should_stop=should_stop,
                 rt_options=plan.spec.rt_options,
+                host_check=plan.spec.host_check,
             )
         else:
             self.bench = InProcessBench(

@@ -144,6 +144,7 @@ class RealtimeBench:
         rt_options: rt.RtOptions | None = None,
         outbox_capacity: int | None = None,
         compiled: bool = True,
+        host_check: dict[str, Any] | None = None,
     ) -> None:
         """``before_start(bench)`` runs once both nodes exist and match, before state 0:
         the place to start a recorder that must not miss the first message (it takes the
@@ -154,8 +155,10 @@ class RealtimeBench:
         applied in it before the recorder starts (its metadata records it); what is not
         permitted is said in one line each on stderr, and the run goes on.
         ``outbox_capacity``: messages per topic ring (None: ``loop_routes.SLOTS``).
-        ``compiled``: run the simulator's periods compiled (:mod:`.compiled_loop`; other
-        drives always run :meth:`step`, their periods in Python)."""
+        ``host_check``: the host's check before the run, recorded with the real-time
+        settings (``rt_report['host_check']``). ``compiled``: run the simulator's periods
+        compiled (:mod:`.compiled_loop`; other drives always run :meth:`step`, their
+        periods in Python)."""
         self.drive = make_drive(drive, context, list(drive_overrides or []))
         self.drive_kind = drive
         self.controller, self.executor = compose(
@@ -229,6 +232,8 @@ class RealtimeBench:
         self._ready.wait(10.0)
         for line in self._refused:
             print(f'warning: {line}', file=sys.stderr, flush=True)
+        if host_check is not None:
+            self.rt_report['host_check'] = host_check
         if self.rt_report.get('policy') == 'SCHED_FIFO':
             # The loop waits for the GIL whenever this (serving) thread holds it: if busy
             # processes beside it pushed this thread off the CPU while it held the GIL,

@@ -148,6 +148,9 @@ class BenchSpec:
     fault_policy: str | None = None
     #: the composed loop's scheduling (im_drive_sim.rt.RtOptions; --bench realtime)
     rt_options: Any = None
+    #: the host's check before the run (im_drive_sim.host.check_before_run's record):
+    #: recorded with the loop's real-time settings (None: not checked)
+    host_check: dict[str, Any] | None = None
     #: a resumed run, and the bench it ran on before (run.yaml's bench)
     resumed: bool = False
     previous_bench: str | None = None
@@ -243,6 +246,7 @@ def tuner_bench_spec(
         next_experiment_id=next_experiment_id(list(records)),
         fault_policy=cli.fault_policy,
         rt_options=rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY),
+        host_check=run.host_check,
         resumed=resumed,
         previous_bench=run.bench if resumed else None,
     )

@@ -97,6 +97,9 @@ class RunConfig(_Keyed):
     retries: int | None = None  #: re-runs of a lost / off-timing attempt
     #: held + late drive periods an experiment may have and count (--timing-tolerance)
     timing_tolerance: int | None = None
+    #: the host's check before the first experiment (im_drive_sim.host.check_before_run:
+    #: late_pct, tolerance, share_meeting, meets, auto, ...); None: not a real-time bench
+    host_check: dict[str, Any] | None = None
     #: the final choice's standstill-ripple limit (--ripple-limit): a ratio to the
     #: start's rms of isq*; None: off (or a run of a tuner before it: off)
     ripple_limit: float | None = None

@@ -12,6 +12,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_experiment
+import bench_host
 import bench_lockstep
 import bench_model
 import bench_numeric
@@ -101,6 +102,11 @@ TARGETS = {
     'rt_frozen_rss_growth_mb': ('MB', 10.0),
     'rt_composed_rss_growth_mb': ('MB', None),
     'rt_frozen_bag_lost': ('msgs', 0.0),
+    # the host's floor: host_check's late share within 1.5x of cyclictest's (same minute)
+    **{f'host_cyclictest_{t}_late_pct': ('%', None) for t in ('idle', 'hogs')},
+    **{f'host_check_{t}_late_pct': ('%', None) for t in ('idle', 'hogs')},
+    **{f'host_check_{t}_tolerance': ('periods', None) for t in ('idle', 'hogs')},
+    **{f'host_check_{t}_vs_cyclictest': ('x', 1.5) for t in ('idle', 'hogs')},
 }
 
 
@@ -142,6 +148,11 @@ def main() -> int:
         flush=True,
     )
     figures.update(bench_report.main())
+    print(
+        "\n== the host's floor: host_check's measurement beside cyclictest, and the waits ==",
+        flush=True,
+    )
+    figures.update(bench_host.main([]))
     print(
         '\n== real time at 5 kHz: tuner --bench realtime / realtime-processes '
         '(budget 20, recorded, 3 runs) ==',

@@ -149,22 +149,34 @@ def env(log: Path, **extra: str) -> dict[str, str]:
     return e
 
 
-@pytest.mark.serial  # a drive on the wall clock tunes with the default tolerance: alone
-def test_a_wall_clock_library_tunes_to_the_end_compiled(tmp_path, wallclock_lib):
+@pytest.mark.serial  # a drive on the wall clock tunes with the host's tolerance: alone
+def test_a_wall_clock_library_tunes_to_the_end_compiled(tmp_path, wallclock_lib, host_floor):
+    """The library's periods compiled, on the wall clock: the run completes with the
+    tolerance this host's floor derives (``host_floor``), every held period counted."""
+    host_floor.require()
+    tol = host_floor.tolerance
     run, log = tmp_path / 'run', tmp_path / 'drive.log'
     p = subprocess.run(
-        tuner(run, wallclock_lib, 3), env=env(log), capture_output=True, text=True, timeout=300
-    )
-    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+        tuner(run, wallclock_lib, 3, '--timing-tolerance', str(tol)),
+        env=env(log), capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    floor = host_floor.describe()
+    assert p.returncode == 0, (floor, p.stdout[-2000:] + p.stderr[-3000:])
     recs = results(run)
     counted = [r for r in recs if r['status'] in ('ok', 'aborted')]
     assert [r['kind'] for r in counted] == ['reference', 'eval', 'eval', 'eval'], recs
+    for r in recs:  # every held period counted, and past the tolerance flagged
+        if r['status'] != 'lost':
+            off = r['periods']['held'] + r['periods']['late'] > tol
+            assert (r['status'] == 'timing') == off and (r['loss'] is None) == off, r
     import json
 
     summary = json.loads((run / 'summary.json').read_text())
-    assert summary['timing_tolerance'] == 10
+    assert summary['timing_tolerance'] == tol
     assert summary['held_periods']['counted'] == 4
-    assert summary['held_periods']['max'] <= 10
+    assert summary['held_periods']['max'] <= tol
+    d = summary['sessions'][0]['drive']
+    assert d['held'] >= sum(r['periods']['held'] for r in recs if r['status'] != 'lost'), d
     loop = summary['sessions'][0]['drive']['loop']
     assert loop['compiled'] is True  # the library's periods ran compiled
     assert loop['period_work_us']['p50'] < 50, loop['period_work_us']

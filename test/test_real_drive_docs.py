@@ -105,11 +105,13 @@ def test_the_worked_example_runs_as_written(tmp_path):
     assert losses == [r['loss'] for r in recs if r['status'] != 'lost']
 
 
-@pytest.mark.serial  # a drive on the wall clock tunes with the default tolerance: alone
-def test_the_drive_library_example_builds_and_tunes_as_written(tmp_path):
+@pytest.mark.serial  # a drive on the wall clock tunes with the host's tolerance: alone
+def test_the_drive_library_example_builds_and_tunes_as_written(tmp_path, host_floor):
     """The C library worked example: the shipped stand-in copied, built with the
     system compiler against the installed header, and tuned, each line as the doc has
-    it (only --out, a short --budget and --quiet added to the tuner's)."""
+    it (only --out, a short --budget, --quiet and this host's timing tolerance -- its
+    floor's, ``host_floor`` -- added to the tuner's)."""
+    host_floor.require()
     import shutil
 
     import pytest
@@ -122,12 +124,13 @@ def test_the_drive_library_example_builds_and_tunes_as_written(tmp_path):
     assert lines[-1].startswith('ros2 run im_tuner tuner --bench realtime --drive lib:'), lines
     run = tmp_path / 'run'
     lines[-1] += f' --out {shlex.quote(str(run))} --budget 2 --quiet'
+    lines[-1] += f' --timing-tolerance {host_floor.tolerance}'
     env = dict(os.environ, PATH=os.pathsep.join([str(Path(ROS2).parent), os.environ['PATH']]))
     p = subprocess.run(
         ['bash', '-ec', '\n'.join(lines)],
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
-    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    assert p.returncode == 0, (host_floor.describe(), p.stdout[-2000:] + p.stderr[-3000:])
     assert (tmp_path / 'libmy_drive.so').exists()
     summary = json.loads((run / 'summary.json').read_text())
     assert summary['sessions'][0]['drive']['loop']['compiled'] is True

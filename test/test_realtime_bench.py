@@ -164,6 +164,49 @@ def test_composed_realtime_run_measures_the_paper_loss_bit_for_bit(tmp_path):
             assert m.loss == pytest.approx(r['loss'], rel=0.035), (r, m.loss)
 
 
+def test_the_host_is_checked_before_the_first_experiment_and_auto_takes_its_tolerance(tmp_path):
+    """``--timing-tolerance auto`` on the composed bench: a 2 s check of the host's loop
+    wait before anything runs, one line saying the tolerance it chose (the larger of the
+    default and what 95 % of the check's experiment-long windows meet), and that choice
+    everywhere the run records its tolerance: run.yaml, the controller, the summary, the
+    loop's real-time record and the bag. The simulator pauses when late: it completes
+    whatever the host did."""
+    run = tmp_path / 'run'
+    p = subprocess.run(
+        [
+            *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '1', '--seed', '4'),
+            *('--first', 'none', '--remeasure', '0', '--out', str(run), *RT),
+            *('--timing-tolerance', 'auto'),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    # said first, before the run began (its first line names the run directory)
+    line = p.stdout.splitlines()[0]
+    assert line.startswith('timing tolerance auto: '), p.stdout[:2000]
+    run_yaml = yaml.safe_load((run / 'run.yaml').read_text())
+    check = run_yaml['host_check']
+    chosen = max(10, check['tolerance'])
+    assert check['auto'] is True and check['tolerance_chosen'] == chosen, check
+    assert f'timing tolerance auto: {chosen} held periods per experiment' in line, line
+    assert check['periods'] >= 10_000 and 1.9 < check['seconds'] < 10, check
+    assert run_yaml['timing_tolerance'] == chosen
+    assert run_yaml['controller_parameters']['timing_tolerance'] == chosen
+    summary = json.loads((run / 'summary.json').read_text())
+    assert summary['timing_tolerance'] == chosen
+    sched = summary['sessions'][0]['drive']['loop']['realtime']
+    assert sched['host_check']['tolerance_chosen'] == chosen
+    if os.geteuid() == 0 and os.path.exists('/dev/cpu_dma_latency'):
+        assert sched['pm_qos'] == {'held': True, 'latency_us': 0, 'reason': ''}, sched
+        assert check['pm_qos_held'] is True, check
+    with next((run / 'bag_0').glob('*.mcap')).open('rb') as f:
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert json.loads(meta['im_tuner.realtime']['host_check'])['tolerance_chosen'] == chosen
+    assert json.loads(meta['im_tuner.realtime']['pm_qos']) == sched['pm_qos']
+
+
 def test_a_drive_that_declares_command_delay_2_runs_fresh_experiments(tmp_path, floor):
     """A drive file with ``command_delay: 2`` (a power stage that latches its command at
     the period start, docs/real-drive.md): the simulator composed in real time runs every

@@ -755,8 +755,17 @@ def test_a_timing_failure_says_where_to_run_the_controller():
         (text,) = failure_advice(failed, timing, bench)
         assert "in the drive's process" in text and '--bench realtime --drive' in text
         assert 'did not answer every 200 us' in text
-    (text,) = failure_advice(failed, timing, 'realtime')  # already composed: the load
-    assert 'timing_tolerance' in text and '--bench realtime --drive' not in text
+    (text,) = failure_advice(failed, timing, 'realtime')  # already composed: the host
+    assert '--timing-tolerance auto' in text and '--bench realtime --drive' not in text
+    assert 'host_check' in text and 'the host started periods late' in text
+    check = {'late_pct': 0.25, 'tolerance': 41}
+    loop = {'period_work_us': {'p50': 6.0}, 'realtime': {'host_check': check}}
+    (text,) = failure_advice(failed, timing, 'realtime', loop)
+    assert 'late 0.250 % of periods, 95 % of experiments meet 41' in text, text
+    # a drive whose own read/write takes 1 ms: the drive is too slow, not the machine
+    (text,) = failure_advice(failed, timing, 'realtime', {'period_work_us': {'p50': 1004.0}})
+    assert 'the drive is too slow' in text and 'p50 1004 us of the 200 us period' in text
+    assert 'host' not in text, text
     assert failure_advice('done', timing, 'external') == []
     assert failure_advice(failed, [Lost(kind='eval', eval=1, gains={})], 'external') == []
     run = RunConfig(algo='safe', seed=1, bench='realtime-processes', drive='sim')

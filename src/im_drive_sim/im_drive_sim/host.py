@@ -269,7 +269,7 @@ def tolerance_arg(text: str) -> int | str:
             f"not an integer or 'auto': {text!r} [held periods per experiment]"
         ) from None
     if not 0 <= v <= 1_000_000:
-        raise argparse.ArgumentTypeError(f'must be in [0, 1000000] periods or auto, got {v}')
+        raise argparse.ArgumentTypeError(f'must be in [0, 1000000] periods, got {v} (or auto)')
     return v
 
 

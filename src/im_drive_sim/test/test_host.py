@@ -74,3 +74,54 @@ def test_a_short_measurement_of_the_real_wait_adds_up():
     assert f.held_per_experiment['from'] == 'rate' and f.spin_us == host.SPIN_US
     d = f.as_dict()
     assert {'late_pct', 'tolerance', 'meets', 'histogram', 'bursts'} <= d.keys()
+
+
+def _floor(held_total: int, tolerance: int, meets: bool) -> host.HostFloor:
+    """A measurement the test makes up (the check's logic on figures it controls)."""
+    return host.HostFloor(
+        seconds=2.0, spin_us=40.0, periods=10_000, overruns=3, held=held_total,
+        late_pct=0.03, held_pct=held_total / 100, late_per_s=1.5, max_lateness_us=2600.0,
+        histogram={}, bursts={}, longest_burst=12,
+        held_per_experiment={'p50': 5.0, 'p95': float(tolerance), 'max': 47.0, 'from': 'windows'},
+        tolerance_checked=10, share_meeting=0.8 if not meets else 1.0, tolerance=tolerance,
+        loss_change_pct=host.loss_change_pct(tolerance), meets=meets,
+        realtime={'policy': 'SCHED_FIFO', 'pm_qos': {'held': True}},
+    )  # fmt: skip
+
+
+def test_a_host_that_cannot_meet_the_tolerance_is_told_so_in_one_line(monkeypatch):
+    monkeypatch.setattr(host, 'probe', lambda *a, **k: _floor(61, 41, meets=False))
+    tol, record, line = host.check_before_run(10, 10)
+    assert tol == 10 and record['auto'] is False and record['meets'] is False
+    assert line == (
+        'this host cannot meet --timing-tolerance 10: 80 % of experiments would (2.0 s host '
+        'check: late 0.030 % of periods, worst 2.6 ms); 95 % meet 41 (a loss may change by '
+        'up to 8.77 %, 95th percentile): give --timing-tolerance auto, or quieten the host '
+        '(docs/real-drive.md, "Check the host first")'
+    )
+    assert 'realtime' not in record and record['pm_qos_held'] is True
+
+
+def test_auto_takes_what_the_host_meets_never_below_the_default(monkeypatch):
+    monkeypatch.setattr(host, 'probe', lambda *a, **k: _floor(61, 41, meets=False))
+    tol, record, line = host.check_before_run('auto', 10)
+    assert tol == 41 == record['tolerance_chosen'] and record['auto'] is True
+    assert line.startswith('timing tolerance auto: 41 held periods per experiment (2.0 s host')
+    monkeypatch.setattr(host, 'probe', lambda *a, **k: _floor(1, 2, meets=True))
+    tol, record, line = host.check_before_run('auto', 10)
+    assert tol == 10 and record['tolerance'] == 2  # a quiet host keeps the default
+    tol, _record, line = host.check_before_run(10, 10)
+    assert tol == 10 and line is None  # a host that meets it: nothing to say
+
+
+def test_the_tolerance_option_takes_a_count_or_auto():
+    import argparse
+
+    assert host.tolerance_arg('auto') == 'auto' and host.tolerance_arg(' AUTO ') == 'auto'
+    assert host.tolerance_arg('0') == 0 and host.tolerance_arg('1000000') == 1_000_000
+    for bad, says in (
+        ('-1', 'must be in [0, 1000000] periods, got -1'),
+        ('x', "not an integer or 'auto'"),
+    ):
+        with pytest.raises(argparse.ArgumentTypeError, match=says.replace('[', r'\[')):
+            host.tolerance_arg(bad)

@@ -32,19 +32,49 @@ if TYPE_CHECKING:
     from .rundir import RunDir
 
 
-def failure_advice(outcome: str, records: list[Record], bench: str) -> list[str]:
+#: A composed loop whose period work (p50) takes more than this share of the period is
+#: itself too slow: its late periods are the drive's, not the host's.
+SLOW_DRIVE_SHARE = 0.5
+
+
+def failure_advice(
+    outcome: str, records: list[Record], bench: str, loop: dict[str, Any] | None = None
+) -> list[str]:
     """What to do about a failed run, for the summary (empty: nothing to say). A run that
     failed because its experiments kept coming out ``timing`` (held or late periods
-    beyond the tolerance) is told where the controller should run."""
+    beyond the tolerance) is told the cause: on a composed bench (``loop``: the session's
+    composed-loop figures) a drive whose own period work takes most of the period is too
+    slow, else the host started periods late (with what its check before the run found);
+    a controller in another process is told to run in the drive's process."""
     if not (outcome.startswith('failed') and records and isinstance(records[-1], Timing)):
         return []
     if bench in IN_PROCESS_BENCHES:
+        loop = loop or {}
+        work = (loop.get('period_work_us') or {}).get('p50')
+        ts_us = 200.0
+        if work is not None and work > SLOW_DRIVE_SHARE * ts_us:
+            return [
+                f'the experiments kept coming out `timing` because the drive is too slow: '
+                f"each period's own work (your read and write, the model, the controller) "
+                f'takes p50 {work:.0f} us of the {ts_us:.0f} us period, so periods start '
+                'late whatever the machine does. Make the read and write return within a few '
+                'tens of us: a compiled form runs a period in 6-14 us (docs/real-drive.md, '
+                '"What each form costs")'
+            ]
+        check = (loop.get('realtime') or {}).get('host_check') or {}
+        seen = (
+            f' (the check before the run: late {check["late_pct"]:.3f} % of periods, 95 % of '
+            f'experiments meet {check["tolerance"]})'
+            if 'late_pct' in check
+            else ''
+        )
         return [
             'the experiments kept coming out `timing` although the controller runs in the '
-            "drive's process: the composed loop itself started periods late (the drive "
-            "line's overruns and worst lateness; a loaded machine). Run on a less loaded "
-            'machine or core, or allow a few held periods per experiment with --ros-args -p '
-            'timing_tolerance:=N and say so with the results (docs/real-drive.md, "Timing")'
+            "drive's process and its period work is short: the host started periods late"
+            f'{seen}; the drive line has the overruns and worst lateness. Check the host '
+            '(`ros2 run im_drive_sim host_check`), run on a quieter machine or core, or allow '
+            'the held periods it needs with --timing-tolerance auto (or N) and say so with '
+            'the results (docs/real-drive.md, "Check the host first")'
         ]
     where = 'a separate controller process' if bench != 'external' else 'the external controller'
     return [
@@ -306,7 +336,8 @@ class TunerSession:
         progress.close()
         summary = tuning.summary(outcome=outcome, wall_s=time.monotonic() - t_wall0)
         summary.report_command = f'ros2 run im_tuner report {shlex.quote(str(rundir.path))}'
-        advice = failure_advice(outcome, tuning.records, plan.mode)
+        loop = ((summary.sessions or [{}])[-1].get('drive') or {}).get('loop')
+        advice = failure_advice(outcome, tuning.records, plan.mode, loop)
         if advice:
             summary.what_to_do = advice
         tuning.checkpoint()

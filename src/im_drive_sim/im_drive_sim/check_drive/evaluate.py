@@ -277,9 +277,21 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
             'accel': math.nan,
             'duration_s': 0.0,
         }
-        items['step_response'] = judge_step_response(
+        item = judge_step_response(
             nan, nan, a, counts_per_rad, rec.aborted_why or 'step test incomplete'
         )
+        if not rec.aborted_why:
+            # the check answered too few of the step's states to change its level four
+            # times: it fell behind (descheduled, or the link held the states), not the
+            # drive -- nothing was measured to judge
+            c = conds.get('step')
+            seen = busy_reason(c) if c is not None else ''
+            late = f'; took states up to {c.late_max_s * 1e3:.1f} ms late' if c else ''
+            item = item.undecided(
+                f"the check answered {len(step_trans)} of the step test's 4 level changes "
+                f'(it fell behind{late}{"; " + seen if seen else ""})'
+            )
+        items['step_response'] = item
 
     if realtime:
         items['watchdog'] = judge_watchdog_realtime(

@@ -27,12 +27,13 @@ from typing import Any
 
 from rclpy.node import Node
 
+from im_drive_sim import host as host_floor
 from im_drive_sim import rt
 from im_drive_sim.cli import UsageError, parse_cli
 from im_drive_sim.runtime import RosSession
 
 from .. import family
-from ..names import DRIVE_HOST_NODE
+from ..names import DEFAULT_TIMING_TOLERANCE, DRIVE_HOST_NODE
 from ..record.run_info import default_out_dir
 from . import drive_spec
 from .drive_host_main import parser
@@ -42,8 +43,9 @@ from .sim_bench import _Bag
 from .spec import BenchSpec, recording_options
 
 
-def _spec(cli: argparse.Namespace, choice: Any) -> BenchSpec:
-    """The composed real-time bench of ``cli`` (``choice``: the checked ``--drive``)."""
+def _spec(cli: argparse.Namespace, choice: Any, host_check: dict | None = None) -> BenchSpec:
+    """The composed real-time bench of ``cli`` (``choice``: the checked ``--drive``;
+    ``host_check``: the host's check at start-up, recorded with the loop)."""
     config = str(cli.config) if cli.config else None
     given = (('config_file', config), ('model', cli.model), ('seed', cli.seed))
     drive: list[tuple[str, Any]] = [(n, v) for n, v in given if v is not None]
@@ -65,6 +67,7 @@ def _spec(cli: argparse.Namespace, choice: Any) -> BenchSpec:
         drive_parameters=tuple(drive),
         controller_parameters=tuple(ctl),
         rt_options=rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY),
+        host_check=host_check,
         quiet=False,
     )
 
@@ -85,6 +88,18 @@ def main(args: list[str] | None = None) -> int:
     except UsageError as exc:
         print(f'error: drive_host: {exc}', file=sys.stderr)
         return 2
+    try:  # the host's check at start-up: can it meet the tolerance? (auto: what it can)
+        cli.timing_tolerance, host_check, line = host_floor.check_before_run(
+            cli.timing_tolerance,
+            DEFAULT_TIMING_TOLERANCE,
+            rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY),
+        )
+    except KeyboardInterrupt:
+        return 130
+    if line and host_check['auto']:
+        print(line, flush=True)
+    elif line:
+        print(f'warning: {line}', file=sys.stderr, flush=True)
     if cli.out is None and not cli.no_record:
         cli.out = default_out_dir(prefix='drive_host')
     host = _Bag(cli)
@@ -103,7 +118,7 @@ def main(args: list[str] | None = None) -> int:
         # across the network
         marker = Node(DRIVE_HOST_NODE, start_parameter_services=False)
         bench = open_bench(
-            _spec(cli, choice), host, command=argv, should_stop=lambda: session.stopped
+            _spec(cli, choice, host_check), host, command=argv, should_stop=lambda: session.stopped
         )
         assert isinstance(bench, InProcess)
         loop = bench.bench

@@ -228,6 +228,8 @@ HOST_FLOOR_S = 8.0
 #: A host whose worst experiment-long window holds more periods than this cannot run a
 #: wall-clock test honestly: the test skips with the floor in its reason.
 HOST_FLOOR_HOPELESS = 1000
+#: The factor from the wait's floor to what a whole real-time process holds (HostFloor).
+HOST_FLOOR_MARGIN = 2
 
 
 class HostFloor(dict):
@@ -236,10 +238,13 @@ class HostFloor(dict):
 
     @property
     def tolerance(self) -> int:
-        """The timing tolerance a wall-clock run here is given: the worst experiment-long
-        window of the measurement (not its 95th percentile: a test must complete), at
-        least the tuner's default."""
-        return max(10, int(self['tolerance']), int(self['held_per_experiment']['max']))
+        """The timing tolerance a wall-clock run here is given: twice the worst
+        experiment-long window of the measurement, at least the tuner's default. Not its
+        95th percentile: a test must complete. Twice: on this 2-core VM a whole tuner
+        process (its DDS and serving threads beside the loop) held 1.5-3x the periods the
+        wait alone held in the same minutes (0.6-0.7 % against 0.1-0.4 %, 2026-12-02)."""
+        worst = max(int(self['tolerance']), int(self['held_per_experiment']['max']))
+        return max(10, HOST_FLOOR_MARGIN * worst)
 
     def describe(self) -> str:
         """The floor in one line, for failure and skip messages."""

@@ -748,3 +748,43 @@ def test_summary_and_exit_code_of_inconclusive_items():
     assert cd.exit_code([ok, unsure, bad]) == 1
     line = cd.summary_line([ok, unsure, bad], 'realtime', 'realtime')
     assert line.startswith('check_drive: 1/3 items pass; FAIL: rate; INCONCLUSIVE: latency')
+
+
+def _recording(step_trans: list, aborted_why: str = '') -> cd.evaluate.Recording:
+    """A real-time drive's recording the test makes up: 3000 states, every period fresh
+    (delay 1), taken 50 us after publication; the step phase's level changes as given."""
+    from im_drive_sim.check_drive.evaluate import Recording
+    from im_drive_sim.check_drive.thresholds import F, STATE_FIELDS, TYPES
+
+    n = 3000
+    s = np.zeros((n, len(STATE_FIELDS)))
+    s[:, F['step_index']] = np.arange(n)
+    s[:, F['applied_step']] = np.arange(n) - 1
+    s[:, F['command_delay']] = 1
+    src = np.arange(n, dtype=np.int64) * 200_000
+    return Recording(
+        states=s, lengths=np.full(n, len(STATE_FIELDS)), source_ns=src, recv_ns=src + 40_000,
+        take_ns=src + 50_000, seq=np.arange(n), cmd=np.zeros((0, 3)), cmd_ns=np.zeros(0),
+        joints=np.zeros((0, 4)), endpoints={t: [TYPES[t]] for t in TYPES}, ts=TS,
+        ts_ns=200_000, isq_max=7.0, rated_flux_current=3.0, counts_per_rad=4096 / (2 * math.pi),
+        amplitude=0.5, realtime=True, idle_advance=100, mode_note='', i_rate0=0, i_rate1=2500,
+        m_rate0=0, rate_wall=0.5, trans=[], step_trans=step_trans, k_step_end=2900,
+        aborted_why=aborted_why,
+        watchdog={'t_act': None, 't_zero': None, 'resumed_s': None, 'aborted': ''},
+        command_timeout=0.01, command_timeout_source='test', phases={'step': (2700, 2900)},
+    )  # fmt: skip
+
+
+def test_a_step_test_the_check_fell_behind_in_is_inconclusive_not_a_fail():
+    """Two of the step test's four level changes answered (the check was descheduled
+    through the others): nothing of the drive was measured, so the item cannot fail."""
+    from im_drive_sim.check_drive.evaluate import evaluate
+
+    items = {i.name: i for i in evaluate(_recording([(2700, 0.0, 0.0), (2725, 0.5, 0.0)]))}
+    step = items['step_response']
+    assert step.verdict == 'inconclusive', step
+    assert step.inconclusive.startswith("the check answered 2 of the step test's 4 level"), step
+    # a drive the check aborted (overspeed) still fails: that is the drive's
+    aborted = 'aborted: |omega_meas| 40.0 > 30 rad/s'
+    items = {i.name: i for i in evaluate(_recording([(2700, 0.0, 0.0)], aborted))}
+    assert items['step_response'].verdict == 'fail' and aborted in items['step_response'].figures

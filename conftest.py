@@ -228,8 +228,6 @@ HOST_FLOOR_S = 8.0
 #: A host whose worst experiment-long window holds more periods than this cannot run a
 #: wall-clock test honestly: the test skips with the floor in its reason.
 HOST_FLOOR_HOPELESS = 1000
-#: The factor from the wait's floor to what a whole real-time process holds (HostFloor).
-HOST_FLOOR_MARGIN = 2
 
 
 class HostFloor(dict):
@@ -240,11 +238,13 @@ class HostFloor(dict):
     def tolerance(self) -> int:
         """The timing tolerance a wall-clock run here is given: twice the worst
         experiment-long window of the measurement, at least the tuner's default. Not its
-        95th percentile: a test must complete. Twice: on this 2-core VM a whole tuner
-        process (its DDS and serving threads beside the loop) held 1.5-3x the periods the
-        wait alone held in the same minutes (0.6-0.7 % against 0.1-0.4 %, 2026-12-02)."""
+        95th percentile: a test must complete. Twice (``host.AUTO_MARGIN``, as
+        ``--timing-tolerance auto``): a whole tuner process holds 1.5-3x the periods the
+        wait alone holds in the same minutes."""
+        from im_drive_sim.host import AUTO_MARGIN
+
         worst = max(int(self['tolerance']), int(self['held_per_experiment']['max']))
-        return max(10, HOST_FLOOR_MARGIN * worst)
+        return max(10, AUTO_MARGIN * worst)
 
     def describe(self) -> str:
         """The floor in one line, for failure and skip messages."""

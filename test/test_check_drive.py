@@ -754,7 +754,7 @@ def _recording(step_trans: list, aborted_why: str = '') -> cd.evaluate.Recording
     """A real-time drive's recording the test makes up: 3000 states, every period fresh
     (delay 1), taken 50 us after publication; the step phase's level changes as given."""
     from im_drive_sim.check_drive.evaluate import Recording
-    from im_drive_sim.check_drive.thresholds import F, STATE_FIELDS, TYPES
+    from im_drive_sim.check_drive.thresholds import STATE_FIELDS, TYPES, F
 
     n = 3000
     s = np.zeros((n, len(STATE_FIELDS)))

@@ -105,11 +105,14 @@ def test_a_host_that_cannot_meet_the_tolerance_is_told_so_in_one_line(monkeypatc
 def test_auto_takes_what_the_host_meets_never_below_the_default(monkeypatch):
     monkeypatch.setattr(host, 'probe', lambda *a, **k: _floor(61, 41, meets=False))
     tol, record, line = host.check_before_run('auto', 10)
-    assert tol == 41 == record['tolerance_chosen'] and record['auto'] is True
-    assert line.startswith('timing tolerance auto: 41 held periods per experiment (2.0 s host')
+    assert tol == 2 * 41 == record['tolerance_chosen'] and record['auto'] is True
+    assert line.startswith('timing tolerance auto: 82 held periods per experiment (2.0 s host')
+    assert '95 % of its experiments meet 41, a whole run holds up to 2x that' in line, line
+    assert 'beyond the 50 held periods whose effect on a loss was measured' in line, line
     monkeypatch.setattr(host, 'probe', lambda *a, **k: _floor(1, 2, meets=True))
     tol, record, line = host.check_before_run('auto', 10)
     assert tol == 10 and record['tolerance'] == 2  # a quiet host keeps the default
+    assert 'a loss may change by up to 1.95 %' in line, line
     tol, _record, line = host.check_before_run(10, 10)
     assert tol == 10 and line is None  # a host that meets it: nothing to say
 

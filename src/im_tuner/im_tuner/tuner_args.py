@@ -159,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
         'held periods are recorded with its loss); past N it is marked timing and re-run. '
         f'Default {DEFAULT_TIMING_TOLERANCE}: the change of a loss by that many held periods '
         'stays within the bench\'s noise (docs/real-drive.md, "Timing tolerance"); 0: '
-        "the paper's timing exactly; auto: what a 2 s check of this host finds 95 %% of "
+        "the paper's timing exactly; auto: twice what a 2 s check of this host finds 95 %% of "
         f'experiments meet, at least {DEFAULT_TIMING_TOLERANCE} (--bench realtime; '
         'elsewhere the default). Also -p timing_tolerance:=N after --ros-args',
     )

@@ -224,13 +224,15 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
     return NewRun(run, params, out, drive)
 
 
-def _check_host(cli: argparse.Namespace, tolerance: int | str) -> tuple[int, dict | None]:
-    """On the composed real-time bench, the host's check before the first experiment
-    (``host.check_before_run``: 2 s of the loop's wait with the run's real-time options):
-    one line when the host cannot meet the tolerance (or what ``auto`` chose). Returns
-    the tolerance to run with and the check's record (None: not a real-time bench, where
-    ``auto`` is the default)."""
-    if (cli.bench or 'auto') != 'realtime':
+def _check_host(
+    cli: argparse.Namespace, tolerance: int | str, bench: str | None = None
+) -> tuple[int, dict | None]:
+    """On the composed real-time bench (``bench``: the one asked for, default
+    ``--bench``), the host's check before the first experiment (``host.check_before_run``:
+    2 s of the loop's wait with the run's real-time options): one line when the host
+    cannot meet the tolerance (or what ``auto`` chose). Returns the tolerance to run with
+    and the check's record (None: not a real-time bench, where ``auto`` is the default)."""
+    if (bench or cli.bench or 'auto') != 'realtime':
         return (DEFAULT_TIMING_TOLERANCE if tolerance == host.AUTO else int(tolerance)), None
     chosen, record, line = host.check_before_run(
         tolerance, DEFAULT_TIMING_TOLERANCE, rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY)
@@ -321,6 +323,8 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
             drive = drive_spec.resolve(str(run.drive), run.drive_config)
         except drive_spec.DriveSpecError as exc:
             raise UsageError(f'--resume: {exc}') from None
+    # this session's check of its host (at the run's tolerance; recorded with its loop)
+    _, run.host_check = _check_host(cli, run.tolerance(), run.bench_requested)
     return PreparedSession(run, params, drive, progress, rundir, tuning, n_restored)
 
 

@@ -9,6 +9,7 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from .. import rt
 from ..cli import Parser, UsageError, add_config_option, check_ros_args, output_file
 from .evaluate import json_ready
 from .judges import conditions_line, exit_code, summary_line
@@ -112,11 +113,17 @@ def main(args: list[str] | None = None) -> int:
         'FASTRTPS_DEFAULT_PROFILES_FILE',
         str(Path(__file__).parent.parent / 'config' / 'check_drive_fastdds.xml'),
     )
+    # the CPU latency request, as every real-time loop of the workspace: a check that
+    # wakes late from a CPU's deep idle state would judge its own lateness
+    pm_qos = rt.hold_latency()
+    if pm_qos:
+        print(f'warning: {pm_qos}', file=sys.stderr, flush=True)
     session = RosSession(argv)
     node = Node('check_drive', **({'namespace': opts.namespace} if opts.namespace else {}))
     code = 0
     try:
         items, info = run_check(opts, node, lambda s: print(s, flush=True), lambda: session.stopped)
+        info['pm_qos'] = rt.latency_report()
         for item in items:
             print(item.line())
         if info.get('conditions') and info.get('mode') == 'realtime':

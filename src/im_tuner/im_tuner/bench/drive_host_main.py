@@ -53,7 +53,7 @@ def parser() -> argparse.ArgumentParser:
         metavar='N|auto',
         help='held or late periods an experiment may have and still count (default '
         f'{DEFAULT_TIMING_TOLERANCE}; docs/real-drive.md, "Timing tolerance"); auto: what a '
-        f'2 s check of this host at start-up finds 95 %% of experiments meet, at least '
+        f'2 s check of this host at start-up finds 95 %% of experiments meet, twice, at least '
         f'{DEFAULT_TIMING_TOLERANCE}. The check runs either way: a host that cannot meet N '
         'is told so in one line',
     )

@@ -788,3 +788,20 @@ def test_a_step_test_the_check_fell_behind_in_is_inconclusive_not_a_fail():
     aborted = 'aborted: |omega_meas| 40.0 > 30 rad/s'
     items = {i.name: i for i in evaluate(_recording([(2700, 0.0, 0.0)], aborted))}
     assert items['step_response'].verdict == 'fail' and aborted in items['step_response'].figures
+
+
+def test_a_check_past_its_limit_stops_at_zero_current_inconclusive(procs):
+    """The whole check's limit (``--timeout`` + CHECK_LIMIT_S), here made 1 s (3 s - 2 s)
+    so that the check meets it wherever it is (finding the drive, or probing it): one
+    line, exit 3, zero current commanded -- a check never runs on unbounded."""
+    drive = procs.start([ROS2, 'run', 'im_drive_sim', 'drive_sim'])
+    code = (
+        'import sys; import im_drive_sim.check_drive.cli as c; c.CHECK_LIMIT_S = -2.0; '
+        "sys.exit(c.main(['check_drive', '--timeout', '3']))"
+    )
+    p = procs.start([sys.executable, '-c', code])
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == 3, out + err
+    (line,) = err.strip().splitlines()
+    assert line.startswith('check_drive: INCONCLUSIVE: the check did not end within 1 s'), err
+    assert line.endswith('zero current commanded') and drive.poll() is None, err

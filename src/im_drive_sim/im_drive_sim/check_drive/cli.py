@@ -6,6 +6,7 @@ import json
 import math
 import os
 import sys
+import time
 from dataclasses import asdict
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from .evaluate import json_ready
 from .judges import conditions_line, exit_code, summary_line
 from .probe import DriveLost, Interrupted
 from .procedure import Options, run_check
-from .thresholds import CheckRefused
+from .thresholds import CHECK_LIMIT_S, CheckRefused
 
 __all__ = ['main', 'parse_args']
 
@@ -122,7 +123,12 @@ def main(args: list[str] | None = None) -> int:
     node = Node('check_drive', **({'namespace': opts.namespace} if opts.namespace else {}))
     code = 0
     try:
-        items, info = run_check(opts, node, lambda s: print(s, flush=True), lambda: session.stopped)
+        t_end = time.monotonic() + opts.timeout + CHECK_LIMIT_S
+
+        def stop() -> bool:
+            return session.stopped or time.monotonic() > t_end
+
+        items, info = run_check(opts, node, lambda s: print(s, flush=True), stop)
         info['pm_qos'] = rt.latency_report()
         for item in items:
             print(item.line())
@@ -148,8 +154,18 @@ def main(args: list[str] | None = None) -> int:
         print(f'error: check_drive: {exc}', file=sys.stderr)
         code = 1
     except Interrupted:
-        print('check_drive: interrupted; zero current commanded', file=sys.stderr)
-        code = 130
+        if session.stopped:
+            print('check_drive: interrupted; zero current commanded', file=sys.stderr)
+            code = 130
+        else:  # the whole check's limit
+            print(
+                f'check_drive: INCONCLUSIVE: the check did not end within '
+                f'{opts.timeout + CHECK_LIMIT_S:g} s (--timeout + {CHECK_LIMIT_S:g} s: a link '
+                'that holds the states, or a host that starves the check); zero current '
+                'commanded',
+                file=sys.stderr,
+            )
+            code = 3
     finally:
         node.destroy_node()
         session.close()

@@ -14,6 +14,7 @@ __all__ = [
     'ACCEL_MIN_COUNTS',
     'BUSY_FRESH_MIN',
     'BUSY_LATE_P99_S',
+    'CHECK_LIMIT_S',
     'CLOCK_TOLERANCE',
     'CURRENT_BOUND_FACTOR',
     'CURRENT_FIELDS',
@@ -139,6 +140,10 @@ LOCKSTEP_SILENCE_S = 0.35
 #: are found within 0.1 s, one in six took 2.6 s.)
 DISCOVERY_SETTLE_S = 3.2
 DEFAULT_TIMEOUT = 0.05  # [s] command_timeout when the drive has no such parameter
+#: [s] the whole check's limit beyond --timeout (finding the drive): a check takes about
+#: 4 s; one that has not ended by then (a link that holds everything, a host that starves
+#: the check) stops at zero current, INCONCLUSIVE, exit 3
+CHECK_LIMIT_S = 60.0
 NS_PER_S = 1_000_000_000
 
 

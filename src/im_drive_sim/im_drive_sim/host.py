@@ -286,7 +286,10 @@ def _change(tolerance: int) -> str:
     pct = loss_change_pct(tolerance)
     if math.isfinite(pct):
         return f'a loss may change by up to {pct:.2f} %, 95th percentile'
-    return 'beyond the 50 held periods whose effect on a loss was measured'
+    return (
+        'more than the 50 held periods whose effect on a loss was measured (50 in one burst: '
+        'up to 10.6 %)'
+    )
 
 
 def check_before_run(

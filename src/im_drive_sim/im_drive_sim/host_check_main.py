@@ -62,7 +62,7 @@ def describe(f: host.HostFloor) -> list[str]:
     r = f.realtime
     lines = [
         f"host_check: {f.seconds:.1f} s of the 5 kHz loop's wait ({r.get('policy')} "
-        f'priority {r.get("priority")}, CPU latency request held '
+        f'priority {r.get("priority")}, CPUs {r.get("affinity")}, CPU latency request held '
         f'{r.get("pm_qos", {}).get("held")}, memory locked {r.get("memory_locked")}, '
         f'spin {f.spin_us:g} us)',
         f'periods {f.periods}: late {f.overruns} ({f.late_pct:.3f} %, {f.late_per_s:.1f}/s), '
@@ -82,7 +82,8 @@ def describe(f: host.HostFloor) -> list[str]:
         f"a loss may change by up to {f.loss_change_pct:.2f} % (95th percentile; the bench's "
         'own noise is 2.4 %)'
         if math.isfinite(f.loss_change_pct)
-        else 'beyond the held periods whose effect on a loss was measured (50)'
+        else 'more than the 50 held periods whose effect on a loss was measured (50 in one '
+        'burst: up to 10.6 %)'
     )
     if f.meets:
         lines.append(
@@ -93,8 +94,9 @@ def describe(f: host.HostFloor) -> list[str]:
         lines.append(
             f'verdict: this host cannot meet --timing-tolerance {f.tolerance_checked} '
             f'({100 * f.share_meeting:.0f} % of experiments would): 95 % meet '
-            f'{f.tolerance} ({change}); run with --timing-tolerance auto, or quieten the '
-            'host (docs/real-drive.md, "Check the host first")'
+            f'{f.tolerance} ({change}); tune with `tuner --bench realtime --timing-tolerance '
+            'auto`, or quieten the host and check again with --seconds 60 (docs/real-drive.md, '
+            '"Check the host first")'
         )
     return lines
 

@@ -108,7 +108,7 @@ def test_auto_takes_what_the_host_meets_never_below_the_default(monkeypatch):
     assert tol == 2 * 41 == record['tolerance_chosen'] and record['auto'] is True
     assert line.startswith('timing tolerance auto: 82 held periods per experiment (2.0 s host')
     assert '95 % of its experiments meet 41, a whole run holds up to 2x that' in line, line
-    assert 'beyond the 50 held periods whose effect on a loss was measured' in line, line
+    assert 'more than the 50 held periods whose effect on a loss was measured' in line, line
     monkeypatch.setattr(host, 'probe', lambda *a, **k: _floor(1, 2, meets=True))
     tol, record, line = host.check_before_run('auto', 10)
     assert tol == 10 and record['tolerance'] == 2  # a quiet host keeps the default

@@ -96,10 +96,6 @@ def main(args: list[str] | None = None) -> int:
         )
     except KeyboardInterrupt:
         return 130
-    if line and host_check['auto']:
-        print(line, flush=True)
-    elif line:
-        print(f'warning: {line}', file=sys.stderr, flush=True)
     if cli.out is None and not cli.no_record:
         cli.out = default_out_dir(prefix='drive_host')
     host = _Bag(cli)
@@ -121,6 +117,11 @@ def main(args: list[str] | None = None) -> int:
             _spec(cli, choice, host_check), host, command=argv, should_stop=lambda: session.stopped
         )
         assert isinstance(bench, InProcess)
+        # the host check's line once the bench is up (a refusal before it is one line)
+        if line and host_check['auto']:
+            print(line, flush=True)
+        elif line:
+            print(f'warning: {line}', file=sys.stderr, flush=True)
         loop = bench.bench
         log = marker.get_logger()
         log.info(

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import math
 import shlex
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -95,6 +94,10 @@ def check_no_start(algo: str, where: str = '--no-start') -> None:
     raise UsageError(f'{where} does not apply to --algo {algo}: {why}; it is for {NO_START_TEXT}')
 
 
+#: what the host's check before the run has to say: (the line, a warning) or None
+HostSaid = tuple[str, bool] | None
+
+
 @dataclass
 class NewRun:
     """A new run whose every check passed: its settings (run.yaml), its tuner parameters,
@@ -105,6 +108,7 @@ class NewRun:
     params: TunerParams
     out: Path | None
     drive: DriveChoice | None
+    host_said: HostSaid = None
 
 
 def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
@@ -199,7 +203,7 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
     from .tuning import run_seeds
 
     _opt_ss, drive_seed = run_seeds(seed)
-    tolerance, host_record = _check_host(cli, tolerance)
+    tolerance, host_record, host_said = _check_host(cli, tolerance)
     run = RunConfig.from_dict(
         {
             'algo': algo,
@@ -221,27 +225,25 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
             'command': ' '.join(shlex.quote(a) for a in argv),
         }
     )
-    return NewRun(run, params, out, drive)
+    return NewRun(run, params, out, drive, host_said)
 
 
 def _check_host(
     cli: argparse.Namespace, tolerance: int | str, bench: str | None = None
-) -> tuple[int, dict | None]:
+) -> tuple[int, dict | None, HostSaid]:
     """On the composed real-time bench (``bench``: the one asked for, default
     ``--bench``), the host's check before the first experiment (``host.check_before_run``:
     2 s of the loop's wait with the run's real-time options): one line when the host
-    cannot meet the tolerance (or what ``auto`` chose). Returns the tolerance to run with
-    and the check's record (None: not a real-time bench, where ``auto`` is the default)."""
+    cannot meet the tolerance (or what ``auto`` chose). Returns the tolerance to run with,
+    the check's record (None: not a real-time bench, where ``auto`` is the default) and
+    its line, said by the session once its bench is up (a refusal before that stays one
+    line)."""
     if (bench or cli.bench or 'auto') != 'realtime':
-        return (DEFAULT_TIMING_TOLERANCE if tolerance == host.AUTO else int(tolerance)), None
+        return (DEFAULT_TIMING_TOLERANCE if tolerance == host.AUTO else int(tolerance)), None, None
     chosen, record, line = host.check_before_run(
         tolerance, DEFAULT_TIMING_TOLERANCE, rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY)
     )
-    if line and record['auto']:
-        print(line, flush=True)
-    elif line:
-        print(f'warning: {line}', file=sys.stderr, flush=True)
-    return chosen, record
+    return chosen, record, (None if line is None else (line, not record['auto']))
 
 
 @dataclass
@@ -260,6 +262,7 @@ class PreparedSession:
     tuning: TuningRun | None = None
     n_restored: int = 0
     out: Path | None = None
+    host_said: HostSaid = None  #: the host check's line (_check_host)
 
 
 def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
@@ -278,7 +281,9 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
         new.run.put(bench_requested=cli.bench or 'auto')
         assert new.run.budget is not None
         progress = Progress(new.run.algo, new.run.budget, cli.quiet)
-        return PreparedSession(new.run, new.params, new.drive, progress, out=out)
+        return PreparedSession(
+            new.run, new.params, new.drive, progress, out=out, host_said=new.host_said
+        )
     if timing_tolerance(cli, argv) is not None:
         cli.timing_tolerance = True  # (given: refused below, with the other settings)
     given = [k for k in RUN_SETTINGS if getattr(cli, k) not in (None, False)]
@@ -324,8 +329,8 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
         except drive_spec.DriveSpecError as exc:
             raise UsageError(f'--resume: {exc}') from None
     # this session's check of its host (at the run's tolerance; recorded with its loop)
-    _, run.host_check = _check_host(cli, run.tolerance(), run.bench_requested)
-    return PreparedSession(run, params, drive, progress, rundir, tuning, n_restored)
+    _, run.host_check, said = _check_host(cli, run.tolerance(), run.bench_requested)
+    return PreparedSession(run, params, drive, progress, rundir, tuning, n_restored, None, said)
 
 
 def _ripple_limit(cli: argparse.Namespace, algo: str) -> float | None:

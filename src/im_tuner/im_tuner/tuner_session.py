@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import shlex
 import shutil
+import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -143,6 +144,7 @@ class TunerSession:
         self.tuning = cfg.tuning
         self.n_restored = cfg.n_restored
         self.out = cfg.out
+        self.host_said = cfg.host_said
         self.resumed = cli.resume is not None
         #: what a new run's directory creation makes (undone if the run is refused)
         self.made = None if self.resumed else _made_by_create(cfg.out)
@@ -250,6 +252,12 @@ class TunerSession:
             tuning.timing_tolerance = enforced
             if not self.resumed:
                 run.put(timing_tolerance=enforced)
+        if self.host_said is not None:  # the host's check before the run, now the bench is up
+            line, warning = self.host_said
+            if warning:
+                print(f'warning: {line}', file=sys.stderr, flush=True)
+            else:
+                print(line, flush=True)
         if not self.resumed:
             run.put(
                 controller_parameters=parameters,

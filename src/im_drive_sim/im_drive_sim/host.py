@@ -37,6 +37,7 @@ __all__ = [
     'HostFloor',
     'judge',
     'loss_change_pct',
+    'loss_change_words',
     'measure',
 ]
 
@@ -281,9 +282,15 @@ def tolerance_arg(text: str) -> int | str:
 tolerance_arg.__name__ = 'tolerance'
 
 
-def _change(tolerance: int) -> str:
-    """What ``tolerance`` held periods may do to a loss, in words (the held-period table)."""
+def loss_change_words(tolerance: int, noise: bool = False) -> str:
+    """What ``tolerance`` held periods may do to a loss, in words (the held-period table);
+    ``noise``: beside the bench's own noise."""
     pct = loss_change_pct(tolerance)
+    if math.isfinite(pct) and noise:
+        return (
+            f"a loss may change by up to {pct:.2f} % (95th percentile; the bench's own noise "
+            'is 2.4 %)'
+        )
     if math.isfinite(pct):
         return f'a loss may change by up to {pct:.2f} %, 95th percentile'
     return (
@@ -317,7 +324,7 @@ def check_before_run(
         line = (
             f'timing tolerance auto: {chosen} held periods per experiment ({seen}; 95 % of '
             f'its experiments meet {f.tolerance}, a whole run holds up to {AUTO_MARGIN}x that; '
-            f'{_change(chosen)})'
+            f'{loss_change_words(chosen)})'
         )
         return chosen, record, line
     if f.meets:
@@ -327,7 +334,8 @@ def check_before_run(
         record,
         (
             f'this host cannot meet --timing-tolerance {asked}: {100 * f.share_meeting:.0f} % of '
-            f'experiments would ({seen}); 95 % meet {f.tolerance} ({_change(f.tolerance)}): give '
+            f'experiments would ({seen}); 95 % meet {f.tolerance} '
+            f'({loss_change_words(f.tolerance)}): give '
             '--timing-tolerance auto, or quieten the host (docs/real-drive.md, "Check the host '
             'first")'
         ),

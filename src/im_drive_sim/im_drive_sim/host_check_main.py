@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 
 from . import host, rt
@@ -78,13 +77,7 @@ def describe(f: host.HostFloor) -> list[str]:
         f'held periods per 1.125 s experiment: p50 {h["p50"]:.0f}, p95 {h["p95"]:.0f}, '
         f'max {h["max"]:.0f}{guess}'
     )
-    change = (
-        f"a loss may change by up to {f.loss_change_pct:.2f} % (95th percentile; the bench's "
-        'own noise is 2.4 %)'
-        if math.isfinite(f.loss_change_pct)
-        else 'more than the 50 held periods whose effect on a loss was measured (50 in one '
-        'burst: up to 10.6 %)'
-    )
+    change = host.loss_change_words(f.tolerance, noise=True)
     if f.meets:
         lines.append(
             f'verdict: {100 * f.share_meeting:.0f} % of experiments meet --timing-tolerance '

@@ -1,6 +1,6 @@
 """check_drive's verdicts, repeated: quiet, beside CPU hogs, and across two network
-namespaces with packet loss (issue 39's acceptance: for each documented broken drive and
-a correct one, every verdict correct or ``inconclusive``, never wrong).
+namespaces with packet loss: for each documented broken drive and a correct one, every
+verdict correct or ``inconclusive``, never wrong.
 
     python benchmarks/check_drive_verdicts.py [--runs N] [--conditions quiet,hogs,netns]
                                          [--drives correct,sim,slower,...] [--loss PERCENT]
@@ -32,6 +32,10 @@ sys.path.insert(0, str(ROOT / 'test'))
 BIN = Path(sys.prefix) / 'bin'
 BROKEN = str(ROOT / 'test' / 'broken_drive.py')
 
+EXAMPLE_RT = [
+    str(BIN / 'ros2'), 'run', 'im_drive_sim', 'example_drive',
+    '--thread-priority', '50', '--lock-memory',
+]  # fmt: skip
 #: drive name -> (argv, the items it must fail)
 DRIVES: dict[str, tuple[list[str], set[str]]] = {
     'example': ([str(BIN / 'ros2'), 'run', 'im_drive_sim', 'example_drive'], set()),
@@ -44,7 +48,37 @@ DRIVES: dict[str, tuple[list[str], set[str]]] = {
     'sign': ([sys.executable, BROKEN, '--break', 'sign'], {'step_response'}),
     'slow_current': ([sys.executable, BROKEN, '--break', 'slow_current'], {'step_response'}),
     'joint_type': ([sys.executable, BROKEN, '--break', 'joint_type'], {'topics'}),
+    # a C library on the wall clock in the example drive node (test/wallclock_drive.c),
+    # with the real-time options docs/real-drive.md gives a real drive: it acts with
+    # command delay 2; ``clib`` declares 2, ``clib_late`` declares 1 (it acts one period
+    # later than it says)
+    'clib': ([*EXAMPLE_RT, '--hardware'], set()),
+    'clib_late': ([*EXAMPLE_RT, '--hardware'], {'latency'}),
 }
+#: the environment a drive needs beyond the test's
+DRIVE_ENV = {'clib': {'IM_TEST_DRIVE_DELAY': '2'}, 'clib_late': {'IM_TEST_DRIVE_DELAY': '1'}}
+
+
+def wallclock_lib(tmp: Path) -> Path:
+    """test/wallclock_drive.c built into ``tmp``."""
+    out = tmp / 'libwallclock.so'
+    if not out.exists():
+        include = ROOT / 'src' / 'im_drive_sim' / 'include'
+        subprocess.run(
+            [
+                'cc',
+                '-O2',
+                '-shared',
+                '-fPIC',
+                f'-I{include}',
+                '-o',
+                str(out),
+                str(ROOT / 'test' / 'wallclock_drive.c'),
+                '-lm',
+            ],
+            check=True,
+        )
+    return out
 
 
 def hog() -> subprocess.Popen:
@@ -72,16 +106,30 @@ def one_check(drive: str, condition: str, tmp: Path, net) -> dict:
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     out_json = tmp / f'{drive}_{condition}_{time.monotonic_ns()}.json'
     check = [str(BIN / 'ros2'), 'run', 'im_drive_sim', 'check_drive', '--json', str(out_json)]
+    env.update(DRIVE_ENV.get(drive, {}))
+    if drive.startswith('clib'):
+        argv = [*argv, f'lib:{wallclock_lib(tmp)}']
     if net is not None:
         env = net.env(env)
         argv, check = net.argv('a', argv), net.argv('b', check)
     d = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        c = subprocess.run(check, env=env, capture_output=True, text=True, timeout=120)
+        t0 = time.monotonic()
+        try:
+            c = subprocess.run(check, env=env, capture_output=True, text=True, timeout=180)
+        except subprocess.TimeoutExpired as exc:
+            c = subprocess.CompletedProcess(check, -9, exc.stdout or '', 'hung: no end in 180 s')
+        took = time.monotonic() - t0
     finally:
         stop(d)
     data = json.loads(out_json.read_text()) if out_json.exists() else None
-    row = {'drive': drive, 'condition': condition, 'exit': c.returncode, 'items': {}}
+    row = {
+        'drive': drive,
+        'condition': condition,
+        'exit': c.returncode,
+        'items': {},
+        'seconds': round(took, 1),
+    }
     if data is None:
         row['error'] = (c.stderr.strip().splitlines() or ['?'])[-1]
         return row
@@ -130,7 +178,7 @@ def main() -> int:
                         wrong = [k for k, v in row['items'].items() if v['grade'] == 'WRONG']
                         inc = [k for k, v in row['items'].items() if v['grade'] == 'inconclusive']
                         print(
-                            f'{condition:6s} run {run} {drive:13s} exit {row["exit"]} '
+                            f'{condition:6s} run {run} {drive:13s} exit {row["exit"]} {row["seconds"]:5.1f} s '
                             f'wrong {wrong or "-"} inconclusive {inc or "-"}'
                             + (f' ERROR {row["error"]}' if 'error' in row else ''),
                             flush=True,

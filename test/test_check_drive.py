@@ -805,3 +805,65 @@ def test_a_check_past_its_limit_stops_at_zero_current_inconclusive(procs):
     (line,) = err.strip().splitlines()
     assert line.startswith('check_drive: INCONCLUSIVE: the check did not end within 1 s'), err
     assert line.endswith('zero current commanded') and drive.poll() is None, err
+
+
+def test_the_drives_own_lateness_on_its_clock():
+    """drive_lateness: each step's publication against the drive's on-time schedule there
+    (a clock offset of two computers cancels); a skipped step is NaN."""
+    k = np.arange(1000, 1300, dtype=float)
+    src = (5_000_000_000 + k * 200_000).astype(np.int64)  # another computer's clock
+    src[100] += 150_000  # step 1100 published 150 us late
+    src[200:] += 40_000  # a drive that re-anchored 40 us later: within a period
+    keep = np.ones(len(k), bool)
+    keep[50] = False  # step 1050 skipped (a drive that cannot pause)
+    late, first = cd.drive_lateness(k[keep], src[keep], 200_000)
+    assert first == 1000 and len(late) == 300
+    assert math.isnan(late[50])
+    assert late[100] == pytest.approx(150e-6)
+    assert np.nanmax(np.abs(np.delete(late, [50, 100])[:150])) < 1e-9
+    # far from the re-anchor the new schedule is on time again
+    assert abs(late[290]) < 1e-9
+
+
+def test_labels_are_judged_on_the_changes_the_drives_periods_kept():
+    """A period of the drive that started late may act a period after its label through
+    no fault of the drive: such changes are left out of the label count; too few left is
+    inconclusive with the drive's host in the reason; a drive slower than it declares in
+    on-time periods still fails."""
+    wall = np.full(100, 150e-6)
+    host = "the drive's host: 300 of its 8000 periods (3.8 %) started > 100 us late"
+    # a correct delay-2 drive: 4 of 11 changes show a period late, all where it was late
+    delays = [2, 3, 2, 3, 2, 3, 2, 2, 3, 2, 2]
+    on_time = [x == 2 for x in delays]
+    item = cd.judge_latency(delays, wall, True, declared=2, labels=[2] * 11)
+    assert item.verdict == 'fail'  # without the drive's timing: 4/11 later
+    item = cd.judge_latency(
+        delays, wall, True, declared=2, labels=[2] * 11, on_time=on_time, host=host
+    )
+    assert item.verdict == 'pass', item.line()
+    assert '7/7 where applied_step says (4 not judged: a period of the drive' in item.figures
+    # a drive slower than it declares: later than its label in every on-time change
+    item = cd.judge_latency([3] * 11, wall, True, declared=2, labels=[2] * 11, on_time=on_time)
+    assert item.verdict == 'fail' and '7 later (slower than declared)' in item.figures
+    # the host let too few changes through on time: inconclusive, saying so, never a pass
+    few = [True, True] + [False] * 9
+    for d in ([2] * 11, [3] * 11):
+        item = cd.judge_latency(d, wall, True, declared=2, labels=[2] * 11, on_time=few, host=host)
+        assert item.verdict == 'inconclusive', item.line()
+        assert '2 with every period of the drive on time' in item.inconclusive
+        assert host in item.inconclusive
+    assert item.values['on_time'] == few
+
+
+def test_a_units_ratio_bent_by_late_samples_is_inconclusive_not_a_fail():
+    host = "the drive's host: 173 of its 274 periods (63.1 %) started > 100 us late"
+    item = cd.judge_fields([], 0.776, 40.0, [])
+    assert item.verdict == 'fail' and '(units?)' in item.figures
+    item = cd.judge_fields([], 0.776, 40.0, [], host=host)
+    assert item.verdict == 'inconclusive' and host in item.inconclusive
+    assert '0.776 is outside [0.8, 1.25]' in item.inconclusive
+    # another field problem fails the item whatever the host
+    item = cd.judge_fields(['step_index not increasing'], 0.776, 40.0, [], host=host)
+    assert item.verdict == 'fail'
+    # degrees are far outside any late sampling's reach: judged when the drive kept time
+    assert cd.judge_fields([], 0.017, 40.0, []).verdict == 'fail'

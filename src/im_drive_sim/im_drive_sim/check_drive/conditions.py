@@ -39,6 +39,7 @@ __all__ = [
     'Conditions',
     'busy_reason',
     'command_lag',
+    'drive_lateness',
     'excess_delay',
     'phase_conditions',
 ]
@@ -59,6 +60,39 @@ def command_lag(states: np.ndarray, declared: int) -> np.ndarray:
     a = states[:, F['applied_step']]
     lag = k - declared - a
     return np.where(np.isfinite(a) & (a >= 0), lag, np.nan)
+
+
+def drive_lateness(
+    steps: np.ndarray, source_ns: np.ndarray, ts_ns: int, window: int = 60
+) -> tuple[np.ndarray, int]:
+    """How late the drive published each of its steps, on its own clock: per step from
+    the first received (``first``, returned) to the last, ``source - k Ts`` less the lower
+    quartile of the same over the received steps within ``window`` steps either side [s];
+    NaN where no state of that step came (skipped by a drive that cannot pause, or lost).
+
+    This is the drive's host as the drive lived it during the check: a period that
+    started late publishes late. The lower quartile (not the minimum: one early outlier)
+    is the drive's on-time schedule there; a drive that re-anchors after a stall shows
+    late on one side of the stall, never early."""
+    ok = np.isfinite(steps)
+    k = steps[ok].astype(np.int64)
+    if len(k) == 0:
+        return np.zeros(0), 0
+    first = int(k.min())
+    t = source_ns[ok].astype(np.int64) - k * int(ts_ns)
+    off = np.full(int(k.max()) - first + 1, np.nan)
+    # the first copy of each step (a lock-step drive re-sends)
+    order = np.argsort(k, kind='stable')
+    ks, ts_ = k[order], t[order]
+    keep = np.concatenate(([True], np.diff(ks) != 0))
+    ks, ts_ = ks[keep], ts_[keep]
+    off[ks - first] = (ts_ - ts_[0]) * 1e-9
+    out = np.full_like(off, np.nan)
+    have = np.flatnonzero(np.isfinite(off))
+    for i in have:
+        lo, hi = np.searchsorted(have, (i - window, i + window + 1))
+        out[i] = off[i] - np.percentile(off[have[lo:hi]], 25)
+    return out, first
 
 
 @dataclass

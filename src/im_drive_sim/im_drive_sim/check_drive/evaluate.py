@@ -12,7 +12,14 @@ from typing import Any
 import numpy as np
 
 from ..contract import JOINT_STATE_TOPIC
-from .conditions import Conditions, busy_reason, command_lag, excess_delay, phase_conditions
+from .conditions import (
+    Conditions,
+    busy_reason,
+    command_lag,
+    drive_lateness,
+    excess_delay,
+    phase_conditions,
+)
 from .judges import (
     joint_state_problems,
     judge_fields,
@@ -37,6 +44,8 @@ from .response import (
 )
 from .thresholds import (
     CURRENT_BOUND_FACTOR,
+    DRIVE_LATE_MAX_S,
+    DRIVE_LATE_SHARE_MAX,
     ITEMS,
     STATE_FIELDS,
     STEP_GAP_MAX,
@@ -46,7 +55,7 @@ from .thresholds import (
     Item,
 )
 
-__all__ = ['Recording', 'evaluate', 'json_ready', 'rows_by_step']
+__all__ = ['DriveLateness', 'Recording', 'evaluate', 'json_ready', 'rows_by_step']
 
 
 def rows_by_step(
@@ -180,7 +189,15 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
         if joints_ok_type
         else None
     )
-    items['fields'] = judge_fields(sp, ratio, motion_counts, jp)
+    lateness = DriveLateness(rec)
+    late_share = lateness.share(k_first, k_step_end) if realtime else 0.0
+    items['fields'] = judge_fields(
+        sp,
+        ratio,
+        motion_counts,
+        jp,
+        host=lateness.describe(k_first, k_step_end) if late_share > DRIVE_LATE_SHARE_MAX else '',
+    )
 
     declared = rec.states[:n][ok_rows, F['command_delay']]
     d_declared = int(np.median(declared)) if len(declared) else 1
@@ -229,6 +246,7 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
     delays: list[int | None] = []
     labels: list[int | None] = []
     complete: list[bool] = []
+    on_time: list[bool] = []
     for k0, level, prev in trans[1:] + step_trans[1:]:
         d, _ = rec.rows_by_step(k0 - 20, k0 + 25)
         if realtime:
@@ -237,6 +255,12 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
         complete.append(bool(np.isfinite(d[4:42]).all()))
         delays.append(onset_delay(d[:, F['isq']], 20, level - prev))
         labels.append(label_delay(d[:, F['applied_step']], 20, k0))
+        x, y = delays[-1], labels[-1]
+        # the drive's periods from the change to where it shows and is labelled
+        on_time.append(
+            not realtime
+            or (x is not None and y is not None and lateness.on_time(k0, k0 + max(x, y) + 1))
+        )
     items['latency'] = judge_latency(
         delays,
         np.array(wall),
@@ -245,6 +269,8 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
         labels=labels,
         complete=complete,
         busy=busy('latency'),
+        on_time=on_time,
+        host=lateness.describe(),
     )
 
     # step response
@@ -308,6 +334,44 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
             rec.watchdog['silence_s'], rec.watchdog['advanced'], rec.watchdog['resumed_s']
         )
     return [items[name] for name in ITEMS]
+
+
+class DriveLateness:
+    """The drive's periods during the check, on its own clock
+    (:func:`~.conditions.drive_lateness`): which were on time, and the share late."""
+
+    def __init__(self, rec: Recording) -> None:
+        ok = rec.lengths == len(STATE_FIELDS)
+        self.late_s, self.first = drive_lateness(
+            rec.states[ok, F['step_index']], rec.source_ns[ok], rec.ts_ns
+        )
+
+    def _window(self, k0: int, k1: int) -> np.ndarray:
+        a, b = max(0, k0 - self.first), max(0, k1 + 1 - self.first)
+        return self.late_s[a:b]
+
+    def on_time(self, k0: int, k1: int) -> bool:
+        """Every period k0..k1 published, at most DRIVE_LATE_MAX_S late."""
+        w = self._window(k0, k1)
+        return len(w) == k1 - k0 + 1 and bool(np.all(w <= DRIVE_LATE_MAX_S))
+
+    def share(self, k0: int | None = None, k1: int | None = None) -> float:
+        """The fraction of the periods k0..k1 (all: None) late or not published."""
+        w = self.late_s if k0 is None or k1 is None else self._window(k0, k1)
+        if len(w) == 0:
+            return 0.0
+        return float(np.mean(~(w <= DRIVE_LATE_MAX_S)))  # (NaN: not published: late)
+
+    def describe(self, k0: int | None = None, k1: int | None = None) -> str:
+        """The drive's host in words, over k0..k1 (all: None)."""
+        w = self.late_s if k0 is None or k1 is None else self._window(k0, k1)
+        skipped = int(np.count_nonzero(np.isnan(w)))
+        late = int(np.count_nonzero(w > DRIVE_LATE_MAX_S))
+        return (
+            f"the drive's host: {late + skipped} of its {len(w)} periods "
+            f'({self.share(k0, k1) * 100:.1f} %) started > {DRIVE_LATE_MAX_S * 1e6:.0f} us '
+            f'late or were not received ({skipped})'
+        )
 
 
 def step_busy(rec: Recording, declared: int) -> tuple[str, str]:

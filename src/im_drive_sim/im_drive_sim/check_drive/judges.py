@@ -177,15 +177,28 @@ def joint_state_problems(joints: np.ndarray, states: np.ndarray, ts_ns: int) -> 
 
 
 def judge_fields(
-    state_problems: list[str], ratio: float, motion_counts: float, joint_problems: list[str] | None
+    state_problems: list[str],
+    ratio: float,
+    motion_counts: float,
+    joint_problems: list[str] | None,
+    host: str = '',
 ) -> Item:
     """Combine the field checks; ``joint_problems`` None = not judged (wrong topic type,
-    reported by 'topics')."""
+    reported by 'topics'). ``host``: why the units ratio cannot be trusted ('' when it
+    can: the drive kept its periods during the motion); a ratio out of its band is then
+    inconclusive, not a failure, unless another field problem fails the item."""
     problems = list(state_problems)
+    units_doubt = ''
     if motion_counts >= UNITS_MIN_COUNTS:
         lo, hi = UNITS_RATIO_BAND
         if not lo <= ratio <= hi:
-            problems.append(f'integral(omega_meas)/delta(theta_meas) = {ratio:.3g} (units?)')
+            if host:
+                units_doubt = (
+                    f'the units ratio {ratio:.3g} is outside [{lo}, {hi}] while {host} during '
+                    'the step test (a late sample is not where k Ts says)'
+                )
+            else:
+                problems.append(f'integral(omega_meas)/delta(theta_meas) = {ratio:.3g} (units?)')
         units = f'integral(omega)/delta(theta) {ratio:.3f}'
     else:
         units = f'units not judged (motion {motion_counts:.0f} counts)'
@@ -202,9 +215,9 @@ def judge_fields(
     )
     if problems and joint_problems is None:
         figures += f'; {joints}'
-    return Item(
+    item = Item(
         'fields',
-        not problems,
+        not problems and not units_doubt,
         figures,
         f'{len(STATE_FIELDS)} finite values, time_ns = k Ts exactly, currents plausible, ratio in '
         f'[{UNITS_RATIO_BAND[0]}, {UNITS_RATIO_BAND[1]}], joint_states = state',
@@ -214,6 +227,7 @@ def judge_fields(
             'motion_counts': float(motion_counts),
         },
     )
+    return item.undecided(units_doubt) if units_doubt and not problems else item
 
 
 def clock_period(steps: np.ndarray, source_ts_ns: np.ndarray) -> float:

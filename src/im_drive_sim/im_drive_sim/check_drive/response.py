@@ -88,13 +88,19 @@ def judge_latency(
     labels: Sequence[int | None] | None = None,
     complete: Sequence[bool] | None = None,
     busy: str = '',
+    on_time: Sequence[bool] | None = None,
+    host: str = '',
 ) -> Item:
     """``delays``: per command changing the reference, the state (k + d) in which it first
     showed; ``wall_s``: command published -> next state received [s]; ``declared``: the
     drive's command_delay; ``labels``: per change, the first state (k + l) whose
     applied_step is the changing command's or newer (None: not judged); ``complete``: per
     change, whether every state around it came (False: a None delay is not 'never', the
-    change is not judged); ``busy``: why the check's timing cannot be trusted ('').
+    change is not judged); ``busy``: why the check's timing cannot be trusted ('');
+    ``on_time``: per change, whether every period of the drive from the change to where
+    it showed and was labelled started on time (False: its label is not judged -- a
+    period that started late may act a period late through no fault of the drive);
+    ``host``: the drive's host in words, for the reason when too few were.
 
     In real time a change whose label is later than k+d+1 reached the drive late (the
     check answered late, or the link held it: the drive says so): its effect is not
@@ -104,7 +110,10 @@ def judge_latency(
     whole = list(complete) if complete is not None else [True] * n
     lab = list(labels) if labels is not None else [None] * n
     limit = declared + (TRANSPORT_SLACK_REALTIME if realtime else 0)
+    punctual = list(on_time) if on_time is not None else [True] * n
     usable = [(x, y) for x, y, c in zip(delays, lab, whole, strict=False) if c]
+    # the labels: judged on the changes whose drive periods were all on time
+    labelled = [(x, y) for x, y, c, t in zip(delays, lab, whole, punctual, strict=False) if c and t]
     gaps = n - len(usable)  # changes with states missing around them
 
     def came_in_time(y: int | None) -> bool:
@@ -122,7 +131,9 @@ def judge_latency(
         effect_ok = len(d) >= 3 and float(np.percentile(d, 25, method='lower')) <= limit
     else:
         effect_ok = len(d) >= 3 and bool(np.all(d == limit)) and missing == 0
-    judged = [(x, y) for x, y in usable if x is not None and y is not None]
+    judged = [(x, y) for x, y in labelled if x is not None and y is not None]
+    unpunctual = sum(1 for (x, y), t in zip(zip(delays, lab, strict=False), punctual, strict=False)
+                     if not t and x is not None and y is not None)  # fmt: skip
     honest = sum(x == y for x, y in judged)
     slower = sum(x > y for x, y in judged)
     if labels is None:
@@ -146,6 +157,8 @@ def judge_latency(
         figures += f'; declared delay {declared}: {honest}/{len(judged)} where applied_step says'
         if slower:
             figures += f', {slower} later (slower than declared)'
+        if unpunctual:
+            figures += f' ({unpunctual} not judged: a period of the drive started late around them)'
     when = f' (fastest quarter by k+{limit})' if realtime else ' always'
     expected = (
         f'effect in k+{declared}{when}, never after applied_step says, '
@@ -164,6 +177,7 @@ def judge_latency(
             'declared_delay': declared,
             'label_delays': None if labels is None else list(labels),
             'complete': whole,
+            'on_time': punctual,
         },
     )
     # What is not the drive's fault: too few changes judged (the check answered late, or
@@ -175,6 +189,7 @@ def judge_latency(
         why.append(
             f'only {len(d)} of {n} changes reached the drive in time with every state '
             'around them received'
+            + (f', {len(judged)} with every period of the drive on time ({host})' if host else '')
         )
     if not wall_ok and busy:
         why.append(busy)

@@ -20,6 +20,8 @@ __all__ = [
     'CURRENT_FIELDS',
     'DEFAULT_TIMEOUT',
     'DISCOVERY_SETTLE_S',
+    'DRIVE_LATE_MAX_S',
+    'DRIVE_LATE_SHARE_MAX',
     'EFFECT_DELAY_LOCKSTEP',
     'EFFECT_DELAY_REALTIME',
     'ITEMS',
@@ -114,6 +116,17 @@ TRANSPORT_SLACK_REALTIME = EFFECT_DELAY_REALTIME - EFFECT_DELAY_LOCKSTEP
 #: missed periods, where an onset is not well placed). A drive slower than it declares
 #: shows a period after its label in every change.
 LABEL_SLOWER_MAX_REALTIME = 0.25
+#: The drive's host: a period of the drive is *on time* when the drive published its
+#: state at most this late against its own schedule [s] (the lower quartile of its
+#: publication times less k Ts around it: its own clock, so two computers' offset never
+#: enters). Half a period: a power stage whose period started later than that may act
+#: on a command a period later than its label says (a stage sampling at mid-period
+#: boundaries does, ``test/wallclock_drive.c``), through no fault of its own. The labels
+#: are judged on the changes whose periods were all on time (``latency``); the units
+#: ratio only where ...
+DRIVE_LATE_MAX_S = 100e-6
+#: ... at most this fraction of the step's periods were late or skipped (held).
+DRIVE_LATE_SHARE_MAX = 0.05
 #: latency/step: a response starts where isq leaves its extrapolated course by this fraction
 #: of the commanded change (or 8 noise levels, whichever is larger): 10 mA for 0.5 A.
 ONSET_FRACTION = 0.02

@@ -178,7 +178,8 @@ def main() -> int:
                         wrong = [k for k, v in row['items'].items() if v['grade'] == 'WRONG']
                         inc = [k for k, v in row['items'].items() if v['grade'] == 'inconclusive']
                         print(
-                            f'{condition:6s} run {run} {drive:13s} exit {row["exit"]} {row["seconds"]:5.1f} s '
+                            f'{condition:6s} run {run} {drive:13s} exit {row["exit"]} '
+                            f'{row["seconds"]:5.1f} s '
                             f'wrong {wrong or "-"} inconclusive {inc or "-"}'
                             + (f' ERROR {row["error"]}' if 'error' in row else ''),
                             flush=True,

@@ -153,6 +153,8 @@ def main() -> int:
     ap.add_argument('--hogs', type=int, default=2)
     ap.add_argument('--json', help='write every row here')
     ns = ap.parse_args()
+    # a SIGTERM ends the run through the ``finally`` blocks: no hog or namespace left behind
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     drives = ns.drives.split(',')
     conditions = ns.conditions.split(',')
     rows = []

@@ -695,6 +695,23 @@ def test_step_response_signs_fail_whatever_the_load_timing_does_not():
         gaps=gaps,
     )
     assert inverted.verdict == 'fail' and 'torque sign opposite' in inverted.figures
+    # a drive whose torque is inverted accelerates against the current it carries: fails
+    # whatever the load
+    backwards = cd.judge_step_response(
+        dict(m, accel=-140.0, isq_mean=0.5), dict(minus, accel=140.0, isq_mean=-0.5),
+        0.5, counts, busy=late,
+    )  # fmt: skip
+    assert backwards.verdict == 'fail' and 'acceleration -140 rad/s^2 in the +isq' in (
+        backwards.figures
+    )
+    # the -isq step never reached the drive (the link held its commands): it kept +0.5 A,
+    # and accelerated on -- not the drive's sign: the step it was given was not commanded
+    held = dict(minus, accel=142.0, isq_mean=0.5, steady_error=2.0)
+    item = cd.judge_step_response(dict(m, isq_mean=0.5), held, 0.5, counts, busy=late)
+    assert item.verdict == 'inconclusive', item.line()
+    assert 'whose current the drive did not carry (mean isq +0.5 A)' in item.figures
+    item = cd.judge_step_response(dict(m, isq_mean=0.5), held, 0.5, counts)
+    assert item.verdict == 'fail' and 'steady-state error 200.0 %' in item.figures
 
 
 def test_conditions_measure_the_check_and_the_link():
@@ -867,3 +884,26 @@ def test_a_units_ratio_bent_by_late_samples_is_inconclusive_not_a_fail():
     assert item.verdict == 'fail'
     # degrees are far outside any late sampling's reach: judged when the drive kept time
     assert cd.judge_fields([], 0.017, 40.0, []).verdict == 'fail'
+
+
+def test_a_step_the_drives_watchdog_held_at_zero_is_not_the_drives_rise():
+    """The check fell silent for the drive's command_timeout inside the step test (its
+    process descheduled beside CPU hogs): the drive's watchdog held zero current, its
+    labels say so (applied_step -1). The step it was given is not the one commanded: the
+    rise, measured nowhere, is inconclusive, not a fail; a wrong sign still fails."""
+    from im_drive_sim.check_drive.evaluate import step_busy
+    from im_drive_sim.check_drive.thresholds import F
+
+    trans = [(2700, 0.0, 0.0), (2725, 0.5, 0.0), (2825, -0.5, 0.5), (2925, 0.0, -0.5)]
+    rec = _recording(trans)
+    assert step_busy(rec, 1) == ('', '')
+    rec.states[2730:2790, F['applied_step']] = -1  # 60 periods (12 ms) at zero current
+    gaps, _late = step_busy(rec, 1)
+    assert "the drive's watchdog held zero current over 60 of the step's 203 states" in gaps
+    m = {'rise_s': math.nan, 'steady_error': 1.0, 'torque_per_amp': 0.71, 'accel': 0.0,
+         'duration_s': 0.02}  # fmt: skip
+    counts = 4096 / (2 * math.pi)
+    item = cd.judge_step_response(m, m, 0.5, counts, gaps=gaps)
+    assert item.verdict == 'inconclusive' and item.inconclusive == gaps
+    wrong = dict(m, torque_per_amp=-0.71)
+    assert cd.judge_step_response(wrong, wrong, 0.5, counts, gaps=gaps).verdict == 'fail'

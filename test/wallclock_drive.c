@@ -2,10 +2,10 @@
  * wallclock_drive.c -- a drive library (im_drive.h) for the tests: the example drive's
  * stand-in plant, but living on the wall clock as a real power stage does. Each write and
  * each read first integrates the plant over every period Ts that went by since the last
- * call (CLOCK_MONOTONIC; the period boundaries half a period from where the loop calls,
- * so the loop's on-time jitter never flips a count) with the command in force then: a
- * write acts from the instant it is made, and a read samples the plant as it is at that
- * instant. So the read right after a write does not show it yet -- the sample at the
+ * call (CLOCK_MONOTONIC; the period boundaries half a period from where the loop calls --
+ * the plant's clock starts at the first write -- so the loop's on-time jitter never flips
+ * a count) with the command in force then: a write acts from the instant it is made, and
+ * a read samples the plant as it is at that instant. So the read right after a write does not show it yet -- the sample at the
  * next period start does: command delay 2, what this library declares (as any power
  * stage whose read returns the sample of the period start). A loop that starts late
  * finds the plant further on, the old command held, and nothing tells the plant.
@@ -72,9 +72,15 @@ int im_drive_command_delay(void) { return delay; }
 
 static void period(void);
 
-static void advance(void) { /* every period that went by, with the command in force */
+static void advance(int writing) { /* every period that went by, with the command in force */
   double now = now_s();
-  if (t_plant < 0) t_plant = now - TS;
+  if (t_plant < 0) {
+    /* the plant's clock starts with the loop's first write (a period start), so that its
+       boundaries lie half a period from where the loop calls; a read before it (a node
+       that publishes its first state before its loop starts) samples the plant at rest */
+    if (!writing) return;
+    t_plant = now - TS;
+  }
   while (t_plant + 0.5 * TS <= now) {
     period();
     t_plant += TS;
@@ -82,7 +88,7 @@ static void advance(void) { /* every period that went by, with the command in fo
 }
 
 int im_drive_write(double i, double load) {
-  advance();
+  advance(1);
   if (slot) {
     slot[0] += 1.0;
     slot[1] = i;
@@ -110,7 +116,7 @@ static void period(void) {
 int im_drive_read(double m[8]) {
   reads += 1;
   if (fault_after > 0 && reads >= fault_after) return -3;
-  advance();
+  advance(0);
   m[IM_DRIVE_THETA_MEAS] = theta_meas;
   m[IM_DRIVE_OMEGA_MEAS] = omega_meas;
   m[IM_DRIVE_TORQUE] = KT * isq;

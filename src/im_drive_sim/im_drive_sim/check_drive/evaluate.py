@@ -376,9 +376,9 @@ class DriveLateness:
 
 def step_busy(rec: Recording, declared: int) -> tuple[str, str]:
     """Why the step the drive was given may not be the one commanded (('', '') when it
-    was), during the +A and -A steps: (more than STEP_GAP_MAX consecutive states missing,
-    commands that reached the drive later than STEP_LAG_FRACTION of the step's duration
-    by its labels)."""
+    was), during the +A and -A steps: (more than STEP_GAP_MAX consecutive states missing
+    or states under the drive's watchdog, commands that reached the drive later than
+    STEP_LAG_FRACTION of the step's duration by its labels)."""
     if len(rec.step_trans) < 4:
         return '', ''
     k0, k1, k2 = rec.step_trans[1][0], rec.step_trans[2][0], rec.step_trans[3][0]
@@ -395,6 +395,21 @@ def step_busy(rec: Recording, declared: int) -> tuple[str, str]:
         late = (
             f'commands reached the drive up to {lag.max():.0f} periods late during the step '
             f'(in time: {np.mean(lag <= 0) * 100:.0f} %)'
+        )
+    # states under the drive's watchdog (applied_step -1): no command reached it for its
+    # command_timeout -- the check fell silent (descheduled) or the link held the
+    # commands -- and it held zero current where the step was commanded: the step it was
+    # given is not the one commanded, its rise included
+    held = int(np.count_nonzero(d[have][:, F['applied_step']] < 0))
+    if held:
+        gaps = '; '.join(
+            w
+            for w in (
+                gaps,
+                f"the drive's watchdog held zero current over {held} of the step's "
+                f'{int(np.count_nonzero(have))} states (no command reached it in time)',
+            )
+            if w
         )
     return gaps, late
 

@@ -258,6 +258,7 @@ def step_metrics(seg: StepSegment, ts: float, delay: int | None) -> dict[str, fl
         'torque_per_amp': kt,
         'accel': acc,
         'duration_s': (n - start) * ts,
+        'isq_mean': float(np.mean(seg.isq[start:])) if n > start else math.nan,
     }
 
 
@@ -295,10 +296,19 @@ def judge_step_response(
         problems.append('no torque')
     for m, sign, name in ((plus, 1.0, '+'), (minus, -1.0, '-')):
         moved = abs(m['accel']) * m['duration_s'] ** 2 / 2 * counts_per_rad
+        # the acceleration's sign is judged against the current the drive measured: where
+        # it did not carry the commanded sign the drive was not given the step (a command
+        # the link held, the watchdog's zero), which the steady-state error says
+        given = m.get('isq_mean', sign * amplitude) * sign > 0.5 * amplitude
         if not moved >= ACCEL_MIN_COUNTS:
             problems.append(f'no acceleration in the {name} step')
-        elif m['accel'] * sign <= 0:
+        elif m['accel'] * sign <= 0 and given:
             signs.append(f'acceleration {m["accel"]:+.3g} rad/s^2 in the {name}isq step')
+        elif m['accel'] * sign <= 0:
+            problems.append(
+                f'acceleration {m["accel"]:+.3g} rad/s^2 in the {name}isq step, whose '
+                f'current the drive did not carry (mean isq {m["isq_mean"]:+.3g} A)'
+            )
     problems = signs + problems
     figures = (
         f'isq rise {rise * 1e3:.2f} ms, steady-state error {sse * 100:.1f} %, '

@@ -457,7 +457,9 @@ def _command_timeout(
         if not client.wait_for_service(timeout_sec=2.0):
             return DEFAULT_TIMEOUT, 'default: drive has no parameter service'
         future = client.call_async(GetParameters.Request(names=['command_timeout']))
-        executor.spin_until_future_complete(future, timeout_sec=3.0)
+        # a drive that just started may be compiling its loop before it serves requests
+        # (numba, a cold cache: seconds): up to --timeout, as for its first state
+        executor.spin_until_future_complete(future, timeout_sec=max(3.0, opts.timeout))
         res = future.result()
         if res is None:
             return DEFAULT_TIMEOUT, 'default: no parameter answer'

@@ -833,13 +833,17 @@ def test_the_drives_own_lateness_on_its_clock():
     src[200:] += 40_000  # a drive that re-anchored 40 us later: within a period
     keep = np.ones(len(k), bool)
     keep[50] = False  # step 1050 skipped (a drive that cannot pause)
-    late, first = cd.drive_lateness(k[keep], src[keep], 200_000)
+    late, first = cd.drive_lateness(k[keep], src[keep], 200_000.0)
     assert first == 1000 and len(late) == 300
     assert math.isnan(late[50])
     assert late[100] == pytest.approx(150e-6)
     assert np.nanmax(np.abs(np.delete(late, [50, 100])[:150])) < 1e-9
     # far from the re-anchor the new schedule is on time again
     assert abs(late[290]) < 1e-9
+    # a drive paced at 250 us is on time on its own clock (``rate`` judges the pace)
+    slow = (k * 250_000).astype(np.int64)
+    late, _ = cd.drive_lateness(k, slow, 250_000.0)
+    assert np.nanmax(np.abs(late)) < 1e-9
 
 
 def test_labels_are_judged_on_the_changes_the_drives_periods_kept():
@@ -882,8 +886,9 @@ def test_a_units_ratio_bent_by_late_samples_is_inconclusive_not_a_fail():
     # another field problem fails the item whatever the host
     item = cd.judge_fields(['step_index not increasing'], 0.776, 40.0, [], host=host)
     assert item.verdict == 'fail'
-    # degrees are far outside any late sampling's reach: judged when the drive kept time
-    assert cd.judge_fields([], 0.017, 40.0, []).verdict == 'fail'
+    # degrees and rpm are far outside any late sampling's reach: wrong whatever the host
+    assert cd.judge_fields([], 0.017, 40.0, [], host=host).verdict == 'fail'
+    assert cd.judge_fields([], 9.55, 40.0, [], host=host).verdict == 'fail'
 
 
 def test_a_step_the_drives_watchdog_held_at_zero_is_not_the_drives_rise():

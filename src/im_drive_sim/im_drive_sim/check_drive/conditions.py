@@ -63,12 +63,14 @@ def command_lag(states: np.ndarray, declared: int) -> np.ndarray:
 
 
 def drive_lateness(
-    steps: np.ndarray, source_ns: np.ndarray, ts_ns: int, window: int = 60
+    steps: np.ndarray, source_ns: np.ndarray, period_ns: float, window: int = 60
 ) -> tuple[np.ndarray, int]:
     """How late the drive published each of its steps, on its own clock: per step from
-    the first received (``first``, returned) to the last, ``source - k Ts`` less the lower
-    quartile of the same over the received steps within ``window`` steps either side [s];
-    NaN where no state of that step came (skipped by a drive that cannot pause, or lost).
+    the first received (``first``, returned) to the last, ``source - k period`` less the
+    lower quartile of the same over the received steps within ``window`` steps either
+    side [s]; NaN where no state of that step came (skipped by a drive that cannot pause,
+    or lost). ``period_ns``: the drive's own period (its clock, ``judges.clock_period``;
+    a drive paced wrong is judged by ``rate``, not here).
 
     This is the drive's host as the drive lived it during the check: a period that
     started late publishes late. The lower quartile (not the minimum: one early outlier)
@@ -79,7 +81,7 @@ def drive_lateness(
     if len(k) == 0:
         return np.zeros(0), 0
     first = int(k.min())
-    t = source_ns[ok].astype(np.int64) - k * int(ts_ns)
+    t = source_ns[ok].astype(np.int64) - np.round((k - k.min()) * period_ns).astype(np.int64)
     off = np.full(int(k.max()) - first + 1, np.nan)
     # the first copy of each step (a lock-step drive re-sends)
     order = np.argsort(k, kind='stable')

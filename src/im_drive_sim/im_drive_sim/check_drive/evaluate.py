@@ -21,6 +21,7 @@ from .conditions import (
     phase_conditions,
 )
 from .judges import (
+    clock_period,
     joint_state_problems,
     judge_fields,
     judge_rate_lockstep,
@@ -342,9 +343,10 @@ class DriveLateness:
 
     def __init__(self, rec: Recording) -> None:
         ok = rec.lengths == len(STATE_FIELDS)
-        self.late_s, self.first = drive_lateness(
-            rec.states[ok, F['step_index']], rec.source_ns[ok], rec.ts_ns
-        )
+        steps, source = rec.states[ok, F['step_index']], rec.source_ns[ok]
+        clock = clock_period(steps, source)  # [s per step]; NaN with too few states
+        period_ns = clock * 1e9 if math.isfinite(clock) else float(rec.ts_ns)
+        self.late_s, self.first = drive_lateness(steps, source, period_ns)
 
     def _window(self, k0: int, k1: int) -> np.ndarray:
         a, b = max(0, k0 - self.first), max(0, k1 + 1 - self.first)

@@ -20,6 +20,7 @@ from .thresholds import (
     RATE_TOLERANCE,
     STATE_FIELDS,
     TYPES,
+    UNITS_LATE_BAND,
     UNITS_MIN_COUNTS,
     UNITS_RATIO_BAND,
     F,
@@ -192,7 +193,7 @@ def judge_fields(
     if motion_counts >= UNITS_MIN_COUNTS:
         lo, hi = UNITS_RATIO_BAND
         if not lo <= ratio <= hi:
-            if host:
+            if host and UNITS_LATE_BAND[0] <= ratio <= UNITS_LATE_BAND[1]:
                 units_doubt = (
                     f'the units ratio {ratio:.3g} is outside [{lo}, {hi}] while {host} during '
                     'the step test (a late sample is not where k Ts says)'

@@ -40,6 +40,7 @@ __all__ = [
     'STEP_LAG_FRACTION',
     'TRANSPORT_SLACK_REALTIME',
     'TYPES',
+    'UNITS_LATE_BAND',
     'UNITS_MIN_COUNTS',
     'UNITS_RATIO_BAND',
     'WATCHDOG_ACT_FRACTION',
@@ -67,6 +68,10 @@ CURRENT_BOUND_FACTOR = 1.5
 #: fields: integral of omega_meas over the motion / change of theta_meas (1 when both are SI;
 #: 57.3 for degrees, 9.55 for rpm). The band absorbs encoder quantisation and filter lag.
 UNITS_RATIO_BAND = (0.8, 1.25)
+#: ... and the band a drive's late samples can bend it to (0.78 measured with 63 % of the
+#: step's periods late or skipped): outside it (degrees 0.017, rpm 9.55, revolutions
+#: 0.159 or 6.28) the units are wrong whatever the host.
+UNITS_LATE_BAND = (0.5, 2.0)
 #: fields: motion needed to judge the units [encoder counts of the configured encoder].
 UNITS_MIN_COUNTS = 10
 #: rate (real time): median period within this fraction of Ts (a drive and this check

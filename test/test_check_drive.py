@@ -889,6 +889,12 @@ def test_a_units_ratio_bent_by_late_samples_is_inconclusive_not_a_fail():
     # degrees and rpm are far outside any late sampling's reach: wrong whatever the host
     assert cd.judge_fields([], 0.017, 40.0, [], host=host).verdict == 'fail'
     assert cd.judge_fields([], 9.55, 40.0, [], host=host).verdict == 'fail'
+    # states missing in the step: the line across them stands in for the motion, and
+    # any ratio may come of it
+    missing = "the drive's host: 300 of its 500 periods (60.0 %) started > 100 us late or were "
+    missing += 'not received (280)'
+    item = cd.judge_fields([], 0.0594, 40.0, [], host=missing, doubt_band=(0.0, math.inf))
+    assert item.verdict == 'inconclusive' and missing in item.inconclusive
 
 
 def test_a_step_the_drives_watchdog_held_at_zero_is_not_the_drives_rise():

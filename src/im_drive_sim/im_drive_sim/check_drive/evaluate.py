@@ -52,6 +52,7 @@ from .thresholds import (
     STEP_GAP_MAX,
     STEP_LAG_FRACTION,
     TYPES,
+    UNITS_LATE_BAND,
     F,
     Item,
 )
@@ -191,14 +192,15 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
         else None
     )
     lateness = DriveLateness(rec)
-    late_share = lateness.share(k_first, k_step_end) if realtime else 0.0
-    items['fields'] = judge_fields(
-        sp,
-        ratio,
-        motion_counts,
-        jp,
-        host=lateness.describe(k_first, k_step_end) if late_share > DRIVE_LATE_SHARE_MAX else '',
-    )
+    # the units ratio integrates omega over k Ts: doubted where the drive's samples were
+    # late (any ratio a late sample can bend it to), or where states are missing and the
+    # line across them stands in for the motion (any ratio)
+    host, doubt_band = '', UNITS_LATE_BAND
+    if realtime and lateness.share(k_first, k_step_end) > DRIVE_LATE_SHARE_MAX:
+        host = lateness.describe(k_first, k_step_end)
+        if lateness.missing(k_first, k_step_end) > DRIVE_LATE_SHARE_MAX:
+            doubt_band = (0.0, math.inf)
+    items['fields'] = judge_fields(sp, ratio, motion_counts, jp, host=host, doubt_band=doubt_band)
 
     declared = rec.states[:n][ok_rows, F['command_delay']]
     d_declared = int(np.median(declared)) if len(declared) else 1
@@ -363,6 +365,11 @@ class DriveLateness:
         if len(w) == 0:
             return 0.0
         return float(np.mean(~(w <= DRIVE_LATE_MAX_S)))  # (NaN: not published: late)
+
+    def missing(self, k0: int, k1: int) -> float:
+        """The fraction of the periods k0..k1 whose state was not received."""
+        w = self._window(k0, k1)
+        return float(np.mean(np.isnan(w))) if len(w) else 0.0
 
     def describe(self, k0: int | None = None, k1: int | None = None) -> str:
         """The drive's host in words, over k0..k1 (all: None)."""

@@ -183,17 +183,19 @@ def judge_fields(
     motion_counts: float,
     joint_problems: list[str] | None,
     host: str = '',
+    doubt_band: tuple[float, float] = UNITS_LATE_BAND,
 ) -> Item:
     """Combine the field checks; ``joint_problems`` None = not judged (wrong topic type,
     reported by 'topics'). ``host``: why the units ratio cannot be trusted ('' when it
-    can: the drive kept its periods during the motion); a ratio out of its band is then
-    inconclusive, not a failure, unless another field problem fails the item."""
+    can: the drive kept its periods during the motion); a ratio out of its band but
+    inside ``doubt_band`` (what the host can bend it to) is then inconclusive, not a
+    failure, unless another field problem fails the item."""
     problems = list(state_problems)
     units_doubt = ''
     if motion_counts >= UNITS_MIN_COUNTS:
         lo, hi = UNITS_RATIO_BAND
         if not lo <= ratio <= hi:
-            if host and UNITS_LATE_BAND[0] <= ratio <= UNITS_LATE_BAND[1]:
+            if host and doubt_band[0] <= ratio <= doubt_band[1]:
                 units_doubt = (
                     f'the units ratio {ratio:.3g} is outside [{lo}, {hi}] while {host} during '
                     'the step test (a late sample is not where k Ts says)'

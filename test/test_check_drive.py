@@ -918,3 +918,24 @@ def test_a_step_the_drives_watchdog_held_at_zero_is_not_the_drives_rise():
     assert item.verdict == 'inconclusive' and item.inconclusive == gaps
     wrong = dict(m, torque_per_amp=-0.71)
     assert cd.judge_step_response(wrong, wrong, 0.5, counts, gaps=gaps).verdict == 'fail'
+
+
+def test_a_watchdog_fall_seen_only_after_lost_states_may_have_been_in_time():
+    """The drive's states from 40 to 96 ms after the last command were lost in transit
+    (two namespaces at 1 % loss): the first state seen after them shows the current
+    falling, at 86 ms -- the fall began somewhere in the gap, which reaches inside the
+    allowed window (..80 ms): inconclusive, not a late watchdog. Seen before the gap
+    closed the window, the same 86 ms is late."""
+    from im_drive_sim.check_drive.evaluate import watchdog_busy
+
+    rec = _recording([])
+    rec.command_timeout = 0.05
+    rec.watchdog = {'t_act': 0.086, 't_before': 0.040, 't_zero': 0.087, 'resumed_s': 0.003,
+                    'aborted': ''}  # fmt: skip
+    why = watchdog_busy(rec, 1, np.zeros(rec.n))
+    assert 'the states from 40.0 to 86.0 ms after the last command were not received' in why
+    item = cd.judge_watchdog_realtime(0.086, 0.087, 0.05, 0.003, 'test', busy=why)
+    assert item.verdict == 'inconclusive'
+    rec.watchdog['t_before'] = 0.0858  # the state before it still carried the current
+    assert watchdog_busy(rec, 1, np.zeros(rec.n)) == ''
+    assert cd.judge_watchdog_realtime(0.086, 0.087, 0.05, 0.003, 'test').verdict == 'fail'

@@ -439,12 +439,16 @@ def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:
             f'commands reached the drive up to {lag.max() * rec.ts * 1e3:.1f} ms late before '
             'the silence'
         )
-    if wd.get('t_zero') is None:
-        hi = watchdog_limits(rec.command_timeout)[1]
-        if wd.get('coverage_s', math.inf) < hi:
-            why.append(
-                f'the states received cover only {wd["coverage_s"] * 1e3:.0f} ms of the silence'
-            )
+    hi = watchdog_limits(rec.command_timeout)[1]
+    t_act, t_before = wd.get('t_act'), wd.get('t_before')
+    if t_act is not None and t_before is not None and t_before <= hi < t_act:
+        # seen falling only after states were lost: it may have begun in time
+        why.append(
+            f'the states from {t_before * 1e3:.1f} to {t_act * 1e3:.1f} ms after the last '
+            'command were not received: the fall began between the two'
+        )
+    if wd.get('t_zero') is None and wd.get('coverage_s', math.inf) < hi:
+        why.append(f'the states received cover only {wd["coverage_s"] * 1e3:.0f} ms of the silence')
     if wd.get('resumed_s') is None:
         q0, q1 = wd.get('rows_resume', (0, 0))
         c = phase_conditions(

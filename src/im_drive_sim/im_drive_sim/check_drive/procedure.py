@@ -355,13 +355,16 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
     p.run(silent, done, 2 * hi + 1.5)
     ref = st['ref'] if st['ref'] is not None else t_last
     coverage = (int(p.source_ns[p.n - 1]) - ref) * 1e-9 if p.n > i_silent else 0.0
-    t_zero = t_act = None
+    t_zero = t_act = t_before = None
     if st['zero_at'] is not None:
         t_zero = (p.source_ns[st['zero_at']] - ref) * 1e-9
         i = st['zero_at']  # back along the fall to where it began
         while i > i_silent and p.states[i - 1, F['isq']] < WATCHDOG_ACT_FRACTION * w:
             i -= 1
         t_act = (p.source_ns[i] - ref) * 1e-9
+        # the last state received before it, still carrying the current: the fall began
+        # after it (states lost in between leave the time between the two open)
+        t_before = (p.source_ns[i - 1] - ref) * 1e-9 if i > i_silent else None
     if st['why']:
         p.command(max(p.answered, int(p.newest()[0])), 0.0)
     # Steps at +w: as many at -w bring the shaft back near rest.
@@ -379,6 +382,7 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
         t_res = None
     return {
         't_act': t_act,
+        't_before': t_before,
         't_zero': t_zero,
         'resumed_s': t_res,
         'aborted': st['why'],

@@ -939,3 +939,20 @@ def test_a_watchdog_fall_seen_only_after_lost_states_may_have_been_in_time():
     rec.watchdog['t_before'] = 0.0858  # the state before it still carried the current
     assert watchdog_busy(rec, 1, np.zeros(rec.n)) == ''
     assert cd.judge_watchdog_realtime(0.086, 0.087, 0.05, 0.003, 'test').verdict == 'fail'
+
+
+def test_a_watchdog_timed_from_a_command_that_answered_an_old_state_is_inconclusive():
+    """Beside CPU hogs the check was descheduled for 60 ms: the first state it received
+    showing its last command applied came 300 periods after that was due (the states
+    between were dropped, or the command came late), and the fall 4.4 ms after that
+    state is not the watchdog's time: inconclusive."""
+    from im_drive_sim.check_drive.evaluate import watchdog_busy
+
+    rec = _recording([])
+    rec.command_timeout = 0.05
+    rec.watchdog = {'t_act': 0.0044, 't_before': 0.0042, 't_zero': 0.0045, 'resumed_s': 0.003,
+                    'aborted': '', 'k_last': 2000, 'ref_step': 2301}  # fmt: skip
+    why = watchdog_busy(rec, 1, np.zeros(rec.n))
+    assert 'showing the last command applied came 60.0 ms after it was due' in why
+    rec.watchdog['ref_step'] = 2002  # in time: the early fall is the drive's
+    assert watchdog_busy(rec, 1, np.zeros(rec.n)) == ''

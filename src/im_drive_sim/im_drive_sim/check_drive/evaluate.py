@@ -53,6 +53,7 @@ from .thresholds import (
     STEP_LAG_FRACTION,
     TYPES,
     UNITS_LATE_BAND,
+    WATCHDOG_REF_SLACK,
     F,
     Item,
 )
@@ -439,6 +440,18 @@ def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:
             f'commands reached the drive up to {lag.max() * rec.ts * 1e3:.1f} ms late before '
             'the silence'
         )
+    k_last, ref_step = wd.get('k_last'), wd.get('ref_step')
+    if k_last is not None and ref_step is not None:
+        # the times are from the first state received that shows the last command
+        # applied; shown this long after it was due (the command came late, or the states
+        # between were not received) the watchdog's start is not known that well
+        late_s = (ref_step - declared - k_last) * rec.ts
+        if late_s > WATCHDOG_REF_SLACK * rec.command_timeout:
+            why.append(
+                f'the first state received showing the last command applied came '
+                f'{late_s * 1e3:.1f} ms after it was due (the command came late, or the '
+                "states between were not received): the watchdog's start is not known"
+            )
     hi = watchdog_limits(rec.command_timeout)[1]
     t_act, t_before = wd.get('t_act'), wd.get('t_before')
     if t_act is not None and t_before is not None and t_before <= hi < t_act:

@@ -335,6 +335,7 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
             s = p.states[i]
             if st['ref'] is None and s[F['applied_step']] >= k_last:
                 st['ref'] = int(p.source_ns[i])  # the drive applied our last command
+                st['ref_step'] = int(s[F['step_index']])
             if i < i_silent:
                 continue
             if abs(s[F['isq']]) < ZERO_CURRENT_FRACTION * w:
@@ -387,6 +388,9 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
         'resumed_s': t_res,
         'aborted': st['why'],
         'ref': 'applied' if st['ref'] is not None else 'published',
+        # the last command answered state k_last; the drive first showed it in ref_step
+        'k_last': k_last,
+        'ref_step': st.get('ref_step'),
         'coverage_s': coverage,
         'rows_on': (i_on, i_silent),
         'rows_resume': (i_res, p.n),

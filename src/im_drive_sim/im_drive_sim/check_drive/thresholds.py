@@ -45,6 +45,7 @@ __all__ = [
     'UNITS_RATIO_BAND',
     'WATCHDOG_ACT_FRACTION',
     'WATCHDOG_EARLIEST',
+    'WATCHDOG_REF_SLACK',
     'ZERO_CURRENT_FRACTION',
     'CheckRefused',
     'F',
@@ -72,6 +73,10 @@ UNITS_RATIO_BAND = (0.8, 1.25)
 #: step's periods late or skipped): outside it (degrees 0.017, rpm 9.55, revolutions
 #: 0.159 or 6.28) the units are wrong whatever the host.
 UNITS_LATE_BAND = (0.5, 2.0)
+#: watchdog: the times run from the first state received that shows the last command
+#: applied; shown later than this fraction of the timeout after it was due, the start
+#: is not known well enough to judge (inconclusive).
+WATCHDOG_REF_SLACK = 0.1
 #: fields: motion needed to judge the units [encoder counts of the configured encoder].
 UNITS_MIN_COUNTS = 10
 #: rate (real time): median period within this fraction of Ts (a drive and this check

@@ -941,7 +941,7 @@ def test_a_watchdog_fall_seen_only_after_lost_states_may_have_been_in_time():
     assert cd.judge_watchdog_realtime(0.086, 0.087, 0.05, 0.003, 'test').verdict == 'fail'
 
 
-def test_a_watchdog_timed_from_a_command_that_answered_an_old_state_is_inconclusive():
+def test_a_watchdog_timed_from_a_state_received_long_after_it_was_due_is_inconclusive():
     """Beside CPU hogs the check was descheduled for 60 ms: the first state it received
     showing its last command applied came 300 periods after that was due (the states
     between were dropped, or the command came late), and the fall 4.4 ms after that

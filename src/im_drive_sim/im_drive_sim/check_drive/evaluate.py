@@ -351,7 +351,10 @@ class DriveLateness:
         period_ns = clock * 1e9 if math.isfinite(clock) else float(rec.ts_ns)
         self.late_s, self.first = drive_lateness(steps, source, period_ns)
 
-    def _window(self, k0: int, k1: int) -> np.ndarray:
+    def _window(self, k0: int | None, k1: int | None) -> np.ndarray:
+        """The lateness of periods k0..k1 (all: None)."""
+        if k0 is None or k1 is None:
+            return self.late_s
         a, b = max(0, k0 - self.first), max(0, k1 + 1 - self.first)
         return self.late_s[a:b]
 
@@ -362,7 +365,7 @@ class DriveLateness:
 
     def share(self, k0: int | None = None, k1: int | None = None) -> float:
         """The fraction of the periods k0..k1 (all: None) late or not published."""
-        w = self.late_s if k0 is None or k1 is None else self._window(k0, k1)
+        w = self._window(k0, k1)
         if len(w) == 0:
             return 0.0
         return float(np.mean(~(w <= DRIVE_LATE_MAX_S)))  # (NaN: not published: late)
@@ -374,7 +377,7 @@ class DriveLateness:
 
     def describe(self, k0: int | None = None, k1: int | None = None) -> str:
         """The drive's host in words, over k0..k1 (all: None)."""
-        w = self.late_s if k0 is None or k1 is None else self._window(k0, k1)
+        w = self._window(k0, k1)
         skipped = int(np.count_nonzero(np.isnan(w)))
         late = int(np.count_nonzero(w > DRIVE_LATE_MAX_S))
         return (

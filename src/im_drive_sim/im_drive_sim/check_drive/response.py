@@ -132,8 +132,10 @@ def judge_latency(
     else:
         effect_ok = len(d) >= 3 and bool(np.all(d == limit)) and missing == 0
     judged = [(x, y) for x, y in labelled if x is not None and y is not None]
-    unpunctual = sum(1 for (x, y), t in zip(zip(delays, lab, strict=False), punctual, strict=False)
-                     if not t and x is not None and y is not None)  # fmt: skip
+    unpunctual = sum(
+        not t and x is not None and y is not None
+        for x, y, t in zip(delays, lab, punctual, strict=False)
+    )
     honest = sum(x == y for x, y in judged)
     slower = sum(x > y for x, y in judged)
     if labels is None:

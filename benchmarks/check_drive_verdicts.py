@@ -4,13 +4,15 @@ verdict correct or ``inconclusive``, never wrong.
 
     python benchmarks/check_drive_verdicts.py [--runs N] [--conditions quiet,hogs,netns]
                                          [--drives correct,sim,slower,...] [--loss PERCENT]
-                                         [--hogs N] [--json FILE]
+                                         [--hogs N] [--json FILE] [--keep DIR]
 
 A drive is started, ``check_drive --json`` run against it, the drive stopped (by PID); each
 item's verdict is compared with the drive's expectation (the items it breaks fail, the
 others pass): ``right``, ``inconclusive`` or ``WRONG``. ``netns`` puts the drive in one
 network namespace and the check in another (test/netns.py; root, iproute2, nftables), with
-``--loss`` % of the packets dropped at random on each side. Takes about 12 s per check.
+``--loss`` % of the packets dropped at random on each side. ``--keep DIR`` saves what each
+check recorded (its ``Recording``, pickled) beside its JSON, to replay a wrong verdict with
+``evaluate``. Takes about 12 s per check.
 """
 
 from __future__ import annotations
@@ -99,13 +101,30 @@ def stop(p: subprocess.Popen, timeout: float = 10.0) -> None:
             p.wait()
 
 
-def one_check(drive: str, condition: str, tmp: Path, net) -> dict:
+#: check_drive run with its Recording pickled to the file $CDV_KEEP before it is judged
+KEEPING = '''
+import os, pickle, sys
+from im_drive_sim.check_drive import cli, procedure
+judge = procedure.evaluate
+def keep(rec, kept_up):
+    with open(os.environ['CDV_KEEP'], 'wb') as f:
+        pickle.dump(rec, f)
+    return judge(rec, kept_up)
+procedure.evaluate = keep
+sys.exit(cli.main(['check_drive', *sys.argv[1:]]))
+'''
+
+
+def one_check(drive: str, condition: str, tmp: Path, net, keep: Path | None = None) -> dict:
     argv, expect = DRIVES[drive]
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(random.Random().randrange(1, 200))
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    out_json = tmp / f'{drive}_{condition}_{time.monotonic_ns()}.json'
+    out_json = (keep or tmp) / f'{drive}_{condition}_{time.monotonic_ns()}.json'
     check = [str(BIN / 'ros2'), 'run', 'im_drive_sim', 'check_drive', '--json', str(out_json)]
+    if keep is not None:
+        env['CDV_KEEP'] = str(out_json.with_suffix('.pkl'))
+        check = [sys.executable, '-c', KEEPING, '--json', str(out_json)]
     env.update(DRIVE_ENV.get(drive, {}))
     if drive.startswith('clib'):
         argv = [*argv, f'lib:{wallclock_lib(tmp)}']
@@ -141,6 +160,8 @@ def one_check(drive: str, condition: str, tmp: Path, net) -> dict:
         )
         row['items'][it['name']] = {'verdict': verdict, 'grade': grade, 'figures': it['figures']}
     row['stdout'] = c.stdout
+    if keep is not None:
+        row['json'] = str(out_json)
     return row
 
 
@@ -152,10 +173,13 @@ def main() -> int:
     ap.add_argument('--loss', type=float, default=0.1, help='packet loss in netns [%%]')
     ap.add_argument('--hogs', type=int, default=2)
     ap.add_argument('--json', help='write every row here')
+    ap.add_argument('--keep', type=Path, help="save each check's JSON and recording here")
     ns = ap.parse_args()
     # a SIGTERM ends the run through the ``finally`` blocks: no hog or namespace left behind
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     drives = ns.drives.split(',')
+    if ns.keep is not None:
+        ns.keep.mkdir(parents=True, exist_ok=True)
     conditions = ns.conditions.split(',')
     rows = []
     with tempfile.TemporaryDirectory() as tmpd:
@@ -175,7 +199,7 @@ def main() -> int:
                     net.loss(ns.loss)
                 for run in range(ns.runs):
                     for drive in drives:
-                        row = one_check(drive, condition, tmp, net)
+                        row = one_check(drive, condition, tmp, net, ns.keep)
                         rows.append(row)
                         wrong = [k for k, v in row['items'].items() if v['grade'] == 'WRONG']
                         inc = [k for k, v in row['items'].items() if v['grade'] == 'inconclusive']

@@ -805,6 +805,21 @@ def test_a_step_test_the_check_fell_behind_in_is_inconclusive_not_a_fail():
     aborted = 'aborted: |omega_meas| 40.0 > 30 rad/s'
     items = {i.name: i for i in evaluate(_recording([(2700, 0.0, 0.0)], aborted))}
     assert items['step_response'].verdict == 'fail' and aborted in items['step_response'].figures
+    trans = [(2700, 0.0, 0.0), (2725, 0.5, 0.0)]
+    rec = _recording(trans, aborted)
+    rec.step_steps = 100
+    items = {i.name: i for i in evaluate(rec)}  # commands in time: the drive's overspeed
+    assert items['step_response'].verdict == 'fail' and aborted in items['step_response'].figures
+    # the check fell silent 30 periods into the +A step: the drive held +A for 140 periods
+    # more (its labels say so), and sped past the limit -- not the drive's doing
+    rec.states[2760:2900, 12] = 2754
+    step = {i.name: i for i in evaluate(rec)}['step_response']
+    assert step.verdict == 'inconclusive', step.line()
+    assert step.inconclusive.startswith(
+        'commands reached the drive up to 144 periods late before the abort (the step: 100'
+    ), step.inconclusive
+    rec.states[2760:2900, 12] = np.arange(2760, 2900) - 26  # 25 late: a quarter, still the drive's
+    assert {i.name: i for i in evaluate(rec)}['step_response'].verdict == 'fail'
 
 
 def test_a_check_past_its_limit_stops_at_zero_current_inconclusive(procs):

@@ -3,8 +3,10 @@
  * stand-in plant, but living on the wall clock as a real power stage does. Each write and
  * each read first integrates the plant over every period Ts that went by since the last
  * call (CLOCK_MONOTONIC; the period boundaries half a period from where the loop calls --
- * the plant's clock starts at the first write -- so the loop's on-time jitter never flips
- * a count) with the command in force then: a write acts from the instant it is made, and
+ * the plant's clock starts at the first write and is set, at the ANCHOR_WRITES-th, to the
+ * median phase of the writes so far: a first write that came late would otherwise put
+ * every boundary near the on-time calls -- so the loop's on-time jitter never flips a
+ * count) with the command in force then: a write acts from the instant it is made, and
  * a read samples the plant as it is at that instant. So the read right after a write does not show it yet -- the sample at the
  * next period start does: command delay 2, what this library declares (as any power
  * stage whose read returns the sample of the period start). A loop that starts late
@@ -34,12 +36,16 @@
 #define BANDWIDTH 1500.0
 #define TAU_W 0.001
 #define COUNTS 4096.0
+#define ANCHOR_WRITES 64
 
 static double *slot;
 static double a_i, a_w, cpr;
 static double isq_ref, load_ref, isq, theta, omega, count, omega_meas, theta_meas;
 static double t_plant = -1.0; /* [s] the plant integrated up to here */
 static long reads, fault_after;
+static double t_first;                /* [s] the first write */
+static double phase[ANCHOR_WRITES];   /* [s] each early write's offset from the first's grid */
+static int writes;
 static int delay = 2, closed;
 
 static double now_s(void) {
@@ -87,8 +93,32 @@ static void advance(int writing) { /* every period that went by, with the comman
   }
 }
 
+static int by_value(const void *a, const void *b) {
+  double x = *(const double *)a, y = *(const double *)b;
+  return (x > y) - (x < y);
+}
+
+/* the plant's period boundaries half a period from the loop's typical write: each of the
+   first writes' offset from the first write's grid, wrapped into [-Ts/2, Ts/2), and the
+   grid moved by their median once (a late write is rare, so the median is an on-time one) */
+static void anchor(double now) {
+  double r;
+  if (writes == 0) t_first = now;
+  if (writes < ANCHOR_WRITES) {
+    r = fmod(now - t_first, TS);
+    phase[writes] = r >= 0.5 * TS ? r - TS : r;
+  }
+  writes += 1;
+  if (writes == ANCHOR_WRITES) {
+    qsort(phase, ANCHOR_WRITES, sizeof phase[0], by_value);
+    t_plant += phase[ANCHOR_WRITES / 2];
+  }
+}
+
 int im_drive_write(double i, double load) {
+  double now = now_s();
   advance(1);
+  anchor(now);
   if (slot) {
     slot[0] += 1.0;
     slot[1] = i;

@@ -142,6 +142,8 @@ class Recording:
     command_timeout_source: str
     #: state rows (start, end) of the phases: 'rate', 'latency', 'step'
     phases: dict[str, tuple[int, int]] = field(default_factory=dict)
+    #: the +A and -A steps' commanded length [periods]
+    step_steps: int = 0
 
     @property
     def n(self) -> int:
@@ -310,7 +312,12 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
         item = judge_step_response(
             nan, nan, a, counts_per_rad, rec.aborted_why or 'step test incomplete'
         )
-        if not rec.aborted_why:
+        held = abort_busy(rec, d_declared) if rec.aborted_why and realtime else ''
+        if held:
+            # the drive held a step longer than commanded (the check answered late): its
+            # speed ran past the limit through no fault of the drive
+            item = item.undecided(f'{held}: the step it was given was longer than commanded')
+        elif not rec.aborted_why:
             # the check answered too few of the step's states to change its level four
             # times: it fell behind (descheduled, or the link held the states), not the
             # drive -- nothing was measured to judge
@@ -425,6 +432,26 @@ def step_busy(rec: Recording, declared: int) -> tuple[str, str]:
             if w
         )
     return gaps, late
+
+
+def abort_busy(rec: Recording, declared: int) -> str:
+    """Why a step test the check aborted (overspeed) may not be the drive's doing ('' when
+    it is): from the +A step on, the commands reached the drive later than
+    STEP_LAG_FRACTION of the step's commanded length, by its labels -- it held a level
+    that much longer than commanded, and sped up for it."""
+    i0, i1 = rec.phases.get('step', (0, 0))
+    if len(rec.step_trans) < 2 or rec.step_steps <= 0 or i1 <= i0:
+        return ''
+    rows = rec.states[i0:i1][rec.lengths[i0:i1] == len(STATE_FIELDS)]
+    rows = rows[rows[:, F['step_index']] >= rec.step_trans[1][0]]
+    lag = command_lag(rows, declared)
+    lag = lag[np.isfinite(lag)]
+    if not len(lag) or lag.max() <= STEP_LAG_FRACTION * rec.step_steps:
+        return ''
+    return (
+        f'commands reached the drive up to {lag.max():.0f} periods late before the abort '
+        f'(the step: {rec.step_steps} periods)'
+    )
 
 
 def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:

@@ -301,6 +301,7 @@ def _probe(
         step_trans=step_trans,
         k_step_end=k_step_end,
         aborted_why=aborted['why'],
+        step_steps=n_step,
         watchdog=wd,
         phases=phases,
         command_timeout=timeout,

@@ -102,7 +102,7 @@ def stop(p: subprocess.Popen, timeout: float = 10.0) -> None:
 
 
 #: check_drive run with its Recording pickled to the file $CDV_KEEP before it is judged
-KEEPING = '''
+KEEPING = """
 import os, pickle, sys
 from im_drive_sim.check_drive import cli, procedure
 judge = procedure.evaluate
@@ -112,7 +112,7 @@ def keep(rec, kept_up):
     return judge(rec, kept_up)
 procedure.evaluate = keep
 sys.exit(cli.main(['check_drive', *sys.argv[1:]]))
-'''
+"""
 
 
 def one_check(drive: str, condition: str, tmp: Path, net, keep: Path | None = None) -> dict:

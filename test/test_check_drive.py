@@ -683,6 +683,13 @@ def test_step_response_signs_fail_whatever_the_load_timing_does_not():
     assert cd.judge_step_response(slow, minus, 0.5, counts).verdict == 'fail'
     # the rise is timed from the onset: a late command does not make it slow
     assert cd.judge_step_response(slow, minus, 0.5, counts, busy=late).verdict == 'fail'
+    # ... but a step whose change never showed while its commands came late was never
+    # given (the link held the +isq commands: the drive kept 0 A): no rise to time
+    never = dict(m, rise_s=math.nan, steady_error=1.0, torque_per_amp=math.nan, accel=0.0,
+                 isq_mean=0.0)  # fmt: skip
+    item = cd.judge_step_response(never, minus, 0.5, counts, busy=late)
+    assert item.verdict == 'inconclusive' and item.inconclusive == late, item.line()
+    assert cd.judge_step_response(never, minus, 0.5, counts).verdict == 'fail'
     off = dict(m, steady_error=0.3)
     item = cd.judge_step_response(off, minus, 0.5, counts, busy=late)
     assert item.verdict == 'inconclusive' and item.inconclusive == late

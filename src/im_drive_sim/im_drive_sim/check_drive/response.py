@@ -278,8 +278,9 @@ def judge_step_response(
     a line across a gap stretches the rise) and ``busy`` (commands that reached the drive
     late: the steady state is measured where the step may not have been applied). A
     wrong sign fails whatever they say; the rise time is inconclusive only with
-    ``gaps`` (it is measured from the onset, wherever a late command put it); the other
-    figures with either."""
+    ``gaps`` (it is measured from the onset, wherever a late command put it), or with
+    ``busy`` when there was no onset (the step was never given); the other figures with
+    either."""
     problems = []
     if aborted:
         problems.append(aborted)
@@ -332,7 +333,10 @@ def judge_step_response(
             'aborted': aborted or None,
         },
     )
-    if signs or (rise_bad and not gaps):
+    # a rise is timed from its onset, wherever a late command put it: a slow one is the
+    # drive's -- but no onset at all while the commands came late is a step never given
+    rise_judged = rise_bad and not gaps and (math.isfinite(rise) or not busy)
+    if signs or rise_judged:
         return item  # the drive's, whatever the load
     return item.undecided('; '.join(w for w in (gaps, busy) if w))
 

@@ -196,7 +196,13 @@ def test_broken_drive_fails_exactly_what_it_breaks(procs, tmp_path, breaks, expe
             if d and b
         ]
         assert sum(d > b for d, b in pairs) > 0.25 * len(pairs), pairs
-        assert 'later (slower than declared)' in lines['latency']
+        # failed on its labels (later than they say, in on-time periods) or, where its
+        # periods were late, on its effect: the fastest quarter of the changes that came
+        # in time by the labels later than k+2
+        in_time = [d for d, b in pairs if b <= 2]
+        assert 'later (slower than declared)' in lines['latency'] or (
+            len(in_time) >= 3 and np.percentile(in_time, 25, method='lower') > 2
+        ), (pairs, lines['latency'])
     if 'sign' in breaks and 'step_response' in expected:
         assert 'torque sign opposite to isq' in lines['step_response']
     if 'slow_current' in breaks and 'step_response' in expected:

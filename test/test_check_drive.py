@@ -199,11 +199,8 @@ def test_broken_drive_fails_exactly_what_it_breaks(procs, tmp_path, breaks, expe
         # failed on its labels (later than they say, in on-time periods) or, where its
         # periods were late, on its effect: the fastest quarter of the changes that came
         # in time by the labels later than k+2
-        in_time = [
-            d
-            for d, b, c in zip(lat['effect_delays'], lat['label_delays'], lat['complete'], strict=True)
-            if c and d is not None and b is not None and b <= 2
-        ]
+        changes = zip(lat['effect_delays'], lat['label_delays'], lat['complete'], strict=True)
+        in_time = [d for d, b, c in changes if c and d is not None and b is not None and b <= 2]
         assert 'later (slower than declared)' in lines['latency'] or (
             len(in_time) >= 3 and np.percentile(in_time, 25, method='lower') > 2
         ), (pairs, lines['latency'])

@@ -163,34 +163,52 @@ def test_realtime_mode_paces_at_5khz(procs, ros_context, host_floor):
     # states -- it took 135-2500 of them -- : the drive's own publication times of the
     # states it took are what count)
     assert ks_a[-1] == steps and len(ks_a) >= 100
-    # Stated tolerance, on the drive's own publication times (a shared 2-core machine,
-    # the responder competing for the CPU): the typical period within 2 %, the whole
-    # run's average (overruns re-anchor the schedule) within 10 % and what the host's
-    # floor, measured in the same test run, holds. Typical: the median period of the
-    # spans between the states taken that hold none of the host's late starts -- the
-    # simulator re-anchors after a start more than a period late, so such a span is a
-    # period or more longer (16 of 2500 periods, up to 2 ms, in a CI run where the client
-    # took one state in 60: the median of every span read 211.6 us); a drive paced wrong
-    # is off in every span, the short ones included.
-    dk = np.diff(ks_a)
-    spans = np.diff(ts_a) / dk
-    kept = np.diff(ts_a) - dk * 200e-6 <= 200e-6
-    assert np.count_nonzero(kept) >= 0.5 * len(spans), (len(spans), np.count_nonzero(kept))
-    typical = float(np.median(spans[kept]))
-    average = (ts_a[-1] - ts_a[0]) / (ks_a[-1] - ks_a[0])
-    floor = f'{host_floor.describe()}; drive says: {err[-600:]}'
-    assert typical == pytest.approx(200e-6, rel=0.02), (
-        f'typical period {typical * 1e6:.1f} us; {floor}'
-    )
-    allowed = 0.10 + 2 * host_floor['held_pct'] / 100
-    assert average == pytest.approx(200e-6, rel=allowed), (
-        f'average period {average * 1e6:.1f} us; {floor}'
-    )
-    # The drive counted what it did: every step was fresh or held.
+    # The drive counted what it did: every step was fresh or held; and how late its
+    # periods started, on this host in these seconds (a host that stalls a SCHED_FIFO
+    # loop for milliseconds now and then, as this 2-core VM does, shows it here).
     summary = err[err.rindex('stopped at step') :].splitlines()[0]
     counts = dict(kv.split('=') for kv in summary.split(': ', 1)[1].split(', '))
     assert int(counts['steps']) == steps
     assert int(counts['fresh']) + int(counts['held']) == steps
+    overruns, worst = int(counts['overruns']), float(counts['max_lateness_us']) * 1e-6
+    # Stated tolerance, on the drive's own publication times (a shared 2-core machine,
+    # the responder competing for the CPU). A drive paced right publishes state k at
+    # t0 + k x 200 us plus that period's start lateness, where t0 steps up each time it
+    # re-anchored after a start more than a period late: 6-17 times per run on this
+    # 2-core VM, idle or not, each by up to 1-3.5 ms (the host stalling a SCHED_FIFO loop).
+    # * the period: the slope of the states' times over k within the stretches between
+    #   those steps (a span a period or more longer than its periods ends a stretch),
+    #   pooled least squares, within 1 %. (The median of the spans, used before, read
+    #   205.3 us in an idle CI run with 13 overruns: a client taking few states samples
+    #   the long spans unevenly.)
+    # * the slip over the run: at most the re-anchors' sum (overruns x the worst
+    #   lateness), give or take the two end states' own lateness (under a period plus its
+    #   work);
+    # * the whole run's average within 10 % and what the host's floor holds.
+    dk = np.diff(ks_a)
+    excess = np.diff(ts_a) - dk * 200e-6
+    stretch = np.concatenate([[0], np.cumsum(excess > 150e-6)])
+    n_in = np.bincount(stretch)
+    k_c = ks_a - (np.bincount(stretch, ks_a) / n_in)[stretch]
+    t_c = ts_a - (np.bincount(stretch, ts_a) / n_in)[stretch]
+    period = float(np.sum(k_c * t_c) / np.sum(k_c * k_c))
+    slip = (ts_a[-1] - ts_a[0]) - (ks_a[-1] - ks_a[0]) * 200e-6
+    said = (
+        f'drive: {overruns} overruns, worst start {worst * 1e6:.0f} us late, '
+        f'{stretch[-1] + 1} stretches; {host_floor.describe()}; drive says: {err[-600:]}'
+    )
+    assert period == pytest.approx(200e-6, rel=0.01), f'period {period * 1e6:.2f} us; {said}'
+    jitter = 300e-6
+    allowed_slip = overruns * worst + jitter
+    assert -jitter <= slip <= allowed_slip, (
+        f'the schedule slipped {slip * 1e6:.0f} us over {ks_a[-1] - ks_a[0]} periods '
+        f'(allowed {allowed_slip * 1e6:.0f} us); {said}'
+    )
+    average = (ts_a[-1] - ts_a[0]) / (ks_a[-1] - ks_a[0])
+    allowed = 0.10 + 2 * host_floor['held_pct'] / 100
+    assert average == pytest.approx(200e-6, rel=allowed), (
+        f'average period {average * 1e6:.1f} us; {said}'
+    )
     # it received this client's commands; whether any came within its period (fresh) is
     # this Python client's speed beside a SCHED_FIFO drive on 2 cores, not the drive's:
     # fresh was 0 of 2500 in a CI run of 2026-11-28, every answer a period late

@@ -5,6 +5,7 @@ verdict correct or ``inconclusive``, never wrong.
     python benchmarks/check_drive_verdicts.py [--runs N] [--conditions quiet,hogs,netns]
                                          [--drives correct,sim,slower,...] [--loss PERCENT]
                                          [--hogs N] [--json FILE] [--keep DIR]
+                                         [--check-args='--thread-priority 40']
 
 A drive is started, ``check_drive --json`` run against it, the drive stopped (by PID); each
 item's verdict is compared with the drive's expectation (the items it breaks fail, the
@@ -12,7 +13,8 @@ others pass): ``right``, ``inconclusive`` or ``WRONG``. ``netns`` puts the drive
 network namespace and the check in another (test/netns.py; root, iproute2, nftables), with
 ``--loss`` % of the packets dropped at random on each side. ``--keep DIR`` saves what each
 check recorded (its ``Recording``, pickled) beside its JSON, to replay a wrong verdict with
-``evaluate``. Takes about 12 s per check.
+``evaluate``. ``--check-args`` are given to every check (its real-time options).
+Takes about 12 s per check.
 """
 
 from __future__ import annotations
@@ -115,7 +117,14 @@ sys.exit(cli.main(['check_drive', *sys.argv[1:]]))
 """
 
 
-def one_check(drive: str, condition: str, tmp: Path, net, keep: Path | None = None) -> dict:
+def one_check(
+    drive: str,
+    condition: str,
+    tmp: Path,
+    net,
+    keep: Path | None = None,
+    extra: tuple[str, ...] = (),
+) -> dict:
     argv, expect = DRIVES[drive]
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(random.Random().randrange(1, 200))
@@ -125,6 +134,7 @@ def one_check(drive: str, condition: str, tmp: Path, net, keep: Path | None = No
     if keep is not None:
         env['CDV_KEEP'] = str(out_json.with_suffix('.pkl'))
         check = [sys.executable, '-c', KEEPING, '--json', str(out_json)]
+    check = [*check, *extra]
     env.update(DRIVE_ENV.get(drive, {}))
     if drive.startswith('clib'):
         argv = [*argv, f'lib:{wallclock_lib(tmp)}']
@@ -174,6 +184,7 @@ def main() -> int:
     ap.add_argument('--hogs', type=int, default=2)
     ap.add_argument('--json', help='write every row here')
     ap.add_argument('--keep', type=Path, help="save each check's JSON and recording here")
+    ap.add_argument('--check-args', default='', help='more options for every check_drive')
     ns = ap.parse_args()
     # a SIGTERM ends the run through the ``finally`` blocks: no hog or namespace left behind
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
@@ -199,7 +210,9 @@ def main() -> int:
                     net.loss(ns.loss)
                 for run in range(ns.runs):
                     for drive in drives:
-                        row = one_check(drive, condition, tmp, net, ns.keep)
+                        row = one_check(
+                            drive, condition, tmp, net, ns.keep, tuple(ns.check_args.split())
+                        )
                         rows.append(row)
                         wrong = [k for k, v in row['items'].items() if v['grade'] == 'WRONG']
                         inc = [k for k, v in row['items'].items() if v['grade'] == 'inconclusive']

@@ -154,6 +154,8 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('check_drive', 'timeout-inf', ['--timeout', 'inf']),
     ('check_drive', 'json-directory', ['--json', 'adir']),
     ('check_drive', 'json-in-missing-directory', ['--json', 'nowhere/x.json']),
+    ('check_drive', 'thread-priority-range', ['--thread-priority', '100']),
+    ('check_drive', 'cpu-affinity-absent', ['--cpu-affinity', '4096']),
     *_file_cases('check_drive', '--config'),
     # -- recorder
     ('recorder', 'chunk-size-huge', ['--chunk-size', str(1 << 50)]),

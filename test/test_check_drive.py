@@ -268,6 +268,15 @@ def test_bad_options_one_line_exit_2(procs, args, message):
     assert lines[0].startswith('error: check_drive: ') and message in lines[0], lines[0]
 
 
+def test_the_checks_own_real_time_options_parse_as_the_drives():
+    from im_drive_sim.check_drive.cli import parse_args
+    from im_drive_sim.rt import RtOptions
+
+    assert parse_args([]).rt == RtOptions()  # the normal policy unless asked
+    opts = parse_args(['--thread-priority', '40', '--lock-memory', '--amplitude', '0.4'])
+    assert opts.rt == RtOptions(40, -1, True) and opts.amplitude == 0.4
+
+
 # ------------------------------------------------------------------ pure judging functions
 
 TS = 200e-6

@@ -69,6 +69,7 @@ def parse_args(argv: list[str]) -> Options:
         type=output_file,
         help='write the results as JSON (checked before probing)',
     )
+    rt.add_arguments(ap, "the check's process (every thread: give it less than the drive's)")
     ns = ap.parse_args(argv)
     for name in ('amplitude', 'step_duration', 'max_speed', 'timeout', 'command_timeout'):
         v = getattr(ns, name)
@@ -94,7 +95,9 @@ def parse_args(argv: list[str]) -> Options:
             validate_namespace(ns.namespace if ns.namespace.startswith('/') else '/' + ns.namespace)
         except Exception as exc:  # rclpy raises InvalidNamespaceException
             ap.error(f'--namespace {ns.namespace!r}: {str(exc).splitlines()[0]}')
-    return Options(**vars(ns))
+    rt_opts = rt.RtOptions.from_cli(ns)
+    del ns.thread_priority, ns.cpu_affinity, ns.lock_memory
+    return Options(**vars(ns), rt=rt_opts)
 
 
 def main(args: list[str] | None = None) -> int:
@@ -115,10 +118,13 @@ def main(args: list[str] | None = None) -> int:
         str(Path(__file__).parent.parent / 'config' / 'check_drive_fastdds.xml'),
     )
     # the CPU latency request, as every real-time loop of the workspace: a check that
-    # wakes late from a CPU's deep idle state would judge its own lateness
-    pm_qos = rt.hold_latency()
-    if pm_qos:
-        print(f'warning: {pm_qos}', file=sys.stderr, flush=True)
+    # wakes late from a CPU's deep idle state would judge its own lateness. And the
+    # scheduling asked for, before the ROS session: the middleware's threads, started
+    # with it, inherit it (beside other load a check at the normal policy answers most
+    # states late, and its latency item is inconclusive).
+    refused = rt.apply(opts.rt)
+    for line in refused:
+        print(f'warning: {line}', file=sys.stderr, flush=True)
     session = RosSession(argv)
     node = Node('check_drive', **({'namespace': opts.namespace} if opts.namespace else {}))
     code = 0
@@ -130,6 +136,7 @@ def main(args: list[str] | None = None) -> int:
 
         items, info = run_check(opts, node, lambda s: print(s, flush=True), stop)
         info['pm_qos'] = rt.latency_report()
+        info['rt'] = rt.report(opts.rt, refused)
         for item in items:
             print(item.line())
         if info.get('conditions') and info.get('mode') == 'realtime':

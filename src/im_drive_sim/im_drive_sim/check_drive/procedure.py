@@ -10,11 +10,12 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..contract import COMMAND_TOPIC, JOINT_STATE_TOPIC, STATE_TOPIC, STATUS_TOPIC
+from ..rt import RtOptions
 from .evaluate import Recording, evaluate
 from .probe import DriveLost, Probe
 from .response import watchdog_limits
@@ -42,6 +43,8 @@ class Options:
     timeout: float = 10.0
     namespace: str | None = None
     json: str | None = None
+    #: the check's own scheduling (``--thread-priority`` ...; :mod:`im_drive_sim.rt`)
+    rt: RtOptions = field(default_factory=RtOptions)
 
 
 def run_check(

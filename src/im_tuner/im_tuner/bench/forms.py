@@ -394,9 +394,19 @@ class Children:
         if plan.mode == 'external' and node is not None and self.spin_until is not None:
             # node names come in the graph's own messages, apart from the services the
             # probe found: wait for the controller's name (a host announced its node in
-            # the same message: it makes it first)
+            # the same message: it makes it first). As long as discovery may take: a lost
+            # packet of that message is sent again only at the next reliable heartbeat
+            # (seconds), and a bag that took a host's 5 kHz across the network would
+            # load it for the whole run.
             ctl_name = posixpath.basename(self.names['node'])
-            self.spin_until(lambda: ctl_name in node.get_node_names(), 2.0)
+            if not self.spin_until(
+                lambda: ctl_name in node.get_node_names(), plan.spec.probe_timeout()
+            ):
+                host.warn(
+                    f'warning: the controller {ctl_name!r} answered but its node name did not '
+                    f'reach this computer within {plan.spec.probe_timeout():g} s; the bag '
+                    "records every topic, a drive host's 5 kHz ones included"
+                )
             if DRIVE_HOST_NODE in node.get_node_names():
                 ns = posixpath.dirname(self.names['node'])
                 self.excluded = [posixpath.join(ns, t) for t in HOST_LOOP_TOPICS]

@@ -98,7 +98,9 @@ def test_a_run_across_the_network_at_0_and_1_percent_loss(two, procs, tmp_path):
         assert len(counted) == 5, recs  # the reference and 4 evaluations
         # the tuner's bag: experiment-rate traffic only (the host records the 5 kHz)
         topics = netns.bag_topics(run / 'bag_0')
-        assert '/drive/state' not in topics and '/controller/internals' not in topics, topics
+        assert '/drive/state' not in topics and '/controller/internals' not in topics, (
+            f'{percent} %: {topics}; tuner said: {p.stderr[-2000:]}'
+        )
         assert topics['/controller/loss'] >= 5, topics
         runs.append(recs)
     two.loss(0)

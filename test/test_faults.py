@@ -280,6 +280,18 @@ def last_message(bag: Path, topic: str):
 
 
 # -- the controller dies -------------------------------------------------------------------
+#: [s] the tuner's --eval-timeout in the controller-kill test: an experiment (0.5 s settle
+#: + 1.125 s) on the wall clock, with a drive and a controller at the normal policy. 6 s
+#: was too short in the parallel pass beside a busy process (the reference took 5.2 s of
+#: wall time, the next attempts more than 6 s: 0 of 6 evaluations before the kill).
+KILL_EVAL_TIMEOUT = 15.0
+#: [s] the tuner's call timeout that follows from it (``min(10, --eval-timeout)``)
+KILL_CALL_TIMEOUT = min(10.0, KILL_EVAL_TIMEOUT)
+
+
+# an experiment on the wall clock must end within the tuner's timeout before the kill:
+# alone, not beside another test's processes
+@pytest.mark.serial
 def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
     """Real time. SIGKILL the controller 0.3 s into an experiment: the drive keeps running,
     its watchdog commands zero current (ERROR on drive/status, a log line); the tuner
@@ -323,7 +335,7 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
             '--retries',
             '1',
             '--eval-timeout',
-            '6',  # an experiment: 0.5 s settle + 1.125 s, real time on a loaded machine
+            str(KILL_EVAL_TIMEOUT),
             '--quiet',
             '--out',
             str(run),
@@ -356,11 +368,9 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
     # lost mid-experiment, or (killed as it started) a call of its start unanswered: the
     # gains, the start, or (fault policy reset, after a limit a loaded machine tripped)
     # the fault's reset (CI of 2026-11-29)
-    assert (
-        f'no loss for experiment {lost["experiment_id"]}' in lost['reason']
-        or 'start_experiment: no answer within 6 s' in lost['reason']
-        or 'set_parameters_atomically: no answer within 6 s' in lost['reason']
-        or 'reset_fault: no answer within 6 s' in lost['reason']
+    assert f'no loss for experiment {lost["experiment_id"]}' in lost['reason'] or any(
+        f'{call}: no answer within {KILL_CALL_TIMEOUT:g} s' in lost['reason']
+        for call in ('start_experiment', 'set_parameters_atomically', 'reset_fault')
     ), lost['reason']
     assert f'failed: eval {lost["eval"]}: no result after 2 attempts' in out
     summary = json.loads((run / 'summary.json').read_text())
@@ -398,7 +408,7 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
     assert bag_state(bag) == 'closed'
     # every result the controller published before it was killed: each measured record's,
     # and at most a late one for an attempt the tuner had given up on ('no loss for
-    # experiment N' within 6 s on a loaded machine: the recorder still got it; CI of
+    # experiment N' within the timeout on a loaded machine: the recorder still got it; CI of
     # 2026-11-29); nothing else
     ids = [
         int(loss_values(m)['experiment_id'])

@@ -399,12 +399,11 @@ class Children:
             # (seconds), and a bag that took a host's 5 kHz across the network would
             # load it for the whole run.
             ctl_name = posixpath.basename(self.names['node'])
-            if not self.spin_until(
-                lambda: ctl_name in node.get_node_names(), plan.spec.probe_timeout()
-            ):
+            wait = plan.spec.probe_timeout()
+            if not self.spin_until(lambda: ctl_name in node.get_node_names(), wait):
                 host.warn(
                     f'warning: the controller {ctl_name!r} answered but its node name did not '
-                    f'reach this computer within {plan.spec.probe_timeout():g} s; the bag '
+                    f'reach this computer within {wait:g} s; the bag '
                     "records every topic, a drive host's 5 kHz ones included"
                 )
             if DRIVE_HOST_NODE in node.get_node_names():

@@ -3,7 +3,9 @@
 One pass over the ``.mcap`` file (memory-mapped, read only: the report changes nothing):
 the top-level records are walked up to DataEnd or the first incomplete record (a killed
 recorder leaves no footer; everything in complete chunks is still read), and each chunk
-is decompressed once. A chunk's messages are found through the MessageIndex records that
+is decompressed once and checked against its CRC (a chunk that fails it, or does not
+decompress, had its bytes changed: it is named in ``BagData.damaged`` and its messages
+are left out). A chunk's messages are found through the MessageIndex records that
 follow it, with numpy (no per-message Python, and no numba: its first call in a process
 costs about 0.7 s, a quarter of a small report); the index is checked against the chunk
 (every message it names is a Message record of that channel and log time, and those
@@ -25,6 +27,7 @@ from __future__ import annotations
 import json
 import mmap
 import struct
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -50,6 +53,7 @@ __all__ = [
     'BagData',
     'BagReadError',
     'ChunkStats',
+    'DamagedChunk',
     'TopicStats',
     'parse_diagnostic_array',
     'parse_float64_multiarray',
@@ -104,6 +108,24 @@ class ChunkStats:
         return (self.end_ns - self.start_ns) * 1e-9
 
 
+@dataclass(frozen=True)
+class DamagedChunk:
+    """A complete Chunk record whose records cannot be trusted: its CRC (the MCAP
+    ``uncompressed_crc``, CRC-32 of the decompressed records) does not match, or it does
+    not decompress. Its messages are left out of every count."""
+
+    number: int  #: its place among the file's chunks, from 1
+    offset: int  #: byte offset of the Chunk record in the .mcap file
+    start_ns: int  #: message_start_time its header states [ns]
+    end_ns: int  #: message_end_time its header states [ns]
+    reason: str  #: what is wrong, e.g. 'CRC 0x1234abcd stored, 0x0badf00d computed'
+
+    def describe(self) -> str:
+        """One phrase naming the chunk: 'chunk 3 at byte 123456 (log time ...): reason'."""
+        span = f'{(self.end_ns - self.start_ns) * 1e-9:.3f} s of log time from {self.start_ns} ns'
+        return f'chunk {self.number} at byte {self.offset} ({span}): {self.reason}'
+
+
 @dataclass
 class BagData:
     """What :func:`read_bag` found."""
@@ -116,6 +138,8 @@ class BagData:
     chunks: int = 0
     #: every complete chunk read, in file order
     chunk_stats: list[ChunkStats] = field(default_factory=list)
+    #: complete chunks left out because their CRC or compression is wrong (bytes changed)
+    damaged: list[DamagedChunk] = field(default_factory=list)
     #: the MCAP Metadata records found (name -> string map; the first of a name wins)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     topics: dict[str, TopicStats] = field(default_factory=dict)
@@ -445,13 +469,14 @@ def read_bag(
                         # a copy: no array may still point into the mmap when it closes
                         e = np.frombuffer(mm, '<u8', nb // 8, a + 6).reshape(-1, 2).copy()
                         chunks[-1][2].append((cid, e))
-            for a, n, index in chunks:
+            for number, (a, n, index) in enumerate(chunks, 1):
                 try:
                     chunk = _read_chunk(mm, a, n)
-                except ValueError:
-                    out.complete = False
-                    out.unread_bytes = size - (a - 9)
-                    break
+                except ValueError as exc:
+                    # a complete record (the walk above checked its length): bytes changed
+                    start, end = struct.unpack_from('<QQ', mm, a)
+                    out.damaged.append(DamagedChunk(number, a - 9, start, end, str(exc)))
+                    continue
                 out.chunks += 1
                 out.chunk_stats.append(_chunk_stats(mm, a, chunk.size))
                 _take_chunk(
@@ -505,7 +530,7 @@ def _chunk_stats(mm: mmap.mmap, a: int, usize: int) -> ChunkStats:
 
 def _read_chunk(mm: mmap.mmap, a: int, n: int) -> np.ndarray:
     """A Chunk record body at ``a`` -> its decompressed records."""
-    _start, _end, usize, _crc = struct.unpack_from('<QQQI', mm, a)
+    _start, _end, usize, crc = struct.unpack_from('<QQQI', mm, a)
     p = a + 28
     (clen,) = struct.unpack_from('<I', mm, p)
     comp = mm[p + 4 : p + 4 + clen].decode()
@@ -513,13 +538,16 @@ def _read_chunk(mm: mmap.mmap, a: int, n: int) -> np.ndarray:
     (rlen,) = struct.unpack_from('<Q', mm, p)
     p += 8
     if p + rlen > a + n:
-        raise ValueError('chunk records past the chunk')
+        raise ValueError('its records run past the record')
     try:
         raw = decompress(comp, mm[p : p + rlen], usize)
     except Exception as exc:  # lz4/zstd raise their own types on corrupt data
-        raise ValueError(f'chunk does not decompress: {exc}') from None
+        raise ValueError(f'does not decompress: {exc}') from None
     if len(raw) != usize:
-        raise ValueError('chunk size mismatch')
+        raise ValueError(f'{len(raw)} bytes of records where its header states {usize}')
+    got = zlib.crc32(raw)
+    if crc and got != crc:  # 0: the writer computed none (MCAP)
+        raise ValueError(f'CRC 0x{crc:08x} stored, 0x{got:08x} computed from its records')
     return np.frombuffer(raw, np.uint8)
 
 

@@ -8,14 +8,16 @@ which the recorder does at least every ``max_chunk_age`` seconds, so at most tha
 (the open chunk) is lost.
 
 :func:`repair_bag` scans the file record by record up to the first incomplete or invalid
-one (a truncated record, a chunk that does not decompress or fails its CRC), then writes
+one (a truncated record; a whole chunk that does not decompress or fails its CRC had its
+bytes changed: it is named and left out, and the scan goes on past it), then writes
 a new file beside it (``<file>.repairing``): magic, the original Header, every Schema,
 Channel, Metadata and Attachment record found, every complete chunk copied verbatim with
 freshly built Message Index records (messages found outside chunks are packed into new
 uncompressed chunks), DataEnd, the summary and footer exactly as ``McapWriter.close``
 writes them. Only when that file is complete and synced does it replace the original
 (``os.replace``), so a failure at any point leaves the original as it was. A file that
-already ends in a valid footer is left untouched. Either way ``metadata.yaml`` is
+already ends in a valid footer is left untouched (one with a damaged chunk is refused,
+naming the chunk: nothing can recover its messages). Either way ``metadata.yaml`` is
 rewritten from what the scan found. No rclpy here.
 """
 
@@ -69,6 +71,10 @@ class RepairError(Exception):
     """The bag cannot be repaired (not a directory, no .mcap file, not MCAP, no header)."""
 
 
+class _DamagedChunk(ValueError):
+    """A complete Chunk record whose records fail their CRC or do not decompress."""
+
+
 @dataclass
 class ScannedChunk:
     """A complete chunk of the scanned file (or a run of loose messages to chunk)."""
@@ -99,6 +105,9 @@ class McapScan:
     # offset, length, log_time, create_time, data size, name, media type
     attachments: list[tuple[int, int, int, int, int, str, str]] = field(default_factory=list)
     chunks: list[ScannedChunk] = field(default_factory=list)
+    #: complete Chunk records that fail their CRC or do not decompress (bytes changed):
+    #: (number among the file's Chunk records from 1, offset, what is wrong)
+    damaged: list[tuple[int, int, str]] = field(default_factory=list)
     data_end: int = 0  # end of the last complete record of the data section
     ended: bool = False  # the scan reached DataEnd (or the Footer)
     complete: bool = False  # the file ends in a valid footer and magic
@@ -134,6 +143,8 @@ class RepairReport:
     chunks: int
     dropped_bytes: int
     topics: dict[str, int]
+    #: damaged chunks left out of the rewritten file: (number, offset, what is wrong)
+    damaged: list[tuple[int, int, str]] = field(default_factory=list)
 
     def summary(self) -> str:
         if self.was_complete:
@@ -146,15 +157,20 @@ class RepairReport:
             head = [
                 f'bag {self.bag}: {self.file} had no valid summary/footer; rewrote it and '
                 'metadata.yaml',
-                '  ' + _repair_line(self.messages, self.chunks, self.dropped_bytes),
+                '  ' + _repair_line(self.messages, self.chunks, self.dropped_bytes, self.damaged),
             ]
         return '\n'.join(head + [f'  {t}: {n}' for t, n in sorted(self.topics.items())])
 
 
-def _repair_line(messages: int, chunks: int, dropped: int) -> str:
+def _repair_line(
+    messages: int, chunks: int, dropped: int, damaged: list[tuple[int, int, str]]
+) -> str:
+    left_out = ''.join(
+        f'; left out damaged chunk {number} at byte {at} ({why})' for number, at, why in damaged
+    )
     return (
         f'recovered {messages} messages in {chunks} chunks; discarded {dropped} bytes '
-        'after the last complete chunk'
+        f'after the last complete chunk{left_out}'
     )
 
 
@@ -169,9 +185,12 @@ def _parse_chunk(body: bytes, scan: McapScan, at: int) -> ScannedChunk:
     try:
         raw = decompress(comp, body[c.p :], usize)
     except Exception as exc:  # zstd/lz4 raise their own types on corrupt data
-        raise ValueError(f'chunk does not decompress: {exc}') from None
-    if len(raw) != usize or (crc and zlib.crc32(raw) != crc):
-        raise ValueError('chunk size or CRC mismatch')
+        raise _DamagedChunk(f'does not decompress: {exc}') from None
+    if len(raw) != usize:
+        raise _DamagedChunk(f'{len(raw)} bytes of records where its header states {usize}')
+    got = zlib.crc32(raw)
+    if crc and got != crc:  # 0: the writer computed none (MCAP)
+        raise _DamagedChunk(f'CRC 0x{crc:08x} stored, 0x{got:08x} computed from its records')
     schemas: dict[int, tuple[str, bytes]] = {}
     channels: dict[int, tuple[str, int, dict[str, str], bytes]] = {}
     rows: list[tuple[int, int, int]] = []
@@ -233,6 +252,7 @@ def scan_mcap(path: Path) -> McapScan:
             raise RepairError(f'{path}: no complete MCAP header')
         scan = McapScan(path, size, head + f.read(n))
         pos = scan.data_end = 17 + n
+        number = 0  # Chunk records seen
         while True:
             f.seek(pos)
             head = f.read(9)
@@ -244,7 +264,11 @@ def scan_mcap(path: Path) -> McapScan:
             rec = head + f.read(n)
             try:
                 if op == OP_CHUNK:
-                    scan.chunks.append(_parse_chunk(rec[9:], scan, pos))
+                    number += 1
+                    try:
+                        scan.chunks.append(_parse_chunk(rec[9:], scan, pos))
+                    except _DamagedChunk as exc:  # a whole record: its bytes were changed
+                        scan.damaged.append((number, pos, str(exc)))
                 elif op in (OP_SCHEMA, OP_CHANNEL):
                     parse_definition(op, rec, scan.schemas, scan.channels)
                 elif op == OP_METADATA:
@@ -411,6 +435,13 @@ def repair_bag(bag_dir: Path) -> RepairReport:
             'its bag when it stops: repair only a bag whose recorder was killed)'
         )
     scan = scan_mcap(path)
+    if scan.complete and scan.damaged:
+        number, at, why = scan.damaged[0]
+        more = f' (and {len(scan.damaged) - 1} more chunks)' if len(scan.damaged) > 1 else ''
+        raise RepairError(
+            f'{path}: chunk {number} at byte {at} is damaged ({why}){more}: its messages '
+            'cannot be trusted and no repair recovers them; left untouched'
+        )
     if scan.complete and not scan.ended:
         raise RepairError(
             f'{path}: has a valid footer but its data section is damaged at '
@@ -461,7 +492,7 @@ def repair_bag(bag_dir: Path) -> RepairReport:
         'complete file (valid footer), left untouched; '
         f'{scan.messages} messages in {len(scan.chunks)} chunks'
         if scan.complete
-        else _repair_line(scan.messages, len(scan.chunks), dropped)
+        else _repair_line(scan.messages, len(scan.chunks), dropped, scan.damaged)
     )
     t0, t1 = scan.time_range()
     try:
@@ -482,6 +513,7 @@ def repair_bag(bag_dir: Path) -> RepairReport:
         len(scan.chunks),
         dropped,
         {t.name: t.message_count for t in topics.values()},
+        scan.damaged,
     )
 
 

@@ -275,6 +275,12 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
         data = read_bag(bag_dir, arrays={STATE: None, COMMAND: None, INTERNALS: None})
     except (BagReadError, ValueError, OSError) as exc:
         raise ReplayError(f'{bag_dir}: not a readable bag ({exc})') from None
+    if data.damaged:
+        more = f' (and {len(data.damaged) - 1} more)' if len(data.damaged) > 1 else ''
+        raise ReplayError(
+            f'{bag_dir}: DAMAGED: {data.damaged[0].describe()}{more}: its messages cannot '
+            'be trusted, and a replay needs every state the controller saw'
+        )
     for topic in (STATE, COMMAND, INTERNALS):
         if topic not in data.topics or not data.topics[topic].count:
             raise ReplayError(f'{bag_dir}: no {topic} messages: nothing to replay')

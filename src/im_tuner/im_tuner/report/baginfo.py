@@ -95,6 +95,18 @@ def bag_info(bag_dir: Path) -> dict[str, Any]:
         'duration_s': (t1 - t0) * 1e-9 if bag.messages else 0.0,
         'compression': sorted({c.compression or 'none' for c in bag.chunk_stats}),
         'chunks': bag.chunks,
+        # complete chunks whose CRC fails or that do not decompress: left out of the counts
+        'damaged_chunks': [
+            {
+                'number': d.number,
+                'offset': d.offset,
+                'start_ns': d.start_ns,
+                'end_ns': d.end_ns,
+                'reason': d.reason,
+                'text': d.describe(),
+            }
+            for d in bag.damaged
+        ],
         'max_chunk_span_s': max(spans) if spans else None,
         'first_chunk_span_s': spans[0] if spans else None,
         'recorder_counts': bag.recorder_counts is not None,
@@ -156,6 +168,10 @@ def format_info(info: dict[str, Any]) -> str:
         f'Files:      {files}',
         f'State:      {_state(info)}',
         f'Storage:    {info["storage"]}; {chunks}',
+        *(
+            f'DAMAGED:    {d["text"]}; its messages are left out of every count'
+            for d in info['damaged_chunks']
+        ),
         f'Duration:   {info["duration_s"]:.3f} s',
         f'Start:      {_when(info["start_ns"])}',
         f'End:        {_when(info["end_ns"])}',

@@ -169,6 +169,9 @@ def _bag_lines(bag: BagData, live: bool = False) -> list[str]:
         f'  {bag.path.name}: {state}; {bag.messages} messages in {bag.chunks} chunks, '
         f'{(t1 - t0) * 1e-9:.1f} s from {when}'
     ]
+    L += [
+        f'  DAMAGED: {d.describe()}; its messages are left out of every count' for d in bag.damaged
+    ]
     rc = bag.recorder_counts
     w = max([len(n) for n in bag.topics] + [5])
     wt = max([len(t.type) for t in bag.topics.values()] + [4])

@@ -238,6 +238,7 @@ def test_a_negative_return_stops_the_run_in_one_line_at_zero_current(tmp_path, w
 
 
 GOOD = (
+    'int im_drive_abi_version(void){ return 1; }\n'
     'int im_drive_open(const char *f){ return 0; }\n'
     'int im_drive_write(double a, double b){ return 0; }\n'
     'int im_drive_read(double m[8]){ return 0; }\n'
@@ -250,6 +251,14 @@ GOOD = (
     [
         ('missing', None, 'no such file'),
         ('symbol', GOOD.replace('im_drive_read', 'im_drive_sample'), 'no function im_drive_read'),
+        ('unversioned', GOOD.replace('im_drive_abi_version', 'abi'), 'no function im_drive_abi_v'),
+        (
+            'version',  # open would fail too: the version is refused before open is called
+            GOOD.replace('{ return 1; }', '{ return 7; }').replace(
+                'f){ return 0; }', 'f){ return -2; }'
+            ),
+            'built for drive ABI version 7; this im_drive_sim calls version 1',
+        ),
         ('delay', GOOD + 'int im_drive_command_delay(void){ return 5; }\n', 'returned 5: 1 or 2'),
         ('open', GOOD.replace('f){ return 0; }', 'f){ return -2; }'), 'returned -2'),
     ],

@@ -54,6 +54,8 @@ static double now_s(void) {
   return (double)t.tv_sec + 1e-9 * (double)t.tv_nsec;
 }
 
+int im_drive_abi_version(void) { return IM_DRIVE_ABI_VERSION; }
+
 int im_drive_open(const char *drive_file) {
   const char *path = getenv("IM_TEST_DRIVE_LOG");
   const char *f = getenv("IM_TEST_DRIVE_FAULT_AFTER");

@@ -55,6 +55,8 @@ static double isq_ref, load_ref, next_isq, next_load; /* the command acting; del
 static double isq, theta, omega, count;               /* the true plant */
 static double theta_meas, omega_meas;                 /* the encoder's position and speed */
 
+int im_drive_abi_version(void) { return IM_DRIVE_ABI_VERSION; }
+
 int im_drive_open(const char *drive_file) {
   (void)drive_file; /* the stand-in's constants are compiled in */
   a_i = exp(-IM_TS * IM_CURRENT_BANDWIDTH);

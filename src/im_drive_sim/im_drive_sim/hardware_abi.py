@@ -11,6 +11,7 @@ interpreter, in two forms:
   ros2_control's ``SystemInterface``: ``on_activate`` ~ ``im_drive_open``, ``write``,
   ``read``, ``on_deactivate`` ~ ``im_drive_close``)::
 
+      int  im_drive_abi_version(void);               /* IM_DRIVE_ABI_VERSION: ABI_VERSION */
       int  im_drive_open(const char *drive_file);   /* 0: ready (the drive file or NULL) */
       int  im_drive_write(double isq_ref, double load_torque);  /* [A], [N m] */
       int  im_drive_read(double m[8]);               /* MEASUREMENT_FIELDS, SI units */
@@ -55,6 +56,7 @@ from . import contract
 from .params import ConfigError, DriveConfig
 
 __all__ = [
+    'ABI_VERSION',
     'KIND_C',
     'KIND_CTX',
     'MEASUREMENT_FIELDS',
@@ -84,8 +86,13 @@ MEASUREMENT_FIELDS: tuple[str, ...] = (
 )
 N_MEASUREMENT = len(MEASUREMENT_FIELDS)
 
+#: ``IM_DRIVE_ABI_VERSION`` of the header this loop calls by (include/im_drive.h; a test
+#: reads it there): a library whose ``im_drive_abi_version()`` differs is refused unopened
+ABI_VERSION = 1
+
 #: the library's functions: name -> required
 SYMBOLS: dict[str, bool] = {
+    'im_drive_abi_version': True,
     'im_drive_open': True,
     'im_drive_write': True,
     'im_drive_read': True,
@@ -306,11 +313,28 @@ class LibraryHardware(_Measured):
             try:
                 fns[sym] = getattr(self.lib, sym)
             except AttributeError:
+                if sym == 'im_drive_abi_version':
+                    raise DriveLibraryError(
+                        f'{self.name}: no function im_drive_abi_version: built against a '
+                        f'header without the drive ABI version; rebuild it against '
+                        f'share/im_drive_sim/include/im_drive.h (version {ABI_VERSION}, '
+                        f'{_DOC}, "ABI version")'
+                    ) from None
                 if required:
                     raise DriveLibraryError(
                         f'{self.name}: no function {sym} (the drive ABI: '
                         f'share/im_drive_sim/include/im_drive.h, {_DOC})'
                     ) from None
+        # the version first: another layout of m[] or of a call must not be opened at all
+        fns['im_drive_abi_version'].argtypes = []
+        fns['im_drive_abi_version'].restype = ctypes.c_int
+        version = int(fns['im_drive_abi_version']())
+        if version != ABI_VERSION:
+            raise DriveLibraryError(
+                f'{self.name}: built for drive ABI version {version}; this im_drive_sim '
+                f'calls version {ABI_VERSION}: rebuild it against '
+                f'share/im_drive_sim/include/im_drive.h ({_DOC}, "ABI version")'
+            )
         fns['im_drive_open'].argtypes, fns['im_drive_open'].restype = (
             [ctypes.c_char_p],
             ctypes.c_int,

@@ -30,6 +30,15 @@
 extern "C" {
 #endif
 
+/* The version of this interface. It changes whenever a function's signature or meaning,
+ * or the layout of m[], changes; a library built against another version is refused
+ * before im_drive_open is called (one line, exit 2). Version 1: the functions below. */
+#define IM_DRIVE_ABI_VERSION 1
+
+/* Required. Return IM_DRIVE_ABI_VERSION, the version of this header the library was
+ * built against: { return IM_DRIVE_ABI_VERSION; }. Called first, once. */
+int im_drive_abi_version(void);
+
 /* The fields of im_drive_read's m[], in order (SI units; d/q in the rotor-flux frame). */
 enum im_drive_measurement {
   IM_DRIVE_THETA_MEAS = 0, /* [rad]   encoder position, multi-turn, unwrapped */

@@ -128,6 +128,7 @@ def test_the_library_gets_the_drive_files_path(tmp_path: Path) -> None:
         tmp_path,
         'echo',
         '#include <stdio.h>\n#include <string.h>\nstatic char seen[4096];\n'
+        'int im_drive_abi_version(void){ return 1; }\n'
         'int im_drive_open(const char *f){ snprintf(seen, sizeof seen, "%s", f ? f : "NULL");'
         ' return 0; }\nint im_drive_write(double a, double b){ return 0; }\n'
         'int im_drive_read(double m[8]){ memset(m, 0, 64); return strlen(seen); }\n',
@@ -141,6 +142,7 @@ def test_the_library_gets_the_drive_files_path(tmp_path: Path) -> None:
 
 
 GOOD = (
+    'int im_drive_abi_version(void){ return 1; }\n'
     'int im_drive_open(const char *f){ return 0; }\n'
     'int im_drive_write(double a, double b){ return 0; }\n'
     'int im_drive_read(double m[8]){ return 0; }\n'
@@ -150,6 +152,9 @@ GOOD = (
 NO_READ = GOOD.replace('int im_drive_read', 'int other_read')
 OPEN_FAILS = GOOD.replace('f){ return 0; }', 'f){ return -5; }')
 DELAY_3 = GOOD + 'int im_drive_command_delay(void){ return 3; }\n'
+NO_VERSION = GOOD.replace('int im_drive_abi_version', 'int other_version')
+# open fails too: the version is checked, and the library refused, before open is called
+VERSION_2 = OPEN_FAILS.replace('{ return 1; }', '{ return 2; }')
 READ_FAULT = GOOD.replace('m[8]){ return 0; }', 'm[8]){ return -7; }')
 
 
@@ -158,6 +163,8 @@ READ_FAULT = GOOD.replace('m[8]){ return 0; }', 'm[8]){ return -7; }')
     'name, source, message',
     [
         ('noread', NO_READ, 'no function im_drive_read'),
+        ('noversion', NO_VERSION, 'no function im_drive_abi_version: built against a header'),
+        ('version2', VERSION_2, 'built for drive ABI version 2; this im_drive_sim calls version 1'),
         ('noopen', OPEN_FAILS, 'returned -5'),
         ('delay3', DELAY_3, 'im_drive_command_delay() returned 3: 1 or 2'),
     ],
@@ -170,6 +177,18 @@ def test_a_library_that_cannot_be_used_is_refused_in_one_line(
         H.LibraryHardware(lib, load_config(None))
     text = str(err.value)
     assert message in text and text.startswith(f'lib:{lib}') and '\n' not in text
+
+
+def test_the_header_and_the_loader_speak_one_abi_version() -> None:
+    """The version the loader accepts is the header's; the example, built against the
+    header, carries it (the other tests load it)."""
+    import re
+
+    header = (INCLUDE / 'im_drive.h').read_text()
+    (version,) = re.findall(r'^#define IM_DRIVE_ABI_VERSION (\d+)$', header, re.M)
+    assert int(version) == H.ABI_VERSION
+    assert 'int im_drive_abi_version(void);' in header
+    assert 'return IM_DRIVE_ABI_VERSION;' in EXAMPLE_C.read_text()
 
 
 def test_a_missing_library_is_refused(tmp_path: Path) -> None:

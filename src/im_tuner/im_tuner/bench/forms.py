@@ -44,6 +44,10 @@ from .spec import BenchPlan
 
 RECORDER_RESTARTS = 3  # replacements of a recorder child that died, per session
 RECORDER_READY_TIMEOUT = 20.0  # [s] for a replacement recorder to subscribe
+#: [s] a stopped recorder is given to close its bag (it takes ~1 s idle; a loaded machine
+#: can need tens of seconds to shut rclpy down): waiting costs time, a kill costs the bag
+RECORDER_CLOSE_TIMEOUT = 120.0
+RECORDER_EXIT_AFTER_CLOSE = 5.0  # [s] to exit once its bag is closed (then it is killed)
 
 
 class RunHost(Protocol):
@@ -548,7 +552,7 @@ class Children:
         """Stop the recorder child (SIGINT: it closes its bag within ~1 s however much
         traffic flows) and check that it did: a recorder that had to be killed, or that
         exited with an error, left its bag unclosed -- it is repaired and reported."""
-        from im_drive_sim.runtime import stop_child
+        from ..record.repair import bag_is_closed
 
         if 'recorder' in self.children and self.watch is not None and self.spin_until:
             self.watch.catch_up(self.spin_until, self.host.warn)  # the bag holds the losses
@@ -556,10 +560,14 @@ class Children:
         if p is None:
             return []
         self.ended.append(p)
-        rc = stop_child(p)
+        rc = self._stop_recorder(p)
         if rc == 0:
             return []
         why = f'killed by signal {-rc}' if rc < 0 else f'exit code {rc}'
+        if self.bag is not None and bag_is_closed(self.bag):
+            # the bag is whole (footer, counts): only the process's end was slow or unclean
+            self.host.warn(f'note: the recorder closed {self.bag.name} whole, then ended ({why})')
+            return []
         problem = f'the recorder did not close its bag ({why})'
         if self.bag is not None and self.bag.exists():  # (a refused recorder made none)
             from ..record.repair import RepairError, repair_bag
@@ -570,6 +578,37 @@ class Children:
             except RepairError as exc:
                 problem += f'; could not repair {self.bag}: {exc}'
         return [problem]
+
+    def _stop_recorder(self, p: subprocess.Popen) -> int:
+        """SIGINT, then wait while it closes its bag (a line every 10 s after the first
+        5 s); once the bag is closed it has RECORDER_EXIT_AFTER_CLOSE s to exit; killed
+        only after RECORDER_CLOSE_TIMEOUT s without a closed bag. Its exit code."""
+        from ..record.repair import bag_is_closed
+
+        if p.poll() is not None:
+            return p.returncode
+        p.send_signal(signal.SIGINT)
+        t0 = time.monotonic()
+        closed_at = None
+        said = 5.0
+        while p.poll() is None:
+            now = time.monotonic() - t0
+            if closed_at is None and self.bag is not None and bag_is_closed(self.bag):
+                closed_at = now
+            if (closed_at is not None and now - closed_at > RECORDER_EXIT_AFTER_CLOSE) or (
+                closed_at is None and now > RECORDER_CLOSE_TIMEOUT
+            ):
+                p.kill()
+                break
+            if closed_at is None and now >= said:
+                self.host.warn(
+                    f'  waiting for the recorder to close its bag: {now:.0f} s '
+                    f'(a loaded machine; killed after {RECORDER_CLOSE_TIMEOUT:g} s)'
+                )
+                said += 10.0
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.wait(timeout=0.2)
+        return p.wait()
 
     def stop_nodes(self) -> None:
         """Stop the drive and the controller, the recorder still recording (it takes what

@@ -235,6 +235,20 @@ def _has_footer(f: BinaryIO, size: int) -> bool:
     return zlib.crc32(f.read(size - 8 - 4 - begin)) == crc
 
 
+def bag_is_closed(bag_dir: Path) -> bool:
+    """The recorder finished ``bag_dir``: its metadata.yaml says ``closed`` (written after
+    the file) and its .mcap file ends in a valid footer. Cheap: the file's tail only."""
+    try:
+        meta = read_metadata_yaml(bag_dir)
+        if (meta.get('custom_data') or {}).get('im_tuner.state') != 'closed':
+            return False
+        path = find_mcap(Path(bag_dir))
+        with open(path, 'rb') as f:
+            return _has_footer(f, os.fstat(f.fileno()).st_size)
+    except (OSError, BagReadError, yaml.YAMLError, KeyError, TypeError, AttributeError):
+        return False
+
+
 def scan_mcap(path: Path) -> McapScan:
     """Read the data section of ``path`` up to DataEnd or the first incomplete/invalid record."""
     path = Path(path)

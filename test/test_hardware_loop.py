@@ -198,6 +198,10 @@ def test_a_wall_clock_library_tunes_to_the_end_compiled(tmp_path, wallclock_lib,
     assert 'takes effect in k+2 (median of ' in drive['delay_probe'], drive['delay_probe']
     seen = drive['delay_probe'].split('median of ')[1].split(';')[0].split(', ')
     assert len(seen) == 5 and seen.count('k+2') >= 3, drive['delay_probe']
+    # the bag's config, summary.json and the summary's drive line say the same delay
+    assert json.loads(drive['config'])['command_delay'] == 2, drive['config']
+    assert d['command_delay'] == 2 and d['delay_probe'] == drive['delay_probe'], d
+    assert f'command delay 2; delay probe at start: {drive["delay_probe"]}' in p.stdout
 
 
 @pytest.mark.parametrize('how', ['SIGINT', 'SIGTERM'])

@@ -428,7 +428,11 @@ def test_bench_none_without_controller_says_what_to_start(tmp_path):
         '--bench', 'none', '--discovery-timeout', '0.5', '--out', str(tmp_path / 'run'), timeout=60
     )
     assert proc.returncode == 1
-    assert 'no controller reachable' in proc.stderr and 'sim_bench' in proc.stderr
+    assert 'no controller reachable' in proc.stderr
+    assert (
+        'start the drive host first' in proc.stderr
+        and 'ros2 run im_tuner drive_host' in proc.stderr
+    )
     # ... and what to try when one runs but discovery is slow (a loaded machine)
     assert 'give it longer, e.g. --discovery-timeout 20' in proc.stderr
     assert time.monotonic() - t0 < 30

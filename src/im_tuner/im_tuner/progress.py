@@ -293,6 +293,7 @@ def drive_text(d: dict[str, Any] | None, which: str | None) -> str:
             f'held {n("held")}, ignored {n("stale_ignored")}, watchdog trips '
             f'{n("watchdog_trips")}'
             + (f', command delay {n("command_delay")}' if 'command_delay' in d else '')
+            + (f'; delay probe at start: {d["delay_probe"]}' if 'delay_probe' in d else '')
         )
     else:
         text = (

@@ -326,10 +326,15 @@ class InProcess:
             {
                 'mode': getattr(d, 'mode', 'realtime'),
                 'model': getattr(d.config, 'model', '-'),
+                # as the bag's im_tuner.drive says: the delay the drive runs with
+                'command_delay': str(int(getattr(d, 'command_delay', d.config.command_delay))),
                 **{k: str(v) for k, v in vars(d.counters).items()},
             }
         )
-        if report is not None and hasattr(self.bench, 'timing'):
+        probe = getattr(d, 'delay_probe', None)
+        if probe is not None:  # the declared delay as measured at start (hardware_probe)
+            report['delay_probe'] = probe.text()
+        if hasattr(self.bench, 'timing'):
             report['loop'] = self.bench.timing()  # the composed loop's per-period figures
         return report
 

@@ -176,6 +176,11 @@ def bench_metadata(bench) -> dict[str, dict]:
     # any drive of the composed bench: the simulator, the example drive, a user's hardware
     # class or drive node (only the simulator has a seed and a model)
     hw = getattr(d, 'hw', None)
+    # the delay the drive runs with: a hardware's declared one (its class or library),
+    # else the drive file's; the config recorded is the one the drive runs with, so the
+    # two agree (a library's declaration overrides the file's command_delay)
+    delay = int(getattr(d, 'command_delay', d.config.command_delay))
+    config = dataclasses.asdict(d.config) | {'command_delay': delay}
     drive = {
         'class': f'{type(hw if hw is not None else d).__module__}.'
         f'{type(hw if hw is not None else d).__qualname__}',
@@ -184,10 +189,8 @@ def bench_metadata(bench) -> dict[str, dict]:
         )
         or '(packaged default)',
         'model': getattr(d.config, 'model', '-'),
-        'config': json.dumps(dataclasses.asdict(d.config), sort_keys=True),
-        # the delay the drive runs with: a hardware's declared one (its class or library),
-        # else the drive file's (the config above)
-        'command_delay': int(getattr(d, 'command_delay', d.config.command_delay)),
+        'config': json.dumps(config, sort_keys=True),
+        'command_delay': delay,
     }
     probe = getattr(d, 'delay_probe', None)
     if probe is not None:  # the declared delay as measured at start (hardware_probe)

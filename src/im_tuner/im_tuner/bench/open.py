@@ -62,9 +62,10 @@ def probe(spec: BenchSpec, node: Node, exe: Executor) -> str:
             raise BenchFailure(
                 f'no controller reachable ({controller_topics(spec.controller)["start"]} '
                 f'not on the graph of ROS_DOMAIN_ID {os.environ.get("ROS_DOMAIN_ID", "0")} '
-                f'after {timeout:g} s): start the bench first, e.g. '
-                '`ros2 run im_tuner sim_bench` or your drive + `ros2 run '
-                'im_controller controller`, or use --bench auto; if it is running, '
+                f'after {timeout:g} s): start the drive host first, on this computer or '
+                "the drive's: `ros2 run im_tuner drive_host --drive lib:PATH` (your drive) "
+                'or `ros2 run im_tuner drive_host` (the simulated one), '
+                'docs/two-computers.md; or use --bench auto; if it is running, '
                 'discovery is slow (a loaded machine): give it longer, e.g. '
                 f'--discovery-timeout {max(SLOW_DISCOVERY_HINT_S, 3 * timeout):g}'
             )

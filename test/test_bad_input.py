@@ -609,24 +609,6 @@ def test_help_of_every_executable_exits_0(exe: str, tmp_path: Path) -> None:
     assert proc.stderr == '' and list(tmp_path.iterdir()) == []
 
 
-def test_check_drive_old_name_still_works(tmp_path: Path) -> None:
-    """Issue 17 moved check_drive to im_drive_sim; `ros2 run im_controller check_drive`
-    keeps working for one release: the same tool, the same usage."""
-    out = {}
-    for pkg in ('im_drive_sim', 'im_controller'):
-        proc = subprocess.run(
-            [ROS2, 'run', pkg, 'check_drive', '--help'],
-            cwd=tmp_path,
-            text=True,
-            capture_output=True,
-            timeout=CASE_TIMEOUT,
-        )
-        assert proc.returncode == 0, proc.stderr[-2000:]
-        out[pkg] = proc.stdout
-    assert out['im_controller'] == out['im_drive_sim']
-    assert out['im_drive_sim'].startswith('usage: ros2 run im_drive_sim check_drive')
-
-
 # -- refusals that need no ROS graph: fast, nothing heavy imported ----------------------------
 #: (argv, what the line says): refused by argparse, the run checks, the option ranges
 FAST_REFUSALS = [
@@ -713,13 +695,14 @@ def test_the_controller_refuses_a_move_longer_than_the_experiment_at_run_time(ro
         node.destroy_node()
 
 
-#: the node executables' entries (``<pkg>/scripts/<exe>``: ``python -m <entry>``)
+#: the node executables' entries (``<pkg>/scripts/<exe>``: ``python -m im_drive_sim.launch
+#: <exe> <entry>``)
 NODE_ENTRIES = {
-    'drive_sim': 'im_drive_sim.drive_sim_main',
-    'example_drive': 'im_drive_sim.example_drive_main',
-    'controller': 'im_controller.controller_main',
-    'sim_bench': 'im_tuner.bench.sim_bench_main',
-    'recorder': 'im_tuner.record.recorder_main',
+    'drive_sim': 'im_drive_sim.drive_sim_main:main',
+    'example_drive': 'im_drive_sim.example_drive_main:main',
+    'controller': 'im_controller.controller_main:main',
+    'sim_bench': 'im_tuner.bench.sim_bench_main:main',
+    'recorder': 'im_tuner.record.recorder_main:main',
 }
 
 
@@ -740,13 +723,11 @@ def test_a_refusal_of_a_node_imports_nothing_heavy(exe: str, tmp_path: Path) -> 
     a wrong flag, a bad number and a missing --params-file are refused with the node's
     own line, nothing heavy loaded; an accepted one goes on to the node (it imports
     them: the check would fail if the entry stopped handing over)."""
+    module, function = NODE_ENTRIES[exe].split(':')
     body = (
+        'import importlib\n'
         'sys.argv = ["x", *json.loads(sys.argv[1])]\n'
-        'try:\n'
-        f'    runpy.run_module({NODE_ENTRIES[exe]!r}, run_name="__main__")\n'
-        '    rc = 0\n'
-        'except SystemExit as exc:\n'
-        '    rc = exc.code\n'
+        f'rc = getattr(importlib.import_module({module!r}), {function!r})()\n'
     )
 
     def run(argv: list[str]) -> tuple[object, list[str], str]:

@@ -210,7 +210,9 @@ def test_broken_drive_fails_exactly_what_it_breaks(procs, tmp_path, breaks, expe
         assert 'rise time' in lines['step_response']
     if 'topics' in expected:
         assert 'drive/joint_states publisher type std_msgs/msg/Float64MultiArray' in lines['topics']
-    assert f'FAIL: {", ".join(n for n in cd.ITEMS if n in expected)}' in out
+    # (every broken item inconclusive -- the check fell behind -- prints no FAIL line;
+    # run_expect has checked that none of them passed)
+    assert not expected or f'FAIL: {", ".join(n for n in cd.ITEMS if n in expected)}' in out
     print(out)
 
 

@@ -68,22 +68,26 @@ def test_wrapper_source_is_executable(wrapper):
     assert wrapper.stat().st_mode & stat.S_IXUSR, f'{wrapper} lacks the run bit (chmod +x)'
 
 
-def wrapper_module(wrapper: Path) -> str:
-    """The ``-m <module>`` of a wrapper; both branches must name the same one."""
-    modules = set(re.findall(r'-m\s+([\w.]+)', wrapper.read_text()))
-    assert len(modules) == 1, f'{wrapper}: expected one module, found {modules}'
-    return modules.pop()
+def wrapper_launch(wrapper: Path) -> list[str]:
+    """What a wrapper runs after the interpreter: ``-m im_drive_sim.launch <exe>
+    <module>:<function>``; both branches must run the same."""
+    launches = set(
+        re.findall(r'(-m\s+im_drive_sim\.launch\s+\w+\s+[\w.]+:\w+)', wrapper.read_text())
+    )
+    assert len(launches) == 1, f'{wrapper}: expected one launch line, found {launches}'
+    return launches.pop().split()
 
 
 @pytest.mark.parametrize('wrapper', WRAPPERS, ids=WRAPPER_IDS)
-def test_wrapper_module_exists(wrapper):
+def test_wrapper_launches_a_main_of_its_own_package(wrapper):
     pkg = wrapper.parents[1].name
-    module = wrapper_module(wrapper)
-    assert module.split('.')[0] == pkg
+    _m, _launch, exe, target = wrapper_launch(wrapper)
+    module, function = target.split(':')
+    assert exe == wrapper.name and module.split('.')[0] == pkg
     path = REPO / 'src' / pkg / Path(*module.split('.'))
-    assert path.with_suffix('.py').is_file() or (path / '__main__.py').is_file(), (
-        f'{wrapper.name} runs {module}, which is not in src/{pkg}'
-    )
+    source = path.with_suffix('.py')
+    assert source.is_file(), f'{wrapper.name} runs {module}, which is not in src/{pkg}'
+    assert re.search(rf'^def {function}\(', source.read_text(), re.M), (source, function)
 
 
 # ------------------------------------------------------------------ installed tree
@@ -165,7 +169,7 @@ def test_wrapper_uses_prefix_python(tmp_path, wrapper, via_symlink):
     assert res.returncode == 5, res.stdout + res.stderr  # the fake's exit code comes back
     self_path, argv = recorded(log)
     assert Path(self_path) == prefix / 'bin' / 'python'
-    assert argv == ['-m', wrapper_module(wrapper), *ARGS]
+    assert argv == [*wrapper_launch(wrapper), *ARGS]
 
 
 @pytest.mark.parametrize('wrapper', WRAPPERS, ids=WRAPPER_IDS)
@@ -184,4 +188,4 @@ def test_wrapper_falls_back_to_python3_on_path(tmp_path, wrapper):
     assert res.returncode == 5, res.stdout + res.stderr
     self_path, argv = recorded(log)
     assert Path(self_path).name == 'python3' and Path(self_path).parent == fakebin
-    assert argv == ['-m', wrapper_module(wrapper), *ARGS]
+    assert argv == [*wrapper_launch(wrapper), *ARGS]

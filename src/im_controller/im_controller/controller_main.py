@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
-from im_drive_sim.cli import Parser, add_config_option, check_then_run
+from im_drive_sim.cli import Parser, add_config_option, check_then_run, executable
 from im_drive_sim.contract import MODES
 
 DESCRIPTION = (
@@ -22,5 +21,10 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
+def main() -> int:
+    """The executable (``ros2 run``: :mod:`im_drive_sim.launch`)."""
+    return check_then_run('controller', parser, 'im_controller.controller_node:main')
+
+
 if __name__ == '__main__':
-    sys.exit(check_then_run('controller', parser, 'im_controller.controller_node:main'))
+    executable('controller', main)

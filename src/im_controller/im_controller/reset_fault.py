@@ -164,5 +164,6 @@ def main(args: list[str] | None = None) -> int:
 
 
 if __name__ == '__main__':
-    os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
-    sys.exit(main())
+    from im_drive_sim.cli import executable
+
+    executable('reset_fault', main)

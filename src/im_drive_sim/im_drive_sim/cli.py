@@ -11,7 +11,9 @@ created or changed** (no traceback, no usage block). This module gives the piece
   without rcl's source locations;
 * argparse ``type=`` helpers for numbers with ranges (:func:`finite_float`,
   :func:`int_in`) and an output file (:func:`output_file`);
-* :func:`run_cli`: calls a ``main`` body and turns :class:`UsageError` into the one line.
+* :func:`run_cli`: calls a ``main`` body and turns :class:`UsageError` into the one line;
+* :func:`executable`: every executable's ``__main__``: Ctrl-C at any moment (during the
+  imports too) ends it with one line and exit 130, and its exit is bounded.
 
 The ROS parts (rcl's argument parser) are imported lazily: the module is importable in
 the pure tools and tests without rclpy.
@@ -20,16 +22,25 @@ the pure tools and tests without rclpy.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import importlib
 import math
 import os
 import re
+import signal
 import sys
-from collections.abc import Callable, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import NoReturn
 
 from . import numeric
 
 EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports a process ended by Ctrl-C
+#: [s] an executable's interpreter is given to shut down once its main returned (rclpy's
+#: context, a thread left running); then it is ended with the same exit code
+EXIT_GRACE_S = 3.0
 
 
 class UsageError(Exception):
@@ -112,10 +123,76 @@ def check_then_run(prog: str, parser: Callable[[], argparse.ArgumentParser], nod
     except UsageError as exc:
         print(f'error: {prog}: {exc}', file=sys.stderr, flush=True)
         return EXIT_USAGE
-    import importlib
-
     module, function = node_main.split(':')
-    return getattr(importlib.import_module(module), function)()
+    with quiet_interrupts(prog):  # numba, rclpy, the kernels: nothing held yet
+        node = getattr(importlib.import_module(module), function)
+    return node()
+
+
+def executable(prog: str, main: str | Callable[[], int]) -> NoReturn:
+    """Run an executable's ``main`` (a function, or ``'package.module:function'``, imported
+    here: its imports are part of the run) and exit with its code.
+
+    Ctrl-C (KeyboardInterrupt) at any moment -- during the imports, numba's compile, a
+    node's start -- prints ``<prog>: interrupted`` and exits 130: no traceback. What the
+    program holds is released by its own ``finally`` blocks as the interrupt unwinds
+    them (a drive writes zero current there). Once ``main`` is over, a second Ctrl-C is
+    ignored and the interpreter's shutdown is bounded (EXIT_GRACE_S), so the process
+    ends promptly even when a library left a thread running."""
+    try:
+        if isinstance(main, str):
+            module, function = main.split(':')
+            with quiet_interrupts(prog):
+                main = getattr(importlib.import_module(module), function)
+        # from here on Ctrl-C raises KeyboardInterrupt, so that the program's finally
+        # blocks run (the launcher's early handler only ends a process holding nothing)
+        if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # (ignored: stays so)
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+        code = main()
+    except KeyboardInterrupt:
+        code = EXIT_INTERRUPTED
+        print(f'{prog}: interrupted', file=sys.stderr, flush=True)
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    _bounded_exit(int(code or 0))
+
+
+def _exit_quietly(prog: str) -> Callable[[int, object], None]:
+    def handler(signum: int, frame: object) -> None:
+        os.write(2, f'{prog}: interrupted\n'.encode())
+        os._exit(EXIT_INTERRUPTED)
+
+    return handler
+
+
+@contextlib.contextmanager
+def quiet_interrupts(prog: str) -> Iterator[None]:
+    """Within the block, Ctrl-C ends the process at once with ``<prog>: interrupted`` and
+    exit 130. For a stretch that holds nothing yet -- importing numba, rclpy, the
+    kernels -- where a KeyboardInterrupt would surface as a traceback, or as another
+    error (Python turns one raised inside a class's ``__set_name__`` into a
+    RuntimeError), or be swallowed by a library. The previous handler comes back after."""
+    previous = signal.getsignal(signal.SIGINT)
+    if previous is signal.SIG_IGN or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    signal.signal(signal.SIGINT, _exit_quietly(prog))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _bounded_exit(code: int) -> NoReturn:
+    with contextlib.suppress(ValueError):  # (not the main thread: nothing to ignore)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    timer = threading.Timer(EXIT_GRACE_S, os._exit, (code,))
+    timer.daemon = True
+    timer.start()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    sys.exit(code)
 
 
 def run_cli(prog: str, body: Callable[[], int]) -> int:

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
 from . import rt
-from .cli import Parser, add_config_option, check_then_run, int_in
+from .cli import Parser, add_config_option, check_then_run, executable, int_in
 from .contract import MODES
 
 
@@ -29,5 +28,10 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
+def main() -> int:
+    """The executable (``ros2 run``: :mod:`im_drive_sim.launch`)."""
+    return check_then_run('drive_sim', parser, 'im_drive_sim.drive_sim_node:main')
+
+
 if __name__ == '__main__':
-    sys.exit(check_then_run('drive_sim', parser, 'im_drive_sim.drive_sim_node:main'))
+    executable('drive_sim', main)

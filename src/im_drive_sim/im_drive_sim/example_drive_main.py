@@ -4,11 +4,10 @@ and turns ``--hardware`` into the node's hardware class (:func:`hardware_factory
 from __future__ import annotations
 
 import argparse
-import sys
 from typing import Any
 
 from . import rt
-from .cli import Parser, check_then_run
+from .cli import Parser, check_then_run, executable
 
 
 def parser() -> argparse.ArgumentParser:
@@ -63,5 +62,10 @@ def hardware_factory(spec: str) -> Any:
     return lambda config: LibraryHardware(spec[4:], config)
 
 
+def main() -> int:
+    """The executable (``ros2 run``: :mod:`im_drive_sim.launch`)."""
+    return check_then_run('example_drive', parser, 'im_drive_sim.example_drive:main')
+
+
 if __name__ == '__main__':
-    sys.exit(check_then_run('example_drive', parser, 'im_drive_sim.example_drive:main'))
+    executable('example_drive', main)

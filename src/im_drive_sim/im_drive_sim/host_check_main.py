@@ -110,11 +110,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def entry() -> int:
-    try:
-        return run_cli(PROG, main)
-    except KeyboardInterrupt:
-        return 130
+    """The executable (``ros2 run``: :mod:`im_drive_sim.launch`)."""
+    return run_cli(PROG, main)
 
 
 if __name__ == '__main__':
-    sys.exit(entry())
+    from .cli import executable
+
+    executable(PROG, entry)

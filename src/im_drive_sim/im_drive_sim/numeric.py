@@ -49,8 +49,7 @@ from __future__ import annotations
 import contextlib
 import os
 from collections.abc import Mapping, MutableMapping
-from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 __all__ = [
     'LEVEL',
@@ -92,8 +91,8 @@ OPENBLAS_V3_OR_ABOVE = frozenset(
 VARIABLES = ('NPY_DISABLE_CPU_FEATURES', 'OPENBLAS_CORETYPE', 'OPENBLAS_NUM_THREADS')
 
 
-@dataclass(frozen=True)
-class Plan:
+class Plan(NamedTuple):  # (not a dataclass: every executable imports this first, and
+    # dataclasses costs 15 ms of the start-up before Ctrl-C is handled, im_drive_sim.launch)
     """What :func:`plan` decided: ``state`` is ``held`` (the baseline is set), ``off`` (the
     switch), ``below`` (the machine or its environment is below the baseline: native, one
     OpenBLAS thread), ``unsupported`` (not an x86-64 Linux machine: native) or ``invalid``
@@ -102,7 +101,7 @@ class Plan:
 
     state: str
     reason: str = ''
-    env: dict[str, str] = field(default_factory=dict)
+    env: dict[str, str] = {}  # noqa: RUF012 (read only)
 
 
 def switch_problem(environ: Mapping[str, str] | None = None) -> str | None:

@@ -42,7 +42,6 @@ Exit codes: 0 done, 1 the bench failed (best gains applied, bag closed), 2 bad i
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 
@@ -172,5 +171,6 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
 
 
 if __name__ == '__main__':
-    os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
-    sys.exit(main())
+    from im_drive_sim.cli import executable
+
+    executable('tuner', main)

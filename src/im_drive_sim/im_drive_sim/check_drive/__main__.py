@@ -1,7 +1,5 @@
 """``python -m im_drive_sim.check_drive``."""
 
-import sys
+from im_drive_sim.cli import executable
 
-from .cli import main
-
-sys.exit(main())
+executable('check_drive', 'im_drive_sim.check_drive.cli:main')

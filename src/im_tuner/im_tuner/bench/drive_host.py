@@ -102,12 +102,20 @@ def main(args: list[str] | None = None) -> int:
     bench: Any = None
 
     def _on_signal(_signum: int) -> None:
-        if bench is None:
-            raise KeyboardInterrupt  # still starting: nothing to stop cleanly yet
+        if bench is not None:
+            return  # running: the loop sees session.stopped and stops cleanly
+        if not drive_spec.holds_hardware() and (host.out is None or not host.out.exists()):
+            # still starting, no power stage open, nothing recorded: end now (numba's
+            # compile can take many seconds under load, and an exception raised in its
+            # callbacks is swallowed)
+            os.write(2, b'drive_host: interrupted\n')
+            os._exit(130)
+        raise KeyboardInterrupt  # starting: unwind, closing what is open (zero current)
 
     session = RosSession(argv, on_signal=_on_signal)
     code = 0
     marker = None
+    ready = False
     try:
         # who we are, on the graph, announced before the controller: a tuner that sees
         # this node leaves the 5 kHz topics to this host's bag instead of pulling them
@@ -117,6 +125,9 @@ def main(args: list[str] | None = None) -> int:
             _spec(cli, choice, host_check), host, command=argv, should_stop=lambda: session.stopped
         )
         assert isinstance(bench, InProcess)
+        if session.stopped:  # Ctrl-C while it started (an interrupt numba swallowed)
+            raise KeyboardInterrupt
+        ready = True
         # the host check's line once the bench is up (a refusal before it is one line)
         if line and host_check['auto']:
             print(line, flush=True)
@@ -140,7 +151,9 @@ def main(args: list[str] | None = None) -> int:
         print(f'error: drive_host: {exc}', file=sys.stderr)
         code = 2
     except KeyboardInterrupt:
-        pass
+        if not ready:  # interrupted while starting; once running, Ctrl-C is its normal end
+            print('drive_host: interrupted', file=sys.stderr, flush=True)
+            code = 130
     except Exception as exc:  # a drive loop error: one line (zero current: safe_stop)
         print(f'error: drive_host: {exc}', file=sys.stderr)
         code = 1

@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
 from im_drive_sim import host, rt
-from im_drive_sim.cli import Parser, add_config_option, check_then_run, finite_float, int_in
+from im_drive_sim.cli import (
+    Parser,
+    add_config_option,
+    check_then_run,
+    executable,
+    finite_float,
+    int_in,
+)
 
 from ..names import DEFAULT_TIMING_TOLERANCE
 from .sim_bench_main import BAG_OPTIONS
@@ -63,5 +69,10 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
+def main() -> int:
+    """The executable (``ros2 run``: :mod:`im_drive_sim.launch`)."""
+    return check_then_run('drive_host', parser, 'im_tuner.bench.drive_host:main')
+
+
 if __name__ == '__main__':
-    sys.exit(check_then_run('drive_host', parser, 'im_tuner.bench.drive_host:main'))
+    executable('drive_host', main)

@@ -270,6 +270,11 @@ def close_hardware(choice: DriveChoice | None) -> None:
 _BUILT: list[DriveChoice] = []
 
 
+def holds_hardware() -> bool:
+    """Whether a hardware instance built by :func:`resolve` is open and no bench took it."""
+    return bool(_BUILT)
+
+
 def close_untaken() -> None:
     """Close every hardware instance built by :func:`resolve` that no bench took (the
     tuner calls this on its way out, whatever the way)."""

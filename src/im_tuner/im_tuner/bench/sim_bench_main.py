@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
-from im_drive_sim.cli import Parser, add_config_option, check_then_run, int_in
+from im_drive_sim.cli import Parser, add_config_option, check_then_run, executable, int_in
 
 DESCRIPTION = (
     'The simulated bench: drive_sim + controller, lock-step. Start experiments with '
@@ -56,5 +55,10 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
+def main() -> int:
+    """The executable (``ros2 run``: :mod:`im_drive_sim.launch`)."""
+    return check_then_run('sim_bench', parser, 'im_tuner.bench.sim_bench:main')
+
+
 if __name__ == '__main__':
-    sys.exit(check_then_run('sim_bench', parser, 'im_tuner.bench.sim_bench:main'))
+    executable('sim_bench', main)

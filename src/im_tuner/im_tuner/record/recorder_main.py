@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from im_drive_sim.cli import Parser, UsageError, check_then_run, finite_float, int_in
+from im_drive_sim.cli import Parser, UsageError, check_then_run, executable, finite_float, int_in
 
 from .mcap_format import COMPRESSIONS
 
@@ -86,5 +85,10 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
+def main() -> int:
+    """The executable (``ros2 run``: :mod:`im_drive_sim.launch`)."""
+    return check_then_run('recorder', parser, 'im_tuner.record.child:main')
+
+
 if __name__ == '__main__':
-    sys.exit(check_then_run('recorder', parser, 'im_tuner.record.child:main'))
+    executable('recorder', main)

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from im_drive_sim.cli import Parser, UsageError, int_in, parse_cli, run_cli
+from im_drive_sim.cli import Parser, UsageError, int_in, parse_cli, quiet_interrupts, run_cli
 
 EXIT_MISMATCH = 1
 EXIT_INCONCLUSIVE = 3
@@ -133,7 +133,8 @@ def main(argv: list[str] | None = None) -> int:
             plan = load_plan(cli.bag, cli.experiment)
         except ReplayError as exc:
             raise UsageError(str(exc)) from None
-        from .node import ReplayFailed, ReplayInconclusive, replay
+        with quiet_interrupts('replay'):  # rclpy, the controller's kernels: nothing held yet
+            from .node import ReplayFailed, ReplayInconclusive, replay
 
         t0 = time.monotonic()
         failure = None
@@ -156,4 +157,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    from im_drive_sim.cli import executable
+
+    executable('replay', main)

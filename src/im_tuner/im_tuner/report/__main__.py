@@ -1,7 +1,5 @@
 """``python -m im_tuner.report``."""
 
-import sys
+from im_drive_sim.cli import executable
 
-from .cli import main
-
-sys.exit(main())
+executable('report', 'im_tuner.report.cli:main')

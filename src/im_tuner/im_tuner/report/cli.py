@@ -12,13 +12,14 @@ import datetime as _dt
 import multiprocessing
 import multiprocessing.process
 import os
+import shutil
 import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from im_drive_sim.cli import Parser, UsageError
+from im_drive_sim.cli import Parser, UsageError, quiet_interrupts
 
 from ..rundir import RUN_FILE, RunDir, RunDirError, is_bag_dir
 from .errors import EXIT_USAGE, ReportError
@@ -43,11 +44,13 @@ def write_report(
     from .table import write_csv
     from .text import summary_text
 
+    made = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    pending = [rr for rr in runs if not rr.signals_read]
-    load_matplotlib()  # here, once for both processes
-    ahead = _draw_ahead(runs, out, RECORD_FIGURES) if pending else None
+    ahead = None
     try:
+        pending = [rr for rr in runs if not rr.signals_read]
+        load_matplotlib()  # here, once for both processes
+        ahead = _draw_ahead(runs, out, RECORD_FIGURES) if pending else None
         for rr in pending:
             load_signals(rr, progress)
         paths = {'summary': out / 'summary.txt', 'csv': out / 'evaluations.csv'}
@@ -62,6 +65,8 @@ def write_report(
         if ahead is not None:  # leaving on an error: the child is ended by its PID
             ahead.terminate()
             ahead.join()
+        if made:  # Ctrl-C or an error: no half-written report left where none was
+            shutil.rmtree(out, ignore_errors=True)
         raise
     if ahead is not None:
         ahead.join()
@@ -205,7 +210,8 @@ def main(args: list[str] | None = None) -> int:
     except (ReportError, UsageError) as exc:
         print(f'error: report: {exc}', file=sys.stderr)
         return EXIT_USAGE
-    from .load import load_run  # numpy, the bag reader: only for a real report
+    with quiet_interrupts('report'):  # numpy, the bag reader: only for a real report
+        from .load import load_run
 
     heads = [RunDir(p).read_config() for p in cli.runs]
     labels = _labels(cli.runs, heads)

@@ -1,7 +1,5 @@
 """``python -m im_tuner.study``."""
 
-import sys
+from im_drive_sim.cli import executable
 
-from .cli import main
-
-sys.exit(main())
+executable('study', 'im_tuner.study.cli:main')

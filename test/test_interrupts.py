@@ -1,0 +1,186 @@
+"""Ctrl-C at any moment of every executable: one line, exit 130, nothing left behind.
+
+Each console script (``ros2 run <pkg> <exe>``) is started as a terminal starts it, in a
+process group of its own, with a command line that keeps it busy; Ctrl-C is what a
+terminal sends, SIGINT to the whole group, at 1, 3, 10 and 30 s after the start (during
+the imports, numba's compile, a node's start, the run). Then:
+
+* it ends, with every process of its group, within ``END_S`` seconds of the signal;
+* its exit code is 130 (128 + SIGINT; or it ended by the signal itself, which a shell
+  shows as 130 too), as a shell reports a process ended by Ctrl-C --
+  but a node that runs until it is stopped (DAEMONS) exits 0 once it runs: Ctrl-C is its
+  normal end, as for an rclcpp node, and ``ros2 launch`` reports any other code as a
+  process that died;
+* nothing on stderr is a traceback;
+* no output directory is left empty (a half-made report folder, a run with no run file).
+
+An executable that finished before its signal is judged on what it printed and left.
+The executables of one moment run together, each in a DDS domain of its own (a node
+and a tuner would otherwise find each other); the test runs alone (``serial``): the end
+within ``END_S`` is a time.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
+END_S = 5.0  # [s] from Ctrl-C to the last process of the group gone
+#: nodes that run until stopped: 0 when stopped running, 130 when interrupted starting
+DAEMONS = frozenset(
+    {'drive_sim', 'example_drive', 'controller', 'sim_bench', 'drive_host', 'recorder'}
+)
+MOMENTS = (1.0, 3.0, 10.0, 30.0)  # [s] after the start
+
+
+def cases(work: Path, run: Path) -> dict[str, tuple[str, list[str], list[Path]]]:
+    """exe -> (package, arguments that keep it busy, output directories it may make);
+    ``work``: the directory of the moment (each executable runs in ``work/<exe>``)."""
+
+    def w(exe: str, name: str) -> Path:
+        return work / exe / name
+
+    return {
+        'drive_sim': ('im_drive_sim', [], []),
+        'example_drive': ('im_drive_sim', [], []),
+        'check_drive': ('im_drive_sim', ['--timeout', '60'], []),
+        'host_check': ('im_drive_sim', ['--seconds', '60'], []),
+        'controller': ('im_controller', [], []),
+        'reset_fault': ('im_controller', ['--timeout', '60'], []),
+        'sim_bench': ('im_tuner', ['--out', str(w('sim_bench', 'bag'))], [w('sim_bench', 'bag')]),
+        'drive_host': (
+            'im_tuner', ['--out', str(w('drive_host', 'bag'))], [w('drive_host', 'bag')],
+        ),
+        'recorder': ('im_tuner', ['--out', str(w('recorder', 'bag'))], [w('recorder', 'bag')]),
+        'tuner': (
+            'im_tuner', ['--budget', '200', '--out', str(w('tuner', 'run'))], [w('tuner', 'run')],
+        ),
+        'study': (
+            'im_tuner', ['--runs', '50', '--out', str(w('study', 'out'))], [w('study', 'out')],
+        ),
+        'report': (
+            'im_tuner', [str(run), '--out', str(w('report', 'out'))], [w('report', 'out')],
+        ),
+        'replay': ('im_tuner', [str(run / 'bag_0')], []),
+    }  # fmt: skip
+
+
+@dataclass
+class Outcome:
+    exe: str
+    rc: int | None
+    signalled: bool
+    end_s: float | None  # from the signal to the group gone [s] (None: not ended)
+    stdout: str
+    stderr: str
+    outputs: list[Path]
+
+
+@pytest.fixture(scope='module')
+def finished_run(tmp_path_factory) -> Path:
+    """A short lock-step run for report and replay."""
+    run = tmp_path_factory.mktemp('finished') / 'run'
+    p = subprocess.run(
+        [ROS2, 'run', 'im_tuner', 'tuner', '--bench', 'inproc', '--budget', '1', '--out', str(run)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr[-3000:]
+    return run
+
+
+def group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def interrupt_all(tmp: Path, run: Path, moment: float) -> list[Outcome]:
+    """Start every executable, Ctrl-C each at ``moment`` s, wait for the ends."""
+    base = int(os.environ['ROS_DOMAIN_ID'])
+    here = tmp / exe_dir(moment)
+    started = []
+    for i, (exe, (pkg, args, outputs)) in enumerate(cases(here, run).items()):
+        work = here / exe
+        work.mkdir(parents=True)
+        env = {**os.environ, 'ROS_DOMAIN_ID': str((base + 1 + i) % 233)}
+        out, err = open(work / 'stdout', 'w+'), open(work / 'stderr', 'w+')  # noqa: SIM115
+        p = subprocess.Popen(
+            [ROS2, 'run', pkg, exe, *args], cwd=work, env=env, stdout=out, stderr=err,
+            start_new_session=True,  # its own process group, as a terminal's job
+        )  # fmt: skip
+        started.append((exe, p, out, err, outputs, time.monotonic()))
+    signalled_at: dict[str, float | None] = {}
+    ended: dict[str, float] = {}
+    try:
+        for exe, p, *_rest, t0 in started:  # Ctrl-C to each at its moment
+            while time.monotonic() < t0 + moment and p.poll() is None:
+                time.sleep(0.01)
+            signalled_at[exe] = None
+            if p.poll() is None:
+                signalled_at[exe] = time.monotonic()
+                os.killpg(p.pid, signal.SIGINT)  # Ctrl-C: the whole foreground group
+        deadline = time.monotonic() + END_S + 60.0  # (one that finished on its own: 60 s)
+        while len(ended) < len(started) and time.monotonic() < deadline:
+            for exe, p, *_rest in started:
+                if exe not in ended and p.poll() is not None and not group_alive(p.pid):
+                    ended[exe] = time.monotonic()
+            time.sleep(0.01)
+    finally:
+        for _exe, p, *_rest in started:  # what did not end: ended by its group id
+            if group_alive(p.pid):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    results = []
+    for exe, p, out, err, outs, _t0 in started:
+        t_sig = signalled_at[exe]
+        end = None
+        if exe in ended:
+            end = ended[exe] - t_sig if t_sig is not None else 0.0
+        results.append((exe, p, out, err, outs, t_sig is not None, end))
+    outcomes = []
+    for exe, p, out, err, outs, signalled, end in results:
+        out.seek(0)
+        err.seek(0)
+        outcomes.append(Outcome(exe, p.returncode, signalled, end, out.read(), err.read(), outs))
+        out.close()
+        err.close()
+    return outcomes
+
+
+def exe_dir(moment: float) -> str:
+    return f'at_{moment:g}s'
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize('moment', MOMENTS, ids=[f'{m:g}s' for m in MOMENTS])
+def test_ctrl_c_ends_every_executable_in_one_line(tmp_path, finished_run, moment):
+    outcomes = interrupt_all(tmp_path, finished_run, moment)
+    bad = []
+    for o in outcomes:
+        what = f'{o.exe} at {moment:g} s'
+        if 'Traceback' in o.stderr:
+            bad.append(f'{what}: a traceback: {o.stderr[-1500:]}')
+        if o.signalled and (o.end_s is None or o.end_s > END_S):
+            bad.append(f'{what}: not ended {END_S:g} s after Ctrl-C; stderr: {o.stderr[-600:]}')
+        # -2: ended by the signal itself (a Ctrl-C during the interpreter's own start):
+        # what a shell shows as exit 130 too
+        if o.signalled and o.rc not in ((0, 130, -2) if o.exe in DAEMONS else (130, -2)):
+            bad.append(f'{what}: exit {o.rc}, not 130; stderr: {o.stderr[-600:]}')
+        for d in o.outputs:
+            if d.is_dir() and not any(d.iterdir()):
+                bad.append(f'{what}: left {d} empty')
+    for o in outcomes:  # the table, for a failure's report (pytest -s shows it always)
+        end = '-' if o.end_s is None else f'{o.end_s:.2f} s'
+        print(f'{o.exe:14s} signalled {o.signalled!s:5s} exit {o.rc!s:4s} ended {end}')
+    ran = sum(o.signalled for o in outcomes)
+    assert not bad, f'{ran} of {len(outcomes)} interrupted:\n' + '\n'.join(bad)

@@ -171,6 +171,9 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('recorder', 'repair-not-a-bag', ['--repair', 'adir']),
     ('recorder', 'repair-a-file', ['--repair', 'corrupt.yaml']),
     ('recorder', 'repair-with-out', ['--repair', 'run_bad_metadata/bag_0', '--out', 'newbag']),
+    ('recorder', 'exclude-empty', ['--exclude-topics', '']),
+    ('recorder', 'exclude-space', ['--exclude-topics', '/bad topic!']),
+    ('recorder', 'exclude-pattern', ['--exclude-topics', '/drive/*']),
     *_params_file_cases('recorder'),
     # -- report
     ('report', 'no-run', []),
@@ -185,6 +188,7 @@ CASES: list[tuple[str, str, list[str]]] = [
     # found by a new user (2026-11-29): a YAML error spanning lines, a run directory or a
     # bag's subfolder as --out, the default place taken by a file
     ('report', 'run-yaml-not-yaml', ['run_yaml_tab']),
+    ('report', 'run-yaml-misspelt-key', ['run_misspelt_budget']),
     ('report', 'out-is-a-run', ['run', '--out', 'run_noloss']),
     ('report', 'out-in-a-bag', ['run', '--out', 'run_bad_metadata/bag_0/sub']),
     ('report', 'default-out-is-a-file', ['run_report_file']),
@@ -298,7 +302,9 @@ EXPECT: dict[tuple[str, str], str] = {
     ('drive_host', 'model-with-example'): "--model is the simulator's",
     ('drive_host', 'p-isq-max-above-drive'): 'isq_max',
     ('recorder', 'repair-with-out'): 'repairs that bag in place and exits: --out would be',
+    ('recorder', 'exclude-pattern'): "'/drive/*' is not a ROS topic name",
     ('report', 'out-is-a-run'): 'a run directory (the report never writes into one',
+    ('report', 'run-yaml-misspelt-key'): "unknown key(s) 'budgt': not keys of run.yaml",
     ('report', 'out-in-a-bag'): 'a bag folder or in one',
     ('report', 'default-out-is-a-file'): 'exists and is not a directory (the default place',
     ('tuner', 'resume-newer-summary'): 'format version 99',
@@ -477,6 +483,7 @@ def template(tmp_path_factory) -> Path:
 
     _corrupt_copy(run, root / 'run_safe_no_start', safe_no_start)
     run_yaml('run_bad_budget', 'budget: 4', 'budget: lots')
+    run_yaml('run_misspelt_budget', 'budget: 4', 'budgt: 4')
     # a run with a bag whose metadata.yaml is garbage (for report)
     bag_run = root / 'run_bad_metadata'
     shutil.copytree(run, bag_run)
@@ -619,6 +626,7 @@ FAST_REFUSALS = [
     (['--drive-config', 'comments.yaml'], 'no settings (the file holds only comments)'),
     (['--out', 'full'], '--out full: already exists'),
     (['--no-record', '--compression', 'lz4'], '--compression lz4 is for the bag'),
+    (['--first', 'identify', '--no-reference'], 'not with --no-reference; give --first model'),
 ]
 HEAVY = ('rclpy', 'cma', 'optuna', 'scipy', 'numba', 'matplotlib')
 

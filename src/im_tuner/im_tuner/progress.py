@@ -18,6 +18,28 @@ if TYPE_CHECKING:
     from .tuning import TuningRun
 
 
+class Eta:
+    """The time left of a job, from its rate since the first progress call (its start-up
+    is not work done): ``ETA m:ss``, or ``ETA -:--`` until it has a rate (one more item
+    done and a second gone). One clock for the tuner's, the study's and replay's lines."""
+
+    MIN_S = 1.0  #: [s] of progress before a rate is trusted
+
+    def __init__(self) -> None:
+        self._t0: float | None = None
+        self._done0 = 0
+
+    def __call__(self, done: int, total: int) -> str:
+        now = time.monotonic()
+        if self._t0 is None:
+            self._t0, self._done0 = now, done
+        dt, dd = now - self._t0, done - self._done0
+        if dd <= 0 or dt < self.MIN_S:
+            return 'ETA -:--'
+        left = round(dt / dd * max(total - done, 0))
+        return f'ETA {left // 60}:{left % 60:02d}'
+
+
 class Progress:
     """Evaluation i/N, best and last loss, ETA: one updating line on a terminal, a line
     every 5 % otherwise; nothing with --quiet."""
@@ -25,8 +47,7 @@ class Progress:
     def __init__(self, algo: str, budget: int, quiet: bool, stream=sys.stderr) -> None:
         self.algo, self.budget, self.quiet, self.stream = algo, budget, quiet, stream
         self.tty = stream.isatty()
-        self.t0 = time.monotonic()
-        self.n0: int | None = None
+        self.eta = Eta()
         self.every = max(1, budget // 20)
         self._open = False
 
@@ -44,17 +65,15 @@ class Progress:
                 f'{self.algo}: re-measured evaluation {rec.eval}: {self._fmt(rec)}', force=True
             )
             return
-        if self.n0 is None:
-            self.n0, self.t0 = st.evals - 1, time.monotonic()
         i, n = st.evals, self.budget
-        rate = (time.monotonic() - self.t0) / max(i - self.n0, 1)
-        eta = int(rate * (n - i))
+        if self.eta._t0 is None:  # the first evaluation's time is in its rate
+            self.eta(i - 1, n)
         width = 24
         fill = int(width * i / n)
         best = f'{st.best["loss"]:.4f}' if st.best else '-'
         text = (
             f'{self.algo} [{"#" * fill}{"." * (width - fill)}] eval {i}/{n}  best {best}  '
-            f'last {self._fmt(rec)}  ETA {eta // 60}:{eta % 60:02d}'
+            f'last {self._fmt(rec)}  {self.eta(i, n)}'
         )
         self._line(text, force=i == n or i % self.every == 0)
 

@@ -366,7 +366,13 @@ def _first_point(cli: argparse.Namespace, algo: str, params: TunerParams) -> dic
     from .benches import is_simulated
 
     known = cli.drive_config is not None or is_simulated(cli.bench, cli.drive)
-    first = cli.first or ('identify' if known else 'none')
+    if cli.first == 'identify' and cli.no_reference:
+        raise UsageError(
+            '--first identify identifies the drive from the reference experiment (the '
+            "start's two measurements): not with --no-reference; give --first model or none"
+        )
+    # (identify needs the reference experiment: without it, the default is none)
+    first = cli.first or ('identify' if known and not cli.no_reference else 'none')
     if first == 'none':
         return {}
     if first == 'identify':

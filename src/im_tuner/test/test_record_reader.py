@@ -146,7 +146,11 @@ def test_counts_times_rows_and_losses_match_independent_readers(tmp_path, compre
     for t, times in want['times'].items():
         s = got.topics[t]
         assert (s.count, s.first_ns, s.last_ns) == (len(times), times[0], times[-1])
-        assert s.rate_hz == pytest.approx((len(times) - 1) / ((times[-1] - times[0]) * 1e-9))
+        span_s = (times[-1] - times[0]) * 1e-9
+        if len(times) >= 10 or span_s >= 1.0:
+            assert s.rate_hz == pytest.approx((len(times) - 1) / span_s)
+        else:  # a few messages close together: no rate (not a 60 Hz "topic" of 6 losses)
+            assert s.rate_hz is None
     assert got.topics['/controller/internals'].type == ARRAY
     assert got.topics['/controller/loss'].type == DIAG
     np.testing.assert_array_equal(got.arrays['/controller/internals'], np.array(want['rows']))

@@ -139,7 +139,9 @@ def test_coulomb_delay_and_factors_on_the_bench_profile():
 @pytest.mark.parametrize(
     ('text', 'expect'),
     [
-        ('J=1.5', 'a machine key takes a factor xF with F > 0, e.g. J=x1.5'),
+        ('J=1.5', 'a machine key takes a factor xF with 0.1 <= F <= 10, e.g. J=x1.5'),
+        ('J=x0.0001', 'with 0.1 <= F <= 10'),
+        ('Rr=x1e6', 'with 0.1 <= F <= 10'),
         ('J=x-1', 'a machine key takes a factor xF'),
         ('J=xnan', 'a machine key takes a factor xF'),
         ('Jx=x2', "unknown key 'Jx'"),

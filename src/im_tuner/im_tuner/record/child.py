@@ -91,7 +91,7 @@ def main(args: list[str] | None = None) -> int:
                 chunk_size=cli.chunk_size,
                 max_chunk_age=cli.max_chunk_age,
                 command=argv,
-                exclude=[t if t.startswith('/') else '/' + t for t in cli.exclude_topics],
+                exclude=sorted(set(cli.exclude_topics)),  # (fully qualified by the parser)
             )
         except (BagError, RecorderError) as exc:
             print(f'error: recorder: {exc}', file=sys.stderr)

@@ -64,6 +64,8 @@ _MSG_HEAD = 22  # channel id u16, sequence u32, log time u64, publish time u64
 _F64_HEAD = b'\x00\x01\x00\x00'  # CDR little-endian encapsulation
 _F64_DATA = 20  # first double of a Float64MultiArray with an empty layout
 _OP_LEN = struct.Struct('<BQ')  # a record's opcode and body length
+#: a topic's rate is given from this many messages, or over this much log time [s]
+RATE_MIN_MESSAGES, RATE_MIN_SPAN_S = 10, 1.0
 # metadata.yaml through libyaml when PyYAML has it: 0.02 s instead of 0.27 s for a run's
 # 19 kB file (the pure-Python parser); the same SafeLoader constructors either way
 _YAML_LOADER = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
@@ -86,8 +88,13 @@ class TopicStats:
 
     @property
     def rate_hz(self) -> float | None:
-        """Messages per second of log time between the first and the last message."""
-        if self.count < 2 or self.last_ns <= self.first_ns:
+        """Messages per second of log time between the first and the last message; None
+        for a topic too short to have a rate: fewer than RATE_MIN_MESSAGES messages within
+        less than RATE_MIN_SPAN_S (two messages 1 ms apart are not a 1 kHz topic)."""
+        span_s = (self.last_ns - self.first_ns) * 1e-9
+        if self.count < 2 or span_s <= 0.0:
+            return None
+        if self.count < RATE_MIN_MESSAGES and span_s < RATE_MIN_SPAN_S:
             return None
         return (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 
 from im_drive_sim.cli import Parser, UsageError, check_then_run, executable, finite_float, int_in
@@ -10,6 +11,21 @@ from im_drive_sim.cli import Parser, UsageError, check_then_run, executable, fin
 from .mcap_format import COMPRESSIONS
 
 CHUNK_SIZE_RANGE = (4096, 1 << 28)
+#: a ROS 2 topic name (design.ros2.org, "Topic and Service name mapping"): tokens of
+#: letters, digits and underscores, not starting with a digit, joined by '/'
+_TOPIC = re.compile(r'/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*')
+
+
+def topic_name(text: str) -> str:
+    """An ``--exclude-topics`` entry: a topic name, taken exactly (as ``ros2 bag record
+    --exclude-topics`` takes it); a pattern or a malformed name is refused, since it
+    would exclude nothing."""
+    if not _TOPIC.fullmatch(text) or '__' in text:
+        raise argparse.ArgumentTypeError(
+            f'{text!r} is not a ROS topic name (letters, digits, _ and /, e.g. /drive/state); '
+            'topics are named exactly, not by pattern'
+        )
+    return text if text.startswith('/') else '/' + text
 
 
 class _RecorderParser(Parser):
@@ -70,6 +86,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument(
         '--exclude-topics',
         nargs='+',
+        type=topic_name,
         default=[],
         metavar='TOPIC',
         help='topics (fully qualified, /drive/state) not to record, as ros2 bag record '

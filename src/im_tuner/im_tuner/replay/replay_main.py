@@ -19,6 +19,8 @@ from typing import Any
 
 from im_drive_sim.cli import Parser, UsageError, int_in, parse_cli, quiet_interrupts, run_cli
 
+from ..progress import Eta
+
 EXIT_MISMATCH = 1
 EXIT_INCONCLUSIVE = 3
 
@@ -55,13 +57,14 @@ class _Progress:
     def __init__(self, quiet: bool) -> None:
         self.quiet = quiet
         self.tty = sys.stderr.isatty()
-        self.t0 = time.monotonic()
+        self.eta = Eta()
         self.next_pct = 10
         self.last_draw = 0.0
 
     def __call__(self, i: int, n: int) -> None:
         if self.quiet:
             return
+        eta = self.eta(i, n)  # (from the first call: the controller's start is no rate)
         pct = 100 * i // n
         now = time.monotonic()
         if self.tty and (now - self.last_draw < 0.2 and i < n):
@@ -70,8 +73,7 @@ class _Progress:
             return
         self.next_pct = pct - pct % 10 + 10
         self.last_draw = now
-        eta = int((now - self.t0) / i * (n - i))
-        text = f'replay: state {i}/{n} ({pct} %), ETA {eta // 60}:{eta % 60:02d}'
+        text = f'replay: state {i}/{n} ({pct} %), {eta}'
         end = '\r' if self.tty and i < n else '\n'
         print(text, end=end, file=sys.stderr, flush=True)
 

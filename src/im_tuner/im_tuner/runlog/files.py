@@ -143,7 +143,13 @@ class RunConfig(_Keyed):
             raise FileError(f'unreadable ({" ".join(str(exc).split())})') from None
         if not isinstance(data, dict) or 'algo' not in data:
             raise FileError('not a tuner run file')
-        return cls.from_dict(data)
+        run = cls.from_dict(data)
+        if run.extra and run.version == FILE_VERSION:  # (the tuner writes only its keys)
+            raise FileError(
+                f'unknown key(s) {", ".join(map(repr, run.extra))}: not keys of run.yaml '
+                f'format version {FILE_VERSION} (a typo? docs/tuner.md, "The run directory")'
+            )
+        return run
 
 
 @dataclass(kw_only=True)

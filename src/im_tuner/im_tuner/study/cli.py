@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 from im_drive_sim.cli import Parser, UsageError, int_in
 from im_drive_sim.params import REALISM_PROFILES
 
+from ..progress import Eta
 from . import cluster as K
 from . import spec as S
 from .drives import FamilyResult, drive_dirs, is_family, load_family, save_family
@@ -253,20 +254,21 @@ class Progress:
         self.per_run, self.quiet, self.stream = total_exp_per_run, quiet, stream
         self.tty = stream.isatty()
         self.last_pct = -1
+        self.eta = Eta()
 
     def __call__(self, done: int, total: int, elapsed: float) -> None:
         if self.quiet:
             return
+        eta = self.eta(done, total)  # (every call: its rate starts at the first)
         pct = 100 * done // total
         if not self.tty and pct // 10 == self.last_pct // 10 and done != total:
             return
         self.last_pct = pct
         rate = done * self.per_run / elapsed if elapsed > 0 else 0.0
-        eta = int(elapsed / done * (total - done)) if done else 0
         fill = 24 * done // total
         text = (
             f'study [{"#" * fill}{"." * (24 - fill)}] {done}/{total} runs  '
-            f'{done * self.per_run} experiments  {rate:.0f}/s  ETA {eta // 60}:{eta % 60:02d}'
+            f'{done * self.per_run} experiments  {rate:.0f}/s  {eta}'
         )
         if self.tty:
             self.stream.write('\r' + text + ('\n' if done == total else ''))

@@ -39,7 +39,8 @@ declares), the bench effects (a ``bench`` plant for an ``ideal`` file).
 
 * ``KEY=xF`` with KEY a float key of the drive file's ``machine`` section (J, Rr, Rs, Lm,
   Lls, Llr, B, Udc, rated_flux_current, coulomb_speed, ...): the plant's value times F
-  (F > 0, finite).  Refused: ``isq_max`` (above), ``rated_torque`` and ``rated_speed``
+  (0.1 <= F <= 10: beyond, the plant is another drive, given with ``--plant``).
+  Refused: ``isq_max`` (above), ``rated_torque`` and ``rated_speed``
   (ratings: the simulated machine does not use them), ``pole_pairs`` (an integer: give a
   drive file with ``--plant``).
 * ``coulomb=P%``: the plant's Coulomb friction Tc = P % of its rated torque (0 <= P <= 100;
@@ -100,6 +101,10 @@ class StudySpec(Protocol):
 class PlantError(ValueError):
     """A plant or mismatch the study cannot run: one line, naming the option."""
 
+
+#: The factors a machine key may take: a drive file wrong by up to 10x either way (beyond,
+#: the plant is another drive, given as --plant; J x1e-4 made a plant no kernel can step)
+FACTOR_RANGE = (0.1, 10.0)
 
 #: Machine keys that may not take a factor, and why.
 _NO_FACTOR = {
@@ -190,9 +195,12 @@ def _value(tok: str, key: str, value: str) -> float:
             f'{", ".join(FACTOR_KEYS)}; or coulomb=P%, delay=D)'
         )
     f = _number(value[1:]) if value[:1] == 'x' else None
-    if f is None or not f > 0.0:
+    lo, hi = FACTOR_RANGE
+    if f is None or not lo <= f <= hi:
         raise PlantError(
-            f'--plant-mismatch {tok!r}: a machine key takes a factor xF with F > 0, e.g. {key}=x1.5'
+            f'--plant-mismatch {tok!r}: a machine key takes a factor xF with '
+            f'{lo:g} <= F <= {hi:g}, e.g. {key}=x1.5 (a drive file off by more than {hi:g}x '
+            'is another drive: give it as --plant)'
         )
     return f
 

@@ -1,0 +1,42 @@
+"""The one ETA of every progress line (tuner, study, replay), on a clock the test holds."""
+
+from __future__ import annotations
+
+import pytest
+
+from im_tuner import progress
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    now = [100.0]
+    monkeypatch.setattr(progress.time, 'monotonic', lambda: now[0])
+    return now
+
+
+def test_no_eta_before_it_has_a_rate(clock):
+    eta = progress.Eta()
+    assert eta(0, 10) == 'ETA -:--'  # the first call: its start, not a rate
+    clock[0] += 0.5
+    assert eta(1, 10) == 'ETA -:--'  # under a second of progress: not trusted yet
+    clock[0] += 0.5
+    assert eta(1, 10) == 'ETA 0:09'  # 1 s for 1 item, 9 left
+
+
+def test_the_start_up_before_the_first_call_is_not_in_the_rate(clock):
+    """A replay whose controller took 40 s to start did 3 of 200000 states when it first
+    reported: its rate is taken from there on, not from the process's start."""
+    eta = progress.Eta()
+    clock[0] += 40.0
+    eta(3, 200_000)
+    clock[0] += 2.0
+    assert eta(20_003, 200_000) == 'ETA 0:18'  # 10000 states/s, 180000 left
+
+
+def test_minutes_and_the_end(clock):
+    eta = progress.Eta()
+    eta(0, 100)
+    clock[0] += 75.0
+    assert eta(1, 100) == 'ETA 123:45'  # 75 s per item, 99 left
+    clock[0] += 1.0
+    assert eta(100, 100) == 'ETA 0:00'

@@ -189,13 +189,13 @@ def fig9_loss(runs: list[RunReport]):
     """Loss per evaluation and the best so far, each run (paper Fig. 9 a, b)."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(8, 5), layout='constrained')
+    fig = Figure(figsize=(10.5, 5), layout='constrained')
     ax = fig.subplots()
     for rr, c in zip(runs, _colors(len(runs)), strict=True):
         ev = rr.evals
         if not ev:
             continue
-        x = np.array([r.eval + 1 for r in ev], float)
+        x = np.array([r.eval for r in ev], float)  # numbered as the summary and CSV number
         y = np.array([r.loss for r in ev], float)
         ab = np.array([bool(r.aborted) for r in ev])
         best = np.array(best_so_far(ev), dtype=float)  # None -> nan
@@ -227,7 +227,7 @@ def fig9_loss(runs: list[RunReport]):
         sat = rr.summary.evaluations_to_satisfactory
         if sat:
             ax.plot(
-                [sat],
+                [x[sat - 1]],  # the sat-th evaluation
                 [best[sat - 1]],
                 'v',
                 color=c,
@@ -257,10 +257,11 @@ def fig9_loss(runs: list[RunReport]):
                 gid='start',
             )
     ax.set_yscale('log')
-    ax.set_xlabel('evaluation')
+    ax.set_xlabel('evaluation (numbered from 0, as in the summary)')
     ax.set_ylabel('loss')
     ax.grid(True, which='both', alpha=0.3)
-    ax.legend(fontsize=8, ncols=2, loc='upper right')
+    # beside the axes, not over them: the aborted experiments' penalties are the top points
+    ax.legend(fontsize=8, loc='upper left', bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     ax.set_title('loss per evaluation and best so far (▼: first satisfactory)')
     return fig
 
@@ -273,7 +274,7 @@ def fig9_gains(runs: list[RunReport]):
     axes = fig.subplots(len(GAIN_NAMES), 1, sharex=True)
     for rr, c in zip(runs, _colors(len(runs)), strict=True):
         ev = rr.evals
-        x = np.array([r.eval + 1 for r in ev], float)
+        x = np.array([r.eval for r in ev], float)  # numbered as the summary numbers them
         for ax, n in zip(axes, GAIN_NAMES, strict=True):
             ax.plot(
                 x,
@@ -294,7 +295,7 @@ def fig9_gains(runs: list[RunReport]):
             ax.axhline(b['start'], color=_START_COLOR, ls=':', lw=1, gid=f'start:{n}')
         ax.set_ylabel(f'{n} [{GAIN_UNITS[n]}]')
         ax.grid(True, alpha=0.3)
-    axes[-1].set_xlabel('evaluation')
+    axes[-1].set_xlabel('evaluation (numbered from 0, as in the summary)')
     axes[0].legend(fontsize=8)
     axes[0].set_title('gains over the evaluations (dashed: search box; dotted: start)')
     return fig

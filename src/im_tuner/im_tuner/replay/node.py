@@ -46,13 +46,18 @@ from im_drive_sim.runtime import publish_lossless
 from ..bench.forms import die_with_parent
 from .plan import ReplayPlan
 
-__all__ = ['ANSWER_TIMEOUT', 'READY_TIMEOUT', 'ReplayFailed', 'ReplayInconclusive', 'replay']
+__all__ = ['IDLE_CPU_S', 'IDLE_S', 'READY_IDLE_S', 'ReplayFailed', 'ReplayInconclusive', 'replay']
 
-#: [s] the controller has to come up (import, numba cache, discovery) on a loaded machine
-READY_TIMEOUT = 60.0
-#: [s] for one answer or one service call; a controller that diverged (paused where the
-#: recorded one stepped) never answers: the replay ends there
-ANSWER_TIMEOUT = 10.0
+# A replay is offline: it waits for the controller as long as the controller works (its
+# process, numba's compile included, uses CPU), however slow the machine. A controller
+# that diverged -- paused where the recorded one stepped -- never answers and sits idle:
+# an answer missing while the controller used less than IDLE_CPU_S of CPU in IDLE_S of
+# wall time ends the replay there (exit 1). Coming up (import, discovery) is given
+# READY_IDLE_S of such idleness before the replay is inconclusive (exit 3).
+IDLE_S = 10.0  #: [s] of wall time
+IDLE_CPU_S = 0.2  #: [s] of the controller's CPU time within IDLE_S: less is idle
+READY_IDLE_S = 30.0  #: [s] idle before it is on the graph
+NOTE_EVERY_S = 10.0  #: [s] between lines saying what the replay waits for
 #: parameters not passed on: the layout the node reports (read-only, its own), and the
 #: watchdog, raised to its maximum: the replay's service calls between two states take
 #: milliseconds, and a real-time controller's 0.25 s must not trip on a loaded machine
@@ -114,6 +119,25 @@ class _Child:
                 f'the controller exited with code {code}: {lines[-1] if lines else "(no output)"}'
             )
 
+    def cpu_s(self) -> float:
+        """CPU time [s] the controller's process and its descendants used so far."""
+        total, todo, seen = 0.0, [self.proc.pid], set()
+        tick = os.sysconf('SC_CLK_TCK')
+        while todo:
+            pid = todo.pop()
+            if pid in seen:
+                continue
+            seen.add(pid)
+            try:
+                stat = Path(f'/proc/{pid}/stat').read_text()
+                fields = stat[stat.rindex(')') + 2 :].split()
+                total += (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+                for task in Path(f'/proc/{pid}/task').iterdir():
+                    todo += [int(c) for c in (task / 'children').read_text().split()]
+            except (OSError, ValueError, IndexError):
+                continue  # (gone meanwhile)
+        return total
+
     def stop(self) -> None:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)
@@ -124,13 +148,50 @@ class _Child:
                 self.proc.wait()
 
 
+class _Patience:
+    """Waiting on the controller: :meth:`check` raises ``error(what)`` once the controller
+    has been idle (module docstring) for ``idle_s``, and says every NOTE_EVERY_S what
+    is waited for."""
+
+    def __init__(
+        self,
+        child: _Child,
+        what: str,
+        idle_s: float,
+        error: type[Exception],
+        note: Callable[[str], None] | None,
+    ) -> None:
+        self.child, self.what, self.idle_s, self.error, self.note = child, what, idle_s, error, note
+        self.t0 = self.busy_at = time.monotonic()
+        self.cpu = child.cpu_s()
+        self.noted = self.t0
+
+    def check(self) -> None:
+        self.child.check()
+        now = time.monotonic()
+        cpu = self.child.cpu_s()
+        if cpu - self.cpu >= IDLE_CPU_S:  # it works: the window starts again
+            self.cpu, self.busy_at = cpu, now
+        elif now - self.busy_at > self.idle_s:
+            raise self.error(
+                f'{self.what}: none after {now - self.t0:.0f} s, the controller idle for the '
+                f'last {now - self.busy_at:.0f} s (it used {cpu - self.cpu:.2f} s of CPU)'
+            )
+        if self.note is not None and now - self.noted >= NOTE_EVERY_S:
+            self.noted = now
+            self.note(f'waiting for {self.what}: {now - self.t0:.0f} s (the controller works)')
+
+
 class _Drive:
     """The drive's side of the wire: states and /clock out, commands in (no executor on
     the 5 kHz path: a WaitSet, as ``im_drive_sim.client.DriveClient``), and the tuner's
     requests through an executor of their own."""
 
-    def __init__(self, ns: str, context, width: int, child: _Child) -> None:
+    def __init__(
+        self, ns: str, context, width: int, child: _Child, note: Callable[[str], None] | None
+    ) -> None:
         self.child = child
+        self.note = note
         self.io = Node('replay_drive', namespace=ns, context=context)
         self.state_pub = self.io.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
         self.clock_pub = self.io.create_publisher(Clock, 'clock', RECORDED_QOS)
@@ -155,22 +216,19 @@ class _Drive:
             and self.params.services_are_ready()
         )
 
-    def wait_ready(self, timeout: float) -> None:
-        deadline = time.monotonic() + timeout
+    def patience(self, what: str, idle_s: float = IDLE_S, error=None) -> _Patience:
+        return _Patience(self.child, what, idle_s, error or ReplayFailed, self.note)
+
+    def wait_ready(self) -> None:
+        wait = self.patience('the controller on the graph', READY_IDLE_S, ReplayInconclusive)
         while not self.ready():
-            self.child.check()
-            if time.monotonic() > deadline:
-                raise ReplayInconclusive(
-                    f'the controller was not on the graph within {timeout:g} s'
-                )
+            wait.check()
             self.executor.spin_once(timeout_sec=0.05)
 
     def _call(self, future, what: str):
-        deadline = time.monotonic() + ANSWER_TIMEOUT
+        wait = self.patience(f'the answer to {what}')
         while not future.done():
-            self.child.check()
-            if time.monotonic() > deadline:
-                raise ReplayFailed(f'{what}: no answer within {ANSWER_TIMEOUT:g} s')
+            wait.check()
             self.executor.spin_once(timeout_sec=0.05)
         return future.result()
 
@@ -208,22 +266,24 @@ class _Drive:
     def publish_clock(self, raw: bytes) -> None:
         publish_lossless(self.clock_pub, raw, self.context)
 
-    def wait_command(self, k: int, timeout: float) -> np.ndarray | None:
-        """The command answering state ``k`` (others are skipped), or None at the timeout."""
-        deadline = time.monotonic() + timeout
+    def wait_command(self, k: int) -> np.ndarray:
+        """The command answering state ``k`` (others are skipped); ReplayFailed once the
+        controller sits idle without it (:class:`_Patience`)."""
         n = len(COMMAND_FIELDS)
+        wait = None
         while True:
             while (r := self.cmd_sub.handle.take_message(Float64MultiArray, True)) is not None:
                 v = parse_float64_array(r[0], n)
                 if v is not None and int(v[0]) == k:
                     return v.copy()
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return None
             self._ws.clear_entities()
             self._ws.add_subscription(self.cmd_sub.handle)
-            self._ws.wait(int(min(left, 0.5) * NS_PER_S))
-            self.child.check()
+            self._ws.wait(int(0.5 * NS_PER_S))
+            if wait is None:  # (built only when an answer is slow: /proc is read then)
+                wait = self.patience(
+                    f'the command answering step {k} (the recorded controller answered it)'
+                )
+            wait.check()
 
     def close(self) -> None:
         self.executor.shutdown()
@@ -231,10 +291,14 @@ class _Drive:
         self.io.destroy_node()
 
 
-def replay(plan: ReplayPlan, progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+def replay(
+    plan: ReplayPlan,
+    progress: Callable[[int, int], None] | None = None,
+    note: Callable[[str], None] | None = None,
+) -> np.ndarray:
     """Re-drive a live controller through ``plan``; returns its commands, one row per fed
     state (NaN where none came: the replay stopped there, ReplayFailed is raised with the
-    rows so far in ``exc.args[1]``)."""
+    rows so far in ``exc.args[1]``). ``note``: a line of what a long wait waits for."""
     ns = f'/replay_{os.getpid()}'
     n = len(plan.states)
     out = np.full((n, len(COMMAND_FIELDS)), np.nan)
@@ -247,8 +311,8 @@ def replay(plan: ReplayPlan, progress: Callable[[int, int], None] | None = None)
         child = _Child(plan, ns, Path(tmp))
         drive = None
         try:
-            drive = _Drive(ns, context, plan.states.shape[1], child)
-            drive.wait_ready(READY_TIMEOUT)
+            drive = _Drive(ns, context, plan.states.shape[1], child, note)
+            drive.wait_ready()
             clock_i = 0
             for i in range(n):
                 state = plan.states[i]
@@ -265,23 +329,13 @@ def replay(plan: ReplayPlan, progress: Callable[[int, int], None] | None = None)
                     if i == 0:  # a start needs a state taken: the first goes out first
                         drive.publish_state(state)
                         sent = True
-                    deadline = time.monotonic() + ANSWER_TIMEOUT
+                    wait = drive.patience(f'the start before step {k} (refused: no state yet)')
                     while not drive.start(int(what), k):  # type: ignore[call-overload]
-                        if time.monotonic() > deadline:
-                            raise ReplayFailed(
-                                f'the start before step {k} was refused until the timeout'
-                            )
+                        wait.check()
                         drive.executor.spin_once(timeout_sec=0.02)
                 if not sent:
                     drive.publish_state(state)
-                cmd = drive.wait_command(k, ANSWER_TIMEOUT)
-                if cmd is None:
-                    raise ReplayFailed(
-                        f'no command answering step {k} within {ANSWER_TIMEOUT:g} s '
-                        '(the recorded controller answered it)',
-                        out,
-                    )
-                out[i] = cmd
+                out[i] = drive.wait_command(k)
                 if progress is not None:
                     progress(i + 1, n)
         except ReplayFailed as exc:

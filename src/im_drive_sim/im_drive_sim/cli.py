@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import faulthandler
 import importlib
 import math
 import os
@@ -139,6 +140,9 @@ def executable(prog: str, main: str | Callable[[], int]) -> NoReturn:
     them (a drive writes zero current there). Once ``main`` is over, a second Ctrl-C is
     ignored and the interpreter's shutdown is bounded (EXIT_GRACE_S), so the process
     ends promptly even when a library left a thread running."""
+    # a crash in native code (a drive library's read, numba, rclpy) prints the Python
+    # stack of every thread, the call into the library on top, before the process dies
+    faulthandler.enable(all_threads=True)
     try:
         if isinstance(main, str):
             module, function = main.split(':')

@@ -179,6 +179,65 @@ def test_a_library_that_cannot_be_used_is_refused_in_one_line(
     assert message in text and text.startswith(f'lib:{lib}') and '\n' not in text
 
 
+CRASHES = {
+    'segv-in-open': (
+        GOOD.replace('f){ return 0; }', 'f){ *(volatile int *)0 = 1; return 0; }'),
+        'im_drive_open crashed the process (SIGSEGV)',
+    ),
+    'exit-in-open': (
+        '#include <stdlib.h>\n' + GOOD.replace('f){ return 0; }', 'f){ exit(3); }'),
+        'im_drive_open ended the process (exit code 3)',
+    ),
+    'abort-in-constructor': (
+        '#include <stdlib.h>\n__attribute__((constructor)) static void boom(void){ abort(); }\n'
+        + GOOD,
+        'loading it (its initialisers) crashed the process (SIGABRT)',
+    ),
+    'segv-in-close': (
+        GOOD + 'void im_drive_close(void){ *(volatile int *)0 = 1; }\n',
+        'im_drive_close() after open crashed the process (SIGSEGV)',
+    ),
+}
+
+
+@needs_cc
+@pytest.mark.parametrize('name', sorted(CRASHES))
+def test_a_library_that_crashes_is_named_in_one_line_and_never_loaded_here(
+    tmp_path: Path, name: str
+) -> None:
+    """Tried in a child first: the crash happens there, this process goes on and says
+    which call did it."""
+    source, message = CRASHES[name]
+    lib = build_c(tmp_path, name.replace('-', '_'), source)
+    with pytest.raises(H.DriveLibraryError) as err:
+        H.LibraryHardware(lib, load_config(None))
+    text = str(err.value)
+    assert text == f'lib:{lib}: {message}; tried in a child process, nothing else ran'
+
+
+@needs_cc
+def test_a_library_whose_open_never_returns_is_named(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(H, 'TRIAL_TIMEOUT_S', 2.0)
+    source = '#include <unistd.h>\n' + GOOD.replace('f){ return 0; }', 'f){ for (;;) pause(); }')
+    lib = build_c(tmp_path, 'hang', source)
+    with pytest.raises(H.DriveLibraryError, match=r'im_drive_open did not return within 2 s'):
+        H.LibraryHardware(lib, load_config(None))
+
+
+@needs_cc
+def test_a_truncated_library_is_refused_in_one_line(tmp_path: Path) -> None:
+    lib = build_c(tmp_path, 'whole', GOOD)
+    cut = tmp_path / 'libcut.so'
+    cut.write_bytes(lib.read_bytes()[: lib.stat().st_size // 2])
+    with pytest.raises(H.DriveLibraryError) as err:
+        H.LibraryHardware(cut, load_config(None))
+    text = str(err.value)
+    assert text.startswith(f'lib:{cut}: ') and '\n' not in text
+    assert 'cannot load' in text or 'crashed the process' in text, text
+
+
 def test_the_header_and_the_loader_speak_one_abi_version() -> None:
     """The version the loader accepts is the header's; the example, built against the
     header, carries it (the other tests load it)."""

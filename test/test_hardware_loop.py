@@ -314,3 +314,42 @@ def test_a_drive_slower_than_it_declares_is_refused_in_one_line(tmp_path):
         in lines[0]
     )
     assert not run.exists()
+
+
+def test_a_close_that_raises_is_one_error_line_after_zero_current(ros_context):
+    """A hardware class whose close() raises: zero current was written first, the error
+    is one log line naming it, and nothing propagates (the run's result stands)."""
+    from rclpy.parameter import Parameter
+
+    from im_drive_sim.drive_file import load_config
+    from im_drive_sim.example_drive import ExampleDrive, Hardware
+
+    writes: list[tuple[float, float]] = []
+
+    class CloseRaises(Hardware):
+        def write(self, isq_ref, load_torque):
+            writes.append((isq_ref, load_torque))
+            super().write(isq_ref, load_torque)
+
+        def close(self):
+            raise RuntimeError('bus already released\nsecond line')
+
+    cfg = load_config(None)
+    drive = ExampleDrive(
+        'close_raises',
+        context=ros_context,
+        hardware_class=lambda _config: CloseRaises(cfg),
+        parameter_overrides=[Parameter('isq_max', value=5.0)],
+    )
+    errors: list[str] = []
+    drive.get_logger().error = errors.append  # (the node's own logger: what it says)
+    try:
+        drive.close_hardware()  # no exception
+        drive.close_hardware()  # idempotent: close() once
+        assert writes[-1] == (0.0, 0.0)
+        assert errors == [
+            'the hardware close() raised RuntimeError: bus already released (zero current '
+            'was written before it; the power stage may not be released)'
+        ]
+    finally:
+        drive.destroy_node()

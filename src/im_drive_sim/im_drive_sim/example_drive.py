@@ -335,8 +335,8 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, CompiledPeriodHooks, Node):
         if not self._hw_closed:
             try:
                 self.hw.write(0.0, 0.0)
-            except HardwareFault as exc:  # the power stage's own fault: said, not raised
-                self.get_logger().error(f'safe stop: {exc}')
+            except Exception as exc:  # a fault, or the user's write raising: said, not raised
+                self.get_logger().error(f'safe stop: the write of zero raised {exc!r}')
 
     def close_hardware(self) -> None:
         """The last word to the power stage: zero current and zero load torque, then the
@@ -350,7 +350,16 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, CompiledPeriodHooks, Node):
             self._hw_closed = True
             close = getattr(self.hw, 'close', None)
             if callable(close):
-                close()
+                try:
+                    close()
+                except Exception as exc:  # (zero was written): said, and the run goes on
+                    text = str(exc).strip().splitlines()
+                    self.get_logger().error(
+                        f'the hardware close() raised {type(exc).__name__}'
+                        + (f': {text[0]}' if text else '')
+                        + ' (zero current was written before it; the power stage may not '
+                        'be released)'
+                    )
 
     def fill_state(self, m: Measurement) -> None:
         """Copy a measurement into the drive/state buffer (a real drive repeats the measured

@@ -790,3 +790,28 @@ def test_a_hardware_class_is_not_called_simulated_and_faults_between_experiments
     assert '(safety faults 1, 1 of them met between experiments)' in out
     run.drive = 'example'  # the example's stand-in plant is simulated
     assert 'simulated experiment time' in format_summary(_summary(), run, Path('run'))
+
+
+def test_a_second_drive_host_on_a_domain_is_refused_in_one_line(
+    tmp_path, procs, ros_context, wait_until
+):
+    """Two drives on one ROS domain would each take the other's controller's commands:
+    a drive host that finds another drive there refuses to start (exit 2, one line,
+    nothing created)."""
+    from rclpy.node import Node
+
+    first = procs.start([ROS2, 'run', 'im_tuner', 'drive_host', '--no-record'])
+    probe = Node('probe', context=ros_context)
+    try:
+        wait_until(lambda: probe.count_publishers('/drive/state') > 0, 120, message='host 1')
+    finally:
+        probe.destroy_node()
+    second = subprocess.run(
+        [ROS2, 'run', 'im_tuner', 'drive_host', '--out', str(tmp_path / 'bag2')],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert second.returncode == 2, second.stderr[-2000:]
+    (line,) = [ln for ln in second.stderr.splitlines() if ln.startswith('error:')]
+    assert 'a drive host or drive already runs here' in line, second.stderr[-2000:]
+    assert 'Traceback' not in second.stderr and not (tmp_path / 'bag2').exists()
+    assert first.poll() is None  # the first host runs on

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 from typing import Any
 
 from rclpy.node import Node
@@ -30,6 +31,7 @@ from rclpy.node import Node
 from im_drive_sim import host as host_floor
 from im_drive_sim import rt
 from im_drive_sim.cli import UsageError, parse_cli
+from im_drive_sim.contract import STATE_TOPIC
 from im_drive_sim.runtime import RosSession
 
 from .. import family
@@ -70,6 +72,26 @@ def _spec(cli: argparse.Namespace, choice: Any, host_check: dict | None = None) 
         host_check=host_check,
         quiet=False,
     )
+
+
+#: [s] a new drive host looks for another drive on its domain before it starts its own
+#: (discovery on one machine or a LAN: well under a second when nothing is lost)
+PEER_WAIT_S = 2.0
+
+
+def _another_drive(node: Node) -> str:
+    """What of another drive is on the graph within PEER_WAIT_S ('' if nothing): a second
+    node named drive_host, or a publisher of the drive's state."""
+    deadline = time.monotonic() + PEER_WAIT_S
+    while True:
+        hosts = [n for n, ns in node.get_node_names_and_namespaces() if n == DRIVE_HOST_NODE]
+        if len(hosts) > 1:  # (this node is one of them)
+            return 'another drive_host'
+        if node.count_publishers('/' + STATE_TOPIC) > 0:
+            return f'a drive publishing /{STATE_TOPIC}'
+        if time.monotonic() > deadline:
+            return ''
+        time.sleep(0.05)  # the graph is updated by the middleware: no spin needed
 
 
 def main(args: list[str] | None = None) -> int:
@@ -121,6 +143,12 @@ def main(args: list[str] | None = None) -> int:
         # this node leaves the 5 kHz topics to this host's bag instead of pulling them
         # across the network
         marker = Node(DRIVE_HOST_NODE, start_parameter_services=False)
+        other = _another_drive(marker)
+        if other:  # two drives on one domain: each controller would command both
+            raise UsageError(
+                f'{other} on ROS_DOMAIN_ID {os.environ.get("ROS_DOMAIN_ID", "0")}: a drive host '
+                'or drive already runs here; stop it, or give this one another ROS_DOMAIN_ID'
+            )
         bench = open_bench(
             _spec(cli, choice, host_check), host, command=argv, should_stop=lambda: session.stopped
         )

@@ -514,6 +514,13 @@ def test_sigkill_then_repair(ros_context, procs, tmp_path, wait_until):
         )
         assert p.returncode == 2 and p.stderr.count('\n') == 1 and not p.stdout, p
         assert 'being recorded now by pid ' in p.stderr, p.stderr
+    # ... and --bag-info names the recorder, not a killed one
+    p = subprocess.run(
+        [ROS2, 'run', 'im_tuner', 'report', '--bag-info', str(bag)],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert p.returncode == 0 and 'NOT CLOSED' not in p.stdout, p.stdout
+    assert f'being recorded now by pid {rec.pid} ' in p.stdout, p.stdout
     assert _tree_hash(bag) == live and rec.poll() is None
     for i in range(3000, 3050):  # some more that may sit in the open chunk when killed
         msg.data[0] = float(i)

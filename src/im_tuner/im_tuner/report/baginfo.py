@@ -37,6 +37,7 @@ def bag_info(bag_dir: Path) -> dict[str, Any]:
 
     Raises :class:`ReportError` (one line) for a path that is not a bag."""
     from ..record.reader import BagReadError, read_bag
+    from ..rundir import writer_of
 
     bag_dir = Path(bag_dir)
     if not bag_dir.exists():
@@ -87,6 +88,8 @@ def bag_info(bag_dir: Path) -> dict[str, Any]:
         'storage': 'mcap',
         'state': bag.state,
         'complete': bag.complete,
+        # the process recording it now ('pid N (command)'; None: no one, e.g. killed)
+        'recording_by': None if bag.complete else writer_of(bag.file),
         'unread_bytes': bag.unread_bytes,
         'messages': bag.messages,
         'bytes': sum(t.bytes for t in bag.topics.values()),
@@ -146,6 +149,11 @@ def _size(n: int) -> str:
 def _state(info: dict[str, Any]) -> str:
     if info['complete']:
         return info['state']
+    if info['recording_by']:
+        return (
+            f'being recorded now by {info["recording_by"]}: read up to its last complete '
+            f'chunk ({info["unread_bytes"]} bytes after it not read yet)'
+        )
     said = f'metadata.yaml says {info["state"]}, but ' if info['state'] == 'closed' else ''
     return (
         f'{said}the MCAP file is NOT CLOSED: read up to its last complete chunk '

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -111,6 +112,21 @@ class Progress:
             self.stream.write('\n')
             self._open = False
         print(text, file=self.stream, flush=True)
+
+    def steps(self, what: str, every_s: float = 10.0) -> Callable[[int, int], None]:
+        """A ``(done, total)`` callback for a long step before the search (the plant's
+        replay on --resume): ``<what>: done/total, ETA`` at most every ``every_s`` s
+        and at the end."""
+        eta, last = Eta(), [time.monotonic()]
+
+        def report(done: int, total: int) -> None:
+            left = eta(done, total)
+            now = time.monotonic()
+            if done == total or now - last[0] >= every_s:
+                last[0] = now
+                self.note(f'{what}: {done}/{total}, {left}')
+
+        return report
 
     def close(self) -> None:
         if self._open:

@@ -306,7 +306,9 @@ class TunerSession:
                     f'{len(replay_plan(tuning.records))} experiments (checked bit '
                     'for bit)'
                 )
-                session['replayed'] = replay(link, tuning.records)
+                session['replayed'] = replay(
+                    link, tuning.records, progress.steps('restoring the simulated plant')
+                )
             else:
                 progress.note(
                     ('external bench' if plan.mode == 'external' else 'a real drive')

@@ -40,3 +40,21 @@ def test_minutes_and_the_end(clock):
     assert eta(1, 100) == 'ETA 123:45'  # 75 s per item, 99 left
     clock[0] += 1.0
     assert eta(100, 100) == 'ETA 0:00'
+
+
+def test_a_long_step_says_where_it_is_every_10_s_and_at_the_end(clock):
+    import io
+
+    out = io.StringIO()
+    p = progress.Progress('necga', 10, quiet=False, stream=out)
+    step = p.steps('restoring the simulated plant')
+    for k in range(1, 41):  # 40 experiments of 1 s each
+        clock[0] += 1.0
+        step(k, 40)
+    lines = out.getvalue().splitlines()
+    assert lines == [
+        'restoring the simulated plant: 10/40, ETA 0:30',
+        'restoring the simulated plant: 20/40, ETA 0:20',
+        'restoring the simulated plant: 30/40, ETA 0:10',
+        'restoring the simulated plant: 40/40, ETA 0:00',
+    ]

@@ -365,7 +365,10 @@ def _first_point(cli: argparse.Namespace, algo: str, params: TunerParams) -> dic
         return {}
     from .benches import is_simulated
 
-    known = cli.drive_config is not None or is_simulated(cli.bench, cli.drive)
+    # auto: the simulated bench it falls back to (if it finds a controller on the graph
+    # instead, a drive it does not know, the tuner drops the identified step then)
+    bench = 'inproc' if cli.bench == 'auto' else cli.bench
+    known = cli.drive_config is not None or is_simulated(bench, cli.drive)
     if cli.first == 'identify' and cli.no_reference:
         raise UsageError(
             '--first identify identifies the drive from the reference experiment (the '

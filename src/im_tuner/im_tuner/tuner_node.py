@@ -112,6 +112,14 @@ def _main(cli: argparse.Namespace, argv: list[str]) -> int:
             spec, session, context=ctx, node=node, exe=exe, command=argv, should_stop=should_stop
         )
         session.accepted()
+        tuning = session.tuning
+        if bench.plan.mode == 'external' and cfg.run.drive_config is None and tuning.first_step:
+            # --bench auto found someone's controller: its drive is not the packaged one
+            tuning.first_step = None
+            session.progress.note(
+                'note: the controller on the graph drives a drive this tuner does not know '
+                "(no --drive-config): safe's first step is not identified from it"
+            )
         link = ControllerLink(
             node,
             bench.spin_until,

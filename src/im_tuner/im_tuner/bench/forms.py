@@ -526,12 +526,32 @@ class Children:
             return True
         node, watch = self.node, self.watch
         assert watch is not None
+
         # the graph shows the recorder's subscriptions before they are matched: its own
         # status says when they are (record/status.py)
-        ready = self.spin_until(
-            lambda: recorder_subscribed(node, self.rec_topics) and watch.matched(self.rec_topics),
-            timeout,
-        )
+        def subscribed() -> bool:
+            return recorder_subscribed(node, self.rec_topics) and watch.matched(self.rec_topics)
+
+        ready = self.spin_until(subscribed, timeout)
+        child = self.children.get('recorder')
+        if not ready and child is not None:
+            # a loaded machine: the child still imports, compiles or discovers -- waited
+            # for as long as it works (im_tuner.patience), not failed at a fixed limit
+            from ..patience import Patience
+
+            def dead() -> None:
+                if child.poll() is not None:
+                    raise BenchFailure(f'the recorder child ended (exit {child.returncode})')
+
+            wait = Patience(
+                child.pid,
+                'the recorder child to subscribe to every recorded topic',
+                BenchFailure,
+                note=self.host.warn,
+                alive=dead,
+            )
+            while not (ready := self.spin_until(subscribed, 1.0)):
+                wait.check()
         if ready:
             watch.ready(received)
         return ready

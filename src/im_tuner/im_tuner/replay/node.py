@@ -19,7 +19,6 @@ import signal
 import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -44,20 +43,18 @@ from im_drive_sim.qos import LOCKSTEP_QOS, RECORDED_QOS
 from im_drive_sim.runtime import publish_lossless
 
 from ..bench.forms import die_with_parent
+from ..patience import IDLE_S, Patience
 from .plan import ReplayPlan
 
-__all__ = ['IDLE_CPU_S', 'IDLE_S', 'READY_IDLE_S', 'ReplayFailed', 'ReplayInconclusive', 'replay']
+__all__ = ['READY_IDLE_S', 'ReplayFailed', 'ReplayInconclusive', 'replay']
 
-# A replay is offline: it waits for the controller as long as the controller works (its
-# process, numba's compile included, uses CPU), however slow the machine. A controller
-# that diverged -- paused where the recorded one stepped -- never answers and sits idle:
-# an answer missing while the controller used less than IDLE_CPU_S of CPU in IDLE_S of
-# wall time ends the replay there (exit 1). Coming up (import, discovery) is given
-# READY_IDLE_S of such idleness before the replay is inconclusive (exit 3).
-IDLE_S = 10.0  #: [s] of wall time
-IDLE_CPU_S = 0.2  #: [s] of the controller's CPU time within IDLE_S: less is idle
+# A replay is offline: it waits for the controller as long as the controller works
+# (im_tuner.patience: its process, numba's compile included, uses CPU), however slow the
+# machine. A controller that diverged -- paused where the recorded one stepped -- never
+# answers and sits idle: an answer missing while the controller idles for IDLE_S ends the
+# replay there (exit 1). Coming up (import, discovery) is given READY_IDLE_S of such
+# idleness before the replay is inconclusive (exit 3).
 READY_IDLE_S = 30.0  #: [s] idle before it is on the graph
-NOTE_EVERY_S = 10.0  #: [s] between lines saying what the replay waits for
 #: parameters not passed on: the layout the node reports (read-only, its own), and the
 #: watchdog, raised to its maximum: the replay's service calls between two states take
 #: milliseconds, and a real-time controller's 0.25 s must not trip on a loaded machine
@@ -119,25 +116,6 @@ class _Child:
                 f'the controller exited with code {code}: {lines[-1] if lines else "(no output)"}'
             )
 
-    def cpu_s(self) -> float:
-        """CPU time [s] the controller's process and its descendants used so far."""
-        total, todo, seen = 0.0, [self.proc.pid], set()
-        tick = os.sysconf('SC_CLK_TCK')
-        while todo:
-            pid = todo.pop()
-            if pid in seen:
-                continue
-            seen.add(pid)
-            try:
-                stat = Path(f'/proc/{pid}/stat').read_text()
-                fields = stat[stat.rindex(')') + 2 :].split()
-                total += (int(fields[11]) + int(fields[12])) / tick  # utime, stime
-                for task in Path(f'/proc/{pid}/task').iterdir():
-                    todo += [int(c) for c in (task / 'children').read_text().split()]
-            except (OSError, ValueError, IndexError):
-                continue  # (gone meanwhile)
-        return total
-
     def stop(self) -> None:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)
@@ -146,40 +124,6 @@ class _Child:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
-
-
-class _Patience:
-    """Waiting on the controller: :meth:`check` raises ``error(what)`` once the controller
-    has been idle (module docstring) for ``idle_s``, and says every NOTE_EVERY_S what
-    is waited for."""
-
-    def __init__(
-        self,
-        child: _Child,
-        what: str,
-        idle_s: float,
-        error: type[Exception],
-        note: Callable[[str], None] | None,
-    ) -> None:
-        self.child, self.what, self.idle_s, self.error, self.note = child, what, idle_s, error, note
-        self.t0 = self.busy_at = time.monotonic()
-        self.cpu = child.cpu_s()
-        self.noted = self.t0
-
-    def check(self) -> None:
-        self.child.check()
-        now = time.monotonic()
-        cpu = self.child.cpu_s()
-        if cpu - self.cpu >= IDLE_CPU_S:  # it works: the window starts again
-            self.cpu, self.busy_at = cpu, now
-        elif now - self.busy_at > self.idle_s:
-            raise self.error(
-                f'{self.what}: none after {now - self.t0:.0f} s, the controller idle for the '
-                f'last {now - self.busy_at:.0f} s (it used {cpu - self.cpu:.2f} s of CPU)'
-            )
-        if self.note is not None and now - self.noted >= NOTE_EVERY_S:
-            self.noted = now
-            self.note(f'waiting for {self.what}: {now - self.t0:.0f} s (the controller works)')
 
 
 class _Drive:
@@ -216,8 +160,10 @@ class _Drive:
             and self.params.services_are_ready()
         )
 
-    def patience(self, what: str, idle_s: float = IDLE_S, error=None) -> _Patience:
-        return _Patience(self.child, what, idle_s, error or ReplayFailed, self.note)
+    def patience(self, what: str, idle_s: float = IDLE_S, error=ReplayFailed) -> Patience:
+        return Patience(
+            self.child.proc.pid, what, error, idle_s=idle_s, note=self.note, alive=self.child.check
+        )
 
     def wait_ready(self) -> None:
         wait = self.patience('the controller on the graph', READY_IDLE_S, ReplayInconclusive)

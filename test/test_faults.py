@@ -495,7 +495,7 @@ def test_a_replacement_recorder_is_not_taken_for_ready_on_the_dead_ones_subscrip
     from rclpy.node import Node
     from std_msgs.msg import Empty
 
-    from im_tuner.bench.forms import recorder_endpoints, recorder_subscribed
+    from im_tuner.bench.recorder_watch import recorder_endpoints, recorder_subscribed
 
     topics = ['/t_a', '/t_b']
     watcher = Node('watcher', context=ros_context)

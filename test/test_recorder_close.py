@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from im_tuner.bench import forms
+from im_tuner.bench import recorder_watch as watch
 from im_tuner.record.repair import bag_is_closed
 
 STAND_IN = r"""
@@ -101,13 +102,13 @@ def test_a_recorder_that_closed_its_bag_and_then_hangs_loses_nothing(tmp_path):
     t0 = time.monotonic()
     assert bench.close_recording() == []
     took = time.monotonic() - t0
-    assert forms.RECORDER_EXIT_AFTER_CLOSE <= took < forms.RECORDER_EXIT_AFTER_CLOSE + 20.0
+    assert watch.RECORDER_EXIT_AFTER_CLOSE <= took < watch.RECORDER_EXIT_AFTER_CLOSE + 20.0
     assert bench.ended[0].returncode == -9 and bag_is_closed(bench.bag)
     assert host.said == ['note: the recorder closed bag whole, then ended (killed by signal 9)']
 
 
 def test_a_recorder_that_never_closes_its_bag_fails_the_recording(tmp_path, monkeypatch):
-    monkeypatch.setattr(forms, 'RECORDER_CLOSE_TIMEOUT', 3.0)
+    monkeypatch.setattr(watch, 'RECORDER_CLOSE_TIMEOUT', 3.0)
     bench, _host = children_with(tmp_path, -1.0, 'hang')
     (problem,) = bench.close_recording()
     assert problem.startswith('the recorder did not close its bag (killed by signal 9)')

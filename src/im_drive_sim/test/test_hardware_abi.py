@@ -219,7 +219,9 @@ def test_a_library_that_crashes_is_named_in_one_line_and_never_loaded_here(
 def test_a_library_whose_open_never_returns_is_named(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(H, 'TRIAL_TIMEOUT_S', 2.0)
+    from im_drive_sim import library_trial
+
+    monkeypatch.setattr(library_trial, 'TRIAL_TIMEOUT_S', 2.0)
     source = '#include <unistd.h>\n' + GOOD.replace('f){ return 0; }', 'f){ for (;;) pause(); }')
     lib = build_c(tmp_path, 'hang', source)
     with pytest.raises(H.DriveLibraryError, match=r'im_drive_open did not return within 2 s'):

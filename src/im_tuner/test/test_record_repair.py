@@ -459,8 +459,9 @@ def test_garbage_tail_is_dropped(tmp_path: Path, tail: str) -> None:
     read_with_rosbags(rec.out, complete)
 
 
-def test_corrupt_chunk_stops_the_scan(tmp_path: Path) -> None:
-    """A chunk whose payload fails its CRC ends what is recovered, even if more follows."""
+def test_a_corrupt_chunk_is_left_out_and_the_chunks_after_it_recovered(tmp_path: Path) -> None:
+    """A whole chunk whose payload fails its CRC had its bytes changed: it is named and
+    left out, and the scan goes on to recover every chunk after it."""
     rec = Recording(tmp_path / 'bag', 'none')
     rec.write(400, flush_every=100)
     crash(rec, cut_last_chunk=False)
@@ -472,9 +473,12 @@ def test_corrupt_chunk_stops_the_scan(tmp_path: Path) -> None:
         f.seek(-1, os.SEEK_CUR)
         f.write(bytes([byte[0] ^ 0xFF]))
     report = repair_bag(rec.out)
-    assert report.messages == len(rec.flushed(2)) and report.chunks == 2
-    assert report.dropped_bytes == size - third.offset
-    read_with_mcap(rec.file, rec.flushed(2))
+    kept = rec.flushed(2) + rec.sent[len(rec.flushed(3)) : len(rec.flushed())]
+    assert [d[:2] for d in report.damaged] == [(3, third.offset)]
+    assert report.messages == len(kept) and report.chunks == len(rec.w.chunks) - 1
+    assert report.dropped_bytes < size - third.offset  # (only what followed the last chunk)
+    assert 'left out damaged chunk 3' in report.summary()
+    read_with_mcap(rec.file, kept)
 
 
 # --- files from another writer: channels inside chunks, messages outside chunks ------------

@@ -39,15 +39,17 @@ from im_drive_sim.contract import STATE_TOPIC
 from ..names import DRIVE_HOST_NODE, HOST_LOOP_TOPICS, controller_topics
 from ..tuning import BenchFailure
 from .drive_status import DriveMonitor, drive_delta, drive_report
-from .recorder_watch import RecorderWatch, SpinUntil
+from .recorder_watch import (
+    RecorderWatch,
+    SpinUntil,
+    recorder_endpoints,
+    recorder_subscribed,
+    stop_recorder,
+)
 from .spec import BenchPlan
 
 RECORDER_RESTARTS = 3  # replacements of a recorder child that died, per session
 RECORDER_READY_TIMEOUT = 20.0  # [s] for a replacement recorder to subscribe
-#: [s] a stopped recorder is given to close its bag (it takes ~1 s idle; a loaded machine
-#: can need tens of seconds to shut rclpy down): waiting costs time, a kill costs the bag
-RECORDER_CLOSE_TIMEOUT = 120.0
-RECORDER_EXIT_AFTER_CLOSE = 5.0  # [s] to exit once its bag is closed (then it is killed)
 
 
 class RunHost(Protocol):
@@ -141,31 +143,6 @@ def controller_on_graph(node: Node, spin_until: SpinUntil, controller: str, time
         return any(n == start for n, _t in node.get_service_names_and_types())
 
     return spin_until(seen, timeout)
-
-
-def recorder_endpoints(node: Node, topics: list[str]) -> set[bytes]:
-    """GIDs of the subscriptions a node named ``recorder`` has on ``topics``."""
-    return {
-        bytes(i.endpoint_gid)
-        for t in topics
-        for i in node.get_subscriptions_info_by_topic(t)
-        if i.node_name == 'recorder'
-    }
-
-
-def recorder_subscribed(
-    node: Node, topics: list[str], ignore: frozenset[bytes] = frozenset()
-) -> bool:
-    """Does a recorder subscribe to every topic of ``topics``? ``ignore``: GIDs of a dead
-    recorder's subscriptions, which stay on the graph until its DDS lease runs out
-    (about a second): a replacement must not be taken for ready on them."""
-    for t in topics:
-        if not any(
-            i.node_name == 'recorder' and bytes(i.endpoint_gid) not in ignore
-            for i in node.get_subscriptions_info_by_topic(t)
-        ):
-            return False
-    return True
 
 
 def die_with_parent() -> None:
@@ -585,7 +562,7 @@ class Children:
         if p is None:
             return []
         self.ended.append(p)
-        rc = self._stop_recorder(p)
+        rc = stop_recorder(p, self.bag, self.host.warn)
         if rc == 0:
             return []
         why = f'killed by signal {-rc}' if rc < 0 else f'exit code {rc}'
@@ -603,37 +580,6 @@ class Children:
             except RepairError as exc:
                 problem += f'; could not repair {self.bag}: {exc}'
         return [problem]
-
-    def _stop_recorder(self, p: subprocess.Popen) -> int:
-        """SIGINT, then wait while it closes its bag (a line every 10 s after the first
-        5 s); once the bag is closed it has RECORDER_EXIT_AFTER_CLOSE s to exit; killed
-        only after RECORDER_CLOSE_TIMEOUT s without a closed bag. Its exit code."""
-        from ..record.repair import bag_is_closed
-
-        if p.poll() is not None:
-            return p.returncode
-        p.send_signal(signal.SIGINT)
-        t0 = time.monotonic()
-        closed_at = None
-        said = 5.0
-        while p.poll() is None:
-            now = time.monotonic() - t0
-            if closed_at is None and self.bag is not None and bag_is_closed(self.bag):
-                closed_at = now
-            if (closed_at is not None and now - closed_at > RECORDER_EXIT_AFTER_CLOSE) or (
-                closed_at is None and now > RECORDER_CLOSE_TIMEOUT
-            ):
-                p.kill()
-                break
-            if closed_at is None and now >= said:
-                self.host.warn(
-                    f'  waiting for the recorder to close its bag: {now:.0f} s '
-                    f'(a loaded machine; killed after {RECORDER_CLOSE_TIMEOUT:g} s)'
-                )
-                said += 10.0
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                p.wait(timeout=0.2)
-        return p.wait()
 
     def stop_nodes(self) -> None:
         """Stop the drive and the controller, the recorder still recording (it takes what

@@ -11,6 +11,10 @@ after the writer's next heartbeat, though the tuner had its own copy at once).
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import subprocess
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -93,3 +97,67 @@ class RecorderWatch:
             'results.jsonl has every loss'
         )
         return False
+
+
+#: [s] a stopped recorder is given to close its bag (it takes ~1 s idle; a loaded machine
+#: can need tens of seconds to shut rclpy down): waiting costs time, a kill costs the bag
+RECORDER_CLOSE_TIMEOUT = 120.0
+RECORDER_EXIT_AFTER_CLOSE = 5.0  # [s] to exit once its bag is closed (then it is killed)
+
+
+def recorder_endpoints(node: Node, topics: list[str]) -> set[bytes]:
+    """GIDs of the subscriptions a node named ``recorder`` has on ``topics``."""
+    return {
+        bytes(i.endpoint_gid)
+        for t in topics
+        for i in node.get_subscriptions_info_by_topic(t)
+        if i.node_name == 'recorder'
+    }
+
+
+def recorder_subscribed(
+    node: Node, topics: list[str], ignore: frozenset[bytes] = frozenset()
+) -> bool:
+    """Does a recorder subscribe to every topic of ``topics``? ``ignore``: GIDs of a dead
+    recorder's subscriptions, which stay on the graph until its DDS lease runs out
+    (about a second): a replacement must not be taken for ready on them."""
+    for t in topics:
+        if not any(
+            i.node_name == 'recorder' and bytes(i.endpoint_gid) not in ignore
+            for i in node.get_subscriptions_info_by_topic(t)
+        ):
+            return False
+    return True
+
+
+def stop_recorder(p: subprocess.Popen, bag: Path | None, warn: Callable[[str], None]) -> int:
+    """Stop the recorder child ``p`` recording ``bag``: SIGINT, then wait while it closes
+    its bag (a line to ``warn`` every 10 s after the first 5 s); once the bag is closed it
+    has RECORDER_EXIT_AFTER_CLOSE s to exit; killed only after RECORDER_CLOSE_TIMEOUT s
+    without a closed bag. Its exit code."""
+    from ..record.repair import bag_is_closed
+
+    if p.poll() is not None:
+        return p.returncode
+    p.send_signal(signal.SIGINT)
+    t0 = time.monotonic()
+    closed_at = None
+    said = 5.0
+    while p.poll() is None:
+        now = time.monotonic() - t0
+        if closed_at is None and bag is not None and bag_is_closed(bag):
+            closed_at = now
+        if (closed_at is not None and now - closed_at > RECORDER_EXIT_AFTER_CLOSE) or (
+            closed_at is None and now > RECORDER_CLOSE_TIMEOUT
+        ):
+            p.kill()
+            break
+        if closed_at is None and now >= said:
+            warn(
+                f'  waiting for the recorder to close its bag: {now:.0f} s '
+                f'(a loaded machine; killed after {RECORDER_CLOSE_TIMEOUT:g} s)'
+            )
+            said += 10.0
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            p.wait(timeout=0.2)
+    return p.wait()

@@ -348,11 +348,16 @@ def test_a_controller_that_falls_behind_is_flagged_rerun_and_never_a_loss(procs,
     assert bag_counts(run / 'bag_0')['/controller/loss'] == 2
 
 
-def test_a_recorder_child_that_does_not_close_its_bag_is_reported(tmp_path):
+def test_a_recorder_child_that_does_not_close_its_bag_is_reported(tmp_path, monkeypatch):
     """The tuner checks its recorder child's exit: one that ignores SIGINT (it had to be
-    killed) left its bag unclosed, and close_recording says so (the tuner then ends
-    'failed', not 'done' with exit 0)."""
+    killed, RECORDER_CLOSE_TIMEOUT after the SIGINT, made short here) left its bag
+    unclosed, and close_recording says so (the tuner then ends 'failed', not 'done' with
+    exit 0)."""
+    from im_tuner.bench import recorder_watch
     from im_tuner.bench.forms import Children
+
+    monkeypatch.setattr(recorder_watch, 'RECORDER_CLOSE_TIMEOUT', 2.0)
+    said: list[str] = []
 
     stubborn = subprocess.Popen(
         [
@@ -368,6 +373,7 @@ def test_a_recorder_child_that_does_not_close_its_bag_is_reported(tmp_path):
     bench = object.__new__(Children)  # only what close_recording reads
     bench.children, bench.ended, bench.bag = {'recorder': stubborn}, [], None
     bench.watch = None  # no tuner node: nothing to wait for before the stop
+    bench.host = type('Host', (), {'warn': staticmethod(said.append)})()
     problems = bench.close_recording()
     assert problems == ['the recorder did not close its bag (killed by signal 9)']
     assert stubborn.returncode == -9 and bench.close_recording() == []

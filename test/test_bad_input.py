@@ -304,7 +304,7 @@ EXPECT: dict[tuple[str, str], str] = {
     ('recorder', 'repair-with-out'): 'repairs that bag in place and exits: --out would be',
     ('recorder', 'exclude-pattern'): "'/drive/*' is not a ROS topic name",
     ('report', 'out-is-a-run'): 'a run directory (the report never writes into one',
-    ('report', 'run-yaml-misspelt-key'): "unknown key(s) 'budgt': not keys of run.yaml",
+    ('report', 'run-yaml-misspelt-key'): "no budget (other keys: 'budgt': a typo?)",
     ('report', 'out-in-a-bag'): 'a bag folder or in one',
     ('report', 'default-out-is-a-file'): 'exists and is not a directory (the default place',
     ('tuner', 'resume-newer-summary'): 'format version 99',

@@ -125,7 +125,7 @@ def test_without_a_plant_nothing_says_plant(tmp_path):
         (['--plant-mismatch', 'delay=x2'], 'delay is the command delay in periods, 1 or 2'),
         (['--plant-mismatch', 'coulomb=-1%'], 'coulomb takes a percentage of rated torque'),
         (['--plant-mismatch', 'isq_max=x1.1'], 'isq_max takes no factor'),
-        (['--plant-mismatch', 'Lm=x0.2'], 'the plant is not a valid drive'),
+        (['--plant-mismatch', 'rated_flux_current=x10'], 'the plant is not a valid drive'),
         (['--plant-mismatch', 'J=x0.0001'], 'with 0.1 <= F <= 10, e.g. J=x1.5'),
         (['--plant-mismatch', 'J=x1e6'], 'is another drive: give it as --plant'),
         (['--plant', 'nosuch'], '--plant: nosuch: no such drive file'),

@@ -306,7 +306,9 @@ class LibraryHardware(_Measured):
         drive_file = _drive_file(config)
         from .library_trial import trial_library
 
-        trial_library(p.resolve(), self.name, drive_file)  # a crash or a hang: named there
+        refused = trial_library(p.resolve(), self.name, drive_file, ABI_VERSION)
+        if refused:  # it crashed, exited or hung in the child: named there
+            raise DriveLibraryError(refused)
         try:
             # RTLD_LOCAL: its symbols do not leak into another library loaded later
             self.lib = ctypes.CDLL(str(p.resolve()), mode=ctypes.RTLD_LOCAL)

@@ -14,8 +14,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-from .hardware_abi import ABI_VERSION, DriveLibraryError
-
 __all__ = ['TRIAL_TIMEOUT_S', 'trial_library']
 
 #: [s] a library's trial (load, im_drive_abi_version, im_drive_open, a write of zero and
@@ -62,15 +60,15 @@ _TRIAL_STEP = {
 }
 
 
-def trial_library(path: Path, name: str, drive_file: bytes | None) -> None:
+def trial_library(path: Path, name: str, drive_file: bytes | None, abi_version: int) -> str:
     """Load and open the library at ``path`` once in a child process (then write zero
     and close it there), before this process loads it: a library that crashes
     (SIGSEGV, SIGBUS of a truncated file, abort()), ends the process (exit()) or never
-    returns does so there, and is refused in one :class:`DriveLibraryError` line naming
-    the call. A library that refuses (another ABI version, open returning non-zero)
+    returns does so there; the one line that says so, naming the call ('' when the trial
+    passed). A library that refuses (another ABI version, open returning non-zero)
     passes the trial: this process's load says why, as it always did."""
     argv = [sys.executable, '-I', '-S', '-c', _TRIAL, str(path), (drive_file or b'').decode()]
-    argv.append(str(ABI_VERSION))
+    argv.append(str(abi_version))
     try:
         p = subprocess.run(
             argv, capture_output=True, text=True, timeout=TRIAL_TIMEOUT_S, check=False
@@ -79,12 +77,12 @@ def trial_library(path: Path, name: str, drive_file: bytes | None) -> None:
     except subprocess.TimeoutExpired as exc:  # (run() killed the child by its PID)
         out = exc.stdout.decode() if isinstance(exc.stdout, bytes) else exc.stdout or ''
         step = _TRIAL_STEP.get((out.split() or ['load'])[-1], 'it')
-        raise DriveLibraryError(
+        return (
             f'{name}: {step} did not return within {TRIAL_TIMEOUT_S:g} s (tried in a child '
             'process; its calls must return: do blocking work in a thread of the library)'
-        ) from None
+        )
     if code == 0 and steps[-1:] == ['done']:
-        return
+        return ''
     step = _TRIAL_STEP.get(steps[-1] if steps else 'load', 'it')
     if code < 0:
         try:
@@ -93,4 +91,4 @@ def trial_library(path: Path, name: str, drive_file: bytes | None) -> None:
             what = f'killed the process (signal {-code})'
     else:
         what = f'ended the process (exit code {code})'
-    raise DriveLibraryError(f'{name}: {step} {what}; tried in a child process, nothing else ran')
+    return f'{name}: {step} {what}; tried in a child process, nothing else ran'

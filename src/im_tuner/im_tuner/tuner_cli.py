@@ -62,6 +62,11 @@ def check_session(cli: argparse.Namespace) -> None:
     """The options of this session (new or resumed) that go together: a bag option with
     --no-record would be ignored, so it is refused; sets the default compression."""
     cli.compression = recording_options(cli.no_record, compression=cli.compression)
+    if getattr(cli, 'first', None) == 'identify' and getattr(cli, 'no_reference', False):
+        raise UsageError(
+            '--first identify identifies the drive from the reference experiment (the '
+            "start's two measurements): not with --no-reference; give --first model or none"
+        )
 
 
 def _algo_options(cli: argparse.Namespace, algo: str) -> dict[str, Any]:
@@ -369,11 +374,6 @@ def _first_point(cli: argparse.Namespace, algo: str, params: TunerParams) -> dic
     # instead, a drive it does not know, the tuner drops the identified step then)
     bench = 'inproc' if cli.bench == 'auto' else cli.bench
     known = cli.drive_config is not None or is_simulated(bench, cli.drive)
-    if cli.first == 'identify' and cli.no_reference:
-        raise UsageError(
-            '--first identify identifies the drive from the reference experiment (the '
-            "start's two measurements): not with --no-reference; give --first model or none"
-        )
     # (identify needs the reference experiment: without it, the default is none)
     first = cli.first or ('identify' if known and not cli.no_reference else 'none')
     if first == 'none':

@@ -175,8 +175,10 @@ def test_a_plant_that_cannot_run_the_told_experiment_is_refused(tmp_path):
     ):
         with pytest.raises(PlantError, match=re.escape(expect)):
             dataclasses.replace(EXACT, plant=(plant,)).plant_drive()
-    with pytest.raises(PlantError, match=r'the plant is not a valid drive.*flux_floor'):
-        dataclasses.replace(EXACT, mismatch=(('Lm', 0.01),)).plant_drive()
+    with pytest.raises(PlantError, match=r'the plant is not a valid drive.*isq_max'):
+        dataclasses.replace(EXACT, mismatch=(('rated_flux_current', 10.0),)).plant_drive()
+    with pytest.raises(ValueError, match='plant-mismatch: not a mismatch'):  # out of 0.1-10
+        dataclasses.replace(EXACT, mismatch=(('Lm', 0.01),))
     p = dataclasses.replace(EXACT, plant=(str(enc),)).plant_drive()
     assert p.sensors.encoder_counts == 1024 and p.command_delay == 2
     # the spec read back from study.json is checked as the command line is

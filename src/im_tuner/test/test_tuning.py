@@ -374,8 +374,8 @@ def test_parameter_file_read_errors(tmp_path):
 # -- run directory ----------------------------------------------------------------------------
 def test_run_directory_rules(tmp_path):
     rd = RunDir.create(tmp_path / 'a' / 'b')
-    rd.write_run(RunConfig.from_dict({'algo': 'spsa', 'x': 1.5}))
-    assert RunDir.open(rd.path).read_config().to_dict() == {'algo': 'spsa', 'x': 1.5}
+    rd.write_run(RunConfig.from_dict({'algo': 'spsa', 'budget': 3, 'x': 1.5}))
+    assert RunDir.open(rd.path).read_config().to_dict() == {'algo': 'spsa', 'budget': 3, 'x': 1.5}
     with pytest.raises(RunDirError, match='continue it with --resume'):
         RunDir.create(rd.path)
     (tmp_path / 'other').mkdir()

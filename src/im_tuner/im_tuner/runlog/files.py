@@ -144,11 +144,11 @@ class RunConfig(_Keyed):
         if not isinstance(data, dict) or 'algo' not in data:
             raise FileError('not a tuner run file')
         run = cls.from_dict(data)
-        if run.extra and run.version == FILE_VERSION:  # (the tuner writes only its keys)
-            raise FileError(
-                f'unknown key(s) {", ".join(map(repr, run.extra))}: not keys of run.yaml '
-                f'format version {FILE_VERSION} (a typo? docs/tuner.md, "The run directory")'
+        if 'budget' not in data:  # every tuner writes it: a hand edit lost it
+            others = (
+                f' (other keys: {", ".join(map(repr, run.extra))}: a typo?)' if run.extra else ''
             )
+            raise FileError(f'no budget{others}')
         return run
 
 

@@ -49,7 +49,7 @@ declares), the bench effects (a ``bench`` plant for an ``ideal`` file).
 
 The mismatch is applied to the plant (the told drive when ``--plant`` is absent), factors
 first, then ``coulomb``, then ``delay``; the result is validated as a drive file is (e.g.
-``Lm=x0.2`` cannot hold rated flux under the voltage limit: refused in one line).
+``rated_flux_current=x10`` leaves no current for torque under ``isq_max``: refused in one line).
 
 Light at import (dataclasses and ``im_drive_sim.params``): the command checks its options
 with it before the heavy modules load.

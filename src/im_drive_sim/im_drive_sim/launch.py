@@ -26,6 +26,9 @@ def _interrupted_early(signum: int, frame: object) -> None:
 
 if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # (SIG_IGN: kept)
     signal.signal(signal.SIGINT, _interrupted_early)
+# `ros2 run` (the workspace's) blocks Ctrl-C across the exec and the interpreter's start:
+# one pressed then was held, and comes now, to the handler above
+signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 import importlib.util  # noqa: E402 (after the handler: an interrupt here is quiet too)
 

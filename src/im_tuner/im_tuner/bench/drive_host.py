@@ -126,10 +126,11 @@ def main(args: list[str] | None = None) -> int:
     def _on_signal(_signum: int) -> None:
         if bench is not None:
             return  # running: the loop sees session.stopped and stops cleanly
-        if not drive_spec.holds_hardware() and (host.out is None or not host.out.exists()):
-            # still starting, no power stage open, nothing recorded: end now (numba's
-            # compile can take many seconds under load, and an exception raised in its
-            # callbacks is swallowed)
+        if not drive_spec.holds_hardware():
+            # still starting, no power stage open: end now (numba's compile can take tens
+            # of seconds under load, and an exception raised in its callbacks is
+            # swallowed); the bag it began holds nothing of a run yet: removed
+            host.remove()
             os.write(2, b'drive_host: interrupted\n')
             os._exit(130)
         raise KeyboardInterrupt  # starting: unwind, closing what is open (zero current)

@@ -27,7 +27,6 @@ from __future__ import annotations
 import json
 import mmap
 import struct
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -47,7 +46,7 @@ from .mcap_format import (
     OP_METADATA,
     OP_SCHEMA,
 )
-from .records import Cursor, decompress, parse_definition
+from .records import Cursor, chunk_records, parse_definition
 
 __all__ = [
     'BagData',
@@ -546,16 +545,7 @@ def _read_chunk(mm: mmap.mmap, a: int, n: int) -> np.ndarray:
     p += 8
     if p + rlen > a + n:
         raise ValueError('its records run past the record')
-    try:
-        raw = decompress(comp, mm[p : p + rlen], usize)
-    except Exception as exc:  # lz4/zstd raise their own types on corrupt data
-        raise ValueError(f'does not decompress: {exc}') from None
-    if len(raw) != usize:
-        raise ValueError(f'{len(raw)} bytes of records where its header states {usize}')
-    got = zlib.crc32(raw)
-    if crc and got != crc:  # 0: the writer computed none (MCAP)
-        raise ValueError(f'CRC 0x{crc:08x} stored, 0x{got:08x} computed from its records')
-    return np.frombuffer(raw, np.uint8)
+    return np.frombuffer(chunk_records(comp, mm[p : p + rlen], usize, crc), np.uint8)
 
 
 def _take_chunk(

@@ -5,10 +5,11 @@ specification's little-endian layouts; constants in ``writer``)."""
 from __future__ import annotations
 
 import struct
+import zlib
 
 from .mcap_format import OP_SCHEMA
 
-__all__ = ['Cursor', 'decompress', 'parse_definition']
+__all__ = ['ChunkDamage', 'Cursor', 'chunk_records', 'decompress', 'parse_definition']
 
 
 class Cursor:
@@ -55,6 +56,26 @@ def decompress(comp: str, data: bytes, size: int) -> bytes:
 
         return lz4.frame.decompress(data)
     raise ValueError(f'unknown compression {comp!r}')
+
+
+class ChunkDamage(ValueError):
+    """A whole Chunk record whose records do not decompress, or fail its size or CRC."""
+
+
+def chunk_records(comp: str, data: bytes, usize: int, crc: int) -> bytes:
+    """A chunk's decompressed records, checked against its header's size and CRC (MCAP
+    ``uncompressed_crc``; 0: the writer computed none); :class:`ChunkDamage` saying what
+    is wrong otherwise (its bytes were changed)."""
+    try:
+        raw = decompress(comp, data, usize)
+    except Exception as exc:  # zstd/lz4 raise their own types on corrupt data
+        raise ChunkDamage(f'does not decompress: {exc}') from None
+    if len(raw) != usize:
+        raise ChunkDamage(f'{len(raw)} bytes of records where its header states {usize}')
+    got = zlib.crc32(raw)
+    if crc and got != crc:
+        raise ChunkDamage(f'CRC 0x{crc:08x} stored, 0x{got:08x} computed from its records')
+    return raw
 
 
 def parse_definition(op: int, rec: bytes, schemas: dict, channels: dict) -> None:

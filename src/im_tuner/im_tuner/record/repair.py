@@ -60,7 +60,7 @@ from .mcap_format import (
 )
 from .metadata import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
 from .reader import BagReadError, find_mcap
-from .records import Cursor, decompress, parse_definition
+from .records import ChunkDamage, Cursor, chunk_records, parse_definition
 
 #: Messages found outside chunks are packed into new chunks of at most this many bytes.
 LOOSE_CHUNK_BYTES = 1 << 20
@@ -69,10 +69,6 @@ _FOOTER_BYTES = 29  # opcode, length, summary_start, summary_offset_start, summa
 
 class RepairError(Exception):
     """The bag cannot be repaired (not a directory, no .mcap file, not MCAP, no header)."""
-
-
-class _DamagedChunk(ValueError):
-    """A complete Chunk record whose records fail their CRC or do not decompress."""
 
 
 @dataclass
@@ -182,15 +178,7 @@ def _parse_chunk(body: bytes, scan: McapScan, at: int) -> ScannedChunk:
     (clen,) = c.u('Q')
     if c.p + clen != len(body):
         raise ValueError('chunk records length mismatch')
-    try:
-        raw = decompress(comp, body[c.p :], usize)
-    except Exception as exc:  # zstd/lz4 raise their own types on corrupt data
-        raise _DamagedChunk(f'does not decompress: {exc}') from None
-    if len(raw) != usize:
-        raise _DamagedChunk(f'{len(raw)} bytes of records where its header states {usize}')
-    got = zlib.crc32(raw)
-    if crc and got != crc:  # 0: the writer computed none (MCAP)
-        raise _DamagedChunk(f'CRC 0x{crc:08x} stored, 0x{got:08x} computed from its records')
+    raw = chunk_records(comp, body[c.p :], usize, crc)
     schemas: dict[int, tuple[str, bytes]] = {}
     channels: dict[int, tuple[str, int, dict[str, str], bytes]] = {}
     rows: list[tuple[int, int, int]] = []
@@ -281,7 +269,7 @@ def scan_mcap(path: Path) -> McapScan:
                     number += 1
                     try:
                         scan.chunks.append(_parse_chunk(rec[9:], scan, pos))
-                    except _DamagedChunk as exc:  # a whole record: its bytes were changed
+                    except ChunkDamage as exc:  # a whole record: its bytes were changed
                         scan.damaged.append((number, pos, str(exc)))
                 elif op in (OP_SCHEMA, OP_CHANNEL):
                     parse_definition(op, rec, scan.schemas, scan.channels)

@@ -146,6 +146,9 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('drive_host', 'out-is-a-file', ['--out', 'corrupt.yaml']),
     ('drive_host', 'out-with-no-record', ['--out', 'newbag', '--no-record']),
     ('drive_host', 'p-isq-max-above-drive', ['--ros-args', '-p', 'safety.isq_max:=20.0']),
+    ('drive_host', 'p-unknown', ['--ros-args', '-p', 'no_such_param:=1']),
+    ('drive_host', 'drive-hardware-hangs', ['--drive', 'bad_drives:HangingHardware']),
+    ('sim_bench', 'p-unknown', ['--ros-args', '-p', 'k_pww:=1.0']),
     *_file_cases('drive_host', '--config'),
     # -- check_drive (all of these before any probing)
     ('check_drive', 'amplitude-negative', ['--amplitude', '-0.5']),
@@ -301,6 +304,9 @@ EXPECT: dict[tuple[str, str], str] = {
     ('drive_host', 'tuner-timeout-zero'): '--tuner-timeout: must be >= 0.05 s, got 0',
     ('drive_host', 'model-with-example'): "--model is the simulator's",
     ('drive_host', 'p-isq-max-above-drive'): 'isq_max',
+    ('drive_host', 'p-unknown'): 'no such parameter: no_such_param',
+    ('drive_host', 'drive-hardware-hangs'): 'HangingHardware(config) did not return',
+    ('sim_bench', 'p-unknown'): 'no such parameter: k_pww',
     ('recorder', 'repair-with-out'): 'repairs that bag in place and exits: --out would be',
     ('recorder', 'exclude-pattern'): "'/drive/*' is not a ROS topic name",
     ('report', 'out-is-a-run'): 'a run directory (the report never writes into one',
@@ -370,6 +376,13 @@ class AbstractHardware(ABC):
 class RaisingHardware(Hardware):
     def __init__(self, config):
         raise RuntimeError('no inverter on /dev/ttyUSB0 (test)')
+
+
+class HangingHardware(Hardware):
+    def __init__(self, config):
+        import time
+
+        time.sleep(3600)  # an open that waits on a device for ever
 
 
 class RaisingDrive(ExampleDrive):

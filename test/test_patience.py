@@ -71,3 +71,33 @@ def test_the_cpu_of_a_real_process_is_what_is_measured():
             p.kill()
             p.wait()
     assert P.process_cpu_s(busy.pid) == 0.0  # gone: nothing to count
+
+
+WATCHED = """
+import sys, time
+from im_tuner.bench import drive_spec
+drive_spec.CONSTRUCTOR_IDLE_S = 1.0
+def busy():  # 3 s of computing (numba's compile on a loaded machine): waited for
+    t = time.process_time()
+    while time.process_time() - t < 3.0:
+        pass
+    return 'built'
+print(drive_spec._watched("--drive 'm:Busy': Busy(config)", busy), flush=True)
+drive_spec._watched("--drive 'm:Hangs': Hangs(config)", lambda: time.sleep(60))
+print('returned', flush=True)
+"""
+
+
+def test_a_drive_constructor_that_never_returns_ends_the_process_in_one_line():
+    """A hardware class's ``__init__`` is watched (drive_spec._watched): one that computes
+    returns whatever it takes, one that sits idle ends the process with one line, exit 2
+    (here with an idle limit of 1 s instead of 30)."""
+    t0 = time.monotonic()
+    p = subprocess.run([sys.executable, '-c', WATCHED], capture_output=True, text=True, timeout=60)
+    took = time.monotonic() - t0
+    assert p.returncode == 2, (p.returncode, p.stdout, p.stderr)
+    assert p.stdout.split() == ['built'], p.stdout
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--drive 'm:Hangs': Hangs(config) did not return" in lines[0]
+    assert 'idle for 1 s' in lines[0], lines
+    assert took < 30.0, took  # the 60 s sleep was not waited for

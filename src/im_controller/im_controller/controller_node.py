@@ -88,7 +88,10 @@ REFUSAL_LOG_PERIOD = 1.0
 
 
 class ControllerNode(IoNodeOwner, LenientDoubles, Node):
-    """The cascaded controller node (see module docstring)."""
+    """The cascaded controller node (see module docstring). ``warn_unknown``: warn of
+    ``-p`` overrides it does not declare; ``composed_with``: the drive node composed with
+    it in one process, whose parameters those overrides may name instead (one that
+    neither declares is refused: ParameterOverrideError)."""
 
     def __init__(
         self,
@@ -97,6 +100,7 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         context=None,
         parameter_overrides: list | None = None,
         warn_unknown: bool = True,
+        composed_with: Node | None = None,
     ) -> None:
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
         st = declare_structure(self)
@@ -123,7 +127,10 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.add_post_set_parameters_callback(self._post_set)
 
         parameter_hygiene(
-            self, {'internals_fields': list(INTERNALS_FIELDS)}, warn_unknown=warn_unknown
+            self,
+            {'internals_fields': list(INTERNALS_FIELDS)},
+            warn_unknown=warn_unknown,
+            composed_with=composed_with,
         )
 
         self.io_node = Node(f'_{node_name}_io', context=context, namespace=self.get_namespace())

@@ -42,6 +42,9 @@ EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports a process ended by Ct
 #: [s] an executable's interpreter is given to shut down once its main returned (rclpy's
 #: context, a thread left running); then it is ended with the same exit code
 EXIT_GRACE_S = 3.0
+#: the running executable's name (:func:`executable` sets it): the prefix of a line that
+#: ends the process from elsewhere than its main function
+PROG = {'name': 'im_tuner'}
 
 
 class UsageError(Exception):
@@ -143,6 +146,7 @@ def executable(prog: str, main: str | Callable[[], int]) -> NoReturn:
     # a crash in native code (a drive library's read, numba, rclpy) prints the Python
     # stack of every thread, the call into the library on top, before the process dies
     faulthandler.enable(all_threads=True)
+    PROG['name'] = prog
     try:
         if isinstance(main, str):
             module, function = main.split(':')

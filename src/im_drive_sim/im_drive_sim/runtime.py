@@ -181,7 +181,11 @@ class ParameterOverrideError(ValueError):
 
 
 def parameter_hygiene(
-    node, facts: dict[str, object] | None = None, *, warn_unknown: bool = True
+    node,
+    facts: dict[str, object] | None = None,
+    *,
+    warn_unknown: bool = True,
+    composed_with: object | None = None,
 ) -> list[str]:
     """Call at the end of a node's ``__init__``, once every parameter is declared.
 
@@ -189,8 +193,10 @@ def parameter_hygiene(
     (name -> the true value); an override that differs raises
     :class:`ParameterOverrideError` (the node would otherwise advertise a value it does
     not use). Returns the override names that match no parameter of this node, logged
-    as a warning unless ``warn_unknown`` is false (nodes composed in one process share
-    their ``-p`` overrides: see :func:`warn_unknown_overrides`).
+    as a warning unless ``warn_unknown`` is false. ``composed_with``: the other node of
+    a composed bench (both receive the process's ``-p`` overrides): an override that
+    neither declares is refused (ParameterOverrideError) -- it set nothing, and a bench
+    is not run without what was asked.
     """
     for name, true in (facts or {}).items():
         given = node.get_parameter(name).value
@@ -199,11 +205,28 @@ def parameter_hygiene(
                 f'parameter {name!r} is read-only and reports what the node uses '
                 f'({_as_plain(true)!r}); it cannot be set (got {_as_plain(given)!r})'
             )
+    if composed_with is not None:
+        unknown = unknown_composed(composed_with, node)
+        if unknown:
+            raise ParameterOverrideError(
+                f'no such parameter: {", ".join(unknown)} (neither '
+                f'{composed_with.get_fully_qualified_name()} nor '
+                f'{node.get_fully_qualified_name()} declares it; `ros2 param list` on a '
+                'running bench lists theirs)'
+            )
+        return unknown
     unknown = unknown_overrides(node)
     if warn_unknown:
         warn_unknown_overrides(node, unknown)
-
     return unknown
+
+
+def unknown_composed(a, b) -> list[str]:
+    """The ``-p`` overrides that neither of two nodes composed in one process declares
+    (each receives the other's: only what matches neither is a typo)."""
+    # every declared parameter ('' matches all: rclpy's public view of node._parameters)
+    declared = set(a.get_parameters_by_prefix('')) | set(b.get_parameters_by_prefix(''))
+    return sorted((set(unknown_overrides(a)) | set(unknown_overrides(b))) - declared)
 
 
 def unknown_overrides(node) -> list[str]:

@@ -35,7 +35,9 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import os
 import sys
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -344,11 +346,51 @@ def _check_delay(choice: DriveChoice, declared: int) -> None:
         )
 
 
-def _build(spec: str, what: str, make: Any) -> Any:
-    """``make()``, with an exception (or sys.exit) of the user's code as a DriveSpecError
-    naming ``what`` and the exception."""
+#: [s] a drive class's constructor that uses no CPU (under IDLE_CPU_S) for this long is
+#: taken to hang: a vendor's open that waits on a bus returns within seconds; one that
+#: waits for ever is named, not waited for (a constructor that computes -- numba's
+#: compile on a loaded machine -- gets the time it needs)
+CONSTRUCTOR_IDLE_S = 30.0
+
+
+def _watched(what: str, make: Any) -> Any:
+    """``make()`` in this thread, watched by another: once the process has been idle
+    for CONSTRUCTOR_IDLE_S (:class:`..patience.Patience`) the process ends with one line
+    naming ``what``, exit 2. Nothing of the run exists yet (a drive is built before its
+    bench), and the constructor that never returned commanded nothing."""
+    from im_drive_sim.cli import EXIT_USAGE, PROG
+
+    from ..patience import Patience
+
+    done = threading.Event()
+
+    def watch() -> None:
+        wait = Patience(os.getpid(), what, RuntimeError, idle_s=CONSTRUCTOR_IDLE_S)
+        while not done.wait(0.5):
+            try:
+                wait.check()
+            except RuntimeError:
+                os.write(
+                    2,
+                    f'error: {PROG["name"]}: {what} did not return: the process sat idle '
+                    f'for {CONSTRUCTOR_IDLE_S:g} s (a constructor must return: open the '
+                    'device with a time limit of its own)\n'.encode(),
+                )
+                os._exit(EXIT_USAGE)
+
+    threading.Thread(target=watch, name='drive-constructor-watch', daemon=True).start()
     try:
         return make()
+    finally:
+        done.set()
+
+
+def _build(spec: str, what: str, make: Any, watch: bool = True) -> Any:
+    """``make()``, with an exception (or sys.exit) of the user's code as a DriveSpecError
+    naming ``what`` and the exception; ``watch``: a ``make()`` that never returns ends
+    the process in one line (:func:`_watched`; a power stage, built before its bench)."""
+    try:
+        return _watched(f'--drive {spec!r}: {what}', make) if watch else make()
     except SystemExit as exc:
         raise DriveSpecError(f'--drive {spec!r}: {what} called sys.exit({exc.code!r})') from None
     except Exception as exc:
@@ -368,6 +410,7 @@ def build_node(choice: DriveChoice, context: Any, overrides: list[Any]) -> Any:
             choice.spec,
             cls.__name__,
             lambda: cls(context=context, parameter_overrides=overrides),
+            watch=False,  # (inside the bench: its run exists; Ctrl-C ends it cleanly)
         )
     node = ExampleDrive(
         context=context, parameter_overrides=overrides, hardware_class=choice.factory

@@ -18,31 +18,20 @@ from rclpy.executors import SingleThreadedExecutor
 
 from im_controller.controller_node import ControllerNode
 from im_drive_sim.drive_sim_node import DriveSimNode
-from im_drive_sim.runtime import (
-    unknown_overrides,
-    warn_unknown_overrides,
-)
 
 NS_PER_S = 1_000_000_000
 
 
 def compose(drive, make_controller) -> tuple[ControllerNode, SingleThreadedExecutor]:
     """The controller (``make_controller()``) composed with ``drive`` in this process:
-    a failed controller destroys the drive; ``-p`` overrides reach both nodes, so those
-    neither declares are warned about once; one executor serves both nodes' services."""
+    a failed controller destroys the drive (``make_controller`` builds it
+    ``composed_with=drive``: an override neither declares is refused); one executor
+    serves both nodes' services."""
     try:
         controller = make_controller()
     except Exception:
         drive.destroy_node()
         raise
-    # every declared parameter ('' matches all: rclpy's public view of node._parameters)
-    declared = set(drive.get_parameters_by_prefix('')) | set(
-        controller.get_parameters_by_prefix('')
-    )
-    warn_unknown_overrides(
-        controller,
-        sorted((set(unknown_overrides(drive)) | set(unknown_overrides(controller))) - declared),
-    )
     executor = SingleThreadedExecutor(context=drive.context)
     executor.add_node(drive)
     executor.add_node(controller)
@@ -84,7 +73,9 @@ class InProcessBench:
         self.controller, self.executor = compose(
             self.drive,
             lambda: ControllerNode(
-                context=context, parameter_overrides=controller_overrides, warn_unknown=False
+                context=context,
+                parameter_overrides=controller_overrides,
+                composed_with=self.drive,
             ),
         )
         self.stop_requested = False

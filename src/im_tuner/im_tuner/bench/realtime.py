@@ -169,7 +169,7 @@ class RealtimeBench:
                     Parameter('mode', value='realtime'),
                     *(controller_overrides or []),
                 ],
-                warn_unknown=False,
+                composed_with=self.drive,
             ),
         )
         self.stop_requested = False

@@ -124,7 +124,7 @@ def _check_nodes(cli: argparse.Namespace, ros_args: list[str]) -> None:
         drive = DriveSimNode(context=ctx, parameter_overrides=drive_over, warn_unknown=False)
         try:
             ControllerNode(
-                context=ctx, parameter_overrides=ctl_over, warn_unknown=False
+                context=ctx, parameter_overrides=ctl_over, composed_with=drive
             ).destroy_node()
         finally:
             drive.destroy_node()

@@ -17,8 +17,9 @@ Printed per drive and load: whether the run finished, the overruns against the f
 the simulator's), held periods (all, and in the counted experiments), experiments
 flagged timing; for ``example`` the losses against the same experiments replayed in
 lock-step on the same plant with every period fresh (``offline.replay_stand_in``).
-``--stops N``: the library run stopped N times each by SIGINT and SIGTERM mid-experiment,
-its last write zero current (``IM_TEST_DRIVE_LOG``).
+``--stops N``: the library run stopped N times each by SIGINT and SIGTERM mid-experiment
+at each ``--hogs`` load, its last write zero current (``IM_TEST_DRIVE_LOG``), and the time
+from the signal to that write (``--drives`` with no name: the stops only).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -190,57 +192,76 @@ def replayed(recs: list[dict]) -> dict:
     }
 
 
-def stops(lib: Path, n: int) -> dict[str, int]:
-    """The library run stopped mid-experiment by each signal ``n`` times: how often its
-    last write was zero current and close came once, nothing after."""
+def stop_latency_s(log: Path) -> float:
+    """When the library's current was last set to zero from non-zero [s, CLOCK_MONOTONIC]
+    (``test/wallclock_drive.c``'s slot 6; NaN before any)."""
+    import numpy as np
+
+    v = np.fromfile(log, dtype=np.float64, count=7)
+    return float(v[6]) if v.size == 7 and v[6] > 0 else float('nan')
+
+
+def stops(lib: Path, n: int, hogs: int = 0) -> dict[str, Any]:
+    """The library run stopped mid-experiment by each signal ``n`` times beside ``hogs``
+    busy processes: how often its last write was zero current and close came once,
+    nothing after; and the time from the signal (sent from here) to the drive's first
+    zero write [ms] (CLOCK_MONOTONIC on both sides: ``time.monotonic`` here, the
+    library's own clock there)."""
+    from bench_realtime import start_hogs, stop_hogs
     from recording_hardware import read_log
 
     ok = {'SIGINT': 0, 'SIGTERM': 0}
-    for sig in ok:
-        for i in range(n):
-            tmp = Path(tempfile.mkdtemp(prefix='bench_stop_'))
-            env = env_for(tmp)
-            log = tmp / 'drive.log'
-            cmd = [
-                ROS2,
-                'run',
-                'im_tuner',
-                'tuner',
-                '--bench',
-                'realtime',
-                *drive_arg('library', lib),
-            ]
-            cmd += ['--budget', '50', '--seed', str(i), '--quiet', *RT, '--out', str(tmp / 'run')]
-            proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-            try:
-                deadline = time.monotonic() + 120
-                while time.monotonic() < deadline:
-                    if log.exists() and read_log(str(log))['writes'] >= 2 * 5625 + 1000:
-                        break
-                    time.sleep(0.05)
-                proc.send_signal(getattr(signal, sig))
-                proc.communicate(timeout=120)
-                w = read_log(str(log))
-                good = (
-                    proc.returncode == 130
-                    and w['max_abs_isq'] > 0.5
-                    and (w['isq_ref'], w['load_torque']) == (0.0, 0.0)
-                    and w['closes'] == 1.0
-                    and w['writes_after_close'] == 0.0
+    delays: list[float] = []
+    h = start_hogs(hogs)
+    try:
+        for sig in ok:
+            for i in range(n):
+                tmp = Path(tempfile.mkdtemp(prefix='bench_stop_'))
+                env = env_for(tmp)
+                log = tmp / 'drive.log'
+                cmd = [ROS2, 'run', 'im_tuner', 'tuner', '--bench', 'realtime']
+                cmd += [*drive_arg('library', lib), '--budget', '50', '--seed', str(i)]
+                cmd += ['--quiet', *RT, '--out', str(tmp / 'run')]
+                proc = subprocess.Popen(
+                    cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE
                 )
-                ok[sig] += int(good)
-            finally:
-                if proc.poll() is None:
-                    proc.kill()
-                shutil.rmtree(tmp, ignore_errors=True)
-    return ok
+                try:
+                    deadline = time.monotonic() + 300
+                    while time.monotonic() < deadline:
+                        if log.exists() and read_log(str(log))['writes'] >= 2 * 5625 + 1000:
+                            break
+                        time.sleep(0.05)
+                    # a random moment within a period, not the poll's phase
+                    time.sleep((i * 0.37) % 1 * 2e-4)
+                    t_sig = time.monotonic()
+                    proc.send_signal(getattr(signal, sig))
+                    proc.communicate(timeout=300)
+                    w = read_log(str(log))
+                    good = (
+                        proc.returncode == 130
+                        and w['max_abs_isq'] > 0.5
+                        and (w['isq_ref'], w['load_torque']) == (0.0, 0.0)
+                        and w['closes'] == 1.0
+                        and w['writes_after_close'] == 0.0
+                    )
+                    ok[sig] += int(good)
+                    t_zero = stop_latency_s(log)
+                    if good and t_zero >= t_sig:
+                        delays.append(1e3 * (t_zero - t_sig))
+                finally:
+                    if proc.poll() is None:
+                        proc.kill()
+                    shutil.rmtree(tmp, ignore_errors=True)
+    finally:
+        stop_hogs(h)
+    return {**ok, 'delays_ms': delays}
 
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--budget', type=int, default=10)
     ap.add_argument('--runs', type=int, default=1)
-    ap.add_argument('--drives', nargs='+', default=list(DRIVES), choices=DRIVES)
+    ap.add_argument('--drives', nargs='*', default=list(DRIVES), choices=DRIVES)
     ap.add_argument('--hogs', nargs='+', type=int, default=[0, 2])
     ap.add_argument('--stops', type=int, default=0)
     a = ap.parse_args(argv if argv is not None else [])
@@ -291,13 +312,27 @@ def main(argv: list[str] | None = None) -> dict:
                       'timing', 'exit'):  # fmt: skip
                 figures[f'{tag}_{k}'] = med(k)
     if a.stops:
-        ok = stops(lib, a.stops)
-        print(
-            f'library stopped mid-experiment: SIGINT {ok["SIGINT"]}/{a.stops}, SIGTERM '
-            f'{ok["SIGTERM"]}/{a.stops} with its last write zero current, then one close',
-            flush=True,
-        )
-        figures.update({f'user_library_{k.lower()}_zero': float(v) for k, v in ok.items()})
+        for hogs in a.hogs:
+            ok = stops(lib, a.stops, hogs)
+            d = sorted(ok['delays_ms'])
+            tag = f'beside {hogs} hogs' if hogs else 'quiet'
+            spread = (
+                f'median {statistics.median(d):.2f} ms, max {d[-1]:.2f} ms over {len(d)}'
+                if d
+                else 'not measured'
+            )
+            print(
+                f'library stopped mid-experiment ({tag}): SIGINT {ok["SIGINT"]}/{a.stops}, '
+                f'SIGTERM {ok["SIGTERM"]}/{a.stops} with its last write zero current, then '
+                f'one close; signal to the first zero write: {spread}',
+                flush=True,
+            )
+            key = 'hogs' if hogs else 'quiet'
+            if d:
+                figures[f'user_library_stop_ms_median_{key}'] = statistics.median(d)
+                figures[f'user_library_stop_ms_max_{key}'] = d[-1]
+            for k in ('SIGINT', 'SIGTERM'):
+                figures[f'user_library_{k.lower()}_zero_{key}'] = float(ok[k])
     shutil.rmtree(tmp, ignore_errors=True)
     return figures
 

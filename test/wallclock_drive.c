@@ -15,7 +15,9 @@
  * Every write is recorded where the test reads it after the process ended, in the file
  * named by IM_TEST_DRIVE_LOG (float64 slots, a memory map, the layout of
  * recording_hardware.py): [0] writes, [1] last isq_ref, [2] last load torque,
- * [3] im_drive_close calls, [4] writes after close, [5] largest |isq_ref| written.
+ * [3] im_drive_close calls, [4] writes after close, [5] largest |isq_ref| written,
+ * [6] when the current was last set to zero from non-zero [s, CLOCK_MONOTONIC] (a stop's
+ * first zero write).
  * IM_TEST_DRIVE_FAULT_AFTER=N: im_drive_read returns -3 (a drive fault) from its N-th call.
  * IM_TEST_DRIVE_DELAY=D: what im_drive_command_delay returns (default 2, the truth).
  */
@@ -37,6 +39,7 @@
 #define TAU_W 0.001
 #define COUNTS 4096.0
 #define ANCHOR_WRITES 64
+#define SLOTS 7
 
 static double *slot;
 static double a_i, a_w, cpr;
@@ -63,8 +66,8 @@ int im_drive_open(const char *drive_file) {
   (void)drive_file;
   if (path) {
     int fd = open(path, O_RDWR | O_CREAT | O_TRUNC, 0644);
-    if (fd < 0 || ftruncate(fd, 6 * sizeof(double)) != 0) return -1;
-    slot = mmap(NULL, 6 * sizeof(double), PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
+    if (fd < 0 || ftruncate(fd, SLOTS * sizeof(double)) != 0) return -1;
+    slot = mmap(NULL, SLOTS * sizeof(double), PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
     close(fd);
     if (slot == MAP_FAILED) return -1;
   }
@@ -127,6 +130,7 @@ int im_drive_write(double i, double load) {
     slot[2] = load;
     if (closed) slot[4] += 1.0;
     if (fabs(i) > slot[5]) slot[5] = fabs(i);
+    if (i == 0.0 && isq_ref != 0.0) slot[6] = now;
   }
   isq_ref = i;
   load_ref = load;

@@ -35,8 +35,9 @@ What needs Python comes to the loop through shared words, never through the GIL:
   take their state back for the thread's turn, and the loop goes on with it;
 * an experiment's end goes into an event ring (status, step, the runner's words) that
   the serving thread hands to the controller (``RealtimeBench._service``);
-* a stop: ``gate[G_STOP]`` (a watcher thread sets it from the tuner's stop request),
-  and the loop zeroes the current from its next period (``period_kernel.safe_stop``);
+* a stop: ``gate[G_STOP]`` (``im_drive_sim.stop_signal``'s watcher sets it on SIGINT or
+  SIGTERM, without the GIL, or on the tuner's stop request), and the loop zeroes the
+  current from its next period (``period_kernel.safe_stop``);
 * the drive's stall test hook: the loop sleeps it itself.
 
 Written by hand, not with a library: no library runs a numba loop on a wall-clock

@@ -68,6 +68,7 @@ from im_drive_sim.loop_clock import SPIN_NS
 from im_drive_sim.outbox import PublisherThread
 from im_drive_sim.pacing import LATENESS_BINS, DurationHistograms, Pacer
 from im_drive_sim.runtime import ROUTES
+from im_drive_sim.stop_signal import StopWatcher
 
 from ..tuning import BenchFailure
 from .compiled_loop import CompiledHardwarePeriods, CompiledPeriods, LoopGate
@@ -81,8 +82,6 @@ from .loop_routes import route_through_outbox
 #: asking for it.
 SWITCH_INTERVAL = 50e-6
 
-#: How often the compiled loop's stop watcher looks at ``should_stop`` [s].
-STOP_WATCH_PERIOD = 0.005
 
 #: The serving thread's longest wait for a request [s]: between waits it runs its round
 #: (results, recorder, status), each a stretch holding the GIL the loop may need.
@@ -149,8 +148,9 @@ class RealtimeBench:
         """``before_start(bench)`` runs once both nodes exist and match, before state 0:
         the place to start a recorder that must not miss the first message (it takes the
         loop's topics from :attr:`outbox`'s tap: ``outbox.tap()``). ``should_stop()``:
-        checked by the loop every 5 ms and by the serving thread; once True the drive is
-        safe-stopped (zero current, latched) -- the tuner's SIGINT/SIGTERM.
+        checked every 5 ms by the stop watcher (:mod:`im_drive_sim.stop_signal`, which
+        also passes a SIGINT/SIGTERM to the loop at once, without Python) and by the
+        serving thread; once True the drive is safe-stopped (zero current, latched).
         ``rt_options``: the loop thread's real-time scheduling (:mod:`im_drive_sim.rt`),
         applied in it before the recorder starts (its metadata records it); what is not
         permitted is said in one line each on stderr, and the run goes on.
@@ -282,10 +282,10 @@ class RealtimeBench:
         self._next_status = time.perf_counter() + 1.0
         self._pending_requests(0.0)
         self.executor.spin_once(timeout_sec=0.0)
+        # a stop signal reaches the loop through its gate without Python (stop_signal)
+        self._stop_watch = StopWatcher(self.lock.gate, G_STOP, self.should_stop)
         sys.setswitchinterval(SWITCH_INTERVAL)
         self._go.set()
-        if self.compiled is not None:
-            threading.Thread(target=self._watch_stop, name='rt-stop-watch', daemon=True).start()
 
     # -- the loop thread --------------------------------------------------------------------
     def _loop_main(self) -> None:
@@ -308,11 +308,10 @@ class RealtimeBench:
                     compiled.run()  # until stop_loop: no GIL, no Python lock
                 finally:
                     self.lock.loop_ended(compiled)
-            n = 0
+            gate = self.lock.gate
             while not self._quit:
                 self.step()
-                n += 1
-                if n % 25 == 0 and not self.safe_stopped and self.should_stop():
+                if gate[G_STOP] != 0 and not self.safe_stopped:  # (the stop watcher's)
                     self.safe_stop()
         except BaseException as exc:
             self.safe_stop()  # an exception in the loop: zero current before anything else
@@ -321,17 +320,6 @@ class RealtimeBench:
                 f'{_where(exc)}); zero current and zero load were written to the drive'
             )
             self.failed.__cause__ = exc
-
-    def _watch_stop(self) -> None:
-        """The compiled loop's stop watcher (its own thread): ``should_stop()`` checked
-        every 5 ms, whatever the serving thread is doing; once True the loop zeroes the
-        current in its next period (``gate[G_STOP]``), the safe stop's Python side
-        follows in the serving thread."""
-        while not self._quit:
-            if self.should_stop():
-                self.lock.gate[G_STOP] = 1
-                return
-            time.sleep(STOP_WATCH_PERIOD)
 
     @property
     def periods(self) -> int:
@@ -499,6 +487,9 @@ class RealtimeBench:
         self._quit = True
         self.lock.gate[G_QUIT] = 1  # a compiled loop returns after the safe stop's turn
         self.safe_stop()
+        watch = getattr(self, '_stop_watch', None)
+        if watch is not None:
+            watch.close()
         thread = getattr(self, '_thread', None)
         if thread is None:
             return  # the bench failed before its loop was made

@@ -28,6 +28,7 @@ import importlib
 import math
 import os
 import re
+import shutil
 import signal
 import sys
 import threading
@@ -114,6 +115,19 @@ def parse_cli(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.
     """Check the ROS arguments of the full ``argv`` (program name first), then parse the
     others with ``parser``."""
     return parser.parse_args(check_ros_args(argv)[1:])
+
+
+def ros2_command() -> str:
+    """How to type ``ros2`` for this installation in the user's shell: ``ros2`` when that
+    is what the shell finds (a sourced ROS, an activated venv), else the path of this
+    prefix's own (``.venv/bin/ros2`` from the project: ``make demo`` runs without the venv
+    on PATH), so that a command printed for the user runs as printed."""
+    mine = Path(sys.prefix) / 'bin' / 'ros2'
+    found = shutil.which('ros2')
+    if not mine.exists() or (found and os.path.realpath(found) == os.path.realpath(mine)):
+        return 'ros2'
+    rel = os.path.relpath(mine)
+    return rel if not rel.startswith('..') else str(mine)
 
 
 def check_then_run(prog: str, parser: Callable[[], argparse.ArgumentParser], node_main: str) -> int:

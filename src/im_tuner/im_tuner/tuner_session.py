@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from im_drive_sim import numeric
-from im_drive_sim.cli import UsageError
+from im_drive_sim.cli import UsageError, ros2_command
 
 from .benches import IN_PROCESS_BENCHES, LOCKSTEP_BENCHES
 from .runlog import Record, Timing, replay_plan
@@ -345,7 +345,8 @@ class TunerSession:
             code = EXIT_FAILED
         progress.close()
         summary = tuning.summary(outcome=outcome, wall_s=time.monotonic() - t_wall0)
-        summary.report_command = f'ros2 run im_tuner report {shlex.quote(str(rundir.path))}'
+        ros2 = ros2_command()  # (as the user's shell finds it: commands that run as printed)
+        summary.report_command = f'{ros2} run im_tuner report {shlex.quote(str(rundir.path))}'
         loop = ((summary.sessions or [{}])[-1].get('drive') or {}).get('loop')
         advice = failure_advice(outcome, tuning.records, plan.mode, loop)
         if advice:
@@ -355,12 +356,13 @@ class TunerSession:
         print(format_summary(summary, self.run, rundir.path), flush=True)
         if code == EXIT_INTERRUPTED:
             print(
-                f'  interrupted: continue with `ros2 run im_tuner tuner --resume {rundir.path}`',
+                f'  interrupted: continue with `{ros2} run im_tuner tuner --resume '
+                f'{shlex.quote(str(rundir.path))}`',
                 flush=True,
             )
         elif code == EXIT_FAILED:
             print(
-                '  failed: once the cause is fixed, continue with `ros2 run im_tuner tuner '
+                f'  failed: once the cause is fixed, continue with `{ros2} run im_tuner tuner '
                 f'--resume {shlex.quote(str(rundir.path))}`',
                 flush=True,
             )

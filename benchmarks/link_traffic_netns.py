@@ -1,0 +1,145 @@
+"""What crosses the network between a drive host and its tuner, counted by nftables.
+
+A drive host (``ros2 run im_tuner drive_host``) in one network namespace, the tuner
+(``--bench none``) in another, joined by a veth pair (``test/netns.py``, the set-up of
+``test/test_two_computers.py``), ``--loss`` % of the packets dropped each way. nftables
+counters on each side's input count the UDP packets and bytes the other side sent, by
+the RTPS port they go to (domain ``--domain``: discovery multicast, user multicast,
+discovery unicast, user data unicast) over the tuner's run; and, while the run goes on,
+the host's graph names every reader of its 5 kHz topics and where it lives.
+
+Printed per direction: packets per second of the tuner's run by kind, and the readers of
+the 5 kHz topics (none on the tuner's computer is the design: docs/two-computers.md).
+Needs root, iproute2 and nftables.
+
+    python benchmarks/link_traffic_netns.py --loss 5 --budget 10 --out /tmp/link
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / 'test'))
+import netns
+from test_faults import ros2
+
+# RTPS well-known ports (DDSI-RTPS 2.x, 9.6.1.1): PB 7400, DG 250, PG 2, d0 0, d1 10,
+# d2 1, d3 11
+KINDS = ('discovery multicast', 'user multicast', 'discovery unicast', 'user unicast')
+
+READERS = r"""
+import json, sys, time
+import rclpy
+from rclpy.node import Node
+rclpy.init()
+n = Node('link_traffic_probe')
+time.sleep(3.0)
+out = {}
+for t in ('/drive/state', '/drive/command', '/drive/joint_states', '/controller/internals'):
+    out[t] = sorted({f'{i.node_namespace.rstrip("/")}/{i.node_name}'
+                     for i in n.get_subscriptions_info_by_topic(t)})
+print(json.dumps(out))
+"""
+
+
+def count_rules(two: netns.TwoComputers, side: str, domain: int) -> None:
+    base = 7400 + 250 * domain
+    dev = two.dev[side]
+    rules = (
+        'table inet imcount {\n  chain input {\n'
+        '    type filter hook input priority -10; policy accept;\n'
+        f'    iifname "{dev}" udp dport {base} counter\n'
+        f'    iifname "{dev}" udp dport {base + 1} counter\n'
+        f'    iifname "{dev}" udp dport {base + 10}-{base + 249} udp dport & 1 == 0 counter\n'
+        f'    iifname "{dev}" udp dport {base + 11}-{base + 249} udp dport & 1 == 1 counter\n'
+        f'    iifname "{dev}" counter\n'
+        '  }\n}\n'
+    )
+    nft = [netns.IP or 'ip', 'netns', 'exec', two.ns[side], netns.NFT or 'nft']
+    subprocess.run([*nft, 'delete', 'table', 'inet', 'imcount'], capture_output=True)
+    subprocess.run([*nft, '-f', '-'], input=rules, text=True, check=True, capture_output=True)
+
+
+def read_counts(two: netns.TwoComputers, side: str) -> list[tuple[int, int]]:
+    nft = [netns.IP or 'ip', 'netns', 'exec', two.ns[side], netns.NFT or 'nft']
+    text = subprocess.run(
+        [*nft, 'list', 'table', 'inet', 'imcount'], capture_output=True, text=True, check=True
+    ).stdout
+    return [(int(p), int(b)) for p, b in re.findall(r'counter packets (\d+) bytes (\d+)', text)]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--loss', type=float, default=5.0, help='packet loss [%%] (default 5)')
+    ap.add_argument('--budget', type=int, default=10, help="the tuner's budget (default 10)")
+    ap.add_argument('--out', type=Path, required=True, help='directory for the run and bags')
+    ap.add_argument('--domain', type=int, default=78, help='ROS_DOMAIN_ID (default 78)')
+    a = ap.parse_args()
+    why = netns.why_not()
+    if why is not None:
+        print(f'error: link_traffic_netns: {why}', file=sys.stderr)
+        return 2
+    a.out.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(a.domain))
+    with netns.TwoComputers('c') as two:
+        two.loss(a.loss)
+        log_path = a.out / 'host.log'
+        with open(log_path, 'w') as log:
+            host = subprocess.Popen(
+                two.argv('a', ros2('im_tuner', 'drive_host', '--out', str(a.out / 'host_bag'),
+                                   '--seed', '5', '--tuner-timeout', '1.0')),
+                env=two.env(dict(env)), stdout=log, stderr=log,
+            )  # fmt: skip
+            try:
+                deadline = time.monotonic() + 180
+                while 'drive host ready' not in log_path.read_text():
+                    if time.monotonic() > deadline or host.poll() is not None:
+                        print(log_path.read_text()[-2000:], file=sys.stderr)
+                        return 1
+                    time.sleep(0.2)
+                for side in ('a', 'b'):
+                    count_rules(two, side, a.domain)
+                t0 = time.monotonic()
+                tuner = subprocess.Popen(
+                    two.argv('b', ros2('im_tuner', 'tuner', '--bench', 'none', '--budget',
+                                       str(a.budget), '--seed', '3', '--remeasure', '0',
+                                       '--discovery-timeout', '60', '--out', str(a.out / 'run'))),
+                    env=two.env(dict(env)), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                    text=True,
+                )  # fmt: skip
+                time.sleep(20.0)  # the run under way: who reads the 5 kHz topics?
+                probe = subprocess.run(
+                    two.argv('a', [sys.executable, '-c', READERS]),
+                    env=two.env(dict(env)), capture_output=True, text=True, timeout=120,
+                )  # fmt: skip
+                out, _ = tuner.communicate(timeout=1800)
+                took = time.monotonic() - t0
+                counts = {side: read_counts(two, side) for side in ('a', 'b')}
+            finally:
+                host.send_signal(signal.SIGINT)
+                host.wait(timeout=60)
+    print(f'tuner exit {tuner.returncode} after {took:.0f} s at {a.loss:g} % loss')
+    print('\n'.join(out.strip().splitlines()[-6:]))
+    for side, frm in (('a', 'tuner -> host'), ('b', 'host -> tuner')):
+        c = counts[side]
+        parts = ', '.join(f'{k} {p / took:.0f}/s' for k, (p, _b) in zip(KINDS, c, strict=False))
+        print(f'{frm}: {c[-1][0] / took:.0f} packets/s, {c[-1][1] / took / 1e3:.1f} kB/s ({parts})')
+    try:
+        readers = json.loads(probe.stdout.strip().splitlines()[-1])
+        for t, nodes in readers.items():
+            print(f'readers of {t} (seen on the host): {", ".join(nodes) or "none"}')
+    except (ValueError, IndexError):
+        print(f'reader probe failed: {probe.stderr[-1000:]}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -201,7 +201,7 @@ def stop_latency_s(log: Path) -> float:
     return float(v[6]) if v.size == 7 and v[6] > 0 else float('nan')
 
 
-def stops(lib: Path, n: int, hogs: int = 0) -> dict[str, Any]:
+def stops(lib: Path, n: int, hogs: int = 0, rt: bool = True) -> dict[str, Any]:
     """The library run stopped mid-experiment by each signal ``n`` times beside ``hogs``
     busy processes: how often its last write was zero current and close came once,
     nothing after; and the time from the signal (sent from here) to the drive's first
@@ -221,7 +221,7 @@ def stops(lib: Path, n: int, hogs: int = 0) -> dict[str, Any]:
                 log = tmp / 'drive.log'
                 cmd = [ROS2, 'run', 'im_tuner', 'tuner', '--bench', 'realtime']
                 cmd += [*drive_arg('library', lib), '--budget', '50', '--seed', str(i)]
-                cmd += ['--quiet', *RT, '--out', str(tmp / 'run')]
+                cmd += ['--quiet', *(RT if rt else []), '--out', str(tmp / 'run')]
                 proc = subprocess.Popen(
                     cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE
                 )
@@ -264,6 +264,11 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument('--drives', nargs='*', default=list(DRIVES), choices=DRIVES)
     ap.add_argument('--hogs', nargs='+', type=int, default=[0, 2])
     ap.add_argument('--stops', type=int, default=0)
+    ap.add_argument(
+        '--stops-without-rt',
+        action='store_true',
+        help='the stops with the tuner defaults, not --lock-memory',
+    )
     a = ap.parse_args(argv if argv is not None else [])
     tmp = Path(tempfile.mkdtemp(prefix='bench_lib_'))
     lib = build_library(tmp)
@@ -313,9 +318,10 @@ def main(argv: list[str] | None = None) -> dict:
                 figures[f'{tag}_{k}'] = med(k)
     if a.stops:
         for hogs in a.hogs:
-            ok = stops(lib, a.stops, hogs)
+            ok = stops(lib, a.stops, hogs, rt=not a.stops_without_rt)
             d = sorted(ok['delays_ms'])
             tag = f'beside {hogs} hogs' if hogs else 'quiet'
+            tag += ', the default options' if a.stops_without_rt else ', ' + ' '.join(RT)
             spread = (
                 f'median {statistics.median(d):.2f} ms, max {d[-1]:.2f} ms over {len(d)}'
                 if d

@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -30,10 +29,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / 'test'))
 import netns
 from test_faults import ros2
-
-# RTPS well-known ports (DDSI-RTPS 2.x, 9.6.1.1): PB 7400, DG 250, PG 2, d0 0, d1 10,
-# d2 1, d3 11
-KINDS = ('discovery multicast', 'user multicast', 'discovery unicast', 'user unicast')
 
 READERS = r"""
 import json, sys, time
@@ -48,32 +43,6 @@ for t in ('/drive/state', '/drive/command', '/drive/joint_states', '/controller/
                      for i in n.get_subscriptions_info_by_topic(t)})
 print(json.dumps(out))
 """
-
-
-def count_rules(two: netns.TwoComputers, side: str, domain: int) -> None:
-    base = 7400 + 250 * domain
-    dev = two.dev[side]
-    rules = (
-        'table inet imcount {\n  chain input {\n'
-        '    type filter hook input priority -10; policy accept;\n'
-        f'    iifname "{dev}" udp dport {base} counter\n'
-        f'    iifname "{dev}" udp dport {base + 1} counter\n'
-        f'    iifname "{dev}" udp dport {base + 10}-{base + 249} udp dport & 1 == 0 counter\n'
-        f'    iifname "{dev}" udp dport {base + 11}-{base + 249} udp dport & 1 == 1 counter\n'
-        f'    iifname "{dev}" counter\n'
-        '  }\n}\n'
-    )
-    nft = [netns.IP or 'ip', 'netns', 'exec', two.ns[side], netns.NFT or 'nft']
-    subprocess.run([*nft, 'delete', 'table', 'inet', 'imcount'], capture_output=True)
-    subprocess.run([*nft, '-f', '-'], input=rules, text=True, check=True, capture_output=True)
-
-
-def read_counts(two: netns.TwoComputers, side: str) -> list[tuple[int, int]]:
-    nft = [netns.IP or 'ip', 'netns', 'exec', two.ns[side], netns.NFT or 'nft']
-    text = subprocess.run(
-        [*nft, 'list', 'table', 'inet', 'imcount'], capture_output=True, text=True, check=True
-    ).stdout
-    return [(int(p), int(b)) for p, b in re.findall(r'counter packets (\d+) bytes (\d+)', text)]
 
 
 def main() -> int:
@@ -105,8 +74,7 @@ def main() -> int:
                         print(log_path.read_text()[-2000:], file=sys.stderr)
                         return 1
                     time.sleep(0.2)
-                for side in ('a', 'b'):
-                    count_rules(two, side, a.domain)
+                netns.count_traffic(two, a.domain)
                 t0 = time.monotonic()
                 tuner = subprocess.Popen(
                     two.argv('b', ros2('im_tuner', 'tuner', '--bench', 'none', '--budget',
@@ -122,7 +90,7 @@ def main() -> int:
                 )  # fmt: skip
                 out, _ = tuner.communicate(timeout=1800)
                 took = time.monotonic() - t0
-                counts = {side: read_counts(two, side) for side in ('a', 'b')}
+                counts = netns.traffic(two)
             finally:
                 host.send_signal(signal.SIGINT)
                 host.wait(timeout=60)
@@ -130,8 +98,9 @@ def main() -> int:
     print('\n'.join(out.strip().splitlines()[-6:]))
     for side, frm in (('a', 'tuner -> host'), ('b', 'host -> tuner')):
         c = counts[side]
-        parts = ', '.join(f'{k} {p / took:.0f}/s' for k, (p, _b) in zip(KINDS, c, strict=False))
-        print(f'{frm}: {c[-1][0] / took:.0f} packets/s, {c[-1][1] / took / 1e3:.1f} kB/s ({parts})')
+        parts = ', '.join(f'{k} {c[k][0] / took:.0f}/s' for k in netns.TRAFFIC_KINDS[:-1])
+        pk, by = c['all']
+        print(f'{frm}: {pk / took:.0f} packets/s, {by / took / 1e3:.1f} kB/s ({parts})')
     try:
         readers = json.loads(probe.stdout.strip().splitlines()[-1])
         for t, nodes in readers.items():

@@ -107,6 +107,53 @@ class TwoComputers:
                 _run(*nft, '-f', '-', stdin=rules)
 
 
+#: what :meth:`TwoComputers.traffic` counts, by the RTPS port a packet goes to (DDSI-RTPS
+#: 2.x, 9.6.1.1: PB 7400, DG 250, PG 2, d0 0, d1 10, d2 1, d3 11), then every packet
+TRAFFIC_KINDS = (
+    'discovery multicast',
+    'user multicast',
+    'discovery unicast',
+    'user unicast',
+    'all',
+)
+
+
+def count_traffic(two: TwoComputers, domain: int) -> None:
+    """Count (again from 0) the packets each computer receives on the veth, by
+    TRAFFIC_KINDS (nftables counters, before the loss rule drops any)."""
+    base = 7400 + 250 * domain
+    for side in ('a', 'b'):
+        dev = two.dev[side]
+        rules = (
+            'table inet imcount {\n  chain input {\n'
+            '    type filter hook input priority -10; policy accept;\n'
+            f'    iifname "{dev}" udp dport {base} counter\n'
+            f'    iifname "{dev}" udp dport {base + 1} counter\n'
+            f'    iifname "{dev}" udp dport {base + 10}-{base + 249} udp dport & 1 == 0 counter\n'
+            f'    iifname "{dev}" udp dport {base + 11}-{base + 249} udp dport & 1 == 1 counter\n'
+            f'    iifname "{dev}" counter\n'
+            '  }\n}\n'
+        )
+        nft = [IP or 'ip', 'netns', 'exec', two.ns[side], NFT or 'nft']
+        subprocess.run([*nft, 'delete', 'table', 'inet', 'imcount'], capture_output=True)
+        _run(*nft, '-f', '-', stdin=rules)
+
+
+def traffic(two: TwoComputers) -> dict[str, dict[str, tuple[int, int]]]:
+    """Per receiving side: (packets, bytes) by TRAFFIC_KINDS since :func:`count_traffic`."""
+    import re
+
+    out = {}
+    for side in ('a', 'b'):
+        nft = [IP or 'ip', 'netns', 'exec', two.ns[side], NFT or 'nft']
+        text = subprocess.run(
+            [*nft, 'list', 'table', 'inet', 'imcount'], capture_output=True, text=True, check=True
+        ).stdout
+        found = re.findall(r'counter packets (\d+) bytes (\d+)', text)
+        out[side] = {k: (int(p), int(b)) for k, (p, b) in zip(TRAFFIC_KINDS, found, strict=True)}
+    return out
+
+
 def bag_topics(bag: Path) -> dict[str, int]:
     """Message count per topic of a closed bag (its metadata.yaml)."""
     import yaml

@@ -62,10 +62,16 @@ def parse_ripple_limit(text: str) -> float | None:
 #: The node a drive host (``ros2 run im_tuner drive_host``) puts on the graph: a tuner
 #: that sees it leaves the host's 5 kHz topics to the host's own bag.
 DRIVE_HOST_NODE = 'drive_host'
-#: A drive host's 5 kHz topics (relative to the namespace): recorded losslessly by the
-#: host itself, from its loop's outbox; a tuner on another computer does not pull them
-#: across the network (``recorder --exclude-topics``).
-HOST_LOOP_TOPICS = (STATE_TOPIC, COMMAND_TOPIC, JOINT_STATE_TOPIC, C.INTERNALS_TOPIC)
+#: A drive host's loop-rate topics (relative to the namespace; /clock absolute): the
+#: 5 kHz ones and the drive's clock (200 Hz), recorded by the host itself; a tuner on
+#: another computer does not pull them across the network (``recorder --exclude-topics``).
+HOST_LOOP_TOPICS = (
+    STATE_TOPIC,
+    COMMAND_TOPIC,
+    JOINT_STATE_TOPIC,
+    C.INTERNALS_TOPIC,
+    '/clock',
+)
 
 #: after a safety fault: reset it and go on, or stop the run (``--fault-policy``)
 FAULT_POLICIES = ('reset', 'stop')

@@ -123,7 +123,8 @@ def ros2_command() -> str:
     prefix's own (``.venv/bin/ros2`` from the project: ``make demo`` runs without the venv
     on PATH), so that a command printed for the user runs as printed."""
     mine = Path(sys.prefix) / 'bin' / 'ros2'
-    found = shutil.which('ros2')
+    # the shell's PATH, as this venv's ros2 found it before putting its own bin first
+    found = shutil.which('ros2', path=os.environ.get('IM_TUNER_SHELL_PATH'))
     if not mine.exists() or (found and os.path.realpath(found) == os.path.realpath(mine)):
         return 'ros2'
     rel = os.path.relpath(mine)

@@ -19,8 +19,14 @@ MINE = Path(sys.prefix) / 'bin' / 'ros2'
 
 @pytest.mark.skipif(not MINE.exists(), reason='this prefix has no ros2 of its own (colcon)')
 def test_ros2_is_named_as_the_shell_would_find_it(monkeypatch, tmp_path):
+    monkeypatch.delenv('IM_TUNER_SHELL_PATH', raising=False)
     monkeypatch.setenv('PATH', f'{MINE.parent}{os.pathsep}/usr/bin:/bin')
     assert ros2_command() == 'ros2'
+    # started by this venv's ros2 from a shell without it on PATH: the shell's PATH counts
+    monkeypatch.setenv('IM_TUNER_SHELL_PATH', '/usr/bin:/bin')
+    monkeypatch.chdir(tmp_path)
+    assert ros2_command() == str(MINE)
+    monkeypatch.delenv('IM_TUNER_SHELL_PATH')
     monkeypatch.setenv('PATH', '/usr/bin:/bin')  # make demo: the venv is not on PATH
     monkeypatch.chdir(tmp_path)
     cmd = ros2_command()

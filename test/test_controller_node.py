@@ -36,6 +36,7 @@ from im_controller.controller_node import INTERNALS_FIELDS
 from im_controller.experiment import ExperimentRunner, config_for_drive
 from im_controller.messages import msg_to_result, result_to_msg
 from im_drive_sim.drive_file import load_config
+from im_drive_sim.runtime import ParameterOverrideError
 from im_drive_sim.sim import DriveSim
 from im_tuner.bench import InProcessBench
 from im_tuner.offline import run_experiment_offline
@@ -551,19 +552,21 @@ def test_bad_start_up_input_is_one_line_and_exit_2(procs, args, expect):
     assert lines[0].startswith('error: controller:') and expect in lines[0]
 
 
-def test_start_overrides_say_what_the_node_enforces(ros_context, capfd):
+def test_start_overrides_say_what_the_node_enforces(ros_context):
     """Issue 16: `-p safety.isq_max:=2.0` at start is applied (a tighter clamp; the drive
     file's 7 A is the ceiling): get_parameters says 2.0 and the controller commands at most
     2 A, where the 7 A controller commands 5.55 A. An integer for a double (`k_iw:=25`) is
-    taken at start as through set_parameters. A typo'd override is warned about by name, a
-    request to set an undeclared parameter is refused naming it."""
+    taken at start as through set_parameters. A typo'd override, which neither the drive
+    nor the controller composed with it declares, is refused by name; so is a request to
+    set an undeclared parameter."""
+    with pytest.raises(ParameterOverrideError, match='no such parameter: k_pww'):
+        InProcessBench(context=ros_context, controller_overrides=[Parameter('k_pww', value=1.0)])
     b = InProcessBench(
         context=ros_context,
         drive_overrides=[Parameter('seed', value=SEED)],
         controller_overrides=[
             Parameter('safety.isq_max', value=2.0),
             Parameter('k_iw', value=25),
-            Parameter('k_pww', value=1.0),
         ],
     )
     probe = Probe(ros_context, b.spin_until)
@@ -582,5 +585,3 @@ def test_start_overrides_say_what_the_node_enforces(ros_context, capfd):
     finally:
         probe.node.destroy_node()
         b.destroy()
-    err = capfd.readouterr().err
-    assert 'ignored override(s) of undeclared parameter(s) k_pww' in err

@@ -173,8 +173,8 @@ class RealtimeBench:
             ),
         )
         self.stop_requested = False
-        #: True -> :meth:`safe_stop` (the tuner's SIGINT/SIGTERM: zero current within
-        #: 5 ms, whatever the serving thread is doing)
+        #: True -> :meth:`safe_stop` (the tuner's SIGINT/SIGTERM: zero current in the
+        #: loop's next period, whatever the serving thread is doing: stop_signal)
         self.should_stop: Callable[[], bool] = should_stop or (lambda: False)
         self.safe_stopped = False
         self.failed: DriveLoopError | None = None  #: the loop raised: it runs no more

@@ -815,3 +815,25 @@ def test_a_second_drive_host_on_a_domain_is_refused_in_one_line(
     assert 'a drive host or drive already runs here' in line, second.stderr[-2000:]
     assert 'Traceback' not in second.stderr and not (tmp_path / 'bag2').exists()
     assert first.poll() is None  # the first host runs on
+
+
+def test_the_identified_first_step_models_the_drive_file_given(tmp_path):
+    """``--drive-config NAME``: the first step is computed on NAME's model identified from
+    the start (not the packaged default's), the identification says NAME's J and Kt, and
+    the step beats the start (im7500w-j10: J 0.3773 kg m^2, 150x the default's)."""
+    from im_drive_sim.drive_file import load_config
+
+    run = tmp_path / 'run'
+    p = tuner(
+        '--drive-config', 'im7500w-j10', '--budget', '2', '--seed', '1', '--remeasure', '0',
+        '--no-record', '--quiet', '--out', str(run),
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr[-3000:]
+    m = load_config('im7500w-j10').machine
+    idf = json.loads((run / 'summary.json').read_text())['identification']
+    assert (idf['J_file'], idf['Kt_file']) == (m.J, m.Kt), idf
+    assert abs(idf['J'] / m.J - 1.0) < 0.05, idf
+    recs = results(run)
+    start = next(r['loss'] for r in recs if r['kind'] == 'reference')
+    first = [r for r in recs if r.get('eval') == 1 and r['status'] == 'ok']
+    assert first and first[0]['loss'] < 0.8 * start, (start, first)

@@ -167,11 +167,12 @@ class TunerSession:
             except RunDirError as exc:
                 raise UsageError(str(exc)) from None
             self.run.put(bench=plan.mode)
-            self.tuning = make_tuning(self.rundir, self.run, self.params, self.progress)
-        self.bag_dir = None if self.cli.no_record else self.rundir.next_bag_dir()
-        if not self.resumed:
+        if not self.resumed:  # (before the TuningRun: its first step models this drive)
             config = str(self.cli.drive_config) if self.cli.drive_config else None
             self.run.put(model=self.cli.model, drive_config=config)
+        if self.tuning is None:
+            self.tuning = make_tuning(self.rundir, self.run, self.params, self.progress)
+        self.bag_dir = None if self.cli.no_record else self.rundir.next_bag_dir()
         return self.bag_dir
 
     def tuner_metadata(self) -> dict[str, Any] | None:

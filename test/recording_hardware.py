@@ -60,8 +60,11 @@ class RecordingHardware(Hardware):
 
 
 def read_log(path: str) -> dict[str, float]:
-    """The slots of a recording file, by name."""
-    v = np.fromfile(path, dtype=np.float64, count=SLOTS)
+    """The slots of a recording file, by name (zeros where the file does not reach yet:
+    the drive process creates it, then sizes it)."""
+    v = np.zeros(SLOTS)
+    got = np.fromfile(path, dtype=np.float64, count=SLOTS)
+    v[: got.size] = got
     return {
         'writes': float(v[0]),
         'isq_ref': float(v[1]),

@@ -45,50 +45,42 @@ def main() -> int:
     env = dict(os.environ, ROS_DOMAIN_ID=str(a.domain))
     short = 0
     with netns.TwoComputers('q') as two:
-        log_path = a.out / 'host.log'
-        with open(log_path, 'w') as log:
-            host = subprocess.Popen(
-                two.argv('a', ros2('im_tuner', 'drive_host', '--out', str(a.out / 'host_bag'),
-                                   '--seed', '5', '--tuner-timeout', '1.0')),
-                env=two.env(dict(env)), stdout=log, stderr=log,
-            )  # fmt: skip
-            try:
-                deadline = time.monotonic() + 120
-                while 'drive host ready' not in log_path.read_text():
-                    if time.monotonic() > deadline or host.poll() is not None:
-                        print(log_path.read_text()[-2000:], file=sys.stderr)
-                        return 1
-                    time.sleep(0.2)
-                for i in range(a.runs):
-                    run = a.out / f'run_{i}'
-                    two.loss(a.loss)
-                    t0 = time.monotonic()
-                    p = subprocess.run(
-                        two.argv('b', ros2('im_tuner', 'tuner', '--bench', 'none', '--budget',
-                                           '4', '--seed', '3', '--quiet', '--remeasure', '0',
-                                           '--discovery-timeout', '60', '--out', str(run))),
-                        env=two.env(dict(env)), capture_output=True, text=True, timeout=600,
-                    )  # fmt: skip
-                    took = time.monotonic() - t0
-                    two.loss(0)
-                    results = run / 'results.jsonl'
-                    recs = (
-                        [json.loads(x) for x in results.read_text().splitlines() if x.strip()]
-                        if results.exists()
-                        else []
-                    )
-                    counted = sum(r.get('status') in ('ok', 'aborted') for r in recs)
-                    in_bag = netns.bag_topics(run / 'bag_0').get('/controller/loss', 0)
-                    warned = [x for x in p.stderr.splitlines() if 'bag holds fewer' in x]
-                    short += in_bag < counted
-                    print(
-                        f'run {i}: exit {p.returncode}, {took:.1f} s, losses counted {counted}, '
-                        f'in the bag {in_bag}' + (f'; {warned[0]}' if warned else ''),
-                        flush=True,
-                    )
-            finally:
-                host.send_signal(signal.SIGINT)
-                host.wait(60)
+        try:
+            host = netns.start_drive_host(two, a.out, dict(env), timeout=120.0)
+        except RuntimeError as exc:
+            print(exc, file=sys.stderr)
+            return 1
+        try:
+            for i in range(a.runs):
+                run = a.out / f'run_{i}'
+                two.loss(a.loss)
+                t0 = time.monotonic()
+                p = subprocess.run(
+                    two.argv('b', ros2('im_tuner', 'tuner', '--bench', 'none', '--budget',
+                                       '4', '--seed', '3', '--quiet', '--remeasure', '0',
+                                       '--discovery-timeout', '60', '--out', str(run))),
+                    env=two.env(dict(env)), capture_output=True, text=True, timeout=600,
+                )  # fmt: skip
+                took = time.monotonic() - t0
+                two.loss(0)
+                results = run / 'results.jsonl'
+                recs = (
+                    [json.loads(x) for x in results.read_text().splitlines() if x.strip()]
+                    if results.exists()
+                    else []
+                )
+                counted = sum(r.get('status') in ('ok', 'aborted') for r in recs)
+                in_bag = netns.bag_topics(run / 'bag_0').get('/controller/loss', 0)
+                warned = [x for x in p.stderr.splitlines() if 'bag holds fewer' in x]
+                short += in_bag < counted
+                print(
+                    f'run {i}: exit {p.returncode}, {took:.1f} s, losses counted {counted}, '
+                    f'in the bag {in_bag}' + (f'; {warned[0]}' if warned else ''),
+                    flush=True,
+                )
+        finally:
+            host.send_signal(signal.SIGINT)
+            host.wait(60)
     print(f'{short} of {a.runs} bags lack a loss the run counted (packet loss {a.loss:g} %)')
     return 1 if short else 0
 

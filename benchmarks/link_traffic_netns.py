@@ -60,40 +60,32 @@ def main() -> int:
     env = dict(os.environ, ROS_DOMAIN_ID=str(a.domain))
     with netns.TwoComputers('c') as two:
         two.loss(a.loss)
-        log_path = a.out / 'host.log'
-        with open(log_path, 'w') as log:
-            host = subprocess.Popen(
-                two.argv('a', ros2('im_tuner', 'drive_host', '--out', str(a.out / 'host_bag'),
-                                   '--seed', '5', '--tuner-timeout', '1.0')),
-                env=two.env(dict(env)), stdout=log, stderr=log,
+        try:
+            host = netns.start_drive_host(two, a.out, dict(env))
+        except RuntimeError as exc:
+            print(exc, file=sys.stderr)
+            return 1
+        try:
+            netns.count_traffic(two, a.domain)
+            t0 = time.monotonic()
+            tuner = subprocess.Popen(
+                two.argv('b', ros2('im_tuner', 'tuner', '--bench', 'none', '--budget',
+                                   str(a.budget), '--seed', '3', '--remeasure', '0',
+                                   '--discovery-timeout', '60', '--out', str(a.out / 'run'))),
+                env=two.env(dict(env)), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                text=True,
             )  # fmt: skip
-            try:
-                deadline = time.monotonic() + 180
-                while 'drive host ready' not in log_path.read_text():
-                    if time.monotonic() > deadline or host.poll() is not None:
-                        print(log_path.read_text()[-2000:], file=sys.stderr)
-                        return 1
-                    time.sleep(0.2)
-                netns.count_traffic(two, a.domain)
-                t0 = time.monotonic()
-                tuner = subprocess.Popen(
-                    two.argv('b', ros2('im_tuner', 'tuner', '--bench', 'none', '--budget',
-                                       str(a.budget), '--seed', '3', '--remeasure', '0',
-                                       '--discovery-timeout', '60', '--out', str(a.out / 'run'))),
-                    env=two.env(dict(env)), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                    text=True,
-                )  # fmt: skip
-                time.sleep(20.0)  # the run under way: who reads the 5 kHz topics?
-                probe = subprocess.run(
-                    two.argv('a', [sys.executable, '-c', READERS]),
-                    env=two.env(dict(env)), capture_output=True, text=True, timeout=120,
-                )  # fmt: skip
-                out, _ = tuner.communicate(timeout=1800)
-                took = time.monotonic() - t0
-                counts = netns.traffic(two)
-            finally:
-                host.send_signal(signal.SIGINT)
-                host.wait(timeout=60)
+            time.sleep(20.0)  # the run under way: who reads the 5 kHz topics?
+            probe = subprocess.run(
+                two.argv('a', [sys.executable, '-c', READERS]),
+                env=two.env(dict(env)), capture_output=True, text=True, timeout=120,
+            )  # fmt: skip
+            out, _ = tuner.communicate(timeout=1800)
+            took = time.monotonic() - t0
+            counts = netns.traffic(two)
+        finally:
+            host.send_signal(signal.SIGINT)
+            host.wait(timeout=60)
     print(f'tuner exit {tuner.returncode} after {took:.0f} s at {a.loss:g} % loss')
     print('\n'.join(out.strip().splitlines()[-6:]))
     for side, frm in (('a', 'tuner -> host'), ('b', 'host -> tuner')):

@@ -154,6 +154,34 @@ def traffic(two: TwoComputers) -> dict[str, dict[str, tuple[int, int]]]:
     return out
 
 
+def start_drive_host(
+    two: TwoComputers, out: Path, env: dict[str, str], timeout: float = 180.0
+) -> subprocess.Popen:
+    """``ros2 run im_tuner drive_host`` on computer ``a`` (seed 5, tuner watchdog 1 s),
+    its bag ``out/host_bag`` and its log ``out/host.log``; returned once it says it is
+    ready (RuntimeError with the log's tail if it does not within ``timeout`` s)."""
+    import sys
+    import time
+
+    ros2 = [str(Path(sys.prefix) / 'bin' / 'ros2'), 'run', 'im_tuner', 'drive_host']
+    log_path = out / 'host.log'
+    with open(log_path, 'w') as log:
+        host = subprocess.Popen(
+            two.argv('a', [*ros2, '--out', str(out / 'host_bag'), '--seed', '5',
+                           '--tuner-timeout', '1.0']),
+            env=two.env(env), stdout=log, stderr=log,
+        )  # fmt: skip
+    deadline = time.monotonic() + timeout
+    while 'drive host ready' not in log_path.read_text():
+        if time.monotonic() > deadline or host.poll() is not None:
+            if host.poll() is None:
+                host.kill()
+                host.wait()
+            raise RuntimeError(log_path.read_text()[-2000:])
+        time.sleep(0.2)
+    return host
+
+
 def bag_topics(bag: Path) -> dict[str, int]:
     """Message count per topic of a closed bag (its metadata.yaml)."""
     import yaml

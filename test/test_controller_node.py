@@ -453,6 +453,50 @@ def test_watchdog_zero_current_and_abort_when_the_drive_goes_silent(ros_context)
         assert probe.start().success
 
 
+@pytest.mark.parametrize('running', [False, True], ids=['idle', 'mid-experiment'])
+def test_the_tuners_goodbye_is_zero_current_at_once(ros_context, running):
+    """A tuner that ends its run says goodbye (a heartbeat stamped zero, three times):
+    the controller goes to zero current and FAULT (tuner_lost) at once, not
+    tuner_timeout (here 30 s) later; mid-experiment the experiment is aborted with that
+    reason. A second goodbye trips nothing more; the next tuner's reset clears it."""
+    from std_msgs.msg import Header
+
+    from im_controller.contract import HEARTBEAT_GOODBYES, TUNER_LOST
+    from im_tuner.link import Heartbeat
+
+    # holding between experiments, as a real bench does (answering every state)
+    params = {'state_timeout': 5.0, 'tuner_timeout': 30.0, 'lockstep_idle': 'hold'}
+    params['trajectory.settle'] = 0.0
+    with fake_drive(ros_context, **params) as fd:
+        ctl, probe = fd.ctl, fd.probe
+        beat = Heartbeat(probe.node, '/controller/heartbeat', period=0.05)
+        assert fd.spin_until(lambda: ctl.heartbeat_from == '/test_probe', 10)
+        if running:
+            assert probe.start().success
+            for k in range(1, 30):
+                fd.answered(k)
+        t0 = time.monotonic()
+        beat.stop()  # the tuner's end: its goodbye
+        assert fd.spin_until(lambda: ctl.runner.faulted, 5)
+        assert time.monotonic() - t0 < 5.0 and ctl.tuner_trips == 1
+        assert ctl.runner.fault_reason == 'tuner_lost'
+        assert fd.answered(31)[1:] == (0.0, 0.0)  # zero current, no load
+        if running:
+            assert fd.spin_until(lambda: len(probe.results) == 1, 5)
+            assert probe.results[0].aborted and probe.results[0].reason == 'tuner_lost'
+        # another goodbye (a copy, a late one) trips nothing more
+        bye = probe.node.create_publisher(Header, '/controller/heartbeat', 1)
+        for _ in range(HEARTBEAT_GOODBYES):
+            bye.publish(Header(frame_id='/test_probe'))
+        fd.spin_until(lambda: ctl.tuner_trips > 1, 0.3)
+        assert ctl.tuner_trips == 1
+        resp = probe.start()
+        assert not resp.success and refusal_code(resp.message) == TUNER_LOST
+        reset_cli = probe.node.create_client(Trigger, '/controller/reset_fault')
+        assert probe.call(reset_cli.call_async(Trigger.Request())).success
+        assert not ctl.runner.faulted
+
+
 @pytest.mark.parametrize(
     'field, value', [('theta_meas', math.nan), ('omega_meas', math.inf), ('theta_meas', -math.inf)]
 )

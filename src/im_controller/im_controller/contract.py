@@ -52,9 +52,14 @@ RESET_SERVICE = 'reset_fault'
 #: A client's heartbeat (private: ``<controller node>/heartbeat``, std_msgs/msg/Header:
 #: stamp = the client's wall time, frame_id = the client's node name), published every
 #: ``HEARTBEAT_PERIOD`` s, best effort. A controller with ``tuner_timeout`` > 0 arms its
-#: tuner watchdog on the first one and trips when none came for that long.
+#: tuner watchdog on the first one and trips when none came for that long. A heartbeat
+#: stamped zero (sec 0, nanosec 0) is the client's goodbye: the watchdog trips at once
+#: (zero current now, not ``tuner_timeout`` later), logged as the normal end it is unless
+#: an experiment was running. A client sends it ``HEARTBEAT_GOODBYES`` times (best
+#: effort): a goodbye that is lost ends in the trip silence brings.
 HEARTBEAT_TOPIC = 'heartbeat'
 HEARTBEAT_PERIOD = 0.1  # [s]
+HEARTBEAT_GOODBYES = 3
 
 BUSY = 'busy'
 FINISHING_MOVE = 'finishing_move'

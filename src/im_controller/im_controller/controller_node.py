@@ -484,6 +484,9 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
             self._publish_result()
 
     def _on_heartbeat(self, msg: Header) -> None:
+        if msg.stamp.sec == 0 and msg.stamp.nanosec == 0:
+            self._on_goodbye(msg.frame_id or 'a client')
+            return
         if self._heartbeat_wall is None:
             self.get_logger().info(
                 f'tuner watchdog armed: {msg.frame_id or "a client"} sends heartbeats; '
@@ -499,36 +502,50 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.heartbeat_from = msg.frame_id
         self._tuner_tripped = False
 
-    def tuner_watchdog(self) -> None:
-        """No heartbeat for ``tuner_timeout`` s since the last one: zero current (the
-        kernel's FAULT answers every state with isq* = 0 and no load), a running
-        experiment aborted with ``tuner_lost``, FAULT. Called by the serving loop."""
+    def _on_goodbye(self, who: str) -> None:
+        """The client's goodbye (``contract.HEARTBEAT_TOPIC``): zero current now rather
+        than ``tuner_timeout`` later (a drive left holding its position with nobody
+        watching is what the watchdog is for), said as the normal end it is -- no error
+        -- unless an experiment was running; the next tuner clears ``tuner_lost`` itself."""
+        if self._heartbeat_wall is None or self._tuner_tripped:
+            return  # not armed, or already tripped (the copies of one goodbye, a late one)
+        self.heartbeat_from = who
+        self.tuner_watchdog(goodbye=True)
+
+    def tuner_watchdog(self, goodbye: bool = False) -> None:
+        """No heartbeat for ``tuner_timeout`` s since the last one, or the tuner's goodbye
+        (``goodbye``): zero current (the kernel's FAULT answers every state with isq* = 0
+        and no load), a running experiment aborted with ``tuner_lost``, FAULT. Called by
+        the serving loop."""
         last = self._heartbeat_wall
         if self.tuner_timeout <= 0 or last is None or self._tuner_tripped:
             return
         silent = time.monotonic() - last
-        if silent <= self.tuner_timeout:
+        if silent <= self.tuner_timeout and not goodbye:
             return
         self._tuner_tripped = True
         self.tuner_trips += 1
         who = self.heartbeat_from or 'the tuner'
-        if self.runner.faulted:
-            self.get_logger().error(
-                f'no heartbeat from {who} for {silent:.2f} s (tuner_timeout '
-                f'{self.tuner_timeout:g} s); already in FAULT ({self.runner.fault_reason}): '
-                'zero current'
-            )
-            return
         running = self.runner.running
+        why = (
+            f'{who} ended its run (its goodbye)'
+            if goodbye
+            else f'no heartbeat from {who} for {silent:.2f} s (tuner_timeout '
+            f'{self.tuner_timeout:g} s)'
+        )
+        say = self.get_logger().info if goodbye and not running else self.get_logger().error
+        if self.runner.faulted:
+            say(f'{why}; already in FAULT ({self.runner.fault_reason}): zero current')
+            return
         t_ns = int(self._state[1]) if self._state is not None else 0
         with self.loop_lock:
             self.runner.abort_external(REASON_TUNER_LOST, t_ns)
         self._fault_logged = True
-        self.get_logger().error(
-            f'no heartbeat from {who} for {silent:.2f} s (tuner_timeout '
-            f'{self.tuner_timeout:g} s): zero current'
+        say(
+            f'{why}: zero current'
             + (f', experiment {self.runner.experiment_id} aborted' if running else '')
             + f'; FAULT (tuner_lost) until `{self._reset_command}` ({self._reset_service})'
+            + (', which the next tuner calls itself' if goodbye and not running else '')
         )
         if running:
             self._publish_result()

@@ -81,10 +81,20 @@ class Heartbeat:
                 return
             self._stop.wait(self.period)
 
-    def stop(self) -> None:
-        """No more heartbeats (before the node is destroyed)."""
+    def stop(self, goodbye: bool = True) -> None:
+        """No more heartbeats (before the node is destroyed); ``goodbye``: say so
+        (``contract.HEARTBEAT_TOPIC``: a heartbeat stamped zero), so that a drive host
+        goes to zero current now and logs the normal end, not this tuner lost. Best
+        effort: a goodbye that is lost ends in the watchdog's trip."""
         self._stop.set()
         self._thread.join(timeout=2.0)
+        if goodbye:
+            bye = Header(frame_id=self.node.get_fully_qualified_name())
+            for _ in range(C.HEARTBEAT_GOODBYES):
+                try:
+                    self.pub.publish(bye)
+                except Exception:  # the context is shutting down: nothing to say it on
+                    return
 
 
 class ControllerLink:

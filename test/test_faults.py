@@ -928,3 +928,28 @@ def test_the_fault_advice_on_a_bench_of_its_own_works(tmp_path):
     )  # fmt: skip
     assert again.returncode == 0, again.stdout[-2000:] + again.stderr[-3000:]
     assert [r['kind'] for r in results(run) if r['status'] == 'ok'][-2:] == ['eval', 'eval']
+
+
+def test_the_fault_advice_says_when_the_faulted_experiment_was_off_the_timing():
+    """A safety fault in an experiment whose periods were held beyond the tolerance (a
+    drive that cannot pause held its old current through the host's stalls) is told so,
+    with its figures and the host check to run; one on time adds nothing."""
+    from types import SimpleNamespace
+
+    from im_controller.result import LossResult
+    from im_tuner.link import ControllerLink
+
+    def result(held: int, timing: bool) -> LossResult:
+        g = Gains(0.53, 20.0, 30.0, 0.005, 0.007)
+        return LossResult(
+            7, 1.0, (0.1, 0.2, 0.3), True, 'max_speed', 900, 0.18, g, 0, 0, 901, 1,
+            fresh=901 - held, held=held, timing=timing,
+        )  # fmt: skip
+
+    off = SimpleNamespace(_fault_result=result(610, True))
+    said = ControllerLink._fault_timing(off)  # type: ignore[arg-type]
+    assert 'experiment 7 faulted with 610 of its 901 periods held and 0 late' in said, said
+    assert '`ros2 run im_drive_sim host_check`' in said
+    on_time = SimpleNamespace(_fault_result=result(3, False))
+    assert ControllerLink._fault_timing(on_time) == ''  # type: ignore[arg-type]
+    assert ControllerLink._fault_timing(SimpleNamespace(_fault_result=None)) == ''  # type: ignore[arg-type]

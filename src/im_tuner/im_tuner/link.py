@@ -43,6 +43,7 @@ from im_controller.config import GAIN_NAMES, Gains
 from im_controller.layout import LINK_REASONS
 from im_controller.messages import SAFETY_REASONS, msg_to_result
 from im_controller.reset_fault import reset_command
+from im_controller.result import LossResult
 
 from .names import FAULT_POLICIES, controller_topics
 from .tuning import BenchFailure, LostEvaluation, Measurement, StopRequested
@@ -147,6 +148,8 @@ class ControllerLink:
         #: the last result was a safety fault that is not cleared yet (the next start
         #: meets it: not another fault)
         self._result_fault = False
+        #: the last result that ended in a safety fault (its periods' timing is told)
+        self._fault_result: LossResult | None = None
         qos = QoSProfile(
             depth=1000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE
         )
@@ -294,7 +297,25 @@ class ControllerLink:
 
     def fault_advice(self) -> str:
         """What the person at the bench does about a safety fault under the policy
-        'stop' -- a command that works on this bench."""
+        'stop' -- a command that works on this bench -- and, when the experiment that
+        faulted was off the paper's timing, that the host may have caused it."""
+        return self._fault_advice() + self._fault_timing()
+
+    def _fault_timing(self) -> str:
+        """The faulting experiment's periods, when they were beyond the tolerance: a drive
+        that cannot pause held its old current through the host's stalls, which can trip
+        the limits on gains that run fine on time."""
+        r = self._fault_result
+        if r is None or not r.timing:
+            return ''
+        return (
+            f' (experiment {r.experiment_id} faulted with {r.held} of its {r.steps} periods '
+            f'held and {r.late} late, beyond the timing tolerance: the drive held its old '
+            "current through the host's stalls, which may be what tripped it -- check the "
+            'host: `ros2 run im_drive_sim host_check`)'
+        )
+
+    def _fault_advice(self) -> str:
         if self.owns_controller:
             # the controller ran in (or beside) this tuner and ends with it: nothing is
             # left to reset; a resumed run starts a fresh controller, fault-free
@@ -340,6 +361,8 @@ class ControllerLink:
             )
         fault = r.reason in SAFETY_REASONS
         self._result_fault = fault
+        if fault:
+            self._fault_result = r
         if fault and self.fault_policy == 'reset':
             self.node.get_logger().warn(
                 f'experiment {eid}: safety fault {r.reason}; resetting it (fault policy: reset)'

@@ -17,9 +17,12 @@ Printed per drive and load: whether the run finished, the overruns against the f
 the simulator's), held periods (all, and in the counted experiments), experiments
 flagged timing; for ``example`` the losses against the same experiments replayed in
 lock-step on the same plant with every period fresh (``offline.replay_stand_in``).
-``--stops N``: the library run stopped N times each by SIGINT and SIGTERM mid-experiment
-at each ``--hogs`` load, its last write zero current (``IM_TEST_DRIVE_LOG``), and the time
-from the signal to that write (``--drives`` with no name: the stops only).
+``--timing-tolerance auto`` (or N): the tuner's, instead of its default; the line then says the
+tolerance each run chose and its own host check's late share (``host_check``'s, run before the
+first experiment), beside the floor's. ``--stops N``: the library run stopped N times each
+by SIGINT and SIGTERM mid-experiment at each ``--hogs`` load, its last write zero current
+(``IM_TEST_DRIVE_LOG``), and the time from the signal to that write (``--drives`` with no
+name: the stops only).
 """
 
 from __future__ import annotations
@@ -98,7 +101,9 @@ def drive_arg(drive: str, lib: Path) -> list[str]:
     }[drive]
 
 
-def run_once(drive: str, hogs: int, budget: int, seed: int, lib: Path) -> dict:
+def run_once(
+    drive: str, hogs: int, budget: int, seed: int, lib: Path, tolerance: str | None = None
+) -> dict:
     from bench_realtime import start_hogs, stop_hogs
 
     fl = floor(hogs)
@@ -109,6 +114,8 @@ def run_once(drive: str, hogs: int, budget: int, seed: int, lib: Path) -> dict:
     cmd = [ROS2, 'run', 'im_tuner', 'tuner', '--bench', 'realtime', *drive_arg(drive, lib)]
     cmd += ['--budget', str(budget), '--seed', str(seed), '--remeasure', '0', '--quiet']
     cmd += ['--fault-policy', 'reset', *RT, '--out', str(run)]
+    if tolerance is not None:
+        cmd += ['--timing-tolerance', tolerance]
     h = start_hogs(hogs)
     try:
         p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1800)
@@ -135,6 +142,10 @@ def run_once(drive: str, hogs: int, budget: int, seed: int, lib: Path) -> dict:
             'max_held': s['held_periods']['max'],
             'timing': sum(r['status'] == 'timing' for r in recs),
             'outbox_lost': loop.get('outbox_lost', 0),
+            'tolerance': s['timing_tolerance'],
+            'check_late_pct': ((loop.get('realtime') or {}).get('host_check') or {}).get(
+                'late_pct', float('nan')
+            ),
         }
         if drive == 'example':
             out.update(replayed(recs))
@@ -264,6 +275,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument('--drives', nargs='*', default=list(DRIVES), choices=DRIVES)
     ap.add_argument('--hogs', nargs='+', type=int, default=[0, 2])
     ap.add_argument('--stops', type=int, default=0)
+    ap.add_argument('--timing-tolerance', default=None, help="the tuner's: auto or N")
     ap.add_argument(
         '--stops-without-rt',
         action='store_true',
@@ -276,7 +288,10 @@ def main(argv: list[str] | None = None) -> dict:
     sim_p99: dict[int, float] = {}
     for hogs in a.hogs:
         for drive in a.drives:
-            runs = [run_once(drive, hogs, a.budget, seed, lib) for seed in range(1, a.runs + 1)]
+            runs = [
+                run_once(drive, hogs, a.budget, seed, lib, a.timing_tolerance)
+                for seed in range(1, a.runs + 1)
+            ]
 
             def med(k: str, runs: list[dict] = runs) -> float:
                 return float(statistics.median(float(r[k]) for r in runs))
@@ -292,6 +307,11 @@ def main(argv: list[str] | None = None) -> dict:
                 f'{med("max_lateness_us"):.0f} us (floor {med("floor_max_lateness_us"):.0f}); '
                 f'work p50/p99 {med("work_p50"):.0f} / {med("work_p99"):.0f} us'
             )
+            if a.timing_tolerance is not None:
+                line += (
+                    f'; tolerance {a.timing_tolerance}: chose {[r["tolerance"] for r in runs]}, '
+                    f'its check late {[r["check_late_pct"] for r in runs]} %'
+                )
             if hogs in sim_p99 and drive != 'sim':
                 line += f' (simulator p99 {sim_p99[hogs]:.0f}, target <= {2 * sim_p99[hogs]:.0f})'
             line += (

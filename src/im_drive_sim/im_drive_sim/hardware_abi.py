@@ -2,7 +2,7 @@
 
 A hardware class written in Python (``example_drive.Hardware``) runs its ``write`` and
 ``read`` as Python in the loop thread: about 9x the simulator's period work and the GIL
-every period (issue 38: the rehearsal could not finish a run on a lightly loaded 2-core
+every period (so a rehearsal could not finish a run on a lightly loaded 2-core
 machine). This module lets the loop call a power stage *by address*, with no GIL and no
 interpreter, in two forms:
 

@@ -2,7 +2,7 @@
 stage given by address (``hardware_abi``: a C library, a compiled class), as numba
 functions the composed loop calls without the GIL (``im_tuner.bench.compiled_loop``).
 
-Why (issue 38): run as Python, the example drive's period with a user's ``read``/
+Why: run as Python, the example drive's period with a user's ``read``/
 ``write`` cost 52/152 us (p50/p99) against the simulator's compiled 6/16, and needed the
 GIL every period, so a busy machine made its experiments come back ``timing``. The same
 logic compiled calls the power stage by address: no interpreter in the period.

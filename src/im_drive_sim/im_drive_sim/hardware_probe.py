@@ -1,5 +1,5 @@
 """The declared command delay, measured: a short latency probe of a power stage before a
-composed bench runs it (``tuner --bench realtime --drive ...``; issue 38).
+composed bench runs it (``tuner --bench realtime --drive ...``).
 
 A drive that acts on a command two periods after it while declaring one period makes
 every experiment's labels lie (the controller counts fresh periods that were not) and

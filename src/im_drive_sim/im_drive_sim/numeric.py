@@ -5,7 +5,7 @@ widest SIMD extension the CPU has, and OpenBLAS picks its kernels (gemm, the LAP
 routines built on them) by the CPU's core type.  The AVX-512 paths and the AVX2 paths
 give different last bits: on an Intel Xeon with AVX-512 and an AMD EPYC without it the
 same seeded CMA-ES, TPE or ``safe`` run asks different points after a few steps, and a
-study's tables differ (issue 37).  The numba kernels of the drive are not affected: LLVM
+study's tables differ.  The numba kernels of the drive are not affected: LLVM
 neither reorders floating-point sums nor contracts them into FMAs without ``fastmath``,
 and their maths calls go to the C library's exp/sin, which picks its FMA variant on every
 x86-64-v3 CPU.

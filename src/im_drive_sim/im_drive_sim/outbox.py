@@ -1,7 +1,7 @@
 """What a real-time loop publishes, taken out of its period: bounded rings, a publisher
 thread that never holds the GIL while rcl publishes, and a tap for the run's recorder.
 
-Why (issue 27, docs/real-drive.md "Real-time set-up"): an rclpy ``publish`` costs 5-30 us
+Why (docs/real-drive.md, "Real-time set-up"): an rclpy ``publish`` costs 5-30 us
 of the loop's 200 us period, and on a reliable topic whose reader stopped taking (a
 visualiser, a ``ros2 topic echo`` suspended with Ctrl-Z) Fast DDS blocks it for up to its
 max blocking time (100 ms) -- with the GIL held, since rclpy does not release it in

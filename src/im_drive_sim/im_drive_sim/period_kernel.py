@@ -2,7 +2,7 @@
 ``DriveSimNode.take_commands`` do, as numba functions a composed loop calls without the
 GIL (``im_tuner.bench.compiled_loop``).
 
-Why (issue 27): run as Python, the glue of a period (the command latch, the counters, the
+Why: run as Python, the glue of a period (the command latch, the counters, the
 state's message, the decimated /clock and joint_states) cost more than the model step
 itself -- the loop thread's per-period work was p50 ~40 us, p99 ~100 us on a 2-core
 machine, most of it interpreter time, and the thread needed the GIL every period. The

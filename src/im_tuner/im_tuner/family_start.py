@@ -1,9 +1,9 @@
 """Each packaged drive's start at standstill: does its speed loop chatter at the current
-limit? The measurement behind docs/drive-family.md, "Start gains" (issue 40).
+limit? The measurement behind docs/drive-family.md, "Start gains".
 
 Pure (no rclpy). One encoder count moves the speed estimate by (1 - a) 2 pi/(N Ts) in a
 period (``family.count_step``); the speed loop's P gain turns it into a current step. With
-the start's gains scaled by the inertia ratio alone (the rule before issue 40), that step
+the start's gains scaled by the inertia ratio alone (the earlier rule), that step
 was 58-80 % of isq_max on the ratio-10 drives: at standstill the encoder's one-count limit
 cycle became a current chatter of several amperes, on ``im7500w-j10`` at the current limit.
 ``family.start_scale`` caps it at ``family.COUNT_STEP_MAX`` of isq_max.
@@ -62,7 +62,7 @@ def standstill_windows(e: ExperimentConfig) -> tuple[tuple[float, float], ...]:
 
 
 def inertia_rule_experiment(setup: F.DriveSetup) -> ExperimentConfig:
-    """The drive's experiment by the rule before issue 40: the start's k_pw, k_iw scaled by
+    """The drive's experiment by the inertia rule alone: the start's k_pw, k_iw scaled by
     the inertia ratio alone, the loss weights calibrated on that start."""
     k = F.drive_scales(setup.drive.machine).inertia
     g = ExperimentConfig().fallback_gains

@@ -24,13 +24,13 @@ __all__ = [
 ]
 
 #: [periods] held or late drive periods an experiment may have and still count, by
-#: default (the tuner's --timing-tolerance, the drive host's). Issue 38: 10 held periods
+#: default (the tuner's --timing-tolerance, the drive host's): 10 held periods
 #: change a loss by at most ~2 % (95th percentile), within the bench profile's 2.4 %
 #: spread of repeated experiments (``python -m im_tuner.study.held``; docs/real-drive.md)
 DEFAULT_TIMING_TOLERANCE = 10
 
 #: The standstill-ripple limit of the final choice, by default (the tuner's
-#: --ripple-limit; issue 40 part 6): the applied gains' rms of isq* in each standstill
+#: --ripple-limit): the applied gains' rms of isq* in each standstill
 #: window at most this many times the hand-tuned start's (docs/optimisers.md, "The
 #: standstill ripple").  On by default for the algorithms of RIPPLE_LIMIT_ALGOS only: the
 #: default (safe) is what a user's drive keeps; the others reproduce or compare the

@@ -379,7 +379,7 @@ IDENTIFIED_J_SPREAD = 0.1
 #: the model's optimum is worth finding: on im7500w-j10 150 per seed stopped short in a
 #: valley of the loss (J x0.5: the chosen point 0.52 of L_ref on the plant, Py-BOBYQA's
 #: search 0.48; the four searches ended at 0.50-0.60 of the start's loss on the model),
-#: 300 found 0.47-0.49; the default's re-measured loss on the issue-40 grid went from
+#: 300 found 0.47-0.49; the default's re-measured loss on the plant-mismatch grid went from
 #: 0.511 to 0.492 (J x0.5), 0.437 to 0.417 (J x1.5), 0.506 to 0.479 (all mismatches; each
 #: with sigma 0.03 after the point, no ripple limit).  With a ripple limit the choice is
 #: within it on the models (``_compute``; im750w-j1 at J x1.5 found a loud point before).

@@ -296,7 +296,7 @@ class InProcess:
         if callable(stop_loop):
             stop_loop()  # the run is over: zero current, and counters that stand still
         # the last status now: the summary's loop.outbox counted one /drive/status fewer
-        # than the bag when it was published after these figures were taken (issue 41)
+        # than the bag when it was published after these figures were taken
         self._final_status()
         d = self.bench.drive
         report = drive_report(

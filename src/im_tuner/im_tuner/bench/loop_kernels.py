@@ -5,7 +5,7 @@ schedule and its figures; ``G_*``: the gate; ``EV_*``: the event ring; ``M_*``: 
 messages). The Python side that drives them -- the loop lock, the nodes' state handed in
 and out, the figures read back -- is :mod:`.compiled_loop`.
 
-Why (issue 27, docs/real-drive.md "Real-time set-up"): the loop run as Python -- a
+Why (docs/real-drive.md, "Real-time set-up"): the loop run as Python -- a
 handful of node methods per period, each a few dozen interpreter operations -- took
 p50 ~40 us and p99 ~100 us of the 200 us period on a 2-core machine, and needed the GIL
 every period, so any Python thread beside it (the tuner, the recorder's drain) could

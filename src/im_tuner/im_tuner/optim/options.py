@@ -34,7 +34,7 @@ __all__ = [
 #: Every algorithm name accepted by make_optimizer (and ``--algo``).
 ALGOS: tuple[str, ...] = ('spsa', 'necga', 'cga', 'pecga', 'rcga', 'cmaes', 'tpe', 'safe')
 #: the tuner's optimiser when none is named: the fewest experiments and aborted ones from
-#: a hand-tuned start (issue 19; docs/tuner.md, "Which algorithm")
+#: a hand-tuned start (docs/tuner.md, "Which algorithm")
 DEFAULT_ALGO = 'safe'
 #: algo -> (module of this package, class): imported by :func:`.base.algorithm_class` only
 MODULES: dict[str, tuple[str, str]] = {

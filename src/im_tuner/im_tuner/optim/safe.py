@@ -64,7 +64,7 @@ On u in [0, 1]^dim, from the start point u0 (the hand-tuned gains, known to be s
   nearest measured point, and that point's speed-error term (the one that tripped the
   supervisor in 31 of 32 aborts) was no higher than at the start (0.47 of its
   threshold; mostly 0.15-0.3): the stability edge gives no warning a model could learn,
-  only the step length keeps the search off it.  In 40-run studies (issue 19)
+  only the step length keeps the search off it.  In 40-run studies
   a ceiling of 0.5 gave 1.6 aborted experiments per run, 0.1 gave 0.65 and 0.08 gave
   0.48, with the median evaluations to 0.5 at 23.5, 21.5 and 22.
 

@@ -36,7 +36,7 @@ when its final loss (the smallest measured non-aborted loss: the paper's final
 controller) is at most ``satisfactory`` (default 0.9: 10 % better than the hand-tuned
 start).  docs/reproduction.md says why.
 
-**Drives** (issue 29): a study's drive, experiment and tuner parameters come from
+**Drives**: a study's drive, experiment and tuner parameters come from
 ``im_tuner.family.drive_setup`` (``StudySpec.drives``/``realism``; none given: the
 packaged drive, as before).  ``--drives A,B`` runs one study per drive (``drives``), each
 normalised by its own hand-tuned start, at each algorithm's recommended configuration
@@ -44,7 +44,7 @@ normalised by its own hand-tuned start, at each algorithm's recommended configur
 up over the drives (``summary``: mean and worst drive per method; the default against
 the issue's goal).
 
-**The plant** (issue 40): ``--plant`` and ``--plant-mismatch`` make the offline bench a
+**The plant**: ``--plant`` and ``--plant-mismatch`` make the offline bench a
 drive other than the one the tuner is told (``StudySpec.plant``, ``StudySpec.mismatch``):
 the runs measure there, L_ref is the hand-tuned start there, and everything the tuner
 derives from its drive (experiment, box, start, ``safe``'s first step) stays the told

@@ -1,4 +1,4 @@
-"""The ``bench`` realism profile's calibration (issue 29): one command,
+"""The ``bench`` realism profile's calibration: one command,
 ``python -m im_tuner.study.calibrate`` (``make calibrate-bench``), measures and prints the
 fit and writes it as docs/calibration.md.
 

@@ -135,7 +135,7 @@ def fig_convergence(st: StudyStats):
     return fig
 
 
-#: The goal of issue 19 for a real-bench default (drawn on the comparison figure).
+#: The goal for a real-bench default (drawn on the comparison figure).
 GOAL = {'remeasured': 0.46, 'evals': 3.0, 'fast': 25.0, 'aborted_per_run': 1.0}
 
 

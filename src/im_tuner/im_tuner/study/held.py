@@ -1,5 +1,5 @@
 """What N held periods do to a loss: the measurement behind the default
-``timing_tolerance`` (issue 38; ``python -m im_tuner.study.held``, docs/real-drive.md
+``timing_tolerance`` (``python -m im_tuner.study.held``, docs/real-drive.md
 "Timing tolerance").
 
 A drive that cannot pause holds its last command over every period its loop starts too

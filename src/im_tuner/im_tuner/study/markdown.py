@@ -93,7 +93,7 @@ def beside_md(st: StudyStats, other: StudyStats) -> str:
 
 
 def beyond_md(st: StudyStats, figures: dict[str, str]) -> list[str]:
-    """The section 'beyond the paper': every configuration on one table (issue 19)."""
+    """The section 'beyond the paper': every configuration on one table."""
     from .figures import GOAL
 
     head, rows = comparison_rows(st)
@@ -126,7 +126,7 @@ def beyond_md(st: StudyStats, figures: dict[str, str]) -> list[str]:
 def numeric_line(st: dict | None) -> str:
     """The write-up's sentence on the numeric baseline its runs ran on."""
     if st is None:
-        return 'Numeric baseline: not recorded (a study from before issue 37).'
+        return 'Numeric baseline: not recorded.'
     from im_drive_sim.numeric import describe
 
     held = st['state'] == 'held'
@@ -310,7 +310,7 @@ def _md_rows(head: list[str], rows: list[list[str]]) -> list[str]:
 
 def family_md(fs: FamilyStats, command: str, figures: dict[str, dict[str, str]]) -> str:
     """The study over drives: each drive's comparison (one row per method), the summary
-    over the drives and whether the default meets issue 29's goal on each.  ``figures``:
+    over the drives and whether the default meets its goal (``summary.GOAL``) on each.  ``figures``:
     drive name -> {figure name: relative path}."""
     from .summary import GOAL
 
@@ -357,7 +357,7 @@ def family_md(fs: FamilyStats, command: str, figures: dict[str, dict[str, str]])
         'and name.',
         '',
         *_md_rows(*summary_rows(fs)),
-        f'The goal for the default (issue 29): mean evaluations to <= {fs.threshold:g} '
+        f'The goal for the default: mean evaluations to <= {fs.threshold:g} '
         f'<= {GOAL["evals"]:g}; median to <= {FAST_LEVEL:g} <= {GOAL["fast"]:g}, reached in '
         f'>= {GOAL["fast_reached"]:g} % of runs; <= {GOAL["aborted_per_run"]:g} aborted '
         f'experiment per run; re-measured within {100 * GOAL["remeasured"]:g} % of the '

@@ -1,4 +1,4 @@
-"""The study's simulated plant when it is not the drive the tuner is told (issue 40):
+"""The study's simulated plant when it is not the drive the tuner is told:
 ``study --plant FILE|NAME`` and ``--plant-mismatch 'J=x1.5 Rr=x1.3 coulomb=2% delay=2'``.
 
 **The split.** Everything the tuner derives from *its* drive -- the experiment

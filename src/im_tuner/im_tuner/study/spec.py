@@ -110,8 +110,8 @@ RECOMMENDED: dict[str, tuple[str, ...]] = {
     'bobyqa': ('rhobeg=0.08',),
 }
 #: The tuner's default on a drive it knows (``optim.DEFAULT_ALGO`` with ``--first
-#: identify``, the default with ``--drive-config`` or a simulated bench): the row issue 29's
-#: and issue 40's goals are for.
+#: identify``, the default with ``--drive-config`` or a simulated bench): the row the
+#: default's goals (``summary.GOAL``, the plant-mismatch grid) are for.
 DEFAULT_ROW: tuple[str, str] = (optim.DEFAULT_ALGO, 'first step from the identified drive')
 #: Start of a run when its cell does not say: SPSA a random point (as the paper), every
 #: other algorithm that takes a start the hand-tuned gains (what a real bench has).

@@ -23,7 +23,7 @@ A study of a single run per configuration (a smoke test) has no bootstrap interv
 (``MIN_RUNS_FOR_INTERVALS``): its means stand alone (Wilson's interval of a percentage is
 defined for one run and kept), and a verdict that needs an interval is 'not significant'.
 
-Both come from scipy (issue 19: the field's library, not hand-written code):
+Both come from scipy (the field's library, not hand-written code):
 ``scipy.stats.bootstrap(..., paired=True, method='percentile')`` with one fixed seed for
 every call, so every cell and every difference sees the same resampled run indices, and
 ``scipy.stats.binomtest(k, n).proportion_ci(method='wilson')``.
@@ -67,7 +67,7 @@ PAPER_CELL: dict[str, tuple[int, int]] = {'spsa': (1, 1), 'necga': (0, 1)}
 PAPER_US_PER_ITERATION: dict[str, float] = {'spsa': 180.0, 'necga': 600.0}
 EXPERIMENT_S = 1.625  # one experiment on the bench [s]: its 0.5 s settle + the 1.125 s measured
 #: The second level of the comparison beyond the paper (normalised loss): "good", where
-#: every sensible method ends (issue 19's table: evaluations to <= 0.5, median).
+#: every sensible method ends (the comparison table: evaluations to <= 0.5, median).
 FAST_LEVEL = 0.5
 BOOT = 4000
 BOOT_SEED = 20051

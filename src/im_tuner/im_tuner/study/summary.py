@@ -1,5 +1,5 @@
 """The study over several drives: a summary per method over the drives, and whether the
-tuner's default meets issue 29's goal on each drive.  Pure (numpy-free arithmetic on the
+tuner's default meets its goal (``GOAL``) on each drive.  Pure (numpy-free arithmetic on the
 per-drive :class:`~.stats.StudyStats`).
 
 Per method (one configuration, matched by algorithm and label across the drives), for
@@ -8,7 +8,7 @@ the worst drive's value (highest loss, evaluations or aborts; lowest share of ru
 reaching ``FAST_LEVEL``).  Every drive's losses are normalised by its own L_ref (its own
 hand-tuned start = 1), so the drives' values can be averaged.
 
-The goal (issue 29, for the default on the bench profile and across the family): mean
+The goal (for the default on the bench profile and across the family): mean
 evaluations to <= the satisfactory level <= 3; median evaluations to <= FAST_LEVEL <= 25,
 reached in >= 99 % of runs; <= 1 aborted experiment per run; re-measured final loss
 within 2 % of the best row of the drive.
@@ -35,7 +35,7 @@ __all__ = [
     'summarize',
 ]
 
-#: Issue 29's goal for the default: evaluations to the satisfactory level (mean), to
+#: The goal for the default: evaluations to the satisfactory level (mean), to
 #: FAST_LEVEL (median) and the share reaching it [%], aborted per run, and the re-measured
 #: loss's allowed excess over the drive's best row (relative).
 GOAL = {

@@ -124,7 +124,7 @@ COMPARISON = (
 
 
 def comparison_rows(st: StudyStats) -> tuple[list[str], list[list[str]]]:
-    """The comparison of every configuration (issue 19): header and one row per cell,
+    """The comparison of every configuration: header and one row per cell,
     each value with its 95 % interval."""
     head = ['method (configuration, start)'] + [
         h.format(thr=st.threshold, fast=FAST_LEVEL) for h, _a, _d, _k in COMPARISON
@@ -192,7 +192,7 @@ def summary_rows(fs: FamilyStats) -> tuple[list[str], list[list[str]]]:
 
 
 def goal_lines(fs: FamilyStats) -> list[str]:
-    """One line per drive: whether the default meets issue 29's goal there."""
+    """One line per drive: whether the default meets its goal there (``summary.GOAL``)."""
     return [
         f'{g.drive}: the default ({g.method}) '
         + ('meets the goal' if g.meets else 'misses the goal: ' + '; '.join(g.misses))
@@ -226,7 +226,7 @@ def family_text(fs: FamilyStats) -> str:
     L.append('Summary over the drives (normalised loss: each drive by its own hand-tuned start)')
     L += _aligned(head, rows)
     L.append('')
-    L.append('The default against the goal (issue 29):')
+    L.append('The default against its goal:')
     L += ['  ' + g for g in goal_lines(fs)] or ['  (the default is not in this study)']
     return '\n'.join(L) + '\n'
 

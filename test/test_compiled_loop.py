@@ -109,14 +109,18 @@ def test_a_thread_waiting_for_the_loop_lock_gets_it_within_two_periods(ros_conte
     try:
         assert bench.compiled is not None
         wait_until(lambda: bench.periods >= 500, 10.0, message='500 periods')
-        waits = []
+        waits, oversleeps = [], []
 
         def enter_often() -> None:
             for _ in range(200):
                 t = time.perf_counter()
                 with bench.lock:
                     waits.append(time.perf_counter() - t)
+                # the host's own delays for this thread, in the same seconds: how much
+                # later than asked a 1 ms sleep returns
+                t = time.perf_counter()
                 time.sleep(0.001)
+                oversleeps.append(time.perf_counter() - t - 0.001)
 
         th = threading.Thread(target=enter_often)
         th.start()
@@ -125,10 +129,17 @@ def test_a_thread_waiting_for_the_loop_lock_gets_it_within_two_periods(ros_conte
         bench.stop_loop()
     finally:
         bench.destroy()
-    waits_us = np.array(waits) * 1e6
+    waits_us, over_us = np.array(waits) * 1e6, np.array(oversleeps) * 1e6
+    said = (
+        f'waits p50/p90/max {np.percentile(waits_us, [50, 90, 100]).round()} us; the same '
+        f"thread's 1 ms sleeps returned late by p50/p90/max "
+        f'{np.percentile(over_us, [50, 90, 100]).round()} us'
+    )
     # the loop returns after the period under way and lets the waiter in: a period or
-    # two (a loaded machine may add a scheduling delay; a starved waiter would wait for
-    # many 5 ms chunks)
+    # two. A starved waiter would wait for the loop's 5 ms chunks every time; a host that
+    # stalls this VM for milliseconds now and then delays some waits as it delays the
+    # thread's sleeps: beyond 2 ms, at most 10 % of the waits more than of the sleeps
+    # (a sleep is 1 ms long, a wait a fraction of that: the sleeps meet more stalls)
     assert len(waits) == 200
-    assert np.median(waits_us) < 400, np.percentile(waits_us, [50, 90, 100])
-    assert np.percentile(waits_us, 90) < 2000, np.percentile(waits_us, [50, 90, 100])
+    assert np.median(waits_us) < 400, said
+    assert np.mean(waits_us > 2000) <= 0.10 + np.mean(over_us > 2000), said

@@ -221,32 +221,44 @@ def test_the_host_is_checked_before_the_first_experiment_and_auto_takes_its_tole
     assert json.loads(meta['im_tuner.realtime']['pm_qos']) == sched['pm_qos']
 
 
-def test_a_drive_that_declares_command_delay_2_runs_fresh_experiments(tmp_path, floor):
+def test_a_drive_that_declares_command_delay_2_runs_fresh_experiments(tmp_path, floor, host_floor):
     """A drive file with ``command_delay: 2`` (a power stage that latches its command at
     the period start, docs/real-drive.md): the simulator composed in real time runs every
     period fresh under the declared delay, and its losses equal, bit for bit, the
     lock-step replay on a delay-2 drive; the example drive (wall clock, its stand-in
     latching the command) labels its periods by the same delay, so they count fresh. The
     example drive cannot pause: the machine's late starts hold periods (its floor), and an
-    attempt past the tolerance is flagged and re-run (``assert_flagged_as_counted``)."""
+    attempt past the tolerance is flagged and re-run (``assert_flagged_as_counted``); a run
+    the host made later than its floor is judged against the host (``run_judged``)."""
     cfg = load_config(None)
     drive_file = tmp_path / 'delay2.yaml'
     drive_file.write_text(yaml.safe_dump({**cfg.to_dict(), 'command_delay': 2}))
     d2 = load_config(drive_file)
     assert d2.command_delay == 2
+    made: list[Path] = []  # every run's directory, each attempt its own
     for drive in ('sim', 'example'):
-        run = tmp_path / drive
-        p = subprocess.run(
-            [
-                *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '1', '--seed', '4'),
-                *('--drive', drive, '--drive-config', str(drive_file), '--remeasure', '0'),
-                *('--no-record', '--quiet', '--out', str(run), '--retries', '6', *RT),
-                *('--ros-args', '-p', f'timing_tolerance:={TOLERANCE}'),
-            ],
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
+
+        def start(_tol: int, drive: str = drive) -> tuple[subprocess.CompletedProcess, Path]:
+            run = tmp_path / f'{drive}_{len(made)}'
+            made.append(run)
+            p = subprocess.run(
+                [
+                    *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '1'),
+                    *('--seed', '4', '--drive', drive, '--drive-config', str(drive_file)),
+                    *('--remeasure', '0', '--no-record', '--quiet', '--out', str(run)),
+                    *('--retries', '6', *RT, '--ros-args', '-p', f'timing_tolerance:={TOLERANCE}'),
+                ],
+                capture_output=True,
+                text=True,
+                timeout=300,
+            )
+            return p, run
+
+        if drive == 'sim':  # it pauses when the loop is late: the host holds nothing
+            p, run = start(TOLERANCE)
+        else:
+            host_floor.require()
+            p, run, _ = host_floor.run_judged(start)
         assert p.returncode == 0, (floor, p.stdout + p.stderr[-3000:])
         recs = results(run)
         assert_flagged_as_counted(recs, floor)
@@ -264,7 +276,9 @@ def test_a_drive_that_declares_command_delay_2_runs_fresh_experiments(tmp_path, 
             assert [r.loss for r in replay_realtime(recs, cfg, seed)] != [r['loss'] for r in recs]
 
 
-def test_a_stalled_period_on_a_drive_that_cannot_pause_is_held_and_flagged(tmp_path, floor):
+def test_a_stalled_period_on_a_drive_that_cannot_pause_is_held_and_flagged(
+    tmp_path, floor, host_floor
+):
     """The simulated drive in its hardware-like mode (a power stage cannot pause: a late
     period start follows periods that went by with the old current held), composed with
     the controller; the loop stalls 0.6 s once (the drive's test hook, at step 6000). 0.6 s
@@ -273,20 +287,29 @@ def test_a_stalled_period_on_a_drive_that_cannot_pause_is_held_and_flagged(tmp_p
     falls depends on the machine's start-up), it holds >= 500 periods of a measured part,
     and the experiment it holds >= the tolerance of is flagged ``timing`` and re-run.
     What else the machine's own late starts (its floor) hold is judged as counted
-    (``assert_flagged_as_counted``), never assumed away."""
-    run = tmp_path / 'run'
+    (``assert_flagged_as_counted``), never assumed away; a run the host made later than
+    its floor is judged against the host (``run_judged``)."""
+    host_floor.require()
     stall, stall_s = 6000, 0.6
-    p = subprocess.run(
-        [
-            *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '1', '--seed', '4'),
-            *('--remeasure', '0', '--no-record', '--quiet', '--out', str(run), '--retries', '6'),
-            *(*RT, '--ros-args', '-p', 'hardware_like:=true', '-p', f'test_stall_step:={stall}'),
-            *('-p', f'test_stall_duration:={stall_s}', '-p', f'timing_tolerance:={TOLERANCE}'),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    attempts = iter(range(2))
+
+    def start(_tol: int) -> tuple[subprocess.CompletedProcess, Path]:
+        run = tmp_path / f'run_{next(attempts)}'
+        p = subprocess.run(
+            [
+                *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '1', '--seed', '4'),
+                *('--remeasure', '0', '--no-record', '--quiet', '--out', str(run)),
+                *('--retries', '6', *RT, '--ros-args', '-p', 'hardware_like:=true'),
+                *('-p', f'test_stall_step:={stall}', '-p', f'test_stall_duration:={stall_s}'),
+                *('-p', f'timing_tolerance:={TOLERANCE}'),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        return p, run
+
+    p, run, _ = host_floor.run_judged(start)
     assert p.returncode == 0, (floor, p.stdout + p.stderr[-3000:])
     recs = results(run)
     d = json.loads((run / 'summary.json').read_text())['sessions'][0]['drive']

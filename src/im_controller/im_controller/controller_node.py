@@ -485,7 +485,13 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
 
     def _on_heartbeat(self, msg: Header) -> None:
         if msg.stamp.sec == 0 and msg.stamp.nanosec == 0:
-            self._on_goodbye(msg.frame_id or 'a client')
+            # the client's goodbye (contract.HEARTBEAT_TOPIC): zero current now, not
+            # tuner_timeout later (nobody watches a drive left holding its position),
+            # said as the normal end it is unless an experiment was running; ignored
+            # unarmed or tripped (the copies of one goodbye, a late one)
+            if self._heartbeat_wall is not None and not self._tuner_tripped:
+                self.heartbeat_from = msg.frame_id or 'a client'
+                self.tuner_watchdog(goodbye=True)
             return
         if self._heartbeat_wall is None:
             self.get_logger().info(
@@ -502,16 +508,6 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.heartbeat_from = msg.frame_id
         self._tuner_tripped = False
 
-    def _on_goodbye(self, who: str) -> None:
-        """The client's goodbye (``contract.HEARTBEAT_TOPIC``): zero current now rather
-        than ``tuner_timeout`` later (a drive left holding its position with nobody
-        watching is what the watchdog is for), said as the normal end it is -- no error
-        -- unless an experiment was running; the next tuner clears ``tuner_lost`` itself."""
-        if self._heartbeat_wall is None or self._tuner_tripped:
-            return  # not armed, or already tripped (the copies of one goodbye, a late one)
-        self.heartbeat_from = who
-        self.tuner_watchdog(goodbye=True)
-
     def tuner_watchdog(self, goodbye: bool = False) -> None:
         """No heartbeat for ``tuner_timeout`` s since the last one, or the tuner's goodbye
         (``goodbye``): zero current (the kernel's FAULT answers every state with isq* = 0
@@ -527,12 +523,8 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.tuner_trips += 1
         who = self.heartbeat_from or 'the tuner'
         running = self.runner.running
-        why = (
-            f'{who} ended its run (its goodbye)'
-            if goodbye
-            else f'no heartbeat from {who} for {silent:.2f} s (tuner_timeout '
-            f'{self.tuner_timeout:g} s)'
-        )
+        why = f'no heartbeat from {who} for {silent:.2f} s (tuner_timeout {self.tuner_timeout:g} s)'
+        why = f'{who} ended its run (its goodbye)' if goodbye else why
         say = self.get_logger().info if goodbye and not running else self.get_logger().error
         if self.runner.faulted:
             say(f'{why}; already in FAULT ({self.runner.fault_reason}): zero current')

@@ -213,3 +213,28 @@ def test_every_installed_executable_is_interrupted_once_per_moment(tmp_path):
     assert got == scripts
     grouped = [exe for g in GROUPS for exe in g]
     assert sorted(grouped) == sorted(exe for _pkg, exe in scripts)
+
+
+@pytest.mark.parametrize('cause', ['interrupt', 'none'])
+def test_a_ctrl_c_that_a_c_extension_turns_into_its_import_error_is_interrupted(cause):
+    """A Ctrl-C while rclpy's C extension initialises (the tuner imports rclpy in its main)
+    came out as ``ImportError: initialization failed``, a traceback and exit 1 (CI,
+    2026-12-03): an error whose cause is a KeyboardInterrupt is the interrupt -- one line,
+    exit 130; any other error is still the error, traceback and all."""
+    code = (
+        'import sys\n'
+        'from im_drive_sim.cli import executable\n'
+        'def main():\n'
+        '    try:\n'
+        '        raise KeyboardInterrupt if sys.argv[1] == "interrupt" else OSError("no")\n'
+        '    except BaseException as e:\n'
+        '        raise ImportError("initialization failed") from e\n'
+        'executable("demo", main)\n'
+    )
+    p = subprocess.run(
+        [sys.executable, '-c', code, cause], capture_output=True, text=True, timeout=60
+    )
+    if cause == 'interrupt':
+        assert (p.returncode, p.stderr) == (130, 'demo: interrupted\n'), p.stderr
+    else:
+        assert p.returncode == 1 and 'ImportError: initialization failed' in p.stderr, p.stderr

@@ -175,9 +175,28 @@ def executable(prog: str, main: str | Callable[[], int]) -> NoReturn:
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED
         print(f'{prog}: interrupted', file=sys.stderr, flush=True)
+    except Exception as exc:
+        # a Ctrl-C inside a C extension's initialisation (rclpy's, imported by main)
+        # comes out as that import's error, the KeyboardInterrupt its cause: interrupted
+        if not _caused_by_interrupt(exc):
+            raise
+        code = EXIT_INTERRUPTED
+        print(f'{prog}: interrupted', file=sys.stderr, flush=True)
     except SystemExit as exc:
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     _bounded_exit(int(code or 0))
+
+
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is in ``exc``'s chain of causes and contexts."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
 
 
 def _exit_quietly(prog: str) -> Callable[[int, object], None]:

@@ -299,12 +299,8 @@ class HostFloor(dict):
         """What a failed wall-clock run says of its host: None when its periods were no
         later than this floor allows (twice the floor's late share plus the margin) or its
         own period work was slow (the code's fault either way), else its figures."""
-        import json
-
-        try:
-            summary = json.loads((run / 'summary.json').read_text())
-            drive = summary['sessions'][-1]['drive']
-        except (OSError, ValueError, KeyError, IndexError):
+        drive = _drive_record(run)
+        if drive is None:
             return None  # no record of the periods: nothing says it was the host
         work = ((drive.get('loop') or {}).get('period_work_us') or {}).get('p50')
         if drive.get('steps', 0) <= 0 or (work is not None and work > SLOW_WORK_US):
@@ -360,14 +356,19 @@ class HostFloor(dict):
     @staticmethod
     def _checks(run: Path) -> list[dict]:
         """The host check a run made before its first experiment (summary.json), if any."""
-        import json
-
-        try:
-            summary = json.loads((run / 'summary.json').read_text())
-            check = summary['sessions'][-1]['drive']['loop']['realtime']['host_check']
-        except (OSError, ValueError, KeyError, IndexError, TypeError):
-            return []
+        drive = _drive_record(run) or {}
+        check = ((drive.get('loop') or {}).get('realtime') or {}).get('host_check')
         return [check] if check and 'late_pct' in check else []
+
+
+def _drive_record(run: Path) -> dict | None:
+    """The drive's record of a run's last session (summary.json), None if there is none."""
+    import json
+
+    try:
+        return json.loads((run / 'summary.json').read_text())['sessions'][-1]['drive']
+    except (OSError, ValueError, KeyError, IndexError, TypeError):
+        return None
 
 
 @pytest.fixture

@@ -74,11 +74,15 @@ def test_every_drive_form_tunes_three_evaluations_with_recording(tmp_path, drive
     meta = yaml.safe_load((bag / 'metadata.yaml').read_text())
     custom = meta['rosbag2_bagfile_information']['custom_data']
     assert custom['im_tuner.lost_total'] == '0', custom['im_tuner.counts']
-    # every state the drive published is in the bag (a late loop publishes none for the
-    # periods it missed: they are held, on the drive's timeline), and every loss
+    # every state the drive published is in the bag, and every loss. A late loop publishes
+    # none for the periods it missed (how many is the host's: they are held, on the drive's
+    # timeline), so state 0 and each period the loop ran published one state, and the
+    # timeline covers the run to its last experiment's end.
     last = recs[-1]['t_end_ns'] // 200_000
     published = json.loads(custom['im_tuner.counts'])['/drive/state']['published']
-    assert counts['/drive/state'] == published and published > last // 2, (counts, last)
+    d = json.loads((run / 'summary.json').read_text())['sessions'][-1]['drive']
+    assert counts['/drive/state'] == published == 1 + d['steps'] - d['missed'] > 1, (counts, d)
+    assert d['steps'] >= last, (d, last)
     assert len(final) <= counts['/controller/loss'] <= len(recs), (counts, recs)
     if drive != 'example':
         log = read_log(str(hw))

@@ -104,13 +104,13 @@ demo-drive: setup
 bench: setup
 	$(PY) benchmarks/run_all.py
 
-# The `bench` realism profile's calibration (issue 29): the spread of repeated experiments
+# The `bench` realism profile's calibration: the spread of repeated experiments
 # and the paper's centre cells (Tables I-II) for `ideal` and `bench` at noise scales s,
 # the fit -> docs/calibration.md (im_tuner.study.calibrate; ~5-10 min on 2 cores, niced).
 calibrate-bench: setup
 	nice -n 10 $(PY) -m im_tuner.study.calibrate --out docs/calibration.md $(ARGS)
 
-# The paper's Tables I-III offline (issue 7) and beyond (issues 19, 29), then their write-up
+# The paper's Tables I-III offline and beyond, then their write-up
 # into docs/: reproduction.md (the paper's drive on the `ideal` profile: Tables I-III and
 # every algorithm; then Tables I-III on the `bench` profile beside `ideal` and the paper's)
 # and reproduction-family.md (a study per drive on `bench`, the summary over the drives).

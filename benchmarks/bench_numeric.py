@@ -1,4 +1,4 @@
-"""What the numeric baseline costs (issue 37): the optimisers' ask + tell with numpy's and
+"""What the numeric baseline costs: the optimisers' ask + tell with numpy's and
 OpenBLAS's dispatch held at x86-64-v3 (``im_drive_sim.numeric``, the default) against
 native dispatch (``IM_NUMERIC_BASELINE=off``: AVX-512 where the CPU has it).
 

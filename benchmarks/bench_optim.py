@@ -2,7 +2,7 @@
 
 Each algorithm of ``im_tuner.optim`` with its default options at dim = 5 (the paper's five
 gains; 5 x 16 bits for the binary compact GAs) is driven on a cheap quadratic loss (one
-numpy expression, about 1 us, included in the hot figure only).  Issue target: well below
+numpy expression, about 1 us, included in the hot figure only).  Target: well below
 50 us per evaluation *in the tuning run*.
 
 * **hot**: ``repeats`` batches of ``evals`` back-to-back evaluations after a warm-up batch;

@@ -1,4 +1,4 @@
-"""safe's first step from the drive model: its cost, and the goals of issue 29, on a plant
+"""safe's first step from the drive model: its cost, and the default's goals, on a plant
 that may differ from the model, or on the packaged family of drives.
 
     python benchmarks/bench_prior.py MODEL.yaml [PLANT.yaml] [--runs N] [--budget B]

@@ -1,4 +1,4 @@
-"""The real bench at 5 kHz (issue 18), timed: real-time tuning runs, recording on.
+"""The real bench at 5 kHz, timed: real-time tuning runs, recording on.
 
 Each run is the real command, ``ros2 run im_tuner tuner --bench B --budget N`` (a child
 process, recorder on, a fresh run directory), on these benches and drive modes:
@@ -12,7 +12,7 @@ process, recorder on, a fresh run directory), on these benches and drive modes:
 * ``realtime-processes``: drive, controller and recorder as separate processes (how a
   drive in its own process runs); experiments a controller answered late are flagged
   ``timing`` and re-run (--retries 1 here: the figure is the timing, not the search);
-* the load scenario (issue 27): the composed loop runs SCHED_FIFO 50 by default (as
+* the load scenario: the composed loop runs SCHED_FIFO 50 by default (as
   ros2_control_node), so ``realtime`` is the quiet reference; ``realtime-sched-other``
   the same under the normal policy (``--thread-priority 0``); ``realtime-rt`` with the
   memory locked too (``--thread-priority 50 --lock-memory``); ``realtime-hogs`` next to

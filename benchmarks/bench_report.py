@@ -1,4 +1,4 @@
-"""The report's speed (issue 25): start-up, and a whole report of a ~25 MB bag.
+"""The report's speed: start-up, and a whole report of a ~25 MB bag.
 
 * start-up: ``ros2 run im_tuner report --help`` and a refusal (``report
   /nonexistent``: one line, exit 2), each the real command in a child process, median

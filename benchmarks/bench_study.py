@@ -1,4 +1,4 @@
-"""The offline configuration study (issue 7): the paper's whole grid, timed as a command.
+"""The offline configuration study: the paper's whole grid, timed as a command.
 
 * ``ros2 run im_tuner study`` with the full model and with the reduced model: 12
   configurations x 100 runs x 200 evaluations (+ one reference and one re-measurement
@@ -6,13 +6,13 @@
   tables, figures) and experiments per second;
 * the same per-worker rate on one worker (``--jobs 1``, a 10-run grid), for the scaling
   ratio: how much of every core the pool uses;
-* the run loop's cost (issue 17: a study run is the tuner's ``TuningRun`` on the offline
-  bench): ``study.run_one`` against a bare ask/measure/tell loop on the same bench (the
+* the run loop's cost (a study run is the tuner's ``TuningRun`` on the offline bench):
+  ``study.run_one`` against a bare ask/measure/tell loop on the same bench (the
   yardstick, below), in this process, alternating, median ratio of 5 pairs. Target:
   within 10 %.
 
-Run: ``.venv/bin/python benchmarks/bench_study.py [--runs N]`` (or ``make bench``).  Targets
-(issue 7): full grid <= 300 s on a 2-core machine, reduced <= 120 s.
+Run: ``.venv/bin/python benchmarks/bench_study.py [--runs N]`` (or ``make bench``).  Targets:
+full grid <= 300 s on a 2-core machine, reduced <= 120 s.
 """
 
 from __future__ import annotations

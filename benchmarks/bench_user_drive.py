@@ -1,4 +1,4 @@
-"""A user's drive at the simulator's timing (issue 38): each form of a power stage on the
+"""A user's drive at the simulator's timing: each form of a power stage on the
 composed bench, beside the machine's floor measured in the same minute.
 
     .venv/bin/python benchmarks/bench_user_drive.py [--budget 10] [--runs 1] [--stops 10]

@@ -1,4 +1,4 @@
-"""How much of a study's re-measured loss is the one experiment it re-measures? (issue 40)
+"""How much of a study's re-measured loss is the one experiment it re-measures?
 
 The study's ``re-measured`` column is one experiment of each run's final choice.  On the
 offline bench a controller's loss depends on where the shaft rests when the experiment

@@ -1,10 +1,10 @@
-"""Issue 40's exact-file goal: the default's re-measured loss against the long-CMA-ES bound.
+"""The exact-file goal: the default's re-measured loss against the long-CMA-ES bound.
 
     python benchmarks/cmaes_bound.py --out bags/bound [--drives im750w-j1,im7500w-j10]
         [--seeds 0,1] [--evaluations 1000] [--points 8] [--repeats 10] [--runs 8]
         [--budgets 50,200] [--realism ideal|bench]
 
-The bound (the issue's definition): a CMA-ES run of ``--evaluations`` experiments (the
+The bound: a CMA-ES run of ``--evaluations`` experiments (the
 study's row ``sigma0=0.1``, the tuner's own ``TuningRun`` on the offline bench of the
 drive file as written, each seed of ``--seeds`` with the study's run seeds, once from a
 uniform random point of the box as the study's row starts and once from the hand-tuned
@@ -55,7 +55,7 @@ from im_tuner.study.runs import reference_loss
 from im_tuner.study.spec import StudySpec
 from im_tuner.tuning import TuningRun, run_seeds
 
-#: the issue's goal: the default's expected loss over the bound, per budget
+#: the goal: the default's expected loss over the bound, per budget
 GOAL = {50: 1.04, 200: 1.02}
 #: the study's default row
 DEFAULT_LABEL = 'first step from the identified drive'

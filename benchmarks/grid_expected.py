@@ -1,4 +1,4 @@
-"""Issue 40's mismatch grid judged on expected loss, not one re-measurement.
+"""The mismatch grid (mismatch_grid.py) judged on expected loss, not one re-measurement.
 
     python benchmarks/grid_expected.py --out bags/mismatch4 [--runs 8 --budget 60]
         [--repeats 12] [--drives im750w-j1,im7500w-j10] [--cases exact,J=x0.5,...]
@@ -16,7 +16,7 @@ experiment before every third (so from other rest positions), in units of the pl
 L_ref (the study's: 100 experiments of the hand-tuned start on the plant).  The mean over
 runs of those means is a row's expected loss; its 95 % interval is over the runs.
 
-The goal (issue 40): the default's expected loss within 2 % of the least of the other
+The goal: the default's expected loss within 2 % of the least of the other
 three rows', in every case whose hand-tuned start is stable on the plant (a start whose
 experiments abort on it: no goal, shown as such).  ``--realism bench``
 judges the family study's exact files on the per-drive bench the same way.  Results are

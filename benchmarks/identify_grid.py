@@ -1,6 +1,6 @@
-"""Issue 40's identification goal on every packaged drive: the J identified from the
+"""The identification goal on every packaged drive: the J identified from the
 hand-tuned start's two experiments within 10 % of the plant's, on every packaged drive
-and every mismatch of the issue's grid (J x0.5-x2.5 alone, and J x1.5 Rr x1.3 Lm x0.85
+and every mismatch of mismatch_grid.py (J x0.5-x2.5 alone, and J x1.5 Rr x1.3 Lm x0.85
 Coulomb 2 % delay 2 together).
 
     python benchmarks/identify_grid.py [--drives all|NAME,...] [--cases exact,J=x0.5,...]
@@ -23,7 +23,7 @@ import argparse
 import sys
 import time
 
-from mismatch_grid import CASES  # the issue's mismatches (this directory)
+from mismatch_grid import CASES  # the mismatch grid's cases (this directory)
 
 from im_drive_sim.family import PACKAGED_NAMES
 from im_tuner.family import drive_setup
@@ -34,7 +34,7 @@ from im_tuner.runlog.tally import MemoryRecord
 from im_tuner.study.plant import apply_mismatch, parse_mismatch
 from im_tuner.tuning import TuningRun, run_seeds
 
-#: the issue's goal: |J identified / J plant - 1| <= GOAL
+#: the goal: |J identified / J plant - 1| <= GOAL
 GOAL = 0.10
 
 

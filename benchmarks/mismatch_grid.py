@@ -1,4 +1,4 @@
-"""The mismatch grid of issue 40: the default (safe, first step from the identified
+"""The mismatch grid: the default (safe, first step from the identified
 drive) beside safe from the drive file's model, blind safe, CMA-ES and Py-BOBYQA, on
 plants that are not the told drive (``study --plant-mismatch``), per told drive.
 
@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-#: the issue's mismatches: J alone x0.5-x2.5, and all together
+#: the mismatches: J alone x0.5-x2.5, and all together
 CASES: dict[str, str] = {
     'exact': '',
     'J=x0.5': 'J=x0.5',

@@ -1,4 +1,4 @@
-"""Does the identified model see the standstill ripple the plant shows? (issue 40 part 6)
+"""Does the identified model see the standstill ripple the plant shows?
 
 For the first run of the study's default row (safe, first step from the identified drive)
 on a told drive and a mismatched plant: the drive its start's two experiments identify,

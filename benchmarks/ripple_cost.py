@@ -1,4 +1,4 @@
-"""What the standstill-ripple limit costs the default, run by run (issue 40 part 6).
+"""What the standstill-ripple limit costs the default, run by run.
 
 The family study's default row (``safe``, first step from the identified drive) on each
 drive's own ``bench`` plant, with the tuner's default ripple limit and with the limit off:

@@ -1,4 +1,4 @@
-"""The standstill-ripple limit's price (issue 40 part 6): per told drive and plant case,
+"""The standstill-ripple limit's price: per told drive and plant case,
 the same study twice, with the final choice's ripple limit 1.5 and without
 (``study --ripple-limit 1.5`` / ``off``), for the default (safe, first step from the
 identified drive) and the paper's SPSA and neCGA at their centre configurations.

@@ -1,4 +1,4 @@
-"""All benchmarks of the workspace, with the issue targets beside each figure.
+"""All benchmarks of the workspace, with the targets beside each figure.
 
 Run: ``make bench`` (or ``.venv/bin/python benchmarks/run_all.py``). Figures are medians over
 repeated batches on a shared, noisy machine; compare medians and ratios, not single runs.
@@ -23,7 +23,7 @@ import bench_study
 import bench_tuner
 import bench_user_drive
 
-#: figure -> (unit, target): what the issues ask of each figure; a positive target is an
+#: figure -> (unit, target): what is asked of each figure; a positive target is an
 #: upper bound, a negative one a lower bound (stored negated), None: informational.
 TARGETS = {
     'full_ns_per_step': ('ns/step', 400.0),
@@ -36,39 +36,39 @@ TARGETS = {
     'experiment_rtf_rec_zstd': ('x', None),
     'experiment_rtf_rec_lz4': ('x', None),
     'experiment_rtf_rec_none': ('x', None),
-    # issue 4: with the recorder in the process, at least 80 % of the speed without
+    # with the recorder in the process, at least 80 % of the speed without
     'recording_kept_zstd': ('ratio', -0.8),
     'recording_kept_lz4': ('ratio', -0.8),
     'recording_kept_none': ('ratio', -0.8),
-    # issue 5: the default tuning run, recording included, and the optimiser's cost
+    # the default tuning run, recording included, and the optimiser's cost
     'tuner_necga_rtf': ('x', -5.0),
     'tuner_spsa_rtf': ('x', -5.0),
     'tuner_necga_ask_tell_us': ('us/eval', 50.0),
     'tuner_spsa_ask_tell_us': ('us/eval', 50.0),
     # the optimiser alone, caches disturbed between calls as in the tuner (bench_optim)
     **{f'optim_{a}_cold_us': ('us/eval', 50.0) for a in ('spsa', 'necga', 'cga', 'pecga', 'rcga')},
-    # issue 37: what holding numpy/OpenBLAS at x86-64-v3 costs the optimisers (held/off)
+    # what holding numpy/OpenBLAS at x86-64-v3 costs the optimisers (held/off)
     **{f'numeric_{a}_ratio': ('ratio', None) for a in ('cmaes', 'tpe', 'safe')},
     'tuner_necga_wall_s': ('s', None),
     'tuner_spsa_wall_s': ('s', None),
     'tuner_necga_sim_s': ('s', None),
     'tuner_spsa_sim_s': ('s', None),
-    # issue 6: the report of a default run (whole command: bag read, 4 figures, CSV)
+    # the report of a default run (whole command: bag read, 4 figures, CSV)
     'report_necga_s': ('s', 10.0),
     'report_spsa_s': ('s', 10.0),
-    # issue 25: the report's start-up (--help, a refusal) and a whole report of a 25 MB bag
+    # the report's start-up (--help, a refusal) and a whole report of a 25 MB bag
     'report_help_s': ('s', 1.0),
     'report_refusal_s': ('s', 1.0),
     'report_25mb_s': ('s', 3.0),
     'report_25mb_bag_mb': ('MB', None),
-    # issue 7: the offline study, the paper's whole grid (240k experiments), whole command
+    # the offline study, the paper's whole grid (240k experiments), whole command
     'study_full_grid_s': ('s', 300.0),
     'study_reduced_grid_s': ('s', 120.0),
     'study_full_exp_per_s': ('exp/s', None),
     'study_reduced_exp_per_s': ('exp/s', None),
     'study_full_1job_exp_per_s': ('exp/s', None),
     'study_scaling': ('x', None),
-    # issue 18: real-time tuning runs, recording on (composed bench; separate processes)
+    # real-time tuning runs, recording on (composed bench; separate processes)
     'rt_composed_held_late_pct': ('%', 0.1),
     'rt_composed_exp_held_late_pct': ('%', 0.1),
     'rt_processes_exp_held_late_pct': ('%', None),
@@ -85,7 +85,7 @@ TARGETS = {
     'rt_processes_overrun_pct': ('%', None),
     'rt_processes_watchdog_trips': ('trips', None),
     'rt_processes_timing_flagged': ('exp', None),
-    # issue 27's acceptance: quiet (the default: SCHED_FIFO 50) p99 <= 50 us and overruns
+    # the composed loop under load: quiet (the default: SCHED_FIFO 50) p99 <= 50 us and overruns
     # <= 0.05 %; two CPU hogs with SCHED_FIFO 50 and memory locked: overruns <= 0.1 %,
     # worst lateness <= 1 ms
     'rt_other_overrun_pct': ('%', None),

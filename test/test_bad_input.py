@@ -1,6 +1,6 @@
 """Every executable x every kind of bad input: one line on stderr, exit 2, nothing changed.
 
-The matrix (issue 16): for each of the nine executables, a wrong flag, an out-of-range
+The matrix: for each of the nine executables, a wrong flag, an out-of-range
 value, NaN/inf, a wrong type, a missing file, a directory instead of a file and a corrupt
 file, plus the cases found broken by hand (corrupt run directories for ``--resume`` and
 ``report``, bad ``--ros-args --params-file``, a bad controller name...). Each case runs in
@@ -284,12 +284,12 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('tuner', 'resume-run-yaml-not-yaml', ['--resume', 'run_yaml_tab']),
     ('tuner', 'resume-newer-summary', ['--resume', 'run_newer_summary']),
     ('tuner', 'resume-with-settings', ['--resume', 'run', '--budget', '9']),
-    # a run.yaml of safe without its start (--no-start, accepted before issue 25)
+    # a run.yaml of safe without its start (--no-start, which an older tuner accepted)
     ('tuner', 'resume-run-yaml-safe-no-start', ['--resume', 'run_safe_no_start']),
 ]
 
 
-#: what the one line must say, for the cases whose reason matters (issue 25)
+#: what the one line must say, for the cases whose reason matters
 EXPECT: dict[tuple[str, str], str] = {
     ('tuner', 'thread-priority-without-realtime'): 'set up the composed real-time loop',
     ('tuner', 'thread-priority-100'): 'must be 0 (off) or 1-99 (SCHED_FIFO), got 100',
@@ -666,7 +666,7 @@ def _heavy_probe(body: str, argv: list[str], cwd: Path) -> tuple[object, list[st
 
 @pytest.mark.parametrize('argv, says', FAST_REFUSALS, ids=[' '.join(a) for a, _s in FAST_REFUSALS])
 def test_a_refusal_of_the_tuner_imports_nothing_heavy(argv: list[str], says: str, tmp_path: Path):
-    """Issue 25: a bad --algo took 2.7 s on an idle machine (1.5 s of it importing pycma),
+    """A bad --algo once took 2.7 s on an idle machine (1.5 s of it importing pycma),
     up to 30 s under load. The tuner parses and checks before it imports rclpy, the numba
     kernels, pycma, optuna, scipy or matplotlib; checked on the modules its main leaves
     loaded (speed itself is for the benchmarks)."""

@@ -1,4 +1,4 @@
-"""A whole tuner bag in the tools a ROS user reaches for first (issue 25).
+"""A whole tuner bag in the tools a ROS user reaches for first.
 
 One short real tuner run (``ros2 run im_tuner tuner --budget 3``, in-process simulated
 bench) makes the bag; then:
@@ -285,8 +285,8 @@ def _service_event_topics(meta: dict) -> set[str]:
 
 
 def test_rosbag2_decodes_the_record_and_metadata_yaml(bag):
-    """Issue 25: the record kept metadata.yaml's outer key, so rosbag2's decode (and a
-    yaml-cpp run of it) threw 'invalid node; first invalid key: "version"' on every bag."""
+    """The record is metadata.yaml's map without its outer key: with the key, rosbag2's
+    decode (and a yaml-cpp run of it) throws 'invalid node; first invalid key: "version"'."""
     meta = read_metadata_yaml(bag)
     opened = rosbag2_open_mcap(_mcap(bag))
     (record,) = opened['records']
@@ -410,7 +410,7 @@ def _rosbags_first_last(bag: Path) -> dict[str, tuple[object, object]]:
 
 
 def test_mcap_ros2_documented_calls_read_the_whole_bag(bag):
-    """Issue 25: read_ros2_messages(path) stopped at the first service event
+    """read_ros2_messages(path) alone stops at the first service event
     (DecoderNotFoundError: no decoder for ros2idl). The two blocks of docs/recorder.md,
     run as written (their ``print`` collects), read every other message of the bag."""
     from mcap.exceptions import DecoderNotFoundError
@@ -491,7 +491,7 @@ def _raw_by_topic(bag: Path, deserialize: bool) -> dict[str, list[tuple[int, str
 
 
 def test_rosbags_convert_with_the_documented_command(bag, tmp_path):
-    """Issue 25: rosbags-convert fails on service-event topics (rosbags cannot write a
+    """rosbags-convert fails on service-event topics (rosbags cannot write a
     message definition for a pkg/srv type); the command docs/recorder.md gives, run as
     written, converts every other message."""
     ((command,),) = (

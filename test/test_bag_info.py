@@ -1,4 +1,4 @@
-"""``ros2 run im_tuner report --bag-info BAG_DIR`` (issue 41, item 3): a bag's statistics,
+"""``ros2 run im_tuner report --bag-info BAG_DIR``: a bag's statistics,
 checked topic by topic against what two readers that are not our code report.
 
 * rosbags' ``AnyReader`` (every type from the bag, checked against its hash on open):

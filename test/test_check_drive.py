@@ -593,7 +593,7 @@ def test_fill_missed_bridges_a_drive_that_cannot_pause_short_gaps_only():
     np.testing.assert_array_equal(out[13:50], d[13:50])
 
 
-# ------------------------------------------------ the check's own lateness (issue 39)
+# ------------------------------------------------ the check's own lateness
 
 
 def test_clock_period_keeps_to_the_wall_clock_under_load():

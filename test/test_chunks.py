@@ -1,5 +1,5 @@
 """Chunks of at most ``--max-chunk-age`` (0.5 s) of log time, the first included, and
-the real-time loop's outbox counts equal to the bag's (issue 41, item 4).
+the real-time loop's outbox counts equal to the bag's.
 
 Measured before: on the real-time bench 17 of 55 chunks spanned up to 0.585 s, and chunk
 0 once 17.6 s (state 0 and the first log line waited in memory until traffic came: the

@@ -1,4 +1,4 @@
-"""The composed real-time loop's compiled periods (issue 27; im_tuner/bench/compiled_loop.py)
+"""The composed real-time loop's compiled periods (im_tuner/bench/compiled_loop.py)
 against the same periods run as Python (``RealtimeBench.step``), in this process:
 
 * on a noisy drive (every noise setting on, so every state differs and the model's noise

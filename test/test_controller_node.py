@@ -99,7 +99,7 @@ class Probe:
             code = refusal_code(resp.message)
             if code == SAFETY_FAULT and 'drive_state_timeout' in resp.message:
                 # Real time on a loaded machine: the drive's states paused for longer than
-                # state_timeout before any experiment (issue 18). Reset it, as the tuner
+                # state_timeout before any experiment. Reset it, as the tuner
                 # does (fault policy 'reset'), and start again.
                 reset = self.call(self.reset_client.call_async(Trigger.Request()))
                 assert reset.success or refusal_code(reset.message) == NO_DRIVE_STATE
@@ -597,7 +597,7 @@ def test_bad_start_up_input_is_one_line_and_exit_2(procs, args, expect):
 
 
 def test_start_overrides_say_what_the_node_enforces(ros_context):
-    """Issue 16: `-p safety.isq_max:=2.0` at start is applied (a tighter clamp; the drive
+    """`-p safety.isq_max:=2.0` at start is applied (a tighter clamp; the drive
     file's 7 A is the ceiling): get_parameters says 2.0 and the controller commands at most
     2 A, where the 7 A controller commands 5.55 A. An integer for a double (`k_iw:=25`) is
     taken at start as through set_parameters. A typo'd override, which neither the drive

@@ -1,5 +1,5 @@
 """The default algorithm is named in one place (im_tuner.optim.options.DEFAULT_ALGO), and
-``make demo`` and the README's main command run it (issue 28 item 7)."""
+``make demo`` and the README's main command run it."""
 
 from __future__ import annotations
 

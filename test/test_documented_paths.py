@@ -1,4 +1,4 @@
-"""Issue 41 item 5: every traceback and silent case found on a documented path, run as a
+"""Every traceback and silent case found on a documented path, run as a
 user runs it. Each refusal: exit 2, exactly one line on stderr, no traceback, nothing
 created or changed in the working directory (test_bad_input's ``_run_case``: a copy of a
 template with a real tuner run, its tree compared before and after). And the cases that

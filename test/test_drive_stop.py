@@ -1,4 +1,4 @@
-"""A real drive on the composed bench (issue 26): every ``--drive`` form tunes with
+"""A real drive on the composed bench: every ``--drive`` form tunes with
 recording on, and every way out of a run leaves zero current in the power stage.
 
 The power stage is :mod:`recording_hardware` (the example drive's simulated plant; every

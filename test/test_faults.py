@@ -1,4 +1,4 @@
-"""Fault injection on the whole bench (issue 8): what happens when things go wrong.
+"""Fault injection on the whole bench: what happens when things go wrong.
 
 Each test breaks one link of drive -- controller -- tuner -- recorder, through real
 processes and DDS, and checks that the nodes left keep running and stay safe (zero
@@ -16,7 +16,7 @@ current), that the log says what happened, and that the data up to the fault is 
 | duplicated, late and out-of-order commands | ``test_duplicated_late_out_of_order_commands_*`` |
 | a flood of parameter calls and triggers | ``test_flood_of_parameter_calls_and_triggers`` |
 
-The real-time tuning run with separate processes (issue 8's acceptance) is
+The real-time tuning run with separate processes is
 ``test_realtime_tuning_run_reports_overruns``.
 """
 
@@ -188,8 +188,8 @@ def wait_mid_experiment(
 
     wait_until(enough, 120, message=f'{n_records} records')
     last = counted(run)[n_records - 1]
-    # A lost evaluation (no answer from the controller in time: a loaded machine, issue
-    # 18) has no drive timeline; count from where the drive is now instead.
+    # A lost evaluation (no answer from the controller in time: a loaded machine) has no
+    # drive timeline; count from where the drive is now instead.
     end = tap.step() if last.get('t_end_ns') is None else last['t_end_ns'] // 200_000
     wait_until(lambda: tap.step() >= end + into, 60, message='the next experiment under way')
     return last
@@ -311,7 +311,7 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
     )
     run = tmp_path / 'run'
     # SPSA: its first evaluation is next to the hand-tuned start. Still, a real-time
-    # experiment stretched by a loaded machine (issue 18) may trip a safety limit before
+    # experiment stretched by a loaded machine may trip a safety limit before
     # the kill (a neCGA sample from the whole box did, and 'stop' ended the run first):
     # 'reset' goes on to the evaluation the kill hits.
     tuner = procs.start(
@@ -787,7 +787,7 @@ def test_realtime_tuning_run_reports_overruns(tmp_path):
     assert bag_counts(run / 'bag_0')['/drive/state'] >= STEPS
 
 
-# -- a fault between experiments, cleared with the shipped tool (issue 26, item 7) ---------
+# -- a fault between experiments, cleared with the shipped tool ----------------------------
 def reset_fault(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
         ros2('im_controller', 'reset_fault', *args), capture_output=True, text=True, timeout=120

@@ -1,4 +1,4 @@
-"""The Foxglove layouts shipped in share/im_tuner/foxglove/ resolve in a real bag (issue 41).
+"""The Foxglove layouts shipped in share/im_tuner/foxglove/ resolve in a real bag.
 
 One short real tuner run (``ros2 run im_tuner tuner --budget 1``: the reference and one
 evaluation, lock-step, recorded) makes the bag. Each layout is loaded from the installed

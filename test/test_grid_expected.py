@@ -1,4 +1,4 @@
-"""benchmarks/grid_expected.py's judgement (issue 40's mismatch goal on expected loss),
+"""benchmarks/grid_expected.py's judgement (the default's mismatch goal on expected loss),
 on kept results (``expected.json``), so no experiment runs: a case where the default is
 within 2 % of the best other row passes, one 2.1 % above it fails (exit 1, named), a
 case whose start is unstable on the plant has no goal, and the intervals are over runs

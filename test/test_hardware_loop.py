@@ -1,4 +1,4 @@
-"""A user's power stage inside the compiled loop (issue 38): the C library and the
+"""A user's power stage inside the compiled loop: the C library and the
 compiled class forms of docs/real-drive.md on the composed real-time bench.
 
 * the compiled period (``hardware_period``) is the example drive's Python period, bit

@@ -1,13 +1,15 @@
-"""Issue 41, item 6: the house stays in order. Inside each package no module imports another
+"""The house stays in order. Inside each package no module imports another
 that imports it back (lazy and ``TYPE_CHECKING`` imports included: a circle is a circle
 whenever it runs), and no subpackage (``im_tuner.bench``, ``im_tuner.record``, ...) is both
 above and below another module; no source file over 600 lines; no cache committed; the
-top-level benchmarks and the tuner's benches do not share a name. Static: reads the sources
-with ``ast`` and asks git what is tracked, imports nothing."""
+top-level benchmarks and the tuner's benches do not share a name; the tests, benchmarks,
+docs and tools say what is, not which issue asked for it (no issue numbers). Static: reads
+the sources with ``ast`` and asks git what is tracked, imports nothing."""
 
 from __future__ import annotations
 
 import ast
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -21,6 +23,12 @@ SRC = ROOT / 'src'
 PACKAGES = ('im_drive_sim', 'im_controller', 'im_tuner')
 #: the longest a source file may be (lines)
 MAX_LINES = 600
+#: the tracked files outside the packages that name no issue: folders, then single files
+NO_ISSUE_DIRS = ('test/', 'benchmarks/', 'docs/', 'tools/', '.ci/')
+NO_ISSUE_FILES = ('Makefile', 'README.md', 'conftest.py')
+#: a reference to an issue by its number: "issue" or "issues", a space or a hyphen, the number
+#: (a "#" before it allowed)
+ISSUE_NUMBER = re.compile(r'\b[Ii]ssues?[ -]#?[0-9]+')
 
 
 def _modules() -> dict[str, tuple[Path, bool]]:
@@ -130,7 +138,7 @@ def test_no_subpackage_both_above_and_below_a_module() -> None:
 
 
 def test_the_checks_find_a_circle() -> None:
-    """The checks can fail: a made-up circle, and the one this issue removed (im_tuner.family
+    """The checks can fail: a made-up circle, and one the package had (im_tuner.family
     importing the offline bench from the bench layer, which imports family)."""
     assert _cycles({'a': {'b'}, 'b': {'c'}, 'c': {'a'}, 'd': {'a'}}) == [['a', 'b', 'c']]
     mods = {
@@ -176,3 +184,33 @@ def test_benchmarks_and_benches_have_two_names() -> None:
     assert [f for f in _tracked() if f.startswith('bench/')] == []
     assert (ROOT / 'benchmarks' / 'run_all.py').is_file()
     assert (SRC / 'im_tuner' / 'im_tuner' / 'bench' / 'spec.py').is_file()
+
+
+def test_no_issue_numbers_in_tests_benchmarks_docs_and_tools() -> None:
+    found = []
+    for f in _tracked():
+        path = ROOT / f
+        if not (f.startswith(NO_ISSUE_DIRS) or f in NO_ISSUE_FILES) or not path.is_file():
+            continue
+        data = path.read_bytes()
+        if b'\0' in data:  # a figure, not text
+            continue
+        for n, line in enumerate(data.decode('utf-8', 'replace').splitlines(), 1):
+            if ISSUE_NUMBER.search(line):
+                found.append(f'{f}:{n}: {line.strip()}')
+    assert found == []
+
+
+def test_the_issue_number_check_finds_them() -> None:
+    """The examples are built at run time, so that this file names no issue either."""
+    n = 26
+    for text in (
+        f'(issue {n})',
+        f'Issue {n}, item 6:',
+        f'issues {n}, 29',
+        f'issue-{n}',
+        f'issue #{n}',
+    ):
+        assert ISSUE_NUMBER.search(text), text
+    for text in (f'rosbag2 #{n}', 'the issues ask', f'tissue {n}', '#1 SMP PREEMPT_DYNAMIC'):
+        assert not ISSUE_NUMBER.search(text), text

@@ -1,4 +1,4 @@
-"""The same bits on every x86-64 CPU (issue 37): a study and a tuner run at two levels of
+"""The same bits on every x86-64 CPU: a study and a tuner run at two levels of
 numpy's and OpenBLAS's dispatch give byte-identical tables and results.
 
 A level is what a machine offers, emulated by the environment its processes start with
@@ -46,12 +46,12 @@ STUDY = ('study', '--algos', 'cmaes,tpe,safe', '--runs', '2', '--budget', '40', 
 #: differs between two levels without the baseline, in a sixth of STUDY's time
 CONTROL = ('study', '--algos', 'cmaes', '--runs', '2', '--budget', '40', '--quiet')
 #: sha256 of that study's tables.csv on the baseline, taken on an AMD EPYC (Zen 4, AVX-512) on
-#: 2026-11-28 (issue 40 added safe's row 'first step from the identified drive'); the same
+#: 2026-11-28 (with safe's row 'first step from the identified drive'); the same
 #: at the avx2 level here, and on every x86-64-v3 CPU.  Retaken on this machine on
 #: 2026-11-28 (the same command, `ros2 run im_tuner study --algos cmaes,tpe,safe --runs 2
 #: --budget 40`) when safe's rows changed: the ripple limit its default, the ripple
 #: statistics in tables.csv, the identified model searched by 300 experiments per seed
-#: and sigma 0.02 after its point (issue 40 parts 2 and 6); again on 2026-11-29 for the
+#: and sigma 0.02 after its point; again on 2026-11-29 for the
 #: search's ripple tolerance (runlog.tally.RIPPLE_TOLERANCE)
 STUDY_TABLES_SHA256 = 'efffbf4ad10ab374b68b6c6c5f3cbbe292bcc98864bee0bae28826bc6fd98415'
 #: results.jsonl fields that are wall-clock readings, not results

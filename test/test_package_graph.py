@@ -1,4 +1,4 @@
-"""Issue 17: the package graph reads im_drive_sim <- im_controller <- im_tuner, nothing runs
+"""The package graph reads im_drive_sim <- im_controller <- im_tuner, nothing runs
 upward, and each package.xml declares exactly what its modules import (what rosdep on a
 ROS machine installs). Static: reads the sources with ``ast``, imports nothing."""
 
@@ -33,10 +33,10 @@ ROSDEP = {
     'mcap': 'python3-mcap-pip',
     'mcap_ros2': 'python3-mcap-ros2-support-pip',
     'scipy': 'python3-scipy',
-    'threadpoolctl': 'python3-threadpoolctl',  # the numeric baseline's check (issue 37)
+    'threadpoolctl': 'python3-threadpoolctl',  # the numeric baseline's check
     'cma': 'python3-cma-pip',
     'optuna': 'python3-optuna-pip',
-    'pybobyqa': 'python3-py-bobyqa-pip',  # the study's reference row (issue 29)
+    'pybobyqa': 'python3-py-bobyqa-pip',  # the study's reference row
     'dask': 'python3-dask',
     'distributed': 'python3-distributed',
 }

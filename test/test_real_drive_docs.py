@@ -1,4 +1,4 @@
-"""docs/real-drive.md's worked example runs as written (issue 26, item 8).
+"""docs/real-drive.md's worked example runs as written.
 
 The hardware-class module, the drive file and the command are taken from the markdown
 (the fenced blocks after ``<!-- real-drive-example: NAME -->``), the files written where

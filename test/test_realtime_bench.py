@@ -1,4 +1,4 @@
-"""The real bench at 5 kHz (issue 18): losses that are the paper's loss, or are flagged.
+"""The real bench at 5 kHz: losses that are the paper's loss, or are flagged.
 
 * the composed real-time bench (``tuner --bench realtime``: drive and controller in one
   process, one wall-clock loop, recording on) runs every experiment on exactly 5625 drive

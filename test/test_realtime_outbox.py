@@ -1,4 +1,4 @@
-"""The composed real-time loop publishes through an outbox (issue 27; docs/real-drive.md,
+"""The composed real-time loop publishes through an outbox (docs/real-drive.md,
 "Real-time set-up"): its thread only hands messages over, a publisher thread publishes
 them with the GIL released, the run's recorder takes them from a tap ring.
 

@@ -235,12 +235,12 @@ def test_bench_at_full_speed_every_message_recorded(ros_context, tmp_path, monke
     assert records['im_tuner.drive']['seed'] == '5'
     assert json.loads(records['im_tuner.controller']['parameters'])['k_pw'] == 0.53
     assert json.loads(records['im_tuner.counts']['/drive/state']) == counts['/drive/state']
-    # rosbag2's record: metadata.yaml's map itself, without the outer key (issue 25)
+    # rosbag2's record: metadata.yaml's map itself, without the outer key
     assert yaml.safe_load(records['rosbag2']['serialized_metadata']) == meta
 
 
 def test_a_backlog_taken_late_still_makes_chunks_of_at_most_max_chunk_age(ros_context, tmp_path):
-    """Issue 16: while a bench starts (numba loading, before its loop polls the recorder)
+    """While a bench starts (numba loading, before its loop polls the recorder)
     messages pile up unread; taken late, they used to fill one chunk spanning seconds of
     log time, against the promised --max-chunk-age. Now every chunk spans at most that."""
     from mcap.reader import make_reader
@@ -417,7 +417,7 @@ def _cpu_stall_s() -> float:
 
 @pytest.mark.serial  # a drive on the wall clock is judged: alone, not beside another test
 def test_recorder_next_to_a_live_realtime_drive_closes_within_2_s(procs, tmp_path, wait_until):
-    """Issue 18 (3): a real-time drive publishes 5000 states a second and never stops, so
+    """A real-time drive publishes 5000 states a second and never stops, so
     the recorder's close never sees the quiet it used to wait for (the bag stayed open for
     15-30 s, or for ever). SIGINT now closes the bag within 2 s, and the bag says that it
     was cut while messages were still arriving."""

@@ -1,4 +1,4 @@
-"""``ros2 run im_tuner replay``: a live controller re-driven from a recorded bag (issue 41).
+"""``ros2 run im_tuner replay``: a live controller re-driven from a recorded bag.
 
 Two short real tuner runs make the bags (reference + 2 evaluations each, about 30 s
 together): one lock-step (``--bench inproc``, uncompressed so that a test can alter a

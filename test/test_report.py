@@ -352,7 +352,7 @@ def test_a_bag_directory_is_not_a_run_and_bad_options_are_refused(runs, tmp_path
 
 
 def test_an_external_bench_is_not_called_simulated(runs, tmp_path):
-    """Issue 25: on an external bench (``--bench none``) or with a hardware class in the
+    """On an external bench (``--bench none``) or with a hardware class in the
     loop the experiment time is the drive's clock, and the summary says so; a simulated
     bench (the simulator, or the example drive's stand-in) says simulated."""
     src, _ = runs['necga']

@@ -147,7 +147,7 @@ def test_tables_are_identical_for_any_number_of_workers(tmp_path):
 
 
 def test_a_dask_cluster_gives_byte_identical_tables(tmp_path):
-    """Issue 19: the study on a Dask LocalCluster of 2 worker processes equals --jobs 1,
+    """The study on a Dask LocalCluster of 2 worker processes equals --jobs 1,
     byte for byte, for the paper's algorithm and three beyond it."""
     from distributed import LocalCluster
 

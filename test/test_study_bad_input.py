@@ -1,4 +1,4 @@
-"""``ros2 run im_tuner study`` on bad input and on bad ends (issue 25).
+"""``ros2 run im_tuner study`` on bad input and on bad ends.
 
 * A refusal is one line on stderr, exit 2, nothing written, and comes before any heavy
   module is imported (no Dask, scipy, matplotlib, numba, optimisers).

@@ -1,7 +1,7 @@
-"""``ros2 run im_tuner study --drives ... --realism ...`` (issue 29): a table per drive, the
+"""``ros2 run im_tuner study --drives ... --realism ...``: a table per drive, the
 summary over drives, the Py-BOBYQA reference row with its evaluations counted, the
 refusals; ``--beside`` (Tables I-III of two profiles side by side); and without
-``--drives`` the study's files are those of the code before issue 29, byte for byte.
+``--drives`` the study's files are those of the code before it existed, byte for byte.
 """
 
 from __future__ import annotations
@@ -23,33 +23,33 @@ def study(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
     return subprocess.run([*STUDY, *args], capture_output=True, text=True, timeout=timeout)
 
 
-#: sha256 of that study's tables.csv with safe's default ripple limit (issue 40 part 6),
+#: sha256 of that study's tables.csv with safe's default ripple limit,
 #: retaken when the identified first step changed (300 experiments per seed, sigma 0.02)
 DEFAULT_LIMIT_TABLES = '3d72d530e6960ec9c3351fcf7e500ca7929f62b437bd77fe750bbf33f7a035a6'
 
 
 def test_without_drives_the_files_are_unchanged(tmp_path):
-    """Digests of the tables and runs of a small study made with the code before issue 29
-    (main at a897583): the same study now gives the same bytes (out directory and the one
-    new row of safe's grid aside)."""
+    """Digests of the tables and runs of a small study made with the code before ``--drives``
+    existed (main at a897583): the same study now gives the same bytes (out directory and
+    the one new row of safe's grid aside)."""
     out = tmp_path / 's'
-    # (--ripple-limit off: issue 40 part 6 made safe's ripple limit on by default, which
+    # (--ripple-limit off: safe's ripple limit is on by default, which
     # steers its rows here: the tables' digest with it is DEFAULT_LIMIT_TABLES below)
     p = study(
         '--runs', '2', '--budget', '6', '--algos', 'spsa,necga,cmaes,safe', '--jobs', '1',
         '--quiet', '--out', str(out), '--ripple-limit', 'off',
     )  # fmt: skip
     assert p.returncode == 0, p.stderr
-    # issue 29 added one row to safe's grid (its first step from the drive model): every
+    # safe's grid has one row more (its first step from the drive model): every
     # other line is the bytes of before, the new row is there
-    # (and issue 40 one more: its first step from the identified drive)
+    # (and one more: its first step from the identified drive)
     new_rows = (b',first step from the drive model,', b',first step from the identified drive,')
 
     def before(name: str) -> bytes:
         lines = (out / name).read_bytes().splitlines(keepends=True)
         for new_row in new_rows:
             assert sum(new_row in ln for ln in lines) >= 2
-        # (and issue 40 part 6 two statistics: the choice's standstill ripple)
+        # (and two statistics: the choice's standstill ripple)
         return b''.join(
             ln
             for ln in lines

@@ -1,4 +1,4 @@
-"""``ros2 run im_tuner study --plant ... --plant-mismatch ...`` (issue 40): the plant and
+"""``ros2 run im_tuner study --plant ... --plant-mismatch ...``: the plant and
 its mismatch recorded in study.json, printed in tables.txt, reproduction.md, family.txt
 and family.md, kept by ``--from``; bad input refused in one line, exit 2, nothing written.
 (The runs themselves: src/im_tuner/test/test_study_plant.py.)"""

@@ -549,10 +549,10 @@ def test_auto_refuses_to_add_a_second_drive(tmp_path, procs, ros_context, wait_u
     assert 'ros2 run im_controller controller' in proc.stderr
 
 
-# -- issue 16: rosbags' standard API, a rebuilt checkpoint, one tuner per run -----------------
+# -- rosbags' standard API, a rebuilt checkpoint, one tuner per run ---------------------------
 @pytest.fixture(scope='module')
 def run6(tmp_path_factory) -> Path:
-    """`ros2 run im_tuner tuner --budget 6`: the acceptance run of issue 16."""
+    """`ros2 run im_tuner tuner --budget 6`: the run the checks below read."""
     run = tmp_path_factory.mktemp('run6') / 'run'
     proc = tuner('--budget', '6', '--seed', '21', '--out', str(run), '--quiet')
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -560,7 +560,7 @@ def run6(tmp_path_factory) -> Path:
 
 
 def test_without_algo_the_tuner_runs_safe_from_the_hand_tuned_start(run6):
-    """Issue 19: ``--algo`` defaults to safe with its own defaults; its evaluation 1 is the
+    """``--algo`` defaults to safe with its own defaults; its evaluation 1 is the
     hand-tuned start again (the reference is the first experiment from rest), and its
     step size stays inside the trust region sigma_max = 0.08."""
     run_yaml = yaml.safe_load((run6 / 'run.yaml').read_text())
@@ -721,7 +721,7 @@ def test_a_resume_whose_replay_does_not_match_changes_nothing(run6, tmp_path):
     assert _tree(run) == before
 
 
-# -- issue 26, item 7: what the summary tells the user ----------------------------------------
+# -- what the summary tells the user ----------------------------------------------------------
 def _summary(**over):
     from im_tuner.runlog import Summary
 

@@ -1,4 +1,4 @@
-"""A drive on a computer of its own (issue 39): ``ros2 run im_tuner drive_host`` in one
+"""A drive on a computer of its own: ``ros2 run im_tuner drive_host`` in one
 network namespace, the tuner (``--bench none``) in another, joined by a veth pair the
 test makes and removes (``netns.TwoComputers``); packet loss and outages by nftables.
 

@@ -43,7 +43,7 @@ done
     echo
     echo '## The study over a family of drives'
     echo
-    echo 'Every algorithm and the Py-BOBYQA reference on each drive of the family on the `bench` profile, the summary over the drives and the default against the goal of issue 29: [reproduction-family.md](reproduction-family.md).'
+    echo 'Every algorithm and the Py-BOBYQA reference on each drive of the family on the `bench` profile, the summary over the drives and the default against its goal: [reproduction-family.md](reproduction-family.md).'
 } > "$new/reproduction.md"
 sed -e 's#](\([^)/]*\)/\([a-z_]*\).png)#](reproduction/family/\1/\2.png)#' \
     "$family/family.md" > "$new/reproduction-family.md"

@@ -2,8 +2,9 @@
 that imports it back (lazy and ``TYPE_CHECKING`` imports included: a circle is a circle
 whenever it runs), and no subpackage (``im_tuner.bench``, ``im_tuner.record``, ...) is both
 above and below another module; no source file over 600 lines; no cache committed; the
-top-level benchmarks and the tuner's benches do not share a name; the tests, benchmarks,
-docs and tools say what is, not which issue asked for it (no issue numbers). Static: reads
+top-level benchmarks and the tuner's benches do not share a name; the packages (their
+code, tests and config), tests, benchmarks, docs, tools and requirements say what is, not
+which issue asked for it (no issue numbers). Static: reads
 the sources with ``ast`` and asks git what is tracked, imports nothing."""
 
 from __future__ import annotations
@@ -23,9 +24,10 @@ SRC = ROOT / 'src'
 PACKAGES = ('im_drive_sim', 'im_controller', 'im_tuner')
 #: the longest a source file may be (lines)
 MAX_LINES = 600
-#: the tracked files outside the packages that name no issue: folders, then single files
-NO_ISSUE_DIRS = ('test/', 'benchmarks/', 'docs/', 'tools/', '.ci/')
-NO_ISSUE_FILES = ('Makefile', 'README.md', 'conftest.py')
+#: the tracked files that name no issue: folders (the packages' code, tests and config
+#: included), then single files
+NO_ISSUE_DIRS = ('src/', 'test/', 'benchmarks/', 'docs/', 'tools/', '.ci/')
+NO_ISSUE_FILES = ('Makefile', 'README.md', 'conftest.py', 'requirements.txt', 'constraints.txt')
 #: a reference to an issue by its number: "issue" or "issues", a space or a hyphen, the number
 #: (a "#" before it allowed)
 ISSUE_NUMBER = re.compile(r'\b[Ii]ssues?[ -]#?[0-9]+')

@@ -1,4 +1,4 @@
-"""Bench effects and the realism profile (issue 29 item 1): off (``ideal``) is bit-identical
+"""Bench effects and the realism profile: off (``ideal``) is bit-identical
 to the bench before the effects existed; each effect on gives its documented magnitude,
 measured from the simulation, seeded and reproducible (docs/drive-model.md, "Bench effects")."""
 

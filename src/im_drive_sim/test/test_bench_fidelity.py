@@ -1,4 +1,4 @@
-"""The bench per drive and three fidelity fixes (issue 40, part 4; docs/drive-model.md 7a):
+"""The bench per drive and three fidelity fixes (docs/drive-model.md 7a):
 each rating-bound ``bench`` effect follows its drive's rating (the paper's 750 W keeps its
 values exactly); the breakaway friction reaches the documented static torque; with dead time
 on, the recorded u_alpha/u_beta are the voltage applied; a safe stop's "no load" acts in its

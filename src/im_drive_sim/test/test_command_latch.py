@@ -1,4 +1,4 @@
-"""The pieces both drive nodes share (issue 28): the command latch and the held command,
+"""The pieces both drive nodes share: the command latch and the held command,
 the watchdog's trip state, and the compiled period's words (period_kernel.pack_words /
 unpack_words) -- the same rule as the compiled copy, labels and counters through a round
 trip unchanged."""

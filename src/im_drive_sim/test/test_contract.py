@@ -1,4 +1,4 @@
-"""The drive contract module is what every side uses (issue 17): the simulator's and the
+"""The drive contract module is what every side uses: the simulator's and the
 example drive's counters, layouts and QoS are the contract's, not copies of it."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """A drive file's ``base``: a packaged drive, or a path relative to the file that names it
 (``im_drive_sim.drive_file``; docs/real-drive.md). ``base: sub/motor.yaml`` raised
-ValueError from pathlib (issue 41) in every executable that reads a drive file."""
+ValueError from pathlib in every executable that reads a drive file."""
 
 from __future__ import annotations
 

@@ -102,7 +102,7 @@ BAD_VALUES = [
     ('control.flux_floor', 1.0, 'control.flux_floor'),
     ('control.current_bandwidth', 10000.0, 'control.current_bandwidth too high'),
     ('Ts', 5e-3, 'Ts = 0.005 s too large'),
-    # the clamp against the rated torque current Tn/Kt = 3.52 A: 700 A is a typo (issue 16)
+    # the clamp against the rated torque current Tn/Kt = 3.52 A: 700 A is a typo
     (
         'machine.isq_max',
         700.0,

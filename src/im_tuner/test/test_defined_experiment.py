@@ -1,4 +1,4 @@
-"""The defined experiment (issue 26): the loss is a function of the gains alone, not of
+"""The defined experiment: the loss is a function of the gains alone, not of
 how long the bench held between experiments.
 
 Each experiment begins with a standstill settle (``trajectory.settle``, 0.5 s = 2500

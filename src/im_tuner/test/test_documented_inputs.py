@@ -1,4 +1,4 @@
-"""Issue 41 item 5, the pure side: each case found broken on a documented path, checked at
+"""The pure side of each case found broken on a documented path, checked at
 the unit that decides it (the command-line side: test/test_documented_paths.py).
 
 * a user's drive file on a packaged base takes that drive's gains, box and first step;

@@ -1,5 +1,5 @@
-"""The ratio-10 drives' start does not chatter at the current limit (issue 40, part 4;
-docs/drive-family.md, "Start gains"): one encoder count is a quarter of isq_max, measured
+"""The ratio-10 drives' start does not chatter at the current limit
+(docs/drive-family.md, "Start gains"): one encoder count is a quarter of isq_max, measured
 against the start by the inertia rule alone; the paper's start is the paper's exactly."""
 
 from __future__ import annotations

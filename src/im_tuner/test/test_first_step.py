@@ -197,7 +197,7 @@ def test_a_run_on_a_plant_with_twice_the_files_inertia(tmp_path):
 
 
 def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest_best():
-    """issue 40's miss: im750w-j1 on a plant with 1.5x the file's inertia.  Without the
+    """The motivating case: im750w-j1 on a plant with 1.5x the file's inertia.  Without the
     limit on the models (the rule before) the identified model's best robust point hunts
     on the plant: evaluation 2's standstill rms after the move 0.233 A, 1.57x the start's
     (0.148 A), over the run's limit 1.5 (by 5 %: within the search's RIPPLE_TOLERANCE it is

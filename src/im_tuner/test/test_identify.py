@@ -129,7 +129,7 @@ def test_the_start_identifies_the_plant_not_the_file(name, realism, scale):
 
 def test_the_start_ripple_is_the_papers_fig_8():
     """The hand-tuned start on the paper drive: 1.5 A peak-to-peak, 0.15-0.20 A rms
-    (issue 40's measurement from the report's Fig. 8)."""
+    (as measured from the report's Fig. 8)."""
     results, _, _ = _start_experiments('paper_750w', 'ideal')
     rms1, pp1, rms2, pp2 = results[1].ripple
     assert 0.12 < rms1 < 0.18 and 0.17 < rms2 < 0.23

@@ -1,6 +1,6 @@
 """The loss experiment on the offline bench: controller and drive in closed loop, no ROS.
 
-Moved from im_controller's tests in issue 17 (the closed loop is a bench,
+Moved from im_controller's tests (the closed loop is a bench,
 ``im_tuner.offline``); the experiment's semantics, supervisor, safety limits and
 determinism, exactly as they were asserted there."""
 

@@ -7,7 +7,7 @@ of each float), the loss, ``evaluations``, ``iterations``, ``converged()`` and t
 (``Optimizer.from_state``) and the restored optimiser's next ask and state are written.
 Then the refusals: bad constructions, bad tells, and checkpoints with one field deleted or
 replaced (the message of each, or the restored state).  The text of each block is hashed;
-``GOLDEN`` holds the digests taken before the optimisers were restructured (issue 28), so
+``GOLDEN`` holds the digests taken before the optimisers were restructured, so
 any change of an ask, a state's JSON or a refusal message fails here.
 
 ``python test_optim_golden.py FILE`` writes the whole text (for ``cmp`` across a change).
@@ -221,7 +221,7 @@ def digest(lines: Iterator[str]) -> str:
     return h.hexdigest()[:16]
 
 
-#: block name -> digest of its text, taken with the optimisers before issue 28's re-cut.
+#: block name -> digest of its text, taken before the optimisers were restructured.
 GOLDEN: dict[str, str] = {
     'spsa#0 seed 3': '4a598d9546c71890',
     'spsa#0 seed 11': '049ce1365be22946',

@@ -51,7 +51,7 @@ def test_ndtri_round_trip_and_edges():
 
 
 def test_scipy_ndtri_agrees_with_as241():
-    # Issue 19: the hand-written AS 241 became scipy.special.ndtri.  The standard library's
+    # The hand-written AS 241 became scipy.special.ndtri.  The standard library's
     # statistics.NormalDist.inv_cdf is Wichura's AS 241 (what rcga used before): the two
     # agree within their stated precision (~1e-16 relative; 1e-14 allowed) over the range.
     inv = statistics.NormalDist().inv_cdf

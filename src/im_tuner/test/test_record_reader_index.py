@@ -1,4 +1,4 @@
-"""im_tuner.record.reader's index path (issue 25): a chunk's messages found through the
+"""im_tuner.record.reader's index path: a chunk's messages found through the
 MessageIndex records after it, without the numba record walk, and the walk taken instead
 whenever an index is missing or does not match its chunk.
 

@@ -397,7 +397,7 @@ def test_mcap_ros2_refuses_event_schema_names() -> None:
     assert 'std_srvs/Trigger_Response' in generate_dynamic('std_srvs/srv/TriggerEvent', text)
 
 
-# --- service events as IDL: what rosbags' AnyReader needs (issue 16) ----------------------------
+# --- service events as IDL: what rosbags' AnyReader needs ---------------------------------------
 
 EVENT_CASES = [c for c in CASES if c[0].endswith('_Event')]
 

@@ -1,6 +1,6 @@
 """im_tuner.record.writer: background writes never fail on the writer's own bookkeeping.
 
-The bug (issue 16, item 1): ``_submit`` filtered finished futures out of its pending list
+The bug: ``_submit`` filtered finished futures out of its pending list
 and then asked each remaining one ``done()`` again; a write that finished in between was
 reported as ``background write failed: None``. These tests pin the mechanism (a future that
 finishes between two looks) deterministically, then race thousands of tiny writes against

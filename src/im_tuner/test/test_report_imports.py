@@ -1,6 +1,6 @@
 """The report's start-up: what ``ros2 run im_tuner report`` imports before it has a run.
 
-``--help`` and a refusal must answer without the heavy modules (issue 25: they took 2.9 s
+``--help`` and a refusal must answer without the heavy modules (they took 2.9 s
 when the report's text pulled the tuner's command line, rclpy, and the optimisers with
 pycma, optuna and scipy). Each check runs in a fresh interpreter and reads
 ``sys.modules`` (a module list, not a wall time: speed is measured in
@@ -140,7 +140,7 @@ print(json.dumps({'modules': names, 'ros': ros}))
     ids=['report+study', 'run log, tuning, bench spec'],
 )
 def test_every_module_of_the_pure_side_imports_no_rclpy(packages):
-    """Issue 28: the report, the study, the run log and the bench spec load no rclpy, each
+    """The report, the study, the run log and the bench spec load no rclpy, each
     of their modules imported (not only the package names)."""
     proc = subprocess.run(
         [sys.executable, '-c', _NO_ROS_PROBE, json.dumps(packages)],

@@ -1,4 +1,4 @@
-"""The standstill-ripple limit of the final choice (issue 40 part 6; ``--ripple-limit``):
+"""The standstill-ripple limit of the final choice (``--ripple-limit``):
 the re-measured and applied gains are the best evaluated ones whose rms of isq* is within
 the limit x the start's in both standstill windows, the start if none is.
 
@@ -275,7 +275,7 @@ def test_parse():
 
 
 def test_the_issues_necga_run_on_the_paper_drive():
-    """Issue 40 part 6: the paper's drive (`ideal`), `--algo necga --budget 30 --seed 2`:
+    """The motivating run: the paper's drive (`ideal`), `--algo necga --budget 30 --seed 2`:
     its choice hunts at standstill (0.585/0.587 A rms, 4.6 A peak-to-peak: 3.8x the
     start's 0.155/0.198 A).  With --ripple-limit 1.5 the search is told its loud points'
     cost and nothing quiet beats the start in 30 evaluations: the start stays, the three

@@ -1,4 +1,4 @@
-"""The study over drives (issue 29): the recommended rows, the Py-BOBYQA reference row
+"""The study over drives: the recommended rows, the Py-BOBYQA reference row
 (driven one evaluation at a time: seeded, deterministic, the budget counted), the summary
 over drives and the default against the goal, on constructed results (no experiments
 except where a test says so)."""

@@ -1,4 +1,4 @@
-"""The study's plant apart from the drive the tuner is told (issue 40, ``study --plant``,
+"""The study's plant apart from the drive the tuner is told (``study --plant``,
 ``--plant-mismatch``), in-process: the runs measure on the plant while the start, the box,
 the experiment and ``safe``'s first step are the told drive's; the plant has the physics
 the mismatch says; the mismatch's syntax and what it refuses.  Small seeded studies

@@ -181,7 +181,7 @@ def test_threshold_must_be_positive():
 
 
 def test_comparison_rows_by_hand():
-    """Issue 19's comparison table: each column against a hand computation on constructed
+    """The comparison table: each column against a hand computation on constructed
     runs, and each row named once by its algorithm, configuration and start."""
     from im_tuner.study.text import comparison_rows
 
@@ -264,7 +264,7 @@ def test_the_study_has_a_grid_for_every_tuner_algorithm():
     from im_tuner import optim
     from im_tuner.study import spec
 
-    # every tuner algorithm, then the outside reference rows (Py-BOBYQA, issue 29)
+    # every tuner algorithm, then the outside reference rows (Py-BOBYQA)
     assert spec.STUDY_ALGOS == (*optim.ALGOS, 'bobyqa') == optim.ALGOS + spec.REFERENCE_ALGOS
     for algo in optim.ALGOS:
         cells = spec.grid((algo,))

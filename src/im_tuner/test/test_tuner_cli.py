@@ -23,9 +23,10 @@ def _new(*args: str):
 
 @pytest.mark.parametrize('algo', optim.ALGOS)
 def test_no_start_is_for_spsa_cmaes_tpe_only(algo: str) -> None:
-    """Issue 25: --no-start made safe (the default) start from a random point (its first
-    experiment at k_pw 2.02, k_iw 154, k_pos 8.2 instead of the hand-tuned 0.53, 20,
-    30), and the compact GAs accepted it and ignored it."""
+    """--no-start is for spsa, cmaes and tpe only: with safe (the default) it would start
+    from a random point (its first experiment at k_pw 2.02, k_iw 154, k_pos 8.2 instead of
+    the hand-tuned 0.53, 20, 30), and the compact GAs would accept it and ignore it; both
+    are refused."""
     if algo in ('spsa', 'cmaes', 'tpe'):
         new = _new('--algo', algo, '--no-start', '--seed', '4')
         assert new.run.start is False and new.run.algo == algo
@@ -72,9 +73,10 @@ def _run_yaml(algo: str, start: object, drop: tuple[str, ...] = ()) -> RunConfig
 
 
 def test_resume_keeps_the_same_rule() -> None:
-    """A run.yaml written with --no-start before issue 25: safe is refused as --no-start
-    is; a compact GA's is harmless (it takes no start) and goes on; spsa's is the
-    documented case; a start that is not a bool is refused."""
+    """A run.yaml written with --no-start when any algorithm took it (``start: false``
+    whatever the algo): safe's is refused as --no-start is; a compact GA's is harmless (it
+    takes no start) and goes on; spsa's is the documented case; a start that is not a bool
+    is refused."""
     _check_run(_run_yaml('spsa', False), 'run.yaml')
     _check_run(_run_yaml('necga', False), 'run.yaml')
     _check_run(_run_yaml('safe', True), 'run.yaml')
@@ -99,7 +101,7 @@ def test_check_no_start_accepts_what_the_optimisers_run_without_a_start() -> Non
 
 
 def test_the_composed_loop_runs_sched_fifo_50_unless_told_otherwise() -> None:
-    """Issue 27: as ros2_control_node, the composed loop asks for SCHED_FIFO 50 when
+    """As ros2_control_node, the composed loop asks for SCHED_FIFO 50 when
     --thread-priority is not given; 0 is the normal policy; given with another bench it
     is refused (test_bad_input), not given it asks for nothing there."""
     from im_drive_sim import rt

@@ -230,6 +230,8 @@ HOST_RECHECK_S = 4.0
 #: A host whose worst experiment-long window holds more periods than this cannot run a
 #: wall-clock test honestly: the test skips with the floor in its reason.
 HOST_FLOOR_HOPELESS = 1000
+#: A hopeless floor older than this [s] is measured again before a test skips on it.
+HOST_FLOOR_AGE_S = 60.0
 #: The share of late periods [%] a run's drive may show beyond twice the floor's before
 #: the run is called later than its host (docs/real-drive.md: the code's budget).
 LATE_MARGIN_PCT = 0.05
@@ -283,9 +285,22 @@ class HostFloor(dict):
         )
 
     def require(self) -> None:
-        """Skip the calling test, saying the floor, when no tolerance would be honest."""
-        if self.tolerance > HOST_FLOOR_HOPELESS:
-            pytest.skip(f'this host cannot run a 5 kHz wall-clock loop: {self.describe()}')
+        """Skip the calling test, saying the floor, when no tolerance would be honest. A
+        hypervisor's stalls come and go within minutes: a hopeless floor measured more than
+        ``HOST_FLOOR_AGE_S`` ago is measured again first (``HOST_FLOOR_S``), and a quiet one
+        found then becomes the floor of the tests that follow."""
+        if self.tolerance <= HOST_FLOOR_HOPELESS:
+            return
+        before = self.describe()
+        if time.monotonic() - getattr(self, 'taken', float('-inf')) > HOST_FLOOR_AGE_S:
+            self.clear()
+            self.update(measure_host(HOST_FLOOR_S))
+            self.taken = time.monotonic()
+            if self.tolerance <= HOST_FLOOR_HOPELESS:
+                print(f'the host is quieter than it was ({before}): now {self.describe()}')
+                return
+            before += f'; again: {self.describe()}'
+        pytest.skip(f'this host cannot run a 5 kHz wall-clock loop: {before}')
 
     def louder(self, seen: dict) -> bool:
         """Whether a measurement of the host taken later in the test (``host_check``'s
@@ -338,6 +353,7 @@ class HostFloor(dict):
         if late is None:
             return p, run, tol
         again = HostFloor(measure_host(HOST_RECHECK_S))
+        again.taken = time.monotonic()
         print(f'the run was later than the floor ({late}); the host again: {again.describe()}')
         again.require()
         checks = [again, *self._checks(run)]
@@ -382,4 +398,6 @@ def host_floor_type() -> type[HostFloor]:
 def host_floor() -> HostFloor:
     """This machine's floor for a 5 kHz loop (``ros2 run im_drive_sim host_check``): the
     wall-clock tests judge the code against it, and run with the tolerance it derives."""
-    return HostFloor(measure_host(HOST_FLOOR_S))
+    floor = HostFloor(measure_host(HOST_FLOOR_S))
+    floor.taken = time.monotonic()
+    return floor

@@ -495,6 +495,20 @@ def test_the_tuners_goodbye_is_zero_current_at_once(ros_context, running):
         reset_cli = probe.node.create_client(Trigger, '/controller/reset_fault')
         assert probe.call(reset_cli.call_async(Trigger.Request())).success
         assert not ctl.runner.faulted
+        if running:
+            return
+        # the next tuner's goodbye on the same controller, mid-experiment this time: said
+        # as an error where the last was information (rclpy fixes the severity of each
+        # logging call at its first use: one call for both ended the controller)
+        beat = Heartbeat(probe.node, '/controller/heartbeat', period=0.05)
+        assert fd.spin_until(lambda: not ctl._tuner_tripped, 10)
+        assert probe.start().success
+        for k in range(32, 60):
+            fd.answered(k)
+        beat.stop()
+        assert fd.spin_until(lambda: ctl.runner.faulted, 5) and ctl.tuner_trips == 2
+        assert fd.spin_until(lambda: len(probe.results) == 1, 5)
+        assert probe.results[0].aborted and probe.results[0].reason == 'tuner_lost'
 
 
 @pytest.mark.parametrize(

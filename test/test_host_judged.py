@@ -121,3 +121,27 @@ def test_a_host_measured_hopeless_after_a_late_run_skips(floor, tmp_path):
         floor.run_judged(runs)
     assert 'cannot run a 5 kHz wall-clock loop' in str(skipped.value)
     assert runs.tolerances == [10]
+
+
+HOPELESS = {**LOUD, 'held_per_experiment': {'p50': 900.0, 'p95': 1600.0, 'max': 1700.0}}
+HOPELESS['tolerance'] = 1600
+
+
+def test_a_hopeless_floor_is_measured_again_and_a_quiet_one_kept(floor, host_floor_type):
+    f = host_floor_type(HOPELESS)
+    f.taken = float('-inf')  # measured long ago
+    floor.rechecks.append(QUIET)
+    f.require()  # no skip: the host is quiet now
+    assert f['late_pct'] == QUIET['late_pct'] and f.tolerance == 10
+    assert floor.rechecks == []
+
+
+def test_a_floor_hopeless_twice_skips_with_both_measurements(floor, host_floor_type):
+    f = host_floor_type(HOPELESS)
+    f.taken = float('-inf')
+    floor.rechecks.append({**HOPELESS, 'late_pct': 4.0})
+    with pytest.raises(pytest.skip.Exception, match=r'late 2\.500 %.*again: .*late 4\.000 %'):
+        f.require()
+    # measured just now: the next test skips on it without measuring again
+    with pytest.raises(pytest.skip.Exception, match=r'late 4\.000 %'):
+        f.require()

@@ -26,7 +26,7 @@ from im_drive_sim.drive_file import load_config
 from im_tuner.offline import OfflineBench, replay_realtime
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_faults import bag_counts, bag_state, results, ros2
+from test_faults import DISCOVERY_S, bag_counts, bag_state, results, ros2
 
 STEPS = 5625
 # wall-clock timing is asserted: alone, after the tests that run on two workers
@@ -354,7 +354,7 @@ def test_a_controller_that_falls_behind_is_flagged_rerun_and_never_a_loss(procs,
             '--seed',
             '3',
             '--discovery-timeout',
-            '20',
+            DISCOVERY_S,
             '--quiet',
             '--out',
             str(run),

@@ -525,7 +525,9 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         running = self.runner.running
         why = f'no heartbeat from {who} for {silent:.2f} s (tuner_timeout {self.tuner_timeout:g} s)'
         why = f'{who} ended its run (its goodbye)' if goodbye else why
-        say = self.get_logger().info if goodbye and not running else self.get_logger().error
+        # one call per severity: rclpy fixes a call's severity at its first use
+        log, quiet = self.get_logger(), goodbye and not running
+        say = lambda text: log.info(text) if quiet else log.error(text)  # noqa: E731
         if self.runner.faulted:
             say(f'{why}; already in FAULT ({self.runner.fault_reason}): zero current')
             return

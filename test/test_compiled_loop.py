@@ -136,10 +136,14 @@ def test_a_thread_waiting_for_the_loop_lock_gets_it_within_two_periods(ros_conte
         f'{np.percentile(over_us, [50, 90, 100]).round()} us'
     )
     # the loop returns after the period under way and lets the waiter in: a period or
-    # two. A starved waiter would wait for the loop's 5 ms chunks every time; a host that
-    # stalls this VM for milliseconds now and then delays some waits as it delays the
-    # thread's sleeps: beyond 2 ms, at most 10 % of the waits more than of the sleeps
-    # (a sleep is 1 ms long, a wait a fraction of that: the sleeps meet more stalls)
+    # two, plus what the host delays this thread by (the sleeps' median lateness). A
+    # starved waiter would wait for the loop's 5 ms chunks every time (a median of
+    # 2.5 ms): a host whose sleeps are late by 1 ms at the median cannot tell the two
+    # apart. A host that stalls this VM for milliseconds now and then delays some waits as
+    # it delays the thread's sleeps: beyond 2 ms, at most 10 % of the waits more than of
+    # the sleeps (a sleep is 1 ms long, a wait a fraction of that: the sleeps meet more)
     assert len(waits) == 200
-    assert np.median(waits_us) < 400, said
+    if np.median(over_us) > 1000:
+        pytest.skip(f'this host delays a thread too much to judge its waits: {said}')
+    assert np.median(waits_us) < 400 + np.median(over_us), said
     assert np.mean(waits_us > 2000) <= 0.10 + np.mean(over_us > 2000), said

@@ -188,7 +188,7 @@ def test_benchmarks_and_benches_have_two_names() -> None:
     assert (SRC / 'im_tuner' / 'im_tuner' / 'bench' / 'spec.py').is_file()
 
 
-def test_no_issue_numbers_in_tests_benchmarks_docs_and_tools() -> None:
+def test_no_issue_numbers_in_the_tracked_tree() -> None:
     found = []
     for f in _tracked():
         path = ROOT / f

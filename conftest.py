@@ -263,6 +263,10 @@ class HostFloor(dict):
     """``host_check --json`` of this machine (measured once per test run, in a child, as a
     user runs it) and what a wall-clock test takes from it."""
 
+    def __init__(self, measured: dict) -> None:
+        super().__init__(measured)
+        self.taken = time.monotonic()  #: when it was measured [s, monotonic]
+
     @property
     def tolerance(self) -> int:
         """The timing tolerance a wall-clock run here is given: twice the worst
@@ -292,7 +296,7 @@ class HostFloor(dict):
         if self.tolerance <= HOST_FLOOR_HOPELESS:
             return
         before = self.describe()
-        if time.monotonic() - getattr(self, 'taken', float('-inf')) > HOST_FLOOR_AGE_S:
+        if time.monotonic() - self.taken > HOST_FLOOR_AGE_S:
             self.clear()
             self.update(measure_host(HOST_FLOOR_S))
             self.taken = time.monotonic()
@@ -353,7 +357,6 @@ class HostFloor(dict):
         if late is None:
             return p, run, tol
         again = HostFloor(measure_host(HOST_RECHECK_S))
-        again.taken = time.monotonic()
         print(f'the run was later than the floor ({late}); the host again: {again.describe()}')
         again.require()
         checks = [again, *self._checks(run)]
@@ -398,6 +401,4 @@ def host_floor_type() -> type[HostFloor]:
 def host_floor() -> HostFloor:
     """This machine's floor for a 5 kHz loop (``ros2 run im_drive_sim host_check``): the
     wall-clock tests judge the code against it, and run with the tolerance it derives."""
-    floor = HostFloor(measure_host(HOST_FLOOR_S))
-    floor.taken = time.monotonic()
-    return floor
+    return HostFloor(measure_host(HOST_FLOOR_S))

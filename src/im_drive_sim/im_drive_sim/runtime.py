@@ -367,11 +367,22 @@ class RosSession:
         self._on_signal = on_signal
         rclpy.init(args=argv, context=context, signal_handler_options=SignalHandlerOptions.NO)
         self._old = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+        self._old_unraisable = sys.unraisablehook
+        sys.unraisablehook = self._unraisable
 
     def _handle(self, signum: int, _frame: object) -> None:
         self.signum = signum
         if self._on_signal is not None:
             self._on_signal(signum)
+
+    def _unraisable(self, info: Any) -> None:
+        # A KeyboardInterrupt raised by on_signal while the main thread runs a ctypes
+        # callback (numba's object cache, as it compiles) cannot propagate: Python would
+        # print it as a traceback and go on. The signal is already in ``signum``, which the
+        # starting code checks once it is up: nothing to print.
+        if isinstance(info.exc_value, KeyboardInterrupt) and self.stopped:
+            return
+        self._old_unraisable(info)
 
     @property
     def stopped(self) -> bool:
@@ -381,3 +392,4 @@ class RosSession:
         rclpy.try_shutdown(context=self.context)
         for s, h in self._old.items():
             signal.signal(s, h)
+        sys.unraisablehook = self._old_unraisable

@@ -193,7 +193,12 @@ def main(args: list[str] | None = None) -> int:
 
     def _on_signal(_signum: int) -> None:
         if bench is None:
-            raise KeyboardInterrupt  # still starting: nothing to stop cleanly yet
+            # still starting, a simulation: end now (numba's compile can take tens of
+            # seconds under load, and an exception raised in its callbacks is swallowed);
+            # the bag it began holds nothing of a run yet: removed
+            host.remove()
+            os.write(2, b'sim_bench: interrupted\n')
+            os._exit(130)
         if isinstance(bench, InProcess):
             bench.bench.stop_requested = True
 
@@ -203,6 +208,8 @@ def main(args: list[str] | None = None) -> int:
     code = 0
     try:
         bench = open_bench(spec, host, command=argv, should_stop=lambda: session.stopped)
+        if isinstance(bench, InProcess):
+            bench.bench.stop_requested = session.stopped  # a signal as it came up
         if isinstance(bench, Children):
             code = bench.wait(lambda: session.stopped)
             bench.stop_nodes()  # (the recorder last: it takes what the others sent)

@@ -324,6 +324,33 @@ def test_gains_refused_while_the_fallback_finishes_a_stopped_move(bench):
     assert probe.get('k_pw') == [0.6]
 
 
+def test_the_timing_tolerance_changes_between_experiments_only(bench):
+    """``timing_tolerance`` (a tuner's ``--timing-tolerance auto`` raises it when its host
+    gets louder): an integer >= 0, set between experiments and judging the next; refused
+    while an experiment runs, as gains are; a double or a negative refused, unchanged."""
+    b, probe = bench
+    ctl = b.controller
+    assert probe.get('timing_tolerance') == [0] and ctl.runner.timing_tolerance == 0
+    assert probe.set_atomically(timing_tolerance=12).successful
+    assert probe.get('timing_tolerance') == [12] and ctl.runner.timing_tolerance == 12
+    for bad in (3.5, -1):
+        assert not probe.set_atomically(timing_tolerance=bad).successful
+    assert probe.get('timing_tolerance') == [12] and ctl.runner.timing_tolerance == 12
+    n = len(ctl.results)
+    assert probe.start().success
+    fut = probe.params.set_parameters_atomically([Parameter('timing_tolerance', value=20)])
+    # serve the call without stepping the bench: the experiment is still running
+    deadline = time.monotonic() + 20
+    while not fut.done() and time.monotonic() < deadline:
+        b.executor.spin_once(timeout_sec=0.01)
+    res = fut.result().result
+    assert not res.successful and refusal_code(res.reason) == BUSY, res.reason
+    assert ctl.runner.timing_tolerance == 12
+    assert b.spin_until(lambda: len(ctl.results) > n, 60) and ctl.runner.ready
+    assert probe.set_atomically(timing_tolerance=20).successful
+    assert ctl.runner.timing_tolerance == 20
+
+
 def test_loss_message_round_trip_is_exact():
     r = offline_losses([Gains()])[0]
     assert msg_to_result(result_to_msg(r, 'controller')) == r

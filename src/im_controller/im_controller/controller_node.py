@@ -248,9 +248,17 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
 
     def _post_set(self, params: list[Parameter]) -> None:
         cfg, gains = self._candidate({})
+        tolerance = int(self.get_parameter('timing_tolerance').value)
         with self.loop_lock:
             self.runner.set_config(cfg)
             self.runner.set_gains(gains)
+            self.runner.timing_tolerance = tolerance
+        if tolerance != self.timing_tolerance:
+            self.get_logger().info(
+                f'timing tolerance {tolerance} held + late periods per experiment '
+                f'(was {self.timing_tolerance}), from the next experiment on'
+            )
+            self.timing_tolerance = tolerance
 
     @property
     def gains(self) -> Gains:

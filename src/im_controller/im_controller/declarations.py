@@ -22,6 +22,7 @@ from .parameters import (
     INT_PARAMETERS,
     READ_ONLY_SECTIONS,
     TUNABLE_SECTIONS,
+    WRITABLE_INTS,
     ControllerError,
     check_isq_max,
     check_lockstep_idle,
@@ -132,7 +133,11 @@ def declare_structure(node: Node) -> Structure:
         ),
     ).value
     ints = {
-        name: node.declare_parameter(name, default, param_descriptor(text, int_range=bounds)).value
+        name: node.declare_parameter(
+            name,
+            default,
+            param_descriptor(text, int_range=bounds, read_only=name not in WRITABLE_INTS),
+        ).value
         for name, (default, text, bounds) in INT_PARAMETERS.items()
     }
     node.declare_parameter(

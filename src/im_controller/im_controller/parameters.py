@@ -68,7 +68,8 @@ DESCRIPTIONS = {
     },
 }
 
-#: The integer structure parameters (read-only): name -> (default, description, range).
+#: The integer parameters: name -> (default, description, range); read-only but for
+#: :data:`WRITABLE_INTS`.
 INT_PARAMETERS: dict[str, tuple[int, str, tuple[int, int]]] = {
     'internals_decimation': (
         1,
@@ -85,7 +86,9 @@ INT_PARAMETERS: dict[str, tuple[int, str, tuple[int, int]]] = {
         'periods of an experiment (of its 5625 on the drive timeline) that may be held '
         "or late before its result is marked 'timing' (not the paper's timing: the "
         'tuner re-runs it). 0 on a simulated bench; a real bench whose power stage '
-        'applies commands at period starts may need a few (docs/real-drive.md).',
+        'applies commands at period starts may need a few (docs/real-drive.md). '
+        "Changes between experiments only (a tuner's --timing-tolerance auto raises it "
+        'when its host gets louder)',
         (0, 1_000_000),
     ),
     'first_experiment_id': (
@@ -123,9 +126,15 @@ def section_defaults(sections: dict[str, type]) -> list[tuple[str, float | str]]
     return out
 
 
+#: The integer parameters a client may change (between experiments): the timing
+#: tolerance the next experiment is judged by.
+WRITABLE_INTS = frozenset({'timing_tolerance'})
+
+
 def is_tunable(name: str) -> bool:
-    """A gain or an experiment parameter: changes only between experiments."""
-    return name in GAIN_NAMES or name.split('.', 1)[0] in TUNABLE_SECTIONS
+    """A gain, an experiment parameter or the timing tolerance: changes only between
+    experiments."""
+    return name in GAIN_NAMES or name in WRITABLE_INTS or name.split('.', 1)[0] in TUNABLE_SECTIONS
 
 
 def configuration(

@@ -229,6 +229,15 @@ class ControllerLink:
             Parameter(n, Parameter.Type.DOUBLE, float(v))
             for n, v in zip(GAIN_NAMES, gains.as_tuple(), strict=True)
         ]
+        self._set_between_experiments(params, f'the gains {gains}', deadline)
+
+    def set_timing_tolerance(self, periods: int, deadline: float) -> None:
+        """The controller's ``timing_tolerance`` [held + late periods per experiment],
+        which judges its next experiments; as :meth:`set_gains`."""
+        params = [Parameter('timing_tolerance', Parameter.Type.INTEGER, int(periods))]
+        self._set_between_experiments(params, f'timing_tolerance {periods}', deadline)
+
+    def _set_between_experiments(self, params: list[Parameter], what: str, deadline: float) -> None:
         while True:
             res = self._call(
                 self.params.set_parameters_atomically(params), 'set_parameters_atomically'
@@ -236,9 +245,9 @@ class ControllerLink:
             if res.successful:
                 return
             if C.refusal_code(res.reason) not in (C.BUSY, C.FINISHING_MOVE):
-                raise BenchFailure(f'the controller refused the gains {gains}: {res.reason}')
+                raise BenchFailure(f'the controller refused {what}: {res.reason}')
             if time.monotonic() > deadline:
-                raise LostEvaluation(f'gains refused until the timeout: {res.reason}')
+                raise LostEvaluation(f'{what} refused until the timeout: {res.reason}')
             self._wait(lambda: False, RETRY_PERIOD)
 
     # -- experiments -------------------------------------------------------------------------

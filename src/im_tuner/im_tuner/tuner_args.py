@@ -160,7 +160,8 @@ def build_parser() -> argparse.ArgumentParser:
         f'Default {DEFAULT_TIMING_TOLERANCE}: the change of a loss by that many held periods '
         'stays within the bench\'s noise (docs/real-drive.md, "Timing tolerance"); 0: '
         "the paper's timing exactly; auto: twice what a 2 s check of this host finds 95 %% of "
-        f'experiments meet, at least {DEFAULT_TIMING_TOLERANCE} (--bench realtime; '
+        f'experiments meet, at least {DEFAULT_TIMING_TOLERANCE}, raised when an experiment '
+        'comes back timing and the host, checked again, needs more (--bench realtime; '
         'elsewhere the default). Also -p timing_tolerance:=N after --ros-args',
     )
     ap.add_argument(

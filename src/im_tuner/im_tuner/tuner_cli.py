@@ -234,7 +234,10 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
 
 
 def _check_host(
-    cli: argparse.Namespace, tolerance: int | str, bench: str | None = None
+    cli: argparse.Namespace,
+    tolerance: int | str,
+    bench: str | None = None,
+    least: int = DEFAULT_TIMING_TOLERANCE,
 ) -> tuple[int, dict | None, HostSaid]:
     """On the composed real-time bench (``bench``: the one asked for, default
     ``--bench``), the host's check before the first experiment (``host.check_before_run``:
@@ -242,11 +245,11 @@ def _check_host(
     cannot meet the tolerance (or what ``auto`` chose). Returns the tolerance to run with,
     the check's record (None: not a real-time bench, where ``auto`` is the default) and
     its line, said by the session once its bench is up (a refusal before that stays one
-    line)."""
+    line). ``least``: the tolerance ``auto`` never goes below (a resumed run's)."""
     if (bench or cli.bench or 'auto') != 'realtime':
-        return (DEFAULT_TIMING_TOLERANCE if tolerance == host.AUTO else int(tolerance)), None, None
+        return (least if tolerance == host.AUTO else int(tolerance)), None, None
     chosen, record, line = host.check_before_run(
-        tolerance, DEFAULT_TIMING_TOLERANCE, rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY)
+        tolerance, least, rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY)
     )
     return chosen, record, (None if line is None else (line, not record['auto']))
 
@@ -333,9 +336,21 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
             drive = drive_spec.resolve(str(run.drive), run.drive_config)
         except drive_spec.DriveSpecError as exc:
             raise UsageError(f'--resume: {exc}') from None
-    # this session's check of its host (at the run's tolerance; recorded with its loop)
-    _, run.host_check, said = _check_host(cli, run.tolerance(), run.bench_requested)
+    said = _check_resumed_host(cli, run)
     return PreparedSession(run, params, drive, progress, rundir, tuning, n_restored, None, said)
+
+
+def _check_resumed_host(cli: argparse.Namespace, run: RunConfig) -> HostSaid:
+    """A resumed run's check of its host (at the run's tolerance; recorded with its loop
+    in ``run.host_check``): a run begun with ``--timing-tolerance auto`` goes on with it,
+    from its tolerance up (``run``'s tolerance raised when the host now needs more)."""
+    auto = bool((run.host_check or {}).get('auto'))
+    tolerance, run.host_check, said = _check_host(
+        cli, host.AUTO if auto else run.tolerance(), run.bench_requested, int(run.tolerance())
+    )
+    if auto:
+        run.put(timing_tolerance=tolerance)
+    return said
 
 
 def _ripple_limit(cli: argparse.Namespace, algo: str) -> float | None:

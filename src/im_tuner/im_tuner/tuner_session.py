@@ -317,6 +317,47 @@ class TunerSession:
                     f'(no replay){ids}'
                 )
         tuning.state.sessions.append(session)
+        if (run.host_check or {}).get('auto'):
+            tuning.off_timing = lambda: self.recheck_host(link)
+
+    def recheck_host(self, link: ControllerLink) -> int | None:
+        """``--timing-tolerance auto``, after an experiment off the paper's timing: the host
+        checked again as before the run (``host.check_before_run``, 2 s of the loop's wait
+        beside the running bench). A host louder than it was raises the tolerance to what
+        it now needs -- on the controller, in run.yaml (a resume starts there), said in
+        one line -- and never lowers it. Each check goes into this session's record
+        (``host_rechecks``: summary.json's ``sessions``). Returns the new tolerance
+        (None: unchanged)."""
+        from im_drive_sim import host, rt
+
+        tuning, rundir = self.tuning, self.rundir
+        assert tuning is not None and rundir is not None
+        before = int(tuning.timing_tolerance or 0)
+        opts = rt.RtOptions.from_cli(self.cli, rt.DEFAULT_PRIORITY)
+        chosen, record, line = host.check_before_run(host.AUTO, before, opts)
+        self.session.setdefault('host_rechecks', []).append(
+            {
+                'after_records': len(tuning.records),
+                'late_pct': record['late_pct'],
+                'max_lateness_us': record['max_lateness_us'],
+                'held_per_experiment': record['held_per_experiment'],
+                'timing_tolerance_before': before,
+                'timing_tolerance': chosen,
+            }
+        )
+        tuning.checkpoint()
+        if chosen <= before:
+            self.progress.note(
+                f'host checked again after an experiment off the timing: tolerance {before} '
+                f'kept (late {record["late_pct"]:.3f} % of periods)'
+            )
+            return None
+        link.set_timing_tolerance(chosen, time.monotonic() + link.call_timeout)
+        self.run.put(timing_tolerance=chosen)
+        rundir.write_run(self.run)
+        assert line is not None
+        self.progress.note(f'{line}; the host got louder: from the next experiment on')
+        return chosen
 
     def finish(self, outcome: str, bench: Bench, link: ControllerLink, t_wall0: float) -> int:
         """The search ended with ``outcome``: the drive's counters, the bag closed (a bag

@@ -240,6 +240,10 @@ class TuningRun:
         self.retries = int(retries)
         #: the run's timing tolerance [periods] (run.yaml; for the summary)
         self.timing_tolerance: int | None = None
+        #: called after an attempt off the paper's timing (a ``timing`` record), before
+        #: the next: the tolerance the controller now judges by (None: unchanged); the
+        #: tuner's ``--timing-tolerance auto`` checks its host again there
+        self.off_timing: Callable[[], int | None] | None = None
         self.with_reference = bool(reference)
         self.progress = progress
         self.first_step = first_step
@@ -443,6 +447,10 @@ class TuningRun:
                 self.progress(kind, rec, self)
             if rec.status in MEASURED:
                 return rec
+            if rec.status == 'timing' and self.off_timing is not None:
+                tolerance = self.off_timing()
+                if tolerance is not None:
+                    self.timing_tolerance = tolerance
         raise BenchFailure(
             f'{kind} {index}: no result after {self.retries + 1} attempts '
             f'with the same gains ({rec.reason})'

@@ -40,7 +40,8 @@ class FakeBench:
     ) -> None:
         self.calls: list[tuple[float, ...]] = []
         self.lose = set(lose)  # call indices whose result is lost
-        self.off_timing: set[int] = set()  # call indices measured off the paper timing
+        self.off_timing: set[int] = set()  # call indices holding 7 periods
+        self.tolerance = 0  # held periods an experiment may have (the controller's)
         self.abort_above = abort_above
         self.stop_at = stop_at
         self.applied: Gains | None = None
@@ -74,7 +75,7 @@ class FakeBench:
             gains=gains.as_tuple(),
             fresh=5625 - 7 * (k in self.off_timing),
             held=7 * (k in self.off_timing),
-            timing=k in self.off_timing,
+            timing=k in self.off_timing and self.tolerance < 7,
         )
 
     def apply(self, gains: Gains) -> None:
@@ -160,6 +161,33 @@ def test_off_timing_result_is_rerun_never_told_and_counted(tmp_path):
     # a resume rebuilds the same counters from results.jsonl
     again = make_run_from(RunDir(tmp_path / 'r'), budget=5, remeasure=0)
     assert again.restore() == len(recs) and again.state.timing == 2
+
+
+def test_an_attempt_off_timing_asks_for_the_tolerance_before_the_next(tmp_path):
+    """``off_timing`` (``--timing-tolerance auto``: the host checked again) is called after
+    each attempt off the timing, before the next; the tolerance it returns judges the next
+    attempts (on the controller: here the fake bench) and is the summary's."""
+    bench = FakeBench()
+    bench.off_timing = {3, 4, 6}  # evaluation 2's attempts 1 and 2, evaluation 3
+    run = make_run(tmp_path / 'r', budget=5, remeasure=0)
+    run.timing_tolerance = 5
+    asked: list[int] = []
+
+    def louder() -> int | None:
+        asked.append(len(run.records))
+        bench.tolerance = 10  # (the controller, told)
+        return 10
+
+    run.off_timing = louder
+    assert run.run(bench) == 'done'
+    recs = records(tmp_path / 'r')
+    assert [(r.eval, r.attempt, r.status) for r in recs if r.status == 'timing'] == [
+        (2, 1, 'timing')
+    ]
+    assert asked == [4]  # after the 4th record (the reference, evaluations 0-1, the off one)
+    assert recs[4].eval == 2 and recs[4].attempt == 2 and recs[4].periods['held'] == 7
+    assert run.timing_tolerance == 10 and run.state.timing == 1
+    assert run.summary(outcome='done', wall_s=1.0).timing_tolerance == 10
 
 
 def test_results_lost_beyond_retries_end_the_run_with_best_applied(tmp_path):

@@ -6,7 +6,9 @@ refusals; ``--beside`` (Tables I-III of two profiles side by side); and without
 
 from __future__ import annotations
 
+import csv
 import hashlib
+import io
 import json
 import subprocess
 import sys
@@ -26,6 +28,21 @@ def study(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
 #: sha256 of that study's tables.csv with safe's default ripple limit,
 #: retaken when the identified first step changed (300 experiments per seed, sigma 0.02)
 DEFAULT_LIMIT_TABLES = '3d72d530e6960ec9c3351fcf7e500ca7929f62b437bd77fe750bbf33f7a035a6'
+
+
+def _without_new_columns(runs_csv: bytes) -> bytes:
+    """runs.csv without the columns added since (the ripple, the identified drive)."""
+    from im_tuner.study.files import RIPPLE_COLUMNS
+
+    rows = list(csv.reader(io.StringIO(runs_csv.decode(), newline='')))
+    keep = [
+        i
+        for i, name in enumerate(rows[0])
+        if name not in RIPPLE_COLUMNS and not name.startswith('identified_')
+    ]
+    text = io.StringIO(newline='')
+    csv.writer(text).writerows([row[i] for i in keep] for row in rows)
+    return text.getvalue().encode()
 
 
 def test_without_drives_the_files_are_unchanged(tmp_path):
@@ -59,7 +76,7 @@ def test_without_drives_the_files_are_unchanged(tmp_path):
     tables = hashlib.sha256(before('tables.csv')).hexdigest()
     # and safe's commands now say --first (the tuner's default depends on its bench)
     runs = (
-        before('runs.csv')
+        _without_new_columns(before('runs.csv'))
         .replace(str(out).encode(), b'OUT')
         .replace(b' --first none', b'')
         .replace(b' --ripple-limit off', b'')
@@ -173,3 +190,45 @@ def test_bad_drives_one_line_exit_2_nothing_written(tmp_path, args, expect):
     assert p.returncode == 2 and len(lines) == 1, p.stderr
     assert lines[0].startswith('error: study: ') and expect in lines[0], lines[0]
     assert not out.exists() and p.stdout == ''
+
+
+def test_runs_csv_has_each_runs_ripple_and_identified_drive(tmp_path):
+    """runs.csv gives each run's standstill ripple of isq* (the start's and the applied
+    gains', rms about the mean and peak to peak, after the move and after the load: what
+    study.npz holds) and, for the rows whose first step is identified, the drive identified
+    from the start's experiments with its sd: here the plant is the told drive, so J and Kt
+    are its file's within 2 sd and 3 %."""
+    from im_drive_sim.drive_file import load_config
+    from im_tuner.identify import FIGURES
+    from im_tuner.study.files import RIPPLE_COLUMNS
+    from im_tuner.study.results import load
+
+    out = tmp_path / 's'
+    p = study('--runs', '2', '--budget', '3', '--algos', 'safe', '--jobs', '1', '--quiet',
+              '--out', str(out))  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    with (out / 'runs.csv').open() as f:
+        rows = list(csv.DictReader(f))
+    res = load(out)
+    assert len(rows) == len(res.cells) * 2
+    machine = load_config(None).machine  # (the study's drive: the packaged default)
+    identified_rows = 0
+    for i, row in enumerate(rows):
+        c, r = divmod(i, 2)
+        assert (row['config'], int(row['run'])) == (res.cells[c].label, r)
+        rms = [float(row[k]) for k in RIPPLE_COLUMNS[:4]]
+        pp = [float(row[k]) for k in RIPPLE_COLUMNS[4:]]
+        assert rms == list(res.ripple[c, r]) and pp == list(res.ripple_pp[c, r])
+        assert all(0 < a <= b for a, b in zip(rms, pp, strict=True)), row
+        figures = [row[f'identified_{f}'] for f in FIGURES]
+        if res.cells[c].first != 'identify':
+            assert figures == [''] * len(FIGURES), row
+            continue
+        identified_rows += 1
+        v = dict(zip(FIGURES, map(float, figures), strict=True))
+        assert list(v.values()) == list(res.identified[c, r])
+        assert v['J_sd'] > 0 and v['Kt_sd'] > 0 and v['Tc_sd'] > 0
+        for name, file_value in (('J', machine.J), ('Kt', machine.Kt)):
+            err = abs(v[name] - file_value)
+            assert err <= max(2 * v[f'{name}_sd'], 0.03 * file_value), (name, v, file_value)
+    assert identified_rows == 2

@@ -55,6 +55,11 @@ PRIOR_TC = 0.1  # of the rated torque
 PRIOR_B_SPEED = 100.0  # B's prior sd is PRIOR_TC rated torque at this speed [rad/s]
 
 
+#: The identified figures, each with its standard deviation (SI): :class:`Identified`'s
+#: fields, and the study's per-run columns.
+FIGURES = ('J', 'J_sd', 'Kt', 'Kt_sd', 'B', 'B_sd', 'Tc', 'Tc_sd')
+
+
 @dataclass(frozen=True)
 class Identified:
     """The identified mechanics (SI) with one standard deviation each, and the file's.

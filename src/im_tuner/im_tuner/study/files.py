@@ -13,6 +13,7 @@ from im_controller.config import GAIN_NAMES
 
 from .. import optim
 from ..family import DEFAULT_DRIVE
+from ..identify import FIGURES
 from .results import StudyResult
 from .spec import REFERENCE_ALGOS
 from .stats import (
@@ -96,6 +97,16 @@ def write_starts(res: StudyResult, out: Path) -> None:
         (d / f'run_{r:03d}.yaml').write_text(text)
 
 
+#: The standstill ripple of isq* [A] of the start and of the gains the run leaves applied,
+#: after the move and after the load: rms (what the ripple limit bounds), then peak to peak
+#: (``StudyResult.ripple``, ``ripple_pp``).
+RIPPLE_COLUMNS = tuple(
+    f'{who}_{measure}_after_{when}'
+    for measure in ('rms', 'pp')
+    for who in ('start', 'applied')
+    for when in ('move', 'load')
+)
+
 RUN_COLUMNS = (
     'algo',
     'config',
@@ -114,13 +125,21 @@ RUN_COLUMNS = (
     'iterations_to_satisfactory',
     'aborted',
     'faults',
+    *RIPPLE_COLUMNS,
+    *(f'identified_{f}' for f in FIGURES),
     'tuner_command',
 )
+
+
+def _num(x: float) -> str:
+    """A number of runs.csv: exact (repr), empty when not measured (nan)."""
+    return '' if math.isnan(x) else repr(float(x))
 
 
 def write_runs_csv(st: StudyStats, out: Path) -> Path:
     res = st.res
     pr = per_run(res, st.threshold)
+    assert res.ripple is not None and res.ripple_pp is not None and res.identified is not None
     path = out / 'runs.csv'
     with path.open('w', newline='') as f:
         w = csv.writer(f)
@@ -147,6 +166,8 @@ def write_runs_csv(st: StudyStats, out: Path) -> Path:
                         '' if math.isnan(pr['iterations'][c, r]) else int(pr['iterations'][c, r]),
                         int(res.aborted[c, r].sum()),
                         int(res.faults[c, r].sum()),
+                        *(_num(x) for x in (*res.ripple[c, r], *res.ripple_pp[c, r])),
+                        *(_num(x) for x in res.identified[c, r]),
                         tuner_command(res, c, r, out),
                     ]
                 )

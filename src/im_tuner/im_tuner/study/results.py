@@ -60,13 +60,17 @@ class StudyResult:
     ripple: np.ndarray | None = None
     #: bool[cells, runs]: the ripple limit kept out a point the run would have re-measured
     ripple_changed: np.ndarray | None = None
+    #: float64[cells, runs, 4]: as ``ripple``, peak to peak [A]
+    ripple_pp: np.ndarray | None = None
+    #: float64[cells, runs, 8]: the drive identified from the start's experiments
+    #: (``identify.FIGURES``: J, Kt, B, Tc, each with its sd; SI); nan: not identified
+    identified: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         C, R = self.ref_loss.shape
-        if self.ripple is None:
-            self.ripple = np.full((C, R, 4), np.nan)
-        if self.ripple_changed is None:
-            self.ripple_changed = np.zeros((C, R), bool)
+        for name, value in empty_optional(C, R).items():
+            if getattr(self, name) is None:
+                setattr(self, name, value)
 
     @property
     def experiments(self) -> int:
@@ -93,9 +97,23 @@ class StudyResult:
         'exp_s',
         'ripple',
         'ripple_changed',
+        'ripple_pp',
+        'identified',
     )
     #: arrays a study from before them does not have (read as not measured)
-    OPTIONAL_ARRAYS = ('ripple', 'ripple_changed')
+    OPTIONAL_ARRAYS = ('ripple', 'ripple_changed', 'ripple_pp', 'identified')
+
+
+def empty_optional(C: int, R: int) -> dict[str, np.ndarray]:
+    """The optional per-run arrays of ``C`` cells by ``R`` runs, nothing measured."""
+    from ..identify import FIGURES
+
+    return {
+        'ripple': np.full((C, R, 4), np.nan),
+        'ripple_changed': np.zeros((C, R), bool),
+        'ripple_pp': np.full((C, R, 4), np.nan),
+        'identified': np.full((C, R, len(FIGURES)), np.nan),
+    }
 
 
 def save(res: StudyResult, out: Path | str) -> None:

@@ -30,12 +30,13 @@ from im_drive_sim import numeric
 from im_drive_sim.params import DriveConfig
 
 from .. import optim
+from ..identify import FIGURES
 from ..offline import OfflineBench
 from ..runlog import Evaluation, MemoryRecord, Record, Reference, Remeasurement
 from ..runlog.tally import ripple_summary
 from ..space import SearchSpace, TunerParams
 from ..tuning import DEFAULT_RETRIES, TuningRun, run_seeds
-from .results import ARRAYS_FILE, META_FILE, StudyResult, load, save
+from .results import ARRAYS_FILE, META_FILE, StudyResult, empty_optional, load, save
 from .spec import (
     DEFAULT_SATISFACTORY,
     DEFAULT_SEED,
@@ -125,6 +126,11 @@ class RunResult:
     ripple: tuple[float, float, float, float] = (math.nan,) * 4
     #: whether the ripple limit kept out a point the run would otherwise have re-measured
     ripple_changed: bool = False
+    #: as ``ripple``, peak to peak [A]
+    ripple_pp: tuple[float, float, float, float] = (math.nan,) * 4
+    #: the drive identified from the start's experiments (``identify.FIGURES``); nan: the
+    #: cell does not identify it
+    identified: tuple[float, ...] = (math.nan,) * 8
 
 
 def prepare_run(
@@ -246,12 +252,14 @@ def run_one(
     if limited and rem and final is not None and math.isnan(applied_loss(final, ref, rem, True)):
         again = bench.measure(Gains(**final['gains'])).loss
 
-    def rms(d: dict[str, Any] | None) -> tuple[float, float]:
+    def ripple(d: dict[str, Any] | None, measure: str) -> tuple[float, float]:
         d = d or {}
         return tuple(  # type: ignore[return-value]
             math.nan if d.get(k) is None else float(d[k])
-            for k in ('rms_after_move', 'rms_after_load')
+            for k in (f'{measure}_after_move', f'{measure}_after_load')
         )
+
+    idf = None if tuning.first_step is None else tuning.first_step.identified(tuning.records)
 
     return RunResult(
         cell=cell_index,
@@ -274,8 +282,14 @@ def run_one(
         remeasured=applied_loss(final, ref, rem, limited, again),
         opt_s=wall - exp_s,
         exp_s=exp_s,
-        ripple=(*rms(rip.get('start')), *rms(rip.get('applied'))),
+        ripple=(*ripple(rip.get('start'), 'rms'), *ripple(rip.get('applied'), 'rms')),
         ripple_changed=bool(rip.get('changed')),
+        ripple_pp=(*ripple(rip.get('start'), 'pp'), *ripple(rip.get('applied'), 'pp')),
+        identified=(
+            tuple(math.nan for _ in FIGURES)
+            if idf is None
+            else tuple(float(getattr(idf, f)) for f in FIGURES)
+        ),
     )
 
 
@@ -485,8 +499,7 @@ def _allocate(spec: StudySpec, cells: list[Cell]) -> dict[str, Any]:
         'remeasured': np.full((C, R), np.nan),
         'opt_s': np.zeros((C, R)),
         'exp_s': np.zeros((C, R)),
-        'ripple': np.full((C, R, 4), np.nan),
-        'ripple_changed': np.zeros((C, R), bool),
+        **empty_optional(C, R),
     }
 
 

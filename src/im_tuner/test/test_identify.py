@@ -136,7 +136,7 @@ def test_the_start_identifies_the_plant_not_the_file(name, realism, scale):
 @pytest.mark.parametrize(
     ('name', 'realism', 'seed', 'scale'),
     [
-        # the worst of the 414 cases measured (identify's docstring), J then Kt
+        # the worst cases without the floor (research/identify_sd.py), J then Kt
         ('im750w-j1', 'bench', 2, {}),
         ('im3700w-j1', 'bench', 1, {'J': 1.5, 'Rr': 1.3, 'Lm': 0.85, 'coulomb': 0.02}),
         # the study's wrong plant on the small and the large drive, command delay 2 too

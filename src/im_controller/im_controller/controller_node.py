@@ -122,7 +122,7 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.refused = {'start_experiment': 0, 'parameters': 0}
         #: Monotonic time [s] of the last refusal logged, per kind (the log throttle).
         self._refusal_logged = dict.fromkeys(self.refused, -math.inf)
-        self.add_pre_set_parameters_callback(self._pre_set)
+        self.add_pre_set_parameters_callback(self.integers_as_doubles)
         self.add_on_set_parameters_callback(self._on_set)
         self.add_post_set_parameters_callback(self._post_set)
 
@@ -204,19 +204,6 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
             self.Ts,
             self.isq_max,
         )
-
-    def _pre_set(self, params: list[Parameter]) -> list[Parameter]:
-        # Accept integers for double parameters (`k_iw:=20` means 20.0): a classic trap.
-        out = []
-        for p in params:
-            if (
-                p.type_ == Parameter.Type.INTEGER
-                and self.has_parameter(p.name)
-                and self.get_parameter(p.name).type_ == Parameter.Type.DOUBLE
-            ):
-                p = Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
-            out.append(p)
-        return out
 
     def _on_set(self, params: list[Parameter]) -> SetParametersResult:
         """Validate a whole change (one parameter or an atomic set): all or nothing."""

@@ -106,14 +106,28 @@ class LenientDoubles:
     """Mixin for an rclpy ``Node`` with the workspace's parameter conventions:
 
     * an integer given at start for a double parameter (``-p k_iw:=20``, or ``k_iw: 20``
-      in a params file) is taken as that double, as a ``set_parameters`` call is (the
-      controller's pre-set callback); rclpy would refuse it at declaration ('expecting
-      type DOUBLE'), a classic trap of the command line;
+      in a params file) is taken as that double, as a ``set_parameters`` call is
+      (:meth:`integers_as_doubles`, a node's pre-set callback); rclpy would refuse it at
+      declaration ('expecting type DOUBLE'), a classic trap of the command line;
     * a request to set an undeclared parameter is refused naming it (rclpy 7.1.6 builds
       its exception from a spent generator: ``Invalid access to undeclared
       parameter(s): []``). Done here rather than in a pre-set callback: rclpy hands every
       pre-set callback the original list and concatenates what they return.
     """
+
+    def integers_as_doubles(self, params: list[Parameter]) -> list[Parameter]:
+        """A pre-set parameters callback: an integer for a double parameter is that double
+        (``k_iw:=20`` means 20.0)."""
+        out = []
+        for p in params:
+            if (
+                p.type_ == Parameter.Type.INTEGER
+                and self.has_parameter(p.name)
+                and self.get_parameter(p.name).type_ == Parameter.Type.DOUBLE
+            ):
+                p = Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
+            out.append(p)
+        return out
 
     def _refuse_undeclared(self, parameter_list) -> None:
         missing = [p.name for p in parameter_list if not self.has_parameter(p.name)]

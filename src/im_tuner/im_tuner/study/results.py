@@ -104,6 +104,26 @@ class StudyResult:
     OPTIONAL_ARRAYS = ('ripple', 'ripple_changed', 'ripple_pp', 'identified')
 
 
+def empty_runs(C: int, R: int, B: int, D: int) -> dict[str, np.ndarray]:
+    """Every per-run array of ``C`` cells by ``R`` runs of ``B`` evaluations of ``D``
+    gains, nothing measured yet (what a study fills run by run)."""
+    return {
+        'start': np.full((C, R, D), np.nan),
+        'ref_loss': np.full((C, R), np.nan),
+        'ref_aborted': np.zeros((C, R), bool),
+        'losses': np.full((C, R, B), np.nan),
+        'aborted': np.zeros((C, R, B), bool),
+        'faults': np.zeros((C, R, B), bool),
+        'iteration': np.zeros((C, R, B), np.int32),
+        'best_eval': np.full((C, R), -1, np.int32),
+        'best_gains': np.full((C, R, D), np.nan),
+        'remeasured': np.full((C, R), np.nan),
+        'opt_s': np.zeros((C, R)),
+        'exp_s': np.zeros((C, R)),
+        **empty_optional(C, R),
+    }
+
+
 def empty_optional(C: int, R: int) -> dict[str, np.ndarray]:
     """The optional per-run arrays of ``C`` cells by ``R`` runs, nothing measured."""
     from ..identify import FIGURES

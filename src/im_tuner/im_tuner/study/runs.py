@@ -36,7 +36,7 @@ from ..runlog import Evaluation, MemoryRecord, Record, Reference, Remeasurement
 from ..runlog.tally import ripple_summary
 from ..space import SearchSpace, TunerParams
 from ..tuning import DEFAULT_RETRIES, TuningRun, run_seeds
-from .results import ARRAYS_FILE, META_FILE, StudyResult, empty_optional, load, save
+from .results import ARRAYS_FILE, META_FILE, StudyResult, empty_runs, load, save
 from .spec import (
     DEFAULT_SATISFACTORY,
     DEFAULT_SEED,
@@ -487,19 +487,7 @@ def _allocate(spec: StudySpec, cells: list[Cell]) -> dict[str, Any]:
         'drive_seed': np.array(
             [run_seeds(run_seed(spec.seed, r))[1] for r in range(R)], dtype=np.int64
         ),
-        'start': np.full((C, R, D), np.nan),
-        'ref_loss': np.full((C, R), np.nan),
-        'ref_aborted': np.zeros((C, R), bool),
-        'losses': np.full((C, R, B), np.nan),
-        'aborted': np.zeros((C, R, B), bool),
-        'faults': np.zeros((C, R, B), bool),
-        'iteration': np.zeros((C, R, B), np.int32),
-        'best_eval': np.full((C, R), -1, np.int32),
-        'best_gains': np.full((C, R, D), np.nan),
-        'remeasured': np.full((C, R), np.nan),
-        'opt_s': np.zeros((C, R)),
-        'exp_s': np.zeros((C, R)),
-        **empty_optional(C, R),
+        **empty_runs(C, R, B, D),
     }
 
 

@@ -30,8 +30,8 @@ amount of data averages out: ``MODEL_ERROR`` (1 % of the value) is added to thei
 deviations in quadrature. Measured over the nine packaged drives, ideal and bench realism,
 the file and five wrong plants (J x0.5, x2, x2.5; J x1.5 with Rr x1.3, Lm x0.85, Coulomb 2 %
 of the rated torque, with and without command delay 2), 378 cases (research/identify_sd.py):
-the error was at most 1.82 standard deviations in J and 2.05 in Kt, one case of 378 beyond 2
-(without the floor 3.0 and 4.0: 20 and 21 cases beyond 2); test_identify checks the worst.
+the error was at most 1.81 standard deviations in J and 2.05 in Kt, one case of 378 beyond 2
+(without the floor 2.8 and 3.9: 19 and 25 cases beyond 2); test_identify checks the worst.
 
 Pure: no rclpy, numpy only.
 """

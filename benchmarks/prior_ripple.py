@@ -6,7 +6,7 @@ the offline search on that model (``prior._search``, as ``identified_prior`` run
 its ``--candidates`` best distinct points.  Per candidate: its loss over the start's on
 the model, its worst loss ratio over the perturbed models, its standstill rms over the
 start's (``_ModelBench.ripple_ratio``: the largest over its experiments, per window of
-``runlog.tally.LIMIT_KEYS``) in the nominal search and over the perturbed models, and
+``runlog.ripple.LIMIT_KEYS``) in the nominal search and over the perturbed models, and
 what the plant measures in six experiments of it (every other one after the start's, so
 that they start from different rest positions): loss and the largest and mean rms, over
 the start's.  ``*`` the first step without a ripple limit, ``+`` with ``--limit``.

@@ -216,3 +216,59 @@ def test_the_issue_number_check_finds_them() -> None:
         assert ISSUE_NUMBER.search(text), text
     for text in (f'rosbag2 #{n}', 'the issues ask', f'tissue {n}', '#1 SMP PREEMPT_DYNAMIC'):
         assert not ISSUE_NUMBER.search(text), text
+
+
+#: where an algorithm may be named in a comparison: its own package, and the study, whose
+#: Tables I-III compare the paper's two named algorithms (SPSA and neCGA)
+ALGO_NAMED_IN = ('im_tuner/optim/', 'im_tuner/study/')
+
+
+def _algorithm_tests(tree: ast.AST, names: frozenset[str]) -> list[int]:
+    """Lines of ``tree`` that compare with an algorithm's name (``algo == 'safe'``,
+    ``x in ('safe', ...)``) or probe an optimiser with ``getattr(opt, ...)``."""
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Compare):
+            consts = [node.left, *node.comparators]
+            for c in list(consts):
+                if isinstance(c, (ast.Tuple, ast.List, ast.Set)):
+                    consts += c.elts
+            if any(isinstance(c, ast.Constant) and c.value in names for c in consts):
+                out.append(node.lineno)
+        elif (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Name)
+            and node.func.id == 'getattr'
+            and node.args
+            and 'opt' in ast.unparse(node.args[0]).split('.')[-1]
+        ):
+            out.append(node.lineno)
+    return out
+
+
+def test_no_algorithm_named_outside_the_optimisers() -> None:
+    """An algorithm's special needs are declared in ``optim.options.ALGORITHMS`` and asked
+    of the optimiser (``wants_first``): the tuning loop, the tuner's checks, the benches
+    and the report never test its name."""
+    names = frozenset(('spsa', 'necga', 'cga', 'pecga', 'rcga', 'cmaes', 'tpe', 'safe'))
+    found = []
+    for pkg in PACKAGES:
+        for p in sorted((SRC / pkg / pkg).rglob('*.py')):
+            rel = p.relative_to(SRC / pkg).as_posix()
+            if '__pycache__' in p.parts or rel.startswith(ALGO_NAMED_IN):
+                continue
+            found += [f'{rel}:{n}' for n in _algorithm_tests(ast.parse(p.read_text()), names)]
+    assert found == []
+
+
+def test_the_algorithm_name_check_finds_them() -> None:
+    names = frozenset(('safe',))
+    for text in (
+        "if algo != 'safe': pass",
+        "ok = cli.algo in ('spsa', 'safe')",
+        "w = getattr(self.opt, 'wants_first', False)",
+    ):
+        assert _algorithm_tests(ast.parse(text), names) == [1], text
+    assert (
+        _algorithm_tests(ast.parse("x = 'safe'\nif algo in optim.TAKES_FIRST: pass"), names) == []
+    )

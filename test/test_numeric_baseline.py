@@ -52,7 +52,7 @@ CONTROL = ('study', '--algos', 'cmaes', '--runs', '2', '--budget', '40', '--quie
 #: --budget 40`) when safe's rows changed: the ripple limit its default, the ripple
 #: statistics in tables.csv, the identified model searched by 300 experiments per seed
 #: and sigma 0.02 after its point; again on 2026-11-29 for the
-#: search's ripple tolerance (runlog.tally.RIPPLE_TOLERANCE)
+#: search's ripple tolerance (runlog.ripple.RIPPLE_TOLERANCE)
 STUDY_TABLES_SHA256 = 'efffbf4ad10ab374b68b6c6c5f3cbbe292bcc98864bee0bae28826bc6fd98415'
 #: results.jsonl fields that are wall-clock readings, not results
 WALL_FIELDS = ('time', 'wall_s')

@@ -12,15 +12,11 @@ from im_controller import contract as C
 from im_drive_sim.contract import COMMAND_TOPIC, JOINT_STATE_TOPIC, STATE_TOPIC, STATUS_TOPIC
 
 __all__ = [
-    'DEFAULT_RIPPLE_LIMIT',
     'DEFAULT_TIMING_TOLERANCE',
     'DRIVE_HOST_NODE',
     'FAULT_POLICIES',
     'HOST_LOOP_TOPICS',
-    'RIPPLE_LIMIT_ALGOS',
     'controller_topics',
-    'default_ripple_limit',
-    'parse_ripple_limit',
 ]
 
 #: [periods] held or late drive periods an experiment may have and still count, by
@@ -28,36 +24,6 @@ __all__ = [
 #: change a loss by at most ~2 % (95th percentile), within the bench profile's 2.4 %
 #: spread of repeated experiments (``python -m im_tuner.study.held``; docs/real-drive.md)
 DEFAULT_TIMING_TOLERANCE = 10
-
-#: The standstill-ripple limit of the final choice, by default (the tuner's
-#: --ripple-limit): the applied gains' rms of isq* in each standstill
-#: window at most this many times the hand-tuned start's (docs/optimisers.md, "The
-#: standstill ripple").  On by default for the algorithms of RIPPLE_LIMIT_ALGOS only: the
-#: default (safe) is what a user's drive keeps; the others reproduce or compare the
-#: paper's searches, whose final controller is the smallest loss, and stay so unless
-#: the limit is given.
-DEFAULT_RIPPLE_LIMIT = 1.5
-RIPPLE_LIMIT_ALGOS = ('safe',)
-
-
-def default_ripple_limit(algo: str) -> float | None:
-    """The ripple limit of a run of ``algo`` when none is given (None: off)."""
-    return DEFAULT_RIPPLE_LIMIT if algo in RIPPLE_LIMIT_ALGOS else None
-
-
-def parse_ripple_limit(text: str) -> float | None:
-    """``--ripple-limit``'s value: a ratio > 1 (finite) or 'off' (None). ValueError
-    (one line) for anything else.  Below 1 even the start would break it."""
-    if text.strip().lower() == 'off':
-        return None
-    try:
-        v = float(text)
-    except ValueError:
-        raise ValueError(f"--ripple-limit: a ratio >= 1 or 'off', got {text!r}") from None
-    if not (v >= 1.0 and v < float('inf')):
-        raise ValueError(f"--ripple-limit: a ratio >= 1 or 'off', got {text!r}")
-    return v
-
 
 #: The node a drive host (``ros2 run im_tuner drive_host``) puts on the graph: a tuner
 #: that sees it leaves the host's 5 kHz topics to the host's own bag.

@@ -168,7 +168,7 @@ class _ModelBench:
         m = self.bench.measure(space.to_gains(u))
         self.experiments += 1
         # the standstill rms of isq* [A] after the move and after the load
-        # (runlog.tally.LIMIT_KEYS), per point: the ripple check of a limited prior
+        # (runlog.ripple.LIMIT_KEYS), per point: the ripple check of a limited prior
         if not m.aborted:
             self.rms.setdefault(tuple(u.tolist()), []).append((m.ripple[0], m.ripple[2]))
         return m.loss, m.aborted

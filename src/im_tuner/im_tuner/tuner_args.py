@@ -20,17 +20,14 @@ from im_drive_sim.cli import Parser, UsageError, finite_float
 from . import optim
 from .bench.spec import DISCOVERY_TIMEOUT
 from .benches import BENCHES  # (the bench modes: one copy, in benches)
-from .names import (
-    DEFAULT_RIPPLE_LIMIT,
-    DEFAULT_TIMING_TOLERANCE,
-    FAULT_POLICIES,
-    RIPPLE_LIMIT_ALGOS,
-)
+from .names import DEFAULT_TIMING_TOLERANCE, FAULT_POLICIES
 from .runlog import RunConfig
-from .runlog.tally import RIPPLE_TOLERANCE
+from .runlog.ripple import DEFAULT_RIPPLE_LIMIT, RIPPLE_TOLERANCE
 
 #: the algorithms --no-start is for, in --algo's order
 NO_START_TEXT = ', '.join(a for a in optim.ALGOS if a in optim.NO_START_ALGOS)
+#: the algorithms whose runs keep the ripple limit by default, in --algo's order
+RIPPLE_LIMITED_TEXT = ', '.join(a for a in optim.ALGOS if a in optim.RIPPLE_LIMITED)
 
 
 DESCRIPTION = (
@@ -140,7 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
         'and the re-measured and applied gains are the best evaluated within it '
         "(the start if none); safe's first step from the identified drive is chosen within "
         f"it on the models. A ratio >= 1 or 'off'. Default: {DEFAULT_RIPPLE_LIMIT:g} for "
-        f"{', '.join(RIPPLE_LIMIT_ALGOS)}, off for the others (the paper's final controller is "
+        f"{RIPPLE_LIMITED_TEXT}, off for the others (the paper's final controller is "
         'the smallest loss); off with --no-reference (nothing to compare with) '
         '(docs/optimisers.md, "The standstill ripple")',
     )

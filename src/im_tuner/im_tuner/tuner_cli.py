@@ -355,9 +355,9 @@ def _check_resumed_host(cli: argparse.Namespace, run: RunConfig) -> HostSaid:
 
 def _ripple_limit(cli: argparse.Namespace, algo: str) -> float | None:
     """The run's standstill-ripple limit (None: off): ``--ripple-limit``, else the
-    algorithm's default (``names.default_ripple_limit``); off without a reference
+    algorithm's default (``runlog.ripple.default_ripple_limit``); off without a reference
     experiment (the start's ripple is what it is a ratio to), refused if given then."""
-    from .names import default_ripple_limit, parse_ripple_limit
+    from .runlog.ripple import default_ripple_limit, parse_ripple_limit
 
     if cli.ripple_limit is None:
         return None if cli.no_reference else default_ripple_limit(algo)
@@ -379,9 +379,12 @@ def _first_point(cli: argparse.Namespace, algo: str, params: TunerParams) -> dic
     drive they identify: ``im_tuner.first_step``), the prior of the drive file's nominal
     model computed now ('model', ``im_tuner.prior``), or nothing.  Stored with the run's
     options, so a resumed run continues with it."""
-    if algo != 'safe':
+    if algo not in optim.TAKES_FIRST:
         if cli.first is not None:
-            raise UsageError(f"--first does not apply to --algo {algo}: it is safe's first step")
+            raise UsageError(
+                f'--first does not apply to --algo {algo}: it is the first step of '
+                + ', '.join(sorted(optim.TAKES_FIRST))
+            )
         return {}
     from .benches import is_simulated
 

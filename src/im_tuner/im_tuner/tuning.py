@@ -65,7 +65,7 @@ from .runlog import (
     tally,
 )
 from .runlog.records import LINE_ORDER, ripple_dict
-from .runlog.tally import ripple_bound, told_loss, top_evals
+from .runlog.ripple import ripple_bound, told_loss, top_evals
 from .space import SearchSpace
 
 __all__ = [
@@ -331,8 +331,8 @@ class TuningRun:
 
     def _give_first(self) -> None:
         """safe's first step from the start's measurements, when it wants one now."""
-        if self.first_step is not None and getattr(self.opt, 'wants_first', False):
-            self.opt.set_first(self.first_step(self.records))  # type: ignore[attr-defined]
+        if self.first_step is not None and self.opt.wants_first:
+            self.opt.set_first(self.first_step(self.records))
 
     def checkpoint(self) -> None:
         """Write checkpoint.json: the optimiser and the counters after the records so far

@@ -18,7 +18,7 @@ from im_tuner.optim import Optimizer, OptimizerError, make_optimizer
 from im_tuner.prior import identified_model, model_prior
 from im_tuner.rundir import RunDir
 from im_tuner.runlog import MemoryRecord
-from im_tuner.runlog.tally import LIMIT_KEYS, RIPPLE_TOLERANCE, ripple_bound, told_loss
+from im_tuner.runlog.ripple import LIMIT_KEYS, RIPPLE_TOLERANCE, ripple_bound, told_loss
 from im_tuner.tuning import TuningRun
 
 POINT = [0.3, 0.35, 0.6, 0.01, 0.02]

@@ -18,10 +18,14 @@ import pytest
 from im_controller.config import GAIN_NAMES, Gains
 from im_drive_sim.cli import UsageError
 from im_tuner import optim
-from im_tuner.names import DEFAULT_RIPPLE_LIMIT, default_ripple_limit, parse_ripple_limit
 from im_tuner.rundir import RunDir
 from im_tuner.runlog import RunConfig
-from im_tuner.runlog.tally import RIPPLE_TOLERANCE
+from im_tuner.runlog.ripple import (
+    DEFAULT_RIPPLE_LIMIT,
+    RIPPLE_TOLERANCE,
+    default_ripple_limit,
+    parse_ripple_limit,
+)
 from im_tuner.space import load_params
 from im_tuner.tuner_args import build_parser
 from im_tuner.tuner_cli import _check_run, _new_run_config
@@ -370,7 +374,7 @@ def test_one_loud_experiment_within_the_tolerance_is_told_its_loss_the_choice_st
     above RIPPLE_TOLERANCE x the bound; the floor L_quiet and the final choice keep the
     strict bound (the mean over the gains' experiments)."""
     from im_tuner.runlog.records import Evaluation, Reference
-    from im_tuner.runlog.tally import ripple_bound, told_loss, within_limit
+    from im_tuner.runlog.ripple import ripple_bound, told_loss, within_limit
 
     assert 1.0 < RIPPLE_TOLERANCE < DEFAULT_RIPPLE_LIMIT
     start = {'rms_after_move': 0.2, 'rms_after_load': 0.3}

@@ -35,12 +35,16 @@ from .checks import (
     check_start,
 )
 from .options import (
+    ALGORITHMS,
     ALGOS,
     DEFAULT_ALGO,
     MODULES,
     NO_START_ALGOS,
     OPTIONS,
+    RIPPLE_LIMITED,
+    TAKES_FIRST,
     TAKES_START,
+    Algorithm,
 )
 
 if TYPE_CHECKING:  # the classes are loaded on first use (module __getattr__ below)
@@ -52,6 +56,7 @@ if TYPE_CHECKING:  # the classes are loaded on first use (module __getattr__ bel
     from .tpe import TPE
 
 __all__ = [
+    'ALGORITHMS',
     'ALGOS',
     'CGA',
     'CMAES',
@@ -61,10 +66,13 @@ __all__ = [
     'OPTIONS',
     'PECGA',
     'RCGA',
+    'RIPPLE_LIMITED',
     'SAFE',
     'SPSA',
+    'TAKES_FIRST',
     'TAKES_START',
     'TPE',
+    'Algorithm',
     'BinaryCGA',
     'Optimizer',
     'OptimizerError',
@@ -101,8 +109,9 @@ def make_optimizer(
     normalised start point in [0, 1]^dim (``TAKES_START`` only; None = spsa, cmaes and
     safe draw a uniform random start, tpe starts with random trials; the tuner runs
     only ``NO_START_ALGOS`` without one).
-    ``first``: safe only, the drive model's point (``im_tuner.prior``) measured right
-    after the start (None: none; then safe is exactly as before the prior existed).
+    ``first``: ``TAKES_FIRST`` only (safe), a model's point measured right after the
+    start (``im_tuner.prior``), or 'identify': given later (``Optimizer.set_first``);
+    None: none.
     ``options``: see ``OPTIONS[algo]``; unset ones take their defaults.  Any problem
     (unknown algo or option, wrong type, bool for a number, out of range, eta >= n, a
     start for a compact GA...) raises OptimizerError with a one-line message naming it
@@ -120,8 +129,10 @@ def make_optimizer(
         )
     check_options(algo, OPTIONS[algo], options)
     if first is not None:
-        if algo != 'safe':
-            raise OptimizerError(f'{algo} does not take a first point (only safe does)')
+        if algo not in TAKES_FIRST:
+            raise OptimizerError(
+                f'{algo} does not take a first point (only {", ".join(sorted(TAKES_FIRST))} does)'
+            )
         options = {**options, 'first': first}
     # The constructors repeat these checks and add the cross-option ones (eta < n) before
     # they create anything.

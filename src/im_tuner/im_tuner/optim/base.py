@@ -389,6 +389,17 @@ class Optimizer(ABC):
     def converged(self) -> bool:
         return False
 
+    @property
+    def wants_first(self) -> bool:
+        """Whether the tuning loop should give a model's point (:meth:`set_first`) before
+        the next ``ask``: only an algorithm declared ``takes_first`` (options.ALGORITHMS)
+        built with ``first='identify'`` ever does."""
+        return False
+
+    def set_first(self, first: Any) -> None:
+        """The model's point asked for by :attr:`wants_first` (None: none)."""
+        raise OptimizerError(f'{self.algo} does not take a first point')
+
     def config(self) -> dict[str, Any]:
         return {'algo': self.algo, 'dim': self.dim, 'seed': self._seed_json, **self._settings()}
 

@@ -13,48 +13,78 @@ tool that only parses its command line (the tuner refusing bad input) stays fast
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from .checks import OptimizerError, OptionSpec
 
 __all__ = [
+    'ALGORITHMS',
     'ALGOS',
     'DEFAULT_ALGO',
     'GAIN_PRESETS',
     'MODULES',
     'NO_START_ALGOS',
     'OPTIONS',
+    'RIPPLE_LIMITED',
+    'TAKES_FIRST',
     'TAKES_START',
+    'Algorithm',
     'check_eta_below_n',
     'choice',
     'integer',
     'real',
 ]
 
-#: Every algorithm name accepted by make_optimizer (and ``--algo``).
-ALGOS: tuple[str, ...] = ('spsa', 'necga', 'cga', 'pecga', 'rcga', 'cmaes', 'tpe', 'safe')
+
+@dataclass(frozen=True)
+class Algorithm:
+    """What the tuning loop, the tuner's checks and the study read of an algorithm, declared
+    once: where its class is, and its capabilities.
+
+    ``module``, ``cls``: its module of this package and class (imported by
+    :func:`.base.algorithm_class` only); ``takes_start``: it uses a start point (SPSA's
+    iterate, CMA-ES's mean, TPE's first enqueued trial, safe's first incumbent; the compact
+    GAs start from their distribution); ``runs_without_start``: the tuner may run it
+    without one (``--no-start``: SPSA and CMA-ES from a uniform random point, TPE with
+    random trials first; not safe, a local search whose first experiment would then be an
+    untested random controller); ``takes_first``: it measures a model's point right after
+    the start (``make_optimizer(first=...)``, ``Optimizer.wants_first``/``set_first``);
+    ``ripple_limited``: its runs keep the standstill-ripple limit unless told otherwise
+    (``runlog.ripple.default_ripple_limit``: a user's drive keeps what the default
+    chooses; the paper's algorithms reproduce or compare its searches, whose final
+    controller is the smallest loss).
+    """
+
+    module: str
+    cls: str
+    takes_start: bool = False
+    runs_without_start: bool = False
+    takes_first: bool = False
+    ripple_limited: bool = False
+
+
+#: Every algorithm accepted by make_optimizer (and ``--algo``); ``ALGOS``: their names.
+ALGORITHMS: dict[str, Algorithm] = {
+    'spsa': Algorithm('spsa', 'SPSA', takes_start=True, runs_without_start=True),
+    'necga': Algorithm('cga', 'NECGA'),
+    'cga': Algorithm('cga', 'CGA'),
+    'pecga': Algorithm('cga', 'PECGA'),
+    'rcga': Algorithm('rcga', 'RCGA'),
+    'cmaes': Algorithm('cmaes', 'CMAES', takes_start=True, runs_without_start=True),
+    'tpe': Algorithm('tpe', 'TPE', takes_start=True, runs_without_start=True),
+    'safe': Algorithm('safe', 'SAFE', takes_start=True, takes_first=True, ripple_limited=True),
+}
+ALGOS: tuple[str, ...] = tuple(ALGORITHMS)
 #: the tuner's optimiser when none is named: the fewest experiments and aborted ones from
 #: a hand-tuned start (docs/tuner.md, "Which algorithm")
 DEFAULT_ALGO = 'safe'
-#: algo -> (module of this package, class): imported by :func:`.base.algorithm_class` only
-MODULES: dict[str, tuple[str, str]] = {
-    'spsa': ('spsa', 'SPSA'),
-    'necga': ('cga', 'NECGA'),
-    'cga': ('cga', 'CGA'),
-    'pecga': ('cga', 'PECGA'),
-    'rcga': ('rcga', 'RCGA'),
-    'cmaes': ('cmaes', 'CMAES'),
-    'tpe': ('tpe', 'TPE'),
-    'safe': ('safe', 'SAFE'),
-}
-#: algorithms that use ``start`` (the compact GAs start from their distribution): SPSA's
-#: iterate, CMA-ES's mean, TPE's first (enqueued) trial, safe's first incumbent.
-TAKES_START: frozenset[str] = frozenset({'spsa', 'cmaes', 'tpe', 'safe'})
-#: algorithms the tuner runs without the start point (``--no-start``): SPSA and CMA-ES
-#: from a uniform random point, TPE with random trials first.  Not safe: a local search
-#: around gains known to be stable, whose first experiment would be an untested random
-#: controller; not the compact GAs, which take no start at all.
-NO_START_ALGOS: frozenset[str] = frozenset({'spsa', 'cmaes', 'tpe'})
+#: algo -> (module of this package, class)
+MODULES: dict[str, tuple[str, str]] = {a: (d.module, d.cls) for a, d in ALGORITHMS.items()}
+TAKES_START: frozenset[str] = frozenset(a for a, d in ALGORITHMS.items() if d.takes_start)
+NO_START_ALGOS: frozenset[str] = frozenset(a for a, d in ALGORITHMS.items() if d.runs_without_start)
+TAKES_FIRST: frozenset[str] = frozenset(a for a, d in ALGORITHMS.items() if d.takes_first)
+RIPPLE_LIMITED: frozenset[str] = frozenset(a for a, d in ALGORITHMS.items() if d.ripple_limited)
 
 #: (alpha, gamma) of each of SPSA's ``gains`` presets.
 GAIN_PRESETS: dict[str, tuple[float, float]] = {'paper': (0.3, 0.3), 'spall': (0.602, 0.101)}

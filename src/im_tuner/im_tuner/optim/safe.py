@@ -35,7 +35,7 @@ On u in [0, 1]^dim, from the start point u0 (the hand-tuned gains, known to be s
   by the point half-way back to the incumbent, and that one by the point half-way again
   (``FIRST_BACKOFFS``; each a first step: no pattern move after it).  The model's
   direction is right more often than its length: with the ripple limit (the tuner's
-  ``runlog.tally.told_loss``) a first step that measures 0.62 of the start but loud on
+  ``runlog.ripple.told_loss``) a first step that measures 0.62 of the start but loud on
   the per-drive bench profile is told as no better than the start, and the search went
   on from the start with random steps, aborting the next evaluation in 7 of 25 runs on
   im7500w-j10 (docs/optimisers.md, "The standstill ripple").  A point that succeeds

@@ -182,7 +182,7 @@ class Summary(_Keyed):
     sessions: list[dict[str, Any]] | None = None
     #: the standstill ripple of isq* [A]: {start, applied}, each the mean over the
     #: experiments of those gains of {rms_after_move, pp_after_move, rms_after_load,
-    #: pp_after_load} (records' ``ripple``); the limit (``runlog.tally.ripple_summary``:
+    #: pp_after_load} (records' ``ripple``); the limit (``runlog.ripple.ripple_summary``:
     #: limit, bound, applied_within, changed, excluded, fallback); rated_isq_a
     ripple: dict[str, Any] | None = None
     #: the drive identified from the start's experiments (im_tuner.identify.Identified)

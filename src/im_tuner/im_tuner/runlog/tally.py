@@ -5,13 +5,13 @@ run's records go (:class:`RunRecord`: a run directory, or :class:`MemoryRecord`)
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
 from .files import Summary
 from .records import Evaluation, Measured, Record, Reference, Remeasurement
+from .ripple import ripple_bound, ripple_summary, top_evals, within_limit
 
 __all__ = [
     'MemoryRecord',
@@ -20,14 +20,9 @@ __all__ = [
     'brief',
     'final_choice',
     'replay_plan',
-    'ripple_bound',
-    'ripple_of_gains',
     'summarize',
     'tally',
     'tally_all',
-    'told_loss',
-    'top_evals',
-    'within_limit',
 ]
 
 
@@ -133,127 +128,6 @@ def tally_all(records: list[Record], satisfactory_loss: float) -> TunerState:
     for rec in records:
         tally(st, rec, satisfactory_loss)
     return st
-
-
-def ripple_of_gains(
-    records: list[Record], gains: dict[str, float] | None
-) -> dict[str, float | None] | None:
-    """The standstill ripple of ``gains``: each key of the records' ``ripple`` (A) averaged
-    over the completed experiments of those gains (None: no experiment measured it)."""
-    rs = [
-        r.ripple
-        for r in records
-        if gains is not None and r.gains == gains and r.status == 'ok' and r.ripple
-    ]
-    if not rs:
-        return None
-    out: dict[str, float | None] = {}
-    for k in rs[0]:
-        v = [float(x) for r in rs if (x := r.get(k)) is not None]
-        out[k] = sum(v) / len(v) if v else None
-    return out
-
-
-#: The windows the ripple limit checks: the rms of isq* after the move and after the load.
-LIMIT_KEYS = ('rms_after_move', 'rms_after_load')
-
-
-def ripple_bound(records: list[Record], limit: float | None) -> dict[str, float] | None:
-    """The ripple limit in A: ``limit`` x the start's rms (:func:`ripple_of_gains` of the
-    reference's gains) in each window of ``LIMIT_KEYS``, i.e. rms_choice,w <= limit x
-    rms_start,w.  None: no limit, or the start's ripple not measured (no reference)."""
-    if limit is None:
-        return None
-    ref = next((r for r in records if r.kind == 'reference'), None)
-    start = ripple_of_gains(records, None if ref is None else ref.gains)
-    if start is None:
-        return None
-    bound = {k: limit * float(v) for k in LIMIT_KEYS if (v := start.get(k)) is not None}
-    return bound or None
-
-
-def within_limit(
-    records: list[Record], gains: dict[str, float], bound: dict[str, float] | None
-) -> bool:
-    """Whether the mean standstill rms of ``gains`` is within ``bound`` in every window it
-    bounds (True without a bound; False where a bounded window was not measured)."""
-    if bound is None:
-        return True
-    rip = ripple_of_gains(records, gains)
-    if rip is None:
-        return False
-    return all((v := rip.get(k)) is not None and v <= b for k, b in bound.items())
-
-
-def top_evals(records: list[Record], k: int, bound: dict[str, float] | None = None) -> list[int]:
-    """Indices of the ``k`` best distinct (by gains) completed evaluations by measured
-    loss (ties: the earlier), only those :func:`within_limit` of ``bound``: what the run
-    re-measures at its end."""
-    seen, out = set(), []
-    evals = sorted(
-        (r for r in records if isinstance(r, Evaluation) and r.status == 'ok'),
-        key=lambda r: (r.loss, r.eval),
-    )
-    for r in evals:
-        key = tuple(sorted(r.gains.items()))
-        if key in seen:
-            continue
-        seen.add(key)
-        if not within_limit(records, r.gains, bound):
-            continue
-        out.append(r.eval)
-        if len(out) == k:
-            break
-    return out
-
-
-#: Above the ripple limit the loss told to the optimiser is multiplied by
-#: 1 + RIPPLE_PENALTY (r - 1), r = the experiment's rms over the limit's bound
-#: (:func:`told_loss`; docs/optimisers.md, "The standstill ripple": 1, 2 and 4 measured).
-RIPPLE_PENALTY = 1.0
-
-#: One experiment's standstill rms scatters about its gains' mean (on ``bench``: the
-#: random load and the current sensor's noise), so :func:`told_loss` penalises it only
-#: above RIPPLE_TOLERANCE x the limit's bound: a point that is quiet on average is not
-#: told it is loud for one loud experiment (docs/optimisers.md, "The standstill ripple").
-#: The final choice keeps the strict bound on the mean (:func:`within_limit`).
-RIPPLE_TOLERANCE = 1.4
-
-
-def _over(rip: dict[str, Any] | None, bound: dict[str, float]) -> float | None:
-    """The largest of one experiment's standstill rms over ``bound`` in the windows it
-    bounds (None: a bounded window not measured)."""
-    if not rip:
-        return None
-    r = [float(v) / b for k, b in bound.items() if (v := rip.get(k)) is not None]
-    return max(r) if len(r) == len(bound) else None
-
-
-def told_loss(records: list[Record], rec: Evaluation, ripple_limit: float | None) -> float:
-    """The loss the optimiser is told for evaluation ``rec`` (``records``: those before
-    it): the measured one, but well above the ripple limit (its own rms r times the
-    bound, r > RIPPLE_TOLERANCE) ``max(L (1 + RIPPLE_PENALTY (r - 1)), L_quiet)``,
-    L_quiet the smallest loss measured so far by an evaluation within the limit
-    (r <= 1).  So a loud point is never better than a quiet one already found (the
-    search does not settle where only loud gains are good: the first step from a model
-    that does not see the limit cycle often lands there), and among loud points the
-    louder costs more.  Without a limit, for an
-    aborted experiment (already penalised) or without a measured start: the loss."""
-    if ripple_limit is None or rec.aborted or rec.loss is None:
-        return rec.loss
-    bound = ripple_bound(records, ripple_limit)
-    r = None if bound is None else _over(rec.ripple, bound)
-    if bound is None or r is None or r <= RIPPLE_TOLERANCE:
-        return rec.loss
-    quiet = [
-        x.loss
-        for x in records
-        if isinstance(x, Evaluation)
-        and x.status == 'ok'
-        and (q := _over(x.ripple, bound)) is not None
-        and q <= 1.0
-    ]
-    return max(rec.loss * (1.0 + RIPPLE_PENALTY * (r - 1.0)), min(quiet, default=-math.inf))
 
 
 def final_choice(
@@ -367,50 +241,6 @@ def summarize(
             'ripple': ripple_summary(records, final, ripple_limit, remeasure),
         }
     )
-
-
-def ripple_summary(
-    records: list[Record],
-    final: dict[str, Any] | None,
-    ripple_limit: float | None = None,
-    remeasure: int = 0,
-) -> dict[str, Any] | None:
-    """The standstill ripple of the start and of the applied gains (each key of the
-    records' ``ripple`` averaged over the completed experiments of those gains; None: no
-    experiment measured it) and the run's ripple limit: ``limit`` (the ratio; None: off),
-    ``bound`` (A rms per window: limit x the start's; None: off or the start not
-    measured), ``applied_within`` (whether the applied gains are within it), ``changed``
-    (whether the limit kept out a point the run would otherwise have re-measured or
-    applied: one of the ``max(remeasure, 1)`` best distinct evaluations), ``excluded``
-    (those evaluations) and ``fallback`` (no completed evaluation is within the limit:
-    the start is applied)."""
-    ref = next((r for r in records if r.kind == 'reference'), None)
-    start = ripple_of_gains(records, None if ref is None else ref.gains)
-    applied = ripple_of_gains(records, None if final is None else final['gains'])
-    if start is None and applied is None and ripple_limit is None:
-        return None
-    out: dict[str, Any] = {'start': start, 'applied': applied}
-    bound = ripple_bound(records, ripple_limit)
-    k = max(int(remeasure), 1)
-    excluded = (
-        []
-        if bound is None
-        else [i for i in top_evals(records, k) if i not in top_evals(records, k, bound)]
-    )
-    out['limit'] = ripple_limit
-    out['bound'] = bound
-    out['applied_within'] = (
-        None if bound is None or final is None else within_limit(records, final['gains'], bound)
-    )
-    out['changed'] = bool(excluded)
-    out['excluded'] = excluded
-    out['fallback'] = bool(
-        bound is not None
-        and final is not None
-        and final['eval'] < 0
-        and not top_evals(records, 1, bound)
-    )
-    return out
 
 
 def held_periods(records: list[Record]) -> dict[str, int]:

@@ -59,7 +59,7 @@ def tuner_command(res: StudyResult, c: int, r: int, out: Path) -> str:
         args += ['--params', sp.params_file]
     if cell.start_kind == 'none' and cell.algo in optim.TAKES_START:
         args += ['--no-start']
-    if cell.algo == 'safe':  # said either way: the tuner's default depends on its bench
+    if cell.algo in optim.TAKES_FIRST:  # said either way: the tuner's default depends on its bench
         args += ['--first', cell.first]
     if sp.drive_config:
         args += ['--drive-config', sp.drive_config]

@@ -33,7 +33,7 @@ from .. import optim
 from ..identify import FIGURES
 from ..offline import OfflineBench
 from ..runlog import Evaluation, MemoryRecord, Record, Reference, Remeasurement
-from ..runlog.tally import ripple_summary
+from ..runlog.ripple import ripple_summary
 from ..space import SearchSpace, TunerParams
 from ..tuning import DEFAULT_RETRIES, TuningRun, run_seeds
 from .results import ARRAYS_FILE, META_FILE, StudyResult, empty_runs, load, save

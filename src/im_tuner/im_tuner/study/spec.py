@@ -234,7 +234,7 @@ class StudySpec:
     mismatch: tuple[tuple[str, float], ...] = ()
     #: the final choice's standstill-ripple limit of every row (``--ripple-limit``): a
     #: ratio to the start's rms, None (off), or 'default': each row's tuner default
-    #: (``names.default_ripple_limit``: on for safe, off for the others)
+    #: (``runlog.ripple.default_ripple_limit``: on for safe, off for the others)
     ripple_limit: float | str | None = 'default'
 
     #: fields written to study.json only when they differ from these defaults (a study
@@ -304,7 +304,7 @@ class StudySpec:
         tuner's default for the cell's algorithm (a reference row: off)."""
         if self.ripple_limit != 'default':
             return None if self.ripple_limit is None else float(self.ripple_limit)
-        from ..names import default_ripple_limit
+        from ..runlog.ripple import default_ripple_limit
 
         return default_ripple_limit(cell.algo)
 
@@ -393,7 +393,7 @@ def ripple_limit_option(text: str | None) -> float | str | None:
     not given, a ratio, None for 'off'; :class:`StudyError` (one line) for anything else."""
     if text is None:
         return 'default'
-    from ..names import parse_ripple_limit
+    from ..runlog.ripple import parse_ripple_limit
 
     try:
         return parse_ripple_limit(text)

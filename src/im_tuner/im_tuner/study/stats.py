@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.stats
 
-from ..names import DEFAULT_RIPPLE_LIMIT
+from ..runlog.ripple import DEFAULT_RIPPLE_LIMIT
 from .results import StudyResult
 from .spec import MIN_RUNS_FOR_INTERVALS, Cell
 
@@ -120,7 +120,7 @@ class CellStats:
     ripple_ratio: Interval = field(
         default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0)
     )
-    #: % of runs whose ripple ratio exceeds the default limit (names.DEFAULT_RIPPLE_LIMIT)
+    #: % of runs whose ripple ratio exceeds the default limit (runlog.ripple.DEFAULT_RIPPLE_LIMIT)
     ripple_over: Interval = field(default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0))
 
     def paper(self, stat: str) -> float | None:

@@ -1,4 +1,4 @@
-"""benchmarks/grid_expected.py's judgement (the default's mismatch goal on expected loss),
+"""research/grid_expected.py's judgement (the default's mismatch goal on expected loss),
 on kept results (``expected.json``), so no experiment runs: a case where the default is
 within 2 % of the best other row passes, one 2.1 % above it fails (exit 1, named), a
 case whose start is unstable on the plant has no goal, and the intervals are over runs
@@ -12,12 +12,12 @@ from pathlib import Path
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / 'benchmarks'
+RESEARCH = Path(__file__).resolve().parents[1] / 'research'
 
 
 @pytest.fixture
 def grid(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    monkeypatch.syspath_prepend(str(RESEARCH))
     for name in ('grid_expected', 'mismatch_grid', 'choice_scatter'):
         sys.modules.pop(name, None)
     import grid_expected

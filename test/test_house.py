@@ -26,7 +26,7 @@ PACKAGES = ('im_drive_sim', 'im_controller', 'im_tuner')
 MAX_LINES = 600
 #: the tracked files that name no issue: folders (the packages' code, tests and config
 #: included), then single files
-NO_ISSUE_DIRS = ('src/', 'test/', 'benchmarks/', 'docs/', 'tools/', '.ci/')
+NO_ISSUE_DIRS = ('src/', 'test/', 'benchmarks/', 'research/', 'docs/', 'tools/', '.ci/')
 NO_ISSUE_FILES = ('Makefile', 'README.md', 'conftest.py', 'requirements.txt', 'constraints.txt')
 #: a reference to an issue by its number: "issue" or "issues", a space or a hyphen, the number
 #: (a "#" before it allowed)

@@ -575,31 +575,3 @@ def test_the_sign_of_a_pending_zero_counts():
         opt.tell(np.array([0.0, -0.0]), 1.0)
     opt.tell(np.array([0, 0]), 1.0)  # integers convert to +0.0
     assert opt.evaluations == 1
-
-
-def test_the_algorithms_declare_what_the_tuning_loop_asks_of_them():
-    """One declaration per algorithm (options.ALGORITHMS): the sets the tuner and the study
-    read come from it, and the first-point hooks the tuning loop calls exist on every
-    optimiser, answered by the template for an algorithm that takes none."""
-    from im_tuner.optim.options import ALGORITHMS, RIPPLE_LIMITED, TAKES_FIRST
-
-    assert tuple(ALGORITHMS) == ALGOS and set(ALGORITHMS) == set(OPTIONS)
-    assert TAKES_FIRST == RIPPLE_LIMITED == {'safe'}
-    assert TAKES_START == {a for a, d in ALGORITHMS.items() if d.takes_start}
-    start = np.full(5, 0.5)
-    for algo in ALGOS:
-        opt = make_optimizer(algo, 5, 1, start if algo in TAKES_START else None)
-        assert opt.wants_first is False, algo
-        if algo in TAKES_FIRST:
-            continue
-        with pytest.raises(OptimizerError, match=f'{algo} does not take a first point'):
-            opt.set_first([0.5] * 5)
-        with pytest.raises(OptimizerError, match='only safe does'):
-            make_optimizer(algo, 5, 1, first=[0.5] * 5)
-    # safe built to be given the identified point asks for it once the start is measured
-    opt = make_optimizer('safe', 5, 1, start, first='identify')
-    assert opt.wants_first is False  # (nothing measured yet)
-    opt.tell(opt.ask(), 1.0)
-    assert opt.wants_first is True
-    opt.set_first([0.6] * 5)
-    assert opt.wants_first is False and opt.ask().tolist() == [0.6] * 5

@@ -2,7 +2,7 @@
 drive) beside safe from the drive file's model, blind safe, CMA-ES and Py-BOBYQA, on
 plants that are not the told drive (``study --plant-mismatch``), per told drive.
 
-    python benchmarks/mismatch_grid.py --out bags/mismatch [--runs 8 --budget 60]
+    python research/mismatch_grid.py --out bags/mismatch [--runs 8 --budget 60]
         [--drives im750w-j1,im7500w-j10] [--cases exact,J=x0.5,...]
 
 Runs one ``ros2 run im_tuner study`` per (drive, case) into OUT/<drive>/<case>/ (a case

@@ -13,7 +13,7 @@ choices are above 1.5x the start's standstill rms; L_ref is the study's
 (``study.runs.reference_loss``).  Why not ``study`` itself: it runs
 every row of ``--algos safe`` (three), this one row, twice as fast with the limit off.
 
-    python benchmarks/ripple_cost.py --drives im750w-j1,im7500w-j10 --runs 25 --first 25
+    python research/ripple_cost.py --drives im750w-j1,im7500w-j10 --runs 25 --first 25
         [--jobs 2] [--budget 200] [--json OUT]
 
 The nine drives at 50 runs: 23 min on 2 cores (2026-11-29).

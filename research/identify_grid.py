@@ -3,7 +3,7 @@ hand-tuned start's two experiments within 10 % of the plant's, on every packaged
 and every mismatch of mismatch_grid.py (J x0.5-x2.5 alone, and J x1.5 Rr x1.3 Lm x0.85
 Coulomb 2 % delay 2 together).
 
-    python benchmarks/identify_grid.py [--drives all|NAME,...] [--cases exact,J=x0.5,...]
+    python research/identify_grid.py [--drives all|NAME,...] [--cases exact,J=x0.5,...]
         [--seeds 0,1,2] [--realism bench]
 
 Per (drive, case, seed): the tuner's own :class:`TuningRun` (the reference, then

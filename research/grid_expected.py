@@ -1,6 +1,6 @@
 """The mismatch grid (mismatch_grid.py) judged on expected loss, not one re-measurement.
 
-    python benchmarks/grid_expected.py --out bags/mismatch4 [--runs 8 --budget 60]
+    python research/grid_expected.py --out bags/mismatch4 [--runs 8 --budget 60]
         [--repeats 12] [--drives im750w-j1,im7500w-j10] [--cases exact,J=x0.5,...]
 
 Why: the study's ``re-measured`` column is one experiment of each run's choice, and on

@@ -1,6 +1,6 @@
 """The exact-file goal: the default's re-measured loss against the long-CMA-ES bound.
 
-    python benchmarks/cmaes_bound.py --out bags/bound [--drives im750w-j1,im7500w-j10]
+    python research/cmaes_bound.py --out bags/bound [--drives im750w-j1,im7500w-j10]
         [--seeds 0,1] [--evaluations 1000] [--points 8] [--repeats 10] [--runs 8]
         [--budgets 50,200] [--realism ideal|bench]
 
@@ -167,7 +167,7 @@ def expected_loss(
     of the default row repeated in this process (the same seeds: the same records, the
     same choice), its final choice measured ``repeats`` times on a fresh bench of the
     drive (one experiment of the start before every third, so they start from other rest
-    positions), the mean over the repeats and runs (benchmarks/choice_scatter.py's
+    positions), the mean over the repeats and runs (research/choice_scatter.py's
     protocol).  ``remeasure``: the K best distinct evaluations re-measured at the run's end
     (the tuner's ``--remeasure``, default 3; the study's runs re-measure 1)."""
     spec = StudySpec(

@@ -1,8 +1,8 @@
 """safe's first step from the drive model: its cost, and the default's goals, on a plant
 that may differ from the model, or on the packaged family of drives.
 
-    python benchmarks/bench_prior.py MODEL.yaml [PLANT.yaml] [--runs N] [--budget B]
-    python benchmarks/bench_prior.py --drives NAME,...|all [--realism bench] [--runs N]
+    python research/bench_prior.py MODEL.yaml [PLANT.yaml] [--runs N] [--budget B]
+    python research/bench_prior.py --drives NAME,...|all [--realism bench] [--runs N]
 
 MODEL.yaml is the drive file the tuner knows (its nominal model gives the prior); the runs
 measure on PLANT.yaml (default: MODEL.yaml), e.g. a copy with another J and Rr, to see

@@ -3,7 +3,7 @@ the same study twice, with the final choice's ripple limit 1.5 and without
 (``study --ripple-limit 1.5`` / ``off``), for the default (safe, first step from the
 identified drive) and the paper's SPSA and neCGA at their centre configurations.
 
-    python benchmarks/ripple_grid.py --out bags/ripple [--runs 8 --budget 60]
+    python research/ripple_grid.py --out bags/ripple [--runs 8 --budget 60]
         [--drives im750w-j1,im7500w-j10] [--cases exact,J=x0.5,...]
 
 Runs one ``study`` per (drive, case, limit) into OUT/<drive>/<case>/<limit>/ (a study

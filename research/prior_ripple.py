@@ -11,7 +11,7 @@ what the plant measures in six experiments of it (every other one after the star
 that they start from different rest positions): loss and the largest and mean rms, over
 the start's.  ``*`` the first step without a ripple limit, ``+`` with ``--limit``.
 
-    python benchmarks/prior_ripple.py --drive im750w-j1 --mismatch J=x1.5 [--limit 1.5]
+    python research/prior_ripple.py --drive im750w-j1 --mismatch J=x1.5 [--limit 1.5]
         [--realism bench]
 
 With ``--same D1,D2,...`` instead: per drive (its own file as the plant), whether the

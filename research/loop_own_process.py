@@ -10,7 +10,7 @@ none --no-record`` tunes it over DDS from another process. Run back to back, A t
 per-period work p50 / p99 / max and worst lateness (the host also its drive and
 controller parts).
 
-    .venv/bin/python benchmarks/loop_own_process.py --budget 10 --pairs 3 [--hogs 2]
+    .venv/bin/python research/loop_own_process.py --budget 10 --pairs 3 [--hogs 2]
 """
 
 from __future__ import annotations

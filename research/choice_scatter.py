@@ -10,7 +10,7 @@ plant, one experiment with the start's gains before every third (so they start f
 rest positions).  Printed per run and row: the study's re-measured loss and the repeats'
 mean, standard deviation, least and largest, all over the run's reference loss.
 
-    python benchmarks/choice_scatter.py --drive im7500w-j10 --mismatch J=x0.5 [--runs 8]
+    python research/choice_scatter.py --drive im7500w-j10 --mismatch J=x0.5 [--runs 8]
 """
 
 from __future__ import annotations

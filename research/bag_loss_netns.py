@@ -11,7 +11,7 @@ Before the recorder's status (record/status.py) the tuner stopped its recorder a
 it had the last loss itself; at 15 % loss 1 run in 6 had a bag without its last two
 losses. Needs root, iproute2 and nftables; exits 1 when a bag lacks a loss.
 
-    python benchmarks/bag_loss_netns.py --loss 15 --runs 6 --out /tmp/bag_loss
+    python research/bag_loss_netns.py --loss 15 --runs 6 --out /tmp/bag_loss
 """
 
 from __future__ import annotations

@@ -220,7 +220,10 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('tuner', 'out-is-a-file', ['--out', 'corrupt.yaml']),
     ('tuner', 'out-not-empty', ['--out', 'adir_full']),
     ('tuner', 'algo-bad', ['--algo', 'simplex']),
-    ('tuner', 'option-of-other-algo', ['--algo', 'spsa', '--n', '25']),
+    ('tuner', 'option-of-other-algo', ['--algo', 'spsa', '--opt', 'n=25']),
+    ('tuner', 'option-value-type', ['--algo', 'necga', '--opt', 'n=big']),
+    ('tuner', 'option-not-key-value', ['--opt', 'sigma0']),
+    *_file_cases('tuner', '--opt'),
     # --no-start: only spsa, cmaes, tpe (safe would start from an untested random point)
     ('tuner', 'no-start-safe-default', ['--no-start']),
     ('tuner', 'no-start-compact-ga', ['--algo', 'necga', '--no-start']),
@@ -634,7 +637,8 @@ def test_help_of_every_executable_exits_0(exe: str, tmp_path: Path) -> None:
 FAST_REFUSALS = [
     (['--algo', 'nosuch'], "argument --algo: invalid choice: 'nosuch'"),
     (['--no-start'], '--no-start does not apply to --algo safe'),
-    (['--algo', 'cmaes', '--sigma0', '2'], 'sigma0'),
+    (['--algo', 'cmaes', '--opt', 'sigma0=2'], 'sigma0'),
+    (['--opt', 'grow=1.2', '--opt', 'grow=2'], '--opt grow is given twice'),
     (['--algo', 'tpe', '--budget', '0'], '--budget must be >= 1'),
     (['--drive-config', 'comments.yaml'], 'no settings (the file holds only comments)'),
     (['--out', 'full'], '--out full: already exists'),

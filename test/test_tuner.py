@@ -377,8 +377,8 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
     [
         (['--budget', '0'], '--budget must be >= 1'),
         (['--algo', 'pso'], "invalid choice: 'pso'"),
-        (['--algo', 'necga', '--eta', '30'], 'eta'),
-        (['--algo', 'spsa', '--eta', '5'], '--eta does not apply to --algo spsa'),
+        (['--algo', 'necga', '--opt', 'eta=30'], 'eta'),
+        (['--algo', 'spsa', '--opt', 'eta=5'], '--opt eta does not apply to --algo spsa'),
         (['--seed', '-1'], '--seed must be >= 0'),
         (['--budget', 'ten'], "invalid int value: 'ten'"),
         (['--fault-policy', 'ignore'], 'invalid choice'),

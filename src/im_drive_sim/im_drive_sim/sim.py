@@ -190,7 +190,7 @@ class DriveSim:
         self.P: np.ndarray = make_param_array(self.config)
         self.S: np.ndarray = np.zeros(L.N_STATE)
         self._noise: np.ndarray = np.zeros((NOISE_BLOCK, L.NOISE_COLS))
-        # the first columns drawn as one (block, 4) stream, as before the jitter column
+        # the first columns drawn as one (block, 4) stream: their draws do not depend on the jitter
         self._base: np.ndarray = np.zeros((NOISE_BLOCK, L.NOISE_BASE_COLS))
         self._jitter: np.ndarray = np.zeros(NOISE_BLOCK)
         s, d = self.config.sensors, self.config.disturbance
@@ -260,9 +260,9 @@ class DriveSim:
         if isinstance(step_index, bool) or int(step_index) != step_index or step_index < 0:
             raise ValueError(f'step_index must be an integer >= 0, got {step_index!r}')
         self._rng = np.random.Generator(np.random.PCG64(self.seed))
-        # the jitter's own stream: the other columns draw as they did before it existed
+        # the jitter's own stream: the other columns' draws do not depend on it
         self._rng_jitter = np.random.Generator(np.random.PCG64(self.seed).jumped())
-        # the load step's variation: a third stream (the others draw as without it)
+        # the load step's variation: a third stream (the others' draws do not depend on it)
         self._rng_step = np.random.Generator(np.random.PCG64(self.seed).jumped(2))
         self._refill()
         K.reset_kernel(self.S, self.P, float(theta), float(omega), bool(fluxed), float(step_index))

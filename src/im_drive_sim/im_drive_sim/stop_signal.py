@@ -13,7 +13,7 @@ before (the run's orderly end follows it).
 
 The watcher also calls ``should_stop()`` every :data:`POLL_MS` (a stop asked for by
 other means than a signal). Where the wakeup fd cannot be taken (not the main thread)
-that is all it does, as before.
+that is all it does.
 
 Written by hand: the wakeup fd is the interpreter's own mechanism; no library waits on
 it without the GIL.

@@ -225,7 +225,7 @@ def _compute(
     ``--ripple-limit``) step 4: only candidates whose ``_ModelBench.ripple_ratio`` is
     within it on the nominal and every perturbed model, the next ``CANDIDATES`` of the
     search's ranking checked when no candidate of a batch is (``RIPPLE_BATCHES`` at
-    most).  Without a limit the same experiments and point as before the limit existed."""
+    most).  Without a limit: one batch, and the best candidate that beats the start."""
     t0 = time.perf_counter()
     seen, bench = _search(model, experiment, space, evaluations)
     start = tuple(space.start_u.tolist())

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import shlex
 from pathlib import Path
-from typing import Any
 
 from im_drive_sim import host, rt
 from im_drive_sim.cli import Parser, UsageError, finite_float
@@ -211,31 +210,17 @@ def build_parser() -> argparse.ArgumentParser:
         'discovery took up to 2.3 s on a loaded 2-core machine)',
     )
     rt.add_arguments(ap, 'the composed loop (--bench realtime)', rt.DEFAULT_PRIORITY)
-    g = ap.add_argument_group('algorithm options (docs/optimisers.md)')
-    seen: dict[str, Any] = {}
-    for specs in optim.OPTIONS.values():
-        for name, spec in specs.items():
-            if name in seen:
-                continue
-            seen[name] = spec
-            owners = [(a, s[name]) for a, s in optim.OPTIONS.items() if name in s]
-            if all(o.help == spec.help and o.default == spec.default for _, o in owners):
-                algos = ', '.join(a for a, _ in owners)
-                text = f'{spec.help} (default {spec.default!r}; for {algos})'
-            else:  # one flag, several meanings (sigma0): each algorithm's own
-                text = '; '.join(f'{a}: {o.help} (default {o.default!r})' for a, o in owners)
-            # argparse %-formats help texts: a literal % (e.g. "~10% of") must be doubled
-            kw: dict[str, Any] = {
-                'dest': f'opt_{name}',
-                'default': None,
-                'help': text.replace('%', '%%'),
-            }
-            choices = getattr(spec, 'choices', None)
-            if choices:
-                kw['choices'] = list(choices)
-            elif spec.type in (int, float):
-                kw['type'] = spec.type
-            g.add_argument(f'--{name.replace("_", "-")}', **kw)
+    keys = '; '.join(f'{a}: {", ".join(o) or "none"}' for a, o in optim.OPTIONS.items())
+    ap.add_argument(
+        '--opt',
+        action='append',
+        default=[],
+        metavar='KEY=VALUE',
+        help='an option of the algorithm (repeat it for more), or a YAML file of them; '
+        "'--opt help' lists the algorithm's with their defaults and ranges. "
+        f'The options: {keys} (docs/optimisers.md). An option of another algorithm '
+        'is an error, not ignored',
+    )
     return ap
 
 

@@ -70,16 +70,12 @@ def check_session(cli: argparse.Namespace) -> None:
 
 
 def _algo_options(cli: argparse.Namespace, algo: str) -> dict[str, Any]:
-    """The algorithm options given on the command line; an option of another algorithm
-    is an error (it would be silently ignored otherwise)."""
-    given = {k[4:]: v for k, v in vars(cli).items() if k.startswith('opt_') and v is not None}
-    mine = optim.OPTIONS[algo]
-    wrong = [n for n in given if n not in mine]
-    if wrong:
-        flags = ', '.join('--' + n.replace('_', '-') for n in wrong)
-        valid = ', '.join('--' + n.replace('_', '-') for n in mine) or 'none'
-        raise UsageError(f'{flags} does not apply to --algo {algo} (its options: {valid})')
-    return given
+    """The algorithm options given with ``--opt``; an option of another algorithm is an
+    error (it would be silently ignored otherwise)."""
+    try:
+        return optim.read_options(algo, cli.opt)
+    except OptimizerError as exc:
+        raise UsageError(str(exc)) from None
 
 
 # -- the run configuration -------------------------------------------------------------------
@@ -295,7 +291,7 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
     if timing_tolerance(cli, argv) is not None:
         cli.timing_tolerance = True  # (given: refused below, with the other settings)
     given = [k for k in RUN_SETTINGS if getattr(cli, k) not in (None, False)]
-    given += [k[4:] for k, v in vars(cli).items() if k.startswith('opt_') and v is not None]
+    given += ['opt'] if cli.opt else []
     if cli.out is not None:
         given.append('out')
     if given:

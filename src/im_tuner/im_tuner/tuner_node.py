@@ -49,6 +49,7 @@ import time
 # imported once every check passed (tuner_cli), so a refusal is one line at once.
 from im_drive_sim.cli import UsageError, check_ros_args
 
+from . import optim
 from .bench.spec import tuner_bench_spec
 from .benches import SIM_BENCHES
 from .tuner_args import build_parser, ros_arguments
@@ -59,6 +60,9 @@ def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv if args is None else args)
     try:
         cli = build_parser().parse_args(check_ros_args(argv)[1:])
+        if 'help' in cli.opt:  # the algorithm's options, as --help the tuner's
+            print(optim.describe_options(cli.algo or optim.DEFAULT_ALGO))
+            return 0
         check_session(cli)
         return _main(cli, argv)
     except UsageError as exc:

@@ -34,3 +34,35 @@ def test_the_algorithms_declare_what_the_tuning_loop_asks_of_them():
     assert opt.wants_first is True
     opt.set_first([0.6] * 5)
     assert opt.wants_first is False and opt.ask().tolist() == [0.6] * 5
+
+
+def test_opt_reads_each_value_as_its_declared_type(tmp_path):
+    """The tuner's ``--opt``: KEY=VALUE (- or _ in the key) or a YAML file, each value
+    of the type the table declares; one-line refusals that name the option."""
+    from im_tuner.optim import describe_options, read_options
+
+    got = read_options('necga', ['n=30', 'eta=12', 'elite-replacement=newcomer'])
+    assert got == {'n': 30, 'eta': 12, 'elite_replacement': 'newcomer'}
+    assert type(read_options('safe', ['sigma0=1e-2'])['sigma0']) is float
+    f = tmp_path / 'opts.yaml'
+    f.write_text('sigma0: 0.02\nmultivariate: no\n')
+    with pytest.raises(OptimizerError, match='--opt multivariate does not apply to --algo safe'):
+        read_options('safe', [str(f)])
+    f.write_text('n_startup_trials: 5\nmultivariate: no\n')
+    assert read_options('tpe', [str(f)]) == {'n_startup_trials': 5, 'multivariate': 'no'}
+    for items, message in (
+        (['n=2.5'], '--opt n=2.5: necga option n must be an integer in [2, 1000000]'),
+        (['sigma0=0.1'], '--opt sigma0 does not apply to --algo necga (its options: n, '),
+        (['n=30', 'n=40'], '--opt n is given twice'),
+        (['=3'], "--opt '=3': KEY=VALUE"),
+        ([str(tmp_path / 'none.yaml')], 'KEY=VALUE or a YAML file of options'),
+    ):
+        with pytest.raises(OptimizerError) as ei:
+            read_options('necga', items)
+        assert message in str(ei.value) and '\n' not in str(ei.value), str(ei.value)
+    f.write_text('- a list\n')
+    with pytest.raises(OptimizerError, match='a YAML mapping of option names'):
+        read_options('necga', [str(f)])
+    text = describe_options('safe').splitlines()
+    assert text[0].startswith('safe options (--opt KEY=VALUE') and len(text) == 7
+    assert text[1] == ('  sigma0=0.05: initial step size (normalised units); a number in (0, 1]')

@@ -45,6 +45,8 @@ from .options import (
     TAKES_FIRST,
     TAKES_START,
     Algorithm,
+    describe_options,
+    read_options,
 )
 
 if TYPE_CHECKING:  # the classes are loaded on first use (module __getattr__ below)
@@ -78,7 +80,9 @@ __all__ = [
     'OptimizerError',
     'OptionSpec',
     'algorithm_class',
+    'describe_options',
     'make_optimizer',
+    'read_options',
 ]
 
 #: class name -> its module (``from im_tuner.optim import CMAES`` imports pycma then)

@@ -32,7 +32,9 @@ __all__ = [
     'Algorithm',
     'check_eta_below_n',
     'choice',
+    'describe_options',
     'integer',
+    'read_options',
     'real',
 ]
 
@@ -284,3 +286,69 @@ def check_eta_below_n(algo: str, opts: dict[str, Any]) -> None:
             f'{algo} option eta must be an integer in [1, n - 1] = '
             f'[1, {opts["n"] - 1}] (eta < n), got {opts["eta"]!r}'
         )
+
+
+def read_options(algo: str, items: list[str]) -> dict[str, Any]:
+    """``algo``'s options from the tuner's ``--opt`` texts: each ``KEY=VALUE`` (a key
+    with - or _), or the path of a YAML file mapping keys to values; each value read as
+    its declared type.  OptimizerError (one line) for a key ``algo`` does not have, one
+    given twice, or a value of the wrong type; the ranges are ``check_options``'s."""
+    specs = OPTIONS[algo]
+    mine = ', '.join(specs) or 'none'
+    out: dict[str, Any] = {}
+    for item in items:
+        pairs = _pairs(item)
+        for key, text in pairs:
+            spec = specs.get(key)
+            if spec is None:
+                raise OptimizerError(
+                    f'--opt {key} does not apply to --algo {algo} (its options: {mine})'
+                )
+            if key in out:
+                raise OptimizerError(f'--opt {key} is given twice')
+            try:
+                out[key] = text if spec.type is str else spec.type(text)
+            except ValueError:
+                raise OptimizerError(
+                    f'--opt {key}={text}: {algo} option {key} must be {spec.allowed()}'
+                ) from None
+    return out
+
+
+def _pairs(item: str) -> list[tuple[str, str]]:
+    """(key, value text) of one ``--opt`` item: ``KEY=VALUE`` or a YAML file's mapping."""
+    key, sep, text = item.partition('=')
+    if sep:
+        if not key.strip():
+            raise OptimizerError(f'--opt {item!r}: KEY=VALUE, e.g. --opt sigma0=0.05')
+        return [(key.strip().replace('-', '_'), text.strip())]
+    import yaml  # (a file of options: rare, so imported then)
+
+    try:
+        with open(item, encoding='utf-8') as f:
+            data = yaml.safe_load(f)
+    except OSError as exc:
+        raise OptimizerError(
+            f'--opt {item}: KEY=VALUE or a YAML file of options ({exc.strerror or exc})'
+        ) from None
+    except (yaml.YAMLError, ValueError) as exc:  # (ValueError: not UTF-8 text)
+        raise OptimizerError(f'--opt {item}: not YAML ({str(exc).splitlines()[0]})') from None
+    if not isinstance(data, dict) or not all(isinstance(k, str) for k in data):
+        raise OptimizerError(f'--opt {item}: a YAML mapping of option names to values')
+    return [
+        # (YAML 1.1 reads yes/no as booleans: the choices are spelled yes/no)
+        (k.replace('-', '_'), ('yes' if v else 'no') if isinstance(v, bool) else str(v))
+        for k, v in data.items()
+    ]
+
+
+def describe_options(algo: str) -> str:
+    """``algo``'s options as ``tuner --algo ALGO --opt help`` prints them: one line each,
+    its default, its accepted values and its meaning."""
+    specs = OPTIONS[algo]
+    if not specs:
+        return f'{algo} has no options'
+    lines = [f'{algo} options (--opt KEY=VALUE; docs/optimisers.md):']
+    for name, spec in specs.items():
+        lines.append(f'  {name}={spec.default!r}: {spec.help}; {spec.allowed()}')
+    return '\n'.join(lines)

@@ -9,37 +9,22 @@ points), so it never stalls a bench.
 
 On u in [0, 1]^dim, from the start point u0 (the hand-tuned gains, known to be stable):
 
-* evaluation 1 measures u0 itself: the incumbent x = u0 with its loss f.  (The tuner's
-  reference experiment measures u0 too, but it is the first experiment from rest: 0.874
-  against 1.000 for every later one on the simulated bench; taken as f it made the
-  search reject true improvements, 11.2 evaluations to 0.9 against 5.1.)
-* with ``first`` (the drive model's point, ``im_tuner.prior``; the tuner's ``--first
-  model``), evaluation 2 measures that point: a candidate like any other (it replaces
-  x if its loss is lower, an aborted one is a constraint), but no pattern move repeats
-  its long step.  Without it (None) the search is the same as before it existed, ask
-  for ask and state for state (the golden tests).  ``first='identify'`` (the tuner's
-  ``--first identify``): the point is not known when the run starts; the tuner gives it
-  with :meth:`SAFE.set_first` after evaluation 1 (the start's own measurements identify
-  the drive, ``im_tuner.identify``, and the point is the identified model's); a point
-  never given, or None, is no first step (the search goes on as without a model).
-  After the identified point succeeds, sigma is ``IDENTIFIED_SIGMA`` (0.02), not sigma0
-  grown to 0.075 as after the file's model's point: the identified model's optimum lies
-  near the plant's stability edge, and its step was the model's, not the search's.  On
-  im7500w-j10 (8 runs x 60 evaluations per plant, no ripple limit; the exact file, J
-  x0.5, J x1.5) the grown step aborted 1.0, 1.4 and 0.4 times per run, 21 of 22 in
-  evaluations 3-8, and sigma0 kept 0.6, 1.2 and 0 (the prior's search then 150
-  experiments per seed); with the 300 of now 0.03 aborted 0.1, 0.8 and 0, and 0.02 0,
-  0.5 and 0, at the same or a lower re-measured loss (J x0.5: 0.492 with 0.03, 0.486
-  with 0.02; Py-BOBYQA 0.478);
+* evaluation 1 measures u0 itself: the incumbent x = u0 with its loss f (the tuner's
+  reference experiment is the first from rest, lower than every later one: not f);
+* with ``first`` (a model's point, ``im_tuner.prior``), evaluation 2 measures that
+  point: a candidate like any other (it replaces x if its loss is lower, an aborted one
+  is a constraint), but no pattern move repeats its long step; without it the search
+  is ask for ask and state for state the one without a model (the golden tests).
+  ``first='identify'``: the point comes after evaluation 1 (:meth:`SAFE.set_first`,
+  from the drive the start's measurements identify, ``im_tuner.identify``); a point
+  never given, or None, is no first step.  After the identified point succeeds, sigma
+  is ``IDENTIFIED_SIGMA``: that optimum lies near the plant's stability edge, and the
+  step was the model's, not the search's, so a grown step would abort;
 * a model's point that fails (its loss, as told, not below f; not aborted) is followed
   by the point half-way back to the incumbent, and that one by the point half-way again
-  (``FIRST_BACKOFFS``; each a first step: no pattern move after it).  The model's
-  direction is right more often than its length: with the ripple limit (the tuner's
-  ``runlog.ripple.told_loss``) a first step that measures 0.62 of the start but loud on
-  the per-drive bench profile is told as no better than the start, and the search went
-  on from the start with random steps, aborting the next evaluation in 7 of 25 runs on
-  im7500w-j10 (docs/optimisers.md, "The standstill ripple").  A point that succeeds
-  (every first step of the ideal study does) backs off nothing: the search is the same;
+  (``FIRST_BACKOFFS``; each a first step): the model's direction is right more often
+  than its length, and a point told loud (``runlog.ripple.told_loss``) should not send
+  the search back to random steps from the start;
 * a candidate is y = clip(x + s) with, in order of preference:
   - s = the last successful step right after a success (pattern move, Hooke-Jeeves);
   - every ``model_every``-th evaluation, once at least ``dim + 1`` measured points lie
@@ -55,25 +40,15 @@ On u in [0, 1]^dim, from the start point u0 (the hand-tuned gains, known to be s
   (0.3), and its point enters the model with 3 f as its value, so the model's slope
   points away from where the controller went unstable;
 * every ``remeasure_every`` evaluations the incumbent is measured again and f becomes
-  the mean of its measurements, so one lucky measurement does not freeze the search
-  (the loss varies from one experiment to the next near the optimum);
-* sigma stays within [0.005, sigma_max] (normalised units).  The floor: a smaller one
-  let 5-30 % of the runs stall on a lucky measurement.  The ceiling ``sigma_max``
-  (0.08: steps of about 0.18 in the 5-d unit cube) is a trust region around gains known
-  to be stable.  The aborted experiments came from long steps, 0.1-0.9 away from the
-  nearest measured point, and that point's speed-error term (the one that tripped the
-  supervisor in 31 of 32 aborts) was no higher than at the start (0.47 of its
-  threshold; mostly 0.15-0.3): the stability edge gives no warning a model could learn,
-  only the step length keeps the search off it.  In 40-run studies
-  a ceiling of 0.5 gave 1.6 aborted experiments per run, 0.1 gave 0.65 and 0.08 gave
-  0.48, with the median evaluations to 0.5 at 23.5, 21.5 and 22.
+  the mean of its measurements, so one lucky measurement does not freeze the search;
+* sigma stays within [0.005, sigma_max] (normalised units): below the floor a run can
+  stall on a lucky measurement; the ceiling is a trust region around gains known to be
+  stable, because the stability edge gives no warning a model could learn (the
+  supervisor's terms are no higher before an abort than at the start): only the step
+  length keeps the search off it.
 
-Measured by ``make reproduction`` (100 runs x 200 evaluations, full model, hand-tuned
-start), the defaults against ``sigma_max 0.5`` and against ``model_every 0``: aborted
-experiments per run 0.5 against 1.7 and 1.0; median evaluations to a normalised loss of
-0.5, 23 against 23.5 and 38; re-measured final loss 0.465 against 0.470 and 0.480.
-
-The tuner tells an aborted experiment through ``tell_measurement(u, loss, aborted)``; a
+The figures behind these choices are in docs/optimisers.md and research/NOTES.md.  The
+tuner tells an aborted experiment through ``tell_measurement(u, loss, aborted)``; a
 plain ``tell`` is a completed experiment.  The least-squares fit is numpy's (LAPACK
 ``gelsd``): a resumed run continues bit for bit on the same machine and numpy build.
 """
@@ -186,7 +161,7 @@ class SAFE(Optimizer):
     def _settings(self) -> dict[str, Any]:
         if self._identify:
             return {**self._opts, 'first': IDENTIFY}
-        if self._first is None:  # (the configuration of a safe without a model, as before)
+        if self._first is None:  # (without a model: the configuration of the golden tests)
             return self._opts
         return {**self._opts, 'first': list(self._first)}
 
@@ -288,7 +263,9 @@ class SAFE(Optimizer):
 
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
-        if self._first is not None or self._identify:  # (without a model: as before)
+        if (
+            self._first is not None or self._identify
+        ):  # (without a model: the state of the golden tests)
             state['first_left'] = self.first_left
             state['first_back'] = self._back
             state['first_backoffs'] = self._backoffs

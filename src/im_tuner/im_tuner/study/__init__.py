@@ -38,7 +38,7 @@ start).  docs/reproduction.md says why.
 
 **Drives**: a study's drive, experiment and tuner parameters come from
 ``im_tuner.family.drive_setup`` (``StudySpec.drives``/``realism``; none given: the
-packaged drive, as before).  ``--drives A,B`` runs one study per drive (``drives``), each
+packaged drive).  ``--drives A,B`` runs one study per drive (``drives``), each
 normalised by its own hand-tuned start, at each algorithm's recommended configuration
 (``spec.RECOMMENDED``) plus the outside reference row Py-BOBYQA (``bobyqa``), and sums them
 up over the drives (``summary``: mean and worst drive per method; the default against

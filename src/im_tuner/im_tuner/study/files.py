@@ -42,7 +42,7 @@ def tuner_command(res: StudyResult, c: int, r: int, out: Path) -> str:
         return ''
     args = ['ros2', 'run', 'im_tuner', 'tuner', '--algo', cell.algo]
     for k, v in cell.opts.items():
-        args += [f'--{k.replace("_", "-")}', repr(v)]
+        args += ['--opt', f'{k}={v if isinstance(v, str) else repr(v)}']
     args += [
         '--seed',
         str(int(res.run_seed[r])),

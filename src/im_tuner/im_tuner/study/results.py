@@ -159,7 +159,7 @@ def save(res: StudyResult, out: Path | str) -> None:
         'command': res.command,
         'numeric': res.numeric,
     }
-    if res.l_ref_told is not None:  # (a study of the told drive writes the file as before)
+    if res.l_ref_told is not None:  # (only a study whose plant is not the told drive)
         meta['l_ref_told'] = res.l_ref_told
     tmp = out / (META_FILE + '.tmp')
     tmp.write_text(json.dumps(meta, indent=1) + '\n')

@@ -238,7 +238,7 @@ class StudySpec:
     ripple_limit: float | str | None = 'default'
 
     #: fields written to study.json only when they differ from these defaults (a study
-    #: without them writes the same file as before they existed)
+    #: that uses none of them writes the same file as one of the paper's)
     NEW_FIELDS: ClassVar[dict[str, Any]] = {
         'drives': (),
         'realism': None,

@@ -199,7 +199,9 @@ def test_the_tuner_takes_the_model_where_it_knows_the_drive(prior, tmp_path):
     assert _new('--seed', '3').run.options == {}
     assert _new('--seed', '3', '--first', 'model').run.options == {'first': list(prior.u)}
     assert _new('--seed', '3', '--bench', 'inproc', '--first', 'none').run.options == {}
-    with pytest.raises(UsageError, match="--first does not apply to --algo spsa: it is the first step of safe"):
+    with pytest.raises(
+        UsageError, match='--first does not apply to --algo spsa: it is the first step of safe'
+    ):
         _new('--seed', '3', '--algo', 'spsa', '--first', 'model')
 
 

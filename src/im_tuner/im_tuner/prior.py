@@ -375,15 +375,10 @@ ROUND_TC = 0.005
 #: deviations of the identified J), Rr as for the file's model (not identified).
 IDENTIFIED_J_SPREAD = 0.1
 #: Experiments per seed of the offline search on the identified model (the file's model:
-#: ``MODEL_EVALUATIONS``).  The identified model is close to the plant (J within 2 %), so
-#: the model's optimum is worth finding: on im7500w-j10 150 per seed stopped short in a
-#: valley of the loss (J x0.5: the chosen point 0.52 of L_ref on the plant, Py-BOBYQA's
-#: search 0.48; the four searches ended at 0.50-0.60 of the start's loss on the model),
-#: 300 found 0.47-0.49; the default's re-measured loss on the plant-mismatch grid went from
-#: 0.511 to 0.492 (J x0.5), 0.437 to 0.417 (J x1.5), 0.506 to 0.479 (all mismatches; each
-#: with sigma 0.03 after the point, no ripple limit).  With a ripple limit the choice is
-#: within it on the models (``_compute``; im750w-j1 at J x1.5 found a loud point before).
-#: The price: twice the offline experiments between evaluations 1 and 2.
+#: ``MODEL_EVALUATIONS``): the identified model is close to the plant (J within 2 %), so
+#: its optimum is worth finding, and 150 per seed stop short of it in a valley of the loss
+#: (research/NOTES.md).  The price: twice the offline experiments between evaluations 1
+#: and 2.
 IDENTIFIED_MODEL_EVALUATIONS = 300
 
 

@@ -27,14 +27,12 @@ with contextlib.suppress(ImportError):
 import numpy as np
 
 try:
-    from im_drive_sim import kernels as K
-    from im_drive_sim import model_layout as L
+    from im_drive_sim import kernels as K, model_layout as L
     from im_drive_sim.drive_file import load_config
     from im_drive_sim.sim import DriveSim
 except ImportError:  # running from a source checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / 'im_drive_sim'))
-    from im_drive_sim import kernels as K
-    from im_drive_sim import model_layout as L
+    from im_drive_sim import kernels as K, model_layout as L
     from im_drive_sim.drive_file import load_config
     from im_drive_sim.sim import DriveSim
 

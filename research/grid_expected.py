@@ -36,8 +36,7 @@ import im_drive_sim  # noqa: F401 (the numeric baseline, set before numpy loads)
 # isort: split
 import numpy as np
 from choice_scatter import choice_losses, repeated_runs, start_and_choice  # (this directory)
-from mismatch_grid import CASES, ROWS, grid_arguments  # (this directory)
-from mismatch_grid import _read as read_tables
+from mismatch_grid import CASES, ROWS, _read as read_tables, grid_arguments  # (this directory)
 
 from im_tuner.offline import OfflineBench
 from im_tuner.study.plant import parse_mismatch

@@ -29,8 +29,7 @@ import im_drive_sim  # noqa: F401 (the numeric baseline, set before numpy loads)
 # isort: split
 import numpy as np
 
-from im_tuner import first_step as FS
-from im_tuner import prior as P
+from im_tuner import first_step as FS, prior as P
 from im_tuner.offline import OfflineBench
 from im_tuner.study import runs as R
 from im_tuner.study.plant import parse_mismatch

@@ -23,8 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from im_drive_sim import hardware_period as HP
-from im_drive_sim import period_kernel as PK
+from im_drive_sim import hardware_period as HP, period_kernel as PK
 
 sys.path.insert(0, str(Path(__file__).parent))
 from recording_hardware import read_log

@@ -16,8 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from im_tuner.bench import forms
-from im_tuner.bench import recorder_watch as watch
+from im_tuner.bench import forms, recorder_watch as watch
 from im_tuner.record.repair import bag_is_closed
 
 STAND_IN = r"""

@@ -53,6 +53,7 @@ from .model_layout import (
     N_AMP,
     N_DELAY,
     N_RUN_FIELDS,
+    N_STATE_FIELDS as N_STATE_FIELDS,  # re-exported: see below
     P_B,
     P_CMD_DELAY,
     P_DELAY,
@@ -140,9 +141,8 @@ from .model_layout import (
     S_UB,
     S_UB_NEXT,
     S_VSAT,
+    STATE_FIELDS as STATE_FIELDS,
 )
-from .model_layout import N_STATE_FIELDS as N_STATE_FIELDS  # re-exported: see below
-from .model_layout import STATE_FIELDS as STATE_FIELDS
 from .plant import applied_voltage, friction_torque, plant_rk4
 
 # STATE_FIELDS and N_STATE_FIELDS stand here too, beside ``write_out`` that fills them:

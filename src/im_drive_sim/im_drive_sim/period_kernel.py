@@ -33,8 +33,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from . import contract
-from . import kernels as K
+from . import contract, kernels as K
 
 __all__ = [
     'COUNTERS',

@@ -20,9 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from . import kernels as K
-from . import model_layout as L
-from . import plant
+from . import kernels as K, model_layout as L, plant
 from .drive_file import load_config
 from .params import DriveConfig, MachineParams
 

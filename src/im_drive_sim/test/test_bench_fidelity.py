@@ -12,9 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from im_drive_sim import model_layout as L
-from im_drive_sim import period_kernel as W
-from im_drive_sim import plant
+from im_drive_sim import model_layout as L, period_kernel as W, plant
 from im_drive_sim.command_latch import CommandLatch, HeldCommand
 from im_drive_sim.drive_file import load_config
 from im_drive_sim.drive_sim_counters import Counters

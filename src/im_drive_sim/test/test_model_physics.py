@@ -14,9 +14,7 @@ try:  # source checkout without an installed package (the lead's packaging insta
 except ImportError:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from im_drive_sim import analytic as A
-from im_drive_sim import model_layout as L
-from im_drive_sim import plant
+from im_drive_sim import analytic as A, model_layout as L, plant
 from im_drive_sim.drive_file import load_config
 from im_drive_sim.sim import DriveSim
 

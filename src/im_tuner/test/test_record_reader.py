@@ -17,8 +17,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from mcap.exceptions import EndOfFile
 from mcap.reader import make_reader
-from mcap.records import Channel as McapChannel
-from mcap.records import Message as McapMessage
+from mcap.records import Channel as McapChannel, Message as McapMessage
 from mcap.stream_reader import StreamReader
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String

@@ -22,13 +22,14 @@ import pytest
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile, McapError
 from mcap.reader import make_reader
-from mcap.records import Chunk as McapChunk
-from mcap.records import Message as McapMessage
-from mcap.records import MessageIndex as McapMessageIndex
+from mcap.records import (
+    Chunk as McapChunk,
+    Message as McapMessage,
+    MessageIndex as McapMessageIndex,
+)
 from mcap.stream_reader import StreamReader, get_chunk_data_stream
 from rclpy.serialization import serialize_message
-from rosbags.rosbag2 import Reader as RosbagsReader
-from rosbags.rosbag2 import ReaderError as RosbagsReaderError
+from rosbags.rosbag2 import Reader as RosbagsReader, ReaderError as RosbagsReaderError
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from std_msgs.msg import String
 

@@ -13,8 +13,7 @@ import pytest
 
 from im_tuner import optim
 from im_tuner.family import DEFAULT_DRIVE, drive_setup
-from im_tuner.study import runs as R
-from im_tuner.study import spec as S
+from im_tuner.study import runs as R, spec as S
 from im_tuner.study.bobyqa import BobyqaRun
 from im_tuner.study.drives import FamilyResult, drive_dirs, load_family, save_family
 from im_tuner.study.markdown import family_md

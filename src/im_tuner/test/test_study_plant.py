@@ -14,8 +14,7 @@ import pytest
 
 from im_drive_sim.sim import DriveSim
 from im_tuner.prior import model_prior
-from im_tuner.study import runs as R
-from im_tuner.study import spec as S
+from im_tuner.study import runs as R, spec as S
 from im_tuner.study.plant import (
     PlantError,
     apply_mismatch,

@@ -6,8 +6,7 @@ the manager is closing (the OSError traceback CI saw after ``study: interrupted`
 import multiprocessing
 import signal
 import time
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures import process as cf_process
+from concurrent.futures import ProcessPoolExecutor, process as cf_process
 
 import pytest
 

@@ -8,8 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from im_tuner.study import runs as S
-from im_tuner.study import stats as ST
+from im_tuner.study import runs as S, stats as ST
 from im_tuner.study.stats import PAPER, compute, per_run, wilson
 
 L_REF = 2.0

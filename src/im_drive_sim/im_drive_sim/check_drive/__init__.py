@@ -18,14 +18,16 @@ recording, item by item) and ``cli``. This package's namespace is the union of t
 public names (each module's ``__all__``).
 """
 
-from . import cli as _cli
-from . import conditions as _conditions
-from . import evaluate as _evaluate
-from . import judges as _judges
-from . import probe as _probe
-from . import procedure as _procedure
-from . import response as _response
-from . import thresholds as _thresholds
+from . import (
+    cli as _cli,
+    conditions as _conditions,
+    evaluate as _evaluate,
+    judges as _judges,
+    probe as _probe,
+    procedure as _procedure,
+    response as _response,
+    thresholds as _thresholds,
+)
 from .cli import *  # noqa: F403
 from .conditions import *  # noqa: F403
 from .evaluate import *  # noqa: F403

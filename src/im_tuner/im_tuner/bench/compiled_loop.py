@@ -35,8 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from im_drive_sim import hardware_period as HP
-from im_drive_sim import period_kernel as PK
+from im_drive_sim import hardware_period as HP, period_kernel as PK
 from im_drive_sim.hardware_abi import KIND_C, N_MEASUREMENT, HardwareFault, entry_words
 from im_drive_sim.loop_clock import (
     T_LATE,

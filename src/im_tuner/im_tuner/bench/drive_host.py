@@ -28,8 +28,7 @@ from typing import Any
 
 from rclpy.node import Node
 
-from im_drive_sim import host as host_floor
-from im_drive_sim import rt
+from im_drive_sim import host as host_floor, rt
 from im_drive_sim.cli import UsageError, parse_cli
 from im_drive_sim.contract import STATE_TOPIC
 from im_drive_sim.runtime import RosSession

@@ -54,18 +54,17 @@ import numpy as np
 
 from im_controller.experiment import STATUS_DONE, STATUS_FAULT
 from im_controller.kernel import W_INTERNALS_DUE, answer_state
-from im_drive_sim import hardware_period as HP
-from im_drive_sim import period_kernel as PK
+from im_drive_sim import hardware_period as HP, period_kernel as PK
 from im_drive_sim.loop_clock import (
     CLOCK_MONOTONIC,
     CLOCK_REALTIME,
     N_CLOCK,
     T_LATE,
     T_START,
+    nap as _nap,
+    now_ns as _now,
+    wait_start as _wait_start,
 )
-from im_drive_sim.loop_clock import nap as _nap
-from im_drive_sim.loop_clock import now_ns as _now
-from im_drive_sim.loop_clock import wait_start as _wait_start
 from im_drive_sim.outbox import R_HEAD, put_slot
 from im_drive_sim.pacing import count_durations
 

@@ -26,8 +26,7 @@ from im_drive_sim.cli import Parser, UsageError, int_in
 from im_drive_sim.params import REALISM_PROFILES
 
 from ..progress import Eta
-from . import cluster as K
-from . import spec as S
+from . import cluster as K, spec as S
 from .drives import FamilyResult, drive_dirs, is_family, load_family, save_family
 from .results import META_FILE, StudyResult, load, save
 from .spec import EXIT_USAGE, StudyError

@@ -87,7 +87,7 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('drive_sim', 'max-steps-negative', ['--max-steps', '-5']),
     ('drive_sim', 'p-seed-type', ['--ros-args', '-p', 'seed:=abc']),
     ('drive_sim', 'p-read-only-state-fields', ['--ros-args', '-p', 'state_fields:=[a,b]']),
-    *_file_cases('drive_sim', '--config'),
+    *_file_cases('drive_sim', '--drive-config'),
     *_params_file_cases('drive_sim'),
     # -- example_drive
     ('example_drive', 'p-timeout-negative', ['--ros-args', '-p', 'command_timeout:=-1.0']),
@@ -104,8 +104,8 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('controller', 'p-isq-max-above-drive', ['--ros-args', '-p', 'safety.isq_max:=20.0']),
     # a 25 s move in a 1.125 s experiment (config.MOVE_RULE)
     ('controller', 'p-move-longer-than-experiment', ['--ros-args', '-p', DISTANCE_1000]),
-    ('controller', 'config-comments-only', ['--config', 'comments.yaml']),
-    *_file_cases('controller', '--config'),
+    ('controller', 'config-comments-only', ['--drive-config', 'comments.yaml']),
+    *_file_cases('controller', '--drive-config'),
     *_params_file_cases('controller'),
     # -- sim_bench
     ('sim_bench', 'seed-negative', ['--seed', '-1']),
@@ -122,10 +122,10 @@ CASES: list[tuple[str, str, list[str]]] = [
     ),
     ('sim_bench', 'out-with-no-record', ['--out', 'newbag', '--no-record']),
     ('sim_bench', 'compression-with-no-record', ['--compression', 'zstd', '--no-record']),
-    *_file_cases('sim_bench', '--config'),
+    *_file_cases('sim_bench', '--drive-config'),
     *[
         ('sim_bench', 'processes-' + n, a)
-        for _e, n, a in _file_cases('sim_bench', '--config', ('--processes',))
+        for _e, n, a in _file_cases('sim_bench', '--drive-config', ('--processes',))
     ],
     *_params_file_cases('sim_bench'),
     # -- drive_host
@@ -149,7 +149,7 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('drive_host', 'p-unknown', ['--ros-args', '-p', 'no_such_param:=1']),
     ('drive_host', 'drive-hardware-hangs', ['--drive', 'bad_drives:HangingHardware']),
     ('sim_bench', 'p-unknown', ['--ros-args', '-p', 'k_pww:=1.0']),
-    *_file_cases('drive_host', '--config'),
+    *_file_cases('drive_host', '--drive-config'),
     # -- check_drive (all of these before any probing)
     ('check_drive', 'amplitude-negative', ['--amplitude', '-0.5']),
     ('check_drive', 'amplitude-nan', ['--amplitude', 'nan']),
@@ -159,7 +159,7 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('check_drive', 'json-in-missing-directory', ['--json', 'nowhere/x.json']),
     ('check_drive', 'thread-priority-range', ['--thread-priority', '100']),
     ('check_drive', 'cpu-affinity-absent', ['--cpu-affinity', '4096']),
-    *_file_cases('check_drive', '--config'),
+    *_file_cases('check_drive', '--drive-config'),
     # -- recorder
     ('recorder', 'chunk-size-huge', ['--chunk-size', str(1 << 50)]),
     ('recorder', 'chunk-size-zero', ['--chunk-size', '0']),
@@ -761,7 +761,7 @@ def test_a_refusal_of_a_node_imports_nothing_heavy(exe: str, tmp_path: Path) -> 
     for argv, says in (
         (['--no-such-flag'], 'unrecognized arguments: --no-such-flag'),
         (['--ros-args', '--params-file', 'missing.yaml'], '--params-file missing.yaml: no such'),
-        (['--config', 'adir'] if exe != 'recorder' else ['--chunk-size', '0'], ''),
+        (['--drive-config', 'adir'] if exe != 'recorder' else ['--chunk-size', '0'], ''),
     ):
         rc, loaded, err = run(argv)
         (line,) = err.strip().splitlines()

@@ -626,7 +626,7 @@ def test_real_time_mode_runs_an_experiment(procs, ros_context):
         (['--ros-args', '-p', 'k_pw:=abc'], 'k_pw'),
         (['--ros-args', '-p', 'mode:=fast'], "'mode'"),
         (['--ros-args', '-p', 'safety.max_speed:=-1.0'], 'safety.max_speed'),
-        (['--config', '/nonexistent/motor.yaml'], 'motor.yaml'),
+        (['--drive-config', '/nonexistent/motor.yaml'], 'motor.yaml'),
     ],
 )
 def test_bad_start_up_input_is_one_line_and_exit_2(procs, args, expect):

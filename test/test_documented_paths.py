@@ -33,10 +33,10 @@ CASES: list[tuple[str, str, list[str], str]] = [
     *[
         (exe, 'config-missing-relative-base', [flag, 'drives/base_missing.yaml'], MISSING_BASE)
         for exe, flag in (
-            ('drive_sim', '--config'),
-            ('controller', '--config'),
-            ('sim_bench', '--config'),
-            ('drive_host', '--config'),
+            ('drive_sim', '--drive-config'),
+            ('controller', '--drive-config'),
+            ('sim_bench', '--drive-config'),
+            ('drive_host', '--drive-config'),
             ('tuner', '--drive-config'),
             ('study', '--drive-config'),
         )
@@ -186,7 +186,7 @@ def test_sim_bench_takes_its_drives_gains_and_the_tuner_learns_the_drive(tmp_pat
     setup = tuner_setup('im7500w-j3')
     assert setup is not None
     bench = procs.start(
-        [ROS2, 'run', 'im_tuner', 'sim_bench', '--config', 'im7500w-j3', '--no-record']
+        [ROS2, 'run', 'im_tuner', 'sim_bench', '--drive-config', 'im7500w-j3', '--no-record']
     )
     common = ('--bench', 'none', '--discovery-timeout', '60', '--no-record', '--quiet')
     refused = tuner(*common, '--first', 'model', '--budget', '1', '--out', str(tmp_path / 'no'))
@@ -223,15 +223,18 @@ def test_sim_bench_processes_gives_the_controller_child_its_drives_gains():
 
     setup = tuner_setup('im3700w-j10')
     assert setup is not None
-    cli = parser().parse_args(['--processes', '--config', 'im3700w-j10'])
+    cli = parser().parse_args(['--processes', '--drive-config', 'im3700w-j10'])
     user = ['--ros-args', '-p', 'k_pw:=1.5']
     drive, ctl = _child_args(cli, user)
-    assert drive == ('--config', 'im3700w-j10', *user)
+    assert drive == ('--drive-config', 'im3700w-j10', *user)
     given = dict(a.split(':=', 1) for a in ctl if ':=' in a)
     for name, value in controller_parameters(setup):
         want = 1.5 if name == 'k_pw' else value
         assert float(given[name]) == pytest.approx(want, rel=1e-12), name
     assert ctl[-3:] == tuple(user) and ctl.count('k_pw:=1.5') == 1
     assert not any(a.startswith('k_pw:=') and a != 'k_pw:=1.5' for a in ctl)
-    cli = parser().parse_args(['--processes', '--config', 'paper_750w'])
-    assert _child_args(cli, []) == (('--config', 'paper_750w'), ('--config', 'paper_750w'))
+    cli = parser().parse_args(['--processes', '--drive-config', 'paper_750w'])
+    assert _child_args(cli, []) == (
+        ('--drive-config', 'paper_750w'),
+        ('--drive-config', 'paper_750w'),
+    )

@@ -72,9 +72,9 @@ def test_check_drive_passes_on_the_heaviest_drive_with_its_amplitude(procs, tmp_
     name = 'im7500w-j10'
     amp = check_amplitude(drive_setup(name).drive)
     assert 10.0 < amp <= 0.4 * 34.84
-    drive = procs.start([ROS2, 'run', 'im_drive_sim', 'drive_sim', '--config', name])
+    drive = procs.start([ROS2, 'run', 'im_drive_sim', 'drive_sim', '--drive-config', name])
     out_json = tmp_path / 'check.json'
-    check = ['--config', name, '--amplitude', f'{amp:.4g}', '--json', str(out_json)]
+    check = ['--drive-config', name, '--amplitude', f'{amp:.4g}', '--json', str(out_json)]
     p = procs.start([ROS2, 'run', 'im_drive_sim', 'check_drive', *check])
     out, err = p.communicate(timeout=90)
     assert p.returncode == 0, f'{out}\n{err}'

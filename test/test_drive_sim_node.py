@@ -249,7 +249,7 @@ def test_bad_parameter_file_is_rejected_with_a_clear_message(procs, tmp_path, ol
     assert old in text
     bad = tmp_path / 'bad_motor.yaml'
     bad.write_text(text.replace(old, new))
-    p = drive_proc(procs, '--config', str(bad))
+    p = drive_proc(procs, '--drive-config', str(bad))
     _out, err = p.communicate(timeout=30)
     assert p.returncode == 2
     lines = [ln for ln in err.splitlines() if ln.strip()]
@@ -259,7 +259,7 @@ def test_bad_parameter_file_is_rejected_with_a_clear_message(procs, tmp_path, ol
 
 
 def test_missing_parameter_file_and_bad_mode(procs, tmp_path):
-    p = drive_proc(procs, '--config', str(tmp_path / 'nope.yaml'))
+    p = drive_proc(procs, '--drive-config', str(tmp_path / 'nope.yaml'))
     _, err = p.communicate(timeout=30)
     assert p.returncode == 2 and 'nope.yaml' in err
     p = drive_proc(procs, '--ros-args', '-p', 'mode:=fast')

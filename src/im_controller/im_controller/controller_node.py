@@ -574,7 +574,7 @@ def main(args: list[str] | None = None) -> int:
     def body() -> int:
         cli = parse_cli(parser(), argv)
         overrides = start_overrides(
-            (('mode', cli.mode), ('drive_config_file', cli.config and str(cli.config)))
+            (('mode', cli.mode), ('drive_config_file', cli.drive_config and str(cli.drive_config)))
         )
         return run_stepped_node(
             argv,

@@ -305,10 +305,10 @@ def output_file(text: str) -> Path:
 
 
 def add_config_option(parser: argparse.ArgumentParser, what: str) -> None:
-    """The ``--config FILE|NAME`` option of every executable that loads a drive file:
-    ``what`` it takes from it."""
+    """The ``--drive-config FILE|NAME`` option of every executable that loads a drive file
+    (the tuner's and the study's are the same name): ``what`` it takes from it."""
     parser.add_argument(
-        '--config',
+        '--drive-config',
         metavar='FILE|NAME',
         type=drive_file,
         help=f'drive parameter file (YAML) or packaged drive name (im3700w-j3, ...): {what}',

@@ -486,7 +486,7 @@ def main(args: list[str] | None = None) -> int:
         overrides = start_overrides(
             (
                 ('mode', cli.mode),
-                ('config_file', cli.config and str(cli.config)),
+                ('config_file', cli.drive_config and str(cli.drive_config)),
                 ('model', cli.model),
                 ('seed', cli.seed),
                 ('max_steps', cli.max_steps),

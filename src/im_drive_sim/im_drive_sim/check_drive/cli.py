@@ -77,15 +77,15 @@ def parse_args(argv: list[str]) -> Options:
             ap.error(f'--{name.replace("_", "-")} must be a positive number, got {v:g}')
     if not 0.005 <= ns.step_duration <= 0.5:
         ap.error(f'--step-duration {ns.step_duration:g} s: must be in [0.005, 0.5] s')
-    if ns.config is not None:  # the file is read after the probe starts: check it now
+    if ns.drive_config is not None:  # the file is read after the probe starts: check it now
         from im_drive_sim.drive_file import load_config
         from im_drive_sim.params import ConfigError
 
         try:
-            load_config(ns.config)
+            load_config(ns.drive_config)
         except ConfigError as exc:
             ap.error(str(exc))
-        ns.config = str(ns.config)
+        ns.drive_config = str(ns.drive_config)
     if ns.json is not None:
         ns.json = str(ns.json)
     if ns.namespace is not None:

@@ -35,7 +35,7 @@ __all__ = ['Options', 'run_check']
 
 @dataclass
 class Options:
-    config: str | None = None
+    drive_config: str | None = None
     amplitude: float = 0.5
     step_duration: float = 0.02
     command_timeout: float | None = None
@@ -53,7 +53,7 @@ def run_check(
     """Probe the drive in ``node``'s namespace; return the items and run information."""
     from im_drive_sim.drive_file import load_config
 
-    cfg = load_config(opts.config)
+    cfg = load_config(opts.drive_config)
     isq_max = cfg.machine.isq_max
     if not 0 < opts.amplitude <= 0.5 * isq_max:
         raise CheckRefused(

@@ -47,7 +47,7 @@ from .spec import BenchSpec, recording_options
 def _spec(cli: argparse.Namespace, choice: Any, host_check: dict | None = None) -> BenchSpec:
     """The composed real-time bench of ``cli`` (``choice``: the checked ``--drive``;
     ``host_check``: the host's check at start-up, recorded with the loop)."""
-    config = str(cli.config) if cli.config else None
+    config = str(cli.drive_config) if cli.drive_config else None
     given = (('config_file', config), ('model', cli.model), ('seed', cli.seed))
     drive: list[tuple[str, Any]] = [(n, v) for n, v in given if v is not None]
     ctl: list[tuple[str, Any]] = [
@@ -103,7 +103,7 @@ def main(args: list[str] | None = None) -> int:
         if cli.model is not None and cli.drive != 'sim':
             raise UsageError(f"--model is the simulator's (--drive sim), not --drive {cli.drive}")
         try:
-            choice = drive_spec.resolve(cli.drive, cli.config)
+            choice = drive_spec.resolve(cli.drive, cli.drive_config)
         except drive_spec.DriveSpecError as exc:
             raise UsageError(str(exc)) from None
     except UsageError as exc:

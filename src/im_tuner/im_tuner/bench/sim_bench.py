@@ -45,9 +45,9 @@ from .spec import BenchSpec, Params, parameter_args, recording_options
 
 def _check_cli(cli: argparse.Namespace) -> None:
     """What the children would refuse, refused here before anything is started."""
-    if cli.config is not None:
+    if cli.drive_config is not None:
         try:
-            load_config(cli.config)
+            load_config(cli.drive_config)
         except ConfigError as exc:
             raise UsageError(str(exc)) from None
     cli.compression = recording_options(cli.no_record, out=cli.out, compression=cli.compression)
@@ -56,14 +56,14 @@ def _check_cli(cli: argparse.Namespace) -> None:
 
 
 def _drive_gains(cli: argparse.Namespace, ros_args: list[str]) -> Params:
-    """The controller's experiment and start gains for ``--config`` (``family.tuner_setup``:
+    """The controller's experiment and start gains for ``--drive-config`` (``family.tuner_setup``:
     a packaged drive, or a file on a packaged base; none for the paper's drive), less those
     the user's ``--ros-args -p NAME:=VALUE`` sets (the command line wins)."""
-    if not cli.config:
+    if not cli.drive_config:
         return ()
     from .. import family
 
-    setup = family.tuner_setup(str(cli.config))
+    setup = family.tuner_setup(str(cli.drive_config))
     if setup is None:
         return ()
     given = {
@@ -77,7 +77,7 @@ def _drive_gains(cli: argparse.Namespace, ros_args: list[str]) -> Params:
 def _overrides(cli: argparse.Namespace, ros_args: list[str]) -> tuple[Params, Params]:
     """The drive's and the controller's parameters from the command line's flags (and the
     drive's experiment and gains, :func:`_drive_gains`)."""
-    config = str(cli.config) if cli.config else None
+    config = str(cli.drive_config) if cli.drive_config else None
     drive = tuple(
         (n, v)
         for n, v in (('config_file', config), ('model', cli.model), ('seed', cli.seed))
@@ -92,9 +92,9 @@ def _child_args(cli: argparse.Namespace, ros_args: list[str]) -> tuple[tuple[str
     flags, the drive's experiment and gains, then the user's ``--ros-args``)."""
     drive: list[str] = []
     ctl: list[str] = []
-    if cli.config:
-        drive += ['--config', str(cli.config)]
-        ctl += ['--config', str(cli.config)]
+    if cli.drive_config:
+        drive += ['--drive-config', str(cli.drive_config)]
+        ctl += ['--drive-config', str(cli.drive_config)]
         gains = _drive_gains(cli, ros_args)
         if gains:
             ctl += ['--ros-args', *parameter_args(gains)]

@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from .. import optim
 from .records import Evaluation, Record
 
 __all__ = [
@@ -42,6 +41,8 @@ DEFAULT_RIPPLE_LIMIT = 1.5
 
 def default_ripple_limit(algo: str) -> float | None:
     """The ripple limit of a run of ``algo`` when none is given (None: off)."""
+    from .. import optim  # (numpy: not for a reader of the run's files, the report)
+
     return DEFAULT_RIPPLE_LIMIT if algo in optim.RIPPLE_LIMITED else None
 
 

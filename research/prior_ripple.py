@@ -9,7 +9,9 @@ start's (``_ModelBench.ripple_ratio``: the largest over its experiments, per win
 ``runlog.ripple.LIMIT_KEYS``) in the nominal search and over the perturbed models, and
 what the plant measures in six experiments of it (every other one after the start's, so
 that they start from different rest positions): loss and the largest and mean rms, over
-the start's.  ``*`` the first step without a ripple limit, ``+`` with ``--limit``.
+the start's; and the same rms on the *noisy model* (the identified mechanics on the told
+drive file with its own effects and noise, its realism profile).  ``*`` the first step
+without a ripple limit, ``+`` with ``--limit``.
 
     python research/prior_ripple.py --drive im750w-j1 --mismatch J=x1.5 [--limit 1.5]
         [--realism bench]
@@ -22,6 +24,7 @@ on the models.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from typing import Any
 
 import im_drive_sim  # noqa: F401 (the numeric baseline, set before numpy loads)
@@ -123,18 +126,32 @@ def main() -> None:
     ms0 = [pl.measure(g0) for _ in range(2)]
     l0 = np.mean([m.loss for m in ms0])
     r0 = np.mean([(m.ripple[0], m.ripple[2]) for m in ms0], axis=0)
+    # the identified mechanics on the told drive file with its own effects and noise (its
+    # realism profile), not the nominal model's: what a prediction of the ripple would use
+    mm = model.machine
+    noisy = dataclasses.replace(
+        drive,
+        machine=dataclasses.replace(
+            drive.machine, J=mm.J, B=mm.B, coulomb_torque=mm.coulomb_torque
+        ),
+    )
+    nb = OfflineBench(noisy, 1, mexp)
+    nb.measure(g0)
+    n0 = np.mean([(m.ripple[0], m.ripple[2]) for m in (nb.measure(g0) for _ in range(3))], axis=0)
     plain = P.identified_prior(drive, space, exp, idf)
     limited = P.identified_prior(drive, space, exp, idf, a.limit)
     print(
         f'{a.drive}, plant {a.mismatch}: identified J {idf.J:.6g} (file {drive.machine.J:.6g}); '
         f"start's rms on the model {np.mean(bench.rms[start], axis=0).round(3)} A, "
-        f'on the plant {r0.round(3)} A (after the move, after the load)'
+        f'on the plant {r0.round(3)} A, on the noisy model {n0.round(3)} A (after the move, '
+        f'after the load; the noisy model: {drive.realism} effects)'
     )
     print(
         '| | model loss / start | worst over perturbed | model rms / start: nominal '
-        '| perturbed, max | plant loss / start | plant rms / start, max | mean |'
+        '| perturbed, max | plant loss / start | plant rms / start, max | mean '
+        '| noisy model rms / start, max | mean |'
     )
-    print('|---|---|---|---|---|---|---|---|')
+    print('|---|---|---|---|---|---|---|---|---|---|')
     for k, u in enumerate(best):
         ms = []
         for i in range(6):
@@ -142,6 +159,12 @@ def main() -> None:
                 pl.measure(g0)
             ms.append(pl.measure(space.to_gains(np.array(u))))
         pr = np.array([(m.ripple[0], m.ripple[2]) for m in ms]) / r0
+        ns = []
+        for i in range(6):
+            if i % 2 == 0:
+                nb.measure(g0)
+            ns.append(nb.measure(space.to_gains(np.array(u))))
+        nr = np.array([(m.ripple[0], m.ripple[2]) for m in ns]) / n0
         mark = ('*' if plain is not None and plain.u == u else '') + (
             '+' if limited is not None and limited.u == u else ''
         )
@@ -150,7 +173,9 @@ def main() -> None:
             f'| {k}{mark} | {best[u] / f0:.3f} | {worst[u]:.3f} | {nom[0]:.2f}, {nom[1]:.2f} '
             f'| {loud[u][0]:.2f}, {loud[u][1]:.2f} | {np.mean([m.loss for m in ms]) / l0:.3f} '
             f'| {pr[:, 0].max():.2f}, {pr[:, 1].max():.2f} '
-            f'| {pr[:, 0].mean():.2f}, {pr[:, 1].mean():.2f} |'
+            f'| {pr[:, 0].mean():.2f}, {pr[:, 1].mean():.2f} '
+            f'| {nr[:, 0].max():.2f}, {nr[:, 1].max():.2f} '
+            f'| {nr[:, 0].mean():.2f}, {nr[:, 1].mean():.2f} |'
         )
 
 

@@ -2,7 +2,7 @@
 user runs it. Each refusal: exit 2, exactly one line on stderr, no traceback, nothing
 created or changed in the working directory (test_bad_input's ``_run_case``: a copy of a
 template with a real tuner run, its tree compared before and after). And the cases that
-must work: ``sim_bench --config im7500w-j3`` takes that drive's gains, and a tuner beside
+must work: ``sim_bench --drive-config im7500w-j3`` takes that drive's gains, and a tuner beside
 it learns which drive its first step must model.
 
 (The pure side of each case, cheaper: src/*/test/test_drive_file.py,
@@ -174,9 +174,9 @@ def test_reproduction_docs_leaves_the_tree_untouched_without_its_inputs(tmp_path
     assert _tree(tmp_path) == before
 
 
-# -- a tuner beside sim_bench --config im7500w-j3 --------------------------------------------
+# -- a tuner beside sim_bench --drive-config im7500w-j3 --------------------------------------------
 def test_sim_bench_takes_its_drives_gains_and_the_tuner_learns_the_drive(tmp_path, procs):
-    """``sim_bench --config im7500w-j3`` kept the paper motor's gains (its reference
+    """``sim_bench --drive-config im7500w-j3`` kept the paper motor's gains (its reference
     aborted), and a tuner beside it took its first step from the paper's 750 W model
     without a word. Now the bench's controller has that drive's experiment and start; a
     tuner whose first step would model another drive is refused (one line naming
@@ -215,7 +215,7 @@ def test_sim_bench_takes_its_drives_gains_and_the_tuner_learns_the_drive(tmp_pat
 
 
 def test_sim_bench_processes_gives_the_controller_child_its_drives_gains():
-    """``sim_bench --processes --config NAME``: the controller child's command line carries
+    """``sim_bench --processes --drive-config NAME``: the controller child's command line carries
     the drive's experiment and start; a ``-p`` of the user's wins over the drive's."""
     from im_tuner.bench.sim_bench import _child_args
     from im_tuner.bench.sim_bench_main import parser

@@ -20,7 +20,6 @@ from .cdr import Float64ArrayWire, parse_float64_array
 from .contract import (
     COMMAND_FIELDS,
     COMMAND_TOPIC,
-    LEGACY_STATE_FIELDS,
     NS_PER_S,
     STATE_FIELDS,
     STATE_TOPIC,
@@ -70,13 +69,9 @@ class DriveClient:
             data = parse_float64_array(r[0], n)
             if data is None:  # another publisher's layout: the general path
                 data = deserialize_message(r[0], Float64MultiArray).data
-            if len(data) == n:
-                self.state[:] = data
-            elif len(data) == LEGACY_STATE_FIELDS:  # a drive without command_delay: 1
-                self.state[:LEGACY_STATE_FIELDS] = data
-                self.state[LEGACY_STATE_FIELDS] = 1.0
-            else:
+            if len(data) != n:  # not the contract's state (check_drive names what is wrong)
                 continue
+            self.state[:] = data
             self.source_timestamp_ns = r[1]['source_timestamp']
             got = self.state
 

@@ -21,7 +21,6 @@ __all__ = [
     'COMMAND_FIELDS',
     'COMMAND_TOPIC',
     'JOINT_STATE_TOPIC',
-    'LEGACY_STATE_FIELDS',
     'LOCKSTEP',
     'LOOP_PUBLISHED',
     'MODES',
@@ -68,8 +67,7 @@ TOPIC_TYPES: dict[str, str] = {
 #: command or under the watchdog, or an untagged command), and command_delay d, the
 #: drive's declared command delay (1 or 2): the command answering state k acts over
 #: k + d - 1 -> k + d (1: the period right after the state, as the simulator; 2: a power
-#: stage that latches its command at the next period start). A drive that publishes only
-#: the first 13 fields declares d = 1 (``LEGACY_STATE_FIELDS``). applied_step and d let
+#: stage that latches its command at the next period start). applied_step and d let
 #: the controller count, on the drive's timeline, the periods its experiment was not
 #: driven by fresh answers (docs/interfaces.md, "Timing").
 STATE_FIELDS: tuple[str, ...] = (
@@ -89,10 +87,6 @@ STATE_FIELDS: tuple[str, ...] = (
     'command_delay',
 )
 STATE_INDEX: dict[str, int] = {n: i for i, n in enumerate(STATE_FIELDS)}
-
-#: Fields of a drive/state from a drive written to the contract before command_delay: it
-#: declares a delay of 1; every reader accepts it.
-LEGACY_STATE_FIELDS = len(STATE_FIELDS) - 1
 
 #: The command delays a drive can declare (periods; see STATE_FIELDS).
 COMMAND_DELAYS: tuple[int, ...] = (1, 2)

@@ -69,7 +69,7 @@ def test_the_drive_file_key_is_optional_and_checked():
         with pytest.raises(ConfigError, match='command_delay must be an integer >= 1 and <= 2'):
             config_from_dict({**data, 'command_delay': bad})
     assert contract.COMMAND_DELAYS == (1, 2)
-    assert contract.LEGACY_STATE_FIELDS == len(contract.STATE_FIELDS) - 1 == 13
+    assert contract.STATE_FIELDS[-1] == 'command_delay' and len(contract.STATE_FIELDS) == 14
 
 
 def test_the_stand_in_hardware_declares_and_acts_with_its_delay():

@@ -45,7 +45,6 @@ from im_controller.layout import (
 from im_drive_sim.contract import (
     COMMAND_FIELDS,
     COMMAND_TOPIC,
-    LEGACY_STATE_FIELDS,
     STATE_FIELDS,
     STATE_INDEX,
     STATE_TOPIC,
@@ -103,7 +102,7 @@ class ReplayPlan:
     bag: Path
     mode: str  #: the recorded controller's ``mode``: ``lockstep`` or ``realtime``
     params: dict[str, object]  #: the controller's parameters at start, as recorded
-    states: np.ndarray  #: (n, w) the states to feed, in order (w = 14, or 13: legacy)
+    states: np.ndarray  #: (n, 14) the states to feed, in order
     recorded: np.ndarray  #: (n, 3) the recorded command answering each fed state
     fresh: np.ndarray  #: (n,) bool: the period that command drove was fresh
     experiments: list[Experiment]  #: every experiment with a result, in order
@@ -307,7 +306,7 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
     mode = str(params.get('mode', 'lockstep'))
 
     S, Cm, Itn = data.arrays[STATE], data.arrays[COMMAND], data.arrays[INTERNALS]
-    if S.shape[1] not in (len(STATE_FIELDS), LEGACY_STATE_FIELDS):
+    if S.shape[1] != len(STATE_FIELDS):
         raise ReplayError(f'{bag_dir}: drive states of {S.shape[1]} values, not the contract')
     if Cm.shape[1] != len(COMMAND_FIELDS) or Itn.shape[1] != len(INTERNALS_FIELDS):
         raise ReplayError(f'{bag_dir}: commands or internals not in the contract layout')
@@ -385,5 +384,5 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
 
 
 def _delay(state: np.ndarray) -> int:
-    """The drive's declared command delay d in a state (a 13-value state declares 1)."""
-    return int(state[_K_DELAY]) if state.shape[0] > _K_DELAY else 1
+    """The drive's declared command delay d in a state."""
+    return int(state[_K_DELAY])

@@ -46,6 +46,17 @@ def _ratio(bench: Any, u: tuple[float, ...], start: tuple[float, ...]) -> tuple[
     return (float(r[0] / s0[0]), float(r[1] / s0[1]))
 
 
+def _six(bench: Any, start: Any, gains: Any) -> list[Any]:
+    """Six experiments of ``gains`` on ``bench``, every other one after the start's (so
+    that they begin from different rest positions)."""
+    out = []
+    for i in range(6):
+        if i % 2 == 0:
+            bench.measure(start)
+        out.append(bench.measure(gains))
+    return out
+
+
 def _identified(spec: StudySpec) -> tuple[Any, ...]:
     """(told drive, space, experiment, identification) of run 0 of the default row."""
     cell = next(i for i, c in enumerate(spec.cells) if c.first == 'identify')
@@ -153,18 +164,10 @@ def main() -> None:
     )
     print('|---|---|---|---|---|---|---|---|---|---|')
     for k, u in enumerate(best):
-        ms = []
-        for i in range(6):
-            if i % 2 == 0:
-                pl.measure(g0)
-            ms.append(pl.measure(space.to_gains(np.array(u))))
+        gains = space.to_gains(np.array(u))
+        ms = _six(pl, g0, gains)
         pr = np.array([(m.ripple[0], m.ripple[2]) for m in ms]) / r0
-        ns = []
-        for i in range(6):
-            if i % 2 == 0:
-                nb.measure(g0)
-            ns.append(nb.measure(space.to_gains(np.array(u))))
-        nr = np.array([(m.ripple[0], m.ripple[2]) for m in ns]) / n0
+        nr = np.array([(m.ripple[0], m.ripple[2]) for m in _six(nb, g0, gains)]) / n0
         mark = ('*' if plain is not None and plain.u == u else '') + (
             '+' if limited is not None and limited.u == u else ''
         )

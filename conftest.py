@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import faulthandler
 import os
 import shutil
@@ -155,8 +156,39 @@ class Child(subprocess.Popen):
         super().__init__(argv, **kwargs)
 
     def communicate(self, input=None, timeout=None):
-        out, err = super().communicate(input, timeout)
+        try:
+            out, err = super().communicate(input, timeout)
+        except subprocess.TimeoutExpired as exc:
+            raise StuckChild(exc.cmd, exc.timeout, self._stacks()) from None
         return self._read('stdout', out), self._read('stderr', err)
+
+    def _stacks(self) -> str:
+        """Ask the child and its descendants (found by PID in /proc) for every thread's
+        Python stack (the executables dump it on SIGUSR1: ``cli.executable``); the tail
+        of its stderr, for the failure's message."""
+        pids, i = [self.pid], 0
+        while i < len(pids):
+            for task in Path(f'/proc/{pids[i]}/task').glob('*/children'):
+                with contextlib.suppress(OSError, ValueError):
+                    pids += [int(c) for c in task.read_text().split()]
+            i += 1
+        asked = [pid for pid in pids if _catches_sigusr1(pid)]  # (else SIGUSR1 ends it)
+        for pid in asked:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGUSR1)
+        f = self._files.get('stderr')
+        if f is None:
+            return ''
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline:  # the dump ends with the main thread's stack
+            f.seek(0)  # type: ignore[attr-defined]
+            text = f.read().decode(errors='replace')  # type: ignore[attr-defined]
+            if not asked or 'Current thread' in text:
+                break
+            time.sleep(0.1)
+        time.sleep(0.2)
+        f.seek(0)  # type: ignore[attr-defined]
+        return f.read().decode(errors='replace')[-6000:]  # type: ignore[attr-defined]
 
     def _read(self, name: str, piped):
         f = self._files.get(name)
@@ -165,6 +197,29 @@ class Child(subprocess.Popen):
         f.seek(0)  # type: ignore[attr-defined]
         data = f.read()  # type: ignore[attr-defined]
         return data.decode(errors='replace') if self.text_mode else data
+
+
+def _catches_sigusr1(pid: int) -> bool:
+    """Whether process ``pid`` has a handler for SIGUSR1 (``SigCgt`` in its status)."""
+    try:
+        for line in Path(f'/proc/{pid}/status').read_text().splitlines():
+            if line.startswith('SigCgt:'):
+                return bool(int(line.split()[1], 16) >> (signal.SIGUSR1 - 1) & 1)
+    except (OSError, ValueError):
+        pass
+    return False
+
+
+class StuckChild(subprocess.TimeoutExpired):
+    """A child that did not end in time; its message carries its stderr's tail with the
+    stacks of its threads."""
+
+    def __init__(self, cmd, timeout: float, tail: str) -> None:
+        super().__init__(cmd, timeout)
+        self.tail = tail
+
+    def __str__(self) -> str:
+        return f'{super().__str__()}; its stderr ends:\n{self.tail}'
 
 
 class Processes:

@@ -161,6 +161,8 @@ def executable(prog: str, main: str | Callable[[], int]) -> NoReturn:
     # a crash in native code (a drive library's read, numba, rclpy) prints the Python
     # stack of every thread, the call into the library on top, before the process dies
     faulthandler.enable(all_threads=True)
+    # a process that seems stuck prints the same on request: kill -USR1 <pid>
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     PROG['name'] = prog
     try:
         if isinstance(main, str):

@@ -460,11 +460,11 @@ class DriveSimNode(IoNodeOwner, LenientDoubles, Node):
             self.get_logger().info(self._start_text)
             self._start_text = ''
         log = self.get_logger()
-        self.rt_report = rt.apply_and_say(self.rt_options, log.info, log.warn)
-        if self.mode == 'lockstep':
-            run_lockstep(self, executor)
-        else:
-            run_realtime(self, executor)
+        with rt.for_the_loop(self.rt_options, log.info, log.warn) as self.rt_report:
+            if self.mode == 'lockstep':
+                run_lockstep(self, executor)
+            else:
+                run_realtime(self, executor)
 
     def log_summary(self) -> None:
         c = self.counters

@@ -493,28 +493,28 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, CompiledPeriodHooks, Node):
         sample, publish."""
         c = self.counters
         log = self.get_logger()
-        self.rt_report = rt.apply_and_say(self.rt_options, log.info, log.warn)
-        try:
-            self.start()
-            pacer = Pacer(self.period_s, self.spin_margin, wall_clock=self.wall_clock)
-            next_status = pacer.t0 + 1.0
-            while not self.stop_requested and rclpy.ok(context=self.context):
-                now = pacer.wait(self.wait_command, self.take_commands)
-                c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
-                self.period(pacer.missed)
-                if pacer.n % 250 == 0:  # serve parameter requests between periods, every 50 ms
-                    executor.spin_once(timeout_sec=0.0)
-                    if now >= next_status:
-                        self.publish_status()
-                        next_status = now + 1.0
-        except HardwareFault as exc:  # the power stage's negative return: one line, exit 1
-            self.close_hardware()
-            self.get_logger().error(f'{exc}: zero current written, the drive stopped')
-            print(f'error: {self.get_name()}: {exc}; zero current written', file=sys.stderr)
-            raise SystemExit(1) from None
-        finally:
-            # however the loop ends (a signal, an exception): zero current first
-            self.close_hardware()
+        with rt.for_the_loop(self.rt_options, log.info, log.warn) as self.rt_report:
+            try:
+                self.start()
+                pacer = Pacer(self.period_s, self.spin_margin, wall_clock=self.wall_clock)
+                next_status = pacer.t0 + 1.0
+                while not self.stop_requested and rclpy.ok(context=self.context):
+                    now = pacer.wait(self.wait_command, self.take_commands)
+                    c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
+                    self.period(pacer.missed)
+                    if pacer.n % 250 == 0:  # serve parameter requests between periods, every 50 ms
+                        executor.spin_once(timeout_sec=0.0)
+                        if now >= next_status:
+                            self.publish_status()
+                            next_status = now + 1.0
+            except HardwareFault as exc:  # the power stage's negative return: one line, exit 1
+                self.close_hardware()
+                self.get_logger().error(f'{exc}: zero current written, the drive stopped')
+                print(f'error: {self.get_name()}: {exc}; zero current written', file=sys.stderr)
+                raise SystemExit(1) from None
+            finally:
+                # however the loop ends (a signal, an exception): zero current first
+                self.close_hardware()
         self.publish_status()
 
     def log_summary(self) -> None:

@@ -37,13 +37,23 @@ import ctypes.util
 import errno
 import os
 import resource
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from .cli import int_in
 
-__all__ = ['RtOptions', 'add_arguments', 'apply', 'apply_and_say', 'hold_latency', 'report']
+__all__ = [
+    'RtOptions',
+    'add_arguments',
+    'apply',
+    'apply_and_say',
+    'for_the_loop',
+    'hold_latency',
+    'report',
+]
 
 MCL_CURRENT, MCL_FUTURE = 1, 2
 
@@ -254,6 +264,24 @@ def apply_and_say(opts: RtOptions, info: Any, warn: Any) -> dict[str, Any]:
             f'{r["pm_qos"]["held"]}, PREEMPT_RT {r["preempt_rt"]}'
         )
     return r
+
+
+@contextmanager
+def for_the_loop(opts: RtOptions, info: Any, warn: Any) -> Iterator[dict[str, Any]]:
+    """:func:`apply_and_say` for the length of a loop run on the calling thread; yields
+    :func:`report`. After the loop the thread's policy, priority and CPUs are put back:
+    what follows (flushing, the DDS teardown, the interpreter's exit, threads started
+    then) runs as an ordinary thread, never SCHED_FIFO pinned beside the middleware's
+    own threads. The memory lock and the CPU latency request are the process's: kept."""
+    policy, param, cpus = os.sched_getscheduler(0), os.sched_getparam(0), os.sched_getaffinity(0)
+    try:
+        yield apply_and_say(opts, info, warn)
+    finally:
+        # (dropping a priority and widening back to CPUs the thread had are always allowed)
+        if os.sched_getscheduler(0) != policy or os.sched_getparam(0) != param:
+            os.sched_setscheduler(0, policy, param)
+        if os.sched_getaffinity(0) != cpus:
+            os.sched_setaffinity(0, cpus)
 
 
 def _memory_locked() -> bool:

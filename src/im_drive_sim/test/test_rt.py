@@ -123,3 +123,27 @@ def test_applied_when_permitted_in_a_child_process():
     else:
         assert r['policy'] == 'SCHED_OTHER' or r['priority'] == 10, r
         assert all('not permitted' in line for line in r['refused']), r
+
+
+def test_after_the_loop_the_thread_runs_as_before_in_a_child_process():
+    """What follows a loop (the DDS teardown, the exit, threads started then) runs with
+    the thread's own policy and CPUs, not the loop's SCHED_FIFO on one CPU."""
+    cpu = max(os.sched_getaffinity(0))
+    code = (
+        'import json, os, threading; from im_drive_sim import rt; '
+        f'o = rt.RtOptions(10, {cpu}); before = rt.report()\n'
+        'with rt.for_the_loop(o, print, print) as r:\n'
+        '    inside = rt.report()\n'
+        'after = rt.report(); later = {}\n'
+        't = threading.Thread(target=lambda: later.update(rt.report())); t.start(); t.join()\n'
+        "print(json.dumps([{k: d[k] for k in ('policy', 'priority', 'affinity')} "
+        'for d in (before, inside, after, later)]))'
+    )
+    p = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    before, inside, after, later = json.loads(p.stdout.splitlines()[-1])
+    assert inside['affinity'] == [cpu]
+    if os.geteuid() == 0:
+        assert (inside['policy'], inside['priority']) == ('SCHED_FIFO', 10), inside
+    assert before['affinity'] == sorted(os.sched_getaffinity(0))
+    assert after == before and later == before, (before, after, later)

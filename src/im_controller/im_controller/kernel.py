@@ -248,12 +248,10 @@ def experiment_step(
             running = True
             settling = False
     ended_unseen = False
-    # The command the drive applied over the period that ended at this state (-1: none,
-    # or a drive that does not say: never fresh).
-    applied = state[S_APPLIED] if state.shape[0] > S_APPLIED else -1.0
-    # The drive's declared command delay d: its answer to state k - d drove this period
-    # fresh (a drive without the field declares 1).
-    delay = state[S_CMD_DELAY] if state.shape[0] > S_CMD_DELAY else 1.0
+    # The command the drive applied over the period that ended at this state (-1: none),
+    # and its declared command delay d: its answer to state k - d drove this period fresh.
+    applied = state[S_APPLIED]
+    delay = state[S_CMD_DELAY]
     if running:
         # The experiment runs on the drive's timeline: local step n = k - (first step),
         # so a state the controller never answered still counts as a period. Each of

@@ -4,7 +4,7 @@ index plain float64 arrays by these constants). Pure: no rclpy, no numba."""
 
 from __future__ import annotations
 
-from im_drive_sim.contract import STATE_INDEX
+from im_drive_sim.contract import STATE_FIELDS, STATE_INDEX
 
 # ------------------------------------------------------------ controller internals
 CONTROL_FIELDS: tuple[str, ...] = (
@@ -181,9 +181,11 @@ R_CLEARED_AT_START = (
     *range(R_RIP, N_RSTATE),
 )
 
-#: Index of ``applied_step`` in a drive state (the drive contract).
+#: Values in a drive state (the drive contract).
+N_STATE_FIELDS = len(STATE_FIELDS)
+#: Index of ``applied_step`` in a drive state.
 S_APPLIED = STATE_INDEX['applied_step']
-#: Index of ``command_delay`` in a drive state (absent from a 13-field legacy state: 1).
+#: Index of ``command_delay`` in a drive state.
 S_CMD_DELAY = STATE_INDEX['command_delay']
 #: Indices of the measured isq and the load machine's torque in a drive state (the motion
 #: sums; the control itself uses fields 0-3 only).

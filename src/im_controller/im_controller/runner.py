@@ -33,7 +33,7 @@ class ExperimentRunner:
         runner = ExperimentRunner(cfg, gains)
         runner.reset(theta_meas)                  # hold here (also clears a FAULT)
         runner.start(experiment_id, gains)        # the next step() is experiment step 0
-        isq, load, status = runner.step(state)    # state: STATE_FIELDS (uses fields 0-3)
+        isq, load, status = runner.step(state)    # state: the drive's STATE_FIELDS
         if status in (STATUS_DONE, L.STATUS_ABORTED): res = runner.result()
 
     Between experiments (and after DONE) it holds the last target with the current gains;
@@ -171,8 +171,10 @@ class ExperimentRunner:
         self._exp_gains = self.gains
 
     def step(self, state: np.ndarray) -> tuple[float, float, int]:
-        """One drive state (float64 array, ``STATE_FIELDS`` order; fields 0-3 used) ->
-        (isq* [A], load torque command [N m], status)."""
+        """One drive state (float64 array, the contract's ``STATE_FIELDS``) -> (isq* [A],
+        load torque command [N m], status). Another length is a ValueError."""
+        if state.shape != (L.N_STATE_FIELDS,):
+            raise ValueError(f'a drive state has {L.N_STATE_FIELDS} values, got {state.shape}')
         st = experiment_step(self.R, self.Q, self.X, self.C, self.CF, state, self.cout, self.eout)
         self.stepped(st)
         return float(self.eout[L.E_ISQ]), float(self.eout[L.E_LOAD]), int(st)

@@ -6,12 +6,13 @@ delay"), on the pure core: the controller's kernel and the drive model, offline.
 * The hand-tuned loss with delay 2 is within 1.5 % of delay 1's (0.9705 vs 0.9794
   measured), but gains near the stability edge that pass with delay 1 (1.666) are
   stopped by the supervisor with delay 2: tune on the delay the drive has.
-* A 13-field state (a drive from before ``command_delay``) is read as delay 1.
+* A state of another length than the contract's is refused.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from im_controller.config import Gains
 from im_controller.layout import R_FRESH, R_HELD, R_LATE
@@ -40,7 +41,7 @@ def test_a_delay_2_drive_runs_fresh_experiments_and_its_loss_is_its_own():
     assert all(m.aborted for m in edge2)  # one period more of delay: unstable
 
 
-def test_freshness_follows_the_declared_delay_and_a_legacy_state_declares_1():
+def test_freshness_follows_the_declared_delay():
     """The kernel counts a period fresh when the state's applied_step is k - d (a drive
     standing still: only the labels differ)."""
     sim = DriveSim(load_config(None), seed=0)
@@ -48,11 +49,7 @@ def test_freshness_follows_the_declared_delay_and_a_legacy_state_declares_1():
     cfg = config_for_drive(None, sim)
     settle = round(cfg.trajectory.settle / cfg.control.Ts)
     counts = {}
-    for name, delay, lag, width in (
-        ('d2', 2, 2, 14),
-        ('d1 labels on a d2 drive', 2, 1, 14),
-        ('legacy 13 fields', 1, 1, 13),
-    ):
+    for name, delay, lag in (('d1', 1, 1), ('d2', 2, 2), ('d1 labels on a d2 drive', 2, 1)):
         runner = ExperimentRunner(cfg, Gains())
         runner.reset(sim.theta_meas)
         runner.start(0, Gains())
@@ -63,9 +60,11 @@ def test_freshness_follows_the_declared_delay_and_a_legacy_state_declares_1():
             state[contract.STATE_INDEX['time_ns']] = k * 200_000
             state[contract.STATE_INDEX['applied_step']] = k - lag
             state[contract.STATE_INDEX['command_delay']] = delay
-            runner.step(state[:width])
+            runner.step(state)
         counts[name] = (int(runner.R[R_FRESH]), int(runner.R[R_HELD]), int(runner.R[R_LATE]))
     assert counts['d2'] == (101, 0, 0), counts  # steps settle..settle+100
-    assert counts['legacy 13 fields'] == (101, 0, 0), counts
+    assert counts['d1'] == (101, 0, 0), counts
     # labels that say delay 1 on a drive that declares 2: not fresh (late: newer each time)
     assert counts['d1 labels on a d2 drive'][0] == 0, counts
+    with pytest.raises(ValueError, match=r'a drive state has 14 values, got \(13,\)'):
+        runner.step(state[:13])

@@ -173,7 +173,7 @@ class ExperimentRunner:
     def step(self, state: np.ndarray) -> tuple[float, float, int]:
         """One drive state (float64 array, the contract's ``STATE_FIELDS``) -> (isq* [A],
         load torque command [N m], status). Another length is a ValueError."""
-        if state.shape != (L.N_STATE_FIELDS,):
+        if state.size != L.N_STATE_FIELDS:  # (an int: nothing made per state)
             raise ValueError(f'a drive state has {L.N_STATE_FIELDS} values, got {state.shape}')
         st = experiment_step(self.R, self.Q, self.X, self.C, self.CF, state, self.cout, self.eout)
         self.stepped(st)

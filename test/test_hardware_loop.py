@@ -99,6 +99,7 @@ def test_the_compiled_period_is_the_python_one_bit_for_bit(ros_context, delay):
         views = cc.period_views()
         joint = tuple(views[k] for k in HP_JOINT)
         rng = np.random.default_rng(11)
+        shown = 0  # states whose applied_step says held (or late): what a controller counts
         for n in range(3000):
             missed = 2 if n % 97 == 50 else 0
             if n == 2500:  # the safe stop: zero current from here on
@@ -110,6 +111,8 @@ def test_the_compiled_period_is_the_python_one_bit_for_bit(ros_context, delay):
             assert due & HP.MSG_STATE
             assert np.array_equal(py.latest_state(), views['state']), n
             k = int(py.latest_state()[0])
+            applied = int(py.latest_state()[PK.F_APPLIED])
+            shown += applied < 0 or applied != k - delay
             answers = k - 1 if n % 31 == 7 else k  # now and then a late answer
             cmd = np.array([answers, rng.uniform(-9.0, 9.0), rng.uniform(-0.5, 0.5)])
             py.commands.hand_over(cmd)
@@ -119,6 +122,9 @@ def test_the_compiled_period_is_the_python_one_bit_for_bit(ros_context, delay):
         for name in ('steps', 'commands', 'fresh', 'held', 'late', 'stale_ignored', 'missed'):
             assert getattr(py.counters, name) == getattr(cc.counters, name), name
         assert py.counters.missed == 2 * 31
+        # the power stage held what it was last written over the missed periods: every
+        # held period the states show (and the unseen ones) is counted, no more
+        assert py.counters.held == py.counters.missed + shown
         assert py.counters.stale_ignored + py.counters.late > 50
         assert (py.k, py.acting, py.safe_stopped) == (cc.k, cc.acting, cc.safe_stopped)
         assert abs(py.latest_state()[6]) < 5.0 + 1e-9  # the clamp held

@@ -45,6 +45,18 @@ class CommandLatch:
             return acting
         return applied, fresh
 
+    def hold(self, applied: int) -> int:
+        """A period the loop missed (it started late): nothing new was handed to the power
+        stage, so it latched again the command it holds. Returns the applied_step of the
+        command acting over that period: with delay 2 the pending one (``applied``, taken
+        but not yet written, waits for the next period's write), with delay 1 ``applied``.
+        Neither is fresh any more."""
+        if self.delay == 2:
+            acting = self.pending[0]
+            self.pending = (acting, False)
+            return acting
+        return applied
+
     def drop(self) -> None:
         """Forget the latched command (a safe stop, the watchdog: zero current at once)."""
         self.pending = NO_COMMAND

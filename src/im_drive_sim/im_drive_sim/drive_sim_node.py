@@ -304,8 +304,9 @@ class DriveSimNode(IoNodeOwner, LenientDoubles, Node):
         if missed > 0 and self.wall_clock:
             state = self._state
             acting = held.applied
-            for _ in range(missed):
-                acting = self.latch.latch(held.applied, False)[0]
+            for _ in range(missed):  # periods as any other: the first takes the command
+                acting = self.latch.latch(held.applied, held.fresh)[0]
+                held.fresh = False
                 self.sim.step_into(held.isq_ref, held.load, state)
             state[F_APPLIED] = acting
             c.steps += missed

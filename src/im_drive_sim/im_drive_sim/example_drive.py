@@ -468,8 +468,8 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, CompiledPeriodHooks, Node):
             elapse = getattr(self.hw, 'elapse', None)
             if callable(elapse):  # a simulated stand-in plant must be told time passed
                 elapse(missed)
-            for _ in range(missed):
-                self.acting = self.latch.latch(self.applied, False)[0]
+            self.acting = self.latch.hold(self.applied)  # it held what it was last written
+            self.fresh = False
             self.k += missed
             c.steps += missed  # periods of the drive's timeline: fresh + held = steps
             c.held += missed

@@ -133,10 +133,7 @@ def hardware_missed(E: np.ndarray, D: np.ndarray, DC: np.ndarray, F: np.ndarray,
     rc = call_elapse(E, n)
     if rc < 0:
         return _fault(E, D, F, rc, F_ELAPSE)
-    acting = D[D_ACTING]
-    for _ in range(n):
-        acting = PK.latch_labels(D, D[PK.D_APPLIED], 0.0)[0]
-    D[D_ACTING] = acting
+    D[D_ACTING] = PK.hold_labels(D)  # the stage held what it was last written
     D[D_K] += n
     DC[PK.C_STEPS] += n
     DC[PK.C_HELD] += n

@@ -12,8 +12,8 @@ and :meth:`DriveSimNode.set_period_words` move its held command, latch and count
 and from the arrays below (:func:`pack_words`, :func:`unpack_words`), and the composed
 bench's bit-for-bit test (a real-time run against its lock-step replay) holds both paths
 to the same plant. The rules here are compiled copies of the Python ones, on purpose
-(the loop runs them without the GIL): :func:`latch_labels` of
-``command_latch.CommandLatch.latch``, :func:`take_command` of
+(the loop runs them without the GIL): :func:`latch_labels` and :func:`hold_labels` of
+``command_latch.CommandLatch.latch`` and ``.hold``, :func:`take_command` of
 ``DriveSimNode.take_commands``, :func:`run_period` of ``DriveSimNode.period``.
 
 ``D`` (float64, :data:`N_WORDS`): the held command and its labels, the latch of a drive
@@ -42,6 +42,7 @@ __all__ = [
     'MSG_STATE',
     'N_WORDS',
     'WORDS',
+    'hold_labels',
     'latch_labels',
     'pack_words',
     'run_missed',
@@ -164,6 +165,18 @@ def latch_labels(D: np.ndarray, applied: float, fresh: float) -> tuple[float, fl
 
 
 @njit(cache=True)
+def hold_labels(D: np.ndarray) -> float:
+    """``command_latch.CommandLatch.hold``, compiled: a period a late loop missed on a
+    power stage called by address (``hardware_period.hardware_missed``); the held command
+    is fresh no more. Returns the applied_step of the command acting over it."""
+    D[D_FRESH] = 0.0
+    if D[D_DELAY] == 2.0:
+        D[D_PEND_FRESH] = 0.0
+        return D[D_PEND_APPLIED]
+    return D[D_APPLIED]
+
+
+@njit(cache=True)
 def take_command(
     D: np.ndarray, DC: np.ndarray, k: int, answers: float, isq: float, load: float
 ) -> bool:
@@ -198,8 +211,9 @@ def run_missed(
     """``n`` periods a late loop skipped on a drive that cannot pause: the model runs
     them with the held command, unpublished (``DriveSimNode.period``'s ``missed``)."""
     acting = D[D_APPLIED]
-    for _ in range(n):
-        acting = latch_labels(D, D[D_APPLIED], 0.0)[0]
+    for _ in range(n):  # periods as any other, unpublished: the first one takes the command
+        acting = latch_labels(D, D[D_APPLIED], D[D_FRESH])[0]
+        D[D_FRESH] = 0.0
         K.step_into_kernel(S, P, noise, D[D_ISQ], D[D_LOAD], state)
     if n > 0:
         state[F_APPLIED] = acting

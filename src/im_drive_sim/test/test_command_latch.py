@@ -133,3 +133,56 @@ def test_the_shared_pure_pieces_import_neither_rclpy_nor_numba() -> None:
         'rclpy.qos',
         'im_drive_sim.contract',
     }
+
+
+def test_a_missed_period_latches_again_what_the_stage_holds() -> None:
+    """``hold`` (a period a late loop missed on a power stage): with delay 2 the pending
+    command acts again and the one taken meanwhile waits for its write; the compiled
+    copy agrees and clears the held command's fresh flag."""
+    for delay, want in ((1, 9), (2, 8)):
+        latch = CommandLatch(delay)
+        latch.latch(8, True)
+        assert latch.hold(9) == want
+        assert latch.pending == ((8, False) if delay == 2 else NO_COMMAND)
+        D = np.zeros(W.N_WORDS)
+        D[W.D_DELAY], D[W.D_APPLIED], D[W.D_FRESH] = delay, 9.0, 1.0
+        D[W.D_PEND_APPLIED], D[W.D_PEND_FRESH] = 8.0, 1.0
+        assert W.hold_labels(D) == want and D[W.D_FRESH] == 0.0
+        assert D[W.D_PEND_FRESH] == (0.0 if delay == 2 else 1.0)
+
+
+def test_the_simulator_counts_held_what_its_states_show_held_around_missed_periods() -> None:
+    """A wall-clock simulator (``run_missed`` then ``run_period``), every state answered at
+    once, loses 1, 2 and 3 whole periods to late starts: the held counter is what the
+    published states show on the drive's timeline (the unseen periods, and every state
+    whose ``applied_step`` is not k - d) -- what the controller counts, so a drive never
+    counts fewer held periods than the experiments it ran."""
+    from im_drive_sim import model_layout as L
+    from im_drive_sim.drive_file import load_config
+    from im_drive_sim.sim import DriveSim
+
+    for delay in (1, 2):
+        sim = DriveSim(load_config(None), seed=0)
+        sim.reset(omega=0.0)
+        constants = {'command_delay': delay, 'wall_clock': True, 'clock_decimation': 25,
+                     'joint_state_decimation': 10, 'ts_ns': 200_000, 'i_theta': 2,
+                     'i_omega': 3, 'i_torque': 4}  # fmt: skip
+        D, DC = W.pack_words(HeldCommand(), CommandLatch(delay), False, constants, Counters())
+        state = np.zeros(len(L.RUN_FIELDS))
+        i64 = [np.zeros(1, np.int64) for _ in range(4)]
+        f64 = [np.zeros(1) for _ in range(3)]
+        shown = 0
+        for n in range(400):
+            W.run_missed(sim.S, sim.P, sim._noise, D, DC, state, {100: 1, 200: 2, 300: 3}.get(n, 0))
+            W.run_period(sim.S, sim.P, sim._noise, D, DC, state, *i64, *f64)
+            k = int(state[0])
+            applied = int(state[W.F_APPLIED])
+            shown += applied < 0 or applied != k - delay  # (-1: no command)
+            assert W.take_command(D, DC, k, float(k), 0.5, 0.0)  # answered at once: fresh
+        steps, held, missed = (int(DC[i]) for i in (W.C_STEPS, W.C_HELD, W.C_MISSED))
+        assert (steps, missed) == (406, 6)
+        assert held == (steps - 400) + shown, (delay, held, shown)
+        # the first d periods before any command; a gap of n: n unseen, then the states
+        # of the command held over it (delay 2 after one missed period: on time, fresh)
+        gaps = {1: (1 + 1) + (2 + 1) + (3 + 1), 2: (1 + 1) + (2 + 2) + (3 + 2)}
+        assert held == delay + gaps[delay], delay

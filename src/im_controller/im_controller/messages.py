@@ -44,10 +44,6 @@ LOSS_KEYS: tuple[str, ...] = (
     'ripple',
     'motion',
 )
-#: Keys a loss message from before the drive-timeline counts may lack (read as 0 / false),
-#: or from before the ripple and motion sums (read as nan and ()).
-#: (Every key from 'fresh' on: the newer keys come last.)
-OPTIONAL_KEYS: tuple[str, ...] = LOSS_KEYS[LOSS_KEYS.index('fresh') :]
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -108,7 +104,7 @@ def msg_to_result(msg: DiagnosticArray) -> LossResult:
     if len(msg.status) != 1:
         raise ValueError(f'a loss message has one status, got {len(msg.status)}')
     kv = {v.key: v.value for v in msg.status[0].values}
-    missing = [k for k in LOSS_KEYS if k not in kv and k not in OPTIONAL_KEYS]
+    missing = [k for k in LOSS_KEYS if k not in kv]
     if missing:
         raise ValueError(f'loss message lacks {missing}')
     return LossResult(
@@ -124,18 +120,18 @@ def msg_to_result(msg: DiagnosticArray) -> LossResult:
         t_end=int(kv['t_end_ns']),
         steps=int(kv['steps']),
         direction=int(kv['direction']),
-        fresh=int(kv.get('fresh', '0')),
-        held=int(kv.get('held', '0')),
-        late=int(kv.get('late', '0')),
-        timing=kv.get('timing', 'false') == 'true',
-        gains_step=int(kv.get('gains_step', '0')),
-        ripple=_ripple(kv.get('ripple')),
-        motion=_floats(kv.get('motion', '')),
+        fresh=int(kv['fresh']),
+        held=int(kv['held']),
+        late=int(kv['late']),
+        timing=kv['timing'] == 'true',
+        gains_step=int(kv['gains_step']),
+        ripple=_ripple(kv['ripple']),
+        motion=_floats(kv['motion']),
     )
 
 
-def _ripple(text: str | None) -> tuple[float, float, float, float]:
-    v = _floats(text) if text else ()
+def _ripple(text: str) -> tuple[float, float, float, float]:
+    v = _floats(text)
     if len(v) != 4:
         return (math.nan, math.nan, math.nan, math.nan)
     return (v[0], v[1], v[2], v[3])

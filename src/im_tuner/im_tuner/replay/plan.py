@@ -340,7 +340,7 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
                 spans[i][0],
                 spans[i][1],
                 tuple(float(loss[g]) for g in GAIN_NAMES),
-                int(loss.get('gains_step', spans[i][0])),
+                int(loss['gains_step']),
                 loss.get('reason', ''),
             )
         )

@@ -981,6 +981,34 @@ def test_a_watchdog_fall_seen_only_after_lost_states_may_have_been_in_time():
     assert cd.judge_watchdog_realtime(0.086, 0.087, 0.05, 0.003, 'test').verdict == 'fail'
 
 
+def test_a_watchdog_test_whose_commands_never_reached_the_drive_is_inconclusive():
+    """Beside CPU hogs (and across two namespaces) the check's commands stopped reaching
+    the drive before the watchdog test: the drive's watchdog had already zeroed the
+    current, its labels (-1) never showed the test's commands, and the 'fall' timed from
+    their publication (0.3 ms) and the resume that never came are not its answer:
+    inconclusive, saying so. A drive whose current follows the test but whose labels
+    never show it is still timed from the publication, as before."""
+    from im_drive_sim.check_drive.evaluate import watchdog_busy
+    from im_drive_sim.check_drive.thresholds import F
+
+    rec = _recording([])
+    rec.command_timeout = 0.05
+    rec.states[2000:, F['applied_step']] = -1  # no command taken from step 2000 on
+    rec.watchdog = {'t_act': 0.0003, 't_before': None, 't_zero': 0.0003, 'resumed_s': None,
+                    'aborted': '', 'ref': 'published', 'k_last': 2550,
+                    'rows_on': (2500, 2525), 'rows_resume': (2600, 2700)}  # fmt: skip
+    rec.amplitude = 0.5
+    why = watchdog_busy(rec, 1, np.zeros(rec.n))
+    assert "the drive never carried the watchdog test's current" in why, why
+    assert "the newest it showed answered step -1, the test's last 2550" in why
+    item = cd.judge_watchdog_realtime(0.0003, 0.0003, 0.05, None, 'test', busy=why)
+    assert item.verdict == 'inconclusive'
+    # a drive whose labels never show the commands but whose current follows them is
+    # timed from the check's publication, as before
+    rec.states[2500:2560, F['isq']] = 0.25
+    assert "the watchdog test's current" not in watchdog_busy(rec, 1, np.zeros(rec.n))
+
+
 def test_a_watchdog_timed_from_a_state_received_long_after_it_was_due_is_inconclusive():
     """Beside CPU hogs the check was descheduled for 60 ms: the first state it received
     showing its last command applied came 300 periods after that was due (the states

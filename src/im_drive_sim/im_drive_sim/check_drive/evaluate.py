@@ -457,12 +457,25 @@ def abort_busy(rec: Recording, declared: int) -> str:
 def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:
     """Why the watchdog's timing cannot be trusted ('' when it can): the drive saw a
     silence in the commands before the check fell silent (a command lag over half the
-    timeout: it may have tripped early), the states stop before the silence was long
+    timeout: it may have tripped early), the test's commands never reached it (neither
+    its labels nor its current show them), the states stop before the silence was long
     enough to judge, or the resume command and its answer took more than 50 ms to
     cross while the check was late."""
     wd, why = rec.watchdog, []
     n = rec.n
     r0, r1 = wd.get('rows_on', (0, 0))
+    q0 = wd.get('rows_resume', (r1, r1))[0]
+    seen = rec.states[r0:q0][rec.lengths[r0:q0] == len(STATE_FIELDS)]
+    if wd.get('ref') == 'published' and not np.any(seen[:, F['isq']] > rec.amplitude / 4):
+        # the drive never showed the test's command applied, nor carried its current:
+        # the commands did not reach it (its watchdog may have held zero before the test
+        # began), so the fall and the resume were not its answer to the test
+        newest = int(seen[:, F['applied_step']].max()) if len(seen) else -1
+        why.append(
+            "the drive never carried the watchdog test's current nor showed its commands "
+            f"applied (the newest it showed answered step {newest}, the test's last "
+            f'{wd.get("k_last")}; -1: none): they did not reach it'
+        )
     lag = command_lag(rec.states[r0:r1][rec.lengths[r0:r1] == len(STATE_FIELDS)], declared)
     lag = lag[np.isfinite(lag)]
     if len(lag) and lag.max() * rec.ts > rec.command_timeout / 2:

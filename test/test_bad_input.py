@@ -287,7 +287,7 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('tuner', 'resume-run-yaml-not-yaml', ['--resume', 'run_yaml_tab']),
     ('tuner', 'resume-newer-summary', ['--resume', 'run_newer_summary']),
     ('tuner', 'resume-with-settings', ['--resume', 'run', '--budget', '9']),
-    # a run.yaml of safe without its start (--no-start, which an older tuner accepted)
+    # a run.yaml of safe with start: false (--no-start does not apply to safe)
     ('tuner', 'resume-run-yaml-safe-no-start', ['--resume', 'run_safe_no_start']),
 ]
 

@@ -341,8 +341,9 @@ def _check_resumed_host(cli: argparse.Namespace, run: RunConfig) -> HostSaid:
     in ``run.host_check``): a run begun with ``--timing-tolerance auto`` goes on with it,
     from its tolerance up (``run``'s tolerance raised when the host now needs more)."""
     auto = bool((run.host_check or {}).get('auto'))
+    tol = int(run.timing_tolerance or 0)  # (checked: an integer >= 0)
     tolerance, run.host_check, said = _check_host(
-        cli, host.AUTO if auto else run.tolerance(), run.bench_requested, int(run.tolerance())
+        cli, host.AUTO if auto else tol, run.bench_requested, tol
     )
     if auto:
         run.put(timing_tolerance=tolerance)
@@ -463,14 +464,14 @@ def _check_run(run: RunConfig, where: str) -> None:
     for key in ('seed', 'drive_seed', 'remeasure', 'retries'):
         if not is_int(getattr(run, key)) or getattr(run, key) < 0:
             raise bad(key, 'an integer >= 0')
-    tol = run.tolerance()
+    tol = run.timing_tolerance
     if not is_int(tol) or tol < 0:
         raise bad('timing_tolerance', 'an integer >= 0')
     if not isinstance(run.options, dict):
         raise bad('options', 'a mapping of algorithm options')
     if not isinstance(run.reference, bool):
         raise bad('reference', 'true or false')
-    start = run.start if 'start' in run.keys else True  # (absent: a run of an older tuner)
+    start = run.start
     if not isinstance(start, bool):
         raise bad('start', 'true or false')
     if start is False and run.algo in optim.TAKES_START:
@@ -517,10 +518,9 @@ def make_tuning(rundir: RunDir, run: RunConfig, params: TunerParams, progress) -
         reference=run.reference,
         progress=progress,
         first_step=_first_step_hook(run, params, progress),
-        # (a run of a tuner before the limit has no key: off, as it ran)
-        ripple_limit=run.ripple_limit,
+        ripple_limit=run.ripple_limit,  # (None: off)
     )
-    tuning.timing_tolerance = run.tolerance()
+    tuning.timing_tolerance = run.timing_tolerance
     tuning.rated_isq_a = _rated_isq(run)
     return tuning
 

@@ -243,12 +243,12 @@ class TunerSession:
                 raise UsageError(why)  # (the run directory is undone: nothing is left)
         numeric_now = numeric.status()  # (after the controller's answer: it loads scipy)
         enforced = parameters.get('timing_tolerance')
-        if enforced is not None and enforced != run.tolerance():
+        if enforced is not None and enforced != run.timing_tolerance:
             # a controller the tuner did not start (--bench auto/none): its read-only
             # parameter is what counts; the run records what was enforced
             progress.warn(
                 f'warning: the controller enforces timing_tolerance {enforced}, not the '
-                f"run's {run.tolerance()} (it was started with it); the run records {enforced}"
+                f"run's {run.timing_tolerance} (it was started with it); the run records {enforced}"
             )
             tuning.timing_tolerance = enforced
             if not self.resumed:

@@ -66,6 +66,7 @@ def test_a_resumed_runs_spec_takes_run_yaml_and_goes_on_past_its_ids():
         drive_config='m.yaml',
         bench_requested='realtime',
         bench='realtime',
+        timing_tolerance=14,
     )
     records = [
         Lost(kind='eval', eval=i, gains={}, experiment_id=n) for i, n in enumerate((3, None, 11))
@@ -77,7 +78,7 @@ def test_a_resumed_runs_spec_takes_run_yaml_and_goes_on_past_its_ids():
     plan = spec.resolve('realtime')
     assert plan.simulated and not plan.replays and plan.first_experiment_id == 12
     assert plan.controller_parameters == (
-        ('timing_tolerance', 0),  # a run of an older tuner: what its controller had (0)
+        ('timing_tolerance', 14),  # the run's, for every controller the tuner starts
         ('drive_config_file', 'm.yaml'),
         ('first_experiment_id', 12),
     )

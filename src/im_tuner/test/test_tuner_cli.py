@@ -88,9 +88,10 @@ def test_resume_keeps_the_same_rule() -> None:
     )
     with pytest.raises(UsageError, match=r"start must be true or false, got 'no'"):
         _check_run(_run_yaml('spsa', 'no'), 'R/run.yaml')
-    run = _run_yaml('safe', False, drop=('start',))  # a run.yaml from before the key
+    run = _run_yaml('safe', False, drop=('start',))  # a run.yaml without the key
     assert 'start' not in run.keys and run.start is None
-    _check_run(run, 'run.yaml')  # (starts from the file)
+    with pytest.raises(UsageError, match='start must be true or false, got None'):
+        _check_run(run, 'run.yaml')
 
 
 def test_check_no_start_accepts_what_the_optimisers_run_without_a_start() -> None:

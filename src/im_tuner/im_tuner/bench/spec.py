@@ -224,7 +224,7 @@ def tuner_bench_spec(
         config = str(cli.drive_config) if cli.drive_config else None
     drive: list[tuple[str, Any]] = [('seed', run.drive_seed)]
     # the run's timing tolerance: every controller the tuner starts gets it
-    ctl: list[tuple[str, Any]] = [('timing_tolerance', int(run.tolerance() or 0))]
+    ctl: list[tuple[str, Any]] = [('timing_tolerance', int(run.timing_tolerance or 0))]
     if model:
         drive.append(('model', model))
     if config:

@@ -120,13 +120,6 @@ class RunConfig(_Keyed):
 
     HEADER = '# im_tuner run: what ran (see docs/tuner.md)\n'
 
-    def tolerance(self) -> Any:
-        """The run's timing tolerance [periods]: ``timing_tolerance``; a run of an older
-        tuner has none: what its controller reported (``controller_parameters``), else 0."""
-        if 'timing_tolerance' in self.keys:
-            return self.timing_tolerance
-        return (self.controller_parameters or {}).get('timing_tolerance', 0)
-
     def to_text(self) -> str:
         """run.yaml's text."""
         return self.HEADER + yaml.safe_dump(

@@ -83,6 +83,15 @@ class Probe:
         )
         # Also wait for the loss topic to be matched, so no result can be missed.
         assert self.spin_until(lambda: self.node.count_publishers('/controller/loss') > 0, timeout)
+        # And one answered round trip (a read, re-sent if lost): a server answers before it
+        # has discovered a client's response reader only at the answer's loss, and a first
+        # start whose answer was lost so (a loaded CI, once) cannot be sent again
+        deadline = time.monotonic() + timeout
+        while True:
+            got = self.params.get_parameters(['k_pw'])
+            if self.spin_until(got.done, 2.0):
+                break
+            assert time.monotonic() < deadline, 'the controller answered no parameter read'
 
     def call(self, future, timeout: float = 20.0):
         assert self.spin_until(future.done, timeout), 'service call timed out'

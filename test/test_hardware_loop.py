@@ -107,7 +107,7 @@ def test_the_compiled_period_is_the_python_one_bit_for_bit(ros_context, delay):
                 HP.safe_stop(E, D)
             py.period(missed)
             assert HP.hardware_missed(E, D, DC, F, missed) == 0
-            due = HP.hardware_period(E, D, DC, F, m, views['state'], *joint)
+            due = HP.hardware_period(E, D, DC, F, m, views['state'], joint)
             assert due & HP.MSG_STATE
             assert np.array_equal(py.latest_state(), views['state']), n
             k = int(py.latest_state()[0])

@@ -149,15 +149,12 @@ def hardware_period(
     F: np.ndarray,
     m: np.ndarray,
     state: np.ndarray,
-    joint_sec: np.ndarray,
-    joint_nsec: np.ndarray,
-    joint_pos: np.ndarray,
-    joint_vel: np.ndarray,
-    joint_eff: np.ndarray,
+    joint: Any,
 ) -> int:
     """One period at its start (``ExampleDrive.period`` after the missed periods and the
     commands): the safe-stop latch, the command latch, the clamped write, the read into
-    ``m``, state k+1 into ``state`` and joint_states when due. Returns the messages due
+    ``m``, state k+1 into ``state`` and joint_states (``joint``:
+    ``period_kernel.put_joint``) when due. Returns the messages due
     (``MSG_STATE`` | ``MSG_JOINT``), or :data:`FAULT`."""
     stopped = D[PK.D_STOPPED] != 0.0
     if stopped:  # zero was applied, not a command
@@ -197,13 +194,7 @@ def hardware_period(
     DC[PK.C_STEPS] += 1
     due = MSG_STATE
     if ki % np.int64(D[D_JOINT_DEC]) == 0:
-        t_ns = ki * ts_ns
-        sec = t_ns // PK.NS_PER_S
-        joint_sec[0] = sec
-        joint_nsec[0] = t_ns - sec * PK.NS_PER_S
-        joint_pos[0] = m[0]
-        joint_vel[0] = m[1]
-        joint_eff[0] = m[2]
+        PK.put_joint(joint, ki * ts_ns, m[0], m[1], m[2])
         due |= MSG_JOINT
     return due
 

@@ -45,6 +45,7 @@ __all__ = [
     'hold_labels',
     'latch_labels',
     'pack_words',
+    'put_joint',
     'run_missed',
     'run_period',
     'safe_stop',
@@ -222,6 +223,19 @@ def run_missed(
         DC[C_MISSED] += n
 
 
+@njit(cache=True, nogil=True)
+def put_joint(joint: Any, t_ns: int, pos: float, vel: float, eff: float) -> None:
+    """A joint_states message's values into its views ``joint`` (sec, nanosec, position,
+    velocity, effort: ``period_views``' one-element arrays), stamped ``t_ns`` [ns]."""
+    sec_, nsec_, pos_, vel_, eff_ = joint
+    sec = t_ns // NS_PER_S
+    sec_[0] = sec
+    nsec_[0] = t_ns - sec * NS_PER_S
+    pos_[0] = pos
+    vel_[0] = vel
+    eff_[0] = eff
+
+
 @njit(cache=True)
 def run_period(
     S: np.ndarray,
@@ -230,18 +244,14 @@ def run_period(
     D: np.ndarray,
     DC: np.ndarray,
     state: np.ndarray,
-    clock_sec: np.ndarray,
-    clock_nsec: np.ndarray,
-    joint_sec: np.ndarray,
-    joint_nsec: np.ndarray,
-    joint_pos: np.ndarray,
-    joint_vel: np.ndarray,
-    joint_eff: np.ndarray,
+    clock: Any,
+    joint: Any,
 ) -> int:
     """One period at its start (``DriveSimNode.period`` after the missed periods): the
     safe-stop latch, the command latch, one model step with the held command into
     ``state`` (state k+1, ``applied_step`` its command's step), the counters, and the
-    /clock and joint_states messages patched when due. Returns the messages due
+    /clock (``clock``: sec, nanosec) and joint_states (``joint``, :func:`put_joint`)
+    messages patched when due. Returns the messages due
     (:data:`MSG_STATE` | :data:`MSG_CLOCK` | :data:`MSG_JOINT`)."""
     if D[D_STOPPED] != 0.0:  # the model runs on with zero current and no load
         D[D_ISQ] = 0.0
@@ -259,23 +269,21 @@ def run_period(
     D[D_FRESH] = 0.0  # it answered the state before this step
     due = MSG_STATE
     k = np.int64(state[0])
-    clock_dec = np.int64(D[D_CLOCK_DEC])
-    joint_dec = np.int64(D[D_JOINT_DEC])
-    if k % clock_dec == 0 or k % joint_dec == 0:
-        t_ns = k * np.int64(D[D_TS_NS])
+    t_ns = k * np.int64(D[D_TS_NS])
+    if k % np.int64(D[D_CLOCK_DEC]) == 0:
         sec = t_ns // NS_PER_S
-        nsec = t_ns - sec * NS_PER_S
-        if k % clock_dec == 0:
-            clock_sec[0] = sec
-            clock_nsec[0] = nsec
-            due |= MSG_CLOCK
-        if k % joint_dec == 0:
-            joint_sec[0] = sec
-            joint_nsec[0] = nsec
-            joint_pos[0] = state[np.int64(D[D_I_THETA])]
-            joint_vel[0] = state[np.int64(D[D_I_OMEGA])]
-            joint_eff[0] = state[np.int64(D[D_I_TORQUE])]
-            due |= MSG_JOINT
+        clock[0][0] = sec
+        clock[1][0] = t_ns - sec * NS_PER_S
+        due |= MSG_CLOCK
+    if k % np.int64(D[D_JOINT_DEC]) == 0:
+        put_joint(
+            joint,
+            t_ns,
+            state[np.int64(D[D_I_THETA])],
+            state[np.int64(D[D_I_OMEGA])],
+            state[np.int64(D[D_I_TORQUE])],
+        )
+        due |= MSG_JOINT
     return due
 
 

@@ -238,7 +238,7 @@ def test_the_compiled_safe_stop_drops_the_waiting_load_too() -> None:
     state = np.zeros(len(L.RUN_FIELDS))
     i64 = [np.zeros(1, np.int64) for _ in range(4)]
     f64 = [np.zeros(1) for _ in range(3)]
-    W.run_period(sim.S, sim.P, sim._noise, D, DC, state, *i64, *f64)
+    W.run_period(sim.S, sim.P, sim._noise, D, DC, state, (i64[0], i64[1]), (*i64[2:], *f64))
     assert state[L.F_LOAD] == 0.0 and sim.load_torque == 0.0
 
 

@@ -174,7 +174,7 @@ def test_the_simulator_counts_held_what_its_states_show_held_around_missed_perio
         shown = 0
         for n in range(400):
             W.run_missed(sim.S, sim.P, sim._noise, D, DC, state, {100: 1, 200: 2, 300: 3}.get(n, 0))
-            W.run_period(sim.S, sim.P, sim._noise, D, DC, state, *i64, *f64)
+            W.run_period(sim.S, sim.P, sim._noise, D, DC, state, (i64[0], i64[1]), (*i64[2:], *f64))
             k = int(state[0])
             applied = int(state[W.F_APPLIED])
             shown += applied < 0 or applied != k - delay  # (-1: no command)

@@ -177,11 +177,12 @@ class CompiledPeriods:
     period's slack, and numpy scalar arithmetic there measured 40 us a call in the loop
     thread (so the words are read with ``.item``)."""
 
-    #: the drive's arrays :func:`run_periods` takes (``period_views``' keys, in order)
-    DRIVE_VIEWS: tuple[str, ...] = (
-        'state', 'clock_sec', 'clock_nsec', 'joint_sec', 'joint_nsec',
-        'joint_pos', 'joint_vel', 'joint_eff',
-    )  # fmt: skip
+    #: the drive's message views :func:`run_periods` takes after ``state``, in groups
+    #: (``period_views``' keys): /clock's, then joint_states'
+    DRIVE_VIEWS: tuple[tuple[str, ...], ...] = (
+        ('clock_sec', 'clock_nsec'),
+        ('joint_sec', 'joint_nsec', 'joint_pos', 'joint_vel', 'joint_eff'),
+    )
 
     def __init__(
         self, drive: Any, controller: Any, outbox: Any, durations: Any, pacer: Any, gate: LoopGate
@@ -197,7 +198,7 @@ class CompiledPeriods:
         self.sim = getattr(drive, 'sim', None)  # the simulator's model (run_kernel)
         dv = drive.period_views()
         cv = controller.answer_views()
-        self._drive_args = tuple(dv[k] for k in self.DRIVE_VIEWS)
+        self._drive_args = (dv['state'], *(tuple(dv[k] for k in g) for g in self.DRIVE_VIEWS))
         self._ctl_args = tuple(
             cv[k] for k in ('R', 'Q', 'X', 'C', 'CF', 'cout', 'eout', 'cmd', 'internals')
         )
@@ -227,15 +228,16 @@ class CompiledPeriods:
                 if ring is not None:
                     rings.append(ring)
                     ring_msg.append(m)
-        self._raws = raws
-        self._rings = (
+        self.put_counts = np.zeros(N_MSG, np.int64)
+        self._out = (
+            raws,
             tuple(r.buf for r in rings),
             tuple(r.lens for r in rings),
             tuple(r.stamps for r in rings),
             tuple(r.ctrl for r in rings),
+            np.array(ring_msg, np.int64),
+            self.put_counts,
         )
-        self._ring_msg = np.array(ring_msg, np.int64)
-        self.put_counts = np.zeros(N_MSG, np.int64)
         self._put_seen = np.zeros(N_MSG, np.int64)
         self.T = np.zeros(N_T, np.int64)
         self.T[T_TS] = drive.ts_ns
@@ -249,6 +251,10 @@ class CompiledPeriods:
         self.stale = True  #: the nodes own their state (take() before a run)
         self.events = np.zeros((EVENT_CAPACITY, 2 + len(cv['R'])))
         self.ev_ctrl = np.zeros(3, np.int64)
+        self._loop = (
+            self.T, self.late_hist, self._edges, durations.counts, durations.maxes,
+            gate.gate, self.events, self.ev_ctrl, self._ts,
+        )  # fmt: skip
         self._refused_said = 0
         self._lost_said = 0
 
@@ -294,11 +300,8 @@ class CompiledPeriods:
     def _kernel(self, S: Any, P: Any, noise: Any, _offset: int, count: int) -> int:
         return int(
             run_periods(
-                S, P, noise, count, self.T, self.late_hist, self._edges,
-                self.durations.counts, self.durations.maxes,
-                self._D, self._DC, *self._drive_args, *self._ctl_args, self._W,
-                self._raws, *self._rings, self._ring_msg, self.put_counts,
-                self.gate.gate, self.events, self.ev_ctrl, self._ts,
+                S, P, noise, count, self._loop, (self._D, self._DC, *self._drive_args),
+                (*self._ctl_args, self._W), self._out,
             )
         )  # fmt: skip
 
@@ -394,7 +397,7 @@ class CompiledHardwarePeriods(CompiledPeriods):
     with a ``ControllerNode``. The loop returns to Python only to quit, or on a drive
     fault (:meth:`run` raises ``HardwareFault``: zero current was written)."""
 
-    DRIVE_VIEWS = ('state', 'joint_sec', 'joint_nsec', 'joint_pos', 'joint_vel', 'joint_eff')
+    DRIVE_VIEWS = (('joint_sec', 'joint_nsec', 'joint_pos', 'joint_vel', 'joint_eff'),)
 
     def __init__(
         self, drive: Any, controller: Any, outbox: Any, durations: Any, pacer: Any, gate: LoopGate
@@ -418,12 +421,8 @@ class CompiledHardwarePeriods(CompiledPeriods):
     def _kernel(self, *_: Any) -> int:  # type: ignore[override]
         return int(
             run_hardware_periods(
-                self.T, self.late_hist, self._edges,
-                self.durations.counts, self.durations.maxes,
-                self._E, self._D, self._DC, self._F, self._m,
-                *self._drive_args, *self._ctl_args, self._W,
-                self._raws, *self._rings, self._ring_msg, self.put_counts,
-                self.gate.gate, self.events, self.ev_ctrl, self._ts,
+                self._loop, (self._E, self._D, self._DC, self._F, self._m, *self._drive_args),
+                (*self._ctl_args, self._W), self._out,
             )
         )  # fmt: skip
 

@@ -105,17 +105,17 @@ N_MSG = 5
 
 @numba.njit(cache=True, nogil=True)
 def _answer_and_hand_over(
-    T: np.ndarray, t0: int, due: int, dur_counts: np.ndarray, dur_maxes: np.ndarray,
-    D: np.ndarray, DC: np.ndarray, state: np.ndarray, R: np.ndarray, Q: np.ndarray,
-    X: np.ndarray, C: np.ndarray, CF: np.ndarray, cout: np.ndarray, eout: np.ndarray,
-    cmd: np.ndarray, internals: np.ndarray, W: np.ndarray, raws: Any, bufs: Any,
-    lens: Any, stamps: Any, ctrls: Any, ring_msg: np.ndarray, put_counts: np.ndarray,
-    events: np.ndarray, ev_ctrl: np.ndarray, ts: np.ndarray,
+    loop: Any, t0: int, due: int, D: np.ndarray, DC: np.ndarray, state: np.ndarray,
+    ctl: Any, out: Any,
 ) -> None:  # fmt: skip
     """A period's second half, once the drive published state k+1 (``due``: its
     messages): the controller's answer, the messages into their rings, the drive takes
     the answer (``period_kernel.take_command``: the words of ``D`` it shares with every
-    drive), the period's durations, an experiment's end into the event ring."""
+    drive), the period's durations, an experiment's end into the event ring. ``loop``,
+    ``ctl``, ``out``: :func:`run_periods`' groups of arrays."""
+    T, _hist, _edges, dur_counts, dur_maxes, _gate, events, ev_ctrl, ts = loop
+    R, Q, X, C, CF, cout, eout, cmd, internals, W = ctl
+    raws, bufs, lens, stamps, ctrls, ring_msg, put_counts = out
     n_rings = len(bufs)
     n_r = R.shape[0]
     stamp = _now(ts, CLOCK_REALTIME)
@@ -182,55 +182,46 @@ def _park(gate: np.ndarray, ts: np.ndarray) -> bool:
 
 
 @numba.njit(cache=True, nogil=True)
+def _must_return(T: np.ndarray, gate: np.ndarray) -> int:
+    """Between two periods, after the gate: why the loop returns now (EXIT_QUIT:
+    ``gate[G_QUIT]``, the loop's run marked off; EXIT_PERIODS: ``T[T_MAX_PERIODS]``
+    reached), or -1 (it goes on)."""
+    if gate[G_QUIT] != 0:
+        gate[G_RUNNING] = 0
+        return EXIT_QUIT
+    if T[T_PERIODS] >= T[T_MAX_PERIODS]:
+        return EXIT_PERIODS
+    return -1
+
+
+@numba.njit(cache=True, nogil=True)
 def run_periods(
     S: np.ndarray,
     P: np.ndarray,
     noise: np.ndarray,
     budget: int,
-    T: np.ndarray,
-    late_hist: np.ndarray,
-    edges: np.ndarray,
-    dur_counts: np.ndarray,
-    dur_maxes: np.ndarray,
-    D: np.ndarray,
-    DC: np.ndarray,
-    state: np.ndarray,
-    clock_sec: np.ndarray,
-    clock_nsec: np.ndarray,
-    joint_sec: np.ndarray,
-    joint_nsec: np.ndarray,
-    joint_pos: np.ndarray,
-    joint_vel: np.ndarray,
-    joint_eff: np.ndarray,
-    R: np.ndarray,
-    Q: np.ndarray,
-    X: np.ndarray,
-    C: np.ndarray,
-    CF: np.ndarray,
-    cout: np.ndarray,
-    eout: np.ndarray,
-    cmd: np.ndarray,
-    internals: np.ndarray,
-    W: np.ndarray,
-    raws: Any,
-    bufs: Any,
-    lens: Any,
-    stamps: Any,
-    ctrls: Any,
-    ring_msg: np.ndarray,
-    put_counts: np.ndarray,
-    gate: np.ndarray,
-    events: np.ndarray,
-    ev_ctrl: np.ndarray,
-    ts: np.ndarray,
+    loop: Any,
+    drive: Any,
+    ctl: Any,
+    out: Any,
 ) -> int:
     """Periods (module docstring) until ``gate[G_QUIT]`` or ``T[T_MAX_PERIODS]``,
     stepping the model at most ``budget`` times (``DriveSim.run_kernel``'s count: the
     noise block). Returns the model steps taken; ``T[T_EXIT]`` says why it returned;
-    ``T[T_PERIODS]`` counts the periods run. ``raws[m]``: message m's bytes (M_*); ring
-    r (``bufs[r]`` ...) takes message ``ring_msg[r]``. Between two periods it parks
-    while ``gate[G_WANT]`` (:class:`LoopGate`); an experiment's end goes into
-    ``events`` (status, step, R) for the serving thread."""
+    ``T[T_PERIODS]`` counts the periods run.
+
+    The arrays come in groups (tuples; ``compiled_loop.CompiledPeriods`` makes them):
+    ``loop`` = (T, the lateness histogram and its edges [ns], the duration counts and
+    maxima, gate, events, the event ring's words, ts), the loop's own words; ``drive`` =
+    (D, DC, state, clock, joint), the drive's (``period_kernel.run_period``);
+    ``ctl`` = (R, Q, X, C, CF, cout, eout, cmd, internals, W), the controller's
+    (``im_controller.kernel.answer_state``); ``out`` = (raws, bufs, lens, stamps, ctrls,
+    ring_msg, put_counts), the outbox's: ``raws[m]`` message m's bytes (M_*), ring r
+    (``bufs[r]`` ...) takes message ``ring_msg[r]``. Between two periods it parks while
+    ``gate[G_WANT]`` (:class:`LoopGate`); an experiment's end goes into ``events``
+    (status, step, R) for the serving thread."""
+    T, late_hist, edges, _dc, _dm, gate, _ev, _evc, ts = loop
+    D, DC, state, clock, joint = drive
     used = 0
     first = True
     T[T_EXIT] = EXIT_PERIODS
@@ -238,17 +229,13 @@ def run_periods(
         if T[T_RESUME] < 0:  # between two periods: the gate, then the next start
             if _park(gate, ts):
                 first = True  # the next start follows a park: counted as after Python
-            if gate[G_QUIT] != 0:
-                gate[G_RUNNING] = 0
-                T[T_EXIT] = EXIT_QUIT
-                break
             if gate[G_STOP] != 0 and D[PK.D_STOPPED] == 0.0:
                 PK.safe_stop(S, D)
-            if T[T_PERIODS] >= T[T_MAX_PERIODS]:
-                T[T_EXIT] = EXIT_PERIODS
-                break
-            if used >= budget:
-                T[T_EXIT] = EXIT_BUDGET
+            why = _must_return(T, gate)
+            if why < 0 and used >= budget:
+                why = EXIT_BUDGET
+            if why >= 0:
+                T[T_EXIT] = why
                 break
             T[T_RESUME] = _wait_start(T, late_hist, edges, ts, first)
             first = False
@@ -262,17 +249,10 @@ def run_periods(
             T[T_EXIT] = EXIT_BUDGET
             break
         t0 = T[T_START]
-        due = PK.run_period(
-            S, P, noise, D, DC, state, clock_sec, clock_nsec,
-            joint_sec, joint_nsec, joint_pos, joint_vel, joint_eff,
-        )  # fmt: skip
+        due = PK.run_period(S, P, noise, D, DC, state, clock, joint)
         used += 1
         T[T_RESUME] = -1
-        _answer_and_hand_over(
-            T, t0, due, dur_counts, dur_maxes, D, DC, state, R, Q, X, C, CF, cout, eout,
-            cmd, internals, W, raws, bufs, lens, stamps, ctrls, ring_msg, put_counts,
-            events, ev_ctrl, ts,
-        )  # fmt: skip
+        _answer_and_hand_over(loop, t0, due, D, DC, state, ctl, out)
         if 0 <= T[T_STALL] <= state[0]:  # the drive's stall test hook, once
             T[T_STALL] = -1
             _nap(ts, T[T_STALL_NS])
@@ -280,81 +260,37 @@ def run_periods(
 
 
 @numba.njit(cache=True, nogil=True)
-def run_hardware_periods(
-    T: np.ndarray,
-    late_hist: np.ndarray,
-    edges: np.ndarray,
-    dur_counts: np.ndarray,
-    dur_maxes: np.ndarray,
-    E: np.ndarray,
-    D: np.ndarray,
-    DC: np.ndarray,
-    F: np.ndarray,
-    meas: np.ndarray,
-    state: np.ndarray,
-    joint_sec: np.ndarray,
-    joint_nsec: np.ndarray,
-    joint_pos: np.ndarray,
-    joint_vel: np.ndarray,
-    joint_eff: np.ndarray,
-    R: np.ndarray,
-    Q: np.ndarray,
-    X: np.ndarray,
-    C: np.ndarray,
-    CF: np.ndarray,
-    cout: np.ndarray,
-    eout: np.ndarray,
-    cmd: np.ndarray,
-    internals: np.ndarray,
-    W: np.ndarray,
-    raws: Any,
-    bufs: Any,
-    lens: Any,
-    stamps: Any,
-    ctrls: Any,
-    ring_msg: np.ndarray,
-    put_counts: np.ndarray,
-    gate: np.ndarray,
-    events: np.ndarray,
-    ev_ctrl: np.ndarray,
-    ts: np.ndarray,
-) -> int:
+def run_hardware_periods(loop: Any, drive: Any, ctl: Any, out: Any) -> int:
     """:func:`run_periods` for a user's power stage called by address
     (``im_drive_sim.hardware_period``: a C library, a compiled class): periods until
     ``gate[G_QUIT]``, ``T[T_MAX_PERIODS]`` or a drive fault (``T[T_EXIT]`` = EXIT_FAULT,
     ``F`` says which call returned what; zero current was written). The power stage
     lives on the wall clock: a late start's whole periods went by with the command held
-    (``hardware_missed``). Returns the periods run."""
+    (``hardware_missed``). ``drive`` = (E, D, DC, F, meas, state, joint): the power
+    stage's entry, the drive's words and views (``hardware_period``). Returns the
+    periods run."""
+    T, late_hist, edges, _dc, _dm, gate, _ev, _evc, ts = loop
+    E, D, DC, F, meas, state, joint = drive
     first = True
     T[T_EXIT] = EXIT_PERIODS
     while True:
         if _park(gate, ts):
             first = True
-        if gate[G_QUIT] != 0:
-            gate[G_RUNNING] = 0
-            T[T_EXIT] = EXIT_QUIT
-            break
         if gate[G_STOP] != 0 and D[PK.D_STOPPED] == 0.0:
             HP.safe_stop(E, D)
-        if T[T_PERIODS] >= T[T_MAX_PERIODS]:
-            T[T_EXIT] = EXIT_PERIODS
+        why = _must_return(T, gate)
+        if why >= 0:
+            T[T_EXIT] = why
             break
         missed = _wait_start(T, late_hist, edges, ts, first)
         first = False
         t0 = T[T_START]
         due = HP.hardware_missed(E, D, DC, F, missed)
         if due != HP.FAULT:
-            due = HP.hardware_period(
-                E, D, DC, F, meas, state, joint_sec, joint_nsec, joint_pos, joint_vel,
-                joint_eff,
-            )  # fmt: skip
+            due = HP.hardware_period(E, D, DC, F, meas, state, joint)
         if due == HP.FAULT:
             gate[G_RUNNING] = 0
             T[T_EXIT] = EXIT_FAULT
             break
-        _answer_and_hand_over(
-            T, t0, due, dur_counts, dur_maxes, D, DC, state, R, Q, X, C, CF, cout, eout,
-            cmd, internals, W, raws, bufs, lens, stamps, ctrls, ring_msg, put_counts,
-            events, ev_ctrl, ts,
-        )  # fmt: skip
+        _answer_and_hand_over(loop, t0, due, D, DC, state, ctl, out)
     return T[T_PERIODS]

@@ -1,33 +1,45 @@
 """ROS plumbing both drive nodes share (``drive_sim`` and ``example_drive``).
 
+* :class:`DriveNode`: the base of a drive node -- its topics (``drive/state``,
+  ``drive/joint_states``, ``drive/status``, the command path), its layout parameters,
+  a command checked and read, the watchdog's period, the status message.
 * :class:`CommandPath`: the 5 kHz ``drive/command`` path -- a subscription on a hidden
   helper node (``_<name>_io``) that no executor ever spins, taken through a hand-rolled
   WaitSet, so the hot path never goes through an executor.
-* :func:`watchdog_expired`: the command watchdog's period -- a trip counted and said once.
-* :func:`publish_status`: one ``drive/status`` DiagnosticArray from a level, a message
-  and the key/values, published without loss.
 * :func:`run_drive_node`: a drive node's ``main()`` body (``runtime.run_stepped_node``
   with the counters' summary logged at exit).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
+from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from .contract import COMMAND_FIELDS, COMMAND_TOPIC
+from .contract import (
+    CMD_ISQ,
+    CMD_LOAD,
+    CMD_STEP,
+    COMMAND_FIELDS,
+    COMMAND_TOPIC,
+    JOINT_STATE_TOPIC,
+    STATE_FIELDS,
+    STATE_TOPIC,
+    STATUS_TOPIC,
+)
 from .pacing import CommandSource, CommandWatchdog
 from .params import ConfigError
-from .qos import LOCKSTEP_QOS
+from .qos import LOCKSTEP_QOS, RECORDED_QOS
 from .rt import RtOptions
-from .runtime import publish_lossless, run_stepped_node
+from .runtime import IoNodeOwner, LenientDoubles, publish_lossless, run_stepped_node
 
-__all__ = ['CommandPath', 'publish_status', 'run_drive_node', 'watchdog_expired']
+__all__ = ['CommandPath', 'DriveNode', 'run_drive_node']
 
 
 class CommandPath:
@@ -54,38 +66,79 @@ class CommandPath:
         return ws.is_ready('subscription', 0)
 
 
-def watchdog_expired(
-    node: Node, watchdog: CommandWatchdog, counters: Any, step: int, consequence: str
-) -> bool:
-    """Once a period, after the commands were taken: True while ``watchdog`` has expired
-    (the drive then zeroes its command; counted ``watchdog_steps``). The first period of
-    a trip counts ``watchdog_trips`` and says so on the log, with the ``step`` index and
-    the drive's ``consequence``; a command then resumes the drive
-    (``CommandWatchdog.resume``)."""
-    if not watchdog.expired():
-        return False
-    if watchdog.trip():
-        counters.watchdog_trips += 1
-        node.get_logger().warn(
-            f'watchdog: no command on {COMMAND_TOPIC} for {watchdog.timeout_s:g} s at step '
-            f'{step}: {consequence}'
-        )
-    counters.watchdog_steps += 1
-    return True
+class DriveNode(IoNodeOwner, LenientDoubles, Node):
+    """The base of a drive node (``drive_sim``, ``example_drive``): :meth:`open_topics`
+    makes its topics. Every drive topic is recorded, so every publisher is reliable
+    KEEP_ALL (``qos.RECORDED_QOS``): a recorder that stalls (a loaded real-time machine)
+    back-pressures, it never loses a sample. The 5 kHz command path lives on a hidden node
+    no executor spins. A subclass has ``counters`` (``commands``, ``watchdog_trips``,
+    ``watchdog_steps``, ``backpressure``)."""
 
+    #: the layouts a drive node reports as read-only parameters
+    #: (``runtime.parameter_hygiene``'s facts: an override may not advertise another one)
+    LAYOUTS: ClassVar[dict[str, list[str]]] = {
+        'state_fields': list(STATE_FIELDS),
+        'command_fields': list(COMMAND_FIELDS),
+    }
 
-def publish_status(
-    node: Node,
-    pub,
-    status: DiagnosticStatus,
-    values: dict[str, str],
-) -> int:
-    """Publish ``status`` (name, hardware id, level and message set) with ``values`` as its
-    key/values, stamped now, on ``pub`` without loss; returns the back-pressure retries."""
-    status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-    msg = DiagnosticArray(status=[status])
-    msg.header.stamp = node.get_clock().now().to_msg()
-    return publish_lossless(pub, msg, node.context)
+    counters: Any
+
+    def open_topics(self, node_name: str) -> None:
+        """``state_pub``, ``joint_pub`` (:meth:`make_joint_publisher`), ``status_pub``,
+        ``command_path`` (its ``io_node``, ``cmd_sub``, ``commands``)."""
+        self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
+        self.joint_pub = self.make_joint_publisher()
+        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, RECORDED_QOS)
+        self.command_path = CommandPath(self, node_name)
+        self.io_node = self.command_path.io_node
+        self.cmd_sub = self.command_path.subscription
+        self.commands = self.command_path.source
+
+    def make_joint_publisher(self) -> Any:
+        """``drive/joint_states``' publisher (a hook: a test drive may publish none)."""
+        return self.create_publisher(JointState, JOINT_STATE_TOPIC, RECORDED_QOS)
+
+    def read_command(self, data: Any) -> tuple[int, float, float] | None:
+        """``drive/command``'s values ``data`` (``COMMAND_FIELDS``) as (answers_step,
+        isq_ref [A], load torque [N m]), counted; None for a message of another length or
+        with a value not finite, which the drive ignores (said on the log, at most once a
+        second)."""
+        n = len(COMMAND_FIELDS)
+        if len(data) != n or not all(math.isfinite(x) for x in data):
+            self.get_logger().error(
+                f'{COMMAND_TOPIC}: expected {n} finite values {COMMAND_FIELDS}, got '
+                f'{len(data)} values or a value not finite; ignored',
+                throttle_duration_sec=1.0,
+            )
+            return None
+        self.counters.commands += 1
+        return int(data[CMD_STEP]), float(data[CMD_ISQ]), float(data[CMD_LOAD])
+
+    def watchdog_expired(self, watchdog: CommandWatchdog, step: int, consequence: str) -> bool:
+        """Once a period, after the commands were taken: True while ``watchdog`` has
+        expired (the drive then zeroes its command; counted ``watchdog_steps``). The first
+        period of a trip counts ``watchdog_trips`` and says so on the log, with the
+        ``step`` index and the drive's ``consequence``; a command then resumes the drive
+        (``CommandWatchdog.resume``)."""
+        if not watchdog.expired():
+            return False
+        if watchdog.trip():
+            self.counters.watchdog_trips += 1
+            self.get_logger().warn(
+                f'watchdog: no command on {COMMAND_TOPIC} for {watchdog.timeout_s:g} s at '
+                f'step {step}: {consequence}'
+            )
+        self.counters.watchdog_steps += 1
+        return True
+
+    def send_status(self, status: DiagnosticStatus, values: dict[str, str]) -> None:
+        """Publish ``status`` (name, hardware id, level and message set) with ``values``
+        as its key/values, stamped now, on ``drive/status`` without loss (the
+        back-pressure retries counted)."""
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.counters.backpressure += publish_lossless(self.status_pub, msg, self.context)
 
 
 def run_drive_node(

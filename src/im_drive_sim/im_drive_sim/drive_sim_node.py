@@ -19,36 +19,21 @@ and whenever the loop is idle.
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 from typing import Any
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rclpy.node import Node
+from diagnostic_msgs.msg import DiagnosticStatus
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
 
 from . import contract, period_kernel, rt
 from .cdr import ClockWire, Float64ArrayWire, JointStateWire
 from .cli import parse_cli, run_cli
 from .command_latch import CommandLatch, HeldCommand
-from .contract import (
-    CMD_ISQ,
-    CMD_LOAD,
-    CMD_STEP,
-    COMMAND_FIELDS,
-    COMMAND_TOPIC,
-    JOINT_STATE_TOPIC,
-    NS_PER_S,
-    STATE_FIELDS,
-    STATE_TOPIC,
-    STATUS_TOPIC,
-)
+from .contract import NS_PER_S
 from .drive_file import load_config
-from .drive_io import CommandPath, publish_status, run_drive_node, watchdog_expired
+from .drive_io import DriveNode, run_drive_node
 from .drive_sim_counters import Counters, counter_values
 from .drive_sim_loops import run_lockstep, run_realtime
 from .drive_sim_main import parser
@@ -57,8 +42,6 @@ from .pacing import CommandWatchdog
 from .params import ConfigError
 from .qos import RECORDED_QOS
 from .runtime import (
-    IoNodeOwner,
-    LenientDoubles,
     parameter_hygiene,
     publish_lossless,
     start_overrides,
@@ -68,7 +51,7 @@ from .sim import DriveSim
 F_APPLIED = contract.STATE_INDEX['applied_step']
 
 
-class DriveSimNode(IoNodeOwner, LenientDoubles, Node):
+class DriveSimNode(DriveNode):
     """The drive simulator node (see module docstring and docs/interfaces.md).
 
     All parameters are read-only: they fix the structure of the simulation (model, mode,
@@ -119,23 +102,13 @@ class DriveSimNode(IoNodeOwner, LenientDoubles, Node):
         #: the context is never shut down under a publish.
         self.stop_requested = False
 
-        # Publishers (all on the visible node).
-        self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
-        # Every drive topic is recorded, so every publisher is reliable KEEP_ALL: a recorder
-        # that stalls (a loaded real-time machine) back-pressures, it never loses a sample.
+        self.open_topics(node_name)
         self.clock_pub = self.create_publisher(Clock, '/clock', RECORDED_QOS)
-        self.joint_pub = self.create_publisher(JointState, JOINT_STATE_TOPIC, RECORDED_QOS)
-        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, RECORDED_QOS)
-        # The 5 kHz command path: its own hidden node, never touched by the executor.
-        self.command_path = CommandPath(self, node_name)
-        self.io_node = self.command_path.io_node
-        self.cmd_sub = self.command_path.subscription
-        self.commands = self.command_path.source
 
         # Preallocated messages and buffers: nothing is built per step.
         # The state is published pre-serialised: the model writes straight into the CDR
         # buffer through a numpy view (see cdr.py), nothing is converted per step.
-        self._state_wire = Float64ArrayWire(len(STATE_FIELDS))
+        self._state_wire = Float64ArrayWire(len(contract.STATE_FIELDS))
         self._state = self._state_wire.values
         self._clock_wire = ClockWire()  # pre-serialised: patched in place, no conversion
         self._joint_wire = JointStateWire('motor')
@@ -146,7 +119,7 @@ class DriveSimNode(IoNodeOwner, LenientDoubles, Node):
         self._cmd_watchdog = CommandWatchdog(self.command_timeout, self.config.Ts)
         #: latched by :meth:`safe_stop`: zero current and no load from then on
         self.safe_stopped = False
-        self._idx = {name: i for i, name in enumerate(STATE_FIELDS)}
+        self._idx = {name: i for i, name in enumerate(contract.STATE_FIELDS)}
         self._i_theta = self._idx['theta_meas']
         self._i_omega = self._idx['omega_meas']
         self._i_torque = self._idx['torque']
@@ -156,11 +129,7 @@ class DriveSimNode(IoNodeOwner, LenientDoubles, Node):
         self.warm_up()
 
         # The layouts are facts of this node: an override may not advertise another one.
-        parameter_hygiene(
-            self,
-            {'state_fields': list(STATE_FIELDS), 'command_fields': list(COMMAND_FIELDS)},
-            warn_unknown=warn_unknown,
-        )
+        parameter_hygiene(self, self.LAYOUTS, warn_unknown=warn_unknown)
         # logged at start(): a process composing more nodes may still refuse to start
         self._start_text = (
             f'mode={self.mode} model={self.config.model} '
@@ -220,28 +189,14 @@ class DriveSimNode(IoNodeOwner, LenientDoubles, Node):
             'real_time_factor': f'{sim_s / wall_elapsed:.3f}' if wall_elapsed > 0 else 'nan',
             **counter_values(c),
         }
-        self.counters.backpressure += publish_status(self, self.status_pub, st, values)
+        self.send_status(st, values)
 
     # -- the command path ------------------------------------------------------------------
     def _take_command(self):
         data = self.commands.next()  # the subscription, or the composed controller's
         if data is None:
             return None
-        if len(data) != len(COMMAND_FIELDS):
-            self.get_logger().error(
-                f'{COMMAND_TOPIC}: expected {len(COMMAND_FIELDS)} values '
-                f'{COMMAND_FIELDS}, got {len(data)}; ignored',
-                throttle_duration_sec=1.0,
-            )
-            return None
-        isq, load = float(data[CMD_ISQ]), float(data[CMD_LOAD])
-        if not (math.isfinite(isq) and math.isfinite(load)):
-            self.get_logger().error(
-                f'{COMMAND_TOPIC}: non-finite command ignored', throttle_duration_sec=1.0
-            )
-            return None
-        self.counters.commands += 1
-        return int(data[CMD_STEP]), isq, load
+        return self.read_command(data)
 
     def _drop_latched(self) -> None:
         """Zero current and no load at once (a safe stop, the watchdog): no latched command
@@ -411,10 +366,8 @@ class DriveSimNode(IoNodeOwner, LenientDoubles, Node):
         """Real time: no command for ``command_timeout`` -> zero current and no load, held
         until a command comes (then it resumes). Before the first command the held
         command is already zero. When it expires: ``pacing.CommandWatchdog``."""
-        if watchdog_expired(
-            self,
+        if self.watchdog_expired(
             self._cmd_watchdog,
-            self.counters,
             self.sim.step_index,
             'zero current and no load until the next command',
         ):

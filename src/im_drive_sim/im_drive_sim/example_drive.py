@@ -36,38 +36,21 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rclpy.node import Node
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from diagnostic_msgs.msg import DiagnosticStatus
 
 from . import contract, rt
 from .cdr import Float64ArrayWire, JointStateWire
 from .cli import check_ros_args, parse_cli, run_cli
 from .command_latch import CommandLatch
-from .contract import (
-    CMD_ISQ,
-    CMD_LOAD,
-    CMD_STEP,
-    COMMAND_FIELDS,
-    COMMAND_TOPIC,
-    JOINT_STATE_TOPIC,
-    NS_PER_S,
-    STATE_FIELDS,
-    STATE_TOPIC,
-    STATUS_TOPIC,
-)
+from .contract import NS_PER_S
 from .drive_file import load_config
-from .drive_io import CommandPath, publish_status, run_drive_node, watchdog_expired
+from .drive_io import DriveNode, run_drive_node
 from .example_drive_compiled import CompiledPeriodHooks
 from .example_drive_main import check_hardware, hardware_factory, parser
 from .hardware_abi import HardwareFault, Measurement
 from .pacing import CommandWatchdog, Pacer
 from .params import ConfigError, DriveConfig
-from .qos import RECORDED_QOS
 from .runtime import (
-    IoNodeOwner,
-    LenientDoubles,
     param_descriptor,
     parameter_hygiene,
     publish_lossless,
@@ -189,7 +172,7 @@ class Counters:
     backpressure: int = 0  #: publish retries while a reliable reader was full
 
 
-class ExampleDrive(IoNodeOwner, LenientDoubles, CompiledPeriodHooks, Node):
+class ExampleDrive(DriveNode, CompiledPeriodHooks):
     """The ROS side (real time only). Hooks for subclasses: ``make_hardware``,
     ``apply_command``, ``fill_state``, ``make_joint_publisher``/``publish_joint_state``,
     ``watchdog`` and the attribute ``period_s``. ``start``/``period``/``take_commands``/
@@ -245,12 +228,18 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, CompiledPeriodHooks, Node):
             10,
             param_descriptor('Publish drive/joint_states every N steps.', int_range=(1, 100000)),
         ).value
-        d('state_fields', list(STATE_FIELDS), param_descriptor('Layout of drive/state data.'))
-        d('command_fields', list(COMMAND_FIELDS), param_descriptor('Layout of drive/command data.'))
-        # the layouts report what this node publishes and reads: not settable
-        parameter_hygiene(
-            self, {'state_fields': list(STATE_FIELDS), 'command_fields': list(COMMAND_FIELDS)}
+        d(
+            'state_fields',
+            self.LAYOUTS['state_fields'],
+            param_descriptor('Layout of drive/state data.'),
         )
+        d(
+            'command_fields',
+            self.LAYOUTS['command_fields'],
+            param_descriptor('Layout of drive/command data.'),
+        )
+        # the layouts report what this node publishes and reads: not settable
+        parameter_hygiene(self, self.LAYOUTS)
 
         self.hw = self.make_hardware()
         #: the labels (applied_step, fresh) of the command written and not yet acting
@@ -278,15 +267,9 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, CompiledPeriodHooks, Node):
         #: the old command held (``pacing.Pacer``'s ``wall_clock``)
         self.wall_clock = True
 
-        self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
-        self.joint_pub = self.make_joint_publisher()
-        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, RECORDED_QOS)
-        # The 5 kHz command path lives on a hidden node that no executor ever spins.
-        self.command_path = CommandPath(self, node_name)
-        self.io_node = self.command_path.io_node
-        self.cmd_sub = self.command_path.subscription
-        self.commands = self.command_path.source
-        self.wire = Float64ArrayWire(len(STATE_FIELDS))  # preallocated: nothing built per step
+        self.open_topics(node_name)
+        # preallocated: nothing built per step
+        self.wire = Float64ArrayWire(len(contract.STATE_FIELDS))
         self.wire.values[13] = self.command_delay  # declared once, in every state
         self.joint = JointStateWire('motor')  # pre-serialised: patched in place
         self.get_logger().info(
@@ -310,9 +293,6 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, CompiledPeriodHooks, Node):
     # -- hooks ----------------------------------------------------------------------------
     def make_hardware(self) -> Hardware:
         return self.hardware_class(self.config)
-
-    def make_joint_publisher(self):
-        return self.create_publisher(JointState, JOINT_STATE_TOPIC, RECORDED_QOS)
 
     def apply_command(self, isq_ref: float, load_torque: float) -> None:
         """Clamp and hand the command to the hardware for the coming period (zero current
@@ -376,32 +356,25 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, CompiledPeriodHooks, Node):
     def watchdog(self) -> None:
         """No command for ``command_timeout`` -> zero current and no load until the next
         command (when it expires: ``pacing.CommandWatchdog``)."""
-        if watchdog_expired(self, self.cmd_watchdog, self.counters, self.k, 'zero current'):
+        if self.watchdog_expired(self.cmd_watchdog, self.k, 'zero current'):
             self.isq_ref = self.load_ref = 0.0
             self.applied = -1
 
     # -- commands ---------------------------------------------------------------------------
     def take_commands(self) -> None:
         """Take every pending command; the newest valid one becomes the held command."""
-        n = len(COMMAND_FIELDS)
         # the subscription (our compact layout read in place), or the composed controller's
         while (data := self.commands.next()) is not None:
-            if len(data) != n or not (
-                math.isfinite(data[0]) and math.isfinite(data[1]) and math.isfinite(data[2])
-            ):
-                self.get_logger().error(
-                    f'{COMMAND_TOPIC}: expected {n} finite values {COMMAND_FIELDS}; ignored',
-                    throttle_duration_sec=1.0,
-                )
+            command = self.read_command(data)
+            if command is None:
                 continue
-            answers = int(data[CMD_STEP])
-            self.counters.commands += 1
+            answers, isq, load = command
             if 0 <= answers <= self.held_answers:  # out of order, or a duplicate
                 self.counters.stale_ignored += 1
                 continue
             self.held_answers = answers
             self.applied = max(answers, -1)
-            self.isq_ref, self.load_ref = float(data[CMD_ISQ]), float(data[CMD_LOAD])
+            self.isq_ref, self.load_ref = isq, load
             self.cmd_watchdog.command()
             self.fresh = answers < 0 or answers == self.k
             self.counters.late += 0 <= answers < self.k
@@ -444,7 +417,7 @@ class ExampleDrive(IoNodeOwner, LenientDoubles, CompiledPeriodHooks, Node):
             'step_index': str(self.k),
             **{f.name: f'{getattr(c, f.name):g}' for f in fields(c)},
         }
-        self.counters.backpressure += publish_status(self, self.status_pub, st, values)
+        self.send_status(st, values)
 
     # -- the loop ------------------------------------------------------------------------------
     def start(self) -> None:

@@ -19,10 +19,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from . import family
 from .params import ConfigError, DriveConfig, config_from_dict, default_config_path
+from .yaml_file import YamlFileError, read_yaml
 
 __all__ = ['base_path', 'load_config', 'packaged_base']
 
@@ -52,20 +51,9 @@ def load_config(
 def _read(name: str, p: Path) -> Any:
     """The YAML document of the drive file ``p`` (``name``: how errors call it)."""
     try:
-        text = p.read_text(encoding='utf-8')
-    except OSError as exc:
-        raise ConfigError(f'{name}: cannot read {p}: {exc.strerror or exc}') from exc
-    except UnicodeDecodeError:
-        raise ConfigError(f'{name}: not a text (UTF-8) file') from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        where = ''
-        mark = getattr(exc, 'problem_mark', None)
-        if mark is not None:
-            where = f' at line {mark.line + 1}, column {mark.column + 1}'
-        problem = getattr(exc, 'problem', None) or str(exc)
-        raise ConfigError(f'{name}: YAML syntax error{where}: {problem}') from exc
+        data, text = read_yaml(p)
+    except YamlFileError as exc:
+        raise ConfigError(f'{name}: {exc}') from None
     if data is None:  # an empty file, only comments, or a bare null: no settings at all
         content = [ln.strip() for ln in text.splitlines() if ln.strip()]
         if not content:
@@ -128,10 +116,9 @@ def _with_base(name: str, path: Path, data: Mapping[str, Any]) -> dict[str, Any]
             f"or a path relative to {name}'s folder)"
         )
     try:
-        bdata = yaml.safe_load(bp.read_text(encoding='utf-8'))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        what = ' '.join(str(exc).split())  # (a YAML error spans lines: one line here)
-        raise ConfigError(f'{name}: base {base!r}: cannot read {bp} ({what})') from None
+        bdata, _ = read_yaml(bp)
+    except YamlFileError as exc:
+        raise ConfigError(f'{name}: base {base!r}: cannot read {bp} ({exc})') from None
     if isinstance(bdata, Mapping) and 'base' in bdata and packaged:
         bdata = _with_base(bp.name, bp, bdata)  # a packaged drive: its motor's file under it
     if not isinstance(bdata, Mapping) or 'base' in bdata:

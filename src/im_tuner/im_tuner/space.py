@@ -18,9 +18,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from im_controller.config import GAIN_NAMES, GAIN_RANGES, GAIN_UNITS, Gains
+from im_drive_sim.yaml_file import YamlFileError, read_yaml
 
 __all__ = [
     'SearchSpace',
@@ -161,13 +161,7 @@ def load_params(path: str | Path | None = None) -> TunerParams:
     p = default_params_path() if path is None else Path(path)
     src = str(p)
     try:
-        text = p.read_text(encoding='utf-8')
-    except OSError as exc:
-        raise TunerParamsError(f'{src}: cannot read ({exc.strerror or exc})') from None
-    except UnicodeDecodeError:
-        raise TunerParamsError(f'{src}: not a text (UTF-8) file') from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise TunerParamsError(f'{src}: not valid YAML ({str(exc).splitlines()[0]})') from None
+        data, _ = read_yaml(p)
+    except YamlFileError as exc:
+        raise TunerParamsError(f'{src}: {exc}') from None
     return parse_params(data, src)

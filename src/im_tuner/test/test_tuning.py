@@ -32,6 +32,30 @@ PARAMS = load_params()
 SPACE = PARAMS.space
 
 
+def fake_measurement(eid: int, gains: Gains, loss: float, **kw) -> Measurement:
+    """Experiment ``eid`` of a fake bench: a completed 5625-period experiment of ``gains``
+    every period fresh, one a second of sim time, directions alternating; ``kw`` overrides."""
+    return Measurement(
+        **{
+            'loss': loss,
+            'terms': (loss, 0.0, 0.0),
+            'aborted': False,
+            'reason': '',
+            'fault': False,
+            'experiment_id': eid,
+            'direction': 1 - 2 * (eid % 2),
+            'steps': 5625,
+            'trip_step': -1,
+            't_start_ns': eid * 10**9,
+            't_end_ns': eid * 10**9 + 1125 * 10**6,
+            'wall_s': 0.001,
+            'gains': gains.as_tuple(),
+            'fresh': 5625,
+            **kw,
+        }
+    )
+
+
 class FakeBench:
     """Loss = |u - u*|^2 + 1e-3 * (experiments so far mod 3): history-dependent."""
 
@@ -59,20 +83,13 @@ class FakeBench:
         u = SPACE.to_u(gains)
         loss = float(np.sum((u - 0.3) ** 2)) + 1e-3 * (eid % 3)
         aborted = loss > self.abort_above
-        return Measurement(
-            loss=loss * (10.0 if aborted else 1.0),
+        return fake_measurement(
+            eid,
+            gains,
+            loss * (10.0 if aborted else 1.0),
             terms=(loss, 0.0, 0.0),
             aborted=aborted,
             reason='term1' if aborted else '',
-            fault=False,
-            experiment_id=eid,
-            direction=1 - 2 * (eid % 2),
-            steps=5625,
-            trip_step=-1,
-            t_start_ns=eid * 10**9,
-            t_end_ns=eid * 10**9 + 1125 * 10**6,
-            wall_s=0.001,
-            gains=gains.as_tuple(),
             fresh=5625 - 7 * (k in self.off_timing),
             held=7 * (k in self.off_timing),
             timing=k in self.off_timing and self.tolerance < 7,
@@ -395,7 +412,7 @@ def test_parameter_file_read_errors(tmp_path):
     with pytest.raises(TunerParamsError, match='cannot read'):
         load_params(tmp_path / 'none.yaml')
     (tmp_path / 'bad.yaml').write_text('a: [1,\n')
-    with pytest.raises(TunerParamsError, match='not valid YAML'):
+    with pytest.raises(TunerParamsError, match='YAML syntax error at line 2'):
         load_params(tmp_path / 'bad.yaml')
 
 

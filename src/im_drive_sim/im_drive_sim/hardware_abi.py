@@ -73,17 +73,11 @@ __all__ = [
     'is_compiled_class',
 ]
 
-#: ``im_drive_read``'s ``m[8]``, in order (``example_drive.Measurement``'s fields; SI units)
-MEASUREMENT_FIELDS: tuple[str, ...] = (
-    'theta_meas',
-    'omega_meas',
-    'torque',
-    'isd',
-    'isq',
-    'i_alpha',
-    'i_beta',
-    'load_torque',
-)
+#: ``im_drive_read``'s ``m[8]``, in order (``example_drive.Measurement``'s fields; SI units):
+#: the state's fields from theta_meas to load_torque (``contract.STATE_FIELDS``)
+MEASUREMENT_FIELDS: tuple[str, ...] = contract.STATE_FIELDS[
+    contract.STATE_INDEX['theta_meas'] : contract.STATE_INDEX['load_torque'] + 1
+]
 N_MEASUREMENT = len(MEASUREMENT_FIELDS)
 
 #: ``IM_DRIVE_ABI_VERSION`` of the header this loop calls by (include/im_drive.h; a test
@@ -138,76 +132,38 @@ _F64 = ir.DoubleType()
 _F64P = _F64.as_pointer()
 
 
-def _fn(builder: Any, addr: Any, ret: Any, params: list[Any]) -> Any:
-    return builder.inttoptr(addr, ir.FunctionType(ret, params).as_pointer())
-
-
-def _c_write_typer(typingctx: Any, addr: Any, isq: Any, load: Any) -> Any:
-    sig = types.int32(types.int64, types.float64, types.float64)
-
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        a, x, y = args
-        return builder.call(_fn(builder, a, _I32, [_F64, _F64]), [x, y])
-
-    return sig, codegen
-
-
-_c_write: Any = intrinsic(_c_write_typer)
-
-
-def _c_read_typer(typingctx: Any, addr: Any, m: Any) -> Any:
-    sig = types.int32(types.int64, types.int64)
+def _call_by_address(name: str, params: list[Any]) -> Any:
+    """A numba intrinsic ``f(addr, *args) -> int32`` that calls the C function at the
+    address ``addr`` (int64) with ``args``: ``params`` are its C parameter types
+    (``_F64`` a double, ``_I64`` an int64, ``_F64P`` a ``double*`` given as an int64
+    address). Written with llvmlite because numba has no call through a run-time
+    address."""
+    sig = types.int32(types.int64, *(types.float64 if p is _F64 else types.int64 for p in params))
 
     def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        a, p = args
-        return builder.call(_fn(builder, a, _I32, [_F64P]), [builder.inttoptr(p, _F64P)])
+        fn_type = ir.FunctionType(_I32, params).as_pointer()
+        vals = [
+            builder.inttoptr(v, _F64P) if p is _F64P else v
+            for p, v in zip(params, args[1:], strict=True)
+        ]
+        return builder.call(builder.inttoptr(args[0], fn_type), vals)
 
-    return sig, codegen
+    def typer(typingctx: Any, *args: Any) -> Any:
+        return sig, codegen
 
-
-_c_read: Any = intrinsic(_c_read_typer)
-
-
-def _ctx_write_typer(typingctx: Any, addr: Any, ctx: Any, n: Any, isq: Any, load: Any) -> Any:
-    sig = types.int32(types.int64, types.int64, types.int64, types.float64, types.float64)
-
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        a, c, k, x, y = args
-        f = _fn(builder, a, _I32, [_F64P, _I64, _F64, _F64])
-        return builder.call(f, [builder.inttoptr(c, _F64P), k, x, y])
-
-    return sig, codegen
+    # numba reads the intrinsic's arguments from its typer's signature: one each, named
+    names = ['typingctx', 'addr', *(f'arg{i}' for i in range(len(params)))]
+    kind = inspect.Parameter.POSITIONAL_OR_KEYWORD
+    typer.__signature__ = inspect.Signature([inspect.Parameter(n, kind) for n in names])  # type: ignore[attr-defined]
+    typer.__name__ = typer.__qualname__ = name
+    return intrinsic(typer)
 
 
-_ctx_write: Any = intrinsic(_ctx_write_typer)
-
-
-def _ctx_read_typer(typingctx: Any, addr: Any, ctx: Any, n: Any, m: Any) -> Any:
-    sig = types.int32(types.int64, types.int64, types.int64, types.int64)
-
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        a, c, k, p = args
-        f = _fn(builder, a, _I32, [_F64P, _I64, _F64P])
-        return builder.call(f, [builder.inttoptr(c, _F64P), k, builder.inttoptr(p, _F64P)])
-
-    return sig, codegen
-
-
-_ctx_read: Any = intrinsic(_ctx_read_typer)
-
-
-def _ctx_elapse_typer(typingctx: Any, addr: Any, ctx: Any, n: Any, periods: Any) -> Any:
-    sig = types.int32(types.int64, types.int64, types.int64, types.int64)
-
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        a, c, k, p = args
-        f = _fn(builder, a, _I32, [_F64P, _I64, _I64])
-        return builder.call(f, [builder.inttoptr(c, _F64P), k, p])
-
-    return sig, codegen
-
-
-_ctx_elapse: Any = intrinsic(_ctx_elapse_typer)
+_c_write: Any = _call_by_address('_c_write', [_F64, _F64])
+_c_read: Any = _call_by_address('_c_read', [_F64P])
+_ctx_write: Any = _call_by_address('_ctx_write', [_F64P, _I64, _F64, _F64])
+_ctx_read: Any = _call_by_address('_ctx_read', [_F64P, _I64, _F64P])
+_ctx_elapse: Any = _call_by_address('_ctx_elapse', [_F64P, _I64, _I64])
 
 
 #: the words of an entry as the loop holds them (int64 array, :func:`entry_words`)

@@ -34,6 +34,7 @@ is restored first by :func:`replay` (same gains, same order; losses checked bit 
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import time
 from collections.abc import Callable
@@ -124,23 +125,12 @@ class Measurement:
         )
 
 
-#: The fields of a Measurement that are the controller's LossResult's, by the same name.
-_AS_IN_RESULT = (
-    'loss',
-    'terms',
-    'aborted',
-    'reason',
-    'experiment_id',
-    'direction',
-    'steps',
-    'trip_step',
-    'fresh',
-    'held',
-    'late',
-    'timing',
-    'gains_step',
-    'ripple',
-    'motion',
+#: The fields of a Measurement that are the controller's LossResult's, by the same name
+#: (the gains are converted).
+_AS_IN_RESULT = tuple(
+    f.name
+    for f in dataclasses.fields(Measurement)
+    if f.name in {r.name for r in dataclasses.fields(LossResult)} and f.name != 'gains'
 )
 
 #: The fields of a Measurement its record carries as they are (the record's own names):

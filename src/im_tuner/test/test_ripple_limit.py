@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_tuning import fake_measurement
 
 from im_controller.config import GAIN_NAMES, Gains
 from im_drive_sim.cli import UsageError
@@ -56,23 +57,7 @@ class RippleBench:
         target[0] = 0.9
         loss = 1.0 + float(np.sum((u - target) ** 2)) + 1e-3 * (self.n % 3)
         eid, self.n = self.n, self.n + 1
-        return Measurement(
-            loss=loss,
-            terms=(loss, 0.0, 0.0),
-            aborted=False,
-            reason='',
-            fault=False,
-            experiment_id=eid,
-            direction=1 - 2 * (eid % 2),
-            steps=5625,
-            trip_step=-1,
-            t_start_ns=eid * 10**9,
-            t_end_ns=eid * 10**9 + 1125 * 10**6,
-            wall_s=0.001,
-            gains=gains.as_tuple(),
-            fresh=5625,
-            ripple=self.ripple_of(u),
-        )
+        return fake_measurement(eid, gains, loss, ripple=self.ripple_of(u))
 
     def apply(self, gains: Gains) -> None:
         self.applied = gains

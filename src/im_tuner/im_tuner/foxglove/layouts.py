@@ -123,42 +123,50 @@ def _layout(config_by_id: dict[str, Any], tree: Any) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------------------- layouts
+def _column(ns: str, plots: dict[str, tuple[str, list[tuple[str, str]]]]) -> dict[str, Any]:
+    """A layout of plots one above the other: panel id -> (title, its series as (topic,
+    field) of an array message, on namespace ``ns``)."""
+    panels = {
+        f'Plot!{pid}': _plot(title, [array_path(topic, field, ns) for topic, field in series])
+        for pid, (title, series) in plots.items()
+    }
+    return _layout(panels, _stack(list(panels), 'column'))
+
+
 def fig5_trajectory(ns: str = '') -> dict[str, Any]:
     """Paper Fig. 5: the position reference (the raw trajectory theta*) and the measured
     position, the position error and the load torque, on receive time; seek to an
     experiment to see its pi rad move and the load step 0.7 s after the move starts."""
-    panels = {
-        'Plot!fig5_position': _plot(
-            'Fig. 5 position: reference and measured [rad]',
-            [array_path(INTERNALS, 'theta_ref', ns), array_path(STATE, 'theta_meas', ns)],
-        ),
-        'Plot!fig5_error': _plot(
-            'Fig. 5 position error [rad]', [array_path(INTERNALS, 'e_theta', ns)]
-        ),
-        'Plot!fig5_load': _plot(
-            'Fig. 5 load torque: commanded and applied [N m]',
-            [array_path(INTERNALS, 'load_cmd', ns), array_path(STATE, 'load_torque', ns)],
-        ),
-    }
-    return _layout(panels, _stack(list(panels), 'column'))
+    return _column(
+        ns,
+        {
+            'fig5_position': (
+                'Fig. 5 position: reference and measured [rad]',
+                [(INTERNALS, 'theta_ref'), (STATE, 'theta_meas')],
+            ),
+            'fig5_error': ('Fig. 5 position error [rad]', [(INTERNALS, 'e_theta')]),
+            'fig5_load': (
+                'Fig. 5 load torque: commanded and applied [N m]',
+                [(INTERNALS, 'load_cmd'), (STATE, 'load_torque')],
+            ),
+        },
+    )
 
 
 def fig8_errors(ns: str = '') -> dict[str, Any]:
     """Paper Fig. 8: (a) position error, (b) speed error, (c) current reference i*sq (with
     the measured q-axis current), on receive time."""
-    panels = {
-        'Plot!fig8a_position_error': _plot(
-            'Fig. 8 (a) position error [rad]', [array_path(INTERNALS, 'e_theta', ns)]
-        ),
-        'Plot!fig8b_speed_error': _plot(
-            'Fig. 8 (b) speed error [rad/s]', [array_path(INTERNALS, 'e_omega', ns)]
-        ),
-        'Plot!fig8c_current': _plot(
-            'Fig. 8 (c) current reference and measured q-axis current [A]',
-            [array_path(INTERNALS, 'isq_ref', ns), array_path(STATE, 'isq', ns)],
-        ),
-    }
-    return _layout(panels, _stack(list(panels), 'column'))
+    return _column(
+        ns,
+        {
+            'fig8a_position_error': ('Fig. 8 (a) position error [rad]', [(INTERNALS, 'e_theta')]),
+            'fig8b_speed_error': ('Fig. 8 (b) speed error [rad/s]', [(INTERNALS, 'e_omega')]),
+            'fig8c_current': (
+                'Fig. 8 (c) current reference and measured q-axis current [A]',
+                [(INTERNALS, 'isq_ref'), (STATE, 'isq')],
+            ),
+        },
+    )
 
 
 def fig9_loss_gains(ns: str = '') -> dict[str, Any]:

@@ -310,7 +310,7 @@ def _replay(
             continue
         k0 = int(rec['t_start_ns']) // ts_ns
         gains = Gains(*(float(rec['gains'][n]) for n in GAIN_NAMES))
-        g_step = int(rec.get('gains_step', k0))
+        g_step = int(rec['gains_step'])
         if g_step > sim.step_index:
             _run(sim, runner, g_step - sim.step_index, False, False, python_loop)
         if gains != runner.gains:

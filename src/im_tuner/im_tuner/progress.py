@@ -173,10 +173,8 @@ def mechanics_lines(s: Summary) -> list[str]:
 
 
 def _limit_lines(r: dict[str, Any]) -> list[str]:
-    """The ripple limit's line of the summary (none for a summary from before it)."""
-    if 'limit' not in r:
-        return []
-    limit, bound = r.get('limit'), r.get('bound')
+    """The ripple limit's line of the summary."""
+    limit, bound = r['limit'], r['bound']
     if limit is None:
         return ['  ripple limit: off']
     if not bound:
@@ -367,7 +365,7 @@ def drive_text(d: dict[str, Any] | None, which: str | None) -> str:
 
 def tolerance_text(s: Any) -> str:
     """The timing tolerance and the held periods of the counted experiments, for a
-    summary line ('' for a run of an older tuner, without them)."""
+    summary line ('' for a run without a tolerance, or without a counted experiment)."""
     h, tol = s.held_periods, s.timing_tolerance
     if tol is None or not h:
         return ''

@@ -101,7 +101,7 @@ class RunConfig(_Keyed):
     #: late_pct, tolerance, share_meeting, meets, auto, ...); None: not a real-time bench
     host_check: dict[str, Any] | None = None
     #: the final choice's standstill-ripple limit (--ripple-limit): a ratio to the
-    #: start's rms of isq*; None: off (or a run of a tuner before it: off)
+    #: start's rms of isq*; None: off
     ripple_limit: float | None = None
     drive: str | None = None  #: 'sim' or the drive given with --drive
     satisfactory_loss: float | None = None

@@ -89,7 +89,7 @@ LINE_ORDER = (
     'best_loss',
 )
 #: Fields written only when they have a value (the tuner never writes them as null; a
-#: line without them, of an older tuner or a test, reads back as it was).
+#: line without them reads back as it was).
 _WHEN_SET = (
     'attempt',
     'time',

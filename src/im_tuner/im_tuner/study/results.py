@@ -49,14 +49,13 @@ class StudyResult:
     jobs: int = 1
     command: str = ''  #: the command that ran the study (for the write-up)
     #: the numeric baseline its runs ran on (im_drive_sim.numeric.status() of the study's
-    #: process; every worker was checked to agree); None: a study from before it was recorded
+    #: process; every worker was checked to agree); None: not known (a result made in memory)
     numeric: dict | None = None
     #: the hand-tuned start's L_ref on the told drive, when the plant is another
     #: (``spec.split``; ``l_ref`` is always the plant's); None otherwise
     l_ref_told: float | None = None
     #: float64[cells, runs, 4]: the standstill rms of isq* [A] after the move and after
-    #: the load, of the start then of the final choice (nan: not measured, or a study
-    #: from before it was kept)
+    #: the load, of the start then of the final choice (nan: not measured)
     ripple: np.ndarray | None = None
     #: bool[cells, runs]: the ripple limit kept out a point the run would have re-measured
     ripple_changed: np.ndarray | None = None
@@ -100,8 +99,6 @@ class StudyResult:
         'ripple_pp',
         'identified',
     )
-    #: arrays a study from before them does not have (read as not measured)
-    OPTIONAL_ARRAYS = ('ripple', 'ripple_changed', 'ripple_pp', 'identified')
 
 
 def empty_runs(C: int, R: int, B: int, D: int) -> dict[str, np.ndarray]:
@@ -172,11 +169,7 @@ def load(out: Path | str) -> StudyResult:
     try:
         meta = json.loads((out / META_FILE).read_text())
         with np.load(out / ARRAYS_FILE) as z:
-            arrays = {
-                k: z[k]
-                for k in StudyResult.ARRAYS
-                if k in z.files or k not in StudyResult.OPTIONAL_ARRAYS
-            }
+            arrays = {k: z[k] for k in StudyResult.ARRAYS}
     except FileNotFoundError as exc:
         raise ValueError(
             f'{out}: not a study directory ({Path(exc.filename).name} missing)'
@@ -202,8 +195,8 @@ def load(out: Path | str) -> StudyResult:
             l_first=meta['l_first'],
             wall_s=meta['wall_s'],
             jobs=meta['jobs'],
-            command=meta.get('command', ''),
-            numeric=meta.get('numeric'),
+            command=meta['command'],
+            numeric=meta['numeric'],
             l_ref_told=meta.get('l_ref_told'),
             **arrays,
         )

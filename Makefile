@@ -66,8 +66,12 @@ test: setup
 test-serial: setup
 	$(PY) -m pytest
 
+# The pure tier (marked unit: no DDS graph, no child process) on two workers, as `make test`,
+# with a first-step cache of its own.
+UNIT_TIER := -n 2 --dist loadfile --no-loadscope-reorder -m unit -p no:cacheprovider
 test-unit: setup
-	$(PY) -m pytest -m unit
+	@export IM_TUNER_PRIOR_CACHE=$$(mktemp -d /tmp/im_tuner_test_priors.XXXXXX); \
+	    $(PY) -m pytest $(UNIT_TIER); a=$$?; rm -rf "$$IM_TUNER_PRIOR_CACHE"; exit $$a
 
 # The pure tier (every digest: optimisers, drive model, study) again on a machine without
 # AVX-512, emulated: numpy's dispatch held at X86_V3 and OpenBLAS's Zen core type, as on an
@@ -77,7 +81,7 @@ test-unit: setup
 test-levels: setup
 	@export IM_TUNER_PRIOR_CACHE=$$(mktemp -d /tmp/im_tuner_test_priors.XXXXXX); \
 	    NPY_DISABLE_CPU_FEATURES=X86_V4,AVX512_ICL,AVX512_SPR OPENBLAS_CORETYPE=Zen \
-	    $(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder -m unit -p no:cacheprovider; \
+	    $(PY) -m pytest $(UNIT_TIER); \
 	    a=$$?; rm -rf "$$IM_TUNER_PRIOR_CACHE"; exit $$a
 
 # Lint and types: ruff.toml and mypy.ini say what is checked and why.

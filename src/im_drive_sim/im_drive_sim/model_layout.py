@@ -73,6 +73,36 @@ P_LS_ON = 53  # 1: the load step's amplitude/instant vary (either below non-zero
 P_LS_DELAY_N = 54  # largest delay of a load step [periods] (integer valued)
 N_PARAMS = 55
 
+#: The words of ``P`` that are a drive file's value as it is (its path in the
+#: ``DriveConfig``: ``section.key`` or a top-level key), copied by ``sim.make_param_array``;
+#: the other words are computed from them there.
+FROM_CONFIG: dict[int, str] = {
+    P_NP: 'machine.pole_pairs',
+    P_LM: 'machine.Lm',
+    P_LS: 'machine.Ls',
+    P_LR: 'machine.Lr',
+    P_KR: 'machine.kr',
+    P_RSIG: 'machine.R_sigma',
+    P_B: 'machine.B',
+    P_TC: 'machine.coulomb_torque',
+    P_UMAX: 'machine.u_max',
+    P_ISD_REF: 'machine.rated_flux_current',
+    P_ISQ_MAX: 'machine.isq_max',
+    P_PSI_MIN: 'control.flux_floor',
+    P_DELAY: 'control.computation_delay_steps',
+    P_KT: 'machine.Kt',
+    P_PSI_RATED: 'machine.rated_flux',
+    P_RIP_AMP: 'disturbance.ripple_amplitude',
+    P_RIP_HARM: 'disturbance.ripple_harmonic',
+    P_RIP_PHASE: 'disturbance.ripple_phase',
+    P_RS: 'machine.Rs',
+    P_RR: 'machine.Rr',
+    P_J: 'machine.J',
+    P_CMD_DELAY: 'command_delay',
+    P_IOFF_A: 'sensors.current_offset_a',
+    P_VDT: 'machine.deadtime_voltage',
+}
+
 # -------------------------------------------------------------------- state indices
 S_ISA = 0  # true stator current alpha [A]
 S_ISB = 1

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -56,39 +57,26 @@ def make_param_array(cfg: DriveConfig) -> np.ndarray:
     m, c, s, d = cfg.machine, cfg.control, cfg.sensors, cfg.disturbance
     Ts = cfg.Ts
     P = np.zeros(L.N_PARAMS)
+    for i, path in L.FROM_CONFIG.items():
+        P[i] = float(attrgetter(path)(cfg))
     sigls = m.sigma * m.Ls
     P[L.P_TS] = Ts
     P[L.P_TS_NS] = float(cfg.Ts_ns)
-    P[L.P_NP] = float(m.pole_pairs)
-    P[L.P_LM] = m.Lm
-    P[L.P_LS] = m.Ls
-    P[L.P_LR] = m.Lr
-    P[L.P_KR] = m.kr
-    P[L.P_RSIG] = m.R_sigma
     P[L.P_INV_SIGLS] = 1.0 / sigls
     P[L.P_KR_TAUR] = m.kr / m.tau_r
     P[L.P_INV_TAUR] = 1.0 / m.tau_r
     P[L.P_KTE] = 1.5 * m.pole_pairs * m.kr
     P[L.P_INV_J] = 1.0 / m.J
-    P[L.P_B] = m.B
-    P[L.P_TC] = m.coulomb_torque
     P[L.P_INV_WC] = 1.0 / friction_smoothing_speed(m)
-    P[L.P_UMAX] = m.u_max
-    P[L.P_ISD_REF] = m.rated_flux_current
-    P[L.P_ISQ_MAX] = m.isq_max
     P[L.P_KP] = sigls * c.current_bandwidth
     P[L.P_KI_TS] = m.R_sigma * c.current_bandwidth * Ts
     P[L.P_SIGLS] = sigls
-    P[L.P_PSI_MIN] = c.flux_floor
     P[L.P_EST_A] = math.exp(-Ts / m.tau_r)
     P[L.P_ENC_K] = s.encoder_counts / (2.0 * math.pi)
     P[L.P_ENC_RES] = 2.0 * math.pi / s.encoder_counts
     P[L.P_ENC_RES_TS] = (2.0 * math.pi / s.encoder_counts) / Ts
     P[L.P_SPD_A] = _lag(Ts, s.speed_filter_tau)
-    P[L.P_DELAY] = float(c.computation_delay_steps)
     P[L.P_MODEL] = 0.0 if cfg.model == 'full' else 1.0
-    P[L.P_KT] = m.Kt
-    P[L.P_PSI_RATED] = m.rated_flux
     tau_i = c.reduced_current_lag
     P[L.P_ISQ_A] = _lag(Ts, tau_i)
     P[L.P_ISQ_AH] = _lag(0.5 * Ts, tau_i)
@@ -96,19 +84,10 @@ def make_param_array(cfg: DriveConfig) -> np.ndarray:
     P[L.P_ISQ_A0] = 1.0 if tau_i > 0.0 else 0.0
     P[L.P_SLIP_K] = m.Lm / (m.tau_r * m.rated_flux)
     P[L.P_LOAD_A] = _lag(Ts, d.load_lag_tau)
-    P[L.P_RIP_AMP] = d.ripple_amplitude
-    P[L.P_RIP_HARM] = d.ripple_harmonic
-    P[L.P_RIP_PHASE] = d.ripple_phase
     P[L.P_LN_A] = _lag(Ts, d.load_noise_tau)
-    P[L.P_RS] = m.Rs
-    P[L.P_RR] = m.Rr
-    P[L.P_J] = m.J
-    P[L.P_CMD_DELAY] = float(cfg.command_delay)
-    P[L.P_IOFF_A] = s.current_offset_a
     P[L.P_IOFF_B] = (s.current_offset_a + 2.0 * s.current_offset_b) / math.sqrt(3.0)
     P[L.P_STRIBECK] = stribeck_gain(m)
     P[L.P_INV_WS2] = 1.0 / (m.stribeck_speed * m.stribeck_speed)
-    P[L.P_VDT] = m.deadtime_voltage
     P[L.P_RR_RISE] = m.rr_temp_coeff * m.rr_temp_rise
     P[L.P_INV_TTH] = 1.0 / m.rr_temp_tau
     P[L.P_LS_DELAY_N] = float(load_step_delay_periods(cfg))

@@ -1,13 +1,25 @@
-"""The tuner's bench modes and which of them simulate the drive (pure: no rclpy).
+"""The tuner's bench modes, its drives by name, and which of them simulate the drive
+(pure: no rclpy).
 
-The one copy of ``--bench``'s values (``tuner_args`` imports them from here); pure, so
-that the report and the tuner's summary can tell a simulated drive from a real one
-without importing the tuner's command line.
+The one copy of ``--bench``'s values and ``--drive``'s names (``tuner_args`` and
+``bench.drive_spec`` take them from here); pure, so that the report and the tuner's
+summary can tell a simulated drive from a real one without importing the tuner's command
+line.
 """
 
 from __future__ import annotations
 
-__all__ = ['BENCHES', 'IN_PROCESS_BENCHES', 'LOCKSTEP_BENCHES', 'SIM_BENCHES', 'is_simulated']
+from dataclasses import dataclass
+
+__all__ = [
+    'BENCHES',
+    'IN_PROCESS_BENCHES',
+    'LOCKSTEP_BENCHES',
+    'NAMED_DRIVES',
+    'SIM_BENCHES',
+    'NamedDrive',
+    'is_simulated',
+]
 
 #: every ``--bench`` value (``none``: an external bench, the drive is not ours)
 BENCHES = ('auto', 'inproc', 'processes', 'realtime', 'realtime-processes', 'none')
@@ -19,9 +31,32 @@ IN_PROCESS_BENCHES = ('inproc', 'realtime')
 LOCKSTEP_BENCHES = ('inproc', 'processes')
 
 
+@dataclass(frozen=True)
+class NamedDrive:
+    """A drive ``--drive`` takes by name: ``says`` what it is (the help, the refusals);
+    ``simulated``: its plant is simulated (its runs repeat, a safety fault is reset and
+    the run goes on: :func:`is_simulated`); ``make``: ``module:function`` that builds its
+    node in real time, ``function(context, overrides)`` (``bench.drive_spec.make_drive``)."""
+
+    says: str
+    simulated: bool
+    make: str
+
+
+#: Drives by name, in the order the help lists them (the first is the default); anything
+#: else is ``lib:PATH`` or ``package.module:Class`` (``bench.drive_spec``)
+NAMED_DRIVES: dict[str, NamedDrive] = {
+    'sim': NamedDrive('the simulator', True, 'im_tuner.bench.drive_spec:sim_drive'),
+    'example': NamedDrive(
+        "the example drive's stand-in hardware", True, 'im_tuner.bench.drive_spec:example_drive'
+    ),
+}
+
+
 def is_simulated(bench: str | None, drive: str | None) -> bool:
-    """A simulated bench: a simulated bench mode with the simulator or the example's
-    stand-in (``drive`` ``sim`` or ``example``; None: ``sim``, the default). ``bench``
-    ``none`` (an external bench) or a hardware class given with ``--drive`` is a real
-    drive, whose experiments run on its own clock."""
-    return bench in SIM_BENCHES and (drive or 'sim') in ('sim', 'example')
+    """A simulated bench: a simulated bench mode with a named drive whose plant is
+    simulated (``drive`` None: the default, the simulator). ``bench`` ``none`` (an
+    external bench) or a drive of the user's given with ``--drive`` is a real drive,
+    whose experiments run on its own clock."""
+    named = NAMED_DRIVES.get(drive or next(iter(NAMED_DRIVES)))
+    return bench in SIM_BENCHES and named is not None and named.simulated

@@ -17,6 +17,7 @@ from im_drive_sim import host, rt
 from im_drive_sim.cli import Parser, UsageError, finite_float
 
 from . import optim
+from .bench.drive_spec import drive_help
 from .bench.spec import DISCOVERY_TIMEOUT
 from .benches import BENCHES  # (the bench modes: one copy, in benches)
 from .names import DEFAULT_TIMING_TOLERANCE, FAULT_POLICIES
@@ -77,10 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         '--drive',
         metavar='DRIVE',
-        help="--bench realtime: the drive in the loop: 'sim' (the simulator, default), "
-        "'example' (the example drive's stand-in hardware) or package.module:Class (your "
-        'hardware class, as example_drive.Hardware, or your drive node class; '
-        'docs/real-drive.md)',
+        help=f'--bench realtime: {drive_help()}',
     )
     ap.add_argument('--quiet', action='store_true', help='no progress bar (for scripts)')
     ap.add_argument(
@@ -226,7 +224,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def timing_tolerance(cli: argparse.Namespace, argv: list[str]) -> int | str | None:
     """The tolerance asked for: ``--timing-tolerance N`` or ``-p timing_tolerance:=N``
-    after ``--ros-args`` (the controller's parameter, as the docs said before); None:
+    after ``--ros-args`` (the controller's parameter, which the tuner sets); None:
     neither; ``auto``: ``host.AUTO``. Both, differing, or a value that is not an integer
     >= 0: UsageError."""
     given = cli.timing_tolerance

@@ -15,6 +15,7 @@ from im_drive_sim.cli import (
 )
 
 from ..names import DEFAULT_TIMING_TOLERANCE
+from .drive_spec import drive_help
 from .sim_bench_main import BAG_OPTIONS
 
 DESCRIPTION = (
@@ -34,9 +35,7 @@ def parser() -> argparse.ArgumentParser:
         '--drive',
         metavar='DRIVE',
         default='sim',
-        help="the drive in the loop: 'sim' (the simulator in real time, default), 'example' "
-        "(the example drive's stand-in hardware), lib:PATH (a C library, "
-        'share/im_drive_sim/include/im_drive.h) or package.module:Class (docs/real-drive.md)',
+        help=drive_help(),
     )
     add_config_option(ap, "the drive's parameters (the simulator's motor, your drive's Ts)")
     ap.add_argument(

@@ -1,11 +1,11 @@
 """``--drive``: which drive the composed real-time bench runs, checked against the drive
 contract of docs/real-drive.md before anything is created.
 
-A drive is named ``sim`` (the simulator), ``example`` (the example drive's stand-in
-hardware, compiled: ``im_drive_sim.example_hardware``), ``lib:PATH`` (a C shared library
-with the drive ABI, ``im_drive_sim.hardware_abi``: loaded, checked and opened here) or
-``package.module:Class``, where the class is one of the three forms the document
-describes:
+A drive is named (``benches.NAMED_DRIVES``: ``sim``, the simulator; ``example``, the
+example drive's stand-in hardware, compiled: ``im_drive_sim.example_hardware``),
+``lib:PATH`` (a C shared library with the drive ABI, ``im_drive_sim.hardware_abi``:
+loaded, checked and opened here) or ``package.module:Class``, where the class is one of
+the three forms the document describes:
 
 * **a compiled hardware class**: numba-jitted ``write(state, isq_ref, load_torque)``,
   ``read(state, m)`` (optional ``elapse(state, periods)``) on the class and a float64
@@ -42,6 +42,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..benches import NAMED_DRIVES
+
 __all__ = [
     'DRIVES',
     'DriveChoice',
@@ -49,13 +51,74 @@ __all__ = [
     'check_drive_spec',
     'close_hardware',
     'close_untaken',
+    'drive_help',
     'load_drive_class',
     'resolve',
 ]
 
-#: Drives by name; anything else is ``package.module:Class``.
-DRIVES = ('sim', 'example')
+
+def sim_drive(context: Any, overrides: list[Any]) -> Any:
+    """The simulator, in real time, with every drive parameter of the tuner's."""
+    from rclpy.parameter import Parameter
+
+    from im_drive_sim.drive_sim_node import DriveSimNode
+
+    return DriveSimNode(
+        context=context,
+        parameter_overrides=[
+            Parameter('mode', value='realtime'),
+            Parameter('realtime_wait_for_controller', value=False),
+            *overrides,
+        ],
+        warn_unknown=False,
+    )
+
+
+def example_drive(context: Any, overrides: list[Any]) -> Any:
+    """The example drive around its stand-in plant, compiled (:func:`compiled_example`)."""
+    from im_drive_sim.example_drive import ExampleDrive
+
+    return ExampleDrive(
+        context=context, parameter_overrides=_file_only(overrides), hardware_class=compiled_example
+    )
+
+
+def compiled_example(config: Any) -> Any:
+    """``--drive example``'s power stage: the stand-in plant, compiled
+    (``im_drive_sim.example_hardware``), behind the ABI's Python interface."""
+    from im_drive_sim.example_hardware import CompiledHardware
+    from im_drive_sim.hardware_abi import CompiledClassHardware
+
+    return CompiledClassHardware(CompiledHardware(config), name='example')
+
+
+def _file_only(overrides: list[Any]) -> list[Any]:
+    """Of the tuner's drive parameters, the drive file (all a drive but the simulator
+    takes)."""
+    return [p for p in overrides if p.name == 'config_file']
+
+
+#: Drives by name; anything else is ``lib:PATH`` or ``package.module:Class``
+DRIVES = tuple(NAMED_DRIVES)
 _DOC = 'docs/real-drive.md'
+
+
+def drive_help() -> str:
+    """``--drive``'s help: the named drives, then the forms of a user's drive."""
+    named = ', '.join(
+        f"'{k}' ({d.says}{', default' if i == 0 else ''})"
+        for i, (k, d) in enumerate(NAMED_DRIVES.items())
+    )
+    return (
+        f'the drive in the loop: {named}, lib:PATH (a C library, '
+        'share/im_drive_sim/include/im_drive.h) or package.module:Class (your hardware class, '
+        'as example_drive.Hardware, or your drive node class; docs/real-drive.md)'
+    )
+
+
+def _expected() -> str:
+    """What ``--drive`` takes, for a refusal."""
+    return ', '.join(f"'{k}'" for k in NAMED_DRIVES) + ", 'lib:PATH' or 'package.module:Class'"
 
 
 class DriveSpecError(ValueError):
@@ -75,9 +138,7 @@ def load_drive_class(spec: str) -> type:
     """The class named by ``package.module:Class`` (DriveSpecError if there is none)."""
     mod_name, sep, cls_name = spec.partition(':')
     if not sep or not mod_name or not cls_name:
-        raise DriveSpecError(
-            f"--drive {spec!r}: expected 'sim', 'example', 'lib:PATH' or 'package.module:Class'"
-        )
+        raise DriveSpecError(f'--drive {spec!r}: expected {_expected()}')
     try:
         mod = importlib.import_module(mod_name)
     except SystemExit as exc:  # a module that ends the process when imported
@@ -210,7 +271,7 @@ class DriveChoice:
     the instance built by :func:`resolve` with the drive file ``config``."""
 
     spec: str
-    cls: type | None = None  #: None: 'sim', 'example' or a library
+    cls: type | None = None  #: None: a named drive or a library
     form: str = ''  #: 'node', 'hardware', 'compiled', 'library' or '' (a named drive)
     hardware: Any = None  #: the hardware instance, until the bench takes it
     config: Any = None  #: the DriveConfig it was built with
@@ -421,42 +482,15 @@ def build_node(choice: DriveChoice, context: Any, overrides: list[Any]) -> Any:
 
 def make_drive(spec: str | DriveChoice, context: Any, overrides: list[Any]) -> Any:
     """The drive node of the composed real-time bench (``realtime.RealtimeBench``) named
-    by ``spec`` ('sim', 'example' or a class; a DriveChoice is a ``--drive`` already
-    checked, with its hardware built: :func:`resolve`), in real time.
+    by ``spec`` (a name of ``benches.NAMED_DRIVES`` or a class; a DriveChoice is a
+    ``--drive`` already checked, with its hardware built: :func:`resolve`), in real time.
 
     ``overrides``: the tuner's drive parameters; the simulator takes them all (seed,
     model, config_file), the example drive and a user's drive only ``config_file``."""
-    from rclpy.parameter import Parameter
-
     choice = spec if isinstance(spec, DriveChoice) else None
     name = choice.spec if choice is not None else spec
     assert isinstance(name, str)
-    if name == 'sim':
-        from im_drive_sim.drive_sim_node import DriveSimNode
-
-        return DriveSimNode(
-            context=context,
-            parameter_overrides=[
-                Parameter('mode', value='realtime'),
-                Parameter('realtime_wait_for_controller', value=False),
-                *overrides,
-            ],
-            warn_unknown=False,
-        )
-    from im_drive_sim.example_drive import ExampleDrive
-
-    mine = [p for p in overrides if p.name == 'config_file']
-    if name == 'example':
-        return ExampleDrive(
-            context=context, parameter_overrides=mine, hardware_class=compiled_example
-        )
-    return build_node(choice or resolve(name, None, build=False), context, mine)
-
-
-def compiled_example(config: Any) -> Any:
-    """``--drive example``'s power stage: the stand-in plant, compiled
-    (``im_drive_sim.example_hardware``), behind the ABI's Python interface."""
-    from im_drive_sim.example_hardware import CompiledHardware
-    from im_drive_sim.hardware_abi import CompiledClassHardware
-
-    return CompiledClassHardware(CompiledHardware(config), name='example')
+    if name in NAMED_DRIVES:
+        module, _, function = NAMED_DRIVES[name].make.partition(':')
+        return getattr(importlib.import_module(module), function)(context, overrides)
+    return build_node(choice or resolve(name, None, build=False), context, _file_only(overrides))

@@ -1,7 +1,7 @@
 # im_tuner workspace: one-command set-up, tests, demo and benchmarks.
 #   make setup   create .venv from pinned requirements and install the three packages
 #   make test    the whole test suite (unit + integration)
-#   make test-unit  the pure tier only: no DDS graph, no child processes (about 160 s)
+#   make test-unit  the pure tier only: no DDS graph, no child processes (about a minute)
 #   make lint    ruff (lint + format check) over the tree, mypy over the pure modules
 #   make demo    the main job: ros2 run im_tuner tuner (its default algorithm; ALGO=necga ...)
 #   make bench   the benchmarks, printing their figures

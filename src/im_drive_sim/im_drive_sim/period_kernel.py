@@ -224,7 +224,7 @@ def run_missed(
 
 
 @njit(cache=True, nogil=True)
-def put_joint(joint: Any, t_ns: int, pos: float, vel: float, eff: float) -> None:
+def put_joint(joint: Any, t_ns: Any, pos: float, vel: float, eff: float) -> None:
     """A joint_states message's values into its views ``joint`` (sec, nanosec, position,
     velocity, effort: ``period_views``' one-element arrays), stamped ``t_ns`` [ns]."""
     sec_, nsec_, pos_, vel_, eff_ = joint

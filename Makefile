@@ -110,9 +110,9 @@ bench: setup
 
 # The `bench` realism profile's calibration: the spread of repeated experiments
 # and the paper's centre cells (Tables I-II) for `ideal` and `bench` at noise scales s,
-# the fit -> docs/calibration.md (im_tuner.study.calibrate; ~5-10 min on 2 cores, niced).
+# the fit -> docs/calibration.md (research/calibrate_bench.py; ~5-10 min on 2 cores, niced).
 calibrate-bench: setup
-	nice -n 10 $(PY) -m im_tuner.study.calibrate --out docs/calibration.md $(ARGS)
+	nice -n 10 $(PY) research/calibrate_bench.py --out docs/calibration.md $(ARGS)
 
 # The paper's Tables I-III offline and beyond, then their write-up
 # into docs/: reproduction.md (the paper's drive on the `ideal` profile: Tables I-III and

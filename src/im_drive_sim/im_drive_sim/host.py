@@ -52,7 +52,7 @@ MEET_SHARE = 0.95
 
 #: Held periods in an experiment -> the 95th percentile of the change of its loss [%],
 #: the worst placement (at random or one burst) of docs/real-drive.md's held-period table
-#: ("Why 10"; ``python -m im_tuner.study.held``), made monotone: the bench's own noise is a
+#: ("Why 10"; ``research/held.py``), made monotone: the bench's own noise is a
 #: CV of 2.4 %. Beyond the last row nothing was measured.
 LOSS_CHANGE_P95: tuple[tuple[int, float], ...] = (
     (0, 0.0),

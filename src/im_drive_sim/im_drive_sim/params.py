@@ -229,7 +229,7 @@ _OPTIONAL: dict[str, Any] = {'command_delay': 1, 'realism': 'ideal'}
 _MODELS = ('full', 'reduced')
 
 #: The bench effects that vary from one experiment to the next (noise-like): the calibration
-#: (``python -m im_tuner.study.calibrate``, docs/calibration.md) scales them together by one
+#: (``research/calibrate_bench.py``, docs/calibration.md) scales them together by one
 #: factor s; the others (offsets, friction, ripple, dead time, Rr drift) are systematic and
 #: keep their sourced magnitude.
 BENCH_NOISE_KEYS: tuple[str, ...] = (

@@ -103,7 +103,13 @@ class DriveMonitor:
     def mark(self, spin_until: Callable[[Callable[[], bool], float], bool], timeout: float) -> None:
         """Take the drive's counters at the session's start: a status newer than this
         call, waited for up to ``timeout`` s (the drive reports about once a second);
-        else the newest one, if any."""
+        else the newest one, if any. None has come yet: up to ``DISCOVERY_S`` more, for
+        a subscription made moments ago to meet the drive's publisher (measured up to
+        2.3 s on a loaded 2-core machine) and its next report."""
         n0 = self.received
-        spin_until(lambda: self.received > n0, timeout)
+        if not spin_until(lambda: self.received > n0, timeout) and self.last is None:
+            spin_until(lambda: self.received > n0, self.DISCOVERY_S)
         self.start = None if self.last is None else dict(self.last)
+
+    #: [s] the longer wait of :meth:`mark` for a first report
+    DISCOVERY_S = 5.0

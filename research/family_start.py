@@ -8,7 +8,7 @@ was 58-80 % of isq_max on the ratio-10 drives: at standstill the encoder's one-c
 cycle became a current chatter of several amperes, on ``im7500w-j10`` at the current limit.
 ``family.start_scale`` caps it at ``family.COUNT_STEP_MAX`` of isq_max.
 
-``python -m im_tuner.family_start [EXPERIMENTS] [--realism bench]`` prints, for each drive,
+``python research/family_start.py [EXPERIMENTS] [--realism bench]`` prints, for each drive,
 the start by the inertia rule alone (``before``) and by the rule now (``now``): k_pw, k_iw,
 the count step, the q-current reference's rms around its median at standstill, the periods
 it spends at the limit, and the start's loss with the weights each rule calibrates and with
@@ -26,8 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from im_controller.config import ExperimentConfig, Gains, trajectory_times
-
-from . import family as F
+from im_tuner import family as F
 
 __all__ = ['StartFigures', 'inertia_rule_experiment', 'measure_start', 'standstill_windows']
 
@@ -74,8 +73,7 @@ def _run(setup: F.DriveSetup, e: ExperimentConfig, gains: Gains, n: int):
     losses, aborts and the recorded q-current references."""
     from im_controller.runner import ExperimentRunner, config_for_drive
     from im_drive_sim.sim import DriveSim
-
-    from .offline import run_experiment_offline
+    from im_tuner.offline import run_experiment_offline
 
     sim = DriveSim(setup.drive, seed=0)
     sim.reset(omega=0.0, fluxed=True)
@@ -149,11 +147,11 @@ def start_table(
     return '\n'.join(rows)
 
 
-USAGE = 'usage: python -m im_tuner.family_start [EXPERIMENTS >= 1] [--realism ideal|bench]'
+USAGE = 'usage: python research/family_start.py [EXPERIMENTS >= 1] [--realism ideal|bench]'
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m im_tuner.family_start [EXPERIMENTS] [--realism ideal|bench]``."""
+    """``python research/family_start.py [EXPERIMENTS] [--realism ideal|bench]``."""
     from im_drive_sim.params import REALISM_PROFILES
 
     args = list(sys.argv[1:] if argv is None else argv)
@@ -164,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         del args[i : i + 2]
     bad = realism is not None and realism not in REALISM_PROFILES
     if bad or len(args) > 1 or (args and not (args[0].isdigit() and int(args[0]) >= 1)):
-        print(f'error: im_tuner.family_start: {USAGE}', file=sys.stderr)
+        print(f'error: family_start: {USAGE}', file=sys.stderr)
         return 2
     print(start_table(n=int(args[0]) if args else 3, realism=realism))
     return 0

@@ -1,21 +1,29 @@
 """The ratio-10 drives' start does not chatter at the current limit
 (docs/drive-family.md, "Start gains"): one encoder count is a quarter of isq_max, measured
-against the start by the inertia rule alone; the paper's start is the paper's exactly."""
+(research/family_start.py) against the start by the inertia rule alone; the paper's start
+is the paper's exactly."""
 
 from __future__ import annotations
 
+import importlib.util
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from im_controller.config import Gains
 from im_tuner.family import COUNT_STEP_MAX, count_step, drive_setup, start_scale
-from im_tuner.family_start import (
-    inertia_rule_experiment,
-    measure_start,
-    standstill_windows,
-)
+
+SCRIPT = Path(__file__).resolve().parents[1] / 'research' / 'family_start.py'
+_spec = importlib.util.spec_from_file_location('family_start', SCRIPT)
+assert _spec is not None and _spec.loader is not None
+_start = importlib.util.module_from_spec(_spec)
+sys.modules['family_start'] = _start  # (its dataclasses look their module up)
+_spec.loader.exec_module(_start)  # (research/ is not a package: the script, loaded by path)
+inertia_rule_experiment = _start.inertia_rule_experiment
+measure_start = _start.measure_start
+standstill_windows = _start.standstill_windows
 
 
 def test_the_papers_start_and_windows_are_the_papers() -> None:
@@ -51,7 +59,7 @@ def test_im7500w_j10_start_no_longer_chatters_at_the_limit() -> None:
 def test_the_table_command_refuses_bad_input_in_one_line() -> None:
     for argv in (['x'], ['0'], ['3', '4'], ['--realism', 'lab'], ['--realism']):
         p = subprocess.run(
-            [sys.executable, '-m', 'im_tuner.family_start', *argv],
+            [sys.executable, str(SCRIPT), *argv],
             capture_output=True,
             text=True,
             timeout=120,

@@ -1,5 +1,5 @@
 """What N held periods do to a loss: the measurement behind the default
-``timing_tolerance`` (``python -m im_tuner.study.held``, docs/real-drive.md
+``timing_tolerance`` (``python research/held.py``, docs/real-drive.md
 "Timing tolerance").
 
 A drive that cannot pause holds its last command over every period its loop starts too
@@ -165,7 +165,7 @@ def default_tolerance(rows: Sequence[HeldRow], noise: dict[tuple[str, str], floa
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog='python -m im_tuner.study.held',
+        prog='python research/held.py',
         description='What N held periods do to a loss (the default timing_tolerance).',
     )
     ap.add_argument('--seeds', type=int, default=20, help='noise seeds per cell (default 20)')

@@ -1,15 +1,23 @@
-"""The ``bench`` profile's calibration command (im_tuner.study.calibrate): its refusals,
+"""The ``bench`` profile's calibration command (research/calibrate_bench.py): its refusals,
 the fit it states and a tiny real run (docs/calibration.md is its full output)."""
 
 from __future__ import annotations
 
+import importlib.util
 import math
+import sys
 from pathlib import Path
 
 import pytest
 
 from im_drive_sim.params import BENCH_ESTIMATES, BENCH_NOISE_KEYS, bench_profile
-from im_tuner.study import calibrate as C
+
+SCRIPT = Path(__file__).resolve().parents[1] / 'research' / 'calibrate_bench.py'
+_spec = importlib.util.spec_from_file_location('calibrate_bench', SCRIPT)
+assert _spec is not None and _spec.loader is not None
+C = importlib.util.module_from_spec(_spec)
+sys.modules['calibrate_bench'] = C  # (its dataclasses look their module up)
+_spec.loader.exec_module(C)  # (research/ is not a package: the script, loaded by path)
 
 
 def _row(scale: float | None, final: tuple[float, float], sat: tuple[float, float]) -> C.Row:
@@ -31,7 +39,7 @@ def test_distance_and_the_chosen_scale_in_the_markdown() -> None:
     far = _row(1.0, (0.70, 0.60), (100.0, 100.0))
     assert near.distance == pytest.approx(1.0)
     assert far.distance == pytest.approx((0.11 / 0.05) ** 2 + 1 + (0.1 / 0.05) ** 2 + 0.64)
-    text = C.markdown([ideal, far, near], 0.01, 30, 200, 30, 'python -m im_tuner.study.calibrate')
+    text = C.markdown([ideal, far, near], 0.01, 30, 200, 30, 'python research/calibrate_bench.py')
     assert '**Chosen: s = 2**' in text and '| bench s=2 (chosen) |' in text
     assert 'current noise 0.02 A' in text and 'Without the bound' not in text
     assert 'Table I 0.75 (paper 0.70, ideal 0.50)' in text
@@ -83,8 +91,7 @@ def test_a_tiny_calibration_runs_and_writes_its_page(tmp_path: Path) -> None:
 
 def test_calibrate_says_how_long_it_will_take():
     """``make calibrate-bench`` said nothing for 5-10 minutes: the estimate comes first."""
-    from im_tuner.study.calibrate import RATE_PER_WORKER, estimate
-
+    RATE_PER_WORKER, estimate = C.RATE_PER_WORKER, C.estimate
     line = estimate((1.0, 2.0, 4.0, 8.0), 30, 200, 30, 2)
     # 5 profiles x 2 cells x 30 runs x 200 evaluations on 2 workers, plus the side runs
     assert line.startswith('calibrate: 60686 experiments (5 profiles x 2 cells x 30 runs')

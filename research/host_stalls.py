@@ -2,10 +2,10 @@
 for ``--hold`` seconds every ``--every`` seconds (the cgroup v1 freezer), as a hypervisor
 stalls a VM -- every thread stops, SCHED_FIFO ones included, and the wall clock runs on.
 
-    sudo .venv/bin/python benchmarks/host_stalls.py [--every 0.5] [--hold 0.006] -- CMD ...
+    sudo .venv/bin/python research/host_stalls.py [--every 0.5] [--hold 0.006] -- CMD ...
 
 What it is for: the wall-clock tests and a real-time run judged against a host louder
-than this machine is today (``.venv/bin/python benchmarks/host_stalls.py -- .venv/bin/python
+than this machine is today (``.venv/bin/python research/host_stalls.py -- .venv/bin/python
 -m pytest -m serial``: the serial pass must pass, skipping only where the floor it measures
 says no tolerance would be honest). Root and ``/sys/fs/cgroup/freezer``; the cgroup is made
 for the run and removed after it. Prints how many stalls it made and the command's exit

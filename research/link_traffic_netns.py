@@ -12,7 +12,7 @@ Printed per direction: packets per second of the tuner's run by kind, and the re
 the 5 kHz topics (none on the tuner's computer is the design: docs/two-computers.md).
 Needs root, iproute2 and nftables.
 
-    python benchmarks/link_traffic_netns.py --loss 5 --budget 10 --out /tmp/link
+    python research/link_traffic_netns.py --loss 5 --budget 10 --out /tmp/link
 """
 
 from __future__ import annotations

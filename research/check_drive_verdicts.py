@@ -2,7 +2,7 @@
 namespaces with packet loss: for each documented broken drive and a correct one, every
 verdict correct or ``inconclusive``, never wrong.
 
-    python benchmarks/check_drive_verdicts.py [--runs N] [--conditions quiet,hogs,netns]
+    python research/check_drive_verdicts.py [--runs N] [--conditions quiet,hogs,netns]
                                          [--drives correct,sim,slower,...] [--loss PERCENT]
                                          [--hogs N] [--json FILE] [--keep DIR]
                                          [--check-args='--thread-priority 40']

@@ -104,7 +104,12 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
         with a value not finite, which the drive ignores (said on the log, at most once a
         second)."""
         n = len(COMMAND_FIELDS)
-        if len(data) != n or not all(math.isfinite(x) for x in data):
+        # (each value by index: no generator made per command on the drive's Python path)
+        if len(data) != n or not (
+            math.isfinite(data[CMD_STEP])
+            and math.isfinite(data[CMD_ISQ])
+            and math.isfinite(data[CMD_LOAD])
+        ):
             self.get_logger().error(
                 f'{COMMAND_TOPIC}: expected {n} finite values {COMMAND_FIELDS}, got '
                 f'{len(data)} values or a value not finite; ignored',

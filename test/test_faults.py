@@ -502,7 +502,11 @@ def test_a_replacement_recorder_is_not_taken_for_ready_on_the_dead_ones_subscrip
     from rclpy.node import Node
     from std_msgs.msg import Empty
 
-    from im_tuner.bench.recorder_watch import recorder_endpoints, recorder_subscribed
+    from im_tuner.bench.recorder_watch import (
+        recorder_endpoints,
+        recorder_subscribed,
+        wait_recorder_gone,
+    )
 
     topics = ['/t_a', '/t_b']
     watcher = Node('watcher', context=ros_context)
@@ -513,19 +517,24 @@ def test_a_replacement_recorder_is_not_taken_for_ready_on_the_dead_ones_subscrip
     dead = frozenset(recorder_endpoints(watcher, topics))
     assert len(dead) == 2
     assert not recorder_subscribed(watcher, topics, dead)  # (the bug: this was True)
+    t0 = time.monotonic()
+    assert wait_recorder_gone(watcher, topics, 0.3) == dead  # still there: handed back
+    assert time.monotonic() - t0 >= 0.3
     new = Node('recorder', namespace='/new', context=ros_context)
     new.create_subscription(Empty, topics[0], lambda _m: None, 10)
     wait_until(lambda: len(recorder_endpoints(watcher, topics)) == 3, 10, message='one more')
     assert not recorder_subscribed(watcher, topics, dead)  # one topic of two
     new.create_subscription(Empty, topics[1], lambda _m: None, 10)
     wait_until(lambda: recorder_subscribed(watcher, topics, dead), 10, message='new recorder')
-    for n in (new, old, watcher):
+    for n in (new, old):
         n.destroy_node()
+    assert wait_recorder_gone(watcher, topics, 10.0) == frozenset()  # both gone
+    watcher.destroy_node()
 
 
-# alone: the writers wait up to the dead recorder's 1 s DDS lease, within the controller's
-# 2 s lock-step state watchdog only while no other test loads the CPU (an idle CI's
-# parallel pass once stretched it past 2 s: an experiment lost, the run no longer the same)
+# alone: the writers wait up to the dead recorder's 1 s DDS lease (the replacement starts
+# after it), within the controller's 2 s lock-step state watchdog only while no other test
+# loads the CPU (an idle CI's parallel pass once stretched it past 2 s: an experiment lost)
 @pytest.mark.serial
 def test_recorder_killed_the_run_goes_on_bit_for_bit(procs, tmp_path, wait_until):
     """SIGKILL the tuner's recorder child (processes bench) during the run: the tuner

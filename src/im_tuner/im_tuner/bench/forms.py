@@ -42,9 +42,9 @@ from .drive_status import DriveMonitor, drive_delta, drive_report
 from .recorder_watch import (
     RecorderWatch,
     SpinUntil,
-    recorder_endpoints,
     recorder_subscribed,
     stop_recorder,
+    wait_recorder_gone,
 )
 from .spec import BenchPlan
 
@@ -442,7 +442,7 @@ class Children:
         if new is None:
             return
         self.recorder_restarts += 1
-        dead_endpoints = frozenset(recorder_endpoints(self.node, self.rec_topics))
+        dead_endpoints = wait_recorder_gone(self.node, self.rec_topics)  # (ignored if left)
         self._start_recorder(new)
         self.host.bag_replaced(new)
         deadline = time.monotonic() + RECORDER_READY_TIMEOUT

@@ -115,6 +115,28 @@ def recorder_endpoints(node: Node, topics: list[str]) -> set[bytes]:
     }
 
 
+#: longest wait for a dead recorder's subscriptions to leave the graph [s] (its DDS
+#: lease is 1 s: config/recorder_fastdds.xml)
+DEAD_RECORDER_GONE_S = 5.0
+
+
+def wait_recorder_gone(
+    node: Node, topics: list[str], timeout: float = DEAD_RECORDER_GONE_S
+) -> frozenset[bytes]:
+    """Wait until no node named ``recorder`` subscribes to ``topics`` (a killed
+    recorder's subscriptions stay on the graph until its DDS lease runs out), at most
+    ``timeout`` s. Returns the GIDs of those still there (empty: all gone).
+
+    Why a replacement waits for it: a new recorder whose participant appeared while the
+    reliable KEEP_ALL writers still held samples for the dead one's readers stalled the
+    lock-step bench for up to 5 s (6 of 52 runs of a killed recorder; research/NOTES.md);
+    started once the dead one had gone, about a second after its death, none did."""
+    deadline = time.monotonic() + timeout
+    while (left := recorder_endpoints(node, topics)) and time.monotonic() < deadline:
+        time.sleep(0.05)  # graph queries need no spinning
+    return frozenset(left)
+
+
 def recorder_subscribed(
     node: Node, topics: list[str], ignore: frozenset[bytes] = frozenset()
 ) -> bool:

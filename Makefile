@@ -24,7 +24,7 @@ export HOME ?= $(CURDIR)
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: test-serial setup test test-unit test-levels lint format demo demo-drive bench reproduction reproduction-docs calibrate-bench foxglove-check foxglove-layouts lock clean
+.PHONY: test-serial setup test test-unit test-levels lint format demo demo-drive bench reproduction reproduction-docs calibrate-bench foxglove-check foxglove-layouts docs lock clean
 
 setup: $(VENV)/.installed
 
@@ -155,6 +155,11 @@ foxglove-check:
 foxglove-layouts: setup
 	$(PY) -m im_tuner.foxglove --out src/im_tuner/foxglove
 	@$(MAKE) --no-print-directory setup
+
+# The docs' generated parts: docs/tuner.md's options table, from im_tuner/tuner_args.py's
+# declarations (a test checks it is current).
+docs: setup
+	$(PY) -m im_tuner.tuner_args docs/tuner.md
 
 # Re-resolve the pinned set after editing requirements.txt.
 lock: | $(PY)

@@ -639,7 +639,7 @@ FAST_REFUSALS = [
     (['--no-start'], '--no-start does not apply to --algo safe'),
     (['--algo', 'cmaes', '--opt', 'sigma0=2'], 'sigma0'),
     (['--opt', 'grow=1.2', '--opt', 'grow=2'], '--opt grow is given twice'),
-    (['--algo', 'tpe', '--budget', '0'], '--budget must be >= 1'),
+    (['--algo', 'tpe', '--budget', '0'], 'argument --budget: must be >= 1, got 0'),
     (['--drive-config', 'comments.yaml'], 'no settings (the file holds only comments)'),
     (['--out', 'full'], '--out full: already exists'),
     (['--no-record', '--compression', 'lz4'], '--compression lz4 is for the bag'),

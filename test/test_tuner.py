@@ -375,12 +375,12 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
 @pytest.mark.parametrize(
     'args, expect',
     [
-        (['--budget', '0'], '--budget must be >= 1'),
+        (['--budget', '0'], 'argument --budget: must be >= 1, got 0'),
         (['--algo', 'pso'], "invalid choice: 'pso'"),
         (['--algo', 'necga', '--opt', 'eta=30'], 'eta'),
         (['--algo', 'spsa', '--opt', 'eta=5'], '--opt eta does not apply to --algo spsa'),
-        (['--seed', '-1'], '--seed must be >= 0'),
-        (['--budget', 'ten'], "invalid int value: 'ten'"),
+        (['--seed', '-1'], 'argument --seed: must be >= 0, got -1'),
+        (['--budget', 'ten'], "argument --budget: not an integer: 'ten'"),
         (['--fault-policy', 'ignore'], 'invalid choice'),
         (['--ripple-limit', '0.5'], "--ripple-limit: a ratio >= 1 or 'off', got '0.5'"),
         (['--ripple-limit', '2', '--no-reference'], 'not with --no-reference'),

@@ -37,7 +37,7 @@ import ctypes.util
 import errno
 import os
 import resource
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -176,36 +176,39 @@ _priority.__name__ = _cpu.__name__ = 'integer'
 
 
 def add_arguments(
-    parser: argparse.ArgumentParser, what: str = 'the real-time loop', default_priority: int = 0
+    parser: argparse.ArgumentParser,
+    what: str = 'the real-time loop',
+    default_priority: int = 0,
+    helps: Mapping[str, str] | None = None,
 ) -> None:
     """The three options (docs/real-drive.md, "Real-time set-up"). ``--thread-priority``
-    not given parses as None: :meth:`RtOptions.from_cli` puts ``default_priority``."""
+    not given parses as None: :meth:`RtOptions.from_cli` puts ``default_priority``.
+    ``helps``: an executable's own text of an option, by flag (the tuner's)."""
     g = parser.add_argument_group('real-time scheduling (docs/real-drive.md, "Real-time set-up")')
     default = (
         f'default {default_priority}, as ros2_control_node; 0: the normal policy'
         if default_priority
         else 'default 0: the normal policy'
     )
+    text = {
+        '--thread-priority': f'run {what} SCHED_FIFO at priority N (1-99; {default}); when '
+        'not permitted, one line says how to grant it and the run goes on',
+        '--cpu-affinity': f'pin {what} to this CPU (default: any)',
+        '--lock-memory': 'lock the process memory in RAM (mlockall), so no page fault lands '
+        'in a period',
+        **(helps or {}),
+    }
     g.add_argument(
         '--thread-priority',
         type=_priority,
         default=None,
         metavar='N',
-        help=f'run {what} SCHED_FIFO at priority N (1-99; {default}); when not permitted, '
-        'one line says how to grant it and the run goes on',
+        help=text['--thread-priority'],
     )
     g.add_argument(
-        '--cpu-affinity',
-        type=_cpu,
-        default=-1,
-        metavar='CPU',
-        help=f'pin {what} to this CPU (default: any)',
+        '--cpu-affinity', type=_cpu, default=-1, metavar='CPU', help=text['--cpu-affinity']
     )
-    g.add_argument(
-        '--lock-memory',
-        action='store_true',
-        help='lock the process memory in RAM (mlockall), so no page fault lands in a period',
-    )
+    g.add_argument('--lock-memory', action='store_true', help=text['--lock-memory'])
 
 
 def _mlockall() -> int:

@@ -1,6 +1,10 @@
-"""The tuner's command line: its options (:func:`build_parser`) and what it reads from
-``--ros-args`` (:func:`timing_tolerance`, :func:`ros_arguments`; a resumed run's
-``-p name:=value`` parameters, :func:`run_parameters`).
+"""The tuner's command line, declared once: every option's :class:`Option` (its text,
+argparse's type and choices, its default, whether it is a run setting) in
+:data:`OPTIONS`, from which come the parser (:func:`build_parser`), the defaults and the
+settings ``--resume`` takes from run.yaml (``tuner_cli``) and docs/tuner.md's options
+table (:func:`options_table`, checked by a test; ``make docs`` writes it). Also what is
+read from ``--ros-args`` (:func:`timing_tolerance`, :func:`ros_arguments`; a resumed
+run's ``-p name:=value`` parameters, :func:`run_parameters`).
 
 The checks of the options, of a new run and of ``run.yaml`` on ``--resume``, are
 :mod:`.tuner_cli`'s (``prepare_run``). As that module, this one imports no rclpy, numba,
@@ -10,11 +14,14 @@ pycma, optuna or scipy at load, so ``--help`` and a refusal are quick.
 from __future__ import annotations
 
 import argparse
+import re
 import shlex
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from im_drive_sim import host, rt
-from im_drive_sim.cli import Parser, UsageError, finite_float
+from im_drive_sim.cli import Parser, UsageError, finite_float, int_in
 
 from . import optim
 from .bench.drive_spec import drive_help
@@ -26,9 +33,11 @@ from .runlog.ripple import DEFAULT_RIPPLE_LIMIT, RIPPLE_TOLERANCE
 
 #: the algorithms --no-start is for, in --algo's order
 NO_START_TEXT = ', '.join(a for a in optim.ALGOS if a in optim.NO_START_ALGOS)
-#: the algorithms whose runs keep the ripple limit by default, in --algo's order
-RIPPLE_LIMITED_TEXT = ', '.join(a for a in optim.ALGOS if a in optim.RIPPLE_LIMITED)
-
+_NO_POINT = ', '.join(
+    f'`{a}`' for a in optim.ALGOS if a not in optim.NO_START_ALGOS and a not in optim.TAKES_START
+)
+_RIPPLE_LIMITED = ', '.join(f'`{a}`' for a in optim.ALGOS if a in optim.RIPPLE_LIMITED)
+_OPT_KEYS = '; '.join(f'`{" ".join(o)}` ({a})' for a, o in optim.OPTIONS.items() if o)
 
 DESCRIPTION = (
     'Tune the cascaded position/speed controller online by SPSA, a compact GA (the '
@@ -36,190 +45,371 @@ DESCRIPTION = (
     'losses (docs/tuner.md).'
 )
 
+#: ``Option.arg`` of the three real-time options: ``rt.add_arguments`` declares their
+#: type for every executable of the loop; the tuner's rows say what they do here
+RT = 'rt'
+
+
+@dataclass(frozen=True)
+class Option:
+    """One tuner option.
+
+    ``help``: Markdown, docs/tuner.md's text (``--help`` shows it plain: :func:`plain`).
+    ``arg``: argparse's ``type``, ``choices``, ``metavar`` or ``action`` (:data:`RT`: the
+    real-time options). ``default``: the value when not given (None: the run decides,
+    ``shown`` says how). ``shown``: the docs' default column when not ``default``.
+    ``run``: a run setting, kept in run.yaml: ``--resume`` takes it from there and
+    refuses it given."""
+
+    flag: str
+    help: str
+    arg: dict[str, Any] | str = field(default_factory=dict)
+    default: Any = None
+    shown: str = ''
+    run: bool = False
+
+    @property
+    def dest(self) -> str:
+        return self.flag[2:].replace('-', '_')
+
+
+OPTIONS: tuple[Option, ...] = (
+    Option(
+        '--algo',
+        '`spsa`, `necga`, `cga`, `pecga`, `rcga` (the paper and its variants), `cmaes` '
+        '(pycma), `tpe` (optuna), `safe` (the fewest experiments and aborts from the '
+        "hand-tuned start; the paper's are `spsa` and `necga`)",
+        {'choices': optim.ALGOS},
+        optim.DEFAULT_ALGO,
+        f'`{optim.DEFAULT_ALGO}`',
+        run=True,
+    ),
+    Option(
+        '--budget',
+        "loss evaluations (the paper's stopping criterion: 200); never iterations",
+        {'type': int_in(1), 'metavar': 'N'},
+        200,
+        run=True,
+    ),
+    Option(
+        '--seed',
+        "seeds the optimiser and the simulated drive's noise (independent streams, "
+        '`numpy.random.SeedSequence(S).spawn(2)`); printed and stored in `run.yaml`',
+        {'type': int_in(0), 'metavar': 'S'},
+        shown='fresh',
+        run=True,
+    ),
+    Option(
+        '--out',
+        'run directory to create (must be new or empty)',
+        {'type': Path, 'metavar': 'DIR'},
+        shown='`bags/tuner_<algo>_<UTC time>`',
+    ),
+    Option(
+        '--resume',
+        'continue a killed or interrupted run (settings come from its `run.yaml`; the `-p '
+        "name:=value` parameters after `--ros-args` of the run's first command apply "
+        'again, before any given now)',
+        {'type': Path, 'metavar': 'RUN_DIR'},
+    ),
+    Option(
+        '--bench',
+        'where the controller comes from: `auto` (one on the graph, else simulated '
+        'in-process, lock-step), `inproc`, `processes`, `realtime` (drive and controller '
+        'composed in this process, one 5 kHz wall-clock loop), `realtime-processes` (the '
+        'same as separate processes), `none` ([Benches](#benches))',
+        {'choices': BENCHES},
+        shown='`auto`',
+    ),
+    Option(
+        '--drive',
+        f'`--bench realtime` only: {drive_help()}',
+        {'metavar': 'DRIVE'},
+        shown='`sim`',
+        run=True,
+    ),
+    Option(
+        '--thread-priority',
+        '`--bench realtime` only (given with any other bench, `auto` included: refused, '
+        "exit 2): the composed loop's thread runs SCHED_FIFO at priority N, 1-99, as "
+        f"ros2_control_node's `thread_priority` (default {rt.DEFAULT_PRIORITY} there too); "
+        '0: the normal policy. Not permitted (no CAP_SYS_NICE, rtprio limit below N): one '
+        '`warning:` line on stderr says how to grant it (limits.conf, docker '
+        '`--cap-add=sys_nice --ulimit rtprio=99`) and the run goes on under SCHED_OTHER '
+        '([real-drive.md, "Real-time set-up"](real-drive.md#real-time-set-up))',
+        RT,
+        rt.DEFAULT_PRIORITY,
+    ),
+    Option(
+        '--cpu-affinity',
+        "`--bench realtime` only: pin the loop's thread to that CPU, one the process may "
+        'use (else refused, exit 2); best a CPU isolated for it',
+        RT,
+        shown='any CPU',
+    ),
+    Option(
+        '--lock-memory',
+        '`--bench realtime` only: `mlockall(MCL_CURRENT \\| MCL_FUTURE)`, no page fault '
+        'inside a period; not permitted (no CAP_IPC_LOCK, memlock limit too small): one '
+        '`warning:` line, the run goes on. What the loop ran with (policy, priority, '
+        'affinity, memory lock, kernel, PREEMPT_RT, CPU, what was asked and refused) is '
+        "in summary.json, `sessions[i].drive.loop.realtime`, and in the bag's metadata "
+        'record `im_tuner.realtime`',
+        RT,
+    ),
+    Option(
+        '--params',
+        'tuner parameter file: search box, start point, satisfactory loss',
+        {'type': Path, 'metavar': 'FILE'},
+        shown="packaged `config/tuner.yaml`, or a packaged `--drive-config`'s own",
+        run=True,
+    ),
+    Option(
+        '--remeasure',
+        're-measure the K best distinct evaluations once at the end (0 = off); the best '
+        're-measured is left applied',
+        {'type': int_in(0), 'metavar': 'K'},
+        3,
+        run=True,
+    ),
+    Option(
+        '--no-reference',
+        'do not measure the start gains first (the reference)',
+        {'action': 'store_true'},
+        run=True,
+    ),
+    Option(
+        '--no-start',
+        f"{NO_START_TEXT} only: do not start from the parameter file's start point (spsa, "
+        'cmaes: a uniform random one; tpe: random trials first); the reference experiment '
+        'still measures it. Refused (one line, exit 2) with `safe`, a local search from '
+        'the start whose first experiment would otherwise be an untested random '
+        f'controller, and with {_NO_POINT}, which take no start',
+        {'action': 'store_true'},
+        run=True,
+    ),
+    Option(
+        '--first',
+        '`safe` only (refused with another `--algo`): its first step after the start. '
+        "`identify`: the start's two experiments (the reference and evaluation 1, one in "
+        "each direction) identify the shaft's mechanics from the motion sums every "
+        'experiment carries (J, the effective Kt, viscous B and Coulomb Tc, each with a '
+        'standard deviation; [controller.md](controller.md), "The motion sums"; '
+        "`im_tuner.identify`), the tuner prints them beside the drive file's, then takes "
+        "the best point of an offline tuning on the drive file's model with those values "
+        '(300 experiments per seed, 1261 in all: about 10-20 s between evaluations 1 and '
+        '2), checked on models with J within +-10 % (or 3 standard deviations) and Rr '
+        'x0.8-1.2; summary.json keeps `identification`, and a resume recomputes the same '
+        "point from results.jsonl's `motion`. `model`: the same tuning on the drive "
+        "file's nominal model as written (every bench effect off; about 1-2 s at "
+        'start-up), checked on models with J x0.7-1.4 and Rr x0.8-1.2 '
+        '([optimisers.md](optimisers.md), "The first step from the drive model"): it '
+        "anchors the search near the file's point when the load's inertia is off by 2x or "
+        'more. `none`: a local step. The tuner knows the drive with `--drive-config` or '
+        'a simulated bench (`inproc`, `processes`, `realtime`, `realtime-processes` with '
+        'the simulator); with `auto` or `none` and no `--drive-config` the controller '
+        'found may drive another motor, so the default is `none`; `--first identify` or '
+        "`model` there is checked against the controller's `drive_config_file` once it "
+        'answers, and refused (one line with the fix `--drive-config NAME`, nothing left) '
+        "when the tuner's drive file is of another machine. The choice (or the model's "
+        "point) is stored in `run.yaml`'s options (`first`), so `--resume` continues with "
+        'it. What it costs when the drive file is not the drive: `ros2 run im_tuner '
+        "study --drives NAME --plant-mismatch 'J=x2'` (or `--plant FILE`) measures it "
+        '([optimisers.md](optimisers.md), "When the drive file is wrong")',
+        {'choices': ('identify', 'model', 'none')},
+        shown='`identify` where the tuner knows the drive, else `none`',
+        run=True,
+    ),
+    Option(
+        '--ripple-limit',
+        'the largest standstill current ripple the applied gains may have: their rms of '
+        'isq* in both standstill windows (after the move, 0.300-0.700 s; after the load '
+        'step, 0.900-1.125 s; results.jsonl `ripple`) at most R times the hand-tuned '
+        "start's (the mean of the start's experiments, the reference first). The search "
+        f'is told what a louder point costs (an evaluation well above the limit, r > '
+        f'{RIPPLE_TOLERANCE:g} with r its rms over the limit, is told its loss times 1 + '
+        '(r - 1), and never less than the best loss measured within the limit so far; up '
+        f"to {RIPPLE_TOLERANCE:g} it is told its loss, because one experiment's ripple "
+        "scatters about its gains' mean), and the re-measurements and the applied gains "
+        "are the best evaluations within it, the start if none is; safe's first step from "
+        'the identified drive is chosen within it on the models. On for the default '
+        "algorithm, the one meant for a user's drive (the encoder-count limit cycle the "
+        "loss does not see is audible and heats the motor); off for the paper's "
+        "algorithms and the others, whose final controller is the paper's (the smallest "
+        'loss), unless given. `off` with `--no-reference` (nothing to compare with; giving '
+        'R with it is refused). A ratio >= 1 (else one line, exit 2); stored in run.yaml '
+        '(`ripple_limit`, null: off), kept by `--resume`; summary.json `ripple` says what '
+        'it did ([optimisers.md](optimisers.md), "The standstill ripple")',
+        {'metavar': 'R|off'},
+        shown=f'{DEFAULT_RIPPLE_LIMIT:g} for {_RIPPLE_LIMITED}, `off` for the others',
+        run=True,
+    ),
+    Option(
+        '--retries',
+        're-runs of an evaluation whose result is lost, or marked timing (its experiment '
+        "did not run on the paper's timing)",
+        {'type': int_in(0), 'metavar': 'R'},
+        3,
+        run=True,
+    ),
+    Option(
+        '--timing-tolerance',
+        'held + late drive periods an experiment may have and still count (its held '
+        'periods are recorded with its loss); past N it is marked timing and re-run '
+        "([Experiments off the paper's timing](#experiments-off-the-papers-timing-timing)); "
+        f'{DEFAULT_TIMING_TOLERANCE}: the change of a loss by that many held periods stays '
+        'within the bench\'s noise (docs/real-drive.md, "Timing tolerance"); 0: the '
+        "paper's timing exactly. `auto`: on `--bench realtime`, twice what a 2 s check of "
+        'the host finds 95 % of experiments meet (a whole run holds up to 2x the wait '
+        f'alone), at least {DEFAULT_TIMING_TOLERANCE}, raised when an experiment comes back '
+        '`timing` and the host, checked again, needs more (docs/real-drive.md, "Check the '
+        f'host first"); elsewhere {DEFAULT_TIMING_TOLERANCE}. Also `-p timing_tolerance:=N` '
+        'after `--ros-args`; stored in run.yaml, kept by `--resume`',
+        {'type': host.tolerance_arg, 'metavar': 'N|auto'},
+        shown=f'{DEFAULT_TIMING_TOLERANCE}',
+        run=True,
+    ),
+    Option(
+        '--eval-timeout',
+        'wall time allowed for one experiment [s] (set gains to loss received); a '
+        'service call waits at most min(10 s, S)',
+        {'type': finite_float(0.0, lo_open=True, unit='s'), 'metavar': 'S'},
+        60.0,
+    ),
+    Option(
+        '--fault-policy',
+        'after a safety fault: reset it and go on, or end the run (its message names '
+        '`ros2 run im_controller reset_fault`, which clears the fault once the drive is '
+        'checked; then `--resume`)',
+        {'choices': FAULT_POLICIES},
+        shown='`reset` simulated, `stop` external',
+    ),
+    Option(
+        '--controller',
+        'the controller node (its namespace also places `controller/loss`)',
+        {'metavar': 'NODE'},
+        '/controller',
+        '`/controller`',
+    ),
+    Option(
+        '--no-record', 'do not record a bag ([recorder.md](recorder.md))', {'action': 'store_true'}
+    ),
+    Option(
+        '--compression',
+        'MCAP chunk compression; refused with `--no-record` (it would be ignored)',
+        {'choices': ('none', 'zstd', 'lz4')},
+        shown='`lz4`',
+    ),
+    Option(
+        '--drive-config',
+        'the drive parameter file of a bench the tuner starts: the controller takes `Ts` '
+        'and `machine.isq_max` from it, the simulator its motor, a `--drive` class its '
+        "`config` (real-drive.md's `my_drive.yaml`). An external bench's controller was "
+        "started with its own (`--config`). A packaged drive's name (`im3700w-j3`, ...) "
+        "also gives the controller that drive's experiment and fallback gains and the "
+        'optimiser its box and start (unless `--params`): '
+        '[drive-family.md](drive-family.md)',
+        {'type': Path, 'metavar': 'FILE|NAME'},
+        shown="the paper's 750 W motor",
+        run=True,
+    ),
+    Option(
+        '--model',
+        "the simulator's model fidelity, `full` or `reduced` (`--drive sim` only)",
+        {'choices': ('full', 'reduced')},
+        shown="the drive file's",
+        run=True,
+    ),
+    Option(
+        '--discovery-timeout',
+        'how long `--bench auto`/`none` look for a controller [s]: `auto` then simulates, '
+        'so it stays short; `none` waits only until the controller is found. Discovering '
+        'a running controller from a new process took 0-2.3 s at load 3 on a 2-core '
+        'machine: on a loaded machine give `auto` more, or use `none`',
+        {'type': finite_float(0.0, 3600.0, unit='s'), 'metavar': 'S'},
+        shown=f'{DISCOVERY_TIMEOUT["auto"]:g} (`auto`), {DISCOVERY_TIMEOUT["none"]:g} (`none`)',
+    ),
+    Option(
+        '--quiet',
+        'no progress output (the summary is still printed on stdout)',
+        {'action': 'store_true'},
+    ),
+    Option(
+        '--opt',
+        'an option of the algorithm (repeat it for more), or a YAML file of them: '
+        f'{_OPT_KEYS}. `--algo ALGO --opt help` lists them with defaults and ranges '
+        '([optimisers.md](optimisers.md)). An option of another algorithm is an error, '
+        'not ignored; run.yaml keeps them under `options`',
+        {'action': 'append', 'metavar': 'KEY=VALUE'},
+        shown="the paper's",
+    ),
+)
+#: the settings a resumed run takes from run.yaml (giving them with --resume is an error)
+RUN_SETTINGS: tuple[str, ...] = tuple(o.dest for o in OPTIONS if o.run)
+_BY_DEST = {o.dest: o for o in OPTIONS}
+
+
+def default(dest: str) -> Any:
+    """The declared value of option ``dest`` when it is not given."""
+    return _BY_DEST[dest].default
+
+
+def plain(markdown: str) -> str:
+    """``--help``'s text of an option's Markdown: links as their text, no code marks."""
+    text = re.sub(r'\[([^\]]*)\]\([^)]*\)', r'\1', markdown)
+    return text.replace('\\|', '|').replace('`', '').replace('%', '%%')
+
 
 def build_parser() -> argparse.ArgumentParser:
+    """The tuner's parser, from :data:`OPTIONS`. Run settings parse as None (or False)
+    when not given, so ``--resume`` can refuse them; the others take their default."""
     ap = Parser(prog='ros2 run im_tuner tuner', description=DESCRIPTION)
-    ap.add_argument(
-        '--algo',
-        choices=optim.ALGOS,
-        help=f'optimiser (default: {optim.DEFAULT_ALGO}, the fewest experiments and aborts '
-        "from the hand-tuned start; the paper's are spsa and necga)",
-    )
-    ap.add_argument(
-        '--budget', type=int, metavar='N', help='loss evaluations (default 200, as in the paper)'
-    )
-    ap.add_argument(
-        '--seed',
-        type=int,
-        metavar='S',
-        help="seed of the optimiser and of the simulated drive's noise "
-        '(default: a fresh one, printed and stored in run.yaml)',
-    )
-    ap.add_argument(
-        '--out',
-        type=Path,
-        metavar='DIR',
-        help='run directory to create (default: bags/tuner_<algo>_<UTC time>)',
-    )
-    ap.add_argument(
-        '--resume',
-        type=Path,
-        metavar='RUN_DIR',
-        help='continue the killed or interrupted run in RUN_DIR',
-    )
-    ap.add_argument(
-        '--bench',
-        choices=BENCHES,
-        help='where the controller comes from '
-        '(default: auto = use one on the graph, else simulate in-process, lock-step; '
-        'realtime = drive and controller composed in this process, one 5 kHz wall-clock '
-        'loop; realtime-processes = the same as separate processes)',
-    )
-    ap.add_argument(
-        '--drive',
-        metavar='DRIVE',
-        help=f'--bench realtime: {drive_help()}',
-    )
-    ap.add_argument('--quiet', action='store_true', help='no progress bar (for scripts)')
-    ap.add_argument(
-        '--params',
-        type=Path,
-        metavar='FILE',
-        help='tuner parameter file: search box, start point, satisfactory loss '
-        "(default: the packaged config/tuner.yaml, the paper's motor, or a packaged "
-        "--drive-config's own)",
-    )
-    ap.add_argument(
-        '--remeasure',
-        type=int,
-        metavar='K',
-        help='re-measure the K best distinct evaluations once at the end '
-        '(default 3; 0 = off); the best re-measured is left applied',
-    )
-    ap.add_argument(
-        '--no-reference',
-        action='store_true',
-        help='do not measure the start gains first (the reference)',
-    )
-    ap.add_argument(
-        '--no-start',
-        action='store_true',
-        help=f'{NO_START_TEXT} only: do not start from the parameter '
-        "file's start point (spsa, cmaes: a uniform random one; tpe: random trials first); "
-        'the reference experiment still measures it. Refused with safe (a local search '
-        'from the start: its first experiment would be an untested random controller) '
-        'and with the compact GAs (they take no start)',
-    )
-    ap.add_argument(
-        '--first',
-        choices=('identify', 'model', 'none'),
-        help="safe only: its first step after the start. 'identify': the start's two "
-        'experiments identify the shaft (J, Kt, B, Tc: printed, in summary.json), then the '
-        "best point of an offline tuning on the drive file's model with those values, "
-        "robust to J +-10 %% and Rr x0.8-1.2; 'model': the same on the drive file's "
-        'model as written, before the run, robust to J x0.7-1.4 (docs/optimisers.md); '
-        "'none': a local step. Default: identify when the tuner knows the drive "
-        '(--drive-config, or a '
-        'simulated bench: --bench inproc, processes, realtime...), none otherwise (--bench '
-        'auto or none without --drive-config: the controller found may drive another motor)',
-    )
-    ap.add_argument(
-        '--ripple-limit',
-        metavar='R|off',
-        help='the largest standstill current ripple the applied gains may have: the rms '
-        'of isq* in both standstill windows (after the move, after the load step) at most '
-        "R times the hand-tuned start's, as the reference experiment measures it; a "
-        f'louder evaluation (by more than {RIPPLE_TOLERANCE:g}x the limit: one experiment '
-        'scatters) is told to the optimiser as no better than the best quiet one so far, '
-        'and the re-measured and applied gains are the best evaluated within it '
-        "(the start if none); safe's first step from the identified drive is chosen within "
-        f"it on the models. A ratio >= 1 or 'off'. Default: {DEFAULT_RIPPLE_LIMIT:g} for "
-        f"{RIPPLE_LIMITED_TEXT}, off for the others (the paper's final controller is "
-        'the smallest loss); off with --no-reference (nothing to compare with) '
-        '(docs/optimisers.md, "The standstill ripple")',
-    )
-    ap.add_argument(
-        '--retries',
-        type=int,
-        metavar='R',
-        help='re-runs of an evaluation whose result is lost, or marked timing (its '
-        "experiment did not run on the paper's timing) (default 3)",
-    )
-    ap.add_argument(
-        '--timing-tolerance',
-        type=host.tolerance_arg,
-        metavar='N|auto',
-        help='held or late drive periods an experiment may have and still count (its '
-        'held periods are recorded with its loss); past N it is marked timing and re-run. '
-        f'Default {DEFAULT_TIMING_TOLERANCE}: the change of a loss by that many held periods '
-        'stays within the bench\'s noise (docs/real-drive.md, "Timing tolerance"); 0: '
-        "the paper's timing exactly; auto: twice what a 2 s check of this host finds 95 %% of "
-        f'experiments meet, at least {DEFAULT_TIMING_TOLERANCE}, raised when an experiment '
-        'comes back timing and the host, checked again, needs more (--bench realtime; '
-        'elsewhere the default). Also -p timing_tolerance:=N after --ros-args',
-    )
-    ap.add_argument(
-        '--eval-timeout',
-        type=finite_float(0.0, lo_open=True, unit='s'),
-        default=60.0,
-        metavar='S',
-        help='wall time allowed per experiment [s] (default 60)',
-    )
-    ap.add_argument(
-        '--fault-policy',
-        choices=FAULT_POLICIES,
-        help='after a safety fault: reset it and go on, or stop the run '
-        '(default: reset on the simulated bench, stop on an external one)',
-    )
-    ap.add_argument(
-        '--controller',
-        default='/controller',
-        metavar='NODE',
-        help='controller node name (default /controller)',
-    )
-    ap.add_argument('--no-record', action='store_true', help='do not record a bag')
-    ap.add_argument(
-        '--compression',
-        choices=('none', 'zstd', 'lz4'),
-        help='MCAP chunk compression (default lz4; refused with --no-record)',
-    )
-    ap.add_argument(
-        '--model',
-        choices=('full', 'reduced'),
-        help="the simulator's model fidelity (--drive sim only; default: the drive file's)",
-    )
-    ap.add_argument(
-        '--drive-config',
-        type=Path,
-        metavar='FILE|NAME',
-        help='drive parameter file of a bench the tuner starts: Ts and isq_max for the '
-        "controller, and the simulator's motor or your --drive class's config "
-        "(default: the paper's 750 W motor; an external bench's controller has its own). "
-        "A packaged drive's name (im3700w-j3, ...; docs/drive-family.md) also gives the "
-        'controller its experiment and the optimiser its box and start',
-    )
-    ap.add_argument(
-        '--discovery-timeout',
-        type=finite_float(0.0, 3600.0, unit='s'),
-        metavar='S',
-        help='--bench auto/none: how long to look for a controller [s] (default: '
-        f'{DISCOVERY_TIMEOUT["auto"]:g} with auto, then it simulates; '
-        f'{DISCOVERY_TIMEOUT["none"]:g} with none, which waits only until it is found; '
-        'discovery took up to 2.3 s on a loaded 2-core machine)',
-    )
-    rt.add_arguments(ap, 'the composed loop (--bench realtime)', rt.DEFAULT_PRIORITY)
-    keys = '; '.join(f'{a}: {", ".join(o) or "none"}' for a, o in optim.OPTIONS.items())
-    ap.add_argument(
-        '--opt',
-        action='append',
-        default=[],
-        metavar='KEY=VALUE',
-        help='an option of the algorithm (repeat it for more), or a YAML file of them; '
-        "'--opt help' lists the algorithm's with their defaults and ranges. "
-        f'The options: {keys} (docs/optimisers.md). An option of another algorithm '
-        'is an error, not ignored',
-    )
+    for o in OPTIONS:
+        if isinstance(o.arg, dict):
+            value = [] if o.arg.get('action') == 'append' else None if o.run else o.default
+            kwargs = {} if o.arg.get('action') == 'store_true' else {'default': value}
+            ap.add_argument(o.flag, help=_help(o), **kwargs, **o.arg)
+    rt_helps = {o.flag: _help(o) for o in OPTIONS if o.arg == RT}
+    rt.add_arguments(ap, 'the composed loop (--bench realtime)', rt.DEFAULT_PRIORITY, rt_helps)
     return ap
+
+
+def _help(o: Option) -> str:
+    shown = _shown(o)
+    return plain(o.help) + (f' (default: {plain(shown)})' if shown else '')
+
+
+def _shown(o: Option) -> str:
+    if o.shown or o.default is None or o.default is False:
+        return o.shown
+    return f'{o.default:g}' if isinstance(o.default, float) else str(o.default)
+
+
+def options_table() -> str:
+    """docs/tuner.md's options table (Markdown), from :data:`OPTIONS`."""
+    actions = {s: a for a in build_parser()._actions for s in a.option_strings}
+    rows = ['| option | default | meaning |', '|---|---|---|']
+    for o in OPTIONS:
+        meta = actions[o.flag].metavar
+        name = (f'{o.flag} {meta}' if isinstance(meta, str) else o.flag).replace('|', '\\|')
+        rows.append(f'| `{name}` | {_shown(o)} | {o.help} |')
+    return '\n'.join(rows) + '\n'
+
+
+#: docs/tuner.md's lines around the generated table
+TABLE_BEGIN = '<!-- options: generated from im_tuner/tuner_args.py (make docs) -->'
+TABLE_END = '<!-- end of options -->'
+
+
+def write_table(doc: Path) -> bool:
+    """Put :func:`options_table` between the markers of ``doc``; whether it changed."""
+    text = doc.read_text()
+    head, rest = text.split(TABLE_BEGIN + '\n', 1)
+    _old, tail = rest.split(TABLE_END, 1)
+    new = head + TABLE_BEGIN + '\n' + options_table() + TABLE_END + tail
+    if new != text:
+        doc.write_text(new)
+    return new != text
 
 
 def timing_tolerance(cli: argparse.Namespace, argv: list[str]) -> int | str | None:
@@ -279,3 +469,11 @@ def run_parameters(run: RunConfig) -> list[str]:
         if w in ('-p', '--param') and not ros[i + 1].startswith('timing_tolerance:='):
             out += ['-p', ros[i + 1]]
     return out
+
+
+if __name__ == '__main__':  # make docs: docs/tuner.md's table from OPTIONS
+    import sys
+
+    for name in sys.argv[1:]:
+        if write_table(Path(name)):
+            print(f'wrote {name}')

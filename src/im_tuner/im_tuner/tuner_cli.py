@@ -32,30 +32,13 @@ from .optim.base import OptimizerError, check_options
 from .rundir import RunDir
 from .runlog import RunConfig
 from .space import TunerParams, TunerParamsError, load_params, parse_params
-from .tuner_args import NO_START_TEXT, timing_tolerance
+from .tuner_args import NO_START_TEXT, RUN_SETTINGS, default, timing_tolerance
 
 if TYPE_CHECKING:
     from .bench.drive_spec import DriveChoice
     from .tuning import TuningRun
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
-#: settings a resumed run takes from run.yaml (giving them with --resume is an error)
-RUN_SETTINGS = (
-    'algo',
-    'budget',
-    'seed',
-    'params',
-    'remeasure',
-    'no_reference',
-    'no_start',
-    'first',
-    'model',
-    'drive_config',
-    'retries',
-    'drive',
-    'timing_tolerance',
-    'ripple_limit',
-)
 
 
 def check_session(cli: argparse.Namespace) -> None:
@@ -116,22 +99,13 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
     """Check everything of a new run before anything is created (module docstring: the
     cheap checks first, then the controller's name, ``--drive``, the optimiser and the
     hardware class)."""
-    algo = cli.algo or optim.DEFAULT_ALGO
-    budget = 200 if cli.budget is None else cli.budget
-    if budget < 1:
-        raise UsageError(f'--budget must be >= 1 loss evaluations, got {budget}')
-    if cli.seed is not None and cli.seed < 0:
-        raise UsageError(f'--seed must be >= 0, got {cli.seed}')
-    remeasure = 3 if cli.remeasure is None else cli.remeasure
-    if remeasure < 0:
-        raise UsageError(f'--remeasure must be >= 0, got {remeasure}')
-    retries = 3 if cli.retries is None else cli.retries
-    if retries < 0:
-        raise UsageError(f'--retries must be >= 0, got {retries}')
+    # (each option's range is its parser's type: tuner_args.OPTIONS)
+    algo = cli.algo or default('algo')
+    budget = default('budget') if cli.budget is None else cli.budget
+    remeasure = default('remeasure') if cli.remeasure is None else cli.remeasure
+    retries = default('retries') if cli.retries is None else cli.retries
     tolerance = timing_tolerance(cli, argv)
     tolerance = DEFAULT_TIMING_TOLERANCE if tolerance is None else tolerance
-    if not cli.eval_timeout > 0 or not math.isfinite(cli.eval_timeout):
-        raise UsageError(f'--eval-timeout must be > 0 s, got {cli.eval_timeout}')
     if cli.no_start:
         check_no_start(algo)
     ripple_limit = _ripple_limit(cli, algo)

@@ -59,7 +59,64 @@ def test_the_help_names_exactly_the_algorithms_that_take_it() -> None:
     action = next(a for a in build_parser()._actions if '--no-start' in a.option_strings)
     assert action.help.startswith('spsa, cmaes, tpe only: ')
     assert {'spsa', 'cmaes', 'tpe'} == optim.NO_START_ALGOS
-    assert 'Refused with safe' in action.help and 'with the compact GAs' in action.help
+    refused = action.help.split('Refused', 1)[1]
+    assert all(a in refused for a in optim.ALGOS if a not in optim.NO_START_ALGOS)
+
+
+def test_every_option_is_declared_once_and_the_docs_table_is_generated_from_it() -> None:
+    """The parser's options are tuner_args.OPTIONS (the real-time three included), each
+    once; docs/tuner.md's table is options_table() (make docs writes it); the settings
+    --resume takes from run.yaml are the declared run settings; a declared default is
+    the parsed value of an option that is not a run setting."""
+    from pathlib import Path
+
+    from im_tuner import tuner_args
+
+    flags = [o.flag for o in tuner_args.OPTIONS]
+    assert len(flags) == len(set(flags))
+    parser = build_parser()
+    parsed = {s for a in parser._actions for s in a.option_strings} - {'-h', '--help'}
+    assert parsed == set(flags)
+    doc = Path(__file__).resolve().parents[3] / 'docs' / 'tuner.md'
+    text = doc.read_text()
+    table = text.split(tuner_args.TABLE_BEGIN + '\n', 1)[1].split(tuner_args.TABLE_END)[0]
+    assert table == tuner_args.options_table(), 'docs/tuner.md: run make docs'
+    assert '--budget' in text and '| `--budget N` | 200 |' in table
+    assert set(tuner_args.RUN_SETTINGS) == {
+        'algo', 'budget', 'seed', 'params', 'remeasure', 'no_reference', 'no_start', 'first',
+        'model', 'drive_config', 'retries', 'drive', 'timing_tolerance', 'ripple_limit',
+    }  # fmt: skip
+    cli = parser.parse_args([])
+    defaults = {
+        o.dest: o.default
+        for o in tuner_args.OPTIONS
+        if not o.run and o.arg != tuner_args.RT and o.default is not None
+    }
+    assert defaults == {'eval_timeout': 60.0, 'controller': '/controller'}
+    assert all(getattr(cli, k) == v for k, v in defaults.items())
+    new = _new('--seed', '2')
+    assert (new.run.algo, new.run.budget, new.run.remeasure, new.run.retries) == (
+        optim.DEFAULT_ALGO,
+        200,
+        3,
+        3,
+    )
+
+
+@pytest.mark.parametrize(
+    ('argv', 'message'),
+    [
+        (['--budget', '0'], 'argument --budget: must be >= 1, got 0'),
+        (['--remeasure', '-1'], 'argument --remeasure: must be >= 0, got -1'),
+        (['--retries', '-2'], 'argument --retries: must be >= 0, got -2'),
+        (['--seed', '-1'], 'argument --seed: must be >= 0, got -1'),
+        (['--eval-timeout', '0'], 'argument --eval-timeout: must be > 0 s, got 0'),
+    ],
+)
+def test_a_declared_range_is_checked_by_the_parser(argv: list[str], message: str) -> None:
+    with pytest.raises(UsageError) as exc:
+        build_parser().parse_args(argv)
+    assert str(exc.value) == message
 
 
 def _run_yaml(algo: str, start: object, drop: tuple[str, ...] = ()) -> RunConfig:

@@ -62,7 +62,7 @@ def free_port() -> int:
 # -- refusals: fast, and before anything heavy is imported -----------------------------------------
 REFUSALS = [
     (['--runs', '0'], '--runs must be an integer >= 1'),
-    (['--budget', '0'], '--budget must be an integer >= 1'),
+    (['--budget', '0'], 'argument --budget: must be >= 1, got 0'),
     (['--algos', 'spsa,simplex'], "no study grid for 'simplex'"),
     (['--jobs', '0'], '--jobs: must be >= 1'),
     (['--satisfactory', 'nan'], '--satisfactory must be a normalised loss > 0'),

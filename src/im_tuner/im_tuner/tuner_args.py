@@ -305,7 +305,7 @@ OPTIONS: tuple[Option, ...] = (
         'the drive parameter file of a bench the tuner starts: the controller takes `Ts` '
         'and `machine.isq_max` from it, the simulator its motor, a `--drive` class its '
         "`config` (real-drive.md's `my_drive.yaml`). An external bench's controller was "
-        "started with its own (`--config`). A packaged drive's name (`im3700w-j3`, ...) "
+        "started with its own (`--drive-config`). A packaged drive's name (`im3700w-j3`, ...) "
         "also gives the controller that drive's experiment and fallback gains and the "
         'optimiser its box and start (unless `--params`): '
         '[drive-family.md](drive-family.md)',
@@ -347,6 +347,15 @@ OPTIONS: tuple[Option, ...] = (
 #: the settings a resumed run takes from run.yaml (giving them with --resume is an error)
 RUN_SETTINGS: tuple[str, ...] = tuple(o.dest for o in OPTIONS if o.run)
 _BY_DEST = {o.dest: o for o in OPTIONS}
+
+
+def add_shared(ap: argparse.ArgumentParser, flag: str, help: str, default: Any = None) -> None:
+    """The tuner's option ``flag`` on another executable's parser (the study's): the same
+    type, range, choices and metavar, with that executable's own text and default."""
+    arg = next(o.arg for o in OPTIONS if o.flag == flag)
+    assert isinstance(arg, dict)
+    kwargs = {} if arg.get('action') == 'store_true' else {'default': default}
+    ap.add_argument(flag, help=help, **kwargs, **arg)
 
 
 def default(dest: str) -> Any:

@@ -26,6 +26,7 @@ from im_drive_sim.cli import Parser, UsageError, int_in
 from im_drive_sim.params import REALISM_PROFILES
 
 from ..progress import Eta
+from ..tuner_args import add_shared
 from . import cluster as K, spec as S
 from .drives import FamilyResult, drive_dirs, is_family, load_family, save_family
 from .results import META_FILE, StudyResult, load, save
@@ -107,9 +108,7 @@ def _build_parser() -> argparse.ArgumentParser:
         '(docs/reproduction.md).',
     )
     ap.add_argument('--runs', type=int, default=100, help='runs per configuration (default 100)')
-    ap.add_argument(
-        '--budget', type=int, default=200, help='loss evaluations per run (default 200)'
-    )
+    add_shared(ap, '--budget', 'loss evaluations per run (default 200)', 200)
     ap.add_argument(
         '--algos',
         default=None,
@@ -145,7 +144,7 @@ def _build_parser() -> argparse.ArgumentParser:
         'Coulomb friction to P %% of rated torque, delay=D the command delay (1 or 2 '
         "periods); e.g. 'J=x1.5 Rr=x1.3 Lm=x0.85 coulomb=2%% delay=2'",
     )
-    ap.add_argument('--ripple-limit', metavar='R|off', help=S.RIPPLE_LIMIT_HELP)
+    add_shared(ap, '--ripple-limit', S.RIPPLE_LIMIT_HELP)
     ap.add_argument(
         '--realism',
         choices=tuple(REALISM_PROFILES),
@@ -157,12 +156,7 @@ def _build_parser() -> argparse.ArgumentParser:
         action='store_true',
         help='with --drives: every configuration of each grid, not the recommended ones',
     )
-    ap.add_argument(
-        '--model',
-        choices=('full', 'reduced'),
-        default='full',
-        help='drive model (default full: voltage-fed with the encoder)',
-    )
+    add_shared(ap, '--model', 'drive model (default full: voltage-fed with the encoder)', 'full')
     ap.add_argument(
         '--jobs',
         type=int_in(1, max_jobs()),
@@ -196,9 +190,7 @@ def _build_parser() -> argparse.ArgumentParser:
         help='with --cluster: how long to wait for a first worker when the scheduler has '
         f'none (default {K.WORKER_WAIT_S:g} s)',
     )
-    ap.add_argument(
-        '--seed', type=int, default=S.DEFAULT_SEED, help=f'study seed (default {S.DEFAULT_SEED})'
-    )
+    add_shared(ap, '--seed', f'study seed (default {S.DEFAULT_SEED})', S.DEFAULT_SEED)
     ap.add_argument(
         '--satisfactory',
         type=float,
@@ -211,14 +203,8 @@ def _build_parser() -> argparse.ArgumentParser:
         action='store_true',
         help="skip the re-measurement of each run's final controller",
     )
-    ap.add_argument(
-        '--params',
-        metavar='FILE',
-        help='tuner parameter file (search box; default the packaged one)',
-    )
-    ap.add_argument(
-        '--drive-config', metavar='FILE', help="drive parameter file (default the paper's motor)"
-    )
+    add_shared(ap, '--params', 'tuner parameter file (search box; default the packaged one)')
+    add_shared(ap, '--drive-config', "drive parameter file (default the paper's motor)")
     ap.add_argument(
         '--out',
         type=Path,
@@ -241,7 +227,7 @@ def _build_parser() -> argparse.ArgumentParser:
         "DIR (the same grid, e.g. on another --realism) and the paper's, and the paper's "
         'conclusions on both',
     )
-    ap.add_argument('--quiet', action='store_true', help='no progress line')
+    add_shared(ap, '--quiet', 'no progress line')
     return ap
 
 
@@ -332,8 +318,8 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
                 S.DEFAULT_SATISFACTORY if cli.satisfactory is None else cli.satisfactory
             ),
             remeasure=not cli.no_remeasure,
-            drive_config=cli.drive_config,
-            params_file=cli.params,
+            drive_config=None if cli.drive_config is None else str(cli.drive_config),
+            params_file=None if cli.params is None else str(cli.params),
             drives=drives,
             realism=cli.realism,
             full_grid=not drives or cli.full_grid,

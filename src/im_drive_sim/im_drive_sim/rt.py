@@ -143,8 +143,9 @@ class RtOptions:
         return bool(self.priority or self.cpu >= 0 or self.lock_memory)
 
     @classmethod
-    def from_cli(cls, ns: argparse.Namespace, default_priority: int = 0) -> RtOptions:
-        """The options given (``--thread-priority`` not given: ``default_priority``)."""
+    def from_cli(cls, ns: Any, default_priority: int = 0) -> RtOptions:
+        """The options given (``--thread-priority`` not given: ``default_priority``):
+        ``ns`` has the three (an argparse namespace, the tuner's typed options)."""
         priority = default_priority if ns.thread_priority is None else ns.thread_priority
         return cls(priority, ns.cpu_affinity, ns.lock_memory)
 

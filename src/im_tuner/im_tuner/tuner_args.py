@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import re
 import shlex
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -73,9 +73,38 @@ class Option:
         return self.flag[2:].replace('-', '_')
 
 
-OPTIONS: tuple[Option, ...] = (
-    Option(
-        '--algo',
+_FROM_DEFAULT = object()
+
+
+def option(
+    help: str,
+    arg: dict[str, Any] | str | None = None,
+    default: Any = None,
+    shown: str = '',
+    run: bool = False,
+    parsed: Any = _FROM_DEFAULT,
+) -> Any:
+    """A :class:`TunerOptions` field declaring its option (:class:`Option`; its flag is
+    the field's name). ``parsed``: the value when not given, where it is not what
+    :func:`build_parser` makes of the declaration (the real-time options: ``rt``'s)."""
+    arg = {} if arg is None else arg
+    decl = Option('', help, arg, default, shown, run)
+    meta = {'option': decl}
+    action = arg.get('action') if isinstance(arg, dict) else None
+    if action == 'append':
+        return field(default_factory=list, metadata=meta)
+    if parsed is _FROM_DEFAULT:
+        parsed = False if action == 'store_true' else None if run else default
+    return field(default=parsed, metadata=meta)
+
+
+@dataclass
+class TunerOptions:
+    """The tuner's command line, typed: one field per option, its declaration (an
+    :class:`Option`) in the field's metadata. A run setting not given is None (False for
+    a switch): ``--resume`` refuses it given; a new run takes :func:`default`."""
+
+    algo: str | None = option(
         '`spsa`, `necga`, `cga`, `pecga`, `rcga` (the paper and its variants), `cmaes` '
         '(pycma), `tpe` (optuna), `safe` (the fewest experiments and aborts from the '
         "hand-tuned start; the paper's are `spsa` and `necga`)",
@@ -83,53 +112,46 @@ OPTIONS: tuple[Option, ...] = (
         optim.DEFAULT_ALGO,
         f'`{optim.DEFAULT_ALGO}`',
         run=True,
-    ),
-    Option(
-        '--budget',
+    )
+    budget: int | None = option(
         "loss evaluations (the paper's stopping criterion: 200); never iterations",
         {'type': int_in(1), 'metavar': 'N'},
         200,
         run=True,
-    ),
-    Option(
-        '--seed',
+    )
+    seed: int | None = option(
         "seeds the optimiser and the simulated drive's noise (independent streams, "
         '`numpy.random.SeedSequence(S).spawn(2)`); printed and stored in `run.yaml`',
         {'type': int_in(0), 'metavar': 'S'},
         shown='fresh',
         run=True,
-    ),
-    Option(
-        '--out',
+    )
+    out: Path | None = option(
         'run directory to create (must be new or empty)',
         {'type': Path, 'metavar': 'DIR'},
         shown='`bags/tuner_<algo>_<UTC time>`',
-    ),
-    Option(
-        '--resume',
+    )
+    resume: Path | None = option(
         'continue a killed or interrupted run (settings come from its `run.yaml`; the `-p '
         "name:=value` parameters after `--ros-args` of the run's first command apply "
         'again, before any given now)',
         {'type': Path, 'metavar': 'RUN_DIR'},
-    ),
-    Option(
-        '--bench',
+    )
+    bench: str | None = option(
         'where the controller comes from: `auto` (one on the graph, else simulated '
         'in-process, lock-step), `inproc`, `processes`, `realtime` (drive and controller '
         'composed in this process, one 5 kHz wall-clock loop), `realtime-processes` (the '
         'same as separate processes), `none` ([Benches](#benches))',
         {'choices': BENCHES},
         shown='`auto`',
-    ),
-    Option(
-        '--drive',
+    )
+    drive: str | None = option(
         f'`--bench realtime` only: {drive_help()}',
         {'metavar': 'DRIVE'},
         shown='`sim`',
         run=True,
-    ),
-    Option(
-        '--thread-priority',
+    )
+    thread_priority: int | None = option(
         '`--bench realtime` only (given with any other bench, `auto` included: refused, '
         "exit 2): the composed loop's thread runs SCHED_FIFO at priority N, 1-99, as "
         f"ros2_control_node's `thread_priority` (default {rt.DEFAULT_PRIORITY} there too); "
@@ -139,16 +161,16 @@ OPTIONS: tuple[Option, ...] = (
         '([real-drive.md, "Real-time set-up"](real-drive.md#real-time-set-up))',
         RT,
         rt.DEFAULT_PRIORITY,
-    ),
-    Option(
-        '--cpu-affinity',
+        parsed=None,
+    )
+    cpu_affinity: int = option(
         "`--bench realtime` only: pin the loop's thread to that CPU, one the process may "
         'use (else refused, exit 2); best a CPU isolated for it',
         RT,
         shown='any CPU',
-    ),
-    Option(
-        '--lock-memory',
+        parsed=-1,
+    )
+    lock_memory: bool = option(
         '`--bench realtime` only: `mlockall(MCL_CURRENT \\| MCL_FUTURE)`, no page fault '
         'inside a period; not permitted (no CAP_IPC_LOCK, memlock limit too small): one '
         '`warning:` line, the run goes on. What the loop ran with (policy, priority, '
@@ -156,30 +178,27 @@ OPTIONS: tuple[Option, ...] = (
         "in summary.json, `sessions[i].drive.loop.realtime`, and in the bag's metadata "
         'record `im_tuner.realtime`',
         RT,
-    ),
-    Option(
-        '--params',
+        parsed=False,
+    )
+    params: Path | None = option(
         'tuner parameter file: search box, start point, satisfactory loss',
         {'type': Path, 'metavar': 'FILE'},
         shown="packaged `config/tuner.yaml`, or a packaged `--drive-config`'s own",
         run=True,
-    ),
-    Option(
-        '--remeasure',
+    )
+    remeasure: int | None = option(
         're-measure the K best distinct evaluations once at the end (0 = off); the best '
         're-measured is left applied',
         {'type': int_in(0), 'metavar': 'K'},
         3,
         run=True,
-    ),
-    Option(
-        '--no-reference',
+    )
+    no_reference: bool = option(
         'do not measure the start gains first (the reference)',
         {'action': 'store_true'},
         run=True,
-    ),
-    Option(
-        '--no-start',
+    )
+    no_start: bool = option(
         f"{NO_START_TEXT} only: do not start from the parameter file's start point (spsa, "
         'cmaes: a uniform random one; tpe: random trials first); the reference experiment '
         'still measures it. Refused (one line, exit 2) with `safe`, a local search from '
@@ -187,9 +206,8 @@ OPTIONS: tuple[Option, ...] = (
         f'controller, and with {_NO_POINT}, which take no start',
         {'action': 'store_true'},
         run=True,
-    ),
-    Option(
-        '--first',
+    )
+    first: str | None = option(
         '`safe` only (refused with another `--algo`): its first step after the start. '
         "`identify`: the start's two experiments (the reference and evaluation 1, one in "
         "each direction) identify the shaft's mechanics from the motion sums every "
@@ -219,9 +237,8 @@ OPTIONS: tuple[Option, ...] = (
         {'choices': ('identify', 'model', 'none')},
         shown='`identify` where the tuner knows the drive, else `none`',
         run=True,
-    ),
-    Option(
-        '--ripple-limit',
+    )
+    ripple_limit: str | None = option(
         'the largest standstill current ripple the applied gains may have: their rms of '
         'isq* in both standstill windows (after the move, 0.300-0.700 s; after the load '
         'step, 0.900-1.125 s; results.jsonl `ripple`) at most R times the hand-tuned '
@@ -243,17 +260,15 @@ OPTIONS: tuple[Option, ...] = (
         {'metavar': 'R|off'},
         shown=f'{DEFAULT_RIPPLE_LIMIT:g} for {_RIPPLE_LIMITED}, `off` for the others',
         run=True,
-    ),
-    Option(
-        '--retries',
+    )
+    retries: int | None = option(
         're-runs of an evaluation whose result is lost, or marked timing (its experiment '
         "did not run on the paper's timing)",
         {'type': int_in(0), 'metavar': 'R'},
         3,
         run=True,
-    ),
-    Option(
-        '--timing-tolerance',
+    )
+    timing_tolerance: int | str | None = option(
         'held + late drive periods an experiment may have and still count (its held '
         'periods are recorded with its loss); past N it is marked timing and re-run '
         "([Experiments off the paper's timing](#experiments-off-the-papers-timing-timing)); "
@@ -268,40 +283,36 @@ OPTIONS: tuple[Option, ...] = (
         {'type': host.tolerance_arg, 'metavar': 'N|auto'},
         shown=f'{DEFAULT_TIMING_TOLERANCE}',
         run=True,
-    ),
-    Option(
-        '--eval-timeout',
+    )
+    eval_timeout: float = option(
         'wall time allowed for one experiment [s] (set gains to loss received); a '
         'service call waits at most min(10 s, S)',
         {'type': finite_float(0.0, lo_open=True, unit='s'), 'metavar': 'S'},
         60.0,
-    ),
-    Option(
-        '--fault-policy',
+    )
+    fault_policy: str | None = option(
         'after a safety fault: reset it and go on, or end the run (its message names '
         '`ros2 run im_controller reset_fault`, which clears the fault once the drive is '
         'checked; then `--resume`)',
         {'choices': FAULT_POLICIES},
         shown='`reset` simulated, `stop` external',
-    ),
-    Option(
-        '--controller',
+    )
+    controller: str = option(
         'the controller node (its namespace also places `controller/loss`)',
         {'metavar': 'NODE'},
         '/controller',
         '`/controller`',
-    ),
-    Option(
-        '--no-record', 'do not record a bag ([recorder.md](recorder.md))', {'action': 'store_true'}
-    ),
-    Option(
-        '--compression',
+    )
+    no_record: bool = option(
+        'do not record a bag ([recorder.md](recorder.md))',
+        {'action': 'store_true'},
+    )
+    compression: str | None = option(
         'MCAP chunk compression; refused with `--no-record` (it would be ignored)',
         {'choices': ('none', 'zstd', 'lz4')},
         shown='`lz4`',
-    ),
-    Option(
-        '--drive-config',
+    )
+    drive_config: Path | None = option(
         'the drive parameter file of a bench the tuner starts: the controller takes `Ts` '
         'and `machine.isq_max` from it, the simulator its motor, a `--drive` class its '
         "`config` (real-drive.md's `my_drive.yaml`). An external bench's controller was "
@@ -312,37 +323,39 @@ OPTIONS: tuple[Option, ...] = (
         {'type': Path, 'metavar': 'FILE|NAME'},
         shown="the paper's 750 W motor",
         run=True,
-    ),
-    Option(
-        '--model',
+    )
+    model: str | None = option(
         "the simulator's model fidelity, `full` or `reduced` (`--drive sim` only)",
         {'choices': ('full', 'reduced')},
         shown="the drive file's",
         run=True,
-    ),
-    Option(
-        '--discovery-timeout',
+    )
+    discovery_timeout: float | None = option(
         'how long `--bench auto`/`none` look for a controller [s]: `auto` then simulates, '
         'so it stays short; `none` waits only until the controller is found. Discovering '
         'a running controller from a new process took 0-2.3 s at load 3 on a 2-core '
         'machine: on a loaded machine give `auto` more, or use `none`',
         {'type': finite_float(0.0, 3600.0, unit='s'), 'metavar': 'S'},
         shown=f'{DISCOVERY_TIMEOUT["auto"]:g} (`auto`), {DISCOVERY_TIMEOUT["none"]:g} (`none`)',
-    ),
-    Option(
-        '--quiet',
+    )
+    quiet: bool = option(
         'no progress output (the summary is still printed on stdout)',
         {'action': 'store_true'},
-    ),
-    Option(
-        '--opt',
+    )
+    opt: list[str] = option(
         'an option of the algorithm (repeat it for more), or a YAML file of them: '
         f'{_OPT_KEYS}. `--algo ALGO --opt help` lists them with defaults and ranges '
         '([optimisers.md](optimisers.md)). An option of another algorithm is an error, '
         'not ignored; run.yaml keeps them under `options`',
         {'action': 'append', 'metavar': 'KEY=VALUE'},
         shown="the paper's",
-    ),
+    )
+
+
+#: the declarations, in the docs' order
+OPTIONS: tuple[Option, ...] = tuple(
+    replace(f.metadata['option'], flag='--' + f.name.replace('_', '-'))
+    for f in fields(TunerOptions)
 )
 #: the settings a resumed run takes from run.yaml (giving them with --resume is an error)
 RUN_SETTINGS: tuple[str, ...] = tuple(o.dest for o in OPTIONS if o.run)
@@ -383,6 +396,11 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def parse_options(args: list[str]) -> TunerOptions:
+    """The tuner's options from its command line (without ``--ros-args``' part)."""
+    return TunerOptions(**vars(build_parser().parse_args(args)))
+
+
 def _help(o: Option) -> str:
     shown = _shown(o)
     return plain(o.help) + (f' (default: {plain(shown)})' if shown else '')
@@ -421,7 +439,7 @@ def write_table(doc: Path) -> bool:
     return new != text
 
 
-def timing_tolerance(cli: argparse.Namespace, argv: list[str]) -> int | str | None:
+def timing_tolerance(cli: TunerOptions, argv: list[str]) -> int | str | None:
     """The tolerance asked for: ``--timing-tolerance N`` or ``-p timing_tolerance:=N``
     after ``--ros-args`` (the controller's parameter, which the tuner sets); None:
     neither; ``auto``: ``host.AUTO``. Both, differing, or a value that is not an integer

@@ -13,7 +13,6 @@ module), the optimiser (built once: its module, e.g. pycma), the user's hardware
 
 from __future__ import annotations
 
-import argparse
 import math
 import shlex
 from dataclasses import dataclass
@@ -32,7 +31,7 @@ from .optim.base import OptimizerError, check_options
 from .rundir import RunDir
 from .runlog import RunConfig
 from .space import TunerParams, TunerParamsError, load_params, parse_params
-from .tuner_args import NO_START_TEXT, RUN_SETTINGS, default, timing_tolerance
+from .tuner_args import NO_START_TEXT, RUN_SETTINGS, TunerOptions, default, timing_tolerance
 
 if TYPE_CHECKING:
     from .bench.drive_spec import DriveChoice
@@ -41,7 +40,7 @@ if TYPE_CHECKING:
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 
-def check_session(cli: argparse.Namespace) -> None:
+def check_session(cli: TunerOptions) -> None:
     """The options of this session (new or resumed) that go together: a bag option with
     --no-record would be ignored, so it is refused; sets the default compression."""
     cli.compression = recording_options(cli.no_record, compression=cli.compression)
@@ -52,7 +51,7 @@ def check_session(cli: argparse.Namespace) -> None:
         )
 
 
-def _algo_options(cli: argparse.Namespace, algo: str) -> dict[str, Any]:
+def _algo_options(cli: TunerOptions, algo: str) -> dict[str, Any]:
     """The algorithm options given with ``--opt``; an option of another algorithm is an
     error (it would be silently ignored otherwise)."""
     try:
@@ -95,7 +94,7 @@ class NewRun:
     host_said: HostSaid = None
 
 
-def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
+def _new_run_config(cli: TunerOptions, argv: list[str]) -> NewRun:
     """Check everything of a new run before anything is created (module docstring: the
     cheap checks first, then the controller's name, ``--drive``, the optimiser and the
     hardware class)."""
@@ -204,7 +203,7 @@ def _new_run_config(cli: argparse.Namespace, argv: list[str]) -> NewRun:
 
 
 def _check_host(
-    cli: argparse.Namespace,
+    cli: TunerOptions,
     tolerance: int | str,
     bench: str | None = None,
     least: int = DEFAULT_TIMING_TOLERANCE,
@@ -243,7 +242,7 @@ class PreparedSession:
     host_said: HostSaid = None  #: the host check's line (_check_host)
 
 
-def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
+def prepare_run(cli: TunerOptions, argv: list[str]) -> PreparedSession:
     """Check everything of this session before anything is created (UsageError): a new
     run's options (:func:`_new_run_config`), or a resumed run's run.yaml, checkpoint and
     records (``--resume``, which takes the run's settings from run.yaml only)."""
@@ -310,7 +309,7 @@ def prepare_run(cli: argparse.Namespace, argv: list[str]) -> PreparedSession:
     return PreparedSession(run, params, drive, progress, rundir, tuning, n_restored, None, said)
 
 
-def _check_resumed_host(cli: argparse.Namespace, run: RunConfig) -> HostSaid:
+def _check_resumed_host(cli: TunerOptions, run: RunConfig) -> HostSaid:
     """A resumed run's check of its host (at the run's tolerance; recorded with its loop
     in ``run.host_check``): a run begun with ``--timing-tolerance auto`` goes on with it,
     from its tolerance up (``run``'s tolerance raised when the host now needs more)."""
@@ -324,7 +323,7 @@ def _check_resumed_host(cli: argparse.Namespace, run: RunConfig) -> HostSaid:
     return said
 
 
-def _ripple_limit(cli: argparse.Namespace, algo: str) -> float | None:
+def _ripple_limit(cli: TunerOptions, algo: str) -> float | None:
     """The run's standstill-ripple limit (None: off): ``--ripple-limit``, else the
     algorithm's default (``runlog.ripple.default_ripple_limit``); off without a reference
     experiment (the start's ripple is what it is a ratio to), refused if given then."""
@@ -344,7 +343,7 @@ def _ripple_limit(cli: argparse.Namespace, algo: str) -> float | None:
     return limit
 
 
-def _first_point(cli: argparse.Namespace, algo: str, params: TunerParams) -> dict[str, Any]:
+def _first_point(cli: TunerOptions, algo: str, params: TunerParams) -> dict[str, Any]:
     """safe's ``first`` option from ``--first`` (default: 'identify' where the tuner knows
     the drive): 'identify' (the point comes after the start's two measurements, from the
     drive they identify: ``im_tuner.first_step``), the prior of the drive file's nominal

@@ -41,7 +41,6 @@ Exit codes: 0 done, 1 the bench failed (best gains applied, bag closed), 2 bad i
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 
@@ -52,14 +51,14 @@ from im_drive_sim.cli import UsageError, check_ros_args
 from . import optim
 from .bench.spec import tuner_bench_spec
 from .benches import SIM_BENCHES
-from .tuner_args import build_parser, ros_arguments
+from .tuner_args import TunerOptions, parse_options, ros_arguments
 from .tuner_cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, check_session, prepare_run
 
 
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv if args is None else args)
     try:
-        cli = build_parser().parse_args(check_ros_args(argv)[1:])
+        cli = parse_options(check_ros_args(argv)[1:])
         if 'help' in cli.opt:  # the algorithm's options, as --help the tuner's
             print(optim.describe_options(cli.algo or optim.DEFAULT_ALGO))
             return 0
@@ -76,7 +75,7 @@ def main(args: list[str] | None = None) -> int:
             spec.close_untaken()
 
 
-def _main(cli: argparse.Namespace, argv: list[str]) -> int:
+def _main(cli: TunerOptions, argv: list[str]) -> int:
     t_wall0 = time.monotonic()
     cfg = prepare_run(cli, argv)  # every check before anything is created
     spec = tuner_bench_spec(

@@ -11,7 +11,6 @@ A new run refused once its directory exists is undone (:meth:`undo`). No rclpy a
 
 from __future__ import annotations
 
-import argparse
 import shlex
 import shutil
 import sys
@@ -27,6 +26,7 @@ from .runlog import Record, Timing, replay_plan
 from .tuner_cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PreparedSession, make_tuning
 
 if TYPE_CHECKING:
+    from .tuner_args import TunerOptions
     from .bench.forms import Bench
     from .bench.spec import BenchPlan
     from .link import ControllerLink
@@ -134,7 +134,7 @@ def _made_by_create(out: Path) -> tuple[Path, bool]:
 class TunerSession:
     """The run's side of one tuner session (module docstring)."""
 
-    def __init__(self, cli: argparse.Namespace, argv: list[str], cfg: PreparedSession) -> None:
+    def __init__(self, cli: TunerOptions, argv: list[str], cfg: PreparedSession) -> None:
         self.cli = cli
         self.argv = argv
         self.run = cfg.run

@@ -87,6 +87,7 @@ def test_every_option_is_declared_once_and_the_docs_table_is_generated_from_it()
         'model', 'drive_config', 'retries', 'drive', 'timing_tolerance', 'ripple_limit',
     }  # fmt: skip
     cli = parser.parse_args([])
+    assert tuner_args.TunerOptions(**vars(cli)) == tuner_args.TunerOptions()  # one default
     defaults = {
         o.dest: o.default
         for o in tuner_args.OPTIONS

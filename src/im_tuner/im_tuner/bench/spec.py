@@ -17,10 +17,9 @@ Pure: no rclpy (unit-tested without ROS).
 
 from __future__ import annotations
 
-import argparse
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from im_drive_sim import rt
 from im_drive_sim.cli import UsageError
@@ -203,8 +202,24 @@ class BenchSpec:
         return DISCOVERY_TIMEOUT[self.requested]
 
 
+class BenchOptions(Protocol):
+    """What the tuner's bench takes from its options (``tuner_args.TunerOptions``)."""
+
+    bench: str | None
+    model: str | None
+    drive_config: Any
+    no_record: bool
+    compression: str | None
+    controller: str
+    discovery_timeout: float | None
+    fault_policy: str | None
+    thread_priority: int | None
+    cpu_affinity: int
+    lock_memory: bool
+
+
 def tuner_bench_spec(
-    cli: argparse.Namespace,
+    cli: BenchOptions,
     run: RunConfig,
     *,
     resumed: bool,

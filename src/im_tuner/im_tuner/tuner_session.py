@@ -26,11 +26,11 @@ from .runlog import Record, Timing, replay_plan
 from .tuner_cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PreparedSession, make_tuning
 
 if TYPE_CHECKING:
-    from .tuner_args import TunerOptions
     from .bench.forms import Bench
     from .bench.spec import BenchPlan
     from .link import ControllerLink
     from .rundir import RunDir
+    from .tuner_args import TunerOptions
 
 
 #: A composed loop whose period work (p50) takes more than this share of the period is

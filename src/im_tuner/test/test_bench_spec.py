@@ -17,11 +17,11 @@ from im_tuner.bench.spec import (
     tuner_bench_spec,
 )
 from im_tuner.runlog import Lost, RunConfig
-from im_tuner.tuner_args import build_parser
+from im_tuner.tuner_args import parse_options
 
 
 def _cli(*args: str):
-    cli = build_parser().parse_args(list(args))
+    cli = parse_options(list(args))
     cli.compression = cli.compression or 'lz4'  # (tuner_cli.check_session's default)
     return cli
 

@@ -61,11 +61,11 @@ def test_a_users_file_on_a_bigger_base_takes_that_drives_setup(tmp_path):
 
 
 def _new(*args: str):
-    from im_tuner.tuner_args import build_parser
+    from im_tuner.tuner_args import parse_options
     from im_tuner.tuner_cli import _new_run_config
 
     argv = ['tuner', *args]
-    return _new_run_config(build_parser().parse_args(argv[1:]), argv)
+    return _new_run_config(parse_options(argv[1:]), argv)
 
 
 def test_the_tuner_on_a_users_bigger_drive_takes_its_first_step_and_box(tmp_path):

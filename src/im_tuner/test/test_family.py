@@ -114,9 +114,9 @@ def test_each_drive_start_is_finite_not_aborted_and_near_the_papers(name):
 def test_bench_spec_gives_the_controller_a_packaged_drives_experiment():
     from im_tuner.bench.spec import tuner_bench_spec
     from im_tuner.runlog import RunConfig
-    from im_tuner.tuner_args import build_parser
+    from im_tuner.tuner_args import parse_options
 
-    cli = build_parser().parse_args(['--drive-config', 'im3700w-j3', '--no-record'])
+    cli = parse_options(['--drive-config', 'im3700w-j3', '--no-record'])
     cli.compression = 'lz4'
     run = RunConfig.from_dict({'algo': 'safe', 'drive_seed': 1, 'drive': 'sim'})
     ctl = dict(tuner_bench_spec(cli, run, resumed=False).controller_parameters)

@@ -17,7 +17,7 @@ import pytest
 from im_drive_sim import host
 from im_tuner.rundir import RunDir
 from im_tuner.runlog import RunConfig
-from im_tuner.tuner_args import build_parser
+from im_tuner.tuner_args import parse_options
 from im_tuner.tuner_cli import PreparedSession, _new_run_config, make_tuning
 from im_tuner.tuner_session import TunerSession
 
@@ -81,7 +81,7 @@ def _session(tmp_path, monkeypatch) -> TunerSession:
         host, 'check_before_run', lambda *a, **k: (10, {'auto': True, 'tolerance': 3}, None)
     )
     argv = ['tuner', '--bench', 'realtime', '--timing-tolerance', 'auto', '--seed', '3']
-    cli = build_parser().parse_args(argv[1:])
+    cli = parse_options(argv[1:])
     new = _new_run_config(cli, argv)
     assert new.run.timing_tolerance == 10 and new.run.host_check['auto'] is True
     out = tmp_path / 'run'
@@ -125,7 +125,7 @@ def test_a_louder_host_raises_the_tolerance_a_quieter_one_keeps_it(tmp_path, mon
 def test_a_resumed_auto_run_goes_on_with_auto_from_its_tolerance(monkeypatch):
     from im_tuner.tuner_cli import _check_resumed_host
 
-    cli = build_parser().parse_args([])
+    cli = parse_options([])
     for check, p95, tolerance, asked_with in (
         ({'auto': True}, 30, 60, host.AUTO),  # louder than the run's 18: raised
         ({'auto': True}, 2, 18, host.AUTO),  # quieter: never below the run's 18

@@ -169,11 +169,11 @@ def test_the_study_commands_repeat_safe_with_or_without_the_model(prior, tmp_pat
 
 
 def _new(*args: str):
-    from im_tuner.tuner_args import build_parser
+    from im_tuner.tuner_args import parse_options
     from im_tuner.tuner_cli import _new_run_config
 
     argv = ['tuner', *args]
-    return _new_run_config(build_parser().parse_args(argv[1:]), argv)
+    return _new_run_config(parse_options(argv[1:]), argv)
 
 
 def test_the_tuner_takes_the_model_where_it_knows_the_drive(prior, tmp_path):

@@ -28,7 +28,7 @@ from im_tuner.runlog.ripple import (
     parse_ripple_limit,
 )
 from im_tuner.space import load_params
-from im_tuner.tuner_args import build_parser
+from im_tuner.tuner_args import parse_options
 from im_tuner.tuner_cli import _check_run, _new_run_config
 from im_tuner.tuning import Measurement, TuningRun
 
@@ -211,7 +211,7 @@ def test_a_resumed_run_keeps_its_limit(tmp_path):
 # -- the options -------------------------------------------------------------------------------
 def _new(*args: str):
     argv = ['tuner', *args]
-    return _new_run_config(build_parser().parse_args(argv[1:]), argv)
+    return _new_run_config(parse_options(argv[1:]), argv)
 
 
 def test_the_default_is_on_for_safe_off_for_the_papers_algorithms():

@@ -12,13 +12,13 @@ import yaml
 from im_drive_sim.cli import UsageError
 from im_tuner import optim
 from im_tuner.runlog import RunConfig
-from im_tuner.tuner_args import build_parser
+from im_tuner.tuner_args import build_parser, parse_options
 from im_tuner.tuner_cli import _check_run, _new_run_config, check_no_start
 
 
 def _new(*args: str):
     argv = ['tuner', *args]
-    return _new_run_config(build_parser().parse_args(argv[1:]), argv)
+    return _new_run_config(parse_options(argv[1:]), argv)
 
 
 @pytest.mark.parametrize('algo', optim.ALGOS)
@@ -166,7 +166,7 @@ def test_the_composed_loop_runs_sched_fifo_50_unless_told_otherwise() -> None:
     from im_drive_sim import rt
 
     def opts(*args: str) -> rt.RtOptions:
-        cli = build_parser().parse_args(list(args))
+        cli = parse_options(list(args))
         return rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY)
 
     assert rt.DEFAULT_PRIORITY == 50
@@ -174,10 +174,11 @@ def test_the_composed_loop_runs_sched_fifo_50_unless_told_otherwise() -> None:
     assert opts('--bench', 'realtime', '--thread-priority', '0').priority == 0
     assert opts('--bench', 'realtime', '--thread-priority', '70').priority == 70
     # another bench: nothing asked for unless given (then refused, exit 2)
-    cli = build_parser().parse_args(['--bench', 'inproc'])
+    cli = parse_options(['--bench', 'inproc'])
     assert not rt.RtOptions.from_cli(cli).requested
-    text = ' '.join(build_parser().format_help().split())
-    assert 'SCHED_FIFO at priority N (1-99; default 50, as ros2_control_node;' in text
+    action = next(a for a in build_parser()._actions if '--thread-priority' in a.option_strings)
+    assert "SCHED_FIFO at priority N, 1-99, as ros2_control_node's thread_priority" in action.help
+    assert action.help.endswith('(default: 50)')
 
 
 def test_the_ros_arguments_and_the_bag_options() -> None:
@@ -194,10 +195,10 @@ def test_the_ros_arguments_and_the_bag_options() -> None:
         'a:=1',
         '--disable-stdout-logs',
     ]
-    cli = build_parser().parse_args(['--no-record', '--compression', 'zstd'])
+    cli = parse_options(['--no-record', '--compression', 'zstd'])
     with pytest.raises(UsageError, match=r'^--compression zstd is for the bag, and --no-record'):
         check_session(cli)
-    cli = build_parser().parse_args([])
+    cli = parse_options([])
     check_session(cli)
     assert cli.compression == 'lz4'
     assert recording_options(False, out='x', compression='zstd') == 'zstd'

@@ -237,6 +237,7 @@ def tuner_bench_spec(
         requested = cli.bench or 'auto'
         model = cli.model
         config = str(cli.drive_config) if cli.drive_config else None
+    assert cli.compression is not None  # (tuner_cli.check_session put the default)
     drive: list[tuple[str, Any]] = [('seed', run.drive_seed)]
     # the run's timing tolerance: every controller the tuner starts gets it
     ctl: list[tuple[str, Any]] = [('timing_tolerance', int(run.timing_tolerance or 0))]

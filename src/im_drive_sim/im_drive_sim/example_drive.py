@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -180,10 +181,15 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
     ``pacing.PeriodicDrive``)."""
 
     def __init__(
-        self, node_name: str = 'example_drive', *, hardware_class: type | None = None, **kwargs
+        self,
+        node_name: str = 'example_drive',
+        *,
+        hardware_class: Callable[[Any], Any] | None = None,
+        **kwargs,
     ) -> None:
-        """``hardware_class``: the class whose instance (``hardware_class(config)``) talks to
-        the power stage; None = the simulated stand-in :class:`Hardware`."""
+        """``hardware_class``: the class (or factory) whose instance
+        (``hardware_class(config)``) talks to the power stage; None = the simulated
+        stand-in :class:`Hardware`."""
         self.hardware_class = Hardware if hardware_class is None else hardware_class
         super().__init__(node_name, **kwargs)
         d = self.declare_parameter

@@ -466,7 +466,7 @@ def timing_tolerance(cli: TunerOptions, argv: list[str]) -> int | str | None:
         raise UsageError(
             f'--timing-tolerance {given} and -p timing_tolerance:={from_ros}: give one'
         )
-    value = given if given is not None else from_ros
+    value = given if isinstance(given, int) else from_ros
     if value is not None and (value < 0 or value > 1_000_000):
         raise UsageError(f'--timing-tolerance must be in [0, 1000000] periods, got {value}')
     return value

@@ -15,7 +15,7 @@ from im_tuner.family import drive_setup
 from im_tuner.first_step import IdentifiedFirstStep
 from im_tuner.offline import OfflineBench
 from im_tuner.optim import Optimizer, OptimizerError, make_optimizer
-from im_tuner.prior import identified_model, model_prior
+from im_tuner.prior import RIPPLE_MARGIN, identified_model, model_prior
 from im_tuner.rundir import RunDir
 from im_tuner.runlog import MemoryRecord
 from im_tuner.runlog.ripple import LIMIT_KEYS, RIPPLE_TOLERANCE, ripple_bound, told_loss
@@ -198,12 +198,12 @@ def test_a_run_on_a_plant_with_twice_the_files_inertia(tmp_path):
 
 def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest_best():
     """The motivating case: im750w-j1 on a plant with 1.5x the file's inertia.  Without the
-    limit on the models (the rule before) the identified model's best robust point hunts
-    on the plant: evaluation 2's standstill rms after the move 0.233 A, 1.57x the start's
-    (0.148 A), over the run's limit 1.5 (by 5 %: within the search's RIPPLE_TOLERANCE it is
-    still told its loss, but the final choice cannot take it).  With the run's limit the prior
-    takes a candidate within it on every model (1.41x there; the second batch of the
-    search's ranking): on the plant 1.24x/1.07x the start's, told its measured loss."""
+    limit the identified model's best robust point hunts on the plant: evaluation 2's
+    standstill rms after the move 0.233 A, 1.57x the start's (0.148 A), over the run's
+    limit 1.5 (by 5 %: within the search's RIPPLE_TOLERANCE it is still told its loss, but
+    the final choice cannot take it).  With the run's limit the model's search is told it
+    and the prior takes a candidate predicted within it by the margin (1.29x): on the
+    plant 1.49x the start's in its one experiment, within the limit, told its loss."""
     setup = drive_setup('im750w-j1')
     space, m = setup.params.space, setup.drive.machine
     plant = dataclasses.replace(setup.drive, machine=dataclasses.replace(m, J=1.5 * m.J))
@@ -220,10 +220,15 @@ def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest
     before, limited = (runs[k].first_step.prior for k in ('before', 'limited'))
     assert before is not None and limited is not None
     assert before.ripple_ratio is None and limited.u != before.u
-    assert 1.0 < limited.ripple_ratio <= 1.5
+    # predicted within the limit by its margin
+    assert 1.0 < limited.ripple_ratio <= 1.5 / (1 + RIPPLE_MARGIN)
     # both of the model's best: the quiet one's loss within 2 % of the loud one's there
-    assert before.model_ratio < limited.model_ratio < 1.02 * before.model_ratio
-    assert limited.worst_ratio < 0.5 and limited.experiments == before.experiments + 6 * (2 + 8)
+    assert limited.model_ratio < 1.02 * before.model_ratio
+    # the first batch: the start 4 more times in the search, then on each of the two
+    # models of the ripple check (identified and file friction) from rest, 4 times, and
+    # each of the 8 candidates 6 times
+    assert limited.worst_ratio < 0.5
+    assert limited.experiments == before.experiments + 4 + 2 * (1 + 4 + 8 * 6)
     ratios = {}
     for name, run in runs.items():
         start, step = (r for r in run.records if r.kind == 'eval')
@@ -240,4 +245,4 @@ def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest
         assert told == (step.loss if over <= RIPPLE_TOLERANCE else start.loss)
         assert step.loss < 0.5 * start.loss  # a real improvement either way
     assert ratios['before'][0] == pytest.approx(1.57, abs=0.01)
-    assert ratios['limited'][0] == pytest.approx(1.24, abs=0.01)
+    assert ratios['limited'][0] == pytest.approx(1.49, abs=0.01)

@@ -29,6 +29,7 @@ __all__ = [
     'ripple_bound',
     'ripple_of_gains',
     'ripple_summary',
+    'told',
     'told_loss',
     'top_evals',
     'within_limit',
@@ -167,8 +168,7 @@ def told_loss(records: list[Record], rec: Evaluation, ripple_limit: float | None
     if ripple_limit is None or rec.aborted or rec.loss is None:
         return rec.loss
     bound = ripple_bound(records, ripple_limit)
-    r = None if bound is None else _over(rec.ripple, bound)
-    if bound is None or r is None or r <= RIPPLE_TOLERANCE:
+    if bound is None:
         return rec.loss
     quiet = [
         x.loss
@@ -178,7 +178,17 @@ def told_loss(records: list[Record], rec: Evaluation, ripple_limit: float | None
         and (q := _over(x.ripple, bound)) is not None
         and q <= 1.0
     ]
-    return max(rec.loss * (1.0 + RIPPLE_PENALTY * (r - 1.0)), min(quiet, default=-math.inf))
+    return told(rec.loss, _over(rec.ripple, bound), min(quiet, default=-math.inf))
+
+
+def told(loss: float, over: float | None, quiet: float) -> float:
+    """:func:`told_loss`'s rule for one experiment: its loss ``loss``, its largest rms over
+    the limit's bound ``over`` (None: not measured: the loss), ``quiet`` the smallest loss
+    measured within the limit so far (-inf: none).  Also the rule of the first step's
+    offline search on the identified model (``im_tuner.prior``)."""
+    if over is None or over <= RIPPLE_TOLERANCE:
+        return loss
+    return max(loss * (1.0 + RIPPLE_PENALTY * (over - 1.0)), quiet)
 
 
 def ripple_summary(

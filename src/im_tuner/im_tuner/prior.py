@@ -217,7 +217,10 @@ def _search(
     """Step 1: ``safe`` on the model, ``evaluations`` experiments per seed; the measured
     points (the first is the start's) and the bench.  With ``ripple_limit`` the start is
     measured ``START_EXPERIMENTS`` times more (its mean rms: the limit's bound) and each
-    search is told what a run with that limit is told (``runlog.ripple.told``)."""
+    search is told what a run with that limit is told (``runlog.ripple.told``), strictly
+    (no tolerance: a point louder than the limit in one experiment is told so; a model
+    can afford to be stricter than the plant's run, and the search then ranks quiet
+    points first)."""
     from .optim import make_optimizer
     from .runlog.ripple import told
 
@@ -238,7 +241,7 @@ def _search(
             said = loss
             if ripple_limit is not None and not aborted:
                 over = max(bench.last[w] / (ripple_limit * s0[w]) for w in range(2))
-                said = told(loss, None if math.isnan(over) else over, quiet)
+                said = told(loss, None if math.isnan(over) else over, quiet, tolerance=1.0)
                 if over <= 1.0:
                     quiet = loss if quiet == -math.inf else min(quiet, loss)
             opt.tell_measurement(u, said, aborted)
@@ -256,13 +259,17 @@ def _compute(
     ripple_models: tuple[DriveConfig, ...] = (),
 ) -> Prior | None:
     """Steps 1-3 of the module docstring; with ``ripple_limit`` (a ratio, the run's
-    ``--ripple-limit``) step 4: the search told the limit, and only candidates whose
+    ``--ripple-limit``) step 4: the search told the limit less the margin, and only
+    candidates whose
     predicted rms (:func:`_ripple_check` on ``model`` and each of ``ripple_models``, the
     largest) is within ``ripple_limit / (1 + RIPPLE_MARGIN)``, the next ``CANDIDATES``
     of the ranking checked when no candidate of a batch is (``RIPPLE_BATCHES`` at most).
     Without a limit: one batch, and the best candidate that beats the start."""
     t0 = time.perf_counter()
-    seen, bench = _search(model, experiment, space, evaluations, ripple_limit)
+    bound = math.inf if ripple_limit is None else ripple_limit / (1.0 + RIPPLE_MARGIN)
+    seen, bench = _search(
+        model, experiment, space, evaluations, None if ripple_limit is None else bound
+    )
     start = tuple(space.start_u.tolist())
     f0 = next((loss for loss, ab, u in seen if u == start and not ab), None)
     if f0 is None:  # the box's start is unstable on the model: no ratio to beat, no prior
@@ -272,7 +279,7 @@ def _compute(
         if aborted or u == start or u in ranked or not loss < f0:
             continue
         # with a limit, only points the search measured within it (told their loss)
-        if ripple_limit is None or _predicted(bench.ratios(u, start)) <= ripple_limit:
+        if ripple_limit is None or _predicted(bench.ratios(u, start)) <= bound:
             ranked[u] = loss
     order = list(ranked)
     experiments = bench.experiments
@@ -295,7 +302,6 @@ def _compute(
         ok = list(best)
         loud = dict.fromkeys(best, 0.0)
         if ripple_limit is not None:
-            bound = ripple_limit / (1.0 + RIPPLE_MARGIN)
             ok = [u for u in ok if worst[u] < 1.0]
             for m in (model, *ripple_models):
                 said, n = _ripple_check(m, experiment, space, ok)

@@ -181,12 +181,15 @@ def told_loss(records: list[Record], rec: Evaluation, ripple_limit: float | None
     return told(rec.loss, _over(rec.ripple, bound), min(quiet, default=-math.inf))
 
 
-def told(loss: float, over: float | None, quiet: float) -> float:
+def told(
+    loss: float, over: float | None, quiet: float, tolerance: float = RIPPLE_TOLERANCE
+) -> float:
     """:func:`told_loss`'s rule for one experiment: its loss ``loss``, its largest rms over
     the limit's bound ``over`` (None: not measured: the loss), ``quiet`` the smallest loss
-    measured within the limit so far (-inf: none).  Also the rule of the first step's
-    offline search on the identified model (``im_tuner.prior``)."""
-    if over is None or over <= RIPPLE_TOLERANCE:
+    measured within the limit so far (-inf: none), told its loss up to ``tolerance``.
+    Also the rule of the first step's offline search on the identified model
+    (``im_tuner.prior``, with no tolerance)."""
+    if over is None or over <= tolerance:
         return loss
     return max(loss * (1.0 + RIPPLE_PENALTY * (over - 1.0)), quiet)
 

@@ -164,5 +164,5 @@ def test_tuner_help_says_drive_config_is_for_a_real_drive_too():
     )
     assert p.returncode == 0, p.stderr
     text = ' '.join(p.stdout.split())
-    assert "the simulator's motor or your --drive class's config" in text, text
+    assert 'the simulator its motor, a --drive class its config' in text, text
     assert 'simulated bench: drive parameter file' not in text

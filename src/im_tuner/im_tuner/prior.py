@@ -30,14 +30,18 @@ point, bit for bit):
    plant, which the nominal model cannot say: without the speed noise that the speed
    loop's gains amplify it sees 1.3-1.7x less ripple than the plant for gains above the
    start's.  So the search runs on the *noisy model* (:func:`noisy_model`: the drive
-   file's own bench effects and noise with the identified mechanics), told what the
-   run is told above the limit (``runlog.ripple.told``: the good but loud points do not
-   steer it), and the perturbed models are the noisy one's.  A candidate's *predicted*
-   rms is the mean over its experiments on every model of its rms over the start's mean
-   there, in the louder window (:func:`_predicted`); it must be within R / (1 +
-   ``RIPPLE_MARGIN``), the margin the prediction's error on the plant asks.  When no
-   candidate of a batch is within it, the next ``CANDIDATES`` of the search's ranking
-   are checked (``RIPPLE_BATCHES`` at most); None if none is.
+   file's own bench effects and noise with the identified mechanics), told above the
+   bound B = R / (1 + ``RIPPLE_MARGIN``) what a run is told above its limit
+   (``runlog.ripple.told``, strictly: no tolerance), so that the good but loud points
+   do not steer it and the ranking's best are quiet; the perturbed models are the noisy
+   one's.  Each candidate that beats the start on every perturbed model is then measured
+   ``RIPPLE_EXPERIMENTS`` times on the noisy model and on the same with the file's
+   friction (:func:`_ripple_check`: the friction at rest decides the limit cycle and the
+   start's motion barely identifies it); its *predicted* rms is the larger of the two
+   means of its rms over the start's (:func:`_predicted`), and must be within B: the
+   margin is the prediction's error on the plant.  When no candidate of a batch is
+   within it, the next ``CANDIDATES`` of the search's ranking are checked
+   (``RIPPLE_BATCHES`` at most); None if none is.
 
 ``model_prior`` is cached per (nominal drive, experiment, box) in the process, and across
 processes in the directory named by ``IM_TUNER_PRIOR_CACHE`` when it is set (a study

@@ -215,9 +215,9 @@ class TunerOptions:
         'standard deviation; [controller.md](controller.md), "The motion sums"; '
         "`im_tuner.identify`), the tuner prints them beside the drive file's, then takes "
         "the best point of an offline tuning on the drive file's model with those values "
-        '(300 experiments per seed, 1261 in all: about 10-20 s between evaluations 1 and '
-        '2), checked on models with J within +-10 % (or 3 standard deviations) and Rr '
-        'x0.8-1.2; summary.json keeps `identification`, and a resume recomputes the same '
+        '(300 experiments per seed, about 1370 in all with the ripple limit: 10-20 s '
+        'between evaluations 1 and 2), checked on models with J within +-10 % (or 3 '
+        'standard deviations) and Rr x0.8-1.2; summary.json keeps `identification`, and a resume recomputes the same '
         "point from results.jsonl's `motion`. `model`: the same tuning on the drive "
         "file's nominal model as written (every bench effect off; about 1-2 s at "
         'start-up), checked on models with J x0.7-1.4 and Rr x0.8-1.2 '
@@ -249,7 +249,8 @@ class TunerOptions:
         f"to {RIPPLE_TOLERANCE:g} it is told its loss, because one experiment's ripple "
         "scatters about its gains' mean), and the re-measurements and the applied gains "
         "are the best evaluations within it, the start if none is; safe's first step from "
-        'the identified drive is chosen within it on the models. On for the default '
+        'the identified drive is chosen within it as predicted on the identified model '
+        "with the drive file's noise (optimisers.md). On for the default "
         "algorithm, the one meant for a user's drive (the encoder-count limit cycle the "
         "loss does not see is audible and heats the motor); off for the paper's "
         "algorithms and the others, whose final controller is the paper's (the smallest "

@@ -217,7 +217,8 @@ class TunerOptions:
         "the best point of an offline tuning on the drive file's model with those values "
         '(300 experiments per seed, about 1370 in all with the ripple limit: 10-20 s '
         'between evaluations 1 and 2), checked on models with J within +-10 % (or 3 '
-        'standard deviations) and Rr x0.8-1.2; summary.json keeps `identification`, and a resume recomputes the same '
+        'standard deviations) and Rr x0.8-1.2; summary.json keeps `identification`, and '
+        'a resume recomputes the same '
         "point from results.jsonl's `motion`. `model`: the same tuning on the drive "
         "file's nominal model as written (every bench effect off; about 1-2 s at "
         'start-up), checked on models with J x0.7-1.4 and Rr x0.8-1.2 '

@@ -361,7 +361,8 @@ def family_md(fs: FamilyStats, command: str, figures: dict[str, dict[str, str]])
         f'<= {GOAL["evals"]:g}; median to <= {FAST_LEVEL:g} <= {GOAL["fast"]:g}, reached in '
         f'>= {GOAL["fast_reached"]:g} % of runs; <= {GOAL["aborted_per_run"]:g} aborted '
         f'experiment per run; re-measured within {100 * GOAL["remeasured"]:g} % of the '
-        "drive's best row.",
+        "drive's best row within the default's ripple limit (a row's runs counted where "
+        'its choice is within it).',
         '',
         *(f'* {g}' for g in goal_lines(fs)),
         *([] if fs.checks else ['* (the default is not in this study)']),

@@ -202,8 +202,9 @@ def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest
     standstill rms after the move 0.233 A, 1.57x the start's (0.148 A), over the run's
     limit 1.5 (by 5 %: within the search's RIPPLE_TOLERANCE it is still told its loss, but
     the final choice cannot take it).  With the run's limit the model's search is told it
-    and the prior takes a candidate predicted within it by the margin (0.98x): on the
-    plant 1.22x the start's in its one experiment, told its loss."""
+    and the prior takes a candidate predicted within it by the margin (1.06x): on the
+    plant 1.37x the start's in its one experiment (the ideal profile: the limit cycle
+    comes and goes with the rest position), within the limit, told its loss."""
     setup = drive_setup('im750w-j1')
     space, m = setup.params.space, setup.drive.machine
     plant = dataclasses.replace(setup.drive, machine=dataclasses.replace(m, J=1.5 * m.J))
@@ -222,8 +223,8 @@ def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest
     assert before.ripple_ratio is None and limited.u != before.u
     # predicted within the limit by its margin
     assert 0.9 < limited.ripple_ratio <= 1.5 / (1 + RIPPLE_MARGIN)
-    # both of the model's best: the quiet one's loss within 3 % of the loud one's there
-    assert limited.model_ratio < 1.03 * before.model_ratio
+    # both of the model's best: the quiet one's loss within 2 % of the loud one's there
+    assert limited.model_ratio < 1.02 * before.model_ratio
     # the first batch: the start 4 more times in the search, then on each of the two
     # models of the ripple check (identified and file friction) from rest, 4 times, and
     # each of the 8 candidates 6 times
@@ -245,4 +246,4 @@ def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest
         assert told == (step.loss if over <= RIPPLE_TOLERANCE else start.loss)
         assert step.loss < 0.5 * start.loss  # a real improvement either way
     assert ratios['before'][0] == pytest.approx(1.57, abs=0.01)
-    assert ratios['limited'][0] == pytest.approx(1.22, abs=0.01)
+    assert ratios['limited'][0] == pytest.approx(1.37, abs=0.01)

@@ -204,10 +204,12 @@ def test_comparison_rows_by_hand():
     # standstill rms [A] (the start's after the move, after the load; the choice's): the
     # larger ratio of the two windows per run, their median (run 2 a quiet start)
     res.ripple[c] = [[0.2, 0.25, 0.3, 0.25], [0.2, 0.25, 0.1, 0.5], [1e-9, 0.2, 2.0, 0.2]]
+    # peak to peak [A]: ratios 2.0, 1.0, 3.0 (the larger window's), median 2.0
+    res.ripple_pp[c] = [[1.0, 1.0, 2.0, 1.5], [1.0, 1.0, 1.0, 0.5], [1.0, 1.0, 1.0, 3.0]]
     st = compute(res, 0.9)
     head, rows = comparison_rows(st)
-    assert head[0] == 'method (configuration, start)' and len(head) == 8
-    assert head[7] == 'ripple / start, median'
+    assert head[0] == 'method (configuration, start)' and len(head) == 9
+    assert head[7] == 'ripple / start, median' and head[8] == 'peak-to-peak / start'
     labels = [r[0] for r in rows]
     assert 'safe defaults (hand-tuned start)' in labels
     assert 'CMA-ES sigma0=0.3 random start' in labels  # the start is not said twice
@@ -221,6 +223,7 @@ def test_comparison_rows_by_hand():
     assert value[4] == pytest.approx(100 * 2 / 3, abs=0.5)  # runs reaching 0.5 [%]
     assert value[5] == pytest.approx((0 + 1 + 2) / 3, abs=0.05)  # aborted per run
     assert value[6] == pytest.approx(2.0, abs=5e-3)  # ripple ratio: 1.5, 2.0, 2e9
+    assert value[7] == pytest.approx(2.0, abs=5e-3)  # peak to peak: 2.0, 1.0, 3.0
     cs = next(x for x in st.cells if x.cell.algo == 'safe' and x.cell.label == 'defaults')
     assert cs.ripple_over.value == pytest.approx(200 / 3) and cs.ripple_over.n == 3
     assert cs.ripple_ratio.n == 3

@@ -199,6 +199,7 @@ def write_tables_csv(st: StudyStats, out: Path) -> Path:
             ('fast_reached', '', 0),
             ('ripple_ratio', '', 2),
             ('ripple_over', '', 0),
+            ('ripple_pp_ratio', '', 2),
         )
         for stat, _, _ in (*STATS, *extra, ('aborted_per_run', '', 1)):
             for c in st.cells:

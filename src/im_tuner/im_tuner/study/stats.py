@@ -122,6 +122,11 @@ class CellStats:
     )
     #: % of runs whose ripple ratio exceeds the default limit (runlog.ripple.DEFAULT_RIPPLE_LIMIT)
     ripple_over: Interval = field(default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0))
+    #: as ``ripple_ratio``, peak to peak (what the limit does not bound: a point within it
+    #: in rms can still swing further)
+    ripple_pp_ratio: Interval = field(
+        default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0)
+    )
 
     def paper(self, stat: str) -> float | None:
         return PAPER[stat].get((self.cell.algo, self.cell.row, self.cell.col))
@@ -179,13 +184,18 @@ def per_run(res: StudyResult, threshold: float) -> dict[str, np.ndarray]:
         'fast': fast,
         'aborted': res.aborted.sum(axis=2).astype(float),
         'ripple_ratio': ripple_ratio(res),
+        'ripple_pp_ratio': ripple_ratio(res, 'pp'),
     }
 
 
-def ripple_ratio(res: StudyResult) -> np.ndarray:
-    """[cells, runs]: the final choice's standstill rms of isq* over the start's, the
-    larger of the two windows (after the move, after the load); nan: not measured."""
-    rip = np.asarray(res.ripple, dtype=float)
+def ripple_ratio(res: StudyResult, measure: str = 'rms') -> np.ndarray:
+    """[cells, runs]: the final choice's standstill rms of isq* (``measure`` 'pp': peak to
+    peak) over the start's, the larger of the two windows (after the move, after the
+    load); nan: not measured."""
+    arr = res.ripple if measure == 'rms' else res.ripple_pp
+    if arr is None:  # (a study result without it)
+        return np.full(res.losses.shape[:2], np.nan)
+    rip = np.asarray(arr, dtype=float)
     with np.errstate(invalid='ignore', divide='ignore'):
         r = rip[..., 2:] / rip[..., :2]
     out = np.max(r, axis=-1)
@@ -279,7 +289,7 @@ def compute(res: StudyResult, threshold: float | None = None) -> StudyStats:
         lo, hi = wilson(k, res.spec.runs)
         kf = int(np.sum(~np.isnan(pr['fast'][c])))
         flo, fhi = wilson(kf, res.spec.runs)
-        rr = pr['ripple_ratio'][c]
+        rr, pp = pr['ripple_ratio'][c], pr['ripple_pp_ratio'][c]
         nr = int(np.sum(~np.isnan(rr)))
         ko = int(np.sum(rr[~np.isnan(rr)] > DEFAULT_RIPPLE_LIMIT))
         olo, ohi = wilson(ko, nr)
@@ -320,6 +330,11 @@ def compute(res: StudyResult, threshold: float | None = None) -> StudyStats:
                     nr,
                 ),
                 ripple_over=Interval(100.0 * ko / nr if nr else math.nan, 100 * olo, 100 * ohi, nr),
+                ripple_pp_ratio=boot.interval(
+                    float(_median_defined(pp)) if (npp := int(np.sum(~np.isnan(pp)))) else math.nan,
+                    boot.dist(_median_defined, pp),
+                    npp,
+                ),
             )
         )
     st = StudyStats(res=res, threshold=thr, cells=cells)

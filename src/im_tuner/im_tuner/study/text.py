@@ -120,6 +120,7 @@ COMPARISON = (
     ('runs reaching {fast:g} [%]', 'fast_reached', 0, 'pct'),
     ('aborted per run', 'aborted_per_run', 1, 'mean'),
     ('ripple / start, median', 'ripple_ratio', 2, 'median'),
+    ('peak-to-peak / start', 'ripple_pp_ratio', 2, 'median'),
 )
 
 

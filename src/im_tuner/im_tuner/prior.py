@@ -116,7 +116,7 @@ START_EXPERIMENTS = 4
 #: With a ripple limit, experiments of each candidate in the ripple check (per model)
 RIPPLE_EXPERIMENTS = 6
 #: With a ripple limit R the first step's predicted rms must be within R / (1 + this): the
-#: prediction of the step's mean rms was 4 % below to 8 % above the plant's on every
+#: prediction of the step's mean rms was 5 % below to 16 % above the plant's on every
 #: packaged drive (research/NOTES.md, "The first step predicted within the limit").
 RIPPLE_MARGIN = 0.10
 

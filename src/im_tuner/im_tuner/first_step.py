@@ -18,7 +18,7 @@ from im_controller.config import ExperimentConfig
 from im_drive_sim.params import DriveConfig
 
 from .identify import Identified, identify, start_motions
-from .prior import Prior, identified_prior
+from .prior import RIPPLE_MARGIN, Prior, identified_prior
 from .space import SearchSpace
 
 __all__ = ['IdentifiedFirstStep']
@@ -68,7 +68,8 @@ class IdentifiedFirstStep:
         quiet = (
             ''
             if p.ripple_ratio is None
-            else f"; its standstill rms at most {p.ripple_ratio:.2f}x the start's on the models"
+            else f"; its standstill rms predicted {p.ripple_ratio:.2f}x the start's, within "
+            f'the ripple limit {self.ripple_limit:g} by {RIPPLE_MARGIN:.0%}'
         )
         self._say(
             f"first step: the identified model's best point (its loss {p.model_ratio:.2f}x the "

@@ -210,7 +210,8 @@ def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest
     plant = dataclasses.replace(setup.drive, machine=dataclasses.replace(m, J=1.5 * m.J))
     runs = {}
     for name, limit in (('before', None), ('limited', 1.5)):
-        hook = IdentifiedFirstStep(setup.drive, space, setup.experiment, None, limit)
+        said: list[str] = []
+        hook = IdentifiedFirstStep(setup.drive, space, setup.experiment, said.append, limit)
         opt = make_optimizer('safe', 5, 3, space.start_u, first='identify')
         run = TuningRun(
             MemoryRecord(), space, opt, budget=2, satisfactory_loss=0.9, remeasure=0,
@@ -218,11 +219,16 @@ def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest
         )  # fmt: skip
         assert run.run(OfflineBench(plant, 5, setup.experiment)) == 'done'
         runs[name] = run
+        step = said[-1]
+        assert step.startswith("first step: the identified model's best point"), said
+        assert ('predicted' in step) == (limit is not None), step
     before, limited = (runs[k].first_step.prior for k in ('before', 'limited'))
     assert before is not None and limited is not None
     assert before.ripple_ratio is None and limited.u != before.u
     # predicted within the limit by its margin
     assert 0.9 < limited.ripple_ratio <= 1.5 / (1 + RIPPLE_MARGIN)
+    line = f"its standstill rms predicted {limited.ripple_ratio:.2f}x the start's, within "
+    assert line + 'the ripple limit 1.5 by 10%' in said[-1]
     # both of the model's best: the quiet one's loss within 2 % of the loud one's there
     assert limited.model_ratio < 1.02 * before.model_ratio
     # the first batch: the start 4 more times in the search, then on each of the two

@@ -211,6 +211,17 @@ def _over(r: float, s0: float) -> float:
     return 0.0 if r == 0.0 else math.inf
 
 
+def _over_limit(rms: tuple[float, float], start: tuple[float, float], limit: float) -> float | None:
+    """One experiment's largest rms over ``limit`` x the start's mean, over the windows
+    the start's rms bounds (a start at rest in a window, rms 0, or not measured there
+    bounds nothing, as a run without a measured start ripple); None: no window is
+    bounded, or the experiment has no samples in one that is."""
+    r = [rms[w] / (limit * start[w]) for w in range(2) if start[w] > 0.0]
+    if not r or any(math.isnan(x) for x in r):
+        return None
+    return max(r)
+
+
 def _search(
     model: DriveConfig,
     experiment: ExperimentConfig | None,
@@ -244,9 +255,9 @@ def _search(
             loss, aborted = bench.loss(space, u)
             said = loss
             if ripple_limit is not None and not aborted:
-                over = max(bench.last[w] / (ripple_limit * s0[w]) for w in range(2))
-                said = told(loss, None if math.isnan(over) else over, quiet, tolerance=1.0)
-                if over <= 1.0:
+                over = _over_limit(bench.last, s0, ripple_limit)
+                said = told(loss, over, quiet, tolerance=1.0)
+                if over is not None and over <= 1.0:
                     quiet = loss if quiet == -math.inf else min(quiet, loss)
             opt.tell_measurement(u, said, aborted)
             seen.append((loss, aborted, tuple(u.tolist())))

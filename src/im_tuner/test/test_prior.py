@@ -213,3 +213,14 @@ def _bench_file(tmp_path):
     path = tmp_path / 'bench.yaml'
     path.write_text(text)
     return path
+
+
+def test_the_searchs_ripple_over_the_limit_skips_a_window_where_the_start_rests():
+    """The identified model's search with a ripple limit (``prior._over_limit``): an
+    experiment's rms over limit x the start's, the larger window; a window where the start
+    rests within an encoder count (rms 0, possible on an ideal model) bounds nothing
+    rather than dividing by zero, and with no bounded window the search is told the loss."""
+    assert P._over_limit((0.3, 0.2), (0.1, 0.2), 1.5) == pytest.approx(2.0)
+    assert P._over_limit((0.3, 0.2), (0.0, 0.2), 1.5) == pytest.approx(0.2 / 0.3)
+    assert P._over_limit((0.3, 0.2), (0.0, 0.0), 1.5) is None
+    assert P._over_limit((float('nan'), 0.2), (0.1, 0.2), 1.5) is None

@@ -290,7 +290,7 @@ def compute(res: StudyResult, threshold: float | None = None) -> StudyStats:
         kf = int(np.sum(~np.isnan(pr['fast'][c])))
         flo, fhi = wilson(kf, res.spec.runs)
         rr, pp = pr['ripple_ratio'][c], pr['ripple_pp_ratio'][c]
-        nr = int(np.sum(~np.isnan(rr)))
+        nr, npp = int(np.sum(~np.isnan(rr))), int(np.sum(~np.isnan(pp)))
         ko = int(np.sum(rr[~np.isnan(rr)] > DEFAULT_RIPPLE_LIMIT))
         olo, ohi = wilson(ko, nr)
         cells.append(
@@ -331,7 +331,7 @@ def compute(res: StudyResult, threshold: float | None = None) -> StudyStats:
                 ),
                 ripple_over=Interval(100.0 * ko / nr if nr else math.nan, 100 * olo, 100 * ohi, nr),
                 ripple_pp_ratio=boot.interval(
-                    float(_median_defined(pp)) if (npp := int(np.sum(~np.isnan(pp)))) else math.nan,
+                    float(_median_defined(pp)) if npp else math.nan,
                     boot.dist(_median_defined, pp),
                     npp,
                 ),

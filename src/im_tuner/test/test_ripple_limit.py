@@ -397,3 +397,10 @@ def test_one_loud_experiment_within_the_tolerance_is_told_its_loss_the_choice_st
         0.5,
         0.7,
     ]
+    # a window where the start rests at rms 0 bounds nothing (nothing to be louder than)
+    still = Reference(eval=-1, status='ok', gains={'k': 0.0}, loss=1.0, terms=[1.0, 0, 0],
+                      aborted=False, ripple={**start, 'rms_after_load': 0.0})  # fmt: skip
+    assert ripple_bound([still], 1.5) == pytest.approx({'rms_after_move': 0.3})
+    # (one louder than the bound after the move is still told so; after the load, none is)
+    assert told_loss([still, quiet], loud, 1.5) == 0.5
+    assert told_loss([still, quiet], louder, 1.5) == 0.7

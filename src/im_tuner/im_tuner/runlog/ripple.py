@@ -87,14 +87,15 @@ LIMIT_KEYS = ('rms_after_move', 'rms_after_load')
 def ripple_bound(records: list[Record], limit: float | None) -> dict[str, float] | None:
     """The ripple limit in A: ``limit`` x the start's rms (:func:`ripple_of_gains` of the
     reference's gains) in each window of ``LIMIT_KEYS``, i.e. rms_choice,w <= limit x
-    rms_start,w.  None: no limit, or the start's ripple not measured (no reference)."""
+    rms_start,w; a window where the start rests at rms 0 is not bounded (nothing to be
+    louder than).  None: no limit, or the start's ripple not measured (no reference)."""
     if limit is None:
         return None
     ref = next((r for r in records if r.kind == 'reference'), None)
     start = ripple_of_gains(records, None if ref is None else ref.gains)
     if start is None:
         return None
-    bound = {k: limit * float(v) for k in LIMIT_KEYS if (v := start.get(k)) is not None}
+    bound = {k: limit * float(v) for k in LIMIT_KEYS if (v := start.get(k))}
     return bound or None
 
 

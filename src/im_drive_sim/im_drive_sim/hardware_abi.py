@@ -1,10 +1,8 @@
 """A user's power stage inside the compiled, GIL-free 5 kHz loop: the drive ABI.
 
 A hardware class written in Python (``example_drive.Hardware``) runs its ``write`` and
-``read`` as Python in the loop thread: about 9x the simulator's period work and the GIL
-every period (so a rehearsal could not finish a run on a lightly loaded 2-core
-machine). This module lets the loop call a power stage *by address*, with no GIL and no
-interpreter, in two forms:
+``read`` as Python in the loop thread, with the GIL every period. This module lets the
+loop call a power stage *by address*, with no GIL and no interpreter, in two forms:
 
 * **a C shared library** (``--drive lib:PATH``), the form drive vendors ship their SDKs
   in, exporting the functions of ``share/im_drive_sim/include/im_drive.h`` (modelled on
@@ -168,7 +166,6 @@ _ctx_elapse: Any = _call_by_address('_ctx_elapse', [_F64P, _I64, _I64])
 
 #: the words of an entry as the loop holds them (int64 array, :func:`entry_words`)
 E_KIND, E_WRITE, E_READ, E_ELAPSE, E_CTX, E_CTX_LEN = range(6)
-N_ENTRY = 6
 
 
 def entry_words(e: HardwareEntry) -> np.ndarray:
@@ -477,10 +474,3 @@ class CompiledClassHardware(_Measured):
             self.state.size,
             name=self.name,
         )
-
-
-def build_hardware(spec: str, config: DriveConfig) -> Any:
-    """``lib:PATH`` -> :class:`LibraryHardware` (ConfigError-free: DriveLibraryError)."""
-    if not spec.startswith('lib:') or len(spec) <= 4:
-        raise ConfigError(f"expected 'lib:PATH', got {spec!r}")
-    return LibraryHardware(spec[4:], config)

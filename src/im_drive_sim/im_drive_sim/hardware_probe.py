@@ -15,34 +15,18 @@ a Python hardware class, a compiled class, a C library), paced on the wall clock
    period that starts with the write) in which isq leaves its course by more than
    2 % of the step or 8 noise levels (check_drive's rule).
 
-With command delay d the onset is d (the power stage applies the command over the
-period that starts d - 1 periods after the write) -- when the probe's periods keep time
-with the stage's. A stage on its own clock (a PWM period, a fieldbus cycle) has period
-boundaries the probe does not know, and a probe period that runs late across one of
-them counts one period too many or too few: a late write lands in the stage's next
-period (onset d + 1), a late read samples the stage's next period (onset d - 1). How
-likely that is depends on how close the probe's calls fall to the stage's boundaries,
-the *phase*, which the probe cannot see. So:
+With command delay d the onset is d -- when the probe's periods keep time with the
+stage's. A stage on its own clock has period boundaries the probe does not know, and a
+probe period that runs late across one counts one period too many or too few. So the
+repeats' phases are spread over the period (each starts ``1 / REPEATS`` of a period later
+than the one before); a probe period that starts more than half a period late is not
+caught up (the schedule moves on by whole periods); a repeat in which a period ran late,
+or the reads around the step varied by more than ``JITTER`` of a period, is run again (at
+most ``REPEATS`` extra); and the *median* onset of the ``REPEATS`` (odd) repeats is judged.
+A drive whose median onset is later than it declares is refused in one line.
 
-* the repeats' phases are spread over the period (each repeat's schedule starts
-  ``1 / REPEATS`` of a period later than the one before), so that at most one of them
-  falls close to a boundary of the stage whatever its phase is;
-* a probe period that starts late (by more than half a period: the process was
-  preempted) is not caught up: the schedule moves on from it by whole periods (keeping
-  its phase), since writes bunched to catch up could all land in one of the power
-  stage's periods and the step never be applied;
-* a repeat in which a period ran late, or the time of the reads around the step varied
-  by more than ``JITTER`` of a period, is run again (at most ``REPEATS`` extra);
-* the *median* onset of the ``REPEATS`` (odd) repeats is judged: one repeat off by a
-  period either way (the one near the boundary) moves nothing. A drive whose median
-  onset is later than it declares is slower than it declares, and the bench refuses it
-  in one line.
-
-The motion is small: ``ON`` periods of a tenth of the current limit, about 0.1 degree on
-the packaged motor; the whole probe takes about ``(REPEATS..2 REPEATS) x 23`` periods,
-5-10 ms at 5 kHz.
-
-Written by hand: the probe is a few dozen calls of the drive's own interface.
+The motion is small: ``ON`` periods of a tenth of the current limit; the whole probe takes
+about ``(REPEATS..2 REPEATS) x 23`` periods.
 """
 
 from __future__ import annotations

@@ -52,8 +52,7 @@ MEET_SHARE = 0.95
 
 #: Held periods in an experiment -> the 95th percentile of the change of its loss [%],
 #: the worst placement (at random or one burst) of docs/real-drive.md's held-period table
-#: ("Why 10"; ``research/held.py``), made monotone: the bench's own noise is a
-#: CV of 2.4 %. Beyond the last row nothing was measured.
+#: ("Why 10"; ``research/held.py``), made monotone. Beyond the last row nothing was measured.
 LOSS_CHANGE_P95: tuple[tuple[int, float], ...] = (
     (0, 0.0),
     (1, 0.83),
@@ -257,9 +256,8 @@ AUTO = 'auto'
 #: How long a run's check of its host lasts [s] (before the first experiment).
 PROBE_S = 2.0
 #: ``auto`` takes this many times what 95 % of the check's experiments held: a whole
-#: real-time process (its DDS, serving and recorder threads beside the loop) held 1.5-3x
-#: the periods the wait alone held in the same minutes on a 2-core VM (0.6-0.7 % against
-#: 0.1-0.4 %; docs/real-drive.md, "Check the host first").
+#: real-time process holds more periods than the wait alone (research/NOTES.md, "From the
+#: source of im_drive_sim.host").
 AUTO_MARGIN = 2
 
 

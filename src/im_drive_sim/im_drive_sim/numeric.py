@@ -1,47 +1,22 @@
-"""One numeric baseline for every process of the project: the same bits on every x86-64 CPU.
+"""One numeric baseline for every process of the project: the same bits on every x86-64 CPU
+(why: docs/tuner.md, "The same bits on every machine").
 
-Why. numpy dispatches its loops (sums and other reductions, exp/log, sorting...) to the
-widest SIMD extension the CPU has, and OpenBLAS picks its kernels (gemm, the LAPACK
-routines built on them) by the CPU's core type.  The AVX-512 paths and the AVX2 paths
-give different last bits: on an Intel Xeon with AVX-512 and an AMD EPYC without it the
-same seeded CMA-ES, TPE or ``safe`` run asks different points after a few steps, and a
-study's tables differ.  The numba kernels of the drive are not affected: LLVM
-neither reorders floating-point sums nor contracts them into FMAs without ``fastmath``,
-and their maths calls go to the C library's exp/sin, which picks its FMA variant on every
-x86-64-v3 CPU.
+The baseline, ``x86-64-v3``: numpy's dispatch held at ``X86_V3`` (``NPY_DISABLE_CPU_FEATURES``
+gets the targets above it, :data:`NUMPY_ABOVE`, added to what it already holds), OpenBLAS's
+core type ``Haswell`` (``OPENBLAS_CORETYPE``) and one OpenBLAS thread
+(``OPENBLAS_NUM_THREADS=1``). Both libraries read these variables once, when loaded:
+:func:`apply` sets them in ``os.environ`` before numpy is imported (``import im_drive_sim``
+calls it), so every child process inherits them.
 
-The baseline, ``x86-64-v3`` (AVX, AVX2, BMI1/2, F16C, FMA, LZCNT, MOVBE: every x86-64
-server and desktop CPU since 2013-2015, Intel Haswell and AMD Excavator/Zen on):
+A machine below the baseline runs natively with one OpenBLAS thread (:func:`status`:
+``below``); ``IM_NUMERIC_BASELINE=off`` leaves every library its own choice (``off``); where
+numpy was imported first, :func:`status` reports ``held`` only if numpy and OpenBLAS run the
+baseline anyway, else ``late``.
 
-* numpy's dispatch held at ``X86_V3``: ``NPY_DISABLE_CPU_FEATURES`` gets numpy 2.4's
-  targets above it (:data:`NUMPY_ABOVE`, comma-separated), added to what it already holds;
-* OpenBLAS's core type ``Haswell`` (``OPENBLAS_CORETYPE``; the AVX2 kernels) in numpy's
-  and scipy's OpenBLAS alike;
-* one OpenBLAS thread (``OPENBLAS_NUM_THREADS=1``): a blocked product's split must not
-  depend on the machine's core count (and the optimisers' matrices are 5 x 5: threads
-  only cost).
-
-It is the widest level every machine of ours has (AVX-512 is not everywhere); its cost is
-measured by ``benchmarks/bench_numeric.py`` (the optimisers are not on the 5 kHz path).  Both
-libraries read these variables once, when they are loaded: :func:`apply` sets them in
-``os.environ`` before numpy is imported (``import im_drive_sim`` calls it, and every
-package of the project imports im_drive_sim first), so every child process (the nodes a
-bench starts, the study's workers) inherits them.
-
-A machine below the baseline (no AVX2/FMA, or held lower by its environment, e.g.
-``OPENBLAS_CORETYPE=Sandybridge``) runs natively with one OpenBLAS thread, and says so:
-:func:`status` reports ``below``.  The switch ``IM_NUMERIC_BASELINE=off`` leaves every
-library its own choice (status ``off``).  Where numpy was imported before im_drive_sim
-(a user's script that imports numpy first), the process cannot be moved: :func:`status`
-checks what numpy and OpenBLAS actually run and reports ``held`` only if it is the
-baseline, else ``late``.
-
-Pure, and importable without numpy: :func:`plan` is the decision (environment in,
-environment out); :func:`status` imports numpy, scipy's BLAS and ``threadpoolctl`` (the
-library that reads every loaded BLAS's core type and threads) only when asked.
-``python -m im_drive_sim.numeric_main`` prints the status; ``--env`` prints the
-assignments for a shell (a Dask worker started elsewhere: ``env $(python -m
-im_drive_sim.numeric_main --env) dask worker ...``).
+Importable without numpy: :func:`plan` is the decision (environment in, environment out);
+:func:`status` imports numpy, scipy's BLAS and ``threadpoolctl`` only when asked.
+``python -m im_drive_sim.numeric_main`` prints the status; ``--env`` the assignments for a
+shell.
 """
 
 from __future__ import annotations
@@ -91,8 +66,7 @@ OPENBLAS_V3_OR_ABOVE = frozenset(
 VARIABLES = ('NPY_DISABLE_CPU_FEATURES', 'OPENBLAS_CORETYPE', 'OPENBLAS_NUM_THREADS')
 
 
-class Plan(NamedTuple):  # (not a dataclass: every executable imports this first, and
-    # dataclasses costs 15 ms of the start-up before Ctrl-C is handled, im_drive_sim.launch)
+class Plan(NamedTuple):  # (not a dataclass: its import slows every executable's start-up)
     """What :func:`plan` decided: ``state`` is ``held`` (the baseline is set), ``off`` (the
     switch), ``below`` (the machine or its environment is below the baseline: native, one
     OpenBLAS thread), ``unsupported`` (not an x86-64 Linux machine: native) or ``invalid``
@@ -132,10 +106,6 @@ def cpu_flags() -> frozenset[str] | None:
     return None if text is None else frozenset(text.split())
 
 
-def _words(text: str) -> list[str]:
-    return text.replace(',', ' ').split()
-
-
 def plan(environ: Mapping[str, str], flags: frozenset[str] | None, machine: str) -> Plan:
     """The baseline's decision for a process whose environment is ``environ``, on a CPU
     with ``flags`` (:func:`cpu_flags`) and machine type ``machine`` (``os.uname().machine``).
@@ -151,7 +121,7 @@ def plan(environ: Mapping[str, str], flags: frozenset[str] | None, machine: str)
     missing = [f for f in CPU_V3 if f not in flags]
     if missing:
         return Plan('below', f'the CPU lacks {", ".join(missing)} (x86-64-v3)', one_thread)
-    disabled = _words(environ.get('NPY_DISABLE_CPU_FEATURES', ''))
+    disabled = environ.get('NPY_DISABLE_CPU_FEATURES', '').replace(',', ' ').split()
     low = [f for f in disabled if f.upper() in NUMPY_V3]
     if low:
         return Plan('below', f'NPY_DISABLE_CPU_FEATURES disables {", ".join(low)}', one_thread)

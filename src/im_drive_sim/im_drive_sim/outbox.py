@@ -1,14 +1,11 @@
 """What a real-time loop publishes, taken out of its period: bounded rings, a publisher
 thread that never holds the GIL while rcl publishes, and a tap for the run's recorder.
 
-Why (docs/real-drive.md, "Real-time set-up"): an rclpy ``publish`` costs 5-30 us
-of the loop's 200 us period, and on a reliable topic whose reader stopped taking (a
-visualiser, a ``ros2 topic echo`` suspended with Ctrl-Z) Fast DDS blocks it for up to its
-max blocking time (100 ms) -- with the GIL held, since rclpy does not release it in
-``rcl_publish``. A loop that publishes itself therefore stalls with any frozen reader.
-ros2_control's answer is realtime_tools' RealtimePublisher: the loop hands the message
-over without blocking, a non-real-time thread publishes it, and a message the other side
-had no room for is dropped, never waited for. Here:
+Why (docs/real-drive.md, "Real-time set-up"): on a reliable topic whose reader stopped
+taking, Fast DDS blocks ``publish`` for up to its max blocking time with the GIL held, so a
+loop that publishes itself stalls with any frozen reader. As realtime_tools'
+RealtimePublisher, the loop hands the message over without blocking, a non-real-time
+thread publishes it, and a message the other side had no room for is dropped. Here:
 
 * the loop :meth:`Channel.put` s the CDR bytes of each message into a ring per topic and
   per consumer (single producer, single consumer; preallocated, nothing allocated per
@@ -142,11 +139,8 @@ def _publisher_loop(
 ) -> int:
     """A publisher thread's whole life, without the GIL: publish what the ring holds,
     sleep ``period_us``, until ``stop[0]`` is set (then publish what is left, if
-    ``stop[0]`` is 1, and return how many were published). Thousands of GIL hand-overs a
-    second from seven threads would each delay the loop thread by up to the switch
-    interval; this takes none. The head is read after a syscall (the sleep): the
-    producer's bytes below it are visible on x86-64 (stores are not reordered there); a
-    weakly ordered CPU would need a release fence in ``Ring.put``."""
+    ``stop[0]`` is 1, and return how many were published). The head is read after a
+    syscall (the sleep; ordering: module docstring)."""
     total = 0
     while True:
         s = stop[0]

@@ -169,8 +169,7 @@ class MachineParams:
     @property
     def rated_current(self) -> float:
         """Rated stator current [A, peak]: sqrt(isd_rated^2 + isq_rated^2) at rated flux
-        and torque, isq_rated = rated_torque/Kt (4.29 A peak, 3.03 A rms for the paper's
-        motor: its nameplate says 3.1 A)."""
+        and torque, isq_rated = rated_torque/Kt."""
         isq = self.rated_torque / self.Kt
         return math.sqrt(self.rated_flux_current * self.rated_flux_current + isq * isq)
 
@@ -224,7 +223,7 @@ _SECTIONS: dict[str, type] = {
     'disturbance': DisturbanceParams,
 }
 _TOP_SCALARS = ('model', 'Ts', 'seed', 'command_delay', 'realism')
-#: Top-level keys a file may leave out, with their defaults (keys added after files existed).
+#: Top-level keys a file may leave out, with their defaults.
 _OPTIONAL: dict[str, Any] = {'command_delay': 1, 'realism': 'ideal'}
 _MODELS = ('full', 'reduced')
 
@@ -268,13 +267,9 @@ BENCH_REFERENCE: dict[str, float] = {
     'bus': 311.0,
     'current': 4.289303488773733,
 }
-#: How each bench effect follows the drive's rating (docs/drive-model.md, "Bench effects";
-#: the per-drive values in docs/drive-family.md): ``torque``, in proportion to the rated
-#: torque (friction, torque ripple, the random load: the bearings, seals and load machine
-#: of a larger motor); ``bus``, to the DC bus (the dead time's lost volt-seconds,
-#: t_d/T_pwm Udc); ``current``, to the rated current (a current sensor is chosen for the
-#: drive's current, its noise and offset are fractions of its range). The others (times,
-#: speeds, relative values, the rotor's warming) keep their magnitude.
+#: How each bench effect follows the drive's rating (docs/drive-model.md, "Bench effects"):
+#: in proportion to the rated ``torque``, the DC ``bus`` or the rated ``current``. The
+#: others (times, speeds, relative values, the rotor's warming) keep their magnitude.
 BENCH_SCALING: dict[str, str] = {
     'sensors.current_noise_std': 'current',
     'sensors.current_offset_a': 'current',
@@ -319,12 +314,10 @@ def bench_profile(
 
 #: Realism profiles: the values of the bench-effect keys (those with an ``off`` value) that
 #: a file leaves out, at the reference rating (``BENCH_REFERENCE``, the paper's 750 W; a
-#: drive's own: ``realism_values``). ``ideal``: every effect off (the bench of the paper
-#: reproduction, bit identical to the files before profiles existed). ``bench``: each
-#: effect at the magnitude documented, with its source, in docs/drive-model.md ("Bench
-#: effects"), the noise-like ones scaled by the calibrated ``BENCH_NOISE_SCALE``, the
-#: rating-bound ones (``BENCH_SCALING``) by the drive's rating. A key the file (or an
-#: override) gives explicitly wins over its profile.
+#: drive's own: ``realism_values``). ``ideal``: every effect off. ``bench``: each effect at
+#: its magnitude of docs/drive-model.md ("Bench effects"), the noise-like ones scaled by
+#: ``BENCH_NOISE_SCALE``, the rating-bound ones (``BENCH_SCALING``) by the drive's rating.
+#: A key the file (or an override) gives explicitly wins over its profile.
 REALISM_PROFILES: dict[str, dict[str, float]] = {
     'ideal': {},
     'bench': bench_profile(),

@@ -3,11 +3,9 @@
 GIL (``im_tuner.bench.compiled_loop``).
 
 Why: run as Python, the glue of a period (the command latch, the counters, the
-state's message, the decimated /clock and joint_states) cost more than the model step
-itself -- the loop thread's per-period work was p50 ~40 us, p99 ~100 us on a 2-core
-machine, most of it interpreter time, and the thread needed the GIL every period. The
-same logic compiled, called once for many periods, takes a few microseconds a period
-and no GIL. The node stays the owner of the logic: :meth:`DriveSimNode.period_words`
+state's message, the decimated /clock and joint_states) costs more than the model step
+itself and needs the GIL every period. The node stays the owner of the logic:
+:meth:`DriveSimNode.period_words`
 and :meth:`DriveSimNode.set_period_words` move its held command, latch and counters to
 and from the arrays below (:func:`pack_words`, :func:`unpack_words`), and the composed
 bench's bit-for-bit test (a real-time run against its lock-step replay) holds both paths

@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any
 
 from .cli import int_in
+from .numeric import cpu_model
 
 __all__ = [
     'RtOptions',
@@ -74,8 +75,7 @@ GRANT_PM_QOS = (
     'grant it with a udev rule (/etc/udev/rules.d/99-cpu-dma-latency.rules: '
     'KERNEL=="cpu_dma_latency", GROUP="realtime", MODE="0660") or run as root'
 )
-#: What the request bought on a 2-core VM (docs/real-drive.md): without it the loop's
-#: wait started 2-5 % of periods more than a period late, with it 0.02-0.3 %.
+#: What the request buys (docs/real-drive.md, "The CPU latency request").
 PM_QOS_COST = 'the CPUs may sleep in deep idle states between periods, and more periods start late'
 
 _pm_qos: dict[str, object] = {}  #: the held request: its file descriptor and what it says
@@ -119,9 +119,7 @@ def latency_report() -> dict[str, object]:
 
 #: The composed loop's busy-wait before each period start [us] (``loop_clock.SPIN_NS``;
 #: ``host_check --spin-us`` tries others): it sleeps (timer slack 1 ns) to 40 us before
-#: the start and spins the rest. On a 2-core VM a pure sleep started most periods
-#: 10-50 us late and a pure spin met the
-#: hypervisor's 10-50 ms stalls (docs/real-drive.md, "Check the host first").
+#: the start and spins the rest (research/NOTES.md, "From the source of im_drive_sim.rt").
 SPIN_US = 40.0
 
 #: The composed bench's loop priority when ``--thread-priority`` is not given: SCHED_FIFO
@@ -299,16 +297,6 @@ def _memory_locked() -> bool:
     return False
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path('/proc/cpuinfo').read_text().splitlines():
-            if line.startswith('model name'):
-                return line.split(':', 1)[1].strip()
-    except OSError:
-        pass
-    return os.uname().machine
-
-
 def _preempt_rt() -> bool:
     try:
         if Path('/sys/kernel/realtime').read_text().strip() == '1':
@@ -333,7 +321,7 @@ def report(opts: RtOptions | None = None, refused: list[str] | None = None) -> d
         'pm_qos': latency_report(),
         'kernel': f'{u.release} {u.version}',
         'preempt_rt': _preempt_rt(),
-        'cpu_model': _cpu_model(),
+        'cpu_model': cpu_model() or u.machine,
         'cpus': os.cpu_count(),
     }
     if opts is not None:

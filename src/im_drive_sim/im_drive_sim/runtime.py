@@ -79,11 +79,11 @@ def publish_retry(pub, msg, context, timeout: float = 30.0) -> int:
     """Publish ``msg`` after a publish raised: wait for the readers to make room.
 
     With a reliable KEEP_ALL publisher, a reader that does not take (a stalled recorder)
-    fills up; Fast DDS then blocks ``publish`` for its max blocking time (100 ms) and rmw
-    raises -- the sample is not queued and no sequence number is used. Retrying until
-    the reader drains turns that into back-pressure: the publisher slows down, nothing is
-    dropped. Returns the number of retries; raises :class:`PublishStalled` after
-    ``timeout`` s, or re-raises at once when the context is shut down.
+    fills up; Fast DDS then blocks ``publish`` for its max blocking time and rmw raises,
+    the sample not queued. Retrying until the reader drains turns that into
+    back-pressure: nothing is dropped. Returns the number of retries; raises
+    :class:`PublishStalled` after ``timeout`` s, or re-raises at once when the context is
+    shut down.
     """
     deadline = time.monotonic() + timeout
     retries = 0
@@ -108,10 +108,9 @@ class LenientDoubles:
     * an integer given at start for a double parameter (``-p k_iw:=20``, or ``k_iw: 20``
       in a params file) is taken as that double, as a ``set_parameters`` call is
       (:meth:`integers_as_doubles`, a node's pre-set callback); rclpy would refuse it at
-      declaration ('expecting type DOUBLE'), a classic trap of the command line;
-    * a request to set an undeclared parameter is refused naming it (rclpy 7.1.6 builds
-      its exception from a spent generator: ``Invalid access to undeclared
-      parameter(s): []``). Done here rather than in a pre-set callback: rclpy hands every
+      declaration ('expecting type DOUBLE');
+    * a request to set an undeclared parameter is refused naming it (rclpy's own message
+      names none). Done here rather than in a pre-set callback: rclpy hands every
       pre-set callback the original list and concatenates what they return.
     """
 

@@ -123,9 +123,8 @@ def load_step_delay_periods(cfg: DriveConfig) -> int:
 def start_position(config: DriveConfig) -> float:
     """Where a drive at rest starts [rad]: half an encoder count, 0.5 * 2 pi / counts.
 
-    theta = 0 is the edge between counts -1 and 0: a plant that applies -1e-16 V instead of
-    0.0 at step 0 reads the other count, and the loss moves by 0.2 %. Inside a count no
-    figure hinges on a round-off; the encoder still reads 0.0 rad.
+    theta = 0 is the edge between counts -1 and 0, where a round-off at step 0 would pick
+    the count; inside a count none does, and the encoder still reads 0.0 rad.
     """
     return math.pi / config.sensors.encoder_counts
 

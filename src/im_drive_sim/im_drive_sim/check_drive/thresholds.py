@@ -60,7 +60,7 @@ F = {name: i for i, name in enumerate(STATE_FIELDS)}
 CURRENT_FIELDS = ('isd', 'isq', 'i_alpha', 'i_beta')
 
 #: Expected topic types (docs/interfaces.md).
-TYPES = TOPIC_TYPES  # the type each drive topic must have
+TYPES = TOPIC_TYPES
 
 # --- thresholds (why: docs/check-drive.md) -----------------------------------------------
 #: fields: currents must stay within this factor of the largest current the drive may carry
@@ -69,9 +69,8 @@ CURRENT_BOUND_FACTOR = 1.5
 #: fields: integral of omega_meas over the motion / change of theta_meas (1 when both are SI;
 #: 57.3 for degrees, 9.55 for rpm). The band absorbs encoder quantisation and filter lag.
 UNITS_RATIO_BAND = (0.8, 1.25)
-#: ... and the band a drive's late samples can bend it to (0.78 measured with 63 % of the
-#: step's periods late or skipped): outside it (degrees 0.017, rpm 9.55, revolutions
-#: 0.159 or 6.28) the units are wrong whatever the host.
+#: ... and the band a drive's late samples can bend it to: outside it the units are wrong
+#: whatever the host.
 UNITS_LATE_BAND = (0.5, 2.0)
 #: watchdog: the times run from the first state received that shows the last command
 #: applied; shown later than this fraction of the timeout after it was due, the start
@@ -79,18 +78,13 @@ UNITS_LATE_BAND = (0.5, 2.0)
 WATCHDOG_REF_SLACK = 0.1
 #: fields: motion needed to judge the units [encoder counts of the configured encoder].
 UNITS_MIN_COUNTS = 10
-#: rate (real time): median period within this fraction of Ts (a drive and this check
-#: competing for 2 loaded cores measured 200-211 us) ...
+#: rate (real time): median period within this fraction of Ts ...
 RATE_TOLERANCE = 0.10
-#: ... and at most this fraction of periods longer than 2 Ts (measured 0.4-4 %, 9 % while
-#: another real-time test ran beside it).
+#: ... and at most this fraction of periods longer than 2 Ts.
 RATE_MAX_LONG_FRACTION = 0.20
 #: rate (real time): the drive's clock -- the slope of its publication times over its step
 #: index, fitted to the punctual half of the periods -- within this fraction of Ts: a
-#: drive that cannot pause skips the periods its late loop missed, and its step index
-#: keeps to the wall clock however loaded the machine (measured 200.0 us/step beside two
-#: hogs). A drive paced right has this clock or a median period within RATE_TOLERANCE;
-#: one paced at 250 us has neither, whatever the load.
+#: drive that cannot pause keeps to the wall clock however loaded the machine.
 CLOCK_TOLERANCE = 0.02
 #: The check kept up over a phase when it answered at least this fraction of the periods
 #: in time (the drive's applied_step labels: lag 0) ...
@@ -100,8 +94,7 @@ BUSY_FRESH_MIN = 0.5
 #: items it judged there are `inconclusive`, not failed (conditions.py).
 BUSY_LATE_P99_S = 2e-3
 #: step_response: the step the drive was given is the one commanded when no more than this
-#: many consecutive states are missing in it (a longer gap, bridged by a line, would
-#: stretch a 1.5 ms rise) ...
+#: many consecutive states are missing in it ...
 STEP_GAP_MAX = 10
 #: ... and its commands reached the drive at most this fraction of the step's duration
 #: late (by its labels): the last quarter, where the steady state is measured, is then
@@ -112,28 +105,19 @@ LATENCY_MEDIAN_MAX = 2e-3
 LATENCY_P99_MAX = 20e-3
 #: latency: the state in which a command first shows: k+d for a command answering state k,
 #: d the drive's declared command_delay (1 or 2). Real time allows one period of
-#: transport more (k+d+1), judged on the fastest quarter of the changes: a change this
-#: check answers late (its own process descheduled on a loaded machine) shows later
-#: through no fault of the drive, but a drive that applies commands late never shows early.
-#: (The EFFECT_DELAY_* figures are those of a delay-1 drive.)
+#: transport more (k+d+1), judged on the fastest quarter of the changes. (The
+#: EFFECT_DELAY_* figures are those of a delay-1 drive.)
 EFFECT_DELAY_LOCKSTEP = 1
 EFFECT_DELAY_REALTIME = 2
 TRANSPORT_SLACK_REALTIME = EFFECT_DELAY_REALTIME - EFFECT_DELAY_LOCKSTEP
 #: latency: the drive's labels must be honest, whatever the transport: a change never
 #: shows after the first state whose applied_step is the changing command's (or newer) --
-#: in no change in lock-step (where it must show exactly there), in at most this fraction
-#: of the detected ones in real time (a drive that cannot pause bridges a late loop's
-#: missed periods, where an onset is not well placed). A drive slower than it declares
-#: shows a period after its label in every change.
+#: in no change in lock-step, in at most this fraction of the detected ones in real time.
 LABEL_SLOWER_MAX_REALTIME = 0.25
 #: The drive's host: a period of the drive is *on time* when the drive published its
 #: state at most this late against its own schedule [s] (the lower quartile of its
-#: publication times less k Ts around it: its own clock, so two computers' offset never
-#: enters). Half a period: a power stage whose period started later than that may act
-#: on a command a period later than its label says (a stage sampling at mid-period
-#: boundaries does, ``test/wallclock_drive.c``), through no fault of its own. The labels
-#: are judged on the changes whose periods were all on time (``latency``); the units
-#: ratio only where ...
+#: publication times less k Ts around it). The labels are judged on the changes whose
+#: periods were all on time (``latency``); the units ratio only where ...
 DRIVE_LATE_MAX_S = 100e-6
 #: ... at most this fraction of the step's periods were late or skipped (held).
 DRIVE_LATE_SHARE_MAX = 0.05
@@ -159,13 +143,11 @@ LOCKSTEP_SILENCE_S = 0.35
 
 #: No current is commanded before this long after the check joined the graph [s]: a node
 #: that was there before is discovered at the latest by its periodic announcement (Fast
-#: DDS: every 3 s); a second commander found by then refuses the check. (Measured: most
-#: are found within 0.1 s, one in six took 2.6 s.)
+#: DDS: every 3 s); a second commander found by then refuses the check.
 DISCOVERY_SETTLE_S = 3.2
 DEFAULT_TIMEOUT = 0.05  # [s] command_timeout when the drive has no such parameter
-#: [s] the whole check's limit beyond --timeout (finding the drive): a check takes about
-#: 4 s; one that has not ended by then (a link that holds everything, a host that starves
-#: the check) stops at zero current, INCONCLUSIVE, exit 3
+#: [s] the whole check's limit beyond --timeout (finding the drive): a check not ended by
+#: then stops at zero current, INCONCLUSIVE, exit 3
 CHECK_LIMIT_S = 60.0
 NS_PER_S = 1_000_000_000
 

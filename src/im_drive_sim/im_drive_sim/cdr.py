@@ -1,9 +1,8 @@
 """Pre-serialised ``std_msgs/Float64MultiArray`` for the 5 kHz topics.
 
-Publishing CDR bytes skips rclpy's per-call message conversion (measured here: 4.3 us
-instead of 6.2 us per publish); the wire format is identical, so subscribers and
-recorders see ordinary messages. Layout (XCDR1, little endian) of a message with an
-empty ``layout.dim``, ``data_offset = 0`` and n values::
+Publishing CDR bytes skips rclpy's per-call message conversion; the wire format is
+identical, so subscribers and recorders see ordinary messages. Layout (XCDR1, little
+endian) of a message with an empty ``layout.dim``, ``data_offset = 0`` and n values::
 
     [0:4]   encapsulation header 00 01 00 00 (CDR_LE)
     [4:8]   layout.dim length = 0
@@ -64,8 +63,7 @@ class PatchWire:
     Built from a template serialisation in which each field to patch holds a sentinel
     value that occurs once; :meth:`field` returns a one-element numpy view at that
     sentinel's offset. Publishing :attr:`raw` (or :meth:`payload`) then costs no message
-    conversion: rclpy's ``serialize_message`` of a JointState takes 8 us and setting its
-    fields more, against well under a microsecond here."""
+    conversion."""
 
     def __init__(self, template: bytes) -> None:
         self._buf = bytearray(template)

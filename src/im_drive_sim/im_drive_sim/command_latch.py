@@ -9,11 +9,8 @@ whether the command was fresh -- so that each published state says which command
 the period that ended at it. The values themselves are latched by the model
 (``kernels.step_model``) or by the hardware.
 
-Used by both drive nodes (``drive_sim_node.DriveSimNode``, ``example_drive.ExampleDrive``).
-A compiled copy of the same rule lives in ``period_kernel.latch_labels``, on purpose: the 5 kHz
-compiled loop (``im_tuner.bench.compiled_loop``) runs it without the GIL, where no Python
-object can be called; ``DriveSimNode.period_words`` hands this latch's state to it and
-``set_period_words`` takes it back. Pure Python: no rclpy, no numba.
+Used by both drive nodes. A compiled copy of the same rule, for the GIL-free loop, is
+``period_kernel.latch_labels``. Pure Python: no rclpy, no numba.
 """
 
 from __future__ import annotations

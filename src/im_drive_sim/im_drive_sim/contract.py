@@ -62,14 +62,8 @@ TOPIC_TYPES: dict[str, str] = {
 #: controller uses, electromagnetic torque [N m], d/q and alpha/beta stator currents [A],
 #: the load torque [N m], the true position [rad] and speed [rad/s], applied_step: the
 #: ``answers_step`` of the command the drive applied over the period that ended at this
-#: state (k - d when the controller's answer came in time; an older step when the drive
-#: held or applied a late command; -1 for no command: zero current before the first
-#: command or under the watchdog, or an untagged command), and command_delay d, the
-#: drive's declared command delay (1 or 2): the command answering state k acts over
-#: k + d - 1 -> k + d (1: the period right after the state, as the simulator; 2: a power
-#: stage that latches its command at the next period start). applied_step and d let
-#: the controller count, on the drive's timeline, the periods its experiment was not
-#: driven by fresh answers (docs/interfaces.md, "Timing").
+#: state (-1: none), and command_delay d, the drive's declared command delay (1 or 2): the
+#: command answering state k acts over k + d - 1 -> k + d (docs/interfaces.md, "Timing").
 STATE_FIELDS: tuple[str, ...] = (
     'step_index',
     'time_ns',
@@ -96,17 +90,9 @@ COMMAND_DELAYS: tuple[int, ...] = (1, 2)
 COMMAND_FIELDS: tuple[str, ...] = ('answers_step', 'isq_ref', 'load_torque')
 CMD_STEP, CMD_ISQ, CMD_LOAD = 0, 1, 2
 
-#: ``drive/status`` counters (a DiagnosticStatus's key/values; a drive may publish them in
-#: any order; the example drive, real time only, has no ``republished``):
-#: steps (periods run), commands (valid commands received), fresh/held (periods driven by
-#: a command answering the latest state / holding an older one), late (commands answering
-#: an older state than the latest), stale_ignored (duplicates, out-of-order or, in
-#: lock-step, answering another step), overruns (periods started more than a period
-#: late), republished (lock-step: state re-sent while waiting), max_lateness_us (worst
-#: period-start lateness [us]), watchdog_trips/watchdog_steps (commands stopped for more
-#: than command_timeout / periods run at zero current by the watchdog), backpressure
-#: (publish retries while a reliable reader was full), missed (a drive that cannot pause:
-#: whole periods its late starts skipped, the old command held; counted in held too).
+#: ``drive/status`` counters (a DiagnosticStatus's key/values, in any order; the example
+#: drive, real time only, has no ``republished``; meanings: docs/interfaces.md,
+#: "drive/status").
 STATUS_COUNTERS: tuple[str, ...] = (
     'steps',
     'commands',
@@ -151,13 +137,11 @@ RECORDED = QosSpec('keep_all', 0, 'reliable')
 
 #: The same topics published by a composed real-time loop (``tuner --bench realtime``):
 #: its own recorder takes them from the loop's outbox, not from DDS, and a KEEP_ALL
-#: writer with a reader that stopped taking either blocks each publish for Fast DDS's max
-#: blocking time (100 ms) or grows without bound. KEEP_LAST 1000 (200 ms of a 5 kHz
-#: topic) never blocks and keeps memory bounded; a reader that keeps up loses nothing.
+#: writer with a reader that stopped taking either blocks each publish or grows without
+#: bound. KEEP_LAST 1000 (200 ms of a 5 kHz topic) never blocks and keeps memory bounded.
 LOOP_PUBLISHED = QosSpec('keep_last', 1000, 'reliable')
 
 #: The controller's experiment services (start_experiment, reset_fault) and their
 #: introspection events: reliable KEEP_LAST 100. rclpy's default (10) drops requests past
-#: the tenth when many arrive before the executor takes them (3 clients firing 50 each:
-#: fewer than half answered); 100 answers every burst a tuner or a test makes.
+#: the tenth when many arrive before the executor takes them.
 SERVICES = QosSpec('keep_last', 100, 'reliable')

@@ -2,18 +2,14 @@
 stage given by address (``hardware_abi``: a C library, a compiled class), as numba
 functions the composed loop calls without the GIL (``im_tuner.bench.compiled_loop``).
 
-Why: run as Python, the example drive's period with a user's ``read``/
-``write`` cost 52/152 us (p50/p99) against the simulator's compiled 6/16, and needed the
-GIL every period, so a busy machine made its experiments come back ``timing``. The same
-logic compiled calls the power stage by address: no interpreter in the period.
+Why: run as Python, the example drive's period needs the interpreter and the GIL every
+period; compiled, it calls the power stage by address.
 
 The node stays the owner of the logic: ``ExampleDrive.period_words`` /
 ``set_period_words`` move its held command, latch, step index and counters to and from
 the arrays below, and ``test/test_hardware_loop.py`` holds the compiled period to the
-Python one (the same states, bit for bit, on the same stand-in plant). The rules are
-deliberate compiled copies of ``ExampleDrive.period`` (the loop runs them without the
-GIL); the command's take and the latch are ``period_kernel``'s (the same words, the
-same rules as the simulator's).
+Python one, bit for bit. The rules are compiled copies of ``ExampleDrive.period``; the
+command's take and the latch are ``period_kernel``'s.
 
 ``D`` (float64, :data:`WORDS`): ``period_kernel``'s first words (held command, labels,
 latch, safe stop, command delay) and the example drive's own. ``DC``: the counters,
@@ -115,11 +111,7 @@ def _fault(E: np.ndarray, D: np.ndarray, F: np.ndarray, code: int, call: int) ->
     F[F_CODE] = code
     F[F_CALL] = call
     F[F_STEP] = np.int64(D[D_K])
-    D[PK.D_STOPPED] = 1.0
-    D[PK.D_ISQ] = 0.0
-    D[PK.D_LOAD] = 0.0
-    D[PK.D_APPLIED] = -1.0
-    call_write(E, 0.0, 0.0)
+    safe_stop(E, D)
     return FAULT
 
 

@@ -66,7 +66,7 @@ def trial_library(path: Path, name: str, drive_file: bytes | None, abi_version: 
     (SIGSEGV, SIGBUS of a truncated file, abort()), ends the process (exit()) or never
     returns does so there; the one line that says so, naming the call ('' when the trial
     passed). A library that refuses (another ABI version, open returning non-zero)
-    passes the trial: this process's load says why, as it always did."""
+    passes the trial: this process's load says why."""
     argv = [sys.executable, '-I', '-S', '-c', _TRIAL, str(path), (drive_file or b'').decode()]
     argv.append(str(abi_version))
     try:

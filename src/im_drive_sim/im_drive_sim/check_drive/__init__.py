@@ -7,15 +7,10 @@ summary; exit code 0 when every item passes, 1 otherwise, 2 when it refuses to r
 option, no drive, another node already commanding the drive). What each item checks and
 why its thresholds are what they are: docs/check-drive.md.
 
-A tool of the drive contract, in modules by job: ``thresholds`` (items, limits, the
-result type), ``judges`` (the topics, fields and rate items) and ``response`` (the
-latency, step response and watchdog items) -- pure functions, numpy only: the tests call
-them on synthetic arrays --, ``probe`` (the participant on the graph: records every
-state, joint state and command it saw), ``procedure`` (what the check does to the
-drive, in order, into a ``Recording``), ``conditions`` (the check's measure of itself:
-did it keep up, did the link deliver), ``evaluate`` (the pure evaluation of a
-recording, item by item) and ``cli``. This package's namespace is the union of their
-public names (each module's ``__all__``).
+In modules by job (each module's docstring says which): ``thresholds``, ``judges``,
+``response``, ``conditions`` and ``evaluate`` are pure (numpy only); ``probe``,
+``procedure`` and ``cli`` talk to the graph. This package's namespace is the union of
+their public names (each module's ``__all__``).
 """
 
 from . import (

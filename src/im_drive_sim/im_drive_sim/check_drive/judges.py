@@ -302,11 +302,9 @@ def judge_rate_realtime(
     inconclusive -- unless the drive is paced wrong, which no load explains. A drive that
     skipped periods (``skipped`` > 0) keeps to the wall clock: its clock
     (:func:`clock_period`) must be within CLOCK_TOLERANCE of Ts however loaded the
-    machine (a drive paced at 250 us shows 250 us). One that never skipped pauses when it
-    is late (the simulator), and its clock runs slow with the load: Ts must then lie
-    inside its spread of periods widened by RATE_TOLERANCE (10th percentile <= 1.1 Ts,
-    90th >= 0.9 Ts: its punctual periods are Ts; a drive paced at 250 us has its fastest
-    tenth at 250 us)."""
+    machine. One that never skipped pauses when it is late (the simulator): Ts must then
+    lie inside its spread of periods widened by RATE_TOLERANCE (10th percentile <= 1.1 Ts,
+    90th >= 0.9 Ts)."""
     clock = stats.get('clock', math.nan)
     p10, p90 = stats.get('p10', stats['median']), stats.get('p90', stats['median'])
     if stats.get('skipped', 0):

@@ -1,19 +1,10 @@
 """Command-line plumbing shared by every executable of the workspace.
 
 One convention for bad input, everywhere: **one line on stderr, exit code 2, nothing
-created or changed** (no traceback, no usage block). This module gives the pieces:
-
-* :class:`Parser`: an ``argparse.ArgumentParser`` whose errors raise :class:`UsageError`
-  instead of printing the usage and exiting;
-* :func:`parse_cli`: strips the ``--ros-args ...`` part (``rclpy.utilities.remove_ros_args``)
-  and parses the rest; a bad ``--ros-args`` part (a missing, unreadable or non-ROS
-  ``--params-file``, a malformed ``-p``) becomes a :class:`UsageError` with rcl's reason,
-  without rcl's source locations;
-* argparse ``type=`` helpers for numbers with ranges (:func:`finite_float`,
-  :func:`int_in`) and an output file (:func:`output_file`);
-* :func:`run_cli`: calls a ``main`` body and turns :class:`UsageError` into the one line;
-* :func:`executable`: every executable's ``__main__``: Ctrl-C at any moment (during the
-  imports too) ends it with one line and exit 130, and its exit is bounded.
+created or changed** (no traceback, no usage block): :class:`Parser`, :func:`parse_cli`
+(the ``--ros-args`` part checked by rcl), argparse ``type=`` helpers, :func:`run_cli`; and
+:func:`executable`, every executable's ``__main__`` (Ctrl-C at any moment: one line, exit
+130).
 
 The ROS parts (rcl's argument parser) are imported lazily: the module is importable in
 the pure tools and tests without rclpy.
@@ -174,10 +165,7 @@ def executable(prog: str, main: str | Callable[[], int]) -> NoReturn:
         if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # (ignored: stays so)
             signal.signal(signal.SIGINT, signal.default_int_handler)
         code = main()
-    except KeyboardInterrupt:
-        code = EXIT_INTERRUPTED
-        print(f'{prog}: interrupted', file=sys.stderr, flush=True)
-    except Exception as exc:
+    except (KeyboardInterrupt, Exception) as exc:
         # a Ctrl-C inside a C extension's initialisation (rclpy's, imported by main)
         # comes out as that import's error, the KeyboardInterrupt its cause: interrupted
         if not _caused_by_interrupt(exc):

@@ -29,6 +29,7 @@ from .contract import (
     COMMAND_FIELDS,
     COMMAND_TOPIC,
     JOINT_STATE_TOPIC,
+    NS_PER_S,
     STATE_FIELDS,
     STATE_TOPIC,
     STATUS_TOPIC,
@@ -82,6 +83,13 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
     }
 
     counters: Any
+    #: the loop's real-time scheduling (``--thread-priority`` ...; :mod:`.rt`), applied by
+    #: ``run`` on the thread that runs the loop; ``rt_report`` says the result
+    rt_options: RtOptions = RtOptions()
+    rt_report: dict | None = None
+    #: set by SIGINT/SIGTERM: the loop stops at the next period boundary, so the context
+    #: is never shut down under a publish
+    stop_requested = False
 
     def open_topics(self, node_name: str) -> None:
         """``state_pub``, ``joint_pub`` (:meth:`make_joint_publisher`), ``status_pub``,
@@ -93,6 +101,10 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
         self.io_node = self.command_path.io_node
         self.cmd_sub = self.command_path.subscription
         self.commands = self.command_path.source
+
+    def wait_command(self, timeout_s: float) -> bool:
+        """Sleep up to ``timeout_s`` [s] in rcl_wait; True when a command is pending."""
+        return self.command_path.wait(int(timeout_s * NS_PER_S))
 
     def make_joint_publisher(self) -> Any:
         """``drive/joint_states``' publisher (a hook: a test drive may publish none)."""

@@ -39,7 +39,6 @@ from .drive_sim_loops import run_lockstep, run_realtime
 from .drive_sim_main import parser
 from .drive_sim_parameters import declare_initial_position, declare_parameters
 from .pacing import CommandWatchdog
-from .params import ConfigError
 from .qos import RECORDED_QOS
 from .runtime import (
     parameter_hygiene,
@@ -69,13 +68,10 @@ class DriveSimNode(DriveNode):
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
         p = declare_parameters(self)
         self.mode: str = p['mode']
-        try:
-            overrides: dict = {'model': p['model']} if p['model'] else {}
-            if p['command_delay']:
-                overrides['command_delay'] = p['command_delay']
-            self.config = load_config(p['config_file'] or None, overrides=overrides)
-        except ConfigError as exc:
-            raise ConfigError(str(exc)) from exc
+        overrides: dict = {'model': p['model']} if p['model'] else {}
+        if p['command_delay']:
+            overrides['command_delay'] = p['command_delay']
+        self.config = load_config(p['config_file'] or None, overrides=overrides)
         p['initial_position'] = declare_initial_position(self, self.config)
         self.sim = DriveSim(self.config, seed=p['seed'] if p['seed'] >= 0 else None)
         self.sim.reset(theta=p['initial_position'], omega=0.0, fluxed=True)
@@ -93,14 +89,7 @@ class DriveSimNode(DriveNode):
         self.stall_step: int = p['test_stall_step']
         self.stall_s: float = p['test_stall_duration']
         self.counters = Counters()
-        #: the loop's real-time scheduling (``--thread-priority`` ...; :mod:`.rt`), applied
-        #: by :meth:`run` on the thread that runs the loop; :attr:`rt_report` says the result
-        self.rt_options = rt.RtOptions()
-        self.rt_report: dict | None = None
         self._t_made = time.perf_counter()
-        #: Set by SIGINT/SIGTERM (see main): the loops stop at the next step boundary, so
-        #: the context is never shut down under a publish.
-        self.stop_requested = False
 
         self.open_topics(node_name)
         self.clock_pub = self.create_publisher(Clock, '/clock', RECORDED_QOS)
@@ -119,10 +108,9 @@ class DriveSimNode(DriveNode):
         self._cmd_watchdog = CommandWatchdog(self.command_timeout, self.config.Ts)
         #: latched by :meth:`safe_stop`: zero current and no load from then on
         self.safe_stopped = False
-        self._idx = {name: i for i, name in enumerate(contract.STATE_FIELDS)}
-        self._i_theta = self._idx['theta_meas']
-        self._i_omega = self._idx['omega_meas']
-        self._i_torque = self._idx['torque']
+        self._i_theta = contract.STATE_INDEX['theta_meas']
+        self._i_omega = contract.STATE_INDEX['omega_meas']
+        self._i_torque = contract.STATE_INDEX['torque']
         # Compiled (or loaded from numba's cache) now, not in the first period: on a cold
         # cache (a fresh install) that would be seconds with no state, and the
         # controller's drive-state watchdog aborts the first experiment.
@@ -286,13 +274,7 @@ class DriveSimNode(DriveNode):
         """The held command, its latch and the counters as ``period_kernel``'s ``D`` and
         ``DC`` arrays, for a compiled loop to run periods with (then
         :meth:`set_period_words`)."""
-        return period_kernel.pack_words(
-            self.held, self.latch, self.safe_stopped, self._period_constants(), self.counters
-        )
-
-    def _period_constants(self) -> dict[str, float]:
-        """The node's constants among ``period_kernel.WORDS``."""
-        return {
+        constants = {
             'command_delay': self.config.command_delay,
             'wall_clock': self.wall_clock,
             'clock_decimation': self.clock_decimation,
@@ -302,6 +284,9 @@ class DriveSimNode(DriveNode):
             'i_omega': self._i_omega,
             'i_torque': self._i_torque,
         }
+        return period_kernel.pack_words(
+            self.held, self.latch, self.safe_stopped, constants, self.counters
+        )
 
     def set_period_words(self, D: np.ndarray, DC: np.ndarray, commands: bool) -> None:
         """Take back what a compiled loop ran (:meth:`period_words`); ``commands``: it
@@ -338,10 +323,6 @@ class DriveSimNode(DriveNode):
             time.sleep(self.stall_s)
             return True
         return False
-
-    def wait_command(self, timeout_s: float) -> bool:
-        """Sleep up to ``timeout_s`` [s] in rcl_wait; True when a command is pending."""
-        return self.command_path.wait(int(timeout_s * NS_PER_S))
 
     def warm_up(self) -> None:
         """Compile the model's kernels now, not in the first real-time period."""
@@ -409,7 +390,7 @@ class DriveSimNode(DriveNode):
                 held.fresh = True
 
     def run(self, executor) -> None:
-        # the first log call of a node costs 33-70 ms: never inside the real-time loop
+        # the first log call of a node is slow: never inside the real-time loop
         if self._start_text:
             self.get_logger().info(self._start_text)
             self._start_text = ''

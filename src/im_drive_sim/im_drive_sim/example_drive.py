@@ -6,17 +6,11 @@ Copy this file for a real drive. It has two parts:
     methods: ``write(isq_ref, load_torque)`` applies the current reference (and the load
     machine's torque) for the coming period, ``read()`` samples the sensors and returns a
     :class:`Measurement`; an optional attribute ``command_delay`` (1 or 2, default 1)
-    declares over which period a write acts: 1, the period that starts with it (the
-    stand-in below); 2, the next one (a power stage that latches its reference at the
-    period start and whose ``read()`` samples at that start, so the state read right
-    after a write still shows the command written one period before); an optional
-    ``close()`` runs once at the stop, right after a
-    last ``write(0.0, 0.0)`` (every way out of a run writes zero first: the end, SIGINT,
-    SIGTERM, an exception in the loop; SIGKILL cannot -- the inverter's own
-    communication-loss trip must cover it). Here they are backed by a small simulated stand-in plant
-    (first-order current loop, torque = kt isq, inertia + viscous friction, a
-    4096-count encoder, speed = low-pass filtered backward difference of the measured
-    position), with constants from the drive parameter file.
+    declares over which period a write acts (docs/real-drive.md, "Command delay"); an
+    optional ``close()`` runs once at the stop, right after a last ``write(0.0, 0.0)``
+    (every way out of a run writes zero first; SIGKILL cannot -- the inverter's own
+    communication-loss trip must cover it). Here they are backed by a small simulated
+    stand-in plant with constants from the drive parameter file.
 (b) :class:`ExampleDrive` -- the ROS side, honouring docs/interfaces.md in real-time mode:
     ``drive/state`` every 200 us, ``drive/command`` taken at each period start (newest
     wins; out-of-order and duplicate commands are ignored and counted), ``drive/joint_states``
@@ -254,7 +248,6 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         #: applied_step of the command that acted over the period that just ended
         self.acting = -1
         self.counters = Counters()
-        self.stop_requested = False
         self.k = 0  # step index of the latest published state
         self.isq_ref = self.load_ref = 0.0  # the held command (zero before the first one)
         self.held_answers = -2  # answers_step of the newest tagged command (-2: none yet)
@@ -265,10 +258,6 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         #: zero load torque, whatever command comes
         self.safe_stopped = False
         self._hw_closed = False
-        #: the loop's real-time scheduling (``--thread-priority`` ...; :mod:`.rt`), applied
-        #: by :meth:`run` on the thread that runs the loop; :attr:`rt_report` says the result
-        self.rt_options = rt.RtOptions()
-        self.rt_report: dict | None = None
         #: a power stage cannot pause: a late period start means periods that went by with
         #: the old command held (``pacing.Pacer``'s ``wall_clock``)
         self.wall_clock = True
@@ -390,10 +379,6 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
     def latest_state(self):
         """The state last published (``STATE_FIELDS``; the array is reused each period)."""
         return self.wire.values
-
-    def wait_command(self, timeout_s: float) -> bool:
-        """Sleep up to ``timeout_s`` [s]; True when a command is pending."""
-        return self.command_path.wait(int(timeout_s * NS_PER_S))
 
     # -- publishing ------------------------------------------------------------------------
     def publish_state(self) -> None:

@@ -17,6 +17,7 @@ allocates per period.
 
 from __future__ import annotations
 
+import bisect
 import time
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -134,12 +135,7 @@ class Pacer:
         late_us = late * 1e6
         if late_us > self.max_lateness_us:
             self.max_lateness_us = late_us
-        b = 0
-        for edge in LATENESS_EDGES_US:
-            if late_us < edge:
-                break
-            b += 1
-        self.lateness_hist[b] += 1
+        self.lateness_hist[bisect.bisect_right(LATENESS_EDGES_US, late_us)] += 1
         self.n += 1
         self.missed = 0
         if late > self.ts:

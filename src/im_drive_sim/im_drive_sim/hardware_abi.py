@@ -5,19 +5,10 @@ A hardware class written in Python (``example_drive.Hardware``) runs its ``write
 loop call a power stage *by address*, with no GIL and no interpreter, in two forms:
 
 * **a C shared library** (``--drive lib:PATH``), the form drive vendors ship their SDKs
-  in, exporting the functions of ``share/im_drive_sim/include/im_drive.h`` (modelled on
-  ros2_control's ``SystemInterface``: ``on_activate`` ~ ``im_drive_open``, ``write``,
-  ``read``, ``on_deactivate`` ~ ``im_drive_close``)::
-
-      int  im_drive_abi_version(void);               /* IM_DRIVE_ABI_VERSION: ABI_VERSION */
-      int  im_drive_open(const char *drive_file);   /* 0: ready (the drive file or NULL) */
-      int  im_drive_write(double isq_ref, double load_torque);  /* [A], [N m] */
-      int  im_drive_read(double m[8]);               /* MEASUREMENT_FIELDS, SI units */
-      int  im_drive_command_delay(void);             /* optional: 1 or 2 [periods] */
-      void im_drive_close(void);                     /* optional */
-
-  A negative return of write or read is a drive fault: the loop writes zero current and
-  the run stops in one line naming the library (:class:`HardwareFault`);
+  in, exporting the functions of ``share/im_drive_sim/include/im_drive.h``
+  (:data:`SYMBOLS`; modelled on ros2_control's ``SystemInterface``). A negative return of
+  write or read is a drive fault: the loop writes zero current and the run stops in one
+  line naming the library (:class:`HardwareFault`);
 
 * **a compiled Python class** (the same contract for a Python user): numba-jitted
   functions on the class, ``write(state, isq_ref, load_torque) -> int``, ``read(state, m)
@@ -221,9 +212,6 @@ class _Measured:
     name = ''
     command_delay = 1
 
-    def _measurement(self) -> Measurement:
-        return Measurement()
-
     def _fill(self, meas: Any, m: np.ndarray) -> Any:
         (
             meas.theta_meas,
@@ -242,11 +230,6 @@ class _Measured:
             raise HardwareFault(f'{self.name}: {what} returned {rc} (a drive fault)')
 
 
-def _drive_file(config: DriveConfig) -> bytes | None:
-    path = getattr(config, 'path', '')
-    return str(path).encode() if path else None
-
-
 class LibraryHardware(_Measured):
     """A C drive library (``--drive lib:PATH``): loaded, checked and opened here; every
     problem is a :class:`DriveLibraryError` of one line naming the library."""
@@ -256,7 +239,7 @@ class LibraryHardware(_Measured):
         self.name = f'lib:{path}'
         if not p.is_file():
             raise DriveLibraryError(f'{self.name}: no such file')
-        drive_file = _drive_file(config)
+        drive_file = config.path.encode() if config.path else None
         from .library_trial import trial_library
 
         refused = trial_library(p.resolve(), self.name, drive_file, ABI_VERSION)
@@ -310,13 +293,12 @@ class LibraryHardware(_Measured):
         self._fns = fns
         self._write, self._read = fns['im_drive_write'], fns['im_drive_read']
         self._m = np.zeros(N_MEASUREMENT)
-        self._meas = self._measurement()
+        self._meas = Measurement()
         self._closed = False
         rc = fns['im_drive_open'](drive_file)
         if rc != 0:
             shown = drive_file.decode() if drive_file else 'NULL'
             raise DriveLibraryError(f'{self.name}: im_drive_open({shown}) returned {rc}')
-        self._opened = True
         if 'im_drive_command_delay' in fns:
             d = int(fns['im_drive_command_delay']())
             if d not in contract.COMMAND_DELAYS:
@@ -434,7 +416,7 @@ class CompiledClassHardware(_Measured):
         self._elapse_fn = getattr(cls, 'elapse', None)
         self.command_delay = getattr(inner, 'command_delay', 1)
         self._m = np.zeros(N_MEASUREMENT)
-        self._meas = self._measurement()
+        self._meas = Measurement()
         self._wrapped: tuple[Any, Any, Any] | None = None
 
     def write(self, isq_ref: float, load_torque: float) -> None:

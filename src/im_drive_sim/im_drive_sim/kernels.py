@@ -2,20 +2,12 @@
 the model's step and the published output. The plant itself (machine, shaft, RK4) is in
 :mod:`.plant`; the arrays' layout (``P_*``, ``S_*``, ``F_*``) in :mod:`.model_layout`.
 
-Free functions over two float64 arrays (documented in docs/drive-model.md):
-
-* ``P`` (``N_PARAMS``): constants precomputed once from the configuration by
-  ``sim.make_param_array`` so the per-step kernels do no Python-level work;
-* ``S`` (``N_STATE``): the complete simulator state (plant, encoder, speed filter,
-  flux estimator, PI integrators, delayed voltage, load lag, random-load state, noise
-  cursor).  ``S[0:6]`` is the plant state [i_sa, i_sb, psi_ra, psi_rb, omega, theta].
-
-and ``noise`` (``(block, 7)``): pre-scaled Gaussian samples (i_alpha, i_beta, speed,
-random-load increments, encoder edge jitter [s], the load step's relative amplitude error)
-and a uniform draw (the load step's delay) generated in Python from
-``Generator(PCG64(seed))`` (the jitter and the load step's from their own jumped streams);
-one row is consumed per step, the cursor ``S[S_NPOS]`` wraps at the end of the block (the
-Python side refills the block exactly when it wraps).
+Free functions over ``P`` (constants, ``sim.make_param_array``), ``S`` (the whole
+simulator state) and ``noise`` (``(block, 7)``): pre-scaled Gaussian samples (i_alpha,
+i_beta, speed, random-load increments, encoder edge jitter [s], the load step's relative
+amplitude error) and a uniform draw (the load step's delay), generated in Python
+(``DriveSim``); one row is consumed per step, the cursor ``S[S_NPOS]`` wraps at the end of
+the block (the Python side refills the block exactly when it wraps).
 
 Per-step kernels allocate nothing.  Step semantics: ``step_*`` advances from time k Ts to
 (k+1) Ts and leaves the measurements sampled at (k+1) Ts in ``S``; ``write_out`` writes the

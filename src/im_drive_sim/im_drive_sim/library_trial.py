@@ -22,7 +22,7 @@ __all__ = ['TRIAL_TIMEOUT_S', 'trial_library']
 TRIAL_TIMEOUT_S = 30.0
 
 # The trial's child: the library's calls one by one, each announced before it is made, so
-# that a crash or a hang is pinned to the call (stdlib only: it starts in ~30 ms)
+# that a crash or a hang is pinned to the call (stdlib only: it starts at once)
 _TRIAL = """
 import ctypes, os, sys
 def say(what):

@@ -1,11 +1,9 @@
 """The compiled loops' clock: the wait for each period start, in numba, and the schedule's
 words it keeps.
 
-Every compiled 5 kHz loop of the workspace waits here -- the composed bench's
-(``im_tuner.bench.loop_kernels``), the host check (:mod:`.host`, through
-:func:`run_schedule`) and the benchmark of the host's floor (``benchmarks/loop_floor.py``)
--- so that what the host check measures is the loop's own wait, nothing else. The
-schedule is ``pacing.Pacer``'s, in nanoseconds of
+Every compiled 5 kHz loop of the workspace waits here (the composed bench's, the host
+check's through :func:`run_schedule`, ``benchmarks/loop_floor.py``), so that the host check
+measures the loop's own wait. The schedule is ``pacing.Pacer``'s, in nanoseconds of
 CLOCK_MONOTONIC: period n starts at ``t0 + n ts``; the wait sleeps (``clock_nanosleep``,
 absolute) to ``T[T_SPIN]`` before the start and busy-waits the rest. ``T_SPIN`` = 0 is a
 pure sleep, ``T_SPIN`` >= the period a pure spin. A start more than one period late is an

@@ -1,17 +1,7 @@
-"""Process plumbing shared by the workspace's executables (ROS side, not the core).
-
-* :func:`run_stepped_node`: the ``main()`` of a node with a hand-stepped loop -- rclpy
-  initialised without its signal handlers (they would shut the context down under the
-  loop), SIGINT/SIGTERM asking the loop to stop at the next step boundary, a clean
-  summary/flush/destroy, configuration errors as one line and exit code 2.
-* :func:`stop_child`: end a child process we started, by PID (SIGINT, grace, SIGKILL).
-* :func:`publish_lossless` (and :func:`publish_retry` under it): back-pressure instead of
-  a crash or a lost sample when a reliable KEEP_ALL reader (the recorder) is full.
-* :func:`parameter_hygiene`: what every node of ours does once its parameters are
-  declared -- a ``-p`` override naming no parameter is warned about by name (a typo would
-  otherwise be silently ignored), and an override of a parameter that only *reports* a
-  fact (a message layout, a limit read from a file) is refused at start unless it equals
-  that fact; :class:`LenientDoubles` (int for double at start, undeclared names named).
+"""Process plumbing shared by the workspace's executables (ROS side, not the core): a
+hand-stepped node's ``main()`` (:func:`run_stepped_node`, :class:`RosSession`), lossless
+publishing (:func:`publish_lossless`), the nodes' parameter conventions
+(:func:`parameter_hygiene`, :class:`LenientDoubles`) and :func:`stop_child`.
 """
 
 from __future__ import annotations

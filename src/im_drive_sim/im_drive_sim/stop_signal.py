@@ -1,15 +1,12 @@
 """A stop signal (SIGINT, SIGTERM) passed to a real-time loop without waiting for Python.
 
-Python runs a signal's handler in the main thread, at its next bytecode: when the main
-thread waits in C (the serving thread's ``rcl_wait``) or another thread holds the GIL (a
-busy machine, the serving thread's work), that comes milliseconds to tens of
-milliseconds later, and a loop that learns of the stop from the handler goes on
-commanding current meanwhile. The interpreter's C-level handler, though, writes the
-signal's number at once to the *wakeup fd* (:func:`signal.set_wakeup_fd`). A watcher
-thread waits on that pipe in compiled code -- ``poll(2)`` and ``read(2)`` from numba,
-no GIL -- and sets the loop's stop word, which the loop reads every period: zero current
-in the loop's next period, whatever Python is doing. Python's own handler still runs as
-before (the run's orderly end follows it).
+Python runs a signal's handler in the main thread at its next bytecode, which may come
+many milliseconds later while the loop goes on commanding current. The interpreter's
+C-level handler, though, writes the signal's number at once to the *wakeup fd*
+(:func:`signal.set_wakeup_fd`). A watcher thread waits on that pipe in compiled code
+(``poll(2)`` and ``read(2)`` from numba, no GIL) and sets the loop's stop word, which the
+loop reads every period. Python's own handler still runs (the run's orderly end follows
+it).
 
 The watcher also calls ``should_stop()`` every :data:`POLL_MS` (a stop asked for by
 other means than a signal). Where the wakeup fd cannot be taken (not the main thread)

@@ -20,8 +20,6 @@ from .thresholds import CHECK_LIMIT_S, CheckRefused
 
 __all__ = ['main', 'parse_args']
 
-# ========================================== CLI ============================================
-
 
 def parse_args(argv: list[str]) -> Options:
     """The options, checked; a bad one raises UsageError (one line, exit 2 in main)."""
@@ -154,12 +152,9 @@ def main(args: list[str] | None = None) -> int:
                 )
                 + '\n'
             )
-    except (CheckRefused, ConfigError) as exc:
+    except (CheckRefused, ConfigError, DriveLost) as exc:
         print(f'error: check_drive: {exc}', file=sys.stderr)
-        code = 2
-    except DriveLost as exc:
-        print(f'error: check_drive: {exc}', file=sys.stderr)
-        code = 1
+        code = 1 if isinstance(exc, DriveLost) else 2
     except Interrupted:
         if session.stopped:
             print('check_drive: interrupted; zero current commanded', file=sys.stderr)

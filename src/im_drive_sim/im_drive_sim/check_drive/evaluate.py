@@ -61,9 +61,7 @@ from .thresholds import (
 __all__ = ['DriveLateness', 'Recording', 'evaluate', 'json_ready', 'rows_by_step']
 
 
-def rows_by_step(
-    states: np.ndarray, lengths: np.ndarray, first: int, last: int
-) -> tuple[np.ndarray, int]:
+def rows_by_step(states: np.ndarray, lengths: np.ndarray, first: int, last: int) -> np.ndarray:
     """States of steps first..last as a dense array indexed by step - first (NaN where a step
     was not received; the first copy of a re-sent state)."""
     out = np.full((last - first + 1, len(STATE_FIELDS)), np.nan)
@@ -73,7 +71,7 @@ def rows_by_step(
     sel = (k >= first) & (k <= last)
     for row, kk in zip(s[sel][::-1], k[sel][::-1], strict=True):
         out[kk - first] = row
-    return out, first
+    return out
 
 
 def fill_missed(d: np.ndarray) -> np.ndarray:
@@ -153,8 +151,11 @@ class Recording:
     def m(self) -> int:
         return len(self.cmd)
 
-    def rows_by_step(self, first: int, last: int) -> tuple[np.ndarray, int]:
-        return rows_by_step(self.states, self.lengths, first, last)
+    def rows_by_step(self, first: int, last: int, filled: bool = False) -> np.ndarray:
+        """:func:`rows_by_step` of this recording; ``filled``: in real time with the short
+        gaps bridged (:func:`fill_missed`)."""
+        d = rows_by_step(self.states, self.lengths, first, last)
+        return fill_missed(d) if filled and self.realtime else d
 
 
 def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
@@ -173,9 +174,7 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
     bound = CURRENT_BOUND_FACTOR * math.hypot(isq_max, rec.rated_flux_current)
     sp = state_field_problems(rec.states[:n], rec.lengths[:n], rec.seq[:n], ts_ns, realtime, bound)
     k_first = step_trans[0][0] if step_trans else k_step_end
-    dense, _ = rec.rows_by_step(k_first, k_step_end + 1)
-    if realtime:
-        dense = fill_missed(dense)
+    dense = rec.rows_by_step(k_first, k_step_end + 1, filled=True)
     motion = dense[np.isfinite(dense[:, F['theta_meas']])]
     if len(motion) > 20 and np.all(np.diff(motion[:, 0]) == 1):
         th = motion[:, F['theta_meas']]
@@ -254,9 +253,7 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
     complete: list[bool] = []
     on_time: list[bool] = []
     for k0, level, prev in trans[1:] + step_trans[1:]:
-        d, _ = rec.rows_by_step(k0 - 20, k0 + 25)
-        if realtime:
-            d = fill_missed(d)
+        d = rec.rows_by_step(k0 - 20, k0 + 25, filled=True)
         # judged only with every state from 16 before to 21 after (filled in real time)
         complete.append(bool(np.isfinite(d[4:42]).all()))
         delays.append(onset_delay(d[:, F['isq']], 20, level - prev))
@@ -283,9 +280,7 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
     if len(step_trans) >= 4 and not rec.aborted_why:
         metrics = []
         for (k0, level, prev), (k1, _, _) in itertools.pairwise(step_trans[1:4]):
-            d, _ = rec.rows_by_step(k0 - 20, k1)
-            if realtime:
-                d = fill_missed(d)
+            d = rec.rows_by_step(k0 - 20, k1, filled=True)
             delay = onset_delay(d[:, F['isq']], 20, level - prev)
             seg = d[20 : k1 - k0 + 20]
             metrics.append(
@@ -402,7 +397,7 @@ def step_busy(rec: Recording, declared: int) -> tuple[str, str]:
     if len(rec.step_trans) < 4:
         return '', ''
     k0, k1, k2 = rec.step_trans[1][0], rec.step_trans[2][0], rec.step_trans[3][0]
-    d, _ = rec.rows_by_step(k0, k2 + 2)
+    d = rec.rows_by_step(k0, k2 + 2)
     have = np.isfinite(d).all(axis=1)
     gaps = late = ''
     idx = np.flatnonzero(have)

@@ -48,11 +48,9 @@ class Probe:
         self._DiagnosticArray = DiagnosticArray
 
         # Best-effort readers: what the network loses is lost (the publication sequence
-        # numbers show it), never held back. A reliable reader delivers in order, so one
-        # lost packet held every later state until the drive's writer repaired it (1.4 s
-        # across a lossy link: the check went silent and the drive's watchdog tripped).
-        # Deep keep-last: a stall of this process up to 1 s loses nothing, and the drive's
-        # reliable writer is never held back by a best-effort reader.
+        # numbers show it), never held back (a reliable reader would hold every later
+        # state until a lost one was repaired). Deep keep-last: a stall of this process up
+        # to 1 s loses nothing.
         def best_effort(depth: int) -> QoSProfile:
             return QoSProfile(
                 history=HistoryPolicy.KEEP_LAST,

@@ -124,7 +124,8 @@ def start_position(config: DriveConfig) -> float:
     """Where a drive at rest starts [rad]: half an encoder count, 0.5 * 2 pi / counts.
 
     theta = 0 is the edge between counts -1 and 0, where a round-off at step 0 would pick
-    the count; inside a count none does, and the encoder still reads 0.0 rad.
+    the count; inside a count none does, and the encoder still reads 0.0 rad
+    (research/NOTES.md, "From the source of im_drive_sim.sim").
     """
     return math.pi / config.sensors.encoder_counts
 

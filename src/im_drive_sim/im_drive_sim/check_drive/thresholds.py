@@ -70,7 +70,7 @@ CURRENT_BOUND_FACTOR = 1.5
 #: 57.3 for degrees, 9.55 for rpm). The band absorbs encoder quantisation and filter lag.
 UNITS_RATIO_BAND = (0.8, 1.25)
 #: ... and the band a drive's late samples can bend it to: outside it the units are wrong
-#: whatever the host.
+#: whatever the host (research/NOTES.md, "From the source of im_drive_sim.check_drive.thresholds").
 UNITS_LATE_BAND = (0.5, 2.0)
 #: watchdog: the times run from the first state received that shows the last command
 #: applied; shown later than this fraction of the timeout after it was due, the start
@@ -84,7 +84,8 @@ RATE_TOLERANCE = 0.10
 RATE_MAX_LONG_FRACTION = 0.20
 #: rate (real time): the drive's clock -- the slope of its publication times over its step
 #: index, fitted to the punctual half of the periods -- within this fraction of Ts: a
-#: drive that cannot pause keeps to the wall clock however loaded the machine.
+#: drive that cannot pause keeps to the wall clock however loaded the machine (NOTES, as
+#: for UNITS_LATE_BAND).
 CLOCK_TOLERANCE = 0.02
 #: The check kept up over a phase when it answered at least this fraction of the periods
 #: in time (the drive's applied_step labels: lag 0) ...

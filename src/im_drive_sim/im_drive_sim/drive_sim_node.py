@@ -1,20 +1,11 @@
 """ROS 2 node of the drive simulator: ``ros2 run im_drive_sim drive_sim``.
 
-A thin node around :class:`im_drive_sim.sim.DriveSim`: it translates the drive interface
-of ``docs/interfaces.md`` into core calls and back.
-
-Lock-step (default): the node publishes drive state k, waits for the command that answers
-it, steps the model one 200 us period and publishes state k+1 -- as fast as commands come,
-bit-for-bit deterministic. Real-time: the model is stepped every 200 us by the wall
-clock (no rclpy timer: a hand-paced loop), the last command is held when no fresh one
-came, and overruns and late commands are counted and reported; a watchdog commands zero
-current and no load once no command has come for ``command_timeout`` (a new command
-resumes).
-
-The hot path never goes through an executor: the command subscription lives on a hidden
-helper node (``_<name>_io``) taken with a hand-rolled WaitSet; the visible node (parameters,
-diagnostics) is spun by an executor between steps, every ``service_period_steps`` steps
-and whenever the loop is idle.
+A thin node around :class:`im_drive_sim.sim.DriveSim` that speaks the drive interface of
+``docs/interfaces.md``: lock-step (default; one period per command answering the state,
+bit-for-bit deterministic) or real time (a hand-paced 5 kHz loop holding the last
+command, with the command watchdog). The command path never goes through an executor
+(``drive_io.CommandPath``); the visible node (parameters, diagnostics) is spun between
+steps, every ``service_period_steps`` steps and whenever the loop is idle.
 """
 
 from __future__ import annotations

@@ -11,13 +11,10 @@ Copy this file for a real drive. It has two parts:
     (every way out of a run writes zero first; SIGKILL cannot -- the inverter's own
     communication-loss trip must cover it). Here they are backed by a small simulated
     stand-in plant with constants from the drive parameter file.
-(b) :class:`ExampleDrive` -- the ROS side, honouring docs/interfaces.md in real-time mode:
-    ``drive/state`` every 200 us, ``drive/command`` taken at each period start (newest
-    wins; out-of-order and duplicate commands are ignored and counted), ``drive/joint_states``
-    every 10 steps, ``drive/status`` about once a second, the isq clamp and the command
-    watchdog. Loop: hand-paced on the wall clock (sleep in rcl_wait, busy-wait the last
-    ``realtime_spin_margin``), as drive_sim's real-time mode. What a compiled loop (the
-    tuner's composed bench) calls on it is :mod:`.example_drive_compiled`'s.
+(b) :class:`ExampleDrive` -- the ROS side, honouring docs/interfaces.md in real-time mode
+    (state every period, commands taken at each period start, joint states, status, the
+    isq clamp and the command watchdog), hand-paced on the wall clock as drive_sim's
+    real-time mode. What a compiled loop calls on it is :mod:`.example_drive_compiled`'s.
 
 Check a drive built from it with ``ros2 run im_drive_sim check_drive`` (docs/check-drive.md).
 """

@@ -3,16 +3,12 @@ for an experiment's timing (``ros2 run im_drive_sim host_check``; docs/real-driv
 "Check the host first").
 
 A real drive cannot pause: a period that starts more than a period late is one whose
-old current was held. How often that happens is a property of the host -- its kernel,
-its hypervisor, what else runs -- not of the code, so every real-time run is judged
-against it. :func:`measure` runs the composed loop's wait (``loop_clock.wait_start``,
-the same compiled function, in a compiled loop that does nothing else) for a number of
-seconds on the wall clock and records, per period, the periods it held. :func:`judge`
-turns that into what a tuning run needs: how many periods an experiment of 5625 (1.125 s)
-would hold -- over every experiment-long window of the measurement -- the share that
-meets a timing tolerance, the least tolerance 95 % of them meet, and the change of a
-loss that tolerance allows (the held-period table of docs/real-drive.md, "Timing
-tolerance").
+old current was held, and how often that happens is a property of the host.
+:func:`measure` runs the composed loop's own wait (``loop_clock``) alone on the wall clock
+and records, per period, the periods it held; :func:`judge` turns that into held periods
+per experiment (over every experiment-long window), the share that meets a timing
+tolerance, the least tolerance 95 % of them meet, and the change of a loss it allows
+(docs/real-drive.md, "Timing tolerance").
 
 Pure: numpy (numba in the measurement, :mod:`.loop_clock`), no rclpy. :func:`measure`
 runs in the calling thread; :func:`probe` runs it in a thread of its own with the

@@ -38,17 +38,12 @@ __all__ = [
 class PeriodicDrive(Protocol):
     """A real-time drive, one period at a time (see docs/real-drive.md, "Timing").
 
-    ``start()`` publishes state 0; ``period()`` runs one period at its start: take every
-    pending command (newest wins), the watchdog, apply the held command to the hardware
-    (or step the model), sample, publish state k+1 with its ``applied_step``;
-    ``take_commands()`` takes what came since (the loop calls it once the controller
-    answered, so that answer is fresh for the next period); ``wait_command(s)`` sleeps up
-    to ``s`` seconds in rcl_wait, True when a command is pending. ``safe_stop()`` writes
-    zero current and zero load torque at once and latches them for every later period;
-    ``close_hardware()`` does that a last time and releases the power stage (after it
-    ``period()`` does nothing). A loop calls them on every way out. ``latest_state()``:
-    the values of the state last published (a composed loop hands them to the controller
-    in memory) and ``commands`` (a :class:`CommandSource`) where commands come from.
+    ``start()`` publishes state 0; ``period()`` runs one period at its start (take the
+    commands, the watchdog, apply, sample, publish state k+1); ``take_commands()`` takes
+    what came since; ``wait_command(s)`` sleeps up to ``s`` seconds, True when a command is
+    pending; ``safe_stop()`` and ``close_hardware()`` (zero current, latched; then the
+    power stage released) run on every way out; ``latest_state()``: the state last
+    published; ``commands`` (a :class:`CommandSource`): where commands come from.
     """
 
     counters: Any

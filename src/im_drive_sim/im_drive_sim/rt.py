@@ -2,31 +2,15 @@
 "Real-time set-up").
 
 Three options, applied to the thread that runs the loop (and inherited by the threads it
-starts afterwards):
+starts afterwards): ``--thread-priority N`` (SCHED_FIFO at priority N),
+``--cpu-affinity CPU`` and ``--lock-memory`` (``mlockall``, through ctypes). And one
+without an option, held whenever a real-time loop runs (:func:`hold_latency`): the
+kernel's PM QoS CPU latency request, ``/dev/cpu_dma_latency`` = 0 while the file stays
+open, which keeps the CPUs out of deep idle states.
 
-* ``--thread-priority N`` (1-99): the SCHED_FIFO policy at priority N
-  (``sched_setscheduler``); ros2_control_node's default is 50. The kernel's RT throttling
-  (``/proc/sys/kernel/sched_rt_runtime_us``, 95 % by default) keeps a runaway loop from
-  locking the machine.
-* ``--cpu-affinity CPU``: pin the loop to one CPU (``sched_setaffinity``); best with that
-  CPU isolated (``isolcpus=``, or a cpuset).
-* ``--lock-memory``: ``mlockall(MCL_CURRENT | MCL_FUTURE)``, so no page of the process is
-  paged out and faulted back in inside a period.
-
-And one without an option, held whenever a real-time loop runs (:func:`hold_latency`):
-the kernel's PM QoS CPU latency request, ``/dev/cpu_dma_latency`` = 0 for as long as the
-file stays open (as rt-tests' cyclictest and the real-time guides do), which keeps the
-CPUs out of deep idle states: waking from one is what makes a sleeping loop start late.
-The kernel drops the request when the process ends, however it ends.
-
-When the system does not permit one (no CAP_SYS_NICE / rtprio limit, no CAP_IPC_LOCK /
-memlock limit) it is not applied: :func:`apply` returns one line saying why and how to
-grant it, and the run goes on. :func:`report` describes what the loop runs with: the
-policy, priority, affinity, memory lock, the kernel (PREEMPT_RT or not) and the CPU model
--- the summary and the bag's metadata record it.
-
-Written by hand: the standard library has the scheduler calls (``os.sched_*``) but not
-``mlockall``, which comes from the C library through ctypes. No rclpy here.
+What the system does not permit is not applied: :func:`apply` returns one line saying why
+and how to grant it, and the run goes on. :func:`report` describes what the loop runs
+with (the summary and the bag's metadata record it). No rclpy here.
 """
 
 from __future__ import annotations

@@ -1,9 +1,8 @@
 """check_drive's measure of itself: did the check keep up, and did the link deliver?
 
-A verdict on a drive is only as good as the experiment that produced it. On a loaded
-machine the check's own process is descheduled and answers late; across a network a
-packet is lost or held. Either changes what the drive was asked to do, through no fault
-of the drive. Two measures tell it, both from what was recorded (pure numpy, no ROS):
+On a loaded machine the check answers late; across a network a packet is lost or held.
+Either changes what the drive was asked to do, through no fault of the drive. Two
+measures tell it, both from what was recorded (pure numpy, no ROS):
 
 * **command lag** (the drive's view): in state k the drive labels the command it applied
   (``applied_step``); a command that came in time gives ``applied_step = k - d``

@@ -1,12 +1,8 @@
 """The ``bench`` profile's values on each packaged drive: the table of docs/drive-family.md
 ("The bench per drive"), printed by ``python -m im_drive_sim.bench_table``.
 
-Pure (no rclpy). Each rating-bound effect (``params.BENCH_SCALING``) is its sourced magnitude
-on the paper's 750 W (``params.BENCH_ESTIMATES``, the noise-like ones times
-``BENCH_NOISE_SCALE``) times the drive's rating over the 750 W's (``params.rating_scales``):
-friction, torque ripple and the random load with the rated torque, the dead time with the
-DC bus, the current sensor's noise and offsets with the rated current. Read from each
-drive's loaded config (``realism: bench``), not recomputed here.
+Pure (no rclpy). The values (``params.bench_profile``: scaled by the drive's rating) are
+read from each drive's loaded config (``realism: bench``), not recomputed here.
 """
 
 from __future__ import annotations

@@ -54,14 +54,10 @@ SQRT3 = math.sqrt(3.0)
 def friction_torque(w: float, b: float, tc: float, iwc: float, ds: float, iws2: float) -> float:
     """Friction [N m] at speed w [rad/s], viscous + Coulomb + Stribeck:
 
-    b w + tc tanh(w iwc) + ds w exp(-(w/ws)^2), each term only if its constant is non-zero.
-    The Stribeck term is the rotational friction of MathWorks Simscape: ds = sqrt(2e)
-    (Ts - Tc)/ws, so that it peaks at the breakaway speed w_brk = ws/sqrt(2) with exactly
-    Ts - Tc, where the Coulomb term (its smoothing speed omega_c <= w_brk/10,
-    ``sim.make_param_array``) is Tc tanh(10) = Tc (1 - 4e-9): the breakaway torque Ts.
-    b = B, tc = Tc, iwc = 1/omega_c, iws2 = 1/ws^2 as scalars: callers load them from P
-    once, outside their RK4 stages (loads from P inside would be repeated after every
-    store to S).
+    b w + tc tanh(w iwc) + ds w exp(-(w/ws)^2), each term only if its constant is non-zero;
+    the Stribeck term as MathWorks Simscape's rotational friction (``sim.stribeck_gain``,
+    ``sim.friction_smoothing_speed``). b = B, tc = Tc, iwc = 1/omega_c, iws2 = 1/ws^2 as
+    scalars: callers load them from P once, outside their RK4 stages.
     """
     tf = b * w
     if tc != 0.0:

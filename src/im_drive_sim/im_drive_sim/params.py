@@ -1,20 +1,8 @@
 """Configuration of the induction-motor drive simulator: frozen dataclasses, YAML loading
 and validation (reading a drive file and its ``base``, ``load_config``: ``drive_file.py``).
 
-The packaged default (``config/paper_750w.yaml``) is the paper's 750 W, 1-pole-pair motor
-with the constants of the shared model notes.  Every value is validated on load and a
-``ConfigError`` names the file and the dotted key path of the first bad value, e.g.::
-
-    paper_750w.yaml: machine.Rs must be a finite number > 0, got -3.7
-
-Policy (documented in docs/drive-model.md, "Parameter file reference"):
-
-* a YAML file must be complete: every section and every key is required, unknown keys are
-  rejected (a typo never silently falls back to a default);
-* ``overrides`` (a nested ``{"machine": {"J": 1.0}}`` or dotted ``{"machine.J": 1.0}``
-  mapping) are partial and are merged onto the file before validation;
-* floats accept YAML ints (``1`` -> ``1.0``) but never bools or strings; integer keys
-  accept only ints (never ``4096.0`` or ``true``).
+Every value is validated on load and a ``ConfigError`` names the file and the dotted key
+path of the first bad value (the policy: docs/drive-model.md, "Parameter file reference").
 
 Units are SI throughout; dq quantities are amplitude-invariant peak values.
 """

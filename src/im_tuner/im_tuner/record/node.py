@@ -171,9 +171,9 @@ class Recorder:
         write_metadata_yaml(
             self.out, bag_metadata([(self.file_name, 0, 0, 0)], [], {'im_tuner.state': 'recording'})
         )
-        # Load the take kernel (numba: 0.3 s from its cache, seconds to compile) before any
-        # reader matches: a reliable KEEP_ALL reader that is not taken fills up, and then
-        # back-pressures the 5 kHz publishers -- a stalled drive, aborted experiments.
+        # Load the take kernel (numba: seconds to compile) before any reader matches: a
+        # reliable KEEP_ALL reader that is not taken fills up, and then back-pressures the
+        # 5 kHz publishers -- a stalled drive, aborted experiments.
         if taps:
             self.add_tap(taps)
         self.drain()
@@ -519,7 +519,7 @@ class Recorder:
         self.writer.close()
         write_metadata_yaml(self.out, meta)
         self._destroy_subscriptions()
-        self._log_counts(counts)
+        self.log.info(counts_report(self.out, self.writer.message_count, counts, self.unrecordable))
         return counts
 
     def _metadata(self, custom: dict[str, str]) -> dict:
@@ -533,9 +533,6 @@ class Recorder:
         return bag_metadata(
             [(self.file_name, w.t_start or 0, w.t_end or 0, w.message_count)], topics, custom
         )
-
-    def _log_counts(self, counts: dict) -> None:
-        self.log.info(counts_report(self.out, self.writer.message_count, counts, self.unrecordable))
 
     def _destroy_subscriptions(self) -> None:
         self._subs = np.zeros(0, np.uint64)

@@ -38,6 +38,7 @@ from ..rundir import writer_of
 from .mcap_encode import (
     ChunkInfo,
     chunk_index_record,
+    message_index_records,
     metadata_index_record,
     record,
     statistics_record,
@@ -54,7 +55,6 @@ from .mcap_format import (
     OP_FOOTER,
     OP_HEADER,
     OP_MESSAGE,
-    OP_MESSAGE_INDEX,
     OP_METADATA,
     OP_SCHEMA,
 )
@@ -319,21 +319,6 @@ def _add_loose(scan: McapScan, rec: bytes, at: int) -> None:
     last.compressed_size = last.uncompressed_size
 
 
-def _message_indexes(idx: np.ndarray) -> list[tuple[int, bytes, int]]:
-    """Message Index records of a chunk: (channel id, record, entries), entries sorted by
-    (log_time, offset) — as McapWriter.flush_chunk builds them."""
-    sidx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
-    cids, starts = np.unique(sidx[:, 0], return_index=True)
-    ends = [*starts[1:].tolist(), len(sidx)]
-    out = []
-    for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
-        entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
-        out.append(
-            (cid, record(OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries), b - a)
-        )
-    return out
-
-
 def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
     """Write the repaired file (see the module doc) to ``dst``."""
     pos = 0
@@ -374,9 +359,8 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
                 )
                 at = put(record(OP_CHUNK, body))
                 length = 9 + len(body)
-            index_at, offsets = pos, {}
-            for cid, rec, _n in _message_indexes(ch.index):
-                offsets[cid] = put(rec)
+            index_at = pos
+            offsets = {cid: put(rec) for cid, rec in message_index_records(ch.index)}
             infos.append(
                 ChunkInfo(
                     ch.start,

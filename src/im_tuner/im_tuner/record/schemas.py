@@ -34,9 +34,7 @@ not understand that form, they do understand this one.)  An empty part (``std_sr
 request) is an empty section: its ``MSG:`` line is followed by an empty line and the next
 separator, or ends the text.  Both ``rosbags`` and ``mcap_ros2`` read it as the one-``uint8``
 placeholder struct (``structure_needs_at_least_one_member``) that ROS 2 serialises for an
-empty message, which is what rclpy writes.  Reader caveats (names, not this text):
-mcap_ros2 0.6.0 refuses the schema *name* ``Name_Event``, and rosbags registers
-``pkg/srv/X`` as ``pkg/srv/msg/X`` (see the tests).
+empty message, which is what rclpy writes.
 
 Files are looked up as ``<prefix>/share/<pkg>/msg/<Name>.msg`` (``srv/<Name>.srv``) for each
 prefix in turn; the first prefix that has the file wins.  Prefixes default to the
@@ -100,12 +98,7 @@ def schema_text(type_name: str, prefixes: list[str] | None = None) -> str:
     the type and the files searched, if a definition cannot be found or parsed.
     """
     root = _parse_type_name(type_name)
-    if prefixes is None:
-        prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-        if not prefixes:
-            raise MsgDefError(f'cannot look up {type_name}: AMENT_PREFIX_PATH is not set')
-    loader = _Loader(list(prefixes))
-
+    loader = _Loader.of(type_name, prefixes)
     pkg, kind, name = root
     if kind == 'srv' and name.endswith(_EVENT_SUFFIX):
         service = name[: -len(_EVENT_SUFFIX)]
@@ -179,11 +172,7 @@ def schema_idl(type_name: str, prefixes: list[str] | None = None) -> str:
     pkg, kind, name = _parse_type_name(type_name)
     if kind != 'srv' or not name.endswith(_EVENT_SUFFIX):
         raise MsgDefError(f'{type_name}: only service event types are written as IDL')
-    if prefixes is None:
-        prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-        if not prefixes:
-            raise MsgDefError(f'cannot look up {type_name}: AMENT_PREFIX_PATH is not set')
-    loader = _Loader(list(prefixes))
+    loader = _Loader.of(type_name, prefixes)
     service = name[: -len(_EVENT_SUFFIX)]
     sections = [
         (
@@ -266,6 +255,15 @@ class _Loader:
     def __init__(self, prefixes: list[str]) -> None:
         self.prefixes = prefixes
         self._cache: dict[Path, str] = {}
+
+    @classmethod
+    def of(cls, type_name: str, prefixes: list[str] | None) -> _Loader:
+        """A loader for ``type_name`` over ``prefixes`` (None: ``AMENT_PREFIX_PATH``)."""
+        if prefixes is None:
+            prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+            if not prefixes:
+                raise MsgDefError(f'cannot look up {type_name}: AMENT_PREFIX_PATH is not set')
+        return cls(list(prefixes))
 
     def read_file(self, pkg: str, folder: str, filename: str, what: str, referenced_by: str) -> str:
         """The text of ``share/<pkg>/<folder>/<filename>`` in the first prefix that has it

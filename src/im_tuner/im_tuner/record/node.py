@@ -1,34 +1,19 @@
 """The recorder: every topic on the graph into a rosbag2 MCAP bag, with nothing lost.
 
-``ros2 run im_tuner recorder [--out DIR] [--compression {none,zstd,lz4}]`` records like
-``ros2 bag record -a``: it subscribes to every topic as it appears (the 5 kHz drive state
-and command, controller internals and losses, ``/parameter_events``, ``/rosout``,
-``/clock``, service-introspection ``.../_service_event`` topics) and writes a bag
-directory (``metadata.yaml`` + ``<name>_0.mcap``, profile ros2, ``ros2msg`` schemas with
-their full dependency text -- ``ros2idl`` for service events, see
+``ros2 run im_tuner recorder`` records like ``ros2 bag record -a`` (docs/recorder.md):
+it subscribes to every topic as it appears and writes a bag directory (``metadata.yaml`` +
+``<name>_0.mcap``, ``ros2msg`` schemas -- ``ros2idl`` for service events,
 :func:`im_tuner.record.schemas.schema_for` -- CDR messages, QoS in the channel metadata).
+Subscriptions are reliable KEEP_ALL where the publishers are; messages are taken in the
+recorder's own loop (:mod:`im_tuner.record.take`), not by executor callbacks; per
+publisher the ``publication_sequence_number`` gaps count the messages lost, and the
+per-topic ``recorded / published / lost`` counts go to the log, ``metadata.yaml`` and an
+MCAP metadata record at close. A chunk spans at most ``max_chunk_age`` s of log time and
+is written once its first message is that old (:mod:`.chunk_timer` when nobody polls);
+after SIGKILL, ``ros2 run im_tuner recorder --repair DIR`` rewrites the summary.
 
-Nothing lost, and proof of it:
-
-* subscriptions are reliable KEEP_ALL whenever the publishers are reliable (the
-  project's recorded topics are reliable KEEP_ALL on the publisher side too, so a slow
-  recorder back-pressures the publisher instead of losing data);
-* messages are taken in the recorder's own loop (:mod:`im_tuner.record.take`), never through
-  an executor callback, which would serve one message per spin;
-* per publisher (GID) the recorder follows ``publication_sequence_number``: gaps are
-  messages lost on the way; at close the per-topic ``recorded / published / lost`` counts
-  go to the log, to ``metadata.yaml`` (``custom_data``) and to an MCAP metadata record;
-* publishers the recorder cannot match (incompatible QoS) and types it cannot load are
-  reported, not ignored.
-
-Crash safety: a chunk spans at most ``max_chunk_age`` seconds of log time and is closed
-and handed to the OS once its first message is that old -- by a timer thread
-(:mod:`.chunk_timer`) when the owner does not poll; SIGINT/SIGTERM close the bag
-properly; after SIGKILL, ``ros2 run im_tuner recorder --repair DIR`` rewrites the
-summary, index and ``metadata.yaml``.
-
-The simulated bench (``ros2 run im_tuner sim_bench``) and the tuner run a
-:class:`Recorder` in their own process and call :meth:`Recorder.poll` between steps.
+The simulated bench and the tuner run a :class:`Recorder` in their own process and call
+:meth:`Recorder.poll` between steps.
 """
 
 from __future__ import annotations

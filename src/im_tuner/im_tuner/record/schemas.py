@@ -10,31 +10,22 @@ Foxglove) can decode its CDR messages::
     <that type's .msg text>
     ...
 
-i.e. the top-level definition first and without a header, then every type it uses
-(transitively, each once, depth-first in order of first use), each introduced by a line of
-exactly 80 ``=`` and a line ``MSG: pkg/Type`` (the two-part name), all joined with ``\\n``.
-A definition that ends in a newline (every installed file) is thus followed by an empty
-line before the next separator, exactly as rosbag2 writes it.  (rosbag2 orders each type's
-dependencies by name rather than by first use; readers do not depend on the order.)
+i.e. the top-level definition first, then every type it uses (transitively, each once,
+depth-first in order of first use), each introduced by a line of exactly 80 ``=`` and a
+line ``MSG: pkg/Type``, all joined with ``\\n`` (rosbag2's layout).
 
 Service types have no .msg file; their parts are cut from ``share/<pkg>/srv/<Name>.srv``:
 ``pkg/srv/Name_Request`` is the text before the line ``---`` (without its final newline)
 and ``pkg/srv/Name_Response`` the text after it.  A service *event* type
-``pkg/srv/Name_Event`` (what service introspection publishes on ``<service>/_service_event``)
-is written as the message rosidl generates for it::
+``pkg/srv/Name_Event`` (what service introspection publishes) is written as the message
+rosidl generates for it::
 
     service_msgs/ServiceEventInfo info
     pkg/Name_Request[<=1] request
     pkg/Name_Response[<=1] response
 
-followed by ``MSG: service_msgs/ServiceEventInfo``, ``MSG: pkg/Name_Request``,
-``MSG: pkg/Name_Response`` and their dependencies.  (rosbag2 itself records service events
-with a single ``SRV: pkg/srv/Name`` section holding the whole .srv file; generic readers do
-not understand that form, they do understand this one.)  An empty part (``std_srvs`` Trigger's
-request) is an empty section: its ``MSG:`` line is followed by an empty line and the next
-separator, or ends the text.  Both ``rosbags`` and ``mcap_ros2`` read it as the one-``uint8``
-placeholder struct (``structure_needs_at_least_one_member``) that ROS 2 serialises for an
-empty message, which is what rclpy writes.
+followed by its dependencies (rosbag2's own ``SRV:`` section form is one generic readers
+do not understand). An empty part (``std_srvs`` Trigger's request) is an empty section.
 
 Files are looked up as ``<prefix>/share/<pkg>/msg/<Name>.msg`` (``srv/<Name>.srv``) for each
 prefix in turn; the first prefix that has the file wins.  Prefixes default to the

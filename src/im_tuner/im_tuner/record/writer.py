@@ -11,13 +11,10 @@ File layout (MCAP v0, https://mcap.dev/spec), as rosbag2's MCAP storage writes i
 * magic, Header (profile ``ros2``);
 * data section: Schema and Channel records written *outside* chunks as soon as a topic
   is added (so a crash never loses them), Metadata records, and Chunks, each followed by
-  its Message Index records. A chunk is closed when it reaches ``chunk_size`` bytes,
-  before a message that would make it span more than ``max_span`` of log time, or when
-  the caller flushes it (the recorder does so once its first message is
-  ``max_chunk_age`` s old),
-  and the file is flushed to the OS after every chunk: after SIGKILL the file is readable
-  up to its last complete chunk, and :func:`im_tuner.record.repair.repair_bag` rewrites
-  the summary;
+  its Message Index records. A chunk is closed at ``chunk_size`` bytes, before a message
+  that would make it span more than ``max_span`` of log time, or when the caller flushes
+  it; the file goes to the OS after every chunk, so after SIGKILL it is readable up to its
+  last complete chunk (:func:`im_tuner.record.repair.repair_bag` rewrites the summary);
 * DataEnd, summary (Schemas, Channels, Statistics, Metadata Index, Chunk Indexes),
   Summary Offsets, Footer (with the summary CRC-32), magic.
 

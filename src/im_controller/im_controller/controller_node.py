@@ -131,6 +131,7 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.tuner_timeout = st.tuner_timeout
         self._heartbeat_wall: float | None = None  # monotonic [s] of the last heartbeat
         self.heartbeat_from = ''  #: the frame_id (node name) of the last heartbeat
+        self.tuner_trips = 0  #: times the tuner watchdog tripped
         self._tuner_tripped = False
         if self.tuner_timeout > 0:
             # best effort, newest only: a lost heartbeat is replaced by the next one
@@ -281,6 +282,11 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         response.message = f'fault {reason} cleared; holding {self._state[2]:.4f} rad'
         self.get_logger().warn(response.message)
         return response
+
+    @property
+    def last_state(self) -> np.ndarray | None:
+        """The newest drive state taken (``STATE_FIELDS``; None before the first)."""
+        return self._state
 
     def silent_since_trip(self) -> float | None:
         """Seconds since the state watchdog tripped if no drive state came since (None:
@@ -494,6 +500,7 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         if silent <= self.tuner_timeout and not goodbye:
             return
         self._tuner_tripped = True
+        self.tuner_trips += 1
         who = self.heartbeat_from or 'the tuner'
         running = self.runner.running
         why = f'no heartbeat from {who} for {silent:.2f} s (tuner_timeout {self.tuner_timeout:g} s)'

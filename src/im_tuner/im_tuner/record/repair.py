@@ -1,23 +1,17 @@
 """Repair a bag whose recorder died: rebuild the MCAP summary, index, footer and metadata.yaml.
 
-A SIGKILL (or a power cut) leaves the ``.mcap`` without its DataEnd, summary, chunk
-indexes and footer, and ``metadata.yaml`` in its provisional ``recording`` state. The
-data is still there: :class:`~im_tuner.record.writer.McapWriter` writes Schema and Channel
-records as soon as a topic appears and hands every chunk to the OS when it is closed,
-which the recorder does at least every ``max_chunk_age`` seconds, so at most that much
-(the open chunk) is lost.
+A SIGKILL leaves the ``.mcap`` without its DataEnd, summary, chunk indexes and footer, and
+``metadata.yaml`` in its provisional ``recording`` state; the Schema and Channel records
+and every closed chunk are on disk (docs/recorder.md, "Crash safety").
 
 :func:`repair_bag` scans the file record by record up to the first incomplete or invalid
-one (a truncated record; a whole chunk that does not decompress or fails its CRC had its
-bytes changed: it is named and left out, and the scan goes on past it), then writes
-a new file beside it (``<file>.repairing``): magic, the original Header, every Schema,
-Channel, Metadata and Attachment record found, every complete chunk copied verbatim with
-freshly built Message Index records (messages found outside chunks are packed into new
-uncompressed chunks), DataEnd, the summary and footer exactly as ``McapWriter.close``
-writes them. Only when that file is complete and synced does it replace the original
-(``os.replace``), so a failure at any point leaves the original as it was. A file that
-already ends in a valid footer is left untouched (one with a damaged chunk is refused,
-naming the chunk: nothing can recover its messages). Either way ``metadata.yaml`` is
+one (a complete chunk that fails its CRC or does not decompress is named, left out, and
+the scan goes on), then writes ``<file>.repairing``: the original Header, every
+definition, Metadata and Attachment record, every complete chunk copied verbatim with
+fresh Message Index records (loose messages packed into new uncompressed chunks), and the
+summary and footer as ``McapWriter.close`` writes them; only once that file is complete
+and synced does it replace the original. A file that already ends in a valid footer is
+left untouched (one with a damaged chunk is refused). Either way ``metadata.yaml`` is
 rewritten from what the scan found. No rclpy here.
 """
 

@@ -61,10 +61,9 @@ GAIN_UNITS: dict[str, str] = {
 }
 
 GAIN_RANGES: dict[str, tuple[float, float]] = {
-    # Safe ranges accepted anywhere (node parameters, tuner candidates).  They contain the
-    # notes' search box with margin, and the packaged family's (docs/drive-family.md: the
-    # speed-loop gains scale with J/Kt, up to 38x for im7500w-j10); values outside are
-    # refused, never clipped silently.
+    # Safe ranges accepted anywhere (node parameters, tuner candidates): the notes' search
+    # box with margin and the packaged family's gains (docs/drive-family.md); values outside
+    # are refused, never clipped silently.
     'k_pw': (0.0, 200.0),
     'k_iw': (0.0, 20000.0),
     'k_pos': (0.0, 300.0),

@@ -178,7 +178,7 @@ def walk_records(
         lens = np.empty(cap, np.int64)
         cids = np.empty(cap, np.int64)
         times = np.empty(cap, np.int64)
-        from .walk import walk  # numba (0.5 s to import): only for a bag without an index
+        from .walk import walk  # numba (slow to import): only for a bag without an index
 
         n, end = walk(buf, start, stop_op, ops, offs, lens, cids, times)
         if n < cap or end >= buf.size:

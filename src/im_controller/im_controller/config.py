@@ -61,10 +61,9 @@ GAIN_UNITS: dict[str, str] = {
 }
 
 GAIN_RANGES: dict[str, tuple[float, float]] = {
-    # Safe ranges accepted anywhere (node parameters, tuner candidates).  They contain the
-    # notes' search box with margin, and the packaged family's (docs/drive-family.md: the
-    # speed-loop gains scale with J/Kt, up to 38x for im7500w-j10); values outside are
-    # refused, never clipped silently.
+    # Safe ranges accepted anywhere (node parameters, tuner candidates): the notes' search
+    # box with margin and the packaged family's gains (docs/drive-family.md); values outside
+    # are refused, never clipped silently.
     'k_pw': (0.0, 200.0),
     'k_iw': (0.0, 20000.0),
     'k_pos': (0.0, 300.0),
@@ -115,12 +114,6 @@ NUMERIC_SPECS: dict[str, NumSpec] = {
 }
 
 
-def _spec(key: str, name: str, v: Any) -> float:
-    """Validate ``v`` against ``NUMERIC_SPECS[key]``; ``name`` is used in the message."""
-    sp = NUMERIC_SPECS[key]
-    return _num(name, v, sp.lo, sp.hi, lo_strict=sp.lo_strict, unit=sp.unit)
-
-
 def _is_number(v: Any) -> bool:
     """True for int/float (and numpy scalars), False for bool, str and everything else."""
     if isinstance(v, (bool, np.bool_)):
@@ -128,35 +121,29 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating))
 
 
-def _num(
-    name: str,
-    v: Any,
-    lo: float | None = None,
-    hi: float | None = None,
-    lo_strict: bool = False,
-    unit: str = '',
-) -> float:
-    """Validate one float parameter; returns it as ``float``."""
-    u = f' {unit}' if unit else ''
-    lo_txt = '' if lo is None else (f'> {lo:g}' if lo_strict else f'>= {lo:g}')
-    if lo is not None and hi is not None and not lo_strict:
-        want = f'a finite number in [{lo:g}, {hi:g}]{u}'
-    elif lo is not None and hi is not None:
-        want = f'a finite number in ({lo:g}, {hi:g}]{u}'
-    elif lo is not None:
-        want = f'a finite number {lo_txt}{u}'
-    else:
-        want = f'a finite number{u}'
+def _spec(key: str, name: str, v: Any) -> float:
+    """Validate ``v`` against ``NUMERIC_SPECS[key]``; ``name`` is used in the message."""
+    sp = NUMERIC_SPECS[key]
+    bounds = f'({sp.lo:g}, {sp.hi:g}]' if sp.lo_strict else f'[{sp.lo:g}, {sp.hi:g}]'
+    want = f'a finite number in {bounds}' + (f' {sp.unit}' if sp.unit else '')
     if not _is_number(v):
         raise ControllerConfigError(f'{name} must be {want}, got {v!r} (type {type(v).__name__})')
     x = float(v)
-    if not math.isfinite(x):
-        raise ControllerConfigError(f'{name} must be {want}, got {v!r}')
-    if lo is not None and (x <= lo if lo_strict else x < lo):
-        raise ControllerConfigError(f'{name} must be {want}, got {v!r}')
-    if hi is not None and x > hi:
+    if not math.isfinite(x) or (x <= sp.lo if sp.lo_strict else x < sp.lo) or x > sp.hi:
         raise ControllerConfigError(f'{name} must be {want}, got {v!r}')
     return x
+
+
+def _section(c: Any, cls: type, section: str, prefix: str, skip: str = '') -> dict[str, Any]:
+    """The numeric fields of ``c`` (a ``cls``, ``NUMERIC_SPECS`` keys ``section.*``) but
+    ``skip``, validated; ``prefix`` names them in the messages."""
+    if not isinstance(c, cls):
+        raise ControllerConfigError(f'{prefix} must be a {cls.__name__}, got {type(c).__name__}')
+    return {
+        f.name: _spec(f'{section}.{f.name}', f'{prefix}.{f.name}', getattr(c, f.name))
+        for f in fields(cls)
+        if f.name != skip
+    }
 
 
 # ------------------------------------------------------------------------------ gains
@@ -177,12 +164,6 @@ class Gains:
     tau_sm: float = 0.005
     tau_eq: float = 0.007
 
-    def as_array(self) -> np.ndarray:
-        """[k_pw, k_iw, k_pos, tau_sm, tau_eq] as a float64 array."""
-        return np.array(
-            [self.k_pw, self.k_iw, self.k_pos, self.tau_sm, self.tau_eq], dtype=np.float64
-        )
-
     def as_tuple(self) -> tuple[float, ...]:
         return (self.k_pw, self.k_iw, self.k_pos, self.tau_sm, self.tau_eq)
 
@@ -202,10 +183,7 @@ def validate_gains(g: Any, prefix: str = 'gains') -> Gains:
     """Check every gain is a finite number inside ``GAIN_RANGES``; returns float-typed Gains."""
     if not isinstance(g, Gains):
         raise ControllerConfigError(f'{prefix} must be a Gains instance, got {type(g).__name__}')
-    vals = {}
-    for name in GAIN_NAMES:
-        vals[name] = _spec(f'gains.{name}', f'{prefix}.{name}', getattr(g, name))
-    return Gains(**vals)
+    return Gains(**{n: _spec(f'gains.{n}', f'{prefix}.{n}', getattr(g, n)) for n in GAIN_NAMES})
 
 
 # ---------------------------------------------------------------------------- control
@@ -261,10 +239,7 @@ class LossConfig:
 
 
 def validate_loss_config(c: Any, prefix: str = 'loss') -> LossConfig:
-    if not isinstance(c, LossConfig):
-        raise ControllerConfigError(f'{prefix} must be a LossConfig, got {type(c).__name__}')
-    v = {n: _spec(f'loss.{n}', f'{prefix}.{n}', getattr(c, n)) for n in _field_names(LossConfig)}
-    return LossConfig(**v)
+    return LossConfig(**_section(c, LossConfig, 'loss', prefix))
 
 
 # ------------------------------------------------------------------------- trajectory
@@ -281,11 +256,9 @@ class TrajectoryConfig:
         the two directions are mirror images; 'fixed': +load_torque in every experiment
         (positive opposes positive rotation, drive convention).
     settle [s]: standstill settle before each experiment's step 0 (0.5 s = 2500 steps):
-        the fallback gains hold the position, no load, nothing counted. It makes the loss
-        a function of the gains alone: without it, what the previous experiment left (its
-        load removal, the integrator unwinding) reaches the next one, and the loss of the
-        hand-tuned gains read 1.122 right after an experiment, 1.054 after 45 periods and
-        0.979 after 2500 (docs/controller.md, "The defined experiment"). 0 = no settle.
+        the fallback gains hold the position, no load, nothing counted, so that what the
+        previous experiment left does not reach the loss (docs/controller.md, "The defined
+        experiment"). 0 = no settle.
     """
 
     distance: float = math.pi
@@ -338,13 +311,7 @@ def trajectory_times(
 
 
 def validate_trajectory_config(c: Any, prefix: str = 'trajectory') -> TrajectoryConfig:
-    if not isinstance(c, TrajectoryConfig):
-        raise ControllerConfigError(f'{prefix} must be a TrajectoryConfig, got {type(c).__name__}')
-    v: dict[str, Any] = {
-        n: _spec(f'trajectory.{n}', f'{prefix}.{n}', getattr(c, n))
-        for n in _field_names(TrajectoryConfig)
-        if n != 'load_sign'
-    }
+    v = _section(c, TrajectoryConfig, 'trajectory', prefix, skip='load_sign')
     if not isinstance(c.load_sign, str) or c.load_sign not in ('oppose_move', 'fixed'):
         raise ControllerConfigError(
             f"{prefix}.load_sign must be 'oppose_move' or 'fixed', got {c.load_sign!r}"
@@ -372,14 +339,7 @@ class SafetyConfig:
 
 
 def validate_safety_config(c: Any, prefix: str = 'safety') -> SafetyConfig:
-    if not isinstance(c, SafetyConfig):
-        raise ControllerConfigError(f'{prefix} must be a SafetyConfig, got {type(c).__name__}')
-    return SafetyConfig(
-        **{
-            n: _spec(f'safety.{n}', f'{prefix}.{n}', getattr(c, n))
-            for n in _field_names(SafetyConfig)
-        }
-    )
+    return SafetyConfig(**_section(c, SafetyConfig, 'safety', prefix))
 
 
 # ------------------------------------------------------------------------- experiment
@@ -429,7 +389,3 @@ def validate_experiment_config(c: Any) -> ExperimentConfig:
         validate_safety_config(c.safety),
         validate_gains(c.fallback_gains, 'fallback_gains'),
     )
-
-
-def _field_names(cls: type) -> list[str]:
-    return [f.name for f in fields(cls)]

@@ -53,20 +53,16 @@ __all__ = [
 
 # ------------------------------------------------------------------ parameter indices
 C_KPW = 0  # k_pw [A s/rad]
-C_KIW = 1  # k_iw [A/rad]
-C_KPOS = 2  # k_pos [1/s]
-C_TAU_SM = 3  # [s]
-C_TAU_EQ = 4  # [s]
-C_A_SM = 5  # exp(-Ts/tau_sm) (0 for tau_sm = 0)
-C_G_SM = 6  # 1 - a_sm
-C_A_EQ = 7
-C_G_EQ = 8
-C_KI_TS = 9  # k_iw Ts [A/(rad/s)]
-C_INV_TS = 10  # 1/Ts [1/s]
-C_ISQ_MAX = 11  # [A]
-C_FF = 12  # FF_MODEL or FF_UNDELAYED
-C_TS = 13  # [s]
-N_CPARAMS = 14
+C_KPOS = 1  # k_pos [1/s]
+C_A_SM = 2  # exp(-Ts/tau_sm) (0 for tau_sm = 0)
+C_G_SM = 3  # 1 - a_sm
+C_A_EQ = 4
+C_G_EQ = 5
+C_KI_TS = 6  # k_iw Ts [A/(rad/s)]
+C_INV_TS = 7  # 1/Ts [1/s]
+C_ISQ_MAX = 8  # [A]
+C_FF = 9  # FF_MODEL or FF_UNDELAYED
+N_CPARAMS = 10
 
 FF_MODEL = 0.0
 FF_UNDELAYED = 1.0
@@ -105,10 +101,7 @@ def fill_control_params(
 ) -> None:
     """Write the kernel parameter vector in place (inputs already validated)."""
     C[C_KPW] = gains.k_pw
-    C[C_KIW] = gains.k_iw
     C[C_KPOS] = gains.k_pos
-    C[C_TAU_SM] = gains.tau_sm
-    C[C_TAU_EQ] = gains.tau_eq
     a = _lag(Ts, gains.tau_sm)
     C[C_A_SM] = a
     C[C_G_SM] = 1.0 - a
@@ -119,7 +112,6 @@ def fill_control_params(
     C[C_INV_TS] = 1.0 / Ts
     C[C_ISQ_MAX] = isq_max
     C[C_FF] = FF_MODEL if feedforward == 'model' else FF_UNDELAYED
-    C[C_TS] = Ts
 
 
 def make_control_params(gains: Gains, control: ControlConfig) -> np.ndarray:

@@ -1,30 +1,16 @@
 """ROS 2 node of the cascaded controller: ``ros2 run im_controller controller``.
 
-A thin node around :class:`im_controller.experiment.ExperimentRunner` (docs/controller.md):
-
-* closes the loop with any drive that honours docs/interfaces.md, answering every state
-  with ``drive/command`` (isq*, load torque), through a hand-rolled WaitSet on a hidden io
-  node (no executor in the 5 kHz path);
-* the five gains, the loss weights, thresholds, penalty and trajectory limits are ROS
-  parameters with descriptors and ranges (``config.NUMERIC_SPECS``; declared by
-  ``declarations``, listed in ``parameters``); the hard safety limits and the control
-  structure are read-only. Every change is validated in one place
-  (``parameters.configuration``, ``config.validate_*``) and applied whole or not at all; a
-  change while an experiment runs is **refused** with a reason (``refusals``; not deferred);
-* ``~/start_experiment`` (std_srvs/Trigger) starts the paper's experiment; the result is
-  published on ``controller/loss`` (diagnostic_msgs/DiagnosticArray, see messages.py);
-  ``~/reset_fault`` (std_srvs/Trigger; ``ros2 run im_controller reset_fault`` calls it)
-  clears a safety fault; ``controller/internals``
-  carries references, errors, PI terms, saturation and the running loss every step;
-* between experiments it holds the position (in lock-step simulation, by default, the
-  loop pauses instead: sim time does not advance while nothing runs, which keeps runs
-  reproducible whatever the wall-clock gaps between experiments);
-* a watchdog: no drive state for ``state_timeout`` s while the loop expects one -> zero
-  current commanded, a running experiment aborted (``drive_state_timeout``), FAULT;
-* a tuner watchdog (``tuner_timeout`` > 0, a drive host's): once a client published a
-  heartbeat on ``~/heartbeat``, none for ``tuner_timeout`` s -> zero current, a running
-  experiment aborted (``tuner_lost``), FAULT until ``~/reset_fault`` (the link's, not the
-  drive's: a tuner that comes back clears it and re-runs the experiment).
+A thin node around :class:`im_controller.experiment.ExperimentRunner` (docs/controller.md,
+"The ROS node"): it answers every drive state with ``drive/command`` through a WaitSet on a
+hidden io node (no executor in the 5 kHz path); its gains, loss and trajectory are ROS
+parameters (``declarations``, ``parameters``), validated in one place and applied whole or
+refused (``refusals``; a change while an experiment runs is refused, not deferred);
+``~/start_experiment`` starts an experiment whose result goes out on ``controller/loss``
+(``messages``), ``~/reset_fault`` clears a FAULT, ``controller/internals`` carries every
+step's internals. Between experiments it holds the position (lock-step: by default it
+pauses instead). Two watchdogs: no drive state for ``state_timeout`` s, or no tuner
+heartbeat for ``tuner_timeout`` s (> 0) -> zero current, a running experiment aborted,
+FAULT.
 """
 
 from __future__ import annotations
@@ -262,20 +248,19 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         if reason is not None:
             response.success = False
             response.message = reason
-        else:
-            eid = self.next_experiment_id
-            # The gains were applied when they were set (post-set callback); only after a
-            # supervisor stop, whose fallback gains finished the move, do the parameters'
-            # gains go back in here. Applied once per evaluation either way.
-            gains = self.gains
-            with self.loop_lock:
-                r.start(eid, None if r.gains == gains else gains)
-            self.next_experiment_id += 1
-            response.success = True
-            response.message = C.started(eid)
-            self.get_logger().info(f'experiment {eid} started with {gains}')
-        if not response.success:
-            self._refusal('start_experiment', f'start_experiment {response.message}')
+            self._refusal('start_experiment', f'start_experiment {reason}')
+            return response
+        eid = self.next_experiment_id
+        # The gains were applied when they were set (post-set callback); only after a
+        # supervisor stop, whose fallback gains finished the move, do the parameters'
+        # gains go back in here. Applied once per evaluation either way.
+        gains = self.gains
+        with self.loop_lock:
+            r.start(eid, None if r.gains == gains else gains)
+        self.next_experiment_id += 1
+        response.success = True
+        response.message = C.started(eid)
+        self.get_logger().info(f'experiment {eid} started with {gains}')
         return response
 
     def _on_reset_fault(

@@ -1,27 +1,10 @@
 """The loss experiment of the paper: trajectory, load step, online loss, supervisor.
 
-One experiment (paper, "The loss function"; docs/controller.md):
-
-* reference: minimum-time trajectory over ``distance`` = pi rad under ``a_max`` = 600 rad/s^2
-  and ``v_max`` = 40 rad/s (0.145 s trapezoid; triangular if v_max is not reached),
-  starting at the current hold reference; experiment n moves by +pi if n is even, -pi if odd;
-* load: 0 -> ``load_torque`` (1.75 N m) from 0.7 s after the reference change to the end
-  (1.125 s, 5625 steps); sign 'oppose_move' (default) or 'fixed';
-* online loss (eq. 4-7), per step n = 0..N-1 with c_n = [|isq*_n|/isq_max < 0.99]::
-
-      f1 = |theta*_n - theta_meas_n|        (raw trajectory reference)
-      f2 = |omega*_n - omega_meas_n|        (omega* = the speed controller's reference)
-      f3 = |isqF_n - isq*_n|,  isqF_0 = isq*_0,  isqF_{n+1} = a isqF_n + (1-a) isq*_n,
-           a = exp(-Ts/0.02 s)  (exact for the held isq*)
-      term_j = a_j Ts sum_n c_n f_j,n ;   L = term1 + term2 + term3
-
-* supervisor: after each step, if term_j > threshold_j the experiment stops at once:
-  L is multiplied by ``penalty``, the result names the term and the step; from that very
-  step the fallback gains (the hand-tuned start) take over, finish the move along the
-  unchanged trajectory (no reference jump, load removed) and hold the target.  Hard safety limits
-  (|theta_m - theta_meas| > max_position_error, |omega_meas| > max_speed, non-finite
-  samples) are checked every step in every mode and put the runner in FAULT
-  (isq* = 0, load 0) until ``reset``.
+One experiment (paper, "The loss function"; docs/controller.md, sections 3-5): a
+minimum-time move of ``distance`` from the hold reference (+ for even ids, - for odd), a
+load step ``load_delay`` after it starts, the loss of eq. 4-7 counted online, a supervisor
+that stops the experiment (penalised) once a weighted term passes its threshold and hands
+over to the fallback gains, and hard safety limits that put the runner in FAULT.
 
 Modules, by job: ``layout`` (the kernel's array layouts, status and reason codes),
 ``trajectory`` (the move and the parameter vector Q), ``kernel`` (:func:`experiment_step`,

@@ -147,7 +147,6 @@ R_GAINS_STEP = 30  # the first state the current gains acted on (set_gains)
 #: The standstill ripple of isq* in the two windows w = 0, 1 (Q_RIP*): the words
 #: R_RIP + 5 w + (count, sum [A], sum of squares [A^2], min [A], max [A]).
 R_RIP = 31
-N_RIP_WORDS = 10
 #: The motion sums (``im_tuner.identify``): blocks b of Q_ID_K periods; at the start of
 #: block b + 1 the pair (b - 1, b) gives one row z (MOTION_COLUMNS) and sum z z^T grows.
 R_ID_THA = 41  # theta_meas at the start of block b - 1 [rad]

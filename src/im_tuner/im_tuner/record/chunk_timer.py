@@ -1,13 +1,11 @@
 """A thread that closes the recorder's open chunk by wall time when nobody polls it.
 
-Why: the recorder takes messages and closes chunks only when its owner polls it (the
-lock-step bench every 64 steps, the real-time bench's serving thread every 50 ms). When
-the owner is busy elsewhere -- numba loading the bench's kernels at start-up, a tuner
-waiting for its first experiment -- what was already taken sat in the open chunk, in
-memory: in one real-time run state 0 and the first log line waited 17.6 s, and a SIGKILL
-then would have lost them. This thread wakes every ``period`` s and, when the owner has
-not polled for that long, calls ``tick()`` (the recorder takes what is waiting and closes
-a chunk whose first message is ``max_chunk_age`` old). It never touches the graph.
+Why: the recorder takes messages and closes chunks only when its owner polls it. While
+the owner is busy elsewhere (numba loading kernels at start-up, a tuner waiting for its
+first experiment) what was already taken would sit in memory, where a SIGKILL loses it.
+This thread wakes every ``period`` s and, when the owner has not polled for that long,
+calls ``tick()`` (the recorder takes what is waiting and closes a chunk whose first
+message is ``max_chunk_age`` old). It never touches the graph.
 
 No rclpy here; the recorder owns the lock that makes ``tick()`` and its own polls take
 turns.
@@ -44,10 +42,6 @@ class ChunkTimer:
             except BaseException as exc:  # kept for the owner: a thread cannot raise
                 self.error = exc
                 return
-
-    @property
-    def alive(self) -> bool:
-        return self._thread.is_alive()
 
     def stop(self, timeout: float = 5.0) -> None:
         """End the thread (after a tick under way, if any); idempotent."""

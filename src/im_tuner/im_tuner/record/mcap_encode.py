@@ -1,8 +1,8 @@
 """MCAP v0 records spelled as bytes (https://mcap.dev/spec), pure (no numba, no rclpy):
-strings, maps, records, the Chunk Index and Statistics records, and the summary section
-with its offsets and footer. The writer (:mod:`im_tuner.record.writer`) and the repair
-(:mod:`im_tuner.record.repair`) both end a file with :func:`summary_and_footer`, so a
-repaired file ends exactly as a recorded one."""
+strings, maps, records, the Message Index, Chunk Index and Statistics records, and the
+summary section with its offsets and footer. The writer (:mod:`im_tuner.record.writer`)
+and the repair (:mod:`im_tuner.record.repair`) both end a file with
+:func:`summary_and_footer`, so a repaired file ends exactly as a recorded one."""
 
 from __future__ import annotations
 
@@ -10,12 +10,15 @@ import struct
 import zlib
 from dataclasses import dataclass
 
+import numpy as np
+
 from .mcap_format import (
     MAGIC,
     OP_ATTACHMENT_INDEX,
     OP_CHANNEL,
     OP_CHUNK_INDEX,
     OP_FOOTER,
+    OP_MESSAGE_INDEX,
     OP_METADATA_INDEX,
     OP_SCHEMA,
     OP_STATISTICS,
@@ -25,21 +28,19 @@ from .mcap_format import (
 _U64 = struct.Struct('<Q')
 
 
-def string(s: str) -> bytes:
-    """An MCAP string: u32 byte length, UTF-8 bytes."""
-    b = s.encode('utf-8')
-    return struct.pack('<I', len(b)) + b
-
-
 def prefixed(b: bytes) -> bytes:
     """MCAP bytes: u32 length, the bytes."""
     return struct.pack('<I', len(b)) + b
 
 
+def string(s: str) -> bytes:
+    """An MCAP string: u32 byte length, UTF-8 bytes."""
+    return prefixed(s.encode('utf-8'))
+
+
 def string_map(d: dict[str, str]) -> bytes:
     """An MCAP map<string, string>: u32 byte length, the pairs sorted by key."""
-    body = b''.join(string(k) + string(v) for k, v in sorted(d.items()))
-    return struct.pack('<I', len(body)) + body
+    return prefixed(b''.join(string(k) + string(v) for k, v in sorted(d.items())))
 
 
 def record(op: int, body: bytes) -> bytes:
@@ -60,6 +61,20 @@ def channel_record(cid: int, sid: int, topic: str, encoding: str, meta: dict[str
         OP_CHANNEL,
         struct.pack('<HH', cid, sid) + string(topic) + string(encoding) + string_map(meta),
     )
+
+
+def message_index_records(idx: np.ndarray) -> list[tuple[int, bytes]]:
+    """The Message Index records of a chunk whose messages are ``idx`` (int64 rows: channel
+    id, log time [ns], offset): (channel id, record) each, entries sorted by (log time,
+    offset)."""
+    sidx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
+    cids, starts = np.unique(sidx[:, 0], return_index=True)
+    ends = [*starts[1:].tolist(), len(sidx)]
+    out = []
+    for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
+        entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
+        out.append((cid, record(OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries)))
+    return out
 
 
 def metadata_index_record(at: int, length: int, name: str) -> bytes:

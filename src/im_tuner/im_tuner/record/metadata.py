@@ -140,13 +140,9 @@ def bag_metadata(
 def rosbag2_record(metadata: dict) -> dict[str, str]:
     """The MCAP metadata record ``rosbag2`` for :func:`bag_metadata`'s ``metadata``.
 
-    rosbag2's MCAP storage (Jazzy, ``rosbag2_storage_mcap/src/mcap_storage.cpp``,
-    ``update_metadata``) writes one key, ``serialized_metadata``: the BagMetadata itself
-    in YAML -- the map *inside* ``metadata.yaml``'s ``rosbag2_bagfile_information``, with
-    ``version`` at the top. On open it decodes that map with ``node["version"]`` first
-    (``convert<BagMetadata>::decode``, ``rosbag2_storage/yaml.hpp``), so the outer key
-    would make every ``ros2 bag`` command fail on the bag. ``ros_distro`` is inside the
-    map (rosbag2 before version 8 wrote a separate ``ROS_DISTRO`` key; Jazzy writes none).
+    As rosbag2's MCAP storage (Jazzy) writes it: one key, ``serialized_metadata``, the map
+    *inside* ``metadata.yaml``'s ``rosbag2_bagfile_information`` in YAML (``version`` at the
+    top; with the outer key every ``ros2 bag`` command fails on the bag).
     """
     inner = metadata['rosbag2_bagfile_information']
     return {'serialized_metadata': yaml.safe_dump(inner, sort_keys=False)}

@@ -1,34 +1,19 @@
 """The recorder: every topic on the graph into a rosbag2 MCAP bag, with nothing lost.
 
-``ros2 run im_tuner recorder [--out DIR] [--compression {none,zstd,lz4}]`` records like
-``ros2 bag record -a``: it subscribes to every topic as it appears (the 5 kHz drive state
-and command, controller internals and losses, ``/parameter_events``, ``/rosout``,
-``/clock``, service-introspection ``.../_service_event`` topics) and writes a bag
-directory (``metadata.yaml`` + ``<name>_0.mcap``, profile ros2, ``ros2msg`` schemas with
-their full dependency text -- ``ros2idl`` for service events, see
+``ros2 run im_tuner recorder`` records like ``ros2 bag record -a`` (docs/recorder.md):
+it subscribes to every topic as it appears and writes a bag directory (``metadata.yaml`` +
+``<name>_0.mcap``, ``ros2msg`` schemas -- ``ros2idl`` for service events,
 :func:`im_tuner.record.schemas.schema_for` -- CDR messages, QoS in the channel metadata).
+Subscriptions are reliable KEEP_ALL where the publishers are; messages are taken in the
+recorder's own loop (:mod:`im_tuner.record.take`), not by executor callbacks; per
+publisher the ``publication_sequence_number`` gaps count the messages lost, and the
+per-topic ``recorded / published / lost`` counts go to the log, ``metadata.yaml`` and an
+MCAP metadata record at close. A chunk spans at most ``max_chunk_age`` s of log time and
+is written once its first message is that old (:mod:`.chunk_timer` when nobody polls);
+after SIGKILL, ``ros2 run im_tuner recorder --repair DIR`` rewrites the summary.
 
-Nothing lost, and proof of it:
-
-* subscriptions are reliable KEEP_ALL whenever the publishers are reliable (the
-  project's recorded topics are reliable KEEP_ALL on the publisher side too, so a slow
-  recorder back-pressures the publisher instead of losing data);
-* messages are taken in the recorder's own loop (:mod:`im_tuner.record.take`), never through
-  an executor callback, which would serve one message per spin;
-* per publisher (GID) the recorder follows ``publication_sequence_number``: gaps are
-  messages lost on the way; at close the per-topic ``recorded / published / lost`` counts
-  go to the log, to ``metadata.yaml`` (``custom_data``) and to an MCAP metadata record;
-* publishers the recorder cannot match (incompatible QoS) and types it cannot load are
-  reported, not ignored.
-
-Crash safety: a chunk spans at most ``max_chunk_age`` seconds of log time and is closed
-and handed to the OS once its first message is that old -- by a timer thread
-(:mod:`.chunk_timer`) when the owner does not poll; SIGINT/SIGTERM close the bag
-properly; after SIGKILL, ``ros2 run im_tuner recorder --repair DIR`` rewrites the
-summary, index and ``metadata.yaml``.
-
-The simulated bench (``ros2 run im_tuner sim_bench``) and the tuner run a
-:class:`Recorder` in their own process and call :meth:`Recorder.poll` between steps.
+The simulated bench and the tuner run a :class:`Recorder` in their own process and call
+:meth:`Recorder.poll` between steps.
 """
 
 from __future__ import annotations
@@ -171,9 +156,9 @@ class Recorder:
         write_metadata_yaml(
             self.out, bag_metadata([(self.file_name, 0, 0, 0)], [], {'im_tuner.state': 'recording'})
         )
-        # Load the take kernel (numba: 0.3 s from its cache, seconds to compile) before any
-        # reader matches: a reliable KEEP_ALL reader that is not taken fills up, and then
-        # back-pressures the 5 kHz publishers -- a stalled drive, aborted experiments.
+        # Load the take kernel (numba: seconds to compile) before any reader matches: a
+        # reliable KEEP_ALL reader that is not taken fills up, and then back-pressures the
+        # 5 kHz publishers -- a stalled drive, aborted experiments.
         if taps:
             self.add_tap(taps)
         self.drain()
@@ -519,7 +504,7 @@ class Recorder:
         self.writer.close()
         write_metadata_yaml(self.out, meta)
         self._destroy_subscriptions()
-        self._log_counts(counts)
+        self.log.info(counts_report(self.out, self.writer.message_count, counts, self.unrecordable))
         return counts
 
     def _metadata(self, custom: dict[str, str]) -> dict:
@@ -533,9 +518,6 @@ class Recorder:
         return bag_metadata(
             [(self.file_name, w.t_start or 0, w.t_end or 0, w.message_count)], topics, custom
         )
-
-    def _log_counts(self, counts: dict) -> None:
-        self.log.info(counts_report(self.out, self.writer.message_count, counts, self.unrecordable))
 
     def _destroy_subscriptions(self) -> None:
         self._subs = np.zeros(0, np.uint64)

@@ -6,16 +6,15 @@ recorder leaves no footer; everything in complete chunks is still read), and eac
 is decompressed once and checked against its CRC (a chunk that fails it, or does not
 decompress, had its bytes changed: it is named in ``BagData.damaged`` and its messages
 are left out). A chunk's messages are found through the MessageIndex records that
-follow it, with numpy (no per-message Python, and no numba: its first call in a process
-costs about 0.7 s, a quarter of a small report); the index is checked against the chunk
+follow it, with numpy (no per-message Python, and no numba, slow to load); the index is
+checked against the chunk
 (every message it names is a Message record of that channel and log time, and those
 records plus the definitions between them tile the chunk exactly), and a chunk without
 a complete, consistent index is walked record by record by a numba kernel instead. Per
 topic it counts messages and notes the first and last log time (the rates); for the
 ``Float64MultiArray`` topics asked for it keeps the rows whose first value (the step
 index ``k``) lies in the given windows (only those rows are copied); the loss messages
-(``diagnostic_msgs/DiagnosticArray``) are decoded. About 0.15 s for a 25 MB,
-235 000-message bag once the modules are loaded.
+(``diagnostic_msgs/DiagnosticArray``) are decoded.
 
 No rclpy and no ROS message packages: the two CDR layouts needed are parsed here
 (``std_msgs/Float64MultiArray`` in the project's layout, with a general fallback, and
@@ -65,8 +64,7 @@ _F64_DATA = 20  # first double of a Float64MultiArray with an empty layout
 _OP_LEN = struct.Struct('<BQ')  # a record's opcode and body length
 #: a topic's rate is given from this many messages, or over this much log time [s]
 RATE_MIN_MESSAGES, RATE_MIN_SPAN_S = 10, 1.0
-# metadata.yaml through libyaml when PyYAML has it: 0.02 s instead of 0.27 s for a run's
-# 19 kB file (the pure-Python parser); the same SafeLoader constructors either way
+# metadata.yaml through libyaml when PyYAML has it (faster; the same SafeLoader constructors)
 _YAML_LOADER = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
 
 
@@ -105,8 +103,6 @@ class ChunkStats:
     start_ns: int  #: message_start_time: the smallest log time in it [ns]
     end_ns: int  #: message_end_time: the largest [ns]
     compression: str  #: '' (none), 'lz4' or 'zstd'
-    compressed_bytes: int
-    uncompressed_bytes: int
 
     @property
     def span_s(self) -> float:
@@ -182,7 +178,7 @@ def walk_records(
         lens = np.empty(cap, np.int64)
         cids = np.empty(cap, np.int64)
         times = np.empty(cap, np.int64)
-        from .walk import walk  # numba (0.5 s to import): only for a bag without an index
+        from .walk import walk  # numba (slow to import): only for a bag without an index
 
         n, end = walk(buf, start, stop_op, ops, offs, lens, cids, times)
         if n < cap or end >= buf.size:
@@ -476,15 +472,16 @@ def read_bag(
                         e = np.frombuffer(mm, '<u8', nb // 8, a + 6).reshape(-1, 2).copy()
                         chunks[-1][2].append((cid, e))
             for number, (a, n, index) in enumerate(chunks, 1):
+                start, end, usize, crc, clen = struct.unpack_from('<QQQII', mm, a)
                 try:
-                    chunk = _read_chunk(mm, a, n)
+                    comp = mm[a + 32 : a + 32 + clen].decode()
+                    chunk = _read_chunk(mm, a + 32 + clen, a + n, comp, usize, crc)
                 except ValueError as exc:
                     # a complete record (the walk above checked its length): bytes changed
-                    start, end = struct.unpack_from('<QQ', mm, a)
                     out.damaged.append(DamagedChunk(number, a - 9, start, end, str(exc)))
                     continue
                 out.chunks += 1
-                out.chunk_stats.append(_chunk_stats(mm, a, chunk.size))
+                out.chunk_stats.append(ChunkStats(start, end, comp))
                 _take_chunk(
                     chunk, index, schemas, channels, per_chan, arrays, rows, losses, loss_topic
                 )
@@ -526,26 +523,13 @@ def _take_metadata(body: bytes, into: dict[str, dict[str, str]]) -> None:
         pass
 
 
-def _chunk_stats(mm: mmap.mmap, a: int, usize: int) -> ChunkStats:
-    """The header of the Chunk record body at ``a`` (read before: it is complete)."""
-    start, end, _usize, _crc, clen = struct.unpack_from('<QQQII', mm, a)
-    comp = mm[a + 32 : a + 32 + clen].decode()
-    (rlen,) = struct.unpack_from('<Q', mm, a + 32 + clen)
-    return ChunkStats(start, end, comp, rlen, usize)
-
-
-def _read_chunk(mm: mmap.mmap, a: int, n: int) -> np.ndarray:
-    """A Chunk record body at ``a`` -> its decompressed records."""
-    _start, _end, usize, crc = struct.unpack_from('<QQQI', mm, a)
-    p = a + 28
-    (clen,) = struct.unpack_from('<I', mm, p)
-    comp = mm[p + 4 : p + 4 + clen].decode()
-    p += 4 + clen
+def _read_chunk(mm: mmap.mmap, p: int, end: int, comp: str, usize: int, crc: int) -> np.ndarray:
+    """A Chunk record's records (their length at byte ``p``, the record ending at ``end``),
+    decompressed and checked against ``usize`` and ``crc``."""
     (rlen,) = struct.unpack_from('<Q', mm, p)
-    p += 8
-    if p + rlen > a + n:
+    if p + 8 + rlen > end:
         raise ValueError('its records run past the record')
-    return np.frombuffer(chunk_records(comp, mm[p : p + rlen], usize, crc), np.uint8)
+    return np.frombuffer(chunk_records(comp, mm[p + 8 : p + 8 + rlen], usize, crc), np.uint8)
 
 
 def _take_chunk(

@@ -1,23 +1,17 @@
 """Repair a bag whose recorder died: rebuild the MCAP summary, index, footer and metadata.yaml.
 
-A SIGKILL (or a power cut) leaves the ``.mcap`` without its DataEnd, summary, chunk
-indexes and footer, and ``metadata.yaml`` in its provisional ``recording`` state. The
-data is still there: :class:`~im_tuner.record.writer.McapWriter` writes Schema and Channel
-records as soon as a topic appears and hands every chunk to the OS when it is closed,
-which the recorder does at least every ``max_chunk_age`` seconds, so at most that much
-(the open chunk) is lost.
+A SIGKILL leaves the ``.mcap`` without its DataEnd, summary, chunk indexes and footer, and
+``metadata.yaml`` in its provisional ``recording`` state; the Schema and Channel records
+and every closed chunk are on disk (docs/recorder.md, "Crash safety").
 
 :func:`repair_bag` scans the file record by record up to the first incomplete or invalid
-one (a truncated record; a whole chunk that does not decompress or fails its CRC had its
-bytes changed: it is named and left out, and the scan goes on past it), then writes
-a new file beside it (``<file>.repairing``): magic, the original Header, every Schema,
-Channel, Metadata and Attachment record found, every complete chunk copied verbatim with
-freshly built Message Index records (messages found outside chunks are packed into new
-uncompressed chunks), DataEnd, the summary and footer exactly as ``McapWriter.close``
-writes them. Only when that file is complete and synced does it replace the original
-(``os.replace``), so a failure at any point leaves the original as it was. A file that
-already ends in a valid footer is left untouched (one with a damaged chunk is refused,
-naming the chunk: nothing can recover its messages). Either way ``metadata.yaml`` is
+one (a complete chunk that fails its CRC or does not decompress is named, left out, and
+the scan goes on), then writes ``<file>.repairing``: the original Header, every
+definition, Metadata and Attachment record, every complete chunk copied verbatim with
+fresh Message Index records (loose messages packed into new uncompressed chunks), and the
+summary and footer as ``McapWriter.close`` writes them; only once that file is complete
+and synced does it replace the original. A file that already ends in a valid footer is
+left untouched (one with a damaged chunk is refused). Either way ``metadata.yaml`` is
 rewritten from what the scan found. No rclpy here.
 """
 
@@ -38,6 +32,7 @@ from ..rundir import writer_of
 from .mcap_encode import (
     ChunkInfo,
     chunk_index_record,
+    message_index_records,
     metadata_index_record,
     record,
     statistics_record,
@@ -54,7 +49,6 @@ from .mcap_format import (
     OP_FOOTER,
     OP_HEADER,
     OP_MESSAGE,
-    OP_MESSAGE_INDEX,
     OP_METADATA,
     OP_SCHEMA,
 )
@@ -319,21 +313,6 @@ def _add_loose(scan: McapScan, rec: bytes, at: int) -> None:
     last.compressed_size = last.uncompressed_size
 
 
-def _message_indexes(idx: np.ndarray) -> list[tuple[int, bytes, int]]:
-    """Message Index records of a chunk: (channel id, record, entries), entries sorted by
-    (log_time, offset) — as McapWriter.flush_chunk builds them."""
-    sidx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
-    cids, starts = np.unique(sidx[:, 0], return_index=True)
-    ends = [*starts[1:].tolist(), len(sidx)]
-    out = []
-    for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
-        entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
-        out.append(
-            (cid, record(OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries), b - a)
-        )
-    return out
-
-
 def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
     """Write the repaired file (see the module doc) to ``dst``."""
     pos = 0
@@ -374,9 +353,8 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
                 )
                 at = put(record(OP_CHUNK, body))
                 length = 9 + len(body)
-            index_at, offsets = pos, {}
-            for cid, rec, _n in _message_indexes(ch.index):
-                offsets[cid] = put(rec)
+            index_at = pos
+            offsets = {cid: put(rec) for cid, rec in message_index_records(ch.index)}
             infos.append(
                 ChunkInfo(
                     ch.start,

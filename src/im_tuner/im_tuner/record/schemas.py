@@ -10,33 +10,22 @@ Foxglove) can decode its CDR messages::
     <that type's .msg text>
     ...
 
-i.e. the top-level definition first and without a header, then every type it uses
-(transitively, each once, depth-first in order of first use), each introduced by a line of
-exactly 80 ``=`` and a line ``MSG: pkg/Type`` (the two-part name), all joined with ``\\n``.
-A definition that ends in a newline (every installed file) is thus followed by an empty
-line before the next separator, exactly as rosbag2 writes it.  (rosbag2 orders each type's
-dependencies by name rather than by first use; readers do not depend on the order.)
+i.e. the top-level definition first, then every type it uses (transitively, each once,
+depth-first in order of first use), each introduced by a line of exactly 80 ``=`` and a
+line ``MSG: pkg/Type``, all joined with ``\\n`` (rosbag2's layout).
 
 Service types have no .msg file; their parts are cut from ``share/<pkg>/srv/<Name>.srv``:
 ``pkg/srv/Name_Request`` is the text before the line ``---`` (without its final newline)
 and ``pkg/srv/Name_Response`` the text after it.  A service *event* type
-``pkg/srv/Name_Event`` (what service introspection publishes on ``<service>/_service_event``)
-is written as the message rosidl generates for it::
+``pkg/srv/Name_Event`` (what service introspection publishes) is written as the message
+rosidl generates for it::
 
     service_msgs/ServiceEventInfo info
     pkg/Name_Request[<=1] request
     pkg/Name_Response[<=1] response
 
-followed by ``MSG: service_msgs/ServiceEventInfo``, ``MSG: pkg/Name_Request``,
-``MSG: pkg/Name_Response`` and their dependencies.  (rosbag2 itself records service events
-with a single ``SRV: pkg/srv/Name`` section holding the whole .srv file; generic readers do
-not understand that form, they do understand this one.)  An empty part (``std_srvs`` Trigger's
-request) is an empty section: its ``MSG:`` line is followed by an empty line and the next
-separator, or ends the text.  Both ``rosbags`` and ``mcap_ros2`` read it as the one-``uint8``
-placeholder struct (``structure_needs_at_least_one_member``) that ROS 2 serialises for an
-empty message, which is what rclpy writes.  Reader caveats (names, not this text):
-mcap_ros2 0.6.0 refuses the schema *name* ``Name_Event``, and rosbags registers
-``pkg/srv/X`` as ``pkg/srv/msg/X`` (see the tests).
+followed by its dependencies (rosbag2's own ``SRV:`` section form is one generic readers
+do not understand). An empty part (``std_srvs`` Trigger's request) is an empty section.
 
 Files are looked up as ``<prefix>/share/<pkg>/msg/<Name>.msg`` (``srv/<Name>.srv``) for each
 prefix in turn; the first prefix that has the file wins.  Prefixes default to the
@@ -100,12 +89,7 @@ def schema_text(type_name: str, prefixes: list[str] | None = None) -> str:
     the type and the files searched, if a definition cannot be found or parsed.
     """
     root = _parse_type_name(type_name)
-    if prefixes is None:
-        prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-        if not prefixes:
-            raise MsgDefError(f'cannot look up {type_name}: AMENT_PREFIX_PATH is not set')
-    loader = _Loader(list(prefixes))
-
+    loader = _Loader.of(type_name, prefixes)
     pkg, kind, name = root
     if kind == 'srv' and name.endswith(_EVENT_SUFFIX):
         service = name[: -len(_EVENT_SUFFIX)]
@@ -179,11 +163,7 @@ def schema_idl(type_name: str, prefixes: list[str] | None = None) -> str:
     pkg, kind, name = _parse_type_name(type_name)
     if kind != 'srv' or not name.endswith(_EVENT_SUFFIX):
         raise MsgDefError(f'{type_name}: only service event types are written as IDL')
-    if prefixes is None:
-        prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-        if not prefixes:
-            raise MsgDefError(f'cannot look up {type_name}: AMENT_PREFIX_PATH is not set')
-    loader = _Loader(list(prefixes))
+    loader = _Loader.of(type_name, prefixes)
     service = name[: -len(_EVENT_SUFFIX)]
     sections = [
         (
@@ -266,6 +246,15 @@ class _Loader:
     def __init__(self, prefixes: list[str]) -> None:
         self.prefixes = prefixes
         self._cache: dict[Path, str] = {}
+
+    @classmethod
+    def of(cls, type_name: str, prefixes: list[str] | None) -> _Loader:
+        """A loader for ``type_name`` over ``prefixes`` (None: ``AMENT_PREFIX_PATH``)."""
+        if prefixes is None:
+            prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+            if not prefixes:
+                raise MsgDefError(f'cannot look up {type_name}: AMENT_PREFIX_PATH is not set')
+        return cls(list(prefixes))
 
     def read_file(self, pkg: str, folder: str, filename: str, what: str, referenced_by: str) -> str:
         """The text of ``share/<pkg>/<folder>/<filename>`` in the first prefix that has it

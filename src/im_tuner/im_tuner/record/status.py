@@ -11,16 +11,11 @@ depth 1, whenever what it reports changed (at most every :data:`STATUS_PERIOD_S`
 * ``values``: ``recorded`` (messages taken into the bag), ``matched_publishers`` (publishers
   the recorder's subscription is matched with), ``publishers`` (publishers on the graph).
 
-The recorder does not record its own status topic (it would be a feedback loop: every
-status taken changes the next one).
-
-Why the tuner needs it (``bench.forms.Children``): on a drive host on another computer the
-graph shows the recorder's subscriptions before they are matched with the host's
-publishers, and a reliable message lost on the network is resent only after the writer's
-next heartbeat (Fast DDS: every 3 s). So the tuner waits, before the first experiment,
-until every publisher of the run's recorded topics is matched, and before it stops the
-recorder, until the bag holds every loss the tuner itself received (bounded by
-:data:`CATCH_UP_S`). Pure: message classes only, no rclpy.
+The recorder does not record its own status topic (a feedback loop). The tuner
+(``bench.forms.Children``) waits on it before the first experiment, until every publisher
+of the recorded topics is matched, and before it stops the recorder, until the bag holds
+every loss the tuner received (bounded by :data:`CATCH_UP_S`; docs/recorder.md, "The
+recorder child's status, and the tuner's two waits"). Pure: message classes only, no rclpy.
 """
 
 from __future__ import annotations

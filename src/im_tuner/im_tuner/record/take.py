@@ -1,14 +1,13 @@
 """Take serialised messages from rcl subscriptions in a numba loop, straight into a chunk.
 
-rclpy's ``Subscription.take_message(cls, raw=True)`` costs about 2 us per message here
+rclpy's ``Subscription.take_message(cls, raw=True)`` makes Python objects per message
 (bytes object, info dict) and hides the publisher's GID, which gap detection needs when a
 topic has several publishers. The recorder instead calls rcl's C API,
-``rcl_take_serialized_message``, from a numba kernel (about 0.6 us per message measured
-here) on the ``rcl_subscription_t`` that rclpy created (``sub.handle.pointer``), and
-copies the CDR bytes into the open MCAP chunk (:mod:`im_tuner.record.writer`) as a Message
-record. Per publisher (channel, GID) it keeps the first and last
-``publication_sequence_number``, the count and the gaps: a gap is a message the
-publisher sent that this reader never got.
+``rcl_take_serialized_message``, from a numba kernel on the ``rcl_subscription_t`` that
+rclpy created (``sub.handle.pointer``), and copies the CDR bytes into the open MCAP chunk
+(:mod:`im_tuner.record.writer`) as a Message record. Per publisher (channel, GID) it keeps
+the first and last ``publication_sequence_number``, the count and the gaps: a gap is a
+message the publisher sent that this reader never got.
 
 This module loads rclpy's C extension (so that ``librcl`` is in the process) but does
 not use rclpy's Python API; the subscriptions stay owned by the rclpy node.

@@ -1,23 +1,20 @@
 """A chunked MCAP writer for rosbag2 bags, fast enough for 5 kHz traffic.
 
-Why our own writer: the ``mcap`` library's ``Writer.add_message`` costs about 3.4 us per
-message in Python here, which alone would eat the recorder's budget at 15k messages per
-simulated second. This writer keeps the open chunk in a numpy buffer that a numba kernel
-(:mod:`im_tuner.record.take`) fills with Message records straight from the DDS reader, so the
-per-message cost is a memcpy; Python only runs once per chunk (compress, index, write).
+Why our own writer: the ``mcap`` library's ``Writer.add_message`` is one Python call per
+message, too slow for the recorder at 15k messages per simulated second. This writer
+keeps the open chunk in a numpy buffer that a numba kernel (:mod:`im_tuner.record.take`)
+fills with Message records straight from the DDS reader, so the per-message cost is a
+memcpy; Python only runs once per chunk (compress, index, write).
 
 File layout (MCAP v0, https://mcap.dev/spec), as rosbag2's MCAP storage writes it:
 
 * magic, Header (profile ``ros2``);
 * data section: Schema and Channel records written *outside* chunks as soon as a topic
   is added (so a crash never loses them), Metadata records, and Chunks, each followed by
-  its Message Index records. A chunk is closed when it reaches ``chunk_size`` bytes,
-  before a message that would make it span more than ``max_span`` of log time, or when
-  the caller flushes it (the recorder does so once its first message is
-  ``max_chunk_age`` s old),
-  and the file is flushed to the OS after every chunk: after SIGKILL the file is readable
-  up to its last complete chunk, and :func:`im_tuner.record.repair.repair_bag` rewrites
-  the summary;
+  its Message Index records. A chunk is closed at ``chunk_size`` bytes, before a message
+  that would make it span more than ``max_span`` of log time, or when the caller flushes
+  it; the file goes to the OS after every chunk, so after SIGKILL it is readable up to its
+  last complete chunk (:func:`im_tuner.record.repair.repair_bag` rewrites the summary);
 * DataEnd, summary (Schemas, Channels, Statistics, Metadata Index, Chunk Indexes),
   Summary Offsets, Footer (with the summary CRC-32), magic.
 
@@ -50,6 +47,7 @@ from .mcap_encode import (
     ChunkInfo,
     channel_record,
     chunk_index_record,
+    message_index_records,
     metadata_index_record,
     record,
     schema_record,
@@ -66,7 +64,6 @@ from .mcap_format import (  # the format's constants: one place, no numba
     OP_DATA_END,
     OP_HEADER,
     OP_MESSAGE,
-    OP_MESSAGE_INDEX,
     OP_METADATA,
 )
 
@@ -388,17 +385,8 @@ class McapWriter:
         chunk_at = self._write(head + body)
         self._write(payload)
         chunk_len = self._pos - chunk_at
-        # Message indexes, one per channel, entries sorted by (log_time, offset).
-        sidx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
-        cids, starts = np.unique(sidx[:, 0], return_index=True)
-        ends = [*starts[1:].tolist(), len(sidx)]
-        index_offsets: dict[int, int] = {}
         index_at = self._pos
-        for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
-            entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
-            index_offsets[cid] = self._write(
-                record(OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries)
-            )
+        index_offsets = {cid: self._write(rec) for cid, rec in message_index_records(idx)}
         self.chunks.append(
             ChunkInfo(
                 t0,

@@ -367,7 +367,7 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
     states = S[[by_step[int(k)] for k in fed[:, 0]]]
     fresh = np.zeros(len(fed), bool)
     for i, k in enumerate(fed[:, 0]):
-        row = by_step.get(int(k + _delay(states[i])))
+        row = by_step.get(int(k) + int(states[i, _K_DELAY]))
         fresh[i] = row is not None and S[row, _K_APPLIED] == k
     return ReplayPlan(
         bag=bag_dir,
@@ -381,8 +381,3 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
         clock_ns=clock_ns,
         clock_raw=clock_raw,
     )
-
-
-def _delay(state: np.ndarray) -> int:
-    """The drive's declared command delay d in a state."""
-    return int(state[_K_DELAY])

@@ -1,32 +1,12 @@
 """The report of tuning runs: a summary, plots after the paper's Figs. 5, 8 and 9, a CSV.
 
 ``ros2 run im_tuner report RUN_DIR [RUN_DIR2 ...] [--out DIR]`` reads each run's
-``run.yaml``, ``results.jsonl`` (the truth: one line per experiment) and its session
-bags, and writes into ``DIR`` (default ``RUN_DIR/report/`` for one run,
-``<parent of RUN_DIR>/compare_<UTC time>/`` for several):
-
-* ``summary.txt``  -- also printed: per run the algorithm and configuration, outcome,
-  best and start loss, best gains, evaluations to a satisfactory loss, aborted
-  experiments; per bag the topics with message counts and rates, duration, the recorder's
-  recorded-vs-published check, and the losses in the bag checked against results.jsonl;
-* ``fig5_trajectory.png`` -- position reference and load torque of two consecutive
-  experiments (the paper's Fig. 5);
-* ``fig8_best_vs_start.png`` -- position error, speed error and current reference of the
-  best evaluation's experiment and of the start controller's (Fig. 8);
-* ``fig9_loss.png`` -- loss per evaluation with the best-so-far line (Fig. 9 a, b);
-* ``fig9_gains.png`` -- each gain's path over the evaluations (Fig. 9 c, d);
-* ``evaluations.csv`` -- one row per experiment of every run (:data:`CSV_COLUMNS`);
-  floats written with ``repr``, so :func:`read_csv` gives back the exact values.
-
-With several runs the figures overlay them (for example SPSA against neCGA). A run that
-was interrupted or killed is reported from what it left: the records written so far and
-the complete chunks of a bag the recorder could not close. Nothing in a run directory is
-changed. The signals of an experiment come from ``controller/internals`` in the bag: the
-rows whose step index k lies in ``[t_start_ns / Ts, t_start_ns / Ts + steps)`` of its
-results record (docs/interfaces.md: state k is at sim time k Ts).
-
-No rclpy here: the report runs without a ROS graph. Modules by job: ``load`` (records,
-bags, signals), ``text`` (summary), ``table`` (CSV), ``figures``, ``cli``, ``errors``.
+``run.yaml``, ``results.jsonl`` and session bags and writes ``summary.txt`` (also
+printed), ``fig5_trajectory.png``, ``fig8_best_vs_start.png``, ``fig9_loss.png``,
+``fig9_gains.png`` and ``evaluations.csv`` (docs/report.md). Several runs are overlaid;
+an interrupted or killed run is reported from what it left; nothing in a run directory is
+changed. No rclpy here. Modules by job: ``load`` (records, bags, signals), ``text``
+(summary), ``table`` (CSV), ``figures``, ``cli``, ``errors``.
 
 Start-up: the names below are loaded on first use (PEP 562), and ``cli`` imports numpy,
 the bag reader and matplotlib only once the command line and the run directories are

@@ -125,10 +125,7 @@ def bag_info(bag_dir: Path) -> dict[str, Any]:
 def _not_in_file(counts: dict[str, Any], in_file: dict[str, int]) -> int:
     """Messages the recorder counted as recorded that the file does not hold (a file cut
     short after the recorder closed it): the sum over topics of recorded - count."""
-    short = 0
-    for name, c in counts.items():
-        short += max(0, int(c.get('recorded', 0)) - in_file.get(name, 0))
-    return short
+    return sum(max(0, int(c.get('recorded', 0)) - in_file.get(n, 0)) for n, c in counts.items())
 
 
 def _when(ns: int | None) -> str:

@@ -38,12 +38,6 @@ def _cell(v: Any) -> str:
     return str(v)
 
 
-def _csv_row(rr: RunReport, rec: Record, best: float | None, bag: str | None) -> list[str]:
-    """The record's cells (the run log's ``csv_values``) and the report's own three."""
-    vals = csv_values(rec) | {'run': rr.label, 'best_loss': best, 'bag': bag}
-    return [_cell(vals.get(c)) for c in CSV_COLUMNS]
-
-
 def write_csv(runs: list[RunReport], path: Path) -> int:
     """One row per experiment of every run (CSV_COLUMNS); returns the rows written."""
     n = 0
@@ -54,7 +48,9 @@ def write_csv(runs: list[RunReport], path: Path) -> int:
             for rec, best, bag in zip(
                 rr.records, best_so_far(rr.records), rr.record_bag, strict=True
             ):
-                w.writerow(_csv_row(rr, rec, best, bag))
+                # the record's cells (the run log's ``csv_values``) and the report's own three
+                vals = csv_values(rec) | {'run': rr.label, 'best_loss': best, 'bag': bag}
+                w.writerow([_cell(vals.get(c)) for c in CSV_COLUMNS])
                 n += 1
     return n
 

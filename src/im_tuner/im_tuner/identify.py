@@ -89,11 +89,6 @@ class Identified:
     residual: float
     experiments: int
 
-    @property
-    def j_ratio(self) -> float:
-        """J / J_file: the load inertia against the file's."""
-        return self.J / self.J_file
-
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
 

@@ -315,9 +315,8 @@ class SAFE(Optimizer):
             self._first = None if point is None else check_first(point, self.dim)
         if self._first is not None or self._identify:
             self.first_left = bool(state['first_left'])
-            # (a state saved before the back-off: none left, the search as it was)
-            back = state.get('first_back')
+            back = state['first_back']
             self._back = None if back is None else check_first(back, self.dim)
-            self._backoffs = int(state.get('first_backoffs', self.FIRST_BACKOFFS))
+            self._backoffs = int(state['first_backoffs'])
         if len(self._pts) != len(self._vals) or any(len(q) != self.dim for q in self._pts):
             raise OptimizerError('safe state: points and values do not match')

@@ -69,37 +69,9 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from .runs import (
-        DEFAULT_SATISFACTORY,
-        DEFAULT_SEED,
-        REF_EXPERIMENTS,
-        STUDY_ALGOS,
-        Cell,
-        StudyResult,
-        StudySpec,
-        grid,
-        load,
-        reference_loss,
-        run_one,
-        run_study,
-        save,
-    )
+    from .runs import StudySpec, run_one
 
-__all__ = [
-    'DEFAULT_SATISFACTORY',
-    'DEFAULT_SEED',
-    'REF_EXPERIMENTS',
-    'STUDY_ALGOS',
-    'Cell',
-    'StudyResult',
-    'StudySpec',
-    'grid',
-    'load',
-    'reference_loss',
-    'run_one',
-    'run_study',
-    'save',
-]
+__all__ = ['StudySpec', 'run_one']
 
 
 def __getattr__(name: str) -> Any:

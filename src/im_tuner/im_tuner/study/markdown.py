@@ -113,11 +113,8 @@ def beyond_md(st: StudyStats, figures: dict[str, str]) -> list[str]:
         f'{st.threshold:g}, <= {GOAL["fast"]:g} to {FAST_LEVEL:g} in >= 99 % of runs, '
         f'<= {GOAL["aborted_per_run"]:g} aborted experiment per run.',
         '',
-        '| ' + ' | '.join(head) + ' |',
-        '|---' * len(head) + '|',
+        *_md_rows(head, rows),
     ]
-    L += ['| ' + ' | '.join(r) + ' |' for r in rows]
-    L.append('')
     if 'comparison' in figures:
         L += [f'![comparison]({figures["comparison"]})', '']
     return L

@@ -192,10 +192,7 @@ def ripple_ratio(res: StudyResult, measure: str = 'rms') -> np.ndarray:
     """[cells, runs]: the final choice's standstill rms of isq* (``measure`` 'pp': peak to
     peak) over the start's, the larger of the two windows (after the move, after the
     load); nan: not measured."""
-    arr = res.ripple if measure == 'rms' else res.ripple_pp
-    if arr is None:  # (a study result without it)
-        return np.full(res.losses.shape[:2], np.nan)
-    rip = np.asarray(arr, dtype=float)
+    rip = np.asarray(res.ripple if measure == 'rms' else res.ripple_pp, dtype=float)
     with np.errstate(invalid='ignore', divide='ignore'):
         r = rip[..., 2:] / rip[..., :2]
     out = np.max(r, axis=-1)

@@ -7,7 +7,6 @@ from typing import TYPE_CHECKING
 
 from . import spec as S
 from .plant import plant_line, plants_line
-from .spec import EXIT_USAGE, StudyError
 from .stats import (
     EXPERIMENT_S,
     FAST_LEVEL,
@@ -22,11 +21,9 @@ if TYPE_CHECKING:
 __all__ = [
     'ALGO_NAME',
     'COMPARISON',
-    'EXIT_USAGE',
     'PAPER_KEY',
     'START_TEXT',
     'STATS',
-    'StudyError',
     'comparison_rows',
     'comparison_text',
     'family_text',

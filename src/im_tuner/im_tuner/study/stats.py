@@ -354,9 +354,10 @@ def _timing(st: StudyStats) -> None:
 
 
 # -- the paper's conclusions --------------------------------------------------------------------
-def _fmt_iv(iv: Interval, digits: int = 3) -> str:
+def _fmt_iv(iv: Interval, digits: int = 3, none: str = 'n/a') -> str:
+    """``value [lo, hi]`` (``value`` alone without an interval; ``none``: no value)."""
     if not math.isfinite(iv.value):
-        return 'n/a'
+        return none
     if not math.isfinite(iv.lo):
         return f'{iv.value:.{digits}f}'
     return f'{iv.value:.{digits}f} [{iv.lo:.{digits}f}, {iv.hi:.{digits}f}]'

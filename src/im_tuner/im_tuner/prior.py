@@ -207,10 +207,8 @@ def _search(
     """Step 1: ``safe`` on the model, ``evaluations`` experiments per seed; the measured
     points (the first is the start's) and the bench.  With ``ripple_limit`` the start is
     measured ``START_EXPERIMENTS`` times more (its mean rms: the limit's bound) and each
-    search is told what a run with that limit is told (``runlog.ripple.told``), strictly
-    (no tolerance: a point louder than the limit in one experiment is told so; a model
-    can afford to be stricter than the plant's run, and the search then ranks quiet
-    points first)."""
+    search is told what a run with that limit is told (``runlog.ripple.told``), with no
+    tolerance, so that it ranks quiet points first."""
     from .optim import make_optimizer
     from .runlog.ripple import told
 

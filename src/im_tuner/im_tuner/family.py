@@ -4,7 +4,7 @@ another motor and load (docs/drive-family.md).
 Pure (no rclpy). ``drive_setup(drive, realism, model)`` is the seam the tuner and the study
 share: the drive's config, its experiment (``ExperimentConfig`` with Ts/isq_max from the
 drive) and its tuner parameters (box, start, satisfactory loss). The paper's 750 W motor
-(``paper_750w``, the default) gives exactly today's ``ExperimentConfig()`` and packaged
+(``paper_750w``, the default) gives exactly ``ExperimentConfig()`` and the packaged
 ``tuner.yaml``; every other drive is scaled from it by ratios of the drive file's constants
 to the paper file's (each exactly 1.0 for the paper's file):
 
@@ -15,17 +15,14 @@ to the paper file's (each exactly 1.0 for the paper's file):
 * ``inertia = (J/Kt) / (J/Kt)_paper``: k_pw and k_iw of the box multiplied by it, and
   those of the start and the fallback gains by ``start_scale`` = min(inertia, the largest
   factor whose k_pw turns one encoder count into a current step of at most
-  ``COUNT_STEP_MAX`` = 1/4 of isq_max): the speed loop's gain k_pw Kt/J is the paper's
-  unless that would make the drive chatter at its current limit at standstill (the
-  ratio-10 drives: one count was 58-80 % of the limit); its integral corner k_iw/k_pw is
-  the paper's; k_pos, tau_sm, tau_eq, the thresholds and the satisfactory loss kept;
+  ``COUNT_STEP_MAX`` of isq_max): the speed loop's gain k_pw Kt/J is the paper's
+  unless that would make the drive chatter at its current limit at standstill; its
+  integral corner k_iw/k_pw is the paper's; k_pos, tau_sm, tau_eq, the thresholds and
+  the satisfactory loss kept;
 * the weights a1..a3: the paper's rule (each term of the hand-tuned start about 1/3)
   applied to the drive: a_j = a_j,paper term_j,paper / term_j,drive, the terms of each
   start measured on its own drive (offline bench, full model, ideal, seed 0, the
-  supervisor off, ``CALIBRATION_EXPERIMENTS`` experiments; cached per process). A fixed
-  scaling (a1, a2 / accel, a3 / the rated torque current's ratio) was tried first: the
-  slower moves of the heavier drives last longer and the load step's error does not
-  scale with it, so the terms grew to 0.6-2.3 and the ratio-10 starts were stopped.
+  supervisor off, ``CALIBRATION_EXPERIMENTS`` experiments; cached per process).
 """
 
 from __future__ import annotations
@@ -117,9 +114,7 @@ def drive_scales(m: MachineParams) -> DriveScales:
 
 
 #: the largest current step one encoder count may make through the start's k_pw, as a
-#: fraction of isq_max (the paper's start: 0.74 A of 7 A, 10.5 %): two counts of the
-#: standstill limit cycle on top of the load step's current (70 % of rated torque, 35 %
-#: of isq_max) stay 15 % inside the limit (docs/drive-family.md, "Start gains")
+#: fraction of isq_max (research/NOTES.md, "Start gains at standstill")
 COUNT_STEP_MAX = 0.25
 
 
@@ -127,7 +122,7 @@ def count_step(drive: DriveConfig, k_pw: float) -> float:
     """The q-current step [A] one encoder count makes through the speed loop's P gain k_pw
     [A s/rad]: k_pw times the speed estimate's step for one count in one period,
     (1 - a) 2 pi/(N Ts), a = exp(-Ts/tau_f) the drive's speed filter (docs/drive-model.md
-    section 4; 1.39 rad/s for 4096 counts, 200 us and 1 ms)."""
+    section 4)."""
     s = drive.sensors
     tau = s.speed_filter_tau
     a = math.exp(-drive.Ts / tau) if tau > 0.0 else 0.0
@@ -138,7 +133,7 @@ def start_scale(drive: DriveConfig) -> float:
     """The factor of the start's (and fallback gains') k_pw and k_iw: ``inertia`` (the
     paper's speed-loop gain on this drive), at most the factor whose k_pw makes one
     encoder count a current step of ``COUNT_STEP_MAX`` isq_max; exactly 1.0 for the
-    paper's drive (its count step is 10.5 % of its limit)."""
+    paper's drive."""
     k_pw = ExperimentConfig().fallback_gains.k_pw
     cap = COUNT_STEP_MAX * drive.machine.isq_max / count_step(drive, k_pw)
     return min(drive_scales(drive.machine).inertia, cap)

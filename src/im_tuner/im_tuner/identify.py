@@ -23,15 +23,10 @@ file's value instead of at noise:
 
 s2 the residual variance of the plain least-squares fit (sum r^2 / (rows - 4)).
 ``INFLATION`` = 2: neighbouring rows share a block, so the rows are not independent.
-What the rows' equation leaves out -- the bench's static (Stribeck) friction above the
-Coulomb torque, the encoder's quantisation of the speed, a command delay -- biases J and
-Kt by a few tenths of a percent to 2 %, the same way in every run of a drive, which no
-amount of data averages out: ``MODEL_ERROR`` (1 % of the value) is added to their standard
-deviations in quadrature. Measured over the nine packaged drives, ideal and bench realism,
-the file and five wrong plants (J x0.5, x2, x2.5; J x1.5 with Rr x1.3, Lm x0.85, Coulomb 2 %
-of the rated torque, with and without command delay 2), 378 cases (research/identify_sd.py):
-the error was at most 1.81 standard deviations in J and 2.05 in Kt, one case of 378 beyond 2
-(without the floor 2.8 and 3.9: 19 and 25 cases beyond 2); test_identify checks the worst.
+What the rows' equation leaves out -- static friction above the Coulomb torque, the
+encoder's quantisation, a command delay -- biases J and Kt the same way in every run of
+a drive, which no amount of data averages out: ``MODEL_ERROR`` is added to their standard
+deviations in quadrature (research/NOTES.md, "From the source of im_tuner/identify.py").
 
 Pure: no rclpy, numpy only.
 """
@@ -93,11 +88,6 @@ class Identified:
     rows: int
     residual: float
     experiments: int
-
-    @property
-    def j_ratio(self) -> float:
-        """J / J_file: the load inertia against the file's."""
-        return self.J / self.J_file
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -1,55 +1,32 @@
 """The drive model's first step for ``safe``: tune offline on the nameplate model, first.
 
-A user who tunes a drive knows its nameplate: the drive file's machine constants.  Before
-the first experiment on the bench, :func:`model_prior` tunes the same controller on that
-*nominal model* -- the drive file with every bench effect switched off (each key at its
-``off`` value, ``realism: ideal``) and no speed noise -- on the offline bench (the fused
-numba loop, no ROS: some 100-200 experiments/s), and returns one point that ``safe``
-measures right after the start (``make_optimizer('safe', ..., first=u)``).
+Before the first experiment on the bench, :func:`model_prior` tunes the controller on the
+*nominal model* (:func:`nominal_model`) on the offline bench (no ROS) and returns one
+point that ``safe`` measures right after the start (``make_optimizer('safe', ...,
+first=u)``).  Deterministic: the same drive, experiment and box give the same point.
 
-How the point is chosen (deterministic: the same drive, experiment and box give the same
-point, bit for bit):
-
-1. ``safe`` itself (first=none) runs ``MODEL_EVALUATIONS`` experiments on the nominal
-   model from the box's start, once per seed of ``SEEDS``: on a deterministic model one
-   run can stall in a poor basin (a 10:1 load-inertia drive: 0.64 of the start's loss
-   with seed 0, 0.49-0.55 with seeds 1-3), and the plant's search then stays there.
-2. Its ``CANDIDATES`` best distinct, non-aborted points are re-measured on
-   ``len(PERTURBATIONS)`` perturbed models (inertia J x 0.7 and x 1.4, rotor resistance
-   Rr x 0.8 and x 1.2, the four corners and the two J extremes at nominal Rr): the model
-   is never exactly the plant (an unknown load inertia, a warm rotor), and the first step
-   must not turn an error of the model into an unstable controller.  Each candidate's
-   score is its worst loss relative to the start's on the same perturbed model (an
-   aborted experiment: never chosen).
+1. ``safe`` (first=none) runs ``MODEL_EVALUATIONS`` experiments on the model from the
+   box's start, once per seed of ``SEEDS`` (one run can stall in a poor basin).
+2. Its ``CANDIDATES`` best distinct, non-aborted points are re-measured on the
+   ``PERTURBATIONS`` of inertia J and rotor resistance Rr (the model is never exactly the
+   plant); a candidate's score is its worst loss over the start's on the same perturbed
+   model (aborted: never chosen).
 3. The point of the lowest score is the prior.  None when no candidate beats the start
-   on every perturbed model, or when the start itself aborts on the nominal model (a box
-   given with ``--params`` for another drive: nothing to compare with); ``safe`` then runs
-   as without a model.
-4. With a standstill-ripple limit R (the identified prior of a run with ``--ripple-limit
-   R``; docs/optimisers.md, "The standstill ripple"), the point must be quiet on the
-   plant, which the nominal model cannot say: without the speed noise that the speed
-   loop's gains amplify it sees 1.3-1.7x less ripple than the plant for gains above the
-   start's.  So the search runs on the *noisy model* (:func:`noisy_model`: the drive
-   file's own bench effects and noise with the identified mechanics), told above the
-   bound B = R / (1 + ``RIPPLE_MARGIN``) what a run is told above its limit
-   (``runlog.ripple.told``, strictly: no tolerance), so that the good but loud points
-   do not steer it and the ranking's best are quiet; the perturbed models are the noisy
-   one's.  Each candidate that beats the start on every perturbed model is then measured
-   ``RIPPLE_EXPERIMENTS`` times on the noisy model and on the same with the file's
-   friction (:func:`_ripple_check`: the friction at rest decides the limit cycle and the
-   start's motion barely identifies it); its *predicted* rms is the larger of the two
-   means of its rms over the start's (:func:`_predicted`), and must be within B: the
-   margin is the prediction's error on the plant.  When no candidate of a batch is
-   within it, the next ``CANDIDATES`` of the search's ranking are checked
-   (``RIPPLE_BATCHES`` at most); None if none is.
+   on every perturbed model, or when the start itself aborts on the model.
+4. With a standstill-ripple limit R (docs/optimisers.md, "The standstill ripple") the
+   search runs on the *noisy model* (:func:`noisy_model`; the nominal one, without speed
+   noise, sees less ripple than the plant), told above the bound B = R / (1 +
+   ``RIPPLE_MARGIN``) what a run is told above its limit (``runlog.ripple.told``,
+   strictly).  Each candidate that beats the start on every perturbed model is measured
+   ``RIPPLE_EXPERIMENTS`` times on the noisy model with and without the identified
+   friction (:func:`_ripple_check`); its predicted rms (:func:`_predicted`, the larger)
+   must be within B.  Else the next ``CANDIDATES`` of the ranking are checked
+   (``RIPPLE_BATCHES`` at most); None if none is within.
 
-``model_prior`` is cached per (nominal drive, experiment, box) in the process, and across
-processes in the directory named by ``IM_TUNER_PRIOR_CACHE`` when it is set (a study
-sets one for its workers, the test suite one per session): one JSON file per key, the key
-holding the model, experiment and box, this numeric baseline's bits and a digest of the
-project's code, so a file is never read by a process that would compute another point.
-Cost on the development machine: see docs/optimisers.md ("The first step from the
-model").  Pure: no rclpy.
+``model_prior`` is cached per (model, experiment, box) in the process, and across
+processes in the directory named by ``IM_TUNER_PRIOR_CACHE`` when set: one JSON file per
+key, the key also holding the numeric baseline's bits and a digest of the project's code.
+Pure: no rclpy.
 """
 
 from __future__ import annotations
@@ -106,9 +83,7 @@ PERTURBATIONS: tuple[tuple[float, float], ...] = (
 )
 #: the searches' seeds (fixed numbers: the prior is a function of the drive alone)
 SEEDS: tuple[int, ...] = (0, 1, 2, 3)
-#: With a ripple limit, batches of ``CANDIDATES`` checked at most (the next batch of the
-#: search's ranking when no candidate of one is within the limit and beats the start on
-#: every perturbed model): 4 x 8 x 6 = 192 more offline experiments at most.
+#: With a ripple limit, batches of ``CANDIDATES`` checked at most (module docstring, step 4)
 RIPPLE_BATCHES = 4
 #: With a ripple limit, the start's experiments on the search's model after the one from
 #: rest: their mean rms is the limit's bound there (one experiment's scatters).
@@ -116,10 +91,8 @@ START_EXPERIMENTS = 4
 #: With a ripple limit, experiments of each candidate in the ripple check (per model)
 RIPPLE_EXPERIMENTS = 6
 #: With a ripple limit R the first step's predicted rms must be within R / (1 + this): the
-#: prediction of the step's mean rms was 5 % below to 16 % above the plant's on every
-#: packaged drive, at most 7 % below under a wrong J; the command delay and friction the
-#: model leaves out can put it 22 % below, and then the run's strict choice keeps the
-#: limit (research/NOTES.md, "The first step predicted within the limit").
+#: prediction's error on the plant (research/NOTES.md, "The first step predicted within
+#: the limit").
 RIPPLE_MARGIN = 0.10
 
 
@@ -234,10 +207,8 @@ def _search(
     """Step 1: ``safe`` on the model, ``evaluations`` experiments per seed; the measured
     points (the first is the start's) and the bench.  With ``ripple_limit`` the start is
     measured ``START_EXPERIMENTS`` times more (its mean rms: the limit's bound) and each
-    search is told what a run with that limit is told (``runlog.ripple.told``), strictly
-    (no tolerance: a point louder than the limit in one experiment is told so; a model
-    can afford to be stricter than the plant's run, and the search then ranks quiet
-    points first)."""
+    search is told what a run with that limit is told (``runlog.ripple.told``), with no
+    tolerance, so that it ranks quiet points first."""
     from .optim import make_optimizer
     from .runlog.ripple import told
 
@@ -276,12 +247,8 @@ def _compute(
     ripple_models: tuple[DriveConfig, ...] = (),
 ) -> Prior | None:
     """Steps 1-3 of the module docstring; with ``ripple_limit`` (a ratio, the run's
-    ``--ripple-limit``) step 4: the search told the limit less the margin, and only
-    candidates whose
-    predicted rms (:func:`_ripple_check` on ``model`` and each of ``ripple_models``, the
-    largest) is within ``ripple_limit / (1 + RIPPLE_MARGIN)``, the next ``CANDIDATES``
-    of the ranking checked when no candidate of a batch is (``RIPPLE_BATCHES`` at most).
-    Without a limit: one batch, and the best candidate that beats the start."""
+    ``--ripple-limit``) step 4, the ripple checked on ``model`` and each of
+    ``ripple_models``."""
     t0 = time.perf_counter()
     bound = math.inf if ripple_limit is None else ripple_limit / (1.0 + RIPPLE_MARGIN)
     seen, bench = _search(
@@ -350,8 +317,7 @@ def _ripple_check(
     """Each point's predicted standstill rms over the start's on ``model``: the start
     measured ``START_EXPERIMENTS`` times after one from rest, then each point
     ``RIPPLE_EXPERIMENTS`` times in a row (:func:`_predicted` of its ratios; an aborted
-    experiment: inf); and the experiments it cost.  One experiment's rms scatters by
-    about a quarter on a noisy model: the mean of several is the prediction."""
+    experiment: inf); and the experiments it cost."""
     mb = _ModelBench(model, experiment)
     start = tuple(space.start_u.tolist())
     for _ in range(1 + START_EXPERIMENTS):
@@ -410,11 +376,8 @@ def _read(path: Path) -> tuple[bool, Prior | None]:
 def _cached(key: str, compute: Callable[[], Prior | None]) -> Prior | None:
     """``compute()`` once per ``key``: from this process's cache, else from the directory
     ``IM_TUNER_PRIOR_CACHE`` (when set), else computed and kept in both (written to a
-    temporary file and renamed: a reader never sees half a file).  Processes that miss
-    the same key at once compute it once: the first takes the key's lock file
-    (``fcntl.flock``, released when its process ends, however) and the others wait on it,
-    then read its result -- a study's workers start their first runs together and would
-    otherwise each spend the same seconds on the same point."""
+    temporary file and renamed).  Processes that miss the same key at once compute it
+    once: the first takes the key's lock file (``fcntl.flock``), the others wait on it."""
     if key in _CACHE:
         return _CACHE[key]
     where = os.environ.get(CACHE_ENV, '')
@@ -465,18 +428,16 @@ def model_prior(
 
 
 #: The identified model's J is rounded to this relative step, Kt's ratio and Tc likewise
-#: (Tc in units of the rated torque): a study's runs on one plant share a few models (the
-#: cache) instead of one each, for errors well inside the identification's (~1-2 %).
+#: (Tc in units of the rated torque): a study's runs on one plant share a few cached
+#: models, for errors well inside the identification's.
 ROUND_J = 0.01
 ROUND_TC = 0.005
 #: The identified model's perturbations: J within +-(the larger of this and 3 standard
 #: deviations of the identified J), Rr as for the file's model (not identified).
 IDENTIFIED_J_SPREAD = 0.1
-#: Experiments per seed of the offline search on the identified model (the file's model:
-#: ``MODEL_EVALUATIONS``): the identified model is close to the plant (J within 2 %), so
-#: its optimum is worth finding, and 150 per seed stop short of it in a valley of the loss
-#: (research/NOTES.md).  The price: twice the offline experiments between evaluations 1
-#: and 2.
+#: Experiments per seed of the offline search on the identified model: it is close to the
+#: plant, so its optimum is worth finding (research/NOTES.md, "The identified model's
+#: search").
 IDENTIFIED_MODEL_EVALUATIONS = 300
 
 
@@ -505,13 +466,9 @@ def identified_model(
 def noisy_model(drive: DriveConfig, model: DriveConfig, friction: bool = True) -> DriveConfig:
     """The drive file as written -- its realism profile's bench effects and speed noise --
     with ``model``'s inertia and (``friction``) its viscous and Coulomb friction: the
-    model whose standstill ripple is the plant's (the nominal model, without the noise
-    that the speed loop's gains amplify, sees 1.3-1.7x less than the plant for gains
-    above the start's).  ``friction=False``: the file's friction; the friction decides
-    the limit cycle at rest, and the start's motion, which identifies it, barely sees
-    the static part (im7500w-j10: Coulomb identified 0.25 N m, the plant's 0.40 N m;
-    a candidate's ripple 1.39x the start's on the identified friction, 1.61x on the
-    plant)."""
+    model whose standstill ripple is the plant's.  ``friction=False``: the file's
+    friction (the friction at rest decides the limit cycle, and the start's motion
+    barely identifies it)."""
     mm = model.machine
     machine = dataclasses.replace(drive.machine, J=mm.J)
     if friction:

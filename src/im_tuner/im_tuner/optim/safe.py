@@ -1,11 +1,8 @@
 """A local, abort-aware (1+1) evolution strategy with a local linear model ('safe').
 
-Why hand-written: no maintained library offers a one-at-a-time local search that starts
-from known-safe gains and treats an aborted experiment (an unstable controller) as a
-constraint rather than a loss; pycma's (1+1) variants and Py-BOBYQA drive the loop
-themselves and model a penalised loss as if it were a real one.  The whole method is a
-small weighted least-squares fit per evaluation (well under a millisecond for 200
-points), so it never stalls a bench.
+Hand-written: no maintained library offers a one-at-a-time local search that starts from
+known-safe gains and treats an aborted experiment (an unstable controller) as a
+constraint rather than a loss.
 
 On u in [0, 1]^dim, from the start point u0 (the hand-tuned gains, known to be stable):
 
@@ -43,9 +40,7 @@ On u in [0, 1]^dim, from the start point u0 (the hand-tuned gains, known to be s
   the mean of its measurements, so one lucky measurement does not freeze the search;
 * sigma stays within [0.005, sigma_max] (normalised units): below the floor a run can
   stall on a lucky measurement; the ceiling is a trust region around gains known to be
-  stable, because the stability edge gives no warning a model could learn (the
-  supervisor's terms are no higher before an abort than at the start): only the step
-  length keeps the search off it.
+  stable, because the stability edge gives no warning a model could learn.
 
 The figures behind these choices are in docs/optimisers.md and research/NOTES.md.  The
 tuner tells an aborted experiment through ``tell_measurement(u, loss, aborted)``; a
@@ -315,9 +310,8 @@ class SAFE(Optimizer):
             self._first = None if point is None else check_first(point, self.dim)
         if self._first is not None or self._identify:
             self.first_left = bool(state['first_left'])
-            # (a state saved before the back-off: none left, the search as it was)
-            back = state.get('first_back')
+            back = state['first_back']
             self._back = None if back is None else check_first(back, self.dim)
-            self._backoffs = int(state.get('first_backoffs', self.FIRST_BACKOFFS))
+            self._backoffs = int(state['first_backoffs'])
         if len(self._pts) != len(self._vals) or any(len(q) != self.dim for q in self._pts):
             raise OptimizerError('safe state: points and values do not match')

@@ -11,30 +11,17 @@ n in {5, 25, 125} with eta = floor(n/2); ``runs`` runs of ``budget`` loss evalua
 configuration.  Everything runs in-process on the same numba kernels as the nodes
 (``im_tuner.offline``), in a process pool.
 
-**A study run is a tuner run**, by construction: it is the tuner's own ``TuningRun`` on
-the offline bench (``offline.OfflineBench``), its records kept in memory
-(``runlog.MemoryRecord``: no files, no checkpoints).  Run r of every configuration uses the run seed
-``run_seed(seed, r)`` and does exactly what ``ros2 run im_tuner tuner --seed <run seed>
---remeasure 1`` does on the simulated lock-step bench (``tuning.run_seeds`` splits the
-run seed into the optimiser's and the drive's streams): a fresh drive at rest, one
-reference experiment of the start gains (not counted), ``budget`` evaluations, then one
-re-measurement of the best.  SPSA starts from a random point of the box (paper: "different
-starting points in the search space"), drawn from the run seed's third stream and given to
-the tuner as the start of a parameter file; the compact GAs start from their
-distribution, the reference being the hand-tuned start.  The seeds are shared by all
-configurations (common random numbers: run r of every cell sees the same start and the
-same drive noise), so differences between cells are not noise differences.  Runs are
-independent, so the results are identical for any number of workers.
+**A study run is a tuner run**, by construction: the tuner's own ``TuningRun`` on the
+offline bench (``offline.OfflineBench``), its records kept in memory
+(``runlog.MemoryRecord``).  Run r of every configuration uses the run seed ``run_seed(seed,
+r)`` and does exactly what ``ros2 run im_tuner tuner --seed <run seed> --remeasure 1`` does
+on the simulated lock-step bench.  The seeds are shared by all configurations (common
+random numbers), and runs are independent, so the results are identical for any number of
+workers.
 
-**Normalised loss** (the paper's tables are in these units): L_n = L / L_ref, with
-L_ref the mean loss of the hand-tuned start controller over ``REF_EXPERIMENTS``
-consecutive experiments of the steady experiment sequence (after the first experiment
-from rest, whose loss lacks the load-removal transient of every later one) on the same
-drive file and model, with the drive file's own noise seed.  The hand-tuned controller
-is then 1.0, as the paper's values (0.70 to 0.99) suggest.  A run is **satisfactory**
-when its final loss (the smallest measured non-aborted loss: the paper's final
-controller) is at most ``satisfactory`` (default 0.9: 10 % better than the hand-tuned
-start).  docs/reproduction.md says why.
+**Normalised loss**: L_n = L / L_ref, L_ref the mean loss of the hand-tuned start over
+``REF_EXPERIMENTS`` experiments after the first from rest; a run is **satisfactory** when
+its final loss is at most ``satisfactory`` (``stats``; docs/reproduction.md says why).
 
 **Drives**: a study's drive, experiment and tuner parameters come from
 ``im_tuner.family.drive_setup`` (``StudySpec.drives``/``realism``; none given: the
@@ -69,37 +56,9 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from .runs import (
-        DEFAULT_SATISFACTORY,
-        DEFAULT_SEED,
-        REF_EXPERIMENTS,
-        STUDY_ALGOS,
-        Cell,
-        StudyResult,
-        StudySpec,
-        grid,
-        load,
-        reference_loss,
-        run_one,
-        run_study,
-        save,
-    )
+    from .runs import StudySpec, run_one
 
-__all__ = [
-    'DEFAULT_SATISFACTORY',
-    'DEFAULT_SEED',
-    'REF_EXPERIMENTS',
-    'STUDY_ALGOS',
-    'Cell',
-    'StudyResult',
-    'StudySpec',
-    'grid',
-    'load',
-    'reference_loss',
-    'run_one',
-    'run_study',
-    'save',
-]
+__all__ = ['StudySpec', 'run_one']
 
 
 def __getattr__(name: str) -> Any:

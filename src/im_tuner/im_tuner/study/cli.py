@@ -293,8 +293,6 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
             raise StudyError(
                 f'--algos: no study grid for {a!r} (allowed: {", ".join(S.STUDY_ALGOS)})'
             )
-    if cli.jobs is not None and cli.jobs < 1:
-        raise StudyError(f'--jobs must be >= 1, got {cli.jobs}')
     if cli.cluster is not None:
         if cli.jobs is not None:
             raise StudyError(
@@ -390,35 +388,23 @@ def main(args: list[str] | None = None) -> int:
                 f'--out {out}: already holds a study (use --from to re-tabulate '
                 'it, or another --out)'
             )
-        if cli.source is None and out.is_dir() and any(out.iterdir()):
-            raise StudyError(
-                f'--out {out}: already exists and is not empty; choose a new directory'
-            )
         if (
-            cli.source is not None
-            and cli.out is not None
-            and cli.out.is_dir()
-            and any(cli.out.iterdir())
-            and cli.out.resolve() != cli.source.resolve()
+            out.is_dir()
+            and any(out.iterdir())
+            and (cli.source is None or out.resolve() != cli.source.resolve())
         ):
             raise StudyError(
                 f'--out {out}: already exists and is not empty; choose a new directory'
             )
+        if cli.source is not None and (cli.drives or cli.realism or cli.full_grid):
+            raise StudyError('--from re-tabulates: it takes no --drives, --realism or --full-grid')
+        if cli.source is not None and {cli.plant, cli.plant_mismatch, cli.ripple_limit} != {None}:
+            raise StudyError(
+                '--from re-tabulates: its plant and limit are the ones it ran with '
+                '(no --plant, --plant-mismatch or --ripple-limit)'
+            )
     except (StudyError, UsageError) as exc:
         print(f'error: study: {exc}', file=sys.stderr)
-        return EXIT_USAGE
-    if cli.source is not None and (cli.drives or cli.realism or cli.full_grid):
-        print(
-            'error: study: --from re-tabulates: it takes no --drives, --realism or --full-grid',
-            file=sys.stderr,
-        )
-        return EXIT_USAGE
-    if cli.source is not None and {cli.plant, cli.plant_mismatch, cli.ripple_limit} != {None}:
-        print(
-            'error: study: --from re-tabulates: its plant and limit are the ones it ran with '
-            '(no --plant, --plant-mismatch or --ripple-limit)',
-            file=sys.stderr,
-        )
         return EXIT_USAGE
     return _run(cli, spec, res, out, command)
 

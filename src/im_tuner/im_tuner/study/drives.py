@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +24,6 @@ __all__ = [
     'drive_dirs',
     'is_family',
     'load_family',
-    'run_family',
     'save_family',
 ]
 
@@ -56,16 +54,6 @@ def drive_dirs(drives: tuple[str, ...]) -> list[str]:
             name, k = f'{base}_{k}', k + 1
         out.append(name)
     return out
-
-
-def run_family(
-    spec: StudySpec,
-    run_one_study: Callable[[StudySpec, int], StudyResult],
-) -> FamilyResult:
-    """Every drive's study, in order: ``run_one_study(spec.for_drive(d), i)`` for drive i
-    (the caller runs it: ``runs.run_study`` with its pool or cluster and progress)."""
-    results = [run_one_study(spec.for_drive(d), i) for i, d in enumerate(spec.drives)]
-    return FamilyResult(spec, results)
 
 
 def is_family(out: Path | str) -> bool:

@@ -193,15 +193,8 @@ def write_tables_csv(st: StudyStats, out: Path) -> Path:
                 'threshold',
             )
         )
-        extra = (
-            ('remeasured', '', 3),
-            ('fast', '', 1),
-            ('fast_reached', '', 0),
-            ('ripple_ratio', '', 2),
-            ('ripple_over', '', 0),
-            ('ripple_pp_ratio', '', 2),
-        )
-        for stat, _, _ in (*STATS, *extra, ('aborted_per_run', '', 1)):
+        extra = ('remeasured', 'fast', 'fast_reached', 'ripple_ratio', 'ripple_over')
+        for stat in (*(s[0] for s in STATS), *extra, 'ripple_pp_ratio', 'aborted_per_run'):
             for c in st.cells:
                 iv = getattr(c, stat)
                 key = PAPER_KEY.get(stat)

@@ -14,12 +14,12 @@ from .stats import (
     FAST_LEVEL,
     PAPER_US_PER_ITERATION,
     StudyStats,
+    _fmt_iv,
 )
 from .text import (
     ALGO_NAME,
     STATS,
     _grids,
-    _iv,
     _paper,
     comparison_rows,
     goal_lines,
@@ -48,12 +48,14 @@ def _md_table(
                 notes = []
                 if other is not None:
                     oc = other[1].cell(algo, c.cell.row, c.cell.col)
-                    ov = '-' if oc is None else _iv(getattr(oc, stat), d).split(' [')[0]
+                    ov = '-' if oc is None else _fmt_iv(getattr(oc, stat), d, '-').split(' [')[0]
                     notes.append(f'{other[0]} {ov}')
                 p = _paper(c, stat, d)
                 if p:
                     notes.append(f'paper {p}')
-                cells.append(_iv(getattr(c, stat), d) + (f' ({"; ".join(notes)})' if notes else ''))
+                cells.append(
+                    _fmt_iv(getattr(c, stat), d, '-') + (f' ({"; ".join(notes)})' if notes else '')
+                )
             L.append(f'| {rl} | ' + ' | '.join(cells) + ' |')
         L.append('')
     return L
@@ -113,11 +115,8 @@ def beyond_md(st: StudyStats, figures: dict[str, str]) -> list[str]:
         f'{st.threshold:g}, <= {GOAL["fast"]:g} to {FAST_LEVEL:g} in >= 99 % of runs, '
         f'<= {GOAL["aborted_per_run"]:g} aborted experiment per run.',
         '',
-        '| ' + ' | '.join(head) + ' |',
-        '|---' * len(head) + '|',
+        *_md_rows(head, rows),
     ]
-    L += ['| ' + ' | '.join(r) + ' |' for r in rows]
-    L.append('')
     if 'comparison' in figures:
         L += [f'![comparison]({figures["comparison"]})', '']
     return L

@@ -12,8 +12,7 @@ drive is another packaged one" (``--plant im750w-j3``).
 **Normalisation.** L_ref (the unit of every normalised loss) is the hand-tuned start
 measured on the *plant*, 100 experiments: the study's "1.0 = the hand-tuned start" and
 "0.9 = 10 % better than it" mean the start the user has on the drive they have, as the
-tuner's own reference experiment measures it (research/bench_prior.py and the plant rows
-of docs/optimisers.md normalise so).  The same start's L_ref on the told drive is kept
+tuner's own reference experiment measures it.  The same start's L_ref on the told drive is kept
 beside it (``StudyResult.l_ref_told``): their ratio says how much the mismatch alone moves
 the start.
 
@@ -103,7 +102,7 @@ class PlantError(ValueError):
 
 
 #: The factors a machine key may take: a drive file wrong by up to 10x either way (beyond,
-#: the plant is another drive, given as --plant; J x1e-4 made a plant no kernel can step)
+#: the plant is another drive, given as --plant)
 FACTOR_RANGE = (0.1, 10.0)
 
 #: Machine keys that may not take a factor, and why.

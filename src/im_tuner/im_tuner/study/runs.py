@@ -1,7 +1,6 @@
 """The study's runs: one run (the tuner's TuningRun on the offline bench), the process
 pool and the Dask cluster.  The grid and the spec are in ``spec``, the results and their
-files in ``results`` (both re-exported here).  See the package docstring for what a study
-is.
+files in ``results``.  See the package docstring for what a study is.
 
 This module imports the optimisers and the numba kernels (seconds): the command imports
 it only once its options are checked.
@@ -21,6 +20,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
+from itertools import islice
 from typing import Any
 
 import numpy as np
@@ -36,42 +36,15 @@ from ..runlog import Evaluation, MemoryRecord, Record, Reference, Remeasurement
 from ..runlog.ripple import ripple_summary
 from ..space import SearchSpace, TunerParams
 from ..tuning import DEFAULT_RETRIES, TuningRun, run_seeds
-from .results import ARRAYS_FILE, META_FILE, StudyResult, empty_runs, load, save
-from .spec import (
-    DEFAULT_SATISFACTORY,
-    DEFAULT_SEED,
-    EXTRA_GRIDS,
-    FACTORS,
-    PAPER_ALGOS,
-    RANDOM_START_DEFAULT,
-    REF_EXPERIMENTS,
-    STUDY_ALGOS,
-    Cell,
-    StudySpec,
-    default_jobs,
-    grid,
-)
+from .results import StudyResult, empty_runs, load, save
+from .spec import REF_EXPERIMENTS, Cell, StudySpec, default_jobs
 from .worker import WORKER, init_pool_worker, init_worker
 
 __all__ = [
-    'ARRAYS_FILE',
-    'DEFAULT_SATISFACTORY',
-    'DEFAULT_SEED',
-    'EXTRA_GRIDS',
-    'FACTORS',
-    'META_FILE',
-    'PAPER_ALGOS',
-    'RANDOM_START_DEFAULT',
-    'REF_EXPERIMENTS',
-    'STUDY_ALGOS',
-    'Cell',
     'RunResult',
     'StudyResult',
     'StudySpec',
-    'default_jobs',
-    'grid',
     'load',
-    'optim',
     'reference_loss',
     'run_one',
     'run_seed',
@@ -305,8 +278,7 @@ def applied_loss(
     (``final``: ``TuningRun.final_choice()``) when they are not the re-measured point:
     the reference's when the start stays, else their re-measurement, or ``again``, one
     more experiment of them (:func:`run_one`: their loss from the search is the least of
-    many, biased low); nan without it.  Before, a run that left its start applied
-    reported the re-measured loss of gains it does not apply."""
+    many, biased low); nan without it."""
     if rem and (not limited or final is None or final['eval'] == rem[0].eval):
         return rem[0].loss
     if not limited or final is None:
@@ -495,11 +467,6 @@ def _allocate(spec: StudySpec, cells: list[Cell]) -> dict[str, Any]:
 _PER_RUN = tuple(a for a in StudyResult.ARRAYS if a not in ('run_seed', 'drive_seed'))
 
 
-def _store(a: dict[str, np.ndarray], res: RunResult) -> None:
-    for name in _PER_RUN:
-        a[name][res.cell, res.run] = getattr(res, name)
-
-
 def run_study(
     spec: StudySpec,
     jobs: int | None = None,
@@ -537,7 +504,8 @@ def run_study(
     total, done = len(tasks), [0]
 
     def store(res: RunResult) -> None:
-        _store(arrays, res)
+        for name in _PER_RUN:
+            arrays[name][res.cell, res.run] = getattr(res, name)
         done[0] += 1
         if progress is not None:
             progress(done[0], total, time.perf_counter() - t0)
@@ -559,12 +527,12 @@ def run_study(
         try:
             # a bounded window of pending tasks keeps memory flat and progress honest
             it = iter(tasks)
-            pending = {pool.submit(_work, (*t, expected)) for t in _take(it, 4 * jobs)}
+            pending = {pool.submit(_work, (*t, expected)) for t in islice(it, 4 * jobs)}
             while pending:
                 finished, pending = wait(pending, return_when=FIRST_COMPLETED)
                 for f in finished:
                     store(f.result())
-                pending |= {pool.submit(_work, (*t, expected)) for t in _take(it, len(finished))}
+                pending |= {pool.submit(_work, (*t, expected)) for t in islice(it, len(finished))}
         except BaseException:  # Ctrl-C, SIGTERM (the command raises), a failed run
             _end_pool(pool)
             raise
@@ -581,13 +549,3 @@ def run_study(
         l_ref_told=l_ref_told,
         **arrays,
     )
-
-
-def _take(it, k: int) -> list:
-    out = []
-    for _ in range(k):
-        try:
-            out.append(next(it))
-        except StopIteration:
-            break
-    return out

@@ -192,10 +192,7 @@ def ripple_ratio(res: StudyResult, measure: str = 'rms') -> np.ndarray:
     """[cells, runs]: the final choice's standstill rms of isq* (``measure`` 'pp': peak to
     peak) over the start's, the larger of the two windows (after the move, after the
     load); nan: not measured."""
-    arr = res.ripple if measure == 'rms' else res.ripple_pp
-    if arr is None:  # (a study result without it)
-        return np.full(res.losses.shape[:2], np.nan)
-    rip = np.asarray(arr, dtype=float)
+    rip = np.asarray(res.ripple if measure == 'rms' else res.ripple_pp, dtype=float)
     with np.errstate(invalid='ignore', divide='ignore'):
         r = rip[..., 2:] / rip[..., :2]
     out = np.max(r, axis=-1)
@@ -357,9 +354,10 @@ def _timing(st: StudyStats) -> None:
 
 
 # -- the paper's conclusions --------------------------------------------------------------------
-def _fmt_iv(iv: Interval, digits: int = 3) -> str:
+def _fmt_iv(iv: Interval, digits: int = 3, none: str = 'n/a') -> str:
+    """``value [lo, hi]`` (``value`` alone without an interval; ``none``: no value)."""
     if not math.isfinite(iv.value):
-        return 'n/a'
+        return none
     if not math.isfinite(iv.lo):
         return f'{iv.value:.{digits}f}'
     return f'{iv.value:.{digits}f} [{iv.lo:.{digits}f}, {iv.hi:.{digits}f}]'

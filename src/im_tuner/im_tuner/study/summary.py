@@ -8,11 +8,9 @@ the worst drive's value (highest loss, evaluations or aborts; lowest share of ru
 reaching ``FAST_LEVEL``).  Every drive's losses are normalised by its own L_ref (its own
 hand-tuned start = 1), so the drives' values can be averaged.
 
-The goal (for the default on the bench profile and across the family): mean
-evaluations to <= the satisfactory level <= 3; median evaluations to <= FAST_LEVEL <= 25,
-reached in >= 99 % of runs; <= 1 aborted experiment per run; re-measured final loss
-within 2 % of the best row of the drive whose choices keep within the default's ripple
-limit (a row's runs count where its choice is within it: :func:`within_limit_rows`).
+The goal (``GOAL``, for the default on the bench profile and across the family) compares
+the re-measured loss with the best row of the drive whose choices keep within the
+default's ripple limit (:func:`within_limit_rows`).
 """
 
 from __future__ import annotations
@@ -31,7 +29,6 @@ __all__ = [
     'GoalCheck',
     'MethodSummary',
     'compute_family',
-    'default_cell',
     'goal_check',
     'summarize',
     'within_limit_rows',
@@ -146,14 +143,9 @@ def _find(st: StudyStats, key: tuple[str, str]) -> CellStats | None:
     return None
 
 
-def default_cell(st: StudyStats) -> CellStats | None:
-    """The tuner's default on a drive it knows (``spec.DEFAULT_ROW``), if the study has it."""
-    return _find(st, DEFAULT_ROW)
-
-
 def goal_check(name: str, st: StudyStats) -> GoalCheck | None:
     """Whether the default's row of drive ``name`` meets the goal (None: no such row)."""
-    cs = default_cell(st)
+    cs = _find(st, DEFAULT_ROW)  # the tuner's default on a drive it knows
     if cs is None:
         return None
     misses: list[str] = []

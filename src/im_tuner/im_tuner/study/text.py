@@ -7,13 +7,12 @@ from typing import TYPE_CHECKING
 
 from . import spec as S
 from .plant import plant_line, plants_line
-from .spec import EXIT_USAGE, StudyError
 from .stats import (
     EXPERIMENT_S,
     FAST_LEVEL,
     CellStats,
-    Interval,
     StudyStats,
+    _fmt_iv,
 )
 
 if TYPE_CHECKING:
@@ -22,11 +21,9 @@ if TYPE_CHECKING:
 __all__ = [
     'ALGO_NAME',
     'COMPARISON',
-    'EXIT_USAGE',
     'PAPER_KEY',
     'START_TEXT',
     'STATS',
-    'StudyError',
     'comparison_rows',
     'comparison_text',
     'family_text',
@@ -74,14 +71,6 @@ def no_intervals_note(runs: int) -> str:
 
 
 # -- text -----------------------------------------------------------------------------------------
-def _iv(iv: Interval, d: int) -> str:
-    if not math.isfinite(iv.value):
-        return '-'
-    if not math.isfinite(iv.lo):
-        return f'{iv.value:.{d}f}'
-    return f'{iv.value:.{d}f} [{iv.lo:.{d}f}, {iv.hi:.{d}f}]'
-
-
 def _paper(c: CellStats, stat: str, d: int) -> str:
     key = PAPER_KEY.get(stat)
     v = c.paper(key) if key else None
@@ -139,7 +128,7 @@ def comparison_rows(st: StudyStats) -> tuple[list[str], list[list[str]]]:
             + [
                 f'all {c.runs} runs aborted (n=0)'
                 if none and a in ('final', 'remeasured')
-                else _iv(getattr(c, a), d)
+                else _fmt_iv(getattr(c, a), d, '-')
                 for _h, a, d, _k in COMPARISON
             ]
         )
@@ -257,7 +246,7 @@ def tables_text(st: StudyStats) -> str:
                     c = by[(i, j)]
                     iv = getattr(c, stat)
                     p = _paper(c, stat, d)
-                    cell = _iv(iv, d) + (f' | {p}' if p else '')
+                    cell = _fmt_iv(iv, d, '-') + (f' | {p}' if p else '')
                     line += f'{cell:<{w + 7}}'
                 L.append(line.rstrip())
         L.append('')

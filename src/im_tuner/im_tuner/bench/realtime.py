@@ -1,8 +1,7 @@
 """The composed real-time bench: a drive and the controller in ONE process, one loop.
 
-Why: a Python controller in its own process, woken by DDS, cannot hold 5 kHz on a 2-core
-machine (a bare two-process rclpy round trip is 150-235 us, more than the 200 us period;
-docs/real-drive.md). ros2_control loads controllers into the process that owns the
+Why: a Python controller in its own process, woken by DDS, cannot hold 5 kHz
+(docs/real-drive.md); ros2_control loads controllers into the process that owns the
 hardware for the same reason. Here both stay separate rclpy nodes -- their own topics,
 parameters and services on the graph, the same classes as ``drive_sim``/``example_drive``
 and ``controller`` -- composed into one process (as rclcpp_components does), and a
@@ -276,8 +275,8 @@ class RealtimeBench:
                 self.compiled = kind(drv, ctl, self.outbox, self.durations, self.pacer, self.lock)
                 self.compiled.warm_up()
         self.publishers = PublisherThread.per_channel(self.outbox)
-        # one serving round now: the first of each costs up to ~150 ms (an executor's
-        # first spin, the first status), never beside a live loop
+        # one serving round now: the first of each is slow (an executor's first spin, the
+        # first status), never beside a live loop
         self._service()
         self._next_status = time.perf_counter() + 1.0
         self._pending_requests(0.0)
@@ -394,16 +393,16 @@ class RealtimeBench:
                 raise DriveLoopError(f'an outbox publisher stopped: {p.error!r}')
 
     def _serve(self, timeout: float) -> None:
-        """Wait up to ``timeout`` [s] for a request or a response, then serve it: a full
-        executor spin costs ~400 us, a wait on the prebuilt WaitSet a few."""
+        """Wait up to ``timeout`` [s] for a request or a response (on a prebuilt WaitSet,
+        far cheaper than an executor spin), then serve it."""
         if self._pending_requests(timeout):
             self.executor.spin_once(timeout_sec=0.0)
 
     def _pending_requests(self, timeout: float) -> bool:
         now = time.monotonic()
         if now >= self._entities_checked:
-            # the nodes' entities, looked at twice a second (walking them costs ~100 us
-            # of Python, the GIL held: too much for every millisecond)
+            # the nodes' entities, looked at twice a second (walking them holds the GIL:
+            # too long for every millisecond)
             self._entities_checked = now + 0.5
             nodes = list(self.executor.get_nodes())
             services = [s for n in nodes for s in n.services]

@@ -396,18 +396,12 @@ class TunerSession:
         tuning.checkpoint()
         rundir.write_summary(summary)
         print(format_summary(summary, self.run, rundir.path), flush=True)
-        if code == EXIT_INTERRUPTED:
-            print(
-                f'  interrupted: continue with `{ros2} run im_tuner tuner --resume '
-                f'{shlex.quote(str(rundir.path))}`',
-                flush=True,
-            )
-        elif code == EXIT_FAILED:
-            print(
-                f'  failed: once the cause is fixed, continue with `{ros2} run im_tuner tuner '
-                f'--resume {shlex.quote(str(rundir.path))}`',
-                flush=True,
-            )
+        if code != EXIT_OK:
+            what = 'interrupted:'
+            if code == EXIT_FAILED:
+                what = 'failed: once the cause is fixed,'
+            resume = f'{ros2} run im_tuner tuner --resume {shlex.quote(str(rundir.path))}'
+            print(f'  {what} continue with `{resume}`', flush=True)
         return code
 
     def discard_bag(self) -> None:

@@ -328,7 +328,7 @@ class TuningRun:
         """Write checkpoint.json: the optimiser and the counters after the records so far
         (atomic; nothing for a record that is not durable, e.g. the study's runs)."""
         if not self.rundir.durable:
-            return  # (the study's runs: nothing resumes them)
+            return  # (the study's: research/NOTES.md, "From the source of im_tuner/tuning.py")
         self.rundir.write_checkpoint(
             {
                 'version': CHECKPOINT_VERSION,

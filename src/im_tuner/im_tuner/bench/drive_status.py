@@ -109,5 +109,6 @@ class DriveMonitor:
             spin_until(lambda: self.received > n0, self.DISCOVERY_S)
         self.start = None if self.last is None else dict(self.last)
 
-    #: [s] the longer wait of :meth:`mark` for a first report
+    #: [s] the longer wait of :meth:`mark` for a first report (research/NOTES.md, "From
+    #: the source of im_tuner/bench/drive_status.py")
     DISCOVERY_S = 5.0

@@ -25,6 +25,7 @@ bench's (which steps the simulation) or a plain executor's -- and gives up on a 
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Callable
@@ -202,13 +203,10 @@ class ControllerLink:
         """An idempotent call (a read), asked again when no answer came: a service's
         response can be lost while its reply path is still being matched (a client new
         to the graph, a loaded machine), and asking again costs nothing."""
-        for i in range(tries):
-            try:
+        for _ in range(tries - 1):
+            with contextlib.suppress(LostEvaluation):
                 return self._call(make(), what)
-            except LostEvaluation:
-                if i == tries - 1:
-                    raise
-        raise AssertionError('unreachable')
+        return self._call(make(), what)
 
     def get_parameters(self, names: list[str]) -> dict[str, Any]:
         resp = self._call_again(lambda: self.params.get_parameters(names), 'get_parameters')

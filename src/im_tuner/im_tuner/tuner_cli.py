@@ -97,9 +97,8 @@ class NewRun:
 
 
 def _new_run_config(cli: TunerOptions, argv: list[str]) -> NewRun:
-    """Check everything of a new run before anything is created (module docstring: the
-    cheap checks first, then the controller's name, ``--drive``, the optimiser and the
-    hardware class)."""
+    """Check everything of a new run before anything is created, in the module
+    docstring's order."""
     # (each option's range is its parser's type: tuner_args.OPTIONS)
     algo = cli.algo or default('algo')
     budget = default('budget') if cli.budget is None else cli.budget
@@ -199,12 +198,10 @@ def _check_host(
     least: int = DEFAULT_TIMING_TOLERANCE,
 ) -> tuple[int, dict | None, HostSaid]:
     """On the composed real-time bench (``bench``: the one asked for, default
-    ``--bench``), the host's check before the first experiment (``host.check_before_run``:
-    2 s of the loop's wait with the run's real-time options): one line when the host
-    cannot meet the tolerance (or what ``auto`` chose). Returns the tolerance to run with,
-    the check's record (None: not a real-time bench, where ``auto`` is the default) and
-    its line, said by the session once its bench is up (a refusal before that stays one
-    line). ``least``: the tolerance ``auto`` never goes below (a resumed run's)."""
+    ``--bench``), the host's check before the first experiment (``host.check_before_run``).
+    Returns the tolerance to run with, the check's record (None: not a real-time bench)
+    and its line, said by the session once its bench is up. ``least``: the tolerance
+    ``auto`` never goes below (a resumed run's)."""
     if (bench or cli.bench or 'auto') != 'realtime':
         return (least if tolerance == host.AUTO else int(tolerance)), None, None
     chosen, record, line = host.check_before_run(

@@ -25,6 +25,7 @@ bench's (which steps the simulation) or a plain executor's -- and gives up on a 
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Callable
@@ -202,13 +203,10 @@ class ControllerLink:
         """An idempotent call (a read), asked again when no answer came: a service's
         response can be lost while its reply path is still being matched (a client new
         to the graph, a loaded machine), and asking again costs nothing."""
-        for i in range(tries):
-            try:
+        for _ in range(tries - 1):
+            with contextlib.suppress(LostEvaluation):
                 return self._call(make(), what)
-            except LostEvaluation:
-                if i == tries - 1:
-                    raise
-        raise AssertionError('unreachable')
+        return self._call(make(), what)
 
     def get_parameters(self, names: list[str]) -> dict[str, Any]:
         resp = self._call_again(lambda: self.params.get_parameters(names), 'get_parameters')
@@ -308,7 +306,18 @@ class ControllerLink:
         """What the person at the bench does about a safety fault under the policy
         'stop' -- a command that works on this bench -- and, when the experiment that
         faulted was off the paper's timing, that the host may have caused it."""
-        return self._fault_advice() + self._fault_timing()
+        if self.owns_controller:
+            # the controller ran in (or beside) this tuner and ends with it: nothing is
+            # left to reset; a resumed run starts a fresh controller, fault-free
+            return (
+                'fault policy stop: check the drive, then resume the run (--resume: the '
+                "tuner's controller ended with it, and the resumed run's starts without "
+                'the fault)'
+            ) + self._fault_timing()
+        return (
+            f'fault policy stop: check the drive, clear the fault with '
+            f'`{reset_command(self.names["node"])}`, then resume the run (--resume)'
+        ) + self._fault_timing()
 
     def _fault_timing(self) -> str:
         """The faulting experiment's periods, when they were beyond the tolerance: a drive
@@ -322,20 +331,6 @@ class ControllerLink:
             f'held and {r.late} late, beyond the timing tolerance: the drive held its old '
             "current through the host's stalls, which may be what tripped it -- check the "
             'host: `ros2 run im_drive_sim host_check`)'
-        )
-
-    def _fault_advice(self) -> str:
-        if self.owns_controller:
-            # the controller ran in (or beside) this tuner and ends with it: nothing is
-            # left to reset; a resumed run starts a fresh controller, fault-free
-            return (
-                'fault policy stop: check the drive, then resume the run (--resume: the '
-                "tuner's controller ended with it, and the resumed run's starts without "
-                'the fault)'
-            )
-        return (
-            f'fault policy stop: check the drive, clear the fault with '
-            f'`{reset_command(self.names["node"])}`, then resume the run (--resume)'
         )
 
     def measure(self, gains: Gains) -> Measurement:

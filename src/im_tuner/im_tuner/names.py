@@ -20,9 +20,8 @@ __all__ = [
 ]
 
 #: [periods] held or late drive periods an experiment may have and still count, by
-#: default (the tuner's --timing-tolerance, the drive host's): 10 held periods
-#: change a loss by at most ~2 % (95th percentile), within the bench profile's 2.4 %
-#: spread of repeated experiments (``research/held.py``; docs/real-drive.md)
+#: default (the tuner's --timing-tolerance, the drive host's): within the bench's own
+#: noise (docs/real-drive.md, "Timing tolerance")
 DEFAULT_TIMING_TOLERANCE = 10
 
 #: The node a drive host (``ros2 run im_tuner drive_host``) puts on the graph: a tuner

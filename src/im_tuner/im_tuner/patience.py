@@ -1,8 +1,8 @@
 """Waiting for another process as long as it works: a slow machine is not a failure.
 
 A fixed time limit on a child (a replay's controller, the recorder child) confuses a
-loaded machine with a broken child: at load 15-45 on two cores, numba's compile and
-DDS discovery take tens of seconds. Instead, a wait ends when the process sits idle: its
+loaded machine, where numba's compile and DDS discovery take tens of seconds, with a
+broken child. Instead, a wait ends when the process sits idle: its
 CPU time (itself and its descendants, from ``/proc``) grows by less than ``IDLE_CPU_S``
 within ``idle_s`` of wall time. A process that works gets the time it needs, and the
 wait says every ``NOTE_EVERY_S`` what it waits for. Linux only (``/proc``); elsewhere the

@@ -56,15 +56,11 @@ class Progress:
         if self.quiet:
             return
         st = run.state
-        if kind == 'reference':
-            self._line(
-                f'{self.algo}: start controller (reference) loss {self._fmt(rec)}', force=True
-            )
-            return
-        if kind == 'remeasure':
-            self._line(
-                f'{self.algo}: re-measured evaluation {rec.eval}: {self._fmt(rec)}', force=True
-            )
+        if kind != 'eval':  # the reference, a re-measurement
+            what = 'start controller (reference) loss'
+            if kind == 'remeasure':
+                what = f're-measured evaluation {rec.eval}:'
+            self._line(f'{self.algo}: {what} {self._fmt(rec)}', force=True)
             return
         i, n = st.evals, self.budget
         if self.eta._t0 is None:  # the first evaluation's time is in its rate

@@ -13,8 +13,10 @@ module), the optimiser (built once: its module, e.g. pycma), the user's hardware
 
 from __future__ import annotations
 
+import contextlib
 import math
 import shlex
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -51,13 +53,13 @@ def check_session(cli: TunerOptions) -> None:
         )
 
 
-def _algo_options(cli: TunerOptions, algo: str) -> dict[str, Any]:
-    """The algorithm options given with ``--opt``; an option of another algorithm is an
-    error (it would be silently ignored otherwise)."""
+@contextlib.contextmanager
+def _usage(*errors: type[Exception], prefix: str = '') -> Iterator[None]:
+    """A check's ``errors`` as a UsageError (its message, after ``prefix``)."""
     try:
-        return optim.read_options(algo, cli.opt)
-    except OptimizerError as exc:
-        raise UsageError(str(exc)) from None
+        yield
+    except errors as exc:
+        raise UsageError(f'{prefix}{exc}') from None
 
 
 # -- the run configuration -------------------------------------------------------------------
@@ -95,9 +97,8 @@ class NewRun:
 
 
 def _new_run_config(cli: TunerOptions, argv: list[str]) -> NewRun:
-    """Check everything of a new run before anything is created (module docstring: the
-    cheap checks first, then the controller's name, ``--drive``, the optimiser and the
-    hardware class)."""
+    """Check everything of a new run before anything is created, in the module
+    docstring's order."""
     # (each option's range is its parser's type: tuner_args.OPTIONS)
     algo = cli.algo or default('algo')
     budget = default('budget') if cli.budget is None else cli.budget
@@ -108,11 +109,9 @@ def _new_run_config(cli: TunerOptions, argv: list[str]) -> NewRun:
     if cli.no_start:
         check_no_start(algo)
     ripple_limit = _ripple_limit(cli, algo)
-    options = _algo_options(cli, algo)
-    try:
+    with _usage(OptimizerError):  # an option of another algorithm too (else ignored)
+        options = optim.read_options(algo, cli.opt)
         check_options(algo, optim.OPTIONS[algo], options)  # (ranges: no module needed)
-    except OptimizerError as exc:
-        raise UsageError(str(exc)) from None
     if rt.RtOptions.from_cli(cli).requested and (cli.bench or 'auto') != 'realtime':
         raise UsageError(
             '--thread-priority/--cpu-affinity/--lock-memory set up the composed real-time '
@@ -128,14 +127,10 @@ def _new_run_config(cli: TunerOptions, argv: list[str]) -> NewRun:
         from im_drive_sim.drive_file import load_config
         from im_drive_sim.params import ConfigError
 
-        try:
+        with _usage(ConfigError):
             load_config(cli.drive_config)
-        except ConfigError as exc:
-            raise UsageError(str(exc)) from None
-    try:
+    with _usage(TunerParamsError):
         params = load_params(cli.params)
-    except TunerParamsError as exc:
-        raise UsageError(str(exc)) from None
     if cli.params is None:  # a packaged drive's own box and start (docs/drive-family.md)
         from . import family
 
@@ -155,25 +150,19 @@ def _new_run_config(cli: TunerOptions, argv: list[str]) -> NewRun:
 
     drive = None
     if cli.drive is not None:
-        try:
+        with _usage(drive_spec.DriveSpecError):
             drive = drive_spec.resolve(cli.drive, cli.drive_config, build=False)
-        except drive_spec.DriveSpecError as exc:
-            raise UsageError(str(exc)) from None
     entropy = np.random.SeedSequence().entropy  # a fresh SeedSequence draws an int
     assert isinstance(entropy, int)
     seed = cli.seed if cli.seed is not None else entropy % 2**31
     options.update(_first_point(cli, algo, params))  # (an offline tuning: seconds)
-    try:  # the cross-option checks (eta < n ...) are the constructors' (any seed will do)
+    with _usage(OptimizerError):  # the cross-option checks (eta < n ...): any seed will do
         optim.make_optimizer(
             algo, params.space.dim, seed, _start(algo, params, cli.no_start), **options
         )
-    except OptimizerError as exc:
-        raise UsageError(str(exc)) from None
     if drive is not None:
-        try:
+        with _usage(drive_spec.DriveSpecError):
             drive = drive_spec.resolve(cli.drive, cli.drive_config)
-        except drive_spec.DriveSpecError as exc:
-            raise UsageError(str(exc)) from None
     from .tuning import run_seeds
 
     _opt_ss, drive_seed = run_seeds(seed)
@@ -209,12 +198,10 @@ def _check_host(
     least: int = DEFAULT_TIMING_TOLERANCE,
 ) -> tuple[int, dict | None, HostSaid]:
     """On the composed real-time bench (``bench``: the one asked for, default
-    ``--bench``), the host's check before the first experiment (``host.check_before_run``:
-    2 s of the loop's wait with the run's real-time options): one line when the host
-    cannot meet the tolerance (or what ``auto`` chose). Returns the tolerance to run with,
-    the check's record (None: not a real-time bench, where ``auto`` is the default) and
-    its line, said by the session once its bench is up (a refusal before that stays one
-    line). ``least``: the tolerance ``auto`` never goes below (a resumed run's)."""
+    ``--bench``), the host's check before the first experiment (``host.check_before_run``).
+    Returns the tolerance to run with, the check's record (None: not a real-time bench)
+    and its line, said by the session once its bench is up. ``least``: the tolerance
+    ``auto`` never goes below (a resumed run's)."""
     if (bench or cli.bench or 'auto') != 'realtime':
         return (least if tolerance == host.AUTO else int(tolerance)), None, None
     chosen, record, line = host.check_before_run(
@@ -274,15 +261,13 @@ def prepare_run(cli: TunerOptions, argv: list[str]) -> PreparedSession:
         )
     from .rundir import RunDirError
 
-    try:
+    with _usage(RunDirError, TunerParamsError, prefix='--resume: '):
         rundir = RunDir.open(cli.resume)
         rundir.lock()  # one tuner per run, from here to the end of the process
         run = rundir.read_config()
         rundir.read_summary()  # one of a newer tuner's format: refused, not overwritten
         _check_run(run, str(rundir.path / 'run.yaml'))
         params = _params_of_run(run)
-    except (RunDirError, TunerParamsError) as exc:
-        raise UsageError(f'--resume: {exc}') from None
     _check_controller_name(cli.controller)
     # everything of the run is checked before anything starts (a refusal changes
     # nothing; the torn tail of results.jsonl is cut only once the run goes on)
@@ -301,10 +286,9 @@ def prepare_run(cli: TunerOptions, argv: list[str]) -> PreparedSession:
     if (run.drive or 'sim') != 'sim':
         from .bench import drive_spec
 
-        try:  # the run's drive: checked (and a hardware class built) as for a new run
+        # the run's drive: checked (and a hardware class built) as for a new run
+        with _usage(drive_spec.DriveSpecError, prefix='--resume: '):
             drive = drive_spec.resolve(str(run.drive), run.drive_config)
-        except drive_spec.DriveSpecError as exc:
-            raise UsageError(f'--resume: {exc}') from None
     said = _check_resumed_host(cli, run)
     return PreparedSession(run, params, drive, progress, rundir, tuning, n_restored, None, said)
 
@@ -331,10 +315,8 @@ def _ripple_limit(cli: TunerOptions, algo: str) -> float | None:
 
     if cli.ripple_limit is None:
         return None if cli.no_reference else default_ripple_limit(algo)
-    try:
+    with _usage(ValueError):
         limit = parse_ripple_limit(cli.ripple_limit)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
     if limit is not None and cli.no_reference:
         raise UsageError(
             f"--ripple-limit {cli.ripple_limit} is a ratio to the start's ripple, which the "
@@ -368,15 +350,22 @@ def _first_point(cli: TunerOptions, algo: str, params: TunerParams) -> dict[str,
         return {}
     if first == 'identify':
         return {'first': 'identify'}
+    from .prior import model_prior
+
+    prior = model_prior(*_drive_of(cli.drive_config, cli.model, params))
+    return {} if prior is None else {'first': list(prior.u)}
+
+
+def _drive_of(drive_config: Any, model: str | None, params: TunerParams) -> tuple[Any, ...]:
+    """The drive file (the packaged default without one; ``model``: its model overridden),
+    the search space and the drive's own experiment (None: the default one)."""
     from im_drive_sim.drive_file import load_config
 
     from . import family
-    from .prior import model_prior
 
-    drive = load_config(cli.drive_config, overrides={'model': cli.model} if cli.model else None)
-    setup = family.tuner_setup(cli.drive_config)  # a packaged drive's own experiment
-    prior = model_prior(drive, params.space, None if setup is None else setup.experiment)
-    return {} if prior is None else {'first': list(prior.u)}
+    drive = load_config(drive_config, overrides={'model': model} if model else None)
+    setup = family.tuner_setup(drive_config)  # a packaged drive's own experiment
+    return drive, params.space, None if setup is None else setup.experiment
 
 
 def _first_step_hook(run: RunConfig, params: TunerParams, progress: Any = None) -> Any:
@@ -384,17 +373,10 @@ def _first_step_hook(run: RunConfig, params: TunerParams, progress: Any = None) 
     drive file it names (the packaged default without one) and its experiment."""
     if (run.options or {}).get('first') != 'identify':
         return None
-    from im_drive_sim.drive_file import load_config
-
-    from . import family
     from .first_step import IdentifiedFirstStep
 
-    drive = load_config(run.drive_config, overrides={'model': run.model} if run.model else None)
-    setup = family.tuner_setup(run.drive_config)
     return IdentifiedFirstStep(
-        drive,
-        params.space,
-        None if setup is None else setup.experiment,
+        *_drive_of(run.drive_config, run.model, params),
         getattr(progress, 'note', None),
         run.ripple_limit,  # (the first step within the limit the run applies)
     )

@@ -5,28 +5,8 @@ evaluation it sets the gains on the controller through its parameter services
 (atomically), starts the paper's experiment, waits for the loss, and tells the optimiser
 (:mod:`im_tuner.tuning`, :mod:`im_tuner.link`, :mod:`im_tuner.optim`).
 
-Benches (``--bench``):
-
-* ``auto`` (default): a controller already on the graph (a real bench, or a simulated
-  one started by hand) is used as it is; otherwise the simulated bench is brought up in
-  this process (``inproc``);
-* ``inproc``: drive simulator + controller in this process, lock-step (the fast path),
-  with the recorder polled between steps;
-* ``processes``: ``drive_sim`` and ``controller`` as child processes (lock-step);
-* ``realtime``: ``drive_sim`` and ``controller`` as child processes in real time (5 kHz
-  on the wall clock, as on a real bench); the drive's overruns and late commands are
-  reported in the summary;
-* ``none``: use the controller on the graph; fail with a clear message if none answers.
-
-Bench processes started here end with the tuner (even a SIGKILLed one: they get SIGTERM
-from the kernel and stop cleanly). A recorder child that dies is replaced (its bag is
-repaired, the gap logged); a drive or controller child that dies ends the run.
-
-Everything is recorded (``bag_<session>/`` in the run directory) unless ``--no-record``:
-in-process by the bench's loop, otherwise by a ``ros2 run im_tuner recorder`` child.
-The run directory (``--out``, default ``bags/tuner_<algo>_<UTC time>``) holds
-``run.yaml``, ``results.jsonl``, ``checkpoint.json``, ``summary.json`` and the bags;
-``--resume RUN_DIR`` continues a killed run exactly (docs/tuner.md).
+The benches (``--bench``), the recording and the run directory (``--out``, ``--resume``):
+docs/tuner.md. Bench processes started here end with the tuner, however it ends.
 
 The pieces: ``tuner_args`` (options), ``tuner_cli`` (run configuration, resume checks),
 ``bench.spec`` (which bench, built how), ``bench.open`` (opens it: ``bench.forms``, the

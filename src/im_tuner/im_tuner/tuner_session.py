@@ -41,12 +41,9 @@ SLOW_DRIVE_SHARE = 0.5
 def failure_advice(
     outcome: str, records: list[Record], bench: str, loop: dict[str, Any] | None = None
 ) -> list[str]:
-    """What to do about a failed run, for the summary (empty: nothing to say). A run that
-    failed because its experiments kept coming out ``timing`` (held or late periods
-    beyond the tolerance) is told the cause: on a composed bench (``loop``: the session's
-    composed-loop figures) a drive whose own period work takes most of the period is too
-    slow, else the host started periods late (with what its check before the run found);
-    a controller in another process is told to run in the drive's process."""
+    """What to do about a run that failed because its experiments kept coming out
+    ``timing``, for the summary (empty: nothing to say): the cause on this bench
+    (``loop``: the session's composed-loop figures)."""
     if not (outcome.startswith('failed') and records and isinstance(records[-1], Timing)):
         return []
     if bench in IN_PROCESS_BENCHES:
@@ -322,12 +319,9 @@ class TunerSession:
 
     def recheck_host(self, link: ControllerLink) -> int | None:
         """``--timing-tolerance auto``, after an experiment off the paper's timing: the host
-        checked again as before the run (``host.check_before_run``, 2 s of the loop's wait
-        beside the running bench). A host louder than it was raises the tolerance to what
-        it now needs -- on the controller, in run.yaml (a resume starts there), said in
-        one line -- and never lowers it. Each check goes into this session's record
-        (``host_rechecks``: summary.json's ``sessions``). Returns the new tolerance
-        (None: unchanged)."""
+        checked again as before the run (``host.check_before_run``). A louder host raises
+        the tolerance (on the controller, in run.yaml), never lowers it; each check goes
+        into the session's ``host_rechecks``. Returns the new tolerance (None: unchanged)."""
         from im_drive_sim import host, rt
 
         tuning, rundir = self.tuning, self.rundir
@@ -396,18 +390,12 @@ class TunerSession:
         tuning.checkpoint()
         rundir.write_summary(summary)
         print(format_summary(summary, self.run, rundir.path), flush=True)
-        if code == EXIT_INTERRUPTED:
-            print(
-                f'  interrupted: continue with `{ros2} run im_tuner tuner --resume '
-                f'{shlex.quote(str(rundir.path))}`',
-                flush=True,
-            )
-        elif code == EXIT_FAILED:
-            print(
-                f'  failed: once the cause is fixed, continue with `{ros2} run im_tuner tuner '
-                f'--resume {shlex.quote(str(rundir.path))}`',
-                flush=True,
-            )
+        if code != EXIT_OK:
+            what = 'interrupted:'
+            if code == EXIT_FAILED:
+                what = 'failed: once the cause is fixed,'
+            resume = f'{ros2} run im_tuner tuner --resume {shlex.quote(str(rundir.path))}'
+            print(f'  {what} continue with `{resume}`', flush=True)
         return code
 
     def discard_bag(self) -> None:

@@ -328,7 +328,7 @@ class TuningRun:
         """Write checkpoint.json: the optimiser and the counters after the records so far
         (atomic; nothing for a record that is not durable, e.g. the study's runs)."""
         if not self.rundir.durable:
-            return  # (an optimiser state per evaluation costs the study ~5 % for nothing)
+            return  # (the study's: research/NOTES.md, "From the source of im_tuner/tuning.py")
         self.rundir.write_checkpoint(
             {
                 'version': CHECKPOINT_VERSION,
@@ -466,7 +466,8 @@ class TuningRun:
                 self._measure(measurer, 'eval', st.evals, u, self.space.to_gains(u))
             if self.remeasure > 0:
                 if st.remeasure_plan is None:
-                    st.remeasure_plan = self._top_evals(self.remeasure)
+                    bound = ripple_bound(self.records, self.ripple_limit)
+                    st.remeasure_plan = top_evals(self.records, self.remeasure, bound)
                     self.checkpoint()
                 done = {r['eval'] for r in st.remeasured}
                 for i in st.remeasure_plan:
@@ -497,11 +498,6 @@ class TuningRun:
                 elif outcome.startswith('failed'):
                     outcome = f'{outcome}; {what}'
         return outcome
-
-    def _top_evals(self, k: int) -> list[int]:
-        """Indices of the k best distinct (by gains) non-aborted evaluations (within the
-        ripple limit: ``runlog.top_evals``)."""
-        return top_evals(self.records, k, ripple_bound(self.records, self.ripple_limit))
 
     def final_choice(self) -> dict[str, Any] | None:
         """See ``runlog.final_choice``."""

@@ -6,23 +6,9 @@ called by address, :func:`.loop_kernels.run_hardware_periods`), and :class:`Loop
 the loop lock a Python thread holds to read or change the state the loop runs on.
 
 The kernels, the words they share with Python and why the loop is compiled:
-:mod:`.loop_kernels`. Here, what needs Python:
-
-* a thread that reads or changes the state the loop runs on (gains, an experiment's
-  start, a fault reset, a safe stop) enters the loop lock (:class:`LoopGate`): the loop
-  parks between two periods, the nodes take their state back for the thread's turn
-  (``DriveSimNode.period_words`` / ``ControllerNode.answer_words`` and their ``set_``
-  counterparts), and the loop goes on with it;
-* an experiment's end, which the loop left in its event ring, goes to the controller
-  (:meth:`CompiledPeriods.poll_events`, from ``RealtimeBench._service``);
-* the pacer's, the drive's and the outbox channels' figures are read back from the
-  loop's arrays (:meth:`CompiledPeriods.sync_figures`).
-
-The call returns only when the loop is told to quit, or to refill a noisy model's noise
-block (``DriveSim.run_kernel``, every 4096 periods): then, between two periods, the
-loop thread takes the GIL. The bit-for-bit tests (test_compiled_loop: against the same
-periods run as Python; test_realtime_bench: a real-time run against its lock-step
-replay) hold this loop to the nodes' own logic.
+:mod:`.loop_kernels`. The call returns only when the loop is told to quit, or to refill a
+noisy model's noise block (``DriveSim.run_kernel``, every 4096 periods): then, between two
+periods, the loop thread takes the GIL.
 """
 
 from __future__ import annotations
@@ -173,9 +159,8 @@ class CompiledPeriods:
     """:func:`run_periods` for a ``DriveSimNode`` composed with a ``ControllerNode``
     whose loop topics go through ``outbox`` (after any recorder tap was made).
 
-    What runs in Python between two calls is kept to a few microseconds: it runs in a
-    period's slack, and numpy scalar arithmetic there measured 40 us a call in the loop
-    thread (so the words are read with ``.item``)."""
+    What runs in Python between two calls runs in a period's slack, so the words are
+    read with ``.item`` (numpy scalar arithmetic is slow there)."""
 
     #: the drive's message views :func:`run_periods` takes after ``state``, in groups
     #: (``period_views``' keys): /clock's, then joint_states'
@@ -259,11 +244,11 @@ class CompiledPeriods:
         self._lost_said = 0
 
     def warm_up(self) -> None:
-        """Compile (or load) :func:`run_periods` for these arrays now, not in a period:
-        a call that runs no period."""
+        """Compile (or load) the loop's kernel for these arrays now, not in a period: a
+        call that runs no period."""
         self.take()
         self.T[T_MAX_PERIODS] = self.T[T_PERIODS] = 0
-        self.sim.run_kernel(1, self._kernel)  # returns at once: no period to run
+        self._call(1)  # returns at once: no period to run
         self.give_back()
 
     def start(self) -> None:
@@ -308,6 +293,10 @@ class CompiledPeriods:
     def _ended(self) -> bool:
         return self.T.item(T_EXIT) != EXIT_BUDGET
 
+    def _call(self, budget: int) -> None:
+        """The kernel, stepping the model at most ``budget`` times."""
+        self.sim.run_kernel(budget, self._kernel, self._ended)
+
     def run(self) -> None:
         """The loop thread's whole compiled run: periods until ``gate[G_QUIT]`` (the
         loop returns to Python only to refill the model's noise block, every 4096
@@ -321,7 +310,7 @@ class CompiledPeriods:
             g[G_RUNNING] = 1
             self.gate.running = self
         try:
-            self.sim.run_kernel(1 << 62, self._kernel, self._ended)
+            self._call(1 << 62)
         finally:
             g[G_RUNNING] = 0
 
@@ -411,13 +400,6 @@ class CompiledHardwarePeriods(CompiledPeriods):
         self._F = np.zeros(3, np.int64)
         self._m = np.zeros(N_MEASUREMENT)
 
-    def warm_up(self) -> None:
-        """Compile (or load) :func:`run_hardware_periods` now: a call that runs no period."""
-        self.take()
-        self.T[T_MAX_PERIODS] = self.T[T_PERIODS] = 0
-        self._kernel()
-        self.give_back()
-
     def _kernel(self, *_: Any) -> int:  # type: ignore[override]
         return int(
             run_hardware_periods(
@@ -439,19 +421,12 @@ class CompiledHardwarePeriods(CompiledPeriods):
             f'{F.item(HP.F_STEP)} (a drive fault)'
         )
 
+    def _call(self, budget: int) -> None:
+        self._kernel()
+
     def run(self) -> None:
         """The loop thread's whole compiled run: periods until ``gate[G_QUIT]``, or a
         drive fault (``HardwareFault``, after the loop wrote zero current)."""
-        T, g = self.T, self.gate.gate
-        T[T_MAX_PERIODS] = 1 << 62
-        T[T_PERIODS] = 0
-        with self.gate:
-            self.take()
-            g[G_RUNNING] = 1
-            self.gate.running = self
-        try:
-            self._kernel()
-        finally:
-            g[G_RUNNING] = 0
-        if T.item(T_EXIT) == EXIT_FAULT:
+        super().run()
+        if self.T.item(T_EXIT) == EXIT_FAULT:
             raise HardwareFault(self.fault() or 'a drive fault')

@@ -18,11 +18,9 @@ the three forms the document describes:
 * **a drive node class**: an ``ExampleDrive`` subclass, built as
   ``Class(context=..., parameter_overrides=[...])``.
 
-Anything else is refused with one line saying which part of the contract it misses (a ROS
-node that is not an ``ExampleDrive``, e.g. ``rclpy.node:Node`` or the controller's node;
-a class whose ``read``/``write`` take other arguments, e.g. ``io:BytesIO``; an abstract
-class). Importing the module is guarded too: an exception, or ``sys.exit`` at import,
-becomes that one line.
+Anything else (a ROS node that is not an ``ExampleDrive``, ``read``/``write`` that take
+other arguments, an abstract class, a module that raises or exits at import) is refused
+with one line saying which part of the contract it misses.
 
 :func:`resolve` also builds the hardware class once, with the drive file the bench will
 load, so that a constructor that raises (no inverter on the bus) is refused before the

@@ -15,19 +15,17 @@ from typing import Any
 
 from im_drive_sim.contract import STATUS_COUNTERS
 
-__all__ = ['DRIVE_COUNTERS', 'DriveMonitor', 'drive_delta', 'drive_report']
-
-#: drive/status counters (docs/interfaces.md) the run summary reports
-DRIVE_COUNTERS = STATUS_COUNTERS
+__all__ = ['DriveMonitor', 'drive_delta', 'drive_report']
 
 
 def drive_report(
     values: dict[str, str], level: int | None = None, message: str = ''
 ) -> dict[str, Any]:
-    """The summary's view of a drive's status key/values: the mode, the counters as
-    numbers (unknown or unparsable ones left out: a real drive may report fewer)."""
+    """The summary's view of a drive's status key/values: the mode, the counters
+    (``contract.STATUS_COUNTERS``, docs/interfaces.md) as numbers (unknown or
+    unparsable ones left out: a real drive may report fewer)."""
     out: dict[str, Any] = {'mode': values.get('mode', 'unknown'), 'model': values.get('model')}
-    for k in (*DRIVE_COUNTERS, 'command_delay', 'real_time_factor', 'sim_time_s'):
+    for k in (*STATUS_COUNTERS, 'command_delay', 'real_time_factor', 'sim_time_s'):
         try:
             v = float(values[k])
         except (KeyError, ValueError):
@@ -49,8 +47,8 @@ def drive_delta(start: dict[str, Any] | None, end: dict[str, Any] | None) -> dic
         return None
     if start is None:
         return {**end, 'per_session': False}
-    out = {k: v for k, v in end.items() if k not in DRIVE_COUNTERS}
-    for k in DRIVE_COUNTERS:
+    out = {k: v for k, v in end.items() if k not in STATUS_COUNTERS}
+    for k in STATUS_COUNTERS:
         if k not in end:
             continue
         if k == 'max_lateness_us':  # a maximum, not a count
@@ -104,12 +102,13 @@ class DriveMonitor:
         """Take the drive's counters at the session's start: a status newer than this
         call, waited for up to ``timeout`` s (the drive reports about once a second);
         else the newest one, if any. None has come yet: up to ``DISCOVERY_S`` more, for
-        a subscription made moments ago to meet the drive's publisher (measured up to
-        2.3 s on a loaded 2-core machine) and its next report."""
+        a subscription made moments ago to meet the drive's publisher (seconds on a
+        loaded machine) and its next report."""
         n0 = self.received
         if not spin_until(lambda: self.received > n0, timeout) and self.last is None:
             spin_until(lambda: self.received > n0, self.DISCOVERY_S)
         self.start = None if self.last is None else dict(self.last)
 
-    #: [s] the longer wait of :meth:`mark` for a first report
+    #: [s] the longer wait of :meth:`mark` for a first report (research/NOTES.md, "From
+    #: the source of im_tuner/bench/drive_status.py")
     DISCOVERY_S = 5.0

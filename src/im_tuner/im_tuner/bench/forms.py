@@ -378,12 +378,10 @@ class Children:
         #: a drive host's 5 kHz topics, left to the host's own bag (a host is on the graph)
         self.excluded: list[str] = []
         if plan.mode == 'external' and node is not None and self.spin_until is not None:
-            # node names come in the graph's own messages, apart from the services the
-            # probe found: wait for the controller's name (a host announced its node in
-            # the same message: it makes it first). As long as discovery may take: a lost
-            # packet of that message is sent again only at the next reliable heartbeat
-            # (seconds), and a bag that took a host's 5 kHz across the network would
-            # load it for the whole run.
+            # node names come apart from the services the probe found: wait for the
+            # controller's (a drive host announces its own node first) as long as
+            # discovery may take, since a bag that took a host's 5 kHz topics across the
+            # network would load it for the whole run
             ctl_name = posixpath.basename(self.names['node'])
             wait = plan.spec.probe_timeout()
             if not self.spin_until(lambda: ctl_name in node.get_node_names(), wait):

@@ -167,14 +167,14 @@ def bench_metadata(bench) -> dict[str, dict]:
     # any drive of the composed bench: the simulator, the example drive, a user's hardware
     # class or drive node (only the simulator has a seed and a model)
     hw = getattr(d, 'hw', None)
+    cls = type(hw if hw is not None else d)
     # the delay the drive runs with: a hardware's declared one (its class or library),
     # else the drive file's; the config recorded is the one the drive runs with, so the
     # two agree (a library's declaration overrides the file's command_delay)
     delay = int(getattr(d, 'command_delay', d.config.command_delay))
     config = dataclasses.asdict(d.config) | {'command_delay': delay}
     drive = {
-        'class': f'{type(hw if hw is not None else d).__module__}.'
-        f'{type(hw if hw is not None else d).__qualname__}',
+        'class': f'{cls.__module__}.{cls.__qualname__}',
         'config_file': (
             d.get_parameter('config_file').value if d.has_parameter('config_file') else ''
         )

@@ -5,15 +5,10 @@ schedule and its figures; ``G_*``: the gate; ``EV_*``: the event ring; ``M_*``: 
 messages). The Python side that drives them -- the loop lock, the nodes' state handed in
 and out, the figures read back -- is :mod:`.compiled_loop`.
 
-Why (docs/real-drive.md, "Real-time set-up"): the loop run as Python -- a
-handful of node methods per period, each a few dozen interpreter operations -- took
-p50 ~40 us and p99 ~100 us of the 200 us period on a 2-core machine, and needed the GIL
-every period, so any Python thread beside it (the tuner, the recorder's drain) could
-delay a period start: by the interpreter's switch interval, or by as long as a thread
-holding the GIL stayed off the CPU (10-150 ms measured beside CPU hogs). ros2_control
-runs its update loop as compiled code that never waits for an interpreter; this is that
-loop for the simulator composed with the controller. :func:`run_periods` runs period
-after period, each:
+Why: the loop run as Python needed the GIL every period, so any Python thread beside it
+could delay a period start (docs/real-drive.md, "How the composed loop runs"). This is the
+loop for the simulator composed with the controller, as compiled code like ros2_control's.
+:func:`run_periods` runs period after period, each:
 
 1. wait for the period start (``clock_nanosleep`` on CLOCK_MONOTONIC to the spin margin,
    then a busy-wait: ``pacing.Pacer``'s schedule, overruns and lateness histogram);
@@ -39,10 +34,6 @@ What needs Python comes to the loop through shared words, never through the GIL:
   SIGTERM, without the GIL, or on the tuner's stop request), and the loop zeroes the
   current from its next period (``period_kernel.safe_stop``);
 * the drive's stall test hook: the loop sleeps it itself.
-
-Written by hand, not with a library: no library runs a numba loop on a wall-clock
-schedule; the clock calls are libc's (``types.ExternalFunction``, as ``outbox`` calls
-rcl).
 """
 
 from __future__ import annotations

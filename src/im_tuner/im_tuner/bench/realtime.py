@@ -1,8 +1,7 @@
 """The composed real-time bench: a drive and the controller in ONE process, one loop.
 
-Why: a Python controller in its own process, woken by DDS, cannot hold 5 kHz on a 2-core
-machine (a bare two-process rclpy round trip is 150-235 us, more than the 200 us period;
-docs/real-drive.md). ros2_control loads controllers into the process that owns the
+Why: a Python controller in its own process, woken by DDS, cannot hold 5 kHz
+(docs/real-drive.md); ros2_control loads controllers into the process that owns the
 hardware for the same reason. Here both stay separate rclpy nodes -- their own topics,
 parameters and services on the graph, the same classes as ``drive_sim``/``example_drive``
 and ``controller`` -- composed into one process (as rclcpp_components does), and a
@@ -10,33 +9,20 @@ real-time loop runs them in its own thread, every Ts = 200 us on the wall clock
 (:class:`pacing.Pacer`), as ros2_control_node runs its update loop:
 
 * **the loop thread** (``--thread-priority``/``--cpu-affinity``/``--lock-memory`` apply to
-  it) does only the control work of a period: the drive takes the command, runs its
-  watchdog, steps the model or writes/reads the hardware; the controller takes state k
-  *in memory* and answers; the drive takes that command at once (fresh for the next
-  period). What the nodes publish is handed to an :class:`im_drive_sim.outbox.Outbox`
-  (bounded rings, never blocking); experiment ends are left for the serving thread. It
-  never waits on DDS, a lock held by a request for long, the log or the garbage collector.
-  With the simulator (the default drive) the periods run compiled, many in one numba
-  call that holds no GIL (:mod:`.compiled_loop`: the same logic, bit for bit); other
-  drives run :meth:`RealtimeBench.step`, a period in Python (a hardware class is Python).
+  it) does only a period's control work, the controller taking state k *in memory*; what
+  the nodes publish goes to an :class:`im_drive_sim.outbox.Outbox` (bounded rings, never
+  blocking). With the simulator the periods run compiled (:mod:`.compiled_loop`); other
+  drives run :meth:`RealtimeBench.step`, a period in Python;
 * **publisher threads** (``outbox.PublisherThread``, one per topic) publish the rings on
-  the graph, with the GIL released in rcl: a reader that stops taking (a frozen ``ros2
-  topic echo``) can slow its topic's thread, never the loop nor another topic (the losses
-  the tuner waits for); what a thread could not deliver is counted. The loop's topics
-  are published KEEP_LAST 1000 (``contract.LOOP_PUBLISHED``; :mod:`.loop_routes`).
-* **the serving thread** (the tuner's, in :meth:`RealtimeBench.spin_until`): parameter and
-  service requests (the changes that touch the loop take the loop lock for a few
-  microseconds), the tuner's own callbacks, experiment results (published and logged),
-  the recorder (which takes the loop's topics from the outbox's tap rings, so the bag is
-  lossless whatever DDS readers do), the drive status once a second, and the garbage
-  collector's young generation. The loop runs on while the tuner works between
-  experiments: a drive that cannot pause is never left without control.
+  the graph (:mod:`.loop_routes`);
+* **the serving thread** (the tuner's, :meth:`RealtimeBench.spin_until`): requests,
+  experiment results, the recorder (from the outbox's tap rings), the drive status and
+  the garbage collector's young generation.
 
-The drive side is pluggable (:func:`.drive_spec.make_drive`): the simulator in real time
-(the default), the example drive, or a user's class named ``package.module:Class`` -- a
-hardware class like ``example_drive.Hardware`` (``Class(config)`` with ``read()`` and
-``write()``) run inside the example drive's ROS side, or a whole drive node class (an
-``ExampleDrive`` subclass); :mod:`.drive_spec` checks a class against that contract.
+The threads in full: docs/real-drive.md, "How the composed loop runs".
+
+The drive side is pluggable: the simulator (the default), the example drive, a user's
+library or class (:func:`.drive_spec.make_drive`; the forms: :mod:`.drive_spec`).
 
 Python's own jitter is kept out of the loop: the loop itself allocates nothing per period
 (timings go into preallocated arrays), logs nothing, and the garbage collector is frozen at
@@ -276,8 +262,8 @@ class RealtimeBench:
                 self.compiled = kind(drv, ctl, self.outbox, self.durations, self.pacer, self.lock)
                 self.compiled.warm_up()
         self.publishers = PublisherThread.per_channel(self.outbox)
-        # one serving round now: the first of each costs up to ~150 ms (an executor's
-        # first spin, the first status), never beside a live loop
+        # one serving round now: the first of each is slow (an executor's first spin, the
+        # first status), never beside a live loop
         self._service()
         self._next_status = time.perf_counter() + 1.0
         self._pending_requests(0.0)
@@ -394,16 +380,17 @@ class RealtimeBench:
                 raise DriveLoopError(f'an outbox publisher stopped: {p.error!r}')
 
     def _serve(self, timeout: float) -> None:
-        """Wait up to ``timeout`` [s] for a request or a response, then serve it: a full
-        executor spin costs ~400 us, a wait on the prebuilt WaitSet a few."""
+        """Wait up to ``timeout`` [s] for a request or a response (on a prebuilt WaitSet,
+        far cheaper than an executor spin: research/NOTES.md, "From the source of
+        im_tuner/bench/realtime.py"), then serve it."""
         if self._pending_requests(timeout):
             self.executor.spin_once(timeout_sec=0.0)
 
     def _pending_requests(self, timeout: float) -> bool:
         now = time.monotonic()
         if now >= self._entities_checked:
-            # the nodes' entities, looked at twice a second (walking them costs ~100 us
-            # of Python, the GIL held: too much for every millisecond)
+            # the nodes' entities, looked at twice a second (walking them holds the GIL:
+            # too long for every millisecond)
             self._entities_checked = now + 0.5
             nodes = list(self.executor.get_nodes())
             services = [s for n in nodes for s in n.services]

@@ -99,8 +99,8 @@ class RecorderWatch:
         return False
 
 
-#: [s] a stopped recorder is given to close its bag (it takes ~1 s idle; a loaded machine
-#: can need tens of seconds to shut rclpy down): waiting costs time, a kill costs the bag
+#: [s] a stopped recorder is given to close its bag (a loaded machine can need tens of
+#: seconds to shut rclpy down): waiting costs time, a kill costs the bag
 RECORDER_CLOSE_TIMEOUT = 120.0
 RECORDER_EXIT_AFTER_CLOSE = 5.0  # [s] to exit once its bag is closed (then it is killed)
 
@@ -127,10 +127,9 @@ def wait_recorder_gone(
     recorder's subscriptions stay on the graph until its DDS lease runs out), at most
     ``timeout`` s. Returns the GIDs of those still there (empty: all gone).
 
-    Why a replacement waits for it: a new recorder whose participant appeared while the
-    reliable KEEP_ALL writers still held samples for the dead one's readers stalled the
-    lock-step bench for up to 5 s (6 of 52 runs of a killed recorder; research/NOTES.md);
-    started once the dead one had gone, about a second after its death, none did."""
+    A replacement waits for it: one whose participant appeared while the reliable writers
+    still held samples for the dead one's readers could stall the lock-step bench
+    (research/NOTES.md, "A killed recorder's replacement")."""
     deadline = time.monotonic() + timeout
     while (left := recorder_endpoints(node, topics)) and time.monotonic() < deadline:
         time.sleep(0.05)  # graph queries need no spinning

@@ -2,10 +2,7 @@
 
 Brings up the drive simulator and the controller together, lock-step:
 
-* one process (default, the fast path): both nodes in one thread; each step the
-  controller takes state k and answers, the drive takes the command, steps and publishes
-  state k+1 -- real DDS traffic, but no executor in the per-step path (parameters and
-  services are served every ``service_period_steps`` steps and whenever idle);
+* one process (default, the fast path): both nodes in one thread (``.inprocess``);
 * ``--processes``: ``ros2 run im_drive_sim drive_sim`` and ``ros2 run im_controller
   controller`` as two child processes (ended by PID: SIGINT, grace, SIGKILL; ended by
   the kernel too if this process is killed, as the tuner's children).

@@ -41,8 +41,7 @@ __all__ = [
 
 #: [s] --discovery-timeout's default per bench mode: auto simulates when it finds no
 #: controller (short: the default run); none has nothing else to do (it waits only until
-#: the controller is found). Measured: 0-2.3 s to discover a running controller from a
-#: new process at load 3 on a 2-core machine (5 tries)
+#: the controller is found)
 DISCOVERY_TIMEOUT = {'auto': 2.0, 'none': 20.0}
 
 #: the children's console output off: they log to /rosout (recorded) and their log files

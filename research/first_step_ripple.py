@@ -30,7 +30,7 @@ from im_tuner.study.plant import parse_mismatch
 from im_tuner.study.spec import StudySpec
 
 
-def _identified(spec: StudySpec, run: int) -> tuple[Any, ...]:
+def _identified(spec: StudySpec, run: int) -> tuple[Any, ...] | None:
     """(told drive, space, experiment, identification) of run ``run`` of the default row."""
     cell = next(i for i, c in enumerate(spec.cells) if c.first == 'identify')
     calls: list[Any] = []
@@ -40,7 +40,7 @@ def _identified(spec: StudySpec, run: int) -> tuple[Any, ...]:
         R.run_one(spec, cell, run)  # the run's start: its two experiments identify the drive
     finally:
         FS.identified_prior = orig
-    return tuple(calls[0][:4])
+    return tuple(calls[0][:4]) if calls else None  # (none: the start aborted, nothing identified)
 
 
 def main() -> None:
@@ -63,7 +63,11 @@ def main() -> None:
         )  # fmt: skip
         plant, _params, experiment = spec.loaded()
         for run in runs:
-            d, space, exp, idf = _identified(spec, run)
+            got = _identified(spec, run)
+            if got is None:
+                print(f'| {drive} | {run} | the start aborts: nothing identified | | | | | |')
+                continue
+            d, space, exp, idf = got
             t0 = time.perf_counter()
             pr = P.identified_prior(d, space, exp, idf, 1.5)
             dt = time.perf_counter() - t0

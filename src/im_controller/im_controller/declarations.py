@@ -108,9 +108,10 @@ def declare_structure(node: Node) -> Structure:
     except ConfigError as exc:
         raise ControllerError(str(exc)) from exc
     # Real time: a drive silent for 0.25 s (1250 periods) is gone.  Lock-step: the drive
-    # only moves when answered, so a stall is not a hazard, and a loaded machine can
-    # stall a process for a few hundred ms (seen on CI): allow 2 s there.
-    default_timeout = 0.25 if mode == 'realtime' else 2.0
+    # only moves when answered, so a stall is not a hazard; the watchdog only finds a
+    # dead drive. A killed recorder holds the drive's reliable writers until its 1 s DDS
+    # lease runs out, which a loaded host stretches past 2 s: allow 10 s there.
+    default_timeout = 0.25 if mode == 'realtime' else 10.0
     state_timeout = node.declare_parameter(
         'state_timeout',
         default_timeout,

@@ -28,6 +28,7 @@ from .bench.drive_spec import drive_help
 from .bench.spec import DISCOVERY_TIMEOUT
 from .benches import BENCHES  # (the bench modes: one copy, in benches)
 from .names import DEFAULT_TIMING_TOLERANCE, FAULT_POLICIES
+from .record import live as _live
 from .runlog import RunConfig
 from .runlog.ripple import DEFAULT_RIPPLE_LIMIT, RIPPLE_TOLERANCE
 
@@ -314,6 +315,35 @@ class TunerOptions:
         {'choices': ('none', 'zstd', 'lz4')},
         shown='`lz4`',
     )
+    live: int | None = option(
+        'watch the run live in Foxglove: a Foxglove WebSocket server (`foxglove.websocket.v1`) '
+        'on port PORT (8765 when given bare) carrying every topic the bag records, on the '
+        "bag's channels (topic, `ros2msg` schema, CDR bytes, log time), so the shipped "
+        'layouts work live as on the bag; the 5 kHz topics at `--live-rate`. In Foxglove: '
+        '"Open connection", "Foxglove WebSocket", `ws://127.0.0.1:PORT` '
+        '([foxglove.md](foxglove.md#watch-a-run-live)). A slow or frozen client costs only '
+        "its own live messages (counted: the run's last lines, summary.json "
+        '`sessions[i].live`), never a period or a bag message. Refused (one line, exit 2, '
+        'nothing created) with `--no-record`, or when the port cannot be listened on',
+        {'type': int_in(1, 65535), 'nargs': '?', 'const': _live.DEFAULT_PORT, 'metavar': 'PORT'},
+        shown='off',
+    )
+    live_host: str | None = option(
+        'with `--live`: the address the server listens on. The default is this computer '
+        "only; any other (`0.0.0.0`: every interface) opens the run's data, every topic "
+        'of the bag, to whoever reaches this computer on the network: no authentication, '
+        'no encryption',
+        {'metavar': 'HOST'},
+        shown=f'`{_live.DEFAULT_HOST}`',
+    )
+    live_rate: float | None = option(
+        "with `--live`: the live rate of the drive's 5 kHz topics (`drive/state`, "
+        '`drive/command`, `controller/internals`): every Nth message, N = 5000 / HZ (the '
+        'bag keeps every one); `full` or 0: every message (about 15 000 a second of '
+        'simulated time: more than a browser draws). The other topics go whole',
+        {'type': _live.rate_arg, 'metavar': 'HZ|full'},
+        shown=f'{_live.DEFAULT_RATE_HZ:g}',
+    )
     drive_config: Path | None = option(
         'the drive parameter file of a bench the tuner starts: the controller takes `Ts` '
         'and `machine.isq_max` from it, the simulator its motor, a `--drive` class its '
@@ -373,6 +403,19 @@ def add_shared(ap: argparse.ArgumentParser, flag: str, help: str, default: Any =
     ap.add_argument(flag, help=help, **kwargs, **arg)
 
 
+#: the live view's options, which ``drive_host`` and ``recorder`` take as the tuner does
+LIVE_FLAGS = ('--live', '--live-host', '--live-rate')
+
+
+def add_live_options(ap: argparse.ArgumentParser) -> None:
+    """The tuner's ``--live`` options (:data:`LIVE_FLAGS`) on another executable's parser,
+    with the tuner's text."""
+    for o in OPTIONS:
+        if o.flag in LIVE_FLAGS:
+            assert isinstance(o.arg, dict)
+            ap.add_argument(o.flag, help=_help(o), default=None, **o.arg)
+
+
 def default(dest: str) -> Any:
     """The declared value of option ``dest`` when it is not given."""
     return _BY_DEST[dest].default
@@ -420,6 +463,8 @@ def options_table() -> str:
     rows = ['| option | default | meaning |', '|---|---|---|']
     for o in OPTIONS:
         meta = actions[o.flag].metavar
+        if isinstance(meta, str) and actions[o.flag].nargs == '?':
+            meta = f'[{meta}]'
         name = (f'{o.flag} {meta}' if isinstance(meta, str) else o.flag).replace('|', '\\|')
         rows.append(f'| `{name}` | {_shown(o)} | {o.help} |')
     return '\n'.join(rows) + '\n'

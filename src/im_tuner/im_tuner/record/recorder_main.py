@@ -99,6 +99,9 @@ def parser() -> argparse.ArgumentParser:
         type=Path,
         help='repair a bag left by a crash (rewrite summary, index and metadata.yaml), then exit',
     )
+    from ..tuner_args import add_live_options  # (the tuner's declaration, its checks: .live)
+
+    add_live_options(ap)
     return ap
 
 

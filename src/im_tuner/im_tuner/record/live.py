@@ -72,7 +72,8 @@ INBOX_SIZE = 65536
 CLIENT_SNDBUF = 256 << 10
 #: the bag's metadata record and metadata.yaml ``custom_data`` key of :meth:`LiveServer.stats`
 LIVE_METADATA = 'im_tuner.live'
-#: [s] at close, how long the server still sends what clients have queued
+#: [s] at close, how long the server still sends what clients have queued, and then
+#: waits for each client's closing handshake
 CLOSE_GRACE_S = 1.0
 
 
@@ -292,11 +293,9 @@ class LiveServer:
         self._wake_pending = False
         self._lock = threading.Lock()  # the inbox's drop count and wake flag
         self._channels: dict[int, int] = {}  # bag channel -> server channel (server thread)
-        self._topics: dict[int, str] = {}
         self._clients: dict[Any, _ClientQueue] = {}  # connection -> queue (server thread)
         self._gone: list[_ClientQueue] = []
         self.offered = 0
-        self.by_topic: dict[str, int] = {}
         self._started = threading.Event()
         self._start_error: str | None = None
         self._thread = threading.Thread(target=self._run, name='live server', daemon=True)
@@ -305,9 +304,10 @@ class LiveServer:
         if error is not None:
             self._thread.join(5.0)
             raise LiveError(error)
+        n = every_nth(settings.rate_hz)
         log(
-            f'live: Foxglove WebSocket server on {settings.url} (5 kHz topics every '
-            f'{every_nth(settings.rate_hz)}th message)'
+            f'live: Foxglove WebSocket server on {settings.url} (the 5 kHz topics '
+            + ('whole)' if n == 1 else f'every {n}th message)')
         )
 
     # -- the recorder's thread ---------------------------------------------------------
@@ -317,7 +317,6 @@ class LiveServer:
         """Advertise the bag's channel ``channel`` (its topic, ROS type, schema text and
         encoding: ``ros2msg``, ``ros2idl`` for service events) to every client, now and to
         come."""
-        self._topics[channel] = topic
         self._loop.call_soon_threadsafe(
             self._add_channel, channel, topic, schema_name, schema, encoding
         )
@@ -495,9 +494,6 @@ class LiveServer:
             c.dropped += max(0, n0 + added - CLIENT_BACKLOG)
             if added:
                 c.wake.set()
-        for ch, _t, _d in batch:
-            topic = self._topics.get(ch, '?')
-            self.by_topic[topic] = self.by_topic.get(topic, 0) + 1
 
     async def _send_loop(self, connection: Any, c: _ClientQueue) -> None:
         from websockets.exceptions import ConnectionClosed
@@ -517,18 +513,29 @@ class LiveServer:
             pass
 
     async def _stop(self) -> None:
+        """What clients have queued gets CLOSE_GRACE_S, then each is closed with the
+        closing handshake (its last messages arrive: an aborted socket's reset could
+        drop them in the client's buffer), a client that does not take it within
+        CLOSE_GRACE_S aborted (a frozen one); then the server."""
         import asyncio
         import time
 
         deadline = time.monotonic() + CLOSE_GRACE_S
-        while any(c.queue for c in self._clients.values()) and time.monotonic() < deadline:
+        while time.monotonic() < deadline and any(
+            c.queue or c.control for c in self._clients.values()
+        ):
             await asyncio.sleep(0.01)
-        for conn, c in list(self._clients.items()):
+
+        async def close(conn: Any, c: _ClientQueue) -> None:
             c.task.cancel()
             c.dropped += len(c.queue)
             c.queue.clear()
-            if conn.transport is not None:
-                conn.transport.abort()  # (a frozen client would hold a closing handshake)
+            with contextlib.suppress(BaseException):
+                await asyncio.wait_for(conn.close(), CLOSE_GRACE_S)
+            if conn.transport is not None and not conn.transport.is_closing():
+                conn.transport.abort()
+
+        await asyncio.gather(*(close(conn, c) for conn, c in list(self._clients.items())))
         if self._server is not None:
             self._server._task.cancel()
             with contextlib.suppress(BaseException):

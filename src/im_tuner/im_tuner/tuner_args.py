@@ -14,14 +14,13 @@ pycma, optuna or scipy at load, so ``--help`` and a refusal are quick.
 from __future__ import annotations
 
 import argparse
-import re
 import shlex
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 from im_drive_sim import host, rt
-from im_drive_sim.cli import Parser, UsageError, finite_float, int_in
+from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, plain
 
 from . import optim
 from .bench.drive_spec import drive_help
@@ -315,35 +314,9 @@ class TunerOptions:
         {'choices': ('none', 'zstd', 'lz4')},
         shown='`lz4`',
     )
-    live: int | None = option(
-        'watch the run live in Foxglove: a Foxglove WebSocket server (`foxglove.websocket.v1`) '
-        'on port PORT (8765 when given bare) carrying every topic the bag records, on the '
-        "bag's channels (topic, `ros2msg` schema, CDR bytes, log time), so the shipped "
-        'layouts work live as on the bag; the 5 kHz topics at `--live-rate`. In Foxglove: '
-        '"Open connection", "Foxglove WebSocket", `ws://127.0.0.1:PORT` '
-        '([foxglove.md](foxglove.md#watch-a-run-live)). A slow or frozen client costs only '
-        "its own live messages (counted: the run's last lines, summary.json "
-        '`sessions[i].live`), never a period or a bag message. Refused (one line, exit 2, '
-        'nothing created) with `--no-record`, or when the port cannot be listened on',
-        {'type': int_in(1, 65535), 'nargs': '?', 'const': _live.DEFAULT_PORT, 'metavar': 'PORT'},
-        shown='off',
-    )
-    live_host: str | None = option(
-        'with `--live`: the address the server listens on. The default is this computer '
-        "only; any other (`0.0.0.0`: every interface) opens the run's data, every topic "
-        'of the bag, to whoever reaches this computer on the network: no authentication, '
-        'no encryption',
-        {'metavar': 'HOST'},
-        shown=f'`{_live.DEFAULT_HOST}`',
-    )
-    live_rate: float | None = option(
-        "with `--live`: the live rate of the drive's 5 kHz topics (`drive/state`, "
-        '`drive/command`, `controller/internals`): every Nth message, N = 5000 / HZ (the '
-        'bag keeps every one); `full` or 0: every message (about 15 000 a second of '
-        'simulated time: more than a browser draws). The other topics go whole',
-        {'type': _live.rate_arg, 'metavar': 'HZ|full'},
-        shown=f'{_live.DEFAULT_RATE_HZ:g}',
-    )
+    live: int | None = option(**_live.OPTIONS['--live'])
+    live_host: str | None = option(**_live.OPTIONS['--live-host'])
+    live_rate: float | None = option(**_live.OPTIONS['--live-rate'])
     drive_config: Path | None = option(
         'the drive parameter file of a bench the tuner starts: the controller takes `Ts` '
         'and `machine.isq_max` from it, the simulator its motor, a `--drive` class its '
@@ -403,28 +376,9 @@ def add_shared(ap: argparse.ArgumentParser, flag: str, help: str, default: Any =
     ap.add_argument(flag, help=help, **kwargs, **arg)
 
 
-#: the live view's options, which ``drive_host`` and ``recorder`` take as the tuner does
-LIVE_FLAGS = ('--live', '--live-host', '--live-rate')
-
-
-def add_live_options(ap: argparse.ArgumentParser) -> None:
-    """The tuner's ``--live`` options (:data:`LIVE_FLAGS`) on another executable's parser,
-    with the tuner's text."""
-    for o in OPTIONS:
-        if o.flag in LIVE_FLAGS:
-            assert isinstance(o.arg, dict)
-            ap.add_argument(o.flag, help=_help(o), default=None, **o.arg)
-
-
 def default(dest: str) -> Any:
     """The declared value of option ``dest`` when it is not given."""
     return _BY_DEST[dest].default
-
-
-def plain(markdown: str) -> str:
-    """``--help``'s text of an option's Markdown: links as their text, no code marks."""
-    text = re.sub(r'\[([^\]]*)\]\([^)]*\)', r'\1', markdown)
-    return text.replace('\\|', '|').replace('`', '').replace('%', '%%')
 
 
 def build_parser() -> argparse.ArgumentParser:

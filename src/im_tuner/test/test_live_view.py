@@ -15,7 +15,8 @@ from live_client import SUBPROTOCOL, FrozenClient, Watcher
 
 from im_drive_sim.cli import UsageError
 from im_tuner.record import live
-from im_tuner.record.live import LiveFeed, LiveServer, LiveSettings
+from im_tuner.record.live import LiveFeed, LiveSettings
+from im_tuner.record.live_server import LiveServer
 from im_tuner.record.writer import McapWriter
 
 

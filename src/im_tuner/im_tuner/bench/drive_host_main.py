@@ -15,7 +15,7 @@ from im_drive_sim.cli import (
 )
 
 from ..names import DEFAULT_TIMING_TOLERANCE
-from ..tuner_args import add_live_options
+from ..record.live import add_live_options
 from .drive_spec import drive_help
 from .sim_bench_main import BAG_OPTIONS
 

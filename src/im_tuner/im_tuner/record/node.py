@@ -35,7 +35,8 @@ from im_drive_sim.outbox import R_HEAD, R_LOST, R_TAIL
 from . import take as rcl_take
 from .chunk_timer import ChunkTimer
 from .counts import closing_custom_data, counts_report
-from .live import LIVE_METADATA, LiveError, LiveFeed, LiveServer, LiveSettings, live_line
+from .live import LIVE_METADATA, LiveError, LiveFeed, LiveSettings, live_line
+from .live_server import LiveServer
 from .metadata import (
     TopicRecord,
     bag_metadata,

@@ -229,6 +229,14 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('tuner', 'no-start-compact-ga', ['--algo', 'necga', '--no-start']),
     ('tuner', 'drive-config-comments-only', ['--drive-config', 'comments.yaml']),
     ('tuner', 'compression-with-no-record', ['--compression', 'zstd', '--no-record']),
+    # --live: what the recorder writes, served; its port and host checked first
+    ('tuner', 'live-with-no-record', ['--live', '--no-record']),
+    ('tuner', 'live-host-without-live', ['--live-host', '0.0.0.0']),
+    ('tuner', 'live-host-not-local', ['--live', '8765', '--live-host', '192.0.2.1']),
+    ('tuner', 'live-port-zero', ['--live', '0']),
+    ('tuner', 'live-rate-negative', ['--live', '--live-rate', '-5']),
+    ('drive_host', 'live-with-no-record', ['--live', '--no-record']),
+    ('recorder', 'live-rate-type', ['--live', '--live-rate', 'fast']),
     ('tuner', 'thread-priority-without-realtime', ['--bench', 'inproc', '--thread-priority', '50']),
     ('tuner', 'thread-priority-100', ['--bench', 'realtime', '--thread-priority', '100']),
     ('drive_sim', 'cpu-affinity-absent', ['--cpu-affinity', '4096']),
@@ -294,6 +302,11 @@ CASES: list[tuple[str, str, list[str]]] = [
 
 #: what the one line must say, for the cases whose reason matters
 EXPECT: dict[tuple[str, str], str] = {
+    ('tuner', 'live-with-no-record'): '--live serves what the recorder writes to the bag',
+    ('tuner', 'live-host-without-live'): '--live-host without --live would be ignored',
+    ('tuner', 'live-host-not-local'): '--live-host 192.0.2.1: not an address of this computer',
+    ('drive_host', 'live-with-no-record'): '--no-record records none',
+    ('recorder', 'live-rate-type'): 'or full (every message)',
     ('tuner', 'thread-priority-without-realtime'): 'set up the composed real-time loop',
     ('tuner', 'thread-priority-100'): 'must be 0 (off) or 1-99 (SCHED_FIFO), got 100',
     ('drive_sim', 'cpu-affinity-absent'): 'CPU 4096 is not one this process may use',

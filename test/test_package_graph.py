@@ -39,6 +39,8 @@ ROSDEP = {
     'pybobyqa': 'python3-py-bobyqa-pip',  # the study's reference row
     'dask': 'python3-dask',
     'distributed': 'python3-distributed',
+    'foxglove_websocket': 'python3-foxglove-websocket-pip',  # the live view's server
+    'websockets': 'python3-websockets',
 }
 ROS_PACKAGES = {
     'rclpy',

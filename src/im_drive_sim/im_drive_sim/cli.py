@@ -237,6 +237,13 @@ def run_cli(prog: str, body: Callable[[], int]) -> int:
 
 
 # -- argparse types ----------------------------------------------------------------------
+def plain(markdown: str) -> str:
+    """``--help``'s text of an option's Markdown (the docs' tables): links as their text,
+    no code marks, ``%`` escaped for argparse."""
+    text = re.sub(r'\[([^\]]*)\]\([^)]*\)', r'\1', markdown)
+    return text.replace('\\|', '|').replace('`', '').replace('%', '%%')
+
+
 def finite_float(
     lo: float | None = None, hi: float | None = None, *, lo_open: bool = False, unit: str = ''
 ) -> Callable[[str], float]:

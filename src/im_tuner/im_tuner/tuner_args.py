@@ -14,20 +14,20 @@ pycma, optuna or scipy at load, so ``--help`` and a refusal are quick.
 from __future__ import annotations
 
 import argparse
-import re
 import shlex
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 from im_drive_sim import host, rt
-from im_drive_sim.cli import Parser, UsageError, finite_float, int_in
+from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, plain
 
 from . import optim
 from .bench.drive_spec import drive_help
 from .bench.spec import DISCOVERY_TIMEOUT
 from .benches import BENCHES  # (the bench modes: one copy, in benches)
 from .names import DEFAULT_TIMING_TOLERANCE, FAULT_POLICIES
+from .record import live as _live
 from .runlog import RunConfig
 from .runlog.ripple import DEFAULT_RIPPLE_LIMIT, RIPPLE_TOLERANCE
 
@@ -314,6 +314,9 @@ class TunerOptions:
         {'choices': ('none', 'zstd', 'lz4')},
         shown='`lz4`',
     )
+    live: int | None = option(**_live.OPTIONS['--live'])
+    live_host: str | None = option(**_live.OPTIONS['--live-host'])
+    live_rate: float | None = option(**_live.OPTIONS['--live-rate'])
     drive_config: Path | None = option(
         'the drive parameter file of a bench the tuner starts: the controller takes `Ts` '
         'and `machine.isq_max` from it, the simulator its motor, a `--drive` class its '
@@ -378,12 +381,6 @@ def default(dest: str) -> Any:
     return _BY_DEST[dest].default
 
 
-def plain(markdown: str) -> str:
-    """``--help``'s text of an option's Markdown: links as their text, no code marks."""
-    text = re.sub(r'\[([^\]]*)\]\([^)]*\)', r'\1', markdown)
-    return text.replace('\\|', '|').replace('`', '').replace('%', '%%')
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The tuner's parser, from :data:`OPTIONS`. Run settings parse as None (or False)
     when not given, so ``--resume`` can refuse them; the others take their default."""
@@ -420,6 +417,8 @@ def options_table() -> str:
     rows = ['| option | default | meaning |', '|---|---|---|']
     for o in OPTIONS:
         meta = actions[o.flag].metavar
+        if isinstance(meta, str) and actions[o.flag].nargs == '?':
+            meta = f'[{meta}]'
         name = (f'{o.flag} {meta}' if isinstance(meta, str) else o.flag).replace('|', '\\|')
         rows.append(f'| `{name}` | {_shown(o)} | {o.help} |')
     return '\n'.join(rows) + '\n'

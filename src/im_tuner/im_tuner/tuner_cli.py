@@ -30,6 +30,7 @@ from . import optim
 from .bench.spec import recording_options
 from .names import DEFAULT_TIMING_TOLERANCE, controller_topics
 from .optim.base import OptimizerError, check_options
+from .record.live import live_settings
 from .rundir import RunDir
 from .runlog import RunConfig
 from .space import TunerParams, TunerParamsError, load_params, parse_params
@@ -44,8 +45,10 @@ EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 def check_session(cli: TunerOptions) -> None:
     """The options of this session (new or resumed) that go together: a bag option with
-    --no-record would be ignored, so it is refused; sets the default compression."""
+    --no-record would be ignored, so it is refused; sets the default compression; the
+    live view's port is checked (bound and released) before anything is created."""
     cli.compression = recording_options(cli.no_record, compression=cli.compression)
+    live_settings(cli.live, cli.live_host, cli.live_rate, no_record=cli.no_record)
     if getattr(cli, 'first', None) == 'identify' and getattr(cli, 'no_reference', False):
         raise UsageError(
             '--first identify identifies the drive from the reference experiment (the '

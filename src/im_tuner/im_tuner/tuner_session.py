@@ -149,6 +149,8 @@ class TunerSession:
         self.bag_dir: Path | None = None
         #: this session's record in the checkpoint (its bags, its bench, its replay)
         self.session: dict[str, Any] = {}
+        #: the live view's figures in one line, printed with the summary ('': no --live)
+        self.live_said = ''
 
     # -- forms.RunHost -------------------------------------------------------------------
     def begin(self, plan: BenchPlan) -> Path | None:
@@ -276,6 +278,12 @@ class TunerSession:
                 )
         if numeric_now['state'] != 'held':
             progress.warn(f'warning: numeric baseline {numeric.describe(numeric_now)}')
+        live = plan.spec.live
+        if live is not None:
+            progress.note(
+                f'live: {live.url} (Foxglove: Open connection, Foxglove WebSocket; the 5 kHz '
+                f'topics {"whole" if live.rate_hz <= 0 else f"at {live.rate_hz:g} Hz"})'
+            )
         session = self.session
         session.update(
             {
@@ -372,6 +380,14 @@ class TunerSession:
         problems = bench.close_recording()
         for text in problems:
             progress.warn(f'error: {text}')
+        if self.cli.live is not None and self.bag_dir is not None:
+            from .record.live import live_line, read_live_stats
+
+            bags = [self.bag_dir] + [rundir.path / b['bag'] for b in session.get('more_bags', [])]
+            live = read_live_stats(bags)
+            if live is not None:  # (said with the summary: one line)
+                session['live'] = live
+                self.live_said = live_line(live)
         if problems and outcome == 'done':
             outcome = f'failed: {problems[0]}'
         code = EXIT_OK
@@ -390,6 +406,8 @@ class TunerSession:
         tuning.checkpoint()
         rundir.write_summary(summary)
         print(format_summary(summary, self.run, rundir.path), flush=True)
+        if self.live_said:
+            print(f'  {self.live_said}', flush=True)
         if code != EXIT_OK:
             what = 'interrupted:'
             if code == EXIT_FAILED:

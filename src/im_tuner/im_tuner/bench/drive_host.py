@@ -35,6 +35,7 @@ from im_drive_sim.runtime import RosSession
 
 from .. import family
 from ..names import DEFAULT_TIMING_TOLERANCE, DRIVE_HOST_NODE
+from ..record.live import live_settings
 from ..record.run_info import default_out_dir
 from . import drive_spec
 from .drive_host_main import parser
@@ -44,7 +45,9 @@ from .sim_bench import _Bag
 from .spec import BenchSpec, recording_options
 
 
-def _spec(cli: argparse.Namespace, choice: Any, host_check: dict | None = None) -> BenchSpec:
+def _spec(
+    cli: argparse.Namespace, choice: Any, host_check: dict | None = None, live: Any = None
+) -> BenchSpec:
     """The composed real-time bench of ``cli`` (``choice``: the checked ``--drive``;
     ``host_check``: the host's check at start-up, recorded with the loop)."""
     config = str(cli.drive_config) if cli.drive_config else None
@@ -70,6 +73,7 @@ def _spec(cli: argparse.Namespace, choice: Any, host_check: dict | None = None) 
         rt_options=rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY),
         host_check=host_check,
         quiet=False,
+        live=live,
     )
 
 
@@ -102,6 +106,7 @@ def main(args: list[str] | None = None) -> int:
             raise UsageError(f'--out {cli.out}: already exists; choose a new directory')
         if cli.model is not None and cli.drive != 'sim':
             raise UsageError(f"--model is the simulator's (--drive sim), not --drive {cli.drive}")
+        live = live_settings(cli.live, cli.live_host, cli.live_rate, no_record=cli.no_record)
         try:
             choice = drive_spec.resolve(cli.drive, cli.drive_config)
         except drive_spec.DriveSpecError as exc:
@@ -150,7 +155,10 @@ def main(args: list[str] | None = None) -> int:
                 'or drive already runs here; stop it, or give this one another ROS_DOMAIN_ID'
             )
         bench = open_bench(
-            _spec(cli, choice, host_check), host, command=argv, should_stop=lambda: session.stopped
+            _spec(cli, choice, host_check, live),
+            host,
+            command=argv,
+            should_stop=lambda: session.stopped,
         )
         assert isinstance(bench, InProcess)
         if session.stopped:  # Ctrl-C while it started (an interrupt numba swallowed)

@@ -15,6 +15,7 @@ from im_drive_sim.cli import (
 )
 
 from ..names import DEFAULT_TIMING_TOLERANCE
+from ..record.live import add_live_options
 from .drive_spec import drive_help
 from .sim_bench_main import BAG_OPTIONS
 
@@ -64,6 +65,7 @@ def parser() -> argparse.ArgumentParser:
     )
     for flag, kw in BAG_OPTIONS:
         ap.add_argument(flag, **kw)
+    add_live_options(ap)
     rt.add_arguments(ap, 'the 5 kHz loop', rt.DEFAULT_PRIORITY)
     return ap
 

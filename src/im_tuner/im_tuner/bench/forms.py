@@ -226,6 +226,7 @@ class InProcess:
                 # query holds the GIL for up to milliseconds); every topic it records
                 # exists before the first period (wait_matched below)
                 discovery_period=2.0 if hasattr(b, 'outbox') else 0.2,
+                live=plan.spec.live,
             )
             self.rec.wait_matched(10.0)
             # beside a real-time loop every 50 ms (its tap rings hold 5 s): fewer rounds
@@ -414,7 +415,8 @@ class Children:
         quiet = ['--ros-args', '--disable-stdout-logs'] if self.quiet else []
         compression = self.plan.spec.compression
         exclude = ['--exclude-topics', *self.excluded] if self.excluded else []
-        args = ['--out', str(out_dir), '--compression', compression, *exclude, *quiet]
+        live = self.plan.spec.live.args() if self.plan.spec.live is not None else []
+        args = ['--out', str(out_dir), '--compression', compression, *exclude, *live, *quiet]
         self._spawn('recorder', [self._ros2, 'run', 'im_tuner', 'recorder', *args])
 
     def _recorder_died(self, why: str) -> None:

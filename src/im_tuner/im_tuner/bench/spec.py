@@ -26,6 +26,7 @@ from im_drive_sim.cli import UsageError
 
 from .. import family
 from ..benches import LOCKSTEP_BENCHES, SIM_BENCHES, is_simulated
+from ..record.live import live_settings
 
 if TYPE_CHECKING:
     from ..runlog import Record, RunConfig
@@ -157,6 +158,8 @@ class BenchSpec:
     child_args: tuple[tuple[str, ...], tuple[str, ...]] | None = None
     #: the children's console output off (their logs go to /rosout and their log files)
     quiet: bool = True
+    #: the live view of the recording (record.live.LiveSettings; None: none)
+    live: Any = None
 
     def resolve(self, mode: str) -> BenchPlan:
         """The plan of the bench ``mode`` (``auto``/``none`` already resolved to
@@ -215,6 +218,9 @@ class BenchOptions(Protocol):
     thread_priority: int | None
     cpu_affinity: int
     lock_memory: bool
+    live: int | None
+    live_host: str | None
+    live_rate: float | None
 
 
 def tuner_bench_spec(
@@ -264,4 +270,7 @@ def tuner_bench_spec(
         host_check=run.host_check,
         resumed=resumed,
         previous_bench=run.bench if resumed else None,
+        live=live_settings(
+            cli.live, cli.live_host, cli.live_rate, no_record=cli.no_record, check=False
+        ),
     )

@@ -18,6 +18,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from im_drive_sim.cli import UsageError, parse_cli
 from im_drive_sim.runtime import RosSession, unknown_overrides, warn_unknown_overrides
 
+from .live import live_settings
 from .metadata import BagError
 from .node import Recorder, RecorderError
 from .recorder_main import parser
@@ -58,6 +59,7 @@ def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
     try:
         cli = parse_cli(parser(), argv)
+        live = live_settings(cli.live, cli.live_host, cli.live_rate, no_record=False)
     except UsageError as exc:
         print(f'error: recorder: {exc}', file=sys.stderr)
         return 2
@@ -92,6 +94,7 @@ def main(args: list[str] | None = None) -> int:
                 max_chunk_age=cli.max_chunk_age,
                 command=argv,
                 exclude=sorted(set(cli.exclude_topics)),  # (fully qualified by the parser)
+                live=live,
             )
         except (BagError, RecorderError) as exc:
             print(f'error: recorder: {exc}', file=sys.stderr)

@@ -35,6 +35,8 @@ from im_drive_sim.outbox import R_HEAD, R_LOST, R_TAIL
 from . import take as rcl_take
 from .chunk_timer import ChunkTimer
 from .counts import closing_custom_data, counts_report
+from .live import LIVE_METADATA, LiveError, LiveFeed, LiveSettings, live_line
+from .live_server import LiveServer
 from .metadata import (
     TopicRecord,
     bag_metadata,
@@ -102,14 +104,25 @@ class Recorder:
         taps: dict[str, Any] | None = None,
         exclude: tuple[str, ...] | list[str] = (),
         flush_timer: bool = True,
+        live: LiveSettings | None = None,
     ) -> None:
         """``taps``: topics to take from a real-time loop's outbox instead of DDS
-        (:meth:`add_tap`); ``exclude``: topics never recorded (named in the metadata)."""
+        (:meth:`add_tap`); ``exclude``: topics never recorded (named in the metadata);
+        ``live``: a Foxglove WebSocket server carrying what the bag gets (``.live``)."""
         self.node = node
         self.log = node.get_logger()
-        self.out = prepare_bag_dir(Path(out))
-        self.file_name = storage_file_name(self.out)
+        #: the live view (started first: a port it cannot have leaves no bag)
+        self.live: LiveServer | None = None
+        self.live_stats: dict[str, Any] | None = None
+        if live is not None:
+            try:
+                self.live = LiveServer(live, self.log.info)
+            except LiveError as exc:
+                raise RecorderError(str(exc)) from None
+        self._feed = LiveFeed(live.rate_hz if live is not None else 0.0)
         try:
+            self.out = prepare_bag_dir(Path(out))
+            self.file_name = storage_file_name(self.out)
             self.writer = McapWriter(
                 self.out / self.file_name,
                 compression=compression,
@@ -119,7 +132,14 @@ class Recorder:
                 max_span=max_chunk_age,
             )
         except McapWriteError as exc:
+            self._close_live()
             raise RecorderError(str(exc)) from None
+        except BaseException:
+            self._close_live()
+            raise
+        if self.live is not None:
+            live_server = self.live
+            self.writer.observer = lambda buf, idx: live_server.offer(self._feed.select(buf, idx))
         self.compression = compression
         self.max_chunk_age = max_chunk_age
         self._max_span_ns = round(max_chunk_age * 1e9)
@@ -219,12 +239,17 @@ class Recorder:
         profiles and type hash, as rosbag2 writes them; returns (channel, profiles, hash)."""
         profiles = [endpoint_qos(i) for i in infos]
         type_hash = endpoint_type_hash(infos[0]) if infos else ''
+        schema = self._schema(type_name)
         channel = self.writer.add_channel(
             name,
-            self._schema(type_name),
+            schema,
             'cdr',
             {'offered_qos_profiles': qos_yaml(profiles), 'topic_type_hash': type_hash},
         )
+        if self.live is not None:  # the same channel live: topic, type, schema text
+            self._feed.add_channel(channel, name)
+            _name, encoding, text = self.writer.schemas[schema]
+            self.live.add_channel(channel, name, type_name, text.decode(), encoding)
         return channel, profiles, type_hash
 
     def add_tap(self, channels: dict[str, Any]) -> None:
@@ -425,6 +450,7 @@ class Recorder:
         if self.writer.chunk.used >= self.writer.chunk_size:
             self.writer.flush_chunk()
             self._chunk_opened = None
+        self.writer.observe()  # (the live view: what was taken, at once)
         self.messages += total
         return total
 
@@ -492,8 +518,13 @@ class Recorder:
                     time.sleep(min(0.005, settle / 4))
         self._check_matches()
         self.writer.flush_chunk()
+        self._close_live()
+        if self.live_stats is not None:
+            self.add_metadata(LIVE_METADATA, self.live_stats)
         counts = self.counts()
         custom = closing_custom_data(counts, self.unrecordable, cut)
+        if self.live_stats is not None:  # (the tuner reads it there: live.read_live_stats)
+            custom[LIVE_METADATA] = json.dumps(self.live_stats, sort_keys=True)
         if cut:
             self.node.get_logger().warn(f'bag {self.out.name}: {cut}')
         meta = self._metadata(custom)
@@ -506,6 +537,14 @@ class Recorder:
         self._destroy_subscriptions()
         self.log.info(counts_report(self.out, self.writer.message_count, counts, self.unrecordable))
         return counts
+
+    def _close_live(self) -> None:
+        """Stop the live server (once); its figures in ``live_stats`` and the log."""
+        if self.live is None:
+            return
+        live, self.live = self.live, None
+        self.live_stats = live.close()
+        self.log.info(live_line(self.live_stats))
 
     def _metadata(self, custom: dict[str, str]) -> dict:
         w = self.writer

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from im_drive_sim.cli import Parser, UsageError, check_then_run, executable, finite_float, int_in
 
+from .live import add_live_options
 from .mcap_format import COMPRESSIONS
 
 CHUNK_SIZE_RANGE = (4096, 1 << 28)
@@ -99,6 +100,7 @@ def parser() -> argparse.ArgumentParser:
         type=Path,
         help='repair a bag left by a crash (rewrite summary, index and metadata.yaml), then exit',
     )
+    add_live_options(ap)
     return ap
 
 

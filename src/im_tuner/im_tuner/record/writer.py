@@ -35,6 +35,7 @@ import os
 import struct
 import zlib
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -244,6 +245,10 @@ class McapWriter:
         self.message_count = 0
         self.t_start: int | None = None
         self.t_end: int | None = None
+        #: called with the chunk buffer and the index rows of the Message records it got
+        #: since the last call (:meth:`observe`): the live view (``record.live``)
+        self.observer: Callable[[np.ndarray, np.ndarray], None] | None = None
+        self._observed = 0  #: index rows of the open chunk handed to the observer
         self._pool = ThreadPoolExecutor(1, 'mcap_writer') if background else None
         #: background writes not yet seen finished, oldest first (their errors are
         #: raised at the next submit or at close)
@@ -350,11 +355,23 @@ class McapWriter:
         if self.chunk.used >= self.chunk_size:
             self.flush_chunk()
 
+    def observe(self) -> None:
+        """Hand the Message records the open chunk got since the last call to the
+        observer (every record reaches it once, in order: :meth:`flush_chunk` calls this
+        first)."""
+        ch = self.chunk
+        n = ch.count
+        if self.observer is not None and n > self._observed:
+            self.observer(ch.buf, ch.idx[self._observed : n])
+        self._observed = n
+
     def flush_chunk(self) -> int:
         """Close the open chunk: compress, write it and its message indexes, flush.
 
         Returns the number of messages in it. With ``background``, the bytes are copied
         out and written by the worker thread; the chunk buffer is free again at once."""
+        self.observe()
+        self._observed = 0
         ch = self.chunk
         n = ch.count
         if n == 0:

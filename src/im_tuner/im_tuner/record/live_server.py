@@ -1,0 +1,325 @@
+"""The live view's server: a Foxglove WebSocket server (``foxglove.websocket.v1``) in a
+thread of its own, fed by the recorder (:mod:`.live` says what goes live and why this
+library).
+
+Nothing of it waits on a client: the recorder's thread appends to a bounded inbox and
+wakes the server's thread (asyncio); there each client has a bounded queue and a sender
+task of its own, so a slow or frozen client costs its own dropped live messages
+(counted: :meth:`LiveServer.stats`), never a period, never a bag message, never another
+client's data. ``foxglove-websocket``'s own sending (``send_message``, ``add_channel``)
+awaits each client's socket in turn, a frozen one for ever: this module sends through the
+per-client queues instead, and uses the library for the handshake, the server info, the
+first advertise and the subscriptions (its client states).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import threading
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from .live import LiveError, LiveSettings, cannot_listen, every_nth
+
+#: messages queued for one client; when full its oldest is dropped (counted)
+CLIENT_BACKLOG = 4096
+#: messages waiting between the recorder's thread and the server's (the server's thread
+#: starved of the CPU); when full the oldest is dropped (counted)
+INBOX_SIZE = 65536
+#: [bytes] the kernel's send buffer of a client's socket: bounds what waits for a slow
+#: client beyond its queue (the live view stays fresh), and is ample for the live rate
+#: (about 1 MB/s at 250 Hz) across a LAN
+CLIENT_SNDBUF = 256 << 10
+#: [s] at close, how long the server still sends what clients have queued, and then
+#: waits for each client's closing handshake
+CLOSE_GRACE_S = 1.0
+
+
+@dataclass
+class _ClientQueue:
+    """One client's queue and sender task (the server's thread only)."""
+
+    addr: str
+    queue: deque = field(default_factory=lambda: deque(maxlen=CLIENT_BACKLOG))
+    #: advertisements of channels added while it is connected: sent first, never dropped
+    control: deque = field(default_factory=deque)
+    wake: Any = None  # asyncio.Event
+    task: Any = None  # asyncio.Task
+    sent: int = 0
+    dropped: int = 0
+
+
+class LiveServer:
+    """A Foxglove WebSocket server (``foxglove.websocket.v1``) in a thread of its own.
+
+    :meth:`add_channel` and :meth:`offer` are called from the recorder's thread and never
+    wait on the server or a client; :meth:`close` stops it (clients' queues get
+    :data:`CLOSE_GRACE_S` to empty) and returns :meth:`stats`. ``log(text)``: where
+    start, connect and disconnect are said (the recorder's ROS logger)."""
+
+    def __init__(
+        self, settings: LiveSettings, log: Callable[[str], None], name: str = 'im_tuner'
+    ) -> None:
+        """Starts the server; LiveError if it cannot listen (nothing is left running)."""
+        import asyncio
+
+        self.settings = settings
+        self._log = log
+        self._name = name
+        self._loop = asyncio.new_event_loop()
+        self._server: Any = None
+        self._inbox: deque = deque(maxlen=INBOX_SIZE)
+        self._inbox_dropped = 0
+        self._wake_pending = False
+        self._lock = threading.Lock()  # the inbox's drop count and wake flag
+        self._channels: dict[int, int] = {}  # bag channel -> server channel (server thread)
+        self._clients: dict[Any, _ClientQueue] = {}  # connection -> queue (server thread)
+        self._gone: list[_ClientQueue] = []
+        self.offered = 0
+        self._started = threading.Event()
+        self._start_error: str | None = None
+        self._thread = threading.Thread(target=self._run, name='live server', daemon=True)
+        self._thread.start()
+        error = self._wait_started()
+        if error is not None:
+            self._thread.join(5.0)
+            raise LiveError(error)
+        n = every_nth(settings.rate_hz)
+        log(
+            f'live: Foxglove WebSocket server on {settings.url} (the 5 kHz topics '
+            + ('whole)' if n == 1 else f'every {n}th message)')
+        )
+
+    # -- the recorder's thread ---------------------------------------------------------
+    def add_channel(
+        self, channel: int, topic: str, schema_name: str, schema: str, encoding: str = 'ros2msg'
+    ) -> None:
+        """Advertise the bag's channel ``channel`` (its topic, ROS type, schema text and
+        encoding: ``ros2msg``, ``ros2idl`` for service events) to every client, now and to
+        come."""
+        self._loop.call_soon_threadsafe(
+            self._add_channel, channel, topic, schema_name, schema, encoding
+        )
+
+    def offer(self, messages: list[tuple[int, int, bytes]]) -> None:
+        """Hand (bag channel, log time [ns], CDR bytes) messages over; returns at once."""
+        if not messages:
+            return
+        self.offered += len(messages)
+        with self._lock:
+            over = len(self._inbox) + len(messages) - INBOX_SIZE
+            if over > 0:
+                self._inbox_dropped += over
+            self._inbox.extend(messages)
+            if self._wake_pending:
+                return
+            self._wake_pending = True
+        with contextlib.suppress(RuntimeError):  # (closed meanwhile)
+            self._loop.call_soon_threadsafe(self._pump)
+
+    def stats(self) -> dict[str, Any]:
+        """What the live view got: messages offered, sent and dropped per client."""
+        clients = [*self._gone, *self._clients.values()]
+        return {
+            **self.settings.to_dict(),
+            'offered': self.offered,
+            'clients': len(clients),
+            'sent': sum(c.sent for c in clients),
+            'dropped': sum(c.dropped for c in clients) + self._inbox_dropped,
+            'dropped_before_clients': self._inbox_dropped,
+            'per_client': [
+                {'client': c.addr, 'sent': c.sent, 'dropped': c.dropped} for c in clients
+            ],
+        }
+
+    def close(self) -> dict[str, Any]:
+        """Stop the server (what clients still have queued gets CLOSE_GRACE_S)."""
+        import asyncio
+
+        if self._thread.is_alive():
+            fut = asyncio.run_coroutine_threadsafe(self._stop(), self._loop)
+            with contextlib.suppress(Exception):
+                fut.result(CLOSE_GRACE_S + 5.0)
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(5.0)
+        return self.stats()
+
+    # -- the server's thread -----------------------------------------------------------
+    def _wait_started(self, timeout: float = 30.0) -> str | None:
+        """Wait for the server's thread to say whether it listens (None) or why not."""
+        if not self._started.wait(timeout):
+            return f'no answer within {timeout:g} s'
+        return self._start_error
+
+    def _run(self) -> None:
+        import asyncio
+        import logging
+
+        from foxglove_websocket.server import FoxgloveServer
+
+        asyncio.set_event_loop(self._loop)
+        owner = self
+
+        class _Server(FoxgloveServer):
+            async def _handle_connection(self, connection: Any, path: str = '/') -> None:
+                owner._connected(connection)
+                try:
+                    await super()._handle_connection(connection, path)
+                finally:
+                    owner._disconnected(connection)
+
+        quiet = logging.getLogger('im_tuner.live.foxglove_websocket')
+        quiet.setLevel(logging.WARNING)
+
+        async def start() -> None:
+            s = self.settings
+            self._server = _Server(s.host, s.port, self._name, logger=quiet)
+            self._server.start()
+            done, _ = await asyncio.wait(
+                [self._server._opened, self._server._task], return_when=asyncio.FIRST_COMPLETED
+            )
+            task = self._server._task
+            if task in done and task.exception() is not None:
+                exc = task.exception()
+                self._start_error = (
+                    cannot_listen(s.host, s.port, exc)
+                    if isinstance(exc, OSError)
+                    else f'--live {s.port} on {s.host}: {exc}'
+                )
+
+        try:
+            self._loop.run_until_complete(start())
+        except Exception as exc:  # (said by the starting thread, one line)
+            self._start_error = f'--live {self.settings.port} on {self.settings.host}: {exc}'
+        self._started.set()
+        if self._start_error is None:
+            self._loop.run_forever()
+        with contextlib.suppress(Exception):
+            self._loop.run_until_complete(self._loop.shutdown_asyncgens())
+        self._loop.close()
+
+    def _add_channel(
+        self, channel: int, topic: str, schema_name: str, schema: str, encoding: str
+    ) -> None:
+        """Register the channel with the library's server (new clients get it in their
+        first advertise) and queue its advertise to the connected ones: the library's
+        ``add_channel`` awaits each client's socket in turn, a frozen one for ever."""
+        import json
+
+        from foxglove_websocket.types import Channel, ChannelId
+
+        server = self._server
+        cid = server._next_channel_id
+        server._next_channel_id = ChannelId(cid + 1)
+        chan = Channel(
+            id=cid,
+            topic=topic,
+            encoding='cdr',
+            schemaName=schema_name,
+            schema=schema,
+            schemaEncoding=encoding,
+        )
+        server._channels[cid] = chan
+        self._channels[channel] = cid
+        text = json.dumps({'op': 'advertise', 'channels': [chan]}, separators=(',', ':'))
+        for c in self._clients.values():
+            c.control.append(text)
+            c.wake.set()
+
+    def _connected(self, connection: Any) -> None:
+        import asyncio
+
+        addr = ':'.join(map(str, (connection.remote_address or ('?',))[:2]))
+        sock = connection.transport.get_extra_info('socket') if connection.transport else None
+        if sock is not None:
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, CLIENT_SNDBUF)
+        c = _ClientQueue(addr, wake=asyncio.Event())
+        c.task = asyncio.ensure_future(self._send_loop(connection, c))
+        self._clients[connection] = c
+        self._log(f'live: client {addr} connected ({len(self._clients)} connected)')
+
+    def _disconnected(self, connection: Any) -> None:
+        c = self._clients.pop(connection, None)
+        if c is None:
+            return
+        c.task.cancel()
+        c.dropped += len(c.queue)
+        c.queue.clear()
+        self._gone.append(c)
+        slow = f', {c.dropped} dropped: it did not read them in time' if c.dropped else ''
+        self._log(f'live: client {c.addr} disconnected ({c.sent} messages sent{slow})')
+
+    def _pump(self) -> None:
+        """Move the inbox into the subscribed clients' queues (oldest dropped when full)."""
+        from foxglove_websocket.server import MessageDataHeader
+        from foxglove_websocket.types import BinaryOpcode
+
+        with self._lock:
+            self._wake_pending = False
+            batch = list(self._inbox)
+            self._inbox.clear()
+        states = {s.connection: s for s in self._server._clients}
+        for conn, c in self._clients.items():
+            subs = states[conn].subscriptions_by_channel if conn in states else {}
+            n0 = len(c.queue)
+            added = 0
+            for ch, t, data in batch:
+                sid = subs.get(self._channels.get(ch, -1))
+                if sid is not None:
+                    c.queue.append(
+                        (MessageDataHeader.pack(BinaryOpcode.MESSAGE_DATA, sid, t), data)
+                    )
+                    added += 1
+            c.dropped += max(0, n0 + added - CLIENT_BACKLOG)
+            if added:
+                c.wake.set()
+
+    async def _send_loop(self, connection: Any, c: _ClientQueue) -> None:
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            while True:
+                await c.wake.wait()
+                c.wake.clear()
+                while c.control or c.queue:
+                    if c.control:
+                        await connection.send(c.control.popleft())
+                        continue
+                    header, data = c.queue.popleft()
+                    c.sent += 1  # (handed to the connection: written before the await)
+                    await connection.send(header + data)
+        except ConnectionClosed:
+            pass
+
+    async def _stop(self) -> None:
+        """What clients have queued gets CLOSE_GRACE_S, then each is closed with the
+        closing handshake (its last messages arrive: an aborted socket's reset could
+        drop them in the client's buffer), a client that does not take it within
+        CLOSE_GRACE_S aborted (a frozen one); then the server."""
+        import asyncio
+        import time
+
+        deadline = time.monotonic() + CLOSE_GRACE_S
+        while time.monotonic() < deadline and any(
+            c.queue or c.control for c in self._clients.values()
+        ):
+            await asyncio.sleep(0.01)
+
+        async def close(conn: Any, c: _ClientQueue) -> None:
+            c.task.cancel()
+            c.dropped += len(c.queue)
+            c.queue.clear()
+            with contextlib.suppress(BaseException):
+                await asyncio.wait_for(conn.close(), CLOSE_GRACE_S)
+            if conn.transport is not None and not conn.transport.is_closing():
+                conn.transport.abort()
+
+        await asyncio.gather(*(close(conn, c) for conn, c in list(self._clients.items())))
+        if self._server is not None:
+            self._server._task.cancel()
+            with contextlib.suppress(BaseException):
+                await asyncio.wait_for(self._server._task, 2.0)

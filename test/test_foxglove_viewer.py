@@ -28,6 +28,8 @@ import shutil
 import socket
 import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +69,16 @@ pytestmark = [
 ]
 
 
+def _child(argv: list[str], **kwargs: Any) -> subprocess.Popen:
+    """A child whose stdout and stderr go to files (read by :func:`finish`), never a pipe
+    nobody reads while the test waits."""
+    out = tempfile.TemporaryFile('w+')  # noqa: SIM115 (closed with the test's tmp files)
+    err = tempfile.TemporaryFile('w+')  # noqa: SIM115
+    proc = subprocess.Popen(argv, stdout=out, stderr=err, text=True, **kwargs)
+    proc.files = (out, err)  # type: ignore[attr-defined]
+    return proc
+
+
 def start_live_run(port: int, out: Path, clients: int) -> subprocess.Popen:
     """A short tuner run (:data:`RUN_ARGS`) recording to ``out``, its topics served live on
     ws://127.0.0.1:``port`` while it goes on; ``clients``: the viewer's connections.
@@ -76,37 +88,49 @@ def start_live_run(port: int, out: Path, clients: int) -> subprocess.Popen:
     ``[ROS2, 'run', 'im_tuner', 'tuner', *RUN_ARGS, '--live', str(port), '--out', str(out)]``.
     """
     tuner = [ROS2, 'run', 'im_tuner', 'tuner', *RUN_ARGS, '--out', str(out)]
-    argv = [
-        sys.executable,
-        str(STANDIN),
-        '--port',
-        str(port),
-        '--clients',
-        str(clients),
-        '--',
-        *tuner,
-    ]
-    return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    argv = [sys.executable, str(STANDIN), '--port', str(port), '--clients', str(clients), '--']
+    return _child([*argv, *tuner])
 
 
 def view(*args: str) -> subprocess.Popen:
     """tools/foxglove-view/view.mjs with ``args`` (its report: one JSON line on stdout)."""
     argv = ['node', str(VIEW / 'view.mjs'), '--timeout', str(VIEW_TIMEOUT_S), *args]
-    return subprocess.Popen(
-        argv, cwd=VIEW, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
+    return _child(argv, cwd=VIEW)
+
+
+def _read(proc: subprocess.Popen) -> tuple[str, str]:
+    texts = []
+    for f in proc.files:  # type: ignore[attr-defined]
+        f.seek(0)
+        texts.append(f.read())
+    return texts[0], texts[1]
 
 
 def finish(proc: subprocess.Popen, deadline_s: float, what: str) -> str:
     """``proc``'s stdout once it exited 0 within ``deadline_s``; its stderr's end if not."""
     try:
-        out, err = proc.communicate(timeout=deadline_s)
+        proc.wait(timeout=deadline_s)
     except subprocess.TimeoutExpired:
         stop_child(proc)
-        out, err = proc.communicate()
-        pytest.fail(f'{what} still running after {deadline_s} s; its stderr ends:\n{err[-3000:]}')
+        pytest.fail(
+            f'{what} still running after {deadline_s} s; stderr ends:\n{_read(proc)[1][-3000:]}'
+        )
+    out, err = _read(proc)
     assert proc.returncode == 0, f'{what} exited {proc.returncode}:\n{err[-3000:]}'
     return out
+
+
+def watch(viewer: subprocess.Popen, run: subprocess.Popen, deadline_s: float) -> dict:
+    """The live viewer's report, once it and the run ended (within ``deadline_s``); a run
+    that fails ends the wait at once."""
+    deadline = time.monotonic() + deadline_s
+    while viewer.poll() is None and time.monotonic() < deadline:
+        if run.poll() not in (None, 0):
+            pytest.fail(f'the live run exited {run.returncode}:\n{_read(run)[1][-3000:]}')
+        time.sleep(0.2)
+    report = json.loads(finish(viewer, max(1.0, deadline - time.monotonic()), 'the live viewer'))
+    finish(run, max(1.0, deadline - time.monotonic()), 'the live run')
+    return report
 
 
 def free_port() -> int:
@@ -176,8 +200,7 @@ def live(tmp_path_factory, layouts_dir, layouts, viewer_installed) -> tuple[dict
     run = None
     try:
         run = start_live_run(port, out, clients)
-        report = json.loads(finish(viewer, LIVE_DEADLINE_S, 'the live viewer'))
-        finish(run, LIVE_DEADLINE_S, 'the live run')
+        report = watch(viewer, run, LIVE_DEADLINE_S)
     finally:
         for proc in (viewer, run):
             if proc is not None and proc.poll() is None:
@@ -234,7 +257,7 @@ def test_every_panel_of_every_layout_shows_a_live_run_as_it_goes(live, layouts):
             assert y == expected(rows[int(x)], key), f'{key} at experiment {x}'
 
 
-def test_the_runs_bag_opened_as_a_file_shows_every_message_in_every_panel(
+def test_the_runs_bag_opened_as_a_file_shows_every_panel_and_every_experiment(
     live, layouts, layouts_dir
 ):
     _report, run = live

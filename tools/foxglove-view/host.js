@@ -164,6 +164,11 @@ function makeProbe() {
     selectLayout(id) {
       layoutActions().setSelectedLayoutId(id);
     },
+    // the sidebars closed, for a screenshot of the panels alone (the workspace's own store)
+    closeSidebars() {
+      const store = find((f) => typeof f.memoizedProps?.value?.getState?.()?.leftSidebarOpen === "boolean")?.memoizedProps.value;
+      store?.setState({ sidebarItem: undefined, leftSidebarOpen: false, rightSidebarOpen: false });
+    },
     // a Tab panel's tab, chosen as a click on its title does (the app's own action)
     selectTab(panel, index) {
       layoutActions().savePanelConfigs({ configs: [{ id: panel, config: { activeTabIdx: index } }] });

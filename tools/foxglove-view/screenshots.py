@@ -44,8 +44,7 @@ def main() -> None:
         run = None
         try:
             run = tv.start_live_run(port, run_dir, sum(tv.n_views(v) for v in layouts.values()))
-            tv.finish(viewer, tv.LIVE_DEADLINE_S, 'the live viewer')
-            tv.finish(run, tv.LIVE_DEADLINE_S, 'the live run')
+            tv.watch(viewer, run, tv.LIVE_DEADLINE_S)
         finally:
             for proc in (viewer, run):
                 if proc is not None and proc.poll() is None:

@@ -9,10 +9,11 @@
 // Each layout (DIR/*.json, a layout's id is its file name) is shown in the app, every Tab
 // panel's tabs in turn; a view is done when each of its Plot panels has a point on every
 // path, or after --timeout seconds (its panels are then reported as they are). A bag: one
-// app, the layouts selected one after another, each view until it settled. Live: an app per view
-// (a layout or a tab of it), all at once (a run may last seconds), each then read until the
-// server goes away ("last": Fig. 9's every loss). --serve only serves the page and prints its address, for a browser of one's own.
-// Chromium is Debian's (/usr/bin/chromium, or $CHROMIUM), closed in a finally block.
+// app, the layouts selected one after another. Live: an app per view (a layout or a tab of
+// it), all at once (a run may last seconds), each then read until the server goes away
+// ("last": Fig. 9's every loss). --serve only serves the page and prints its address, for
+// a browser of one's own. Chromium is Debian's (/usr/bin/chromium, or $CHROMIUM), closed in
+// a finally block.
 import { chromium } from "playwright-core";
 import { createServer } from "node:http";
 import { mkdtemp, readFile, readdir, rm } from "node:fs/promises";
@@ -92,7 +93,7 @@ function views(layout) {
 async function openApp(context, layoutId) {
   const page = await context.newPage();
   page.on("pageerror", (e) => errors.push(String(e).slice(0, 300)));
-  await page.goto(`${base}?${source}&layoutId=${encodeURIComponent(layoutId)}`);
+  await page.goto(`${base}?${source}&layoutId=${encodeURIComponent(layoutId)}`, { timeout: TIMEOUT_MS });
   // (a live page retries its connection every 3 s until the server is up)
   await page.waitForFunction(() => window.imView?.state()?.presence === "PRESENT", null, { timeout: TIMEOUT_MS, polling: 100 });
   return page;
@@ -111,8 +112,12 @@ async function showLayout(page, name, shot, only) {
   for (const [i, view] of views(layouts[name]).entries()) {
     if (only !== undefined && i !== only) continue;
     for (const [tabPanel, index] of view.tabs) await page.evaluate(([p, k]) => window.imView.selectTab(p, k), [tabPanel, index]);
-    // full: a point on every path; a bag's view also settled (no point added for 1 s: the
-    // player reads a bag in blocks, the panels fill as they come)
+    // full: a point on every path. The player reads a bag in blocks and the panels fill as
+    // they come: a bag's view with an experiment-rate plot (a custom x axis: Fig. 9, whose
+    // every point is checked) or a screenshot's also waits until it settled (no point added
+    // for 1 s); the 5 kHz views are done at their first points (their whole run takes
+    // minutes to plot on 2 cores).
+    const custom = view.plots.some((id) => layouts[name].configById[id].xAxisVal === "custom");
     await page
       .waitForFunction(
         ([ids, settle]) => {
@@ -123,7 +128,7 @@ async function showLayout(page, name, shot, only) {
           if (n !== w.n) Object.assign(w, { n, since: Date.now() });
           return full && (!settle || Date.now() - w.since >= 1000);
         },
-        [view.plots, !!opt.bag],
+        [view.plots, !!opt.bag && (custom || (shot && i === 0))],
         { timeout: TIMEOUT_MS, polling: 100 },
       )
       .catch(() => {});
@@ -133,6 +138,7 @@ async function showLayout(page, name, shot, only) {
       full[id] = seconds();
     }
     if (shot && i === 0) {
+      await page.evaluate(() => window.imView.closeSidebars());
       await page.waitForTimeout(2000); // the chart worker draws the points it was sent
       await page.screenshot({ path: join(opt.screenshots, `${name}${opt.suffix}.png`) });
     }

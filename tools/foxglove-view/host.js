@@ -115,15 +115,18 @@ function makeProbe() {
     }
     return out;
   };
+  // the app puts a point {x: NaN, y: NaN, value: ""} between two ranges of a path's data, a
+  // break in the line: not a datum
+  const isBreak = (pt) => pt.value === "" && Number.isNaN(pt.x) && Number.isNaN(pt.y);
   const eachPoint = (chart, path, fn) => {
-    for (const d of chart.datasets) for (const pt of d.data ?? []) if (pt.path === path) fn(pt);
+    for (const d of chart.datasets) for (const pt of d.data ?? []) if (pt.path === path && !isBreak(pt)) fn(pt);
   };
   // per panel, per path: the number of points (cheap enough to poll)
   const counts = () => {
     const out = {};
     for (const [id, c] of Object.entries(charts())) {
       out[id] = Object.fromEntries(c.paths.map((path) => [path, 0]));
-      for (const d of c.datasets) for (const pt of d.data ?? []) if (pt.path in out[id]) out[id][pt.path] += 1;
+      for (const d of c.datasets) for (const pt of d.data ?? []) if (pt.path in out[id] && !isBreak(pt)) out[id][pt.path] += 1;
     }
     return out;
   };

@@ -40,7 +40,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix='im_tuner_screenshots_') as tmp:
         run_dir, port = Path(tmp) / 'run', tv.free_port()
         shots = ('--screenshots', str(out), '--shots', LIVE, '--suffix', '_live')
-        viewer = tv.view('--layouts', str(layouts_dir), '--ws', f'ws://127.0.0.1:{port}', *shots)
+        ws = ('--ws', f'ws://127.0.0.1:{port}', '--subprotocol', tv.LIVE_SUBPROTOCOL)
+        viewer = tv.view('--layouts', str(layouts_dir), *ws, *shots)
         run = None
         try:
             run = tv.start_live_run(port, run_dir, sum(tv.n_views(v) for v in layouts.values()))

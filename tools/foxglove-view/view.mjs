@@ -4,7 +4,8 @@
 // line on stdout. Optionally saves a 1280x800 PNG of each layout.
 //
 //   node view.mjs --layouts DIR (--ws ws://127.0.0.1:PORT | --bag FILE.mcap)
-//                 [--screenshots DIR [--shots NAME,...] [--suffix _live]] [--timeout S] [--serve]
+//                 [--screenshots DIR [--shots NAME,...] [--suffix _live]] [--timeout S]
+//                 [--subprotocol foxglove.sdk.v1] [--serve]
 //
 // Each layout (DIR/*.json, a layout's id is its file name) is shown in the app, every Tab
 // panel's tabs in turn; a view is done when each of its Plot panels has a point on every
@@ -23,6 +24,12 @@ import { fileURLToPath } from "node:url";
 import { parseArgs } from "node:util";
 
 const HERE = dirname(fileURLToPath(import.meta.url));
+// The WebSocket subprotocol Studio 1.48's client offers (@foxglove/ws-protocol); foxglove-sdk's
+// server (0.5 to 0.30) accepts only "foxglove.sdk.v1". --subprotocol NAME serves the app with
+// this one constant rewritten to NAME: so changed, the app talks to foxglove-sdk 0.30.0's
+// server and plots its data (checked by hand, 2026-12-05); nothing else is changed.
+const STUDIO_SUBPROTOCOL = "foxglove.websocket.v1";
+const SUBPROTOCOL_CONSTANT = (name) => `FoxgloveClient.SUPPORTED_SUBPROTOCOL = "${name}"`;
 const { values: opt } = parseArgs({
   options: {
     layouts: { type: "string" },
@@ -32,11 +39,12 @@ const { values: opt } = parseArgs({
     screenshots: { type: "string" },
     suffix: { type: "string", default: "" },
     timeout: { type: "string", default: "60" },
+    subprotocol: { type: "string", default: STUDIO_SUBPROTOCOL },
     serve: { type: "boolean", default: false },
   },
 });
 if (!opt.layouts || !!opt.ws === !!opt.bag) {
-  console.error("usage: node view.mjs --layouts DIR (--ws URL | --bag FILE) [--screenshots DIR [--shots NAME,...] [--suffix S]] [--timeout S] [--serve]");
+  console.error("usage: node view.mjs --layouts DIR (--ws URL | --bag FILE) [--screenshots DIR [--shots NAME,...] [--suffix S]] [--timeout S] [--subprotocol NAME] [--serve]");
   process.exit(2);
 }
 const TIMEOUT_MS = Number(opt.timeout) * 1000;
@@ -61,7 +69,12 @@ const server = createServer(async (req, res) => {
   else if (path === "/layouts.json") return res.writeHead(200, { "content-type": TYPES[".json"] }).end(JSON.stringify(layouts));
   else for (const [prefix, dir] of ROUTES) if (path.startsWith(prefix) && !path.includes("..")) file = join(dir, path.slice(prefix.length));
   try {
-    const body = await readFile(file);
+    let body = await readFile(file);
+    if (path === "/assets/index.js" && opt.subprotocol !== STUDIO_SUBPROTOCOL) {
+      const text = body.toString("utf8");
+      if (!text.includes(SUBPROTOCOL_CONSTANT(STUDIO_SUBPROTOCOL))) throw new Error("no subprotocol constant in the app");
+      body = text.replace(SUBPROTOCOL_CONSTANT(STUDIO_SUBPROTOCOL), SUBPROTOCOL_CONSTANT(opt.subprotocol));
+    }
     res.writeHead(200, { "content-type": TYPES[extname(file)] ?? "application/octet-stream" }).end(body);
   } catch {
     res.writeHead(404).end();

@@ -24,7 +24,7 @@ export HOME ?= $(CURDIR)
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: test-serial setup test test-unit test-levels lint format demo demo-drive bench reproduction reproduction-docs calibrate-bench foxglove-check foxglove-layouts docs lock clean
+.PHONY: test-serial setup test test-unit test-levels lint format demo demo-drive bench reproduction reproduction-docs calibrate-bench foxglove-check foxglove-layouts foxglove-screenshots docs lock clean
 
 setup: $(VENV)/.installed
 
@@ -155,6 +155,13 @@ foxglove-check:
 foxglove-layouts: setup
 	$(PY) -m im_tuner.foxglove --out src/im_tuner/foxglove
 	@$(MAKE) --no-print-directory setup
+
+# docs/foxglove/*.png: each shipped layout in Foxglove Studio's own app (headless Chromium,
+# tools/foxglove-view) on a real run's bag, and one live (tools/foxglove-view/screenshots.py).
+# Needs /usr/bin/chromium and npm; about 3 min on 2 cores.
+foxglove-screenshots: setup
+	cd tools/foxglove-view && npm ci --silent --no-audit --no-fund
+	nice $(PY) tools/foxglove-view/screenshots.py docs/foxglove
 
 # The docs' generated parts: docs/tuner.md's options table, from im_tuner/tuner_args.py's
 # declarations (a test checks it is current).

@@ -1,0 +1,295 @@
+"""The shipped Foxglove layouts in Foxglove's own app: a run watched live, then its bag.
+
+The viewer is Foxglove Studio 1.48's prebuilt app (the bundle of the npm package
+``@foxglove/studio-base``), mounted by a small page of ours with React 17.0.2's UMD builds and
+run in Debian's headless Chromium, driven by ``playwright-core``: tools/foxglove-view/
+(``view.mjs`` says how). The app connects with its own data sources -- the
+Foxglove WebSocket client and the MCAP local-file source -- and loads each installed layout;
+what every Plot panel drew is read from the app's own state (the props of each panel's chart:
+the points it plots).
+
+1. Live: a short tuner run with its live server (:func:`start_live_run`); an app per view of
+   every layout (a layout, or one tab of it) is connected while the run goes on. Every panel
+   gets a finite point on every path, and Fig. 9's points are the losses and gains of
+   results.jsonl, bit for bit, at their experiment ids.
+2. After the fact: the run's bag opened as a local file: every panel plots finite points on
+   every path, and Fig. 9 every experiment of results.jsonl, bit for bit.
+
+Marked ``viewer``: it runs where Chromium (/usr/bin/chromium, or $CHROMIUM), Node.js and npm
+are (``.ci/run`` installs them), and skips saying which is missing elsewhere.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from ament_index_python.packages import get_package_share_directory
+
+from im_controller.config import GAIN_NAMES
+from im_drive_sim.runtime import stop_child
+
+REPO = Path(__file__).resolve().parents[1]
+VIEW = REPO / 'tools' / 'foxglove-view'
+ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
+CHROMIUM = Path(os.environ.get('CHROMIUM', '/usr/bin/chromium'))
+STANDIN = Path(__file__).resolve().parent / 'foxglove_live_standin.py'
+#: the live run: the lock-step bench, the reference, six evaluations and the re-measurements
+RUN_ARGS = ('--bench', 'inproc', '--budget', '6', '--seed', '1', '--quiet')
+#: the longest the viewer waits for a view's panels to fill, and for the app to connect [s]
+VIEW_TIMEOUT_S = 120
+#: the longest the live run and its viewer may take together, and the bag's viewer [s]
+LIVE_DEADLINE_S = 300
+BAG_DEADLINE_S = 240
+#: a loss message's value by its key, as Fig. 9's paths end
+LOSS_KEY = re.compile(r'\{key=="(\w+)"\}\.value$')
+
+
+def _missing() -> str | None:
+    """What this machine lacks to run the viewer, or None."""
+    if not CHROMIUM.exists():
+        return f'no Chromium at {CHROMIUM} (Debian: apt-get install chromium)'
+    for tool in ('node', 'npm'):
+        if shutil.which(tool) is None:
+            return f'no {tool} on PATH (Node.js and npm run the viewer)'
+    return None
+
+
+pytestmark = [
+    pytest.mark.viewer,
+    pytest.mark.skipif(_missing() is not None, reason=str(_missing())),
+]
+
+
+def _child(argv: list[str], **kwargs: Any) -> subprocess.Popen:
+    """A child whose stdout and stderr go to files (read by :func:`finish`), never a pipe
+    nobody reads while the test waits."""
+    out = tempfile.TemporaryFile('w+')  # noqa: SIM115 (closed with the test's tmp files)
+    err = tempfile.TemporaryFile('w+')  # noqa: SIM115
+    proc = subprocess.Popen(argv, stdout=out, stderr=err, text=True, **kwargs)
+    proc.files = (out, err)  # type: ignore[attr-defined]
+    return proc
+
+
+#: The WebSocket subprotocol the live server speaks, which the viewer's app then offers: the
+#: stand-in's ``foxglove.websocket.v1`` is Studio 1.48's own; foxglove-sdk's server accepts only
+#: ``foxglove.sdk.v1``, and the app offers that with this one constant rewritten (view.mjs
+#: ``--subprotocol``). With the tuner's own server (foxglove-sdk): ``'foxglove.sdk.v1'``.
+LIVE_SUBPROTOCOL = 'foxglove.websocket.v1'
+
+
+def start_live_run(port: int, out: Path, clients: int) -> subprocess.Popen:
+    """A short tuner run (:data:`RUN_ARGS`) recording to ``out``, its topics served live on
+    ws://127.0.0.1:``port`` while it goes on; ``clients``: the viewer's connections.
+
+    Until the tuner's own ``--live PORT`` exists this is a stand-in: the run, then its bag
+    replayed as recorded (test/foxglove_live_standin.py, the older Python server). With it:
+    ``[ROS2, 'run', 'im_tuner', 'tuner', *RUN_ARGS, '--live', str(port), '--out', str(out)]``
+    (and :data:`LIVE_SUBPROTOCOL` set to its server's).
+    """
+    tuner = [ROS2, 'run', 'im_tuner', 'tuner', *RUN_ARGS, '--out', str(out)]
+    argv = [sys.executable, str(STANDIN), '--port', str(port), '--clients', str(clients), '--']
+    return _child([*argv, *tuner])
+
+
+def view(*args: str) -> subprocess.Popen:
+    """tools/foxglove-view/view.mjs with ``args`` (its report: one JSON line on stdout)."""
+    argv = ['node', str(VIEW / 'view.mjs'), '--timeout', str(VIEW_TIMEOUT_S), *args]
+    return _child(argv, cwd=VIEW)
+
+
+def _read(proc: subprocess.Popen) -> tuple[str, str]:
+    texts = []
+    for f in proc.files:  # type: ignore[attr-defined]
+        f.seek(0)
+        texts.append(f.read())
+    return texts[0], texts[1]
+
+
+def finish(proc: subprocess.Popen, deadline_s: float, what: str) -> str:
+    """``proc``'s stdout once it exited 0 within ``deadline_s``; its stderr's end if not."""
+    try:
+        proc.wait(timeout=deadline_s)
+    except subprocess.TimeoutExpired:
+        stop_child(proc)
+        pytest.fail(
+            f'{what} still running after {deadline_s} s; stderr ends:\n{_read(proc)[1][-3000:]}'
+        )
+    out, err = _read(proc)
+    assert proc.returncode == 0, f'{what} exited {proc.returncode}:\n{err[-3000:]}'
+    return out
+
+
+def watch(viewer: subprocess.Popen, run: subprocess.Popen, deadline_s: float) -> dict:
+    """The live viewer's report, once it and the run ended (within ``deadline_s``); a run
+    that fails ends the wait at once."""
+    deadline = time.monotonic() + deadline_s
+    while viewer.poll() is None and time.monotonic() < deadline:
+        if run.poll() not in (None, 0):
+            pytest.fail(f'the live run exited {run.returncode}:\n{_read(run)[1][-3000:]}')
+        time.sleep(0.2)
+    report = json.loads(finish(viewer, max(1.0, deadline - time.monotonic()), 'the live viewer'))
+    finish(run, max(1.0, deadline - time.monotonic()), 'the live run')
+    return report
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+# -- what a layout shows --------------------------------------------------------------------
+def leaves(node: Any) -> list[str]:
+    return [node] if isinstance(node, str) else leaves(node['first']) + leaves(node['second'])
+
+
+def plot_panels(layout: dict) -> list[str]:
+    """Every Plot panel of a layout, inside its tabs too."""
+    ids = leaves(layout['layout'])
+    for pid in list(ids):
+        if pid.startswith('Tab!'):
+            for tab in layout['configById'][pid]['tabs']:
+                ids += leaves(tab['layout'])
+    return [p for p in ids if p.startswith('Plot!')]
+
+
+def n_views(layout: dict) -> int:
+    """The views the viewer opens for a layout: the layout itself, or each tab of it."""
+    tabs = [p for p in leaves(layout['layout']) if p.startswith('Tab!')]
+    return sum(len(layout['configById'][t]['tabs']) for t in tabs) or 1
+
+
+@pytest.fixture(scope='module')
+def layouts_dir() -> Path:
+    return Path(get_package_share_directory('im_tuner')) / 'foxglove'
+
+
+@pytest.fixture(scope='module')
+def layouts(layouts_dir: Path) -> dict[str, dict]:
+    return {
+        f.stem: json.loads(f.read_text(encoding='utf-8'))
+        for f in sorted(layouts_dir.glob('*.json'))
+    }
+
+
+@pytest.fixture(scope='module')
+def viewer_installed() -> None:
+    """tools/foxglove-view's npm packages, installed from its lock file when absent."""
+    if (VIEW / 'node_modules' / '@foxglove' / 'studio-base' / 'assets' / 'index.js').exists():
+        return
+    p = subprocess.run(
+        ['npm', 'ci', '--no-audit', '--no-fund'],
+        cwd=VIEW,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    if p.returncode != 0:
+        pytest.skip(f'npm ci in tools/foxglove-view failed: {p.stderr.strip()[-300:]}')
+
+
+@pytest.fixture(scope='module')
+def live(tmp_path_factory, layouts_dir, layouts, viewer_installed) -> tuple[dict, Path]:
+    """The viewer's report of a live run, and the run's directory."""
+    out = tmp_path_factory.mktemp('foxglove_view') / 'run'
+    port = free_port()
+    clients = sum(n_views(lay) for lay in layouts.values())
+    # the viewer first: its apps retry the connection (every 3 s) until the server is up
+    ws = ('--ws', f'ws://127.0.0.1:{port}', '--subprotocol', LIVE_SUBPROTOCOL)
+    viewer = view('--layouts', str(layouts_dir), *ws)
+    run = None
+    try:
+        run = start_live_run(port, out, clients)
+        report = watch(viewer, run, LIVE_DEADLINE_S)
+    finally:
+        for proc in (viewer, run):
+            if proc is not None and proc.poll() is None:
+                stop_child(proc)
+    return report, out
+
+
+def results_by_id(run: Path) -> dict[int, dict]:
+    rows = [json.loads(line) for line in (run / 'results.jsonl').read_text().splitlines()]
+    return {r['experiment_id']: r for r in rows}
+
+
+def fig9_points(panels: dict) -> dict[str, list[list[float]]]:
+    """Fig. 9's series: the loss key (``loss``, a gain's name) -> its [experiment id, value]
+    points in id order, gathered from every path plotted against a custom x axis (a key
+    drawn as several series -- evaluations, re-measurements -- gives their points together)."""
+    out: dict[str, list[list[float]]] = {}
+    for series in panels.values():
+        for path, s in (series or {}).items():
+            if 'points' in s:
+                m = LOSS_KEY.search(path)
+                assert m, path
+                out.setdefault(m.group(1), []).extend(s['points'])
+    return {k: sorted(v) for k, v in out.items()}
+
+
+def expected(row: dict, key: str) -> float:
+    return row['loss'] if key == 'loss' else row['gains'][key]
+
+
+# -- the tests ------------------------------------------------------------------------------
+def test_every_panel_of_every_layout_shows_a_live_run_as_it_goes(live, layouts):
+    report, run = live
+    assert report['errors'] == []
+    assert sorted(report['layouts']) == sorted(layouts)
+    for name, layout in layouts.items():
+        seen = report['layouts'][name]
+        for pid in plot_panels(layout):
+            paths = [p['value'] for p in layout['configById'][pid]['paths']]
+            panel = seen['panels'][pid]
+            assert panel is not None, f'{name}: {pid} not drawn'
+            assert sorted(panel) == sorted(paths), f'{name}: {pid}'
+            for path, s in panel.items():
+                # a point on every path, while connected: the app left the server after
+                assert s['n'] >= 1 and s['finite'], f'{name}: {pid} {path}: {s}'
+                assert seen['at'][pid] <= seen['disconnected'], f'{name}: {pid}'
+    # Fig. 9 live: each point it drew is its experiment's loss or gain, bit for bit
+    rows = results_by_id(run)
+    points = fig9_points(report['layouts']['fig9_loss_gains']['last'])
+    assert sorted(points) == sorted(['loss', *GAIN_NAMES])
+    for key, pts in points.items():
+        assert len(pts) >= 1, key
+        for x, y in pts:
+            assert x in rows, f'{key}: experiment id {x} not in results.jsonl'
+            assert y == expected(rows[int(x)], key), f'{key} at experiment {x}'
+
+
+def test_the_runs_bag_opened_as_a_file_shows_every_panel_and_every_experiment(
+    live, layouts, layouts_dir
+):
+    _report, run = live
+    bag = sorted((run / 'bag_0').glob('*.mcap'))[0]
+    report = json.loads(
+        finish(
+            view('--layouts', str(layouts_dir), '--bag', str(bag)), BAG_DEADLINE_S, 'the bag viewer'
+        )
+    )
+    assert report['errors'] == []
+    for name, layout in layouts.items():
+        panels = report['layouts'][name]['panels']
+        for pid in plot_panels(layout):
+            assert panels[pid] is not None, f'{name}: {pid} not drawn'
+            for path, s in panels[pid].items():
+                assert s['n'] >= 1 and s['finite'], f'{name}: {pid} {path}: {s}'
+    # Fig. 9 after the fact: every experiment of results.jsonl, in id order, bit for bit
+    rows = results_by_id(run)
+    points = fig9_points(report['layouts']['fig9_loss_gains']['panels'])
+    assert sorted(points) == sorted(['loss', *GAIN_NAMES])
+    for key, pts in points.items():
+        assert [x for x, _y in pts] == sorted(rows), key
+        assert [y for _x, y in pts] == [expected(rows[i], key) for i in sorted(rows)], key

@@ -1,0 +1,65 @@
+"""docs/foxglove/*.png: each shipped layout in Foxglove Studio's own app, from a real run.
+
+    python tools/foxglove-view/screenshots.py OUT_DIR     (make foxglove-screenshots)
+
+Runs the viewer test's live run (test/test_foxglove_viewer.py: ``start_live_run``, the same
+command and server) with the viewer connected, saving ``fig5_trajectory_live.png`` while the
+run goes on, then opens the run's bag as a file and saves ``<layout>.png`` for each layout
+(1280x800 PNG; a layout with tabs: its first tab). Bad input: one line, exit 2.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / 'test'))
+
+import test_foxglove_viewer as tv  # noqa: E402 (the test's run and viewer, one definition)
+
+from im_drive_sim.runtime import stop_child  # noqa: E402
+
+#: the layout shown in the live screenshot
+LIVE = 'fig5_trajectory'
+
+
+def main() -> None:
+    if len(sys.argv) != 2:
+        sys.exit('usage: screenshots.py OUT_DIR')
+    missing = tv._missing()
+    if missing:
+        print(f'screenshots.py: {missing}', file=sys.stderr)
+        sys.exit(2)
+    out = Path(sys.argv[1]).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    layouts_dir = Path(tv.get_package_share_directory('im_tuner')) / 'foxglove'
+    layouts = {f.stem: json.loads(f.read_text()) for f in sorted(layouts_dir.glob('*.json'))}
+    with tempfile.TemporaryDirectory(prefix='im_tuner_screenshots_') as tmp:
+        run_dir, port = Path(tmp) / 'run', tv.free_port()
+        shots = ('--screenshots', str(out), '--shots', LIVE, '--suffix', '_live')
+        ws = ('--ws', f'ws://127.0.0.1:{port}', '--subprotocol', tv.LIVE_SUBPROTOCOL)
+        viewer = tv.view('--layouts', str(layouts_dir), *ws, *shots)
+        run = None
+        try:
+            run = tv.start_live_run(port, run_dir, sum(tv.n_views(v) for v in layouts.values()))
+            tv.watch(viewer, run, tv.LIVE_DEADLINE_S)
+        finally:
+            for proc in (viewer, run):
+                if proc is not None and proc.poll() is None:
+                    stop_child(proc)
+        bag = sorted((run_dir / 'bag_0').glob('*.mcap'))[0]
+        shots = ('--screenshots', str(out))
+        tv.finish(
+            tv.view('--layouts', str(layouts_dir), '--bag', str(bag), *shots),
+            tv.BAG_DEADLINE_S,
+            'the bag viewer',
+        )
+    for f in sorted(out.glob('*.png')):
+        print(f)
+
+
+if __name__ == '__main__':
+    main()

@@ -43,7 +43,6 @@ REPO = Path(__file__).resolve().parents[1]
 VIEW = REPO / 'tools' / 'foxglove-view'
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 CHROMIUM = Path(os.environ.get('CHROMIUM', '/usr/bin/chromium'))
-STANDIN = Path(__file__).resolve().parent / 'foxglove_live_standin.py'
 #: the live run: the lock-step bench, the reference, six evaluations and the re-measurements
 RUN_ARGS = ('--bench', 'inproc', '--budget', '6', '--seed', '1', '--quiet')
 #: the longest the viewer waits for a view's panels to fill, and for the app to connect [s]
@@ -88,18 +87,12 @@ def _child(argv: list[str], **kwargs: Any) -> subprocess.Popen:
 LIVE_SUBPROTOCOL = 'foxglove.websocket.v1'
 
 
-def start_live_run(port: int, out: Path, clients: int) -> subprocess.Popen:
+def start_live_run(port: int, out: Path) -> subprocess.Popen:
     """A short tuner run (:data:`RUN_ARGS`) recording to ``out``, its topics served live on
-    ws://127.0.0.1:``port`` while it goes on; ``clients``: the viewer's connections.
-
-    Until the tuner's own ``--live PORT`` exists this is a stand-in: the run, then its bag
-    replayed as recorded (test/foxglove_live_standin.py, the older Python server). With it:
-    ``[ROS2, 'run', 'im_tuner', 'tuner', *RUN_ARGS, '--live', str(port), '--out', str(out)]``
-    (and :data:`LIVE_SUBPROTOCOL` set to its server's).
-    """
-    tuner = [ROS2, 'run', 'im_tuner', 'tuner', *RUN_ARGS, '--out', str(out)]
-    argv = [sys.executable, str(STANDIN), '--port', str(port), '--clients', str(clients), '--']
-    return _child([*argv, *tuner])
+    ws://127.0.0.1:``port`` (``tuner --live``) while it goes on."""
+    return _child(
+        [ROS2, 'run', 'im_tuner', 'tuner', *RUN_ARGS, '--live', str(port), '--out', str(out)]
+    )
 
 
 def view(*args: str) -> subprocess.Popen:
@@ -164,12 +157,6 @@ def plot_panels(layout: dict) -> list[str]:
     return [p for p in ids if p.startswith('Plot!')]
 
 
-def n_views(layout: dict) -> int:
-    """The views the viewer opens for a layout: the layout itself, or each tab of it."""
-    tabs = [p for p in leaves(layout['layout']) if p.startswith('Tab!')]
-    return sum(len(layout['configById'][t]['tabs']) for t in tabs) or 1
-
-
 @pytest.fixture(scope='module')
 def layouts_dir() -> Path:
     return Path(get_package_share_directory('im_tuner')) / 'foxglove'
@@ -199,24 +186,33 @@ def viewer_installed() -> None:
         pytest.skip(f'npm ci in tools/foxglove-view failed: {p.stderr.strip()[-300:]}')
 
 
-@pytest.fixture(scope='module')
-def live(tmp_path_factory, layouts_dir, layouts, viewer_installed) -> tuple[dict, Path]:
-    """The viewer's report of a live run, and the run's directory."""
-    out = tmp_path_factory.mktemp('foxglove_view') / 'run'
+def watch_live_run(layouts_dir: Path, out: Path, *view_args: str) -> dict:
+    """The viewer's report of a live run (:func:`start_live_run` into ``out``): the viewer
+    first, the run once every app of it has loaded (it is then seen from its first
+    experiment: the apps retry their connection every 3 s until the server is up)."""
     port = free_port()
-    clients = sum(n_views(lay) for lay in layouts.values())
-    # the viewer first: its apps retry the connection (every 3 s) until the server is up
     ws = ('--ws', f'ws://127.0.0.1:{port}', '--subprotocol', LIVE_SUBPROTOCOL)
-    viewer = view('--layouts', str(layouts_dir), *ws)
+    ready = out.parent / f'{out.name}.viewer_ready'
+    viewer = view('--layouts', str(layouts_dir), *ws, '--ready', str(ready), *view_args)
     run = None
     try:
-        run = start_live_run(port, out, clients)
-        report = watch(viewer, run, LIVE_DEADLINE_S)
+        deadline = time.monotonic() + LIVE_DEADLINE_S
+        while not ready.exists() and viewer.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert ready.exists(), f'the viewer did not load its apps: {_read(viewer)[1][-3000:]}'
+        run = start_live_run(port, out)
+        return watch(viewer, run, LIVE_DEADLINE_S)
     finally:
         for proc in (viewer, run):
             if proc is not None and proc.poll() is None:
                 stop_child(proc)
-    return report, out
+
+
+@pytest.fixture(scope='module')
+def live(tmp_path_factory, layouts_dir, layouts, viewer_installed) -> tuple[dict, Path]:
+    """The viewer's report of a live run, and the run's directory."""
+    out = tmp_path_factory.mktemp('foxglove_view') / 'run'
+    return watch_live_run(layouts_dir, out), out
 
 
 def results_by_id(run: Path) -> dict[int, dict]:

@@ -115,12 +115,18 @@ def test_a_live_client_gets_the_bags_channels_and_messages(bench, procs, tmp_pat
     assert got['/controller/loss'] == bag['/controller/loss']
     assert len(got['/controller/loss']) == len(losses(run)) >= 4
     # the 5 kHz topics at 250 Hz: every 20th of the bag's messages from the first live
-    # one on (the client subscribed after the first few)
+    # one on (the client subscribed after the first few), but for those a loaded machine
+    # made the server drop for this client (counted below)
+    summary = json.loads((run / 'summary.json').read_text())
+    said = summary['sessions'][-1]['live']
     for topic in PERIOD_TOPICS:
         live, recorded = got[topic], bag[topic]
         first = recorded.index(live[0])
-        assert live == recorded[first::20][: len(live)], topic
-        assert len(live) >= (len(recorded) - first) // 20 - 1
+        every = recorded[first::20]
+        at = {m: i for i, m in enumerate(every)}
+        where = [at[m] for m in live]  # (KeyError: a message not among every 20th)
+        assert where == sorted(set(where)), topic  # in order, none twice
+        assert len(every) - len(live) <= said['dropped'] + 1, topic
     # a state decoded: the values of the bag's message of the same log time
     t, data = got['/drive/state'][len(got['/drive/state']) // 2]
     same = [d for tb, d in bag['/drive/state'] if tb == t]
@@ -128,12 +134,12 @@ def test_a_live_client_gets_the_bags_channels_and_messages(bench, procs, tmp_pat
     live_values, bag_values = parse_float64_multiarray(data), parse_float64_multiarray(same[0])
     assert len(live_values) == 14 and list(live_values) == list(bag_values)
     # said at the end, and in summary.json
-    summary = json.loads((run / 'summary.json').read_text())
-    said = summary['sessions'][-1]['live']
     assert said['url'] == f'ws://127.0.0.1:{port}' and said['every_nth'] == 20
-    assert said['clients'] == 1 and said['dropped'] == 0
+    assert said['clients'] == 1
     assert said['sent'] == sum(len(m) for m in got.values())
-    assert f'live (ws://127.0.0.1:{port}): ' in out and 'none dropped' in out
+    assert f'live (ws://127.0.0.1:{port}): ' in out
+    if said['dropped'] == 0:
+        assert 'none dropped' in out
 
 
 def test_a_frozen_client_changes_nothing_of_the_run(procs, tmp_path):

@@ -10,7 +10,6 @@ run goes on, then opens the run's bag as a file and saves ``<layout>.png`` for e
 
 from __future__ import annotations
 
-import json
 import sys
 import tempfile
 from pathlib import Path
@@ -19,8 +18,6 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / 'test'))
 
 import test_foxglove_viewer as tv  # noqa: E402 (the test's run and viewer, one definition)
-
-from im_drive_sim.runtime import stop_child  # noqa: E402
 
 #: the layout shown in the live screenshot
 LIVE = 'fig5_trajectory'
@@ -36,20 +33,10 @@ def main() -> None:
     out = Path(sys.argv[1]).resolve()
     out.mkdir(parents=True, exist_ok=True)
     layouts_dir = Path(tv.get_package_share_directory('im_tuner')) / 'foxglove'
-    layouts = {f.stem: json.loads(f.read_text()) for f in sorted(layouts_dir.glob('*.json'))}
     with tempfile.TemporaryDirectory(prefix='im_tuner_screenshots_') as tmp:
-        run_dir, port = Path(tmp) / 'run', tv.free_port()
+        run_dir = Path(tmp) / 'run'
         shots = ('--screenshots', str(out), '--shots', LIVE, '--suffix', '_live')
-        ws = ('--ws', f'ws://127.0.0.1:{port}', '--subprotocol', tv.LIVE_SUBPROTOCOL)
-        viewer = tv.view('--layouts', str(layouts_dir), *ws, *shots)
-        run = None
-        try:
-            run = tv.start_live_run(port, run_dir, sum(tv.n_views(v) for v in layouts.values()))
-            tv.watch(viewer, run, tv.LIVE_DEADLINE_S)
-        finally:
-            for proc in (viewer, run):
-                if proc is not None and proc.poll() is None:
-                    stop_child(proc)
+        tv.watch_live_run(layouts_dir, run_dir, *shots)
         bag = sorted((run_dir / 'bag_0').glob('*.mcap'))[0]
         shots = ('--screenshots', str(out))
         tv.finish(

@@ -5,19 +5,21 @@
 //
 //   node view.mjs --layouts DIR (--ws ws://127.0.0.1:PORT | --bag FILE.mcap)
 //                 [--screenshots DIR [--shots NAME,...] [--suffix _live]] [--timeout S]
-//                 [--subprotocol foxglove.sdk.v1] [--serve]
+//                 [--subprotocol foxglove.sdk.v1] [--ready FILE] [--serve]
 //
 // Each layout (DIR/*.json, a layout's id is its file name) is shown in the app, every Tab
 // panel's tabs in turn; a view is done when each of its Plot panels has a point on every
 // path, or after --timeout seconds (its panels are then reported as they are). A bag: one
 // app, the layouts selected one after another. Live: an app per view (a layout or a tab of
 // it), all at once (a run may last seconds), each then read until the server goes away
-// ("last": Fig. 9's every loss). --serve only serves the page and prints its address, for
+// ("last": Fig. 9's every loss); --ready FILE: written once every live app has loaded (and
+// retries its connection every 3 s), so that a run started then is seen from its start.
+// --serve only serves the page and prints its address, for
 // a browser of one's own. Chromium is Debian's (/usr/bin/chromium, or $CHROMIUM), closed in
 // a finally block.
 import { chromium } from "playwright-core";
 import { createServer } from "node:http";
-import { mkdtemp, readFile, readdir, rm } from "node:fs/promises";
+import { mkdtemp, readFile, readdir, rm, writeFile } from "node:fs/promises";
 import { tmpdir } from "node:os";
 import { basename, dirname, extname, join } from "node:path";
 import { fileURLToPath } from "node:url";
@@ -40,6 +42,7 @@ const { values: opt } = parseArgs({
     suffix: { type: "string", default: "" },
     timeout: { type: "string", default: "60" },
     subprotocol: { type: "string", default: STUDIO_SUBPROTOCOL },
+    ready: { type: "string" },
     serve: { type: "boolean", default: false },
   },
 });
@@ -103,14 +106,21 @@ function views(layout) {
   }
   return out.filter((v) => v.plots.length > 0);
 }
-async function openApp(context, layoutId) {
+/** A page of the app with layout `layoutId`, its player made (not yet connected). */
+async function loadApp(context, layoutId) {
   const page = await context.newPage();
   page.on("pageerror", (e) => errors.push(String(e).slice(0, 300)));
   await page.goto(`${base}?${source}&layoutId=${encodeURIComponent(layoutId)}`, { timeout: TIMEOUT_MS });
-  // (a live page retries its connection every 3 s until the server is up)
+  await page.waitForFunction(() => !!window.imView?.state(), null, { timeout: TIMEOUT_MS, polling: 100 });
+  return page;
+}
+/** `page` once its data source is there (a live page retries its connection every 3 s
+ * until the server is up). */
+async function connected(page) {
   await page.waitForFunction(() => window.imView?.state()?.presence === "PRESENT", null, { timeout: TIMEOUT_MS, polling: 100 });
   return page;
 }
+const openApp = async (context, layoutId) => connected(await loadApp(context, layoutId));
 
 const t0 = Date.now();
 const seconds = () => (Date.now() - t0) / 1000;
@@ -184,9 +194,11 @@ try {
     // (it may last seconds); each view is then read until the server goes away ("last":
     // Fig. 9's every loss)
     const all = Object.keys(layouts).flatMap((name) => views(layouts[name]).map((_v, i) => [name, i]));
+    const pages = await Promise.all(all.map(([name]) => loadApp(context, name)));
+    if (opt.ready) await writeFile(opt.ready, `${pages.length}\n`);
     const seen = await Promise.all(
-      all.map(async ([name, i]) => {
-        const page = await openApp(context, name);
+      all.map(async ([name, i], k) => {
+        const page = await connected(pages[k]);
         const shown = await showLayout(page, name, shots(name) && i === 0, i);
         let last = {};
         while ((await presence(page)) === "PRESENT") {

@@ -3,11 +3,13 @@ thread of its own, fed by the recorder (:mod:`.live` says what goes live and why
 library).
 
 Nothing of it waits on a client: the recorder's thread appends to a bounded inbox and
-wakes the server's thread (asyncio); there each client has a bounded queue and a sender
-task of its own, so a slow or frozen client costs its own dropped live messages
+wakes the server's thread (asyncio); there each client has two bounded queues and a
+sender task of its own, so a slow or frozen client costs its own dropped live messages
 (counted: :meth:`LiveServer.stats`), never a period, never a bag message, never another
-client's data. ``foxglove-websocket``'s own sending (``send_message``, ``add_channel``)
-awaits each client's socket in turn, a frozen one for ever: this module sends through the
+client's data. The experiment-rate topics' queue is sent first and is deep: a client
+that falls behind loses 5 kHz messages, not an experiment's loss.
+``foxglove-websocket``'s own sending (``send_message``, ``add_channel``) awaits each
+client's socket in turn, a frozen one for ever: this module sends through the
 per-client queues instead, and uses the library for the handshake, the server info, the
 first advertise and the subscriptions (its client states).
 """
@@ -22,10 +24,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from .live import LiveError, LiveSettings, cannot_listen, every_nth
+from .live import LiveError, LiveSettings, cannot_listen, every_nth, is_period_topic
 
-#: messages queued for one client; when full its oldest is dropped (counted)
+#: messages of the 5 kHz topics queued for one client; when full its oldest is dropped
+#: (counted)
 CLIENT_BACKLOG = 4096
+#: messages of the experiment-rate topics (a loss, a result: a few per experiment) queued
+#: for one client, sent before the 5 kHz ones; dropped (counted) only past this many, a
+#: client frozen for thousands of experiments
+CLIENT_WHOLE_BACKLOG = 65536
 #: messages waiting between the recorder's thread and the server's (the server's thread
 #: starved of the CPU); when full the oldest is dropped (counted)
 INBOX_SIZE = 65536
@@ -44,6 +51,8 @@ class _ClientQueue:
 
     addr: str
     queue: deque = field(default_factory=lambda: deque(maxlen=CLIENT_BACKLOG))
+    #: the experiment-rate topics' messages: sent before ``queue``'s
+    whole: deque = field(default_factory=lambda: deque(maxlen=CLIENT_WHOLE_BACKLOG))
     #: advertisements of channels added while it is connected: sent first, never dropped
     control: deque = field(default_factory=deque)
     wake: Any = None  # asyncio.Event
@@ -76,6 +85,7 @@ class LiveServer:
         self._wake_pending = False
         self._lock = threading.Lock()  # the inbox's drop count and wake flag
         self._channels: dict[int, int] = {}  # bag channel -> server channel (server thread)
+        self._periodic: set[int] = set()  # bag channels of the 5 kHz topics (server thread)
         self._clients: dict[Any, _ClientQueue] = {}  # connection -> queue (server thread)
         self._gone: list[_ClientQueue] = []
         self.offered = 0
@@ -224,6 +234,8 @@ class LiveServer:
         )
         server._channels[cid] = chan
         self._channels[channel] = cid
+        if is_period_topic(topic):
+            self._periodic.add(channel)
         text = json.dumps({'op': 'advertise', 'channels': [chan]}, separators=(',', ':'))
         for c in self._clients.values():
             c.control.append(text)
@@ -247,14 +259,16 @@ class LiveServer:
         if c is None:
             return
         c.task.cancel()
-        c.dropped += len(c.queue)
+        c.dropped += len(c.queue) + len(c.whole)
         c.queue.clear()
+        c.whole.clear()
         self._gone.append(c)
         slow = f', {c.dropped} dropped: it did not read them in time' if c.dropped else ''
         self._log(f'live: client {c.addr} disconnected ({c.sent} messages sent{slow})')
 
     def _pump(self) -> None:
-        """Move the inbox into the subscribed clients' queues (oldest dropped when full)."""
+        """Move the inbox into the subscribed clients' queues (a 5 kHz topic's message to
+        ``queue``, another's to ``whole``; the oldest dropped when one is full)."""
         from foxglove_websocket.server import MessageDataHeader
         from foxglove_websocket.types import BinaryOpcode
 
@@ -265,17 +279,21 @@ class LiveServer:
         states = {s.connection: s for s in self._server._clients}
         for conn, c in self._clients.items():
             subs = states[conn].subscriptions_by_channel if conn in states else {}
-            n0 = len(c.queue)
-            added = 0
+            n0, w0 = len(c.queue), len(c.whole)
+            added = whole = 0
             for ch, t, data in batch:
                 sid = subs.get(self._channels.get(ch, -1))
                 if sid is not None:
-                    c.queue.append(
-                        (MessageDataHeader.pack(BinaryOpcode.MESSAGE_DATA, sid, t), data)
-                    )
-                    added += 1
+                    item = (MessageDataHeader.pack(BinaryOpcode.MESSAGE_DATA, sid, t), data)
+                    if ch in self._periodic:
+                        c.queue.append(item)
+                        added += 1
+                    else:
+                        c.whole.append(item)
+                        whole += 1
             c.dropped += max(0, n0 + added - CLIENT_BACKLOG)
-            if added:
+            c.dropped += max(0, w0 + whole - CLIENT_WHOLE_BACKLOG)
+            if added or whole:
                 c.wake.set()
 
     async def _send_loop(self, connection: Any, c: _ClientQueue) -> None:
@@ -285,11 +303,11 @@ class LiveServer:
             while True:
                 await c.wake.wait()
                 c.wake.clear()
-                while c.control or c.queue:
+                while c.control or c.whole or c.queue:
                     if c.control:
                         await connection.send(c.control.popleft())
                         continue
-                    header, data = c.queue.popleft()
+                    header, data = (c.whole or c.queue).popleft()
                     c.sent += 1  # (handed to the connection: written before the await)
                     await connection.send(header + data)
         except ConnectionClosed:
@@ -305,14 +323,15 @@ class LiveServer:
 
         deadline = time.monotonic() + CLOSE_GRACE_S
         while time.monotonic() < deadline and any(
-            c.queue or c.control for c in self._clients.values()
+            c.queue or c.whole or c.control for c in self._clients.values()
         ):
             await asyncio.sleep(0.01)
 
         async def close(conn: Any, c: _ClientQueue) -> None:
             c.task.cancel()
-            c.dropped += len(c.queue)
+            c.dropped += len(c.queue) + len(c.whole)
             c.queue.clear()
+            c.whole.clear()
             with contextlib.suppress(BaseException):
                 await asyncio.wait_for(conn.close(), CLOSE_GRACE_S)
             if conn.transport is not None and not conn.transport.is_closing():

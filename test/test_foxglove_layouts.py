@@ -8,8 +8,11 @@ schemas): the topic is in the bag with messages, every field exists on every dec
 message, every array index is below the array's length in every message, every path
 gives one plottable number per message, and every label names the field the contract
 puts at that index, with the unit docs/interfaces.md documents. The resolver is shown to
-catch a wrong topic, field, index, filter and label. The committed and installed files
-are the generator's bytes, and docs/foxglove.md carries the generator's index table.
+catch a wrong topic, field, index, filter and label. The layouts hold today's 63 message
+paths and the sim-time x axes of Figs. 5 and 8, whose panels each plot one topic against
+that topic's drive step: on the bag the load steps on 0.7 s of sim time after the move
+starts. The committed and installed files are the generator's bytes, the SDK's form holds
+the same panel configs, and docs/foxglove.md carries the generator's index table.
 """
 
 from __future__ import annotations
@@ -36,7 +39,8 @@ from im_controller.config import GAIN_NAMES, GAIN_UNITS
 from im_controller.layout import CONTROL_FIELDS, INTERNALS_FIELDS
 from im_controller.messages import LOSS_KEYS
 from im_drive_sim.contract import COMMAND_FIELDS, STATE_FIELDS
-from im_tuner.foxglove import LAYOUTS, build, render
+from im_tuner.foxglove import LAYOUTS, build, definitions, render, render_sdk
+from im_tuner.foxglove.layouts import STEP_FIELDS, TITLE_KEY
 from im_tuner.foxglove.signals import index_table
 
 REPO = Path(__file__).resolve().parents[1]
@@ -201,7 +205,8 @@ def panels(layout: dict) -> list[str]:
 
 
 def series(layout: dict) -> list[tuple[str, str, str | None]]:
-    """``(panel id, message path, label)`` of every Plot series and custom x axis."""
+    """``(panel id, message path, label)`` of every Plot series and custom x axis (label
+    None)."""
     out = []
     for pid in panels(layout):
         if not pid.startswith('Plot!'):
@@ -246,8 +251,11 @@ def check_label(path: str, text: str | None) -> None:
     """The label names the field at the path's index (or the loss key) with its documented
     unit (AssertionError otherwise)."""
     topic, steps = parse_path(path)
-    if text is None:  # a custom x axis: the loss message's experiment id
-        assert topic == LOSS_TOPIC and steps[-2] == ('filter', ('key', 'experiment_id'))
+    if text is None:  # a custom x axis: the loss message's experiment id, or a drive step
+        if topic in FIELDS:
+            assert steps == [('field', 'data'), ('index', FIELDS[topic].index(STEP_FIELDS[topic]))]
+        else:
+            assert topic == LOSS_TOPIC and steps[-2] == ('filter', ('key', 'experiment_id'))
         return
     m = LABEL.match(text)
     assert m, f'{path}: label {text!r} is not "name: meaning [unit]"'
@@ -342,6 +350,112 @@ def test_the_paper_figures_show_what_the_paper_does(installed):
         assert cfg['xAxisVal'] == 'custom', pid  # per experiment, not over time
 
 
+def loss_value(key: str) -> str:
+    return f'{LOSS_TOPIC}.status[0].values[:]{{key=="{key}"}}.value'
+
+
+def test_the_layouts_hold_todays_63_paths_and_the_sim_time_axes(installed):
+    """The paths the hand-written layouts held (63: each series and custom x axis of each
+    layout), and the x axis of each Fig. 5 and Fig. 8 panel: the drive step of its topic."""
+    s, i = '/drive/state', '/controller/internals'
+    today = {
+        'fig5_trajectory': [
+            at(i, 'theta_ref'),
+            at(s, 'theta_meas'),
+            at(i, 'e_theta'),
+            at(i, 'load_cmd'),
+            at(s, 'load_torque'),
+        ],
+        'fig8_errors': [at(i, 'e_theta'), at(i, 'e_omega'), at(i, 'isq_ref'), at(s, 'isq')],
+        'fig9_loss_gains': [
+            loss_value('loss'),
+            *(loss_value(g) for g in GAIN_NAMES),
+            *[loss_value('experiment_id')] * (1 + len(GAIN_NAMES)),
+        ],
+        'drive_signals': [f'{t}.data[{k}]' for t, fs in FIELDS.items() for k in range(len(fs))],
+    }
+    assert sum(len(v) for v in today.values()) == 63
+    steps = {t: at(t, STEP_FIELDS[t]) for t in FIELDS}
+    sim_time = {
+        'fig5_trajectory': [steps[i], steps[s], steps[i], steps[i], steps[s]],
+        'fig8_errors': [steps[i], steps[i], steps[i], steps[s]],
+        'fig9_loss_gains': [],
+        'drive_signals': [],
+    }
+    for name, layout in installed.items():
+        got = [p for _pid, p, _l in series(layout)]
+        assert sorted(got) == sorted(today[name] + sim_time[name]), name
+        for pid in panels(layout):
+            cfg = layout['configById'][pid]
+            if pid.startswith('Plot!') and name != 'drive_signals':
+                assert cfg['legendDisplay'] == 'top', pid  # the legend off the points
+            if cfg.get('xAxisVal') != 'custom':
+                continue
+            # Foxglove pairs a series' n-th message with the x path's n-th: one topic each
+            x_topic = parse_path(cfg['xAxisPath']['value'])[0]
+            assert {parse_path(p['value'])[0] for p in cfg['paths']} == {x_topic}, pid
+    for pid in panels(installed['drive_signals']):
+        cfg = installed['drive_signals']['configById'][pid]
+        assert not pid.startswith('Plot!') or cfg['xAxisVal'] == 'timestamp', pid
+
+
+def test_on_the_sim_time_axis_the_load_steps_0_7_s_after_the_move(run, installed):
+    """Fig. 5's x axis is the drive step k; on the lock-step bag k Ts is the drive's sim
+    time, and each experiment's load steps on 0.7 s after its move starts (3500 steps at
+    5 kHz), as the experiment defines it; the log time between them is the computer's."""
+    cfg = installed['fig5_trajectory']['configById']
+    x_internals = cfg['Plot!fig5_load_commanded']['xAxisPath']['value']
+    load_path = cfg['Plot!fig5_load_commanded']['paths'][0]['value']
+    ref_path = cfg['Plot!fig5_position_reference']['paths'][0]['value']
+    assert cfg['Plot!fig5_position_reference']['xAxisPath']['value'] == x_internals
+    x_state = cfg['Plot!fig5_position_measured']['xAxisPath']['value']
+    time_ns = at('/drive/state', 'time_ns')
+    v = resolve(run / 'bag_0', [x_internals, load_path, ref_path, x_state, time_ns])
+    ts_ns = max(v[time_ns]) / max(v[x_state])
+    assert ts_ns == 200_000.0  # the simulated drive's 5 kHz
+    assert v[time_ns] == [k * ts_ns for k in v[x_state]]  # sim time = k Ts on every state
+    k, load, ref = v[x_internals], v[load_path], v[ref_path]
+    assert k == sorted(k)
+    on = [n for n in range(1, len(k)) if load[n - 1] == 0.0 and load[n] != 0.0]
+    assert len(on) == 2  # the reference and the evaluation
+    previous = 0
+    for n in on:
+        first_move = next(m for m in range(previous + 1, n) if ref[m] != ref[m - 1])
+        # the move starts one step before the reference first changes (experiment step 0)
+        assert (k[n] - (k[first_move] - 1)) * ts_ns == pytest.approx(0.7e9, abs=1.0)
+        previous = n
+
+
+def test_the_file_form_and_the_sdk_form_are_one_definition():
+    """Each shipped file holds the SDK's panel configs as the SDK serialises them (the
+    title under Foxglove's title key), one for each panel of the SDK's layout."""
+
+    def sdk_panels(node: dict) -> Iterator[dict]:
+        if node['type'] == 'panel':
+            yield node
+        elif node['type'] == 'split':
+            for item in node['items']:
+                yield from sdk_panels(item['content'])
+        else:
+            assert node['type'] == 'tabs', node['type']
+            for tab in node['tabs']:
+                yield from sdk_panels(tab['content'])
+
+    files = build()
+    for name, layout in definitions().items():
+        sdk = json.loads(render_sdk(layout))
+        assert sdk['version'] == 1
+        want = {p['title']: p['config'] for p in sdk_panels(sdk['content'])}
+        studio = files[name]['configById']
+        got = {
+            c[TITLE_KEY]: {k: v for k, v in c.items() if k != TITLE_KEY}
+            for pid, c in studio.items()
+            if pid.startswith('Plot!')
+        }
+        assert got == want, name
+        assert len(got) == len([p for p in studio if p.startswith('Plot!')]), name
+
+
 @pytest.mark.parametrize(
     ('path', 'label', 'why'),
     [
@@ -391,8 +505,17 @@ def test_the_cli_prints_the_installed_layouts_and_refuses_bad_input(tmp_path):
     assert [v for _pid, v, _l in series(ns)] == [
         '/bench1' + v for _pid, v, _l in series(build()['fig8_errors'])
     ]
+    # the SDK's own form
+    proc = subprocess.run(
+        [*py, '--out', str(tmp_path / 'sdk'), '--sdk'], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 0, proc.stderr
+    for name, layout in definitions().items():
+        assert (tmp_path / 'sdk' / f'{name}.json').read_text() == render_sdk(layout), name
     for bad, why in (
         (['--namespace', 'bench1', '--out', str(tmp_path / 'x')], 'not a ROS namespace'),
+        (['--sdk'], '--sdk needs --out'),
+        (['--table', '--sdk'], 'takes no other option'),
         (['--out', str(tmp_path / 'missing' / 'x')], 'does not exist'),
         (['--namespace', '/b'], 'needs --out'),
         (['--table', '--out', str(tmp_path / 'x')], 'takes no other option'),

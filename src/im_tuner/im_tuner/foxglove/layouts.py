@@ -23,7 +23,8 @@ Two forms come from one definition:
   ``splitPercentage``), a tab container a ``Tab!`` panel whose tabs hold mosaic trees.
 * the SDK's own form (:func:`render_sdk`, ``Layout.to_json()``: ``{"version": 1,
   "content": {"type": "split", ...}}``), written by ``python -m im_tuner.foxglove --out
-  DIR --sdk``: what the SDK's notebook viewer takes. Studio 1.48 does not read it.
+  DIR --sdk``; the SDK's notebook viewer takes the objects themselves
+  (:func:`definitions`). Studio 1.48 does not read this form.
 
 What the SDK's classes cannot express, and how it is done here:
 
@@ -40,7 +41,9 @@ path (Plot's ``custom`` x axis) the step field of the topic its series come from
 ``step_index`` of ``/drive/state`` and ``/controller/internals``, ``answers_step`` of
 ``/drive/command``. Foxglove pairs the n-th message of a series with the n-th message of the
 x path, which is the same message only when both are on one topic; so each such panel
-plots one topic (reference and measured side by side, not in one panel). On receive time
+plots one topic (reference and measured side by side, not in one panel). The SDK's
+per-series x path (``PlotSeries.x_value_path``, the newer app's) would let one panel mix
+topics; Studio 1.48 has one x path per panel, so it is not used. On receive time
 a lock-step run draws each experiment stretched by however long the computer took. The
 drive-signals layout stays on receive time (``timestampMethod: receiveTime``, the MCAP
 log time, synced with the playback cursor). Fig. 9 plots the loss topic against its

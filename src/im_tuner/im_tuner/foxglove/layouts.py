@@ -46,12 +46,16 @@ per-series x path (``PlotSeries.x_value_path``, the newer app's) would let one p
 topics; Studio 1.48 has one x path per panel, so it is not used. On receive time
 a lock-step run draws each experiment stretched by however long the computer took. The
 drive-signals layout stays on receive time (``timestampMethod: receiveTime``, the MCAP
-log time, synced with the playback cursor). Fig. 9 plots the loss topic against its
-``experiment_id``: one point per experiment; Foxglove plots a numeric string as its number,
-which is how the loss message carries its values. The figures' legends sit above the
-plots, off the points (the drive signals' float over their small panels). The loss message
-does not say an experiment's kind (reference, evaluation, re-measurement;
-``results.jsonl`` does), so Fig. 9 draws them alike.
+log time, synced with the playback cursor). Fig. 9 plots the tuner's result topic
+(``/tuner/result``, one message per results.jsonl record, its status named by the record's
+kind: im_tuner.result_msg) against the record's ``experiment_id``, one series per kind
+(reference, evaluations, re-measurements: ``.status[:]{name=="eval"}``), each in a colour
+of its own (:data:`KIND_COLOURS`) and named in the legend; the x path is the same for all
+(unfiltered), so a message of another kind gives that series no point and the n-th-message
+pairing stays aligned; a record without a loss (lost, off timing) gives the loss series no
+point. Foxglove plots a numeric string as its number, which is how the message carries its
+values. The figures' legends sit above the plots, off the points (the drive signals' float
+over their small panels).
 """
 
 from __future__ import annotations
@@ -69,9 +73,10 @@ from im_drive_sim.contract import COMMAND_TOPIC, STATE_TOPIC
 
 from .signals import (
     ARRAY_TOPICS,
+    KIND_WORDS,
     LOSS_ID_KEY,
     LOSS_KEY,
-    LOSS_TOPIC,
+    RESULT_TOPIC,
     Signal,
     label,
     loss_signals,
@@ -79,15 +84,16 @@ from .signals import (
 )
 
 __all__ = [
+    'KIND_COLOURS',
     'LAYOUTS',
     'STEP_FIELDS',
     'Plot',
     'array_path',
     'build',
     'definitions',
-    'loss_path',
     'render',
     'render_sdk',
+    'result_path',
     'step_path',
     'to_studio',
 ]
@@ -95,7 +101,15 @@ __all__ = [
 STATE = '/' + STATE_TOPIC
 COMMAND = '/' + COMMAND_TOPIC
 INTERNALS = '/' + INTERNALS_TOPIC
-LOSS = '/' + LOSS_TOPIC
+RESULT = '/' + RESULT_TOPIC
+
+#: Fig. 9's colour of each record kind: the reference grey, the evaluations blue, their
+#: re-measurements orange.
+KIND_COLOURS: dict[str, str] = {
+    'reference': '#7f7f7f',
+    'eval': '#1f77b4',
+    'remeasure': '#ff7f0e',
+}
 
 #: Foxglove's key for a panel's title in its config (``PANEL_TITLE_CONFIG_KEY``).
 TITLE_KEY = 'foxglovePanelTitle'
@@ -138,37 +152,54 @@ def step_path(topic: str, namespace: str = '') -> str:
     return array_path(topic, STEP_FIELDS[topic], namespace)[0]
 
 
-def loss_path(key: str, namespace: str = '') -> str:
-    """The message path of one value of the loss message (a DiagnosticArray with one
-    status whose ``values`` are key/value strings), by key."""
-    return f'{namespace}{LOSS}.status[0].values[:]{{key=="{key}"}}.value'
+def result_path(key: str, kind: str | None = None, namespace: str = '') -> str:
+    """The message path of one value of the tuner's result message (one status, named by
+    the record's kind, whose ``values`` are key/value strings), by key; ``kind``: only
+    from records of that kind (a message of another kind gives no value)."""
+    status = 'status[0]' if kind is None else f'status[:]{{name=="{kind}"}}'
+    return f'{namespace}{RESULT}.{status}.values[:]{{key=="{key}"}}.value'
 
 
-def _loss_series(key: str, namespace: str) -> Series:
+def _kind_series(key: str, namespace: str) -> list[fl.PlotSeries]:
+    """One series of result value ``key`` per record kind, coloured and labelled
+    ``name: kind [unit]``."""
     s: Signal = loss_signals()[key]
-    return loss_path(key, namespace), label(s)
+    return [
+        fl.PlotSeries(
+            value=result_path(key, kind, namespace),
+            label=f'{s.name}: {words} [{s.unit}]',
+            color=KIND_COLOURS[kind],
+            enabled=True,
+            timestamp_method='receiveTime',
+            show_line=True,
+        )
+        for kind, words in KIND_WORDS.items()
+    ]
 
 
 def _plot(
     panel_id: str,
     title: str,
-    series: Iterable[Series],
+    series: Iterable[Series | fl.PlotSeries],
     x_path: str | None = None,
     x_label: str | None = None,
     legend_above: bool = True,
 ) -> Plot:
     """A Plot panel: series on the receive-time axis, or against ``x_path`` (one point per
     message, with a line through them); the legend above the plot (``legend_above``), else
-    floating over it (panels of several series, too small for a legend above)."""
+    floating over it (panels of several series, too small for a legend above). A series is
+    a (path, label) pair or the SDK's ``PlotSeries`` as it is."""
     paths = [
-        fl.PlotSeries(
-            value=value,
-            label=text,
+        s
+        if isinstance(s, fl.PlotSeries)
+        else fl.PlotSeries(
+            value=s[0],
+            label=s[1],
             enabled=True,
             timestamp_method='receiveTime',
             show_line=True if x_path is not None else None,
         )
-        for value, text in series
+        for s in series
     ]
     config = fl.PlotConfig(
         paths=paths,
@@ -310,11 +341,13 @@ def fig8_errors(ns: str = '') -> fl.Layout:
 
 def fig9_loss_gains(ns: str = '') -> fl.Layout:
     """Paper Fig. 9: the loss of every experiment (a, b) and the gains it ran with (c, d:
-    the paper shows k_pw; here all five), against the controller's experiment id."""
-    x = loss_path(LOSS_ID_KEY, ns)
+    the paper shows k_pw; here all five), against the controller's experiment id, from
+    the tuner's result topic: one series per record kind (reference, evaluations,
+    re-measurements)."""
+    x = result_path(LOSS_ID_KEY, namespace=ns)
 
     def per_experiment(pid: str, title: str, key: str) -> Plot:
-        return _plot(pid, title, [_loss_series(key, ns)], x, EXPERIMENT_AXIS_LABEL)
+        return _plot(pid, title, _kind_series(key, ns), x, EXPERIMENT_AXIS_LABEL)
 
     loss = per_experiment('fig9_loss', 'Fig. 9 (a, b) loss per experiment', LOSS_KEY)
     gains = [

@@ -18,11 +18,16 @@ from im_controller.contract import INTERNALS_TOPIC, LOSS_TOPIC
 from im_controller.layout import INTERNALS_FIELDS
 from im_drive_sim.contract import COMMAND_FIELDS, COMMAND_TOPIC, STATE_FIELDS, STATE_TOPIC
 
+from ..names import RESULT_TOPIC
+from ..runlog.records import KINDS
+
 __all__ = [
     'ARRAY_TOPICS',
+    'KIND_WORDS',
     'LOSS_ID_KEY',
     'LOSS_KEY',
     'LOSS_TOPIC',
+    'RESULT_TOPIC',
     'Signal',
     'index_table',
     'label',
@@ -113,9 +118,21 @@ ARRAY_TOPICS: dict[str, tuple[tuple[str, ...], dict[str, tuple[str, str]]]] = {
 }
 
 #: The loss topic (``diagnostic_msgs/DiagnosticArray``, one status per experiment, values
-#: as key/value strings: im_controller.messages) and the keys a layout plots from it.
+#: as key/value strings: im_controller.messages) and the tuner's result topic (one status
+#: per results.jsonl record, named by its kind: im_tuner.result_msg) carry these keys; a
+#: layout plots them from the result topic.
 LOSS_KEY = 'loss'
 LOSS_ID_KEY = 'experiment_id'
+
+#: The record kinds (``runlog.records.KINDS``, the result message's status name) as a
+#: legend names them.
+KIND_WORDS: dict[str, str] = {
+    'reference': 'reference',
+    'eval': 'evaluations',
+    'remeasure': 're-measurements',
+}
+if tuple(KIND_WORDS) != KINDS:
+    raise ValueError(f'foxglove.signals: words for the kinds {tuple(KIND_WORDS)}, not {KINDS}')
 
 
 def signal(topic: str, index: int) -> Signal:

@@ -1,7 +1,8 @@
 """What each recorded signal means, by name: the meaning and unit a layout's label gives.
 
 The index of every field comes from the contracts (``im_drive_sim.contract.STATE_FIELDS``,
-``COMMAND_FIELDS``; ``im_controller.layout.INTERNALS_FIELDS``; the loss message's keys and
+``COMMAND_FIELDS``; ``im_controller.layout.INTERNALS_FIELDS``; the loss message's keys,
+which the tuner's result message carries too, ``runlog.records.KINDS`` and
 ``im_controller.config.GAIN_NAMES``/``GAIN_UNITS``); this module adds only the words and
 units a person reads, keyed by field name, and :func:`signal` refuses a field it has no
 words for, so a field added to a contract cannot reach a layout unlabelled. Units as
@@ -151,9 +152,9 @@ def signal(topic: str, index: int) -> Signal:
 
 
 def loss_signals() -> dict[str, Signal]:
-    """The loss message's plotted values, by key: the experiment's id, its loss and the
-    five gains it ran with (units from im_controller.config); KeyError for a gain this
-    module has no words for."""
+    """The plotted values of the loss message and the tuner's result message, by key: the
+    experiment's id, its loss and the five gains it ran with (units from
+    im_controller.config); KeyError for a gain this module has no words for."""
     out = {
         LOSS_ID_KEY: Signal(LOSS_ID_KEY, 'controller experiment counter', '-'),
         LOSS_KEY: Signal(LOSS_KEY, 'loss of the experiment (paper eq. 4)', '-'),

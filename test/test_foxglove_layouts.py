@@ -1,15 +1,22 @@
 """The Foxglove layouts shipped in share/im_tuner/foxglove/ resolve in a real bag.
 
-One short real tuner run (``ros2 run im_tuner tuner --budget 1``: the reference and one
-evaluation, lock-step, recorded) makes the bag. Each layout is loaded from the installed
-share directory (``ament_index_python``), every message path in it is extracted and
-resolved against the bag with rosbags' ``AnyReader`` (the types from the bag's own
-schemas): the topic is in the bag with messages, every field exists on every decoded
-message, every array index is below the array's length in every message, every path
-gives one plottable number per message, and every label names the field the contract
-puts at that index, with the unit docs/interfaces.md documents. The resolver is shown to
-catch a wrong topic, field, index, filter and label. The committed and installed files
-are the generator's bytes, and docs/foxglove.md carries the generator's index table.
+One short real tuner run (``ros2 run im_tuner tuner --budget 1 --remeasure 1``: the
+reference, one evaluation and its re-measurement, lock-step, recorded) makes the bag. Each
+layout is loaded from the installed share directory (``ament_index_python``), every
+message path in it is extracted and resolved against the bag with rosbags' ``AnyReader``
+(the types from the bag's own schemas): the topic is in the bag with messages, every field
+exists on every decoded message, every array index is below the array's length in every
+message, every path gives one plottable number per message (a series of one record kind:
+at most one, and one in some message), and every label names the field the contract puts
+at that index, with the unit docs/interfaces.md documents. The resolver is shown to catch
+a wrong topic, field, index, filter and label. The layouts hold the 51 message paths of
+Figs. 5 and 8 and the drive signals as before, Fig. 9's 24 on the tuner's result topic
+(the loss and each gain per record kind, the experiment id as x), and the sim-time x axes
+of Figs. 5 and 8, whose panels each plot one topic against that topic's drive step: on the
+bag the load steps on 0.7 s of sim time after the move starts; each Fig. 9 series' points
+are results.jsonl's records of its kind, bit for bit. The committed and installed files
+are the generator's bytes, the SDK's form holds the same panel configs, and
+docs/foxglove.md carries the generator's index table.
 """
 
 from __future__ import annotations
@@ -36,7 +43,8 @@ from im_controller.config import GAIN_NAMES, GAIN_UNITS
 from im_controller.layout import CONTROL_FIELDS, INTERNALS_FIELDS
 from im_controller.messages import LOSS_KEYS
 from im_drive_sim.contract import COMMAND_FIELDS, STATE_FIELDS
-from im_tuner.foxglove import LAYOUTS, build, render
+from im_tuner.foxglove import LAYOUTS, build, definitions, render, render_sdk
+from im_tuner.foxglove.layouts import STEP_FIELDS, TITLE_KEY
 from im_tuner.foxglove.signals import index_table
 
 REPO = Path(__file__).resolve().parents[1]
@@ -48,6 +56,8 @@ FIELDS = {
     '/controller/internals': INTERNALS_FIELDS,
 }
 LOSS_TOPIC = '/controller/loss'
+RESULT_TOPIC = '/tuner/result'
+KINDS = ('reference', 'eval', 'remeasure')
 N_STATE, N_CMD = len(STATE_FIELDS), len(COMMAND_FIELDS)
 THETA_MEAS = f'/drive/state.data[{STATE_FIELDS.index("theta_meas")}]'
 E_THETA = f'/controller/internals.data[{INTERNALS_FIELDS.index("e_theta")}]'
@@ -57,9 +67,10 @@ LABEL = re.compile(r'^(?P<name>\w+): (?P<meaning>.+) \[(?P<unit>[^\]]+)\]$')
 # -- the bag --------------------------------------------------------------------------------
 @pytest.fixture(scope='module')
 def run(tmp_path_factory) -> Path:
-    """A real tuner run: the reference experiment and one evaluation, recorded."""
+    """A real tuner run: the reference experiment, one evaluation and its re-measurement,
+    recorded."""
     out = tmp_path_factory.mktemp('foxglove') / 'run'
-    args = ('--budget', '1', '--remeasure', '0', '--seed', '1', '--quiet', '--out', str(out))
+    args = ('--budget', '1', '--remeasure', '1', '--seed', '1', '--quiet', '--out', str(out))
     args += ('--discovery-timeout', '0.2')  # no controller on the graph: no 2 s look
     proc = subprocess.run(
         [ROS2, 'run', 'im_tuner', 'tuner', *args], capture_output=True, text=True, timeout=300
@@ -149,11 +160,18 @@ def plottable(v: object) -> float:
     return float(v)
 
 
-def resolve(bag: Path, paths: list[str]) -> dict[str, list[float]]:
+def by_kind(steps: list[tuple[str, Any]]) -> bool:
+    """A path of one record kind (``.status[:]{name=="eval"}``): a message of another kind
+    gives it no value."""
+    return any(kind == 'filter' and arg[0] == 'name' for kind, arg in steps)
+
+
+def resolve(bag: Path, paths: list[str]) -> dict[str, list[float | None]]:
     """Resolve every path in every message of its topic: path -> the value of each message
-    (one per message, in log-time order)."""
+    (one per message, in log-time order; None where a path of one record kind has none,
+    which is no point in the plot)."""
     parsed = {p: parse_path(p) for p in paths}
-    out: dict[str, list[float]] = {p: [] for p in paths}
+    out: dict[str, list[float | None]] = {p: [] for p in paths}
     with AnyReader([bag], default_typestore=get_typestore(Stores.EMPTY)) as reader:
         conns = {c.topic: c for c in reader.connections}
         for p, (topic, _steps) in parsed.items():
@@ -167,10 +185,22 @@ def resolve(bag: Path, paths: list[str]) -> dict[str, list[float]]:
             for p, (topic, steps) in parsed.items():
                 if topic == c.topic:
                     values = evaluate(msg, p, steps)
-                    if len(values) != 1:
+                    if len(values) == 0 and by_kind(steps):
+                        out[p].append(None)
+                    elif len(values) != 1:
                         raise Unresolved(f'{p}: {len(values)} values in a message, not one')
-                    out[p].append(plottable(values[0]))
+                    else:
+                        out[p].append(plottable(values[0]))
+    for p, vs in out.items():
+        if all(v is None for v in vs):
+            raise Unresolved(f'{p}: no value in any message')
     return out
+
+
+def points(values: dict[str, list[float | None]], series: str, x: str) -> list[tuple]:
+    """The (x, y) points Foxglove draws for ``series`` against ``x`` on one topic: the
+    n-th message's value of each, where both have one."""
+    return [(a, b) for a, b in zip(values[x], values[series], strict=True) if None not in (a, b)]
 
 
 # -- what a layout holds --------------------------------------------------------------------
@@ -201,7 +231,8 @@ def panels(layout: dict) -> list[str]:
 
 
 def series(layout: dict) -> list[tuple[str, str, str | None]]:
-    """``(panel id, message path, label)`` of every Plot series and custom x axis."""
+    """``(panel id, message path, label)`` of every Plot series and custom x axis (label
+    None)."""
     out = []
     for pid in panels(layout):
         if not pid.startswith('Plot!'):
@@ -246,8 +277,12 @@ def check_label(path: str, text: str | None) -> None:
     """The label names the field at the path's index (or the loss key) with its documented
     unit (AssertionError otherwise)."""
     topic, steps = parse_path(path)
-    if text is None:  # a custom x axis: the loss message's experiment id
-        assert topic == LOSS_TOPIC and steps[-2] == ('filter', ('key', 'experiment_id'))
+    if text is None:  # a custom x axis: the result message's experiment id, or a drive step
+        if topic in FIELDS:
+            assert steps == [('field', 'data'), ('index', FIELDS[topic].index(STEP_FIELDS[topic]))]
+        else:
+            assert topic == RESULT_TOPIC and steps[-2] == ('filter', ('key', 'experiment_id'))
+            assert not by_kind(steps), path  # every message's: the pairing stays aligned
         return
     m = LABEL.match(text)
     assert m, f'{path}: label {text!r} is not "name: meaning [unit]"'
@@ -264,7 +299,13 @@ def check_label(path: str, text: str | None) -> None:
         elif name in control_units():
             assert unit == control_units()[name], f'{path}: {text} vs {control_units()[name]}'
     else:
-        assert topic == LOSS_TOPIC, path
+        assert topic == RESULT_TOPIC, path
+        kind = steps[2][1][1]
+        assert steps[:3] == [('field', 'status'), ('all', None), ('filter', ('name', kind))]
+        assert kind in KINDS, path
+        assert {'reference': 'reference', 'eval': 'evaluations', 'remeasure': 're-measurements'}[
+            kind
+        ] == m.group('meaning'), f'{path}: a series of {kind} records labelled {text}'
         key = steps[-2][1][1]
         assert steps[-2] == ('filter', ('key', key)) and key in LOSS_KEYS, path
         assert name == key, f'{path} is {key}, labelled {name}'
@@ -281,28 +322,32 @@ def at(topic: str, name: str) -> str:
 def test_every_path_of_every_layout_resolves_in_a_recorded_bag(run, installed):
     bag = run / 'bag_0'
     results = [json.loads(line) for line in (run / 'results.jsonl').read_text().splitlines()]
-    assert len(results) == 2  # the reference and one evaluation
+    assert [r['kind'] for r in results] == ['reference', 'eval', 'remeasure']
     every = {p for layout in installed.values() for _pid, p, _l in series(layout)}
     values = resolve(bag, sorted(every))
     with AnyReader([bag], default_typestore=get_typestore(Stores.EMPTY)) as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
     for p, vs in values.items():
         assert len(vs) == counts[parse_path(p)[0]] > 0, p
-        assert all(math.isfinite(v) for v in vs), p
+        assert all(v is None or math.isfinite(v) for v in vs), p
+        assert None not in vs or by_kind(parse_path(p)[1]), p
     for name, layout in installed.items():
         for _pid, p, text in series(layout):
             check_label(p, text)
         assert len(series(layout)) > 0, name
     # the numbers mean what the labels say: the loss and gains of each experiment as the
-    # run recorded them, bit for bit, against the experiment id (Fig. 9's x axis)
-    loss = {
-        k: values[f'{LOSS_TOPIC}.status[0].values[:]{{key=="{k}"}}.value']
-        for k in ('experiment_id', 'loss', *GAIN_NAMES)
-    }
-    assert loss['experiment_id'] == [r['experiment_id'] for r in results]
-    assert loss['loss'] == [r['loss'] for r in results]
-    for g in GAIN_NAMES:
-        assert loss[g] == [r['gains'][g] for r in results]
+    # run recorded them, bit for bit, against the experiment id (Fig. 9's x axis), one
+    # series per record kind; the bag holds one result message per record
+    assert counts[RESULT_TOPIC] == len(results)
+    x = result_value('experiment_id')
+    for kind in KINDS:
+        mine = [r for r in results if r['kind'] == kind]
+        assert mine, kind
+        got = points(values, result_value('loss', kind), x)
+        assert got == [(r['experiment_id'], r['loss']) for r in mine if r['loss'] is not None]
+        for g in GAIN_NAMES:
+            got = points(values, result_value(g, kind), x)
+            assert got == [(r['experiment_id'], r['gains'][g]) for r in mine]
     # Fig. 5: the position reference is the pi rad move there and back; the measured
     # position follows it; the load steps to one value
     theta_ref = values[at('/controller/internals', 'theta_ref')]
@@ -342,6 +387,124 @@ def test_the_paper_figures_show_what_the_paper_does(installed):
         assert cfg['xAxisVal'] == 'custom', pid  # per experiment, not over time
 
 
+def result_value(key: str, kind: str | None = None) -> str:
+    status = 'status[0]' if kind is None else f'status[:]{{name=="{kind}"}}'
+    return f'{RESULT_TOPIC}.{status}.values[:]{{key=="{key}"}}.value'
+
+
+def test_the_layouts_hold_their_paths_and_the_sim_time_axes(installed):
+    """The paths of each layout (each series and custom x axis): Figs. 5 and 8 and the
+    drive signals the 51 of the hand-written layouts; Fig. 9 the loss and each gain per
+    record kind on the tuner's result topic and the experiment id as x (24; the
+    hand-written layout had 12 on the loss topic, which does not say an experiment's kind);
+    and the x axis of each Fig. 5 and Fig. 8 panel: the drive step of its topic."""
+    s, i = '/drive/state', '/controller/internals'
+    today = {
+        'fig5_trajectory': [
+            at(i, 'theta_ref'),
+            at(s, 'theta_meas'),
+            at(i, 'e_theta'),
+            at(i, 'load_cmd'),
+            at(s, 'load_torque'),
+        ],
+        'fig8_errors': [at(i, 'e_theta'), at(i, 'e_omega'), at(i, 'isq_ref'), at(s, 'isq')],
+        'fig9_loss_gains': [
+            *(result_value(k, kind) for k in ('loss', *GAIN_NAMES) for kind in KINDS),
+            *[result_value('experiment_id')] * (1 + len(GAIN_NAMES)),
+        ],
+        'drive_signals': [f'{t}.data[{k}]' for t, fs in FIELDS.items() for k in range(len(fs))],
+    }
+    assert sum(len(v) for k, v in today.items() if k != 'fig9_loss_gains') == 51
+    assert len(today['fig9_loss_gains']) == 24
+    steps = {t: at(t, STEP_FIELDS[t]) for t in FIELDS}
+    sim_time = {
+        'fig5_trajectory': [steps[i], steps[s], steps[i], steps[i], steps[s]],
+        'fig8_errors': [steps[i], steps[i], steps[i], steps[s]],
+        'fig9_loss_gains': [],
+        'drive_signals': [],
+    }
+    for name, layout in installed.items():
+        got = [p for _pid, p, _l in series(layout)]
+        assert sorted(got) == sorted(today[name] + sim_time[name]), name
+        for pid in panels(layout):
+            cfg = layout['configById'][pid]
+            if pid.startswith('Plot!') and name != 'drive_signals':
+                assert cfg['legendDisplay'] == 'top', pid  # the legend off the points
+                # room above the plot for a row per series
+                assert cfg['sidebarDimension'] >= 22 * len(cfg['paths']), pid
+            if name == 'fig9_loss_gains':  # one colour per kind, the same in every panel
+                colours = [p['color'] for p in cfg['paths']]
+                assert len(set(colours)) == len(KINDS) == len(colours), pid
+                assert colours == [
+                    c['color'] for c in layout['configById']['Plot!fig9_loss']['paths']
+                ], pid
+            if cfg.get('xAxisVal') != 'custom':
+                continue
+            # Foxglove pairs a series' n-th message with the x path's n-th: one topic each
+            x_topic = parse_path(cfg['xAxisPath']['value'])[0]
+            assert {parse_path(p['value'])[0] for p in cfg['paths']} == {x_topic}, pid
+    for pid in panels(installed['drive_signals']):
+        cfg = installed['drive_signals']['configById'][pid]
+        assert not pid.startswith('Plot!') or cfg['xAxisVal'] == 'timestamp', pid
+
+
+def test_on_the_sim_time_axis_the_load_steps_0_7_s_after_the_move(run, installed):
+    """Fig. 5's x axis is the drive step k; on the lock-step bag k Ts is the drive's sim
+    time, and each experiment's load steps on 0.7 s after its move starts (3500 steps at
+    5 kHz), as the experiment defines it; the log time between them is the computer's."""
+    cfg = installed['fig5_trajectory']['configById']
+    x_internals = cfg['Plot!fig5_load_commanded']['xAxisPath']['value']
+    load_path = cfg['Plot!fig5_load_commanded']['paths'][0]['value']
+    ref_path = cfg['Plot!fig5_position_reference']['paths'][0]['value']
+    assert cfg['Plot!fig5_position_reference']['xAxisPath']['value'] == x_internals
+    x_state = cfg['Plot!fig5_position_measured']['xAxisPath']['value']
+    time_ns = at('/drive/state', 'time_ns')
+    v = resolve(run / 'bag_0', [x_internals, load_path, ref_path, x_state, time_ns])
+    ts_ns = max(v[time_ns]) / max(v[x_state])
+    assert ts_ns == 200_000.0  # the simulated drive's 5 kHz
+    assert v[time_ns] == [k * ts_ns for k in v[x_state]]  # sim time = k Ts on every state
+    k, load, ref = v[x_internals], v[load_path], v[ref_path]
+    assert k == sorted(k)
+    on = [n for n in range(1, len(k)) if load[n - 1] == 0.0 and load[n] != 0.0]
+    assert len(on) == 3  # the reference, the evaluation and its re-measurement
+    previous = 0
+    for n in on:
+        first_move = next(m for m in range(previous + 1, n) if ref[m] != ref[m - 1])
+        # the move starts one step before the reference first changes (experiment step 0)
+        assert (k[n] - (k[first_move] - 1)) * ts_ns == pytest.approx(0.7e9, abs=1.0)
+        previous = n
+
+
+def test_the_file_form_and_the_sdk_form_are_one_definition():
+    """Each shipped file holds the SDK's panel configs as the SDK serialises them (the
+    title under Foxglove's title key), one for each panel of the SDK's layout."""
+
+    def sdk_panels(node: dict) -> Iterator[dict]:
+        if node['type'] == 'panel':
+            yield node
+        elif node['type'] == 'split':
+            for item in node['items']:
+                yield from sdk_panels(item['content'])
+        else:
+            assert node['type'] == 'tabs', node['type']
+            for tab in node['tabs']:
+                yield from sdk_panels(tab['content'])
+
+    files = build()
+    for name, layout in definitions().items():
+        sdk = json.loads(render_sdk(layout))
+        assert sdk['version'] == 1
+        want = {p['title']: p['config'] for p in sdk_panels(sdk['content'])}
+        studio = files[name]['configById']
+        got = {
+            c[TITLE_KEY]: {k: v for k, v in c.items() if k != TITLE_KEY}
+            for pid, c in studio.items()
+            if pid.startswith('Plot!')
+        }
+        assert got == want, name
+        assert len(got) == len([p for p in studio if p.startswith('Plot!')]), name
+
+
 @pytest.mark.parametrize(
     ('path', 'label', 'why'),
     [
@@ -353,6 +516,11 @@ def test_the_paper_figures_show_what_the_paper_does(installed):
         ('/controller/loss.status[1].key', None, 'index 1 beyond an array of 1'),
         ('/controller/loss.status[0].values[:]{name=="loss"}.value', None, "field 'name'"),
         ('/drive/state.data[2] + 1', None, 'cannot parse'),
+        (
+            '/tuner/result.status[:]{name=="evals"}.values[:]{key=="loss"}.value',
+            None,
+            'no value in any message',
+        ),
         (THETA_MEAS, 'omega_meas: measured speed [rad/s]', 'labelled omega_meas'),
         (THETA_MEAS, 'theta_meas: measured position [deg]', 'theta_meas: measured'),
         (E_THETA, 'e_theta: position error [rad/s]', 'vs rad'),
@@ -391,8 +559,17 @@ def test_the_cli_prints_the_installed_layouts_and_refuses_bad_input(tmp_path):
     assert [v for _pid, v, _l in series(ns)] == [
         '/bench1' + v for _pid, v, _l in series(build()['fig8_errors'])
     ]
+    # the SDK's own form
+    proc = subprocess.run(
+        [*py, '--out', str(tmp_path / 'sdk'), '--sdk'], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 0, proc.stderr
+    for name, layout in definitions().items():
+        assert (tmp_path / 'sdk' / f'{name}.json').read_text() == render_sdk(layout), name
     for bad, why in (
         (['--namespace', 'bench1', '--out', str(tmp_path / 'x')], 'not a ROS namespace'),
+        (['--sdk'], '--sdk needs --out'),
+        (['--table', '--sdk'], 'takes no other option'),
         (['--out', str(tmp_path / 'missing' / 'x')], 'does not exist'),
         (['--namespace', '/b'], 'needs --out'),
         (['--table', '--out', str(tmp_path / 'x')], 'takes no other option'),

@@ -32,6 +32,7 @@ ROSDEP = {
     'matplotlib': 'python3-matplotlib',
     'mcap': 'python3-mcap-pip',
     'mcap_ros2': 'python3-mcap-ros2-support-pip',
+    'foxglove': 'python3-foxglove-sdk-pip',  # Foxglove's SDK: the layouts' typed classes
     'scipy': 'python3-scipy',
     'threadpoolctl': 'python3-threadpoolctl',  # the numeric baseline's check
     'cma': 'python3-cma-pip',

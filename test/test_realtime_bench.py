@@ -382,6 +382,7 @@ def test_a_controller_that_falls_behind_is_flagged_rerun_and_never_a_loss(procs,
     # the external run's bag (the loss topic) is closed, with both flagged results in it
     assert bag_state(run / 'bag_0') == 'closed'
     assert bag_counts(run / 'bag_0')['/controller/loss'] == 2
+    assert bag_counts(run / 'bag_0')['/tuner/result'] == 2  # the tuner's records
 
 
 def test_a_recorder_child_that_does_not_close_its_bag_is_reported(tmp_path, monkeypatch):

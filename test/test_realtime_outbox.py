@@ -186,3 +186,4 @@ def test_a_frozen_reliable_reader_stalls_nothing_and_the_bag_stays_lossless(proc
     for topic in ('/drive/state', '/drive/command', '/controller/internals'):
         assert counts[topic] == loop['outbox'][topic]['put'], (topic, counts)
     assert counts['/controller/loss'] == len(recs)
+    assert counts['/tuner/result'] == len(recs)  # the tuner's, beside the loop's

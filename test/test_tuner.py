@@ -73,6 +73,18 @@ def loss_values(msg) -> dict[str, str]:
     return {kv.key: kv.value for kv in st.values}
 
 
+def check_result_topic(bag: Path, recs: list[dict]) -> None:
+    """The bag's /tuner/result holds one message per results.jsonl record, in order: the
+    status named by its kind, its experiment id, loss and gains bit for bit."""
+    msgs = bag_messages(bag, {'/tuner/result'})['/tuner/result']
+    assert [m.status[0].name for m in msgs] == [r['kind'] for r in recs]
+    for m, r in zip(msgs, recs, strict=True):
+        kv = loss_values(m)
+        assert kv['status'] == r['status'] and int(kv['experiment_id']) == r['experiment_id']
+        assert float(kv['loss']) == r['loss']
+        assert {n: float(kv[n]) for n in GAINS} == r['gains']
+
+
 def check_run(run: Path, algo: str, budget: int, proc: subprocess.CompletedProcess) -> list[dict]:
     """What every finished run must show: files, records, summary, bag contents."""
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -149,6 +161,8 @@ def check_run(run: Path, algo: str, budget: int, proc: subprocess.CompletedProce
     requests = [m.request[0] for m in msgs[ev] if len(m.request)]
     last = {p.name: p.value.double_value for p in requests[-1].parameters}
     assert last == applied['gains']
+    assert counts['/tuner/result']['recorded'] == len(recs)
+    check_result_topic(bag, recs)
     return recs
 
 
@@ -529,6 +543,11 @@ def test_processes_bench(tmp_path):
     assert [float(loss_values(m)['loss']) for m in msgs['/controller/loss']] == [
         r['loss'] for r in recs
     ]
+    check_result_topic(run / 'bag_0', recs)  # from the tuner to the recorder child
+    meta = yaml.safe_load((run / 'bag_0' / 'metadata.yaml').read_text())
+    counts = json.loads(meta['rosbag2_bagfile_information']['custom_data']['im_tuner.counts'])
+    for topic, c in counts.items():
+        assert c['recorded'] == c['published'] and c['lost'] == 0, (topic, c)
 
 
 def test_auto_refuses_to_add_a_second_drive(tmp_path, procs, ros_context, wait_until):

@@ -9,13 +9,22 @@ from __future__ import annotations
 import posixpath
 
 from im_controller import contract as C
-from im_drive_sim.contract import COMMAND_TOPIC, JOINT_STATE_TOPIC, STATE_TOPIC, STATUS_TOPIC
+from im_drive_sim.contract import (
+    COMMAND_TOPIC,
+    JOINT_STATE_TOPIC,
+    STATE_TOPIC,
+    STATUS_TOPIC,
+    QosSpec,
+)
 
 __all__ = [
     'DEFAULT_TIMING_TOLERANCE',
     'DRIVE_HOST_NODE',
     'FAULT_POLICIES',
     'HOST_LOOP_TOPICS',
+    'RESULT_QOS',
+    'RESULT_TOPIC',
+    'RESULT_TYPE',
     'controller_topics',
 ]
 
@@ -38,12 +47,23 @@ HOST_LOOP_TOPICS = (
     '/clock',
 )
 
+#: The tuner's results (relative: in the controller's namespace, as its loss topic): one
+#: ``diagnostic_msgs/DiagnosticArray`` per results.jsonl record as it is appended
+#: (:mod:`im_tuner.result_msg`; docs/interfaces.md, "tuner/result"), recorded in the bag.
+RESULT_TOPIC = 'tuner/result'
+RESULT_TYPE = 'diagnostic_msgs/msg/DiagnosticArray'
+#: Its publisher: reliable KEEP_ALL (every record reaches the recorder, as the other
+#: recorded topics), transient local (a recorder or viewer that joins later gets the
+#: session's records so far; a run's records are a few hundred small messages).
+RESULT_QOS = QosSpec('keep_all', 0, 'reliable', 'transient_local')
+
 #: after a safety fault: reset it and go on, or stop the run (``--fault-policy``)
 FAULT_POLICIES = ('reset', 'stop')
 
 
 def controller_topics(controller: str) -> dict[str, str]:
-    """Fully qualified names of the controller's services and loss topic."""
+    """Fully qualified names of the controller's services and loss topic, and of the
+    tuner's result topic in the controller's namespace (``result``)."""
     if not controller.startswith('/'):
         controller = '/' + controller
     ns = posixpath.dirname(controller)
@@ -55,4 +75,5 @@ def controller_topics(controller: str) -> dict[str, str]:
         'loss': posixpath.join(ns, C.LOSS_TOPIC),
         'node': controller,
         'drive_status': posixpath.join(ns, STATUS_TOPIC),
+        'result': posixpath.join(ns, RESULT_TOPIC),
     }

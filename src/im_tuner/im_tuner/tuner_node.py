@@ -73,6 +73,8 @@ def _main(cli: TunerOptions, argv: list[str]) -> int:
     from .bench.forms import Bench, Executor
     from .bench.open import open_bench
     from .link import ControllerLink, Heartbeat
+    from .names import controller_topics
+    from .result_msg import ResultPublisher
     from .tuner_session import TunerSession
     from .tuning import BenchFailure, ResumeError, StopRequested
 
@@ -91,11 +93,14 @@ def _main(cli: TunerOptions, argv: list[str]) -> int:
         node = Node('tuner', context=ctx, start_parameter_services=False)
         exe = Executor(ctx)
         exe.executor.add_node(node)
+        # before the bench: its recorder finds the topic when it starts
+        results = ResultPublisher(node, controller_topics(cli.controller)['result'])
         bench = open_bench(
             spec, session, context=ctx, node=node, exe=exe, command=argv, should_stop=should_stop
         )
         session.accepted()
         tuning = session.tuning
+        tuning.on_record = results
         if bench.plan.mode == 'external' and cfg.run.drive_config is None and tuning.first_step:
             # --bench auto found someone's controller: its drive is not the packaged one
             tuning.first_step = None
@@ -123,7 +128,9 @@ def _main(cli: TunerOptions, argv: list[str]) -> int:
                 'within 30 s (services and loss topic)'
             )
         loss_topic = link.names['loss']
-        if not bench.recording_ready(30.0, lambda: {loss_topic: link.loss_messages}):
+        if not bench.recording_ready(
+            30.0, lambda: {loss_topic: link.loss_messages, results.topic: results.published}
+        ):
             raise BenchFailure(
                 'the recorder child did not subscribe to and match every recorded topic within 30 s'
             )

@@ -12,8 +12,9 @@ One evaluation (``kind='eval'``):
    experiment did not run on the paper's timing: held or late drive periods beyond the
    controller's tolerance, so its loss is not the paper's loss) are re-run with the SAME
    gains, at most ``retries`` times, never resampled, and never told to the optimiser;
-3. the record goes to ``results.jsonl`` (fsync'ed), then ``optimizer.tell(u, loss)``,
-   then ``checkpoint.json`` (atomic).  A penalised (aborted) experiment is told its
+3. the record goes to ``results.jsonl`` (fsync'ed) and to :attr:`TuningRun.on_record`
+   (the tuner node publishes it), then ``optimizer.tell(u, loss)``, then
+   ``checkpoint.json`` (atomic).  A penalised (aborted) experiment is told its
    penalised loss, costs one evaluation and can never become the best.
 
 Around the search: one ``reference`` experiment of the start gains first (not counted in
@@ -249,6 +250,9 @@ class TuningRun:
         self._ask_us = 0.0
         #: whether the final gains reached the controller (None: not tried yet)
         self.applied: bool | None = None
+        #: called with every record as it is appended to results.jsonl (not the ones a
+        #: resume reads back): the tuner node publishes it (im_tuner.result_msg)
+        self.on_record: Callable[[Record], None] | None = None
         #: this session's number in the run (0-based), written into every record as
         #: ``session`` (None: no sessions, e.g. the study's runs; nothing written)
         self.session: int | None = None
@@ -430,6 +434,8 @@ class TuningRun:
             self.state.loop_wall_s += now - self._t_mark
             self._t_mark = now
             self.rundir.append_result(rec)
+            if self.on_record is not None:
+                self.on_record(rec)
             self._apply(rec, live=True)
             self.records.append(rec)
             self.checkpoint()

@@ -371,6 +371,8 @@ class Children:
             if plan.mode in ('processes', 'realtime-processes')
             else [self.names['loss']]
         )
+        if node is not None:  # the tuner's: its result topic (published before this)
+            self.rec_topics.append(self.names['result'])
         self._ros2 = str(Path(sys.prefix) / 'bin' / 'ros2')
         self.recording = bag_dir is not None
         self.bag = bag_dir  #: the bag being recorded (a replacement's once replaced)

@@ -3,9 +3,10 @@
 Without options it prints the path of every installed layout, one a line (the files
 Foxglove's "Import from file..." takes). ``--out DIR`` writes the layouts into DIR from the
 contracts (``make foxglove-layouts`` regenerates the committed copies this way);
-``--namespace NS`` names the topics of a bench started under a namespace. ``--table``
-prints the index table of docs/foxglove.md. Bad input: one
-line on stderr, exit 2, nothing written.
+``--namespace NS`` names the topics of a bench started under a namespace; ``--sdk`` writes
+the SDK's own layout form (``foxglove.layouts``: ``{"version": 1, "content": ...}``) instead
+of the file Foxglove imports. ``--table`` prints the index table of docs/foxglove.md. Bad
+input: one line on stderr, exit 2, nothing written.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from pathlib import Path
 
 from im_drive_sim.cli import Parser, UsageError, run_cli
 
-from .layouts import LAYOUTS, build, render
+from .layouts import LAYOUTS, build, definitions, render, render_sdk
 from .signals import index_table
 
 PROG = 'im_tuner.foxglove'
@@ -52,6 +53,12 @@ def _parser() -> Parser:
         help='topics under a namespace, e.g. /bench1 (default: none; needs --out)',
     )
     p.add_argument(
+        '--sdk',
+        action='store_true',
+        help="write the SDK's layout form (foxglove.layouts), not Foxglove's import file "
+        '(needs --out)',
+    )
+    p.add_argument(
         '--table',
         action='store_true',
         help='print the index table of the 5 kHz topics (Markdown, as docs/foxglove.md has it)',
@@ -68,13 +75,15 @@ def _body(argv: list[str]) -> int:
     if a.namespace and not _NAMESPACE.match(a.namespace):
         raise UsageError(f'--namespace: not a ROS namespace (like /bench1): {a.namespace!r}')
     if a.table:
-        if a.out is not None or a.namespace:
+        if a.out is not None or a.namespace or a.sdk:
             raise UsageError('--table takes no other option')
         sys.stdout.write(index_table())
         return 0
     if a.out is None:
         if a.namespace:
             raise UsageError('--namespace needs --out DIR (the installed layouts have none)')
+        if a.sdk:
+            raise UsageError('--sdk needs --out DIR')
         d = share_dir()
         missing = [n for n in LAYOUTS if not (d / f'{n}.json').is_file()]
         if missing:
@@ -87,7 +96,10 @@ def _body(argv: list[str]) -> int:
         raise UsageError(f'--out: {out} exists and is not a directory')
     if not out.parent.is_dir():
         raise UsageError(f'--out: the parent directory {out.parent} does not exist')
-    texts = {name: render(layout) for name, layout in build(a.namespace).items()}
+    if a.sdk:
+        texts = {n: render_sdk(layout) for n, layout in definitions(a.namespace).items()}
+    else:
+        texts = {name: render(layout) for name, layout in build(a.namespace).items()}
     try:
         out.mkdir(exist_ok=True)
         for name, text in texts.items():

@@ -1,25 +1,71 @@
-"""Foxglove layouts of a run's bag, built from the contracts (docs/foxglove.md).
+"""Foxglove layouts of a run, defined once with Foxglove's SDK (docs/foxglove.md).
 
-Each layout is Foxglove's layout JSON: ``configById`` (one config per panel id ``Type!name``),
-the ``layout`` mosaic tree (``{first, second, direction, splitPercentage}`` nodes, panel ids
-as leaves), ``globalVariables``, ``userNodes`` and ``playbackConfig``. Every panel is a Plot
-whose series are message paths (``/drive/state.data[2]``) with a ``label``; the index of
-every path is looked up by field name in the contract modules (never written here), and
-the label is :func:`im_tuner.foxglove.signals.label` of that field, so a layout cannot
-drift from the contract. Pure: no rclpy.
+Each layout is a :class:`foxglove.layouts.Layout` built from the SDK's typed classes
+(``PlotPanel``, ``PlotConfig``, ``PlotSeries``, ``SplitContainer``, ``TabContainer``): one
+definition for the bag and for the live view (the live server carries the bag's topics
+and schemas). Every panel is a Plot whose series are message paths
+(``/drive/state.data[2]``) with a label; the index of every path is looked up by field name
+in the contract modules (never written here), and the label is
+:func:`im_tuner.foxglove.signals.label` of that field, so a layout cannot drift from the
+contract. Pure: no rclpy.
 
-Time axes: the 5 kHz topics are ``Float64MultiArray`` without a header, so their plots run
-on the bag's receive time (``timestampMethod: receiveTime``, the MCAP log time). The
-paper's Fig. 9 plots the loss topic against its ``experiment_id`` (Plot's ``custom`` x
-axis): one point per experiment. Foxglove plots a numeric string as its number, which is
-how the loss message carries its values.
+Two forms come from one definition:
+
+* the shipped file (:func:`to_studio`, ``share/im_tuner/foxglove/<name>.json``): Foxglove's
+  layout file as the app exports it and reads it back with "Import from file...":
+  ``configById`` (one config per panel id ``Type!name``), the ``layout`` mosaic tree
+  (``{first, second, direction, splitPercentage}`` nodes, panel ids as leaves),
+  ``globalVariables``, ``userNodes`` and ``playbackConfig``. Foxglove Studio 1.48 reads
+  this form, and so does the app after it (it is the form its "Export..." writes). The
+  panel configs are the SDK's ``PlotConfig`` as the SDK serialises it, with the panel's
+  title under ``foxglovePanelTitle``; only the container differs: a split of n items
+  becomes n - 1 binary mosaic nodes (each item's share of the split as
+  ``splitPercentage``), a tab container a ``Tab!`` panel whose tabs hold mosaic trees.
+* the SDK's own form (:func:`render_sdk`, ``Layout.to_json()``: ``{"version": 1,
+  "content": {"type": "split", ...}}``), written by ``python -m im_tuner.foxglove --out
+  DIR --sdk``; the SDK's notebook viewer takes the objects themselves
+  (:func:`definitions`). Studio 1.48 does not read this form.
+
+What the SDK's classes cannot express, and how it is done here:
+
+* panel ids: the mosaic form names every panel ``Type!name``; the SDK's panels have no id,
+  so :class:`Plot` (a ``PlotPanel``) carries one that the SDK's JSON leaves out;
+* ``playbackConfig`` and ``userNodes`` (the mosaic form's): written by :func:`to_studio`;
+* a sim-time *timestamp*: ``PlotSeries(timestamp_method='customField', timestamp_path=...)``
+  wants a time field of ``sec`` and ``nsec``; the 5 kHz topics are
+  ``Float64MultiArray``s whose sim time is a number (``/drive/state.data[1]``, ns), so
+  sim time goes on the x axis instead (below), which Studio 1.48 reads as well.
+
+Time axes: Figs. 5 and 8 plot against the drive's step k (sim time k Ts), each panel's x
+path (Plot's ``custom`` x axis) the step field of the topic its series come from:
+``step_index`` of ``/drive/state`` and ``/controller/internals``, ``answers_step`` of
+``/drive/command``. Foxglove pairs the n-th message of a series with the n-th message of the
+x path, which is the same message only when both are on one topic; so each such panel
+plots one topic (reference and measured side by side, not in one panel). The SDK's
+per-series x path (``PlotSeries.x_value_path``, the newer app's) would let one panel mix
+topics; Studio 1.48 has one x path per panel, so it is not used. On receive time
+a lock-step run draws each experiment stretched by however long the computer took. The
+drive-signals layout stays on receive time (``timestampMethod: receiveTime``, the MCAP
+log time, synced with the playback cursor). Fig. 9 plots the tuner's result topic
+(``/tuner/result``, one message per results.jsonl record, its status named by the record's
+kind: im_tuner.result_msg) against the record's ``experiment_id``, one series per kind
+(reference, evaluations, re-measurements: ``.status[:]{name=="eval"}``), each in a colour
+of its own (:data:`KIND_COLOURS`) and named in the legend; the x path is the same for all
+(unfiltered), so a message of another kind gives that series no point and the n-th-message
+pairing stays aligned; a record without a loss (lost, off timing) gives the loss series no
+point. Foxglove plots a numeric string as its number, which is how the message carries its
+values. The figures' legends sit above the plots, off the points (the drive signals' float
+over their small panels).
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from typing import Any
+
+import foxglove.layouts as fl
 
 from im_controller.config import GAIN_NAMES
 from im_controller.contract import INTERNALS_TOPIC
@@ -27,26 +73,69 @@ from im_drive_sim.contract import COMMAND_TOPIC, STATE_TOPIC
 
 from .signals import (
     ARRAY_TOPICS,
+    KIND_WORDS,
     LOSS_ID_KEY,
     LOSS_KEY,
-    LOSS_TOPIC,
+    RESULT_TOPIC,
     Signal,
     label,
     loss_signals,
     signal,
 )
 
-__all__ = ['LAYOUTS', 'array_path', 'build', 'loss_path', 'render']
+__all__ = [
+    'KIND_COLOURS',
+    'LAYOUTS',
+    'STEP_FIELDS',
+    'Plot',
+    'array_path',
+    'build',
+    'definitions',
+    'render',
+    'render_sdk',
+    'result_path',
+    'step_path',
+    'to_studio',
+]
 
 STATE = '/' + STATE_TOPIC
 COMMAND = '/' + COMMAND_TOPIC
 INTERNALS = '/' + INTERNALS_TOPIC
-LOSS = '/' + LOSS_TOPIC
+RESULT = '/' + RESULT_TOPIC
+
+#: Fig. 9's colour of each record kind: the reference grey, the evaluations blue, their
+#: re-measurements orange.
+KIND_COLOURS: dict[str, str] = {
+    'reference': '#7f7f7f',
+    'eval': '#1f77b4',
+    'remeasure': '#ff7f0e',
+}
 
 #: Foxglove's key for a panel's title in its config (``PANEL_TITLE_CONFIG_KEY``).
 TITLE_KEY = 'foxglovePanelTitle'
 
+#: The field of each array topic that counts the drive's steps k (sim time k Ts): the
+#: x axis of the plots on sim time.
+STEP_FIELDS: dict[str, str] = {
+    STATE: 'step_index',
+    COMMAND: 'answers_step',
+    INTERNALS: 'step_index',
+}
+STEP_AXIS_LABEL = 'drive step k (sim time k Ts)'
+EXPERIMENT_AXIS_LABEL = 'experiment id'
+
+#: Height [px] of a legend above its plot: a margin and one row per series.
+LEGEND_MARGIN, LEGEND_ROW = 12, 22
+
 Series = tuple[str, str]  # (message path, label)
+
+
+@dataclass(kw_only=True)
+class Plot(fl.PlotPanel):
+    """An SDK Plot panel with the id the mosaic form names it by (``Plot!<panel_id>``); the
+    SDK's own JSON leaves the id out."""
+
+    panel_id: str
 
 
 def array_path(topic: str, name: str, namespace: str = '') -> Series:
@@ -57,140 +146,225 @@ def array_path(topic: str, name: str, namespace: str = '') -> Series:
     return f'{namespace}{topic}.data[{i}]', label(signal(topic, i))
 
 
-def loss_path(key: str, namespace: str = '') -> str:
-    """The message path of one value of the loss message (a DiagnosticArray with one
-    status whose ``values`` are key/value strings), by key."""
-    return f'{namespace}{LOSS}.status[0].values[:]{{key=="{key}"}}.value'
+def step_path(topic: str, namespace: str = '') -> str:
+    """The message path of the drive step k on array topic ``topic``: the x axis of its
+    plots on sim time."""
+    return array_path(topic, STEP_FIELDS[topic], namespace)[0]
 
 
-def _loss_series(key: str, namespace: str) -> Series:
+def result_path(key: str, kind: str | None = None, namespace: str = '') -> str:
+    """The message path of one value of the tuner's result message (one status, named by
+    the record's kind, whose ``values`` are key/value strings), by key; ``kind``: only
+    from records of that kind (a message of another kind gives no value)."""
+    status = 'status[0]' if kind is None else f'status[:]{{name=="{kind}"}}'
+    return f'{namespace}{RESULT}.{status}.values[:]{{key=="{key}"}}.value'
+
+
+def _kind_series(key: str, namespace: str) -> list[fl.PlotSeries]:
+    """One series of result value ``key`` per record kind, coloured and labelled
+    ``name: kind [unit]``."""
     s: Signal = loss_signals()[key]
-    return loss_path(key, namespace), label(s)
+    return [
+        fl.PlotSeries(
+            value=result_path(key, kind, namespace),
+            label=f'{s.name}: {words} [{s.unit}]',
+            color=KIND_COLOURS[kind],
+            enabled=True,
+            timestamp_method='receiveTime',
+            show_line=True,
+        )
+        for kind, words in KIND_WORDS.items()
+    ]
 
 
-def _plot(title: str, series: Iterable[Series], x_path: str | None = None) -> dict[str, Any]:
-    """A Plot panel's config: series on the receive-time axis, or against ``x_path`` (one
-    point per message, with a line through them)."""
-    paths = []
-    for value, text in series:
-        p: dict[str, Any] = {
-            'value': value,
-            'enabled': True,
-            'timestampMethod': 'receiveTime',
-            'label': text,
-        }
-        if x_path is not None:
-            p['showLine'] = True
-        paths.append(p)
-    cfg: dict[str, Any] = {
-        TITLE_KEY: title,
-        'paths': paths,
-        'showXAxisLabels': True,
-        'showYAxisLabels': True,
-        'showLegend': True,
-        'legendDisplay': 'floating',
-        'showPlotValuesInLegend': False,
-        'isSynced': True,
-        'xAxisVal': 'timestamp' if x_path is None else 'custom',
-        'sidebarDimension': 240,
-    }
-    if x_path is not None:
-        cfg['xAxisPath'] = {'value': x_path, 'enabled': True}
-    return cfg
+def _plot(
+    panel_id: str,
+    title: str,
+    series: Iterable[Series | fl.PlotSeries],
+    x_path: str | None = None,
+    x_label: str | None = None,
+    legend_above: bool = True,
+) -> Plot:
+    """A Plot panel: series on the receive-time axis, or against ``x_path`` (one point per
+    message, with a line through them); the legend above the plot (``legend_above``), else
+    floating over it (panels of several series, too small for a legend above). A series is
+    a (path, label) pair or the SDK's ``PlotSeries`` as it is."""
+    paths = [
+        s
+        if isinstance(s, fl.PlotSeries)
+        else fl.PlotSeries(
+            value=s[0],
+            label=s[1],
+            enabled=True,
+            timestamp_method='receiveTime',
+            show_line=True if x_path is not None else None,
+        )
+        for s in series
+    ]
+    config = fl.PlotConfig(
+        paths=paths,
+        show_x_axis_labels=True,
+        show_y_axis_labels=True,
+        show_legend=True,
+        legend_display='top' if legend_above else 'floating',
+        show_plot_values_in_legend=False,
+        is_synced=True,
+        x_axis_val='timestamp' if x_path is None else 'custom',
+        x_axis_path=None if x_path is None else fl.PlotXAxisPath(value=x_path, enabled=True),
+        x_axis_label=x_label,
+        sidebar_dimension=LEGEND_MARGIN + LEGEND_ROW * len(paths) if legend_above else None,
+    )
+    return Plot(panel_id=panel_id, title=title, config=config)
 
 
-def _stack(ids: Sequence[Any], direction: str) -> Any:
-    """A mosaic node splitting ``ids`` (panel ids or nodes) evenly along ``direction``
-    ('row': side by side, 'column': one above the other)."""
-    if len(ids) == 1:
-        return ids[0]
-    return {
-        'first': ids[0],
-        'second': _stack(ids[1:], direction),
-        'direction': direction,
-        'splitPercentage': round(100.0 / len(ids), 3),
-    }
+def _on_steps(panel_id: str, title: str, topic: str, names: Sequence[str], ns: str) -> Plot:
+    """A panel of fields of one array topic against that topic's drive step (sim time)."""
+    return _plot(
+        panel_id,
+        title,
+        [array_path(topic, n, ns) for n in names],
+        step_path(topic, ns),
+        STEP_AXIS_LABEL,
+    )
 
 
-def _layout(config_by_id: dict[str, Any], tree: Any) -> dict[str, Any]:
-    return {
-        'configById': config_by_id,
-        'globalVariables': {},
-        'userNodes': {},
-        'playbackConfig': {'speed': 1.0},
-        'layout': tree,
-    }
+def _split(direction: str, contents: Sequence[fl.Content]) -> fl.Content:
+    """``contents`` in equal shares, side by side ('row') or one above the other
+    ('column'); a single one as it is."""
+    if len(contents) == 1:
+        return contents[0]
+    assert direction in ('row', 'column')
+    return fl.SplitContainer(
+        direction='row' if direction == 'row' else 'column',
+        items=[fl.SplitItem(content=c) for c in contents],
+    )
 
 
 # ----------------------------------------------------------------------------- layouts
-def _column(ns: str, plots: dict[str, tuple[str, list[tuple[str, str]]]]) -> dict[str, Any]:
-    """A layout of plots one above the other: panel id -> (title, its series as (topic,
-    field) of an array message, on namespace ``ns``)."""
-    panels = {
-        f'Plot!{pid}': _plot(title, [array_path(topic, field, ns) for topic, field in series])
-        for pid, (title, series) in plots.items()
-    }
-    return _layout(panels, _stack(list(panels), 'column'))
-
-
-def fig5_trajectory(ns: str = '') -> dict[str, Any]:
-    """Paper Fig. 5: the position reference (the raw trajectory theta*) and the measured
-    position, the position error and the load torque, on receive time; seek to an
-    experiment to see its pi rad move and the load step 0.7 s after the move starts."""
-    return _column(
-        ns,
-        {
-            'fig5_position': (
-                'Fig. 5 position: reference and measured [rad]',
-                [(INTERNALS, 'theta_ref'), (STATE, 'theta_meas')],
-            ),
-            'fig5_error': ('Fig. 5 position error [rad]', [(INTERNALS, 'e_theta')]),
-            'fig5_load': (
-                'Fig. 5 load torque: commanded and applied [N m]',
-                [(INTERNALS, 'load_cmd'), (STATE, 'load_torque')],
-            ),
-        },
-    )
-
-
-def fig8_errors(ns: str = '') -> dict[str, Any]:
-    """Paper Fig. 8: (a) position error, (b) speed error, (c) current reference i*sq (with
-    the measured q-axis current), on receive time."""
-    return _column(
-        ns,
-        {
-            'fig8a_position_error': ('Fig. 8 (a) position error [rad]', [(INTERNALS, 'e_theta')]),
-            'fig8b_speed_error': ('Fig. 8 (b) speed error [rad/s]', [(INTERNALS, 'e_omega')]),
-            'fig8c_current': (
-                'Fig. 8 (c) current reference and measured q-axis current [A]',
-                [(INTERNALS, 'isq_ref'), (STATE, 'isq')],
-            ),
-        },
-    )
-
-
-def fig9_loss_gains(ns: str = '') -> dict[str, Any]:
-    """Paper Fig. 9: the loss of every experiment (a, b) and the gains it ran with (c, d:
-    the paper shows k_pw; here all five), against the controller's experiment id."""
-    x = loss_path(LOSS_ID_KEY, ns)
-    loss = {
-        'Plot!fig9_loss': _plot(
-            'Fig. 9 (a, b) loss per experiment', [_loss_series(LOSS_KEY, ns)], x
+def fig5_trajectory(ns: str = '') -> fl.Layout:
+    """Paper Fig. 5 on sim time: the position reference (the raw trajectory theta*) beside
+    the measured position, the position error, and the load torque commanded beside the
+    load torque applied: each experiment's pi rad move and its load step 0.7 s (3500 steps
+    at 5 kHz) after the move starts."""
+    return fl.Layout(
+        content=_split(
+            'column',
+            [
+                _split(
+                    'row',
+                    [
+                        _on_steps(
+                            'fig5_position_reference',
+                            'Fig. 5 position reference theta* [rad]',
+                            INTERNALS,
+                            ['theta_ref'],
+                            ns,
+                        ),
+                        _on_steps(
+                            'fig5_position_measured',
+                            'Fig. 5 measured position [rad]',
+                            STATE,
+                            ['theta_meas'],
+                            ns,
+                        ),
+                    ],
+                ),
+                _on_steps('fig5_error', 'Fig. 5 position error [rad]', INTERNALS, ['e_theta'], ns),
+                _split(
+                    'row',
+                    [
+                        _on_steps(
+                            'fig5_load_commanded',
+                            'Fig. 5 load torque commanded [N m]',
+                            INTERNALS,
+                            ['load_cmd'],
+                            ns,
+                        ),
+                        _on_steps(
+                            'fig5_load_applied',
+                            'Fig. 5 load torque applied [N m]',
+                            STATE,
+                            ['load_torque'],
+                            ns,
+                        ),
+                    ],
+                ),
+            ],
         )
-    }
-    gains = {
-        f'Plot!fig9_{g}': _plot(f'Fig. 9 (c, d) {g} per experiment', [_loss_series(g, ns)], x)
-        for g in GAIN_NAMES
-    }
-    ids = list(gains)
-    rows = _stack([_stack(ids[:3], 'row'), _stack(ids[3:], 'row')], 'column')
-    tree = {
-        'first': 'Plot!fig9_loss',
-        'second': rows,
-        'direction': 'column',
-        'splitPercentage': 40.0,
-    }
-    return _layout({**loss, **gains}, tree)
+    )
+
+
+def fig8_errors(ns: str = '') -> fl.Layout:
+    """Paper Fig. 8 on sim time: (a) position error, (b) speed error, (c) the current
+    reference i*sq beside the measured q-axis current."""
+    return fl.Layout(
+        content=_split(
+            'column',
+            [
+                _on_steps(
+                    'fig8a_position_error',
+                    'Fig. 8 (a) position error [rad]',
+                    INTERNALS,
+                    ['e_theta'],
+                    ns,
+                ),
+                _on_steps(
+                    'fig8b_speed_error',
+                    'Fig. 8 (b) speed error [rad/s]',
+                    INTERNALS,
+                    ['e_omega'],
+                    ns,
+                ),
+                _split(
+                    'row',
+                    [
+                        _on_steps(
+                            'fig8c_current_reference',
+                            'Fig. 8 (c) current reference i*sq [A]',
+                            INTERNALS,
+                            ['isq_ref'],
+                            ns,
+                        ),
+                        _on_steps(
+                            'fig8c_current_measured',
+                            'Fig. 8 (c) measured q-axis current [A]',
+                            STATE,
+                            ['isq'],
+                            ns,
+                        ),
+                    ],
+                ),
+            ],
+        )
+    )
+
+
+def fig9_loss_gains(ns: str = '') -> fl.Layout:
+    """Paper Fig. 9: the loss of every experiment (a, b) and the gains it ran with (c, d:
+    the paper shows k_pw; here all five), against the controller's experiment id, from
+    the tuner's result topic: one series per record kind (reference, evaluations,
+    re-measurements)."""
+    x = result_path(LOSS_ID_KEY, namespace=ns)
+
+    def per_experiment(pid: str, title: str, key: str) -> Plot:
+        return _plot(pid, title, _kind_series(key, ns), x, EXPERIMENT_AXIS_LABEL)
+
+    loss = per_experiment('fig9_loss', 'Fig. 9 (a, b) loss per experiment', LOSS_KEY)
+    gains = [
+        per_experiment(f'fig9_{g}', f'Fig. 9 (c, d) {g} per experiment', g) for g in GAIN_NAMES
+    ]
+    return fl.Layout(
+        content=fl.SplitContainer(
+            direction='column',
+            items=[
+                fl.SplitItem(proportion=2, content=loss),
+                fl.SplitItem(
+                    proportion=3,
+                    content=_split('column', [_split('row', gains[:3]), _split('row', gains[3:])]),
+                ),
+            ],
+        )
+    )
 
 
 #: The drive-signals layout's panels, by topic: (panel id suffix, title, the fields it
@@ -233,32 +407,36 @@ DRIVE_PANELS: dict[str, tuple[tuple[str, str, tuple[str, ...]], ...]] = {
 }
 
 
-def drive_signals(ns: str = '') -> dict[str, Any]:
-    """Every index of drive/state, drive/command and controller/internals, labelled: one
-    tab per topic, its panels in two columns."""
-    panels: dict[str, Any] = {}
+def drive_signals(ns: str = '') -> fl.Layout:
+    """Every index of drive/state, drive/command and controller/internals, labelled, on
+    receive time: one tab per topic, its panels in two columns."""
     tabs = []
     for topic, groups in DRIVE_PANELS.items():
         placed = [n for _s, _t, names in groups for n in names]
         fields = ARRAY_TOPICS[topic][0]
         if sorted(placed) != sorted(fields):
             raise ValueError(f'drive_signals: the panels of {topic} place {placed}, not {fields}')
-        ids = []
-        for slug, title, names in groups:
-            pid = f'Plot!{topic.strip("/").replace("/", "_")}_{slug}'
-            panels[pid] = _plot(f'{ns}{topic}: {title}', [array_path(topic, n, ns) for n in names])
-            ids.append(pid)
-        half = (len(ids) + 1) // 2
-        if len(ids) < 4:
-            tree = _stack(ids, 'column')
+        plots: list[fl.Content] = [
+            _plot(
+                f'{topic.strip("/").replace("/", "_")}_{slug}',
+                f'{ns}{topic}: {title}',
+                [array_path(topic, n, ns) for n in names],
+                legend_above=False,
+            )
+            for slug, title, names in groups
+        ]
+        half = (len(plots) + 1) // 2
+        if len(plots) < 4:
+            content = _split('column', plots)
         else:
-            tree = _stack([_stack(ids[:half], 'column'), _stack(ids[half:], 'column')], 'row')
-        tabs.append({'title': f'{ns}{topic}', 'layout': tree})
-    panels['Tab!drive_signals'] = {'activeTabIdx': 0, 'tabs': tabs}
-    return _layout(panels, 'Tab!drive_signals')
+            content = _split(
+                'row', [_split('column', plots[:half]), _split('column', plots[half:])]
+            )
+        tabs.append(fl.TabItem(title=f'{ns}{topic}', content=content))
+    return fl.Layout(content=fl.TabContainer(tabs=tabs, selected_tab_index=0))
 
 
-#: The shipped layouts: file name (without .json) -> builder (namespace -> layout).
+#: The shipped layouts: file name (without .json) -> definition (namespace -> layout).
 LAYOUTS = {
     'fig5_trajectory': fig5_trajectory,
     'fig8_errors': fig8_errors,
@@ -267,9 +445,69 @@ LAYOUTS = {
 }
 
 
-def build(namespace: str = '') -> dict[str, dict[str, Any]]:
-    """Every layout, for topics under ``namespace`` ('' or '/bench1'): name -> layout."""
+def definitions(namespace: str = '') -> dict[str, fl.Layout]:
+    """Every layout as the SDK's object, for topics under ``namespace`` ('' or
+    '/bench1'): name -> layout."""
     return {name: make(namespace) for name, make in LAYOUTS.items()}
+
+
+# -------------------------------------------------------------- the mosaic (file) form
+def _config(panel: Plot) -> dict[str, Any]:
+    """A panel's config in the mosaic form: the SDK's serialisation of its ``PlotConfig``
+    (unset fields left out) with the title under Foxglove's title key."""
+    cfg: dict[str, Any] = json.loads(panel.config.to_json())
+    if panel.title is not None:
+        cfg = {TITLE_KEY: panel.title, **cfg}
+    return cfg
+
+
+def to_studio(layout: fl.Layout, name: str) -> dict[str, Any]:
+    """The layout in Foxglove's file form (module docstring): the same panel configs, the
+    containers as a mosaic tree; ``name`` names a tab container (``Tab!<name>``, one per
+    layout). TypeError for a container or panel this form is not written for here."""
+    config_by_id: dict[str, Any] = {}
+
+    def add(pid: str, cfg: dict[str, Any]) -> str:
+        if pid in config_by_id:
+            raise ValueError(f'{name}: two panels are named {pid}')
+        config_by_id[pid] = cfg
+        return pid
+
+    def node(content: fl.Content) -> Any:
+        if isinstance(content, Plot):
+            return add(f'Plot!{content.panel_id}', _config(content))
+        if isinstance(content, fl.SplitContainer):
+            return split(content.direction, content.items)
+        if isinstance(content, fl.TabContainer):
+            tabs = [{'title': t.title, 'layout': node(t.content)} for t in content.tabs]
+            return add(f'Tab!{name}', {'activeTabIdx': content.selected_tab_index, 'tabs': tabs})
+        raise TypeError(f'{name}: no mosaic form for {type(content).__name__}')
+
+    def split(direction: str, items: Sequence[fl.SplitItem]) -> Any:
+        if len(items) == 1:
+            return node(items[0].content)
+        total = sum(i.proportion for i in items)
+        return {
+            'first': node(items[0].content),
+            'second': split(direction, items[1:]),
+            'direction': direction,
+            'splitPercentage': round(100.0 * items[0].proportion / total, 3),
+        }
+
+    tree = node(layout.content)
+    return {
+        'configById': config_by_id,
+        'globalVariables': dict(layout.variables or {}),
+        'userNodes': {},
+        'playbackConfig': {'speed': 1.0},
+        'layout': tree,
+    }
+
+
+def build(namespace: str = '') -> dict[str, dict[str, Any]]:
+    """Every layout in the shipped file form, for topics under ``namespace``: name ->
+    layout."""
+    return {name: to_studio(layout, name) for name, layout in definitions(namespace).items()}
 
 
 def render(layout: dict[str, Any]) -> str:
@@ -277,3 +515,9 @@ def render(layout: dict[str, Any]) -> str:
     for the same contract on every machine. Strict JSON: no NaN or Infinity, which
     Python writes by default and JavaScript's ``JSON.parse`` (Foxglove's) refuses."""
     return json.dumps(layout, indent=2, ensure_ascii=True, allow_nan=False) + '\n'
+
+
+def render_sdk(layout: fl.Layout) -> str:
+    """A layout in the SDK's own form (``Layout.to_json()``), as :func:`render` writes
+    text."""
+    return render(json.loads(layout.to_json()))

@@ -1,7 +1,8 @@
 """What each recorded signal means, by name: the meaning and unit a layout's label gives.
 
 The index of every field comes from the contracts (``im_drive_sim.contract.STATE_FIELDS``,
-``COMMAND_FIELDS``; ``im_controller.layout.INTERNALS_FIELDS``; the loss message's keys and
+``COMMAND_FIELDS``; ``im_controller.layout.INTERNALS_FIELDS``; the loss message's keys,
+which the tuner's result message carries too, ``runlog.records.KINDS`` and
 ``im_controller.config.GAIN_NAMES``/``GAIN_UNITS``); this module adds only the words and
 units a person reads, keyed by field name, and :func:`signal` refuses a field it has no
 words for, so a field added to a contract cannot reach a layout unlabelled. Units as
@@ -18,11 +19,16 @@ from im_controller.contract import INTERNALS_TOPIC, LOSS_TOPIC
 from im_controller.layout import INTERNALS_FIELDS
 from im_drive_sim.contract import COMMAND_FIELDS, COMMAND_TOPIC, STATE_FIELDS, STATE_TOPIC
 
+from ..names import RESULT_TOPIC
+from ..runlog.records import KINDS
+
 __all__ = [
     'ARRAY_TOPICS',
+    'KIND_WORDS',
     'LOSS_ID_KEY',
     'LOSS_KEY',
     'LOSS_TOPIC',
+    'RESULT_TOPIC',
     'Signal',
     'index_table',
     'label',
@@ -113,9 +119,21 @@ ARRAY_TOPICS: dict[str, tuple[tuple[str, ...], dict[str, tuple[str, str]]]] = {
 }
 
 #: The loss topic (``diagnostic_msgs/DiagnosticArray``, one status per experiment, values
-#: as key/value strings: im_controller.messages) and the keys a layout plots from it.
+#: as key/value strings: im_controller.messages) and the tuner's result topic (one status
+#: per results.jsonl record, named by its kind: im_tuner.result_msg) carry these keys; a
+#: layout plots them from the result topic.
 LOSS_KEY = 'loss'
 LOSS_ID_KEY = 'experiment_id'
+
+#: The record kinds (``runlog.records.KINDS``, the result message's status name) as a
+#: legend names them.
+KIND_WORDS: dict[str, str] = {
+    'reference': 'reference',
+    'eval': 'evaluations',
+    'remeasure': 're-measurements',
+}
+if tuple(KIND_WORDS) != KINDS:
+    raise ValueError(f'foxglove.signals: words for the kinds {tuple(KIND_WORDS)}, not {KINDS}')
 
 
 def signal(topic: str, index: int) -> Signal:
@@ -134,9 +152,9 @@ def signal(topic: str, index: int) -> Signal:
 
 
 def loss_signals() -> dict[str, Signal]:
-    """The loss message's plotted values, by key: the experiment's id, its loss and the
-    five gains it ran with (units from im_controller.config); KeyError for a gain this
-    module has no words for."""
+    """The plotted values of the loss message and the tuner's result message, by key: the
+    experiment's id, its loss and the five gains it ran with (units from
+    im_controller.config); KeyError for a gain this module has no words for."""
     out = {
         LOSS_ID_KEY: Signal(LOSS_ID_KEY, 'controller experiment counter', '-'),
         LOSS_KEY: Signal(LOSS_KEY, 'loss of the experiment (paper eq. 4)', '-'),

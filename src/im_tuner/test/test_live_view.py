@@ -157,3 +157,30 @@ def test_a_frozen_client_loses_its_own_messages_only():
     assert stats['offered'] == 1 + 200 * 101 and stats['dropped'] == per[False]['dropped']
     assert said[0].startswith(f'live: Foxglove WebSocket server on ws://127.0.0.1:{port} ')
     assert struct.calcsize('<BIQ') == 13  # (the message data header the clients read)
+
+
+def test_a_late_client_gets_the_past_of_a_transient_local_topic_only():
+    """A transient-local topic (tuner/result) is latched as ROS latches it: a client that
+    subscribes after its messages were offered gets them first, in order, then the new
+    ones; a volatile topic's past is not sent."""
+    port = _free_port()
+    said: list[str] = []
+    server = LiveServer(LiveSettings(port), said.append)
+    try:
+        server.add_channel(
+            5, '/tuner/result', 'diagnostic_msgs/msg/DiagnosticArray', 'x', latched=True
+        )
+        server.add_channel(6, '/controller/loss', 'diagnostic_msgs/msg/DiagnosticArray', 'x')
+        server.offer([(5, 10, b'r0'), (6, 11, b'l0'), (5, 12, b'r1'), (5, 13, b'r2')])
+        watcher = Watcher(port, timeout=30.0).start()
+        _wait(lambda: len(watcher.messages.get('/tuner/result', [])) == 3, 30.0, 'the past')
+        _wait(lambda: len(server._server._clients) == 1, 30.0, 'the client state')
+        server.offer([(6, 20, b'l1'), (5, 21, b'r3')])
+        _wait(lambda: len(watcher.messages.get('/tuner/result', [])) == 4, 30.0, 'the new one')
+        _wait(lambda: len(watcher.messages.get('/controller/loss', [])) == 1, 30.0, 'a loss')
+        server.close()
+        watcher.join(30.0)
+    finally:
+        server.close()
+    assert watcher.messages['/tuner/result'] == [(10, b'r0'), (12, b'r1'), (13, b'r2'), (21, b'r3')]
+    assert watcher.messages['/controller/loss'] == [(20, b'l1')]

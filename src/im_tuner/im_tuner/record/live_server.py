@@ -7,7 +7,10 @@ wakes the server's thread (asyncio); there each client has two bounded queues an
 sender task of its own, so a slow or frozen client costs its own dropped live messages
 (counted: :meth:`LiveServer.stats`), never a period, never a bag message, never another
 client's data. The experiment-rate topics' queue is sent first and is deep: a client
-that falls behind loses 5 kHz messages, not an experiment's loss.
+that falls behind loses 5 kHz messages, not an experiment's loss. A transient-local
+topic (``tuner/result``) is latched as ROS latches it: a client that subscribes late first
+gets what was published on it (at most :data:`LATCHED_MAX` messages), so Fig. 9 shows the
+whole run to a viewer connected mid-run.
 ``foxglove-websocket``'s own sending (``send_message``, ``add_channel``) awaits each
 client's socket in turn, a frozen one for ever: this module sends through the
 per-client queues instead, and uses the library for the handshake, the server info, the
@@ -36,6 +39,8 @@ CLIENT_WHOLE_BACKLOG = 65536
 #: messages waiting between the recorder's thread and the server's (the server's thread
 #: starved of the CPU); when full the oldest is dropped (counted)
 INBOX_SIZE = 65536
+#: messages kept of each transient-local topic, for the clients that subscribe later
+LATCHED_MAX = 65536
 #: [bytes] the kernel's send buffer of a client's socket: bounds what waits for a slow
 #: client beyond its queue (the live view stays fresh), and is ample for the live rate
 #: (about 1 MB/s at 250 Hz) across a LAN
@@ -86,6 +91,9 @@ class LiveServer:
         self._lock = threading.Lock()  # the inbox's drop count and wake flag
         self._channels: dict[int, int] = {}  # bag channel -> server channel (server thread)
         self._periodic: set[int] = set()  # bag channels of the 5 kHz topics (server thread)
+        #: server channel -> (log time, bytes) published so far, of the transient-local
+        #: topics (server thread)
+        self._latched: dict[int, deque] = {}
         self._clients: dict[Any, _ClientQueue] = {}  # connection -> queue (server thread)
         self._gone: list[_ClientQueue] = []
         self.offered = 0
@@ -105,13 +113,19 @@ class LiveServer:
 
     # -- the recorder's thread ---------------------------------------------------------
     def add_channel(
-        self, channel: int, topic: str, schema_name: str, schema: str, encoding: str = 'ros2msg'
+        self,
+        channel: int,
+        topic: str,
+        schema_name: str,
+        schema: str,
+        encoding: str = 'ros2msg',
+        latched: bool = False,
     ) -> None:
         """Advertise the bag's channel ``channel`` (its topic, ROS type, schema text and
         encoding: ``ros2msg``, ``ros2idl`` for service events) to every client, now and to
-        come."""
+        come; ``latched``: a transient-local topic (a late subscriber gets its past)."""
         self._loop.call_soon_threadsafe(
-            self._add_channel, channel, topic, schema_name, schema, encoding
+            self._add_channel, channel, topic, schema_name, schema, encoding, latched
         )
 
     def offer(self, messages: list[tuple[int, int, bytes]]) -> None:
@@ -181,6 +195,16 @@ class LiveServer:
                 finally:
                     owner._disconnected(connection)
 
+            async def _handle_client_text_message(self, client: Any, message: Any) -> None:
+                before = dict(client.subscriptions_by_channel)
+                await super()._handle_client_text_message(client, message)
+                new = {
+                    cid: sid
+                    for cid, sid in client.subscriptions_by_channel.items()
+                    if before.get(cid) != sid
+                }
+                owner._subscribed(client.connection, new)
+
         quiet = logging.getLogger('im_tuner.live.foxglove_websocket')
         quiet.setLevel(logging.WARNING)
 
@@ -212,7 +236,7 @@ class LiveServer:
         self._loop.close()
 
     def _add_channel(
-        self, channel: int, topic: str, schema_name: str, schema: str, encoding: str
+        self, channel: int, topic: str, schema_name: str, schema: str, encoding: str, latched: bool
     ) -> None:
         """Register the channel with the library's server (new clients get it in their
         first advertise) and queue its advertise to the connected ones: the library's
@@ -236,6 +260,8 @@ class LiveServer:
         self._channels[channel] = cid
         if is_period_topic(topic):
             self._periodic.add(channel)
+        if latched:
+            self._latched[cid] = deque(maxlen=LATCHED_MAX)
         text = json.dumps({'op': 'advertise', 'channels': [chan]}, separators=(',', ':'))
         for c in self._clients.values():
             c.control.append(text)
@@ -266,6 +292,20 @@ class LiveServer:
         slow = f', {c.dropped} dropped: it did not read them in time' if c.dropped else ''
         self._log(f'live: client {c.addr} disconnected ({c.sent} messages sent{slow})')
 
+    def _subscribed(self, connection: Any, new: dict[int, int]) -> None:
+        """A client's new subscriptions (server channel -> subscription id): the past of
+        the latched ones first (in the experiment-rate queue)."""
+        from foxglove_websocket.server import MessageDataHeader
+        from foxglove_websocket.types import BinaryOpcode
+
+        c = self._clients.get(connection)
+        if c is None:
+            return
+        for cid, sid in new.items():
+            for t, data in self._latched.get(cid, ()):
+                c.whole.append((MessageDataHeader.pack(BinaryOpcode.MESSAGE_DATA, sid, t), data))
+        c.wake.set()
+
     def _pump(self) -> None:
         """Move the inbox into the subscribed clients' queues (a 5 kHz topic's message to
         ``queue``, another's to ``whole``; the oldest dropped when one is full)."""
@@ -276,6 +316,10 @@ class LiveServer:
             self._wake_pending = False
             batch = list(self._inbox)
             self._inbox.clear()
+        for ch, t, data in batch:
+            past = self._latched.get(self._channels.get(ch, -1))
+            if past is not None:
+                past.append((t, data))
         states = {s.connection: s for s in self._server._clients}
         for conn, c in self._clients.items():
             subs = states[conn].subscriptions_by_channel if conn in states else {}

@@ -249,7 +249,9 @@ class Recorder:
         if self.live is not None:  # the same channel live: topic, type, schema text
             self._feed.add_channel(channel, name)
             _name, encoding, text = self.writer.schemas[schema]
-            self.live.add_channel(channel, name, type_name, text.decode(), encoding)
+            # (a transient-local topic's late subscriber gets what was published, as in ROS)
+            latched = any(p.get('durability') == 'transient_local' for p in profiles)
+            self.live.add_channel(channel, name, type_name, text.decode(), encoding, latched)
         return channel, profiles, type_hash
 
     def add_tap(self, channels: dict[str, Any]) -> None:

@@ -296,8 +296,7 @@ class InProcess:
         stop_loop = getattr(self.bench, 'stop_loop', None)
         if callable(stop_loop):
             stop_loop()  # the run is over: zero current, and counters that stand still
-        # the last status now: the summary's loop.outbox counted one /drive/status fewer
-        # than the bag when it was published after these figures were taken
+        # the last status now, so that the summary's loop.outbox counts what the bag has
         self._final_status()
         d = self.bench.drive
         report = drive_report(
@@ -381,10 +380,9 @@ class Children:
         #: a drive host's 5 kHz topics, left to the host's own bag (a host is on the graph)
         self.excluded: list[str] = []
         if plan.mode == 'external' and node is not None and self.spin_until is not None:
-            # node names come apart from the services the probe found: wait for the
-            # controller's (a drive host announces its own node first) as long as
-            # discovery may take, since a bag that took a host's 5 kHz topics across the
-            # network would load it for the whole run
+            # wait for the controller's node name (a drive host announces its own first)
+            # as long as discovery may take: a bag that took a host's 5 kHz topics across
+            # the network would load it for the whole run
             ctl_name = posixpath.basename(self.names['node'])
             wait = plan.spec.probe_timeout()
             if not self.spin_until(lambda: ctl_name in node.get_node_names(), wait):

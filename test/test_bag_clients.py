@@ -316,7 +316,7 @@ def test_rosbag2_decodes_the_record_and_metadata_yaml(bag):
     ]
     # per topic, the record, metadata.yaml and what rosbag2 rebuilds from the channels agree
     assert set(record['topics']) == set(opened['channels'])
-    assert len(record['topics']) == 17
+    assert len(record['topics']) == 18  # (tuner/result among them)
     for name, topic in record['topics'].items():
         assert topic == opened['channels'][name], name
         assert topic['serialization_format'] == 'cdr'

@@ -44,7 +44,7 @@ VIEW = REPO / 'tools' / 'foxglove-view'
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 CHROMIUM = Path(os.environ.get('CHROMIUM', '/usr/bin/chromium'))
 #: the live run: the lock-step bench, the reference, six evaluations and the re-measurements
-RUN_ARGS = ('--bench', 'inproc', '--budget', '6', '--seed', '1', '--quiet')
+RUN_ARGS = ('--budget', '6', '--seed', '1', '--quiet')
 #: the longest the viewer waits for a view's panels to fill, and for the app to connect [s]
 VIEW_TIMEOUT_S = 120
 #: the longest the live run and its viewer may take together, and the bag's viewer [s]
@@ -91,12 +91,11 @@ def _child(argv: list[str], **kwargs: Any) -> subprocess.Popen:
 LIVE_SUBPROTOCOL = 'foxglove.websocket.v1'
 
 
-def start_live_run(port: int, out: Path) -> subprocess.Popen:
-    """A short tuner run (:data:`RUN_ARGS`) recording to ``out``, its topics served live on
-    ws://127.0.0.1:``port`` (``tuner --live``) while it goes on."""
-    return _child(
-        [ROS2, 'run', 'im_tuner', 'tuner', *RUN_ARGS, '--live', str(port), '--out', str(out)]
-    )
+def start_live_run(port: int, out: Path, bench: str = 'inproc') -> subprocess.Popen:
+    """A short tuner run (:data:`RUN_ARGS`, on ``bench``) recording to ``out``, its topics
+    served live on ws://127.0.0.1:``port`` (``tuner --live``) while it goes on."""
+    args = [*RUN_ARGS, '--bench', bench, '--live', str(port), '--out', str(out)]
+    return _child([ROS2, 'run', 'im_tuner', 'tuner', *args])
 
 
 def view(*args: str) -> subprocess.Popen:
@@ -190,7 +189,7 @@ def viewer_installed() -> None:
         pytest.skip(f'npm ci in tools/foxglove-view failed: {p.stderr.strip()[-300:]}')
 
 
-def watch_live_run(layouts_dir: Path, out: Path, *view_args: str) -> dict:
+def watch_live_run(layouts_dir: Path, out: Path, *view_args: str, bench: str = 'inproc') -> dict:
     """The viewer's report of a live run (:func:`start_live_run` into ``out``): the viewer
     first, the run once every app of it has loaded (it is then seen from its first
     experiment: the apps retry their connection every 3 s until the server is up)."""
@@ -204,7 +203,7 @@ def watch_live_run(layouts_dir: Path, out: Path, *view_args: str) -> dict:
         while not ready.exists() and viewer.poll() is None and time.monotonic() < deadline:
             time.sleep(0.1)
         assert ready.exists(), f'the viewer did not load its apps: {_read(viewer)[1][-3000:]}'
-        run = start_live_run(port, out)
+        run = start_live_run(port, out, bench)
         return watch(viewer, run, LIVE_DEADLINE_S)
     finally:
         for proc in (viewer, run):
@@ -248,8 +247,8 @@ FIG9_SERIES = sorted(
 
 
 # -- the tests ------------------------------------------------------------------------------
-def test_every_panel_of_every_layout_shows_a_live_run_as_it_goes(live, layouts):
-    report, run = live
+def _every_panel_drew(report: dict, layouts: dict) -> None:
+    """Every path of every Plot panel of every layout got a finite point while connected."""
     assert report['errors'] == []
     assert sorted(report['layouts']) == sorted(layouts)
     for name, layout in layouts.items():
@@ -263,6 +262,11 @@ def test_every_panel_of_every_layout_shows_a_live_run_as_it_goes(live, layouts):
                 # a point on every path, while connected: the app left the server after
                 assert s['n'] >= 1 and s['finite'], f'{name}: {pid} {path}: {s}'
                 assert seen['at'][pid] <= seen['disconnected'], f'{name}: {pid}'
+
+
+def test_every_panel_of_every_layout_shows_a_live_run_as_it_goes(live, layouts):
+    report, run = live
+    _every_panel_drew(report, layouts)
     # Fig. 9 live: each point it drew is its experiment's loss or gain, bit for bit, in
     # the series of the experiment's kind
     rows = results_by_id(run)
@@ -305,3 +309,12 @@ def test_the_runs_bag_opened_as_a_file_shows_every_panel_and_every_experiment(
             if r['kind'] == kind and expected(r, key) is not None
         ]
         assert pts == want, (kind, key)
+
+
+def test_every_panel_shows_a_real_time_run_live(tmp_path, layouts_dir, layouts, viewer_installed):
+    """The same live view of a run on the real-time bench (the 5 kHz topics from the loop's
+    outbox tap, at 250 Hz of wall-clock time)."""
+    report = watch_live_run(layouts_dir, tmp_path / 'run', bench='realtime')
+    _every_panel_drew(report, layouts)
+    summary = json.loads((tmp_path / 'run' / 'summary.json').read_text())
+    assert summary['outcome'] == 'done' and summary['sessions'][-1]['live']['sent'] > 0

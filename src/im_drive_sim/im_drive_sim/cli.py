@@ -21,6 +21,7 @@ import os
 import re
 import shutil
 import signal
+import subprocess
 import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
@@ -213,6 +214,47 @@ def quiet_interrupts(prog: str) -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+@contextlib.contextmanager
+def held_interrupts() -> Iterator[None]:
+    """Within the block a Ctrl-C is held, then raised as the handler before it would have
+    (a KeyboardInterrupt) when the block ends. For a fork: Python runs its at-fork
+    callbacks (logging's lock, among others) with the signal's exception printed as
+    "Exception ignored" and dropped, so a Ctrl-C landing on a fork would be lost and the
+    program would go on as if never interrupted."""
+    previous = signal.getsignal(signal.SIGINT)
+    if not callable(previous) or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if held:
+            previous(signal.SIGINT, None)
+
+
+def _die_with_parent() -> None:
+    # preexec_fn (in the child, before exec): SIGTERM when the parent dies, however it
+    # dies (Linux prctl PR_SET_PDEATHSIG; it survives the exec chain of `ros2 run`)
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass  # not Linux: the children outlive a killed parent (SIGINT still ends them)
+
+
+def spawn_child(argv: list[str], **popen: object) -> subprocess.Popen:
+    """``subprocess.Popen(argv, **popen)`` for a child that must not outlive this process:
+    it gets SIGTERM when this one dies, however it dies (a SIGKILLed tuner leaves no
+    orphan drive, controller or recorder behind), and a Ctrl-C during the fork is raised
+    after it (:func:`held_interrupts`), never lost."""
+    with held_interrupts():
+        return subprocess.Popen(argv, preexec_fn=_die_with_parent, **popen)  # type: ignore[call-overload]  # noqa: PLW1509 (only prctl)
 
 
 def _bounded_exit(code: int) -> NoReturn:

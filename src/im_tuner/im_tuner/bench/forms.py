@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import os
 import posixpath
-import signal
 import subprocess
 import sys
 import time
@@ -34,6 +33,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from im_drive_sim.cli import spawn_child
 from im_drive_sim.contract import STATE_TOPIC
 
 from ..names import DRIVE_HOST_NODE, HOST_LOOP_TOPICS, controller_topics
@@ -143,18 +143,6 @@ def controller_on_graph(node: Node, spin_until: SpinUntil, controller: str, time
         return any(n == start for n, _t in node.get_service_names_and_types())
 
     return spin_until(seen, timeout)
-
-
-def die_with_parent() -> None:
-    """preexec_fn of the bench children: SIGTERM when the tuner dies, however it dies
-    (Linux prctl PR_SET_PDEATHSIG; it survives the exec chain of `ros2 run`), so a
-    SIGKILLed tuner leaves no orphan drive, controller or recorder behind."""
-    try:
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass  # not Linux: the children outlive a killed tuner (SIGINT still ends them)
 
 
 def parameters(params: tuple[tuple[str, Any], ...]) -> list[Parameter]:
@@ -402,11 +390,8 @@ class Children:
         self.monitor = DriveMonitor(node, self.names['drive_status']) if node else None
 
     def _spawn(self, role: str, argv: list[str]) -> None:
-        self.children[role] = subprocess.Popen(
-            argv,
-            stdout=subprocess.DEVNULL if self.quiet else None,
-            preexec_fn=die_with_parent,  # noqa: PLW1509 (only prctl, async-signal-safe)
-        )
+        out = subprocess.DEVNULL if self.quiet else None
+        self.children[role] = spawn_child(argv, stdout=out)
 
     def _start_recorder(self, out_dir: Path) -> None:
         self.bag = out_dir

@@ -38,11 +38,11 @@ from std_srvs.srv import Trigger
 from im_controller import contract as C
 from im_controller.config import GAIN_NAMES
 from im_drive_sim.cdr import Float64ArrayWire, parse_float64_array
+from im_drive_sim.cli import spawn_child
 from im_drive_sim.contract import COMMAND_FIELDS, COMMAND_TOPIC, NS_PER_S, STATE_TOPIC
 from im_drive_sim.qos import LOCKSTEP_QOS, RECORDED_QOS
 from im_drive_sim.runtime import publish_lossless
 
-from ..bench.forms import die_with_parent
 from ..patience import IDLE_S, Patience
 from .plan import ReplayPlan
 
@@ -101,12 +101,7 @@ class _Child:
             f'/clock:={ns}/clock',
         ]
         with open(self.log, 'wb') as out:
-            self.proc = subprocess.Popen(
-                self.cmd,
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                preexec_fn=die_with_parent,  # noqa: PLW1509 (only prctl, async-signal-safe)
-            )
+            self.proc = spawn_child(self.cmd, stdout=out, stderr=subprocess.STDOUT)
 
     def check(self) -> None:
         code = self.proc.poll()

@@ -19,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from im_drive_sim.cli import Parser, UsageError, quiet_interrupts
+from im_drive_sim.cli import Parser, UsageError, held_interrupts, quiet_interrupts
 
 from ..rundir import RUN_FILE, RunDir, RunDirError, is_bag_dir
 from .errors import EXIT_USAGE, ReportError
@@ -89,7 +89,8 @@ def _draw_ahead(
     proc = multiprocessing.get_context('fork').Process(
         target=_draw_child, args=(runs, out, names), name='report-figures', daemon=True
     )
-    proc.start()
+    with held_interrupts():  # a Ctrl-C on the fork: raised after it, not dropped
+        proc.start()
     return proc
 
 

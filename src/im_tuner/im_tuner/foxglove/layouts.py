@@ -1,30 +1,11 @@
 """Foxglove layouts of a run, defined once with Foxglove's SDK (docs/foxglove.md).
 
-Each layout is a :class:`foxglove.layouts.Layout` built from the SDK's typed classes
-(``PlotPanel``, ``PlotConfig``, ``PlotSeries``, ``SplitContainer``, ``TabContainer``): one
-definition for the bag and for the live view (the live server carries the bag's topics
-and schemas). Every panel is a Plot whose series are message paths
-(``/drive/state.data[2]``) with a label; the index of every path is looked up by field name
-in the contract modules (never written here), and the label is
-:func:`im_tuner.foxglove.signals.label` of that field, so a layout cannot drift from the
-contract. Pure: no rclpy.
-
-Two forms come from one definition:
-
-* the shipped file (:func:`to_studio`, ``share/im_tuner/foxglove/<name>.json``): Foxglove's
-  layout file as the app exports it and reads it back with "Import from file...":
-  ``configById`` (one config per panel id ``Type!name``), the ``layout`` mosaic tree
-  (``{first, second, direction, splitPercentage}`` nodes, panel ids as leaves),
-  ``globalVariables``, ``userNodes`` and ``playbackConfig``. Foxglove Studio 1.48 reads
-  this form, and so does the app after it (it is the form its "Export..." writes). The
-  panel configs are the SDK's ``PlotConfig`` as the SDK serialises it, with the panel's
-  title under ``foxglovePanelTitle``; only the container differs: a split of n items
-  becomes n - 1 binary mosaic nodes (each item's share of the split as
-  ``splitPercentage``), a tab container a ``Tab!`` panel whose tabs hold mosaic trees.
-* the SDK's own form (:func:`render_sdk`, ``Layout.to_json()``: ``{"version": 1,
-  "content": {"type": "split", ...}}``), written by ``python -m im_tuner.foxglove --out
-  DIR --sdk``; the SDK's notebook viewer takes the objects themselves
-  (:func:`definitions`). Studio 1.48 does not read this form.
+Each layout is a :class:`foxglove.layouts.Layout` built from the SDK's typed classes, one
+definition for the bag and the live view; every series' index is looked up by field name in
+the contract modules and labelled by :func:`im_tuner.foxglove.signals.label`, so a layout
+cannot drift from the contract. Pure: no rclpy. Two forms come from it: the shipped file in
+Foxglove's mosaic form (:func:`to_studio`, what Studio 1.48 imports) and the SDK's own
+(:func:`render_sdk`). The time axes and Fig. 9's series: docs/foxglove.md, "Time axes".
 
 What the SDK's classes cannot express, and how it is done here:
 
@@ -34,28 +15,7 @@ What the SDK's classes cannot express, and how it is done here:
 * a sim-time *timestamp*: ``PlotSeries(timestamp_method='customField', timestamp_path=...)``
   wants a time field of ``sec`` and ``nsec``; the 5 kHz topics are
   ``Float64MultiArray``s whose sim time is a number (``/drive/state.data[1]``, ns), so
-  sim time goes on the x axis instead (below), which Studio 1.48 reads as well.
-
-Time axes: Figs. 5 and 8 plot against the drive's step k (sim time k Ts), each panel's x
-path (Plot's ``custom`` x axis) the step field of the topic its series come from:
-``step_index`` of ``/drive/state`` and ``/controller/internals``, ``answers_step`` of
-``/drive/command``. Foxglove pairs the n-th message of a series with the n-th message of the
-x path, which is the same message only when both are on one topic; so each such panel
-plots one topic (reference and measured side by side, not in one panel). The SDK's
-per-series x path (``PlotSeries.x_value_path``, the newer app's) would let one panel mix
-topics; Studio 1.48 has one x path per panel, so it is not used. On receive time
-a lock-step run draws each experiment stretched by however long the computer took. The
-drive-signals layout stays on receive time (``timestampMethod: receiveTime``, the MCAP
-log time, synced with the playback cursor). Fig. 9 plots the tuner's result topic
-(``/tuner/result``, one message per results.jsonl record, its status named by the record's
-kind: im_tuner.result_msg) against the record's ``experiment_id``, one series per kind
-(reference, evaluations, re-measurements: ``.status[:]{name=="eval"}``), each in a colour
-of its own (:data:`KIND_COLOURS`) and named in the legend; the x path is the same for all
-(unfiltered), so a message of another kind gives that series no point and the n-th-message
-pairing stays aligned; a record without a loss (lost, off timing) gives the loss series no
-point. Foxglove plots a numeric string as its number, which is how the message carries its
-values. The figures' legends sit above the plots, off the points (the drive signals' float
-over their small panels).
+  sim time goes on the x axis instead, which Studio 1.48 reads as well.
 """
 
 from __future__ import annotations
@@ -462,9 +422,12 @@ def _config(panel: Plot) -> dict[str, Any]:
 
 
 def to_studio(layout: fl.Layout, name: str) -> dict[str, Any]:
-    """The layout in Foxglove's file form (module docstring): the same panel configs, the
-    containers as a mosaic tree; ``name`` names a tab container (``Tab!<name>``, one per
-    layout). TypeError for a container or panel this form is not written for here."""
+    """The layout in Foxglove's file form as the app exports it: ``configById`` (the same
+    panel configs, one per id ``Type!name``), the containers as the ``layout`` mosaic tree (a
+    split of n items becomes n - 1 binary nodes, each item's share as ``splitPercentage``),
+    ``globalVariables``, ``userNodes`` and ``playbackConfig``; ``name`` names a tab
+    container (``Tab!<name>``, one per layout). TypeError for a container or panel this
+    form is not written for here."""
     config_by_id: dict[str, Any] = {}
 
     def add(pid: str, cfg: dict[str, Any]) -> str:

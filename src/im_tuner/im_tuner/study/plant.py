@@ -1,54 +1,12 @@
 """The study's simulated plant when it is not the drive the tuner is told:
 ``study --plant FILE|NAME`` and ``--plant-mismatch 'J=x1.5 Rr=x1.3 coulomb=2% delay=2'``.
 
-**The split.** Everything the tuner derives from *its* drive -- the experiment
-(trajectory, load step, loss weights: ``im_tuner.family.drive_setup``), the search box and
-its hand-tuned start, the ``--first model`` prior of ``safe`` (``im_tuner.prior``, on the
-told drive's nominal model) -- comes from the told drive (``--drives`` / ``--drive-config``).
-Only the offline bench the runs measure on is the plant.  What anyone can then ask in one
-command: "what if my drive file's J is off by 2x" (``--plant-mismatch J=x2``), or "my
-drive is another packaged one" (``--plant im750w-j3``).
-
-**Normalisation.** L_ref (the unit of every normalised loss) is the hand-tuned start
-measured on the *plant*, 100 experiments: the study's "1.0 = the hand-tuned start" and
-"0.9 = 10 % better than it" mean the start the user has on the drive they have, as the
-tuner's own reference experiment measures it.  The same start's L_ref on the told drive is kept
-beside it (``StudyResult.l_ref_told``): their ratio says how much the mismatch alone moves
-the start.
-
-**What must match** (:func:`check_plant`; a plant that differs is refused in one line):
-
-* ``Ts``: the controller runs the told drive's experiment period by period (trajectory,
-  speed and position filters, the loss's integrals are sampled at Ts) in lock-step with the
-  plant, which steps at its own Ts; another period is another controller and another
-  experiment, not the same experiment on another machine.
-* ``machine.isq_max``: the controller's clamp of isq* (the offline bench takes it from the
-  plant's file, ``runner.config_for_drive``) and the loss counts only the periods below 99 %
-  of it: a plant with another clamp would run an experiment the tuner was not told.
-  ``--plant-mismatch isq_max=...`` is refused for the same reason.
-* The model (full/reduced): the study's ``--model`` is applied to both.
-
-Everything else may differ, because the controller reads the plant only through the drive
-state (position, speed, isq, the command delay it declares): the machine constants (R, L,
-J, B, friction, p, Udc, flux current), the encoder's counts and the speed filter, the
-command delay (1 or 2 periods: the controller checks freshness against the delay the state
-declares), the bench effects (a ``bench`` plant for an ``ideal`` file).
-
-**--plant-mismatch syntax**: tokens separated by spaces or commas, each key once:
-
-* ``KEY=xF`` with KEY a float key of the drive file's ``machine`` section (J, Rr, Rs, Lm,
-  Lls, Llr, B, Udc, rated_flux_current, coulomb_speed, ...): the plant's value times F
-  (0.1 <= F <= 10: beyond, the plant is another drive, given with ``--plant``).
-  Refused: ``isq_max`` (above), ``rated_torque`` and ``rated_speed``
-  (ratings: the simulated machine does not use them), ``pole_pairs`` (an integer: give a
-  drive file with ``--plant``).
-* ``coulomb=P%``: the plant's Coulomb friction Tc = P % of its rated torque (0 <= P <= 100;
-  set, not added); a Stribeck static torque, when on, keeps its excess over Tc.
-* ``delay=D``: the plant's command delay, D periods (a drive file's ``command_delay``: 1 or 2).
-
-The mismatch is applied to the plant (the told drive when ``--plant`` is absent), factors
-first, then ``coulomb``, then ``delay``; the result is validated as a drive file is (e.g.
-``rated_flux_current=x10`` leaves no current for torque under ``isq_max``: refused in one line).
+Everything the tuner derives from *its* drive (the experiment, the search box and its
+start, ``safe``'s first step) comes from the told drive; only the offline bench the runs
+measure on is the plant. L_ref is the start measured on the plant (``StudyResult.l_ref_told``
+keeps the told drive's beside it). The plant must match the told drive's ``Ts`` and
+``machine.isq_max`` (:func:`check_plant`); the ``--plant-mismatch`` syntax, what may differ
+and why: docs/optimisers.md, "When the drive file is wrong".
 
 Light at import (dataclasses and ``im_drive_sim.params``): the command checks its options
 with it before the heavy modules load.
@@ -233,9 +191,9 @@ def mismatch_text(mm: Mismatch) -> str:
 
 
 def apply_mismatch(drive: DriveConfig, mm: Mismatch) -> DriveConfig:
-    """``drive`` with the mismatch ``mm`` applied (module docstring), validated as a drive
-    file is; ``drive`` itself when ``mm`` is empty.  :class:`PlantError` when the result is
-    not a valid drive (the reason in one line)."""
+    """``drive`` with the mismatch ``mm`` applied (factors first, then ``coulomb``, then
+    ``delay``), validated as a drive file is; ``drive`` itself when ``mm`` is empty.
+    :class:`PlantError` when the result is not a valid drive (the reason in one line)."""
     if not mm:
         return drive
     data = drive.to_dict()
@@ -260,7 +218,7 @@ def apply_mismatch(drive: DriveConfig, mm: Mismatch) -> DriveConfig:
 
 def check_plant(told: DriveConfig, plant: DriveConfig, what: str) -> None:
     """Refuse (:class:`PlantError`, one line) a plant that cannot run the told drive's
-    experiment: another Ts or isq_max (module docstring says why)."""
+    experiment: another Ts or isq_max (docs/optimisers.md says why)."""
     if plant.Ts != told.Ts:
         raise PlantError(
             f'{what}: Ts {plant.Ts * 1e6:g} us, the told drive {told.Ts * 1e6:g} us: the '

@@ -354,6 +354,14 @@ def add_config_option(parser: argparse.ArgumentParser, what: str) -> None:
     )
 
 
+def add_simulator_options(parser: argparse.ArgumentParser, what: str, model: str) -> None:
+    """``--drive-config`` (``what`` it takes from the file), ``--model`` (``model``: its
+    help) and ``--seed``: the options of every executable that can start the simulator."""
+    add_config_option(parser, what)
+    parser.add_argument('--model', choices=('full', 'reduced'), help=model)
+    parser.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
+
+
 def drive_file(text: str) -> Path:
     """A drive file to be read, or a packaged drive's name (``family.PACKAGED_NAMES``;
     ``drive_file.load_config`` takes either): a bare name that is neither is refused naming

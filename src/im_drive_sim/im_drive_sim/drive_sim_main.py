@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from . import rt
-from .cli import Parser, add_config_option, check_then_run, executable, int_in
+from .cli import Parser, add_simulator_options, check_then_run, executable, int_in
 from .contract import MODES
 
 
@@ -18,9 +18,7 @@ def parser() -> argparse.ArgumentParser:
         'are shortcuts for them. See docs/interfaces.md.',
     )
     ap.add_argument('--mode', choices=MODES, help='lockstep (default) or realtime')
-    add_config_option(ap, 'the simulated motor')
-    ap.add_argument('--model', choices=('full', 'reduced'), help='model fidelity')
-    ap.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
+    add_simulator_options(ap, 'the simulated motor', 'model fidelity')
     ap.add_argument(
         '--max-steps', type=int_in(0, 2**62), help='stop after N steps (0: run until shut down)'
     )

@@ -7,11 +7,10 @@ import argparse
 from im_drive_sim import host, rt
 from im_drive_sim.cli import (
     Parser,
-    add_config_option,
+    add_simulator_options,
     check_then_run,
     executable,
     finite_float,
-    int_in,
 )
 
 from ..names import DEFAULT_TIMING_TOLERANCE
@@ -32,17 +31,12 @@ DEFAULT_TUNER_TIMEOUT = 1.0
 
 def parser() -> argparse.ArgumentParser:
     ap = Parser(prog='ros2 run im_tuner drive_host', description=DESCRIPTION)
-    ap.add_argument(
-        '--drive',
-        metavar='DRIVE',
-        default='sim',
-        help=drive_help(),
+    ap.add_argument('--drive', metavar='DRIVE', default='sim', help=drive_help())
+    add_simulator_options(
+        ap,
+        "the drive's parameters (the simulator's motor, your drive's Ts)",
+        "the simulator's model fidelity (--drive sim)",
     )
-    add_config_option(ap, "the drive's parameters (the simulator's motor, your drive's Ts)")
-    ap.add_argument(
-        '--model', choices=('full', 'reduced'), help="the simulator's model fidelity (--drive sim)"
-    )
-    ap.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
     ap.add_argument(
         '--tuner-timeout',
         type=finite_float(0.05, 60.0, unit='s'),

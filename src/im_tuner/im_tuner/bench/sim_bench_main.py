@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from im_drive_sim.cli import Parser, add_config_option, check_then_run, executable, int_in
+from im_drive_sim.cli import Parser, add_simulator_options, check_then_run, executable
 
 DESCRIPTION = (
     'The simulated bench: drive_sim + controller, lock-step. Start experiments with '
@@ -47,9 +47,7 @@ def parser() -> argparse.ArgumentParser:
         action='store_true',
         help='run drive_sim and controller as two processes (default: one)',
     )
-    add_config_option(ap, 'the simulated motor')
-    ap.add_argument('--model', choices=('full', 'reduced'), help='drive model fidelity')
-    ap.add_argument('--seed', type=int_in(0, 2**31 - 1), help='disturbance seed (>= 0)')
+    add_simulator_options(ap, 'the simulated motor', 'drive model fidelity')
     for flag, kw in BAG_OPTIONS:
         ap.add_argument(flag, **kw)
     return ap

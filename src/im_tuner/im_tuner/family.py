@@ -5,24 +5,10 @@ Pure (no rclpy). ``drive_setup(drive, realism, model)`` is the seam the tuner an
 share: the drive's config, its experiment (``ExperimentConfig`` with Ts/isq_max from the
 drive) and its tuner parameters (box, start, satisfactory loss). The paper's 750 W motor
 (``paper_750w``, the default) gives exactly ``ExperimentConfig()`` and the packaged
-``tuner.yaml``; every other drive is scaled from it by ratios of the drive file's constants
-to the paper file's (each exactly 1.0 for the paper's file):
-
-* ``accel = (T_rated/J) / (T_rated/J)_paper``: the trajectory's ``a_max`` (600 rad/s^2 is
-  0.6 T_rated/J for the paper: the move asks the same fraction of rated torque);
-  ``v_max`` stays 40 rad/s, capped by the rated speed;
-* ``torque = T_rated / T_rated_paper``: the load step (70 % of rated torque);
-* ``inertia = (J/Kt) / (J/Kt)_paper``: k_pw and k_iw of the box multiplied by it, and
-  those of the start and the fallback gains by ``start_scale`` = min(inertia, the largest
-  factor whose k_pw turns one encoder count into a current step of at most
-  ``COUNT_STEP_MAX`` of isq_max): the speed loop's gain k_pw Kt/J is the paper's
-  unless that would make the drive chatter at its current limit at standstill; its
-  integral corner k_iw/k_pw is the paper's; k_pos, tau_sm, tau_eq, the thresholds and
-  the satisfactory loss kept;
-* the weights a1..a3: the paper's rule (each term of the hand-tuned start about 1/3)
-  applied to the drive: a_j = a_j,paper term_j,paper / term_j,drive, the terms of each
-  start measured on its own drive (offline bench, full model, ideal, seed 0, the
-  supervisor off, ``CALIBRATION_EXPERIMENTS`` experiments; cached per process).
+``tuner.yaml``; every other drive is scaled from it by ratios of its constants to the
+paper file's (trajectory by T_rated/J, load step by T_rated, k_pw and k_iw by J/Kt capped
+by ``COUNT_STEP_MAX``, loss weights by each start's measured terms): the rule and why,
+docs/drive-family.md, "The rule: each drive's experiment and start".
 """
 
 from __future__ import annotations

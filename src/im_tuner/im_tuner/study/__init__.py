@@ -1,14 +1,7 @@
 """The offline configuration study of the paper (Tables I-III), in simulation, no ROS.
 
-    ros2 run im_tuner study [--runs 100] [--budget 200] [--algos spsa,necga]
-                            [--model full|reduced] [--jobs N] [--seed S] [--out DIR]
-                            [--realism ideal|bench] [--drives NAME,... [--full-grid]]
-                            [--plant FILE|NAME[,...]] [--plant-mismatch 'J=x2 ...']
-
-The grid (paper, "Summary of experimental results"): SPSA over a in {a0/5, a0, 5 a0} x
-c in {c0/5, c0, 5 c0} (a0 = 0.0183, c0 = 0.03; A = 20, alpha = gamma = 0.3), neCGA over
-n in {5, 25, 125} with eta = floor(n/2); ``runs`` runs of ``budget`` loss evaluations per
-configuration.  Everything runs in-process on the same numba kernels as the nodes
+The grid (spec.py, docs/reproduction.md): SPSA over (a, c), neCGA over n; ``runs`` runs of
+``budget`` loss evaluations per configuration, in-process on the nodes' numba kernels
 (``im_tuner.offline``), in a process pool.
 
 **A study run is a tuner run**, by construction: the tuner's own ``TuningRun`` on the
@@ -24,18 +17,9 @@ workers.
 its final loss is at most ``satisfactory`` (``stats``; docs/reproduction.md says why).
 
 **Drives**: a study's drive, experiment and tuner parameters come from
-``im_tuner.family.drive_setup`` (``StudySpec.drives``/``realism``; none given: the
-packaged drive).  ``--drives A,B`` runs one study per drive (``drives``), each
-normalised by its own hand-tuned start, at each algorithm's recommended configuration
-(``spec.RECOMMENDED``) plus the outside reference row Py-BOBYQA (``bobyqa``), and sums them
-up over the drives (``summary``: mean and worst drive per method; the default against
-the issue's goal).
-
-**The plant**: ``--plant`` and ``--plant-mismatch`` make the offline bench a
-drive other than the one the tuner is told (``StudySpec.plant``, ``StudySpec.mismatch``):
-the runs measure there, L_ref is the hand-tuned start there, and everything the tuner
-derives from its drive (experiment, box, start, ``safe``'s first step) stays the told
-drive's; ``plant`` says what must match and why.
+``im_tuner.family.drive_setup``; ``--drives A,B`` runs one study per drive (``drives``) at
+each algorithm's recommended configuration plus Py-BOBYQA (``bobyqa``), summed up over the
+drives (``summary``). ``--plant`` makes the bench another drive than the told one (``plant``).
 
 Modules by job: ``spec`` (the grid and the spec; light: the command checks its options
 with it alone), ``plant`` (the plant apart from the told drive; light), ``results``

@@ -10,13 +10,9 @@ is the bag's: the same topic, message encoding ``cdr``, schema name the ROS type
 bag's schema encoding (``ros2msg``; ``ros2idl`` for service events) and text, log time
 the bag's; so the shipped Foxglove layouts work unchanged live and on the bag.
 
-Why ``foxglove-websocket`` (the older Python server of the protocol) and not
-``foxglove-sdk``'s ``start_server``: every foxglove-sdk release on PyPI tried (0.5.0,
-0.6.2, 0.8.1, 0.10.1, 0.14.3, 0.15.3, 0.16.6, 0.20.0, 0.25.3, 0.28.0, 0.29.2, 0.30.3)
-answers HTTP 400 to a client that asks only for the subprotocol ``foxglove.websocket.v1``,
-the one Foxglove Studio 1.48 and the open viewers built on it (Lichtblick) speak; the SDK
-accepts only ``foxglove.sdk.v1`` (and ``.v1.1``). ``foxglove-websocket`` speaks
-``foxglove.websocket.v1``.
+The server is ``foxglove-websocket``'s, not ``foxglove-sdk``'s: the SDK's accepts only the
+subprotocol ``foxglove.sdk.v1``, not ``foxglove.websocket.v1``, the one Foxglove Studio 1.48
+and the viewers built on it speak (research/NOTES.md).
 
 This module is pure (numpy, the contracts): the options' declaration and checks
 (:data:`OPTIONS`, :func:`live_settings`, :func:`check_endpoint`), :class:`LiveFeed`, the

@@ -1,27 +1,10 @@
 """The tuner's result topic (``names.RESULT_TOPIC``): a results.jsonl record as
 ``diagnostic_msgs/DiagnosticArray``, and the publisher the tuner node fills.
 
-One ``DiagnosticStatus`` per record (docs/interfaces.md, "tuner/result"):
-
-* ``name``: the record's kind -- ``reference``, ``eval`` or ``remeasure`` -- so a viewer
-  tells them apart (Foxglove's Fig. 9: ``.status[:]{name=="eval"}``);
-* ``level``: OK (``ok``), WARN (``aborted`` without a safety fault: a penalised loss;
-  ``timing``: measured off the paper's timing, no loss), ERROR (``aborted`` by a safety
-  fault), STALE (``lost``: nothing measured, no loss);
-* ``message``: the status, and for all but ``ok`` why (the record's ``reason``), with
-  ``no loss`` where the record has none;
-* ``hardware_id``: the tuner node's name;
-* ``values``: the record's fields that have a value, as key/value strings in the order
-  results.jsonl writes them: floats with ``repr`` (they read back bit for bit), integers
-  as decimals, booleans ``true``/``false``; the gains by name (``k_pw``, ...) and
-  ``periods`` as ``fresh``/``held``/``late``, as the loss message has them; lists
-  (``u``, ``terms``, ``motion``) and ``ripple`` (``runlog.records.RIPPLE_KEYS`` order,
-  ``nan`` for a window not measured) space-separated. A field the record does not have
-  (a lost attempt's ``loss``, a reference's ``u``) is not there: a plot of it gets no
-  point from that message.
-
-``header.stamp``: the sim time at the end of the experiment (``t_end_ns``), as the loss
-message's; zero for an attempt that never ran.
+One ``DiagnosticStatus`` per record: its kind as ``name``, its status as ``level`` and
+``message``, its fields as key/value strings in results.jsonl's order (floats with ``repr``:
+they read back bit for bit), ``header.stamp`` the experiment's end in sim time; the fields
+in full: docs/interfaces.md, "tuner/result".
 """
 
 from __future__ import annotations

@@ -4,23 +4,12 @@ contract of docs/real-drive.md before anything is created.
 A drive is named (``benches.NAMED_DRIVES``: ``sim``, the simulator; ``example``, the
 example drive's stand-in hardware, compiled: ``im_drive_sim.example_hardware``),
 ``lib:PATH`` (a C shared library with the drive ABI, ``im_drive_sim.hardware_abi``:
-loaded, checked and opened here) or ``package.module:Class``, where the class is one of
-the three forms the document describes:
-
-* **a compiled hardware class**: numba-jitted ``write(state, isq_ref, load_torque)``,
-  ``read(state, m)`` (optional ``elapse(state, periods)``) on the class and a float64
-  array ``state`` on the instance; the composed loop calls them by address, no GIL;
-
-* **a hardware class** (as ``im_drive_sim.example_drive.Hardware``): not a ROS node;
-  ``Class(config)`` takes the loaded drive file (a ``DriveConfig``), ``read()`` takes no
-  argument and returns the period's ``Measurement``, ``write(isq_ref, load_torque)``
-  takes two numbers, ``close()`` (optional) takes none. The example drive's ROS side runs it;
-* **a drive node class**: an ``ExampleDrive`` subclass, built as
-  ``Class(context=..., parameter_overrides=[...])``.
-
-Anything else (a ROS node that is not an ``ExampleDrive``, ``read``/``write`` that take
-other arguments, an abstract class, a module that raises or exits at import) is refused
-with one line saying which part of the contract it misses.
+loaded, checked and opened here) or ``package.module:Class``: a compiled hardware class, a
+hardware class (as ``im_drive_sim.example_drive.Hardware``) or an ``ExampleDrive`` subclass,
+each as docs/real-drive.md describes it. Anything else (a ROS node that is not an
+``ExampleDrive``, ``read``/``write`` that take other arguments, an abstract class, a module
+that raises or exits at import) is refused with one line saying which part of the contract
+it misses.
 
 :func:`resolve` also builds the hardware class once, with the drive file the bench will
 load, so that a constructor that raises (no inverter on the bus) is refused before the

@@ -6,20 +6,12 @@ hardware for the same reason. Here both stay separate rclpy nodes -- their own t
 parameters and services on the graph, the same classes as ``drive_sim``/``example_drive``
 and ``controller`` -- composed into one process (as rclcpp_components does), and a
 real-time loop runs them in its own thread, every Ts = 200 us on the wall clock
-(:class:`pacing.Pacer`), as ros2_control_node runs its update loop:
-
-* **the loop thread** (``--thread-priority``/``--cpu-affinity``/``--lock-memory`` apply to
-  it) does only a period's control work, the controller taking state k *in memory*; what
-  the nodes publish goes to an :class:`im_drive_sim.outbox.Outbox` (bounded rings, never
-  blocking). With the simulator the periods run compiled (:mod:`.compiled_loop`); other
-  drives run :meth:`RealtimeBench.step`, a period in Python;
-* **publisher threads** (``outbox.PublisherThread``, one per topic) publish the rings on
-  the graph (:mod:`.loop_routes`);
-* **the serving thread** (the tuner's, :meth:`RealtimeBench.spin_until`): requests,
-  experiment results, the recorder (from the outbox's tap rings), the drive status and
-  the garbage collector's young generation.
-
-The threads in full: docs/real-drive.md, "How the composed loop runs".
+(:class:`pacing.Pacer`), as ros2_control_node runs its update loop. The loop thread does
+only a period's control work (compiled with the simulator: :mod:`.compiled_loop`; other
+drives: :meth:`RealtimeBench.step`), what the nodes publish going to an
+:class:`im_drive_sim.outbox.Outbox`; publisher threads publish it (:mod:`.loop_routes`); the
+serving thread (:meth:`RealtimeBench.spin_until`) serves requests, results, the recorder and
+the garbage collector. The threads in full: docs/real-drive.md, "How the composed loop runs".
 
 The drive side is pluggable: the simulator (the default), the example drive, a user's
 library or class (:func:`.drive_spec.make_drive`; the forms: :mod:`.drive_spec`).

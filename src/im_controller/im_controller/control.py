@@ -1,30 +1,9 @@
 """Cascaded position controller of the IM drive: numba kernels + a thin Python class.
 
-Per control period Ts (k = step index), with theta* the raw trajectory reference
-(docs/controller.md has the block diagram and the reasoning)::
-
-    theta_sm[k] = a_sm theta_sm[k-1] + (1 - a_sm) theta*[k]          a_sm = exp(-Ts/tau_sm)
-    theta_m[k]  = a_eq theta_m[k-1]  + (1 - a_eq) theta_sm[k]         a_eq = exp(-Ts/tau_eq)
-    omega_ff[k] = (theta_m[k] - theta_m[k-1]) / Ts       ('model' reading, default)
-                = (theta_sm[k] - theta_sm[k-1]) / Ts     ('undelayed' reading)
-    e_theta[k]  = theta_m[k] - theta_meas[k]
-    omega*[k]   = k_pos e_theta[k] + omega_ff[k]
-    e_w[k]      = omega*[k] - omega_meas[k]
-    P[k] = k_pw e_w[k];   I[k] = I[k-1] + k_iw Ts e_w[k]   (unless frozen, see below)
-    isq*[k] = clamp(P[k] + I[k], -isq_max, +isq_max)
-
-* The filters are the exact discretisation (a = exp(-Ts/tau)) of 1/(1 + s tau) for an input
-  that takes its new value at the start of the interval (no extra step of delay);
-  tau = 0 gives a = 0, i.e. an exact pass-through.
-* omega_ff (model reading) = (1 - a_eq)/Ts (theta_sm[k] - theta_m[k-1]) is the exact mean of
-  d theta_m/dt = (theta_sm - theta_m)/tau_eq over the last period.  It tends to
-  (theta_sm - theta_m)/tau_eq for tau_eq >> Ts and, unlike the sampled value, stays
-  finite and continuous for tau_eq -> 0, where it becomes the backward difference of
-  theta_sm (the tau_eq = 0 case needs no special code).
-* Anti-windup: conditional integration.  The integrator is frozen in a step where the
-  unclamped output P + I + k_iw Ts e_w is beyond +-isq_max and e_w drives it further out;
-  it is also kept within +-isq_max (useful after a gain change).  ``saturated`` = 1 when
-  the output was clamped.
+Per control period Ts: the reference filters (exact discretisation of 1/(1 + s tau)), the
+speed feed-forward ('model' or 'undelayed' reading of tau_eq), the position and speed
+loops, and the clamp of isq* with conditional-integration anti-windup. The equations and
+the reasoning: docs/controller.md, "Discrete equations".
 
 Arrays (float64, allocated once): parameters ``C`` (``C_*``), state ``X`` (``X_*``),
 internals ``out`` (``O_*``, names in ``CONTROL_FIELDS``).  The kernel allocates nothing.
@@ -141,7 +120,7 @@ def control_step(
     """One control period; returns isq* [A] and writes the internals into ``out``.
 
     theta_ref [rad]: raw reference theta*; theta_meas [rad], omega_meas [rad/s]: measurements
-    sampled at this step.  Equations in the module docstring.  No allocation.
+    sampled at this step.  Equations: docs/controller.md.  No allocation.
     """
     sm_old = X[X_SM]
     m_old = X[X_M]

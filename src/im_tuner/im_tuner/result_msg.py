@@ -27,7 +27,7 @@ NS_PER_S = 1_000_000_000
 
 
 def _text(v: Any) -> str:
-    """One value as the message writes it (module docstring)."""
+    """One value as the message writes it (docs/interfaces.md, "tuner/result")."""
     if isinstance(v, bool):
         return 'true' if v else 'false'
     if isinstance(v, float):
@@ -40,7 +40,8 @@ def _text(v: Any) -> str:
 
 
 def record_values(rec: Record) -> list[tuple[str, str]]:
-    """The record's fields as the message's key/value strings (module docstring)."""
+    """The record's fields as the message's key/value strings (docs/interfaces.md,
+    "tuner/result")."""
     out: list[tuple[str, str]] = []
     for k, v in rec.to_dict().items():
         if v is None:

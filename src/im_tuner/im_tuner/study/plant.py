@@ -3,7 +3,7 @@
 
 **The split.** Everything the tuner derives from *its* drive -- the experiment
 (trajectory, load step, loss weights: ``im_tuner.family.drive_setup``), the search box and
-its hand-tuned start, the ``--first model`` prior of ``safe`` (``im_tuner.prior``, on the
+its hand-tuned start, the ``--opt first=model`` prior of ``safe`` (``im_tuner.prior``, on the
 told drive's nominal model) -- comes from the told drive (``--drives`` / ``--drive-config``).
 Only the offline bench the runs measure on is the plant.  What anyone can then ask in one
 command: "what if my drive file's J is off by 2x" (``--plant-mismatch J=x2``), or "my

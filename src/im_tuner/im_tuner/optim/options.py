@@ -303,7 +303,7 @@ POLICIES: dict[str, dict[str, OptionSpec]] = {
             "experiments identify), 'model' (the same on the drive file's nominal model, "
             "computed at start-up), 'none' (a local step); default 'identify' where the "
             "tuner knows the drive (--drive-config or a simulated bench), else 'none' "
-            '(docs/optimisers.md, "The first step from the drive model")',
+            '(docs/tuner.md, "Start and first step")',
         )
     },
 }

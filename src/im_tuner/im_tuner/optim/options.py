@@ -9,8 +9,8 @@ declares each option once, a number by its interval as written in mathematics
 options are shared by cga, pecga and necga.  Pure: numpy and :mod:`.checks` only.  An
 algorithm's own module -- and pycma (cmaes), optuna (tpe), scipy (rcga) with it -- is
 imported only when one is built (:func:`.base.algorithm_class`, from ``make_optimizer``
-and ``Optimizer.from_state``), so a
-tool that only parses its command line (the tuner refusing bad input) stays fast.
+and ``Optimizer.from_state``), so a tool that only parses its command line (the tuner
+refusing bad input) stays fast.
 """
 
 from __future__ import annotations

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import pytest
 import yaml
@@ -264,3 +265,28 @@ def test_a_resumed_run_keeps_the_parameters_its_command_gave():
     ]  # fmt: skip
     assert ros_arguments(['tuner']) == ['tuner', '--ros-args', '--disable-stdout-logs']
     assert run_parameters(RunConfig.from_dict({'algo': 'safe', 'command': "x 'y"})) == []
+
+
+def test_the_study_names_the_policies_as_the_tuner_declares_them() -> None:
+    """The study's grid cells give 'start' and 'first' the tuner's declared values
+    (optim.POLICIES; 'random' is the study's own start, a parameter file to the tuner),
+    and only to the algorithms that take them; its commands say them with --opt."""
+    from types import SimpleNamespace
+
+    from im_tuner.study.files import tuner_command
+    from im_tuner.study.spec import StudySpec, grid
+
+    cells = grid(optim.ALGOS)
+    spec = StudySpec(runs=1, algos=optim.ALGOS)
+    res = SimpleNamespace(cells=cells, spec=spec, run_seed=[1])
+    said = set()
+    for c, cell in enumerate(cells):
+        for key, value in cell.options:
+            if key in ('start', 'first'):
+                choices = optim.POLICIES[cell.algo][key].choices
+                assert value in (*choices, 'random'), (cell.label, key, value)
+        assert not {'start', 'first'} & set(cell.opts)
+        words = tuner_command(res, c, 0, Path('out')).split()
+        said |= {w.split('=')[0] for w in words if w.startswith(('start=', 'first='))}
+        assert '--no-start' not in words and '--first' not in words
+    assert said == {'start', 'first'}

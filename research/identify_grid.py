@@ -11,7 +11,7 @@ Per (drive, case, seed): the tuner's own :class:`TuningRun` (the reference, then
 plant (the told drive with ``study --plant-mismatch``'s mismatch applied,
 ``study.plant.apply_mismatch``), budget 1, the run seed's drive noise as a study run
 has it (``run_seeds``); then ``identify`` on the start's records, exactly what the
-tuner's ``--first identify`` does before evaluation 2 (``first_step.IdentifiedFirstStep``).
+tuner's ``--opt first=identify`` does before evaluation 2 (``first_step.IdentifiedFirstStep``).
 Prints one markdown table (identified J / the plant's J - 1, and Kt, per case: the worst
 over the seeds) and the worst case; exit 1 when a J misses 10 %.  Each drive file's own
 realism profile unless ``--realism`` is given.  About 1 s per (drive, case, seed).

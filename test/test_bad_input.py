@@ -224,9 +224,13 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('tuner', 'option-value-type', ['--algo', 'necga', '--opt', 'n=big']),
     ('tuner', 'option-not-key-value', ['--opt', 'sigma0']),
     *_file_cases('tuner', '--opt'),
-    # --no-start: only spsa, cmaes, tpe (safe would start from an untested random point)
-    ('tuner', 'no-start-safe-default', ['--no-start']),
-    ('tuner', 'no-start-compact-ga', ['--algo', 'necga', '--no-start']),
+    # --opt start=none: only spsa, cmaes, tpe (safe would start from an untested random
+    # point); a policy's value one of its choices
+    ('tuner', 'start-none-safe-default', ['--opt', 'start=none']),
+    ('tuner', 'start-none-compact-ga', ['--algo', 'necga', '--opt', 'start=none']),
+    ('tuner', 'start-bad-value', ['--algo', 'spsa', '--opt', 'start=random']),
+    ('tuner', 'first-bad-value', ['--opt', 'first=always']),
+    ('tuner', 'first-of-other-algo', ['--algo', 'cmaes', '--opt', 'first=model']),
     ('tuner', 'drive-config-comments-only', ['--drive-config', 'comments.yaml']),
     ('tuner', 'compression-with-no-record', ['--compression', 'zstd', '--no-record']),
     # --live: what the recorder writes, served; its port and host checked first
@@ -295,7 +299,7 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('tuner', 'resume-run-yaml-not-yaml', ['--resume', 'run_yaml_tab']),
     ('tuner', 'resume-newer-summary', ['--resume', 'run_newer_summary']),
     ('tuner', 'resume-with-settings', ['--resume', 'run', '--budget', '9']),
-    # a run.yaml of safe with start: false (--no-start does not apply to safe)
+    # a run.yaml of safe with start: none (a policy safe does not take)
     ('tuner', 'resume-run-yaml-safe-no-start', ['--resume', 'run_safe_no_start']),
 ]
 
@@ -331,8 +335,11 @@ EXPECT: dict[tuple[str, str], str] = {
     ('report', 'default-out-is-a-file'): 'exists and is not a directory (the default place',
     ('tuner', 'resume-newer-summary'): 'format version 99',
     ('tuner', 'resume-run-yaml-not-yaml'): "found character '\\t' that cannot start any token",
-    ('tuner', 'no-start-safe-default'): 'does not apply to --algo safe: safe is a local search',
-    ('tuner', 'no-start-compact-ga'): 'necga takes no start point',
+    ('tuner', 'start-none-safe-default'): '--opt start does not apply to --algo safe',
+    ('tuner', 'start-none-compact-ga'): '--opt start does not apply to --algo necga',
+    ('tuner', 'start-bad-value'): "spsa option start must be one of 'hand', 'none', got 'random'",
+    ('tuner', 'first-bad-value'): "option first must be one of 'identify', 'model', 'none'",
+    ('tuner', 'first-of-other-algo'): '--opt first does not apply to --algo cmaes',
     ('tuner', 'drive-config-comments-only'): 'no settings (the file holds only comments)',
     ('tuner', 'compression-with-no-record'): '--compression zstd is for the bag',
     ('tuner', 'p-gain-negative'): 'k_pw',
@@ -362,7 +369,7 @@ EXPECT: dict[tuple[str, str], str] = {
     ('host_check', 'thread-priority-100'): 'must be 0 (off) or 1-99 (SCHED_FIFO), got 100',
     ('example_drive', 'hardware-unknown'): "expected 'python', 'example' or 'lib:PATH'",
     ('example_drive', 'hardware-library-missing'): 'no such file',
-    ('tuner', 'resume-run-yaml-safe-no-start'): 'start: false (--no-start) does not apply to',
+    ('tuner', 'resume-run-yaml-safe-no-start'): "run.yaml: unknown option 'start' for safe",
 }
 
 # -- the work directory every case starts from ---------------------------------------------
@@ -505,9 +512,11 @@ def template(tmp_path_factory) -> Path:
     def safe_no_start(d: Path) -> None:
         p = d / 'run.yaml'
         text = p.read_text()
-        assert 'algo: necga' in text and 'start: true' in text
+        assert 'algo: necga' in text and 'options: {}' in text
         p.write_text(
-            text.replace('algo: necga', 'algo: safe').replace('start: true', 'start: false')
+            text.replace('algo: necga', 'algo: safe').replace(
+                'options: {}', 'options: {start: none}'
+            )
         )
 
     _corrupt_copy(run, root / 'run_safe_no_start', safe_no_start)
@@ -649,14 +658,14 @@ def test_help_of_every_executable_exits_0(exe: str, tmp_path: Path) -> None:
 #: (argv, what the line says): refused by argparse, the run checks, the option ranges
 FAST_REFUSALS = [
     (['--algo', 'nosuch'], "argument --algo: invalid choice: 'nosuch'"),
-    (['--no-start'], '--no-start does not apply to --algo safe'),
+    (['--opt', 'start=none'], '--opt start does not apply to --algo safe'),
     (['--algo', 'cmaes', '--opt', 'sigma0=2'], 'sigma0'),
     (['--opt', 'grow=1.2', '--opt', 'grow=2'], '--opt grow is given twice'),
     (['--algo', 'tpe', '--budget', '0'], 'argument --budget: must be >= 1, got 0'),
     (['--drive-config', 'comments.yaml'], 'no settings (the file holds only comments)'),
     (['--out', 'full'], '--out full: already exists'),
     (['--no-record', '--compression', 'lz4'], '--compression lz4 is for the bag'),
-    (['--first', 'identify', '--no-reference'], 'not with --no-reference; give --first model'),
+    (['--opt', 'first=identify', '--no-reference'], 'not with --no-reference; give --opt first='),
 ]
 HEAVY = ('rclpy', 'cma', 'optuna', 'scipy', 'numba', 'matplotlib')
 

@@ -189,10 +189,10 @@ def test_sim_bench_takes_its_drives_gains_and_the_tuner_learns_the_drive(tmp_pat
         [ROS2, 'run', 'im_tuner', 'sim_bench', '--drive-config', 'im7500w-j3', '--no-record']
     )
     common = ('--bench', 'none', '--discovery-timeout', '60', '--no-record', '--quiet')
-    refused = tuner(*common, '--first', 'model', '--budget', '1', '--out', str(tmp_path / 'no'))
+    refused = tuner(*common, '--opt', 'first=model', '--budget', '1', '--out', str(tmp_path / 'no'))
     lines = refused.stderr.strip().splitlines()
     assert refused.returncode == 2 and len(lines) == 1, refused.stderr[-2000:]
-    assert lines[0].startswith('error: tuner: --first model: the controller drives im7500w-j3')
+    assert lines[0].startswith('error: tuner: --opt first=model: the controller drives im7500w-j3')
     assert 'give --drive-config im7500w-j3' in lines[0] and 'Traceback' not in refused.stderr
     assert list(tmp_path.iterdir()) == []
     run = tmp_path / 'run'

@@ -543,7 +543,7 @@ def test_recorder_killed_the_run_goes_on_bit_for_bit(procs, tmp_path, wait_until
     the dead reader: the recorder's short DDS lease); that run computed on the pure core's
     offline bench, which the ROS nodes reproduce bit for bit (test_study.py)."""
     # (SPSA: a run whose first step does not depend on which bench the tuner thinks it
-    # is on, as safe's default --first does)
+    # is on, as safe's default first step does)
     args = ['--algo', 'spsa', '--budget', '4', '--seed', '1', '--remeasure', '0', '--quiet']
     want, _st, _s = offline_run('spsa', 4, 1, remeasure=0)
     run = tmp_path / 'run'

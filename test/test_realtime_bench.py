@@ -105,7 +105,7 @@ def test_composed_realtime_run_measures_the_paper_loss_bit_for_bit(tmp_path):
             # 0.03-0.8 % (checked below); the drive model's first point (the default on a
             # simulated bench) is a high-gain controller whose consecutive losses differ
             # by up to ~5 % (0.447 lock-step vs 0.470 real-time, CI of 2026-11-26)
-            *('--first', 'none'),
+            *('--opt', 'first=none'),
             # real-time scheduling of the loop, as ros2_control_node (CI runs as root)
             *('--thread-priority', '50', '--lock-memory'),
             '--remeasure',
@@ -189,7 +189,7 @@ def test_the_host_is_checked_before_the_first_experiment_and_auto_takes_its_tole
     p = subprocess.run(
         [
             *ros2('im_tuner', 'tuner', '--bench', 'realtime', '--budget', '1', '--seed', '4'),
-            *('--first', 'none', '--remeasure', '0', '--out', str(run), *RT),
+            *('--opt', 'first=none', '--remeasure', '0', '--out', str(run), *RT),
             *('--timing-tolerance', 'auto'),
         ],
         capture_output=True,

@@ -76,11 +76,11 @@ def test_without_drives_the_files_are_unchanged(tmp_path):
         )
 
     tables = hashlib.sha256(before('tables.csv')).hexdigest()
-    # and safe's commands now say --first (the tuner's default depends on its bench)
+    # and safe's commands now say its first step (the tuner's default depends on its bench)
     runs = (
         _without_new_columns(before('runs.csv'))
         .replace(str(out).encode(), b'OUT')
-        .replace(b' --first none', b'')
+        .replace(b' --opt first=none', b'')
         .replace(b' --ripple-limit off', b'')
     )
     # (and the algorithm options as --opt KEY=VALUE, not a flag each)

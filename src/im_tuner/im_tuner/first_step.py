@@ -1,4 +1,4 @@
-"""``safe``'s first step from the identified drive (the tuner's ``--first identify``).
+"""``safe``'s first step from the identified drive (the tuner's ``--opt first=identify``).
 
 After the start's two measurements (the reference and evaluation 1, opposite directions)
 the tuner calls :class:`IdentifiedFirstStep` with the run's records: it identifies J, Kt,

@@ -521,7 +521,7 @@ def model_drive_mismatch(mine: str | None, theirs: str | None, option: str = 'mo
     """Why a first step computed on the drive file ``mine`` (the tuner's ``--drive-config``;
     None: the packaged default) does not fit a controller whose ``drive_config_file`` is
     ``theirs`` ('' or None: the default): one line naming the fix, or None when both name
-    the same machine and period (``option``: the --first that needs the model).  A file
+    the same machine and period (``option``: the ``--opt first`` that needs the model).  A file
     the tuner cannot read here is a mismatch only when the names differ (a drive host on
     another computer may keep it elsewhere)."""
     from im_drive_sim.drive_file import load_config
@@ -536,9 +536,9 @@ def model_drive_mismatch(mine: str | None, theirs: str | None, option: str = 'mo
         return None
     said = '(none)' if mine is None else mine
     return (
-        f'--first {option}: the controller drives {theirs or "paper_750w (its default)"} '
+        f'--opt first={option}: the controller drives {theirs or "paper_750w (its default)"} '
         f'(its drive_config_file), but the first step would be the model of --drive-config '
-        f'{said}; give --drive-config {theirs or "paper_750w"} (or --first none)'
+        f'{said}; give --drive-config {theirs or "paper_750w"} (or --opt first=none)'
     )
 
 

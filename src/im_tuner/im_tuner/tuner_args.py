@@ -31,13 +31,10 @@ from .record import live as _live
 from .runlog import RunConfig
 from .runlog.ripple import DEFAULT_RIPPLE_LIMIT, RIPPLE_TOLERANCE
 
-#: the algorithms --no-start is for, in --algo's order
-NO_START_TEXT = ', '.join(a for a in optim.ALGOS if a in optim.NO_START_ALGOS)
-_NO_POINT = ', '.join(
-    f'`{a}`' for a in optim.ALGOS if a not in optim.NO_START_ALGOS and a not in optim.TAKES_START
-)
 _RIPPLE_LIMITED = ', '.join(f'`{a}`' for a in optim.ALGOS if a in optim.RIPPLE_LIMITED)
-_OPT_KEYS = '; '.join(f'`{" ".join(o)}` ({a})' for a, o in optim.OPTIONS.items() if o)
+_OPT_KEYS = '; '.join(
+    f'`{" ".join(optim.option_specs(a))}` ({a})' for a in optim.ALGOS if optim.option_specs(a)
+)
 
 DESCRIPTION = (
     'Tune the cascaded position/speed controller online by SPSA, a compact GA (the '
@@ -198,47 +195,6 @@ class TunerOptions:
         {'action': 'store_true'},
         run=True,
     )
-    no_start: bool = option(
-        f"{NO_START_TEXT} only: do not start from the parameter file's start point (spsa, "
-        'cmaes: a uniform random one; tpe: random trials first); the reference experiment '
-        'still measures it. Refused (one line, exit 2) with `safe`, a local search from '
-        'the start whose first experiment would otherwise be an untested random '
-        f'controller, and with {_NO_POINT}, which take no start',
-        {'action': 'store_true'},
-        run=True,
-    )
-    first: str | None = option(
-        '`safe` only (refused with another `--algo`): its first step after the start. '
-        "`identify`: the start's two experiments (the reference and evaluation 1, one in "
-        "each direction) identify the shaft's mechanics from the motion sums every "
-        'experiment carries (J, the effective Kt, viscous B and Coulomb Tc, each with a '
-        'standard deviation; [controller.md](controller.md), "The motion sums"; '
-        "`im_tuner.identify`), the tuner prints them beside the drive file's, then takes "
-        "the best point of an offline tuning on the drive file's model with those values "
-        '(300 experiments per seed, about 1370 in all with the ripple limit: 10-20 s '
-        'between evaluations 1 and 2), checked on models with J within +-10 % (or 3 '
-        'standard deviations) and Rr x0.8-1.2; summary.json keeps `identification`, and '
-        'a resume recomputes the same '
-        "point from results.jsonl's `motion`. `model`: the same tuning on the drive "
-        "file's nominal model as written (every bench effect off; about 1-2 s at "
-        'start-up), checked on models with J x0.7-1.4 and Rr x0.8-1.2 '
-        '([optimisers.md](optimisers.md), "The first step from the drive model"): it '
-        "anchors the search near the file's point when the load's inertia is off by 2x or "
-        'more. `none`: a local step. The tuner knows the drive with `--drive-config` or '
-        'a simulated bench (`inproc`, `processes`, `realtime`, `realtime-processes` with '
-        'the simulator); with `auto` or `none` and no `--drive-config` the controller '
-        'found may drive another motor, so the default is `none`; `--first identify` or '
-        "`model` there is checked against the controller's `drive_config_file` once it "
-        'answers, and refused (one line with the fix `--drive-config NAME`, nothing left) '
-        "when the tuner's drive file is of another machine. The choice (or the model's "
-        "point) is stored in `run.yaml`'s options (`first`), so `--resume` continues with "
-        'it. What it costs when the drive file is not the drive: `ros2 run im_tuner '
-        "study --drives NAME --plant-mismatch 'J=x2'` (or `--plant FILE`) measures it "
-        '([optimisers.md](optimisers.md), "When the drive file is wrong")',
-        {'choices': ('identify', 'model', 'none')},
-        shown='`identify` where the tuner knows the drive, else `none`',
-        run=True,
-    )
     ripple_limit: str | None = option(
         'the largest standstill current ripple the applied gains may have: their rms of '
         'isq* in both standstill windows (after the move, 0.300-0.700 s; after the load '
@@ -349,7 +305,9 @@ class TunerOptions:
     )
     opt: list[str] = option(
         'an option of the algorithm (repeat it for more), or a YAML file of them: '
-        f'{_OPT_KEYS}. `--algo ALGO --opt help` lists them with defaults and ranges '
+        f"{_OPT_KEYS}. `start` (where the search starts) and `first` (safe's first step) are "
+        "the run's policies for the algorithm ([Start and first step](#start-and-first-step)). "
+        '`--algo ALGO --opt help` lists them with defaults and ranges '
         '([optimisers.md](optimisers.md)). An option of another algorithm is an error, '
         'not ignored; run.yaml keeps them under `options`',
         {'action': 'append', 'metavar': 'KEY=VALUE'},

@@ -34,7 +34,7 @@ from .record.live import live_settings
 from .rundir import RunDir
 from .runlog import RunConfig
 from .space import TunerParams, TunerParamsError, load_params, parse_params
-from .tuner_args import NO_START_TEXT, RUN_SETTINGS, TunerOptions, default, timing_tolerance
+from .tuner_args import RUN_SETTINGS, TunerOptions, default, timing_tolerance
 
 if TYPE_CHECKING:
     from .bench.drive_spec import DriveChoice
@@ -49,11 +49,6 @@ def check_session(cli: TunerOptions) -> None:
     live view's port is checked (bound and released) before anything is created."""
     cli.compression = recording_options(cli.no_record, compression=cli.compression)
     live_settings(cli.live, cli.live_host, cli.live_rate, no_record=cli.no_record)
-    if getattr(cli, 'first', None) == 'identify' and getattr(cli, 'no_reference', False):
-        raise UsageError(
-            '--first identify identifies the drive from the reference experiment (the '
-            "start's two measurements): not with --no-reference; give --first model or none"
-        )
 
 
 @contextlib.contextmanager
@@ -66,22 +61,6 @@ def _usage(*errors: type[Exception], prefix: str = '') -> Iterator[None]:
 
 
 # -- the run configuration -------------------------------------------------------------------
-def check_no_start(algo: str, where: str = '--no-start') -> None:
-    """``--no-start`` (run.yaml ``start: false``) is for ``optim.NO_START_ALGOS`` only:
-    with safe it would make the first experiment an untested random controller; the
-    compact GAs take no start, so it would mean nothing."""
-    if algo in optim.NO_START_ALGOS:
-        return
-    if algo in optim.TAKES_START:
-        why = (
-            f'{algo} is a local search from the start point (the hand-tuned gains); '
-            'without it the first experiment would be an untested random controller'
-        )
-    else:
-        why = f'{algo} takes no start point (it samples from its distribution)'
-    raise UsageError(f'{where} does not apply to --algo {algo}: {why}; it is for {NO_START_TEXT}')
-
-
 #: what the host's check before the run has to say: (the line, a warning) or None
 HostSaid = tuple[str, bool] | None
 
@@ -109,12 +88,15 @@ def _new_run_config(cli: TunerOptions, argv: list[str]) -> NewRun:
     retries = default('retries') if cli.retries is None else cli.retries
     tolerance = timing_tolerance(cli, argv)
     tolerance = DEFAULT_TIMING_TOLERANCE if tolerance is None else tolerance
-    if cli.no_start:
-        check_no_start(algo)
     ripple_limit = _ripple_limit(cli, algo)
     with _usage(OptimizerError):  # an option of another algorithm too (else ignored)
-        options = optim.read_options(algo, cli.opt)
+        options, policies = optim.split_policies(algo, optim.read_options(algo, cli.opt))
         check_options(algo, optim.OPTIONS[algo], options)  # (ranges: no module needed)
+    if policies.get('first') == 'identify' and cli.no_reference:
+        raise UsageError(
+            '--opt first=identify identifies the drive from the reference experiment (the '
+            "start's two measurements): not with --no-reference; give --opt first=model or none"
+        )
     if rt.RtOptions.from_cli(cli).requested and (cli.bench or 'auto') != 'realtime':
         raise UsageError(
             '--thread-priority/--cpu-affinity/--lock-memory set up the composed real-time '
@@ -158,11 +140,11 @@ def _new_run_config(cli: TunerOptions, argv: list[str]) -> NewRun:
     entropy = np.random.SeedSequence().entropy  # a fresh SeedSequence draws an int
     assert isinstance(entropy, int)
     seed = cli.seed if cli.seed is not None else entropy % 2**31
-    options.update(_first_point(cli, algo, params))  # (an offline tuning: seconds)
+    if 'first' in policies:  # (model: an offline tuning, seconds)
+        policies['first'] = _first_point(cli, policies['first'], params)
+    options.update(policies)  # (run.yaml keeps the run's policies with the options)
     with _usage(OptimizerError):  # the cross-option checks (eta < n ...): any seed will do
-        optim.make_optimizer(
-            algo, params.space.dim, seed, _start(algo, params, cli.no_start), **options
-        )
+        optim.make_optimizer(algo, params.space.dim, seed, **_optimizer_args(algo, options, params))
     if drive is not None:
         with _usage(drive_spec.DriveSpecError):
             drive = drive_spec.resolve(cli.drive, cli.drive_config)
@@ -179,7 +161,6 @@ def _new_run_config(cli: TunerOptions, argv: list[str]) -> NewRun:
             'drive_seed': drive_seed,
             'remeasure': remeasure,
             'reference': not cli.no_reference,
-            'start': not cli.no_start,
             'retries': retries,
             'timing_tolerance': tolerance,
             'host_check': host_record,
@@ -328,19 +309,13 @@ def _ripple_limit(cli: TunerOptions, algo: str) -> float | None:
     return limit
 
 
-def _first_point(cli: TunerOptions, algo: str, params: TunerParams) -> dict[str, Any]:
-    """safe's ``first`` option from ``--first`` (default: 'identify' where the tuner knows
-    the drive): 'identify' (the point comes after the start's two measurements, from the
-    drive they identify: ``im_tuner.first_step``), the prior of the drive file's nominal
-    model computed now ('model', ``im_tuner.prior``), or nothing.  Stored with the run's
-    options, so a resumed run continues with it."""
-    if algo not in optim.TAKES_FIRST:
-        if cli.first is not None:
-            raise UsageError(
-                f'--first does not apply to --algo {algo}: it is the first step of '
-                + ', '.join(sorted(optim.TAKES_FIRST))
-            )
-        return {}
+def _first_point(cli: TunerOptions, first: str | None, params: TunerParams) -> Any:
+    """safe's ``first`` policy as run.yaml keeps it, from ``--opt first`` (None: not given,
+    'identify' where the tuner knows the drive, else 'none'): 'identify' (the point comes
+    after the start's two measurements, from the drive they identify:
+    ``im_tuner.first_step``), the point of the drive file's nominal model computed now
+    ('model', ``im_tuner.prior``; 'none' when it finds nothing better than the start), or
+    'none'.  A resumed run continues with it."""
     from .benches import is_simulated
 
     # auto: the simulated bench it falls back to (if it finds a controller on the graph
@@ -348,15 +323,35 @@ def _first_point(cli: TunerOptions, algo: str, params: TunerParams) -> dict[str,
     bench = 'inproc' if cli.bench == 'auto' else cli.bench
     known = cli.drive_config is not None or is_simulated(bench, cli.drive)
     # (identify needs the reference experiment: without it, the default is none)
-    first = cli.first or ('identify' if known and not cli.no_reference else 'none')
-    if first == 'none':
-        return {}
-    if first == 'identify':
-        return {'first': 'identify'}
+    first = first or ('identify' if known and not cli.no_reference else 'none')
+    if first != 'model':
+        return first
     from .prior import model_prior
 
     prior = model_prior(*_drive_of(cli.drive_config, cli.model, params))
-    return {} if prior is None else {'first': list(prior.u)}
+    return 'none' if prior is None else list(prior.u)
+
+
+def _optimizer_args(algo: str, options: dict[str, Any], params: TunerParams) -> dict[str, Any]:
+    """``make_optimizer``'s start, first and options from run.yaml's ``options`` (the
+    options given and the run's policies, ``optim.POLICIES``): the file's start point
+    unless ``start: none``; safe's first step unless ``first: none``.  OptimizerError
+    (one line) for a key ``algo`` does not take or a policy's value it does not declare."""
+    specs = optim.option_specs(algo)
+    unknown = [k for k in options if k not in specs]
+    if unknown:
+        raise OptimizerError(
+            f'unknown option {unknown[0]!r} for {algo} (allowed: {", ".join(specs)})'
+        )
+    opts = dict(options)
+    start = opts.pop('start', 'hand')
+    first = opts.pop('first', 'none')
+    if start != 'hand':
+        check_options(algo, {'start': specs['start']}, {'start': start})
+    if first != 'none':
+        opts['first'] = first  # ('identify', or the model's point: the optimiser checks it)
+    take = algo in optim.TAKES_START and start == 'hand'
+    return {'start': params.space.start_u if take else None, **opts}
 
 
 def _drive_of(drive_config: Any, model: str | None, params: TunerParams) -> tuple[Any, ...]:
@@ -383,13 +378,6 @@ def _first_step_hook(run: RunConfig, params: TunerParams, progress: Any = None) 
         getattr(progress, 'note', None),
         run.ripple_limit,  # (the first step within the limit the run applies)
     )
-
-
-def _start(algo: str, params: TunerParams, no_start: bool = False) -> np.ndarray | None:
-    """SPSA, CMA-ES, TPE and safe start from the file's start point (the first three
-    without it with ``--no-start``, checked by :func:`check_no_start`); the compact GAs
-    from their distribution."""
-    return params.space.start_u if algo in optim.TAKES_START and not no_start else None
 
 
 def _check_controller_name(name: str) -> None:
@@ -429,12 +417,6 @@ def _check_run(run: RunConfig, where: str) -> None:
         raise bad('options', 'a mapping of algorithm options')
     if not isinstance(run.reference, bool):
         raise bad('reference', 'true or false')
-    start = run.start
-    if not isinstance(start, bool):
-        raise bad('start', 'true or false')
-    if start is False and run.algo in optim.TAKES_START:
-        # the rule of --no-start (a run of the compact GAs ignores it: nothing to refuse)
-        check_no_start(run.algo, f'{where}: start: false (--no-start)')
     if not isinstance(run.search_box, dict):
         raise bad('search_box', 'a mapping (the search box)')
     rl = run.ripple_limit
@@ -459,11 +441,7 @@ def make_tuning(rundir: RunDir, run: RunConfig, params: TunerParams, progress) -
     assert run.seed is not None and run.budget is not None  # (checked)
     opt_ss, _ = run_seeds(run.seed)
     opt = optim.make_optimizer(
-        run.algo,
-        params.space.dim,
-        opt_ss,
-        _start(run.algo, params, run.start is False),
-        **(run.options or {}),
+        run.algo, params.space.dim, opt_ss, **_optimizer_args(run.algo, run.options or {}, params)
     )
     tuning = TuningRun(
         rundir,

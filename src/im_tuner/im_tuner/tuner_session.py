@@ -228,11 +228,11 @@ class TunerSession:
             parameters = link.list_parameters()
         except LostEvaluation as exc:  # a controller that does not answer: one line
             raise BenchFailure(f'the controller did not list its parameters: {exc}') from None
-        if not self.resumed and plan.mode == 'external' and (run.options or {}).get('first'):
+        first = (run.options or {}).get('first', 'none')
+        if not self.resumed and plan.mode == 'external' and first != 'none':
             # a controller the tuner did not start: the first step must be its drive's model
             from .prior import model_drive_mismatch
 
-            first = (run.options or {}).get('first')
             why = model_drive_mismatch(
                 run.drive_config,
                 parameters.get('drive_config_file'),

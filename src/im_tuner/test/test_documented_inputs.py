@@ -78,10 +78,11 @@ def test_the_tuner_on_a_users_bigger_drive_takes_its_first_step_and_box(tmp_path
     assert run.run.options == {'first': 'identify'}  # the default: after the start
     prior = model_prior(load_config(big), setup.params.space, setup.experiment)
     assert prior is not None and prior.worst_ratio < 1.0
-    model = _new('--seed', '3', '--drive-config', str(big), '--first', 'model')
+    model = _new('--seed', '3', '--drive-config', str(big), '--opt', 'first=model')
     assert model.run.options == {'first': list(prior.u)}
     assert run.params == setup.params  # the box the optimiser searches
-    assert _new('--seed', '3', '--drive-config', str(big), '--first', 'none').run.options == {}
+    none = _new('--seed', '3', '--drive-config', str(big), '--opt', 'first=none')
+    assert none.run.options == {'first': 'none'}
 
 
 def test_a_box_of_another_drive_runs_without_a_model_step(tmp_path):
@@ -92,7 +93,7 @@ def test_a_box_of_another_drive_runs_without_a_model_step(tmp_path):
     paper_box = default_config_path().parent.parent.parent / 'im_tuner' / 'config' / 'tuner.yaml'
     assert paper_box.is_file()
     args = ('--seed', '3', '--drive-config', 'im7500w-j3', '--params', str(paper_box))
-    assert _new(*args, '--first', 'model').run.options == {}
+    assert _new(*args, '--opt', 'first=model').run.options == {'first': 'none'}
     # identify decides after the start's experiments (an aborted start identifies nothing)
     assert _new(*args).run.options == {'first': 'identify'}
 
@@ -110,8 +111,8 @@ def test_a_first_step_of_one_drive_never_goes_to_another_drives_controller(tmp_p
     assert model_drive_mismatch(str(big), 'im7500w-j3') is not None  # its clamp differs
     why = model_drive_mismatch(None, 'im7500w-j3')
     assert why is not None and len(why.splitlines()) == 1
-    assert why.startswith('--first model: the controller drives im7500w-j3')
-    assert 'give --drive-config im7500w-j3 (or --first none)' in why
+    assert why.startswith('--opt first=model: the controller drives im7500w-j3')
+    assert 'give --drive-config im7500w-j3 (or --opt first=none)' in why
     assert 'give --drive-config paper_750w' in str(model_drive_mismatch('im3700w-j1', ''))
     # a drive file the tuner cannot read here (a drive host's): judged by the names
     assert model_drive_mismatch('far.yaml', 'far.yaml') is None

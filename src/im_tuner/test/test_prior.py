@@ -159,12 +159,12 @@ def test_the_study_commands_repeat_safe_with_or_without_the_model(prior, tmp_pat
     res = SimpleNamespace(cells=cells, spec=spec, run_seed=[run_seed(spec.seed, 0)])
     for c, cell in enumerate(cells):
         argv = shlex.split(tuner_command(res, c, 0, tmp_path))[3:]  # from 'tuner'
-        assert argv.count('--first') == 1
+        assert sum(a.startswith('first=') for a in argv) == 1
         _space, opt, _seed = prepare_run(spec, c, 0, load_params(None))
         first = opt.config().get('first')
         for bench in ((), ('--bench', 'inproc')):  # auto: none by default; inproc: model
             options = _new(*argv[1:], *bench).run.options
-            assert options.get('first') == first, (cell.label, bench)
+            assert options['first'] == ('none' if first is None else first), (cell.label, bench)
         assert (first is not None) == (cell.first in ('model', 'identify'))
 
 
@@ -193,16 +193,15 @@ def test_the_tuner_takes_the_model_where_it_knows_the_drive(prior, tmp_path):
             new = _new('--seed', '3', *args, *more)
             assert new.run.ripple_limit == limit
             assert _first_step_hook(new.run, new.params).ripple_limit == limit
-        got = _new('--seed', '3', *args, '--first', 'model').run.options
+        got = _new('--seed', '3', *args, '--opt', 'first=model').run.options
         assert got == {'first': list(prior.u)}
     # --bench auto may find a controller of another motor: no model unless asked
-    assert _new('--seed', '3').run.options == {}
-    assert _new('--seed', '3', '--first', 'model').run.options == {'first': list(prior.u)}
-    assert _new('--seed', '3', '--bench', 'inproc', '--first', 'none').run.options == {}
-    with pytest.raises(
-        UsageError, match='--first does not apply to --algo spsa: it is the first step of safe'
-    ):
-        _new('--seed', '3', '--algo', 'spsa', '--first', 'model')
+    assert _new('--seed', '3').run.options == {'first': 'none'}
+    assert _new('--seed', '3', '--opt', 'first=model').run.options == {'first': list(prior.u)}
+    none = _new('--seed', '3', '--bench', 'inproc', '--opt', 'first=none')
+    assert none.run.options == {'first': 'none'}
+    with pytest.raises(UsageError, match='--opt first does not apply to --algo spsa'):
+        _new('--seed', '3', '--algo', 'spsa', '--opt', 'first=model')
 
 
 def _bench_file(tmp_path):

@@ -192,7 +192,7 @@ def test_a_resumed_run_keeps_its_limit(tmp_path):
     run left alone."""
     from im_tuner.tuner_cli import make_tuning
 
-    new = _new('--seed', '11', '--first', 'none', '--budget', '40')
+    new = _new('--seed', '11', '--opt', 'first=none', '--budget', '40')
     assert new.run.ripple_limit == 1.5
     whole = make_tuning(RunDir.create(tmp_path / 'whole'), new.run, new.params, None)
     assert whole.ripple_limit == 1.5 and whole.run(bench := RippleBench()) == 'done'
@@ -218,12 +218,14 @@ def test_the_default_is_on_for_safe_off_for_the_papers_algorithms():
     assert DEFAULT_RIPPLE_LIMIT == 1.5
     assert default_ripple_limit('safe') == 1.5
     assert all(default_ripple_limit(a) is None for a in optim.ALGOS if a != 'safe')
-    assert _new('--seed', '3', '--first', 'none').run.ripple_limit == 1.5
+    assert _new('--seed', '3', '--opt', 'first=none').run.ripple_limit == 1.5
     assert _new('--algo', 'necga', '--seed', '3').run.ripple_limit is None
     assert _new('--algo', 'spsa', '--seed', '3', '--ripple-limit', '2').run.ripple_limit == 2.0
-    assert _new('--seed', '3', '--first', 'none', '--ripple-limit', 'off').run.ripple_limit is None
+    assert (
+        _new('--seed', '3', '--opt', 'first=none', '--ripple-limit', 'off').run.ripple_limit is None
+    )
     # without a reference the start's ripple is unknown: off by default, refused if given
-    assert _new('--seed', '3', '--first', 'none', '--no-reference').run.ripple_limit is None
+    assert _new('--seed', '3', '--opt', 'first=none', '--no-reference').run.ripple_limit is None
     # written to run.yaml, off as null (a resume reads it back)
     text = _new('--algo', 'necga', '--seed', '3').run.to_text()
     assert 'ripple_limit: null' in text
@@ -241,7 +243,7 @@ def test_the_default_is_on_for_safe_off_for_the_papers_algorithms():
 )
 def test_bad_limits_are_one_line(args, expect):
     with pytest.raises(UsageError) as exc:
-        _new('--seed', '3', '--first', 'none', *args)
+        _new('--seed', '3', '--opt', 'first=none', *args)
     assert expect in str(exc.value) and '\n' not in str(exc.value)
 
 

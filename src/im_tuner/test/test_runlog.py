@@ -247,7 +247,9 @@ def test_run_yaml_and_summary_read_and_write_back_byte_for_byte(tmp_path):
     (tmp_path / 'run.yaml').write_text(text)
     assert rd.read_config() == cfg
     rd.write_run(RunConfig.from_dict(cfg.to_dict() | {'later': [1, 2]}))  # unknown: kept
-    assert rd.read_config().extra == {'later': [1, 2]}
+    # (the file's start: true is no field of RunConfig -- the start is a policy, under
+    # options -- and is kept as the unknown one is)
+    assert rd.read_config().extra == {'start': True, 'later': [1, 2]}
     assert (tmp_path / 'run.yaml').read_text() == text + 'later: [1, 2]\n'
     stext = (DATA / 'summary_v1.json').read_text()
     s = Summary.from_text(stext)

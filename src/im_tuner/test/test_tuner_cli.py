@@ -1,10 +1,11 @@
-"""The tuner's run checks (im_tuner.tuner_cli) without a bench: --no-start's algorithms,
-the same rule on --resume (run.yaml ``start: false``), and what a new run's check leaves
-in run.yaml."""
+"""The tuner's run checks (im_tuner.tuner_cli) without a bench: the run's policies under
+``--opt`` (``start=none``'s algorithms, safe's ``first``), the same rule on --resume
+(run.yaml's ``options``), and what a new run's check leaves in run.yaml."""
 
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import pytest
 import yaml
@@ -13,7 +14,7 @@ from im_drive_sim.cli import UsageError
 from im_tuner import optim
 from im_tuner.runlog import RunConfig
 from im_tuner.tuner_args import build_parser, parse_options
-from im_tuner.tuner_cli import _check_run, _new_run_config, check_no_start
+from im_tuner.tuner_cli import _check_run, _new_run_config, _optimizer_args
 
 
 def _new(*args: str):
@@ -22,31 +23,45 @@ def _new(*args: str):
 
 
 @pytest.mark.parametrize('algo', optim.ALGOS)
-def test_no_start_is_for_spsa_cmaes_tpe_only(algo: str) -> None:
-    """--no-start is for spsa, cmaes and tpe only: with safe (the default) it would start
-    from a random point (its first experiment at k_pw 2.02, k_iw 154, k_pos 8.2 instead of
-    the hand-tuned 0.53, 20, 30), and the compact GAs would accept it and ignore it; both
-    are refused."""
+def test_start_none_is_for_spsa_cmaes_tpe_only(algo: str) -> None:
+    """``--opt start=none`` is for spsa, cmaes and tpe only (their ``start`` policy): with
+    safe (the default) it would start from a random point (its first experiment at k_pw
+    2.02, k_iw 154, k_pos 8.2 instead of the hand-tuned 0.53, 20, 30), and the compact GAs
+    take no start; both are refused, one line naming the options the algorithm has."""
     if algo in ('spsa', 'cmaes', 'tpe'):
-        new = _new('--algo', algo, '--no-start', '--seed', '4')
-        assert new.run.start is False and new.run.algo == algo
-        assert _new('--algo', algo, '--seed', '4').run.start is True
+        new = _new('--algo', algo, '--opt', 'start=none', '--seed', '4')
+        assert new.run.options == {'start': 'none'} and new.run.algo == algo
+        assert _optimizer_args(algo, new.run.options, new.params)['start'] is None
+        hand = _new('--algo', algo, '--seed', '4')
+        assert hand.run.options == {'start': 'hand'}  # (the default, kept in run.yaml)
+        start = _optimizer_args(algo, hand.run.options, hand.params)['start']
+        assert start.tolist() == hand.params.space.start_u.tolist()
         return
     with pytest.raises(UsageError) as exc:
-        _new('--algo', algo, '--no-start', '--seed', '4')
+        _new('--algo', algo, '--opt', 'start=none', '--seed', '4')
     msg = str(exc.value)
-    assert msg.startswith(f'--no-start does not apply to --algo {algo}: ')
-    assert msg.endswith('it is for spsa, cmaes, tpe') and '\n' not in msg
-    if algo == 'safe':
-        assert 'untested random controller' in msg
-    else:
-        assert f'{algo} takes no start point' in msg
+    assert msg.startswith(f'--opt start does not apply to --algo {algo} (its options: ')
+    assert '\n' not in msg and 'start' not in msg.split('its options: ')[1]
 
 
-def test_the_default_algorithm_refuses_no_start_and_starts_from_the_file() -> None:
+def test_a_policy_value_is_one_of_its_declared_choices() -> None:
+    spsa_start = "spsa option start must be one of 'hand', 'none', got 'random'"
+    safe_first = "safe option first must be one of 'identify', 'model', 'none', got 'always'"
+    for args, message in (
+        (('--algo', 'spsa', '--opt', 'start=random'), spsa_start),
+        (('--opt', 'first=always'), safe_first),
+        (('--algo', 'tpe', '--opt', 'first=model'), '--opt first does not apply to --algo tpe'),
+        (('--opt', 'start=hand'), '--opt start does not apply to --algo safe'),
+    ):
+        with pytest.raises(UsageError) as exc:
+            _new('--seed', '4', *args)
+        assert message in str(exc.value) and '\n' not in str(exc.value), str(exc.value)
+
+
+def test_the_default_algorithm_refuses_start_none_and_starts_from_the_file() -> None:
     assert optim.DEFAULT_ALGO == 'safe'
     with pytest.raises(UsageError, match='--algo safe'):
-        _new('--no-start')
+        _new('--opt', 'start=none')
     new = _new('--seed', '3')
     space = new.params.space
     opt = optim.make_optimizer('safe', 5, 3, space.start_u)
@@ -55,12 +70,30 @@ def test_the_default_algorithm_refuses_no_start_and_starts_from_the_file() -> No
     assert (g.k_pw, g.k_iw, g.k_pos) == (pytest.approx(0.53), pytest.approx(20.0), 30.0)
 
 
-def test_the_help_names_exactly_the_algorithms_that_take_it() -> None:
-    action = next(a for a in build_parser()._actions if '--no-start' in a.option_strings)
-    assert action.help.startswith('spsa, cmaes, tpe only: ')
-    assert {'spsa', 'cmaes', 'tpe'} == optim.NO_START_ALGOS
-    refused = action.help.split('Refused', 1)[1]
-    assert all(a in refused for a in optim.ALGOS if a not in optim.NO_START_ALGOS)
+def test_opt_help_lists_the_policies_of_exactly_the_algorithms_that_take_them() -> None:
+    """``--algo ALGO --opt help`` lists ALGO's policies after its hyperparameters, from
+    optim.POLICIES: start for spsa, cmaes, tpe; first for safe; neither for the others."""
+    assert sorted(optim.NO_START_ALGOS) == ['cmaes', 'spsa', 'tpe']
+    assert sorted(optim.TAKES_FIRST) == ['safe']
+    for algo in optim.ALGOS:
+        text = optim.describe_options(algo)
+        assert ("  start='hand': 'hand': from the parameter file's start point" in text) == (
+            algo in optim.NO_START_ALGOS
+        ), algo
+        assert ('  first=None: the first step after the start' in text) == (algo == 'safe')
+    action = next(a for a in build_parser()._actions if '--opt' in a.option_strings)
+    assert 'sigma0 grow abort_shrink sigma_max remeasure_every model_every first (safe)' in (
+        action.help
+    )
+    assert 'n_startup_trials n_ei_candidates multivariate start (tpe)' in action.help
+
+
+def test_tuner_help_has_at_most_30_options() -> None:
+    """The tuner's command line stays small: an algorithm's options and policies are
+    ``--opt KEY=VALUE``, not a flag each (the option strings argparse knows, -h aside)."""
+    actions = [a for a in build_parser()._actions if '-h' not in a.option_strings]
+    assert len(actions) <= 30, [a.option_strings for a in actions]
+    assert not {'--no-start', '--first'} & {s for a in actions for s in a.option_strings}
 
 
 def test_every_option_is_declared_once_and_the_docs_table_is_generated_from_it() -> None:
@@ -83,8 +116,8 @@ def test_every_option_is_declared_once_and_the_docs_table_is_generated_from_it()
     assert table == tuner_args.options_table(), 'docs/tuner.md: run make docs'
     assert '--budget' in text and '| `--budget N` | 200 |' in table
     assert set(tuner_args.RUN_SETTINGS) == {
-        'algo', 'budget', 'seed', 'params', 'remeasure', 'no_reference', 'no_start', 'first',
-        'model', 'drive_config', 'retries', 'drive', 'timing_tolerance', 'ripple_limit',
+        'algo', 'budget', 'seed', 'params', 'remeasure', 'no_reference', 'model',
+        'drive_config', 'retries', 'drive', 'timing_tolerance', 'ripple_limit',
     }  # fmt: skip
     cli = parser.parse_args([])
     assert tuner_args.TunerOptions(**vars(cli)) == tuner_args.TunerOptions()  # one default
@@ -120,41 +153,44 @@ def test_a_declared_range_is_checked_by_the_parser(argv: list[str], message: str
     assert str(exc.value) == message
 
 
-def _run_yaml(algo: str, start: object, drop: tuple[str, ...] = ()) -> RunConfig:
-    """A new run's run.yaml as a resume reads it, with ``algo`` and ``start``."""
+def _resumed(algo: str, options: dict) -> None:
+    """The optimiser a resume builds from a run.yaml with ``algo`` and ``options``."""
     new = _new('--algo', 'spsa', '--seed', '1')
-    text = dataclasses.replace(new.run, algo=algo, options={}, start=start).to_text()
-    data = yaml.safe_load(text)
-    for key in drop:
-        del data[key]
-    return RunConfig.from_text(yaml.safe_dump(data, sort_keys=False))
+    text = dataclasses.replace(new.run, algo=algo, options=options).to_text()
+    run = RunConfig.from_text(yaml.safe_dump(yaml.safe_load(text), sort_keys=False))
+    _check_run(run, 'run.yaml')
+    assert run.options is not None
+    optim.make_optimizer(algo, 5, 1, **_optimizer_args(algo, run.options, new.params))
 
 
 def test_resume_keeps_the_same_rule() -> None:
-    """A run.yaml written with --no-start when any algorithm took it (``start: false``
-    whatever the algo): safe's is refused as --no-start is; a compact GA's is harmless (it
-    takes no start) and goes on; spsa's is the documented case; a start that is not a bool
-    is refused."""
-    _check_run(_run_yaml('spsa', False), 'run.yaml')
-    _check_run(_run_yaml('necga', False), 'run.yaml')
-    _check_run(_run_yaml('safe', True), 'run.yaml')
-    run = _run_yaml('safe', False)
-    with pytest.raises(UsageError) as exc:
-        _check_run(run, 'R/run.yaml')
-    assert str(exc.value).startswith(
-        'R/run.yaml: start: false (--no-start) does not apply to --algo safe'
-    )
-    with pytest.raises(UsageError, match=r"start must be true or false, got 'no'"):
-        _check_run(_run_yaml('spsa', 'no'), 'R/run.yaml')
-    run = _run_yaml('safe', False, drop=('start',))  # a run.yaml without the key
-    assert 'start' not in run.keys and run.start is None
-    with pytest.raises(UsageError, match='start must be true or false, got None'):
-        _check_run(run, 'run.yaml')
+    """run.yaml's ``options`` hold the run's policies as ``--opt`` gave them (safe's
+    model point for first: model): a resume builds the same optimiser from them, and a
+    policy the algorithm does not take, or a value not declared, is refused as ``--opt``
+    refuses it."""
+    for algo, options in (
+        ('spsa', {'start': 'none'}),
+        ('spsa', {'start': 'hand', 'c': 0.02}),
+        ('necga', {}),
+        ('safe', {'first': 'none'}),
+        ('safe', {'first': 'identify'}),
+        ('safe', {'first': [0.5] * 5}),
+    ):
+        _resumed(algo, options)
+    for algo, options, message in (
+        ('safe', {'start': 'none'}, "unknown option 'start' for safe"),
+        ('necga', {'start': 'none'}, "unknown option 'start' for necga"),
+        ('spsa', {'start': 'no'}, "spsa option start must be one of 'hand', 'none', got 'no'"),
+        ('spsa', {'first': 'identify'}, "unknown option 'first' for spsa"),
+        ('safe', {'first': 'model'}, 'safe: first must be 5 finite numbers in [0, 1]'),
+    ):
+        with pytest.raises(optim.OptimizerError) as exc:
+            _resumed(algo, options)
+        assert message in str(exc.value), str(exc.value)
 
 
-def test_check_no_start_accepts_what_the_optimisers_run_without_a_start() -> None:
+def test_every_algorithm_that_takes_start_none_runs_without_a_start() -> None:
     for algo in optim.NO_START_ALGOS:
-        check_no_start(algo)
         opt = optim.make_optimizer(algo, 5, 2, None)  # a start of their own
         assert opt.ask().shape == (5,)
 
@@ -229,3 +265,28 @@ def test_a_resumed_run_keeps_the_parameters_its_command_gave():
     ]  # fmt: skip
     assert ros_arguments(['tuner']) == ['tuner', '--ros-args', '--disable-stdout-logs']
     assert run_parameters(RunConfig.from_dict({'algo': 'safe', 'command': "x 'y"})) == []
+
+
+def test_the_study_names_the_policies_as_the_tuner_declares_them() -> None:
+    """The study's grid cells give 'start' and 'first' the tuner's declared values
+    (optim.POLICIES; 'random' is the study's own start, a parameter file to the tuner),
+    and only to the algorithms that take them; its commands say them with --opt."""
+    from types import SimpleNamespace
+
+    from im_tuner.study.files import tuner_command
+    from im_tuner.study.spec import StudySpec, grid
+
+    cells = grid(optim.ALGOS)
+    spec = StudySpec(runs=1, algos=optim.ALGOS)
+    res = SimpleNamespace(cells=cells, spec=spec, run_seed=[1])
+    said = set()
+    for c, cell in enumerate(cells):
+        for key, value in cell.options:
+            if key in ('start', 'first'):
+                choices = optim.POLICIES[cell.algo][key].choices
+                assert value in (*choices, 'random'), (cell.label, key, value)
+        assert not {'start', 'first'} & set(cell.opts)
+        words = tuner_command(res, c, 0, Path('out')).split()
+        said |= {w.split('=')[0] for w in words if w.startswith(('start=', 'first='))}
+        assert '--no-start' not in words and '--first' not in words
+    assert said == {'start', 'first'}

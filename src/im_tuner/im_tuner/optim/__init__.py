@@ -8,7 +8,8 @@ rcGA (scipy), CMA-ES (pycma) and TPE (optuna).
         opt.tell(u, measure(u))        # the loss of one experiment
 
 ``OPTIONS[algo][name]`` is an :class:`OptionSpec` (type, default, help, accepted range or
-choices), the single source for command-line flags (``options.py``).  Importing this
+choices), the single source of ``--opt`` with the run's policies ``POLICIES[algo]``
+(``options.py``).  Importing this
 package imports no algorithm: each algorithm's module (with pycma, optuna or scipy) is
 imported when one is built or restored, so a command line is parsed and refused in a
 fraction of a second.  The contract of every optimiser (ask/tell, state_dict/from_state,
@@ -41,12 +42,15 @@ from .options import (
     MODULES,
     NO_START_ALGOS,
     OPTIONS,
+    POLICIES,
     RIPPLE_LIMITED,
     TAKES_FIRST,
     TAKES_START,
     Algorithm,
     describe_options,
+    option_specs,
     read_options,
+    split_policies,
 )
 
 if TYPE_CHECKING:  # the classes are loaded on first use (module __getattr__ below)
@@ -67,6 +71,7 @@ __all__ = [
     'NO_START_ALGOS',
     'OPTIONS',
     'PECGA',
+    'POLICIES',
     'RCGA',
     'RIPPLE_LIMITED',
     'SAFE',
@@ -82,7 +87,9 @@ __all__ = [
     'algorithm_class',
     'describe_options',
     'make_optimizer',
+    'option_specs',
     'read_options',
+    'split_policies',
 ]
 
 #: class name -> its module (``from im_tuner.optim import CMAES`` imports pycma then)
@@ -112,7 +119,7 @@ def make_optimizer(
     ``seed``: int >= 0 or SeedSequence (the optimiser's own PCG64 stream).  ``start``:
     normalised start point in [0, 1]^dim (``TAKES_START`` only; None = spsa, cmaes and
     safe draw a uniform random start, tpe starts with random trials; the tuner runs
-    only ``NO_START_ALGOS`` without one).
+    only ``NO_START_ALGOS`` without one: their ``start`` policy).
     ``first``: ``TAKES_FIRST`` only (safe), a model's point measured right after the
     start (``im_tuner.prior``), or 'identify': given later (``Optimizer.set_first``);
     None: none.

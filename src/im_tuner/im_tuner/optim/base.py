@@ -392,7 +392,7 @@ class Optimizer(ABC):
     @property
     def wants_first(self) -> bool:
         """Whether the tuning loop should give a model's point (:meth:`set_first`) before
-        the next ``ask``: only an algorithm declared ``takes_first`` (options.ALGORITHMS)
+        the next ``ask``: only an algorithm with the ``first`` policy (options.POLICIES)
         built with ``first='identify'`` ever does."""
         return False
 

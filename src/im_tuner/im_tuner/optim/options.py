@@ -1,14 +1,16 @@
 """Every optimiser's name, default, start handling and options, without importing any.
 
-The single source of the command-line flags (``OPTIONS[algo][name]``: type, default, help,
-range or choices) and of the constructors' checks (each class's ``OPTIONS`` is its entry
-here).  The table declares each option once, a number by its interval as written in
-mathematics (``real(0.03, '(0, 0.5)', help)``), a string by its choices; the compact
-GAs' three options are shared by cga, pecga and necga.  Pure: numpy and :mod:`.checks`
-only.  An algorithm's own module -- and pycma
-(cmaes), optuna (tpe), scipy (rcga) with it -- is imported only when one is built
-(:func:`.base.algorithm_class`, from ``make_optimizer`` and ``Optimizer.from_state``), so a
-tool that only parses its command line (the tuner refusing bad input) stays fast.
+The single source of ``--opt``: an algorithm's hyperparameters (``OPTIONS[algo][name]``:
+type, default, help, range or choices; the constructors' checks, each class's ``OPTIONS``
+is its entry here) and the run's policies it takes (``POLICIES[algo][name]``: where the
+search starts, safe's first step; the tuning run's, never a constructor's).  The table
+declares each option once, a number by its interval as written in mathematics
+(``real(0.03, '(0, 0.5)', help)``), a string by its choices; the compact GAs' three
+options are shared by cga, pecga and necga.  Pure: numpy and :mod:`.checks` only.  An
+algorithm's own module -- and pycma (cmaes), optuna (tpe), scipy (rcga) with it -- is
+imported only when one is built (:func:`.base.algorithm_class`, from ``make_optimizer``
+and ``Optimizer.from_state``), so a tool that only parses its command line (the tuner
+refusing bad input) stays fast.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from .checks import OptimizerError, OptionSpec
+from .checks import OptimizerError, OptionSpec, check_options
 
 __all__ = [
     'ALGORITHMS',
@@ -26,6 +28,7 @@ __all__ = [
     'MODULES',
     'NO_START_ALGOS',
     'OPTIONS',
+    'POLICIES',
     'RIPPLE_LIMITED',
     'TAKES_FIRST',
     'TAKES_START',
@@ -34,8 +37,10 @@ __all__ = [
     'choice',
     'describe_options',
     'integer',
+    'option_specs',
     'read_options',
     'real',
+    'split_policies',
 ]
 
 
@@ -47,35 +52,29 @@ class Algorithm:
     ``module``, ``cls``: its module of this package and class (imported by
     :func:`.base.algorithm_class` only); ``takes_start``: it uses a start point (SPSA's
     iterate, CMA-ES's mean, TPE's first enqueued trial, safe's first incumbent; the compact
-    GAs start from their distribution); ``runs_without_start``: the tuner may run it
-    without one (``--no-start``: SPSA and CMA-ES from a uniform random point, TPE with
-    random trials first; not safe, a local search whose first experiment would then be an
-    untested random controller); ``takes_first``: it measures a model's point right after
-    the start (``make_optimizer(first=...)``, ``Optimizer.wants_first``/``set_first``);
-    ``ripple_limited``: its runs keep the standstill-ripple limit unless told otherwise
-    (``runlog.ripple.default_ripple_limit``: a user's drive keeps what the default
-    chooses; the paper's algorithms reproduce or compare its searches, whose final
-    controller is the smallest loss).
+    GAs start from their distribution; whether it may run without one is its ``start``
+    policy, :data:`POLICIES`); ``ripple_limited``: its runs keep the standstill-ripple
+    limit unless told otherwise (``runlog.ripple.default_ripple_limit``: a user's drive
+    keeps what the default chooses; the paper's algorithms reproduce or compare its
+    searches, whose final controller is the smallest loss).
     """
 
     module: str
     cls: str
     takes_start: bool = False
-    runs_without_start: bool = False
-    takes_first: bool = False
     ripple_limited: bool = False
 
 
 #: Every algorithm accepted by make_optimizer (and ``--algo``); ``ALGOS``: their names.
 ALGORITHMS: dict[str, Algorithm] = {
-    'spsa': Algorithm('spsa', 'SPSA', takes_start=True, runs_without_start=True),
+    'spsa': Algorithm('spsa', 'SPSA', takes_start=True),
     'necga': Algorithm('cga', 'NECGA'),
     'cga': Algorithm('cga', 'CGA'),
     'pecga': Algorithm('cga', 'PECGA'),
     'rcga': Algorithm('rcga', 'RCGA'),
-    'cmaes': Algorithm('cmaes', 'CMAES', takes_start=True, runs_without_start=True),
-    'tpe': Algorithm('tpe', 'TPE', takes_start=True, runs_without_start=True),
-    'safe': Algorithm('safe', 'SAFE', takes_start=True, takes_first=True, ripple_limited=True),
+    'cmaes': Algorithm('cmaes', 'CMAES', takes_start=True),
+    'tpe': Algorithm('tpe', 'TPE', takes_start=True),
+    'safe': Algorithm('safe', 'SAFE', takes_start=True, ripple_limited=True),
 }
 ALGOS: tuple[str, ...] = tuple(ALGORITHMS)
 #: the tuner's optimiser when none is named: the fewest experiments and aborted ones from
@@ -84,8 +83,6 @@ DEFAULT_ALGO = 'safe'
 #: algo -> (module of this package, class)
 MODULES: dict[str, tuple[str, str]] = {a: (d.module, d.cls) for a, d in ALGORITHMS.items()}
 TAKES_START: frozenset[str] = frozenset(a for a, d in ALGORITHMS.items() if d.takes_start)
-NO_START_ALGOS: frozenset[str] = frozenset(a for a, d in ALGORITHMS.items() if d.runs_without_start)
-TAKES_FIRST: frozenset[str] = frozenset(a for a, d in ALGORITHMS.items() if d.takes_first)
 RIPPLE_LIMITED: frozenset[str] = frozenset(a for a, d in ALGORITHMS.items() if d.ripple_limited)
 
 #: (alpha, gamma) of each of SPSA's ``gains`` presets.
@@ -117,7 +114,7 @@ def integer(default: int | None, interval: str, text: str) -> OptionSpec:
     return _spec(int, default, interval, text)
 
 
-def choice(default: str, choices: tuple[str, ...], text: str) -> OptionSpec:
+def choice(default: str | None, choices: tuple[str, ...], text: str) -> OptionSpec:
     return OptionSpec(str, default, text, choices=choices)
 
 
@@ -279,6 +276,59 @@ OPTIONS: dict[str, dict[str, OptionSpec]] = {
 }
 
 
+#: the run's start: the algorithms that can run without the parameter file's start point
+_START = choice(
+    'hand',
+    ('hand', 'none'),
+    "'hand': from the parameter file's start point (the hand-tuned gains); 'none': without "
+    'it (spsa, cmaes: a uniform random point; tpe: random trials first), the reference '
+    'experiment still measures it',
+)
+
+#: algo -> policy name -> OptionSpec: what the tuning run does around the optimiser for
+#: that algorithm, given with ``--opt`` as a hyperparameter is and kept in run.yaml's
+#: ``options``, never a constructor's option (:func:`split_policies`).  An algorithm
+#: without ``start`` here is never run without its start (safe: a local search whose
+#: first experiment would be an untested random controller).
+POLICIES: dict[str, dict[str, OptionSpec]] = {
+    'spsa': {'start': _START},
+    'cmaes': {'start': _START},
+    'tpe': {'start': _START},
+    'safe': {
+        'first': choice(
+            None,
+            ('identify', 'model', 'none'),
+            "the first step after the start: 'identify' (the best point of an offline "
+            "tuning on the drive file's model with the mechanics the start's two "
+            "experiments identify), 'model' (the same on the drive file's nominal model, "
+            "computed at start-up), 'none' (a local step); default 'identify' where the "
+            "tuner knows the drive (--drive-config or a simulated bench), else 'none' "
+            '(docs/tuner.md, "Start and first step")',
+        )
+    },
+}
+#: the algorithms the tuner may run without a start point (``start=none``)
+NO_START_ALGOS: frozenset[str] = frozenset(a for a, p in POLICIES.items() if 'start' in p)
+#: the algorithms that measure a model's point right after the start (``first``:
+#: ``make_optimizer(first=...)``, ``Optimizer.wants_first``/``set_first``)
+TAKES_FIRST: frozenset[str] = frozenset(a for a, p in POLICIES.items() if 'first' in p)
+
+
+def option_specs(algo: str) -> dict[str, OptionSpec]:
+    """Everything ``--opt`` takes for ``algo``: its hyperparameters, then its policies."""
+    return {**OPTIONS[algo], **POLICIES.get(algo, {})}
+
+
+def split_policies(algo: str, opts: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``--opt``'s values (:func:`read_options`) as (hyperparameters, policies): the
+    policies checked against their choices and every one of ``algo``'s filled in with its
+    default (None: the run decides, its help says how)."""
+    policies = POLICIES.get(algo, {})
+    hyper = {k: v for k, v in opts.items() if k not in policies}
+    given = {k: v for k, v in opts.items() if k in policies}
+    return hyper, check_options(algo, policies, given)
+
+
 def check_eta_below_n(algo: str, opts: dict[str, Any]) -> None:
     """The elitist compact GAs' cross-option check: eta < n (an elite can be replaced)."""
     if opts['eta'] >= opts['n']:
@@ -292,8 +342,9 @@ def read_options(algo: str, items: list[str]) -> dict[str, Any]:
     """``algo``'s options from the tuner's ``--opt`` texts: each ``KEY=VALUE`` (a key
     with - or _), or the path of a YAML file mapping keys to values; each value read as
     its declared type.  OptimizerError (one line) for a key ``algo`` does not have, one
-    given twice, or a value of the wrong type; the ranges are ``check_options``'s."""
-    specs = OPTIONS[algo]
+    given twice, or a value of the wrong type; the ranges are ``check_options``'s (the
+    policies': :func:`split_policies`)."""
+    specs = option_specs(algo)
     mine = ', '.join(specs) or 'none'
     out: dict[str, Any] = {}
     for item in items:
@@ -344,8 +395,9 @@ def _pairs(item: str) -> list[tuple[str, str]]:
 
 def describe_options(algo: str) -> str:
     """``algo``'s options as ``tuner --algo ALGO --opt help`` prints them: one line each,
-    its default, its accepted values and its meaning."""
-    specs = OPTIONS[algo]
+    its default, its accepted values and its meaning (the hyperparameters, then the run's
+    policies)."""
+    specs = option_specs(algo)
     if not specs:
         return f'{algo} has no options'
     lines = [f'{algo} options (--opt KEY=VALUE; docs/optimisers.md):']

@@ -87,13 +87,14 @@ class RunConfig(_Keyed):
     """run.yaml: what ran (docs/tuner.md, "The run directory"); None: not in the file."""
 
     algo: str
-    options: dict[str, Any] | None = None  #: the algorithm's options
+    #: the algorithm's options given and the run's policies (``optim.POLICIES``: start,
+    #: first; safe's model point stands for first: model)
+    options: dict[str, Any] | None = None
     budget: int | None = None  #: evaluations
     seed: int | None = None  #: the run seed (optimiser and drive noise streams)
     drive_seed: int | None = None  #: the simulated drive's noise seed
     remeasure: int | None = None  #: re-measurements of the best distinct evaluations
     reference: bool | None = None  #: a reference experiment of the start gains
-    start: bool | None = None  #: False: --no-start
     retries: int | None = None  #: re-runs of a lost / off-timing attempt
     #: held + late drive periods an experiment may have and count (--timing-tolerance)
     timing_tolerance: int | None = None

@@ -57,10 +57,11 @@ def tuner_command(res: StudyResult, c: int, r: int, out: Path) -> str:
         args += ['--params', str(out / 'starts' / f'run_{r:03d}.yaml')]
     elif sp.params_file:
         args += ['--params', sp.params_file]
-    if cell.start_kind == 'none' and cell.algo in optim.TAKES_START:
-        args += ['--no-start']
-    if cell.algo in optim.TAKES_FIRST:  # said either way: the tuner's default depends on its bench
-        args += ['--first', cell.first]
+    policies = optim.POLICIES.get(cell.algo, {})
+    if cell.start_kind == 'none' and 'start' in policies:
+        args += ['--opt', 'start=none']
+    if 'first' in policies:  # said either way: the tuner's default depends on its bench
+        args += ['--opt', f'first={cell.first}']
     if sp.drive_config:
         args += ['--drive-config', sp.drive_config]
     if sp.ripple_limit != 'default':  # (the default: the tuner's own for the algorithm)

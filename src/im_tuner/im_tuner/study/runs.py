@@ -124,7 +124,7 @@ def prepare_run(
     else:
         first: Any = None
         if cell.first == 'model':
-            # the told drive's file is the model (the tuner's --first model), whatever the
+            # the told drive's file is the model (the tuner's --opt first=model), whatever the
             # plant the run measures on (spec.plant, spec.mismatch)
             from ..prior import model_prior
 

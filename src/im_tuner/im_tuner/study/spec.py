@@ -55,11 +55,13 @@ class StudyError(Exception):
 
 #: The paper's two algorithms: Tables I-III and the paper's conclusions.
 PAPER_ALGOS: tuple[str, ...] = ('spsa', 'necga')
-#: The small grids of the algorithms beyond the paper: (label, options); the option
-#: 'start' ('random' or 'hand') is the run's start, and 'first' ('model': safe's first
-#: step from the study's drive file as a nominal model, ``im_tuner.prior``; 'identify':
-#: from that file's model with the mechanics the start's experiments identify,
-#: ``im_tuner.first_step``) a point the run computes: neither is an optimiser option.
+#: The small grids of the algorithms beyond the paper: (label, options); 'start' and
+#: 'first' are the run's policies (``optim.POLICIES``, the tuner's ``--opt start``/``first``),
+#: not optimiser options: 'start' is 'hand', 'none' or the study's own 'random' (a uniform
+#: point, given to the tuner as a parameter file); 'first' ('model': safe's first step
+#: from the study's drive file as a nominal model, ``im_tuner.prior``; 'identify': from
+#: that file's model with the mechanics the start's experiments identify,
+#: ``im_tuner.first_step``) a point the run computes.
 EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
     'rcga': (
         ('sigma0=10', (('sigma0', 10.0),)),
@@ -109,8 +111,8 @@ RECOMMENDED: dict[str, tuple[str, ...]] = {
     'safe': ('defaults', 'first step from the drive model', 'first step from the identified drive'),
     'bobyqa': ('rhobeg=0.08',),
 }
-#: The tuner's default on a drive it knows (``optim.DEFAULT_ALGO`` with ``--first
-#: identify``, the default with ``--drive-config`` or a simulated bench): the row the
+#: The tuner's default on a drive it knows (``optim.DEFAULT_ALGO`` with ``--opt
+#: first=identify``, the default with ``--drive-config`` or a simulated bench): the row the
 #: default's goals (``summary.GOAL``, the plant-mismatch grid) are for.
 DEFAULT_ROW: tuple[str, str] = (optim.DEFAULT_ALGO, 'first step from the identified drive')
 #: Start of a run when its cell does not say: SPSA a random point (as the paper), every
@@ -125,6 +127,10 @@ DEFAULT_SEED = 2005  # the paper's year: a fixed, documented default
 #: Runs per configuration a bootstrap interval needs (a resample of one run is that run);
 #: a study of fewer runs reports its means without intervals.
 MIN_RUNS_FOR_INTERVALS = 2
+
+
+#: the names of the run's policies (``optim.POLICIES``) a cell's options may hold
+_POLICY_NAMES: frozenset[str] = frozenset(k for p in optim.POLICIES.values() for k in p)
 
 
 @dataclass(frozen=True)
@@ -144,8 +150,8 @@ class Cell:
 
     @property
     def opts(self) -> dict[str, Any]:
-        """The optimiser's options (without the run's start kind and first step)."""
-        return {k: v for k, v in self.options if k not in ('start', 'first')}
+        """The optimiser's options (without the run's policies: start, first step)."""
+        return {k: v for k, v in self.options if k not in _POLICY_NAMES}
 
     @property
     def first(self) -> str:

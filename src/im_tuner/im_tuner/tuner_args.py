@@ -191,7 +191,9 @@ class TunerOptions:
         run=True,
     )
     no_reference: bool = option(
-        'do not measure the start gains first (the reference)',
+        'do not measure the start gains first (the reference); without it nothing '
+        "measures the start's loss and ripple: safe's first step defaults to `none` and "
+        'the ripple limit to `off`',
         {'action': 'store_true'},
         run=True,
     )

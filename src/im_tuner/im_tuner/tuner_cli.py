@@ -320,7 +320,8 @@ def _first_point(cli: TunerOptions, first: str | None, params: TunerParams) -> A
 
     # auto: the simulated bench it falls back to (if it finds a controller on the graph
     # instead, a drive it does not know, the tuner drops the identified step then)
-    bench = 'inproc' if cli.bench == 'auto' else cli.bench
+    bench = cli.bench or 'auto'  # (not given: auto)
+    bench = 'inproc' if bench == 'auto' else bench
     known = cli.drive_config is not None or is_simulated(bench, cli.drive)
     # (identify needs the reference experiment: without it, the default is none)
     first = first or ('identify' if known and not cli.no_reference else 'none')

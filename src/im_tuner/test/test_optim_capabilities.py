@@ -67,7 +67,7 @@ def test_opt_reads_each_value_as_its_declared_type(tmp_path):
     assert text[0].startswith('safe options (--opt KEY=VALUE') and len(text) == 8
     assert text[1] == ('  sigma0=0.05: initial step size (normalised units); a number in (0, 1]')
     # the run's policy after the hyperparameters (optim.POLICIES), read as they are
-    assert text[7].startswith('  first=None: the first step after the start: ')
+    assert text[7].startswith('  first: the first step after the start: ')
     assert text[7].endswith("one of 'identify', 'model', 'none'")
     assert read_options('safe', ['first=model', 'grow=2']) == {'first': 'model', 'grow': 2.0}
     f.write_text('start: none\nsigma0: 0.2\n')

@@ -70,6 +70,24 @@ def test_the_default_algorithm_refuses_start_none_and_starts_from_the_file() -> 
     assert (g.k_pw, g.k_iw, g.k_pos) == (pytest.approx(0.53), pytest.approx(20.0), 30.0)
 
 
+@pytest.mark.parametrize(
+    ('args', 'first'),
+    [
+        ((), 'identify'),  # the tuner's default command: --bench auto, not given
+        (('--bench', 'auto'), 'identify'),
+        (('--bench', 'inproc'), 'identify'),
+        (('--bench', 'processes'), 'identify'),
+        (('--bench', 'none'), 'none'),  # a controller on the graph: a drive not known
+        (('--bench', 'none', '--drive-config', 'paper_750w'), 'identify'),
+        (('--no-reference',), 'none'),  # (identify needs the reference)
+    ],
+)
+def test_safe_takes_the_identified_first_step_wherever_the_tuner_knows_the_drive(
+    args: tuple[str, ...], first: str
+) -> None:
+    assert _new('--seed', '3', *args).run.options == {'first': first}
+
+
 def test_opt_help_lists_the_policies_of_exactly_the_algorithms_that_take_them() -> None:
     """``--algo ALGO --opt help`` lists ALGO's policies after its hyperparameters, from
     optim.POLICIES: start for spsa, cmaes, tpe; first for safe; neither for the others."""
@@ -80,7 +98,7 @@ def test_opt_help_lists_the_policies_of_exactly_the_algorithms_that_take_them() 
         assert ("  start='hand': 'hand': from the parameter file's start point" in text) == (
             algo in optim.NO_START_ALGOS
         ), algo
-        assert ('  first=None: the first step after the start' in text) == (algo == 'safe')
+        assert ('  first: the first step after the start' in text) == (algo == 'safe')
     action = next(a for a in build_parser()._actions if '--opt' in a.option_strings)
     assert 'sigma0 grow abort_shrink sigma_max remeasure_every model_every first (safe)' in (
         action.help

@@ -402,5 +402,7 @@ def describe_options(algo: str) -> str:
         return f'{algo} has no options'
     lines = [f'{algo} options (--opt KEY=VALUE; docs/optimisers.md):']
     for name, spec in specs.items():
-        lines.append(f'  {name}={spec.default!r}: {spec.help}; {spec.allowed()}')
+        # (no fixed default: the run or another option decides it, as its text says)
+        key = name if spec.default is None else f'{name}={spec.default!r}'
+        lines.append(f'  {key}: {spec.help}; {spec.allowed()}')
     return '\n'.join(lines)

@@ -130,6 +130,10 @@ class Watcher:
     #: topic -> [(log time [ns], CDR bytes)]
     messages: dict[str, list[tuple[int, bytes]]] = field(default_factory=dict)
     error: BaseException | None = None
+    #: [s] a pause after each message read (a slow client: a loaded machine)
+    pause: float = 0.0
+    #: [bytes] the socket's receive buffer (0: the system's, which grows as it reads)
+    rcvbuf: int = 0
 
     def start(self) -> Watcher:
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -138,7 +142,7 @@ class Watcher:
 
     def _run(self) -> None:
         try:
-            s = connect_when_listening(self.port, self.timeout)
+            s = connect_when_listening(self.port, self.timeout, self.rcvbuf)
             f = _Frames(s)
             self.subprotocol = f.handshake()
             subs: dict[int, str] = {}
@@ -159,6 +163,8 @@ class Watcher:
                     sid, t = struct.unpack_from('<IQ', data, 1)
                     topic = self.channels[subs[sid]]['topic']
                     self.messages.setdefault(topic, []).append((t, data[13:]))
+                    if self.pause:
+                        time.sleep(self.pause)
         except (ConnectionError, OSError):
             pass  # the server ended (the run is over)
         except BaseException as exc:

@@ -14,6 +14,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -224,3 +225,48 @@ def test_the_drive_host_and_recorder_refuse_a_busy_port(exe, busy_port, procs, t
     )
     _refused(p, 'is in use on 127.0.0.1')
     assert not list(tmp_path.iterdir())
+
+
+def test_a_slow_client_reads_to_the_last_loss_after_the_close(monkeypatch):
+    """A client that reads slowly (8 ms a message: a loaded machine) with the sockets'
+    buffers small (16 kB each way) is hundreds of states (seconds) behind when the run's
+    last loss is offered and the server closed at once: the server goes on sending while
+    the client takes, and closes the socket (not a reset) once everything is in the
+    kernel's hands, so the client reads every state and then the loss; bounded."""
+    from im_tuner.record import live_server
+    from im_tuner.record.live import LiveSettings
+    from im_tuner.record.live_server import CLOSE_GRACE_S, CLOSE_MAX_S, LiveServer
+
+    monkeypatch.setattr(live_server, 'CLIENT_SNDBUF', 16 << 10)
+    port = free_port()
+    server = LiveServer(LiveSettings(port), lambda _text: None)
+    try:
+        server.add_channel(5, '/drive/state', 'std_msgs/msg/Float64MultiArray', 'float64[] data')
+        server.add_channel(6, '/controller/loss', 'diagnostic_msgs/msg/DiagnosticArray', 'x')
+        watcher = Watcher(port, timeout=60.0, pause=0.008, rcvbuf=16 << 10).start()
+        deadline = time.monotonic() + 30.0
+        while not (
+            len(server._server._clients) == 1
+            and all(len(c.subscriptions) == 2 for c in server._server._clients)
+        ):
+            assert time.monotonic() < deadline, 'no subscription within 30 s'
+            time.sleep(0.01)
+        payload = bytes(range(200))
+        server.offer([(5, k, payload) for k in range(600)])
+        deadline = time.monotonic() + 60.0
+        while server.stats()['sent'] < 600:
+            assert time.monotonic() < deadline, 'the states not handed over within 60 s'
+            time.sleep(0.01)
+        behind = 600 - len(watcher.messages.get('/drive/state', []))
+        server.offer([(6, 600, b'the last loss')])
+        t0 = time.monotonic()
+        stats = server.close()
+        stop_s = time.monotonic() - t0
+        watcher.join(60.0)
+    finally:
+        server.close()
+    assert behind > 250, behind  # (what the close found in flight)
+    assert watcher.messages['/controller/loss'] == [(600, b'the last loss')]
+    assert [t for t, _d in watcher.messages['/drive/state']] == list(range(600))
+    assert stats['sent'] == 601 and stats['dropped'] == 0
+    assert stop_s < CLOSE_MAX_S + 2 * CLOSE_GRACE_S + 1.0

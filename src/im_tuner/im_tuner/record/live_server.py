@@ -45,9 +45,12 @@ LATCHED_MAX = 65536
 #: client beyond its queue (the live view stays fresh), and is ample for the live rate
 #: (about 1 MB/s at 250 Hz) across a LAN
 CLIENT_SNDBUF = 256 << 10
-#: [s] at close, how long the server still sends what clients have queued, and then
-#: waits for each client's closing handshake
+#: [s] at close, how long the server goes on sending what clients have queued while
+#: none of it moves (a frozen client), and then waits for each client's closing handshake
 CLOSE_GRACE_S = 1.0
+#: [s] at close, the longest it goes on sending to clients that take their messages
+#: slowly (a loaded machine): the run's last losses reach a live client
+CLOSE_MAX_S = 10.0
 
 
 @dataclass
@@ -70,8 +73,8 @@ class LiveServer:
     """A Foxglove WebSocket server (``foxglove.websocket.v1``) in a thread of its own.
 
     :meth:`add_channel` and :meth:`offer` are called from the recorder's thread and never
-    wait on the server or a client; :meth:`close` stops it (clients' queues get
-    :data:`CLOSE_GRACE_S` to empty) and returns :meth:`stats`. ``log(text)``: where
+    wait on the server or a client; :meth:`close` stops it (clients' experiment-rate
+    messages sent first, :meth:`_stop`) and returns :meth:`stats`. ``log(text)``: where
     start, connect and disconnect are said (the recorder's ROS logger)."""
 
     def __init__(
@@ -160,13 +163,13 @@ class LiveServer:
         }
 
     def close(self) -> dict[str, Any]:
-        """Stop the server (what clients still have queued gets CLOSE_GRACE_S)."""
+        """Stop the server (what clients still have queued: :meth:`_stop`)."""
         import asyncio
 
         if self._thread.is_alive():
             fut = asyncio.run_coroutine_threadsafe(self._stop(), self._loop)
             with contextlib.suppress(Exception):
-                fut.result(CLOSE_GRACE_S + 5.0)
+                fut.result(CLOSE_MAX_S + CLOSE_GRACE_S + 5.0)
             self._loop.call_soon_threadsafe(self._loop.stop)
             self._thread.join(5.0)
         return self.stats()
@@ -358,18 +361,37 @@ class LiveServer:
             pass
 
     async def _stop(self) -> None:
-        """What clients have queued gets CLOSE_GRACE_S, then each is closed with the
-        closing handshake (its last messages arrive: an aborted socket's reset could
-        drop them in the client's buffer), a client that does not take it within
-        CLOSE_GRACE_S aborted (a frozen one); then the server."""
+        """The 5 kHz topics' queued messages are dropped (counted); what clients still
+        have queued of the others (a loss, a result) is sent while it moves
+        (CLOSE_GRACE_S without progress: a frozen client; CLOSE_MAX_S at most). Then each
+        client is closed with the closing handshake; one that does not answer within
+        CLOSE_GRACE_S is closed by the socket's own close when all was handed to the
+        kernel (a slow client still reads what is in flight, the run's last loss among
+        it: an abort's reset would discard what it has not read), else aborted (a
+        frozen one); then the server."""
         import asyncio
         import time
 
-        deadline = time.monotonic() + CLOSE_GRACE_S
-        while time.monotonic() < deadline and any(
-            c.queue or c.whole or c.control for c in self._clients.values()
-        ):
+        def unsent() -> tuple[int, int]:  # (messages queued, bytes in the transports)
+            n = b = 0
+            for conn, c in self._clients.items():
+                n += len(c.whole) + len(c.control)
+                if conn.transport is not None:
+                    b += conn.transport.get_write_buffer_size()
+            return n, b
+
+        for c in self._clients.values():
+            c.dropped += len(c.queue)
+            c.queue.clear()
+        now = time.monotonic()
+        end, still = now + CLOSE_MAX_S, now + CLOSE_GRACE_S
+        last = unsent()
+        while any(last) and now < min(end, still):
             await asyncio.sleep(0.01)
+            now, left = time.monotonic(), unsent()
+            if left < last or sum(left) < sum(last):  # (it moves)
+                still = now + CLOSE_GRACE_S
+            last = left
 
         async def close(conn: Any, c: _ClientQueue) -> None:
             c.task.cancel()
@@ -378,8 +400,12 @@ class LiveServer:
             c.whole.clear()
             with contextlib.suppress(BaseException):
                 await asyncio.wait_for(conn.close(), CLOSE_GRACE_S)
-            if conn.transport is not None and not conn.transport.is_closing():
-                conn.transport.abort()
+            t = conn.transport
+            if t is not None and not t.is_closing():
+                if t.get_write_buffer_size() == 0:
+                    t.close()  # (FIN after what the kernel holds)
+                else:
+                    t.abort()
 
         await asyncio.gather(*(close(conn, c) for conn, c in list(self._clients.items())))
         if self._server is not None:

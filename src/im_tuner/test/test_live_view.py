@@ -184,4 +184,3 @@ def test_a_late_client_gets_the_past_of_a_transient_local_topic_only():
         server.close()
     assert watcher.messages['/tuner/result'] == [(10, b'r0'), (12, b'r1'), (13, b'r2'), (21, b'r3')]
     assert watcher.messages['/controller/loss'] == [(20, b'l1')]
-

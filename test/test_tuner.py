@@ -229,30 +229,22 @@ def _same_evaluations(a: list[dict], b: list[dict]) -> None:
 
 
 def offline_run(
-    algo: str, budget: int, seed: int, remeasure: int = 3, first: str | None = None
+    algo: str, budget: int, seed: int, remeasure: int = 3
 ) -> tuple[list[dict], object, dict]:
-    """The tuner's run (defaults: hand-tuned start, remeasure 3; ``first='identify'``:
-    safe's identified first step within the default ripple limit, the tuner's default on
-    a simulated bench) on the pure core's offline bench: the same records as through the
-    ROS nodes, bit for bit; with its state and its summary.json (as a dict).
-    (test_faults.py uses it too.)"""
+    """The tuner's run (defaults: hand-tuned start, remeasure 3) on the pure core's
+    offline bench: the same records as through the ROS nodes, bit for bit; with its
+    state and its summary.json (as a dict). (test_faults.py uses it too.)"""
     from im_drive_sim.drive_file import load_config
     from im_tuner import optim
-    from im_tuner.first_step import IdentifiedFirstStep
     from im_tuner.offline import OfflineBench
     from im_tuner.runlog import MemoryRecord
-    from im_tuner.runlog.ripple import default_ripple_limit
     from im_tuner.space import load_params
     from im_tuner.tuning import TuningRun, run_seeds
 
     params = load_params(None)
     opt_ss, drive_seed = run_seeds(seed)
     start = params.space.start_u if algo in optim.TAKES_START else None
-    opt = optim.make_optimizer(algo, params.space.dim, opt_ss, start, first=first)
-    limit = default_ripple_limit(algo) if first is not None else None
-    step = None
-    if first == 'identify':
-        step = IdentifiedFirstStep(load_config(None), params.space, None, None, limit)
+    opt = optim.make_optimizer(algo, params.space.dim, opt_ss, start)
     run = TuningRun(
         MemoryRecord(),
         params.space,
@@ -262,8 +254,6 @@ def offline_run(
         remeasure=remeasure,
         retries=3,
         reference=True,
-        first_step=step,
-        ripple_limit=limit,
     )
     assert run.run(OfflineBench(load_config(None), drive_seed)) == 'done'
     summary = json.loads(json.dumps(run.summary(outcome='done', wall_s=0.0).to_dict()))
@@ -321,8 +311,7 @@ def test_resume_after_kill_continues_bit_for_bit(tmp_path, procs, wait_until, al
     assert 4 <= n_killed < budget + 4
     proc = tuner('--resume', str(killed))
     assert proc.returncode == 0, proc.stderr[-3000:]
-    # (safe: the tuner's default on a simulated bench, the identified first step)
-    whole, st, _s = offline_run(algo, budget, 11, first='identify' if algo == 'safe' else None)
+    whole, st, _s = offline_run(algo, budget, 11)
     _same_evaluations(whole, results(killed))
     sk = json.loads((killed / 'summary.json').read_text())
     assert sk['evaluations'] == budget and sk['aborted'] == st.aborted
@@ -594,7 +583,7 @@ def test_without_algo_the_tuner_runs_safe_from_the_hand_tuned_start(run6):
     hand-tuned start again (the reference is the first experiment from rest), and its
     step size stays inside the trust region sigma_max = 0.08."""
     run_yaml = yaml.safe_load((run6 / 'run.yaml').read_text())
-    assert run_yaml['algo'] == 'safe' and run_yaml['options'] == {'first': 'identify'}
+    assert run_yaml['algo'] == 'safe' and run_yaml['options'] == {'first': 'none'}  # (auto)
     evals = [r for r in results(run6) if r['kind'] == 'eval']
     assert len(evals) == 6 and evals[0]['gains'] == pytest.approx(START, rel=1e-12)  # (via u)
     opt = json.loads((run6 / 'checkpoint.json').read_text())['optimizer']

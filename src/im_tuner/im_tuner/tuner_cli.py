@@ -318,11 +318,10 @@ def _first_point(cli: TunerOptions, first: str | None, params: TunerParams) -> A
     'none'.  A resumed run continues with it."""
     from .benches import is_simulated
 
-    # auto: the simulated bench it falls back to (if it finds a controller on the graph
-    # instead, a drive it does not know, the tuner drops the identified step then)
-    bench = cli.bench or 'auto'  # (not given: auto)
-    bench = 'inproc' if bench == 'auto' else bench
-    known = cli.drive_config is not None or is_simulated(bench, cli.drive)
+    # auto (also when not given) may find a controller on the graph that drives another
+    # motor: a drive the tuner knows only with --drive-config, as with none
+    bench = cli.bench or 'auto'
+    known = cli.drive_config is not None or (bench != 'auto' and is_simulated(bench, cli.drive))
     # (identify needs the reference experiment: without it, the default is none)
     first = first or ('identify' if known and not cli.no_reference else 'none')
     if first != 'model':

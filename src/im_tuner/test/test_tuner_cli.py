@@ -41,7 +41,8 @@ def test_start_none_is_for_spsa_cmaes_tpe_only(algo: str) -> None:
         _new('--algo', algo, '--opt', 'start=none', '--seed', '4')
     msg = str(exc.value)
     assert msg.startswith(f'--opt start does not apply to --algo {algo} (its options: ')
-    assert '\n' not in msg and 'start' not in msg.split('its options: ')[1]
+    assert '\n' not in msg and 'start' not in msg.split('its options: ')[1].split(')')[0]
+    assert msg.endswith('; start is an option of spsa, cmaes, tpe')  # (where it belongs)
 
 
 def test_a_policy_value_is_one_of_its_declared_choices() -> None:
@@ -73,8 +74,10 @@ def test_the_default_algorithm_refuses_start_none_and_starts_from_the_file() -> 
 @pytest.mark.parametrize(
     ('args', 'first'),
     [
-        ((), 'identify'),  # the tuner's default command: --bench auto, not given
-        (('--bench', 'auto'), 'identify'),
+        # auto (also not given) may find a controller of another motor on the graph
+        ((), 'none'),
+        (('--bench', 'auto'), 'none'),
+        (('--bench', 'auto', '--drive-config', 'paper_750w'), 'identify'),
         (('--bench', 'inproc'), 'identify'),
         (('--bench', 'processes'), 'identify'),
         (('--bench', 'none'), 'none'),  # a controller on the graph: a drive not known
@@ -82,7 +85,7 @@ def test_the_default_algorithm_refuses_start_none_and_starts_from_the_file() -> 
         (('--no-reference',), 'none'),  # (identify needs the reference)
     ],
 )
-def test_safe_takes_the_identified_first_step_wherever_the_tuner_knows_the_drive(
+def test_safe_takes_the_identified_first_step_where_the_tuner_knows_the_drive(
     args: tuple[str, ...], first: str
 ) -> None:
     assert _new('--seed', '3', *args).run.options == {'first': first}

@@ -352,8 +352,10 @@ def read_options(algo: str, items: list[str]) -> dict[str, Any]:
         for key, text in pairs:
             spec = specs.get(key)
             if spec is None:
+                owners = [a for a in OPTIONS if key in option_specs(a)]
+                where = f'; {key} is an option of {", ".join(owners)}' if owners else ''
                 raise OptimizerError(
-                    f'--opt {key} does not apply to --algo {algo} (its options: {mine})'
+                    f'--opt {key} does not apply to --algo {algo} (its options: {mine}){where}'
                 )
             if key in out:
                 raise OptimizerError(f'--opt {key} is given twice')

@@ -380,9 +380,14 @@ def test_resume_after_kill_equals_uninterrupted_run(tmp_path, procs, wait_until)
     assert f'losses in the bags vs results.jsonl: {len(results(killed))} equal' in rep.stdout
     assert 'DIFFER' not in rep.stdout and 'not in a bag' not in rep.stdout
     assert 'bag_0: complete (repaired)' in rep.stdout and 'bag_1: closed' in rep.stdout
-    # A finished run resumed again has nothing left to do and changes no result.
+    # A finished run resumed again has nothing left to do: it says so, changes no result
+    # and makes no new session (no replay, no bag)
     again = tuner('--resume', str(killed))
-    assert again.returncode == 0
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert 'the run is finished (8 of 8 evaluations' in again.stdout
+    assert 'nothing to resume' in again.stdout and 'replaying' not in again.stderr
+    assert not (killed / 'bag_2').exists()
+    assert json.loads((killed / 'summary.json').read_text()) == sk
     _same_evaluations(whole, results(killed))
 
 

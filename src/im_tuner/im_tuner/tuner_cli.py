@@ -249,9 +249,15 @@ def prepare_run(cli: TunerOptions, argv: list[str]) -> PreparedSession:
         rundir = RunDir.open(cli.resume)
         rundir.lock()  # one tuner per run, from here to the end of the process
         run = rundir.read_config()
-        rundir.read_summary()  # one of a newer tuner's format: refused, not overwritten
+        summary = rundir.read_summary()  # one of a newer tuner's format: refused
         _check_run(run, str(rundir.path / 'run.yaml'))
         params = _params_of_run(run)
+    if summary is not None and summary.outcome == 'done':
+        raise RunFinished(
+            f'{rundir.path}: the run is finished ({summary.evaluations} of {run.budget} '
+            'evaluations, its best gains re-measured and applied): nothing to resume; '
+            f'its plots: ros2 run im_tuner report {rundir.path}'
+        )
     _check_controller_name(cli.controller)
     # everything of the run is checked before anything starts (a refusal changes
     # nothing; the torn tail of results.jsonl is cut only once the run goes on)
@@ -275,6 +281,10 @@ def prepare_run(cli: TunerOptions, argv: list[str]) -> PreparedSession:
             drive = drive_spec.resolve(str(run.drive), run.drive_config)
     said = _check_resumed_host(cli, run)
     return PreparedSession(run, params, drive, progress, rundir, tuning, n_restored, None, said)
+
+
+class RunFinished(Exception):
+    """``--resume`` of a run that finished: nothing to do, nothing created (exit 0)."""
 
 
 def _check_resumed_host(cli: TunerOptions, run: RunConfig) -> HostSaid:

@@ -32,7 +32,14 @@ from . import optim
 from .bench.spec import tuner_bench_spec
 from .benches import SIM_BENCHES
 from .tuner_args import TunerOptions, parse_options, ros_arguments
-from .tuner_cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, check_session, prepare_run
+from .tuner_cli import (
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_USAGE,
+    RunFinished,
+    check_session,
+    prepare_run,
+)
 
 
 def main(args: list[str] | None = None) -> int:
@@ -47,6 +54,9 @@ def main(args: list[str] | None = None) -> int:
     except UsageError as exc:
         print(f'error: tuner: {exc}', file=sys.stderr)
         return EXIT_USAGE
+    except RunFinished as exc:
+        print(f'tuner: {exc}', flush=True)
+        return 0
     finally:
         # a hardware class built by the checks and never taken by a bench (a refusal or a
         # failure on the way): closed, whatever the way out

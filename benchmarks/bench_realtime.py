@@ -48,12 +48,17 @@ import os
 import select
 import shutil
 import signal
+import socket
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+# the live view's frozen client is the tests' (test/live_client.py)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'test'))
+from live_client import FrozenClient
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
 #: name -> (tuner --bench, extra tuner arguments, figure tag). The drive modes of the
@@ -93,6 +98,8 @@ MODES: dict[str, tuple[str, list[str], str]] = {
     ),
 }
 FROZEN_READER = str(Path(__file__).with_name('frozen_reader.py'))
+#: the topics a live client waits for before it subscribes (the 5 kHz ones and the loss)
+LIVE_TOPICS = ('/drive/state', '/drive/command', '/controller/internals', '/controller/loss')
 BENCHES = tuple(MODES)
 #: the load scenario: CPU hogs (busy Python processes, normal priority) beside the run
 HOGS = {'realtime-hogs': 2, 'realtime-hogs-rt': 2, 'realtime-example-drive-hogs-rt': 2}
@@ -121,12 +128,16 @@ def _rss_kib(pid: int) -> int:
     return 0
 
 
-def _run_tuner(cmd: list[str], env: dict, frozen: bool, run: Path) -> tuple[int, str, float]:
+def _run_tuner(
+    cmd: list[str], env: dict, frozen: bool, run: Path, live_port: int = 0
+) -> tuple[int, str, float]:
     """Run the tuner; with ``frozen``, next to a reader frozen (SIGSTOP) from its 100th
-    state on. Returns (exit code, stderr, the tuner's RSS growth [MB] from its first result
-    (``run``/results.jsonl, the reference experiment: start-up done) to its end: in every
-    mode, so the frozen run's growth compares with the quiet run's)."""
-    reader = None
+    state on; with ``live_port``, next to a live-view client (test/live_client.py's
+    FrozenClient) connected to the tuner's ``--live`` server, subscribed to every channel
+    and never reading. Returns (exit code, stderr, the tuner's RSS growth [MB] from its
+    first result (``run``/results.jsonl, the reference experiment: start-up done) to its
+    end: in every mode, so the frozen run's growth compares with the quiet run's)."""
+    reader = client = None
     if frozen:
         reader = subprocess.Popen(
             [sys.executable, FROZEN_READER],
@@ -139,6 +150,8 @@ def _run_tuner(cmd: list[str], env: dict, frozen: bool, run: Path) -> tuple[int,
     with tempfile.TemporaryFile('w+') as err:
         tuner = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True, env=env)
         try:
+            if live_port:
+                client = FrozenClient(live_port, set(LIVE_TOPICS), 120.0)
             if reader is not None:
                 assert reader.stdout is not None
                 ready, _, _ = select.select([reader.stdout], [], [], 120.0)
@@ -154,6 +167,8 @@ def _run_tuner(cmd: list[str], env: dict, frozen: bool, run: Path) -> tuple[int,
             growth = (peak - rss0) / 1024.0 if rss0 else 0.0
             tuner.wait(timeout=1800)
         finally:
+            if client is not None:
+                client.close()
             for p in (tuner, reader):  # by PID
                 if p is not None and p.poll() is None:
                     p.kill()
@@ -163,7 +178,15 @@ def _run_tuner(cmd: list[str], env: dict, frozen: bool, run: Path) -> tuple[int,
         return tuner.returncode, err.read(), growth
 
 
-def run_once(mode: str, budget: int, seed: int) -> dict:
+def free_port() -> int:
+    """A TCP port nothing listens on now (the kernel's choice)."""
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+def run_once(mode: str, budget: int, seed: int, live: bool = False) -> dict:
+    """One tuning run of ``mode``; with ``live``, with ``--live`` and a frozen live client."""
     bench, extra, _tag = MODES[mode]
     tmp = Path(tempfile.mkdtemp(prefix='bench_rt_'))
     env = dict(os.environ)
@@ -174,8 +197,13 @@ def run_once(mode: str, budget: int, seed: int) -> dict:
     try:
         cmd = [ROS2, 'run', 'im_tuner', 'tuner', '--bench', bench, '--budget', str(budget)]
         cmd += ['--seed', str(seed), '--remeasure', '0', '--quiet', '--out', str(tmp / 'run')]
+        port = free_port() if live else 0
+        if port:
+            cmd += ['--live', str(port)]
         cmd += extra  # the tuner's options, then any --ros-args (always last in MODES)
-        code, stderr, growth = _run_tuner(cmd, env, mode == 'realtime-frozen-reader', tmp / 'run')
+        code, stderr, growth = _run_tuner(
+            cmd, env, mode == 'realtime-frozen-reader', tmp / 'run', port
+        )
         summary_path = tmp / 'run' / 'summary.json'
         if not summary_path.exists():
             raise RuntimeError(f'{bench}: no summary (exit {code}): {stderr[-800:]}')
@@ -210,6 +238,7 @@ def run_once(mode: str, budget: int, seed: int) -> dict:
             ),
             'timing_flagged': sum(r['status'] == 'timing' for r in recs),
         }
+        out['live'] = s['sessions'][-1].get('live') or {}
         loop = d.get('loop')
         if loop:
             out['work'] = loop['period_work_us']

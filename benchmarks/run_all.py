@@ -13,6 +13,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_experiment
 import bench_host
+import bench_live
 import bench_lockstep
 import bench_model
 import bench_numeric
@@ -102,6 +103,13 @@ TARGETS = {
     'rt_frozen_rss_growth_mb': ('MB', 10.0),
     'rt_composed_rss_growth_mb': ('MB', None),
     'rt_frozen_bag_lost': ('msgs', 0.0),
+    # the live view with a frozen client beside the same runs without (side by side): overruns
+    # within 1.2x, nothing lost from the bag
+    'live_overrun_ratio': ('x', 1.2),
+    'live_overrun_pct': ('%', None),
+    'live_plain_overrun_pct': ('%', None),
+    'live_floor_overrun_pct': ('%', None),
+    'live_bag_lost': ('msgs', 0.0),
     # the host's floor: host_check's late share within 1.5x of cyclictest's (same minute)
     **{f'host_cyclictest_{t}_late_pct': ('%', None) for t in ('idle', 'hogs')},
     **{f'host_check_{t}_late_pct': ('%', None) for t in ('idle', 'hogs')},
@@ -159,6 +167,12 @@ def main() -> int:
         flush=True,
     )
     figures.update(bench_realtime.main())
+    print(
+        '\n== the live view: tuner --bench realtime --live with a frozen client beside the same '
+        'runs without, and the floor (budget 6, 4 pairs) ==',
+        flush=True,
+    )
+    figures.update(bench_live.main())
     print(
         "\n== a user's drive at the simulator's timing: each form of a power stage on the "
         'composed bench beside the floor (budget 10, quiet and beside two hogs) ==',

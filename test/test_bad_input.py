@@ -223,6 +223,7 @@ CASES: list[tuple[str, str, list[str]]] = [
     ('tuner', 'option-of-other-algo', ['--algo', 'spsa', '--opt', 'n=25']),
     ('tuner', 'option-value-type', ['--algo', 'necga', '--opt', 'n=big']),
     ('tuner', 'option-not-key-value', ['--opt', 'sigma0']),
+    ('tuner', 'option-key-apart-from-value', ['--opt', 'first', 'none']),
     *_file_cases('tuner', '--opt'),
     # --opt start=none: only spsa, cmaes, tpe (safe would start from an untested random
     # point); a policy's value one of its choices
@@ -340,6 +341,7 @@ EXPECT: dict[tuple[str, str], str] = {
     ('tuner', 'start-bad-value'): "spsa option start must be one of 'hand', 'none', got 'random'",
     ('tuner', 'first-bad-value'): "option first must be one of 'identify', 'model', 'none'",
     ('tuner', 'first-of-other-algo'): '--opt first does not apply to --algo cmaes',
+    ('tuner', 'option-key-apart-from-value'): '--opt first none: give it as --opt first=none',
     ('tuner', 'drive-config-comments-only'): 'no settings (the file holds only comments)',
     ('tuner', 'compression-with-no-record'): '--compression zstd is for the bag',
     ('tuner', 'p-gain-negative'): 'k_pw',

@@ -316,6 +316,12 @@ class TunerOptions:
         shown="the paper's",
     )
 
+    @property
+    def bench_asked(self) -> str:
+        """The bench this command line asks for: ``auto`` when ``--bench`` is not given
+        (``bench`` None: a resumed run takes run.yaml's)."""
+        return self.bench or 'auto'
+
 
 #: the declarations, in the docs' order
 OPTIONS: tuple[Option, ...] = tuple(
@@ -356,7 +362,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def parse_options(args: list[str]) -> TunerOptions:
-    """The tuner's options from its command line (without ``--ros-args``' part)."""
+    """The tuner's options from its command line (without ``--ros-args``' part). An
+    ``--opt`` key given apart from its value (``--opt first none``: the tuner takes no
+    positional argument) is refused naming the ``KEY=VALUE`` form."""
+    for flag, key, value in zip(args, args[1:], args[2:], strict=False):
+        if flag == '--opt' and '=' not in key and not value.startswith('-'):
+            raise UsageError(f'--opt {key} {value}: give it as --opt {key}={value}')
     return TunerOptions(**vars(build_parser().parse_args(args)))
 
 

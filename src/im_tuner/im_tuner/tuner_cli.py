@@ -97,13 +97,13 @@ def _new_run_config(cli: TunerOptions, argv: list[str]) -> NewRun:
             '--opt first=identify identifies the drive from the reference experiment (the '
             "start's two measurements): not with --no-reference; give --opt first=model or none"
         )
-    if rt.RtOptions.from_cli(cli).requested and (cli.bench or 'auto') != 'realtime':
+    if rt.RtOptions.from_cli(cli).requested and cli.bench_asked != 'realtime':
         raise UsageError(
             '--thread-priority/--cpu-affinity/--lock-memory set up the composed real-time '
             'loop: give --bench realtime (a drive or controller in its own process takes '
             'them on its own command line)'
         )
-    if cli.drive is not None and (cli.bench or 'auto') != 'realtime':
+    if cli.drive is not None and cli.bench_asked != 'realtime':
         raise UsageError(
             f'--drive {cli.drive}: a drive is plugged into the composed real-time bench '
             'only (--bench realtime)'
@@ -186,7 +186,7 @@ def _check_host(
     Returns the tolerance to run with, the check's record (None: not a real-time bench)
     and its line, said by the session once its bench is up. ``least``: the tolerance
     ``auto`` never goes below (a resumed run's)."""
-    if (bench or cli.bench or 'auto') != 'realtime':
+    if (bench or cli.bench_asked) != 'realtime':
         return (least if tolerance == host.AUTO else int(tolerance)), None, None
     chosen, record, line = host.check_before_run(
         tolerance, least, rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY)
@@ -226,7 +226,7 @@ def prepare_run(cli: TunerOptions, argv: list[str]) -> PreparedSession:
             from .record.run_info import default_out_dir
 
             out = default_out_dir(prefix=f'tuner_{new.run.algo}')
-        new.run.put(bench_requested=cli.bench or 'auto')
+        new.run.put(bench_requested=cli.bench_asked)
         assert new.run.budget is not None
         progress = Progress(new.run.algo, new.run.budget, cli.quiet)
         return PreparedSession(
@@ -330,7 +330,7 @@ def _first_point(cli: TunerOptions, first: str | None, params: TunerParams) -> A
 
     # auto (also when not given) may find a controller on the graph that drives another
     # motor: a drive the tuner knows only with --drive-config, as with none
-    bench = cli.bench or 'auto'
+    bench = cli.bench_asked
     known = cli.drive_config is not None or (bench != 'auto' and is_simulated(bench, cli.drive))
     # (identify needs the reference experiment: without it, the default is none)
     first = first or ('identify' if known and not cli.no_reference else 'none')

@@ -208,6 +208,7 @@ class BenchOptions(Protocol):
     """What the tuner's bench takes from its options (``tuner_args.TunerOptions``)."""
 
     bench: str | None
+    bench_asked: str
     model: str | None
     drive_config: Any
     no_record: bool
@@ -239,7 +240,7 @@ def tuner_bench_spec(
         requested = cli.bench or run.bench_requested or 'auto'
         model, config = run.model, run.drive_config
     else:
-        requested = cli.bench or 'auto'
+        requested = cli.bench_asked
         model = cli.model
         config = str(cli.drive_config) if cli.drive_config else None
     assert cli.compression is not None  # (tuner_cli.check_session put the default)

@@ -15,10 +15,11 @@ both alike.
 Prints, per run, the drive's overruns (period starts more than a period late), held and
 late periods, the per-period work p99, the experiments flagged timing and the messages the
 bag lost; then the overruns of all live runs over those of all plain runs (target <= 1.2,
-docs/foxglove.md), the floor's overruns in the same minutes, and the live messages dropped
-for the frozen client. (A real-time run's losses and message counts are not the same from
-one run to the next even without ``--live``: the host's timing differs; the lock-step
-bench's are, and test/test_live.py asserts them equal with a frozen client.)
+docs/foxglove.md) with a 90 % bootstrap interval over the pairs (how much two runs of one
+command differ on this host), the floor's overruns in the same minutes, and the live
+messages dropped for the frozen client. (A real-time run's losses and message counts are
+not the same from one run to the next even without ``--live``: the host's timing differs;
+the lock-step bench's are, and test/test_live.py asserts them equal with a frozen client.)
 ``main() -> dict`` returns the figures for run_all.py.
 """
 
@@ -33,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_realtime
 import loop_floor
+import numpy as np
 
 
 def _ratio(a: float, b: float) -> float:
@@ -94,11 +96,22 @@ def main(argv: list[str] | None = None) -> dict:
         'live_plain_timing_flagged': total(False, 'timing_flagged'),
     }
     fig['live_overrun_ratio'] = _ratio(fig['live_overrun_pct'], fig['live_plain_overrun_pct'])
+    # how far the ratio moves with the pairs drawn: a 90 % bootstrap interval over the pairs
+    # (seeded), the host's own scatter between two runs of the same command
+    over = np.array([[r['overruns'] for r in runs[live]] for live in (False, True)], float)
+    per = np.array([[r['periods'] for r in runs[live]] for live in (False, True)], float)
+    draws = np.random.default_rng(0).integers(0, args.pairs, (10_000, args.pairs))
+    boot = [
+        _ratio(over[1, d].sum() / per[1, d].sum(), over[0, d].sum() / per[0, d].sum())
+        for d in draws
+    ]
+    fig['live_overrun_ratio_lo'], fig['live_overrun_ratio_hi'] = np.quantile(boot, [0.05, 0.95])
     print(
         f'live view, {args.pairs} pairs of --budget {args.budget} real-time runs: overruns '
         f'{fig["live_overruns"]:.0f} ({fig["live_overrun_pct"]:.3f} %) with --live and a frozen '
         f'client, {fig["live_plain_overruns"]:.0f} ({fig["live_plain_overrun_pct"]:.3f} %) '
-        f'without: x{fig["live_overrun_ratio"]:.2f} (target <= 1.2); the floor in the same '
+        f'without: x{fig["live_overrun_ratio"]:.2f} [{fig["live_overrun_ratio_lo"]:.2f}, '
+        f'{fig["live_overrun_ratio_hi"]:.2f}] (target <= 1.2); the floor in the same '
         f'minutes {fig["live_floor_overrun_pct"]:.3f} %; work p99 '
         f'{fig["live_work_p99_us"]:.0f} / {fig["live_plain_work_p99_us"]:.0f} us; live '
         f'messages dropped for the frozen client {fig["live_dropped"]:.0f} (median); '

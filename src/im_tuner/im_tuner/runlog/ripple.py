@@ -19,22 +19,6 @@ from typing import Any
 
 from .records import Evaluation, Record
 
-__all__ = [
-    'DEFAULT_RIPPLE_LIMIT',
-    'LIMIT_KEYS',
-    'RIPPLE_PENALTY',
-    'RIPPLE_TOLERANCE',
-    'default_ripple_limit',
-    'parse_ripple_limit',
-    'ripple_bound',
-    'ripple_of_gains',
-    'ripple_summary',
-    'told',
-    'told_loss',
-    'top_evals',
-    'within_limit',
-]
-
 #: The limit of a run that names none, for the algorithms declared ``ripple_limited``
 #: (optim.ALGORITHMS: safe); off for the others, whose final controller is the paper's.
 DEFAULT_RIPPLE_LIMIT = 1.5

@@ -24,28 +24,6 @@ if TYPE_CHECKING:  # the types only; the modules are imported where they are use
     from ..family import DriveSetup
     from ..space import TunerParams
 
-__all__ = [
-    'DEFAULT_ROW',
-    'DEFAULT_SATISFACTORY',
-    'DEFAULT_SEED',
-    'EXIT_USAGE',
-    'EXTRA_GRIDS',
-    'FACTORS',
-    'MIN_RUNS_FOR_INTERVALS',
-    'PAPER_ALGOS',
-    'RANDOM_START_DEFAULT',
-    'RECOMMENDED',
-    'REFERENCE_ALGOS',
-    'REF_EXPERIMENTS',
-    'STUDY_ALGOS',
-    'Cell',
-    'StudyError',
-    'StudySpec',
-    'default_jobs',
-    'grid',
-    'recommended',
-]
-
 EXIT_USAGE = 2
 
 
@@ -56,12 +34,8 @@ class StudyError(Exception):
 #: The paper's two algorithms: Tables I-III and the paper's conclusions.
 PAPER_ALGOS: tuple[str, ...] = ('spsa', 'necga')
 #: The small grids of the algorithms beyond the paper: (label, options); 'start' and
-#: 'first' are the run's policies (``optim.POLICIES``, the tuner's ``--opt start``/``first``),
-#: not optimiser options: 'start' is 'hand', 'none' or the study's own 'random' (a uniform
-#: point, given to the tuner as a parameter file); 'first' ('model': safe's first step
-#: from the study's drive file as a nominal model, ``im_tuner.prior``; 'identify': from
-#: that file's model with the mechanics the start's experiments identify,
-#: ``im_tuner.first_step``) a point the run computes.
+#: 'first' are the run's policies (``optim.POLICIES``, the tuner's ``--opt start``/``first``;
+#: :attr:`Cell.start_kind`, :attr:`Cell.first`), not optimiser options.
 EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
     'rcga': (
         ('sigma0=10', (('sigma0', 10.0),)),
@@ -155,14 +129,16 @@ class Cell:
 
     @property
     def first(self) -> str:
-        """'model' (safe's first step from the drive file's model), 'identify' (from the
-        drive the start's experiments identify) or 'none'."""
+        """'model' (safe's first step from the study's drive file as a nominal model,
+        ``im_tuner.prior``), 'identify' (from that model with the mechanics the start's
+        experiments identify, ``im_tuner.first_step``) or 'none'."""
         return str(dict(self.options).get('first', 'none'))
 
     @property
     def start_kind(self) -> str:
-        """'random' (a uniform point, third stream of the run seed), 'hand' (the parameter
-        file's start) or 'none' (the optimiser's own, without a start point)."""
+        """'random' (a uniform point, third stream of the run seed, given to the tuner as a
+        parameter file), 'hand' (the parameter file's start) or 'none' (the optimiser's
+        own, without a start point)."""
         kind = dict(self.options).get('start')
         if kind is not None:
             return str(kind)
@@ -240,16 +216,16 @@ class StudySpec:
     #: (``runlog.ripple.default_ripple_limit``: on for safe, off for the others)
     ripple_limit: float | str | None = 'default'
 
-    #: fields written to study.json only when they differ from these defaults (a study
+    #: fields written to study.json only when they differ from their defaults (a study
     #: that uses none of them writes the same file as one of the paper's)
-    NEW_FIELDS: ClassVar[dict[str, Any]] = {
-        'drives': (),
-        'realism': None,
-        'full_grid': True,
-        'plant': (),
-        'mismatch': (),
-        'ripple_limit': 'default',
-    }
+    NEW_FIELDS: ClassVar[tuple[str, ...]] = (
+        'drives',
+        'realism',
+        'full_grid',
+        'plant',
+        'mismatch',
+        'ripple_limit',
+    )
 
     def __post_init__(self) -> None:
         for name, lo in (('runs', 1), ('budget', 1)):

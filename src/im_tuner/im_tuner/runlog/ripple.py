@@ -120,7 +120,7 @@ def top_evals(records: list[Record], k: int, bound: dict[str, float] | None = No
 
 #: Above the ripple limit the loss told to the optimiser is multiplied by
 #: 1 + RIPPLE_PENALTY (r - 1), r = the experiment's rms over the limit's bound
-#: (:func:`told_loss`; docs/optimisers.md, "The standstill ripple": 1, 2 and 4 measured).
+#: (:func:`told_loss`; docs/optimisers.md, "The standstill ripple", says why 1).
 RIPPLE_PENALTY = 1.0
 
 #: One experiment's standstill rms scatters about its gains' mean (on ``bench``: the

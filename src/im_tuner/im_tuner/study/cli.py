@@ -269,13 +269,15 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
             raise StudyError('--drives and --drive-config exclude each other')
     elif cli.full_grid:
         raise StudyError('--full-grid needs --drives (a study of one drive is the full grid)')
-    from .plant import PlantError, plant_options
+    from ..runlog.ripple import parse_ripple_limit
+    from .plant import plant_options
 
-    try:
+    try:  # (the messages name the option)
         plant, mismatch = plant_options(cli.plant, cli.plant_mismatch, drives)
-    except PlantError as exc:
+        limit = cli.ripple_limit
+        ripple_limit = 'default' if limit is None else parse_ripple_limit(limit)
+    except ValueError as exc:
         raise StudyError(str(exc)) from None
-    ripple_limit = S.ripple_limit_option(cli.ripple_limit)
     if cli.algos is None:
         algos = S.STUDY_ALGOS if drives else S.PAPER_ALGOS
     else:

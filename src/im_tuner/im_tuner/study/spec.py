@@ -317,14 +317,8 @@ class StudySpec:
     def loaded(self) -> tuple[DriveConfig, TunerParams, ExperimentConfig]:
         """(the plant, tuner parameters, experiment), the files read once: what a run
         measures on, and what the tuner knows (the told drive's box and experiment)."""
-        from ..space import load_params
-
         s = self.setup()
-        return (
-            self.plant_drive(s.drive),
-            load_params(self.params_file) if self.params_file else s.params,
-            s.experiment,
-        )
+        return self.plant_drive(s.drive), self.params(s), s.experiment
 
     @property
     def split(self) -> bool:
@@ -353,31 +347,22 @@ class StudySpec:
     def experiment(self) -> ExperimentConfig:
         return self.setup().experiment
 
-    def params(self) -> TunerParams:
+    def params(self, setup: DriveSetup | None = None) -> TunerParams:
+        """The tuner parameters: :attr:`params_file`'s, else the drive's (``setup``: the
+        drive's set-up when already made)."""
         from ..space import load_params
 
-        return load_params(self.params_file) if self.params_file else self.setup().params
+        if self.params_file:
+            return load_params(self.params_file)
+        return (self.setup() if setup is None else setup).params
 
 
-#: ``study --ripple-limit``'s help (the value: :func:`ripple_limit_option`)
+#: ``study --ripple-limit``'s help
 RIPPLE_LIMIT_HELP = (
     "every row's standstill-ripple limit, as the tuner's --ripple-limit (default: each "
     "row's tuner default: 1.5 for safe, off for the others); e.g. --algos spsa,necga "
     "--ripple-limit 1.5: what the limit costs the paper's algorithms"
 )
-
-
-def ripple_limit_option(text: str | None) -> float | str | None:
-    """``study --ripple-limit``'s value as :attr:`StudySpec.ripple_limit`: 'default' when
-    not given, a ratio, None for 'off'; :class:`StudyError` (one line) for anything else."""
-    if text is None:
-        return 'default'
-    from ..runlog.ripple import parse_ripple_limit
-
-    try:
-        return parse_ripple_limit(text)
-    except ValueError as exc:
-        raise StudyError(str(exc)) from None
 
 
 def default_jobs() -> int:

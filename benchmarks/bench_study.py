@@ -75,7 +75,7 @@ def loop_overhead(pairs: int = 5) -> float:
     neCGA and one SPSA run of 200 evaluations each)."""
     import statistics
 
-    from im_tuner.study import StudySpec, run_one
+    from im_tuner.study.runs import StudySpec, run_one
 
     spec = StudySpec(runs=1, budget=200)
     # the paper's defaults: SPSA (a0, c0) and neCGA n = 25, the middle cell of each grid

@@ -14,8 +14,8 @@
 
 The run directory itself (atomic writes, the lock, the bags) is ``im_tuner.rundir``; the
 file formats are described in docs/tuner.md ("The run directory"), which a unit test
-checks against the record classes here.  The package exports what its modules export
-(each module's ``__all__``: one list each, re-exported by name below).
+checks against the record classes here.  The package re-exports its modules' public
+names below.
 """
 
 from .files import (

@@ -12,8 +12,6 @@ from im_controller.config import GAIN_NAMES
 
 from .records import LINE_ORDER, Evaluation, Record
 
-__all__ = ['CSV_BOOL', 'CSV_COLUMNS', 'CSV_FLOAT', 'CSV_INT', 'csv_values']
-
 #: Record fields that are one CSV column each, in the CSV's order: the record's identity
 #: and loss first, then the controller's outcome as the line has it, the time last.
 _CSV_FIELDS = (

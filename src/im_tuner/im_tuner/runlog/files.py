@@ -15,8 +15,6 @@ from typing import Any
 
 import yaml
 
-__all__ = ['FILE_VERSION', 'FileError', 'RunConfig', 'Summary', 'VersionError']
-
 #: The run.yaml / summary.json format this im_tuner writes (and the newest it reads).
 FILE_VERSION = 1
 

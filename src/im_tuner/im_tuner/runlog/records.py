@@ -1,14 +1,7 @@
 """results.jsonl: one typed record per line, and the exact JSON of each.
 
-Five record kinds, one class each (docs/tuner.md, "The run directory", lists their fields):
-
-* :class:`Evaluation` -- a candidate of the optimiser measured (``kind: eval``, ``status``
-  ``ok`` or ``aborted``): told to the optimiser;
-* :class:`Reference` -- the start gains measured before the search (``kind: reference``);
-* :class:`Remeasurement` -- an evaluation measured again at the end (``kind: remeasure``);
-* :class:`Timing` -- an experiment of any kind that did not run on the paper's timing
-  (``status: timing``): its number is kept as ``off_timing_loss``, never a loss;
-* :class:`Lost` -- an attempt of any kind with no measured step (``status: lost``).
+Five record kinds, one class each (:data:`RECORD_TYPES`; docs/tuner.md, "The run
+directory", says what each is and lists their fields).
 
 Every line carries the format version it was written in: a line without ``version`` is
 format 1 (every line written so far, and the ones written now: the field is written only
@@ -30,24 +23,6 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
-
-__all__ = [
-    'FORMAT_VERSION',
-    'KINDS',
-    'MEASURED',
-    'RECORD_TYPES',
-    'STATUSES',
-    'Evaluation',
-    'Lost',
-    'Measured',
-    'Record',
-    'RecordError',
-    'Reference',
-    'Remeasurement',
-    'Timing',
-    'check_record',
-    'parse_results',
-]
 
 #: The results.jsonl format this im_tuner writes (and the newest it reads).
 FORMAT_VERSION = 1

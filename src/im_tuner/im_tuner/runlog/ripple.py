@@ -19,22 +19,6 @@ from typing import Any
 
 from .records import Evaluation, Record
 
-__all__ = [
-    'DEFAULT_RIPPLE_LIMIT',
-    'LIMIT_KEYS',
-    'RIPPLE_PENALTY',
-    'RIPPLE_TOLERANCE',
-    'default_ripple_limit',
-    'parse_ripple_limit',
-    'ripple_bound',
-    'ripple_of_gains',
-    'ripple_summary',
-    'told',
-    'told_loss',
-    'top_evals',
-    'within_limit',
-]
-
 #: The limit of a run that names none, for the algorithms declared ``ripple_limited``
 #: (optim.ALGORITHMS: safe); off for the others, whose final controller is the paper's.
 DEFAULT_RIPPLE_LIMIT = 1.5
@@ -136,7 +120,7 @@ def top_evals(records: list[Record], k: int, bound: dict[str, float] | None = No
 
 #: Above the ripple limit the loss told to the optimiser is multiplied by
 #: 1 + RIPPLE_PENALTY (r - 1), r = the experiment's rms over the limit's bound
-#: (:func:`told_loss`; docs/optimisers.md, "The standstill ripple": 1, 2 and 4 measured).
+#: (:func:`told_loss`; docs/optimisers.md, "The standstill ripple", says why 1).
 RIPPLE_PENALTY = 1.0
 
 #: One experiment's standstill rms scatters about its gains' mean (on ``bench``: the

@@ -13,18 +13,6 @@ from .files import Summary
 from .records import Evaluation, Measured, Record, Reference, Remeasurement
 from .ripple import ripple_bound, ripple_summary, top_evals, within_limit
 
-__all__ = [
-    'MemoryRecord',
-    'RunRecord',
-    'TunerState',
-    'brief',
-    'final_choice',
-    'replay_plan',
-    'summarize',
-    'tally',
-    'tally_all',
-]
-
 
 @dataclass
 class TunerState:
@@ -208,11 +196,7 @@ def summarize(
             'held_periods': held_periods(records),
             'reference': None
             if st.reference is None
-            else {
-                'gains': st.reference['gains'],
-                'loss': st.reference['loss'],
-                'aborted': st.reference['aborted'],
-            },
+            else {k: st.reference[k] for k in ('gains', 'loss', 'aborted')},
             'best': None
             if st.best is None
             else {

@@ -12,9 +12,7 @@ on the simulated lock-step bench.  The seeds are shared by all configurations (c
 random numbers), and runs are independent, so the results are identical for any number of
 workers.
 
-**Normalised loss**: L_n = L / L_ref, L_ref the mean loss of the hand-tuned start over
-``REF_EXPERIMENTS`` experiments after the first from rest; a run is **satisfactory** when
-its final loss is at most ``satisfactory`` (``stats``; docs/reproduction.md says why).
+The statistics (normalised loss, satisfactory runs, intervals): docs/reproduction.md.
 
 **Drives**: a study's drive, experiment and tuner parameters come from
 ``im_tuner.family.drive_setup``; ``--drives A,B`` runs one study per drive (``drives``) at
@@ -30,24 +28,6 @@ Tables I-III, the paper's values), ``summary`` (over drives), ``text``, ``files`
 tuner commands), ``figures``, ``markdown`` (reproduction.md, beside.md, family.md),
 ``cli``.
 
-This package imports nothing heavy itself: the names below are loaded from ``runs`` (the
-optimisers, the numba kernels) on first use, so that ``python -m im_tuner.study`` with a
-bad option refuses at once.
+This package imports nothing itself, so that ``python -m im_tuner.study`` with a bad
+option refuses at once.
 """
-
-from __future__ import annotations
-
-from typing import TYPE_CHECKING, Any
-
-if TYPE_CHECKING:
-    from .runs import StudySpec, run_one
-
-__all__ = ['StudySpec', 'run_one']
-
-
-def __getattr__(name: str) -> Any:
-    if name in __all__:
-        from . import runs
-
-        return getattr(runs, name)
-    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')

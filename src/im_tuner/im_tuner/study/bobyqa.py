@@ -31,8 +31,6 @@ import warnings
 
 import numpy as np
 
-__all__ = ['ASK_TIMEOUT_S', 'BobyqaRun']
-
 #: How long ask() waits for the solver's next point [s] (its own work takes milliseconds).
 ASK_TIMEOUT_S = 120.0
 
@@ -67,7 +65,6 @@ class BobyqaRun:
         ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
         self.np_seed = int(ss.generate_state(1)[0])
         self.evaluations = 0
-        self.solves = 0  #: solver starts (1 + restarts after an early return)
         self._pending: np.ndarray | None = None
         self._points: queue.Queue[np.ndarray | None] = queue.Queue(maxsize=1)
         self._losses: queue.Queue[float | None] = queue.Queue(maxsize=1)
@@ -112,9 +109,6 @@ class BobyqaRun:
         self.evaluations += 1
         self._losses.put(loss)
 
-    def tell(self, u: np.ndarray, loss: float) -> None:
-        self.tell_measurement(u, loss, False)
-
     def close(self) -> None:
         """End the solver thread (at the end of a run, or when it stops early)."""
         t = self._thread
@@ -145,17 +139,15 @@ class BobyqaRun:
             np.random.seed(self.np_seed % 2**32)
             while self.evaluations < self.budget:
                 before = self.evaluations
-                self.solves += 1
                 with warnings.catch_warnings():
                     # a restart near the end of the budget has maxfun <= npt (2 dim + 1):
                     # fewer evaluations than its model needs, by design here; not news
                     warnings.filterwarnings(
                         'ignore', message='maxfun <= npt', category=RuntimeWarning
                     )
-                    # its interpolation points can become degenerate (noisy steps clipped
-                    # to a bound of the box), and scipy warns that the model's LU factor
-                    # is singular; the solver goes on and its row shows what it achieves.
-                    # Printed in a worker, the warning broke the study's progress line
+                    # noisy steps clipped to the box can make its interpolation points
+                    # degenerate (scipy: a singular LU factor); the solver goes on, and a
+                    # worker's warning would break the study's progress line
                     warnings.filterwarnings('ignore', category=LinAlgWarning)
                     pybobyqa.solve(
                         self._objective,

@@ -25,15 +25,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-__all__ = [
-    'CONNECT_TIMEOUT_S',
-    'POLL_S',
-    'WORKER_WAIT_S',
-    'ClusterError',
-    'check_address',
-    'wait_for_scheduler',
-]
-
 #: Default of ``--cluster-timeout`` [s]: the TCP connection, Dask's handshake and each
 #: answer of the scheduler must come within it.
 CONNECT_TIMEOUT_S = 10.0

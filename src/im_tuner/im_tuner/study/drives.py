@@ -11,21 +11,12 @@ random numbers across drives too).  Light at import (json and ``results``), so t
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..rundir import atomic_write_text
 from .results import StudyResult, load, save
 from .spec import StudySpec
-
-__all__ = [
-    'FAMILY_FILE',
-    'FamilyResult',
-    'drive_dirs',
-    'is_family',
-    'load_family',
-    'save_family',
-]
 
 FAMILY_FILE = 'family.json'
 
@@ -70,9 +61,7 @@ def save_family(fam: FamilyResult, out: Path | str) -> list[Path]:
         res.command = fam.command
         save(res, d)
     meta = {'drives': list(fam.spec.drives), 'dirs': [d.name for d in dirs], 'command': fam.command}
-    tmp = out / (FAMILY_FILE + '.tmp')
-    tmp.write_text(json.dumps(meta, indent=1) + '\n')
-    os.replace(tmp, out / FAMILY_FILE)
+    atomic_write_text(out / FAMILY_FILE, json.dumps(meta, indent=1) + '\n')
     return dirs
 
 

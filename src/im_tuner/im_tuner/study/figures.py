@@ -8,16 +8,8 @@ import warnings
 import numpy as np
 
 from .spec import PAPER_ALGOS
-from .stats import (
-    FAST_LEVEL,
-    PAPER_CELL,
-    StudyStats,
-)
-from .text import (
-    ALGO_NAME,
-    PAPER_KEY,
-    STATS,
-)
+from .stats import FAST_LEVEL, PAPER_CELL, StudyStats
+from .text import ALGO_NAME, STATS
 
 
 # -- figures --------------------------------------------------------------------------------------
@@ -57,9 +49,7 @@ def fig_tables(st: StudyStats):
             label='simulation (mean, 95 % interval)',
         )
         ax.errorbar(x, v, yerr=[lo, hi], fmt='none', ecolor='k', capsize=3)
-        key = PAPER_KEY[stat]
-        assert key is not None  # the figure's three statistics all have paper values
-        pv = np.array([c.paper(key) if c.paper(key) is not None else np.nan for c in cells])
+        pv = np.array([c.paper(stat) if c.paper(stat) is not None else np.nan for c in cells])
         ax.plot(
             x, pv, 'D', color='tab:red', markersize=7, gid=f'paper:{stat}', label='paper (bench)'
         )

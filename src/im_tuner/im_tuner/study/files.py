@@ -16,14 +16,8 @@ from ..family import DEFAULT_DRIVE
 from ..identify import FIGURES
 from .results import StudyResult
 from .spec import REFERENCE_ALGOS
-from .stats import (
-    StudyStats,
-    per_run,
-)
-from .text import (
-    PAPER_KEY,
-    STATS,
-)
+from .stats import StudyStats, per_run
+from .text import STATS
 
 
 # -- files ----------------------------------------------------------------------------------------
@@ -140,7 +134,6 @@ def _num(x: float) -> str:
 def write_runs_csv(st: StudyStats, out: Path) -> Path:
     res = st.res
     pr = per_run(res, st.threshold)
-    assert res.ripple is not None and res.ripple_pp is not None and res.identified is not None
     path = out / 'runs.csv'
     with path.open('w', newline='') as f:
         w = csv.writer(f)
@@ -198,8 +191,7 @@ def write_tables_csv(st: StudyStats, out: Path) -> Path:
         for stat in (*(s[0] for s in STATS), *extra, 'ripple_pp_ratio', 'aborted_per_run'):
             for c in st.cells:
                 iv = getattr(c, stat)
-                key = PAPER_KEY.get(stat)
-                p = c.paper(key) if key else None
+                p = c.paper(stat)
                 w.writerow(
                     (
                         stat,

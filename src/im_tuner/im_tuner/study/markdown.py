@@ -9,13 +9,7 @@ import numpy as np
 
 from . import spec as S
 from .plant import plant_line, plants_line
-from .stats import (
-    EXPERIMENT_S,
-    FAST_LEVEL,
-    PAPER_US_PER_ITERATION,
-    StudyStats,
-    _fmt_iv,
-)
+from .stats import EXPERIMENT_S, FAST_LEVEL, PAPER_US_PER_ITERATION, StudyStats, _fmt_iv
 from .text import (
     ALGO_NAME,
     STATS,

@@ -21,22 +21,6 @@ from typing import Protocol
 
 from im_drive_sim.params import ConfigError, DriveConfig, MachineParams, config_from_dict
 
-__all__ = [
-    'FACTOR_KEYS',
-    'Mismatch',
-    'PlantError',
-    'apply_mismatch',
-    'check_plant',
-    'make_plant',
-    'mismatch_text',
-    'parse_mismatch',
-    'plant_line',
-    'plant_name',
-    'plant_options',
-    'plants_line',
-    'told_name',
-]
-
 #: A parsed mismatch: (key, value) in the order given; a factor for a machine key, a
 #: percentage of rated torque for 'coulomb', periods for 'delay'.
 Mismatch = tuple[tuple[str, float], ...]

@@ -8,23 +8,26 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
+from ..rundir import atomic_write_text
 from .spec import REF_EXPERIMENTS, Cell, StudySpec
-
-__all__ = ['ARRAYS_FILE', 'META_FILE', 'StudyResult', 'load', 'save']
 
 ARRAYS_FILE = 'study.npz'
 META_FILE = 'study.json'
 
 
-@dataclass
+@dataclass(kw_only=True)
 class StudyResult:
     """All runs of a study, as arrays indexed [cell, run, (evaluation)]; raw losses."""
+
+    #: the arrays save() and load() keep in study.npz (every array field; the rest goes
+    #: into study.json)
+    ARRAYS: ClassVar[tuple[str, ...]]
 
     spec: StudySpec
     cells: list[Cell]
@@ -56,20 +59,14 @@ class StudyResult:
     l_ref_told: float | None = None
     #: float64[cells, runs, 4]: the standstill rms of isq* [A] after the move and after
     #: the load, of the start then of the final choice (nan: not measured)
-    ripple: np.ndarray | None = None
+    ripple: np.ndarray
     #: bool[cells, runs]: the ripple limit kept out a point the run would have re-measured
-    ripple_changed: np.ndarray | None = None
+    ripple_changed: np.ndarray
     #: float64[cells, runs, 4]: as ``ripple``, peak to peak [A]
-    ripple_pp: np.ndarray | None = None
+    ripple_pp: np.ndarray
     #: float64[cells, runs, 8]: the drive identified from the start's experiments
     #: (``identify.FIGURES``: J, Kt, B, Tc, each with its sd; SI); nan: not identified
-    identified: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        C, R = self.ref_loss.shape
-        for name, value in empty_optional(C, R).items():
-            if getattr(self, name) is None:
-                setattr(self, name, value)
+    identified: np.ndarray
 
     @property
     def experiments(self) -> int:
@@ -78,32 +75,17 @@ class StudyResult:
             self.losses.size + self.ref_loss.size + np.count_nonzero(np.isfinite(self.remeasured))
         )
 
-    # arrays saved by save()/load() (the rest goes into study.json)
-    ARRAYS = (
-        'run_seed',
-        'drive_seed',
-        'start',
-        'ref_loss',
-        'ref_aborted',
-        'losses',
-        'aborted',
-        'faults',
-        'iteration',
-        'best_eval',
-        'best_gains',
-        'remeasured',
-        'opt_s',
-        'exp_s',
-        'ripple',
-        'ripple_changed',
-        'ripple_pp',
-        'identified',
-    )
+
+StudyResult.ARRAYS = tuple(
+    f.name for f in dataclasses.fields(StudyResult) if f.type == 'np.ndarray'
+)
 
 
 def empty_runs(C: int, R: int, B: int, D: int) -> dict[str, np.ndarray]:
     """Every per-run array of ``C`` cells by ``R`` runs of ``B`` evaluations of ``D``
     gains, nothing measured yet (what a study fills run by run)."""
+    from ..identify import FIGURES
+
     return {
         'start': np.full((C, R, D), np.nan),
         'ref_loss': np.full((C, R), np.nan),
@@ -117,15 +99,6 @@ def empty_runs(C: int, R: int, B: int, D: int) -> dict[str, np.ndarray]:
         'remeasured': np.full((C, R), np.nan),
         'opt_s': np.zeros((C, R)),
         'exp_s': np.zeros((C, R)),
-        **empty_optional(C, R),
-    }
-
-
-def empty_optional(C: int, R: int) -> dict[str, np.ndarray]:
-    """The optional per-run arrays of ``C`` cells by ``R`` runs, nothing measured."""
-    from ..identify import FIGURES
-
-    return {
         'ripple': np.full((C, R, 4), np.nan),
         'ripple_changed': np.zeros((C, R), bool),
         'ripple_pp': np.full((C, R, 4), np.nan),
@@ -143,7 +116,7 @@ def save(res: StudyResult, out: Path | str) -> None:
         'spec': {
             k: v
             for k, v in dataclasses.asdict(res.spec).items()
-            if k not in StudySpec.NEW_FIELDS or v != StudySpec.NEW_FIELDS[k]
+            if k not in StudySpec.NEW_FIELDS or v != getattr(StudySpec, k)
         },
         'cells': [dataclasses.asdict(c) for c in res.cells],
         'l_ref': res.l_ref,
@@ -158,9 +131,7 @@ def save(res: StudyResult, out: Path | str) -> None:
     }
     if res.l_ref_told is not None:  # (only a study whose plant is not the told drive)
         meta['l_ref_told'] = res.l_ref_told
-    tmp = out / (META_FILE + '.tmp')
-    tmp.write_text(json.dumps(meta, indent=1) + '\n')
-    os.replace(tmp, out / META_FILE)
+    atomic_write_text(out / META_FILE, json.dumps(meta, indent=1) + '\n')
 
 
 def load(out: Path | str) -> StudyResult:

@@ -339,11 +339,10 @@ def _forkserver_children() -> list[int]:
 
 
 def _kill_starting_workers() -> None:
-    """SIGKILL every child of the forkserver. A signal that lands while the executor waits
-    for a new worker's PID leaves that worker out of the executor's table: it went on
-    starting after the study had ended, and printed a traceback (its call queue's
-    semaphore was gone) after the study's one line. A child of the forkserver can only
-    be a worker of this study's pools, whose results are no longer wanted."""
+    """SIGKILL every child of the forkserver: a worker still starting when the signal
+    lands is not in the executor's table yet, and would otherwise start after the study
+    ended and print a traceback.  A child of the forkserver can only be a worker of this
+    study's pools, whose results are no longer wanted."""
     for pid in _forkserver_children():
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.kill(pid, signal.SIGKILL)
@@ -400,18 +399,11 @@ def check_numeric(expected: dict[str, Any] | None) -> None:
         )
 
 
-def _work(task: tuple[int, int, dict[str, Any] | None]) -> RunResult:
-    check_numeric(task[2])
-    return run_one(
-        WORKER['spec'], task[0], task[1], WORKER['drive'], WORKER['params'], WORKER['experiment']
-    )
-
-
 def run_task(spec: StudySpec, c: int, r: int, expected: dict[str, Any] | None = None) -> RunResult:
-    """Run ``r`` of cell ``c`` in a worker of a Dask cluster: the drive and parameter
-    files are loaded once per worker process and spec (thread-safe: a worker may run
-    several tasks at once); refused where the worker's numeric baseline differs from
-    ``expected`` (the study's)."""
+    """Run ``r`` of cell ``c`` in a worker (of the local pool or a Dask cluster): the drive
+    and parameter files are loaded once per worker process and spec (thread-safe: a Dask
+    worker may run several tasks at once); refused where the worker's numeric baseline
+    differs from ``expected`` (the study's)."""
     check_numeric(expected)
     drive, params, experiment = init_worker(spec)
     return run_one(spec, c, r, drive, params, experiment)
@@ -527,12 +519,13 @@ def run_study(
         try:
             # a bounded window of pending tasks keeps memory flat and progress honest
             it = iter(tasks)
-            pending = {pool.submit(_work, (*t, expected)) for t in islice(it, 4 * jobs)}
+            pending = {pool.submit(run_task, spec, *t, expected) for t in islice(it, 4 * jobs)}
             while pending:
                 finished, pending = wait(pending, return_when=FIRST_COMPLETED)
                 for f in finished:
                     store(f.result())
-                pending |= {pool.submit(_work, (*t, expected)) for t in islice(it, len(finished))}
+                more = islice(it, len(finished))
+                pending |= {pool.submit(run_task, spec, *t, expected) for t in more}
         except BaseException:  # Ctrl-C, SIGTERM (the command raises), a failed run
             _end_pool(pool)
             raise

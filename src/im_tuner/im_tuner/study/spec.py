@@ -24,28 +24,6 @@ if TYPE_CHECKING:  # the types only; the modules are imported where they are use
     from ..family import DriveSetup
     from ..space import TunerParams
 
-__all__ = [
-    'DEFAULT_ROW',
-    'DEFAULT_SATISFACTORY',
-    'DEFAULT_SEED',
-    'EXIT_USAGE',
-    'EXTRA_GRIDS',
-    'FACTORS',
-    'MIN_RUNS_FOR_INTERVALS',
-    'PAPER_ALGOS',
-    'RANDOM_START_DEFAULT',
-    'RECOMMENDED',
-    'REFERENCE_ALGOS',
-    'REF_EXPERIMENTS',
-    'STUDY_ALGOS',
-    'Cell',
-    'StudyError',
-    'StudySpec',
-    'default_jobs',
-    'grid',
-    'recommended',
-]
-
 EXIT_USAGE = 2
 
 
@@ -56,12 +34,8 @@ class StudyError(Exception):
 #: The paper's two algorithms: Tables I-III and the paper's conclusions.
 PAPER_ALGOS: tuple[str, ...] = ('spsa', 'necga')
 #: The small grids of the algorithms beyond the paper: (label, options); 'start' and
-#: 'first' are the run's policies (``optim.POLICIES``, the tuner's ``--opt start``/``first``),
-#: not optimiser options: 'start' is 'hand', 'none' or the study's own 'random' (a uniform
-#: point, given to the tuner as a parameter file); 'first' ('model': safe's first step
-#: from the study's drive file as a nominal model, ``im_tuner.prior``; 'identify': from
-#: that file's model with the mechanics the start's experiments identify,
-#: ``im_tuner.first_step``) a point the run computes.
+#: 'first' are the run's policies (``optim.POLICIES``, the tuner's ``--opt start``/``first``;
+#: :attr:`Cell.start_kind`, :attr:`Cell.first`), not optimiser options.
 EXTRA_GRIDS: dict[str, tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]] = {
     'rcga': (
         ('sigma0=10', (('sigma0', 10.0),)),
@@ -155,14 +129,16 @@ class Cell:
 
     @property
     def first(self) -> str:
-        """'model' (safe's first step from the drive file's model), 'identify' (from the
-        drive the start's experiments identify) or 'none'."""
+        """'model' (safe's first step from the study's drive file as a nominal model,
+        ``im_tuner.prior``), 'identify' (from that model with the mechanics the start's
+        experiments identify, ``im_tuner.first_step``) or 'none'."""
         return str(dict(self.options).get('first', 'none'))
 
     @property
     def start_kind(self) -> str:
-        """'random' (a uniform point, third stream of the run seed), 'hand' (the parameter
-        file's start) or 'none' (the optimiser's own, without a start point)."""
+        """'random' (a uniform point, third stream of the run seed, given to the tuner as a
+        parameter file), 'hand' (the parameter file's start) or 'none' (the optimiser's
+        own, without a start point)."""
         kind = dict(self.options).get('start')
         if kind is not None:
             return str(kind)
@@ -240,16 +216,16 @@ class StudySpec:
     #: (``runlog.ripple.default_ripple_limit``: on for safe, off for the others)
     ripple_limit: float | str | None = 'default'
 
-    #: fields written to study.json only when they differ from these defaults (a study
+    #: fields written to study.json only when they differ from their defaults (a study
     #: that uses none of them writes the same file as one of the paper's)
-    NEW_FIELDS: ClassVar[dict[str, Any]] = {
-        'drives': (),
-        'realism': None,
-        'full_grid': True,
-        'plant': (),
-        'mismatch': (),
-        'ripple_limit': 'default',
-    }
+    NEW_FIELDS: ClassVar[tuple[str, ...]] = (
+        'drives',
+        'realism',
+        'full_grid',
+        'plant',
+        'mismatch',
+        'ripple_limit',
+    )
 
     def __post_init__(self) -> None:
         for name, lo in (('runs', 1), ('budget', 1)):
@@ -341,14 +317,8 @@ class StudySpec:
     def loaded(self) -> tuple[DriveConfig, TunerParams, ExperimentConfig]:
         """(the plant, tuner parameters, experiment), the files read once: what a run
         measures on, and what the tuner knows (the told drive's box and experiment)."""
-        from ..space import load_params
-
         s = self.setup()
-        return (
-            self.plant_drive(s.drive),
-            load_params(self.params_file) if self.params_file else s.params,
-            s.experiment,
-        )
+        return self.plant_drive(s.drive), self.params(s), s.experiment
 
     @property
     def split(self) -> bool:
@@ -377,31 +347,22 @@ class StudySpec:
     def experiment(self) -> ExperimentConfig:
         return self.setup().experiment
 
-    def params(self) -> TunerParams:
+    def params(self, setup: DriveSetup | None = None) -> TunerParams:
+        """The tuner parameters: :attr:`params_file`'s, else the drive's (``setup``: the
+        drive's set-up when already made)."""
         from ..space import load_params
 
-        return load_params(self.params_file) if self.params_file else self.setup().params
+        if self.params_file:
+            return load_params(self.params_file)
+        return (self.setup() if setup is None else setup).params
 
 
-#: ``study --ripple-limit``'s help (the value: :func:`ripple_limit_option`)
+#: ``study --ripple-limit``'s help
 RIPPLE_LIMIT_HELP = (
     "every row's standstill-ripple limit, as the tuner's --ripple-limit (default: each "
     "row's tuner default: 1.5 for safe, off for the others); e.g. --algos spsa,necga "
     "--ripple-limit 1.5: what the limit costs the paper's algorithms"
 )
-
-
-def ripple_limit_option(text: str | None) -> float | str | None:
-    """``study --ripple-limit``'s value as :attr:`StudySpec.ripple_limit`: 'default' when
-    not given, a ratio, None for 'off'; :class:`StudyError` (one line) for anything else."""
-    if text is None:
-        return 'default'
-    from ..runlog.ripple import parse_ripple_limit
-
-    try:
-        return parse_ripple_limit(text)
-    except ValueError as exc:
-        raise StudyError(str(exc)) from None
 
 
 def default_jobs() -> int:

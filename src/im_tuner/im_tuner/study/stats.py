@@ -1,32 +1,14 @@
 """Tables I-III of the paper from a study, with 95 % intervals, and the paper's conclusions
-checked against them.  Pure numpy (no rclpy, no plotting).
+checked against them.  Pure numpy and scipy (no rclpy, no plotting).
 
-Definitions (docs/reproduction.md says why):
-
-* normalised loss L_n = L / L_ref (hand-tuned start = 1);
-* final loss of a run: its smallest non-aborted measured loss (the paper's final
-  controller: "the one generating the smallest loss"); a run in which every experiment
-  was aborted has none: it is left out of Table I's mean (the count is shown) and is
-  not satisfactory;
-* satisfactory run (Table II): final L_n <= the threshold;
-* evaluations to a satisfactory loss (Table III): 1-based count of the first non-aborted
-  evaluation with L_n <= threshold, averaged over the satisfactory runs (as the paper's
-  "average iterations needed to reach a satisfactory loss"); iterations: the optimiser's
-  iteration (SPSA, 2 evaluations each) or generation (neCGA) of that evaluation.
-
-Intervals: Table I and III means and every difference use a percentile bootstrap over
-runs (``BOOT`` resamples, fixed seed: the intervals are reproducible); the run indices are
-resampled together for every cell, because run r of every cell shares its seeds (common
-random numbers).  Table II uses Wilson's score interval.
-
-A study of a single run per configuration (a smoke test) has no bootstrap intervals
-(``MIN_RUNS_FOR_INTERVALS``): its means stand alone (Wilson's interval of a percentage is
-defined for one run and kept), and a verdict that needs an interval is 'not significant'.
-
-Both come from scipy (the field's library, not hand-written code):
-``scipy.stats.bootstrap(..., paired=True, method='percentile')`` with one fixed seed for
-every call, so every cell and every difference sees the same resampled run indices, and
-``scipy.stats.binomtest(k, n).proportion_ci(method='wilson')``.
+What each statistic is and why (normalised loss, final loss, satisfactory run, evaluations
+and iterations to it, the intervals): docs/reproduction.md, "What is compared, and how".
+The intervals are scipy's: ``scipy.stats.bootstrap(..., paired=True, method='percentile')``
+with one fixed seed for every call (``BOOT_SEED``: every cell and every difference sees the
+same resampled run indices, as run r of every cell shares its seeds), and
+``scipy.stats.binomtest(k, n).proportion_ci(method='wilson')``.  A study of fewer than
+``MIN_RUNS_FOR_INTERVALS`` runs has no bootstrap intervals: its means stand alone, and a
+verdict that needs one is 'not significant'.
 """
 
 from __future__ import annotations
@@ -41,8 +23,6 @@ import scipy.stats
 from ..runlog.ripple import DEFAULT_RIPPLE_LIMIT
 from .results import StudyResult
 from .spec import MIN_RUNS_FOR_INTERVALS, Cell
-
-__all__ = ['PAPER', 'CellStats', 'Conclusion', 'StudyStats', 'compute', 'wilson']
 
 #: The paper's Tables I-III on its grid of configurations: (algo, row) -> each column's
 #: (final loss (Table I), satisfactory runs [%] (Table II), iterations to satisfactory (III)).
@@ -61,6 +41,8 @@ PAPER: dict[str, dict[tuple[str, int, int], float]] = {
     }
     for i, stat in enumerate(('final', 'satisfactory_pct', 'iterations'))
 }
+#: The key in PAPER of each statistic (a CellStats attribute) the paper gives.
+_PAPER_OF = {'final': 'final', 'satisfactory': 'satisfactory_pct', 'iterations': 'iterations'}
 #: The paper's own configuration of each algorithm (the centre of its grid).
 PAPER_CELL: dict[str, tuple[int, int]] = {'spsa': (1, 1), 'necga': (0, 1)}
 #: The paper's optimiser time per iteration [us] (dSPACE 1104, 5 parameters x 16 bits).
@@ -117,19 +99,19 @@ class CellStats:
     #: median over runs of the final choice's standstill rms of isq* / the start's (the
     #: larger of the two windows; a median: a quiet random start makes one ratio huge);
     #: nan: not measured
-    ripple_ratio: Interval = field(
-        default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0)
-    )
+    ripple_ratio: Interval
     #: % of runs whose ripple ratio exceeds the default limit (runlog.ripple.DEFAULT_RIPPLE_LIMIT)
-    ripple_over: Interval = field(default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0))
+    ripple_over: Interval
     #: as ``ripple_ratio``, peak to peak (what the limit does not bound: a point within it
     #: in rms can still swing further)
-    ripple_pp_ratio: Interval = field(
-        default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0)
-    )
+    ripple_pp_ratio: Interval
 
     def paper(self, stat: str) -> float | None:
-        return PAPER[stat].get((self.cell.algo, self.cell.row, self.cell.col))
+        """The paper's value of statistic ``stat`` (an attribute) in this cell; None: none."""
+        key = _PAPER_OF.get(stat)
+        return (
+            None if key is None else PAPER[key].get((self.cell.algo, self.cell.row, self.cell.col))
+        )
 
 
 @dataclass
@@ -246,6 +228,16 @@ class _Boot:
         """Bootstrap distribution of the mean of the defined values of x[runs]."""
         return self.dist(_mean_defined, x)
 
+    def mean_of(self, x: np.ndarray) -> Interval:
+        """The mean of the defined values of x[runs], with its interval."""
+        return self.interval(_nanmean(x), self.mean(x), _defined(x))
+
+    def median_of(self, x: np.ndarray) -> Interval:
+        """The median of the defined values of x[runs], with its interval."""
+        n = _defined(x)
+        point = float(_median_defined(x)) if n else math.nan
+        return self.interval(point, self.dist(_median_defined, x), n)
+
     @staticmethod
     def interval(point: float, dist: np.ndarray, n: int) -> Interval:
         """The percentile interval of ``dist``, over the resamples where the statistic is
@@ -265,6 +257,17 @@ def _median_defined(x: np.ndarray, axis: int = -1) -> np.ndarray:
         return np.nanmedian(x, axis=axis)
 
 
+def _defined(x: np.ndarray) -> int:
+    """How many values of ``x`` are defined (not nan)."""
+    return int(np.sum(~np.isnan(x)))
+
+
+def _percent(k: int, n: int) -> Interval:
+    """``k`` runs of ``n`` as a percentage, with Wilson's interval (nan: ``n`` = 0)."""
+    lo, hi = wilson(k, n)
+    return Interval(100.0 * k / n if n else math.nan, 100 * lo, 100 * hi, n)
+
+
 def _nanmean(x: np.ndarray) -> float:
     x = x[~np.isnan(x)]
     return float(x.mean()) if x.size else math.nan
@@ -277,61 +280,32 @@ def compute(res: StudyResult, threshold: float | None = None) -> StudyStats:
     if not (thr > 0 and math.isfinite(thr)):
         raise ValueError(f'the satisfactory threshold must be a normalised loss > 0, got {thr!r}')
     pr = per_run(res, thr)
-    boot = _Boot(res.spec.runs)
+    runs = res.spec.runs
+    boot = _Boot(runs)
     cells = []
     for c, cell in enumerate(res.cells):
-        fin, sat = pr['final'][c], pr['satisfactory'][c]
-        nf = int(np.sum(~np.isnan(fin)))
-        k = int(sat.sum())
-        lo, hi = wilson(k, res.spec.runs)
-        kf = int(np.sum(~np.isnan(pr['fast'][c])))
-        flo, fhi = wilson(kf, res.spec.runs)
-        rr, pp = pr['ripple_ratio'][c], pr['ripple_pp_ratio'][c]
-        nr, npp = int(np.sum(~np.isnan(rr))), int(np.sum(~np.isnan(pp)))
-        ko = int(np.sum(rr[~np.isnan(rr)] > DEFAULT_RIPPLE_LIMIT))
-        olo, ohi = wilson(ko, nr)
+        fin, rr = pr['final'][c], pr['ripple_ratio'][c]
+        nf, nr = _defined(fin), _defined(rr)
         cells.append(
             CellStats(
                 cell=cell,
-                runs=res.spec.runs,
-                final=boot.interval(_nanmean(fin), boot.mean(fin), nf),
+                runs=runs,
+                final=boot.mean_of(fin),
                 final_median=float(np.nanmedian(fin)) if nf else math.nan,
-                no_final=res.spec.runs - nf,
-                remeasured=boot.interval(
-                    _nanmean(pr['remeasured'][c]),
-                    boot.mean(pr['remeasured'][c]),
-                    int(np.sum(~np.isnan(pr['remeasured'][c]))),
-                ),
-                satisfactory=Interval(100.0 * k / res.spec.runs, 100 * lo, 100 * hi, res.spec.runs),
-                evals=boot.interval(_nanmean(pr['evals'][c]), boot.mean(pr['evals'][c]), k),
-                iterations=boot.interval(
-                    _nanmean(pr['iterations'][c]), boot.mean(pr['iterations'][c]), k
-                ),
+                no_final=runs - nf,
+                remeasured=boot.mean_of(pr['remeasured'][c]),
+                satisfactory=_percent(int(pr['satisfactory'][c].sum()), runs),
+                evals=boot.mean_of(pr['evals'][c]),
+                iterations=boot.mean_of(pr['iterations'][c]),
                 start=_nanmean(pr['start'][c]),
                 aborted_pct=100.0 * float(res.aborted[c].mean()),
                 faults=int(res.faults[c].sum()),
-                fast=boot.interval(
-                    float(_median_defined(pr['fast'][c])) if kf else math.nan,
-                    boot.dist(_median_defined, pr['fast'][c]),
-                    kf,
-                ),
-                fast_reached=Interval(
-                    100.0 * kf / res.spec.runs, 100 * flo, 100 * fhi, res.spec.runs
-                ),
-                aborted_per_run=boot.interval(
-                    float(pr['aborted'][c].mean()), boot.mean(pr['aborted'][c]), res.spec.runs
-                ),
-                ripple_ratio=boot.interval(
-                    float(_median_defined(rr)) if nr else math.nan,
-                    boot.dist(_median_defined, rr),
-                    nr,
-                ),
-                ripple_over=Interval(100.0 * ko / nr if nr else math.nan, 100 * olo, 100 * ohi, nr),
-                ripple_pp_ratio=boot.interval(
-                    float(_median_defined(pp)) if npp else math.nan,
-                    boot.dist(_median_defined, pp),
-                    npp,
-                ),
+                fast=boot.median_of(pr['fast'][c]),
+                fast_reached=_percent(_defined(pr['fast'][c]), runs),
+                aborted_per_run=boot.mean_of(pr['aborted'][c]),
+                ripple_ratio=boot.median_of(rr),
+                ripple_over=_percent(int(np.sum(rr[~np.isnan(rr)] > DEFAULT_RIPPLE_LIMIT)), nr),
+                ripple_pp_ratio=boot.median_of(pr['ripple_pp_ratio'][c]),
             )
         )
     st = StudyStats(res=res, threshold=thr, cells=cells)
@@ -373,7 +347,7 @@ def _verdict(iv: Interval, expected_sign: int) -> str:
 def _diff(boot: _Boot, a: np.ndarray, b: np.ndarray) -> Interval:
     """mean(a) - mean(b) (nan-aware), paired bootstrap interval."""
     point = _nanmean(a) - _nanmean(b)
-    return boot.interval(point, boot.mean(a) - boot.mean(b), int(np.sum(~np.isnan(a))))
+    return boot.interval(point, boot.mean(a) - boot.mean(b), _defined(a))
 
 
 def _range_dist(boot: _Boot, rows: list[np.ndarray], pct: bool) -> tuple[float, np.ndarray]:
@@ -409,7 +383,6 @@ def _conclusions(st: StudyStats, pr: dict[str, np.ndarray], boot: _Boot) -> list
     grand_s = np.nanmean(pr['final'][sp_all], axis=0)
     grand_n = np.nanmean(pr['final'][ne_all], axis=0)
     d1g = _diff(boot, grand_s, grand_n)
-    v1 = _verdict(d1, +1)
     out.append(
         Conclusion(
             claim='neCGA reaches a lower average final loss than SPSA',
@@ -418,7 +391,7 @@ def _conclusions(st: StudyStats, pr: dict[str, np.ndarray], boot: _Boot) -> list
                 f'{_fmt_iv(N.final)} vs {_fmt_iv(S.final)}; difference SPSA - neCGA '
                 f'{_fmt_iv(d1)}; over the grid (mean of the cells) difference {_fmt_iv(d1g)}'
             ),
-            verdict=v1,
+            verdict=_verdict(d1, +1),
         )
     )
 
@@ -429,7 +402,6 @@ def _conclusions(st: StudyStats, pr: dict[str, np.ndarray], boot: _Boot) -> list
     fs, fdist_s = _range_dist(boot, [pr['final'][i] for i in sp_all], pct=False)
     fn, fdist_n = _range_dist(boot, [pr['final'][i] for i in ne_all], pct=False)
     d2f = boot.interval(fs - fn, fdist_s - fdist_n, res.spec.runs)
-    v2 = _verdict(d2, +1)
     out.append(
         Conclusion(
             claim='neCGA is less sensitive to its configuration (n) than SPSA to (a, c)',
@@ -442,14 +414,13 @@ def _conclusions(st: StudyStats, pr: dict[str, np.ndarray], boot: _Boot) -> list
                 f'difference {_fmt_iv(d2, 0)}; range of the average final loss: SPSA {fs:.3f}, '
                 f'neCGA {fn:.3f}, difference {_fmt_iv(d2f)}'
             ),
-            verdict=v2,
+            verdict=_verdict(d2, +1),
         )
     )
 
     # 3. faster to a satisfactory loss
     d3 = _diff(boot, pr['evals'][sp], pr['evals'][ne])
     d3i = _diff(boot, pr['iterations'][sp], pr['iterations'][ne])
-    v3 = _verdict(d3, +1)
     out.append(
         Conclusion(
             claim='neCGA reaches a satisfactory loss faster than SPSA',
@@ -459,7 +430,7 @@ def _conclusions(st: StudyStats, pr: dict[str, np.ndarray], boot: _Boot) -> list
                 f'{_fmt_iv(d3, 1)}; iterations: {_fmt_iv(N.iterations, 1)} vs '
                 f'{_fmt_iv(S.iterations, 1)}, difference {_fmt_iv(d3i, 1)} (threshold {thr:g})'
             ),
-            verdict=v3,
+            verdict=_verdict(d3, +1),
         )
     )
 
@@ -492,7 +463,6 @@ def _conclusions(st: StudyStats, pr: dict[str, np.ndarray], boot: _Boot) -> list
     # 5. an effective controller within three minutes of bench time
     t_s = (1 + S.evals.value) * EXPERIMENT_S
     t_n = (1 + N.evals.value) * EXPERIMENT_S
-    v5 = 'holds' if max(t_s, t_n) < 180.0 else 'does not hold'
     out.append(
         Conclusion(
             claim='both reach a very effective controller in less than three minutes on the bench',
@@ -502,14 +472,13 @@ def _conclusions(st: StudyStats, pr: dict[str, np.ndarray], boot: _Boot) -> list
                 f'0.5 s settle + 1.125 s): '
                 f'SPSA {t_s:.0f} s, neCGA {t_n:.0f} s'
             ),
-            verdict=v5,
+            verdict='holds' if max(t_s, t_n) < 180.0 else 'does not hold',
         )
     )
 
     # 6. computation per iteration
     us_s, us_n = st.us_per_iteration.get('spsa'), st.us_per_iteration.get('necga')
     ratio = us_s / us_n if us_s and us_n else math.nan
-    v6 = 'holds' if ratio < 0.5 else 'does not hold'
     out.append(
         Conclusion(
             claim='SPSA needs about a third of the computation of neCGA per iteration',
@@ -522,7 +491,7 @@ def _conclusions(st: StudyStats, pr: dict[str, np.ndarray], boot: _Boot) -> list
                 f'{us_n:.1f} us (ratio {ratio:.2f}); per evaluation {st.us_per_eval["spsa"]:.1f} '
                 f'vs {st.us_per_eval["necga"]:.1f} us (timing: machine-dependent)'
             ),
-            verdict=v6,
+            verdict='holds' if ratio < 0.5 else 'does not hold',
         )
     )
     return out

@@ -1,16 +1,8 @@
-"""The study over several drives: a summary per method over the drives, and whether the
-tuner's default meets its goal (``GOAL``) on each drive.  Pure (numpy-free arithmetic on the
-per-drive :class:`~.stats.StudyStats`).
-
-Per method (one configuration, matched by algorithm and label across the drives), for
-each statistic of the comparison: the mean over the drives of the per-drive value and
-the worst drive's value (highest loss, evaluations or aborts; lowest share of runs
-reaching ``FAST_LEVEL``).  Every drive's losses are normalised by its own L_ref (its own
-hand-tuned start = 1), so the drives' values can be averaged.
-
-The goal (``GOAL``, for the default on the bench profile and across the family) compares
-the re-measured loss with the best row of the drive whose choices keep within the
-default's ripple limit (:func:`within_limit_rows`).
+"""The study over several drives: a summary per method (one configuration, matched by
+algorithm and label across the drives) over the drives, and whether the tuner's default
+meets its goal (``GOAL``) on each drive; docs/reproduction-family.md shows both.  Pure
+(numpy-free arithmetic on the per-drive :class:`~.stats.StudyStats`): every drive's losses
+are normalised by its own L_ref, so the drives' values can be averaged.
 """
 
 from __future__ import annotations
@@ -21,18 +13,6 @@ from dataclasses import dataclass, field
 from .drives import FamilyResult
 from .spec import DEFAULT_ROW
 from .stats import FAST_LEVEL, CellStats, StudyStats, compute
-
-__all__ = [
-    'GOAL',
-    'SUMMARY_STATS',
-    'FamilyStats',
-    'GoalCheck',
-    'MethodSummary',
-    'compute_family',
-    'goal_check',
-    'summarize',
-    'within_limit_rows',
-]
 
 #: The goal for the default: evaluations to the satisfactory level (mean), to
 #: FAST_LEVEL (median) and the share reaching it [%], aborted per run, and the re-measured

@@ -7,31 +7,10 @@ from typing import TYPE_CHECKING
 
 from . import spec as S
 from .plant import plant_line, plants_line
-from .stats import (
-    EXPERIMENT_S,
-    FAST_LEVEL,
-    CellStats,
-    StudyStats,
-    _fmt_iv,
-)
+from .stats import EXPERIMENT_S, FAST_LEVEL, CellStats, StudyStats, _fmt_iv
 
 if TYPE_CHECKING:
     from .summary import FamilyStats
-
-__all__ = [
-    'ALGO_NAME',
-    'COMPARISON',
-    'PAPER_KEY',
-    'START_TEXT',
-    'STATS',
-    'comparison_rows',
-    'comparison_text',
-    'family_text',
-    'goal_lines',
-    'no_intervals_note',
-    'summary_rows',
-    'tables_text',
-]
 
 ALGO_NAME = {
     'spsa': 'SPSA',
@@ -54,12 +33,6 @@ STATS = (
         1,
     ),
 )
-PAPER_KEY = {
-    'final': 'final',
-    'satisfactory': 'satisfactory_pct',
-    'iterations': 'iterations',
-    'evals': None,
-}
 
 
 def no_intervals_note(runs: int) -> str:
@@ -72,8 +45,7 @@ def no_intervals_note(runs: int) -> str:
 
 # -- text -----------------------------------------------------------------------------------------
 def _paper(c: CellStats, stat: str, d: int) -> str:
-    key = PAPER_KEY.get(stat)
-    v = c.paper(key) if key else None
+    v = c.paper(stat)
     return '' if v is None else (f'{v:.2f}' if d == 3 else f'{v:.0f}')
 
 
@@ -97,19 +69,18 @@ def _grids(
     return out
 
 
-#: The comparison beyond the paper: (header, CellStats attribute, digits, kind).
 #: How the comparison names a cell's start kind.
 START_TEXT = {'random': 'random start', 'hand': 'hand-tuned start', 'none': 'no start'}
-
+#: The comparison beyond the paper: (header, CellStats attribute, digits).
 COMPARISON = (
-    ('final (min measured)', 'final', 3, 'mean'),
-    ('re-measured', 'remeasured', 3, 'mean'),
-    ('evaluations to <= {thr:g}, mean', 'evals', 1, 'mean'),
-    ('to <= {fast:g}, median', 'fast', 1, 'median'),
-    ('runs reaching {fast:g} [%]', 'fast_reached', 0, 'pct'),
-    ('aborted per run', 'aborted_per_run', 1, 'mean'),
-    ('ripple / start, median', 'ripple_ratio', 2, 'median'),
-    ('peak-to-peak / start', 'ripple_pp_ratio', 2, 'median'),
+    ('final (min measured)', 'final', 3),
+    ('re-measured', 'remeasured', 3),
+    ('evaluations to <= {thr:g}, mean', 'evals', 1),
+    ('to <= {fast:g}, median', 'fast', 1),
+    ('runs reaching {fast:g} [%]', 'fast_reached', 0),
+    ('aborted per run', 'aborted_per_run', 1),
+    ('ripple / start, median', 'ripple_ratio', 2),
+    ('peak-to-peak / start', 'ripple_pp_ratio', 2),
 )
 
 
@@ -117,7 +88,7 @@ def comparison_rows(st: StudyStats) -> tuple[list[str], list[list[str]]]:
     """The comparison of every configuration: header and one row per cell,
     each value with its 95 % interval."""
     head = ['method (configuration, start)'] + [
-        h.format(thr=st.threshold, fast=FAST_LEVEL) for h, _a, _d, _k in COMPARISON
+        h.format(thr=st.threshold, fast=FAST_LEVEL) for h, _a, _d in COMPARISON
     ]
     rows = []
     for c in st.cells:
@@ -129,7 +100,7 @@ def comparison_rows(st: StudyStats) -> tuple[list[str], list[list[str]]]:
                 f'all {c.runs} runs aborted (n=0)'
                 if none and a in ('final', 'remeasured')
                 else _fmt_iv(getattr(c, a), d, '-')
-                for _h, a, d, _k in COMPARISON
+                for _h, a, d in COMPARISON
             ]
         )
     return head, rows
@@ -162,9 +133,9 @@ def summary_rows(fs: FamilyStats) -> tuple[list[str], list[list[str]]]:
     its worst drive."""
     from .summary import SUMMARY_STATS
 
-    names = dict(zip((a for _h, a, _d, _k in COMPARISON), COMPARISON, strict=True))
+    names = {a: h for h, a, _d in COMPARISON}
     head = ['method (configuration, start)'] + [
-        names[a][0].format(thr=fs.threshold, fast=FAST_LEVEL) + ': mean over drives (worst)'
+        names[a].format(thr=fs.threshold, fast=FAST_LEVEL) + ': mean over drives (worst)'
         for a, _d, _s in SUMMARY_STATS
     ]
     rows = []

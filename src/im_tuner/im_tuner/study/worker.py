@@ -23,8 +23,6 @@ if TYPE_CHECKING:
 
     from ..space import TunerParams
 
-__all__ = ['WATCH_POLL_S', 'WORKER', 'init_pool_worker', 'init_worker', 'watch_study']
-
 #: This process's study: its spec and its loaded drive and tuner parameter files.
 WORKER: dict[str, Any] = {}
 #: A Dask worker may run several tasks at once, in threads: one loads, the others wait.
@@ -48,11 +46,9 @@ def init_pool_worker(spec: StudySpec, study_pid: int) -> None:
     ends, and leaves Ctrl-C to it.
 
     The workers are the forkserver's children, not the study's, and each holds the
-    forkserver's "alive" pipe open: when the study is killed (SIGKILL, or a signal with
-    no handler), neither the forkserver nor an idle worker would ever notice (they ran
-    on for ever).  So each worker watches the study process itself and exits the moment
-    it ends.  SIGINT is ignored: Ctrl-C reaches the whole process group, and the study
-    ends its workers itself (``runs._end_pool``)."""
+    forkserver's "alive" pipe open: a killed study goes unnoticed by both, so each worker
+    watches the study process itself.  SIGINT is ignored: Ctrl-C reaches the whole
+    process group, and the study ends its workers itself (``runs._end_pool``)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     watch_study(study_pid)
     init_worker(spec)

@@ -20,30 +20,6 @@ from typing import Any
 
 import numpy as np
 
-__all__ = [
-    'GAIN_NAMES',
-    'GAIN_RANGES',
-    'GAIN_UNITS',
-    'MOVE_KEYS',
-    'MOVE_RULE',
-    'NUMERIC_SPECS',
-    'ControlConfig',
-    'ControllerConfigError',
-    'ExperimentConfig',
-    'Gains',
-    'LossConfig',
-    'NumSpec',
-    'SafetyConfig',
-    'TrajectoryConfig',
-    'trajectory_times',
-    'validate_control_config',
-    'validate_experiment_config',
-    'validate_gains',
-    'validate_loss_config',
-    'validate_safety_config',
-    'validate_trajectory_config',
-]
-
 
 class ControllerConfigError(ValueError):
     """An invalid controller / experiment parameter; the message names it and says why."""
@@ -86,9 +62,9 @@ class NumSpec:
 #: the single source of truth for validation (``validate_*``) and for the ROS parameter
 #: descriptors of the controller node.
 NUMERIC_SPECS: dict[str, NumSpec] = {
-    **{f'gains.{n}': NumSpec(lo, hi, False, GAIN_UNITS[n]) for n, (lo, hi) in GAIN_RANGES.items()},
     **{
-        f'fallback_gains.{n}': NumSpec(lo, hi, False, GAIN_UNITS[n])
+        f'{section}.{n}': NumSpec(lo, hi, False, GAIN_UNITS[n])
+        for section in ('gains', 'fallback_gains')
         for n, (lo, hi) in GAIN_RANGES.items()
     },
     'control.Ts': NumSpec(0.0, 0.01, True, 's'),
@@ -132,6 +108,14 @@ def _spec(key: str, name: str, v: Any) -> float:
     if not math.isfinite(x) or (x <= sp.lo if sp.lo_strict else x < sp.lo) or x > sp.hi:
         raise ControllerConfigError(f'{name} must be {want}, got {v!r}')
     return x
+
+
+def _choice(name: str, value: Any, choices: tuple[str, ...]) -> str:
+    """``value`` if it is one of ``choices``; ``name`` is used in the message."""
+    if not isinstance(value, str) or value not in choices:
+        allowed = ' or '.join(repr(c) for c in choices)
+        raise ControllerConfigError(f'{name} must be {allowed}, got {value!r}')
+    return value
 
 
 def _section(c: Any, cls: type, section: str, prefix: str, skip: str = '') -> dict[str, Any]:
@@ -205,13 +189,10 @@ class ControlConfig:
 def validate_control_config(c: Any, prefix: str = 'control') -> ControlConfig:
     if not isinstance(c, ControlConfig):
         raise ControllerConfigError(f'{prefix} must be a ControlConfig, got {type(c).__name__}')
-    if not isinstance(c.feedforward, str) or c.feedforward not in ('model', 'undelayed'):
-        raise ControllerConfigError(
-            f"{prefix}.feedforward must be 'model' or 'undelayed', got {c.feedforward!r}"
-        )
-    Ts = _spec('control.Ts', f'{prefix}.Ts', c.Ts)
-    isq_max = _spec('control.isq_max', f'{prefix}.isq_max', c.isq_max)
-    return ControlConfig(c.feedforward, Ts, isq_max)
+    feedforward = _choice(f'{prefix}.feedforward', c.feedforward, ('model', 'undelayed'))
+    return ControlConfig(
+        feedforward, **_section(c, ControlConfig, 'control', prefix, 'feedforward')
+    )
 
 
 # ------------------------------------------------------------------------------- loss
@@ -312,11 +293,7 @@ def trajectory_times(
 
 def validate_trajectory_config(c: Any, prefix: str = 'trajectory') -> TrajectoryConfig:
     v = _section(c, TrajectoryConfig, 'trajectory', prefix, skip='load_sign')
-    if not isinstance(c.load_sign, str) or c.load_sign not in ('oppose_move', 'fixed'):
-        raise ControllerConfigError(
-            f"{prefix}.load_sign must be 'oppose_move' or 'fixed', got {c.load_sign!r}"
-        )
-    v['load_sign'] = c.load_sign
+    v['load_sign'] = _choice(f'{prefix}.load_sign', c.load_sign, ('oppose_move', 'fixed'))
     if v['load_delay'] > v['duration']:
         raise ControllerConfigError(
             f'{prefix}.load_delay must be <= duration ({v["duration"]:g} s), '
@@ -336,10 +313,6 @@ class SafetyConfig:
 
     max_position_error: float = 1.0
     max_speed: float = 100.0
-
-
-def validate_safety_config(c: Any, prefix: str = 'safety') -> SafetyConfig:
-    return SafetyConfig(**_section(c, SafetyConfig, 'safety', prefix))
 
 
 # ------------------------------------------------------------------------- experiment
@@ -386,6 +359,6 @@ def validate_experiment_config(c: Any) -> ExperimentConfig:
         ctl,
         validate_loss_config(c.loss),
         traj,
-        validate_safety_config(c.safety),
+        SafetyConfig(**_section(c.safety, SafetyConfig, 'safety', 'safety')),
         validate_gains(c.fallback_gains, 'fallback_gains'),
     )

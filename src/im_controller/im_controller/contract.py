@@ -21,28 +21,6 @@ from __future__ import annotations
 
 import re
 
-__all__ = [
-    'BUSY',
-    'FINISHING_MOVE',
-    'HEARTBEAT_PERIOD',
-    'HEARTBEAT_TOPIC',
-    'INTERNALS_TOPIC',
-    'INVALID',
-    'LOSS_TOPIC',
-    'NO_DRIVE_STATE',
-    'REFUSALS',
-    'RESET_SERVICE',
-    'SAFETY_FAULT',
-    'START_SERVICE',
-    'STATE_NOT_FINITE',
-    'TRANSIENT',
-    'TUNER_LOST',
-    'refusal',
-    'refusal_code',
-    'started',
-    'started_id',
-]
-
 #: Topics (relative: they follow the controller's namespace).
 LOSS_TOPIC = 'controller/loss'
 INTERNALS_TOPIC = 'controller/internals'

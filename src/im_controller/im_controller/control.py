@@ -19,17 +19,6 @@ from numba import njit
 from .config import ControlConfig, Gains, validate_control_config, validate_gains
 from .layout import CONTROL_FIELDS
 
-__all__ = [
-    'CONTROL_FIELDS',
-    'FF_MODEL',
-    'FF_UNDELAYED',
-    'CascadeController',
-    'control_reset',
-    'control_step',
-    'fill_control_params',
-    'make_control_params',
-]
-
 # ------------------------------------------------------------------ parameter indices
 C_KPW = 0  # k_pw [A s/rad]
 C_KPOS = 1  # k_pos [1/s]

@@ -17,7 +17,8 @@ import math
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from .config import GAIN_NAMES, Gains
-from .experiment import SAFETY_REASONS, LossResult
+from .layout import SAFETY_REASONS
+from .result import LossResult
 
 NS_PER_S = 1_000_000_000
 #: Keys of ``DiagnosticStatus.values``, in order.

@@ -15,20 +15,6 @@ from typing import Any
 
 import numpy as np
 
-__all__ = [
-    'NDARRAY',
-    'OptimizerError',
-    'OptionSpec',
-    'check_dim',
-    'check_loss',
-    'check_options',
-    'check_seed',
-    'check_start',
-    'check_told',
-    'told_loss',
-    'zero_signs_match',
-]
-
 #: The array type, bound once (tell's fast path tests ``type(u) is NDARRAY``).
 NDARRAY = np.ndarray
 

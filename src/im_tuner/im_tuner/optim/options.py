@@ -20,29 +20,6 @@ from typing import Any
 
 from .checks import OptimizerError, OptionSpec, check_options
 
-__all__ = [
-    'ALGORITHMS',
-    'ALGOS',
-    'DEFAULT_ALGO',
-    'GAIN_PRESETS',
-    'MODULES',
-    'NO_START_ALGOS',
-    'OPTIONS',
-    'POLICIES',
-    'RIPPLE_LIMITED',
-    'TAKES_FIRST',
-    'TAKES_START',
-    'Algorithm',
-    'check_eta_below_n',
-    'choice',
-    'describe_options',
-    'integer',
-    'option_specs',
-    'read_options',
-    'real',
-    'split_policies',
-]
-
 
 @dataclass(frozen=True)
 class Algorithm:

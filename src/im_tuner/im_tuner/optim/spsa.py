@@ -1,30 +1,9 @@
 """Simultaneous perturbation stochastic approximation (SPSA), Spall 1998, as in the paper.
 
-On normalised parameters u in [0, 1]^dim (the paper's c = 0.03 only makes sense on such
-a scale), iteration k = 0, 1, ... costs two loss evaluations::
-
-    a_k = a / (k + 1 + A)^alpha          c_k = c / (k + 1)^gamma
-    Delta_k: dim i.i.d. +-1 entries, P(+1) = P(-1) = 1/2 (own generator)
-    y+ = L(u_k + c_k Delta_k)            (first ask/tell of the iteration)
-    y- = L(u_k - c_k Delta_k)            (second ask/tell)
-    g_k,i = (y+ - y-) / (2 c_k Delta_k,i)
-    s_k = a_k g_k, scaled down to max|s_k,i| = max_step if it is larger (step cap)
-    u_{k+1} = clip(u_k - s_k, c_{k+1}, 1 - c_{k+1})      (bounded, the default)
-
-Index convention: k counts iterations from 0 (Spall's).  The paper writes
-a_k = a/(k + A)^alpha with its first iteration k = 1, which is the same sequence; its
-c_k = c/(k + 1)^gamma is taken with the same 0-based k (c_0 = c).
-
-The step cap keeps a penalised (aborted, huge-loss) experiment from throwing the iterate
-across the box; the projection onto [c_{k+1}, 1 - c_{k+1}] keeps both perturbed points of
-the next iteration inside [0, 1] (the start point is projected onto [c_0, 1 - c_0]).
-``bounded=False`` (constructor only, for analytic oracles) disables the projection.
-
-Gain presets: ``gains='paper'`` (alpha = gamma = 0.3, the paper's values, which violate
-Spall's convergence condition alpha - gamma > 1/2: over 100 iterations a_k/c_k only grows
-from 0.24 to 0.58, i.e. SPSA with an almost constant gain; reproduced as given) or
-``gains='spall'`` (alpha = 0.602, gamma = 0.101).  Explicit ``alpha``/``gamma`` override
-either preset.  See docs/optimisers.md.
+Two evaluations per iteration k = 0, 1, ... on u in [0, 1]^dim: y+ at u_k + c_k Delta_k,
+y- at u_k - c_k Delta_k, the step a_k (y+ - y-)/(2 c_k) Delta_k capped at ``max_step``,
+the iterate kept in [c_{k+1}, 1 - c_{k+1}] (``bounded``).  The equations, the index
+convention and the gain presets: docs/optimisers.md, "SPSA".
 """
 
 from __future__ import annotations
@@ -36,11 +15,9 @@ import numpy as np
 from .base import FLOAT, FLOATS, FLOATS_OR_NONE, INT, SAVED, Field, Optimizer, OptimizerError
 from .options import GAIN_PRESETS
 
-__all__ = ['GAIN_PRESETS', 'SPSA']
-
 
 class SPSA(Optimizer):
-    """SPSA with two evaluations per iteration (see the module docstring for the equations).
+    """SPSA with two evaluations per iteration (docs/optimisers.md for the equations).
 
     ``SPSA(dim, seed, start=None, *, a, c, A, alpha, gamma, gains, max_step, bounded=True)``;
     ``start`` None draws a uniform start in [c, 1 - c]^dim from the optimiser's generator.

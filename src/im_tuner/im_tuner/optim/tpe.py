@@ -1,18 +1,10 @@
 """Tree-structured Parzen estimator (optuna's ``TPESampler``) behind the ask/tell contract.
 
-One optuna trial per evaluation: ``ask`` asks an in-memory optuna study for the five
-normalised parameters (each a ``FloatDistribution(0, 1)`` named ``u0..u4``), ``tell``
-completes the trial with the measured loss.  A start point (the hand-tuned gains) is
-enqueued as the first trial, as optuna's ``enqueue_trial`` does for a known-good
-configuration.  No torch: TPE needs numpy/scipy only.
-
-State: the trials told so far (parameters and loss), the pending candidate and the
-sampler's two numpy ``RandomState`` streams (TPE's and its start-up random sampler's),
-in JSON.  ``from_state`` rebuilds the study from the trials (``add_trials``) and puts the
-streams back, so the next asks are the ones the original would have made, bit for bit.
-The study itself lives in memory, inside the checkpoint the tuner writes atomically to
-its run directory; a separate optuna journal or SQLite file would be a second file to
-keep consistent with the checkpoint across a SIGKILL.
+One trial of an in-memory optuna study per evaluation, on ``u0..u4`` in [0, 1]; a start
+point is enqueued as the first trial.  The state is the told trials and the sampler's two
+numpy ``RandomState`` streams, inside the tuner's atomic checkpoint (no optuna journal to
+keep consistent with it): ``from_state`` adds the trials back and restores the streams
+(docs/optimisers.md, "Beyond the paper").
 """
 
 from __future__ import annotations
@@ -33,8 +25,6 @@ from .base import (
     OptimizerError,
     told_history,
 )
-
-__all__ = ['TPE']
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 

@@ -1,14 +1,9 @@
 """Configuration of the cascaded position controller and of the loss experiment.
 
-Frozen dataclasses with defaults, and ONE place that validates them (``validate_*``).
-Every check raises :class:`ControllerConfigError` (a ``ValueError``) whose message names
-the parameter and says why, e.g.::
-
-    gains.k_pw must be a finite number in [0, 200] A s/rad, got 700.0
-
-Policy: float parameters accept ``int`` and ``float`` (and numpy floating/integer
-scalars) but never ``bool`` or ``str``; NaN and +-inf are rejected everywhere.
-Units SI (rad, rad/s, A, N m, s).  See docs/controller.md for the meaning of each value.
+Frozen dataclasses with defaults, and ONE place that validates them (``validate_*``,
+:class:`ControllerConfigError` naming the parameter).  The values, their units, ranges
+and the validation policy: docs/controller.md, section 7; each field's meaning:
+``parameters.DESCRIPTIONS``.
 """
 
 from __future__ import annotations
@@ -133,14 +128,7 @@ def _section(c: Any, cls: type, section: str, prefix: str, skip: str = '') -> di
 # ------------------------------------------------------------------------------ gains
 @dataclass(frozen=True)
 class Gains:
-    """Tuned parameter vector G (paper eq. 8); defaults = the notes' hand-tuned start.
-
-    k_pw [A s/rad]: proportional gain of the PI speed controller.
-    k_iw [A/rad]: integral gain of the PI speed controller (isq* per rad of speed error integral).
-    k_pos [1/s]: proportional position gain (omega* per rad of position error).
-    tau_sm [s]: reference smoothing filter 1/(1 + s tau_sm).
-    tau_eq [s]: equivalent time constant of the closed position loop (reference model).
-    """
+    """Tuned parameter vector G (paper eq. 8); defaults = the notes' hand-tuned start."""
 
     k_pw: float = 0.53
     k_iw: float = 20.0
@@ -173,13 +161,7 @@ def validate_gains(g: Any, prefix: str = 'gains') -> Gains:
 # ---------------------------------------------------------------------------- control
 @dataclass(frozen=True)
 class ControlConfig:
-    """Structure of the control law (not tuned).
-
-    feedforward: 'model' (default): omega_ff = d theta_m/dt (the reference model's speed);
-        'undelayed': omega_ff = d theta_sm/dt.  The position error uses theta_m in both.
-    Ts [s]: control period (take it from the drive config; default 200 us).
-    isq_max [A]: clamp of isq* (take it from the drive config; default 7 A).
-    """
+    """Structure of the control law (not tuned; Ts and isq_max are the drive's)."""
 
     feedforward: str = 'model'
     Ts: float = 2e-4
@@ -198,15 +180,7 @@ def validate_control_config(c: Any, prefix: str = 'control') -> ControlConfig:
 # ------------------------------------------------------------------------------- loss
 @dataclass(frozen=True)
 class LossConfig:
-    """Loss eq. 4-7 and the supervisor.
-
-    a1 [1/(rad s)], a2 [1/rad], a3 [1/(A s)]: weights of the three terms; defaults make
-        each term about 1/3 for the hand-tuned start on the default drive (docs/controller.md).
-    threshold1..3 [-]: supervisor limits on the running weighted terms a_j int f_j dt.
-    penalty [-]: factor applied to the loss of a stopped experiment (>= 1).
-    isqf_tau [s]: time constant of the isq* filter in f3 (paper: 0.02 s).
-    sat_ratio [-]: terms count only while |isq*|/isq_max < sat_ratio (paper: 0.99).
-    """
+    """Loss eq. 4-7 and the supervisor (docs/controller.md, sections 4 and 5)."""
 
     a1: float = 8.0
     a2: float = 0.5
@@ -226,21 +200,7 @@ def validate_loss_config(c: Any, prefix: str = 'loss') -> LossConfig:
 # ------------------------------------------------------------------------- trajectory
 @dataclass(frozen=True)
 class TrajectoryConfig:
-    """The experiment (paper, "The loss function", Fig. 5).
-
-    distance [rad]: rotation per experiment (pi); direction alternates with the id parity.
-    a_max [rad/s^2], v_max [rad/s]: limits of the minimum-time trajectory.
-    duration [s]: experiment length (1.125 s = 5625 steps at 200 us).
-    load_delay [s]: load step this long after the reference change (0.7 s).
-    load_torque [N m]: load step magnitude (70 % of the 2.5 N m rated torque).
-    load_sign: 'oppose_move' (default): the load torque opposes the move direction, so
-        the two directions are mirror images; 'fixed': +load_torque in every experiment
-        (positive opposes positive rotation, drive convention).
-    settle [s]: standstill settle before each experiment's step 0 (0.5 s = 2500 steps):
-        the fallback gains hold the position, no load, nothing counted, so that what the
-        previous experiment left does not reach the loss (docs/controller.md, "The defined
-        experiment"). 0 = no settle.
-    """
+    """The experiment (paper, "The loss function", Fig. 5; docs/controller.md, section 3)."""
 
     distance: float = math.pi
     a_max: float = 600.0
@@ -305,11 +265,7 @@ def validate_trajectory_config(c: Any, prefix: str = 'trajectory') -> Trajectory
 # ----------------------------------------------------------------------------- safety
 @dataclass(frozen=True)
 class SafetyConfig:
-    """Hard limits, always active (in and between experiments); a violation -> FAULT.
-
-    max_position_error [rad]: |theta_m - theta_meas| (the position controller's error).
-    max_speed [rad/s]: |omega_meas|.
-    """
+    """Hard limits, always active (in and between experiments); a violation -> FAULT."""
 
     max_position_error: float = 1.0
     max_speed: float = 100.0

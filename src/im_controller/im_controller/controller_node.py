@@ -1,16 +1,9 @@
 """ROS 2 node of the cascaded controller: ``ros2 run im_controller controller``.
 
 A thin node around :class:`im_controller.runner.ExperimentRunner` (docs/controller.md,
-"The ROS node"): it answers every drive state with ``drive/command`` through a WaitSet on a
-hidden io node (no executor in the 5 kHz path); its gains, loss and trajectory are ROS
-parameters (``declarations``, ``parameters``), validated in one place and applied whole or
-refused (``refusals``; a change while an experiment runs is refused, not deferred);
-``~/start_experiment`` starts an experiment whose result goes out on ``controller/loss``
-(``messages``), ``~/reset_fault`` clears a FAULT, ``controller/internals`` carries every
-step's internals. Between experiments it holds the position (lock-step: by default it
-pauses instead). Two watchdogs: no drive state for ``state_timeout`` s, or no tuner
-heartbeat for ``tuner_timeout`` s (> 0) -> zero current, a running experiment aborted,
-FAULT.
+section 8): it answers every drive state with ``drive/command`` through a WaitSet on a
+hidden io node (no executor in the 5 kHz path); its parameters are declared by
+``declarations``, made configuration by ``parameters`` and refused by ``refusals``.
 """
 
 from __future__ import annotations

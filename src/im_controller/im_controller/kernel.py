@@ -51,16 +51,10 @@ def ripple_step(R: Vec, Q: Vec, n: float, isq: float) -> None:
 
 @njit(cache=True)
 def motion_step(R: Vec, Q: Vec, n: float, th: float, w: float, state: Vec) -> None:
-    """The motion sums (layout ``R_ID_*``) with local step ``n``'s state.
-
-    Blocks b of K = ``Q_ID_K`` periods; the mean speed of block b is
-    wbar_b = (theta(b+1) - theta(b)) / (K Ts) from the encoder (no filter lag).  Their
-    change is exactly the acceleration under a triangle: wbar_b - wbar_{b-1} =
-    int alpha(t) h(t) dt, h rising 0 -> 1 over block b - 1 and falling 1 -> 0 over block b,
-    so with J alpha = Kt isq - B omega - Tc sign(omega) - T_load each pair of blocks
-    gives one row J z0 = Kt z1 - B z2 - Tc z3 - z4, z1..z4 the h-weighted integrals of
-    isq, omega_meas, sign(omega_meas) (0 within the dead band ``Q_ID_WDEAD``) and
-    load_torque.  The rows are summed as z z^T (least squares needs no more)."""
+    """The motion sums (layout ``R_ID_*``) with local step ``n``'s state: blocks of K =
+    ``Q_ID_K`` periods, each pair one row J z0 = Kt z1 - B z2 - Tc z3 - z4 (z0 the change
+    of the encoder's mean speed, z1..z4 triangle-weighted integrals), summed as z z^T
+    (docs/controller.md, "The motion sums")."""
     K = Q[L.Q_ID_K]
     blk = math.floor(n / K)
     m = n - K * blk  # this step's place in its block

@@ -26,15 +26,8 @@ from .trajectory import make_experiment_params
 
 # -------------------------------------------------------------------------- runner
 class ExperimentRunner:
-    """Position hold + experiments, one kernel call per drive state (the node's core).
-
-    Usage (ROS node or offline)::
-
-        runner = ExperimentRunner(cfg, gains)
-        runner.reset(theta_meas)                  # hold here (also clears a FAULT)
-        runner.start(experiment_id, gains)        # the next step() is experiment step 0
-        isq, load, status = runner.step(state)    # state: the drive's STATE_FIELDS
-        if status in (STATUS_DONE, L.STATUS_ABORTED): res = runner.result()
+    """Position hold + experiments, one kernel call per drive state (the node's core; its
+    use: docs/controller.md, section 6).
 
     Between experiments (and after DONE) it holds the last target with the current gains;
     after a supervisor stop ``fallback_gains`` finish the move along the trajectory and

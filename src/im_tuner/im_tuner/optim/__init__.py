@@ -7,16 +7,11 @@ rcGA (scipy), CMA-ES (pycma) and TPE (optuna).
         u = opt.ask()                  # normalised parameters in [0, 1]^5
         opt.tell(u, measure(u))        # the loss of one experiment
 
-``OPTIONS[algo][name]`` is an :class:`OptionSpec` (type, default, help, accepted range or
-choices), the single source of ``--opt`` with the run's policies ``POLICIES[algo]``
-(``options.py``).  Importing this
-package imports no algorithm: each algorithm's module (with pycma, optuna or scipy) is
-imported when one is built or restored, so a command line is parsed and refused in a
-fraction of a second.  The contract of every optimiser (ask/tell, state_dict/from_state,
-evaluations, converged, config) and its lifecycle, written once, are in ``base.py`` (the
-template: an algorithm's module is its mathematics and a declaration of its state); the
-checks of what a caller hands in are in ``checks.py``; the algorithms, the options and
-the decisions taken are in docs/optimisers.md.
+Importing this package imports no algorithm: each algorithm's module (with pycma, optuna
+or scipy) is imported when one is built or restored, so a command line is parsed and
+refused in a fraction of a second.  The template is ``base.py``, the checks ``checks.py``,
+the options and policies ``options.py``; the algorithms and the decisions taken,
+docs/optimisers.md.
 """
 
 from __future__ import annotations
@@ -39,7 +34,6 @@ from .options import (
     ALGORITHMS,
     ALGOS,
     DEFAULT_ALGO,
-    MODULES,
     NO_START_ALGOS,
     OPTIONS,
     POLICIES,
@@ -93,7 +87,9 @@ __all__ = [
 ]
 
 #: class name -> its module (``from im_tuner.optim import CMAES`` imports pycma then)
-_CLASS_MODULES: dict[str, str] = {cls: mod for mod, cls in MODULES.values()} | {'BinaryCGA': 'cga'}
+_CLASS_MODULES: dict[str, str] = {d.cls: d.module for d in ALGORITHMS.values()} | {
+    'BinaryCGA': 'cga'
+}
 
 
 def __getattr__(name: str) -> Any:

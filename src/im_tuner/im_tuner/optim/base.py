@@ -29,7 +29,7 @@ from .checks import (
     check_start,
     told_loss,
 )
-from .options import MODULES, OPTIONS
+from .options import ALGORITHMS, OPTIONS
 
 
 def make_rng(seed: int | np.random.SeedSequence) -> np.random.Generator:
@@ -273,8 +273,9 @@ class Optimizer(ABC):
         """The algorithm's iterations completed so far: SPSA iterations, GA generations."""
 
     def _block(self) -> list[Any]:
-        """A new random block (the algorithms that draw their uniforms in blocks)."""
-        raise NotImplementedError
+        """A new random block: uniforms for ``_BLOCK`` samples (the stream of one
+        ``rng.random(dim)`` per sample)."""
+        return self._rng.random(self._BLOCK * self.dim).tolist()
 
     def _draws(self, n: int) -> int:
         """The index in ``_blk`` of the next ``n`` unused entries (a new block when the
@@ -409,8 +410,7 @@ class Optimizer(ABC):
 
 def algorithm_class(algo: str) -> type[Optimizer]:
     """The class of ``algo`` (one of ``ALGOS``), its module imported now if it was not
-    (the table ``options.MODULES`` names it; the algorithms load lazily so that a run
-    imports only its own library)."""
-    module, name = MODULES[algo]
-    cls: type[Optimizer] = getattr(importlib.import_module(f'{__package__}.{module}'), name)
+    (the algorithms load lazily so that a run imports only its own library)."""
+    d = ALGORITHMS[algo]
+    cls: type[Optimizer] = getattr(importlib.import_module(f'{__package__}.{d.module}'), d.cls)
     return cls

@@ -45,8 +45,6 @@ class BinaryCGA(Optimizer):
     _NE: ClassVar[bool] = False  # neCGA: theta and the elite replacement
     eta: int  # neCGA only (set by NECGA._setup)
     elite_replacement: str  # neCGA only
-    #: samples per random block (one rng call and one vectorised pass per block)
-    _BLOCK: ClassVar[int] = 64
 
     def _setup(self, x0: np.ndarray | None) -> None:
         opts = self._opts

@@ -99,8 +99,6 @@ class RCGA(Elitist, Optimizer):
 
     algo: ClassVar[str] = 'rcga'
     NO_START: ClassVar[str] = 'it starts from mu = 0, sigma = sigma0'
-    #: samples per random block (one rng call per block)
-    _BLOCK: ClassVar[int] = 64
     STATE: ClassVar[tuple[Field, ...]] = (
         Field('mu', '_mu', _VECTOR),
         Field('sigma', '_sigma', _VECTOR),
@@ -130,10 +128,6 @@ class RCGA(Elitist, Optimizer):
         self._elite: list[float] | None = None
         self._elite_loss = 0.0
         self._px: list[float] | None = None  # the pending candidate's x
-
-    def _block(self) -> list[float]:
-        """Uniforms for _BLOCK samples (the stream of one rng.random(dim) per sample)."""
-        return self._rng.random(self._BLOCK * self.dim).tolist()
 
     # ----------------------------------------------------------------------- sampling
     @staticmethod

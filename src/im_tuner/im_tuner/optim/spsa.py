@@ -64,10 +64,8 @@ class SPSA(Optimizer):
         if x0 is None:
             lo, hi = (self.c, 1.0 - self.c) if self.bounded else (0.0, 1.0)
             x0 = lo + (hi - lo) * self._rng.random(self.dim)
-        # The per-evaluation state is held in python floats and lists: at dim 5, scalar
-        # arithmetic beats numpy calls, above all with the cold caches of a tuning run
-        # (docs/optimisers.md, "Speed").  The arithmetic is the same IEEE operations in
-        # the same order as the vector form, so the results are bit-identical.
+        # python floats and lists, the vector form's operations in its order
+        # (docs/optimisers.md, "Speed")
         self._u: list[float] = self._project(x0, self.c).tolist()
         self.k = 0  # iteration index of u_k
         self._phase = 0  # 0: y+ next, 1: y- next
@@ -77,11 +75,9 @@ class SPSA(Optimizer):
         self._last_gradient: list[float] | None = None
 
     def _block(self) -> list[float]:
-        """Delta for _BLOCK iterations (the stream of one rng.random(dim) per iteration).
-
-        +-1 with probability exactly 1/2 each: r in [0, 1) is a multiple of 2^-53,
-        r - 1/2 < 0 on exactly half of them (0.0 counts as +).  (rng.integers would do
-        too but costs more per call.)"""
+        """Delta for _BLOCK iterations (the stream of one rng.random(dim) per iteration):
+        +-1 with probability exactly 1/2 each (r - 1/2 < 0 on exactly half of the
+        multiples of 2^-53 in [0, 1))."""
         r = self._rng.random(self._BLOCK * self.dim)
         return np.copysign(1.0, r - 0.5).tolist()
 
@@ -116,16 +112,12 @@ class SPSA(Optimizer):
             self._y_plus = loss
             self._phase = 1
             return
-        # 1/Delta_i = Delta_i for +-1 entries: g = (y+ - y-)/(2 c_k) Delta, step a_k g.
-        # With Delta_i = +-1 every |step_i| is the same |a_k s| (a sign flip is exact), so
-        # the cap scales that one number: step_i = Delta_i c, bit-identical to the vector
-        # form ak * g, step *= max_step / max|step|.
+        # 1/Delta_i = Delta_i: g = (y+ - y-)/(2 c_k) Delta, and every |step_i| is the same
+        # |a_k s|, so the cap scales that one number (docs/optimisers.md, "Speed").
         s = (self._y_plus - loss) / (2.0 * self._ck)
         c = self.a / (self.k + 1 + self.A) ** self.alpha * s
         biggest = abs(c)
         if biggest > self.max_step:
-            # Scale the whole vector (keeps its direction): one penalised loss cannot throw
-            # the iterate across the box.
             c *= self.max_step / biggest
         self.k = k = self.k + 1
         self._ck = ck = self.c / (k + 1) ** self.gamma  # c_{k+1}, the next iteration's

@@ -233,12 +233,8 @@ def trajectory_times(
     """Minimum-time rest-to-rest move under |a| <= a_max, |v| <= v_max.
 
     Returns (t_acc, t_dec, t_end, v_peak) [s, s, s, rad/s]: acceleration until t_acc,
-    cruise at v_peak until t_dec, deceleration until t_end.  Trapezoid if
-    distance >= v_max^2/a_max (t_acc = v_max/a_max, cruise (distance - v_max^2/a_max)/v_max),
-    else triangle (t_acc = sqrt(distance/a_max), v_peak = a_max t_acc, no cruise).
-    Default pi rad, 600 rad/s^2, 40 rad/s: t_acc = 0.0667, t_end = 0.1452 s.
-    (One function for the controller's trajectory generator,
-    ``trajectory.make_experiment_params``, and for the check of :data:`MOVE_RULE`.)
+    cruise at v_peak until t_dec, deceleration until t_end (a triangle, no cruise, when
+    v_max is not reached).  The trajectory generator's and :data:`MOVE_RULE`'s.
     """
     if distance >= v_max * v_max / a_max:
         t_acc = v_max / a_max

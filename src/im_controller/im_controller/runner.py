@@ -83,8 +83,7 @@ class ExperimentRunner:
         g = validate_gains(gains)
         if self.running:
             raise RuntimeError('cannot change gains while an experiment is running')
-        c = self.config.control
-        fill_control_params(self.C, g, c.Ts, c.isq_max, c.feedforward)
+        fill_control_params(self.C, g, self.config.control)
         self.gains = g
         self.R[L.R_GAINS_STEP] = self.R[L.R_SEEN] + 1.0  # they act from the next state on
 
@@ -103,13 +102,7 @@ class ExperimentRunner:
                 'limits cannot change at run time'
             )
         self.Q[:] = make_experiment_params(cfg)
-        fill_control_params(
-            self.CF,
-            cfg.fallback_gains,
-            cfg.control.Ts,
-            cfg.control.isq_max,
-            cfg.control.feedforward,
-        )
+        fill_control_params(self.CF, cfg.fallback_gains, cfg.control)
         self.config = cfg
 
     def abort_external(self, reason: int, time_ns: int) -> None:

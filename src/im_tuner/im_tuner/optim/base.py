@@ -32,11 +32,6 @@ from .checks import (
 from .options import ALGORITHMS, OPTIONS
 
 
-def make_rng(seed: int | np.random.SeedSequence) -> np.random.Generator:
-    """A PCG64 generator from an int seed (>= 0) or a SeedSequence."""
-    return np.random.Generator(np.random.PCG64(check_seed(seed)))
-
-
 def seed_json(seed: int | np.random.SeedSequence) -> Any:
     """The seed as JSON (an int, or a SeedSequence's entropy and spawn key), for config()."""
     if isinstance(seed, np.random.SeedSequence):
@@ -73,7 +68,7 @@ def rng_state(rng: np.random.Generator, unread: int = 0) -> dict[str, Any]:
     they had never been drawn, i.e. exactly the state of a generator that drew one
     candidate's numbers at a time.  The optimisers draw their uniforms in blocks (one
     numpy call per many asks); with this the saved state does not depend on the block
-    size, and ``set_rng_state`` + a fresh block continues the same stream.
+    size, and the state put back + a fresh block continues the same stream.
     """
     st: dict[str, Any] = dict(rng.bit_generator.state)
     if unread:
@@ -82,10 +77,6 @@ def rng_state(rng: np.random.Generator, unread: int = 0) -> dict[str, Any]:
         bg.advance(_PCG64_PERIOD - unread)
         st = dict(bg.state)
     return st
-
-
-def set_rng_state(rng: np.random.Generator, state: dict[str, Any]) -> None:
-    rng.bit_generator.state = state
 
 
 def told_history(algo: str, state: dict[str, Any]) -> tuple[list[list[float]], list[float]]:
@@ -238,7 +229,7 @@ class Optimizer(ABC):
             )
         self._opts = self._check_options(options)
         self._seed_json = seed_json(seed)
-        self._rng = make_rng(seed)
+        self._rng = np.random.Generator(np.random.PCG64(seed))
         self.evaluations = 0
         self._pending: list[float] | None = None  # the candidate asked and not yet told
         # the random block (``_block``'s values) and the next unused entry
@@ -389,7 +380,7 @@ class Optimizer(ABC):
 
     def _load(self, state: dict[str, Any]) -> None:
         self._seed_json = state['config']['seed']
-        set_rng_state(self._rng, state['rng'])
+        self._rng.bit_generator.state = state['rng']
         for f in self.STATE:
             if f.codec.load is not None:
                 setattr(self, f.attr, f.codec.load(self, state[f.key]))

@@ -222,9 +222,7 @@ class SAFE(Optimizer):
 
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
-        if (
-            self._first is not None or self._identify
-        ):  # (without a model: the state of the golden tests)
+        if self._first is not None or self._identify:  # (else the golden tests' state)
             state['first_left'] = self.first_left
             state['first_back'] = self._back
             state['first_backoffs'] = self._backoffs

@@ -128,7 +128,8 @@ def _section(c: Any, cls: type, section: str, prefix: str, skip: str = '') -> di
 # ------------------------------------------------------------------------------ gains
 @dataclass(frozen=True)
 class Gains:
-    """Tuned parameter vector G (paper eq. 8); defaults = the notes' hand-tuned start."""
+    """Tuned parameter vector G (paper eq. 8), in ``GAIN_NAMES`` order and ``GAIN_UNITS``;
+    defaults = the notes' hand-tuned start."""
 
     k_pw: float = 0.53
     k_iw: float = 20.0
@@ -180,7 +181,8 @@ def validate_control_config(c: Any, prefix: str = 'control') -> ControlConfig:
 # ------------------------------------------------------------------------------- loss
 @dataclass(frozen=True)
 class LossConfig:
-    """Loss eq. 4-7 and the supervisor (docs/controller.md, sections 4 and 5)."""
+    """Loss eq. 4-7 (weights, the isq* filter, the saturation ratio) and the supervisor
+    (thresholds, penalty): docs/controller.md, sections 4 and 5."""
 
     a1: float = 8.0
     a2: float = 0.5

@@ -15,15 +15,6 @@ import numpy as np
 from .base import FLOAT, INT, SAVED, Codec, Elitist, Field, Optimizer, OptimizerError
 from .options import check_eta_below_n
 
-# Phases (in the state): what the next ask samples.  They follow from whether an
-# individual is held: cGA 'first' (a of a generation) when not, 'second' (b) when it is;
-# pe/neCGA 'elite' (an elite sampled from the PV: first generation, or a replacement)
-# when not, 'newcomer' when it is.
-_FIRST = 'first'
-_SECOND = 'second'
-_ELITE = 'elite'
-_NEWCOMER = 'newcomer'
-
 # A genome's guard bytes (0x80 = bit 1, 0x00 = bit 0) <-> its '0'/'1' string.
 _TO_CHARS = bytes.maketrans(b'\x00\x80', b'01')
 _FROM_CHARS = bytes.maketrans(b'01', b'\x00\x80')
@@ -236,10 +227,12 @@ class BinaryCGA(Optimizer):
     # ---------------------------------------------------------------------- state I/O
     @property
     def phase(self) -> str:
-        """What the next ask samples (see _FIRST...): follows from the held individual."""
+        """What the next ask samples (in the state), from whether an individual is held:
+        cGA 'first' (a of a generation) or 'second' (b); pe/neCGA 'elite' (sampled from the
+        PV: the first generation, or a replacement) or 'newcomer'."""
         if self._ELITIST:
-            return _ELITE if self._held is None else _NEWCOMER
-        return _FIRST if self._held is None else _SECOND
+            return 'elite' if self._held is None else 'newcomer'
+        return 'first' if self._held is None else 'second'
 
     def _load_k(self, k: Any) -> int:
         """The PV from the saved offsets k (m integers in [-K, K])."""

@@ -145,21 +145,15 @@ class TPE(Optimizer):
         us, losses = told_history(cls.algo, state)
         # the start is enqueued only while it has not been asked yet
         opt = cls._replica(state, start if not us and pending is None else None)
-        opt._resume(start, us, losses, state)
-        return opt
-
-    def _resume(
-        self, start: Any, us: list[list[float]], losses: list[float], state: dict[str, Any]
-    ) -> None:
-        self._x0 = None if start is None else np.array(start, dtype=np.float64)
-        self._study.add_trials([self._frozen(u, v) for u, v in zip(us, losses, strict=True)])
-        self._told_u, self._told_loss = us, losses
-        self.evaluations = len(losses)
-        _set_rs_state(self._sampler._rng.rng, state['rng_tpe'])
-        _set_rs_state(self._sampler._random_sampler._rng.rng, state['rng_random'])
-        pending = state['pending']
+        opt._x0 = None if start is None else np.array(start, dtype=np.float64)
+        opt._study.add_trials([opt._frozen(u, v) for u, v in zip(us, losses, strict=True)])
+        opt._told_u, opt._told_loss = us, losses
+        opt.evaluations = len(losses)
+        _set_rs_state(opt._sampler._rng.rng, state['rng_tpe'])
+        _set_rs_state(opt._sampler._random_sampler._rng.rng, state['rng_random'])
         if pending is not None:
             u = [float(x) for x in pending]
-            if len(u) != self.dim:
+            if len(u) != opt.dim:
                 raise OptimizerError('tpe state: the pending candidate has the wrong size')
-            self._pending = u
+            opt._pending = u
+        return opt

@@ -158,7 +158,7 @@ def main(
     if cold_evals > 0:
         if disturb == 'experiment':
             try:
-                import im_controller.experiment  # noqa: F401
+                import im_controller.runner  # noqa: F401
                 import im_drive_sim.sim  # noqa: F401
             except ImportError:
                 disturb = 'stream'

@@ -33,8 +33,8 @@ from im_controller.contract import (
     started_id,
 )
 from im_controller.controller_node import INTERNALS_FIELDS
-from im_controller.experiment import ExperimentRunner, config_for_drive
 from im_controller.messages import msg_to_result, result_to_msg
+from im_controller.runner import ExperimentRunner, config_for_drive
 from im_drive_sim.drive_file import load_config
 from im_drive_sim.runtime import ParameterOverrideError
 from im_drive_sim.sim import DriveSim

@@ -1,14 +1,9 @@
 """Configuration of the cascaded position controller and of the loss experiment.
 
-Frozen dataclasses with defaults, and ONE place that validates them (``validate_*``).
-Every check raises :class:`ControllerConfigError` (a ``ValueError``) whose message names
-the parameter and says why, e.g.::
-
-    gains.k_pw must be a finite number in [0, 200] A s/rad, got 700.0
-
-Policy: float parameters accept ``int`` and ``float`` (and numpy floating/integer
-scalars) but never ``bool`` or ``str``; NaN and +-inf are rejected everywhere.
-Units SI (rad, rad/s, A, N m, s).  See docs/controller.md for the meaning of each value.
+Frozen dataclasses with defaults, and ONE place that validates them (``validate_*``,
+:class:`ControllerConfigError` naming the parameter).  The values, their units, ranges
+and the validation policy: docs/controller.md, section 7; each field's meaning:
+``parameters.DESCRIPTIONS``.
 """
 
 from __future__ import annotations
@@ -19,30 +14,6 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
-
-__all__ = [
-    'GAIN_NAMES',
-    'GAIN_RANGES',
-    'GAIN_UNITS',
-    'MOVE_KEYS',
-    'MOVE_RULE',
-    'NUMERIC_SPECS',
-    'ControlConfig',
-    'ControllerConfigError',
-    'ExperimentConfig',
-    'Gains',
-    'LossConfig',
-    'NumSpec',
-    'SafetyConfig',
-    'TrajectoryConfig',
-    'trajectory_times',
-    'validate_control_config',
-    'validate_experiment_config',
-    'validate_gains',
-    'validate_loss_config',
-    'validate_safety_config',
-    'validate_trajectory_config',
-]
 
 
 class ControllerConfigError(ValueError):
@@ -86,9 +57,9 @@ class NumSpec:
 #: the single source of truth for validation (``validate_*``) and for the ROS parameter
 #: descriptors of the controller node.
 NUMERIC_SPECS: dict[str, NumSpec] = {
-    **{f'gains.{n}': NumSpec(lo, hi, False, GAIN_UNITS[n]) for n, (lo, hi) in GAIN_RANGES.items()},
     **{
-        f'fallback_gains.{n}': NumSpec(lo, hi, False, GAIN_UNITS[n])
+        f'{section}.{n}': NumSpec(lo, hi, False, GAIN_UNITS[n])
+        for section in ('gains', 'fallback_gains')
         for n, (lo, hi) in GAIN_RANGES.items()
     },
     'control.Ts': NumSpec(0.0, 0.01, True, 's'),
@@ -134,6 +105,14 @@ def _spec(key: str, name: str, v: Any) -> float:
     return x
 
 
+def _choice(name: str, value: Any, choices: tuple[str, ...]) -> str:
+    """``value`` if it is one of ``choices``; ``name`` is used in the message."""
+    if not isinstance(value, str) or value not in choices:
+        allowed = ' or '.join(repr(c) for c in choices)
+        raise ControllerConfigError(f'{name} must be {allowed}, got {value!r}')
+    return value
+
+
 def _section(c: Any, cls: type, section: str, prefix: str, skip: str = '') -> dict[str, Any]:
     """The numeric fields of ``c`` (a ``cls``, ``NUMERIC_SPECS`` keys ``section.*``) but
     ``skip``, validated; ``prefix`` names them in the messages."""
@@ -149,14 +128,8 @@ def _section(c: Any, cls: type, section: str, prefix: str, skip: str = '') -> di
 # ------------------------------------------------------------------------------ gains
 @dataclass(frozen=True)
 class Gains:
-    """Tuned parameter vector G (paper eq. 8); defaults = the notes' hand-tuned start.
-
-    k_pw [A s/rad]: proportional gain of the PI speed controller.
-    k_iw [A/rad]: integral gain of the PI speed controller (isq* per rad of speed error integral).
-    k_pos [1/s]: proportional position gain (omega* per rad of position error).
-    tau_sm [s]: reference smoothing filter 1/(1 + s tau_sm).
-    tau_eq [s]: equivalent time constant of the closed position loop (reference model).
-    """
+    """Tuned parameter vector G (paper eq. 8), in ``GAIN_NAMES`` order and ``GAIN_UNITS``;
+    defaults = the notes' hand-tuned start."""
 
     k_pw: float = 0.53
     k_iw: float = 20.0
@@ -189,13 +162,7 @@ def validate_gains(g: Any, prefix: str = 'gains') -> Gains:
 # ---------------------------------------------------------------------------- control
 @dataclass(frozen=True)
 class ControlConfig:
-    """Structure of the control law (not tuned).
-
-    feedforward: 'model' (default): omega_ff = d theta_m/dt (the reference model's speed);
-        'undelayed': omega_ff = d theta_sm/dt.  The position error uses theta_m in both.
-    Ts [s]: control period (take it from the drive config; default 200 us).
-    isq_max [A]: clamp of isq* (take it from the drive config; default 7 A).
-    """
+    """Structure of the control law (not tuned; Ts and isq_max are the drive's)."""
 
     feedforward: str = 'model'
     Ts: float = 2e-4
@@ -205,27 +172,17 @@ class ControlConfig:
 def validate_control_config(c: Any, prefix: str = 'control') -> ControlConfig:
     if not isinstance(c, ControlConfig):
         raise ControllerConfigError(f'{prefix} must be a ControlConfig, got {type(c).__name__}')
-    if not isinstance(c.feedforward, str) or c.feedforward not in ('model', 'undelayed'):
-        raise ControllerConfigError(
-            f"{prefix}.feedforward must be 'model' or 'undelayed', got {c.feedforward!r}"
-        )
-    Ts = _spec('control.Ts', f'{prefix}.Ts', c.Ts)
-    isq_max = _spec('control.isq_max', f'{prefix}.isq_max', c.isq_max)
-    return ControlConfig(c.feedforward, Ts, isq_max)
+    feedforward = _choice(f'{prefix}.feedforward', c.feedforward, ('model', 'undelayed'))
+    return ControlConfig(
+        feedforward, **_section(c, ControlConfig, 'control', prefix, 'feedforward')
+    )
 
 
 # ------------------------------------------------------------------------------- loss
 @dataclass(frozen=True)
 class LossConfig:
-    """Loss eq. 4-7 and the supervisor.
-
-    a1 [1/(rad s)], a2 [1/rad], a3 [1/(A s)]: weights of the three terms; defaults make
-        each term about 1/3 for the hand-tuned start on the default drive (docs/controller.md).
-    threshold1..3 [-]: supervisor limits on the running weighted terms a_j int f_j dt.
-    penalty [-]: factor applied to the loss of a stopped experiment (>= 1).
-    isqf_tau [s]: time constant of the isq* filter in f3 (paper: 0.02 s).
-    sat_ratio [-]: terms count only while |isq*|/isq_max < sat_ratio (paper: 0.99).
-    """
+    """Loss eq. 4-7 (weights, the isq* filter, the saturation ratio) and the supervisor
+    (thresholds, penalty): docs/controller.md, sections 4 and 5."""
 
     a1: float = 8.0
     a2: float = 0.5
@@ -245,21 +202,7 @@ def validate_loss_config(c: Any, prefix: str = 'loss') -> LossConfig:
 # ------------------------------------------------------------------------- trajectory
 @dataclass(frozen=True)
 class TrajectoryConfig:
-    """The experiment (paper, "The loss function", Fig. 5).
-
-    distance [rad]: rotation per experiment (pi); direction alternates with the id parity.
-    a_max [rad/s^2], v_max [rad/s]: limits of the minimum-time trajectory.
-    duration [s]: experiment length (1.125 s = 5625 steps at 200 us).
-    load_delay [s]: load step this long after the reference change (0.7 s).
-    load_torque [N m]: load step magnitude (70 % of the 2.5 N m rated torque).
-    load_sign: 'oppose_move' (default): the load torque opposes the move direction, so
-        the two directions are mirror images; 'fixed': +load_torque in every experiment
-        (positive opposes positive rotation, drive convention).
-    settle [s]: standstill settle before each experiment's step 0 (0.5 s = 2500 steps):
-        the fallback gains hold the position, no load, nothing counted, so that what the
-        previous experiment left does not reach the loss (docs/controller.md, "The defined
-        experiment"). 0 = no settle.
-    """
+    """The experiment (paper, "The loss function", Fig. 5; docs/controller.md, section 3)."""
 
     distance: float = math.pi
     a_max: float = 600.0
@@ -292,12 +235,8 @@ def trajectory_times(
     """Minimum-time rest-to-rest move under |a| <= a_max, |v| <= v_max.
 
     Returns (t_acc, t_dec, t_end, v_peak) [s, s, s, rad/s]: acceleration until t_acc,
-    cruise at v_peak until t_dec, deceleration until t_end.  Trapezoid if
-    distance >= v_max^2/a_max (t_acc = v_max/a_max, cruise (distance - v_max^2/a_max)/v_max),
-    else triangle (t_acc = sqrt(distance/a_max), v_peak = a_max t_acc, no cruise).
-    Default pi rad, 600 rad/s^2, 40 rad/s: t_acc = 0.0667, t_end = 0.1452 s.
-    (One function for the controller's trajectory generator,
-    ``trajectory.make_experiment_params``, and for the check of :data:`MOVE_RULE`.)
+    cruise at v_peak until t_dec, deceleration until t_end (a triangle, no cruise, when
+    v_max is not reached).  The trajectory generator's and :data:`MOVE_RULE`'s.
     """
     if distance >= v_max * v_max / a_max:
         t_acc = v_max / a_max
@@ -312,11 +251,7 @@ def trajectory_times(
 
 def validate_trajectory_config(c: Any, prefix: str = 'trajectory') -> TrajectoryConfig:
     v = _section(c, TrajectoryConfig, 'trajectory', prefix, skip='load_sign')
-    if not isinstance(c.load_sign, str) or c.load_sign not in ('oppose_move', 'fixed'):
-        raise ControllerConfigError(
-            f"{prefix}.load_sign must be 'oppose_move' or 'fixed', got {c.load_sign!r}"
-        )
-    v['load_sign'] = c.load_sign
+    v['load_sign'] = _choice(f'{prefix}.load_sign', c.load_sign, ('oppose_move', 'fixed'))
     if v['load_delay'] > v['duration']:
         raise ControllerConfigError(
             f'{prefix}.load_delay must be <= duration ({v["duration"]:g} s), '
@@ -328,18 +263,10 @@ def validate_trajectory_config(c: Any, prefix: str = 'trajectory') -> Trajectory
 # ----------------------------------------------------------------------------- safety
 @dataclass(frozen=True)
 class SafetyConfig:
-    """Hard limits, always active (in and between experiments); a violation -> FAULT.
-
-    max_position_error [rad]: |theta_m - theta_meas| (the position controller's error).
-    max_speed [rad/s]: |omega_meas|.
-    """
+    """Hard limits, always active (in and between experiments); a violation -> FAULT."""
 
     max_position_error: float = 1.0
     max_speed: float = 100.0
-
-
-def validate_safety_config(c: Any, prefix: str = 'safety') -> SafetyConfig:
-    return SafetyConfig(**_section(c, SafetyConfig, 'safety', prefix))
 
 
 # ------------------------------------------------------------------------- experiment
@@ -386,6 +313,6 @@ def validate_experiment_config(c: Any) -> ExperimentConfig:
         ctl,
         validate_loss_config(c.loss),
         traj,
-        validate_safety_config(c.safety),
+        SafetyConfig(**_section(c.safety, SafetyConfig, 'safety', 'safety')),
         validate_gains(c.fallback_gains, 'fallback_gains'),
     )

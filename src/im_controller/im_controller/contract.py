@@ -3,45 +3,13 @@
 Topics and services (relative to the controller node), and the machine-readable refusal
 codes: every refusal of ``~/start_experiment``, ``~/reset_fault`` or a parameter set ends
 with ``[code]``, and clients match the code, never the prose before it (which may be
-reworded). Pure: no rclpy, no numba.
-
-Codes (``REFUSALS``):
-  busy            an experiment is running (gains and experiment parameters change only
-                  between experiments); transient
-  finishing_move  the supervisor stopped a move and the fallback gains finish it; transient
-  no_drive_state  no drive state received yet (or none since the state watchdog); transient
-  safety_fault    the controller is in FAULT: check the drive, then ``~/reset_fault``
-  tuner_lost      the controller is in FAULT because its tuner went silent (no heartbeat
-                  for ``tuner_timeout``): the drive is fine, ``~/reset_fault`` clears it
-  state_not_finite the last drive state is not finite: the drive is broken, no reset
-  invalid         a parameter value the controller does not accept (the text says why)
+reworded). Pure: no rclpy, no numba. The codes' meanings: docs/controller.md, "Services,
+topics".
 """
 
 from __future__ import annotations
 
 import re
-
-__all__ = [
-    'BUSY',
-    'FINISHING_MOVE',
-    'HEARTBEAT_PERIOD',
-    'HEARTBEAT_TOPIC',
-    'INTERNALS_TOPIC',
-    'INVALID',
-    'LOSS_TOPIC',
-    'NO_DRIVE_STATE',
-    'REFUSALS',
-    'RESET_SERVICE',
-    'SAFETY_FAULT',
-    'START_SERVICE',
-    'STATE_NOT_FINITE',
-    'TRANSIENT',
-    'TUNER_LOST',
-    'refusal',
-    'refusal_code',
-    'started',
-    'started_id',
-]
 
 #: Topics (relative: they follow the controller's namespace).
 LOSS_TOPIC = 'controller/loss'
@@ -51,12 +19,8 @@ START_SERVICE = 'start_experiment'
 RESET_SERVICE = 'reset_fault'
 #: A client's heartbeat (private: ``<controller node>/heartbeat``, std_msgs/msg/Header:
 #: stamp = the client's wall time, frame_id = the client's node name), published every
-#: ``HEARTBEAT_PERIOD`` s, best effort. A controller with ``tuner_timeout`` > 0 arms its
-#: tuner watchdog on the first one and trips when none came for that long. A heartbeat
-#: stamped zero (sec 0, nanosec 0) is the client's goodbye: the watchdog trips at once
-#: (zero current now, not ``tuner_timeout`` later), logged as the normal end it is unless
-#: an experiment was running. A client sends it ``HEARTBEAT_GOODBYES`` times (best
-#: effort): a goodbye that is lost ends in the trip silence brings.
+#: ``HEARTBEAT_PERIOD`` s, best effort; stamped zero, the client's goodbye, sent
+#: ``HEARTBEAT_GOODBYES`` times (docs/controller.md, "Tuner watchdog").
 HEARTBEAT_TOPIC = 'heartbeat'
 HEARTBEAT_PERIOD = 0.1  # [s]
 HEARTBEAT_GOODBYES = 3

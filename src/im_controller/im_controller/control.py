@@ -1,9 +1,6 @@
 """Cascaded position controller of the IM drive: numba kernels + a thin Python class.
 
-Per control period Ts: the reference filters (exact discretisation of 1/(1 + s tau)), the
-speed feed-forward ('model' or 'undelayed' reading of tau_eq), the position and speed
-loops, and the clamp of isq* with conditional-integration anti-windup. The equations and
-the reasoning: docs/controller.md, "Discrete equations".
+The equations and the reasoning: docs/controller.md, "Discrete equations".
 
 Arrays (float64, allocated once): parameters ``C`` (``C_*``), state ``X`` (``X_*``),
 internals ``out`` (``O_*``, names in ``CONTROL_FIELDS``).  The kernel allocates nothing.
@@ -18,17 +15,6 @@ from numba import njit
 
 from .config import ControlConfig, Gains, validate_control_config, validate_gains
 from .layout import CONTROL_FIELDS
-
-__all__ = [
-    'CONTROL_FIELDS',
-    'FF_MODEL',
-    'FF_UNDELAYED',
-    'CascadeController',
-    'control_reset',
-    'control_step',
-    'fill_control_params',
-    'make_control_params',
-]
 
 # ------------------------------------------------------------------ parameter indices
 C_KPW = 0  # k_pw [A s/rad]
@@ -75,10 +61,9 @@ def _lag(Ts: float, tau: float) -> float:
     return math.exp(-Ts / tau) if tau > 0.0 else 0.0
 
 
-def fill_control_params(
-    C: np.ndarray, gains: Gains, Ts: float, isq_max: float, feedforward: str
-) -> None:
+def fill_control_params(C: np.ndarray, gains: Gains, control: ControlConfig) -> None:
     """Write the kernel parameter vector in place (inputs already validated)."""
+    Ts = control.Ts
     C[C_KPW] = gains.k_pw
     C[C_KPOS] = gains.k_pos
     a = _lag(Ts, gains.tau_sm)
@@ -89,14 +74,14 @@ def fill_control_params(
     C[C_G_EQ] = 1.0 - a
     C[C_KI_TS] = gains.k_iw * Ts
     C[C_INV_TS] = 1.0 / Ts
-    C[C_ISQ_MAX] = isq_max
-    C[C_FF] = FF_MODEL if feedforward == 'model' else FF_UNDELAYED
+    C[C_ISQ_MAX] = control.isq_max
+    C[C_FF] = FF_MODEL if control.feedforward == 'model' else FF_UNDELAYED
 
 
 def make_control_params(gains: Gains, control: ControlConfig) -> np.ndarray:
     """New parameter vector ``C`` for validated gains and control config."""
     C = np.zeros(N_CPARAMS)
-    fill_control_params(C, gains, control.Ts, control.isq_max, control.feedforward)
+    fill_control_params(C, gains, control)
     return C
 
 
@@ -178,16 +163,9 @@ def control_step(
 
 
 class CascadeController:
-    """Position P + speed PI cascade with reference smoothing and model feed-forward.
-
-    Parameters
-    ----------
-    gains: tuned vector (validated; default the hand-tuned start).
-    control: structure (feed-forward reading, Ts [s], isq_max [A]); take Ts and isq_max
-        from the drive config.
-
-    ``step`` takes the samples of step k and returns isq*[k]; ``internals`` holds the
-    ``CONTROL_FIELDS`` of the last step (a view, overwritten every step).
+    """Position P + speed PI cascade with reference smoothing and model feed-forward
+    (``gains`` default the hand-tuned start; take ``control``'s Ts and isq_max from the
+    drive).  ``internals``: the ``CONTROL_FIELDS`` of the last step, overwritten each step.
     """
 
     def __init__(self, gains: Gains | None = None, control: ControlConfig | None = None) -> None:
@@ -208,9 +186,7 @@ class CascadeController:
     def set_gains(self, gains: Gains) -> None:
         """Validate, then apply atomically (filter states and integrator are kept)."""
         g = validate_gains(gains)
-        fill_control_params(
-            self.C, g, self.control.Ts, self.control.isq_max, self.control.feedforward
-        )
+        fill_control_params(self.C, g, self.control)
         self.gains = g
 
     def step(self, theta_ref: float, theta_meas: float, omega_meas: float) -> float:

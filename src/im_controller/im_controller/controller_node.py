@@ -1,16 +1,9 @@
 """ROS 2 node of the cascaded controller: ``ros2 run im_controller controller``.
 
-A thin node around :class:`im_controller.experiment.ExperimentRunner` (docs/controller.md,
-"The ROS node"): it answers every drive state with ``drive/command`` through a WaitSet on a
-hidden io node (no executor in the 5 kHz path); its gains, loss and trajectory are ROS
-parameters (``declarations``, ``parameters``), validated in one place and applied whole or
-refused (``refusals``; a change while an experiment runs is refused, not deferred);
-``~/start_experiment`` starts an experiment whose result goes out on ``controller/loss``
-(``messages``), ``~/reset_fault`` clears a FAULT, ``controller/internals`` carries every
-step's internals. Between experiments it holds the position (lock-step: by default it
-pauses instead). Two watchdogs: no drive state for ``state_timeout`` s, or no tuner
-heartbeat for ``tuner_timeout`` s (> 0) -> zero current, a running experiment aborted,
-FAULT.
+A thin node around :class:`im_controller.runner.ExperimentRunner` (docs/controller.md,
+section 8): it answers every drive state with ``drive/command`` through a WaitSet on a
+hidden io node (no executor in the 5 kHz path); its parameters are declared by
+``declarations``, made configuration by ``parameters`` and refused by ``refusals``.
 """
 
 from __future__ import annotations
@@ -53,21 +46,21 @@ from .contract import INTERNALS_TOPIC, LOSS_TOPIC
 from .control import CONTROL_FIELDS
 from .controller_main import parser
 from .declarations import declare_structure, declare_tunables
-from .experiment import (
+from .kernel import N_ANSWER_WORDS, W_ANSWERED, W_DECIMATION, W_N_ANSWERED
+from .layout import (
     INTERNALS_FIELDS,
     REASON_DRIVE_TIMEOUT,
     REASON_TUNER_LOST,
     STATUS_ABORTED,
     STATUS_DONE,
     STATUS_FAULT,
-    ExperimentRunner,
 )
-from .kernel import N_ANSWER_WORDS, W_ANSWERED, W_DECIMATION, W_N_ANSWERED
 from .messages import result_to_msg
 from .parameters import ControllerError, configuration
 from .refusals import change_refusal, reset_refusal, start_refusal
 from .reset_fault import reset_command, service_name
 from .result import LossResult
+from .runner import ExperimentRunner
 
 #: Shortest time between two logged refusals of one kind [s] (all are counted).
 REFUSAL_LOG_PERIOD = 1.0

@@ -1,13 +1,6 @@
-"""The loss topic's message: a :class:`LossResult` as ``diagnostic_msgs/DiagnosticArray``.
-
-One ``DiagnosticStatus`` per experiment (see docs/controller.md, "Loss topic"):
-
-* ``header.stamp``: the sim time at the end of the experiment (exact, from ``t_end``);
-* ``level``: OK (completed), WARN (stopped by the supervisor, or ``timing``: not run on the
-  paper's timing), ERROR (safety or watchdog);
-* ``name``: ``"<node>: experiment <id>"``, ``message``: ``"done"`` or the abort reason;
-* ``values``: the fields below as key/value strings; floats are written with ``repr``,
-  so they read back bit for bit.
+"""The loss topic's message: a :class:`LossResult` as ``diagnostic_msgs/DiagnosticArray``,
+one ``DiagnosticStatus`` per experiment, floats written with ``repr`` so that they read
+back bit for bit (docs/controller.md, "Services, topics").
 """
 
 from __future__ import annotations
@@ -17,7 +10,8 @@ import math
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from .config import GAIN_NAMES, Gains
-from .experiment import SAFETY_REASONS, LossResult
+from .layout import SAFETY_REASONS
+from .result import LossResult
 
 NS_PER_S = 1_000_000_000
 #: Keys of ``DiagnosticStatus.values``, in order.

@@ -15,33 +15,9 @@ from .layout import Q_LOAD_N
 # ------------------------------------------------------------------------- results
 @dataclass(frozen=True)
 class LossResult:
-    """Outcome of one experiment.
-
-    loss: term1 + term2 + term3, times ``penalty`` if aborted.
-    terms: (a1 int f1 dt, a2 int f2 dt, a3 int f3 dt) up to the last step run (unpenalised).
-    reason: '' (completed), 'term1'..'term3' (supervisor), 'max_position_error',
-        'max_speed', 'non_finite_measurement' (safety; the runner is then in FAULT).
-    trip_step: local step (0-based) that stopped it, -1 if none; trip_time = trip_step Ts [s].
-    t_start, t_end: sim time [ns] of the first step's state and of the end of the last step.
-    steps: drive periods run (counted by the drive's step_index); direction: +1 / -1.
-    fresh, held, late: of those periods (the one ending at each state the loss integrates),
-        how many were driven by the answer to the state before (fresh), by a new command
-        answering an older state (late), or by an older command held (held; also a state
-        the controller never answered). fresh + held + late = steps.
-    timing: held + late exceeded the controller's ``timing_tolerance``: the experiment did
-        not run on the paper's timing and its loss is not a measurement of the paper's
-        loss (the tuner re-runs it instead of reporting it).
-    gains_step: the drive step of the first state the experiment's gains acted on (they
-        were set while the controller held the position, or at the start): with t_start
-        and the seeds, what a lock-step replay of a real-time plant history needs.
-    ripple: the standstill ripple of isq* (rms about its mean [A], peak-to-peak [A]) in
-        the window after the move and in the window after the load step (layout
-        ``Q_RIP*``: 0.300-0.700 s and 0.900-1.125 s of the paper's experiment); nan where
-        the experiment did not reach or fill the window.
-    motion: the motion sums of the experiment (``layout.N_MOTION`` values: the number of
-        rows, then sum z_i z_j for i <= j over ``layout.MOTION_COLUMNS``), from which
-        ``im_tuner.identify`` estimates J, Kt, B and Tc; () where not measured.
-    """
+    """Outcome of one experiment; its fields: docs/controller.md, section 6 (``loss`` is
+    the sum of ``terms``, times ``penalty`` if aborted; ``motion`` is () where not
+    measured)."""
 
     experiment_id: int
     loss: float

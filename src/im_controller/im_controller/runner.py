@@ -26,15 +26,8 @@ from .trajectory import make_experiment_params
 
 # -------------------------------------------------------------------------- runner
 class ExperimentRunner:
-    """Position hold + experiments, one kernel call per drive state (the node's core).
-
-    Usage (ROS node or offline)::
-
-        runner = ExperimentRunner(cfg, gains)
-        runner.reset(theta_meas)                  # hold here (also clears a FAULT)
-        runner.start(experiment_id, gains)        # the next step() is experiment step 0
-        isq, load, status = runner.step(state)    # state: the drive's STATE_FIELDS
-        if status in (STATUS_DONE, L.STATUS_ABORTED): res = runner.result()
+    """Position hold + experiments, one kernel call per drive state (the node's core; its
+    use: docs/controller.md, section 6).
 
     Between experiments (and after DONE) it holds the last target with the current gains;
     after a supervisor stop ``fallback_gains`` finish the move along the trajectory and
@@ -90,8 +83,7 @@ class ExperimentRunner:
         g = validate_gains(gains)
         if self.running:
             raise RuntimeError('cannot change gains while an experiment is running')
-        c = self.config.control
-        fill_control_params(self.C, g, c.Ts, c.isq_max, c.feedforward)
+        fill_control_params(self.C, g, self.config.control)
         self.gains = g
         self.R[L.R_GAINS_STEP] = self.R[L.R_SEEN] + 1.0  # they act from the next state on
 
@@ -110,13 +102,7 @@ class ExperimentRunner:
                 'limits cannot change at run time'
             )
         self.Q[:] = make_experiment_params(cfg)
-        fill_control_params(
-            self.CF,
-            cfg.fallback_gains,
-            cfg.control.Ts,
-            cfg.control.isq_max,
-            cfg.control.feedforward,
-        )
+        fill_control_params(self.CF, cfg.fallback_gains, cfg.control)
         self.config = cfg
 
     def abort_external(self, reason: int, time_ns: int) -> None:

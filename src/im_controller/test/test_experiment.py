@@ -18,15 +18,10 @@ from im_controller.config import (
     validate_experiment_config,
     validate_gains,
 )
-from im_controller.experiment import (
-    STATUS_ABORTED,
-    STATUS_RUNNING,
-    Experiment,
-    ExperimentRunner,
-    trajectory,
-    trajectory_times,
-)
-from im_controller.layout import E_N, Q_SETTLE_N, R_S1, R_S2, R_S3
+from im_controller.layout import E_N, Q_SETTLE_N, R_S1, R_S2, R_S3, STATUS_ABORTED, STATUS_RUNNING
+from im_controller.result import Experiment
+from im_controller.runner import ExperimentRunner
+from im_controller.trajectory import trajectory, trajectory_times
 from im_drive_sim.sim import STATE_FIELDS
 
 TS = 2e-4

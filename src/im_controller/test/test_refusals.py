@@ -18,8 +18,7 @@ from im_controller.contract import (
     STATE_NOT_FINITE,
     refusal_code,
 )
-from im_controller.experiment import REASON_DRIVE_TIMEOUT, ExperimentRunner
-from im_controller.layout import MODE_RETURN, R_MODE
+from im_controller.layout import MODE_RETURN, R_MODE, REASON_DRIVE_TIMEOUT
 from im_controller.parameters import (
     READ_ONLY_SECTIONS,
     TUNABLE_SECTIONS,
@@ -29,6 +28,7 @@ from im_controller.parameters import (
     section_defaults,
 )
 from im_controller.refusals import change_refusal, reset_refusal, start_refusal
+from im_controller.runner import ExperimentRunner
 
 
 def code(message: str | None) -> str | None:

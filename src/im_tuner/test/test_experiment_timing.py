@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 
 from im_controller.config import Gains
-from im_controller.experiment import STATUS_DONE, ExperimentRunner
-from im_controller.layout import Q_SETTLE_N
-from im_controller.runner import config_for_drive
+from im_controller.layout import Q_SETTLE_N, STATUS_DONE
+from im_controller.runner import ExperimentRunner, config_for_drive
 from im_drive_sim.contract import STATE_INDEX
 from im_drive_sim.sim import STATE_FIELDS, DriveSim
 from im_tuner.offline import run_experiment_offline

@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 from im_controller.config import ExperimentConfig, Gains, LossConfig, SafetyConfig
-from im_controller.experiment import Experiment, ExperimentRunner, config_for_drive
 from im_controller.layout import (
     STATUS_ABORTED,
     STATUS_DONE,
@@ -21,6 +20,8 @@ from im_controller.layout import (
     STATUS_HOLD,
     STATUS_RUNNING,
 )
+from im_controller.result import Experiment
+from im_controller.runner import ExperimentRunner, config_for_drive
 from im_drive_sim.drive_file import load_config
 from im_drive_sim.sim import STATE_FIELDS, DriveSim
 from im_tuner.offline import hold_offline, run_experiment_offline

@@ -43,8 +43,8 @@ from typing import Any
 import numba
 import numpy as np
 
-from im_controller.experiment import STATUS_DONE, STATUS_FAULT
 from im_controller.kernel import W_INTERNALS_DUE, answer_state
+from im_controller.layout import STATUS_DONE, STATUS_FAULT
 from im_drive_sim import hardware_period as HP, period_kernel as PK
 from im_drive_sim.loop_clock import (
     CLOCK_MONOTONIC,

@@ -7,16 +7,11 @@ rcGA (scipy), CMA-ES (pycma) and TPE (optuna).
         u = opt.ask()                  # normalised parameters in [0, 1]^5
         opt.tell(u, measure(u))        # the loss of one experiment
 
-``OPTIONS[algo][name]`` is an :class:`OptionSpec` (type, default, help, accepted range or
-choices), the single source of ``--opt`` with the run's policies ``POLICIES[algo]``
-(``options.py``).  Importing this
-package imports no algorithm: each algorithm's module (with pycma, optuna or scipy) is
-imported when one is built or restored, so a command line is parsed and refused in a
-fraction of a second.  The contract of every optimiser (ask/tell, state_dict/from_state,
-evaluations, converged, config) and its lifecycle, written once, are in ``base.py`` (the
-template: an algorithm's module is its mathematics and a declaration of its state); the
-checks of what a caller hands in are in ``checks.py``; the algorithms, the options and
-the decisions taken are in docs/optimisers.md.
+Importing this package imports no algorithm: each algorithm's module (with pycma, optuna
+or scipy) is imported when one is built or restored, so a command line is parsed and
+refused in a fraction of a second.  The template is ``base.py``, the checks ``checks.py``,
+the options and policies ``options.py``; the algorithms and the decisions taken,
+docs/optimisers.md.
 """
 
 from __future__ import annotations
@@ -26,74 +21,43 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .base import Optimizer, algorithm_class
+from .base import Optimizer as Optimizer, algorithm_class as algorithm_class
 from .checks import (
-    OptimizerError,
-    OptionSpec,
+    OptimizerError as OptimizerError,
+    OptionSpec as OptionSpec,
     check_dim,
     check_options,
     check_seed,
     check_start,
 )
 from .options import (
-    ALGORITHMS,
-    ALGOS,
-    DEFAULT_ALGO,
-    MODULES,
-    NO_START_ALGOS,
-    OPTIONS,
-    POLICIES,
-    RIPPLE_LIMITED,
-    TAKES_FIRST,
-    TAKES_START,
-    Algorithm,
-    describe_options,
-    option_specs,
-    read_options,
-    split_policies,
+    ALGORITHMS as ALGORITHMS,
+    ALGOS as ALGOS,
+    DEFAULT_ALGO as DEFAULT_ALGO,
+    NO_START_ALGOS as NO_START_ALGOS,
+    OPTIONS as OPTIONS,
+    POLICIES as POLICIES,
+    RIPPLE_LIMITED as RIPPLE_LIMITED,
+    TAKES_FIRST as TAKES_FIRST,
+    TAKES_START as TAKES_START,
+    Algorithm as Algorithm,
+    describe_options as describe_options,
+    option_specs as option_specs,
+    read_options as read_options,
+    split_policies as split_policies,
 )
 
 if TYPE_CHECKING:  # the classes are loaded on first use (module __getattr__ below)
-    from .cga import CGA, NECGA, PECGA, BinaryCGA
-    from .cmaes import CMAES
-    from .rcga import RCGA
-    from .safe import SAFE
-    from .spsa import SPSA
-    from .tpe import TPE
+    from .cga import CGA as CGA, NECGA as NECGA, PECGA as PECGA, BinaryCGA as BinaryCGA
+    from .cmaes import CMAES as CMAES
+    from .rcga import RCGA as RCGA
+    from .safe import SAFE as SAFE
+    from .spsa import SPSA as SPSA
+    from .tpe import TPE as TPE
 
-__all__ = [
-    'ALGORITHMS',
-    'ALGOS',
-    'CGA',
-    'CMAES',
-    'DEFAULT_ALGO',
-    'NECGA',
-    'NO_START_ALGOS',
-    'OPTIONS',
-    'PECGA',
-    'POLICIES',
-    'RCGA',
-    'RIPPLE_LIMITED',
-    'SAFE',
-    'SPSA',
-    'TAKES_FIRST',
-    'TAKES_START',
-    'TPE',
-    'Algorithm',
-    'BinaryCGA',
-    'Optimizer',
-    'OptimizerError',
-    'OptionSpec',
-    'algorithm_class',
-    'describe_options',
-    'make_optimizer',
-    'option_specs',
-    'read_options',
-    'split_policies',
-]
 
 #: class name -> its module (``from im_tuner.optim import CMAES`` imports pycma then)
-_CLASS_MODULES: dict[str, str] = {cls: mod for mod, cls in MODULES.values()} | {'BinaryCGA': 'cga'}
+_CLASS_MODULES = {d.cls: d.module for d in ALGORITHMS.values()} | {'BinaryCGA': 'cga'}
 
 
 def __getattr__(name: str) -> Any:

@@ -1,55 +1,13 @@
 """The optimiser template: the lifecycle every algorithm shares, written once.
 
-Pure numpy (no rclpy): the tuner node, the offline study and the tests drive the same
-objects.  One evaluation at a time (ask/tell), on parameters normalised to the search
-box, u = (theta - lo)/(hi - lo) in [0, 1]^dim; the tuner maps u to gains and back.
-
-Contract (every optimiser):
-
-* ``ask() -> u``: the next candidate to measure (a fresh float64 array in [0, 1]^dim).
-  Asking again before ``tell`` returns the SAME candidate: a lost evaluation is re-run
-  with the same parameters, never resampled.
-* ``tell(u, loss)``: the measured loss of the candidate just asked (``u`` must equal it
-  bit for bit, else OptimizerError and nothing changes).  ``loss`` must be a finite float
-  (a penalised/aborted experiment is just a large loss); NaN/inf -> OptimizerError.
-  ``tell_measurement(u, loss, aborted)`` is the same with the experiment's aborted flag
-  (only an ``ABORT_AWARE`` algorithm, safe, reads it).
-* ``evaluations``: number of ``tell`` calls so far (loss evaluations, never iterations);
-  ``iterations``: the algorithm's own (SPSA iterations, GA generations...).
-* ``state_dict()`` -> a JSON-serialisable dict holding everything, RNG state included;
-  ``Optimizer.from_state(d)`` (dispatched on ``d['algo']``) rebuilds an optimiser that
-  continues exactly as the original would (bit-identical asks).
-* ``converged()``: True when the algorithm has nothing left to do (a compact GA whose
-  probability vector is all 0/1); the tuner stops on its budget regardless.
-* ``config()``: the configuration as a JSON-serialisable dict (for the run files).
-
-Design: :class:`Optimizer` is a template.  It owns the lifecycle -- the checks of dim,
-seed, start and options (``OPTIONS``, from the table in ``options.py``; a subclass adds
-its cross-option checks in ``_check_options``), the generator (one
-``numpy.random.Generator(PCG64)`` from the seed, an int or a SeedSequence; no global
-RNG), the pending candidate (``_pending``: ask's numbers as a list of floats), tell's
-checks (:func:`.checks.told_loss`) and counting, ``config()``, and the state: its
-envelope (algo, version, config, rng) and restore (version check, rebuild from the
-saved config, the RNG state, one refusal message per algorithm for a malformed state).
-An algorithm is its own mathematics in four hooks:
-
-* ``_setup(x0)``: its initial state (``x0``: the checked start point or None);
-* ``_propose() -> list[float]``: the next candidate (called by ``ask`` when none is
-  pending);
-* ``_update(u, loss, aborted)``: learn from the told loss of ``u`` (before the template
-  clears the pending candidate and counts the evaluation);
-* ``iterations``;
-
-and a declaration of its state: ``STATE``, the fields after the envelope in their JSON
-order, each a :class:`Field` (key, attribute, :class:`Codec`), plus ``_restored(state)``
-for what is derived from them or checked across them.  Two restore styles:
-
-* snapshot (spsa, the compact GAs, rcga, safe): the state holds the algorithm's variables
-  and the PCG64 state; uniforms drawn in blocks (``_block``/``_draws``) are saved as if
-  only the used ones had been drawn (:func:`rng_state`);
-* replay (``REPLAYS``: cmaes, tpe, whose libraries have no stable serialisation): the
-  state is the seed, the configuration and every candidate and loss told (kept by the
-  template in ``_told_u``/``_told_loss``); ``_restore`` rebuilds from the seed and replays.
+Pure numpy (no rclpy).  The contract (ask/tell on u in [0, 1]^dim, evaluations, state,
+converged, config) is docs/optimisers.md's "The contract"; how the template and an
+algorithm's hooks (``_setup``, ``_propose``, ``_update``, ``iterations``) and state
+declaration (``STATE``, ``_restored``) divide the work, its "How the code is cut".  Two
+restore styles: a snapshot (the algorithm's variables and the PCG64 state; uniforms drawn
+in blocks are saved as if only the used ones had been drawn, :func:`rng_state`), or a
+replay (``REPLAYS``: cmaes, tpe, whose libraries have no stable serialisation: the seed,
+the configuration and every candidate and loss told, replayed by ``_restore``).
 """
 
 from __future__ import annotations
@@ -71,36 +29,7 @@ from .checks import (
     check_start,
     told_loss,
 )
-from .options import MODULES, OPTIONS
-
-__all__ = [
-    'FLOAT',
-    'FLOATS',
-    'FLOATS_OR_NONE',
-    'HISTORY',
-    'INT',
-    'ROWS',
-    'SAVED',
-    'STR',
-    'Codec',
-    'Elitist',
-    'Field',
-    'Optimizer',
-    'OptimizerError',
-    'OptionSpec',
-    'check_options',
-    'make_rng',
-    'rng_state',
-    'seed_from_json',
-    'seed_json',
-    'set_rng_state',
-    'told_history',
-]
-
-
-def make_rng(seed: int | np.random.SeedSequence) -> np.random.Generator:
-    """A PCG64 generator from an int seed (>= 0) or a SeedSequence."""
-    return np.random.Generator(np.random.PCG64(check_seed(seed)))
+from .options import ALGORITHMS, OPTIONS
 
 
 def seed_json(seed: int | np.random.SeedSequence) -> Any:
@@ -139,7 +68,7 @@ def rng_state(rng: np.random.Generator, unread: int = 0) -> dict[str, Any]:
     they had never been drawn, i.e. exactly the state of a generator that drew one
     candidate's numbers at a time.  The optimisers draw their uniforms in blocks (one
     numpy call per many asks); with this the saved state does not depend on the block
-    size, and ``set_rng_state`` + a fresh block continues the same stream.
+    size, and the state put back + a fresh block continues the same stream.
     """
     st: dict[str, Any] = dict(rng.bit_generator.state)
     if unread:
@@ -148,10 +77,6 @@ def rng_state(rng: np.random.Generator, unread: int = 0) -> dict[str, Any]:
         bg.advance(_PCG64_PERIOD - unread)
         st = dict(bg.state)
     return st
-
-
-def set_rng_state(rng: np.random.Generator, state: dict[str, Any]) -> None:
-    rng.bit_generator.state = state
 
 
 def told_history(algo: str, state: dict[str, Any]) -> tuple[list[list[float]], list[float]]:
@@ -304,7 +229,7 @@ class Optimizer(ABC):
             )
         self._opts = self._check_options(options)
         self._seed_json = seed_json(seed)
-        self._rng = make_rng(seed)
+        self._rng = np.random.Generator(np.random.PCG64(seed))
         self.evaluations = 0
         self._pending: list[float] | None = None  # the candidate asked and not yet told
         # the random block (``_block``'s values) and the next unused entry
@@ -339,8 +264,9 @@ class Optimizer(ABC):
         """The algorithm's iterations completed so far: SPSA iterations, GA generations."""
 
     def _block(self) -> list[Any]:
-        """A new random block (the algorithms that draw their uniforms in blocks)."""
-        raise NotImplementedError
+        """A new random block: uniforms for ``_BLOCK`` samples (the stream of one
+        ``rng.random(dim)`` per sample)."""
+        return self._rng.random(self._BLOCK * self.dim).tolist()
 
     def _draws(self, n: int) -> int:
         """The index in ``_blk`` of the next ``n`` unused entries (a new block when the
@@ -454,7 +380,7 @@ class Optimizer(ABC):
 
     def _load(self, state: dict[str, Any]) -> None:
         self._seed_json = state['config']['seed']
-        set_rng_state(self._rng, state['rng'])
+        self._rng.bit_generator.state = state['rng']
         for f in self.STATE:
             if f.codec.load is not None:
                 setattr(self, f.attr, f.codec.load(self, state[f.key]))
@@ -475,8 +401,7 @@ class Optimizer(ABC):
 
 def algorithm_class(algo: str) -> type[Optimizer]:
     """The class of ``algo`` (one of ``ALGOS``), its module imported now if it was not
-    (the table ``options.MODULES`` names it; the algorithms load lazily so that a run
-    imports only its own library)."""
-    module, name = MODULES[algo]
-    cls: type[Optimizer] = getattr(importlib.import_module(f'{__package__}.{module}'), name)
+    (the algorithms load lazily so that a run imports only its own library)."""
+    d = ALGORITHMS[algo]
+    cls: type[Optimizer] = getattr(importlib.import_module(f'{__package__}.{d.module}'), d.cls)
     return cls

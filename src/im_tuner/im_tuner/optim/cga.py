@@ -1,32 +1,9 @@
 """Binary compact genetic algorithms: cGA (Harik et al. 1999), peCGA and neCGA (Ahn and
-Ramakrishna 2003), as in the paper's Figs. 1-3.
+Ramakrishna 2003), as in the paper's Figs. 1-3 (minimisation: "wins" is the lower loss).
 
-Genome: ``dim`` contiguous genes of ``bits`` bits (m = dim x bits), most significant bit
-first; gene i holds v_i = sum_j b_(i,j) 2^(bits-1-j) in [0, 2^bits - 1] and decodes to
-u_i = v_i / (2^bits - 1) in [0, 1] (DEAP's bin2float).  ``coding='gray'`` reads each gene
-as a reflected Gray code first: b_0 = g_0, b_j = b_(j-1) xor g_j.
-
-Probability vector (PV): integer offsets k_j with p_j = clip((n + 2 k_j)/(2 n), 0, 1),
-i.e. 0.5 + k_j/n without the float drift of repeated +-1/n (0.5 + 5 x 0.1 is not 1.0).
-k_j is clamped to [-K, K], K = ceil(n/2): for odd n the last step to 0 or 1 is clamped
-(0.9 -> 1.0 for n = 5).  A sampled bit is 1 when a uniform draw r in [0, 1) is < p_j.
-A competition moves k_j by +1 (winner's bit 1) or -1 (winner's bit 0) where winner and
-loser differ.  ``converged()`` when every p_j is 0 or 1.
-
-* cGA (Fig. 1): per generation two samples a, b (2 evaluations); the lower loss wins,
-  ties go to a (the first sampled), which keeps E[p] a martingale on flat fitness.
-* peCGA (Fig. 2): an elite and its stored loss; the first generation samples the elite
-  (1 evaluation) and then every generation samples one newcomer (1 evaluation); the
-  newcomer wins only with a strictly lower loss (ties -> the elite); the winner is the
-  new elite.
-* neCGA (Fig. 3): as peCGA, plus theta = consecutive wins of the current elite (reset to
-  0 when a newcomer wins and becomes the elite).  When theta reaches eta the elite is
-  replaced and theta reset: ``elite_replacement='sample'`` (default, the paper's figure):
-  the next ask is a fresh sample from the PV, one extra evaluation whose loss becomes the
-  stored elite loss; ``'newcomer'`` (the authors' Java code): the newcomer just evaluated
-  (the loser) becomes the elite with its loss, exactly one evaluation per generation.
-
-Minimisation: "wins" means the lower loss.  See docs/optimisers.md.
+The genome and its decoding, the probability vector as integer offsets k_j, the tie rules
+and neCGA's two elite replacements: docs/optimisers.md, "Binary compact GAs"; the packed
+representation below, its "Speed".
 """
 
 from __future__ import annotations
@@ -38,17 +15,6 @@ import numpy as np
 from .base import FLOAT, INT, SAVED, Codec, Elitist, Field, Optimizer, OptimizerError
 from .options import check_eta_below_n
 
-__all__ = ['CGA', 'NECGA', 'PECGA', 'BinaryCGA']
-
-# Phases (in the state): what the next ask samples.  They follow from whether an
-# individual is held: cGA 'first' (a of a generation) when not, 'second' (b) when it is;
-# pe/neCGA 'elite' (an elite sampled from the PV: first generation, or a replacement)
-# when not, 'newcomer' when it is.
-_FIRST = 'first'
-_SECOND = 'second'
-_ELITE = 'elite'
-_NEWCOMER = 'newcomer'
-
 # A genome's guard bytes (0x80 = bit 1, 0x00 = bit 0) <-> its '0'/'1' string.
 _TO_CHARS = bytes.maketrans(b'\x00\x80', b'01')
 _FROM_CHARS = bytes.maketrans(b'01', b'\x00\x80')
@@ -58,24 +24,11 @@ class BinaryCGA(Optimizer):
     """The binary compact GAs (PV, sampling, decoding, competitions, state I/O).
 
     ``CGA``, ``PECGA`` and ``NECGA`` differ only in the class flags ``_ELITIST`` and
-    ``_NE`` (and neCGA's options); ``_update`` holds the three competitions inline.
-
-    Representation (SWAR in python ints: a few big-int operations per ask and per tell
-    instead of numpy calls, whose cost dominates with the cold caches of a tuning run;
-    docs/optimisers.md "Speed").  Every genome bit j has a field of W bytes (W = 1 up to
-    n = 126, else 2 or 4) in one python int, genome bit 0 in the most significant field:
-
-    * the PV is ``_Y``: field j = 2^(8W-1) + P_j, P_j = k_j + K in [0, 2K] (a guard bit
-      above the offset);
-    * a uniform r_j is stored as its level L_j = searchsorted(table, r_j, 'right') in
-      [1, 2K] (the first PV table entry > r_j), so r_j < p_j = table[P_j] <=> P_j >= L_j;
-    * a sample is ``(_Y - L) & _H`` (``_H`` = the guard bits): field j keeps its guard bit
-      exactly when P_j - L_j >= 0 (no borrow crosses a field).  Genomes (the pending
-      sample, the held individual) stay in this guard-bit form;
-    * a competition adds the winner-minus-loser units field-wise to ``_Y`` (one add, one
-      subtract); the clamp to [0, 2K] only matters where the PV already is 0 or 1, and
-      a sample from the current PV always agrees with it there, so it is applied only
-      when the loser was sampled from an older PV (an elite beaten by a newcomer).
+    ``_NE`` (and neCGA's options).  The PV and the genomes are python ints of m fields of
+    W bytes (SWAR, docs/optimisers.md "Speed"): the PV ``_Y`` holds 2^(8W-1) + k_j + K per
+    field, a uniform r_j is kept as its level L_j (the first PV table entry > r_j), a
+    sample is ``(_Y - L) & _H`` (``_H``: the guard bits), a competition one add and one
+    subtract on ``_Y``.
     """
 
     NO_START: ClassVar[str] = 'a compact GA starts from p = 0.5'
@@ -83,8 +36,6 @@ class BinaryCGA(Optimizer):
     _NE: ClassVar[bool] = False  # neCGA: theta and the elite replacement
     eta: int  # neCGA only (set by NECGA._setup)
     elite_replacement: str  # neCGA only
-    #: samples per random block (one rng call and one vectorised pass per block)
-    _BLOCK: ClassVar[int] = 64
 
     def _setup(self, x0: np.ndarray | None) -> None:
         opts = self._opts
@@ -135,12 +86,15 @@ class BinaryCGA(Optimizer):
         return (b[:: self._W] if self._W > 1 else b).translate(_TO_CHARS)
 
     def _decode_g(self, s: int) -> list[float]:
-        """A genome (guard-bit form) -> u as python floats (same code as in ask)."""
+        """A genome (guard-bit form) -> u as python floats."""
         g = int(self._chars(s), 2)
-        mask, vmax, pu = self._mask, self._vmax, []
+        mask, vmax = self._mask, self._vmax
+        if not self.gray:
+            return [((g >> sh) & mask) / vmax for sh in self._shifts]
+        pu = []
         for sh in self._shifts:
             v = (g >> sh) & mask
-            for t in self._gray_shifts if self.gray else ():
+            for t in self._gray_shifts:  # prefix xor from the MSB
                 v ^= v >> t
             pu.append(v / vmax)
         return pu
@@ -181,7 +135,7 @@ class BinaryCGA(Optimizer):
         return (len(self._blk) - self._bi) * self.m  # m doubles a sample
 
     def decode(self, bits: np.ndarray) -> np.ndarray:
-        """Normalised parameters u (dim,) of a genome (m bools or 0/1 ints), see module doc."""
+        """Normalised parameters u (dim,) of a genome (m bools or 0/1 ints) (docs/optimisers.md)."""
         g = np.asarray(bits, dtype=bool).reshape(self.dim, self.bits)
         if self.gray:
             g = np.logical_xor.accumulate(g, axis=1)
@@ -216,22 +170,10 @@ class BinaryCGA(Optimizer):
         # Field j keeps its guard bit <=> P_j >= L_j <=> r_j < p_j.
         i = self._draws(1)
         self._pg = s = (self._Y - self._blk[i]) & self._H
-        # Decode (as _decode_g, inline: this is the per-evaluation path).
-        b = s.to_bytes(self._nbytes, 'big')
-        g = int((b[:: self._W] if self._W > 1 else b).translate(_TO_CHARS), 2)
-        mask, vmax, pu = self._mask, self._vmax, []
-        if self.gray:
-            for sh in self._shifts:
-                v = (g >> sh) & mask
-                for t in self._gray_shifts:  # prefix xor from the MSB
-                    v ^= v >> t
-                pu.append(v / vmax)
-        else:
-            pu = [((g >> sh) & mask) / vmax for sh in self._shifts]
-        return pu
+        return self._decode_g(s)
 
     def _update(self, u: list[float], loss: float, aborted: bool) -> None:
-        """The competitions of Figs. 1-3 (module docstring)."""
+        """The competitions of Figs. 1-3."""
         s = self._pg
         assert s is not None  # asked: _propose set it
         self._pg = None
@@ -285,10 +227,12 @@ class BinaryCGA(Optimizer):
     # ---------------------------------------------------------------------- state I/O
     @property
     def phase(self) -> str:
-        """What the next ask samples (see _FIRST...): follows from the held individual."""
+        """What the next ask samples (in the state), from whether an individual is held:
+        cGA 'first' (a of a generation) or 'second' (b); pe/neCGA 'elite' (sampled from the
+        PV: the first generation, or a replacement) or 'newcomer'."""
         if self._ELITIST:
-            return _ELITE if self._held is None else _NEWCOMER
-        return _FIRST if self._held is None else _SECOND
+            return 'elite' if self._held is None else 'newcomer'
+        return 'first' if self._held is None else 'second'
 
     def _load_k(self, k: Any) -> int:
         """The PV from the saved offsets k (m integers in [-K, K])."""

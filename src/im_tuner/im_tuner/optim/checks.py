@@ -1,9 +1,7 @@
 """What a caller hands an optimiser, checked: dim, seed, start, options, a told point and loss.
 
 Every check raises :class:`OptimizerError` (a ``ValueError``) with one line naming what is
-wrong and what is accepted, before anything is created or changed.  ``OptionSpec`` is one
-option's declaration (the table of every algorithm's options is ``options.py``);
-``told_loss`` is ``tell``'s check, with a fast path for the tuner's case.  Pure numpy.
+wrong and what is accepted, before anything is created or changed.  Pure numpy.
 """
 
 from __future__ import annotations
@@ -14,20 +12,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-__all__ = [
-    'NDARRAY',
-    'OptimizerError',
-    'OptionSpec',
-    'check_dim',
-    'check_loss',
-    'check_options',
-    'check_seed',
-    'check_start',
-    'check_told',
-    'told_loss',
-    'zero_signs_match',
-]
 
 #: The array type, bound once (tell's fast path tests ``type(u) is NDARRAY``).
 NDARRAY = np.ndarray
@@ -179,19 +163,7 @@ def check_told(pending: list[float] | None, u: Any, loss: Any) -> float:
     """Validate a ``tell`` (the exact check, with the error messages): a pending candidate
     (``ask``'s values as a list of floats, None when nothing is pending), ``u`` equal to
     it bit for bit once converted to float64 (a list, or an int array of 0/1, is fine), a
-    finite loss.
-
-    :func:`told_loss` (every ``tell``) first tries a fast path (it runs once per evaluation,
-    with cold caches; docs/optimisers.md "Speed") accepting only::
-
-        type(u) is ndarray and u.tolist() == pending   (Python's exact number comparison)
-        and (no zero pending, or zero_signs_match(u.tolist(), pending))
-        and type(loss) is float and loss - loss == 0.0   (finite)
-
-    ``tolist`` gives a nested list for a 2-d array and a scalar for a 0-d one, so equality
-    also checks the shape; numbers that compare equal convert to the same float64, whose
-    bytes differ only in the sign of zero, hence the zero test.  Everything else (lists,
-    numpy scalars as loss, mismatches, errors) comes here.
+    finite loss.  Whatever :func:`told_loss`'s fast path does not accept comes here.
     """
     if pending is None:
         raise OptimizerError('tell without a pending candidate: call ask() first')
@@ -221,9 +193,9 @@ def zero_signs_match(values: list[Any], pending: list[float]) -> bool:
 def told_loss(pending: list[float] | None, u: Any, loss: Any) -> float:
     """The loss of a ``tell``, after checking ``u`` is the pending candidate.
 
-    Fast path (the tuner's case): an ndarray holding exactly the pending numbers (signs
-    of zeros included) and a finite float.  Anything else goes through
-    :func:`check_told`, the exact check with its error messages."""
+    Fast path (the tuner's case, docs/optimisers.md "Speed"): an ndarray whose ``tolist``
+    equals the pending list (a 2-d or 0-d array does not), signs of zeros included, and
+    a finite float.  Anything else goes through :func:`check_told`."""
     if (
         pending is None
         or type(u) is not NDARRAY

@@ -1,20 +1,10 @@
 """CMA-ES (Hansen's pycma, ``cma.CMAEvolutionStrategy``) behind the one-at-a-time contract.
 
-pycma samples a population of lambda candidates per generation (``es.ask()``) and updates
-mean, step size sigma and covariance from all their losses at once (``es.tell``).  Here
-the population is handed out one candidate at a time; the generation is told to pycma
-once its lambda losses are in.  The box is [0, 1]^dim through pycma's ``BoundTransform``
-(every candidate pycma returns is inside it).
-
-Randomness: pycma draws its normal deviates through the ``randn`` option; it is bound to
-the optimiser's own PCG64 generator (``_Randn``), so pycma never touches numpy's global
-RNG and a seed gives the same run in any process.
-
-State: pycma has no stable serialisation (a pickle of the same strategy differs from
-one dump to the next), so the state is the seed, the configuration and every candidate
-and loss told so far.  ``from_state`` rebuilds the strategy by replaying the told
-losses (each replayed candidate is checked bit for bit against the saved one, so a
-pycma that behaves differently is refused rather than silently continued).
+pycma's population is handed out one candidate at a time and told to pycma once its
+lambda losses are in; its normal deviates come from the optimiser's own PCG64 stream
+(``_Randn``).  pycma has no stable serialisation: the state is the told history, and
+``from_state`` replays it, refusing a candidate that differs from the saved one
+(docs/optimisers.md, "Beyond the paper").
 """
 
 from __future__ import annotations
@@ -26,8 +16,6 @@ import cma
 import numpy as np
 
 from .base import HISTORY, INT, Field, Optimizer, OptimizerError, told_history
-
-__all__ = ['CMAES']
 
 
 class _Randn:
@@ -129,7 +117,7 @@ class CMAES(Optimizer):
 
     @classmethod
     def _restore(cls, state: dict[str, Any]) -> CMAES:
-        """From the seed and configuration, the told losses replayed (module docstring)."""
+        """From the seed and configuration, the told losses replayed."""
         opt = cls._replica(state, state['config']['start'])
         us, losses = told_history(cls.algo, state)
         for u, loss in zip(us, losses, strict=True):

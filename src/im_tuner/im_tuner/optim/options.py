@@ -1,16 +1,9 @@
 """Every optimiser's name, default, start handling and options, without importing any.
 
-The single source of ``--opt``: an algorithm's hyperparameters (``OPTIONS[algo][name]``:
-type, default, help, range or choices; the constructors' checks, each class's ``OPTIONS``
-is its entry here) and the run's policies it takes (``POLICIES[algo][name]``: where the
-search starts, safe's first step; the tuning run's, never a constructor's).  The table
-declares each option once, a number by its interval as written in mathematics
-(``real(0.03, '(0, 0.5)', help)``), a string by its choices; the compact GAs' three
-options are shared by cga, pecga and necga.  Pure: numpy and :mod:`.checks` only.  An
-algorithm's own module -- and pycma (cmaes), optuna (tpe), scipy (rcga) with it -- is
-imported only when one is built (:func:`.base.algorithm_class`, from ``make_optimizer``
-and ``Optimizer.from_state``), so a tool that only parses its command line (the tuner
-refusing bad input) stays fast.
+The single source of ``--opt``: an algorithm's hyperparameters (``OPTIONS[algo][name]``;
+each class's ``OPTIONS`` is its entry here) and the run's policies it takes
+(``POLICIES[algo][name]``: the tuning run's, never a constructor's).  Pure: no
+algorithm's module is imported here (docs/optimisers.md, "How the code is cut").
 """
 
 from __future__ import annotations
@@ -20,44 +13,14 @@ from typing import Any
 
 from .checks import OptimizerError, OptionSpec, check_options
 
-__all__ = [
-    'ALGORITHMS',
-    'ALGOS',
-    'DEFAULT_ALGO',
-    'GAIN_PRESETS',
-    'MODULES',
-    'NO_START_ALGOS',
-    'OPTIONS',
-    'POLICIES',
-    'RIPPLE_LIMITED',
-    'TAKES_FIRST',
-    'TAKES_START',
-    'Algorithm',
-    'check_eta_below_n',
-    'choice',
-    'describe_options',
-    'integer',
-    'option_specs',
-    'read_options',
-    'real',
-    'split_policies',
-]
-
 
 @dataclass(frozen=True)
 class Algorithm:
     """What the tuning loop, the tuner's checks and the study read of an algorithm, declared
-    once: where its class is, and its capabilities.
-
-    ``module``, ``cls``: its module of this package and class (imported by
-    :func:`.base.algorithm_class` only); ``takes_start``: it uses a start point (SPSA's
-    iterate, CMA-ES's mean, TPE's first enqueued trial, safe's first incumbent; the compact
-    GAs start from their distribution; whether it may run without one is its ``start``
-    policy, :data:`POLICIES`); ``ripple_limited``: its runs keep the standstill-ripple
-    limit unless told otherwise (``runlog.ripple.default_ripple_limit``: a user's drive
-    keeps what the default chooses; the paper's algorithms reproduce or compare its
-    searches, whose final controller is the smallest loss).
-    """
+    once: its module and class (imported by :func:`.base.algorithm_class` only), whether
+    it uses a start point (whether it may run without one is its ``start`` policy,
+    :data:`POLICIES`), whether its runs keep the standstill-ripple limit unless told
+    otherwise (``runlog.ripple.default_ripple_limit``)."""
 
     module: str
     cls: str
@@ -80,8 +43,6 @@ ALGOS: tuple[str, ...] = tuple(ALGORITHMS)
 #: the tuner's optimiser when none is named: the fewest experiments and aborted ones from
 #: a hand-tuned start (docs/tuner.md, "Which algorithm")
 DEFAULT_ALGO = 'safe'
-#: algo -> (module of this package, class)
-MODULES: dict[str, tuple[str, str]] = {a: (d.module, d.cls) for a, d in ALGORITHMS.items()}
 TAKES_START: frozenset[str] = frozenset(a for a, d in ALGORITHMS.items() if d.takes_start)
 RIPPLE_LIMITED: frozenset[str] = frozenset(a for a, d in ALGORITHMS.items() if d.ripple_limited)
 

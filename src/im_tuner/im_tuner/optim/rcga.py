@@ -1,32 +1,10 @@
 """Real-valued compact GA (rcGA, Mininno, Cupertino, Naso 2008) with pe or ne elitism.
 
-Per variable a mean mu_i and a spread sigma_i on x in [-1, 1] (start mu = 0,
-sigma = sigma0; the default 10 makes the first samples nearly uniform, as in Mininno's
-rcGA).  A candidate samples each x_i from the Gaussian N(mu_i, sigma_i^2) truncated to
-[-1, 1], by inverse CDF::
-
-    x = mu + sigma ndtri(Phi(a) + r (Phi(b) - Phi(a))),  a = (-1 - mu)/sigma,
-    b = (1 - mu)/sigma,  r ~ U[0, 1)
-
-(Phi from math.erfc, Phi^-1 = ``scipy.special.ndtri``), and
-is handed out as u = (x + 1)/2.  Each generation compares the elite with one newcomer
-(one evaluation; the first generation also samples and evaluates the elite) and moves
-the distribution as if the winner w replaced the loser l in a population of n points::
-
-    mu'      = mu + (w - l)/n
-    sigma'^2 = sigma^2 + mu^2 - mu'^2 + (w^2 - l^2)/n     (a rounding negative -> 0)
-
-Ties go to the elite (the newcomer needs a strictly lower loss).  ``elitism='pe'``: the
-winner is the elite.  ``elitism='ne'`` (default): theta counts consecutive elite wins
-(reset when the newcomer wins); when it reaches eta the newcomer just evaluated becomes
-the elite (Mininno's ne-rcGA: one evaluation per generation).  ``converged()`` when every
-sigma_i < SIGMA_TOL.
-
-Note: the update keeps the moments of a virtual population, whose variance cannot exceed
-1 on [-1, 1]; from sigma0 = 10 the spread only comes down after O(sigma0^2 n) generations,
-so with a budget of a few hundred evaluations the search is close to uniform random
-sampling.  sigma0 ~ 0.5-1 (the spread of a uniform population is 0.577) is the option for
-short budgets.  See docs/optimisers.md.
+Per variable a mean mu_i and a spread sigma_i on x in [-1, 1]; a candidate samples each
+x_i from N(mu_i, sigma_i^2) truncated to [-1, 1] (:func:`truncnorm_ppf`) and is handed
+out as u = (x + 1)/2; each generation the winner of elite and newcomer replaces the loser
+in a virtual population of n.  The equations, the elitism and the caveat on sigma0:
+docs/optimisers.md, "Real-valued compact GA".
 """
 
 from __future__ import annotations
@@ -39,8 +17,6 @@ import scipy.special as _sc
 
 from .base import FLOAT, INT, Codec, Elitist, Field, Optimizer, OptimizerError
 from .options import check_eta_below_n
-
-__all__ = ['RCGA', 'SIGMA_TOL', 'erfinv', 'ndtri', 'norm_cdf', 'truncnorm_ppf']
 
 #: converged() when every sigma is below this (x units; u resolution SIGMA_TOL/2, finer
 #: than a 16-bit gene's 1.5e-5).
@@ -123,8 +99,6 @@ class RCGA(Elitist, Optimizer):
 
     algo: ClassVar[str] = 'rcga'
     NO_START: ClassVar[str] = 'it starts from mu = 0, sigma = sigma0'
-    #: samples per random block (one rng call per block)
-    _BLOCK: ClassVar[int] = 64
     STATE: ClassVar[tuple[Field, ...]] = (
         Field('mu', '_mu', _VECTOR),
         Field('sigma', '_sigma', _VECTOR),
@@ -155,10 +129,6 @@ class RCGA(Elitist, Optimizer):
         self._elite_loss = 0.0
         self._px: list[float] | None = None  # the pending candidate's x
 
-    def _block(self) -> list[float]:
-        """Uniforms for _BLOCK samples (the stream of one rng.random(dim) per sample)."""
-        return self._rng.random(self._BLOCK * self.dim).tolist()
-
     # ----------------------------------------------------------------------- sampling
     @staticmethod
     def _to_u(x: list[float]) -> list[float]:
@@ -181,7 +151,7 @@ class RCGA(Elitist, Optimizer):
         return pu
 
     def _update(self, u: list[float], loss: float, aborted: bool) -> None:
-        """The competition of elite and newcomer and the moment update (module docstring)."""
+        """The competition of elite and newcomer and the moment update."""
         y = loss
         x = self._px
         assert x is not None  # asked: _propose set it
@@ -192,7 +162,7 @@ class RCGA(Elitist, Optimizer):
             return
         newcomer_wins = y < self._elite_loss  # ties -> the elite
         w, l = (x, elite) if newcomer_wins else (elite, x)
-        # The winner replaces the loser in the virtual population of n (module docstring).
+        # The winner replaces the loser in the virtual population of n.
         n = self.n
         mus: list[float] = []
         sigmas: list[float] = []

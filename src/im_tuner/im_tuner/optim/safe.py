@@ -2,49 +2,14 @@
 
 Hand-written: no maintained library offers a one-at-a-time local search that starts from
 known-safe gains and treats an aborted experiment (an unstable controller) as a
-constraint rather than a loss.
-
-On u in [0, 1]^dim, from the start point u0 (the hand-tuned gains, known to be stable):
-
-* evaluation 1 measures u0 itself: the incumbent x = u0 with its loss f (the tuner's
-  reference experiment is the first from rest, lower than every later one: not f);
-* with ``first`` (a model's point, ``im_tuner.prior``), evaluation 2 measures that
-  point: a candidate like any other (it replaces x if its loss is lower, an aborted one
-  is a constraint), but no pattern move repeats its long step; without it the search
-  is ask for ask and state for state the one without a model (the golden tests).
-  ``first='identify'``: the point comes after evaluation 1 (:meth:`SAFE.set_first`,
-  from the drive the start's measurements identify, ``im_tuner.identify``); a point
-  never given, or None, is no first step.  After the identified point succeeds, sigma
-  is ``IDENTIFIED_SIGMA``: that optimum lies near the plant's stability edge, and the
-  step was the model's, not the search's, so a grown step would abort;
-* a model's point that fails (its loss, as told, not below f; not aborted) is followed
-  by the point half-way back to the incumbent, and that one by the point half-way again
-  (``FIRST_BACKOFFS``; each a first step): the model's direction is right more often
-  than its length, and a point told loud (``runlog.ripple.told_loss``) should not send
-  the search back to random steps from the start;
-* a candidate is y = clip(x + s) with, in order of preference:
-  - s = the last successful step right after a success (pattern move, Hooke-Jeeves);
-  - every ``model_every``-th evaluation, once at least ``dim + 1`` measured points lie
-    within r = 3 sigma sqrt(dim) of x: s = -sigma sqrt(dim) g/|g| + 0.3 sigma z, where
-    g is the slope of a linear model L(v) = c + g.(v - x) fitted by least squares with
-    weights exp(-(|v - x|/r)^2) to every measured point (a descent step on the local
-    model: the measurements of the whole run, not only the last one, steer the search);
-  - otherwise s = sigma z, z ~ N(0, I);
-* y replaces x if its loss is lower than f (success): sigma <- sigma * grow; otherwise
-  sigma <- sigma * grow^(-1/4) (grow = 1.5: Rechenberg's 1/5 success rule in its
-  steady-state form);
-* an aborted experiment is a constraint, not a number: sigma <- sigma * abort_shrink
-  (0.3), and its point enters the model with 3 f as its value, so the model's slope
-  points away from where the controller went unstable;
-* every ``remeasure_every`` evaluations the incumbent is measured again and f becomes
-  the mean of its measurements, so one lucky measurement does not freeze the search;
-* sigma stays within [0.005, sigma_max] (normalised units): below the floor a run can
-  stall on a lucky measurement; the ceiling is a trust region around gains known to be
-  stable, because the stability edge gives no warning a model could learn.
-
-The figures behind these choices are in docs/optimisers.md and research/NOTES.md.  The
-tuner tells an aborted experiment through ``tell_measurement(u, loss, aborted)``; a
-plain ``tell`` is a completed experiment.  The least-squares fit is numpy's (LAPACK
+constraint rather than a loss.  The rule (evaluation 1 the start; pattern moves, descent
+steps on a weighted linear model, Gaussian steps; the 1/5 success rule within
+[SIGMA_MIN, sigma_max]; an abort shrinks the step and enters the model at ABORT_VALUE
+times the incumbent's loss; the incumbent re-measured every ``remeasure_every``):
+docs/optimisers.md, "Beyond the paper"; a model's first point (``first``, or
+``'identify'``: given later by :meth:`SAFE.set_first`), its "The first step from the
+drive model" and "The first step from the identified drive"; the measurements behind the
+constants, research/NOTES.md, "safe".  The least-squares fit is numpy's (LAPACK
 ``gelsd``): a resumed run continues bit for bit on the same machine and numpy build.
 """
 
@@ -68,8 +33,6 @@ from .base import (
     OptimizerError,
 )
 from .checks import check_start
-
-__all__ = ['IDENTIFY', 'SAFE', 'check_first']
 
 #: ``first`` for a point given after the start's measurements (:meth:`SAFE.set_first`)
 IDENTIFY = 'identify'
@@ -104,7 +67,7 @@ _STEP = Codec(
 
 
 class SAFE(Optimizer):
-    """Local abort-aware (1+1)-ES from the start point (see the module docstring)."""
+    """Local abort-aware (1+1)-ES from the start point (docs/optimisers.md)."""
 
     algo: ClassVar[str] = 'safe'
     ABORT_AWARE: ClassVar[bool] = True
@@ -115,10 +78,11 @@ class SAFE(Optimizer):
     MODEL_RADIUS: ClassVar[float] = 3.0
     MODEL_NOISE: ClassVar[float] = 0.3
     ABORT_VALUE: ClassVar[float] = 3.0
-    #: step size after the identified model's point succeeds (first='identify'; module
-    #: docstring)
+    #: step size after the identified model's point succeeds (first='identify'): that
+    #: optimum lies near the plant's stability edge and the step was the model's
     IDENTIFIED_SIGMA: ClassVar[float] = 0.02
-    #: points half-way back to the incumbent after a model's point fails (module docstring)
+    #: points half-way back to the incumbent after a model's point fails (its loss, as
+    #: told, not below f; not aborted): its direction is right more often than its length
     FIRST_BACKOFFS: ClassVar[int] = 2
     STATE_VERSION: ClassVar[int] = 3
     STATE: ClassVar[tuple[Field, ...]] = (
@@ -258,9 +222,7 @@ class SAFE(Optimizer):
 
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
-        if (
-            self._first is not None or self._identify
-        ):  # (without a model: the state of the golden tests)
+        if self._first is not None or self._identify:  # (else the golden tests' state)
             state['first_left'] = self.first_left
             state['first_back'] = self._back
             state['first_backoffs'] = self._backoffs
@@ -269,7 +231,7 @@ class SAFE(Optimizer):
         return state
 
     def _update(self, u: list[float], loss: float, aborted: bool) -> None:
-        """The (1+1) rule, the step size and the model's data (module docstring)."""
+        """The (1+1) rule, the step size and the model's data."""
         y = np.array(u)
         first = self._kind == 'first'
         if first:  # the model's point is a candidate, but no pattern move repeats its step

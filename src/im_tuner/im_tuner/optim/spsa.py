@@ -1,30 +1,9 @@
 """Simultaneous perturbation stochastic approximation (SPSA), Spall 1998, as in the paper.
 
-On normalised parameters u in [0, 1]^dim (the paper's c = 0.03 only makes sense on such
-a scale), iteration k = 0, 1, ... costs two loss evaluations::
-
-    a_k = a / (k + 1 + A)^alpha          c_k = c / (k + 1)^gamma
-    Delta_k: dim i.i.d. +-1 entries, P(+1) = P(-1) = 1/2 (own generator)
-    y+ = L(u_k + c_k Delta_k)            (first ask/tell of the iteration)
-    y- = L(u_k - c_k Delta_k)            (second ask/tell)
-    g_k,i = (y+ - y-) / (2 c_k Delta_k,i)
-    s_k = a_k g_k, scaled down to max|s_k,i| = max_step if it is larger (step cap)
-    u_{k+1} = clip(u_k - s_k, c_{k+1}, 1 - c_{k+1})      (bounded, the default)
-
-Index convention: k counts iterations from 0 (Spall's).  The paper writes
-a_k = a/(k + A)^alpha with its first iteration k = 1, which is the same sequence; its
-c_k = c/(k + 1)^gamma is taken with the same 0-based k (c_0 = c).
-
-The step cap keeps a penalised (aborted, huge-loss) experiment from throwing the iterate
-across the box; the projection onto [c_{k+1}, 1 - c_{k+1}] keeps both perturbed points of
-the next iteration inside [0, 1] (the start point is projected onto [c_0, 1 - c_0]).
-``bounded=False`` (constructor only, for analytic oracles) disables the projection.
-
-Gain presets: ``gains='paper'`` (alpha = gamma = 0.3, the paper's values, which violate
-Spall's convergence condition alpha - gamma > 1/2: over 100 iterations a_k/c_k only grows
-from 0.24 to 0.58, i.e. SPSA with an almost constant gain; reproduced as given) or
-``gains='spall'`` (alpha = 0.602, gamma = 0.101).  Explicit ``alpha``/``gamma`` override
-either preset.  See docs/optimisers.md.
+Two evaluations per iteration k = 0, 1, ... on u in [0, 1]^dim: y+ at u_k + c_k Delta_k,
+y- at u_k - c_k Delta_k, the step a_k (y+ - y-)/(2 c_k) Delta_k capped at ``max_step``,
+the iterate kept in [c_{k+1}, 1 - c_{k+1}] (``bounded``).  The equations, the index
+convention and the gain presets: docs/optimisers.md, "SPSA".
 """
 
 from __future__ import annotations
@@ -36,11 +15,9 @@ import numpy as np
 from .base import FLOAT, FLOATS, FLOATS_OR_NONE, INT, SAVED, Field, Optimizer, OptimizerError
 from .options import GAIN_PRESETS
 
-__all__ = ['GAIN_PRESETS', 'SPSA']
-
 
 class SPSA(Optimizer):
-    """SPSA with two evaluations per iteration (see the module docstring for the equations).
+    """SPSA with two evaluations per iteration (docs/optimisers.md for the equations).
 
     ``SPSA(dim, seed, start=None, *, a, c, A, alpha, gamma, gains, max_step, bounded=True)``;
     ``start`` None draws a uniform start in [c, 1 - c]^dim from the optimiser's generator.
@@ -87,10 +64,8 @@ class SPSA(Optimizer):
         if x0 is None:
             lo, hi = (self.c, 1.0 - self.c) if self.bounded else (0.0, 1.0)
             x0 = lo + (hi - lo) * self._rng.random(self.dim)
-        # The per-evaluation state is held in python floats and lists: at dim 5, scalar
-        # arithmetic beats numpy calls, above all with the cold caches of a tuning run
-        # (docs/optimisers.md, "Speed").  The arithmetic is the same IEEE operations in
-        # the same order as the vector form, so the results are bit-identical.
+        # python floats and lists, the vector form's operations in its order
+        # (docs/optimisers.md, "Speed")
         self._u: list[float] = self._project(x0, self.c).tolist()
         self.k = 0  # iteration index of u_k
         self._phase = 0  # 0: y+ next, 1: y- next
@@ -100,11 +75,9 @@ class SPSA(Optimizer):
         self._last_gradient: list[float] | None = None
 
     def _block(self) -> list[float]:
-        """Delta for _BLOCK iterations (the stream of one rng.random(dim) per iteration).
-
-        +-1 with probability exactly 1/2 each: r in [0, 1) is a multiple of 2^-53,
-        r - 1/2 < 0 on exactly half of them (0.0 counts as +).  (rng.integers would do
-        too but costs more per call.)"""
+        """Delta for _BLOCK iterations (the stream of one rng.random(dim) per iteration):
+        +-1 with probability exactly 1/2 each (r - 1/2 < 0 on exactly half of the
+        multiples of 2^-53 in [0, 1))."""
         r = self._rng.random(self._BLOCK * self.dim)
         return np.copysign(1.0, r - 0.5).tolist()
 
@@ -139,16 +112,12 @@ class SPSA(Optimizer):
             self._y_plus = loss
             self._phase = 1
             return
-        # 1/Delta_i = Delta_i for +-1 entries: g = (y+ - y-)/(2 c_k) Delta, step a_k g.
-        # With Delta_i = +-1 every |step_i| is the same |a_k s| (a sign flip is exact), so
-        # the cap scales that one number: step_i = Delta_i c, bit-identical to the vector
-        # form ak * g, step *= max_step / max|step|.
+        # 1/Delta_i = Delta_i: g = (y+ - y-)/(2 c_k) Delta, and every |step_i| is the same
+        # |a_k s|, so the cap scales that one number (docs/optimisers.md, "Speed").
         s = (self._y_plus - loss) / (2.0 * self._ck)
         c = self.a / (self.k + 1 + self.A) ** self.alpha * s
         biggest = abs(c)
         if biggest > self.max_step:
-            # Scale the whole vector (keeps its direction): one penalised loss cannot throw
-            # the iterate across the box.
             c *= self.max_step / biggest
         self.k = k = self.k + 1
         self._ck = ck = self.c / (k + 1) ** self.gamma  # c_{k+1}, the next iteration's

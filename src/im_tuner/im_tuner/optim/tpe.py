@@ -1,18 +1,10 @@
 """Tree-structured Parzen estimator (optuna's ``TPESampler``) behind the ask/tell contract.
 
-One optuna trial per evaluation: ``ask`` asks an in-memory optuna study for the five
-normalised parameters (each a ``FloatDistribution(0, 1)`` named ``u0..u4``), ``tell``
-completes the trial with the measured loss.  A start point (the hand-tuned gains) is
-enqueued as the first trial, as optuna's ``enqueue_trial`` does for a known-good
-configuration.  No torch: TPE needs numpy/scipy only.
-
-State: the trials told so far (parameters and loss), the pending candidate and the
-sampler's two numpy ``RandomState`` streams (TPE's and its start-up random sampler's),
-in JSON.  ``from_state`` rebuilds the study from the trials (``add_trials``) and puts the
-streams back, so the next asks are the ones the original would have made, bit for bit.
-The study itself lives in memory, inside the checkpoint the tuner writes atomically to
-its run directory; a separate optuna journal or SQLite file would be a second file to
-keep consistent with the checkpoint across a SIGKILL.
+One trial of an in-memory optuna study per evaluation, on ``u0..u4`` in [0, 1]; a start
+point is enqueued as the first trial.  The state is the told trials and the sampler's two
+numpy ``RandomState`` streams, inside the tuner's atomic checkpoint (no optuna journal to
+keep consistent with it): ``from_state`` adds the trials back and restores the streams
+(docs/optimisers.md, "Beyond the paper").
 """
 
 from __future__ import annotations
@@ -33,8 +25,6 @@ from .base import (
     OptimizerError,
     told_history,
 )
-
-__all__ = ['TPE']
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 
@@ -155,21 +145,15 @@ class TPE(Optimizer):
         us, losses = told_history(cls.algo, state)
         # the start is enqueued only while it has not been asked yet
         opt = cls._replica(state, start if not us and pending is None else None)
-        opt._resume(start, us, losses, state)
-        return opt
-
-    def _resume(
-        self, start: Any, us: list[list[float]], losses: list[float], state: dict[str, Any]
-    ) -> None:
-        self._x0 = None if start is None else np.array(start, dtype=np.float64)
-        self._study.add_trials([self._frozen(u, v) for u, v in zip(us, losses, strict=True)])
-        self._told_u, self._told_loss = us, losses
-        self.evaluations = len(losses)
-        _set_rs_state(self._sampler._rng.rng, state['rng_tpe'])
-        _set_rs_state(self._sampler._random_sampler._rng.rng, state['rng_random'])
-        pending = state['pending']
+        opt._x0 = None if start is None else np.array(start, dtype=np.float64)
+        opt._study.add_trials([opt._frozen(u, v) for u, v in zip(us, losses, strict=True)])
+        opt._told_u, opt._told_loss = us, losses
+        opt.evaluations = len(losses)
+        _set_rs_state(opt._sampler._rng.rng, state['rng_tpe'])
+        _set_rs_state(opt._sampler._random_sampler._rng.rng, state['rng_random'])
         if pending is not None:
             u = [float(x) for x in pending]
-            if len(u) != self.dim:
+            if len(u) != opt.dim:
                 raise OptimizerError('tpe state: the pending candidate has the wrong size')
-            self._pending = u
+            opt._pending = u
+        return opt

@@ -311,7 +311,7 @@ EXPECT: dict[tuple[str, str], str] = {
     ('tuner', 'live-host-without-live'): '--live-host without --live would be ignored',
     ('tuner', 'live-host-not-local'): '--live-host 192.0.2.1: not an address of this computer',
     ('drive_host', 'live-with-no-record'): '--no-record records none',
-    ('recorder', 'live-rate-type'): 'or full (every message)',
+    ('recorder', 'live-rate-type'): 'or full or 0 (every message)',
     ('tuner', 'thread-priority-without-realtime'): 'set up the composed real-time loop',
     ('tuner', 'thread-priority-100'): 'must be 0 (off) or 1-99 (SCHED_FIFO), got 100',
     ('drive_sim', 'cpu-affinity-absent'): 'CPU 4096 is not one this process may use',

@@ -11,6 +11,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -206,8 +207,8 @@ def busy_port():
         (['--live', '8765', '--live-host', '192.0.2.1'], 'not an address of this computer'),
         (['--live', '0'], 'argument --live: must be >= 1, got 0'),
         (['--live', '70000'], 'argument --live: must be'),
-        (['--live', '--live-rate', '-5'], 'full (every message)'),
-        (['--live', '--live-rate', '6000'], 'full (every message)'),
+        (['--live', '--live-rate', '-5'], 'full or 0 (every message)'),
+        (['--live', '--live-rate', '6000'], 'full or 0 (every message)'),
     ],
 )
 def test_bad_live_input_is_one_line_exit_2_nothing_created(args, says, busy_port, procs, tmp_path):
@@ -270,3 +271,22 @@ def test_a_slow_client_reads_to_the_last_loss_after_the_close(monkeypatch):
     assert [t for t, _d in watcher.messages['/drive/state']] == list(range(600))
     assert stats['sent'] == 601 and stats['dropped'] == 0
     assert stop_s < CLOSE_MAX_S + 2 * CLOSE_GRACE_S + 1.0
+
+
+def test_an_interrupted_live_run_says_its_rate_and_resumes_with_the_live_view(
+    procs, tmp_path, wait_until
+):
+    """The start-up line names N and the rate it gives (300 Hz: every 17th, 294.1 Hz); the
+    resume command an interrupted run prints gives its live options again."""
+    port = free_port()
+    run = tmp_path / 'int'
+    args = ('--bench', 'inproc', '--budget', '40', '--live', str(port), '--live-rate', '300')
+    child = tuner(procs, run, *args)
+    res = run / 'results.jsonl'
+    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 2, 300, message='2 records')
+    child.send_signal(signal.SIGINT)
+    out, err = child.communicate(timeout=RUN_TIMEOUT)
+    assert child.returncode == 130, err[-2000:]
+    assert f'live: ws://127.0.0.1:{port} (Foxglove' in out + err
+    assert 'the 5 kHz topics every 17th: 294.1 Hz' in out + err
+    assert f'--resume {run} --live {port} --live-rate 300`' in out

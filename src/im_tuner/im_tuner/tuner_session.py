@@ -22,6 +22,7 @@ from im_drive_sim import numeric
 from im_drive_sim.cli import UsageError, ros2_command
 
 from .benches import IN_PROCESS_BENCHES, LOCKSTEP_BENCHES
+from .record import live as live_view
 from .runlog import Record, Timing, replay_plan
 from .tuner_cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PreparedSession, make_tuning
 
@@ -280,10 +281,12 @@ class TunerSession:
             progress.warn(f'warning: numeric baseline {numeric.describe(numeric_now)}')
         live = plan.spec.live
         if live is not None:
-            progress.note(
-                f'live: {live.url} (Foxglove: Open connection, Foxglove WebSocket; the 5 kHz '
-                f'topics {"whole" if live.rate_hz <= 0 else f"at {live.rate_hz:g} Hz"})'
-            )
+            progress.note(f'live: {live.describe()}')
+            if live.host != live_view.DEFAULT_HOST:  # (said even with --quiet)
+                progress.warn(
+                    f"warning: --live-host {live.host}: the run's every topic is open to "
+                    'whoever reaches this computer on the network (no authentication)'
+                )
         session = self.session
         session.update(
             {
@@ -413,6 +416,14 @@ class TunerSession:
             if code == EXIT_FAILED:
                 what = 'failed: once the cause is fixed,'
             resume = f'{ros2} run im_tuner tuner --resume {shlex.quote(str(rundir.path))}'
+            given = (('--live', self.cli.live), ('--live-host', self.cli.live_host))
+            given += (('--live-rate', self.cli.live_rate),)
+            # (the live view is a session's: the command gives it again)
+            resume += ''.join(
+                f' {flag} {v:g}' if isinstance(v, float) else f' {flag} {v}'
+                for flag, v in given
+                if v is not None
+            )
             print(f'  {what} continue with `{resume}`', flush=True)
         return code
 

@@ -176,6 +176,7 @@ def main(args: list[str] | None = None) -> int:
             f'{loop.controller.get_fully_qualified_name()} (tuner watchdog '
             f'{cli.tuner_timeout:g} s), '
             + (f'recording to {bench.rec.out}' if bench.rec is not None else 'not recording')
+            + (f'; live: {live.url} (Foxglove: Open connection)' if live is not None else '')
             + f'; tune it from any computer of ROS_DOMAIN_ID '
             f'{os.environ.get("ROS_DOMAIN_ID", "0")}: ros2 run im_tuner tuner --bench none'
         )

@@ -16,7 +16,7 @@ from im_drive_sim.cli import (
 from ..names import DEFAULT_TIMING_TOLERANCE
 from ..record.live import add_live_options
 from .drive_spec import drive_help
-from .sim_bench_main import BAG_OPTIONS
+from .sim_bench_main import add_bag_options
 
 DESCRIPTION = (
     "A drive on a computer of its own: the 5 kHz loop (the drive's period, the controller, "
@@ -57,8 +57,7 @@ def parser() -> argparse.ArgumentParser:
         f'{DEFAULT_TIMING_TOLERANCE}. The check runs either way: a host that cannot meet N '
         'is told so in one line',
     )
-    for flag, kw in BAG_OPTIONS:
-        ap.add_argument(flag, **kw)
+    add_bag_options(ap, 'drive_host')
     add_live_options(ap)
     rt.add_arguments(ap, 'the 5 kHz loop', rt.DEFAULT_PRIORITY)
     return ap

@@ -27,7 +27,7 @@ BAG_OPTIONS: tuple[tuple[str, dict[str, Any]], ...] = (
         {
             'metavar': 'DIR',
             'type': Path,
-            'help': 'bag directory to create (default: bags/sim_bench_<UTC time>)',
+            'help': 'bag directory to create (default: bags/{prog}_<UTC time>)',
         },
     ),
     (
@@ -48,9 +48,14 @@ def parser() -> argparse.ArgumentParser:
         help='run drive_sim and controller as two processes (default: one)',
     )
     add_simulator_options(ap, 'the simulated motor', 'drive model fidelity')
-    for flag, kw in BAG_OPTIONS:
-        ap.add_argument(flag, **kw)
+    add_bag_options(ap, 'sim_bench')
     return ap
+
+
+def add_bag_options(ap: argparse.ArgumentParser, prog: str) -> None:
+    """The bag's options (:data:`BAG_OPTIONS`) on ``prog``'s parser."""
+    for flag, kw in BAG_OPTIONS:
+        ap.add_argument(flag, **{**kw, 'help': kw['help'].format(prog=prog)})
 
 
 def main() -> int:

@@ -105,7 +105,7 @@ def rate_arg(text: str) -> float:
         return 0.0
     if not (0.0 < value <= PERIOD_RATE_HZ):
         raise argparse.ArgumentTypeError(
-            f'{text!r}: a rate in (0, {PERIOD_RATE_HZ:g}] Hz, or full (every message)'
+            f'{text!r}: a rate in (0, {PERIOD_RATE_HZ:g}] Hz, or full or 0 (every message)'
         )
     return value
 
@@ -117,14 +117,17 @@ OPTIONS: dict[str, dict[str, Any]] = {
     '--live': {
         'help': 'watch the run live in Foxglove: a Foxglove WebSocket server '
         '(`foxglove.websocket.v1`) on port PORT (8765 when given bare) carrying every topic '
-        "the bag records, on the bag's channels (topic, `ros2msg` schema, CDR bytes, log "
-        'time), so the shipped layouts work live as on the bag; the 5 kHz topics at '
+        "the bag records, on the bag's channels (topic, `ros2msg` schema (`ros2idl` for the "
+        'service events), CDR bytes, log time), so the shipped layouts work live as on the '
+        'bag; the 5 kHz topics at '
         '`--live-rate`. In Foxglove: "Open connection", "Foxglove WebSocket", '
         '`ws://127.0.0.1:PORT` ([foxglove.md](foxglove.md#watch-a-run-live)). A slow or '
-        "frozen client costs only its own live messages (counted: the run's last lines, "
-        'summary.json `sessions[i].live`), never a period or a bag message. Refused (one '
+        "frozen client costs only its own live messages (counted in the bag's `im_tuner.live` "
+        "metadata; the tuner's last lines and summary.json `sessions[i].live` too), never a "
+        'period or a bag message. Refused (one '
         'line, exit 2, nothing created) with `--no-record`, or when the port cannot be '
-        'listened on',
+        "listened on. A session's own: give it again with `--resume` (the command an "
+        'interrupted run prints does)',
         'arg': {'type': int_in(1, 65535), 'nargs': '?', 'const': DEFAULT_PORT, 'metavar': 'PORT'},
         'shown': 'off',
     },
@@ -138,7 +141,8 @@ OPTIONS: dict[str, dict[str, Any]] = {
     },
     '--live-rate': {
         'help': "with `--live`: the live rate of the drive's 5 kHz topics (`drive/state`, "
-        '`drive/command`, `controller/internals`): every Nth message, N = 5000 / HZ (the '
+        '`drive/command`, `controller/internals`): every Nth message, N = 5000 / HZ rounded '
+        '(the start-up line says N and the rate it gives; the '
         'bag keeps every one); `full` or 0: every message (about 15 000 a second of '
         'simulated time: more than a browser draws). The other topics go whole',
         'arg': {'type': rate_arg, 'metavar': 'HZ|full'},
@@ -234,6 +238,18 @@ class LiveSettings:
             '--live-rate',
             f'{self.rate_hz:g}',
         ]
+
+    def describe(self) -> str:
+        """Where to connect and what the 5 kHz topics get, as the start-up line says it."""
+        n = every_nth(self.rate_hz)
+        rate = 'whole' if n == 1 else f'every {n}th: {PERIOD_RATE_HZ / n:.4g} Hz'
+        wide = self.host in ('0.0.0.0', '::')
+        where = (
+            f'{self.url}, every interface: from another computer ws://<this computer>:{self.port}'
+            if wide
+            else self.url
+        )
+        return f'{where} (Foxglove: Open connection, Foxglove WebSocket; the 5 kHz topics {rate})'
 
     def to_dict(self) -> dict[str, Any]:
         return {'url': self.url, 'rate_hz': self.rate_hz, 'every_nth': every_nth(self.rate_hz)}

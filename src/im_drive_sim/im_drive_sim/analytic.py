@@ -21,16 +21,6 @@ from dataclasses import dataclass
 
 from .params import MachineParams
 
-__all__ = [
-    'SteadyState',
-    'flux_buildup',
-    'foc_steady_state',
-    'phase_peak_from_line_rms',
-    'rotor_time_constant',
-    'slip_for_torque',
-    'steady_state',
-]
-
 
 @dataclass(frozen=True)
 class SteadyState:

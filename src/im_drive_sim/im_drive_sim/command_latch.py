@@ -15,8 +15,6 @@ Used by both drive nodes. A compiled copy of the same rule, for the GIL-free loo
 
 from __future__ import annotations
 
-__all__ = ['NO_COMMAND', 'CommandLatch', 'HeldCommand']
-
 #: the labels of no command (zero current: before the first command, a safe stop, the
 #: watchdog): applied_step -1, not fresh
 NO_COMMAND: tuple[int, bool] = (-1, False)

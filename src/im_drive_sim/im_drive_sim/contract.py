@@ -13,29 +13,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = [
-    'CMD_ISQ',
-    'CMD_LOAD',
-    'CMD_STEP',
-    'COMMAND_DELAYS',
-    'COMMAND_FIELDS',
-    'COMMAND_TOPIC',
-    'JOINT_STATE_TOPIC',
-    'LOCKSTEP',
-    'LOOP_PUBLISHED',
-    'MODES',
-    'NS_PER_S',
-    'RECORDED',
-    'SERVICES',
-    'STATE_FIELDS',
-    'STATE_INDEX',
-    'STATE_TOPIC',
-    'STATUS_COUNTERS',
-    'STATUS_TOPIC',
-    'TOPIC_TYPES',
-    'QosSpec',
-]
-
 NS_PER_S = 1_000_000_000
 
 #: Timing modes of a drive: paced by the controller's answers, or by the wall clock.

@@ -23,8 +23,6 @@ from . import family
 from .params import ConfigError, DriveConfig, config_from_dict, default_config_path
 from .yaml_file import YamlFileError, read_yaml
 
-__all__ = ['base_path', 'load_config', 'packaged_base']
-
 
 def load_config(
     path: str | Path | None = None, overrides: Mapping[str, Any] | None = None

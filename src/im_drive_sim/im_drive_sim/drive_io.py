@@ -40,8 +40,6 @@ from .qos import LOCKSTEP_QOS, RECORDED_QOS
 from .rt import RtOptions
 from .runtime import IoNodeOwner, LenientDoubles, publish_lossless, run_stepped_node
 
-__all__ = ['CommandPath', 'DriveNode', 'run_drive_node']
-
 
 class CommandPath:
     """The drive's command input. ``io_node`` (hidden, in the drive node's namespace and

@@ -16,8 +16,6 @@ from .params import ConfigError, DriveConfig
 from .runtime import param_descriptor
 from .sim import start_position
 
-__all__ = ['declare_initial_position', 'declare_parameters', 'parameter_specs']
-
 
 def parameter_specs() -> list[tuple[str, object, ParameterDescriptor]]:
     """(name, default, descriptor) of every parameter known before the drive file is read."""

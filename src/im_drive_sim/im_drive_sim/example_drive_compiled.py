@@ -16,8 +16,6 @@ from typing import Any
 from . import hardware_period
 from .hardware_abi import HardwareEntry
 
-__all__ = ['CompiledPeriodHooks']
-
 
 class CompiledPeriodHooks:
     """The compiled period's hooks (``hardware_period``; the composed bench's loop) of a

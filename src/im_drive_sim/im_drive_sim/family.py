@@ -15,20 +15,6 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-__all__ = [
-    'DRIVE_NAMES',
-    'MOTORS',
-    'MOTOR_FILES',
-    'PACKAGED_NAMES',
-    'RATIOS',
-    'Motor',
-    'config_dir',
-    'drive_name',
-    'motor_and_ratio',
-    'packaged_path',
-    'unknown_drive_message',
-]
-
 
 @dataclass(frozen=True)
 class Motor:

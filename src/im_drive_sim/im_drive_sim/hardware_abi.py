@@ -44,24 +44,6 @@ from numba.extending import intrinsic
 from . import contract
 from .params import ConfigError, DriveConfig
 
-__all__ = [
-    'ABI_VERSION',
-    'KIND_C',
-    'KIND_CTX',
-    'MEASUREMENT_FIELDS',
-    'SYMBOLS',
-    'CompiledClassHardware',
-    'DriveLibraryError',
-    'HardwareEntry',
-    'HardwareFault',
-    'LibraryHardware',
-    'Measurement',
-    'call_elapse',
-    'call_read',
-    'call_write',
-    'is_compiled_class',
-]
-
 #: ``im_drive_read``'s ``m[8]``, in order (``example_drive.Measurement``'s fields; SI units):
 #: the state's fields from theta_meas to load_torque (``contract.STATE_FIELDS``)
 MEASUREMENT_FIELDS: tuple[str, ...] = contract.STATE_FIELDS[

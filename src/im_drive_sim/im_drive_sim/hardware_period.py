@@ -30,17 +30,6 @@ from numba import njit
 from . import period_kernel as PK
 from .hardware_abi import call_elapse, call_read, call_write
 
-__all__ = [
-    'FAULT',
-    'N_WORDS',
-    'WORDS',
-    'hardware_missed',
-    'hardware_period',
-    'pack',
-    'safe_stop',
-    'unpack',
-]
-
 #: the words of ``D``: period_kernel's first nine (take_command and latch_labels use
 #: them at the same places), then the example drive's
 WORDS: tuple[str, ...] = (

@@ -38,8 +38,6 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ['DelayProbe', 'probe_delay']
-
 BASELINE = 8  #: periods of zero current before each step
 ON = 3  #: periods the step is held
 SETTLE = 12  #: periods of zero current after it

@@ -27,16 +27,6 @@ import numpy as np
 
 from . import rt
 
-__all__ = [
-    'EXPERIMENT_PERIODS',
-    'LOSS_CHANGE_P95',
-    'HostFloor',
-    'judge',
-    'loss_change_pct',
-    'loss_change_words',
-    'measure',
-]
-
 #: An experiment's periods (1.125 s at 200 us: the paper's move and load step).
 EXPERIMENT_PERIODS = 5625
 #: The period of the loop the host is checked for [s].

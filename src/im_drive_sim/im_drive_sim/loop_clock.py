@@ -25,8 +25,6 @@ from numba import types
 
 from .rt import SPIN_US
 
-__all__ = ['N_CLOCK', 'nap', 'now_ns', 'run_schedule', 'sleep_until', 'wait_start']
-
 _clock_gettime = types.ExternalFunction('clock_gettime', types.int32(types.int32, types.uint64))
 _clock_nanosleep = types.ExternalFunction(
     'clock_nanosleep', types.int32(types.int32, types.int32, types.uint64, types.uint64)

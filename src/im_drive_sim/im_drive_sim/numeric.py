@@ -26,22 +26,6 @@ import os
 from collections.abc import Mapping, MutableMapping
 from typing import Any, NamedTuple
 
-__all__ = [
-    'LEVEL',
-    'NUMPY_ABOVE',
-    'OPENBLAS_CORE',
-    'SWITCH',
-    'Plan',
-    'apply',
-    'cpu_flags',
-    'cpu_model',
-    'describe',
-    'differs',
-    'plan',
-    'status',
-    'switch_problem',
-]
-
 #: The baseline's name (the x86-64 psABI micro-architecture level).
 LEVEL = 'x86-64-v3'
 #: The environment variable that turns the baseline off: ``off`` (or ``x86-64-v3``, the

@@ -44,8 +44,6 @@ import numpy as np
 import rclpy.impl.implementation_singleton  # noqa: F401  (loads librcl into the process)
 from numba import types
 
-__all__ = ['Channel', 'Outbox', 'PublisherThread', 'Ring', 'put_slot']
-
 
 def loaded_library(name: str) -> str:
     """Path of a shared library already mapped into this process (by rclpy)."""

@@ -25,15 +25,6 @@ from typing import Any, Protocol
 import numba
 import numpy as np
 
-__all__ = [
-    'CommandSource',
-    'CommandWatchdog',
-    'DurationHistograms',
-    'Pacer',
-    'PeriodicDrive',
-    'count_durations',
-]
-
 
 class PeriodicDrive(Protocol):
     """A real-time drive, one period at a time (see docs/real-drive.md, "Timing").

@@ -33,24 +33,6 @@ from numba import njit
 
 from . import contract, kernels as K
 
-__all__ = [
-    'COUNTERS',
-    'MSG_CLOCK',
-    'MSG_JOINT',
-    'MSG_STATE',
-    'N_WORDS',
-    'WORDS',
-    'hold_labels',
-    'latch_labels',
-    'pack_words',
-    'put_joint',
-    'run_missed',
-    'run_period',
-    'safe_stop',
-    'take_command',
-    'unpack_words',
-]
-
 #: the words of ``D``, in order
 WORDS: tuple[str, ...] = (
     'isq_ref',  # the held command [A]

@@ -30,16 +30,6 @@ from typing import Any
 from .cli import int_in
 from .numeric import cpu_model
 
-__all__ = [
-    'RtOptions',
-    'add_arguments',
-    'apply',
-    'apply_and_say',
-    'for_the_loop',
-    'hold_latency',
-    'report',
-]
-
 MCL_CURRENT, MCL_FUTURE = 1, 2
 
 #: How to grant what was refused (one line each).

@@ -25,18 +25,6 @@ from . import kernels as K, model_layout as L, plant
 from .drive_file import load_config
 from .params import DriveConfig, MachineParams
 
-__all__ = [
-    'NOISE_BLOCK',
-    'RUN_FIELDS',
-    'STATE_FIELDS',
-    'DriveSim',
-    'friction_smoothing_speed',
-    'load_step_delay_periods',
-    'make_param_array',
-    'start_position',
-    'stribeck_gain',
-]
-
 STATE_FIELDS: tuple[str, ...] = L.STATE_FIELDS
 """Fields written by ``step_into``/``read_into``, in order (units in docs/drive-model.md)."""
 RUN_FIELDS: tuple[str, ...] = L.RUN_FIELDS

@@ -29,8 +29,6 @@ import numba
 import numpy as np
 from numba import types
 
-__all__ = ['POLL_MS', 'StopWatcher', 'wait_for_stop']
-
 #: [ms] how often the watcher asks ``should_stop()``
 POLL_MS = 5
 

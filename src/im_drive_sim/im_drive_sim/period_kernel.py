@@ -96,11 +96,17 @@ NS_PER_S = contract.NS_PER_S
 
 
 def pack_words(
-    held: Any, latch: Any, safe_stopped: bool, constants: dict[str, Any], counters: Any
+    held: Any,
+    latch: Any,
+    safe_stopped: bool,
+    constants: dict[str, Any],
+    counters: Any,
+    words_of_d: tuple[str, ...] = WORDS,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``D`` and ``DC`` of a drive's held command (``command_latch.HeldCommand``), its
     latch (``command_latch.CommandLatch``), the safe-stop latch, its ``constants`` (the
-    other names of :data:`WORDS`) and its counters (:data:`COUNTERS` by name)."""
+    other names of ``words_of_d``: :data:`WORDS`, or a layout that starts as its first
+    nine, ``hardware_period.WORDS``) and its counters (:data:`COUNTERS` by name)."""
     pend_applied, pend_fresh = latch.pending
     words = {
         'isq_ref': held.isq_ref,
@@ -113,7 +119,7 @@ def pack_words(
         'safe_stopped': safe_stopped,
         **constants,
     }
-    D = np.array([float(words[n]) for n in WORDS])
+    D = np.array([float(words[n]) for n in words_of_d])
     DC = np.array([getattr(counters, n) for n in COUNTERS], np.int64)
     return D, DC
 

@@ -66,11 +66,6 @@ def phase_peak_from_line_rms(u_line_rms: float) -> float:
     return math.sqrt(2.0) * u_line_rms / math.sqrt(3.0)
 
 
-def rotor_time_constant(m: MachineParams) -> float:
-    """tau_r = Lr/Rr [s]."""
-    return m.Lr / m.Rr
-
-
 def steady_state(m: MachineParams, u_peak: float, f_supply: float, slip: float) -> SteadyState:
     """Steady state at phase voltage amplitude ``u_peak`` [V], supply ``f_supply`` [Hz],
     slip ``slip`` (!= 0) from the T-equivalent circuit (see module docstring)."""
@@ -136,7 +131,7 @@ def slip_for_torque(
 def flux_buildup(m: MachineParams, isd: float, t: float) -> float:
     """Rotor flux after an isd step at t = 0 (ideal current source, field-oriented):
     psi_r(t) = Lm isd (1 - exp(-t/tau_r)) [Wb]."""
-    return m.Lm * isd * (1.0 - math.exp(-t / rotor_time_constant(m)))
+    return m.Lm * isd * (1.0 - math.exp(-t / m.tau_r))
 
 
 def foc_steady_state(m: MachineParams, isd: float, isq: float, omega_mech: float) -> dict:

@@ -2,9 +2,6 @@
 stage given by address (``hardware_abi``: a C library, a compiled class), as numba
 functions the composed loop calls without the GIL (``im_tuner.bench.compiled_loop``).
 
-Why: run as Python, the example drive's period needs the interpreter and the GIL every
-period; compiled, it calls the power stage by address.
-
 The node stays the owner of the logic: ``ExampleDrive.period_words`` /
 ``set_period_words`` move its held command, latch, step index and counters to and from
 the arrays below, and ``test/test_hardware_loop.py`` holds the compiled period to the

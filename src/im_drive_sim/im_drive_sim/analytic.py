@@ -21,16 +21,6 @@ from dataclasses import dataclass
 
 from .params import MachineParams
 
-__all__ = [
-    'SteadyState',
-    'flux_buildup',
-    'foc_steady_state',
-    'phase_peak_from_line_rms',
-    'rotor_time_constant',
-    'slip_for_torque',
-    'steady_state',
-]
-
 
 @dataclass(frozen=True)
 class SteadyState:
@@ -74,11 +64,6 @@ class SteadyState:
 def phase_peak_from_line_rms(u_line_rms: float) -> float:
     """Star-equivalent phase peak voltage sqrt(2) U_line/sqrt(3) [V] (220 V -> 179.6 V)."""
     return math.sqrt(2.0) * u_line_rms / math.sqrt(3.0)
-
-
-def rotor_time_constant(m: MachineParams) -> float:
-    """tau_r = Lr/Rr [s]."""
-    return m.Lr / m.Rr
 
 
 def steady_state(m: MachineParams, u_peak: float, f_supply: float, slip: float) -> SteadyState:
@@ -146,7 +131,7 @@ def slip_for_torque(
 def flux_buildup(m: MachineParams, isd: float, t: float) -> float:
     """Rotor flux after an isd step at t = 0 (ideal current source, field-oriented):
     psi_r(t) = Lm isd (1 - exp(-t/tau_r)) [Wb]."""
-    return m.Lm * isd * (1.0 - math.exp(-t / rotor_time_constant(m)))
+    return m.Lm * isd * (1.0 - math.exp(-t / m.tau_r))
 
 
 def foc_steady_state(m: MachineParams, isd: float, isq: float, omega_mech: float) -> dict:

@@ -14,8 +14,6 @@ from .drive_file import load_config
 from .family import DRIVE_NAMES
 from .params import rating_scales
 
-__all__ = ['bench_table', 'main']
-
 #: (heading, how a config gives the value, format)
 _COLUMNS = (
     ('rated torque [N m]', lambda c: c.machine.rated_torque, '.4g'),

@@ -14,6 +14,8 @@ endian) of a message with an empty ``layout.dim``, ``data_offset = 0`` and n val
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 _HEADER = bytes([0, 1, 0, 0])
@@ -55,6 +57,18 @@ def parse_float64_array(raw: bytes, n: int) -> np.ndarray | None:
     ):
         return None
     return np.frombuffer(raw, dtype='<f8', count=n, offset=_DATA_OFFSET)
+
+
+def read_float64_array(raw: bytes, n: int) -> Any:
+    """The values of a serialised Float64MultiArray: in our layout of n values a read-only
+    view (:func:`parse_float64_array`), in another deserialised the slow, general way."""
+    data = parse_float64_array(raw, n)
+    if data is None:
+        from rclpy.serialization import deserialize_message
+        from std_msgs.msg import Float64MultiArray
+
+        data = deserialize_message(raw, Float64MultiArray).data
+    return data
 
 
 class PatchWire:

@@ -13,10 +13,9 @@ from collections.abc import Callable
 import numpy as np
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
-from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float64MultiArray
 
-from .cdr import Float64ArrayWire, parse_float64_array
+from .cdr import Float64ArrayWire, read_float64_array
 from .contract import (
     COMMAND_FIELDS,
     COMMAND_TOPIC,
@@ -66,9 +65,7 @@ class DriveClient:
             r = self.state_sub.handle.take_message(Float64MultiArray, True)
             if r is None:
                 return got
-            data = parse_float64_array(r[0], n)
-            if data is None:  # another publisher's layout: the general path
-                data = deserialize_message(r[0], Float64MultiArray).data
+            data = read_float64_array(r[0], n)
             if len(data) != n:  # not the contract's state (check_drive names what is wrong)
                 continue
             self.state[:] = data

@@ -1,21 +1,15 @@
 """The command a drive holds, and the power stage's latch: which command acts over the
-coming period.
+coming period. With command delay d = 2 the command answering state k acts over k+1 ->
+k+2 (docs/interfaces.md, "Timing model"); the latch here keeps the *labels* of the
+commands -- ``applied_step`` and whether it was fresh -- so that each published state
+says which command drove the period that ended at it. The values themselves are latched
+by the model (``kernels.step_model``) or by the hardware.
 
-A drive with command delay d = 1 applies the command answering state k over k -> k+1; a
-drive with d = 2 latches it at the next period start, so it acts over k+1 -> k+2 and the
-period k -> k+1 runs the command latched one period earlier (docs/interfaces.md,
-"Timing"). The latch here keeps the *labels* of those commands -- ``applied_step`` and
-whether the command was fresh -- so that each published state says which command drove
-the period that ended at it. The values themselves are latched by the model
-(``kernels.step_model``) or by the hardware.
-
-Used by both drive nodes. A compiled copy of the same rule, for the GIL-free loop, is
+Used by both drive nodes; a compiled copy of the same rule, for the GIL-free loop, is
 ``period_kernel.latch_labels``. Pure Python: no rclpy, no numba.
 """
 
 from __future__ import annotations
-
-__all__ = ['NO_COMMAND', 'CommandLatch', 'HeldCommand']
 
 #: the labels of no command (zero current: before the first command, a safe stop, the
 #: watchdog): applied_step -1, not fresh

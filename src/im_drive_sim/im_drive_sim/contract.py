@@ -13,29 +13,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = [
-    'CMD_ISQ',
-    'CMD_LOAD',
-    'CMD_STEP',
-    'COMMAND_DELAYS',
-    'COMMAND_FIELDS',
-    'COMMAND_TOPIC',
-    'JOINT_STATE_TOPIC',
-    'LOCKSTEP',
-    'LOOP_PUBLISHED',
-    'MODES',
-    'NS_PER_S',
-    'RECORDED',
-    'SERVICES',
-    'STATE_FIELDS',
-    'STATE_INDEX',
-    'STATE_TOPIC',
-    'STATUS_COUNTERS',
-    'STATUS_TOPIC',
-    'TOPIC_TYPES',
-    'QosSpec',
-]
-
 NS_PER_S = 1_000_000_000
 
 #: Timing modes of a drive: paced by the controller's answers, or by the wall clock.
@@ -123,22 +100,16 @@ class QosSpec:
     durability: str = 'volatile'
 
 
-#: The 5 kHz lock-step topics: reliable, so no step is lost in transit. Lock-step never
-#: has more than one sample in flight; in real time a depth of 64 periods (12.8 ms)
-#: bridges scheduling hiccups.
+#: The 5 kHz lock-step readers: reliable, so no step is lost in transit; in real time a
+#: depth of 64 periods (12.8 ms) bridges scheduling hiccups.
 LOCKSTEP = QosSpec('keep_last', 64, 'reliable')
 
-#: Publishers whose every message must reach the recorder -- every recorded topic: the
-#: drive's state, joint states, status and /clock; the controller's command, internals
-#: and losses: reliable KEEP_ALL. A reader that falls behind
-#: back-pressures the publisher instead of losing samples, which KEEP_LAST would
-#: overwrite. Readers in the lock-step path stay LOCKSTEP: they take every step.
+#: Every recorded topic's publisher: a reader that falls behind back-pressures it instead
+#: of losing samples (docs/interfaces.md, "Topics").
 RECORDED = QosSpec('keep_all', 0, 'reliable')
 
-#: The same topics published by a composed real-time loop (``tuner --bench realtime``):
-#: its own recorder takes them from the loop's outbox, not from DDS, and a KEEP_ALL
-#: writer with a reader that stopped taking either blocks each publish or grows without
-#: bound. KEEP_LAST 1000 (200 ms of a 5 kHz topic) never blocks and keeps memory bounded.
+#: The same topics published by a composed real-time loop (``tuner --bench realtime``),
+#: whose recorder takes them from the loop's outbox: never blocks, bounded memory.
 LOOP_PUBLISHED = QosSpec('keep_last', 1000, 'reliable')
 
 #: The controller's experiment services (start_experiment, reset_fault) and their

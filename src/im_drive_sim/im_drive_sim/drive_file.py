@@ -23,8 +23,6 @@ from . import family
 from .params import ConfigError, DriveConfig, config_from_dict, default_config_path
 from .yaml_file import YamlFileError, read_yaml
 
-__all__ = ['base_path', 'load_config', 'packaged_base']
-
 
 def load_config(
     path: str | Path | None = None, overrides: Mapping[str, Any] | None = None
@@ -87,19 +85,8 @@ def _packaged_file(base: str) -> Path | None:
     A name with a folder in it is a path, never a packaged drive."""
     if '/' in base or '\\' in base:
         return None
-    stem = base[: -len('.yaml')] if base.endswith('.yaml') else base
-    p = family.packaged_path(stem)
+    p = family.packaged_path(base.removesuffix('.yaml'))
     return p if p is not None and p.is_file() else None
-
-
-def base_path(name: str, path: Path, base: Any) -> Path:
-    """The file ``base`` (the value of ``base:`` in the drive file ``path``) names: a
-    packaged drive's file, else ``base`` relative to ``path``'s folder (an absolute path as
-    it is). Raises ``ConfigError`` for a value that is not a file name."""
-    if not isinstance(base, str) or not base.strip():
-        raise ConfigError(f'{name}: base must be a file name, got {base!r}')
-    packaged = _packaged_file(base)
-    return packaged if packaged is not None else path.parent / base
 
 
 def _with_base(name: str, path: Path, data: Mapping[str, Any]) -> dict[str, Any]:
@@ -108,8 +95,11 @@ def _with_base(name: str, path: Path, data: Mapping[str, Any]) -> dict[str, Any]
     A real drive's file needs only what the controller reads (``Ts``, ``machine.isq_max``)
     and what is really known; ``base`` gives the rest (module docstring)."""
     base = data['base']
-    bp = base_path(name, path, base)
-    packaged = _packaged_file(base) is not None
+    if not isinstance(base, str) or not base.strip():
+        raise ConfigError(f'{name}: base must be a file name, got {base!r}')
+    # a packaged drive's file, else relative to this file's folder (an absolute path as it is)
+    packaged = _packaged_file(base)
+    bp = packaged if packaged is not None else path.parent / base
     if not bp.is_file():
         raise ConfigError(
             f'{name}: base {base!r}: cannot read {bp} (no such file; a packaged drive '
@@ -119,7 +109,7 @@ def _with_base(name: str, path: Path, data: Mapping[str, Any]) -> dict[str, Any]
         bdata, _ = read_yaml(bp)
     except YamlFileError as exc:
         raise ConfigError(f'{name}: base {base!r}: cannot read {bp} ({exc})') from None
-    if isinstance(bdata, Mapping) and 'base' in bdata and packaged:
+    if isinstance(bdata, Mapping) and 'base' in bdata and packaged is not None:
         bdata = _with_base(bp.name, bp, bdata)  # a packaged drive: its motor's file under it
     if not isinstance(bdata, Mapping) or 'base' in bdata:
         raise ConfigError(f'{name}: base {base!r}: not a complete drive file (or has a base)')
@@ -151,5 +141,4 @@ def packaged_base(path: str | Path | None) -> str | None:
     base = data.get('base') if isinstance(data, Mapping) else None
     if not isinstance(base, str) or _packaged_file(base) is None:
         return None
-    stem = base[: -len('.yaml')] if base.endswith('.yaml') else base
-    return stem if stem in family.PACKAGED_NAMES else None
+    return base.removesuffix('.yaml')  # (a packaged file: a packaged name)

@@ -1,11 +1,9 @@
 """ROS plumbing both drive nodes share (``drive_sim`` and ``example_drive``).
 
 * :class:`DriveNode`: the base of a drive node -- its topics (``drive/state``,
-  ``drive/joint_states``, ``drive/status``, the command path), its layout parameters,
-  a command checked and read, the watchdog's period, the status message.
-* :class:`CommandPath`: the 5 kHz ``drive/command`` path -- a subscription on a hidden
-  helper node (``_<name>_io``) that no executor ever spins, taken through a hand-rolled
-  WaitSet, so the hot path never goes through an executor.
+  ``drive/joint_states``, ``drive/status``, the 5 kHz command path that never goes
+  through an executor), its layout parameters, a command checked and read, the
+  watchdog's period, the status message.
 * :func:`run_drive_node`: a drive node's ``main()`` body (``runtime.run_stepped_node``
   with the counters' summary logged at exit).
 """
@@ -40,32 +38,6 @@ from .qos import LOCKSTEP_QOS, RECORDED_QOS
 from .rt import RtOptions
 from .runtime import IoNodeOwner, LenientDoubles, publish_lossless, run_stepped_node
 
-__all__ = ['CommandPath', 'DriveNode', 'run_drive_node']
-
-
-class CommandPath:
-    """The drive's command input. ``io_node`` (hidden, in the drive node's namespace and
-    context) holds ``subscription``; ``source`` (``pacing.CommandSource``) takes from it --
-    or from a composed controller that hands its commands over in memory."""
-
-    def __init__(self, node: Node, node_name: str) -> None:
-        self.io_node = Node(
-            f'_{node_name}_io', context=node.context, namespace=node.get_namespace()
-        )
-        self.subscription = self.io_node.create_subscription(
-            Float64MultiArray, COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS
-        )
-        self.source = CommandSource(self.subscription, len(COMMAND_FIELDS))
-        self._waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)
-
-    def wait(self, timeout_ns: int) -> bool:
-        """Sleep up to ``timeout_ns`` [ns] in rcl_wait; True when a command is pending."""
-        ws = self._waitset
-        ws.clear_entities()  # rcl_wait nulls entries that were not ready: re-add every time
-        ws.add_subscription(self.subscription.handle)
-        ws.wait(timeout_ns)
-        return ws.is_ready('subscription', 0)
-
 
 class DriveNode(IoNodeOwner, LenientDoubles, Node):
     """The base of a drive node (``drive_sim``, ``example_drive``): :meth:`open_topics`
@@ -92,19 +64,29 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
     stop_requested = False
 
     def open_topics(self, node_name: str) -> None:
-        """``state_pub``, ``joint_pub`` (:meth:`make_joint_publisher`), ``status_pub``,
-        ``command_path`` (its ``io_node``, ``cmd_sub``, ``commands``)."""
+        """``state_pub``, ``joint_pub`` (:meth:`make_joint_publisher`), ``status_pub``, and
+        the command input: ``cmd_sub`` on ``io_node`` (``_<name>_io``: hidden, in this
+        node's namespace and context, never spun), taken through a hand-rolled WaitSet
+        (:meth:`wait_command`); ``commands`` (``pacing.CommandSource``) takes from it, or
+        from a composed controller that hands its commands over in memory."""
         self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
         self.joint_pub = self.make_joint_publisher()
         self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, RECORDED_QOS)
-        self.command_path = CommandPath(self, node_name)
-        self.io_node = self.command_path.io_node
-        self.cmd_sub = self.command_path.subscription
-        self.commands = self.command_path.source
+        ns = self.get_namespace()
+        self.io_node = Node(f'_{node_name}_io', context=self.context, namespace=ns)
+        self.cmd_sub = self.io_node.create_subscription(
+            Float64MultiArray, COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS
+        )
+        self.commands = CommandSource(self.cmd_sub, len(COMMAND_FIELDS))
+        self._cmd_waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
 
     def wait_command(self, timeout_s: float) -> bool:
         """Sleep up to ``timeout_s`` [s] in rcl_wait; True when a command is pending."""
-        return self.command_path.wait(int(timeout_s * NS_PER_S))
+        ws = self._cmd_waitset
+        ws.clear_entities()  # rcl_wait nulls entries that were not ready: re-add every time
+        ws.add_subscription(self.cmd_sub.handle)
+        ws.wait(int(timeout_s * NS_PER_S))
+        return ws.is_ready('subscription', 0)
 
     def make_joint_publisher(self) -> Any:
         """``drive/joint_states``' publisher (a hook: a test drive may publish none)."""

@@ -17,8 +17,6 @@ import rclpy
 from .contract import NS_PER_S
 from .pacing import Pacer
 
-__all__ = ['run_lockstep', 'run_realtime', 'serve']
-
 
 def serve(drive: Any, executor: Any, t_start: float, next_status: float) -> float:
     """Between steps: serve pending parameter requests; publish the status once a second.

@@ -4,7 +4,7 @@ A thin node around :class:`im_drive_sim.sim.DriveSim` that speaks the drive inte
 ``docs/interfaces.md``: lock-step (default; one period per command answering the state,
 bit-for-bit deterministic) or real time (a hand-paced 5 kHz loop holding the last
 command, with the command watchdog). The command path never goes through an executor
-(``drive_io.CommandPath``); the visible node (parameters, diagnostics) is spun between
+(``drive_io.DriveNode.wait_command``); the visible node (parameters, diagnostics) is spun between
 steps, every ``service_period_steps`` steps and whenever the loop is idle.
 """
 
@@ -210,7 +210,7 @@ class DriveSimNode(DriveNode):
         """
         cmd = self._take_command()  # in one process the answer is usually there already
         if cmd is None:
-            if not self.command_path.wait(timeout_ns):
+            if not self.wait_command(timeout_ns / NS_PER_S):
                 return False
             cmd = self._take_command()
         while cmd is not None:

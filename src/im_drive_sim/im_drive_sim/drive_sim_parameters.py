@@ -3,7 +3,8 @@
 All are read-only: they fix the structure of the simulation (model, mode, seed, machine
 file) and are set at start with ``--ros-args -p name:=value`` (docs/interfaces.md).
 :func:`declare_parameters` declares them on the node and checks what an rcl range cannot
-say; the node (``drive_sim_node.DriveSimNode``) reads the values it returns.
+say; the node (``drive_sim_node.DriveSimNode``) reads the values it returns. The example
+drive declares those of the same names from here.
 """
 
 from __future__ import annotations
@@ -15,8 +16,6 @@ from .contract import COMMAND_FIELDS, MODES, STATE_FIELDS
 from .params import ConfigError, DriveConfig
 from .runtime import param_descriptor
 from .sim import start_position
-
-__all__ = ['declare_initial_position', 'declare_parameters', 'parameter_specs']
 
 
 def parameter_specs() -> list[tuple[str, object, ParameterDescriptor]]:

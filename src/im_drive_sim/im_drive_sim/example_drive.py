@@ -33,10 +33,11 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from . import contract, rt
 from .cdr import Float64ArrayWire, JointStateWire
 from .cli import check_ros_args, parse_cli, run_cli
-from .command_latch import CommandLatch
+from .command_latch import CommandLatch, HeldCommand
 from .contract import NS_PER_S
 from .drive_file import load_config
 from .drive_io import DriveNode, run_drive_node
+from .drive_sim_parameters import parameter_specs
 from .example_drive_compiled import CompiledPeriodHooks
 from .example_drive_main import check_hardware, hardware_factory, parser
 from .hardware_abi import HardwareFault, Measurement
@@ -184,12 +185,12 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         self.hardware_class = Hardware if hardware_class is None else hardware_class
         super().__init__(node_name, **kwargs)
         d = self.declare_parameter
-        cfg_file = d(
-            'config_file',
-            '',
-            param_descriptor("Drive parameter file (YAML); '' = the packaged 750 W motor."),
-        ).value
-        self.config = load_config(cfg_file or None)
+        # drive_sim's parameters of the same names (the layouts: read-only facts)
+        specs = {name: (default, desc) for name, default, desc in parameter_specs()}
+        shared = ['config_file', 'command_timeout', 'realtime_spin_margin']
+        shared += ['joint_state_decimation', 'state_fields', 'command_fields']
+        p = {name: d(name, *specs[name]).value for name in shared}
+        self.config = load_config(p['config_file'] or None)
         self.ts_ns: int = self.config.Ts_ns
         #: wall-clock period of the loop [s] (= Ts; a subclass may change it)
         self.period_s: float = self.config.Ts
@@ -203,38 +204,9 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
                 float_range=(0.0, file_max),
             ),
         ).value
-        self.command_timeout: float = d(
-            'command_timeout',
-            0.05,
-            param_descriptor(
-                'Watchdog: no command for this long [s] -> zero current and no load until the next '
-                'command.',
-                float_range=(0.0002, 10.0),
-            ),
-        ).value
-        self.spin_margin: float = d(
-            'realtime_spin_margin',
-            150e-6,
-            param_descriptor(
-                'Busy-wait this long before each period start [s], for low jitter.',
-                float_range=(0.0, 200e-6),
-            ),
-        ).value
-        self.joint_decimation: int = d(
-            'joint_state_decimation',
-            10,
-            param_descriptor('Publish drive/joint_states every N steps.', int_range=(1, 100000)),
-        ).value
-        d(
-            'state_fields',
-            self.LAYOUTS['state_fields'],
-            param_descriptor('Layout of drive/state data.'),
-        )
-        d(
-            'command_fields',
-            self.LAYOUTS['command_fields'],
-            param_descriptor('Layout of drive/command data.'),
-        )
+        self.command_timeout: float = p['command_timeout']
+        self.spin_margin: float = p['realtime_spin_margin']
+        self.joint_decimation: int = p['joint_state_decimation']
         # the layouts report what this node publishes and reads: not settable
         parameter_hygiene(self, self.LAYOUTS)
 
@@ -246,10 +218,7 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         self.acting = -1
         self.counters = Counters()
         self.k = 0  # step index of the latest published state
-        self.isq_ref = self.load_ref = 0.0  # the held command (zero before the first one)
-        self.held_answers = -2  # answers_step of the newest tagged command (-2: none yet)
-        self.applied = -1  # answers_step of the held command (-1: none, untagged, watchdog)
-        self.fresh = False
+        self.held = HeldCommand()  # zero before the first command
         self.cmd_watchdog = CommandWatchdog(self.command_timeout, self.period_s)
         #: latched by :meth:`safe_stop`: from then on every period writes zero current and
         #: zero load torque, whatever command comes
@@ -302,8 +271,7 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         own loop and by the composed bench. Idempotent; the hardware stays open (a loop
         may still run periods, e.g. to serve the tuner's last parameter calls)."""
         self.safe_stopped = True
-        self.isq_ref = self.load_ref = 0.0
-        self.applied = -1
+        self.held.zero()
         if not self._hw_closed:
             try:
                 self.hw.write(0.0, 0.0)
@@ -349,26 +317,26 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         """No command for ``command_timeout`` -> zero current and no load until the next
         command (when it expires: ``pacing.CommandWatchdog``)."""
         if self.watchdog_expired(self.cmd_watchdog, self.k, 'zero current'):
-            self.isq_ref = self.load_ref = 0.0
-            self.applied = -1
+            self.held.zero()
 
     # -- commands ---------------------------------------------------------------------------
     def take_commands(self) -> None:
         """Take every pending command; the newest valid one becomes the held command."""
+        held = self.held
         # the subscription (our compact layout read in place), or the composed controller's
         while (data := self.commands.next()) is not None:
             command = self.read_command(data)
             if command is None:
                 continue
             answers, isq, load = command
-            if 0 <= answers <= self.held_answers:  # out of order, or a duplicate
+            if 0 <= answers <= held.answers:  # out of order, or a duplicate
                 self.counters.stale_ignored += 1
                 continue
-            self.held_answers = answers
-            self.applied = max(answers, -1)
-            self.isq_ref, self.load_ref = isq, load
+            held.answers = answers
+            held.applied = max(answers, -1)
+            held.isq_ref, held.load = isq, load
             self.cmd_watchdog.command()
-            self.fresh = answers < 0 or answers == self.k
+            held.fresh = answers < 0 or answers == self.k
             self.counters.late += 0 <= answers < self.k
             if self.cmd_watchdog.resume():
                 self.get_logger().info(f'watchdog: commands resumed at step {self.k}')
@@ -424,13 +392,13 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         published now is the one of the drive's real time (``time_ns = k Ts``)."""
         if self._hw_closed:
             return
-        c = self.counters
+        c, held = self.counters, self.held
         if missed > 0:
             elapse = getattr(self.hw, 'elapse', None)
             if callable(elapse):  # a simulated stand-in plant must be told time passed
                 elapse(missed)
-            self.acting = self.latch.hold(self.applied)  # it held what it was last written
-            self.fresh = False
+            self.acting = self.latch.hold(held.applied)  # it held what it was last written
+            held.fresh = False
             self.k += missed
             c.steps += missed  # periods of the drive's timeline: fresh + held = steps
             c.held += missed
@@ -438,12 +406,12 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         self.take_commands()
         self.watchdog()
         if self.safe_stopped:
-            self.applied, self.fresh = -1, False  # zero was applied, not a command
-        self.acting, fresh = self.latch.latch(self.applied, self.fresh)
+            held.applied, held.fresh = -1, False  # zero was applied, not a command
+        self.acting, fresh = self.latch.latch(held.applied, held.fresh)
         c.fresh += fresh
         c.held += not fresh
-        self.fresh = False
-        self.apply_command(self.isq_ref, self.load_ref)
+        held.fresh = False
+        self.apply_command(held.isq_ref, held.load)
         self.k += 1
         self.fill_state(self.hw.read())
         self.publish_state()

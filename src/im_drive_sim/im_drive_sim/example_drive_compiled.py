@@ -1,12 +1,7 @@
-"""The example drive's side of a compiled loop: :class:`CompiledPeriodHooks`, the methods
-``ExampleDrive`` gives the composed bench's loop (``im_tuner.bench.compiled_loop``,
-``CompiledHardwarePeriods``) to run its periods around a power stage given by address
-(``hardware_abi``: a C library, a compiled class) without the GIL: the stage's addresses,
-the node's state as ``hardware_period``'s words and back, and the preallocated messages a
-compiled period writes.
-
-A mixin of ``example_drive.ExampleDrive`` (which owns the attributes named below); pure:
-no rclpy.
+"""The example drive's side of a compiled loop: :class:`CompiledPeriodHooks`, a mixin of
+``example_drive.ExampleDrive`` (which owns the attributes named below) with the methods
+the composed bench's loop (``im_tuner.bench.compiled_loop``) runs its periods by, around a
+power stage given by address (``hardware_abi``) without the GIL. Pure: no rclpy.
 """
 
 from __future__ import annotations
@@ -15,8 +10,6 @@ from typing import Any
 
 from . import hardware_period
 from .hardware_abi import HardwareEntry
-
-__all__ = ['CompiledPeriodHooks']
 
 
 class CompiledPeriodHooks:

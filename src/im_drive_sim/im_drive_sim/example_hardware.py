@@ -22,8 +22,6 @@ from numba import njit
 
 from .params import DriveConfig
 
-__all__ = ['CompiledHardware']
-
 #: the words of ``state``
 (
     S_TS,  # [s]

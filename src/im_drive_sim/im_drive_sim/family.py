@@ -15,20 +15,6 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-__all__ = [
-    'DRIVE_NAMES',
-    'MOTORS',
-    'MOTOR_FILES',
-    'PACKAGED_NAMES',
-    'RATIOS',
-    'Motor',
-    'config_dir',
-    'drive_name',
-    'motor_and_ratio',
-    'packaged_path',
-    'unknown_drive_message',
-]
-
 
 @dataclass(frozen=True)
 class Motor:
@@ -90,14 +76,12 @@ MOTOR_FILES: tuple[str, ...] = tuple(m.file for m in MOTORS)
 PACKAGED_NAMES: tuple[str, ...] = MOTOR_FILES + DRIVE_NAMES
 
 
-def config_dir() -> Path:
-    """The packaged drive files' directory ``im_drive_sim/config``."""
-    return Path(str(resources.files('im_drive_sim').joinpath('config')))
-
-
 def packaged_path(name: str) -> Path | None:
-    """The file of the packaged drive ``name`` (a name of ``PACKAGED_NAMES``), else None."""
-    return config_dir() / f'{name}.yaml' if name in PACKAGED_NAMES else None
+    """The file of the packaged drive ``name`` (a name of ``PACKAGED_NAMES``, in
+    ``im_drive_sim/config``), else None."""
+    if name not in PACKAGED_NAMES:
+        return None
+    return Path(str(resources.files('im_drive_sim').joinpath('config', f'{name}.yaml')))
 
 
 def motor_and_ratio(name: str) -> tuple[Motor, int] | None:

@@ -1,26 +1,13 @@
-"""A user's power stage inside the compiled, GIL-free 5 kHz loop: the drive ABI.
-
-A hardware class written in Python (``example_drive.Hardware``) runs its ``write`` and
-``read`` as Python in the loop thread, with the GIL every period. This module lets the
-loop call a power stage *by address*, with no GIL and no interpreter, in two forms:
-
-* **a C shared library** (``--drive lib:PATH``), the form drive vendors ship their SDKs
-  in, exporting the functions of ``share/im_drive_sim/include/im_drive.h``
-  (:data:`SYMBOLS`; modelled on ros2_control's ``SystemInterface``). A negative return of
-  write or read is a drive fault: the loop writes zero current and the run stops in one
-  line naming the library (:class:`HardwareFault`);
-
-* **a compiled Python class** (the same contract for a Python user): numba-jitted
-  functions on the class, ``write(state, isq_ref, load_torque) -> int``, ``read(state, m)
-  -> int`` and optionally ``elapse(state, periods) -> int`` (a simulated stand-in only),
-  and a float64 array ``state`` on the instance that holds the hardware's own words. The
-  loop calls them through C wrappers built once (numba ``cfunc``):
-  :class:`CompiledClassHardware`. ``im_drive_sim.example_hardware`` is one.
+"""A user's power stage inside the compiled, GIL-free 5 kHz loop: the drive ABI. The loop
+calls it *by address*, with no GIL, in two forms (docs/real-drive.md, "A drive library
+(C)" and "A compiled hardware class"): a C shared library exporting :data:`SYMBOLS`
+(``share/im_drive_sim/include/im_drive.h``; a negative return is a drive fault,
+:class:`HardwareFault`), and a compiled Python class called through C wrappers built once
+(numba ``cfunc``, :class:`CompiledClassHardware`; ``example_hardware`` is one).
 
 Both are wrapped in an object with the Python hardware-class interface (``write``,
-``read() -> Measurement``, ``close``, ``command_delay``) for what runs outside the loop
-(state 0, the safe stop, a drive node's own Python loop), plus :meth:`entry`: the
-addresses the compiled loop calls (:class:`HardwareEntry`).
+``read() -> Measurement``, ``close``, ``command_delay``) for what runs outside the loop,
+plus ``entry()``: the addresses the compiled loop calls (:class:`HardwareEntry`).
 
 Written by hand, not with a library: numba calls a function pointer held in a runtime
 integer only through an intrinsic (a few lines of LLVM IR below); ctypes' own function
@@ -44,24 +31,6 @@ from numba.extending import intrinsic
 from . import contract
 from .params import ConfigError, DriveConfig
 
-__all__ = [
-    'ABI_VERSION',
-    'KIND_C',
-    'KIND_CTX',
-    'MEASUREMENT_FIELDS',
-    'SYMBOLS',
-    'CompiledClassHardware',
-    'DriveLibraryError',
-    'HardwareEntry',
-    'HardwareFault',
-    'LibraryHardware',
-    'Measurement',
-    'call_elapse',
-    'call_read',
-    'call_write',
-    'is_compiled_class',
-]
-
 #: ``im_drive_read``'s ``m[8]``, in order (``example_drive.Measurement``'s fields; SI units):
 #: the state's fields from theta_meas to load_torque (``contract.STATE_FIELDS``)
 MEASUREMENT_FIELDS: tuple[str, ...] = contract.STATE_FIELDS[
@@ -73,14 +42,14 @@ N_MEASUREMENT = len(MEASUREMENT_FIELDS)
 #: reads it there): a library whose ``im_drive_abi_version()`` differs is refused unopened
 ABI_VERSION = 1
 
-#: the library's functions: name -> required
-SYMBOLS: dict[str, bool] = {
-    'im_drive_abi_version': True,
-    'im_drive_open': True,
-    'im_drive_write': True,
-    'im_drive_read': True,
-    'im_drive_command_delay': False,
-    'im_drive_close': False,
+#: the library's functions: name -> (required, argument types, return type)
+SYMBOLS: dict[str, tuple[bool, list[Any], Any]] = {
+    'im_drive_abi_version': (True, [], ctypes.c_int),
+    'im_drive_open': (True, [ctypes.c_char_p], ctypes.c_int),
+    'im_drive_write': (True, [ctypes.c_double, ctypes.c_double], ctypes.c_int),
+    'im_drive_read': (True, [ctypes.c_void_p], ctypes.c_int),
+    'im_drive_command_delay': (False, [], ctypes.c_int),
+    'im_drive_close': (False, [], None),
 }
 
 #: how the loop calls the entry: C ABI as above, or with the hardware's state first
@@ -251,9 +220,10 @@ class LibraryHardware(_Measured):
         except OSError as exc:
             raise DriveLibraryError(f'{self.name}: cannot load: {exc}') from None
         fns: dict[str, Any] = {}
-        for sym, required in SYMBOLS.items():
+        for sym, (required, argtypes, restype) in SYMBOLS.items():
             try:
                 fns[sym] = getattr(self.lib, sym)
+                fns[sym].argtypes, fns[sym].restype = argtypes, restype
             except AttributeError:
                 if sym == 'im_drive_abi_version':
                     raise DriveLibraryError(
@@ -268,8 +238,6 @@ class LibraryHardware(_Measured):
                         f'share/im_drive_sim/include/im_drive.h, {_DOC})'
                     ) from None
         # the version first: another layout of m[] or of a call must not be opened at all
-        fns['im_drive_abi_version'].argtypes = []
-        fns['im_drive_abi_version'].restype = ctypes.c_int
         version = int(fns['im_drive_abi_version']())
         if version != ABI_VERSION:
             raise DriveLibraryError(
@@ -277,19 +245,6 @@ class LibraryHardware(_Measured):
                 f'calls version {ABI_VERSION}: rebuild it against '
                 f'share/im_drive_sim/include/im_drive.h ({_DOC}, "ABI version")'
             )
-        fns['im_drive_open'].argtypes, fns['im_drive_open'].restype = (
-            [ctypes.c_char_p],
-            ctypes.c_int,
-        )
-        fns['im_drive_write'].argtypes = [ctypes.c_double, ctypes.c_double]
-        fns['im_drive_write'].restype = ctypes.c_int
-        fns['im_drive_read'].argtypes = [ctypes.c_void_p]
-        fns['im_drive_read'].restype = ctypes.c_int
-        if 'im_drive_command_delay' in fns:
-            fns['im_drive_command_delay'].argtypes = []
-            fns['im_drive_command_delay'].restype = ctypes.c_int
-        if 'im_drive_close' in fns:
-            fns['im_drive_close'].argtypes, fns['im_drive_close'].restype = [], None
         self._fns = fns
         self._write, self._read = fns['im_drive_write'], fns['im_drive_read']
         self._m = np.zeros(N_MEASUREMENT)

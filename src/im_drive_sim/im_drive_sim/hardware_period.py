@@ -2,9 +2,6 @@
 stage given by address (``hardware_abi``: a C library, a compiled class), as numba
 functions the composed loop calls without the GIL (``im_tuner.bench.compiled_loop``).
 
-Why: run as Python, the example drive's period needs the interpreter and the GIL every
-period; compiled, it calls the power stage by address.
-
 The node stays the owner of the logic: ``ExampleDrive.period_words`` /
 ``set_period_words`` move its held command, latch, step index and counters to and from
 the arrays below, and ``test/test_hardware_loop.py`` holds the compiled period to the
@@ -29,17 +26,6 @@ from numba import njit
 
 from . import period_kernel as PK
 from .hardware_abi import call_elapse, call_read, call_write
-
-__all__ = [
-    'FAULT',
-    'N_WORDS',
-    'WORDS',
-    'hardware_missed',
-    'hardware_period',
-    'pack',
-    'safe_stop',
-    'unpack',
-]
 
 #: the words of ``D``: period_kernel's first nine (take_command and latch_labels use
 #: them at the same places), then the example drive's
@@ -66,42 +52,20 @@ F_APPLIED = PK.F_APPLIED
 
 
 def pack(node: Any, constants: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
-    """``D`` and ``DC`` of an ``ExampleDrive`` ``node`` (its held command, latch, safe
-    stop, step index, acting command, counters) and its ``constants`` (the other names
-    of :data:`WORDS`)."""
-    pend_applied, pend_fresh = node.latch.pending
-    words = {
-        'isq_ref': node.isq_ref,
-        'load': node.load_ref,
-        'applied': node.applied,
-        'fresh': node.fresh,
-        'held_answers': node.held_answers,
-        'pend_applied': pend_applied,
-        'pend_fresh': pend_fresh,
-        'safe_stopped': node.safe_stopped,
-        'command_delay': node.command_delay,
-        'k': node.k,
-        'acting': node.acting,
-        **constants,
-    }
-    D = np.array([float(words[n]) for n in WORDS])
-    DC = np.array([getattr(node.counters, n) for n in PK.COUNTERS], np.int64)
-    return D, DC
+    """``D`` and ``DC`` of an ``ExampleDrive`` ``node`` (``period_kernel.pack_words`` of
+    its held command, latch, safe stop and counters; its step index, acting command) and
+    its ``constants`` (the other names of :data:`WORDS`)."""
+    own = {'command_delay': node.command_delay, 'k': node.k, 'acting': node.acting}
+    return PK.pack_words(
+        node.held, node.latch, node.safe_stopped, {**own, **constants}, node.counters, WORDS
+    )
 
 
 def unpack(D: np.ndarray, DC: np.ndarray, node: Any) -> None:
     """Back from ``D`` and ``DC`` (:func:`pack`) into the node."""
-    node.isq_ref = float(D[PK.D_ISQ])
-    node.load_ref = float(D[PK.D_LOAD])
-    node.applied = int(D[PK.D_APPLIED])
-    node.fresh = bool(D[PK.D_FRESH])
-    node.held_answers = int(D[PK.D_HELD])
-    node.latch.pending = (int(D[PK.D_PEND_APPLIED]), bool(D[PK.D_PEND_FRESH]))
-    node.safe_stopped = bool(D[PK.D_STOPPED])
+    node.safe_stopped = PK.unpack_words(D, DC, node.held, node.latch, node.counters)
     node.k = int(D[D_K])
     node.acting = int(D[D_ACTING])
-    for i, n in enumerate(PK.COUNTERS):
-        setattr(node.counters, n, int(DC[i]))
 
 
 @njit(cache=True, nogil=True)

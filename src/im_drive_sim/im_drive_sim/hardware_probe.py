@@ -1,32 +1,8 @@
-"""The declared command delay, measured: a short latency probe of a power stage before a
-composed bench runs it (``tuner --bench realtime --drive ...``).
-
-A drive that acts on a command two periods after it while declaring one period makes
-every experiment's labels lie (the controller counts fresh periods that were not) and
-its losses are not the paper's. ``check_drive`` catches it over the topics; here the
-same test runs on the power stage itself (its ``write``/``read``, whatever its form:
-a Python hardware class, a compiled class, a C library), paced on the wall clock:
-
-1. hold zero current for ``BASELINE`` periods, reading each period (the course of isq
-   and its noise);
-2. write a q-current step of ``STEP_FRACTION`` x isq_max (signs alternate) for ``ON``
-   periods, reading each, then zero again for ``SETTLE`` periods;
-3. the *onset* of the step is the first read after its write (1 = the read of the
-   period that starts with the write) in which isq leaves its course by more than
-   2 % of the step or 8 noise levels (check_drive's rule).
-
-With command delay d the onset is d -- when the probe's periods keep time with the
-stage's. A stage on its own clock has period boundaries the probe does not know, and a
-probe period that runs late across one counts one period too many or too few. So the
-repeats' phases are spread over the period (each starts ``1 / REPEATS`` of a period later
-than the one before); a probe period that starts more than half a period late is not
-caught up (the schedule moves on by whole periods); a repeat in which a period ran late,
-or the reads around the step varied by more than ``JITTER`` of a period, is run again (at
-most ``REPEATS`` extra); and the *median* onset of the ``REPEATS`` (odd) repeats is judged.
-A drive whose median onset is later than it declares is refused in one line.
-
-The motion is small: ``ON`` periods of a tenth of the current limit; the whole probe takes
-about ``(REPEATS..2 REPEATS) x 23`` periods.
+"""The declared command delay, measured: a short latency probe of a power stage (its
+``write``/``read``, whatever its form) before a composed bench runs it (``tuner --bench
+realtime --drive ...``). The steps, the onset rule and why the repeats' phases are spread
+over the period: docs/real-drive.md, "Command delay"; a drive whose median onset is later
+than it declares is refused in one line.
 """
 
 from __future__ import annotations
@@ -37,8 +13,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-__all__ = ['DelayProbe', 'probe_delay']
 
 BASELINE = 8  #: periods of zero current before each step
 ON = 3  #: periods the step is held

@@ -1,18 +1,9 @@
-"""What this host lets a 5 kHz loop do: the loop's own wait, run alone, and what it means
-for an experiment's timing (``ros2 run im_drive_sim host_check``; docs/real-drive.md,
-"Check the host first").
-
-A real drive cannot pause: a period that starts more than a period late is one whose
-old current was held, and how often that happens is a property of the host.
-:func:`measure` runs the composed loop's own wait (``loop_clock``) alone on the wall clock
-and records, per period, the periods it held; :func:`judge` turns that into held periods
-per experiment (over every experiment-long window), the share that meets a timing
-tolerance, the least tolerance 95 % of them meet, and the change of a loss it allows
-(docs/real-drive.md, "Timing tolerance").
-
-Pure: numpy (numba in the measurement, :mod:`.loop_clock`), no rclpy. :func:`measure`
-runs in the calling thread; :func:`probe` runs it in a thread of its own with the
-real-time options applied (``rt.apply``: SCHED_FIFO, and the CPU latency request).
+"""What this host lets a 5 kHz loop do: the loop's own wait (``loop_clock``) run alone on
+the wall clock (:func:`measure`; in a thread of its own with the real-time options applied:
+:func:`probe`), the periods it held, and what that means for an experiment's timing
+(:func:`judge`): ``ros2 run im_drive_sim host_check``, and a run's check before its first
+experiment (:func:`check_before_run`). What it reports and why: docs/real-drive.md, "Check
+the host first" and "Timing tolerance". Pure: numpy (numba in the measurement), no rclpy.
 """
 
 from __future__ import annotations
@@ -26,16 +17,6 @@ from typing import Any
 import numpy as np
 
 from . import rt
-
-__all__ = [
-    'EXPERIMENT_PERIODS',
-    'LOSS_CHANGE_P95',
-    'HostFloor',
-    'judge',
-    'loss_change_pct',
-    'loss_change_words',
-    'measure',
-]
 
 #: An experiment's periods (1.125 s at 200 us: the paper's move and load step).
 EXPERIMENT_PERIODS = 5625

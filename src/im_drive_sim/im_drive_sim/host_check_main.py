@@ -2,13 +2,9 @@
 drive loop, and at which timing tolerance? Run it first, on the machine that will run
 the loop (docs/real-drive.md, "Check the host first").
 
-It runs the composed loop's own wait for N seconds (:mod:`.host`; SCHED_FIFO 50 and the
-CPU latency request when permitted, saying which) and prints the late periods, the
-lateness histogram, the bursts of held periods, the worst start, and the verdict: the
-share of 1.125 s experiments that would meet ``--timing-tolerance``, the least tolerance
-95 % of them meet and what it may change a loss by. ``--json``: one JSON object on
-stdout for scripts (``late_pct``, ``tolerance``, ``meets``, ...). Exit 0 with a verdict
-either way; bad input one line, exit 2; Ctrl-C exit 130.
+It runs the composed loop's own wait for N seconds (:mod:`.host`) and prints what it
+measured and the verdict (``--json``: one JSON object on stdout); exit 0 with a verdict
+either way.
 """
 
 from __future__ import annotations

@@ -14,8 +14,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-__all__ = ['TRIAL_TIMEOUT_S', 'trial_library']
-
 #: [s] a library's trial (load, im_drive_abi_version, im_drive_open, a write of zero and
 #: im_drive_close, in a child process) must end within: a vendor's open that enumerates a
 #: bus takes seconds; one that never returns is named, not waited for

@@ -1,14 +1,11 @@
 """The compiled loops' clock: the wait for each period start, in numba, and the schedule's
-words it keeps.
-
-Every compiled 5 kHz loop of the workspace waits here (the composed bench's, the host
-check's through :func:`run_schedule`, ``benchmarks/loop_floor.py``), so that the host check
-measures the loop's own wait. The schedule is ``pacing.Pacer``'s, in nanoseconds of
-CLOCK_MONOTONIC: period n starts at ``t0 + n ts``; the wait sleeps (``clock_nanosleep``,
-absolute) to ``T[T_SPIN]`` before the start and busy-waits the rest. ``T_SPIN`` = 0 is a
-pure sleep, ``T_SPIN`` >= the period a pure spin. A start more than one period late is an
-*overrun*; on a drive that cannot pause (``T[T_WALL]``) the m whole periods it skipped are
-*missed* (held: the drive kept its old command over them), else the schedule re-anchors.
+words it keeps. Every compiled 5 kHz loop of the workspace waits here (the composed
+bench's, the host check's through :func:`run_schedule`, ``benchmarks/loop_floor.py``), so
+that the host check measures the loop's own wait. The schedule is ``pacing.Pacer``'s, in
+nanoseconds of CLOCK_MONOTONIC: the wait sleeps (``clock_nanosleep``, absolute) to
+``T[T_SPIN]`` before the start and busy-waits the rest (``T_SPIN`` = 0: a pure sleep; >=
+the period: a pure spin); a drive that cannot pause (``T[T_WALL]``) counts the whole
+periods a late start skipped *missed*, else the schedule re-anchors.
 
 The words of ``T`` (int64) that the wait reads and writes come first (``T_*`` here,
 ``N_CLOCK`` of them); a loop that keeps more words of its own puts them after.
@@ -24,8 +21,6 @@ import numpy as np
 from numba import types
 
 from .rt import SPIN_US
-
-__all__ = ['N_CLOCK', 'nap', 'now_ns', 'run_schedule', 'sleep_until', 'wait_start']
 
 _clock_gettime = types.ExternalFunction('clock_gettime', types.int32(types.int32, types.uint64))
 _clock_nanosleep = types.ExternalFunction(

@@ -1,17 +1,9 @@
-"""One numeric baseline for every process of the project: the same bits on every x86-64 CPU
-(why: docs/tuner.md, "The same bits on every machine").
-
-The baseline, ``x86-64-v3``: numpy's dispatch held at ``X86_V3`` (``NPY_DISABLE_CPU_FEATURES``
-gets the targets above it, :data:`NUMPY_ABOVE`, added to what it already holds), OpenBLAS's
-core type ``Haswell`` (``OPENBLAS_CORETYPE``) and one OpenBLAS thread
-(``OPENBLAS_NUM_THREADS=1``). Both libraries read these variables once, when loaded:
-:func:`apply` sets them in ``os.environ`` before numpy is imported (``import im_drive_sim``
-calls it), so every child process inherits them.
-
-A machine below the baseline runs natively with one OpenBLAS thread (:func:`status`:
-``below``); ``IM_NUMERIC_BASELINE=off`` leaves every library its own choice (``off``); where
-numpy was imported first, :func:`status` reports ``held`` only if numpy and OpenBLAS run the
-baseline anyway, else ``late``.
+"""One numeric baseline for every process of the project, ``x86-64-v3``: the same bits on
+every x86-64 CPU (what it sets, and why: docs/tuner.md, "The same bits on every machine").
+:func:`apply` sets the variables in ``os.environ`` before numpy is imported (``import
+im_drive_sim`` calls it), so every child process inherits them; :func:`status` says
+whether they hold (``held``, ``off``, ``below``, ``unsupported``, ``invalid``: :class:`Plan`;
+``late``: numpy was imported first and runs off the baseline).
 
 Importable without numpy: :func:`plan` is the decision (environment in, environment out);
 :func:`status` imports numpy, scipy's BLAS and ``threadpoolctl`` only when asked.
@@ -25,22 +17,6 @@ import contextlib
 import os
 from collections.abc import Mapping, MutableMapping
 from typing import Any, NamedTuple
-
-__all__ = [
-    'LEVEL',
-    'NUMPY_ABOVE',
-    'OPENBLAS_CORE',
-    'SWITCH',
-    'Plan',
-    'apply',
-    'cpu_flags',
-    'cpu_model',
-    'describe',
-    'differs',
-    'plan',
-    'status',
-    'switch_problem',
-]
 
 #: The baseline's name (the x86-64 psABI micro-architecture level).
 LEVEL = 'x86-64-v3'

@@ -1,24 +1,8 @@
-"""What a real-time loop publishes, taken out of its period: bounded rings, a publisher
-thread that never holds the GIL while rcl publishes, and a tap for the run's recorder.
-
-Why (docs/real-drive.md, "Real-time set-up"): on a reliable topic whose reader stopped
-taking, Fast DDS blocks ``publish`` for up to its max blocking time with the GIL held, so a
-loop that publishes itself stalls with any frozen reader. As realtime_tools'
-RealtimePublisher, the loop hands the message over without blocking, a non-real-time
-thread publishes it, and a message the other side had no room for is dropped. Here:
-
-* the loop :meth:`Channel.put` s the CDR bytes of each message into a ring per topic and
-  per consumer (single producer, single consumer; preallocated, nothing allocated per
-  message): one ring for the DDS publisher and, when the run records, one for the
-  recorder (:meth:`Outbox.tap`), so that a reader who blocks DDS cannot cost the bag a
-  message;
-* a :class:`PublisherThread` per topic drains its DDS ring in a numba loop that calls
-  ``rcl_publish_serialized_message`` and never holds the GIL (``nogil``): a publish that
-  blocks holds no Python thread back;
-* a full ring drops the new message for that consumer and counts it (``lost``); a publish
-  rcl refused (a reader that does not take, past the max blocking time) is counted
-  ``failed``. Both go into the run's summary and the bag's metadata
-  (:meth:`Outbox.counts`); in normal operation both are zero.
+"""What a real-time loop publishes, taken out of its period: a bounded ring per topic and
+per consumer (the DDS publisher; the run's recorder, :meth:`Outbox.tap`), a
+:class:`PublisherThread` per topic that publishes its ring without the GIL, losses counted
+(:meth:`Outbox.counts`). Why and what is recorded: docs/real-drive.md, "How the composed
+loop runs".
 
 Ordering: the producer writes the slot, then (from Python, after the kernel returned)
 the head; the consumer reads the head, then the slots below it. The recorder's tap is
@@ -43,8 +27,6 @@ import numba
 import numpy as np
 import rclpy.impl.implementation_singleton  # noqa: F401  (loads librcl into the process)
 from numba import types
-
-__all__ = ['Channel', 'Outbox', 'PublisherThread', 'Ring', 'put_slot']
 
 
 def loaded_library(name: str) -> str:

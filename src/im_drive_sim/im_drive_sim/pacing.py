@@ -1,15 +1,10 @@
 """The wall-clock schedule of a real-time drive, and what a drive offers a loop that runs it.
 
 Every real-time loop of the project -- the simulator's (``drive_sim --mode realtime``), the
-example drive's, and the composed bench's (``im_tuner.bench.realtime``: drive and
-controller in one process) -- paces its periods with one :class:`Pacer`: period n starts at
-``t0 + n Ts``; the loop sleeps in the drive's command wait (taking commands as they come)
-and busy-waits the last ``spin_margin`` for a precise start; a period that starts more than
-one period late is an *overrun*: it is counted and the schedule re-anchored (no burst of
-catch-up periods; a simulated drive's time stays k Ts).
-
-A drive that a composed loop can run (:class:`PeriodicDrive`) is a node with the contract's
-topics and these methods; ``DriveSimNode`` (real time) and ``ExampleDrive`` are two.
+example drive's, and the composed bench's (``im_tuner.bench.realtime``) -- paces its
+periods with one :class:`Pacer`. A drive that a composed loop can run
+(:class:`PeriodicDrive`) is a node with the contract's topics and these methods;
+``DriveSimNode`` (real time) and ``ExampleDrive`` are two.
 
 Pure Python but for :class:`DurationHistograms` (one compiled call a period). Nothing here
 allocates per period.
@@ -24,15 +19,6 @@ from typing import Any, Protocol
 
 import numba
 import numpy as np
-
-__all__ = [
-    'CommandSource',
-    'CommandWatchdog',
-    'DurationHistograms',
-    'Pacer',
-    'PeriodicDrive',
-    'count_durations',
-]
 
 
 class PeriodicDrive(Protocol):
@@ -73,7 +59,10 @@ LATENESS_BINS: tuple[str, ...] = ('<10us', '<50us', '<200us', '<1ms', '<10ms', '
 
 
 class Pacer:
-    """Period starts at ``t0 + n ts`` on ``time.perf_counter`` (see the module docstring).
+    """Period n starts at ``t0 + n ts`` on ``time.perf_counter``; the loop sleeps in the
+    drive's command wait (taking commands as they come) and busy-waits the last
+    ``spin_margin`` for a precise start; a start more than one period late is an
+    *overrun*, and no burst of catch-up periods follows (``wall_clock`` below).
 
     ``overruns``: periods that started more than a period late; ``max_lateness_us``: the
     worst start lateness [us]; ``lateness_s``: the last period's; ``lateness_hist``:
@@ -227,23 +216,12 @@ class CommandSource:
                 return None
             self._pending = False
             return self._handed
-        r = self.subscription.handle.take_message(_float64_array_type(), True)
-        if r is None:
-            return None
-        from .cdr import parse_float64_array
+        from std_msgs.msg import Float64MultiArray
 
-        data = parse_float64_array(r[0], self.n)
-        if data is None:  # not our compact layout: deserialise the general way
-            from rclpy.serialization import deserialize_message
+        from .cdr import read_float64_array
 
-            data = deserialize_message(r[0], _float64_array_type()).data
-        return data
-
-
-def _float64_array_type() -> Any:
-    from std_msgs.msg import Float64MultiArray
-
-    return Float64MultiArray
+        r = self.subscription.handle.take_message(Float64MultiArray, True)
+        return None if r is None else read_float64_array(r[0], self.n)
 
 
 @numba.njit(cache=True)

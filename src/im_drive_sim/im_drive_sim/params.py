@@ -16,26 +16,6 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-__all__ = [
-    'BENCH_ESTIMATES',
-    'BENCH_NOISE_KEYS',
-    'BENCH_NOISE_SCALE',
-    'BENCH_REFERENCE',
-    'BENCH_SCALING',
-    'REALISM_PROFILES',
-    'ConfigError',
-    'ControlParams',
-    'DisturbanceParams',
-    'DriveConfig',
-    'MachineParams',
-    'SensorParams',
-    'bench_profile',
-    'config_from_dict',
-    'default_config_path',
-    'rating_scales',
-    'realism_values',
-]
-
 
 class ConfigError(ValueError):
     """Invalid drive configuration; the message names the source and the key path."""

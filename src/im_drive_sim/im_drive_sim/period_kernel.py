@@ -33,24 +33,6 @@ from numba import njit
 
 from . import contract, kernels as K
 
-__all__ = [
-    'COUNTERS',
-    'MSG_CLOCK',
-    'MSG_JOINT',
-    'MSG_STATE',
-    'N_WORDS',
-    'WORDS',
-    'hold_labels',
-    'latch_labels',
-    'pack_words',
-    'put_joint',
-    'run_missed',
-    'run_period',
-    'safe_stop',
-    'take_command',
-    'unpack_words',
-]
-
 #: the words of ``D``, in order
 WORDS: tuple[str, ...] = (
     'isq_ref',  # the held command [A]
@@ -114,11 +96,17 @@ NS_PER_S = contract.NS_PER_S
 
 
 def pack_words(
-    held: Any, latch: Any, safe_stopped: bool, constants: dict[str, Any], counters: Any
+    held: Any,
+    latch: Any,
+    safe_stopped: bool,
+    constants: dict[str, Any],
+    counters: Any,
+    words_of_d: tuple[str, ...] = WORDS,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``D`` and ``DC`` of a drive's held command (``command_latch.HeldCommand``), its
     latch (``command_latch.CommandLatch``), the safe-stop latch, its ``constants`` (the
-    other names of :data:`WORDS`) and its counters (:data:`COUNTERS` by name)."""
+    other names of ``words_of_d``: :data:`WORDS`, or a layout that starts as its first
+    nine, ``hardware_period.WORDS``) and its counters (:data:`COUNTERS` by name)."""
     pend_applied, pend_fresh = latch.pending
     words = {
         'isq_ref': held.isq_ref,
@@ -131,7 +119,7 @@ def pack_words(
         'safe_stopped': safe_stopped,
         **constants,
     }
-    D = np.array([float(words[n]) for n in WORDS])
+    D = np.array([float(words[n]) for n in words_of_d])
     DC = np.array([getattr(counters, n) for n in COUNTERS], np.int64)
     return D, DC
 

@@ -13,8 +13,6 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from . import contract
 from .contract import QosSpec
 
-__all__ = ['LOCKSTEP_QOS', 'RECORDED_QOS', 'SERVICES_QOS', 'qos_profile']
-
 
 def qos_profile(spec: QosSpec) -> QoSProfile:
     """The rclpy ``QoSProfile`` of a contract ``QosSpec`` (contract.LOCKSTEP, RECORDED)."""

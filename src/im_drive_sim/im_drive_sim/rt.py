@@ -1,16 +1,10 @@
 """Real-time scheduling of a 5 kHz loop, as ros2_control_node does it (docs/real-drive.md,
-"Real-time set-up").
-
-Three options, applied to the thread that runs the loop (and inherited by the threads it
-starts afterwards): ``--thread-priority N`` (SCHED_FIFO at priority N),
-``--cpu-affinity CPU`` and ``--lock-memory`` (``mlockall``, through ctypes). And one
-without an option, held whenever a real-time loop runs (:func:`hold_latency`): the
-kernel's PM QoS CPU latency request, ``/dev/cpu_dma_latency`` = 0 while the file stays
-open, which keeps the CPUs out of deep idle states.
-
-What the system does not permit is not applied: :func:`apply` returns one line saying why
-and how to grant it, and the run goes on. :func:`report` describes what the loop runs
-with (the summary and the bag's metadata record it). No rclpy here.
+"Real-time set-up"): ``--thread-priority N`` (SCHED_FIFO), ``--cpu-affinity CPU`` and
+``--lock-memory`` (``mlockall``, through ctypes), applied to the thread that runs the loop,
+and the kernel's PM QoS CPU latency request held whenever a real-time loop runs
+(:func:`hold_latency`). What the system does not permit is not applied: :func:`apply`
+returns one line saying why and how to grant it, and the run goes on; :func:`report`
+describes what the loop runs with. No rclpy here.
 """
 
 from __future__ import annotations
@@ -29,16 +23,6 @@ from typing import Any
 
 from .cli import int_in
 from .numeric import cpu_model
-
-__all__ = [
-    'RtOptions',
-    'add_arguments',
-    'apply',
-    'apply_and_say',
-    'for_the_loop',
-    'hold_latency',
-    'report',
-]
 
 MCL_CURRENT, MCL_FUTURE = 1, 2
 

@@ -25,18 +25,6 @@ from . import kernels as K, model_layout as L, plant
 from .drive_file import load_config
 from .params import DriveConfig, MachineParams
 
-__all__ = [
-    'NOISE_BLOCK',
-    'RUN_FIELDS',
-    'STATE_FIELDS',
-    'DriveSim',
-    'friction_smoothing_speed',
-    'load_step_delay_periods',
-    'make_param_array',
-    'start_position',
-    'stribeck_gain',
-]
-
 STATE_FIELDS: tuple[str, ...] = L.STATE_FIELDS
 """Fields written by ``step_into``/``read_into``, in order (units in docs/drive-model.md)."""
 RUN_FIELDS: tuple[str, ...] = L.RUN_FIELDS
@@ -90,7 +78,8 @@ def make_param_array(cfg: DriveConfig) -> np.ndarray:
     P[L.P_INV_WS2] = 1.0 / (m.stribeck_speed * m.stribeck_speed)
     P[L.P_RR_RISE] = m.rr_temp_coeff * m.rr_temp_rise
     P[L.P_INV_TTH] = 1.0 / m.rr_temp_tau
-    P[L.P_LS_DELAY_N] = float(load_step_delay_periods(cfg))
+    # a load step waits U{0, ..., N} periods (docs/drive-model.md, "Bench effects")
+    P[L.P_LS_DELAY_N] = float(round(d.load_step_delay_max / Ts))
     on = d.load_step_amplitude_std != 0.0 or P[L.P_LS_DELAY_N] != 0.0
     P[L.P_LS_ON] = 1.0 if on else 0.0
     return P
@@ -112,12 +101,6 @@ def stribeck_gain(m: MachineParams) -> float:
     if m.static_torque == 0.0:
         return 0.0
     return math.sqrt(2.0 * math.e) * (m.static_torque - m.coulomb_torque) / m.stribeck_speed
-
-
-def load_step_delay_periods(cfg: DriveConfig) -> int:
-    """N, the largest delay of a commanded load step in periods: round(load_step_delay_max
-    / Ts); a step waits U{0, ..., N} periods (docs/drive-model.md, "Bench effects")."""
-    return round(cfg.disturbance.load_step_delay_max / cfg.Ts)
 
 
 def start_position(config: DriveConfig) -> float:
@@ -312,17 +295,6 @@ class DriveSim:
         )
         self._consume()
 
-    def _batch(self, n: int, call: Any) -> None:
-        """Run ``call(start, count)`` in chunks that end on noise-block boundaries."""
-        start = 0
-        while start < n:
-            cnt = min(n - start, self._left)
-            call(start, cnt)
-            start += cnt
-            self._left -= cnt
-            if self._left == 0:
-                self._refill()
-
     def run_kernel(
         self,
         n: int,
@@ -393,7 +365,12 @@ class DriveSim:
         """``n`` steps by ``kernel(out, start, count)`` (in noise-block chunks), one row of
         ``out`` (``RUN_FIELDS``) a step; the columns by name."""
         out = np.empty((n, L.N_RUN_FIELDS))
-        self._batch(n, lambda s0, c: kernel(out, s0, c))
+
+        def rows(S: np.ndarray, P: np.ndarray, noise: np.ndarray, start: int, count: int) -> int:
+            kernel(out, start, count)
+            return count
+
+        self.run_kernel(n, rows)
         return {name: out[:, j] for j, name in enumerate(RUN_FIELDS)}
 
     # ------------------------------------------------------------------ state

@@ -1,16 +1,11 @@
-"""A stop signal (SIGINT, SIGTERM) passed to a real-time loop without waiting for Python.
-
-Python runs a signal's handler in the main thread at its next bytecode, which may come
-many milliseconds later while the loop goes on commanding current. The interpreter's
-C-level handler, though, writes the signal's number at once to the *wakeup fd*
-(:func:`signal.set_wakeup_fd`). A watcher thread waits on that pipe in compiled code
+"""A stop signal (SIGINT, SIGTERM) passed to a real-time loop without waiting for Python,
+whose handler runs in the main thread only at its next bytecode: the interpreter's C-level
+handler writes the signal's number at once to the *wakeup fd*
+(:func:`signal.set_wakeup_fd`); a watcher thread waits on that pipe in compiled code
 (``poll(2)`` and ``read(2)`` from numba, no GIL) and sets the loop's stop word, which the
 loop reads every period. Python's own handler still runs (the run's orderly end follows
-it).
-
-The watcher also calls ``should_stop()`` every :data:`POLL_MS` (a stop asked for by
-other means than a signal). Where the wakeup fd cannot be taken (not the main thread)
-that is all it does.
+it). The watcher also asks ``should_stop()`` every :data:`POLL_MS`; where the wakeup fd
+cannot be taken (not the main thread) that is all it does.
 
 Written by hand: the wakeup fd is the interpreter's own mechanism; no library waits on
 it without the GIL.
@@ -28,8 +23,6 @@ from collections.abc import Callable
 import numba
 import numpy as np
 from numba import types
-
-__all__ = ['POLL_MS', 'StopWatcher', 'wait_for_stop']
 
 #: [ms] how often the watcher asks ``should_stop()``
 POLL_MS = 5

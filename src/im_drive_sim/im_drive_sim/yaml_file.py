@@ -8,8 +8,6 @@ from typing import Any
 
 import yaml
 
-__all__ = ['YamlFileError', 'read_yaml']
-
 
 class YamlFileError(ValueError):
     """A file that is not readable YAML; its text is one line, without the file's name."""

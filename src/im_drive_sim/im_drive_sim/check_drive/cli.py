@@ -18,8 +18,6 @@ from .probe import DriveLost, Interrupted
 from .procedure import Options, run_check
 from .thresholds import CHECK_LIMIT_S, CheckRefused
 
-__all__ = ['main', 'parse_args']
-
 
 def parse_args(argv: list[str]) -> Options:
     """The options, checked; a bad one raises UsageError (one line, exit 2 in main)."""

@@ -1,23 +1,9 @@
 """check_drive's measure of itself: did the check keep up, and did the link deliver?
-
-On a loaded machine the check answers late; across a network a packet is lost or held.
-Either changes what the drive was asked to do, through no fault of the drive. Two
-measures tell it, both from what was recorded (pure numpy, no ROS):
-
-* **command lag** (the drive's view): in state k the drive labels the command it applied
-  (``applied_step``); a command that came in time gives ``applied_step = k - d``
-  (d = ``command_delay``, docs/interfaces.md). The lag ``k - d - applied_step`` [periods]
-  is 0 for a fresh period, and > 0 when the check answered late or the link held the
-  command (states under the watchdog, ``applied_step = -1``, are not counted);
-* **excess take delay** (the check's view): the time from the drive's publication
-  (``source_timestamp``, the drive's clock) to the check taking the state (its clock),
-  less the smallest such delay of the whole check [s]. The offset of two computers'
-  clocks cancels; what is left is the check's own lateness and the link's.
-
-``lost`` counts the states the link lost (gaps in the DDS publication sequence numbers:
-the check reads best effort). :func:`busy_reason` turns a phase's measures into the
-reason a timing verdict cannot be trusted ('' when the check kept up); the items that
-depend on timing say ``inconclusive`` with it instead of a pass or a fail.
+Per phase, from what was recorded (pure numpy, no ROS): the **command lag** by the
+drive's ``applied_step`` labels, the **excess take delay** (publication to take, less the
+smallest) and the states **lost** (publication sequence gaps); :func:`busy_reason` turns
+them into the reason a timing verdict cannot be trusted ('' when the check kept up).
+What each measures and why: docs/check-drive.md, "When the check falls behind".
 """
 
 from __future__ import annotations
@@ -33,15 +19,6 @@ from .thresholds import (
     STATE_FIELDS,
     F,
 )
-
-__all__ = [
-    'Conditions',
-    'busy_reason',
-    'command_lag',
-    'drive_lateness',
-    'excess_delay',
-    'phase_conditions',
-]
 
 
 def excess_delay(take_ns: np.ndarray, source_ns: np.ndarray) -> np.ndarray:
@@ -69,12 +46,9 @@ def drive_lateness(
     lower quartile of the same over the received steps within ``window`` steps either
     side [s]; NaN where no state of that step came (skipped by a drive that cannot pause,
     or lost). ``period_ns``: the drive's own period (its clock, ``judges.clock_period``;
-    a drive paced wrong is judged by ``rate``, not here).
-
-    This is the drive's host as the drive lived it during the check: a period that
-    started late publishes late. The lower quartile (not the minimum: one early outlier)
-    is the drive's on-time schedule there; a drive that re-anchors after a stall shows
-    late on one side of the stall, never early."""
+    a drive paced wrong is judged by ``rate``, not here). The lower quartile (not the
+    minimum: one early outlier) is the drive's on-time schedule there (docs/check-drive.md,
+    "When the check falls behind")."""
     ok = np.isfinite(steps)
     k = steps[ok].astype(np.int64)
     if len(k) == 0:

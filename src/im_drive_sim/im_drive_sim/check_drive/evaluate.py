@@ -58,21 +58,6 @@ from .thresholds import (
     Item,
 )
 
-__all__ = ['DriveLateness', 'Recording', 'evaluate', 'json_ready', 'rows_by_step']
-
-
-def rows_by_step(states: np.ndarray, lengths: np.ndarray, first: int, last: int) -> np.ndarray:
-    """States of steps first..last as a dense array indexed by step - first (NaN where a step
-    was not received; the first copy of a re-sent state)."""
-    out = np.full((last - first + 1, len(STATE_FIELDS)), np.nan)
-    ok = lengths == len(STATE_FIELDS)
-    s = states[ok]
-    k = s[:, F['step_index']].astype(np.int64)
-    sel = (k >= first) & (k <= last)
-    for row, kk in zip(s[sel][::-1], k[sel][::-1], strict=True):
-        out[kk - first] = row
-    return out
-
 
 def fill_missed(d: np.ndarray) -> np.ndarray:
     """``d`` (rows by step, NaN where no state came) with the interior gaps of at most
@@ -152,10 +137,16 @@ class Recording:
         return len(self.cmd)
 
     def rows_by_step(self, first: int, last: int, filled: bool = False) -> np.ndarray:
-        """:func:`rows_by_step` of this recording; ``filled``: in real time with the short
-        gaps bridged (:func:`fill_missed`)."""
-        d = rows_by_step(self.states, self.lengths, first, last)
-        return fill_missed(d) if filled and self.realtime else d
+        """States of steps first..last as a dense array indexed by step - first (NaN where
+        a step was not received; the first copy of a re-sent state); ``filled``: in real
+        time with the short gaps bridged (:func:`fill_missed`)."""
+        out = np.full((last - first + 1, len(STATE_FIELDS)), np.nan)
+        s = self.states[self.lengths == len(STATE_FIELDS)]
+        k = s[:, F['step_index']].astype(np.int64)
+        sel = (k >= first) & (k <= last)
+        for row, kk in zip(s[sel][::-1], k[sel][::-1], strict=True):
+            out[kk - first] = row
+        return fill_missed(out) if filled and self.realtime else out
 
 
 def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
@@ -297,13 +288,8 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
             metrics[0], metrics[1], a, counts_per_rad, busy=late, gaps=gaps
         )
     else:
-        nan = {
-            'rise_s': math.nan,
-            'steady_error': math.nan,
-            'torque_per_amp': math.nan,
-            'accel': math.nan,
-            'duration_s': 0.0,
-        }
+        figures = ('rise_s', 'steady_error', 'torque_per_amp', 'accel')
+        nan = {**dict.fromkeys(figures, math.nan), 'duration_s': 0.0}
         item = judge_step_response(
             nan, nan, a, counts_per_rad, rec.aborted_why or 'step test incomplete'
         )

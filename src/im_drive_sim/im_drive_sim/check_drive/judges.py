@@ -28,22 +28,6 @@ from .thresholds import (
     finite_or_none,
 )
 
-__all__ = [
-    'clock_period',
-    'conditions_line',
-    'exit_code',
-    'joint_state_problems',
-    'judge_fields',
-    'judge_rate_lockstep',
-    'judge_rate_realtime',
-    'judge_topics',
-    'lockstep_step_problems',
-    'period_stats',
-    'state_field_problems',
-    'summary_line',
-    'units_ratio',
-]
-
 # ================================ pure judging functions ===================================
 
 
@@ -269,17 +253,8 @@ def period_stats(
     keep = dk > 0
     per_step = np.diff(source_ts_ns.astype(np.float64))[keep] / dk[keep] * 1e-9
     if len(per_step) == 0:
-        return {
-            'n': 0,
-            'median': math.nan,
-            'p99': math.nan,
-            'mean': math.nan,
-            'long_fraction': math.nan,
-            'p10': math.nan,
-            'p90': math.nan,
-            'clock': math.nan,
-            'skipped': skipped,
-        }
+        figures = ('median', 'p99', 'mean', 'long_fraction', 'p10', 'p90', 'clock')
+        return {'n': 0, **dict.fromkeys(figures, math.nan), 'skipped': skipped}
     return {
         'n': len(per_step),
         'median': float(np.median(per_step)),
@@ -297,14 +272,9 @@ def judge_rate_realtime(
     stats: dict[str, float], ts: float, mode_note: str = '', busy: str = ''
 ) -> Item:
     """Median period within RATE_TOLERANCE of Ts and at most RATE_MAX_LONG_FRACTION of
-    periods longer than 2 Ts. Where that fails while the check itself fell behind
-    (``busy``, the reason) the machine, not the drive, may be late, and the item is
-    inconclusive -- unless the drive is paced wrong, which no load explains. A drive that
-    skipped periods (``skipped`` > 0) keeps to the wall clock: its clock
-    (:func:`clock_period`) must be within CLOCK_TOLERANCE of Ts however loaded the
-    machine. One that never skipped pauses when it is late (the simulator): Ts must then
-    lie inside its spread of periods widened by RATE_TOLERANCE (10th percentile <= 1.1 Ts,
-    90th >= 0.9 Ts)."""
+    periods longer than 2 Ts; inconclusive where that fails while the check fell behind
+    (``busy``, the reason), unless the drive is paced wrong (its clock, or the spread of a
+    drive that pauses, against Ts: docs/check-drive.md, ``rate``)."""
     clock = stats.get('clock', math.nan)
     p10, p90 = stats.get('p10', stats['median']), stats.get('p90', stats['median'])
     if stats.get('skipped', 0):

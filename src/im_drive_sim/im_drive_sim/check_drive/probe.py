@@ -7,17 +7,17 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
-from ..contract import COMMAND_TOPIC, JOINT_STATE_TOPIC, STATE_TOPIC, STATUS_TOPIC
+from ..cdr import read_float64_array
+from ..contract import COMMAND_TOPIC, JOINT_STATE_TOPIC, STATE_TOPIC, STATUS_TOPIC, QosSpec
 from .thresholds import (
     NS_PER_S,
     STATE_FIELDS,
     F,
 )
-
-__all__ = ['DriveLost', 'Interrupted', 'Probe']
 
 
 class Interrupted(Exception):
@@ -35,15 +35,12 @@ class Probe:
         # ROS imports here, not at module level: the judging functions need none.
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-        from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray
 
-        from im_drive_sim.cdr import parse_float64_array
+        from im_drive_sim.qos import qos_profile
 
         self.node = node
-        self._parse, self._deserialize = parse_float64_array, deserialize_message
         self._Float64MultiArray, self._JointState = Float64MultiArray, JointState
         self._DiagnosticArray = DiagnosticArray
 
@@ -51,13 +48,8 @@ class Probe:
         # numbers show it), never held back (a reliable reader would hold every later
         # state until a lost one was repaired). Deep keep-last: a stall of this process up
         # to 1 s loses nothing.
-        def best_effort(depth: int) -> QoSProfile:
-            return QoSProfile(
-                history=HistoryPolicy.KEEP_LAST,
-                depth=depth,
-                reliability=ReliabilityPolicy.BEST_EFFORT,
-                durability=DurabilityPolicy.VOLATILE,
-            )
+        def best_effort(depth: int) -> Any:
+            return qos_profile(QosSpec('keep_last', depth, 'best_effort'))
 
         noop = lambda _m: None  # noqa: E731 (taken by hand, never by an executor)
         self.state_sub = node.create_subscription(
@@ -113,9 +105,7 @@ class Probe:
             if r is None:
                 break
             raw, info = r
-            data = self._parse(raw, width)  # our compact layout, straight into numpy
-            if data is None:  # another layout: the general way
-                data = np.asarray(self._deserialize(raw, self._Float64MultiArray).data)
+            data = np.asarray(read_float64_array(raw, width))  # our compact layout: no copy
             i = self.n
             self.lengths[i] = len(data)
             if len(data) == width:

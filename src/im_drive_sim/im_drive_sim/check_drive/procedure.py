@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..contract import COMMAND_TOPIC, JOINT_STATE_TOPIC, STATE_TOPIC, STATUS_TOPIC
+from ..contract import COMMAND_TOPIC, TOPIC_TYPES
 from ..rt import RtOptions
 from .evaluate import Recording, evaluate
 from .probe import DriveLost, Probe
@@ -29,8 +29,6 @@ from .thresholds import (
     F,
     Item,
 )
-
-__all__ = ['Options', 'run_check']
 
 
 @dataclass
@@ -274,18 +272,15 @@ def _probe(
         cmd_ns=p.cmd_ns[: p.m].copy(),
         joints=np.array(p.joints, dtype=float).reshape(-1, 4),
         endpoints={
-            STATE_TOPIC: [e.topic_type for e in node.get_publishers_info_by_topic(state_topic)],
-            COMMAND_TOPIC: [e.topic_type for e in node.get_subscriptions_info_by_topic(cmd_topic)],
-            JOINT_STATE_TOPIC: [
+            topic: [
                 e.topic_type
-                for e in node.get_publishers_info_by_topic(
-                    node.resolve_topic_name(JOINT_STATE_TOPIC)
+                for e in (
+                    node.get_subscriptions_info_by_topic(cmd_topic)
+                    if topic == COMMAND_TOPIC
+                    else node.get_publishers_info_by_topic(node.resolve_topic_name(topic))
                 )
-            ],
-            STATUS_TOPIC: [
-                e.topic_type
-                for e in node.get_publishers_info_by_topic(node.resolve_topic_name(STATUS_TOPIC))
-            ],
+            ]
+            for topic in TOPIC_TYPES
         },
         ts=ts,
         ts_ns=ts_ns,

@@ -14,7 +14,6 @@ import numpy as np
 
 from .thresholds import (
     ACCEL_MIN_COUNTS,
-    EFFECT_DELAY_LOCKSTEP,
     LABEL_SLOWER_MAX_REALTIME,
     LATENCY_MEDIAN_MAX,
     LATENCY_P99_MAX,
@@ -29,20 +28,6 @@ from .thresholds import (
     Item,
     finite_or_none,
 )
-
-__all__ = [
-    'StepSegment',
-    'fit_acceleration',
-    'judge_latency',
-    'judge_step_response',
-    'judge_watchdog_lockstep',
-    'judge_watchdog_realtime',
-    'label_delay',
-    'onset_delay',
-    'rise_time',
-    'step_metrics',
-    'watchdog_limits',
-]
 
 
 def onset_delay(x: np.ndarray, i0: int, delta_ref: float, max_delay: int = 20) -> int | None:
@@ -84,7 +69,7 @@ def judge_latency(
     delays: Sequence[int | None],
     wall_s: np.ndarray,
     realtime: bool,
-    declared: int = EFFECT_DELAY_LOCKSTEP,
+    declared: int = 1,
     labels: Sequence[int | None] | None = None,
     complete: Sequence[bool] | None = None,
     busy: str = '',
@@ -100,12 +85,8 @@ def judge_latency(
     ``on_time``: per change, whether every period of the drive from the change to where
     it showed and was labelled started on time (False: its label is not judged -- a
     period that started late may act a period late through no fault of the drive);
-    ``host``: the drive's host in words, for the reason when too few were.
-
-    In real time a change whose label is later than k+d+1 reached the drive late (the
-    check answered late, or the link held it: the drive says so): its effect is not
-    judged against the declared delay, only against its label. Fewer than 3 changes
-    judged, or wall-time limits missed while ``busy``: inconclusive, with the reason."""
+    ``host``: the drive's host in words, for the reason when too few were. The rule, and
+    when it is inconclusive: docs/check-drive.md, ``latency``."""
     n = len(delays)
     whole = list(complete) if complete is not None else [True] * n
     lab = list(labels) if labels is not None else [None] * n

@@ -10,49 +10,6 @@ from dataclasses import dataclass, field
 
 from ..contract import STATE_FIELDS, TOPIC_TYPES
 
-__all__ = [
-    'ACCEL_MIN_COUNTS',
-    'BUSY_FRESH_MIN',
-    'BUSY_LATE_P99_S',
-    'CHECK_LIMIT_S',
-    'CLOCK_TOLERANCE',
-    'CURRENT_BOUND_FACTOR',
-    'CURRENT_FIELDS',
-    'DEFAULT_TIMEOUT',
-    'DISCOVERY_SETTLE_S',
-    'DRIVE_LATE_MAX_S',
-    'DRIVE_LATE_SHARE_MAX',
-    'EFFECT_DELAY_LOCKSTEP',
-    'EFFECT_DELAY_REALTIME',
-    'ITEMS',
-    'LABEL_SLOWER_MAX_REALTIME',
-    'LATENCY_MEDIAN_MAX',
-    'LATENCY_P99_MAX',
-    'LOCKSTEP_SILENCE_S',
-    'NS_PER_S',
-    'ONSET_FRACTION',
-    'RATE_MAX_LONG_FRACTION',
-    'RATE_TOLERANCE',
-    'RISE_TIME_MAX',
-    'STATE_FIELDS',
-    'STEADY_STATE_ERROR_MAX',
-    'STEP_GAP_MAX',
-    'STEP_LAG_FRACTION',
-    'TRANSPORT_SLACK_REALTIME',
-    'TYPES',
-    'UNITS_LATE_BAND',
-    'UNITS_MIN_COUNTS',
-    'UNITS_RATIO_BAND',
-    'WATCHDOG_ACT_FRACTION',
-    'WATCHDOG_EARLIEST',
-    'WATCHDOG_REF_SLACK',
-    'ZERO_CURRENT_FRACTION',
-    'CheckRefused',
-    'F',
-    'Item',
-    'finite_or_none',
-]
-
 #: Items, in the order they are printed.
 ITEMS: tuple[str, ...] = ('topics', 'fields', 'rate', 'latency', 'step_response', 'watchdog')
 
@@ -105,12 +62,9 @@ STEP_LAG_FRACTION = 0.25
 LATENCY_MEDIAN_MAX = 2e-3
 LATENCY_P99_MAX = 20e-3
 #: latency: the state in which a command first shows: k+d for a command answering state k,
-#: d the drive's declared command_delay (1 or 2). Real time allows one period of
-#: transport more (k+d+1), judged on the fastest quarter of the changes. (The
-#: EFFECT_DELAY_* figures are those of a delay-1 drive.)
-EFFECT_DELAY_LOCKSTEP = 1
-EFFECT_DELAY_REALTIME = 2
-TRANSPORT_SLACK_REALTIME = EFFECT_DELAY_REALTIME - EFFECT_DELAY_LOCKSTEP
+#: d the drive's declared command_delay (1 or 2). Real time allows this many periods of
+#: transport more (k+d+1), judged on the fastest quarter of the changes.
+TRANSPORT_SLACK_REALTIME = 1
 #: latency: the drive's labels must be honest, whatever the transport: a change never
 #: shows after the first state whose applied_step is the changing command's (or newer) --
 #: in no change in lock-step, in at most this fraction of the detected ones in real time.

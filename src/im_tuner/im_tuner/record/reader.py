@@ -31,20 +31,11 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from mcap.opcode import Opcode
 
 from im_controller.contract import LOSS_TOPIC
 
-from .mcap_format import (
-    MAGIC,
-    OP_CHANNEL,
-    OP_CHUNK,
-    OP_DATA_END,
-    OP_FOOTER,
-    OP_MESSAGE,
-    OP_MESSAGE_INDEX,
-    OP_METADATA,
-    OP_SCHEMA,
-)
+from .mcap_format import MAGIC
 from .records import Cursor, chunk_records, parse_definition
 
 __all__ = [
@@ -235,7 +226,7 @@ def _indexed_messages(
     if n:
         lens = _u64_at(buf, rec + 1)
         if (
-            np.any(buf[rec] != OP_MESSAGE)
+            np.any(buf[rec] != Opcode.MESSAGE)
             or np.any(lens < _MSG_HEAD)
             or np.any(lens > (size - 9 - rec).astype(np.uint64))
         ):
@@ -263,10 +254,10 @@ def _indexed_messages(
         if a == b:
             continue
         found, stop = _walk_py(buf, a, b, -1)
-        if stop != b or any(op == OP_MESSAGE for op, _o, _n in found):
+        if stop != b or any(op == Opcode.MESSAGE for op, _o, _n in found):
             return None
         for op, o, ln in found:
-            if op in (OP_SCHEMA, OP_CHANNEL):
+            if op in (Opcode.SCHEMA, Opcode.CHANNEL):
                 parse_definition(op, bytes(buf[o - 9 : o + ln]), schemas, channels)
     return rec + 9, lens, cid, t_idx.astype(np.int64)
 
@@ -451,21 +442,21 @@ def read_bag(
         if size < 8 or f.read(8) != MAGIC:
             raise BagReadError(f'{path}: not an MCAP file')
         with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-            top, end = _walk_py(mm, 8, size, OP_DATA_END)
-            out.complete = bool(top) and top[-1][0] in (OP_DATA_END, OP_FOOTER)
+            top, end = _walk_py(mm, 8, size, Opcode.DATA_END)
+            out.complete = bool(top) and top[-1][0] in (Opcode.DATA_END, Opcode.FOOTER)
             out.unread_bytes = 0 if out.complete else size - end
             # definitions first: a Channel record may follow a chunk holding its messages
             for op, a, n in top:
-                if op in (OP_SCHEMA, OP_CHANNEL):
+                if op in (Opcode.SCHEMA, Opcode.CHANNEL):
                     parse_definition(op, bytes(mm[a - 9 : a + n]), schemas, channels)
-                elif op == OP_METADATA:
+                elif op == Opcode.METADATA:
                     _take_metadata(bytes(mm[a : a + n]), out.metadata)
             # each chunk with the message indexes that follow it (before the next chunk)
             chunks: list[tuple[int, int, list[tuple[int, np.ndarray]]]] = []
             for op, a, n in top:
-                if op == OP_CHUNK:
+                if op == Opcode.CHUNK:
                     chunks.append((a, n, []))
-                elif op == OP_MESSAGE_INDEX and chunks and n >= 6:
+                elif op == Opcode.MESSAGE_INDEX and chunks and n >= 6:
                     cid, nb = struct.unpack_from('<HI', mm, a)
                     if nb % 16 == 0 and 6 + nb <= n:
                         # a copy: no array may still point into the mmap when it closes
@@ -548,12 +539,12 @@ def _take_chunk(
         offs, lens, cids, times = found
     else:  # no index, or one that does not match the chunk: walk every record
         ops, offs, lens, cids, times, _end = walk_records(buf, 0, -1)
-        for i in np.flatnonzero(ops != OP_MESSAGE):
+        for i in np.flatnonzero(ops != Opcode.MESSAGE):
             op = int(ops[i])
-            if op in (OP_SCHEMA, OP_CHANNEL):
+            if op in (Opcode.SCHEMA, Opcode.CHANNEL):
                 a, n = int(offs[i]), int(lens[i])
                 parse_definition(op, bytes(buf[a - 9 : a + n]), schemas, channels)
-        is_msg = ops == OP_MESSAGE
+        is_msg = ops == Opcode.MESSAGE
         cids, times, offs, lens = cids[is_msg], times[is_msg], offs[is_msg], lens[is_msg]
     if not len(cids):
         return

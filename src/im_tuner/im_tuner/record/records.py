@@ -7,7 +7,7 @@ from __future__ import annotations
 import struct
 import zlib
 
-from .mcap_format import OP_SCHEMA
+from mcap.opcode import Opcode
 
 __all__ = ['ChunkDamage', 'Cursor', 'chunk_records', 'decompress', 'parse_definition']
 
@@ -81,7 +81,7 @@ def chunk_records(comp: str, data: bytes, usize: int, crc: int) -> bytes:
 def parse_definition(op: int, rec: bytes, schemas: dict, channels: dict) -> None:
     """A Schema or Channel record into ``schemas``/``channels`` (the first one of an id wins)."""
     c = Cursor(rec, 9)
-    if op == OP_SCHEMA:
+    if op == Opcode.SCHEMA:
         (sid,) = c.u('H')
         name, _enc = c.s(), c.s()
         c.raw(c.u('I')[0])

@@ -27,31 +27,20 @@ from typing import BinaryIO
 
 import numpy as np
 import yaml
+from mcap.opcode import Opcode
+from mcap.records import AttachmentIndex, DataEnd, MetadataIndex
 
 from ..rundir import writer_of
 from .mcap_encode import (
     ChunkInfo,
+    chunk_head,
     chunk_index_record,
+    encode,
     message_index_records,
-    metadata_index_record,
-    record,
     statistics_record,
-    string,
     summary_and_footer,
 )
-from .mcap_format import (
-    MAGIC,
-    OP_ATTACHMENT,
-    OP_ATTACHMENT_INDEX,
-    OP_CHANNEL,
-    OP_CHUNK,
-    OP_DATA_END,
-    OP_FOOTER,
-    OP_HEADER,
-    OP_MESSAGE,
-    OP_METADATA,
-    OP_SCHEMA,
-)
+from .mcap_format import MAGIC
 from .metadata import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
 from .reader import BagReadError, find_mcap
 from .records import ChunkDamage, Cursor, chunk_records, parse_definition
@@ -182,12 +171,12 @@ def _parse_chunk(body: bytes, scan: McapScan, at: int) -> ScannedChunk:
         if p + 9 + n > len(raw):
             raise ValueError('record past the end of its chunk')
         rec = raw[p : p + 9 + n]
-        if op == OP_MESSAGE:
+        if op == Opcode.MESSAGE:
             cid, _seq, log_time, _pub = struct.unpack_from('<HIQQ', rec, 9)
             if n < 22 or (cid not in scan.channels and cid not in channels):
                 raise ValueError('bad message record')
             rows.append((cid, log_time, p))
-        elif op in (OP_SCHEMA, OP_CHANNEL):
+        elif op in (Opcode.SCHEMA, Opcode.CHANNEL):
             parse_definition(op, rec, schemas, channels)
         p += 9 + n
     for sid, schema in schemas.items():
@@ -205,7 +194,7 @@ def _has_footer(f: BinaryIO, size: int) -> bool:
         return False
     f.seek(size - 8 - _FOOTER_BYTES)
     tail = f.read(_FOOTER_BYTES + 8)
-    if tail[-8:] != MAGIC or tail[:9] != struct.pack('<BQ', OP_FOOTER, 20):
+    if tail[-8:] != MAGIC or tail[:9] != struct.pack('<BQ', Opcode.FOOTER, 20):
         return False
     summary_start, _offsets, crc = struct.unpack_from('<QQI', tail, 9)
     if not crc:
@@ -244,7 +233,7 @@ def scan_mcap(path: Path) -> McapScan:
             raise RepairError(f'{path}: not an MCAP file (bad magic)')
         head = f.read(9)
         op, n = struct.unpack('<BQ', head) if len(head) == 9 else (0, 0)
-        if op != OP_HEADER or 17 + n > size:
+        if op != Opcode.HEADER or 17 + n > size:
             raise RepairError(f'{path}: no complete MCAP header')
         scan = McapScan(path, size, head + f.read(n))
         pos = scan.data_end = 17 + n
@@ -259,30 +248,30 @@ def scan_mcap(path: Path) -> McapScan:
                 break
             rec = head + f.read(n)
             try:
-                if op == OP_CHUNK:
+                if op == Opcode.CHUNK:
                     number += 1
                     try:
                         scan.chunks.append(_parse_chunk(rec[9:], scan, pos))
                     except ChunkDamage as exc:  # a whole record: its bytes were changed
                         scan.damaged.append((number, pos, str(exc)))
-                elif op in (OP_SCHEMA, OP_CHANNEL):
+                elif op in (Opcode.SCHEMA, Opcode.CHANNEL):
                     parse_definition(op, rec, scan.schemas, scan.channels)
-                elif op == OP_METADATA:
+                elif op == Opcode.METADATA:
                     c = Cursor(rec, 9)
                     scan.metadata.append((pos, len(rec), c.s()))
                     c.map()
-                elif op == OP_ATTACHMENT:
+                elif op == Opcode.ATTACHMENT:
                     c = Cursor(rec, 9)
                     t_log, t_create = c.u('QQ')
                     name, media = c.s(), c.s()
                     (dlen,) = c.u('Q')
                     c.raw(dlen + 4)
                     scan.attachments.append((pos, len(rec), t_log, t_create, dlen, name, media))
-                elif op == OP_MESSAGE:
+                elif op == Opcode.MESSAGE:
                     _add_loose(scan, rec, pos)
             except (struct.error, ValueError):
                 break
-            if op in (OP_DATA_END, OP_FOOTER):
+            if op in (Opcode.DATA_END, Opcode.FOOTER):
                 scan.ended = True
                 break
             pos = scan.data_end = pos + len(rec)
@@ -345,14 +334,8 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
                 at, length = copy(ch.offset, ch.length), ch.length
             else:
                 recs = b''.join(read(o, n) for o, n, _c, _t in ch.loose)
-                body = (
-                    struct.pack('<QQQI', ch.start, ch.end, len(recs), zlib.crc32(recs))
-                    + string('')
-                    + struct.pack('<Q', len(recs))
-                    + recs
-                )
-                at = put(record(OP_CHUNK, body))
-                length = 9 + len(body)
+                rec = chunk_head(ch.start, ch.end, recs, '', len(recs)) + recs
+                at, length = put(rec), len(rec)
             index_at = pos
             offsets = {cid: put(rec) for cid, rec in message_index_records(ch.index)}
             infos.append(
@@ -368,11 +351,7 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
                     ch.uncompressed_size,
                 )
             )
-    put(record(OP_DATA_END, struct.pack('<I', 0)))
-    attachment_index = [
-        record(OP_ATTACHMENT_INDEX, struct.pack('<QQQQQ', *a[:5]) + string(a[5]) + string(a[6]))
-        for a in att_index
-    ]
+    put(encode(DataEnd(0)))
     stats = statistics_record(
         scan.messages,
         len(scan.schemas),
@@ -388,8 +367,8 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
         schemas=[rec for _n, rec in scan.schemas.values()],
         channels=[c[3] for c in scan.channels.values()],
         statistics=stats,
-        metadata_index=[metadata_index_record(*m) for m in meta_index],
-        attachment_index=attachment_index,
+        metadata_index=[encode(MetadataIndex(*m)) for m in meta_index],
+        attachment_index=[encode(AttachmentIndex(*a)) for a in att_index],
         chunk_index=[chunk_index_record(c) for c in infos],
     )
     put(summary)

@@ -32,8 +32,6 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
-import struct
-import zlib
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -43,30 +41,19 @@ from typing import BinaryIO
 
 import numba
 import numpy as np
+from mcap.opcode import Opcode
+from mcap.records import Channel, DataEnd, Header, Metadata, MetadataIndex, Schema
 
 from .mcap_encode import (
     ChunkInfo,
-    channel_record,
+    chunk_head,
     chunk_index_record,
+    encode,
     message_index_records,
-    metadata_index_record,
-    record,
-    schema_record,
     statistics_record,
-    string,
-    string_map,
     summary_and_footer,
 )
-from .mcap_format import (  # the format's constants: one place, no numba
-    COMPRESSIONS,
-    MAGIC,
-    MESSAGE_HEADER_BYTES,
-    OP_CHUNK,
-    OP_DATA_END,
-    OP_HEADER,
-    OP_MESSAGE,
-    OP_METADATA,
-)
+from .mcap_format import COMPRESSIONS, MAGIC, MESSAGE_HEADER_BYTES
 
 # Columns of the chunk state vector shared with the numba kernels.
 ST_POS = 0  #: bytes used in the chunk buffer
@@ -74,6 +61,7 @@ ST_COUNT = 1  #: Message records in the chunk (rows used in the index)
 ST_TMIN = 2  #: smallest log_time in the chunk [ns]
 ST_TMAX = 3  #: largest log_time in the chunk [ns]
 ST_SIZE = 4
+_OP_MESSAGE = int(Opcode.MESSAGE)  # (a plain int in the numba kernels)
 
 
 class McapWriteError(Exception):
@@ -122,7 +110,7 @@ def write_message_header(
     n: int,
 ) -> None:
     """Write the 31-byte Message record header at ``buf[pos]`` (little endian)."""
-    buf[pos] = OP_MESSAGE
+    buf[pos] = _OP_MESSAGE
     length = 22 + n
     for b in range(8):
         buf[pos + 1 + b] = (length >> (8 * b)) & 0xFF
@@ -253,8 +241,7 @@ class McapWriter:
         #: background writes not yet seen finished, oldest first (their errors are
         #: raised at the next submit or at close)
         self.pending: deque[Future] = deque()
-        self._write(MAGIC)
-        self._write(record(OP_HEADER, string(profile) + string(library)))
+        self._write(MAGIC + encode(Header(profile, library)))
         self.flush()
 
     # -- low level ---------------------------------------------------------------------
@@ -303,7 +290,7 @@ class McapWriter:
     def add_schema(self, name: str, encoding: str, data: bytes) -> int:
         sid = len(self.schemas) + 1
         self.schemas[sid] = (name, encoding, data)
-        rec = schema_record(sid, name, encoding, data)
+        rec = encode(Schema(sid, data, encoding, name))
         self._submit(lambda: self._write(rec))
         return sid
 
@@ -317,16 +304,16 @@ class McapWriter:
         cid = len(self.channels) + 1
         if cid > 0xFFFF:
             raise McapWriteError('more than 65535 channels')
-        meta = dict(metadata or {})
+        meta = dict(sorted((metadata or {}).items()))
         self.channels[cid] = (topic, schema_id, message_encoding, meta)
         self.channel_counts[cid] = 0
-        rec = channel_record(cid, schema_id, topic, message_encoding, meta)
+        rec = encode(Channel(cid, topic, message_encoding, meta, schema_id))
         self._submit(lambda: self._write(rec))
         return cid
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """A Metadata record (name + string map), written at once, indexed in the summary."""
-        rec = record(OP_METADATA, string(name) + string_map(data))
+        rec = encode(Metadata(name, dict(sorted(data.items()))))
 
         def job() -> None:
             self.metadata_index.append((self._write(rec), len(rec), name))
@@ -393,13 +380,7 @@ class McapWriter:
     def _write_chunk(self, raw: bytes, idx: np.ndarray, t0: int, t1: int) -> None:
         payload = self._compress(raw)
         comp = '' if self.compression == 'none' else self.compression
-        body = (
-            struct.pack('<QQQI', t0, t1, len(raw), zlib.crc32(raw))
-            + string(comp)
-            + struct.pack('<Q', len(payload))
-        )
-        head = struct.pack('<BQ', OP_CHUNK, len(body) + len(payload))
-        chunk_at = self._write(head + body)
+        chunk_at = self._write(chunk_head(t0, t1, raw, comp, len(payload)))
         self._write(payload)
         chunk_len = self._pos - chunk_at
         index_at = self._pos
@@ -426,10 +407,10 @@ class McapWriter:
             return
         self.flush_chunk()
         self._drain_pool()
-        self._write(record(OP_DATA_END, struct.pack('<I', 0)))
-        schemas = [schema_record(sid, *sch) for sid, sch in self.schemas.items()]
+        self._write(encode(DataEnd(0)))
+        schemas = [encode(Schema(sid, d, enc, n)) for sid, (n, enc, d) in self.schemas.items()]
         channels = [
-            channel_record(cid, sid, topic, enc, meta)
+            encode(Channel(cid, topic, enc, meta, sid))
             for cid, (topic, sid, enc, meta) in self.channels.items()
         ]
         stats = statistics_record(
@@ -447,7 +428,7 @@ class McapWriter:
             schemas=schemas,
             channels=channels,
             statistics=stats,
-            metadata_index=[metadata_index_record(*m) for m in self.metadata_index],
+            metadata_index=[encode(MetadataIndex(*m)) for m in self.metadata_index],
             chunk_index=[chunk_index_record(c) for c in self.chunks],
         )
         self._write(summary)

@@ -1,20 +1,11 @@
 """The recorder: every topic on the graph into a rosbag2 MCAP bag, with nothing lost.
 
-``ros2 run im_tuner recorder`` records like ``ros2 bag record -a`` (docs/recorder.md):
-it subscribes to every topic as it appears and writes a bag directory (``metadata.yaml`` +
-``<name>_0.mcap``, ``ros2msg`` schemas -- ``ros2idl`` for service events,
-:func:`im_tuner.record.schemas.schema_for` -- CDR messages, QoS in the channel metadata).
-Subscriptions are reliable KEEP_ALL where the publishers are; messages are taken in the
-recorder's own loop (:mod:`im_tuner.record.take`), not by executor callbacks; per
-publisher the ``publication_sequence_number`` gaps count the messages lost, and the
-per-topic ``recorded / published / lost`` counts go to the log, ``metadata.yaml`` and an
-MCAP metadata record at close. A chunk spans at most ``max_chunk_age`` s of log time and
-is written once its first message is that old (:mod:`.chunk_timer` when nobody polls);
-after SIGKILL, ``ros2 run im_tuner recorder --repair DIR`` rewrites the summary.
-
-The simulated bench and the tuner run a :class:`Recorder` in their own process and call
-:meth:`Recorder.poll` between steps.
-"""
+``ros2 run im_tuner recorder`` records like ``ros2 bag record -a`` (docs/recorder.md): a
+subscription per topic as it appears, messages taken in the recorder's own loop
+(:mod:`im_tuner.record.take`), per-publisher sequence-number gaps counted as lost, the
+counts in the log, ``metadata.yaml`` and an MCAP metadata record at close. The simulated
+bench and the tuner run a :class:`Recorder` in their own process and call
+:meth:`Recorder.poll` between steps."""
 
 from __future__ import annotations
 
@@ -52,9 +43,8 @@ from .status import TopicStatus
 from .topic_info import endpoint_qos, endpoint_type_hash, message_class
 from .writer import MESSAGE_HEADER_BYTES, McapWriteError, McapWriter
 
-#: Lock-step steps between two polls of a recorder sharing the bench's process: about
-#: 200 samples per 5 kHz topic, far below Fast DDS's 5000 per reader, and rare enough
-#: that polling the (mostly empty) low-rate subscriptions costs nothing measurable.
+#: Lock-step steps between two polls of a recorder sharing the bench's process (far below
+#: Fast DDS's 5000 samples per reader).
 RECORD_POLL_STEPS = 64
 #: Longest a closing recorder keeps taking messages that are still arriving [s].
 CLOSE_MAX_WAIT = 1.0

@@ -1,25 +1,13 @@
 """Read a tuning run's bag fast, also one whose recorder was killed: counts and signals.
 
-One pass over the ``.mcap`` file (memory-mapped, read only: the report changes nothing):
-the top-level records are walked up to DataEnd or the first incomplete record (a killed
-recorder leaves no footer; everything in complete chunks is still read), and each chunk
-is decompressed once and checked against its CRC (a chunk that fails it, or does not
-decompress, had its bytes changed: it is named in ``BagData.damaged`` and its messages
-are left out). A chunk's messages are found through the MessageIndex records that
-follow it, with numpy (no per-message Python, and no numba, slow to load); the index is
-checked against the chunk
-(every message it names is a Message record of that channel and log time, and those
-records plus the definitions between them tile the chunk exactly), and a chunk without
-a complete, consistent index is walked record by record by a numba kernel instead. Per
-topic it counts messages and notes the first and last log time (the rates); for the
-``Float64MultiArray`` topics asked for it keeps the rows whose first value (the step
-index ``k``) lies in the given windows (only those rows are copied); the loss messages
-(``diagnostic_msgs/DiagnosticArray``) are decoded.
-
-No rclpy and no ROS message packages: the two CDR layouts needed are parsed here
-(``std_msgs/Float64MultiArray`` in the project's layout, with a general fallback, and
-``diagnostic_msgs/DiagnosticArray``).
-"""
+One memory-mapped, read-only pass up to DataEnd or the first incomplete record. Each chunk
+is decompressed once and checked against its CRC (a damaged one is named in
+``BagData.damaged`` and its messages left out); its messages are found through the
+Message Index records after it, with numpy, or -- without a complete index that tiles the
+chunk -- by a record walk (docs/report.md, "Speed"). Per topic: counts, first and last log
+time, bytes; of the ``Float64MultiArray`` topics asked for, the rows whose first value (the
+step index ``k``) lies in the given windows; the loss messages decoded. No rclpy and no ROS
+message packages: the two CDR layouts needed are parsed here."""
 
 from __future__ import annotations
 
@@ -37,17 +25,6 @@ from im_controller.contract import LOSS_TOPIC
 
 from .mcap_format import MAGIC
 from .records import Cursor, chunk_records, parse_definition
-
-__all__ = [
-    'BagData',
-    'BagReadError',
-    'ChunkStats',
-    'DamagedChunk',
-    'TopicStats',
-    'parse_diagnostic_array',
-    'parse_float64_multiarray',
-    'read_bag',
-]
 
 _MSG_HEAD = 22  # channel id u16, sequence u32, log time u64, publish time u64
 _F64_HEAD = b'\x00\x01\x00\x00'  # CDR little-endian encapsulation

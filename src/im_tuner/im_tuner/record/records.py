@@ -9,8 +9,6 @@ import zlib
 
 from mcap.opcode import Opcode
 
-__all__ = ['ChunkDamage', 'Cursor', 'chunk_records', 'decompress', 'parse_definition']
-
 
 class Cursor:
     """Reads little-endian fields from a record body; raises ValueError past its end."""

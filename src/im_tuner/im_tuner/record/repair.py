@@ -1,19 +1,14 @@
-"""Repair a bag whose recorder died: rebuild the MCAP summary, index, footer and metadata.yaml.
+"""Repair a bag whose recorder died: rebuild the MCAP summary, index, footer and metadata.yaml
+(docs/recorder.md, "Crash safety").
 
-A SIGKILL leaves the ``.mcap`` without its DataEnd, summary, chunk indexes and footer, and
-``metadata.yaml`` in its provisional ``recording`` state; the Schema and Channel records
-and every closed chunk are on disk (docs/recorder.md, "Crash safety").
-
-:func:`repair_bag` scans the file record by record up to the first incomplete or invalid
-one (a complete chunk that fails its CRC or does not decompress is named, left out, and
-the scan goes on), then writes ``<file>.repairing``: the original Header, every
-definition, Metadata and Attachment record, every complete chunk copied verbatim with
+:func:`repair_bag` scans the file up to the first incomplete or invalid record (a damaged
+chunk is named, left out, and the scan goes on), then writes ``<file>.repairing``: the
+Header, every definition, Metadata and Attachment record, every complete chunk verbatim with
 fresh Message Index records (loose messages packed into new uncompressed chunks), and the
-summary and footer as ``McapWriter.close`` writes them; only once that file is complete
-and synced does it replace the original. A file that already ends in a valid footer is
-left untouched (one with a damaged chunk is refused). Either way ``metadata.yaml`` is
-rewritten from what the scan found. No rclpy here.
-"""
+summary and footer as ``McapWriter.close`` writes them; only once that file is complete and
+synced does it replace the original. A file that already ends in a valid footer is left
+untouched (one with a damaged chunk is refused). Either way ``metadata.yaml`` is rewritten
+from what the scan found. No rclpy here."""
 
 from __future__ import annotations
 

@@ -1,16 +1,11 @@
 """Take serialised messages from rcl subscriptions in a numba loop, straight into a chunk.
 
-rclpy's ``Subscription.take_message(cls, raw=True)`` makes Python objects per message
-(bytes object, info dict) and hides the publisher's GID, which gap detection needs when a
-topic has several publishers. The recorder instead calls rcl's C API,
-``rcl_take_serialized_message``, from a numba kernel on the ``rcl_subscription_t`` that
-rclpy created (``sub.handle.pointer``), and copies the CDR bytes into the open MCAP chunk
-(:mod:`im_tuner.record.writer`) as a Message record. Per publisher (channel, GID) it keeps
-the first and last ``publication_sequence_number``, the count and the gaps: a gap is a
-message the publisher sent that this reader never got.
-
-This module loads rclpy's C extension (so that ``librcl`` is in the process) but does
-not use rclpy's Python API; the subscriptions stay owned by the rclpy node.
+The kernel calls rcl's ``rcl_take_serialized_message`` on the ``rcl_subscription_t`` that
+rclpy created (``sub.handle.pointer``) and copies the CDR bytes into the open MCAP chunk
+(:mod:`im_tuner.record.writer`) as a Message record: no Python object per message, and the
+publisher's GID, which rclpy's message info hides, for the per-publisher (channel, GID)
+first and last ``publication_sequence_number``, count and gaps (docs/recorder.md, "Nothing
+lost, and the proof"). The subscriptions stay owned by the rclpy node.
 
 Struct layouts (ROS 2 Jazzy headers; test/test_recorder.py checks the kernel's bytes and
 sequence numbers against rclpy's own take):
@@ -18,8 +13,7 @@ sequence numbers against rclpy's own take):
 size_t capacity; rcutils_allocator_t allocator (5 pointers)} = 8 x 64-bit words;
 ``rmw_message_info_t`` {int64 source_timestamp; int64 received_timestamp; uint64
 publication_sequence_number; uint64 reception_sequence_number; rmw_gid_t {const char*
-implementation_identifier; uint8 data[16]}; bool from_intra_process} = 8 words.
-"""
+implementation_identifier; uint8 data[16]}; bool from_intra_process} = 8 words."""
 
 from __future__ import annotations
 

@@ -1,31 +1,15 @@
-"""A chunked MCAP writer for rosbag2 bags, fast enough for 5 kHz traffic.
+"""A chunked MCAP writer for rosbag2 bags, fast enough for 5 kHz traffic (docs/recorder.md).
 
-Why our own writer: the ``mcap`` library's ``Writer.add_message`` is one Python call per
-message, too slow for the recorder at 15k messages per simulated second. This writer
-keeps the open chunk in a numpy buffer that a numba kernel (:mod:`im_tuner.record.take`)
-fills with Message records straight from the DDS reader, so the per-message cost is a
-memcpy; Python only runs once per chunk (compress, index, write).
-
-File layout (MCAP v0, https://mcap.dev/spec), as rosbag2's MCAP storage writes it:
-
-* magic, Header (profile ``ros2``);
-* data section: Schema and Channel records written *outside* chunks as soon as a topic
-  is added (so a crash never loses them), Metadata records, and Chunks, each followed by
-  its Message Index records. A chunk is closed at ``chunk_size`` bytes, before a message
-  that would make it span more than ``max_span`` of log time, or when the caller flushes
-  it; the file goes to the OS after every chunk, so after SIGKILL it is readable up to its
-  last complete chunk (:func:`im_tuner.record.repair.repair_bag` rewrites the summary);
-* DataEnd, summary (Schemas, Channels, Statistics, Metadata Index, Chunk Indexes),
-  Summary Offsets, Footer (with the summary CRC-32), magic.
-
-With ``background=True`` every file operation (compressing and writing chunks, and the
-records written between them) runs in order on one worker thread: zstd/lz4 and file
-writes release the GIL, so a recorder sharing a process with the lock-step loop does not
-pay for compression on the loop's core. The chunk bytes are copied out first, so the
-numba kernel refills the buffer at once.
-
-No rclpy here: the writer serves the recorder node, the repair tool and the tests.
-"""
+The ``mcap`` library's ``Writer.add_message`` is one Python call per message; here the open
+chunk is a numpy buffer that a numba kernel (:mod:`im_tuner.record.take`) fills with Message
+records straight from the DDS reader, and Python runs once per chunk (compress, index,
+write). The layout is rosbag2's MCAP storage's: Schema and Channel records outside chunks
+as soon as a topic is added, Metadata records, each chunk followed by its Message Index
+records and handed to the OS (after SIGKILL, :func:`im_tuner.record.repair.repair_bag`
+rewrites the summary). A chunk is closed at ``chunk_size`` bytes, before a message that
+would make it span more than ``max_span`` of log time, or when the caller flushes it. With
+``background=True`` every file operation runs in order on one worker thread (zstd/lz4 and
+file writes release the GIL); the chunk bytes are copied out first. No rclpy here."""
 
 from __future__ import annotations
 

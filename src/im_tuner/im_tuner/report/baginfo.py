@@ -1,21 +1,7 @@
-"""``ros2 run im_tuner report --bag-info BAG_DIR [--json]``: a bag's statistics, as
-``ros2 bag info`` gives them, plus the recorder's own counts no ROS tool shows.
-
-Per topic: message count, rate, size (the serialised message data), type, and the
-recorded / published / lost counts the recorder stored in the bag's metadata when it
-closed it (rosbag2 #2007 asks for these); the bag's totals: files and their size, state
-(closed, repaired, being recorded), duration, first and last log time, chunk compression,
-chunk count and the longest log-time span of a chunk. Any bag the project writes --
-closed, repaired (``recorder --repair``) or still open (read up to its last complete
-chunk) -- through :func:`im_tuner.record.reader.read_bag`: one memory-mapped pass, no
-rclpy.
-
-Definitions (docs/report.md, "Bag statistics"): times are MCAP log times (reception
-time, ns since the epoch); duration = last - first log time of the bag; a topic's rate
-= (count - 1) / (its last - its first log time), in messages per second of log time
-(wall clock, so a lock-step run shows its speed-up); size = the CDR bytes of its
-messages, without MCAP's record headers, before compression.
-"""
+"""``ros2 run im_tuner report --bag-info BAG_DIR [--json]``: a bag's statistics, as ``ros2 bag
+info`` gives them, plus the recorder's own counts no ROS tool shows; what each figure is:
+docs/report.md, "Bag statistics". Any bag the project writes, through
+:func:`im_tuner.record.reader.read_bag`: no rclpy."""
 
 from __future__ import annotations
 
@@ -25,8 +11,6 @@ from pathlib import Path
 from typing import Any
 
 from .errors import ReportError
-
-__all__ = ['bag_info', 'format_info', 'main_bag_info']
 
 #: the recorder's per-topic counts shown, in the order shown
 COUNT_KEYS = ('recorded', 'published', 'lost')

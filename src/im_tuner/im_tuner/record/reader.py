@@ -136,30 +136,25 @@ def walk_records(
     buf: np.ndarray, start: int, stop_op: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Every record of ``buf`` from byte ``start`` (up to and including one of opcode
-    ``stop_op``; -1: none), walked one by one (:func:`.walk.walk`, numba): opcodes, body
-    offsets and lengths, and for Message records channel ids and log times [ns]; and
-    where the walk stopped. What a chunk whose index does not tile it is read by."""
-    cap = max(0, buf.size - start) // 31 + 64  # a message record is >= 31 bytes
-    while True:
-        ops = np.empty(cap, np.uint8)
-        offs = np.empty(cap, np.int64)
-        lens = np.empty(cap, np.int64)
-        cids = np.empty(cap, np.int64)
-        times = np.empty(cap, np.int64)
-        from .walk import walk  # numba (slow to import): only for a bag without an index
-
-        n, end = walk(buf, start, stop_op, ops, offs, lens, cids, times)
-        if n < cap or end >= buf.size:
-            return ops[:n], offs[:n], lens[:n], cids[:n], times[:n], end
-        cap *= 4  # many tiny records: walk again with room for them
+    ``stop_op``; -1: none), walked one by one: opcodes, body offsets and lengths, and for
+    Message records channel ids and log times [ns] (-1 and 0 for the others); and where the
+    walk stopped. What a chunk whose index does not tile it is read by."""
+    found, end = _walk_py(buf, start, buf.size, stop_op)
+    rec = np.array(found, np.int64).reshape(-1, 3)
+    ops, offs, lens = rec[:, 0].astype(np.uint8), rec[:, 1], rec[:, 2]
+    msg = np.flatnonzero((ops == Opcode.MESSAGE) & (lens >= _MSG_HEAD))
+    cids, times = np.full(len(rec), -1, np.int64), np.zeros(len(rec), np.int64)
+    cids[msg] = buf[offs[msg]].astype(np.int64) | (buf[offs[msg] + 1].astype(np.int64) << 8)
+    times[msg] = _u64_at(buf, offs[msg] + 6).astype(np.int64)
+    return ops, offs, lens, cids, times, end
 
 
 def _walk_py(
     buf: mmap.mmap | np.ndarray, start: int, end: int, stop_op: int
 ) -> tuple[list[tuple[int, int, int]], int]:
-    """:func:`.walk.walk` in Python, for a few records (the top level: chunks and their
-    indexes; the definitions between a chunk's indexed messages): (op, body offset,
-    body length) each, and where the walk stopped."""
+    """The records of ``buf[start:end]`` (up to and including one of opcode ``stop_op``; -1:
+    none) before the first incomplete one: (op, body offset, body length) each, and where
+    the walk stopped."""
     view = buf.data if isinstance(buf, np.ndarray) else buf  # uint8: one byte per index
     out = []
     p = start

@@ -186,28 +186,25 @@ class Recorder:
 
     def discover(self) -> int:
         """Subscribe to topics that appeared; returns how many were added."""
-        with self._lock:
-            return self._discover()
-
-    def _discover(self) -> int:
         added = 0
-        for name, types in self.node.get_topic_names_and_types():
-            if (
-                name in self.topics
-                or name in self.unrecordable
-                or name in self.excluded
-                or name in self.own_topics
-            ):
-                continue
-            infos = self.node.get_publishers_info_by_topic(name)
-            if not infos:
-                continue  # nothing to record until something publishes
-            if len(types) > 1:
-                self.log.warning(f'{name} has several types {types}; recording {types[0]}')
-            if self._subscribe(name, types[0], infos):
-                added += 1
-                self.drain()  # the new reader is taken at once, not after every subscription
-        self._check_matches()
+        with self._lock:
+            for name, types in self.node.get_topic_names_and_types():
+                if (
+                    name in self.topics
+                    or name in self.unrecordable
+                    or name in self.excluded
+                    or name in self.own_topics
+                ):
+                    continue
+                infos = self.node.get_publishers_info_by_topic(name)
+                if not infos:
+                    continue  # nothing to record until something publishes
+                if len(types) > 1:
+                    self.log.warning(f'{name} has several types {types}; recording {types[0]}')
+                if self._subscribe(name, types[0], infos):
+                    added += 1
+                    self.drain()  # the new reader is taken at once, not after every one
+            self._check_matches()
         return added
 
     def _schema(self, type_name: str) -> int:
@@ -277,8 +274,7 @@ class Recorder:
                 )  # fmt: skip
                 total += n
                 if int(r.ctrl[R_TAIL]) < head:  # the chunk is full, or spans max_chunk_age
-                    self.writer.flush_chunk()
-                    self._chunk_opened = None
+                    self._flush()
                     self.writer.chunk.grow(MESSAGE_HEADER_BYTES + int(ch.slot))
         return total
 
@@ -372,8 +368,12 @@ class Recorder:
             or time.time_ns() - ck.first_log_time >= self._max_span_ns
             or now - self._chunk_opened >= self.max_chunk_age
         ):
-            self.writer.flush_chunk()
-            self._chunk_opened = None
+            self._flush()
+
+    def _flush(self) -> None:
+        """Close the open chunk (the next one's age is counted from its first poll)."""
+        self.writer.flush_chunk()
+        self._chunk_opened = None
 
     def poll(self, now: float | None = None) -> int:
         """Discover (when due), take everything waiting, close old chunks. Messages taken."""
@@ -384,7 +384,7 @@ class Recorder:
             self._last_poll = time.monotonic()
             if now >= self._next_discovery:
                 self._next_discovery = now + self.discovery_period
-                self._discover()
+                self.discover()
             n = self.drain()
             self._age_check(now)
             return n
@@ -404,47 +404,42 @@ class Recorder:
     def drain(self) -> int:
         """Take every waiting message into the open chunk (closing full chunks)."""
         with self._lock:
-            return self._drain()
-
-    def _drain(self) -> int:
-        total = self.drain_taps()
-        tb = self._take
-        while True:
-            ch = self.writer.chunk
-            code, n = rcl_take.drain(
-                self._subs,
-                self._chans,
-                tb.ser,
-                tb.info,
-                ch.buf,
-                ch.idx,
-                ch.st,
-                self._pubs,
-                self._ctrl,
-                1 << 40,
-            )
-            total += n
-            if code == rcl_take.DONE:
-                break
-            if code == rcl_take.FULL:
-                self.writer.flush_chunk()
-                self._chunk_opened = None
-                self.writer.chunk.grow(MESSAGE_HEADER_BYTES + tb.pending_size)
-            elif code == rcl_take.PUBS_FULL:
-                grown = rcl_take.new_publisher_table(2 * self._pubs.shape[0])
-                grown[: self._pubs.shape[0]] = self._pubs
-                self._pubs = grown
-            elif code == rcl_take.ERROR:
-                raise RecorderError(
-                    f'rcl_take_serialized_message failed with code '
-                    f'{int(self._ctrl[rcl_take.C_ERROR])}'
+            total = self.drain_taps()
+            tb = self._take
+            while True:
+                ch = self.writer.chunk
+                code, n = rcl_take.drain(
+                    self._subs,
+                    self._chans,
+                    tb.ser,
+                    tb.info,
+                    ch.buf,
+                    ch.idx,
+                    ch.st,
+                    self._pubs,
+                    self._ctrl,
+                    1 << 40,
                 )
-        if self.writer.chunk.used >= self.writer.chunk_size:
-            self.writer.flush_chunk()
-            self._chunk_opened = None
-        self.writer.observe()  # (the live view: what was taken, at once)
-        self.messages += total
-        return total
+                total += n
+                if code == rcl_take.DONE:
+                    break
+                if code == rcl_take.FULL:
+                    self._flush()
+                    self.writer.chunk.grow(MESSAGE_HEADER_BYTES + tb.pending_size)
+                elif code == rcl_take.PUBS_FULL:
+                    grown = rcl_take.new_publisher_table(2 * self._pubs.shape[0])
+                    grown[: self._pubs.shape[0]] = self._pubs
+                    self._pubs = grown
+                elif code == rcl_take.ERROR:
+                    raise RecorderError(
+                        f'rcl_take_serialized_message failed with code '
+                        f'{int(self._ctrl[rcl_take.C_ERROR])}'
+                    )
+            if self.writer.chunk.used >= self.writer.chunk_size:
+                self._flush()
+            self.writer.observe()  # (the live view: what was taken, at once)
+            self.messages += total
+            return total
 
     # -- counts and closing --------------------------------------------------------------
     def counts(self) -> dict[str, dict[str, int]]:

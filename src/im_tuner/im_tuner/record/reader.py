@@ -246,15 +246,10 @@ class _Cdr:
     def _align(self, n: int) -> None:
         self.p += (-(self.p - 4)) % n
 
-    def u32(self) -> int:
+    def u32(self, fmt: str = '<I') -> int:
+        """The next 4-byte integer (``fmt`` '<i': signed)."""
         self._align(4)
-        (v,) = struct.unpack_from('<I', self.b, self.p)
-        self.p += 4
-        return v
-
-    def i32(self) -> int:
-        self._align(4)
-        (v,) = struct.unpack_from('<i', self.b, self.p)
+        (v,) = struct.unpack_from(fmt, self.b, self.p)
         self.p += 4
         return v
 
@@ -296,7 +291,7 @@ def parse_diagnostic_array(data: bytes) -> list[dict[str, str]]:
     """``diagnostic_msgs/DiagnosticArray`` CDR -> one dict per status: its key/value pairs
     plus 'level', 'name', 'message', 'hardware_id' and 'stamp_ns' (of the array header)."""
     c = _Cdr(data)
-    sec, nsec = c.i32(), c.u32()
+    sec, nsec = c.u32('<i'), c.u32()
     c.string()  # frame_id
     out = []
     for _ in range(c.u32()):

@@ -10,8 +10,12 @@ from dataclasses import dataclass
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+from im_drive_sim.contract import QosSpec
+
 #: The status topic, relative to the recorder node (``~/status``).
 STATUS_TOPIC = '~/status'
+#: Its publisher: the last status, kept for a subscriber that joins later.
+STATUS_QOS = QosSpec('keep_last', 1, 'reliable', 'transient_local')
 #: How often at most the recorder publishes a changed status [s].
 STATUS_PERIOD_S = 0.05
 #: How long the tuner waits for the bag to hold every loss it received before it stops

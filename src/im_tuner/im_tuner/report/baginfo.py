@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -58,10 +59,10 @@ def bag_info(bag_dir: Path) -> dict[str, Any]:
                 'first_ns': t.first_ns if t.count else None,
                 'last_ns': t.last_ns if t.count else None,
                 # the recorder's counts (None: the bag was not closed by the recorder)
-                **{k: (None if c is None else int(c.get(k, 0))) for k in COUNT_KEYS},
-                'published_before_recording': (
-                    None if c is None else int(c.get('published_before_recording', 0))
-                ),
+                **{
+                    k: (None if c is None else int(c.get(k, 0)))
+                    for k in (*COUNT_KEYS, 'published_before_recording')
+                },
             }
         )
     spans = [c.span_s for c in bag.chunk_stats]
@@ -83,17 +84,7 @@ def bag_info(bag_dir: Path) -> dict[str, Any]:
         'compression': sorted({c.compression or 'none' for c in bag.chunk_stats}),
         'chunks': bag.chunks,
         # complete chunks whose CRC fails or that do not decompress: left out of the counts
-        'damaged_chunks': [
-            {
-                'number': d.number,
-                'offset': d.offset,
-                'start_ns': d.start_ns,
-                'end_ns': d.end_ns,
-                'reason': d.reason,
-                'text': d.describe(),
-            }
-            for d in bag.damaged
-        ],
+        'damaged_chunks': [asdict(d) | {'text': d.describe()} for d in bag.damaged],
         'max_chunk_span_s': max(spans) if spans else None,
         'first_chunk_span_s': spans[0] if spans else None,
         'recorder_counts': bag.recorder_counts is not None,

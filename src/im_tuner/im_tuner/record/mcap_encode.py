@@ -3,18 +3,19 @@
 time or not at all: a chunk's head and Message Index records (numpy), the Chunk Index, and
 the summary section with its offsets and footer. The writer (:mod:`im_tuner.record.writer`)
 and the repair (:mod:`im_tuner.record.repair`) both end a file with
-:func:`summary_and_footer`, so a repaired file ends exactly as a recorded one."""
+:func:`file_end`, so a repaired file ends exactly as a recorded one."""
 
 from __future__ import annotations
 
 import struct
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
-from mcap.records import McapRecord, Statistics
+from mcap.records import DataEnd, McapRecord, MetadataIndex, Statistics
 
 from .mcap_format import MAGIC
 
@@ -79,6 +80,34 @@ class ChunkInfo:
     uncompressed_size: int
 
 
+def indexed_chunk(
+    put: Callable[[bytes], int],
+    parts: tuple[bytes, ...],
+    idx: np.ndarray,
+    start: int,
+    end: int,
+    compression: str,
+    sizes: tuple[int, int],
+) -> ChunkInfo:
+    """Write a Chunk record (``parts``: its bytes, in order) and the Message Index records of
+    its messages ``idx`` through ``put`` (bytes -> the offset written at); what the summary
+    needs of it (``sizes``: of its records compressed and uncompressed)."""
+    at = put(parts[0])
+    for part in parts[1:]:
+        put(part)
+    index = message_index_records(idx)
+    return ChunkInfo(
+        start,
+        end,
+        at,
+        sum(map(len, parts)),
+        {cid: put(rec) for cid, rec in index},
+        sum(len(rec) for _cid, rec in index),
+        compression,
+        *sizes,
+    )
+
+
 def chunk_index_record(c: ChunkInfo) -> bytes:
     """The Chunk Index record of a written chunk."""
     offs = b''.join(struct.pack('<HQ', k, v) for k, v in sorted(c.index_offsets.items()))
@@ -118,26 +147,29 @@ def statistics_record(
     )
 
 
-def summary_and_footer(
-    summary_start: int,
+def file_end(
+    data_end: int,
     *,
     schemas: list[bytes],
     channels: list[bytes],
     statistics: bytes,
-    metadata_index: list[bytes],
-    chunk_index: list[bytes],
+    metadata_index: list[tuple[int, int, str]],
+    chunks: list[ChunkInfo],
     attachment_index: list[bytes] | None = None,
 ) -> bytes:
-    """What follows DataEnd at byte ``summary_start``: the summary (its groups of records
-    in this order, empty ones left out), a Summary Offset per group, the Footer (with the
-    summary's CRC-32) and the closing magic."""
+    """What ends a file whose data section ends at byte ``data_end``: DataEnd, the summary
+    (its groups of records in this order, empty ones left out; a Metadata Index per
+    (offset, length, name), a Chunk Index per chunk), a Summary Offset per group, the
+    Footer (with the summary's CRC-32) and the closing magic."""
+    head = encode(DataEnd(0))
+    summary_start = data_end + len(head)
     groups = (
         (Opcode.SCHEMA, schemas),
         (Opcode.CHANNEL, channels),
         (Opcode.STATISTICS, [statistics]),
-        (Opcode.METADATA_INDEX, metadata_index),
+        (Opcode.METADATA_INDEX, [encode(MetadataIndex(*m)) for m in metadata_index]),
         (Opcode.ATTACHMENT_INDEX, attachment_index or []),
-        (Opcode.CHUNK_INDEX, chunk_index),
+        (Opcode.CHUNK_INDEX, [chunk_index_record(c) for c in chunks]),
     )
     out = bytearray()
     offsets: list[tuple[int, int, int]] = []
@@ -153,4 +185,4 @@ def summary_and_footer(
         '<BQQQ', Opcode.FOOTER, 20, summary_start if offsets else 0, offsets_start if offsets else 0
     )
     crc = zlib.crc32(bytes(out) + footer_head)
-    return bytes(out) + footer_head + struct.pack('<I', crc) + MAGIC
+    return head + bytes(out) + footer_head + struct.pack('<I', crc) + MAGIC

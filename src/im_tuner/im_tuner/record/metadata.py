@@ -18,6 +18,8 @@ from ..rundir import claim_out_dir, is_bag_dir
 
 ROSBAG2_VERSION = 9
 ROS_DISTRO = 'jazzy'
+#: metadata.yaml read through libyaml when PyYAML has it (the same SafeLoader constructors)
+_YAML_LOADER = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
 #: rosbag2's spelling of an infinite QoS duration.
 _INFINITE = {'sec': 9223372036, 'nsec': 854775807}
 
@@ -162,4 +164,4 @@ def write_metadata_yaml(out: Path, metadata: dict) -> None:
 def read_metadata_yaml(out: Path) -> dict:
     """The map inside ``out/metadata.yaml``'s ``rosbag2_bagfile_information``."""
     with open(Path(out) / 'metadata.yaml', encoding='utf-8') as f:
-        return yaml.safe_load(f)['rosbag2_bagfile_information']
+        return yaml.load(f, Loader=_YAML_LOADER)['rosbag2_bagfile_information']

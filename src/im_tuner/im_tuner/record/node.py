@@ -130,7 +130,6 @@ class Recorder:
         if self.live is not None:
             live_server = self.live
             self.writer.observer = lambda buf, idx: live_server.offer(self._feed.select(buf, idx))
-        self.compression = compression
         self.max_chunk_age = max_chunk_age
         self._max_span_ns = round(max_chunk_age * 1e9)
         #: poll, drain, discover, add_metadata and close take turns with the chunk timer
@@ -313,11 +312,7 @@ class Recorder:
         deadline = time.monotonic() + timeout
         while True:
             self.discover()
-            if all(
-                self.node.count_publishers(t.name) <= t.sub.get_publisher_count()
-                for t in self.topics.values()
-                if t.sub is not None
-            ):
+            if all(s.matched_publishers >= s.publishers for s in self.topic_status().values()):
                 return True
             if time.monotonic() > deadline:
                 return False
@@ -339,18 +334,16 @@ class Recorder:
             }
 
     def _check_matches(self) -> None:
-        for t in self.topics.values():
-            if t.sub is None:
-                continue
-            missing = self.node.count_publishers(t.name) - t.sub.get_publisher_count()
-            if missing > 0 and self.unmatched.get(t.name, 0) < missing:
+        for name, s in self.topic_status().items():
+            missing = s.publishers - s.matched_publishers
+            if missing > 0 and self.unmatched.get(name, 0) < missing:
                 self.log.warning(
-                    f'{t.name}: {missing} publisher(s) not matched by the '
+                    f'{name}: {missing} publisher(s) not matched by the '
                     'recorder (incompatible QoS?); their messages are not '
                     'recorded'
                 )
             if missing > 0:
-                self.unmatched[t.name] = max(self.unmatched.get(t.name, 0), missing)
+                self.unmatched[name] = max(self.unmatched.get(name, 0), missing)
 
     # -- the loop ----------------------------------------------------------------------
     def _age_check(self, now: float) -> None:

@@ -24,6 +24,7 @@ from mcap.opcode import Opcode
 from im_controller.contract import LOSS_TOPIC
 
 from .mcap_format import MAGIC
+from .metadata import read_metadata_yaml
 from .records import Cursor, chunk_records, parse_definition
 
 _MSG_HEAD = 22  # channel id u16, sequence u32, log time u64, publish time u64
@@ -32,8 +33,6 @@ _F64_DATA = 20  # first double of a Float64MultiArray with an empty layout
 _OP_LEN = struct.Struct('<BQ')  # a record's opcode and body length
 #: a topic's rate is given from this many messages, or over this much log time [s]
 RATE_MIN_MESSAGES, RATE_MIN_SPAN_S = 10, 1.0
-# metadata.yaml through libyaml when PyYAML has it (faster; the same SafeLoader constructors)
-_YAML_LOADER = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
 
 
 class BagReadError(Exception):
@@ -387,9 +386,7 @@ def read_bag(
     path = find_mcap(bag_dir)
     out = BagData(bag_dir, path)
     try:
-        with open(bag_dir / 'metadata.yaml', encoding='utf-8') as mf:
-            meta = yaml.load(mf, Loader=_YAML_LOADER)['rosbag2_bagfile_information']
-        custom = meta.get('custom_data') or {}
+        custom = read_metadata_yaml(bag_dir).get('custom_data') or {}
         out.state = custom.get('im_tuner.state', 'unknown')
         if 'im_tuner.counts' in custom:
             out.recorder_counts = json.loads(custom['im_tuner.counts'])

@@ -23,17 +23,15 @@ from typing import BinaryIO
 import numpy as np
 import yaml
 from mcap.opcode import Opcode
-from mcap.records import AttachmentIndex, DataEnd, MetadataIndex
+from mcap.records import AttachmentIndex
 
 from ..rundir import writer_of
 from .mcap_encode import (
-    ChunkInfo,
     chunk_head,
-    chunk_index_record,
     encode,
-    message_index_records,
+    file_end,
+    indexed_chunk,
     statistics_record,
-    summary_and_footer,
 )
 from .mcap_format import MAGIC
 from .metadata import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
@@ -323,30 +321,17 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
 
         meta_index = [(copy(at, n), n, name) for at, n, name in scan.metadata]
         att_index = [(copy(a[0], a[1]), *a[1:]) for a in scan.attachments]
-        infos: list[ChunkInfo] = []
+        infos = []
         for ch in scan.chunks:
             if ch.loose is None:
-                at, length = copy(ch.offset, ch.length), ch.length
+                rec = read(ch.offset, ch.length)
             else:
                 recs = b''.join(read(o, n) for o, n, _c, _t in ch.loose)
                 rec = chunk_head(ch.start, ch.end, recs, '', len(recs)) + recs
-                at, length = put(rec), len(rec)
-            index_at = pos
-            offsets = {cid: put(rec) for cid, rec in message_index_records(ch.index)}
+            sizes = (ch.compressed_size, ch.uncompressed_size)
             infos.append(
-                ChunkInfo(
-                    ch.start,
-                    ch.end,
-                    at,
-                    length,
-                    offsets,
-                    pos - index_at,
-                    ch.compression,
-                    ch.compressed_size,
-                    ch.uncompressed_size,
-                )
+                indexed_chunk(put, (rec,), ch.index, ch.start, ch.end, ch.compression, sizes)
             )
-    put(encode(DataEnd(0)))
     stats = statistics_record(
         scan.messages,
         len(scan.schemas),
@@ -357,31 +342,28 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
         scan.time_range(),
         scan.channel_counts(),
     )
-    summary = summary_and_footer(
-        pos,
-        schemas=[rec for _n, rec in scan.schemas.values()],
-        channels=[c[3] for c in scan.channels.values()],
-        statistics=stats,
-        metadata_index=[encode(MetadataIndex(*m)) for m in meta_index],
-        attachment_index=[encode(AttachmentIndex(*a)) for a in att_index],
-        chunk_index=[chunk_index_record(c) for c in infos],
+    put(
+        file_end(
+            pos,
+            schemas=[rec for _n, rec in scan.schemas.values()],
+            channels=[c[3] for c in scan.channels.values()],
+            statistics=stats,
+            metadata_index=meta_index,
+            attachment_index=[encode(AttachmentIndex(*a)) for a in att_index],
+            chunks=infos,
+        )
     )
-    put(summary)
-
-
-def _find_mcap(bag_dir: Path) -> Path:
-    if not bag_dir.is_dir():
-        raise RepairError(f'{bag_dir}: not a directory')
-    try:
-        return find_mcap(bag_dir)
-    except BagReadError as exc:
-        raise RepairError(str(exc)) from None
 
 
 def repair_bag(bag_dir: Path) -> RepairReport:
     """Repair the bag directory ``bag_dir`` (see the module doc); returns what was done."""
     bag_dir = Path(bag_dir)
-    path = _find_mcap(bag_dir)
+    if not bag_dir.is_dir():
+        raise RepairError(f'{bag_dir}: not a directory')
+    try:
+        path = find_mcap(bag_dir)
+    except BagReadError as exc:
+        raise RepairError(str(exc)) from None
     writer = writer_of(path)
     if writer is not None:
         raise RepairError(

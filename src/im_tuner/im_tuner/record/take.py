@@ -27,7 +27,7 @@ from numba import types
 
 from im_drive_sim.outbox import R_TAIL, loaded_library
 
-from .writer import MESSAGE_HEADER_BYTES, note_message, too_wide, write_message_header
+from .writer import MESSAGE_HEADER_BYTES, fits, note_message, write_message_header
 
 _RCL = loaded_library('librcl.so')
 _RCUTILS = loaded_library('librcutils.so')
@@ -121,11 +121,9 @@ def _place(
 ) -> bool:
     n = np.int64(ser[1])
     pos = st[0]
-    if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or st[1] >= idx.shape[0]:
-        return False
     log_time = np.int64(info[I_RECEIVED_TS])
-    if too_wide(st, log_time, ctrl[C_MAX_SPAN_NS]):
-        return False  # the chunk would span more than max_chunk_age of log time
+    if not fits(buf, idx, st, n, log_time, ctrl[C_MAX_SPAN_NS]):
+        return False
     write_message_header(
         buf,
         pos,
@@ -282,10 +280,8 @@ def drain_ring(
         i = t % cap
         n = rlens[i]
         pos = st[0]
-        if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or st[1] >= idx.shape[0]:
-            break
         stamp = rstamps[i]
-        if too_wide(st, stamp, max_span_ns):
+        if not fits(buf, idx, st, n, stamp, max_span_ns):
             break
         write_message_header(buf, pos, channel, t & 0xFFFFFFFF, stamp, stamp, n)
         p = pos + MESSAGE_HEADER_BYTES

@@ -26,16 +26,15 @@ from typing import BinaryIO
 import numba
 import numpy as np
 from mcap.opcode import Opcode
-from mcap.records import Channel, DataEnd, Header, Metadata, MetadataIndex, Schema
+from mcap.records import Channel, Header, Metadata, Schema
 
 from .mcap_encode import (
     ChunkInfo,
     chunk_head,
-    chunk_index_record,
     encode,
-    message_index_records,
+    file_end,
+    indexed_chunk,
     statistics_record,
-    summary_and_footer,
 )
 from .mcap_format import COMPRESSIONS, MAGIC, MESSAGE_HEADER_BYTES
 
@@ -72,10 +71,7 @@ def append_message(
     """
     n = data.shape[0]
     pos = st[ST_POS]
-    k = st[ST_COUNT]
-    if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or k >= idx.shape[0]:
-        return False
-    if too_wide(st, log_time, max_span_ns):
+    if not fits(buf, idx, st, n, log_time, max_span_ns):
         return False
     write_message_header(buf, pos, channel_id, sequence, log_time, publish_time, n)
     buf[pos + MESSAGE_HEADER_BYTES : pos + MESSAGE_HEADER_BYTES + n] = data
@@ -108,12 +104,17 @@ def write_message_header(
 
 
 @numba.njit(cache=True, inline='always')
-def too_wide(st: np.ndarray, log_time: int, max_span_ns: int) -> bool:
-    """Whether a message of ``log_time`` [ns] would make the open chunk span more than
-    ``max_span_ns`` of log time (0: no limit); an empty chunk takes any message."""
-    if max_span_ns <= 0 or st[ST_COUNT] == 0:
+def fits(
+    buf: np.ndarray, idx: np.ndarray, st: np.ndarray, n: int, log_time: int, max_span_ns: int
+) -> bool:
+    """Whether a Message record of ``n`` data bytes and ``log_time`` [ns] goes into the open
+    chunk: there is room, and the chunk would not then span more than ``max_span_ns`` of log
+    time (0: no limit; an empty chunk takes any message)."""
+    if st[ST_POS] + MESSAGE_HEADER_BYTES + n > buf.shape[0] or st[ST_COUNT] >= idx.shape[0]:
         return False
-    return log_time - st[ST_TMIN] > max_span_ns or st[ST_TMAX] - log_time > max_span_ns
+    if max_span_ns <= 0 or st[ST_COUNT] == 0:
+        return True
+    return log_time - st[ST_TMIN] <= max_span_ns and st[ST_TMAX] - log_time <= max_span_ns
 
 
 @numba.njit(cache=True, inline='always')
@@ -364,24 +365,9 @@ class McapWriter:
     def _write_chunk(self, raw: bytes, idx: np.ndarray, t0: int, t1: int) -> None:
         payload = self._compress(raw)
         comp = '' if self.compression == 'none' else self.compression
-        chunk_at = self._write(chunk_head(t0, t1, raw, comp, len(payload)))
-        self._write(payload)
-        chunk_len = self._pos - chunk_at
-        index_at = self._pos
-        index_offsets = {cid: self._write(rec) for cid, rec in message_index_records(idx)}
-        self.chunks.append(
-            ChunkInfo(
-                t0,
-                t1,
-                chunk_at,
-                chunk_len,
-                index_offsets,
-                self._pos - index_at,
-                comp,
-                len(payload),
-                len(raw),
-            )
-        )
+        head = chunk_head(t0, t1, raw, comp, len(payload))
+        sizes = (len(payload), len(raw))
+        self.chunks.append(indexed_chunk(self._write, (head, payload), idx, t0, t1, comp, sizes))
         self.flush()
 
     # -- finishing ---------------------------------------------------------------------
@@ -391,7 +377,6 @@ class McapWriter:
             return
         self.flush_chunk()
         self._drain_pool()
-        self._write(encode(DataEnd(0)))
         schemas = [encode(Schema(sid, d, enc, n)) for sid, (n, enc, d) in self.schemas.items()]
         channels = [
             encode(Channel(cid, topic, enc, meta, sid))
@@ -407,15 +392,16 @@ class McapWriter:
             (self.t_start or 0, self.t_end or 0),
             self.channel_counts,
         )
-        summary = summary_and_footer(
-            self._pos,
-            schemas=schemas,
-            channels=channels,
-            statistics=stats,
-            metadata_index=[encode(MetadataIndex(*m)) for m in self.metadata_index],
-            chunk_index=[chunk_index_record(c) for c in self.chunks],
+        self._write(
+            file_end(
+                self._pos,
+                schemas=schemas,
+                channels=channels,
+                statistics=stats,
+                metadata_index=self.metadata_index,
+                chunks=self.chunks,
+            )
         )
-        self._write(summary)
         f, self._f = self._f, None
         f.flush()
         os.fsync(f.fileno())

@@ -13,6 +13,7 @@ import subprocess
 import sys
 import tempfile
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -146,17 +147,18 @@ class _Drive:
             self.child.proc.pid, what, error, idle_s=idle_s, note=self.note, alive=self.child.check
         )
 
+    def spin_until(self, done: Callable[[], bool], wait: Patience, period: float = 0.05) -> None:
+        """Spin the requests' executor until ``done()``, as long as ``wait`` allows."""
+        while not done():
+            wait.check()
+            self.executor.spin_once(timeout_sec=period)
+
     def wait_ready(self) -> None:
         wait = self.patience('the controller on the graph', READY_IDLE_S, ReplayInconclusive)
-        while not self.ready():
-            wait.check()
-            self.executor.spin_once(timeout_sec=0.05)
+        self.spin_until(self.ready, wait)
 
     def _call(self, future, what: str):
-        wait = self.patience(f'the answer to {what}')
-        while not future.done():
-            wait.check()
-            self.executor.spin_once(timeout_sec=0.05)
+        self.spin_until(future.done, self.patience(f'the answer to {what}'))
         return future.result()
 
     def set_gains(self, gains: tuple[float, ...], step: int) -> None:
@@ -257,9 +259,8 @@ def replay(
                         drive.publish_state(state)
                         sent = True
                     wait = drive.patience(f'the start before step {k} (refused: no state yet)')
-                    while not drive.start(int(what), k):  # type: ignore[call-overload]
-                        wait.check()
-                        drive.executor.spin_once(timeout_sec=0.02)
+                    start = partial(drive.start, int(what), k)  # type: ignore[call-overload]
+                    drive.spin_until(start, wait, 0.02)
                 if not sent:
                     drive.publish_state(state)
                 out[i] = drive.wait_command(k)

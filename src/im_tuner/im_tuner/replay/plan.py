@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from im_controller.config import GAIN_NAMES
-from im_controller.contract import INTERNALS_TOPIC, LOSS_TOPIC
+from im_controller.contract import INTERNALS_TOPIC
 from im_controller.layout import (
     INTERNALS_FIELDS,
     LINK_REASONS,
@@ -44,7 +44,6 @@ CLOCK_TOPIC = '/clock'
 STATE = '/' + STATE_TOPIC
 COMMAND = '/' + COMMAND_TOPIC
 INTERNALS = '/' + INTERNALS_TOPIC
-LOSS = '/' + LOSS_TOPIC
 #: Metadata record holding the controller's parameters at start (im_tuner.bench.inprocess).
 CONTROLLER_RECORD = 'im_tuner.controller'
 #: Command fields compared (``answers_step`` is the key, equal by construction).

@@ -196,9 +196,3 @@ def format_info(info: dict[str, Any]) -> str:
             + ', '.join(f'{t["topic"]} {t["published_before_recording"]}' for t in before)
         )
     return '\n'.join(L)
-
-
-def main_bag_info(bag_dir: Path, as_json: bool) -> str:
-    """What ``report --bag-info`` prints (raises :class:`ReportError`)."""
-    info = bag_info(bag_dir)
-    return json.dumps(info, indent=2) if as_json else format_info(info)

@@ -1,10 +1,5 @@
-"""rosbag2 bag directories: creating one, its ``metadata.yaml``, QoS and count summaries.
-
-A rosbag2 bag is a directory holding ``metadata.yaml`` and the storage files (here one
-``<name>_0.mcap``). ``metadata.yaml`` follows rosbag2's version 9 layout (ROS 2 Jazzy):
-the MCAP tools need only the ``.mcap``; the ``rosbags`` library and ``ros2 bag`` read the
-directory. No rclpy here.
-"""
+"""rosbag2 bag directories: creating one, its ``metadata.yaml`` (rosbag2's version 9 layout,
+ROS 2 Jazzy), QoS and count summaries. No rclpy here."""
 
 from __future__ import annotations
 

@@ -68,16 +68,11 @@ class _Topic:
 class Recorder:
     """Records every topic of the graph seen by ``node``'s context into a bag.
 
-    Call :meth:`poll` often (the bench does every few steps; the standalone recorder
-    every millisecond): it discovers new topics (at most every ``discovery_period`` s),
-    takes every waiting message and closes chunks that are full or whose first message
-    is ``max_chunk_age`` s old. No chunk spans more than ``max_chunk_age`` of log time
-    (the take kernels close it before a message that would stretch it further). With
-    ``flush_timer``, a :class:`~.chunk_timer.ChunkTimer` does the same when the owner has
-    not polled for a quarter of ``max_chunk_age``, so that nothing taken waits in memory
-    (the methods that touch the chunk take turns on a lock). :meth:`close` finishes the
-    bag and returns the counts.
-    """
+    Call :meth:`poll` often: it discovers new topics (at most every ``discovery_period``
+    s), takes every waiting message and closes chunks that are full or ``max_chunk_age``
+    old; with ``flush_timer`` a :class:`~.chunk_timer.ChunkTimer` does it when the owner
+    has not polled (docs/recorder.md, "Crash safety"). :meth:`close` finishes the bag and
+    returns the counts."""
 
     def __init__(
         self,
@@ -469,11 +464,9 @@ class Recorder:
     ) -> dict[str, dict[str, int]]:
         """Take what is left, finish the bag (summary, metadata.yaml); returns the counts.
 
-        ``settle`` [s]: keep taking until nothing arrived for this long (for publishers
-        in other processes still delivering), but for ``max_wait`` s at most: next to a
-        live bench (a real-time drive publishes 5000 states a second) it is never quiet.
-        A bag cut that way says so (``im_tuner.close`` in its metadata, and a log line):
-        what was published after the cut is not in it."""
+        ``settle`` [s]: keep taking until nothing arrived for this long, but for
+        ``max_wait`` s at most; a bag cut that way says so (docs/recorder.md, "Crash
+        safety")."""
         if self.writer.closed:
             return self.counts()
         if self._timer is not None:  # from here on only this thread touches the chunk

@@ -1,9 +1,5 @@
-"""``ros2 run im_tuner report``: the command (checks every run first, then writes).
-
-Imports only what the check needs at start (argparse, yaml for run.yaml): ``--help``
-and a refusal answer without numpy, the bag reader (numba) or matplotlib; ``load``,
-``text``, ``table`` and ``figures`` are imported once the runs are known to be runs.
-"""
+"""``ros2 run im_tuner report``: the command (checks every run first, then writes; ``load``,
+``text``, ``table`` and ``figures`` are imported once the runs are known to be runs)."""
 
 from __future__ import annotations
 

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
 
-from im_tuner.record.mcap_format import OP_CHUNK, OP_DATA_END
 from im_tuner.record.reader import read_bag
 from im_tuner.record.repair import RepairError, repair_bag
 from im_tuner.replay.plan import ReplayError, load_plan
@@ -38,10 +38,10 @@ def chunks(data: bytes) -> list[tuple[int, int]]:
         op, n = struct.unpack_from('<BQ', data, p)
         if op == 0 or p + 9 + n > len(data):
             break
-        if op == OP_CHUNK:
+        if op == Opcode.CHUNK:
             out.append((p, p + 9 + n))
         p += 9 + n
-        if op == OP_DATA_END:
+        if op == Opcode.DATA_END:
             break
     return out
 

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.opcode import Opcode
 
 from im_tuner.record import reader
-from im_tuner.record.mcap_format import OP_CHUNK, OP_DATA_END, OP_MESSAGE_INDEX
 from im_tuner.record.reader import read_bag
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -33,7 +33,7 @@ def top_records(data: bytes) -> list[tuple[int, int, int]]:
         op, n = struct.unpack_from('<BQ', data, p)
         out.append((op, p, p + 9 + n))
         p += 9 + n
-        if op == OP_DATA_END:
+        if op == Opcode.DATA_END:
             break
     return out
 
@@ -89,7 +89,7 @@ def _rewrite(path: Path, edit) -> int:
     recs = top_records(data)
     out, chunk = [data[:8]], -1
     for op, a, b in recs:
-        chunk += op == OP_CHUNK
+        chunk += op == Opcode.CHUNK
         out.append(edit(op, data[a:b], chunk))
     out.append(data[recs[-1][2] :])
     path.write_bytes(b''.join(out))
@@ -98,7 +98,7 @@ def _rewrite(path: Path, edit) -> int:
 
 def test_no_index_at_all_walks_every_chunk(tmp_path, monkeypatch):
     want = written(tmp_path / 'b')
-    n = _rewrite(want['file'], lambda op, rec, _c: b'' if op == OP_MESSAGE_INDEX else rec)
+    n = _rewrite(want['file'], lambda op, rec, _c: b'' if op == Opcode.MESSAGE_INDEX else rec)
     calls = counting_walk(monkeypatch)
     check_against_written(tmp_path / 'b', want)
     assert len(calls) == n
@@ -108,7 +108,7 @@ def _first_index_of_chunk(target: int):
     seen: set[int] = set()
 
     def pick(op: int, chunk: int) -> bool:
-        if op == OP_MESSAGE_INDEX and chunk == target and chunk not in seen:
+        if op == Opcode.MESSAGE_INDEX and chunk == target and chunk not in seen:
             seen.add(chunk)
             return True
         return False

@@ -13,9 +13,9 @@ from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from im_drive_sim.cli import UsageError, parse_cli
+from im_drive_sim.qos import qos_profile
 from im_drive_sim.runtime import RosSession, unknown_overrides, warn_unknown_overrides
 
 from .live import live_settings
@@ -23,7 +23,7 @@ from .metadata import BagError
 from .node import Recorder, RecorderError
 from .recorder_main import parser
 from .run_info import default_out_dir
-from .status import STATUS_PERIOD_S, STATUS_TOPIC, TopicStatus, to_msg
+from .status import STATUS_PERIOD_S, STATUS_QOS, STATUS_TOPIC, TopicStatus, to_msg
 
 
 class StatusPublisher:
@@ -31,14 +31,8 @@ class StatusPublisher:
     most every ``STATUS_PERIOD_S``; its own topic is not recorded."""
 
     def __init__(self, node: Node, rec: Recorder) -> None:
-        qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST,
-            depth=1,
-            reliability=ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL,
-        )
         self.rec = rec
-        self.pub = node.create_publisher(DiagnosticArray, STATUS_TOPIC, qos)
+        self.pub = node.create_publisher(DiagnosticArray, STATUS_TOPIC, qos_profile(STATUS_QOS))
         rec.own_topics.add(self.pub.topic_name)
         self.bag = str(Path(rec.out).resolve())
         self._last: dict[str, TopicStatus] | None = None

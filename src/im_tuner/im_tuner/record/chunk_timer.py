@@ -1,22 +1,12 @@
-"""A thread that closes the recorder's open chunk by wall time when nobody polls it.
-
-Why: the recorder takes messages and closes chunks only when its owner polls it. While
-the owner is busy elsewhere (numba loading kernels at start-up, a tuner waiting for its
-first experiment) what was already taken would sit in memory, where a SIGKILL loses it.
-This thread wakes every ``period`` s and, when the owner has not polled for that long,
-calls ``tick()`` (the recorder takes what is waiting and closes a chunk whose first
-message is ``max_chunk_age`` old). It never touches the graph.
-
-No rclpy here; the recorder owns the lock that makes ``tick()`` and its own polls take
-turns.
-"""
+"""A thread that closes the recorder's open chunk by wall time when nobody polls it, so that
+nothing taken waits in memory where a SIGKILL loses it (docs/recorder.md, "Crash
+safety"). It never touches the graph; the recorder owns the lock that makes ``tick()`` and
+its own polls take turns. No rclpy here."""
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-
-__all__ = ['ChunkTimer']
 
 
 class ChunkTimer:

@@ -1,46 +1,37 @@
-"""MCAP v0 records spelled as bytes (https://mcap.dev/spec), pure (no numba, no rclpy):
-strings, maps, records, the Message Index, Chunk Index and Statistics records, and the
-summary section with its offsets and footer. The writer (:mod:`im_tuner.record.writer`)
+"""MCAP v0 records spelled as bytes (https://mcap.dev/spec), pure (no numba, no rclpy): the
+``mcap`` library's records through :func:`encode`, and what it spells one Python call at a
+time or not at all: a chunk's head and Message Index records (numpy), the Chunk Index, and
+the summary section with its offsets and footer. The writer (:mod:`im_tuner.record.writer`)
 and the repair (:mod:`im_tuner.record.repair`) both end a file with
-:func:`summary_and_footer`, so a repaired file ends exactly as a recorded one."""
+:func:`file_end`, so a repaired file ends exactly as a recorded one."""
 
 from __future__ import annotations
 
 import struct
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
+from mcap.records import DataEnd, McapRecord, MetadataIndex, Statistics
 
-from .mcap_format import (
-    MAGIC,
-    OP_ATTACHMENT_INDEX,
-    OP_CHANNEL,
-    OP_CHUNK_INDEX,
-    OP_FOOTER,
-    OP_MESSAGE_INDEX,
-    OP_METADATA_INDEX,
-    OP_SCHEMA,
-    OP_STATISTICS,
-    OP_SUMMARY_OFFSET,
-)
-
-_U64 = struct.Struct('<Q')
+from .mcap_format import MAGIC
 
 
-def prefixed(b: bytes) -> bytes:
-    """MCAP bytes: u32 length, the bytes."""
-    return struct.pack('<I', len(b)) + b
+def encode(*records: McapRecord) -> bytes:
+    """The bytes of ``records``, one after the other (a map's pairs in its dict's order)."""
+    out = RecordBuilder()
+    for r in records:
+        r.write(out)
+    return out.end()
 
 
 def string(s: str) -> bytes:
     """An MCAP string: u32 byte length, UTF-8 bytes."""
-    return prefixed(s.encode('utf-8'))
-
-
-def string_map(d: dict[str, str]) -> bytes:
-    """An MCAP map<string, string>: u32 byte length, the pairs sorted by key."""
-    return prefixed(b''.join(string(k) + string(v) for k, v in sorted(d.items())))
+    b = s.encode('utf-8')
+    return struct.pack('<I', len(b)) + b
 
 
 def record(op: int, body: bytes) -> bytes:
@@ -48,19 +39,14 @@ def record(op: int, body: bytes) -> bytes:
     return struct.pack('<BQ', op, len(body)) + body
 
 
-def schema_record(sid: int, name: str, encoding: str, data: bytes) -> bytes:
-    """A Schema record (id ``sid``, the schema text ``data``)."""
-    return record(
-        OP_SCHEMA, struct.pack('<H', sid) + string(name) + string(encoding) + prefixed(data)
+def chunk_head(start: int, end: int, records: bytes, compression: str, size: int) -> bytes:
+    """A Chunk record up to its ``size`` bytes of (compressed) ``records``, which follow it."""
+    body = (
+        struct.pack('<QQQI', start, end, len(records), zlib.crc32(records))
+        + string(compression)
+        + struct.pack('<Q', size)
     )
-
-
-def channel_record(cid: int, sid: int, topic: str, encoding: str, meta: dict[str, str]) -> bytes:
-    """A Channel record (id ``cid`` on schema ``sid``, message ``encoding``)."""
-    return record(
-        OP_CHANNEL,
-        struct.pack('<HH', cid, sid) + string(topic) + string(encoding) + string_map(meta),
-    )
+    return struct.pack('<BQ', Opcode.CHUNK, len(body) + size) + body
 
 
 def message_index_records(idx: np.ndarray) -> list[tuple[int, bytes]]:
@@ -73,13 +59,10 @@ def message_index_records(idx: np.ndarray) -> list[tuple[int, bytes]]:
     out = []
     for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
         entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
-        out.append((cid, record(OP_MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries)))
+        out.append(
+            (cid, record(Opcode.MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries))
+        )
     return out
-
-
-def metadata_index_record(at: int, length: int, name: str) -> bytes:
-    """A Metadata Index record: the Metadata record at byte ``at``, ``length`` bytes long."""
-    return record(OP_METADATA_INDEX, struct.pack('<QQ', at, length) + string(name))
 
 
 @dataclass
@@ -97,15 +80,42 @@ class ChunkInfo:
     uncompressed_size: int
 
 
+def indexed_chunk(
+    put: Callable[[bytes], int],
+    parts: tuple[bytes, ...],
+    idx: np.ndarray,
+    start: int,
+    end: int,
+    compression: str,
+    sizes: tuple[int, int],
+) -> ChunkInfo:
+    """Write a Chunk record (``parts``: its bytes, in order) and the Message Index records of
+    its messages ``idx`` through ``put`` (bytes -> the offset written at); what the summary
+    needs of it (``sizes``: of its records compressed and uncompressed)."""
+    at = put(parts[0])
+    for part in parts[1:]:
+        put(part)
+    index = message_index_records(idx)
+    return ChunkInfo(
+        start,
+        end,
+        at,
+        sum(map(len, parts)),
+        {cid: put(rec) for cid, rec in index},
+        sum(len(rec) for _cid, rec in index),
+        compression,
+        *sizes,
+    )
+
+
 def chunk_index_record(c: ChunkInfo) -> bytes:
     """The Chunk Index record of a written chunk."""
     offs = b''.join(struct.pack('<HQ', k, v) for k, v in sorted(c.index_offsets.items()))
     return record(
-        OP_CHUNK_INDEX,
-        struct.pack('<QQQQ', c.start, c.end, c.offset, c.length)
-        + struct.pack('<I', len(offs))
+        Opcode.CHUNK_INDEX,
+        struct.pack('<QQQQI', c.start, c.end, c.offset, c.length, len(offs))
         + offs
-        + _U64.pack(c.index_length)
+        + struct.pack('<Q', c.index_length)
         + string(c.compression)
         + struct.pack('<QQ', c.compressed_size, c.uncompressed_size),
     )
@@ -122,44 +132,44 @@ def statistics_record(
     channel_counts: dict[int, int],
 ) -> bytes:
     """The Statistics record: counts, the message time range [ns], messages per channel."""
-    counts = b''.join(struct.pack('<HQ', c, k) for c, k in sorted(channel_counts.items()))
-    return record(
-        OP_STATISTICS,
-        struct.pack(
-            '<QHIIIIQQ',
-            messages,
-            n_schemas,
-            n_channels,
-            n_attachments,
-            n_metadata,
-            n_chunks,
-            *time_range,
+    return encode(
+        Statistics(
+            message_count=messages,
+            schema_count=n_schemas,
+            channel_count=n_channels,
+            attachment_count=n_attachments,
+            metadata_count=n_metadata,
+            chunk_count=n_chunks,
+            message_start_time=time_range[0],
+            message_end_time=time_range[1],
+            channel_message_counts=dict(sorted(channel_counts.items())),
         )
-        + struct.pack('<I', len(counts))
-        + counts,
     )
 
 
-def summary_and_footer(
-    summary_start: int,
+def file_end(
+    data_end: int,
     *,
     schemas: list[bytes],
     channels: list[bytes],
     statistics: bytes,
-    metadata_index: list[bytes],
-    chunk_index: list[bytes],
+    metadata_index: list[tuple[int, int, str]],
+    chunks: list[ChunkInfo],
     attachment_index: list[bytes] | None = None,
 ) -> bytes:
-    """What follows DataEnd at byte ``summary_start``: the summary (its groups of records
-    in this order, empty ones left out), a Summary Offset per group, the Footer (with the
-    summary's CRC-32) and the closing magic."""
+    """What ends a file whose data section ends at byte ``data_end``: DataEnd, the summary
+    (its groups of records in this order, empty ones left out; a Metadata Index per
+    (offset, length, name), a Chunk Index per chunk), a Summary Offset per group, the
+    Footer (with the summary's CRC-32) and the closing magic."""
+    head = encode(DataEnd(0))
+    summary_start = data_end + len(head)
     groups = (
-        (OP_SCHEMA, schemas),
-        (OP_CHANNEL, channels),
-        (OP_STATISTICS, [statistics]),
-        (OP_METADATA_INDEX, metadata_index),
-        (OP_ATTACHMENT_INDEX, attachment_index or []),
-        (OP_CHUNK_INDEX, chunk_index),
+        (Opcode.SCHEMA, schemas),
+        (Opcode.CHANNEL, channels),
+        (Opcode.STATISTICS, [statistics]),
+        (Opcode.METADATA_INDEX, [encode(MetadataIndex(*m)) for m in metadata_index]),
+        (Opcode.ATTACHMENT_INDEX, attachment_index or []),
+        (Opcode.CHUNK_INDEX, [chunk_index_record(c) for c in chunks]),
     )
     out = bytearray()
     offsets: list[tuple[int, int, int]] = []
@@ -169,10 +179,10 @@ def summary_and_footer(
             out.extend(b''.join(records))
             offsets.append((op, at, summary_start + len(out) - at))
     offsets_start = summary_start + len(out)
-    for op, at, n in offsets:
-        out.extend(record(OP_SUMMARY_OFFSET, struct.pack('<BQQ', op, at, n)))
+    for group, at, n in offsets:
+        out.extend(record(Opcode.SUMMARY_OFFSET, struct.pack('<BQQ', group, at, n)))
     footer_head = struct.pack(
-        '<BQQQ', OP_FOOTER, 20, summary_start if offsets else 0, offsets_start if offsets else 0
+        '<BQQQ', Opcode.FOOTER, 20, summary_start if offsets else 0, offsets_start if offsets else 0
     )
     crc = zlib.crc32(bytes(out) + footer_head)
-    return bytes(out) + footer_head + struct.pack('<I', crc) + MAGIC
+    return head + bytes(out) + footer_head + struct.pack('<I', crc) + MAGIC

@@ -1,10 +1,5 @@
-"""rosbag2 bag directories: creating one, its ``metadata.yaml``, QoS and count summaries.
-
-A rosbag2 bag is a directory holding ``metadata.yaml`` and the storage files (here one
-``<name>_0.mcap``). ``metadata.yaml`` follows rosbag2's version 9 layout (ROS 2 Jazzy):
-the MCAP tools need only the ``.mcap``; the ``rosbags`` library and ``ros2 bag`` read the
-directory. No rclpy here.
-"""
+"""rosbag2 bag directories: creating one, its ``metadata.yaml`` (rosbag2's version 9 layout,
+ROS 2 Jazzy), QoS and count summaries. No rclpy here."""
 
 from __future__ import annotations
 
@@ -18,6 +13,8 @@ from ..rundir import claim_out_dir, is_bag_dir
 
 ROSBAG2_VERSION = 9
 ROS_DISTRO = 'jazzy'
+#: metadata.yaml read through libyaml when PyYAML has it (the same SafeLoader constructors)
+_YAML_LOADER = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
 #: rosbag2's spelling of an infinite QoS duration.
 _INFINITE = {'sec': 9223372036, 'nsec': 854775807}
 
@@ -162,4 +159,4 @@ def write_metadata_yaml(out: Path, metadata: dict) -> None:
 def read_metadata_yaml(out: Path) -> dict:
     """The map inside ``out/metadata.yaml``'s ``rosbag2_bagfile_information``."""
     with open(Path(out) / 'metadata.yaml', encoding='utf-8') as f:
-        return yaml.safe_load(f)['rosbag2_bagfile_information']
+        return yaml.load(f, Loader=_YAML_LOADER)['rosbag2_bagfile_information']

@@ -1,20 +1,11 @@
 """The recorder: every topic on the graph into a rosbag2 MCAP bag, with nothing lost.
 
-``ros2 run im_tuner recorder`` records like ``ros2 bag record -a`` (docs/recorder.md):
-it subscribes to every topic as it appears and writes a bag directory (``metadata.yaml`` +
-``<name>_0.mcap``, ``ros2msg`` schemas -- ``ros2idl`` for service events,
-:func:`im_tuner.record.schemas.schema_for` -- CDR messages, QoS in the channel metadata).
-Subscriptions are reliable KEEP_ALL where the publishers are; messages are taken in the
-recorder's own loop (:mod:`im_tuner.record.take`), not by executor callbacks; per
-publisher the ``publication_sequence_number`` gaps count the messages lost, and the
-per-topic ``recorded / published / lost`` counts go to the log, ``metadata.yaml`` and an
-MCAP metadata record at close. A chunk spans at most ``max_chunk_age`` s of log time and
-is written once its first message is that old (:mod:`.chunk_timer` when nobody polls);
-after SIGKILL, ``ros2 run im_tuner recorder --repair DIR`` rewrites the summary.
-
-The simulated bench and the tuner run a :class:`Recorder` in their own process and call
-:meth:`Recorder.poll` between steps.
-"""
+``ros2 run im_tuner recorder`` records like ``ros2 bag record -a`` (docs/recorder.md): a
+subscription per topic as it appears, messages taken in the recorder's own loop
+(:mod:`im_tuner.record.take`), per-publisher sequence-number gaps counted as lost, the
+counts in the log, ``metadata.yaml`` and an MCAP metadata record at close. The simulated
+bench and the tuner run a :class:`Recorder` in their own process and call
+:meth:`Recorder.poll` between steps."""
 
 from __future__ import annotations
 
@@ -52,9 +43,8 @@ from .status import TopicStatus
 from .topic_info import endpoint_qos, endpoint_type_hash, message_class
 from .writer import MESSAGE_HEADER_BYTES, McapWriteError, McapWriter
 
-#: Lock-step steps between two polls of a recorder sharing the bench's process: about
-#: 200 samples per 5 kHz topic, far below Fast DDS's 5000 per reader, and rare enough
-#: that polling the (mostly empty) low-rate subscriptions costs nothing measurable.
+#: Lock-step steps between two polls of a recorder sharing the bench's process (far below
+#: Fast DDS's 5000 samples per reader).
 RECORD_POLL_STEPS = 64
 #: Longest a closing recorder keeps taking messages that are still arriving [s].
 CLOSE_MAX_WAIT = 1.0
@@ -78,16 +68,11 @@ class _Topic:
 class Recorder:
     """Records every topic of the graph seen by ``node``'s context into a bag.
 
-    Call :meth:`poll` often (the bench does every few steps; the standalone recorder
-    every millisecond): it discovers new topics (at most every ``discovery_period`` s),
-    takes every waiting message and closes chunks that are full or whose first message
-    is ``max_chunk_age`` s old. No chunk spans more than ``max_chunk_age`` of log time
-    (the take kernels close it before a message that would stretch it further). With
-    ``flush_timer``, a :class:`~.chunk_timer.ChunkTimer` does the same when the owner has
-    not polled for a quarter of ``max_chunk_age``, so that nothing taken waits in memory
-    (the methods that touch the chunk take turns on a lock). :meth:`close` finishes the
-    bag and returns the counts.
-    """
+    Call :meth:`poll` often: it discovers new topics (at most every ``discovery_period``
+    s), takes every waiting message and closes chunks that are full or ``max_chunk_age``
+    old; with ``flush_timer`` a :class:`~.chunk_timer.ChunkTimer` does it when the owner
+    has not polled (docs/recorder.md, "Crash safety"). :meth:`close` finishes the bag and
+    returns the counts."""
 
     def __init__(
         self,
@@ -140,7 +125,6 @@ class Recorder:
         if self.live is not None:
             live_server = self.live
             self.writer.observer = lambda buf, idx: live_server.offer(self._feed.select(buf, idx))
-        self.compression = compression
         self.max_chunk_age = max_chunk_age
         self._max_span_ns = round(max_chunk_age * 1e9)
         #: poll, drain, discover, add_metadata and close take turns with the chunk timer
@@ -196,28 +180,25 @@ class Recorder:
 
     def discover(self) -> int:
         """Subscribe to topics that appeared; returns how many were added."""
-        with self._lock:
-            return self._discover()
-
-    def _discover(self) -> int:
         added = 0
-        for name, types in self.node.get_topic_names_and_types():
-            if (
-                name in self.topics
-                or name in self.unrecordable
-                or name in self.excluded
-                or name in self.own_topics
-            ):
-                continue
-            infos = self.node.get_publishers_info_by_topic(name)
-            if not infos:
-                continue  # nothing to record until something publishes
-            if len(types) > 1:
-                self.log.warning(f'{name} has several types {types}; recording {types[0]}')
-            if self._subscribe(name, types[0], infos):
-                added += 1
-                self.drain()  # the new reader is taken at once, not after every subscription
-        self._check_matches()
+        with self._lock:
+            for name, types in self.node.get_topic_names_and_types():
+                if (
+                    name in self.topics
+                    or name in self.unrecordable
+                    or name in self.excluded
+                    or name in self.own_topics
+                ):
+                    continue
+                infos = self.node.get_publishers_info_by_topic(name)
+                if not infos:
+                    continue  # nothing to record until something publishes
+                if len(types) > 1:
+                    self.log.warning(f'{name} has several types {types}; recording {types[0]}')
+                if self._subscribe(name, types[0], infos):
+                    added += 1
+                    self.drain()  # the new reader is taken at once, not after every one
+            self._check_matches()
         return added
 
     def _schema(self, type_name: str) -> int:
@@ -287,8 +268,7 @@ class Recorder:
                 )  # fmt: skip
                 total += n
                 if int(r.ctrl[R_TAIL]) < head:  # the chunk is full, or spans max_chunk_age
-                    self.writer.flush_chunk()
-                    self._chunk_opened = None
+                    self._flush()
                     self.writer.chunk.grow(MESSAGE_HEADER_BYTES + int(ch.slot))
         return total
 
@@ -327,11 +307,7 @@ class Recorder:
         deadline = time.monotonic() + timeout
         while True:
             self.discover()
-            if all(
-                self.node.count_publishers(t.name) <= t.sub.get_publisher_count()
-                for t in self.topics.values()
-                if t.sub is not None
-            ):
+            if all(s.matched_publishers >= s.publishers for s in self.topic_status().values()):
                 return True
             if time.monotonic() > deadline:
                 return False
@@ -353,18 +329,16 @@ class Recorder:
             }
 
     def _check_matches(self) -> None:
-        for t in self.topics.values():
-            if t.sub is None:
-                continue
-            missing = self.node.count_publishers(t.name) - t.sub.get_publisher_count()
-            if missing > 0 and self.unmatched.get(t.name, 0) < missing:
+        for name, s in self.topic_status().items():
+            missing = s.publishers - s.matched_publishers
+            if missing > 0 and self.unmatched.get(name, 0) < missing:
                 self.log.warning(
-                    f'{t.name}: {missing} publisher(s) not matched by the '
+                    f'{name}: {missing} publisher(s) not matched by the '
                     'recorder (incompatible QoS?); their messages are not '
                     'recorded'
                 )
             if missing > 0:
-                self.unmatched[t.name] = max(self.unmatched.get(t.name, 0), missing)
+                self.unmatched[name] = max(self.unmatched.get(name, 0), missing)
 
     # -- the loop ----------------------------------------------------------------------
     def _age_check(self, now: float) -> None:
@@ -382,8 +356,12 @@ class Recorder:
             or time.time_ns() - ck.first_log_time >= self._max_span_ns
             or now - self._chunk_opened >= self.max_chunk_age
         ):
-            self.writer.flush_chunk()
-            self._chunk_opened = None
+            self._flush()
+
+    def _flush(self) -> None:
+        """Close the open chunk (the next one's age is counted from its first poll)."""
+        self.writer.flush_chunk()
+        self._chunk_opened = None
 
     def poll(self, now: float | None = None) -> int:
         """Discover (when due), take everything waiting, close old chunks. Messages taken."""
@@ -394,7 +372,7 @@ class Recorder:
             self._last_poll = time.monotonic()
             if now >= self._next_discovery:
                 self._next_discovery = now + self.discovery_period
-                self._discover()
+                self.discover()
             n = self.drain()
             self._age_check(now)
             return n
@@ -414,47 +392,42 @@ class Recorder:
     def drain(self) -> int:
         """Take every waiting message into the open chunk (closing full chunks)."""
         with self._lock:
-            return self._drain()
-
-    def _drain(self) -> int:
-        total = self.drain_taps()
-        tb = self._take
-        while True:
-            ch = self.writer.chunk
-            code, n = rcl_take.drain(
-                self._subs,
-                self._chans,
-                tb.ser,
-                tb.info,
-                ch.buf,
-                ch.idx,
-                ch.st,
-                self._pubs,
-                self._ctrl,
-                1 << 40,
-            )
-            total += n
-            if code == rcl_take.DONE:
-                break
-            if code == rcl_take.FULL:
-                self.writer.flush_chunk()
-                self._chunk_opened = None
-                self.writer.chunk.grow(MESSAGE_HEADER_BYTES + tb.pending_size)
-            elif code == rcl_take.PUBS_FULL:
-                grown = rcl_take.new_publisher_table(2 * self._pubs.shape[0])
-                grown[: self._pubs.shape[0]] = self._pubs
-                self._pubs = grown
-            elif code == rcl_take.ERROR:
-                raise RecorderError(
-                    f'rcl_take_serialized_message failed with code '
-                    f'{int(self._ctrl[rcl_take.C_ERROR])}'
+            total = self.drain_taps()
+            tb = self._take
+            while True:
+                ch = self.writer.chunk
+                code, n = rcl_take.drain(
+                    self._subs,
+                    self._chans,
+                    tb.ser,
+                    tb.info,
+                    ch.buf,
+                    ch.idx,
+                    ch.st,
+                    self._pubs,
+                    self._ctrl,
+                    1 << 40,
                 )
-        if self.writer.chunk.used >= self.writer.chunk_size:
-            self.writer.flush_chunk()
-            self._chunk_opened = None
-        self.writer.observe()  # (the live view: what was taken, at once)
-        self.messages += total
-        return total
+                total += n
+                if code == rcl_take.DONE:
+                    break
+                if code == rcl_take.FULL:
+                    self._flush()
+                    self.writer.chunk.grow(MESSAGE_HEADER_BYTES + tb.pending_size)
+                elif code == rcl_take.PUBS_FULL:
+                    grown = rcl_take.new_publisher_table(2 * self._pubs.shape[0])
+                    grown[: self._pubs.shape[0]] = self._pubs
+                    self._pubs = grown
+                elif code == rcl_take.ERROR:
+                    raise RecorderError(
+                        f'rcl_take_serialized_message failed with code '
+                        f'{int(self._ctrl[rcl_take.C_ERROR])}'
+                    )
+            if self.writer.chunk.used >= self.writer.chunk_size:
+                self._flush()
+            self.writer.observe()  # (the live view: what was taken, at once)
+            self.messages += total
+            return total
 
     # -- counts and closing --------------------------------------------------------------
     def counts(self) -> dict[str, dict[str, int]]:
@@ -491,11 +464,9 @@ class Recorder:
     ) -> dict[str, dict[str, int]]:
         """Take what is left, finish the bag (summary, metadata.yaml); returns the counts.
 
-        ``settle`` [s]: keep taking until nothing arrived for this long (for publishers
-        in other processes still delivering), but for ``max_wait`` s at most: next to a
-        live bench (a real-time drive publishes 5000 states a second) it is never quiet.
-        A bag cut that way says so (``im_tuner.close`` in its metadata, and a log line):
-        what was published after the cut is not in it."""
+        ``settle`` [s]: keep taking until nothing arrived for this long, but for
+        ``max_wait`` s at most; a bag cut that way says so (docs/recorder.md, "Crash
+        safety")."""
         if self.writer.closed:
             return self.counts()
         if self._timer is not None:  # from here on only this thread touches the chunk

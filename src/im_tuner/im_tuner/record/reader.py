@@ -1,25 +1,13 @@
 """Read a tuning run's bag fast, also one whose recorder was killed: counts and signals.
 
-One pass over the ``.mcap`` file (memory-mapped, read only: the report changes nothing):
-the top-level records are walked up to DataEnd or the first incomplete record (a killed
-recorder leaves no footer; everything in complete chunks is still read), and each chunk
-is decompressed once and checked against its CRC (a chunk that fails it, or does not
-decompress, had its bytes changed: it is named in ``BagData.damaged`` and its messages
-are left out). A chunk's messages are found through the MessageIndex records that
-follow it, with numpy (no per-message Python, and no numba, slow to load); the index is
-checked against the chunk
-(every message it names is a Message record of that channel and log time, and those
-records plus the definitions between them tile the chunk exactly), and a chunk without
-a complete, consistent index is walked record by record by a numba kernel instead. Per
-topic it counts messages and notes the first and last log time (the rates); for the
-``Float64MultiArray`` topics asked for it keeps the rows whose first value (the step
-index ``k``) lies in the given windows (only those rows are copied); the loss messages
-(``diagnostic_msgs/DiagnosticArray``) are decoded.
-
-No rclpy and no ROS message packages: the two CDR layouts needed are parsed here
-(``std_msgs/Float64MultiArray`` in the project's layout, with a general fallback, and
-``diagnostic_msgs/DiagnosticArray``).
-"""
+One memory-mapped, read-only pass up to DataEnd or the first incomplete record. Each chunk
+is decompressed once and checked against its CRC (a damaged one is named in
+``BagData.damaged`` and its messages left out); its messages are found through the
+Message Index records after it, with numpy, or -- without a complete index that tiles the
+chunk -- by a record walk (docs/report.md, "Speed"). Per topic: counts, first and last log
+time, bytes; of the ``Float64MultiArray`` topics asked for, the rows whose first value (the
+step index ``k``) lies in the given windows; the loss messages decoded. No rclpy and no ROS
+message packages: the two CDR layouts needed are parsed here."""
 
 from __future__ import annotations
 
@@ -31,32 +19,13 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from mcap.opcode import Opcode
 
 from im_controller.contract import LOSS_TOPIC
 
-from .mcap_format import (
-    MAGIC,
-    OP_CHANNEL,
-    OP_CHUNK,
-    OP_DATA_END,
-    OP_FOOTER,
-    OP_MESSAGE,
-    OP_MESSAGE_INDEX,
-    OP_METADATA,
-    OP_SCHEMA,
-)
+from .mcap_format import MAGIC
+from .metadata import read_metadata_yaml
 from .records import Cursor, chunk_records, parse_definition
-
-__all__ = [
-    'BagData',
-    'BagReadError',
-    'ChunkStats',
-    'DamagedChunk',
-    'TopicStats',
-    'parse_diagnostic_array',
-    'parse_float64_multiarray',
-    'read_bag',
-]
 
 _MSG_HEAD = 22  # channel id u16, sequence u32, log time u64, publish time u64
 _F64_HEAD = b'\x00\x01\x00\x00'  # CDR little-endian encapsulation
@@ -64,8 +33,6 @@ _F64_DATA = 20  # first double of a Float64MultiArray with an empty layout
 _OP_LEN = struct.Struct('<BQ')  # a record's opcode and body length
 #: a topic's rate is given from this many messages, or over this much log time [s]
 RATE_MIN_MESSAGES, RATE_MIN_SPAN_S = 10, 1.0
-# metadata.yaml through libyaml when PyYAML has it (faster; the same SafeLoader constructors)
-_YAML_LOADER = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
 
 
 class BagReadError(Exception):
@@ -168,30 +135,25 @@ def walk_records(
     buf: np.ndarray, start: int, stop_op: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Every record of ``buf`` from byte ``start`` (up to and including one of opcode
-    ``stop_op``; -1: none), walked one by one (:func:`.walk.walk`, numba): opcodes, body
-    offsets and lengths, and for Message records channel ids and log times [ns]; and
-    where the walk stopped. What a chunk whose index does not tile it is read by."""
-    cap = max(0, buf.size - start) // 31 + 64  # a message record is >= 31 bytes
-    while True:
-        ops = np.empty(cap, np.uint8)
-        offs = np.empty(cap, np.int64)
-        lens = np.empty(cap, np.int64)
-        cids = np.empty(cap, np.int64)
-        times = np.empty(cap, np.int64)
-        from .walk import walk  # numba (slow to import): only for a bag without an index
-
-        n, end = walk(buf, start, stop_op, ops, offs, lens, cids, times)
-        if n < cap or end >= buf.size:
-            return ops[:n], offs[:n], lens[:n], cids[:n], times[:n], end
-        cap *= 4  # many tiny records: walk again with room for them
+    ``stop_op``; -1: none), walked one by one: opcodes, body offsets and lengths, and for
+    Message records channel ids and log times [ns] (-1 and 0 for the others); and where the
+    walk stopped. What a chunk whose index does not tile it is read by."""
+    found, end = _walk_py(buf, start, buf.size, stop_op)
+    rec = np.array(found, np.int64).reshape(-1, 3)
+    ops, offs, lens = rec[:, 0].astype(np.uint8), rec[:, 1], rec[:, 2]
+    msg = np.flatnonzero((ops == Opcode.MESSAGE) & (lens >= _MSG_HEAD))
+    cids, times = np.full(len(rec), -1, np.int64), np.zeros(len(rec), np.int64)
+    cids[msg] = buf[offs[msg]].astype(np.int64) | (buf[offs[msg] + 1].astype(np.int64) << 8)
+    times[msg] = _u64_at(buf, offs[msg] + 6).astype(np.int64)
+    return ops, offs, lens, cids, times, end
 
 
 def _walk_py(
     buf: mmap.mmap | np.ndarray, start: int, end: int, stop_op: int
 ) -> tuple[list[tuple[int, int, int]], int]:
-    """:func:`.walk.walk` in Python, for a few records (the top level: chunks and their
-    indexes; the definitions between a chunk's indexed messages): (op, body offset,
-    body length) each, and where the walk stopped."""
+    """The records of ``buf[start:end]`` (up to and including one of opcode ``stop_op``; -1:
+    none) before the first incomplete one: (op, body offset, body length) each, and where
+    the walk stopped."""
     view = buf.data if isinstance(buf, np.ndarray) else buf  # uint8: one byte per index
     out = []
     p = start
@@ -235,7 +197,7 @@ def _indexed_messages(
     if n:
         lens = _u64_at(buf, rec + 1)
         if (
-            np.any(buf[rec] != OP_MESSAGE)
+            np.any(buf[rec] != Opcode.MESSAGE)
             or np.any(lens < _MSG_HEAD)
             or np.any(lens > (size - 9 - rec).astype(np.uint64))
         ):
@@ -263,10 +225,10 @@ def _indexed_messages(
         if a == b:
             continue
         found, stop = _walk_py(buf, a, b, -1)
-        if stop != b or any(op == OP_MESSAGE for op, _o, _n in found):
+        if stop != b or any(op == Opcode.MESSAGE for op, _o, _n in found):
             return None
         for op, o, ln in found:
-            if op in (OP_SCHEMA, OP_CHANNEL):
+            if op in (Opcode.SCHEMA, Opcode.CHANNEL):
                 parse_definition(op, bytes(buf[o - 9 : o + ln]), schemas, channels)
     return rec + 9, lens, cid, t_idx.astype(np.int64)
 
@@ -283,15 +245,10 @@ class _Cdr:
     def _align(self, n: int) -> None:
         self.p += (-(self.p - 4)) % n
 
-    def u32(self) -> int:
+    def u32(self, fmt: str = '<I') -> int:
+        """The next 4-byte integer (``fmt`` '<i': signed)."""
         self._align(4)
-        (v,) = struct.unpack_from('<I', self.b, self.p)
-        self.p += 4
-        return v
-
-    def i32(self) -> int:
-        self._align(4)
-        (v,) = struct.unpack_from('<i', self.b, self.p)
+        (v,) = struct.unpack_from(fmt, self.b, self.p)
         self.p += 4
         return v
 
@@ -333,7 +290,7 @@ def parse_diagnostic_array(data: bytes) -> list[dict[str, str]]:
     """``diagnostic_msgs/DiagnosticArray`` CDR -> one dict per status: its key/value pairs
     plus 'level', 'name', 'message', 'hardware_id' and 'stamp_ns' (of the array header)."""
     c = _Cdr(data)
-    sec, nsec = c.i32(), c.u32()
+    sec, nsec = c.u32('<i'), c.u32()
     c.string()  # frame_id
     out = []
     for _ in range(c.u32()):
@@ -429,9 +386,7 @@ def read_bag(
     path = find_mcap(bag_dir)
     out = BagData(bag_dir, path)
     try:
-        with open(bag_dir / 'metadata.yaml', encoding='utf-8') as mf:
-            meta = yaml.load(mf, Loader=_YAML_LOADER)['rosbag2_bagfile_information']
-        custom = meta.get('custom_data') or {}
+        custom = read_metadata_yaml(bag_dir).get('custom_data') or {}
         out.state = custom.get('im_tuner.state', 'unknown')
         if 'im_tuner.counts' in custom:
             out.recorder_counts = json.loads(custom['im_tuner.counts'])
@@ -451,21 +406,21 @@ def read_bag(
         if size < 8 or f.read(8) != MAGIC:
             raise BagReadError(f'{path}: not an MCAP file')
         with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-            top, end = _walk_py(mm, 8, size, OP_DATA_END)
-            out.complete = bool(top) and top[-1][0] in (OP_DATA_END, OP_FOOTER)
+            top, end = _walk_py(mm, 8, size, Opcode.DATA_END)
+            out.complete = bool(top) and top[-1][0] in (Opcode.DATA_END, Opcode.FOOTER)
             out.unread_bytes = 0 if out.complete else size - end
             # definitions first: a Channel record may follow a chunk holding its messages
             for op, a, n in top:
-                if op in (OP_SCHEMA, OP_CHANNEL):
+                if op in (Opcode.SCHEMA, Opcode.CHANNEL):
                     parse_definition(op, bytes(mm[a - 9 : a + n]), schemas, channels)
-                elif op == OP_METADATA:
+                elif op == Opcode.METADATA:
                     _take_metadata(bytes(mm[a : a + n]), out.metadata)
             # each chunk with the message indexes that follow it (before the next chunk)
             chunks: list[tuple[int, int, list[tuple[int, np.ndarray]]]] = []
             for op, a, n in top:
-                if op == OP_CHUNK:
+                if op == Opcode.CHUNK:
                     chunks.append((a, n, []))
-                elif op == OP_MESSAGE_INDEX and chunks and n >= 6:
+                elif op == Opcode.MESSAGE_INDEX and chunks and n >= 6:
                     cid, nb = struct.unpack_from('<HI', mm, a)
                     if nb % 16 == 0 and 6 + nb <= n:
                         # a copy: no array may still point into the mmap when it closes
@@ -548,12 +503,12 @@ def _take_chunk(
         offs, lens, cids, times = found
     else:  # no index, or one that does not match the chunk: walk every record
         ops, offs, lens, cids, times, _end = walk_records(buf, 0, -1)
-        for i in np.flatnonzero(ops != OP_MESSAGE):
+        for i in np.flatnonzero(ops != Opcode.MESSAGE):
             op = int(ops[i])
-            if op in (OP_SCHEMA, OP_CHANNEL):
+            if op in (Opcode.SCHEMA, Opcode.CHANNEL):
                 a, n = int(offs[i]), int(lens[i])
                 parse_definition(op, bytes(buf[a - 9 : a + n]), schemas, channels)
-        is_msg = ops == OP_MESSAGE
+        is_msg = ops == Opcode.MESSAGE
         cids, times, offs, lens = cids[is_msg], times[is_msg], offs[is_msg], lens[is_msg]
     if not len(cids):
         return

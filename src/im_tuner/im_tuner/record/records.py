@@ -7,9 +7,7 @@ from __future__ import annotations
 import struct
 import zlib
 
-from .mcap_format import OP_SCHEMA
-
-__all__ = ['ChunkDamage', 'Cursor', 'chunk_records', 'decompress', 'parse_definition']
+from mcap.opcode import Opcode
 
 
 class Cursor:
@@ -81,7 +79,7 @@ def chunk_records(comp: str, data: bytes, usize: int, crc: int) -> bytes:
 def parse_definition(op: int, rec: bytes, schemas: dict, channels: dict) -> None:
     """A Schema or Channel record into ``schemas``/``channels`` (the first one of an id wins)."""
     c = Cursor(rec, 9)
-    if op == OP_SCHEMA:
+    if op == Opcode.SCHEMA:
         (sid,) = c.u('H')
         name, _enc = c.s(), c.s()
         c.raw(c.u('I')[0])

@@ -1,19 +1,14 @@
-"""Repair a bag whose recorder died: rebuild the MCAP summary, index, footer and metadata.yaml.
+"""Repair a bag whose recorder died: rebuild the MCAP summary, index, footer and metadata.yaml
+(docs/recorder.md, "Crash safety").
 
-A SIGKILL leaves the ``.mcap`` without its DataEnd, summary, chunk indexes and footer, and
-``metadata.yaml`` in its provisional ``recording`` state; the Schema and Channel records
-and every closed chunk are on disk (docs/recorder.md, "Crash safety").
-
-:func:`repair_bag` scans the file record by record up to the first incomplete or invalid
-one (a complete chunk that fails its CRC or does not decompress is named, left out, and
-the scan goes on), then writes ``<file>.repairing``: the original Header, every
-definition, Metadata and Attachment record, every complete chunk copied verbatim with
+:func:`repair_bag` scans the file up to the first incomplete or invalid record (a damaged
+chunk is named, left out, and the scan goes on), then writes ``<file>.repairing``: the
+Header, every definition, Metadata and Attachment record, every complete chunk verbatim with
 fresh Message Index records (loose messages packed into new uncompressed chunks), and the
-summary and footer as ``McapWriter.close`` writes them; only once that file is complete
-and synced does it replace the original. A file that already ends in a valid footer is
-left untouched (one with a damaged chunk is refused). Either way ``metadata.yaml`` is
-rewritten from what the scan found. No rclpy here.
-"""
+summary and footer as ``McapWriter.close`` writes them; only once that file is complete and
+synced does it replace the original. A file that already ends in a valid footer is left
+untouched (one with a damaged chunk is refused). Either way ``metadata.yaml`` is rewritten
+from what the scan found. No rclpy here."""
 
 from __future__ import annotations
 
@@ -27,31 +22,18 @@ from typing import BinaryIO
 
 import numpy as np
 import yaml
+from mcap.opcode import Opcode
+from mcap.records import AttachmentIndex
 
 from ..rundir import writer_of
 from .mcap_encode import (
-    ChunkInfo,
-    chunk_index_record,
-    message_index_records,
-    metadata_index_record,
-    record,
+    chunk_head,
+    encode,
+    file_end,
+    indexed_chunk,
     statistics_record,
-    string,
-    summary_and_footer,
 )
-from .mcap_format import (
-    MAGIC,
-    OP_ATTACHMENT,
-    OP_ATTACHMENT_INDEX,
-    OP_CHANNEL,
-    OP_CHUNK,
-    OP_DATA_END,
-    OP_FOOTER,
-    OP_HEADER,
-    OP_MESSAGE,
-    OP_METADATA,
-    OP_SCHEMA,
-)
+from .mcap_format import MAGIC
 from .metadata import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
 from .reader import BagReadError, find_mcap
 from .records import ChunkDamage, Cursor, chunk_records, parse_definition
@@ -182,12 +164,12 @@ def _parse_chunk(body: bytes, scan: McapScan, at: int) -> ScannedChunk:
         if p + 9 + n > len(raw):
             raise ValueError('record past the end of its chunk')
         rec = raw[p : p + 9 + n]
-        if op == OP_MESSAGE:
+        if op == Opcode.MESSAGE:
             cid, _seq, log_time, _pub = struct.unpack_from('<HIQQ', rec, 9)
             if n < 22 or (cid not in scan.channels and cid not in channels):
                 raise ValueError('bad message record')
             rows.append((cid, log_time, p))
-        elif op in (OP_SCHEMA, OP_CHANNEL):
+        elif op in (Opcode.SCHEMA, Opcode.CHANNEL):
             parse_definition(op, rec, schemas, channels)
         p += 9 + n
     for sid, schema in schemas.items():
@@ -205,7 +187,7 @@ def _has_footer(f: BinaryIO, size: int) -> bool:
         return False
     f.seek(size - 8 - _FOOTER_BYTES)
     tail = f.read(_FOOTER_BYTES + 8)
-    if tail[-8:] != MAGIC or tail[:9] != struct.pack('<BQ', OP_FOOTER, 20):
+    if tail[-8:] != MAGIC or tail[:9] != struct.pack('<BQ', Opcode.FOOTER, 20):
         return False
     summary_start, _offsets, crc = struct.unpack_from('<QQI', tail, 9)
     if not crc:
@@ -244,7 +226,7 @@ def scan_mcap(path: Path) -> McapScan:
             raise RepairError(f'{path}: not an MCAP file (bad magic)')
         head = f.read(9)
         op, n = struct.unpack('<BQ', head) if len(head) == 9 else (0, 0)
-        if op != OP_HEADER or 17 + n > size:
+        if op != Opcode.HEADER or 17 + n > size:
             raise RepairError(f'{path}: no complete MCAP header')
         scan = McapScan(path, size, head + f.read(n))
         pos = scan.data_end = 17 + n
@@ -259,30 +241,30 @@ def scan_mcap(path: Path) -> McapScan:
                 break
             rec = head + f.read(n)
             try:
-                if op == OP_CHUNK:
+                if op == Opcode.CHUNK:
                     number += 1
                     try:
                         scan.chunks.append(_parse_chunk(rec[9:], scan, pos))
                     except ChunkDamage as exc:  # a whole record: its bytes were changed
                         scan.damaged.append((number, pos, str(exc)))
-                elif op in (OP_SCHEMA, OP_CHANNEL):
+                elif op in (Opcode.SCHEMA, Opcode.CHANNEL):
                     parse_definition(op, rec, scan.schemas, scan.channels)
-                elif op == OP_METADATA:
+                elif op == Opcode.METADATA:
                     c = Cursor(rec, 9)
                     scan.metadata.append((pos, len(rec), c.s()))
                     c.map()
-                elif op == OP_ATTACHMENT:
+                elif op == Opcode.ATTACHMENT:
                     c = Cursor(rec, 9)
                     t_log, t_create = c.u('QQ')
                     name, media = c.s(), c.s()
                     (dlen,) = c.u('Q')
                     c.raw(dlen + 4)
                     scan.attachments.append((pos, len(rec), t_log, t_create, dlen, name, media))
-                elif op == OP_MESSAGE:
+                elif op == Opcode.MESSAGE:
                     _add_loose(scan, rec, pos)
             except (struct.error, ValueError):
                 break
-            if op in (OP_DATA_END, OP_FOOTER):
+            if op in (Opcode.DATA_END, Opcode.FOOTER):
                 scan.ended = True
                 break
             pos = scan.data_end = pos + len(rec)
@@ -339,40 +321,17 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
 
         meta_index = [(copy(at, n), n, name) for at, n, name in scan.metadata]
         att_index = [(copy(a[0], a[1]), *a[1:]) for a in scan.attachments]
-        infos: list[ChunkInfo] = []
+        infos = []
         for ch in scan.chunks:
             if ch.loose is None:
-                at, length = copy(ch.offset, ch.length), ch.length
+                rec = read(ch.offset, ch.length)
             else:
                 recs = b''.join(read(o, n) for o, n, _c, _t in ch.loose)
-                body = (
-                    struct.pack('<QQQI', ch.start, ch.end, len(recs), zlib.crc32(recs))
-                    + string('')
-                    + struct.pack('<Q', len(recs))
-                    + recs
-                )
-                at = put(record(OP_CHUNK, body))
-                length = 9 + len(body)
-            index_at = pos
-            offsets = {cid: put(rec) for cid, rec in message_index_records(ch.index)}
+                rec = chunk_head(ch.start, ch.end, recs, '', len(recs)) + recs
+            sizes = (ch.compressed_size, ch.uncompressed_size)
             infos.append(
-                ChunkInfo(
-                    ch.start,
-                    ch.end,
-                    at,
-                    length,
-                    offsets,
-                    pos - index_at,
-                    ch.compression,
-                    ch.compressed_size,
-                    ch.uncompressed_size,
-                )
+                indexed_chunk(put, (rec,), ch.index, ch.start, ch.end, ch.compression, sizes)
             )
-    put(record(OP_DATA_END, struct.pack('<I', 0)))
-    attachment_index = [
-        record(OP_ATTACHMENT_INDEX, struct.pack('<QQQQQ', *a[:5]) + string(a[5]) + string(a[6]))
-        for a in att_index
-    ]
     stats = statistics_record(
         scan.messages,
         len(scan.schemas),
@@ -383,31 +342,28 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
         scan.time_range(),
         scan.channel_counts(),
     )
-    summary = summary_and_footer(
-        pos,
-        schemas=[rec for _n, rec in scan.schemas.values()],
-        channels=[c[3] for c in scan.channels.values()],
-        statistics=stats,
-        metadata_index=[metadata_index_record(*m) for m in meta_index],
-        attachment_index=attachment_index,
-        chunk_index=[chunk_index_record(c) for c in infos],
+    put(
+        file_end(
+            pos,
+            schemas=[rec for _n, rec in scan.schemas.values()],
+            channels=[c[3] for c in scan.channels.values()],
+            statistics=stats,
+            metadata_index=meta_index,
+            attachment_index=[encode(AttachmentIndex(*a)) for a in att_index],
+            chunks=infos,
+        )
     )
-    put(summary)
-
-
-def _find_mcap(bag_dir: Path) -> Path:
-    if not bag_dir.is_dir():
-        raise RepairError(f'{bag_dir}: not a directory')
-    try:
-        return find_mcap(bag_dir)
-    except BagReadError as exc:
-        raise RepairError(str(exc)) from None
 
 
 def repair_bag(bag_dir: Path) -> RepairReport:
     """Repair the bag directory ``bag_dir`` (see the module doc); returns what was done."""
     bag_dir = Path(bag_dir)
-    path = _find_mcap(bag_dir)
+    if not bag_dir.is_dir():
+        raise RepairError(f'{bag_dir}: not a directory')
+    try:
+        path = find_mcap(bag_dir)
+    except BagReadError as exc:
+        raise RepairError(str(exc)) from None
     writer = writer_of(path)
     if writer is not None:
         raise RepairError(

@@ -1,44 +1,18 @@
-"""Complete ROS 2 message definitions ("ros2msg" schema text) from installed .msg/.srv files.
+"""Complete ROS 2 message definitions (MCAP schema texts) from installed .msg/.srv/.idl files.
 
-:func:`schema_text` returns the text an MCAP ``ros2msg`` schema (or a rosbag2 bag) carries
-for a type, so that readers without the ROS type support (``rosbags``, ``mcap_ros2``,
-Foxglove) can decode its CDR messages::
-
-    <the type's own .msg text, verbatim>
-    ================================================================================
-    MSG: pkg/Dependency
-    <that type's .msg text>
-    ...
-
-i.e. the top-level definition first, then every type it uses (transitively, each once,
-depth-first in order of first use), each introduced by a line of exactly 80 ``=`` and a
-line ``MSG: pkg/Type``, all joined with ``\\n`` (rosbag2's layout).
-
-Service types have no .msg file; their parts are cut from ``share/<pkg>/srv/<Name>.srv``:
-``pkg/srv/Name_Request`` is the text before the line ``---`` (without its final newline)
-and ``pkg/srv/Name_Response`` the text after it.  A service *event* type
-``pkg/srv/Name_Event`` (what service introspection publishes) is written as the message
-rosidl generates for it::
-
-    service_msgs/ServiceEventInfo info
-    pkg/Name_Request[<=1] request
-    pkg/Name_Response[<=1] response
-
-followed by its dependencies (rosbag2's own ``SRV:`` section form is one generic readers
-do not understand). An empty part (``std_srvs`` Trigger's request) is an empty section.
-
-Files are looked up as ``<prefix>/share/<pkg>/msg/<Name>.msg`` (``srv/<Name>.srv``) for each
-prefix in turn; the first prefix that has the file wins.  Prefixes default to the
-colon-separated ``AMENT_PREFIX_PATH``.  Pure standard library: no rclpy needed.
-"""
+:func:`schema_for` returns what an MCAP schema (or a rosbag2 bag) carries for a type, so
+that readers without the ROS type support (``rosbags``, ``mcap_ros2``, Foxglove) decode its
+CDR messages: ``ros2msg`` for messages and service parts, ``ros2idl`` for service events,
+each in rosbag2's layout (docs/recorder.md, "What is in a bag"). Files are looked up as
+``<prefix>/share/<pkg>/msg/<Name>.msg`` (``srv/<Name>.srv``, ``.idl``) for each prefix in
+turn (default: ``AMENT_PREFIX_PATH``); the first prefix that has the file wins. Pure
+standard library: no rclpy needed."""
 
 from __future__ import annotations
 
 import os
 import re
 from pathlib import Path
-
-__all__ = ['SEPARATOR', 'MsgDefError', 'schema_for', 'schema_idl', 'schema_text']
 
 SEPARATOR = '=' * 80
 """The line that introduces every dependency's definition."""
@@ -81,13 +55,10 @@ _Key = tuple[str, str, str]
 
 
 def schema_text(type_name: str, prefixes: list[str] | None = None) -> str:
-    """Return the complete ``ros2msg`` definition of ``type_name`` (format: see module doc).
-
-    ``type_name`` is ``pkg/msg/Name`` (or ``pkg/Name``), ``pkg/srv/Name_Request``,
-    ``pkg/srv/Name_Response`` or ``pkg/srv/Name_Event``.  ``prefixes`` are install prefixes
-    searched in order (default: ``AMENT_PREFIX_PATH``).  Raises :class:`MsgDefError`, naming
-    the type and the files searched, if a definition cannot be found or parsed.
-    """
+    """The complete ``ros2msg`` definition of ``type_name`` (``pkg/msg/Name``, ``pkg/Name``,
+    ``pkg/srv/Name_Request``, ``_Response`` or ``_Event``): its text, then each type it uses,
+    transitively, once, depth-first in order of first use, after a line of 80 ``=`` and
+    ``MSG: pkg/Type``. :class:`MsgDefError` names the type and the files searched."""
     root = _parse_type_name(type_name)
     loader = _Loader.of(type_name, prefixes)
     pkg, kind, name = root
@@ -126,13 +97,9 @@ def schema_text(type_name: str, prefixes: list[str] | None = None) -> str:
 
 
 def schema_for(type_name: str, prefixes: list[str] | None = None) -> tuple[str, str]:
-    """``(encoding, text)`` of the MCAP schema to record ``type_name`` with.
-
-    Messages: ``ros2msg`` (:func:`schema_text`). Service events (``pkg/srv/Name_Event``):
-    ``ros2idl`` (:func:`schema_idl`) -- in the ``ros2msg`` form rosbags 0.11.9 can only
-    register them as ``pkg/srv/msg/Name_Event``, so its standard ``AnyReader`` cannot
-    open a bag that carries their type hash; from IDL it registers ``pkg/srv/Name_Event``
-    and recomputes exactly the RIHS01 hash ROS gives the type."""
+    """``(encoding, text)`` of the MCAP schema to record ``type_name`` with: ``ros2idl``
+    (:func:`schema_idl`) for a service event, whose ``ros2msg`` form rosbags cannot match to
+    its type hash; ``ros2msg`` (:func:`schema_text`) otherwise."""
     _pkg, kind, name = _parse_type_name(type_name)
     if kind == 'srv' and name.endswith(_EVENT_SUFFIX):
         return 'ros2idl', schema_idl(type_name, prefixes)
@@ -147,19 +114,11 @@ _VERBATIM_RE = re.compile(r'@verbatim\s*\((?:[^()"]|"(?:[^"\\]|\\.)*")*\)\s*')
 
 
 def schema_idl(type_name: str, prefixes: list[str] | None = None) -> str:
-    """The ``ros2idl`` schema of a service event type ``pkg/srv/Name_Event``, in rosbag2's
-    form: sections ``<80 '='>`` / ``IDL: pkg/kind/Name`` / IDL text, the event struct first::
-
-        module pkg { module srv { struct Name_Event {
-          service_msgs::msg::ServiceEventInfo info;
-          sequence<pkg::srv::Name_Request, 1> request;
-          sequence<pkg::srv::Name_Response, 1> response; }; }; };
-
-    (what rosidl generates for service introspection), then the installed
-    ``share/pkg/srv/Name.idl`` and every ``.idl`` it includes, transitively, each once.
-    ``#include`` lines are dropped (every included file is a section of its own) and so are
-    ``@verbatim`` annotations (comments, which rosbags' IDL parser refuses before a struct).
-    """
+    """The ``ros2idl`` schema of a service event type ``pkg/srv/Name_Event`` in rosbag2's
+    form: sections ``<80 '='>`` / ``IDL: pkg/kind/Name`` / IDL text, the event struct rosidl
+    generates first, then the installed ``share/pkg/srv/Name.idl`` and every ``.idl`` it
+    includes, each once, without ``#include`` lines and ``@verbatim`` annotations (comments,
+    which rosbags' IDL parser refuses before a struct)."""
     pkg, kind, name = _parse_type_name(type_name)
     if kind != 'srv' or not name.endswith(_EVENT_SUFFIX):
         raise MsgDefError(f'{type_name}: only service event types are written as IDL')

@@ -1,22 +1,8 @@
-"""The recorder child's status topic: what it has matched and recorded, per topic.
-
-``ros2 run im_tuner recorder`` publishes on ``~/status`` (``/recorder/status`` for the
-node ``recorder``), ``diagnostic_msgs/msg/DiagnosticArray``, reliable, transient local,
-depth 1, whenever what it reports changed (at most every :data:`STATUS_PERIOD_S`). One
-``DiagnosticStatus`` per recorded topic:
-
-* ``name``: the topic; ``hardware_id``: the bag directory (absolute), which tells one
-  recorder's status from another's (a replacement recorder, another run);
-* ``level``: OK, or WARN while some publisher of the topic is not matched yet;
-* ``values``: ``recorded`` (messages taken into the bag), ``matched_publishers`` (publishers
-  the recorder's subscription is matched with), ``publishers`` (publishers on the graph).
-
-The recorder does not record its own status topic (a feedback loop). The tuner
-(``bench.forms.Children``) waits on it before the first experiment, until every publisher
-of the recorded topics is matched, and before it stops the recorder, until the bag holds
-every loss the tuner received (bounded by :data:`CATCH_UP_S`; docs/recorder.md, "The
-recorder child's status, and the tuner's two waits"). Pure: message classes only, no rclpy.
-"""
+"""The recorder child's status topic, ``~/status``: what it has matched and recorded, per
+topic (docs/recorder.md, "The recorder child's status, and the tuner's two waits"). One
+``DiagnosticStatus`` per recorded topic: ``name`` the topic, ``hardware_id`` the bag
+directory (absolute), ``level`` OK or WARN while a publisher is not matched yet, ``values``
+:data:`KEYS`. Pure: message classes only, no rclpy."""
 
 from __future__ import annotations
 
@@ -24,8 +10,12 @@ from dataclasses import dataclass
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+from im_drive_sim.contract import QosSpec
+
 #: The status topic, relative to the recorder node (``~/status``).
 STATUS_TOPIC = '~/status'
+#: Its publisher: the last status, kept for a subscriber that joins later.
+STATUS_QOS = QosSpec('keep_last', 1, 'reliable', 'transient_local')
 #: How often at most the recorder publishes a changed status [s].
 STATUS_PERIOD_S = 0.05
 #: How long the tuner waits for the bag to hold every loss it received before it stops

@@ -1,16 +1,11 @@
 """Take serialised messages from rcl subscriptions in a numba loop, straight into a chunk.
 
-rclpy's ``Subscription.take_message(cls, raw=True)`` makes Python objects per message
-(bytes object, info dict) and hides the publisher's GID, which gap detection needs when a
-topic has several publishers. The recorder instead calls rcl's C API,
-``rcl_take_serialized_message``, from a numba kernel on the ``rcl_subscription_t`` that
-rclpy created (``sub.handle.pointer``), and copies the CDR bytes into the open MCAP chunk
-(:mod:`im_tuner.record.writer`) as a Message record. Per publisher (channel, GID) it keeps
-the first and last ``publication_sequence_number``, the count and the gaps: a gap is a
-message the publisher sent that this reader never got.
-
-This module loads rclpy's C extension (so that ``librcl`` is in the process) but does
-not use rclpy's Python API; the subscriptions stay owned by the rclpy node.
+The kernel calls rcl's ``rcl_take_serialized_message`` on the ``rcl_subscription_t`` that
+rclpy created (``sub.handle.pointer``) and copies the CDR bytes into the open MCAP chunk
+(:mod:`im_tuner.record.writer`) as a Message record: no Python object per message, and the
+publisher's GID, which rclpy's message info hides, for the per-publisher (channel, GID)
+first and last ``publication_sequence_number``, count and gaps (docs/recorder.md, "Nothing
+lost, and the proof"). The subscriptions stay owned by the rclpy node.
 
 Struct layouts (ROS 2 Jazzy headers; test/test_recorder.py checks the kernel's bytes and
 sequence numbers against rclpy's own take):
@@ -18,8 +13,7 @@ sequence numbers against rclpy's own take):
 size_t capacity; rcutils_allocator_t allocator (5 pointers)} = 8 x 64-bit words;
 ``rmw_message_info_t`` {int64 source_timestamp; int64 received_timestamp; uint64
 publication_sequence_number; uint64 reception_sequence_number; rmw_gid_t {const char*
-implementation_identifier; uint8 data[16]}; bool from_intra_process} = 8 words.
-"""
+implementation_identifier; uint8 data[16]}; bool from_intra_process} = 8 words."""
 
 from __future__ import annotations
 
@@ -33,7 +27,7 @@ from numba import types
 
 from im_drive_sim.outbox import R_TAIL, loaded_library
 
-from .writer import MESSAGE_HEADER_BYTES, note_message, too_wide, write_message_header
+from .writer import MESSAGE_HEADER_BYTES, fits, note_message, write_message_header
 
 _RCL = loaded_library('librcl.so')
 _RCUTILS = loaded_library('librcutils.so')
@@ -127,11 +121,9 @@ def _place(
 ) -> bool:
     n = np.int64(ser[1])
     pos = st[0]
-    if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or st[1] >= idx.shape[0]:
-        return False
     log_time = np.int64(info[I_RECEIVED_TS])
-    if too_wide(st, log_time, ctrl[C_MAX_SPAN_NS]):
-        return False  # the chunk would span more than max_chunk_age of log time
+    if not fits(buf, idx, st, n, log_time, ctrl[C_MAX_SPAN_NS]):
+        return False
     write_message_header(
         buf,
         pos,
@@ -288,10 +280,8 @@ def drain_ring(
         i = t % cap
         n = rlens[i]
         pos = st[0]
-        if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or st[1] >= idx.shape[0]:
-            break
         stamp = rstamps[i]
-        if too_wide(st, stamp, max_span_ns):
+        if not fits(buf, idx, st, n, stamp, max_span_ns):
             break
         write_message_header(buf, pos, channel, t & 0xFFFFFFFF, stamp, stamp, n)
         p = pos + MESSAGE_HEADER_BYTES

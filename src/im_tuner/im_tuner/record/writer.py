@@ -1,39 +1,21 @@
-"""A chunked MCAP writer for rosbag2 bags, fast enough for 5 kHz traffic.
+"""A chunked MCAP writer for rosbag2 bags, fast enough for 5 kHz traffic (docs/recorder.md).
 
-Why our own writer: the ``mcap`` library's ``Writer.add_message`` is one Python call per
-message, too slow for the recorder at 15k messages per simulated second. This writer
-keeps the open chunk in a numpy buffer that a numba kernel (:mod:`im_tuner.record.take`)
-fills with Message records straight from the DDS reader, so the per-message cost is a
-memcpy; Python only runs once per chunk (compress, index, write).
-
-File layout (MCAP v0, https://mcap.dev/spec), as rosbag2's MCAP storage writes it:
-
-* magic, Header (profile ``ros2``);
-* data section: Schema and Channel records written *outside* chunks as soon as a topic
-  is added (so a crash never loses them), Metadata records, and Chunks, each followed by
-  its Message Index records. A chunk is closed at ``chunk_size`` bytes, before a message
-  that would make it span more than ``max_span`` of log time, or when the caller flushes
-  it; the file goes to the OS after every chunk, so after SIGKILL it is readable up to its
-  last complete chunk (:func:`im_tuner.record.repair.repair_bag` rewrites the summary);
-* DataEnd, summary (Schemas, Channels, Statistics, Metadata Index, Chunk Indexes),
-  Summary Offsets, Footer (with the summary CRC-32), magic.
-
-With ``background=True`` every file operation (compressing and writing chunks, and the
-records written between them) runs in order on one worker thread: zstd/lz4 and file
-writes release the GIL, so a recorder sharing a process with the lock-step loop does not
-pay for compression on the loop's core. The chunk bytes are copied out first, so the
-numba kernel refills the buffer at once.
-
-No rclpy here: the writer serves the recorder node, the repair tool and the tests.
-"""
+The ``mcap`` library's ``Writer.add_message`` is one Python call per message; here the open
+chunk is a numpy buffer that a numba kernel (:mod:`im_tuner.record.take`) fills with Message
+records straight from the DDS reader, and Python runs once per chunk (compress, index,
+write). The layout is rosbag2's MCAP storage's: Schema and Channel records outside chunks
+as soon as a topic is added, Metadata records, each chunk followed by its Message Index
+records and handed to the OS (after SIGKILL, :func:`im_tuner.record.repair.repair_bag`
+rewrites the summary). A chunk is closed at ``chunk_size`` bytes, before a message that
+would make it span more than ``max_span`` of log time, or when the caller flushes it. With
+``background=True`` every file operation runs in order on one worker thread (zstd/lz4 and
+file writes release the GIL); the chunk bytes are copied out first. No rclpy here."""
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
 import os
-import struct
-import zlib
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -43,30 +25,18 @@ from typing import BinaryIO
 
 import numba
 import numpy as np
+from mcap.opcode import Opcode
+from mcap.records import Channel, Header, Metadata, Schema
 
 from .mcap_encode import (
     ChunkInfo,
-    channel_record,
-    chunk_index_record,
-    message_index_records,
-    metadata_index_record,
-    record,
-    schema_record,
+    chunk_head,
+    encode,
+    file_end,
+    indexed_chunk,
     statistics_record,
-    string,
-    string_map,
-    summary_and_footer,
 )
-from .mcap_format import (  # the format's constants: one place, no numba
-    COMPRESSIONS,
-    MAGIC,
-    MESSAGE_HEADER_BYTES,
-    OP_CHUNK,
-    OP_DATA_END,
-    OP_HEADER,
-    OP_MESSAGE,
-    OP_METADATA,
-)
+from .mcap_format import COMPRESSIONS, MAGIC, MESSAGE_HEADER_BYTES
 
 # Columns of the chunk state vector shared with the numba kernels.
 ST_POS = 0  #: bytes used in the chunk buffer
@@ -74,6 +44,7 @@ ST_COUNT = 1  #: Message records in the chunk (rows used in the index)
 ST_TMIN = 2  #: smallest log_time in the chunk [ns]
 ST_TMAX = 3  #: largest log_time in the chunk [ns]
 ST_SIZE = 4
+_OP_MESSAGE = int(Opcode.MESSAGE)  # (a plain int in the numba kernels)
 
 
 class McapWriteError(Exception):
@@ -100,10 +71,7 @@ def append_message(
     """
     n = data.shape[0]
     pos = st[ST_POS]
-    k = st[ST_COUNT]
-    if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or k >= idx.shape[0]:
-        return False
-    if too_wide(st, log_time, max_span_ns):
+    if not fits(buf, idx, st, n, log_time, max_span_ns):
         return False
     write_message_header(buf, pos, channel_id, sequence, log_time, publish_time, n)
     buf[pos + MESSAGE_HEADER_BYTES : pos + MESSAGE_HEADER_BYTES + n] = data
@@ -122,7 +90,7 @@ def write_message_header(
     n: int,
 ) -> None:
     """Write the 31-byte Message record header at ``buf[pos]`` (little endian)."""
-    buf[pos] = OP_MESSAGE
+    buf[pos] = _OP_MESSAGE
     length = 22 + n
     for b in range(8):
         buf[pos + 1 + b] = (length >> (8 * b)) & 0xFF
@@ -136,12 +104,17 @@ def write_message_header(
 
 
 @numba.njit(cache=True, inline='always')
-def too_wide(st: np.ndarray, log_time: int, max_span_ns: int) -> bool:
-    """Whether a message of ``log_time`` [ns] would make the open chunk span more than
-    ``max_span_ns`` of log time (0: no limit); an empty chunk takes any message."""
-    if max_span_ns <= 0 or st[ST_COUNT] == 0:
+def fits(
+    buf: np.ndarray, idx: np.ndarray, st: np.ndarray, n: int, log_time: int, max_span_ns: int
+) -> bool:
+    """Whether a Message record of ``n`` data bytes and ``log_time`` [ns] goes into the open
+    chunk: there is room, and the chunk would not then span more than ``max_span_ns`` of log
+    time (0: no limit; an empty chunk takes any message)."""
+    if st[ST_POS] + MESSAGE_HEADER_BYTES + n > buf.shape[0] or st[ST_COUNT] >= idx.shape[0]:
         return False
-    return log_time - st[ST_TMIN] > max_span_ns or st[ST_TMAX] - log_time > max_span_ns
+    if max_span_ns <= 0 or st[ST_COUNT] == 0:
+        return True
+    return log_time - st[ST_TMIN] <= max_span_ns and st[ST_TMAX] - log_time <= max_span_ns
 
 
 @numba.njit(cache=True, inline='always')
@@ -253,8 +226,7 @@ class McapWriter:
         #: background writes not yet seen finished, oldest first (their errors are
         #: raised at the next submit or at close)
         self.pending: deque[Future] = deque()
-        self._write(MAGIC)
-        self._write(record(OP_HEADER, string(profile) + string(library)))
+        self._write(MAGIC + encode(Header(profile, library)))
         self.flush()
 
     # -- low level ---------------------------------------------------------------------
@@ -303,7 +275,7 @@ class McapWriter:
     def add_schema(self, name: str, encoding: str, data: bytes) -> int:
         sid = len(self.schemas) + 1
         self.schemas[sid] = (name, encoding, data)
-        rec = schema_record(sid, name, encoding, data)
+        rec = encode(Schema(sid, data, encoding, name))
         self._submit(lambda: self._write(rec))
         return sid
 
@@ -317,16 +289,16 @@ class McapWriter:
         cid = len(self.channels) + 1
         if cid > 0xFFFF:
             raise McapWriteError('more than 65535 channels')
-        meta = dict(metadata or {})
+        meta = dict(sorted((metadata or {}).items()))
         self.channels[cid] = (topic, schema_id, message_encoding, meta)
         self.channel_counts[cid] = 0
-        rec = channel_record(cid, schema_id, topic, message_encoding, meta)
+        rec = encode(Channel(cid, topic, message_encoding, meta, schema_id))
         self._submit(lambda: self._write(rec))
         return cid
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """A Metadata record (name + string map), written at once, indexed in the summary."""
-        rec = record(OP_METADATA, string(name) + string_map(data))
+        rec = encode(Metadata(name, dict(sorted(data.items()))))
 
         def job() -> None:
             self.metadata_index.append((self._write(rec), len(rec), name))
@@ -393,30 +365,9 @@ class McapWriter:
     def _write_chunk(self, raw: bytes, idx: np.ndarray, t0: int, t1: int) -> None:
         payload = self._compress(raw)
         comp = '' if self.compression == 'none' else self.compression
-        body = (
-            struct.pack('<QQQI', t0, t1, len(raw), zlib.crc32(raw))
-            + string(comp)
-            + struct.pack('<Q', len(payload))
-        )
-        head = struct.pack('<BQ', OP_CHUNK, len(body) + len(payload))
-        chunk_at = self._write(head + body)
-        self._write(payload)
-        chunk_len = self._pos - chunk_at
-        index_at = self._pos
-        index_offsets = {cid: self._write(rec) for cid, rec in message_index_records(idx)}
-        self.chunks.append(
-            ChunkInfo(
-                t0,
-                t1,
-                chunk_at,
-                chunk_len,
-                index_offsets,
-                self._pos - index_at,
-                comp,
-                len(payload),
-                len(raw),
-            )
-        )
+        head = chunk_head(t0, t1, raw, comp, len(payload))
+        sizes = (len(payload), len(raw))
+        self.chunks.append(indexed_chunk(self._write, (head, payload), idx, t0, t1, comp, sizes))
         self.flush()
 
     # -- finishing ---------------------------------------------------------------------
@@ -426,10 +377,9 @@ class McapWriter:
             return
         self.flush_chunk()
         self._drain_pool()
-        self._write(record(OP_DATA_END, struct.pack('<I', 0)))
-        schemas = [schema_record(sid, *sch) for sid, sch in self.schemas.items()]
+        schemas = [encode(Schema(sid, d, enc, n)) for sid, (n, enc, d) in self.schemas.items()]
         channels = [
-            channel_record(cid, sid, topic, enc, meta)
+            encode(Channel(cid, topic, enc, meta, sid))
             for cid, (topic, sid, enc, meta) in self.channels.items()
         ]
         stats = statistics_record(
@@ -442,15 +392,16 @@ class McapWriter:
             (self.t_start or 0, self.t_end or 0),
             self.channel_counts,
         )
-        summary = summary_and_footer(
-            self._pos,
-            schemas=schemas,
-            channels=channels,
-            statistics=stats,
-            metadata_index=[metadata_index_record(*m) for m in self.metadata_index],
-            chunk_index=[chunk_index_record(c) for c in self.chunks],
+        self._write(
+            file_end(
+                self._pos,
+                schemas=schemas,
+                channels=channels,
+                statistics=stats,
+                metadata_index=self.metadata_index,
+                chunks=self.chunks,
+            )
         )
-        self._write(summary)
         f, self._f = self._f, None
         f.flush()
         os.fsync(f.fileno())

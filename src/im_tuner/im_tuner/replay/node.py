@@ -1,16 +1,9 @@
 """The live side of ``ros2 run im_tuner replay``: a real controller re-driven from a bag.
 
-:func:`replay` starts ``ros2 run im_controller controller`` as a child process (the
-installed executable, as a user runs it) with the recorded parameters, in a namespace of
-its own (``/replay_<pid>``, so a bench running on the same ROS domain is not touched), and
-plays the drive's side of the wire (docs/interfaces.md) from the :class:`~.plan.ReplayPlan`:
-for each fed state, the requests due before it (gains through
-``set_parameters_atomically``, ``start_experiment``, as the tuner makes them), the
-recorded ``/clock`` messages up to its time, the state itself, then a wait for the
-command answering it. States go one at a time (lock-step pacing, whatever the recorded
-mode): a state is sent once the answer to the one before came, so the controller sees
-exactly the recorded sequence and nothing depends on this machine's speed.
-"""
+:func:`replay` starts ``ros2 run im_controller controller`` as a child process with the
+recorded parameters, in a namespace of its own (``/replay_<pid>``), and plays the drive's
+side of the wire from the :class:`~.plan.ReplayPlan`, one state at a time, each once the
+answer to the one before came (docs/replay.md, "How it works")."""
 
 from __future__ import annotations
 
@@ -20,6 +13,7 @@ import subprocess
 import sys
 import tempfile
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -46,19 +40,12 @@ from im_drive_sim.runtime import publish_lossless
 from ..patience import IDLE_S, Patience
 from .plan import ReplayPlan
 
-__all__ = ['READY_IDLE_S', 'ReplayFailed', 'ReplayInconclusive', 'replay']
-
-# A replay is offline: it waits for the controller as long as the controller works
-# (im_tuner.patience: its process, numba's compile included, uses CPU), however slow the
-# machine. A controller that diverged -- paused where the recorded one stepped -- never
-# answers and sits idle: an answer missing while the controller idles for IDLE_S ends the
-# replay there (exit 1). Coming up (import, discovery) is given READY_IDLE_S of such
-# idleness before the replay is inconclusive (exit 3).
+# The replay waits for the controller while it works (im_tuner.patience); an answer missing
+# while it idles for IDLE_S ends the replay (exit 1), READY_IDLE_S of idleness before it is
+# on the graph makes it inconclusive (exit 3).
 READY_IDLE_S = 30.0  #: [s] idle before it is on the graph
-#: parameters not passed on: the layout the node reports (read-only, its own), and the
-#: watchdog, raised to its maximum: the replay's service calls between two states take
-#: milliseconds, and a real-time controller's 0.25 s must not trip on a loaded machine
-#: (it changes no command)
+#: parameters not passed on (the node's own layout), and the watchdog raised: requests
+#: between two states must not trip it (docs/replay.md, "How it works")
 NOT_PASSED = ('internals_fields',)
 OVERRIDES = {'state_timeout': 60.0}
 
@@ -160,17 +147,18 @@ class _Drive:
             self.child.proc.pid, what, error, idle_s=idle_s, note=self.note, alive=self.child.check
         )
 
+    def spin_until(self, done: Callable[[], bool], wait: Patience, period: float = 0.05) -> None:
+        """Spin the requests' executor until ``done()``, as long as ``wait`` allows."""
+        while not done():
+            wait.check()
+            self.executor.spin_once(timeout_sec=period)
+
     def wait_ready(self) -> None:
         wait = self.patience('the controller on the graph', READY_IDLE_S, ReplayInconclusive)
-        while not self.ready():
-            wait.check()
-            self.executor.spin_once(timeout_sec=0.05)
+        self.spin_until(self.ready, wait)
 
     def _call(self, future, what: str):
-        wait = self.patience(f'the answer to {what}')
-        while not future.done():
-            wait.check()
-            self.executor.spin_once(timeout_sec=0.05)
+        self.spin_until(future.done, self.patience(f'the answer to {what}'))
         return future.result()
 
     def set_gains(self, gains: tuple[float, ...], step: int) -> None:
@@ -271,9 +259,8 @@ def replay(
                         drive.publish_state(state)
                         sent = True
                     wait = drive.patience(f'the start before step {k} (refused: no state yet)')
-                    while not drive.start(int(what), k):  # type: ignore[call-overload]
-                        wait.check()
-                        drive.executor.spin_once(timeout_sec=0.02)
+                    start = partial(drive.start, int(what), k)  # type: ignore[call-overload]
+                    drive.spin_until(start, wait, 0.02)
                 if not sent:
                     drive.publish_state(state)
                 out[i] = drive.wait_command(k)

@@ -1,26 +1,12 @@
-"""What a replay feeds a controller and what it compares: read from a recorded bag (pure).
+"""What a replay feeds a controller and what it compares: read from a recorded bag of the
+tuner's in-process benches (pure; docs/replay.md, "How it works").
 
-A bag of the tuner's in-process benches (``--bench inproc``, lock-step, or ``--bench
-realtime``, the composed real-time loop) holds everything a controller saw and did: every
-drive state (``/drive/state``), every command it answered with (``/drive/command``), its
-internals per answered state (``/controller/internals``: status and experiment step), one
-loss result per experiment (``/controller/loss``: the gains, and ``gains_step``, the drive
-step from which they acted), its parameters at start (the ``im_tuner.controller``
-metadata record) and ``/clock``. :func:`load_plan` turns that into a :class:`ReplayPlan`:
-
-* the states to feed, in order: every state the controller answered (a state it never
-  answered, the lock-step drive's last one or one a real-time controller missed, is not
-  fed: the recorded controller never stepped on it);
-* the requests, each before the state it acted on: the gains of experiment i before state
-  ``gains_step`` (``ExperimentRunner.set_gains`` makes them act from the next state on),
-  its start before its first state (the first internals row of its settle);
-* the recorded command answering each fed state, and whether the period it drove was
-  fresh (the drive's state ``k + d`` shows ``applied_step == k``, d the declared command
-  delay; docs/interfaces.md, "Timing model").
-
-:func:`compare` sets replayed commands beside the recorded ones. No rclpy here: the node
-side is :mod:`im_tuner.replay.node`.
-"""
+:func:`load_plan` turns the bag into a :class:`ReplayPlan`: the states the recorded
+controller answered, in order; the requests, each before the state it acted on (experiment
+i's gains before state ``gains_step``, its start before its first state); the recorded
+command answering each fed state, and whether the period it drove was fresh.
+:func:`compare` sets replayed commands beside the recorded ones. The node side is
+:mod:`im_tuner.replay.node`."""
 
 from __future__ import annotations
 
@@ -32,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from im_controller.config import GAIN_NAMES
-from im_controller.contract import INTERNALS_TOPIC, LOSS_TOPIC
+from im_controller.contract import INTERNALS_TOPIC
 from im_controller.layout import (
     INTERNALS_FIELDS,
     LINK_REASONS,
@@ -52,23 +38,12 @@ from im_drive_sim.contract import (
 
 from ..rundir import writer_of
 
-__all__ = [
-    'CLOCK_TOPIC',
-    'Comparison',
-    'Experiment',
-    'ReplayError',
-    'ReplayPlan',
-    'compare',
-    'load_plan',
-]
-
 #: The simulated clock's topic (absolute, as the drive publishes it).
 CLOCK_TOPIC = '/clock'
 #: The bag's topics the replay reads (the bench's root namespace).
 STATE = '/' + STATE_TOPIC
 COMMAND = '/' + COMMAND_TOPIC
 INTERNALS = '/' + INTERNALS_TOPIC
-LOSS = '/' + LOSS_TOPIC
 #: Metadata record holding the controller's parameters at start (im_tuner.bench.inprocess).
 CONTROLLER_RECORD = 'im_tuner.controller'
 #: Command fields compared (``answers_step`` is the key, equal by construction).

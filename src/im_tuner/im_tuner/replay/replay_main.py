@@ -1,12 +1,6 @@
 """``ros2 run im_tuner replay BAG_DIR``: re-drive a live controller from a recorded bag and
-compare its commands with the recorded ones (docs/replay.md).
-
-The command line and the bag are checked before rclpy is imported (:mod:`.plan` is pure),
-so bad input is one line and exit 2 at once, and nothing is created. Exit codes: 0 the
-commands match, 1 they do not (or the live controller did something the recorded one did
-not), 2 bad input, 3 inconclusive (the live controller never came up, or died), 130 on
-Ctrl-C.
-"""
+compare its commands with the recorded ones (docs/replay.md; exit codes there). The command
+line and the bag are checked before rclpy is imported (:mod:`.plan` is pure)."""
 
 from __future__ import annotations
 

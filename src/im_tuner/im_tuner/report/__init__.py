@@ -1,16 +1,9 @@
 """The report of tuning runs: a summary, plots after the paper's Figs. 5, 8 and 9, a CSV.
 
-``ros2 run im_tuner report RUN_DIR [RUN_DIR2 ...] [--out DIR]`` reads each run's
-``run.yaml``, ``results.jsonl`` and session bags and writes ``summary.txt`` (also
-printed), ``fig5_trajectory.png``, ``fig8_best_vs_start.png``, ``fig9_loss.png``,
-``fig9_gains.png`` and ``evaluations.csv`` (docs/report.md). Several runs are overlaid;
-an interrupted or killed run is reported from what it left; nothing in a run directory is
-changed. No rclpy here. Modules by job: ``load`` (records, bags, signals), ``text``
-(summary), ``table`` (CSV), ``figures``, ``cli``, ``errors``.
-
-Start-up: the names below are loaded on first use (PEP 562), and ``cli`` imports numpy,
-the bag reader and matplotlib only once the command line and the run directories are
-checked, so ``report --help`` and a refusal import none of them (test_report_imports).
+``ros2 run im_tuner report RUN_DIR [RUN_DIR2 ...] [--out DIR]`` (docs/report.md). No rclpy
+here. Modules by job: ``load`` (records, bags, signals), ``text`` (summary), ``table`` (CSV),
+``figures``, ``cli``, ``errors``. The names below are loaded on first use (PEP 562), so
+that ``report --help`` and a refusal import nothing heavy (docs/report.md, "Speed").
 """
 
 from __future__ import annotations
@@ -22,13 +15,13 @@ if TYPE_CHECKING:  # the static view of the lazy names below
     from .cli import main, write_report
     from .errors import ReportError
     from .figures import make_figures
-    from .load import CSV_COLUMNS, FIGURES, Experiment, RunReport, load_run
-    from .table import read_csv, write_csv
+    from .load import FIGURES, Experiment, RunReport, load_run
+    from .table import CSV_COLUMNS, read_csv, write_csv
     from .text import summary_text
 
 #: public name -> the submodule that defines it
 _LAZY = {
-    'CSV_COLUMNS': 'load',
+    'CSV_COLUMNS': 'table',
     'FIGURES': 'load',
     'Experiment': 'load',
     'ReportError': 'errors',

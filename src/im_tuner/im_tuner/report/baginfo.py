@@ -1,32 +1,17 @@
-"""``ros2 run im_tuner report --bag-info BAG_DIR [--json]``: a bag's statistics, as
-``ros2 bag info`` gives them, plus the recorder's own counts no ROS tool shows.
-
-Per topic: message count, rate, size (the serialised message data), type, and the
-recorded / published / lost counts the recorder stored in the bag's metadata when it
-closed it (rosbag2 #2007 asks for these); the bag's totals: files and their size, state
-(closed, repaired, being recorded), duration, first and last log time, chunk compression,
-chunk count and the longest log-time span of a chunk. Any bag the project writes --
-closed, repaired (``recorder --repair``) or still open (read up to its last complete
-chunk) -- through :func:`im_tuner.record.reader.read_bag`: one memory-mapped pass, no
-rclpy.
-
-Definitions (docs/report.md, "Bag statistics"): times are MCAP log times (reception
-time, ns since the epoch); duration = last - first log time of the bag; a topic's rate
-= (count - 1) / (its last - its first log time), in messages per second of log time
-(wall clock, so a lock-step run shows its speed-up); size = the CDR bytes of its
-messages, without MCAP's record headers, before compression.
-"""
+"""``ros2 run im_tuner report --bag-info BAG_DIR [--json]``: a bag's statistics, as ``ros2 bag
+info`` gives them, plus the recorder's own counts no ROS tool shows; what each figure is:
+docs/report.md, "Bag statistics". Any bag the project writes, through
+:func:`im_tuner.record.reader.read_bag`: no rclpy."""
 
 from __future__ import annotations
 
 import datetime as _dt
 import json
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 from .errors import ReportError
-
-__all__ = ['bag_info', 'format_info', 'main_bag_info']
 
 #: the recorder's per-topic counts shown, in the order shown
 COUNT_KEYS = ('recorded', 'published', 'lost')
@@ -74,10 +59,10 @@ def bag_info(bag_dir: Path) -> dict[str, Any]:
                 'first_ns': t.first_ns if t.count else None,
                 'last_ns': t.last_ns if t.count else None,
                 # the recorder's counts (None: the bag was not closed by the recorder)
-                **{k: (None if c is None else int(c.get(k, 0))) for k in COUNT_KEYS},
-                'published_before_recording': (
-                    None if c is None else int(c.get('published_before_recording', 0))
-                ),
+                **{
+                    k: (None if c is None else int(c.get(k, 0)))
+                    for k in (*COUNT_KEYS, 'published_before_recording')
+                },
             }
         )
     spans = [c.span_s for c in bag.chunk_stats]
@@ -99,17 +84,7 @@ def bag_info(bag_dir: Path) -> dict[str, Any]:
         'compression': sorted({c.compression or 'none' for c in bag.chunk_stats}),
         'chunks': bag.chunks,
         # complete chunks whose CRC fails or that do not decompress: left out of the counts
-        'damaged_chunks': [
-            {
-                'number': d.number,
-                'offset': d.offset,
-                'start_ns': d.start_ns,
-                'end_ns': d.end_ns,
-                'reason': d.reason,
-                'text': d.describe(),
-            }
-            for d in bag.damaged
-        ],
+        'damaged_chunks': [asdict(d) | {'text': d.describe()} for d in bag.damaged],
         'max_chunk_span_s': max(spans) if spans else None,
         'first_chunk_span_s': spans[0] if spans else None,
         'recorder_counts': bag.recorder_counts is not None,
@@ -221,9 +196,3 @@ def format_info(info: dict[str, Any]) -> str:
             + ', '.join(f'{t["topic"]} {t["published_before_recording"]}' for t in before)
         )
     return '\n'.join(L)
-
-
-def main_bag_info(bag_dir: Path, as_json: bool) -> str:
-    """What ``report --bag-info`` prints (raises :class:`ReportError`)."""
-    info = bag_info(bag_dir)
-    return json.dumps(info, indent=2) if as_json else format_info(info)

@@ -1,14 +1,11 @@
-"""``ros2 run im_tuner report``: the command (checks every run first, then writes).
-
-Imports only what the check needs at start (argparse, yaml for run.yaml): ``--help``
-and a refusal answer without numpy, the bag reader (numba) or matplotlib; ``load``,
-``text``, ``table`` and ``figures`` are imported once the runs are known to be runs.
-"""
+"""``ros2 run im_tuner report``: the command (checks every run first, then writes; ``load``,
+``text``, ``table`` and ``figures`` are imported once the runs are known to be runs)."""
 
 from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import json
 import multiprocessing
 import multiprocessing.process
 import os
@@ -161,9 +158,10 @@ def _bag_info(cli: argparse.Namespace) -> int:
     """``--bag-info``: nothing is written; a bad path is one line and exit 2."""
     if cli.runs or cli.bags or cli.out is not None:
         raise ReportError('--bag-info takes one bag directory and no run, --bags or --out')
-    from .baginfo import main_bag_info
+    from .baginfo import bag_info, format_info
 
-    print(main_bag_info(cli.bag_info, cli.json))
+    info = bag_info(cli.bag_info)
+    print(json.dumps(info, indent=2) if cli.json else format_info(info))
     return 0
 
 

@@ -32,6 +32,11 @@ def _load_step(rr: RunReport) -> float | None:
     return float(v) if v is not None else None
 
 
+def _no_data(ax: Any, text: str) -> None:
+    """``text`` in the middle of ``ax``: what the figure would have shown is not there."""
+    ax.text(0.5, 0.5, text, ha='center', va='center', transform=ax.transAxes)
+
+
 def fig5(runs: list[RunReport]):
     """Position reference and load torque of two consecutive experiments (paper Fig. 5)."""
     from matplotlib.figure import Figure
@@ -40,14 +45,7 @@ def fig5(runs: list[RunReport]):
     ax_p, ax_l = fig.subplots(2, 1, sharex=True)
     rr = next((r for r in runs if r.consecutive), None)
     if rr is None:
-        ax_p.text(
-            0.5,
-            0.5,
-            'no two consecutive experiments in the bags',
-            ha='center',
-            va='center',
-            transform=ax_p.transAxes,
-        )
+        _no_data(ax_p, 'no two consecutive experiments in the bags')
     else:
         e0 = rr.consecutive[0]
         t_ref = (e0.record.t_start_ns or 0) * 1e-9
@@ -168,14 +166,7 @@ def fig8(runs: list[RunReport]):
     if curves:
         axes[0].legend(fontsize=8, loc='lower right')
     else:
-        axes[0].text(
-            0.5,
-            0.5,
-            'no experiment signals in the bags',
-            ha='center',
-            va='center',
-            transform=axes[0].transAxes,
-        )
+        _no_data(axes[0], 'no experiment signals in the bags')
     flipped = any(c[2].direction < 0 for c in curves)
     fig.suptitle(
         'best controller vs start controller under the load torque step'

@@ -27,19 +27,7 @@ from ..runlog import (
     summarize,
     tally_all,
 )
-from ..runlog.columns import CSV_COLUMNS
-from .errors import EXIT_USAGE, ReportError
-
-__all__ = [
-    'CSV_COLUMNS',  # (the run log's: evaluations.csv's columns)
-    'EXIT_USAGE',
-    'FIGURES',
-    'Experiment',
-    'ReportError',
-    'RunReport',
-    'load_run',
-    'load_signals',
-]
+from .errors import ReportError
 
 INTERNALS_TOPIC = '/' + C.INTERNALS_TOPIC  # the bench's controller, in the root namespace
 LOSS_TOPIC = '/' + C.LOSS_TOPIC

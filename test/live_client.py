@@ -134,6 +134,9 @@ class Watcher:
     pause: float = 0.0
     #: [bytes] the socket's receive buffer (0: the system's, which grows as it reads)
     rcvbuf: int = 0
+    #: topic -> when this client sent its subscription [ns, the system clock: the bag's
+    #: log times are the recorder's on the same clock]
+    subscribed_at: dict[str, int] = field(default_factory=dict)
 
     def start(self) -> Watcher:
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -158,6 +161,9 @@ class Watcher:
                                 sid = len(subs) + 1
                                 subs[sid] = c['id']
                                 new.append({'id': sid, 'channelId': c['id']})
+                        now = time.time_ns()
+                        for sub in new:
+                            self.subscribed_at[self.channels[sub['channelId']]['topic']] = now
                         _send_text(s, json.dumps({'op': 'subscribe', 'subscriptions': new}))
                 elif op == 2 and data[0] == 1:
                     sid, t = struct.unpack_from('<IQ', data, 1)

@@ -43,8 +43,15 @@ from im_controller.config import GAIN_NAMES, GAIN_UNITS
 from im_controller.layout import CONTROL_FIELDS, INTERNALS_FIELDS
 from im_controller.messages import LOSS_KEYS
 from im_drive_sim.contract import COMMAND_FIELDS, STATE_FIELDS
-from im_tuner.foxglove import LAYOUTS, build, definitions, render, render_sdk
-from im_tuner.foxglove.layouts import STEP_FIELDS, TITLE_KEY
+from im_tuner.foxglove.layouts import (
+    LAYOUTS,
+    STEP_FIELDS,
+    TITLE_KEY,
+    build,
+    definitions,
+    render,
+    render_sdk,
+)
 from im_tuner.foxglove.signals import index_table
 
 REPO = Path(__file__).resolve().parents[1]

@@ -302,9 +302,7 @@ def test_take_kernel_matches_rclpy_and_counts_gaps(ros_context):
     subs, chans = np.array([ours.handle.pointer], np.uint64), np.array([7], np.int64)
 
     def drain() -> int:
-        code, n = rcl_take.drain(
-            subs, chans, tb.ser, tb.info, ch.buf, ch.idx, ch.st, pubs, ctrl, 1 << 40
-        )
+        code, n = rcl_take.drain(subs, chans, tb.ser, tb.info, ch.buf, ch.idx, ch.st, pubs, ctrl)
         assert code == rcl_take.DONE
         return n
 

@@ -128,7 +128,7 @@ class Recording:
         """What is in the first ``chunks`` written chunks (all when None)."""
         infos = self.w.chunks[:chunks]
         # A Message Index record is 15 bytes plus 16 per entry.
-        n = sum((c.index_length - 15 * len(c.index_offsets)) // 16 for c in infos)
+        n = sum((c.message_index_length - 15 * len(c.message_index_offsets)) // 16 for c in infos)
         return self.sent[:n]
 
 
@@ -284,7 +284,7 @@ def crash(rec: Recording, cut_last_chunk: bool = True) -> list[tuple[str, int, o
     if not cut_last_chunk:
         return rec.flushed()
     last = rec.w.chunks[-1]
-    os.truncate(rec.file, last.offset + last.length // 2)
+    os.truncate(rec.file, last.chunk_start_offset + last.chunk_length // 2)
     return rec.flushed(len(rec.w.chunks) - 1)
 
 
@@ -358,7 +358,7 @@ def test_crash_then_repair(tmp_path: Path, compression: str, background: bool) -
     assert report.chunks == len(rec.w.chunks) - 1
     assert report.topics == topic_counts(complete)
     last = rec.w.chunks[-1]
-    assert report.dropped_bytes == last.length // 2
+    assert report.dropped_bytes == last.chunk_length // 2
     assert not list(rec.out.glob('*.repairing'))
     assert 'recovered' in report.summary() and '/chatter' in report.summary()
     read_with_mcap(rec.file, complete)
@@ -469,15 +469,16 @@ def test_a_corrupt_chunk_is_left_out_and_the_chunks_after_it_recovered(tmp_path:
     size = rec.file.stat().st_size
     third = rec.w.chunks[2]
     with open(rec.file, 'r+b') as f:
-        f.seek(third.offset + third.length - 5)
+        f.seek(third.chunk_start_offset + third.chunk_length - 5)
         byte = f.read(1)
         f.seek(-1, os.SEEK_CUR)
         f.write(bytes([byte[0] ^ 0xFF]))
     report = repair_bag(rec.out)
     kept = rec.flushed(2) + rec.sent[len(rec.flushed(3)) : len(rec.flushed())]
-    assert [d[:2] for d in report.damaged] == [(3, third.offset)]
+    assert [d[:2] for d in report.damaged] == [(3, third.chunk_start_offset)]
     assert report.messages == len(kept) and report.chunks == len(rec.w.chunks) - 1
-    assert report.dropped_bytes < size - third.offset  # (only what followed the last chunk)
+    # (only what followed the last chunk)
+    assert report.dropped_bytes < size - third.chunk_start_offset
     assert 'left out damaged chunk 3' in report.summary()
     read_with_mcap(rec.file, kept)
 

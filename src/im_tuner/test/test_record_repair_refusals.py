@@ -74,7 +74,7 @@ def test_damaged_complete_file_is_refused(tmp_path: Path) -> None:
     rec.w.close()
     second = rec.w.chunks[1]
     with open(rec.file, 'r+b') as f:
-        f.seek(second.offset + second.length - 3)
+        f.seek(second.chunk_start_offset + second.chunk_length - 3)
         f.write(b'\xff\xfe\xfd')
     before = snapshot(rec.out)
     with pytest.raises(RepairError, match=r'chunk 2 at byte \d+ is damaged \(CRC') as e:
@@ -88,7 +88,8 @@ def test_killed_while_writing_the_summary(tmp_path: Path) -> None:
     rec.write(500, flush_every=120)
     rec.w.close()
     last = rec.w.chunks[-1]
-    data_end = last.offset + last.length + last.index_length  # the DataEnd record is here
+    # the DataEnd record is here
+    data_end = last.chunk_start_offset + last.chunk_length + last.message_index_length
     size = rec.file.stat().st_size
     os.truncate(rec.file, size - 40)
     report = repair_bag(rec.out)

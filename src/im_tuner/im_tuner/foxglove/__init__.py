@@ -1,39 +1,9 @@
 """Foxglove layouts shipped with im_tuner (docs/foxglove.md).
 
-The layouts are defined once with Foxglove's SDK (``foxglove.layouts``; :func:`definitions`
-gives the SDK's objects). ``python -m im_tuner.foxglove`` prints where the installed
-layouts are (``share/im_tuner/foxglove/<name>.json``); ``--out DIR`` writes them afresh
-from the contracts (``--namespace /bench1`` for a bench under a namespace, ``--sdk`` for the
-SDK's own form). ``make foxglove-layouts`` regenerates the committed copies in
-``src/im_tuner/foxglove/``. Pure: no rclpy.
+The layouts are defined once with Foxglove's SDK (``foxglove.layouts``;
+:func:`.layouts.definitions` gives the SDK's objects). ``python -m im_tuner.foxglove``
+prints where the installed layouts are (``share/im_tuner/foxglove/<name>.json``); ``--out
+DIR`` writes them afresh from the contracts (``--namespace /bench1`` for a bench under a
+namespace, ``--sdk`` for the SDK's own form). ``make foxglove-layouts`` regenerates the
+committed copies in ``src/im_tuner/foxglove/``. Pure: no rclpy.
 """
-
-from .layouts import (
-    LAYOUTS,
-    array_path,
-    build,
-    definitions,
-    render,
-    render_sdk,
-    result_path,
-    step_path,
-    to_studio,
-)
-from .signals import ARRAY_TOPICS, Signal, label, loss_signals, signal
-
-__all__ = [
-    'ARRAY_TOPICS',
-    'LAYOUTS',
-    'Signal',
-    'array_path',
-    'build',
-    'definitions',
-    'label',
-    'loss_signals',
-    'render',
-    'render_sdk',
-    'result_path',
-    'signal',
-    'step_path',
-    'to_studio',
-]

@@ -31,32 +31,17 @@ from im_controller.config import GAIN_NAMES
 from im_controller.contract import INTERNALS_TOPIC
 from im_drive_sim.contract import COMMAND_TOPIC, STATE_TOPIC
 
+from ..names import RESULT_TOPIC
 from .signals import (
     ARRAY_TOPICS,
     KIND_WORDS,
     LOSS_ID_KEY,
     LOSS_KEY,
-    RESULT_TOPIC,
     Signal,
     label,
     loss_signals,
     signal,
 )
-
-__all__ = [
-    'KIND_COLOURS',
-    'LAYOUTS',
-    'STEP_FIELDS',
-    'Plot',
-    'array_path',
-    'build',
-    'definitions',
-    'render',
-    'render_sdk',
-    'result_path',
-    'step_path',
-    'to_studio',
-]
 
 STATE = '/' + STATE_TOPIC
 COMMAND = '/' + COMMAND_TOPIC
@@ -177,17 +162,6 @@ def _plot(
     return Plot(panel_id=panel_id, title=title, config=config)
 
 
-def _on_steps(panel_id: str, title: str, topic: str, names: Sequence[str], ns: str) -> Plot:
-    """A panel of fields of one array topic against that topic's drive step (sim time)."""
-    return _plot(
-        panel_id,
-        title,
-        [array_path(topic, n, ns) for n in names],
-        step_path(topic, ns),
-        STEP_AXIS_LABEL,
-    )
-
-
 def _split(direction: str, contents: Sequence[fl.Content]) -> fl.Content:
     """``contents`` in equal shares, side by side ('row') or one above the other
     ('column'); a single one as it is."""
@@ -201,102 +175,52 @@ def _split(direction: str, contents: Sequence[fl.Content]) -> fl.Content:
 
 
 # ----------------------------------------------------------------------------- layouts
+def _rows(pid: str, title: str, rows: list[list[tuple[str, str, str, str]]], ns: str) -> fl.Layout:
+    """Rows of panels, top to bottom, each of panels side by side: one field of an array
+    topic against that topic's drive step (sim time) per panel, given as (id after
+    ``pid``, title after ``title``, topic, field)."""
+
+    def panel(i: str, t: str, topic: str, name: str) -> Plot:
+        return _plot(
+            pid + i, title + t, [array_path(topic, name, ns)], step_path(topic, ns), STEP_AXIS_LABEL
+        )
+
+    return fl.Layout(
+        content=_split('column', [_split('row', [panel(*p) for p in row]) for row in rows])
+    )
+
+
 def fig5_trajectory(ns: str = '') -> fl.Layout:
     """Paper Fig. 5 on sim time: the position reference (the raw trajectory theta*) beside
     the measured position, the position error, and the load torque commanded beside the
     load torque applied: each experiment's pi rad move and its load step 0.7 s (3500 steps
     at 5 kHz) after the move starts."""
-    return fl.Layout(
-        content=_split(
-            'column',
-            [
-                _split(
-                    'row',
-                    [
-                        _on_steps(
-                            'fig5_position_reference',
-                            'Fig. 5 position reference theta* [rad]',
-                            INTERNALS,
-                            ['theta_ref'],
-                            ns,
-                        ),
-                        _on_steps(
-                            'fig5_position_measured',
-                            'Fig. 5 measured position [rad]',
-                            STATE,
-                            ['theta_meas'],
-                            ns,
-                        ),
-                    ],
-                ),
-                _on_steps('fig5_error', 'Fig. 5 position error [rad]', INTERNALS, ['e_theta'], ns),
-                _split(
-                    'row',
-                    [
-                        _on_steps(
-                            'fig5_load_commanded',
-                            'Fig. 5 load torque commanded [N m]',
-                            INTERNALS,
-                            ['load_cmd'],
-                            ns,
-                        ),
-                        _on_steps(
-                            'fig5_load_applied',
-                            'Fig. 5 load torque applied [N m]',
-                            STATE,
-                            ['load_torque'],
-                            ns,
-                        ),
-                    ],
-                ),
-            ],
-        )
-    )
+    rows = [
+        [
+            ('position_reference', 'position reference theta* [rad]', INTERNALS, 'theta_ref'),
+            ('position_measured', 'measured position [rad]', STATE, 'theta_meas'),
+        ],
+        [('error', 'position error [rad]', INTERNALS, 'e_theta')],
+        [
+            ('load_commanded', 'load torque commanded [N m]', INTERNALS, 'load_cmd'),
+            ('load_applied', 'load torque applied [N m]', STATE, 'load_torque'),
+        ],
+    ]
+    return _rows('fig5_', 'Fig. 5 ', rows, ns)
 
 
 def fig8_errors(ns: str = '') -> fl.Layout:
     """Paper Fig. 8 on sim time: (a) position error, (b) speed error, (c) the current
     reference i*sq beside the measured q-axis current."""
-    return fl.Layout(
-        content=_split(
-            'column',
-            [
-                _on_steps(
-                    'fig8a_position_error',
-                    'Fig. 8 (a) position error [rad]',
-                    INTERNALS,
-                    ['e_theta'],
-                    ns,
-                ),
-                _on_steps(
-                    'fig8b_speed_error',
-                    'Fig. 8 (b) speed error [rad/s]',
-                    INTERNALS,
-                    ['e_omega'],
-                    ns,
-                ),
-                _split(
-                    'row',
-                    [
-                        _on_steps(
-                            'fig8c_current_reference',
-                            'Fig. 8 (c) current reference i*sq [A]',
-                            INTERNALS,
-                            ['isq_ref'],
-                            ns,
-                        ),
-                        _on_steps(
-                            'fig8c_current_measured',
-                            'Fig. 8 (c) measured q-axis current [A]',
-                            STATE,
-                            ['isq'],
-                            ns,
-                        ),
-                    ],
-                ),
-            ],
-        )
-    )
+    rows = [
+        [('a_position_error', '(a) position error [rad]', INTERNALS, 'e_theta')],
+        [('b_speed_error', '(b) speed error [rad/s]', INTERNALS, 'e_omega')],
+        [
+            ('c_current_reference', '(c) current reference i*sq [A]', INTERNALS, 'isq_ref'),
+            ('c_current_measured', '(c) measured q-axis current [A]', STATE, 'isq'),
+        ],
+    ]
+    return _rows('fig8', 'Fig. 8 ', rows, ns)
 
 
 def fig9_loss_gains(ns: str = '') -> fl.Layout:

@@ -15,26 +15,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from im_controller.config import GAIN_NAMES, GAIN_UNITS
-from im_controller.contract import INTERNALS_TOPIC, LOSS_TOPIC
+from im_controller.contract import INTERNALS_TOPIC
 from im_controller.layout import INTERNALS_FIELDS
 from im_drive_sim.contract import COMMAND_FIELDS, COMMAND_TOPIC, STATE_FIELDS, STATE_TOPIC
 
-from ..names import RESULT_TOPIC
 from ..runlog.records import KINDS
-
-__all__ = [
-    'ARRAY_TOPICS',
-    'KIND_WORDS',
-    'LOSS_ID_KEY',
-    'LOSS_KEY',
-    'LOSS_TOPIC',
-    'RESULT_TOPIC',
-    'Signal',
-    'index_table',
-    'label',
-    'loss_signals',
-    'signal',
-]
 
 
 @dataclass(frozen=True)

@@ -10,12 +10,18 @@ from __future__ import annotations
 import struct
 import zlib
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
-from mcap.records import DataEnd, McapRecord, MetadataIndex, Statistics
+from mcap.records import (
+    ChunkIndex,
+    DataEnd,
+    McapRecord,
+    MetadataIndex,
+    Statistics,
+    SummaryOffset,
+)
 
 from .mcap_format import MAGIC
 
@@ -28,24 +34,11 @@ def encode(*records: McapRecord) -> bytes:
     return out.end()
 
 
-def string(s: str) -> bytes:
-    """An MCAP string: u32 byte length, UTF-8 bytes."""
-    b = s.encode('utf-8')
-    return struct.pack('<I', len(b)) + b
-
-
-def record(op: int, body: bytes) -> bytes:
-    """A record: opcode u8, body length u64, body."""
-    return struct.pack('<BQ', op, len(body)) + body
-
-
 def chunk_head(start: int, end: int, records: bytes, compression: str, size: int) -> bytes:
     """A Chunk record up to its ``size`` bytes of (compressed) ``records``, which follow it."""
-    body = (
-        struct.pack('<QQQI', start, end, len(records), zlib.crc32(records))
-        + string(compression)
-        + struct.pack('<Q', size)
-    )
+    comp = compression.encode()
+    body = struct.pack('<QQQII', start, end, len(records), zlib.crc32(records), len(comp)) + comp
+    body += struct.pack('<Q', size)
     return struct.pack('<BQ', Opcode.CHUNK, len(body) + size) + body
 
 
@@ -59,25 +52,9 @@ def message_index_records(idx: np.ndarray) -> list[tuple[int, bytes]]:
     out = []
     for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
         entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
-        out.append(
-            (cid, record(Opcode.MESSAGE_INDEX, struct.pack('<HI', cid, len(entries)) + entries))
-        )
+        head = struct.pack('<BQHI', Opcode.MESSAGE_INDEX, 6 + len(entries), cid, len(entries))
+        out.append((cid, head + entries))
     return out
-
-
-@dataclass
-class ChunkInfo:
-    """What the summary needs to know of a written chunk (byte offsets, times [ns])."""
-
-    start: int
-    end: int
-    offset: int
-    length: int
-    index_offsets: dict[int, int]
-    index_length: int
-    compression: str
-    compressed_size: int
-    uncompressed_size: int
 
 
 def indexed_chunk(
@@ -88,36 +65,24 @@ def indexed_chunk(
     end: int,
     compression: str,
     sizes: tuple[int, int],
-) -> ChunkInfo:
+) -> ChunkIndex:
     """Write a Chunk record (``parts``: its bytes, in order) and the Message Index records of
-    its messages ``idx`` through ``put`` (bytes -> the offset written at); what the summary
-    needs of it (``sizes``: of its records compressed and uncompressed)."""
+    its messages ``idx`` through ``put`` (bytes -> the offset written at); its Chunk Index
+    record for the summary (``sizes``: of its records compressed and uncompressed)."""
     at = put(parts[0])
     for part in parts[1:]:
         put(part)
     index = message_index_records(idx)
-    return ChunkInfo(
-        start,
-        end,
-        at,
-        sum(map(len, parts)),
-        {cid: put(rec) for cid, rec in index},
-        sum(len(rec) for _cid, rec in index),
-        compression,
-        *sizes,
-    )
-
-
-def chunk_index_record(c: ChunkInfo) -> bytes:
-    """The Chunk Index record of a written chunk."""
-    offs = b''.join(struct.pack('<HQ', k, v) for k, v in sorted(c.index_offsets.items()))
-    return record(
-        Opcode.CHUNK_INDEX,
-        struct.pack('<QQQQI', c.start, c.end, c.offset, c.length, len(offs))
-        + offs
-        + struct.pack('<Q', c.index_length)
-        + string(c.compression)
-        + struct.pack('<QQ', c.compressed_size, c.uncompressed_size),
+    return ChunkIndex(
+        message_start_time=start,
+        message_end_time=end,
+        chunk_start_offset=at,
+        chunk_length=sum(map(len, parts)),
+        message_index_offsets={cid: put(rec) for cid, rec in index},  # (by channel id)
+        message_index_length=sum(len(rec) for _cid, rec in index),
+        compression=compression,
+        compressed_size=sizes[0],
+        uncompressed_size=sizes[1],
     )
 
 
@@ -154,7 +119,7 @@ def file_end(
     channels: list[bytes],
     statistics: bytes,
     metadata_index: list[tuple[int, int, str]],
-    chunks: list[ChunkInfo],
+    chunks: list[ChunkIndex],
     attachment_index: list[bytes] | None = None,
 ) -> bytes:
     """What ends a file whose data section ends at byte ``data_end``: DataEnd, the summary
@@ -169,7 +134,7 @@ def file_end(
         (Opcode.STATISTICS, [statistics]),
         (Opcode.METADATA_INDEX, [encode(MetadataIndex(*m)) for m in metadata_index]),
         (Opcode.ATTACHMENT_INDEX, attachment_index or []),
-        (Opcode.CHUNK_INDEX, [chunk_index_record(c) for c in chunks]),
+        (Opcode.CHUNK_INDEX, [encode(c) for c in chunks]),
     )
     out = bytearray()
     offsets: list[tuple[int, int, int]] = []
@@ -179,8 +144,7 @@ def file_end(
             out.extend(b''.join(records))
             offsets.append((op, at, summary_start + len(out) - at))
     offsets_start = summary_start + len(out)
-    for group, at, n in offsets:
-        out.extend(record(Opcode.SUMMARY_OFFSET, struct.pack('<BQQ', group, at, n)))
+    out.extend(encode(*(SummaryOffset(*o) for o in offsets)))
     footer_head = struct.pack(
         '<BQQQ', Opcode.FOOTER, 20, summary_start if offsets else 0, offsets_start if offsets else 0
     )

@@ -406,7 +406,6 @@ class Recorder:
                     ch.st,
                     self._pubs,
                     self._ctrl,
-                    1 << 40,
                 )
                 total += n
                 if code == rcl_take.DONE:
@@ -500,14 +499,29 @@ class Recorder:
             custom[LIVE_METADATA] = json.dumps(self.live_stats, sort_keys=True)
         if cut:
             self.node.get_logger().warn(f'bag {self.out.name}: {cut}')
-        meta = self._metadata(custom)
+        w = self.writer
+        topics = [
+            TopicRecord(
+                t.name, t.type, w.channel_counts.get(t.channel, 0), t.qos_profiles, t.type_hash
+            )
+            for t in self.topics.values()
+        ]
+        meta = bag_metadata(
+            [(self.file_name, w.t_start or 0, w.t_end or 0, w.message_count)], topics, custom
+        )
         self.writer.add_metadata('rosbag2', rosbag2_record(meta))
         self.writer.add_metadata(
             'im_tuner.counts', {k: json.dumps(v, sort_keys=True) for k, v in counts.items()}
         )
         self.writer.close()
         write_metadata_yaml(self.out, meta)
-        self._destroy_subscriptions()
+        self._subs = np.zeros(0, np.uint64)
+        self._chans = np.zeros(0, np.int64)
+        for t in self.topics.values():
+            if t.sub is not None:
+                with contextlib.suppress(Exception):
+                    self.node.destroy_subscription(t.sub)
+        self._take.close()
         self.log.info(counts_report(self.out, self.writer.message_count, counts, self.unrecordable))
         return counts
 
@@ -518,25 +532,3 @@ class Recorder:
         live, self.live = self.live, None
         self.live_stats = live.close()
         self.log.info(live_line(self.live_stats))
-
-    def _metadata(self, custom: dict[str, str]) -> dict:
-        w = self.writer
-        topics = [
-            TopicRecord(
-                t.name, t.type, w.channel_counts.get(t.channel, 0), t.qos_profiles, t.type_hash
-            )
-            for t in self.topics.values()
-        ]
-        return bag_metadata(
-            [(self.file_name, w.t_start or 0, w.t_end or 0, w.message_count)], topics, custom
-        )
-
-    def _destroy_subscriptions(self) -> None:
-        self._subs = np.zeros(0, np.uint64)
-        self._chans = np.zeros(0, np.int64)
-        for t in self.topics.values():
-            if t.sub is None:
-                continue
-            with contextlib.suppress(Exception):
-                self.node.destroy_subscription(t.sub)
-        self._take.close()

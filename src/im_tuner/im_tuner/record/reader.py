@@ -11,6 +11,7 @@ message packages: the two CDR layouts needed are parsed here."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import mmap
 import struct
@@ -413,8 +414,11 @@ def read_bag(
             for op, a, n in top:
                 if op in (Opcode.SCHEMA, Opcode.CHANNEL):
                     parse_definition(op, bytes(mm[a - 9 : a + n]), schemas, channels)
-                elif op == Opcode.METADATA:
-                    _take_metadata(bytes(mm[a : a + n]), out.metadata)
+                elif op == Opcode.METADATA:  # (the first of a name wins; a bad one is left out)
+                    with contextlib.suppress(ValueError, struct.error):
+                        cur = Cursor(bytes(mm[a : a + n]))
+                        name = cur.s()
+                        out.metadata.setdefault(name, cur.map())
             # each chunk with the message indexes that follow it (before the next chunk)
             chunks: list[tuple[int, int, list[tuple[int, np.ndarray]]]] = []
             for op, a, n in top:
@@ -430,7 +434,11 @@ def read_bag(
                 start, end, usize, crc, clen = struct.unpack_from('<QQQII', mm, a)
                 try:
                     comp = mm[a + 32 : a + 32 + clen].decode()
-                    chunk = _read_chunk(mm, a + 32 + clen, a + n, comp, usize, crc)
+                    p = a + 32 + clen  # the length of its records, then the records
+                    (rlen,) = struct.unpack_from('<Q', mm, p)
+                    if p + 8 + rlen > a + n:
+                        raise ValueError('its records run past the record')
+                    records = chunk_records(comp, mm[p + 8 : p + 8 + rlen], usize, crc)
                 except ValueError as exc:
                     # a complete record (the walk above checked its length): bytes changed
                     out.damaged.append(DamagedChunk(number, a - 9, start, end, str(exc)))
@@ -438,8 +446,9 @@ def read_bag(
                 out.chunks += 1
                 out.chunk_stats.append(ChunkStats(start, end, comp))
                 _take_chunk(
-                    chunk, index, schemas, channels, per_chan, arrays, rows, losses, loss_topic
-                )
+                    np.frombuffer(records, np.uint8), index, schemas, channels, per_chan, arrays,
+                    rows, losses, loss_topic,
+                )  # fmt: skip
     if out.recorder_counts is None and 'im_tuner.counts' in out.metadata:
         # no metadata.yaml (or one without them): the record the recorder wrote at close
         try:
@@ -465,26 +474,6 @@ def read_bag(
         for st in parse_diagnostic_array(data):
             out.losses.append(st | {'log_time_ns': str(log_time)})
     return out
-
-
-def _take_metadata(body: bytes, into: dict[str, dict[str, str]]) -> None:
-    """A Metadata record's body (name, string map) into ``into`` (the first name wins;
-    a malformed record is left out)."""
-    try:
-        c = Cursor(body)
-        name = c.s()
-        into.setdefault(name, c.map())
-    except (ValueError, struct.error, UnicodeDecodeError):
-        pass
-
-
-def _read_chunk(mm: mmap.mmap, p: int, end: int, comp: str, usize: int, crc: int) -> np.ndarray:
-    """A Chunk record's records (their length at byte ``p``, the record ending at ``end``),
-    decompressed and checked against ``usize`` and ``crc``."""
-    (rlen,) = struct.unpack_from('<Q', mm, p)
-    if p + 8 + rlen > end:
-        raise ValueError('its records run past the record')
-    return np.frombuffer(chunk_records(comp, mm[p + 8 : p + 8 + rlen], usize, crc), np.uint8)
 
 
 def _take_chunk(

@@ -27,7 +27,7 @@ from numba import types
 
 from im_drive_sim.outbox import R_TAIL, loaded_library
 
-from .writer import MESSAGE_HEADER_BYTES, fits, note_message, write_message_header
+from .writer import put_header
 
 _RCL = loaded_library('librcl.so')
 _RCUTILS = loaded_library('librcutils.so')
@@ -47,7 +47,6 @@ RCL_RET_SUBSCRIPTION_TAKE_FAILED = 401
 DONE = 0  #: every subscription is empty
 FULL = 1  #: the chunk is full; the message taken last is pending in ``ser``/``info``
 PUBS_FULL = 2  #: the publisher table is full (grow it and call again)
-LIMIT = 3  #: took ``limit`` messages; more may be waiting
 ERROR = 4  #: rcl returned an error (code in ``ctrl[C_ERROR]``)
 
 # ctrl vector
@@ -69,8 +68,7 @@ P_FIRST = 3  #: first publication sequence number seen
 P_LAST = 4  #: highest publication sequence number seen
 P_COUNT = 5  #: messages recorded
 P_GAPS = 6  #: sequence numbers skipped (messages lost between publisher and recorder)
-P_REORDERED = 7  #: messages that came with a number not above the last one
-P_SIZE = 8
+P_SIZE = 7
 
 # message info words
 I_SOURCE_TS = 0
@@ -88,11 +86,9 @@ def _track(
     for r in range(n):
         if pubs[r, P_GID0] == gid0 and pubs[r, P_GID1] == gid1 and pubs[r, P_CHANNEL] == channel:
             last = pubs[r, P_LAST]
-            if seq > last:
+            if seq > last:  # (one not above the last came late: not a gap)
                 pubs[r, P_GAPS] += seq - last - 1
                 pubs[r, P_LAST] = seq
-            else:
-                pubs[r, P_REORDERED] += 1
             pubs[r, P_COUNT] += 1
             return True
     if n >= pubs.shape[0]:
@@ -104,7 +100,6 @@ def _track(
     pubs[n, P_LAST] = seq
     pubs[n, P_COUNT] = 1
     pubs[n, P_GAPS] = 0
-    pubs[n, P_REORDERED] = 0
     ctrl[C_NPUBS] = n + 1
     return True
 
@@ -120,21 +115,20 @@ def _place(
     ctrl: np.ndarray,
 ) -> bool:
     n = np.int64(ser[1])
-    pos = st[0]
-    log_time = np.int64(info[I_RECEIVED_TS])
-    if not fits(buf, idx, st, n, log_time, ctrl[C_MAX_SPAN_NS]):
-        return False
-    write_message_header(
+    at = put_header(
         buf,
-        pos,
+        idx,
+        st,
         channel,
         np.int64(info[I_PUB_SEQ] & 0xFFFFFFFF),
-        log_time,
+        np.int64(info[I_RECEIVED_TS]),
         np.int64(info[I_SOURCE_TS]),
         n,
+        ctrl[C_MAX_SPAN_NS],
     )
-    _memcpy(np.uint64(buf.ctypes.data + pos + MESSAGE_HEADER_BYTES), ser[0], np.uint64(n))
-    note_message(idx, st, channel, log_time, pos, MESSAGE_HEADER_BYTES + n)
+    if at < 0:
+        return False
+    _memcpy(np.uint64(buf.ctypes.data + at), ser[0], np.uint64(n))
     return True
 
 
@@ -149,7 +143,6 @@ def drain(
     st: np.ndarray,
     pubs: np.ndarray,
     ctrl: np.ndarray,
-    limit: int,
 ) -> tuple[int, int]:
     """Take every available message of every subscription into the chunk.
 
@@ -169,8 +162,6 @@ def drain(
         if subs[i] == 0:
             continue
         while True:
-            if taken >= limit:
-                return LIMIT, taken
             r = _take(subs[i], ser_p, info_p, np.uint64(0))
             if r == RCL_RET_SUBSCRIPTION_TAKE_FAILED:
                 break
@@ -279,14 +270,11 @@ def drain_ring(
     while t < head:
         i = t % cap
         n = rlens[i]
-        pos = st[0]
         stamp = rstamps[i]
-        if not fits(buf, idx, st, n, stamp, max_span_ns):
+        at = put_header(buf, idx, st, channel, t & 0xFFFFFFFF, stamp, stamp, n, max_span_ns)
+        if at < 0:
             break
-        write_message_header(buf, pos, channel, t & 0xFFFFFFFF, stamp, stamp, n)
-        p = pos + MESSAGE_HEADER_BYTES
-        buf[p : p + n] = rbuf[i, :n]
-        note_message(idx, st, channel, stamp, pos, MESSAGE_HEADER_BYTES + n)
+        buf[at : at + n] = rbuf[i, :n]
         t += 1
         rctrl[R_TAIL] = t
     return t - t_start

@@ -26,10 +26,9 @@ from typing import BinaryIO
 import numba
 import numpy as np
 from mcap.opcode import Opcode
-from mcap.records import Channel, Header, Metadata, Schema
+from mcap.records import Channel, ChunkIndex, Header, Metadata, Schema
 
 from .mcap_encode import (
-    ChunkInfo,
     chunk_head,
     encode,
     file_end,
@@ -51,6 +50,57 @@ class McapWriteError(Exception):
     """The bag could not be written (path, permission, a closed writer)."""
 
 
+@numba.njit(cache=True, inline='always')
+def put_header(
+    buf: np.ndarray,
+    idx: np.ndarray,
+    st: np.ndarray,
+    channel_id: int,
+    sequence: int,
+    log_time: int,
+    publish_time: int,
+    n: int,
+    max_span_ns: int,
+) -> int:
+    """Open a Message record of ``n`` data bytes at the end of the open chunk: write its
+    31-byte header (little endian), index it, advance the chunk state; the offset in
+    ``buf`` its data go to. -1 (nothing written) when it does not fit, or when the chunk
+    would then span more than ``max_span_ns`` of log time (0: no limit; an empty chunk
+    takes any message).
+
+    ``buf`` is the uint8 chunk buffer, ``idx`` the int64 index rows (channel_id, log_time
+    [ns], offset [bytes]), ``st`` the chunk state vector (``ST_*``); see :class:`ChunkState`.
+    The one writer of a Message record: :func:`append_message` and the take kernels
+    (:mod:`im_tuner.record.take`) copy the data."""
+    pos, k = st[ST_POS], st[ST_COUNT]
+    if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or k >= idx.shape[0]:
+        return -1
+    limited = max_span_ns > 0 and k > 0
+    if limited and (log_time - st[ST_TMIN] > max_span_ns or st[ST_TMAX] - log_time > max_span_ns):
+        return -1
+    buf[pos] = _OP_MESSAGE
+    length = 22 + n
+    for b in range(8):
+        buf[pos + 1 + b] = (length >> (8 * b)) & 0xFF
+    buf[pos + 9] = channel_id & 0xFF
+    buf[pos + 10] = (channel_id >> 8) & 0xFF
+    for b in range(4):
+        buf[pos + 11 + b] = (sequence >> (8 * b)) & 0xFF
+    for b in range(8):
+        buf[pos + 15 + b] = (log_time >> (8 * b)) & 0xFF
+        buf[pos + 23 + b] = (publish_time >> (8 * b)) & 0xFF
+    idx[k, 0] = channel_id
+    idx[k, 1] = log_time
+    idx[k, 2] = pos
+    if k == 0 or log_time < st[ST_TMIN]:
+        st[ST_TMIN] = log_time
+    if k == 0 or log_time > st[ST_TMAX]:
+        st[ST_TMAX] = log_time
+    st[ST_COUNT] = k + 1
+    st[ST_POS] = pos + MESSAGE_HEADER_BYTES + n
+    return pos + MESSAGE_HEADER_BYTES
+
+
 @numba.njit(cache=True)
 def append_message(
     buf: np.ndarray,
@@ -64,74 +114,13 @@ def append_message(
     max_span_ns: int,
 ) -> bool:
     """Append one Message record to the open chunk; False (nothing written) if it is full
-    or would then span more than ``max_span_ns`` of log time (0: no limit).
-
-    ``buf`` is the uint8 chunk buffer, ``idx`` the int64 index rows (channel_id, log_time
-    [ns], offset [bytes]), ``st`` the chunk state vector (``ST_*``); see :class:`ChunkState`.
-    """
+    or would then span more than ``max_span_ns`` of log time (:func:`put_header`)."""
     n = data.shape[0]
-    pos = st[ST_POS]
-    if not fits(buf, idx, st, n, log_time, max_span_ns):
+    at = put_header(buf, idx, st, channel_id, sequence, log_time, publish_time, n, max_span_ns)
+    if at < 0:
         return False
-    write_message_header(buf, pos, channel_id, sequence, log_time, publish_time, n)
-    buf[pos + MESSAGE_HEADER_BYTES : pos + MESSAGE_HEADER_BYTES + n] = data
-    note_message(idx, st, channel_id, log_time, pos, MESSAGE_HEADER_BYTES + n)
+    buf[at : at + n] = data
     return True
-
-
-@numba.njit(cache=True, inline='always')
-def write_message_header(
-    buf: np.ndarray,
-    pos: int,
-    channel_id: int,
-    sequence: int,
-    log_time: int,
-    publish_time: int,
-    n: int,
-) -> None:
-    """Write the 31-byte Message record header at ``buf[pos]`` (little endian)."""
-    buf[pos] = _OP_MESSAGE
-    length = 22 + n
-    for b in range(8):
-        buf[pos + 1 + b] = (length >> (8 * b)) & 0xFF
-    buf[pos + 9] = channel_id & 0xFF
-    buf[pos + 10] = (channel_id >> 8) & 0xFF
-    for b in range(4):
-        buf[pos + 11 + b] = (sequence >> (8 * b)) & 0xFF
-    for b in range(8):
-        buf[pos + 15 + b] = (log_time >> (8 * b)) & 0xFF
-        buf[pos + 23 + b] = (publish_time >> (8 * b)) & 0xFF
-
-
-@numba.njit(cache=True, inline='always')
-def fits(
-    buf: np.ndarray, idx: np.ndarray, st: np.ndarray, n: int, log_time: int, max_span_ns: int
-) -> bool:
-    """Whether a Message record of ``n`` data bytes and ``log_time`` [ns] goes into the open
-    chunk: there is room, and the chunk would not then span more than ``max_span_ns`` of log
-    time (0: no limit; an empty chunk takes any message)."""
-    if st[ST_POS] + MESSAGE_HEADER_BYTES + n > buf.shape[0] or st[ST_COUNT] >= idx.shape[0]:
-        return False
-    if max_span_ns <= 0 or st[ST_COUNT] == 0:
-        return True
-    return log_time - st[ST_TMIN] <= max_span_ns and st[ST_TMAX] - log_time <= max_span_ns
-
-
-@numba.njit(cache=True, inline='always')
-def note_message(
-    idx: np.ndarray, st: np.ndarray, channel_id: int, log_time: int, pos: int, nbytes: int
-) -> None:
-    """Index a record just written at ``pos`` and advance the chunk state."""
-    k = st[ST_COUNT]
-    idx[k, 0] = channel_id
-    idx[k, 1] = log_time
-    idx[k, 2] = pos
-    if k == 0 or log_time < st[ST_TMIN]:
-        st[ST_TMIN] = log_time
-    if k == 0 or log_time > st[ST_TMAX]:
-        st[ST_TMAX] = log_time
-    st[ST_COUNT] = k + 1
-    st[ST_POS] = pos + nbytes
 
 
 @dataclass
@@ -212,7 +201,7 @@ class McapWriter:
         self.chunk = ChunkState.create(self.chunk_size)
         self.schemas: dict[int, tuple[str, str, bytes]] = {}
         self.channels: dict[int, tuple[str, int, str, dict[str, str]]] = {}
-        self.chunks: list[ChunkInfo] = []
+        self.chunks: list[ChunkIndex] = []
         self.metadata_index: list[tuple[int, int, str]] = []
         self.channel_counts: dict[int, int] = {}
         self.message_count = 0

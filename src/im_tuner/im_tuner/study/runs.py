@@ -313,18 +313,20 @@ def reference_loss(
 _END_GRACE_S = 5.0
 
 
-def _forkserver_children() -> list[int]:
-    """PIDs of the forkserver's children (Linux ``/proc``; empty elsewhere): the pool's
-    workers, and a worker still starting that the executor has not registered yet."""
+def _kill_starting_workers() -> None:
+    """SIGKILL every child of the forkserver (Linux ``/proc``; nothing elsewhere): a worker
+    still starting when the signal lands is not in the executor's table yet, and would
+    otherwise start after the study ended and print a traceback.  A child of the
+    forkserver can only be a worker of this study's pools, whose results are no longer
+    wanted."""
     server = getattr(multiprocessing.forkserver, '_forkserver', None)
     fs_pid = getattr(server, '_forkserver_pid', None)
     if not fs_pid:
-        return []
+        return
     try:
         entries = os.listdir('/proc')
     except OSError:
-        return []
-    kids = []
+        return
     for d in entries:
         if not d.isdigit():
             continue
@@ -334,18 +336,8 @@ def _forkserver_children() -> list[int]:
         except OSError:
             continue
         if int(stat.rsplit(')', 1)[1].split()[1]) == fs_pid:
-            kids.append(int(d))
-    return kids
-
-
-def _kill_starting_workers() -> None:
-    """SIGKILL every child of the forkserver: a worker still starting when the signal
-    lands is not in the executor's table yet, and would otherwise start after the study
-    ended and print a traceback.  A child of the forkserver can only be a worker of this
-    study's pools, whose results are no longer wanted."""
-    for pid in _forkserver_children():
-        with contextlib.suppress(ProcessLookupError, PermissionError):
-            os.kill(pid, signal.SIGKILL)
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.kill(int(d), signal.SIGKILL)
 
 
 def _end_pool(pool: ProcessPoolExecutor) -> None:

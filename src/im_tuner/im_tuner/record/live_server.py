@@ -68,6 +68,13 @@ class _ClientQueue:
     sent: int = 0
     dropped: int = 0
 
+    def end(self) -> None:
+        """Stop its sender; what it still has queued counts as dropped."""
+        self.task.cancel()
+        self.dropped += len(self.queue) + len(self.whole)
+        self.queue.clear()
+        self.whole.clear()
+
 
 class LiveServer:
     """A Foxglove WebSocket server (``foxglove.websocket.v1``) in a thread of its own.
@@ -287,10 +294,7 @@ class LiveServer:
         c = self._clients.pop(connection, None)
         if c is None:
             return
-        c.task.cancel()
-        c.dropped += len(c.queue) + len(c.whole)
-        c.queue.clear()
-        c.whole.clear()
+        c.end()
         self._gone.append(c)
         slow = f', {c.dropped} dropped: it did not read them in time' if c.dropped else ''
         self._log(f'live: client {c.addr} disconnected ({c.sent} messages sent{slow})')
@@ -394,10 +398,7 @@ class LiveServer:
             last = left
 
         async def close(conn: Any, c: _ClientQueue) -> None:
-            c.task.cancel()
-            c.dropped += len(c.queue) + len(c.whole)
-            c.queue.clear()
-            c.whole.clear()
+            c.end()
             with contextlib.suppress(BaseException):
                 await asyncio.wait_for(conn.close(), CLOSE_GRACE_S)
             t = conn.transport

@@ -26,12 +26,11 @@ from im_controller.contract import LOSS_TOPIC
 
 from .mcap_format import MAGIC
 from .metadata import read_metadata_yaml
-from .records import Cursor, chunk_records, parse_definition
+from .records import Cursor, chunk_records, parse_definition, walk
 
 _MSG_HEAD = 22  # channel id u16, sequence u32, log time u64, publish time u64
 _F64_HEAD = b'\x00\x01\x00\x00'  # CDR little-endian encapsulation
 _F64_DATA = 20  # first double of a Float64MultiArray with an empty layout
-_OP_LEN = struct.Struct('<BQ')  # a record's opcode and body length
 #: a topic's rate is given from this many messages, or over this much log time [s]
 RATE_MIN_MESSAGES, RATE_MIN_SPAN_S = 10, 1.0
 
@@ -139,7 +138,7 @@ def walk_records(
     ``stop_op``; -1: none), walked one by one: opcodes, body offsets and lengths, and for
     Message records channel ids and log times [ns] (-1 and 0 for the others); and where the
     walk stopped. What a chunk whose index does not tile it is read by."""
-    found, end = _walk_py(buf, start, buf.size, stop_op)
+    found, end = walk(buf, start, buf.size, stop_op)
     rec = np.array(found, np.int64).reshape(-1, 3)
     ops, offs, lens = rec[:, 0].astype(np.uint8), rec[:, 1], rec[:, 2]
     msg = np.flatnonzero((ops == Opcode.MESSAGE) & (lens >= _MSG_HEAD))
@@ -147,26 +146,6 @@ def walk_records(
     cids[msg] = buf[offs[msg]].astype(np.int64) | (buf[offs[msg] + 1].astype(np.int64) << 8)
     times[msg] = _u64_at(buf, offs[msg] + 6).astype(np.int64)
     return ops, offs, lens, cids, times, end
-
-
-def _walk_py(
-    buf: mmap.mmap | np.ndarray, start: int, end: int, stop_op: int
-) -> tuple[list[tuple[int, int, int]], int]:
-    """The records of ``buf[start:end]`` (up to and including one of opcode ``stop_op``; -1:
-    none) before the first incomplete one: (op, body offset, body length) each, and where
-    the walk stopped."""
-    view = buf.data if isinstance(buf, np.ndarray) else buf  # uint8: one byte per index
-    out = []
-    p = start
-    while p + 9 <= end:
-        op, ln = _OP_LEN.unpack_from(view, p)
-        if op == 0 or p + 9 + ln > end:
-            break
-        out.append((op, p + 9, ln))
-        p += 9 + ln
-        if op == stop_op:
-            break
-    return out, p
 
 
 def _u64_at(buf: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -225,7 +204,7 @@ def _indexed_messages(
     for a, b in gaps:
         if a == b:
             continue
-        found, stop = _walk_py(buf, a, b, -1)
+        found, stop = walk(buf, a, b, -1)
         if stop != b or any(op == Opcode.MESSAGE for op, _o, _n in found):
             return None
         for op, o, ln in found:
@@ -407,7 +386,7 @@ def read_bag(
         if size < 8 or f.read(8) != MAGIC:
             raise BagReadError(f'{path}: not an MCAP file')
         with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-            top, end = _walk_py(mm, 8, size, Opcode.DATA_END)
+            top, end = walk(mm, 8, size, Opcode.DATA_END)
             out.complete = bool(top) and top[-1][0] in (Opcode.DATA_END, Opcode.FOOTER)
             out.unread_bytes = 0 if out.complete else size - end
             # definitions first: a Channel record may follow a chunk holding its messages

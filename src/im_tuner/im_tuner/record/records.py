@@ -1,13 +1,18 @@
-"""MCAP records read back: a cursor over a record body, chunk decompression, and the
-Schema/Channel definitions -- what the fast reader and the repair both parse (the MCAP
+"""MCAP records read back: the walk over records, a cursor over a record body, chunk
+decompression, and the Schema/Channel definitions -- what the fast reader and the repair
+both parse (the MCAP
 specification's little-endian layouts; constants in ``writer``)."""
 
 from __future__ import annotations
 
+import mmap
 import struct
 import zlib
 
+import numpy as np
 from mcap.opcode import Opcode
+
+_OP_LEN = struct.Struct('<BQ')  # a record's opcode and body length
 
 
 class Cursor:
@@ -88,3 +93,23 @@ def parse_definition(op: int, rec: bytes, schemas: dict, channels: dict) -> None
         cid, sid = c.u('HH')
         topic, _enc = c.s(), c.s()
         channels.setdefault(cid, (topic, sid, c.map(), rec))
+
+
+def walk(
+    buf: mmap.mmap | np.ndarray, start: int, end: int, stop_op: int
+) -> tuple[list[tuple[int, int, int]], int]:
+    """The records of ``buf[start:end]`` (up to and including one of opcode ``stop_op``; -1:
+    none) before the first incomplete one: (op, body offset, body length) each, and where
+    the walk stopped."""
+    view = buf.data if isinstance(buf, np.ndarray) else buf  # uint8: one byte per index
+    out = []
+    p = start
+    while p + 9 <= end:
+        op, ln = _OP_LEN.unpack_from(view, p)
+        if op == 0 or p + 9 + ln > end:
+            break
+        out.append((op, p + 9, ln))
+        p += 9 + ln
+        if op == stop_op:
+            break
+    return out, p

@@ -12,6 +12,7 @@ from what the scan found. No rclpy here."""
 
 from __future__ import annotations
 
+import mmap
 import os
 import shutil
 import struct
@@ -36,7 +37,7 @@ from .mcap_encode import (
 from .mcap_format import MAGIC
 from .metadata import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
 from .reader import BagReadError, find_mcap
-from .records import ChunkDamage, Cursor, chunk_records, parse_definition
+from .records import ChunkDamage, Cursor, chunk_records, parse_definition, walk
 
 #: Messages found outside chunks are packed into new chunks of at most this many bytes.
 LOOSE_CHUNK_BYTES = 1 << 20
@@ -229,45 +230,39 @@ def scan_mcap(path: Path) -> McapScan:
         if op != Opcode.HEADER or 17 + n > size:
             raise RepairError(f'{path}: no complete MCAP header')
         scan = McapScan(path, size, head + f.read(n))
-        pos = scan.data_end = 17 + n
+        scan.data_end = 17 + n
         number = 0  # Chunk records seen
-        while True:
-            f.seek(pos)
-            head = f.read(9)
-            if len(head) < 9:
-                break
-            op, n = struct.unpack('<BQ', head)
-            if op == 0 or pos + 9 + n > size:  # 0 is no opcode (a zero-filled tail)
-                break
-            rec = head + f.read(n)
-            try:
-                if op == Opcode.CHUNK:
-                    number += 1
-                    try:
-                        scan.chunks.append(_parse_chunk(rec[9:], scan, pos))
-                    except ChunkDamage as exc:  # a whole record: its bytes were changed
-                        scan.damaged.append((number, pos, str(exc)))
-                elif op in (Opcode.SCHEMA, Opcode.CHANNEL):
-                    parse_definition(op, rec, scan.schemas, scan.channels)
-                elif op == Opcode.METADATA:
-                    c = Cursor(rec, 9)
-                    scan.metadata.append((pos, len(rec), c.s()))
-                    c.map()
-                elif op == Opcode.ATTACHMENT:
-                    c = Cursor(rec, 9)
-                    t_log, t_create = c.u('QQ')
-                    name, media = c.s(), c.s()
-                    (dlen,) = c.u('Q')
-                    c.raw(dlen + 4)
-                    scan.attachments.append((pos, len(rec), t_log, t_create, dlen, name, media))
-                elif op == Opcode.MESSAGE:
-                    _add_loose(scan, rec, pos)
-            except (struct.error, ValueError):
-                break
-            if op in (Opcode.DATA_END, Opcode.FOOTER):
-                scan.ended = True
-                break
-            pos = scan.data_end = pos + len(rec)
+        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+            for op, at, ln in walk(mm, 17 + n, size, Opcode.DATA_END)[0]:
+                pos, rec = at - 9, bytes(mm[at - 9 : at + ln])
+                try:
+                    if op == Opcode.CHUNK:
+                        number += 1
+                        try:
+                            scan.chunks.append(_parse_chunk(rec[9:], scan, pos))
+                        except ChunkDamage as exc:  # a whole record: its bytes were changed
+                            scan.damaged.append((number, pos, str(exc)))
+                    elif op in (Opcode.SCHEMA, Opcode.CHANNEL):
+                        parse_definition(op, rec, scan.schemas, scan.channels)
+                    elif op == Opcode.METADATA:
+                        c = Cursor(rec, 9)
+                        scan.metadata.append((pos, len(rec), c.s()))
+                        c.map()
+                    elif op == Opcode.ATTACHMENT:
+                        c = Cursor(rec, 9)
+                        t_log, t_create = c.u('QQ')
+                        name, media = c.s(), c.s()
+                        (dlen,) = c.u('Q')
+                        c.raw(dlen + 4)
+                        scan.attachments.append((pos, len(rec), t_log, t_create, dlen, name, media))
+                    elif op == Opcode.MESSAGE:
+                        _add_loose(scan, rec, pos)
+                except (struct.error, ValueError):
+                    break
+                if op in (Opcode.DATA_END, Opcode.FOOTER):
+                    scan.ended = True
+                    break
+                scan.data_end = at + ln
         scan.complete = _has_footer(f, size)
     for ch in scan.chunks:  # index the runs of loose messages as the chunks they will become
         if ch.loose:

@@ -202,25 +202,6 @@ def _spans(internals: np.ndarray) -> list[tuple[int, int]]:
     return spans
 
 
-def _check_no_fault(internals: np.ndarray, experiments: list[Experiment]) -> None:
-    """Refuse a FAULT before the last experiment replayed ends: the fault reset that
-    followed it is a request made at a wall-clock moment the bag does not pin to a state
-    (a safety abort of an earlier experiment, or FAULT rows in the internals)."""
-    for e in experiments[:-1]:
-        if e.reason in (*SAFETY_REASONS, *LINK_REASONS):
-            raise ReplayError(
-                f'experiment {e.eid} ended in a safety fault ({e.reason}): a replay cannot '
-                'place the fault reset that followed; replay an experiment up to it'
-            )
-    k, st = internals[:, 0], internals[:, _I_STATUS]
-    at = np.flatnonzero((st == STATUS_FAULT) & (k < experiments[-1].last_step))
-    if at.size:
-        raise ReplayError(
-            f'the controller went to FAULT at step {int(k[at[0]])}: a replay cannot place '
-            'the fault reset that followed; replay an experiment before it'
-        )
-
-
 def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
     """Read ``bag_dir`` and decide the replay (see the module docstring); ReplayError
     (one line) when the bag cannot be replayed or has no experiment ``experiment``."""
@@ -331,8 +312,21 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
             )
         target = experiments[ids.index(experiment)]
         experiments = experiments[: ids.index(experiment) + 1]
-    _check_no_fault(Itn, experiments)
+    # a FAULT before the last experiment replayed ends is refused: the fault reset that
+    # followed it is a request made at a wall-clock moment the bag does not pin to a state
     end = experiments[-1].last_step
+    for e in experiments[:-1]:
+        if e.reason in (*SAFETY_REASONS, *LINK_REASONS):
+            raise ReplayError(
+                f'experiment {e.eid} ended in a safety fault ({e.reason}): a replay cannot '
+                'place the fault reset that followed; replay an experiment up to it'
+            )
+    at = np.flatnonzero((Itn[:, _I_STATUS] == STATUS_FAULT) & (Itn[:, 0] < end))
+    if at.size:
+        raise ReplayError(
+            f'the controller went to FAULT at step {int(Itn[at[0], 0])}: a replay cannot '
+            'place the fault reset that followed; replay an experiment before it'
+        )
 
     fed = answers[answers[:, 0] <= end]
     by_step = {int(k): i for i, k in enumerate(S[:, 0])}

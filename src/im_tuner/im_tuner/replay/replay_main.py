@@ -72,10 +72,6 @@ class _Progress:
         print(text, end=end, file=sys.stderr, flush=True)
 
 
-def _note(text: str) -> None:
-    print(f'replay: {text}', file=sys.stderr, flush=True)
-
-
 def result_dict(plan: Any, cmp: Any, failure: str | None, wall_s: float) -> dict[str, Any]:
     """What the replay found, as printed with ``--json``."""
     a, b = plan.window
@@ -139,7 +135,10 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.monotonic()
         failure = None
         try:
-            replayed = replay(plan, _Progress(cli.quiet), None if cli.quiet else _note)
+            note = (
+                None if cli.quiet else lambda t: print(f'replay: {t}', file=sys.stderr, flush=True)
+            )
+            replayed = replay(plan, _Progress(cli.quiet), note)
         except ReplayInconclusive as exc:
             print(f'replay: INCONCLUSIVE: {exc}', file=sys.stderr, flush=True)
             return EXIT_INCONCLUSIVE

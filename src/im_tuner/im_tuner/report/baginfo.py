@@ -89,18 +89,16 @@ def bag_info(bag_dir: Path) -> dict[str, Any]:
         'first_chunk_span_s': spans[0] if spans else None,
         'recorder_counts': bag.recorder_counts is not None,
         'lost_total': (sum(int(c.get('lost', 0)) for c in rc.values()) if rc else None),
-        # recorded by the recorder's counts but not in the file (a file cut short)
-        'not_in_file': _not_in_file(rc, {n: t.count for n, t in bag.topics.items()}),
+        # recorded by the recorder's counts but not in the file (a file cut short after
+        # the recorder closed it): the sum over topics of recorded - count
+        'not_in_file': sum(
+            max(0, int(c.get('recorded', 0)) - (bag.topics[n].count if n in bag.topics else 0))
+            for n, c in rc.items()
+        ),
         # the composed real-time loop's hand-over counts (put, published, lost_...)
         'outbox': {k: json.loads(v) for k, v in outbox.items()} if outbox else None,
         'topics': topics,
     }
-
-
-def _not_in_file(counts: dict[str, Any], in_file: dict[str, int]) -> int:
-    """Messages the recorder counted as recorded that the file does not hold (a file cut
-    short after the recorder closed it): the sum over topics of recorded - count."""
-    return sum(max(0, int(c.get('recorded', 0)) - in_file.get(n, 0)) for n, c in counts.items())
 
 
 def _when(ns: int | None) -> str:

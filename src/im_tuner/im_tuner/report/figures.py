@@ -26,12 +26,6 @@ def _colors(n: int) -> list:
     return [cmap(i % 10) for i in range(n)]
 
 
-def _load_step(rr: RunReport) -> float | None:
-    p = rr.run.controller_parameters or {}
-    v = p.get('trajectory.load_delay')
-    return float(v) if v is not None else None
-
-
 def _no_data(ax: Any, text: str) -> None:
     """``text`` in the middle of ``ax``: what the figure would have shown is not there."""
     ax.text(0.5, 0.5, text, ha='center', va='center', transform=ax.transAxes)
@@ -146,7 +140,8 @@ def fig8(runs: list[RunReport]):
                 label=label,
                 gid=f'{name}:{gid}',
             )
-    step = _load_step(runs[0]) if runs else None
+    delay = (runs[0].run.controller_parameters or {}).get('trajectory.load_delay') if runs else None
+    step = float(delay) if delay is not None else None
     for ax, (_n, yl) in zip(axes, panels, strict=True):
         ax.set_ylabel(yl)
         ax.grid(True, alpha=0.3)

@@ -12,7 +12,7 @@ from ..progress import drive_text, mechanics_lines, tolerance_text
 
 if TYPE_CHECKING:
     from ..record.reader import BagData
-    from ..runlog import Record, RunConfig
+    from ..runlog import Record
     from .load import RunReport
 
 
@@ -21,16 +21,12 @@ def _gains_text(g: dict[str, float]) -> str:
     return ', '.join(f'{n} {g[n]:.6g} {GAIN_UNITS[n]}' for n in GAIN_NAMES)
 
 
-def _options_text(run: RunConfig) -> str:
-    opts = run.options or {}
-    return ', '.join(f'{k}={v}' for k, v in opts.items()) or 'defaults'
-
-
 def summary_text(rr: RunReport) -> str:
     """The printed summary of one run (see the module docstring)."""
     s, run = rr.summary, rr.run
+    opts = ', '.join(f'{k}={v}' for k, v in (run.options or {}).items()) or 'defaults'
     L = [
-        f'run {rr.path}: {run.algo} ({_options_text(run)}), seed {run.seed}, '
+        f'run {rr.path}: {run.algo} ({opts}), seed {run.seed}, '
         f'budget {run.budget}, bench {run.bench}'
     ]
     L.append(

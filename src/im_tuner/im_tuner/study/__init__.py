@@ -14,19 +14,8 @@ workers.
 
 The statistics (normalised loss, satisfactory runs, intervals): docs/reproduction.md.
 
-**Drives**: a study's drive, experiment and tuner parameters come from
-``im_tuner.family.drive_setup``; ``--drives A,B`` runs one study per drive (``drives``) at
-each algorithm's recommended configuration plus Py-BOBYQA (``bobyqa``), summed up over the
-drives (``summary``). ``--plant`` makes the bench another drive than the told one (``plant``).
-
-Modules by job: ``spec`` (the grid and the spec; light: the command checks its options
-with it alone), ``plant`` (the plant apart from the told drive; light), ``results``
-(StudyResult, study.npz/study.json), ``runs`` (one run = a TuningRun on the offline
-bench, the pool), ``bobyqa`` (Py-BOBYQA one evaluation at a time), ``drives`` (a study
-per drive, family.json), ``cluster`` (the Dask scheduler checked), ``stats`` (intervals,
-Tables I-III, the paper's values), ``summary`` (over drives), ``text``, ``files`` (CSV,
-tuner commands), ``figures``, ``markdown`` (reproduction.md, beside.md, family.md),
-``cli``.
+Each module's docstring says its job; ``drives`` and ``plant`` what ``--drives`` and
+``--plant`` do.
 
 This package imports nothing itself, so that ``python -m im_tuner.study`` with a bad
 option refuses at once.

@@ -37,7 +37,7 @@ from .metadata import (
     storage_file_name,
     write_metadata_yaml,
 )
-from .run_info import recorder_version, run_metadata
+from .run_info import run_metadata, version
 from .schemas import MsgDefError, schema_for
 from .status import TopicStatus
 from .topic_info import endpoint_qos, endpoint_type_hash, message_class
@@ -112,7 +112,7 @@ class Recorder:
                 self.out / self.file_name,
                 compression=compression,
                 chunk_size=chunk_size,
-                library=f'im_tuner recorder {recorder_version()}',
+                library=f'im_tuner recorder {version("im_tuner", "dev")}',
                 background=background_writes,
                 max_span=max_chunk_age,
             )
@@ -431,8 +431,7 @@ class Recorder:
     # -- counts and closing --------------------------------------------------------------
     def counts(self) -> dict[str, dict[str, int]]:
         """Per topic: recorded, published (seen by sequence numbers), lost, publishers."""
-        npubs = int(self._ctrl[rcl_take.C_NPUBS])
-        rows = self._pubs[:npubs]
+        rows = self._pubs[: int(self._ctrl[rcl_take.C_NPUBS])]
         out = {}
         for t, ch in self._taps:
             out[t.name] = {
@@ -447,10 +446,9 @@ class Recorder:
             if t.sub is None:
                 continue
             r = rows[rows[:, rcl_take.P_CHANNEL] == t.channel]
-            published = int(np.sum(r[:, rcl_take.P_LAST] - r[:, rcl_take.P_FIRST] + 1))
             out[t.name] = {
                 'recorded': int(np.sum(r[:, rcl_take.P_COUNT])),
-                'published': published if len(r) else 0,
+                'published': int(np.sum(r[:, rcl_take.P_LAST] - r[:, rcl_take.P_FIRST] + 1)),
                 'lost': int(np.sum(r[:, rcl_take.P_GAPS])),
                 'publishers': len(r),
                 'published_before_recording': int(np.sum(r[:, rcl_take.P_FIRST] - 1)),

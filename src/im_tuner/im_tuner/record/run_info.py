@@ -35,12 +35,7 @@ def default_out_dir(base: Path | str = 'bags', prefix: str = 'recording') -> Pat
 
 def run_metadata(command: list[str] | None = None) -> dict[str, str]:
     """What ran, where and with which versions: the bag's ``im_tuner.run`` record."""
-    versions = {}
-    for pkg in VERSIONED:
-        try:
-            versions[pkg] = importlib.metadata.version(pkg)
-        except importlib.metadata.PackageNotFoundError:
-            versions[pkg] = 'not installed'
+    versions = {pkg: version(pkg, 'not installed') for pkg in VERSIONED}
     return {
         'command': shlex.join(command if command is not None else sys.argv),
         'started_utc': _dt.datetime.now(_dt.UTC).isoformat(timespec='seconds'),
@@ -53,9 +48,9 @@ def run_metadata(command: list[str] | None = None) -> dict[str, str]:
     }
 
 
-def recorder_version() -> str:
-    """The installed im_tuner's version ('dev' when it is not installed)."""
+def version(pkg: str, missing: str) -> str:
+    """The installed version of ``pkg`` (``missing`` when it is not installed)."""
     try:
-        return importlib.metadata.version('im_tuner')
+        return importlib.metadata.version(pkg)
     except importlib.metadata.PackageNotFoundError:
-        return 'dev'
+        return missing

@@ -28,27 +28,10 @@ from im_controller.config import (
     validate_loss_config,
 )
 from im_drive_sim.drive_file import load_config, packaged_base
-from im_drive_sim.family import DRIVE_NAMES, PACKAGED_NAMES
+from im_drive_sim.family import DRIVE_NAMES
 from im_drive_sim.params import DriveConfig, MachineParams
 
 from .space import SearchSpace, TunerParams, load_params
-
-__all__ = [
-    'DEFAULT_DRIVE',
-    'DRIVE_NAMES',
-    'PACKAGED_NAMES',
-    'DriveScales',
-    'DriveSetup',
-    'check_amplitude',
-    'controller_parameters',
-    'count_step',
-    'drive_scales',
-    'drive_setup',
-    'family_table',
-    'start_scale',
-    'tuner_setup',
-    'with_start',
-]
 
 #: the packaged default drive (the paper's 750 W motor; ``drive_setup(None)``)
 DEFAULT_DRIVE = 'paper_750w'

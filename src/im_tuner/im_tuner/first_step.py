@@ -21,8 +21,6 @@ from .identify import Identified, identify, start_motions
 from .prior import RIPPLE_MARGIN, Prior, identified_prior
 from .space import SearchSpace
 
-__all__ = ['IdentifiedFirstStep']
-
 
 class IdentifiedFirstStep:
     """The hook ``TuningRun(first_step=...)`` calls before safe's evaluation 2."""

@@ -22,14 +22,6 @@ import numpy as np
 from im_controller.config import GAIN_NAMES, GAIN_RANGES, GAIN_UNITS, Gains
 from im_drive_sim.yaml_file import YamlFileError, read_yaml
 
-__all__ = [
-    'SearchSpace',
-    'TunerParams',
-    'TunerParamsError',
-    'default_params_path',
-    'load_params',
-]
-
 
 class TunerParamsError(ValueError):
     """A bad tuner parameter file; the message names the file and the key."""

@@ -1,36 +1,15 @@
 """The tuning loop: ask, measure, tell -- with a budget, best tracking, checkpoints and resume.
 
 Pure (no rclpy): the loop talks to the bench through a :class:`Measurer` (the tuner node
-implements it over the controller's parameter services, experiment service and loss
-topic; tests and offline studies can implement it directly on the pure core).
-
-One evaluation (``kind='eval'``):
-
-1. ``u = optimizer.ask()``; the gains are ``space.to_gains(u)``;
-2. ``measurer.measure(gains)`` sets them (atomically), runs the experiment, returns its
-   loss; a lost result (:class:`LostEvaluation`) and a result marked ``timing`` (the
-   experiment did not run on the paper's timing: held or late drive periods beyond the
-   controller's tolerance, so its loss is not the paper's loss) are re-run with the SAME
-   gains, at most ``retries`` times, never resampled, and never told to the optimiser;
-3. the record goes to ``results.jsonl`` (fsync'ed) and to :attr:`TuningRun.on_record`
-   (the tuner node publishes it), then ``optimizer.tell(u, loss)``, then
-   ``checkpoint.json`` (atomic).  A penalised (aborted) experiment is told its
-   penalised loss, costs one evaluation and can never become the best.
-
-Around the search: one ``reference`` experiment of the start gains first (not counted in
-the budget, not told to the optimiser: the comparison the summary makes), and at the end
-``remeasure`` extra experiments re-measuring the top few distinct evaluations once each.
-The smallest measured loss is biased low (it is a minimum over noisy measurements), so
-the controller left applied is the one with the smallest re-measured loss, and both
-numbers are reported; with ``remeasure=0`` it is the smallest measured loss (the
-paper's final controller).  If no evaluation beats the reference, the start gains stay.
-
-Resume: ``results.jsonl`` is the truth.  The checkpoint holds the optimiser (RNG included)
-and the counters after its ``records`` first lines; later lines (a kill between the two
-writes) are applied on top, checking that the optimiser asks exactly the recorded
-candidates.  Since ``ask`` is deterministic, the next candidate is the one the killed
-run was measuring: it is re-run, never resampled.  On a simulated bench the plant state
-is restored first by :func:`replay` (same gains, same order; losses checked bit for bit).
+over the controller's services and loss topic; tests and studies on the pure core).
+An evaluation asks u, measures ``space.to_gains(u)`` (a lost or off-timing result is
+re-run with the same gains, at most ``retries`` times, never told), appends the record to
+results.jsonl, tells the optimiser and writes checkpoint.json.  Around the search: a
+``reference`` experiment of the start first (not in the budget, not told), and
+``remeasure`` re-measurements of the best distinct evaluations at the end, which pick the
+controller applied (the smallest measured loss is biased low).  Resume: results.jsonl is
+the truth; records after the checkpoint are applied on top, checking that the optimiser
+asks exactly the recorded candidates (docs/tuner.md, "Resume").
 """
 
 from __future__ import annotations
@@ -61,6 +40,7 @@ from .runlog import (
     Summary,
     Timing,
     TunerState,
+    evaluation,
     final_choice,
     replay_plan,
     summarize,
@@ -69,19 +49,6 @@ from .runlog import (
 from .runlog.records import LINE_ORDER, ripple_dict
 from .runlog.ripple import ripple_bound, told_loss, top_evals
 from .space import SearchSpace
-
-__all__ = [
-    'BenchFailure',
-    'LostEvaluation',
-    'Measurement',
-    'Measurer',
-    'ResumeError',
-    'StopRequested',
-    'TuningRun',
-    'gains_dict',
-    'replay',
-    'run_seeds',
-]
 
 CHECKPOINT_VERSION = 1
 
@@ -212,14 +179,10 @@ class TuningRun:
         first_step: Any = None,
         ripple_limit: float | None = None,
     ) -> None:
-        """``ripple_limit``: the largest standstill rms of isq* the final choice may have,
-        as a ratio to the start's in each window (the tuner's ``--ripple-limit``; None:
-        off): the re-measured and applied gains are chosen among the evaluations within it
-        (``runlog.final_choice``).  ``first_step``: for ``safe`` with
-        ``first='identify'``, what gives its first step from the records so far
-        (``im_tuner.first_step.IdentifiedFirstStep``): called once, before evaluation 2
-        is asked (live and when a resume replays the records);
-        its ``identified(records)`` goes into the summary."""
+        """``ripple_limit``: the standstill-ripple limit of the final choice, a ratio to the
+        start's rms (None: off; ``runlog.ripple``).  ``first_step``: the
+        ``IdentifiedFirstStep`` giving the optimiser the point it ``wants_first``; its
+        ``identified(records)`` goes into the summary."""
         if budget < 1:
             raise ValueError(f'budget must be >= 1, got {budget}')
         self.rundir = rundir
@@ -259,14 +222,10 @@ class TuningRun:
 
     # -- resume --------------------------------------------------------------------------
     def restore(self) -> int:
-        """Load the run's results and checkpoint (see module doc); returns the number of
-        records.  Raises ResumeError when they disagree, or when a record is malformed.
-
-        Nothing is written: a torn last line of results.jsonl is left for the caller to
-        cut (``RunDir.cut_torn_tail``) once it has accepted the whole resume. A checkpoint
-        that cannot be read (empty, truncated, corrupt, not a checkpoint) is rebuilt from
-        results.jsonl -- the truth -- by replaying every record through a fresh optimiser
-        (the candidates are checked as on any resume); ``self.rebuilt`` says why."""
+        """Load the run's results and checkpoint; returns the number of records
+        (ResumeError: they disagree, or a record is malformed).  Nothing is written.  An
+        unreadable checkpoint is rebuilt by replaying every record through a fresh
+        optimiser; ``self.rebuilt`` says why."""
         try:
             records = self.rundir.read_results()
         except RunDirError as exc:
@@ -481,12 +440,8 @@ class TuningRun:
                         continue
                     if should_stop():
                         raise StopRequested()
-                    rec = next(
-                        r
-                        for r in self.records
-                        if isinstance(r, Evaluation) and r.eval == i and r.status == 'ok'
-                    )
-                    self._measure(measurer, 'remeasure', i, None, _gains_of(rec.gains))
+                    gains = _gains_of(evaluation(self.records, i).gains)
+                    self._measure(measurer, 'remeasure', i, None, gains)
         except StopRequested:
             outcome = 'interrupted'
         except BenchFailure as exc:

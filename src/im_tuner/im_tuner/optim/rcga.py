@@ -27,11 +27,6 @@ _SQRT2 = math.sqrt(2.0)
 _erfc, _sqrt = math.erfc, math.sqrt
 
 
-def norm_cdf(x: float) -> float:
-    """Phi(x) = erfc(-x/sqrt 2)/2 (accurate to a few ulp, relative, in the lower tail)."""
-    return 0.5 * _erfc(-x / _SQRT2)
-
-
 #: Phi^-1 and erf^-1: scipy's (cephes ndtri, ~1e-16 relative over (0, 1)); bound once.
 ndtri = _sc.ndtri
 erfinv = _sc.erfinv

@@ -9,7 +9,6 @@ and the validation policy: docs/controller.md, section 7; each field's meaning:
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -139,17 +138,6 @@ class Gains:
 
     def as_tuple(self) -> tuple[float, ...]:
         return (self.k_pw, self.k_iw, self.k_pos, self.tau_sm, self.tau_eq)
-
-    @classmethod
-    def from_sequence(cls, values: Sequence[float]) -> Gains:
-        """Build (and validate) from [k_pw, k_iw, k_pos, tau_sm, tau_eq]."""
-        vals = list(values)
-        if len(vals) != len(GAIN_NAMES):
-            raise ControllerConfigError(
-                f'gains must have {len(GAIN_NAMES)} values {list(GAIN_NAMES)}, got {len(vals)}'
-            )
-        g = cls(*vals)
-        return validate_gains(g)
 
 
 def validate_gains(g: Any, prefix: str = 'gains') -> Gains:

@@ -92,10 +92,8 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.first_experiment_id = st.first_experiment_id
         cfg, gains = self._candidate({})
         self.runner = ExperimentRunner(cfg, gains, timing_tolerance=self.timing_tolerance)
-        # The experiment kernel compiled (or loaded from numba's cache) now, on a scratch
-        # runner: its first call otherwise comes with the first state answered, and on a
-        # cold cache (a fresh install) its seconds of compiling would be the first
-        # experiment's, which the drive-state watchdog then aborts.
+        # The kernel compiled (or loaded from numba's cache) now, on a scratch runner: on a
+        # cold cache its seconds of compiling would otherwise trip the state watchdog.
         ExperimentRunner(cfg, gains).step(np.zeros(len(STATE_FIELDS)))
         #: refused requests, by kind (logged, throttled; and at exit)
         self.refused = {'start_experiment': 0, 'parameters': 0}
@@ -137,9 +135,8 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.reset_srv = self.create_service(
             Trigger, f'~/{C.RESET_SERVICE}', self._on_reset_fault, qos_profile=SERVICES_QOS
         )
-        # Service introspection (request + response contents on <service>/_service_event)
-        # on the experiment services and the parameter services, so that the recorder
-        # keeps who changed which gain when. get_type_description does not support it.
+        # Service introspection (contents on <service>/_service_event): the recorder keeps
+        # who changed which gain when (get_type_description does not support it).
         for srv in list(self.services):
             if not srv.srv_name.endswith('get_type_description'):
                 srv.configure_introspection(
@@ -192,10 +189,8 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         return result
 
     def _refusal(self, kind: str, text: str) -> None:
-        """Count a refused request and log it, at most once a second per kind: a flood of
-        requests must not flood the log (or a piped stderr). The throttle is per kind, not
-        rclpy's per call site, so a flood of refused starts cannot hide the first refused
-        parameter change (or the other way round)."""
+        """Count a refused request and log it at most once a second per kind (per kind, not
+        per call site: a flood of refused starts cannot hide a refused parameter change)."""
         self.refused[kind] += 1
         now = time.monotonic()
         if now - self._refusal_logged[kind] >= REFUSAL_LOG_PERIOD:
@@ -350,20 +345,12 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
     def answer_views(self) -> dict[str, np.ndarray]:
         """The arrays a compiled answer runs on: the runner's (``R Q X C CF cout eout``),
         the command's and the internals' values, and their messages' bytes (``*_raw``)."""
-        r = self.runner
-        cmd = self.client.command_wire
-        return {
-            'R': r.R,
-            'Q': r.Q,
-            'X': r.X,
-            'C': r.C,
-            'CF': r.CF,
-            'cout': r.cout,
-            'eout': r.eout,
+        cmd, internals = self.client.command_wire, self._internals
+        return {k: getattr(self.runner, k) for k in ('R', 'Q', 'X', 'C', 'CF', 'cout', 'eout')} | {
             'cmd': cmd.values,
-            'internals': self._internals.values,
+            'internals': internals.values,
             'cmd_raw': cmd.raw,
-            'internals_raw': self._internals.raw,
+            'internals_raw': internals.raw,
         }
 
     def state_seen(self) -> None:

@@ -28,7 +28,6 @@ STATUS_RUNNING = 1  # experiment step processed, experiment continues
 STATUS_DONE = 2  # this step completed the experiment; result() is ready
 STATUS_ABORTED = 3  # this step stopped the experiment (supervisor or safety); result ready
 STATUS_FAULT = 4  # safety fault: isq* = 0 and load 0 until reset()
-STATUS_NAMES = ('hold', 'running', 'done', 'aborted', 'fault')
 
 REASON_NONE = 0
 REASON_TERM1 = 1

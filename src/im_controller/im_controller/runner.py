@@ -192,13 +192,6 @@ class ExperimentRunner:
         return L.REASONS[int(self.R[L.R_FAULT_REASON])] if self.faulted else ''
 
     @property
-    def hold_reference(self) -> float:
-        """Position [rad] held between experiments (the next experiment starts here)."""
-        return float(
-            self.R[L.R_TARGET] if self.R[L.R_MODE] == L.MODE_RETURN else self.R[L.R_HOLD_REF]
-        )
-
-    @property
     def target(self) -> float:
         """End position [rad] of the current / last experiment."""
         return float(self.R[L.R_TARGET])

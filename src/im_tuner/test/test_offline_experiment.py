@@ -130,7 +130,7 @@ def test_after_a_stop_the_runner_holds_with_fallback_gains():
     runner.reset(sim.theta_meas)
     res, _ = run_experiment_offline(sim, UNSTABLE, runner=runner)
     assert res.aborted and runner.gains == Gains() and not runner.running
-    assert not runner.ready and runner.hold_reference == math.pi
+    assert not runner.ready and runner.target == math.pi
     with pytest.raises(RuntimeError, match='ready'):
         runner.start(1)
     hold = hold_offline(sim, runner, 5000, record=True)

@@ -21,15 +21,10 @@ _FROM_CHARS = bytes.maketrans(b'01', b'\x00\x80')
 
 
 class BinaryCGA(Optimizer):
-    """The binary compact GAs (PV, sampling, decoding, competitions, state I/O).
-
-    ``CGA``, ``PECGA`` and ``NECGA`` differ only in the class flags ``_ELITIST`` and
-    ``_NE`` (and neCGA's options).  The PV and the genomes are python ints of m fields of
-    W bytes (SWAR, docs/optimisers.md "Speed"): the PV ``_Y`` holds 2^(8W-1) + k_j + K per
-    field, a uniform r_j is kept as its level L_j (the first PV table entry > r_j), a
-    sample is ``(_Y - L) & _H`` (``_H``: the guard bits), a competition one add and one
-    subtract on ``_Y``.
-    """
+    """The binary compact GAs; ``CGA``, ``PECGA``, ``NECGA`` differ only in ``_ELITIST``
+    and ``_NE``.  The PV and genomes are python ints of m fields of W bytes (SWAR,
+    docs/optimisers.md "Speed"): ``_Y`` holds 2^(8W-1) + k_j + K per field, a sample is
+    ``(_Y - L) & _H`` (L: the uniforms' levels), a competition one add and one subtract."""
 
     NO_START: ClassVar[str] = 'a compact GA starts from p = 0.5'
     _ELITIST: ClassVar[bool] = False  # pe/neCGA: an elite and one newcomer

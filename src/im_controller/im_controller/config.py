@@ -1,9 +1,6 @@
-"""Configuration of the cascaded position controller and of the loss experiment.
-
-Frozen dataclasses with defaults, and ONE place that validates them (``validate_*``,
-:class:`ControllerConfigError` naming the parameter).  The values, their units, ranges
-and the validation policy: docs/controller.md, section 7; each field's meaning:
-``parameters.DESCRIPTIONS``.
+"""Configuration of the cascaded position controller and of the loss experiment: frozen
+dataclasses and the one place that validates them (docs/controller.md, section 7; each
+field's meaning: ``parameters.DESCRIPTIONS``).
 """
 
 from __future__ import annotations
@@ -260,11 +257,8 @@ class SafetyConfig:
 # ------------------------------------------------------------------------- experiment
 @dataclass(frozen=True)
 class ExperimentConfig:
-    """Everything the experiment runner needs besides the gains under test.
-
-    fallback_gains: gains used for the position hold after a supervisor stop
-    (default: the hand-tuned start), so a destabilising candidate never keeps running.
-    """
+    """Everything the experiment runner needs besides the gains under test
+    (``fallback_gains``: they hold the settle and finish a stopped move)."""
 
     control: ControlConfig = field(default_factory=ControlConfig)
     loss: LossConfig = field(default_factory=LossConfig)

@@ -26,14 +26,9 @@ from .trajectory import make_experiment_params
 
 # -------------------------------------------------------------------------- runner
 class ExperimentRunner:
-    """Position hold + experiments, one kernel call per drive state (the node's core; its
-    use: docs/controller.md, section 6).
-
-    Between experiments (and after DONE) it holds the last target with the current gains;
-    after a supervisor stop ``fallback_gains`` finish the move along the trajectory and
-    hold the target (``ready`` is False until the move's end time has passed).
-    Safety limits are active in every mode.
-    """
+    """Position hold + experiments, one kernel call per drive state (docs/controller.md,
+    section 6): between experiments it holds the last target with the current gains; after
+    a supervisor stop ``fallback_gains`` finish the move (``ready`` False until it ends)."""
 
     def __init__(
         self,
@@ -119,12 +114,9 @@ class ExperimentRunner:
         R[L.R_FAULT_REASON] = float(reason)
 
     def start(self, experiment_id: int, gains: Gains | None = None) -> None:
-        """Arm experiment ``experiment_id`` (int >= 0) with ``gains`` (None: current).
-        The next ``step`` begins its standstill settle: ``trajectory.settle`` seconds
-        (L.Q_SETTLE_N periods on the drive's timeline) holding the current hold reference
-        with the fallback gains, no load, no loss; the first state after it is step 0,
-        where ``gains`` take over. It moves from the hold reference by +distance (even
-        id) or -distance (odd id)."""
+        """Arm experiment ``experiment_id`` (int >= 0) with ``gains`` (None: current): the
+        next ``step`` begins its standstill settle (fallback gains, no load, no loss), then
+        step 0 moves by +distance (even id) or -distance (odd id) with ``gains``."""
         if (
             isinstance(experiment_id, bool)
             or not isinstance(experiment_id, (int, np.integer))
@@ -149,8 +141,7 @@ class ExperimentRunner:
             R[j] = 0.0
         R[L.R_TRIP_STEP] = -1.0
         R[L.R_FRESH] = R[L.R_LATE] = R[L.R_HELD] = 0.0
-        # a standstill settle first (L.Q_SETTLE_N periods with the fallback gains, from the
-        # next state on: the kernel counts them on the drive's timeline), then step 0
+        # the kernel counts the settle's periods on the drive's timeline
         R[L.R_START_STEP] = -1.0
         R[L.R_MODE] = L.MODE_SETTLE if self.Q[L.Q_SETTLE_N] > 0 else L.MODE_RUN
         self.experiment_id = int(experiment_id)

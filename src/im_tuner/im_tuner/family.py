@@ -1,14 +1,8 @@
 """Each drive's experiment and tuner start: the rule that carries the paper's set-up to
-another motor and load (docs/drive-family.md).
-
-Pure (no rclpy). ``drive_setup(drive, realism, model)`` is the seam the tuner and the study
-share: the drive's config, its experiment (``ExperimentConfig`` with Ts/isq_max from the
-drive) and its tuner parameters (box, start, satisfactory loss). The paper's 750 W motor
-(``paper_750w``, the default) gives exactly ``ExperimentConfig()`` and the packaged
-``tuner.yaml``; every other drive is scaled from it by ratios of its constants to the
-paper file's (trajectory by T_rated/J, load step by T_rated, k_pw and k_iw by J/Kt capped
-by ``COUNT_STEP_MAX``, loss weights by each start's measured terms): the rule and why,
-docs/drive-family.md, "The rule: each drive's experiment and start".
+another motor and load (docs/drive-family.md, "The rule: each drive's experiment and
+start").  Pure.  ``drive_setup`` is the seam the tuner and the study share; the paper's
+750 W motor gives exactly ``ExperimentConfig()`` and the packaged ``tuner.yaml``, every
+other drive is scaled from it by ratios of its constants to the paper file's.
 """
 
 from __future__ import annotations

@@ -1,12 +1,9 @@
 """The search space of the tuner: box, start point and the map to normalised parameters.
 
-Pure (no rclpy).  The optimisers work on u in [0, 1]^5; the controller takes gains
-
-    theta_i = lo_i + (hi_i - lo_i) u_i,      i over G = [k_pw, k_iw, k_pos, tau_sm, tau_eq]
-
-(paper eq. 8; SI units, see ``im_controller.config.GAIN_UNITS``).  The box and the start
-point come from a YAML parameter file (``config/tuner.yaml`` is the paper's motor),
-validated key by key: errors name the file and the key.
+Pure.  The optimisers work on u in [0, 1]^5, the controller takes the gains
+theta_i = lo_i + (hi_i - lo_i) u_i (paper eq. 8, ``GAIN_UNITS``).  The box and the start
+come from a YAML parameter file (``config/tuner.yaml``: the paper's motor), its errors
+naming the file and the key.
 """
 
 from __future__ import annotations

@@ -374,19 +374,16 @@ class TuningRun:
     def _measure(
         self, measurer: Measurer, kind: str, index: int, u: np.ndarray | None, gains: Gains
     ) -> Record:
-        """Measure ``gains`` (re-running lost and off-timing results); records every
-        attempt."""
+        """Measure ``gains`` (re-running lost and off-timing results), recording every attempt."""
         for attempt in range(1, self.retries + 2):
             t0 = time.perf_counter()
+            m: Measurement | None = None
+            lost = None
             try:
                 m = measurer.measure(gains)
-                rec = self._record(
-                    kind, index, attempt, u, gains, m, None, time.perf_counter() - t0
-                )
             except LostEvaluation as exc:
-                rec = self._record(
-                    kind, index, attempt, u, gains, None, exc, time.perf_counter() - t0
-                )
+                lost = exc
+            rec = self._record(kind, index, attempt, u, gains, m, lost, time.perf_counter() - t0)
             # loop wall time: everything since the previous record (optimiser, files,
             # parameter calls, experiment), so the real-time factor is honest
             now = time.perf_counter()

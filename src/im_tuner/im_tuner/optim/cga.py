@@ -177,31 +177,20 @@ class BinaryCGA(Optimizer):
             self._held, self._held_loss = s, loss
             return
         # The competition: winner w, loser l; k_j += 1 where w_j = 1 != l_j, -= 1 where
-        # w_j = 0 != l_j (in guard-bit form, moved down to the fields' units).
-        if self._ELITIST:
-            newcomer_wins = loss < self._held_loss  # ties -> the elite
-            if newcomer_wins:
-                x = s ^ held
-                up = x & s
-                down = x ^ up
-                # The beaten elite came from an older PV: clamp k_j to [-K, K], i.e. no
-                # +1 where P_j = 2K and no -1 where P_j = 0.  (In every other case the
-                # loser is a sample of the current PV, which agrees with it there.)
-                Y, H = self._Y, self._H
-                up ^= up & (H - (Y ^ self._T))
-                down ^= down & (H - (Y ^ H))
-            else:
-                x = held ^ s
-                up = x & held
-                down = x ^ up
-        else:
-            if self._held_loss <= loss:  # ties -> a, the first sampled
-                x = held ^ s
-                up = x & held
-            else:
-                x = s ^ held
-                up = x & s
-            down = x ^ up
+        # w_j = 0 != l_j (in guard-bit form, moved down to the fields' units).  Ties: the
+        # elite (pe/neCGA), a, the first sampled (cGA).
+        newcomer_wins = loss < self._held_loss
+        w = s if newcomer_wins else held
+        x = s ^ held
+        up = x & w
+        down = x ^ up
+        if self._ELITIST and newcomer_wins:
+            # The beaten elite came from an older PV: clamp k_j to [-K, K], i.e. no +1
+            # where P_j = 2K and no -1 where P_j = 0.  (In every other case the loser is
+            # a sample of the current PV, which agrees with it there.)
+            top, zero = self._extremes()
+            up ^= up & top
+            down ^= down & zero
         sh = self._shift
         self._Y = self._Y + (up >> sh) - (down >> sh)
         self.generation += 1

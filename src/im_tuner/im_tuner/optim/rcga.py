@@ -78,12 +78,10 @@ def _vector(opt: RCGA, v: Any) -> list[float]:
     return out
 
 
-def _vector_or_none(opt: RCGA, v: Any) -> list[float] | None:
-    return None if v is None else _vector(opt, v)
-
-
 _VECTOR = Codec(_vector, lambda _o, v: list(v))
-_VECTOR_OR_NONE = Codec(_vector_or_none, lambda _o, v: None if v is None else list(v))
+_VECTOR_OR_NONE = Codec(
+    lambda o, v: None if v is None else _vector(o, v), lambda _o, v: None if v is None else list(v)
+)
 
 
 class RCGA(Elitist, Optimizer):
@@ -124,7 +122,6 @@ class RCGA(Elitist, Optimizer):
         self._elite_loss = 0.0
         self._px: list[float] | None = None  # the pending candidate's x
 
-    # ----------------------------------------------------------------------- sampling
     @staticmethod
     def _to_u(x: list[float]) -> list[float]:
         return [(xi + 1.0) * 0.5 for xi in x]
@@ -137,13 +134,11 @@ class RCGA(Elitist, Optimizer):
     def _propose(self) -> list[float]:
         """The next candidate u = (x + 1)/2, x sampled from the truncated Gaussians."""
         i = self._draws(self.dim)
-        x, pu = [], []
-        for r, m, s in zip(self._blk[i : i + self.dim], self._mu, self._sigma, strict=True):
-            xi = truncnorm_ppf(r, m, s)
-            x.append(xi)
-            pu.append((xi + 1.0) * 0.5)
-        self._px = x
-        return pu
+        rs = self._blk[i : i + self.dim]
+        self._px = x = [
+            truncnorm_ppf(r, m, s) for r, m, s in zip(rs, self._mu, self._sigma, strict=True)
+        ]
+        return self._to_u(x)
 
     def _update(self, u: list[float], loss: float, aborted: bool) -> None:
         """The competition of elite and newcomer and the moment update."""

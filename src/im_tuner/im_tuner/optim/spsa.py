@@ -95,7 +95,8 @@ class SPSA(Optimizer):
     # ------------------------------------------------------------------------ ask/tell
     @property
     def iterations(self) -> int:
-        return self.iteration
+        """Completed iterations (= k of the current iterate u_k)."""
+        return self.k
 
     def _propose(self) -> list[float]:
         """u_k + c_k Delta_k (first evaluation of an iteration) or u_k - c_k Delta_k."""
@@ -147,11 +148,6 @@ class SPSA(Optimizer):
     def last_gradient(self) -> np.ndarray | None:
         """The gradient estimate g_k of the last completed iteration (a copy), or None."""
         return None if self._last_gradient is None else np.array(self._last_gradient)
-
-    @property
-    def iteration(self) -> int:
-        """Completed iterations (= k of the current iterate u_k)."""
-        return self.k
 
     def _settings(self) -> dict[str, Any]:
         return {'bounded': self.bounded, **self._opts}

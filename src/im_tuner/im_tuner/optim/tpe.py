@@ -1,10 +1,8 @@
 """Tree-structured Parzen estimator (optuna's ``TPESampler``) behind the ask/tell contract.
 
-One trial of an in-memory optuna study per evaluation, on ``u0..u4`` in [0, 1]; a start
-point is enqueued as the first trial.  The state is the told trials and the sampler's two
-numpy ``RandomState`` streams, inside the tuner's atomic checkpoint (no optuna journal to
-keep consistent with it): ``from_state`` adds the trials back and restores the streams
-(docs/optimisers.md, "Beyond the paper").
+One trial of an in-memory optuna study per evaluation; a start point is the first trial.
+The state is the told trials and the sampler's two ``RandomState`` streams, inside the
+tuner's checkpoint (no optuna journal to keep consistent with it).
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ def parse_ripple_limit(text: str) -> float | None:
     try:
         v = float(text)
     except ValueError:
-        raise ValueError(f"--ripple-limit: a ratio >= 1 or 'off', got {text!r}") from None
+        v = math.nan
     if not (v >= 1.0 and v < float('inf')):
         raise ValueError(f"--ripple-limit: a ratio >= 1 or 'off', got {text!r}")
     return v

@@ -121,7 +121,6 @@ def _section(c: Any, cls: type, section: str, prefix: str, skip: str = '') -> di
     }
 
 
-# ------------------------------------------------------------------------------ gains
 @dataclass(frozen=True)
 class Gains:
     """Tuned parameter vector G (paper eq. 8), in ``GAIN_NAMES`` order and ``GAIN_UNITS``;
@@ -144,7 +143,6 @@ def validate_gains(g: Any, prefix: str = 'gains') -> Gains:
     return Gains(**{n: _spec(f'gains.{n}', f'{prefix}.{n}', getattr(g, n)) for n in GAIN_NAMES})
 
 
-# ---------------------------------------------------------------------------- control
 @dataclass(frozen=True)
 class ControlConfig:
     """Structure of the control law (not tuned; Ts and isq_max are the drive's)."""
@@ -163,7 +161,6 @@ def validate_control_config(c: Any, prefix: str = 'control') -> ControlConfig:
     )
 
 
-# ------------------------------------------------------------------------------- loss
 @dataclass(frozen=True)
 class LossConfig:
     """Loss eq. 4-7 (weights, the isq* filter, the saturation ratio) and the supervisor
@@ -184,7 +181,6 @@ def validate_loss_config(c: Any, prefix: str = 'loss') -> LossConfig:
     return LossConfig(**_section(c, LossConfig, 'loss', prefix))
 
 
-# ------------------------------------------------------------------------- trajectory
 @dataclass(frozen=True)
 class TrajectoryConfig:
     """The experiment (paper, "The loss function", Fig. 5; docs/controller.md, section 3)."""
@@ -245,7 +241,6 @@ def validate_trajectory_config(c: Any, prefix: str = 'trajectory') -> Trajectory
     return TrajectoryConfig(**v)
 
 
-# ----------------------------------------------------------------------------- safety
 @dataclass(frozen=True)
 class SafetyConfig:
     """Hard limits, always active (in and between experiments); a violation -> FAULT."""
@@ -254,7 +249,6 @@ class SafetyConfig:
     max_speed: float = 100.0
 
 
-# ------------------------------------------------------------------------- experiment
 @dataclass(frozen=True)
 class ExperimentConfig:
     """Everything the experiment runner needs besides the gains under test

@@ -16,7 +16,6 @@ from numba import njit
 from .config import ControlConfig, Gains
 from .layout import CONTROL_FIELDS
 
-# ------------------------------------------------------------------ parameter indices
 C_KPW = 0  # k_pw [A s/rad]
 C_KPOS = 1  # k_pos [1/s]
 C_A_SM = 2  # exp(-Ts/tau_sm) (0 for tau_sm = 0)
@@ -32,13 +31,11 @@ N_CPARAMS = 10
 FF_MODEL = 0.0
 FF_UNDELAYED = 1.0
 
-# ---------------------------------------------------------------------- state indices
 X_SM = 0  # theta_sm [rad]
 X_M = 1  # theta_m [rad]
 X_I = 2  # integrator [A]
 N_CSTATE = 3
 
-# -------------------------------------------------------------------- internals
 # the layout (names, units) lives with the other array layouts, in a module without numba
 (
     O_THETA_REF,

@@ -67,10 +67,9 @@ REFUSAL_LOG_PERIOD = 1.0
 
 
 class ControllerNode(IoNodeOwner, LenientDoubles, Node):
-    """The cascaded controller node (see module docstring). ``warn_unknown``: warn of
-    ``-p`` overrides it does not declare; ``composed_with``: the drive node composed with
-    it in one process, whose parameters those overrides may name instead (one that
-    neither declares is refused: ParameterOverrideError)."""
+    """The cascaded controller node. ``warn_unknown``: warn of ``-p`` overrides it does not
+    declare; ``composed_with``: the drive node composed with it, whose parameters those
+    overrides may name instead (one neither declares: ParameterOverrideError)."""
 
     def __init__(
         self,
@@ -171,7 +170,6 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
             f'gains={dict(zip(GAIN_NAMES, gains.as_tuple(), strict=True))}'
         )
 
-    # -- parameters --------------------------------------------------------------------
     def _candidate(self, changes: dict[str, object]) -> tuple[ExperimentConfig, Gains]:
         """The configuration the node would have with ``changes`` applied: validated
         (``parameters.configuration``; ControllerConfigError names the bad parameter)."""
@@ -225,7 +223,6 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
     def gains(self) -> Gains:
         return Gains(*(self.get_parameter(n).value for n in GAIN_NAMES))
 
-    # -- services ----------------------------------------------------------------------
     def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         r = self.runner
         reason = start_refusal(
@@ -283,7 +280,6 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
             return time.monotonic() - self._timeout_wall
         return None
 
-    # -- the 5 kHz path ----------------------------------------------------------------
     def _wants_to_step(self) -> bool:
         """Answer states now? In lock-step 'pause', only while something runs."""
         if self.mode == 'realtime' or self.lockstep_idle == 'hold':
@@ -469,10 +465,8 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self._tuner_tripped = False
 
     def tuner_watchdog(self, goodbye: bool = False) -> None:
-        """No heartbeat for ``tuner_timeout`` s since the last one, or the tuner's goodbye
-        (``goodbye``): zero current (the kernel's FAULT answers every state with isq* = 0
-        and no load), a running experiment aborted with ``tuner_lost``, FAULT. Called by
-        the serving loop."""
+        """No heartbeat for ``tuner_timeout`` s, or the tuner's ``goodbye``: FAULT (zero
+        current, no load), a running experiment aborted with ``tuner_lost``."""
         last = self._heartbeat_wall
         if self.tuner_timeout <= 0 or last is None or self._tuner_tripped:
             return

@@ -18,7 +18,6 @@ from .trajectory import traj_pos
 Vec = np.ndarray
 
 
-# ---------------------------------------------------------------------- the kernel
 @njit(cache=True)
 def finish_experiment(R: Vec, Q: Vec, status: float, reason: float, time_ns: float) -> None:
     """End the experiment in ``R``: its result (``status``, ``reason`` code), the steps it

@@ -24,7 +24,6 @@ from .result import LossResult
 from .trajectory import make_experiment_params
 
 
-# -------------------------------------------------------------------------- runner
 class ExperimentRunner:
     """Position hold + experiments, one kernel call per drive state (docs/controller.md,
     section 6): between experiments it holds the last target with the current gains; after
@@ -250,7 +249,6 @@ def check_tolerance(value: object) -> int:
     return int(value)
 
 
-# ------------------------------------------------------------------------- offline
 def config_for_drive(cfg: ExperimentConfig | None, sim: DriveSim) -> ExperimentConfig:
     """``cfg`` with Ts and isq_max taken from the drive (they are drive properties)."""
     cfg = ExperimentConfig() if cfg is None else cfg

@@ -32,7 +32,8 @@ class IdentifiedFirstStep:
     ) -> None:
         """``say``: where to print what was identified and the step taken (None: nothing);
         ``ripple_limit``: the run's (None: off), which the step keeps on the models."""
-        self.drive, self.space, self.experiment, self.say = drive, space, experiment, say
+        self.drive, self.space, self.experiment = drive, space, experiment
+        self._say = say or (lambda _text: None)
         self.ripple_limit = ripple_limit
         self.prior: Prior | None = None  #: the last point's prior (None: none)
 
@@ -70,7 +71,3 @@ class IdentifiedFirstStep:
             f'{p.experiments} offline experiments, {p.seconds:.1f} s)'
         )
         return list(p.u)
-
-    def _say(self, text: str) -> None:
-        if self.say is not None:
-            self.say(text)

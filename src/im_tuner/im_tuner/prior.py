@@ -235,12 +235,10 @@ def _compute(
             pb = _ModelBench(_perturbed(model, j, rr), experiment)
             pb.loss(space, space.start_u)  # from rest
             ref, ref_aborted = pb.loss(space, space.start_u)
-            if ref_aborted:  # the start itself is unstable there: this model says nothing
-                experiments += pb.experiments
-                continue
-            for u in best:
-                loss, aborted = pb.loss(space, np.array(u))
-                worst[u] = max(worst[u], np.inf if aborted else loss / ref)
+            if not ref_aborted:  # (else the start is unstable there: that model says nothing)
+                for u in best:
+                    loss, aborted = pb.loss(space, np.array(u))
+                    worst[u] = max(worst[u], np.inf if aborted else loss / ref)
             experiments += pb.experiments
         ok = list(best)
         loud = dict.fromkeys(best, 0.0)

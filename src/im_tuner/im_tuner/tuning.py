@@ -220,7 +220,6 @@ class TuningRun:
         #: ``session`` (None: no sessions, e.g. the study's runs; nothing written)
         self.session: int | None = None
 
-    # -- resume --------------------------------------------------------------------------
     def restore(self) -> int:
         """Load the run's results and checkpoint; returns the number of records
         (ResumeError: they disagree, or a record is malformed).  Nothing is written.  An
@@ -261,7 +260,6 @@ class TuningRun:
             self.records.append(rec)
         return len(self.records)
 
-    # -- state updates -------------------------------------------------------------------
     def _apply(self, rec: Record, live: bool) -> None:
         """Update the counters (and, for an evaluation, the optimiser) from one record."""
         if isinstance(rec, Evaluation):
@@ -408,7 +406,6 @@ class TuningRun:
             f'with the same gains ({rec.reason})'
         )
 
-    # -- the run ---------------------------------------------------------------------------
     def run(self, measurer: Measurer, should_stop: Callable[[], bool] = lambda: False) -> str:
         """Run (or continue) until the budget is spent; returns 'done', 'interrupted' or
         'failed: <reason>'.  The best gains are applied at the end in every case."""
@@ -461,7 +458,6 @@ class TuningRun:
         """See ``runlog.final_choice``."""
         return final_choice(self.state, self.records, self.ripple_limit)
 
-    # -- summary ---------------------------------------------------------------------------
     def summary(self, *, outcome: str, wall_s: float) -> Summary:
         """summary.json (``runlog.summarize``; ``applied.on_controller``: whether the final
         gains reached the controller)."""
@@ -481,7 +477,7 @@ class TuningRun:
         rated = self.rated_isq_a
         if self.first_step is not None:
             idf = self.first_step.identified(self.records)
-            s.identification = None if idf is None else idf.as_dict()
+            s.identification = None if idf is None else dataclasses.asdict(idf)
             m = self.first_step.drive.machine
             rated = m.rated_torque / m.Kt
         if s.ripple is not None and rated is not None:  # for a percentage

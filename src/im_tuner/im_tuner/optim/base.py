@@ -78,7 +78,6 @@ def told_history(algo: str, state: dict[str, Any]) -> tuple[list[list[float]], l
     return [[float(x) for x in u] for u in us], [check_loss(v) for v in losses]
 
 
-# ------------------------------------------------------------------------- state fields
 class Codec(NamedTuple):
     """How one state field goes to JSON (``dump(opt, value)``) and back (``load(opt,
     json)``, converting and checking; None: written only, ``_restored`` recomputes it)."""
@@ -130,7 +129,6 @@ HISTORY: tuple[Field, ...] = (
 )
 
 
-# ------------------------------------------------------------------------------ elitism
 class Elitist:
     """``elite`` and ``elite_loss`` of an elitist optimiser (pe/neCGA, rcGA), from the
     subclass's ``_held_elite``: (u, stored loss), or None before its evaluation."""
@@ -151,7 +149,6 @@ class Elitist:
         return None if held is None else held[1]
 
 
-# ----------------------------------------------------------------------------- template
 class Optimizer(ABC):
     """The template of every optimiser: ``Algo(dim, seed, start=None, **options)``, each
     argument checked in that order before anything is created (OptimizerError)."""
@@ -221,7 +218,6 @@ class Optimizer(ABC):
         cross-option checks (raising OptimizerError before anything is created)."""
         return check_options(self.algo, self.OPTIONS, options)
 
-    # ------------------------------------------------------------ the algorithm's hooks
     @abstractmethod
     def _setup(self, x0: np.ndarray | None) -> None:
         """The initial state (options in ``self._opts``, the generator in ``self._rng``)."""
@@ -264,7 +260,6 @@ class Optimizer(ABC):
     def _restored(self, state: dict[str, Any]) -> None:  # noqa: B027  (optional hook)
         """After the fields are loaded: derived values and checks across fields."""
 
-    # -------------------------------------------------------------------- the lifecycle
     def ask(self) -> np.ndarray:
         pu = self._pending
         if pu is None:
@@ -303,7 +298,6 @@ class Optimizer(ABC):
     def config(self) -> dict[str, Any]:
         return {'algo': self.algo, 'dim': self.dim, 'seed': self._seed_json, **self._settings()}
 
-    # ------------------------------------------------------------------------ the state
     def state_dict(self) -> dict[str, Any]:
         state: dict[str, Any] = {
             'algo': self.algo,

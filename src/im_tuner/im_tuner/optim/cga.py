@@ -65,7 +65,6 @@ class BinaryCGA(Optimizer):
         self._held_loss = 0.0
         self.theta = 0  # neCGA: consecutive wins of the current elite
 
-    # ------------------------------------------------------------- packing and genomes
     def _pack(self, values: np.ndarray) -> int:
         """Field values (m,) -> an int with the guard bit set in every field."""
         return self._H | int.from_bytes(np.asarray(values).astype(self._fdtype).tobytes(), 'big')
@@ -117,7 +116,6 @@ class BinaryCGA(Optimizer):
         top, zero = self._extremes()
         return s & top == top and s & zero == 0
 
-    # ----------------------------------------------------------------- PV and decoding
     def _block(self) -> list[int]:
         """The next block: per sample, m uniforms r_j (rng.random(m), as one call), kept
         as the packed levels L_j (the same sample bits as r_j < p_j)."""
@@ -155,7 +153,6 @@ class BinaryCGA(Optimizer):
         """The PV rounded to a genome (p_j >= 1/2 -> 1), decoded to u."""
         return self.decode(self.offsets >= 0)
 
-    # ------------------------------------------------------------------------ ask/tell
     @property
     def iterations(self) -> int:
         return self.generation
@@ -208,7 +205,6 @@ class BinaryCGA(Optimizer):
                 else:
                     self._held = None  # the next ask samples the new elite
 
-    # ---------------------------------------------------------------------- state I/O
     @property
     def phase(self) -> str:
         """What the next ask samples (in the state), from whether an individual is held:

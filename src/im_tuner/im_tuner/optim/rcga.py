@@ -126,7 +126,6 @@ class RCGA(Elitist, Optimizer):
     def _to_u(x: list[float]) -> list[float]:
         return [(xi + 1.0) * 0.5 for xi in x]
 
-    # ------------------------------------------------------------------------ ask/tell
     @property
     def iterations(self) -> int:
         return self.generation
@@ -173,7 +172,6 @@ class RCGA(Elitist, Optimizer):
                 self._elite, self._elite_loss = x, y
                 self.theta = 0
 
-    # ---------------------------------------------------------------------- reporting
     @property
     def mu(self) -> np.ndarray:
         """Means of the sampling distributions on [-1, 1] (a copy)."""
@@ -195,6 +193,5 @@ class RCGA(Elitist, Optimizer):
         """Every sigma_i < SIGMA_TOL."""
         return max(self._sigma) < SIGMA_TOL
 
-    # ---------------------------------------------------------------------- state I/O
     def _restored(self, state: dict[str, Any]) -> None:
         self._pending = None if self._px is None else self._to_u(self._px)

@@ -81,7 +81,6 @@ class SPSA(Optimizer):
         r = self._rng.random(self._BLOCK * self.dim)
         return np.copysign(1.0, r - 0.5).tolist()
 
-    # ------------------------------------------------------------------ gain sequences
     def gains(self, k: int) -> tuple[float, float]:
         """(a_k, c_k) of iteration k (0-based): a/(k+1+A)^alpha, c/(k+1)^gamma."""
         return self.a / (k + 1 + self.A) ** self.alpha, self.c / (k + 1) ** self.gamma
@@ -92,7 +91,6 @@ class SPSA(Optimizer):
             return np.array(u, dtype=np.float64)
         return np.clip(u, ck, 1.0 - ck)
 
-    # ------------------------------------------------------------------------ ask/tell
     @property
     def iterations(self) -> int:
         """Completed iterations (= k of the current iterate u_k)."""
@@ -138,7 +136,6 @@ class SPSA(Optimizer):
         self._last_gradient = g
         self._phase = 0
 
-    # ---------------------------------------------------------------------- reporting
     @property
     def iterate(self) -> np.ndarray:
         """The current point u_k (a copy): SPSA's estimate of the optimum."""
@@ -152,7 +149,6 @@ class SPSA(Optimizer):
     def _settings(self) -> dict[str, Any]:
         return {'bounded': self.bounded, **self._opts}
 
-    # ---------------------------------------------------------------------- state I/O
     def _restored(self, state: dict[str, Any]) -> None:
         # ck is c_k of the current iteration once its first candidate is asked; before
         # that it is a function of k (a state may hold the previous iteration's).

@@ -198,7 +198,6 @@ class Record:
     version: int = FORMAT_VERSION  #: the line's format version (absent in a line: 1)
     extra: dict[str, Any] = field(default_factory=dict)  #: fields this format does not know
 
-    # -- JSON ----------------------------------------------------------------------------
     def _keys(self) -> Iterator[str]:
         """The line's fields, in the order the tuner writes them."""
         own = {f.name for f in dataclasses.fields(self)}

@@ -181,10 +181,16 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
 
     def _on_set(self, params: list[Parameter]) -> SetParametersResult:
         """Validate a whole change (one parameter or an atomic set): all or nothing."""
-        result = self._check_set(params)
-        if not result.successful:
-            self._refusal('parameters', f'parameter change refused: {result.reason}')
-        return result
+        reason = change_refusal([(p.name, p.value) for p in params], self.runner)
+        if reason is None:
+            try:
+                self._candidate({p.name: p.value for p in params})
+            except ControllerConfigError as exc:
+                reason = C.refusal(C.INVALID, str(exc))
+        if reason is None:
+            return SetParametersResult(successful=True)
+        self._refusal('parameters', f'parameter change refused: {reason}')
+        return SetParametersResult(successful=False, reason=reason)
 
     def _refusal(self, kind: str, text: str) -> None:
         """Count a refused request and log it at most once a second per kind (per kind, not
@@ -194,16 +200,6 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         if now - self._refusal_logged[kind] >= REFUSAL_LOG_PERIOD:
             self._refusal_logged[kind] = now
             self.get_logger().warn(f'{text} ({self.refused[kind]} {kind} requests refused so far)')
-
-    def _check_set(self, params: list[Parameter]) -> SetParametersResult:
-        reason = change_refusal([(p.name, p.value) for p in params], self.runner)
-        if reason is not None:
-            return SetParametersResult(successful=False, reason=reason)
-        try:
-            self._candidate({p.name: p.value for p in params})
-        except ControllerConfigError as exc:
-            return SetParametersResult(successful=False, reason=C.refusal(C.INVALID, str(exc)))
-        return SetParametersResult(successful=True)
 
     def _post_set(self, params: list[Parameter]) -> None:
         cfg, gains = self._candidate({})

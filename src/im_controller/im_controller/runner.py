@@ -37,7 +37,10 @@ class ExperimentRunner:
     ) -> None:
         #: periods of an experiment that may be held or late before its result is marked
         #: ``timing`` (a measurement on another timing than the paper's: not a loss)
-        self.timing_tolerance: int = check_tolerance(timing_tolerance)
+        tol = timing_tolerance
+        if isinstance(tol, bool) or not isinstance(tol, (int, np.integer)) or tol < 0:
+            raise ValueError(f'timing_tolerance must be an integer >= 0 [periods], got {tol!r}')
+        self.timing_tolerance = int(tol)
         self.config: ExperimentConfig = validate_experiment_config(
             ExperimentConfig() if config is None else config
         )
@@ -240,13 +243,6 @@ def ripple_of(R: np.ndarray) -> tuple[float, float, float, float]:
 def motion_of(R: np.ndarray) -> tuple[float, ...]:
     """The motion sums as ``LossResult.motion``: rows, then the 15 sums z_i z_j."""
     return (float(R[L.R_ID_ROWS]), *(float(v) for v in R[L.R_ID_M : L.R_ID_M + 15]))
-
-
-def check_tolerance(value: object) -> int:
-    """A timing tolerance: an integer number of periods >= 0 (ValueError otherwise)."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
-        raise ValueError(f'timing_tolerance must be an integer >= 0 [periods], got {value!r}')
-    return int(value)
 
 
 def config_for_drive(cfg: ExperimentConfig | None, sim: DriveSim) -> ExperimentConfig:

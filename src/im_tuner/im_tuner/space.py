@@ -24,11 +24,6 @@ class TunerParamsError(ValueError):
     """A bad tuner parameter file; the message names the file and the key."""
 
 
-def default_params_path() -> Path:
-    """The packaged parameter file (the paper's 750 W motor)."""
-    return Path(str(resources.files('im_tuner') / 'config' / 'tuner.yaml'))
-
-
 @dataclass(frozen=True)
 class SearchSpace:
     """Box [lo, hi] per gain (in ``GAIN_NAMES`` order) and the start point."""
@@ -147,7 +142,7 @@ def parse_params(data: Any, src: str = '<dict>') -> TunerParams:
 
 def load_params(path: str | Path | None = None) -> TunerParams:
     """Load and validate a tuner parameter file (None: the packaged default)."""
-    p = default_params_path() if path is None else Path(path)
+    p = Path(str(resources.files('im_tuner') / 'config' / 'tuner.yaml') if path is None else path)
     src = str(p)
     try:
         data, _ = read_yaml(p)

@@ -147,18 +147,9 @@ def run_seeds(seed: int) -> tuple[np.random.SeedSequence, int]:
     return opt_ss, int(drive_ss.generate_state(1)[0]) >> 1
 
 
-def gains_dict(g: Gains | tuple[float, ...]) -> dict[str, float]:
-    t = g.as_tuple() if isinstance(g, Gains) else tuple(g)
-    return {n: float(v) for n, v in zip(GAIN_NAMES, t, strict=True)}
-
-
 def _gains_of(gains: dict[str, float]) -> Gains:
     """The Gains of a record's ``gains`` (or of the state's brief of one)."""
     return Gains(*(float(gains[n]) for n in GAIN_NAMES))
-
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.UTC).isoformat(timespec='milliseconds')
 
 
 class TuningRun:
@@ -316,8 +307,8 @@ class TuningRun:
             'eval': index,
             'attempt': attempt,
             'u': None if u is None else [float(x) for x in u],
-            'gains': gains_dict(gains),
-            'time': _now(),
+            'gains': {n: float(v) for n, v in zip(GAIN_NAMES, gains.as_tuple(), strict=True)},
+            'time': _dt.datetime.now(_dt.UTC).isoformat(timespec='milliseconds'),
             'session': self.session,
         }
         if m is None:

@@ -111,11 +111,6 @@ class BinaryCGA(Optimizer):
         Y, H = self._Y, self._H
         return (H - (Y ^ self._T)) & H, (H - (Y ^ H)) & H
 
-    def _agrees(self, s: int) -> bool:
-        """The genome has 1 where p_j = 1 and 0 where p_j = 0 (any sample of the PV does)."""
-        top, zero = self._extremes()
-        return s & top == top and s & zero == 0
-
     def _block(self) -> list[int]:
         """The next block: per sample, m uniforms r_j (rng.random(m), as one call), kept
         as the packed levels L_j (the same sample bits as r_j < p_j)."""
@@ -246,9 +241,11 @@ class BinaryCGA(Optimizer):
                 f'held {"None" if self._held is None else "a genome"}'
             )
         # What the state_dict of a real run always satisfies (and tell relies on): the
-        # pending sample, and the cGA's a, were drawn from this PV.
+        # pending sample, and the cGA's a, were drawn from this PV (1 where p_j = 1, 0
+        # where p_j = 0).
+        top, zero = self._extremes()
         for s in (self._pg, None if self._ELITIST else self._held):
-            if s is not None and not self._agrees(s):
+            if s is not None and not (s & top == top and s & zero == 0):
                 raise OptimizerError(
                     f'bad {self.algo} state: a sample that this PV '
                     'cannot produce (1 where p = 0 or 0 where p = 1)'

@@ -64,9 +64,9 @@ class SPSA(Optimizer):
         if x0 is None:
             lo, hi = (self.c, 1.0 - self.c) if self.bounded else (0.0, 1.0)
             x0 = lo + (hi - lo) * self._rng.random(self.dim)
-        # python floats and lists, the vector form's operations in its order
-        # (docs/optimisers.md, "Speed")
-        self._u: list[float] = self._project(x0, self.c).tolist()
+        # in [c_0, 1 - c_0] if bounded; python floats and lists, the vector form's
+        # operations in its order (docs/optimisers.md, "Speed")
+        self._u: list[float] = (np.clip(x0, self.c, 1.0 - self.c) if self.bounded else x0).tolist()
         self.k = 0  # iteration index of u_k
         self._phase = 0  # 0: y+ next, 1: y- next
         self._delta = [0.0] * self.dim  # Delta_k (+-1.0), drawn at the iteration's 1st ask
@@ -84,12 +84,6 @@ class SPSA(Optimizer):
     def gains(self, k: int) -> tuple[float, float]:
         """(a_k, c_k) of iteration k (0-based): a/(k+1+A)^alpha, c/(k+1)^gamma."""
         return self.a / (k + 1 + self.A) ** self.alpha, self.c / (k + 1) ** self.gamma
-
-    def _project(self, u: np.ndarray, ck: float) -> np.ndarray:
-        """u clipped to [c_k, 1 - c_k] (a new array), or a copy when unbounded."""
-        if not self.bounded:
-            return np.array(u, dtype=np.float64)
-        return np.clip(u, ck, 1.0 - ck)
 
     @property
     def iterations(self) -> int:

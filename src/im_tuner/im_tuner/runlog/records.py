@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -198,18 +197,15 @@ class Record:
     version: int = FORMAT_VERSION  #: the line's format version (absent in a line: 1)
     extra: dict[str, Any] = field(default_factory=dict)  #: fields this format does not know
 
-    def _keys(self) -> Iterator[str]:
-        """The line's fields, in the order the tuner writes them."""
-        own = {f.name for f in dataclasses.fields(self)}
-        if self.version != 1:
-            yield 'version'
-        for k in LINE_ORDER:
-            if k in own and not (k in _WHEN_SET and getattr(self, k) is None):
-                yield k
-
     def to_dict(self) -> dict[str, Any]:
-        """The line as a dict (the fields in the written order)."""
-        return {k: getattr(self, k) for k in self._keys()} | self.extra
+        """The line as a dict (the fields in the order the tuner writes them)."""
+        own = {f.name for f in dataclasses.fields(self)}
+        keys = [
+            k for k in LINE_ORDER if k in own and not (k in _WHEN_SET and getattr(self, k) is None)
+        ]
+        if self.version != 1:
+            keys.insert(0, 'version')
+        return {k: getattr(self, k) for k in keys} | self.extra
 
     def to_json(self) -> str:
         """The line, without its newline (floats round-trip exactly; no NaN/inf)."""

@@ -213,12 +213,8 @@ MOVE_RULE = (
 def trajectory_times(
     distance: float, a_max: float, v_max: float
 ) -> tuple[float, float, float, float]:
-    """Minimum-time rest-to-rest move under |a| <= a_max, |v| <= v_max.
-
-    Returns (t_acc, t_dec, t_end, v_peak) [s, s, s, rad/s]: acceleration until t_acc,
-    cruise at v_peak until t_dec, deceleration until t_end (a triangle, no cruise, when
-    v_max is not reached).  The trajectory generator's and :data:`MOVE_RULE`'s.
-    """
+    """Minimum-time rest-to-rest move under |a| <= a_max, |v| <= v_max: (t_acc, t_dec,
+    t_end [s], v_peak [rad/s]), a triangle (t_acc = t_dec) when v_max is not reached."""
     if distance >= v_max * v_max / a_max:
         t_acc = v_max / a_max
         t_cruise = (distance - v_max * v_max / a_max) / v_max

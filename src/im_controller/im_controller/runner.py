@@ -159,9 +159,8 @@ class ExperimentRunner:
         return float(self.eout[L.E_ISQ]), float(self.eout[L.E_LOAD]), int(st)
 
     def stepped(self, status: int) -> None:
-        """What follows a kernel step that returned ``status`` (:meth:`step`, or a
-        compiled loop that ran ``kernel.answer_state``): an abort that is not a position
-        stop left the kernel on the fallback gains."""
+        """What follows a kernel step that returned ``status``: a supervisor stop (term1-3)
+        left the kernel on the fallback gains."""
         if status == L.STATUS_ABORTED and self.R[L.R_REASON] < L.REASON_POSITION:
             self.gains = self.config.fallback_gains  # the kernel switched to them
 
@@ -190,9 +189,8 @@ class ExperimentRunner:
         return float(self.R[L.R_TARGET])
 
     def result(self, R: np.ndarray | None = None) -> LossResult | None:
-        """The result of the last experiment, or None while running / before any.
-        ``R``: the kernel's words as they were at an experiment's end (a compiled loop
-        runs on meanwhile), instead of now."""
+        """The result of the last experiment, or None while running / before any (``R``:
+        the kernel's words at an experiment's end, which a compiled loop has run past)."""
         R = self.R if R is None else R
         if R[L.R_RESULT] == 0.0 or R[L.R_MODE] == L.MODE_RUN or R[L.R_MODE] == L.MODE_SETTLE:
             return None

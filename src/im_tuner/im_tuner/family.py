@@ -36,11 +36,8 @@ _SPEED_LOOP_GAINS = ('k_pw', 'k_iw')
 
 @dataclass(frozen=True)
 class DriveSetup:
-    """A drive and what the tuner does on it.
-
-    name: the packaged drive's name, or the file path as given; drive: its config;
-    experiment: its experiment (Ts, isq_max from the drive); params: its tuner parameters.
-    """
+    """A drive (``name``: the packaged name or the path as given) and what the tuner does
+    on it: its experiment (Ts, isq_max from the drive) and tuner parameters."""
 
     name: str
     drive: DriveConfig
@@ -234,10 +231,8 @@ def controller_parameters(setup: DriveSetup) -> tuple[tuple[str, float], ...]:
 
 def tuner_setup(drive_config: str | Path | None) -> DriveSetup | None:
     """The setup the tuner takes from ``--drive-config``: a packaged drive's name gives its
-    setup (its experiment on the controller, its box and start for the optimiser unless
-    ``--params`` is given); a drive file on a packaged base (``base: im7500w-j3``) gives
-    that base's setup with the file's own drive (its Ts and isq_max in the experiment);
-    none, or a file without a packaged base, gives None (the defaults: the paper's)."""
+    setup; a file on a packaged base (``base: im7500w-j3``) that base's with the file's
+    own drive (its Ts and isq_max); none, or a file without a base, None (the paper's)."""
     if drive_config is None:
         return None
     base = packaged_base(drive_config)

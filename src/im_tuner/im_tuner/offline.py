@@ -225,11 +225,9 @@ def hold_offline(
 
 
 class OfflineBench:
-    """The simulated lock-step bench as the tuner drives it, on the pure core: a drive at
-    rest, a controller holding it, experiment ids 0, 1, ... and the fault policy 'reset'
-    (the controller is reset where the drive is, as ``reset_fault`` does). A
-    :class:`~im_tuner.tuning.Measurer`: the study runs the tuner's own ``TuningRun`` on it.
-    """
+    """The simulated lock-step bench as the tuner drives it, on the pure core (a
+    ``Measurer``): a drive at rest, a controller holding it, experiment ids 0, 1, ... and
+    the fault policy 'reset' (the controller reset where the drive is)."""
 
     def __init__(
         self, drive: DriveConfig, drive_seed: int, experiment: ExperimentConfig | None = None

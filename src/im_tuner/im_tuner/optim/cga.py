@@ -254,19 +254,13 @@ class BinaryCGA(Optimizer):
 
 
 class CGA(BinaryCGA):
-    """Compact GA, Fig. 1: two samples per generation, the first sampled wins ties.
-
-    ``CGA(dim, seed, start=None, *, n=25, bits=16, coding='binary')``.
-    """
+    """Compact GA, Fig. 1: two samples per generation, the first sampled wins ties."""
 
     algo: ClassVar[str] = 'cga'
 
 
 class PECGA(Elitist, BinaryCGA):
-    """Persistent elitist compact GA, Fig. 2: elite vs one newcomer, ties -> the elite.
-
-    ``PECGA(dim, seed, start=None, *, n=25, bits=16, coding='binary')``.
-    """
+    """Persistent elitist compact GA, Fig. 2: elite vs one newcomer, ties -> the elite."""
 
     algo: ClassVar[str] = 'pecga'
     _ELITIST: ClassVar[bool] = True
@@ -276,11 +270,7 @@ class PECGA(Elitist, BinaryCGA):
 
 
 class NECGA(PECGA):
-    """Non-persistent elitist compact GA, Fig. 3 (the paper's tuner; defaults n=25, eta=12).
-
-    ``NECGA(dim, seed, start=None, *, n=25, bits=16, coding='binary', eta=12,
-    elite_replacement='sample')``.
-    """
+    """Non-persistent elitist compact GA, Fig. 3 (the paper's tuner)."""
 
     algo: ClassVar[str] = 'necga'
     _NE: ClassVar[bool] = True

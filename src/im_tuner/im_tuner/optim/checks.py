@@ -184,11 +184,9 @@ def zero_signs_match(values: list[Any], pending: list[float]) -> bool:
 
 
 def told_loss(pending: list[float] | None, u: Any, loss: Any) -> float:
-    """The loss of a ``tell``, after checking ``u`` is the pending candidate.
-
-    Fast path (the tuner's case, docs/optimisers.md "Speed"): an ndarray whose ``tolist``
-    equals the pending list (a 2-d or 0-d array does not), signs of zeros included, and
-    a finite float.  Anything else goes through :func:`check_told`."""
+    """The loss of a ``tell``, after checking ``u`` is the pending candidate: at once for
+    the tuner's case (docs/optimisers.md, "Speed"), an ndarray equal to it (signs of zeros
+    included) and a finite float; anything else through :func:`check_told`."""
     if (
         pending is None
         or type(u) is not NDARRAY

@@ -27,11 +27,7 @@ class _Randn:
 
 
 class CMAES(Optimizer):
-    """CMA-ES on [0, 1]^dim (pycma).
-
-    ``CMAES(dim, seed, start=None, *, sigma0=0.1, popsize=None)``; ``start`` None draws a
-    uniform start in [0, 1]^dim from the optimiser's generator.
-    """
+    """CMA-ES on [0, 1]^dim (pycma); ``start`` None: a uniform random start."""
 
     algo: ClassVar[str] = 'cmaes'
     REPLAYS: ClassVar[bool] = True

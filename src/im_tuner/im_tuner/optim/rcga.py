@@ -85,10 +85,7 @@ _VECTOR_OR_NONE = Codec(
 
 
 class RCGA(Elitist, Optimizer):
-    """Real-valued compact GA with persistent ('pe') or non-persistent ('ne') elitism.
-
-    ``RCGA(dim, seed, start=None, *, n=25, elitism='ne', eta=12, sigma0=10.0)``.
-    """
+    """Real-valued compact GA with persistent ('pe') or non-persistent ('ne') elitism."""
 
     algo: ClassVar[str] = 'rcga'
     NO_START: ClassVar[str] = 'it starts from mu = 0, sigma = sigma0'

@@ -17,11 +17,8 @@ from .options import GAIN_PRESETS
 
 
 class SPSA(Optimizer):
-    """SPSA with two evaluations per iteration (docs/optimisers.md for the equations).
-
-    ``SPSA(dim, seed, start=None, *, a, c, A, alpha, gamma, gains, max_step, bounded=True)``;
-    ``start`` None draws a uniform start in [c, 1 - c]^dim from the optimiser's generator.
-    """
+    """SPSA with two evaluations per iteration; ``start`` None: a uniform random start in
+    [c, 1 - c]^dim; ``bounded=False`` (constructor only): no projection."""
 
     algo: ClassVar[str] = 'spsa'
     #: iterations per random block (one rng call per block)

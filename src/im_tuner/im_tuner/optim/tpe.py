@@ -50,11 +50,7 @@ def _set_rs_state(rs: np.random.RandomState, st: dict[str, Any]) -> None:
 
 
 class TPE(Optimizer):
-    """optuna's TPE on [0, 1]^dim.
-
-    ``TPE(dim, seed, start=None, *, n_startup_trials=10, n_ei_candidates=24,
-    multivariate='yes')``; ``start`` (optional) is enqueued as the first trial.
-    """
+    """optuna's TPE on [0, 1]^dim; ``start`` (optional) is enqueued as the first trial."""
 
     algo: ClassVar[str] = 'tpe'
     REPLAYS: ClassVar[bool] = True

@@ -1,15 +1,11 @@
-"""Configuration of the cascaded position controller and of the loss experiment.
-
-Frozen dataclasses with defaults, and ONE place that validates them (``validate_*``,
-:class:`ControllerConfigError` naming the parameter).  The values, their units, ranges
-and the validation policy: docs/controller.md, section 7; each field's meaning:
-``parameters.DESCRIPTIONS``.
+"""Configuration of the cascaded position controller and of the loss experiment: frozen
+dataclasses and the one place that validates them (docs/controller.md, section 7; each
+field's meaning: ``parameters.DESCRIPTIONS``).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -125,7 +121,6 @@ def _section(c: Any, cls: type, section: str, prefix: str, skip: str = '') -> di
     }
 
 
-# ------------------------------------------------------------------------------ gains
 @dataclass(frozen=True)
 class Gains:
     """Tuned parameter vector G (paper eq. 8), in ``GAIN_NAMES`` order and ``GAIN_UNITS``;
@@ -140,17 +135,6 @@ class Gains:
     def as_tuple(self) -> tuple[float, ...]:
         return (self.k_pw, self.k_iw, self.k_pos, self.tau_sm, self.tau_eq)
 
-    @classmethod
-    def from_sequence(cls, values: Sequence[float]) -> Gains:
-        """Build (and validate) from [k_pw, k_iw, k_pos, tau_sm, tau_eq]."""
-        vals = list(values)
-        if len(vals) != len(GAIN_NAMES):
-            raise ControllerConfigError(
-                f'gains must have {len(GAIN_NAMES)} values {list(GAIN_NAMES)}, got {len(vals)}'
-            )
-        g = cls(*vals)
-        return validate_gains(g)
-
 
 def validate_gains(g: Any, prefix: str = 'gains') -> Gains:
     """Check every gain is a finite number inside ``GAIN_RANGES``; returns float-typed Gains."""
@@ -159,7 +143,6 @@ def validate_gains(g: Any, prefix: str = 'gains') -> Gains:
     return Gains(**{n: _spec(f'gains.{n}', f'{prefix}.{n}', getattr(g, n)) for n in GAIN_NAMES})
 
 
-# ---------------------------------------------------------------------------- control
 @dataclass(frozen=True)
 class ControlConfig:
     """Structure of the control law (not tuned; Ts and isq_max are the drive's)."""
@@ -178,7 +161,6 @@ def validate_control_config(c: Any, prefix: str = 'control') -> ControlConfig:
     )
 
 
-# ------------------------------------------------------------------------------- loss
 @dataclass(frozen=True)
 class LossConfig:
     """Loss eq. 4-7 (weights, the isq* filter, the saturation ratio) and the supervisor
@@ -199,7 +181,6 @@ def validate_loss_config(c: Any, prefix: str = 'loss') -> LossConfig:
     return LossConfig(**_section(c, LossConfig, 'loss', prefix))
 
 
-# ------------------------------------------------------------------------- trajectory
 @dataclass(frozen=True)
 class TrajectoryConfig:
     """The experiment (paper, "The loss function", Fig. 5; docs/controller.md, section 3)."""
@@ -232,12 +213,8 @@ MOVE_RULE = (
 def trajectory_times(
     distance: float, a_max: float, v_max: float
 ) -> tuple[float, float, float, float]:
-    """Minimum-time rest-to-rest move under |a| <= a_max, |v| <= v_max.
-
-    Returns (t_acc, t_dec, t_end, v_peak) [s, s, s, rad/s]: acceleration until t_acc,
-    cruise at v_peak until t_dec, deceleration until t_end (a triangle, no cruise, when
-    v_max is not reached).  The trajectory generator's and :data:`MOVE_RULE`'s.
-    """
+    """Minimum-time rest-to-rest move under |a| <= a_max, |v| <= v_max: (t_acc, t_dec,
+    t_end [s], v_peak [rad/s]), a triangle (t_acc = t_dec) when v_max is not reached."""
     if distance >= v_max * v_max / a_max:
         t_acc = v_max / a_max
         t_cruise = (distance - v_max * v_max / a_max) / v_max
@@ -260,7 +237,6 @@ def validate_trajectory_config(c: Any, prefix: str = 'trajectory') -> Trajectory
     return TrajectoryConfig(**v)
 
 
-# ----------------------------------------------------------------------------- safety
 @dataclass(frozen=True)
 class SafetyConfig:
     """Hard limits, always active (in and between experiments); a violation -> FAULT."""
@@ -269,14 +245,10 @@ class SafetyConfig:
     max_speed: float = 100.0
 
 
-# ------------------------------------------------------------------------- experiment
 @dataclass(frozen=True)
 class ExperimentConfig:
-    """Everything the experiment runner needs besides the gains under test.
-
-    fallback_gains: gains used for the position hold after a supervisor stop
-    (default: the hand-tuned start), so a destabilising candidate never keeps running.
-    """
+    """Everything the experiment runner needs besides the gains under test
+    (``fallback_gains``: they hold the settle and finish a stopped move)."""
 
     control: ControlConfig = field(default_factory=ControlConfig)
     loss: LossConfig = field(default_factory=LossConfig)

@@ -1,10 +1,7 @@
 """The controller's contract with its clients (the tuner, tools, a user's own script).
 
-Topics and services (relative to the controller node), and the machine-readable refusal
-codes: every refusal of ``~/start_experiment``, ``~/reset_fault`` or a parameter set ends
-with ``[code]``, and clients match the code, never the prose before it (which may be
-reworded). Pure: no rclpy, no numba. The codes' meanings: docs/controller.md, "Services,
-topics".
+Topics, services and the refusal codes: every refusal ends with ``[code]``, which clients
+match instead of the prose (docs/controller.md, "Services, topics").  Pure.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Cascaded position controller of the IM drive: numba kernels + a thin Python class.
+"""Cascaded position controller of the IM drive: the numba kernels.
 
 The equations and the reasoning: docs/controller.md, "Discrete equations".
 
@@ -13,10 +13,9 @@ import math
 import numpy as np
 from numba import njit
 
-from .config import ControlConfig, Gains, validate_control_config, validate_gains
+from .config import ControlConfig, Gains
 from .layout import CONTROL_FIELDS
 
-# ------------------------------------------------------------------ parameter indices
 C_KPW = 0  # k_pw [A s/rad]
 C_KPOS = 1  # k_pos [1/s]
 C_A_SM = 2  # exp(-Ts/tau_sm) (0 for tau_sm = 0)
@@ -32,13 +31,11 @@ N_CPARAMS = 10
 FF_MODEL = 0.0
 FF_UNDELAYED = 1.0
 
-# ---------------------------------------------------------------------- state indices
 X_SM = 0  # theta_sm [rad]
 X_M = 1  # theta_m [rad]
 X_I = 2  # integrator [A]
 N_CSTATE = 3
 
-# -------------------------------------------------------------------- internals
 # the layout (names, units) lives with the other array layouts, in a module without numba
 (
     O_THETA_REF,
@@ -160,53 +157,3 @@ def control_step(
     out[O_ISQ] = isq
     out[O_SAT] = sat
     return isq
-
-
-class CascadeController:
-    """Position P + speed PI cascade with reference smoothing and model feed-forward
-    (``gains`` default the hand-tuned start; take ``control``'s Ts and isq_max from the
-    drive).  ``internals``: the ``CONTROL_FIELDS`` of the last step, overwritten each step.
-    """
-
-    def __init__(self, gains: Gains | None = None, control: ControlConfig | None = None) -> None:
-        self.control: ControlConfig = validate_control_config(
-            ControlConfig() if control is None else control
-        )
-        self.gains: Gains = validate_gains(Gains() if gains is None else gains)
-        self.C: np.ndarray = make_control_params(self.gains, self.control)
-        self.X: np.ndarray = np.zeros(N_CSTATE)
-        self.internals: np.ndarray = np.zeros(N_CONTROL_FIELDS)
-
-    def reset(self, theta_meas: float) -> None:
-        """Start holding ``theta_meas`` [rad]: references = theta_meas, integrator 0."""
-        if not math.isfinite(theta_meas):
-            raise ValueError(f'theta_meas must be finite, got {theta_meas!r}')
-        control_reset(self.X, float(theta_meas))
-
-    def set_gains(self, gains: Gains) -> None:
-        """Validate, then apply atomically (filter states and integrator are kept)."""
-        g = validate_gains(gains)
-        fill_control_params(self.C, g, self.control)
-        self.gains = g
-
-    def step(self, theta_ref: float, theta_meas: float, omega_meas: float) -> float:
-        """One period: raw reference theta* [rad], samples [rad, rad/s] -> isq* [A]."""
-        return float(
-            control_step(
-                self.X,
-                self.C,
-                float(theta_ref),
-                float(theta_meas),
-                float(omega_meas),
-                self.internals,
-            )
-        )
-
-    @property
-    def saturated(self) -> bool:
-        """True if the last output was clamped to +-isq_max."""
-        return bool(self.internals[O_SAT] != 0.0)
-
-    def internals_dict(self) -> dict[str, float]:
-        """The last step's internals by name (a copy)."""
-        return {n: float(self.internals[i]) for i, n in enumerate(CONTROL_FIELDS)}

@@ -67,10 +67,9 @@ REFUSAL_LOG_PERIOD = 1.0
 
 
 class ControllerNode(IoNodeOwner, LenientDoubles, Node):
-    """The cascaded controller node (see module docstring). ``warn_unknown``: warn of
-    ``-p`` overrides it does not declare; ``composed_with``: the drive node composed with
-    it in one process, whose parameters those overrides may name instead (one that
-    neither declares is refused: ParameterOverrideError)."""
+    """The cascaded controller node. ``warn_unknown``: warn of ``-p`` overrides it does not
+    declare; ``composed_with``: the drive node composed with it, whose parameters those
+    overrides may name instead (one neither declares: ParameterOverrideError)."""
 
     def __init__(
         self,
@@ -92,10 +91,8 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.first_experiment_id = st.first_experiment_id
         cfg, gains = self._candidate({})
         self.runner = ExperimentRunner(cfg, gains, timing_tolerance=self.timing_tolerance)
-        # The experiment kernel compiled (or loaded from numba's cache) now, on a scratch
-        # runner: its first call otherwise comes with the first state answered, and on a
-        # cold cache (a fresh install) its seconds of compiling would be the first
-        # experiment's, which the drive-state watchdog then aborts.
+        # The kernel compiled (or loaded from numba's cache) now, on a scratch runner: on a
+        # cold cache its seconds of compiling would otherwise trip the state watchdog.
         ExperimentRunner(cfg, gains).step(np.zeros(len(STATE_FIELDS)))
         #: refused requests, by kind (logged, throttled; and at exit)
         self.refused = {'start_experiment': 0, 'parameters': 0}
@@ -137,9 +134,8 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.reset_srv = self.create_service(
             Trigger, f'~/{C.RESET_SERVICE}', self._on_reset_fault, qos_profile=SERVICES_QOS
         )
-        # Service introspection (request + response contents on <service>/_service_event)
-        # on the experiment services and the parameter services, so that the recorder
-        # keeps who changed which gain when. get_type_description does not support it.
+        # Service introspection (contents on <service>/_service_event): the recorder keeps
+        # who changed which gain when (get_type_description does not support it).
         for srv in list(self.services):
             if not srv.srv_name.endswith('get_type_description'):
                 srv.configure_introspection(
@@ -174,7 +170,6 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
             f'gains={dict(zip(GAIN_NAMES, gains.as_tuple(), strict=True))}'
         )
 
-    # -- parameters --------------------------------------------------------------------
     def _candidate(self, changes: dict[str, object]) -> tuple[ExperimentConfig, Gains]:
         """The configuration the node would have with ``changes`` applied: validated
         (``parameters.configuration``; ControllerConfigError names the bad parameter)."""
@@ -186,31 +181,25 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
 
     def _on_set(self, params: list[Parameter]) -> SetParametersResult:
         """Validate a whole change (one parameter or an atomic set): all or nothing."""
-        result = self._check_set(params)
-        if not result.successful:
-            self._refusal('parameters', f'parameter change refused: {result.reason}')
-        return result
+        reason = change_refusal([(p.name, p.value) for p in params], self.runner)
+        if reason is None:
+            try:
+                self._candidate({p.name: p.value for p in params})
+            except ControllerConfigError as exc:
+                reason = C.refusal(C.INVALID, str(exc))
+        if reason is None:
+            return SetParametersResult(successful=True)
+        self._refusal('parameters', f'parameter change refused: {reason}')
+        return SetParametersResult(successful=False, reason=reason)
 
     def _refusal(self, kind: str, text: str) -> None:
-        """Count a refused request and log it, at most once a second per kind: a flood of
-        requests must not flood the log (or a piped stderr). The throttle is per kind, not
-        rclpy's per call site, so a flood of refused starts cannot hide the first refused
-        parameter change (or the other way round)."""
+        """Count a refused request and log it at most once a second per kind (per kind, not
+        per call site: a flood of refused starts cannot hide a refused parameter change)."""
         self.refused[kind] += 1
         now = time.monotonic()
         if now - self._refusal_logged[kind] >= REFUSAL_LOG_PERIOD:
             self._refusal_logged[kind] = now
             self.get_logger().warn(f'{text} ({self.refused[kind]} {kind} requests refused so far)')
-
-    def _check_set(self, params: list[Parameter]) -> SetParametersResult:
-        reason = change_refusal([(p.name, p.value) for p in params], self.runner)
-        if reason is not None:
-            return SetParametersResult(successful=False, reason=reason)
-        try:
-            self._candidate({p.name: p.value for p in params})
-        except ControllerConfigError as exc:
-            return SetParametersResult(successful=False, reason=C.refusal(C.INVALID, str(exc)))
-        return SetParametersResult(successful=True)
 
     def _post_set(self, params: list[Parameter]) -> None:
         cfg, gains = self._candidate({})
@@ -230,7 +219,6 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
     def gains(self) -> Gains:
         return Gains(*(self.get_parameter(n).value for n in GAIN_NAMES))
 
-    # -- services ----------------------------------------------------------------------
     def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         r = self.runner
         reason = start_refusal(
@@ -288,7 +276,6 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
             return time.monotonic() - self._timeout_wall
         return None
 
-    # -- the 5 kHz path ----------------------------------------------------------------
     def _wants_to_step(self) -> bool:
         """Answer states now? In lock-step 'pause', only while something runs."""
         if self.mode == 'realtime' or self.lockstep_idle == 'hold':
@@ -350,20 +337,12 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
     def answer_views(self) -> dict[str, np.ndarray]:
         """The arrays a compiled answer runs on: the runner's (``R Q X C CF cout eout``),
         the command's and the internals' values, and their messages' bytes (``*_raw``)."""
-        r = self.runner
-        cmd = self.client.command_wire
-        return {
-            'R': r.R,
-            'Q': r.Q,
-            'X': r.X,
-            'C': r.C,
-            'CF': r.CF,
-            'cout': r.cout,
-            'eout': r.eout,
+        cmd, internals = self.client.command_wire, self._internals
+        return {k: getattr(self.runner, k) for k in ('R', 'Q', 'X', 'C', 'CF', 'cout', 'eout')} | {
             'cmd': cmd.values,
-            'internals': self._internals.values,
+            'internals': internals.values,
             'cmd_raw': cmd.raw,
-            'internals_raw': self._internals.raw,
+            'internals_raw': internals.raw,
         }
 
     def state_seen(self) -> None:
@@ -482,10 +461,8 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self._tuner_tripped = False
 
     def tuner_watchdog(self, goodbye: bool = False) -> None:
-        """No heartbeat for ``tuner_timeout`` s since the last one, or the tuner's goodbye
-        (``goodbye``): zero current (the kernel's FAULT answers every state with isq* = 0
-        and no load), a running experiment aborted with ``tuner_lost``, FAULT. Called by
-        the serving loop."""
+        """No heartbeat for ``tuner_timeout`` s, or the tuner's ``goodbye``: FAULT (zero
+        current, no load), a running experiment aborted with ``tuner_lost``."""
         last = self._heartbeat_wall
         if self.tuner_timeout <= 0 or last is None or self._tuner_tripped:
             return

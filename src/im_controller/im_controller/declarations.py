@@ -65,14 +65,12 @@ def float_descriptor(key: str, text: str, read_only: bool) -> ParameterDescripto
 def declare_sections(node: Node, sections: dict[str, type], read_only: bool) -> None:
     """Declare every field of ``sections`` (strings and doubles) as a parameter."""
     for key, value in section_defaults(sections):
+        text = description(key)
         if isinstance(value, str):
-            node.declare_parameter(
-                key, value, param_descriptor(description(key), read_only=read_only)
-            )
+            desc = param_descriptor(text, read_only=read_only)
         else:
-            node.declare_parameter(
-                key, value, float_descriptor(key, description(key), read_only=read_only)
-            )
+            desc = float_descriptor(key, text, read_only=read_only)
+        node.declare_parameter(key, value, desc)
 
 
 def declare_structure(node: Node) -> Structure:

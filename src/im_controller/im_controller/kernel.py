@@ -18,7 +18,6 @@ from .trajectory import traj_pos
 Vec = np.ndarray
 
 
-# ---------------------------------------------------------------------- the kernel
 @njit(cache=True)
 def finish_experiment(R: Vec, Q: Vec, status: float, reason: float, time_ns: float) -> None:
     """End the experiment in ``R``: its result (``status``, ``reason`` code), the steps it
@@ -111,14 +110,10 @@ def motion_step(R: Vec, Q: Vec, n: float, th: float, w: float, state: Vec) -> No
 def experiment_step(
     R: Vec, Q: Vec, X: Vec, C: Vec, CF: Vec, state: Vec, cout: Vec, eout: Vec
 ) -> int:
-    """Process drive state k (``state``: step_index, time_ns, theta_meas, omega_meas, ...)
-    and return the status; the command is ``eout[E_ISQ]`` [A], ``eout[E_LOAD]`` [N m].
-
-    A repeated step_index returns the previous answer unchanged (lock-step re-sends).
-    R: runner state, Q: experiment parameters, X/C: controller state/parameters,
-    CF: fallback controller parameters (copied into C after a supervisor stop),
-    cout: controller internals (``CONTROL_FIELDS``), eout: ``EXP_FIELDS``.  No allocation.
-    """
+    """Process drive state k (``STATE_FIELDS``) and return the status; the command is
+    ``eout[E_ISQ]`` [A], ``eout[E_LOAD]`` [N m]; a repeated step_index gets the previous
+    answer.  R, Q, X, C, CF (the fallback gains' C), cout, eout: ``layout``'s arrays.
+    No allocation."""
     k = state[0]
     if k == R[L.R_LAST_STEP]:
         eout[L.E_ISQ] = R[L.R_LAST_ISQ]
@@ -339,11 +334,9 @@ def answer_state(
     cmd: Vec, internals: Vec, W: Vec,
 ) -> int:  # fmt: skip
     """``ControllerNode.answer`` compiled (a composed real-time loop calls it without the
-    GIL, ``im_tuner.bench.compiled_loop``): :func:`experiment_step` on drive state k, the
-    command (k, isq* [A], load [N m]) written into ``cmd`` (the command message's
-    values), and every ``W[W_DECIMATION]``-th answer the internals [k, cout, eout] into
-    ``internals`` (``W[W_INTERNALS_DUE]`` = 1). Returns the experiment status; the node
-    takes the words back (``ControllerNode.set_answer_words``)."""
+    GIL): the command (k, isq* [A], load [N m]) into ``cmd``, and every
+    ``W[W_DECIMATION]``-th answer the internals [k, cout, eout] into ``internals``
+    (``W[W_INTERNALS_DUE]`` = 1).  Returns the experiment status."""
     k = state[0]
     st = experiment_step(R, Q, X, C, CF, state, cout, eout)
     cmd[0] = k

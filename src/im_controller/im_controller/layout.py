@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from im_drive_sim.contract import STATE_FIELDS, STATE_INDEX
 
-# ------------------------------------------------------------ controller internals
 CONTROL_FIELDS: tuple[str, ...] = (
     'theta_ref',
     'theta_sm',
@@ -22,13 +21,11 @@ CONTROL_FIELDS: tuple[str, ...] = (
 )
 """Internals written per step (units: rad, rad, rad, rad/s, rad/s, rad, rad/s, A, A, A, 0/1)."""
 
-# ----------------------------------------------------------------- status and reasons
 STATUS_HOLD = 0  # holding position between experiments
 STATUS_RUNNING = 1  # experiment step processed, experiment continues
 STATUS_DONE = 2  # this step completed the experiment; result() is ready
 STATUS_ABORTED = 3  # this step stopped the experiment (supervisor or safety); result ready
 STATUS_FAULT = 4  # safety fault: isq* = 0 and load 0 until reset()
-STATUS_NAMES = ('hold', 'running', 'done', 'aborted', 'fault')
 
 REASON_NONE = 0
 REASON_TERM1 = 1
@@ -64,7 +61,6 @@ MODE_FAULT = 2.0
 MODE_RETURN = 3.0  # hold after a supervisor stop, still following the trajectory
 MODE_SETTLE = 4.0  # an experiment's standstill settle (fallback gains, no load, no loss)
 
-# ------------------------------------------------------------ experiment parameters Q
 Q_TS = 0
 Q_TS_NS = 1
 Q_N = 2  # steps per experiment
@@ -110,7 +106,6 @@ RIPPLE_AFTER_LOAD = 0.2
 MOTION_BLOCK = 0.02
 MOTION_DEAD_BAND = 0.1
 
-# -------------------------------------------------------------------- runner state R
 R_MODE = 0
 R_N = 1  # next local step
 R_DIR = 2
@@ -191,7 +186,6 @@ S_CMD_DELAY = STATE_INDEX['command_delay']
 S_ISQ = STATE_INDEX['isq']
 S_LOAD = STATE_INDEX['load_torque']
 
-# ----------------------------------------------------------------- per-step outputs E
 EXP_FIELDS: tuple[str, ...] = (
     'isq_cmd',
     'load_cmd',

@@ -6,6 +6,7 @@ back bit for bit (docs/controller.md, "Services, topics").
 from __future__ import annotations
 
 import math
+from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
@@ -40,6 +41,26 @@ LOSS_KEYS: tuple[str, ...] = (
 )
 
 
+#: Keys written as ``str`` of an int / ``repr`` of a float / 'true' or 'false', each the
+#: LossResult field of its name (``_FIELD``: but these).
+_INTS = (
+    'experiment_id',
+    'trip_step',
+    't_start_ns',
+    't_end_ns',
+    'steps',
+    'direction',
+    'fresh',
+    'held',
+    'late',
+    'gains_step',
+)
+_FLOATS = ('loss', 'trip_time')
+_BOOLS = ('aborted', 'timing')
+_FIELD = {'t_start_ns': 't_start', 't_end_ns': 't_end'}
+_TERMS = ('term1', 'term2', 'term3')
+
+
 def _floats(text: str) -> tuple[float, ...]:
     """Space-separated floats (written with repr: they read back bit for bit)."""
     return tuple(float(x) for x in text.split())
@@ -49,25 +70,12 @@ def result_to_msg(result: LossResult, node_name: str) -> DiagnosticArray:
     """Pack a result (see module docstring)."""
     r = result
     values = {
-        'experiment_id': str(r.experiment_id),
-        'loss': repr(r.loss),
-        'term1': repr(r.terms[0]),
-        'term2': repr(r.terms[1]),
-        'term3': repr(r.terms[2]),
-        'aborted': 'true' if r.aborted else 'false',
-        'reason': r.reason,
-        'trip_step': str(r.trip_step),
-        'trip_time': repr(r.trip_time),
+        **{k: str(getattr(r, _FIELD.get(k, k))) for k in _INTS},
+        **{k: repr(getattr(r, k)) for k in _FLOATS},
+        **{k: 'true' if getattr(r, k) else 'false' for k in _BOOLS},
+        **{k: repr(v) for k, v in zip(_TERMS, r.terms, strict=True)},
         **{n: repr(v) for n, v in zip(GAIN_NAMES, r.gains.as_tuple(), strict=True)},
-        't_start_ns': str(r.t_start),
-        't_end_ns': str(r.t_end),
-        'steps': str(r.steps),
-        'direction': str(r.direction),
-        'fresh': str(r.fresh),
-        'held': str(r.held),
-        'late': str(r.late),
-        'timing': 'true' if r.timing else 'false',
-        'gains_step': str(r.gains_step),
+        'reason': r.reason,
         # the standstill ripple (rms, peak-to-peak [A] after the move, after the load)
         # and the motion sums (im_tuner.identify): space-separated reprs
         'ripple': ' '.join(repr(float(x)) for x in r.ripple),
@@ -101,24 +109,13 @@ def msg_to_result(msg: DiagnosticArray) -> LossResult:
     missing = [k for k in LOSS_KEYS if k not in kv]
     if missing:
         raise ValueError(f'loss message lacks {missing}')
+    fields: dict[str, Any] = {_FIELD.get(k, k): int(kv[k]) for k in _INTS}
+    fields.update({k: float(kv[k]) for k in _FLOATS}, **{k: kv[k] == 'true' for k in _BOOLS})
     return LossResult(
-        experiment_id=int(kv['experiment_id']),
-        loss=float(kv['loss']),
+        **fields,
         terms=(float(kv['term1']), float(kv['term2']), float(kv['term3'])),
-        aborted=kv['aborted'] == 'true',
-        reason=kv['reason'],
-        trip_step=int(kv['trip_step']),
-        trip_time=float(kv['trip_time']),
         gains=Gains(*(float(kv[n]) for n in GAIN_NAMES)),
-        t_start=int(kv['t_start_ns']),
-        t_end=int(kv['t_end_ns']),
-        steps=int(kv['steps']),
-        direction=int(kv['direction']),
-        fresh=int(kv['fresh']),
-        held=int(kv['held']),
-        late=int(kv['late']),
-        timing=kv['timing'] == 'true',
-        gains_step=int(kv['gains_step']),
+        reason=kv['reason'],
         ripple=_ripple(kv['ripple']),
         motion=_floats(kv['motion']),
     )

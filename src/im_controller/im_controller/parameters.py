@@ -1,9 +1,6 @@
-"""The controller node's ROS parameters, pure (no rclpy): their names, sections, defaults
-and descriptions, the checks of the structure parameters read at start, and the one place
-where parameter values become the core configuration (:func:`configuration`).
-
-The node (``controller_node``) declares them (``declarations``) and asks
-``refusals`` whether a change may be applied; this module only says what they are.
+"""The controller node's ROS parameters, pure: names, sections, defaults, descriptions,
+the checks of the structure read at start, and :func:`configuration`, where parameter
+values become the core configuration (``declarations`` declares them on the node).
 """
 
 from __future__ import annotations
@@ -140,12 +137,8 @@ def is_tunable(name: str) -> bool:
 def configuration(
     value: Callable[[str], object], Ts: float, isq_max: float
 ) -> tuple[ExperimentConfig, Gains]:
-    """The configuration the parameters ``value(name)`` make, with the drive's ``Ts`` [s]
-    and the ``isq_max`` clamp [A]: validated.
-
-    The one place where parameters become core configuration; raises
-    ControllerConfigError naming the bad parameter.
-    """
+    """The validated configuration the parameters ``value(name)`` make, with the drive's
+    ``Ts`` [s] and the ``isq_max`` clamp [A] (ControllerConfigError names a bad one)."""
     sections = {}
     for section, cls in {**TUNABLE_SECTIONS, **READ_ONLY_SECTIONS}.items():
         kw: dict[str, object] = {}

@@ -1,7 +1,5 @@
-"""Why the controller refuses a request, pure (no rclpy): a start, a fault reset, a
-parameter change. Each function returns the refusal message (prose, then the
-machine-readable ``[code]`` of ``contract``) or None where the request may go ahead; the
-node (``controller_node``) answers with it and applies what is not refused.
+"""Why the controller refuses a start, a fault reset or a parameter change, pure: each
+function returns the refusal (prose, then ``contract``'s ``[code]``) or None.
 """
 
 from __future__ import annotations

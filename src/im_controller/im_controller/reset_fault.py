@@ -1,15 +1,10 @@
 """Clear a controller's safety fault: ``ros2 run im_controller reset_fault``.
 
-Calls the controller's ``~/reset_fault`` service (std_srvs/Trigger) once and prints its
-answer on one line -- the shipped ``ros2`` (tools/ros2, ROS 2 from pip wheels) has only
-``ros2 run``, no ``ros2 service call``. Check the drive first: the controller then holds
-the position it measures (docs/controller.md, "Services").
-
-    ros2 run im_controller reset_fault [--controller /controller] [--timeout S]
-
-Exit codes: 0 the fault was cleared (or there was none: the controller answers
-``no fault``), 1 the controller refused it (its reason: e.g. no drive state since its
-watchdog tripped) or did not answer within ``--timeout``, 2 bad input, 130 interrupted.
+Calls the controller's ``~/reset_fault`` service once and prints its answer on one line
+(the shipped ``ros2`` has no ``ros2 service call``).  Check the drive first: the
+controller then holds the position it measures (docs/controller.md, "Services").  Exit
+0 cleared (or no fault), 1 refused or no answer within ``--timeout``, 2 bad input, 130
+interrupted.
 """
 
 from __future__ import annotations

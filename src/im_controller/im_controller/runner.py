@@ -24,16 +24,10 @@ from .result import LossResult
 from .trajectory import make_experiment_params
 
 
-# -------------------------------------------------------------------------- runner
 class ExperimentRunner:
-    """Position hold + experiments, one kernel call per drive state (the node's core; its
-    use: docs/controller.md, section 6).
-
-    Between experiments (and after DONE) it holds the last target with the current gains;
-    after a supervisor stop ``fallback_gains`` finish the move along the trajectory and
-    hold the target (``ready`` is False until the move's end time has passed).
-    Safety limits are active in every mode.
-    """
+    """Position hold + experiments, one kernel call per drive state (docs/controller.md,
+    section 6): between experiments it holds the last target with the current gains; after
+    a supervisor stop ``fallback_gains`` finish the move (``ready`` False until it ends)."""
 
     def __init__(
         self,
@@ -43,7 +37,10 @@ class ExperimentRunner:
     ) -> None:
         #: periods of an experiment that may be held or late before its result is marked
         #: ``timing`` (a measurement on another timing than the paper's: not a loss)
-        self.timing_tolerance: int = check_tolerance(timing_tolerance)
+        tol = timing_tolerance
+        if isinstance(tol, bool) or not isinstance(tol, (int, np.integer)) or tol < 0:
+            raise ValueError(f'timing_tolerance must be an integer >= 0 [periods], got {tol!r}')
+        self.timing_tolerance = int(tol)
         self.config: ExperimentConfig = validate_experiment_config(
             ExperimentConfig() if config is None else config
         )
@@ -119,12 +116,9 @@ class ExperimentRunner:
         R[L.R_FAULT_REASON] = float(reason)
 
     def start(self, experiment_id: int, gains: Gains | None = None) -> None:
-        """Arm experiment ``experiment_id`` (int >= 0) with ``gains`` (None: current).
-        The next ``step`` begins its standstill settle: ``trajectory.settle`` seconds
-        (L.Q_SETTLE_N periods on the drive's timeline) holding the current hold reference
-        with the fallback gains, no load, no loss; the first state after it is step 0,
-        where ``gains`` take over. It moves from the hold reference by +distance (even
-        id) or -distance (odd id)."""
+        """Arm experiment ``experiment_id`` (int >= 0) with ``gains`` (None: current): the
+        next ``step`` begins its standstill settle (fallback gains, no load, no loss), then
+        step 0 moves by +distance (even id) or -distance (odd id) with ``gains``."""
         if (
             isinstance(experiment_id, bool)
             or not isinstance(experiment_id, (int, np.integer))
@@ -149,8 +143,7 @@ class ExperimentRunner:
             R[j] = 0.0
         R[L.R_TRIP_STEP] = -1.0
         R[L.R_FRESH] = R[L.R_LATE] = R[L.R_HELD] = 0.0
-        # a standstill settle first (L.Q_SETTLE_N periods with the fallback gains, from the
-        # next state on: the kernel counts them on the drive's timeline), then step 0
+        # the kernel counts the settle's periods on the drive's timeline
         R[L.R_START_STEP] = -1.0
         R[L.R_MODE] = L.MODE_SETTLE if self.Q[L.Q_SETTLE_N] > 0 else L.MODE_RUN
         self.experiment_id = int(experiment_id)
@@ -166,9 +159,8 @@ class ExperimentRunner:
         return float(self.eout[L.E_ISQ]), float(self.eout[L.E_LOAD]), int(st)
 
     def stepped(self, status: int) -> None:
-        """What follows a kernel step that returned ``status`` (:meth:`step`, or a
-        compiled loop that ran ``kernel.answer_state``): an abort that is not a position
-        stop left the kernel on the fallback gains."""
+        """What follows a kernel step that returned ``status``: a supervisor stop (term1-3)
+        left the kernel on the fallback gains."""
         if status == L.STATUS_ABORTED and self.R[L.R_REASON] < L.REASON_POSITION:
             self.gains = self.config.fallback_gains  # the kernel switched to them
 
@@ -192,21 +184,13 @@ class ExperimentRunner:
         return L.REASONS[int(self.R[L.R_FAULT_REASON])] if self.faulted else ''
 
     @property
-    def hold_reference(self) -> float:
-        """Position [rad] held between experiments (the next experiment starts here)."""
-        return float(
-            self.R[L.R_TARGET] if self.R[L.R_MODE] == L.MODE_RETURN else self.R[L.R_HOLD_REF]
-        )
-
-    @property
     def target(self) -> float:
         """End position [rad] of the current / last experiment."""
         return float(self.R[L.R_TARGET])
 
     def result(self, R: np.ndarray | None = None) -> LossResult | None:
-        """The result of the last experiment, or None while running / before any.
-        ``R``: the kernel's words as they were at an experiment's end (a compiled loop
-        runs on meanwhile), instead of now."""
+        """The result of the last experiment, or None while running / before any (``R``:
+        the kernel's words at an experiment's end, which a compiled loop has run past)."""
         R = self.R if R is None else R
         if R[L.R_RESULT] == 0.0 or R[L.R_MODE] == L.MODE_RUN or R[L.R_MODE] == L.MODE_SETTLE:
             return None
@@ -259,14 +243,6 @@ def motion_of(R: np.ndarray) -> tuple[float, ...]:
     return (float(R[L.R_ID_ROWS]), *(float(v) for v in R[L.R_ID_M : L.R_ID_M + 15]))
 
 
-def check_tolerance(value: object) -> int:
-    """A timing tolerance: an integer number of periods >= 0 (ValueError otherwise)."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
-        raise ValueError(f'timing_tolerance must be an integer >= 0 [periods], got {value!r}')
-    return int(value)
-
-
-# ------------------------------------------------------------------------- offline
 def config_for_drive(cfg: ExperimentConfig | None, sim: DriveSim) -> ExperimentConfig:
     """``cfg`` with Ts and isq_max taken from the drive (they are drive properties)."""
     cfg = ExperimentConfig() if cfg is None else cfg

@@ -12,7 +12,6 @@ from . import layout as L
 from .config import ExperimentConfig, trajectory_times, validate_experiment_config
 
 
-# ------------------------------------------------------------------------ trajectory
 @njit(cache=True)
 def traj_pos(t: float, Q: np.ndarray) -> float:
     """Distance travelled s(t) [rad] of the move (0 before, exactly ``distance`` after)."""

@@ -7,11 +7,53 @@ import math
 import numpy as np
 import pytest
 
-from im_controller.config import ControlConfig, ControllerConfigError, Gains
-from im_controller.control import CONTROL_FIELDS, CascadeController
+from im_controller.config import (
+    ControlConfig,
+    ControllerConfigError,
+    Gains,
+    validate_control_config,
+    validate_gains,
+)
+from im_controller.control import (
+    C_KPW,
+    CONTROL_FIELDS,
+    N_CONTROL_FIELDS,
+    N_CSTATE,
+    O_SAT,
+    control_reset,
+    control_step,
+    make_control_params,
+)
+from im_controller.runner import ExperimentRunner
 
 TS = 2e-4
 ISQ_MAX = 7.0
+
+
+class CascadeController:
+    """The control kernels on their own arrays (parameters C, state X, internals), with
+    ``gains`` (default: the hand-tuned start) and ``control`` (default: Ts 2e-4 s, 7 A)."""
+
+    def __init__(self, gains: Gains | None = None, control: ControlConfig | None = None) -> None:
+        ctl = validate_control_config(ControlConfig() if control is None else control)
+        self.C = make_control_params(validate_gains(Gains() if gains is None else gains), ctl)
+        self.X = np.zeros(N_CSTATE)
+        self.internals = np.zeros(N_CONTROL_FIELDS)
+
+    def reset(self, theta_meas: float) -> None:
+        control_reset(self.X, theta_meas)
+
+    def step(self, theta_ref: float, theta_meas: float, omega_meas: float) -> float:
+        return float(
+            control_step(self.X, self.C, theta_ref, theta_meas, omega_meas, self.internals)
+        )
+
+    @property
+    def saturated(self) -> bool:
+        return bool(self.internals[O_SAT] != 0.0)
+
+    def internals_dict(self) -> dict[str, float]:
+        return {n: float(self.internals[i]) for i, n in enumerate(CONTROL_FIELDS)}
 
 
 def hand_steps(g: Gains, refs, meas, ff: str = 'model'):
@@ -157,15 +199,15 @@ def test_integrator_bounded_after_gain_change():
 
 
 def test_set_gains_rejects_and_keeps_previous():
-    c = CascadeController()
-    before = c.C.copy()
+    r = ExperimentRunner()
+    before = r.C.copy()
     with pytest.raises(ControllerConfigError, match=r'gains\.k_pos'):
-        c.set_gains(Gains(k_pos=1e4))
-    assert np.array_equal(c.C, before) and c.gains == Gains()
-    c.set_gains(Gains(k_pw=1.0))
-    assert c.gains.k_pw == 1.0 and c.C[0] == 1.0
+        r.set_gains(Gains(k_pos=1e4))
+    assert np.array_equal(r.C, before) and r.gains == Gains()
+    r.set_gains(Gains(k_pw=1.0))
+    assert r.gains.k_pw == 1.0 and r.C[C_KPW] == 1.0
 
 
 def test_reset_rejects_non_finite():
     with pytest.raises(ValueError, match='theta_meas'):
-        CascadeController().reset(float('nan'))
+        ExperimentRunner().reset(float('nan'))

@@ -1,14 +1,8 @@
 """Each drive's experiment and tuner start: the rule that carries the paper's set-up to
-another motor and load (docs/drive-family.md).
-
-Pure (no rclpy). ``drive_setup(drive, realism, model)`` is the seam the tuner and the study
-share: the drive's config, its experiment (``ExperimentConfig`` with Ts/isq_max from the
-drive) and its tuner parameters (box, start, satisfactory loss). The paper's 750 W motor
-(``paper_750w``, the default) gives exactly ``ExperimentConfig()`` and the packaged
-``tuner.yaml``; every other drive is scaled from it by ratios of its constants to the
-paper file's (trajectory by T_rated/J, load step by T_rated, k_pw and k_iw by J/Kt capped
-by ``COUNT_STEP_MAX``, loss weights by each start's measured terms): the rule and why,
-docs/drive-family.md, "The rule: each drive's experiment and start".
+another motor and load (docs/drive-family.md, "The rule: each drive's experiment and
+start").  Pure.  ``drive_setup`` is the seam the tuner and the study share; the paper's
+750 W motor gives exactly ``ExperimentConfig()`` and the packaged ``tuner.yaml``, every
+other drive is scaled from it by ratios of its constants to the paper file's.
 """
 
 from __future__ import annotations
@@ -28,27 +22,10 @@ from im_controller.config import (
     validate_loss_config,
 )
 from im_drive_sim.drive_file import load_config, packaged_base
-from im_drive_sim.family import DRIVE_NAMES, PACKAGED_NAMES
+from im_drive_sim.family import DRIVE_NAMES
 from im_drive_sim.params import DriveConfig, MachineParams
 
 from .space import SearchSpace, TunerParams, load_params
-
-__all__ = [
-    'DEFAULT_DRIVE',
-    'DRIVE_NAMES',
-    'PACKAGED_NAMES',
-    'DriveScales',
-    'DriveSetup',
-    'check_amplitude',
-    'controller_parameters',
-    'count_step',
-    'drive_scales',
-    'drive_setup',
-    'family_table',
-    'start_scale',
-    'tuner_setup',
-    'with_start',
-]
 
 #: the packaged default drive (the paper's 750 W motor; ``drive_setup(None)``)
 DEFAULT_DRIVE = 'paper_750w'
@@ -59,11 +36,8 @@ _SPEED_LOOP_GAINS = ('k_pw', 'k_iw')
 
 @dataclass(frozen=True)
 class DriveSetup:
-    """A drive and what the tuner does on it.
-
-    name: the packaged drive's name, or the file path as given; drive: its config;
-    experiment: its experiment (Ts, isq_max from the drive); params: its tuner parameters.
-    """
+    """A drive (``name``: the packaged name or the path as given) and what the tuner does
+    on it: its experiment (Ts, isq_max from the drive) and tuner parameters."""
 
     name: str
     drive: DriveConfig
@@ -257,10 +231,8 @@ def controller_parameters(setup: DriveSetup) -> tuple[tuple[str, float], ...]:
 
 def tuner_setup(drive_config: str | Path | None) -> DriveSetup | None:
     """The setup the tuner takes from ``--drive-config``: a packaged drive's name gives its
-    setup (its experiment on the controller, its box and start for the optimiser unless
-    ``--params`` is given); a drive file on a packaged base (``base: im7500w-j3``) gives
-    that base's setup with the file's own drive (its Ts and isq_max in the experiment);
-    none, or a file without a packaged base, gives None (the defaults: the paper's)."""
+    setup; a file on a packaged base (``base: im7500w-j3``) that base's with the file's
+    own drive (its Ts and isq_max); none, or a file without a base, None (the paper's)."""
     if drive_config is None:
         return None
     base = packaged_base(drive_config)

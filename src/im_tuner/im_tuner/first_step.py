@@ -1,12 +1,9 @@
 """``safe``'s first step from the identified drive (the tuner's ``--opt first=identify``).
 
-After the start's two measurements (the reference and evaluation 1, opposite directions)
-the tuner calls :class:`IdentifiedFirstStep` with the run's records: it identifies J, Kt,
-B and Tc from their motion sums (``im_tuner.identify``), builds the drive file's model
-with them and returns that model's first step (``im_tuner.prior.identified_prior``), or
-None (too few rows, or the model finds nothing better than the start).  Deterministic
-in the records: a resumed run that rebuilds its optimiser from results.jsonl asks the
-same point.  Pure: no rclpy.
+After the start's two measurements (opposite directions) the tuning loop calls
+:class:`IdentifiedFirstStep` with the records: the drive identified from their motion
+sums (``identify``), the first step of its model (``prior.identified_prior``) or None.
+Deterministic in the records, so a resumed run asks the same point.  Pure.
 """
 
 from __future__ import annotations
@@ -21,8 +18,6 @@ from .identify import Identified, identify, start_motions
 from .prior import RIPPLE_MARGIN, Prior, identified_prior
 from .space import SearchSpace
 
-__all__ = ['IdentifiedFirstStep']
-
 
 class IdentifiedFirstStep:
     """The hook ``TuningRun(first_step=...)`` calls before safe's evaluation 2."""
@@ -35,11 +30,10 @@ class IdentifiedFirstStep:
         say: Callable[[str], None] | None = None,
         ripple_limit: float | None = None,
     ) -> None:
-        """``say``: where to print what was identified and the step taken (the tuner's
-        progress lines; None: nothing); ``ripple_limit``: the run's standstill-ripple
-        limit (a ratio to the start's rms; None: off), which the step keeps on the models
-        (``im_tuner.prior``, step 4)."""
-        self.drive, self.space, self.experiment, self.say = drive, space, experiment, say
+        """``say``: where to print what was identified and the step taken (None: nothing);
+        ``ripple_limit``: the run's (None: off), which the step keeps on the models."""
+        self.drive, self.space, self.experiment = drive, space, experiment
+        self._say = say or (lambda _text: None)
         self.ripple_limit = ripple_limit
         self.prior: Prior | None = None  #: the last point's prior (None: none)
 
@@ -77,7 +71,3 @@ class IdentifiedFirstStep:
             f'{p.experiments} offline experiments, {p.seconds:.1f} s)'
         )
         return list(p.u)
-
-    def _say(self, text: str) -> None:
-        if self.say is not None:
-            self.say(text)

@@ -1,49 +1,35 @@
 """The drive's mechanics from the start's experiments: J, Kt, B and Tc with uncertainties.
 
-What a drive vendor's one-button tuning does before it sets gains, from data the run has
-anyway: the controller's kernel sums, during every experiment, the rows of
+The controller's kernel sums, during every experiment, the rows of
 
     J z0 = Kt z1 - B z2 - Tc z3 - z4
 
 (``im_controller.kernel.motion_step``: z0 the change of the encoder's mean speed between
-two 20 ms blocks [rad/s], z1..z4 the triangle-weighted integrals of the measured isq [A s],
-omega_meas [rad], sign(omega_meas) [s] and the load machine's torque [N m s]) as the
-5 x 5 matrix M = sum z z^T (``LossResult.motion``).  The move identifies J/Kt (the
-acceleration against the current), the load step fixes the scale (isq against a known
-torque), the two directions of the start's two experiments separate B from Tc.
-
-Estimate (Bayesian linear least squares, written out: 4 unknowns and one 5 x 5 matrix,
-no library call would be shorter).  With c = (J, -Kt, B, Tc, 1) every row's residual
-is r = z.c [N m s]; M = [[A, v], [v^T, s]] gives sum r^2 = a^T A a + 2 a^T v + s for
-a = (J, -Kt, B, Tc).  A Gaussian prior a ~ N(a0, diag(sd0^2)) from the drive file keeps
-an unobservable direction (no load step: Kt; one direction only: B against Tc) at the
-file's value instead of at noise:
+two 20 ms blocks [rad/s], z1..z4 the triangle-weighted integrals of isq [A s], omega_meas
+[rad], sign(omega_meas) [s] and the load torque [N m s]) as M = sum z z^T (5 x 5,
+``LossResult.motion``).  The move gives J/Kt, the load step the scale, the two directions
+B against Tc.  With a = (J, -Kt, B, Tc), M = [[A, v], [v^T, s]] and the drive file's
+Gaussian prior N(a0, diag(sd0^2)) (an unobservable direction stays at the file's value):
 
     a = (A / s2 + P0)^-1 (-v / s2 + P0 a0),   cov(a) = INFLATION (A / s2 + P0)^-1,
 
-s2 the residual variance of the plain least-squares fit (sum r^2 / (rows - 4)).
-``INFLATION`` = 2: neighbouring rows share a block, so the rows are not independent.
-What the rows' equation leaves out -- static friction above the Coulomb torque, the
-encoder's quantisation, a command delay -- biases J and Kt the same way in every run of
-a drive, which no amount of data averages out: ``MODEL_ERROR`` is added to their standard
-deviations in quadrature (research/NOTES.md, "From the source of im_tuner/identify.py").
-
-Pure: no rclpy, numpy only.
+s2 the residual variance of the plain least-squares fit; ``INFLATION``: neighbouring rows
+share a block.  What the rows leave out (static friction, quantisation, delay) biases J
+and Kt alike in every run: ``MODEL_ERROR`` is added to their sd in quadrature
+(research/NOTES.md, "From the source of im_tuner/identify.py").  Pure numpy.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from im_controller.layout import N_MOTION
 from im_drive_sim.params import MachineParams
-
-__all__ = ['INFLATION', 'MIN_ROWS', 'MODEL_ERROR', 'Identified', 'identify', 'sum_motion']
 
 #: covariance inflation for rows that share a block (module docstring)
 INFLATION = 2.0
@@ -66,12 +52,9 @@ FIGURES = ('J', 'J_sd', 'Kt', 'Kt_sd', 'B', 'B_sd', 'Tc', 'Tc_sd')
 
 @dataclass(frozen=True)
 class Identified:
-    """The identified mechanics (SI) with one standard deviation each, and the file's.
-
-    J [kg m^2], Kt [N m/A] (the effective torque constant: torque per A of the measured
-    isq), B [N m s/rad], Tc [N m]; ``*_file``: the drive file's values; ``rows``: the
-    rows used; ``residual``: rms residual per row [N m s]; ``experiments``: how many
-    experiments' sums were added."""
+    """The identified J [kg m^2], Kt [N m/A of measured isq], B [N m s/rad], Tc [N m] with
+    one sd each, the drive file's (``*_file``), the rows and experiments used, and the rms
+    residual per row [N m s]."""
 
     J: float
     J_sd: float
@@ -88,9 +71,6 @@ class Identified:
     rows: int
     residual: float
     experiments: int
-
-    def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
     def line(self) -> str:
         """One line for a log: identified +- sd (the file's)."""
@@ -196,9 +176,8 @@ def identify(motions: Iterable[Sequence[float]], machine: MachineParams) -> Iden
 
 
 def start_motions(records: Iterable[Any]) -> list[tuple[float, ...]]:
-    """The motion sums of the completed experiments of the start gains (the reference's
-    gains) among ``records`` (results.jsonl records): what identifies the drive before
-    the search leaves the start."""
+    """The motion sums of the completed experiments of the start (the reference's gains)
+    among ``records``: what identifies the drive before the search leaves the start."""
     records = list(records)
     ref = next((r for r in records if r.kind == 'reference'), None)
     if ref is None:

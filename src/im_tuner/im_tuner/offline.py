@@ -33,9 +33,6 @@ from im_controller.layout import (
     Q_TS,
     R_MODE,
     R_N,
-    R_REASON,
-    REASON_POSITION,
-    STATUS_ABORTED,
     STATUS_DONE,
 )
 from im_controller.result import LossResult
@@ -45,19 +42,6 @@ from im_drive_sim.params import DriveConfig
 from im_drive_sim.sim import DriveSim
 
 from .tuning import Measurement
-
-__all__ = [
-    'N_REC',
-    'REC_FIELDS',
-    'OfflineBench',
-    'StandInPlant',
-    'finish_stopped_move',
-    'hold_offline',
-    'replay_stand_in',
-    'run_experiment_offline',
-    'run_fused',
-    'stand_in_losses',
-]
 
 N_REC = DK.N_STATE_FIELDS + N_CONTROL_FIELDS + N_EXP_FIELDS
 REC_FIELDS: tuple[str, ...] = DK.STATE_FIELDS + CONTROL_FIELDS + EXP_FIELDS
@@ -82,13 +66,9 @@ def run_fused(
     record: bool,
     stop_at_end: bool,
 ) -> int:
-    """Controller/experiment kernel and drive kernel in one loop, at most ``n_max`` steps.
-
-    Per step: ``experiment_step`` on ``state`` (the drive state k), the drive steps with
-    the command (exactly ``DriveSim.step_into``), ``state`` <- state k+1.  Row
-    ``row0 + i`` of ``rec`` gets [state k, controller internals, experiment outputs].
-    Stops after a DONE/ABORTED/FAULT step if ``stop_at_end``.  Returns the steps done.
-    """
+    """At most ``n_max`` steps of the fused loop (module docstring); row ``row0 + i`` of
+    ``rec`` gets [state k, controller internals, experiment outputs].  Stops after a
+    DONE/ABORTED/FAULT step if ``stop_at_end``.  Returns the steps done."""
     ns = DK.N_STATE_FIELDS
     nc = N_CONTROL_FIELDS
     for i in range(n_max):
@@ -156,9 +136,26 @@ def _run(
         ),
         (lambda: runner.eout[E_STATUS] >= STATUS_DONE) if stop_at_end else None,
     )
-    if runner.eout[E_STATUS] == STATUS_ABORTED and runner.R[R_REASON] < REASON_POSITION:
-        runner.gains = runner.config.fallback_gains
+    runner.stepped(int(runner.eout[E_STATUS]))
     return done, rec[:done]
+
+
+def _experiment(
+    sim: Any,
+    runner: ExperimentRunner,
+    experiment_id: int,
+    record: bool,
+    python_loop: bool,
+    gains: Gains | None = None,
+) -> tuple[LossResult, np.ndarray]:
+    """Experiment ``experiment_id`` (``gains``; None: the runner's) run whole from the next
+    step, its settle first: its result and the recorded rows."""
+    runner.start(experiment_id, gains)
+    n = int(runner.Q[Q_SETTLE_N]) + int(runner.Q[Q_N])
+    _done, rec = _run(sim, runner, n, record, True, python_loop)
+    res = runner.result()
+    assert res is not None, 'experiment did not finish'
+    return res, rec
 
 
 def _signals(rec: np.ndarray, Ts: float, t0_step: float) -> dict[str, np.ndarray]:
@@ -176,30 +173,21 @@ def run_experiment_offline(
     record: bool = True,
     python_loop: bool = False,
 ) -> tuple[LossResult, dict[str, np.ndarray]]:
-    """Run one whole experiment against the pure drive core (no ROS).
+    """One whole experiment of ``gains`` on ``sim`` as it is (nothing reset), no ROS.
 
-    sim: the drive, in whatever state it is (nothing is reset: state carries over).
-    gains: the candidate; config: experiment config (Ts, isq_max are taken from ``sim``).
-    runner: pass the same runner for consecutive experiments (it carries the controller
-        state and the hold reference); None creates one holding ``sim.theta_meas``.
-    record: return per-step signals (``REC_FIELDS`` + 't' [s from step 0]); row n is
-        drive state n (before its command) with the controller internals and the
-        experiment outputs computed from it (the settle before step 0 is not returned).
-    python_loop: step through ``ExperimentRunner.step``/``DriveSim.step_into`` in Python
-        (the node's path) instead of the fused numba loop; results are bit-identical.
-
-    Returns (LossResult, signals).  Same inputs -> bit-identical results.
+    ``runner``: the same one for consecutive experiments (None: a new one holding
+    ``sim.theta_meas``; ``config``'s Ts and isq_max are the drive's).  ``record``: the
+    signals from step 0 (``REC_FIELDS`` + 't' [s]; row n: drive state n, the internals
+    and outputs computed from it).  ``python_loop``: the node's path, step by step,
+    instead of the fused loop (bit-identical).  Returns (LossResult, signals).
     """
     if runner is None:
         runner = ExperimentRunner(config_for_drive(config, sim), gains)
         runner.reset(sim.theta_meas)
     finish_stopped_move(sim, runner, python_loop)
-    runner.start(experiment_id, gains)
     settle = int(runner.Q[Q_SETTLE_N])
     k0 = float(sim.step_index + settle)  # step 0 follows the settle (lock-step: exactly)
-    _done, rec = _run(sim, runner, settle + int(runner.Q[Q_N]), record, True, python_loop)
-    res = runner.result()
-    assert res is not None, 'experiment did not finish'
+    res, rec = _experiment(sim, runner, experiment_id, record, python_loop, gains)
     sig = _signals(rec[settle:], runner.config.control.Ts, k0) if record else {}
     return res, sig
 
@@ -237,11 +225,9 @@ def hold_offline(
 
 
 class OfflineBench:
-    """The simulated lock-step bench as the tuner drives it, on the pure core: a drive at
-    rest, a controller holding it, experiment ids 0, 1, ... and the fault policy 'reset'
-    (the controller is reset where the drive is, as ``reset_fault`` does). A
-    :class:`~im_tuner.tuning.Measurer`: the study runs the tuner's own ``TuningRun`` on it.
-    """
+    """The simulated lock-step bench as the tuner drives it, on the pure core (a
+    ``Measurer``): a drive at rest, a controller holding it, experiment ids 0, 1, ... and
+    the fault policy 'reset' (the controller reset where the drive is)."""
 
     def __init__(
         self, drive: DriveConfig, drive_seed: int, experiment: ExperimentConfig | None = None
@@ -280,16 +266,11 @@ class OfflineBench:
 def replay_realtime(
     records: list[dict[str, Any]], drive: DriveConfig, drive_seed: int
 ) -> list[LossResult]:
-    """Replay in lock-step, on the pure core, the plant history of a real-time run.
-
-    ``records``: the run's results.jsonl records in order (those that ran on the bench);
-    each gives its experiment id, gains, first step (``t_start_ns``) and the step from
-    which its gains acted (``gains_step``). Between experiments the runner holds the
-    position, exactly as many periods as the real-time controller held it, with the gains
-    it had. Where the real-time run had no held or late period, every loss returned equals
-    the recorded one bit for bit: the real-time bench measured the paper's loss.
-    Assumes no safety fault was reset in between (the reset's step is not recorded).
-    """
+    """A real-time run's plant history replayed in lock-step on the pure core, from its
+    results.jsonl ``records`` (each experiment's id, gains, ``t_start_ns`` and
+    ``gains_step``; the holds between as long as in the run).  Where the run had no held
+    or late period every loss equals the recorded one bit for bit.  Assumes no safety
+    fault was reset in between (the reset's step is not recorded)."""
     sim = DriveSim(drive, seed=drive_seed)
     sim.reset(omega=0.0, fluxed=True)
     return _replay(sim, records, drive.Ts, python_loop=False)
@@ -298,9 +279,8 @@ def replay_realtime(
 def _replay(
     sim: Any, records: list[dict[str, Any]], Ts: float, python_loop: bool
 ) -> list[LossResult]:
-    """A real-time run's experiments again on ``sim`` in lock-step (the holds between
-    them as long as in the run, each experiment's gains from its ``gains_step``), with
-    the fused kernel or, ``python_loop``, step by step (a plant with no kernel)."""
+    """:func:`replay_realtime` on ``sim``, step by step with ``python_loop`` (a plant with
+    no kernel)."""
     runner = ExperimentRunner(config_for_drive(None, sim), Gains())
     runner.reset(sim.theta_meas)
     ts_ns = round(Ts * 1e9)
@@ -319,11 +299,8 @@ def _replay(
         if k0 - settle < sim.step_index:
             raise ValueError(f'experiment {rec["experiment_id"]} starts before the replay')
         _run(sim, runner, k0 - settle - sim.step_index, False, False, python_loop)
-        runner.start(int(rec['experiment_id']))  # its settle, then step 0 at k0
-        _run(sim, runner, settle + int(runner.Q[Q_N]), False, True, python_loop)
-        res = runner.result()
-        assert res is not None, 'experiment did not finish'
-        out.append(res)
+        # its settle, then step 0 at k0
+        out.append(_experiment(sim, runner, int(rec['experiment_id']), False, python_loop)[0])
     return out
 
 
@@ -364,11 +341,8 @@ class StandInPlant:
 
 
 def replay_stand_in(records: list[dict[str, Any]], drive: DriveConfig) -> list[LossResult]:
-    """:func:`replay_realtime` for the example drive (``--drive example``): its run's
-    experiments again, in lock-step on the same stand-in plant, the same holds between
-    them -- every period fresh. Where the run had no held period, each loss equals the
-    recorded one bit for bit; where it had some (within the timing tolerance), the
-    difference is what those held periods did to the loss."""
+    """:func:`replay_realtime` for the example drive (``--drive example``) on its stand-in
+    plant, every period fresh: a loss that differs is what the run's held periods did."""
     return _replay(StandInPlant(drive), records, drive.Ts, python_loop=True)
 
 
@@ -386,9 +360,5 @@ def stand_in_losses(
     out = []
     for i in range(n):
         _run(sim, runner, int(rng.integers(1, max_hold + 1)), False, False, True)
-        runner.start(i)
-        _run(sim, runner, int(runner.Q[Q_SETTLE_N]) + int(runner.Q[Q_N]), False, True, True)
-        res = runner.result()
-        assert res is not None
-        out.append(res.loss)
+        out.append(_experiment(sim, runner, i, False, True)[0].loss)
     return out

@@ -1,32 +1,16 @@
-"""The drive model's first step for ``safe``: tune offline on the nameplate model, first.
+"""The drive model's first step for ``safe``: the controller tuned offline on the model.
 
-Before the first experiment on the bench, :func:`model_prior` tunes the controller on the
-*nominal model* (:func:`nominal_model`) on the offline bench (no ROS) and returns one
-point that ``safe`` measures right after the start (``make_optimizer('safe', ...,
-first=u)``).  Deterministic: the same drive, experiment and box give the same point.
-
-1. ``safe`` (first=none) runs ``MODEL_EVALUATIONS`` experiments on the model from the
-   box's start, once per seed of ``SEEDS`` (one run can stall in a poor basin).
-2. Its ``CANDIDATES`` best distinct, non-aborted points are re-measured on the
-   ``PERTURBATIONS`` of inertia J and rotor resistance Rr (the model is never exactly the
-   plant); a candidate's score is its worst loss over the start's on the same perturbed
-   model (aborted: never chosen).
-3. The point of the lowest score is the prior.  None when no candidate beats the start
-   on every perturbed model, or when the start itself aborts on the model.
-4. With a standstill-ripple limit R (docs/optimisers.md, "The standstill ripple") the
-   search runs on the *noisy model* (:func:`noisy_model`; the nominal one, without speed
-   noise, sees less ripple than the plant), told above the bound B = R / (1 +
-   ``RIPPLE_MARGIN``) what a run is told above its limit (``runlog.ripple.told``,
-   strictly).  Each candidate that beats the start on every perturbed model is measured
-   ``RIPPLE_EXPERIMENTS`` times on the noisy model with and without the identified
-   friction (:func:`_ripple_check`); its predicted rms (:func:`_predicted`, the larger)
-   must be within B.  Else the next ``CANDIDATES`` of the ranking are checked
-   (``RIPPLE_BATCHES`` at most); None if none is within.
-
-``model_prior`` is cached per (model, experiment, box) in the process, and across
-processes in the directory named by ``IM_TUNER_PRIOR_CACHE`` when set: one JSON file per
-key, the key also holding the numeric baseline's bits and a digest of the project's code.
-Pure: no rclpy.
+:func:`model_prior` runs ``safe`` (first=none) on the *nominal model* (:func:`nominal_model`)
+from the box's start, ``MODEL_EVALUATIONS`` experiments per seed of ``SEEDS``; re-measures
+its ``CANDIDATES`` best distinct non-aborted points on the ``PERTURBATIONS`` of J and Rr
+(the model is never the plant); and returns the point of the lowest worst-case loss ratio
+to the start, or None when none beats the start on every perturbed model (or the start
+aborts).  With a standstill-ripple limit R (``runlog.ripple``) the search runs on the
+*noisy model* (:func:`noisy_model`), told above the bound B = R / (1 + ``RIPPLE_MARGIN``)
+what a run is told above its limit, and a candidate's predicted rms (:func:`_ripple_check`)
+must be within B; up to ``RIPPLE_BATCHES`` batches of candidates are checked.
+Deterministic, cached per key in the process and, with ``IM_TUNER_PRIOR_CACHE`` set, in
+that directory (the key also holds a digest of the code and numeric baseline).  Pure.
 """
 
 from __future__ import annotations
@@ -53,21 +37,6 @@ from im_drive_sim.params import DriveConfig
 from .identify import Identified
 from .space import SearchSpace
 
-__all__ = [
-    'CACHE_ENV',
-    'CANDIDATES',
-    'MODEL_EVALUATIONS',
-    'PERTURBATIONS',
-    'RIPPLE_BATCHES',
-    'Prior',
-    'identified_model',
-    'identified_prior',
-    'model_drive_mismatch',
-    'model_prior',
-    'noisy_model',
-    'nominal_model',
-]
-
 #: experiments of the offline search on the nominal model
 MODEL_EVALUATIONS = 150
 #: best points of that search checked on the perturbed models
@@ -83,7 +52,7 @@ PERTURBATIONS: tuple[tuple[float, float], ...] = (
 )
 #: the searches' seeds (fixed numbers: the prior is a function of the drive alone)
 SEEDS: tuple[int, ...] = (0, 1, 2, 3)
-#: With a ripple limit, batches of ``CANDIDATES`` checked at most (module docstring, step 4)
+#: With a ripple limit, batches of ``CANDIDATES`` checked at most
 RIPPLE_BATCHES = 4
 #: With a ripple limit, the start's experiments on the search's model after the one from
 #: rest: their mean rms is the limit's bound there (one experiment's scatters).
@@ -98,15 +67,10 @@ RIPPLE_MARGIN = 0.10
 
 @dataclass(frozen=True)
 class Prior:
-    """The model's first step.
-
-    ``u``: the point (normalised, in [0, 1]^dim); ``model_ratio``: its loss on the nominal
-    model over the start's there; ``worst_ratio``: the largest such ratio over the
-    perturbed models; ``experiments``: offline experiments it cost; ``seconds``: wall
-    time of the first computation [s] (a cached call returns the same object);
-    ``ripple_ratio``: with a ripple limit, the point's predicted standstill rms over the
-    start's (:func:`_predicted`; None: no limit asked).
-    """
+    """The model's first step: ``u`` in [0, 1]^dim; its loss over the start's on the model
+    (``model_ratio``) and the worst over the perturbed models (``worst_ratio``); the
+    offline ``experiments`` and wall ``seconds`` it cost; with a ripple limit, its
+    predicted standstill rms over the start's (``ripple_ratio``, else None)."""
 
     u: tuple[float, ...]
     model_ratio: float
@@ -159,8 +123,7 @@ class _ModelBench:
     def loss(self, space: SearchSpace, u: np.ndarray) -> tuple[float, bool]:
         m = self.bench.measure(space.to_gains(u))
         self.experiments += 1
-        # the standstill rms of isq* [A] after the move and after the load
-        # (runlog.ripple.LIMIT_KEYS), per point: the ripple check of a limited prior
+        # the standstill rms of isq* [A] after the move and after the load (LIMIT_KEYS)
         self.last = (math.nan, math.nan) if m.aborted else (m.ripple[0], m.ripple[2])
         if not m.aborted:
             self.rms.setdefault(tuple(u.tolist()), []).append(self.last)
@@ -188,9 +151,7 @@ def _over(r: float, s0: float) -> float:
 
 def _over_limit(rms: tuple[float, float], start: tuple[float, float], limit: float) -> float | None:
     """One experiment's largest rms over ``limit`` x the start's mean, over the windows
-    the start's rms bounds (a start at rest in a window, rms 0, or not measured there
-    bounds nothing, as a run without a measured start ripple); None: no window is
-    bounded, or the experiment has no samples in one that is."""
+    where the start's rms is > 0; None: no such window, or one without samples."""
     r = [rms[w] / (limit * start[w]) for w in range(2) if start[w] > 0.0]
     if not r or any(math.isnan(x) for x in r):
         return None
@@ -204,11 +165,10 @@ def _search(
     evaluations: int = MODEL_EVALUATIONS,
     ripple_limit: float | None = None,
 ) -> tuple[list[tuple[float, bool, tuple[float, ...]]], _ModelBench]:
-    """Step 1: ``safe`` on the model, ``evaluations`` experiments per seed; the measured
-    points (the first is the start's) and the bench.  With ``ripple_limit`` the start is
-    measured ``START_EXPERIMENTS`` times more (its mean rms: the limit's bound) and each
-    search is told what a run with that limit is told (``runlog.ripple.told``), with no
-    tolerance, so that it ranks quiet points first."""
+    """``safe`` on the model, ``evaluations`` experiments per seed: the measured points
+    (the first is the start's) and the bench.  With ``ripple_limit`` the start is measured
+    ``START_EXPERIMENTS`` times more (its mean rms: the bound) and the search is told what
+    a run is told (``runlog.ripple.told``) with no tolerance, so it ranks quiet points first."""
     from .optim import make_optimizer
     from .runlog.ripple import told
 
@@ -246,9 +206,8 @@ def _compute(
     ripple_limit: float | None = None,
     ripple_models: tuple[DriveConfig, ...] = (),
 ) -> Prior | None:
-    """Steps 1-3 of the module docstring; with ``ripple_limit`` (a ratio, the run's
-    ``--ripple-limit``) step 4, the ripple checked on ``model`` and each of
-    ``ripple_models``."""
+    """The first step (module docstring); with ``ripple_limit`` (the run's ratio) the ripple
+    is checked on ``model`` and each of ``ripple_models``."""
     t0 = time.perf_counter()
     bound = math.inf if ripple_limit is None else ripple_limit / (1.0 + RIPPLE_MARGIN)
     seen, bench = _search(
@@ -276,12 +235,10 @@ def _compute(
             pb = _ModelBench(_perturbed(model, j, rr), experiment)
             pb.loss(space, space.start_u)  # from rest
             ref, ref_aborted = pb.loss(space, space.start_u)
-            if ref_aborted:  # the start itself is unstable there: this model says nothing
-                experiments += pb.experiments
-                continue
-            for u in best:
-                loss, aborted = pb.loss(space, np.array(u))
-                worst[u] = max(worst[u], np.inf if aborted else loss / ref)
+            if not ref_aborted:  # (else the start is unstable there: that model says nothing)
+                for u in best:
+                    loss, aborted = pb.loss(space, np.array(u))
+                    worst[u] = max(worst[u], np.inf if aborted else loss / ref)
             experiments += pb.experiments
         ok = list(best)
         loud = dict.fromkeys(best, 0.0)
@@ -314,10 +271,9 @@ def _ripple_check(
     space: SearchSpace,
     points: list[tuple[float, ...]],
 ) -> tuple[dict[tuple[float, ...], float], int]:
-    """Each point's predicted standstill rms over the start's on ``model``: the start
-    measured ``START_EXPERIMENTS`` times after one from rest, then each point
-    ``RIPPLE_EXPERIMENTS`` times in a row (:func:`_predicted` of its ratios; an aborted
-    experiment: inf); and the experiments it cost."""
+    """Each point's predicted standstill rms over the start's on ``model`` (the start
+    measured ``START_EXPERIMENTS`` times after one from rest, each point
+    ``RIPPLE_EXPERIMENTS`` times; aborted: inf), and the experiments it cost."""
     mb = _ModelBench(model, experiment)
     start = tuple(space.start_u.tolist())
     for _ in range(1 + START_EXPERIMENTS):
@@ -330,9 +286,8 @@ def _ripple_check(
 
 
 def _predicted(ratios: list[tuple[float, float]]) -> float:
-    """A point's predicted standstill rms over the start's from its experiments' ratios
-    (``_ModelBench.ratios``): per window their mean; the larger window's (inf: none, a
-    window without samples or a start at rest in it)."""
+    """A point's predicted rms over the start's: the larger window's mean of its
+    experiments' ratios (inf: none, or a window without samples)."""
     if not ratios:
         return math.inf
     means = [sum(r[w] for r in ratios) / len(ratios) for w in range(2)]
@@ -340,15 +295,14 @@ def _predicted(ratios: list[tuple[float, float]]) -> float:
 
 
 _CACHE: dict[str, Prior | None] = {}
-#: a directory where computed first steps are kept across processes (module docstring)
+#: a directory where computed first steps are kept across processes
 CACHE_ENV = 'IM_TUNER_PRIOR_CACHE'
 
 
 @functools.cache
 def _code_digest() -> str:
-    """sha256 of the three packages' Python sources as this process imports them, numpy's
-    version and the numeric baseline's bits: what decides a computed point besides its
-    key (so a cache directory outlives no change of code, numpy or CPU dispatch)."""
+    """sha256 of the three packages' sources, numpy's version and the numeric baseline's
+    bits: what decides a point besides its key (a cache outlives no change of them)."""
     import im_controller
     import im_drive_sim
     import im_tuner
@@ -374,10 +328,9 @@ def _read(path: Path) -> tuple[bool, Prior | None]:
 
 
 def _cached(key: str, compute: Callable[[], Prior | None]) -> Prior | None:
-    """``compute()`` once per ``key``: from this process's cache, else from the directory
-    ``IM_TUNER_PRIOR_CACHE`` (when set), else computed and kept in both (written to a
-    temporary file and renamed).  Processes that miss the same key at once compute it
-    once: the first takes the key's lock file (``fcntl.flock``), the others wait on it."""
+    """``compute()`` once per ``key``: from this process's cache, else ``CACHE_ENV``'s
+    directory, else computed and kept in both (atomic rename).  Processes that miss one key
+    at once compute it once: the first holds the key's ``flock``, the others wait."""
     if key in _CACHE:
         return _CACHE[key]
     where = os.environ.get(CACHE_ENV, '')
@@ -418,18 +371,16 @@ def _cached(key: str, compute: Callable[[], Prior | None]) -> Prior | None:
 def model_prior(
     drive: DriveConfig, space: SearchSpace, experiment: ExperimentConfig | None = None
 ) -> Prior | None:
-    """The first step of ``safe`` from the model of ``drive`` (module docstring), for the
-    search box and start ``space`` and the experiment ``experiment`` (None: the default
-    experiment with the drive's Ts and isq_max).  Cached per (nominal model, experiment,
-    box) in this process; None when the model finds nothing better than the start."""
+    """``safe``'s first step from the nominal model of ``drive`` (module docstring) for the
+    box ``space`` and ``experiment`` (None: the default one); None when the model finds
+    nothing better than the start."""
     model = nominal_model(drive)
     key = json.dumps([model.to_dict(), repr(experiment), dataclasses.asdict(space)], sort_keys=True)
     return _cached(key, lambda: _compute(model, experiment, space))
 
 
-#: The identified model's J is rounded to this relative step, Kt's ratio and Tc likewise
-#: (Tc in units of the rated torque): a study's runs on one plant share a few cached
-#: models, for errors well inside the identification's.
+#: The identified model's J and Kt ratio are rounded to this relative step, Tc to ROUND_TC
+#: of the rated torque: a study's runs on one plant share a few cached models.
 ROUND_J = 0.01
 ROUND_TC = 0.005
 #: The identified model's perturbations: J within +-(the larger of this and 3 standard
@@ -444,10 +395,9 @@ IDENTIFIED_MODEL_EVALUATIONS = 300
 def identified_model(
     drive: DriveConfig, experiment: ExperimentConfig | None, idf: Identified
 ) -> tuple[DriveConfig, ExperimentConfig]:
-    """The drive file's nominal model with the identified mechanics, in the file's current
-    units: the file's torque constant Kt_f stays, so J, B, Tc and the experiment's load
-    torque are scaled by Kt_f / Kt (the same shaft acceleration, the same isq for the
-    load); J rounded to ``ROUND_J`` and Tc to ``ROUND_TC`` of the rated torque."""
+    """The nominal model with the identified mechanics in the file's current units: Kt_f
+    stays, so J, B, Tc and the load torque are scaled by Kt_f / Kt (the same acceleration
+    and isq); J rounded to ``ROUND_J``, Tc to ``ROUND_TC`` of the rated torque."""
     model = nominal_model(drive)
     m = model.machine
     k = idf.Kt_file / idf.Kt if idf.Kt > 0 else 1.0
@@ -464,11 +414,9 @@ def identified_model(
 
 
 def noisy_model(drive: DriveConfig, model: DriveConfig, friction: bool = True) -> DriveConfig:
-    """The drive file as written -- its realism profile's bench effects and speed noise --
-    with ``model``'s inertia and (``friction``) its viscous and Coulomb friction: the
-    model whose standstill ripple is the plant's.  ``friction=False``: the file's
-    friction (the friction at rest decides the limit cycle, and the start's motion
-    barely identifies it)."""
+    """The drive file as written (bench effects, speed noise) with ``model``'s J and, with
+    ``friction``, its B and Coulomb torque: the model whose standstill ripple is the
+    plant's (the friction at rest decides the limit cycle and is barely identified)."""
     mm = model.machine
     machine = dataclasses.replace(drive.machine, J=mm.J)
     if friction:
@@ -483,12 +431,9 @@ def identified_prior(
     idf: Identified,
     ripple_limit: float | None = None,
 ) -> Prior | None:
-    """``model_prior`` on the identified model (:func:`identified_model`) instead of the
-    file's, robust over the identification's uncertainty in J (``IDENTIFIED_J_SPREAD``)
-    and the file's in Rr; with ``ripple_limit`` (the run's, a ratio to the start's rms)
-    the search runs on :func:`noisy_model` told the limit, and the point's predicted rms
-    is within it by ``RIPPLE_MARGIN`` (module docstring, step 4).  Cached per rounded
-    model, experiment, box and limit."""
+    """``model_prior`` on :func:`identified_model`, robust over J's uncertainty
+    (``IDENTIFIED_J_SPREAD``) and Rr's; with ``ripple_limit`` on :func:`noisy_model`
+    with and without the identified friction (module docstring)."""
     model, exp = identified_model(drive, experiment, idf)
     others: tuple[DriveConfig, ...] = ()
     if ripple_limit is not None:  # the friction at rest is the least identified: both
@@ -518,12 +463,10 @@ def identified_prior(
 
 
 def model_drive_mismatch(mine: str | None, theirs: str | None, option: str = 'model') -> str | None:
-    """Why a first step computed on the drive file ``mine`` (the tuner's ``--drive-config``;
-    None: the packaged default) does not fit a controller whose ``drive_config_file`` is
-    ``theirs`` ('' or None: the default): one line naming the fix, or None when both name
-    the same machine and period (``option``: the ``--opt first`` that needs the model).  A file
-    the tuner cannot read here is a mismatch only when the names differ (a drive host on
-    another computer may keep it elsewhere)."""
+    """Why a first step computed on ``mine`` (``--drive-config``; None: the default) does
+    not fit a controller whose ``drive_config_file`` is ``theirs``: one line naming the
+    fix, or None when both have the same machine and period.  A file unreadable here is a
+    mismatch only when the names differ (the drive's host may keep it elsewhere)."""
     from im_drive_sim.drive_file import load_config
     from im_drive_sim.params import ConfigError
 

@@ -1,12 +1,9 @@
 """The search space of the tuner: box, start point and the map to normalised parameters.
 
-Pure (no rclpy).  The optimisers work on u in [0, 1]^5; the controller takes gains
-
-    theta_i = lo_i + (hi_i - lo_i) u_i,      i over G = [k_pw, k_iw, k_pos, tau_sm, tau_eq]
-
-(paper eq. 8; SI units, see ``im_controller.config.GAIN_UNITS``).  The box and the start
-point come from a YAML parameter file (``config/tuner.yaml`` is the paper's motor),
-validated key by key: errors name the file and the key.
+Pure.  The optimisers work on u in [0, 1]^5, the controller takes the gains
+theta_i = lo_i + (hi_i - lo_i) u_i (paper eq. 8, ``GAIN_UNITS``).  The box and the start
+come from a YAML parameter file (``config/tuner.yaml``: the paper's motor), its errors
+naming the file and the key.
 """
 
 from __future__ import annotations
@@ -22,22 +19,9 @@ import numpy as np
 from im_controller.config import GAIN_NAMES, GAIN_RANGES, GAIN_UNITS, Gains
 from im_drive_sim.yaml_file import YamlFileError, read_yaml
 
-__all__ = [
-    'SearchSpace',
-    'TunerParams',
-    'TunerParamsError',
-    'default_params_path',
-    'load_params',
-]
-
 
 class TunerParamsError(ValueError):
     """A bad tuner parameter file; the message names the file and the key."""
-
-
-def default_params_path() -> Path:
-    """The packaged parameter file (the paper's 750 W motor)."""
-    return Path(str(resources.files('im_tuner') / 'config' / 'tuner.yaml'))
 
 
 @dataclass(frozen=True)
@@ -158,7 +142,7 @@ def parse_params(data: Any, src: str = '<dict>') -> TunerParams:
 
 def load_params(path: str | Path | None = None) -> TunerParams:
     """Load and validate a tuner parameter file (None: the packaged default)."""
-    p = default_params_path() if path is None else Path(path)
+    p = Path(str(resources.files('im_tuner') / 'config' / 'tuner.yaml') if path is None else path)
     src = str(p)
     try:
         data, _ = read_yaml(p)

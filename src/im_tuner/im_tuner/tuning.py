@@ -1,36 +1,15 @@
 """The tuning loop: ask, measure, tell -- with a budget, best tracking, checkpoints and resume.
 
 Pure (no rclpy): the loop talks to the bench through a :class:`Measurer` (the tuner node
-implements it over the controller's parameter services, experiment service and loss
-topic; tests and offline studies can implement it directly on the pure core).
-
-One evaluation (``kind='eval'``):
-
-1. ``u = optimizer.ask()``; the gains are ``space.to_gains(u)``;
-2. ``measurer.measure(gains)`` sets them (atomically), runs the experiment, returns its
-   loss; a lost result (:class:`LostEvaluation`) and a result marked ``timing`` (the
-   experiment did not run on the paper's timing: held or late drive periods beyond the
-   controller's tolerance, so its loss is not the paper's loss) are re-run with the SAME
-   gains, at most ``retries`` times, never resampled, and never told to the optimiser;
-3. the record goes to ``results.jsonl`` (fsync'ed) and to :attr:`TuningRun.on_record`
-   (the tuner node publishes it), then ``optimizer.tell(u, loss)``, then
-   ``checkpoint.json`` (atomic).  A penalised (aborted) experiment is told its
-   penalised loss, costs one evaluation and can never become the best.
-
-Around the search: one ``reference`` experiment of the start gains first (not counted in
-the budget, not told to the optimiser: the comparison the summary makes), and at the end
-``remeasure`` extra experiments re-measuring the top few distinct evaluations once each.
-The smallest measured loss is biased low (it is a minimum over noisy measurements), so
-the controller left applied is the one with the smallest re-measured loss, and both
-numbers are reported; with ``remeasure=0`` it is the smallest measured loss (the
-paper's final controller).  If no evaluation beats the reference, the start gains stay.
-
-Resume: ``results.jsonl`` is the truth.  The checkpoint holds the optimiser (RNG included)
-and the counters after its ``records`` first lines; later lines (a kill between the two
-writes) are applied on top, checking that the optimiser asks exactly the recorded
-candidates.  Since ``ask`` is deterministic, the next candidate is the one the killed
-run was measuring: it is re-run, never resampled.  On a simulated bench the plant state
-is restored first by :func:`replay` (same gains, same order; losses checked bit for bit).
+over the controller's services and loss topic; tests and studies on the pure core).
+An evaluation asks u, measures ``space.to_gains(u)`` (a lost or off-timing result is
+re-run with the same gains, at most ``retries`` times, never told), appends the record to
+results.jsonl, tells the optimiser and writes checkpoint.json.  Around the search: a
+``reference`` experiment of the start first (not in the budget, not told), and
+``remeasure`` re-measurements of the best distinct evaluations at the end, which pick the
+controller applied (the smallest measured loss is biased low).  Resume: results.jsonl is
+the truth; records after the checkpoint are applied on top, checking that the optimiser
+asks exactly the recorded candidates (docs/tuner.md, "Resume").
 """
 
 from __future__ import annotations
@@ -61,6 +40,7 @@ from .runlog import (
     Summary,
     Timing,
     TunerState,
+    evaluation,
     final_choice,
     replay_plan,
     summarize,
@@ -69,19 +49,6 @@ from .runlog import (
 from .runlog.records import LINE_ORDER, ripple_dict
 from .runlog.ripple import ripple_bound, told_loss, top_evals
 from .space import SearchSpace
-
-__all__ = [
-    'BenchFailure',
-    'LostEvaluation',
-    'Measurement',
-    'Measurer',
-    'ResumeError',
-    'StopRequested',
-    'TuningRun',
-    'gains_dict',
-    'replay',
-    'run_seeds',
-]
 
 CHECKPOINT_VERSION = 1
 
@@ -180,18 +147,9 @@ def run_seeds(seed: int) -> tuple[np.random.SeedSequence, int]:
     return opt_ss, int(drive_ss.generate_state(1)[0]) >> 1
 
 
-def gains_dict(g: Gains | tuple[float, ...]) -> dict[str, float]:
-    t = g.as_tuple() if isinstance(g, Gains) else tuple(g)
-    return {n: float(v) for n, v in zip(GAIN_NAMES, t, strict=True)}
-
-
 def _gains_of(gains: dict[str, float]) -> Gains:
     """The Gains of a record's ``gains`` (or of the state's brief of one)."""
     return Gains(*(float(gains[n]) for n in GAIN_NAMES))
-
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.UTC).isoformat(timespec='milliseconds')
 
 
 class TuningRun:
@@ -212,14 +170,10 @@ class TuningRun:
         first_step: Any = None,
         ripple_limit: float | None = None,
     ) -> None:
-        """``ripple_limit``: the largest standstill rms of isq* the final choice may have,
-        as a ratio to the start's in each window (the tuner's ``--ripple-limit``; None:
-        off): the re-measured and applied gains are chosen among the evaluations within it
-        (``runlog.final_choice``).  ``first_step``: for ``safe`` with
-        ``first='identify'``, what gives its first step from the records so far
-        (``im_tuner.first_step.IdentifiedFirstStep``): called once, before evaluation 2
-        is asked (live and when a resume replays the records);
-        its ``identified(records)`` goes into the summary."""
+        """``ripple_limit``: the standstill-ripple limit of the final choice, a ratio to the
+        start's rms (None: off; ``runlog.ripple``).  ``first_step``: the
+        ``IdentifiedFirstStep`` giving the optimiser the point it ``wants_first``; its
+        ``identified(records)`` goes into the summary."""
         if budget < 1:
             raise ValueError(f'budget must be >= 1, got {budget}')
         self.rundir = rundir
@@ -257,16 +211,11 @@ class TuningRun:
         #: ``session`` (None: no sessions, e.g. the study's runs; nothing written)
         self.session: int | None = None
 
-    # -- resume --------------------------------------------------------------------------
     def restore(self) -> int:
-        """Load the run's results and checkpoint (see module doc); returns the number of
-        records.  Raises ResumeError when they disagree, or when a record is malformed.
-
-        Nothing is written: a torn last line of results.jsonl is left for the caller to
-        cut (``RunDir.cut_torn_tail``) once it has accepted the whole resume. A checkpoint
-        that cannot be read (empty, truncated, corrupt, not a checkpoint) is rebuilt from
-        results.jsonl -- the truth -- by replaying every record through a fresh optimiser
-        (the candidates are checked as on any resume); ``self.rebuilt`` says why."""
+        """Load the run's results and checkpoint; returns the number of records
+        (ResumeError: they disagree, or a record is malformed).  Nothing is written.  An
+        unreadable checkpoint is rebuilt by replaying every record through a fresh
+        optimiser; ``self.rebuilt`` says why."""
         try:
             records = self.rundir.read_results()
         except RunDirError as exc:
@@ -302,7 +251,6 @@ class TuningRun:
             self.records.append(rec)
         return len(self.records)
 
-    # -- state updates -------------------------------------------------------------------
     def _apply(self, rec: Record, live: bool) -> None:
         """Update the counters (and, for an evaluation, the optimiser) from one record."""
         if isinstance(rec, Evaluation):
@@ -359,8 +307,8 @@ class TuningRun:
             'eval': index,
             'attempt': attempt,
             'u': None if u is None else [float(x) for x in u],
-            'gains': gains_dict(gains),
-            'time': _now(),
+            'gains': {n: float(v) for n, v in zip(GAIN_NAMES, gains.as_tuple(), strict=True)},
+            'time': _dt.datetime.now(_dt.UTC).isoformat(timespec='milliseconds'),
             'session': self.session,
         }
         if m is None:
@@ -415,19 +363,16 @@ class TuningRun:
     def _measure(
         self, measurer: Measurer, kind: str, index: int, u: np.ndarray | None, gains: Gains
     ) -> Record:
-        """Measure ``gains`` (re-running lost and off-timing results); records every
-        attempt."""
+        """Measure ``gains`` (re-running lost and off-timing results), recording every attempt."""
         for attempt in range(1, self.retries + 2):
             t0 = time.perf_counter()
+            m: Measurement | None = None
+            lost = None
             try:
                 m = measurer.measure(gains)
-                rec = self._record(
-                    kind, index, attempt, u, gains, m, None, time.perf_counter() - t0
-                )
             except LostEvaluation as exc:
-                rec = self._record(
-                    kind, index, attempt, u, gains, None, exc, time.perf_counter() - t0
-                )
+                lost = exc
+            rec = self._record(kind, index, attempt, u, gains, m, lost, time.perf_counter() - t0)
             # loop wall time: everything since the previous record (optimiser, files,
             # parameter calls, experiment), so the real-time factor is honest
             now = time.perf_counter()
@@ -452,7 +397,6 @@ class TuningRun:
             f'with the same gains ({rec.reason})'
         )
 
-    # -- the run ---------------------------------------------------------------------------
     def run(self, measurer: Measurer, should_stop: Callable[[], bool] = lambda: False) -> str:
         """Run (or continue) until the budget is spent; returns 'done', 'interrupted' or
         'failed: <reason>'.  The best gains are applied at the end in every case."""
@@ -481,12 +425,8 @@ class TuningRun:
                         continue
                     if should_stop():
                         raise StopRequested()
-                    rec = next(
-                        r
-                        for r in self.records
-                        if isinstance(r, Evaluation) and r.eval == i and r.status == 'ok'
-                    )
-                    self._measure(measurer, 'remeasure', i, None, _gains_of(rec.gains))
+                    gains = _gains_of(evaluation(self.records, i).gains)
+                    self._measure(measurer, 'remeasure', i, None, gains)
         except StopRequested:
             outcome = 'interrupted'
         except BenchFailure as exc:
@@ -509,7 +449,6 @@ class TuningRun:
         """See ``runlog.final_choice``."""
         return final_choice(self.state, self.records, self.ripple_limit)
 
-    # -- summary ---------------------------------------------------------------------------
     def summary(self, *, outcome: str, wall_s: float) -> Summary:
         """summary.json (``runlog.summarize``; ``applied.on_controller``: whether the final
         gains reached the controller)."""
@@ -529,7 +468,7 @@ class TuningRun:
         rated = self.rated_isq_a
         if self.first_step is not None:
             idf = self.first_step.identified(self.records)
-            s.identification = None if idf is None else idf.as_dict()
+            s.identification = None if idf is None else dataclasses.asdict(idf)
             m = self.first_step.drive.machine
             rated = m.rated_torque / m.Kt
         if s.ripple is not None and rated is not None:  # for a percentage

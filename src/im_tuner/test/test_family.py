@@ -9,8 +9,9 @@ import pytest
 
 from im_controller.config import ExperimentConfig, Gains
 from im_drive_sim.drive_file import load_config
+from im_drive_sim.family import DRIVE_NAMES, PACKAGED_NAMES
 from im_drive_sim.params import ConfigError
-from im_tuner.family import DRIVE_NAMES, PACKAGED_NAMES, count_step, drive_scales, drive_setup
+from im_tuner.family import count_step, drive_scales, drive_setup
 from im_tuner.space import load_params
 
 

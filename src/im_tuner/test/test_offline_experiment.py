@@ -20,8 +20,8 @@ from im_controller.layout import (
     STATUS_HOLD,
     STATUS_RUNNING,
 )
-from im_controller.result import Experiment
 from im_controller.runner import ExperimentRunner, config_for_drive
+from im_controller.trajectory import trajectory
 from im_drive_sim.drive_file import load_config
 from im_drive_sim.sim import STATE_FIELDS, DriveSim
 from im_tuner.offline import hold_offline, run_experiment_offline
@@ -85,7 +85,7 @@ def test_loss_matches_direct_numpy_evaluation_of_eq_4_to_7(hand_tuned):
         assert got == pytest.approx(want, rel=1e-12)
     assert res.loss == pytest.approx(sum(terms), rel=1e-12)
     # theta_ref is the raw trajectory
-    ref = Experiment(0, 0.0, ExperimentConfig()).reference()['theta_ref']
+    ref = trajectory(np.arange(5625) * TS)[0]  # experiment 0 from 0 rad
     assert np.array_equal(sig['theta_ref'], ref)
 
 
@@ -130,13 +130,13 @@ def test_after_a_stop_the_runner_holds_with_fallback_gains():
     runner.reset(sim.theta_meas)
     res, _ = run_experiment_offline(sim, UNSTABLE, runner=runner)
     assert res.aborted and runner.gains == Gains() and not runner.running
-    assert not runner.ready and runner.hold_reference == math.pi
+    assert not runner.ready and runner.target == math.pi
     with pytest.raises(RuntimeError, match='ready'):
         runner.start(1)
     hold = hold_offline(sim, runner, 5000, record=True)
     assert np.all(hold['status'] == STATUS_HOLD) and runner.ready
     # the fallback gains finish the move along the same trajectory (no reference jump)
-    ref = Experiment(0, 0.0, ExperimentConfig()).reference()['theta_ref']
+    ref = trajectory(np.arange(5625) * TS)[0]  # experiment 0 from 0 rad
     assert np.array_equal(hold['theta_ref'][:200], ref[523:723])
     assert np.max(np.abs(hold['e_theta'])) < 0.6  # measured 0.495 < 1 rad
     assert hold['theta_meas'][-1] == math.pi  # back on the 0/pi grid

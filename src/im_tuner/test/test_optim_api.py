@@ -514,7 +514,7 @@ def test_evaluations_per_generation():
             u = opt.ask()
             opt.tell(u, _quad(u))
         runs[algo] = opt
-    assert runs['spsa'].iteration == 100
+    assert runs['spsa'].iterations == 100
     assert runs['cga'].generation == 100
     assert runs['pecga'].generation == 199 and runs['rcga'].generation == 199
     assert runs['necga'].generation == 199

@@ -75,7 +75,7 @@ def test_moment_oracle_monte_carlo():
                 it = opt.iterate
                 sq[j, r] = it @ it
                 j += 1
-        assert opt.evaluations == 2 * iters and opt.iteration == iters
+        assert opt.evaluations == 2 * iters and opt.iterations == iters
     exact = moments(100)
     for j, k in enumerate(checkpoints):
         mean = sq[j].mean()
@@ -156,7 +156,7 @@ def test_delta_is_fair_plus_minus_one():
     for _ in range(2000):
         u = opt.ask()
         it = opt.iterate
-        d = (u - it) / opt.gains(opt.iteration)[1]
+        d = (u - it) / opt.gains(opt.iterations)[1]
         np.testing.assert_allclose(np.abs(d), 1.0, rtol=1e-9)
         plus += int(np.sum(d > 0))
         total += d.size
@@ -205,7 +205,7 @@ def test_every_asked_point_is_feasible():
             assert np.all((u >= 0.0) & (u <= 1.0))
             loss = 1e6 if rng.random() < 0.1 else float(rng.normal(0, 1) + np.sum(u))
             opt.tell(u, loss)
-            ck = opt.gains(opt.iteration)[1]
+            ck = opt.gains(opt.iterations)[1]
             it = opt.iterate
             assert np.all((it >= ck) & (it <= 1 - ck))
 

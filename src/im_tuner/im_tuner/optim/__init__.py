@@ -1,17 +1,13 @@
 """Optimiser core of the tuner (no rclpy): SPSA, safe and the compact-GA family (numpy),
-rcGA (scipy), CMA-ES (pycma) and TPE (optuna).
+rcGA (scipy), CMA-ES (pycma) and TPE (optuna); docs/optimisers.md.
 
-    from im_tuner.optim import make_optimizer, OPTIONS, ALGOS
     opt = make_optimizer('necga', dim=5, seed=1, n=25, eta=12)
     while opt.evaluations < 200:
         u = opt.ask()                  # normalised parameters in [0, 1]^5
         opt.tell(u, measure(u))        # the loss of one experiment
 
-Importing this package imports no algorithm: each algorithm's module (with pycma, optuna
-or scipy) is imported when one is built or restored, so a command line is parsed and
-refused in a fraction of a second.  The template is ``base.py``, the checks ``checks.py``,
-the options and policies ``options.py``; the algorithms and the decisions taken,
-docs/optimisers.md.
+Importing this package imports no algorithm: each module (with pycma, optuna or scipy)
+is imported when one is built or restored, so a command line is refused at once.
 """
 
 from __future__ import annotations
@@ -80,17 +76,12 @@ def make_optimizer(
 ) -> Optimizer:
     """Validate everything, then build the optimiser ``algo`` on ``dim`` parameters.
 
-    ``seed``: int >= 0 or SeedSequence (the optimiser's own PCG64 stream).  ``start``:
-    normalised start point in [0, 1]^dim (``TAKES_START`` only; None = spsa, cmaes and
-    safe draw a uniform random start, tpe starts with random trials; the tuner runs
-    only ``NO_START_ALGOS`` without one: their ``start`` policy).
-    ``first``: ``TAKES_FIRST`` only (safe), a model's point measured right after the
-    start (``im_tuner.prior``), or 'identify': given later (``Optimizer.set_first``);
-    None: none.
-    ``options``: see ``OPTIONS[algo]``; unset ones take their defaults.  Any problem
-    (unknown algo or option, wrong type, bool for a number, out of range, eta >= n, a
-    start for a compact GA...) raises OptimizerError with a one-line message naming it
-    and the accepted values, before anything is created.
+    ``seed``: int >= 0 or SeedSequence.  ``start``: a point of [0, 1]^dim
+    (``TAKES_START`` only; None: a random start).  ``first``: ``TAKES_FIRST`` only, a
+    model's point measured right after the start, or 'identify' (given later,
+    ``Optimizer.set_first``).  ``options``: ``OPTIONS[algo]``, unset ones at their
+    defaults.  Any problem: OptimizerError (one line), before anything is created (and
+    before the algorithm's library is imported).
     """
     if not isinstance(algo, str) or algo not in OPTIONS:
         raise OptimizerError(f'unknown algo {algo!r} (allowed: {", ".join(ALGOS)})')

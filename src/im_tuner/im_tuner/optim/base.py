@@ -1,13 +1,9 @@
 """The optimiser template: the lifecycle every algorithm shares, written once.
 
-Pure numpy (no rclpy).  The contract (ask/tell on u in [0, 1]^dim, evaluations, state,
-converged, config) is docs/optimisers.md's "The contract"; how the template and an
-algorithm's hooks (``_setup``, ``_propose``, ``_update``, ``iterations``) and state
-declaration (``STATE``, ``_restored``) divide the work, its "How the code is cut".  Two
-restore styles: a snapshot (the algorithm's variables and the PCG64 state; uniforms drawn
-in blocks are saved as if only the used ones had been drawn, :func:`rng_state`), or a
-replay (``REPLAYS``: cmaes, tpe, whose libraries have no stable serialisation: the seed,
-the configuration and every candidate and loss told, replayed by ``_restore``).
+Pure numpy.  The contract and how the template and an algorithm's hooks divide the work:
+docs/optimisers.md, "The contract" and "How the code is cut".  A state is a snapshot (the
+algorithm's variables and the PCG64 state, :func:`rng_state`) or, for ``REPLAYS``
+algorithms whose libraries have no stable serialisation, the told history replayed.
 """
 
 from __future__ import annotations
@@ -61,15 +57,9 @@ _PCG64_PERIOD = 1 << 128
 
 
 def rng_state(rng: np.random.Generator, unread: int = 0) -> dict[str, Any]:
-    """JSON-serialisable state of a PCG64 generator (ints stay exact in JSON).
-
-    ``unread``: how many of the doubles last drawn (one 64-bit output each) are still
-    unused in the optimiser's random block; the state returned is the generator's as if
-    they had never been drawn, i.e. exactly the state of a generator that drew one
-    candidate's numbers at a time.  The optimisers draw their uniforms in blocks (one
-    numpy call per many asks); with this the saved state does not depend on the block
-    size, and the state put back + a fresh block continues the same stream.
-    """
+    """JSON-serialisable state of a PCG64 generator, as if the ``unread`` doubles last
+    drawn (the unused rest of a random block) had never been drawn: the saved state does
+    not depend on the block size."""
     st: dict[str, Any] = dict(rng.bit_generator.state)
     if unread:
         bg = np.random.PCG64(0)
@@ -88,14 +78,9 @@ def told_history(algo: str, state: dict[str, Any]) -> tuple[list[list[float]], l
     return [[float(x) for x in u] for u in us], [check_loss(v) for v in losses]
 
 
-# ------------------------------------------------------------------------- state fields
 class Codec(NamedTuple):
-    """How one state field goes to JSON and back.
-
-    ``dump(optimiser, attribute value) -> JSON value``; ``load(optimiser, JSON value) ->
-    attribute value`` (it converts and checks, raising KeyError/TypeError/ValueError or
-    OptimizerError on a malformed value), or None: the field is written for the reader
-    and recomputed or checked by ``_restored`` on restore."""
+    """How one state field goes to JSON (``dump(opt, value)``) and back (``load(opt,
+    json)``, converting and checking; None: written only, ``_restored`` recomputes it)."""
 
     load: Callable[[Any, Any], Any] | None
     dump: Callable[[Any, Any], Any]
@@ -144,14 +129,9 @@ HISTORY: tuple[Field, ...] = (
 )
 
 
-# ------------------------------------------------------------------------------ elitism
 class Elitist:
-    """``elite`` and ``elite_loss`` of an elitist optimiser (pe/neCGA, rcGA): the elite it
-    holds, in its own form, as normalised parameters, and the loss stored with it.
-
-    A subclass writes ``_held_elite``: (the elite's u, its stored loss), or None before
-    the elite's evaluation (and while a replacement is pending).
-    """
+    """``elite`` and ``elite_loss`` of an elitist optimiser (pe/neCGA, rcGA), from the
+    subclass's ``_held_elite``: (u, stored loss), or None before its evaluation."""
 
     def _held_elite(self) -> tuple[list[float], float] | None:
         raise NotImplementedError
@@ -169,16 +149,9 @@ class Elitist:
         return None if held is None else held[1]
 
 
-# ----------------------------------------------------------------------------- template
 class Optimizer(ABC):
-    """The template of every optimiser: see the module docstring for the contract and
-    which hooks a subclass writes.
-
-    ``Algo(dim, seed, start=None, **options)``: ``dim`` >= 1 parameters, ``seed`` an int
-    >= 0 or a SeedSequence, ``start`` a point of [0, 1]^dim (or None), ``options`` those
-    of ``OPTIONS`` (unset ones take their defaults); everything is checked, in that
-    order, before anything is created (OptimizerError naming the problem).
-    """
+    """The template of every optimiser: ``Algo(dim, seed, start=None, **options)``, each
+    argument checked in that order before anything is created (OptimizerError)."""
 
     #: registry name ('spsa', 'cga', ...; ``options.ALGOS``); set by subclasses
     algo: ClassVar[str] = ''
@@ -245,7 +218,6 @@ class Optimizer(ABC):
         cross-option checks (raising OptimizerError before anything is created)."""
         return check_options(self.algo, self.OPTIONS, options)
 
-    # ------------------------------------------------------------ the algorithm's hooks
     @abstractmethod
     def _setup(self, x0: np.ndarray | None) -> None:
         """The initial state (options in ``self._opts``, the generator in ``self._rng``)."""
@@ -288,7 +260,6 @@ class Optimizer(ABC):
     def _restored(self, state: dict[str, Any]) -> None:  # noqa: B027  (optional hook)
         """After the fields are loaded: derived values and checks across fields."""
 
-    # -------------------------------------------------------------------- the lifecycle
     def ask(self) -> np.ndarray:
         pu = self._pending
         if pu is None:
@@ -299,9 +270,8 @@ class Optimizer(ABC):
         self.tell_measurement(u, loss, False)
 
     def tell_measurement(self, u: np.ndarray, loss: float, aborted: bool) -> None:
-        """``tell`` with the experiment's aborted flag (the tuner calls this).  Only an
-        ``ABORT_AWARE`` algorithm (safe: an aborted experiment is a constraint) reads the
-        flag; for the others the penalised loss says it."""
+        """``tell`` with the experiment's aborted flag, which only an ``ABORT_AWARE``
+        algorithm reads (for the others the penalised loss says it)."""
         pu = self._pending
         loss = told_loss(pu, u, loss)
         assert pu is not None  # told_loss refused a tell without an ask
@@ -318,8 +288,7 @@ class Optimizer(ABC):
     @property
     def wants_first(self) -> bool:
         """Whether the tuning loop should give a model's point (:meth:`set_first`) before
-        the next ``ask``: only an algorithm with the ``first`` policy (options.POLICIES)
-        built with ``first='identify'`` ever does."""
+        the next ``ask`` (an algorithm with the ``first`` policy, ``first='identify'``)."""
         return False
 
     def set_first(self, first: Any) -> None:
@@ -329,7 +298,6 @@ class Optimizer(ABC):
     def config(self) -> dict[str, Any]:
         return {'algo': self.algo, 'dim': self.dim, 'seed': self._seed_json, **self._settings()}
 
-    # ------------------------------------------------------------------------ the state
     def state_dict(self) -> dict[str, Any]:
         state: dict[str, Any] = {
             'algo': self.algo,

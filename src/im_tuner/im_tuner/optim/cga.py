@@ -21,15 +21,10 @@ _FROM_CHARS = bytes.maketrans(b'01', b'\x00\x80')
 
 
 class BinaryCGA(Optimizer):
-    """The binary compact GAs (PV, sampling, decoding, competitions, state I/O).
-
-    ``CGA``, ``PECGA`` and ``NECGA`` differ only in the class flags ``_ELITIST`` and
-    ``_NE`` (and neCGA's options).  The PV and the genomes are python ints of m fields of
-    W bytes (SWAR, docs/optimisers.md "Speed"): the PV ``_Y`` holds 2^(8W-1) + k_j + K per
-    field, a uniform r_j is kept as its level L_j (the first PV table entry > r_j), a
-    sample is ``(_Y - L) & _H`` (``_H``: the guard bits), a competition one add and one
-    subtract on ``_Y``.
-    """
+    """The binary compact GAs; ``CGA``, ``PECGA``, ``NECGA`` differ only in ``_ELITIST``
+    and ``_NE``.  The PV and genomes are python ints of m fields of W bytes (SWAR,
+    docs/optimisers.md "Speed"): ``_Y`` holds 2^(8W-1) + k_j + K per field, a sample is
+    ``(_Y - L) & _H`` (L: the uniforms' levels), a competition one add and one subtract."""
 
     NO_START: ClassVar[str] = 'a compact GA starts from p = 0.5'
     _ELITIST: ClassVar[bool] = False  # pe/neCGA: an elite and one newcomer
@@ -70,7 +65,6 @@ class BinaryCGA(Optimizer):
         self._held_loss = 0.0
         self.theta = 0  # neCGA: consecutive wins of the current elite
 
-    # ------------------------------------------------------------- packing and genomes
     def _pack(self, values: np.ndarray) -> int:
         """Field values (m,) -> an int with the guard bit set in every field."""
         return self._H | int.from_bytes(np.asarray(values).astype(self._fdtype).tobytes(), 'big')
@@ -117,12 +111,6 @@ class BinaryCGA(Optimizer):
         Y, H = self._Y, self._H
         return (H - (Y ^ self._T)) & H, (H - (Y ^ H)) & H
 
-    def _agrees(self, s: int) -> bool:
-        """The genome has 1 where p_j = 1 and 0 where p_j = 0 (any sample of the PV does)."""
-        top, zero = self._extremes()
-        return s & top == top and s & zero == 0
-
-    # ----------------------------------------------------------------- PV and decoding
     def _block(self) -> list[int]:
         """The next block: per sample, m uniforms r_j (rng.random(m), as one call), kept
         as the packed levels L_j (the same sample bits as r_j < p_j)."""
@@ -160,7 +148,6 @@ class BinaryCGA(Optimizer):
         """The PV rounded to a genome (p_j >= 1/2 -> 1), decoded to u."""
         return self.decode(self.offsets >= 0)
 
-    # ------------------------------------------------------------------------ ask/tell
     @property
     def iterations(self) -> int:
         return self.generation
@@ -182,31 +169,20 @@ class BinaryCGA(Optimizer):
             self._held, self._held_loss = s, loss
             return
         # The competition: winner w, loser l; k_j += 1 where w_j = 1 != l_j, -= 1 where
-        # w_j = 0 != l_j (in guard-bit form, moved down to the fields' units).
-        if self._ELITIST:
-            newcomer_wins = loss < self._held_loss  # ties -> the elite
-            if newcomer_wins:
-                x = s ^ held
-                up = x & s
-                down = x ^ up
-                # The beaten elite came from an older PV: clamp k_j to [-K, K], i.e. no
-                # +1 where P_j = 2K and no -1 where P_j = 0.  (In every other case the
-                # loser is a sample of the current PV, which agrees with it there.)
-                Y, H = self._Y, self._H
-                up ^= up & (H - (Y ^ self._T))
-                down ^= down & (H - (Y ^ H))
-            else:
-                x = held ^ s
-                up = x & held
-                down = x ^ up
-        else:
-            if self._held_loss <= loss:  # ties -> a, the first sampled
-                x = held ^ s
-                up = x & held
-            else:
-                x = s ^ held
-                up = x & s
-            down = x ^ up
+        # w_j = 0 != l_j (in guard-bit form, moved down to the fields' units).  Ties: the
+        # elite (pe/neCGA), a, the first sampled (cGA).
+        newcomer_wins = loss < self._held_loss
+        w = s if newcomer_wins else held
+        x = s ^ held
+        up = x & w
+        down = x ^ up
+        if self._ELITIST and newcomer_wins:
+            # The beaten elite came from an older PV: clamp k_j to [-K, K], i.e. no +1
+            # where P_j = 2K and no -1 where P_j = 0.  (In every other case the loser is
+            # a sample of the current PV, which agrees with it there.)
+            top, zero = self._extremes()
+            up ^= up & top
+            down ^= down & zero
         sh = self._shift
         self._Y = self._Y + (up >> sh) - (down >> sh)
         self.generation += 1
@@ -224,7 +200,6 @@ class BinaryCGA(Optimizer):
                 else:
                     self._held = None  # the next ask samples the new elite
 
-    # ---------------------------------------------------------------------- state I/O
     @property
     def phase(self) -> str:
         """What the next ask samples (in the state), from whether an individual is held:
@@ -266,9 +241,11 @@ class BinaryCGA(Optimizer):
                 f'held {"None" if self._held is None else "a genome"}'
             )
         # What the state_dict of a real run always satisfies (and tell relies on): the
-        # pending sample, and the cGA's a, were drawn from this PV.
+        # pending sample, and the cGA's a, were drawn from this PV (1 where p_j = 1, 0
+        # where p_j = 0).
+        top, zero = self._extremes()
         for s in (self._pg, None if self._ELITIST else self._held):
-            if s is not None and not self._agrees(s):
+            if s is not None and not (s & top == top and s & zero == 0):
                 raise OptimizerError(
                     f'bad {self.algo} state: a sample that this PV '
                     'cannot produce (1 where p = 0 or 0 where p = 1)'
@@ -277,19 +254,13 @@ class BinaryCGA(Optimizer):
 
 
 class CGA(BinaryCGA):
-    """Compact GA, Fig. 1: two samples per generation, the first sampled wins ties.
-
-    ``CGA(dim, seed, start=None, *, n=25, bits=16, coding='binary')``.
-    """
+    """Compact GA, Fig. 1: two samples per generation, the first sampled wins ties."""
 
     algo: ClassVar[str] = 'cga'
 
 
 class PECGA(Elitist, BinaryCGA):
-    """Persistent elitist compact GA, Fig. 2: elite vs one newcomer, ties -> the elite.
-
-    ``PECGA(dim, seed, start=None, *, n=25, bits=16, coding='binary')``.
-    """
+    """Persistent elitist compact GA, Fig. 2: elite vs one newcomer, ties -> the elite."""
 
     algo: ClassVar[str] = 'pecga'
     _ELITIST: ClassVar[bool] = True
@@ -299,11 +270,7 @@ class PECGA(Elitist, BinaryCGA):
 
 
 class NECGA(PECGA):
-    """Non-persistent elitist compact GA, Fig. 3 (the paper's tuner; defaults n=25, eta=12).
-
-    ``NECGA(dim, seed, start=None, *, n=25, bits=16, coding='binary', eta=12,
-    elite_replacement='sample')``.
-    """
+    """Non-persistent elitist compact GA, Fig. 3 (the paper's tuner)."""
 
     algo: ClassVar[str] = 'necga'
     _NE: ClassVar[bool] = True

@@ -77,14 +77,10 @@ def check_start(start: Any, dim: int) -> np.ndarray | None:
 
 @dataclass(frozen=True)
 class OptionSpec:
-    """One option of an optimiser: type, default, meaning, accepted values.
-
-    ``type`` is ``float``, ``int`` or ``str``.  Numbers must lie in [low, high] (a bound
-    is exclusive if ``low_strict``/``high_strict``; ``None`` = unbounded); ``+inf`` is
-    accepted only where ``high`` is ``inf`` and not strict.  Strings must be one of
-    ``choices``.  ``default`` None means "derived from other options" (``help`` says how).
-    Floats accept int/float (numpy scalars too) but never bool; ints refuse floats.
-    """
+    """One option of an optimiser: ``type`` (float, int or str), ``default`` (None:
+    derived, ``help`` says how), meaning, and its accepted values: numbers in [low, high]
+    (exclusive where ``*_strict``; None: unbounded; +inf only where ``high`` is an
+    included inf), strings among ``choices``.  Never a bool; an int option refuses floats."""
 
     type: type
     default: Any
@@ -160,11 +156,8 @@ def check_options(
 
 
 def check_told(pending: list[float] | None, u: Any, loss: Any) -> float:
-    """Validate a ``tell`` (the exact check, with the error messages): a pending candidate
-    (``ask``'s values as a list of floats, None when nothing is pending), ``u`` equal to
-    it bit for bit once converted to float64 (a list, or an int array of 0/1, is fine), a
-    finite loss.  Whatever :func:`told_loss`'s fast path does not accept comes here.
-    """
+    """The exact check of a ``tell``: a candidate pending, ``u`` equal to it bit for bit
+    once converted to float64, a finite loss (what :func:`told_loss`'s fast path passes on)."""
     if pending is None:
         raise OptimizerError('tell without a pending candidate: call ask() first')
     try:
@@ -191,11 +184,9 @@ def zero_signs_match(values: list[Any], pending: list[float]) -> bool:
 
 
 def told_loss(pending: list[float] | None, u: Any, loss: Any) -> float:
-    """The loss of a ``tell``, after checking ``u`` is the pending candidate.
-
-    Fast path (the tuner's case, docs/optimisers.md "Speed"): an ndarray whose ``tolist``
-    equals the pending list (a 2-d or 0-d array does not), signs of zeros included, and
-    a finite float.  Anything else goes through :func:`check_told`."""
+    """The loss of a ``tell``, after checking ``u`` is the pending candidate: at once for
+    the tuner's case (docs/optimisers.md, "Speed"), an ndarray equal to it (signs of zeros
+    included) and a finite float; anything else through :func:`check_told`."""
     if (
         pending is None
         or type(u) is not NDARRAY

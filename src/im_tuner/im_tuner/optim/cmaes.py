@@ -1,10 +1,8 @@
 """CMA-ES (Hansen's pycma, ``cma.CMAEvolutionStrategy``) behind the one-at-a-time contract.
 
-pycma's population is handed out one candidate at a time and told to pycma once its
-lambda losses are in; its normal deviates come from the optimiser's own PCG64 stream
-(``_Randn``).  pycma has no stable serialisation: the state is the told history, and
-``from_state`` replays it, refusing a candidate that differs from the saved one
-(docs/optimisers.md, "Beyond the paper").
+pycma's population is handed out one candidate at a time and told once its lambda losses
+are in; its normal deviates come from the optimiser's own PCG64 stream.  The state is the
+told history, replayed on restore (pycma has no stable serialisation).
 """
 
 from __future__ import annotations
@@ -29,11 +27,7 @@ class _Randn:
 
 
 class CMAES(Optimizer):
-    """CMA-ES on [0, 1]^dim (pycma).
-
-    ``CMAES(dim, seed, start=None, *, sigma0=0.1, popsize=None)``; ``start`` None draws a
-    uniform start in [0, 1]^dim from the optimiser's generator.
-    """
+    """CMA-ES on [0, 1]^dim (pycma); ``start`` None: a uniform random start."""
 
     algo: ClassVar[str] = 'cmaes'
     REPLAYS: ClassVar[bool] = True

@@ -8,6 +8,7 @@ algorithm's module is imported here (docs/optimisers.md, "How the code is cut").
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,10 +18,8 @@ from .checks import OptimizerError, OptionSpec, check_options
 @dataclass(frozen=True)
 class Algorithm:
     """What the tuning loop, the tuner's checks and the study read of an algorithm, declared
-    once: its module and class (imported by :func:`.base.algorithm_class` only), whether
-    it uses a start point (whether it may run without one is its ``start`` policy,
-    :data:`POLICIES`), whether its runs keep the standstill-ripple limit unless told
-    otherwise (``runlog.ripple.default_ripple_limit``)."""
+    once: its module and class, whether it uses a start point (whether it may run without
+    one: its ``start`` policy), whether its runs keep the ripple limit by default."""
 
     module: str
     cls: str
@@ -66,13 +65,10 @@ def _spec(kind: type, default: Any, interval: str, text: str) -> OptionSpec:
     )
 
 
-def real(default: float | None, interval: str, text: str) -> OptionSpec:
-    """A float option (None: derived from other options, ``text`` says how)."""
-    return _spec(float, default, interval, text)
-
-
-def integer(default: int | None, interval: str, text: str) -> OptionSpec:
-    return _spec(int, default, interval, text)
+#: a float / an int option: ``real(default, interval, text)`` (default None: derived from
+#: other options, ``text`` says how)
+real = functools.partial(_spec, float)
+integer = functools.partial(_spec, int)
 
 
 def choice(default: str | None, choices: tuple[str, ...], text: str) -> OptionSpec:

@@ -27,11 +27,6 @@ _SQRT2 = math.sqrt(2.0)
 _erfc, _sqrt = math.erfc, math.sqrt
 
 
-def norm_cdf(x: float) -> float:
-    """Phi(x) = erfc(-x/sqrt 2)/2 (accurate to a few ulp, relative, in the lower tail)."""
-    return 0.5 * _erfc(-x / _SQRT2)
-
-
 #: Phi^-1 and erf^-1: scipy's (cephes ndtri, ~1e-16 relative over (0, 1)); bound once.
 ndtri = _sc.ndtri
 erfinv = _sc.erfinv
@@ -83,19 +78,14 @@ def _vector(opt: RCGA, v: Any) -> list[float]:
     return out
 
 
-def _vector_or_none(opt: RCGA, v: Any) -> list[float] | None:
-    return None if v is None else _vector(opt, v)
-
-
 _VECTOR = Codec(_vector, lambda _o, v: list(v))
-_VECTOR_OR_NONE = Codec(_vector_or_none, lambda _o, v: None if v is None else list(v))
+_VECTOR_OR_NONE = Codec(
+    lambda o, v: None if v is None else _vector(o, v), lambda _o, v: None if v is None else list(v)
+)
 
 
 class RCGA(Elitist, Optimizer):
-    """Real-valued compact GA with persistent ('pe') or non-persistent ('ne') elitism.
-
-    ``RCGA(dim, seed, start=None, *, n=25, elitism='ne', eta=12, sigma0=10.0)``.
-    """
+    """Real-valued compact GA with persistent ('pe') or non-persistent ('ne') elitism."""
 
     algo: ClassVar[str] = 'rcga'
     NO_START: ClassVar[str] = 'it starts from mu = 0, sigma = sigma0'
@@ -129,12 +119,10 @@ class RCGA(Elitist, Optimizer):
         self._elite_loss = 0.0
         self._px: list[float] | None = None  # the pending candidate's x
 
-    # ----------------------------------------------------------------------- sampling
     @staticmethod
     def _to_u(x: list[float]) -> list[float]:
         return [(xi + 1.0) * 0.5 for xi in x]
 
-    # ------------------------------------------------------------------------ ask/tell
     @property
     def iterations(self) -> int:
         return self.generation
@@ -142,13 +130,11 @@ class RCGA(Elitist, Optimizer):
     def _propose(self) -> list[float]:
         """The next candidate u = (x + 1)/2, x sampled from the truncated Gaussians."""
         i = self._draws(self.dim)
-        x, pu = [], []
-        for r, m, s in zip(self._blk[i : i + self.dim], self._mu, self._sigma, strict=True):
-            xi = truncnorm_ppf(r, m, s)
-            x.append(xi)
-            pu.append((xi + 1.0) * 0.5)
-        self._px = x
-        return pu
+        rs = self._blk[i : i + self.dim]
+        self._px = x = [
+            truncnorm_ppf(r, m, s) for r, m, s in zip(rs, self._mu, self._sigma, strict=True)
+        ]
+        return self._to_u(x)
 
     def _update(self, u: list[float], loss: float, aborted: bool) -> None:
         """The competition of elite and newcomer and the moment update."""
@@ -183,7 +169,6 @@ class RCGA(Elitist, Optimizer):
                 self._elite, self._elite_loss = x, y
                 self.theta = 0
 
-    # ---------------------------------------------------------------------- reporting
     @property
     def mu(self) -> np.ndarray:
         """Means of the sampling distributions on [-1, 1] (a copy)."""
@@ -205,6 +190,5 @@ class RCGA(Elitist, Optimizer):
         """Every sigma_i < SIGMA_TOL."""
         return max(self._sigma) < SIGMA_TOL
 
-    # ---------------------------------------------------------------------- state I/O
     def _restored(self, state: dict[str, Any]) -> None:
         self._pending = None if self._px is None else self._to_u(self._px)

@@ -1,16 +1,11 @@
 """A local, abort-aware (1+1) evolution strategy with a local linear model ('safe').
 
-Hand-written: no maintained library offers a one-at-a-time local search that starts from
-known-safe gains and treats an aborted experiment (an unstable controller) as a
-constraint rather than a loss.  The rule (evaluation 1 the start; pattern moves, descent
-steps on a weighted linear model, Gaussian steps; the 1/5 success rule within
-[SIGMA_MIN, sigma_max]; an abort shrinks the step and enters the model at ABORT_VALUE
-times the incumbent's loss; the incumbent re-measured every ``remeasure_every``):
-docs/optimisers.md, "Beyond the paper"; a model's first point (``first``, or
-``'identify'``: given later by :meth:`SAFE.set_first`), its "The first step from the
-drive model" and "The first step from the identified drive"; the measurements behind the
-constants, research/NOTES.md, "safe".  The least-squares fit is numpy's (LAPACK
-``gelsd``): a resumed run continues bit for bit on the same machine and numpy build.
+Hand-written: no maintained library offers a one-at-a-time local search from known-safe
+gains that treats an aborted experiment as a constraint rather than a loss.  The rule and
+the model's first point: docs/optimisers.md, "Beyond the paper" and "The first step from
+the identified drive"; the measurements behind the constants, research/NOTES.md, "safe".
+The fit is numpy's (LAPACK ``gelsd``): a resumed run continues bit for bit on the same
+machine and numpy build.
 """
 
 from __future__ import annotations

@@ -17,11 +17,8 @@ from .options import GAIN_PRESETS
 
 
 class SPSA(Optimizer):
-    """SPSA with two evaluations per iteration (docs/optimisers.md for the equations).
-
-    ``SPSA(dim, seed, start=None, *, a, c, A, alpha, gamma, gains, max_step, bounded=True)``;
-    ``start`` None draws a uniform start in [c, 1 - c]^dim from the optimiser's generator.
-    """
+    """SPSA with two evaluations per iteration; ``start`` None: a uniform random start in
+    [c, 1 - c]^dim; ``bounded=False`` (constructor only): no projection."""
 
     algo: ClassVar[str] = 'spsa'
     #: iterations per random block (one rng call per block)
@@ -64,9 +61,9 @@ class SPSA(Optimizer):
         if x0 is None:
             lo, hi = (self.c, 1.0 - self.c) if self.bounded else (0.0, 1.0)
             x0 = lo + (hi - lo) * self._rng.random(self.dim)
-        # python floats and lists, the vector form's operations in its order
-        # (docs/optimisers.md, "Speed")
-        self._u: list[float] = self._project(x0, self.c).tolist()
+        # in [c_0, 1 - c_0] if bounded; python floats and lists, the vector form's
+        # operations in its order (docs/optimisers.md, "Speed")
+        self._u: list[float] = (np.clip(x0, self.c, 1.0 - self.c) if self.bounded else x0).tolist()
         self.k = 0  # iteration index of u_k
         self._phase = 0  # 0: y+ next, 1: y- next
         self._delta = [0.0] * self.dim  # Delta_k (+-1.0), drawn at the iteration's 1st ask
@@ -81,21 +78,14 @@ class SPSA(Optimizer):
         r = self._rng.random(self._BLOCK * self.dim)
         return np.copysign(1.0, r - 0.5).tolist()
 
-    # ------------------------------------------------------------------ gain sequences
     def gains(self, k: int) -> tuple[float, float]:
         """(a_k, c_k) of iteration k (0-based): a/(k+1+A)^alpha, c/(k+1)^gamma."""
         return self.a / (k + 1 + self.A) ** self.alpha, self.c / (k + 1) ** self.gamma
 
-    def _project(self, u: np.ndarray, ck: float) -> np.ndarray:
-        """u clipped to [c_k, 1 - c_k] (a new array), or a copy when unbounded."""
-        if not self.bounded:
-            return np.array(u, dtype=np.float64)
-        return np.clip(u, ck, 1.0 - ck)
-
-    # ------------------------------------------------------------------------ ask/tell
     @property
     def iterations(self) -> int:
-        return self.iteration
+        """Completed iterations (= k of the current iterate u_k)."""
+        return self.k
 
     def _propose(self) -> list[float]:
         """u_k + c_k Delta_k (first evaluation of an iteration) or u_k - c_k Delta_k."""
@@ -137,7 +127,6 @@ class SPSA(Optimizer):
         self._last_gradient = g
         self._phase = 0
 
-    # ---------------------------------------------------------------------- reporting
     @property
     def iterate(self) -> np.ndarray:
         """The current point u_k (a copy): SPSA's estimate of the optimum."""
@@ -148,15 +137,9 @@ class SPSA(Optimizer):
         """The gradient estimate g_k of the last completed iteration (a copy), or None."""
         return None if self._last_gradient is None else np.array(self._last_gradient)
 
-    @property
-    def iteration(self) -> int:
-        """Completed iterations (= k of the current iterate u_k)."""
-        return self.k
-
     def _settings(self) -> dict[str, Any]:
         return {'bounded': self.bounded, **self._opts}
 
-    # ---------------------------------------------------------------------- state I/O
     def _restored(self, state: dict[str, Any]) -> None:
         # ck is c_k of the current iteration once its first candidate is asked; before
         # that it is a function of k (a state may hold the previous iteration's).

@@ -1,10 +1,8 @@
 """Tree-structured Parzen estimator (optuna's ``TPESampler``) behind the ask/tell contract.
 
-One trial of an in-memory optuna study per evaluation, on ``u0..u4`` in [0, 1]; a start
-point is enqueued as the first trial.  The state is the told trials and the sampler's two
-numpy ``RandomState`` streams, inside the tuner's atomic checkpoint (no optuna journal to
-keep consistent with it): ``from_state`` adds the trials back and restores the streams
-(docs/optimisers.md, "Beyond the paper").
+One trial of an in-memory optuna study per evaluation; a start point is the first trial.
+The state is the told trials and the sampler's two ``RandomState`` streams, inside the
+tuner's checkpoint (no optuna journal to keep consistent with it).
 """
 
 from __future__ import annotations
@@ -52,11 +50,7 @@ def _set_rs_state(rs: np.random.RandomState, st: dict[str, Any]) -> None:
 
 
 class TPE(Optimizer):
-    """optuna's TPE on [0, 1]^dim.
-
-    ``TPE(dim, seed, start=None, *, n_startup_trials=10, n_ei_candidates=24,
-    multivariate='yes')``; ``start`` (optional) is enqueued as the first trial.
-    """
+    """optuna's TPE on [0, 1]^dim; ``start`` (optional) is enqueued as the first trial."""
 
     algo: ClassVar[str] = 'tpe'
     REPLAYS: ClassVar[bool] = True

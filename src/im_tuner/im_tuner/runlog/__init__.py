@@ -1,21 +1,9 @@
 """The run log: what a tuning run writes, as typed objects (pure: no rclpy).
 
-* ``records`` -- results.jsonl: one record per line (:class:`Evaluation`,
-  :class:`Reference`, :class:`Remeasurement`, :class:`Timing`, :class:`Lost`), each with
-  its format version and exact JSON (``to_json`` / ``Record.from_json``); the check of a
-  line (:func:`check_record`);
-* ``columns`` -- the report's CSV export of the records (``CSV_COLUMNS``: not imported
-  here, it needs numpy, which the readers of the files do not);
-* ``files`` -- run.yaml (:class:`RunConfig`) and summary.json (:class:`Summary`);
-* ``tally`` -- what the records add up to (:class:`TunerState`, :func:`tally`,
-  :func:`final_choice`, :func:`summarize`) and where they go (:class:`RunRecord`,
-  :class:`MemoryRecord`);
-* ``ripple`` -- the standstill-ripple limit (its default, bound, told loss and summary).
-
-The run directory itself (atomic writes, the lock, the bags) is ``im_tuner.rundir``; the
-file formats are described in docs/tuner.md ("The run directory"), which a unit test
-checks against the record classes here.  The package re-exports its modules' public
-names below.
+``records``: results.jsonl, one typed record per line; ``files``: run.yaml and
+summary.json; ``tally``: what the records add up to; ``ripple``: the standstill-ripple
+limit; ``columns``: the report's CSV (not imported here: it needs numpy).  The formats:
+docs/tuner.md, "The run directory".
 """
 
 from .files import (
@@ -47,6 +35,7 @@ from .tally import (
     RunRecord as RunRecord,
     TunerState as TunerState,
     brief as brief,
+    evaluation as evaluation,
     final_choice as final_choice,
     replay_plan as replay_plan,
     summarize as summarize,

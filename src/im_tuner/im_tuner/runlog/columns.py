@@ -1,7 +1,5 @@
-"""evaluations.csv, the report's CSV export of the records: its columns, from the record
-fields (:data:`CSV_COLUMNS`), their types (from the fields' types), and one record's cells
-(:func:`csv_values`).  Its own module: it needs the gain names (``im_controller.config``,
-numpy), which the run log's readers do not."""
+"""evaluations.csv, the report's CSV export of the records: its columns and their types
+(from the record fields) and one record's cells.  Its own module: it needs numpy."""
 
 from __future__ import annotations
 

@@ -1,9 +1,7 @@
 """run.yaml and summary.json as typed objects: :class:`RunConfig` and :class:`Summary`.
 
-Each keeps the keys of its file in the file's order (the order they were set in), so
-``to_text(from_text(text)) == text`` for the files the tuner writes; a key the class does
-not know is kept in ``extra``.  A file without ``version`` is format 1 (every file written
-so far, and the ones written now: the key is written only from format 2 on).  Pure.
+Each keeps its file's keys in order (``to_text(from_text(text)) == text`` for the files
+the tuner writes), an unknown key in ``extra``; a file without ``version`` is format 1.
 """
 
 from __future__ import annotations

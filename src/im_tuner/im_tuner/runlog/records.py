@@ -1,18 +1,11 @@
-"""results.jsonl: one typed record per line, and the exact JSON of each.
+"""results.jsonl: one typed record per line (:data:`RECORD_TYPES`; docs/tuner.md, "The
+run directory", lists their fields), and the exact JSON of each.
 
-Five record kinds, one class each (:data:`RECORD_TYPES`; docs/tuner.md, "The run
-directory", says what each is and lists their fields).
-
-Every line carries the format version it was written in: a line without ``version`` is
-format 1 (every line written so far, and the ones written now: the field is written only
-from format 2 on).  ``Record.from_json(line)`` checks the line (:func:`check_record`, the
-refusals the tuner's resume and the report give) and ``to_json`` writes it back byte for
-byte: the fields in the order the tuner writes them, floats as ``repr``.  Fields a line
-does not carry (older lines) read as None; fields this format does not know are kept, in
-``extra``, and written back after the known ones.
-
-Code reads a record by its attributes (``rec.loss``, ``rec.session``); a field its line
-does not carry is None.  Pure (no rclpy).
+A line without ``version`` is format 1 (the field is written only from format 2 on).
+``Record.from_json`` checks a line (:func:`check_record`) and ``to_json`` writes it back
+byte for byte: the fields in the tuner's order, floats as ``repr``, fields this format
+does not know kept in ``extra`` and written after the known ones; a field a line does not
+carry reads as None.  Pure.
 """
 
 from __future__ import annotations
@@ -20,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -205,19 +197,15 @@ class Record:
     version: int = FORMAT_VERSION  #: the line's format version (absent in a line: 1)
     extra: dict[str, Any] = field(default_factory=dict)  #: fields this format does not know
 
-    # -- JSON ----------------------------------------------------------------------------
-    def _keys(self) -> Iterator[str]:
-        """The line's fields, in the order the tuner writes them."""
-        own = {f.name for f in dataclasses.fields(self)}
-        if self.version != 1:
-            yield 'version'
-        for k in LINE_ORDER:
-            if k in own and not (k in _WHEN_SET and getattr(self, k) is None):
-                yield k
-
     def to_dict(self) -> dict[str, Any]:
-        """The line as a dict (the fields in the written order)."""
-        return {k: getattr(self, k) for k in self._keys()} | self.extra
+        """The line as a dict (the fields in the order the tuner writes them)."""
+        own = {f.name for f in dataclasses.fields(self)}
+        keys = [
+            k for k in LINE_ORDER if k in own and not (k in _WHEN_SET and getattr(self, k) is None)
+        ]
+        if self.version != 1:
+            keys.insert(0, 'version')
+        return {k: getattr(self, k) for k in keys} | self.extra
 
     def to_json(self) -> str:
         """The line, without its newline (floats round-trip exactly; no NaN/inf)."""
@@ -316,13 +304,9 @@ RECORD_TYPES: tuple[type[Record], ...] = (Evaluation, Reference, Remeasurement, 
 
 
 def parse_results(raw: bytes) -> tuple[list[Record], int]:
-    """The records of results.jsonl's bytes and the end of its last complete line.
-
-    Each record is written as one line ending in a newline: bytes after the last newline
-    are a record written only in part (the process died mid-write) and are not read.
-    :class:`RecordError` ('line N ...') for a line that is not a record, or one out of
-    the order the tuner writes them in (:class:`_Order`: an evaluation twice or skipped,
-    a re-measurement of an evaluation that does not exist)."""
+    """The records of results.jsonl's bytes and the end of its last complete line (bytes
+    after it: a record written in part, not read).  :class:`RecordError` ('line N ...')
+    for a line that is not a record or is out of the tuner's order (:class:`_Order`)."""
     end = raw.rfind(b'\n') + 1
     out: list[Record] = []
     order = _Order()
@@ -341,10 +325,8 @@ def parse_results(raw: bytes) -> tuple[list[Record], int]:
 
 class _Order:
     """The order the tuner writes records in, checked line by line: one reference (eval
-    -1), then evaluations 0, 1, 2, ... each measured once (its lost and off-timing
-    attempts before it), then re-measurements, each of a completed (``ok``) evaluation
-    written before it, once.  A file out of that order (a line pasted twice, one deleted,
-    a re-measurement of an evaluation that does not exist) is refused, not summed up."""
+    -1), evaluations 0, 1, 2, ... each measured once (after its lost and off-timing
+    attempts), then re-measurements, each once, of a completed evaluation before it."""
 
     def __init__(self) -> None:
         self.next_eval = 0  #: the evaluation the next eval record is (an attempt of)

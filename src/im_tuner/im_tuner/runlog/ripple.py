@@ -2,14 +2,11 @@
 from a run's records, what the search is told above it, the gains it lets the run
 re-measure and apply, and what the summary says of it.
 
-A tuned position controller can rest in a limit cycle of the encoder's last count: the
-loss (the paper's) barely sees it, a drive engineer hears it.  A run with a limit R keeps
-the gains it applies within R times the hand-tuned start's rms of the q-axis current
-reference isq* in each standstill window (after the move, after the load): the reference
-experiment measures the start's, every completed experiment its own (the records'
-``ripple``).  The tuner's ``--ripple-limit``, the study's rows and the first step's models
-(``im_tuner.prior``) take their limit from here; docs/optimisers.md, "The standstill
-ripple", says why rms and these numbers.  Pure: the records only.
+A tuned position controller can rest in a limit cycle of the encoder's last count, which
+the paper's loss barely sees.  A run with a limit R keeps the gains it applies within R
+times the start's rms of isq* in each standstill window (after the move, after the load;
+the records' ``ripple``).  Why rms and these numbers: docs/optimisers.md, "The standstill
+ripple".  Pure: the records only.
 """
 
 from __future__ import annotations
@@ -39,7 +36,7 @@ def parse_ripple_limit(text: str) -> float | None:
     try:
         v = float(text)
     except ValueError:
-        raise ValueError(f"--ripple-limit: a ratio >= 1 or 'off', got {text!r}") from None
+        v = math.nan
     if not (v >= 1.0 and v < float('inf')):
         raise ValueError(f"--ripple-limit: a ratio >= 1 or 'off', got {text!r}")
     return v
@@ -142,14 +139,11 @@ def _over(rip: dict[str, Any] | None, bound: dict[str, float]) -> float | None:
 
 def told_loss(records: list[Record], rec: Evaluation, ripple_limit: float | None) -> float:
     """The loss the optimiser is told for evaluation ``rec`` (``records``: those before
-    it): the measured one, but well above the ripple limit (its own rms r times the
-    bound, r > RIPPLE_TOLERANCE) ``max(L (1 + RIPPLE_PENALTY (r - 1)), L_quiet)``,
-    L_quiet the smallest loss measured so far by an evaluation within the limit
-    (r <= 1).  So a loud point is never better than a quiet one already found (the
-    search does not settle where only loud gains are good: the first step from a model
-    that does not see the limit cycle often lands there), and among loud points the
-    louder costs more.  Without a limit, for an
-    aborted experiment (already penalised) or without a measured start: the loss."""
+    it): the measured L, but with its rms r times the bound above RIPPLE_TOLERANCE
+    ``max(L (1 + RIPPLE_PENALTY (r - 1)), L_quiet)``, L_quiet the smallest loss measured
+    within the limit so far: a loud point is never better than a quiet one found, and the
+    louder costs more.  An aborted experiment (already penalised), no limit or no
+    measured start: L."""
     if ripple_limit is None or rec.aborted or rec.loss is None:
         return rec.loss
     bound = ripple_bound(records, ripple_limit)
@@ -169,11 +163,9 @@ def told_loss(records: list[Record], rec: Evaluation, ripple_limit: float | None
 def told(
     loss: float, over: float | None, quiet: float, tolerance: float = RIPPLE_TOLERANCE
 ) -> float:
-    """:func:`told_loss`'s rule for one experiment: its loss ``loss``, its largest rms over
-    the limit's bound ``over`` (None: not measured: the loss), ``quiet`` the smallest loss
-    measured within the limit so far (-inf: none), told its loss up to ``tolerance``.
-    Also the rule of the first step's offline search on the identified model
-    (``im_tuner.prior``, with no tolerance)."""
+    """:func:`told_loss`'s rule for one experiment (also the first step's offline search,
+    with no tolerance): ``over`` its largest rms over the bound (None: the loss),
+    ``quiet`` the smallest loss within the limit so far (-inf: none)."""
     if over is None or over <= tolerance:
         return loss
     return max(loss * (1.0 + RIPPLE_PENALTY * (over - 1.0)), quiet)
@@ -185,15 +177,10 @@ def ripple_summary(
     ripple_limit: float | None = None,
     remeasure: int = 0,
 ) -> dict[str, Any] | None:
-    """The standstill ripple of the start and of the applied gains (each key of the
-    records' ``ripple`` averaged over the completed experiments of those gains; None: no
-    experiment measured it) and the run's ripple limit: ``limit`` (the ratio; None: off),
-    ``bound`` (A rms per window: limit x the start's; None: off or the start not
-    measured), ``applied_within`` (whether the applied gains are within it), ``changed``
-    (whether the limit kept out a point the run would otherwise have re-measured or
-    applied: one of the ``max(remeasure, 1)`` best distinct evaluations), ``excluded``
-    (those evaluations) and ``fallback`` (no completed evaluation is within the limit:
-    the start is applied)."""
+    """The standstill ripple of the start and of the applied gains (:func:`ripple_of_gains`)
+    and the limit: ``limit``, ``bound``, ``applied_within``, ``excluded`` (the best
+    ``max(remeasure, 1)`` distinct evaluations it kept out), ``changed`` (any) and
+    ``fallback`` (none within it: the start applied); docs/tuner.md lists the keys."""
     ref = next((r for r in records if r.kind == 'reference'), None)
     start = ripple_of_gains(records, None if ref is None else ref.gains)
     applied = ripple_of_gains(records, None if final is None else final['gains'])

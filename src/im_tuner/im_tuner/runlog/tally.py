@@ -1,7 +1,5 @@
-"""What a run's records add up to: the counters and bests (:class:`TunerState`), the
-controller left applied (:func:`final_choice`) and the summary (:func:`summarize`) --
-pure functions of the records, shared by the tuning loop and the report.  Also where a
-run's records go (:class:`RunRecord`: a run directory, or :class:`MemoryRecord`)."""
+"""What a run's records add up to (counters, the controller left applied, the summary),
+shared by the tuning loop and the report; and where the records go (:class:`RunRecord`)."""
 
 from __future__ import annotations
 
@@ -36,8 +34,7 @@ class TunerState:
 
 
 class RunRecord(Protocol):
-    """Where a run's records go: a run directory (``RunDir``, durable: results.jsonl
-    fsync'ed, checkpoints, resume) or memory (:class:`MemoryRecord`: the study's runs)."""
+    """Where a run's records go: a run directory (``RunDir``, durable) or memory."""
 
     path: Path
     durable: bool  #: False: no checkpoints are written (nothing could resume from them)
@@ -49,8 +46,7 @@ class RunRecord(Protocol):
 
 
 class MemoryRecord:
-    """A run record in memory: the records in a list, no files, no checkpoints (an offline
-    run is repeated from its seed, not resumed)."""
+    """The records in a list, no checkpoints (the study's runs repeat from their seed)."""
 
     durable = False
 
@@ -122,46 +118,35 @@ def final_choice(
     st: TunerState, records: list[Record], ripple_limit: float | None = None
 ) -> dict[str, Any] | None:
     """The record of the controller to leave applied (docs/tuner.md, "Which controller is
-    left applied"): the smallest re-measured loss if re-measured, else the smallest
-    measured; the reference if nothing beat it; None before any successful measurement.
-
-    With ``ripple_limit`` (a ratio, the tuner's ``--ripple-limit``) only gains whose mean
-    standstill rms is within :func:`ripple_bound` in both windows are candidates (the
-    re-measured ones among them, else the best measured one among them); the start if
-    there is none.  Without a measured start ripple the limit cannot apply (no bound)."""
+    left applied"): the smallest re-measured loss, else the smallest measured, among the
+    gains within the ripple limit's bound (if any); the reference if nothing beat it;
+    None before any successful measurement."""
     bound = ripple_bound(records, ripple_limit)
     cand = st.best
     if bound is not None:
         cand = None
         best = top_evals(records, 1, bound)
         if best:
-            cand = next(
-                brief(r) for r in records if isinstance(r, Evaluation) and r.eval == best[0]
-            )
+            cand = brief(evaluation(records, best[0]))
     if st.remeasured:
         ok = [
             r
             for r in st.remeasured
-            if not r['aborted'] and within_limit(records, _gains_of_eval(records, r['eval']), bound)
+            if not r['aborted']
+            and within_limit(records, evaluation(records, r['eval']).gains, bound)
         ]
         if ok:
-            pick = min(ok, key=lambda r: (r['loss'], r['eval']))
-            cand = next(
-                brief(r)
-                for r in records
-                if isinstance(r, Evaluation) and r.eval == pick['eval'] and r.status == 'ok'
-            )
+            cand = brief(evaluation(records, min(ok, key=lambda r: (r['loss'], r['eval']))['eval']))
     ref = st.reference
     if ref is not None and not ref['aborted'] and (cand is None or ref['loss'] <= cand['loss']):
         return ref
     return cand
 
 
-def _gains_of_eval(records: list[Record], i: int) -> dict[str, float]:
-    """The gains of completed evaluation ``i``."""
-    return next(
-        r.gains for r in records if isinstance(r, Evaluation) and r.eval == i and r.status == 'ok'
-    )
+def evaluation(records: list[Record], i: int) -> Evaluation:
+    """The measured record of evaluation ``i`` (one per index: lost and off-timing attempts
+    are other record types)."""
+    return next(r for r in records if isinstance(r, Evaluation) and r.eval == i)
 
 
 def summarize(
@@ -176,8 +161,8 @@ def summarize(
     ripple_limit: float | None = None,
     remeasure: int = 0,
 ) -> Summary:
-    """The run summary (summary.json) from the counters and the records; ``ripple_limit``
-    and ``remeasure``: the run's (run.yaml), for :func:`final_choice` and ``ripple``."""
+    """summary.json from the counters and the records (``ripple_limit``, ``remeasure``:
+    the run's)."""
     import numpy as np  # (here: reading the run's files needs no numpy, a report's --help)
 
     final = final_choice(st, records, ripple_limit)
@@ -228,9 +213,8 @@ def summarize(
 
 
 def held_periods(records: list[Record]) -> dict[str, int]:
-    """Held + late drive periods of the experiments that counted (a loss reported: ok or
-    aborted, within the timing tolerance): how many counted, how many had any, their sum
-    and the most in one."""
+    """Held + late drive periods of the experiments that counted: how many counted, how
+    many had any, their sum and the most in one."""
     n = [
         int(r.periods.get('held', 0)) + int(r.periods.get('late', 0))
         for r in records

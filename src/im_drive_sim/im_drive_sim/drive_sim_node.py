@@ -26,7 +26,6 @@ from .contract import NS_PER_S
 from .drive_file import load_config
 from .drive_io import DriveNode, run_drive_node
 from .drive_sim_counters import Counters, counter_values
-from .drive_sim_loops import run_lockstep, run_realtime
 from .drive_sim_main import parser
 from .drive_sim_parameters import declare_initial_position, declare_parameters
 from .pacing import CommandWatchdog
@@ -74,6 +73,7 @@ class DriveSimNode(DriveNode):
         self.republish_period: float = p['republish_period']
         self.realtime_wait_for_controller: bool = p['realtime_wait_for_controller']
         self.spin_margin: float = p['realtime_spin_margin']
+        self.period_s: float = self.config.Ts  #: the real-time loop's period [s]
         self.command_timeout: float = p['command_timeout']
         #: a drive that cannot pause (``pacing.Pacer``'s ``wall_clock``): real time only
         self.wall_clock: bool = bool(p['hardware_like']) and self.mode == 'realtime'
@@ -96,7 +96,7 @@ class DriveSimNode(DriveNode):
         #: command delay 2 (the command that acts over the next period)
         self.held = HeldCommand()
         self.latch = CommandLatch(self.config.command_delay)
-        self._cmd_watchdog = CommandWatchdog(self.command_timeout, self.config.Ts)
+        self.cmd_watchdog = CommandWatchdog(self.command_timeout, self.config.Ts)
         #: latched by :meth:`safe_stop`: zero current and no load from then on
         self.safe_stopped = False
         self._i_theta = contract.STATE_INDEX['theta_meas']
@@ -153,7 +153,7 @@ class DriveSimNode(DriveNode):
         problems = c.overruns + c.late + c.held if self.mode == 'realtime' else c.stale_ignored
         st.level = DiagnosticStatus.OK if problems == 0 else DiagnosticStatus.WARN
         st.message = 'ok' if problems == 0 else 'late commands / overruns counted'
-        if self._cmd_watchdog.tripped:
+        if self.cmd_watchdog.tripped:
             st.level = DiagnosticStatus.ERROR
             st.message = (
                 f'command watchdog: no command for more than '
@@ -177,7 +177,7 @@ class DriveSimNode(DriveNode):
             return None
         return self.read_command(data)
 
-    def _drop_latched(self) -> None:
+    def drop_latched(self) -> None:
         """Zero current and no load at once (a safe stop, the watchdog): no latched command
         runs after it."""
         self.sim.clear_command()
@@ -247,7 +247,7 @@ class DriveSimNode(DriveNode):
             c.held += missed
             c.missed += missed
         self.take_commands()
-        self._watchdog()
+        self.watchdog()
         if self.safe_stopped:  # the model runs on with zero current and no load
             held.zero()
             held.fresh = False
@@ -284,7 +284,7 @@ class DriveSimNode(DriveNode):
         took one (the watchdog is fed)."""
         self.safe_stopped = period_kernel.unpack_words(D, DC, self.held, self.latch, self.counters)
         if commands:
-            self._cmd_watchdog.command()
+            self.cmd_watchdog.command()
 
     def period_views(self) -> dict[str, np.ndarray]:
         """The model's arrays and the preallocated messages a compiled period writes:
@@ -328,69 +328,16 @@ class DriveSimNode(DriveNode):
         latch: the stop of a real-time run; ``pacing.PeriodicDrive``)."""
         self.safe_stopped = True
         self.held.zero()
-        self._drop_latched()
+        self.drop_latched()
 
     def close_hardware(self) -> None:
         """The simulated drive has no power stage to release: the safe stop only."""
         self.safe_stop()
 
-    def _watchdog(self) -> None:
-        """Real time: no command for ``command_timeout`` -> zero current and no load, held
-        until a command comes (then it resumes). Before the first command the held
-        command is already zero. When it expires: ``pacing.CommandWatchdog``."""
-        if self.watchdog_expired(
-            self._cmd_watchdog,
-            self.sim.step_index,
-            'zero current and no load until the next command',
-        ):
-            self.held.zero()
-            self._drop_latched()
-
-    def take_commands(self) -> None:
-        """Take all pending commands; the newest becomes the held command.
-
-        ``held.fresh`` tells whether the held command answers the latest published state
-        (or is untagged, -1) and came since the last step; a command answering an older
-        state counts as late (it is still the newest value, so it is held). A command
-        answering the same or an older state than the held one (a duplicate, or out of
-        order) is ignored and counted as ``stale_ignored``.
-        """
-        k = self.sim.step_index
-        held = self.held
-        while True:
-            cmd = self._take_command()
-            if cmd is None:
-                return
-            answers, isq, load = cmd
-            self._cmd_watchdog.command()  # the controller is alive either way
-            if self._cmd_watchdog.resume():
-                self.get_logger().info(f'watchdog: commands resumed at step {k}')
-            if 0 <= answers <= held.answers:
-                # A duplicate, or out of order (an older answer overtaken by a newer one):
-                # holding it would step back in time.
-                self.counters.stale_ignored += 1
-                continue
-            held.isq_ref, held.load = isq, load
-            held.applied = answers if answers >= 0 else -1
-            if answers >= 0:
-                held.answers = answers
-            if 0 <= answers < k:
-                self.counters.late += 1
-                held.fresh = False
-            else:
-                held.fresh = True
-
-    def run(self, executor) -> None:
-        # the first log call of a node is slow: never inside the real-time loop
-        if self._start_text:
-            self.get_logger().info(self._start_text)
-            self._start_text = ''
-        log = self.get_logger()
-        with rt.for_the_loop(self.rt_options, log.info, log.warn) as self.rt_report:
-            if self.mode == 'lockstep':
-                run_lockstep(self, executor)
-            else:
-                run_realtime(self, executor)
+    @property
+    def step_index(self) -> int:
+        """The step index of the latest published state."""
+        return self.sim.step_index
 
     def log_summary(self) -> None:
         c = self.counters

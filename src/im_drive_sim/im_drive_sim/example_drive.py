@@ -13,8 +13,9 @@ Copy this file for a real drive. It has two parts:
     stand-in plant with constants from the drive parameter file.
 (b) :class:`ExampleDrive` -- the ROS side, honouring docs/interfaces.md in real-time mode
     (state every period, commands taken at each period start, joint states, status, the
-    isq clamp and the command watchdog), hand-paced on the wall clock as drive_sim's
-    real-time mode. What a compiled loop calls on it is :mod:`.example_drive_compiled`'s.
+    isq clamp and the command watchdog), run by drive_sim's real-time loop
+    (``drive_io.run_realtime``). What a compiled loop calls on it is
+    :mod:`.example_drive_compiled`'s.
 
 Check a drive built from it with ``ros2 run im_drive_sim check_drive`` (docs/check-drive.md).
 """
@@ -27,7 +28,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import Any
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticStatus
 
 from . import contract, rt
@@ -40,8 +40,8 @@ from .drive_io import DriveNode, run_drive_node
 from .drive_sim_parameters import parameter_specs
 from .example_drive_compiled import CompiledPeriodHooks
 from .example_drive_main import check_hardware, hardware_factory, parser
-from .hardware_abi import HardwareFault, Measurement
-from .pacing import CommandWatchdog, Pacer
+from .hardware_abi import Measurement
+from .pacing import CommandWatchdog
 from .params import ConfigError, DriveConfig
 from .runtime import (
     param_descriptor,
@@ -169,8 +169,8 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
     """The ROS side (real time only). Hooks for subclasses: ``make_hardware``,
     ``apply_command``, ``fill_state``, ``make_joint_publisher``/``publish_joint_state``,
     ``watchdog`` and the attribute ``period_s``. ``start``/``period``/``take_commands``/
-    ``wait_command`` are what a loop runs (its own :meth:`run`, or the composed bench:
-    ``pacing.PeriodicDrive``)."""
+    ``wait_command`` are what a loop runs (``drive_io.run_realtime``, or the composed
+    bench: ``pacing.PeriodicDrive``)."""
 
     def __init__(
         self,
@@ -313,33 +313,10 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         v[12] = self.acting  # the command applied over the period that just ended
         v[13] = self.command_delay
 
-    def watchdog(self) -> None:
-        """No command for ``command_timeout`` -> zero current and no load until the next
-        command (when it expires: ``pacing.CommandWatchdog``)."""
-        if self.watchdog_expired(self.cmd_watchdog, self.k, 'zero current'):
-            self.held.zero()
-
-    # -- commands ---------------------------------------------------------------------------
-    def take_commands(self) -> None:
-        """Take every pending command; the newest valid one becomes the held command."""
-        held = self.held
-        # the subscription (our compact layout read in place), or the composed controller's
-        while (data := self.commands.next()) is not None:
-            command = self.read_command(data)
-            if command is None:
-                continue
-            answers, isq, load = command
-            if 0 <= answers <= held.answers:  # out of order, or a duplicate
-                self.counters.stale_ignored += 1
-                continue
-            held.answers = answers
-            held.applied = max(answers, -1)
-            held.isq_ref, held.load = isq, load
-            self.cmd_watchdog.command()
-            held.fresh = answers < 0 or answers == self.k
-            self.counters.late += 0 <= answers < self.k
-            if self.cmd_watchdog.resume():
-                self.get_logger().info(f'watchdog: commands resumed at step {self.k}')
+    @property
+    def step_index(self) -> int:
+        """The step index of the latest published state."""
+        return self.k
 
     def latest_state(self):
         """The state last published (``STATE_FIELDS``; the array is reused each period)."""
@@ -359,7 +336,9 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         j.position[0], j.velocity[0], j.effort[0] = v[2], v[3], v[4]
         self.counters.backpressure += publish_lossless(self.joint_pub, j, self.context)
 
-    def publish_status(self) -> None:
+    def publish_status(self, wall_elapsed: float | None = None) -> None:
+        """drive/status: the counters (``wall_elapsed``: no real-time factor for a drive
+        that lives on the wall clock)."""
         c = self.counters
         st = DiagnosticStatus(name=f'{self.get_name()}: example drive', hardware_id='example')
         st.level, st.message = DiagnosticStatus.OK, 'ok'
@@ -416,35 +395,6 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         self.fill_state(self.hw.read())
         self.publish_state()
         c.steps += 1
-
-    def run(self, executor) -> None:
-        """Period n starts at t0 + n period_s (pacing.Pacer): take commands, apply,
-        sample, publish."""
-        c = self.counters
-        log = self.get_logger()
-        with rt.for_the_loop(self.rt_options, log.info, log.warn) as self.rt_report:
-            try:
-                self.start()
-                pacer = Pacer(self.period_s, self.spin_margin, wall_clock=self.wall_clock)
-                next_status = pacer.t0 + 1.0
-                while not self.stop_requested and rclpy.ok(context=self.context):
-                    now = pacer.wait(self.wait_command, self.take_commands)
-                    c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
-                    self.period(pacer.missed)
-                    if pacer.n % 250 == 0:  # serve parameter requests between periods, every 50 ms
-                        executor.spin_once(timeout_sec=0.0)
-                        if now >= next_status:
-                            self.publish_status()
-                            next_status = now + 1.0
-            except HardwareFault as exc:  # the power stage's negative return: one line, exit 1
-                self.close_hardware()
-                self.get_logger().error(f'{exc}: zero current written, the drive stopped')
-                print(f'error: {self.get_name()}: {exc}; zero current written', file=sys.stderr)
-                raise SystemExit(1) from None
-            finally:
-                # however the loop ends (a signal, an exception): zero current first
-                self.close_hardware()
-        self.publish_status()
 
     def log_summary(self) -> None:
         self.get_logger().info(

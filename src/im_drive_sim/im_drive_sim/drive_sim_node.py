@@ -223,7 +223,7 @@ class DriveSimNode(DriveNode):
             return True
         return False
 
-    # -- one real-time period (the composed bench runs these; pacing.PeriodicDrive) -------
+    # -- one real-time period (the composed bench runs these; drive_io.DriveNode) -------
     def period(self, missed: int = 0) -> None:
         """One real-time period at its start: take the commands, the watchdog, step the
         model with the held command, publish state k+1 (``applied_step`` = the command's
@@ -325,7 +325,7 @@ class DriveSimNode(DriveNode):
 
     def safe_stop(self) -> None:
         """Zero current and no load from the next period on, whatever command comes (a
-        latch: the stop of a real-time run; ``pacing.PeriodicDrive``)."""
+        latch: the stop of a real-time run; ``drive_io.DriveNode``)."""
         self.safe_stopped = True
         self.held.zero()
         self.drop_latched()

@@ -14,8 +14,8 @@ Copy this file for a real drive. It has two parts:
 (b) :class:`ExampleDrive` -- the ROS side, honouring docs/interfaces.md in real-time mode
     (state every period, commands taken at each period start, joint states, status, the
     isq clamp and the command watchdog), run by drive_sim's real-time loop
-    (``drive_io.run_realtime``). What a compiled loop calls on it is
-    :mod:`.example_drive_compiled`'s.
+    (``drive_io.run_realtime``), or period by period by the composed bench's loop, as
+    Python or compiled (``period_words``: ``hardware_period``).
 
 Check a drive built from it with ``ros2 run im_drive_sim check_drive`` (docs/check-drive.md).
 """
@@ -30,7 +30,7 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticStatus
 
-from . import contract, rt
+from . import contract, hardware_period as HP, period_kernel as PK, rt
 from .cdr import Float64ArrayWire, JointStateWire
 from .cli import check_ros_args, parse_cli, run_cli
 from .command_latch import CommandLatch, HeldCommand
@@ -38,9 +38,8 @@ from .contract import NS_PER_S
 from .drive_file import load_config
 from .drive_io import DriveNode, run_drive_node
 from .drive_sim_parameters import parameter_specs
-from .example_drive_compiled import CompiledPeriodHooks
 from .example_drive_main import check_hardware, hardware_factory, parser
-from .hardware_abi import Measurement
+from .hardware_abi import HardwareEntry, Measurement
 from .pacing import CommandWatchdog
 from .params import ConfigError, DriveConfig
 from .runtime import (
@@ -165,12 +164,12 @@ class Counters:
     backpressure: int = 0  #: publish retries while a reliable reader was full
 
 
-class ExampleDrive(DriveNode, CompiledPeriodHooks):
+class ExampleDrive(DriveNode):
     """The ROS side (real time only). Hooks for subclasses: ``make_hardware``,
     ``apply_command``, ``fill_state``, ``make_joint_publisher``/``publish_joint_state``,
     ``watchdog`` and the attribute ``period_s``. ``start``/``period``/``take_commands``/
     ``wait_command`` are what a loop runs (``drive_io.run_realtime``, or the composed
-    bench: ``pacing.PeriodicDrive``)."""
+    bench: ``drive_io.DriveNode``)."""
 
     def __init__(
         self,
@@ -395,6 +394,53 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         self.fill_state(self.hw.read())
         self.publish_state()
         c.steps += 1
+
+    # -- the same period compiled (hardware_period; a composed loop: bench.compiled_loop) --
+    def hardware_entry(self) -> HardwareEntry | None:
+        """The power stage's addresses for a compiled loop (``hardware_abi``: a C library,
+        a compiled class); None for a Python hardware class (its periods run as Python)."""
+        entry = getattr(self.hw, 'entry', None)
+        return entry() if callable(entry) else None
+
+    def period_words(self) -> tuple[Any, Any]:
+        """The held command, latch, step index and counters as ``hardware_period``'s
+        ``D`` and ``DC``, for a compiled loop to run periods with (then
+        :meth:`set_period_words`)."""
+        words = {
+            'command_delay': self.command_delay,
+            'k': self.k,
+            'acting': self.acting,
+            'joint_state_decimation': self.joint_decimation,
+            'ts_ns': self.ts_ns,
+            'isq_max': self.isq_max,
+        }
+        return PK.pack_words(
+            self.held, self.latch, self.safe_stopped, words, self.counters, HP.WORDS
+        )
+
+    def set_period_words(self, D: Any, DC: Any, commands: bool) -> None:
+        """Take back what a compiled loop ran; ``commands``: it took one (the watchdog
+        is fed)."""
+        self.safe_stopped = PK.unpack_words(D, DC, self.held, self.latch, self.counters)
+        self.k = int(D[HP.D_K])
+        self.acting = int(D[HP.D_ACTING])
+        if commands:
+            self.cmd_watchdog.command()
+
+    def period_views(self) -> dict[str, Any]:
+        """The preallocated messages a compiled period writes: ``state`` and the
+        joint_states fields, and each message's bytes (``*_raw``) for the loop's outbox."""
+        j = self.joint
+        return {
+            'state': self.wire.values,
+            'joint_sec': j.sec,
+            'joint_nsec': j.nanosec,
+            'joint_pos': j.position,
+            'joint_vel': j.velocity,
+            'joint_eff': j.effort,
+            'state_raw': self.wire.raw,
+            'joint_raw': j.raw,
+        }
 
     def log_summary(self) -> None:
         self.get_logger().info(

@@ -53,12 +53,12 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
     makes its topics. Every drive topic is recorded, so every publisher is reliable
     KEEP_ALL (``qos.RECORDED_QOS``): a recorder that stalls (a loaded real-time machine)
     back-pressures, it never loses a sample. The 5 kHz command path lives on a hidden node
-    no executor spins. A subclass has ``counters`` (``commands``, ``fresh``, ``late``,
-    ``stale_ignored``, ``watchdog_trips``, ``watchdog_steps``, ``backpressure``), ``held``
-    (``command_latch.HeldCommand``), ``cmd_watchdog`` (``pacing.CommandWatchdog``),
-    ``step_index`` (the latest published state's) and what the loops read: ``period_s``,
-    ``spin_margin``, ``wall_clock``, ``start``, ``period``, ``publish_state``,
-    ``publish_status``, ``close_hardware``."""
+    no executor spins. A subclass has ``counters`` (``contract.STATUS_COUNTERS``),
+    ``held`` (``command_latch.HeldCommand``), ``latch`` (``command_latch.CommandLatch``),
+    ``cmd_watchdog`` (``pacing.CommandWatchdog``), ``safe_stopped``, ``step_index`` (the
+    latest published state's), ``period_s``, ``spin_margin``, ``wall_clock`` and the
+    methods ``start``, ``step``, ``skip``, ``publish_state``, ``publish_status``,
+    ``close_hardware``."""
 
     #: the layouts a drive node reports as read-only parameters
     #: (``runtime.parameter_hygiene``'s facts: an override may not advertise another one)
@@ -130,6 +130,34 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
             return None
         self.counters.commands += 1
         return int(data[CMD_STEP]), float(data[CMD_ISQ]), float(data[CMD_LOAD])
+
+    def period(self, missed: int = 0) -> None:
+        """One real-time period at its start (docs/interfaces.md, "Real time"): take the
+        commands, the watchdog, the latch (``command_latch``), then :meth:`step` -- apply
+        the held command (zero after a safe stop), sample, publish state k+1 labelled with
+        the acting command's step -- counted fresh or held.
+
+        ``missed`` (a drive that cannot pause, ``wall_clock``; ``pacing.Pacer``): whole
+        periods that went by before this one without a period of the loop; :meth:`skip`
+        runs them with the command held, unpublished, and they count held and missed (and
+        in steps: fresh + held = steps)."""
+        c, held = self.counters, self.held
+        if missed > 0 and self.wall_clock:
+            self.skip(missed)
+            held.fresh = False
+            c.steps += missed
+            c.held += missed
+            c.missed += missed
+        self.take_commands()
+        self.watchdog()
+        if self.safe_stopped:  # zero current and no load, labelled as no command
+            held.zero()
+            held.fresh = False
+        acting, fresh = self.latch.latch(held.applied, held.fresh)
+        c.fresh += fresh
+        c.held += not fresh
+        held.fresh = False  # it answered the state before this step
+        self.step(held.isq_ref, held.load, acting)
 
     def take_commands(self) -> None:
         """Take every pending command; the newest becomes the held command

@@ -183,7 +183,7 @@ class DriveSimNode(DriveNode):
         self.sim.clear_command()
         self.latch.drop()
 
-    def step_once(self, isq_ref: float, load_torque: float, applied: int) -> None:
+    def step(self, isq_ref: float, load_torque: float, applied: int) -> None:
         """Advance the model one period with this command and publish the new state;
         ``applied``: the ``answers_step`` of the command that acted over the period (-1:
         none; the latch's), the new state's ``applied_step``."""
@@ -219,46 +219,27 @@ class DriveSimNode(DriveNode):
                 self.counters.stale_ignored += 1  # a duplicate answer to a re-sent state
                 cmd = self._take_command()
                 continue
-            self.step_once(isq, load, self.latch.latch(answers, True)[0])
+            self.step(isq, load, self.latch.latch(answers, True)[0])
             return True
         return False
 
     # -- one real-time period (the composed bench runs these; drive_io.DriveNode) -------
     def period(self, missed: int = 0) -> None:
-        """One real-time period at its start: take the commands, the watchdog, step the
-        model with the held command, publish state k+1 (``applied_step`` = the command's
-        step).
-
-        ``missed`` (hardware-like mode, ``pacing.Pacer`` with ``wall_clock``): whole
-        periods that went by before this one without a period of the loop; the model runs
-        them first with the command it held (unpublished: a late loop sampled nothing),
-        counted held and missed."""
-        c = self.counters
-        held = self.held
-        if missed > 0 and self.wall_clock:
-            state = self._state
-            acting = held.applied
-            for _ in range(missed):  # periods as any other: the first takes the command
-                acting = self.latch.latch(held.applied, held.fresh)[0]
-                held.fresh = False
-                self.sim.step_into(held.isq_ref, held.load, state)
-            state[F_APPLIED] = acting
-            c.steps += missed
-            c.held += missed
-            c.missed += missed
-        self.take_commands()
-        self.watchdog()
-        if self.safe_stopped:  # the model runs on with zero current and no load
-            held.zero()
-            held.fresh = False
-        acting, fresh = self.latch.latch(held.applied, held.fresh)
-        if fresh:
-            c.fresh += 1
-        else:
-            c.held += 1
-        self.step_once(held.isq_ref, held.load, acting)
-        held.fresh = False  # it answered the state before this step
+        """``DriveNode.period``, then the test hook's stall (:meth:`stall_due`)."""
+        super().period(missed)
         self.stall_due()
+
+    def skip(self, missed: int) -> None:
+        """Hardware-like mode: the model runs the ``missed`` periods first with the command
+        it held (unpublished: a late loop sampled nothing); periods as any other, the first
+        takes the command."""
+        held, state = self.held, self._state
+        acting = held.applied
+        for _ in range(missed):
+            acting = self.latch.latch(held.applied, held.fresh)[0]
+            held.fresh = False
+            self.sim.step_into(held.isq_ref, held.load, state)
+        state[F_APPLIED] = acting
 
     # -- the same period compiled (period_kernel; a composed loop: bench.compiled_loop) --
     def period_words(self) -> tuple[np.ndarray, np.ndarray]:

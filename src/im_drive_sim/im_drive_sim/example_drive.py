@@ -360,40 +360,29 @@ class ExampleDrive(DriveNode):
         self.publish_state()
 
     def period(self, missed: int = 0) -> None:
-        """One period at its start: take commands, watchdog, apply, sample, publish
-        (nothing once the hardware is closed).
+        """``DriveNode.period``; nothing once the hardware is closed."""
+        if not self._hw_closed:
+            super().period(missed)
 
-        ``missed``: whole periods that went by since the last one without a period of
-        this loop (the loop started late: ``pacing.Pacer`` with ``wall_clock``). A power
-        stage cannot pause: it held the last command over them. They are counted
-        ``held`` and ``missed``, and the step index advances by them, so the state
-        published now is the one of the drive's real time (``time_ns = k Ts``)."""
-        if self._hw_closed:
-            return
-        c, held = self.counters, self.held
-        if missed > 0:
-            elapse = getattr(self.hw, 'elapse', None)
-            if callable(elapse):  # a simulated stand-in plant must be told time passed
-                elapse(missed)
-            self.acting = self.latch.hold(held.applied)  # it held what it was last written
-            held.fresh = False
-            self.k += missed
-            c.steps += missed  # periods of the drive's timeline: fresh + held = steps
-            c.held += missed
-            c.missed += missed
-        self.take_commands()
-        self.watchdog()
-        if self.safe_stopped:
-            held.applied, held.fresh = -1, False  # zero was applied, not a command
-        self.acting, fresh = self.latch.latch(held.applied, held.fresh)
-        c.fresh += fresh
-        c.held += not fresh
-        held.fresh = False
-        self.apply_command(held.isq_ref, held.load)
+    def skip(self, missed: int) -> None:
+        """A power stage cannot pause: it held the last command over the ``missed``
+        periods (a simulated stand-in plant is told: ``elapse``); the step index advances
+        by them, so the state published next is the one of the drive's real time
+        (``time_ns = k Ts``)."""
+        elapse = getattr(self.hw, 'elapse', None)
+        if callable(elapse):
+            elapse(missed)
+        self.acting = self.latch.hold(self.held.applied)  # it held what it was last written
+        self.k += missed
+
+    def step(self, isq_ref: float, load_torque: float, acting: int) -> None:
+        """Write the command, sample, publish state k+1 (``acting``: its applied_step)."""
+        self.acting = acting
+        self.apply_command(isq_ref, load_torque)
         self.k += 1
         self.fill_state(self.hw.read())
         self.publish_state()
-        c.steps += 1
+        self.counters.steps += 1
 
     # -- the same period compiled (hardware_period; a composed loop: bench.compiled_loop) --
     def hardware_entry(self) -> HardwareEntry | None:

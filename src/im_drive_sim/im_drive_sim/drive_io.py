@@ -27,19 +27,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from . import rt
-from .contract import (
-    CMD_ISQ,
-    CMD_LOAD,
-    CMD_STEP,
-    COMMAND_FIELDS,
-    COMMAND_TOPIC,
-    JOINT_STATE_TOPIC,
-    NS_PER_S,
-    STATE_FIELDS,
-    STATE_TOPIC,
-    STATUS_TOPIC,
-)
+from . import contract, rt
 from .hardware_abi import HardwareFault
 from .pacing import CommandSource, Pacer
 from .params import ConfigError
@@ -63,8 +51,8 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
     #: the layouts a drive node reports as read-only parameters
     #: (``runtime.parameter_hygiene``'s facts: an override may not advertise another one)
     LAYOUTS: ClassVar[dict[str, list[str]]] = {
-        'state_fields': list(STATE_FIELDS),
-        'command_fields': list(COMMAND_FIELDS),
+        'state_fields': list(contract.STATE_FIELDS),
+        'command_fields': list(contract.COMMAND_FIELDS),
     }
 
     counters: Any
@@ -87,15 +75,19 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
         node's namespace and context, never spun), taken through a hand-rolled WaitSet
         (:meth:`wait_command`); ``commands`` (``pacing.CommandSource``) takes from it, or
         from a composed controller that hands its commands over in memory."""
-        self.state_pub = self.create_publisher(Float64MultiArray, STATE_TOPIC, RECORDED_QOS)
+        self.state_pub = self.create_publisher(
+            Float64MultiArray, contract.STATE_TOPIC, RECORDED_QOS
+        )
         self.joint_pub = self.make_joint_publisher()
-        self.status_pub = self.create_publisher(DiagnosticArray, STATUS_TOPIC, RECORDED_QOS)
+        self.status_pub = self.create_publisher(
+            DiagnosticArray, contract.STATUS_TOPIC, RECORDED_QOS
+        )
         ns = self.get_namespace()
         self.io_node = Node(f'_{node_name}_io', context=self.context, namespace=ns)
         self.cmd_sub = self.io_node.create_subscription(
-            Float64MultiArray, COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS
+            Float64MultiArray, contract.COMMAND_TOPIC, lambda _m: None, LOCKSTEP_QOS
         )
-        self.commands = CommandSource(self.cmd_sub, len(COMMAND_FIELDS))
+        self.commands = CommandSource(self.cmd_sub, len(contract.COMMAND_FIELDS))
         self._cmd_waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
 
     def wait_command(self, timeout_s: float) -> bool:
@@ -103,33 +95,37 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
         ws = self._cmd_waitset
         ws.clear_entities()  # rcl_wait nulls entries that were not ready: re-add every time
         ws.add_subscription(self.cmd_sub.handle)
-        ws.wait(int(timeout_s * NS_PER_S))
+        ws.wait(int(timeout_s * contract.NS_PER_S))
         return ws.is_ready('subscription', 0)
 
     def make_joint_publisher(self) -> Any:
         """``drive/joint_states``' publisher (a hook: a test drive may publish none)."""
-        return self.create_publisher(JointState, JOINT_STATE_TOPIC, RECORDED_QOS)
+        return self.create_publisher(JointState, contract.JOINT_STATE_TOPIC, RECORDED_QOS)
 
     def read_command(self, data: Any) -> tuple[int, float, float] | None:
         """``drive/command``'s values ``data`` (``COMMAND_FIELDS``) as (answers_step,
         isq_ref [A], load torque [N m]), counted; None for a message of another length or
         with a value not finite, which the drive ignores (said on the log, at most once a
         second)."""
-        n = len(COMMAND_FIELDS)
+        n = len(contract.COMMAND_FIELDS)
         # (each value by index: no generator made per command on the drive's Python path)
         if len(data) != n or not (
-            math.isfinite(data[CMD_STEP])
-            and math.isfinite(data[CMD_ISQ])
-            and math.isfinite(data[CMD_LOAD])
+            math.isfinite(data[contract.CMD_STEP])
+            and math.isfinite(data[contract.CMD_ISQ])
+            and math.isfinite(data[contract.CMD_LOAD])
         ):
             self.get_logger().error(
-                f'{COMMAND_TOPIC}: expected {n} finite values {COMMAND_FIELDS}, got '
-                f'{len(data)} values or a value not finite; ignored',
+                f'{contract.COMMAND_TOPIC}: expected {n} finite values '
+                f'{contract.COMMAND_FIELDS}, got {len(data)} values or a value not finite; ignored',
                 throttle_duration_sec=1.0,
             )
             return None
         self.counters.commands += 1
-        return int(data[CMD_STEP]), float(data[CMD_ISQ]), float(data[CMD_LOAD])
+        return (
+            int(data[contract.CMD_STEP]),
+            float(data[contract.CMD_ISQ]),
+            float(data[contract.CMD_LOAD]),
+        )
 
     def period(self, missed: int = 0) -> None:
         """One real-time period at its start (docs/interfaces.md, "Real time"): take the
@@ -198,7 +194,7 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
         if w.trip():
             self.counters.watchdog_trips += 1
             self.get_logger().warn(
-                f'watchdog: no command on {COMMAND_TOPIC} for {w.timeout_s:g} s at step '
+                f'watchdog: no command on {contract.COMMAND_TOPIC} for {w.timeout_s:g} s at step '
                 f'{self.step_index}: zero current and no load until the next command'
             )
         self.counters.watchdog_steps += 1
@@ -250,7 +246,7 @@ def run_lockstep(drive: Any, executor: Any) -> None:
         if drive.max_steps and c.steps >= drive.max_steps:
             break
         wait_s = max(0.0, last_step + drive.republish_period - time.perf_counter())
-        if drive.lockstep_poll(int(wait_s * NS_PER_S)):
+        if drive.lockstep_poll(int(wait_s * contract.NS_PER_S)):
             last_step = time.perf_counter()
         elif time.perf_counter() - last_step >= drive.republish_period:
             # Idle: serve parameters (and the status: an idle drive still reports),

@@ -127,6 +127,19 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
             float(data[contract.CMD_LOAD]),
         )
 
+    def next_command(self) -> tuple[int, float, float] | None:
+        """The next valid pending command (:meth:`read_command`), None when none is: from
+        the subscription (our compact layout read in place), or the composed controller's."""
+        while (data := self.commands.next()) is not None:
+            command = self.read_command(data)
+            if command is not None:
+                return command
+        return None
+
+    def latest_state(self) -> Any:
+        """The state last published (``STATE_FIELDS``; the array is reused each period)."""
+        return self.wire.values
+
     def period(self, missed: int = 0) -> None:
         """One real-time period at its start (docs/interfaces.md, "Real time"): take the
         commands, the watchdog, the latch (``command_latch``), then :meth:`step` -- apply
@@ -164,11 +177,7 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
         command feeds the watchdog. ``period_kernel.take_command`` is its compiled copy."""
         k = self.step_index
         held = self.held
-        # the subscription (our compact layout read in place), or the composed controller's
-        while (data := self.commands.next()) is not None:
-            command = self.read_command(data)
-            if command is None:
-                continue
+        while (command := self.next_command()) is not None:
             answers, isq, load = command
             self.cmd_watchdog.command()  # the controller is alive either way
             if self.cmd_watchdog.resume():

@@ -88,8 +88,8 @@ class DriveSimNode(DriveNode):
         # Preallocated messages and buffers: nothing is built per step.
         # The state is published pre-serialised: the model writes straight into the CDR
         # buffer through a numpy view (see cdr.py), nothing is converted per step.
-        self._state_wire = Float64ArrayWire(len(contract.STATE_FIELDS))
-        self._state = self._state_wire.values
+        self.wire = Float64ArrayWire(len(contract.STATE_FIELDS))
+        self._state = self.wire.values
         self._clock_wire = ClockWire()  # pre-serialised: patched in place, no conversion
         self._joint_wire = JointStateWire('motor')
         #: the held command (zero before the first one) and the latch of a drive with
@@ -121,9 +121,7 @@ class DriveSimNode(DriveNode):
         """Publish the current state (and the decimated /clock, joint_states)."""
         s = self._state
         k = int(s[0])
-        self.counters.backpressure += publish_lossless(
-            self.state_pub, self._state_wire, self.context
-        )
+        self.counters.backpressure += publish_lossless(self.state_pub, self.wire, self.context)
         if k % self.clock_decimation == 0 or k % self.joint_state_decimation == 0:
             t_ns = k * self.ts_ns
             sec, nsec = divmod(t_ns, NS_PER_S)
@@ -171,12 +169,6 @@ class DriveSimNode(DriveNode):
         self.send_status(st, values)
 
     # -- the command path ------------------------------------------------------------------
-    def _take_command(self):
-        data = self.commands.next()  # the subscription, or the composed controller's
-        if data is None:
-            return None
-        return self.read_command(data)
-
     def drop_latched(self) -> None:
         """Zero current and no load at once (a safe stop, the watchdog): no latched command
         runs after it."""
@@ -208,19 +200,16 @@ class DriveSimNode(DriveNode):
         Commands answering another step are dropped and counted (``stale_ignored``).
         Usable by an in-process bench that interleaves the drive with its peers.
         """
-        cmd = self._take_command()  # in one process the answer is usually there already
-        if cmd is None:
-            if not self.wait_command(timeout_ns / NS_PER_S):
-                return False
-            cmd = self._take_command()
+        cmd = self.next_command()  # in one process the answer is usually there already
+        if cmd is None and self.wait_command(timeout_ns / NS_PER_S):
+            cmd = self.next_command()
         while cmd is not None:
             answers, isq, load = cmd
-            if 0 <= answers != self.sim.step_index:
-                self.counters.stale_ignored += 1  # a duplicate answer to a re-sent state
-                cmd = self._take_command()
-                continue
-            self.step(isq, load, self.latch.latch(answers, True)[0])
-            return True
+            if answers < 0 or answers == self.sim.step_index:
+                self.step(isq, load, self.latch.latch(answers, True)[0])
+                return True
+            self.counters.stale_ignored += 1  # a duplicate answer to a re-sent state
+            cmd = self.next_command()
         return False
 
     # -- one real-time period (the composed bench runs these; drive_io.DriveNode) -------
@@ -282,7 +271,7 @@ class DriveSimNode(DriveNode):
             'joint_pos': j.position,
             'joint_vel': j.velocity,
             'joint_eff': j.effort,
-            'state_raw': self._state_wire.raw,
+            'state_raw': self.wire.raw,
             'clock_raw': c.raw,
             'joint_raw': j.raw,
         }
@@ -299,10 +288,6 @@ class DriveSimNode(DriveNode):
     def warm_up(self) -> None:
         """Compile the model's kernels now, not in the first real-time period."""
         self.sim.warm_up(self._state)
-
-    def latest_state(self):
-        """The state last published (``STATE_FIELDS``; the array is reused each period)."""
-        return self._state
 
     def safe_stop(self) -> None:
         """Zero current and no load from the next period on, whatever command comes (a

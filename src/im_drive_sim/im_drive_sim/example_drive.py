@@ -317,10 +317,6 @@ class ExampleDrive(DriveNode):
         """The step index of the latest published state."""
         return self.k
 
-    def latest_state(self):
-        """The state last published (``STATE_FIELDS``; the array is reused each period)."""
-        return self.wire.values
-
     # -- publishing ------------------------------------------------------------------------
     def publish_state(self) -> None:
         # a full reliable reader (the recorder): back-pressure, never drop

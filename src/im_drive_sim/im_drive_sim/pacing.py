@@ -168,10 +168,6 @@ class CommandSource:
         self._handed: Any = None  #: the controller's command values (direct mode)
         self._pending = False
 
-    @property
-    def direct(self) -> bool:
-        return self._handed is not None
-
     def hand_over(self, values: Any) -> None:
         """The controller's newest command (its reused values array), for the next take."""
         self._handed = values

@@ -317,9 +317,6 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
     st: dict = {'zero_at': None, 'zero_run': 0, 'why': '', 'ref': None, 'i': i_on}
     end = time.monotonic() + 2 * hi + 1.0
 
-    def silent(k: int, s: np.ndarray) -> None:
-        return None
-
     def done() -> bool:
         for i in range(st['i'], p.n):
             s = p.states[i]
@@ -343,7 +340,7 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
             st['zero_run'] >= 10 or bool(st['why']) or drive_time > 2 * hi or time.monotonic() > end
         )
 
-    p.run(silent, done, 2 * hi + 1.5)
+    p.run(lambda k, s: None, done, 2 * hi + 1.5)  # silent
     ref = st['ref'] if st['ref'] is not None else t_last
     coverage = (int(p.source_ns[p.n - 1]) - ref) * 1e-9 if p.n > i_silent else 0.0
     t_zero = t_act = t_before = None

@@ -26,7 +26,6 @@ from .contract import NS_PER_S
 from .drive_file import load_config
 from .drive_io import DriveNode, run_drive_node
 from .drive_sim_counters import Counters, counter_values
-from .drive_sim_loops import run_lockstep, run_realtime
 from .drive_sim_main import parser
 from .drive_sim_parameters import declare_initial_position, declare_parameters
 from .pacing import CommandWatchdog
@@ -74,6 +73,7 @@ class DriveSimNode(DriveNode):
         self.republish_period: float = p['republish_period']
         self.realtime_wait_for_controller: bool = p['realtime_wait_for_controller']
         self.spin_margin: float = p['realtime_spin_margin']
+        self.period_s: float = self.config.Ts  #: the real-time loop's period [s]
         self.command_timeout: float = p['command_timeout']
         #: a drive that cannot pause (``pacing.Pacer``'s ``wall_clock``): real time only
         self.wall_clock: bool = bool(p['hardware_like']) and self.mode == 'realtime'
@@ -88,15 +88,15 @@ class DriveSimNode(DriveNode):
         # Preallocated messages and buffers: nothing is built per step.
         # The state is published pre-serialised: the model writes straight into the CDR
         # buffer through a numpy view (see cdr.py), nothing is converted per step.
-        self._state_wire = Float64ArrayWire(len(contract.STATE_FIELDS))
-        self._state = self._state_wire.values
+        self.wire = Float64ArrayWire(len(contract.STATE_FIELDS))
+        self._state = self.wire.values
         self._clock_wire = ClockWire()  # pre-serialised: patched in place, no conversion
         self._joint_wire = JointStateWire('motor')
         #: the held command (zero before the first one) and the latch of a drive with
         #: command delay 2 (the command that acts over the next period)
         self.held = HeldCommand()
         self.latch = CommandLatch(self.config.command_delay)
-        self._cmd_watchdog = CommandWatchdog(self.command_timeout, self.config.Ts)
+        self.cmd_watchdog = CommandWatchdog(self.command_timeout, self.config.Ts)
         #: latched by :meth:`safe_stop`: zero current and no load from then on
         self.safe_stopped = False
         self._i_theta = contract.STATE_INDEX['theta_meas']
@@ -121,9 +121,7 @@ class DriveSimNode(DriveNode):
         """Publish the current state (and the decimated /clock, joint_states)."""
         s = self._state
         k = int(s[0])
-        self.counters.backpressure += publish_lossless(
-            self.state_pub, self._state_wire, self.context
-        )
+        self.counters.backpressure += publish_lossless(self.state_pub, self.wire, self.context)
         if k % self.clock_decimation == 0 or k % self.joint_state_decimation == 0:
             t_ns = k * self.ts_ns
             sec, nsec = divmod(t_ns, NS_PER_S)
@@ -153,7 +151,7 @@ class DriveSimNode(DriveNode):
         problems = c.overruns + c.late + c.held if self.mode == 'realtime' else c.stale_ignored
         st.level = DiagnosticStatus.OK if problems == 0 else DiagnosticStatus.WARN
         st.message = 'ok' if problems == 0 else 'late commands / overruns counted'
-        if self._cmd_watchdog.tripped:
+        if self.cmd_watchdog.tripped:
             st.level = DiagnosticStatus.ERROR
             st.message = (
                 f'command watchdog: no command for more than '
@@ -171,19 +169,13 @@ class DriveSimNode(DriveNode):
         self.send_status(st, values)
 
     # -- the command path ------------------------------------------------------------------
-    def _take_command(self):
-        data = self.commands.next()  # the subscription, or the composed controller's
-        if data is None:
-            return None
-        return self.read_command(data)
-
-    def _drop_latched(self) -> None:
+    def drop_latched(self) -> None:
         """Zero current and no load at once (a safe stop, the watchdog): no latched command
         runs after it."""
         self.sim.clear_command()
         self.latch.drop()
 
-    def step_once(self, isq_ref: float, load_torque: float, applied: int) -> None:
+    def step(self, isq_ref: float, load_torque: float, applied: int) -> None:
         """Advance the model one period with this command and publish the new state;
         ``applied``: the ``answers_step`` of the command that acted over the period (-1:
         none; the latch's), the new state's ``applied_step``."""
@@ -208,57 +200,35 @@ class DriveSimNode(DriveNode):
         Commands answering another step are dropped and counted (``stale_ignored``).
         Usable by an in-process bench that interleaves the drive with its peers.
         """
-        cmd = self._take_command()  # in one process the answer is usually there already
-        if cmd is None:
-            if not self.wait_command(timeout_ns / NS_PER_S):
-                return False
-            cmd = self._take_command()
+        cmd = self.next_command()  # in one process the answer is usually there already
+        if cmd is None and self.wait_command(timeout_ns / NS_PER_S):
+            cmd = self.next_command()
         while cmd is not None:
             answers, isq, load = cmd
-            if 0 <= answers != self.sim.step_index:
-                self.counters.stale_ignored += 1  # a duplicate answer to a re-sent state
-                cmd = self._take_command()
-                continue
-            self.step_once(isq, load, self.latch.latch(answers, True)[0])
-            return True
+            if answers < 0 or answers == self.sim.step_index:
+                self.step(isq, load, self.latch.latch(answers, True)[0])
+                return True
+            self.counters.stale_ignored += 1  # a duplicate answer to a re-sent state
+            cmd = self.next_command()
         return False
 
-    # -- one real-time period (the composed bench runs these; pacing.PeriodicDrive) -------
+    # -- one real-time period (the composed bench runs these; drive_io.DriveNode) -------
     def period(self, missed: int = 0) -> None:
-        """One real-time period at its start: take the commands, the watchdog, step the
-        model with the held command, publish state k+1 (``applied_step`` = the command's
-        step).
-
-        ``missed`` (hardware-like mode, ``pacing.Pacer`` with ``wall_clock``): whole
-        periods that went by before this one without a period of the loop; the model runs
-        them first with the command it held (unpublished: a late loop sampled nothing),
-        counted held and missed."""
-        c = self.counters
-        held = self.held
-        if missed > 0 and self.wall_clock:
-            state = self._state
-            acting = held.applied
-            for _ in range(missed):  # periods as any other: the first takes the command
-                acting = self.latch.latch(held.applied, held.fresh)[0]
-                held.fresh = False
-                self.sim.step_into(held.isq_ref, held.load, state)
-            state[F_APPLIED] = acting
-            c.steps += missed
-            c.held += missed
-            c.missed += missed
-        self.take_commands()
-        self._watchdog()
-        if self.safe_stopped:  # the model runs on with zero current and no load
-            held.zero()
-            held.fresh = False
-        acting, fresh = self.latch.latch(held.applied, held.fresh)
-        if fresh:
-            c.fresh += 1
-        else:
-            c.held += 1
-        self.step_once(held.isq_ref, held.load, acting)
-        held.fresh = False  # it answered the state before this step
+        """``DriveNode.period``, then the test hook's stall (:meth:`stall_due`)."""
+        super().period(missed)
         self.stall_due()
+
+    def skip(self, missed: int) -> None:
+        """Hardware-like mode: the model runs the ``missed`` periods first with the command
+        it held (unpublished: a late loop sampled nothing); periods as any other, the first
+        takes the command."""
+        held, state = self.held, self._state
+        acting = held.applied
+        for _ in range(missed):
+            acting = self.latch.latch(held.applied, held.fresh)[0]
+            held.fresh = False
+            self.sim.step_into(held.isq_ref, held.load, state)
+        state[F_APPLIED] = acting
 
     # -- the same period compiled (period_kernel; a composed loop: bench.compiled_loop) --
     def period_words(self) -> tuple[np.ndarray, np.ndarray]:
@@ -284,7 +254,7 @@ class DriveSimNode(DriveNode):
         took one (the watchdog is fed)."""
         self.safe_stopped = period_kernel.unpack_words(D, DC, self.held, self.latch, self.counters)
         if commands:
-            self._cmd_watchdog.command()
+            self.cmd_watchdog.command()
 
     def period_views(self) -> dict[str, np.ndarray]:
         """The model's arrays and the preallocated messages a compiled period writes:
@@ -301,7 +271,7 @@ class DriveSimNode(DriveNode):
             'joint_pos': j.position,
             'joint_vel': j.velocity,
             'joint_eff': j.effort,
-            'state_raw': self._state_wire.raw,
+            'state_raw': self.wire.raw,
             'clock_raw': c.raw,
             'joint_raw': j.raw,
         }
@@ -319,78 +289,21 @@ class DriveSimNode(DriveNode):
         """Compile the model's kernels now, not in the first real-time period."""
         self.sim.warm_up(self._state)
 
-    def latest_state(self):
-        """The state last published (``STATE_FIELDS``; the array is reused each period)."""
-        return self._state
-
     def safe_stop(self) -> None:
         """Zero current and no load from the next period on, whatever command comes (a
-        latch: the stop of a real-time run; ``pacing.PeriodicDrive``)."""
+        latch: the stop of a real-time run; ``drive_io.DriveNode``)."""
         self.safe_stopped = True
         self.held.zero()
-        self._drop_latched()
+        self.drop_latched()
 
     def close_hardware(self) -> None:
         """The simulated drive has no power stage to release: the safe stop only."""
         self.safe_stop()
 
-    def _watchdog(self) -> None:
-        """Real time: no command for ``command_timeout`` -> zero current and no load, held
-        until a command comes (then it resumes). Before the first command the held
-        command is already zero. When it expires: ``pacing.CommandWatchdog``."""
-        if self.watchdog_expired(
-            self._cmd_watchdog,
-            self.sim.step_index,
-            'zero current and no load until the next command',
-        ):
-            self.held.zero()
-            self._drop_latched()
-
-    def take_commands(self) -> None:
-        """Take all pending commands; the newest becomes the held command.
-
-        ``held.fresh`` tells whether the held command answers the latest published state
-        (or is untagged, -1) and came since the last step; a command answering an older
-        state counts as late (it is still the newest value, so it is held). A command
-        answering the same or an older state than the held one (a duplicate, or out of
-        order) is ignored and counted as ``stale_ignored``.
-        """
-        k = self.sim.step_index
-        held = self.held
-        while True:
-            cmd = self._take_command()
-            if cmd is None:
-                return
-            answers, isq, load = cmd
-            self._cmd_watchdog.command()  # the controller is alive either way
-            if self._cmd_watchdog.resume():
-                self.get_logger().info(f'watchdog: commands resumed at step {k}')
-            if 0 <= answers <= held.answers:
-                # A duplicate, or out of order (an older answer overtaken by a newer one):
-                # holding it would step back in time.
-                self.counters.stale_ignored += 1
-                continue
-            held.isq_ref, held.load = isq, load
-            held.applied = answers if answers >= 0 else -1
-            if answers >= 0:
-                held.answers = answers
-            if 0 <= answers < k:
-                self.counters.late += 1
-                held.fresh = False
-            else:
-                held.fresh = True
-
-    def run(self, executor) -> None:
-        # the first log call of a node is slow: never inside the real-time loop
-        if self._start_text:
-            self.get_logger().info(self._start_text)
-            self._start_text = ''
-        log = self.get_logger()
-        with rt.for_the_loop(self.rt_options, log.info, log.warn) as self.rt_report:
-            if self.mode == 'lockstep':
-                run_lockstep(self, executor)
-            else:
-                run_realtime(self, executor)
+    @property
+    def step_index(self) -> int:
+        """The step index of the latest published state."""
+        return self.sim.step_index
 
     def log_summary(self) -> None:
         c = self.counters

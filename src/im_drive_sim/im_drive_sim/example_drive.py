@@ -13,8 +13,9 @@ Copy this file for a real drive. It has two parts:
     stand-in plant with constants from the drive parameter file.
 (b) :class:`ExampleDrive` -- the ROS side, honouring docs/interfaces.md in real-time mode
     (state every period, commands taken at each period start, joint states, status, the
-    isq clamp and the command watchdog), hand-paced on the wall clock as drive_sim's
-    real-time mode. What a compiled loop calls on it is :mod:`.example_drive_compiled`'s.
+    isq clamp and the command watchdog), run by drive_sim's real-time loop
+    (``drive_io.run_realtime``), or period by period by the composed bench's loop, as
+    Python or compiled (``period_words``: ``hardware_period``).
 
 Check a drive built from it with ``ros2 run im_drive_sim check_drive`` (docs/check-drive.md).
 """
@@ -27,10 +28,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import Any
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticStatus
 
-from . import contract, rt
+from . import contract, hardware_period as HP, period_kernel as PK, rt
 from .cdr import Float64ArrayWire, JointStateWire
 from .cli import check_ros_args, parse_cli, run_cli
 from .command_latch import CommandLatch, HeldCommand
@@ -38,10 +38,9 @@ from .contract import NS_PER_S
 from .drive_file import load_config
 from .drive_io import DriveNode, run_drive_node
 from .drive_sim_parameters import parameter_specs
-from .example_drive_compiled import CompiledPeriodHooks
 from .example_drive_main import check_hardware, hardware_factory, parser
-from .hardware_abi import HardwareFault, Measurement
-from .pacing import CommandWatchdog, Pacer
+from .hardware_abi import HardwareEntry, Measurement
+from .pacing import CommandWatchdog
 from .params import ConfigError, DriveConfig
 from .runtime import (
     param_descriptor,
@@ -165,12 +164,12 @@ class Counters:
     backpressure: int = 0  #: publish retries while a reliable reader was full
 
 
-class ExampleDrive(DriveNode, CompiledPeriodHooks):
+class ExampleDrive(DriveNode):
     """The ROS side (real time only). Hooks for subclasses: ``make_hardware``,
     ``apply_command``, ``fill_state``, ``make_joint_publisher``/``publish_joint_state``,
     ``watchdog`` and the attribute ``period_s``. ``start``/``period``/``take_commands``/
-    ``wait_command`` are what a loop runs (its own :meth:`run`, or the composed bench:
-    ``pacing.PeriodicDrive``)."""
+    ``wait_command`` are what a loop runs (``drive_io.run_realtime``, or the composed
+    bench: ``drive_io.DriveNode``)."""
 
     def __init__(
         self,
@@ -313,37 +312,10 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         v[12] = self.acting  # the command applied over the period that just ended
         v[13] = self.command_delay
 
-    def watchdog(self) -> None:
-        """No command for ``command_timeout`` -> zero current and no load until the next
-        command (when it expires: ``pacing.CommandWatchdog``)."""
-        if self.watchdog_expired(self.cmd_watchdog, self.k, 'zero current'):
-            self.held.zero()
-
-    # -- commands ---------------------------------------------------------------------------
-    def take_commands(self) -> None:
-        """Take every pending command; the newest valid one becomes the held command."""
-        held = self.held
-        # the subscription (our compact layout read in place), or the composed controller's
-        while (data := self.commands.next()) is not None:
-            command = self.read_command(data)
-            if command is None:
-                continue
-            answers, isq, load = command
-            if 0 <= answers <= held.answers:  # out of order, or a duplicate
-                self.counters.stale_ignored += 1
-                continue
-            held.answers = answers
-            held.applied = max(answers, -1)
-            held.isq_ref, held.load = isq, load
-            self.cmd_watchdog.command()
-            held.fresh = answers < 0 or answers == self.k
-            self.counters.late += 0 <= answers < self.k
-            if self.cmd_watchdog.resume():
-                self.get_logger().info(f'watchdog: commands resumed at step {self.k}')
-
-    def latest_state(self):
-        """The state last published (``STATE_FIELDS``; the array is reused each period)."""
-        return self.wire.values
+    @property
+    def step_index(self) -> int:
+        """The step index of the latest published state."""
+        return self.k
 
     # -- publishing ------------------------------------------------------------------------
     def publish_state(self) -> None:
@@ -359,7 +331,9 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         j.position[0], j.velocity[0], j.effort[0] = v[2], v[3], v[4]
         self.counters.backpressure += publish_lossless(self.joint_pub, j, self.context)
 
-    def publish_status(self) -> None:
+    def publish_status(self, wall_elapsed: float | None = None) -> None:
+        """drive/status: the counters (``wall_elapsed``: no real-time factor for a drive
+        that lives on the wall clock)."""
         c = self.counters
         st = DiagnosticStatus(name=f'{self.get_name()}: example drive', hardware_id='example')
         st.level, st.message = DiagnosticStatus.OK, 'ok'
@@ -382,69 +356,76 @@ class ExampleDrive(DriveNode, CompiledPeriodHooks):
         self.publish_state()
 
     def period(self, missed: int = 0) -> None:
-        """One period at its start: take commands, watchdog, apply, sample, publish
-        (nothing once the hardware is closed).
+        """``DriveNode.period``; nothing once the hardware is closed."""
+        if not self._hw_closed:
+            super().period(missed)
 
-        ``missed``: whole periods that went by since the last one without a period of
-        this loop (the loop started late: ``pacing.Pacer`` with ``wall_clock``). A power
-        stage cannot pause: it held the last command over them. They are counted
-        ``held`` and ``missed``, and the step index advances by them, so the state
-        published now is the one of the drive's real time (``time_ns = k Ts``)."""
-        if self._hw_closed:
-            return
-        c, held = self.counters, self.held
-        if missed > 0:
-            elapse = getattr(self.hw, 'elapse', None)
-            if callable(elapse):  # a simulated stand-in plant must be told time passed
-                elapse(missed)
-            self.acting = self.latch.hold(held.applied)  # it held what it was last written
-            held.fresh = False
-            self.k += missed
-            c.steps += missed  # periods of the drive's timeline: fresh + held = steps
-            c.held += missed
-            c.missed += missed
-        self.take_commands()
-        self.watchdog()
-        if self.safe_stopped:
-            held.applied, held.fresh = -1, False  # zero was applied, not a command
-        self.acting, fresh = self.latch.latch(held.applied, held.fresh)
-        c.fresh += fresh
-        c.held += not fresh
-        held.fresh = False
-        self.apply_command(held.isq_ref, held.load)
+    def skip(self, missed: int) -> None:
+        """A power stage cannot pause: it held the last command over the ``missed``
+        periods (a simulated stand-in plant is told: ``elapse``); the step index advances
+        by them, so the state published next is the one of the drive's real time
+        (``time_ns = k Ts``)."""
+        elapse = getattr(self.hw, 'elapse', None)
+        if callable(elapse):
+            elapse(missed)
+        self.acting = self.latch.hold(self.held.applied)  # it held what it was last written
+        self.k += missed
+
+    def step(self, isq_ref: float, load_torque: float, acting: int) -> None:
+        """Write the command, sample, publish state k+1 (``acting``: its applied_step)."""
+        self.acting = acting
+        self.apply_command(isq_ref, load_torque)
         self.k += 1
         self.fill_state(self.hw.read())
         self.publish_state()
-        c.steps += 1
+        self.counters.steps += 1
 
-    def run(self, executor) -> None:
-        """Period n starts at t0 + n period_s (pacing.Pacer): take commands, apply,
-        sample, publish."""
-        c = self.counters
-        log = self.get_logger()
-        with rt.for_the_loop(self.rt_options, log.info, log.warn) as self.rt_report:
-            try:
-                self.start()
-                pacer = Pacer(self.period_s, self.spin_margin, wall_clock=self.wall_clock)
-                next_status = pacer.t0 + 1.0
-                while not self.stop_requested and rclpy.ok(context=self.context):
-                    now = pacer.wait(self.wait_command, self.take_commands)
-                    c.overruns, c.max_lateness_us = pacer.overruns, pacer.max_lateness_us
-                    self.period(pacer.missed)
-                    if pacer.n % 250 == 0:  # serve parameter requests between periods, every 50 ms
-                        executor.spin_once(timeout_sec=0.0)
-                        if now >= next_status:
-                            self.publish_status()
-                            next_status = now + 1.0
-            except HardwareFault as exc:  # the power stage's negative return: one line, exit 1
-                self.close_hardware()
-                self.get_logger().error(f'{exc}: zero current written, the drive stopped')
-                print(f'error: {self.get_name()}: {exc}; zero current written', file=sys.stderr)
-                raise SystemExit(1) from None
-            finally:
-                # however the loop ends (a signal, an exception): zero current first
-                self.close_hardware()
-        self.publish_status()
+    # -- the same period compiled (hardware_period; a composed loop: bench.compiled_loop) --
+    def hardware_entry(self) -> HardwareEntry | None:
+        """The power stage's addresses for a compiled loop (``hardware_abi``: a C library,
+        a compiled class); None for a Python hardware class (its periods run as Python)."""
+        entry = getattr(self.hw, 'entry', None)
+        return entry() if callable(entry) else None
+
+    def period_words(self) -> tuple[Any, Any]:
+        """The held command, latch, step index and counters as ``hardware_period``'s
+        ``D`` and ``DC``, for a compiled loop to run periods with (then
+        :meth:`set_period_words`)."""
+        words = {
+            'command_delay': self.command_delay,
+            'k': self.k,
+            'acting': self.acting,
+            'joint_state_decimation': self.joint_decimation,
+            'ts_ns': self.ts_ns,
+            'isq_max': self.isq_max,
+        }
+        return PK.pack_words(
+            self.held, self.latch, self.safe_stopped, words, self.counters, HP.WORDS
+        )
+
+    def set_period_words(self, D: Any, DC: Any, commands: bool) -> None:
+        """Take back what a compiled loop ran; ``commands``: it took one (the watchdog
+        is fed)."""
+        self.safe_stopped = PK.unpack_words(D, DC, self.held, self.latch, self.counters)
+        self.k = int(D[HP.D_K])
+        self.acting = int(D[HP.D_ACTING])
+        if commands:
+            self.cmd_watchdog.command()
+
+    def period_views(self) -> dict[str, Any]:
+        """The preallocated messages a compiled period writes: ``state`` and the
+        joint_states fields, and each message's bytes (``*_raw``) for the loop's outbox."""
+        j = self.joint
+        return {
+            'state': self.wire.values,
+            'joint_sec': j.sec,
+            'joint_nsec': j.nanosec,
+            'joint_pos': j.position,
+            'joint_vel': j.velocity,
+            'joint_eff': j.effort,
+            'state_raw': self.wire.raw,
+            'joint_raw': j.raw,
+        }
 
     def log_summary(self) -> None:
         self.get_logger().info(

@@ -51,23 +51,6 @@ MSG_STATE, MSG_JOINT = PK.MSG_STATE, PK.MSG_JOINT
 F_APPLIED = PK.F_APPLIED
 
 
-def pack(node: Any, constants: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
-    """``D`` and ``DC`` of an ``ExampleDrive`` ``node`` (``period_kernel.pack_words`` of
-    its held command, latch, safe stop and counters; its step index, acting command) and
-    its ``constants`` (the other names of :data:`WORDS`)."""
-    own = {'command_delay': node.command_delay, 'k': node.k, 'acting': node.acting}
-    return PK.pack_words(
-        node.held, node.latch, node.safe_stopped, {**own, **constants}, node.counters, WORDS
-    )
-
-
-def unpack(D: np.ndarray, DC: np.ndarray, node: Any) -> None:
-    """Back from ``D`` and ``DC`` (:func:`pack`) into the node."""
-    node.safe_stopped = PK.unpack_words(D, DC, node.held, node.latch, node.counters)
-    node.k = int(D[D_K])
-    node.acting = int(D[D_ACTING])
-
-
 @njit(cache=True, nogil=True)
 def _fault(E: np.ndarray, D: np.ndarray, F: np.ndarray, code: int, call: int) -> int:
     """A negative return: zero current now (what that write returns is not looked at),

@@ -21,120 +21,11 @@ import math
 import numpy as np
 from numba import njit
 
+from . import model_layout as L
 from .model_layout import (
-    F_APPLIED,
-    F_CMD_DELAY,
-    F_COUNT,
-    F_I_ALPHA,
-    F_I_BETA,
-    F_ISD,
-    F_ISQ,
-    F_ISQ_REF,
-    F_LOAD,
-    F_OMEGA,
-    F_OMEGA_MEAS,
-    F_PSI_R,
-    F_STEP,
-    F_THETA,
-    F_THETA_MEAS,
-    F_TIME_NS,
-    F_TORQUE,
-    F_U_ALPHA,
-    F_U_BETA,
-    F_VSAT,
-    N_AMP,
-    N_DELAY,
-    N_RUN_FIELDS,
-    N_STATE_FIELDS as N_STATE_FIELDS,  # re-exported: see below
-    P_B,
-    P_CMD_DELAY,
-    P_DELAY,
-    P_ENC_K,
-    P_ENC_RES,
-    P_ENC_RES_TS,
-    P_EST_A,
-    P_INV_J,
-    P_INV_TAUR,
-    P_INV_WC,
-    P_INV_WS2,
-    P_IOFF_A,
-    P_IOFF_B,
-    P_ISD_REF,
-    P_ISQ_A,
-    P_ISQ_A0,
-    P_ISQ_AH,
-    P_ISQ_INT,
-    P_ISQ_MAX,
-    P_KI_TS,
-    P_KP,
-    P_KR,
-    P_KR_TAUR,
-    P_KT,
-    P_KTE,
-    P_LM,
-    P_LN_A,
-    P_LOAD_A,
-    P_LS,
-    P_LS_DELAY_N,
-    P_LS_ON,
-    P_MODEL,
-    P_NP,
-    P_PSI_MIN,
-    P_PSI_RATED,
-    P_RIP_AMP,
-    P_RIP_HARM,
-    P_RIP_PHASE,
-    P_RS,
-    P_RSIG,
-    P_SIGLS,
-    P_SLIP_K,
-    P_SPD_A,
-    P_STRIBECK,
-    P_TC,
-    P_TS,
-    P_TS_NS,
-    P_UMAX,
-    S_COUNT,
-    S_COUNT_PREV,
-    S_INT_D,
-    S_INT_Q,
-    S_ISA,
-    S_ISB,
-    S_ISD,
-    S_ISQ,
-    S_ISQ_REF,
-    S_LOAD_NOISE,
-    S_LS_ACT,
-    S_LS_CMD,
-    S_LS_TARGET,
-    S_LS_WAIT,
-    S_NPOS,
-    S_OMEGA,
-    S_OMEGA_F,
-    S_OMEGA_MEAS,
-    S_OMEGA_RAW,
-    S_OMEGA_SL,
-    S_PEND_ISQ,
-    S_PEND_TL,
-    S_PSI_HAT,
-    S_PSIA,
-    S_PSIB,
-    S_RED_ISQ,
-    S_RED_SLIP,
-    S_RHO,
-    S_SLIP_INT,
-    S_STEP,
-    S_THETA,
-    S_THETA_MEAS,
-    S_TLOAD,
-    S_TLOAD_F,
-    S_UA,
-    S_UA_NEXT,
-    S_UB,
-    S_UB_NEXT,
-    S_VSAT,
+    N_STATE_FIELDS as N_STATE_FIELDS,
     STATE_FIELDS as STATE_FIELDS,
-)
+)  # re-exported: see below
 from .plant import applied_voltage, friction_torque, plant_rk4
 
 # STATE_FIELDS and N_STATE_FIELDS stand here too, beside ``write_out`` that fills them:
@@ -175,43 +66,43 @@ def sample(
     omega_sl = Lm isq/(tau_r max(psi_hat, flux_floor)).  Reduced model: ideal orientation,
     (isd, isq) = (isd_rated, isq_true) + noise.
     """
-    th = S[S_THETA]
+    th = S[L.S_THETA]
     if n_t != 0.0:  # encoder edge jitter: the position the counter saw
-        th += S[S_OMEGA] * n_t
-    c = math.floor(th * P[P_ENC_K])
+        th += S[L.S_OMEGA] * n_t
+    c = math.floor(th * P[L.P_ENC_K])
     if advance:
-        S[S_COUNT_PREV] = S[S_COUNT]
-        S[S_OMEGA_RAW] = (c - S[S_COUNT_PREV]) * P[P_ENC_RES_TS]
-        a = P[P_SPD_A]
-        S[S_OMEGA_F] = a * S[S_OMEGA_F] + (1.0 - a) * S[S_OMEGA_RAW]
+        S[L.S_COUNT_PREV] = S[L.S_COUNT]
+        S[L.S_OMEGA_RAW] = (c - S[L.S_COUNT_PREV]) * P[L.P_ENC_RES_TS]
+        a = P[L.P_SPD_A]
+        S[L.S_OMEGA_F] = a * S[L.S_OMEGA_F] + (1.0 - a) * S[L.S_OMEGA_RAW]
     else:
-        S[S_COUNT_PREV] = c
-    S[S_COUNT] = c
-    S[S_THETA_MEAS] = c * P[P_ENC_RES]
-    S[S_OMEGA_MEAS] = S[S_OMEGA_F] + n_w
-    if P[P_MODEL] == 0.0:
+        S[L.S_COUNT_PREV] = c
+    S[L.S_COUNT] = c
+    S[L.S_THETA_MEAS] = c * P[L.P_ENC_RES]
+    S[L.S_OMEGA_MEAS] = S[L.S_OMEGA_F] + n_w
+    if P[L.P_MODEL] == 0.0:
         if advance:
-            ea = P[P_EST_A]
-            psi_prev = S[S_PSI_HAT]
-            S[S_PSI_HAT] = ea * psi_prev + (1.0 - ea) * P[P_LM] * S[S_ISD]
-            S[S_SLIP_INT] = _wrap(S[S_SLIP_INT] + S[S_OMEGA_SL] * P[P_TS])
-        rho = P[P_NP] * S[S_THETA_MEAS] + S[S_SLIP_INT]
+            ea = P[L.P_EST_A]
+            psi_prev = S[L.S_PSI_HAT]
+            S[L.S_PSI_HAT] = ea * psi_prev + (1.0 - ea) * P[L.P_LM] * S[L.S_ISD]
+            S[L.S_SLIP_INT] = _wrap(S[L.S_SLIP_INT] + S[L.S_OMEGA_SL] * P[L.P_TS])
+        rho = P[L.P_NP] * S[L.S_THETA_MEAS] + S[L.S_SLIP_INT]
         cr = math.cos(rho)
         sr = math.sin(rho)
-        ia = S[S_ISA] + n_ia + P[P_IOFF_A]
-        ib = S[S_ISB] + n_ib + P[P_IOFF_B]
-        S[S_RHO] = rho
-        S[S_ISD] = cr * ia + sr * ib
-        S[S_ISQ] = -sr * ia + cr * ib
-        psi = S[S_PSI_HAT]
-        if psi < P[P_PSI_MIN]:
-            psi = P[P_PSI_MIN]
-        S[S_OMEGA_SL] = P[P_LM] * S[S_ISQ] * P[P_INV_TAUR] / psi
+        ia = S[L.S_ISA] + n_ia + P[L.P_IOFF_A]
+        ib = S[L.S_ISB] + n_ib + P[L.P_IOFF_B]
+        S[L.S_RHO] = rho
+        S[L.S_ISD] = cr * ia + sr * ib
+        S[L.S_ISQ] = -sr * ia + cr * ib
+        psi = S[L.S_PSI_HAT]
+        if psi < P[L.P_PSI_MIN]:
+            psi = P[L.P_PSI_MIN]
+        S[L.S_OMEGA_SL] = P[L.P_LM] * S[L.S_ISQ] * P[L.P_INV_TAUR] / psi
     else:
-        S[S_RHO] = P[P_NP] * S[S_THETA] + S[S_RED_SLIP]
-        S[S_ISD] = P[P_ISD_REF] + n_ia
-        S[S_ISQ] = S[S_RED_ISQ] + n_ib
-        S[S_OMEGA_SL] = P[P_SLIP_K] * S[S_RED_ISQ]
+        S[L.S_RHO] = P[L.P_NP] * S[L.S_THETA] + S[L.S_RED_SLIP]
+        S[L.S_ISD] = P[L.P_ISD_REF] + n_ia
+        S[L.S_ISQ] = S[L.S_RED_ISQ] + n_ib
+        S[L.S_OMEGA_SL] = P[L.P_SLIP_K] * S[L.S_RED_ISQ]
 
 
 @njit(cache=True)
@@ -219,60 +110,60 @@ def load_step_acting(
     S: np.ndarray, P: np.ndarray, tl_cmd: float, n_amp: float, u_delay: float
 ) -> float:
     """The load torque [N m] the load machine applies for the command ``tl_cmd`` when its
-    steps vary (P[P_LS_ON]): on each change (edge) of the command, the new value times an
+    steps vary (P[L.P_LS_ON]): on each change (edge) of the command, the new value times an
     amplitude factor 1 + n_amp (n_amp ~ N(0, std), drawn then and held until the next
     edge) acts after floor(u_delay (N + 1)) periods, U{0..N} (u_delay uniform in [0, 1),
-    N = P[P_LS_DELAY_N]); the value acting before stays until then. An edge while one
+    N = P[L.P_LS_DELAY_N]); the value acting before stays until then. An edge while one
     waits replaces it (the old acting value holds until the new one's delay ends)."""
-    if tl_cmd != S[S_LS_CMD]:
-        S[S_LS_CMD] = tl_cmd
-        S[S_LS_TARGET] = tl_cmd * (1.0 + n_amp)
-        S[S_LS_WAIT] = math.floor(u_delay * (P[P_LS_DELAY_N] + 1.0))
-    if S[S_LS_WAIT] > 0.0:
-        S[S_LS_WAIT] -= 1.0
+    if tl_cmd != S[L.S_LS_CMD]:
+        S[L.S_LS_CMD] = tl_cmd
+        S[L.S_LS_TARGET] = tl_cmd * (1.0 + n_amp)
+        S[L.S_LS_WAIT] = math.floor(u_delay * (P[L.P_LS_DELAY_N] + 1.0))
+    if S[L.S_LS_WAIT] > 0.0:
+        S[L.S_LS_WAIT] -= 1.0
     else:
-        S[S_LS_ACT] = S[S_LS_TARGET]
-    return S[S_LS_ACT]
+        S[L.S_LS_ACT] = S[L.S_LS_TARGET]
+    return S[L.S_LS_ACT]
 
 
 @njit(cache=True)
 def _load(S: np.ndarray, P: np.ndarray, tl_cmd: float, noise: np.ndarray, r: int) -> float:
     """Load torque for this step (held over the step): the load machine's step (its
     variation, ``load_step_acting``, when on), lagged, + ripple + random (noise row r)."""
-    if P[P_LS_ON] != 0.0:
-        tl_cmd = load_step_acting(S, P, tl_cmd, noise[r, N_AMP], noise[r, N_DELAY])
+    if P[L.P_LS_ON] != 0.0:
+        tl_cmd = load_step_acting(S, P, tl_cmd, noise[r, L.N_AMP], noise[r, L.N_DELAY])
     n_load = noise[r, 3]
-    a = P[P_LOAD_A]
-    tlf = a * S[S_TLOAD_F] + (1.0 - a) * tl_cmd
-    S[S_TLOAD_F] = tlf
+    a = P[L.P_LOAD_A]
+    tlf = a * S[L.S_TLOAD_F] + (1.0 - a) * tl_cmd
+    S[L.S_TLOAD_F] = tlf
     tl = tlf
-    if P[P_RIP_AMP] != 0.0:
-        tl += P[P_RIP_AMP] * math.sin(P[P_RIP_HARM] * S[S_THETA] + P[P_RIP_PHASE])
-    v = P[P_LN_A] * S[S_LOAD_NOISE] + n_load
-    S[S_LOAD_NOISE] = v
+    if P[L.P_RIP_AMP] != 0.0:
+        tl += P[L.P_RIP_AMP] * math.sin(P[L.P_RIP_HARM] * S[L.S_THETA] + P[L.P_RIP_PHASE])
+    v = P[L.P_LN_A] * S[L.S_LOAD_NOISE] + n_load
+    S[L.S_LOAD_NOISE] = v
     tl += v
-    S[S_TLOAD] = tl
+    S[L.S_TLOAD] = tl
     return tl
 
 
 @njit(cache=True)
 def _next_noise_row(S: np.ndarray, noise: np.ndarray) -> int:
-    r = int(S[S_NPOS])
+    r = int(S[L.S_NPOS])
     nxt = r + 1
     if nxt >= noise.shape[0]:
         nxt = 0
-    S[S_NPOS] = nxt
+    S[L.S_NPOS] = nxt
     return r
 
 
 @njit(cache=True)
 def _clamp_isq(S: np.ndarray, P: np.ndarray, isq_ref: float) -> float:
     """isq* [A] clamped to +-isq_max, kept in S as the last step's reference."""
-    if isq_ref > P[P_ISQ_MAX]:
-        isq_ref = P[P_ISQ_MAX]
-    elif isq_ref < -P[P_ISQ_MAX]:
-        isq_ref = -P[P_ISQ_MAX]
-    S[S_ISQ_REF] = isq_ref
+    if isq_ref > P[L.P_ISQ_MAX]:
+        isq_ref = P[L.P_ISQ_MAX]
+    elif isq_ref < -P[L.P_ISQ_MAX]:
+        isq_ref = -P[L.P_ISQ_MAX]
+    S[L.S_ISQ_REF] = isq_ref
     return isq_ref
 
 
@@ -297,10 +188,10 @@ def _advance_full(
     the new time (noise row r)."""
     tl = _load(S, P, tl_cmd, noise, r)
     ua, ub = applied_voltage(S, ua, ub, P)  # the inverter's dead-time error
-    S[S_UA] = ua  # recorded as applied, not as commanded (they differ by the dead time)
-    S[S_UB] = ub
+    S[L.S_UA] = ua  # recorded as applied, not as commanded (they differ by the dead time)
+    S[L.S_UB] = ub
     plant_rk4(S, ua, ub, tl, P)
-    S[S_STEP] += 1.0
+    S[L.S_STEP] += 1.0
     sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], noise[r, 4], True)
 
 
@@ -318,18 +209,18 @@ def current_control(S: np.ndarray, P: np.ndarray, isq_ref: float):
     rho + omega_s Ts (0.5 + delay) (the mean flux angle while it is applied).
     """
     isq_ref = _clamp_isq(S, P, isq_ref)
-    isd = S[S_ISD]
-    isq = S[S_ISQ]
-    psi = S[S_PSI_HAT]
-    we = P[P_NP] * S[S_OMEGA_MEAS]
-    ws = we + S[S_OMEGA_SL]
-    sl = P[P_SIGLS]
-    ed = P[P_ISD_REF] - isd
+    isd = S[L.S_ISD]
+    isq = S[L.S_ISQ]
+    psi = S[L.S_PSI_HAT]
+    we = P[L.P_NP] * S[L.S_OMEGA_MEAS]
+    ws = we + S[L.S_OMEGA_SL]
+    sl = P[L.P_SIGLS]
+    ed = P[L.P_ISD_REF] - isd
     eq = isq_ref - isq
-    kp = P[P_KP]
-    ud0 = kp * ed + S[S_INT_D] - ws * sl * isq - P[P_KR_TAUR] * psi
-    uq0 = kp * eq + S[S_INT_Q] + ws * sl * isd + P[P_KR] * we * psi
-    um = P[P_UMAX]
+    kp = P[L.P_KP]
+    ud0 = kp * ed + S[L.S_INT_D] - ws * sl * isq - P[L.P_KR_TAUR] * psi
+    uq0 = kp * eq + S[L.S_INT_Q] + ws * sl * isd + P[L.P_KR] * we * psi
+    um = P[L.P_UMAX]
     ud = ud0
     if ud > um:
         ud = um
@@ -341,13 +232,13 @@ def current_control(S: np.ndarray, P: np.ndarray, isq_ref: float):
         uq = uql
     elif uq < -uql:
         uq = -uql
-    S[S_VSAT] = 1.0 if (ud != ud0 or uq != uq0) else 0.0
-    kit = P[P_KI_TS]
+    S[L.S_VSAT] = 1.0 if (ud != ud0 or uq != uq0) else 0.0
+    kit = P[L.P_KI_TS]
     if not ((ud0 > ud and ed > 0.0) or (ud0 < ud and ed < 0.0)):
-        S[S_INT_D] += kit * ed
+        S[L.S_INT_D] += kit * ed
     if not ((uq0 > uq and eq > 0.0) or (uq0 < uq and eq < 0.0)):
-        S[S_INT_Q] += kit * eq
-    ang = S[S_RHO] + ws * P[P_TS] * (0.5 + P[P_DELAY])
+        S[L.S_INT_Q] += kit * eq
+    ang = S[L.S_RHO] + ws * P[L.P_TS] * (0.5 + P[L.P_DELAY])
     ca = math.cos(ang)
     sa = math.sin(ang)
     return ca * ud - sa * uq, sa * ud + ca * uq
@@ -360,8 +251,8 @@ def step_full(
     """One Ts step of the full model with vector control (k -> k+1)."""
     r = _next_noise_row(S, noise)
     ua, ub = current_control(S, P, isq_ref)
-    if P[P_DELAY] != 0.0:  # computation delay: this step applies the previous voltage
-        ua, ub = _one_period_later(S, S_UA_NEXT, S_UB_NEXT, ua, ub)
+    if P[L.P_DELAY] != 0.0:  # computation delay: this step applies the previous voltage
+        ua, ub = _one_period_later(S, L.S_UA_NEXT, L.S_UB_NEXT, ua, ub)
     _advance_full(S, P, noise, r, ua, ub, tl_cmd)
 
 
@@ -371,9 +262,9 @@ def step_voltage_kernel(
 ) -> None:
     """One Ts step of the bare full model with given stationary-frame voltages (no control)."""
     r = _next_noise_row(S, noise)
-    S[S_UA_NEXT] = ua
-    S[S_UB_NEXT] = ub
-    S[S_VSAT] = 0.0
+    S[L.S_UA_NEXT] = ua
+    S[L.S_UB_NEXT] = ub
+    S[L.S_VSAT] = 0.0
     _advance_full(S, P, noise, r, ua, ub, tl_cmd)
 
 
@@ -390,21 +281,21 @@ def step_reduced(
     r = _next_noise_row(S, noise)
     isq_ref = _clamp_isq(S, P, isq_ref)
     tl = _load(S, P, tl_cmd, noise, r)
-    i0 = S[S_RED_ISQ]
+    i0 = S[L.S_RED_ISQ]
     di = i0 - isq_ref
-    i_0 = isq_ref + di * P[P_ISQ_A0]  # isq(0+): continuous unless the lag is ideal
-    i_h = isq_ref + di * P[P_ISQ_AH]
-    i_1 = isq_ref + di * P[P_ISQ_A]
-    kt = P[P_KT]
-    ij = P[P_INV_J]
-    b = P[P_B]
-    tc = P[P_TC]
-    iwc = P[P_INV_WC]
-    ds = P[P_STRIBECK]
-    iws2 = P[P_INV_WS2]
-    h = P[P_TS]
+    i_0 = isq_ref + di * P[L.P_ISQ_A0]  # isq(0+): continuous unless the lag is ideal
+    i_h = isq_ref + di * P[L.P_ISQ_AH]
+    i_1 = isq_ref + di * P[L.P_ISQ_A]
+    kt = P[L.P_KT]
+    ij = P[L.P_INV_J]
+    b = P[L.P_B]
+    tc = P[L.P_TC]
+    iwc = P[L.P_INV_WC]
+    ds = P[L.P_STRIBECK]
+    iws2 = P[L.P_INV_WS2]
+    h = P[L.P_TS]
     h2 = 0.5 * h
-    w0 = S[S_OMEGA]
+    w0 = S[L.S_OMEGA]
     f = friction_torque(w0, b, tc, iwc, ds, iws2)
     k1 = (kt * i_0 - f - tl) * ij
     w2 = w0 + h2 * k1
@@ -417,12 +308,12 @@ def step_reduced(
     f = friction_torque(w4, b, tc, iwc, ds, iws2)
     k4 = (kt * i_1 - f - tl) * ij
     h6 = h / 6.0
-    S[S_OMEGA] = w0 + h6 * (k1 + 2.0 * (k2 + k3) + k4)
-    S[S_THETA] = S[S_THETA] + h6 * (w0 + 2.0 * (w2 + w3) + w4)
+    S[L.S_OMEGA] = w0 + h6 * (k1 + 2.0 * (k2 + k3) + k4)
+    S[L.S_THETA] = S[L.S_THETA] + h6 * (w0 + 2.0 * (w2 + w3) + w4)
     # True flux angle relative to p theta: exact integral of omega_sl = SLIP_K isq(t).
-    S[S_RED_SLIP] = _wrap(S[S_RED_SLIP] + P[P_SLIP_K] * (isq_ref * h + di * P[P_ISQ_INT]))
-    S[S_RED_ISQ] = i_1
-    S[S_STEP] += 1.0
+    S[L.S_RED_SLIP] = _wrap(S[L.S_RED_SLIP] + P[L.P_SLIP_K] * (isq_ref * h + di * P[L.P_ISQ_INT]))
+    S[L.S_RED_ISQ] = i_1
+    S[L.S_STEP] += 1.0
     sample(S, P, noise[r, 0], noise[r, 1], noise[r, 2], noise[r, 4], True)
 
 
@@ -430,15 +321,15 @@ def step_reduced(
 def step_model(
     S: np.ndarray, P: np.ndarray, noise: np.ndarray, isq_ref: float, tl_cmd: float
 ) -> None:
-    """One step of the configured model (P[P_MODEL]: 0 full, 1 reduced).
+    """One step of the configured model (P[L.P_MODEL]: 0 full, 1 reduced).
 
-    Command delay (P[P_CMD_DELAY]): 1, the command acts over this step (given at state k,
+    Command delay (P[L.P_CMD_DELAY]): 1, the command acts over this step (given at state k,
     it drives k -> k+1); 2, a power stage that latches its command at the period start:
     this step runs the command given one step earlier and the new one waits for the next
     step (given at state k, it drives k+1 -> k+2). Zero before the first command."""
-    if P[P_CMD_DELAY] == 2.0:
-        isq_ref, tl_cmd = _one_period_later(S, S_PEND_ISQ, S_PEND_TL, isq_ref, tl_cmd)
-    if P[P_MODEL] == 0.0:
+    if P[L.P_CMD_DELAY] == 2.0:
+        isq_ref, tl_cmd = _one_period_later(S, L.S_PEND_ISQ, L.S_PEND_TL, isq_ref, tl_cmd)
+    if P[L.P_MODEL] == 0.0:
         step_full(S, P, noise, isq_ref, tl_cmd)
     else:
         step_reduced(S, P, noise, isq_ref, tl_cmd)
@@ -450,55 +341,55 @@ def clear_command(S: np.ndarray) -> None:
     The command latched for it (delay 2) and a load step waiting in the load machine's
     command cycle (``load_step_acting``) are dropped (the load lag, ripple and random load
     are the shaft's: they stay)."""
-    S[S_PEND_ISQ] = 0.0
-    S[S_PEND_TL] = 0.0
-    S[S_LS_CMD] = 0.0
-    S[S_LS_TARGET] = 0.0
-    S[S_LS_ACT] = 0.0
-    S[S_LS_WAIT] = 0.0
+    S[L.S_PEND_ISQ] = 0.0
+    S[L.S_PEND_TL] = 0.0
+    S[L.S_LS_CMD] = 0.0
+    S[L.S_LS_TARGET] = 0.0
+    S[L.S_LS_ACT] = 0.0
+    S[L.S_LS_WAIT] = 0.0
 
 
 # ----------------------------------------------------------------------- output
 @njit(cache=True)
 def write_out(S: np.ndarray, P: np.ndarray, out: np.ndarray) -> None:
-    """Write STATE_FIELDS (and EXTRA_FIELDS if len(out) >= N_RUN_FIELDS) for the current time."""
-    out[F_STEP] = S[S_STEP]
-    out[F_TIME_NS] = S[S_STEP] * P[P_TS_NS]
-    out[F_THETA_MEAS] = S[S_THETA_MEAS]
-    out[F_OMEGA_MEAS] = S[S_OMEGA_MEAS]
-    if P[P_MODEL] == 0.0:
-        out[F_TORQUE] = P[P_KTE] * (S[S_PSIA] * S[S_ISB] - S[S_PSIB] * S[S_ISA])
-        ia = S[S_ISA]
-        ib = S[S_ISB]
+    """Write STATE_FIELDS (and EXTRA_FIELDS if len(out) >= L.N_RUN_FIELDS) for the current time."""
+    out[L.F_STEP] = S[L.S_STEP]
+    out[L.F_TIME_NS] = S[L.S_STEP] * P[L.P_TS_NS]
+    out[L.F_THETA_MEAS] = S[L.S_THETA_MEAS]
+    out[L.F_OMEGA_MEAS] = S[L.S_OMEGA_MEAS]
+    if P[L.P_MODEL] == 0.0:
+        out[L.F_TORQUE] = P[L.P_KTE] * (S[L.S_PSIA] * S[L.S_ISB] - S[L.S_PSIB] * S[L.S_ISA])
+        ia = S[L.S_ISA]
+        ib = S[L.S_ISB]
     else:
-        out[F_TORQUE] = P[P_KT] * S[S_RED_ISQ]
-        rho = S[S_RHO]
+        out[L.F_TORQUE] = P[L.P_KT] * S[L.S_RED_ISQ]
+        rho = S[L.S_RHO]
         c = math.cos(rho)
         s = math.sin(rho)
-        ia = c * P[P_ISD_REF] - s * S[S_RED_ISQ]
-        ib = s * P[P_ISD_REF] + c * S[S_RED_ISQ]
-    out[F_ISD] = S[S_ISD]
-    out[F_ISQ] = S[S_ISQ]
-    out[F_I_ALPHA] = ia
-    out[F_I_BETA] = ib
-    out[F_LOAD] = S[S_TLOAD]
-    out[F_THETA] = S[S_THETA]
-    out[F_OMEGA] = S[S_OMEGA]
+        ia = c * P[L.P_ISD_REF] - s * S[L.S_RED_ISQ]
+        ib = s * P[L.P_ISD_REF] + c * S[L.S_RED_ISQ]
+    out[L.F_ISD] = S[L.S_ISD]
+    out[L.F_ISQ] = S[L.S_ISQ]
+    out[L.F_I_ALPHA] = ia
+    out[L.F_I_BETA] = ib
+    out[L.F_LOAD] = S[L.S_TLOAD]
+    out[L.F_THETA] = S[L.S_THETA]
+    out[L.F_OMEGA] = S[L.S_OMEGA]
     # the core applies each command over the period d - 1 periods after the state it was
     # given for (a node in real time overwrites this with the command it really applied)
-    out[F_APPLIED] = max(S[S_STEP] - P[P_CMD_DELAY], -1.0)
-    if out.shape[0] > F_CMD_DELAY:
-        out[F_CMD_DELAY] = P[P_CMD_DELAY]
-    if out.shape[0] >= N_RUN_FIELDS:
-        out[F_COUNT] = S[S_COUNT]
-        out[F_U_ALPHA] = S[S_UA]
-        out[F_U_BETA] = S[S_UB]
-        if P[P_MODEL] == 0.0:
-            out[F_PSI_R] = math.sqrt(S[S_PSIA] * S[S_PSIA] + S[S_PSIB] * S[S_PSIB])
+    out[L.F_APPLIED] = max(S[L.S_STEP] - P[L.P_CMD_DELAY], -1.0)
+    if out.shape[0] > L.F_CMD_DELAY:
+        out[L.F_CMD_DELAY] = P[L.P_CMD_DELAY]
+    if out.shape[0] >= L.N_RUN_FIELDS:
+        out[L.F_COUNT] = S[L.S_COUNT]
+        out[L.F_U_ALPHA] = S[L.S_UA]
+        out[L.F_U_BETA] = S[L.S_UB]
+        if P[L.P_MODEL] == 0.0:
+            out[L.F_PSI_R] = math.sqrt(S[L.S_PSIA] * S[L.S_PSIA] + S[L.S_PSIB] * S[L.S_PSIB])
         else:
-            out[F_PSI_R] = P[P_PSI_RATED]
-        out[F_VSAT] = S[S_VSAT]
-        out[F_ISQ_REF] = S[S_ISQ_REF]
+            out[L.F_PSI_R] = P[L.P_PSI_RATED]
+        out[L.F_VSAT] = S[L.S_VSAT]
+        out[L.F_ISQ_REF] = S[L.S_ISQ_REF]
 
 
 @njit(cache=True)
@@ -563,28 +454,28 @@ def reset_kernel(
     """
     for j in range(S.shape[0]):
         S[j] = 0.0
-    S[S_THETA] = theta
-    S[S_OMEGA] = omega
-    S[S_STEP] = step_index
-    S[S_OMEGA_F] = omega
+    S[L.S_THETA] = theta
+    S[L.S_OMEGA] = omega
+    S[L.S_STEP] = step_index
+    S[L.S_OMEGA_F] = omega
     sample(S, P, 0.0, 0.0, 0.0, 0.0, False)
-    if P[P_MODEL] == 0.0 and fluxed:
-        rho = P[P_NP] * S[S_THETA_MEAS]
+    if P[L.P_MODEL] == 0.0 and fluxed:
+        rho = P[L.P_NP] * S[L.S_THETA_MEAS]
         c = math.cos(rho)
         s = math.sin(rho)
-        isd = P[P_ISD_REF]
-        psi = P[P_PSI_RATED]
-        S[S_ISA] = isd * c
-        S[S_ISB] = isd * s
-        S[S_PSIA] = psi * c
-        S[S_PSIB] = psi * s
-        S[S_PSI_HAT] = psi
-        S[S_INT_D] = P[P_RSIG] * isd
-        S[S_INT_Q] = 0.0
-        ud = P[P_RS] * isd
-        uq = P[P_NP] * omega * P[P_LS] * isd
-        S[S_UA] = c * ud - s * uq
-        S[S_UB] = s * ud + c * uq
-        S[S_UA_NEXT] = S[S_UA]
-        S[S_UB_NEXT] = S[S_UB]
+        isd = P[L.P_ISD_REF]
+        psi = P[L.P_PSI_RATED]
+        S[L.S_ISA] = isd * c
+        S[L.S_ISB] = isd * s
+        S[L.S_PSIA] = psi * c
+        S[L.S_PSIB] = psi * s
+        S[L.S_PSI_HAT] = psi
+        S[L.S_INT_D] = P[L.P_RSIG] * isd
+        S[L.S_INT_Q] = 0.0
+        ud = P[L.P_RS] * isd
+        uq = P[L.P_NP] * omega * P[L.P_LS] * isd
+        S[L.S_UA] = c * ud - s * uq
+        S[L.S_UB] = s * ud + c * uq
+        S[L.S_UA_NEXT] = S[L.S_UA]
+        S[L.S_UB_NEXT] = S[L.S_UB]
         sample(S, P, 0.0, 0.0, 0.0, 0.0, False)

@@ -1,10 +1,9 @@
-"""The wall-clock schedule of a real-time drive, and what a drive offers a loop that runs it.
+"""The wall-clock schedule of a real-time drive, its command watchdog and where it takes
+its commands.
 
-Every real-time loop of the project -- the simulator's (``drive_sim --mode realtime``), the
-example drive's, and the composed bench's (``im_tuner.bench.realtime``) -- paces its
-periods with one :class:`Pacer`. A drive that a composed loop can run
-(:class:`PeriodicDrive`) is a node with the contract's topics and these methods;
-``DriveSimNode`` (real time) and ``ExampleDrive`` are two.
+Every real-time loop of the project -- the drive nodes' (``drive_io.run_realtime``) and
+the composed bench's (``im_tuner.bench.realtime``, which runs a ``drive_io.DriveNode``
+period by period) -- paces its periods with one :class:`Pacer`.
 
 Pure Python but for :class:`DurationHistograms` (one compiled call a period). Nothing here
 allocates per period.
@@ -15,42 +14,10 @@ from __future__ import annotations
 import bisect
 import time
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any
 
 import numba
 import numpy as np
-
-
-class PeriodicDrive(Protocol):
-    """A real-time drive, one period at a time (see docs/real-drive.md, "Timing").
-
-    ``start()`` publishes state 0; ``period()`` runs one period at its start (take the
-    commands, the watchdog, apply, sample, publish state k+1); ``take_commands()`` takes
-    what came since; ``wait_command(s)`` sleeps up to ``s`` seconds, True when a command is
-    pending; ``safe_stop()`` and ``close_hardware()`` (zero current, latched; then the
-    power stage released) run on every way out; ``latest_state()``: the state last
-    published; ``commands`` (a :class:`CommandSource`): where commands come from.
-    """
-
-    counters: Any
-    stop_requested: bool
-
-    def start(self) -> None: ...
-
-    def period(self) -> None: ...
-
-    def take_commands(self) -> None: ...
-
-    def wait_command(self, timeout_s: float) -> bool: ...
-
-    def latest_state(self) -> Any: ...
-
-    def publish_status(self) -> None: ...
-
-    def safe_stop(self) -> None: ...
-
-    def close_hardware(self) -> None: ...
-
 
 #: Upper edges [us] of the period-start lateness histogram (``Pacer.lateness_hist``; the
 #: last bin has no upper edge): within 10 us, 50, 200 (one period), 1 ms, 10 ms, beyond.
@@ -200,10 +167,6 @@ class CommandSource:
         self.n = n
         self._handed: Any = None  #: the controller's command values (direct mode)
         self._pending = False
-
-    @property
-    def direct(self) -> bool:
-        return self._handed is not None
 
     def hand_over(self, values: Any) -> None:
         """The controller's newest command (its reused values array), for the next take."""

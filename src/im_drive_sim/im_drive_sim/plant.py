@@ -14,38 +14,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .model_layout import (
-    P_B,
-    P_INV_J,
-    P_INV_SIGLS,
-    P_INV_TAUR,
-    P_INV_TTH,
-    P_INV_WC,
-    P_INV_WS2,
-    P_J,
-    P_KR,
-    P_KR_TAUR,
-    P_KTE,
-    P_LM,
-    P_LR,
-    P_LS,
-    P_NP,
-    P_RR,
-    P_RR_RISE,
-    P_RS,
-    P_RSIG,
-    P_STRIBECK,
-    P_TC,
-    P_TS,
-    P_VDT,
-    S_ISA,
-    S_ISB,
-    S_OMEGA,
-    S_PSIA,
-    S_PSIB,
-    S_STEP,
-    S_THETA,
-)
+from . import model_layout as L
 
 SQRT3 = math.sqrt(3.0)
 
@@ -70,7 +39,7 @@ def friction_torque(w: float, b: float, tc: float, iwc: float, ds: float, iws2: 
 @njit(cache=True)
 def friction_of(w: float, P: np.ndarray) -> float:
     """``friction_torque`` at speed w [rad/s] with the constants of P [N m]."""
-    return friction_torque(w, P[P_B], P[P_TC], P[P_INV_WC], P[P_STRIBECK], P[P_INV_WS2])
+    return friction_torque(w, P[L.P_B], P[L.P_TC], P[L.P_INV_WC], P[L.P_STRIBECK], P[L.P_INV_WS2])
 
 
 @njit(cache=True)
@@ -78,11 +47,11 @@ def rotor_resistance_scale(t: float, P: np.ndarray) -> float:
     """Rr(t)/Rr0 = 1 + alpha dT (1 - exp(-t/tau_th)) at time t [s] (1.0 when drift is off).
 
     The rotor warms by dT over the run with the thermal time constant tau_th;
-    alpha dT = P[P_RR_RISE]."""
-    rise = P[P_RR_RISE]
+    alpha dT = P[L.P_RR_RISE]."""
+    rise = P[L.P_RR_RISE]
     if rise == 0.0:
         return 1.0
-    return 1.0 + rise * (1.0 - math.exp(-t * P[P_INV_TTH]))
+    return 1.0 + rise * (1.0 - math.exp(-t * P[L.P_INV_TTH]))
 
 
 @njit(cache=True)
@@ -105,10 +74,10 @@ def deadtime_error(isa: float, isb: float, vdt: float) -> tuple[float, float]:
 def applied_voltage(S: np.ndarray, ua: float, ub: float, P: np.ndarray) -> tuple[float, float]:
     """The voltage [V] the machine gets for the inverter command (ua, ub): the command
     plus the dead-time error for the currents at the period start (held over the period)."""
-    vdt = P[P_VDT]
+    vdt = P[L.P_VDT]
     if vdt == 0.0:
         return ua, ub
-    da, db = deadtime_error(S[S_ISA], S[S_ISB], vdt)
+    da, db = deadtime_error(S[L.S_ISA], S[L.S_ISB], vdt)
     return ua + da, ub + db
 
 
@@ -133,23 +102,23 @@ def plant_deriv(
     with the rotor resistance g Rr (g = ``rotor_resistance_scale``, 1.0 nominal).
     Returns (di_sa, di_sb, dpsi_ra, dpsi_rb, domega); dtheta/dt = omega.
     """
-    kr = P[P_KR]
-    we = P[P_NP] * w
-    krt = P[P_KR_TAUR]
-    rsig = P[P_RSIG]
-    itr = P[P_INV_TAUR]
+    kr = P[L.P_KR]
+    we = P[L.P_NP] * w
+    krt = P[L.P_KR_TAUR]
+    rsig = P[L.P_RSIG]
+    itr = P[L.P_INV_TAUR]
     if g != 1.0:  # a warm rotor: every Rr term scales (kr/tau_r, 1/tau_r, kr^2 Rr)
         krt = krt * g
         itr = itr * g
-        rsig = P[P_RS] + (rsig - P[P_RS]) * g
-    isl = P[P_INV_SIGLS]
-    lm = P[P_LM]
+        rsig = P[L.P_RS] + (rsig - P[L.P_RS]) * g
+    isl = P[L.P_INV_SIGLS]
+    lm = P[L.P_LM]
     disa = (-rsig * isa + krt * pa + kr * we * pb + ua) * isl
     disb = (-rsig * isb + krt * pb - kr * we * pa + ub) * isl
     dpa = (lm * isa - pa) * itr - we * pb
     dpb = (lm * isb - pb) * itr + we * pa
     tf = friction_of(w, P)
-    dw = (P[P_KTE] * (pa * isb - pb * isa) - tf - tl) * P[P_INV_J]
+    dw = (P[L.P_KTE] * (pa * isb - pb * isa) - tf - tl) * P[L.P_INV_J]
     return disa, disb, dpa, dpb, dw
 
 
@@ -157,14 +126,14 @@ def plant_deriv(
 def plant_rk4(S: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray) -> None:
     """One classic RK4 step of length Ts on S[0:6] with u and T_L held (ZOH); the rotor
     resistance of the period start (its drift is slow) held too."""
-    h = P[P_TS]
-    g = rotor_resistance_scale(S[S_STEP] * h, P)
+    h = P[L.P_TS]
+    g = rotor_resistance_scale(S[L.S_STEP] * h, P)
     h2 = 0.5 * h
-    x0 = S[S_ISA]
-    x1 = S[S_ISB]
-    x2 = S[S_PSIA]
-    x3 = S[S_PSIB]
-    x4 = S[S_OMEGA]
+    x0 = S[L.S_ISA]
+    x1 = S[L.S_ISB]
+    x2 = S[L.S_PSIA]
+    x3 = S[L.S_PSIB]
+    x4 = S[L.S_OMEGA]
     a0, a1, a2, a3, a4 = plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P, g)
     w2 = x4 + h2 * a4
     b0, b1, b2, b3, b4 = plant_deriv(
@@ -179,12 +148,12 @@ def plant_rk4(S: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray) -> 
         x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3, w4, ua, ub, tl, P, g
     )
     h6 = h / 6.0
-    S[S_ISA] = x0 + h6 * (a0 + 2.0 * (b0 + c0) + d0)
-    S[S_ISB] = x1 + h6 * (a1 + 2.0 * (b1 + c1) + d1)
-    S[S_PSIA] = x2 + h6 * (a2 + 2.0 * (b2 + c2) + d2)
-    S[S_PSIB] = x3 + h6 * (a3 + 2.0 * (b3 + c3) + d3)
-    S[S_OMEGA] = x4 + h6 * (a4 + 2.0 * (b4 + c4) + d4)
-    S[S_THETA] = S[S_THETA] + h6 * (x4 + 2.0 * (w2 + w3) + w4)
+    S[L.S_ISA] = x0 + h6 * (a0 + 2.0 * (b0 + c0) + d0)
+    S[L.S_ISB] = x1 + h6 * (a1 + 2.0 * (b1 + c1) + d1)
+    S[L.S_PSIA] = x2 + h6 * (a2 + 2.0 * (b2 + c2) + d2)
+    S[L.S_PSIB] = x3 + h6 * (a3 + 2.0 * (b3 + c3) + d3)
+    S[L.S_OMEGA] = x4 + h6 * (a4 + 2.0 * (b4 + c4) + d4)
+    S[L.S_THETA] = S[L.S_THETA] + h6 * (x4 + 2.0 * (w2 + w3) + w4)
 
 
 @njit(cache=True)
@@ -205,13 +174,13 @@ def plant_powers(
     p_friction = T_friction(omega) omega, p_load = T_L omega)
     with the rotor current i_r = (psi_r - Lm i_s)/Lr.
     """
-    ira = (pa - P[P_LM] * isa) / P[P_LR]
-    irb = (pb - P[P_LM] * isb) / P[P_LR]
+    ira = (pa - P[L.P_LM] * isa) / P[L.P_LR]
+    irb = (pb - P[L.P_LM] * isb) / P[L.P_LR]
     tf = friction_of(w, P)
     return (
         1.5 * (ua * isa + ub * isb),
-        1.5 * P[P_RS] * (isa * isa + isb * isb),
-        1.5 * P[P_RR] * (ira * ira + irb * irb),
+        1.5 * P[L.P_RS] * (isa * isa + isb * isb),
+        1.5 * P[L.P_RR] * (ira * ira + irb * irb),
         tf * w,
         tl * w,
     )
@@ -223,15 +192,15 @@ def stored_energy(x: np.ndarray, P: np.ndarray):
 
     W_mag = 1.5 * 0.5 (Ls |i_s|^2 + 2 Lm i_s.i_r + Lr |i_r|^2),  W_kin = 0.5 J omega^2.
     """
-    lm = P[P_LM]
-    ira = (x[2] - lm * x[0]) / P[P_LR]
-    irb = (x[3] - lm * x[1]) / P[P_LR]
+    lm = P[L.P_LM]
+    ira = (x[2] - lm * x[0]) / P[L.P_LR]
+    irb = (x[3] - lm * x[1]) / P[L.P_LR]
     wm = 0.75 * (
-        P[P_LS] * (x[0] * x[0] + x[1] * x[1])
+        P[L.P_LS] * (x[0] * x[0] + x[1] * x[1])
         + 2.0 * lm * (x[0] * ira + x[1] * irb)
-        + P[P_LR] * (ira * ira + irb * irb)
+        + P[L.P_LR] * (ira * ira + irb * irb)
     )
-    return wm, 0.5 * P[P_J] * x[4] * x[4]
+    return wm, 0.5 * P[L.P_J] * x[4] * x[4]
 
 
 @njit(cache=True)
@@ -243,7 +212,7 @@ def plant_rk4_energy(
     x[0:6] is advanced exactly as ``plant_rk4`` does with the nominal rotor resistance (the
     augmented components do not feed back), e[0:5] += RK4 quadrature of ``plant_powers``.
     """
-    h = P[P_TS]
+    h = P[L.P_TS]
     h2 = 0.5 * h
     x0, x1, x2, x3, x4 = x[0], x[1], x[2], x[3], x[4]
     a0, a1, a2, a3, a4 = plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P, 1.0)

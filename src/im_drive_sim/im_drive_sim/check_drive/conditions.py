@@ -13,12 +13,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .thresholds import (
-    BUSY_FRESH_MIN,
-    BUSY_LATE_P99_S,
-    STATE_FIELDS,
-    F,
-)
+from .thresholds import BUSY_FRESH_MIN, BUSY_LATE_P99_S, STATE_FIELDS, F
 
 
 def excess_delay(take_ns: np.ndarray, source_ns: np.ndarray) -> np.ndarray:

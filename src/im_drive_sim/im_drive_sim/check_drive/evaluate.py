@@ -12,51 +12,7 @@ from typing import Any
 import numpy as np
 
 from ..contract import JOINT_STATE_TOPIC
-from .conditions import (
-    Conditions,
-    busy_reason,
-    command_lag,
-    drive_lateness,
-    excess_delay,
-    phase_conditions,
-)
-from .judges import (
-    clock_period,
-    joint_state_problems,
-    judge_fields,
-    judge_rate_lockstep,
-    judge_rate_realtime,
-    judge_topics,
-    lockstep_step_problems,
-    period_stats,
-    state_field_problems,
-    units_ratio,
-)
-from .response import (
-    StepSegment,
-    judge_latency,
-    judge_step_response,
-    judge_watchdog_lockstep,
-    judge_watchdog_realtime,
-    label_delay,
-    onset_delay,
-    step_metrics,
-    watchdog_limits,
-)
-from .thresholds import (
-    CURRENT_BOUND_FACTOR,
-    DRIVE_LATE_MAX_S,
-    DRIVE_LATE_SHARE_MAX,
-    ITEMS,
-    STATE_FIELDS,
-    STEP_GAP_MAX,
-    STEP_LAG_FRACTION,
-    TYPES,
-    UNITS_LATE_BAND,
-    WATCHDOG_REF_SLACK,
-    F,
-    Item,
-)
+from . import conditions as C, judges as J, response as R, thresholds as TH
 
 
 def fill_missed(d: np.ndarray) -> np.ndarray:
@@ -140,16 +96,16 @@ class Recording:
         """States of steps first..last as a dense array indexed by step - first (NaN where
         a step was not received; the first copy of a re-sent state); ``filled``: in real
         time with the short gaps bridged (:func:`fill_missed`)."""
-        out = np.full((last - first + 1, len(STATE_FIELDS)), np.nan)
-        s = self.states[self.lengths == len(STATE_FIELDS)]
-        k = s[:, F['step_index']].astype(np.int64)
+        out = np.full((last - first + 1, len(TH.STATE_FIELDS)), np.nan)
+        s = self.states[self.lengths == len(TH.STATE_FIELDS)]
+        k = s[:, TH.F['step_index']].astype(np.int64)
         sel = (k >= first) & (k <= last)
         for row, kk in zip(s[sel][::-1], k[sel][::-1], strict=True):
             out[kk - first] = row
         return fill_missed(out) if filled and self.realtime else out
 
 
-def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
+def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
     """The six items, in ``ITEMS`` order, judged from ``rec``. ``kept_up``, when given,
     receives the check's own measures per phase (:mod:`.conditions`)."""
     ts, ts_ns, isq_max, a = rec.ts, rec.ts_ns, rec.isq_max, rec.amplitude
@@ -157,28 +113,30 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
     i_rate0, i_rate1, m_rate0, rate_wall = rec.i_rate0, rec.i_rate1, rec.m_rate0, rec.rate_wall
     trans, step_trans, k_step_end = rec.trans, rec.step_trans, rec.k_step_end
     idle_advance, timeout = rec.idle_advance, rec.command_timeout
-    items: dict[str, Item] = {}
+    items: dict[str, TH.Item] = {}
     endpoints = rec.endpoints
-    items['topics'] = judge_topics(endpoints)
+    items['topics'] = J.judge_topics(endpoints)
 
     n = rec.n
-    bound = CURRENT_BOUND_FACTOR * math.hypot(isq_max, rec.rated_flux_current)
-    sp = state_field_problems(rec.states[:n], rec.lengths[:n], rec.seq[:n], ts_ns, realtime, bound)
+    bound = TH.CURRENT_BOUND_FACTOR * math.hypot(isq_max, rec.rated_flux_current)
+    sp = J.state_field_problems(
+        rec.states[:n], rec.lengths[:n], rec.seq[:n], ts_ns, realtime, bound
+    )
     k_first = step_trans[0][0] if step_trans else k_step_end
     dense = rec.rows_by_step(k_first, k_step_end + 1, filled=True)
-    motion = dense[np.isfinite(dense[:, F['theta_meas']])]
+    motion = dense[np.isfinite(dense[:, TH.F['theta_meas']])]
     if len(motion) > 20 and np.all(np.diff(motion[:, 0]) == 1):
-        th = motion[:, F['theta_meas']]
-        ratio = units_ratio(th, motion[:, F['omega_meas']], ts)
+        th = motion[:, TH.F['theta_meas']]
+        ratio = J.units_ratio(th, motion[:, TH.F['omega_meas']], ts)
         motion_counts = float(np.ptp(th) * counts_per_rad)
     else:
         ratio, motion_counts = math.nan, 0.0
     joints_ok_type = endpoints[JOINT_STATE_TOPIC] and all(
-        t == TYPES[JOINT_STATE_TOPIC] for t in endpoints[JOINT_STATE_TOPIC]
+        t == TH.TYPES[JOINT_STATE_TOPIC] for t in endpoints[JOINT_STATE_TOPIC]
     )
-    ok_rows = rec.lengths[:n] == len(STATE_FIELDS)
+    ok_rows = rec.lengths[:n] == len(TH.STATE_FIELDS)
     jp = (
-        joint_state_problems(
+        J.joint_state_problems(
             np.array(rec.joints, dtype=float).reshape(-1, 4), rec.states[:n][ok_rows], ts_ns
         )
         if joints_ok_type
@@ -188,19 +146,19 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
     # the units ratio integrates omega over k Ts: doubted where the drive's samples were
     # late (any ratio a late sample can bend it to), or where states are missing and the
     # line across them stands in for the motion (any ratio)
-    host, doubt_band = '', UNITS_LATE_BAND
-    if realtime and lateness.share(k_first, k_step_end) > DRIVE_LATE_SHARE_MAX:
+    host, doubt_band = '', TH.UNITS_LATE_BAND
+    if realtime and lateness.share(k_first, k_step_end) > TH.DRIVE_LATE_SHARE_MAX:
         host = lateness.describe(k_first, k_step_end)
-        if lateness.missing(k_first, k_step_end) > DRIVE_LATE_SHARE_MAX:
+        if lateness.missing(k_first, k_step_end) > TH.DRIVE_LATE_SHARE_MAX:
             doubt_band = (0.0, math.inf)
-    items['fields'] = judge_fields(sp, ratio, motion_counts, jp, host=host, doubt_band=doubt_band)
+    items['fields'] = J.judge_fields(sp, ratio, motion_counts, jp, host=host, doubt_band=doubt_band)
 
-    declared = rec.states[:n][ok_rows, F['command_delay']]
+    declared = rec.states[:n][ok_rows, TH.F['command_delay']]
     d_declared = int(np.median(declared)) if len(declared) else 1
-    excess = excess_delay(rec.take_ns[:n], rec.source_ns[:n])
-    conds: dict[str, Conditions] = {}
+    excess = C.excess_delay(rec.take_ns[:n], rec.source_ns[:n])
+    conds: dict[str, C.Conditions] = {}
     for name, (r0, r1) in {'rate': (i_rate0, i_rate1), **rec.phases}.items():
-        conds[name] = phase_conditions(
+        conds[name] = C.phase_conditions(
             rec.states[:n], rec.lengths[:n], rec.seq[:n], excess, d_declared, slice(r0, r1)
         )
     if kept_up is not None:
@@ -208,23 +166,23 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
 
     def busy(phase: str) -> str:
         c = conds.get(phase)
-        return busy_reason(c) if c is not None and realtime else ''
+        return C.busy_reason(c) if c is not None and realtime else ''
 
-    steps = rec.states[:n, F['step_index']]
+    steps = rec.states[:n, TH.F['step_index']]
     if realtime:
         sl = slice(i_rate0, i_rate1)
-        items['rate'] = judge_rate_realtime(
-            period_stats(steps[sl], rec.source_ns[sl], ts, rec.seq[sl]),
+        items['rate'] = J.judge_rate_realtime(
+            J.period_stats(steps[sl], rec.source_ns[sl], ts, rec.seq[sl]),
             ts,
             mode_note,
             busy('rate'),
         )
     else:
-        new, unanswered, skipped = lockstep_step_problems(
+        new, unanswered, skipped = J.lockstep_step_problems(
             steps[:n], rec.take_ns[:n], rec.cmd[: rec.m, 0], rec.cmd_ns[: rec.m]
         )
         rate_steps = np.count_nonzero(np.diff(steps[i_rate0:i_rate1]) > 0)
-        items['rate'] = judge_rate_lockstep(
+        items['rate'] = J.judge_rate_lockstep(
             new, unanswered, skipped, idle_advance, rate_steps / rate_wall, mode_note
         )
 
@@ -247,15 +205,15 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
         d = rec.rows_by_step(k0 - 20, k0 + 25, filled=True)
         # judged only with every state from 16 before to 21 after (filled in real time)
         complete.append(bool(np.isfinite(d[4:42]).all()))
-        delays.append(onset_delay(d[:, F['isq']], 20, level - prev))
-        labels.append(label_delay(d[:, F['applied_step']], 20, k0))
+        delays.append(R.onset_delay(d[:, TH.F['isq']], 20, level - prev))
+        labels.append(R.label_delay(d[:, TH.F['applied_step']], 20, k0))
         x, y = delays[-1], labels[-1]
         # the drive's periods from the change to where it shows and is labelled
         on_time.append(
             not realtime
             or (x is not None and y is not None and lateness.on_time(k0, k0 + max(x, y) + 1))
         )
-    items['latency'] = judge_latency(
+    items['latency'] = R.judge_latency(
         delays,
         np.array(wall),
         realtime,
@@ -272,25 +230,29 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
         metrics = []
         for (k0, level, prev), (k1, _, _) in itertools.pairwise(step_trans[1:4]):
             d = rec.rows_by_step(k0 - 20, k1, filled=True)
-            delay = onset_delay(d[:, F['isq']], 20, level - prev)
+            delay = R.onset_delay(d[:, TH.F['isq']], 20, level - prev)
             seg = d[20 : k1 - k0 + 20]
             metrics.append(
-                step_metrics(
-                    StepSegment(
-                        level, prev, seg[:, F['isq']], seg[:, F['torque']], seg[:, F['theta_meas']]
+                R.step_metrics(
+                    R.StepSegment(
+                        level,
+                        prev,
+                        seg[:, TH.F['isq']],
+                        seg[:, TH.F['torque']],
+                        seg[:, TH.F['theta_meas']],
                     ),
                     ts,
                     delay,
                 )
             )
         gaps, late = step_busy(rec, d_declared)
-        items['step_response'] = judge_step_response(
+        items['step_response'] = R.judge_step_response(
             metrics[0], metrics[1], a, counts_per_rad, busy=late, gaps=gaps
         )
     else:
         figures = ('rise_s', 'steady_error', 'torque_per_amp', 'accel')
         nan = {**dict.fromkeys(figures, math.nan), 'duration_s': 0.0}
-        item = judge_step_response(
+        item = R.judge_step_response(
             nan, nan, a, counts_per_rad, rec.aborted_why or 'step test incomplete'
         )
         held = abort_busy(rec, d_declared) if rec.aborted_why and realtime else ''
@@ -303,7 +265,7 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
             # times: it fell behind (descheduled, or the link held the states), not the
             # drive -- nothing was measured to judge
             c = conds.get('step')
-            seen = busy_reason(c) if c is not None else ''
+            seen = C.busy_reason(c) if c is not None else ''
             late = f'; took states up to {c.late_max_s * 1e3:.1f} ms late' if c else ''
             item = item.undecided(
                 f"the check answered {len(step_trans)} of the step test's 4 level changes "
@@ -312,7 +274,7 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
         items['step_response'] = item
 
     if realtime:
-        items['watchdog'] = judge_watchdog_realtime(
+        items['watchdog'] = R.judge_watchdog_realtime(
             rec.watchdog['t_act'],
             rec.watchdog['t_zero'],
             timeout,
@@ -322,10 +284,10 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[Item]:
             busy=watchdog_busy(rec, d_declared, excess),
         )
     else:
-        items['watchdog'] = judge_watchdog_lockstep(
+        items['watchdog'] = R.judge_watchdog_lockstep(
             rec.watchdog['silence_s'], rec.watchdog['advanced'], rec.watchdog['resumed_s']
         )
-    return [items[name] for name in ITEMS]
+    return [items[name] for name in TH.ITEMS]
 
 
 class DriveLateness:
@@ -333,11 +295,11 @@ class DriveLateness:
     (:func:`~.conditions.drive_lateness`): which were on time, and the share late."""
 
     def __init__(self, rec: Recording) -> None:
-        ok = rec.lengths == len(STATE_FIELDS)
-        steps, source = rec.states[ok, F['step_index']], rec.source_ns[ok]
-        clock = clock_period(steps, source)  # [s per step]; NaN with too few states
+        ok = rec.lengths == len(TH.STATE_FIELDS)
+        steps, source = rec.states[ok, TH.F['step_index']], rec.source_ns[ok]
+        clock = J.clock_period(steps, source)  # [s per step]; NaN with too few states
         period_ns = clock * 1e9 if math.isfinite(clock) else float(rec.ts_ns)
-        self.late_s, self.first = drive_lateness(steps, source, period_ns)
+        self.late_s, self.first = C.drive_lateness(steps, source, period_ns)
 
     def _window(self, k0: int | None, k1: int | None) -> np.ndarray:
         """The lateness of periods k0..k1 (all: None)."""
@@ -349,14 +311,14 @@ class DriveLateness:
     def on_time(self, k0: int, k1: int) -> bool:
         """Every period k0..k1 published, at most DRIVE_LATE_MAX_S late."""
         w = self._window(k0, k1)
-        return len(w) == k1 - k0 + 1 and bool(np.all(w <= DRIVE_LATE_MAX_S))
+        return len(w) == k1 - k0 + 1 and bool(np.all(w <= TH.DRIVE_LATE_MAX_S))
 
     def share(self, k0: int | None = None, k1: int | None = None) -> float:
         """The fraction of the periods k0..k1 (all: None) late or not published."""
         w = self._window(k0, k1)
         if len(w) == 0:
             return 0.0
-        return float(np.mean(~(w <= DRIVE_LATE_MAX_S)))  # (NaN: not published: late)
+        return float(np.mean(~(w <= TH.DRIVE_LATE_MAX_S)))  # (NaN: not published: late)
 
     def missing(self, k0: int, k1: int) -> float:
         """The fraction of the periods k0..k1 whose state was not received."""
@@ -367,10 +329,10 @@ class DriveLateness:
         """The drive's host in words, over k0..k1 (all: None)."""
         w = self._window(k0, k1)
         skipped = int(np.count_nonzero(np.isnan(w)))
-        late = int(np.count_nonzero(w > DRIVE_LATE_MAX_S))
+        late = int(np.count_nonzero(w > TH.DRIVE_LATE_MAX_S))
         return (
             f"the drive's host: {late + skipped} of its {len(w)} periods "
-            f'({self.share(k0, k1) * 100:.1f} %) started > {DRIVE_LATE_MAX_S * 1e6:.0f} us '
+            f'({self.share(k0, k1) * 100:.1f} %) started > {TH.DRIVE_LATE_MAX_S * 1e6:.0f} us '
             f'late or were not received ({skipped})'
         )
 
@@ -388,11 +350,11 @@ def step_busy(rec: Recording, declared: int) -> tuple[str, str]:
     gaps = late = ''
     idx = np.flatnonzero(have)
     gap = int(np.diff(np.concatenate(([-1], idx, [len(d)]))).max()) - 1 if len(d) else 0
-    if gap > STEP_GAP_MAX:
+    if gap > TH.STEP_GAP_MAX:
         gaps = f'{gap} consecutive states missing in the step'
-    lag = command_lag(d[have], declared)
+    lag = C.command_lag(d[have], declared)
     lag = lag[np.isfinite(lag)]
-    if len(lag) and lag.max() > STEP_LAG_FRACTION * (k1 - k0):
+    if len(lag) and lag.max() > TH.STEP_LAG_FRACTION * (k1 - k0):
         late = (
             f'commands reached the drive up to {lag.max():.0f} periods late during the step '
             f'(in time: {np.mean(lag <= 0) * 100:.0f} %)'
@@ -401,7 +363,7 @@ def step_busy(rec: Recording, declared: int) -> tuple[str, str]:
     # command_timeout -- the check fell silent (descheduled) or the link held the
     # commands -- and it held zero current where the step was commanded: the step it was
     # given is not the one commanded, its rise included
-    held = int(np.count_nonzero(d[have][:, F['applied_step']] < 0))
+    held = int(np.count_nonzero(d[have][:, TH.F['applied_step']] < 0))
     if held:
         gaps = '; '.join(
             w
@@ -423,11 +385,11 @@ def abort_busy(rec: Recording, declared: int) -> str:
     i0, i1 = rec.phases.get('step', (0, 0))
     if len(rec.step_trans) < 2 or rec.step_steps <= 0 or i1 <= i0:
         return ''
-    rows = rec.states[i0:i1][rec.lengths[i0:i1] == len(STATE_FIELDS)]
-    rows = rows[rows[:, F['step_index']] >= rec.step_trans[1][0]]
-    lag = command_lag(rows, declared)
+    rows = rec.states[i0:i1][rec.lengths[i0:i1] == len(TH.STATE_FIELDS)]
+    rows = rows[rows[:, TH.F['step_index']] >= rec.step_trans[1][0]]
+    lag = C.command_lag(rows, declared)
     lag = lag[np.isfinite(lag)]
-    if not len(lag) or lag.max() <= STEP_LAG_FRACTION * rec.step_steps:
+    if not len(lag) or lag.max() <= TH.STEP_LAG_FRACTION * rec.step_steps:
         return ''
     return (
         f'commands reached the drive up to {lag.max():.0f} periods late before the abort '
@@ -446,18 +408,18 @@ def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:
     n = rec.n
     r0, r1 = wd.get('rows_on', (0, 0))
     q0 = wd.get('rows_resume', (r1, r1))[0]
-    seen = rec.states[r0:q0][rec.lengths[r0:q0] == len(STATE_FIELDS)]
-    if wd.get('ref') == 'published' and not np.any(seen[:, F['isq']] > rec.amplitude / 4):
+    seen = rec.states[r0:q0][rec.lengths[r0:q0] == len(TH.STATE_FIELDS)]
+    if wd.get('ref') == 'published' and not np.any(seen[:, TH.F['isq']] > rec.amplitude / 4):
         # the drive never showed the test's command applied, nor carried its current:
         # the commands did not reach it (its watchdog may have held zero before the test
         # began), so the fall and the resume were not its answer to the test
-        newest = int(seen[:, F['applied_step']].max()) if len(seen) else -1
+        newest = int(seen[:, TH.F['applied_step']].max()) if len(seen) else -1
         why.append(
             "the drive never carried the watchdog test's current nor showed its commands "
             f"applied (the newest it showed answered step {newest}, the test's last "
             f'{wd.get("k_last")}; -1: none): they did not reach it'
         )
-    lag = command_lag(rec.states[r0:r1][rec.lengths[r0:r1] == len(STATE_FIELDS)], declared)
+    lag = C.command_lag(rec.states[r0:r1][rec.lengths[r0:r1] == len(TH.STATE_FIELDS)], declared)
     lag = lag[np.isfinite(lag)]
     if len(lag) and lag.max() * rec.ts > rec.command_timeout / 2:
         why.append(
@@ -470,13 +432,13 @@ def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:
         # applied; shown this long after it was due (the command came late, or the states
         # between were not received) the watchdog's start is not known that well
         late_s = (ref_step - declared - k_last) * rec.ts
-        if late_s > WATCHDOG_REF_SLACK * rec.command_timeout:
+        if late_s > TH.WATCHDOG_REF_SLACK * rec.command_timeout:
             why.append(
                 f'the first state received showing the last command applied came '
                 f'{late_s * 1e3:.1f} ms after it was due (the command came late, or the '
                 "states between were not received): the watchdog's start is not known"
             )
-    hi = watchdog_limits(rec.command_timeout)[1]
+    hi = R.watchdog_limits(rec.command_timeout)[1]
     t_act, t_before = wd.get('t_act'), wd.get('t_before')
     if t_act is not None and t_before is not None and t_before <= hi < t_act:
         # seen falling only after states were lost: it may have begun in time
@@ -488,10 +450,10 @@ def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:
         why.append(f'the states received cover only {wd["coverage_s"] * 1e3:.0f} ms of the silence')
     if wd.get('resumed_s') is None:
         q0, q1 = wd.get('rows_resume', (0, 0))
-        c = phase_conditions(
+        c = C.phase_conditions(
             rec.states[:n], rec.lengths[:n], rec.seq[:n], excess, declared, slice(q0, q1)
         )
-        reason = busy_reason(c)
+        reason = C.busy_reason(c)
         if reason:
             why.append(f'while resuming, {reason}')
     return '; '.join(why)

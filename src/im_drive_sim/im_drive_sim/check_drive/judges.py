@@ -13,29 +13,16 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..contract import COMMAND_DELAYS, COMMAND_TOPIC
-from .thresholds import (
-    CLOCK_TOLERANCE,
-    CURRENT_FIELDS,
-    RATE_MAX_LONG_FRACTION,
-    RATE_TOLERANCE,
-    STATE_FIELDS,
-    TYPES,
-    UNITS_LATE_BAND,
-    UNITS_MIN_COUNTS,
-    UNITS_RATIO_BAND,
-    F,
-    Item,
-    finite_or_none,
-)
+from . import thresholds as TH
 
 # ================================ pure judging functions ===================================
 
 
-def judge_topics(endpoints: dict[str, list[str]]) -> Item:
+def judge_topics(endpoints: dict[str, list[str]]) -> TH.Item:
     """``endpoints``: for 'drive/state', 'drive/joint_states', 'drive/status' the types of
     their publishers, for 'drive/command' the types of its subscribers other than us."""
     problems, seen = [], []
-    for topic, want in TYPES.items():
+    for topic, want in TH.TYPES.items():
         role = 'subscriber' if topic == COMMAND_TOPIC else 'publisher'
         types = endpoints.get(topic, [])
         if not types:
@@ -45,12 +32,12 @@ def judge_topics(endpoints: dict[str, list[str]]) -> Item:
         else:
             seen.append(topic)
     figures = '; '.join(problems) if problems else f'{len(seen)}/4 topics with the right types'
-    return Item(
+    return TH.Item(
         'topics',
         not problems,
         figures,
         'drive/state + drive/joint_states + drive/status published, drive/command '
-        'subscribed, types ' + ', '.join(f'{t.split("/")[-1]}' for t in TYPES.values()),
+        'subscribed, types ' + ', '.join(f'{t.split("/")[-1]}' for t in TH.TYPES.values()),
         {'endpoints': endpoints, 'problems': problems},
     )
 
@@ -70,31 +57,31 @@ def state_field_problems(
     time_ns == step_index * Ts exactly, all finite, currents within ``current_bound`` [A];
     in lock-step a re-sent state must equal the original."""
     problems = []
-    bad_len = int(np.count_nonzero(lengths != len(STATE_FIELDS)))
+    bad_len = int(np.count_nonzero(lengths != len(TH.STATE_FIELDS)))
     if bad_len:
-        legacy = int(np.count_nonzero(lengths == len(STATE_FIELDS) - 1))
+        legacy = int(np.count_nonzero(lengths == len(TH.STATE_FIELDS) - 1))
         why = (
             ' (the last field, command_delay, is missing: 1 or 2, docs/interfaces.md)'
             if legacy == bad_len
             else ''
         )
-        problems.append(f'{bad_len} states without {len(STATE_FIELDS)} values{why}')
-    ok = lengths == len(STATE_FIELDS)
+        problems.append(f'{bad_len} states without {len(TH.STATE_FIELDS)} values{why}')
+    ok = lengths == len(TH.STATE_FIELDS)
     s, q = states[ok], seq[ok]
     if len(s) == 0:
         return [*problems, 'no state received']
     if not np.isfinite(s).all():
-        bad = [STATE_FIELDS[i] for i in np.flatnonzero(~np.isfinite(s).all(axis=0))]
+        bad = [TH.STATE_FIELDS[i] for i in np.flatnonzero(~np.isfinite(s).all(axis=0))]
         problems.append(f'non-finite values in {",".join(bad)}')
         return problems
-    delays = np.unique(s[:, F['command_delay']])
+    delays = np.unique(s[:, TH.F['command_delay']])
     if len(delays) > 1 or delays[0] not in COMMAND_DELAYS:
         problems.append(f'command_delay {", ".join(f"{v:g}" for v in delays)}: one value, 1 or 2')
-    k = s[:, F['step_index']]
+    k = s[:, TH.F['step_index']]
     if np.any(k != np.floor(k)) or np.any(k < 0):
         problems.append('step_index not a non-negative integer')
         return problems
-    wrong_t = np.count_nonzero(s[:, F['time_ns']] != k * ts_ns)
+    wrong_t = np.count_nonzero(s[:, TH.F['time_ns']] != k * ts_ns)
     if wrong_t:
         problems.append(f'time_ns != step_index*{ts_ns} in {wrong_t} states')
     dk, dq = np.diff(k), np.diff(q)
@@ -113,7 +100,7 @@ def state_field_problems(
             problems.append('a re-sent state differs from the original')
         if jumps:
             problems.append(f'step_index not consecutive {jumps} times')
-    cur = np.abs(s[:, [F[c] for c in CURRENT_FIELDS]]).max()
+    cur = np.abs(s[:, [TH.F[c] for c in TH.CURRENT_FIELDS]]).max()
     if cur > current_bound:
         problems.append(f'current {cur:.3g} A beyond {current_bound:.3g} A')
     return problems
@@ -136,7 +123,7 @@ def joint_state_problems(joints: np.ndarray, states: np.ndarray, ts_ns: int) -> 
     torque, exactly) and they must come every 10 steps."""
     if len(joints) == 0:
         return ['no drive/joint_states received']
-    by_time = {int(t): i for i, t in enumerate(states[:, F['time_ns']])}
+    by_time = {int(t): i for i, t in enumerate(states[:, TH.F['time_ns']])}
     matched = mismatched = 0
     for t, pos, vel, eff in joints:
         i = by_time.get(int(t))
@@ -144,7 +131,7 @@ def joint_state_problems(joints: np.ndarray, states: np.ndarray, ts_ns: int) -> 
             continue
         matched += 1
         s = states[i]
-        if (pos, vel, eff) != (s[F['theta_meas']], s[F['omega_meas']], s[F['torque']]):
+        if (pos, vel, eff) != (s[TH.F['theta_meas']], s[TH.F['omega_meas']], s[TH.F['torque']]):
             mismatched += 1
     problems = []
     if matched == 0:
@@ -167,8 +154,8 @@ def judge_fields(
     motion_counts: float,
     joint_problems: list[str] | None,
     host: str = '',
-    doubt_band: tuple[float, float] = UNITS_LATE_BAND,
-) -> Item:
+    doubt_band: tuple[float, float] = TH.UNITS_LATE_BAND,
+) -> TH.Item:
     """Combine the field checks; ``joint_problems`` None = not judged (wrong topic type,
     reported by 'topics'). ``host``: why the units ratio cannot be trusted ('' when it
     can: the drive kept its periods during the motion); a ratio out of its band but
@@ -176,8 +163,8 @@ def judge_fields(
     failure, unless another field problem fails the item."""
     problems = list(state_problems)
     units_doubt = ''
-    if motion_counts >= UNITS_MIN_COUNTS:
-        lo, hi = UNITS_RATIO_BAND
+    if motion_counts >= TH.UNITS_MIN_COUNTS:
+        lo, hi = TH.UNITS_RATIO_BAND
         if not lo <= ratio <= hi:
             if host and doubt_band[0] <= ratio <= doubt_band[1]:
                 units_doubt = (
@@ -197,20 +184,20 @@ def judge_fields(
     figures = (
         '; '.join(problems)
         if problems
-        else f'{len(STATE_FIELDS)} finite values, step_index consecutive, time_ns = k Ts; '
+        else f'{len(TH.STATE_FIELDS)} finite values, step_index consecutive, time_ns = k Ts; '
         f'{units}; {joints}'
     )
     if problems and joint_problems is None:
         figures += f'; {joints}'
-    item = Item(
+    item = TH.Item(
         'fields',
         not problems and not units_doubt,
         figures,
-        f'{len(STATE_FIELDS)} finite values, time_ns = k Ts exactly, currents plausible, ratio in '
-        f'[{UNITS_RATIO_BAND[0]}, {UNITS_RATIO_BAND[1]}], joint_states = state',
+        f'{len(TH.STATE_FIELDS)} finite values, time_ns = k Ts exactly, currents plausible, '
+        f'ratio in [{TH.UNITS_RATIO_BAND[0]}, {TH.UNITS_RATIO_BAND[1]}], joint_states = state',
         {
             'problems': problems,
-            'units_ratio': finite_or_none(ratio),
+            'units_ratio': TH.finite_or_none(ratio),
             'motion_counts': float(motion_counts),
         },
     )
@@ -270,7 +257,7 @@ def period_stats(
 
 def judge_rate_realtime(
     stats: dict[str, float], ts: float, mode_note: str = '', busy: str = ''
-) -> Item:
+) -> TH.Item:
     """Median period within RATE_TOLERANCE of Ts and at most RATE_MAX_LONG_FRACTION of
     periods longer than 2 Ts; inconclusive where that fails while the check fell behind
     (``busy``, the reason), unless the drive is paced wrong (its clock, or the spread of a
@@ -278,13 +265,13 @@ def judge_rate_realtime(
     clock = stats.get('clock', math.nan)
     p10, p90 = stats.get('p10', stats['median']), stats.get('p90', stats['median'])
     if stats.get('skipped', 0):
-        paced = math.isfinite(clock) and abs(clock - ts) <= CLOCK_TOLERANCE * ts
+        paced = math.isfinite(clock) and abs(clock - ts) <= TH.CLOCK_TOLERANCE * ts
     else:
-        paced = p10 <= (1 + RATE_TOLERANCE) * ts and p90 >= (1 - RATE_TOLERANCE) * ts
+        paced = p10 <= (1 + TH.RATE_TOLERANCE) * ts and p90 >= (1 - TH.RATE_TOLERANCE) * ts
     ok = (
         stats['n'] >= 100
-        and abs(stats['median'] - ts) <= RATE_TOLERANCE * ts
-        and stats['long_fraction'] <= RATE_MAX_LONG_FRACTION
+        and abs(stats['median'] - ts) <= TH.RATE_TOLERANCE * ts
+        and stats['long_fraction'] <= TH.RATE_MAX_LONG_FRACTION
     )
     figures = (
         f'median period {stats["median"] * 1e6:.1f} us, p99 {stats["p99"] * 1e6:.0f} us, '
@@ -293,13 +280,13 @@ def judge_rate_realtime(
     )
     if mode_note:
         figures += f'; {mode_note}'
-    item = Item(
+    item = TH.Item(
         'rate',
         ok and not mode_note,
         figures,
-        f'median {ts * 1e6:.0f} us +-{RATE_TOLERANCE * 100:.0f} %, <= '
-        f'{RATE_MAX_LONG_FRACTION * 100:.0f} % of periods > 2 Ts',
-        {k: finite_or_none(v) for k, v in stats.items()},
+        f'median {ts * 1e6:.0f} us +-{TH.RATE_TOLERANCE * 100:.0f} %, <= '
+        f'{TH.RATE_MAX_LONG_FRACTION * 100:.0f} % of periods > 2 Ts',
+        {k: TH.finite_or_none(v) for k, v in stats.items()},
     )
     # only the lateness may be the machine's fault: a wrong pace or mode never is
     return item.undecided(busy) if paced and not mode_note else item
@@ -329,7 +316,7 @@ def judge_rate_lockstep(
     idle_advance: int,
     steps_per_s: float,
     mode_note: str = '',
-) -> Item:
+) -> TH.Item:
     ok = n_steps > 0 and unanswered == 0 and skipped == 0 and idle_advance == 0 and not mode_note
     figures = (
         f'{n_steps} steps, {unanswered} without a command, {skipped} skipping, '
@@ -337,7 +324,7 @@ def judge_rate_lockstep(
     )
     if mode_note:
         figures += f'; {mode_note}'
-    return Item(
+    return TH.Item(
         'rate',
         ok,
         figures,
@@ -347,12 +334,12 @@ def judge_rate_lockstep(
             'unanswered': unanswered,
             'skipped': skipped,
             'idle_advance': idle_advance,
-            'steps_per_s': finite_or_none(steps_per_s),
+            'steps_per_s': TH.finite_or_none(steps_per_s),
         },
     )
 
 
-def summary_line(items: Sequence[Item], mode: str = '', status_mode: str | None = None) -> str:
+def summary_line(items: Sequence[TH.Item], mode: str = '', status_mode: str | None = None) -> str:
     """The last line: verdict, failing and inconclusive items, the mode (and what
     drive/status said)."""
     failed = [i.name for i in items if i.verdict == 'fail']
@@ -390,7 +377,7 @@ def conditions_line(conditions: dict[str, dict]) -> str:
     return 'check_drive: its own timing: ' + '; '.join(parts)
 
 
-def exit_code(items: Sequence[Item]) -> int:
+def exit_code(items: Sequence[TH.Item]) -> int:
     """0: every item passes; 1: some item fails; 3: none fails, some inconclusive."""
     verdicts = {i.verdict for i in items}
     if 'fail' in verdicts:

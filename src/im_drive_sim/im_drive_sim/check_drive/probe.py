@@ -13,11 +13,7 @@ import numpy as np
 
 from ..cdr import read_float64_array
 from ..contract import COMMAND_TOPIC, JOINT_STATE_TOPIC, STATE_TOPIC, STATUS_TOPIC, QosSpec
-from .thresholds import (
-    NS_PER_S,
-    STATE_FIELDS,
-    F,
-)
+from .thresholds import NS_PER_S, STATE_FIELDS, F
 
 
 class Interrupted(Exception):

@@ -16,19 +16,10 @@ import numpy as np
 
 from ..contract import COMMAND_TOPIC, TOPIC_TYPES
 from ..rt import RtOptions
+from . import thresholds as TH
 from .evaluate import Recording, evaluate
 from .probe import DriveLost, Probe
 from .response import watchdog_limits
-from .thresholds import (
-    DEFAULT_TIMEOUT,
-    DISCOVERY_SETTLE_S,
-    LOCKSTEP_SILENCE_S,
-    WATCHDOG_ACT_FRACTION,
-    ZERO_CURRENT_FRACTION,
-    CheckRefused,
-    F,
-    Item,
-)
 
 
 @dataclass
@@ -47,14 +38,14 @@ class Options:
 
 def run_check(
     opts: Options, node, log: Callable[[str], None], stop: Callable[[], bool]
-) -> tuple[list[Item], dict]:
+) -> tuple[list[TH.Item], dict]:
     """Probe the drive in ``node``'s namespace; return the items and run information."""
     from im_drive_sim.drive_file import load_config
 
     cfg = load_config(opts.drive_config)
     isq_max = cfg.machine.isq_max
     if not 0 < opts.amplitude <= 0.5 * isq_max:
-        raise CheckRefused(
+        raise TH.CheckRefused(
             f'--amplitude {opts.amplitude:g} A: must be in (0, '
             f'{0.5 * isq_max:g}] A (50 % of isq_max {isq_max:g} A)'
         )
@@ -67,7 +58,7 @@ def run_check(
     deadline = time.monotonic() + opts.timeout
     while not node.get_publishers_info_by_topic(state_topic):
         if time.monotonic() > deadline:
-            raise CheckRefused(
+            raise TH.CheckRefused(
                 f'no publisher of {state_topic} within {opts.timeout:g} s '
                 '(is the drive running, in this namespace and ROS_DOMAIN_ID?)'
             )
@@ -113,7 +104,7 @@ def _probe(
     state_topic: str,
     cmd_topic: str,
     log: Callable[[str], None],
-) -> tuple[list[Item], dict]:
+) -> tuple[list[TH.Item], dict]:
     ts, ts_ns = cfg.Ts, cfg.Ts_ns
     isq_max = cfg.machine.isq_max
     a = opts.amplitude
@@ -135,10 +126,10 @@ def _probe(
 
     # -- mode: does step_index advance without commands? ---------------------------------
     if not p.run(lambda k, s: None, lambda: p.newest() is not None, opts.timeout):
-        raise CheckRefused(
+        raise TH.CheckRefused(
             f'{state_topic} has a publisher but no state came within {opts.timeout:g} s'
         )
-    k_idle0 = int(p.newest()[F['step_index']])
+    k_idle0 = int(p.newest()[TH.F['step_index']])
     t0, n0 = time.monotonic(), p.n
 
     def decided() -> bool:
@@ -148,12 +139,12 @@ def _probe(
         # clock only once it has matched our publisher (the simulator waits for a
         # commander), which takes a moment after a process start or across a network.
         waited = time.monotonic() - t0
-        moved = int(p.newest()[F['step_index']]) - k_idle0
-        resent = int(np.count_nonzero(p.states[n0 : p.n, F['step_index']] == k_idle0))
+        moved = int(p.newest()[TH.F['step_index']]) - k_idle0
+        resent = int(np.count_nonzero(p.states[n0 : p.n, TH.F['step_index']] == k_idle0))
         return waited > opts.timeout or (waited > 0.3 and (moved >= 5 or resent >= 3))
 
     p.run(lambda k, s: None, decided, opts.timeout + 1.0)
-    idle_advance = int(p.newest()[F['step_index']]) - k_idle0
+    idle_advance = int(p.newest()[TH.F['step_index']]) - k_idle0
     realtime = idle_advance >= 5
     mode = 'realtime' if realtime else 'lockstep'
     status_mode = p.status.get('mode')
@@ -210,7 +201,7 @@ def _probe(
     t0 = time.monotonic()
     while True:
         schedule([(2500 if realtime else 500, 0.0)])
-        if time.monotonic() >= p.created + DISCOVERY_SETTLE_S:
+        if time.monotonic() >= p.created + TH.DISCOVERY_SETTLE_S:
             break
     rate_wall = time.monotonic() - t0
     i_rate1 = p.n
@@ -230,9 +221,9 @@ def _probe(
     aborted = {'why': ''}
 
     def overspeed(s: np.ndarray) -> bool:
-        if abs(s[F['omega_meas']]) > opts.max_speed:
+        if abs(s[TH.F['omega_meas']]) > opts.max_speed:
             aborted['why'] = (
-                f'aborted: |omega_meas| {abs(s[F["omega_meas"]]):.1f} > {opts.max_speed:g} rad/s'
+                f'aborted: |omega_meas| {abs(s[TH.F["omega_meas"]]):.1f} > {opts.max_speed:g} rad/s'
             )
             return True
         return False
@@ -326,18 +317,15 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
     st: dict = {'zero_at': None, 'zero_run': 0, 'why': '', 'ref': None, 'i': i_on}
     end = time.monotonic() + 2 * hi + 1.0
 
-    def silent(k: int, s: np.ndarray) -> None:
-        return None
-
     def done() -> bool:
         for i in range(st['i'], p.n):
             s = p.states[i]
-            if st['ref'] is None and s[F['applied_step']] >= k_last:
+            if st['ref'] is None and s[TH.F['applied_step']] >= k_last:
                 st['ref'] = int(p.source_ns[i])  # the drive applied our last command
-                st['ref_step'] = int(s[F['step_index']])
+                st['ref_step'] = int(s[TH.F['step_index']])
             if i < i_silent:
                 continue
-            if abs(s[F['isq']]) < ZERO_CURRENT_FRACTION * w:
+            if abs(s[TH.F['isq']]) < TH.ZERO_CURRENT_FRACTION * w:
                 if st['zero_at'] is None:
                     st['zero_at'] = i
                 st['zero_run'] += 1
@@ -352,14 +340,14 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
             st['zero_run'] >= 10 or bool(st['why']) or drive_time > 2 * hi or time.monotonic() > end
         )
 
-    p.run(silent, done, 2 * hi + 1.5)
+    p.run(lambda k, s: None, done, 2 * hi + 1.5)  # silent
     ref = st['ref'] if st['ref'] is not None else t_last
     coverage = (int(p.source_ns[p.n - 1]) - ref) * 1e-9 if p.n > i_silent else 0.0
     t_zero = t_act = t_before = None
     if st['zero_at'] is not None:
         t_zero = (p.source_ns[st['zero_at']] - ref) * 1e-9
         i = st['zero_at']  # back along the fall to where it began
-        while i > i_silent and p.states[i - 1, F['isq']] < WATCHDOG_ACT_FRACTION * w:
+        while i > i_silent and p.states[i - 1, TH.F['isq']] < TH.WATCHDOG_ACT_FRACTION * w:
             i -= 1
         t_act = (p.source_ns[i] - ref) * 1e-9
         # the last state received before it, still carrying the current: the fall began
@@ -368,14 +356,14 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
     if st['why']:
         p.command(max(p.answered, int(p.newest()[0])), 0.0)
     # Steps at +w: as many at -w bring the shaft back near rest.
-    on = int(np.count_nonzero(p.states[i_on : p.n, F['isq']] > w / 2))
+    on = int(np.count_nonzero(p.states[i_on : p.n, TH.F['isq']] > w / 2))
     # resume with -w; it must reach -w within 50 ms (the check's clock: publication to
     # reception, so the link's delay both ways is inside)
     i_res, j_res, t_res = p.n, p.m, None
     k_res = schedule([(max(on, 50), -w)])
     for i in range(i_res, p.n):
         s = p.states[i]
-        if s[F['step_index']] > k_res and abs(s[F['isq']] + w) < ZERO_CURRENT_FRACTION * w:
+        if s[TH.F['step_index']] > k_res and abs(s[TH.F['isq']] + w) < TH.ZERO_CURRENT_FRACTION * w:
             t_res = (p.recv_ns[i] - p.cmd_ns[j_res]) * 1e-9
             break
     if t_res is not None and t_res > 0.05:
@@ -402,18 +390,18 @@ def _watchdog_lockstep(p: Probe) -> dict:
     k_last = p.answered
     t0 = time.monotonic()
     i0 = p.n
-    p.run(lambda k, s: None, lambda: time.monotonic() - t0 >= LOCKSTEP_SILENCE_S, 2.0)
+    p.run(lambda k, s: None, lambda: time.monotonic() - t0 >= TH.LOCKSTEP_SILENCE_S, 2.0)
     silence = time.monotonic() - t0
-    ks = p.states[i0 : p.n, F['step_index']]
+    ks = p.states[i0 : p.n, TH.F['step_index']]
     advanced = int(np.count_nonzero(ks > k_last + 1))
     s = p.newest()
-    k = int(s[F['step_index']])
+    k = int(s[TH.F['step_index']])
     t1 = time.monotonic()
     p.command(k, 0.0)
     resumed = None
     while time.monotonic() - t1 < 2.0:
         p.poll(0.05)
-        if int(p.newest()[F['step_index']]) > k:
+        if int(p.newest()[TH.F['step_index']]) > k:
             resumed = time.monotonic() - t1
             break
     return {'silence_s': silence, 'advanced': advanced, 'resumed_s': resumed}
@@ -435,7 +423,7 @@ def _refuse_commander(node, topic: str, p: Probe) -> None:
             break
         p.poll(0.05)
     names = sorted({(e.node_namespace.rstrip('/') + '/' + e.node_name) for e in others})
-    raise CheckRefused(
+    raise TH.CheckRefused(
         f'{", ".join(names) or "another node"} already publishes {topic}: a '
         'controller is connected and two commanders would fight; stop it first'
     )
@@ -449,7 +437,7 @@ def _command_timeout(
     if opts.command_timeout is not None:
         return opts.command_timeout, '--command-timeout'
     if drive_name is None:
-        return DEFAULT_TIMEOUT, 'default'
+        return TH.DEFAULT_TIMEOUT, 'default'
     from rcl_interfaces.msg import ParameterType
     from rcl_interfaces.srv import GetParameters
     from rclpy.executors import SingleThreadedExecutor
@@ -462,18 +450,18 @@ def _command_timeout(
         srv = drive_ns.rstrip('/') + '/' + drive_name + '/get_parameters'
         client = helper.create_client(GetParameters, srv)
         if not client.wait_for_service(timeout_sec=2.0):
-            return DEFAULT_TIMEOUT, 'default: drive has no parameter service'
+            return TH.DEFAULT_TIMEOUT, 'default: drive has no parameter service'
         future = client.call_async(GetParameters.Request(names=['command_timeout']))
         # a drive that just started may be compiling its loop before it serves requests
         # (numba, a cold cache: seconds): up to --timeout, as for its first state
         executor.spin_until_future_complete(future, timeout_sec=max(3.0, opts.timeout))
         res = future.result()
         if res is None:
-            return DEFAULT_TIMEOUT, 'default: no parameter answer'
+            return TH.DEFAULT_TIMEOUT, 'default: no parameter answer'
         v = res.values[0] if res.values else None
         if v is not None and v.type == ParameterType.PARAMETER_DOUBLE:
             return float(v.double_value), 'drive parameter'
-        return DEFAULT_TIMEOUT, 'default: drive has no command_timeout'
+        return TH.DEFAULT_TIMEOUT, 'default: drive has no command_timeout'
     finally:
         executor.shutdown()
         helper.destroy_node()

@@ -12,22 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .thresholds import (
-    ACCEL_MIN_COUNTS,
-    LABEL_SLOWER_MAX_REALTIME,
-    LATENCY_MEDIAN_MAX,
-    LATENCY_P99_MAX,
-    LOCKSTEP_SILENCE_S,
-    ONSET_FRACTION,
-    RISE_TIME_MAX,
-    STEADY_STATE_ERROR_MAX,
-    TRANSPORT_SLACK_REALTIME,
-    WATCHDOG_EARLIEST,
-    WATCHDOG_MARGIN_REL,
-    WATCHDOG_MARGIN_S,
-    Item,
-    finite_or_none,
-)
+from . import thresholds as TH
 
 
 def onset_delay(x: np.ndarray, i0: int, delta_ref: float, max_delay: int = 20) -> int | None:
@@ -42,7 +27,7 @@ def onset_delay(x: np.ndarray, i0: int, delta_ref: float, max_delay: int = 20) -
     if not np.isfinite(pre).all():
         return None
     noise = float(np.median(np.abs(np.diff(pre, 2))))
-    thr = max(ONSET_FRACTION * abs(delta_ref), 8.0 * noise)
+    thr = max(TH.ONSET_FRACTION * abs(delta_ref), 8.0 * noise)
     slope, level = np.polyfit(np.arange(-4, 1), x[i0 - 4 : i0 + 1], 1)
     for d in range(1, min(max_delay, len(x) - 1 - i0) + 1):
         if not math.isfinite(x[i0 + d]):
@@ -75,7 +60,7 @@ def judge_latency(
     busy: str = '',
     on_time: Sequence[bool] | None = None,
     host: str = '',
-) -> Item:
+) -> TH.Item:
     """``delays``: per command changing the reference, the state (k + d) in which it first
     showed; ``wall_s``: command published -> next state received [s]; ``declared``: the
     drive's command_delay; ``labels``: per change, the first state (k + l) whose
@@ -90,7 +75,7 @@ def judge_latency(
     n = len(delays)
     whole = list(complete) if complete is not None else [True] * n
     lab = list(labels) if labels is not None else [None] * n
-    limit = declared + (TRANSPORT_SLACK_REALTIME if realtime else 0)
+    limit = declared + (TH.TRANSPORT_SLACK_REALTIME if realtime else 0)
     punctual = list(on_time) if on_time is not None else [True] * n
     usable = [(x, y) for x, y, c in zip(delays, lab, whole, strict=False) if c]
     # the labels: judged on the changes whose drive periods were all on time
@@ -122,10 +107,10 @@ def judge_latency(
     if labels is None:
         labels_ok = True
     elif realtime:
-        labels_ok = len(judged) >= 3 and slower <= LABEL_SLOWER_MAX_REALTIME * len(judged)
+        labels_ok = len(judged) >= 3 and slower <= TH.LABEL_SLOWER_MAX_REALTIME * len(judged)
     else:
         labels_ok = len(judged) == len(shown) and honest == len(judged)
-    wall_ok = med <= LATENCY_MEDIAN_MAX and p99 <= LATENCY_P99_MAX
+    wall_ok = med <= TH.LATENCY_MEDIAN_MAX and p99 <= TH.LATENCY_P99_MAX
     ok = effect_ok and labels_ok and wall_ok
     hist = ', '.join(f'k+{int(v)}: {int(np.sum(shown == v))}' for v in np.unique(shown))
     figures = (
@@ -145,17 +130,17 @@ def judge_latency(
     when = f' (fastest quarter by k+{limit})' if realtime else ' always'
     expected = (
         f'effect in k+{declared}{when}, never after applied_step says, '
-        f'median <= {LATENCY_MEDIAN_MAX * 1e3:g} ms, '
-        f'p99 <= {LATENCY_P99_MAX * 1e3:g} ms'
+        f'median <= {TH.LATENCY_MEDIAN_MAX * 1e3:g} ms, '
+        f'p99 <= {TH.LATENCY_P99_MAX * 1e3:g} ms'
     )
-    item = Item(
+    item = TH.Item(
         'latency',
         ok,
         figures,
         expected,
         {
-            'median_s': finite_or_none(med),
-            'p99_s': finite_or_none(p99),
+            'median_s': TH.finite_or_none(med),
+            'p99_s': TH.finite_or_none(p99),
             'effect_delays': [None if x is None else int(x) for x in delays],
             'declared_delay': declared,
             'label_delays': None if labels is None else list(labels),
@@ -253,7 +238,7 @@ def judge_step_response(
     aborted: str = '',
     busy: str = '',
     gaps: str = '',
-) -> Item:
+) -> TH.Item:
     """``plus``/``minus``: step_metrics of the +isq and the -isq step. Why the step the
     drive was given may not be the one commanded ('': it is): ``gaps`` (states missing:
     a line across a gap stretches the rise) and ``busy`` (commands that reached the drive
@@ -268,11 +253,11 @@ def judge_step_response(
     # signs are the drive's whatever the load; the timing figures are not
     signs: list[str] = []
     rise = max(plus['rise_s'], minus['rise_s'])
-    rise_bad = not rise <= RISE_TIME_MAX
+    rise_bad = not rise <= TH.RISE_TIME_MAX
     if rise_bad:
         problems.append(f'rise time {rise * 1e3:.2f} ms')
     sse = max(plus['steady_error'], minus['steady_error'])
-    if not sse <= STEADY_STATE_ERROR_MAX:
+    if not sse <= TH.STEADY_STATE_ERROR_MAX:
         problems.append(f'steady-state error {sse * 100:.1f} %')
     if plus['torque_per_amp'] < 0 or minus['torque_per_amp'] < 0:
         signs.append('torque sign opposite to isq')
@@ -284,7 +269,7 @@ def judge_step_response(
         # it did not carry the commanded sign the drive was not given the step (a command
         # the link held, the watchdog's zero), which the steady-state error says
         given = m.get('isq_mean', sign * amplitude) * sign > 0.5 * amplitude
-        if not moved >= ACCEL_MIN_COUNTS:
+        if not moved >= TH.ACCEL_MIN_COUNTS:
             problems.append(f'no acceleration in the {name} step')
         elif m['accel'] * sign <= 0 and given:
             signs.append(f'acceleration {m["accel"]:+.3g} rad/s^2 in the {name}isq step')
@@ -302,15 +287,15 @@ def judge_step_response(
     )
     if problems:
         figures = '; '.join(problems) + ' -- ' + figures
-    item = Item(
+    item = TH.Item(
         'step_response',
         not problems,
         figures,
-        f'rise <= {RISE_TIME_MAX * 1e3:g} ms, error <= {STEADY_STATE_ERROR_MAX * 100:g} %, '
+        f'rise <= {TH.RISE_TIME_MAX * 1e3:g} ms, error <= {TH.STEADY_STATE_ERROR_MAX * 100:g} %, '
         'torque and acceleration with the sign of isq',
         {
-            'plus': {k: finite_or_none(v) for k, v in plus.items()},
-            'minus': {k: finite_or_none(v) for k, v in minus.items()},
+            'plus': {k: TH.finite_or_none(v) for k, v in plus.items()},
+            'minus': {k: TH.finite_or_none(v) for k, v in minus.items()},
             'aborted': aborted or None,
         },
     )
@@ -324,8 +309,8 @@ def judge_step_response(
 
 def watchdog_limits(timeout: float) -> tuple[float, float]:
     """(earliest, latest) time [s] after the last command at which zero current is due."""
-    return WATCHDOG_EARLIEST * timeout, timeout + max(
-        WATCHDOG_MARGIN_S, WATCHDOG_MARGIN_REL * timeout
+    return TH.WATCHDOG_EARLIEST * timeout, timeout + max(
+        TH.WATCHDOG_MARGIN_S, TH.WATCHDOG_MARGIN_REL * timeout
     )
 
 
@@ -337,7 +322,7 @@ def judge_watchdog_realtime(
     timeout_source: str,
     aborted: str = '',
     busy: str = '',
-) -> Item:
+) -> TH.Item:
     """Times after the last command was published [s]: ``t_act`` when isq started its fall to
     zero (left WATCHDOG_ACT_FRACTION of the test current), ``t_zero`` when it got there
     (None: never); ``resumed_s``: new command -> current back [s] (None: did not resume).
@@ -362,7 +347,7 @@ def judge_watchdog_realtime(
         else 'did not resume on a new command'
     )
     figures = f'{zero}; {back}' + (f'; {aborted}' if aborted else '')
-    item = Item(
+    item = TH.Item(
         'watchdog',
         ok,
         figures,
@@ -379,18 +364,18 @@ def judge_watchdog_realtime(
     return item.undecided(busy)
 
 
-def judge_watchdog_lockstep(silence_s: float, advanced: int, resumed_s: float | None) -> Item:
-    ok = advanced == 0 and resumed_s is not None and silence_s >= LOCKSTEP_SILENCE_S * 0.99
+def judge_watchdog_lockstep(silence_s: float, advanced: int, resumed_s: float | None) -> TH.Item:
+    ok = advanced == 0 and resumed_s is not None and silence_s >= TH.LOCKSTEP_SILENCE_S * 0.99
     back = (
         f'stepped {resumed_s * 1e3:.1f} ms after a new command'
         if resumed_s is not None
         else 'did not step on a new command'
     )
-    return Item(
+    return TH.Item(
         'watchdog',
         ok,
         f'{advanced} steps during {silence_s:.2f} s without commands; {back}',
-        f'lock-step: no step during >= {LOCKSTEP_SILENCE_S} s of silence, '
+        f'lock-step: no step during >= {TH.LOCKSTEP_SILENCE_S} s of silence, '
         'then one on the next command',
         {'silence_s': silence_s, 'advanced': advanced, 'resumed_s': resumed_s},
     )

@@ -11,8 +11,10 @@ A new run refused once its directory exists is undone (:meth:`undo`). No rclpy a
 
 from __future__ import annotations
 
+import ipaddress
 import shlex
 import shutil
+import socket
 import sys
 import time
 from pathlib import Path
@@ -22,7 +24,6 @@ from im_drive_sim import numeric
 from im_drive_sim.cli import UsageError, ros2_command
 
 from .benches import IN_PROCESS_BENCHES, LOCKSTEP_BENCHES
-from .record import live as live_view
 from .runlog import Record, Timing, replay_plan
 from .tuner_cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PreparedSession, make_tuning
 
@@ -84,6 +85,26 @@ def failure_advice(
         '(simulated) or `--bench realtime --drive my_pkg.my_hw:MyHardware` with your '
         "drive's hardware class (docs/real-drive.md)"
     ]
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (an address, or a name: every address it resolves to) is this
+    computer only (127.0.0.0/8, ``::1``)."""
+    try:
+        found = {a[4][0] for a in socket.getaddrinfo(host, None)}
+    except OSError:
+        return False
+    return bool(found) and all(ipaddress.ip_address(a).is_loopback for a in found)
+
+
+def resume_command(ros2: str, run_dir: Path, cli: TunerOptions) -> str:
+    """The command that continues the run, for the user's shell (every value quoted): the
+    live view is a session's own, so the command gives it again."""
+    words = [ros2, 'run', 'im_tuner', 'tuner', '--resume', str(run_dir)]
+    for flag, v in (('--live', cli.live), ('--live-host', cli.live_host)):
+        words += [] if v is None else [flag, str(v)]
+    words += [] if cli.live_rate is None else ['--live-rate', f'{cli.live_rate:g}']
+    return ' '.join(shlex.quote(w) for w in words)
 
 
 def session_number(sessions: list[dict[str, Any]], records: list[Record]) -> int:
@@ -282,7 +303,7 @@ class TunerSession:
         live = plan.spec.live
         if live is not None:
             progress.note(f'live: {live.describe()}')
-            if live.host != live_view.DEFAULT_HOST:  # (said even with --quiet)
+            if not is_loopback(live.host):  # (said even with --quiet)
                 progress.warn(
                     f"warning: --live-host {live.host}: the run's every topic is open to "
                     'whoever reaches this computer on the network (no authentication)'
@@ -415,15 +436,7 @@ class TunerSession:
             what = 'interrupted:'
             if code == EXIT_FAILED:
                 what = 'failed: once the cause is fixed,'
-            resume = f'{ros2} run im_tuner tuner --resume {shlex.quote(str(rundir.path))}'
-            given = (('--live', self.cli.live), ('--live-host', self.cli.live_host))
-            given += (('--live-rate', self.cli.live_rate),)
-            # (the live view is a session's: the command gives it again)
-            resume += ''.join(
-                f' {flag} {v:g}' if isinstance(v, float) else f' {flag} {v}'
-                for flag, v in given
-                if v is not None
-            )
+            resume = resume_command(ros2, rundir.path, self.cli)
             print(f'  {what} continue with `{resume}`', flush=True)
         return code
 

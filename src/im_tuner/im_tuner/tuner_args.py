@@ -443,11 +443,10 @@ def timing_tolerance(cli: TunerOptions, argv: list[str]) -> int | str | None:
     neither; ``auto``: ``host.AUTO``. Both, differing, or a value that is not an integer
     >= 0: UsageError."""
     given = cli.timing_tolerance
-    ros = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
     from_ros = None
-    for i, a in enumerate(ros[:-1]):
-        if a in ('-p', '--param') and ros[i + 1].startswith('timing_tolerance:='):
-            text = ros[i + 1].split(':=', 1)[1]
+    for item in ros_parameters(argv):
+        if item.startswith('timing_tolerance:='):
+            text = item.split(':=', 1)[1]
             try:
                 from_ros = int(text)
             except ValueError:
@@ -488,12 +487,14 @@ def run_parameters(run: RunConfig) -> list[str]:
         words = shlex.split(run.command or '')
     except ValueError:
         return []
-    ros = words[words.index('--ros-args') + 1 :] if '--ros-args' in words else []
-    out = []
-    for i, w in enumerate(ros[:-1]):
-        if w in ('-p', '--param') and not ros[i + 1].startswith('timing_tolerance:='):
-            out += ['-p', ros[i + 1]]
-    return out
+    kept = [p for p in ros_parameters(words) if not p.startswith('timing_tolerance:=')]
+    return [w for p in kept for w in ('-p', p)]
+
+
+def ros_parameters(argv: list[str]) -> list[str]:
+    """The ``name:=value`` operands of ``-p``/``--param`` after ``--ros-args`` in ``argv``."""
+    ros = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
+    return [ros[i + 1] for i, w in enumerate(ros[:-1]) if w in ('-p', '--param')]
 
 
 if __name__ == '__main__':  # make docs: docs/tuner.md's table from OPTIONS

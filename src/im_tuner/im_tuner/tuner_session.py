@@ -24,6 +24,7 @@ from im_drive_sim import numeric
 from im_drive_sim.cli import UsageError, ros2_command
 
 from .benches import IN_PROCESS_BENCHES, LOCKSTEP_BENCHES
+from .rundir import RunDir, RunDirError, made_by_create
 from .runlog import Record, Timing, replay_plan
 from .tuner_cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PreparedSession, make_tuning
 
@@ -31,7 +32,6 @@ if TYPE_CHECKING:
     from .bench.forms import Bench
     from .bench.spec import BenchPlan
     from .link import ControllerLink
-    from .rundir import RunDir
     from .tuner_args import TunerOptions
 
 
@@ -138,18 +138,6 @@ def _repair_old_bags(rundir: RunDir, note, current: Path | None) -> None:
                 note(f'warning: could not repair {bag}: {exc}')
 
 
-def _made_by_create(out: Path) -> tuple[Path, bool]:
-    """What ``RunDir.create(out)`` will make: the topmost missing directory of ``out``
-    (itself or a parent), or ``out`` itself if it is an existing empty directory (then
-    only its contents are ours: the bool is False)."""
-    if out.exists():
-        return out, False
-    made = out
-    while not made.parent.exists() and made.parent != made.parent.parent:
-        made = made.parent
-    return made, True
-
-
 class TunerSession:
     """The run's side of one tuner session (module docstring)."""
 
@@ -166,7 +154,7 @@ class TunerSession:
         self.host_said = cfg.host_said
         self.resumed = cli.resume is not None
         #: what a new run's directory creation makes (undone if the run is refused)
-        self.made = None if self.resumed else _made_by_create(cfg.out)
+        self.made = None if self.resumed else made_by_create(cfg.out)
         self.plan: BenchPlan | None = None
         self.bag_dir: Path | None = None
         #: this session's record in the checkpoint (its bags, its bench, its replay)
@@ -178,8 +166,6 @@ class TunerSession:
     def begin(self, plan: BenchPlan) -> Path | None:
         """The bench is decided: a new run's directory (locked) and TuningRun; this
         session's bag directory (None: --no-record)."""
-        from .rundir import RunDir, RunDirError
-
         self.plan = plan
         if self.rundir is None:
             try:

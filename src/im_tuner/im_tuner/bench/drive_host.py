@@ -39,7 +39,7 @@ from .drive_host_main import DriveHostOptions, parser
 from .forms import InProcess
 from .open import open_bench
 from .sim_bench import _Bag
-from .spec import BenchSpec, bench_parameters, recording_options
+from .spec import BenchSpec, bench_parameters
 
 
 def _spec(
@@ -93,9 +93,7 @@ def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
     try:
         cli = parser().parse_args(check_ros_args(argv)[1:])
-        cli.compression = recording_options(cli.no_record, out=cli.out, compression=cli.compression)
-        if cli.out is not None and cli.out.exists():
-            raise UsageError(f'--out {cli.out}: already exists; choose a new directory')
+        cli.check_bag()
         if cli.model is not None and cli.drive != 'sim':
             raise UsageError(f"--model is the simulator's (--drive sim), not --drive {cli.drive}")
         live = live_settings(cli.live, cli.live_host, cli.live_rate, no_record=cli.no_record)

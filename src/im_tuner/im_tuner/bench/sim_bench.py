@@ -1,22 +1,9 @@
-"""The simulated bench: ``ros2 run im_tuner sim_bench [--processes]``.
-
-Brings up the drive simulator and the controller together, lock-step:
-
-* one process (default, the fast path): both nodes in one thread (``.inprocess``);
-* ``--processes``: ``ros2 run im_drive_sim drive_sim`` and ``ros2 run im_controller
-  controller`` as two child processes (ended by PID: SIGINT, grace, SIGKILL; ended by
-  the kernel too if this process is killed, as the tuner's children).
-
-The bench is opened as the tuner's is (``bench.open.open_bench``: the same forms, the
-same children, the same signal handling).
-
-Either way the graph is the same (``drive_sim``, ``controller``, their topics and
-services), and so is what it computes: the same seed gives bit-identical losses.
-The tuner brings this bench up itself when no controller is on the graph.
-
-All traffic is recorded (``im_tuner.record.node``) unless ``--no-record``: in one
-process the recorder runs in the bench's loop and is polled between steps, so not a
-message is lost; with ``--processes`` it is a third child, ``ros2 run im_tuner recorder``.
+"""The simulated bench: ``ros2 run im_tuner sim_bench [--processes]``: the drive
+simulator and the controller, lock-step, in one process (``.inprocess``) or as two
+children (``--processes``), opened as the tuner's bench is (``bench.open.open_bench``).
+Either way the graph and the losses are the same (the same seed: bit-identical). All
+traffic is recorded unless ``--no-record``: in one process the recorder is polled between
+steps; with ``--processes`` it is a third child, ``ros2 run im_tuner recorder``.
 """
 
 from __future__ import annotations
@@ -33,32 +20,18 @@ from im_drive_sim.params import ConfigError
 from im_drive_sim.runtime import RosSession
 
 from ..record.run_info import default_out_dir
+from ..rundir import made_by_create
+from ..tuner_args import ros_parameters
 from .forms import Children, InProcess, parameters
 from .open import open_bench
 from .sim_bench_main import SimBenchOptions, SimulatorOptions, parser
-from .spec import BenchSpec, Params, bench_parameters, parameter_args, recording_options
-
-
-def _check_cli(cli: SimulatorOptions) -> None:
-    """What the children would refuse, refused here before anything is started."""
-    if cli.drive_config is not None:
-        try:
-            load_config(cli.drive_config)
-        except ConfigError as exc:
-            raise UsageError(str(exc)) from None
-    cli.compression = recording_options(cli.no_record, out=cli.out, compression=cli.compression)
-    if cli.out is not None and cli.out.exists():
-        raise UsageError(f'--out {cli.out}: already exists; choose a new directory')
+from .spec import BenchSpec, Params, bench_parameters, parameter_args
 
 
 def _overrides(cli: SimBenchOptions, ros_args: list[str]) -> tuple[Params, Params]:
     """The drive's and the controller's parameters from the command line's flags (a
     packaged drive's experiment and gains but those the user's ``-p NAME:=VALUE`` sets)."""
-    given = {
-        ros_args[i + 1].split(':=', 1)[0]
-        for i, a in enumerate(ros_args[:-1])
-        if a in ('-p', '--param') and ':=' in ros_args[i + 1]
-    }
+    given = {p.split(':=', 1)[0] for p in ros_parameters(ros_args) if ':=' in p}
     config = str(cli.drive_config) if cli.drive_config else None
     return bench_parameters(config, cli.model, cli.seed, given)
 
@@ -118,10 +91,7 @@ class _Bag:
         self.out = None if cli.no_record else Path(cli.out or default_out_dir(prefix=prog))
         # what this run creates (the bag and any missing parents): removed again if a
         # child refuses its configuration at start (exit 2), so a refusal leaves nothing
-        made = self.out
-        while made is not None and not made.parent.exists() and made.parent != made.parent.parent:
-            made = made.parent
-        self.made = made
+        self.made = None if self.out is None else made_by_create(self.out)[0]
 
     def begin(self, _plan: object) -> Path | None:
         return self.out
@@ -147,7 +117,12 @@ def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
     try:
         cli = parser().parse_args(check_ros_args(argv)[1:])
-        _check_cli(cli)
+        if cli.drive_config is not None:  # (what the children would refuse, refused here)
+            try:
+                load_config(cli.drive_config)
+            except ConfigError as exc:
+                raise UsageError(str(exc)) from None
+        cli.check_bag()
         ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
         if cli.processes and ros_args:
             _check_nodes(cli, ros_args)

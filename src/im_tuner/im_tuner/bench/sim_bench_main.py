@@ -5,9 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from im_drive_sim.cli import check_then_run, drive_file, executable, int_in
+from im_drive_sim.cli import UsageError, check_then_run, drive_file, executable, int_in
 
 from ..tuner_args import OptionsParser, option
+from .spec import recording_options
 
 CONFIG_HELP = 'drive parameter file (YAML) or packaged drive name (im3700w-j3, ...): '
 
@@ -35,6 +36,15 @@ class SimulatorOptions:
     compression: str | None = option(
         'MCAP chunk compression of the bag (zstd: smaller files)', shown='lz4', like='compression'
     )
+
+    def check_bag(self) -> None:
+        """A bag option with ``--no-record`` is refused (it would be ignored), ``--out``
+        must be new; the compression defaults to lz4."""
+        self.compression = recording_options(
+            self.no_record, out=self.out, compression=self.compression
+        )
+        if self.out is not None and self.out.exists():
+            raise UsageError(f'--out {self.out}: already exists; choose a new directory')
 
 
 @dataclass

@@ -24,9 +24,7 @@ from im_drive_sim import host, rt
 from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, plain
 
 from . import optim
-from .bench.drive_spec import drive_help
-from .bench.spec import DISCOVERY_TIMEOUT
-from .benches import BENCHES  # (the bench modes: one copy, in benches)
+from .benches import BENCHES, DISCOVERY_TIMEOUT, drive_help
 from .names import DEFAULT_TIMING_TOLERANCE, FAULT_POLICIES
 from .record import live as _live
 from .runlog import RunConfig

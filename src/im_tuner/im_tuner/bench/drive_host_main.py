@@ -7,10 +7,10 @@ from pathlib import Path
 
 from im_drive_sim.cli import check_then_run, drive_file, executable, finite_float
 
+from ..benches import drive_help
 from ..names import DEFAULT_TIMING_TOLERANCE
 from ..record import live as _live
 from ..tuner_args import OptionsParser, option
-from .drive_spec import drive_help
 from .sim_bench_main import CONFIG_HELP, SimulatorOptions
 
 #: [s] the default tuner watchdog: 10 heartbeats (contract.HEARTBEAT_PERIOD) missed

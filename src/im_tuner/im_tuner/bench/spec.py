@@ -25,7 +25,7 @@ from im_drive_sim import rt
 from im_drive_sim.cli import UsageError
 
 from .. import family
-from ..benches import LOCKSTEP_BENCHES, SIM_BENCHES, is_simulated
+from ..benches import DISCOVERY_TIMEOUT, LOCKSTEP_BENCHES, SIM_BENCHES, is_simulated
 from ..record.live import live_settings
 
 if TYPE_CHECKING:
@@ -33,18 +33,12 @@ if TYPE_CHECKING:
     from ..tuner_args import TunerOptions
 
 __all__ = [
-    'DISCOVERY_TIMEOUT',
     'BenchPlan',
     'BenchSpec',
     'next_experiment_id',
     'recording_options',
     'tuner_bench_spec',
 ]
-
-#: [s] --discovery-timeout's default per bench mode: auto simulates when it finds no
-#: controller (short: the default run); none has nothing else to do (it waits only until
-#: the controller is found)
-DISCOVERY_TIMEOUT = {'auto': 2.0, 'none': 20.0}
 
 #: the children's console output off: they log to /rosout (recorded) and their log files
 QUIET_LOGS = ('--ros-args', '--disable-stdout-logs')

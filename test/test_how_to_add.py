@@ -255,8 +255,8 @@ def test_a_named_drive_added_as_the_recipe_says_is_taken_by_name(tmp_path: Path)
     env = {**os.environ, 'PYTHONPATH': str(tmp_path / 'site')}
     probe = (
         'import json, rclpy\n'
-        'from im_tuner.bench.drive_spec import drive_help, make_drive, resolve\n'
-        'from im_tuner.benches import is_simulated\n'
+        'from im_tuner.bench.drive_spec import make_drive, resolve\n'
+        'from im_tuner.benches import drive_help, is_simulated\n'
         "c = resolve('python', None)\n"
         'ctx = rclpy.Context(); rclpy.init(context=ctx)\n'
         "node = make_drive('python', ctx, [])\n"

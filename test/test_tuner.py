@@ -27,7 +27,7 @@ START_LOSS = 0.9803040260343194  # experiment 0 of the hand-tuned start (test_co
 
 
 #: no controller is on a test's graph (its own ROS_DOMAIN_ID) unless it starts one: `auto`
-#: need not look for one for its default 2 s (``bench.spec.DISCOVERY_TIMEOUT``)
+#: need not look for one for its default 2 s (``benches.DISCOVERY_TIMEOUT``)
 NO_CONTROLLER = ('--discovery-timeout', '0.2')
 
 

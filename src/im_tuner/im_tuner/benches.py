@@ -1,8 +1,8 @@
 """The tuner's bench modes, its drives by name, and which of them simulate the drive
 (pure: no rclpy).
 
-The one copy of ``--bench``'s values and ``--drive``'s names (``tuner_args`` and
-``bench.drive_spec`` take them from here); pure, so that the report and the tuner's
+The one copy of ``--bench``'s values and ``--drive``'s names and help (``tuner_args``
+and ``bench.drive_spec`` take them from here); pure, so that the report and the tuner's
 summary can tell a simulated drive from a real one without importing the tuner's command
 line.
 """
@@ -13,11 +13,13 @@ from dataclasses import dataclass
 
 __all__ = [
     'BENCHES',
+    'DISCOVERY_TIMEOUT',
     'IN_PROCESS_BENCHES',
     'LOCKSTEP_BENCHES',
     'NAMED_DRIVES',
     'SIM_BENCHES',
     'NamedDrive',
+    'drive_help',
     'is_simulated',
 ]
 
@@ -29,6 +31,10 @@ SIM_BENCHES = ('inproc', 'processes', 'realtime', 'realtime-processes')
 IN_PROCESS_BENCHES = ('inproc', 'realtime')
 #: simulated benches that repeat a plant history bit for bit (a resumed run replays it)
 LOCKSTEP_BENCHES = ('inproc', 'processes')
+#: [s] --discovery-timeout's default per bench mode: auto simulates when it finds no
+#: controller (short: the default run); none has nothing else to do (it waits only until
+#: the controller is found)
+DISCOVERY_TIMEOUT = {'auto': 2.0, 'none': 20.0}
 
 
 @dataclass(frozen=True)
@@ -60,3 +66,16 @@ def is_simulated(bench: str | None, drive: str | None) -> bool:
     whose experiments run on its own clock."""
     named = NAMED_DRIVES.get(drive or next(iter(NAMED_DRIVES)))
     return bench in SIM_BENCHES and named is not None and named.simulated
+
+
+def drive_help() -> str:
+    """``--drive``'s help: the named drives, then the forms of a user's drive."""
+    named = ', '.join(
+        f"'{k}' ({d.says}{', default' if i == 0 else ''})"
+        for i, (k, d) in enumerate(NAMED_DRIVES.items())
+    )
+    return (
+        f'the drive in the loop: {named}, lib:PATH (a C library, '
+        'share/im_drive_sim/include/im_drive.h) or package.module:Class (your hardware class, '
+        'as example_drive.Hardware, or your drive node class; docs/real-drive.md)'
+    )

@@ -66,6 +66,17 @@ def is_bag_dir(path: Path) -> bool:
     return path.is_dir() and ((path / 'metadata.yaml').is_file() or any(path.glob('*.mcap')))
 
 
+def made_by_create(out: Path) -> tuple[Path, bool]:
+    """What creating ``out`` makes: its topmost missing directory (itself or a parent) and
+    True; or ``out`` itself if it exists, and False (only its contents will be new)."""
+    if out.exists():
+        return out, False
+    made = out
+    while not made.parent.exists() and made.parent != made.parent.parent:
+        made = made.parent
+    return made, True
+
+
 def claim_out_dir(out: Path, error: type[Exception], what_is_there: Callable[[Path], str]) -> Path:
     """Make ``out`` (``--out``) for a new run or bag: refuse a file, a directory that holds
     anything (``what_is_there(out)`` says what), an unwritable place. An existing *empty*
@@ -79,9 +90,7 @@ def claim_out_dir(out: Path, error: type[Exception], what_is_there: Callable[[Pa
         if not os.access(out, os.W_OK | os.X_OK):
             raise error(f'--out {out}: directory is not writable')
         return out
-    parent = out.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
+    parent = made_by_create(out)[0].parent
     if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
         raise error(f'--out {out}: cannot create it ({parent} is not a writable directory)')
     try:

@@ -1,8 +1,10 @@
-"""The tuner's command line, declared once: every option's :class:`Option` (its text,
-argparse's type and choices, its default, whether it is a run setting) in
-:data:`OPTIONS`, from which come the parser (:func:`build_parser`), the defaults and the
+"""The typed command lines, declared once: every option is a field of a dataclass
+(:func:`option`: its text, argparse's type and choices, its default, whether it is a run
+setting), from which come the parser (:class:`OptionsParser`, whose ``parse_args`` gives
+the typed object). The tuner's (:class:`TunerOptions`, :data:`OPTIONS`) also give the
 settings ``--resume`` takes from run.yaml (``tuner_cli``) and docs/tuner.md's options
-table (:func:`options_table`, checked by a test; ``make docs`` writes it). Also what is
+table (:func:`options_table`, checked by a test; ``make docs`` writes it); drive_host,
+sim_bench and the study declare the options they share with it by :func:`shared`. Also what is
 read from ``--ros-args`` (:func:`timing_tolerance`, :func:`ros_arguments`; a resumed
 run's ``-p name:=value`` parameters, :func:`run_parameters`).
 
@@ -13,7 +15,6 @@ pycma, optuna or scipy at load, so ``--help`` and a refusal are quick.
 
 from __future__ import annotations
 
-import argparse
 import shlex
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -23,9 +24,7 @@ from im_drive_sim import host, rt
 from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, plain
 
 from . import optim
-from .bench.drive_spec import drive_help
-from .bench.spec import DISCOVERY_TIMEOUT
-from .benches import BENCHES  # (the bench modes: one copy, in benches)
+from .benches import BENCHES, DISCOVERY_TIMEOUT, drive_help
 from .names import DEFAULT_TIMING_TOLERANCE, FAULT_POLICIES
 from .record import live as _live
 from .runlog import RunConfig
@@ -36,27 +35,22 @@ _OPT_KEYS = '; '.join(
     f'`{" ".join(optim.option_specs(a))}` ({a})' for a in optim.ALGOS if optim.option_specs(a)
 )
 
-DESCRIPTION = (
-    'Tune the cascaded position/speed controller online by SPSA, a compact GA (the '
-    'paper), CMA-ES, TPE or safe (a local search for real benches) on measured experiment '
-    'losses (docs/tuner.md).'
-)
-
 #: ``Option.arg`` of the three real-time options: ``rt.add_arguments`` declares their
-#: type for every executable of the loop; the tuner's rows say what they do here
+#: type for every executable of the loop; an executable's rows say what they do there
 RT = 'rt'
 
 
 @dataclass(frozen=True)
 class Option:
-    """One tuner option.
+    """One option of a typed command line.
 
     ``help``: Markdown, docs/tuner.md's text (``--help`` shows it plain: :func:`plain`).
-    ``arg``: argparse's ``type``, ``choices``, ``metavar`` or ``action`` (:data:`RT`: the
-    real-time options). ``default``: the value when not given (None: the run decides,
-    ``shown`` says how). ``shown``: the docs' default column when not ``default``.
-    ``run``: a run setting, kept in run.yaml: ``--resume`` takes it from there and
-    refuses it given."""
+    ``arg``: argparse's ``type``, ``choices``, ``metavar``, ``nargs`` or ``action``
+    (:data:`RT`: the real-time options). ``default``: the value when not given (None: the
+    run decides, ``shown`` says how). ``shown``: the docs' default column when not
+    ``default``. ``run``: a run setting, kept in run.yaml: ``--resume`` takes it from
+    there and refuses it given. ``flag``: the field's name as ``--a-b`` unless given
+    (``RUN_DIR``-like positionals have no dashes); ``dest``: the field's name."""
 
     flag: str
     help: str
@@ -64,10 +58,7 @@ class Option:
     default: Any = None
     shown: str = ''
     run: bool = False
-
-    @property
-    def dest(self) -> str:
-        return self.flag[2:].replace('-', '_')
+    dest: str = ''
 
 
 _FROM_DEFAULT = object()
@@ -80,19 +71,65 @@ def option(
     shown: str = '',
     run: bool = False,
     parsed: Any = _FROM_DEFAULT,
+    flag: str = '',
+    like: str = '',
 ) -> Any:
-    """A :class:`TunerOptions` field declaring its option (:class:`Option`; its flag is
-    the field's name). ``parsed``: the value when not given, where it is not what
-    :func:`build_parser` makes of the declaration (the real-time options: ``rt``'s)."""
+    """A field of a typed command line declaring its option (:class:`Option`).
+    ``parsed``: the value when not given, where it is not ``default`` (a run setting:
+    None, so ``--resume`` can refuse it given; the real-time options: ``rt``'s).
+    ``like``: another executable's field of the tuner's option of that name, the same
+    flag and argparse declaration (``arg``: what differs there), with its own text and
+    default."""
     arg = {} if arg is None else arg
-    decl = Option('', help, arg, default, shown, run)
-    meta = {'option': decl}
+    if like:
+        base = _BY_DEST[like]
+        if isinstance(base.arg, dict) and isinstance(arg, dict):
+            arg = {**base.arg, **arg}
+        else:
+            arg, parsed = RT, TunerOptions.__dataclass_fields__[like].default
+    meta = {'option': Option(flag, help, arg, default, shown, run)}
     action = arg.get('action') if isinstance(arg, dict) else None
-    if action == 'append':
-        return field(default_factory=list, metadata=meta)
+    if action == 'append' or (isinstance(arg, dict) and arg.get('nargs') in ('*', '+')):
+        return field(default_factory=list, metadata=meta)  # (a list: one per object)
     if parsed is _FROM_DEFAULT:
         parsed = False if action == 'store_true' else None if run else default
     return field(default=parsed, metadata=meta)
+
+
+def declared(cls: type) -> tuple[Option, ...]:
+    """The options of the typed command line ``cls``, in its fields' order."""
+    return tuple(
+        replace(
+            f.metadata['option'],
+            flag=f.metadata['option'].flag or '--' + f.name.replace('_', '-'),
+            dest=f.name,
+        )
+        for f in fields(cls)
+    )
+
+
+class OptionsParser(Parser):
+    """The parser of a typed command line ``cls`` (a dataclass of :func:`option` fields;
+    its ``PROG``, ``DESCRIPTION`` and ``RT_WHAT``, what the real-time options schedule):
+    ``parse_args`` gives a ``cls``."""
+
+    def __init__(self, cls: type) -> None:
+        super().__init__(prog=cls.PROG, description=cls.DESCRIPTION)  # type: ignore[attr-defined]
+        self.options = cls
+        defaults = vars(cls())
+        rt_helps = {}
+        for o in declared(cls):
+            if o.arg == RT:
+                rt_helps.update({o.flag: _help(o)} if o.help else {})
+                continue
+            assert isinstance(o.arg, dict)
+            where = {'dest': o.dest} if o.flag.startswith('-') else {}
+            self.add_argument(o.flag, help=_help(o), default=defaults[o.dest], **where, **o.arg)
+        if any(o.arg == RT for o in declared(cls)):
+            rt.add_arguments(self, cls.RT_WHAT, rt.DEFAULT_PRIORITY, rt_helps)  # type: ignore[attr-defined]
+
+    def parse_args(self, args: Any = None, namespace: Any = None) -> Any:
+        return self.options(**vars(super().parse_args(args, namespace)))
 
 
 @dataclass
@@ -100,6 +137,14 @@ class TunerOptions:
     """The tuner's command line, typed: one field per option, its declaration (an
     :class:`Option`) in the field's metadata. A run setting not given is None (False for
     a switch): ``--resume`` refuses it given; a new run takes :func:`default`."""
+
+    PROG = 'ros2 run im_tuner tuner'
+    DESCRIPTION = (
+        'Tune the cascaded position/speed controller online by SPSA, a compact GA (the '
+        'paper), CMA-ES, TPE or safe (a local search for real benches) on measured '
+        'experiment losses (docs/tuner.md).'
+    )
+    RT_WHAT = 'the composed loop (--bench realtime)'
 
     algo: str | None = option(
         '`spsa`, `necga`, `cga`, `pecga`, `rcga` (the paper and its variants), `cmaes` '
@@ -324,22 +369,10 @@ class TunerOptions:
 
 
 #: the declarations, in the docs' order
-OPTIONS: tuple[Option, ...] = tuple(
-    replace(f.metadata['option'], flag='--' + f.name.replace('_', '-'))
-    for f in fields(TunerOptions)
-)
+OPTIONS: tuple[Option, ...] = declared(TunerOptions)
 #: the settings a resumed run takes from run.yaml (giving them with --resume is an error)
 RUN_SETTINGS: tuple[str, ...] = tuple(o.dest for o in OPTIONS if o.run)
 _BY_DEST = {o.dest: o for o in OPTIONS}
-
-
-def add_shared(ap: argparse.ArgumentParser, flag: str, help: str, default: Any = None) -> None:
-    """The tuner's option ``flag`` on another executable's parser (the study's): the same
-    type, range, choices and metavar, with that executable's own text and default."""
-    arg = next(o.arg for o in OPTIONS if o.flag == flag)
-    assert isinstance(arg, dict)
-    kwargs = {} if arg.get('action') == 'store_true' else {'default': default}
-    ap.add_argument(flag, help=help, **kwargs, **arg)
 
 
 def default(dest: str) -> Any:
@@ -347,18 +380,9 @@ def default(dest: str) -> Any:
     return _BY_DEST[dest].default
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The tuner's parser, from :data:`OPTIONS`. Run settings parse as None (or False)
-    when not given, so ``--resume`` can refuse them; the others take their default."""
-    ap = Parser(prog='ros2 run im_tuner tuner', description=DESCRIPTION)
-    for o in OPTIONS:
-        if isinstance(o.arg, dict):
-            value = [] if o.arg.get('action') == 'append' else None if o.run else o.default
-            kwargs = {} if o.arg.get('action') == 'store_true' else {'default': value}
-            ap.add_argument(o.flag, help=_help(o), **kwargs, **o.arg)
-    rt_helps = {o.flag: _help(o) for o in OPTIONS if o.arg == RT}
-    rt.add_arguments(ap, 'the composed loop (--bench realtime)', rt.DEFAULT_PRIORITY, rt_helps)
-    return ap
+def build_parser() -> OptionsParser:
+    """The tuner's parser, from :data:`OPTIONS`: it gives a :class:`TunerOptions`."""
+    return OptionsParser(TunerOptions)
 
 
 def parse_options(args: list[str]) -> TunerOptions:
@@ -368,7 +392,7 @@ def parse_options(args: list[str]) -> TunerOptions:
     for flag, key, value in zip(args, args[1:], args[2:], strict=False):
         if flag == '--opt' and '=' not in key and not value.startswith('-'):
             raise UsageError(f'--opt {key} {value}: give it as --opt {key}={value}')
-    return TunerOptions(**vars(build_parser().parse_args(args)))
+    return build_parser().parse_args(args)
 
 
 def _help(o: Option) -> str:
@@ -417,11 +441,10 @@ def timing_tolerance(cli: TunerOptions, argv: list[str]) -> int | str | None:
     neither; ``auto``: ``host.AUTO``. Both, differing, or a value that is not an integer
     >= 0: UsageError."""
     given = cli.timing_tolerance
-    ros = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
     from_ros = None
-    for i, a in enumerate(ros[:-1]):
-        if a in ('-p', '--param') and ros[i + 1].startswith('timing_tolerance:='):
-            text = ros[i + 1].split(':=', 1)[1]
+    for item in ros_parameters(argv):
+        if item.startswith('timing_tolerance:='):
+            text = item.split(':=', 1)[1]
             try:
                 from_ros = int(text)
             except ValueError:
@@ -462,12 +485,14 @@ def run_parameters(run: RunConfig) -> list[str]:
         words = shlex.split(run.command or '')
     except ValueError:
         return []
-    ros = words[words.index('--ros-args') + 1 :] if '--ros-args' in words else []
-    out = []
-    for i, w in enumerate(ros[:-1]):
-        if w in ('-p', '--param') and not ros[i + 1].startswith('timing_tolerance:='):
-            out += ['-p', ros[i + 1]]
-    return out
+    kept = [p for p in ros_parameters(words) if not p.startswith('timing_tolerance:=')]
+    return [w for p in kept for w in ('-p', p)]
+
+
+def ros_parameters(argv: list[str]) -> list[str]:
+    """The ``name:=value`` operands of ``-p``/``--param`` after ``--ros-args`` in ``argv``."""
+    ros = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
+    return [ros[i + 1] for i, w in enumerate(ros[:-1]) if w in ('-p', '--param')]
 
 
 if __name__ == '__main__':  # make docs: docs/tuner.md's table from OPTIONS

@@ -65,20 +65,7 @@ def _usage(*errors: type[Exception], prefix: str = '') -> Iterator[None]:
 HostSaid = tuple[str, bool] | None
 
 
-@dataclass
-class NewRun:
-    """A new run whose every check passed: its settings (run.yaml), its tuner parameters,
-    the run directory to create (None: the default, named when it is created) and the
-    checked ``--drive`` (None: the simulator; a hardware class already built)."""
-
-    run: RunConfig
-    params: TunerParams
-    out: Path | None
-    drive: DriveChoice | None
-    host_said: HostSaid = None
-
-
-def _new_run_config(cli: TunerOptions, argv: list[str]) -> NewRun:
+def _new_run_config(cli: TunerOptions, argv: list[str]) -> PreparedSession:
     """Check everything of a new run before anything is created, in the module
     docstring's order."""
     # (each option's range is its parser's type: tuner_args.OPTIONS)
@@ -172,7 +159,14 @@ def _new_run_config(cli: TunerOptions, argv: list[str]) -> NewRun:
             'command': ' '.join(shlex.quote(a) for a in argv),
         }
     )
-    return NewRun(run, params, out, drive, host_said)
+    from .progress import Progress
+    from .record.run_info import default_out_dir
+
+    run.put(bench_requested=cli.bench_asked)
+    out = out or default_out_dir(prefix=f'tuner_{algo}')
+    return PreparedSession(
+        run, params, drive, Progress(algo, budget, cli.quiet), out=out, host_said=host_said
+    )
 
 
 def _check_host(
@@ -220,18 +214,7 @@ def prepare_run(cli: TunerOptions, argv: list[str]) -> PreparedSession:
     from .progress import Progress
 
     if cli.resume is None:
-        new = _new_run_config(cli, argv)
-        out = new.out
-        if out is None:
-            from .record.run_info import default_out_dir
-
-            out = default_out_dir(prefix=f'tuner_{new.run.algo}')
-        new.run.put(bench_requested=cli.bench_asked)
-        assert new.run.budget is not None
-        progress = Progress(new.run.algo, new.run.budget, cli.quiet)
-        return PreparedSession(
-            new.run, new.params, new.drive, progress, out=out, host_said=new.host_said
-        )
+        return _new_run_config(cli, argv)
     if timing_tolerance(cli, argv) is not None:
         cli.timing_tolerance = True  # (given: refused below, with the other settings)
     given = [k for k in RUN_SETTINGS if getattr(cli, k) not in (None, False)]

@@ -5,15 +5,9 @@ evaluation it sets the gains on the controller through its parameter services
 (atomically), starts the paper's experiment, waits for the loss, and tells the optimiser
 (:mod:`im_tuner.tuning`, :mod:`im_tuner.link`, :mod:`im_tuner.optim`).
 
-The benches (``--bench``), the recording and the run directory (``--out``, ``--resume``):
-docs/tuner.md. Bench processes started here end with the tuner, however it ends.
-
-The pieces: ``tuner_args`` (options), ``tuner_cli`` (run configuration, resume checks),
-``bench.spec`` (which bench, built how), ``bench.open`` (opens it: ``bench.forms``, the
-benches behind one protocol), ``tuner_session`` (the run's side of a session: run
-directory, replay, summary), ``link`` (the controller link), ``tuning`` (the
-ask/measure/tell loop and its record), ``progress`` (what is printed). This module only
-wires them: parse, spec, open, run, close.
+The benches, the recording and the run directory: docs/tuner.md; the pieces this module
+wires (parse, spec, open, run, close): docs/architecture.md. Bench processes started here
+end with the tuner, however it ends.
 
 Exit codes: 0 done, 1 the bench failed (best gains applied, bag closed), 2 bad input,
 130 interrupted (SIGINT/SIGTERM; resumable).

@@ -11,8 +11,10 @@ A new run refused once its directory exists is undone (:meth:`undo`). No rclpy a
 
 from __future__ import annotations
 
+import ipaddress
 import shlex
 import shutil
+import socket
 import sys
 import time
 from pathlib import Path
@@ -22,7 +24,7 @@ from im_drive_sim import numeric
 from im_drive_sim.cli import UsageError, ros2_command
 
 from .benches import IN_PROCESS_BENCHES, LOCKSTEP_BENCHES
-from .record import live as live_view
+from .rundir import RunDir, RunDirError, made_by_create
 from .runlog import Record, Timing, replay_plan
 from .tuner_cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PreparedSession, make_tuning
 
@@ -30,7 +32,6 @@ if TYPE_CHECKING:
     from .bench.forms import Bench
     from .bench.spec import BenchPlan
     from .link import ControllerLink
-    from .rundir import RunDir
     from .tuner_args import TunerOptions
 
 
@@ -86,6 +87,26 @@ def failure_advice(
     ]
 
 
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (an address, or a name: every address it resolves to) is this
+    computer only (127.0.0.0/8, ``::1``)."""
+    try:
+        found = {a[4][0] for a in socket.getaddrinfo(host, None)}
+    except OSError:
+        return False
+    return bool(found) and all(ipaddress.ip_address(a).is_loopback for a in found)
+
+
+def resume_command(ros2: str, run_dir: Path, cli: TunerOptions) -> str:
+    """The command that continues the run, for the user's shell (every value quoted): the
+    live view is a session's own, so the command gives it again."""
+    words = [ros2, 'run', 'im_tuner', 'tuner', '--resume', str(run_dir)]
+    for flag, v in (('--live', cli.live), ('--live-host', cli.live_host)):
+        words += [] if v is None else [flag, str(v)]
+    words += [] if cli.live_rate is None else ['--live-rate', f'{cli.live_rate:g}']
+    return ' '.join(shlex.quote(w) for w in words)
+
+
 def session_number(sessions: list[dict[str, Any]], records: list[Record]) -> int:
     """This session's number (0-based): after every session the checkpoint lists and
     every session a record names (a rebuilt checkpoint lists none)."""
@@ -117,18 +138,6 @@ def _repair_old_bags(rundir: RunDir, note, current: Path | None) -> None:
                 note(f'warning: could not repair {bag}: {exc}')
 
 
-def _made_by_create(out: Path) -> tuple[Path, bool]:
-    """What ``RunDir.create(out)`` will make: the topmost missing directory of ``out``
-    (itself or a parent), or ``out`` itself if it is an existing empty directory (then
-    only its contents are ours: the bool is False)."""
-    if out.exists():
-        return out, False
-    made = out
-    while not made.parent.exists() and made.parent != made.parent.parent:
-        made = made.parent
-    return made, True
-
-
 class TunerSession:
     """The run's side of one tuner session (module docstring)."""
 
@@ -145,7 +154,7 @@ class TunerSession:
         self.host_said = cfg.host_said
         self.resumed = cli.resume is not None
         #: what a new run's directory creation makes (undone if the run is refused)
-        self.made = None if self.resumed else _made_by_create(cfg.out)
+        self.made = None if self.resumed else made_by_create(cfg.out)
         self.plan: BenchPlan | None = None
         self.bag_dir: Path | None = None
         #: this session's record in the checkpoint (its bags, its bench, its replay)
@@ -157,8 +166,6 @@ class TunerSession:
     def begin(self, plan: BenchPlan) -> Path | None:
         """The bench is decided: a new run's directory (locked) and TuningRun; this
         session's bag directory (None: --no-record)."""
-        from .rundir import RunDir, RunDirError
-
         self.plan = plan
         if self.rundir is None:
             try:
@@ -282,7 +289,7 @@ class TunerSession:
         live = plan.spec.live
         if live is not None:
             progress.note(f'live: {live.describe()}')
-            if live.host != live_view.DEFAULT_HOST:  # (said even with --quiet)
+            if not is_loopback(live.host):  # (said even with --quiet)
                 progress.warn(
                     f"warning: --live-host {live.host}: the run's every topic is open to "
                     'whoever reaches this computer on the network (no authentication)'
@@ -415,15 +422,7 @@ class TunerSession:
             what = 'interrupted:'
             if code == EXIT_FAILED:
                 what = 'failed: once the cause is fixed,'
-            resume = f'{ros2} run im_tuner tuner --resume {shlex.quote(str(rundir.path))}'
-            given = (('--live', self.cli.live), ('--live-host', self.cli.live_host))
-            given += (('--live-rate', self.cli.live_rate),)
-            # (the live view is a session's: the command gives it again)
-            resume += ''.join(
-                f' {flag} {v:g}' if isinstance(v, float) else f' {flag} {v}'
-                for flag, v in given
-                if v is not None
-            )
+            resume = resume_command(ros2, rundir.path, self.cli)
             print(f'  {what} continue with `{resume}`', flush=True)
         return code
 

@@ -10,12 +10,8 @@ from pathlib import Path
 import pytest
 
 from im_drive_sim.cli import UsageError
-from im_tuner.bench.spec import (
-    DISCOVERY_TIMEOUT,
-    BenchSpec,
-    next_experiment_id,
-    tuner_bench_spec,
-)
+from im_tuner.bench.spec import BenchSpec, next_experiment_id, tuner_bench_spec
+from im_tuner.benches import DISCOVERY_TIMEOUT
 from im_tuner.runlog import Lost, RunConfig
 from im_tuner.tuner_args import parse_options
 

@@ -184,3 +184,32 @@ def test_a_late_client_gets_the_past_of_a_transient_local_topic_only():
         server.close()
     assert watcher.messages['/tuner/result'] == [(10, b'r0'), (12, b'r1'), (13, b'r2'), (21, b'r3')]
     assert watcher.messages['/controller/loss'] == [(20, b'l1')]
+
+
+def test_the_live_host_warning_is_for_an_address_other_computers_reach():
+    """``--live-host`` warns (the run's topics open to the network) only for an address
+    that is not this computer's loopback; a name is resolved first."""
+    from im_tuner.tuner_session import is_loopback
+
+    for host in ('127.0.0.1', '127.0.0.2', '::1', 'localhost'):
+        assert is_loopback(host), host
+    for host in ('0.0.0.0', '::', '192.0.2.1', 'no-such-host.invalid'):
+        assert not is_loopback(host), host
+
+
+def test_the_printed_resume_command_quotes_its_live_host(tmp_path):
+    """The resume command an interrupted run prints runs as printed: each value quoted
+    for the shell (a host with a zone index, a run directory with a space)."""
+    import shlex
+
+    from im_tuner.tuner_args import parse_options
+    from im_tuner.tuner_session import resume_command
+
+    run = tmp_path / 'my run'
+    cli = parse_options(['--live', '9000', '--live-host', 'fe80::1%eth0', '--live-rate', '300'])
+    command = resume_command('ros2', run, cli)
+    assert shlex.split(command) == [
+        'ros2', 'run', 'im_tuner', 'tuner', '--resume', str(run),
+        '--live', '9000', '--live-host', 'fe80::1%eth0', '--live-rate', '300',
+    ]  # fmt: skip
+    assert resume_command('ros2', tmp_path, parse_options([])).endswith(f'--resume {tmp_path}')

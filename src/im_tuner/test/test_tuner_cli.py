@@ -311,3 +311,30 @@ def test_the_study_names_the_policies_as_the_tuner_declares_them() -> None:
         said |= {w.split('=')[0] for w in words if w.startswith(('start=', 'first='))}
         assert '--no-start' not in words and '--first' not in words
     assert said == {'start', 'first'}
+
+
+def test_the_other_command_lines_share_the_tuners_declarations() -> None:
+    """sim_bench's, drive_host's and the study's parsers give their typed options (never a
+    Namespace); an option they share with the tuner has its flag, choices and metavar
+    (the drive file is --drive-config everywhere)."""
+    from im_tuner import tuner_args
+    from im_tuner.bench.drive_host_main import DriveHostOptions
+    from im_tuner.bench.sim_bench_main import SimBenchOptions
+    from im_tuner.study.cli import StudyOptions
+
+    tuner = {a.dest: a for a in build_parser()._actions}
+    for cls in (SimBenchOptions, DriveHostOptions, StudyOptions):
+        parser = tuner_args.OptionsParser(cls)
+        assert isinstance(parser.parse_args([]), cls)
+        mine = {a.dest: a for a in parser._actions}
+        shared = set(mine) & set(tuner) - {'help'}
+        assert {'drive_config', 'seed', 'model', 'out'} <= shared, cls
+        for dest in shared:
+            a, t = mine[dest], tuner[dest]
+            assert (a.option_strings, a.choices, a.metavar) == (
+                t.option_strings,
+                t.choices,
+                t.metavar,
+            ), (cls, dest)
+    cli = tuner_args.OptionsParser(DriveHostOptions).parse_args(['--drive-config', 'im3700w-j3'])
+    assert str(cli.drive_config) == 'im3700w-j3' and cli.drive == 'sim' and cli.tuner_timeout == 1.0

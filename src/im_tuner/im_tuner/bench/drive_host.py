@@ -20,7 +20,6 @@ closed.
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -29,47 +28,40 @@ from typing import Any
 from rclpy.node import Node
 
 from im_drive_sim import host as host_floor, rt
-from im_drive_sim.cli import UsageError, parse_cli
+from im_drive_sim.cli import UsageError, check_ros_args
 from im_drive_sim.contract import STATE_TOPIC
 from im_drive_sim.runtime import RosSession
 
-from .. import family
 from ..names import DEFAULT_TIMING_TOLERANCE, DRIVE_HOST_NODE
 from ..record.live import live_settings
-from ..record.run_info import default_out_dir
 from . import drive_spec
-from .drive_host_main import parser
+from .drive_host_main import DriveHostOptions, parser
 from .forms import InProcess
 from .open import open_bench
 from .sim_bench import _Bag
-from .spec import BenchSpec, recording_options
+from .spec import BenchSpec, bench_parameters
 
 
 def _spec(
-    cli: argparse.Namespace, choice: Any, host_check: dict | None = None, live: Any = None
+    cli: DriveHostOptions, choice: Any, host_check: dict | None = None, live: Any = None
 ) -> BenchSpec:
     """The composed real-time bench of ``cli`` (``choice``: the checked ``--drive``;
     ``host_check``: the host's check at start-up, recorded with the loop)."""
     config = str(cli.drive_config) if cli.drive_config else None
-    given = (('config_file', config), ('model', cli.model), ('seed', cli.seed))
-    drive: list[tuple[str, Any]] = [(n, v) for n, v in given if v is not None]
-    ctl: list[tuple[str, Any]] = [
+    drive, ctl = bench_parameters(config, cli.model, cli.seed)
+    ctl = (
         ('timing_tolerance', int(cli.timing_tolerance)),
         ('tuner_timeout', float(cli.tuner_timeout)),
-    ]
-    if config:
-        ctl.append(('drive_config_file', config))
-        setup = family.tuner_setup(config)  # a packaged drive: its experiment
-        if setup is not None:
-            ctl.extend(family.controller_parameters(setup))
+        *ctl,
+    )
     return BenchSpec(
         requested='realtime',
         drive=cli.drive,
         drive_choice=choice,
         record=not cli.no_record,
-        compression=cli.compression,
-        drive_parameters=tuple(drive),
-        controller_parameters=tuple(ctl),
+        compression=cli.compression or 'lz4',
+        drive_parameters=drive,
+        controller_parameters=ctl,
         rt_options=rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY),
         host_check=host_check,
         quiet=False,
@@ -100,10 +92,8 @@ def _another_drive(node: Node) -> str:
 def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
     try:
-        cli = parse_cli(parser(), argv)
-        cli.compression = recording_options(cli.no_record, out=cli.out, compression=cli.compression)
-        if cli.out is not None and cli.out.exists():
-            raise UsageError(f'--out {cli.out}: already exists; choose a new directory')
+        cli = parser().parse_args(check_ros_args(argv)[1:])
+        cli.check_bag()
         if cli.model is not None and cli.drive != 'sim':
             raise UsageError(f"--model is the simulator's (--drive sim), not --drive {cli.drive}")
         live = live_settings(cli.live, cli.live_host, cli.live_rate, no_record=cli.no_record)
@@ -122,9 +112,7 @@ def main(args: list[str] | None = None) -> int:
         )
     except KeyboardInterrupt:
         return 130
-    if cli.out is None and not cli.no_record:
-        cli.out = default_out_dir(prefix='drive_host')
-    host = _Bag(cli)
+    host = _Bag(cli, 'drive_host')
     bench: Any = None
 
     def _on_signal(_signum: int) -> None:

@@ -38,7 +38,6 @@ __all__ = [
     'check_drive_spec',
     'close_hardware',
     'close_untaken',
-    'drive_help',
     'load_drive_class',
     'resolve',
 ]
@@ -88,19 +87,6 @@ def _file_only(overrides: list[Any]) -> list[Any]:
 #: Drives by name; anything else is ``lib:PATH`` or ``package.module:Class``
 DRIVES = tuple(NAMED_DRIVES)
 _DOC = 'docs/real-drive.md'
-
-
-def drive_help() -> str:
-    """``--drive``'s help: the named drives, then the forms of a user's drive."""
-    named = ', '.join(
-        f"'{k}' ({d.says}{', default' if i == 0 else ''})"
-        for i, (k, d) in enumerate(NAMED_DRIVES.items())
-    )
-    return (
-        f'the drive in the loop: {named}, lib:PATH (a C library, '
-        'share/im_drive_sim/include/im_drive.h) or package.module:Class (your hardware class, '
-        'as example_drive.Hardware, or your drive node class; docs/real-drive.md)'
-    )
 
 
 def _expected() -> str:

@@ -1,90 +1,42 @@
-"""The simulated bench: ``ros2 run im_tuner sim_bench [--processes]``.
-
-Brings up the drive simulator and the controller together, lock-step:
-
-* one process (default, the fast path): both nodes in one thread (``.inprocess``);
-* ``--processes``: ``ros2 run im_drive_sim drive_sim`` and ``ros2 run im_controller
-  controller`` as two child processes (ended by PID: SIGINT, grace, SIGKILL; ended by
-  the kernel too if this process is killed, as the tuner's children).
-
-The bench is opened as the tuner's is (``bench.open.open_bench``: the same forms, the
-same children, the same signal handling).
-
-Either way the graph is the same (``drive_sim``, ``controller``, their topics and
-services), and so is what it computes: the same seed gives bit-identical losses.
-The tuner brings this bench up itself when no controller is on the graph.
-
-All traffic is recorded (``im_tuner.record.node``) unless ``--no-record``: in one
-process the recorder runs in the bench's loop and is polled between steps, so not a
-message is lost; with ``--processes`` it is a third child, ``ros2 run im_tuner recorder``.
+"""The simulated bench: ``ros2 run im_tuner sim_bench [--processes]``: the drive
+simulator and the controller, lock-step, in one process (``.inprocess``) or as two
+children (``--processes``), opened as the tuner's bench is (``bench.open.open_bench``).
+Either way the graph and the losses are the same (the same seed: bit-identical). All
+traffic is recorded unless ``--no-record``: in one process the recorder is polled between
+steps; with ``--processes`` it is a third child, ``ros2 run im_tuner recorder``.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import sys
 from pathlib import Path
 from typing import Any
 
-from im_drive_sim.cli import UsageError, parse_cli
+from im_drive_sim.cli import UsageError, check_ros_args
 from im_drive_sim.drive_file import load_config
 from im_drive_sim.params import ConfigError
 from im_drive_sim.runtime import RosSession
 
 from ..record.run_info import default_out_dir
+from ..rundir import made_by_create
+from ..tuner_args import ros_parameters
 from .forms import Children, InProcess, parameters
 from .open import open_bench
-from .sim_bench_main import parser
-from .spec import BenchSpec, Params, parameter_args, recording_options
+from .sim_bench_main import SimBenchOptions, SimulatorOptions, parser
+from .spec import BenchSpec, Params, bench_parameters, parameter_args
 
 
-def _check_cli(cli: argparse.Namespace) -> None:
-    """What the children would refuse, refused here before anything is started."""
-    if cli.drive_config is not None:
-        try:
-            load_config(cli.drive_config)
-        except ConfigError as exc:
-            raise UsageError(str(exc)) from None
-    cli.compression = recording_options(cli.no_record, out=cli.out, compression=cli.compression)
-    if cli.out is not None and cli.out.exists():
-        raise UsageError(f'--out {cli.out}: already exists; choose a new directory')
-
-
-def _drive_gains(cli: argparse.Namespace, ros_args: list[str]) -> Params:
-    """The controller's experiment and start gains for ``--drive-config`` (``family.tuner_setup``:
-    a packaged drive, or a file on a packaged base; none for the paper's drive), less those
-    the user's ``--ros-args -p NAME:=VALUE`` sets (the command line wins)."""
-    if not cli.drive_config:
-        return ()
-    from .. import family
-
-    setup = family.tuner_setup(str(cli.drive_config))
-    if setup is None:
-        return ()
-    given = {
-        ros_args[i + 1].split(':=', 1)[0]
-        for i, a in enumerate(ros_args[:-1])
-        if a in ('-p', '--param') and ':=' in ros_args[i + 1]
-    }
-    return tuple((n, v) for n, v in family.controller_parameters(setup) if n not in given)
-
-
-def _overrides(cli: argparse.Namespace, ros_args: list[str]) -> tuple[Params, Params]:
-    """The drive's and the controller's parameters from the command line's flags (and the
-    drive's experiment and gains, :func:`_drive_gains`)."""
+def _overrides(cli: SimBenchOptions, ros_args: list[str]) -> tuple[Params, Params]:
+    """The drive's and the controller's parameters from the command line's flags (a
+    packaged drive's experiment and gains but those the user's ``-p NAME:=VALUE`` sets)."""
+    given = {p.split(':=', 1)[0] for p in ros_parameters(ros_args) if ':=' in p}
     config = str(cli.drive_config) if cli.drive_config else None
-    drive = tuple(
-        (n, v)
-        for n, v in (('config_file', config), ('model', cli.model), ('seed', cli.seed))
-        if v is not None
-    )
-    ctl = ((('drive_config_file', config),) if config else ()) + _drive_gains(cli, ros_args)
-    return drive, ctl
+    return bench_parameters(config, cli.model, cli.seed, given)
 
 
-def _child_args(cli: argparse.Namespace, ros_args: list[str]) -> tuple[tuple[str, ...], ...]:
+def _child_args(cli: SimBenchOptions, ros_args: list[str]) -> tuple[tuple[str, ...], ...]:
     """``--processes``: the drive's and the controller's command-line tails (their own
     flags, the drive's experiment and gains, then the user's ``--ros-args``)."""
     drive: list[str] = []
@@ -92,7 +44,7 @@ def _child_args(cli: argparse.Namespace, ros_args: list[str]) -> tuple[tuple[str
     if cli.drive_config:
         drive += ['--drive-config', str(cli.drive_config)]
         ctl += ['--drive-config', str(cli.drive_config)]
-        gains = _drive_gains(cli, ros_args)
+        gains = _overrides(cli, ros_args)[1][1:]  # (after drive_config_file)
         if gains:
             ctl += ['--ros-args', *parameter_args(gains)]
     if cli.model:
@@ -102,7 +54,7 @@ def _child_args(cli: argparse.Namespace, ros_args: list[str]) -> tuple[tuple[str
     return (*drive, *ros_args), (*ctl, *ros_args)
 
 
-def _check_nodes(cli: argparse.Namespace, ros_args: list[str]) -> None:
+def _check_nodes(cli: SimBenchOptions, ros_args: list[str]) -> None:
     """``--processes`` with ``--ros-args``: build the drive and the controller here first
     (a private context, no log output, destroyed at once), so that an override either
     child would refuse at start is refused here, on one line, before the recorder child
@@ -135,14 +87,11 @@ class _Bag:
     """sim_bench's side of its bench (forms.RunHost): one bag, no run; a dead recorder
     ends the bench."""
 
-    def __init__(self, cli: argparse.Namespace) -> None:
-        self.out = None if cli.no_record else Path(cli.out or default_out_dir(prefix='sim_bench'))
+    def __init__(self, cli: SimulatorOptions, prog: str) -> None:
+        self.out = None if cli.no_record else Path(cli.out or default_out_dir(prefix=prog))
         # what this run creates (the bag and any missing parents): removed again if a
         # child refuses its configuration at start (exit 2), so a refusal leaves nothing
-        made = self.out
-        while made is not None and not made.parent.exists() and made.parent != made.parent.parent:
-            made = made.parent
-        self.made = made
+        self.made = None if self.out is None else made_by_create(self.out)[0]
 
     def begin(self, _plan: object) -> Path | None:
         return self.out
@@ -167,8 +116,13 @@ class _Bag:
 def main(args: list[str] | None = None) -> int:
     argv = sys.argv if args is None else args
     try:
-        cli = parse_cli(parser(), argv)
-        _check_cli(cli)
+        cli = parser().parse_args(check_ros_args(argv)[1:])
+        if cli.drive_config is not None:  # (what the children would refuse, refused here)
+            try:
+                load_config(cli.drive_config)
+            except ConfigError as exc:
+                raise UsageError(str(exc)) from None
+        cli.check_bag()
         ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
         if cli.processes and ros_args:
             _check_nodes(cli, ros_args)
@@ -185,7 +139,7 @@ def main(args: list[str] | None = None) -> int:
         child_args=_child_args(cli, ros_args) if cli.processes else None,
         quiet=False,
     )
-    host = _Bag(cli)
+    host = _Bag(cli, 'sim_bench')
     bench: Any = None
 
     def _on_signal(_signum: int) -> None:

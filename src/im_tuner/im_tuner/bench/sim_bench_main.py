@@ -2,60 +2,69 @@
 
 from __future__ import annotations
 
-import argparse
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
-from im_drive_sim.cli import Parser, add_simulator_options, check_then_run, executable
+from im_drive_sim.cli import UsageError, check_then_run, drive_file, executable, int_in
 
-DESCRIPTION = (
-    'The simulated bench: drive_sim + controller, lock-step. Start experiments with '
-    '/controller/start_experiment (std_srvs/Trigger); results on /controller/loss.'
-)
-#: the bag's options: (flag, argparse keywords)
-BAG_OPTIONS: tuple[tuple[str, dict[str, Any]], ...] = (
-    (
-        '--no-record',
-        {
-            'action': 'store_true',
-            'help': 'do not record (default: all traffic to a bag, see --out); refused '
-            'with --out or --compression, which would be ignored',
-        },
-    ),
-    (
-        '--out',
-        {
-            'metavar': 'DIR',
-            'type': Path,
-            'help': 'bag directory to create (default: bags/{prog}_<UTC time>)',
-        },
-    ),
-    (
-        '--compression',
-        {
-            'choices': ('none', 'zstd', 'lz4'),
-            'help': 'MCAP chunk compression of the bag (default: lz4; zstd: smaller files)',
-        },
-    ),
-)
+from ..tuner_args import OptionsParser, option
+from .spec import recording_options
+
+CONFIG_HELP = 'drive parameter file (YAML) or packaged drive name (im3700w-j3, ...): '
 
 
-def parser() -> argparse.ArgumentParser:
-    ap = Parser(prog='ros2 run im_tuner sim_bench', description=DESCRIPTION)
-    ap.add_argument(
-        '--processes',
-        action='store_true',
-        help='run drive_sim and controller as two processes (default: one)',
+@dataclass
+class SimulatorOptions:
+    """The options of a bench that is not a run (sim_bench, drive_host): the simulated
+    drive's and the bag's (:mod:`..tuner_args`)."""
+
+    drive_config: Path | None = option(
+        CONFIG_HELP + 'the simulated motor', {'type': drive_file}, like='drive_config'
     )
-    add_simulator_options(ap, 'the simulated motor', 'drive model fidelity')
-    add_bag_options(ap, 'sim_bench')
-    return ap
+    model: str | None = option('drive model fidelity', like='model')
+    seed: int | None = option(
+        'disturbance seed (>= 0)', {'type': int_in(0, 2**31 - 1)}, like='seed'
+    )
+    no_record: bool = option(
+        'do not record (default: all traffic to a bag, see --out); refused with --out or '
+        '--compression, which would be ignored',
+        like='no_record',
+    )
+    out: Path | None = option(
+        'bag directory to create (default: bags/<executable>_<UTC time>)', like='out'
+    )
+    compression: str | None = option(
+        'MCAP chunk compression of the bag (zstd: smaller files)', shown='lz4', like='compression'
+    )
+
+    def check_bag(self) -> None:
+        """A bag option with ``--no-record`` is refused (it would be ignored), ``--out``
+        must be new; the compression defaults to lz4."""
+        self.compression = recording_options(
+            self.no_record, out=self.out, compression=self.compression
+        )
+        if self.out is not None and self.out.exists():
+            raise UsageError(f'--out {self.out}: already exists; choose a new directory')
 
 
-def add_bag_options(ap: argparse.ArgumentParser, prog: str) -> None:
-    """The bag's options (:data:`BAG_OPTIONS`) on ``prog``'s parser."""
-    for flag, kw in BAG_OPTIONS:
-        ap.add_argument(flag, **{**kw, 'help': kw['help'].format(prog=prog)})
+@dataclass
+class SimBenchOptions(SimulatorOptions):
+    """sim_bench's command line, typed."""
+
+    PROG = 'ros2 run im_tuner sim_bench'
+    DESCRIPTION = (
+        'The simulated bench: drive_sim + controller, lock-step. Start experiments with '
+        '/controller/start_experiment (std_srvs/Trigger); results on /controller/loss.'
+    )
+
+    processes: bool = option(
+        'run drive_sim and controller as two processes (default: one)',
+        {'action': 'store_true'},
+    )
+
+
+def parser() -> OptionsParser:
+    return OptionsParser(SimBenchOptions)
 
 
 def main() -> int:

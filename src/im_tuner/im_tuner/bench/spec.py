@@ -17,33 +17,28 @@ Pure: no rclpy (unit-tested without ROS).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any
 
 from im_drive_sim import rt
 from im_drive_sim.cli import UsageError
 
 from .. import family
-from ..benches import LOCKSTEP_BENCHES, SIM_BENCHES, is_simulated
+from ..benches import DISCOVERY_TIMEOUT, LOCKSTEP_BENCHES, SIM_BENCHES, is_simulated
 from ..record.live import live_settings
 
 if TYPE_CHECKING:
     from ..runlog import Record, RunConfig
+    from ..tuner_args import TunerOptions
 
 __all__ = [
-    'DISCOVERY_TIMEOUT',
     'BenchPlan',
     'BenchSpec',
     'next_experiment_id',
     'recording_options',
     'tuner_bench_spec',
 ]
-
-#: [s] --discovery-timeout's default per bench mode: auto simulates when it finds no
-#: controller (short: the default run); none has nothing else to do (it waits only until
-#: the controller is found)
-DISCOVERY_TIMEOUT = {'auto': 2.0, 'none': 20.0}
 
 #: the children's console output off: they log to /rosout (recorded) and their log files
 QUIET_LOGS = ('--ros-args', '--disable-stdout-logs')
@@ -69,6 +64,23 @@ def recording_options(no_record: bool, **bag_options: Any) -> str:
                 'none: give one or the other'
             )
     return bag_options.get('compression') or 'lz4'
+
+
+def bench_parameters(
+    config: str | None, model: str | None, seed: int | None, given: Collection[str] = ()
+) -> tuple[Params, Params]:
+    """The drive's and the controller's parameters of a simulator's options (None: not
+    given): the controller also takes the drive file and a packaged drive's experiment and
+    start gains (``family.tuner_setup``), but those named in ``given`` (the user's ``-p``:
+    the command line wins)."""
+    given_drive = (('seed', seed), ('model', model), ('config_file', config or None))
+    ctl: list[tuple[str, Any]] = []
+    if config:
+        ctl.append(('drive_config_file', config))
+        setup = family.tuner_setup(config)
+        if setup is not None:
+            ctl += [(n, v) for n, v in family.controller_parameters(setup) if n not in given]
+    return tuple((n, v) for n, v in given_drive if v is not None), tuple(ctl)
 
 
 def parameter_args(params: Params) -> list[str]:
@@ -204,28 +216,8 @@ class BenchSpec:
         return DISCOVERY_TIMEOUT[self.requested]
 
 
-class BenchOptions(Protocol):
-    """What the tuner's bench takes from its options (``tuner_args.TunerOptions``)."""
-
-    bench: str | None
-    bench_asked: str
-    model: str | None
-    drive_config: Any
-    no_record: bool
-    compression: str | None
-    controller: str
-    discovery_timeout: float | None
-    fault_policy: str | None
-    thread_priority: int | None
-    cpu_affinity: int
-    lock_memory: bool
-    live: int | None
-    live_host: str | None
-    live_rate: float | None
-
-
 def tuner_bench_spec(
-    cli: BenchOptions,
+    cli: TunerOptions,
     run: RunConfig,
     *,
     resumed: bool,
@@ -244,17 +236,9 @@ def tuner_bench_spec(
         model = cli.model
         config = str(cli.drive_config) if cli.drive_config else None
     assert cli.compression is not None  # (tuner_cli.check_session put the default)
-    drive: list[tuple[str, Any]] = [('seed', run.drive_seed)]
+    drive, ctl = bench_parameters(config, model, run.drive_seed)
     # the run's timing tolerance: every controller the tuner starts gets it
-    ctl: list[tuple[str, Any]] = [('timing_tolerance', int(run.timing_tolerance or 0))]
-    if model:
-        drive.append(('model', model))
-    if config:
-        drive.append(('config_file', config))
-        ctl.append(('drive_config_file', config))
-        setup = family.tuner_setup(config)  # a packaged drive: its experiment and start
-        if setup is not None:
-            ctl.extend(family.controller_parameters(setup))
+    ctl = (('timing_tolerance', int(run.timing_tolerance or 0)), *ctl)
     return BenchSpec(
         requested=requested,
         drive=run.drive or 'sim',
@@ -263,8 +247,8 @@ def tuner_bench_spec(
         compression=cli.compression,
         controller=cli.controller,
         discovery_timeout=cli.discovery_timeout,
-        drive_parameters=tuple(drive),
-        controller_parameters=tuple(ctl),
+        drive_parameters=drive,
+        controller_parameters=ctl,
         next_experiment_id=next_experiment_id(list(records)),
         fault_policy=cli.fault_policy,
         rt_options=rt.RtOptions.from_cli(cli, rt.DEFAULT_PRIORITY),

@@ -19,14 +19,15 @@ import signal
 import sys
 import tempfile
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from im_drive_sim.cli import EXIT_INTERRUPTED, Parser, UsageError, int_in
+from im_drive_sim.cli import EXIT_INTERRUPTED, UsageError, int_in
 from im_drive_sim.params import REALISM_PROFILES
 
 from ..progress import Eta
-from ..tuner_args import add_shared
+from ..tuner_args import OptionsParser, option
 from . import cluster as K, spec as S
 from .drives import FamilyResult, drive_dirs, is_family, load_family, save_family
 from .results import META_FILE, StudyResult, load, save
@@ -97,130 +98,119 @@ def _seconds(text: str) -> float:
     return v
 
 
-def _build_parser() -> argparse.ArgumentParser:
-    ap = Parser(
-        prog='ros2 run im_tuner study',
-        description="The paper's configuration study (Tables I-III) offline, on the "
-        'numba kernels of the nodes, in a process pool '
-        '(docs/reproduction.md).',
+def max_jobs() -> int:
+    """Most worker processes accepted: 4 per core (each is a whole Python process)."""
+    return 4 * (os.cpu_count() or 1)
+
+
+@dataclass
+class StudyOptions:
+    """The study's command line, typed (:mod:`..tuner_args`)."""
+
+    PROG = 'ros2 run im_tuner study'
+    DESCRIPTION = (
+        "The paper's configuration study (Tables I-III) offline, on the numba kernels of "
+        'the nodes, in a process pool (docs/reproduction.md).'
     )
-    ap.add_argument('--runs', type=int, default=100, help='runs per configuration (default 100)')
-    add_shared(ap, '--budget', 'loss evaluations per run (default 200)', 200)
-    ap.add_argument(
-        '--algos',
-        default=None,
-        help='comma-separated algorithms, each with its own small grid: '
-        + ', '.join(S.STUDY_ALGOS)
-        + " (default: the paper's spsa,necga; with --drives every one)",
+
+    runs: int = option('runs per configuration', {'type': int}, 100)
+    budget: int = option('loss evaluations per run', None, 200, like='budget')
+    algos: str | None = option(
+        'comma-separated algorithms, each with its own small grid: ' + ', '.join(S.STUDY_ALGOS),
+        shown="the paper's spsa,necga; with --drives every one",
     )
-    ap.add_argument(
-        '--drives',
-        metavar='NAME,...',
-        default=None,
-        help='a study per drive (packaged names, e.g. paper_750w, or drive files) and a '
-        'summary over them; each drive has its own experiment, search box, start and L_ref '
+    drives: str | None = option(
+        'a study per drive (packaged names, e.g. paper_750w, or drive files) and a summary '
+        'over them; each drive has its own experiment, search box, start and L_ref '
         '(im_tuner.family); one row per algorithm at its recommended configuration, plus '
         'the Py-BOBYQA reference row',
+        {'metavar': 'NAME,...'},
     )
-    ap.add_argument(
-        '--plant',
-        metavar='FILE|NAME[,...]',
-        default=None,
-        help='the simulated plant, when it is not the drive the tuner is told (a packaged '
-        'name or a drive file, loaded as --drives): the experiment, search box, start and '
-        "safe's first step still come from the told drive (--drives, --drive-config); "
-        'with --drives one plant per drive or one for all. Its Ts and machine.isq_max must '
-        'be the told drive\'s (docs/optimisers.md, "When the drive file is wrong")',
+    plant: str | None = option(
+        'the simulated plant, when it is not the drive the tuner is told (a packaged name '
+        'or a drive file, loaded as --drives): the experiment, search box, start and '
+        "safe's first step still come from the told drive (--drives, --drive-config); with "
+        '--drives one plant per drive or one for all. Its Ts and machine.isq_max must be '
+        'the told drive\'s (docs/optimisers.md, "When the drive file is wrong")',
+        {'metavar': 'FILE|NAME[,...]'},
     )
-    ap.add_argument(
-        '--plant-mismatch',
-        metavar="'KEY=xF ... coulomb=P% delay=D'",
-        default=None,
-        help='change the plant (the told drive without --plant): KEY=xF multiplies a '
-        'machine constant of the drive file (J, Rr, Rs, Lm, B, ...), coulomb=P%% sets the '
-        'Coulomb friction to P %% of rated torque, delay=D the command delay (1 or 2 '
-        "periods); e.g. 'J=x1.5 Rr=x1.3 Lm=x0.85 coulomb=2%% delay=2'",
+    plant_mismatch: str | None = option(
+        'change the plant (the told drive without --plant): KEY=xF multiplies a machine '
+        'constant of the drive file (J, Rr, Rs, Lm, B, ...), coulomb=P% sets the Coulomb '
+        'friction to P % of rated torque, delay=D the command delay (1 or 2 periods); e.g. '
+        "'J=x1.5 Rr=x1.3 Lm=x0.85 coulomb=2% delay=2'",
+        {'metavar': "'KEY=xF ... coulomb=P% delay=D'"},
     )
-    add_shared(ap, '--ripple-limit', S.RIPPLE_LIMIT_HELP)
-    ap.add_argument(
-        '--realism',
-        choices=tuple(REALISM_PROFILES),
-        default=None,
-        help="the drives' realism profile (default: each drive file's own)",
+    ripple_limit: str | None = option(S.RIPPLE_LIMIT_HELP, like='ripple_limit')
+    realism: str | None = option(
+        "the drives' realism profile",
+        {'choices': tuple(REALISM_PROFILES)},
+        shown="each drive file's own",
     )
-    ap.add_argument(
-        '--full-grid',
-        action='store_true',
-        help='with --drives: every configuration of each grid, not the recommended ones',
+    full_grid: bool = option(
+        'with --drives: every configuration of each grid, not the recommended ones',
+        {'action': 'store_true'},
     )
-    add_shared(ap, '--model', 'drive model (default full: voltage-fed with the encoder)', 'full')
-    ap.add_argument(
-        '--jobs',
-        type=int_in(1, max_jobs()),
-        default=None,
-        help='worker processes (default: every core; at most '
-        f'{max_jobs()}, 4 per core); results do not depend on it',
+    model: str = option(
+        'drive model (full: voltage-fed with the encoder)', None, 'full', like='model'
     )
-    ap.add_argument(
-        '--cluster',
-        metavar='tcp://HOST:PORT',
-        default=None,
-        help='run on the Dask cluster whose scheduler listens there (start one with '
-        '`dask scheduler --port 8786` and `dask worker tcp://HOST:8786 --nthreads 1` in '
-        "this project's venv on each machine); the tables are the same as with --jobs. "
-        'Checked first: refused at once if nothing listens there, within --cluster-timeout '
-        's if it is not a Dask scheduler',
+    jobs: int | None = option(
+        f'worker processes (at most {max_jobs()}, 4 per core); results do not depend on it',
+        {'type': int_in(1, max_jobs())},
+        shown='every core',
     )
-    ap.add_argument(
-        '--cluster-timeout',
-        type=_seconds,
-        default=None,
-        metavar='S',
-        help='with --cluster: the connection to the scheduler and each of its answers must '
-        f'come within S seconds (default {K.CONNECT_TIMEOUT_S:g})',
+    cluster: str | None = option(
+        'run on the Dask cluster whose scheduler listens there (start one with `dask '
+        'scheduler --port 8786` and `dask worker tcp://HOST:8786 --nthreads 1` in this '
+        "project's venv on each machine); the tables are the same as with --jobs. Checked "
+        'first: refused at once if nothing listens there, within --cluster-timeout s if it '
+        'is not a Dask scheduler',
+        {'metavar': 'tcp://HOST:PORT'},
     )
-    ap.add_argument(
-        '--cluster-wait',
-        type=_seconds,
-        default=None,
-        metavar='S',
-        help='with --cluster: how long to wait for a first worker when the scheduler has '
-        f'none (default {K.WORKER_WAIT_S:g} s)',
+    cluster_timeout: float | None = option(
+        'with --cluster: the connection to the scheduler and each of its answers must come '
+        'within S seconds',
+        {'type': _seconds, 'metavar': 'S'},
+        shown=f'{K.CONNECT_TIMEOUT_S:g}',
     )
-    add_shared(ap, '--seed', f'study seed (default {S.DEFAULT_SEED})', S.DEFAULT_SEED)
-    ap.add_argument(
-        '--satisfactory',
-        type=float,
-        default=None,
-        help='satisfactory level of the normalised final loss (default '
-        f'{S.DEFAULT_SATISFACTORY:g}: 10 %% better than the hand-tuned start)',
+    cluster_wait: float | None = option(
+        'with --cluster: how long to wait for a first worker when the scheduler has none',
+        {'type': _seconds, 'metavar': 'S'},
+        shown=f'{K.WORKER_WAIT_S:g} s',
     )
-    ap.add_argument(
-        '--no-remeasure',
-        action='store_true',
-        help="skip the re-measurement of each run's final controller",
+    seed: int = option('study seed', None, S.DEFAULT_SEED, like='seed')
+    satisfactory: float | None = option(
+        'satisfactory level of the normalised final loss',
+        {'type': float},
+        shown=f'{S.DEFAULT_SATISFACTORY:g}: 10 % better than the hand-tuned start',
     )
-    add_shared(ap, '--params', 'tuner parameter file (search box; default the packaged one)')
-    add_shared(ap, '--drive-config', "drive parameter file (default the paper's motor)")
-    add_shared(ap, '--out', 'output directory (default bags/study_<model>_<UTC time>)')
-    ap.add_argument(
-        '--from',
-        dest='source',
-        type=Path,
-        metavar='DIR',
-        help='re-tabulate an existing study (no new experiments; with '
-        '--satisfactory); writes into DIR unless --out',
+    no_remeasure: bool = option(
+        "skip the re-measurement of each run's final controller", {'action': 'store_true'}
     )
-    ap.add_argument(
-        '--beside',
-        type=Path,
-        metavar='DIR',
-        help="also write beside.md: this study's Tables I-III beside those of the study in "
-        "DIR (the same grid, e.g. on another --realism) and the paper's, and the paper's "
+    params: Path | None = option(
+        'tuner parameter file (search box)', shown='the packaged one', like='params'
+    )
+    drive_config: Path | None = option(
+        'drive parameter file', shown="the paper's motor", like='drive_config'
+    )
+    out: Path | None = option('output directory', shown='bags/study_<model>_<UTC time>', like='out')
+    source: Path | None = option(
+        're-tabulate an existing study (no new experiments; with --satisfactory); writes '
+        'into DIR unless --out',
+        {'type': Path, 'metavar': 'DIR'},
+        flag='--from',
+    )
+    beside: Path | None = option(
+        "also write beside.md: this study's Tables I-III beside those of the study in DIR "
+        "(the same grid, e.g. on another --realism) and the paper's, and the paper's "
         'conclusions on both',
+        {'type': Path, 'metavar': 'DIR'},
     )
-    add_shared(ap, '--quiet', 'no progress line')
-    return ap
+    quiet: bool = option('no progress line', like='quiet')
+
+
+def _build_parser() -> OptionsParser:
+    return OptionsParser(StudyOptions)
 
 
 class Progress:
@@ -254,12 +244,7 @@ class Progress:
         self.stream.flush()
 
 
-def max_jobs() -> int:
-    """Most worker processes accepted: 4 per core (each is a whole Python process)."""
-    return 4 * (os.cpu_count() or 1)
-
-
-def _spec(cli: argparse.Namespace) -> S.StudySpec:
+def _spec(cli: StudyOptions) -> S.StudySpec:
     drives: tuple[str, ...] = ()
     if cli.drives is not None:
         drives = tuple(d.strip() for d in cli.drives.split(',') if d.strip())
@@ -332,11 +317,12 @@ def _spec(cli: argparse.Namespace) -> S.StudySpec:
     return spec
 
 
-def _beside(cli: argparse.Namespace, res: StudyResult | FamilyResult | None) -> StudyResult:
+def _beside(cli: StudyOptions, res: StudyResult | FamilyResult | None) -> StudyResult:
     """The study of ``--beside DIR``, checked: a single study with Tables I-III."""
     if cli.drives or isinstance(res, FamilyResult):
         raise StudyError('--beside compares the Tables I-III of two single-drive studies')
     try:
+        assert cli.beside is not None
         other = load(cli.beside)
     except ValueError as exc:
         raise StudyError(f'--beside {exc}') from None
@@ -350,6 +336,7 @@ def main(args: list[str] | None = None) -> int:
     command = ' '.join(['ros2 run im_tuner study', *(shlex.quote(a) for a in argv)])
     spec: S.StudySpec | None = None  # a new study, or
     res: StudyResult | FamilyResult | None = None  # an existing one (--from)
+    beside = None  # the study of --beside
     try:
         cli = _build_parser().parse_args(argv)
         if cli.satisfactory is not None and not (
@@ -369,7 +356,7 @@ def main(args: list[str] | None = None) -> int:
             stamp = _dt.datetime.now(_dt.UTC).strftime('%Y_%m_%d-%H_%M_%S')
             out = cli.out or Path('bags') / f'study_{spec.model}_{stamp}'
         if cli.beside is not None:
-            cli.beside_res = _beside(cli, res)
+            beside = _beside(cli, res)
         if out.exists() and not out.is_dir():
             raise StudyError(f'--out {out}: exists and is not a directory')
         if cli.source is None and out.is_dir() and (out / META_FILE).exists():
@@ -395,7 +382,7 @@ def main(args: list[str] | None = None) -> int:
     except (StudyError, UsageError) as exc:
         print(f'error: study: {exc}', file=sys.stderr)
         return EXIT_USAGE
-    return _run(cli, spec, res, out, command)
+    return _run(cli, spec, res, out, command, beside)
 
 
 class _Terminated(BaseException):
@@ -408,11 +395,12 @@ def _on_sigterm(_signum: int, _frame: Any) -> None:
 
 
 def _run(
-    cli: argparse.Namespace,
+    cli: StudyOptions,
     spec: S.StudySpec | None,
     res: StudyResult | FamilyResult | None,
     out: Path,
     command: str,
+    beside: StudyResult | None = None,
 ) -> int:
     """Everything after the checks: the cluster, the runs, the files.  SIGTERM and Ctrl-C
     end it (and the workers: ``runs.run_study``) with one line and 143 or 130."""
@@ -452,11 +440,11 @@ def _run(
             st = compute(res, cli.satisfactory)
             writing = True
             paths = write_outputs(st, out, command)
-            if cli.beside is not None:
+            if beside is not None:
                 from .markdown import beside_md
 
                 paths['beside'] = out / 'beside.md'
-                paths['beside'].write_text(beside_md(st, compute(cli.beside_res, cli.satisfactory)))
+                paths['beside'].write_text(beside_md(st, compute(beside, cli.satisfactory)))
     except (KeyboardInterrupt, _Terminated) as exc:
         what = 'terminated' if isinstance(exc, _Terminated) else 'interrupted'
         if writing:
@@ -484,7 +472,7 @@ def _run(
 
 
 def _study_drives(
-    cli: argparse.Namespace, spec: S.StudySpec, out: Path, command: str
+    cli: StudyOptions, spec: S.StudySpec, out: Path, command: str
 ) -> FamilyResult | None:
     """Each drive's study in turn (``_study``); None after a one-line error."""
     results = []
@@ -499,7 +487,7 @@ def _study_drives(
 
 
 def _study(
-    cli: argparse.Namespace,
+    cli: StudyOptions,
     spec: S.StudySpec,
     out: Path,
     command: str,

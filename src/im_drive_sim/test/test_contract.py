@@ -67,3 +67,12 @@ def test_a_minimal_drive_file_takes_the_rest_from_its_base(tmp_path):
     f.write_text('base: paper_750w\nmachine:\n  isq_max: -1.0\n')
     with pytest.raises(ConfigError, match=r'machine\.isq_max'):
         load_config(f)
+
+
+def test_the_example_drives_counts_are_published_exact() -> None:
+    # %g would print 1.23457e+06 after about 250 s at 5 kHz
+    c = ExampleCounters(steps=1_234_567, fresh=10**9 + 1, max_lateness_us=12.5)
+    texts = c.texts()
+    assert texts['steps'] == '1234567' and texts['fresh'] == '1000000001'
+    assert texts['max_lateness_us'] == '12.5' and texts['overruns'] == '0'
+    assert list(texts) == [f.name for f in dataclasses.fields(ExampleCounters)]

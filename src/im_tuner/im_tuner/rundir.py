@@ -77,6 +77,23 @@ def made_by_create(out: Path) -> tuple[Path, bool]:
     return made, True
 
 
+def check_creatable(out: Path, error: type[Exception]) -> None:
+    """Refuse (``error``) an ``--out`` that does not exist and cannot be made, before any
+    work: made and removed again, so a refusal or a later failure leaves nothing (a
+    writable-looking parent may still refuse, as /proc does even root)."""
+    if out.exists():
+        return
+    made = made_by_create(out)[0]
+    try:
+        out.mkdir(parents=True)
+    except OSError as exc:
+        raise error(f'--out {out}: cannot create it ({exc.strerror or exc})') from None
+    for d in (out, *out.parents):  # what mkdir made, innermost first
+        d.rmdir()
+        if d == made:
+            break
+
+
 def claim_out_dir(out: Path, error: type[Exception], what_is_there: Callable[[Path], str]) -> Path:
     """Make ``out`` (``--out``) for a new run or bag: refuse a file, a directory that holds
     anything (``what_is_there(out)`` says what), an unwritable place. An existing *empty*

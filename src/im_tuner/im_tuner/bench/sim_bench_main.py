@@ -39,12 +39,16 @@ class SimulatorOptions:
 
     def check_bag(self) -> None:
         """A bag option with ``--no-record`` is refused (it would be ignored), ``--out``
-        must be new; the compression defaults to lz4."""
+        must be new and creatable; the compression defaults to lz4."""
         self.compression = recording_options(
             self.no_record, out=self.out, compression=self.compression
         )
         if self.out is not None and self.out.exists():
             raise UsageError(f'--out {self.out}: already exists; choose a new directory')
+        if self.out is not None:
+            from ..rundir import check_creatable
+
+            check_creatable(self.out, UsageError)
 
 
 @dataclass

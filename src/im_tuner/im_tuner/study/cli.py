@@ -372,6 +372,9 @@ def main(args: list[str] | None = None) -> int:
             raise StudyError(
                 f'--out {out}: already exists and is not empty; choose a new directory'
             )
+        from ..rundir import check_creatable  # (hours of runs not lost to an unmakeable --out)
+
+        check_creatable(out, StudyError)
         if cli.source is not None and (cli.drives or cli.realism or cli.full_grid):
             raise StudyError('--from re-tabulates: it takes no --drives, --realism or --full-grid')
         if cli.source is not None and {cli.plant, cli.plant_mismatch, cli.ripple_limit} != {None}:

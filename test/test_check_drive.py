@@ -489,8 +489,13 @@ def test_step_response_verdict():
     isq = 0.5 * (1 - np.exp(-np.arange(1, 101) * TS / 0.667e-3))
     isq = np.concatenate(([0.0], isq[:-1]))  # onset at sample 1
     theta = 0.5 * 142.0 * t**2
-    seg = cd.StepSegment(0.5, 0.0, isq, 0.71 * isq, theta)
-    m = cd.step_metrics(seg, TS, 1)
+    rows = np.zeros((len(isq), len(cd.STATE_FIELDS)))
+    rows[:, cd.F['isq']], rows[:, cd.F['torque']], rows[:, cd.F['theta_meas']] = (
+        isq,
+        0.71 * isq,
+        theta,
+    )
+    m = cd.step_metrics(rows, 0.5, 0.0, TS, 1)
     assert m['rise_s'] == pytest.approx(0.667e-3 * math.log(9), rel=0.01)
     assert m['steady_error'] < 1e-6 and m['torque_per_amp'] == pytest.approx(0.71)
     minus = dict(m, accel=-m['accel'])
@@ -809,11 +814,11 @@ def _recording(step_trans: list, aborted_why: str = '') -> cd.evaluate.Recording
         take_ns=src + 50_000, seq=np.arange(n), cmd=np.zeros((0, 3)), cmd_ns=np.zeros(0),
         joints=np.zeros((0, 4)), endpoints={t: [TYPES[t]] for t in TYPES}, ts=TS,
         ts_ns=200_000, isq_max=7.0, rated_flux_current=3.0, counts_per_rad=4096 / (2 * math.pi),
-        amplitude=0.5, realtime=True, idle_advance=100, mode_note='', i_rate0=0, i_rate1=2500,
-        m_rate0=0, rate_wall=0.5, trans=[], step_trans=step_trans, k_step_end=2900,
-        aborted_why=aborted_why,
+        amplitude=0.5, realtime=True, idle_advance=100, mode_note='', m_rate0=0, rate_wall=0.5,
+        trans=[], step_trans=step_trans, k_step_end=2900, aborted_why=aborted_why,
         watchdog={'t_act': None, 't_zero': None, 'resumed_s': None, 'aborted': ''},
-        command_timeout=0.01, command_timeout_source='test', phases={'step': (2700, 2900)},
+        command_timeout=0.01, command_timeout_source='test',
+        phases={'rate': (0, 2500), 'step': (2700, 2900)},
     )  # fmt: skip
 
 

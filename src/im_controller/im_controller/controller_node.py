@@ -43,10 +43,9 @@ from im_drive_sim.runtime import (
 from . import contract as C
 from .config import GAIN_NAMES, ControllerConfigError, ExperimentConfig, Gains
 from .contract import INTERNALS_TOPIC, LOSS_TOPIC
-from .control import CONTROL_FIELDS
 from .controller_main import parser
 from .declarations import declare_structure, declare_tunables
-from .kernel import N_ANSWER_WORDS, W_ANSWERED, W_DECIMATION, W_N_ANSWERED
+from .kernel import N_ANSWER_WORDS, W_ANSWERED, W_DECIMATION, W_INTERNALS_DUE, answer_state
 from .layout import (
     INTERNALS_FIELDS,
     REASON_DRIVE_TIMEOUT,
@@ -91,9 +90,6 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.first_experiment_id = st.first_experiment_id
         cfg, gains = self._candidate({})
         self.runner = ExperimentRunner(cfg, gains, timing_tolerance=self.timing_tolerance)
-        # The kernel compiled (or loaded from numba's cache) now, on a scratch runner: on a
-        # cold cache its seconds of compiling would otherwise trip the state watchdog.
-        ExperimentRunner(cfg, gains).step(np.zeros(len(STATE_FIELDS)))
         #: refused requests, by kind (logged, throttled; and at exit)
         self.refused = {'start_experiment': 0, 'parameters': 0}
         #: Monotonic time [s] of the last refusal logged, per kind (the log throttle).
@@ -115,6 +111,13 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.loss_pub = self.create_publisher(DiagnosticArray, LOSS_TOPIC, RECORDED_QOS)
         self.internals_pub = self.create_publisher(Float64MultiArray, INTERNALS_TOPIC, RECORDED_QOS)
         self._internals = Float64ArrayWire(len(INTERNALS_FIELDS))
+        #: ``kernel.answer_state``'s words and command (W_ANSWERED: ``client.answered``)
+        self._words = np.zeros(N_ANSWER_WORDS, np.int64)
+        self._words[W_DECIMATION] = self.internals_decimation
+        self._cmd = np.zeros(3)
+        # The kernel compiled (or loaded from numba's cache) now, on scratch arrays: on a
+        # cold cache its seconds of compiling would otherwise trip the state watchdog.
+        self._answer(ExperimentRunner(cfg, gains), np.zeros(len(STATE_FIELDS)), self._words.copy())
         self.start_srv = self.create_service(
             Trigger, f'~/{C.START_SERVICE}', self._on_start, qos_profile=SERVICES_QOS
         )
@@ -157,7 +160,6 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self._timeout_wall: float | None = None  # when the drive-state watchdog tripped
         self._initialised = False  # the hold reference is set from the first state
         self._fault_logged = False
-        self._n_answered = 0
         #: held while a request changes what the loop runs (gains, experiment start, fault
         #: reset): a composed real-time loop (im_tuner.bench.realtime) runs the 5 kHz path
         #: in its own thread under the same lock; alone, there is one thread and no lock
@@ -302,21 +304,21 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
                 self.runner.reset(float(s[2]))  # hold where the drive is
                 self._initialised = True
 
+    def _answer(self, r: ExperimentRunner, state: np.ndarray, words: np.ndarray) -> int:
+        cmd, internals = self._cmd, self._internals.values
+        return answer_state(r.R, r.Q, r.X, r.C, r.CF, state, r.cout, r.eout, cmd, internals, words)
+
     def answer(self) -> bool:
-        """Answer the pending state if the loop should step; True if a command went out."""
+        """Answer the pending state if the loop should step (``kernel.answer_state``, the
+        answer a compiled loop runs); True if a command went out."""
         if not (self._pending and self._wants_to_step()):
             return False
-        s = self._state
-        k = int(s[0])
-        isq, load, status = self.runner.step(s)
-        self.client.command(k, isq, load)
+        self._words[W_ANSWERED] = self.client.answered
+        status = self._answer(self.runner, self._state, self._words)
+        self.runner.stepped(status)
+        self.client.command(int(self._cmd[0]), self._cmd[1], self._cmd[2])
         self._pending = False
-        self._n_answered += 1
-        if self._n_answered % self.internals_decimation == 0:
-            v = self._internals.values
-            v[0] = k
-            v[1 : 1 + len(CONTROL_FIELDS)] = self.runner.cout
-            v[1 + len(CONTROL_FIELDS) :] = self.runner.eout
+        if self._words[W_INTERNALS_DUE]:
             self.client.backpressure += publish_lossless(
                 self.internals_pub, self._internals, self.context
             )
@@ -324,14 +326,12 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
             self._on_status(status)
         return True
 
-    # -- the same answer compiled (kernel.answer_state; a composed loop, bench.compiled_loop)
+    # -- the same answer in a composed loop (bench.compiled_loop) runs on these
     def answer_words(self) -> np.ndarray:
         """``kernel.answer_state``'s ``W`` words from this node (then
         :meth:`set_answer_words`)."""
-        w = np.zeros(N_ANSWER_WORDS, np.int64)
+        w = self._words.copy()
         w[W_ANSWERED] = self.client.answered
-        w[W_N_ANSWERED] = self._n_answered
-        w[W_DECIMATION] = self.internals_decimation
         return w
 
     def answer_views(self) -> dict[str, np.ndarray]:
@@ -352,7 +352,7 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
     def set_answer_words(self, W: np.ndarray) -> None:
         """Take back what a compiled loop answered (:meth:`answer_words`)."""
         self.client.answered = int(W[W_ANSWERED])
-        self._n_answered = int(W[W_N_ANSWERED])
+        self._words[:] = W
         self._pending = False
         self.state_seen()
 

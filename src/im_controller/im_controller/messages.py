@@ -15,50 +15,36 @@ from .layout import SAFETY_REASONS
 from .result import LossResult
 
 NS_PER_S = 1_000_000_000
-#: Keys of ``DiagnosticStatus.values``, in order.
-LOSS_KEYS: tuple[str, ...] = (
-    'experiment_id',
-    'loss',
-    'term1',
-    'term2',
-    'term3',
-    'aborted',
-    'reason',
-    'trip_step',
-    'trip_time',
-    *GAIN_NAMES,
-    't_start_ns',
-    't_end_ns',
-    'steps',
-    'direction',
-    'fresh',
-    'held',
-    'late',
-    'timing',
-    'gains_step',
-    'ripple',
-    'motion',
-)
-
-
-#: Keys written as ``str`` of an int / ``repr`` of a float / 'true' or 'false', each the
-#: LossResult field of its name (``_FIELD``: but these).
-_INTS = (
-    'experiment_id',
-    'trip_step',
-    't_start_ns',
-    't_end_ns',
-    'steps',
-    'direction',
-    'fresh',
-    'held',
-    'late',
-    'gains_step',
-)
-_FLOATS = ('loss', 'trip_time')
-_BOOLS = ('aborted', 'timing')
+#: Keys of ``DiagnosticStatus.values``, in order, with how each is written: ``int`` as
+#: ``str``, ``float`` as ``repr``, ``bool`` as 'true' or 'false', each of the LossResult
+#: field of its name (``_FIELD``: but these); None: by hand (terms, reason, gains, ripple,
+#: motion).
+_KINDS: dict[str, type | None] = {
+    'experiment_id': int,
+    'loss': float,
+    'term1': None,
+    'term2': None,
+    'term3': None,
+    'aborted': bool,
+    'reason': None,
+    'trip_step': int,
+    'trip_time': float,
+    **dict.fromkeys(GAIN_NAMES),
+    't_start_ns': int,
+    't_end_ns': int,
+    'steps': int,
+    'direction': int,
+    'fresh': int,
+    'held': int,
+    'late': int,
+    'timing': bool,
+    'gains_step': int,
+    'ripple': None,
+    'motion': None,
+}
+LOSS_KEYS: tuple[str, ...] = tuple(_KINDS)
+_INTS, _FLOATS, _BOOLS = (tuple(k for k, v in _KINDS.items() if v is t) for t in (int, float, bool))
 _FIELD = {'t_start_ns': 't_start', 't_end_ns': 't_end'}
-_TERMS = ('term1', 'term2', 'term3')
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -73,7 +59,7 @@ def result_to_msg(result: LossResult, node_name: str) -> DiagnosticArray:
         **{k: str(getattr(r, _FIELD.get(k, k))) for k in _INTS},
         **{k: repr(getattr(r, k)) for k in _FLOATS},
         **{k: 'true' if getattr(r, k) else 'false' for k in _BOOLS},
-        **{k: repr(v) for k, v in zip(_TERMS, r.terms, strict=True)},
+        **{f'term{j + 1}': repr(v) for j, v in enumerate(r.terms)},
         **{n: repr(v) for n, v in zip(GAIN_NAMES, r.gains.as_tuple(), strict=True)},
         'reason': r.reason,
         # the standstill ripple (rms, peak-to-peak [A] after the move, after the load)
@@ -111,18 +97,12 @@ def msg_to_result(msg: DiagnosticArray) -> LossResult:
         raise ValueError(f'loss message lacks {missing}')
     fields: dict[str, Any] = {_FIELD.get(k, k): int(kv[k]) for k in _INTS}
     fields.update({k: float(kv[k]) for k in _FLOATS}, **{k: kv[k] == 'true' for k in _BOOLS})
+    ripple = _floats(kv['ripple'])
     return LossResult(
         **fields,
         terms=(float(kv['term1']), float(kv['term2']), float(kv['term3'])),
         gains=Gains(*(float(kv[n]) for n in GAIN_NAMES)),
         reason=kv['reason'],
-        ripple=_ripple(kv['ripple']),
+        ripple=ripple if len(ripple) == 4 else (math.nan,) * 4,
         motion=_floats(kv['motion']),
     )
-
-
-def _ripple(text: str) -> tuple[float, float, float, float]:
-    v = _floats(text)
-    if len(v) != 4:
-        return (math.nan, math.nan, math.nan, math.nan)
-    return (v[0], v[1], v[2], v[3])

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -43,10 +43,11 @@ class Recording:
     message had another length, ``lengths``), their DDS ``source_ns``/``recv_ns`` and
     ``take_ns`` wall times [ns] and publication ``seq``; ``cmd`` [m, 3] (answers_step, isq*
     [A], load [N m]) published at ``cmd_ns``; ``joints`` [j, 4] (stamp [ns], position
-    [rad], velocity [rad/s], effort [N m]). Marks: the rate phase's state rows
-    ``i_rate0:i_rate1``, its first command ``m_rate0`` and wall time ``rate_wall`` [s];
-    the level changes ``trans`` (latency) and ``step_trans`` (step response) as (step,
-    level, previous level); the watchdog phase's figures ``watchdog``.
+    [rad], velocity [rad/s], effort [N m]). Marks: the state rows (start, end) of the
+    ``phases`` 'rate', 'latency' and 'step'; the rate phase's first command ``m_rate0``
+    and wall time ``rate_wall`` [s]; the level changes ``trans`` (latency) and
+    ``step_trans`` (step response) as (step, level, previous level); the watchdog phase's
+    figures ``watchdog``.
     """
 
     states: np.ndarray
@@ -68,8 +69,6 @@ class Recording:
     realtime: bool
     idle_advance: int
     mode_note: str
-    i_rate0: int
-    i_rate1: int
     m_rate0: int
     rate_wall: float
     trans: list[tuple[int, float, float]]
@@ -79,8 +78,7 @@ class Recording:
     watchdog: dict[str, Any]
     command_timeout: float
     command_timeout_source: str
-    #: state rows (start, end) of the phases: 'rate', 'latency', 'step'
-    phases: dict[str, tuple[int, int]] = field(default_factory=dict)
+    phases: dict[str, tuple[int, int]]
     #: the +A and -A steps' commanded length [periods]
     step_steps: int = 0
 
@@ -108,38 +106,25 @@ class Recording:
 def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
     """The six items, in ``ITEMS`` order, judged from ``rec``. ``kept_up``, when given,
     receives the check's own measures per phase (:mod:`.conditions`)."""
-    ts, ts_ns, isq_max, a = rec.ts, rec.ts_ns, rec.isq_max, rec.amplitude
-    counts_per_rad, realtime, mode_note = rec.counts_per_rad, rec.realtime, rec.mode_note
-    i_rate0, i_rate1, m_rate0, rate_wall = rec.i_rate0, rec.i_rate1, rec.m_rate0, rec.rate_wall
-    trans, step_trans, k_step_end = rec.trans, rec.step_trans, rec.k_step_end
-    idle_advance, timeout = rec.idle_advance, rec.command_timeout
-    items: dict[str, TH.Item] = {}
-    endpoints = rec.endpoints
-    items['topics'] = J.judge_topics(endpoints)
+    realtime, step_trans, k_step_end = rec.realtime, rec.step_trans, rec.k_step_end
+    items = {'topics': J.judge_topics(rec.endpoints)}
 
-    n = rec.n
-    bound = TH.CURRENT_BOUND_FACTOR * math.hypot(isq_max, rec.rated_flux_current)
-    sp = J.state_field_problems(
-        rec.states[:n], rec.lengths[:n], rec.seq[:n], ts_ns, realtime, bound
-    )
+    bound = TH.CURRENT_BOUND_FACTOR * math.hypot(rec.isq_max, rec.rated_flux_current)
+    sp = J.state_field_problems(rec.states, rec.lengths, rec.seq, rec.ts_ns, realtime, bound)
     k_first = step_trans[0][0] if step_trans else k_step_end
     dense = rec.rows_by_step(k_first, k_step_end + 1, filled=True)
     motion = dense[np.isfinite(dense[:, TH.F['theta_meas']])]
     if len(motion) > 20 and np.all(np.diff(motion[:, 0]) == 1):
         th = motion[:, TH.F['theta_meas']]
-        ratio = J.units_ratio(th, motion[:, TH.F['omega_meas']], ts)
-        motion_counts = float(np.ptp(th) * counts_per_rad)
+        ratio = J.units_ratio(th, motion[:, TH.F['omega_meas']], rec.ts)
+        motion_counts = float(np.ptp(th) * rec.counts_per_rad)
     else:
         ratio, motion_counts = math.nan, 0.0
-    joints_ok_type = endpoints[JOINT_STATE_TOPIC] and all(
-        t == TH.TYPES[JOINT_STATE_TOPIC] for t in endpoints[JOINT_STATE_TOPIC]
-    )
-    ok_rows = rec.lengths[:n] == len(TH.STATE_FIELDS)
+    joint_types = rec.endpoints[JOINT_STATE_TOPIC]
+    ok_rows = rec.lengths == len(TH.STATE_FIELDS)
     jp = (
-        J.joint_state_problems(
-            np.array(rec.joints, dtype=float).reshape(-1, 4), rec.states[:n][ok_rows], ts_ns
-        )
-        if joints_ok_type
+        J.joint_state_problems(rec.joints.reshape(-1, 4), rec.states[ok_rows], rec.ts_ns)
+        if joint_types and all(t == TH.TYPES[JOINT_STATE_TOPIC] for t in joint_types)
         else None
     )
     lateness = DriveLateness(rec)
@@ -147,20 +132,22 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
     # late (any ratio a late sample can bend it to), or where states are missing and the
     # line across them stands in for the motion (any ratio)
     host, doubt_band = '', TH.UNITS_LATE_BAND
-    if realtime and lateness.share(k_first, k_step_end) > TH.DRIVE_LATE_SHARE_MAX:
+    late_share, missing_share = lateness.shares(k_first, k_step_end)
+    if realtime and late_share > TH.DRIVE_LATE_SHARE_MAX:
         host = lateness.describe(k_first, k_step_end)
-        if lateness.missing(k_first, k_step_end) > TH.DRIVE_LATE_SHARE_MAX:
+        if missing_share > TH.DRIVE_LATE_SHARE_MAX:
             doubt_band = (0.0, math.inf)
     items['fields'] = J.judge_fields(sp, ratio, motion_counts, jp, host=host, doubt_band=doubt_band)
 
-    declared = rec.states[:n][ok_rows, TH.F['command_delay']]
+    declared = rec.states[ok_rows, TH.F['command_delay']]
     d_declared = int(np.median(declared)) if len(declared) else 1
-    excess = C.excess_delay(rec.take_ns[:n], rec.source_ns[:n])
-    conds: dict[str, C.Conditions] = {}
-    for name, (r0, r1) in {'rate': (i_rate0, i_rate1), **rec.phases}.items():
-        conds[name] = C.phase_conditions(
-            rec.states[:n], rec.lengths[:n], rec.seq[:n], excess, d_declared, slice(r0, r1)
+    excess = C.excess_delay(rec.take_ns, rec.source_ns)
+    conds = {
+        name: C.phase_conditions(
+            rec.states, rec.lengths, rec.seq, excess, d_declared, slice(r0, r1)
         )
+        for name, (r0, r1) in rec.phases.items()
+    }
     if kept_up is not None:
         kept_up.update({k: c.as_dict() for k, c in conds.items()})
 
@@ -168,31 +155,26 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
         c = conds.get(phase)
         return C.busy_reason(c) if c is not None and realtime else ''
 
-    steps = rec.states[:n, TH.F['step_index']]
+    steps = rec.states[:, TH.F['step_index']]
+    r0, r1 = rec.phases['rate']
     if realtime:
-        sl = slice(i_rate0, i_rate1)
-        items['rate'] = J.judge_rate_realtime(
-            J.period_stats(steps[sl], rec.source_ns[sl], ts, rec.seq[sl]),
-            ts,
-            mode_note,
-            busy('rate'),
-        )
+        stats = J.period_stats(steps[r0:r1], rec.source_ns[r0:r1], rec.ts, rec.seq[r0:r1])
+        items['rate'] = J.judge_rate_realtime(stats, rec.ts, rec.mode_note, busy('rate'))
     else:
         new, unanswered, skipped = J.lockstep_step_problems(
-            steps[:n], rec.take_ns[:n], rec.cmd[: rec.m, 0], rec.cmd_ns[: rec.m]
+            steps, rec.take_ns, rec.cmd[:, 0], rec.cmd_ns
         )
-        rate_steps = np.count_nonzero(np.diff(steps[i_rate0:i_rate1]) > 0)
+        rate_steps = np.count_nonzero(np.diff(steps[r0:r1]) > 0)
         items['rate'] = J.judge_rate_lockstep(
-            new, unanswered, skipped, idle_advance, rate_steps / rate_wall, mode_note
+            new, unanswered, skipped, rec.idle_advance, rate_steps / rec.rate_wall, rec.mode_note
         )
 
     # latency: wall time command(k) -> state k+1 received, and the onset of each change
     by_step: dict[int, int] = {}  # step -> the row of its first copy
-    for i in range(n):
-        if ok_rows[i]:
-            by_step.setdefault(int(steps[i]), i)
+    for i in np.flatnonzero(ok_rows):
+        by_step.setdefault(int(steps[i]), int(i))
     wall = []
-    for j in range(m_rate0, rec.m):
+    for j in range(rec.m_rate0, rec.m):
         k = int(rec.cmd[j, 0])
         row = by_step.get(k + 1)
         if k >= 0 and row is not None:
@@ -201,7 +183,7 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
     labels: list[int | None] = []
     complete: list[bool] = []
     on_time: list[bool] = []
-    for k0, level, prev in trans[1:] + step_trans[1:]:
+    for k0, level, prev in rec.trans[1:] + step_trans[1:]:
         d = rec.rows_by_step(k0 - 20, k0 + 25, filled=True)
         # judged only with every state from 16 before to 21 after (filled in real time)
         complete.append(bool(np.isfinite(d[4:42]).all()))
@@ -226,25 +208,13 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
     )
 
     # step response
+    a, counts_per_rad = rec.amplitude, rec.counts_per_rad
     if len(step_trans) >= 4 and not rec.aborted_why:
         metrics = []
         for (k0, level, prev), (k1, _, _) in itertools.pairwise(step_trans[1:4]):
             d = rec.rows_by_step(k0 - 20, k1, filled=True)
             delay = R.onset_delay(d[:, TH.F['isq']], 20, level - prev)
-            seg = d[20 : k1 - k0 + 20]
-            metrics.append(
-                R.step_metrics(
-                    R.StepSegment(
-                        level,
-                        prev,
-                        seg[:, TH.F['isq']],
-                        seg[:, TH.F['torque']],
-                        seg[:, TH.F['theta_meas']],
-                    ),
-                    ts,
-                    delay,
-                )
-            )
+            metrics.append(R.step_metrics(d[20 : k1 - k0 + 20], level, prev, rec.ts, delay))
         gaps, late = step_busy(rec, d_declared)
         items['step_response'] = R.judge_step_response(
             metrics[0], metrics[1], a, counts_per_rad, busy=late, gaps=gaps
@@ -273,19 +243,20 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
             )
         items['step_response'] = item
 
+    wd = rec.watchdog
     if realtime:
         items['watchdog'] = R.judge_watchdog_realtime(
-            rec.watchdog['t_act'],
-            rec.watchdog['t_zero'],
-            timeout,
-            rec.watchdog['resumed_s'],
+            wd['t_act'],
+            wd['t_zero'],
+            rec.command_timeout,
+            wd['resumed_s'],
             rec.command_timeout_source,
-            rec.watchdog['aborted'],
+            wd['aborted'],
             busy=watchdog_busy(rec, d_declared, excess),
         )
     else:
         items['watchdog'] = R.judge_watchdog_lockstep(
-            rec.watchdog['silence_s'], rec.watchdog['advanced'], rec.watchdog['resumed_s']
+            wd['silence_s'], wd['advanced'], wd['resumed_s']
         )
     return [items[name] for name in TH.ITEMS]
 
@@ -313,17 +284,13 @@ class DriveLateness:
         w = self._window(k0, k1)
         return len(w) == k1 - k0 + 1 and bool(np.all(w <= TH.DRIVE_LATE_MAX_S))
 
-    def share(self, k0: int | None = None, k1: int | None = None) -> float:
-        """The fraction of the periods k0..k1 (all: None) late or not published."""
+    def shares(self, k0: int | None = None, k1: int | None = None) -> tuple[float, float]:
+        """The fractions of the periods k0..k1 (all: None) late or not published, and not
+        published (a NaN lateness)."""
         w = self._window(k0, k1)
         if len(w) == 0:
-            return 0.0
-        return float(np.mean(~(w <= TH.DRIVE_LATE_MAX_S)))  # (NaN: not published: late)
-
-    def missing(self, k0: int, k1: int) -> float:
-        """The fraction of the periods k0..k1 whose state was not received."""
-        w = self._window(k0, k1)
-        return float(np.mean(np.isnan(w))) if len(w) else 0.0
+            return 0.0, 0.0
+        return float(np.mean(~(w <= TH.DRIVE_LATE_MAX_S))), float(np.mean(np.isnan(w)))
 
     def describe(self, k0: int | None = None, k1: int | None = None) -> str:
         """The drive's host in words, over k0..k1 (all: None)."""
@@ -332,8 +299,8 @@ class DriveLateness:
         late = int(np.count_nonzero(w > TH.DRIVE_LATE_MAX_S))
         return (
             f"the drive's host: {late + skipped} of its {len(w)} periods "
-            f'({self.share(k0, k1) * 100:.1f} %) started > {TH.DRIVE_LATE_MAX_S * 1e6:.0f} us '
-            f'late or were not received ({skipped})'
+            f'({self.shares(k0, k1)[0] * 100:.1f} %) started > {TH.DRIVE_LATE_MAX_S * 1e6:.0f} '
+            f'us late or were not received ({skipped})'
         )
 
 

@@ -204,13 +204,12 @@ def _probe(
         if time.monotonic() >= p.created + TH.DISCOVERY_SETTLE_S:
             break
     rate_wall = time.monotonic() - t0
-    i_rate1 = p.n
+    phases = {'rate': (i_rate0, p.n)}
     check_alone()
 
     # -- latency: small level changes, every 25 steps -----------------------------------
     trans: list[tuple[int, float, float]] = []
     levels = [0.0, a, 0.0, -a, 0.0, a, 0.0, -a, 0.0]
-    phases = {'rate': (i_rate0, i_rate1)}
     i0 = p.n
     schedule([(25, lv) for lv in levels], trans)
     phases['latency'] = (i0, p.n)
@@ -282,8 +281,6 @@ def _probe(
         realtime=realtime,
         idle_advance=idle_advance,
         mode_note=mode_note,
-        i_rate0=i_rate0,
-        i_rate1=i_rate1,
         m_rate0=m_rate0,
         rate_wall=rate_wall,
         trans=trans,

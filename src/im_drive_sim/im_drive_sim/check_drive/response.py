@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -193,40 +192,30 @@ def fit_acceleration(theta: np.ndarray, ts: float) -> float:
     return float(2.0 * np.polyfit(t, theta, 2)[0])
 
 
-@dataclass
-class StepSegment:
-    """One commanded level of the step test, as recorded."""
-
-    level: float  #: commanded isq* [A]
-    previous: float  #: the level before [A]
-    isq: np.ndarray  #: isq from the state answered by the first command of the level
-    torque: np.ndarray  #: torque, same samples [N m]
-    theta: np.ndarray  #: theta_meas, same samples [rad]
-
-
-def step_metrics(seg: StepSegment, ts: float, delay: int | None) -> dict[str, float]:
+def step_metrics(
+    rows: np.ndarray, level: float, previous: float, ts: float, delay: int | None
+) -> dict[str, float]:
     """Rise time (from the onset), steady-state error, torque per ampere and acceleration of
-    one level of the step test."""
-    n = len(seg.isq)
+    one level of the step test: ``rows``, the states (``STATE_FIELDS``) from the one the
+    level's first command answered; ``level``, ``previous``: commanded isq* [A] and the
+    one before."""
+    isq, torque, theta = (rows[:, TH.F[c]] for c in ('isq', 'torque', 'theta_meas'))
+    n = len(isq)
     start = delay if delay is not None else 1
-    rise = (
-        rise_time(seg.isq[start - 1 :], ts, seg.isq[start - 1], seg.level)
-        if seg.level != seg.previous
-        else math.nan
-    )
-    tail = seg.isq[n - n // 4 :]
-    sse = abs(float(np.mean(tail)) - seg.level) / abs(seg.level) if seg.level else math.nan
+    rise = rise_time(isq[start - 1 :], ts, isq[start - 1], level) if level != previous else math.nan
+    tail = isq[n - n // 4 :]
+    sse = abs(float(np.mean(tail)) - level) / abs(level) if level else math.nan
     half = slice(n // 2, n)
-    i_mean = float(np.mean(seg.isq[half]))
-    kt = float(np.mean(seg.torque[half])) / i_mean if i_mean else math.nan
-    acc = fit_acceleration(seg.theta[start:], ts) if n - start >= 10 else math.nan
+    i_mean = float(np.mean(isq[half]))
+    kt = float(np.mean(torque[half])) / i_mean if i_mean else math.nan
+    acc = fit_acceleration(theta[start:], ts) if n - start >= 10 else math.nan
     return {
         'rise_s': rise,
         'steady_error': sse,
         'torque_per_amp': kt,
         'accel': acc,
         'duration_s': (n - start) * ts,
-        'isq_mean': float(np.mean(seg.isq[start:])) if n > start else math.nan,
+        'isq_mean': float(np.mean(isq[start:])) if n > start else math.nan,
     }
 
 

@@ -365,12 +365,11 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
     def _on_status(self, status: int, R: np.ndarray | None = None) -> None:
         if status == STATUS_FAULT and self._fault_logged:
             return  # the kernel answers FAULT every period it stays there: said once
+        res = self.runner.result(R) if status in (STATUS_DONE, STATUS_ABORTED) else None
         if self.deferred is not None:  # a composed loop: published and logged off the loop
-            self.deferred.append(
-                (status, self.runner.result(R) if status in (STATUS_DONE, STATUS_ABORTED) else None)
-            )
-            return
-        self._handle_status(status, None)
+            self.deferred.append((status, res))
+        else:
+            self._handle_status(status, res)
 
     def flush_deferred(self) -> None:
         """Publish and log the experiment ends the composed loop left (serving thread)."""

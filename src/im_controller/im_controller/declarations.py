@@ -24,10 +24,8 @@ from .parameters import (
     TUNABLE_SECTIONS,
     WRITABLE_INTS,
     ControllerError,
+    check_choice,
     check_isq_max,
-    check_lockstep_idle,
-    check_mode,
-    description,
     section_defaults,
 )
 
@@ -65,7 +63,7 @@ def float_descriptor(key: str, text: str, read_only: bool) -> ParameterDescripto
 def declare_sections(node: Node, sections: dict[str, type], read_only: bool) -> None:
     """Declare every field of ``sections`` (strings and doubles) as a parameter."""
     for key, value in section_defaults(sections):
-        text = description(key)
+        text = DESCRIPTIONS.get(key, key)
         if isinstance(value, str):
             desc = param_descriptor(text, read_only=read_only)
         else:
@@ -83,7 +81,7 @@ def declare_structure(node: Node) -> Structure:
             additional='one of: lockstep, realtime',
         ),
     ).value
-    mode = check_mode(mode, MODES)
+    mode = check_choice('mode', mode, MODES)
     lockstep_idle = node.declare_parameter(
         'lockstep_idle',
         'pause',
@@ -93,7 +91,7 @@ def declare_structure(node: Node) -> Structure:
             additional='one of: pause, hold',
         ),
     ).value
-    lockstep_idle = check_lockstep_idle(lockstep_idle)
+    lockstep_idle = check_choice('lockstep_idle', lockstep_idle, ('pause', 'hold'))
     drive_file = node.declare_parameter(
         'drive_config_file',
         '',

@@ -103,11 +103,6 @@ class ControllerError(Exception):
     """A start-up configuration error: one line, exit code 2."""
 
 
-def description(key: str) -> str:
-    """The description of parameter ``key`` (the key itself where none is written)."""
-    return DESCRIPTIONS.get(key, key)
-
-
 def section_defaults(sections: dict[str, type]) -> list[tuple[str, float | str]]:
     """(parameter name, default) of every field of ``sections`` that is a parameter
     (``FROM_DRIVE`` fields are not): strings as they are, numbers as floats."""
@@ -156,18 +151,12 @@ def configuration(
     return cfg, gains
 
 
-def check_mode(mode: object, modes: tuple[str, ...]) -> str:
-    """The ``mode`` parameter, one of ``modes`` (ControllerError otherwise)."""
-    if mode not in modes:
-        raise ControllerError(f"parameter 'mode' must be one of {modes}, got {mode!r}")
-    return str(mode)
-
-
-def check_lockstep_idle(idle: object) -> str:
-    """The ``lockstep_idle`` parameter: 'pause' or 'hold' (ControllerError otherwise)."""
-    if idle not in ('pause', 'hold'):
-        raise ControllerError(f"parameter 'lockstep_idle' must be 'pause' or 'hold', got {idle!r}")
-    return str(idle)
+def check_choice(name: str, value: object, choices: tuple[str, ...]) -> str:
+    """The string parameter ``name`` (``mode``, ``lockstep_idle``), one of ``choices``
+    (ControllerError otherwise)."""
+    if value not in choices:
+        raise ControllerError(f"parameter '{name}' must be one of {choices}, got {value!r}")
+    return str(value)
 
 
 def check_isq_max(isq_max: object, drive_isq_max: float) -> float:

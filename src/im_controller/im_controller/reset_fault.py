@@ -61,20 +61,6 @@ def _parser():
     return ap
 
 
-def _check_name(srv: str, controller: str) -> None:
-    from rclpy.exceptions import InvalidServiceNameException, InvalidTopicNameException
-    from rclpy.validate_full_topic_name import validate_full_topic_name
-
-    from im_drive_sim.cli import UsageError
-
-    try:
-        validate_full_topic_name(srv)
-    except (InvalidTopicNameException, InvalidServiceNameException) as exc:
-        raise UsageError(
-            f'--controller {controller!r}: not a valid node name ({str(exc).splitlines()[0]})'
-        ) from None
-
-
 def _wait(
     done: Callable[[], bool],
     wait: Callable[[], object],
@@ -143,14 +129,23 @@ def call_reset(argv: list[str], srv: str, timeout: float) -> tuple[int, str]:
 
 
 def main(args: list[str] | None = None) -> int:
-    from im_drive_sim.cli import parse_cli, run_cli
+    from im_drive_sim.cli import UsageError, parse_cli, run_cli
 
     argv = list(sys.argv if args is None else args)
 
     def body() -> int:
         cli = parse_cli(_parser(), argv)
         srv = service_name(cli.controller)
-        _check_name(srv, cli.controller)
+        from rclpy.exceptions import InvalidServiceNameException, InvalidTopicNameException
+        from rclpy.validate_full_topic_name import validate_full_topic_name
+
+        try:
+            validate_full_topic_name(srv)
+        except (InvalidTopicNameException, InvalidServiceNameException) as exc:
+            raise UsageError(
+                f'--controller {cli.controller!r}: not a valid node name '
+                f'({str(exc).splitlines()[0]})'
+            ) from None
         code, line = call_reset(argv, srv, cli.timeout)
         print(line, file=sys.stdout if code == EXIT_OK else sys.stderr, flush=True)
         return code

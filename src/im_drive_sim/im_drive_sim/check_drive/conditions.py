@@ -25,12 +25,11 @@ def excess_delay(take_ns: np.ndarray, source_ns: np.ndarray) -> np.ndarray:
 
 
 def command_lag(states: np.ndarray, declared: int) -> np.ndarray:
-    """Per state: step_index - declared - applied_step [periods]; NaN where no command was
-    applied (applied_step < 0) or the row is not a full state."""
-    k = states[:, F['step_index']]
+    """step_index - declared - applied_step [periods] of the states that show a command
+    applied (applied_step >= 0; a row that is not a full state shows none)."""
     a = states[:, F['applied_step']]
-    lag = k - declared - a
-    return np.where(np.isfinite(a) & (a >= 0), lag, np.nan)
+    lag = states[:, F['step_index']] - declared - a
+    return lag[np.isfinite(lag) & (a >= 0)]
 
 
 def drive_lateness(
@@ -95,7 +94,6 @@ def phase_conditions(
     q = seq[rows][ok]
     lost = int(np.sum(np.clip(np.diff(q) - 1, 0, None))) if len(q) > 1 else 0
     lag = command_lag(s, declared)
-    lag = lag[np.isfinite(lag)]
     ex = excess[rows][ok]
     return Conditions(
         states=len(s),

@@ -82,14 +82,6 @@ class Recording:
     #: the +A and -A steps' commanded length [periods]
     step_steps: int = 0
 
-    @property
-    def n(self) -> int:
-        return len(self.states)
-
-    @property
-    def m(self) -> int:
-        return len(self.cmd)
-
     def rows_by_step(self, first: int, last: int, filled: bool = False) -> np.ndarray:
         """States of steps first..last as a dense array indexed by step - first (NaN where
         a step was not received; the first copy of a re-sent state); ``filled``: in real
@@ -161,12 +153,9 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
         stats = J.period_stats(steps[r0:r1], rec.source_ns[r0:r1], rec.ts, rec.seq[r0:r1])
         items['rate'] = J.judge_rate_realtime(stats, rec.ts, rec.mode_note, busy('rate'))
     else:
-        new, unanswered, skipped = J.lockstep_step_problems(
-            steps, rec.take_ns, rec.cmd[:, 0], rec.cmd_ns
-        )
-        rate_steps = np.count_nonzero(np.diff(steps[r0:r1]) > 0)
+        per_s = np.count_nonzero(np.diff(steps[r0:r1]) > 0) / rec.rate_wall
         items['rate'] = J.judge_rate_lockstep(
-            new, unanswered, skipped, rec.idle_advance, rate_steps / rec.rate_wall, rec.mode_note
+            steps, rec.take_ns, rec.cmd[:, 0], rec.cmd_ns, rec.idle_advance, per_s, rec.mode_note
         )
 
     # latency: wall time command(k) -> state k+1 received, and the onset of each change
@@ -174,7 +163,7 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
     for i in np.flatnonzero(ok_rows):
         by_step.setdefault(int(steps[i]), int(i))
     wall = []
-    for j in range(rec.m_rate0, rec.m):
+    for j in range(rec.m_rate0, len(rec.cmd)):
         k = int(rec.cmd[j, 0])
         row = by_step.get(k + 1)
         if k >= 0 and row is not None:
@@ -320,7 +309,6 @@ def step_busy(rec: Recording, declared: int) -> tuple[str, str]:
     if gap > TH.STEP_GAP_MAX:
         gaps = f'{gap} consecutive states missing in the step'
     lag = C.command_lag(d[have], declared)
-    lag = lag[np.isfinite(lag)]
     if len(lag) and lag.max() > TH.STEP_LAG_FRACTION * (k1 - k0):
         late = (
             f'commands reached the drive up to {lag.max():.0f} periods late during the step '
@@ -355,7 +343,6 @@ def abort_busy(rec: Recording, declared: int) -> str:
     rows = rec.states[i0:i1][rec.lengths[i0:i1] == len(TH.STATE_FIELDS)]
     rows = rows[rows[:, TH.F['step_index']] >= rec.step_trans[1][0]]
     lag = C.command_lag(rows, declared)
-    lag = lag[np.isfinite(lag)]
     if not len(lag) or lag.max() <= TH.STEP_LAG_FRACTION * rec.step_steps:
         return ''
     return (
@@ -372,7 +359,6 @@ def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:
     enough to judge, or the resume command and its answer took more than 50 ms to
     cross while the check was late."""
     wd, why = rec.watchdog, []
-    n = rec.n
     r0, r1 = wd.get('rows_on', (0, 0))
     q0 = wd.get('rows_resume', (r1, r1))[0]
     seen = rec.states[r0:q0][rec.lengths[r0:q0] == len(TH.STATE_FIELDS)]
@@ -386,8 +372,7 @@ def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:
             f"applied (the newest it showed answered step {newest}, the test's last "
             f'{wd.get("k_last")}; -1: none): they did not reach it'
         )
-    lag = C.command_lag(rec.states[r0:r1][rec.lengths[r0:r1] == len(TH.STATE_FIELDS)], declared)
-    lag = lag[np.isfinite(lag)]
+    lag = C.command_lag(rec.states[r0:r1], declared)
     if len(lag) and lag.max() * rec.ts > rec.command_timeout / 2:
         why.append(
             f'commands reached the drive up to {lag.max() * rec.ts * 1e3:.1f} ms late before '
@@ -417,9 +402,7 @@ def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:
         why.append(f'the states received cover only {wd["coverage_s"] * 1e3:.0f} ms of the silence')
     if wd.get('resumed_s') is None:
         q0, q1 = wd.get('rows_resume', (0, 0))
-        c = C.phase_conditions(
-            rec.states[:n], rec.lengths[:n], rec.seq[:n], excess, declared, slice(q0, q1)
-        )
+        c = C.phase_conditions(rec.states, rec.lengths, rec.seq, excess, declared, slice(q0, q1))
         reason = C.busy_reason(c)
         if reason:
             why.append(f'while resuming, {reason}')

@@ -292,13 +292,20 @@ def judge_rate_realtime(
     return item.undecided(busy) if paced and not mode_note else item
 
 
-def lockstep_step_problems(
-    steps: np.ndarray, take_ns: np.ndarray, cmd_answers: np.ndarray, cmd_pub_ns: np.ndarray
-) -> tuple[int, int, int]:
-    """Lock-step: (new steps seen, steps without a command answering the previous state
-    published before they arrived, steps advancing by more than one)."""
+def judge_rate_lockstep(
+    steps: np.ndarray,
+    take_ns: np.ndarray,
+    cmd_answers: np.ndarray,
+    cmd_pub_ns: np.ndarray,
+    idle_advance: int,
+    steps_per_s: float,
+    mode_note: str = '',
+) -> TH.Item:
+    """Lock-step: every new step (``steps`` taken at ``take_ns``) follows a command
+    answering the previous state (``cmd_answers``, published at ``cmd_pub_ns``), by one;
+    none while idle (``idle_advance``)."""
     new = np.flatnonzero(np.diff(steps) > 0) + 1
-    unanswered = skipped = 0
+    n_steps, unanswered, skipped = len(new), 0, 0
     for i in new:
         k, prev = steps[i], steps[i - 1]
         if k - prev != 1:
@@ -306,17 +313,6 @@ def lockstep_step_problems(
         sel = (cmd_answers == prev) | (cmd_answers < 0)
         if not np.any(cmd_pub_ns[sel] <= take_ns[i]):
             unanswered += 1
-    return len(new), unanswered, skipped
-
-
-def judge_rate_lockstep(
-    n_steps: int,
-    unanswered: int,
-    skipped: int,
-    idle_advance: int,
-    steps_per_s: float,
-    mode_note: str = '',
-) -> TH.Item:
     ok = n_steps > 0 and unanswered == 0 and skipped == 0 and idle_advance == 0 and not mode_note
     figures = (
         f'{n_steps} steps, {unanswered} without a command, {skipped} skipping, '

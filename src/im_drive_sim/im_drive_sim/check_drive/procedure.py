@@ -54,7 +54,7 @@ def run_check(
     state_topic = p.state_sub.topic_name
     cmd_topic = node.resolve_topic_name(COMMAND_TOPIC)
 
-    # -- discovery --------------------------------------------------------------------
+    # -- discovery -----------------------------------------------------------------------------
     deadline = time.monotonic() + opts.timeout
     while not node.get_publishers_info_by_topic(state_topic):
         if time.monotonic() > deadline:
@@ -86,217 +86,196 @@ def run_check(
     while p.cmd_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
         p.poll(0.02)
     try:
-        return _probe(
-            p, opts, node, cfg, drive_full, timeout, timeout_src, state_topic, cmd_topic, log
+        ts, ts_ns = cfg.Ts, cfg.Ts_ns
+        a = opts.amplitude
+        counts_per_rad = cfg.sensors.encoder_counts / (2.0 * math.pi)
+
+        info = {
+            'drive': drive_full,
+            'namespace': node.get_namespace(),
+            'Ts_s': ts,
+            'isq_max_A': isq_max,
+            'amplitude_A': a,
+            'command_timeout_s': timeout,
+            'command_timeout_source': timeout_src,
+        }
+
+        def check_alone() -> None:
+            if len(node.get_publishers_info_by_topic(cmd_topic)) > 1:
+                _refuse_commander(node, cmd_topic, p)
+
+        # -- mode: does step_index advance without commands? -----------------------------------
+        if not p.run(lambda k, s: None, lambda: p.newest() is not None, opts.timeout):
+            raise TH.CheckRefused(
+                f'{state_topic} has a publisher but no state came within {opts.timeout:g} s'
+            )
+        k_idle0 = int(p.newest()[TH.F['step_index']])
+        t0, n0 = time.monotonic(), p.n
+
+        def decided() -> bool:
+            # Real time: the step index advances without commands. Lock-step: the drive
+            # re-sends the same state while it waits (every 0.1 s). At least 0.3 s; then as
+            # long as neither is seen, up to --timeout: a drive in real time may start its
+            # clock only once it has matched our publisher (the simulator waits for a
+            # commander), which takes a moment after a process start or across a network.
+            waited = time.monotonic() - t0
+            moved = int(p.newest()[TH.F['step_index']]) - k_idle0
+            resent = int(np.count_nonzero(p.states[n0 : p.n, TH.F['step_index']] == k_idle0))
+            return waited > opts.timeout or (waited > 0.3 and (moved >= 5 or resent >= 3))
+
+        p.run(lambda k, s: None, decided, opts.timeout + 1.0)
+        idle_advance = int(p.newest()[TH.F['step_index']]) - k_idle0
+        realtime = idle_advance >= 5
+        mode = 'realtime' if realtime else 'lockstep'
+        status_mode = p.status.get('mode')
+        info['mode'] = mode
+        log(
+            f'check_drive: drive {drive_full}, mode {mode} (by behaviour; drive/status: '
+            f'{status_mode or "not seen yet"}), Ts {ts * 1e6:g} us, isq_max {isq_max:g} A, '
+            f'step +-{a:g} A, command_timeout {timeout:g} s ({timeout_src})'
         )
+        check_alone()
+
+        def schedule(
+            segments: list[tuple[int, float]],
+            record: list | None = None,
+            guard: Callable[[np.ndarray], bool] | None = None,
+        ) -> int:
+            """Answer states with piecewise-constant isq*: ``segments`` of (steps, isq*),
+            counted in step indices from the first state answered. ``record`` collects
+            (k, level, previous level) at every change; ``guard(state)`` True aborts to zero.
+            Returns the first step index answered."""
+            total = sum(n for n, _ in segments)
+            bounds = np.cumsum([n for n, _ in segments])
+            st = {'k0': None, 'last': None, 'done': False}
+
+            def policy(k: int, s: np.ndarray) -> float | None:
+                if st['k0'] is None:
+                    st['k0'] = k
+                rel = k - st['k0']
+                if guard is not None and guard(s):
+                    st['done'] = True
+                    return 0.0  # abort to zero current at once
+                if rel >= total:
+                    st['done'] = True
+                    return None  # the next phase answers this state
+                level = segments[int(np.searchsorted(bounds, rel, side='right'))][1]
+                if record is not None and level != st['last']:
+                    record.append((k, level, 0.0 if st['last'] is None else st['last']))
+                st['last'] = level
+                return level
+
+            if not p.run(policy, lambda: st['done'], 5.0 + total * ts * 20):
+                raise DriveLost(
+                    f'the drive stopped stepping (last state '
+                    f'{int(p.newest()[0])}, {p.n} states received)'
+                )
+            return st['k0']
+
+        # -- rate: zero current, answer every state; and no current before the whole graph is
+        # known (another commander discovered late must still refuse the check) -------------
+        i_rate0, m_rate0 = p.n, p.m
+        t0 = time.monotonic()
+        while True:
+            schedule([(2500 if realtime else 500, 0.0)])
+            if time.monotonic() >= p.created + TH.DISCOVERY_SETTLE_S:
+                break
+        rate_wall = time.monotonic() - t0
+        phases = {'rate': (i_rate0, p.n)}
+        check_alone()
+
+        # -- latency: small level changes, every 25 steps --------------------------------------
+        trans: list[tuple[int, float, float]] = []
+        levels = [0.0, a, 0.0, -a, 0.0, a, 0.0, -a, 0.0]
+        i0 = p.n
+        schedule([(25, lv) for lv in levels], trans)
+        phases['latency'] = (i0, p.n)
+
+        # -- step response ---------------------------------------------------------------------
+        n_step = max(10, round(opts.step_duration / ts))
+        step_trans: list[tuple[int, float, float]] = []
+        aborted = {'why': ''}
+
+        def overspeed(s: np.ndarray) -> bool:
+            speed = abs(s[TH.F['omega_meas']])
+            if speed > opts.max_speed:
+                aborted['why'] = f'aborted: |omega_meas| {speed:.1f} > {opts.max_speed:g} rad/s'
+                return True
+            return False
+
+        i0 = p.n
+        schedule([(25, 0.0), (n_step, a), (n_step, -a), (n_step // 2, 0.0)], step_trans, overspeed)
+        phases['step'] = (i0, p.n)
+        k_step_end = p.answered
+        check_alone()
+
+        # -- watchdog --------------------------------------------------------------------------
+        w = a / 2
+        if realtime:
+            wd = _watchdog_realtime(p, schedule, w, timeout, overspeed, ts)
+        else:
+            wd = _watchdog_lockstep(p)
+        schedule([(50 if realtime else 10, 0.0)])
+        check_alone()
+        # A status message (about 1 Hz) to cross-check the mode, if none came yet.
+        if status_mode is None and realtime:
+            t_end = time.monotonic() + 1.2
+            p.run(lambda k, s: 0.0, lambda: bool(p.status) or time.monotonic() > t_end, 2.0)
+            status_mode = p.status.get('mode')
+        info['status_mode'] = status_mode
+        mode_note = (
+            f'drive/status says mode={status_mode}' if status_mode not in (None, mode) else ''
+        )
+        p.safe_stop()  # before judging: the drive is not left waiting for commands meanwhile
+
+        rec = Recording(
+            states=p.states[: p.n].copy(),
+            lengths=p.lengths[: p.n].copy(),
+            source_ns=p.source_ns[: p.n].copy(),
+            recv_ns=p.recv_ns[: p.n].copy(),
+            take_ns=p.take_ns[: p.n].copy(),
+            seq=p.seq[: p.n].copy(),
+            cmd=p.cmd[: p.m].copy(),
+            cmd_ns=p.cmd_ns[: p.m].copy(),
+            joints=np.array(p.joints, dtype=float).reshape(-1, 4),
+            endpoints={
+                topic: [
+                    e.topic_type
+                    for e in (
+                        node.get_subscriptions_info_by_topic(cmd_topic)
+                        if topic == COMMAND_TOPIC
+                        else node.get_publishers_info_by_topic(node.resolve_topic_name(topic))
+                    )
+                ]
+                for topic in TOPIC_TYPES
+            },
+            ts=ts,
+            ts_ns=ts_ns,
+            isq_max=isq_max,
+            rated_flux_current=cfg.machine.rated_flux_current,
+            counts_per_rad=counts_per_rad,
+            amplitude=a,
+            realtime=realtime,
+            idle_advance=idle_advance,
+            mode_note=mode_note,
+            m_rate0=m_rate0,
+            rate_wall=rate_wall,
+            trans=trans,
+            step_trans=step_trans,
+            k_step_end=k_step_end,
+            aborted_why=aborted['why'],
+            step_steps=n_step,
+            watchdog=wd,
+            phases=phases,
+            command_timeout=timeout,
+            command_timeout_source=timeout_src,
+        )
+        kept_up: dict = {}
+        items = evaluate(rec, kept_up)
+        info['conditions'] = kept_up
+        return items, info
     finally:
         p.safe_stop()  # zero current, whatever happened (also on SIGINT and errors)
-
-
-def _probe(
-    p: Probe,
-    opts: Options,
-    node,
-    cfg,
-    drive_full: str,
-    timeout: float,
-    timeout_src: str,
-    state_topic: str,
-    cmd_topic: str,
-    log: Callable[[str], None],
-) -> tuple[list[TH.Item], dict]:
-    ts, ts_ns = cfg.Ts, cfg.Ts_ns
-    isq_max = cfg.machine.isq_max
-    a = opts.amplitude
-    counts_per_rad = cfg.sensors.encoder_counts / (2.0 * math.pi)
-
-    info = {
-        'drive': drive_full,
-        'namespace': node.get_namespace(),
-        'Ts_s': ts,
-        'isq_max_A': isq_max,
-        'amplitude_A': a,
-        'command_timeout_s': timeout,
-        'command_timeout_source': timeout_src,
-    }
-
-    def check_alone() -> None:
-        if len(node.get_publishers_info_by_topic(cmd_topic)) > 1:
-            _refuse_commander(node, cmd_topic, p)
-
-    # -- mode: does step_index advance without commands? ---------------------------------
-    if not p.run(lambda k, s: None, lambda: p.newest() is not None, opts.timeout):
-        raise TH.CheckRefused(
-            f'{state_topic} has a publisher but no state came within {opts.timeout:g} s'
-        )
-    k_idle0 = int(p.newest()[TH.F['step_index']])
-    t0, n0 = time.monotonic(), p.n
-
-    def decided() -> bool:
-        # Real time: the step index advances without commands. Lock-step: the drive
-        # re-sends the same state while it waits (every 0.1 s). At least 0.3 s; then as
-        # long as neither is seen, up to --timeout: a drive in real time may start its
-        # clock only once it has matched our publisher (the simulator waits for a
-        # commander), which takes a moment after a process start or across a network.
-        waited = time.monotonic() - t0
-        moved = int(p.newest()[TH.F['step_index']]) - k_idle0
-        resent = int(np.count_nonzero(p.states[n0 : p.n, TH.F['step_index']] == k_idle0))
-        return waited > opts.timeout or (waited > 0.3 and (moved >= 5 or resent >= 3))
-
-    p.run(lambda k, s: None, decided, opts.timeout + 1.0)
-    idle_advance = int(p.newest()[TH.F['step_index']]) - k_idle0
-    realtime = idle_advance >= 5
-    mode = 'realtime' if realtime else 'lockstep'
-    status_mode = p.status.get('mode')
-    mode_note = ''
-    if status_mode is not None and status_mode != mode:
-        mode_note = f'drive/status says mode={status_mode}'
-    info['mode'] = mode
-    log(
-        f'check_drive: drive {drive_full}, mode {mode} (by behaviour; drive/status: '
-        f'{status_mode or "not seen yet"}), Ts {ts * 1e6:g} us, isq_max {isq_max:g} A, '
-        f'step +-{a:g} A, command_timeout {timeout:g} s ({timeout_src})'
-    )
-    check_alone()
-
-    def schedule(
-        segments: list[tuple[int, float]],
-        record: list | None = None,
-        guard: Callable[[np.ndarray], bool] | None = None,
-    ) -> int:
-        """Answer states with piecewise-constant isq*: ``segments`` of (steps, isq*),
-        counted in step indices from the first state answered. ``record`` collects
-        (k, level, previous level) at every change; ``guard(state)`` True aborts to zero.
-        Returns the first step index answered."""
-        total = sum(n for n, _ in segments)
-        bounds = np.cumsum([n for n, _ in segments])
-        st = {'k0': None, 'last': None, 'done': False}
-
-        def policy(k: int, s: np.ndarray) -> float | None:
-            if st['k0'] is None:
-                st['k0'] = k
-            rel = k - st['k0']
-            if guard is not None and guard(s):
-                st['done'] = True
-                return 0.0  # abort to zero current at once
-            if rel >= total:
-                st['done'] = True
-                return None  # the next phase answers this state
-            level = segments[int(np.searchsorted(bounds, rel, side='right'))][1]
-            if record is not None and level != st['last']:
-                record.append((k, level, 0.0 if st['last'] is None else st['last']))
-            st['last'] = level
-            return level
-
-        if not p.run(policy, lambda: st['done'], 5.0 + total * ts * 20):
-            raise DriveLost(
-                f'the drive stopped stepping (last state '
-                f'{int(p.newest()[0])}, {p.n} states received)'
-            )
-        return st['k0']
-
-    # -- rate: zero current, answer every state; and no current before the whole graph is
-    # known (another commander discovered late must still refuse the check) -------------
-    i_rate0, m_rate0 = p.n, p.m
-    t0 = time.monotonic()
-    while True:
-        schedule([(2500 if realtime else 500, 0.0)])
-        if time.monotonic() >= p.created + TH.DISCOVERY_SETTLE_S:
-            break
-    rate_wall = time.monotonic() - t0
-    phases = {'rate': (i_rate0, p.n)}
-    check_alone()
-
-    # -- latency: small level changes, every 25 steps -----------------------------------
-    trans: list[tuple[int, float, float]] = []
-    levels = [0.0, a, 0.0, -a, 0.0, a, 0.0, -a, 0.0]
-    i0 = p.n
-    schedule([(25, lv) for lv in levels], trans)
-    phases['latency'] = (i0, p.n)
-
-    # -- step response ----------------------------------------------------------------
-    n_step = max(10, round(opts.step_duration / ts))
-    step_trans: list[tuple[int, float, float]] = []
-    aborted = {'why': ''}
-
-    def overspeed(s: np.ndarray) -> bool:
-        if abs(s[TH.F['omega_meas']]) > opts.max_speed:
-            aborted['why'] = (
-                f'aborted: |omega_meas| {abs(s[TH.F["omega_meas"]]):.1f} > {opts.max_speed:g} rad/s'
-            )
-            return True
-        return False
-
-    i0 = p.n
-    schedule([(25, 0.0), (n_step, a), (n_step, -a), (n_step // 2, 0.0)], step_trans, overspeed)
-    phases['step'] = (i0, p.n)
-    k_step_end = p.answered
-    check_alone()
-
-    # -- watchdog -----------------------------------------------------------------------
-    w = a / 2
-    if realtime:
-        wd = _watchdog_realtime(p, schedule, w, timeout, overspeed, ts)
-    else:
-        wd = _watchdog_lockstep(p)
-    schedule([(50 if realtime else 10, 0.0)])
-    check_alone()
-    # A status message (about 1 Hz) to cross-check the mode, if none came yet.
-    if status_mode is None and realtime:
-        t_end = time.monotonic() + 1.2
-        p.run(lambda k, s: 0.0, lambda: bool(p.status) or time.monotonic() > t_end, 2.0)
-        status_mode = p.status.get('mode')
-        if status_mode is not None and status_mode != mode:
-            mode_note = f'drive/status says mode={status_mode}'
-    info['status_mode'] = status_mode
-    p.safe_stop()  # before judging: the drive is not left waiting for commands meanwhile
-
-    rec = Recording(
-        states=p.states[: p.n].copy(),
-        lengths=p.lengths[: p.n].copy(),
-        source_ns=p.source_ns[: p.n].copy(),
-        recv_ns=p.recv_ns[: p.n].copy(),
-        take_ns=p.take_ns[: p.n].copy(),
-        seq=p.seq[: p.n].copy(),
-        cmd=p.cmd[: p.m].copy(),
-        cmd_ns=p.cmd_ns[: p.m].copy(),
-        joints=np.array(p.joints, dtype=float).reshape(-1, 4),
-        endpoints={
-            topic: [
-                e.topic_type
-                for e in (
-                    node.get_subscriptions_info_by_topic(cmd_topic)
-                    if topic == COMMAND_TOPIC
-                    else node.get_publishers_info_by_topic(node.resolve_topic_name(topic))
-                )
-            ]
-            for topic in TOPIC_TYPES
-        },
-        ts=ts,
-        ts_ns=ts_ns,
-        isq_max=isq_max,
-        rated_flux_current=cfg.machine.rated_flux_current,
-        counts_per_rad=counts_per_rad,
-        amplitude=a,
-        realtime=realtime,
-        idle_advance=idle_advance,
-        mode_note=mode_note,
-        m_rate0=m_rate0,
-        rate_wall=rate_wall,
-        trans=trans,
-        step_trans=step_trans,
-        k_step_end=k_step_end,
-        aborted_why=aborted['why'],
-        step_steps=n_step,
-        watchdog=wd,
-        phases=phases,
-        command_timeout=timeout,
-        command_timeout_source=timeout_src,
-    )
-    kept_up: dict = {}
-    items = evaluate(rec, kept_up)
-    info['conditions'] = kept_up
-    return items, info
 
 
 def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, ts: float) -> dict:
@@ -313,6 +292,11 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
     i_silent, t_last, k_last = p.n, int(p.cmd_ns[p.m - 1]), int(p.cmd[p.m - 1, 0])
     st: dict = {'zero_at': None, 'zero_run': 0, 'why': '', 'ref': None, 'i': i_on}
     end = time.monotonic() + 2 * hi + 1.0
+
+    def covered() -> float:
+        """The drive's time [s] from ``ref`` (else our last command) to its newest state."""
+        ref = st['ref'] if st['ref'] is not None else t_last
+        return (int(p.source_ns[p.n - 1]) - ref) * 1e-9 if p.n > i_silent else 0.0
 
     def done() -> bool:
         for i in range(st['i'], p.n):
@@ -331,15 +315,12 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
             if overspeed(s):
                 st['why'] = 'aborted silence: overspeed'
         st['i'] = p.n
-        ref = st['ref'] if st['ref'] is not None else t_last
-        drive_time = (int(p.source_ns[p.n - 1]) - ref) * 1e-9 if p.n > i_silent else 0.0
         return (
-            st['zero_run'] >= 10 or bool(st['why']) or drive_time > 2 * hi or time.monotonic() > end
+            st['zero_run'] >= 10 or bool(st['why']) or covered() > 2 * hi or time.monotonic() > end
         )
 
     p.run(lambda k, s: None, done, 2 * hi + 1.5)  # silent
-    ref = st['ref'] if st['ref'] is not None else t_last
-    coverage = (int(p.source_ns[p.n - 1]) - ref) * 1e-9 if p.n > i_silent else 0.0
+    ref, coverage = st['ref'] if st['ref'] is not None else t_last, covered()
     t_zero = t_act = t_before = None
     if st['zero_at'] is not None:
         t_zero = (p.source_ns[st['zero_at']] - ref) * 1e-9

@@ -87,7 +87,6 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         self.internals_decimation = st.internals_decimation
         self.service_period_steps = st.service_period_steps
         self.timing_tolerance = st.timing_tolerance
-        self.first_experiment_id = st.first_experiment_id
         cfg, gains = self._candidate({})
         self.runner = ExperimentRunner(cfg, gains, timing_tolerance=self.timing_tolerance)
         #: refused requests, by kind (logged, throttled; and at exit)
@@ -147,7 +146,7 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
                     ServiceIntrospectionState.CONTENTS,
                 )
 
-        self.next_experiment_id = int(self.first_experiment_id)
+        self.next_experiment_id = int(st.first_experiment_id)
         #: what the fault messages tell a user to run (the shipped ros2 has only `run`)
         self._reset_command = reset_command(self.get_fully_qualified_name())
         self._reset_service = service_name(self.get_fully_qualified_name())

@@ -333,8 +333,8 @@ def answer_state(
     R: Vec, Q: Vec, X: Vec, C: Vec, CF: Vec, state: Vec, cout: Vec, eout: Vec,
     cmd: Vec, internals: Vec, W: Vec,
 ) -> int:  # fmt: skip
-    """``ControllerNode.answer`` compiled (a composed real-time loop calls it without the
-    GIL): the command (k, isq* [A], load [N m]) into ``cmd``, and every
+    """The controller's answer to one state (``ControllerNode.answer``; a composed real-time
+    loop calls it without the GIL): the command (k, isq* [A], load [N m]) into ``cmd``, and every
     ``W[W_DECIMATION]``-th answer the internals [k, cout, eout] into ``internals``
     (``W[W_INTERNALS_DUE]`` = 1).  Returns the experiment status."""
     k = state[0]

@@ -9,23 +9,18 @@ import dataclasses
 import math
 from collections.abc import Callable
 
-from .config import (
-    GAIN_NAMES,
-    ControlConfig,
-    ExperimentConfig,
-    Gains,
-    LossConfig,
-    SafetyConfig,
-    TrajectoryConfig,
-    validate_experiment_config,
-    validate_gains,
-)
+from . import config as cf
+from .config import GAIN_NAMES, ExperimentConfig, Gains
 
 #: Tunable sections: parameter prefix -> dataclass. Gains are top-level (k_pw, ...).
-TUNABLE_SECTIONS = {'loss': LossConfig, 'trajectory': TrajectoryConfig}
+TUNABLE_SECTIONS = {'loss': cf.LossConfig, 'trajectory': cf.TrajectoryConfig}
 #: Read-only sections (structure, hard safety limits, and the fallback gains that hold the
 #: settle and finish a stopped move: a drive's own start, docs/drive-family.md).
-READ_ONLY_SECTIONS = {'control': ControlConfig, 'safety': SafetyConfig, 'fallback_gains': Gains}
+READ_ONLY_SECTIONS = {
+    'control': cf.ControlConfig,
+    'safety': cf.SafetyConfig,
+    'fallback_gains': Gains,
+}
 #: Fields taken from the drive's parameter file, not declared as parameters.
 FROM_DRIVE = {'control.Ts', 'control.isq_max'}
 
@@ -146,8 +141,8 @@ def configuration(
             else:
                 kw[f.name] = value(key)
         sections[section] = cls(**kw)
-    cfg = validate_experiment_config(ExperimentConfig(**sections))
-    gains = validate_gains(Gains(*(value(n) for n in GAIN_NAMES)))  # type: ignore[arg-type]
+    cfg = cf.validate_experiment_config(ExperimentConfig(**sections))
+    gains = cf.validate_gains(Gains(*(value(n) for n in GAIN_NAMES)))  # type: ignore[arg-type]
     return cfg, gains
 
 

@@ -512,7 +512,7 @@ def test_step_response_verdict():
 
 
 def test_judge_topics():
-    good = {t: [ty] for t, ty in cd.TYPES.items()}
+    good = {t: [ty] for t, ty in cd.TOPIC_TYPES.items()}
     assert cd.judge_topics(good).passed
     bad = dict(good, **{'drive/status': []})
     assert cd.judge_topics(bad).figures == 'no publisher on drive/status'
@@ -802,7 +802,7 @@ def _recording(step_trans: list, aborted_why: str = '') -> cd.evaluate.Recording
     """A real-time drive's recording the test makes up: 3000 states, every period fresh
     (delay 1), taken 50 us after publication; the step phase's level changes as given."""
     from im_drive_sim.check_drive.evaluate import Recording
-    from im_drive_sim.check_drive.thresholds import STATE_FIELDS, TYPES, F
+    from im_drive_sim.contract import STATE_FIELDS, STATE_INDEX as F, TOPIC_TYPES
 
     n = 3000
     s = np.zeros((n, len(STATE_FIELDS)))
@@ -813,7 +813,7 @@ def _recording(step_trans: list, aborted_why: str = '') -> cd.evaluate.Recording
     return Recording(
         states=s, lengths=np.full(n, len(STATE_FIELDS)), source_ns=src, recv_ns=src + 40_000,
         take_ns=src + 50_000, seq=np.arange(n), cmd=np.zeros((0, 3)), cmd_ns=np.zeros(0),
-        joints=np.zeros((0, 4)), endpoints={t: [TYPES[t]] for t in TYPES}, ts=TS,
+        joints=np.zeros((0, 4)), endpoints={t: [TOPIC_TYPES[t]] for t in TOPIC_TYPES}, ts=TS,
         ts_ns=200_000, isq_max=7.0, rated_flux_current=3.0, counts_per_rad=4096 / (2 * math.pi),
         amplitude=0.5, realtime=True, idle_advance=100, mode_note='', m_rate0=0, rate_wall=0.5,
         trans=[], step_trans=step_trans, k_step_end=2900, aborted_why=aborted_why,
@@ -949,7 +949,7 @@ def test_a_step_the_drives_watchdog_held_at_zero_is_not_the_drives_rise():
     labels say so (applied_step -1). The step it was given is not the one commanded: the
     rise, measured nowhere, is inconclusive, not a fail; a wrong sign still fails."""
     from im_drive_sim.check_drive.evaluate import step_busy
-    from im_drive_sim.check_drive.thresholds import F
+    from im_drive_sim.contract import STATE_INDEX as F
 
     trans = [(2700, 0.0, 0.0), (2725, 0.5, 0.0), (2825, -0.5, 0.5), (2925, 0.0, -0.5)]
     rec = _recording(trans)
@@ -995,7 +995,7 @@ def test_a_watchdog_test_whose_commands_never_reached_the_drive_is_inconclusive(
     inconclusive, saying so. A drive whose current follows the test but whose labels
     never show it is still timed from the publication, as before."""
     from im_drive_sim.check_drive.evaluate import watchdog_busy
-    from im_drive_sim.check_drive.thresholds import F
+    from im_drive_sim.contract import STATE_INDEX as F
 
     rec = _recording([])
     rec.command_timeout = 0.05

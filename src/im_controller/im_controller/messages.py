@@ -10,11 +10,12 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+from im_drive_sim.contract import NS_PER_S
+
 from .config import GAIN_NAMES, Gains
 from .layout import SAFETY_REASONS
 from .result import LossResult
 
-NS_PER_S = 1_000_000_000
 #: Keys of ``DiagnosticStatus.values``, in order, with how each is written: ``int`` as
 #: ``str``, ``float`` as ``repr``, ``bool`` as 'true' or 'false', each of the LossResult
 #: field of its name (``_FIELD``: but these); None: by hand (terms, reason, gains, ripple,

@@ -13,7 +13,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .thresholds import BUSY_FRESH_MIN, BUSY_LATE_P99_S, STATE_FIELDS, F
+from ..contract import STATE_FIELDS, STATE_INDEX as F
+from .thresholds import BUSY_FRESH_MIN, BUSY_LATE_P99_S
 
 
 def excess_delay(take_ns: np.ndarray, source_ns: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from ..contract import JOINT_STATE_TOPIC
+from ..contract import JOINT_STATE_TOPIC, STATE_FIELDS, STATE_INDEX as F, TOPIC_TYPES
 from . import conditions as C, judges as J, response as R, thresholds as TH
 
 
@@ -86,9 +86,9 @@ class Recording:
         """States of steps first..last as a dense array indexed by step - first (NaN where
         a step was not received; the first copy of a re-sent state); ``filled``: in real
         time with the short gaps bridged (:func:`fill_missed`)."""
-        out = np.full((last - first + 1, len(TH.STATE_FIELDS)), np.nan)
-        s = self.states[self.lengths == len(TH.STATE_FIELDS)]
-        k = s[:, TH.F['step_index']].astype(np.int64)
+        out = np.full((last - first + 1, len(STATE_FIELDS)), np.nan)
+        s = self.states[self.lengths == len(STATE_FIELDS)]
+        k = s[:, F['step_index']].astype(np.int64)
         sel = (k >= first) & (k <= last)
         for row, kk in zip(s[sel][::-1], k[sel][::-1], strict=True):
             out[kk - first] = row
@@ -105,18 +105,18 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
     sp = J.state_field_problems(rec.states, rec.lengths, rec.seq, rec.ts_ns, realtime, bound)
     k_first = step_trans[0][0] if step_trans else k_step_end
     dense = rec.rows_by_step(k_first, k_step_end + 1, filled=True)
-    motion = dense[np.isfinite(dense[:, TH.F['theta_meas']])]
+    motion = dense[np.isfinite(dense[:, F['theta_meas']])]
     if len(motion) > 20 and np.all(np.diff(motion[:, 0]) == 1):
-        th = motion[:, TH.F['theta_meas']]
-        ratio = J.units_ratio(th, motion[:, TH.F['omega_meas']], rec.ts)
+        th = motion[:, F['theta_meas']]
+        ratio = J.units_ratio(th, motion[:, F['omega_meas']], rec.ts)
         motion_counts = float(np.ptp(th) * rec.counts_per_rad)
     else:
         ratio, motion_counts = math.nan, 0.0
     joint_types = rec.endpoints[JOINT_STATE_TOPIC]
-    ok_rows = rec.lengths == len(TH.STATE_FIELDS)
+    ok_rows = rec.lengths == len(STATE_FIELDS)
     jp = (
         J.joint_state_problems(rec.joints.reshape(-1, 4), rec.states[ok_rows], rec.ts_ns)
-        if joint_types and all(t == TH.TYPES[JOINT_STATE_TOPIC] for t in joint_types)
+        if joint_types and all(t == TOPIC_TYPES[JOINT_STATE_TOPIC] for t in joint_types)
         else None
     )
     lateness = DriveLateness(rec)
@@ -131,7 +131,7 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
             doubt_band = (0.0, math.inf)
     items['fields'] = J.judge_fields(sp, ratio, motion_counts, jp, host=host, doubt_band=doubt_band)
 
-    declared = rec.states[ok_rows, TH.F['command_delay']]
+    declared = rec.states[ok_rows, F['command_delay']]
     d_declared = int(np.median(declared)) if len(declared) else 1
     excess = C.excess_delay(rec.take_ns, rec.source_ns)
     conds = {
@@ -147,7 +147,7 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
         c = conds.get(phase)
         return C.busy_reason(c) if c is not None and realtime else ''
 
-    steps = rec.states[:, TH.F['step_index']]
+    steps = rec.states[:, F['step_index']]
     r0, r1 = rec.phases['rate']
     if realtime:
         stats = J.period_stats(steps[r0:r1], rec.source_ns[r0:r1], rec.ts, rec.seq[r0:r1])
@@ -176,8 +176,8 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
         d = rec.rows_by_step(k0 - 20, k0 + 25, filled=True)
         # judged only with every state from 16 before to 21 after (filled in real time)
         complete.append(bool(np.isfinite(d[4:42]).all()))
-        delays.append(R.onset_delay(d[:, TH.F['isq']], 20, level - prev))
-        labels.append(R.label_delay(d[:, TH.F['applied_step']], 20, k0))
+        delays.append(R.onset_delay(d[:, F['isq']], 20, level - prev))
+        labels.append(R.label_delay(d[:, F['applied_step']], 20, k0))
         x, y = delays[-1], labels[-1]
         # the drive's periods from the change to where it shows and is labelled
         on_time.append(
@@ -202,7 +202,7 @@ def evaluate(rec: Recording, kept_up: dict | None = None) -> list[TH.Item]:
         metrics = []
         for (k0, level, prev), (k1, _, _) in itertools.pairwise(step_trans[1:4]):
             d = rec.rows_by_step(k0 - 20, k1, filled=True)
-            delay = R.onset_delay(d[:, TH.F['isq']], 20, level - prev)
+            delay = R.onset_delay(d[:, F['isq']], 20, level - prev)
             metrics.append(R.step_metrics(d[20 : k1 - k0 + 20], level, prev, rec.ts, delay))
         gaps, late = step_busy(rec, d_declared)
         items['step_response'] = R.judge_step_response(
@@ -255,8 +255,8 @@ class DriveLateness:
     (:func:`~.conditions.drive_lateness`): which were on time, and the share late."""
 
     def __init__(self, rec: Recording) -> None:
-        ok = rec.lengths == len(TH.STATE_FIELDS)
-        steps, source = rec.states[ok, TH.F['step_index']], rec.source_ns[ok]
+        ok = rec.lengths == len(STATE_FIELDS)
+        steps, source = rec.states[ok, F['step_index']], rec.source_ns[ok]
         clock = J.clock_period(steps, source)  # [s per step]; NaN with too few states
         period_ns = clock * 1e9 if math.isfinite(clock) else float(rec.ts_ns)
         self.late_s, self.first = C.drive_lateness(steps, source, period_ns)
@@ -318,16 +318,11 @@ def step_busy(rec: Recording, declared: int) -> tuple[str, str]:
     # command_timeout -- the check fell silent (descheduled) or the link held the
     # commands -- and it held zero current where the step was commanded: the step it was
     # given is not the one commanded, its rise included
-    held = int(np.count_nonzero(d[have][:, TH.F['applied_step']] < 0))
+    held = int(np.count_nonzero(d[have][:, F['applied_step']] < 0))
     if held:
-        gaps = '; '.join(
-            w
-            for w in (
-                gaps,
-                f"the drive's watchdog held zero current over {held} of the step's "
-                f'{int(np.count_nonzero(have))} states (no command reached it in time)',
-            )
-            if w
+        gaps += (
+            f"{'; ' if gaps else ''}the drive's watchdog held zero current over {held} of the "
+            f"step's {int(np.count_nonzero(have))} states (no command reached it in time)"
         )
     return gaps, late
 
@@ -340,8 +335,8 @@ def abort_busy(rec: Recording, declared: int) -> str:
     i0, i1 = rec.phases.get('step', (0, 0))
     if len(rec.step_trans) < 2 or rec.step_steps <= 0 or i1 <= i0:
         return ''
-    rows = rec.states[i0:i1][rec.lengths[i0:i1] == len(TH.STATE_FIELDS)]
-    rows = rows[rows[:, TH.F['step_index']] >= rec.step_trans[1][0]]
+    rows = rec.states[i0:i1][rec.lengths[i0:i1] == len(STATE_FIELDS)]
+    rows = rows[rows[:, F['step_index']] >= rec.step_trans[1][0]]
     lag = C.command_lag(rows, declared)
     if not len(lag) or lag.max() <= TH.STEP_LAG_FRACTION * rec.step_steps:
         return ''
@@ -361,12 +356,12 @@ def watchdog_busy(rec: Recording, declared: int, excess: np.ndarray) -> str:
     wd, why = rec.watchdog, []
     r0, r1 = wd.get('rows_on', (0, 0))
     q0 = wd.get('rows_resume', (r1, r1))[0]
-    seen = rec.states[r0:q0][rec.lengths[r0:q0] == len(TH.STATE_FIELDS)]
-    if wd.get('ref') == 'published' and not np.any(seen[:, TH.F['isq']] > rec.amplitude / 4):
+    seen = rec.states[r0:q0][rec.lengths[r0:q0] == len(STATE_FIELDS)]
+    if wd.get('ref') == 'published' and not np.any(seen[:, F['isq']] > rec.amplitude / 4):
         # the drive never showed the test's command applied, nor carried its current:
         # the commands did not reach it (its watchdog may have held zero before the test
         # began), so the fall and the resume were not its answer to the test
-        newest = int(seen[:, TH.F['applied_step']].max()) if len(seen) else -1
+        newest = int(seen[:, F['applied_step']].max()) if len(seen) else -1
         why.append(
             "the drive never carried the watchdog test's current nor showed its commands "
             f"applied (the newest it showed answered step {newest}, the test's last "

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..contract import COMMAND_DELAYS, COMMAND_TOPIC
+from ..contract import COMMAND_DELAYS, COMMAND_TOPIC, STATE_FIELDS, STATE_INDEX as F, TOPIC_TYPES
 from . import thresholds as TH
 
 # ================================ pure judging functions ===================================
@@ -22,7 +22,7 @@ def judge_topics(endpoints: dict[str, list[str]]) -> TH.Item:
     """``endpoints``: for 'drive/state', 'drive/joint_states', 'drive/status' the types of
     their publishers, for 'drive/command' the types of its subscribers other than us."""
     problems, seen = [], []
-    for topic, want in TH.TYPES.items():
+    for topic, want in TOPIC_TYPES.items():
         role = 'subscriber' if topic == COMMAND_TOPIC else 'publisher'
         types = endpoints.get(topic, [])
         if not types:
@@ -37,7 +37,7 @@ def judge_topics(endpoints: dict[str, list[str]]) -> TH.Item:
         not problems,
         figures,
         'drive/state + drive/joint_states + drive/status published, drive/command '
-        'subscribed, types ' + ', '.join(f'{t.split("/")[-1]}' for t in TH.TYPES.values()),
+        'subscribed, types ' + ', '.join(f'{t.split("/")[-1]}' for t in TOPIC_TYPES.values()),
         {'endpoints': endpoints, 'problems': problems},
     )
 
@@ -57,31 +57,31 @@ def state_field_problems(
     time_ns == step_index * Ts exactly, all finite, currents within ``current_bound`` [A];
     in lock-step a re-sent state must equal the original."""
     problems = []
-    bad_len = int(np.count_nonzero(lengths != len(TH.STATE_FIELDS)))
+    bad_len = int(np.count_nonzero(lengths != len(STATE_FIELDS)))
     if bad_len:
-        legacy = int(np.count_nonzero(lengths == len(TH.STATE_FIELDS) - 1))
+        legacy = int(np.count_nonzero(lengths == len(STATE_FIELDS) - 1))
         why = (
             ' (the last field, command_delay, is missing: 1 or 2, docs/interfaces.md)'
             if legacy == bad_len
             else ''
         )
-        problems.append(f'{bad_len} states without {len(TH.STATE_FIELDS)} values{why}')
-    ok = lengths == len(TH.STATE_FIELDS)
+        problems.append(f'{bad_len} states without {len(STATE_FIELDS)} values{why}')
+    ok = lengths == len(STATE_FIELDS)
     s, q = states[ok], seq[ok]
     if len(s) == 0:
         return [*problems, 'no state received']
     if not np.isfinite(s).all():
-        bad = [TH.STATE_FIELDS[i] for i in np.flatnonzero(~np.isfinite(s).all(axis=0))]
+        bad = [STATE_FIELDS[i] for i in np.flatnonzero(~np.isfinite(s).all(axis=0))]
         problems.append(f'non-finite values in {",".join(bad)}')
         return problems
-    delays = np.unique(s[:, TH.F['command_delay']])
+    delays = np.unique(s[:, F['command_delay']])
     if len(delays) > 1 or delays[0] not in COMMAND_DELAYS:
         problems.append(f'command_delay {", ".join(f"{v:g}" for v in delays)}: one value, 1 or 2')
-    k = s[:, TH.F['step_index']]
+    k = s[:, F['step_index']]
     if np.any(k != np.floor(k)) or np.any(k < 0):
         problems.append('step_index not a non-negative integer')
         return problems
-    wrong_t = np.count_nonzero(s[:, TH.F['time_ns']] != k * ts_ns)
+    wrong_t = np.count_nonzero(s[:, F['time_ns']] != k * ts_ns)
     if wrong_t:
         problems.append(f'time_ns != step_index*{ts_ns} in {wrong_t} states')
     dk, dq = np.diff(k), np.diff(q)
@@ -100,7 +100,7 @@ def state_field_problems(
             problems.append('a re-sent state differs from the original')
         if jumps:
             problems.append(f'step_index not consecutive {jumps} times')
-    cur = np.abs(s[:, [TH.F[c] for c in TH.CURRENT_FIELDS]]).max()
+    cur = np.abs(s[:, [F[c] for c in TH.CURRENT_FIELDS]]).max()
     if cur > current_bound:
         problems.append(f'current {cur:.3g} A beyond {current_bound:.3g} A')
     return problems
@@ -123,7 +123,7 @@ def joint_state_problems(joints: np.ndarray, states: np.ndarray, ts_ns: int) -> 
     torque, exactly) and they must come every 10 steps."""
     if len(joints) == 0:
         return ['no drive/joint_states received']
-    by_time = {int(t): i for i, t in enumerate(states[:, TH.F['time_ns']])}
+    by_time = {int(t): i for i, t in enumerate(states[:, F['time_ns']])}
     matched = mismatched = 0
     for t, pos, vel, eff in joints:
         i = by_time.get(int(t))
@@ -131,7 +131,7 @@ def joint_state_problems(joints: np.ndarray, states: np.ndarray, ts_ns: int) -> 
             continue
         matched += 1
         s = states[i]
-        if (pos, vel, eff) != (s[TH.F['theta_meas']], s[TH.F['omega_meas']], s[TH.F['torque']]):
+        if (pos, vel, eff) != (s[F['theta_meas']], s[F['omega_meas']], s[F['torque']]):
             mismatched += 1
     problems = []
     if matched == 0:
@@ -184,7 +184,7 @@ def judge_fields(
     figures = (
         '; '.join(problems)
         if problems
-        else f'{len(TH.STATE_FIELDS)} finite values, step_index consecutive, time_ns = k Ts; '
+        else f'{len(STATE_FIELDS)} finite values, step_index consecutive, time_ns = k Ts; '
         f'{units}; {joints}'
     )
     if problems and joint_problems is None:
@@ -193,7 +193,7 @@ def judge_fields(
         'fields',
         not problems and not units_doubt,
         figures,
-        f'{len(TH.STATE_FIELDS)} finite values, time_ns = k Ts exactly, currents plausible, '
+        f'{len(STATE_FIELDS)} finite values, time_ns = k Ts exactly, currents plausible, '
         f'ratio in [{TH.UNITS_RATIO_BAND[0]}, {TH.UNITS_RATIO_BAND[1]}], joint_states = state',
         {
             'problems': problems,

@@ -12,8 +12,16 @@ from typing import Any
 import numpy as np
 
 from ..cdr import read_float64_array
-from ..contract import COMMAND_TOPIC, JOINT_STATE_TOPIC, STATE_TOPIC, STATUS_TOPIC, QosSpec
-from .thresholds import NS_PER_S, STATE_FIELDS, F
+from ..contract import (
+    COMMAND_TOPIC,
+    JOINT_STATE_TOPIC,
+    NS_PER_S,
+    STATE_FIELDS,
+    STATE_INDEX as F,
+    STATE_TOPIC,
+    STATUS_TOPIC,
+    QosSpec,
+)
 
 
 class Interrupted(Exception):

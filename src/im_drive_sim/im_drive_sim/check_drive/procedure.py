@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..contract import COMMAND_TOPIC, TOPIC_TYPES
+from ..contract import COMMAND_TOPIC, STATE_INDEX as F, TOPIC_TYPES
 from ..rt import RtOptions
 from . import thresholds as TH
 from .evaluate import Recording, evaluate
@@ -109,7 +109,7 @@ def run_check(
             raise TH.CheckRefused(
                 f'{state_topic} has a publisher but no state came within {opts.timeout:g} s'
             )
-        k_idle0 = int(p.newest()[TH.F['step_index']])
+        k_idle0 = int(p.newest()[F['step_index']])
         t0, n0 = time.monotonic(), p.n
 
         def decided() -> bool:
@@ -119,12 +119,12 @@ def run_check(
             # clock only once it has matched our publisher (the simulator waits for a
             # commander), which takes a moment after a process start or across a network.
             waited = time.monotonic() - t0
-            moved = int(p.newest()[TH.F['step_index']]) - k_idle0
-            resent = int(np.count_nonzero(p.states[n0 : p.n, TH.F['step_index']] == k_idle0))
+            moved = int(p.newest()[F['step_index']]) - k_idle0
+            resent = int(np.count_nonzero(p.states[n0 : p.n, F['step_index']] == k_idle0))
             return waited > opts.timeout or (waited > 0.3 and (moved >= 5 or resent >= 3))
 
         p.run(lambda k, s: None, decided, opts.timeout + 1.0)
-        idle_advance = int(p.newest()[TH.F['step_index']]) - k_idle0
+        idle_advance = int(p.newest()[F['step_index']]) - k_idle0
         realtime = idle_advance >= 5
         mode = 'realtime' if realtime else 'lockstep'
         status_mode = p.status.get('mode')
@@ -197,7 +197,7 @@ def run_check(
         aborted = {'why': ''}
 
         def overspeed(s: np.ndarray) -> bool:
-            speed = abs(s[TH.F['omega_meas']])
+            speed = abs(s[F['omega_meas']])
             if speed > opts.max_speed:
                 aborted['why'] = f'aborted: |omega_meas| {speed:.1f} > {opts.max_speed:g} rad/s'
                 return True
@@ -301,12 +301,12 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
     def done() -> bool:
         for i in range(st['i'], p.n):
             s = p.states[i]
-            if st['ref'] is None and s[TH.F['applied_step']] >= k_last:
+            if st['ref'] is None and s[F['applied_step']] >= k_last:
                 st['ref'] = int(p.source_ns[i])  # the drive applied our last command
-                st['ref_step'] = int(s[TH.F['step_index']])
+                st['ref_step'] = int(s[F['step_index']])
             if i < i_silent:
                 continue
-            if abs(s[TH.F['isq']]) < TH.ZERO_CURRENT_FRACTION * w:
+            if abs(s[F['isq']]) < TH.ZERO_CURRENT_FRACTION * w:
                 if st['zero_at'] is None:
                     st['zero_at'] = i
                 st['zero_run'] += 1
@@ -325,7 +325,7 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
     if st['zero_at'] is not None:
         t_zero = (p.source_ns[st['zero_at']] - ref) * 1e-9
         i = st['zero_at']  # back along the fall to where it began
-        while i > i_silent and p.states[i - 1, TH.F['isq']] < TH.WATCHDOG_ACT_FRACTION * w:
+        while i > i_silent and p.states[i - 1, F['isq']] < TH.WATCHDOG_ACT_FRACTION * w:
             i -= 1
         t_act = (p.source_ns[i] - ref) * 1e-9
         # the last state received before it, still carrying the current: the fall began
@@ -334,14 +334,14 @@ def _watchdog_realtime(p: Probe, schedule, w: float, timeout: float, overspeed, 
     if st['why']:
         p.command(max(p.answered, int(p.newest()[0])), 0.0)
     # Steps at +w: as many at -w bring the shaft back near rest.
-    on = int(np.count_nonzero(p.states[i_on : p.n, TH.F['isq']] > w / 2))
+    on = int(np.count_nonzero(p.states[i_on : p.n, F['isq']] > w / 2))
     # resume with -w; it must reach -w within 50 ms (the check's clock: publication to
     # reception, so the link's delay both ways is inside)
     i_res, j_res, t_res = p.n, p.m, None
     k_res = schedule([(max(on, 50), -w)])
     for i in range(i_res, p.n):
         s = p.states[i]
-        if s[TH.F['step_index']] > k_res and abs(s[TH.F['isq']] + w) < TH.ZERO_CURRENT_FRACTION * w:
+        if s[F['step_index']] > k_res and abs(s[F['isq']] + w) < TH.ZERO_CURRENT_FRACTION * w:
             t_res = (p.recv_ns[i] - p.cmd_ns[j_res]) * 1e-9
             break
     if t_res is not None and t_res > 0.05:
@@ -370,16 +370,16 @@ def _watchdog_lockstep(p: Probe) -> dict:
     i0 = p.n
     p.run(lambda k, s: None, lambda: time.monotonic() - t0 >= TH.LOCKSTEP_SILENCE_S, 2.0)
     silence = time.monotonic() - t0
-    ks = p.states[i0 : p.n, TH.F['step_index']]
+    ks = p.states[i0 : p.n, F['step_index']]
     advanced = int(np.count_nonzero(ks > k_last + 1))
     s = p.newest()
-    k = int(s[TH.F['step_index']])
+    k = int(s[F['step_index']])
     t1 = time.monotonic()
     p.command(k, 0.0)
     resumed = None
     while time.monotonic() - t1 < 2.0:
         p.poll(0.05)
-        if int(p.newest()[TH.F['step_index']]) > k:
+        if int(p.newest()[F['step_index']]) > k:
             resumed = time.monotonic() - t1
             break
     return {'silence_s': silence, 'advanced': advanced, 'resumed_s': resumed}

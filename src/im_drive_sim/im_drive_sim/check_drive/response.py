@@ -11,6 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..contract import STATE_INDEX as F
 from . import thresholds as TH
 
 
@@ -199,7 +200,7 @@ def step_metrics(
     one level of the step test: ``rows``, the states (``STATE_FIELDS``) from the one the
     level's first command answered; ``level``, ``previous``: commanded isq* [A] and the
     one before."""
-    isq, torque, theta = (rows[:, TH.F[c]] for c in ('isq', 'torque', 'theta_meas'))
+    isq, torque, theta = (rows[:, F[c]] for c in ('isq', 'torque', 'theta_meas'))
     n = len(isq)
     start = delay if delay is not None else 1
     rise = rise_time(isq[start - 1 :], ts, isq[start - 1], level) if level != previous else math.nan

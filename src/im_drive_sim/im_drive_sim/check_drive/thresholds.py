@@ -1,6 +1,6 @@
 """check_drive's items, thresholds and result type (why each threshold: docs/check-drive.md).
 
-Pure: no ROS, no numba. The drive's field layout and topic types come from the contract.
+Pure: no ROS, no numba (the drive's field layout and topic types: ``..contract``).
 """
 
 from __future__ import annotations
@@ -8,16 +8,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from ..contract import STATE_FIELDS, TOPIC_TYPES
-
 #: Items, in the order they are printed.
 ITEMS: tuple[str, ...] = ('topics', 'fields', 'rate', 'latency', 'step_response', 'watchdog')
 
-F = {name: i for i, name in enumerate(STATE_FIELDS)}
 CURRENT_FIELDS = ('isd', 'isq', 'i_alpha', 'i_beta')
-
-#: Expected topic types (docs/interfaces.md).
-TYPES = TOPIC_TYPES
 
 # --- thresholds (why: docs/check-drive.md) -----------------------------------------------
 #: fields: currents must stay within this factor of the largest current the drive may carry
@@ -104,7 +98,6 @@ DEFAULT_TIMEOUT = 0.05  # [s] command_timeout when the drive has no such paramet
 #: [s] the whole check's limit beyond --timeout (finding the drive): a check not ended by
 #: then stops at zero current, INCONCLUSIVE, exit 3
 CHECK_LIMIT_S = 60.0
-NS_PER_S = 1_000_000_000
 
 
 class CheckRefused(Exception):

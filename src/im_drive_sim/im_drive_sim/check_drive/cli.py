@@ -82,8 +82,6 @@ def parse_args(argv: list[str]) -> Options:
         except ConfigError as exc:
             ap.error(str(exc))
         ns.drive_config = str(ns.drive_config)
-    if ns.json is not None:
-        ns.json = str(ns.json)
     if ns.namespace is not None:
         from rclpy.validate_namespace import validate_namespace
 
@@ -142,7 +140,7 @@ def main(args: list[str] | None = None) -> int:
         if opts.json:
             verdict = {0: 'pass', 1: 'fail', 3: 'inconclusive'}[code]
             rows = [{**asdict(i), 'verdict': i.verdict} for i in items]
-            Path(opts.json).write_text(
+            opts.json.write_text(
                 json.dumps(
                     json_ready({'passed': code == 0, 'verdict': verdict, **info, 'items': rows}),
                     indent=1,

@@ -11,6 +11,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -31,7 +32,7 @@ class Options:
     max_speed: float = 30.0
     timeout: float = 10.0
     namespace: str | None = None
-    json: str | None = None
+    json: Path | None = None
     #: the check's own scheduling (``--thread-priority`` ...; :mod:`im_drive_sim.rt`)
     rt: RtOptions = field(default_factory=RtOptions)
 
@@ -229,12 +230,10 @@ def run_check(
         p.safe_stop()  # before judging: the drive is not left waiting for commands meanwhile
 
         rec = Recording(
-            states=p.states[: p.n].copy(),
-            lengths=p.lengths[: p.n].copy(),
-            source_ns=p.source_ns[: p.n].copy(),
-            recv_ns=p.recv_ns[: p.n].copy(),
-            take_ns=p.take_ns[: p.n].copy(),
-            seq=p.seq[: p.n].copy(),
+            **{
+                k: getattr(p, k)[: p.n].copy()
+                for k in ('states', 'lengths', 'source_ns', 'recv_ns', 'take_ns', 'seq')
+            },
             cmd=p.cmd[: p.m].copy(),
             cmd_ns=p.cmd_ns[: p.m].copy(),
             joints=np.array(p.joints, dtype=float).reshape(-1, 4),

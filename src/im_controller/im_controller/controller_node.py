@@ -216,10 +216,6 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
             )
             self.timing_tolerance = tolerance
 
-    @property
-    def gains(self) -> Gains:
-        return Gains(*(self.get_parameter(n).value for n in GAIN_NAMES))
-
     def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         r = self.runner
         reason = start_refusal(
@@ -236,7 +232,7 @@ class ControllerNode(IoNodeOwner, LenientDoubles, Node):
         # The gains were applied when they were set (post-set callback); only after a
         # supervisor stop, whose fallback gains finished the move, do the parameters'
         # gains go back in here. Applied once per evaluation either way.
-        gains = self.gains
+        gains = Gains(*(self.get_parameter(n).value for n in GAIN_NAMES))
         with self.loop_lock:
             r.start(eid, None if r.gains == gains else gains)
         self.next_experiment_id += 1

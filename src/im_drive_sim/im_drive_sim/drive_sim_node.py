@@ -225,9 +225,6 @@ class DriveSimNode(DriveNode):
             'clock_decimation': self.clock_decimation,
             'joint_state_decimation': self.joint_state_decimation,
             'ts_ns': self.ts_ns,
-            'i_theta': contract.STATE_INDEX['theta_meas'],
-            'i_omega': contract.STATE_INDEX['omega_meas'],
-            'i_torque': contract.STATE_INDEX['torque'],
         }
         return period_kernel.pack_words(
             self.held, self.latch, self.safe_stopped, constants, self.counters

@@ -48,9 +48,6 @@ WORDS: tuple[str, ...] = (
     'clock_decimation',  # /clock every n states
     'joint_state_decimation',  # joint_states every n states
     'ts_ns',  # the period [ns]
-    'i_theta',  # state fields of joint_states
-    'i_omega',
-    'i_torque',
 )
 (
     D_ISQ,
@@ -66,9 +63,6 @@ WORDS: tuple[str, ...] = (
     D_CLOCK_DEC,
     D_JOINT_DEC,
     D_TS_NS,
-    D_I_THETA,
-    D_I_OMEGA,
-    D_I_TORQUE,
 ) = range(len(WORDS))
 N_WORDS = len(WORDS)
 
@@ -92,6 +86,9 @@ C_STEPS, C_COMMANDS, C_FRESH, C_HELD, C_LATE, C_STALE, C_MISSED = range(len(COUN
 MSG_STATE, MSG_CLOCK, MSG_JOINT = 1, 2, 4
 
 F_APPLIED = contract.STATE_INDEX['applied_step']
+#: the state's fields joint_states repeats
+F_THETA, F_OMEGA = contract.STATE_INDEX['theta_meas'], contract.STATE_INDEX['omega_meas']
+F_TORQUE = contract.STATE_INDEX['torque']
 NS_PER_S = contract.NS_PER_S
 
 
@@ -262,13 +259,7 @@ def run_period(
         clock[1][0] = t_ns - sec * NS_PER_S
         due |= MSG_CLOCK
     if k % np.int64(D[D_JOINT_DEC]) == 0:
-        put_joint(
-            joint,
-            t_ns,
-            state[np.int64(D[D_I_THETA])],
-            state[np.int64(D[D_I_OMEGA])],
-            state[np.int64(D[D_I_TORQUE])],
-        )
+        put_joint(joint, t_ns, state[F_THETA], state[F_OMEGA], state[F_TORQUE])
         due |= MSG_JOINT
     return due
 

@@ -124,23 +124,15 @@ def test_flux_buildup_follows_rotor_time_constant() -> None:
 
 # --------------------------------------------------------------- energy balance
 @njit
-def _plant_powers(
-    isa: float,
-    isb: float,
-    pa: float,
-    pb: float,
-    w: float,
-    ua: float,
-    ub: float,
-    tl: float,
-    P: np.ndarray,
-):
-    """Power terms [W] for the energy balance (amplitude-invariant: factor 1.5).
+def _plant_powers(x: tuple, ua: float, ub: float, tl: float, P: np.ndarray):
+    """Power terms [W] for the energy balance at x = (i_sa, i_sb, psi_ra, psi_rb, omega)
+    (amplitude-invariant: factor 1.5).
 
     Returns (p_in = 1.5 u.i_s, p_cu_s = 1.5 Rs |i_s|^2, p_cu_r = 1.5 Rr |i_r|^2,
     p_friction = T_friction(omega) omega, p_load = T_L omega)
     with the rotor current i_r = (psi_r - Lm i_s)/Lr.
     """
+    isa, isb, pa, pb, w = x
     ira = (pa - P[L.P_LM] * isa) / P[L.P_LR]
     irb = (pb - P[L.P_LM] * isb) / P[L.P_LR]
     tf = plant.friction_of(w, P)
@@ -183,18 +175,18 @@ def _plant_rk4_energy(
     h2 = 0.5 * h
     x0, x1, x2, x3, x4 = x[0], x[1], x[2], x[3], x[4]
     a0, a1, a2, a3, a4 = plant.plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P, 1.0)
-    pa_ = _plant_powers(x0, x1, x2, x3, x4, ua, ub, tl, P)
+    pa_ = _plant_powers((x0, x1, x2, x3, x4), ua, ub, tl, P)
     y0, y1, y2, y3, y4 = x0 + h2 * a0, x1 + h2 * a1, x2 + h2 * a2, x3 + h2 * a3, x4 + h2 * a4
     b0, b1, b2, b3, b4 = plant.plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P, 1.0)
-    pb_ = _plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
+    pb_ = _plant_powers((y0, y1, y2, y3, y4), ua, ub, tl, P)
     w2 = y4
     y0, y1, y2, y3, y4 = x0 + h2 * b0, x1 + h2 * b1, x2 + h2 * b2, x3 + h2 * b3, x4 + h2 * b4
     c0, c1, c2, c3, c4 = plant.plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P, 1.0)
-    pc_ = _plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
+    pc_ = _plant_powers((y0, y1, y2, y3, y4), ua, ub, tl, P)
     w3 = y4
     y0, y1, y2, y3, y4 = x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3, x4 + h * c4
     d0, d1, d2, d3, d4 = plant.plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P, 1.0)
-    pd_ = _plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
+    pd_ = _plant_powers((y0, y1, y2, y3, y4), ua, ub, tl, P)
     w4 = y4
     h6 = h / 6.0
     x[0] = x0 + h6 * (a0 + 2.0 * (b0 + c0) + d0)

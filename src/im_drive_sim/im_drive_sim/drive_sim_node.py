@@ -41,11 +41,7 @@ F_APPLIED = contract.STATE_INDEX['applied_step']
 
 
 class DriveSimNode(DriveNode):
-    """The drive simulator node (see module docstring and docs/interfaces.md).
-
-    All parameters are read-only: they fix the structure of the simulation (model, mode,
-    seed, machine file) and are set at start with ``--ros-args -p name:=value``.
-    """
+    """The drive simulator node (module docstring; its parameters: drive_sim_parameters)."""
 
     def __init__(
         self,

@@ -268,11 +268,6 @@ class DriveSim:
         out[:] = saved
         K.clear_command(self.S.copy())  # a safe stop's, which must act at once
 
-    @property
-    def command_delay(self) -> int:
-        """The drive's command delay d [periods] (``DriveConfig.command_delay``)."""
-        return self.config.command_delay
-
     def clear_command(self) -> None:
         """Drop the command latched for the next step (delay 2): it runs zero current
         and no load instead (a safe stop or a watchdog trip acts at once), and a load step

@@ -1,15 +1,7 @@
-"""ROS plumbing both drive nodes share (``drive_sim`` and ``example_drive``).
-
-* :class:`DriveNode`: the base of a drive node -- its topics (``drive/state``,
-  ``drive/joint_states``, ``drive/status``, the 5 kHz command path that never goes
-  through an executor), its layout parameters, the commands taken, the watchdog, the
-  status message, and its loop (:meth:`DriveNode.run`).
-* :func:`run_realtime` (both nodes) and :func:`run_lockstep` (the simulator's default):
-  when a node steps, serving parameter requests and publishing ``drive/status`` between
-  steps (:func:`serve`); what a step or a period does is the node's (``lockstep_poll``,
-  ``period``).
-* :func:`run_drive_node`: a drive node's ``main()`` body (``runtime.run_stepped_node``
-  with the counters' summary logged at exit).
+"""ROS plumbing both drive nodes share (``drive_sim``, ``example_drive``): their base
+class :class:`DriveNode` (topics, commands taken, watchdog, status), the loops that step
+them (:func:`run_lockstep`, :func:`run_realtime`; what a step or a period does is the
+node's) and their ``main()`` body (:func:`run_drive_node`).
 """
 
 from __future__ import annotations

@@ -30,14 +30,21 @@ __all__ = [
 ]
 
 
+#: the lazy public names and the module each comes from
+_LAZY = {
+    'ConfigError': 'params',
+    'DriveConfig': 'params',
+    'default_config_path': 'params',
+    'load_config': 'drive_file',
+    'DriveSim': 'sim',
+    'STATE_FIELDS': 'sim',
+}
+
+
 def __getattr__(name: str) -> Any:
     # Lazy re-exports keep `import im_drive_sim` cheap (no numba import) for tools.
-    if name in ('ConfigError', 'DriveConfig', 'load_config', 'default_config_path'):
-        from . import params
+    if name not in _LAZY:
+        raise AttributeError(f"module 'im_drive_sim' has no attribute {name!r}")
+    from importlib import import_module
 
-        return getattr(params, name)
-    if name in ('DriveSim', 'STATE_FIELDS'):
-        from . import sim
-
-        return getattr(sim, name)
-    raise AttributeError(f"module 'im_drive_sim' has no attribute {name!r}")
+    return getattr(import_module(f'.{_LAZY[name]}', __name__), name)

@@ -1,15 +1,7 @@
-"""ROS plumbing both drive nodes share (``drive_sim`` and ``example_drive``).
-
-* :class:`DriveNode`: the base of a drive node -- its topics (``drive/state``,
-  ``drive/joint_states``, ``drive/status``, the 5 kHz command path that never goes
-  through an executor), its layout parameters, the commands taken, the watchdog, the
-  status message, and its loop (:meth:`DriveNode.run`).
-* :func:`run_realtime` (both nodes) and :func:`run_lockstep` (the simulator's default):
-  when a node steps, serving parameter requests and publishing ``drive/status`` between
-  steps (:func:`serve`); what a step or a period does is the node's (``lockstep_poll``,
-  ``period``).
-* :func:`run_drive_node`: a drive node's ``main()`` body (``runtime.run_stepped_node``
-  with the counters' summary logged at exit).
+"""ROS plumbing both drive nodes share (``drive_sim``, ``example_drive``): their base
+class :class:`DriveNode` (topics, commands taken, watchdog, status), the loops that step
+them (:func:`run_lockstep`, :func:`run_realtime`; what a step or a period does is the
+node's) and their ``main()`` body (:func:`run_drive_node`).
 """
 
 from __future__ import annotations
@@ -28,12 +20,16 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from . import contract, rt
+from .cdr import Float64ArrayWire, JointStateWire
 from .hardware_abi import HardwareFault
 from .pacing import CommandSource, Pacer
 from .params import ConfigError
 from .qos import LOCKSTEP_QOS, RECORDED_QOS
 from .rt import RtOptions
 from .runtime import IoNodeOwner, LenientDoubles, publish_lossless, run_stepped_node
+
+#: the state's fields drive/joint_states repeats
+_THETA, _OMEGA, _TORQUE = (contract.STATE_INDEX[n] for n in ('theta_meas', 'omega_meas', 'torque'))
 
 
 class DriveNode(IoNodeOwner, LenientDoubles, Node):
@@ -44,7 +40,7 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
     no executor spins. A subclass has ``counters`` (``contract.STATUS_COUNTERS``),
     ``held`` (``command_latch.HeldCommand``), ``latch`` (``command_latch.CommandLatch``),
     ``cmd_watchdog`` (``pacing.CommandWatchdog``), ``safe_stopped``, ``step_index`` (the
-    latest published state's), ``period_s``, ``spin_margin``, ``wall_clock`` and the
+    latest published state's), ``ts_ns``, ``period_s``, ``spin_margin``, ``wall_clock`` and the
     methods ``start``, ``step``, ``skip``, ``publish_state``, ``publish_status``,
     ``close_hardware``."""
 
@@ -70,7 +66,8 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
     realtime_wait_for_controller = False
 
     def open_topics(self, node_name: str) -> None:
-        """``state_pub``, ``joint_pub`` (:meth:`make_joint_publisher`), ``status_pub``, and
+        """``state_pub``, ``joint_pub`` (:meth:`make_joint_publisher`), ``status_pub``, their
+        messages ``wire`` and ``joint``, and
         the command input: ``cmd_sub`` on ``io_node`` (``_<name>_io``: hidden, in this
         node's namespace and context, never spun), taken through a hand-rolled WaitSet
         (:meth:`wait_command`); ``commands`` (``pacing.CommandSource``) takes from it, or
@@ -89,6 +86,10 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
         )
         self.commands = CommandSource(self.cmd_sub, len(contract.COMMAND_FIELDS))
         self._cmd_waitset = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
+        # drive/state and drive/joint_states pre-serialised, patched in place: nothing is
+        # built per step (cdr.py)
+        self.wire = Float64ArrayWire(len(contract.STATE_FIELDS))
+        self.joint = JointStateWire('motor')
 
     def wait_command(self, timeout_s: float) -> bool:
         """Sleep up to ``timeout_s`` [s] in rcl_wait; True when a command is pending."""
@@ -101,6 +102,29 @@ class DriveNode(IoNodeOwner, LenientDoubles, Node):
     def make_joint_publisher(self) -> Any:
         """``drive/joint_states``' publisher (a hook: a test drive may publish none)."""
         return self.create_publisher(JointState, contract.JOINT_STATE_TOPIC, RECORDED_QOS)
+
+    def publish_joint_state(self) -> None:
+        """drive/joint_states: the latest state's theta_meas, omega_meas, torque, stamped
+        k Ts (``ts_ns``)."""
+        j, v = self.joint, self.wire.values
+        j.sec[0], j.nanosec[0] = divmod(self.step_index * self.ts_ns, contract.NS_PER_S)
+        j.position[0], j.velocity[0], j.effort[0] = v[_THETA], v[_OMEGA], v[_TORQUE]
+        self.counters.backpressure += publish_lossless(self.joint_pub, j, self.context)
+
+    def period_views(self) -> dict[str, Any]:
+        """The preallocated messages a compiled period writes: ``state`` and the
+        joint_states fields, and each message's bytes (``*_raw``) for the loop's outbox."""
+        j = self.joint
+        return {
+            'state': self.wire.values,
+            'joint_sec': j.sec,
+            'joint_nsec': j.nanosec,
+            'joint_pos': j.position,
+            'joint_vel': j.velocity,
+            'joint_eff': j.effort,
+            'state_raw': self.wire.raw,
+            'joint_raw': j.raw,
+        }
 
     def read_command(self, data: Any) -> tuple[int, float, float] | None:
         """``drive/command``'s values ``data`` (``COMMAND_FIELDS``) as (answers_step,

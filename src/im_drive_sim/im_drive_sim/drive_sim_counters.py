@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 @dataclass
 class Counters:
-    """What the loop counts; published on ``drive/status`` and logged at shutdown."""
+    """What the loop counts (module docstring)."""
 
     steps: int = 0  #: model steps taken since start
     commands: int = 0  #: commands received

@@ -19,7 +19,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from rosgraph_msgs.msg import Clock
 
 from . import contract, period_kernel, rt
-from .cdr import ClockWire, Float64ArrayWire, JointStateWire
+from .cdr import ClockWire
 from .cli import parse_cli, run_cli
 from .command_latch import CommandLatch, HeldCommand
 from .contract import NS_PER_S
@@ -41,11 +41,7 @@ F_APPLIED = contract.STATE_INDEX['applied_step']
 
 
 class DriveSimNode(DriveNode):
-    """The drive simulator node (see module docstring and docs/interfaces.md).
-
-    All parameters are read-only: they fix the structure of the simulation (model, mode,
-    seed, machine file) and are set at start with ``--ros-args -p name:=value``.
-    """
+    """The drive simulator node (module docstring; its parameters: drive_sim_parameters)."""
 
     def __init__(
         self,
@@ -65,7 +61,7 @@ class DriveSimNode(DriveNode):
         p['initial_position'] = declare_initial_position(self, self.config)
         self.sim = DriveSim(self.config, seed=p['seed'] if p['seed'] >= 0 else None)
         self.sim.reset(theta=p['initial_position'], omega=0.0, fluxed=True)
-        self.ts_ns: int = round(self.config.Ts * NS_PER_S)
+        self.ts_ns: int = self.config.Ts_ns
         self.clock_decimation: int = p['clock_decimation']
         self.joint_state_decimation: int = p['joint_state_decimation']
         self.max_steps: int = p['max_steps']
@@ -85,13 +81,9 @@ class DriveSimNode(DriveNode):
         self.open_topics(node_name)
         self.clock_pub = self.create_publisher(Clock, '/clock', RECORDED_QOS)
 
-        # Preallocated messages and buffers: nothing is built per step.
-        # The state is published pre-serialised: the model writes straight into the CDR
-        # buffer through a numpy view (see cdr.py), nothing is converted per step.
-        self.wire = Float64ArrayWire(len(contract.STATE_FIELDS))
+        # the model writes straight into drive/state's CDR buffer (``wire``, cdr.py)
         self._state = self.wire.values
         self._clock_wire = ClockWire()  # pre-serialised: patched in place, no conversion
-        self._joint_wire = JointStateWire('motor')
         #: the held command (zero before the first one) and the latch of a drive with
         #: command delay 2 (the command that acts over the next period)
         self.held = HeldCommand()
@@ -99,9 +91,6 @@ class DriveSimNode(DriveNode):
         self.cmd_watchdog = CommandWatchdog(self.command_timeout, self.config.Ts)
         #: latched by :meth:`safe_stop`: zero current and no load from then on
         self.safe_stopped = False
-        self._i_theta = contract.STATE_INDEX['theta_meas']
-        self._i_omega = contract.STATE_INDEX['omega_meas']
-        self._i_torque = contract.STATE_INDEX['torque']
         # Compiled (or loaded from numba's cache) now, not in the first period: on a cold
         # cache (a fresh install) that would be seconds with no state, and the
         # controller's drive-state watchdog aborts the first experiment.
@@ -119,23 +108,14 @@ class DriveSimNode(DriveNode):
     # -- publishing --------------------------------------------------------------------
     def publish_state(self) -> None:
         """Publish the current state (and the decimated /clock, joint_states)."""
-        s = self._state
-        k = int(s[0])
+        k = self.sim.step_index
         self.counters.backpressure += publish_lossless(self.state_pub, self.wire, self.context)
-        if k % self.clock_decimation == 0 or k % self.joint_state_decimation == 0:
-            t_ns = k * self.ts_ns
-            sec, nsec = divmod(t_ns, NS_PER_S)
-            if k % self.clock_decimation == 0:
-                c = self._clock_wire
-                c.sec[0], c.nanosec[0] = sec, nsec
-                self.counters.backpressure += publish_lossless(self.clock_pub, c, self.context)
-            if k % self.joint_state_decimation == 0:
-                j = self._joint_wire
-                j.sec[0], j.nanosec[0] = sec, nsec
-                j.position[0] = s[self._i_theta]
-                j.velocity[0] = s[self._i_omega]
-                j.effort[0] = s[self._i_torque]
-                self.counters.backpressure += publish_lossless(self.joint_pub, j, self.context)
+        if k % self.clock_decimation == 0:
+            c = self._clock_wire
+            c.sec[0], c.nanosec[0] = divmod(k * self.ts_ns, NS_PER_S)
+            self.counters.backpressure += publish_lossless(self.clock_pub, c, self.context)
+        if k % self.joint_state_decimation == 0:
+            self.publish_joint_state()
 
     def publish_status(self, wall_elapsed: float | None = None) -> None:
         """drive/status: mode, sim time, real-time factor over ``wall_elapsed`` [s] (None:
@@ -241,9 +221,6 @@ class DriveSimNode(DriveNode):
             'clock_decimation': self.clock_decimation,
             'joint_state_decimation': self.joint_state_decimation,
             'ts_ns': self.ts_ns,
-            'i_theta': self._i_theta,
-            'i_omega': self._i_omega,
-            'i_torque': self._i_torque,
         }
         return period_kernel.pack_words(
             self.held, self.latch, self.safe_stopped, constants, self.counters
@@ -257,24 +234,10 @@ class DriveSimNode(DriveNode):
             self.cmd_watchdog.command()
 
     def period_views(self) -> dict[str, np.ndarray]:
-        """The model's arrays and the preallocated messages a compiled period writes:
-        ``S``, ``P``, ``noise`` (the model, ``DriveSim.run_kernel`` hands them over),
-        ``state`` and the /clock and joint_states fields, and each message's bytes
-        (``*_raw``) for the loop's outbox."""
-        c, j = self._clock_wire, self._joint_wire
-        return {
-            'state': self._state,
-            'clock_sec': c.sec,
-            'clock_nsec': c.nanosec,
-            'joint_sec': j.sec,
-            'joint_nsec': j.nanosec,
-            'joint_pos': j.position,
-            'joint_vel': j.velocity,
-            'joint_eff': j.effort,
-            'state_raw': self.wire.raw,
-            'clock_raw': c.raw,
-            'joint_raw': j.raw,
-        }
+        """``DriveNode.period_views`` and /clock's fields and bytes."""
+        c = self._clock_wire
+        clock = {'clock_sec': c.sec, 'clock_nsec': c.nanosec, 'clock_raw': c.raw}
+        return {**super().period_views(), **clock}
 
     def stall_due(self) -> bool:
         """The test hook (``test_stall_step``): the loop stalls once, here -- in the first

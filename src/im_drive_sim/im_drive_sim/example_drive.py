@@ -32,10 +32,8 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticStatus
 
 from . import contract, hardware_period as HP, period_kernel as PK, rt
-from .cdr import Float64ArrayWire, JointStateWire
 from .cli import check_ros_args, parse_cli, run_cli
 from .command_latch import CommandLatch, HeldCommand
-from .contract import NS_PER_S
 from .drive_file import load_config
 from .drive_io import DriveNode, run_drive_node
 from .drive_sim_parameters import parameter_specs
@@ -214,7 +212,7 @@ class ExampleDrive(DriveNode):
         ).value
         self.command_timeout: float = p['command_timeout']
         self.spin_margin: float = p['realtime_spin_margin']
-        self.joint_decimation: int = p['joint_state_decimation']
+        self.joint_state_decimation: int = p['joint_state_decimation']
         # the layouts report what this node publishes and reads: not settable
         parameter_hygiene(self, self.LAYOUTS)
 
@@ -237,10 +235,7 @@ class ExampleDrive(DriveNode):
         self.wall_clock = True
 
         self.open_topics(node_name)
-        # preallocated: nothing built per step
-        self.wire = Float64ArrayWire(len(contract.STATE_FIELDS))
         self.wire.values[13] = self.command_delay  # declared once, in every state
-        self.joint = JointStateWire('motor')  # pre-serialised: patched in place
         self.get_logger().info(
             f'real time, Ts={self.config.Ts * 1e6:.0f} us, isq_max='
             f'{self.isq_max:g} A, command_timeout={self.command_timeout:g} s, '
@@ -330,15 +325,8 @@ class ExampleDrive(DriveNode):
     def publish_state(self) -> None:
         # a full reliable reader (the recorder): back-pressure, never drop
         self.counters.backpressure += publish_lossless(self.state_pub, self.wire, self.context)
-        if self.k % self.joint_decimation == 0:
+        if self.k % self.joint_state_decimation == 0:
             self.publish_joint_state()
-
-    def publish_joint_state(self) -> None:
-        """drive/joint_states: the state's theta_meas, omega_meas, torque, stamped k Ts."""
-        j, v = self.joint, self.wire.values
-        j.sec[0], j.nanosec[0] = divmod(self.k * self.ts_ns, NS_PER_S)
-        j.position[0], j.velocity[0], j.effort[0] = v[2], v[3], v[4]
-        self.counters.backpressure += publish_lossless(self.joint_pub, j, self.context)
 
     def publish_status(self, wall_elapsed: float | None = None) -> None:
         """drive/status: the counters (``wall_elapsed``: no real-time factor for a drive
@@ -404,7 +392,7 @@ class ExampleDrive(DriveNode):
             'command_delay': self.command_delay,
             'k': self.k,
             'acting': self.acting,
-            'joint_state_decimation': self.joint_decimation,
+            'joint_state_decimation': self.joint_state_decimation,
             'ts_ns': self.ts_ns,
             'isq_max': self.isq_max,
         }
@@ -420,21 +408,6 @@ class ExampleDrive(DriveNode):
         self.acting = int(D[HP.D_ACTING])
         if commands:
             self.cmd_watchdog.command()
-
-    def period_views(self) -> dict[str, Any]:
-        """The preallocated messages a compiled period writes: ``state`` and the
-        joint_states fields, and each message's bytes (``*_raw``) for the loop's outbox."""
-        j = self.joint
-        return {
-            'state': self.wire.values,
-            'joint_sec': j.sec,
-            'joint_nsec': j.nanosec,
-            'joint_pos': j.position,
-            'joint_vel': j.velocity,
-            'joint_eff': j.effort,
-            'state_raw': self.wire.raw,
-            'joint_raw': j.raw,
-        }
 
     def log_summary(self) -> None:
         self.get_logger().info(

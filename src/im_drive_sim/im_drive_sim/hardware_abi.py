@@ -182,16 +182,8 @@ class _Measured:
     command_delay = 1
 
     def _fill(self, meas: Any, m: np.ndarray) -> Any:
-        (
-            meas.theta_meas,
-            meas.omega_meas,
-            meas.torque,
-            meas.isd,
-            meas.isq,
-            meas.i_alpha,
-            meas.i_beta,
-            meas.load_torque,
-        ) = m.tolist()
+        for name, v in zip(MEASUREMENT_FIELDS, m.tolist(), strict=True):
+            setattr(meas, name, v)
         return meas
 
     def _check(self, rc: int, what: str) -> None:

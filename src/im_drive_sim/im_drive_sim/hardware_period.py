@@ -1,20 +1,16 @@
-"""A user's drive period, compiled: what ``ExampleDrive.period`` does around a power
-stage given by address (``hardware_abi``: a C library, a compiled class), as numba
-functions the composed loop calls without the GIL (``im_tuner.bench.compiled_loop``).
+"""The example drive's period around a power stage called by address (``hardware_abi``: a
+C library, a compiled class), compiled: ``ExampleDrive.period`` as numba functions the
+composed loop calls without the GIL (``im_tuner.bench.compiled_loop``).
 
-The node stays the owner of the logic: ``ExampleDrive.period_words`` /
-``set_period_words`` move its held command, latch, step index and counters to and from
-the arrays below, and ``test/test_hardware_loop.py`` holds the compiled period to the
-Python one, bit for bit. The rules are compiled copies of ``ExampleDrive.period``; the
-command's take and the latch are ``period_kernel``'s.
+As ``period_kernel`` for the simulator: the node owns the logic (``period_words``,
+``set_period_words``), ``test/test_hardware_loop.py`` holds the two to the same bits,
+and the command's take and the latch are ``period_kernel``'s. ``D`` (float64,
+:data:`WORDS`): ``period_kernel``'s first words, then the example drive's; ``DC``:
+``period_kernel.COUNTERS``; ``E``: the stage's entry (``hardware_abi.entry_words``).
 
-``D`` (float64, :data:`WORDS`): ``period_kernel``'s first words (held command, labels,
-latch, safe stop, command delay) and the example drive's own. ``DC``: the counters,
-``period_kernel.COUNTERS``. ``E``: the power stage's entry (``hardware_abi.entry_words``).
-
-A negative return of the power stage is a fault: the period writes zero current
-(ignoring what that write returns), latches the safe stop and returns
-:data:`FAULT`; ``F`` holds the code, the function and the step.
+A negative return of the stage is a fault: zero current is written (its return not
+looked at), the safe stop latched, :data:`FAULT` returned, and ``F`` holds the code,
+the call and the step.
 """
 
 from __future__ import annotations

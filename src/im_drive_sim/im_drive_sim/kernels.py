@@ -3,11 +3,9 @@ the model's step and the published output. The plant itself (machine, shaft, RK4
 :mod:`.plant`; the arrays' layout (``P_*``, ``S_*``, ``F_*``) in :mod:`.model_layout`.
 
 Free functions over ``P`` (constants, ``sim.make_param_array``), ``S`` (the whole
-simulator state) and ``noise`` (``(block, 7)``): pre-scaled Gaussian samples (i_alpha,
-i_beta, speed, random-load increments, encoder edge jitter [s], the load step's relative
-amplitude error) and a uniform draw (the load step's delay), generated in Python
-(``DriveSim``); one row is consumed per step, the cursor ``S[S_NPOS]`` wraps at the end of
-the block (the Python side refills the block exactly when it wraps).
+simulator state) and ``noise`` (``(block, NOISE_COLS)``, drawn and scaled by ``DriveSim``;
+columns: ``model_layout.NOISE_COLS``): one row a step, the cursor ``S[S_NPOS]`` wrapping
+at the end of the block, which the Python side refills exactly then.
 
 Per-step kernels allocate nothing.  Step semantics: ``step_*`` advances from time k Ts to
 (k+1) Ts and leaves the measurements sampled at (k+1) Ts in ``S``; ``write_out`` writes the

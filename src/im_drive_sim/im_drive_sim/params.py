@@ -356,34 +356,27 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-def _check_float(src: str, key: str, v: Any, meta: Mapping[str, Any]) -> float:
-    lo, strict, hi = meta['lo'], meta['strict'], meta['hi']
-    if lo is None:
-        req = 'a finite number'
-    else:
-        req = f'a finite number {">" if strict else ">="} {lo:g}'
+def _check(src: str, key: str, v: Any, meta: Mapping[str, Any]) -> Any:
+    """``v`` as the field's ``kind`` (float: a finite number; int: an integer, not a bool)
+    with ``lo < v`` (``strict``) or ``lo <= v`` (None: no bound) and ``v <= hi``;
+    ``ConfigError`` naming ``key`` and what it must be."""
+    lo, hi, strict, is_int = meta['lo'], meta['hi'], meta.get('strict'), meta['kind'] == 'int'
+    req = 'an integer' if is_int else 'a finite number'
+    if lo is not None:
+        req += f' {">" if strict else ">="} {lo:g}'
     if hi is not None:
         req += f' and <= {hi:g}'
-    ok = _is_number(v) and math.isfinite(float(v))
+    if is_int:
+        ok = isinstance(v, int) and not isinstance(v, bool)
+    else:
+        ok = _is_number(v) and math.isfinite(float(v))
     if ok and lo is not None:
-        ok = float(v) > lo if strict else float(v) >= lo
+        ok = v > lo if strict else v >= lo
     if ok and hi is not None:
-        ok = float(v) <= hi
+        ok = v <= hi
     if not ok:
         raise ConfigError(f'{src}: {key} must be {req}, got {v!r}')
-    return float(v)
-
-
-def _check_int(src: str, key: str, v: Any, meta: Mapping[str, Any]) -> int:
-    lo, hi = meta['lo'], meta['hi']
-    req = f'an integer >= {lo}' + (f' and <= {hi}' if hi is not None else '')
-    if (
-        not (isinstance(v, int) and not isinstance(v, bool))
-        or v < lo
-        or (hi is not None and v > hi)
-    ):
-        raise ConfigError(f'{src}: {key} must be {req}, got {v!r}')
-    return int(v)
+    return int(v) if is_int else float(v)
 
 
 def _apply_overrides(src: str, data: dict[str, Any], overrides: Mapping[str, Any]) -> None:
@@ -439,15 +432,15 @@ def config_from_dict(
     model = data['model']
     if model not in _MODELS:
         raise ConfigError(f'{src}: model must be one of {", ".join(_MODELS)}, got {model!r}')
-    Ts = _check_float(src, 'Ts', data['Ts'], {'lo': 0.0, 'strict': True, 'hi': 1e-2})
+    Ts = _check(src, 'Ts', data['Ts'], {'kind': 'float', 'lo': 0.0, 'strict': True, 'hi': 1e-2})
     if abs(Ts * 1e9 - round(Ts * 1e9)) > 1e-6 * max(1.0, Ts * 1e9):
         raise ConfigError(f'{src}: Ts must be an integer number of nanoseconds, got {Ts!r}')
-    seed = _check_int(src, 'seed', data['seed'], {'lo': 0, 'hi': None})
-    command_delay = _check_int(
+    seed = _check(src, 'seed', data['seed'], {'kind': 'int', 'lo': 0, 'hi': None})
+    command_delay = _check(
         src,
         'command_delay',
         data.get('command_delay', _OPTIONAL['command_delay']),
-        {'lo': 1, 'hi': 2},
+        {'kind': 'int', 'lo': 1, 'hi': 2},
     )
     realism = data.get('realism', _OPTIONAL['realism'])
     if not isinstance(realism, str) or realism not in REALISM_PROFILES:
@@ -495,8 +488,7 @@ def _build_sections(
                 value = profile.get(key, f.metadata['off'])
             else:
                 raise ConfigError(f'{src}: missing key {key}')
-            check = _check_float if f.metadata['kind'] == 'float' else _check_int
-            kwargs[f.name] = check(src, key, value, f.metadata)
+            kwargs[f.name] = _check(src, key, value, f.metadata)
         built[sname] = cls(**kwargs)
     return built
 

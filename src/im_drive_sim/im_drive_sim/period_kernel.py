@@ -1,26 +1,15 @@
-"""The simulator's real-time period, compiled: what ``DriveSimNode.period`` and
-``DriveSimNode.take_commands`` do, as numba functions a composed loop calls without the
-GIL (``im_tuner.bench.compiled_loop``).
+"""The simulator's real-time period, compiled: ``DriveSimNode.period`` and
+``take_commands`` as numba functions a composed loop calls without the GIL
+(``im_tuner.bench.compiled_loop``); run as Python, a period's glue costs more than the
+model step and needs the GIL every period.
 
-Why: run as Python, the glue of a period (the command latch, the counters, the
-state's message, the decimated /clock and joint_states) costs more than the model step
-itself and needs the GIL every period. The node stays the owner of the logic:
-:meth:`DriveSimNode.period_words`
-and :meth:`DriveSimNode.set_period_words` move its held command, latch and counters to
-and from the arrays below (:func:`pack_words`, :func:`unpack_words`), and the composed
-bench's bit-for-bit test (a real-time run against its lock-step replay) holds both paths
-to the same plant. The rules here are compiled copies of the Python ones, on purpose
-(the loop runs them without the GIL): :func:`latch_labels` and :func:`hold_labels` of
-``command_latch.CommandLatch.latch`` and ``.hold``, :func:`take_command` of
-``DriveSimNode.take_commands``, :func:`run_period` of ``DriveSimNode.period``.
-
-``D`` (float64, :data:`N_WORDS`): the held command and its labels, the latch of a drive
-with command delay 2, the safe-stop latch and the node's constants. ``DC`` (int64,
-:data:`COUNTERS`): the node's counters of the same names.
-
-The watchdog is not here: composed with the controller, a command comes every period
-(the loop hands the answer over in memory), so it cannot expire; the loop tells the node
-after each call (``CommandWatchdog.command``).
+The node owns the logic: ``period_words``/``set_period_words`` move its held command,
+latch and counters to and from ``D`` (float64, :data:`WORDS`) and ``DC`` (int64,
+:data:`COUNTERS`, the node's counters of those names). The rules are deliberate copies of
+the Python ones (:func:`latch_labels`, :func:`hold_labels`: ``CommandLatch``;
+:func:`take_command`, :func:`run_period`: the node's), held to them bit for bit by the
+composed bench's replay test. No watchdog here: composed with the controller a command
+comes every period; the loop feeds the node's after each call.
 """
 
 from __future__ import annotations
@@ -48,9 +37,6 @@ WORDS: tuple[str, ...] = (
     'clock_decimation',  # /clock every n states
     'joint_state_decimation',  # joint_states every n states
     'ts_ns',  # the period [ns]
-    'i_theta',  # state fields of joint_states
-    'i_omega',
-    'i_torque',
 )
 (
     D_ISQ,
@@ -66,9 +52,6 @@ WORDS: tuple[str, ...] = (
     D_CLOCK_DEC,
     D_JOINT_DEC,
     D_TS_NS,
-    D_I_THETA,
-    D_I_OMEGA,
-    D_I_TORQUE,
 ) = range(len(WORDS))
 N_WORDS = len(WORDS)
 
@@ -92,6 +75,9 @@ C_STEPS, C_COMMANDS, C_FRESH, C_HELD, C_LATE, C_STALE, C_MISSED = range(len(COUN
 MSG_STATE, MSG_CLOCK, MSG_JOINT = 1, 2, 4
 
 F_APPLIED = contract.STATE_INDEX['applied_step']
+#: the state's fields joint_states repeats
+F_THETA, F_OMEGA = contract.STATE_INDEX['theta_meas'], contract.STATE_INDEX['omega_meas']
+F_TORQUE = contract.STATE_INDEX['torque']
 NS_PER_S = contract.NS_PER_S
 
 
@@ -262,13 +248,7 @@ def run_period(
         clock[1][0] = t_ns - sec * NS_PER_S
         due |= MSG_CLOCK
     if k % np.int64(D[D_JOINT_DEC]) == 0:
-        put_joint(
-            joint,
-            t_ns,
-            state[np.int64(D[D_I_THETA])],
-            state[np.int64(D[D_I_OMEGA])],
-            state[np.int64(D[D_I_TORQUE])],
-        )
+        put_joint(joint, t_ns, state[F_THETA], state[F_OMEGA], state[F_TORQUE])
         due |= MSG_JOINT
     return due
 

@@ -2,9 +2,8 @@
 
 The voltage-fed machine in the stationary frame (stator current, rotor flux) and the
 shaft (inertia, viscous and Coulomb friction, load), integrated by classic RK4 over one
-period Ts with the voltage and the load torque held (``plant_rk4``); the power terms and
-stored energies of its energy balance, for the tests (``plant_rk4_energy``). Free numba
-functions over ``S`` and ``P`` (layout: :mod:`.model_layout`); docs/drive-model.md.
+period Ts with the voltage and the load torque held (``plant_rk4``). Free numba functions
+over ``S`` and ``P`` (layout: :mod:`.model_layout`); docs/drive-model.md.
 """
 
 from __future__ import annotations
@@ -154,87 +153,3 @@ def plant_rk4(S: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray) -> 
     S[L.S_PSIB] = x3 + h6 * (a3 + 2.0 * (b3 + c3) + d3)
     S[L.S_OMEGA] = x4 + h6 * (a4 + 2.0 * (b4 + c4) + d4)
     S[L.S_THETA] = S[L.S_THETA] + h6 * (x4 + 2.0 * (w2 + w3) + w4)
-
-
-@njit(cache=True)
-def plant_powers(
-    isa: float,
-    isb: float,
-    pa: float,
-    pb: float,
-    w: float,
-    ua: float,
-    ub: float,
-    tl: float,
-    P: np.ndarray,
-):
-    """Power terms [W] for the energy balance (amplitude-invariant: factor 1.5).
-
-    Returns (p_in = 1.5 u.i_s, p_cu_s = 1.5 Rs |i_s|^2, p_cu_r = 1.5 Rr |i_r|^2,
-    p_friction = T_friction(omega) omega, p_load = T_L omega)
-    with the rotor current i_r = (psi_r - Lm i_s)/Lr.
-    """
-    ira = (pa - P[L.P_LM] * isa) / P[L.P_LR]
-    irb = (pb - P[L.P_LM] * isb) / P[L.P_LR]
-    tf = friction_of(w, P)
-    return (
-        1.5 * (ua * isa + ub * isb),
-        1.5 * P[L.P_RS] * (isa * isa + isb * isb),
-        1.5 * P[L.P_RR] * (ira * ira + irb * irb),
-        tf * w,
-        tl * w,
-    )
-
-
-@njit(cache=True)
-def stored_energy(x: np.ndarray, P: np.ndarray):
-    """(magnetic, kinetic) energy [J] of plant state x = [i_sa, i_sb, psi_ra, psi_rb, omega, ...].
-
-    W_mag = 1.5 * 0.5 (Ls |i_s|^2 + 2 Lm i_s.i_r + Lr |i_r|^2),  W_kin = 0.5 J omega^2.
-    """
-    lm = P[L.P_LM]
-    ira = (x[2] - lm * x[0]) / P[L.P_LR]
-    irb = (x[3] - lm * x[1]) / P[L.P_LR]
-    wm = 0.75 * (
-        P[L.P_LS] * (x[0] * x[0] + x[1] * x[1])
-        + 2.0 * lm * (x[0] * ira + x[1] * irb)
-        + P[L.P_LR] * (ira * ira + irb * irb)
-    )
-    return wm, 0.5 * P[L.P_J] * x[4] * x[4]
-
-
-@njit(cache=True)
-def plant_rk4_energy(
-    x: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray, e: np.ndarray
-) -> None:
-    """RK4 step of the plant augmented with the energy integrals (diagnostics, tests).
-
-    x[0:6] is advanced exactly as ``plant_rk4`` does with the nominal rotor resistance (the
-    augmented components do not feed back), e[0:5] += RK4 quadrature of ``plant_powers``.
-    """
-    h = P[L.P_TS]
-    h2 = 0.5 * h
-    x0, x1, x2, x3, x4 = x[0], x[1], x[2], x[3], x[4]
-    a0, a1, a2, a3, a4 = plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P, 1.0)
-    pa_ = plant_powers(x0, x1, x2, x3, x4, ua, ub, tl, P)
-    y0, y1, y2, y3, y4 = x0 + h2 * a0, x1 + h2 * a1, x2 + h2 * a2, x3 + h2 * a3, x4 + h2 * a4
-    b0, b1, b2, b3, b4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P, 1.0)
-    pb_ = plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
-    w2 = y4
-    y0, y1, y2, y3, y4 = x0 + h2 * b0, x1 + h2 * b1, x2 + h2 * b2, x3 + h2 * b3, x4 + h2 * b4
-    c0, c1, c2, c3, c4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P, 1.0)
-    pc_ = plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
-    w3 = y4
-    y0, y1, y2, y3, y4 = x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3, x4 + h * c4
-    d0, d1, d2, d3, d4 = plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P, 1.0)
-    pd_ = plant_powers(y0, y1, y2, y3, y4, ua, ub, tl, P)
-    w4 = y4
-    h6 = h / 6.0
-    x[0] = x0 + h6 * (a0 + 2.0 * (b0 + c0) + d0)
-    x[1] = x1 + h6 * (a1 + 2.0 * (b1 + c1) + d1)
-    x[2] = x2 + h6 * (a2 + 2.0 * (b2 + c2) + d2)
-    x[3] = x3 + h6 * (a3 + 2.0 * (b3 + c3) + d3)
-    x[4] = x4 + h6 * (a4 + 2.0 * (b4 + c4) + d4)
-    x[5] = x[5] + h6 * (x4 + 2.0 * (w2 + w3) + w4)
-    for j in range(5):
-        e[j] += h6 * (pa_[j] + 2.0 * (pb_[j] + pc_[j]) + pd_[j])

@@ -113,6 +113,12 @@ def start_position(config: DriveConfig) -> float:
     return math.pi / config.sensors.encoder_counts
 
 
+def _column(x: Any, shape: tuple[int, ...] | None = None) -> np.ndarray:
+    """``x`` as a contiguous 1-D float64 array; a scalar broadcast to ``shape`` if given."""
+    a = np.asarray(x, dtype=np.float64)
+    return np.ascontiguousarray(np.broadcast_to(a, shape) if shape and a.ndim == 0 else a.ravel())
+
+
 def _state_word(index: int, doc: str) -> Any:
     """A read-only float property of :class:`DriveSim`: its state word ``S[index]``."""
     return property(lambda self: float(self.S[index]), doc=doc)
@@ -239,10 +245,7 @@ class DriveSim:
         isq_ref: torque-current command [A], clamped to +-isq_max.
         load_torque: load-machine torque command [N m] (opposes positive speed).
         """
-        if not (math.isfinite(isq_ref) and math.isfinite(load_torque)):
-            raise ValueError(f'non-finite input: isq_ref={isq_ref!r}, load_torque={load_torque!r}')
-        K.step_model(self.S, self.P, self._noise, float(isq_ref), float(load_torque))
-        self._consume()
+        self.step_into(isq_ref, load_torque, self._scratch)
 
     def step_into(self, isq_ref: float, load_torque: float, out: np.ndarray) -> None:
         """Fast path: one step, then write ``STATE_FIELDS`` at the new time into ``out``.
@@ -264,11 +267,6 @@ class DriveSim:
         K.step_into_kernel(self.S.copy(), self.P, self._noise.copy(), 0.0, 0.0, out)
         out[:] = saved
         K.clear_command(self.S.copy())  # a safe stop's, which must act at once
-
-    @property
-    def command_delay(self) -> int:
-        """The drive's command delay d [periods] (``DriveConfig.command_delay``)."""
-        return self.config.command_delay
 
     def clear_command(self) -> None:
         """Drop the command latched for the next step (delay 2): it runs zero current
@@ -329,9 +327,8 @@ class DriveSim:
         Row k is the state after step k (time (k+1) Ts), as ``step_into`` would write it.
         isq_ref [A], load_torque [N m]: 1-D arrays of equal length (scalars broadcast).
         """
-        isq = np.ascontiguousarray(np.asarray(isq_ref, dtype=np.float64).ravel())
-        tl = np.asarray(load_torque, dtype=np.float64)
-        tl = np.ascontiguousarray(np.broadcast_to(tl, isq.shape) if tl.ndim == 0 else tl.ravel())
+        isq = _column(isq_ref)
+        tl = _column(load_torque, isq.shape)
         if isq.shape != tl.shape:
             raise ValueError(f'isq_ref and load_torque lengths differ: {isq.shape} vs {tl.shape}')
         if not (np.all(np.isfinite(isq)) and np.all(np.isfinite(tl))):
@@ -347,11 +344,8 @@ class DriveSim:
         """Batch version of ``step_voltage`` (bare full model); same output as ``run``."""
         if self.config.model != 'full':
             raise RuntimeError('run_voltage needs model: full')
-        ua = np.ascontiguousarray(np.asarray(u_alpha, dtype=np.float64).ravel())
-        ub = np.ascontiguousarray(np.asarray(u_beta, dtype=np.float64).ravel())
-        tl = np.ascontiguousarray(
-            np.broadcast_to(np.asarray(load_torque, dtype=np.float64), ua.shape)
-        )
+        ua, ub = _column(u_alpha), _column(u_beta)
+        tl = _column(np.broadcast_to(load_torque, ua.shape))
         if ub.shape != ua.shape:
             raise ValueError('u_alpha and u_beta lengths differ')
         return self._run_rows(

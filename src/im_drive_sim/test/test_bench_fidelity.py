@@ -229,8 +229,7 @@ def test_the_compiled_safe_stop_drops_the_waiting_load_too() -> None:
     for _ in range(100):
         sim.step(0.0, 1.75)
     constants = {'command_delay': 1, 'wall_clock': False, 'clock_decimation': 25,
-                 'joint_state_decimation': 10, 'ts_ns': 200_000, 'i_theta': 2, 'i_omega': 3,
-                 'i_torque': 4}  # fmt: skip
+                 'joint_state_decimation': 10, 'ts_ns': 200_000}  # fmt: skip
     held = HeldCommand()
     held.load = 1.75
     D, DC = W.pack_words(held, CommandLatch(1), False, constants, Counters())

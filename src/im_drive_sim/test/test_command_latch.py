@@ -64,9 +64,6 @@ def test_period_words_round_trip() -> None:
         'clock_decimation': 25,
         'joint_state_decimation': 10,
         'ts_ns': 200_000,
-        'i_theta': 2,
-        'i_omega': 3,
-        'i_torque': 4,
     }
     D, DC = W.pack_words(held, latch, True, constants, counters)
     assert D.shape == (W.N_WORDS,) and DC.dtype == np.int64
@@ -165,8 +162,7 @@ def test_the_simulator_counts_held_what_its_states_show_held_around_missed_perio
         sim = DriveSim(load_config(None), seed=0)
         sim.reset(omega=0.0)
         constants = {'command_delay': delay, 'wall_clock': True, 'clock_decimation': 25,
-                     'joint_state_decimation': 10, 'ts_ns': 200_000, 'i_theta': 2,
-                     'i_omega': 3, 'i_torque': 4}  # fmt: skip
+                     'joint_state_decimation': 10, 'ts_ns': 200_000}  # fmt: skip
         D, DC = W.pack_words(HeldCommand(), CommandLatch(delay), False, constants, Counters())
         state = np.zeros(len(L.RUN_FIELDS))
         i64 = [np.zeros(1, np.int64) for _ in range(4)]

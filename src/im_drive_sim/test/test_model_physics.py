@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from numba import njit
 
 try:  # source checkout without an installed package (the lead's packaging installs it)
     import im_drive_sim  # noqa: F401
@@ -122,6 +123,82 @@ def test_flux_buildup_follows_rotor_time_constant() -> None:
 
 
 # --------------------------------------------------------------- energy balance
+@njit
+def _plant_powers(x: tuple, ua: float, ub: float, tl: float, P: np.ndarray):
+    """Power terms [W] for the energy balance at x = (i_sa, i_sb, psi_ra, psi_rb, omega)
+    (amplitude-invariant: factor 1.5).
+
+    Returns (p_in = 1.5 u.i_s, p_cu_s = 1.5 Rs |i_s|^2, p_cu_r = 1.5 Rr |i_r|^2,
+    p_friction = T_friction(omega) omega, p_load = T_L omega)
+    with the rotor current i_r = (psi_r - Lm i_s)/Lr.
+    """
+    isa, isb, pa, pb, w = x
+    ira = (pa - P[L.P_LM] * isa) / P[L.P_LR]
+    irb = (pb - P[L.P_LM] * isb) / P[L.P_LR]
+    tf = plant.friction_of(w, P)
+    return (
+        1.5 * (ua * isa + ub * isb),
+        1.5 * P[L.P_RS] * (isa * isa + isb * isb),
+        1.5 * P[L.P_RR] * (ira * ira + irb * irb),
+        tf * w,
+        tl * w,
+    )
+
+
+@njit
+def _stored_energy(x: np.ndarray, P: np.ndarray):
+    """(magnetic, kinetic) energy [J] of plant state x = [i_sa, i_sb, psi_ra, psi_rb, omega, ...].
+
+    W_mag = 1.5 * 0.5 (Ls |i_s|^2 + 2 Lm i_s.i_r + Lr |i_r|^2),  W_kin = 0.5 J omega^2.
+    """
+    lm = P[L.P_LM]
+    ira = (x[2] - lm * x[0]) / P[L.P_LR]
+    irb = (x[3] - lm * x[1]) / P[L.P_LR]
+    wm = 0.75 * (
+        P[L.P_LS] * (x[0] * x[0] + x[1] * x[1])
+        + 2.0 * lm * (x[0] * ira + x[1] * irb)
+        + P[L.P_LR] * (ira * ira + irb * irb)
+    )
+    return wm, 0.5 * P[L.P_J] * x[4] * x[4]
+
+
+@njit
+def _plant_rk4_energy(
+    x: np.ndarray, ua: float, ub: float, tl: float, P: np.ndarray, e: np.ndarray
+) -> None:
+    """RK4 step of the plant augmented with the energy integrals (diagnostics, tests).
+
+    x[0:6] is advanced exactly as ``plant.plant_rk4`` does with the nominal rotor resistance (the
+    augmented components do not feed back), e[0:5] += RK4 quadrature of ``_plant_powers``.
+    """
+    h = P[L.P_TS]
+    h2 = 0.5 * h
+    x0, x1, x2, x3, x4 = x[0], x[1], x[2], x[3], x[4]
+    a0, a1, a2, a3, a4 = plant.plant_deriv(x0, x1, x2, x3, x4, ua, ub, tl, P, 1.0)
+    pa_ = _plant_powers((x0, x1, x2, x3, x4), ua, ub, tl, P)
+    y0, y1, y2, y3, y4 = x0 + h2 * a0, x1 + h2 * a1, x2 + h2 * a2, x3 + h2 * a3, x4 + h2 * a4
+    b0, b1, b2, b3, b4 = plant.plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P, 1.0)
+    pb_ = _plant_powers((y0, y1, y2, y3, y4), ua, ub, tl, P)
+    w2 = y4
+    y0, y1, y2, y3, y4 = x0 + h2 * b0, x1 + h2 * b1, x2 + h2 * b2, x3 + h2 * b3, x4 + h2 * b4
+    c0, c1, c2, c3, c4 = plant.plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P, 1.0)
+    pc_ = _plant_powers((y0, y1, y2, y3, y4), ua, ub, tl, P)
+    w3 = y4
+    y0, y1, y2, y3, y4 = x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3, x4 + h * c4
+    d0, d1, d2, d3, d4 = plant.plant_deriv(y0, y1, y2, y3, y4, ua, ub, tl, P, 1.0)
+    pd_ = _plant_powers((y0, y1, y2, y3, y4), ua, ub, tl, P)
+    w4 = y4
+    h6 = h / 6.0
+    x[0] = x0 + h6 * (a0 + 2.0 * (b0 + c0) + d0)
+    x[1] = x1 + h6 * (a1 + 2.0 * (b1 + c1) + d1)
+    x[2] = x2 + h6 * (a2 + 2.0 * (b2 + c2) + d2)
+    x[3] = x3 + h6 * (a3 + 2.0 * (b3 + c3) + d3)
+    x[4] = x4 + h6 * (a4 + 2.0 * (b4 + c4) + d4)
+    x[5] = x[5] + h6 * (x4 + 2.0 * (w2 + w3) + w4)
+    for j in range(5):
+        e[j] += h6 * (pa_[j] + 2.0 * (pb_[j] + pc_[j]) + pd_[j])
+
+
 def test_energy_balance_closed_loop() -> None:
     """Electrical input = copper losses + d(magnetic energy) + d(kinetic) + friction + load
     work, integrated with the RK4 quadrature of the same step (augmented system)."""
@@ -137,16 +214,16 @@ def test_energy_balance_closed_loop() -> None:
     sim.reset(fluxed=False)
     x = sim.state_vector()[:6].copy()
     e = np.zeros(5)
-    w0 = plant.stored_energy(x, sim.P)
+    w0 = _stored_energy(x, sim.P)
     n = 2500
     for k in range(n):
         isq_ref = 0.0 if k < 500 else (4.0 if k < 1200 else (-3.0 if k < 1800 else 1.0))
         tl = 1.75 if k >= 1500 else 0.0
         sim.step(isq_ref, tl)
-        plant.plant_rk4_energy(x, sim.u_alpha, sim.u_beta, sim.load_torque, sim.P, e)
+        _plant_rk4_energy(x, sim.u_alpha, sim.u_beta, sim.load_torque, sim.P, e)
         # the production kernel integrates exactly the same ODE with the same RK4
         assert np.array_equal(x, sim.state_vector()[:6])
-    w1 = plant.stored_energy(x, sim.P)
+    w1 = _stored_energy(x, sim.P)
     e_in, cu_s, cu_r, fric, load = e
     d_mag = w1[0] - w0[0]
     d_kin = w1[1] - w0[1]

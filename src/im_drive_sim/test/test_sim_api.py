@@ -38,6 +38,9 @@ def _profile(n: int) -> tuple[np.ndarray, np.ndarray]:
 def test_package_metadata_and_fields() -> None:
     assert im_drive_sim.__version__ == '0.1.0'
     assert im_drive_sim.DriveSim is DriveSim
+    assert im_drive_sim.load_config is load_config  # each lazy name resolves
+    for name in im_drive_sim.__all__:
+        assert getattr(im_drive_sim, name) is not None
     # the published layout, pinned: a change to it is a change of the drive contract
     assert ' '.join(STATE_FIELDS) == (
         'step_index time_ns theta_meas omega_meas torque isd isq i_alpha i_beta '

@@ -41,56 +41,38 @@ class Eta:
         return f'ETA {left // 60}:{left % 60:02d}'
 
 
-class Progress:
-    """Evaluation i/N, best and last loss, ETA: one updating line on a terminal, a line
-    every 5 % otherwise; nothing with --quiet."""
+class Line:
+    """One progress line on ``stream`` (the tuner's, the study's, replay's): redrawn in place
+    on a terminal (at most every ``REDRAW_S``), otherwise printed each time ``done`` crosses
+    another 1/``parts`` of ``total``, and at the end; notes between; nothing with ``quiet``
+    but warnings."""
 
-    def __init__(self, algo: str, budget: int, quiet: bool, stream=sys.stderr) -> None:
-        self.algo, self.budget, self.quiet, self.stream = algo, budget, quiet, stream
+    REDRAW_S = 0.2  #: [s] between two redraws on a terminal
+
+    def __init__(self, quiet: bool, parts: int, stream=sys.stderr) -> None:
+        self.quiet, self.parts, self.stream = quiet, parts, stream
         self.tty = stream.isatty()
         self.eta = Eta()
-        self.every = max(1, budget // 20)
+        self._part = 0  # the last 1/parts of the total printed (not a terminal)
+        self._drawn = -self.REDRAW_S
         self._open = False
 
-    def __call__(self, kind: str, rec: Record, run: TuningRun) -> None:
+    @staticmethod
+    def bar(done: int, total: int, width: int = 24) -> str:
+        fill = width * done // total
+        return f'[{"#" * fill}{"." * (width - fill)}]'
+
+    def update(self, done: int, total: int, text: str) -> None:
         if self.quiet:
             return
-        st = run.state
-        if kind != 'eval':  # the reference, a re-measurement
-            what = 'start controller (reference) loss'
-            if kind == 'remeasure':
-                what = f're-measured evaluation {rec.eval}:'
-            self._line(f'{self.algo}: {what} {self._fmt(rec)}', force=True)
-            return
-        i, n = st.evals, self.budget
-        if self.eta._t0 is None:  # the first evaluation's time is in its rate
-            self.eta(i - 1, n)
-        width = 24
-        fill = int(width * i / n)
-        best = f'{st.best["loss"]:.4f}' if st.best else '-'
-        text = (
-            f'{self.algo} [{"#" * fill}{"." * (width - fill)}] eval {i}/{n}  best {best}  '
-            f'last {self._fmt(rec)}  {self.eta(i, n)}'
-        )
-        self._line(text, force=i == n or i % self.every == 0)
-
-    @staticmethod
-    def _fmt(rec: Record) -> str:
-        if rec.status == 'lost':
-            return 'lost (re-run)'
-        if rec.status == 'timing':
-            return f'{rec.reason} (re-run)'
-        return f'{rec.loss:.4f}' + (f' (aborted: {rec.reason})' if rec.aborted else '')
-
-    def _line(self, text: str, force: bool) -> None:
-        if self.tty:
-            self.stream.write('\r\x1b[2K' + text)
-            self._open = True
-            if force and not text.startswith(self.algo + ' ['):
-                self.stream.write('\n')
-                self._open = False
+        end, part, now = done >= total, self.parts * done // total, time.monotonic()
+        if self.tty and (end or now - self._drawn >= self.REDRAW_S):
+            self._drawn = now
+            self.stream.write('\r\x1b[2K' + text + ('\n' if end else ''))
             self.stream.flush()
-        elif force:
+            self._open = not end
+        elif not self.tty and (end or part > self._part):
+            self._part = part
             print(text, file=self.stream, flush=True)
 
     def warn(self, text: str) -> None:
@@ -104,10 +86,51 @@ class Progress:
     def note(self, text: str) -> None:
         if self.quiet:
             return
+        self.close()
+        print(text, file=self.stream, flush=True)
+
+    def close(self) -> None:
         if self._open:
             self.stream.write('\n')
+            self.stream.flush()
             self._open = False
-        print(text, file=self.stream, flush=True)
+
+
+class Progress(Line):
+    """The tuner's line: evaluation i/N, best and last loss, ETA (a line every 5 % of the
+    budget off a terminal)."""
+
+    def __init__(self, algo: str, budget: int, quiet: bool, stream=sys.stderr) -> None:
+        super().__init__(quiet, 20, stream)
+        self.algo, self.budget = algo, budget
+
+    def __call__(self, kind: str, rec: Record, run: TuningRun) -> None:
+        if self.quiet:
+            return
+        if kind != 'eval':  # the reference, a re-measurement
+            what = 'start controller (reference) loss'
+            if kind == 'remeasure':
+                what = f're-measured evaluation {rec.eval}:'
+            self.note(f'{self.algo}: {what} {self._fmt(rec)}')
+            return
+        st, i, n = run.state, run.state.evals, self.budget
+        if self.eta._t0 is None:  # the first evaluation's time is in its rate
+            self.eta(i - 1, n)
+        best = f'{st.best["loss"]:.4f}' if st.best else '-'
+        self.update(
+            i,
+            n,
+            f'{self.algo} {self.bar(i, n)} eval {i}/{n}  best {best}  last {self._fmt(rec)}  '
+            f'{self.eta(i, n)}',
+        )
+
+    @staticmethod
+    def _fmt(rec: Record) -> str:
+        if rec.status == 'lost':
+            return 'lost (re-run)'
+        if rec.status == 'timing':
+            return f'{rec.reason} (re-run)'
+        return f'{rec.loss:.4f}' + (f' (aborted: {rec.reason})' if rec.aborted else '')
 
     def steps(self, what: str, every_s: float = 10.0) -> Callable[[int, int], None]:
         """A ``(done, total)`` callback for a long step before the search (the plant's
@@ -123,12 +146,6 @@ class Progress:
                 self.note(f'{what}: {done}/{total}, {left}')
 
         return report
-
-    def close(self) -> None:
-        if self._open:
-            self.stream.write('\n')
-            self.stream.flush()
-            self._open = False
 
 
 def mechanics_lines(s: Summary) -> list[str]:

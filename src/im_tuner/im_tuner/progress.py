@@ -212,8 +212,23 @@ def _limit_lines(r: dict[str, Any]) -> list[str]:
     return [f"  ripple limit {limit:g}x the start's ({b} A rms): {what}"]
 
 
-def _gains_text(g: dict[str, float]) -> str:
+def gains_text(g: dict[str, float]) -> str:
     return ', '.join(f'{n} {g[n]:.6g} {GAIN_UNITS[n]}' for n in GAIN_NAMES)
+
+
+def satisfactory_line(s: Summary) -> str:
+    sat = s.evaluations_to_satisfactory
+    return f'  satisfactory (loss <= {s.satisfactory_loss:g}): ' + (
+        f'after {sat} evaluations' if sat else 'not reached'
+    )
+
+
+def clock_text(run: RunConfig) -> str:
+    """What the experiments' time is: a real drive's (a hardware class on the composed
+    bench too: benches.is_simulated) is the drive's, not simulated."""
+    if is_simulated(run.bench, run.drive):
+        return 'simulated experiment time'
+    return "experiment time (the drive's clock)"
 
 
 def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
@@ -227,7 +242,7 @@ def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
         b = s.best
         rm = f'; re-measured {b["remeasured_loss"]:.4f}' if b['remeasured_loss'] is not None else ''
         L.append(f'  best loss:   {b["loss"]:.4f} (evaluation {b["eval"]}{rm})')
-        L.append(f'  best gains:  {_gains_text(b["gains"])}')
+        L.append(f'  best gains:  {gains_text(b["gains"])}')
     else:
         L.append('  best loss:   none (no evaluation completed without abort)')
     if ref is not None:
@@ -253,13 +268,9 @@ def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
             L.append(
                 f'  applied on the controller: evaluation {a["eval"]} (loss {a["loss"]:.4f}'
                 f'{rm})'
-                + ('' if s.best and a['eval'] == s.best['eval'] else f': {_gains_text(a["gains"])}')
+                + ('' if s.best and a['eval'] == s.best['eval'] else f': {gains_text(a["gains"])}')
             )
-    sat = s.evaluations_to_satisfactory
-    L.append(
-        f'  satisfactory (loss <= {s.satisfactory_loss:g}): '
-        + (f'after {sat} evaluations' if sat else 'not reached')
-    )
+    L.append(satisfactory_line(s))
     L.extend(mechanics_lines(s))
     sessions = s.sessions or []
     outside = sum(len(p.get('faults_outside', [])) for p in sessions)
@@ -271,16 +282,9 @@ def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
         f'timing, re-run: {s.timing or 0}{tolerance_text(s)}'
     )
     rtf = s.real_time_factor
-    # a real drive's experiments take drive time, not simulated time (a hardware class on
-    # the composed bench too: benches.is_simulated)
-    clock = (
-        'simulated experiment time'
-        if is_simulated(run.bench, run.drive)
-        else "experiment time (the drive's clock)"
-    )
     L.append(
         f'  wall time {s.wall_s:.1f} s (tuning loop {s.loop_wall_s:.1f} s); '
-        f'{clock} {s.sim_s:.1f} s; real-time factor ' + (f'{rtf:.2f}' if rtf else '-')
+        f'{clock_text(run)} {s.sim_s:.1f} s; real-time factor ' + (f'{rtf:.2f}' if rtf else '-')
     )
     if s.optimizer_us_per_eval is not None:
         L.append(f'  optimiser ask+tell: {s.optimizer_us_per_eval:.1f} us per evaluation')

@@ -70,9 +70,7 @@ def test_off_a_terminal_a_line_each_part_of_the_total_and_at_the_end(clock):
     line = progress.Line(quiet=False, parts=10, stream=out)
     for i in range(1, 26):
         line.update(i, 25, f'{i}/25')
-    assert out.getvalue().splitlines() == [
-        f'{i}/25' for i in (3, 5, 8, 10, 13, 15, 18, 20, 23, 25)
-    ]
+    assert out.getvalue().splitlines() == [f'{i}/25' for i in (3, 5, 8, 10, 13, 15, 18, 20, 23, 25)]
     quiet = io.StringIO()
     line = progress.Line(quiet=True, parts=10, stream=quiet)
     line.update(25, 25, 'done')

@@ -42,21 +42,6 @@ def chunk_head(start: int, end: int, records: bytes, compression: str, size: int
     return struct.pack('<BQ', Opcode.CHUNK, len(body) + size) + body
 
 
-def message_index_records(idx: np.ndarray) -> list[tuple[int, bytes]]:
-    """The Message Index records of a chunk whose messages are ``idx`` (int64 rows: channel
-    id, log time [ns], offset): (channel id, record) each, entries sorted by (log time,
-    offset)."""
-    sidx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
-    cids, starts = np.unique(sidx[:, 0], return_index=True)
-    ends = [*starts[1:].tolist(), len(sidx)]
-    out = []
-    for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
-        entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
-        head = struct.pack('<BQHI', Opcode.MESSAGE_INDEX, 6 + len(entries), cid, len(entries))
-        out.append((cid, head + entries))
-    return out
-
-
 def indexed_chunk(
     put: Callable[[bytes], int],
     parts: tuple[bytes, ...],
@@ -67,12 +52,21 @@ def indexed_chunk(
     sizes: tuple[int, int],
 ) -> ChunkIndex:
     """Write a Chunk record (``parts``: its bytes, in order) and the Message Index records of
-    its messages ``idx`` through ``put`` (bytes -> the offset written at); its Chunk Index
-    record for the summary (``sizes``: of its records compressed and uncompressed)."""
+    its messages ``idx`` (int64 rows: channel id, log time [ns], offset; a record per
+    channel, entries sorted by (log time, offset)) through ``put`` (bytes -> the offset
+    written at); its Chunk Index record for the summary (``sizes``: of its records
+    compressed and uncompressed)."""
     at = put(parts[0])
     for part in parts[1:]:
         put(part)
-    index = message_index_records(idx)
+    sidx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
+    cids, starts = np.unique(sidx[:, 0], return_index=True)
+    ends = [*starts[1:].tolist(), len(sidx)]
+    index = []
+    for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
+        entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
+        head = struct.pack('<BQHI', Opcode.MESSAGE_INDEX, 6 + len(entries), cid, len(entries))
+        index.append((cid, head + entries))
     return ChunkIndex(
         message_start_time=start,
         message_end_time=end,

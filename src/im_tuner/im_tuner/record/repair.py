@@ -159,20 +159,17 @@ def _parse_chunk(body: bytes, scan: McapScan, at: int) -> ScannedChunk:
     schemas: dict[int, tuple[str, bytes]] = {}
     channels: dict[int, tuple[str, int, dict[str, str], bytes]] = {}
     rows: list[tuple[int, int, int]] = []
-    p = 0
-    while p < len(raw):
-        op, n = struct.unpack_from('<BQ', raw, p)
-        if p + 9 + n > len(raw):
-            raise ValueError('record past the end of its chunk')
-        rec = raw[p : p + 9 + n]
+    found, stop = walk(np.frombuffer(raw, np.uint8), 0, len(raw), -1)
+    if stop != len(raw):
+        raise ValueError('record past the end of its chunk')
+    for op, p, n in found:
         if op == Opcode.MESSAGE:
-            cid, _seq, log_time, _pub = struct.unpack_from('<HIQQ', rec, 9)
+            cid, _seq, log_time = struct.unpack_from('<HIQ', raw, p)
             if n < 22 or (cid not in scan.channels and cid not in channels):
                 raise ValueError('bad message record')
-            rows.append((cid, log_time, p))
+            rows.append((cid, log_time, p - 9))
         elif op in (Opcode.SCHEMA, Opcode.CHANNEL):
-            parse_definition(op, rec, schemas, channels)
-        p += 9 + n
+            parse_definition(op, raw[p - 9 : p + n], schemas, channels)
     for sid, schema in schemas.items():
         scan.schemas.setdefault(sid, schema)
     for cid, channel in channels.items():

@@ -197,8 +197,7 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
             'closed it (at the end of the run)'
         )
     try:
-        arrays = {STATE: None, COMMAND: None, INTERNALS: None}
-        data = read_bag(bag_dir, arrays=arrays, raw=(CLOCK_TOPIC,))
+        data = read_bag(bag_dir, dict.fromkeys((STATE, COMMAND, INTERNALS)), raw=(CLOCK_TOPIC,))
     except (BagReadError, ValueError, OSError) as exc:
         raise ReplayError(f'{bag_dir}: not a readable bag ({exc})') from None
     if not data.complete:

@@ -32,7 +32,6 @@ from .mcap_encode import (
     encode,
     file_end,
     indexed_chunk,
-    statistics_record,
 )
 from .mcap_format import MAGIC
 from .metadata import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
@@ -324,25 +323,16 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
             infos.append(
                 indexed_chunk(put, (rec,), ch.index, ch.start, ch.end, ch.compression, sizes)
             )
-    stats = statistics_record(
-        scan.messages,
-        len(scan.schemas),
-        len(scan.channels),
-        len(scan.attachments),
-        len(meta_index),
-        len(infos),
-        scan.time_range(),
-        scan.channel_counts(),
-    )
     put(
         file_end(
             pos,
             schemas=[rec for _n, rec in scan.schemas.values()],
             channels=[c[3] for c in scan.channels.values()],
-            statistics=stats,
             metadata_index=meta_index,
-            attachment_index=[encode(AttachmentIndex(*a)) for a in att_index],
             chunks=infos,
+            counts=scan.channel_counts(),
+            time_range=scan.time_range(),
+            attachment_index=[encode(AttachmentIndex(*a)) for a in att_index],
         )
     )
 

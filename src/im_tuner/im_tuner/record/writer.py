@@ -33,7 +33,6 @@ from .mcap_encode import (
     encode,
     file_end,
     indexed_chunk,
-    statistics_record,
 )
 from .mcap_format import COMPRESSIONS, MAGIC, MESSAGE_HEADER_BYTES
 
@@ -350,24 +349,15 @@ class McapWriter:
             encode(Channel(cid, topic, enc, meta, sid))
             for cid, (topic, sid, enc, meta) in self.channels.items()
         ]
-        stats = statistics_record(
-            self.message_count,
-            len(self.schemas),
-            len(self.channels),
-            0,
-            len(self.metadata_index),
-            len(self.chunks),
-            (self.t_start or 0, self.t_end or 0),
-            self.channel_counts,
-        )
         self._write(
             file_end(
                 self._pos,
                 schemas=schemas,
                 channels=channels,
-                statistics=stats,
                 metadata_index=self.metadata_index,
                 chunks=self.chunks,
+                counts=self.channel_counts,
+                time_range=(self.t_start or 0, self.t_end or 0),
             )
         )
         f, self._f = self._f, None

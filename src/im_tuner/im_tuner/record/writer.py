@@ -367,9 +367,8 @@ class McapWriter:
 
     def abandon(self) -> None:
         """Close the file as it is (no summary): what a crash leaves, for tests."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        with contextlib.suppress(McapWriteError):
+            self._drain_pool()
         if self._f is not None:
             self._f.close()
             self._f = None

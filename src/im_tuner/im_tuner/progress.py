@@ -41,56 +41,38 @@ class Eta:
         return f'ETA {left // 60}:{left % 60:02d}'
 
 
-class Progress:
-    """Evaluation i/N, best and last loss, ETA: one updating line on a terminal, a line
-    every 5 % otherwise; nothing with --quiet."""
+class Line:
+    """One progress line on ``stream`` (the tuner's, the study's, replay's): redrawn in place
+    on a terminal (at most every ``REDRAW_S``), otherwise printed each time ``done`` crosses
+    another 1/``parts`` of ``total``, and at the end; notes between; nothing with ``quiet``
+    but warnings."""
 
-    def __init__(self, algo: str, budget: int, quiet: bool, stream=sys.stderr) -> None:
-        self.algo, self.budget, self.quiet, self.stream = algo, budget, quiet, stream
+    REDRAW_S = 0.2  #: [s] between two redraws on a terminal
+
+    def __init__(self, quiet: bool, parts: int, stream=sys.stderr) -> None:
+        self.quiet, self.parts, self.stream = quiet, parts, stream
         self.tty = stream.isatty()
         self.eta = Eta()
-        self.every = max(1, budget // 20)
+        self._part = 0  # the last 1/parts of the total printed (not a terminal)
+        self._drawn = -self.REDRAW_S
         self._open = False
 
-    def __call__(self, kind: str, rec: Record, run: TuningRun) -> None:
+    @staticmethod
+    def bar(done: int, total: int, width: int = 24) -> str:
+        fill = width * done // total
+        return f'[{"#" * fill}{"." * (width - fill)}]'
+
+    def update(self, done: int, total: int, text: str) -> None:
         if self.quiet:
             return
-        st = run.state
-        if kind != 'eval':  # the reference, a re-measurement
-            what = 'start controller (reference) loss'
-            if kind == 'remeasure':
-                what = f're-measured evaluation {rec.eval}:'
-            self._line(f'{self.algo}: {what} {self._fmt(rec)}', force=True)
-            return
-        i, n = st.evals, self.budget
-        if self.eta._t0 is None:  # the first evaluation's time is in its rate
-            self.eta(i - 1, n)
-        width = 24
-        fill = int(width * i / n)
-        best = f'{st.best["loss"]:.4f}' if st.best else '-'
-        text = (
-            f'{self.algo} [{"#" * fill}{"." * (width - fill)}] eval {i}/{n}  best {best}  '
-            f'last {self._fmt(rec)}  {self.eta(i, n)}'
-        )
-        self._line(text, force=i == n or i % self.every == 0)
-
-    @staticmethod
-    def _fmt(rec: Record) -> str:
-        if rec.status == 'lost':
-            return 'lost (re-run)'
-        if rec.status == 'timing':
-            return f'{rec.reason} (re-run)'
-        return f'{rec.loss:.4f}' + (f' (aborted: {rec.reason})' if rec.aborted else '')
-
-    def _line(self, text: str, force: bool) -> None:
-        if self.tty:
-            self.stream.write('\r\x1b[2K' + text)
-            self._open = True
-            if force and not text.startswith(self.algo + ' ['):
-                self.stream.write('\n')
-                self._open = False
+        end, part, now = done >= total, self.parts * done // total, time.monotonic()
+        if self.tty and (end or now - self._drawn >= self.REDRAW_S):
+            self._drawn = now
+            self.stream.write('\r\x1b[2K' + text + ('\n' if end else ''))
             self.stream.flush()
-        elif force:
+            self._open = not end
+        elif not self.tty and (end or part > self._part):
+            self._part = part
             print(text, file=self.stream, flush=True)
 
     def warn(self, text: str) -> None:
@@ -104,10 +86,51 @@ class Progress:
     def note(self, text: str) -> None:
         if self.quiet:
             return
+        self.close()
+        print(text, file=self.stream, flush=True)
+
+    def close(self) -> None:
         if self._open:
             self.stream.write('\n')
+            self.stream.flush()
             self._open = False
-        print(text, file=self.stream, flush=True)
+
+
+class Progress(Line):
+    """The tuner's line: evaluation i/N, best and last loss, ETA (a line every 5 % of the
+    budget off a terminal)."""
+
+    def __init__(self, algo: str, budget: int, quiet: bool, stream=sys.stderr) -> None:
+        super().__init__(quiet, 20, stream)
+        self.algo, self.budget = algo, budget
+
+    def __call__(self, kind: str, rec: Record, run: TuningRun) -> None:
+        if self.quiet:
+            return
+        if kind != 'eval':  # the reference, a re-measurement
+            what = 'start controller (reference) loss'
+            if kind == 'remeasure':
+                what = f're-measured evaluation {rec.eval}:'
+            self.note(f'{self.algo}: {what} {self._fmt(rec)}')
+            return
+        st, i, n = run.state, run.state.evals, self.budget
+        if self.eta._t0 is None:  # the first evaluation's time is in its rate
+            self.eta(i - 1, n)
+        best = f'{st.best["loss"]:.4f}' if st.best else '-'
+        self.update(
+            i,
+            n,
+            f'{self.algo} {self.bar(i, n)} eval {i}/{n}  best {best}  last {self._fmt(rec)}  '
+            f'{self.eta(i, n)}',
+        )
+
+    @staticmethod
+    def _fmt(rec: Record) -> str:
+        if rec.status == 'lost':
+            return 'lost (re-run)'
+        if rec.status == 'timing':
+            return f'{rec.reason} (re-run)'
+        return f'{rec.loss:.4f}' + (f' (aborted: {rec.reason})' if rec.aborted else '')
 
     def steps(self, what: str, every_s: float = 10.0) -> Callable[[int, int], None]:
         """A ``(done, total)`` callback for a long step before the search (the plant's
@@ -123,12 +146,6 @@ class Progress:
                 self.note(f'{what}: {done}/{total}, {left}')
 
         return report
-
-    def close(self) -> None:
-        if self._open:
-            self.stream.write('\n')
-            self.stream.flush()
-            self._open = False
 
 
 def mechanics_lines(s: Summary) -> list[str]:
@@ -195,8 +212,23 @@ def _limit_lines(r: dict[str, Any]) -> list[str]:
     return [f"  ripple limit {limit:g}x the start's ({b} A rms): {what}"]
 
 
-def _gains_text(g: dict[str, float]) -> str:
+def gains_text(g: dict[str, float]) -> str:
     return ', '.join(f'{n} {g[n]:.6g} {GAIN_UNITS[n]}' for n in GAIN_NAMES)
+
+
+def satisfactory_line(s: Summary) -> str:
+    sat = s.evaluations_to_satisfactory
+    return f'  satisfactory (loss <= {s.satisfactory_loss:g}): ' + (
+        f'after {sat} evaluations' if sat else 'not reached'
+    )
+
+
+def clock_text(run: RunConfig) -> str:
+    """What the experiments' time is: a real drive's (a hardware class on the composed
+    bench too: benches.is_simulated) is the drive's, not simulated."""
+    if is_simulated(run.bench, run.drive):
+        return 'simulated experiment time'
+    return "experiment time (the drive's clock)"
 
 
 def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
@@ -210,7 +242,7 @@ def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
         b = s.best
         rm = f'; re-measured {b["remeasured_loss"]:.4f}' if b['remeasured_loss'] is not None else ''
         L.append(f'  best loss:   {b["loss"]:.4f} (evaluation {b["eval"]}{rm})')
-        L.append(f'  best gains:  {_gains_text(b["gains"])}')
+        L.append(f'  best gains:  {gains_text(b["gains"])}')
     else:
         L.append('  best loss:   none (no evaluation completed without abort)')
     if ref is not None:
@@ -236,13 +268,9 @@ def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
             L.append(
                 f'  applied on the controller: evaluation {a["eval"]} (loss {a["loss"]:.4f}'
                 f'{rm})'
-                + ('' if s.best and a['eval'] == s.best['eval'] else f': {_gains_text(a["gains"])}')
+                + ('' if s.best and a['eval'] == s.best['eval'] else f': {gains_text(a["gains"])}')
             )
-    sat = s.evaluations_to_satisfactory
-    L.append(
-        f'  satisfactory (loss <= {s.satisfactory_loss:g}): '
-        + (f'after {sat} evaluations' if sat else 'not reached')
-    )
+    L.append(satisfactory_line(s))
     L.extend(mechanics_lines(s))
     sessions = s.sessions or []
     outside = sum(len(p.get('faults_outside', [])) for p in sessions)
@@ -254,16 +282,9 @@ def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
         f'timing, re-run: {s.timing or 0}{tolerance_text(s)}'
     )
     rtf = s.real_time_factor
-    # a real drive's experiments take drive time, not simulated time (a hardware class on
-    # the composed bench too: benches.is_simulated)
-    clock = (
-        'simulated experiment time'
-        if is_simulated(run.bench, run.drive)
-        else "experiment time (the drive's clock)"
-    )
     L.append(
         f'  wall time {s.wall_s:.1f} s (tuning loop {s.loop_wall_s:.1f} s); '
-        f'{clock} {s.sim_s:.1f} s; real-time factor ' + (f'{rtf:.2f}' if rtf else '-')
+        f'{clock_text(run)} {s.sim_s:.1f} s; real-time factor ' + (f'{rtf:.2f}' if rtf else '-')
     )
     if s.optimizer_us_per_eval is not None:
         L.append(f'  optimiser ask+tell: {s.optimizer_us_per_eval:.1f} us per evaluation')

@@ -58,3 +58,22 @@ def test_a_long_step_says_where_it_is_every_10_s_and_at_the_end(clock):
         'restoring the simulated plant: 30/40, ETA 0:10',
         'restoring the simulated plant: 40/40, ETA 0:00',
     ]
+
+
+def test_off_a_terminal_a_line_each_part_of_the_total_and_at_the_end(clock):
+    """The one progress line of the tuner, the study and replay: off a terminal a line
+    each time another 1/parts of the total is done (the study's and replay's 10 %), and
+    the last; nothing but warnings with quiet."""
+    import io
+
+    out = io.StringIO()
+    line = progress.Line(quiet=False, parts=10, stream=out)
+    for i in range(1, 26):
+        line.update(i, 25, f'{i}/25')
+    assert out.getvalue().splitlines() == [f'{i}/25' for i in (3, 5, 8, 10, 13, 15, 18, 20, 23, 25)]
+    quiet = io.StringIO()
+    line = progress.Line(quiet=True, parts=10, stream=quiet)
+    line.update(25, 25, 'done')
+    line.note('a note')
+    line.warn('a warning')
+    assert quiet.getvalue() == 'a warning\n'

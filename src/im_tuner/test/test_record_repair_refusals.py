@@ -121,7 +121,7 @@ def test_failure_leaves_the_original(tmp_path: Path, monkeypatch: pytest.MonkeyP
     def interrupted(*_a, **_k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(mcap_repair, 'statistics_record', interrupted)  # mid-way: the summary
+    monkeypatch.setattr(mcap_repair, 'file_end', interrupted)  # mid-way: the summary
     with pytest.raises(KeyboardInterrupt):
         repair_bag(rec.out)
     assert snapshot(rec.out) == before

@@ -1,12 +1,8 @@
 """``python -m im_tuner.foxglove``: where the installed layouts are, or write them afresh.
 
-Without options it prints the path of every installed layout, one a line (the files
-Foxglove's "Import from file..." takes). ``--out DIR`` writes the layouts into DIR from the
-contracts (``make foxglove-layouts`` regenerates the committed copies this way);
-``--namespace NS`` names the topics of a bench started under a namespace; ``--sdk`` writes
-the SDK's own layout form (``foxglove.layouts``: ``{"version": 1, "content": ...}``) instead
-of the file Foxglove imports. ``--table`` prints the index table of docs/foxglove.md. Bad
-input: one line on stderr, exit 2, nothing written.
+Without options: the path of every installed layout, one a line (what Foxglove's "Import
+from file..." takes); ``make foxglove-layouts`` regenerates the committed copies with
+``--out``. Bad input: one line on stderr, exit 2, nothing written.
 """
 
 from __future__ import annotations

@@ -72,7 +72,7 @@ EXPERIMENT_AXIS_LABEL = 'experiment id'
 #: Height [px] of a legend above its plot: a margin and one row per series.
 LEGEND_MARGIN, LEGEND_ROW = 12, 22
 
-Series = tuple[str, str]  # (message path, label)
+Series = tuple[str, ...]  # (message path, label[, colour])
 
 
 @dataclass(kw_only=True)
@@ -91,12 +91,6 @@ def array_path(topic: str, name: str, namespace: str = '') -> Series:
     return f'{namespace}{topic}.data[{i}]', label(signal(topic, i))
 
 
-def step_path(topic: str, namespace: str = '') -> str:
-    """The message path of the drive step k on array topic ``topic``: the x axis of its
-    plots on sim time."""
-    return array_path(topic, STEP_FIELDS[topic], namespace)[0]
-
-
 def result_path(key: str, kind: str | None = None, namespace: str = '') -> str:
     """The message path of one value of the tuner's result message (one status, named by
     the record's kind, whose ``values`` are key/value strings), by key; ``kind``: only
@@ -105,41 +99,23 @@ def result_path(key: str, kind: str | None = None, namespace: str = '') -> str:
     return f'{namespace}{RESULT}.{status}.values[:]{{key=="{key}"}}.value'
 
 
-def _kind_series(key: str, namespace: str) -> list[fl.PlotSeries]:
-    """One series of result value ``key`` per record kind, coloured and labelled
-    ``name: kind [unit]``."""
-    s: Signal = loss_signals()[key]
-    return [
-        fl.PlotSeries(
-            value=result_path(key, kind, namespace),
-            label=f'{s.name}: {words} [{s.unit}]',
-            color=KIND_COLOURS[kind],
-            enabled=True,
-            timestamp_method='receiveTime',
-            show_line=True,
-        )
-        for kind, words in KIND_WORDS.items()
-    ]
-
-
 def _plot(
     panel_id: str,
     title: str,
-    series: Iterable[Series | fl.PlotSeries],
+    series: Iterable[Series],
     x_path: str | None = None,
     x_label: str | None = None,
     legend_above: bool = True,
 ) -> Plot:
-    """A Plot panel: series on the receive-time axis, or against ``x_path`` (one point per
-    message, with a line through them); the legend above the plot (``legend_above``), else
-    floating over it (panels of several series, too small for a legend above). A series is
-    a (path, label) pair or the SDK's ``PlotSeries`` as it is."""
+    """A Plot panel: series (path, label[, colour]) on the receive-time axis, or against
+    ``x_path`` (one point per message, with a line through them); the legend above the
+    plot (``legend_above``), else floating over it (panels of several series, too small
+    for a legend above)."""
     paths = [
-        s
-        if isinstance(s, fl.PlotSeries)
-        else fl.PlotSeries(
+        fl.PlotSeries(
             value=s[0],
             label=s[1],
+            color=s[2] if len(s) > 2 else None,
             enabled=True,
             timestamp_method='receiveTime',
             show_line=True if x_path is not None else None,
@@ -181,9 +157,8 @@ def _rows(pid: str, title: str, rows: list[list[tuple[str, str, str, str]]], ns:
     ``pid``, title after ``title``, topic, field)."""
 
     def panel(i: str, t: str, topic: str, name: str) -> Plot:
-        return _plot(
-            pid + i, title + t, [array_path(topic, name, ns)], step_path(topic, ns), STEP_AXIS_LABEL
-        )
+        x = array_path(topic, STEP_FIELDS[topic], ns)[0]
+        return _plot(pid + i, title + t, [array_path(topic, name, ns)], x, STEP_AXIS_LABEL)
 
     return fl.Layout(
         content=_split('column', [_split('row', [panel(*p) for p in row]) for row in rows])
@@ -231,7 +206,12 @@ def fig9_loss_gains(ns: str = '') -> fl.Layout:
     x = result_path(LOSS_ID_KEY, namespace=ns)
 
     def per_experiment(pid: str, title: str, key: str) -> Plot:
-        return _plot(pid, title, _kind_series(key, ns), x, EXPERIMENT_AXIS_LABEL)
+        s: Signal = loss_signals()[key]  # a series per record kind: `name: kind [unit]`
+        series = [
+            (result_path(key, kind, ns), f'{s.name}: {words} [{s.unit}]', KIND_COLOURS[kind])
+            for kind, words in KIND_WORDS.items()
+        ]
+        return _plot(pid, title, series, x, EXPERIMENT_AXIS_LABEL)
 
     loss = per_experiment('fig9_loss', 'Fig. 9 (a, b) loss per experiment', LOSS_KEY)
     gains = [

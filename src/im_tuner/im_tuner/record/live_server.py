@@ -111,7 +111,8 @@ class LiveServer:
         self._start_error: str | None = None
         self._thread = threading.Thread(target=self._run, name='live server', daemon=True)
         self._thread.start()
-        error = self._wait_started()
+        # the server's thread says whether it listens (None) or why not
+        error = self._start_error if self._started.wait(30.0) else 'no answer within 30 s'
         if error is not None:
             self._thread.join(5.0)
             raise LiveError(error)
@@ -182,12 +183,6 @@ class LiveServer:
         return self.stats()
 
     # -- the server's thread -----------------------------------------------------------
-    def _wait_started(self, timeout: float = 30.0) -> str | None:
-        """Wait for the server's thread to say whether it listens (None) or why not."""
-        if not self._started.wait(timeout):
-            return f'no answer within {timeout:g} s'
-        return self._start_error
-
     def _run(self) -> None:
         import asyncio
         import logging

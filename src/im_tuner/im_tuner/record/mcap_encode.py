@@ -42,21 +42,6 @@ def chunk_head(start: int, end: int, records: bytes, compression: str, size: int
     return struct.pack('<BQ', Opcode.CHUNK, len(body) + size) + body
 
 
-def message_index_records(idx: np.ndarray) -> list[tuple[int, bytes]]:
-    """The Message Index records of a chunk whose messages are ``idx`` (int64 rows: channel
-    id, log time [ns], offset): (channel id, record) each, entries sorted by (log time,
-    offset)."""
-    sidx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
-    cids, starts = np.unique(sidx[:, 0], return_index=True)
-    ends = [*starts[1:].tolist(), len(sidx)]
-    out = []
-    for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
-        entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
-        head = struct.pack('<BQHI', Opcode.MESSAGE_INDEX, 6 + len(entries), cid, len(entries))
-        out.append((cid, head + entries))
-    return out
-
-
 def indexed_chunk(
     put: Callable[[bytes], int],
     parts: tuple[bytes, ...],
@@ -67,12 +52,21 @@ def indexed_chunk(
     sizes: tuple[int, int],
 ) -> ChunkIndex:
     """Write a Chunk record (``parts``: its bytes, in order) and the Message Index records of
-    its messages ``idx`` through ``put`` (bytes -> the offset written at); its Chunk Index
-    record for the summary (``sizes``: of its records compressed and uncompressed)."""
+    its messages ``idx`` (int64 rows: channel id, log time [ns], offset; a record per
+    channel, entries sorted by (log time, offset)) through ``put`` (bytes -> the offset
+    written at); its Chunk Index record for the summary (``sizes``: of its records
+    compressed and uncompressed)."""
     at = put(parts[0])
     for part in parts[1:]:
         put(part)
-    index = message_index_records(idx)
+    sidx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
+    cids, starts = np.unique(sidx[:, 0], return_index=True)
+    ends = [*starts[1:].tolist(), len(sidx)]
+    index = []
+    for cid, a, b in zip(cids.tolist(), starts.tolist(), ends, strict=True):
+        entries = np.ascontiguousarray(sidx[a:b, 1:3]).astype('<u8').tobytes()
+        head = struct.pack('<BQHI', Opcode.MESSAGE_INDEX, 6 + len(entries), cid, len(entries))
+        index.append((cid, head + entries))
     return ChunkIndex(
         message_start_time=start,
         message_end_time=end,
@@ -86,52 +80,39 @@ def indexed_chunk(
     )
 
 
-def statistics_record(
-    messages: int,
-    n_schemas: int,
-    n_channels: int,
-    n_attachments: int,
-    n_metadata: int,
-    n_chunks: int,
-    time_range: tuple[int, int],
-    channel_counts: dict[int, int],
-) -> bytes:
-    """The Statistics record: counts, the message time range [ns], messages per channel."""
-    return encode(
-        Statistics(
-            message_count=messages,
-            schema_count=n_schemas,
-            channel_count=n_channels,
-            attachment_count=n_attachments,
-            metadata_count=n_metadata,
-            chunk_count=n_chunks,
-            message_start_time=time_range[0],
-            message_end_time=time_range[1],
-            channel_message_counts=dict(sorted(channel_counts.items())),
-        )
-    )
-
-
 def file_end(
     data_end: int,
     *,
     schemas: list[bytes],
     channels: list[bytes],
-    statistics: bytes,
     metadata_index: list[tuple[int, int, str]],
     chunks: list[ChunkIndex],
+    counts: dict[int, int],
+    time_range: tuple[int, int],
     attachment_index: list[bytes] | None = None,
 ) -> bytes:
     """What ends a file whose data section ends at byte ``data_end``: DataEnd, the summary
-    (its groups of records in this order, empty ones left out; a Metadata Index per
-    (offset, length, name), a Chunk Index per chunk), a Summary Offset per group, the
-    Footer (with the summary's CRC-32) and the closing magic."""
+    (its groups of records in this order, empty ones left out; the Statistics of these
+    records, ``counts`` messages per channel and the messages' ``time_range`` [ns]; a
+    Metadata Index per (offset, length, name), a Chunk Index per chunk), a Summary Offset
+    per group, the Footer (with the summary's CRC-32) and the closing magic."""
     head = encode(DataEnd(0))
     summary_start = data_end + len(head)
+    statistics = Statistics(
+        message_count=sum(counts.values()),
+        schema_count=len(schemas),
+        channel_count=len(channels),
+        attachment_count=len(attachment_index or []),
+        metadata_count=len(metadata_index),
+        chunk_count=len(chunks),
+        message_start_time=time_range[0],
+        message_end_time=time_range[1],
+        channel_message_counts=dict(sorted(counts.items())),
+    )
     groups = (
         (Opcode.SCHEMA, schemas),
         (Opcode.CHANNEL, channels),
-        (Opcode.STATISTICS, [statistics]),
+        (Opcode.STATISTICS, [encode(statistics)]),
         (Opcode.METADATA_INDEX, [encode(MetadataIndex(*m)) for m in metadata_index]),
         (Opcode.ATTACHMENT_INDEX, attachment_index or []),
         (Opcode.CHUNK_INDEX, [encode(c) for c in chunks]),

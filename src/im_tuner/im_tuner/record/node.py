@@ -13,6 +13,7 @@ import contextlib
 import json
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,6 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from im_drive_sim.outbox import R_HEAD, R_LOST, R_TAIL
 
 from . import take as rcl_take
-from .chunk_timer import ChunkTimer
 from .counts import closing_custom_data, counts_report
 from .live import LIVE_METADATA, LiveError, LiveFeed, LiveSettings, live_line
 from .live_server import LiveServer
@@ -54,6 +54,36 @@ class RecorderError(Exception):
     """The recorder cannot start or continue (bad output, rcl error)."""
 
 
+class ChunkTimer:
+    """Calls ``tick()`` every ``period`` [s] on a daemon thread until :meth:`stop`: the
+    recorder's open chunk closed by wall time when nobody polls it, so that nothing taken
+    waits in memory where a SIGKILL loses it (docs/recorder.md, "Crash safety"). An
+    exception from ``tick()`` ends the thread and is kept in :attr:`error` for the owner
+    to raise (the thread has no one to report to)."""
+
+    def __init__(self, tick: Callable[[], None], period: float, name: str) -> None:
+        self.period = float(period)
+        self.error: BaseException | None = None
+        self._tick = tick
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period):
+            try:
+                self._tick()
+            except BaseException as exc:  # kept for the owner: a thread cannot raise
+                self.error = exc
+                return
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """End the thread (after a tick under way, if any); idempotent."""
+        self._stop.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout)
+
+
 @dataclass
 class _Topic:
     name: str
@@ -70,7 +100,7 @@ class Recorder:
 
     Call :meth:`poll` often: it discovers new topics (at most every ``discovery_period``
     s), takes every waiting message and closes chunks that are full or ``max_chunk_age``
-    old; with ``flush_timer`` a :class:`~.chunk_timer.ChunkTimer` does it when the owner
+    old; with ``flush_timer`` a :class:`ChunkTimer` does it when the owner
     has not polled (docs/recorder.md, "Crash safety"). :meth:`close` finishes the bag and
     returns the counts."""
 

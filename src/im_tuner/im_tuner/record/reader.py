@@ -117,6 +117,8 @@ class BagData:
     arrays: dict[str, np.ndarray] = field(default_factory=dict)
     #: decoded loss messages: the key/value pairs plus 'log_time_ns', 'level', 'name'
     losses: list[dict[str, str]] = field(default_factory=list)
+    #: the messages of the ``raw`` topics asked for: (log time [ns], CDR bytes), in file order
+    raw: dict[str, list[tuple[int, bytes]]] = field(default_factory=dict)
 
     @property
     def messages(self) -> int:
@@ -332,22 +334,20 @@ def _in_windows(k: np.ndarray, windows: list[tuple[int, int]] | None) -> np.ndar
 
 # ----------------------------------------------------------------------------- reader
 def find_mcap(bag_dir: Path) -> Path:
-    """The bag's MCAP file: ``<dir name>_0.mcap`` (rosbag2's first), else the only one;
-    :class:`BagReadError` for none or several (a split bag is not read as its first
-    file)."""
+    """The bag's one MCAP file; :class:`BagReadError` naming ``bag_dir`` when it is not a
+    bag directory: missing, a file, no .mcap file, or several (a split bag is not read as
+    its first file)."""
     bag_dir = Path(bag_dir)
-    preferred = bag_dir / f'{bag_dir.resolve().name}_0.mcap'
-    if preferred.is_file():
-        return preferred
+    if not bag_dir.is_dir():
+        exists = bag_dir.exists()
+        raise BagReadError(f'{bag_dir}: ' + ('not a directory' if exists else 'no such directory'))
     found = sorted(p for p in bag_dir.glob('*.mcap') if p.is_file())
-    if len(found) != 1:
+    if not found:
+        raise BagReadError(f'{bag_dir}: not a bag (no .mcap file)')
+    if len(found) > 1:
         raise BagReadError(
-            f'{bag_dir}: '
-            + (
-                'no .mcap file'
-                if not found
-                else f'several .mcap files ({", ".join(p.name for p in found)})'
-            )
+            f'{bag_dir}: several .mcap files ({", ".join(p.name for p in found)}): a split '
+            'bag (the recorder writes one)'
         )
     return found[0]
 
@@ -356,11 +356,13 @@ def read_bag(
     bag_dir: Path | str,
     arrays: dict[str, list[tuple[int, int]] | None] | None = None,
     loss_topic: str = '/' + LOSS_TOPIC,
+    raw: tuple[str, ...] = (),
 ) -> BagData:
     """Read ``bag_dir`` (see the module docstring).
 
     ``arrays``: topic -> windows ``[(k0, k1), ...]`` of the first value to keep (None: all
-    rows) for ``Float64MultiArray`` topics.  Messages of ``loss_topic`` are decoded.
+    rows) for ``Float64MultiArray`` topics.  Messages of ``loss_topic`` are decoded, those
+    of the ``raw`` topics kept as they are.
     """
     bag_dir = Path(bag_dir)
     path = find_mcap(bag_dir)
@@ -379,7 +381,7 @@ def read_bag(
     channels: dict[int, tuple[str, int, dict, bytes]] = {}
     per_chan: dict[int, list] = {}  # cid -> [count, first, last, bytes]
     rows: dict[str, list[np.ndarray]] = {t: [] for t in arrays}
-    losses: list[tuple[int, bytes]] = []
+    kept: dict[str, list[tuple[int, bytes]]] = {t: [] for t in (loss_topic, *raw)}
     with open(path, 'rb') as f:
         size = f.seek(0, 2)
         f.seek(0)
@@ -426,7 +428,7 @@ def read_bag(
                 out.chunk_stats.append(ChunkStats(start, end, comp))
                 _take_chunk(
                     np.frombuffer(records, np.uint8), index, schemas, channels, per_chan, arrays,
-                    rows, losses, loss_topic,
+                    rows, kept,
                 )  # fmt: skip
     if out.recorder_counts is None and 'im_tuner.counts' in out.metadata:
         # no metadata.yaml (or one without them): the record the recorder wrote at close
@@ -449,7 +451,8 @@ def read_bag(
     for t, parts in rows.items():
         parts = [p for p in parts if p.size]
         out.arrays[t] = np.concatenate(parts) if parts else np.zeros((0, 0))
-    for log_time, data in losses:
+    out.raw = {t: kept[t] for t in raw}
+    for log_time, data in kept[loss_topic]:
         for st in parse_diagnostic_array(data):
             out.losses.append(st | {'log_time_ns': str(log_time)})
     return out
@@ -463,8 +466,7 @@ def _take_chunk(
     per_chan: dict,
     arrays: dict,
     rows: dict,
-    losses: list,
-    loss_topic: str,
+    kept: dict[str, list[tuple[int, bytes]]],
 ) -> None:
     found = _indexed_messages(buf, index, schemas, channels) if index else None
     if found is not None:
@@ -492,6 +494,6 @@ def _take_chunk(
         topic = channels.get(cid, ('',))[0]
         if topic in arrays:
             rows[topic].append(_f64_rows(buf, offs[sel], lens[sel], arrays[topic]))
-        elif topic == loss_topic:
+        elif topic in kept:
             for a, n_, lt in zip(offs[sel].tolist(), lens[sel].tolist(), t.tolist(), strict=True):
-                losses.append((lt, bytes(buf[a + _MSG_HEAD : a + n_])))
+                kept[topic].append((lt, bytes(buf[a + _MSG_HEAD : a + n_])))

@@ -47,20 +47,6 @@ class Cursor:
         return out
 
 
-def decompress(comp: str, data: bytes, size: int) -> bytes:
-    if comp == '':
-        return data
-    if comp == 'zstd':
-        import zstandard
-
-        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
-    if comp == 'lz4':
-        import lz4.frame
-
-        return lz4.frame.decompress(data)
-    raise ValueError(f'unknown compression {comp!r}')
-
-
 class ChunkDamage(ValueError):
     """A whole Chunk record whose records do not decompress, or fail its size or CRC."""
 
@@ -70,7 +56,18 @@ def chunk_records(comp: str, data: bytes, usize: int, crc: int) -> bytes:
     ``uncompressed_crc``; 0: the writer computed none); :class:`ChunkDamage` saying what
     is wrong otherwise (its bytes were changed)."""
     try:
-        raw = decompress(comp, data, usize)
+        if comp == 'zstd':
+            import zstandard
+
+            raw = zstandard.ZstdDecompressor().decompress(data, max_output_size=usize)
+        elif comp == 'lz4':
+            import lz4.frame
+
+            raw = lz4.frame.decompress(data)
+        elif comp == '':
+            raw = data
+        else:
+            raise ValueError(f'unknown compression {comp!r}')
     except Exception as exc:  # zstd/lz4 raise their own types on corrupt data
         raise ChunkDamage(f'does not decompress: {exc}') from None
     if len(raw) != usize:

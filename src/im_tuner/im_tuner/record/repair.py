@@ -32,7 +32,6 @@ from .mcap_encode import (
     encode,
     file_end,
     indexed_chunk,
-    statistics_record,
 )
 from .mcap_format import MAGIC
 from .metadata import TopicRecord, bag_metadata, read_metadata_yaml, write_metadata_yaml
@@ -159,20 +158,17 @@ def _parse_chunk(body: bytes, scan: McapScan, at: int) -> ScannedChunk:
     schemas: dict[int, tuple[str, bytes]] = {}
     channels: dict[int, tuple[str, int, dict[str, str], bytes]] = {}
     rows: list[tuple[int, int, int]] = []
-    p = 0
-    while p < len(raw):
-        op, n = struct.unpack_from('<BQ', raw, p)
-        if p + 9 + n > len(raw):
-            raise ValueError('record past the end of its chunk')
-        rec = raw[p : p + 9 + n]
+    found, stop = walk(np.frombuffer(raw, np.uint8), 0, len(raw), -1)
+    if stop != len(raw):
+        raise ValueError('record past the end of its chunk')
+    for op, p, n in found:
         if op == Opcode.MESSAGE:
-            cid, _seq, log_time, _pub = struct.unpack_from('<HIQQ', rec, 9)
+            cid, _seq, log_time = struct.unpack_from('<HIQ', raw, p)
             if n < 22 or (cid not in scan.channels and cid not in channels):
                 raise ValueError('bad message record')
-            rows.append((cid, log_time, p))
+            rows.append((cid, log_time, p - 9))
         elif op in (Opcode.SCHEMA, Opcode.CHANNEL):
-            parse_definition(op, rec, schemas, channels)
-        p += 9 + n
+            parse_definition(op, raw[p - 9 : p + n], schemas, channels)
     for sid, schema in schemas.items():
         scan.schemas.setdefault(sid, schema)
     for cid, channel in channels.items():
@@ -327,25 +323,16 @@ def _write_repaired(scan: McapScan, dst: BinaryIO) -> None:
             infos.append(
                 indexed_chunk(put, (rec,), ch.index, ch.start, ch.end, ch.compression, sizes)
             )
-    stats = statistics_record(
-        scan.messages,
-        len(scan.schemas),
-        len(scan.channels),
-        len(scan.attachments),
-        len(meta_index),
-        len(infos),
-        scan.time_range(),
-        scan.channel_counts(),
-    )
     put(
         file_end(
             pos,
             schemas=[rec for _n, rec in scan.schemas.values()],
             channels=[c[3] for c in scan.channels.values()],
-            statistics=stats,
             metadata_index=meta_index,
-            attachment_index=[encode(AttachmentIndex(*a)) for a in att_index],
             chunks=infos,
+            counts=scan.channel_counts(),
+            time_range=scan.time_range(),
+            attachment_index=[encode(AttachmentIndex(*a)) for a in att_index],
         )
     )
 

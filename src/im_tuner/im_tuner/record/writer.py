@@ -33,7 +33,6 @@ from .mcap_encode import (
     encode,
     file_end,
     indexed_chunk,
-    statistics_record,
 )
 from .mcap_format import COMPRESSIONS, MAGIC, MESSAGE_HEADER_BYTES
 
@@ -70,8 +69,8 @@ def put_header(
 
     ``buf`` is the uint8 chunk buffer, ``idx`` the int64 index rows (channel_id, log_time
     [ns], offset [bytes]), ``st`` the chunk state vector (``ST_*``); see :class:`ChunkState`.
-    The one writer of a Message record: :func:`append_message` and the take kernels
-    (:mod:`im_tuner.record.take`) copy the data."""
+    The one writer of a Message record: :meth:`McapWriter.add_message` and the take
+    kernels (:mod:`im_tuner.record.take`) copy the data."""
     pos, k = st[ST_POS], st[ST_COUNT]
     if pos + MESSAGE_HEADER_BYTES + n > buf.shape[0] or k >= idx.shape[0]:
         return -1
@@ -99,28 +98,6 @@ def put_header(
     st[ST_COUNT] = k + 1
     st[ST_POS] = pos + MESSAGE_HEADER_BYTES + n
     return pos + MESSAGE_HEADER_BYTES
-
-
-@numba.njit(cache=True)
-def append_message(
-    buf: np.ndarray,
-    idx: np.ndarray,
-    st: np.ndarray,
-    channel_id: int,
-    sequence: int,
-    log_time: int,
-    publish_time: int,
-    data: np.ndarray,
-    max_span_ns: int,
-) -> bool:
-    """Append one Message record to the open chunk; False (nothing written) if it is full
-    or would then span more than ``max_span_ns`` of log time (:func:`put_header`)."""
-    n = data.shape[0]
-    at = put_header(buf, idx, st, channel_id, sequence, log_time, publish_time, n, max_span_ns)
-    if at < 0:
-        return False
-    buf[at : at + n] = data
-    return True
 
 
 @dataclass
@@ -298,21 +275,22 @@ class McapWriter:
         self, channel_id: int, sequence: int, log_time: int, publish_time: int, data: bytes
     ) -> None:
         """Slow path (one Python call per message) for low-rate messages and tests."""
-        arr = np.frombuffer(data, np.uint8)
+        n = len(data)
 
-        def append() -> bool:
+        def put() -> int:
             ch = self.chunk
             seq = sequence & 0xFFFFFFFF
-            return append_message(
-                ch.buf, ch.idx, ch.st, channel_id, seq, log_time, publish_time, arr,
-                self.max_span_ns,
-            )  # fmt: skip
+            return put_header(
+                ch.buf, ch.idx, ch.st, channel_id, seq, log_time, publish_time, n, self.max_span_ns
+            )
 
-        if not append():
+        at = put()
+        if at < 0:
             self.flush_chunk()
-            self.chunk.grow(MESSAGE_HEADER_BYTES + len(data))
-            ok = append()
-            assert ok
+            self.chunk.grow(MESSAGE_HEADER_BYTES + n)
+            at = put()
+            assert at >= 0
+        self.chunk.buf[at : at + n] = np.frombuffer(data, np.uint8)
         if self.chunk.used >= self.chunk_size:
             self.flush_chunk()
 
@@ -371,24 +349,15 @@ class McapWriter:
             encode(Channel(cid, topic, enc, meta, sid))
             for cid, (topic, sid, enc, meta) in self.channels.items()
         ]
-        stats = statistics_record(
-            self.message_count,
-            len(self.schemas),
-            len(self.channels),
-            0,
-            len(self.metadata_index),
-            len(self.chunks),
-            (self.t_start or 0, self.t_end or 0),
-            self.channel_counts,
-        )
         self._write(
             file_end(
                 self._pos,
                 schemas=schemas,
                 channels=channels,
-                statistics=stats,
                 metadata_index=self.metadata_index,
                 chunks=self.chunks,
+                counts=self.channel_counts,
+                time_range=(self.t_start or 0, self.t_end or 0),
             )
         )
         f, self._f = self._f, None
@@ -398,9 +367,8 @@ class McapWriter:
 
     def abandon(self) -> None:
         """Close the file as it is (no summary): what a crash leaves, for tests."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        with contextlib.suppress(McapWriteError):
+            self._drain_pool()
         if self._f is not None:
             self._f.close()
             self._f = None

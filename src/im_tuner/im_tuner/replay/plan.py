@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -158,31 +159,6 @@ def compare(plan: ReplayPlan, replayed: np.ndarray) -> Comparison:
 
 
 # ---------------------------------------------------------------------------- reading
-def _clock(mcap_file: Path) -> tuple[np.ndarray, list[bytes]]:
-    """The bag's /clock messages (stamps [ns], CDR bytes), read with the ``mcap`` library
-    (its index: a closed or repaired bag); the project's reader keeps no raw messages."""
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
-
-    stamps: list[int] = []
-    raw: list[bytes] = []
-    try:
-        with open(mcap_file, 'rb') as f:
-            reader = make_reader(f)
-            for _s, _c, msg in reader.iter_messages(topics=[CLOCK_TOPIC]):
-                # rosgraph_msgs/Clock CDR: encapsulation (4), int32 sec, uint32 nanosec
-                sec = int.from_bytes(msg.data[4:8], 'little', signed=True)
-                nsec = int.from_bytes(msg.data[8:12], 'little')
-                stamps.append(sec * 1_000_000_000 + nsec)
-                raw.append(bytes(msg.data))
-    except (McapError, OSError, ValueError, EOFError) as exc:
-        raise ReplayError(
-            f'{mcap_file}: cannot read its index ({exc}); '
-            'a bag left by a killed recorder: `ros2 run im_tuner recorder --repair DIR` first'
-        ) from None
-    return np.array(stamps, np.int64), raw
-
-
 def _spans(internals: np.ndarray) -> list[tuple[int, int]]:
     """(first, last) step of each experiment in the internals rows (one per answered
     state, in order): it starts at a running/done/aborted row not preceded by a running
@@ -207,19 +183,13 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
     (one line) when the bag cannot be replayed or has no experiment ``experiment``."""
     from ..record.reader import BagReadError, find_mcap, read_bag
 
-    if not bag_dir.exists():
-        raise ReplayError(f'{bag_dir}: no such directory')
-    if not bag_dir.is_dir():
-        raise ReplayError(f'{bag_dir}: not a directory (a bag directory holds a .mcap file)')
     try:
         mcap_file = find_mcap(bag_dir)
     except BagReadError as exc:
-        if 'several .mcap files' in str(exc):
-            raise ReplayError(f'{exc}: give a bag of one') from None
         hint = ''
-        if sorted(bag_dir.glob('bag_*/*.mcap')):
+        if bag_dir.is_dir() and sorted(bag_dir.glob('bag_*/*.mcap')):
             hint = f' (a run directory: give its bag, {sorted(bag_dir.glob("bag_*"))[0]})'
-        raise ReplayError(f'{bag_dir}: not a bag (no .mcap file){hint}') from None
+        raise ReplayError(f'{exc}{hint}') from None
     writer = writer_of(mcap_file)
     if writer is not None:  # its index is written when it closes: not a killed recorder's
         raise ReplayError(
@@ -227,9 +197,14 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
             'closed it (at the end of the run)'
         )
     try:
-        data = read_bag(bag_dir, arrays={STATE: None, COMMAND: None, INTERNALS: None})
+        data = read_bag(bag_dir, dict.fromkeys((STATE, COMMAND, INTERNALS)), raw=(CLOCK_TOPIC,))
     except (BagReadError, ValueError, OSError) as exc:
         raise ReplayError(f'{bag_dir}: not a readable bag ({exc})') from None
+    if not data.complete:
+        raise ReplayError(
+            f'{mcap_file}: not closed (no end, no index); a bag left by a killed recorder: '
+            '`ros2 run im_tuner recorder --repair DIR` first'
+        )
     if data.damaged:
         more = f' (and {len(data.damaged) - 1} more)' if len(data.damaged) > 1 else ''
         raise ReplayError(
@@ -246,7 +221,10 @@ def load_plan(bag_dir: Path, experiment: int | None = None) -> ReplayPlan:
                 f'{lost.get("published_before_recording", 0)} before recording): '
                 'the controller saw messages the bag does not hold'
             )
-    clock_ns, clock_raw = _clock(mcap_file)
+    clock_raw = [m for _t, m in sorted(data.raw[CLOCK_TOPIC], key=lambda m: m[0])]
+    # rosgraph_msgs/Clock CDR: encapsulation (4 bytes), int32 sec, uint32 nanosec
+    sec_ns = np.array([struct.unpack_from('<iI', m, 4) for m in clock_raw], np.int64)
+    clock_ns = (sec_ns.reshape(-1, 2) * [1_000_000_000, 1]).sum(axis=1)
     records = data.metadata  # the bag's metadata records, as the reader found them
     if CONTROLLER_RECORD not in records:
         raise ReplayError(

@@ -13,7 +13,7 @@ from typing import Any
 
 from im_drive_sim.cli import Parser, UsageError, int_in, parse_cli, quiet_interrupts, run_cli
 
-from ..progress import Eta
+from ..progress import Line
 
 EXIT_MISMATCH = 1
 EXIT_INCONCLUSIVE = 3
@@ -44,32 +44,11 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
-class _Progress:
-    """``replay: state i/n (p %), ETA m:ss`` on stderr: one updating line on a terminal,
-    a line every 10 % otherwise."""
-
-    def __init__(self, quiet: bool) -> None:
-        self.quiet = quiet
-        self.tty = sys.stderr.isatty()
-        self.eta = Eta()
-        self.next_pct = 10
-        self.last_draw = 0.0
+class _Progress(Line):
+    """``replay: state i/n (p %), ETA m:ss`` on stderr (a line every 10 % off a terminal)."""
 
     def __call__(self, i: int, n: int) -> None:
-        if self.quiet:
-            return
-        eta = self.eta(i, n)  # (from the first call: the controller's start is no rate)
-        pct = 100 * i // n
-        now = time.monotonic()
-        if self.tty and (now - self.last_draw < 0.2 and i < n):
-            return
-        if not self.tty and pct < self.next_pct and i < n:
-            return
-        self.next_pct = pct - pct % 10 + 10
-        self.last_draw = now
-        text = f'replay: state {i}/{n} ({pct} %), {eta}'
-        end = '\r' if self.tty and i < n else '\n'
-        print(text, end=end, file=sys.stderr, flush=True)
+        self.update(i, n, f'replay: state {i}/{n} ({100 * i // n} %), {self.eta(i, n)}')
 
 
 def result_dict(plan: Any, cmp: Any, failure: str | None, wall_s: float) -> dict[str, Any]:
@@ -135,10 +114,8 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.monotonic()
         failure = None
         try:
-            note = (
-                None if cli.quiet else lambda t: print(f'replay: {t}', file=sys.stderr, flush=True)
-            )
-            replayed = replay(plan, _Progress(cli.quiet), note)
+            line = _Progress(cli.quiet, 10)
+            replayed = replay(plan, line, lambda t: line.note(f'replay: {t}'))
         except ReplayInconclusive as exc:
             print(f'replay: INCONCLUSIVE: {exc}', file=sys.stderr, flush=True)
             return EXIT_INCONCLUSIVE

@@ -25,18 +25,6 @@ def bag_info(bag_dir: Path) -> dict[str, Any]:
     from ..rundir import writer_of
 
     bag_dir = Path(bag_dir)
-    if not bag_dir.exists():
-        raise ReportError(f'--bag-info {bag_dir}: no such directory')
-    if not bag_dir.is_dir():
-        raise ReportError(f'--bag-info {bag_dir}: not a directory (give the bag directory)')
-    files = sorted(bag_dir.glob('*.mcap'))
-    if not files:
-        raise ReportError(f'--bag-info {bag_dir}: not a bag directory (no .mcap file)')
-    if len(files) > 1:
-        raise ReportError(
-            f'--bag-info {bag_dir}: {len(files)} .mcap files (a split bag); '
-            'the recorder writes one, and only one is read'
-        )
     try:
         bag = read_bag(bag_dir)
     except BagReadError as exc:
@@ -69,7 +57,7 @@ def bag_info(bag_dir: Path) -> dict[str, Any]:
     outbox = bag.metadata.get('im_tuner.outbox')
     return {
         'bag': str(bag_dir),
-        'files': [{'name': f.name, 'bytes': f.stat().st_size} for f in files],
+        'files': [{'name': bag.file.name, 'bytes': bag.file.stat().st_size}],
         'storage': 'mcap',
         'state': bag.state,
         'complete': bag.complete,

@@ -47,23 +47,13 @@ def fig5(runs: list[RunReport]):
         for j, e in enumerate(rr.consecutive):
             t = e.t + ((e.record.t_start_ns or 0) * 1e-9 - t_ref)
             what = 'start gains' if e.record.kind == 'reference' else f'evaluation {e.record.eval}'
-            ax_p.plot(
-                t,
-                e.signals['theta_ref'] - th0,
-                color='C0',
-                lw=1.5,
-                label='position reference' if j == 0 else None,
-                gid=f'theta_ref:{j}',
-            )
-            ax_l.plot(
-                t,
-                e.signals['load_cmd'],
-                color='C3',
-                lw=1.5,
-                label='load torque' if j == 0 else None,
-                gid=f'load:{j}',
-            )
-            for ax in (ax_p, ax_l):
+            for ax, y, color, label, gid in (
+                (ax_p, e.signals['theta_ref'] - th0, 'C0', 'position reference', 'theta_ref'),
+                (ax_l, e.signals['load_cmd'], 'C3', 'load torque', 'load'),
+            ):
+                ax.plot(
+                    t, y, color=color, lw=1.5, label=label if j == 0 else None, gid=f'{gid}:{j}'
+                )
                 ax.axvline(t[0], color='grey', lw=0.8, ls=':')
             ax_p.annotate(
                 f'experiment {e.record.experiment_id}\n({what})',

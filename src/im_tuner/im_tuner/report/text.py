@@ -5,20 +5,19 @@ from __future__ import annotations
 import datetime as _dt
 from typing import TYPE_CHECKING
 
-from im_controller.config import GAIN_NAMES, GAIN_UNITS
-
-from ..benches import is_simulated
-from ..progress import drive_text, mechanics_lines, tolerance_text
+from ..progress import (
+    clock_text,
+    drive_text,
+    gains_text,
+    mechanics_lines,
+    satisfactory_line,
+    tolerance_text,
+)
 
 if TYPE_CHECKING:
     from ..record.reader import BagData
     from ..runlog import Record
     from .load import RunReport
-
-
-# --------------------------------------------------------------------------- summary
-def _gains_text(g: dict[str, float]) -> str:
-    return ', '.join(f'{n} {g[n]:.6g} {GAIN_UNITS[n]}' for n in GAIN_NAMES)
 
 
 def summary_text(rr: RunReport) -> str:
@@ -39,7 +38,7 @@ def summary_text(rr: RunReport) -> str:
         L.append(
             f'  start (hand-tuned) loss: {ref["loss"]:.4f}'
             + (' (aborted)' if ref['aborted'] else '')
-            + f': {_gains_text(ref["gains"])}'
+            + f': {gains_text(ref["gains"])}'
         )
     b = s.best
     if b is not None:
@@ -49,7 +48,7 @@ def summary_text(rr: RunReport) -> str:
             else ''
         )
         L.append(f'  best loss: {b["loss"]:.4f} (evaluation {b["eval"]}{rm})')
-        L.append(f'  best gains: {_gains_text(b["gains"])}')
+        L.append(f'  best gains: {gains_text(b["gains"])}')
     else:
         L.append('  best loss: none (no evaluation completed without abort)')
     a = s.applied
@@ -62,11 +61,7 @@ def summary_text(rr: RunReport) -> str:
                 else f'evaluation {a["eval"]} (loss {a["loss"]:.4f})'
             )
         )
-    sat = s.evaluations_to_satisfactory
-    L.append(
-        f'  satisfactory (loss <= {s.satisfactory_loss:g}): '
-        + (f'after {sat} evaluations' if sat else 'not reached')
-    )
+    L.append(satisfactory_line(s))
     L.append(
         f'  aborted experiments: {s.aborted} of {s.evaluations} evaluations '
         f'(safety faults {s.safety_faults}); lost results re-run: {s.lost}; '
@@ -84,13 +79,10 @@ def summary_text(rr: RunReport) -> str:
             )
     rtf = s.real_time_factor
     wall = f'wall time {s.wall_s:.1f} s, ' if s.wall_s is not None else ''
-    # an external bench (--bench none) or a hardware class: the drive's clock, not a simulation
-    clock = (
-        'simulated experiment time'
-        if is_simulated(run.bench, run.drive)
-        else "experiment time (the drive's clock)"
+    L.append(
+        f'  {wall}{clock_text(run)} {s.sim_s:.1f} s'
+        + (f', real-time factor {rtf:.2f}' if rtf else '')
     )
-    L.append(f'  {wall}{clock} {s.sim_s:.1f} s' + (f', real-time factor {rtf:.2f}' if rtf else ''))
     for bag in rr.bags:
         L.extend(_bag_lines(bag, live=rr.live is not None))
     L.extend(f'  bag {e}' for e in rr.bag_errors)

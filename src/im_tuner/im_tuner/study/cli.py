@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 from im_drive_sim.cli import EXIT_INTERRUPTED, UsageError, int_in
 from im_drive_sim.params import REALISM_PROFILES
 
-from ..progress import Eta
+from ..progress import Line
 from ..tuner_args import OptionsParser, option
 from . import cluster as K, spec as S
 from .drives import FamilyResult, drive_dirs, is_family, load_family, save_family
@@ -213,35 +213,22 @@ def _build_parser() -> OptionsParser:
     return OptionsParser(StudyOptions)
 
 
-class Progress:
-    """Runs done, experiments/s and ETA: an updating line on a terminal, else a line every
-    10 %."""
+class Progress(Line):
+    """The study's line: runs done, experiments/s and ETA (a line every 10 % off a terminal)."""
 
     def __init__(self, total_exp_per_run: int, quiet: bool, stream=sys.stderr) -> None:
-        self.per_run, self.quiet, self.stream = total_exp_per_run, quiet, stream
-        self.tty = stream.isatty()
-        self.last_pct = -1
-        self.eta = Eta()
+        super().__init__(quiet, 10, stream)
+        self.per_run = total_exp_per_run
 
     def __call__(self, done: int, total: int, elapsed: float) -> None:
-        if self.quiet:
-            return
-        eta = self.eta(done, total)  # (every call: its rate starts at the first)
-        pct = 100 * done // total
-        if not self.tty and pct // 10 == self.last_pct // 10 and done != total:
-            return
-        self.last_pct = pct
-        rate = done * self.per_run / elapsed if elapsed > 0 else 0.0
-        fill = 24 * done // total
-        text = (
-            f'study [{"#" * fill}{"." * (24 - fill)}] {done}/{total} runs  '
-            f'{done * self.per_run} experiments  {rate:.0f}/s  {eta}'
+        exp = done * self.per_run
+        rate = exp / elapsed if elapsed > 0 else 0.0
+        self.update(
+            done,
+            total,
+            f'study {self.bar(done, total)} {done}/{total} runs  {exp} experiments  '
+            f'{rate:.0f}/s  {self.eta(done, total)}',
         )
-        if self.tty:
-            self.stream.write('\r' + text + ('\n' if done == total else ''))
-        else:
-            self.stream.write(text + '\n')
-        self.stream.flush()
 
 
 def _spec(cli: StudyOptions) -> S.StudySpec:

@@ -31,17 +31,6 @@ from typing import Any
 
 from ..benches import NAMED_DRIVES
 
-__all__ = [
-    'DRIVES',
-    'DriveChoice',
-    'DriveSpecError',
-    'check_drive_spec',
-    'close_hardware',
-    'close_untaken',
-    'load_drive_class',
-    'resolve',
-]
-
 
 def sim_drive(context: Any, overrides: list[Any]) -> Any:
     """The simulator, in real time, with every drive parameter of the tuner's."""
@@ -216,15 +205,6 @@ def check_drive_class(spec: str, cls: type) -> str:
     if _binds(cls, (object(),)) is False:
         raise DriveSpecError(f'--drive {spec!r}: {name}(config) is not a valid call: {contract}')
     return 'hardware'
-
-
-def check_drive_spec(spec: str) -> str:
-    """Validate ``--drive`` (import and contract, nothing built); returns it."""
-    if spec.startswith(LIB):
-        _library_path(spec)
-    elif spec not in DRIVES:
-        check_drive_class(spec, load_drive_class(spec))
-    return spec
 
 
 def _library_path(spec: str) -> Path:

@@ -143,7 +143,12 @@ class StudyOptions:
         "'J=x1.5 Rr=x1.3 Lm=x0.85 coulomb=2% delay=2'",
         {'metavar': "'KEY=xF ... coulomb=P% delay=D'"},
     )
-    ripple_limit: str | None = option(S.RIPPLE_LIMIT_HELP, like='ripple_limit')
+    ripple_limit: str | None = option(
+        "every row's standstill-ripple limit, as the tuner's --ripple-limit (default: each "
+        "row's tuner default: 1.5 for safe, off for the others); e.g. --algos spsa,necga "
+        "--ripple-limit 1.5: what the limit costs the paper's algorithms",
+        like='ripple_limit',
+    )
     realism: str | None = option(
         "the drives' realism profile",
         {'choices': tuple(REALISM_PROFILES)},

@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 from im_tuner.study import runs as S
+from im_tuner.study.results import load
 from im_tuner.study.stats import PAPER
 
 ROS2 = str(Path(sys.prefix) / 'bin' / 'ros2')
@@ -91,7 +92,7 @@ def assert_same_run(
 
 def test_study_runs_through_the_ros_nodes_give_the_same_losses(small, tmp_path):
     out, _ = small
-    res = S.load(out)
+    res = load(out)
     rows = list(csv.DictReader((out / 'runs.csv').open()))
     cells = {c.label: i for i, c in enumerate(res.cells)}
     # the sample: the SPSA run of the paper's cell with the most aborted experiments (that
@@ -122,7 +123,7 @@ def test_study_runs_through_the_ros_nodes_give_the_same_losses(small, tmp_path):
 
 def test_results_do_not_depend_on_the_number_of_workers(small):
     out, _ = small
-    via_cli = S.load(out)  # 2 workers
+    via_cli = load(out)  # 2 workers
     spec = S.StudySpec(runs=2, budget=8)
     one = S.run_study(spec, jobs=1)
     for name in S.StudyResult.ARRAYS:
@@ -168,7 +169,7 @@ def test_a_dask_cluster_gives_byte_identical_tables(tmp_path):
 
 
 def test_seeds_starts_and_the_normalisation(small):
-    res = S.load(small[0])
+    res = load(small[0])
     spsa = [i for i, c in enumerate(res.cells) if c.algo == 'spsa']
     necga = [i for i, c in enumerate(res.cells) if c.algo == 'necga']
     # SPSA: a random start per run, the same in every SPSA cell (common random numbers)
@@ -218,7 +219,7 @@ def test_outputs_tables_figures_and_paper_values(small):
     from im_tuner.study.figures import fig_tables
     from im_tuner.study.stats import compute
 
-    st = compute(S.load(out))
+    st = compute(load(out))
     fig = fig_tables(st)
     ax = fig.axes[0]
     paper = next(ln for ln in ax.lines if ln.get_gid() == 'paper:final')

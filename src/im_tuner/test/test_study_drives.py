@@ -17,7 +17,7 @@ from im_tuner.study import runs as R, spec as S
 from im_tuner.study.bobyqa import BobyqaRun
 from im_tuner.study.drives import FamilyResult, drive_dirs, load_family, save_family
 from im_tuner.study.markdown import family_md
-from im_tuner.study.results import META_FILE
+from im_tuner.study.results import META_FILE, load, save
 from im_tuner.study.stats import compute
 from im_tuner.study.summary import GOAL, compute_family, goal_check, within_limit_rows
 from im_tuner.study.text import family_text
@@ -114,13 +114,13 @@ def test_drive_setup_names_profiles_and_refusals():
 
 def test_a_study_without_drives_writes_the_same_study_json_keys(tmp_path):
     res = _result(S.StudySpec(runs=2, budget=4), {})
-    R.save(res, tmp_path)
+    save(res, tmp_path)
     spec = json.loads((tmp_path / META_FILE).read_text())['spec']
     assert set(spec) == {
         'runs', 'budget', 'algos', 'model', 'seed', 'satisfactory', 'remeasure',
         'drive_config', 'params_file',
     }  # fmt: skip
-    assert R.load(tmp_path).spec == res.spec
+    assert load(tmp_path).spec == res.spec
 
 
 # -- the summary over drives ----------------------------------------------------------------------

@@ -1,14 +1,9 @@
-"""The composed real-time loop's Python side (``tuner --bench realtime``, the default
-drive): :class:`CompiledPeriods` runs the simulator's periods composed with the
-controller's as one numba call that never holds the Python GIL
-(:func:`.loop_kernels.run_periods`; :class:`CompiledHardwarePeriods`: a user's power stage
-called by address, :func:`.loop_kernels.run_hardware_periods`), and :class:`LoopGate` is
-the loop lock a Python thread holds to read or change the state the loop runs on.
-
-The kernels, the words they share with Python and why the loop is compiled:
-:mod:`.loop_kernels`. The call returns only when the loop is told to quit, or to refill a
-noisy model's noise block (``DriveSim.run_kernel``, every 4096 periods): then, between two
-periods, the loop thread takes the GIL.
+"""The composed real-time loop's Python side: :class:`CompiledPeriods` runs the
+simulator's periods with the controller's as one numba call that never holds the GIL
+(:mod:`.loop_kernels`; :class:`CompiledHardwarePeriods`: a user's power stage called by
+address), and :class:`LoopGate` is the lock a Python thread holds to read or change the
+state the loop runs on. The call returns only to quit, or to refill a noisy model's noise
+block (``DriveSim.run_kernel``, every 4096 periods): then the loop thread takes the GIL.
 """
 
 from __future__ import annotations
@@ -62,8 +57,6 @@ from .loop_kernels import (
     run_hardware_periods,
     run_periods,
 )
-
-__all__ = ['CompiledHardwarePeriods', 'CompiledPeriods', 'LoopGate']
 
 
 class LoopGate:
@@ -173,13 +166,8 @@ class CompiledPeriods:
         self, drive: Any, controller: Any, outbox: Any, durations: Any, pacer: Any, gate: LoopGate
     ) -> None:
         """``gate``: the bench's loop lock; its words are the loop's gate."""
-        self.drive, self.controller, self.pacer, self.durations = (
-            drive,
-            controller,
-            pacer,
-            durations,
-        )
-        self.gate = gate
+        self.drive, self.controller, self.pacer, self.gate = drive, controller, pacer, gate
+        self.durations = durations
         self.sim = getattr(drive, 'sim', None)  # the simulator's model (run_kernel)
         dv = drive.period_views()
         cv = controller.answer_views()

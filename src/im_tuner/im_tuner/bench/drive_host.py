@@ -119,12 +119,7 @@ def main(args: list[str] | None = None) -> int:
         if bench is not None:
             return  # running: the loop sees session.stopped and stops cleanly
         if not drive_spec.holds_hardware():
-            # still starting, no power stage open: end now (numba's compile can take tens
-            # of seconds under load, and an exception raised in its callbacks is
-            # swallowed); the bag it began holds nothing of a run yet: removed
-            host.remove()
-            os.write(2, b'drive_host: interrupted\n')
-            os._exit(130)
+            host.interrupted()  # still starting, no power stage open
         raise KeyboardInterrupt  # starting: unwind, closing what is open (zero current)
 
     session = RosSession(argv, on_signal=_on_signal)
@@ -191,8 +186,3 @@ def main(args: list[str] | None = None) -> int:
     if code == 2:
         host.remove()
     return code
-
-
-if __name__ == '__main__':
-    os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
-    sys.exit(main())

@@ -1,21 +1,14 @@
 """``--drive``: which drive the composed real-time bench runs, checked against the drive
 contract of docs/real-drive.md before anything is created.
 
-A drive is named (``benches.NAMED_DRIVES``: ``sim``, the simulator; ``example``, the
-example drive's stand-in hardware, compiled: ``im_drive_sim.example_hardware``),
-``lib:PATH`` (a C shared library with the drive ABI, ``im_drive_sim.hardware_abi``:
-loaded, checked and opened here) or ``package.module:Class``: a compiled hardware class, a
-hardware class (as ``im_drive_sim.example_drive.Hardware``) or an ``ExampleDrive`` subclass,
-each as docs/real-drive.md describes it. Anything else (a ROS node that is not an
-``ExampleDrive``, ``read``/``write`` that take other arguments, an abstract class, a module
-that raises or exits at import) is refused with one line saying which part of the contract
-it misses.
-
-:func:`resolve` also builds the hardware class once, with the drive file the bench will
-load, so that a constructor that raises (no inverter on the bus) is refused before the
-run directory exists; the instance is handed to the bench (:meth:`DriveChoice.factory`),
-never built twice. No rclpy at import (it is imported only to check a class that is
-already a ROS node, whose module imported it).
+A drive is named (``benches.NAMED_DRIVES``), ``lib:PATH`` (a C shared library with the
+drive ABI, ``im_drive_sim.hardware_abi``) or ``package.module:Class`` (a compiled hardware
+class, a hardware class as ``im_drive_sim.example_drive.Hardware``, or an
+``ExampleDrive`` subclass). Anything else is refused with one line saying which part of
+the contract it misses. :func:`resolve` also builds a power stage once, with the drive
+file the bench will load, so a constructor that raises (no inverter on the bus) is
+refused before the run directory exists; the bench takes that instance
+(:meth:`DriveChoice.factory`). No rclpy at import.
 """
 
 from __future__ import annotations
@@ -30,17 +23,6 @@ from pathlib import Path
 from typing import Any
 
 from ..benches import NAMED_DRIVES
-
-__all__ = [
-    'DRIVES',
-    'DriveChoice',
-    'DriveSpecError',
-    'check_drive_spec',
-    'close_hardware',
-    'close_untaken',
-    'load_drive_class',
-    'resolve',
-]
 
 
 def sim_drive(context: Any, overrides: list[Any]) -> Any:
@@ -216,15 +198,6 @@ def check_drive_class(spec: str, cls: type) -> str:
     if _binds(cls, (object(),)) is False:
         raise DriveSpecError(f'--drive {spec!r}: {name}(config) is not a valid call: {contract}')
     return 'hardware'
-
-
-def check_drive_spec(spec: str) -> str:
-    """Validate ``--drive`` (import and contract, nothing built); returns it."""
-    if spec.startswith(LIB):
-        _library_path(spec)
-    elif spec not in DRIVES:
-        check_drive_class(spec, load_drive_class(spec))
-    return spec
 
 
 def _library_path(spec: str) -> Path:

@@ -15,8 +15,6 @@ from typing import Any
 
 from im_drive_sim.contract import STATUS_COUNTERS
 
-__all__ = ['DriveMonitor', 'drive_delta', 'drive_report']
-
 
 def drive_report(
     values: dict[str, str], level: int | None = None, message: str = ''

@@ -145,6 +145,10 @@ def controller_on_graph(node: Node, spin_until: SpinUntil, controller: str, time
     return spin_until(seen, timeout)
 
 
+def _ended_by(rc: int) -> str:
+    return f'killed by signal {-rc}' if rc < 0 else f'exit code {rc}'
+
+
 def parameters(params: tuple[tuple[str, Any], ...]) -> list[Parameter]:
     """rclpy parameters of (name, value) pairs (BenchPlan)."""
     return [Parameter(name, value=value) for name, value in params]
@@ -194,6 +198,8 @@ class InProcess:
         self.rec: Any = None
         self._final_status_sent = False
 
+        realtime = plan.mode == 'realtime'
+
         def start_recorder(b: Any) -> None:
             if bag_dir is None:
                 return
@@ -209,17 +215,17 @@ class InProcess:
                 extra_metadata=meta,
                 command=command,
                 # the real-time loop's topics: from its outbox's tap, lossless
-                taps=b.outbox.tap() if hasattr(b, 'outbox') else None,
+                taps=b.outbox.tap() if realtime else None,
                 # beside a real-time loop, the graph is looked at every 2 s (a graph
                 # query holds the GIL for up to milliseconds); every topic it records
                 # exists before the first period (wait_matched below)
-                discovery_period=2.0 if hasattr(b, 'outbox') else 0.2,
+                discovery_period=2.0 if realtime else 0.2,
                 live=plan.spec.live,
             )
             self.rec.wait_matched(10.0)
             # beside a real-time loop every 50 ms (its tap rings hold 5 s): fewer rounds
             # holding the GIL; lock-step: every RECORD_POLL_STEPS steps
-            b.add_poller(self.rec.poll, 250 if hasattr(b, 'outbox') else RECORD_POLL_STEPS)
+            b.add_poller(self.rec.poll, 250 if realtime else RECORD_POLL_STEPS)
 
         if exe is not None and node is not None:
             exe.executor.remove_node(node)
@@ -227,7 +233,7 @@ class InProcess:
         drive_over = parameters(plan.drive_parameters)
         ctl_over = parameters(plan.controller_parameters) or None
         self.bench: Any
-        if plan.mode == 'realtime':
+        if realtime:
             from .realtime import RealtimeBench
 
             self.bench = RealtimeBench(
@@ -281,15 +287,14 @@ class InProcess:
             self.bench.final_status()
 
     def drive_report(self) -> dict[str, Any] | None:
-        stop_loop = getattr(self.bench, 'stop_loop', None)
-        if callable(stop_loop):
-            stop_loop()  # the run is over: zero current, and counters that stand still
+        if self.mode == 'realtime':
+            self.bench.stop_loop()  # the run is over: zero current, counters stand still
         # the last status now, so that the summary's loop.outbox counts what the bag has
         self._final_status()
         d = self.bench.drive
         report = drive_report(
             {
-                'mode': getattr(d, 'mode', 'realtime'),
+                'mode': d.mode,
                 'model': getattr(d.config, 'model', '-'),
                 # as the bag's im_tuner.drive says: the delay the drive runs with
                 'command_delay': str(int(getattr(d, 'command_delay', d.config.command_delay))),
@@ -299,7 +304,7 @@ class InProcess:
         probe = getattr(d, 'delay_probe', None)
         if probe is not None:  # the declared delay as measured at start (hardware_probe)
             report['delay_probe'] = probe.text()
-        if hasattr(self.bench, 'timing'):
+        if self.mode == 'realtime':
             report['loop'] = self.bench.timing()  # the composed loop's per-period figures
         return report
 
@@ -308,10 +313,9 @@ class InProcess:
             return []
         rec, self.rec = self.rec, None
         self._final_status()  # the drive's counters at exit, into the bag (once)
-        outbox = getattr(self.bench, 'outbox', None)
-        if outbox is not None:  # what the loop could not hand to DDS or the recorder
-            rec.add_metadata('im_tuner.outbox', outbox.counts())
-            say_outbox_losses(outbox)
+        if self.mode == 'realtime':  # what the loop could not hand to DDS or the recorder
+            rec.add_metadata('im_tuner.outbox', self.bench.outbox.counts())
+            say_outbox_losses(self.bench.outbox)
         counts = rec.close(settle=0.05)
         lost = sum(c['lost'] for c in counts.values())
         if lost:
@@ -455,7 +459,7 @@ class Children:
             if rc is None:
                 continue
             self.ended.append(self.children.pop(role))
-            why = f'killed by signal {-rc}' if rc < 0 else f'exit code {rc}'
+            why = _ended_by(rc)
             if role == 'recorder':
                 self._recorder_died(why)
             else:
@@ -550,7 +554,7 @@ class Children:
         rc = stop_recorder(p, self.bag, self.host.warn)
         if rc == 0:
             return []
-        why = f'killed by signal {-rc}' if rc < 0 else f'exit code {rc}'
+        why = _ended_by(rc)
         if self.bag is not None and bag_is_closed(self.bag):
             # the bag is whole (footer, counts): only the process's end was slow or unclean
             self.host.warn(f'note: the recorder closed {self.bag.name} whole, then ended ({why})')

@@ -1,39 +1,22 @@
-"""The composed real-time loop's compiled kernels: the periods of the simulator and the
-controller in one numba call that never holds the Python GIL (``tuner --bench realtime``,
-the default drive), and the layout of the words they share with Python (``T_*``: the
-schedule and its figures; ``G_*``: the gate; ``EV_*``: the event ring; ``M_*``: the
-messages). The Python side that drives them -- the loop lock, the nodes' state handed in
-and out, the figures read back -- is :mod:`.compiled_loop`.
+"""The composed real-time loop's compiled kernels (``tuner --bench realtime``, the default
+drive) and the words they share with Python (``T_*``: the schedule and its figures;
+``G_*``: the gate; ``EV_*``: the event ring; ``M_*``: the messages). Compiled so that no
+Python thread beside the loop can delay a period start (docs/real-drive.md, "How the
+composed loop runs"); the Python side is :mod:`.compiled_loop`.
 
-Why: the loop run as Python needed the GIL every period, so any Python thread beside it
-could delay a period start (docs/real-drive.md, "How the composed loop runs"). This is the
-loop for the simulator composed with the controller, as compiled code like ros2_control's.
-:func:`run_periods` runs period after period, each:
-
-1. wait for the period start (``clock_nanosleep`` on CLOCK_MONOTONIC to the spin margin,
-   then a busy-wait: ``pacing.Pacer``'s schedule, overruns and lateness histogram);
-2. the drive's period (``im_drive_sim.period_kernel.run_period``: latch, model step,
-   state k+1) and its messages into the outbox's rings (``outbox.put_slot``);
-3. the controller's answer (``im_controller.kernel.answer_state``) and its command and
-   internals into the rings;
-4. the drive takes the answer (``period_kernel.take_command``): fresh for the next period;
-5. the period's durations into the loop's histograms (``pacing.count_durations``).
-
+:func:`run_periods` runs period after period, each: wait for the start
+(``loop_clock.wait_start``: sleep to the spin margin, then busy-wait); the drive's period
+(``period_kernel.run_period``) and its messages into the outbox's rings; the controller's
+answer (``im_controller.kernel.answer_state``) into the rings; the drive takes the answer
+(``period_kernel.take_command``); the durations into the histograms.
 :func:`run_hardware_periods` is the same loop around a user's power stage called by
 address (``im_drive_sim.hardware_period``).
 
-What needs Python comes to the loop through shared words, never through the GIL:
-
-* a thread that reads or changes the state the loop runs on (gains, an experiment's
-  start, a fault reset, a safe stop) enters the loop lock (``compiled_loop.LoopGate``):
-  the loop parks between two periods (``gate[G_WANT]``, ``gate[G_PARKED]``), the nodes
-  take their state back for the thread's turn, and the loop goes on with it;
-* an experiment's end goes into an event ring (status, step, the runner's words) that
-  the serving thread hands to the controller (``RealtimeBench._service``);
-* a stop: ``gate[G_STOP]`` (``im_drive_sim.stop_signal``'s watcher sets it on SIGINT or
-  SIGTERM, without the GIL, or on the tuner's stop request), and the loop zeroes the
-  current from its next period (``period_kernel.safe_stop``);
-* the drive's stall test hook: the loop sleeps it itself.
+What needs Python comes through shared words, never the GIL: a thread's turn at the
+nodes' state parks the loop between two periods (``G_WANT``, ``G_PARKED``:
+``compiled_loop.LoopGate``); an experiment's end goes into an event ring the serving
+thread hands to the controller; ``G_STOP`` (set by ``im_drive_sim.stop_signal`` on SIGINT
+or SIGTERM) zeroes the current from the next period.
 """
 
 from __future__ import annotations
@@ -58,8 +41,6 @@ from im_drive_sim.loop_clock import (
 )
 from im_drive_sim.outbox import R_HEAD, put_slot
 from im_drive_sim.pacing import count_durations
-
-__all__ = ['run_hardware_periods', 'run_periods']
 
 # -- the words of T (int64): the schedule's first (im_drive_sim.loop_clock), then the loop's
 T_EXIT = N_CLOCK + 0  #: why the last call returned (EXIT_*)

@@ -1,27 +1,20 @@
 """The composed real-time bench: a drive and the controller in ONE process, one loop.
 
-Why: a Python controller in its own process, woken by DDS, cannot hold 5 kHz
+A Python controller in its own process, woken by DDS, cannot hold 5 kHz
 (docs/real-drive.md); ros2_control loads controllers into the process that owns the
-hardware for the same reason. Here both stay separate rclpy nodes -- their own topics,
-parameters and services on the graph, the same classes as ``drive_sim``/``example_drive``
-and ``controller`` -- composed into one process (as rclcpp_components does), and a
-real-time loop runs them in its own thread, every Ts = 200 us on the wall clock
-(:class:`pacing.Pacer`), as ros2_control_node runs its update loop. The loop thread does
-only a period's control work (compiled with the simulator: :mod:`.compiled_loop`; other
-drives: :meth:`RealtimeBench.step`), what the nodes publish going to an
-:class:`im_drive_sim.outbox.Outbox`; publisher threads publish it (:mod:`.loop_routes`); the
-serving thread (:meth:`RealtimeBench.spin_until`) serves requests, results, the recorder and
-the garbage collector. The threads in full: docs/real-drive.md, "How the composed loop runs".
+hardware for the same reason. Both stay rclpy nodes (the classes of ``drive_sim`` /
+``example_drive`` / a user's drive, :func:`.drive_spec.make_drive`, and ``controller``),
+composed into this process; a real-time thread runs their periods every Ts on the wall
+clock (:class:`pacing.Pacer`), compiled with the simulator or a power stage given by
+address (:mod:`.compiled_loop`), else :meth:`RealtimeBench.step`. What the nodes publish
+goes to an outbox that publisher threads empty (:mod:`.loop_routes`); the serving thread
+(:meth:`RealtimeBench.spin_until`) serves requests, results, the recorder and the garbage
+collector. The threads in full: docs/real-drive.md, "How the composed loop runs".
 
-The drive side is pluggable: the simulator (the default), the example drive, a user's
-library or class (:func:`.drive_spec.make_drive`; the forms: :mod:`.drive_spec`).
-
-Python's own jitter is kept out of the loop: the loop itself allocates nothing per period
-(timings go into preallocated arrays), logs nothing, and the garbage collector is frozen at
-start (``gc.freeze``) and run by hand in the serving thread; the interpreter's thread
-switch interval is lowered to :data:`SWITCH_INTERVAL` while the loop runs, so a thread
-holding the GIL gives it up within tens of microseconds when the loop wakes.
-:meth:`RealtimeBench.timing` reports the per-period work against the 200 us budget.
+Python's jitter is kept out of the loop: it allocates and logs nothing per period, the
+garbage collector is frozen at start and run by hand in the serving thread, and the
+thread switch interval is lowered (:data:`SWITCH_INTERVAL`) so a thread holding the GIL
+gives it up soon after the loop wakes. :meth:`RealtimeBench.timing` reports the periods.
 """
 
 from __future__ import annotations
@@ -33,6 +26,7 @@ import os
 import sys
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from typing import Any
 
@@ -77,17 +71,6 @@ class DriveLoopError(BenchFailure):
     """The real-time loop raised (a hardware class's read/write, a node's period): the
     drive was safe-stopped and the loop runs no more; the run ends as a bench failure
     (the message says where)."""
-
-
-def _where(exc: BaseException) -> str:
-    """``file:line in function`` of the innermost frame of ``exc``'s traceback."""
-    tb = exc.__traceback__
-    if tb is None:
-        return 'unknown'
-    while tb.tb_next is not None:
-        tb = tb.tb_next
-    code = tb.tb_frame.f_code
-    return f'{code.co_filename}:{tb.tb_lineno} in {code.co_name}'
 
 
 def _precise_sleep() -> None:
@@ -190,12 +173,8 @@ class RealtimeBench:
         self._quit = False
         self._thread = threading.Thread(target=self._loop_main, name='rt-loop', daemon=True)
         ts = float(ctl.Ts)
-        self.pacer = Pacer(
-            ts,
-            min(LOOP_SPIN_MARGIN, float(getattr(drv, 'spin_margin', LOOP_SPIN_MARGIN))),
-            # a drive that cannot pause: late starts are periods held (docs/real-drive.md)
-            wall_clock=bool(getattr(drv, 'wall_clock', False)),
-        )
+        # a drive that cannot pause (wall_clock): late starts are periods held
+        self.pacer = Pacer(ts, min(LOOP_SPIN_MARGIN, drv.spin_margin), drv.wall_clock)
         # per-period timings [us], over the whole run in fixed memory: the drive's period
         # (state k published), the controller's answer, the whole period's work, and how
         # late the period started
@@ -243,16 +222,14 @@ class RealtimeBench:
         drv.take_commands()
         #: the simulator's periods compiled (after the recorder's tap rings were made)
         self.compiled: CompiledPeriods | None = None
-        if compiled and callable(getattr(drv, 'period_words', None)):
-            # the simulator's model, or a power stage given by address (a C library, a
-            # compiled class); a Python hardware class runs its periods as Python
-            kind: type[CompiledPeriods] | None = CompiledPeriods
-            if getattr(drv, 'sim', None) is None:
-                entry = getattr(drv, 'hardware_entry', None)
-                kind = CompiledHardwarePeriods if callable(entry) and entry() else None
-            if kind is not None:
-                self.compiled = kind(drv, ctl, self.outbox, self.durations, self.pacer, self.lock)
-                self.compiled.warm_up()
+        # the simulator's model, or a power stage given by address (a C library, a
+        # compiled class); a Python hardware class runs its periods as Python
+        kind: type[CompiledPeriods] | None = CompiledPeriods if compiled else None
+        if compiled and getattr(drv, 'sim', None) is None:  # (an ExampleDrive)
+            kind = CompiledHardwarePeriods if drv.hardware_entry() else None
+        if kind is not None:
+            self.compiled = kind(drv, ctl, self.outbox, self.durations, self.pacer, self.lock)
+            self.compiled.warm_up()
         self.publishers = PublisherThread.per_channel(self.outbox)
         # one serving round now: the first of each is slow (an executor's first spin, the
         # first status), never beside a live loop
@@ -293,9 +270,11 @@ class RealtimeBench:
                     self.safe_stop()
         except BaseException as exc:
             self.safe_stop()  # an exception in the loop: zero current before anything else
+            at = traceback.extract_tb(exc.__traceback__)[-1]  # the innermost frame
             self.failed = DriveLoopError(
                 f'the real-time loop stopped on {type(exc).__name__}: {exc} (in '
-                f'{_where(exc)}); zero current and zero load were written to the drive'
+                f'{at.filename}:{at.lineno} in {at.name}); zero current and zero load were '
+                'written to the drive'
             )
             self.failed.__cause__ = exc
 
@@ -456,9 +435,7 @@ class RealtimeBench:
         :meth:`destroy` (the run's end, a failure)."""
         with getattr(self, 'lock', None) or LoopGate():
             self.safe_stopped = True
-            stop = getattr(self.drive, 'safe_stop', None)
-            if callable(stop):
-                stop()
+            self.drive.safe_stop()
 
     def stop_loop(self, timeout: float = 2.0) -> None:
         """Zero current, then end the loop thread (idempotent). The loop is told to quit
@@ -519,9 +496,7 @@ class RealtimeBench:
         """Zero current to the drive and close its hardware first, then the nodes."""
         try:
             self.stop_loop()
-            close = getattr(self.drive, 'close_hardware', None)
-            if callable(close):
-                close()
+            self.drive.close_hardware()
         finally:
             gc.enable()
             gc.unfreeze()

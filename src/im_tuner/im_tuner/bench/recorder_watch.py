@@ -142,13 +142,7 @@ def recorder_subscribed(
     """Does a recorder subscribe to every topic of ``topics``? ``ignore``: GIDs of a dead
     recorder's subscriptions, which stay on the graph until its DDS lease runs out
     (about a second): a replacement must not be taken for ready on them."""
-    for t in topics:
-        if not any(
-            i.node_name == 'recorder' and bytes(i.endpoint_gid) not in ignore
-            for i in node.get_subscriptions_info_by_topic(t)
-        ):
-            return False
-    return True
+    return all(recorder_endpoints(node, [t]) - ignore for t in topics)
 
 
 def stop_recorder(p: subprocess.Popen, bag: Path | None, warn: Callable[[str], None]) -> int:

@@ -12,7 +12,7 @@ import os
 import shutil
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from im_drive_sim.cli import UsageError, check_ros_args
 from im_drive_sim.drive_file import load_config
@@ -88,6 +88,7 @@ class _Bag:
     ends the bench."""
 
     def __init__(self, cli: SimulatorOptions, prog: str) -> None:
+        self.prog = prog
         self.out = None if cli.no_record else Path(cli.out or default_out_dir(prefix=prog))
         # what this run creates (the bag and any missing parents): removed again if a
         # child refuses its configuration at start (exit 2), so a refusal leaves nothing
@@ -111,6 +112,14 @@ class _Bag:
     def remove(self) -> None:
         if self.made is not None and self.made.exists():
             shutil.rmtree(self.made, ignore_errors=True)  # refused at start: holds nothing
+
+    def interrupted(self) -> NoReturn:
+        """A signal while the bench starts: end now (numba's compile can take tens of
+        seconds under load, and an exception raised in its callbacks is swallowed); the
+        bag begun holds nothing of a run yet: removed."""
+        self.remove()
+        os.write(2, f'{self.prog}: interrupted\n'.encode())
+        os._exit(130)
 
 
 def main(args: list[str] | None = None) -> int:
@@ -144,12 +153,7 @@ def main(args: list[str] | None = None) -> int:
 
     def _on_signal(_signum: int) -> None:
         if bench is None:
-            # still starting, a simulation: end now (numba's compile can take tens of
-            # seconds under load, and an exception raised in its callbacks is swallowed);
-            # the bag it began holds nothing of a run yet: removed
-            host.remove()
-            os.write(2, b'sim_bench: interrupted\n')
-            os._exit(130)
+            host.interrupted()  # still starting, a simulation
         if isinstance(bench, InProcess):
             bench.bench.stop_requested = True
 
@@ -186,8 +190,3 @@ def main(args: list[str] | None = None) -> int:
     if code == 2 and cli.processes:
         host.remove()
     return code
-
-
-if __name__ == '__main__':
-    os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
-    sys.exit(main())

@@ -32,13 +32,6 @@ if TYPE_CHECKING:
     from ..runlog import Record, RunConfig
     from ..tuner_args import TunerOptions
 
-__all__ = [
-    'BenchPlan',
-    'BenchSpec',
-    'next_experiment_id',
-    'recording_options',
-    'tuner_bench_spec',
-]
 
 #: the children's console output off: they log to /rosout (recorded) and their log files
 QUIET_LOGS = ('--ros-args', '--disable-stdout-logs')

@@ -14,9 +14,6 @@ workers.
 
 The statistics (normalised loss, satisfactory runs, intervals): docs/reproduction.md.
 
-Each module's docstring says its job; ``drives`` and ``plant`` what ``--drives`` and
-``--plant`` do.
-
 This package imports nothing itself, so that ``python -m im_tuner.study`` with a bad
 option refuses at once.
 """

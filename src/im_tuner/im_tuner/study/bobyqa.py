@@ -2,24 +2,19 @@
 (Cartis et al., "Improving the flexibility and robustness of model-based derivative-free
 optimization solvers", ACM TOMS 2019), not a tuner algorithm.
 
-``pybobyqa.solve`` calls its objective itself and cannot be stopped after one
-evaluation, while the study's run (the tuner's ``TuningRun``) asks for one candidate at a
-time.  :class:`BobyqaRun` joins the two: the solver runs in a thread whose objective
-hands each point to :meth:`BobyqaRun.ask` and waits for its measured loss from
-:meth:`BobyqaRun.tell_measurement`; exactly one side runs at a time.  The run is then
-measured by the same machinery as every other row: the reference experiment, the budget
-(every evaluation counted, aborted ones included: an aborted experiment is told as its
-penalised loss), the re-measurement and the statistics.
+``pybobyqa.solve`` calls its objective itself, while the study's run (the tuner's
+``TuningRun``) asks for one candidate at a time. :class:`BobyqaRun` joins the two: the
+solver runs in a thread whose objective hands each point to :meth:`BobyqaRun.ask` and
+waits for its loss from :meth:`BobyqaRun.tell_measurement`; one side runs at a time. The
+run is measured as every other row (the reference, the budget counting every evaluation,
+an aborted one told as its penalised loss, the re-measurement, the statistics).
 
-Configuration: parameters normalised to the box [0, 1]^dim (bounds 0 and 1), the
-hand-tuned start, trust-region radius ``rhobeg`` (0.08 of the box), ``maxfun`` = the
-run's budget, ``objfun_has_noise=True`` (the solver's setting for noisy objectives:
-soft restarts instead of stopping when the radius shrinks).  Should the solver still
-return before the budget is spent, it starts again from its best point with the
-remaining budget.  Its random restart directions come from numpy's global generator,
-seeded from the run's optimiser stream when the solver starts: a run is deterministic
-while its process runs one run at a time (the local pool; a Dask worker with
-``--nthreads 1``).
+Configuration: the box normalised to [0, 1]^dim, the hand-tuned start, trust-region
+radius ``rhobeg``, ``maxfun`` = the budget, ``objfun_has_noise=True`` (soft restarts
+instead of stopping when the radius shrinks); a solver that returns early starts again
+from its best point with the remaining budget. Its restart directions come from numpy's
+global generator, seeded from the run's optimiser stream: deterministic while a process
+runs one run at a time (the local pool; a Dask worker with ``--nthreads 1``).
 """
 
 from __future__ import annotations

@@ -52,10 +52,8 @@ def write_outputs(st: StudyStats, out: Path, command: str) -> dict[str, Path]:
     from .text import tables_text
 
     out.mkdir(parents=True, exist_ok=True)
-    paths: dict[str, Path] = {}
-    text = tables_text(st)
-    paths['tables'] = out / 'tables.txt'
-    paths['tables'].write_text(text)
+    paths = {'tables': out / 'tables.txt'}
+    paths['tables'].write_text(tables_text(st))
     paths['tables_csv'] = write_tables_csv(st, out)
     write_starts(st.res, out)
     paths['runs_csv'] = write_runs_csv(st, out)
@@ -103,6 +101,10 @@ def max_jobs() -> int:
     return 4 * (os.cpu_count() or 1)
 
 
+#: the argparse declaration of an option naming a study's directory
+_DIR = {'type': Path, 'metavar': 'DIR'}
+
+
 @dataclass
 class StudyOptions:
     """The study's command line, typed (:mod:`..tuner_args`)."""
@@ -141,7 +143,12 @@ class StudyOptions:
         "'J=x1.5 Rr=x1.3 Lm=x0.85 coulomb=2% delay=2'",
         {'metavar': "'KEY=xF ... coulomb=P% delay=D'"},
     )
-    ripple_limit: str | None = option(S.RIPPLE_LIMIT_HELP, like='ripple_limit')
+    ripple_limit: str | None = option(
+        "every row's standstill-ripple limit, as the tuner's --ripple-limit (default: each "
+        "row's tuner default: 1.5 for safe, off for the others); e.g. --algos spsa,necga "
+        "--ripple-limit 1.5: what the limit costs the paper's algorithms",
+        like='ripple_limit',
+    )
     realism: str | None = option(
         "the drives' realism profile",
         {'choices': tuple(REALISM_PROFILES)},
@@ -197,14 +204,14 @@ class StudyOptions:
     source: Path | None = option(
         're-tabulate an existing study (no new experiments; with --satisfactory); writes '
         'into DIR unless --out',
-        {'type': Path, 'metavar': 'DIR'},
+        _DIR,
         flag='--from',
     )
     beside: Path | None = option(
         "also write beside.md: this study's Tables I-III beside those of the study in DIR "
         "(the same grid, e.g. on another --realism) and the paper's, and the paper's "
         'conclusions on both',
-        {'type': Path, 'metavar': 'DIR'},
+        _DIR,
     )
     quiet: bool = option('no progress line', like='quiet')
 
@@ -405,18 +412,14 @@ def _run(
         cache = tempfile.TemporaryDirectory(prefix='im_tuner_priors_')
         os.environ[PRIOR_CACHE_ENV] = cache.name
     try:
-        if spec is not None and spec.drives:
-            res = _study_drives(cli, spec, out, command)
-            if res is None:
-                return EXIT_USAGE
+        if spec is not None:
+            res = _study_drives(cli, spec, out, command) if spec.drives else _study(cli, spec, out)
             writing = True
-            save_family(res, out)
-        elif spec is not None:
-            res = _study(cli, spec, out, command)
-            if res is None:
-                return EXIT_USAGE
-            writing = True
-            save(res, out)
+            if isinstance(res, FamilyResult):
+                save_family(res, out)
+            else:
+                res.command = command
+                save(res, out)
         assert res is not None
         if isinstance(res, FamilyResult):
             from .summary import compute_family
@@ -435,6 +438,9 @@ def _run(
 
                 paths['beside'] = out / 'beside.md'
                 paths['beside'].write_text(beside_md(st, compute(beside, cli.satisfactory)))
+    except StudyError as exc:  # (the cluster's, or a worker's numeric baseline)
+        print(f'error: study: {exc}', file=sys.stderr)
+        return EXIT_USAGE
     except (KeyboardInterrupt, _Terminated) as exc:
         what = 'terminated' if isinstance(exc, _Terminated) else 'interrupted'
         if writing:
@@ -461,29 +467,22 @@ def _run(
     return 0
 
 
-def _study_drives(
-    cli: StudyOptions, spec: S.StudySpec, out: Path, command: str
-) -> FamilyResult | None:
-    """Each drive's study in turn (``_study``); None after a one-line error."""
+def _study_drives(cli: StudyOptions, spec: S.StudySpec, out: Path, command: str) -> FamilyResult:
+    """Each drive's study in turn (``_study``)."""
     results = []
     for i, (d, sub) in enumerate(zip(spec.drives, drive_dirs(spec.drives), strict=True)):
         if not cli.quiet:
             print(f'study: drive {i + 1}/{len(spec.drives)}: {d}', file=sys.stderr)
-        res = _study(cli, spec.for_drive(d), out / sub, command, check_cluster=i == 0)
-        if res is None:
-            return None
-        results.append(res)
+        results.append(_study(cli, spec.for_drive(d), out / sub, check_cluster=i == 0))
     return FamilyResult(spec, results, command)
 
 
 def _study(
-    cli: StudyOptions,
-    spec: S.StudySpec,
-    out: Path,
-    command: str,
-    check_cluster: bool = True,
-) -> StudyResult | None:
-    """Check the cluster (if any) and run the study; None after a one-line error."""
+    cli: StudyOptions, spec: S.StudySpec, out: Path, check_cluster: bool = True
+) -> StudyResult:
+    """Check the cluster (if any) and run the study; StudyError (one line) if the cluster
+    fails or a worker is off the study's numeric baseline."""
+    where = '' if cli.cluster is None else f'--cluster {cli.cluster}: '
     if cli.cluster is not None and check_cluster:
         try:
             K.wait_for_scheduler(
@@ -493,8 +492,7 @@ def _study(
                 say=lambda text: print(text, file=sys.stderr, flush=True),
             )
         except K.ClusterError as exc:
-            print(f'error: study: --cluster {cli.cluster}: {exc}', file=sys.stderr)
-            return None
+            raise StudyError(f'{where}{exc}') from None
     from . import runs  # the optimisers and the numba kernels: seconds
 
     per_run = spec.budget + 1 + int(spec.remeasure)
@@ -513,7 +511,7 @@ def _study(
             file=sys.stderr,
         )
     try:
-        res = runs.run_study(
+        return runs.run_study(
             spec,
             cli.jobs,
             Progress(per_run, cli.quiet),
@@ -524,14 +522,10 @@ def _study(
         if cli.cluster is None:
             raise
         # the scheduler went away after the check (distributed raises OSError)
-        print(f'error: study: --cluster {cli.cluster}: {exc}'.splitlines()[0], file=sys.stderr)
-        return None
+        raise StudyError(f'{where}{exc}'.splitlines()[0]) from None
     except runs.NumericMismatch as exc:  # a worker off the study's numeric baseline
-        where = f' --cluster {cli.cluster}' if cli.cluster else ''
-        print(f'error: study:{where} {exc}'.splitlines()[0], file=sys.stderr)
-        return None
-    res.command = command
-    return res
+        at = f'--cluster {cli.cluster} ' if cli.cluster else ''
+        raise StudyError(f'{at}{exc}'.splitlines()[0]) from None
 
 
 if __name__ == '__main__':

@@ -9,6 +9,7 @@ import numpy as np
 
 from .spec import PAPER_ALGOS
 from .stats import FAST_LEVEL, PAPER_CELL, StudyStats
+from .summary import GOAL as DEFAULT_GOAL
 from .text import ALGO_NAME, STATS
 
 
@@ -125,8 +126,9 @@ def fig_convergence(st: StudyStats):
     return fig
 
 
-#: The goal for a real-bench default (drawn on the comparison figure).
-GOAL = {'remeasured': 0.46, 'evals': 3.0, 'fast': 25.0, 'aborted_per_run': 1.0}
+#: The goal for a real-bench default (drawn on the comparison figure): the default's
+#: (``summary.GOAL``), the re-measured loss as a level.
+GOAL = {'remeasured': 0.46, **{k: DEFAULT_GOAL[k] for k in ('evals', 'fast', 'aborted_per_run')}}
 
 
 def fig_comparison(st: StudyStats):

@@ -9,7 +9,14 @@ import numpy as np
 
 from . import spec as S
 from .plant import plant_line, plants_line
-from .stats import EXPERIMENT_S, FAST_LEVEL, PAPER_US_PER_ITERATION, StudyStats, _fmt_iv
+from .stats import (
+    EXPERIMENT_S,
+    FAST_LEVEL,
+    PAPER_US_PER_ITERATION,
+    CellStats,
+    StudyStats,
+    _fmt_iv,
+)
 from .text import (
     ALGO_NAME,
     STATS,
@@ -26,32 +33,35 @@ if TYPE_CHECKING:
 
 
 # -- reproduction.md ------------------------------------------------------------------------------
+def _md_rows(head: list[str], rows: list[list[str]]) -> list[str]:
+    """A Markdown table, then an empty line."""
+    return [
+        '| ' + ' | '.join(head) + ' |',
+        '|---' * len(head) + '|',
+        *('| ' + ' | '.join(r) + ' |' for r in rows),
+        '',
+    ]
+
+
 def _md_table(
     st: StudyStats, stat: str, d: int, other: tuple[str, StudyStats] | None = None
 ) -> list[str]:
     """Table ``stat`` of the paper's grids; with ``other`` = (name, stats of another
     study of the same grid), each cell also gives that study's value."""
+
+    def cell(c: CellStats) -> str:
+        notes = []
+        if other is not None:
+            oc = other[1].cell(c.cell.algo, c.cell.row, c.cell.col)
+            ov = '-' if oc is None else _fmt_iv(getattr(oc, stat), d, '-').split(' [')[0]
+            notes.append(f'{other[0]} {ov}')
+        if paper := _paper(c, stat, d, 'paper {}'):
+            notes.append(paper)
+        return _fmt_iv(getattr(c, stat), d, '-') + (f' ({"; ".join(notes)})' if notes else '')
+
     L = []
-    for algo, rows, cols, by in _grids(st):
-        L.append(f'| {ALGO_NAME[algo]} | ' + ' | '.join(cols) + ' |')
-        L.append('|---' * (len(cols) + 1) + '|')
-        for i, rl in enumerate(rows):
-            cells = []
-            for j in range(len(cols)):
-                c = by[(i, j)]
-                notes = []
-                if other is not None:
-                    oc = other[1].cell(algo, c.cell.row, c.cell.col)
-                    ov = '-' if oc is None else _fmt_iv(getattr(oc, stat), d, '-').split(' [')[0]
-                    notes.append(f'{other[0]} {ov}')
-                p = _paper(c, stat, d)
-                if p:
-                    notes.append(f'paper {p}')
-                cells.append(
-                    _fmt_iv(getattr(c, stat), d, '-') + (f' ({"; ".join(notes)})' if notes else '')
-                )
-            L.append(f'| {rl} | ' + ' | '.join(cells) + ' |')
-        L.append('')
+    for algo, cols, rows in _grids(st):
+        L += _md_rows([ALGO_NAME[algo], *cols], [[rl, *map(cell, cs)] for rl, cs in rows])
     return L
 
 
@@ -292,15 +302,6 @@ def reproduction_md(st: StudyStats, command: str, figures: dict[str, str]) -> st
 
 
 # -- the study over drives (reproduction-family.md) ------------------------------------------------
-def _md_rows(head: list[str], rows: list[list[str]]) -> list[str]:
-    return [
-        '| ' + ' | '.join(head) + ' |',
-        '|---' * len(head) + '|',
-        *('| ' + ' | '.join(r) + ' |' for r in rows),
-        '',
-    ]
-
-
 def family_md(fs: FamilyStats, command: str, figures: dict[str, dict[str, str]]) -> str:
     """The study over drives: each drive's comparison (one row per method), the summary
     over the drives and whether the default meets its goal (``summary.GOAL``) on each.  ``figures``:

@@ -257,8 +257,9 @@ def told_name(spec: StudySpec) -> str:
 
 
 def plant_name(spec: StudySpec) -> str:
-    """The plant's drive: ``--plant``'s, else the told drive's."""
-    return spec.plant[0] if spec.plant else told_name(spec)
+    """The plant: ``--plant``'s drive, else the told drive's, with its mismatch."""
+    name = spec.plant[0] if spec.plant else told_name(spec)
+    return f'{name} with {mismatch_text(spec.mismatch)}' if spec.mismatch else name
 
 
 def plants_line(drives: list[tuple[str, StudySpec]]) -> str | None:
@@ -269,11 +270,7 @@ def plants_line(drives: list[tuple[str, StudySpec]]) -> str | None:
         return None
     return (
         'the plant is not the drive the tuner is told: '
-        + '; '.join(
-            f'told {n}, plant {plant_name(sp)}'
-            + (f' with {mismatch_text(sp.mismatch)}' if sp.mismatch else '')
-            for n, sp in split
-        )
+        + '; '.join(f'told {n}, plant {plant_name(sp)}' for n, sp in split)
         + " (each drive's losses normalised by its hand-tuned start on the plant)"
     )
 
@@ -283,12 +280,10 @@ def plant_line(spec: StudySpec, l_ref: float, l_ref_told: float | None) -> str |
     ``plant: im7500w-j10 with J x1.5, ...; the tuner told im7500w-j10 (...)``."""
     if not spec.plant and not spec.mismatch:
         return None
-    text = f'plant: {plant_name(spec)}'
-    if spec.mismatch:
-        text += f' with {mismatch_text(spec.mismatch)}'
-    text += (
-        f'; the tuner told {told_name(spec)} (its experiment, search box, start and '
-        'model for the first step); L_ref is the hand-tuned start on the plant'
+    text = (
+        f'plant: {plant_name(spec)}; the tuner told {told_name(spec)} (its experiment, '
+        'search box, start and model for the first step); L_ref is the hand-tuned start on '
+        'the plant'
     )
     if l_ref_told is not None and l_ref_told > 0.0:
         text += f', {l_ref / l_ref_told:.3f} x its {l_ref_told:.5f} on the told drive'

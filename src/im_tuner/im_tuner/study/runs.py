@@ -36,22 +36,10 @@ from ..runlog import Evaluation, MemoryRecord, Record, Reference, Remeasurement
 from ..runlog.ripple import ripple_summary
 from ..space import SearchSpace, TunerParams
 from ..tuning import DEFAULT_RETRIES, TuningRun, run_seeds
-from .results import StudyResult, empty_runs, load, save
+from .bobyqa import BobyqaRun
+from .results import StudyResult, empty_runs
 from .spec import REF_EXPERIMENTS, Cell, StudySpec, default_jobs
 from .worker import WORKER, init_pool_worker, init_worker
-
-__all__ = [
-    'RunResult',
-    'StudyResult',
-    'StudySpec',
-    'load',
-    'reference_loss',
-    'run_one',
-    'run_seed',
-    'run_study',
-    'save',
-    'start_point',
-]
 
 
 def run_seed(seed: int, r: int) -> int:
@@ -118,8 +106,6 @@ def prepare_run(
     space = dataclasses.replace(params.space, start=start_point(kind, rseed, params.space))
     opt: Any
     if cell.algo == 'bobyqa':  # the outside reference row (not a tuner algorithm)
-        from .bobyqa import BobyqaRun
-
         opt = BobyqaRun(space.dim, opt_ss, space.start_u, spec.budget, **cell.opts)
     else:
         first: Any = None
@@ -202,9 +188,8 @@ def run_one(
     try:
         outcome = tuning.run(bench)
     finally:
-        close = getattr(opt, 'close', None)  # (BobyqaRun: its solver thread)
-        if close is not None:
-            close()
+        if isinstance(opt, BobyqaRun):
+            opt.close()  # its solver thread
     wall = time.perf_counter() - t0
     if outcome != 'done':
         raise RuntimeError(f'study run {cell.label} #{r}: {outcome}')

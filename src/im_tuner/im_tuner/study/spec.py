@@ -357,14 +357,6 @@ class StudySpec:
         return (self.setup() if setup is None else setup).params
 
 
-#: ``study --ripple-limit``'s help
-RIPPLE_LIMIT_HELP = (
-    "every row's standstill-ripple limit, as the tuner's --ripple-limit (default: each "
-    "row's tuner default: 1.5 for safe, off for the others); e.g. --algos spsa,necga "
-    "--ripple-limit 1.5: what the limit costs the paper's algorithms"
-)
-
-
 def default_jobs() -> int:
     """Every core this process may use."""
     try:

@@ -32,17 +32,15 @@ _PAPER_GRID: dict[tuple[str, int], tuple[tuple[float, int, int], ...]] = {
     ('spsa', 2): ((0.97, 44, 46), (0.84, 90, 23), (0.83, 78, 25)),
     ('necga', 0): ((0.85, 90, 36), (0.70, 92, 25), (0.72, 85, 28)),
 }
-#: The same by statistic: statistic -> (algo, row, col) -> value.
+#: The same by statistic (a CellStats attribute): statistic -> (algo, row, col) -> value.
 PAPER: dict[str, dict[tuple[str, int, int], float]] = {
     stat: {
         (algo, row, col): values[i]
         for (algo, row), columns in _PAPER_GRID.items()
         for col, values in enumerate(columns)
     }
-    for i, stat in enumerate(('final', 'satisfactory_pct', 'iterations'))
+    for i, stat in enumerate(('final', 'satisfactory', 'iterations'))
 }
-#: The key in PAPER of each statistic (a CellStats attribute) the paper gives.
-_PAPER_OF = {'final': 'final', 'satisfactory': 'satisfactory_pct', 'iterations': 'iterations'}
 #: The paper's own configuration of each algorithm (the centre of its grid).
 PAPER_CELL: dict[str, tuple[int, int]] = {'spsa': (1, 1), 'necga': (0, 1)}
 #: The paper's optimiser time per iteration [us] (dSPACE 1104, 5 parameters x 16 bits).
@@ -108,10 +106,7 @@ class CellStats:
 
     def paper(self, stat: str) -> float | None:
         """The paper's value of statistic ``stat`` (an attribute) in this cell; None: none."""
-        key = _PAPER_OF.get(stat)
-        return (
-            None if key is None else PAPER[key].get((self.cell.algo, self.cell.row, self.cell.col))
-        )
+        return PAPER.get(stat, {}).get((self.cell.algo, self.cell.row, self.cell.col))
 
 
 @dataclass

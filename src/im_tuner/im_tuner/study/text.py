@@ -44,28 +44,28 @@ def no_intervals_note(runs: int) -> str:
 
 
 # -- text -----------------------------------------------------------------------------------------
-def _paper(c: CellStats, stat: str, d: int) -> str:
+def _paper(c: CellStats, stat: str, d: int, form: str = '{}') -> str:
+    """The paper's value of ``stat`` in ``c``'s cell, put in ``form`` ('': none)."""
     v = c.paper(stat)
-    return '' if v is None else (f'{v:.2f}' if d == 3 else f'{v:.0f}')
+    return '' if v is None else form.format(f'{v:.2f}' if d == 3 else f'{v:.0f}')
 
 
-def _grids(
-    st: StudyStats,
-) -> list[tuple[str, list[str], list[str], dict[tuple[int, int], CellStats]]]:
-    """(algo, row labels, column labels, (row, col) -> stats) per algorithm."""
+def _grids(st: StudyStats) -> list[tuple[str, list[str], list[tuple[str, list[CellStats]]]]]:
+    """Tables I-III's grids: (algo, column labels, [(row label, the row's cells)]) per
+    algorithm of the paper (SPSA: a down, c across; neCGA: n across)."""
     out = []
     for algo in st.res.spec.algos:
         if algo not in S.PAPER_ALGOS or not st.res.spec.full_grid:
-            continue  # Tables I-III: the paper's two algorithms on their grids
+            continue
         cs = [c for c in st.cells if c.cell.algo == algo]
-        by = {(c.cell.row, c.cell.col): c for c in cs}
+        top = [c.cell.label.split() for c in cs if c.cell.row == 0]
         if algo == 'spsa':
-            rows = [c.cell.label.split()[0] for c in cs if c.cell.col == 0]
-            cols = [c.cell.label.split()[1] for c in cs if c.cell.row == 0]
+            cols = [words[1] for words in top]
+            labels = [c.cell.label.split()[0] for c in cs if c.cell.col == 0]
         else:
-            rows = ['eta=n/2']
-            cols = [c.cell.label.split()[0] for c in cs]
-        out.append((algo, rows, cols, by))
+            cols, labels = [words[0] for words in top], ['eta=n/2']
+        rows = [(rl, [c for c in cs if c.cell.row == i]) for i, rl in enumerate(labels)]
+        out.append((algo, cols, rows))
     return out
 
 
@@ -208,18 +208,14 @@ def tables_text(st: StudyStats) -> str:
     ]
     for stat, title, d in STATS if sp.paper_tables else ():
         L.append(title)
-        for algo, rows, cols, by in _grids(st):
-            w = 24
-            L.append(f'  {ALGO_NAME[algo]:<12}' + ''.join(f'{c:<{w + 7}}' for c in cols))
-            for i, rl in enumerate(rows):
-                line = f'  {rl:<12}'
-                for j in range(len(cols)):
-                    c = by[(i, j)]
-                    iv = getattr(c, stat)
-                    p = _paper(c, stat, d)
-                    cell = _fmt_iv(iv, d, '-') + (f' | {p}' if p else '')
-                    line += f'{cell:<{w + 7}}'
-                L.append(line.rstrip())
+        for algo, cols, rows in _grids(st):
+            L.append(f'  {ALGO_NAME[algo]:<12}' + ''.join(f'{c:<31}' for c in cols))
+            for rl, cs in rows:
+                cells = ''.join(
+                    f'{_fmt_iv(getattr(c, stat), d, "-") + _paper(c, stat, d, " | {}"):<31}'
+                    for c in cs
+                )
+                L.append(f'  {rl:<12}{cells}'.rstrip())
         L.append('')
     L.append(comparison_text(st))
     notes = [c for c in st.cells if c.no_final]

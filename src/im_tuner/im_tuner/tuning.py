@@ -272,9 +272,14 @@ class TuningRun:
         tally(self.state, rec, self.satisfactory)
 
     def _give_first(self) -> None:
-        """safe's first step from the start's measurements, when it wants one now."""
-        if self.first_step is not None and self.opt.wants_first:
+        """safe's first step from the start's measurements, when it wants one now, and
+        then the abort screen of the drive they identify."""
+        if self.first_step is None:
+            return
+        if self.opt.wants_first:
             self.opt.set_first(self.first_step(self.records))
+        if self.opt.wants_screen:
+            self.opt.screen = self.first_step.screen(self.records)
 
     def checkpoint(self) -> None:
         """Write checkpoint.json: the optimiser and the counters after the records so far

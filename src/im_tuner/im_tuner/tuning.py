@@ -474,6 +474,8 @@ class TuningRun:
         if self.first_step is not None:
             idf = self.first_step.identified(self.records)
             s.identification = None if idf is None else dataclasses.asdict(idf)
+            if self.opt.screen is not None:
+                s.screened = self.opt.screened
             m = self.first_step.drive.machine
             rated = m.rated_torque / m.Kt
         if s.ripple is not None and rated is not None:  # for a percentage

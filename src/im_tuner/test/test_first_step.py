@@ -16,6 +16,7 @@ from im_tuner.first_step import IdentifiedFirstStep
 from im_tuner.offline import OfflineBench
 from im_tuner.optim import Optimizer, OptimizerError, make_optimizer
 from im_tuner.prior import RIPPLE_MARGIN, identified_model, model_prior
+from im_tuner.progress import mechanics_lines
 from im_tuner.rundir import RunDir
 from im_tuner.runlog import MemoryRecord
 from im_tuner.runlog.ripple import LIMIT_KEYS, RIPPLE_TOLERANCE, ripple_bound, told_loss
@@ -176,6 +177,9 @@ def test_a_run_on_a_plant_with_twice_the_files_inertia(tmp_path):
     idf = s.identification
     assert idf is not None and idf['experiments'] == 2 and idf['J_file'] == m.J
     assert abs(idf['J'] / (2.0 * m.J) - 1.0) < 0.03  # the plant's, not the file's
+    # the abort screen ran on evaluation 3's candidate (named nothing here)
+    assert s.screened == run.opt.screened == 0 and run.opt.screen.experiments >= 2
+    assert 'abort screen: 0 candidate(s)' in '\n'.join(mechanics_lines(s))
     # evaluation 2 is the identified model's point, not the file's model's
     first = run.first_step.prior
     assert first is not None

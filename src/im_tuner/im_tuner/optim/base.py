@@ -298,6 +298,8 @@ class Optimizer(ABC):
     #: a model's prediction of a candidate (u -> True: it would abort), given by the
     #: tuning loop when :attr:`wants_screen`; not state (the loop gives it again on resume)
     screen: Callable[[list[float]], bool] | None = None
+    #: candidates the screen named (learnt as aborted, not measured)
+    screened: int = 0
 
     @property
     def wants_screen(self) -> bool:

@@ -8,6 +8,7 @@ Deterministic in the records, so a resumed run asks the same point.  Pure.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -15,7 +16,7 @@ from im_controller.config import ExperimentConfig
 from im_drive_sim.params import DriveConfig
 
 from .identify import Identified, identify, start_motions
-from .prior import RIPPLE_MARGIN, Prior, identified_prior
+from .prior import RIPPLE_MARGIN, SCREEN_J, AbortScreen, Prior, identified_prior
 from .space import SearchSpace
 
 
@@ -36,10 +37,28 @@ class IdentifiedFirstStep:
         self._say = say or (lambda _text: None)
         self.ripple_limit = ripple_limit
         self.prior: Prior | None = None  #: the last point's prior (None: none)
+        self._screen: AbortScreen | None = None
+        self._screen_tried = False
 
     def identified(self, records: list[Any]) -> Identified | None:
         """The drive identified from the start's experiments among ``records``."""
         return identify(start_motions(records), self.drive.machine)
+
+    def screen(self, records: list[Any]) -> AbortScreen | None:
+        """The abort screen (``prior.AbortScreen``) of the drive identified from the
+        records before the search left the start: the first step's identification, on
+        resume too (None: not identified)."""
+        if not self._screen_tried:
+            self._screen_tried = True
+            idf = self.identified(_before_search(records))
+            if idf is not None:
+                self._screen = AbortScreen(self.drive, self.space, self.experiment, idf)
+                js = ' and '.join(f'{j:g} J' for j in SCREEN_J)
+                self._say(
+                    'abort screen: each candidate runs first on the identified model (at '
+                    f'{js}); one that aborts there is not run on the drive'
+                )
+        return self._screen
 
     def __call__(self, records: list[Any]) -> list[float] | None:
         idf = self.identified(records)
@@ -71,3 +90,19 @@ class IdentifiedFirstStep:
             f'{p.experiments} offline experiments, {p.seconds:.1f} s)'
         )
         return list(p.u)
+
+
+def _before_search(records: list[Any]) -> list[Any]:
+    """``records`` up to the first evaluation whose gains are not the reference's."""
+    ref = next((r for r in records if r.kind == 'reference'), None)
+    if ref is None:
+        return []
+    out = []
+    for r in records:
+        if r.kind == 'eval' and not (
+            r.gains.keys() == ref.gains.keys()
+            and all(math.isclose(r.gains[k], ref.gains[k], rel_tol=1e-9) for k in r.gains)
+        ):
+            break
+        out.append(r)
+    return out

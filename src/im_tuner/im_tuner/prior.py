@@ -424,6 +424,48 @@ def noisy_model(drive: DriveConfig, model: DriveConfig, friction: bool = True) -
     return dataclasses.replace(drive, machine=machine)
 
 
+#: The abort screen: experiments of a candidate from rest on each model, and the models'
+#: J over the identified (the lower one puts the same gains nearer the stability edge)
+SCREEN_EXPERIMENTS = 2
+SCREEN_J = (1.0, 0.85)
+
+
+class AbortScreen:
+    """Whether gains abort on the identified drive: ``SCREEN_EXPERIMENTS`` experiments
+    from rest on :func:`noisy_model` at each J factor of ``SCREEN_J``, True when one
+    aborts.  A fresh bench per call, so the answer is a function of the point (a resumed
+    run is given the same answers).  On the bench profile it named every plant abort of
+    the default's runs (research/NOTES.md, "The abort screen")."""
+
+    def __init__(
+        self,
+        drive: DriveConfig,
+        space: SearchSpace,
+        experiment: ExperimentConfig | None,
+        idf: Identified,
+    ) -> None:
+        model, self.experiment = identified_model(drive, experiment, idf)
+        noisy = noisy_model(drive, model)
+        self.models = tuple(_perturbed(noisy, j, 1.0) for j in SCREEN_J)
+        self.space = space
+        self.experiments = 0  #: offline experiments run so far
+        self.screened = 0  #: points predicted to abort so far
+
+    def __call__(self, u: list[float]) -> bool:
+        x = np.array(u, dtype=np.float64)
+        for m in self.models:
+            bench = _ModelBench(m, self.experiment)
+            for _ in range(SCREEN_EXPERIMENTS):
+                aborted = bench.loss(self.space, x)[1]
+                if aborted:
+                    break
+            self.experiments += bench.experiments
+            if aborted:
+                self.screened += 1
+                return True
+        return False
+
+
 def identified_prior(
     drive: DriveConfig,
     space: SearchSpace,

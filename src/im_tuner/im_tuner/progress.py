@@ -160,6 +160,11 @@ def mechanics_lines(s: Summary) -> list[str]:
             f'+- {i["Kt_sd"]:.2g} N m/A (file {i["Kt_file"]:.4g}), B {i["B"]:.3g} N m s/rad, '
             f'Tc {i["Tc"]:.3g} +- {i["Tc_sd"]:.2g} N m'
         )
+    if s.screened is not None:
+        L.append(
+            f'  abort screen: {s.screened} candidate(s) predicted to abort on the identified '
+            'model, not run on the drive'
+        )
     r = s.ripple
     if r:
         rated = r.get('rated_isq_a')

@@ -272,9 +272,14 @@ class TuningRun:
         tally(self.state, rec, self.satisfactory)
 
     def _give_first(self) -> None:
-        """safe's first step from the start's measurements, when it wants one now."""
-        if self.first_step is not None and self.opt.wants_first:
+        """safe's first step from the start's measurements, when it wants one now, and
+        then the abort screen of the drive they identify."""
+        if self.first_step is None:
+            return
+        if self.opt.wants_first:
             self.opt.set_first(self.first_step(self.records))
+        if self.opt.wants_screen:
+            self.opt.screen = self.first_step.screen(self.records)
 
     def checkpoint(self) -> None:
         """Write checkpoint.json: the optimiser and the counters after the records so far
@@ -469,6 +474,8 @@ class TuningRun:
         if self.first_step is not None:
             idf = self.first_step.identified(self.records)
             s.identification = None if idf is None else dataclasses.asdict(idf)
+            if self.opt.screen is not None:
+                s.screened = self.opt.screened
             m = self.first_step.drive.machine
             rated = m.rated_torque / m.Kt
         if s.ripple is not None and rated is not None:  # for a percentage

@@ -16,6 +16,7 @@ from im_tuner.first_step import IdentifiedFirstStep
 from im_tuner.offline import OfflineBench
 from im_tuner.optim import Optimizer, OptimizerError, make_optimizer
 from im_tuner.prior import RIPPLE_MARGIN, identified_model, model_prior
+from im_tuner.progress import mechanics_lines
 from im_tuner.rundir import RunDir
 from im_tuner.runlog import MemoryRecord
 from im_tuner.runlog.ripple import LIMIT_KEYS, RIPPLE_TOLERANCE, ripple_bound, told_loss
@@ -176,6 +177,9 @@ def test_a_run_on_a_plant_with_twice_the_files_inertia(tmp_path):
     idf = s.identification
     assert idf is not None and idf['experiments'] == 2 and idf['J_file'] == m.J
     assert abs(idf['J'] / (2.0 * m.J) - 1.0) < 0.03  # the plant's, not the file's
+    # the abort screen ran on evaluation 3's candidate (named nothing here)
+    assert s.screened == run.opt.screened == 0 and run.opt.screen.experiments >= 2
+    assert 'abort screen: 0 candidate(s)' in '\n'.join(mechanics_lines(s))
     # evaluation 2 is the identified model's point, not the file's model's
     first = run.first_step.prior
     assert first is not None
@@ -208,7 +212,7 @@ def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest
     setup = drive_setup('im750w-j1')
     space, m = setup.params.space, setup.drive.machine
     plant = dataclasses.replace(setup.drive, machine=dataclasses.replace(m, J=1.5 * m.J))
-    runs = {}
+    runs, steps = {}, {}
     for name, limit in (('before', None), ('limited', 1.5)):
         said: list[str] = []
         hook = IdentifiedFirstStep(setup.drive, space, setup.experiment, said.append, limit)
@@ -219,8 +223,9 @@ def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest
         )  # fmt: skip
         assert run.run(OfflineBench(plant, 5, setup.experiment)) == 'done'
         runs[name] = run
-        step = said[-1]
+        step = next(x for x in said if x.startswith('first step:'))
         assert step.startswith("first step: the identified model's best point"), said
+        steps[name] = step
         assert ('predicted' in step) == (limit is not None), step
     before, limited = (runs[k].first_step.prior for k in ('before', 'limited'))
     assert before is not None and limited is not None
@@ -228,7 +233,7 @@ def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest
     # predicted within the limit by its margin
     assert 0.9 < limited.ripple_ratio <= 1.5 / (1 + RIPPLE_MARGIN)
     line = f"its standstill rms predicted {limited.ripple_ratio:.2f}x the start's, within "
-    assert line + 'the ripple limit 1.5 by 10%' in said[-1]
+    assert line + 'the ripple limit 1.5 by 10%' in steps['limited']
     # both of the model's best: the quiet one's loss within 2 % of the loud one's there
     assert limited.model_ratio < 1.02 * before.model_ratio
     # the first batch: the start 4 more times in the search, then on each of the two
@@ -253,3 +258,45 @@ def test_with_a_ripple_limit_the_first_step_is_a_quiet_candidate_not_the_loudest
         assert step.loss < 0.5 * start.loss  # a real improvement either way
     assert ratios['before'][0] == pytest.approx(1.57, abs=0.01)
     assert ratios['limited'][0] == pytest.approx(1.37, abs=0.01)
+
+
+def test_a_screened_candidate_is_learnt_as_an_abort_without_being_asked():
+    """The screen (the identified model's abort prediction) is wanted once the start is
+    measured and the first point given; a candidate it names is not asked: the model's
+    data gets the aborted value, the step shrinks as after an abort, ``screened`` counts
+    it (not ``aborts``), and a checkpoint keeps the count; after ``SCREEN_TRIES`` names
+    in a row the incumbent is measured again."""
+    opt = _safe()
+    assert not opt.wants_screen  # (the start not measured yet)
+    opt.tell(opt.ask(), 1.0)
+    assert opt.wants_first and not opt.wants_screen
+    opt.set_first(POINT)
+    assert opt.wants_screen
+    opt.tell(opt.ask(), 0.5)
+    x = opt.x.copy()
+    named: list[list[float]] = []
+
+    def screen(u: list[float]) -> bool:  # the half-space above the incumbent's gain 0
+        if u[0] > x[0]:
+            named.append(u)
+            return True
+        return False
+
+    opt.screen = screen
+    assert not opt.wants_screen
+    sigma, asked = opt.sigma, []
+    for _ in range(12):
+        u = opt.ask()
+        asked.append(u)
+        assert u[0] <= x[0]
+        opt.tell(u, 0.6)  # no better: x stays
+    assert named and opt.screened == len(named) and opt.aborts == 0
+    assert opt.sigma <= sigma * 0.3  # abort_shrink, to the floor SIGMA_MIN
+    assert any(v == 3.0 * opt.f for v in opt._vals)  # ABORT_VALUE x the incumbent's loss
+    twin = Optimizer.from_state(json.loads(json.dumps(opt.state_dict())))
+    assert twin.screened == opt.screened and twin.screen is None and twin.wants_screen
+    # a screen that names every candidate: SCREEN_TRIES of them, then the incumbent
+    opt.screen = lambda u: True
+    before = opt.screened
+    assert opt.ask().tolist() == opt.x.tolist()
+    assert opt.screened - before == opt.SCREEN_TRIES

@@ -295,6 +295,18 @@ class Optimizer(ABC):
         """The model's point asked for by :attr:`wants_first` (None: none)."""
         raise OptimizerError(f'{self.algo} does not take a first point')
 
+    #: a model's prediction of a candidate (u -> True: it would abort), given by the
+    #: tuning loop when :attr:`wants_screen`; not state (the loop gives it again on resume)
+    screen: Callable[[list[float]], bool] | None = None
+    #: candidates the screen named (learnt as aborted, not measured)
+    screened: int = 0
+
+    @property
+    def wants_screen(self) -> bool:
+        """Whether the tuning loop should set :attr:`screen` now (an algorithm that skips
+        candidates its model predicts to abort, once that model is identified)."""
+        return False
+
     def config(self) -> dict[str, Any]:
         return {'algo': self.algo, 'dim': self.dim, 'seed': self._seed_json, **self._settings()}
 

@@ -79,6 +79,9 @@ class SAFE(Optimizer):
     #: points half-way back to the incumbent after a model's point fails (its loss, as
     #: told, not below f; not aborted): its direction is right more often than its length
     FIRST_BACKOFFS: ClassVar[int] = 2
+    #: candidates the screen may turn away in a row before the incumbent is measured
+    #: instead (each one shrinks the step as an abort does)
+    SCREEN_TRIES: ClassVar[int] = 8
     STATE_VERSION: ClassVar[int] = 3
     STATE: ClassVar[tuple[Field, ...]] = (
         Field('x', 'x', _POINT),
@@ -120,6 +123,12 @@ class SAFE(Optimizer):
         return {**self._opts, 'first': list(self._first)}
 
     @property
+    def wants_screen(self) -> bool:
+        """``first='identify'``: the screen of the drive identified for the first step,
+        once the start is measured and the first point given (or none found)."""
+        return self._identify and self.screen is None and self.f_n > 0 and not self.wants_first
+
+    @property
     def wants_first(self) -> bool:
         """``first='identify'`` and the point not given yet, with the start measured:
         the tuner should call :meth:`set_first` before the next ``ask``."""
@@ -155,6 +164,7 @@ class SAFE(Optimizer):
         self.step: np.ndarray | None = None  # last successful step (pattern move)
         self.successes = 0
         self.aborts = 0
+        self.screened = 0  # candidates the screen turned away (not measured)
         self._kind = ''  # 'incumbent' or 'candidate'
         # the local model's data: every measured point and its loss (an aborted
         # candidate with ABORT_VALUE times the incumbent's loss)
@@ -213,6 +223,18 @@ class SAFE(Optimizer):
 
     def _propose(self) -> list[float]:
         y, self._kind = self._next()
+        tries = 0
+        # a candidate the identified model predicts to abort is learnt as an aborted one
+        # without an experiment (research/NOTES.md, "The abort screen")
+        while self._kind == 'candidate' and self.screen is not None and self.screen(y.tolist()):
+            self._update(y.tolist(), math.inf, True)
+            self.aborts -= 1  # (not measured: counted as screened)
+            self.screened += 1
+            tries += 1
+            if tries == self.SCREEN_TRIES:
+                y, self._kind = self.x.copy(), 'incumbent'
+                break
+            y, self._kind = self._next()
         return y.tolist()
 
     def state_dict(self) -> dict[str, Any]:
@@ -221,6 +243,7 @@ class SAFE(Optimizer):
             state['first_left'] = self.first_left
             state['first_back'] = self._back
             state['first_backoffs'] = self._backoffs
+            state['screened'] = self.screened
         if self._identify:
             state['first_point'] = None if self._first is None else list(self._first)
         return state
@@ -270,5 +293,6 @@ class SAFE(Optimizer):
             back = state['first_back']
             self._back = None if back is None else check_first(back, self.dim)
             self._backoffs = int(state['first_backoffs'])
+            self.screened = int(state['screened'])
         if len(self._pts) != len(self._vals) or any(len(q) != self.dim for q in self._pts):
             raise OptimizerError('safe state: points and values do not match')

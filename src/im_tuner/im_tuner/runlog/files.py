@@ -177,6 +177,9 @@ class Summary(_Keyed):
     ripple: dict[str, Any] | None = None
     #: the drive identified from the start's experiments (im_tuner.identify.Identified)
     identification: dict[str, Any] | None = None
+    #: candidates the abort screen kept off the drive (predicted to abort on the
+    #: identified model; ``prior.AbortScreen``); None: no screen
+    screened: int | None = None
     report_command: str | None = None
     what_to_do: list[str] | None = None  #: advice about a failed run, one line each
 

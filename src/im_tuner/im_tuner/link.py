@@ -49,8 +49,6 @@ from im_controller.result import LossResult
 from .names import FAULT_POLICIES, controller_topics
 from .tuning import BenchFailure, LostEvaluation, Measurement, StopRequested
 
-__all__ = ['ControllerLink', 'Heartbeat']
-
 RETRY_PERIOD = 0.02  # [s] between retries of a refused call
 SUPERVISE_PERIOD = 0.2  # [s] between checks of the bench processes
 

@@ -17,17 +17,6 @@ from im_drive_sim.contract import (
     QosSpec,
 )
 
-__all__ = [
-    'DEFAULT_TIMING_TOLERANCE',
-    'DRIVE_HOST_NODE',
-    'FAULT_POLICIES',
-    'HOST_LOOP_TOPICS',
-    'RESULT_QOS',
-    'RESULT_TOPIC',
-    'RESULT_TYPE',
-    'controller_topics',
-]
-
 #: [periods] held or late drive periods an experiment may have and still count, by
 #: default (the tuner's --timing-tolerance, the drive host's): within the bench's own
 #: noise (docs/real-drive.md, "Timing tolerance")

@@ -43,17 +43,6 @@ from .runlog import (
     parse_results,
 )
 
-__all__ = [
-    'CHECKPOINT_FILE',
-    'RESULTS_FILE',
-    'RUN_FILE',
-    'SUMMARY_FILE',
-    'RunDir',
-    'RunDirError',
-    'atomic_write_text',
-    'writer_of',
-]
-
 RUN_FILE = 'run.yaml'
 RESULTS_FILE = 'results.jsonl'
 CHECKPOINT_FILE = 'checkpoint.json'
@@ -284,13 +273,11 @@ class RunDir:
         except OSError as exc:
             raise RunDirError(f'{path}: unreadable ({exc.strerror or exc})') from None
         try:
-            out, end = parse_results(raw)
+            out = parse_results(raw)[0]
         except RecordError as exc:
             raise RunDirError(f'{path}: {exc}') from None
-        if repair and end < len(raw):
-            with open(path, 'r+b') as f:
-                f.truncate(end)
-                os.fsync(f.fileno())
+        if repair:
+            self.cut_torn_tail()
         return out
 
     def cut_torn_tail(self) -> int:

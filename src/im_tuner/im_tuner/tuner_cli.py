@@ -38,6 +38,7 @@ from .tuner_args import RUN_SETTINGS, TunerOptions, default, timing_tolerance
 
 if TYPE_CHECKING:
     from .bench.drive_spec import DriveChoice
+    from .progress import Progress
     from .tuning import TuningRun
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -359,7 +360,7 @@ def _drive_of(drive_config: Any, model: str | None, params: TunerParams) -> tupl
     return drive, params.space, None if setup is None else setup.experiment
 
 
-def _first_step_hook(run: RunConfig, params: TunerParams, progress: Any = None) -> Any:
+def _first_step_hook(run: RunConfig, params: TunerParams, progress: Progress | None = None) -> Any:
     """The run's ``IdentifiedFirstStep`` (safe with first: identify), else None: the
     drive file it names (the packaged default without one) and its experiment."""
     if (run.options or {}).get('first') != 'identify':
@@ -368,7 +369,7 @@ def _first_step_hook(run: RunConfig, params: TunerParams, progress: Any = None) 
 
     return IdentifiedFirstStep(
         *_drive_of(run.drive_config, run.model, params),
-        getattr(progress, 'note', None),
+        None if progress is None else progress.note,
         run.ripple_limit,  # (the first step within the limit the run applies)
     )
 
@@ -427,7 +428,9 @@ def _params_of_run(run: RunConfig) -> TunerParams:
     )
 
 
-def make_tuning(rundir: RunDir, run: RunConfig, params: TunerParams, progress) -> TuningRun:
+def make_tuning(
+    rundir: RunDir, run: RunConfig, params: TunerParams, progress: Progress | None
+) -> TuningRun:
     """The TuningRun of a checked run configuration (a new run's, or run.yaml's)."""
     from .tuning import TuningRun, run_seeds
 

@@ -25,7 +25,7 @@ from .names import DEFAULT_TIMING_TOLERANCE, FAULT_POLICIES
 from .record import live as _live
 from .runlog import RunConfig
 from .runlog.ripple import DEFAULT_RIPPLE_LIMIT, RIPPLE_TOLERANCE
-from .typed_cli import RT, Option, OptionsParser, declared, default_text, option
+from .typed_cli import RT, SHARED, Option, OptionsParser, declared, default_text, option
 
 _RIPPLE_LIMITED = ', '.join(f'`{a}`' for a in optim.ALGOS if a in optim.RIPPLE_LIMITED)
 _OPT_KEYS = '; '.join(
@@ -273,6 +273,7 @@ class TunerOptions:
 OPTIONS: tuple[Option, ...] = declared(TunerOptions)
 #: the settings a resumed run takes from run.yaml (giving them with --resume is an error)
 RUN_SETTINGS: tuple[str, ...] = tuple(o.dest for o in OPTIONS if o.run)
+SHARED.update({o.dest: (o, TunerOptions.__dataclass_fields__[o.dest].default) for o in OPTIONS})
 
 
 def default(dest: str) -> Any:

@@ -40,6 +40,9 @@ class Option:
 
 
 _FROM_DEFAULT = object()
+#: the tuner's options by field name, and each one's value when not given, for ``like``
+#: (filled by :mod:`.tuner_args`, which every executable sharing its options imports)
+SHARED: dict[str, tuple[Option, Any]] = {}
 
 
 def option(
@@ -60,13 +63,11 @@ def option(
     default."""
     arg = {} if arg is None else arg
     if like:
-        from .tuner_args import OPTIONS, TunerOptions
-
-        base = next(o for o in OPTIONS if o.dest == like)
+        base, base_parsed = SHARED[like]
         if isinstance(base.arg, dict) and isinstance(arg, dict):
             arg = {**base.arg, **arg}
         else:
-            arg, parsed = RT, TunerOptions.__dataclass_fields__[like].default
+            arg, parsed = RT, base_parsed
     meta = {'option': Option(flag, help, arg, default, shown, run)}
     action = arg.get('action') if isinstance(arg, dict) else None
     if action == 'append' or (isinstance(arg, dict) and arg.get('nargs') in ('*', '+')):

@@ -71,14 +71,14 @@ class TunerOptions:
     )
     out: Path | None = option(
         'run directory to create (must be new or empty)',
-        {'type': Path, 'metavar': 'DIR'},
+        arg={'type': Path, 'metavar': 'DIR'},
         shown='`bags/tuner_<algo>_<UTC time>`',
     )
     resume: Path | None = option(
         'continue a killed or interrupted run (settings come from its `run.yaml`; the `-p '
         "name:=value` parameters after `--ros-args` of the run's first command apply "
         'again, before any given now)',
-        {'type': Path, 'metavar': 'RUN_DIR'},
+        arg={'type': Path, 'metavar': 'RUN_DIR'},
     )
     bench: str | None = option(
         'where the controller comes from: `auto` (one on the graph, else simulated '
@@ -171,7 +171,7 @@ class TunerOptions:
         're-runs of an evaluation whose result is lost, or marked timing (its experiment '
         "did not run on the paper's timing)",
         {'type': int_in(0), 'metavar': 'R'},
-        3,
+        default=3,
         run=True,
     )
     timing_tolerance: int | str | None = option(

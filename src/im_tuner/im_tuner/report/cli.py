@@ -136,9 +136,9 @@ class ReportOptions:
         {'nargs': '+', 'type': Path, 'metavar': 'BAG_DIR'},
     )
     out: Path | None = option(
-        'where to write',
+        'where to write (default: RUN_DIR/report, or for several runs <parent of the '
+        'first>/compare_<UTC time>)',
         {'type': Path, 'metavar': 'DIR'},
-        shown='RUN_DIR/report, or for several runs <parent of the first>/compare_<UTC time>',
     )
     bag_info: Path | None = option(
         "print one bag's statistics instead, as `ros2 bag info` does, with the recorder's "

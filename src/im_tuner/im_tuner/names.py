@@ -40,7 +40,6 @@ HOST_LOOP_TOPICS = (
 #: ``diagnostic_msgs/DiagnosticArray`` per results.jsonl record as it is appended
 #: (:mod:`im_tuner.result_msg`; docs/interfaces.md, "tuner/result"), recorded in the bag.
 RESULT_TOPIC = 'tuner/result'
-RESULT_TYPE = 'diagnostic_msgs/msg/DiagnosticArray'
 #: Its publisher: reliable KEEP_ALL (every record reaches the recorder, as the other
 #: recorded topics), transient local (a recorder or viewer that joins later gets the
 #: session's records so far; a run's records are a few hundred small messages).

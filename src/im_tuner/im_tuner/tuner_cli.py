@@ -235,7 +235,11 @@ def prepare_run(cli: TunerOptions, argv: list[str]) -> PreparedSession:
         run = rundir.read_config()
         summary = rundir.read_summary()  # one of a newer tuner's format: refused
         _check_run(run, str(rundir.path / 'run.yaml'))
-        params = _params_of_run(run)
+        box = {n: {k: v[k] for k in ('lo', 'hi', 'start')} for n, v in run.search_box.items()}
+        params = parse_params(
+            {'search_box': box, 'satisfactory_loss': run.satisfactory_loss},
+            f'run.yaml ({run.params_file})',
+        )
     if summary is not None and summary.outcome == 'done':
         raise RunFinished(
             f'{rundir.path}: the run is finished ({summary.evaluations} of {run.budget} '
@@ -418,14 +422,6 @@ def _check_run(run: RunConfig, where: str) -> None:
         isinstance(rl, (int, float)) and not isinstance(rl, bool) and 1.0 <= rl < math.inf
     ):
         raise bad('ripple_limit', 'a ratio >= 1 or null (off)')
-
-
-def _params_of_run(run: RunConfig) -> TunerParams:
-    box = {n: {k: v[k] for k in ('lo', 'hi', 'start')} for n, v in (run.search_box or {}).items()}
-    return parse_params(
-        {'search_box': box, 'satisfactory_loss': run.satisfactory_loss},
-        f'run.yaml ({run.params_file})',
-    )
 
 
 def make_tuning(

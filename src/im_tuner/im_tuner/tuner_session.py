@@ -107,13 +107,6 @@ def resume_command(ros2: str, run_dir: Path, cli: TunerOptions) -> str:
     return ' '.join(shlex.quote(w) for w in words)
 
 
-def session_number(sessions: list[dict[str, Any]], records: list[Record]) -> int:
-    """This session's number (0-based): after every session the checkpoint lists and
-    every session a record names (a rebuilt checkpoint lists none)."""
-    named = [r.session + 1 for r in records if isinstance(r.session, int)]
-    return max([len(sessions), *named])
-
-
 def _repair_old_bags(rundir: RunDir, note, current: Path | None) -> None:
     """Bags of killed sessions still say state 'recording': repair them (index, summary,
     metadata.yaml) so that the whole run opens in any reader. ``current``: this session's
@@ -215,7 +208,10 @@ class TunerSession:
                 f'resuming {rundir.path}: {self.n_restored} records, '
                 f'{tuning.state.evals}/{self.run.budget} evaluations done'
             )
-        tuning.session = session_number(tuning.state.sessions, tuning.records)
+        # after every session the checkpoint lists and every session a record names (a
+        # rebuilt checkpoint lists none)
+        named = [r.session + 1 for r in tuning.records if isinstance(r.session, int)]
+        tuning.session = max([len(tuning.state.sessions), *named])
 
     def start(self, link: ControllerLink) -> None:
         """The controller answers: a new run's run.yaml; the session's record; a resumed

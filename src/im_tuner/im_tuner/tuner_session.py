@@ -216,7 +216,7 @@ class TunerSession:
     def start(self, link: ControllerLink) -> None:
         """The controller answers: a new run's run.yaml; the session's record; a resumed
         lock-step run replays its experiments (checked bit for bit)."""
-        from .tuning import replay
+        from .tuning import BenchFailure, LostEvaluation, replay
 
         run, rundir, tuning, progress, plan = (
             self.run,
@@ -226,8 +226,6 @@ class TunerSession:
             self.plan,
         )
         assert rundir is not None and plan is not None
-        from .tuning import BenchFailure, LostEvaluation
-
         try:
             parameters = link.list_parameters()
         except LostEvaluation as exc:  # a controller that does not answer: one line
@@ -396,11 +394,7 @@ class TunerSession:
                 self.live_said = live_line(live)
         if problems and outcome == 'done':
             outcome = f'failed: {problems[0]}'
-        code = EXIT_OK
-        if outcome == 'interrupted':
-            code = EXIT_INTERRUPTED
-        elif outcome != 'done':
-            code = EXIT_FAILED
+        code = {'done': EXIT_OK, 'interrupted': EXIT_INTERRUPTED}.get(outcome, EXIT_FAILED)
         progress.close()
         summary = tuning.summary(outcome=outcome, wall_s=time.monotonic() - t_wall0)
         ros2 = ros2_command()  # (as the user's shell finds it: commands that run as printed)
@@ -415,9 +409,7 @@ class TunerSession:
         if self.live_said:
             print(f'  {self.live_said}', flush=True)
         if code != EXIT_OK:
-            what = 'interrupted:'
-            if code == EXIT_FAILED:
-                what = 'failed: once the cause is fixed,'
+            what = 'failed: once the cause is fixed,' if code == EXIT_FAILED else 'interrupted:'
             resume = resume_command(ros2, rundir.path, self.cli)
             print(f'  {what} continue with `{resume}`', flush=True)
         return code

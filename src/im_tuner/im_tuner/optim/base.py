@@ -103,15 +103,11 @@ def _floats(_opt: Any, v: Any) -> list[float]:
     return [float(x) for x in v]
 
 
-def _copy(_opt: Any, v: Any) -> list[Any]:
-    return list(v)
-
-
 INT = Codec(lambda _o, v: int(v), _same)
 FLOAT = Codec(lambda _o, v: float(v), _same)
 STR = Codec(lambda _o, v: str(v), _same)
 #: a list of floats (kept as a python list)
-FLOATS = Codec(_floats, _copy)
+FLOATS = Codec(_floats, lambda _o, v: list(v))
 FLOATS_OR_NONE = Codec(
     lambda o, v: None if v is None else _floats(o, v),
     lambda o, v: None if v is None else list(v),

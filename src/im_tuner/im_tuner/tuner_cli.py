@@ -398,19 +398,12 @@ def _check_run(run: RunConfig, where: str) -> None:
     def bad(key: str, what: str) -> UsageError:
         return UsageError(f'{where}: {key} must be {what}, got {getattr(run, key)!r}')
 
-    def is_int(v: Any) -> bool:
-        return isinstance(v, int) and not isinstance(v, bool)
-
     if run.algo not in optim.ALGOS:
         raise bad('algo', 'one of ' + ', '.join(optim.ALGOS))
-    if not is_int(run.budget) or run.budget < 1:
-        raise bad('budget', 'an integer >= 1')
-    for key in ('seed', 'drive_seed', 'remeasure', 'retries'):
-        if not is_int(getattr(run, key)) or getattr(run, key) < 0:
-            raise bad(key, 'an integer >= 0')
-    tol = run.timing_tolerance
-    if not is_int(tol) or tol < 0:
-        raise bad('timing_tolerance', 'an integer >= 0')
+    for key in ('budget', 'seed', 'drive_seed', 'remeasure', 'retries', 'timing_tolerance'):
+        v, least = getattr(run, key), 1 if key == 'budget' else 0
+        if not isinstance(v, int) or isinstance(v, bool) or v < least:
+            raise bad(key, f'an integer >= {least}')
     if not isinstance(run.options, dict):
         raise bad('options', 'a mapping of algorithm options')
     if not isinstance(run.reference, bool):

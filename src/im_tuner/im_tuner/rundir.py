@@ -33,15 +33,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .runlog import (
-    FileError,
-    Record,
-    RecordError,
-    RunConfig,
-    Summary,
-    VersionError,
-    parse_results,
-)
+from .runlog.files import FileError, RunConfig, Summary, VersionError
+from .runlog.records import Record, RecordError, parse_results
 
 RUN_FILE = 'run.yaml'
 RESULTS_FILE = 'results.jsonl'
@@ -257,7 +250,7 @@ class RunDir:
             os.fsync(f.fileno())
 
     def read_results(self, repair: bool = False) -> list[Record]:
-        """Every complete record, each checked (``runlog.check_record``).  A torn last line
+        """Every complete record, each checked (``runlog.records.check_record``).  A torn last line
         (a kill while writing) is ignored, and cut off when ``repair`` -- only once every
         record is accepted, so a refusal changes nothing; a bad line elsewhere is an
         error (:class:`RunDirError` naming the line)."""

@@ -11,18 +11,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = [
-    'BENCHES',
-    'DISCOVERY_TIMEOUT',
-    'IN_PROCESS_BENCHES',
-    'LOCKSTEP_BENCHES',
-    'NAMED_DRIVES',
-    'SIM_BENCHES',
-    'NamedDrive',
-    'drive_help',
-    'is_simulated',
-]
-
 #: every ``--bench`` value (``none``: an external bench, the drive is not ours)
 BENCHES = ('auto', 'inproc', 'processes', 'realtime', 'realtime-processes', 'none')
 #: bench modes that run the simulator (or, with ``--drive``, a drive class) themselves

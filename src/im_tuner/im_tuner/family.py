@@ -59,13 +59,9 @@ def _paper_drive() -> DriveConfig:
     return load_config(None)
 
 
-def _paper() -> MachineParams:
-    return _paper_drive().machine
-
-
 def drive_scales(m: MachineParams) -> DriveScales:
     """The ratios of machine ``m`` to the paper's (written so each is exactly 1.0 for it)."""
-    p = _paper()
+    p = _paper_drive().machine
     return DriveScales(
         accel=(m.rated_torque * p.J) / (m.J * p.rated_torque),
         torque=m.rated_torque / p.rated_torque,

@@ -49,8 +49,6 @@ from im_controller.result import LossResult
 from .names import FAULT_POLICIES, controller_topics
 from .tuning import BenchFailure, LostEvaluation, Measurement, StopRequested
 
-__all__ = ['ControllerLink', 'Heartbeat']
-
 RETRY_PERIOD = 0.02  # [s] between retries of a refused call
 SUPERVISE_PERIOD = 0.2  # [s] between checks of the bench processes
 
@@ -305,33 +303,31 @@ class ControllerLink:
     def fault_advice(self) -> str:
         """What the person at the bench does about a safety fault under the policy
         'stop' -- a command that works on this bench -- and, when the experiment that
-        faulted was off the paper's timing, that the host may have caused it."""
+        faulted was off the paper's timing, that the host may have caused it (a drive
+        that cannot pause held its old current through the host's stalls, which can trip
+        the limits on gains that run fine on time)."""
         if self.owns_controller:
             # the controller ran in (or beside) this tuner and ends with it: nothing is
             # left to reset; a resumed run starts a fresh controller, fault-free
-            return (
+            advice = (
                 'fault policy stop: check the drive, then resume the run (--resume: the '
                 "tuner's controller ended with it, and the resumed run's starts without "
                 'the fault)'
-            ) + self._fault_timing()
-        return (
-            f'fault policy stop: check the drive, clear the fault with '
-            f'`{reset_command(self.names["node"])}`, then resume the run (--resume)'
-        ) + self._fault_timing()
-
-    def _fault_timing(self) -> str:
-        """The faulting experiment's periods, when they were beyond the tolerance: a drive
-        that cannot pause held its old current through the host's stalls, which can trip
-        the limits on gains that run fine on time."""
+            )
+        else:
+            advice = (
+                f'fault policy stop: check the drive, clear the fault with '
+                f'`{reset_command(self.names["node"])}`, then resume the run (--resume)'
+            )
         r = self._fault_result
-        if r is None or not r.timing:
-            return ''
-        return (
-            f' (experiment {r.experiment_id} faulted with {r.held} of its {r.steps} periods '
-            f'held and {r.late} late, beyond the timing tolerance: the drive held its old '
-            "current through the host's stalls, which may be what tripped it -- check the "
-            'host: `ros2 run im_drive_sim host_check`)'
-        )
+        if r is not None and r.timing:
+            advice += (
+                f' (experiment {r.experiment_id} faulted with {r.held} of its {r.steps} '
+                f'periods held and {r.late} late, beyond the timing tolerance: the drive held '
+                "its old current through the host's stalls, which may be what tripped it -- "
+                'check the host: `ros2 run im_drive_sim host_check`)'
+            )
+        return advice
 
     def measure(self, gains: Gains) -> Measurement:
         """Set ``gains``, run one experiment, return its result (see module doc)."""

@@ -17,17 +17,6 @@ from im_drive_sim.contract import (
     QosSpec,
 )
 
-__all__ = [
-    'DEFAULT_TIMING_TOLERANCE',
-    'DRIVE_HOST_NODE',
-    'FAULT_POLICIES',
-    'HOST_LOOP_TOPICS',
-    'RESULT_QOS',
-    'RESULT_TOPIC',
-    'RESULT_TYPE',
-    'controller_topics',
-]
-
 #: [periods] held or late drive periods an experiment may have and still count, by
 #: default (the tuner's --timing-tolerance, the drive host's): within the bench's own
 #: noise (docs/real-drive.md, "Timing tolerance")
@@ -51,7 +40,6 @@ HOST_LOOP_TOPICS = (
 #: ``diagnostic_msgs/DiagnosticArray`` per results.jsonl record as it is appended
 #: (:mod:`im_tuner.result_msg`; docs/interfaces.md, "tuner/result"), recorded in the bag.
 RESULT_TOPIC = 'tuner/result'
-RESULT_TYPE = 'diagnostic_msgs/msg/DiagnosticArray'
 #: Its publisher: reliable KEEP_ALL (every record reaches the recorder, as the other
 #: recorded topics), transient local (a recorder or viewer that joins later gets the
 #: session's records so far; a run's records are a few hundred small messages).

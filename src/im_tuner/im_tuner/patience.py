@@ -16,8 +16,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ['IDLE_CPU_S', 'IDLE_S', 'NOTE_EVERY_S', 'Patience', 'process_cpu_s']
-
 IDLE_S = 10.0  #: [s] of wall time
 IDLE_CPU_S = 0.2  #: [s] of the process's CPU time within IDLE_S: less is idle
 NOTE_EVERY_S = 10.0  #: [s] between lines saying what is waited for

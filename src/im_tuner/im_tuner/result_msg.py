@@ -21,7 +21,6 @@ from .runlog.records import RIPPLE_KEYS, Record
 if TYPE_CHECKING:
     from rclpy.node import Node
 
-__all__ = ['ResultPublisher', 'record_to_msg', 'record_values']
 
 NS_PER_S = 1_000_000_000
 

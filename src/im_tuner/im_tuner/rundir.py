@@ -33,26 +33,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .runlog import (
-    FileError,
-    Record,
-    RecordError,
-    RunConfig,
-    Summary,
-    VersionError,
-    parse_results,
-)
-
-__all__ = [
-    'CHECKPOINT_FILE',
-    'RESULTS_FILE',
-    'RUN_FILE',
-    'SUMMARY_FILE',
-    'RunDir',
-    'RunDirError',
-    'atomic_write_text',
-    'writer_of',
-]
+from .runlog.files import FileError, RunConfig, Summary, VersionError
+from .runlog.records import Record, RecordError, parse_results
 
 RUN_FILE = 'run.yaml'
 RESULTS_FILE = 'results.jsonl'
@@ -121,14 +103,6 @@ class RunDirError(Exception):
     """The directory cannot be used as (or is not) a run directory; message says why."""
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def atomic_write_text(path: Path, text: str) -> None:
     """Replace ``path`` with ``text`` atomically (temp, fsync, rename, fsync dir)."""
     path = Path(path)
@@ -138,7 +112,11 @@ def atomic_write_text(path: Path, text: str) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
-    _fsync_dir(path.parent)
+    fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _lock_holder(path: Path) -> str | None:
@@ -272,7 +250,7 @@ class RunDir:
             os.fsync(f.fileno())
 
     def read_results(self, repair: bool = False) -> list[Record]:
-        """Every complete record, each checked (``runlog.check_record``).  A torn last line
+        """Every complete record, each checked (``runlog.records.check_record``).  A torn last line
         (a kill while writing) is ignored, and cut off when ``repair`` -- only once every
         record is accepted, so a refusal changes nothing; a bad line elsewhere is an
         error (:class:`RunDirError` naming the line)."""
@@ -284,13 +262,11 @@ class RunDir:
         except OSError as exc:
             raise RunDirError(f'{path}: unreadable ({exc.strerror or exc})') from None
         try:
-            out, end = parse_results(raw)
+            out = parse_results(raw)[0]
         except RecordError as exc:
             raise RunDirError(f'{path}: {exc}') from None
-        if repair and end < len(raw):
-            with open(path, 'r+b') as f:
-                f.truncate(end)
-                os.fsync(f.fileno())
+        if repair:
+            self.cut_torn_tail()
         return out
 
     def cut_torn_tail(self) -> int:

@@ -1,27 +1,23 @@
-"""The typed command lines, declared once: every option is a field of a dataclass
-(:func:`option`: its text, argparse's type and choices, its default, whether it is a run
-setting), from which come the parser (:class:`OptionsParser`, whose ``parse_args`` gives
-the typed object). The tuner's (:class:`TunerOptions`, :data:`OPTIONS`) also give the
-settings ``--resume`` takes from run.yaml (``tuner_cli``) and docs/tuner.md's options
-table (:func:`options_table`, checked by a test; ``make docs`` writes it); drive_host,
-sim_bench and the study declare the options they share with it by :func:`shared`. Also what is
-read from ``--ros-args`` (:func:`timing_tolerance`, :func:`ros_arguments`; a resumed
-run's ``-p name:=value`` parameters, :func:`run_parameters`).
-
-The checks of the options, of a new run and of ``run.yaml`` on ``--resume``, are
-:mod:`.tuner_cli`'s (``prepare_run``). As that module, this one imports no rclpy, numba,
-pycma, optuna or scipy at load, so ``--help`` and a refusal are quick.
+"""The tuner's typed command line (:class:`TunerOptions`, declared by
+:func:`~.typed_cli.option`): the parser, the settings ``--resume`` takes from run.yaml
+(:data:`RUN_SETTINGS`) and docs/tuner.md's options table (:func:`options_table`; ``make
+docs`` writes it); drive_host, sim_bench and the study declare the options they share with
+it by ``option(..., like=...)``. Also what is read from ``--ros-args``
+(:func:`timing_tolerance`, :func:`ros_arguments`; a resumed run's ``-p name:=value``
+parameters, :func:`run_parameters`). The checks of a new run and of ``run.yaml`` on
+``--resume`` are :mod:`.tuner_cli`'s. Imports no rclpy, numba, pycma, optuna or scipy at
+load, so ``--help`` and a refusal are quick.
 """
 
 from __future__ import annotations
 
 import shlex
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from im_drive_sim import host, rt
-from im_drive_sim.cli import Parser, UsageError, finite_float, int_in, plain
+from im_drive_sim.cli import UsageError, finite_float, int_in
 
 from . import optim
 from .benches import BENCHES, DISCOVERY_TIMEOUT, drive_help
@@ -29,107 +25,12 @@ from .names import DEFAULT_TIMING_TOLERANCE, FAULT_POLICIES
 from .record import live as _live
 from .runlog import RunConfig
 from .runlog.ripple import DEFAULT_RIPPLE_LIMIT, RIPPLE_TOLERANCE
+from .typed_cli import RT, SHARED, Option, OptionsParser, declared, default_text, option
 
 _RIPPLE_LIMITED = ', '.join(f'`{a}`' for a in optim.ALGOS if a in optim.RIPPLE_LIMITED)
 _OPT_KEYS = '; '.join(
     f'`{" ".join(optim.option_specs(a))}` ({a})' for a in optim.ALGOS if optim.option_specs(a)
 )
-
-#: ``Option.arg`` of the three real-time options: ``rt.add_arguments`` declares their
-#: type for every executable of the loop; an executable's rows say what they do there
-RT = 'rt'
-
-
-@dataclass(frozen=True)
-class Option:
-    """One option of a typed command line.
-
-    ``help``: Markdown, docs/tuner.md's text (``--help`` shows it plain: :func:`plain`).
-    ``arg``: argparse's ``type``, ``choices``, ``metavar``, ``nargs`` or ``action``
-    (:data:`RT`: the real-time options). ``default``: the value when not given (None: the
-    run decides, ``shown`` says how). ``shown``: the docs' default column when not
-    ``default``. ``run``: a run setting, kept in run.yaml: ``--resume`` takes it from
-    there and refuses it given. ``flag``: the field's name as ``--a-b`` unless given
-    (``RUN_DIR``-like positionals have no dashes); ``dest``: the field's name."""
-
-    flag: str
-    help: str
-    arg: dict[str, Any] | str = field(default_factory=dict)
-    default: Any = None
-    shown: str = ''
-    run: bool = False
-    dest: str = ''
-
-
-_FROM_DEFAULT = object()
-
-
-def option(
-    help: str,
-    arg: dict[str, Any] | str | None = None,
-    default: Any = None,
-    shown: str = '',
-    run: bool = False,
-    parsed: Any = _FROM_DEFAULT,
-    flag: str = '',
-    like: str = '',
-) -> Any:
-    """A field of a typed command line declaring its option (:class:`Option`).
-    ``parsed``: the value when not given, where it is not ``default`` (a run setting:
-    None, so ``--resume`` can refuse it given; the real-time options: ``rt``'s).
-    ``like``: another executable's field of the tuner's option of that name, the same
-    flag and argparse declaration (``arg``: what differs there), with its own text and
-    default."""
-    arg = {} if arg is None else arg
-    if like:
-        base = _BY_DEST[like]
-        if isinstance(base.arg, dict) and isinstance(arg, dict):
-            arg = {**base.arg, **arg}
-        else:
-            arg, parsed = RT, TunerOptions.__dataclass_fields__[like].default
-    meta = {'option': Option(flag, help, arg, default, shown, run)}
-    action = arg.get('action') if isinstance(arg, dict) else None
-    if action == 'append' or (isinstance(arg, dict) and arg.get('nargs') in ('*', '+')):
-        return field(default_factory=list, metadata=meta)  # (a list: one per object)
-    if parsed is _FROM_DEFAULT:
-        parsed = False if action == 'store_true' else None if run else default
-    return field(default=parsed, metadata=meta)
-
-
-def declared(cls: type) -> tuple[Option, ...]:
-    """The options of the typed command line ``cls``, in its fields' order."""
-    return tuple(
-        replace(
-            f.metadata['option'],
-            flag=f.metadata['option'].flag or '--' + f.name.replace('_', '-'),
-            dest=f.name,
-        )
-        for f in fields(cls)
-    )
-
-
-class OptionsParser(Parser):
-    """The parser of a typed command line ``cls`` (a dataclass of :func:`option` fields;
-    its ``PROG``, ``DESCRIPTION`` and ``RT_WHAT``, what the real-time options schedule):
-    ``parse_args`` gives a ``cls``."""
-
-    def __init__(self, cls: type) -> None:
-        super().__init__(prog=cls.PROG, description=cls.DESCRIPTION)  # type: ignore[attr-defined]
-        self.options = cls
-        defaults = vars(cls())
-        rt_helps = {}
-        for o in declared(cls):
-            if o.arg == RT:
-                rt_helps.update({o.flag: _help(o)} if o.help else {})
-                continue
-            assert isinstance(o.arg, dict)
-            where = {'dest': o.dest} if o.flag.startswith('-') else {}
-            self.add_argument(o.flag, help=_help(o), default=defaults[o.dest], **where, **o.arg)
-        if any(o.arg == RT for o in declared(cls)):
-            rt.add_arguments(self, cls.RT_WHAT, rt.DEFAULT_PRIORITY, rt_helps)  # type: ignore[attr-defined]
-
-    def parse_args(self, args: Any = None, namespace: Any = None) -> Any:
-        return self.options(**vars(super().parse_args(args, namespace)))
 
 
 @dataclass
@@ -170,14 +71,14 @@ class TunerOptions:
     )
     out: Path | None = option(
         'run directory to create (must be new or empty)',
-        {'type': Path, 'metavar': 'DIR'},
+        arg={'type': Path, 'metavar': 'DIR'},
         shown='`bags/tuner_<algo>_<UTC time>`',
     )
     resume: Path | None = option(
         'continue a killed or interrupted run (settings come from its `run.yaml`; the `-p '
         "name:=value` parameters after `--ros-args` of the run's first command apply "
         'again, before any given now)',
-        {'type': Path, 'metavar': 'RUN_DIR'},
+        arg={'type': Path, 'metavar': 'RUN_DIR'},
     )
     bench: str | None = option(
         'where the controller comes from: `auto` (one on the graph, else simulated '
@@ -270,7 +171,7 @@ class TunerOptions:
         're-runs of an evaluation whose result is lost, or marked timing (its experiment '
         "did not run on the paper's timing)",
         {'type': int_in(0), 'metavar': 'R'},
-        3,
+        default=3,
         run=True,
     )
     timing_tolerance: int | str | None = option(
@@ -372,12 +273,12 @@ class TunerOptions:
 OPTIONS: tuple[Option, ...] = declared(TunerOptions)
 #: the settings a resumed run takes from run.yaml (giving them with --resume is an error)
 RUN_SETTINGS: tuple[str, ...] = tuple(o.dest for o in OPTIONS if o.run)
-_BY_DEST = {o.dest: o for o in OPTIONS}
+SHARED.update({o.dest: (o, TunerOptions.__dataclass_fields__[o.dest].default) for o in OPTIONS})
 
 
 def default(dest: str) -> Any:
     """The declared value of option ``dest`` when it is not given."""
-    return _BY_DEST[dest].default
+    return next(o for o in OPTIONS if o.dest == dest).default
 
 
 def build_parser() -> OptionsParser:
@@ -395,17 +296,6 @@ def parse_options(args: list[str]) -> TunerOptions:
     return build_parser().parse_args(args)
 
 
-def _help(o: Option) -> str:
-    shown = _shown(o)
-    return plain(o.help) + (f' (default: {plain(shown)})' if shown else '')
-
-
-def _shown(o: Option) -> str:
-    if o.shown or o.default is None or o.default is False:
-        return o.shown
-    return f'{o.default:g}' if isinstance(o.default, float) else str(o.default)
-
-
 def options_table() -> str:
     """docs/tuner.md's options table (Markdown), from :data:`OPTIONS`."""
     actions = {s: a for a in build_parser()._actions for s in a.option_strings}
@@ -415,7 +305,7 @@ def options_table() -> str:
         if isinstance(meta, str) and actions[o.flag].nargs == '?':
             meta = f'[{meta}]'
         name = (f'{o.flag} {meta}' if isinstance(meta, str) else o.flag).replace('|', '\\|')
-        rows.append(f'| `{name}` | {_shown(o)} | {o.help} |')
+        rows.append(f'| `{name}` | {default_text(o)} | {o.help} |')
     return '\n'.join(rows) + '\n'
 
 

@@ -38,6 +38,7 @@ from .tuner_args import RUN_SETTINGS, TunerOptions, default, timing_tolerance
 
 if TYPE_CHECKING:
     from .bench.drive_spec import DriveChoice
+    from .progress import Progress
     from .tuning import TuningRun
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -234,7 +235,11 @@ def prepare_run(cli: TunerOptions, argv: list[str]) -> PreparedSession:
         run = rundir.read_config()
         summary = rundir.read_summary()  # one of a newer tuner's format: refused
         _check_run(run, str(rundir.path / 'run.yaml'))
-        params = _params_of_run(run)
+        box = {n: {k: v[k] for k in ('lo', 'hi', 'start')} for n, v in run.search_box.items()}
+        params = parse_params(
+            {'search_box': box, 'satisfactory_loss': run.satisfactory_loss},
+            f'run.yaml ({run.params_file})',
+        )
     if summary is not None and summary.outcome == 'done':
         raise RunFinished(
             f'{rundir.path}: the run is finished ({summary.evaluations} of {run.budget} '
@@ -359,7 +364,7 @@ def _drive_of(drive_config: Any, model: str | None, params: TunerParams) -> tupl
     return drive, params.space, None if setup is None else setup.experiment
 
 
-def _first_step_hook(run: RunConfig, params: TunerParams, progress: Any = None) -> Any:
+def _first_step_hook(run: RunConfig, params: TunerParams, progress: Progress | None = None) -> Any:
     """The run's ``IdentifiedFirstStep`` (safe with first: identify), else None: the
     drive file it names (the packaged default without one) and its experiment."""
     if (run.options or {}).get('first') != 'identify':
@@ -368,7 +373,7 @@ def _first_step_hook(run: RunConfig, params: TunerParams, progress: Any = None) 
 
     return IdentifiedFirstStep(
         *_drive_of(run.drive_config, run.model, params),
-        getattr(progress, 'note', None),
+        None if progress is None else progress.note,
         run.ripple_limit,  # (the first step within the limit the run applies)
     )
 
@@ -393,19 +398,12 @@ def _check_run(run: RunConfig, where: str) -> None:
     def bad(key: str, what: str) -> UsageError:
         return UsageError(f'{where}: {key} must be {what}, got {getattr(run, key)!r}')
 
-    def is_int(v: Any) -> bool:
-        return isinstance(v, int) and not isinstance(v, bool)
-
     if run.algo not in optim.ALGOS:
         raise bad('algo', 'one of ' + ', '.join(optim.ALGOS))
-    if not is_int(run.budget) or run.budget < 1:
-        raise bad('budget', 'an integer >= 1')
-    for key in ('seed', 'drive_seed', 'remeasure', 'retries'):
-        if not is_int(getattr(run, key)) or getattr(run, key) < 0:
-            raise bad(key, 'an integer >= 0')
-    tol = run.timing_tolerance
-    if not is_int(tol) or tol < 0:
-        raise bad('timing_tolerance', 'an integer >= 0')
+    for key in ('budget', 'seed', 'drive_seed', 'remeasure', 'retries', 'timing_tolerance'):
+        v, least = getattr(run, key), 1 if key == 'budget' else 0
+        if not isinstance(v, int) or isinstance(v, bool) or v < least:
+            raise bad(key, f'an integer >= {least}')
     if not isinstance(run.options, dict):
         raise bad('options', 'a mapping of algorithm options')
     if not isinstance(run.reference, bool):
@@ -419,15 +417,9 @@ def _check_run(run: RunConfig, where: str) -> None:
         raise bad('ripple_limit', 'a ratio >= 1 or null (off)')
 
 
-def _params_of_run(run: RunConfig) -> TunerParams:
-    box = {n: {k: v[k] for k in ('lo', 'hi', 'start')} for n, v in (run.search_box or {}).items()}
-    return parse_params(
-        {'search_box': box, 'satisfactory_loss': run.satisfactory_loss},
-        f'run.yaml ({run.params_file})',
-    )
-
-
-def make_tuning(rundir: RunDir, run: RunConfig, params: TunerParams, progress) -> TuningRun:
+def make_tuning(
+    rundir: RunDir, run: RunConfig, params: TunerParams, progress: Progress | None
+) -> TuningRun:
     """The TuningRun of a checked run configuration (a new run's, or run.yaml's)."""
     from .tuning import TuningRun, run_seeds
 

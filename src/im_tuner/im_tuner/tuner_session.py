@@ -107,13 +107,6 @@ def resume_command(ros2: str, run_dir: Path, cli: TunerOptions) -> str:
     return ' '.join(shlex.quote(w) for w in words)
 
 
-def session_number(sessions: list[dict[str, Any]], records: list[Record]) -> int:
-    """This session's number (0-based): after every session the checkpoint lists and
-    every session a record names (a rebuilt checkpoint lists none)."""
-    named = [r.session + 1 for r in records if isinstance(r.session, int)]
-    return max([len(sessions), *named])
-
-
 def _repair_old_bags(rundir: RunDir, note, current: Path | None) -> None:
     """Bags of killed sessions still say state 'recording': repair them (index, summary,
     metadata.yaml) so that the whole run opens in any reader. ``current``: this session's
@@ -215,12 +208,15 @@ class TunerSession:
                 f'resuming {rundir.path}: {self.n_restored} records, '
                 f'{tuning.state.evals}/{self.run.budget} evaluations done'
             )
-        tuning.session = session_number(tuning.state.sessions, tuning.records)
+        # after every session the checkpoint lists and every session a record names (a
+        # rebuilt checkpoint lists none)
+        named = [r.session + 1 for r in tuning.records if isinstance(r.session, int)]
+        tuning.session = max([len(tuning.state.sessions), *named])
 
     def start(self, link: ControllerLink) -> None:
         """The controller answers: a new run's run.yaml; the session's record; a resumed
         lock-step run replays its experiments (checked bit for bit)."""
-        from .tuning import replay
+        from .tuning import BenchFailure, LostEvaluation, replay
 
         run, rundir, tuning, progress, plan = (
             self.run,
@@ -230,8 +226,6 @@ class TunerSession:
             self.plan,
         )
         assert rundir is not None and plan is not None
-        from .tuning import BenchFailure, LostEvaluation
-
         try:
             parameters = link.list_parameters()
         except LostEvaluation as exc:  # a controller that does not answer: one line
@@ -400,11 +394,7 @@ class TunerSession:
                 self.live_said = live_line(live)
         if problems and outcome == 'done':
             outcome = f'failed: {problems[0]}'
-        code = EXIT_OK
-        if outcome == 'interrupted':
-            code = EXIT_INTERRUPTED
-        elif outcome != 'done':
-            code = EXIT_FAILED
+        code = {'done': EXIT_OK, 'interrupted': EXIT_INTERRUPTED}.get(outcome, EXIT_FAILED)
         progress.close()
         summary = tuning.summary(outcome=outcome, wall_s=time.monotonic() - t_wall0)
         ros2 = ros2_command()  # (as the user's shell finds it: commands that run as printed)
@@ -419,9 +409,7 @@ class TunerSession:
         if self.live_said:
             print(f'  {self.live_said}', flush=True)
         if code != EXIT_OK:
-            what = 'interrupted:'
-            if code == EXIT_FAILED:
-                what = 'failed: once the cause is fixed,'
+            what = 'failed: once the cause is fixed,' if code == EXIT_FAILED else 'interrupted:'
             resume = resume_command(ros2, rundir.path, self.cli)
             print(f'  {what} continue with `{resume}`', flush=True)
         return code

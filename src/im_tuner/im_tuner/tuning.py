@@ -29,16 +29,21 @@ from im_controller.result import LossResult
 
 from .optim.base import Optimizer
 from .rundir import RunDir, RunDirError
-from .runlog import (
+from .runlog import Summary
+from .runlog.records import (
+    LINE_ORDER,
     MEASURED,
     Evaluation,
     Lost,
     Record,
     Reference,
     Remeasurement,
-    RunRecord,
-    Summary,
     Timing,
+    ripple_dict,
+)
+from .runlog.ripple import ripple_bound, told_loss, top_evals
+from .runlog.tally import (
+    RunRecord,
     TunerState,
     evaluation,
     final_choice,
@@ -46,8 +51,6 @@ from .runlog import (
     summarize,
     tally,
 )
-from .runlog.records import LINE_ORDER, ripple_dict
-from .runlog.ripple import ripple_bound, told_loss, top_evals
 from .space import SearchSpace
 
 CHECKPOINT_VERSION = 1
@@ -263,7 +266,7 @@ class TuningRun:
                         f'{self.rundir.path}: evaluation {rec.eval} in results.jsonl is not '
                         'what the checkpointed optimiser asks; the files do not belong together'
                     )
-            # above the ripple limit: what the search is told (runlog.told_loss)
+            # above the ripple limit: what the search is told (runlog.ripple.told_loss)
             told = told_loss(self.records, rec, self.ripple_limit)
             t0 = time.perf_counter()
             self.opt.tell_measurement(u, told, bool(rec.aborted))
@@ -451,7 +454,7 @@ class TuningRun:
         return outcome
 
     def final_choice(self) -> dict[str, Any] | None:
-        """See ``runlog.final_choice``."""
+        """See ``runlog.tally.final_choice``."""
         return final_choice(self.state, self.records, self.ripple_limit)
 
     def summary(self, *, outcome: str, wall_s: float) -> Summary:

@@ -18,7 +18,7 @@ import pytest
 
 from im_drive_sim.drive_file import load_config
 from im_tuner import family
-from im_tuner.runlog import RecordError, parse_results
+from im_tuner.runlog.records import RecordError, parse_results
 
 BIG = 'base: im7500w-j3\nmachine:\n  isq_max: 30.0  # [A] this drive clamps lower\n'
 

@@ -24,22 +24,24 @@ import pytest
 from im_controller.config import GAIN_NAMES
 from im_tuner.rundir import RunDir, RunDirError
 from im_tuner.runlog import (
-    FORMAT_VERSION,
-    RECORD_TYPES,
     Evaluation,
-    FileError,
     Lost,
     Record,
-    RecordError,
     Reference,
     Remeasurement,
     RunConfig,
     Summary,
     Timing,
+)
+from im_tuner.runlog.columns import CSV_BOOL, CSV_COLUMNS, CSV_FLOAT, CSV_INT, csv_values
+from im_tuner.runlog.files import FileError
+from im_tuner.runlog.records import (
+    FORMAT_VERSION,
+    RECORD_TYPES,
+    RecordError,
     check_record,
     parse_results,
 )
-from im_tuner.runlog.columns import CSV_BOOL, CSV_COLUMNS, CSV_FLOAT, CSV_INT, csv_values
 
 DATA = Path(__file__).with_name('data')
 V1_LINES = (DATA / 'results_v1.jsonl').read_text().splitlines()

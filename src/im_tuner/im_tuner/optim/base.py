@@ -87,11 +87,12 @@ class Codec(NamedTuple):
 
 
 class Field(NamedTuple):
-    """One field of an algorithm's state: its JSON key, the attribute it holds, its codec."""
+    """One field of an algorithm's state: its JSON key, its codec, the attribute that holds
+    it (the key unless named)."""
 
     key: str
-    attr: str
     codec: Codec
+    attr: str = ''
 
 
 def _same(_opt: Any, v: Any) -> Any:
@@ -102,15 +103,11 @@ def _floats(_opt: Any, v: Any) -> list[float]:
     return [float(x) for x in v]
 
 
-def _copy(_opt: Any, v: Any) -> list[Any]:
-    return list(v)
-
-
 INT = Codec(lambda _o, v: int(v), _same)
 FLOAT = Codec(lambda _o, v: float(v), _same)
 STR = Codec(lambda _o, v: str(v), _same)
 #: a list of floats (kept as a python list)
-FLOATS = Codec(_floats, _copy)
+FLOATS = Codec(_floats, lambda _o, v: list(v))
 FLOATS_OR_NONE = Codec(
     lambda o, v: None if v is None else _floats(o, v),
     lambda o, v: None if v is None else list(v),
@@ -123,9 +120,9 @@ SAVED = Codec(None, _same)
 #: the first fields of a replaying optimiser's state: the history the template keeps
 #: (``REPLAYS``) and the pending candidate
 HISTORY: tuple[Field, ...] = (
-    Field('told_u', '_told_u', ROWS),
-    Field('told_loss', '_told_loss', FLOATS),
-    Field('pending', '_pending', FLOATS_OR_NONE),
+    Field('told_u', ROWS, '_told_u'),
+    Field('told_loss', FLOATS, '_told_loss'),
+    Field('pending', FLOATS_OR_NONE, '_pending'),
 )
 
 
@@ -319,7 +316,7 @@ class Optimizer(ABC):
         if not self.REPLAYS:
             state['rng'] = rng_state(self._rng, self._unread())
         for f in self.STATE:
-            state[f.key] = f.codec.dump(self, getattr(self, f.attr))
+            state[f.key] = f.codec.dump(self, getattr(self, f.attr or f.key))
         return state
 
     @staticmethod
@@ -363,7 +360,7 @@ class Optimizer(ABC):
         self._rng.bit_generator.state = state['rng']
         for f in self.STATE:
             if f.codec.load is not None:
-                setattr(self, f.attr, f.codec.load(self, state[f.key]))
+                setattr(self, f.attr or f.key, f.codec.load(self, state[f.key]))
         self._restored(state)
 
     @classmethod

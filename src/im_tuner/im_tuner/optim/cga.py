@@ -224,14 +224,14 @@ class BinaryCGA(Optimizer):
     #: a genome as its bit string ('0'/'1', genome order) or None
     _GENOME = Codec(_from_str, _to_str)
     STATE: ClassVar[tuple[Field, ...]] = (
-        Field('k', '_Y', Codec(_load_k, _dump_k)),
-        Field('evaluations', 'evaluations', INT),
-        Field('generation', 'generation', INT),
-        Field('phase', 'phase', SAVED),  # (checked against held by _restored)
-        Field('theta', 'theta', INT),
-        Field('held', '_held', _GENOME),
-        Field('held_loss', '_held_loss', FLOAT),
-        Field('pending', '_pg', _GENOME),
+        Field('k', Codec(_load_k, _dump_k), '_Y'),
+        Field('evaluations', INT),
+        Field('generation', INT),
+        Field('phase', SAVED),  # (checked against held by _restored)
+        Field('theta', INT),
+        Field('held', _GENOME, '_held'),
+        Field('held_loss', FLOAT, '_held_loss'),
+        Field('pending', _GENOME, '_pg'),
     )
 
     def _restored(self, state: dict[str, Any]) -> None:

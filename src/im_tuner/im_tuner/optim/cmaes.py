@@ -33,7 +33,7 @@ class CMAES(Optimizer):
     REPLAYS: ClassVar[bool] = True
     STATE: ClassVar[tuple[Field, ...]] = (
         *HISTORY,
-        Field('evaluations', 'evaluations', INT),
+        Field('evaluations', INT),
     )
     BAD_STATE: ClassVar[str] = 'not a cmaes state ({error!r:.80})'
 

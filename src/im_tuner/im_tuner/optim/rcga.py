@@ -90,14 +90,14 @@ class RCGA(Elitist, Optimizer):
     algo: ClassVar[str] = 'rcga'
     NO_START: ClassVar[str] = 'it starts from mu = 0, sigma = sigma0'
     STATE: ClassVar[tuple[Field, ...]] = (
-        Field('mu', '_mu', _VECTOR),
-        Field('sigma', '_sigma', _VECTOR),
-        Field('evaluations', 'evaluations', INT),
-        Field('generation', 'generation', INT),
-        Field('theta', 'theta', INT),
-        Field('elite', '_elite', _VECTOR_OR_NONE),
-        Field('elite_loss', '_elite_loss', FLOAT),
-        Field('pending', '_px', _VECTOR_OR_NONE),  # (x; u = (x + 1)/2 by _restored)
+        Field('mu', _VECTOR, '_mu'),
+        Field('sigma', _VECTOR, '_sigma'),
+        Field('evaluations', INT),
+        Field('generation', INT),
+        Field('theta', INT),
+        Field('elite', _VECTOR_OR_NONE, '_elite'),
+        Field('elite_loss', FLOAT, '_elite_loss'),
+        Field('pending', _VECTOR_OR_NONE, '_px'),  # (x; u = (x + 1)/2 by _restored)
     )
 
     def _check_options(self, options: dict[str, Any]) -> dict[str, Any]:

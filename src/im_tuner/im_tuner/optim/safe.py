@@ -84,18 +84,18 @@ class SAFE(Optimizer):
     SCREEN_TRIES: ClassVar[int] = 8
     STATE_VERSION: ClassVar[int] = 3
     STATE: ClassVar[tuple[Field, ...]] = (
-        Field('x', 'x', _POINT),
-        Field('f', 'f', FLOAT),
-        Field('f_n', 'f_n', INT),
-        Field('sigma', 'sigma', FLOAT),
-        Field('step', 'step', _STEP),
-        Field('evaluations', 'evaluations', INT),
-        Field('successes', 'successes', INT),
-        Field('aborts', 'aborts', INT),
-        Field('pending', '_pending', FLOATS_OR_NONE),
-        Field('kind', '_kind', STR),
-        Field('points', '_pts', ROWS),
-        Field('values', '_vals', FLOATS),
+        Field('x', _POINT),
+        Field('f', FLOAT),
+        Field('f_n', INT),
+        Field('sigma', FLOAT),
+        Field('step', _STEP),
+        Field('evaluations', INT),
+        Field('successes', INT),
+        Field('aborts', INT),
+        Field('pending', FLOATS_OR_NONE, '_pending'),
+        Field('kind', STR, '_kind'),
+        Field('points', ROWS, '_pts'),
+        Field('values', FLOATS, '_vals'),
     )
     BAD_STATE: ClassVar[str] = 'not a safe state ({error!r:.80})'
     first_left: bool  #: the model's point not proposed yet

@@ -24,15 +24,15 @@ class SPSA(Optimizer):
     #: iterations per random block (one rng call per block)
     _BLOCK: ClassVar[int] = 32
     STATE: ClassVar[tuple[Field, ...]] = (
-        Field('k', 'k', INT),
-        Field('evaluations', 'evaluations', INT),
-        Field('u', '_u', FLOATS),
-        Field('phase', '_phase', INT),
-        Field('delta', '_delta', FLOATS),
-        Field('ck', '_ck', SAVED),  # (restored by _restored: it may be a function of k)
-        Field('y_plus', '_y_plus', FLOAT),
-        Field('pending', '_pending', FLOATS_OR_NONE),
-        Field('last_gradient', '_last_gradient', FLOATS_OR_NONE),
+        Field('k', INT),
+        Field('evaluations', INT),
+        Field('u', FLOATS, '_u'),
+        Field('phase', INT, '_phase'),
+        Field('delta', FLOATS, '_delta'),
+        Field('ck', SAVED, '_ck'),  # (restored by _restored: it may be a function of k)
+        Field('y_plus', FLOAT, '_y_plus'),
+        Field('pending', FLOATS_OR_NONE, '_pending'),
+        Field('last_gradient', FLOATS_OR_NONE, '_last_gradient'),
     )
 
     def _check_options(self, options: dict[str, Any]) -> dict[str, Any]:

@@ -56,9 +56,9 @@ class TPE(Optimizer):
     REPLAYS: ClassVar[bool] = True
     STATE: ClassVar[tuple[Field, ...]] = (
         *HISTORY,
-        Field('rng_tpe', 'rng_tpe', SAVED),
-        Field('rng_random', 'rng_random', SAVED),
-        Field('evaluations', 'evaluations', INT),
+        Field('rng_tpe', SAVED),
+        Field('rng_random', SAVED),
+        Field('evaluations', INT),
     )
     BAD_STATE: ClassVar[str] = 'not a tpe state ({error!r:.80})'
     STATE_ERRORS: ClassVar[tuple[type[Exception], ...]] = (

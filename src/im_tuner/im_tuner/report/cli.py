@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import argparse
 import datetime as _dt
 import json
 import multiprocessing
@@ -13,12 +12,14 @@ import shutil
 import signal
 import sys
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from im_drive_sim.cli import Parser, UsageError, held_interrupts, quiet_interrupts
+from im_drive_sim.cli import UsageError, held_interrupts, quiet_interrupts
 
 from ..rundir import RUN_FILE, RunDir, RunDirError, is_bag_dir
+from ..typed_cli import OptionsParser, option
 from .errors import EXIT_USAGE, ReportError
 
 if TYPE_CHECKING:
@@ -113,54 +114,47 @@ def _labels(paths: list[Path], runs: list[RunConfig]) -> list[str]:
     )
 
 
-def _build_parser() -> argparse.ArgumentParser:
-    ap = Parser(
-        prog='ros2 run im_tuner report',
-        description='Summary, plots (paper Figs. 5, 8, 9) and per-evaluation CSV of '
-        'one or more tuning runs (docs/report.md); or, with --bag-info, '
-        'one bag\'s statistics (docs/report.md, "Bag statistics").',
+@dataclass
+class ReportOptions:
+    """The report's command line, typed (:func:`~..typed_cli.option`)."""
+
+    PROG = 'ros2 run im_tuner report'
+    DESCRIPTION = (
+        'Summary, plots (paper Figs. 5, 8, 9) and per-evaluation CSV of one or more tuning '
+        "runs (docs/report.md); or, with --bag-info, one bag's statistics (docs/report.md, "
+        '"Bag statistics").'
     )
-    ap.add_argument(
-        'runs',
-        nargs='*',
-        type=Path,
-        metavar='RUN_DIR',
-        help='run directories made by `ros2 run im_tuner tuner` (several: overlaid)',
+
+    runs: list[Path] = option(
+        'run directories made by `ros2 run im_tuner tuner` (several: overlaid)',
+        {'nargs': '*', 'type': Path, 'metavar': 'RUN_DIR'},
+        flag='runs',
     )
-    ap.add_argument(
-        '--bags',
-        nargs='+',
-        type=Path,
-        default=[],
-        metavar='BAG_DIR',
-        help="more bags to take the experiments' signals from, beside the run's own: a "
-        "drive host's bag copied from the drive's computer (docs/two-computers.md)",
+    bags: list[Path] = option(
+        "more bags to take the experiments' signals from, beside the run's own: a drive "
+        "host's bag copied from the drive's computer (docs/two-computers.md)",
+        {'nargs': '+', 'type': Path, 'metavar': 'BAG_DIR'},
     )
-    ap.add_argument(
-        '--out',
-        type=Path,
-        metavar='DIR',
-        help='where to write (default: RUN_DIR/report, or for several runs '
-        '<parent of the first>/compare_<UTC time>)',
+    out: Path | None = option(
+        'where to write (default: RUN_DIR/report, or for several runs <parent of the '
+        'first>/compare_<UTC time>)',
+        {'type': Path, 'metavar': 'DIR'},
     )
-    ap.add_argument(
-        '--bag-info',
-        type=Path,
-        metavar='BAG_DIR',
-        help="print one bag's statistics instead, as `ros2 bag info` does, with the "
-        "recorder's recorded / published / lost per topic (any bag, a repaired one too)",
+    bag_info: Path | None = option(
+        "print one bag's statistics instead, as `ros2 bag info` does, with the recorder's "
+        'recorded / published / lost per topic (any bag, a repaired one too)',
+        {'type': Path, 'metavar': 'BAG_DIR'},
     )
-    ap.add_argument('--json', action='store_true', help='with --bag-info: the statistics as JSON')
-    return ap
+    json: bool = option('with --bag-info: the statistics as JSON', {'action': 'store_true'})
 
 
-def _bag_info(cli: argparse.Namespace) -> int:
+def _bag_info(cli: ReportOptions, bag: Path) -> int:
     """``--bag-info``: nothing is written; a bad path is one line and exit 2."""
     if cli.runs or cli.bags or cli.out is not None:
         raise ReportError('--bag-info takes one bag directory and no run, --bags or --out')
     from .baginfo import bag_info, format_info
 
-    info = bag_info(cli.bag_info)
+    info = bag_info(bag)
     print(json.dumps(info, indent=2) if cli.json else format_info(info))
     return 0
 
@@ -168,9 +162,9 @@ def _bag_info(cli: argparse.Namespace) -> int:
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if args is None else args)
     try:
-        cli = _build_parser().parse_args(argv)
+        cli = OptionsParser(ReportOptions).parse_args(argv)
         if cli.bag_info is not None:
-            return _bag_info(cli)
+            return _bag_info(cli, cli.bag_info)
         if cli.json:
             raise ReportError('--json goes with --bag-info BAG_DIR')
         if not cli.runs:

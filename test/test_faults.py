@@ -966,10 +966,14 @@ def test_the_fault_advice_says_when_the_faulted_experiment_was_off_the_timing():
             fresh=901 - held, held=held, timing=timing,
         )  # fmt: skip
 
-    off = SimpleNamespace(_fault_result=result(610, True))
-    said = ControllerLink._fault_timing(off)  # type: ignore[arg-type]
+    def advice(r: LossResult | None) -> str:
+        link = SimpleNamespace(owns_controller=True, _fault_result=r)
+        return ControllerLink.fault_advice(link)  # type: ignore[arg-type]
+
+    said = advice(result(610, True))
     assert 'experiment 7 faulted with 610 of its 901 periods held and 0 late' in said, said
     assert '`ros2 run im_drive_sim host_check`' in said
-    on_time = SimpleNamespace(_fault_result=result(3, False))
-    assert ControllerLink._fault_timing(on_time) == ''  # type: ignore[arg-type]
-    assert ControllerLink._fault_timing(SimpleNamespace(_fault_result=None)) == ''  # type: ignore[arg-type]
+    plain = advice(None)
+    assert plain.startswith('fault policy stop: check the drive, then resume the run')
+    assert said.startswith(plain + ' (experiment 7 faulted')
+    assert advice(result(3, False)) == plain

@@ -8,14 +8,13 @@ Deterministic in the records, so a resumed run asks the same point.  Pure.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from typing import Any
 
 from im_controller.config import ExperimentConfig
 from im_drive_sim.params import DriveConfig
 
-from .identify import Identified, identify, start_motions
+from .identify import Identified, identify, same_gains, start_motions
 from .prior import RIPPLE_MARGIN, SCREEN_J, AbortScreen, Prior, identified_prior
 from .space import SearchSpace
 
@@ -99,10 +98,7 @@ def _before_search(records: list[Any]) -> list[Any]:
         return []
     out = []
     for r in records:
-        if r.kind == 'eval' and not (
-            r.gains.keys() == ref.gains.keys()
-            and all(math.isclose(r.gains[k], ref.gains[k], rel_tol=1e-9) for k in r.gains)
-        ):
+        if r.kind == 'eval' and not same_gains(r.gains, ref.gains):
             break
         out.append(r)
     return out

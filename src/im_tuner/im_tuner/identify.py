@@ -175,6 +175,12 @@ def identify(motions: Iterable[Sequence[float]], machine: MachineParams) -> Iden
     )
 
 
+def same_gains(g: dict[str, float], ref: dict[str, float]) -> bool:
+    """Whether gains ``g`` are ``ref`` (the start's gains through the normalised box and
+    back differ in the last bits)."""
+    return g.keys() == ref.keys() and all(math.isclose(g[k], ref[k], rel_tol=1e-9) for k in g)
+
+
 def start_motions(records: Iterable[Any]) -> list[tuple[float, ...]]:
     """The motion sums of the completed experiments of the start (the reference's gains)
     among ``records``: what identifies the drive before the search leaves the start."""
@@ -182,18 +188,11 @@ def start_motions(records: Iterable[Any]) -> list[tuple[float, ...]]:
     ref = next((r for r in records if r.kind == 'reference'), None)
     if ref is None:
         return []
-
-    def same(g: dict[str, float]) -> bool:
-        # (the start's gains through the normalised box and back differ in the last bits)
-        return g.keys() == ref.gains.keys() and all(
-            math.isclose(g[k], ref.gains[k], rel_tol=1e-9) for k in g
-        )
-
     return [
         tuple(r.motion)
         for r in records
         if r.kind in ('reference', 'eval')
         and r.status == 'ok'
-        and same(r.gains)
+        and same_gains(r.gains, ref.gains)
         and r.motion is not None
     ]

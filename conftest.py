@@ -108,6 +108,13 @@ LONGEST_FIRST = (
     'test_drive_stop.py',
     'test_controller_node.py',
     'test_documented_paths.py',
+    # the pure tier's longest (`make test-unit --durations=0`, 2026-12-06: 30, 21, 16, 13,
+    # 11 s, two other jobs running)
+    'test_first_step.py',
+    'test_study_plant.py',
+    'test_optim_cga.py',
+    'test_optim_api.py',
+    'test_hardware_abi.py',
 )
 
 

@@ -38,7 +38,8 @@ from typing import Any, NoReturn
 
 import numpy as np
 
-from im_tuner.study.spec import EXIT_USAGE, StudySpec, default_jobs
+from im_drive_sim.cli import EXIT_USAGE
+from im_tuner.study.spec import StudySpec, default_jobs
 
 __all__ = ['CENTRE', 'PAPER_CENTRE', 'Row', 'calibrate', 'main', 'markdown']
 

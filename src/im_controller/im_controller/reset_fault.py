@@ -15,9 +15,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from im_drive_sim.cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
+
 from . import contract as C
 
-EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 DEFAULT_TIMEOUT = 10.0  # [s] to find the service and get its answer (a loaded machine)
 
 
@@ -74,7 +75,7 @@ def _wait(
         if ros.stopped:
             return EXIT_INTERRUPTED, 'reset_fault: interrupted'
         if time.monotonic() > deadline:
-            return EXIT_REFUSED, timeout_line
+            return EXIT_FAILED, timeout_line
         wait()
     return None
 
@@ -121,7 +122,7 @@ def call_reset(argv: list[str], srv: str, timeout: float) -> tuple[int, str]:
         resp = fut.result()
         if resp.success:
             return EXIT_OK, f'{srv}: {resp.message}'
-        return EXIT_REFUSED, f'error: reset_fault: {srv}: {resp.message}'
+        return EXIT_FAILED, f'error: reset_fault: {srv}: {resp.message}'
     finally:
         if node is not None:
             node.destroy_node()

@@ -30,8 +30,9 @@ from typing import NoReturn
 
 from . import numeric
 
-EXIT_USAGE = 2
-EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports a process ended by Ctrl-C
+#: every executable's exit codes: done, failed (or refused by the other side), bad input,
+#: interrupted (128 + SIGINT, as a shell reports a process ended by Ctrl-C)
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 #: [s] an executable's interpreter is given to shut down once its main returned (rclpy's
 #: context, a thread left running); then it is ended with the same exit code
 EXIT_GRACE_S = 3.0

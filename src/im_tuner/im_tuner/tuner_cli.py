@@ -41,8 +41,6 @@ if TYPE_CHECKING:
     from .progress import Progress
     from .tuning import TuningRun
 
-EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
-
 
 def check_session(cli: TunerOptions) -> None:
     """The options of this session (new or resumed) that go together: a bag option with

@@ -20,20 +20,13 @@ import time
 
 # Only what parsing and checking need: rclpy, the benches, numba kernels, pycma... are
 # imported once every check passed (tuner_cli), so a refusal is one line at once.
-from im_drive_sim.cli import UsageError, check_ros_args
+from im_drive_sim.cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, UsageError, check_ros_args
 
 from . import optim
 from .bench.spec import tuner_bench_spec
 from .benches import SIM_BENCHES
 from .tuner_args import TunerOptions, parse_options, ros_arguments
-from .tuner_cli import (
-    EXIT_FAILED,
-    EXIT_INTERRUPTED,
-    EXIT_USAGE,
-    RunFinished,
-    check_session,
-    prepare_run,
-)
+from .tuner_cli import RunFinished, check_session, prepare_run
 
 
 def main(args: list[str] | None = None) -> int:

@@ -21,12 +21,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from im_drive_sim import numeric
-from im_drive_sim.cli import UsageError, ros2_command
+from im_drive_sim.cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, UsageError, ros2_command
 
 from .benches import IN_PROCESS_BENCHES, LOCKSTEP_BENCHES
 from .rundir import RunDir, RunDirError, made_by_create
 from .runlog import Record, Timing, replay_plan
-from .tuner_cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PreparedSession, make_tuning
+from .tuner_cli import PreparedSession, make_tuning
 
 if TYPE_CHECKING:
     from .bench.forms import Bench

@@ -16,11 +16,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from im_drive_sim.cli import UsageError, held_interrupts, quiet_interrupts
+from im_drive_sim.cli import EXIT_USAGE, UsageError, held_interrupts, quiet_interrupts
 
 from ..rundir import RUN_FILE, RunDir, RunDirError, is_bag_dir
 from ..typed_cli import OptionsParser, option
-from .errors import EXIT_USAGE, ReportError
+from .errors import ReportError
 
 if TYPE_CHECKING:
     from ..runlog import RunConfig

@@ -1,9 +1,7 @@
-"""The report's refusal: one line on stderr and this exit code (no numpy, no matplotlib:
+"""The report's refusal: one line on stderr and exit code 2 (no numpy, no matplotlib:
 the command line is checked before anything heavy is imported)."""
 
 from __future__ import annotations
-
-EXIT_USAGE = 2
 
 
 class ReportError(Exception):

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from im_drive_sim.cli import EXIT_INTERRUPTED, UsageError, int_in
+from im_drive_sim.cli import EXIT_INTERRUPTED, EXIT_USAGE, UsageError, int_in
 from im_drive_sim.params import REALISM_PROFILES
 
 from ..progress import Line
@@ -31,7 +31,7 @@ from ..tuner_args import OptionsParser, option
 from . import cluster as K, spec as S
 from .drives import FamilyResult, drive_dirs, is_family, load_family, save_family
 from .results import META_FILE, StudyResult, load, save
-from .spec import EXIT_USAGE, StudyError
+from .spec import StudyError
 
 #: im_tuner.prior.CACHE_ENV (not imported here: it loads the kernels)
 PRIOR_CACHE_ENV = 'IM_TUNER_PRIOR_CACHE'

@@ -24,8 +24,6 @@ if TYPE_CHECKING:  # the types only; the modules are imported where they are use
     from ..family import DriveSetup
     from ..space import TunerParams
 
-EXIT_USAGE = 2
-
 
 class StudyError(Exception):
     """Bad input: one line, exit 2, nothing written."""

@@ -6,7 +6,8 @@ options, outside the study's grid: the mean re-measured loss of its runs, not no
     python research/default_row_options.py im7500w-j10 'J=x0.5' -
 
 Arguments: a packaged drive, a ``--plant-mismatch`` text or ``-``, a JSON object of safe
-options or ``-`` (the defaults), and optionally the number of runs (10).
+options or ``-`` (the defaults), and optionally the number of runs (10). An upper-case key
+sets that class constant of ``SAFE`` instead (``'{"IDENTIFIED_SIGMA": 0.03}'``).
 """
 
 import im_drive_sim  # noqa: F401, I001  (the numeric baseline, before numpy is imported)
@@ -17,6 +18,7 @@ import time
 
 import numpy as np
 
+from im_tuner.optim.safe import SAFE
 from im_tuner.study import cli as C
 from im_tuner.study import spec as S
 from im_tuner.study.runs import run_one
@@ -27,7 +29,10 @@ DEFAULT = 'first step from the identified drive'
 def main(argv: list[str]) -> None:
     drive, mismatch, options = argv[:3]
     runs = int(argv[3]) if len(argv) > 3 else 10
-    extra = tuple(json.loads(options).items()) if options != '-' else ()
+    given = json.loads(options) if options != '-' else {}
+    for key in [k for k in given if k.isupper()]:
+        setattr(SAFE, key, given.pop(key))
+    extra = tuple(given.items())
     grid = [
         (label, (('first', 'identify'), *extra) if label == DEFAULT else opts)
         for label, opts in S.EXTRA_GRIDS['safe']

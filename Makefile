@@ -126,7 +126,7 @@ FAMILY_OUT := bags/study_reproduction_family
 STUDY_ALGOS ?= spsa,necga,cga,pecga,rcga,cmaes,tpe,safe
 # the drives of the family study (packaged names or drive files), its runs and budget
 FAMILY_DRIVES ?= im750w-j1,im750w-j3,im750w-j10,im3700w-j1,im3700w-j3,im3700w-j10,im7500w-j1,im7500w-j3,im7500w-j10
-FAMILY_RUNS   ?= 100
+FAMILY_RUNS   ?= 25
 FAMILY_BUDGET ?= 200
 STUDY := $(VENV)/bin/ros2 run im_tuner study
 reproduction: setup

@@ -133,7 +133,7 @@ reproduction: setup
 	@echo 'reproduction: three studies, hours at the defaults (each prints its runs, rate and ETA as it goes)'
 	rm -rf $(STUDY_OUT) $(BENCH_OUT) $(FAMILY_OUT)
 	$(STUDY) --out $(STUDY_OUT) --algos $(STUDY_ALGOS) $(ARGS)
-	$(STUDY) --out $(BENCH_OUT) --algos spsa,necga --realism bench --beside $(STUDY_OUT) $(ARGS)
+	$(STUDY) --out $(BENCH_OUT) --algos spsa,necga --realism bench --runs 50 --beside $(STUDY_OUT) $(ARGS)
 	$(STUDY) --out $(FAMILY_OUT) --drives $(FAMILY_DRIVES) --realism bench \
 	    --runs $(FAMILY_RUNS) --budget $(FAMILY_BUDGET) $(ARGS)
 	$(MAKE) reproduction-docs

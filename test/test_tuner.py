@@ -588,7 +588,8 @@ def test_without_algo_the_tuner_runs_safe_from_the_hand_tuned_start(run6):
     hand-tuned start again (the reference is the first experiment from rest), and its
     step size stays inside the trust region sigma_max = 0.08."""
     run_yaml = yaml.safe_load((run6 / 'run.yaml').read_text())
-    assert run_yaml['algo'] == 'safe' and run_yaml['options'] == {'first': 'none'}  # (auto)
+    # (auto started the simulated drive: the tuner knows it, the first step identified)
+    assert run_yaml['algo'] == 'safe' and run_yaml['options'] == {'first': 'identify'}
     evals = [r for r in results(run6) if r['kind'] == 'eval']
     assert len(evals) == 6 and evals[0]['gains'] == pytest.approx(START, rel=1e-12)  # (via u)
     opt = json.loads((run6 / 'checkpoint.json').read_text())['optimizer']

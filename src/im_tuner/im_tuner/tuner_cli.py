@@ -311,13 +311,14 @@ def _first_point(cli: TunerOptions, first: str | None, params: TunerParams) -> A
     after the start's two measurements, from the drive they identify:
     ``im_tuner.first_step``), the point of the drive file's nominal model computed now
     ('model', ``im_tuner.prior``; 'none' when it finds nothing better than the start), or
-    'none'.  A resumed run continues with it."""
+    'none'; None: ``--bench auto`` decides once the bench is (:func:`first_on_bench`).
+    A resumed run continues with it."""
     from .benches import is_simulated
 
-    # auto (also when not given) may find a controller on the graph that drives another
-    # motor: a drive the tuner knows only with --drive-config, as with none
     bench = cli.bench_asked
     known = cli.drive_config is not None or (bench != 'auto' and is_simulated(bench, cli.drive))
+    if first is None and not known and bench == 'auto' and not cli.no_reference:
+        return None
     # (identify needs the reference experiment: without it, the default is none)
     first = first or ('identify' if known and not cli.no_reference else 'none')
     if first != 'model':
@@ -326,6 +327,16 @@ def _first_point(cli: TunerOptions, first: str | None, params: TunerParams) -> A
 
     prior = model_prior(*_drive_of(cli.drive_config, cli.model, params))
     return 'none' if prior is None else list(prior.u)
+
+
+def first_on_bench(cli: TunerOptions, mode: str) -> str:
+    """``--bench auto``'s first step once the bench is decided: 'identify' when the tuner
+    started the simulated drive (it knows that drive), 'none' when it found a controller
+    on the graph (it may drive another motor: the tuner knows it only from
+    ``--drive-config``)."""
+    from .benches import is_simulated
+
+    return 'identify' if is_simulated(mode, cli.drive) else 'none'
 
 
 def _optimizer_args(algo: str, options: dict[str, Any], params: TunerParams) -> dict[str, Any]:
@@ -344,7 +355,7 @@ def _optimizer_args(algo: str, options: dict[str, Any], params: TunerParams) -> 
     first = opts.pop('first', 'none')
     if start != 'hand':
         check_options(algo, {'start': specs['start']}, {'start': start})
-    if first != 'none':
+    if first not in ('none', None):  # (None: decided with the bench, first_on_bench)
         opts['first'] = first  # ('identify', or the model's point: the optimiser checks it)
     take = algo in optim.TAKES_START and start == 'hand'
     return {'start': params.space.start_u if take else None, **opts}

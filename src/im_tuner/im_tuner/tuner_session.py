@@ -26,7 +26,7 @@ from im_drive_sim.cli import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, UsageError,
 from .benches import IN_PROCESS_BENCHES, LOCKSTEP_BENCHES
 from .rundir import RunDir, RunDirError, made_by_create
 from .runlog import Record, Timing, replay_plan
-from .tuner_cli import PreparedSession, make_tuning
+from .tuner_cli import PreparedSession, first_on_bench, make_tuning
 
 if TYPE_CHECKING:
     from .bench.forms import Bench
@@ -170,6 +170,9 @@ class TunerSession:
         if not self.resumed:  # (before the TuningRun: its first step models this drive)
             config = str(self.cli.drive_config) if self.cli.drive_config else None
             self.run.put(model=self.cli.model, drive_config=config)
+            options = self.run.options or {}
+            if 'first' in options and options['first'] is None:  # (--bench auto)
+                self.run.put(options={**options, 'first': first_on_bench(self.cli, plan.mode)})
         if self.tuning is None:
             self.tuning = make_tuning(self.rundir, self.run, self.params, self.progress)
         self.bag_dir = None if self.cli.no_record else self.rundir.next_bag_dir()

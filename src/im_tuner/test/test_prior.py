@@ -195,8 +195,15 @@ def test_the_tuner_takes_the_model_where_it_knows_the_drive(prior, tmp_path):
             assert _first_step_hook(new.run, new.params).ripple_limit == limit
         got = _new('--seed', '3', *args, '--opt', 'first=model').run.options
         assert got == {'first': list(prior.u)}
-    # --bench auto may find a controller of another motor: no model unless asked
-    assert _new('--seed', '3').run.options == {'first': 'none'}
+    # --bench auto: decided with the bench (first_on_bench): identify on the simulated
+    # drive it starts, none beside a controller it found (it may drive another motor)
+    from im_tuner.tuner_args import parse_options
+    from im_tuner.tuner_cli import first_on_bench
+
+    assert _new('--seed', '3').run.options == {'first': None}
+    assert first_on_bench(parse_options(['--seed', '3']), 'inproc') == 'identify'
+    assert first_on_bench(parse_options(['--seed', '3']), 'external') == 'none'
+    assert _new('--seed', '3', '--no-reference').run.options == {'first': 'none'}
     assert _new('--seed', '3', '--opt', 'first=model').run.options == {'first': list(prior.u)}
     none = _new('--seed', '3', '--bench', 'inproc', '--opt', 'first=none')
     assert none.run.options == {'first': 'none'}

@@ -259,7 +259,8 @@ POLICIES: dict[str, dict[str, OptionSpec]] = {
             "tuning on the drive file's model with the mechanics the start's two "
             "experiments identify), 'model' (the same on the drive file's nominal model, "
             "computed at start-up), 'none' (a local step); default 'identify' where the "
-            "tuner knows the drive (--drive-config or a simulated bench), else 'none' "
+            'tuner knows the drive (--drive-config or a simulated bench, also the one '
+            "--bench auto starts), else 'none' "
             '(docs/tuner.md, "Start and first step")',
         )
     },

@@ -379,7 +379,7 @@ def test_controller_killed_mid_experiment(procs, tmp_path, tap, wait_until):
         f'{call}: no answer within {KILL_CALL_TIMEOUT:g} s' in lost['reason']
         for call in ('start_experiment', 'set_parameters_atomically', 'reset_fault')
     ), lost['reason']
-    assert f'failed: eval {lost["eval"]}: no result after 2 attempts' in out
+    assert f'failed: evaluation {lost["eval"] + 1}: no result after 2 attempts' in out
     summary = json.loads((run / 'summary.json').read_text())
     # the gains to leave applied (the best, else the start) cannot reach the dead
     # controller; when every experiment before the kill was aborted (a loaded machine,

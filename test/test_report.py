@@ -116,7 +116,8 @@ def test_the_printed_report_command_writes_summary_plots_and_csv(runs):
     text = (out / 'summary.txt').read_text()
     assert text in rep.stdout
     summary = json.loads((run / 'summary.json').read_text())
-    assert f'best loss: {summary["best"]["loss"]:.4f} (evaluation {summary["best"]["eval"]}' in text
+    best = summary['best']
+    assert f'best loss: {best["loss"]:.4f} (evaluation {best["eval"] + 1}' in text
     assert f'{summary["evaluations"]}/{BUDGET} evaluations' in text
     assert f'aborted experiments: {summary["aborted"]} of {BUDGET}' in text
     sat = summary['evaluations_to_satisfactory']

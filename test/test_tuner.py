@@ -781,7 +781,7 @@ def test_a_timing_failure_says_where_to_run_the_controller():
 
     ok = Evaluation(eval=0, status='ok', gains={}, u=[0.5], loss=0.5, terms=[0.5], aborted=False)
     timing = [ok, Timing(kind='eval', eval=1, gains={}, off_timing_loss=0.4)]
-    failed = 'failed: eval 0: no result after 4 attempts with the same gains (timing: ...)'
+    failed = 'failed: evaluation 1: no result after 4 attempts with the same gains (timing: ...)'
     for bench in ('realtime-processes', 'external'):
         (text,) = failure_advice(failed, timing, bench)
         assert "in the drive's process" in text and '--bench realtime --drive' in text

@@ -110,7 +110,7 @@ class Progress(Line):
         if kind != 'eval':  # the reference, a re-measurement
             what = 'start controller (reference) loss'
             if kind == 'remeasure':
-                what = f're-measured evaluation {rec.eval}:'
+                what = f're-measured evaluation {rec.eval + 1}:'
             self.note(f'{self.algo}: {what} {self._fmt(rec)}')
             return
         st, i, n = run.state, run.state.evals, self.budget
@@ -246,7 +246,7 @@ def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
     if s.best is not None:
         b = s.best
         rm = f'; re-measured {b["remeasured_loss"]:.4f}' if b['remeasured_loss'] is not None else ''
-        L.append(f'  best loss:   {b["loss"]:.4f} (evaluation {b["eval"]}{rm})')
+        L.append(f'  best loss:   {b["loss"]:.4f} (evaluation {b["eval"] + 1}{rm})')
         L.append(f'  best gains:  {gains_text(b["gains"])}')
     else:
         L.append('  best loss:   none (no evaluation completed without abort)')
@@ -271,7 +271,7 @@ def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
                 else ''
             )
             L.append(
-                f'  applied on the controller: evaluation {a["eval"]} (loss {a["loss"]:.4f}'
+                f'  applied on the controller: evaluation {a["eval"] + 1} (loss {a["loss"]:.4f}'
                 f'{rm})'
                 + ('' if s.best and a['eval'] == s.best['eval'] else f': {gains_text(a["gains"])}')
             )

@@ -239,9 +239,17 @@ def prepare_run(cli: TunerOptions, argv: list[str]) -> PreparedSession:
             f'run.yaml ({run.params_file})',
         )
     if summary is not None and summary.outcome == 'done':
+        a = summary.applied or {}
+        applied = (
+            'the start gains applied'
+            if a.get('source') == 'reference'
+            else f'the gains of evaluation {a["eval"] + 1} applied'
+            if isinstance(a.get('eval'), int)
+            else 'its gains applied'
+        )
         raise RunFinished(
             f'{rundir.path}: the run is finished ({summary.evaluations} of {run.budget} '
-            'evaluations, its best gains re-measured and applied): nothing to resume; '
+            f'evaluations, {applied}): nothing to resume; '
             f'its plots: ros2 run im_tuner report {rundir.path}'
         )
     _check_controller_name(cli.controller)

@@ -56,6 +56,14 @@ from .space import SearchSpace
 CHECKPOINT_VERSION = 1
 
 
+def _ordinal(kind: str, index: int) -> str:
+    """A record as the person at the bench counts it: the reference, evaluation N (1 is
+    the first; results.jsonl's ``eval`` index is N - 1), its re-measurement."""
+    if kind == 'reference':
+        return 'the reference'
+    return f'evaluation {index + 1}' + (' re-measured' if kind == 'remeasure' else '')
+
+
 @dataclass(frozen=True)
 class Measurement:
     """One experiment's outcome as the tuner sees it (SI units, sim time in ns)."""
@@ -401,7 +409,7 @@ class TuningRun:
                 if tolerance is not None:
                     self.timing_tolerance = tolerance
         raise BenchFailure(
-            f'{kind} {index}: no result after {self.retries + 1} attempts '
+            f'{_ordinal(kind, index)}: no result after {self.retries + 1} attempts '
             f'with the same gains ({rec.reason})'
         )
 

@@ -211,7 +211,7 @@ def test_results_lost_beyond_retries_end_the_run_with_best_applied(tmp_path):
     bench = FakeBench(lose={5, 6, 7})
     run = make_run(tmp_path / 'r', budget=10, retries=2)
     out = run.run(bench)
-    assert out.startswith('failed: eval 4: no result after 3 attempts')
+    assert out.startswith('failed: evaluation 5: no result after 3 attempts')
     assert run.state.evals == 4
     assert bench.applied is not None  # best so far (or the start) applied
     # the pending candidate is still pending: a resume re-runs it

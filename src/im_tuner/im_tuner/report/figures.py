@@ -46,7 +46,9 @@ def fig5(runs: list[RunReport]):
         th0 = e0.signals['theta_ref'][0]
         for j, e in enumerate(rr.consecutive):
             t = e.t + ((e.record.t_start_ns or 0) * 1e-9 - t_ref)
-            what = 'start gains' if e.record.kind == 'reference' else f'evaluation {e.record.eval}'
+            what = (
+                'start gains' if e.record.kind == 'reference' else f'evaluation {e.record.eval + 1}'
+            )
             for ax, y, color, label, gid in (
                 (ax_p, e.signals['theta_ref'] - th0, 'C0', 'position reference', 'theta_ref'),
                 (ax_l, e.signals['load_cmd'], 'C3', 'load torque', 'load'),
@@ -112,7 +114,7 @@ def fig8(runs: list[RunReport]):
             curves.append(
                 (
                     f'best:{rr.label}',
-                    f'{rr.label} best: evaluation {e.record.eval} (loss {e.record.loss:.3f})',
+                    f'{rr.label} best: evaluation {e.record.eval + 1} (loss {e.record.loss:.3f})',
                     e,
                     c,
                     1.4,

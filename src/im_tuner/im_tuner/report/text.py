@@ -47,7 +47,7 @@ def summary_text(rr: RunReport) -> str:
             if b.get('remeasured_loss') is not None
             else ''
         )
-        L.append(f'  best loss: {b["loss"]:.4f} (evaluation {b["eval"]}{rm})')
+        L.append(f'  best loss: {b["loss"]:.4f} (evaluation {b["eval"] + 1}{rm})')
         L.append(f'  best gains: {gains_text(b["gains"])}')
     else:
         L.append('  best loss: none (no evaluation completed without abort)')
@@ -58,7 +58,7 @@ def summary_text(rr: RunReport) -> str:
             + (
                 'the start gains'
                 if a['source'] == 'reference'
-                else f'evaluation {a["eval"]} (loss {a["loss"]:.4f})'
+                else f'evaluation {a["eval"] + 1} (loss {a["loss"]:.4f})'
             )
         )
     L.append(satisfactory_line(s))

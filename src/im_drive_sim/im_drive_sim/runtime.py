@@ -214,8 +214,9 @@ def parameter_hygiene(
             raise ParameterOverrideError(
                 f'no such parameter: {", ".join(unknown)} (neither '
                 f'{composed_with.get_fully_qualified_name()} nor '
-                f'{node.get_fully_qualified_name()} declares it; `ros2 param list` on a '
-                'running bench lists theirs)'
+                f'{node.get_fully_qualified_name()} declares it; their parameters: '
+                'docs/controller.md, "Parameters", and docs/interfaces.md, "Parameters of the '
+                'simulator node")'
             )
         return unknown
     unknown = unknown_overrides(node)

@@ -229,22 +229,29 @@ def _same_evaluations(a: list[dict], b: list[dict]) -> None:
 
 
 def offline_run(
-    algo: str, budget: int, seed: int, remeasure: int = 3
+    algo: str, budget: int, seed: int, remeasure: int = 3, identify: bool = False
 ) -> tuple[list[dict], object, dict]:
     """The tuner's run (defaults: hand-tuned start, remeasure 3) on the pure core's
     offline bench: the same records as through the ROS nodes, bit for bit; with its
-    state and its summary.json (as a dict). (test_faults.py uses it too.)"""
+    state and its summary.json (as a dict). ``identify``: safe's default on the
+    simulated bench, its first step from the identified drive (within the default ripple
+    limit, 1.5). (test_faults.py uses it too.)"""
     from im_drive_sim.drive_file import load_config
     from im_tuner import optim
+    from im_tuner.first_step import IdentifiedFirstStep
     from im_tuner.offline import OfflineBench
     from im_tuner.runlog import MemoryRecord
     from im_tuner.space import load_params
+    from im_tuner.tuner_cli import _drive_of
     from im_tuner.tuning import TuningRun, run_seeds
 
     params = load_params(None)
     opt_ss, drive_seed = run_seeds(seed)
     start = params.space.start_u if algo in optim.TAKES_START else None
-    opt = optim.make_optimizer(algo, params.space.dim, opt_ss, start)
+    more = {'first': 'identify'} if identify else {}
+    opt = optim.make_optimizer(algo, params.space.dim, opt_ss, start, **more)
+    limit = 1.5 if identify else None
+    hook = IdentifiedFirstStep(*_drive_of(None, None, params), None, limit) if identify else None
     run = TuningRun(
         MemoryRecord(),
         params.space,
@@ -254,6 +261,8 @@ def offline_run(
         remeasure=remeasure,
         retries=3,
         reference=True,
+        first_step=hook,
+        ripple_limit=limit,
     )
     assert run.run(OfflineBench(load_config(None), drive_seed)) == 'done'
     summary = json.loads(json.dumps(run.summary(outcome='done', wall_s=0.0).to_dict()))
@@ -304,14 +313,16 @@ def test_resume_after_kill_continues_bit_for_bit(tmp_path, procs, wait_until, al
         [ROS2, 'run', 'im_tuner', 'tuner', *args, *NO_CONTROLLER, '--out', str(killed)]
     )
     res = killed / 'results.jsonl'
-    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 4, 120, message='4 records')
+    # (safe: the default's first step, identified after two records: seconds of offline
+    # tuning, a minute on a loaded machine, before the third)
+    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 4, 300, message='4 records')
     child.send_signal(signal.SIGKILL)
     child.wait(timeout=30)
     n_killed = res.read_text().count('\n')
     assert 4 <= n_killed < budget + 4
     proc = tuner('--resume', str(killed))
     assert proc.returncode == 0, proc.stderr[-3000:]
-    whole, st, _s = offline_run(algo, budget, 11)
+    whole, st, _s = offline_run(algo, budget, 11, identify=algo == 'safe')
     _same_evaluations(whole, results(killed))
     sk = json.loads((killed / 'summary.json').read_text())
     assert sk['evaluations'] == budget and sk['aborted'] == st.aborted
@@ -506,7 +517,8 @@ def test_sigint_ends_the_session_cleanly_and_resumably(tmp_path, procs, wait_unt
         [ROS2, 'run', 'im_tuner', 'tuner', '--budget', '40', '--seed', '2', '--out', str(run)]
     )
     res = run / 'results.jsonl'
-    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 4, 120, message='4 records')
+    # (the default's first step is identified after two records: up to a minute loaded)
+    wait_until(lambda: res.exists() and res.read_text().count('\n') >= 4, 300, message='4 records')
     child.send_signal(signal.SIGINT)
     out, err = child.communicate(timeout=60)
     assert child.returncode == 130, err[-2000:]

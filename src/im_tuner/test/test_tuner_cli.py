@@ -74,9 +74,10 @@ def test_the_default_algorithm_refuses_start_none_and_starts_from_the_file() -> 
 @pytest.mark.parametrize(
     ('args', 'first'),
     [
-        # auto (also not given) may find a controller of another motor on the graph
-        ((), 'none'),
-        (('--bench', 'auto'), 'none'),
+        # auto (also not given): decided with the bench (None until then): identify on
+        # the simulated drive it starts, none beside a controller it finds (first_on_bench)
+        ((), None),
+        (('--bench', 'auto'), None),
         (('--bench', 'auto', '--drive-config', 'paper_750w'), 'identify'),
         (('--bench', 'inproc'), 'identify'),
         (('--bench', 'processes'), 'identify'),
@@ -86,7 +87,7 @@ def test_the_default_algorithm_refuses_start_none_and_starts_from_the_file() -> 
     ],
 )
 def test_safe_takes_the_identified_first_step_where_the_tuner_knows_the_drive(
-    args: tuple[str, ...], first: str
+    args: tuple[str, ...], first: str | None
 ) -> None:
     assert _new('--seed', '3', *args).run.options == {'first': first}
 

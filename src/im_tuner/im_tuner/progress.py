@@ -13,6 +13,7 @@ from im_controller.config import GAIN_NAMES, GAIN_UNITS
 # benches, not tuner_cli (rclpy), and the tuning loop only for its type: the report
 # imports drive_text from here and must start without rclpy, pycma or scipy
 from .benches import is_simulated
+from .runlog.records import evaluation_name
 
 if TYPE_CHECKING:
     from .runlog import Record, RunConfig, Summary
@@ -110,7 +111,7 @@ class Progress(Line):
         if kind != 'eval':  # the reference, a re-measurement
             what = 'start controller (reference) loss'
             if kind == 'remeasure':
-                what = f're-measured evaluation {rec.eval + 1}:'
+                what = f're-measured {evaluation_name(rec.eval)}:'
             self.note(f'{self.algo}: {what} {self._fmt(rec)}')
             return
         st, i, n = run.state, run.state.evals, self.budget
@@ -246,7 +247,7 @@ def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
     if s.best is not None:
         b = s.best
         rm = f'; re-measured {b["remeasured_loss"]:.4f}' if b['remeasured_loss'] is not None else ''
-        L.append(f'  best loss:   {b["loss"]:.4f} (evaluation {b["eval"] + 1}{rm})')
+        L.append(f'  best loss:   {b["loss"]:.4f} ({evaluation_name(b["eval"])}{rm})')
         L.append(f'  best gains:  {gains_text(b["gains"])}')
     else:
         L.append('  best loss:   none (no evaluation completed without abort)')
@@ -271,7 +272,7 @@ def format_summary(s: Summary, run: RunConfig, rundir: Path) -> str:
                 else ''
             )
             L.append(
-                f'  applied on the controller: evaluation {a["eval"] + 1} (loss {a["loss"]:.4f}'
+                f'  applied on the controller: {evaluation_name(a["eval"])} (loss {a["loss"]:.4f}'
                 f'{rm})'
                 + ('' if s.best and a['eval'] == s.best['eval'] else f': {gains_text(a["gains"])}')
             )

@@ -32,7 +32,7 @@ from .names import DEFAULT_TIMING_TOLERANCE, controller_topics
 from .optim.base import OptimizerError, check_options
 from .record.live import live_settings
 from .rundir import RunDir
-from .runlog import RunConfig
+from .runlog import RunConfig, evaluation_name
 from .space import TunerParams, TunerParamsError, load_params, parse_params
 from .tuner_args import RUN_SETTINGS, TunerOptions, default, timing_tolerance
 
@@ -243,7 +243,7 @@ def prepare_run(cli: TunerOptions, argv: list[str]) -> PreparedSession:
         applied = (
             'the start gains applied'
             if a.get('source') == 'reference'
-            else f'the gains of evaluation {a["eval"] + 1} applied'
+            else f'the gains of {evaluation_name(a["eval"])} applied'
             if isinstance(a.get('eval'), int)
             else 'its gains applied'
         )

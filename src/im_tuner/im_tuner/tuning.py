@@ -39,6 +39,7 @@ from .runlog.records import (
     Reference,
     Remeasurement,
     Timing,
+    evaluation_name,
     ripple_dict,
 )
 from .runlog.ripple import ripple_bound, told_loss, top_evals
@@ -61,7 +62,7 @@ def _ordinal(kind: str, index: int) -> str:
     the first; results.jsonl's ``eval`` index is N - 1), its re-measurement."""
     if kind == 'reference':
         return 'the reference'
-    return f'evaluation {index + 1}' + (' re-measured' if kind == 'remeasure' else '')
+    return evaluation_name(index) + (' re-measured' if kind == 'remeasure' else '')
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ import numpy as np
 
 from im_controller.config import GAIN_NAMES, GAIN_UNITS
 
+from ..runlog.records import evaluation_name
 from .table import best_so_far
 
 if TYPE_CHECKING:
@@ -46,9 +47,7 @@ def fig5(runs: list[RunReport]):
         th0 = e0.signals['theta_ref'][0]
         for j, e in enumerate(rr.consecutive):
             t = e.t + ((e.record.t_start_ns or 0) * 1e-9 - t_ref)
-            what = (
-                'start gains' if e.record.kind == 'reference' else f'evaluation {e.record.eval + 1}'
-            )
+            what = 'start gains' if e.record.kind == 'reference' else evaluation_name(e.record.eval)
             for ax, y, color, label, gid in (
                 (ax_p, e.signals['theta_ref'] - th0, 'C0', 'position reference', 'theta_ref'),
                 (ax_l, e.signals['load_cmd'], 'C3', 'load torque', 'load'),
@@ -114,7 +113,7 @@ def fig8(runs: list[RunReport]):
             curves.append(
                 (
                     f'best:{rr.label}',
-                    f'{rr.label} best: evaluation {e.record.eval + 1} (loss {e.record.loss:.3f})',
+                    f'{rr.label} best: {evaluation_name(e.record.eval)} (loss {e.record.loss:.3f})',
                     e,
                     c,
                     1.4,

@@ -13,6 +13,7 @@ from ..progress import (
     satisfactory_line,
     tolerance_text,
 )
+from ..runlog.records import evaluation_name
 
 if TYPE_CHECKING:
     from ..record.reader import BagData
@@ -47,7 +48,7 @@ def summary_text(rr: RunReport) -> str:
             if b.get('remeasured_loss') is not None
             else ''
         )
-        L.append(f'  best loss: {b["loss"]:.4f} (evaluation {b["eval"] + 1}{rm})')
+        L.append(f'  best loss: {b["loss"]:.4f} ({evaluation_name(b["eval"])}{rm})')
         L.append(f'  best gains: {gains_text(b["gains"])}')
     else:
         L.append('  best loss: none (no evaluation completed without abort)')
@@ -58,7 +59,7 @@ def summary_text(rr: RunReport) -> str:
             + (
                 'the start gains'
                 if a['source'] == 'reference'
-                else f'evaluation {a["eval"] + 1} (loss {a["loss"]:.4f})'
+                else f'{evaluation_name(a["eval"])} (loss {a["loss"]:.4f})'
             )
         )
     L.append(satisfactory_line(s))

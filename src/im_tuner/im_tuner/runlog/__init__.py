@@ -15,6 +15,7 @@ from .records import (
     Reference as Reference,
     Remeasurement as Remeasurement,
     Timing as Timing,
+    evaluation_name as evaluation_name,
 )
 from .tally import (
     MemoryRecord as MemoryRecord,

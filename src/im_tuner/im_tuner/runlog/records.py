@@ -76,6 +76,12 @@ _WHEN_SET = (
 RIPPLE_KEYS = ('rms_after_move', 'pp_after_move', 'rms_after_load', 'pp_after_load')
 
 
+def evaluation_name(index: int) -> str:
+    """An evaluation as printed for the person at the bench: ``evaluation N`` counts from 1,
+    where a record's ``eval`` index counts from 0."""
+    return f'evaluation {index + 1}'
+
+
 def ripple_dict(ripple: tuple[float, ...]) -> dict[str, float | None] | None:
     """A measurement's ripple as a record's (None where a window had no sample; None in
     all: not written)."""

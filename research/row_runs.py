@@ -1,6 +1,7 @@
 """One row of the study on one drive, run by run: each run's re-measured loss (not
 normalised), aborted experiments and the applied gains' standstill ripple over the start's
-(the larger window), and the mean with its standard error. Runs are seeded by their index,
+(the larger window), the evaluations to 0.9 of the run's reference experiment, and the
+mean with its standard error. Runs are seeded by their index,
 so runs ``FIRST``..``RUNS-1`` continue a row measured before.
 
     python research/row_runs.py im750w-j1 - safe 'first step from the identified' 30
@@ -44,6 +45,15 @@ def main(argv: list[str]) -> None:
     print('re-measured ' + ' '.join(f'{v:.4f}' for v in x))
     print('aborted ' + ' '.join(str(int(r.aborted.sum())) for r in res))
     print('ripple ' + ' '.join(f'{v:.2f}' for v in ripple))
+    to = [_to_09(r) for r in res]
+    print(f'evaluations to 0.9 of the reference ({np.mean(to):.2f}) ' + ' '.join(map(str, to)))
+
+
+def _to_09(r: object) -> int:
+    """The first evaluation (from 1) whose loss is within 0.9 of the run's reference
+    experiment's, not aborted (budget + 1: none)."""
+    ok = (r.losses <= 0.9 * r.ref_loss) & ~r.aborted
+    return int(np.argmax(ok)) + 1 if ok.any() else len(r.losses) + 1
 
 
 if __name__ == '__main__':

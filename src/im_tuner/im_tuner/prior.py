@@ -6,9 +6,13 @@ its ``CANDIDATES`` best distinct non-aborted points on the ``PERTURBATIONS`` of 
 (the model is never the plant); and returns the point of the lowest worst-case loss ratio
 to the start, or None when none beats the start on every perturbed model (or the start
 aborts).  With a standstill-ripple limit R (``runlog.ripple``) the search runs on the
-*noisy model* (:func:`noisy_model`), told above the bound B = R / (1 + ``RIPPLE_MARGIN``)
-what a run is told above its limit, and a candidate's predicted rms (:func:`_ripple_check`)
-must be within B; up to ``RIPPLE_BATCHES`` batches of candidates are checked.
+*noisy model* (:func:`noisy_model`) and a candidate's predicted rms (:func:`_ripple_check`)
+must be within the bound B = R / (1 + ``RIPPLE_MARGIN``); up to ``RIPPLE_BATCHES`` batches
+of candidates are checked.  The search is first told nothing of the ripple, so the step is
+the model's best point whenever one of them is predicted within B; only when none is does
+it run again told above B what a run is told above its limit (one experiment's rms
+scatters by about 25 %, so a search told the bound also turns from good points whose mean
+is within it: research/NOTES.md, "The first step: the model's best points first").
 Deterministic, cached per key in the process and, with ``IM_TUNER_PRIOR_CACHE`` set, in
 that directory (the key also holds a digest of the code and numeric baseline).  Pure.
 """
@@ -207,29 +211,60 @@ def _compute(
     ripple_models: tuple[DriveConfig, ...] = (),
 ) -> Prior | None:
     """The first step (module docstring); with ``ripple_limit`` (the run's ratio) the ripple
-    is checked on ``model`` and each of ``ripple_models``."""
+    is checked on ``model`` and each of ``ripple_models``: first among the best points of
+    the search told nothing of the ripple, then, when none of them is predicted within the
+    bound, among those of the search told the bound."""
     t0 = time.perf_counter()
-    bound = math.inf if ripple_limit is None else ripple_limit / (1.0 + RIPPLE_MARGIN)
-    seen, bench = _search(
-        model, experiment, space, evaluations, None if ripple_limit is None else bound
-    )
-    start = tuple(space.start_u.tolist())
-    f0 = next((loss for loss, ab, u in seen if u == start and not ab), None)
-    if f0 is None:  # the box's start is unstable on the model: no ratio to beat, no prior
-        return None
-    ranked: dict[tuple[float, ...], float] = {}  # distinct points better than the start
-    for loss, aborted, u in sorted(seen):
-        if aborted or u == start or u in ranked or not loss < f0:
-            continue
-        # with a limit, only points the search measured within it (told their loss)
-        if ripple_limit is None or _predicted(bench.ratios(u, start)) <= bound:
-            ranked[u] = loss
+    bound = None if ripple_limit is None else ripple_limit / (1.0 + RIPPLE_MARGIN)
+    experiments = 0
+    for told in (None,) if bound is None else (None, bound):
+        seen, bench = _search(model, experiment, space, evaluations, told)
+        experiments += bench.experiments
+        start = tuple(space.start_u.tolist())
+        f0 = next((loss for loss, ab, u in seen if u == start and not ab), None)
+        if f0 is None:  # the box's start is unstable on the model: no ratio to beat, no prior
+            return None
+        ranked: dict[tuple[float, ...], float] = {}  # distinct points better than the start
+        for loss, aborted, u in sorted(seen):
+            if aborted or u == start or u in ranked or not loss < f0:
+                continue
+            # told the bound: only the points the search measured within it
+            if told is None or _predicted(bench.ratios(u, start)) <= told:
+                ranked[u] = loss
+        chosen, n = _choose(model, experiment, space, perturbations, ranked, bound, ripple_models)
+        experiments += n
+        if chosen is not None:
+            u, worst, loud = chosen
+            return Prior(
+                u=u,
+                model_ratio=ranked[u] / f0,
+                worst_ratio=worst,
+                experiments=experiments,
+                seconds=time.perf_counter() - t0,
+                ripple_ratio=loud,
+            )
+    return None
+
+
+def _choose(
+    model: DriveConfig,
+    experiment: ExperimentConfig | None,
+    space: SearchSpace,
+    perturbations: tuple[tuple[float, float], ...],
+    ranked: dict[tuple[float, ...], float],
+    bound: float | None,
+    ripple_models: tuple[DriveConfig, ...],
+) -> tuple[tuple[tuple[float, ...], float, float | None] | None, int]:
+    """Of ``ranked`` (point: loss on the model, best first), in batches of ``CANDIDATES``
+    (``RIPPLE_BATCHES`` with a ``bound``, else one): the point of the lowest worst loss
+    ratio over the perturbed models, below 1, and with a bound predicted within it; with
+    that ratio and its prediction (None: no bound), and the experiments it cost."""
     order = list(ranked)
-    experiments = bench.experiments
-    for b in range(1 if ripple_limit is None else RIPPLE_BATCHES):
+    experiments = 0
+    for b in range(1 if bound is None else RIPPLE_BATCHES):
         best = {u: ranked[u] for u in order[b * CANDIDATES : (b + 1) * CANDIDATES]}
         if not best:
-            return None
+            break
         worst = dict.fromkeys(best, 0.0)
         for j, rr in perturbations:
             pb = _ModelBench(_perturbed(model, j, rr), experiment)
@@ -240,29 +275,18 @@ def _compute(
                     loss, aborted = pb.loss(space, np.array(u))
                     worst[u] = max(worst[u], np.inf if aborted else loss / ref)
             experiments += pb.experiments
-        ok = list(best)
+        ok = [u for u in best if worst[u] < 1.0]
         loud = dict.fromkeys(best, 0.0)
-        if ripple_limit is not None:
-            ok = [u for u in ok if worst[u] < 1.0]
+        if bound is not None:
             for m in (model, *ripple_models):
                 said, n = _ripple_check(m, experiment, space, ok)
                 experiments += n
                 loud.update({u: max(loud[u], said[u]) for u in ok})
             ok = [u for u in ok if loud[u] <= bound]
-        if not ok:
-            continue
-        u_best = min(ok, key=lambda u: (worst[u], best[u]))
-        if not worst[u_best] < 1.0:
-            return None
-        return Prior(
-            u=u_best,
-            model_ratio=best[u_best] / f0,
-            worst_ratio=float(worst[u_best]),
-            experiments=experiments,
-            seconds=time.perf_counter() - t0,
-            ripple_ratio=None if ripple_limit is None else float(loud[u_best]),
-        )
-    return None
+        if ok:
+            u = min(ok, key=lambda u: (worst[u], best[u]))
+            return (u, float(worst[u]), None if bound is None else float(loud[u])), experiments
+    return None, experiments
 
 
 def _ripple_check(

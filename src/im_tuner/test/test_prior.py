@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import re
 
 import numpy as np
@@ -230,3 +231,40 @@ def test_the_searchs_ripple_over_the_limit_skips_a_window_where_the_start_rests(
     assert P._over_limit((0.3, 0.2), (0.0, 0.2), 1.5) == pytest.approx(0.2 / 0.3)
     assert P._over_limit((0.3, 0.2), (0.0, 0.0), 1.5) is None
     assert P._over_limit((float('nan'), 0.2), (0.1, 0.2), 1.5) is None
+
+
+def test_with_a_limit_the_search_told_it_runs_when_the_free_one_has_nothing_within(monkeypatch):
+    """With a ripple limit the first step is looked for among the best points of the
+    model's search told nothing of the ripple; only when none of them is predicted
+    within the bound (here: every one called loud) does the search told the bound run,
+    and the step is its best point predicted within it (test_first_step.py has the step
+    taken from the free search).  (20 experiments per seed: the rule, not the tuned
+    figures.)"""
+    model, limit, n = P.nominal_model(load_config(None)), 1.5, 20
+    bound = limit / (1 + P.RIPPLE_MARGIN)
+    told: list[float | None] = []  # each search's bound (None: told nothing)
+    points: list[set[tuple[float, ...]]] = []  # each search's measured points
+    search, check = P._search, P._ripple_check
+
+    def spy(*args, **kwargs):
+        told.append(args[4])
+        seen, bench = search(*args, **kwargs)
+        points.append({u for _, _, u in seen})
+        return seen, bench
+
+    def loud_when_free(m, experiment, space, pts):
+        if told[-1] is None:
+            return dict.fromkeys(pts, math.inf), 0
+        return check(m, experiment, space, pts)
+
+    monkeypatch.setattr(P, '_search', spy)
+    monkeypatch.setattr(P, '_ripple_check', loud_when_free)
+    prior = P._compute(model, None, SPACE, P.PERTURBATIONS, n, limit, (model,))
+    assert prior is not None and prior.ripple_ratio is not None
+    assert told == [None, bound]
+    assert prior.u in points[-1] and prior.u != tuple(START.tolist())
+    assert 0.0 <= prior.ripple_ratio <= bound and prior.worst_ratio < 1.0
+    # the free search (1 + 4 x 20), the told one (1 + 4 more of the start + 4 x 20), each
+    # batch's perturbed models and ripple checks: more than the searches
+    searches = 1 + 4 * n + 5 + 4 * n
+    assert prior.experiments > searches + len(P.PERTURBATIONS) * 2

@@ -26,7 +26,7 @@ import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from . import numeric
 
@@ -48,7 +48,12 @@ class UsageError(Exception):
 class Parser(argparse.ArgumentParser):
     """argparse with one-line errors (raised as :class:`UsageError`); a bad value of the
     numeric baseline's switch (``IM_NUMERIC_BASELINE``, :mod:`.numeric`) is refused as a
-    bad command line is, by every executable."""
+    bad command line is, by every executable.  Long options are taken whole, never
+    abbreviated: a script's command line keeps its meaning when an option is added."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault('allow_abbrev', False)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> None:  # type: ignore[override]
         raise UsageError(message)

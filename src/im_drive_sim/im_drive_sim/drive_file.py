@@ -50,8 +50,8 @@ def _read(name: str, p: Path) -> Any:
     """The YAML document of the drive file ``p`` (``name``: how errors call it)."""
     try:
         data, text = read_yaml(p)
-    except YamlFileError as exc:
-        raise ConfigError(f'{name}: {exc}') from None
+    except YamlFileError as exc:  # a file that is not there: named by where it was looked for
+        raise ConfigError(f'{name if p.is_file() else p}: {exc}') from None
     if data is None:  # an empty file, only comments, or a bare null: no settings at all
         content = [ln.strip() for ln in text.splitlines() if ln.strip()]
         if not content:
@@ -108,7 +108,7 @@ def _with_base(name: str, path: Path, data: Mapping[str, Any]) -> dict[str, Any]
     try:
         bdata, _ = read_yaml(bp)
     except YamlFileError as exc:
-        raise ConfigError(f'{name}: base {base!r}: cannot read {bp} ({exc})') from None
+        raise ConfigError(f'{name}: base {base!r}: {bp}: {exc}') from None
     if isinstance(bdata, Mapping) and 'base' in bdata and packaged is not None:
         bdata = _with_base(bp.name, bp, bdata)  # a packaged drive: its motor's file under it
     if not isinstance(bdata, Mapping) or 'base' in bdata:

@@ -15,12 +15,12 @@ class YamlFileError(ValueError):
 
 def read_yaml(path: Path) -> tuple[Any, str]:
     """The YAML document of the text file ``path`` and its text. :class:`YamlFileError`:
-    ``cannot read PATH: REASON``, ``not a text (UTF-8) file`` or ``YAML syntax error at
+    ``cannot read the file (REASON)``, ``not a text (UTF-8) file`` or ``YAML syntax error at
     line L, column C: PROBLEM``."""
     try:
         text = path.read_text(encoding='utf-8')
     except OSError as exc:
-        raise YamlFileError(f'cannot read {path}: {exc.strerror or exc}') from None
+        raise YamlFileError(f'cannot read the file ({exc.strerror or exc})') from None
     except UnicodeDecodeError:
         raise YamlFileError('not a text (UTF-8) file') from None
     try:

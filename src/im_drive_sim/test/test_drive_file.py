@@ -48,9 +48,11 @@ def test_a_missing_relative_base_is_one_line_naming_the_file(tree):
         assert len(text.splitlines()) == 1 and "relative to bad.yaml's folder" in text
     bad.write_text('base: sub/motor.yaml\n')
     (tree / 'drives' / 'sub' / 'motor.yaml').write_text('machine: [\n')
-    with pytest.raises(ConfigError, match=r"bad\.yaml: base 'sub/motor\.yaml': cannot read") as e:
+    said = r"bad\.yaml: base 'sub/motor\.yaml': /\S+/sub/motor\.yaml: YAML syntax error at line 2"
+    with pytest.raises(ConfigError, match=said) as e:
         load_config(bad)
     assert len(str(e.value).splitlines()) == 1  # (a YAML error's text spans lines)
+    assert str(e.value).count('motor.yaml') == 2  # the base as written, then its path
 
 
 def test_the_packaged_base_of_a_drive_file(tmp_path):

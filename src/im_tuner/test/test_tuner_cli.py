@@ -167,6 +167,8 @@ def test_every_option_is_declared_once_and_the_docs_table_is_generated_from_it()
         (['--retries', '-2'], 'argument --retries: must be >= 0, got -2'),
         (['--seed', '-1'], 'argument --seed: must be >= 0, got -1'),
         (['--eval-timeout', '0'], 'argument --eval-timeout: must be > 0 s, got 0'),
+        # long options whole: an abbreviation is an unknown argument
+        (['--bud', '1'], 'unrecognized arguments: --bud 1'),
     ],
 )
 def test_a_declared_range_is_checked_by_the_parser(argv: list[str], message: str) -> None:

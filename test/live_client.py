@@ -41,10 +41,14 @@ def connect_when_listening(port: int, timeout: float, rcvbuf: int = 0) -> socket
 
 def _send_text(s: socket.socket, text: str) -> None:
     """One masked text frame (a client's)."""
-    data = text.encode()
+    _send_frame(s, 0x1, text.encode())
+
+
+def _send_frame(s: socket.socket, opcode: int, data: bytes) -> None:
+    """One final masked frame (a client's) of ``opcode``."""
     mask = os.urandom(4)
     n = len(data)
-    head = bytes([0x81])
+    head = bytes([0x80 | opcode])
     if n < 126:
         head += bytes([0x80 | n])
     elif n < 1 << 16:
@@ -109,9 +113,11 @@ class _Frames:
                 n = struct.unpack('>Q', self._need(8))[0]
             payload = self._need(n)
             op = b0 & 0x0F
-            if op >= 8:  # control: close ends, ping/pong ignored (a test client)
-                if op == 8:
-                    raise ConnectionError('closed by the server')
+            if op >= 8:  # control: close ends; a ping is answered, as every client must
+                if op == 8:  # (the server's keepalive closes a client that does not, after
+                    raise ConnectionError('closed by the server')  # 40 s: a loaded run)
+                if op == 9:
+                    _send_frame(self.s, 0xA, payload)
                 continue
             op0 = op if op0 is None else op0
             parts.append(payload)

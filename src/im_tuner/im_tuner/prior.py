@@ -217,10 +217,10 @@ def _compute(
     t0 = time.perf_counter()
     bound = None if ripple_limit is None else ripple_limit / (1.0 + RIPPLE_MARGIN)
     experiments = 0
+    start = tuple(space.start_u.tolist())
     for told in (None,) if bound is None else (None, bound):
         seen, bench = _search(model, experiment, space, evaluations, told)
         experiments += bench.experiments
-        start = tuple(space.start_u.tolist())
         f0 = next((loss for loss, ab, u in seen if u == start and not ab), None)
         if f0 is None:  # the box's start is unstable on the model: no ratio to beat, no prior
             return None

@@ -12,8 +12,9 @@ the points it plots).
    every layout (a layout, or one tab of it) is connected while the run goes on. Every panel
    gets a finite point on every path, and Fig. 9's points are the losses and gains of
    results.jsonl, bit for bit, at their experiment ids.
-2. After the fact: the run's bag opened as a local file: every panel plots finite points on
-   every path, and Fig. 9 every experiment of results.jsonl, bit for bit.
+2. After the fact: the run's bag holds every result (the mcap library, read by time as a
+   viewer reads it); opened as a local file, every panel plots finite points on every path,
+   and Fig. 9 every experiment of results.jsonl, bit for bit.
 
 Marked ``viewer``: it runs where Chromium (/usr/bin/chromium, or $CHROMIUM), Node.js and npm
 are (``.ci/run`` installs them), and skips saying which is missing elsewhere.
@@ -38,6 +39,7 @@ from ament_index_python.packages import get_package_share_directory
 
 from im_controller.config import GAIN_NAMES
 from im_drive_sim.runtime import stop_child
+from im_tuner.names import RESULT_TOPIC
 
 REPO = Path(__file__).resolve().parents[1]
 VIEW = REPO / 'tools' / 'foxglove-view'
@@ -52,6 +54,8 @@ LIVE_DEADLINE_S = 300
 BAG_DEADLINE_S = 240
 #: Fig. 9's series path: a result of one kind, one value of it by its key
 #: (``/tuner/result.status[:]{name=="eval"}.values[:]{key=="loss"}.value``)
+#: the result topic in the bag
+RESULT = '/' + RESULT_TOPIC
 RESULT_PATH = re.compile(r'\{name=="(\w+)"\}\.values\[:\]\{key=="(\w+)"\}\.value$')
 
 
@@ -236,6 +240,27 @@ def fig9_points(panels: dict) -> dict[tuple[str, str], list[list[float]]]:
     return {k: sorted(v) for k, v in out.items()}
 
 
+def bag_result_ids(bag: Path) -> list[tuple[int, str]]:
+    """The bag's tuner/result messages as (experiment id, kind), read with the mcap library
+    as a viewer reads a time range: each message found again by a read of its own log time
+    (the chunk indexes that a viewer's block reads go by)."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    out = []
+    with bag.open('rb') as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _s, _c, m, msg in reader.iter_decoded_messages(topics=[RESULT]):
+            (st,) = msg.status
+            key = (int({kv.key: kv.value for kv in st.values}['experiment_id']), st.name)
+            again = reader.iter_messages(
+                topics=[RESULT], starting_at=m.log_time, ending_at=m.log_time
+            )
+            assert any(a.data == m.data for _s, _c, a in again), f'{key}: not found at its time'
+            out.append(key)
+    return out
+
+
 def expected(row: dict, key: str) -> float | None:
     return row.get('loss') if key == 'loss' else row['gains'][key]
 
@@ -285,6 +310,9 @@ def test_the_runs_bag_opened_as_a_file_shows_every_panel_and_every_experiment(
 ):
     _report, run = live
     bag = sorted((run / 'bag_0').glob('*.mcap'))[0]
+    rows = results_by_id(run)
+    # the bag itself holds every result, found where a viewer's time-range read looks
+    assert bag_result_ids(bag) == [(i, r['kind']) for i, r in sorted(rows.items())]
     report = json.loads(
         finish(
             view('--layouts', str(layouts_dir), '--bag', str(bag)), BAG_DEADLINE_S, 'the bag viewer'
@@ -299,8 +327,8 @@ def test_the_runs_bag_opened_as_a_file_shows_every_panel_and_every_experiment(
                 assert s['n'] >= 1 and s['finite'], f'{name}: {pid} {path}: {s}'
     # Fig. 9 after the fact: every experiment of results.jsonl in the series of its kind,
     # in id order, bit for bit
-    rows = results_by_id(run)
-    points = fig9_points(report['layouts']['fig9_loss_gains']['panels'])
+    fig9 = report['layouts']['fig9_loss_gains']
+    points = fig9_points(fig9['panels'])
     assert sorted(points) == FIG9_SERIES
     for (kind, key), pts in points.items():
         want = [
@@ -308,7 +336,8 @@ def test_the_runs_bag_opened_as_a_file_shows_every_panel_and_every_experiment(
             for i, r in sorted(rows.items())
             if r['kind'] == kind and expected(r, key) is not None
         ]
-        assert pts == want, (kind, key)
+        # (the app's player state then: the fraction of the bag read, its problems)
+        assert pts == want, (kind, key, fig9['state'])
 
 
 def test_every_panel_shows_a_real_time_run_live(tmp_path, layouts_dir, layouts, viewer_installed):

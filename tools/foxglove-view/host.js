@@ -148,6 +148,8 @@ function makeProbe() {
     }
     return out;
   };
+  const preloaded = (blocks, topics) =>
+    blocks?.length ? blocks.filter((b) => b && topics.every((t) => b.messagesByTopic[t])).length / blocks.length : 0;
   return {
     state() {
       const s = pipeline();
@@ -158,8 +160,11 @@ function makeProbe() {
         topics: s.public.sortedTopics.map((t) => t.name),
         subscribed: [...s.subscriberIdsByTopic.keys()].sort(),
         received: [...s.lastMessageEventByTopic.keys()].sort(),
-        // how much of a bag the player has read: the fraction of its time range, 0..1
+        // how much of a bag the player has read ahead for playback: a fraction of its time range
         loaded: (s.public.playerState.progress?.fullyLoadedFractionRanges ?? []).reduce((a, r) => a + r.end - r.start, 0),
+        // how much of it the panels' preloaded topics are read for: the fraction of the
+        // player's blocks (its message cache) that hold every subscribed topic
+        preloaded: preloaded(s.public.playerState.progress?.messageCache?.blocks, [...s.subscriberIdsByTopic.keys()]),
       };
     },
     plots,

@@ -137,21 +137,25 @@ async function showLayout(page, name, shot, only) {
     for (const [tabPanel, index] of view.tabs) await page.evaluate(([p, k]) => window.imView.selectTab(p, k), [tabPanel, index]);
     // full: a point on every path. The player reads a bag in blocks and the panels fill as
     // they come: a bag's view with an experiment-rate plot (a custom x axis: Fig. 9, whose
-    // every point is checked) or a screenshot's also waits until it settled (no point added
-    // for 1 s); the 5 kHz views are done at their first points (their whole run takes
+    // every point is checked) waits until every block of the player's message cache holds
+    // its topics (a quiet second alone is not proof on a loaded machine) and the panels
+    // then settled (no point added for 1 s); a screenshot's view waits until it
+    // settled; the 5 kHz views are done at their first points (their whole run takes
     // minutes to plot on 2 cores).
     const custom = view.plots.some((id) => layouts[name].configById[id].xAxisVal === "custom");
+    await page.evaluate(() => delete window.imSettle); // each view settles on its own points
     await page
       .waitForFunction(
-        ([ids, settle]) => {
+        ([ids, settle, whole]) => {
           const counts = window.imView.counts();
           const full = ids.every((id) => counts[id] && Object.values(counts[id]).every((n) => n > 0));
           const n = ids.reduce((a, id) => a + Object.values(counts[id] ?? {}).reduce((b, k) => b + k, 0), 0);
           const w = (window.imSettle ??= { n: -1, since: 0 });
+          if (whole && window.imView.state()?.preloaded !== 1) w.n = -1; // settles from the last block on
           if (n !== w.n) Object.assign(w, { n, since: Date.now() });
           return full && (!settle || Date.now() - w.since >= 1000);
         },
-        [view.plots, !!opt.bag && (custom || (shot && i === 0))],
+        [view.plots, !!opt.bag && (custom || (shot && i === 0)), !!opt.bag && custom],
         { timeout: TIMEOUT_MS, polling: 100 },
       )
       .catch(() => {});

@@ -51,7 +51,7 @@ RUN_ARGS = ('--budget', '6', '--seed', '1', '--quiet')
 VIEW_TIMEOUT_S = 120
 #: the longest the live run and its viewer may take together, and the bag's viewer [s]
 LIVE_DEADLINE_S = 300
-BAG_DEADLINE_S = 240
+BAG_DEADLINE_S = 360
 #: Fig. 9's series path: a result of one kind, one value of it by its key
 #: (``/tuner/result.status[:]{name=="eval"}.values[:]{key=="loss"}.value``)
 #: the result topic in the bag

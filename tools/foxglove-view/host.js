@@ -148,8 +148,11 @@ function makeProbe() {
     }
     return out;
   };
-  const preloaded = (blocks, topics) =>
-    blocks?.length ? blocks.filter((b) => b && topics.every((t) => b.messagesByTopic[t])).length / blocks.length : 0;
+  const preloaded = (s) => {
+    const blocks = s?.public.playerState.progress?.messageCache?.blocks ?? [];
+    const topics = [...(s?.subscriberIdsByTopic.keys() ?? [])];
+    return blocks.length ? blocks.filter((b) => b && topics.every((t) => b.messagesByTopic[t])).length / blocks.length : 0;
+  };
   return {
     state() {
       const s = pipeline();
@@ -164,11 +167,17 @@ function makeProbe() {
         loaded: (s.public.playerState.progress?.fullyLoadedFractionRanges ?? []).reduce((a, r) => a + r.end - r.start, 0),
         // how much of it the panels' preloaded topics are read for: the fraction of the
         // player's blocks (its message cache) that hold every subscribed topic
-        preloaded: preloaded(s.public.playerState.progress?.messageCache?.blocks, [...s.subscriberIdsByTopic.keys()]),
+        preloaded: preloaded(s),
+        // the first blocks not read for them: [index, the topics it lacks, or "none"]
+        unread: (s.public.playerState.progress?.messageCache?.blocks ?? []).flatMap((b, i) => {
+          const miss = [...s.subscriberIdsByTopic.keys()].filter((t) => !b?.messagesByTopic[t]);
+          return miss.length ? [[i, b ? miss : "none"]] : [];
+        }).slice(0, 12),
       };
     },
     plots,
     counts,
+    preloaded: () => preloaded(pipeline()),
     selectLayout(id) {
       layoutActions().setSelectedLayoutId(id);
     },

@@ -52,10 +52,10 @@ VIEW_TIMEOUT_S = 120
 #: the longest the live run and its viewer may take together, and the bag's viewer [s]
 LIVE_DEADLINE_S = 300
 BAG_DEADLINE_S = 360
-#: Fig. 9's series path: a result of one kind, one value of it by its key
-#: (``/tuner/result.status[:]{name=="eval"}.values[:]{key=="loss"}.value``)
 #: the result topic in the bag
 RESULT = '/' + RESULT_TOPIC
+#: Fig. 9's series path: a result of one kind, one value of it by its key
+#: (``/tuner/result.status[:]{name=="eval"}.values[:]{key=="loss"}.value``)
 RESULT_PATH = re.compile(r'\{name=="(\w+)"\}\.values\[:\]\{key=="(\w+)"\}\.value$')
 
 
@@ -336,7 +336,7 @@ def test_the_runs_bag_opened_as_a_file_shows_every_panel_and_every_experiment(
             for i, r in sorted(rows.items())
             if r['kind'] == kind and expected(r, key) is not None
         ]
-        # (the app's player state then: the fraction of the bag read, its problems)
+        # (the app's player state then: the blocks read for Fig. 9, those not read, problems)
         assert pts == want, (kind, key, fig9['state'])
 
 

@@ -148,10 +148,14 @@ function makeProbe() {
     }
     return out;
   };
-  const preloaded = (s) => {
-    const blocks = s?.public.playerState.progress?.messageCache?.blocks ?? [];
+  // the player's blocks (its message cache), each with the subscribed topics it lacks
+  const unreadTopics = (s) => {
     const topics = [...(s?.subscriberIdsByTopic.keys() ?? [])];
-    return blocks.length ? blocks.filter((b) => b && topics.every((t) => b.messagesByTopic[t])).length / blocks.length : 0;
+    return (s?.public.playerState.progress?.messageCache?.blocks ?? []).map((b) => (b ? topics.filter((t) => !b.messagesByTopic[t]) : "none"));
+  };
+  const preloaded = (s) => {
+    const lack = unreadTopics(s);
+    return lack.length ? lack.filter((m) => m.length === 0).length / lack.length : 0;
   };
   return {
     state() {
@@ -169,10 +173,7 @@ function makeProbe() {
         // player's blocks (its message cache) that hold every subscribed topic
         preloaded: preloaded(s),
         // the first blocks not read for them: [index, the topics it lacks, or "none"]
-        unread: (s.public.playerState.progress?.messageCache?.blocks ?? []).flatMap((b, i) => {
-          const miss = [...s.subscriberIdsByTopic.keys()].filter((t) => !b?.messagesByTopic[t]);
-          return miss.length ? [[i, b ? miss : "none"]] : [];
-        }).slice(0, 12),
+        unread: unreadTopics(s).flatMap((m, i) => (m.length ? [[i, m]] : [])).slice(0, 12),
       };
     },
     plots,

@@ -194,9 +194,8 @@ try {
     // block after each run of blocks that lack the same topics: a layout shown after
     // others could miss a block's messages for good.
     const own = (name) => Object.values(layouts[name].configById).some((c) => c.xAxisVal === "custom");
-    const names = Object.keys(layouts);
     let shared;
-    for (const name of names) {
+    for (const name of Object.keys(layouts)) {
       const page = own(name) ? await openApp(context, name) : (shared ??= await openApp(context, name));
       if (page === shared) await page.evaluate((id) => window.imView.selectLayout(id), name);
       report.layouts[name] = await showLayout(page, name, shots(name));
